@@ -1,0 +1,209 @@
+"""Measurement and output types shared by every estimator.
+
+Frames and conventions (``docs/method.md`` section 1):
+
+* Vehicle body frame: **X right (pitch axis), Y forward, Z up**.
+* ``gyro_radps[:, 0]`` is the pitch rate ``ωx``; ``gyro_radps[:, 2]`` the yaw rate ``ωz``,
+  positive counter-clockwise seen from above.
+* ``accel_mps2`` is *specific force* as a MEMS accelerometer measures it: it includes gravity,
+  so a level vehicle at rest reads ``(0, 0, +9.81)``; climbing a slope of pitch ``θ`` (nose up
+  positive) the forward axis reads ``dv/dt + g·sin θ``.
+* GNSS velocity is ENU (east, north, up) in m/s; heading ``ψ`` is from north, clockwise, in
+  radians; pitch ``θ`` nose up positive; roll ``φ`` right side down positive.
+* Every timestamp is an ``int`` (or ``int64`` array) of nanoseconds since the Unix epoch, UTC,
+  from the vehicle clock.
+
+Arrays are batches: an IMU packet carries ``n`` samples, a wheel packet ``n`` edges. Nothing
+here copies per sample, so a decoder can hand over views of its buffers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "ESTIMATE_DTYPE",
+    "ESTIMATE_FIELDS",
+    "EstimateFlag",
+    "GnssFix",
+    "GnssSample",
+    "ImuBatch",
+    "Wheel",
+    "WheelEdges",
+    "WheelSpeeds",
+    "empty_estimates",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+class Wheel(IntEnum):
+    """Index of a driven wheel (or track) in every per-wheel array."""
+
+    LEFT = 0
+    RIGHT = 1
+
+
+class GnssFix(IntEnum):
+    """GNSS solution quality, as receivers report it (NMEA GGA quality, simplified)."""
+
+    NONE = 0
+    SINGLE = 1
+    DGNSS = 2
+    RTK_FLOAT = 5
+    RTK_FIXED = 4
+
+
+@dataclass(frozen=True, slots=True)
+class GnssSample:
+    """One GNSS epoch.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Epoch time of the solution (not the arrival time).
+    vel_enu_mps : tuple[float, float, float]
+        Velocity ``(Ve, Vn, Vu)`` of the antenna.
+    heading_rad, pitch_rad, roll_rad : float
+        Attitude from a dual-antenna receiver (or NaN when not available).
+    lat_deg, lon_deg, height_m : float
+        WGS-84 position of the antenna.
+    fix : GnssFix
+        Solution type.
+    vel_std_mps : float
+        Receiver-reported 1-sigma velocity accuracy per axis, or NaN if unknown.
+    """
+
+    stamp_ns: int
+    vel_enu_mps: tuple[float, float, float]
+    heading_rad: float
+    pitch_rad: float
+    roll_rad: float
+    lat_deg: float
+    lon_deg: float
+    height_m: float
+    fix: GnssFix = GnssFix.RTK_FIXED
+    vel_std_mps: float = float("nan")
+
+
+@dataclass(frozen=True, slots=True)
+class ImuBatch:
+    """A batch of IMU samples.
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Sample times, strictly increasing.
+    accel_mps2 : ndarray, shape (n, 3)
+        Specific force in the body frame (X right, Y forward, Z up), gravity included.
+    gyro_radps : ndarray, shape (n, 3)
+        Angular rate in the body frame: ``[:, 0]`` pitch rate ωx, ``[:, 2]`` yaw rate ωz (CCW +).
+    """
+
+    stamp_ns: IntArray
+    accel_mps2: FloatArray
+    gyro_radps: FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class WheelEdges:
+    """Rising edges of one wheel's encoder (toothed ring with ``teeth_per_rev`` teeth).
+
+    Attributes
+    ----------
+    wheel : Wheel
+        Which wheel.
+    stamp_ns : ndarray, shape (n,), int64
+        Edge times, non-decreasing.
+    direction : ndarray, shape (n,), int8, or None
+        +1 forward, -1 reverse, when the encoder is quadrature; None if it cannot tell.
+    """
+
+    wheel: Wheel
+    stamp_ns: IntArray
+    direction: npt.NDArray[np.int8] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSpeeds:
+    """Wheel angular speeds given directly (for example from the CAN bus).
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+    omega_radps : ndarray, shape (n, 2)
+        Signed angular speed of the left and right wheel (forward positive).
+    """
+
+    stamp_ns: IntArray
+    omega_radps: FloatArray
+
+
+class EstimateFlag(IntFlag):
+    """Quality flags of one estimate (bit field stored with every row)."""
+
+    NONE = 0
+    GNSS_OK = 1 << 0
+    """A GNSS velocity was fused on this tick or recently enough to trust the speed."""
+    DEGRADED = 1 << 1
+    """GNSS lost: speed carried by IMU + wheel speed (reference-speed filter)."""
+    STANDSTILL = 1 << 2
+    """Below the standstill threshold: no slip value."""
+    GATED = 1 << 3
+    """A GNSS velocity was rejected by the innovation gate on this tick."""
+    SLIP_LEFT_VALID = 1 << 4
+    SLIP_RIGHT_VALID = 1 << 5
+    WHEEL_PERIOD_METHOD = 1 << 6
+    """Wheel speed came from the (k-tooth) period method; otherwise the frequency method."""
+    WHEEL_DIRECT = 1 << 7
+    """Wheel speed was given directly (CAN), not from pulses."""
+    RESET = 1 << 8
+    """The filter was reset on this tick (divergence or re-initialisation)."""
+
+
+#: Fields of one estimate row, in storage order. Units are in the names; slip is in percent.
+ESTIMATE_FIELDS: tuple[tuple[str, str], ...] = (
+    ("stamp_ns", "i8"),
+    ("vg_mps", "f8"),  # vehicle-direction speed at the antenna, eq. (1) / filtered
+    ("v1_mps", "f8"),  # forward speed at the IMU, eq. (2)
+    ("v0_mps", "f8"),  # forward speed of the rear-axle midpoint's ground projection, eq. (3)
+    ("vl_mps", "f8"),  # left wheel ground speed, eq. (4)
+    ("vr_mps", "f8"),  # right wheel ground speed, eq. (5)
+    ("rim_left_mps", "f8"),  # r·W left
+    ("rim_right_mps", "f8"),  # r·W right
+    ("omega_left_radps", "f8"),
+    ("omega_right_radps", "f8"),
+    ("slip_left_pct", "f8"),  # eq. (8)(9); NaN when not valid
+    ("slip_right_pct", "f8"),
+    ("vg_std_mps", "f8"),
+    ("vl_std_mps", "f8"),
+    ("vr_std_mps", "f8"),
+    ("slip_left_std_pct", "f8"),
+    ("slip_right_std_pct", "f8"),
+    ("accel_mps2", "f8"),  # forward acceleration a1 (gravity removed in product mode)
+    ("pitch_rate_radps", "f8"),
+    ("yaw_rate_radps", "f8"),
+    ("east_m", "f8"),  # antenna position in the vehicle's local ENU frame
+    ("north_m", "f8"),
+    ("up_m", "f8"),
+    ("heading_rad", "f8"),
+    ("pitch_rad", "f8"),
+    ("roll_rad", "f8"),
+    ("flags", "i4"),  # EstimateFlag bits
+)
+
+ESTIMATE_DTYPE = np.dtype(list(ESTIMATE_FIELDS))
+
+
+def empty_estimates(n: int = 0) -> np.ndarray:
+    """Return ``n`` estimate rows, floats NaN, ints zero (structured array of ESTIMATE_DTYPE)."""
+    out = np.zeros(n, dtype=ESTIMATE_DTYPE)
+    for name, kind in ESTIMATE_FIELDS:
+        if kind == "f8":
+            out[name] = np.nan
+    return out

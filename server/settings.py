@@ -1,0 +1,140 @@
+"""The one place every setting lives.
+
+Settings come, in rising priority, from defaults here, a TOML file (``SLIPFLEET_CONFIG`` or the
+``config_file`` argument), and environment variables prefixed ``SLIPFLEET_`` with ``__`` between
+sections, e.g. ``SLIPFLEET_STORAGE__URL=postgresql://…``. Build with :func:`load_settings` in the
+app factory or CLI, never at import.
+"""
+
+from __future__ import annotations
+
+import os
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field, SecretStr, field_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+__all__ = [
+    "ApiSettings",
+    "IngestSettings",
+    "Settings",
+    "StorageSettings",
+    "UnknownVehiclePolicy",
+    "ViewerSettings",
+    "ZenohSettings",
+    "load_settings",
+]
+
+
+class UnknownVehiclePolicy(StrEnum):
+    """What the server does with packets from a vehicle it has no config for."""
+
+    AUTO_REGISTER = "auto"  # register with default config on first packet
+    REJECT = "reject"  # count as rejected (reason: unknown_vehicle)
+
+
+class ZenohSettings(BaseModel):
+    """Zenoh session.
+
+    With ``connect`` empty the server starts an embedded router listening on ``listen``.
+    """
+
+    connect: list[str] = Field(default_factory=list, description="router endpoints, e.g. tcp/10.0.0.2:7447")
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    key_prefix: str = Field("fleet", description="root of every key expression")
+    vehicle_filter: str = Field("*", description="key-expression chunk selecting this server's vehicles")
+    username: str | None = None
+    password: SecretStr | None = None
+    channel_capacity: int = Field(65536, ge=16, description="bounded FIFO per subscriber, samples")
+
+
+class StorageSettings(BaseModel):
+    """Where estimates are kept: SQLite file in ``data_dir`` unless ``url`` names PostgreSQL."""
+
+    url: SecretStr | None = Field(None, description="postgresql://user:pass@host/db; None = SQLite")
+    data_dir: Path = Path("./data")
+    sqlite_file: str = "slipfleet.sqlite"
+    batch_max_rows: int = Field(5000, ge=1, description="rows per transaction at most")
+    commit_interval_s: float = Field(0.5, gt=0, le=1.0, description="writer commits at least this often")
+    backlog_max_rows: int = Field(2_000_000, ge=1000, description="in-memory backlog bound")
+    retention_days: float = Field(0, ge=0, description="delete estimates older than this; 0 = keep")
+    store_raw_packets: bool = False
+
+
+class IngestSettings(BaseModel):
+    """Per-vehicle reorder buffer and registration policy."""
+
+    lateness_ms: int = Field(150, ge=0, le=60_000, description="reorder window by sensor timestamp")
+    unknown_vehicle: UnknownVehiclePolicy = UnknownVehiclePolicy.AUTO_REGISTER
+    process_interval_ms: int = Field(20, ge=1, description="how often the pipeline steps estimators")
+    max_payload_bytes: int = Field(256 * 1024, ge=1024)
+
+
+class ApiSettings(BaseModel):
+    """REST API and dashboard."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    cors_origins: list[str] = Field(default_factory=list)
+    require_auth: bool = True
+
+
+class ViewerSettings(BaseModel):
+    """viser 3D fleet view."""
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(8080, ge=0, le=65535)
+    update_hz: float = Field(5.0, gt=0, le=60)
+
+
+class Settings(BaseSettings):
+    """All of the server's settings."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="SLIPFLEET_",
+        env_nested_delimiter="__",
+        extra="forbid",
+    )
+
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    storage: StorageSettings = Field(default_factory=StorageSettings)
+    ingest: IngestSettings = Field(default_factory=IngestSettings)
+    api: ApiSettings = Field(default_factory=ApiSettings)
+    viewer: ViewerSettings = Field(default_factory=ViewerSettings)
+
+    @field_validator("api")
+    @classmethod
+    def _no_wildcard_cors(cls, v: ApiSettings) -> ApiSettings:
+        if "*" in v.cors_origins:
+            raise ValueError("CORS '*' is refused; list the dashboard origins explicitly")
+        return v
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        toml_path = os.environ.get("SLIPFLEET_CONFIG")
+        if toml_path:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(toml_path)))
+        return tuple(sources)
+
+
+def load_settings(config_file: Path | None = None, **overrides: Any) -> Settings:
+    """Build settings from env, an optional TOML file and explicit overrides (highest priority)."""
+    if config_file is not None:
+        os.environ["SLIPFLEET_CONFIG"] = str(config_file)
+    return Settings(**overrides)

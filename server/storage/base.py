@@ -1,0 +1,83 @@
+"""The storage interface: every query the product makes lives behind it.
+
+Two implementations: :mod:`server.storage.sqlite` (embedded default, WAL) and
+:mod:`server.storage.postgres` (selected by URL). Both are used from exactly one writer thread for
+writes (:class:`server.storage.writer.StoreWriter`) and from any thread for reads.
+
+Estimate rows travel as numpy structured arrays of ``estimator.types.ESTIMATE_DTYPE``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+__all__ = ["Store", "StorageError", "VehicleRecord"]
+
+
+class StorageError(RuntimeError):
+    """The database refused or is unreachable."""
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleRecord:
+    """A registered vehicle."""
+
+    vehicle_id: str
+    config: dict[str, Any]  # VehicleConfig.to_dict()
+    created_ns: int
+    updated_ns: int
+
+
+class Store(Protocol):
+    """What the server needs from a database."""
+
+    dialect: str  # "sqlite" | "postgresql"
+
+    def migrate(self) -> int:
+        """Apply pending versioned migrations (idempotent); return the schema version."""
+
+    def close(self) -> None: ...
+
+    def ping(self) -> bool:
+        """True when the database answers."""
+
+    # vehicles
+    def upsert_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> VehicleRecord: ...
+
+    def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None: ...
+
+    def list_vehicles(self) -> list[VehicleRecord]: ...
+
+    def delete_vehicle(self, vehicle_id: str) -> bool:
+        """Delete the vehicle with all its estimates and counters; False if it did not exist."""
+
+    # estimates
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        """Insert rows for several vehicles in one transaction; return rows written.
+
+        Rows whose ``(vehicle_id, stamp_ns)`` already exist are ignored (idempotent replays).
+        """
+
+    def query_series(
+        self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
+    ) -> np.ndarray:
+        """Rows with ``start_ns <= stamp_ns < end_ns`` ordered by time (``stamp_ns`` always in)."""
+
+    def latest(self, vehicle_id: str) -> np.ndarray | None:
+        """The newest row (a 0-d structured array) or None."""
+
+    def latest_all(self) -> dict[str, np.ndarray]:
+        """Newest row of every vehicle."""
+
+    def delete_older_than(self, stamp_ns: int) -> int:
+        """Retention: delete estimates older than ``stamp_ns``; return rows deleted."""
+
+    # ingest counters
+    def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
+        """Upsert per-vehicle counter totals: ``{vehicle_id: {counter_name: total}}``."""
+
+    def get_counters(self, vehicle_id: str) -> dict[str, int]: ...
