@@ -4,7 +4,7 @@ Every section is a frozen dataclass that validates itself in ``__post_init__`` a
 :class:`ConfigError` with the offending field named. The server turns these into JSON
 (``dataclasses.asdict``) and back (:func:`vehicle_config_from_dict`).
 
-Geometry follows ``docs/method.md`` section 1: the origin ``O`` is the ground projection of the
+Geometry follows ``../shared/docs/method.md`` section 1: the origin ``O`` is the ground projection of the
 rear-axle midpoint; body frame X right, Y forward, Z up. In the source's layout the IMU sits on the
 vertical through ``O`` at height ``h0`` and the antenna ``h1`` above the IMU; the horizontal
 offsets below generalise that (lever arms), zero reproduces the source.

@@ -1,6 +1,6 @@
 """Measurement and output types shared by every estimator.
 
-Frames and conventions (``docs/method.md`` section 1):
+Frames and conventions (``../shared/docs/method.md`` section 1):
 
 * Vehicle body frame: **X right (pitch axis), Y forward, Z up**.
 * ``gyro_radps[:, 0]`` is the pitch rate ``ωx``; ``gyro_radps[:, 2]`` the yaw rate ``ωz``,
