@@ -1,0 +1,192 @@
+"""LiveHub: latest rows, decimated windows, status and async wake-ups, on hand-made rows."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+
+from estimator.types import EstimateFlag, empty_estimates
+from server.live import LiveHub, TierSpec, gnss_quality
+
+S = 1_000_000_000  # ns per second
+T0 = 1_700_000_000 * S
+
+
+def rows(
+    stamps_s: list[float], *, slip_left: list[float] | None = None, vg: float = 2.0
+) -> np.ndarray:
+    r = empty_estimates(len(stamps_s))
+    r["stamp_ns"] = [T0 + round(t * S) for t in stamps_s]
+    r["vg_mps"] = vg
+    r["vl_mps"] = vg
+    r["vr_mps"] = vg
+    r["slip_left_pct"] = slip_left if slip_left is not None else 1.0
+    r["slip_right_pct"] = 2.0
+    r["east_m"] = stamps_s
+    r["north_m"] = 0.0
+    r["flags"] = int(EstimateFlag.GNSS_OK | EstimateFlag.SLIP_LEFT_VALID)
+    return r
+
+
+class Clock:
+    def __init__(self, t_ns: int) -> None:
+        self.t_ns = t_ns
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+def test_latest_row_and_arrival_time_per_vehicle() -> None:
+    clock = Clock(T0 + 10 * S)
+    hub = LiveHub(clock_ns=clock)
+    hub.on_estimates([("a", rows([1.0, 2.0])), ("b", rows([1.5], vg=5.0))])
+    row, arrival = hub.latest("a")  # type: ignore[misc]
+    assert int(row["stamp_ns"]) == T0 + 2 * S
+    assert arrival == T0 + 10 * S
+    row_b, _ = hub.latest("b")  # type: ignore[misc]
+    assert float(row_b["vg_mps"]) == 5.0
+    assert hub.latest("nobody") is None
+    assert hub.vehicle_ids() == ["a", "b"]
+    assert hub.version == 1
+
+
+def test_late_rows_are_dropped_and_counted() -> None:
+    hub = LiveHub(clock_ns=Clock(T0))
+    hub.on_estimates([("a", rows([5.0, 6.0]))])
+    hub.on_estimates([("a", rows([4.0, 6.0, 7.0]))])
+    row, _ = hub.latest("a")  # type: ignore[misc]
+    assert int(row["stamp_ns"]) == T0 + 7 * S
+    assert hub.rows_dropped_late == 2
+    assert hub.rows_in == 3
+
+
+def test_fine_window_keeps_every_row_at_its_resolution() -> None:
+    hub = LiveHub(clock_ns=Clock(T0), tiers=(TierSpec("f", 0.1, 10.0), TierSpec("c", 1.0, 100.0)))
+    t = [i * 0.1 for i in range(50)]
+    hub.on_estimates([("a", rows(t))])
+    w = hub.window("a", 2.0)
+    assert w is not None and w["tier"] == "f"
+    # rows with stamp >= newest - 2 s: 4.9 - 2.0 = 2.9 .. 4.9 → 21 rows
+    assert len(w["stamp_ns"]) == 21
+    assert w["stamp_ns"][-1] == T0 + round(4.9 * S)
+    assert w["vg_mps"] == [2.0] * 21
+
+
+def test_coarse_tier_keeps_slip_peak_and_newest_values_per_bucket() -> None:
+    hub = LiveHub(clock_ns=Clock(T0), tiers=(TierSpec("f", 0.1, 1.0), TierSpec("c", 1.0, 100.0)))
+    t = [0.0, 0.25, 0.5, 0.75, 1.0, 1.5]
+    slip = [1.0, -9.0, 3.0, 2.0, 4.0, 5.0]
+    # fed one row per call, as a 50 Hz pipeline would, so buckets merge across calls
+    for ti, si in zip(t, slip, strict=True):
+        hub.on_estimates([("a", rows([ti], slip_left=[si]))])
+    w = hub.window("a", 50.0)
+    assert w is not None and w["tier"] == "c"
+    assert w["stamp_ns"] == [T0 + round(0.75 * S), T0 + round(1.5 * S)]
+    assert w["slip_left_pct"] == [-9.0, 5.0]  # peak magnitude, sign kept
+
+
+def test_same_result_whether_rows_come_in_one_batch_or_many() -> None:
+    tiers = (TierSpec("f", 0.2, 2.0), TierSpec("c", 1.0, 100.0))
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.01, 0.3, 200)).tolist()
+    slip = rng.normal(0, 10, 200).tolist()
+    one = LiveHub(clock_ns=Clock(T0), tiers=tiers)
+    one.on_estimates([("a", rows(t, slip_left=slip)), ("b", rows(t[:50]))])
+    many = LiveHub(clock_ns=Clock(T0), tiers=tiers)
+    for i in range(0, 200, 7):
+        batch = [("a", rows(t[i : i + 7], slip_left=slip[i : i + 7]))]
+        if i < 50:
+            batch.append(("b", rows(t[i : min(i + 7, 50)])))
+        many.on_estimates(batch)
+    for vid in ("a", "b"):
+        for window in (1.5, 80.0):
+            assert one.window(vid, window) == many.window(vid, window)
+
+
+def test_ring_is_bounded_and_drops_the_oldest() -> None:
+    hub = LiveHub(clock_ns=Clock(T0), tiers=(TierSpec("f", 1.0, 5.0),))
+    hub.on_estimates([("a", rows([float(i) for i in range(100)]))])
+    w = hub.window("a", 1000.0)
+    assert w is not None
+    assert len(w["stamp_ns"]) == 6  # capacity = span / bucket + 1
+    assert w["stamp_ns"][-1] == T0 + 99 * S
+
+
+def test_incremental_window_and_max_points() -> None:
+    hub = LiveHub(clock_ns=Clock(T0), tiers=(TierSpec("f", 0.01, 100.0),))
+    hub.on_estimates([("a", rows([i * 0.05 for i in range(1000)]))])
+    since = T0 + 40 * S
+    w = hub.window("a", 100.0, since_ns=since)
+    assert w is not None and min(w["stamp_ns"]) >= since and len(w["stamp_ns"]) == 200
+    d = hub.window("a", 100.0, max_points=100)
+    assert d is not None and 50 <= len(d["stamp_ns"]) <= 101
+
+
+def test_vehicles_beyond_initial_capacity() -> None:
+    hub = LiveHub(clock_ns=Clock(T0), initial_slots=2)
+    hub.on_estimates([(f"v{i}", rows([1.0, 2.0], vg=float(i))) for i in range(9)])
+    ids, latest, _ = hub.latest_all()
+    assert ids == [f"v{i}" for i in range(9)]
+    assert latest["vg_mps"].tolist() == [float(i) for i in range(9)]
+    w = hub.window("v8", 10.0)
+    assert w is not None and len(w["stamp_ns"]) == 2
+
+
+def test_status_from_sensor_age_and_wall_age() -> None:
+    clock = Clock(T0 + 100 * S)
+    hub = LiveHub(clock_ns=clock, stale_after_s=2.0, offline_after_s=10.0)
+    hub.on_estimates([("a", rows([100.0])), ("b", rows([95.0])), ("c", rows([80.0]))])
+    assert hub.status("a") == "live"
+    assert hub.status("b") == "stale"  # 5 s behind the fleet's newest sensor time
+    assert hub.status("c") == "offline"
+    clock.t_ns += 3 * S  # nothing new arrives for 3 s of wall time
+    assert hub.status("a") == "stale"
+    ov = hub.overview()
+    assert ov["ids"] == ["a", "b", "c"]
+    assert ov["status"] == ["stale", "stale", "offline"]
+    assert ov["age_s"] == [3.0, 5.0, 20.0]
+    assert ov["gnss"] == ["ok", "ok", "ok"]
+    assert ov["slip_left_pct"] == [1.0, 1.0, 1.0]
+
+
+def test_overview_turns_nan_into_null() -> None:
+    hub = LiveHub(clock_ns=Clock(T0))
+    r = rows([1.0], slip_left=[float("nan")])
+    hub.on_estimates([("a", r)])
+    assert hub.overview()["slip_left_pct"] == [None]
+
+
+def test_gnss_quality_from_flags() -> None:
+    assert gnss_quality(int(EstimateFlag.GNSS_OK)) == "ok"
+    assert gnss_quality(int(EstimateFlag.DEGRADED)) == "degraded"
+    assert gnss_quality(int(EstimateFlag.GNSS_OK | EstimateFlag.GATED)) == "gated"
+    assert gnss_quality(0) == "none"
+
+
+def test_wait_newer_wakes_on_a_batch_from_another_thread() -> None:
+    hub = LiveHub(clock_ns=Clock(T0))
+
+    async def main() -> tuple[int, int]:
+        v0 = hub.version
+        timer = threading.Timer(0.05, lambda: hub.on_estimates([("a", rows([1.0]))]))
+        timer.start()
+        loop = asyncio.get_running_loop()
+        t_start = loop.time()
+        v1 = await hub.wait_newer(v0, timeout_s=5.0)
+        timer.join()
+        assert loop.time() - t_start < 2.0
+        v2 = await hub.wait_newer(v1, timeout_s=0.05)  # times out, same version
+        return v1, v2
+
+    v1, v2 = asyncio.run(main())
+    assert v1 == 1 and v2 == 1
+
+
+def test_rejects_bad_settings() -> None:
+    with pytest.raises(ValueError):
+        LiveHub(stale_after_s=5.0, offline_after_s=2.0)
+    with pytest.raises(ValueError):
+        TierSpec("x", 0.0, 1.0)
