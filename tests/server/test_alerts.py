@@ -1,0 +1,179 @@
+"""AlertEngine on hand-made rows: slip held past the hold time, GNSS degraded, stale vehicles."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from estimator.config import SlipConfig
+from estimator.types import EstimateFlag, empty_estimates
+from server.alerts import AlertEngine, AlertKind
+
+S = 1_000_000_000
+T0 = 1_700_000_000 * S
+OK = int(EstimateFlag.GNSS_OK)
+DEG = int(EstimateFlag.DEGRADED)
+
+
+def rows(
+    t_s: list[float], sl: list[float], sr: float = 0.0, flags: int | list[int] = OK
+) -> np.ndarray:
+    r = empty_estimates(len(t_s))
+    r["stamp_ns"] = [T0 + round(t * S) for t in t_s]
+    r["slip_left_pct"] = sl
+    r["slip_right_pct"] = sr
+    r["flags"] = flags
+    return r
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t_ns = T0
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+def engine(**kw: Any) -> tuple[AlertEngine, list[tuple[str, dict[str, Any]]], Clock]:
+    published: list[tuple[str, dict[str, Any]]] = []
+    clock = Clock()
+    cfg = SlipConfig(alert_threshold_pct=15.0, alert_hold_s=5.0)
+    eng = AlertEngine(
+        slip_config_for=lambda _v: cfg,
+        publish=lambda v, e: published.append((v, e)),
+        clock_ns=clock,
+        **kw,
+    )
+    return eng, published, clock
+
+
+def test_slip_alert_opens_after_hold_and_closes_when_slip_drops() -> None:
+    eng, pub, _ = engine()
+    t = [float(i) for i in range(12)]
+    sl = [1, 20, 25, -30, 20, 20, 20, 22, 3, 20, 20, 1]
+    for ti, si in zip(t, sl, strict=True):  # one row per batch
+        eng.on_estimates([("a", rows([ti], [si]))])
+    assert [e["event"] for _, e in pub] == ["open", "close"]
+    closed = eng.alerts(state="closed")
+    assert len(closed) == 1
+    a = closed[0]
+    assert a.kind is AlertKind.SLIP_LEFT
+    assert a.start_ns == T0 + 1 * S  # where slip went above 15 %
+    assert a.end_ns == T0 + 8 * S  # first row back below
+    assert a.peak == 30.0 and a.threshold == 15.0
+    # held 5 s at t=6: the open event is published then, with start at t=1
+    assert pub[0][1]["start_ns"] == T0 + S and pub[0][1]["end_ns"] is None
+    # 9..10 above for only 1 s: no alert
+    assert eng.alerts(state="open") == []
+
+
+def test_same_alerts_in_one_batch_as_in_many() -> None:
+    t = [i * 0.5 for i in range(40)]
+    sl = [20.0 if 4 <= i < 30 else 0.0 for i in range(40)]
+    one, _, _ = engine()
+    one.on_estimates([("a", rows(t, sl, sr=0.0)), ("b", rows(t, [0.0] * 40, sr=-18.0))])
+    many, _, _ = engine()
+    for i in range(0, 40, 3):
+        many.on_estimates(
+            [
+                ("b", rows(t[i : i + 3], [0.0] * len(t[i : i + 3]), sr=-18.0)),
+                ("a", rows(t[i : i + 3], sl[i : i + 3])),
+            ]
+        )
+
+    def key(eng: AlertEngine) -> list[tuple[str, str, int, int | None, float | None]]:
+        return sorted(
+            (a.vehicle_id, a.kind.value, a.start_ns, a.end_ns, a.peak) for a in eng.alerts()
+        )
+
+    assert key(one) == key(many)
+    assert key(one) == [
+        ("a", "slip_left", T0 + 2 * S, T0 + 15 * S, 20.0),
+        ("b", "slip_right", T0, None, 18.0),
+    ]
+
+
+def test_nan_slip_breaks_the_run() -> None:
+    eng, pub, _ = engine()
+    t = [float(i) for i in range(8)]
+    sl = [20, 20, 20, float("nan"), 20, 20, 20, 20]
+    eng.on_estimates([("a", rows(t, sl))])
+    assert pub == []
+
+
+def test_per_vehicle_threshold_and_later_change() -> None:
+    eng, _, _ = engine()
+    eng.set_slip_config("gentle", SlipConfig(alert_threshold_pct=5.0, alert_hold_s=1.0))
+    t = [float(i) for i in range(4)]
+    eng.on_estimates([("gentle", rows(t, [8.0] * 4)), ("std", rows(t, [8.0] * 4))])
+    assert [(a.vehicle_id, a.kind) for a in eng.alerts(state="open")] == [
+        ("gentle", AlertKind.SLIP_LEFT)
+    ]
+
+
+def test_gnss_degraded_alert() -> None:
+    eng, pub, _ = engine(gnss_hold_s=1.0)
+    t = [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]
+    flags = [OK, DEG, DEG, DEG, OK, OK]
+    eng.on_estimates([("a", rows(t, [0.0] * 6, flags=flags))])
+    [a] = eng.alerts()
+    assert a.kind is AlertKind.GNSS_DEGRADED
+    assert (a.start_ns, a.end_ns) == (T0 + S // 2, T0 + 2 * S)
+    assert [e["event"] for _, e in pub] == ["open", "close"]
+
+
+def test_stale_opens_on_silence_and_closes_on_new_data() -> None:
+    eng, pub, clock = engine(stale_after_s=10.0)
+    eng.on_estimates([("a", rows([0.0], [0.0])), ("b", rows([0.0], [0.0]))])
+    clock.t_ns += 5 * S
+    eng.on_estimates([("b", rows([5.0], [0.0]))])
+    clock.t_ns += 6 * S  # a silent 11 s, b 6 s
+    opened = eng.check_stale()
+    assert [(a.vehicle_id, a.kind) for a in opened] == [("a", AlertKind.STALE)]
+    assert eng.check_stale() == []  # already open
+    assert opened[0].start_ns == T0
+    eng.on_estimates([("a", rows([11.0], [0.0]))])
+    [closed] = eng.alerts(state="closed")
+    assert closed.end_ns == T0 + 11 * S
+    assert [(v, e["event"], e["kind"]) for v, e in pub] == [
+        ("a", "open", "stale"),
+        ("a", "close", "stale"),
+    ]
+
+
+def test_publish_errors_are_counted_not_raised() -> None:
+    def boom(_v: str, _e: dict[str, Any]) -> None:
+        raise RuntimeError("bus down")
+
+    eng = AlertEngine(publish=boom, slip_config_for=lambda _v: SlipConfig(alert_hold_s=1.0))
+    eng.on_estimates([("a", rows([0.0, 1.0, 2.0], [50.0, 50.0, 50.0]))])
+    assert eng.publish_errors == 1
+    assert eng.open_count() == 1
+
+
+def test_many_vehicles_grow_state() -> None:
+    eng, _, _ = engine()
+    eng.on_estimates([(f"v{i}", rows([0.0, 6.0], [30.0, 30.0])) for i in range(100)])
+    assert eng.open_count() == 100
+    assert len(eng.alerts(limit=10)) == 10
+    assert {a.vehicle_id for a in eng.alerts(vehicle_id="v42")} == {"v42"}
+    with pytest.raises(ValueError):
+        eng.alerts(state="maybe")
+
+
+def test_stale_thread_starts_and_stops() -> None:
+    eng = AlertEngine(stale_after_s=0.01)
+    eng.on_estimates([("a", rows([0.0], [0.0]))])
+    eng.start(interval_s=0.01)
+    try:
+        for _ in range(200):
+            if eng.open_count():
+                break
+            import time
+
+            time.sleep(0.01)
+    finally:
+        eng.stop()
+    assert [a.kind for a in eng.alerts()] == [AlertKind.STALE]
