@@ -241,7 +241,7 @@ class AlertEngine:
             prev[1:] = cond[:-1]
             prev[first] = self._active[slot[first]]
             changed: np.ndarray = (cond != prev).any(axis=1)
-            waiting = np.asarray(self._active & (self._open < 0)).any(axis=1)
+            waiting = np.asarray(np.any(self._active & (self._open < 0), axis=1))
             busy = np.unique(np.r_[slot[changed], slots[waiting[slots]]])
             quiet = ~np.isin(slot, busy)
             if quiet.any():  # steady vehicles: only the peaks of their open slip alerts move
