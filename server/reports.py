@@ -1,0 +1,324 @@
+"""Field reports over estimate series (pure numpy, no I/O).
+
+Definitions (what every number in a report means)
+-------------------------------------------------
+Time weight of a row
+    Row ``i`` stands for the time until the next row, ``w_i = t[i+1] - t[i]``. A step longer than
+    ``max_gap_s`` is a data gap: the row before it counts one nominal period ``T`` (the median
+    step) instead, and the gap itself counts as no data. The last row counts ``T`` too, clipped to
+    the end of the report range. ``covered_s = Σ w_i``.
+Moving
+    A row is moving when ``|vg_mps| >= min_ground_speed_mps`` (the vehicle's ``SlipConfig``).
+    ``moving_s = Σ w_i`` over moving rows.
+Distance
+    ``distance_m = Σ |vg_mps|_i · w_i`` over moving rows (sample-and-hold integration of the
+    ground speed; reversing adds distance too). So ``distance_m / moving_s`` is the time-weighted
+    mean moving speed.
+Speed statistics
+    ``mean_mps`` is that time-weighted mean; ``median_mps`` and ``p95_mps`` are over the moving
+    rows' ``|vg_mps|`` samples; ``max_mps`` is the largest ``|vg_mps|`` of any row.
+Slip statistics, per wheel
+    Over rows whose ``SLIP_LEFT_VALID`` / ``SLIP_RIGHT_VALID`` flag is set and whose slip is
+    finite. ``mean_pct``, ``median_pct``, ``p95_pct``, ``min_pct``, ``max_pct`` are of the
+    **signed** slip in percent (traction slip positive, skid negative), per sample.
+    Percentiles interpolate linearly between samples.
+Slip bands, per wheel
+    Time share of **absolute** slip ``|s|`` in the bands cut by ``band_edges_pct``
+    ``(e0, e1, …)``: ``[0, e0)``, ``[e0, e1)``, …, ``[e_last, ∞)`` — a value equal to an edge
+    belongs to the upper band. Absolute, because a 20 % skid wears and compacts like a 20 % spin.
+    ``seconds = Σ w_i`` of valid rows in the band; ``share = seconds / Σ w_i`` of valid rows.
+GNSS-degraded time
+    ``degraded_s = Σ w_i`` over rows flagged ``EstimateFlag.DEGRADED``.
+Ingest counters
+    Totals since the vehicle was registered (the store keeps totals, not a history), split into
+    the named counts and the ``rejected_<reason>`` counters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from itertools import pairwise
+from typing import Any
+
+import numpy as np
+
+from estimator.types import EstimateFlag
+
+__all__ = [
+    "REPORT_FIELDS",
+    "IngestCounts",
+    "SlipBand",
+    "SpeedStats",
+    "VehicleReport",
+    "WheelSlipStats",
+    "flatten_report",
+    "ingest_counts",
+    "vehicle_report",
+]
+
+#: The estimate fields a report reads (ask the store for these only).
+REPORT_FIELDS: tuple[str, ...] = ("stamp_ns", "vg_mps", "slip_left_pct", "slip_right_pct", "flags")
+
+_NS = 1_000_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class SlipBand:
+    """Time spent with ``lower_pct <= |slip| < upper_pct`` (``upper_pct`` None: no upper edge)."""
+
+    lower_pct: float
+    upper_pct: float | None
+    seconds: float
+    share: float | None  # of the wheel's valid-slip time; None when there is none
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSlipStats:
+    """Slip of one wheel over the report range (signed percent; NaN-free samples only)."""
+
+    samples: int
+    valid_s: float
+    mean_pct: float | None
+    median_pct: float | None
+    p95_pct: float | None
+    min_pct: float | None
+    max_pct: float | None
+    bands: tuple[SlipBand, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class SpeedStats:
+    """Ground speed ``|vg_mps|``: mean/median/p95 while moving, max over all rows."""
+
+    mean_mps: float | None
+    median_mps: float | None
+    p95_mps: float | None
+    max_mps: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class IngestCounts:
+    """Packet counters of one vehicle (totals, see the module docstring)."""
+
+    received: int = 0
+    accepted: int = 0
+    rejected: int = 0
+    rejected_by_reason: dict[str, int] = field(default_factory=dict)
+    late: int = 0
+    duplicate: int = 0
+    lost: int = 0
+    other: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleReport:
+    """Everything a field report says about one vehicle over ``[start_ns, end_ns)``."""
+
+    start_ns: int
+    end_ns: int
+    rows: int
+    first_stamp_ns: int | None
+    last_stamp_ns: int | None
+    covered_s: float
+    moving_s: float
+    distance_m: float
+    degraded_s: float
+    speed: SpeedStats
+    slip_left: WheelSlipStats
+    slip_right: WheelSlipStats
+
+
+_NAMED_COUNTERS = ("received", "accepted", "late", "duplicate", "lost")
+_REJECTED_PREFIXES = ("rejected_", "rejected.")
+
+
+def ingest_counts(counters: Mapping[str, int]) -> IngestCounts:
+    """Split a store's counter totals into named counts and rejection reasons.
+
+    ``rejected_<reason>`` (or ``rejected.<reason>``) are the reasons; ``rejected`` is their sum
+    unless the store also keeps a plain ``rejected`` total, which then wins.
+    """
+    named = {k: int(counters.get(k, 0)) for k in _NAMED_COUNTERS}
+    by_reason: dict[str, int] = {}
+    other: dict[str, int] = {}
+    for key, value in counters.items():
+        if key in _NAMED_COUNTERS or key == "rejected":
+            continue
+        prefix = next((p for p in _REJECTED_PREFIXES if key.startswith(p)), None)
+        if prefix is not None:
+            by_reason[key[len(prefix) :]] = int(value)
+        else:
+            other[key] = int(value)
+    rejected = int(counters["rejected"]) if "rejected" in counters else sum(by_reason.values())
+    return IngestCounts(
+        rejected=rejected,
+        rejected_by_reason=dict(sorted(by_reason.items())),
+        other=dict(sorted(other.items())),
+        **named,
+    )
+
+
+def _time_weights_ns(stamps: np.ndarray, end_ns: int, max_gap_ns: int) -> np.ndarray:
+    """``w_i`` of every row in ns (see the module docstring), int64, shape (n,)."""
+    n = stamps.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    steps = np.diff(stamps)
+    good = steps[(steps > 0) & (steps <= max_gap_ns)]
+    period = int(np.median(good)) if good.size else 0
+    w = np.empty(n, dtype=np.int64)
+    w[:-1] = np.where(steps <= max_gap_ns, steps, period)
+    w[-1] = max(min(period, int(end_ns) - int(stamps[-1])), 0)
+    return w
+
+
+def _stat(values: np.ndarray, how: str) -> float | None:
+    if values.size == 0:
+        return None
+    if how == "mean":
+        return float(np.mean(values))
+    if how == "median":
+        return float(np.median(values))
+    if how == "p95":
+        return float(np.percentile(values, 95.0))
+    if how == "min":
+        return float(np.min(values))
+    return float(np.max(values))
+
+
+def _wheel_stats(
+    slip: np.ndarray,
+    valid_flag: np.ndarray,
+    w_ns: np.ndarray,
+    edges: Sequence[float],
+) -> WheelSlipStats:
+    valid = valid_flag & np.isfinite(slip)
+    s = slip[valid]
+    w = w_ns[valid]
+    total_ns = int(w.sum())
+    band_idx = np.searchsorted(np.asarray(edges, dtype=np.float64), np.abs(s), side="right")
+    per_band = np.bincount(band_idx, weights=w.astype(np.float64), minlength=len(edges) + 1)
+    lowers = (0.0, *map(float, edges))
+    uppers: tuple[float | None, ...] = (*map(float, edges), None)
+    bands = tuple(
+        SlipBand(
+            lower_pct=lo,
+            upper_pct=up,
+            seconds=float(sec_ns) / _NS,
+            share=float(sec_ns) / total_ns if total_ns > 0 else None,
+        )
+        for lo, up, sec_ns in zip(lowers, uppers, per_band, strict=True)
+    )
+    return WheelSlipStats(
+        samples=int(s.size),
+        valid_s=total_ns / _NS,
+        mean_pct=_stat(s, "mean"),
+        median_pct=_stat(s, "median"),
+        p95_pct=_stat(s, "p95"),
+        min_pct=_stat(s, "min"),
+        max_pct=_stat(s, "max"),
+        bands=bands,
+    )
+
+
+def vehicle_report(
+    rows: np.ndarray,
+    *,
+    start_ns: int,
+    end_ns: int,
+    band_edges_pct: Sequence[float] = (5.0, 15.0),
+    min_ground_speed_mps: float = 0.2,
+    max_gap_s: float = 1.0,
+) -> VehicleReport:
+    """Compute the report of one vehicle (definitions in the module docstring).
+
+    Parameters
+    ----------
+    rows : ndarray, shape (n,), structured with at least :data:`REPORT_FIELDS`
+        Estimates with ``start_ns <= stamp_ns < end_ns``, sorted by ``stamp_ns``.
+    band_edges_pct : increasing edges of the slip bands, percent of ``|slip|``.
+    min_ground_speed_mps : speed from which the vehicle counts as moving.
+    max_gap_s : a step between rows longer than this is a data gap.
+    """
+    edges = [float(e) for e in band_edges_pct]
+    if not edges or any(b <= a for a, b in pairwise(edges)):
+        raise ValueError("band_edges_pct must be a non-empty increasing sequence")
+    stamps = rows["stamp_ns"].astype(np.int64)
+    w_ns = _time_weights_ns(stamps, end_ns, round(max_gap_s * _NS))
+    speed = np.abs(rows["vg_mps"].astype(np.float64))
+    flags = rows["flags"].astype(np.int64)
+    finite_speed = np.isfinite(speed)
+    moving = finite_speed & (speed >= min_ground_speed_mps)
+    moving_ns = int(w_ns[moving].sum())
+    distance_m = float(np.dot(speed[moving], w_ns[moving].astype(np.float64)) / _NS)
+    moving_speed = speed[moving]
+    speed_stats = SpeedStats(
+        mean_mps=distance_m / (moving_ns / _NS) if moving_ns > 0 else None,
+        median_mps=_stat(moving_speed, "median"),
+        p95_mps=_stat(moving_speed, "p95"),
+        max_mps=_stat(speed[finite_speed], "max"),
+    )
+    degraded = (flags & int(EstimateFlag.DEGRADED)) != 0
+    left_valid = (flags & int(EstimateFlag.SLIP_LEFT_VALID)) != 0
+    right_valid = (flags & int(EstimateFlag.SLIP_RIGHT_VALID)) != 0
+    n = int(stamps.shape[0])
+    return VehicleReport(
+        start_ns=int(start_ns),
+        end_ns=int(end_ns),
+        rows=n,
+        first_stamp_ns=int(stamps[0]) if n else None,
+        last_stamp_ns=int(stamps[-1]) if n else None,
+        covered_s=int(w_ns.sum()) / _NS,
+        moving_s=moving_ns / _NS,
+        distance_m=distance_m,
+        degraded_s=int(w_ns[degraded].sum()) / _NS,
+        speed=speed_stats,
+        slip_left=_wheel_stats(rows["slip_left_pct"], left_valid, w_ns, edges),
+        slip_right=_wheel_stats(rows["slip_right_pct"], right_valid, w_ns, edges),
+    )
+
+
+def _band_label(band: SlipBand) -> str:
+    lo = f"{band.lower_pct:g}"
+    return f"{lo}_{band.upper_pct:g}" if band.upper_pct is not None else f"{lo}_up"
+
+
+def flatten_report(vehicle_id: str, report: VehicleReport, counts: IngestCounts) -> dict[str, Any]:
+    """One flat table row (column name → scalar) of a vehicle's report, for fleet tables.
+
+    Band columns are named by their edges, e.g. ``slip_left_share_5_15``; vehicles with
+    different band edges get different columns (a fleet table takes the union).
+    """
+    row: dict[str, Any] = {
+        "vehicle_id": vehicle_id,
+        "rows": report.rows,
+        "first_stamp_ns": report.first_stamp_ns,
+        "last_stamp_ns": report.last_stamp_ns,
+        "covered_s": report.covered_s,
+        "moving_s": report.moving_s,
+        "distance_m": report.distance_m,
+        "degraded_s": report.degraded_s,
+        "speed_mean_mps": report.speed.mean_mps,
+        "speed_median_mps": report.speed.median_mps,
+        "speed_p95_mps": report.speed.p95_mps,
+        "speed_max_mps": report.speed.max_mps,
+    }
+    for side, stats in (("left", report.slip_left), ("right", report.slip_right)):
+        row[f"slip_{side}_samples"] = stats.samples
+        row[f"slip_{side}_mean_pct"] = stats.mean_pct
+        row[f"slip_{side}_median_pct"] = stats.median_pct
+        row[f"slip_{side}_p95_pct"] = stats.p95_pct
+        row[f"slip_{side}_min_pct"] = stats.min_pct
+        row[f"slip_{side}_max_pct"] = stats.max_pct
+        for band in stats.bands:
+            row[f"slip_{side}_share_{_band_label(band)}"] = band.share
+    row["packets_received"] = counts.received
+    row["packets_accepted"] = counts.accepted
+    row["packets_rejected"] = counts.rejected
+    row["packets_late"] = counts.late
+    row["packets_duplicate"] = counts.duplicate
+    row["packets_lost"] = counts.lost
+    for reason, value in counts.rejected_by_reason.items():
+        row[f"packets_rejected_{reason}"] = value
+    return row
