@@ -15,11 +15,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["Store", "StorageError", "VehicleRecord"]
+__all__ = ["StorageDataError", "StorageError", "Store", "VehicleRecord"]
 
 
 class StorageError(RuntimeError):
     """The database refused or is unreachable."""
+
+
+class StorageDataError(StorageError):
+    """The database rejected the data itself (constraint, type): retrying will not help."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,253 @@
+"""Versioned schema migrations for both dialects.
+
+Each :class:`Migration` has a version number, a description and the statements for SQLite and
+for PostgreSQL. Applied versions are recorded in ``schema_version``. A migration is frozen once
+released: later schema changes are new migrations, never edits (a test checks that the
+``estimates`` columns still match ``ESTIMATE_FIELDS``, so a change there forces a new one).
+
+Applying is idempotent and safe when several processes start at once:
+
+* PostgreSQL: everything runs in one transaction holding a transaction-scoped advisory lock
+  (:data:`ADVISORY_LOCK_KEY`); DDL is transactional, so a failed migration leaves nothing behind.
+* SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
+  SQLite DDL is transactional too.
+
+Schema (version 2):
+
+``vehicles``
+    ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
+    ``jsonb``), ``created_ns``, ``updated_ns``.
+``estimates``
+    ``vkey`` + every ``ESTIMATE_FIELDS`` column, primary key ``(vkey, stamp_ns)`` so one
+    vehicle-hour is a single index range read (SQLite: a clustered ``WITHOUT ROWID`` table).
+    SQLite cannot store NaN (it becomes NULL), so its float columns are nullable and NULL reads
+    back as NaN; PostgreSQL stores NaN natively and every column is ``NOT NULL``.
+``ingest_counters``
+    ``(vehicle_id, name) -> total``; keyed by the id text so counters of vehicles that were
+    rejected (never registered) can be kept too.
+``raw_packets`` (version 2)
+    received payloads when ``StorageSettings.store_raw_packets`` is on.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["ADVISORY_LOCK_KEY", "MIGRATIONS", "Migration", "latest_version"]
+
+#: Key of the PostgreSQL advisory lock that serialises migrations (ASCII "slipflt1").
+ADVISORY_LOCK_KEY = 0x736C6970666C7431
+
+
+@dataclass(frozen=True, slots=True)
+class Migration:
+    """One schema step."""
+
+    version: int
+    description: str
+    sqlite: tuple[str, ...]
+    postgresql: tuple[str, ...]
+
+    def statements(self, dialect: str) -> tuple[str, ...]:
+        if dialect == "sqlite":
+            return self.sqlite
+        if dialect == "postgresql":
+            return self.postgresql
+        raise ValueError(f"unknown dialect {dialect!r}")
+
+
+_V1_SQLITE = (
+    """
+    CREATE TABLE vehicles (
+        vkey INTEGER PRIMARY KEY,
+        vehicle_id TEXT NOT NULL UNIQUE,
+        config TEXT NOT NULL,
+        created_ns INTEGER NOT NULL,
+        updated_ns INTEGER NOT NULL
+    )
+    """,
+    """
+    CREATE TABLE estimates (
+        vkey INTEGER NOT NULL REFERENCES vehicles (vkey) ON DELETE CASCADE,
+        stamp_ns INTEGER NOT NULL,
+        vg_mps REAL,
+        v1_mps REAL,
+        v0_mps REAL,
+        vl_mps REAL,
+        vr_mps REAL,
+        rim_left_mps REAL,
+        rim_right_mps REAL,
+        omega_left_radps REAL,
+        omega_right_radps REAL,
+        slip_left_pct REAL,
+        slip_right_pct REAL,
+        vg_std_mps REAL,
+        vl_std_mps REAL,
+        vr_std_mps REAL,
+        slip_left_std_pct REAL,
+        slip_right_std_pct REAL,
+        accel_mps2 REAL,
+        pitch_rate_radps REAL,
+        yaw_rate_radps REAL,
+        east_m REAL,
+        north_m REAL,
+        up_m REAL,
+        heading_rad REAL,
+        pitch_rad REAL,
+        roll_rad REAL,
+        flags INTEGER NOT NULL,
+        PRIMARY KEY (vkey, stamp_ns)
+    ) WITHOUT ROWID
+    """,
+    """
+    CREATE TABLE ingest_counters (
+        vehicle_id TEXT NOT NULL,
+        name TEXT NOT NULL,
+        total INTEGER NOT NULL,
+        updated_ns INTEGER NOT NULL,
+        PRIMARY KEY (vehicle_id, name)
+    ) WITHOUT ROWID
+    """,
+)
+
+_V1_POSTGRESQL = (
+    """
+    CREATE TABLE vehicles (
+        vkey integer GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+        vehicle_id text NOT NULL UNIQUE,
+        config jsonb NOT NULL,
+        created_ns bigint NOT NULL,
+        updated_ns bigint NOT NULL
+    )
+    """,
+    """
+    CREATE TABLE estimates (
+        vkey integer NOT NULL REFERENCES vehicles (vkey) ON DELETE CASCADE,
+        stamp_ns bigint NOT NULL,
+        vg_mps double precision NOT NULL,
+        v1_mps double precision NOT NULL,
+        v0_mps double precision NOT NULL,
+        vl_mps double precision NOT NULL,
+        vr_mps double precision NOT NULL,
+        rim_left_mps double precision NOT NULL,
+        rim_right_mps double precision NOT NULL,
+        omega_left_radps double precision NOT NULL,
+        omega_right_radps double precision NOT NULL,
+        slip_left_pct double precision NOT NULL,
+        slip_right_pct double precision NOT NULL,
+        vg_std_mps double precision NOT NULL,
+        vl_std_mps double precision NOT NULL,
+        vr_std_mps double precision NOT NULL,
+        slip_left_std_pct double precision NOT NULL,
+        slip_right_std_pct double precision NOT NULL,
+        accel_mps2 double precision NOT NULL,
+        pitch_rate_radps double precision NOT NULL,
+        yaw_rate_radps double precision NOT NULL,
+        east_m double precision NOT NULL,
+        north_m double precision NOT NULL,
+        up_m double precision NOT NULL,
+        heading_rad double precision NOT NULL,
+        pitch_rad double precision NOT NULL,
+        roll_rad double precision NOT NULL,
+        flags integer NOT NULL,
+        PRIMARY KEY (vkey, stamp_ns)
+    )
+    """,
+    """
+    CREATE TABLE ingest_counters (
+        vehicle_id text NOT NULL,
+        name text NOT NULL,
+        total bigint NOT NULL,
+        updated_ns bigint NOT NULL,
+        PRIMARY KEY (vehicle_id, name)
+    )
+    """,
+)
+
+_V2_SQLITE = (
+    """
+    CREATE TABLE raw_packets (
+        id INTEGER PRIMARY KEY,
+        vkey INTEGER NOT NULL REFERENCES vehicles (vkey) ON DELETE CASCADE,
+        received_ns INTEGER NOT NULL,
+        key TEXT NOT NULL,
+        payload BLOB NOT NULL
+    )
+    """,
+    "CREATE INDEX raw_packets_vkey_received ON raw_packets (vkey, received_ns)",
+)
+
+_V2_POSTGRESQL = (
+    """
+    CREATE TABLE raw_packets (
+        id bigint GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+        vkey integer NOT NULL REFERENCES vehicles (vkey) ON DELETE CASCADE,
+        received_ns bigint NOT NULL,
+        key text NOT NULL,
+        payload bytea NOT NULL
+    )
+    """,
+    "CREATE INDEX raw_packets_vkey_received ON raw_packets (vkey, received_ns)",
+)
+
+MIGRATIONS: tuple[Migration, ...] = (
+    Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
+    Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
+)
+
+_VERSION_TABLE = {
+    "sqlite": (
+        "CREATE TABLE IF NOT EXISTS schema_version ("
+        " version INTEGER PRIMARY KEY, description TEXT NOT NULL, applied_ns INTEGER NOT NULL)"
+    ),
+    "postgresql": (
+        "CREATE TABLE IF NOT EXISTS schema_version ("
+        " version integer PRIMARY KEY, description text NOT NULL, applied_ns bigint NOT NULL)"
+    ),
+}
+
+
+def latest_version() -> int:
+    """The schema version this code writes."""
+    return MIGRATIONS[-1].version
+
+
+def apply_pending(
+    execute: Callable[[str, tuple[Any, ...]], list[tuple[Any, ...]]],
+    dialect: str,
+) -> tuple[int, list[int]]:
+    """Apply the migrations the database lacks, inside the caller's locked transaction.
+
+    ``execute(sql, params)`` runs one statement and returns its rows; the placeholder style is
+    the dialect's (``?`` for SQLite, ``%s`` for PostgreSQL). Returns ``(version, applied)``.
+
+    Raises
+    ------
+    RuntimeError
+        When the database carries a version newer than this code knows.
+    """
+    ph = "?" if dialect == "sqlite" else "%s"
+    execute(_VERSION_TABLE[dialect], ())
+    rows = execute("SELECT coalesce(max(version), 0) FROM schema_version", ())
+    current = int(rows[0][0])
+    if current > latest_version():
+        raise RuntimeError(
+            f"database schema version {current} is newer than this server's {latest_version()}"
+        )
+    applied: list[int] = []
+    for m in MIGRATIONS:
+        if m.version <= current:
+            continue
+        for stmt in m.statements(dialect):
+            execute(stmt, ())
+        execute(
+            "INSERT INTO schema_version (version, description, applied_ns) "
+            f"VALUES ({ph}, {ph}, {ph})",
+            (m.version, m.description, time.time_ns()),
+        )
+        applied.append(m.version)
+        current = m.version
+    return current, applied

@@ -1,0 +1,417 @@
+"""PostgreSQL store (psycopg 3), selected by a ``postgresql://`` URL.
+
+Connections come from a small internal pool: any thread checks one out for a statement or a
+transaction and gives it back; a connection that broke (server restart, network) is discarded
+and the next use reconnects, so an outage surfaces as :class:`StorageError` and heals by itself.
+
+Bulk paths avoid per-row Python objects:
+
+* writes build the binary ``COPY`` stream with numpy (big-endian fields and length words laid out
+  as a structured array), copy it into a temporary staging table, then
+  ``INSERT … SELECT … ON CONFLICT (vkey, stamp_ns) DO NOTHING`` (idempotent replays);
+* series reads run ``COPY (SELECT …) TO STDOUT (FORMAT BINARY)`` and view the stream as a
+  structured array (no NULLs are possible: every column is ``NOT NULL``, NaN is a float value).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import weakref
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import numpy as np
+import psycopg
+from psycopg.types.json import Jsonb
+
+from server.storage import migrations
+from server.storage._columns import (
+    FIELD_KIND,
+    FIELD_NAMES,
+    check_rows,
+    fields_dtype,
+    select_fields,
+)
+from server.storage.base import StorageDataError, StorageError, VehicleRecord
+
+__all__ = ["PostgresStore"]
+
+_COPY_SIGNATURE = b"PGCOPY\n\xff\r\n\x00"
+_COPY_HEADER = _COPY_SIGNATURE + b"\x00\x00\x00\x00" + b"\x00\x00\x00\x00"  # flags, ext length
+_COPY_TRAILER = b"\xff\xff"
+_WIDTH = {"f8": 8, "i8": 8, "i4": 4}
+
+
+def _copy_dtype(columns: Sequence[tuple[str, str]]) -> np.dtype:
+    """Binary COPY tuple layout: int16 field count, then per field int32 length + value."""
+    parts: list[tuple[str, str]] = [("_nfields", ">i2")]
+    for name, kind in columns:
+        parts += [(f"_len_{name}", ">i4"), (name, ">" + kind)]
+    return np.dtype(parts)
+
+
+_STAGE_COLUMNS = (("vkey", "i4"), *((n, FIELD_KIND[n]) for n in FIELD_NAMES))
+_STAGE_DTYPE = _copy_dtype(_STAGE_COLUMNS)
+
+
+def _wrap(exc: psycopg.Error) -> StorageError:
+    if isinstance(exc, psycopg.IntegrityError | psycopg.DataError | psycopg.ProgrammingError):
+        return StorageDataError(f"postgresql: {exc}")
+    return StorageError(f"postgresql: {exc}")
+
+
+class _Pool:
+    """Idle connections kept for reuse; broken ones are dropped."""
+
+    def __init__(self, url: str, max_idle: int, connect_timeout_s: float) -> None:
+        self._url = url
+        self._max_idle = max_idle
+        self._connect_timeout_s = connect_timeout_s
+        self._idle: list[psycopg.Connection[Any]] = []
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def _connect(self) -> psycopg.Connection[Any]:
+        return psycopg.connect(
+            self._url,
+            autocommit=True,  # transactions are explicit: `with conn.transaction()`
+            connect_timeout=max(1, round(self._connect_timeout_s)),
+            application_name="slipfleet",
+        )
+
+    @contextlib.contextmanager
+    def connection(self) -> Iterator[psycopg.Connection[Any]]:
+        with self._lock:
+            if self._closed:
+                raise StorageError("postgresql: store is closed")
+            conn = self._idle.pop() if self._idle else None
+        try:
+            if conn is None:
+                conn = self._connect()
+            yield conn
+        except psycopg.Error as exc:
+            if conn is not None and (conn.broken or conn.closed):
+                conn.close()
+                conn = None
+            raise _wrap(exc) from exc
+        except BaseException:
+            if conn is not None:
+                conn.close()
+                conn = None
+            raise
+        finally:
+            if conn is not None:
+                keep = False
+                with self._lock:
+                    if not self._closed and not conn.closed and len(self._idle) < self._max_idle:
+                        self._idle.append(conn)
+                        keep = True
+                if not keep:
+                    conn.close()
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            idle, self._idle = self._idle, []
+        for conn in idle:
+            conn.close()
+
+
+class PostgresStore:
+    """:class:`server.storage.base.Store` on PostgreSQL.
+
+    Parameters
+    ----------
+    url : str
+        ``postgresql://user:password@host:port/dbname`` (take it from ``StorageSettings.url``).
+    max_idle : int
+        Connections kept open between uses (one per concurrently reading thread is plenty).
+    connect_timeout_s : float
+        Give up connecting after this long (rounded to whole seconds, at least 1).
+    """
+
+    dialect = "postgresql"
+
+    def __init__(self, url: str, *, max_idle: int = 4, connect_timeout_s: float = 5.0) -> None:
+        self._pool = _Pool(url, max_idle, connect_timeout_s)
+        self._staged: weakref.WeakSet[psycopg.Connection[Any]] = weakref.WeakSet()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def migrate(self) -> int:
+        with self._pool.connection() as conn, conn.transaction():
+            conn.execute("SELECT pg_advisory_xact_lock(%s)", (migrations.ADVISORY_LOCK_KEY,))
+
+            def execute(sql: str, params: tuple[Any, ...]) -> list[tuple[Any, ...]]:
+                cur = conn.execute(sql.encode(), params)  # bytes: no client-side formatting
+                return cur.fetchall() if cur.description is not None else []
+
+            try:
+                version, _ = migrations.apply_pending(execute, self.dialect)
+            except RuntimeError as exc:
+                raise StorageError(str(exc)) from exc
+        return version
+
+    def close(self) -> None:
+        self._pool.close()
+
+    def ping(self) -> bool:
+        try:
+            with self._pool.connection() as conn:
+                row = conn.execute("SELECT 1").fetchone()
+            return row == (1,)
+        except StorageError:
+            return False
+
+    def schema_version(self) -> int:
+        """Highest applied migration (0 on an empty database)."""
+        with self._pool.connection() as conn:
+            row = conn.execute("SELECT to_regclass('schema_version') IS NOT NULL").fetchone()
+            if not row or not row[0]:
+                return 0
+            row = conn.execute("SELECT coalesce(max(version), 0) FROM schema_version").fetchone()
+        return int(row[0]) if row else 0
+
+    # ------------------------------------------------------------------ vehicles
+
+    @staticmethod
+    def _record(row: Sequence[Any]) -> VehicleRecord:
+        return VehicleRecord(
+            vehicle_id=row[0], config=dict(row[1]), created_ns=int(row[2]), updated_ns=int(row[3])
+        )
+
+    def upsert_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> VehicleRecord:
+        cols = "vehicle_id, config, created_ns, updated_ns"
+        with self._pool.connection() as conn, conn.transaction():
+            # UPDATE first: an INSERT … ON CONFLICT would burn an identity value on every call.
+            row = conn.execute(
+                f"UPDATE vehicles SET config = %s, updated_ns = %s WHERE vehicle_id = %s "
+                f"RETURNING {cols}",
+                (Jsonb(config), int(now_ns), vehicle_id),
+            ).fetchone()
+            if row is None:
+                row = conn.execute(
+                    f"INSERT INTO vehicles ({cols}) VALUES (%s, %s, %s, %s) "
+                    "ON CONFLICT (vehicle_id) DO UPDATE SET "
+                    f"config = excluded.config, updated_ns = excluded.updated_ns RETURNING {cols}",
+                    (vehicle_id, Jsonb(config), int(now_ns), int(now_ns)),
+                ).fetchone()
+        assert row is not None
+        return self._record(row)
+
+    def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None:
+        with self._pool.connection() as conn:
+            row = conn.execute(
+                "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles "
+                "WHERE vehicle_id = %s",
+                (vehicle_id,),
+            ).fetchone()
+        return self._record(row) if row else None
+
+    def list_vehicles(self) -> list[VehicleRecord]:
+        with self._pool.connection() as conn:
+            rows = conn.execute(
+                "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles "
+                "ORDER BY vehicle_id"
+            ).fetchall()
+        return [self._record(r) for r in rows]
+
+    def delete_vehicle(self, vehicle_id: str) -> bool:
+        with self._pool.connection() as conn, conn.transaction():
+            conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = %s", (vehicle_id,))
+            # estimates and raw_packets go by ON DELETE CASCADE
+            cur = conn.execute("DELETE FROM vehicles WHERE vehicle_id = %s", (vehicle_id,))
+            return cur.rowcount > 0
+
+    # ------------------------------------------------------------------ estimates
+
+    @staticmethod
+    def _vkeys(conn: psycopg.Connection[Any], vehicle_ids: Sequence[str]) -> dict[str, int]:
+        rows = conn.execute(
+            # FOR KEY SHARE: a concurrent delete_vehicle waits for this transaction (then
+            # cascades over the new rows) instead of failing our foreign-key check.
+            "SELECT vehicle_id, vkey FROM vehicles WHERE vehicle_id = ANY(%s) FOR KEY SHARE",
+            (list(vehicle_ids),),
+        ).fetchall()
+        return {str(v): int(k) for v, k in rows}
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        """Insert rows in one transaction; rows of unregistered vehicles are not written.
+
+        Returns the number of rows inserted (duplicates and unknown vehicles excluded).
+        """
+        checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
+        if not checked:
+            return 0
+        with self._pool.connection() as conn, conn.transaction():
+            keys = self._vkeys(conn, sorted({vid for vid, _ in checked}))
+            known = [(keys[vid], rows) for vid, rows in checked if vid in keys]
+            if not known:
+                return 0
+            buf = np.empty(sum(len(r) for _, r in known), dtype=_STAGE_DTYPE)
+            buf["_nfields"] = len(_STAGE_COLUMNS)
+            for name, kind in _STAGE_COLUMNS:
+                buf[f"_len_{name}"] = _WIDTH[kind]
+            at = 0
+            for vkey, rows in known:
+                seg = buf[at : at + len(rows)]
+                seg["vkey"] = vkey
+                for name in FIELD_NAMES:
+                    seg[name] = rows[name]
+                at += len(rows)
+            if conn not in self._staged:
+                conn.execute(
+                    "CREATE TEMPORARY TABLE IF NOT EXISTS estimates_stage "
+                    "(LIKE estimates) ON COMMIT DELETE ROWS"
+                )
+                self._staged.add(conn)
+            with conn.cursor() as cur:
+                with cur.copy("COPY estimates_stage FROM STDIN (FORMAT BINARY)") as cp:
+                    cp.write(_COPY_HEADER + buf.tobytes() + _COPY_TRAILER)
+                cur.execute(
+                    "INSERT INTO estimates SELECT * FROM estimates_stage "
+                    "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
+                )
+                return max(cur.rowcount, 0)
+
+    def query_series(
+        self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
+    ) -> np.ndarray:
+        names = select_fields(fields)
+        wire = _copy_dtype([(n, FIELD_KIND[n]) for n in names])
+        chunks = bytearray()
+        with (
+            self._pool.connection() as conn,
+            conn.cursor() as cur,
+            cur.copy(
+                f"COPY (SELECT {', '.join(names)} FROM estimates "
+                "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
+                "AND stamp_ns >= %s AND stamp_ns < %s ORDER BY stamp_ns) "
+                "TO STDOUT (FORMAT BINARY)",
+                (vehicle_id, int(start_ns), int(end_ns)),
+            ) as cp,
+        ):
+            for data in cp:
+                chunks += data
+        return _decode_copy(bytes(chunks), wire, fields_dtype(names))
+
+    def _one_row_query(self, sql: str, params: Sequence[Any]) -> list[tuple[Any, ...]]:
+        with self._pool.connection() as conn:
+            return conn.execute(sql, params).fetchall()
+
+    def latest(self, vehicle_id: str) -> np.ndarray | None:
+        rows = self._one_row_query(
+            f"SELECT {', '.join(FIELD_NAMES)} FROM estimates "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
+            "ORDER BY stamp_ns DESC LIMIT 1",
+            (vehicle_id,),
+        )
+        if not rows:
+            return None
+        return np.array(rows, dtype=fields_dtype(FIELD_NAMES)).reshape(())
+
+    def latest_all(self) -> dict[str, np.ndarray]:
+        rows = self._one_row_query(
+            f"SELECT v.vehicle_id, {', '.join('e.' + n for n in FIELD_NAMES)} "
+            "FROM vehicles v JOIN estimates e ON e.vkey = v.vkey "
+            "AND e.stamp_ns = (SELECT max(stamp_ns) FROM estimates WHERE vkey = v.vkey)",
+            (),
+        )
+        dtype = fields_dtype(FIELD_NAMES)
+        return {r[0]: np.array([tuple(r[1:])], dtype=dtype).reshape(()) for r in rows}
+
+    def delete_older_than(self, stamp_ns: int) -> int:
+        """Delete estimates (and raw packets) older than ``stamp_ns``; return estimates deleted."""
+        deleted = 0
+        with self._pool.connection() as conn, conn.transaction():
+            for (vkey,) in conn.execute("SELECT vkey FROM vehicles").fetchall():
+                # Per vehicle, so each delete is a primary-key range scan.
+                cur = conn.execute(
+                    "DELETE FROM estimates WHERE vkey = %s AND stamp_ns < %s", (vkey, int(stamp_ns))
+                )
+                deleted += max(cur.rowcount, 0)
+                conn.execute(
+                    "DELETE FROM raw_packets WHERE vkey = %s AND received_ns < %s",
+                    (vkey, int(stamp_ns)),
+                )
+        return deleted
+
+    # ------------------------------------------------------------------ counters
+
+    def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
+        params = [
+            (vid, name, int(total), int(now_ns))
+            for vid, named in counters.items()
+            for name, total in named.items()
+        ]
+        if not params:
+            return
+        with self._pool.connection() as conn, conn.transaction(), conn.cursor() as cur:
+            cur.executemany(
+                "INSERT INTO ingest_counters (vehicle_id, name, total, updated_ns) "
+                "VALUES (%s, %s, %s, %s) ON CONFLICT (vehicle_id, name) DO UPDATE SET "
+                "total = excluded.total, updated_ns = excluded.updated_ns",
+                params,
+            )
+
+    def get_counters(self, vehicle_id: str) -> dict[str, int]:
+        rows = self._one_row_query(
+            "SELECT name, total FROM ingest_counters WHERE vehicle_id = %s ORDER BY name",
+            (vehicle_id,),
+        )
+        return {str(name): int(total) for name, total in rows}
+
+    # ------------------------------------------------------------------ raw packets
+
+    def write_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
+        """Store ``(vehicle_id, received_ns, key, payload)`` tuples; unknown vehicles skipped."""
+        if not packets:
+            return 0
+        with self._pool.connection() as conn, conn.transaction():
+            keys = self._vkeys(conn, sorted({p[0] for p in packets}))
+            params = [
+                (keys[vid], int(t), key, bytes(payload))
+                for vid, t, key, payload in packets
+                if vid in keys
+            ]
+            with conn.cursor() as cur:
+                cur.executemany(
+                    "INSERT INTO raw_packets (vkey, received_ns, key, payload) "
+                    "VALUES (%s, %s, %s, %s)",
+                    params,
+                )
+            return len(params)
+
+    def query_raw_packets(
+        self, vehicle_id: str, start_ns: int, end_ns: int
+    ) -> list[tuple[int, str, bytes]]:
+        """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
+        rows = self._one_row_query(
+            "SELECT received_ns, key, payload FROM raw_packets "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
+            "AND received_ns >= %s AND received_ns < %s ORDER BY received_ns, id",
+            (vehicle_id, int(start_ns), int(end_ns)),
+        )
+        return [(int(t), str(k), bytes(p)) for t, k, p in rows]
+
+
+def _decode_copy(data: bytes, wire: np.dtype, out_dtype: np.dtype) -> np.ndarray:
+    """View a binary COPY stream of fixed-width, non-NULL tuples as a structured array."""
+    if not data:
+        return np.empty(0, dtype=out_dtype)
+    if not data.startswith(_COPY_SIGNATURE) or not data.endswith(_COPY_TRAILER):
+        raise StorageError("postgresql: malformed binary COPY stream")
+    ext_len = int.from_bytes(data[15:19], "big")
+    body = memoryview(data)[19 + ext_len : len(data) - len(_COPY_TRAILER)]
+    if len(body) % wire.itemsize:
+        raise StorageError("postgresql: unexpected binary COPY tuple size")
+    raw = np.frombuffer(body, dtype=wire)
+    if len(raw) and (raw["_nfields"] != len(out_dtype.names or ())).any():
+        raise StorageError("postgresql: unexpected field count in binary COPY stream")
+    out = np.empty(len(raw), dtype=out_dtype)
+    for name in out_dtype.names or ():
+        if (raw[f"_len_{name}"] != out_dtype[name].itemsize).any():
+            raise StorageError(f"postgresql: unexpected NULL or width in column {name}")
+        out[name] = raw[name]
+    return out

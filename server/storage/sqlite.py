@@ -1,0 +1,364 @@
+"""SQLite store: one file in WAL mode, the embedded default.
+
+Connections: one per thread (``threading.local``), all registered so :meth:`SqliteStore.close`
+closes every one. Reads run from any thread and do not block the writer (WAL). Writes take an
+in-process lock and ``BEGIN IMMEDIATE`` (the database write lock), so the writer thread and the
+occasional API write (vehicle registration) never deadlock; another process holding the lock
+makes a write wait up to the busy timeout and then raise :class:`StorageError`.
+
+Durability: ``synchronous=NORMAL`` — in WAL mode a power loss can lose the last commits but never
+corrupts the file.
+
+NaN: SQLite turns a NaN into NULL, so float columns are nullable and NULL reads back as NaN.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sqlite3
+import threading
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from server.storage import migrations
+from server.storage._columns import (
+    FIELD_NAMES,
+    FLOAT_FIELDS,
+    check_rows,
+    fields_dtype,
+    select_fields,
+)
+from server.storage.base import StorageDataError, StorageError, VehicleRecord
+
+__all__ = ["SqliteStore"]
+
+_PAGE_SIZE_BYTES = 8192  # only takes effect when the file is created
+_CACHE_KIB = 32 * 1024
+
+
+def _select_list(names: Sequence[str]) -> str:
+    # NULL (a stored NaN) comes back as the text 'nan', which numpy parses to NaN when it fills
+    # the structured array: no per-row Python post-processing.
+    return ", ".join(f"coalesce({n}, 'nan')" if n in FLOAT_FIELDS else n for n in names)
+
+
+def _insert_estimates_sql(vkey: int) -> str:
+    # The key is an integer from our own table, so it goes in as a literal and the row tuples
+    # from ndarray.tolist() can be bound as they are (one statement per vehicle, cached).
+    return (
+        f"INSERT INTO estimates (vkey, {', '.join(FIELD_NAMES)}) "
+        f"VALUES ({int(vkey)}, {', '.join('?' * len(FIELD_NAMES))}) "
+        "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
+    )
+
+
+def _wrap(exc: sqlite3.Error) -> StorageError:
+    if isinstance(exc, sqlite3.IntegrityError | sqlite3.DataError | sqlite3.ProgrammingError):
+        return StorageDataError(f"sqlite: {exc}")
+    return StorageError(f"sqlite: {exc}")
+
+
+class SqliteStore:
+    """:class:`server.storage.base.Store` on a SQLite file.
+
+    Parameters
+    ----------
+    path : Path
+        Database file; its directory is created if missing.
+    busy_timeout_s : float
+        How long a write waits for another process's lock before failing.
+    """
+
+    dialect = "sqlite"
+
+    def __init__(self, path: Path | str, *, busy_timeout_s: float = 5.0) -> None:
+        self.path = Path(path)
+        self.busy_timeout_s = float(busy_timeout_s)
+        self._local = threading.local()
+        self._conns: list[sqlite3.Connection] = []
+        self._conns_lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self._closed = False
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._conn()  # fail early on a bad path
+        except OSError as exc:
+            raise StorageError(f"sqlite: cannot create {self.path.parent}: {exc}") from exc
+
+    # ------------------------------------------------------------------ connections
+
+    def _conn(self) -> sqlite3.Connection:
+        if self._closed:
+            raise StorageError("sqlite: store is closed")
+        conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
+        if conn is not None:
+            return conn
+        try:
+            conn = sqlite3.connect(
+                self.path,
+                timeout=self.busy_timeout_s,
+                isolation_level=None,  # we issue BEGIN/COMMIT ourselves
+                check_same_thread=False,  # only so close() can close it from another thread
+            )
+            conn.execute(f"PRAGMA page_size = {_PAGE_SIZE_BYTES}")
+            conn.execute("PRAGMA journal_mode = WAL")
+            conn.execute("PRAGMA synchronous = NORMAL")
+            conn.execute("PRAGMA foreign_keys = ON")
+            conn.execute(f"PRAGMA cache_size = -{_CACHE_KIB}")
+            conn.execute("PRAGMA temp_store = MEMORY")
+        except sqlite3.Error as exc:
+            raise _wrap(exc) from exc
+        with self._conns_lock:
+            self._conns.append(conn)
+        self._local.conn = conn
+        return conn
+
+    @contextlib.contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """A write transaction: in-process lock, ``BEGIN IMMEDIATE``, commit or roll back."""
+        conn = self._conn()
+        with self._write_lock:
+            try:
+                conn.execute("BEGIN IMMEDIATE")
+            except sqlite3.Error as exc:
+                raise _wrap(exc) from exc
+            try:
+                yield conn
+                conn.execute("COMMIT")
+            except BaseException as exc:
+                with contextlib.suppress(sqlite3.Error):
+                    conn.execute("ROLLBACK")
+                if isinstance(exc, sqlite3.Error):
+                    raise _wrap(exc) from exc
+                raise
+
+    def _read(self, sql: str, params: Sequence[Any] = ()) -> list[Any]:
+        try:
+            return self._conn().execute(sql, params).fetchall()
+        except sqlite3.Error as exc:
+            raise _wrap(exc) from exc
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def migrate(self) -> int:
+        def execute(sql: str, params: tuple[Any, ...]) -> list[tuple[Any, ...]]:
+            return conn.execute(sql, params).fetchall()
+
+        with self._write() as conn:
+            try:
+                version, _ = migrations.apply_pending(execute, self.dialect)
+            except RuntimeError as exc:
+                raise StorageError(str(exc)) from exc
+        return version
+
+    def close(self) -> None:
+        self._closed = True
+        with self._conns_lock:
+            conns, self._conns = self._conns, []
+        for conn in conns:
+            with contextlib.suppress(sqlite3.Error):
+                conn.close()
+
+    def ping(self) -> bool:
+        try:
+            return self._read("SELECT 1") == [(1,)]
+        except StorageError:
+            return False
+
+    def schema_version(self) -> int:
+        """Highest applied migration (0 on an empty database)."""
+        rows = self._read(
+            "SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'schema_version'"
+        )
+        if not rows:
+            return 0
+        return int(self._read("SELECT coalesce(max(version), 0) FROM schema_version")[0][0])
+
+    # ------------------------------------------------------------------ vehicles
+
+    @staticmethod
+    def _record(row: Sequence[Any]) -> VehicleRecord:
+        return VehicleRecord(
+            vehicle_id=row[0], config=json.loads(row[1]), created_ns=row[2], updated_ns=row[3]
+        )
+
+    def upsert_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> VehicleRecord:
+        with self._write() as conn:
+            row = conn.execute(
+                "INSERT INTO vehicles (vehicle_id, config, created_ns, updated_ns) "
+                "VALUES (?, ?, ?, ?) "
+                "ON CONFLICT (vehicle_id) DO UPDATE SET "
+                "config = excluded.config, updated_ns = excluded.updated_ns "
+                "RETURNING vehicle_id, config, created_ns, updated_ns",
+                (vehicle_id, json.dumps(config), int(now_ns), int(now_ns)),
+            ).fetchone()
+        return self._record(row)
+
+    def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None:
+        rows = self._read(
+            "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles WHERE vehicle_id = ?",
+            (vehicle_id,),
+        )
+        return self._record(rows[0]) if rows else None
+
+    def list_vehicles(self) -> list[VehicleRecord]:
+        rows = self._read(
+            "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles ORDER BY vehicle_id"
+        )
+        return [self._record(r) for r in rows]
+
+    def delete_vehicle(self, vehicle_id: str) -> bool:
+        with self._write() as conn:
+            row = conn.execute(
+                "SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vehicle_id,)
+            ).fetchone()
+            conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = ?", (vehicle_id,))
+            if row is None:
+                return False
+            # Explicit deletes, so correctness never depends on the foreign_keys pragma.
+            conn.execute("DELETE FROM estimates WHERE vkey = ?", (row[0],))
+            conn.execute("DELETE FROM raw_packets WHERE vkey = ?", (row[0],))
+            conn.execute("DELETE FROM vehicles WHERE vkey = ?", (row[0],))
+        return True
+
+    # ------------------------------------------------------------------ estimates
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        """Insert rows in one transaction; rows of unregistered vehicles are not written.
+
+        Returns the number of rows inserted (duplicates and unknown vehicles excluded).
+        """
+        checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
+        if not checked:
+            return 0
+        with self._write() as conn:
+            keys = self._vkeys(conn, {vid for vid, _ in checked})
+            before = conn.total_changes
+            for vid, rows in checked:
+                vkey = keys.get(vid)
+                if vkey is None:
+                    continue
+                # tolist() builds the row tuples in C (NaN binds as NULL).
+                conn.executemany(_insert_estimates_sql(vkey), rows.tolist())
+            return conn.total_changes - before
+
+    @staticmethod
+    def _vkeys(conn: sqlite3.Connection, vehicle_ids: set[str]) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for vid in vehicle_ids:
+            row = conn.execute("SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vid,)).fetchone()
+            if row is not None:
+                out[vid] = int(row[0])
+        return out
+
+    def query_series(
+        self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
+    ) -> np.ndarray:
+        names = select_fields(fields)
+        dtype = fields_dtype(names)
+        sql = (
+            f"SELECT {_select_list(names)} FROM estimates "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = ?) "
+            "AND stamp_ns >= ? AND stamp_ns < ? ORDER BY stamp_ns"
+        )
+        try:
+            cur = self._conn().execute(sql, (vehicle_id, int(start_ns), int(end_ns)))
+            # fromiter consumes the cursor row by row into the array: no intermediate list.
+            return np.fromiter(cur, dtype=dtype)
+        except sqlite3.Error as exc:
+            raise _wrap(exc) from exc
+
+    def latest(self, vehicle_id: str) -> np.ndarray | None:
+        rows = self._read(
+            f"SELECT {_select_list(FIELD_NAMES)} FROM estimates "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = ?) "
+            "ORDER BY stamp_ns DESC LIMIT 1",
+            (vehicle_id,),
+        )
+        if not rows:
+            return None
+        return np.array(rows, dtype=fields_dtype(FIELD_NAMES)).reshape(())
+
+    def latest_all(self) -> dict[str, np.ndarray]:
+        rows = self._read(
+            f"SELECT v.vehicle_id, {_select_list(['e.' + n for n in FIELD_NAMES])} "
+            "FROM vehicles v JOIN estimates e ON e.vkey = v.vkey "
+            "AND e.stamp_ns = (SELECT max(stamp_ns) FROM estimates WHERE vkey = v.vkey)"
+        )
+        dtype = fields_dtype(FIELD_NAMES)
+        return {r[0]: np.array([tuple(r[1:])], dtype=dtype).reshape(()) for r in rows}
+
+    def delete_older_than(self, stamp_ns: int) -> int:
+        """Delete estimates (and raw packets) older than ``stamp_ns``; return estimates deleted."""
+        deleted = 0
+        with self._write() as conn:
+            # Per vehicle, so each delete is a primary-key range scan.
+            for (vkey,) in conn.execute("SELECT vkey FROM vehicles").fetchall():
+                deleted += conn.execute(
+                    "DELETE FROM estimates WHERE vkey = ? AND stamp_ns < ?", (vkey, int(stamp_ns))
+                ).rowcount
+                conn.execute(
+                    "DELETE FROM raw_packets WHERE vkey = ? AND received_ns < ?",
+                    (vkey, int(stamp_ns)),
+                )
+        return deleted
+
+    # ------------------------------------------------------------------ counters
+
+    def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
+        params = [
+            (vid, name, int(total), int(now_ns))
+            for vid, named in counters.items()
+            for name, total in named.items()
+        ]
+        if not params:
+            return
+        with self._write() as conn:
+            conn.executemany(
+                "INSERT INTO ingest_counters (vehicle_id, name, total, updated_ns) "
+                "VALUES (?, ?, ?, ?) ON CONFLICT (vehicle_id, name) DO UPDATE SET "
+                "total = excluded.total, updated_ns = excluded.updated_ns",
+                params,
+            )
+
+    def get_counters(self, vehicle_id: str) -> dict[str, int]:
+        rows = self._read(
+            "SELECT name, total FROM ingest_counters WHERE vehicle_id = ? ORDER BY name",
+            (vehicle_id,),
+        )
+        return {name: int(total) for name, total in rows}
+
+    # ------------------------------------------------------------------ raw packets
+
+    def write_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
+        """Store ``(vehicle_id, received_ns, key, payload)`` tuples; unknown vehicles skipped."""
+        if not packets:
+            return 0
+        with self._write() as conn:
+            keys = self._vkeys(conn, {p[0] for p in packets})
+            params = [
+                (keys[vid], int(t), key, bytes(payload))
+                for vid, t, key, payload in packets
+                if vid in keys
+            ]
+            conn.executemany(
+                "INSERT INTO raw_packets (vkey, received_ns, key, payload) VALUES (?, ?, ?, ?)",
+                params,
+            )
+            return len(params)
+
+    def query_raw_packets(
+        self, vehicle_id: str, start_ns: int, end_ns: int
+    ) -> list[tuple[int, str, bytes]]:
+        """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
+        rows = self._read(
+            "SELECT received_ns, key, payload FROM raw_packets "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = ?) "
+            "AND received_ns >= ? AND received_ns < ? ORDER BY received_ns, id",
+            (vehicle_id, int(start_ns), int(end_ns)),
+        )
+        return [(int(t), str(k), bytes(p)) for t, k, p in rows]
