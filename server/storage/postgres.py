@@ -173,6 +173,15 @@ class PostgresStore:
             row = conn.execute("SELECT coalesce(max(version), 0) FROM schema_version").fetchone()
         return int(row[0]) if row else 0
 
+    def table_columns(self, table: str) -> list[str]:
+        """Column names of ``table`` in order (empty when it does not exist)."""
+        rows = self._one_row_query(
+            "SELECT column_name FROM information_schema.columns "
+            "WHERE table_schema = current_schema() AND table_name = %s ORDER BY ordinal_position",
+            (table,),
+        )
+        return [str(r[0]) for r in rows]
+
     # ------------------------------------------------------------------ vehicles
 
     @staticmethod

@@ -178,6 +178,11 @@ class SqliteStore:
             return 0
         return int(self._read("SELECT coalesce(max(version), 0) FROM schema_version")[0][0])
 
+    def table_columns(self, table: str) -> list[str]:
+        """Column names of ``table`` in order (empty when it does not exist)."""
+        rows = self._read("SELECT name FROM pragma_table_info(?) ORDER BY cid", (table,))
+        return [str(r[0]) for r in rows]
+
     # ------------------------------------------------------------------ vehicles
 
     @staticmethod

@@ -1,0 +1,229 @@
+"""The Store contract, on SQLite and PostgreSQL alike."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
+from server.storage import Store, VehicleRecord
+from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
+
+CONFIG = {"kind": "tractor", "wheel_radius_m": 0.8, "teeth_per_rev": 60, "nested": {"a": [1, 2]}}
+
+
+def _register(store: Store, *vehicle_ids: str) -> None:
+    for vid in vehicle_ids:
+        store.upsert_vehicle(vid, CONFIG, now_ns=T0_NS)
+
+
+def test_dialect_and_ping(store: Store, backend: Backend) -> None:
+    assert store.dialect == backend.name
+    assert store.ping()
+
+
+# ---------------------------------------------------------------------------- vehicles
+
+
+def test_upsert_vehicle_keeps_created_and_updates_config(store: Store) -> None:
+    first = store.upsert_vehicle("tractor-1", CONFIG, now_ns=100)
+    assert first == VehicleRecord("tractor-1", CONFIG, created_ns=100, updated_ns=100)
+    changed = {**CONFIG, "wheel_radius_m": 0.9}
+    second = store.upsert_vehicle("tractor-1", changed, now_ns=250)
+    assert second == VehicleRecord("tractor-1", changed, created_ns=100, updated_ns=250)
+    assert store.get_vehicle("tractor-1") == second
+    assert store.get_vehicle("nope") is None
+
+
+def test_list_vehicles_sorted(store: Store) -> None:
+    assert store.list_vehicles() == []
+    for vid in ("b", "a", "c"):
+        store.upsert_vehicle(vid, {"id": vid}, now_ns=1)
+    assert [v.vehicle_id for v in store.list_vehicles()] == ["a", "b", "c"]
+    assert store.list_vehicles()[0].config == {"id": "a"}
+
+
+# ---------------------------------------------------------------------------- estimates
+
+
+def test_round_trip_all_fields_with_nan_and_inf(store: Store) -> None:
+    _register(store, "v1")
+    rows = make_rows(500)
+    assert np.isnan(rows["slip_left_pct"]).any() and np.isinf(rows["vg_mps"]).any()
+    assert store.write_estimates([("v1", rows)]) == 500
+    got = store.query_series("v1", T0_NS, T0_NS + 500 * DT_NS)
+    assert got.dtype == ESTIMATE_DTYPE
+    assert_rows_equal(got, rows)
+
+
+def test_write_is_idempotent(store: Store) -> None:
+    _register(store, "v1")
+    rows = make_rows(300)
+    assert store.write_estimates([("v1", rows[:200])]) == 200
+    # replay with overlap: only the 100 new rows are inserted, stored values unchanged
+    replay = rows.copy()
+    replay["vg_mps"] = -1.0
+    assert store.write_estimates([("v1", replay)]) == 100
+    got = store.query_series("v1", 0, 2**62)
+    assert_rows_equal(got[:200], rows[:200])
+    assert_rows_equal(got[200:], replay[200:])
+    # duplicates inside one batch
+    assert store.write_estimates([("v1", rows[:10]), ("v1", rows[:10])]) == 0
+
+
+def test_write_several_vehicles_in_one_batch_and_unknown_vehicle(store: Store) -> None:
+    _register(store, "a", "b")
+    ra, rb = make_rows(50, seed=1), make_rows(70, seed=2)
+    written = store.write_estimates([("a", ra), ("ghost", make_rows(5)), ("b", rb)])
+    assert written == 120  # rows of the unregistered vehicle are not written
+    assert_rows_equal(store.query_series("a", 0, 2**62), ra)
+    assert_rows_equal(store.query_series("b", 0, 2**62), rb)
+    assert len(store.query_series("ghost", 0, 2**62)) == 0
+    assert store.write_estimates([]) == 0
+    assert store.write_estimates([("a", make_rows(0))]) == 0
+
+
+def test_write_rejects_wrong_dtype(store: Store) -> None:
+    _register(store, "v1")
+    with pytest.raises(TypeError):
+        store.write_estimates([("v1", np.zeros(3))])
+
+
+def test_series_range_is_half_open_and_ordered(store: Store) -> None:
+    _register(store, "v1", "v2")
+    rows = make_rows(1000)
+    shuffled = rows[np.random.default_rng(3).permutation(len(rows))]
+    store.write_estimates([("v1", shuffled), ("v2", make_rows(1000, seed=9))])
+    start, end = T0_NS + 100 * DT_NS, T0_NS + 250 * DT_NS
+    got = store.query_series("v1", start, end)
+    assert_rows_equal(got, rows[100:250])  # start included, end excluded, sorted, v1 only
+    assert len(store.query_series("v1", end, start)) == 0
+    assert len(store.query_series("v1", T0_NS + 10**15, T0_NS + 10**16)) == 0
+
+
+def test_series_field_subset(store: Store) -> None:
+    _register(store, "v1")
+    rows = make_rows(100)
+    store.write_estimates([("v1", rows)])
+    got = store.query_series("v1", 0, 2**62, ["slip_right_pct", "flags", "slip_left_pct"])
+    assert got.dtype.names == ("stamp_ns", "slip_right_pct", "flags", "slip_left_pct")
+    assert got.dtype["flags"] == np.dtype("i4") and got.dtype["stamp_ns"] == np.dtype("i8")
+    for name in got.dtype.names or ():
+        np.testing.assert_array_equal(got[name], rows[name])
+    only_time = store.query_series("v1", 0, 2**62, ["stamp_ns"])
+    assert only_time.dtype.names == ("stamp_ns",)
+    with pytest.raises(ValueError):
+        store.query_series("v1", 0, 2**62, ["stamp_ns", "speed; DROP TABLE estimates"])
+
+
+def test_series_empty_for_unknown_vehicle(store: Store) -> None:
+    got = store.query_series("nobody", 0, 2**62)
+    assert got.dtype == ESTIMATE_DTYPE and got.shape == (0,)
+
+
+def test_latest_and_latest_all(store: Store) -> None:
+    _register(store, "a", "b", "empty")
+    ra, rb = make_rows(30, seed=1), make_rows(40, start_ns=T0_NS + 5 * DT_NS, seed=2)
+    store.write_estimates([("a", ra), ("b", rb)])
+    la = store.latest("a")
+    assert la is not None and la.shape == () and la.dtype == ESTIMATE_DTYPE
+    assert_rows_equal(la.reshape(1), ra[-1:])
+    assert store.latest("empty") is None
+    assert store.latest("nobody") is None
+    everything = store.latest_all()
+    assert set(everything) == {"a", "b"}
+    assert_rows_equal(everything["b"].reshape(1), rb[-1:])
+
+
+def test_delete_vehicle_cascades(store: Store) -> None:
+    _register(store, "gone", "kept")
+    store.write_estimates([("gone", make_rows(100)), ("kept", make_rows(10))])
+    store.write_counters({"gone": {"packets": 5}, "kept": {"packets": 6}}, now_ns=1)
+    assert store.delete_vehicle("gone") is True
+    assert store.get_vehicle("gone") is None
+    assert len(store.query_series("gone", 0, 2**62)) == 0
+    assert store.get_counters("gone") == {}
+    assert store.latest("gone") is None
+    assert set(store.latest_all()) == {"kept"}
+    assert len(store.query_series("kept", 0, 2**62)) == 10
+    assert store.get_counters("kept") == {"packets": 6}
+    assert store.delete_vehicle("gone") is False
+    # re-registering starts empty
+    _register(store, "gone")
+    assert len(store.query_series("gone", 0, 2**62)) == 0
+
+
+def test_delete_older_than(store: Store) -> None:
+    _register(store, "a", "b")
+    store.write_estimates([("a", make_rows(100)), ("b", make_rows(50, seed=1))])
+    cutoff = T0_NS + 30 * DT_NS
+    assert store.delete_older_than(cutoff) == 30 + 30
+    assert store.query_series("a", 0, 2**62)["stamp_ns"][0] == cutoff
+    assert len(store.query_series("b", 0, 2**62)) == 20
+    assert store.delete_older_than(cutoff) == 0
+
+
+# ---------------------------------------------------------------------------- counters
+
+
+def test_counters_upsert(store: Store) -> None:
+    assert store.get_counters("v1") == {}
+    store.write_counters({"v1": {"packets": 10, "decode_errors": 1}, "v2": {"packets": 3}}, 1)
+    store.write_counters({"v1": {"packets": 25}}, 2)
+    assert store.get_counters("v1") == {"decode_errors": 1, "packets": 25}
+    assert store.get_counters("v2") == {"packets": 3}
+    store.write_counters({}, 3)  # nothing to do
+    # counters of a vehicle that was never registered (rejected traffic) are kept
+    store.write_counters({"unknown-7": {"rejected_unknown_vehicle": 4}}, 4)
+    assert store.get_counters("unknown-7") == {"rejected_unknown_vehicle": 4}
+
+
+# ---------------------------------------------------------------------------- raw packets
+
+
+def test_raw_packets(store: Store) -> None:
+    _register(store, "v1")
+    packets = [("v1", T0_NS + i, f"fleet/v1/sensors/imu/{i}", bytes([i, 0, 255])) for i in range(5)]
+    assert store.write_raw_packets([*packets, ("ghost", T0_NS, "k", b"x")]) == 5  # type: ignore[attr-defined]
+    got = store.query_raw_packets("v1", T0_NS + 1, T0_NS + 4)  # type: ignore[attr-defined]
+    assert got == [(t, k, p) for _, t, k, p in packets[1:4]]
+    store.delete_older_than(T0_NS + 2)
+    assert len(store.query_raw_packets("v1", 0, 2**62)) == 3  # type: ignore[attr-defined]
+    store.delete_vehicle("v1")
+    assert store.query_raw_packets("v1", 0, 2**62) == []  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------- concurrency
+
+
+def test_reads_from_other_threads_while_writing(store: Store) -> None:
+    _register(store, "v1")
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def reader() -> None:
+        try:
+            while not stop.is_set():
+                got = store.query_series("v1", 0, 2**62, ["vg_mps"])
+                assert np.all(np.diff(got["stamp_ns"]) > 0)
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=reader) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for i in range(10):
+        store.write_estimates([("v1", make_rows(200, start_ns=T0_NS + i * 200 * DT_NS))])
+    stop.set()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert len(store.query_series("v1", 0, 2**62)) == 2000
+
+
+def test_estimate_columns_match_estimate_fields(store: Store) -> None:
+    """A change to ESTIMATE_FIELDS must come with a new migration."""
+    columns = store.table_columns("estimates")  # type: ignore[attr-defined]
+    assert columns == ["vkey", *(name for name, _ in ESTIMATE_FIELDS)]
