@@ -1,0 +1,80 @@
+"""``GET /alerts``: open and recent alerts from :class:`server.alerts.AlertEngine`.
+
+The engine is found as ``app.state.alert_engine`` or, failing that,
+``app.state.runtime.alert_engine``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, Query, Request
+from pydantic import BaseModel, Field
+from starlette.datastructures import State
+
+from server.alerts import AlertEngine
+from server.api.errors import ServiceUnavailable, error_responses
+
+__all__ = ["AlertListPublic", "AlertPublic", "find_alert_engine", "router"]
+
+router = APIRouter(prefix="/alerts", tags=["alerts"])
+
+
+class AlertPublic(BaseModel):
+    """One alert. Stamps are sensor time, int ns since the epoch, UTC."""
+
+    id: int
+    vehicle_id: str
+    kind: Literal["slip_left", "slip_right", "gnss_degraded", "stale"]
+    start_ns: int = Field(description="where the condition began (stale: the last estimate)")
+    end_ns: int | None = Field(description="where it ended; null while open")
+    open: bool
+    opened_wall_ns: int = Field(description="server wall time the alert opened")
+    threshold: float | None = Field(description="slip threshold, percent (slip alerts)")
+    peak: float | None = Field(description="largest |slip| seen, percent (slip alerts)")
+
+
+class AlertListPublic(BaseModel):
+    """Alerts, newest first."""
+
+    alerts: list[AlertPublic]
+    open_count: int = Field(description="open alerts of the whole fleet")
+
+
+def find_alert_engine(state: State) -> AlertEngine | None:
+    """The app's engine: ``state.alert_engine`` or ``state.runtime.alert_engine``."""
+    engine = getattr(state, "alert_engine", None)
+    if engine is None:
+        engine = getattr(getattr(state, "runtime", None), "alert_engine", None)
+    return engine if isinstance(engine, AlertEngine) else None
+
+
+def _engine(request: Request) -> AlertEngine:
+    engine = find_alert_engine(request.app.state)
+    if engine is None:
+        raise ServiceUnavailable("alerts are not available")
+    return engine
+
+
+@router.get(
+    "",
+    response_model=AlertListPublic,
+    responses=error_responses(503),
+    summary="Open and recent alerts",
+    description=(
+        "Kinds: `slip_left` / `slip_right` (|slip| above the vehicle's `alert_threshold_pct` for "
+        "longer than its `alert_hold_s`), `gnss_degraded` (GNSS lost), `stale` (no estimate for "
+        "a while). Newest first."
+    ),
+)
+def list_alerts(
+    engine: Annotated[AlertEngine, Depends(_engine)],
+    state: Annotated[Literal["open", "closed", "all"], Query()] = "all",
+    vehicle_id: Annotated[str | None, Query(max_length=200)] = None,
+    limit: Annotated[int, Query(ge=1, le=5000)] = 500,
+) -> AlertListPublic:
+    found = engine.alerts(state=state, vehicle_id=vehicle_id, limit=limit)
+    return AlertListPublic(
+        alerts=[AlertPublic(**a.to_dict()) for a in found],
+        open_count=engine.open_count(),
+    )

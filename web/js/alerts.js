@@ -1,0 +1,86 @@
+// Alerts panel: open and recent alerts from GET /api/v1/alerts, refreshed every 2 s.
+
+import { fetchAlerts } from "./api.js";
+import { el, fmt, fmtDuration, fmtTimeNs, vehicleHref } from "./util.js";
+
+const KIND_LABEL = {
+  slip_left: "Slip left above threshold",
+  slip_right: "Slip right above threshold",
+  gnss_degraded: "GNSS degraded",
+  stale: "No data (stale)",
+};
+
+export function alertsView(root) {
+  const stateSel = el("select", { id: "a-state", "aria-label": "Which alerts" });
+  for (const [v, t] of [["open", "open"], ["all", "open and closed"], ["closed", "closed"]]) {
+    stateSel.append(el("option", { value: v, text: t }));
+  }
+  stateSel.value = "all";
+  const msg = el("p", { class: "summary", "aria-live": "polite" });
+  const tbody = el("tbody", { id: "alerts-body" });
+  root.append(
+    el("div", { class: "toolbar" }, el("h1", { text: "Alerts" }), el("label", {}, "Show ", stateSel), msg),
+    el(
+      "table",
+      { class: "plain" },
+      el(
+        "thead",
+        {},
+        el(
+          "tr",
+          {},
+          ...["State", "Vehicle", "Kind", "Start (UTC)", "End (UTC)", "Duration", "Peak |slip| (%)", "Threshold (%)"].map((h) =>
+            el("th", { scope: "col", text: h }),
+          ),
+        ),
+      ),
+      tbody,
+    ),
+  );
+  let timer = null;
+  async function refresh() {
+    try {
+      const body = await fetchAlerts({ state: stateSel.value, limit: 500 });
+      msg.textContent = `${body.open_count} open`;
+      const rows = body.alerts.map((a) => {
+        const endNs = a.end_ns ?? null;
+        const dur = endNs ? (endNs - a.start_ns) / 1e9 : Date.now() / 1e3 - a.start_ns / 1e9;
+        return el(
+          "tr",
+          { class: a.open ? "alert-open" : "" },
+          el("td", {}, el("span", { class: `pill ${a.open ? "st-offline" : "st-closed"}`, text: a.open ? "open" : "closed" })),
+          el("td", {}, el("a", { href: vehicleHref(a.vehicle_id), text: a.vehicle_id })),
+          el("td", { text: KIND_LABEL[a.kind] || a.kind }),
+          el("td", { text: fmtTimeNs(a.start_ns, false) }),
+          el("td", { text: endNs ? fmtTimeNs(endNs, false) : "ongoing" }),
+          el("td", { text: fmtDuration(Math.max(0, dur)) }),
+          el("td", { class: "num", text: fmt(a.peak, 1) }),
+          el("td", { class: "num", text: fmt(a.threshold, 1) }),
+        );
+      });
+      tbody.replaceChildren(...rows);
+      if (!rows.length) tbody.append(el("tr", {}, el("td", { colspan: "8", text: "No alerts." })));
+    } catch (err) {
+      msg.textContent = `Could not load alerts: ${err.message}`;
+    }
+  }
+  stateSel.addEventListener("change", refresh);
+  refresh();
+  timer = setInterval(refresh, 2000);
+  return () => clearInterval(timer);
+}
+
+// Badge in the header: number of open alerts, refreshed every 5 s.
+export function startAlertBadge(badge) {
+  const tick = async () => {
+    try {
+      const body = await fetchAlerts({ state: "open", limit: 1 });
+      badge.textContent = String(body.open_count);
+      badge.hidden = body.open_count === 0;
+    } catch (_) {
+      badge.hidden = true;
+    }
+  };
+  tick();
+  setInterval(tick, 5000);
+}

@@ -1,0 +1,116 @@
+// Every request of the dashboard goes through this module (base URL, credentials, errors),
+// so adding a bearer token later is a change here only.
+
+const config = {
+  base: "", // same origin
+  token: null, // bearer token, when the server requires one
+};
+
+export function setToken(token) {
+  config.token = token || null;
+}
+
+function headers() {
+  const h = { Accept: "application/json" };
+  if (config.token) h.Authorization = `Bearer ${config.token}`;
+  return h;
+}
+
+function query(params) {
+  const q = new URLSearchParams();
+  for (const [k, v] of Object.entries(params || {})) {
+    if (v !== undefined && v !== null) q.set(k, String(v));
+  }
+  const s = q.toString();
+  return s ? `?${s}` : "";
+}
+
+export class ApiError extends Error {
+  constructor(status, code, reason) {
+    super(`${status} ${code}: ${reason}`);
+    this.status = status;
+    this.code = code;
+    this.reason = reason;
+  }
+}
+
+export async function getJSON(path, params) {
+  const resp = await fetch(`${config.base}${path}${query(params)}`, { headers: headers() });
+  if (!resp.ok) {
+    let code = "error";
+    let reason = resp.statusText;
+    try {
+      const body = await resp.json();
+      code = body.error || code;
+      reason = body.reason || reason;
+    } catch (_) {
+      /* not JSON */
+    }
+    throw new ApiError(resp.status, code, reason);
+  }
+  return resp.json();
+}
+
+// REST: one vehicle's series as {stamp_ns: [...], field: [...]} (column arrays, null for NaN).
+export async function fetchSeries(vehicleId, startNs, endNs, fields, maxPoints) {
+  const body = await getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/series`, {
+    start: String(startNs),
+    end: String(endNs),
+    fields: fields.join(","),
+    max_points: maxPoints,
+    format: "json",
+  });
+  return body.columns;
+}
+
+export function fetchAlerts(params) {
+  return getJSON("/api/v1/alerts", params);
+}
+
+// A WebSocket that reconnects with back-off. onMessage(obj) gets each parsed JSON message;
+// onState("open" | "closed" | "error") reports the connection. Returns {send, close}.
+export function liveSocket(path, params, { onMessage, onState }) {
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  const p = { ...(params || {}) };
+  if (config.token) p.access_token = config.token;
+  const url = `${proto}//${location.host}${config.base}${path}${query(p)}`;
+  let ws = null;
+  let closed = false;
+  let delay = 500;
+  let timer = null;
+  const connect = () => {
+    ws = new WebSocket(url);
+    ws.onopen = () => {
+      delay = 500;
+      onState && onState("open");
+    };
+    ws.onmessage = (ev) => {
+      let msg;
+      try {
+        msg = JSON.parse(ev.data);
+      } catch (_) {
+        return;
+      }
+      onMessage(msg, performance.timeOrigin + performance.now());
+    };
+    ws.onclose = () => {
+      onState && onState("closed");
+      if (!closed) {
+        timer = setTimeout(connect, delay);
+        delay = Math.min(delay * 2, 10000);
+      }
+    };
+    ws.onerror = () => onState && onState("error");
+  };
+  connect();
+  return {
+    send(obj) {
+      if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj));
+    },
+    close() {
+      closed = true;
+      clearTimeout(timer);
+      if (ws) ws.close();
+    },
+  };
+}

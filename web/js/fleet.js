@@ -1,0 +1,187 @@
+// Fleet overview: one row per vehicle, fed by the /live/fleet WebSocket at 2 Hz.
+// Rows are virtualised (only the visible ones exist in the DOM) so 1,000+ vehicles stay cheap;
+// an update only rewrites the text and classes of those rows.
+
+import { liveSocket } from "./api.js";
+import { slipBand, slipCss } from "./colors.js";
+import { el, fmt, vehicleHref } from "./util.js";
+
+const ROW_H = 32; // px, keep in sync with .vrow in app.css
+
+const COLUMNS = [
+  { key: "id", label: "Vehicle", numeric: false },
+  { key: "status", label: "Status", numeric: false },
+  { key: "vg_mps", label: "Speed (m/s)", numeric: true },
+  { key: "slip_left_pct", label: "Slip left (%)", numeric: true },
+  { key: "slip_right_pct", label: "Slip right (%)", numeric: true },
+  { key: "gnss", label: "GNSS", numeric: false },
+  { key: "age_s", label: "Last update (s ago)", numeric: true },
+];
+const STATUS_ORDER = { live: 0, stale: 1, offline: 2 };
+const GNSS_ORDER = { ok: 0, gated: 1, degraded: 2, none: 3 };
+
+export function fleetView(root) {
+  const state = { data: null, order: [], sortKey: "id", sortDir: 1, filter: "" };
+  const summary = el("p", { class: "summary", "aria-live": "polite", id: "fleet-summary" }, "Connecting…");
+  const filter = el("input", {
+    type: "search",
+    placeholder: "Filter vehicles…",
+    "aria-label": "Filter vehicles by id",
+    id: "fleet-filter",
+  });
+  const header = el("div", { class: "vrow vhead", role: "row" });
+  const headButtons = {};
+  for (const c of COLUMNS) {
+    const b = el("button", { type: "button", class: c.numeric ? "num" : "", text: c.label });
+    b.addEventListener("click", () => {
+      if (state.sortKey === c.key) state.sortDir = -state.sortDir;
+      else {
+        state.sortKey = c.key;
+        state.sortDir = c.numeric && c.key !== "age_s" ? -1 : 1;
+      }
+      resort();
+    });
+    const cell = el("div", { role: "columnheader", class: `c-${c.key}` }, b);
+    headButtons[c.key] = cell;
+    header.append(cell);
+  }
+  const spacer = el("div", { class: "vspacer" });
+  const rowsBox = el("div", { class: "vrows", role: "rowgroup" });
+  const scroller = el("div", { class: "vscroll", id: "fleet-rows" }, spacer, rowsBox);
+  const table = el(
+    "div",
+    { class: "vtable", role: "table", "aria-label": "Fleet overview", "aria-rowcount": "0" },
+    el("div", { role: "rowgroup" }, header),
+    scroller,
+  );
+  root.append(
+    el("div", { class: "toolbar" }, el("h1", { text: "Fleet" }), filter, summary),
+    table,
+  );
+
+  const pool = [];
+  function makeRow() {
+    const link = el("a", {});
+    const cells = {
+      id: el("div", { role: "cell", class: "c-id" }, link),
+      status: el("div", { role: "cell", class: "c-status" }, el("span", { class: "pill" })),
+      vg_mps: el("div", { role: "cell", class: "c-vg_mps num" }),
+      slip_left_pct: el("div", { role: "cell", class: "c-slip_left_pct num slip" }, el("span", { class: "dot", "aria-hidden": "true" }), el("span")),
+      slip_right_pct: el("div", { role: "cell", class: "c-slip_right_pct num slip" }, el("span", { class: "dot", "aria-hidden": "true" }), el("span")),
+      gnss: el("div", { role: "cell", class: "c-gnss" }),
+      age_s: el("div", { role: "cell", class: "c-age_s num" }),
+    };
+    const row = el("div", { class: "vrow", role: "row" }, ...Object.values(cells));
+    row._cells = cells;
+    row._link = link;
+    rowsBox.append(row);
+    return row;
+  }
+
+  function sortValue(d, i, key) {
+    if (key === "id") return d.ids[i];
+    if (key === "status") return STATUS_ORDER[d.status[i]] ?? 9;
+    if (key === "gnss") return GNSS_ORDER[d.gnss[i]] ?? 9;
+    const v = d[key][i];
+    if (v === null) return null;
+    return key.startsWith("slip") ? Math.abs(v) : v;
+  }
+
+  function resort() {
+    const d = state.data;
+    if (!d) return;
+    const f = state.filter.toLowerCase();
+    let idx = d.ids.map((_, i) => i);
+    if (f) idx = idx.filter((i) => d.ids[i].toLowerCase().includes(f));
+    const key = state.sortKey;
+    const dir = state.sortDir;
+    const vals = idx.map((i) => sortValue(d, i, key));
+    const pos = idx.map((_, k) => k);
+    pos.sort((a, b) => {
+      const va = vals[a];
+      const vb = vals[b];
+      if (va === vb) return d.ids[idx[a]] < d.ids[idx[b]] ? -1 : 1;
+      if (va === null) return 1; // missing values last either way
+      if (vb === null) return -1;
+      return va < vb ? -dir : dir;
+    });
+    state.order = pos.map((k) => idx[k]);
+    for (const c of COLUMNS) {
+      headButtons[c.key].setAttribute(
+        "aria-sort",
+        c.key === key ? (dir > 0 ? "ascending" : "descending") : "none",
+      );
+    }
+    table.setAttribute("aria-rowcount", String(state.order.length + 1));
+    spacer.style.height = `${state.order.length * ROW_H}px`;
+    render();
+  }
+
+  function render() {
+    const d = state.data;
+    if (!d) return;
+    const first = Math.max(0, Math.floor(scroller.scrollTop / ROW_H) - 5);
+    const count = Math.min(state.order.length - first, Math.ceil(scroller.clientHeight / ROW_H) + 10);
+    while (pool.length < count) pool.push(makeRow());
+    for (let k = 0; k < pool.length; k++) {
+      const row = pool[k];
+      if (k >= count) {
+        row.hidden = true;
+        continue;
+      }
+      row.hidden = false;
+      const n = first + k;
+      const i = state.order[n];
+      row.style.transform = `translateY(${n * ROW_H}px)`;
+      row.setAttribute("aria-rowindex", String(n + 2));
+      const c = row._cells;
+      const id = d.ids[i];
+      if (row._link.textContent !== id) {
+        row._link.textContent = id;
+        row._link.href = vehicleHref(id);
+      }
+      const st = d.status[i];
+      const pill = c.status.firstChild;
+      pill.textContent = st;
+      pill.className = `pill st-${st}`;
+      c.vg_mps.textContent = fmt(d.vg_mps[i], 2);
+      for (const key of ["slip_left_pct", "slip_right_pct"]) {
+        const v = d[key][i];
+        const cell = c[key];
+        cell.className = `c-${key} num slip band-${slipBand(v)}`;
+        cell.firstChild.style.background = slipCss(v);
+        cell.lastChild.textContent = fmt(v, 1);
+      }
+      const g = d.gnss[i];
+      c.gnss.textContent = g;
+      c.gnss.className = `c-gnss gnss-${g}`;
+      c.age_s.textContent = fmt(d.age_s[i], 1);
+    }
+  }
+
+  scroller.addEventListener("scroll", () => requestAnimationFrame(render), { passive: true });
+  filter.addEventListener("input", () => {
+    state.filter = filter.value;
+    resort();
+  });
+  const onResize = () => render();
+  window.addEventListener("resize", onResize);
+
+  const sock = liveSocket("/api/v1/live/fleet", { interval_ms: 500 }, {
+    onMessage(msg) {
+      if (msg.type !== "fleet") return;
+      state.data = msg;
+      const counts = { live: 0, stale: 0, offline: 0 };
+      for (const s of msg.status) counts[s] = (counts[s] || 0) + 1;
+      summary.textContent = `${msg.ids.length} vehicles — ${counts.live} live, ${counts.stale} stale, ${counts.offline} offline`;
+      resort();
+    },
+    onState(s) {
+      if (s !== "open") summary.textContent = `Connection ${s}; retrying…`;
+    },
+  });
+  return () => {
+    sock.close();
+    window.removeEventListener("resize", onResize);
+  };
+}

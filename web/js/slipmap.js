@@ -1,0 +1,224 @@
+// Slip map: the track in local metres (east right, north up, equal scale) on a canvas, coloured by
+// |slip| with the fixed scale of colors.js, an optional heat grid of mean |slip| per cell, a scale
+// bar, axis labels and the colour legend.
+
+import { drawSlipLegend, slipCss } from "./colors.js";
+
+// Per-row slip metric of the map: the larger |slip| of the two wheels, null when neither has one.
+export function slipMetric(left, right) {
+  const n = left.length;
+  const out = new Array(n);
+  for (let i = 0; i < n; i++) {
+    const a = left[i];
+    const b = right[i];
+    if (a == null && b == null) out[i] = null;
+    else out[i] = Math.max(a == null ? 0 : Math.abs(a), b == null ? 0 : Math.abs(b));
+  }
+  return out;
+}
+
+// Mean of `values` per square cell of `cellM` metres: [{e0, n0, mean, count}] (cells with a value).
+export function heatGrid(east, north, values, cellM) {
+  const cells = new Map();
+  for (let i = 0; i < east.length; i++) {
+    const e = east[i];
+    const n = north[i];
+    const v = values[i];
+    if (e == null || n == null || v == null) continue;
+    const ie = Math.floor(e / cellM);
+    const in_ = Math.floor(n / cellM);
+    const key = `${ie},${in_}`;
+    let c = cells.get(key);
+    if (!c) {
+      c = { e0: ie * cellM, n0: in_ * cellM, sum: 0, count: 0 };
+      cells.set(key, c);
+    }
+    c.sum += v;
+    c.count += 1;
+  }
+  return [...cells.values()].map((c) => ({ e0: c.e0, n0: c.n0, mean: c.sum / c.count, count: c.count }));
+}
+
+function niceStep(span) {
+  const raw = span / 5;
+  const p = 10 ** Math.floor(Math.log10(raw));
+  for (const m of [1, 2, 5, 10]) if (raw <= m * p) return m * p;
+  return 10 * p;
+}
+
+export class SlipMap {
+  constructor(canvas, { title = "Track coloured by |slip|" } = {}) {
+    this.canvas = canvas;
+    this.title = title;
+    this.east = [];
+    this.north = [];
+    this.slip = [];
+    this.heat = null;
+    this.heatCell = 0;
+    this.cursor = null; // index of the replay position
+    this.upTo = null; // draw the track only up to this index (replay), null = all
+  }
+
+  setTrack(east, north, slip) {
+    this.east = east;
+    this.north = north;
+    this.slip = slip;
+  }
+
+  setHeat(cells, cellM) {
+    this.heat = cells;
+    this.heatCell = cellM;
+  }
+
+  draw() {
+    const c = this.canvas;
+    const dpr = window.devicePixelRatio || 1;
+    const cssW = c.clientWidth || 600;
+    const cssH = c.clientHeight || 420;
+    if (c.width !== Math.round(cssW * dpr) || c.height !== Math.round(cssH * dpr)) {
+      c.width = Math.round(cssW * dpr);
+      c.height = Math.round(cssH * dpr);
+    }
+    const ctx = c.getContext("2d");
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.fillStyle = "#ffffff";
+    ctx.fillRect(0, 0, cssW, cssH);
+    const pad = { l: 64, r: 16, t: 30, b: 90 };
+    const W = cssW - pad.l - pad.r;
+    const H = cssH - pad.t - pad.b;
+    ctx.fillStyle = "#222";
+    ctx.font = "bold 14px system-ui, sans-serif";
+    ctx.textBaseline = "top";
+    ctx.fillText(this.title, pad.l, 8);
+
+    // bounds over the track and the heat cells
+    let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;
+    for (let i = 0; i < this.east.length; i++) {
+      const e = this.east[i], n = this.north[i];
+      if (e == null || n == null) continue;
+      if (e < e0) e0 = e; if (e > e1) e1 = e; if (n < n0) n0 = n; if (n > n1) n1 = n;
+    }
+    if (this.heat) {
+      for (const h of this.heat) {
+        e0 = Math.min(e0, h.e0); e1 = Math.max(e1, h.e0 + this.heatCell);
+        n0 = Math.min(n0, h.n0); n1 = Math.max(n1, h.n0 + this.heatCell);
+      }
+    }
+    drawSlipLegend(ctx, pad.l, cssH - 48, Math.min(300, W - 90), 14);
+    if (!Number.isFinite(e0)) {
+      ctx.fillStyle = "#555";
+      ctx.font = "14px system-ui, sans-serif";
+      ctx.fillText("No position data yet", pad.l + 10, pad.t + 20);
+      this.drawn = 0;
+      return;
+    }
+    const span = Math.max(e1 - e0, n1 - n0, 5) * 1.08;
+    const sc = Math.min(W, H) / span; // px per metre, equal on both axes
+    const ce = (e0 + e1) / 2, cn = (n0 + n1) / 2;
+    const ox = pad.l + W / 2, oy = pad.t + H / 2;
+    const px = (e) => ox + (e - ce) * sc;
+    const py = (n) => oy - (n - cn) * sc;
+    this.toPx = { px, py };
+
+    // grid and axis labels
+    const spanE = W / sc, spanN = H / sc;
+    const step = niceStep(Math.max(spanE, spanN));
+    ctx.strokeStyle = "#e6e6e6";
+    ctx.lineWidth = 1;
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.fillStyle = "#444";
+    ctx.textAlign = "center";
+    ctx.textBaseline = "top";
+    for (let e = Math.ceil((ce - spanE / 2) / step) * step; e <= ce + spanE / 2; e += step) {
+      const x = px(e);
+      ctx.beginPath(); ctx.moveTo(x, pad.t); ctx.lineTo(x, pad.t + H); ctx.stroke();
+      ctx.fillText(String(Math.round(e * 10) / 10), x, pad.t + H + 3);
+    }
+    ctx.textAlign = "right";
+    ctx.textBaseline = "middle";
+    for (let n = Math.ceil((cn - spanN / 2) / step) * step; n <= cn + spanN / 2; n += step) {
+      const y = py(n);
+      ctx.beginPath(); ctx.moveTo(pad.l, y); ctx.lineTo(pad.l + W, y); ctx.stroke();
+      ctx.fillText(String(Math.round(n * 10) / 10), pad.l - 4, y);
+    }
+    ctx.strokeStyle = "#999";
+    ctx.strokeRect(pad.l + 0.5, pad.t + 0.5, W, H);
+    ctx.fillStyle = "#222";
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.textAlign = "center";
+    ctx.textBaseline = "top";
+    ctx.fillText("east (m)", pad.l + W / 2, pad.t + H + 17);
+    ctx.save();
+    ctx.translate(16, pad.t + H / 2);
+    ctx.rotate(-Math.PI / 2);
+    ctx.fillText("north (m)", 0, 0);
+    ctx.restore();
+
+    ctx.save();
+    ctx.beginPath();
+    ctx.rect(pad.l, pad.t, W, H);
+    ctx.clip();
+    if (this.heat) {
+      const s = this.heatCell * sc;
+      for (const h of this.heat) {
+        ctx.fillStyle = slipCss(h.mean);
+        ctx.globalAlpha = 0.85;
+        ctx.fillRect(px(h.e0), py(h.n0 + this.heatCell), s + 0.5, s + 0.5);
+      }
+      ctx.globalAlpha = 1;
+    }
+    // track: faint full path, then coloured segments (up to the replay position)
+    const last = this.upTo == null ? this.east.length - 1 : Math.min(this.upTo, this.east.length - 1);
+    ctx.lineCap = "round";
+    ctx.lineJoin = "round";
+    if (this.upTo != null || this.heat) {
+      ctx.strokeStyle = "rgba(60,60,60,0.35)";
+      ctx.lineWidth = 1.5;
+      ctx.beginPath();
+      let started = false;
+      for (let i = 0; i < this.east.length; i++) {
+        if (this.east[i] == null) { started = false; continue; }
+        if (!started) { ctx.moveTo(px(this.east[i]), py(this.north[i])); started = true; }
+        else ctx.lineTo(px(this.east[i]), py(this.north[i]));
+      }
+      ctx.stroke();
+    }
+    ctx.lineWidth = this.heat ? 2 : 4;
+    let drawn = 0;
+    for (let i = 1; i <= last; i++) {
+      const ea = this.east[i - 1], na = this.north[i - 1], eb = this.east[i], nb = this.north[i];
+      if (ea == null || na == null || eb == null || nb == null) continue;
+      ctx.strokeStyle = slipCss(this.slip[i]);
+      ctx.beginPath();
+      ctx.moveTo(px(ea), py(na));
+      ctx.lineTo(px(eb), py(nb));
+      ctx.stroke();
+      drawn++;
+    }
+    const mi = this.cursor != null ? this.cursor : last;
+    if (mi >= 0 && this.east[mi] != null) {
+      ctx.fillStyle = slipCss(this.slip[mi]);
+      ctx.strokeStyle = "#000";
+      ctx.lineWidth = 2;
+      ctx.beginPath();
+      ctx.arc(px(this.east[mi]), py(this.north[mi]), 7, 0, 2 * Math.PI);
+      ctx.fill();
+      ctx.stroke();
+    }
+    ctx.restore();
+    // scale bar
+    const barM = niceStep(spanE / 2);
+    const bx = pad.l + W - barM * sc - 10, by = pad.t + H - 14;
+    ctx.fillStyle = "rgba(255,255,255,0.85)";
+    ctx.fillRect(bx - 6, by - 16, barM * sc + 12, 24);
+    ctx.strokeStyle = "#222";
+    ctx.lineWidth = 2;
+    ctx.beginPath(); ctx.moveTo(bx, by); ctx.lineTo(bx + barM * sc, by); ctx.stroke();
+    ctx.fillStyle = "#222";
+    ctx.textAlign = "center";
+    ctx.textBaseline = "bottom";
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.fillText(`${barM} m`, bx + (barM * sc) / 2, by - 2);
+    this.drawn = drawn;
+  }
+}
