@@ -1,0 +1,410 @@
+"""Raw sensor streams sampled from a :class:`~estimator.sim.kinematics.FineTruth`.
+
+Imperfections, all switchable through :class:`SensorSpec` (defaults are a good RTK receiver, a
+consumer MEMS IMU and a 120-tooth Hall encoder ring):
+
+GNSS (``gnss_rate_hz``, epochs on whole multiples of the period)
+    Antenna velocity in ENU with the lever-arm terms ``ω × p`` of yaw, pitch and roll rate;
+    white noise per axis (vertical ×1.5); optional multiplicative speed noise, uniform in
+    ``±gnss_speed_noise_rel`` (the source's "≈5 % amplitude" noise); scheduled speed
+    disturbances along the forward axis; random outliers (multipath) that the receiver does not
+    flag; RTK-float windows with larger noise; outages (``fix = NONE`` with NaN values, or epochs
+    left out); a data lag (the solution describes an instant ``gnss_data_lag_ms`` before its
+    stamp) and a delivery latency (arrival after the stamp). Attitude from a dual-antenna
+    receiver with white noise; position through :class:`estimator.geo.EnuFrame`.
+IMU (``imu_rate_hz``, batches of ``imu_batch_len``)
+    Specific force at the IMU's mounting point, gravity included, and body angular rate; each
+    axis gets a constant bias (drawn once per run), a random-walk bias and white noise.
+Wheel encoders
+    Rising-edge times where the integrated wheel angle crosses a tooth edge. Each ring has a
+    fixed random pattern of tooth-edge deviations (``tooth_error_rel`` of the tooth pitch, 1σ),
+    and the wheel starts at a random angle. Edge times are quantised to the capture timer
+    (``edge_clock_hz``) and grouped per wheel in windows of ``wheel_batch_ms``; windows without
+    an edge send nothing.
+
+Every generator returns :class:`Emission` records: the measurement, the sensor time that
+completes it (``key_ns``, the last sample's stamp) and the time it reaches the server
+(``arrival_ns``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator.base import Measurement
+from estimator.config import VehicleConfig
+from estimator.geo import EnuFrame
+from estimator.sim.kinematics import FineTruth
+from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "Emission",
+    "SensorSpec",
+    "antenna_point_m",
+    "gnss_emissions",
+    "imu_emissions",
+    "imu_point_m",
+    "wheel_emissions",
+]
+
+Window = tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class SensorSpec:
+    """Sensor rates and imperfections (units in the names; times in seconds from the start).
+
+    GNSS
+    ----
+    gnss_rate_hz : 10.0
+    gnss_vel_std_mps : 0.03 — white noise per horizontal axis (vertical ×1.5), RTK fixed.
+    gnss_speed_noise_rel : 0.0 — multiplicative speed noise, uniform in ±this (0.05 = "5 %").
+    gnss_pos_std_m : 0.015 — horizontal position noise (vertical ×2).
+    gnss_heading_std_rad, gnss_pitch_std_rad, gnss_roll_std_rad : dual-antenna attitude noise.
+    gnss_outlier_prob : 0.0 — chance per epoch of an unflagged velocity outlier.
+    gnss_outlier_mps : 1.0 — outlier size, 1σ per axis.
+    gnss_speed_steps : ((t_s, dv_mps, duration_s), ...) — forward-speed disturbances.
+    gnss_outages : ((t0_s, t1_s), ...) — no solution in ``[t0, t1)``.
+    gnss_outage_mode : "no_fix" (epochs with ``fix=NONE`` and NaN values) or "missing".
+    gnss_float_windows : ((t0_s, t1_s), ...) — RTK float: noise × ``gnss_float_noise_scale``.
+    gnss_latency_ms : delivery delay after the epoch stamp.
+    gnss_data_lag_ms : the solution describes the instant this long before its stamp.
+
+    IMU
+    ---
+    imu_rate_hz : 100.0, imu_batch_len : 10
+    accel_std_mps2, gyro_std_radps : white noise per sample.
+    accel_bias_std_mps2, gyro_bias_std_radps : constant bias per axis (1σ, drawn per run).
+    accel_bias_walk_mps2, gyro_bias_walk_radps : bias random walk per √s.
+    imu_latency_ms : delivery delay after the batch's last sample.
+
+    Wheels
+    ------
+    tooth_error_rel : 0.01 — per-tooth edge deviation, fraction of the tooth pitch (1σ).
+    edge_clock_hz : 1e6 — edge capture timer; must divide 1e9.
+    wheel_batch_ms : 100.0 — one packet per wheel per window.
+    wheel_latency_ms : delivery delay after the window's end.
+    wheel_radius_error_rel : (left, right) — true radius = configured × (1 + error).
+
+    Truth grid
+    ----------
+    fine_rate_hz : 500.0 — internal integration grid; the GNSS, IMU and truth rates must
+    divide it.
+    truth_rate_hz : 100.0 — rate of the returned truth table.
+    """
+
+    gnss_rate_hz: float = 10.0
+    gnss_vel_std_mps: float = 0.03
+    gnss_speed_noise_rel: float = 0.0
+    gnss_pos_std_m: float = 0.015
+    gnss_heading_std_rad: float = 0.0035
+    gnss_pitch_std_rad: float = 0.005
+    gnss_roll_std_rad: float = 0.005
+    gnss_outlier_prob: float = 0.0
+    gnss_outlier_mps: float = 1.0
+    gnss_speed_steps: tuple[tuple[float, float, float], ...] = ()
+    gnss_outages: tuple[Window, ...] = ()
+    gnss_outage_mode: str = "no_fix"
+    gnss_float_windows: tuple[Window, ...] = ()
+    gnss_float_noise_scale: float = 5.0
+    gnss_latency_ms: float = 50.0
+    gnss_data_lag_ms: float = 0.0
+    imu_rate_hz: float = 100.0
+    imu_batch_len: int = 10
+    accel_std_mps2: float = 0.05
+    gyro_std_radps: float = 0.005
+    accel_bias_std_mps2: float = 0.03
+    gyro_bias_std_radps: float = 0.002
+    accel_bias_walk_mps2: float = 0.002
+    gyro_bias_walk_radps: float = 1e-4
+    imu_latency_ms: float = 2.0
+    tooth_error_rel: float = 0.01
+    edge_clock_hz: float = 1e6
+    wheel_batch_ms: float = 100.0
+    wheel_latency_ms: float = 5.0
+    wheel_radius_error_rel: tuple[float, float] = (0.0, 0.0)
+    fine_rate_hz: float = 500.0
+    truth_rate_hz: float = 100.0
+
+    def __post_init__(self) -> None:
+        for name in ("gnss_rate_hz", "imu_rate_hz", "truth_rate_hz"):
+            rate = getattr(self, name)
+            ratio = self.fine_rate_hz / rate if rate > 0 else math.nan
+            if not (rate > 0 and abs(ratio - round(ratio)) < 1e-9):
+                raise ValueError(
+                    f"{name}={rate} must be > 0 and divide fine_rate_hz={self.fine_rate_hz}"
+                )
+        if self.gnss_outage_mode not in ("no_fix", "missing"):
+            raise ValueError("gnss_outage_mode must be 'no_fix' or 'missing'")
+        tick = 1e9 / self.edge_clock_hz
+        if abs(tick - round(tick)) > 1e-9 or tick < 1:
+            raise ValueError("edge_clock_hz must divide 1e9")
+        if self.imu_batch_len < 1:
+            raise ValueError("imu_batch_len must be >= 1")
+        if self.wheel_batch_ms <= 0:
+            raise ValueError("wheel_batch_ms must be > 0")
+        if not 0.0 <= self.tooth_error_rel < 0.2:
+            raise ValueError("tooth_error_rel must be in [0, 0.2)")
+        for name in (
+            "gnss_vel_std_mps",
+            "gnss_speed_noise_rel",
+            "gnss_pos_std_m",
+            "gnss_outlier_prob",
+            "accel_std_mps2",
+            "gyro_std_radps",
+            "accel_bias_std_mps2",
+            "gyro_bias_std_radps",
+            "accel_bias_walk_mps2",
+            "gyro_bias_walk_radps",
+            "gnss_latency_ms",
+            "gnss_data_lag_ms",
+            "imu_latency_ms",
+            "wheel_latency_ms",
+        ):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0")
+
+    @classmethod
+    def field_names(cls) -> frozenset[str]:
+        """Names accepted as overrides."""
+        return frozenset(f.name for f in dataclasses.fields(cls))
+
+
+class Emission(NamedTuple):
+    """One measurement with the sensor time that completes it and its arrival time (ns)."""
+
+    key_ns: int
+    arrival_ns: int
+    rank: int
+    measurement: Measurement
+
+
+def imu_point_m(config: VehicleConfig) -> FloatArray:
+    """IMU position in the body frame from ``O``: ``(x, y, h0)``."""
+    g = config.geometry
+    return np.array([g.imu_offset_m[0], g.imu_offset_m[1], g.h0_m])
+
+
+def antenna_point_m(config: VehicleConfig) -> FloatArray:
+    """Antenna position in the body frame from ``O``: ``(x, y, h0 + h1)``."""
+    g = config.geometry
+    return np.array([g.antenna_offset_m[0], g.antenna_offset_m[1], g.h0_m + g.h1_m])
+
+
+def _in_windows(t: FloatArray, windows: tuple[Window, ...]) -> npt.NDArray[np.bool_]:
+    mask = np.zeros(t.shape, dtype=bool)
+    for t0, t1 in windows:
+        mask |= (t >= t0) & (t < t1)
+    return mask
+
+
+def _stamps(start_ns: int, t_s: FloatArray) -> npt.NDArray[np.int64]:
+    return start_ns + np.round(t_s * 1e9).astype(np.int64)
+
+
+def gnss_emissions(
+    truth: FineTruth,
+    spec: SensorSpec,
+    config: VehicleConfig,
+    frame: EnuFrame,
+    start_ns: int,
+    rng: np.random.Generator,
+) -> list[Emission]:
+    """GNSS epochs (see the module docstring for the error model)."""
+    step = round(spec.fine_rate_hz / spec.gnss_rate_hz)
+    idx = np.arange(0, truth.t_s.size, step)
+    t = truth.t_s[idx]
+    n = idx.size
+    lag = round(spec.gnss_data_lag_ms * 1e-3 * spec.fine_rate_hz)
+    src = np.maximum(idx - lag, 0)
+
+    p_ant = antenna_point_m(config)
+    rot = truth.rot[src]
+    v_body = truth.point_velocity_body(p_ant)[src]
+    vel = np.einsum("nij,nj->ni", rot, v_body)
+    pos = truth.pos_enu_m[src] + rot @ p_ant
+
+    # draw everything every time, so switching one imperfection off keeps the others' values
+    rel = rng.uniform(-1.0, 1.0, n) * spec.gnss_speed_noise_rel
+    white = rng.standard_normal((n, 3)) * np.array([1.0, 1.0, 1.5])
+    pos_noise = rng.standard_normal((n, 3)) * np.array([1.0, 1.0, 2.0])
+    att_noise = rng.standard_normal((n, 3))
+    outlier = rng.random(n) < spec.gnss_outlier_prob
+    outlier_v = rng.standard_normal((n, 3)) * np.array([1.0, 1.0, 0.5]) * spec.gnss_outlier_mps
+
+    scale = np.where(_in_windows(t, spec.gnss_float_windows), spec.gnss_float_noise_scale, 1.0)
+    forward = rot[:, :, 1]
+    vel_meas = vel * (1.0 + rel[:, None]) + white * (spec.gnss_vel_std_mps * scale)[:, None]
+    for t0, dv, dur in spec.gnss_speed_steps:
+        hit = (t >= t0 - 1e-9) & (t < t0 + dur - 1e-9)
+        vel_meas[hit] += dv * forward[hit]
+    vel_meas[outlier] += outlier_v[outlier]
+    pos_meas = pos + pos_noise * (spec.gnss_pos_std_m * scale)[:, None]
+    heading = np.mod(truth.psi_rad[src] + att_noise[:, 0] * spec.gnss_heading_std_rad, 2 * np.pi)
+    pitch = truth.theta_rad[src] + att_noise[:, 1] * spec.gnss_pitch_std_rad
+    roll = truth.phi_rad[src] + att_noise[:, 2] * spec.gnss_roll_std_rad
+    lat, lon, h = frame.to_geodetic(pos_meas[:, 0], pos_meas[:, 1], pos_meas[:, 2])
+    speed = np.linalg.norm(vel, axis=1)
+    reported = np.sqrt(
+        (spec.gnss_vel_std_mps * scale) ** 2 + (spec.gnss_speed_noise_rel * speed) ** 2 / 3
+    )
+    out_mask = _in_windows(t, spec.gnss_outages)
+    fix_ok = np.where(scale > 1.0, GnssFix.RTK_FLOAT, GnssFix.RTK_FIXED)
+
+    stamps = _stamps(start_ns, t)
+    latency = round(spec.gnss_latency_ms * 1e6)
+    nan = math.nan
+    out: list[Emission] = []
+    for k in range(n):
+        stamp = int(stamps[k])
+        if out_mask[k]:
+            if spec.gnss_outage_mode == "missing":
+                continue
+            sample = GnssSample(
+                stamp_ns=stamp,
+                vel_enu_mps=(nan, nan, nan),
+                heading_rad=nan,
+                pitch_rad=nan,
+                roll_rad=nan,
+                lat_deg=nan,
+                lon_deg=nan,
+                height_m=nan,
+                fix=GnssFix.NONE,
+                vel_std_mps=nan,
+            )
+        else:
+            sample = GnssSample(
+                stamp_ns=stamp,
+                vel_enu_mps=(float(vel_meas[k, 0]), float(vel_meas[k, 1]), float(vel_meas[k, 2])),
+                heading_rad=float(heading[k]),
+                pitch_rad=float(pitch[k]),
+                roll_rad=float(roll[k]),
+                lat_deg=float(lat[k]),
+                lon_deg=float(lon[k]),
+                height_m=float(h[k]),
+                fix=GnssFix(int(fix_ok[k])),
+                vel_std_mps=float(reported[k]),
+            )
+        out.append(Emission(stamp, stamp + latency, 0, sample))
+    return out
+
+
+def _random_walk(rng: np.random.Generator, n: int, dt: float, walk: float) -> FloatArray:
+    steps = rng.standard_normal((n, 3)) * (walk * math.sqrt(dt))
+    return np.cumsum(steps, axis=0) - steps[0]
+
+
+def imu_emissions(
+    truth: FineTruth,
+    spec: SensorSpec,
+    config: VehicleConfig,
+    start_ns: int,
+    rng: np.random.Generator,
+) -> list[Emission]:
+    """IMU batches of specific force (gravity included) and angular rate at the IMU's point."""
+    step = round(spec.fine_rate_hz / spec.imu_rate_hz)
+    idx = np.arange(0, truth.t_s.size, step)
+    n = idx.size
+    dt = 1.0 / spec.imu_rate_hz
+    p_imu = imu_point_m(config)
+    force = truth.specific_force_body(p_imu)[idx]
+    rate = truth.omega_radps[idx]
+
+    accel_bias = rng.standard_normal(3) * spec.accel_bias_std_mps2
+    gyro_bias = rng.standard_normal(3) * spec.gyro_bias_std_radps
+    accel = (
+        force
+        + accel_bias[None, :]
+        + _random_walk(rng, n, dt, spec.accel_bias_walk_mps2)
+        + rng.standard_normal((n, 3)) * spec.accel_std_mps2
+    )
+    gyro = (
+        rate
+        + gyro_bias[None, :]
+        + _random_walk(rng, n, dt, spec.gyro_bias_walk_radps)
+        + rng.standard_normal((n, 3)) * spec.gyro_std_radps
+    )
+    stamps = _stamps(start_ns, truth.t_s[idx])
+    latency = round(spec.imu_latency_ms * 1e6)
+    out: list[Emission] = []
+    for lo in range(0, n, spec.imu_batch_len):
+        hi = min(lo + spec.imu_batch_len, n)
+        batch = ImuBatch(
+            stamp_ns=stamps[lo:hi].copy(),
+            accel_mps2=accel[lo:hi].copy(),
+            gyro_radps=gyro[lo:hi].copy(),
+        )
+        key = int(stamps[hi - 1])
+        out.append(Emission(key, key + latency, 1, batch))
+    return out
+
+
+def edge_times_s(
+    t_s: FloatArray,
+    angle_rad: FloatArray,
+    tooth_edges_rad: FloatArray,
+    angle0_rad: float,
+) -> FloatArray:
+    """Times at which ``angle0 + angle(t)`` crosses ``tooth_edges + 2π·m`` (any integer m ≥ 0).
+
+    ``angle_rad`` is non-decreasing (wheels never roll backwards in the scenarios); crossings are
+    located by linear interpolation between grid points. ``tooth_edges_rad`` is sorted in
+    ``[0, 2π)``.
+    """
+    a = angle0_rad + angle_rad
+    a_lo, a_hi = float(a[0]), float(a[-1])
+    m0 = math.floor(a_lo / (2 * math.pi))
+    m1 = math.floor(a_hi / (2 * math.pi))
+    turns = np.arange(m0, m1 + 1) * (2 * math.pi)
+    targets = (turns[:, None] + tooth_edges_rad[None, :]).ravel()
+    targets = targets[(targets > a_lo) & (targets <= a_hi)]
+    if targets.size == 0:
+        return np.zeros(0)
+    j = np.searchsorted(a, targets, side="left")
+    j = np.clip(j, 1, a.size - 1)
+    a0, a1 = a[j - 1], a[j]
+    t0, t1 = t_s[j - 1], t_s[j]
+    frac = (targets - a0) / np.where(a1 > a0, a1 - a0, 1.0)
+    return t0 + frac * (t1 - t0)
+
+
+def wheel_emissions(
+    truth: FineTruth,
+    spec: SensorSpec,
+    config: VehicleConfig,
+    start_ns: int,
+    rng: np.random.Generator,
+) -> list[Emission]:
+    """Per-wheel rising edges, grouped in ``wheel_batch_ms`` windows."""
+    ns = config.encoder.teeth_per_rev
+    pitch = 2 * math.pi / ns
+    tick_ns = round(1e9 / spec.edge_clock_hz)
+    window_ns = round(spec.wheel_batch_ms * 1e6)
+    latency = round(spec.wheel_latency_ms * 1e6)
+    out: list[Emission] = []
+    for wheel in (Wheel.LEFT, Wheel.RIGHT):
+        dev = np.clip(rng.standard_normal(ns) * spec.tooth_error_rel, -0.4, 0.4) * pitch
+        teeth = np.arange(ns) * pitch + dev
+        teeth = np.sort(np.mod(teeth, 2 * math.pi))
+        angle0 = float(rng.uniform(0.0, 2 * math.pi))
+        t_edges = edge_times_s(truth.t_s, truth.wheel_angle_rad[:, int(wheel)], teeth, angle0)
+        rel_ns = np.floor(t_edges * 1e9 / tick_ns).astype(np.int64) * tick_ns
+        stamps = start_ns + rel_ns
+        win = rel_ns // window_ns
+        if stamps.size == 0:
+            continue
+        cuts = np.flatnonzero(np.diff(win)) + 1
+        for chunk, w in zip(np.split(stamps, cuts), np.split(win, cuts), strict=True):
+            direction = np.ones(chunk.size, dtype=np.int8) if config.encoder.has_direction else None
+            edges = WheelEdges(wheel=wheel, stamp_ns=chunk.copy(), direction=direction)
+            arrival = start_ns + int(w[0] + 1) * window_ns + latency
+            out.append(Emission(int(chunk[-1]), arrival, 2 + int(wheel), edges))
+    return out
