@@ -21,7 +21,6 @@ different ``seed`` (and optionally ``heading0_deg``, origin or ``config``) per v
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -339,4 +338,3 @@ def simulate(
         truth=truth,
         frame=frame,
     )
-
