@@ -1,0 +1,263 @@
+"""The batching writer: batching under load, flush/close, outages, bounded backlog."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import pytest
+
+from server.settings import StorageSettings
+from server.storage import Store, StoreWriter
+from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
+
+
+class CountingStore:
+    """Delegates to a real store and records the size of every estimate transaction."""
+
+    def __init__(self, inner: Store) -> None:
+        self.inner = inner
+        self.batches: list[int] = []
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        written = self.inner.write_estimates(batch)
+        self.batches.append(sum(len(rows) for _, rows in batch))
+        return written
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+def _wait_for(cond: Callable[[], bool], timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached in time")
+        time.sleep(0.01)
+
+
+def _settings(**kw: Any) -> StorageSettings:
+    return StorageSettings(**kw)
+
+
+def test_batches_at_least_1000_rows_per_transaction_under_load(backend: Backend) -> None:
+    """20 vehicles at 250 Hz each (5000 rows/s) in 20 ms ticks for 2 s."""
+    inner = backend.open()
+    vehicles = [f"v{i:02d}" for i in range(20)]
+    for vid in vehicles:
+        inner.upsert_vehicle(vid, {}, now_ns=1)
+    store = CountingStore(inner)
+    settings = _settings(commit_interval_s=0.5, batch_max_rows=5000)
+    rows_per_tick = 5
+    ticks = 100
+    with StoreWriter(store, settings) as writer:  # type: ignore[arg-type]
+        t_next = time.monotonic()
+        for tick in range(ticks):
+            start = T0_NS + tick * rows_per_tick * DT_NS
+            writer.submit([(vid, make_rows(rows_per_tick, start, seed=tick)) for vid in vehicles])
+            t_next += 0.02
+            time.sleep(max(t_next - time.monotonic(), 0.0))
+    total = ticks * rows_per_tick * len(vehicles)
+    stats = writer.stats()
+    assert stats.rows_written == total and stats.rows_submitted == total
+    assert stats.transactions == len(store.batches) and sum(store.batches) == total
+    # every transaction but the final flush on close carries ≥ 1000 rows
+    assert min(store.batches[:-1]) >= 1000, store.batches
+    assert max(store.batches) <= settings.batch_max_rows
+    assert stats.transactions <= total // 1000 + 1
+    for vid in vehicles[:3]:
+        assert len(inner.query_series(vid, 0, 2**62)) == ticks * rows_per_tick
+
+
+def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
+    inner = backend.open()
+    inner.upsert_vehicle("v1", {}, now_ns=1)
+    store = CountingStore(inner)
+    rows = make_rows(12_000)
+    with StoreWriter(store, _settings(batch_max_rows=5000)) as writer:  # type: ignore[arg-type]
+        assert writer.submit([("v1", rows)]) == 12_000
+        assert writer.flush(timeout=60)
+    assert store.batches == [5000, 5000, 2000]
+    assert_rows_equal(inner.query_series("v1", 0, 2**62), rows)
+
+
+def test_commit_within_interval_at_low_rate(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    with StoreWriter(store, _settings(commit_interval_s=0.2)) as writer:
+        writer.submit([("v1", make_rows(3))])
+        t0 = time.monotonic()
+        _wait_for(lambda: writer.stats().rows_written == 3, timeout_s=10)
+        assert time.monotonic() - t0 < 5.0
+        assert writer.stats().last_commit_ns is not None
+
+
+def test_close_flushes_everything(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    store.upsert_vehicle("v2", {}, now_ns=1)
+    r1, r2 = make_rows(3000, seed=1), make_rows(10, seed=2)
+    # a long interval: nothing would be due before close
+    writer = StoreWriter(store, _settings(commit_interval_s=1.0, batch_max_rows=100_000)).start()
+    writer.submit([("v1", r1[:1000])])
+    writer.submit([("v2", r2), ("v1", r1[1000:])])
+    writer.submit_counters({"v1": {"packets": 7}})
+    writer.close()
+    stats = writer.stats()
+    assert stats.rows_written == 3010 and stats.backlog_rows == 0 and stats.rows_lost_on_close == 0
+    assert_rows_equal(store.query_series("v1", 0, 2**62), r1)
+    assert_rows_equal(store.query_series("v2", 0, 2**62), r2)
+    assert store.get_counters("v1") == {"packets": 7}
+    with pytest.raises(RuntimeError):
+        writer.submit([("v1", r1[:1])])
+    writer.close()  # idempotent
+
+
+def test_close_without_start_still_writes(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    writer = StoreWriter(store, _settings())
+    writer.submit([("v1", make_rows(5))])
+    writer.close()
+    assert len(store.query_series("v1", 0, 2**62)) == 5
+
+
+def test_flush_and_counters_and_duplicates(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    rows = make_rows(100)
+    with StoreWriter(store, _settings(commit_interval_s=1.0)) as writer:
+        writer.on_estimates([("v1", rows), ("ghost", make_rows(4))])
+        writer.submit_counters({"v1": {"packets": 1, "bad": 2}})
+        writer.submit_counters({"v1": {"packets": 3}})
+        assert writer.flush(timeout=30)
+        assert store.get_counters("v1") == {"bad": 2, "packets": 3}
+        writer.submit([("v1", rows[:50])])  # replay
+        assert writer.flush(timeout=30)
+        stats = writer.stats()
+    assert stats.rows_written == 100
+    assert stats.rows_ignored == 4 + 50  # unknown vehicle + replayed rows
+    assert stats.healthy and stats.last_error is None
+
+
+def test_submit_validates_and_copies(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    rows = make_rows(10)
+    expected = rows.copy()
+    with StoreWriter(store, _settings(commit_interval_s=0.5)) as writer:
+        with pytest.raises(TypeError):
+            writer.submit([("v1", rows), ("v1", np.zeros(3))])
+        assert writer.stats().rows_submitted == 0  # nothing of a bad batch is queued
+        writer.submit([("v1", rows)])
+        rows["vg_mps"] = 0.0  # the caller reuses its buffer
+        assert writer.flush(timeout=30)
+    assert_rows_equal(store.query_series("v1", 0, 2**62), expected)
+
+
+def test_survives_outage_with_bounded_backlog_and_catches_up(backend: Backend) -> None:
+    store = backend.open(fast_fail=True)
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    settings = _settings(commit_interval_s=0.05, batch_max_rows=400, backlog_max_rows=1000)
+    rows = make_rows(1500)
+    writer = StoreWriter(
+        store, settings, retry_initial_s=0.05, retry_max_s=0.2, submit_block_s=0.01
+    ).start()
+    try:
+        assert writer.submit([("v1", rows[:200])]) == 200
+        assert writer.flush(timeout=30)
+        with backend.outage():
+            assert writer.submit([("v1", rows[200:700])]) == 500
+            _wait_for(lambda: not writer.stats().healthy)
+            assert writer.submit([("v1", rows[700:1200])]) == 500  # backlog now full
+            assert writer.submit([("v1", rows[1200:1500])]) == 0  # refused and counted
+            assert not writer.flush(timeout=0.3)
+            stats = writer.stats()
+            assert stats.backlog_rows == 1000
+            assert stats.rows_dropped_backlog_full == 300
+            assert stats.rows_written == 200
+            assert stats.consecutive_failures >= 1 and stats.last_error
+        assert writer.flush(timeout=60)  # catch-up once the database is back
+        stats = writer.stats()
+        assert stats.healthy and stats.backlog_rows == 0
+        assert stats.rows_written == 1200 and stats.rows_lost_on_close == 0
+    finally:
+        writer.close(timeout=30)
+    assert_rows_equal(store.query_series("v1", 0, 2**62), rows[:1200])
+
+
+def test_close_during_outage_counts_lost_rows(backend: Backend) -> None:
+    store = backend.open(fast_fail=True)
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    writer = StoreWriter(store, _settings(commit_interval_s=0.05), retry_max_s=0.1).start()
+    with backend.outage():
+        writer.submit([("v1", make_rows(50))])
+        _wait_for(lambda: not writer.stats().healthy)
+        t0 = time.monotonic()
+        writer.close(timeout=0.5)
+        assert time.monotonic() - t0 < 15
+    stats = writer.stats()
+    assert stats.rows_lost_on_close == 50 and stats.rows_written == 0 and stats.backlog_rows == 0
+
+
+def test_submit_blocks_briefly_for_room_while_healthy(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    settings = _settings(commit_interval_s=0.05, batch_max_rows=1000, backlog_max_rows=1000)
+    rows = make_rows(5000)
+    with StoreWriter(store, settings, submit_block_s=30.0) as writer:
+        for i in range(5):  # each waits for the previous batch to be written
+            assert writer.submit([("v1", rows[i * 1000 : (i + 1) * 1000])]) == 1000
+        assert writer.flush(timeout=60)
+        assert writer.stats().rows_dropped_backlog_full == 0
+    assert len(store.query_series("v1", 0, 2**62)) == 5000
+
+
+def test_retention(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    rows = make_rows(100)
+    store.write_estimates([("v1", rows)])
+    now_ns = T0_NS + 1 * 86_400 * 10**9 + 60 * DT_NS  # one day after row 60
+    writer = StoreWriter(store, _settings(retention_days=1.0), clock_ns=lambda: now_ns)
+    with writer:
+        _wait_for(lambda: writer.stats().retention_rows_deleted == 60)
+    assert_rows_equal(store.query_series("v1", 0, 2**62), rows[60:])
+
+
+def test_raw_packets_only_when_enabled(backend: Backend) -> None:
+    store = backend.open()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    packet = ("v1", T0_NS, "fleet/v1/sensors/gnss", b"\x01\x02")
+    with StoreWriter(store, _settings(store_raw_packets=False)) as off:
+        assert off.submit_raw_packets([packet]) == 0
+    with StoreWriter(store, _settings(store_raw_packets=True)) as on:
+        assert on.submit_raw_packets([packet]) == 1
+        assert on.flush(timeout=30)
+        assert on.stats().raw_packets_written == 1
+    assert store.query_raw_packets("v1", 0, 2**62) == [packet[1:]]  # type: ignore[attr-defined]
+
+
+def test_producers_on_several_threads(backend: Backend) -> None:
+    store = backend.open()
+    vehicles = [f"v{i}" for i in range(4)]
+    for vid in vehicles:
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    with StoreWriter(store, _settings(commit_interval_s=0.1)) as writer:
+
+        def produce(vid: str) -> None:
+            for k in range(20):
+                writer.submit([(vid, make_rows(50, T0_NS + k * 50 * DT_NS, seed=k))])
+
+        threads = [threading.Thread(target=produce, args=(vid,)) for vid in vehicles]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert writer.flush(timeout=60)
+    for vid in vehicles:
+        got = store.query_series(vid, 0, 2**62, ["vg_mps"])
+        assert len(got) == 1000 and np.all(np.diff(got["stamp_ns"]) == DT_NS)
