@@ -1,0 +1,246 @@
+"""Dependencies of the route handlers: the runtime, its store, limits, time ranges, roles.
+
+What the API needs from the server runtime is :class:`ApiRuntime` (required) plus optional hooks
+it calls when present (:class:`VehicleConfigListener`, :class:`MetricsSource`). Tests pass any
+object that fits, e.g. one holding a real SQLite store and no Zenoh session.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any, Protocol
+
+from fastapi import Depends, Query, Request
+
+from estimator.config import VehicleConfig
+from server.api.errors import Forbidden, InvalidTime, NotFound, RangeTooLarge
+from server.api.prometheus import MetricFamily
+from server.settings import Settings
+from server.storage.base import Store, VehicleRecord
+from server.timeparse import TimeParseError, parse_time_ns
+
+__all__ = [
+    "ApiLimits",
+    "ApiRuntime",
+    "LimitsDep",
+    "MetricsSource",
+    "RuntimeDep",
+    "SettingsDep",
+    "StoreDep",
+    "TimeRange",
+    "TimeRangeDep",
+    "VehicleConfigListener",
+    "VehicleDep",
+    "call_hook",
+    "require_role",
+]
+
+_log = logging.getLogger(__name__)
+
+_S = 1_000_000_000
+_H = 3600 * _S
+_DAY = 24 * _H
+
+
+class ApiRuntime(Protocol):
+    """What the API needs from the server runtime.
+
+    The app's lifespan calls ``open()`` on start-up and ``close()`` on shut-down; ``store`` is read
+    only between the two. ``health()`` names each part (``"zenoh"``, ``"storage"``, …) and
+    whether it is up; the API is ready only when every part is.
+    """
+
+    @property
+    def store(self) -> Store: ...
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def health(self) -> Mapping[str, bool]: ...
+
+
+class VehicleConfigListener(Protocol):
+    """Optional runtime hooks for vehicle changes made through the API (each called if present).
+
+    ``check_vehicle_config`` may raise :class:`estimator.config.ConfigError` to refuse a config
+    before it is stored (e.g. an estimator name the registry does not know);
+    ``on_vehicle_config`` is told after the store accepted it; ``on_vehicle_deleted`` after the
+    store deleted the vehicle.
+    """
+
+    def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None: ...
+
+    def on_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None: ...
+
+    def on_vehicle_deleted(self, vehicle_id: str) -> None: ...
+
+
+class MetricsSource(Protocol):
+    """Optional: the runtime's metric families for ``GET /metrics``."""
+
+    def metrics(self) -> Iterable[MetricFamily]: ...
+
+
+def call_hook(runtime: object, name: str, *args: Any) -> Any:
+    """Call the runtime's optional hook ``name`` (see :class:`VehicleConfigListener`) if it has one.
+
+    Returns the hook's result, or None when the runtime has no such hook.
+    """
+    hook = getattr(runtime, name, None)
+    if hook is None or not callable(hook):
+        return None
+    return hook(*args)
+
+
+@dataclass(frozen=True, slots=True)
+class ApiLimits:
+    """Bounds that keep one request from exhausting the server.
+
+    Attributes
+    ----------
+    max_body_bytes : int
+        Largest request body (a vehicle config is a few hundred bytes).
+    series_max_range_ns : int
+        Longest ``end - start`` of a series query.
+    series_max_rows : int
+        Most rows a JSON or Parquet series answer may hold (after decimation). CSV streams chunk
+        by chunk and is bounded by the range only.
+    series_max_points : int
+        Largest ``max_points`` a client may ask for.
+    query_chunk_ns : int
+        Series are read from the store in chunks of about this span (memory bound per read).
+    report_max_range_ns : int
+        Longest ``end - start`` of a report (a report holds its range's rows in memory, about
+        36 bytes per row).
+    report_max_gap_s : float
+        A step between rows longer than this is a data gap in reports.
+    """
+
+    max_body_bytes: int = 64 * 1024
+    series_max_range_ns: int = 31 * _DAY
+    series_max_rows: int = 200_000
+    series_max_points: int = 100_000
+    query_chunk_ns: int = _H
+    report_max_range_ns: int = _DAY
+    report_max_gap_s: float = 1.0
+
+
+def _runtime(request: Request) -> ApiRuntime:
+    runtime: ApiRuntime | None = getattr(request.app.state, "runtime", None)
+    if runtime is None:  # only before the lifespan ran
+        raise RuntimeError("the app's runtime is not open")
+    return runtime
+
+
+def _store(runtime: Annotated[ApiRuntime, Depends(_runtime)]) -> Store:
+    return runtime.store
+
+
+def _settings(request: Request) -> Settings:
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+def _limits(request: Request) -> ApiLimits:
+    limits: ApiLimits = request.app.state.limits
+    return limits
+
+
+RuntimeDep = Annotated[ApiRuntime, Depends(_runtime)]
+StoreDep = Annotated[Store, Depends(_store)]
+SettingsDep = Annotated[Settings, Depends(_settings)]
+LimitsDep = Annotated[ApiLimits, Depends(_limits)]
+
+
+def _vehicle(vehicle_id: str, store: StoreDep) -> VehicleRecord:
+    record = store.get_vehicle(vehicle_id)
+    if record is None:
+        raise NotFound(f"unknown vehicle {vehicle_id!r}")
+    return record
+
+
+VehicleDep = Annotated[VehicleRecord, Depends(_vehicle)]
+"""The vehicle named by the ``{vehicle_id}`` path parameter, or 404."""
+
+
+@dataclass(frozen=True, slots=True)
+class TimeRange:
+    """``[start_ns, end_ns)``, int nanoseconds since the epoch, UTC."""
+
+    start_ns: int
+    end_ns: int
+
+    @property
+    def span_ns(self) -> int:
+        return self.end_ns - self.start_ns
+
+    def check_span(self, max_ns: int) -> None:
+        """Raise :class:`RangeTooLarge` when the range is longer than ``max_ns``."""
+        if self.span_ns > max_ns:
+            raise RangeTooLarge(
+                f"range of {self.span_ns / _H:.1f} h exceeds the limit of {max_ns / _H:.1f} h"
+            )
+
+
+_TIME_DOC = (
+    "ISO 8601 with a UTC offset (e.g. `2024-05-01T12:00:00Z`, nanosecond fractions kept) or "
+    "integer nanoseconds since the Unix epoch. Times without an offset are refused."
+)
+
+
+def _time_range(
+    start: Annotated[
+        str,
+        Query(
+            description="Start of the range (inclusive). " + _TIME_DOC,
+            examples=["2024-05-01T12:00:00Z"],
+            max_length=64,
+        ),
+    ],
+    end: Annotated[
+        str,
+        Query(
+            description="End of the range (exclusive). " + _TIME_DOC,
+            examples=["2024-05-01T13:00:00Z"],
+            max_length=64,
+        ),
+    ],
+) -> TimeRange:
+    try:
+        start_ns = parse_time_ns(start)
+    except TimeParseError as exc:
+        raise InvalidTime(f"start: {exc}") from exc
+    try:
+        end_ns = parse_time_ns(end)
+    except TimeParseError as exc:
+        raise InvalidTime(f"end: {exc}") from exc
+    if end_ns <= start_ns:
+        raise InvalidTime("end must be after start")
+    return TimeRange(start_ns, end_ns)
+
+
+TimeRangeDep = Annotated[TimeRange, Depends(_time_range)]
+
+
+def require_role(role: str) -> Callable[..., None]:
+    """Dependency that admits only callers holding ``role``: the single point of authorisation.
+
+    Access tokens are not implemented yet. With ``settings.api.require_auth`` False every caller
+    is admitted. With it True (the default) nobody can be shown to hold a role, so the route
+    answers 403 instead of pretending to check: protected routes stay closed until a token system
+    replaces the body of this function.
+    """
+
+    def check(settings: SettingsDep) -> None:
+        if not settings.api.require_auth:
+            return
+        raise Forbidden(
+            f"this operation needs the {role!r} role; access tokens are not available yet, so "
+            "it is refused while api.require_auth is on"
+        )
+
+    check.__name__ = f"require_role_{role}"
+    return check

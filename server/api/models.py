@@ -1,0 +1,169 @@
+"""Request and response models of the REST API (inputs and outputs kept apart).
+
+Vehicle configs travel as plain JSON objects validated by
+:func:`estimator.config.vehicle_config_from_dict` (so a client gets that function's reasons); their
+OpenAPI schema is generated from :class:`estimator.config.VehicleConfig` itself, so the two cannot
+drift. Report bodies reuse the frozen dataclasses of :mod:`server.reports`.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, WithJsonSchema, create_model
+
+from estimator.config import VehicleConfig
+from estimator.types import ESTIMATE_FIELDS
+from server.reports import IngestCounts, VehicleReport
+
+__all__ = [
+    "ESTIMATE_FIELD_NAMES",
+    "EstimatePublic",
+    "FleetReportPublic",
+    "HealthPublic",
+    "HealthUnavailable",
+    "SeriesFormat",
+    "SeriesPublic",
+    "VehicleConfigIn",
+    "VehicleConfigOut",
+    "VehiclePublic",
+    "VehicleReportPublic",
+    "VehiclesPublic",
+]
+
+ESTIMATE_FIELD_NAMES: tuple[str, ...] = tuple(name for name, _ in ESTIMATE_FIELDS)
+
+SeriesFormat = Literal["json", "csv", "parquet"]
+
+
+def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:
+    """Replace local ``$ref``s by their ``$defs`` (an OpenAPI-safe, self-contained schema)."""
+    defs = schema.get("$defs", {})
+
+    def walk(node: Any) -> Any:
+        if isinstance(node, dict):
+            ref = node.get("$ref")
+            if isinstance(ref, str) and ref.startswith("#/$defs/"):
+                return walk(copy.deepcopy(defs[ref.removeprefix("#/$defs/")]))
+            out = {k: walk(v) for k, v in node.items() if k != "$defs"}
+            if closed and out.get("type") == "object" and "properties" in out:
+                out["additionalProperties"] = False
+            return out
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+
+    result: dict[str, Any] = walk(schema)
+    return result
+
+
+_CONFIG_SCHEMA = TypeAdapter(VehicleConfig).json_schema()
+
+VehicleConfigIn = Annotated[
+    dict[str, Any],
+    WithJsonSchema(
+        {
+            **_inline_refs(_CONFIG_SCHEMA, closed=True),
+            "title": "VehicleConfigIn",
+            "description": "Vehicle configuration; omitted parts take their defaults, unknown "
+            "fields are refused.",
+        }
+    ),
+]
+"""Body of ``PUT /vehicles/{id}``: a VehicleConfig as JSON (validated by the handler)."""
+
+VehicleConfigOut = Annotated[
+    dict[str, Any],
+    WithJsonSchema(
+        {
+            **_inline_refs(_CONFIG_SCHEMA, closed=False),
+            "title": "VehicleConfigOut",
+            "description": "Vehicle configuration as stored (every field present).",
+        }
+    ),
+]
+
+
+class VehiclePublic(BaseModel):
+    """A registered vehicle."""
+
+    vehicle_id: str
+    config: VehicleConfigOut
+    created_ns: int = Field(description="registration time, ns since the epoch, UTC")
+    updated_ns: int = Field(description="last config change, ns since the epoch, UTC")
+
+
+class VehiclesPublic(BaseModel):
+    """Every registered vehicle."""
+
+    data: list[VehiclePublic]
+    count: int
+
+
+def _estimate_fields() -> dict[str, Any]:
+    fields: dict[str, Any] = {}
+    for name, kind in ESTIMATE_FIELDS:
+        if kind == "f8":
+            fields[name] = (float | None, Field(description="null when not available"))
+        else:
+            fields[name] = (int, ...)
+    return fields
+
+
+_EstimateBase: type[BaseModel] = create_model(
+    "EstimateFieldsPublic", __config__=ConfigDict(extra="forbid"), **_estimate_fields()
+)
+
+
+class EstimatePublic(_EstimateBase):  # type: ignore[misc,valid-type]
+    """One estimate row: every field of ``ESTIMATE_DTYPE`` (units in the names, slip in %)."""
+
+    vehicle_id: str
+    time: str = Field(description="stamp_ns as ISO 8601 UTC with nanoseconds")
+    flag_names: list[str] = Field(description="names of the EstimateFlag bits set in flags")
+
+
+class SeriesPublic(BaseModel):
+    """A series as column arrays: ``columns[field][i]`` is row ``i``; NaN is null."""
+
+    vehicle_id: str
+    start_ns: int
+    end_ns: int
+    fields: list[str]
+    max_points: int = Field(description="0 means full rate")
+    downsampled: bool = Field(description="true when rows were decimated by min/max buckets")
+    rows: int
+    columns: dict[str, list[float | int | None]]
+
+
+class VehicleReportPublic(BaseModel):
+    """Field report of one vehicle (definitions in the API description of the route)."""
+
+    vehicle_id: str
+    band_edges_pct: list[float]
+    report: VehicleReport
+    ingest: IngestCounts
+
+
+class FleetReportPublic(BaseModel):
+    """The report of every registered vehicle over one range."""
+
+    start_ns: int
+    end_ns: int
+    vehicles: list[VehicleReportPublic]
+
+
+class HealthPublic(BaseModel):
+    """Every part is up."""
+
+    status: Literal["ok"]
+    checks: dict[str, bool]
+
+
+class HealthUnavailable(BaseModel):
+    """A part is down: ``checks`` says which."""
+
+    error: str
+    reason: str
+    checks: dict[str, bool]

@@ -1,0 +1,45 @@
+"""``/metrics``: Prometheus text exposition of the runtime's metrics and health."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from fastapi import APIRouter, Response
+
+from server.api.deps import RuntimeDep, call_hook
+from server.api.prometheus import CONTENT_TYPE, MetricFamily, Sample, render
+from server.api.routes.health import checks
+
+__all__ = ["router"]
+
+router = APIRouter(prefix="/metrics", tags=["metrics"])
+
+
+@router.get(
+    "",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"text/plain": {"schema": {"type": "string"}}},
+            "description": "Prometheus text format 0.0.4",
+        }
+    },
+    summary="Prometheus metrics",
+    description=(
+        "`slipfleet_up{component}` (1 up, 0 down) from the health checks, then every metric the "
+        "runtime provides (per-vehicle ingest counters by reason, estimates produced, writer "
+        "backlog and commits, …)."
+    ),
+)
+def get_metrics(runtime: RuntimeDep) -> Response:
+    up = MetricFamily(
+        name="slipfleet_up",
+        type="gauge",
+        help="1 when the component is up, 0 when down.",
+        samples=tuple(
+            Sample(1.0 if ok else 0.0, {"component": name})
+            for name, ok in sorted(checks(runtime).items())
+        ),
+    )
+    provided: Iterable[MetricFamily] = call_hook(runtime, "metrics") or ()
+    return Response(render([up, *provided]), media_type=CONTENT_TYPE)

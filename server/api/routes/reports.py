@@ -1,0 +1,137 @@
+"""Field reports: ``/vehicles/{id}/report`` and ``/fleet/report`` (JSON or CSV table)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query, Response
+
+from estimator.config import ConfigError, SlipConfig, vehicle_config_from_dict
+from estimator.types import empty_estimates
+from server.api.deps import LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
+from server.api.errors import error_responses
+from server.api.models import FleetReportPublic, VehicleReportPublic
+from server.reports import REPORT_FIELDS, flatten_report, ingest_counts, vehicle_report
+from server.storage.base import Store, VehicleRecord
+
+__all__ = ["REPORT_DESCRIPTION", "router"]
+
+router = APIRouter(tags=["reports"])
+_log = logging.getLogger(__name__)
+
+REPORT_DESCRIPTION = """\
+Over `start <= stamp < end` (at most 24 h):
+
+* **time weight** of an estimate: the time to the next one; a step over 1 s is a gap (the estimate
+  before it counts one median step); the last counts one median step. `covered_s` sums them.
+* **moving**: `|vg_mps| >= slip.min_ground_speed_mps` of the vehicle's config; `moving_s`.
+* **distance_m**: sum of `|vg_mps| · weight` over moving estimates.
+* **speed**: time-weighted mean and median/p95 of `|vg_mps|` while moving; max over all.
+* **slip per wheel**: estimates with the wheel's `SLIP_*_VALID` flag and a finite value; mean,
+  median, p95 (linear interpolation), min, max of the **signed** slip in percent.
+* **bands**: time share of **absolute** slip in `[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the
+  edges `slip.band_edges_pct` of the vehicle's config (default 5 and 15 %); share of the wheel's
+  valid-slip time.
+* **degraded_s**: time flagged `DEGRADED` (GNSS lost).
+* **ingest**: packet counter totals since registration (received, accepted, rejected by reason,
+  late, duplicate, lost).
+"""
+
+
+def _slip_config(record: VehicleRecord) -> SlipConfig:
+    try:
+        return vehicle_config_from_dict(record.config).slip
+    except (ConfigError, TypeError, ValueError) as exc:
+        _log.warning(
+            "stored config of %s is invalid (%s); report uses defaults", record.vehicle_id, exc
+        )
+        return SlipConfig()
+
+
+def _report(
+    store: Store, record: VehicleRecord, tr: TimeRange, max_gap_s: float
+) -> VehicleReportPublic:
+    slip = _slip_config(record)
+    rows = store.query_series(record.vehicle_id, tr.start_ns, tr.end_ns, REPORT_FIELDS)
+    report = vehicle_report(
+        rows,
+        start_ns=tr.start_ns,
+        end_ns=tr.end_ns,
+        band_edges_pct=slip.band_edges_pct,
+        min_ground_speed_mps=slip.min_ground_speed_mps,
+        max_gap_s=max_gap_s,
+    )
+    return VehicleReportPublic(
+        vehicle_id=record.vehicle_id,
+        band_edges_pct=list(slip.band_edges_pct),
+        report=report,
+        ingest=ingest_counts(store.get_counters(record.vehicle_id)),
+    )
+
+
+@router.get(
+    "/vehicles/{vehicle_id}/report",
+    response_model=VehicleReportPublic,
+    responses=error_responses(400, 404, 422),
+    summary="Field report of one vehicle",
+    description=REPORT_DESCRIPTION,
+)
+def get_vehicle_report(
+    vehicle: VehicleDep, tr: TimeRangeDep, store: StoreDep, limits: LimitsDep
+) -> VehicleReportPublic:
+    tr.check_span(limits.report_max_range_ns)
+    return _report(store, vehicle, tr, limits.report_max_gap_s)
+
+
+def _csv_table(rows: list[dict[str, Any]]) -> str:
+    if not rows:  # an empty fleet still gets the header of the default-config columns
+        empty = vehicle_report(empty_estimates(0)[list(REPORT_FIELDS)], start_ns=0, end_ns=1)
+        columns = dict.fromkeys(flatten_report("", empty, ingest_counts({})))
+        return ",".join(columns) + "\n"
+    columns = {}
+    for row in rows:
+        columns.update(dict.fromkeys(row))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n", restval="")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+    return buf.getvalue()
+
+
+@router.get(
+    "/fleet/report",
+    response_model=FleetReportPublic,
+    responses={
+        200: {
+            "description": "One report per registered vehicle; CSV: one row per vehicle, band "
+            "columns named by their edges (the union over the fleet, empty where not used).",
+            "content": {"text/csv": {"schema": {"type": "string"}}},
+        },
+        **error_responses(400, 422),
+    },
+    summary="Field report of every vehicle",
+    description=REPORT_DESCRIPTION,
+)
+def get_fleet_report(
+    tr: TimeRangeDep,
+    store: StoreDep,
+    limits: LimitsDep,
+    format: Annotated[Literal["json", "csv"], Query(description="Answer format")] = "json",
+) -> Response:
+    tr.check_span(limits.report_max_range_ns)
+    reports = [
+        _report(store, record, tr, limits.report_max_gap_s) for record in store.list_vehicles()
+    ]
+    if format == "csv":
+        table = [flatten_report(r.vehicle_id, r.report, r.ingest) for r in reports]
+        return Response(
+            _csv_table(table),
+            media_type="text/csv; charset=utf-8",
+            headers={"Content-Disposition": 'attachment; filename="fleet_report.csv"'},
+        )
+    body = FleetReportPublic(start_ns=tr.start_ns, end_ns=tr.end_ns, vehicles=reports)
+    return Response(body.model_dump_json(), media_type="application/json")

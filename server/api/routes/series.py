@@ -1,0 +1,265 @@
+"""``/vehicles/{id}/series``: estimate series as JSON columns, CSV or Parquet, optionally decimated.
+
+Rows are read from the store in chunks (``ApiLimits.query_chunk_ns``) so a long range never sits
+in memory at full rate. With ``max_points`` >= 2 and more rows than that, every chunk is decimated
+by :func:`server.downsample.downsample_minmax` (per time bucket the min and max of each field);
+chunks are whole numbers of buckets, so chunking does not change the result.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+from collections.abc import Iterator, Sequence
+from typing import Annotated
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from fastapi import APIRouter, Query, Response
+from fastapi.responses import StreamingResponse
+
+from estimator.types import ESTIMATE_DTYPE
+from server.api.deps import ApiLimits, LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
+from server.api.errors import RangeTooLarge, Unprocessable, error_responses
+from server.api.models import ESTIMATE_FIELD_NAMES, SeriesFormat, SeriesPublic
+from server.downsample import bucket_width_ns, downsample_minmax
+from server.storage.base import Store
+
+__all__ = ["PARQUET_MEDIA_TYPE", "encode_columns_json", "router"]
+
+router = APIRouter(prefix="/vehicles", tags=["series"])
+
+PARQUET_MEDIA_TYPE = "application/vnd.apache.parquet"
+_CSV_ROWS_PER_WRITE = 5000
+
+
+def _parse_fields(fields: str | None) -> list[str]:
+    if fields is None or not fields.strip():
+        return list(ESTIMATE_FIELD_NAMES)
+    wanted = [f.strip() for f in fields.split(",") if f.strip()]
+    unknown = sorted({f for f in wanted if f not in ESTIMATE_FIELD_NAMES})
+    if unknown:
+        raise Unprocessable(f"unknown field(s) {unknown}; known: {list(ESTIMATE_FIELD_NAMES)}")
+    out = ["stamp_ns"]
+    for f in wanted:
+        if f not in out:
+            out.append(f)
+    return out
+
+
+class _Reader:
+    """Reads a range chunk by chunk and decimates once there are more rows than ``max_points``."""
+
+    def __init__(
+        self,
+        store: Store,
+        vehicle_id: str,
+        tr: TimeRange,
+        fields: Sequence[str],
+        max_points: int,
+        limits: ApiLimits,
+    ) -> None:
+        self.store = store
+        self.vehicle_id = vehicle_id
+        self.tr = tr
+        self.fields = list(fields)
+        self.max_points = max_points
+        self.downsampled = False
+        if max_points >= 2:
+            self.width_ns = bucket_width_ns(tr.start_ns, tr.end_ns, max_points)
+            buckets_per_chunk = max(limits.query_chunk_ns // self.width_ns, 1)
+            self.chunk_ns = buckets_per_chunk * self.width_ns
+        else:
+            self.width_ns = 0
+            self.chunk_ns = limits.query_chunk_ns
+
+    def _raw_chunks(self) -> Iterator[np.ndarray]:
+        t = self.tr.start_ns
+        while t < self.tr.end_ns:
+            t_next = min(t + self.chunk_ns, self.tr.end_ns)
+            rows = self.store.query_series(self.vehicle_id, t, t_next, self.fields)
+            if rows.shape[0]:
+                yield rows
+            t = t_next
+
+    def _decimate(self, rows: np.ndarray) -> np.ndarray:
+        return downsample_minmax(rows, self.tr.start_ns, self.width_ns)
+
+    def chunks(self) -> Iterator[np.ndarray]:
+        """Output rows, chunk by chunk (full rate until the row count passes ``max_points``)."""
+        if self.max_points < 2:
+            yield from self._raw_chunks()
+            return
+        held: list[np.ndarray] = []
+        n_held = 0
+        for rows in self._raw_chunks():
+            if self.downsampled:
+                yield self._decimate(rows)
+                continue
+            held.append(rows)
+            n_held += rows.shape[0]
+            if n_held > self.max_points:
+                self.downsampled = True
+                for h in held:
+                    yield self._decimate(h)
+                held = []
+        yield from held
+
+    def collect(self, max_rows: int) -> np.ndarray:
+        """All output rows in one array; :class:`RangeTooLarge` past ``max_rows``."""
+        parts: list[np.ndarray] = []
+        n = 0
+        for rows in self.chunks():
+            n += rows.shape[0]
+            if n > max_rows:
+                raise RangeTooLarge(
+                    f"more than {max_rows} rows; set max_points, narrow the range or use format=csv"
+                )
+            parts.append(rows)
+        if not parts:
+            return np.empty(0, dtype=[(f, ESTIMATE_DTYPE[f]) for f in self.fields])
+        return np.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+def _json_array(col: np.ndarray) -> str:
+    text = json.dumps(col.tolist())
+    if col.dtype.kind == "f" and not np.isfinite(col).all():
+        text = text.replace("-Infinity", "null").replace("Infinity", "null").replace("NaN", "null")
+    return text
+
+
+def encode_columns_json(rows: np.ndarray) -> str:
+    """``{"field": [values…], …}`` of a structured array; NaN and infinities become null."""
+    names = rows.dtype.names or ()
+    return "{" + ",".join(f"{json.dumps(n)}:{_json_array(rows[n])}" for n in names) + "}"
+
+
+def _csv_lines(reader: _Reader) -> Iterator[str]:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(reader.fields)
+    yield buf.getvalue()
+    for rows in reader.chunks():
+        cols = []
+        for name in reader.fields:
+            col = rows[name]
+            values = col.tolist()
+            if col.dtype.kind == "f":
+                bad = ~np.isfinite(col)
+                if bad.any():
+                    for i in np.flatnonzero(bad).tolist():
+                        values[i] = None
+            cols.append(values)
+        for i in range(0, rows.shape[0], _CSV_ROWS_PER_WRITE):
+            buf.seek(0)
+            buf.truncate()
+            writer.writerows(zip(*(c[i : i + _CSV_ROWS_PER_WRITE] for c in cols), strict=True))
+            yield buf.getvalue()
+
+
+def _parquet_bytes(rows: np.ndarray) -> bytes:
+    names = rows.dtype.names or ()
+    table = pa.table({n: pa.array(rows[n], from_pandas=True) for n in names})
+    sink = io.BytesIO()
+    pq.write_table(table, sink)
+    return sink.getvalue()
+
+
+def _filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle_id)[:64] or "vehicle"
+    return f"{safe}_{tr.start_ns}_{tr.end_ns}.{ext}"
+
+
+@router.get(
+    "/{vehicle_id}/series",
+    response_model=SeriesPublic,
+    responses={
+        200: {
+            "description": "The series: JSON columns, CSV (header row, empty cell for NaN) or "
+            "Parquet (null for NaN).",
+            "content": {
+                "text/csv": {"schema": {"type": "string"}},
+                PARQUET_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}},
+            },
+        },
+        **error_responses(400, 404, 422),
+    },
+    summary="Estimate series of one vehicle",
+    description=(
+        "Rows with `start <= stamp < end`, ordered by time.\n\n"
+        "**Decimation**: with `max_points` >= 2 and more rows than that, the range is cut into "
+        "`max_points // 2` equal time buckets and each bucket gives at most two rows holding, per "
+        "field, the bucket's minimum and maximum in the order they occurred (NaN ignored); "
+        "`stamp_ns` of the two rows is the bucket's first and last stamp and `flags` the OR of "
+        "the bucket's flags. Spikes therefore survive, but one decimated row mixes values of "
+        "several estimates. With `max_points` 0 or absent the series is full rate.\n\n"
+        "**Limits**: the range may span at most 31 days; a JSON or Parquet answer at most "
+        "200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
+    ),
+)
+def get_series(
+    vehicle: VehicleDep,
+    tr: TimeRangeDep,
+    store: StoreDep,
+    limits: LimitsDep,
+    fields: Annotated[
+        str | None,
+        Query(
+            description="Comma-separated estimate fields (default: all); `stamp_ns` is always "
+            "included.",
+            examples=["vg_mps,slip_left_pct,slip_right_pct,flags"],
+            max_length=2000,
+        ),
+    ] = None,
+    max_points: Annotated[
+        int | None,
+        Query(
+            ge=0,
+            le=1_000_000,
+            description="Decimate to at most this many rows; 0 or absent: full rate; 1 is refused.",
+        ),
+    ] = None,
+    format: Annotated[SeriesFormat, Query(description="Answer format")] = "json",
+) -> Response:
+    names = _parse_fields(fields)
+    points = max_points or 0
+    if points == 1:
+        raise Unprocessable("max_points must be 0 (full rate) or at least 2")
+    if points > limits.series_max_points:
+        raise Unprocessable(f"max_points must be at most {limits.series_max_points}")
+    tr.check_span(limits.series_max_range_ns)
+    reader = _Reader(store, vehicle.vehicle_id, tr, names, points, limits)
+
+    if format == "csv":
+        return StreamingResponse(
+            _csv_lines(reader),
+            media_type="text/csv; charset=utf-8",
+            headers={
+                "Content-Disposition": f'attachment; filename="'
+                f'{_filename(vehicle.vehicle_id, tr, "csv")}"'
+            },
+        )
+    rows = reader.collect(limits.series_max_rows)
+    if format == "parquet":
+        return Response(
+            _parquet_bytes(rows),
+            media_type=PARQUET_MEDIA_TYPE,
+            headers={
+                "Content-Disposition": f'attachment; filename="'
+                f'{_filename(vehicle.vehicle_id, tr, "parquet")}"'
+            },
+        )
+    head = {
+        "vehicle_id": vehicle.vehicle_id,
+        "start_ns": tr.start_ns,
+        "end_ns": tr.end_ns,
+        "fields": names,
+        "max_points": points,
+        "downsampled": reader.downsampled,
+        "rows": int(rows.shape[0]),
+    }
+    body = json.dumps(head)[:-1] + ',"columns":' + encode_columns_json(rows) + "}"
+    return Response(body, media_type="application/json")

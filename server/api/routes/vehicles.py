@@ -1,0 +1,152 @@
+"""``/vehicles``: register, configure, list and delete vehicles; their newest estimate."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Body, Depends, Path, Response, status
+
+from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from estimator.types import EstimateFlag
+from server.api.deps import RuntimeDep, StoreDep, VehicleDep, call_hook, require_role
+from server.api.errors import InvalidConfig, NotFound, error_responses
+from server.api.models import (
+    EstimatePublic,
+    VehicleConfigIn,
+    VehiclePublic,
+    VehiclesPublic,
+)
+from server.storage.base import VehicleRecord
+from server.timeparse import format_ns
+
+__all__ = ["estimate_to_dict", "flag_names", "router"]
+
+router = APIRouter(prefix="/vehicles", tags=["vehicles"])
+
+VEHICLE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+"""Ids a client may register: they must fit in one Zenoh key chunk."""
+
+_FLAG_BITS = [f for f in EstimateFlag if f.value and (f.value & (f.value - 1)) == 0]
+
+
+def flag_names(flags: int) -> list[str]:
+    """Names of the single-bit :class:`EstimateFlag` members set in ``flags``, low bit first."""
+    return [str(f.name) for f in _FLAG_BITS if flags & f.value]
+
+
+def estimate_to_dict(row: np.ndarray) -> dict[str, Any]:
+    """One estimate row (0-d structured array) as a JSON-ready dict: NaN → None."""
+    names = row.dtype.names or ()
+    values = row.item()
+    out: dict[str, Any] = {}
+    for name, value in zip(names, values, strict=True):
+        if isinstance(value, float):
+            out[name] = value if math.isfinite(value) else None
+        else:
+            out[name] = int(value)
+    return out
+
+
+def _public(record: VehicleRecord) -> VehiclePublic:
+    return VehiclePublic(
+        vehicle_id=record.vehicle_id,
+        config=record.config,
+        created_ns=record.created_ns,
+        updated_ns=record.updated_ns,
+    )
+
+
+def _parse_config(data: Any) -> VehicleConfig:
+    if isinstance(data, dict) and "estimators" in data:
+        names = data["estimators"]
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise InvalidConfig("estimators must be a list of estimator names")
+    try:
+        return vehicle_config_from_dict(data)
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise InvalidConfig(str(exc)) from exc
+
+
+@router.get("", response_model=VehiclesPublic, summary="List registered vehicles")
+def list_vehicles(store: StoreDep) -> VehiclesPublic:
+    vehicles = [_public(r) for r in store.list_vehicles()]
+    return VehiclesPublic(data=vehicles, count=len(vehicles))
+
+
+@router.get(
+    "/{vehicle_id}",
+    response_model=VehiclePublic,
+    responses=error_responses(404),
+    summary="One vehicle and its config",
+)
+def get_vehicle(vehicle: VehicleDep) -> VehiclePublic:
+    return _public(vehicle)
+
+
+@router.put(
+    "/{vehicle_id}",
+    response_model=VehiclePublic,
+    responses={
+        201: {"model": VehiclePublic, "description": "vehicle registered"},
+        **error_responses(413, 422),
+    },
+    summary="Register a vehicle or replace its config",
+    description=(
+        "The body is a VehicleConfig; omitted parts take their defaults, so `{}` registers a "
+        "vehicle with the default config. A config that does not validate is refused with 422 "
+        "and the reason. The running estimator picks the new config up. Answers 201 when the "
+        "vehicle is new, 200 when its config was replaced."
+    ),
+)
+def put_vehicle(
+    vehicle_id: Annotated[str, Path(pattern=VEHICLE_ID_PATTERN)],
+    body: Annotated[VehicleConfigIn, Body()],
+    store: StoreDep,
+    runtime: RuntimeDep,
+    response: Response,
+) -> VehiclePublic:
+    config = _parse_config(body)
+    try:
+        call_hook(runtime, "check_vehicle_config", vehicle_id, config)
+    except ConfigError as exc:
+        raise InvalidConfig(str(exc)) from exc
+    existed = store.get_vehicle(vehicle_id) is not None
+    record = store.upsert_vehicle(vehicle_id, config.to_dict(), time.time_ns())
+    call_hook(runtime, "on_vehicle_config", vehicle_id, config)
+    response.status_code = status.HTTP_200_OK if existed else status.HTTP_201_CREATED
+    return _public(record)
+
+
+@router.delete(
+    "/{vehicle_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    dependencies=[Depends(require_role("admin"))],
+    responses=error_responses(403, 404),
+    summary="Delete a vehicle with all its estimates and counters (admin)",
+)
+def delete_vehicle(vehicle_id: str, store: StoreDep, runtime: RuntimeDep) -> Response:
+    if not store.delete_vehicle(vehicle_id):
+        raise NotFound(f"unknown vehicle {vehicle_id!r}")
+    call_hook(runtime, "on_vehicle_deleted", vehicle_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.get(
+    "/{vehicle_id}/latest",
+    response_model=EstimatePublic,
+    responses=error_responses(404),
+    summary="The vehicle's newest estimate",
+    description="Every estimate field (NaN as null) plus `flags` decoded into `flag_names`.",
+)
+def latest_estimate(vehicle: VehicleDep, store: StoreDep) -> dict[str, Any]:
+    row = store.latest(vehicle.vehicle_id)
+    if row is None:
+        raise NotFound(f"vehicle {vehicle.vehicle_id!r} has no estimates yet")
+    out = estimate_to_dict(row)
+    out["vehicle_id"] = vehicle.vehicle_id
+    out["time"] = format_ns(out["stamp_ns"])
+    out["flag_names"] = flag_names(out["flags"])
+    return out

@@ -1,0 +1,105 @@
+"""App factory: lifespan, routing, error mapping, CORS, OpenAPI."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from fastapi import APIRouter
+
+import server.api.app as app_module
+from server.api import API_ROUTERS, create_app
+from server.settings import Settings
+
+from .conftest import ApiClient, FakeRuntime, make_settings, running
+
+
+def test_nothing_built_at_import() -> None:
+    module = importlib.reload(app_module)
+    assert not any(type(v).__name__ == "FastAPI" for v in vars(module).values())
+
+
+def test_lifespan_opens_and_closes_the_runtime(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path)
+    runtime = FakeRuntime(settings)
+    app = create_app(settings, runtime)
+    assert runtime.opened == 0
+    with running(app) as client:
+        assert runtime.opened == 1
+        assert client.get("/api/v1/health").status_code == 200
+    assert runtime.closed == 1
+    assert app.state.runtime is None
+
+
+def test_unknown_path_and_method_are_json(client: ApiClient) -> None:
+    r = client.get("/api/v1/nothing")
+    assert r.status_code == 404
+    assert r.json() == {"error": "not_found", "reason": "Not Found"}
+    r = client.request("POST", "/api/v1/vehicles")
+    assert r.status_code == 405
+    assert r.json()["error"] == "method_not_allowed"
+
+
+def test_cors_closed_by_default(client: ApiClient) -> None:
+    r = client.get("/api/v1/vehicles", headers={"Origin": "http://evil.example"})
+    assert "access-control-allow-origin" not in r.headers
+    r = client.options(
+        "/api/v1/vehicles",
+        headers={"Origin": "http://evil.example", "Access-Control-Request-Method": "GET"},
+    )
+    assert "access-control-allow-origin" not in r.headers
+
+
+def test_cors_open_for_listed_origins(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path, cors_origins=["http://dash.example"])
+    with running(create_app(settings, FakeRuntime(settings))) as client:
+        r = client.get("/api/v1/vehicles", headers={"Origin": "http://dash.example"})
+        assert r.headers["access-control-allow-origin"] == "http://dash.example"
+        r = client.get("/api/v1/vehicles", headers={"Origin": "http://evil.example"})
+        assert "access-control-allow-origin" not in r.headers
+
+
+def test_default_bind_is_loopback() -> None:
+    assert Settings().api.host == "127.0.0.1"
+
+
+def test_openapi_is_generator_ready(client: ApiClient) -> None:
+    spec = client.get("/openapi.json").json()
+    ops = [op for path in spec["paths"].values() for op in path.values()]
+    ids = [op["operationId"] for op in ops]
+    assert len(ids) == len(set(ids))
+    assert "vehicles-put_vehicle" in ids
+    assert set(spec["paths"]) == {
+        "/api/v1/vehicles",
+        "/api/v1/vehicles/{vehicle_id}",
+        "/api/v1/vehicles/{vehicle_id}/latest",
+        "/api/v1/vehicles/{vehicle_id}/series",
+        "/api/v1/vehicles/{vehicle_id}/report",
+        "/api/v1/fleet/report",
+        "/api/v1/health",
+        "/api/v1/metrics",
+    }
+    put = spec["paths"]["/api/v1/vehicles/{vehicle_id}"]["put"]
+    body = put["requestBody"]["content"]["application/json"]["schema"]
+    assert body["additionalProperties"] is False
+    assert "geometry" in body["properties"]
+    assert (
+        "text/csv"
+        in spec["paths"]["/api/v1/vehicles/{vehicle_id}/series"]["get"]["responses"]["200"][
+            "content"
+        ]
+    )
+    assert client.get("/docs").status_code == 200
+
+
+def test_routers_are_one_list(tmp_path: Path) -> None:
+    extra = APIRouter(prefix="/live", tags=["live"])
+
+    @extra.get("/ping")
+    def ping() -> dict[str, str]:
+        return {"pong": "yes"}
+
+    settings = make_settings(tmp_path)
+    app = create_app(settings, FakeRuntime(settings), routers=[*API_ROUTERS, extra])
+    with running(app) as client:
+        assert client.get("/api/v1/live/ping").json() == {"pong": "yes"}

@@ -1,0 +1,128 @@
+"""/health readiness and /metrics Prometheus text."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import pytest
+
+from server.api.prometheus import MetricFamily, Sample, render
+from server.storage.base import Store
+
+from .conftest import ApiClient, FakeRuntime
+
+# Prometheus text exposition format 0.0.4, line by line.
+_NAME = r"[a-zA-Z_:][a-zA-Z0-9_:]*"
+_LABELS = r'\{(?:[a-zA-Z_][a-zA-Z0-9_]*="(?:[^"\\\n]|\\[\\"n])*"(?:,|(?=\})))*\}'
+_VALUE = r"(?:[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?|NaN|[+-]Inf)"
+_SAMPLE = re.compile(rf"({_NAME})({_LABELS})? ({_VALUE})(?: -?\d+)?")
+_HELP = re.compile(rf"# HELP ({_NAME}) .*")
+_TYPE = re.compile(rf"# TYPE ({_NAME}) (counter|gauge|histogram|summary|untyped)")
+
+
+def parse_exposition(text: str) -> dict[str, list[tuple[str, str, float]]]:
+    """Check every line against the text format; return family → [(name, labels, value)]."""
+    assert text.endswith("\n")
+    families: dict[str, list[tuple[str, str, float]]] = {}
+    typed: dict[str, str] = {}
+    for line in text.splitlines():
+        if m := _HELP.fullmatch(line):
+            continue
+        if m := _TYPE.fullmatch(line):
+            assert m.group(1) not in typed, f"TYPE given twice: {line}"
+            typed[m.group(1)] = m.group(2)
+            families[m.group(1)] = []
+            continue
+        m = _SAMPLE.fullmatch(line)
+        assert m, f"not a valid exposition line: {line!r}"
+        name = m.group(1)
+        family = next(f for f in typed if name == f or name.startswith(f + "_"))
+        families[family].append((name, m.group(2) or "", float(m.group(3).replace("Inf", "inf"))))
+    return families
+
+
+def test_health_ok(client: ApiClient) -> None:
+    r = client.get("/api/v1/health")
+    assert r.status_code == 200
+    assert r.json() == {"status": "ok", "checks": {"zenoh": True, "storage": True}}
+
+
+def test_health_names_the_part_that_is_down(client: ApiClient, runtime: FakeRuntime) -> None:
+    runtime.zenoh_up = False
+    r = client.get("/api/v1/health")
+    assert r.status_code == 503
+    assert r.json() == {
+        "error": "unavailable",
+        "reason": "down: zenoh",
+        "checks": {"zenoh": False, "storage": True},
+    }
+
+
+def test_health_check_that_raises_is_down(client: ApiClient, runtime: FakeRuntime) -> None:
+    def broken() -> dict[str, bool]:
+        raise RuntimeError("boom")
+
+    runtime.health = broken  # type: ignore[method-assign]
+    r = client.get("/api/v1/health")
+    assert r.status_code == 503
+    assert r.json()["checks"] == {"runtime": False}
+
+
+def test_metrics_parse_as_exposition(client: ApiClient, store: Store, runtime: FakeRuntime) -> None:
+    client.put("/api/v1/vehicles/t1", json={})
+    client.put('/api/v1/vehicles/t"2', json={})  # refused id: never reaches the metrics
+    store.write_counters({"t1": {"accepted": 7, "rejected_bad_payload": 2}}, 0)
+    runtime.zenoh_up = False
+    r = client.get("/api/v1/metrics")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/plain; version=0.0.4")
+    fams = parse_exposition(r.text)
+    assert ("slipfleet_up", '{component="storage"}', 1.0) in fams["slipfleet_up"]
+    assert ("slipfleet_up", '{component="zenoh"}', 0.0) in fams["slipfleet_up"]
+    packets = fams["slipfleet_ingest_packets"]
+    assert (
+        "slipfleet_ingest_packets_total",
+        '{vehicle="t1",reason="rejected_bad_payload"}',
+        2.0,
+    ) in packets
+    assert fams["slipfleet_writer_backlog_rows"] == [("slipfleet_writer_backlog_rows", "", 0.0)]
+
+
+def test_render_escapes_and_special_values() -> None:
+    text = render(
+        [
+            MetricFamily(
+                "x_seconds",
+                "gauge",
+                "Help with \\ and\nnewline.",
+                [
+                    Sample(math.nan, {"v": 'a"b\\c\nd'}),
+                    Sample(math.inf),
+                    Sample(-math.inf, {"v": "e"}),
+                    Sample(0.25, {"v": "f"}),
+                    Sample(3.0, {"v": "g"}),
+                ],
+            )
+        ]
+    )
+    assert text.splitlines() == [
+        "# HELP x_seconds Help with \\\\ and\\nnewline.",
+        "# TYPE x_seconds gauge",
+        'x_seconds{v="a\\"b\\\\c\\nd"} NaN',
+        "x_seconds +Inf",
+        'x_seconds{v="e"} -Inf',
+        'x_seconds{v="f"} 0.25',
+        'x_seconds{v="g"} 3',
+    ]
+    values = [v for _, _, v in parse_exposition(text)["x_seconds"]]
+    assert math.isnan(values[0]) and values[1:] == [math.inf, -math.inf, 0.25, 3.0]
+
+
+def test_invalid_metric_names_are_refused() -> None:
+    with pytest.raises(ValueError):
+        MetricFamily("bad-name", "gauge", "h")
+    with pytest.raises(ValueError):
+        MetricFamily("ok", "gauge", "h", [Sample(1, {"bad-label": "x"})])
+    with pytest.raises(ValueError):
+        render([MetricFamily("a", "gauge", "h"), MetricFamily("a", "gauge", "h")])

@@ -1,0 +1,167 @@
+"""/vehicles/{id}/series: JSON columns, CSV, Parquet, decimation, time parsing, limits."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from estimator.types import ESTIMATE_DTYPE
+from server.api import ApiLimits, create_app
+from server.storage.base import Store
+
+from ._data import T0, T0_ISO, S, hand_series, ramp_series
+from .conftest import ApiClient, FakeRuntime, make_settings, running
+
+U = "/api/v1/vehicles/t1/series"
+ALL = f"start={T0}&end={T0 + 3600 * S}"
+
+
+@pytest.fixture
+def filled(client: ApiClient, store: Store) -> np.ndarray:
+    client.put("/api/v1/vehicles/t1", json={})
+    rows = hand_series()
+    store.write_estimates([("t1", rows)])
+    return rows
+
+
+def test_json_full_rate(client: ApiClient, filled: np.ndarray) -> None:
+    body = client.get(f"{U}?{ALL}").json()
+    assert body["rows"] == 10
+    assert body["downsampled"] is False
+    assert body["max_points"] == 0
+    assert body["fields"] == list(ESTIMATE_DTYPE.names or ())
+    cols = body["columns"]
+    assert cols["stamp_ns"] == filled["stamp_ns"].tolist()
+    assert cols["vg_mps"] == [0, 0, 2, 2, 2, 2, 4, 4, 0.1, 0]
+    assert cols["slip_left_pct"][:3] == [None, None, 1.0]  # NaN → null
+    assert cols["flags"] == filled["flags"].tolist()
+
+
+def test_iso_times_and_fields(client: ApiClient, filled: np.ndarray) -> None:
+    # 12:00:02 .. 12:00:04 (+02:00 offset spelling) → rows 2 and 3
+    r = client.get(
+        U,
+        params={
+            "start": "2024-05-01T14:00:02+02:00",
+            "end": "2024-05-01T12:00:04Z",
+            "fields": "slip_left_pct, vg_mps,vg_mps",
+        },
+    )
+    body = r.json()
+    assert body["fields"] == ["stamp_ns", "slip_left_pct", "vg_mps"]
+    assert body["columns"] == {
+        "stamp_ns": [T0 + 2 * S, T0 + 3 * S],
+        "slip_left_pct": [1.0, 3.0],
+        "vg_mps": [2.0, 2.0],
+    }
+
+
+def test_csv_parses_back(client: ApiClient, filled: np.ndarray) -> None:
+    r = client.get(f"{U}?{ALL}&format=csv&fields=vg_mps,slip_left_pct,flags")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/csv")
+    assert "attachment" in r.headers["content-disposition"]
+    table = list(csv.DictReader(io.StringIO(r.text)))
+    assert len(table) == 10
+    assert [int(t["stamp_ns"]) for t in table] == filled["stamp_ns"].tolist()
+    assert [float(t["vg_mps"]) for t in table] == filled["vg_mps"].tolist()
+    assert table[0]["slip_left_pct"] == ""  # NaN → empty cell
+    assert float(table[6]["slip_left_pct"]) == -30.0
+    assert [int(t["flags"]) for t in table] == filled["flags"].tolist()
+
+
+def test_parquet_parses_back(client: ApiClient, filled: np.ndarray) -> None:
+    r = client.get(f"{U}?{ALL}&format=parquet")
+    assert r.status_code == 200
+    assert r.headers["content-type"] == "application/vnd.apache.parquet"
+    table = pq.read_table(io.BytesIO(r.content))
+    assert table.column_names == list(ESTIMATE_DTYPE.names or ())
+    assert table.num_rows == 10
+    assert table["stamp_ns"].to_pylist() == filled["stamp_ns"].tolist()
+    assert table["vg_mps"].to_pylist() == filled["vg_mps"].tolist()
+    assert table["slip_left_pct"].to_pylist()[:3] == [None, None, 1.0]  # NaN → null
+    assert str(table.schema.field("flags").type) == "int32"
+
+
+def test_decimation_keeps_the_spike(client: ApiClient, store: Store) -> None:
+    client.put("/api/v1/vehicles/t1", json={})
+    rows = ramp_series(36_000)  # one hour at 10 Hz
+    rows["slip_left_pct"][12_345] = 250.0  # a single-sample spike
+    rows["vg_mps"][20_000] = -9.0  # and a single-sample dip
+    store.write_estimates([("t1", rows)])
+    body = client.get(f"{U}?{ALL}&max_points=200&fields=vg_mps,slip_left_pct").json()
+    assert body["downsampled"] is True
+    assert 100 < body["rows"] <= 200
+    cols = body["columns"]
+    assert max(cols["slip_left_pct"]) == 250.0
+    assert min(cols["vg_mps"]) == -9.0
+    assert cols["stamp_ns"] == sorted(cols["stamp_ns"])
+    # fewer rows than max_points: returned as they are
+    body = client.get(f"{U}?start={T0}&end={T0 + 10 * S}&max_points=200").json()
+    assert body["downsampled"] is False
+    assert body["rows"] == 100
+
+
+def test_decimation_is_independent_of_chunking(tmp_path: Path) -> None:
+    rows = ramp_series(5000, step_ns=S // 10)
+    rows["vg_mps"][::7] += 3.0
+    results = []
+    for chunk_ns in (60 * S, 37 * S, 3600 * S):
+        settings = make_settings(tmp_path, require_auth=False)
+        app = create_app(settings, FakeRuntime(settings), limits=ApiLimits(query_chunk_ns=chunk_ns))
+        with running(app) as client:
+            client.put("/api/v1/vehicles/t1", json={})
+            client_store = app.state.runtime.store
+            client_store.write_estimates([("t1", rows)])
+            results.append(client.get(f"{U}?{ALL}&max_points=300").json())
+            csv_text = client.get(f"{U}?{ALL}&format=csv&fields=vg_mps").text
+            assert len(csv_text.splitlines()) == 5001  # full-rate CSV across chunks
+    assert results[0] == results[1] == results[2]
+
+
+def test_bad_queries(client: ApiClient, filled: np.ndarray) -> None:
+    cases = [
+        ("start=yesterday&end=1", 422, "invalid_time", "start"),
+        ("start=2024-05-01T12:00:00&end=2024-05-01T13:00:00Z", 422, "invalid_time", "offset"),
+        (f"start={T0}&end={T0}", 422, "invalid_time", "after start"),
+        (f"{ALL}&fields=vg_mps,speed", 422, "invalid", "speed"),
+        (f"{ALL}&max_points=1", 422, "invalid", "max_points"),
+        (f"{ALL}&max_points=-3", 422, "invalid_request", "max_points"),
+        (f"{ALL}&format=xml", 422, "invalid_request", "format"),
+        (f"start={T0_ISO}", 422, "invalid_request", "end"),
+        (f"start={T0}&end={T0 + 32 * 24 * 3600 * S}", 400, "range_too_large", "limit"),
+    ]
+    for query, status, code, word in cases:
+        r = client.get(f"{U}?{query}")
+        assert r.status_code == status, query
+        assert r.json()["error"] == code, (query, r.json())
+        assert word in r.json()["reason"], (query, r.json())
+
+
+def test_row_limit(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path, require_auth=False)
+    app = create_app(settings, FakeRuntime(settings), limits=ApiLimits(series_max_rows=50))
+    with running(app) as client:
+        client.put("/api/v1/vehicles/t1", json={})
+        app.state.runtime.store.write_estimates([("t1", ramp_series(100))])
+        r = client.get(f"{U}?{ALL}")
+        assert r.status_code == 400
+        assert r.json()["error"] == "range_too_large"
+        assert "max_points" in r.json()["reason"]
+        assert client.get(f"{U}?{ALL}&max_points=40").json()["rows"] <= 40
+        assert len(client.get(f"{U}?{ALL}&format=csv").text.splitlines()) == 101
+
+
+def test_empty_range(client: ApiClient, filled: np.ndarray) -> None:
+    q = f"start={T0 + 100 * S}&end={T0 + 200 * S}"
+    body = client.get(f"{U}?{q}&fields=vg_mps").json()
+    assert body["rows"] == 0
+    assert body["columns"] == {"stamp_ns": [], "vg_mps": []}
+    assert client.get(f"{U}?{q}&format=csv&fields=vg_mps").text == "stamp_ns,vg_mps\n"
+    table = pq.read_table(io.BytesIO(client.get(f"{U}?{q}&format=parquet").content))
+    assert table.num_rows == 0

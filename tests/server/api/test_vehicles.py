@@ -1,0 +1,158 @@
+"""/vehicles: register, configure, list, delete, latest."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import numpy as np
+
+from estimator.types import EstimateFlag
+from server.api import create_app
+from server.storage.base import Store
+
+from ._data import T0, hand_series
+from .conftest import ApiClient, FakeRuntime, make_settings, running
+
+V = "/api/v1/vehicles"
+
+
+def test_register_update_list_get(client: ApiClient, runtime: FakeRuntime) -> None:
+    assert client.get(V).json() == {"data": [], "count": 0}
+
+    r = client.put(f"{V}/t1", json={"geometry": {"track_width_m": 2.0}})
+    assert r.status_code == 201
+    body = r.json()
+    assert body["vehicle_id"] == "t1"
+    assert body["config"]["geometry"]["track_width_m"] == 2.0
+    assert body["config"]["slip"]["band_edges_pct"] == [5.0, 15.0]  # defaults filled in
+    assert runtime.config_calls[-1][0] == "t1"
+    assert runtime.config_calls[-1][1].geometry.track_width_m == 2.0
+
+    r = client.put(f"{V}/t1", json={"slip": {"band_edges_pct": [10, 20, 30]}})
+    assert r.status_code == 200
+    assert r.json()["config"]["slip"]["band_edges_pct"] == [10, 20, 30]
+    assert r.json()["config"]["geometry"]["track_width_m"] == 1.8  # replaced, not merged
+    assert len(runtime.config_calls) == 2
+
+    client.put(f"{V}/a0", json={})
+    listed = client.get(V).json()
+    assert listed["count"] == 2
+    assert sorted(v["vehicle_id"] for v in listed["data"]) == ["a0", "t1"]
+    one = client.get(f"{V}/t1").json()
+    assert one["config"]["slip"]["band_edges_pct"] == [10, 20, 30]
+    assert one["created_ns"] <= one["updated_ns"]
+
+
+def test_unknown_vehicle_is_404_json(client: ApiClient) -> None:
+    for path in ("nope", "nope/latest", "nope/series?start=0&end=1", "nope/report?start=0&end=1"):
+        r = client.get(f"{V}/{path}")
+        assert r.status_code == 404, path
+        assert r.json()["error"] == "not_found"
+        assert "nope" in r.json()["reason"]
+
+
+def test_bad_config_is_422_with_reason(client: ApiClient, runtime: FakeRuntime) -> None:
+    cases = [
+        ({"geometry": {"h0_m": -1}}, "h0_m"),
+        ({"geometry": {"antenna_offset_m": [1]}}, "antenna_offset_m"),
+        ({"slip": {"band_edges_pct": [15, 5]}}, "band_edges_pct"),
+        ({"wheels": 4}, "unknown field"),
+        ({"geometry": {"colour": "red"}}, "unknown field"),
+        ({"kind": "hovercraft"}, "kind"),
+        ({"estimators": "mdsf"}, "estimators"),
+        ({"encoder": 7}, "encoder"),
+    ]
+    for body, word in cases:
+        r = client.put(f"{V}/t1", json=body)
+        assert r.status_code == 422, body
+        assert r.json()["error"] == "invalid_config"
+        assert word in r.json()["reason"], (body, r.json())
+    assert client.get(f"{V}/t1").status_code == 404
+    assert runtime.config_calls == []
+
+
+def test_malformed_body_and_id(client: ApiClient) -> None:
+    r = client.put(f"{V}/t1", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    assert r.json()["error"] == "invalid_request"
+    r = client.put(f"{V}/t1", json=[1, 2])
+    assert r.status_code == 422
+    r = client.put(f"{V}/bad*id", json={})
+    assert r.status_code == 422
+    assert "vehicle_id" in r.json()["reason"]
+
+
+def test_body_size_limit(client: ApiClient) -> None:
+    r = client.put(f"{V}/t1", json={"estimators": ["x" * 100_000]})
+    assert r.status_code == 413
+    assert r.json()["error"] == "payload_too_large"
+
+    async def chunks() -> AsyncIterator[bytes]:  # no Content-Length: counted while streaming
+        for _ in range(100):
+            yield b" " * 1024
+
+    r = client.put(f"{V}/t1", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413
+
+
+def test_runtime_may_refuse_config(client: ApiClient, runtime: FakeRuntime) -> None:
+    from estimator.config import ConfigError
+
+    def check(vehicle_id: str, config: object) -> None:
+        raise ConfigError("estimator 'nope' is not registered")
+
+    runtime.check_vehicle_config = check  # type: ignore[attr-defined]
+    r = client.put(f"{V}/t1", json={"estimators": ["nope"]})
+    assert r.status_code == 422
+    assert "nope" in r.json()["reason"]
+    assert client.get(f"{V}/t1").status_code == 404
+
+
+def test_delete(client: ApiClient, runtime: FakeRuntime, store: Store) -> None:
+    client.put(f"{V}/t1", json={})
+    store.write_estimates([("t1", hand_series())])
+    r = client.delete(f"{V}/t1")
+    assert r.status_code == 204
+    assert runtime.deleted == ["t1"]
+    assert client.get(f"{V}/t1").status_code == 404
+    assert store.query_series("t1", 0, 2**62).shape == (0,)
+    r = client.delete(f"{V}/t1")
+    assert r.status_code == 404
+
+
+def test_delete_refused_while_auth_required_without_tokens(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path, require_auth=True)
+    runtime = FakeRuntime(settings)
+    with running(create_app(settings, runtime)) as client:
+        client.put(f"{V}/t1", json={})
+        r = client.delete(f"{V}/t1")
+        assert r.status_code == 403
+        assert r.json()["error"] == "forbidden"
+        assert "admin" in r.json()["reason"]
+        r = client.delete(f"{V}/t1", headers={"Authorization": "Bearer anything"})
+        assert r.status_code == 403
+        assert client.get(f"{V}/t1").status_code == 200
+
+
+def test_latest(client: ApiClient, store: Store) -> None:
+    client.put(f"{V}/t1", json={})
+    r = client.get(f"{V}/t1/latest")
+    assert r.status_code == 404
+    assert "no estimates" in r.json()["reason"]
+
+    rows = hand_series()
+    rows["flags"][-1] = int(EstimateFlag.GNSS_OK | EstimateFlag.SLIP_RIGHT_VALID)
+    rows["slip_right_pct"][-1] = 12.5
+    store.write_estimates([("t1", rows)])
+    body = client.get(f"{V}/t1/latest").json()
+    assert body["vehicle_id"] == "t1"
+    assert body["stamp_ns"] == T0 + 9 * 1_000_000_000
+    assert body["time"] == "2024-05-01T12:00:09.000000000Z"
+    assert body["vg_mps"] == 0.0
+    assert body["slip_right_pct"] == 12.5
+    assert body["slip_left_pct"] is None  # NaN
+    assert body["flags"] == 1 | 32
+    assert body["flag_names"] == ["GNSS_OK", "SLIP_RIGHT_VALID"]
+    names = {n for n in np.dtype(store.latest("t1").dtype).names or ()}  # type: ignore[union-attr]
+    assert names <= set(body)
