@@ -1,0 +1,127 @@
+"""Per-vehicle ingest counters.
+
+Every packet that reaches the pipeline is counted ``received`` and then exactly one of
+``accepted`` (entered the reorder buffer and will be fed to the estimators), ``late`` (older than
+the released horizon, dropped), ``duplicate`` (sequence number already seen) or
+``rejected_<reason>`` (decode failures, ``unknown_vehicle``). Hence, at every snapshot::
+
+    received == accepted + late + duplicate + rejected          (rejected = sum of rejected_*)
+
+``lost_by_seq_gap`` counts sequence numbers that never arrived (a gap that is later filled by a
+reordered packet is taken back), so it is not part of the sum. ``seq_restarts`` counts streams
+whose sequence jumped far back (a vehicle reboot), also informational.
+
+Only the pipeline thread writes; snapshots may be taken from any thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+
+__all__ = ["NO_VEHICLE", "IngestCounters"]
+
+#: Bucket for packets whose key names no valid vehicle.
+NO_VEHICLE = ""
+
+
+class _VehicleCounts:
+    __slots__ = (
+        "accepted",
+        "duplicate",
+        "late",
+        "lost_by_seq_gap",
+        "received",
+        "rejected",
+        "seq_restarts",
+    )
+
+    def __init__(self) -> None:
+        self.received = 0
+        self.accepted = 0
+        self.late = 0
+        self.duplicate = 0
+        self.lost_by_seq_gap = 0
+        self.seq_restarts = 0
+        self.rejected: dict[str, int] = defaultdict(int)
+
+    def as_dict(self) -> dict[str, int]:
+        out = {
+            "received": self.received,
+            "accepted": self.accepted,
+            "late": self.late,
+            "duplicate": self.duplicate,
+            "rejected": sum(self.rejected.values()),
+            "lost_by_seq_gap": self.lost_by_seq_gap,
+            "seq_restarts": self.seq_restarts,
+        }
+        for reason, n in sorted(self.rejected.items()):
+            out[f"rejected_{reason}"] = n
+        return out
+
+
+class IngestCounters:
+    """Counters keyed by vehicle id (see module docstring for the invariant)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._by_vehicle: dict[str, _VehicleCounts] = {}
+
+    def _get(self, vehicle_id: str) -> _VehicleCounts:
+        c = self._by_vehicle.get(vehicle_id)
+        if c is None:
+            c = self._by_vehicle[vehicle_id] = _VehicleCounts()
+        return c
+
+    def accepted(self, vehicle_id: str, lost_delta: int = 0) -> None:
+        """One packet received and accepted; ``lost_delta`` adjusts ``lost_by_seq_gap``."""
+        with self._lock:
+            c = self._get(vehicle_id)
+            c.received += 1
+            c.accepted += 1
+            c.lost_by_seq_gap += lost_delta
+
+    def late(self, vehicle_id: str, lost_delta: int = 0) -> None:
+        """One packet received after its time was released."""
+        with self._lock:
+            c = self._get(vehicle_id)
+            c.received += 1
+            c.late += 1
+            c.lost_by_seq_gap += lost_delta
+
+    def duplicate(self, vehicle_id: str) -> None:
+        """One packet whose sequence number was already seen."""
+        with self._lock:
+            c = self._get(vehicle_id)
+            c.received += 1
+            c.duplicate += 1
+
+    def rejected(self, vehicle_id: str | None, reason: str) -> None:
+        """One packet refused for ``reason`` (a codec reason or ``unknown_vehicle``)."""
+        with self._lock:
+            c = self._get(NO_VEHICLE if vehicle_id is None else vehicle_id)
+            c.received += 1
+            c.rejected[reason] += 1
+
+    def seq_restart(self, vehicle_id: str) -> None:
+        """A stream's sequence number restarted (informational)."""
+        with self._lock:
+            self._get(vehicle_id).seq_restarts += 1
+
+    def forget(self, vehicle_id: str) -> None:
+        """Drop a vehicle's counters (after it is deleted)."""
+        with self._lock:
+            self._by_vehicle.pop(vehicle_id, None)
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        """``{vehicle_id: {counter: value}}``, a consistent copy."""
+        with self._lock:
+            return {vid: c.as_dict() for vid, c in self._by_vehicle.items()}
+
+    def totals(self) -> dict[str, int]:
+        """Counters summed over every vehicle."""
+        out: dict[str, int] = defaultdict(int)
+        for counts in self.snapshot().values():
+            for k, v in counts.items():
+                out[k] += v
+        return dict(out)

@@ -1,0 +1,316 @@
+"""The pipeline thread: reorder, estimate, hand rows to sinks.
+
+::
+
+    Zenoh threads ─▶ FifoChannel ─▶ ingest thread (decode) ─▶ bounded queue ─▶ pipeline thread
+                                                                                 │ reorder buffers
+                                                                                 │ registry.push
+                                                                                 │ registry.advance
+                                                                                 ▼
+                                                                   sinks.on_estimates(batch)
+
+The pipeline thread owns the estimator registry, every reorder buffer and the counters' writes,
+so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` it releases the
+packets whose time has come, pushes them to the vehicle's estimators, advances them to the
+released horizon and hands the primary estimator's rows, ``[(vehicle_id, rows), ...]``, to each
+sink's ``on_estimates`` (and every estimator's rows to a sink's optional
+``on_output(name, batch)``). Sinks run on this thread: they must only enqueue (the storage
+writer and live hub do).
+
+Vehicles are registered with :meth:`Pipeline.register_vehicle` (REST, startup), by a config on
+``<prefix>/<id>/config``, or, with ``unknown_vehicle = "auto"``, on their first packet with a
+default :class:`VehicleConfig`. The last two call ``on_new_vehicle(vehicle_id, config)`` on the
+pipeline thread so the server can store the vehicle (keep it short: enqueue).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import zenoh
+
+from estimator.config import VehicleConfig
+from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
+from server.ingest.counters import IngestCounters
+from server.ingest.reorder import ReorderBuffer, Verdict
+from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber
+from server.protocol.codec import DecodeError, Packet
+from server.settings import Settings, UnknownVehiclePolicy
+
+__all__ = ["EstimateSink", "Pipeline"]
+
+log = logging.getLogger(__name__)
+
+#: Decoded bursts (each up to ``subscriber.BURST`` packets) waiting for the pipeline, at most.
+QUEUE_BURSTS = 256
+
+
+@runtime_checkable
+class EstimateSink(Protocol):
+    """Receives estimate rows on the pipeline thread; must not block for long."""
+
+    def on_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None: ...
+
+
+class Pipeline:
+    """Reorder buffers + estimator registry + sinks on one thread, fed by the Zenoh subscriber.
+
+    Parameters
+    ----------
+    settings : Settings
+        Uses ``settings.zenoh`` (prefix, filter, channel) and ``settings.ingest``.
+    session : zenoh.Session or None
+        Where to subscribe; None runs without Zenoh (feed with :meth:`submit`, for tests/replay).
+    registry : EstimatorRegistry
+        Owned by the pipeline thread once started.
+    sinks : sequence of EstimateSink
+    on_new_vehicle : callable(vehicle_id, config), optional
+        Called for vehicles registered by the pipeline itself (auto or Zenoh config).
+    clock_ns : callable, optional
+        Monotonic clock in ns (for the reorder buffers' idle release); injectable for tests.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        session: zenoh.Session | None,
+        registry: EstimatorRegistry,
+        sinks: Sequence[EstimateSink] = (),
+        on_new_vehicle: Callable[[str, VehicleConfig], None] | None = None,
+        *,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self._settings = settings
+        self._ingest = settings.ingest
+        self._registry = registry
+        self._sinks = list(sinks)
+        self._on_new_vehicle = on_new_vehicle
+        self._clock = clock_ns
+        self._lateness_ns = settings.ingest.lateness_ms * 1_000_000
+        self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
+        self._queue: queue.Queue[list[IngestItem] | None] = queue.Queue(maxsize=QUEUE_BURSTS)
+        self._control: deque[tuple[str, str, VehicleConfig | None]] = deque()
+        self._counters = IngestCounters()
+        self._buffers: dict[str, ReorderBuffer] = {}
+        self._active: set[str] = set()
+        self._advanced_ns: dict[str, int] = {}
+        self._subscriber = (
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit)
+            if session is not None
+            else None
+        )
+        self._thread: threading.Thread | None = None
+        self._stats = {"ticks": 0, "rows": 0, "sink_errors": 0, "estimator_errors": 0}
+        self._last_tick_s = 0.0
+
+    # ------------------------------------------------------------------ public, any thread
+
+    def add_sink(self, sink: EstimateSink) -> None:
+        """Add a sink before :meth:`start`."""
+        if self._thread is not None:
+            raise RuntimeError("add sinks before start()")
+        self._sinks.append(sink)
+
+    def start(self) -> None:
+        """Start the pipeline thread, then the subscriber."""
+        if self._thread is not None:
+            raise RuntimeError("already started")
+        self._thread = threading.Thread(target=self._run, name="slipfleet-pipeline", daemon=True)
+        self._thread.start()
+        if self._subscriber is not None:
+            self._subscriber.start()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop the subscriber, process what was received, flush every buffer, join."""
+        if self._subscriber is not None:
+            self._subscriber.stop(timeout_s)
+        if self._thread is None:
+            return
+        self._queue.put(None)
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.warning("pipeline thread did not stop within %.1f s", timeout_s)
+
+    def submit(self, items: list[IngestItem]) -> None:
+        """Queue decoded packets/refusals for the pipeline; blocks while the queue is full."""
+        if items:
+            self._queue.put(items)
+
+    def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """Start or reconfigure a vehicle (applied on the pipeline thread).
+
+        Validate first with ``registry.names_for(config)`` to report unknown estimators.
+        """
+        self._control.append(("add", vehicle_id, config))
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        """Forget a vehicle: estimators, reorder buffer and counters."""
+        self._control.append(("remove", vehicle_id, None))
+
+    def counters_snapshot(self) -> dict[str, dict[str, int]]:
+        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`)."""
+        return self._counters.snapshot()
+
+    def stats(self) -> dict[str, Any]:
+        """Pipeline health: queue depth, ticks, rows emitted, errors, last tick duration."""
+        return {
+            **self._stats,
+            "queue_bursts": self._queue.qsize(),
+            "queue_capacity": QUEUE_BURSTS,
+            "last_tick_ms": round(self._last_tick_s * 1000, 3),
+            "running": self._thread is not None and self._thread.is_alive(),
+        }
+
+    # ------------------------------------------------------------------ pipeline thread
+
+    def _run(self) -> None:
+        next_tick = self._clock() + self._interval_ns
+        while True:
+            self._apply_control()
+            timeout_s = max(0.0, (next_tick - self._clock()) / 1e9)
+            try:
+                items = self._queue.get(timeout=timeout_s)
+            except queue.Empty:
+                items = []
+            if items is None:
+                break
+            self._apply_configs()
+            if items:
+                self._handle(items)
+            now = self._clock()
+            if now >= next_tick:
+                self._tick(now, flush=False)
+                next_tick = max(next_tick + self._interval_ns, now + self._interval_ns // 4)
+        # shutdown: everything still queued, then release every buffer
+        self._apply_control()
+        self._apply_configs()
+        while True:
+            try:
+                rest = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if rest:
+                self._handle(rest)
+        self._tick(self._clock(), flush=True)
+
+    def _apply_control(self) -> None:
+        while self._control:
+            op, vid, config = self._control.popleft()
+            if op == "add" and config is not None:
+                self._add(vid, config, notify=False)
+            elif op == "remove":
+                self._registry.remove_vehicle(vid)
+                self._buffers.pop(vid, None)
+                self._active.discard(vid)
+                self._advanced_ns.pop(vid, None)
+                self._counters.forget(vid)
+
+    def _apply_configs(self) -> None:
+        if self._subscriber is None:
+            return
+        update: ConfigUpdate
+        for update in self._subscriber.poll_configs():
+            self._add(update.vehicle_id, update.config, notify=True)
+
+    def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
+        try:
+            self._registry.add_vehicle(vehicle_id, config)
+        except UnknownEstimatorError as exc:
+            log.warning("vehicle %s not registered: %s", vehicle_id, exc)
+            return False
+        if notify and self._on_new_vehicle is not None:
+            try:
+                self._on_new_vehicle(vehicle_id, config)
+            except Exception:  # a failing callback must not stop ingest
+                log.exception("on_new_vehicle failed for %s", vehicle_id)
+        return True
+
+    def _handle(self, items: list[IngestItem]) -> None:
+        now = self._clock()
+        counters = self._counters
+        for item in items:
+            if isinstance(item, DecodeError):
+                counters.rejected(item.vehicle_id, item.reason)
+                continue
+            vid = item.vehicle_id
+            buf = self._buffers.get(vid)
+            if buf is None:
+                if not self._admit(item):
+                    continue
+                buf = self._buffers[vid] = ReorderBuffer(self._lateness_ns)
+            offer = buf.offer(item, now)
+            if offer.seq_restart:
+                counters.seq_restart(vid)
+            if offer.verdict is Verdict.ACCEPTED:
+                counters.accepted(vid, offer.lost_delta)
+                self._active.add(vid)
+            elif offer.verdict is Verdict.LATE:
+                counters.late(vid, offer.lost_delta)
+            else:
+                counters.duplicate(vid)
+
+    def _admit(self, packet: Packet) -> bool:
+        """First packet of a vehicle without a buffer: known, auto-registered, or refused."""
+        vid = packet.vehicle_id
+        if self._registry.has_vehicle(vid):
+            return True
+        auto = self._ingest.unknown_vehicle is UnknownVehiclePolicy.AUTO_REGISTER
+        if auto and self._add(vid, VehicleConfig(), notify=True):
+            return True
+        self._counters.rejected(vid, "unknown_vehicle")
+        return False
+
+    def _tick(self, now: int, *, flush: bool) -> None:
+        t0 = time.perf_counter()
+        until: dict[str, int] = {}
+        registry = self._registry
+        drained: list[str] = []
+        for vid in self._active:
+            buf = self._buffers[vid]
+            packets, released = buf.release(now, flush=flush)
+            if registry.has_vehicle(vid):
+                for packet in packets:
+                    for m in packet.measurements:
+                        try:
+                            registry.push(vid, m)
+                        except Exception:  # an estimator bug must not stop the fleet
+                            self._stats["estimator_errors"] += 1
+                            log.exception("estimator push failed for %s", vid)
+            if released is not None and released != self._advanced_ns.get(vid):
+                until[vid] = released
+                self._advanced_ns[vid] = released
+            if buf.drained:
+                drained.append(vid)
+        self._active.difference_update(drained)
+        result = AdvanceResult()
+        if until:
+            try:
+                result = registry.advance(until)
+            except Exception:
+                self._stats["estimator_errors"] += 1
+                log.exception("estimator advance failed")
+        self._deliver(result)
+        self._stats["ticks"] += 1
+        self._last_tick_s = time.perf_counter() - t0
+
+    def _deliver(self, result: AdvanceResult) -> None:
+        if result.primary:
+            self._stats["rows"] += sum(len(rows) for _, rows in result.primary)
+        for sink in self._sinks:
+            try:
+                if result.primary:
+                    sink.on_estimates(result.primary)
+                on_output = getattr(sink, "on_output", None)
+                if on_output is not None:
+                    for name, batch in result.by_estimator.items():
+                        on_output(name, batch)
+            except Exception:  # one faulty sink must not stop the others or ingest
+                self._stats["sink_errors"] += 1
+                log.exception("sink %r failed", sink)

@@ -1,0 +1,183 @@
+"""Per-vehicle reorder buffer: hand packets to the estimators in sensor-time order.
+
+Packets of one vehicle arrive on three streams, each possibly reordered by the network. The
+buffer holds them in a heap keyed by the packet's first sample time and releases them once the
+*horizon* has passed them::
+
+    horizon = newest sample time seen (any stream) - lateness
+
+so a packet may arrive up to ``lateness`` (sensor time) after newer data and still be fed in
+order. When the vehicle goes quiet for ``idle`` of wall time (monotonic clock, an argument;
+default ``2 * lateness + 100 ms``), the horizon jumps to the newest sample time so the tail is
+released too.
+
+A packet whose first sample time is at or before the horizon already released is **late**: it
+is counted and never fed (feeding it would break the estimators' time order). Sequence numbers
+are tracked per stream: an already-seen number is a **duplicate**; a jump forward counts the
+skipped numbers as **lost** (taken back if they arrive later); a jump back by more than
+:data:`SEQ_WINDOW` is taken as a restart of the vehicle's counter.
+
+Time is always an argument; nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from dataclasses import dataclass
+from enum import Enum
+
+from server.protocol.codec import Packet
+from server.protocol.keys import Stream
+
+__all__ = ["SEQ_WINDOW", "Offer", "ReorderBuffer", "SeqTracker", "Verdict"]
+
+#: How far back (in sequence numbers) duplicates are recognised per stream.
+SEQ_WINDOW = 4096
+
+_STREAM_ORDER = {Stream.GNSS: 0, Stream.IMU: 1, Stream.WHEELS: 2}
+
+
+class Verdict(Enum):
+    """What the buffer did with an offered packet."""
+
+    ACCEPTED = "accepted"
+    LATE = "late"
+    DUPLICATE = "duplicate"
+
+
+@dataclass(frozen=True, slots=True)
+class Offer:
+    """Outcome of :meth:`ReorderBuffer.offer`.
+
+    Attributes
+    ----------
+    verdict : Verdict
+    lost_delta : int
+        Change of the lost-by-sequence-gap count (negative when a gap is filled).
+    seq_restart : bool
+        The stream's sequence number restarted with this packet.
+    """
+
+    verdict: Verdict
+    lost_delta: int = 0
+    seq_restart: bool = False
+
+
+class SeqTracker:
+    """Duplicate and gap detection for one stream (a bit mask over the last SEQ_WINDOW numbers)."""
+
+    __slots__ = ("_first", "_highest", "_mask")
+
+    def __init__(self) -> None:
+        self._highest = -1
+        self._first = -1  # numbers below the first one seen were never counted lost
+        self._mask = 0  # bit i set: sequence number highest - i was seen
+
+    def observe(self, seq: int) -> tuple[bool, int, bool]:
+        """Return ``(is_duplicate, lost_delta, restarted)`` and record ``seq``."""
+        if self._highest < 0:
+            self._highest, self._first, self._mask = seq, seq, 1
+            return False, 0, False
+        if seq > self._highest:
+            step = seq - self._highest
+            self._mask = ((self._mask << step) | 1) & ((1 << SEQ_WINDOW) - 1)
+            self._highest = seq
+            return False, step - 1, False
+        back = self._highest - seq
+        if back >= SEQ_WINDOW:
+            self._highest, self._first, self._mask = seq, seq, 1
+            return False, 0, True
+        bit = 1 << back
+        if self._mask & bit:
+            return True, 0, False
+        self._mask |= bit
+        return False, (-1 if seq > self._first else 0), False
+
+
+class ReorderBuffer:
+    """One vehicle's packets, released in order of first sample time.
+
+    Parameters
+    ----------
+    lateness_ns : int
+        Reorder window in sensor time (``IngestSettings.lateness_ms``).
+    idle_ns : int, optional
+        Wall time without arrivals after which everything pending is released.
+    """
+
+    def __init__(self, lateness_ns: int, idle_ns: int | None = None) -> None:
+        if lateness_ns < 0:
+            raise ValueError("lateness_ns must be >= 0")
+        self._lateness_ns = lateness_ns
+        self._idle_ns = 2 * lateness_ns + 100_000_000 if idle_ns is None else idle_ns
+        self._heap: list[tuple[int, int, int, int, Packet]] = []
+        self._tie = itertools.count()
+        self._seq: dict[Stream, SeqTracker] = {}
+        self._newest_ns: int | None = None
+        self._released_ns: int | None = None
+        self._last_arrival_ns = 0
+
+    @property
+    def pending(self) -> int:
+        """Packets waiting for the horizon."""
+        return len(self._heap)
+
+    @property
+    def drained(self) -> bool:
+        """Nothing pending and released up to the newest sample: idle until the next packet."""
+        return (
+            not self._heap and self._newest_ns is not None and self._released_ns == self._newest_ns
+        )
+
+    @property
+    def released_ns(self) -> int | None:
+        """Sensor time up to which everything has been released (None before the first release)."""
+        return self._released_ns
+
+    def offer(self, packet: Packet, now_ns: int) -> Offer:
+        """Take one packet that arrived at monotonic time ``now_ns``."""
+        tracker = self._seq.get(packet.stream)
+        if tracker is None:
+            tracker = self._seq[packet.stream] = SeqTracker()
+        dup, lost_delta, restarted = tracker.observe(packet.seq)
+        if dup:
+            return Offer(Verdict.DUPLICATE)
+        if self._released_ns is not None and packet.first_stamp_ns <= self._released_ns:
+            return Offer(Verdict.LATE, lost_delta, restarted)
+        self._last_arrival_ns = now_ns
+        if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
+            self._newest_ns = packet.last_stamp_ns
+        key = (packet.first_stamp_ns, _STREAM_ORDER[packet.stream], packet.seq, next(self._tie))
+        heapq.heappush(self._heap, (*key, packet))
+        return Offer(Verdict.ACCEPTED, lost_delta, restarted)
+
+    def horizon_ns(self, now_ns: int) -> int | None:
+        """The sensor time that may be released at ``now_ns`` (None while nothing arrived)."""
+        if self._newest_ns is None:
+            return None
+        if now_ns - self._last_arrival_ns >= self._idle_ns:
+            horizon = self._newest_ns
+        else:
+            horizon = self._newest_ns - self._lateness_ns
+        if self._released_ns is not None and horizon < self._released_ns:
+            return self._released_ns
+        return horizon
+
+    def release(self, now_ns: int, *, flush: bool = False) -> tuple[list[Packet], int | None]:
+        """Pop every packet at or before the horizon, in order.
+
+        Returns ``(packets, released_ns)``: the packets to feed, and the sensor time the
+        estimators may advance to (None before anything was released). ``flush`` releases
+        everything (shutdown).
+        """
+        horizon = self._newest_ns if flush else self.horizon_ns(now_ns)
+        if horizon is None:
+            return [], self._released_ns
+        out: list[Packet] = []
+        heap = self._heap
+        while heap and heap[0][0] <= horizon:
+            out.append(heapq.heappop(heap)[-1])
+        if self._released_ns is None or horizon > self._released_ns:
+            self._released_ns = horizon
+        return out, self._released_ns

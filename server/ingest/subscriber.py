@@ -1,0 +1,160 @@
+"""Zenoh subscribers and the ingest (decode) thread.
+
+Two subscriptions under ``<prefix>/<vehicle_filter>/``:
+
+* ``sensors/**`` into a bounded :class:`zenoh.handlers.FifoChannel` of
+  ``ZenohSettings.channel_capacity`` samples. Zenoh's threads only enqueue; the ingest thread
+  takes samples in bursts, decodes them with the pure codec and hands each burst as one list to
+  ``deliver`` (the pipeline's bounded queue). When the pipeline falls behind, ``deliver``
+  blocks, the channel fills, and Zenoh's BLOCK congestion control slows the publishers: nothing
+  is dropped silently.
+* ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
+  (configs are rare; polling is one non-blocking ``try_recv``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+
+from estimator.config import VehicleConfig
+from server.protocol.codec import DecodeError, Packet, decode, decode_config
+from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK
+from server.settings import IngestSettings, ZenohSettings
+
+__all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber"]
+
+log = logging.getLogger(__name__)
+
+#: Samples decoded per hand-over to the pipeline, at most.
+BURST = 512
+
+CONFIG_CHANNEL_CAPACITY = 256
+
+
+@dataclass(frozen=True, slots=True)
+class ConfigUpdate:
+    """A vehicle configuration received on ``<prefix>/<id>/config``."""
+
+    vehicle_id: str
+    config: VehicleConfig
+
+
+IngestItem = Packet | DecodeError
+
+
+class IngestSubscriber:
+    """Declares the subscribers and runs the decode thread.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    zenoh_settings, ingest_settings
+        Prefix, vehicle filter, channel capacity; payload size limit.
+    deliver : callable
+        Receives each decoded burst (a list of :data:`IngestItem`); may block (backpressure).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        zenoh_settings: ZenohSettings,
+        ingest_settings: IngestSettings,
+        deliver: Callable[[list[IngestItem]], None],
+    ) -> None:
+        self._session = session
+        self._zs = zenoh_settings
+        self._max_payload = ingest_settings.max_payload_bytes
+        self._deliver = deliver
+        self._thread: threading.Thread | None = None
+        self._sensors: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
+        self._config: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
+        self._stopping = threading.Event()
+
+    @property
+    def sensors_key(self) -> str:
+        """The sensor subscription's key expression."""
+        base = zenoh.KeyExpr(self._zs.key_prefix).join(self._zs.vehicle_filter)
+        return str(base.join(SENSORS_CHUNK).join("**"))
+
+    @property
+    def config_key(self) -> str:
+        """The config subscription's key expression."""
+        return str(
+            zenoh.KeyExpr(self._zs.key_prefix).join(self._zs.vehicle_filter).join(CONFIG_SUFFIX)
+        )
+
+    def start(self) -> None:
+        """Declare the subscribers and start the decode thread."""
+        if self._thread is not None:
+            raise RuntimeError("already started")
+        self._sensors = self._session.declare_subscriber(
+            self.sensors_key, zenoh.handlers.FifoChannel(self._zs.channel_capacity)
+        )
+        self._config = self._session.declare_subscriber(
+            self.config_key, zenoh.handlers.FifoChannel(CONFIG_CHANNEL_CAPACITY)
+        )
+        self._thread = threading.Thread(target=self._run, name="slipfleet-ingest", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Undeclare the subscribers (wakes the thread) and join it."""
+        self._stopping.set()
+        for sub in (self._sensors, self._config):
+            if sub is not None:
+                # a closed session has undeclared it already
+                with contextlib.suppress(zenoh.ZError):
+                    sub.undeclare()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                log.warning("ingest thread did not stop within %.1f s", timeout_s)
+
+    def _decode(self, sample: zenoh.Sample) -> IngestItem:
+        try:
+            return decode(
+                str(sample.key_expr),
+                sample.payload.to_bytes(),
+                prefix=self._zs.key_prefix,
+                max_payload_bytes=self._max_payload,
+            )
+        except DecodeError as exc:
+            return exc
+
+    def poll_configs(self) -> list[ConfigUpdate]:
+        """Configs received since the last call (refused ones are logged and skipped)."""
+        out: list[ConfigUpdate] = []
+        if self._config is None or self._stopping.is_set():
+            return out
+        handler = self._config.handler
+        while (sample := handler.try_recv()) is not None:
+            try:
+                vid, cfg = decode_config(
+                    str(sample.key_expr),
+                    sample.payload.to_bytes(),
+                    prefix=self._zs.key_prefix,
+                    max_payload_bytes=self._max_payload,
+                )
+            except DecodeError as exc:
+                log.warning("refused vehicle config on %s: %s", sample.key_expr, exc)
+                continue
+            out.append(ConfigUpdate(vid, cfg))
+        return out
+
+    def _run(self) -> None:
+        assert self._sensors is not None
+        sensors = self._sensors.handler
+        while True:
+            try:
+                first = sensors.recv()
+            except zenoh.ZError:
+                return  # channel closed: subscriber undeclared
+            burst: list[IngestItem] = [self._decode(first)]
+            while len(burst) < BURST and (sample := sensors.try_recv()) is not None:
+                burst.append(self._decode(sample))
+            self._deliver(burst)

@@ -1,0 +1,564 @@
+"""Encode and decode the wire payloads (pure: no I/O, no Zenoh). See ``docs/protocol.md``.
+
+A payload is one msgpack map. Every payload carries the header ``v`` (schema version),
+``sensor`` (the stream, which must match the key) and ``seq`` (per-stream sequence number);
+numeric arrays travel as msgpack *bin* values holding packed little-endian numbers, so decoding
+is ``numpy.frombuffer`` and the resulting arrays are read-only views of the payload.
+
+Exceptions::
+
+    ValueError
+     └── ProtocolError           anything this module refuses
+          ├── EncodeError        the measurement cannot be put on the wire (shape, dtype, seq)
+          └── DecodeError        a received packet is refused; ``.reason`` is one of REASONS
+
+:class:`DecodeError` carries a short machine ``reason`` (used as a counter name), a human
+``detail``, and the ``vehicle_id`` / ``stream`` when the key could be parsed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from estimator.base import Measurement
+from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
+from server.protocol.keys import Stream, parse_key
+
+__all__ = [
+    "LIMITS",
+    "REASONS",
+    "SCHEMA_VERSION",
+    "DecodeError",
+    "EncodeError",
+    "Limits",
+    "Packet",
+    "ProtocolError",
+    "decode",
+    "decode_config",
+    "encode_config",
+    "encode_gnss",
+    "encode_imu",
+    "encode_wheel_edges",
+    "encode_wheel_speeds",
+]
+
+SCHEMA_VERSION = 1
+
+#: Every reason a :class:`DecodeError` can carry (counter names).
+REASONS: tuple[str, ...] = (
+    "oversize",  # payload larger than max_payload_bytes, or a batch longer than max_batch
+    "bad_key",  # key is not <prefix>/<vehicle_id>/sensors/<gnss|imu|wheels> (or /config)
+    "undecodable",  # not one msgpack map (or not JSON for a config)
+    "schema_version",  # 'v' missing or not a supported version
+    "key_mismatch",  # 'sensor' in the payload differs from the key's stream
+    "missing_field",
+    "wrong_type",  # a field has the wrong msgpack type, or an unknown enum value
+    "wrong_shape",  # array byte length / lengths disagree, or an empty batch
+    "non_finite",  # NaN or inf where a number is required
+    "out_of_range",  # physically impossible value
+    "non_monotonic",  # timestamps in a batch do not increase
+    "bad_config",  # a config payload that VehicleConfig refuses
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """Physical plausibility bounds a packet must respect (units in the names)."""
+
+    max_speed_mps: float = 100.0
+    max_gyro_radps: float = 20.0  # per-sample norm
+    max_accel_mps2: float = 20.0 * 9.80665  # per-sample norm of the specific force
+    max_wheel_omega_radps: float = 500.0
+    min_stamp_ns: int = 946_684_800 * 10**9  # 2000-01-01T00:00:00Z
+    max_stamp_ns: int = 4_102_444_800 * 10**9  # 2100-01-01T00:00:00Z
+    max_batch: int = 65_536  # samples or edges in one packet
+    max_height_m: float = 20_000.0
+    min_height_m: float = -1_000.0
+
+
+LIMITS = Limits()
+
+
+class ProtocolError(ValueError):
+    """Anything the codec refuses."""
+
+
+class EncodeError(ProtocolError):
+    """A measurement cannot be encoded (wrong shape or dtype, negative sequence number)."""
+
+
+class DecodeError(ProtocolError):
+    """A received packet is refused.
+
+    Attributes
+    ----------
+    reason : str
+        One of :data:`REASONS`.
+    detail : str
+        Human explanation.
+    vehicle_id : str or None
+        From the key, when it could be parsed.
+    stream : Stream or None
+    """
+
+    def __init__(
+        self,
+        reason: str,
+        detail: str = "",
+        *,
+        vehicle_id: str | None = None,
+        stream: Stream | None = None,
+    ) -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+        self.vehicle_id = vehicle_id
+        self.stream = stream
+
+
+@dataclass(frozen=True, slots=True)
+class Packet:
+    """One decoded sensor packet.
+
+    Attributes
+    ----------
+    vehicle_id : str
+    stream : Stream
+    seq : int
+        Per-(vehicle, stream) sequence number.
+    schema_version : int
+    measurements : tuple of Measurement
+        One ``GnssSample``, one ``ImuBatch``, one ``WheelSpeeds``, or one ``WheelEdges`` per
+        wheel present in the packet.
+    first_stamp_ns, last_stamp_ns : int
+        Earliest and latest sample time in the packet (vehicle clock).
+    """
+
+    vehicle_id: str
+    stream: Stream
+    seq: int
+    schema_version: int
+    measurements: tuple[Measurement, ...]
+    first_stamp_ns: int
+    last_stamp_ns: int
+
+
+# ---------------------------------------------------------------------------------------------
+# encoding
+
+
+def _seq(seq: int) -> int:
+    if not isinstance(seq, int | np.integer) or not 0 <= int(seq) < 2**63:
+        raise EncodeError(f"seq must be an int in [0, 2**63), got {seq!r}")
+    return int(seq)
+
+
+def _i8(a: Any, n: int | None = None, name: str = "stamp_ns") -> bytes:
+    arr = np.asarray(a)
+    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
+        raise EncodeError(f"{name} must have shape ({n if n is not None else 'n'},)")
+    if arr.size and arr.dtype.kind not in "iu":
+        raise EncodeError(f"{name} must be integers (int64 nanoseconds)")
+    return np.ascontiguousarray(arr, dtype="<i8").tobytes()
+
+
+def _f8(a: Any, shape: tuple[int, int], name: str) -> bytes:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.shape != shape:
+        raise EncodeError(f"{name} must have shape {shape}, got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype="<f8").tobytes()
+
+
+def _pack(obj: dict[str, Any]) -> bytes:
+    packed: bytes = msgpack.packb(obj, use_bin_type=True)
+    return packed
+
+
+def encode_gnss(sample: GnssSample, seq: int) -> bytes:
+    """Encode one GNSS epoch for ``<prefix>/<id>/sensors/gnss``."""
+    vel = [float(x) for x in sample.vel_enu_mps]
+    if len(vel) != 3:
+        raise EncodeError("vel_enu_mps must have three components (east, north, up)")
+    return _pack(
+        {
+            "v": SCHEMA_VERSION,
+            "sensor": Stream.GNSS.value,
+            "seq": _seq(seq),
+            "stamp_ns": int(sample.stamp_ns),
+            "vel_enu_mps": vel,
+            "heading_rad": float(sample.heading_rad),
+            "pitch_rad": float(sample.pitch_rad),
+            "roll_rad": float(sample.roll_rad),
+            "lat_deg": float(sample.lat_deg),
+            "lon_deg": float(sample.lon_deg),
+            "height_m": float(sample.height_m),
+            "fix": int(sample.fix),
+            "vel_std_mps": float(sample.vel_std_mps),
+        }
+    )
+
+
+def encode_imu(batch: ImuBatch, seq: int) -> bytes:
+    """Encode a batch of ``n`` IMU samples for ``<prefix>/<id>/sensors/imu``."""
+    n = int(np.asarray(batch.stamp_ns).shape[0]) if np.ndim(batch.stamp_ns) == 1 else -1
+    if n < 0:
+        raise EncodeError("stamp_ns must be one-dimensional")
+    return _pack(
+        {
+            "v": SCHEMA_VERSION,
+            "sensor": Stream.IMU.value,
+            "seq": _seq(seq),
+            "stamp_ns": _i8(batch.stamp_ns, n),
+            "accel_mps2": _f8(batch.accel_mps2, (n, 3), "accel_mps2"),
+            "gyro_radps": _f8(batch.gyro_radps, (n, 3), "gyro_radps"),
+        }
+    )
+
+
+def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int) -> bytes:
+    """Encode the encoder edges of one or both wheels for ``<prefix>/<id>/sensors/wheels``."""
+    items: list[dict[str, Any]] = []
+    for e in edges:
+        n = int(np.asarray(e.stamp_ns).shape[0]) if np.ndim(e.stamp_ns) == 1 else -1
+        if n < 0:
+            raise EncodeError("stamp_ns must be one-dimensional")
+        item: dict[str, Any] = {"wheel": int(Wheel(e.wheel)), "stamp_ns": _i8(e.stamp_ns, n)}
+        if e.direction is not None:
+            d = np.asarray(e.direction)
+            if d.shape != (n,):
+                raise EncodeError(f"direction must have shape ({n},)")
+            item["direction"] = np.ascontiguousarray(d, dtype=np.int8).tobytes()
+        items.append(item)
+    return _pack(
+        {
+            "v": SCHEMA_VERSION,
+            "sensor": Stream.WHEELS.value,
+            "seq": _seq(seq),
+            "mode": "edges",
+            "edges": items,
+        }
+    )
+
+
+def encode_wheel_speeds(speeds: WheelSpeeds, seq: int) -> bytes:
+    """Encode ``n`` wheel angular-speed samples for ``<prefix>/<id>/sensors/wheels``."""
+    n = int(np.asarray(speeds.stamp_ns).shape[0]) if np.ndim(speeds.stamp_ns) == 1 else -1
+    if n < 0:
+        raise EncodeError("stamp_ns must be one-dimensional")
+    return _pack(
+        {
+            "v": SCHEMA_VERSION,
+            "sensor": Stream.WHEELS.value,
+            "seq": _seq(seq),
+            "mode": "speeds",
+            "stamp_ns": _i8(speeds.stamp_ns, n),
+            "omega_radps": _f8(speeds.omega_radps, (n, 2), "omega_radps"),
+        }
+    )
+
+
+def encode_config(config: VehicleConfig) -> bytes:
+    """Encode a vehicle configuration for ``<prefix>/<id>/config`` (UTF-8 JSON, REST's body)."""
+    return json.dumps(config.to_dict(), separators=(",", ":")).encode()
+
+
+# ---------------------------------------------------------------------------------------------
+# decoding
+
+
+class _Ctx:
+    """Raise helpers bound to the packet's vehicle and stream."""
+
+    __slots__ = ("stream", "vehicle_id")
+
+    def __init__(self, vehicle_id: str | None, stream: Stream | None) -> None:
+        self.vehicle_id = vehicle_id
+        self.stream = stream
+
+    def fail(self, reason: str, detail: str) -> DecodeError:
+        return DecodeError(reason, detail, vehicle_id=self.vehicle_id, stream=self.stream)
+
+
+def _field(ctx: _Ctx, m: dict[str, Any], name: str) -> Any:
+    try:
+        return m[name]
+    except KeyError:
+        raise ctx.fail("missing_field", name) from None
+
+
+def _int(ctx: _Ctx, m: dict[str, Any], name: str) -> int:
+    v = _field(ctx, m, name)
+    if type(v) is not int:
+        raise ctx.fail("wrong_type", f"{name} must be an integer")
+    return v
+
+
+def _float(
+    ctx: _Ctx, m: dict[str, Any], name: str, *, nan_ok: bool, default: float | None = None
+) -> float:
+    if default is not None and name not in m:
+        return default
+    v = _field(ctx, m, name)
+    if type(v) is not float and type(v) is not int:
+        raise ctx.fail("wrong_type", f"{name} must be a number")
+    f = float(v)
+    if math.isinf(f) or (math.isnan(f) and not nan_ok):
+        raise ctx.fail("non_finite", name)
+    return f
+
+
+def _stamp(ctx: _Ctx, v: int, name: str, lim: Limits) -> int:
+    if not lim.min_stamp_ns <= v <= lim.max_stamp_ns:
+        raise ctx.fail("out_of_range", f"{name} {v} is outside years 2000..2100")
+    return v
+
+
+def _array(
+    ctx: _Ctx, m: dict[str, Any], name: str, dtype: str, width: int, lim: Limits
+) -> np.ndarray:
+    raw = _field(ctx, m, name)
+    if type(raw) is not bytes:
+        raise ctx.fail("wrong_type", f"{name} must be binary (packed little-endian {dtype})")
+    item = np.dtype(dtype).itemsize * width
+    if len(raw) % item:
+        raise ctx.fail("wrong_shape", f"{name}: {len(raw)} bytes is not a multiple of {item}")
+    n = len(raw) // item
+    if n > lim.max_batch:
+        raise ctx.fail("oversize", f"{name}: {n} samples > {lim.max_batch}")
+    arr = np.frombuffer(raw, dtype=dtype)
+    return arr.reshape(n, width) if width > 1 else arr
+
+
+def _stamps(
+    ctx: _Ctx, m: dict[str, Any], lim: Limits, *, strict: bool, name: str = "stamp_ns"
+) -> np.ndarray:
+    t = _array(ctx, m, name, "<i8", 1, lim)
+    if t.shape[0] == 0:
+        raise ctx.fail("wrong_shape", f"{name}: empty batch")
+    _stamp(ctx, int(t[0]), name, lim)
+    _stamp(ctx, int(t[-1]), name, lim)
+    if t.shape[0] > 1:
+        d = np.diff(t)
+        if (d <= 0).any() if strict else (d < 0).any():
+            raise ctx.fail(
+                "non_monotonic", f"{name} must {'increase' if strict else 'not decrease'}"
+            )
+    return t.astype(np.int64, copy=False)
+
+
+def _finite_rows(ctx: _Ctx, a: np.ndarray, name: str, n: int, bound: float) -> np.ndarray:
+    if a.shape[0] != n:
+        raise ctx.fail("wrong_shape", f"{name} has {a.shape[0]} rows for {n} timestamps")
+    if not np.isfinite(a).all():
+        raise ctx.fail("non_finite", name)
+    norm2 = np.einsum("ij,ij->i", a, a)
+    if (norm2 > bound * bound).any():
+        raise ctx.fail("out_of_range", f"{name} norm exceeds {bound:g}")
+    return a.astype(np.float64, copy=False)
+
+
+def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
+    t = _stamp(ctx, _int(ctx, m, "stamp_ns"), "stamp_ns", lim)
+    vel = _field(ctx, m, "vel_enu_mps")
+    if not isinstance(vel, list) or len(vel) != 3:
+        raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
+    if any(type(x) is not float and type(x) is not int for x in vel):
+        raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
+    ve, vn, vu = (float(x) for x in vel)
+    if not (math.isfinite(ve) and math.isfinite(vn) and math.isfinite(vu)):
+        raise ctx.fail("non_finite", "vel_enu_mps")
+    if ve * ve + vn * vn + vu * vu > lim.max_speed_mps**2:
+        raise ctx.fail("out_of_range", f"speed exceeds {lim.max_speed_mps:g} m/s")
+    heading = _float(ctx, m, "heading_rad", nan_ok=True)
+    pitch = _float(ctx, m, "pitch_rad", nan_ok=True)
+    roll = _float(ctx, m, "roll_rad", nan_ok=True)
+    if abs(heading) > 2 * math.pi or abs(pitch) > math.pi / 2 or abs(roll) > math.pi:
+        raise ctx.fail("out_of_range", "attitude angle out of range")
+    lat = _float(ctx, m, "lat_deg", nan_ok=True)
+    lon = _float(ctx, m, "lon_deg", nan_ok=True)
+    h = _float(ctx, m, "height_m", nan_ok=True)
+    # NaN (position unknown) compares False, so only finite out-of-range values are refused
+    if abs(lat) > 90 or abs(lon) > 180 or h < lim.min_height_m or h > lim.max_height_m:
+        raise ctx.fail("out_of_range", "position out of range")
+    fix_raw = _int(ctx, m, "fix") if "fix" in m else int(GnssFix.RTK_FIXED)
+    try:
+        fix = GnssFix(fix_raw)
+    except ValueError:
+        raise ctx.fail("wrong_type", f"fix {fix_raw} is not a GnssFix value") from None
+    vel_std = _float(ctx, m, "vel_std_mps", nan_ok=True, default=float("nan"))
+    if vel_std < 0 or vel_std > lim.max_speed_mps:
+        raise ctx.fail("out_of_range", "vel_std_mps")
+    sample = GnssSample(t, (ve, vn, vu), heading, pitch, roll, lat, lon, h, fix, vel_std)
+    return (sample,)
+
+
+def _decode_imu(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
+    t = _stamps(ctx, m, lim, strict=True)
+    n = t.shape[0]
+    acc = _finite_rows(
+        ctx, _array(ctx, m, "accel_mps2", "<f8", 3, lim), "accel_mps2", n, lim.max_accel_mps2
+    )
+    gyr = _finite_rows(
+        ctx, _array(ctx, m, "gyro_radps", "<f8", 3, lim), "gyro_radps", n, lim.max_gyro_radps
+    )
+    return (ImuBatch(t, acc, gyr),)
+
+
+def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
+    items = _field(ctx, m, "edges")
+    if not isinstance(items, list) or not 1 <= len(items) <= len(Wheel):
+        raise ctx.fail("wrong_type", "edges must be an array of 1 or 2 wheel entries")
+    out: list[Measurement] = []
+    seen: set[int] = set()
+    for item in items:
+        if not isinstance(item, dict):
+            raise ctx.fail("wrong_type", "each edges entry must be a map")
+        w = _int(ctx, item, "wheel")
+        if w not in (0, 1) or w in seen:
+            raise ctx.fail("out_of_range", f"wheel {w} is not 0 (left) or 1 (right), or repeated")
+        seen.add(w)
+        t = _stamps(ctx, item, lim, strict=False)
+        direction = None
+        if "direction" in item:
+            d = _array(ctx, item, "direction", "i1", 1, lim)
+            if d.shape[0] != t.shape[0]:
+                raise ctx.fail("wrong_shape", "direction and stamp_ns lengths differ")
+            if not (np.abs(d.astype(np.int16)) == 1).all():
+                raise ctx.fail("out_of_range", "direction must be +1 or -1")
+            direction = d.astype(np.int8, copy=False)
+        out.append(WheelEdges(Wheel(w), t, direction))
+    return tuple(out)
+
+
+def _decode_speeds(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
+    t = _stamps(ctx, m, lim, strict=True)
+    om = _array(ctx, m, "omega_radps", "<f8", 2, lim)
+    if om.shape[0] != t.shape[0]:
+        raise ctx.fail("wrong_shape", "omega_radps and stamp_ns lengths differ")
+    if not np.isfinite(om).all():
+        raise ctx.fail("non_finite", "omega_radps")
+    if (np.abs(om) > lim.max_wheel_omega_radps).any():
+        raise ctx.fail("out_of_range", f"|omega_radps| exceeds {lim.max_wheel_omega_radps:g}")
+    return (WheelSpeeds(t, om.astype(np.float64, copy=False)),)
+
+
+def _stamp_span(ms: tuple[Measurement, ...]) -> tuple[int, int]:
+    lo, hi = 2**63 - 1, -(2**63)
+    for x in ms:
+        if isinstance(x, GnssSample):
+            lo, hi = min(lo, x.stamp_ns), max(hi, x.stamp_ns)
+        else:
+            lo, hi = min(lo, int(x.stamp_ns[0])), max(hi, int(x.stamp_ns[-1]))
+    return lo, hi
+
+
+def _unpack(
+    ctx: _Ctx, payload: bytes | bytearray | memoryview, max_payload_bytes: int
+) -> dict[str, Any]:
+    if len(payload) > max_payload_bytes:
+        raise ctx.fail("oversize", f"{len(payload)} bytes > {max_payload_bytes}")
+    try:
+        m = msgpack.unpackb(payload, raw=False, use_list=True, strict_map_key=True)
+    except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        raise ctx.fail("undecodable", type(exc).__name__) from None
+    if not isinstance(m, dict):
+        raise ctx.fail("undecodable", "payload is not a map")
+    return m
+
+
+def decode(
+    key: str,
+    payload: bytes | bytearray | memoryview,
+    *,
+    prefix: str = "fleet",
+    max_payload_bytes: int = 256 * 1024,
+    limits: Limits = LIMITS,
+) -> Packet:
+    """Decode one sensor packet received on ``key``.
+
+    Parameters
+    ----------
+    key : str
+        ``<prefix>/<vehicle_id>/sensors/<gnss|imu|wheels>``.
+    payload : bytes
+        The msgpack payload.
+    prefix : str
+        The server's key prefix.
+    max_payload_bytes : int
+        Larger payloads are refused (``oversize``) before parsing.
+
+    Raises
+    ------
+    DecodeError
+        With ``reason`` from :data:`REASONS`.
+    """
+    try:
+        vehicle_id, stream = parse_key(key, prefix)
+    except ValueError as exc:
+        raise DecodeError("bad_key", str(exc)) from None
+    ctx = _Ctx(vehicle_id, stream)
+    if stream is None:
+        raise ctx.fail("bad_key", "a config key carries no sensor packet")
+    m = _unpack(ctx, payload, max_payload_bytes)
+    version = m.get("v")
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise ctx.fail("schema_version", f"unsupported schema version {version!r}")
+    sensor = _field(ctx, m, "sensor")
+    if sensor != stream.value:
+        raise ctx.fail("key_mismatch", f"payload sensor {sensor!r} on a {stream.value} key")
+    seq = _int(ctx, m, "seq")
+    if not 0 <= seq < 2**63:
+        raise ctx.fail("out_of_range", "seq must be in [0, 2**63)")
+    ms: tuple[Measurement, ...]
+    if stream is Stream.GNSS:
+        ms = _decode_gnss(ctx, m, limits)
+    elif stream is Stream.IMU:
+        ms = _decode_imu(ctx, m, limits)
+    else:
+        mode = _field(ctx, m, "mode")
+        if mode == "edges":
+            ms = _decode_edges(ctx, m, limits)
+        elif mode == "speeds":
+            ms = _decode_speeds(ctx, m, limits)
+        else:
+            raise ctx.fail("wrong_type", f"wheels mode {mode!r} is not 'edges' or 'speeds'")
+    first, last = _stamp_span(ms)
+    return Packet(vehicle_id, stream, seq, version, ms, first, last)
+
+
+def decode_config(
+    key: str,
+    payload: bytes | bytearray | memoryview,
+    *,
+    prefix: str = "fleet",
+    max_payload_bytes: int = 256 * 1024,
+) -> tuple[str, VehicleConfig]:
+    """Decode a ``<prefix>/<vehicle_id>/config`` payload (UTF-8 JSON of ``VehicleConfig``).
+
+    Raises :class:`DecodeError` (``bad_key``, ``oversize``, ``undecodable``, ``bad_config``).
+    """
+    try:
+        vehicle_id, stream = parse_key(key, prefix)
+    except ValueError as exc:
+        raise DecodeError("bad_key", str(exc)) from None
+    ctx = _Ctx(vehicle_id, None)
+    if stream is not None:
+        raise ctx.fail("bad_key", "not a config key")
+    if len(payload) > max_payload_bytes:
+        raise ctx.fail("oversize", f"{len(payload)} bytes > {max_payload_bytes}")
+    try:
+        data = json.loads(bytes(payload).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ctx.fail("undecodable", type(exc).__name__) from None
+    try:
+        return vehicle_id, vehicle_config_from_dict(data)
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise ctx.fail("bad_config", str(exc)) from None

@@ -1,0 +1,137 @@
+"""Estimator registry: names, kind defaults, overrides, routing."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+import pytest
+
+from estimator.base import FleetEstimator, Measurement
+from estimator.config import VehicleConfig, VehicleKind
+from estimator.types import ESTIMATE_DTYPE, ImuBatch, empty_estimates
+from server.estimators import (
+    DEFAULT_FACTORIES,
+    KIND_DEFAULTS,
+    EstimatorRegistry,
+    UnknownEstimatorError,
+    estimator_names_for,
+)
+
+
+class RecordingFleet:
+    """A FleetEstimator that records calls and emits one row per advance."""
+
+    output_dtype = ESTIMATE_DTYPE
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.vehicles: dict[str, VehicleConfig] = {}
+        self.pushed: list[tuple[str, Measurement]] = []
+
+    def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        self.vehicles[vehicle_id] = config
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        self.vehicles.pop(vehicle_id, None)
+
+    def vehicle_ids(self) -> list[str]:
+        return list(self.vehicles)
+
+    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+        if vehicle_id not in self.vehicles:
+            raise KeyError(vehicle_id)
+        self.pushed.append((vehicle_id, measurement))
+
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        out = []
+        for vid, t in until_ns.items():
+            row = empty_estimates(1)
+            row["stamp_ns"] = t
+            out.append((vid, row))
+        return out
+
+
+def _registry() -> tuple[EstimatorRegistry, dict[str, RecordingFleet]]:
+    built: dict[str, RecordingFleet] = {}
+
+    def factory(name: str) -> Callable[[], FleetEstimator]:
+        def make() -> FleetEstimator:
+            built[name] = RecordingFleet(name)
+            return built[name]
+
+        return make
+
+    reg = EstimatorRegistry(
+        factories={"mdsf": factory("mdsf"), "friction": factory("friction")},
+        kind_defaults={**KIND_DEFAULTS},
+    )
+    return reg, built
+
+
+def test_defaults_per_kind() -> None:
+    assert estimator_names_for(VehicleConfig()) == ("mdsf",)
+    assert estimator_names_for(VehicleConfig(kind=VehicleKind.TRACKED)) == ()
+    assert estimator_names_for(VehicleConfig(kind=VehicleKind.WHEELED_4WD_STEERED)) == ()
+    assert set(KIND_DEFAULTS) == set(VehicleKind)
+    assert "mdsf" in DEFAULT_FACTORIES
+
+
+def test_config_overrides_kind_defaults() -> None:
+    reg, _ = _registry()
+    cfg = VehicleConfig(kind=VehicleKind.TRACKED, estimators=("friction", "mdsf"))
+    assert reg.names_for(cfg) == ("friction", "mdsf")
+
+
+def test_unknown_estimator_is_a_clear_error() -> None:
+    reg, built = _registry()
+    with pytest.raises(UnknownEstimatorError, match="nope"):
+        reg.add_vehicle("v", VehicleConfig(estimators=("nope",)))
+    with pytest.raises(UnknownEstimatorError):
+        reg.names_for(VehicleConfig(estimators=("mdsf", "mdsf")))
+    with pytest.raises(UnknownEstimatorError):
+        reg.estimator("nope")
+    assert not reg.has_vehicle("v") and not built
+
+
+def test_routing_push_and_advance() -> None:
+    reg, built = _registry()
+    assert reg.add_vehicle("a", VehicleConfig()) == ("mdsf",)
+    assert reg.add_vehicle("b", VehicleConfig(estimators=("friction", "mdsf"))) == (
+        "friction",
+        "mdsf",
+    )
+    assert reg.add_vehicle("c", VehicleConfig(kind=VehicleKind.TRACKED)) == ()
+    m = ImuBatch(np.array([1], np.int64), np.zeros((1, 3)), np.zeros((1, 3)))
+    for vid in ("a", "b", "c"):
+        reg.push(vid, m)
+    assert [v for v, _ in built["mdsf"].pushed] == ["a", "b"]
+    assert [v for v, _ in built["friction"].pushed] == ["b"]
+    result = reg.advance({"a": 10, "b": 20, "c": 30})
+    # primary: a -> mdsf, b -> friction; c runs nothing
+    assert sorted((v, int(r["stamp_ns"][0])) for v, r in result.primary) == [("a", 10), ("b", 20)]
+    assert sorted(v for v, _ in result.by_estimator["mdsf"]) == ["a", "b"]
+    assert [v for v, _ in result.by_estimator["friction"]] == ["b"]
+    with pytest.raises(KeyError):
+        reg.push("zzz", m)
+
+
+def test_reconfigure_and_remove() -> None:
+    reg, built = _registry()
+    reg.add_vehicle("b", VehicleConfig(estimators=("friction", "mdsf")))
+    reg.add_vehicle("b", VehicleConfig(estimators=("mdsf",)))
+    assert built["friction"].vehicle_ids() == [] and built["mdsf"].vehicle_ids() == ["b"]
+    assert reg.estimators_of("b") == ("mdsf",)
+    reg.remove_vehicle("b")
+    reg.remove_vehicle("b")  # no error
+    assert built["mdsf"].vehicle_ids() == [] and reg.vehicle_ids() == []
+
+
+def test_estimators_built_lazily_once() -> None:
+    reg, built = _registry()
+    assert built == {}
+    reg.add_vehicle("a", VehicleConfig())
+    first = built["mdsf"]
+    reg.add_vehicle("z", VehicleConfig())
+    assert built["mdsf"] is first and reg.estimator("mdsf") is first
+    assert reg.available == ("friction", "mdsf")

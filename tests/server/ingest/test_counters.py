@@ -1,0 +1,66 @@
+"""Ingest counters add up."""
+
+from __future__ import annotations
+
+import threading
+
+from server.ingest.counters import NO_VEHICLE, IngestCounters
+
+
+def _check(c: dict[str, int]) -> None:
+    assert c["received"] == c["accepted"] + c["late"] + c["duplicate"] + c["rejected"]
+    assert c["rejected"] == sum(v for k, v in c.items() if k.startswith("rejected_"))
+
+
+def test_counters_add_up() -> None:
+    c = IngestCounters()
+    c.accepted("a")
+    c.accepted("a", lost_delta=3)
+    c.late("a", lost_delta=-1)
+    c.duplicate("a")
+    c.rejected("a", "non_finite")
+    c.rejected("a", "non_finite")
+    c.rejected("a", "unknown_vehicle")
+    c.rejected(None, "bad_key")
+    c.seq_restart("a")
+    snap = c.snapshot()
+    a = snap["a"]
+    assert a == {
+        "received": 7,
+        "accepted": 2,
+        "late": 1,
+        "duplicate": 1,
+        "rejected": 3,
+        "lost_by_seq_gap": 2,
+        "seq_restarts": 1,
+        "rejected_non_finite": 2,
+        "rejected_unknown_vehicle": 1,
+    }
+    _check(a)
+    _check(snap[NO_VEHICLE])
+    assert c.totals()["received"] == 8
+    c.forget("a")
+    assert "a" not in c.snapshot()
+
+
+def test_snapshot_is_consistent_under_concurrent_writes() -> None:
+    c = IngestCounters()
+    stop = threading.Event()
+
+    def writer() -> None:
+        i = 0
+        while not stop.is_set():
+            [c.accepted, c.late, c.duplicate][i % 3]("v")
+            c.rejected("v", "wrong_type")
+            i += 1
+
+    t = threading.Thread(target=writer)
+    t.start()
+    try:
+        for _ in range(200):
+            snap = c.snapshot()
+            if "v" in snap:
+                _check(snap["v"])
+    finally:
+        stop.set()
+        t.join()

@@ -1,0 +1,146 @@
+"""Pipeline without Zenoh (packets fed by ``submit``): reorder, registration, counters, sinks."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from estimator.config import VehicleConfig, VehicleKind
+from estimator.types import GnssSample, ImuBatch
+from server.estimators import EstimatorRegistry
+from server.ingest import Pipeline
+from server.protocol import DecodeError, Packet, Stream
+from server.settings import IngestSettings, Settings, UnknownVehiclePolicy
+from tests.server.ingest.fakes import CapturingSink, RecordingFleet, first_stamp
+
+MS = 1_000_000
+T0 = 1_763_700_000 * 10**9
+
+
+def imu(vid: str, seq: int, first_ms: int, n: int = 10) -> Packet:
+    t = T0 + (first_ms + np.arange(n)) * MS
+    return Packet(
+        vid,
+        Stream.IMU,
+        seq,
+        1,
+        (ImuBatch(t, np.zeros((n, 3)), np.zeros((n, 3))),),
+        int(t[0]),
+        int(t[-1]),
+    )
+
+
+def gnss(vid: str, seq: int, at_ms: int) -> Packet:
+    t = T0 + at_ms * MS
+    g = GnssSample(t, (0.0, 1.0, 0.0), 0.0, 0.0, 0.0, 48.0, 11.0, 500.0)
+    return Packet(vid, Stream.GNSS, seq, 1, (g,), t, t)
+
+
+def make(
+    policy: UnknownVehiclePolicy = UnknownVehiclePolicy.AUTO_REGISTER,
+    lateness_ms: int = 100,
+    on_new: Callable[[str, VehicleConfig], None] | None = None,
+    sinks: list[object] | None = None,
+) -> tuple[Pipeline, RecordingFleet, CapturingSink]:
+    fleet = RecordingFleet()
+    registry = EstimatorRegistry(factories={"mdsf": lambda: fleet})
+    sink = CapturingSink()
+    settings = Settings(
+        ingest=IngestSettings.model_validate(
+            {"lateness_ms": lateness_ms, "unknown_vehicle": policy, "process_interval_ms": 5}
+        )
+    )
+    pipe = Pipeline(settings, None, registry, [*(sinks or []), sink], on_new)  # type: ignore[list-item]
+    return pipe, fleet, sink
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.005)
+
+
+def test_feeds_in_order_and_counts_add_up() -> None:
+    new: list[tuple[str, VehicleConfig]] = []
+    pipe, fleet, sink = make(on_new=lambda v, c: new.append((v, c)))
+    pipe.start()
+    pipe.submit([imu("a", 2, 20), gnss("a", 0, 5), imu("a", 0, 0), imu("b", 0, 0)])
+    pipe.submit([imu("a", 1, 10), imu("a", 1, 10), DecodeError("non_finite", vehicle_id="a")])
+    pipe.submit([imu("a", 5, 50), DecodeError("bad_key")])  # seq 3, 4 never come
+    pipe.stop()
+    stamps = [first_stamp(m) for m in fleet.pushed["a"]]
+    assert stamps == sorted(stamps) and len(stamps) == 5
+    assert len(fleet.pushed["b"]) == 1
+    snap = pipe.counters_snapshot()
+    a = snap["a"]
+    assert a["received"] == 7 and a["accepted"] == 5 and a["duplicate"] == 1
+    assert a["rejected_non_finite"] == 1 and a["lost_by_seq_gap"] == 2 and a["late"] == 0
+    assert snap[""]["rejected_bad_key"] == 1
+    for c in snap.values():
+        assert c["received"] == c["accepted"] + c["late"] + c["duplicate"] + c["rejected"]
+    assert [v for v, _ in new] == ["a", "b"] and new[0][1] == VehicleConfig()
+    # the sink saw rows up to the last released time of each vehicle
+    assert int(sink.rows["a"][-1]["stamp_ns"][-1]) == T0 + 59 * MS
+    assert pipe.stats()["rows"] >= 2 and not pipe.stats()["running"]
+
+
+def test_unknown_vehicle_rejected_unless_registered() -> None:
+    pipe, fleet, _ = make(policy=UnknownVehiclePolicy.REJECT)
+    pipe.register_vehicle("known", VehicleConfig(kind=VehicleKind.WHEELED_REAR_DRIVE))
+    pipe.start()
+    pipe.submit([imu("known", 0, 0), imu("stranger", 0, 0), imu("stranger", 1, 10)])
+    pipe.stop()
+    snap = pipe.counters_snapshot()
+    assert snap["known"]["accepted"] == 1
+    assert snap["stranger"]["rejected_unknown_vehicle"] == 2 and snap["stranger"]["accepted"] == 0
+    assert "stranger" not in fleet.vehicles
+
+
+def test_late_packet_is_counted_and_not_fed() -> None:
+    pipe, fleet, _ = make(lateness_ms=0)
+    pipe.start()
+    pipe.submit([imu("a", 1, 100)])
+    wait_for(lambda: len(fleet.pushed.get("a", [])) == 1)
+    pipe.submit([imu("a", 0, 0)])  # older than what was already fed
+    pipe.stop()
+    c = pipe.counters_snapshot()["a"]
+    assert (c["accepted"], c["late"], c["lost_by_seq_gap"]) == (1, 1, 0)
+    assert len(fleet.pushed["a"]) == 1
+
+
+def test_remove_vehicle_forgets_everything() -> None:
+    pipe, fleet, _ = make()
+    pipe.start()
+    pipe.submit([imu("a", 0, 0)])
+    wait_for(lambda: "a" in pipe.counters_snapshot())
+    pipe.remove_vehicle("a")
+    wait_for(lambda: "a" not in pipe.counters_snapshot())
+    pipe.stop()
+    assert "a" not in fleet.vehicles
+
+
+def test_tracked_vehicle_accepted_without_estimators() -> None:
+    pipe, fleet, sink = make(policy=UnknownVehiclePolicy.REJECT)
+    pipe.register_vehicle("t1", VehicleConfig(kind=VehicleKind.TRACKED))
+    pipe.start()
+    pipe.submit([imu("t1", 0, 0)])
+    pipe.stop()
+    assert pipe.counters_snapshot()["t1"]["accepted"] == 1
+    assert "t1" not in fleet.vehicles and "t1" not in sink.rows
+
+
+class BrokenSink:
+    def on_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None:
+        raise RuntimeError("disk full")
+
+
+def test_failing_sink_does_not_stop_others() -> None:
+    pipe, _, sink = make(sinks=[BrokenSink()])
+    pipe.start()
+    pipe.submit([imu("a", 0, 0)])
+    pipe.stop()
+    assert "a" in sink.rows and pipe.stats()["sink_errors"] >= 1
