@@ -31,7 +31,8 @@ GNSS-degraded time
     ``degraded_s = Σ w_i`` over rows flagged ``EstimateFlag.DEGRADED``.
 Ingest counters
     Totals since the vehicle was registered (the store keeps totals, not a history), split into
-    the named counts and the ``rejected_<reason>`` counters.
+    the named counts and the ``rejected_<reason>`` counters; ``lost`` is the ingest's
+    ``lost_by_seq_gap`` (sequence numbers that never arrived).
 """
 
 from __future__ import annotations
@@ -136,14 +137,18 @@ _REJECTED_PREFIXES = ("rejected_", "rejected.")
 def ingest_counts(counters: Mapping[str, int]) -> IngestCounts:
     """Split a store's counter totals into named counts and rejection reasons.
 
-    ``rejected_<reason>`` (or ``rejected.<reason>``) are the reasons; ``rejected`` is their sum
-    unless the store also keeps a plain ``rejected`` total, which then wins.
+    Names follow :mod:`server.ingest.counters`: ``received``, ``accepted``, ``late``,
+    ``duplicate``, ``rejected_<reason>`` (or ``rejected.<reason>``) and ``lost_by_seq_gap``
+    (reported as ``lost``; a plain ``lost`` wins). ``rejected`` is the sum of the reasons unless
+    the store keeps a plain ``rejected`` total, which then wins. Anything else is ``other``.
     """
     named = {k: int(counters.get(k, 0)) for k in _NAMED_COUNTERS}
+    if "lost" not in counters:
+        named["lost"] = int(counters.get("lost_by_seq_gap", 0))
     by_reason: dict[str, int] = {}
     other: dict[str, int] = {}
     for key, value in counters.items():
-        if key in _NAMED_COUNTERS or key == "rejected":
+        if key in _NAMED_COUNTERS or key in ("rejected", "lost_by_seq_gap"):
             continue
         prefix = next((p for p in _REJECTED_PREFIXES if key.startswith(p)), None)
         if prefix is not None:

@@ -141,6 +141,17 @@ def test_ingest_counts() -> None:
         other={"resets": 1},
     )
     assert ingest_counts({"rejected": 9, "rejected_x": 1}).rejected == 9
+    # the ingest's own names (server.ingest.counters)
+    ingest = ingest_counts(
+        {
+            "received": 5,
+            "rejected": 1,
+            "rejected_decode": 1,
+            "lost_by_seq_gap": 3,
+            "seq_restarts": 1,
+        }
+    )
+    assert (ingest.rejected, ingest.lost, ingest.other) == (1, 3, {"seq_restarts": 1})
     assert ingest_counts({}) == IngestCounts()
 
 
