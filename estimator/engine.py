@@ -1,0 +1,1072 @@
+"""Batched MDSF engine and the fleet estimator the server drives (``name = "mdsf"``).
+
+Two layers:
+
+:class:`MdsfEngine`
+    Holds every vehicle's filter state in slot arrays (``x (cap, 4)``, ``P (cap, 4, 4)``,
+    per-vehicle ``H``, ``H1``, noise) and steps any subset of vehicles with one call to the pure
+    functions of :mod:`estimator.kalman` (predict, innovation gate, masked Joseph update,
+    divergence reset, reference-speed filter while GNSS is lost).
+
+:class:`MdsfFleet`
+    Implements :class:`estimator.base.FleetEstimator`. Each vehicle has a front end
+    (:class:`_FrontEnd`) that buffers its measurements and, on :meth:`MdsfFleet.advance`, turns
+    them into per-tick filter inputs with a few vectorised numpy calls per vehicle (no Python
+    work per tick): IMU averaged over each tick window (gravity removed with the pitch), GNSS
+    speed by eq. (1) moved to the tick by its time stamp, wheel speeds evaluated at the tick.
+    The engine then steps round by round: round ``r`` is the ``r``-th due tick of every vehicle
+    that has one, all in one batched call. Slip, positions and attitude are computed for all rows
+    at once afterwards.
+
+Ticks sit on a fleet-wide grid (multiples of ``tick_ns`` since the epoch), so rows of different
+vehicles share time stamps. A vehicle's first row is the first tick with a usable GNSS speed
+(or, without GNSS, with wheel speeds: the reference-speed filter starts it, flagged DEGRADED).
+Nothing here raises on NaN/inf: bad parts are skipped and counted (:meth:`MdsfFleet.counters`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator import kalman
+from estimator.base import Measurement
+from estimator.config import VehicleConfig
+from estimator.geo import EnuFrame
+from estimator.mdsf import (
+    GRAVITY_MPS2,
+    N_OBS,
+    N_STATE,
+    MdsfConfig,
+    MdsfMode,
+    MdsfObs,
+    MdsfOut,
+    MdsfState,
+    gnss_vehicle_speed,
+    mdsf_matrices,
+)
+from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
+from estimator.slip import slip_pct
+from estimator.types import (
+    ESTIMATE_DTYPE,
+    EstimateFlag,
+    GnssFix,
+    GnssSample,
+    ImuBatch,
+    Wheel,
+    WheelEdges,
+    WheelSpeeds,
+    empty_estimates,
+)
+from estimator.wheel_speed import DirectWheelSpeed, WheelSpeedConfig, WheelSpeedMethod, WheelTracker
+
+__all__ = ["Counter", "MdsfEngine", "MdsfFleet", "TickInputs"]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+_NS = 1e-9
+_F = EstimateFlag
+
+
+class Counter(IntEnum):
+    """Per-vehicle event counters (see :meth:`MdsfFleet.counters`)."""
+
+    TICKS = 0
+    GNSS_FUSED = 1
+    GNSS_GATED = 2
+    GNSS_REACQUIRED = 3
+    RESETS = 4
+    DEGRADED_TICKS = 5
+    SKIPPED_GNSS = 6
+    SKIPPED_IMU = 7
+    SKIPPED_EDGES = 8
+    SKIPPED_WHEEL_SPEEDS = 9
+    SKIPPED_LATE = 10
+    WAITING_TICKS = 11
+
+
+_ENGINE_COUNTERS = (
+    Counter.TICKS,
+    Counter.GNSS_FUSED,
+    Counter.GNSS_GATED,
+    Counter.GNSS_REACQUIRED,
+    Counter.RESETS,
+    Counter.DEGRADED_TICKS,
+)
+
+
+@dataclass(slots=True)
+class TickInputs:
+    """One vehicle's inputs for ``m`` consecutive ticks (rows), built by its front end.
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (m,), int64
+    z : ndarray, shape (m, 4)
+        ``[Vg, a1, ωx, ωz]`` (eq. (6) observation); Vg aligned to the tick in product mode.
+    gnss_ok : ndarray, shape (m,), bool
+        A GNSS speed is in ``z[:, VG]``.
+    gnss_var : ndarray, shape (m,)
+        Its variance [(m/s)²].
+    imu_ok : ndarray, shape (m,), bool
+        The tick window held IMU samples.
+    accel_var, gyro_var : ndarray, shape (m,)
+        Variance of the tick-mean acceleration and rates.
+    omega : ndarray, shape (m, 2)
+        Wheel angular speeds (left, right) at the tick [rad/s]; NaN when unknown.
+    omega_std : ndarray, shape (m, 2)
+    wheel_flags : ndarray, shape (m,), int32
+        ``WHEEL_PERIOD_METHOD`` / ``WHEEL_DIRECT`` bits.
+    enu : ndarray, shape (m, 3)
+        Antenna position in the vehicle's ENU frame (NaN before the first fix).
+    attitude : ndarray, shape (m, 3)
+        Heading, pitch, roll [rad].
+    """
+
+    stamp_ns: IntArray
+    z: FloatArray
+    gnss_ok: BoolArray
+    gnss_var: FloatArray
+    imu_ok: BoolArray
+    accel_var: FloatArray
+    gyro_var: FloatArray
+    omega: FloatArray
+    omega_std: FloatArray
+    wheel_flags: npt.NDArray[np.int32]
+    enu: FloatArray
+    attitude: FloatArray
+
+    @property
+    def m(self) -> int:
+        return int(self.stamp_ns.shape[0])
+
+
+_TICK_FIELDS = TickInputs.__slots__
+
+
+def _concat_inputs(items: list[TickInputs]) -> TickInputs:
+    return TickInputs(*(np.concatenate([getattr(t, f) for t in items]) for f in _TICK_FIELDS))
+
+
+@dataclass(slots=True)
+class StepOutput:
+    """Filter outputs of one batched step, shapes ``(k,)``; ``emit`` false before initialisation."""
+
+    emit: BoolArray
+    vg: FloatArray
+    v1: FloatArray
+    v0: FloatArray
+    vl: FloatArray
+    vr: FloatArray
+    vg_std: FloatArray
+    vl_std: FloatArray
+    vr_std: FloatArray
+    accel: FloatArray
+    pitch_rate: FloatArray
+    yaw_rate: FloatArray
+    flags: npt.NDArray[np.int32]
+
+
+class MdsfEngine:
+    """Slot arrays of many vehicles' MDSF filters, stepped in batches.
+
+    Parameters
+    ----------
+    config : MdsfConfig
+    reference : ReferenceSpeedConfig
+        Settings of the reference-speed filter that carries the speed while GNSS is lost.
+    capacity : int
+        Initial number of slots (grows as needed).
+    """
+
+    def __init__(
+        self, config: MdsfConfig, reference: ReferenceSpeedConfig | None = None, capacity: int = 16
+    ) -> None:
+        self.config = config
+        self.reference = reference or ReferenceSpeedConfig()
+        self.product = config.mode is MdsfMode.PRODUCT
+        self.dt_s = config.dt_s
+        self._free: list[int] = []
+        self._cap = 0
+        self._alloc(max(capacity, 1))
+
+    # -- slots -------------------------------------------------------------------------------
+    def _alloc(self, cap: int) -> None:
+        old = self._cap
+
+        def grow(a: np.ndarray | None, shape: tuple[int, ...], fill: Any) -> np.ndarray:
+            dtype = np.asarray(fill).dtype if a is None else a.dtype
+            new = np.full((cap, *shape), fill, dtype=dtype)
+            if a is not None:
+                new[:old] = a
+            return new
+
+        g = getattr
+        self.x = grow(g(self, "x", None), (N_STATE,), 0.0)
+        self.P = grow(g(self, "P", None), (N_STATE, N_STATE), 0.0)
+        self.F = grow(g(self, "F", None), (N_STATE, N_STATE), 0.0)
+        self.H = grow(g(self, "H", None), (N_OBS, N_STATE), 0.0)
+        self.H1 = grow(g(self, "H1", None), (len(MdsfOut), N_STATE), 0.0)
+        self.v0_row = grow(g(self, "v0_row", None), (N_STATE,), 0.0)
+        self.Q_base = grow(g(self, "Q_base", None), (N_STATE, N_STATE), 0.0)
+        self.initialized = grow(g(self, "initialized", None), (), False)
+        self.last_fused_ns = grow(g(self, "last_fused_ns", None), (), np.int64(-(2**62)))
+        self.gated_since_ns = grow(g(self, "gated_since_ns", None), (), np.int64(-1))
+        self.gnss_noise_var = grow(g(self, "gnss_noise_var", None), (), 0.0)
+        self.ref_x = grow(g(self, "ref_x", None), (len(RefState),), 0.0)
+        self.ref_P = grow(g(self, "ref_P", None), (len(RefState), len(RefState)), 0.0)
+        self.ref_aux = grow(g(self, "ref_aux", None), (len(RefAux),), 0.0)
+        self.counts = grow(g(self, "counts", None), (len(Counter),), np.int64(0))
+        self._free.extend(range(cap - 1, old - 1, -1))
+        self._cap = cap
+
+    def add(self, vehicle: VehicleConfig) -> int:
+        """Allocate and initialise a slot for a vehicle; returns the slot index."""
+        if not self._free:
+            self._alloc(2 * self._cap)
+        s = self._free.pop()
+        mats = mdsf_matrices(self.config, vehicle)
+        self.F[s] = mats.F
+        self.H[s] = mats.H
+        self.H1[s] = mats.H1
+        self.v0_row[s] = mats.v0_row
+        self.Q_base[s] = mats.Q_base
+        self.initialized[s] = False
+        self.last_fused_ns[s] = -(2**62)
+        self.gated_since_ns[s] = -1
+        self.gnss_noise_var[s] = 0.0
+        self.x[s] = 0.0
+        self.P[s] = np.eye(N_STATE)
+        self.ref_x[s] = 0.0
+        self.ref_P[s] = np.eye(len(RefState))
+        self.ref_aux[s] = (0.0, 1.0, 0.0)
+        self.counts[s] = 0
+        return s
+
+    def release(self, slot: int) -> None:
+        """Return a slot to the free list."""
+        self.initialized[slot] = False
+        self._free.append(slot)
+
+    # -- stepping ----------------------------------------------------------------------------
+    def _initial_state(
+        self, slots: IntArray, z: FloatArray, imu_ok: BoolArray, v1: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        k = slots.shape[0]
+        x = np.zeros((k, N_STATE))
+        wx = np.where(imu_ok, z[:, MdsfObs.OMEGA_X], 0.0)
+        wz = np.where(imu_ok, z[:, MdsfObs.OMEGA_Z], 0.0)
+        x[:, MdsfState.V1] = v1
+        x[:, MdsfState.A1] = np.where(imu_ok, z[:, MdsfObs.A1], 0.0)
+        x[:, MdsfState.OMEGA_X] = wx
+        x[:, MdsfState.OMEGA_Z] = wz
+        p = np.zeros((k, N_STATE, N_STATE))
+        p[:, MdsfState.V1, MdsfState.V1] = self.config.initial_speed_std_mps**2
+        p[:, MdsfState.A1, MdsfState.A1] = 1.0
+        p[:, MdsfState.OMEGA_X, MdsfState.OMEGA_X] = 0.01
+        p[:, MdsfState.OMEGA_Z, MdsfState.OMEGA_Z] = 0.01
+        return x, p
+
+    def step(self, slots: IntArray, t: TickInputs, rim_mps: FloatArray) -> StepOutput:
+        """Advance the vehicles in ``slots`` by one tick each (batched).
+
+        Parameters
+        ----------
+        slots : ndarray, shape (k,), int
+            Distinct slot indices.
+        t : TickInputs
+            One row per slot (``m == k``).
+        rim_mps : ndarray, shape (k, 2)
+            Rim speeds ``r·W`` (left, right), for the reference-speed filter.
+
+        Returns
+        -------
+        StepOutput
+        """
+        cfg = self.config
+        k = slots.shape[0]
+        dt = self.dt_s
+        z = np.where(np.isfinite(t.z), t.z, 0.0)
+        stamp = t.stamp_ns
+        H = self.H[slots]
+        x = self.x[slots]
+        P = self.P[slots]
+        init = self.initialized[slots].copy()
+        flags = np.zeros(k, dtype=np.int32)
+
+        gnss_ok = t.gnss_ok.copy()
+        # Adaptive GNSS noise: receiver/config value is the floor, innovations can raise it.
+        r_gnss = np.maximum(t.gnss_var, self.gnss_noise_var[slots])
+        accel_var = np.where(t.imu_ok, t.accel_var, 1.0)
+        gyro_var = np.where(t.imu_ok, t.gyro_var, 1.0)
+        R = np.zeros((k, N_OBS, N_OBS))
+        R[:, MdsfObs.VG, MdsfObs.VG] = r_gnss
+        R[:, MdsfObs.A1, MdsfObs.A1] = accel_var
+        R[:, MdsfObs.OMEGA_X, MdsfObs.OMEGA_X] = gyro_var
+        R[:, MdsfObs.OMEGA_Z, MdsfObs.OMEGA_Z] = gyro_var
+
+        # -- predict ------------------------------------------------------------------------
+        Q = self.Q_base[slots].copy()
+        u: FloatArray | None = None
+        if self.product:
+            a_in = np.where(t.imu_ok, z[:, MdsfObs.A1], x[:, MdsfState.A1])
+            u = np.zeros((k, N_STATE))
+            u[:, MdsfState.V1] = dt * a_in
+            u[:, MdsfState.A1] = a_in
+            Q[:, MdsfState.V1, MdsfState.V1] += dt * dt * accel_var
+            Q[:, MdsfState.A1, MdsfState.A1] += accel_var
+        x_pr, P_pr = kalman.predict(x, P, self.F[slots], Q, u)
+
+        # -- gate the GNSS speed row (product) ---------------------------------------------
+        h_vg = H[:, MdsfObs.VG, :]
+        y_vg = z[:, MdsfObs.VG] - np.einsum("ki,ki->k", h_vg, x_pr)
+        s_vg = np.einsum("ki,kij,kj->k", h_vg, P_pr, h_vg) + r_gnss
+        nis_vg = y_vg * y_vg / s_vg
+        gated = np.zeros(k, dtype=bool)
+        reacq = np.zeros(k, dtype=bool)
+        if self.product:
+            gated = gnss_ok & init & ~(nis_vg <= cfg.gate_chi2)
+            since = self.gated_since_ns[slots]
+            since = np.where(gated & (since < 0), stamp, since)
+            reacq = gated & (stamp - since >= round(cfg.reacquire_s * 1e9))
+            gated &= ~reacq
+            since = np.where(gated, since, -1)
+            self.gated_since_ns[slots] = since
+            # Re-acquire: open the speed variance to the disagreement so the update follows GNSS.
+            P_pr[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
+        use_vg = gnss_ok & ~gated
+        mask = np.empty((k, N_OBS), dtype=bool)
+        mask[:, MdsfObs.VG] = use_vg
+        mask[:, MdsfObs.A1] = t.imu_ok & (not self.product)
+        mask[:, MdsfObs.OMEGA_X] = t.imu_ok
+        mask[:, MdsfObs.OMEGA_Z] = t.imu_ok
+        res = kalman.update(x_pr, P_pr, z, H, R, mask)
+        x_new, P_new = res.x, res.P
+
+        # Running estimate of the GNSS speed noise from accepted innovations.
+        if self.product and cfg.gnss_noise_adapt > 0:
+            hph = s_vg - r_gnss
+            est = self.gnss_noise_var[slots]
+            b = cfg.gnss_noise_adapt
+            est = np.where(use_vg & init, (1 - b) * est + b * (y_vg * y_vg - hph), est)
+            self.gnss_noise_var[slots] = est
+
+        # -- initialise vehicles that get their first GNSS speed --------------------------
+        v1_from_gnss = z[:, MdsfObs.VG] - (
+            H[:, MdsfObs.VG, MdsfState.OMEGA_X] * np.where(t.imu_ok, z[:, MdsfObs.OMEGA_X], 0.0)
+            + H[:, MdsfObs.VG, MdsfState.OMEGA_Z] * np.where(t.imu_ok, z[:, MdsfObs.OMEGA_Z], 0.0)
+        )
+        start = ~init & gnss_ok
+        # Without GNSS a vehicle can start from its wheels (reference speed, degraded).
+        rim_mean = (
+            np.nanmean(np.where(np.isfinite(rim_mps), rim_mps, np.nan), axis=1)
+            if k
+            else (np.zeros(0))
+        )
+        start_wheels = (
+            ~init & ~gnss_ok & np.isfinite(rim_mean) & ((stamp - self.last_fused_ns[slots]) > 0)
+        )
+        start_wheels &= self._wheel_start_allowed(slots, stamp)
+        v_start = np.where(start, v1_from_gnss, np.nan_to_num(rim_mean))
+        if (start | start_wheels).any():
+            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_start)
+            sel = start | start_wheels
+            x_new = np.where(sel[:, None], x0, x_new)
+            P_new = np.where(sel[:, None, None], p0, P_new)
+            flags |= np.where(sel, int(_F.RESET), 0).astype(np.int32)
+
+        # -- divergence check -----------------------------------------------------------------
+        diag = np.diagonal(P_new, axis1=1, axis2=2)
+        diverged = init & (
+            ~np.isfinite(x_new).all(axis=1)
+            | ~np.isfinite(P_new).all(axis=(1, 2))
+            | (diag < 0).any(axis=1)
+            | (diag[:, MdsfState.V1] > cfg.max_speed_var_mps2)
+        )
+        if diverged.any():
+            v_re = np.where(
+                gnss_ok,
+                v1_from_gnss,
+                np.where(
+                    np.isfinite(self.ref_x[slots, RefState.V]), self.ref_x[slots, RefState.V], 0.0
+                ),
+            )
+            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_re)
+            x_new = np.where(diverged[:, None], x0, x_new)
+            P_new = np.where(diverged[:, None, None], p0, P_new)
+            flags |= np.where(diverged, int(_F.RESET), 0).astype(np.int32)
+
+        now_init = init | start | start_wheels
+        fused = use_vg & now_init
+        last_fused = np.where(fused, stamp, self.last_fused_ns[slots])
+        degraded = now_init & ((stamp - last_fused) > round(cfg.gnss_timeout_s * 1e9))
+
+        # -- reference-speed filter: tracks the MDSF speed while GNSS is good, carries it when not
+        v0_row = self.v0_row[slots]
+        v0 = np.einsum("ki,ki->k", v0_row, x_new)
+        v0_var = np.einsum("ki,kij,kj->k", v0_row, P_new, v0_row)
+        rx, rP, raux, _ = reference_step(
+            self.ref_x[slots],
+            self.ref_P[slots],
+            self.ref_aux[slots],
+            accel_mps2=np.where(t.imu_ok, z[:, MdsfObs.A1], np.nan),
+            dt_s=dt,
+            speed_ref_mps=np.where(degraded, np.nan, v0),
+            speed_ref_var=v0_var,
+            rim_speed_mps=rim_mean,
+            config=self.reference,
+        )
+        rx = np.where(
+            (start | start_wheels | diverged)[:, None], np.stack([v0, np.zeros(k)], 1), rx
+        )
+        if self.product and degraded.any():
+            # Hand the reference speed to the MDSF state so GNSS resumes from it without a jump.
+            v1_ref = rx[:, RefState.V] - (v0 - x_new[:, MdsfState.V1])
+            x_new[:, MdsfState.V1] = np.where(degraded, v1_ref, x_new[:, MdsfState.V1])
+            pv = rP[:, RefState.V, RefState.V]
+            cross = P_new[:, MdsfState.V1, :].copy()
+            cross[:, MdsfState.V1] = pv
+            scale = np.sqrt(
+                np.maximum(pv, 0.0) / np.maximum(P_new[:, MdsfState.V1, MdsfState.V1], 1e-30)
+            )
+            cross[:, 1:] = cross[:, 1:] * np.minimum(scale, 1.0)[:, None]
+            P_new[:, MdsfState.V1, :] = np.where(
+                degraded[:, None], cross, P_new[:, MdsfState.V1, :]
+            )
+            P_new[:, :, MdsfState.V1] = np.where(
+                degraded[:, None], cross, P_new[:, :, MdsfState.V1]
+            )
+
+        # -- store --------------------------------------------------------------------------------
+        keep = now_init
+        self.x[slots] = np.where(keep[:, None], x_new, x)
+        self.P[slots] = np.where(keep[:, None, None], P_new, P)
+        self.initialized[slots] = now_init
+        self.last_fused_ns[slots] = last_fused
+        self.ref_x[slots] = rx
+        self.ref_P[slots] = rP
+        self.ref_aux[slots] = raux
+        cnt = self.counts
+        cnt[slots, Counter.TICKS] += 1
+        cnt[slots, Counter.GNSS_FUSED] += fused
+        cnt[slots, Counter.GNSS_GATED] += gated
+        cnt[slots, Counter.GNSS_REACQUIRED] += reacq
+        cnt[slots, Counter.RESETS] += diverged | reacq
+        cnt[slots, Counter.DEGRADED_TICKS] += degraded
+        cnt[slots, Counter.WAITING_TICKS] += ~now_init
+
+        # -- outputs -------------------------------------------------------------------------
+        H1 = self.H1[slots]
+        z1 = np.einsum("koi,ki->ko", H1, x_new)
+        z1_var = np.einsum("koi,kij,koj->ko", H1, P_new, H1)
+        z1_std = np.sqrt(np.maximum(z1_var, 0.0))
+        if self.product and degraded.any():
+            # The reference speed's variance already entered P_new for V1 above.
+            pass
+        flags |= np.where(fused | (~degraded & now_init), int(_F.GNSS_OK), 0).astype(np.int32)
+        flags |= np.where(degraded, int(_F.DEGRADED), 0).astype(np.int32)
+        flags |= np.where(gated, int(_F.GATED), 0).astype(np.int32)
+        flags |= np.where(reacq, int(_F.RESET), 0).astype(np.int32)
+        return StepOutput(
+            emit=now_init,
+            vg=z1[:, MdsfOut.VG],
+            v1=x_new[:, MdsfState.V1],
+            v0=np.einsum("ki,ki->k", v0_row, x_new),
+            vl=z1[:, MdsfOut.VL],
+            vr=z1[:, MdsfOut.VR],
+            vg_std=z1_std[:, MdsfOut.VG],
+            vl_std=z1_std[:, MdsfOut.VL],
+            vr_std=z1_std[:, MdsfOut.VR],
+            accel=x_new[:, MdsfState.A1],
+            pitch_rate=x_new[:, MdsfState.OMEGA_X],
+            yaw_rate=x_new[:, MdsfState.OMEGA_Z],
+            flags=flags,
+        )
+
+    def _wheel_start_allowed(self, slots: IntArray, stamp: IntArray) -> BoolArray:
+        """A vehicle may start from wheel speeds once it waited ``gnss_timeout_s`` for GNSS."""
+        waited = self.counts[slots, Counter.WAITING_TICKS] * self.dt_s
+        return np.asarray(waited >= self.config.gnss_timeout_s)
+
+
+# ---------------------------------------------------------------------------------------------
+# Front end: one per vehicle
+# ---------------------------------------------------------------------------------------------
+
+
+def _cummean(values: FloatArray, lo: IntArray, hi: IntArray) -> FloatArray:
+    """Mean of ``values[lo:hi]`` per window (shape (m, ...)); NaN for empty windows."""
+    c = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(values, axis=0)])
+    n = (hi - lo).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (c[hi] - c[lo]) / n.reshape(-1, *([1] * (values.ndim - 1)))
+    return np.asarray(out)
+
+
+class _FrontEnd:
+    """Buffers one vehicle's measurements and turns them into :class:`TickInputs`."""
+
+    def __init__(self, vehicle: VehicleConfig, config: MdsfConfig, wheel: WheelSpeedConfig) -> None:
+        self.vehicle = vehicle
+        self.config = config
+        self.product = config.mode is MdsfMode.PRODUCT
+        self.tick_ns = config.tick_ns
+        wcfg = WheelSpeedConfig(
+            teeth_per_rev=vehicle.encoder.teeth_per_rev,
+            window_s=wheel.window_s,
+            min_edges=wheel.min_edges,
+            max_edges=wheel.max_edges,
+            fit_order=wheel.fit_order,
+            frequency_min_count=wheel.frequency_min_count,
+            stop_timeout_s=wheel.stop_timeout_s,
+            timing_std_s=wheel.timing_std_s,
+        )
+        self.trackers = (WheelTracker(wcfg), WheelTracker(wcfg))
+        self.direct = DirectWheelSpeed(std_radps=0.01)
+        self.has_edges = False
+        self.next_tick_ns: int | None = None
+        self.done_ns: int | None = None  # last tick emitted
+        self.gnss: list[GnssSample] = []
+        self.imu_t: list[IntArray] = []
+        self.imu_f: list[FloatArray] = []
+        self.imu_w: list[FloatArray] = []
+        self.frame: EnuFrame | None = None
+        self.pitch_rad = 0.0
+        self.pitch_known = False
+        self.last_imu_ns: int | None = None
+        self.last_imu_ns_used: int | None = None
+        # Latest GNSS solution held for outputs: stamp, e, n, u, ve, vn, vu, heading, pitch, roll
+        self.hold = np.full(10, np.nan)
+        self.counts: dict[str, int] = {}
+        n = vehicle.noise
+        self.gnss_var_cfg = n.gnss_vel_std_mps**2
+        self.accel_var_cfg = n.accel_std_mps2**2
+        self.gyro_var_cfg = n.gyro_std_radps**2
+        self.imu_fwd_m = vehicle.geometry.imu_offset_m[1]
+
+    def _count(self, name: str, n: int = 1) -> None:
+        self.counts[name] = self.counts.get(name, 0) + n
+
+    def _see(self, stamp_ns: int) -> None:
+        if self.next_tick_ns is None:
+            tn = self.tick_ns
+            self.next_tick_ns = -(-int(stamp_ns) // tn) * tn
+
+    def _late(self, stamp_ns: int) -> bool:
+        return self.done_ns is not None and stamp_ns <= self.done_ns
+
+    def push(self, m: Measurement) -> None:
+        if isinstance(m, GnssSample):
+            if not isinstance(m.stamp_ns, int | np.integer):
+                self._count("skipped_gnss")
+                return
+            if self._late(int(m.stamp_ns)):
+                self._count("skipped_late")
+                return
+            self._see(int(m.stamp_ns))
+            self.gnss.append(m)
+        elif isinstance(m, ImuBatch):
+            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            f = np.asarray(m.accel_mps2, dtype=np.float64).reshape(-1, 3)
+            w = np.asarray(m.gyro_radps, dtype=np.float64).reshape(-1, 3)
+            if f.shape[0] != t.shape[0] or w.shape[0] != t.shape[0]:
+                self._count("skipped_imu", int(t.shape[0]))
+                return
+            ok: BoolArray = np.isfinite(f[:, 1]) & np.isfinite(w[:, 0]) & np.isfinite(w[:, 2])
+            floor = self.last_imu_ns if self.last_imu_ns is not None else np.iinfo(np.int64).min
+            if self.done_ns is not None:
+                floor = max(floor, self.done_ns)
+            ok &= t > floor
+            if t.shape[0] > 1:
+                ok[1:] &= t[1:] > t[:-1]
+            if not ok.all():
+                self._count("skipped_imu", int((~ok).sum()))
+                t, f, w = t[ok], f[ok], w[ok]
+            if t.shape[0] == 0:
+                return
+            self._see(int(t[0]))
+            self.last_imu_ns = int(t[-1])
+            self.imu_t.append(t)
+            self.imu_f.append(f)
+            self.imu_w.append(w)
+        elif isinstance(m, WheelEdges):
+            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            if t.shape[0] == 0:
+                return
+            try:
+                tracker = self.trackers[int(m.wheel)]
+            except (IndexError, ValueError):
+                self._count("skipped_edges", int(t.shape[0]))
+                return
+            d = None if m.direction is None else np.asarray(m.direction).reshape(-1)
+            if d is not None and d.shape[0] != t.shape[0]:
+                d = None
+            if not self.vehicle.encoder.has_direction:
+                d = None
+            before = tracker.skipped
+            tracker.push(t, d)
+            self._count("skipped_edges", tracker.skipped - before)
+            self.has_edges = True
+            self._see(int(t[0]))
+        elif isinstance(m, WheelSpeeds):
+            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            before = self.direct.skipped
+            self.direct.push(t, m.omega_radps)
+            self._count("skipped_wheel_speeds", self.direct.skipped - before)
+            if t.shape[0]:
+                self._see(int(t[0]))
+
+    # -- tick assembly ---------------------------------------------------------------------
+    def assemble(self, until_ns: int) -> TickInputs | None:
+        if self.next_tick_ns is None or until_ns < self.next_tick_ns:
+            return None
+        tn = self.tick_ns
+        m = (int(until_ns) - self.next_tick_ns) // tn + 1
+        ticks = self.next_tick_ns + tn * np.arange(m, dtype=np.int64)
+        t_end = int(ticks[-1])
+        self.next_tick_ns = t_end + tn
+        self.done_ns = t_end
+        # IMU samples up to the last tick.
+        if self.imu_t:
+            T = np.concatenate(self.imu_t)
+            Fs = np.concatenate(self.imu_f)
+            Ws = np.concatenate(self.imu_w)
+        else:
+            T = np.zeros(0, dtype=np.int64)
+            Fs = np.zeros((0, 3))
+            Ws = np.zeros((0, 3))
+        n_use = int(np.searchsorted(T, t_end, side="right"))
+        rest = (T[n_use:], Fs[n_use:], Ws[n_use:])
+        T, Fs, Ws = T[:n_use], Fs[:n_use], Ws[:n_use]
+        self.imu_t = [rest[0]] if rest[0].size else []
+        self.imu_f = [rest[1]] if rest[0].size else []
+        self.imu_w = [rest[2]] if rest[0].size else []
+
+        # GNSS samples up to the last tick.
+        n_g = 0
+        while n_g < len(self.gnss) and self.gnss[n_g].stamp_ns <= t_end:
+            n_g += 1
+        gs = self.gnss[:n_g]
+        del self.gnss[:n_g]
+        g = self._gnss_arrays(gs)
+
+        # Pitch per IMU sample (product: GNSS pitch blended with integrated ωx) and forward accel.
+        theta = self._pitch_track(T, Ws[:, 0], g)
+        if self.product:
+            a_fwd = Fs[:, 1] - GRAVITY_MPS2 * np.sin(theta)
+            if self.imu_fwd_m != 0.0:
+                a_fwd = a_fwd + (Ws[:, 0] ** 2 + Ws[:, 2] ** 2) * self.imu_fwd_m
+        else:
+            a_fwd = Fs[:, 1]
+        hi = np.searchsorted(T, ticks, side="right")
+        lo = np.searchsorted(T, ticks - tn, side="right")
+        n_imu = hi - lo
+        imu_ok = n_imu > 0
+        vals = np.stack([a_fwd, Ws[:, 0], Ws[:, 2]], axis=1) if T.size else np.zeros((0, 3))
+        means = _cummean(vals, lo, hi) if T.size else np.full((m, 3), np.nan)
+        nf = np.maximum(n_imu, 1).astype(np.float64)
+        accel_var = self.accel_var_cfg / nf
+        gyro_var = self.gyro_var_cfg / nf
+        theta_tick = np.where(imu_ok, theta[np.maximum(hi - 1, 0)] if T.size else np.nan, np.nan)
+
+        z = np.full((m, N_OBS), np.nan)
+        z[:, MdsfObs.A1] = means[:, 0]
+        z[:, MdsfObs.OMEGA_X] = means[:, 1]
+        z[:, MdsfObs.OMEGA_Z] = means[:, 2]
+
+        # GNSS speed per tick: eq. (1), moved to the tick (product) and averaged, or the latest.
+        gnss_ok = np.zeros(m, dtype=bool)
+        gnss_var = np.full(m, self.gnss_var_cfg)
+        enu = np.full((m, 3), np.nan)
+        att = np.full((m, 3), np.nan)
+        if g is not None:
+            gt, vg, var, vel_ok = g["stamp"], g["vg"], g["var"], g["vel_ok"]
+            j = np.searchsorted(ticks, gt, side="left")  # tick whose window holds the sample
+            inside = (j < m) & vel_ok
+            if self.product:
+                a_t = np.nan_to_num(z[np.minimum(j, m - 1), MdsfObs.A1])
+                vg_al = vg + a_t * (ticks[np.minimum(j, m - 1)] - gt) * _NS
+                cnt = np.bincount(j[inside], minlength=m)[:m]
+                s_vg = np.bincount(j[inside], weights=vg_al[inside], minlength=m)[:m]
+                s_var = np.bincount(j[inside], weights=var[inside], minlength=m)[:m]
+                has = cnt > 0
+                z[has, MdsfObs.VG] = s_vg[has] / cnt[has]
+                gnss_var[has] = s_var[has] / cnt[has] ** 2
+                gnss_ok = has
+            else:
+                jj = j[inside]
+                z[jj, MdsfObs.VG] = vg[inside]  # later samples overwrite: the latest wins
+                gnss_var[jj] = var[inside]
+                gnss_ok[jj] = True
+        enu, att = self._hold_outputs(ticks, g, z[:, MdsfObs.OMEGA_Z], theta_tick)
+
+        # Wheel speeds at the ticks.
+        omega = np.full((m, 2), np.nan)
+        omega_std = np.full((m, 2), np.nan)
+        wflags = np.zeros(m, dtype=np.int32)
+        if self.has_edges or not self.direct.has_data:
+            period = np.ones(m, dtype=bool)
+            for w in Wheel:
+                r = self.trackers[w].query(ticks)
+                om = np.where(r.method == WheelSpeedMethod.NONE, 0.0, r.omega_radps)
+                sd = np.where(
+                    r.method == WheelSpeedMethod.NONE,
+                    2 * np.pi / (self.vehicle.encoder.teeth_per_rev * 2.0),
+                    r.std_radps,
+                )
+                omega[:, w] = om
+                omega_std[:, w] = sd
+                period &= r.method != WheelSpeedMethod.FREQUENCY
+            wflags |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
+        else:
+            omega, omega_std = self.direct.query(ticks)
+            wflags |= int(_F.WHEEL_DIRECT)
+
+        return TickInputs(
+            stamp_ns=ticks,
+            z=z,
+            gnss_ok=gnss_ok,
+            gnss_var=gnss_var,
+            imu_ok=imu_ok,
+            accel_var=accel_var,
+            gyro_var=gyro_var,
+            omega=omega,
+            omega_std=omega_std,
+            wheel_flags=wflags,
+            enu=enu,
+            attitude=att,
+        )
+
+    def _gnss_arrays(self, gs: list[GnssSample]) -> dict[str, np.ndarray] | None:
+        if not gs:
+            return None
+        n = len(gs)
+        stamp = np.fromiter((s.stamp_ns for s in gs), dtype=np.int64, count=n)
+        num = np.array(
+            [
+                (
+                    *s.vel_enu_mps,
+                    s.heading_rad,
+                    s.pitch_rad,
+                    s.roll_rad,
+                    s.lat_deg,
+                    s.lon_deg,
+                    s.height_m,
+                    s.vel_std_mps,
+                    float(int(s.fix)),
+                )
+                for s in gs
+            ],
+            dtype=np.float64,
+        ).reshape(n, 11)
+        ve, vn, vu = num[:, 0], num[:, 1], num[:, 2]
+        fix_ok = num[:, 10] != float(GnssFix.NONE)
+        vel_ok = (
+            np.isfinite(num[:, :3]).all(axis=1) & fix_ok & (np.abs(num[:, :3]) < 200).all(axis=1)
+        )
+        self._count("skipped_gnss", int((~vel_ok).sum()))
+        heading = np.where(np.isfinite(num[:, 3]), num[:, 3], np.arctan2(ve, vn))
+        pitch_g = num[:, 4]
+        pos_ok = np.isfinite(num[:, 6:9]).all(axis=1) & fix_ok
+        return {
+            "stamp": stamp,
+            "ve": ve,
+            "vn": vn,
+            "vu": vu,
+            "heading": heading,
+            "pitch": pitch_g,
+            "roll": num[:, 5],
+            "lat": num[:, 6],
+            "lon": num[:, 7],
+            "h": num[:, 8],
+            "pos_ok": pos_ok,
+            "vel_ok": vel_ok,
+            "var": np.where(
+                np.isfinite(num[:, 9]) & (num[:, 9] > 0), num[:, 9] ** 2, self.gnss_var_cfg
+            ),
+            "vg": np.zeros(n),  # filled by _pitch_track (needs the pitch at each sample)
+        }
+
+    def _pitch_track(
+        self, T: IntArray, wx: FloatArray, g: dict[str, np.ndarray] | None
+    ) -> FloatArray:
+        """Pitch at each IMU sample: ωx integrated, pulled to the GNSS pitch at each fix.
+
+        Also fills ``g["vg"]`` with eq. (1) using the GNSS pitch, or the tracked pitch if the
+        receiver gives none. Returns shape ``(len(T),)``.
+        """
+        n = T.shape[0]
+        theta = np.empty(n)
+        prev = self.last_imu_ns_used
+        if n:
+            dts = np.empty(n)
+            dts[1:] = np.diff(T) * _NS
+            dts[0] = (T[0] - prev) * _NS if prev is not None else 0.0
+            dts = np.clip(dts, 0.0, 0.1)
+            inc = np.cumsum(wx * dts)
+            self.last_imu_ns_used = int(T[-1])
+        else:
+            inc = np.zeros(0)
+        th0 = self.pitch_rad
+        base_inc = 0.0
+        start = 0
+        blend = 1.0 - math.exp(-0.2 / max(self.config.pitch_tau_s, 1e-6)) if self.product else 1.0
+        if g is not None:
+            for i in range(g["stamp"].shape[0]):
+                j = int(np.searchsorted(T, g["stamp"][i], side="right"))
+                if j > start:
+                    theta[start:j] = th0 + inc[start:j] - base_inc
+                    th0 = float(theta[j - 1])
+                    base_inc = float(inc[j - 1])
+                    start = j
+                p = g["pitch"][i]
+                if math.isfinite(p):
+                    th0 = p if not self.pitch_known else th0 + blend * (p - th0)
+                    self.pitch_known = True
+                pitch_used = p if math.isfinite(p) else th0
+                g["vg"][i] = gnss_vehicle_speed(
+                    g["ve"][i], g["vn"][i], g["vu"][i], g["heading"][i], pitch_used
+                )
+        if n > start:
+            theta[start:] = th0 + inc[start:] - base_inc
+            th0 = float(theta[-1])
+        self.pitch_rad = th0
+        return theta
+
+    def _hold_outputs(
+        self,
+        ticks: IntArray,
+        g: dict[str, np.ndarray] | None,
+        wz: FloatArray,
+        theta_tick: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Position (ENU, moved to the tick with the GNSS velocity) and attitude per tick."""
+        if g is not None:
+            ok = g["pos_ok"]
+            if self.frame is None and ok.any():
+                i0 = int(np.flatnonzero(ok)[0])
+                self.frame = EnuFrame(float(g["lat"][i0]), float(g["lon"][i0]), float(g["h"][i0]))
+            e = np.full(ok.shape[0], np.nan)
+            nn = np.full(ok.shape[0], np.nan)
+            u = np.full(ok.shape[0], np.nan)
+            if self.frame is not None and ok.any():
+                e[ok], nn[ok], u[ok] = self.frame.to_enu(g["lat"][ok], g["lon"][ok], g["h"][ok])
+            rows = np.stack(
+                [
+                    g["stamp"].astype(np.float64),
+                    e,
+                    nn,
+                    u,
+                    g["ve"],
+                    g["vn"],
+                    g["vu"],
+                    g["heading"],
+                    g["pitch"],
+                    g["roll"],
+                ],
+                axis=1,
+            )
+        else:
+            rows = np.zeros((0, 10))
+        # For each tick: the latest GNSS row at or before it (rows are time ordered) or the hold.
+        allrows = np.vstack([self.hold[None, :], rows])
+        stamps = allrows[:, 0]
+        idx = (
+            np.searchsorted(
+                np.where(np.isnan(stamps), -np.inf, stamps), ticks.astype(np.float64), side="right"
+            )
+            - 1
+        )
+        idx = np.maximum(idx, 0)
+        sel = allrows[idx]
+        age = (ticks - np.nan_to_num(sel[:, 0], nan=0.0)) * _NS
+        age = np.where(np.isfinite(sel[:, 0]), age, 0.0)
+        vel = np.nan_to_num(sel[:, 4:7])
+        enu = sel[:, 1:4] + (vel * age[:, None] if self.product else 0.0)
+        heading = sel[:, 7] - (np.nan_to_num(wz) * age if self.product else 0.0)
+        heading = np.mod(heading, 2 * np.pi)
+        pitch = (
+            np.where(np.isfinite(theta_tick), theta_tick, sel[:, 8]) if self.product else sel[:, 8]
+        )
+        att = np.stack([heading, pitch, sel[:, 9]], axis=1)
+        if rows.shape[0]:
+            # Keep the latest row with a finite position as the hold (velocity/attitude too).
+            self.hold = rows[-1].copy()
+            okp = np.isfinite(rows[:, 1])
+            if okp.any() and not okp[-1]:
+                self.hold[1:4] = rows[np.flatnonzero(okp)[-1], 1:4]
+        return enu, att
+
+
+# ---------------------------------------------------------------------------------------------
+# Fleet estimator
+# ---------------------------------------------------------------------------------------------
+
+
+class MdsfFleet:
+    """MDSF for a fleet of wheeled vehicles; implements :class:`estimator.base.FleetEstimator`.
+
+    Parameters
+    ----------
+    config : MdsfConfig, optional
+        Filter settings (default: product mode).
+    wheel : WheelSpeedConfig, optional
+        Wheel-speed front-end settings (``teeth_per_rev`` comes from each vehicle's encoder).
+    reference : ReferenceSpeedConfig, optional
+        Settings of the speed filter used while GNSS is lost.
+
+    Examples
+    --------
+    >>> fleet = MdsfFleet()
+    >>> fleet.add_vehicle("t1", VehicleConfig())          # doctest: +SKIP
+    >>> fleet.push("t1", imu_batch); fleet.push("t1", gnss_sample)   # doctest: +SKIP
+    >>> for vid, rows in fleet.advance({"t1": now_ns}): ...          # doctest: +SKIP
+    """
+
+    name = "mdsf"
+    output_dtype = ESTIMATE_DTYPE
+
+    def __init__(
+        self,
+        config: MdsfConfig | None = None,
+        wheel: WheelSpeedConfig | None = None,
+        reference: ReferenceSpeedConfig | None = None,
+    ) -> None:
+        self.config = config or MdsfConfig()
+        self.wheel = wheel or WheelSpeedConfig()
+        self.engine = MdsfEngine(self.config, reference)
+        self._slot: dict[str, int] = {}
+        self._fe: dict[str, _FrontEnd] = {}
+        self._cfg: dict[str, VehicleConfig] = {}
+
+    def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
+        self.remove_vehicle(vehicle_id)
+        self._slot[vehicle_id] = self.engine.add(config)
+        self._fe[vehicle_id] = _FrontEnd(config, self.config, self.wheel)
+        self._cfg[vehicle_id] = config
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        """Forget ``vehicle_id`` (no error if unknown)."""
+        slot = self._slot.pop(vehicle_id, None)
+        if slot is not None:
+            self.engine.release(slot)
+        self._fe.pop(vehicle_id, None)
+        self._cfg.pop(vehicle_id, None)
+
+    def vehicle_ids(self) -> list[str]:
+        return list(self._slot)
+
+    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+        """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
+        self._fe[vehicle_id].push(measurement)
+
+    def counters(self, vehicle_id: str) -> dict[str, int]:
+        """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
+        degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""
+        slot = self._slot[vehicle_id]
+        out = {c.name.lower(): int(self.engine.counts[slot, c]) for c in Counter}
+        for k, v in self._fe[vehicle_id].counts.items():
+            out[k] = out.get(k, 0) + v
+        return out
+
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        """Emit every due tick (``stamp_ns <= until_ns[id]``), vehicles stepped together."""
+        items: list[tuple[str, TickInputs]] = []
+        for vid, until in until_ns.items():
+            fe = self._fe.get(vid)
+            if fe is None:
+                continue
+            ti = fe.assemble(int(until))
+            if ti is not None and ti.m > 0:
+                items.append((vid, ti))
+        if not items:
+            return []
+        items.sort(key=lambda it: -it[1].m)
+        lengths = np.array([ti.m for _, ti in items], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        slots = np.array([self._slot[vid] for vid, _ in items], dtype=np.int64)
+        flat = _concat_inputs([ti for _, ti in items])
+        total = int(lengths.sum())
+        radius = np.empty((total, 2))
+        min_speed = np.empty(total)
+        for (vid, _), off, ln in zip(items, offsets, lengths, strict=True):
+            geo = self._cfg[vid].geometry
+            radius[off : off + ln] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
+            min_speed[off : off + ln] = self._cfg[vid].slip.min_ground_speed_mps
+        rim = flat.omega * radius
+        rim_std = flat.omega_std * radius
+        out = empty_estimates(total)
+        emit = np.zeros(total, dtype=bool)
+        cols = (
+            "vg",
+            "v1",
+            "v0",
+            "vl",
+            "vr",
+            "vg_std",
+            "vl_std",
+            "vr_std",
+            "accel",
+            "pitch_rate",
+            "yaw_rate",
+        )
+        res: dict[str, FloatArray] = {c: np.full(total, np.nan) for c in cols}
+        flags = np.zeros(total, dtype=np.int32)
+        for r in range(int(lengths[0])):
+            c = int(np.count_nonzero(lengths > r))
+            fi = offsets[:c] + r
+            tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
+            so = self.engine.step(slots[:c], tin, rim[fi])
+            emit[fi] = so.emit
+            for name in cols:
+                res[name][fi] = getattr(so, name)
+            flags[fi] = so.flags
+        # Slip for all rows at once (eq. (8)(9)).
+        sl = slip_pct(rim[:, 0], res["vl"], min_speed, rim_std[:, 0], res["vl_std"])
+        sr = slip_pct(rim[:, 1], res["vr"], min_speed, rim_std[:, 1], res["vr_std"])
+        flags |= np.where(sl.valid, int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
+        flags |= np.where(sr.valid, int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
+        flags |= np.where(sl.standstill & sr.standstill, int(_F.STANDSTILL), 0).astype(np.int32)
+        flags |= flat.wheel_flags
+        out["stamp_ns"] = flat.stamp_ns
+        out["vg_mps"] = res["vg"]
+        out["v1_mps"] = res["v1"]
+        out["v0_mps"] = res["v0"]
+        out["vl_mps"] = res["vl"]
+        out["vr_mps"] = res["vr"]
+        out["rim_left_mps"] = rim[:, 0]
+        out["rim_right_mps"] = rim[:, 1]
+        out["omega_left_radps"] = flat.omega[:, 0]
+        out["omega_right_radps"] = flat.omega[:, 1]
+        out["slip_left_pct"] = sl.slip_pct
+        out["slip_right_pct"] = sr.slip_pct
+        out["vg_std_mps"] = res["vg_std"]
+        out["vl_std_mps"] = res["vl_std"]
+        out["vr_std_mps"] = res["vr_std"]
+        out["slip_left_std_pct"] = sl.std_pct
+        out["slip_right_std_pct"] = sr.std_pct
+        out["accel_mps2"] = res["accel"]
+        out["pitch_rate_radps"] = res["pitch_rate"]
+        out["yaw_rate_radps"] = res["yaw_rate"]
+        out["east_m"] = flat.enu[:, 0]
+        out["north_m"] = flat.enu[:, 1]
+        out["up_m"] = flat.enu[:, 2]
+        out["heading_rad"] = flat.attitude[:, 0]
+        out["pitch_rad"] = flat.attitude[:, 1]
+        out["roll_rad"] = flat.attitude[:, 2]
+        out["flags"] = flags
+        result: list[tuple[str, np.ndarray]] = []
+        for (vid, _), off, ln in zip(items, offsets, lengths, strict=True):
+            rows = out[off : off + ln][emit[off : off + ln]]
+            if rows.shape[0]:
+                result.append((vid, rows))
+        return result

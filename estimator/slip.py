@@ -1,0 +1,104 @@
+"""Wheel slip, ``method.md`` §1 source eq. (8)(9), vectorised, with a standstill rule.
+
+    S = (r·W − V) / max(r·W, V) × 100 %
+
+``r·W`` is the wheel's rim speed (effective radius times measured angular speed), ``V`` the ground
+speed of its contact point (MDSF eq. (4)/(5)). Positive while driving, negative while braking.
+
+Choices the source leaves open (stated here, tested in ``tests/estimator/test_slip.py``):
+
+* **Standstill.** When both ``|r·W|`` and ``|V|`` are below ``SlipConfig.min_ground_speed_mps``
+  there is no slip value (NaN, ``valid`` false, flagged STANDSTILL by the caller). Otherwise the
+  denominator is at least that threshold, so the ratio never blows up.
+* **Reverse.** The formula is applied to the direction of travel: with ``s`` the sign of ``V``
+  (of ``r·W`` when ``V`` is near zero), ``S = s·(r·W − V)/max(|r·W|, |V|)``. Driving backwards
+  with the wheel turning faster than the ground passes is positive slip, as forwards.
+  ``|S| ≤ 200 %`` (reached only when the wheel turns against the direction of travel).
+* **Uncertainty.** First-order propagation from independent ``σ_V`` and ``σ_rW``: on the branch
+  ``|r·W| ≥ |V|``, ``∂S/∂(rW) = |V|/(rW)²``, ``∂S/∂V = 1/|rW|``; on the other branch
+  ``∂S/∂(rW) = 1/|V|``, ``∂S/∂V = |rW|/V²`` (times 100 %).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["SlipResult", "slip_pct"]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class SlipResult:
+    """Slip values; all arrays have the broadcast shape of the inputs.
+
+    Attributes
+    ----------
+    slip_pct : ndarray
+        Slip in percent; NaN where not valid.
+    std_pct : ndarray
+        1-sigma slip uncertainty in percent; NaN where not valid.
+    valid : ndarray, bool
+        A value was given (finite inputs, not at standstill).
+    standstill : ndarray, bool
+        Both speeds below the threshold (finite inputs).
+    """
+
+    slip_pct: FloatArray
+    std_pct: FloatArray
+    valid: npt.NDArray[np.bool_]
+    standstill: npt.NDArray[np.bool_]
+
+
+def slip_pct(
+    rim_speed_mps: npt.ArrayLike,
+    ground_speed_mps: npt.ArrayLike,
+    min_ground_speed_mps: float | npt.ArrayLike,
+    rim_std_mps: npt.ArrayLike = 0.0,
+    ground_std_mps: npt.ArrayLike = 0.0,
+) -> SlipResult:
+    """Slip of a wheel, ``method.md`` §1 eq. (8)(9), with standstill rule and std.
+
+    Parameters
+    ----------
+    rim_speed_mps : array_like
+        ``r·W``, signed (forward positive).
+    ground_speed_mps : array_like
+        ``V`` of the wheel's contact point, signed.
+    min_ground_speed_mps : float or array_like
+        Standstill threshold (``SlipConfig.min_ground_speed_mps``), > 0; broadcasts.
+    rim_std_mps, ground_std_mps : array_like
+        1-sigma uncertainties of the two speeds.
+
+    Returns
+    -------
+    SlipResult
+    """
+    a = np.asarray(rim_speed_mps, dtype=np.float64)
+    v = np.asarray(ground_speed_mps, dtype=np.float64)
+    sa = np.asarray(rim_std_mps, dtype=np.float64)
+    sv = np.asarray(ground_std_mps, dtype=np.float64)
+    thr = np.asarray(min_ground_speed_mps, dtype=np.float64)
+    a, v, sa, sv, thr = np.broadcast_arrays(a, v, sa, sv, thr)
+    finite = np.isfinite(a) & np.isfinite(v)
+    abs_a = np.abs(np.where(finite, a, 0.0))
+    abs_v = np.abs(np.where(finite, v, 0.0))
+    standstill = finite & (abs_a < thr) & (abs_v < thr)
+    valid = finite & ~standstill
+    denom = np.maximum(np.maximum(abs_a, abs_v), thr)
+    direction = np.where(abs_v >= 0.5 * thr, np.sign(v), np.sign(a))
+    direction = np.where(direction == 0, 1.0, direction)
+    s = direction * (np.where(finite, a, 0.0) - np.where(finite, v, 0.0)) / denom * 100.0
+    rim_branch = abs_a >= abs_v
+    d_a = np.where(rim_branch, abs_v / denom**2, 1.0 / denom)
+    d_v = np.where(rim_branch, 1.0 / denom, abs_a / denom**2)
+    std = 100.0 * np.sqrt((d_a * sa) ** 2 + (d_v * sv) ** 2)
+    return SlipResult(
+        slip_pct=np.where(valid, s, np.nan),
+        std_pct=np.where(valid, std, np.nan),
+        valid=valid,
+        standstill=standstill,
+    )

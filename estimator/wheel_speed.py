@@ -1,0 +1,468 @@
+"""Wheel angular speed from encoder rising edges (``method.md`` §2) and from direct (CAN) speeds.
+
+A toothed ring with ``Ns`` teeth gives one rising edge every ``2π/Ns`` of wheel rotation.
+
+* **Period method, k-tooth average** (source 001): over ``k`` tooth intervals
+  ``t_k = t(i+k) − t(i)``, ``ω = 2π·k/(Ns·t_k)`` (:func:`omega_k_tooth`).
+* **Frequency method**: count the edges in a fixed window ``W``, ``ω = 2π·n/(Ns·W)``; its error is
+  ±1 count, so it is only good when the window holds many edges (:func:`omega_frequency`).
+
+A k-tooth average is the speed at the *middle* of its span, which lies in the past of the time the
+estimate is stamped with. Under an angular acceleration ``α`` that is a bias of ``α·(t − t_mid)``:
+at 1 rad/s² and a 0.2 s span, ≈0.1 rad/s, 3 % of a tractor's wheel speed. :func:`omega_at`
+removes it by fitting the wheel angle of the last ``k`` edges with a quadratic in time and
+evaluating the derivative *at the query time*; with at most one edge interval of extrapolation
+the fit is exact under constant acceleration and unbiased to first order otherwise. Its slope
+(linear fit, ``fit_order=1``) is the least-squares form of the k-tooth average and is what the
+period method reduces to when too few edges are there for the quadratic.
+
+``k`` follows the speed: the fit takes the edges of the last ``window_s`` (at least
+``min_edges``, at most ``max_edges``), so a slow wheel uses a few long periods and a fast wheel
+many short ones. The frequency method takes over only when the window holds at least
+``frequency_min_count`` edges (a very high edge rate). Every result says which method it used.
+
+Standstill: a wheel that stops gives no more edges, so the last speed must not be held. If no
+edge came for ``τ = t − t_last``, the wheel is slower than one tooth per ``τ``:
+``|ω| ≤ 2π/(Ns·τ)``, and after ``stop_timeout_s`` it is taken as stopped (``ω = 0``).
+
+Direction: a quadrature encoder gives ``±1`` per edge; the wheel angle then steps back on reverse
+edges and the fitted slope is signed. Without direction every edge counts forward.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator.config import ConfigError
+
+__all__ = [
+    "DirectWheelSpeed",
+    "WheelSpeedConfig",
+    "WheelSpeedMethod",
+    "WheelSpeedResult",
+    "WheelTracker",
+    "edge_angles",
+    "omega_at",
+    "omega_frequency",
+    "omega_k_tooth",
+    "stop_bound",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+_NS = 1e-9
+
+
+class WheelSpeedMethod(IntEnum):
+    """How a wheel speed value was obtained."""
+
+    NONE = 0
+    """No information (no edge or sample yet)."""
+    PERIOD = 1
+    """k-tooth period method (least-squares fit on edge times), or its standstill bound."""
+    FREQUENCY = 2
+    """Edge count over a fixed window."""
+    DIRECT = 3
+    """Given directly (CAN)."""
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSpeedConfig:
+    """Wheel-speed front end settings.
+
+    Attributes
+    ----------
+    teeth_per_rev : int
+        ``Ns``, rising edges per wheel revolution.
+    window_s : float
+        Time span of edges the period fit aims to cover [s] (default 0.3 s).
+    min_edges : int
+        Fewest edges a fit uses, even if they span more than ``window_s`` (slow wheel), ≥ 2.
+    max_edges : int
+        Most edges a fit uses (fast wheel), ≥ ``min_edges``.
+    fit_order : int
+        1: linear fit of wheel angle (k-tooth average, centred in the past);
+        2: quadratic fit evaluated at the query time (latency-compensated, default).
+    frequency_min_count : int
+        Use the frequency method when the window holds at least this many edges.
+    stop_timeout_s : float
+        No edge for this long [s] means the wheel is stopped (``ω = 0``).
+    timing_std_s : float
+        1-sigma jitter of an edge time stamp [s], floor of the reported speed std.
+    """
+
+    teeth_per_rev: int = 120
+    window_s: float = 0.3
+    min_edges: int = 3
+    max_edges: int = 64
+    fit_order: int = 2
+    frequency_min_count: int = 2000
+    stop_timeout_s: float = 2.0
+    timing_std_s: float = 2e-5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.teeth_per_rev, int) or not 1 <= self.teeth_per_rev <= 100_000:
+            raise ConfigError(
+                f"teeth_per_rev must be an int in 1..100000, got {self.teeth_per_rev!r}"
+            )
+        for name in ("window_s", "stop_timeout_s", "timing_std_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
+        if not isinstance(self.min_edges, int) or self.min_edges < 2:
+            raise ConfigError(f"min_edges must be an int >= 2, got {self.min_edges!r}")
+        if not isinstance(self.max_edges, int) or self.max_edges < self.min_edges:
+            raise ConfigError(f"max_edges must be an int >= min_edges, got {self.max_edges!r}")
+        if self.fit_order not in (1, 2):
+            raise ConfigError(f"fit_order must be 1 or 2, got {self.fit_order!r}")
+        if not isinstance(self.frequency_min_count, int) or self.frequency_min_count < 2:
+            raise ConfigError("frequency_min_count must be an int >= 2")
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSpeedResult:
+    """Wheel speeds at query times.
+
+    Attributes
+    ----------
+    omega_radps : ndarray, shape (m,)
+        Signed angular speed (forward positive); NaN when unknown.
+    std_radps : ndarray, shape (m,)
+        1-sigma uncertainty.
+    method : ndarray, shape (m,), int8
+        :class:`WheelSpeedMethod` per value.
+    """
+
+    omega_radps: FloatArray
+    std_radps: FloatArray
+    method: npt.NDArray[np.int8]
+
+
+def omega_k_tooth(stamp_ns: IntArray, k: int, teeth_per_rev: int) -> FloatArray:
+    """k-tooth period method, ``method.md`` §2: ``ω = 2π·k/(Ns·t_k)``.
+
+    Parameters
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Rising-edge times.
+    k : int
+        Tooth intervals averaged (``k = 1`` is the plain period method).
+    teeth_per_rev : int
+        ``Ns``.
+
+    Returns
+    -------
+    ndarray, shape (n − k,)
+        Speed over each span ``[t(i), t(i+k)]`` [rad/s], forward.
+    """
+    t = np.asarray(stamp_ns, dtype=np.int64)
+    t_k = (t[k:] - t[:-k]).astype(np.float64) * _NS
+    with np.errstate(divide="ignore"):
+        return 2.0 * np.pi * k / (teeth_per_rev * t_k)
+
+
+def omega_frequency(
+    stamp_ns: IntArray, query_ns: IntArray, window_s: float, teeth_per_rev: int
+) -> FloatArray:
+    """Frequency method, ``method.md`` §2: edges counted in ``(t − W, t]``, ``ω = 2π·n/(Ns·W)``.
+
+    Parameters
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Rising-edge times, non-decreasing.
+    query_ns : ndarray, shape (m,), int64
+        Window end times.
+    window_s : float
+        ``W`` [s].
+    teeth_per_rev : int
+        ``Ns``.
+
+    Returns
+    -------
+    ndarray, shape (m,)
+        Speed [rad/s], forward.
+    """
+    t = np.asarray(stamp_ns, dtype=np.int64)
+    q = np.asarray(query_ns, dtype=np.int64)
+    w_ns = round(window_s * 1e9)
+    count = np.searchsorted(t, q, side="right") - np.searchsorted(t, q - w_ns, side="right")
+    return np.asarray(2.0 * np.pi * count / (teeth_per_rev * window_s), dtype=np.float64)
+
+
+def stop_bound(last_edge_ns: IntArray, query_ns: IntArray, teeth_per_rev: int) -> FloatArray:
+    """Upper bound on ``|ω|`` when no edge came since ``t_last``: ``2π/(Ns·(t − t_last))``.
+
+    Returns ``inf`` at ``t == t_last``. Shapes broadcast.
+    """
+    tau = (np.asarray(query_ns, np.int64) - np.asarray(last_edge_ns, np.int64)).astype(np.float64)
+    with np.errstate(divide="ignore"):
+        return 2.0 * np.pi / (teeth_per_rev * tau * _NS)
+
+
+def edge_angles(
+    n: int,
+    teeth_per_rev: int,
+    direction: npt.NDArray[np.int8] | None = None,
+    start_rad: float = 0.0,
+) -> FloatArray:
+    """Cumulative wheel angle at each edge: ``start + Σ dir·2π/Ns``; shape ``(n,)``."""
+    step = 2.0 * np.pi / teeth_per_rev
+    if direction is None:
+        return start_rad + step * np.arange(1, n + 1, dtype=np.float64)
+    d = np.where(np.asarray(direction) < 0, -1.0, 1.0)
+    return start_rad + step * np.cumsum(d)
+
+
+def omega_at(
+    stamp_ns: IntArray,
+    angle_rad: FloatArray,
+    query_ns: IntArray,
+    config: WheelSpeedConfig,
+    angle_before_rad: float = 0.0,
+) -> WheelSpeedResult:
+    """Causal wheel speed at each query time from the edges at or before it.
+
+    Implements ``method.md`` §2 with speed-adaptive ``k`` and latency compensation (module
+    docstring). For each query ``t``: the edges in ``(t − window_s, t]`` (at least ``min_edges``,
+    at most ``max_edges`` of the latest ones at or before ``t``) are fitted with
+    ``angle(τ) = c0 + c1·τ + c2·τ²`` (``τ = edge time − t``); ``ω(t) = c1``. The standstill bound
+    and timeout are then applied.
+
+    Parameters
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Edge times, non-decreasing.
+    angle_rad : ndarray, shape (n,)
+        Wheel angle at each edge (:func:`edge_angles`).
+    query_ns : ndarray, shape (m,), int64
+        Query times, any order.
+    config : WheelSpeedConfig
+    angle_before_rad : float
+        Wheel angle before the first edge given (for the frequency count).
+
+    Returns
+    -------
+    WheelSpeedResult
+        Arrays of shape ``(m,)``.
+    """
+    e = np.asarray(stamp_ns, dtype=np.int64)
+    pos = np.asarray(angle_rad, dtype=np.float64)
+    q = np.asarray(query_ns, dtype=np.int64)
+    m = q.shape[0]
+    ns = config.teeth_per_rev
+    omega = np.full(m, np.nan)
+    std = np.full(m, np.nan)
+    method = np.full(m, int(WheelSpeedMethod.NONE), dtype=np.int8)
+    if m == 0:
+        return WheelSpeedResult(omega, std, method)
+    last = np.searchsorted(e, q, side="right") - 1  # index of the last edge ≤ t
+    has = last >= 0
+    if e.shape[0] == 0 or not has.any():
+        return WheelSpeedResult(omega, std, method)
+
+    w_ns = round(config.window_s * 1e9)
+    first_in = np.searchsorted(e, q - w_ns, side="right")
+    n_win = np.maximum(last - first_in + 1, 0)
+    n_fit = np.clip(n_win, config.min_edges, config.max_edges)
+    n_fit = np.minimum(n_fit, last + 1)  # cannot use more edges than exist
+    fit_ok = has & (n_fit >= 2)
+
+    # Gather the fit edges: row j holds edges last, last-1, ..., weights 0 beyond n_fit.
+    kmax = int(n_fit[fit_ok].max()) if fit_ok.any() else 2
+    offs = np.arange(kmax)
+    idx = last[:, None] - offs[None, :]
+    w = (offs[None, :] < n_fit[:, None]) & (idx >= 0) & fit_ok[:, None]
+    idx = np.clip(idx, 0, max(e.shape[0] - 1, 0))
+    tau_s = (e[idx] - q[:, None]).astype(np.float64) * _NS  # ≤ 0
+    span = np.where(fit_ok, -tau_s[np.arange(m), np.maximum(n_fit - 1, 0)], 1.0)
+    span = np.where(span > 0, span, 1.0)
+    u = tau_s / span[:, None]  # in [-1, 0]
+    p = pos[idx] - pos[last][:, None]
+    wf = w.astype(np.float64)
+    quad = fit_ok & (n_fit >= 4) & (config.fit_order >= 2)
+    # Normal equations of the weighted fit [1, u, u²] (u² column off for linear fits).
+    u2 = u * u * quad[:, None]
+    cols = np.stack([np.ones_like(u), u, u2], axis=-1) * wf[..., None]  # (m, k, 3)
+    A = np.einsum("mki,mkj->mij", cols, cols)
+    b = np.einsum("mki,mk->mi", cols, p)
+    lin = ~quad
+    A[lin, 2, :] = 0.0
+    A[lin, :, 2] = 0.0
+    A[lin, 2, 2] = 1.0
+    b[lin, 2] = 0.0
+    bad = ~fit_ok
+    A[bad] = np.eye(3)
+    b[bad] = 0.0
+    # Degenerate spans (all edges at one instant) give a singular system: regularise lightly.
+    A = A + np.eye(3) * 1e-12
+    coef = np.linalg.solve(A, b[..., None])[..., 0]
+    om_fit = coef[:, 1] / span
+    # Uncertainty: residual scatter, floored by the time-stamp jitter, through (AᵀA)⁻¹.
+    resid = (p - (cols @ coef[..., None])[..., 0]) * wf
+    n_par = np.where(quad, 3, 2)
+    dof = np.maximum(n_fit - n_par, 1)
+    s2 = (resid**2).sum(axis=1) / dof
+    s2 = np.maximum(s2, (om_fit * config.timing_std_s) ** 2 + (2 * np.pi / ns * 1e-3) ** 2)
+    a_inv11 = np.linalg.inv(A)[:, 1, 1]
+    std_fit = np.sqrt(s2 * np.maximum(a_inv11, 0.0)) / span
+
+    omega = np.where(fit_ok, om_fit, np.nan)
+    std = np.where(fit_ok, std_fit, np.nan)
+    method = np.where(fit_ok, np.int8(WheelSpeedMethod.PERIOD), method).astype(np.int8)
+
+    # Frequency method when the window is crowded.
+    freq = has & (n_win >= config.frequency_min_count)
+    if freq.any():
+        before = np.where(first_in >= 1, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
+        om_f = (pos[np.maximum(last, 0)] - before) / config.window_s
+        omega = np.where(freq, om_f, omega)
+        std = np.where(freq, 2 * np.pi / (ns * config.window_s) / math.sqrt(3.0), std)
+        method = np.where(freq, np.int8(WheelSpeedMethod.FREQUENCY), method).astype(np.int8)
+
+    # Standstill: bound by the time since the last edge, zero after the timeout.
+    single = has & ~fit_ok
+    last_ns = e[np.maximum(last, 0)]
+    bound = stop_bound(last_ns, q, ns)
+    sign = np.where(omega < 0, -1.0, 1.0)
+    mag = np.where(single, bound, np.abs(omega))
+    capped = mag > bound
+    mag = np.minimum(mag, bound)
+    stopped = has & ((q - last_ns) * _NS > config.stop_timeout_s)
+    mag = np.where(stopped, 0.0, mag)
+    omega = np.where(has, sign * mag, np.nan)
+    std = np.where(capped | single, 0.5 * mag, std)
+    std = np.where(stopped, 2 * np.pi / (ns * config.stop_timeout_s), std)
+    method = np.where((capped | single | stopped) & has, np.int8(WheelSpeedMethod.PERIOD), method)
+    return WheelSpeedResult(omega, std, method.astype(np.int8))
+
+
+class WheelTracker:
+    """Streaming, causal speed of one wheel from its encoder edges.
+
+    Push :class:`~estimator.types.WheelEdges` batches in time order with :meth:`push`; ask
+    :meth:`query` for the speed at times not earlier than the previous query. Keeps only the
+    edges a later query can need.
+
+    Parameters
+    ----------
+    config : WheelSpeedConfig
+    """
+
+    def __init__(self, config: WheelSpeedConfig) -> None:
+        self.config = config
+        self._stamp = np.zeros(0, dtype=np.int64)
+        self._angle = np.zeros(0, dtype=np.float64)
+        self._angle_before = 0.0
+        self.skipped = 0
+        """Edges dropped because they went back in time."""
+
+    @property
+    def last_edge_ns(self) -> int | None:
+        """Time of the newest edge held, or None."""
+        return int(self._stamp[-1]) if self._stamp.size else None
+
+    def push(self, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None) -> None:
+        """Append edges (non-decreasing stamps; earlier-than-held ones are skipped and counted)."""
+        t = np.asarray(stamp_ns, dtype=np.int64)
+        if t.size == 0:
+            return
+        d = None if direction is None else np.asarray(direction)
+        floor = self._stamp[-1] if self._stamp.size else np.iinfo(np.int64).min
+        ok = t >= floor
+        if t.size > 1:
+            ok[1:] &= t[1:] >= t[:-1]
+        if not ok.all():
+            self.skipped += int((~ok).sum())
+            t = t[ok]
+            d = None if d is None else d[ok]
+        start = float(self._angle[-1]) if self._angle.size else self._angle_before
+        ang = edge_angles(t.size, self.config.teeth_per_rev, d, start)
+        self._stamp = np.concatenate([self._stamp, t])
+        self._angle = np.concatenate([self._angle, ang])
+
+    def query(self, query_ns: IntArray) -> WheelSpeedResult:
+        """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history."""
+        q = np.asarray(query_ns, dtype=np.int64)
+        res = omega_at(self._stamp, self._angle, q, self.config, self._angle_before)
+        if q.size and self._stamp.size:
+            self._trim(int(q[-1]))
+        return res
+
+    def _trim(self, t_ns: int) -> None:
+        cfg = self.config
+        last = int(np.searchsorted(self._stamp, t_ns, side="right")) - 1
+        old = int(np.searchsorted(self._stamp, t_ns - round(cfg.window_s * 1e9), side="right")) - 1
+        keep_from = max(0, min(last - cfg.max_edges - 1, old - 1))
+        if keep_from > 0:
+            self._angle_before = float(self._angle[keep_from - 1])
+            self._stamp = self._stamp[keep_from:]
+            self._angle = self._angle[keep_from:]
+
+
+class DirectWheelSpeed:
+    """Wheel speeds given directly (CAN :class:`~estimator.types.WheelSpeeds`), both wheels.
+
+    The value at ``t`` is the latest finite sample at or before ``t`` (causal hold), unknown
+    (NaN) once older than ``stale_s``.
+
+    Parameters
+    ----------
+    stale_s : float
+        Age after which a held sample is no longer used [s].
+    std_radps : float
+        1-sigma noise reported with the values.
+    """
+
+    def __init__(self, stale_s: float = 0.5, std_radps: float = 0.02) -> None:
+        self.stale_ns = round(stale_s * 1e9)
+        self.std_radps = std_radps
+        self._stamp = np.zeros(0, dtype=np.int64)
+        self._omega = np.zeros((0, 2), dtype=np.float64)
+        self.skipped = 0
+        """Samples dropped (non-finite or back in time)."""
+
+    @property
+    def has_data(self) -> bool:
+        return bool(self._stamp.size)
+
+    def push(self, stamp_ns: IntArray, omega_radps: FloatArray) -> None:
+        """Append samples; shapes ``(n,)`` and ``(n, 2)``."""
+        t = np.asarray(stamp_ns, dtype=np.int64)
+        om = np.asarray(omega_radps, dtype=np.float64).reshape(-1, 2)
+        if t.size == 0 or om.shape[0] != t.size:
+            self.skipped += int(t.size)
+            return
+        floor = self._stamp[-1] if self._stamp.size else np.iinfo(np.int64).min
+        ok = np.isfinite(om).all(axis=1) & (t >= floor)
+        if t.size > 1:
+            ok[1:] &= t[1:] >= t[:-1]
+        self.skipped += int((~ok).sum())
+        self._stamp = np.concatenate([self._stamp, t[ok]])
+        self._omega = np.concatenate([self._omega, om[ok]])
+
+    def query(self, query_ns: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Speeds at each query time: ``omega (m, 2)`` and ``std (m, 2)``; NaN when unknown."""
+        q = np.asarray(query_ns, dtype=np.int64)
+        i = np.searchsorted(self._stamp, q, side="right") - 1
+        ok = (
+            (i >= 0) & (q - self._stamp[np.maximum(i, 0)] <= self.stale_ns)
+            if self._stamp.size
+            else (np.zeros(q.size, dtype=bool))
+        )
+        om = np.full((q.size, 2), np.nan)
+        if self._stamp.size:
+            om[ok] = self._omega[i[ok]]
+            keep = (
+                max(0, int(np.searchsorted(self._stamp, q[-1], side="right")) - 2) if q.size else 0
+            )
+            if keep > 0:
+                self._stamp = self._stamp[keep:]
+                self._omega = self._omega[keep:]
+        std = np.where(np.isfinite(om), self.std_radps, np.nan)
+        return om, std
