@@ -85,7 +85,7 @@ class Backend:
 
 def _sqlite_backend(tmp_path: Path) -> Backend:
     data_dir = tmp_path / "data"
-    settings = StorageSettings(data_dir=data_dir)
+    settings = StorageSettings.model_validate({"data_dir": data_dir})
     path = data_dir / settings.sqlite_file
 
     def make(fast_fail: bool) -> Store:
@@ -96,7 +96,7 @@ def _sqlite_backend(tmp_path: Path) -> Backend:
 
 def _postgres_backend(admin_url: str, url: str) -> Backend:
     dbname = urlsplit(url).path.lstrip("/")
-    settings = StorageSettings(url=url)  # type: ignore[arg-type]  # pydantic coerces to SecretStr
+    settings = StorageSettings.model_validate({"url": url})
 
     def make(fast_fail: bool) -> Store:
         return PostgresStore(url, connect_timeout_s=1.0 if fast_fail else 5.0)

@@ -40,7 +40,7 @@ def _wait_for(cond: Callable[[], bool], timeout_s: float = 20.0) -> None:
 
 
 def _settings(**kw: Any) -> StorageSettings:
-    return StorageSettings(**kw)
+    return StorageSettings.model_validate(kw)
 
 
 def test_batches_at_least_1000_rows_per_transaction_under_load(backend: Backend) -> None:
@@ -53,7 +53,7 @@ def test_batches_at_least_1000_rows_per_transaction_under_load(backend: Backend)
     settings = _settings(commit_interval_s=0.5, batch_max_rows=5000)
     rows_per_tick = 5
     ticks = 100
-    with StoreWriter(store, settings) as writer:  # type: ignore[arg-type]
+    with StoreWriter(store, settings) as writer:
         t_next = time.monotonic()
         for tick in range(ticks):
             start = T0_NS + tick * rows_per_tick * DT_NS
@@ -77,7 +77,7 @@ def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
     inner.upsert_vehicle("v1", {}, now_ns=1)
     store = CountingStore(inner)
     rows = make_rows(12_000)
-    with StoreWriter(store, _settings(batch_max_rows=5000)) as writer:  # type: ignore[arg-type]
+    with StoreWriter(store, _settings(batch_max_rows=5000)) as writer:
         assert writer.submit([("v1", rows)]) == 12_000
         assert writer.flush(timeout=60)
     assert store.batches == [5000, 5000, 2000]
