@@ -207,17 +207,18 @@ def _paper_straight(p: Params, rng: np.random.Generator) -> MotionPlan:
 
 def _paper_circle(p: Params, rng: np.random.Generator) -> MotionPlan:
     v, w = float(p["speed_mps"]), float(p["yaw_rate_radps"])
-
-    def speed(t: FloatArray) -> FloatArray:
-        return np.full_like(t, v)
+    lead = float(p["lead_in_s"])
+    # lead-in from rest onto the circle (constant radius v/w), then circling for duration_s
+    tl = _Timeline()
+    tl.go(1.0)
+    tl.go(lead, speed=v)
+    tl.go(float(p["duration_s"]))
+    base, _, _ = tl.profiles()
 
     def yaw(t: FloatArray) -> FloatArray:
-        return np.full_like(t, w)
+        return w * base(t) / v
 
-    def always(t: FloatArray) -> FloatArray:
-        return np.ones_like(t)
-
-    return _plan(p, rng, float(p["duration_s"]), speed, yaw, speed_wobble_when=always)
+    return _plan(p, rng, tl.t, base, yaw)
 
 
 _PAPER_SENSORS: dict[str, Any] = {
@@ -490,11 +491,12 @@ SCENARIOS: Mapping[str, Scenario] = MappingProxyType(
             Scenario(
                 "paper_circle",
                 "source sim. 2: counter-clockwise circling, Vg = 3.0 ± 0.03 m/s, ωz = 0.4 ± 0.02 "
-                "rad/s, ωx = 0 ± 0.02 rad/s",
+                "rad/s, ωx = 0 ± 0.02 rad/s (after a 6 s lead-in from rest)",
                 _paper_circle,
                 _with_common(
                     {
                         "duration_s": 64.0,
+                        "lead_in_s": 5.0,
                         "speed_mps": 3.0,
                         "yaw_rate_radps": 0.4,
                         "speed_wobble_mps": 0.03,

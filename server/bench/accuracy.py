@@ -1,0 +1,473 @@
+"""Accuracy bench: MDSF (product and paper modes) and the traditional method against truth.
+
+``slipfleet bench accuracy [--json PATH]`` runs every simulated scenario
+(:mod:`estimator.sim`), feeds each run to every method the way the server's pipeline does
+(sensor order, advancing to a trailing watermark every 100 ms) and compares each estimate row, at
+its own ``stamp_ns``, with the truth interpolated at that instant. Nothing is aligned after the
+fact, so latency and lag count as error.
+
+Methods
+-------
+product, paper
+    :class:`estimator.engine.MdsfFleet` in its two modes.
+traditional
+    What the source compares against: the vehicle speed taken as each driven wheel's ground
+    speed. Here the vehicle speed is the GNSS speed of eq. (1) at every valid epoch, through a
+    causal median of three epochs (a plain smoothing that removes single-epoch spikes; the
+    source's traditional curves are free of its −1 m/s disturbance too); wheel angular speed
+    from the encoder edges of the last 0.5 s before the epoch (``ω = 2π·(n − 1)/(Ns·Δt)`` over
+    the ``n`` edges in the window); slip by eq. (8)(9), no value below the standstill speed.
+
+Metrics (on rows whose true ``V0`` exceeds 0.5 m/s, as the source's relative errors)
+--------------------------------------------------------------------------------------
+``vw_max_pct``, ``vw_rms_pct``
+    Wheel ground-speed error, max and RMS over both wheels, relative to the mean true speed of
+    the wheel over the moving part of the run (the source's "relative to mean wheel speed").
+``slip_rms_pp``, ``slip_p95_pp``, ``slip_max_pp``
+    Slip error in percentage points (both wheels pooled; rows with a slip value).
+``omega_rms_pct``, ``omega_max_pct``
+    Wheel angular-speed error relative to the true angular speed.
+``coverage_pct``
+    Share of the moving time (truth grid) for which the latest row at or before that instant,
+    no older than twice the method's row interval, carries a slip value; mean of both wheels.
+
+Floors (product mode): paper scenarios ``vw_max_pct ≤ 1.5``; every scenario
+``slip_rms_pp ≤ 1.0``, ``slip_p95_pp ≤ 2.0``, ``coverage_pct ≥ 98``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator.base import FleetEstimator
+from estimator.config import VehicleConfig
+from estimator.sim import SCENARIOS, SimRun, replay, simulate, truth_at
+from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estimates
+
+__all__ = [
+    "DEFAULT_SEED",
+    "FLOORS",
+    "METHODS",
+    "MOVING_MPS",
+    "START_NS",
+    "default_estimators",
+    "evaluate",
+    "print_table",
+    "run",
+    "run_estimator",
+    "traditional_estimates",
+]
+
+FloatArray = npt.NDArray[np.float64]
+EstimatorFactory = Callable[[], FleetEstimator]
+
+DEFAULT_SEED = 1
+START_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z
+MOVING_MPS = 0.5
+"""Rows count when the true ``V0`` exceeds this (the source's relative errors are on motion)."""
+
+METHODS = ("product", "paper", "traditional")
+
+#: Floors the product mode must meet: (metric, comparison, bound, scenario selector).
+FLOORS: tuple[tuple[str, str, float, str], ...] = (
+    ("vw_max_pct", "<=", 1.5, "paper"),
+    ("slip_rms_pp", "<=", 1.0, "all"),
+    ("slip_p95_pp", "<=", 2.0, "all"),
+    ("coverage_pct", ">=", 98.0, "all"),
+)
+
+_VEHICLE = "bench"
+_STEP_NS = 100_000_000
+_HOLD_NS = 100_000_000
+_TRAD_WINDOW_NS = 500_000_000
+
+
+def default_estimators() -> dict[str, EstimatorFactory]:
+    """Factories of the MDSF fleet estimator in product and paper mode."""
+    from estimator.engine import MdsfFleet
+    from estimator.mdsf import MdsfConfig, MdsfMode
+
+    return {
+        "product": lambda: MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT)),
+        "paper": lambda: MdsfFleet(MdsfConfig(mode=MdsfMode.PAPER)),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# methods
+
+
+def run_estimator(estimator: FleetEstimator, sim: SimRun, config: VehicleConfig) -> np.ndarray:
+    """Feed ``sim`` to ``estimator`` as the server's pipeline would; return all rows in order."""
+    estimator.add_vehicle(_VEHICLE, config)
+    parts: list[np.ndarray] = []
+    for chunk, until in replay(
+        sim.measurements, step_ns=_STEP_NS, hold_ns=_HOLD_NS, end_ns=sim.end_ns
+    ):
+        for m in chunk:
+            estimator.push(_VEHICLE, m)
+        for vid, rows in estimator.advance({_VEHICLE: until}):
+            if vid == _VEHICLE:
+                parts.append(np.asarray(rows))
+    estimator.remove_vehicle(_VEHICLE)
+    if not parts:
+        return empty_estimates(0)
+    rows = np.concatenate(parts)
+    return rows[np.argsort(rows["stamp_ns"], kind="stable")]
+
+
+def _gnss_vehicle_speed(g: GnssSample) -> float:
+    """Eq. (1): ``Vg = Ve·sinψ·cosθ + Vn·cosψ·cosθ + Vu·sinθ`` (NaN pitch taken as level)."""
+    ve, vn, vu = g.vel_enu_mps
+    psi = g.heading_rad
+    theta = g.pitch_rad if math.isfinite(g.pitch_rad) else 0.0
+    return (
+        ve * math.sin(psi) * math.cos(theta)
+        + vn * math.cos(psi) * math.cos(theta)
+        + vu * math.sin(theta)
+    )
+
+
+def _omega_from_edges(edges_ns: npt.NDArray[np.int64], at_ns: FloatArray, teeth: int) -> FloatArray:
+    """Mean angular speed over the edges in the window ``(t − 0.5 s, t]`` for each ``t``."""
+    hi = np.searchsorted(edges_ns, at_ns, side="right")
+    lo = np.searchsorted(edges_ns, np.asarray(at_ns) - _TRAD_WINDOW_NS, side="right")
+    n = hi - lo
+    out = np.full(np.shape(at_ns), np.nan)
+    ok = n >= 2
+    first = edges_ns[lo[ok]]
+    last = edges_ns[hi[ok] - 1]
+    span = (last - first) * 1e-9
+    good = span > 0
+    vals = np.full(int(ok.sum()), np.nan)
+    vals[good] = 2 * math.pi * (n[ok][good] - 1) / (teeth * span[good])
+    out[ok] = vals
+    # fewer than two edges in the window: the wheel (nearly) stands
+    out[n < 2] = 0.0
+    return out
+
+
+def _causal_median3(x: FloatArray) -> FloatArray:
+    """Median of each value and the two before it (fewer at the start)."""
+    if x.size < 3:
+        return x.copy()
+    out = x.copy()
+    out[2:] = np.median(np.stack([x[:-2], x[1:-1], x[2:]]), axis=0)
+    out[1] = 0.5 * (x[0] + x[1])
+    return out
+
+
+def traditional_estimates(sim: SimRun, config: VehicleConfig) -> np.ndarray:
+    """The traditional method: GNSS vehicle speed as both wheels' ground speed (see module doc).
+
+    Returns rows of ``ESTIMATE_DTYPE`` at every GNSS epoch with a velocity.
+    """
+    gnss = [
+        m
+        for m in sim.measurements
+        if isinstance(m, GnssSample) and m.fix != GnssFix.NONE and math.isfinite(m.vel_enu_mps[0])
+    ]
+    rows = empty_estimates(len(gnss))
+    if not gnss:
+        return rows
+    stamps = np.array([g.stamp_ns for g in gnss], dtype=np.int64)
+    vg = _causal_median3(np.array([_gnss_vehicle_speed(g) for g in gnss]))
+    rows["stamp_ns"] = stamps
+    rows["vg_mps"] = vg
+    rows["vl_mps"] = vg
+    rows["vr_mps"] = vg
+    geo = config.geometry
+    teeth = config.encoder.teeth_per_rev
+    min_speed = config.slip.min_ground_speed_mps
+    for wheel, side, radius in (
+        (Wheel.LEFT, "left", geo.wheel_radius_left_m),
+        (Wheel.RIGHT, "right", geo.wheel_radius_right_m),
+    ):
+        parts = [
+            m.stamp_ns for m in sim.measurements if isinstance(m, WheelEdges) and m.wheel == wheel
+        ]
+        edges = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+        omega = _omega_from_edges(edges, stamps.astype(np.float64), teeth)
+        rim = omega * radius
+        rows[f"omega_{side}_radps"] = omega
+        rows[f"rim_{side}_mps"] = rim
+        den = np.maximum(rim, vg)
+        valid = (den >= min_speed) & np.isfinite(rim) & np.isfinite(vg)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rows[f"slip_{side}_pct"] = np.where(
+                valid, 100.0 * (rim - vg) / np.where(valid, den, 1.0), np.nan
+            )
+    rows["flags"] = 0
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# metrics
+
+
+def _nan_stat(values: FloatArray, fn: Callable[[FloatArray], float]) -> float:
+    v = values[np.isfinite(values)]
+    return float(fn(v)) if v.size else math.nan
+
+
+def _rms(v: FloatArray) -> float:
+    return float(np.sqrt(np.mean(v * v)))
+
+
+def evaluate(rows: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """Metrics of estimate ``rows`` against ``truth`` (see the module docstring).
+
+    Parameters
+    ----------
+    rows : ndarray of ESTIMATE_DTYPE
+        Estimates in time order (fields used: ``stamp_ns``, ``vl_mps``, ``vr_mps``,
+        ``slip_*_pct``, ``omega_*_radps``).
+    truth : ndarray of estimator.sim.TRUTH_DTYPE
+    """
+    t_stamp = truth["stamp_ns"]
+    t_moving = truth["v0_mps"] > MOVING_MPS
+    out: dict[str, float] = {"rows": float(rows.shape[0])}
+    if rows.shape[0] == 0 or not t_moving.any():
+        out.update(
+            {
+                k: math.nan
+                for k in (
+                    "vw_max_pct",
+                    "vw_rms_pct",
+                    "slip_rms_pp",
+                    "slip_p95_pp",
+                    "slip_max_pp",
+                    "omega_rms_pct",
+                    "omega_max_pct",
+                )
+            }
+        )
+        out["coverage_pct"] = 0.0 if t_moving.any() else math.nan
+        return out
+    stamps = rows["stamp_ns"]
+    moving = truth_at(truth, stamps, "v0_mps") > MOVING_MPS
+
+    speed_err: list[FloatArray] = []
+    slip_err: list[FloatArray] = []
+    omega_err: list[FloatArray] = []
+    for side, vfield in (("left", "vl_mps"), ("right", "vr_mps")):
+        mean_v = float(np.mean(truth[vfield][t_moving]))
+        ev = rows[vfield][moving] - truth_at(truth, stamps[moving], vfield)
+        speed_err.append(100.0 * ev / mean_v)
+        es = rows[f"slip_{side}_pct"][moving] - truth_at(truth, stamps[moving], f"slip_{side}_pct")
+        slip_err.append(es)
+        w_true = truth_at(truth, stamps[moving], f"omega_{side}_radps")
+        eo = rows[f"omega_{side}_radps"][moving] - w_true
+        with np.errstate(invalid="ignore", divide="ignore"):
+            omega_err.append(np.where(w_true > 0, 100.0 * eo / w_true, np.nan))
+    sv = np.abs(np.concatenate(speed_err))
+    se = np.abs(np.concatenate(slip_err))
+    so = np.abs(np.concatenate(omega_err))
+    out["vw_max_pct"] = _nan_stat(sv, np.max)
+    out["vw_rms_pct"] = _nan_stat(sv, _rms)
+    out["slip_rms_pp"] = _nan_stat(se, _rms)
+    out["slip_p95_pp"] = _nan_stat(se, lambda v: float(np.percentile(v, 95)))
+    out["slip_max_pp"] = _nan_stat(se, np.max)
+    out["omega_rms_pct"] = _nan_stat(so, _rms)
+    out["omega_max_pct"] = _nan_stat(so, np.max)
+    out["coverage_pct"] = _coverage(rows, t_stamp[t_moving])
+    return out
+
+
+def _coverage(rows: np.ndarray, moving_ns: npt.NDArray[np.int64]) -> float:
+    stamps = rows["stamp_ns"]
+    interval = float(np.median(np.diff(stamps))) if stamps.size > 1 else 1e9
+    idx = np.searchsorted(stamps, moving_ns, side="right") - 1
+    has_row = idx >= 0
+    fresh = np.zeros(moving_ns.shape, dtype=bool)
+    fresh[has_row] = (moving_ns[has_row] - stamps[idx[has_row]]) <= 2.0 * interval
+    shares = []
+    for side in ("left", "right"):
+        valid = np.zeros(moving_ns.shape, dtype=bool)
+        valid[has_row] = np.isfinite(rows[f"slip_{side}_pct"][idx[has_row]])
+        shares.append(float(np.mean(valid & fresh)))
+    return 100.0 * float(np.mean(shares))
+
+
+def check_floors(metrics: Mapping[str, float], scenario: str) -> tuple[bool, list[str]]:
+    """Whether product-mode ``metrics`` of ``scenario`` meet :data:`FLOORS`; failures named."""
+    failed = []
+    for key, op, bound, which in FLOORS:
+        if which == "paper" and not scenario.startswith("paper_"):
+            continue
+        value = metrics.get(key, math.nan)
+        ok = value <= bound if op == "<=" else value >= bound
+        if not (math.isfinite(value) and ok):
+            failed.append(f"{key} {value:.2f} (need {op} {bound:g})")
+    return not failed, failed
+
+
+# --------------------------------------------------------------------------------------------
+# run and report
+
+
+def run(
+    json_path: Path | None = None,
+    scenarios: Sequence[str] | None = None,
+    seed: int = DEFAULT_SEED,
+    *,
+    estimators: Mapping[str, EstimatorFactory] | None = None,
+    quiet: bool = False,
+    out: TextIO | None = None,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """Run the bench; print the table (unless ``quiet``) and write JSON if ``json_path`` is given.
+
+    Parameters
+    ----------
+    json_path : Path, optional
+        Where to write the result (same numbers as the table).
+    scenarios : sequence of str, optional
+        Scenario names (default: all of :data:`estimator.sim.SCENARIOS`).
+    seed : int
+        Simulation seed (one run per scenario).
+    estimators : mapping, optional
+        Method name → factory of a :class:`~estimator.base.FleetEstimator` (default
+        :func:`default_estimators`). The traditional method is always added.
+    overrides : mapping, optional
+        Scenario name → overrides passed to :func:`estimator.sim.simulate`.
+
+    Returns
+    -------
+    dict
+        ``{"seed", "moving_mps", "floors", "results": [row...], "all_pass"}``; each row has
+        ``scenario``, ``method``, the metrics, ``seconds`` and, for the product mode,
+        ``floors_pass`` and ``floors_failed``.
+    """
+    names = list(scenarios) if scenarios is not None else list(SCENARIOS)
+    unknown = [n for n in names if n not in SCENARIOS]
+    if unknown:
+        raise KeyError(f"unknown scenario(s) {unknown}; known: {list(SCENARIOS)}")
+    factories = dict(estimators) if estimators is not None else default_estimators()
+    results: list[dict[str, Any]] = []
+    for name in names:
+        sim = simulate(name, seed=seed, start_ns=START_NS, **dict((overrides or {}).get(name, {})))
+        config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
+        methods: list[tuple[str, Callable[[], np.ndarray]]] = [
+            (method, _estimator_runner(factory, sim, config))
+            for method, factory in factories.items()
+        ]
+        methods.append(("traditional", _traditional_runner(sim, config)))
+        for method, fn in methods:
+            t0 = time.perf_counter()
+            rows = fn()
+            seconds = time.perf_counter() - t0
+            row: dict[str, Any] = {"scenario": name, "method": method}
+            row.update(evaluate(rows, sim.truth))
+            row["seconds"] = seconds
+            if method == "product":
+                ok, failed = check_floors(row, name)
+                row["floors_pass"] = ok
+                row["floors_failed"] = failed
+            results.append(row)
+    product_rows = [r for r in results if r["method"] == "product"]
+    result: dict[str, Any] = {
+        "seed": seed,
+        "start_ns": START_NS,
+        "moving_mps": MOVING_MPS,
+        "floors": [
+            {"metric": k, "op": op, "bound": b, "scenarios": which} for k, op, b, which in FLOORS
+        ],
+        "results": results,
+        "all_pass": bool(product_rows) and all(r["floors_pass"] for r in product_rows),
+    }
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(_jsonable(result), indent=2, allow_nan=False) + "\n")
+    if not quiet:
+        print_table(result, file=out)
+    return result
+
+
+def _estimator_runner(
+    factory: EstimatorFactory, sim: SimRun, config: VehicleConfig
+) -> Callable[[], np.ndarray]:
+    def go() -> np.ndarray:
+        return run_estimator(factory(), sim, config)
+
+    return go
+
+
+def _traditional_runner(sim: SimRun, config: VehicleConfig) -> Callable[[], np.ndarray]:
+    def go() -> np.ndarray:
+        return traditional_estimates(sim, config)
+
+    return go
+
+
+def _jsonable(obj: Any) -> Any:
+    """NaN/inf become None so the JSON stays standard."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+_COLUMNS: tuple[tuple[str, str, int], ...] = (
+    ("vw_max_pct", "Vw max%", 8),
+    ("vw_rms_pct", "Vw rms%", 8),
+    ("slip_rms_pp", "S rms pp", 9),
+    ("slip_p95_pp", "S p95 pp", 9),
+    ("slip_max_pp", "S max pp", 9),
+    ("omega_rms_pct", "W rms%", 7),
+    ("omega_max_pct", "W max%", 7),
+    ("coverage_pct", "cover%", 7),
+)
+
+
+def _fmt(value: Any, width: int) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-".rjust(width)
+    return f"{value:{width}.2f}"
+
+
+def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
+    """Plain-text table of :func:`run`'s result, one line per scenario and method."""
+    f = file if file is not None else sys.stdout
+    rows: Iterable[Mapping[str, Any]] = result["results"]
+    head = f"{'scenario':<16} {'method':<12}" + "".join(f" {t:>{w}}" for _, t, w in _COLUMNS)
+    head += "  floors"
+    print(head, file=f)
+    print("-" * len(head), file=f)
+    last = None
+    for r in rows:
+        if last is not None and r["scenario"] != last:
+            print("", file=f)
+        last = r["scenario"]
+        line = f"{r['scenario']:<16} {r['method']:<12}"
+        line += "".join(" " + _fmt(r.get(k), w) for k, _, w in _COLUMNS)
+        if "floors_pass" in r:
+            line += "  PASS" if r["floors_pass"] else "  FAIL: " + "; ".join(r["floors_failed"])
+        print(line, file=f)
+    print("", file=f)
+    floors = ", ".join(
+        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
+        for k, op, b, which in FLOORS
+    )
+    print(f"floors (product mode): {floors}", file=f)
+    print(
+        f"rows with true V0 > {result['moving_mps']} m/s; Vw relative to the wheel's mean speed; "
+        f"seed {result['seed']}; overall: {'PASS' if result['all_pass'] else 'FAIL'}",
+        file=f,
+    )
+
+
+if __name__ == "__main__":  # pragma: no cover
+    run()
