@@ -16,7 +16,7 @@ tier              bucket_s    span_s      rows    used for
 ``coarse``        0.5         1800        3600    windows up to 30 min (2 Hz)
 ================  ==========  ==========  ======  ==============================================
 
-About 230 kB per vehicle with the defaults (ten float32 columns and an int64 stamp per row).
+About 250 kB per vehicle with the defaults (eleven float32 columns and an int64 stamp per row).
 A bucket's row holds the values of its newest estimate, except the two slip columns, which keep
 the value of largest magnitude seen in the bucket (peaks survive decimation). The newest bucket is
 written while it fills, so the newest estimate is always visible.
@@ -73,6 +73,7 @@ LIVE_FIELDS: Final[tuple[str, ...]] = (
     "slip_right_pct",
     "east_m",
     "north_m",
+    "up_m",
     "flags",
 )
 _SLIP_COLS: Final[tuple[int, ...]] = (

@@ -1,0 +1,307 @@
+"""viser 3D fleet view: every vehicle at its GNSS pose, wheels coloured by slip, one followed.
+
+Scene (world = local ENU metres, see :mod:`server.viewer.scene`):
+
+``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
+``/fleet/wheels``   one batched mesh, two wheels per vehicle, coloured by their slip
+``/follow/track``   the followed vehicle's recent track, coloured by max |slip| (line segments)
+``/follow/velocity`` its velocity arrow (1 s of travel)
+``/follow/label``   its id
+
+The whole fleet is two batched meshes, so a frame for 1,000 vehicles is a handful of array
+assignments inside one ``server.atomic()`` block (``server/bench/viewer.py`` compares it with one
+handle per vehicle). Per-vehicle detail exists only for the followed vehicle, chosen in the GUI
+dropdown ("Follow"); "Camera follows" keeps every client's camera looking at it.
+
+:class:`FleetViewer` reads a :class:`server.live.LiveHub` on its own thread at
+``ViewerSettings.update_hz``; :meth:`FleetViewer.update` draws one frame and can be called
+directly (tests, benchmarks).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+import viser
+
+from estimator.config import VehicleGeometry
+from server.live import LiveHub
+from server.settings import ViewerSettings
+from server.viewer.colors import slip_rgb
+from server.viewer.scene import (
+    BODY_SIZE_M,
+    FleetFrame,
+    box_mesh,
+    cylinder_mesh_x,
+    fleet_frame,
+)
+
+__all__ = ["NO_FOLLOW", "FleetViewer"]
+
+_log = logging.getLogger(__name__)
+
+NO_FOLLOW = "(none)"
+_TRACK_WINDOW_S = 120.0
+_WHEEL_WIDTH_M = 0.45
+
+
+class FleetViewer:
+    """The 3D fleet scene on its own port.
+
+    Parameters
+    ----------
+    hub : LiveHub
+        Source of the newest rows and of the followed vehicle's track.
+    settings : ViewerSettings
+        ``host`` (keep 127.0.0.1), ``port`` (0 picks a free one), ``update_hz``.
+    geometry : VehicleGeometry, optional
+        Drawn layout of every vehicle (default geometry).
+    """
+
+    def __init__(
+        self,
+        hub: LiveHub,
+        settings: ViewerSettings,
+        geometry: VehicleGeometry | None = None,
+    ) -> None:
+        self.hub = hub
+        self.settings = settings
+        self.geometry = geometry or VehicleGeometry()
+        self.server: viser.ViserServer | None = None
+        self._bodies: viser.BatchedMeshHandle | None = None
+        self._wheels: viser.BatchedMeshHandle | None = None
+        self._track: viser.LineSegmentsHandle | None = None
+        self._arrow: viser.ArrowsHandle | None = None
+        self._label: viser.LabelHandle | None = None
+        self._follow: viser.GuiDropdownHandle[str] | None = None
+        self._camera_follows: viser.GuiCheckboxHandle | None = None
+        self._count: viser.GuiTextHandle | None = None
+        self._n = -1
+        self._ids: list[str] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.frame: FleetFrame | None = None
+        self.frames = 0
+        self.last_frame_s = 0.0
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def port(self) -> int:
+        if self.server is None:
+            raise RuntimeError("viewer not started")
+        return self.server.get_port()
+
+    def open(self) -> None:
+        """Start the viser server and build the static scene and GUI (no update thread)."""
+        if self.server is not None:
+            return
+        server = viser.ViserServer(
+            host=self.settings.host, port=self.settings.port, label="Slipfleet", verbose=False
+        )
+        self.server = server
+        server.scene.set_up_direction("+z")
+        server.scene.add_grid("/ground", width=400.0, height=400.0, cell_size=10.0, plane="xy")
+        self._follow = server.gui.add_dropdown(
+            "Follow", options=(NO_FOLLOW,), initial_value=NO_FOLLOW
+        )
+        self._camera_follows = server.gui.add_checkbox("Camera follows", initial_value=True)
+        self._count = server.gui.add_text("Vehicles", initial_value="0", disabled=True)
+        self._follow.on_update(lambda _event: self._on_follow_changed())
+
+    def start(self) -> None:
+        """:meth:`open`, then redraw at ``settings.update_hz`` on a thread until :meth:`stop`."""
+        self.open()
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="fleet-viewer", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the update thread and the viser server."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    def _run(self) -> None:
+        period = 1.0 / self.settings.update_hz
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.update()
+            except Exception:  # keep the view alive; the next frame retries
+                _log.exception("viewer frame failed")
+            next_t += period
+            now = time.monotonic()
+            if next_t < now:  # fell behind: skip frames rather than queue them
+                next_t = now
+            self._stop.wait(next_t - now)
+
+    # ------------------------------------------------------------------ following
+    @property
+    def followed(self) -> str | None:
+        if self._follow is None or self._follow.value == NO_FOLLOW:
+            return None
+        return self._follow.value
+
+    def follow(self, vehicle_id: str | None) -> None:
+        """Follow ``vehicle_id`` (None: nobody), as if picked in the dropdown."""
+        if self._follow is None:
+            raise RuntimeError("viewer not open")
+        value = NO_FOLLOW if vehicle_id is None else vehicle_id
+        if value not in self._follow.options:
+            self._follow.options = (*self._follow.options, value)
+        self._follow.value = value  # type: ignore[misc]  # viser's setter, untyped
+        self._on_follow_changed()
+
+    def _on_follow_changed(self) -> None:
+        if self.followed is None:
+            for h in (self._track, self._arrow, self._label):
+                if h is not None:
+                    h.visible = False
+
+    # ------------------------------------------------------------------ frames
+    def _rebuild_fleet(self, frame: FleetFrame) -> None:
+        """(Re)create the batched meshes when the number of vehicles changes."""
+        assert self.server is not None
+        scene = self.server.scene
+        for h in (self._bodies, self._wheels):
+            if h is not None:
+                h.remove()
+        bv, bf = box_mesh(BODY_SIZE_M)
+        self._bodies = scene.add_batched_meshes_simple(
+            "/fleet/bodies",
+            vertices=bv,
+            faces=bf,
+            batched_wxyzs=frame.body_wxyz,
+            batched_positions=frame.body_position_m,
+            batched_colors=frame.body_rgb,
+            lod="off",
+            cast_shadow=False,
+            receive_shadow=False,
+        )
+        g = self.geometry
+        r = (g.wheel_radius_left_m + g.wheel_radius_right_m) / 2
+        wv, wf = cylinder_mesh_x(r, _WHEEL_WIDTH_M)
+        self._wheels = scene.add_batched_meshes_simple(
+            "/fleet/wheels",
+            vertices=wv,
+            faces=wf,
+            batched_wxyzs=frame.wheel_wxyz,
+            batched_positions=frame.wheel_position_m,
+            batched_colors=frame.wheel_rgb,
+            lod="off",
+            cast_shadow=False,
+            receive_shadow=False,
+        )
+
+    def update(self) -> float:
+        """Draw one frame from the hub; return its cost in seconds."""
+        if self.server is None:
+            raise RuntimeError("viewer not open")
+        t0 = time.perf_counter()
+        ids, rows, _arrivals = self.hub.latest_all()
+        if not ids:
+            return 0.0
+        status = [self.hub.status(v) or "live" for v in ids] if len(ids) <= 64 else None
+        if status is None:
+            ov = self.hub.overview()
+            status = ov["status"]
+        frame = fleet_frame(ids, rows, self.geometry, status)
+        with self._lock, self.server.atomic():
+            if len(ids) != self._n or self._bodies is None or self._wheels is None:
+                self._rebuild_fleet(frame)
+                self._n = len(ids)
+            else:
+                f32 = np.float32
+                self._bodies.batched_positions = frame.body_position_m.astype(f32)
+                self._bodies.batched_wxyzs = frame.body_wxyz.astype(f32)
+                self._bodies.batched_colors = frame.body_rgb
+                self._wheels.batched_positions = frame.wheel_position_m.astype(f32)
+                self._wheels.batched_wxyzs = frame.wheel_wxyz.astype(f32)
+                self._wheels.batched_colors = frame.wheel_rgb
+            if ids != self._ids:
+                self._ids = list(ids)
+                assert self._follow is not None and self._count is not None
+                current = self._follow.value
+                self._follow.options = (NO_FOLLOW, *sorted(ids))
+                self._follow.value = current if current in ids else NO_FOLLOW  # type: ignore[misc]
+                self._count.value = str(len(ids))  # type: ignore[misc]
+            self._draw_followed(frame)
+        self.frame = frame
+        self.frames += 1
+        self.last_frame_s = time.perf_counter() - t0
+        return self.last_frame_s
+
+    def _draw_followed(self, frame: FleetFrame) -> None:
+        assert self.server is not None
+        vid = self.followed
+        if vid is None or vid not in frame.ids:
+            return
+        i = frame.ids.index(vid)
+        scene = self.server.scene
+        start = frame.body_position_m[i]
+        tip = start + frame.velocity_mps[i]
+        arrow_pts = np.stack([start, tip])[None, :, :]
+        if self._arrow is None:
+            self._arrow = scene.add_arrows(
+                "/follow/velocity",
+                points=arrow_pts,
+                colors=(20, 20, 20),
+                shaft_radius=0.08,
+                head_radius=0.25,
+                head_length=0.4,
+            )
+        else:
+            self._arrow.points = arrow_pts
+            self._arrow.visible = True
+        label_pos = frame.antenna_m[i] + np.array([0.0, 0.0, 1.0])
+        if self._label is None:
+            self._label = scene.add_label("/follow/label", text=vid, position=label_pos)
+        else:
+            self._label.text = vid
+            self._label.position = label_pos
+            self._label.visible = True
+        win = self.hub.window(vid, _TRACK_WINDOW_S)
+        if win is not None and len(win["stamp_ns"]) >= 2:
+            e = np.array([np.nan if v is None else v for v in win["east_m"]])
+            n = np.array([np.nan if v is None else v for v in win["north_m"]])
+            u = np.array([np.nan if v is None else v for v in win["up_m"]])
+            drop = frame.antenna_m[i, 2] - frame.ground_m[i, 2]  # antenna height above ground
+            pts = np.stack([e, n, u - drop + 0.05], -1)
+            ok = np.isfinite(pts).all(axis=1)
+            pts = pts[ok]
+            sl = np.array([np.nan if v is None else abs(v) for v in win["slip_left_pct"]])[ok]
+            sr = np.array([np.nan if v is None else abs(v) for v in win["slip_right_pct"]])[ok]
+            metric = np.fmax(sl, sr)
+            if pts.shape[0] >= 2:
+                segs = np.stack([pts[:-1], pts[1:]], axis=1)
+                rgb = slip_rgb(metric[1:])
+                cols = np.repeat(rgb[:, None, :], 2, axis=1)
+                if self._track is not None:
+                    self._track.remove()
+                self._track = scene.add_line_segments(
+                    "/follow/track",
+                    points=segs,
+                    colors=cols,
+                    thickness=4.0,
+                    thickness_units="screen",
+                )
+        if self._camera_follows is not None and self._camera_follows.value:
+            target = frame.body_position_m[i]
+            for client in self.server.get_clients().values():
+                cam = client.camera
+                offset = np.asarray(cam.position) - np.asarray(cam.look_at)
+                if not np.all(np.isfinite(offset)) or np.linalg.norm(offset) < 1.0:
+                    offset = np.array([-15.0, -15.0, 12.0])
+                with client.atomic():
+                    cam.look_at = target
+                    cam.position = target + offset
