@@ -38,7 +38,10 @@ SeriesFormat = Literal["json", "csv", "parquet"]
 
 
 def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:
-    """Replace local ``$ref``s by their ``$defs`` (an OpenAPI-safe, self-contained schema)."""
+    """Replace local ``$ref``s by their ``$defs`` (an OpenAPI-safe, self-contained schema).
+
+    ``closed`` adds ``additionalProperties: false`` to every object with properties.
+    """
     defs = schema.get("$defs", {})
 
     def walk(node: Any) -> Any:
@@ -47,6 +50,10 @@ def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:
             if isinstance(ref, str) and ref.startswith("#/$defs/"):
                 return walk(copy.deepcopy(defs[ref.removeprefix("#/$defs/")]))
             out = {k: walk(v) for k, v in node.items() if k != "$defs"}
+            prefix = out.get("prefixItems")
+            if isinstance(prefix, list) and prefix and all(p == prefix[0] for p in prefix):
+                # fixed-length tuple of one type: plain ``items`` (client generators know it)
+                out["items"] = out.pop("prefixItems")[0]
             if closed and out.get("type") == "object" and "properties" in out:
                 out["additionalProperties"] = False
             return out

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Body, Depends, Path, Response, status
+from pydantic import TypeAdapter, ValidationError
 
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
 from estimator.types import EstimateFlag
@@ -59,15 +61,35 @@ def _public(record: VehicleRecord) -> VehiclePublic:
     )
 
 
+_CONFIG_ADAPTER = TypeAdapter(VehicleConfig)
+
+
+def _type_errors(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors()[:5]:
+        loc = ".".join(str(p) for p in err["loc"])
+        parts.append(f"{loc}: {err['msg']}")
+    return "; ".join(parts)
+
+
 def _parse_config(data: Any) -> VehicleConfig:
-    if isinstance(data, dict) and "estimators" in data:
-        names = data["estimators"]
-        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise InvalidConfig("estimators must be a list of estimator names")
+    """Validate a config body: the config's own checks, then the JSON types of every field.
+
+    :func:`vehicle_config_from_dict` names ranges and unknown fields; the strict type pass
+    catches what it lets through (booleans as numbers, non-numbers among band edges, …).
+    """
     try:
-        return vehicle_config_from_dict(data)
+        config = vehicle_config_from_dict(data)
     except (ConfigError, TypeError, ValueError) as exc:
         raise InvalidConfig(str(exc)) from exc
+    try:
+        _CONFIG_ADAPTER.validate_json(json.dumps(data), strict=True)
+    except (ValidationError, ValueError) as exc:
+        reason = _type_errors(exc) if isinstance(exc, ValidationError) else str(exc)
+        raise InvalidConfig(f"wrong type: {reason}") from exc
+    if not all(math.isfinite(e) and e > 0 for e in config.slip.band_edges_pct):
+        raise InvalidConfig("slip.band_edges_pct must be finite numbers > 0")
+    return config
 
 
 @router.get("", response_model=VehiclesPublic, summary="List registered vehicles")
@@ -91,7 +113,7 @@ def get_vehicle(vehicle: VehicleDep) -> VehiclePublic:
     response_model=VehiclePublic,
     responses={
         201: {"model": VehiclePublic, "description": "vehicle registered"},
-        **error_responses(413, 422),
+        **error_responses(400, 413, 422),
     },
     summary="Register a vehicle or replace its config",
     description=(

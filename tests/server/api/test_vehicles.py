@@ -61,7 +61,11 @@ def test_bad_config_is_422_with_reason(client: ApiClient, runtime: FakeRuntime) 
         ({"geometry": {"colour": "red"}}, "unknown field"),
         ({"kind": "hovercraft"}, "kind"),
         ({"estimators": "mdsf"}, "estimators"),
+        ({"estimators": [1, 2]}, "estimators"),
         ({"encoder": 7}, "encoder"),
+        ({"slip": {"band_edges_pct": [{}]}}, "band_edges_pct"),
+        ({"slip": {"band_edges_pct": [-5]}}, "band_edges_pct"),
+        ({"geometry": {"h0_m": True}}, "h0_m"),
     ]
     for body, word in cases:
         r = client.put(f"{V}/t1", json=body)
