@@ -126,6 +126,7 @@ def test_series_empty_for_unknown_vehicle(store: Store) -> None:
 def test_latest_and_latest_all(store: Store) -> None:
     _register(store, "a", "b", "empty")
     ra, rb = make_rows(30, seed=1), make_rows(40, start_ns=T0_NS + 5 * DT_NS, seed=2)
+    ra["slip_left_pct"][-1] = np.nan  # NaN survives the single-row path too
     store.write_estimates([("a", ra), ("b", rb)])
     la = store.latest("a")
     assert la is not None and la.shape == () and la.dtype == ESTIMATE_DTYPE

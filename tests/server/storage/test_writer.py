@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from server.settings import StorageSettings
-from server.storage import Store, StoreWriter
+from server.storage import StorageDataError, Store, StoreWriter
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
@@ -261,3 +261,28 @@ def test_producers_on_several_threads(backend: Backend) -> None:
     for vid in vehicles:
         got = store.query_series(vid, 0, 2**62, ["vg_mps"])
         assert len(got) == 1000 and np.all(np.diff(got["stamp_ns"]) == DT_NS)
+
+
+class PoisonStore(CountingStore):
+    """Refuses, as the database would refuse bad data, any batch holding vehicle ``poison``."""
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        if any(vid == "poison" for vid, _ in batch):
+            raise StorageDataError("value out of range")
+        return super().write_estimates(batch)
+
+
+def test_rejected_data_is_isolated_per_vehicle_and_counted(backend: Backend) -> None:
+    inner = backend.open()
+    for vid in ("a", "b", "poison"):
+        inner.upsert_vehicle(vid, {}, now_ns=1)
+    store = PoisonStore(inner)
+    with StoreWriter(store, _settings(commit_interval_s=0.5)) as writer:
+        writer.submit([("a", make_rows(10)), ("poison", make_rows(7)), ("b", make_rows(5))])
+        assert writer.flush(timeout=30)
+        stats = writer.stats()
+    assert stats.rows_written == 15 and stats.rows_dropped_error == 7
+    assert stats.healthy and stats.backlog_rows == 0
+    assert stats.last_error is not None and "out of range" in stats.last_error
+    assert len(inner.query_series("a", 0, 2**62)) == 10
+    assert len(inner.query_series("poison", 0, 2**62)) == 0

@@ -1,0 +1,33 @@
+"""The storage benchmark runs end to end (tiny sizes) and reports what it measured."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from server.bench.storage import run
+
+
+def _check(backend: dict[str, object]) -> None:
+    assert backend["rows"] == 300
+    assert isinstance(backend["insert_speedup"], float) and backend["insert_speedup"] > 0
+    for key in ("query_all_fields", "query_few_fields"):
+        q = backend[key]
+        assert isinstance(q, dict) and q["median_ms"] > 0 and q["best_ms"] <= q["median_ms"]
+
+
+def test_sqlite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "bench.json"
+    results = run(out, rows=300, baseline_rows=20, repeats=2)
+    assert set(results["backends"]) == {"sqlite"}
+    _check(results["backends"]["sqlite"])
+    assert json.loads(out.read_text()) == results
+    assert "one commit per row" in capsys.readouterr().out
+
+
+@pytest.mark.postgres
+def test_postgres(pg_url: str) -> None:
+    results = run(postgres_url=pg_url, rows=300, baseline_rows=20, repeats=2)
+    _check(results["backends"]["postgresql"])
