@@ -5,6 +5,10 @@ A payload is one msgpack map. Every payload carries the header ``v`` (schema ver
 numeric arrays travel as msgpack *bin* values holding packed little-endian numbers, so decoding
 is ``numpy.frombuffer`` and the resulting arrays are read-only views of the payload.
 
+A float that is NaN means "not available" (GNSS velocity without a fix, a dead IMU axis) and is
+passed on: the estimators skip and count it. Infinities, impossible magnitudes and timestamps
+that go back are refused here.
+
 Exceptions::
 
     ValueError
@@ -62,7 +66,7 @@ REASONS: tuple[str, ...] = (
     "missing_field",
     "wrong_type",  # a field has the wrong msgpack type, or an unknown enum value
     "wrong_shape",  # array byte length / lengths disagree, or an empty batch
-    "non_finite",  # NaN or inf where a number is required
+    "non_finite",  # +-inf anywhere (NaN means "not available" and passes to the estimators)
     "out_of_range",  # physically impossible value
     "non_monotonic",  # timestamps in a batch do not increase
     "bad_config",  # a config payload that VehicleConfig refuses
@@ -357,7 +361,7 @@ def _stamps(
 def _finite_rows(ctx: _Ctx, a: np.ndarray, name: str, n: int, bound: float) -> np.ndarray:
     if a.shape[0] != n:
         raise ctx.fail("wrong_shape", f"{name} has {a.shape[0]} rows for {n} timestamps")
-    if not np.isfinite(a).all():
+    if np.isinf(a).any():
         raise ctx.fail("non_finite", name)
     norm2 = np.einsum("ij,ij->i", a, a)
     if (norm2 > bound * bound).any():
@@ -373,8 +377,9 @@ def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement
     if any(type(x) is not float and type(x) is not int for x in vel):
         raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
     ve, vn, vu = (float(x) for x in vel)
-    if not (math.isfinite(ve) and math.isfinite(vn) and math.isfinite(vu)):
+    if math.isinf(ve) or math.isinf(vn) or math.isinf(vu):
         raise ctx.fail("non_finite", "vel_enu_mps")
+    # NaN (no velocity, e.g. fix NONE) passes: NaN comparisons are False
     if ve * ve + vn * vn + vu * vu > lim.max_speed_mps**2:
         raise ctx.fail("out_of_range", f"speed exceeds {lim.max_speed_mps:g} m/s")
     heading = _float(ctx, m, "heading_rad", nan_ok=True)
@@ -443,7 +448,7 @@ def _decode_speeds(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measureme
     om = _array(ctx, m, "omega_radps", "<f8", 2, lim)
     if om.shape[0] != t.shape[0]:
         raise ctx.fail("wrong_shape", "omega_radps and stamp_ns lengths differ")
-    if not np.isfinite(om).all():
+    if np.isinf(om).any():
         raise ctx.fail("non_finite", "omega_radps")
     if (np.abs(om) > lim.max_wheel_omega_radps).any():
         raise ctx.fail("out_of_range", f"|omega_radps| exceeds {lim.max_wheel_omega_radps:g}")

@@ -315,12 +315,12 @@ def test_reason_wrong_shape_direction() -> None:
 @pytest.mark.parametrize(
     ("stream", "payload"),
     [
-        (Stream.GNSS, encode_gnss(_gnss(vel_enu_mps=(math.nan, 0.0, 0.0)), 0)),
+        (Stream.GNSS, encode_gnss(_gnss(vel_enu_mps=(math.inf, 0.0, 0.0)), 0)),
         (Stream.GNSS, encode_gnss(_gnss(heading_rad=math.inf), 0)),
         (Stream.GNSS, encode_gnss(_gnss(lat_deg=-math.inf), 0)),
         (
             Stream.IMU,
-            encode_imu(ImuBatch(T0 + np.arange(2), np.full((2, 3), np.nan), np.zeros((2, 3))), 0),
+            encode_imu(ImuBatch(T0 + np.arange(2), np.full((2, 3), -np.inf), np.zeros((2, 3))), 0),
         ),
         (
             Stream.WHEELS,
@@ -368,6 +368,17 @@ def test_reason_out_of_range(stream: Stream, payload: bytes) -> None:
 def test_reason_out_of_range_repeated_wheel() -> None:
     e = WheelEdges(Wheel.LEFT, T0 + np.arange(2, dtype=np.int64))
     assert _reason(KEY[Stream.WHEELS], encode_wheel_edges([e, e], 0)) == "out_of_range"
+
+
+def test_nan_means_not_available_and_passes() -> None:
+    g = _gnss(vel_enu_mps=(math.nan, math.nan, math.nan), fix=GnssFix.NONE, lat_deg=math.nan)
+    (m,) = decode(KEY[Stream.GNSS], encode_gnss(g, 0)).measurements
+    assert isinstance(m, GnssSample) and math.isnan(m.vel_enu_mps[0]) and m.fix is GnssFix.NONE
+    acc = np.array([[np.nan, 0.2, 9.8], [0.0, 0.1, 9.8]])
+    (b,) = decode(
+        KEY[Stream.IMU], encode_imu(ImuBatch(T0 + np.arange(2), acc, acc / 10), 0)
+    ).measurements
+    assert isinstance(b, ImuBatch) and np.isnan(b.accel_mps2[0, 0])
 
 
 def test_single_sample_batch_is_fine() -> None:

@@ -1,0 +1,441 @@
+"""Publish simulated vehicles over Zenoh, and record or replay Zenoh traffic.
+
+:class:`FleetSim` turns :func:`estimator.sim.simulate` runs into the wire protocol
+(``docs/protocol.md``) and publishes them the way live vehicles would: each measurement at its
+simulated arrival time (real time, or faster by ``rate``), sensor stamps shifted to *now*,
+sequence numbers per stream, vehicle ids ``sim-0001``, ``sim-0002``, ...; vehicles are spread
+over the 100 ms packet tick so they do not all publish at once. Simulating is the slow part
+(≈0.4 s per 5-minute vehicle), so ``distinct_runs`` runs are simulated and shared round-robin by
+the vehicles, each with its own time phase.
+
+:func:`record` writes what a session receives to a recording file and :func:`replay` publishes
+one (format: :mod:`server.protocol.recording`).
+
+Publishers use congestion control BLOCK and reliable transport: a slow router slows the
+simulator down instead of dropping packets.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from estimator.base import Measurement
+from estimator.config import VehicleConfig
+from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelSpeeds
+from server.protocol.codec import (
+    DecodeError,
+    decode,
+    encode_config,
+    encode_gnss,
+    encode_imu,
+    encode_wheel_edges,
+    encode_wheel_speeds,
+)
+from server.protocol.keys import Stream, config_key, parse_key, sensor_key
+from server.protocol.recording import RecordingWriter, read_recording
+
+__all__ = [
+    "VEHICLE_ID_FORMAT",
+    "FleetSim",
+    "SimPacket",
+    "SimStats",
+    "encode_packet",
+    "packetize",
+    "record",
+    "replay",
+    "shift_measurement",
+]
+
+log = logging.getLogger(__name__)
+
+VEHICLE_ID_FORMAT = "sim-{:04d}"
+TICK_NS = 100_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class SimPacket:
+    """One packet of a simulated run: when it arrives (ns after the run start) and what it holds."""
+
+    arrival_offset_ns: int
+    stream: Stream
+    measurements: tuple[Measurement, ...]
+
+
+@dataclass(slots=True)
+class SimStats:
+    """What a publisher sent."""
+
+    packets: Counter[str] = field(default_factory=Counter)
+    payload_bytes: int = 0
+    configs: int = 0
+    loops: int = 0
+    max_behind_ms: float = 0.0
+    wall_s: float = 0.0
+
+    @property
+    def total_packets(self) -> int:
+        return sum(self.packets.values())
+
+
+def _stream_of(m: Measurement) -> Stream:
+    if isinstance(m, GnssSample):
+        return Stream.GNSS
+    if isinstance(m, ImuBatch):
+        return Stream.IMU
+    return Stream.WHEELS
+
+
+def packetize(measurements: list[tuple[int, Measurement]], start_ns: int) -> list[SimPacket]:
+    """Group ``(arrival_ns, measurement)`` pairs (arrival order) into wire packets.
+
+    Wheel edges of both wheels arriving at the same time share one packet; empty batches (no
+    samples) are dropped, as a vehicle would not send them.
+    """
+    out: list[SimPacket] = []
+    for arrival, m in measurements:
+        if not isinstance(m, GnssSample) and len(m.stamp_ns) == 0:
+            continue
+        stream = _stream_of(m)
+        last = out[-1] if out else None
+        if (
+            isinstance(m, WheelEdges)
+            and last is not None
+            and last.stream is Stream.WHEELS
+            and last.arrival_offset_ns == arrival - start_ns
+            and len(last.measurements) == 1
+            and isinstance(last.measurements[0], WheelEdges)
+            and last.measurements[0].wheel != m.wheel
+        ):
+            out[-1] = SimPacket(last.arrival_offset_ns, stream, (*last.measurements, m))
+            continue
+        out.append(SimPacket(arrival - start_ns, stream, (m,)))
+    return out
+
+
+def shift_measurement(m: Measurement, dt_ns: int) -> Measurement:
+    """The same measurement with every timestamp moved by ``dt_ns``."""
+    if isinstance(m, GnssSample):
+        return dataclasses.replace(m, stamp_ns=int(m.stamp_ns) + dt_ns)
+    return dataclasses.replace(m, stamp_ns=m.stamp_ns + dt_ns)
+
+
+def encode_packet(stream: Stream, measurements: tuple[Measurement, ...], seq: int) -> bytes:
+    """Encode one packet's measurements (as :func:`packetize` grouped them)."""
+    first = measurements[0]
+    if stream is Stream.GNSS and isinstance(first, GnssSample):
+        return encode_gnss(first, seq)
+    if stream is Stream.IMU and isinstance(first, ImuBatch):
+        return encode_imu(first, seq)
+    if isinstance(first, WheelSpeeds):
+        return encode_wheel_speeds(first, seq)
+    edges = [m for m in measurements if isinstance(m, WheelEdges)]
+    if len(edges) != len(measurements):
+        raise ValueError(f"cannot encode {[type(m).__name__ for m in measurements]} on {stream}")
+    return encode_wheel_edges(edges, seq)
+
+
+def _publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+
+
+@dataclass(slots=True)
+class _Vehicle:
+    vehicle_id: str
+    packets: list[SimPacket]
+    period_ns: int  # sensor-time length of one loop
+    phase_ns: int
+    shift_ns: int  # run stamps -> published stamps, first loop
+    config: VehicleConfig
+    index: int = 0
+    loop: int = 0
+    seq: dict[Stream, int] = field(default_factory=lambda: dict.fromkeys(Stream, 0))
+
+
+class FleetSim:
+    """Publishes ``n_vehicles`` simulated vehicles on ``session``.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        A client (or peer) session connected to the server's router.
+    n_vehicles : int
+    scenario : str
+        An :func:`estimator.sim.scenario_names` entry.
+    prefix : str
+        Key prefix (``ZenohSettings.key_prefix``).
+    seed : int
+        Run ``k`` is simulated with ``seed + k``.
+    rate : float
+        Publish ``rate`` times faster than real time (stamps still advance with sensor time).
+    loop : bool
+        Start over (stamps continuing) when a run ends; otherwise stop after one run.
+    distinct_runs : int
+        How many different runs to simulate and share among the vehicles.
+    first_index : int
+        Number of the first vehicle id (``sim-0001`` by default).
+    publish_config : bool
+        Publish each vehicle's config on ``<prefix>/<id>/config`` before its data.
+    clock_ns : callable
+        UTC clock for the stamp shift (injectable for tests).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        n_vehicles: int,
+        *,
+        scenario: str = "field_work",
+        prefix: str = "fleet",
+        seed: int = 0,
+        rate: float = 1.0,
+        loop: bool = False,
+        distinct_runs: int = 8,
+        first_index: int = 1,
+        publish_config: bool = True,
+        clock_ns: Callable[[], int] = time.time_ns,
+        **sim_overrides: object,
+    ) -> None:
+        if n_vehicles < 1 or rate <= 0 or distinct_runs < 1:
+            raise ValueError("n_vehicles >= 1, rate > 0 and distinct_runs >= 1 are required")
+        self._session = session
+        self._n = n_vehicles
+        self._scenario = scenario
+        self._prefix = prefix
+        self._seed = seed
+        self._rate = rate
+        self._loop = loop
+        self._distinct = min(distinct_runs, n_vehicles)
+        self._first = first_index
+        self._publish_config = publish_config
+        self._clock = clock_ns
+        self._overrides = sim_overrides
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.stats = SimStats()
+
+    @property
+    def vehicle_ids(self) -> list[str]:
+        return [VEHICLE_ID_FORMAT.format(self._first + i) for i in range(self._n)]
+
+    def _build(self) -> list[_Vehicle]:
+        from estimator.sim import simulate  # the simulator loads only when simulating
+
+        now = self._clock()
+        base = now - now % TICK_NS
+        runs = [
+            simulate(self._scenario, seed=self._seed + k, start_ns=base, **self._overrides)  # type: ignore[arg-type]
+            for k in range(self._distinct)
+        ]
+        vehicles = []
+        for i, vid in enumerate(self.vehicle_ids):
+            run = runs[i % self._distinct]
+            packets = packetize(run.in_arrival_order(), run.start_ns)
+            period = run.end_ns - run.start_ns + TICK_NS
+            phase = (i * TICK_NS) // self._n
+            vehicles.append(
+                _Vehicle(vid, packets, period, phase, base - run.start_ns + phase, run.config)
+            )
+        return vehicles
+
+    def run(self, duration_s: float | None = None) -> SimStats:
+        """Publish until the runs end (no loop), ``duration_s`` passes, or :meth:`stop`."""
+        vehicles = self._build()
+        pubs: dict[tuple[str, Stream], zenoh.Publisher] = {}
+        for v in vehicles:
+            for s in Stream:
+                pubs[(v.vehicle_id, s)] = _publisher(
+                    self._session, sensor_key(self._prefix, v.vehicle_id, s)
+                )
+            if self._publish_config:
+                self._session.put(
+                    config_key(self._prefix, v.vehicle_id),
+                    encode_config(v.config),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+                self.stats.configs += 1
+        wall0 = time.perf_counter_ns()
+        end_wall = None if duration_s is None else wall0 + int(duration_s * 1e9)
+        heap: list[tuple[int, int]] = []
+        for i, v in enumerate(vehicles):
+            if v.packets:
+                heap.append((self._due(v), i))
+        heapq.heapify(heap)
+        stats = self.stats
+        try:
+            while heap and not self._stop.is_set():
+                due, i = heap[0]
+                now = time.perf_counter_ns() - wall0
+                if end_wall is not None and wall0 + due > end_wall:
+                    break
+                if due > now:
+                    self._stop.wait(min((due - now) / 1e9, 0.05))
+                    continue
+                heapq.heappop(heap)
+                stats.max_behind_ms = max(stats.max_behind_ms, (now - due) / 1e6)
+                v = vehicles[i]
+                p = v.packets[v.index]
+                shift = v.shift_ns + v.loop * v.period_ns
+                ms = tuple(shift_measurement(m, shift) for m in p.measurements)
+                payload = encode_packet(p.stream, ms, v.seq[p.stream])
+                v.seq[p.stream] += 1
+                pubs[(v.vehicle_id, p.stream)].put(payload)
+                stats.packets[p.stream.value] += 1
+                stats.payload_bytes += len(payload)
+                v.index += 1
+                if v.index == len(v.packets):
+                    if not self._loop:
+                        continue
+                    v.index = 0
+                    v.loop += 1
+                    stats.loops = max(stats.loops, v.loop)
+                heapq.heappush(heap, (self._due(v), i))
+        finally:
+            for pub in pubs.values():
+                pub.undeclare()
+            stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
+        return stats
+
+    def _due(self, v: _Vehicle) -> int:
+        """Wall time (ns after the start) at which ``v``'s next packet is published."""
+        sensor_offset = v.packets[v.index].arrival_offset_ns + v.phase_ns + v.loop * v.period_ns
+        return int(sensor_offset / self._rate)
+
+    def start(self, duration_s: float | None = None) -> None:
+        """Run in a background thread."""
+        if self._thread is not None:
+            raise RuntimeError("already started")
+        self._thread = threading.Thread(
+            target=self.run, args=(duration_s,), name="slipfleet-fleet-sim", daemon=True
+        )
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop publishing and join the background thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+
+def _prefix_of(key: str) -> str:
+    parts = key.split("/")
+    return "/".join(parts[:-3]) if parts[-2] == "sensors" else "/".join(parts[:-2])
+
+
+def replay(
+    path: str | Path,
+    session: zenoh.Session,
+    rate: float = 1.0,
+    *,
+    shift_to_now: bool = True,
+    stop: threading.Event | None = None,
+    clock_ns: Callable[[], int] = time.time_ns,
+) -> SimStats:
+    """Publish a recording with its original pacing (``rate`` times faster).
+
+    With ``shift_to_now`` (default) sensor packets are decoded, their stamps moved so the first
+    record lands *now*, and re-encoded: the server treats them as fresh data. Without it the
+    payloads go out byte for byte (the server's store ignores rows it already has). Packets that
+    do not decode are published unchanged.
+    """
+    if rate <= 0:
+        raise ValueError("rate must be > 0")
+    stats = SimStats()
+    pubs: dict[str, zenoh.Publisher] = {}
+    wall0 = time.perf_counter_ns()
+    first_stamp: int | None = None
+    shift = 0
+    try:
+        for rec in read_recording(path):
+            if stop is not None and stop.is_set():
+                break
+            if first_stamp is None:
+                first_stamp = rec.stamp_ns
+                shift = clock_ns() - first_stamp
+            due = int((rec.stamp_ns - first_stamp) / rate)
+            while (ahead := due - (time.perf_counter_ns() - wall0)) > 0:
+                if stop is not None and stop.wait(ahead / 1e9):
+                    break
+                if stop is None:
+                    time.sleep(ahead / 1e9)
+            payload = rec.payload
+            stream: Stream | None = None
+            try:
+                _, stream = parse_key(rec.key, _prefix_of(rec.key))
+            except (ValueError, IndexError):
+                stream = None
+            if shift_to_now and stream is not None:
+                try:
+                    pkt = decode(
+                        rec.key, payload, prefix=_prefix_of(rec.key), max_payload_bytes=1 << 30
+                    )
+                    ms = tuple(shift_measurement(m, shift) for m in pkt.measurements)
+                    payload = encode_packet(pkt.stream, ms, pkt.seq)
+                except DecodeError:
+                    pass  # replay what was recorded: the server will count the refusal
+            pub = pubs.get(rec.key)
+            if pub is None:
+                pub = pubs[rec.key] = _publisher(session, rec.key)
+            pub.put(payload)
+            if stream is None:
+                stats.configs += 1
+            else:
+                stats.packets[stream.value] += 1
+            stats.payload_bytes += len(payload)
+    finally:
+        for pub in pubs.values():
+            pub.undeclare()
+        stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
+    return stats
+
+
+def record(
+    path: str | Path,
+    session: zenoh.Session,
+    key_expr: str = "fleet/**",
+    *,
+    duration_s: float | None = None,
+    stop: threading.Event | None = None,
+    max_records: int | None = None,
+    clock_ns: Callable[[], int] = time.time_ns,
+) -> int:
+    """Write every sample ``session`` receives on ``key_expr`` to ``path``; return the count.
+
+    Stops after ``duration_s`` or when ``stop`` is set (keeping what had already arrived), or
+    after ``max_records``.
+    """
+    end = None if duration_s is None else time.monotonic() + duration_s
+    sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(65_536))
+    handler = sub.handler
+    try:
+        with open(path, "wb") as fh:
+            writer = RecordingWriter(fh)
+            stopping = False
+            while max_records is None or writer.records < max_records:
+                if not stopping:
+                    stopping = (stop is not None and stop.is_set()) or (
+                        end is not None and time.monotonic() >= end
+                    )
+                sample = handler.try_recv()
+                if sample is None:
+                    if stopping:
+                        break  # stopped and drained what had already arrived
+                    time.sleep(0.002)
+                    continue
+                writer.write(str(sample.key_expr), clock_ns(), sample.payload.to_bytes())
+            return writer.records
+    finally:
+        sub.undeclare()
