@@ -13,8 +13,8 @@ adds (hub, WebSocket cadence, JSON, network stack); the pipeline's reorder windo
 (``ingest.lateness_ms``) comes on top in production.
 
 The synthetic fleet: each vehicle drives a figure of eight (20–60 m lobes, 1.5–4 m/s) with slip
-that wanders between about 0 and 12 % and, for 4 s out of every ~40 s, a burst above 20 % on one
-wheel; one vehicle in ten loses GNSS for 5 s every minute (``EstimateFlag.DEGRADED``).
+that wanders between about 0 and 12 % and, for 7 s out of every 40 s, a burst above 18 % on the
+left wheel (long enough for a slip alert); one vehicle in ten loses GNSS for 5 s every minute (``EstimateFlag.DEGRADED``).
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ class SyntheticFleet:
         vl = vg - yaw_rate * _TRACK_WIDTH_M / 2
         vr = vg + yaw_rate * _TRACK_WIDTH_M / 2
         base = 6.0 + 6.0 * np.sin(2 * math.pi * self.slip_freq * t + self.phase)
-        burst = ((t + self.burst_offset_s) % 40.0) < 4.0
+        burst = ((t + self.burst_offset_s) % 40.0) < 7.0
         sl = base + np.where(burst, 18.0, 0.0)
         sr = 0.8 * base + 1.0 * np.sin(0.5 * t + self.phase)
         degraded = self.degrades & ((t % 60.0) < 5.0)
