@@ -207,14 +207,19 @@ def _resolve(
     return params, sensors, common
 
 
-def _noise_figures(spec: SensorSpec, truth: FineTruth) -> NoiseConfig:
+def _noise_figures(spec: SensorSpec, truth: FineTruth, config: VehicleConfig) -> NoiseConfig:
+    """RMS noise figures of the simulated sensors over the run (relative parts included)."""
     speed = float(np.sqrt(np.mean(truth.v0_mps**2)))
     gnss = math.hypot(spec.gnss_vel_std_mps, spec.gnss_speed_noise_rel * speed / math.sqrt(3.0))
+    accel_rms = float(np.sqrt(np.mean(truth.point_accel_body(imu_point_m(config))[:, 1] ** 2)))
+    rate_rms = float(np.sqrt(np.mean(truth.omega_radps[:, 2] ** 2)))
+    accel = math.hypot(spec.accel_std_mps2, spec.accel_noise_rel * accel_rms)
+    gyro = math.hypot(spec.gyro_std_radps, spec.gyro_noise_rel * rate_rms)
     tiny = 1e-6
     return NoiseConfig(
         gnss_vel_std_mps=max(gnss, tiny),
-        accel_std_mps2=max(spec.accel_std_mps2, tiny),
-        gyro_std_radps=max(spec.gyro_std_radps, tiny),
+        accel_std_mps2=max(accel, tiny),
+        gyro_std_radps=max(gyro, tiny),
         accel_bias_walk_mps2=max(spec.accel_bias_walk_mps2, tiny),
     )
 
@@ -330,7 +335,7 @@ def simulate(
         params=dict(params),
         sensors=spec,
         config=cfg,
-        sensor_noise=_noise_figures(spec, fine),
+        sensor_noise=_noise_figures(spec, fine, cfg),
         start_ns=start_ns,
         end_ns=start_ns + round(fine.t_s[-1] * 1e9),
         measurements=[e.measurement for e in emissions],

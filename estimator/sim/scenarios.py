@@ -12,9 +12,11 @@ vehicle does not turn or pitch while standing.
 The two ``paper_*`` scenarios follow ``../shared/docs/method.md`` section 1 ("The paper's
 scenarios") and the source's section 2.1: GNSS at the paper's 5 Hz (dt = 0.2 s, so sample 70 is
 t = 14 s), speed noise of ≈5 % *amplitude* (uniform in ±5 %), a −1 m/s disturbance of one epoch
-at t = 14 s; accelerometer noise "3 %" taken as 3 % of g (0.29 m/s², 1σ per 100 Hz sample) and
-gyro noise "2 %" as 2 % of the 0.4 rad/s circling rate (0.008 rad/s) — the source does not say
-what the percentages refer to. No IMU bias (the source models none).
+at t = 14 s. The source adds the other sensors' noise "according to the actual values
+(acceleration 3 %, angular rate 2 %)": here white noise of 3 % (1σ) of the inertial acceleration
+at the IMU and 2 % of the angular rate, per 100 Hz sample, on top of a small MEMS floor
+(0.02 m/s², 0.002 rad/s) so that a zero signal is not noise-free. No IMU bias (the source models
+none).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.sim._signals import BoundedSines, EasedKnots, smooth_window
-from estimator.sim.kinematics import GRAVITY_MPS2, MotionPlan, TractionModel
+from estimator.sim.kinematics import MotionPlan, TractionModel
 
 FloatArray = npt.NDArray[np.float64]
 Params = Mapping[str, Any]
@@ -227,8 +229,10 @@ _PAPER_SENSORS: dict[str, Any] = {
     "gnss_vel_std_mps": 0.005,
     "gnss_speed_steps": ((14.0, -1.0, 0.2),),
     "gnss_latency_ms": 0.0,
-    "accel_std_mps2": 0.03 * GRAVITY_MPS2,
-    "gyro_std_radps": 0.02 * 0.4,
+    "accel_std_mps2": 0.02,
+    "gyro_std_radps": 0.002,
+    "accel_noise_rel": 0.03,
+    "gyro_noise_rel": 0.02,
     "accel_bias_std_mps2": 0.0,
     "gyro_bias_std_radps": 0.0,
     "accel_bias_walk_mps2": 0.0,

@@ -14,7 +14,8 @@ GNSS (``gnss_rate_hz``, epochs on whole multiples of the period)
     receiver with white noise; position through :class:`estimator.geo.EnuFrame`.
 IMU (``imu_rate_hz``, batches of ``imu_batch_len``)
     Specific force at the IMU's mounting point, gravity included, and body angular rate; each
-    axis gets a constant bias (drawn once per run), a random-walk bias and white noise.
+    axis gets a constant bias (drawn once per run), a random-walk bias, white noise and
+    optionally white noise proportional to the signal.
 Wheel encoders
     Rising-edge times where the integrated wheel angle crosses a tooth edge. Each ring has a
     fixed random pattern of tooth-edge deviations (``tooth_error_rel`` of the tooth pitch, 1σ),
@@ -82,6 +83,9 @@ class SensorSpec:
     ---
     imu_rate_hz : 100.0, imu_batch_len : 10
     accel_std_mps2, gyro_std_radps : white noise per sample.
+    accel_noise_rel, gyro_noise_rel : 0.0 — white noise proportional to the signal (1σ, fraction
+    of the inertial acceleration at the IMU — gravity excluded — and of the angular rate, per
+    axis and sample); the source's "accel 3 %, gyro 2 %".
     accel_bias_std_mps2, gyro_bias_std_radps : constant bias per axis (1σ, drawn per run).
     accel_bias_walk_mps2, gyro_bias_walk_radps : bias random walk per √s.
     imu_latency_ms : delivery delay after the batch's last sample.
@@ -121,6 +125,8 @@ class SensorSpec:
     imu_batch_len: int = 10
     accel_std_mps2: float = 0.05
     gyro_std_radps: float = 0.005
+    accel_noise_rel: float = 0.0
+    gyro_noise_rel: float = 0.0
     accel_bias_std_mps2: float = 0.03
     gyro_bias_std_radps: float = 0.002
     accel_bias_walk_mps2: float = 0.002
@@ -160,6 +166,8 @@ class SensorSpec:
             "gnss_outlier_prob",
             "accel_std_mps2",
             "gyro_std_radps",
+            "accel_noise_rel",
+            "gyro_noise_rel",
             "accel_bias_std_mps2",
             "gyro_bias_std_radps",
             "accel_bias_walk_mps2",
@@ -315,6 +323,7 @@ def imu_emissions(
     n = idx.size
     dt = 1.0 / spec.imu_rate_hz
     p_imu = imu_point_m(config)
+    inertial = truth.point_accel_body(p_imu)[idx]
     force = truth.specific_force_body(p_imu)[idx]
     rate = truth.omega_radps[idx]
 
@@ -325,12 +334,14 @@ def imu_emissions(
         + accel_bias[None, :]
         + _random_walk(rng, n, dt, spec.accel_bias_walk_mps2)
         + rng.standard_normal((n, 3)) * spec.accel_std_mps2
+        + rng.standard_normal((n, 3)) * spec.accel_noise_rel * inertial
     )
     gyro = (
         rate
         + gyro_bias[None, :]
         + _random_walk(rng, n, dt, spec.gyro_bias_walk_radps)
         + rng.standard_normal((n, 3)) * spec.gyro_std_radps
+        + rng.standard_normal((n, 3)) * spec.gyro_noise_rel * rate
     )
     stamps = _stamps(start_ns, truth.t_s[idx])
     latency = round(spec.imu_latency_ms * 1e6)

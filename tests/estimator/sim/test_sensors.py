@@ -240,3 +240,23 @@ def test_unknown_override_and_scenario_are_refused() -> None:
         simulate("moon_landing", seed=1, start_ns=START_NS)
     with pytest.raises(ValueError):
         simulate("figure_eight", seed=1, start_ns=START_NS, gnss_rate_hz=7.0)
+
+
+def test_relative_imu_noise_scales_with_the_signal() -> None:
+    run = simulate(
+        "paper_straight", seed=10, start_ns=START_NS, accel_std_mps2=0.0, gyro_std_radps=0.0
+    )
+    imu = [m for m in run.measurements if isinstance(m, ImuBatch)]
+    stamps = np.concatenate([m.stamp_ns for m in imu])
+    accel = np.concatenate([m.accel_mps2 for m in imu])
+    gyro = np.concatenate([m.gyro_radps for m in imu])
+    pitch = truth_at(run.truth, stamps, "pitch_rad")
+    a1 = truth_at(run.truth, stamps, "a1_mps2")
+    standing = stamps < START_NS + 1_500_000_000
+    np.testing.assert_allclose(accel[standing], [[0.0, 0.0, 9.80665]] * int(standing.sum()))
+    strong = np.abs(a1) > 0.3
+    rel = (accel[strong, 1] - 9.80665 * np.sin(pitch[strong]) - a1[strong]) / a1[strong]
+    assert 0.025 < np.std(rel) < 0.035
+    wz = truth_at(run.truth, stamps, "yaw_rate_radps")
+    turning = np.abs(wz) > 0.02
+    assert 0.015 < np.std((gyro[turning, 2] - wz[turning]) / wz[turning]) < 0.025
