@@ -56,7 +56,9 @@ _STAGE_DTYPE = _copy_dtype(_STAGE_COLUMNS)
 
 
 def _wrap(exc: psycopg.Error) -> StorageError:
-    if isinstance(exc, psycopg.IntegrityError | psycopg.DataError | psycopg.ProgrammingError):
+    # Only errors about the data itself are final; everything else (connection, privileges,
+    # missing table) may heal, so the writer retries it.
+    if isinstance(exc, psycopg.IntegrityError | psycopg.DataError):
         return StorageDataError(f"postgresql: {exc}")
     return StorageError(f"postgresql: {exc}")
 
@@ -253,36 +255,28 @@ class PostgresStore:
         checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
         if not checked:
             return 0
-        with self._pool.connection() as conn, conn.transaction():
-            keys = self._vkeys(conn, sorted({vid for vid, _ in checked}))
-            known = [(keys[vid], rows) for vid, rows in checked if vid in keys]
-            if not known:
-                return 0
-            buf = np.empty(sum(len(r) for _, r in known), dtype=_STAGE_DTYPE)
-            buf["_nfields"] = len(_STAGE_COLUMNS)
-            for name, kind in _STAGE_COLUMNS:
-                buf[f"_len_{name}"] = _WIDTH[kind]
-            at = 0
-            for vkey, rows in known:
-                seg = buf[at : at + len(rows)]
-                seg["vkey"] = vkey
-                for name in FIELD_NAMES:
-                    seg[name] = rows[name]
-                at += len(rows)
+        with self._pool.connection() as conn:
             if conn not in self._staged:
+                # Outside the write transaction, so a rolled-back write cannot undo it.
                 conn.execute(
                     "CREATE TEMPORARY TABLE IF NOT EXISTS estimates_stage "
                     "(LIKE estimates) ON COMMIT DELETE ROWS"
                 )
                 self._staged.add(conn)
-            with conn.cursor() as cur:
-                with cur.copy("COPY estimates_stage FROM STDIN (FORMAT BINARY)") as cp:
-                    cp.write(_COPY_HEADER + buf.tobytes() + _COPY_TRAILER)
-                cur.execute(
-                    "INSERT INTO estimates SELECT * FROM estimates_stage "
-                    "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
-                )
-                return max(cur.rowcount, 0)
+            with conn.transaction():
+                keys = self._vkeys(conn, sorted({vid for vid, _ in checked}))
+                known = [(keys[vid], rows) for vid, rows in checked if vid in keys]
+                if not known:
+                    return 0
+                payload = _copy_in_payload(known)
+                with conn.cursor() as cur:
+                    with cur.copy("COPY estimates_stage FROM STDIN (FORMAT BINARY)") as cp:
+                        cp.write(payload)
+                    cur.execute(
+                        "INSERT INTO estimates SELECT * FROM estimates_stage "
+                        "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
+                    )
+                    return max(cur.rowcount, 0)
 
     def query_series(
         self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
@@ -403,6 +397,22 @@ class PostgresStore:
             (vehicle_id, int(start_ns), int(end_ns)),
         )
         return [(int(t), str(k), bytes(p)) for t, k, p in rows]
+
+
+def _copy_in_payload(known: Sequence[tuple[int, np.ndarray]]) -> bytes:
+    """The binary COPY stream of ``estimates`` rows: ``(vkey, rows)`` pairs laid out by numpy."""
+    buf = np.empty(sum(len(r) for _, r in known), dtype=_STAGE_DTYPE)
+    buf["_nfields"] = len(_STAGE_COLUMNS)
+    for name, kind in _STAGE_COLUMNS:
+        buf[f"_len_{name}"] = _WIDTH[kind]
+    at = 0
+    for vkey, rows in known:
+        seg = buf[at : at + len(rows)]
+        seg["vkey"] = vkey
+        for name in FIELD_NAMES:
+            seg[name] = rows[name]  # byte-swapped to big-endian by the assignment
+        at += len(rows)
+    return _COPY_HEADER + buf.tobytes() + _COPY_TRAILER
 
 
 def _decode_copy(data: bytes, wire: np.dtype, out_dtype: np.dtype) -> np.ndarray:

@@ -57,7 +57,8 @@ def _insert_estimates_sql(vkey: int) -> str:
 
 
 def _wrap(exc: sqlite3.Error) -> StorageError:
-    if isinstance(exc, sqlite3.IntegrityError | sqlite3.DataError | sqlite3.ProgrammingError):
+    # Only errors about the data itself are final; locks, I/O, a read-only file may heal.
+    if isinstance(exc, sqlite3.IntegrityError | sqlite3.DataError):
         return StorageDataError(f"sqlite: {exc}")
     return StorageError(f"sqlite: {exc}")
 
