@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -89,6 +90,10 @@ class Limits:
 
 
 LIMITS = Limits()
+
+# packed little-endian arrays are native here: frombuffer views need no conversion
+_LITTLE_ENDIAN = sys.byteorder == "little"
+_WHEEL = {int(w): w for w in Wheel}
 
 
 class ProtocolError(ValueError):
@@ -350,23 +355,24 @@ def _stamps(
     _stamp(ctx, int(t[0]), name, lim)
     _stamp(ctx, int(t[-1]), name, lim)
     if t.shape[0] > 1:
-        d = np.diff(t)
-        if (d <= 0).any() if strict else (d < 0).any():
+        ok = (t[1:] > t[:-1]).all() if strict else (t[1:] >= t[:-1]).all()
+        if not ok:
             raise ctx.fail(
                 "non_monotonic", f"{name} must {'increase' if strict else 'not decrease'}"
             )
-    return t.astype(np.int64, copy=False)
+    return t if _LITTLE_ENDIAN else t.astype(np.int64)
 
 
 def _finite_rows(ctx: _Ctx, a: np.ndarray, name: str, n: int, bound: float) -> np.ndarray:
     if a.shape[0] != n:
         raise ctx.fail("wrong_shape", f"{name} has {a.shape[0]} rows for {n} timestamps")
-    if np.isinf(a).any():
-        raise ctx.fail("non_finite", name)
     norm2 = np.einsum("ij,ij->i", a, a)
-    if (norm2 > bound * bound).any():
-        raise ctx.fail("out_of_range", f"{name} norm exceeds {bound:g}")
-    return a.astype(np.float64, copy=False)
+    if not (norm2 <= bound * bound).all():  # fast path fails on NaN, inf or too large
+        if np.isinf(a).any():
+            raise ctx.fail("non_finite", name)
+        if (norm2 > bound * bound).any():  # NaN rows compare False: "not available" passes
+            raise ctx.fail("out_of_range", f"{name} norm exceeds {bound:g}")
+    return a if _LITTLE_ENDIAN else a.astype(np.float64)
 
 
 def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
@@ -438,8 +444,8 @@ def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measuremen
                 raise ctx.fail("wrong_shape", "direction and stamp_ns lengths differ")
             if not (np.abs(d.astype(np.int16)) == 1).all():
                 raise ctx.fail("out_of_range", "direction must be +1 or -1")
-            direction = d.astype(np.int8, copy=False)
-        out.append(WheelEdges(Wheel(w), t, direction))
+            direction = d
+        out.append(WheelEdges(_WHEEL[w], t, direction))
     return tuple(out)
 
 
@@ -452,7 +458,7 @@ def _decode_speeds(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measureme
         raise ctx.fail("non_finite", "omega_radps")
     if (np.abs(om) > lim.max_wheel_omega_radps).any():
         raise ctx.fail("out_of_range", f"|omega_radps| exceeds {lim.max_wheel_omega_radps:g}")
-    return (WheelSpeeds(t, om.astype(np.float64, copy=False)),)
+    return (WheelSpeeds(t, om if _LITTLE_ENDIAN else om.astype(np.float64)),)
 
 
 def _stamp_span(ms: tuple[Measurement, ...]) -> tuple[int, int]:

@@ -14,6 +14,7 @@ always exactly one key-expression chunk and never a wildcard.
 
 from __future__ import annotations
 
+import functools
 import re
 from enum import StrEnum
 
@@ -70,10 +71,12 @@ def config_key(prefix: str, vehicle_id: str) -> str:
     return f"{prefix}/{vehicle_id}/{CONFIG_SUFFIX}"
 
 
+@functools.lru_cache(maxsize=65_536)
 def parse_key(key: str, prefix: str) -> tuple[str, Stream | None]:
     """Split a key into ``(vehicle_id, stream)``; ``stream`` is None for the config key.
 
     Raises ``ValueError`` when ``key`` is not one of the protocol's keys under ``prefix``.
+    Results are cached (a fleet repeats the same few keys per vehicle).
     """
     head = prefix + "/"
     if not key.startswith(head):
