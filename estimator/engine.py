@@ -41,8 +41,7 @@ from estimator.config import VehicleConfig
 from estimator.geo import EnuFrame
 from estimator.mdsf import (
     GRAVITY_MPS2,
-    N_OBS,
-    N_STATE,
+    N_OBS_PAPER,
     MdsfConfig,
     MdsfMode,
     MdsfObs,
@@ -73,6 +72,10 @@ IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
 _NS = 1e-9
+_DEMAND_SCALE_MPS2 = 1.0
+"""Scale turning a change of traction demand (m/s²) into rim-excess variance."""
+_SLIP_MIN_SPEED_MPS = 0.5
+"""Speed floor of the constant-slip-ratio growth of the rim excess."""
 _F = EstimateFlag
 
 
@@ -93,16 +96,6 @@ class Counter(IntEnum):
     WAITING_TICKS = 11
 
 
-_ENGINE_COUNTERS = (
-    Counter.TICKS,
-    Counter.GNSS_FUSED,
-    Counter.GNSS_GATED,
-    Counter.GNSS_REACQUIRED,
-    Counter.RESETS,
-    Counter.DEGRADED_TICKS,
-)
-
-
 @dataclass(slots=True)
 class TickInputs:
     """One vehicle's inputs for ``m`` consecutive ticks (rows), built by its front end.
@@ -120,6 +113,9 @@ class TickInputs:
         The tick window held IMU samples.
     accel_var, gyro_var : ndarray, shape (m,)
         Variance of the tick-mean acceleration and rates.
+    force_fwd : ndarray, shape (m,)
+        Tick-mean forward specific force as measured (gravity included) [m/s²]: the traction
+        demand the tyres see.
     omega : ndarray, shape (m, 2)
         Wheel angular speeds (left, right) at the tick [rad/s]; NaN when unknown.
     omega_std : ndarray, shape (m, 2)
@@ -138,6 +134,7 @@ class TickInputs:
     imu_ok: BoolArray
     accel_var: FloatArray
     gyro_var: FloatArray
+    force_fwd: FloatArray
     omega: FloatArray
     omega_std: FloatArray
     wheel_flags: npt.NDArray[np.int32]
@@ -178,6 +175,9 @@ class StepOutput:
 class MdsfEngine:
     """Slot arrays of many vehicles' MDSF filters, stepped in batches.
 
+    State ``x (cap, n)``, covariance ``P (cap, n, n)`` and per-vehicle ``F``, ``H``, ``H1``,
+    ``Q`` (``n`` = 4 in paper mode, 7 in product mode; see :class:`~estimator.mdsf.MdsfState`).
+
     Parameters
     ----------
     config : MdsfConfig
@@ -194,6 +194,8 @@ class MdsfEngine:
         self.reference = reference or ReferenceSpeedConfig()
         self.product = config.mode is MdsfMode.PRODUCT
         self.dt_s = config.dt_s
+        self.n = config.n_state
+        self.m = config.n_obs
         self._free: list[int] = []
         self._cap = 0
         self._alloc(max(capacity, 1))
@@ -202,31 +204,52 @@ class MdsfEngine:
     def _alloc(self, cap: int) -> None:
         old = self._cap
 
-        def grow(a: np.ndarray | None, shape: tuple[int, ...], fill: Any) -> np.ndarray:
+        def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
+            a = getattr(self, name, None)
             dtype = np.asarray(fill).dtype if a is None else a.dtype
             new = np.full((cap, *shape), fill, dtype=dtype)
             if a is not None:
                 new[:old] = a
-            return new
+            setattr(self, name, new)
 
-        g = getattr
-        self.x = grow(g(self, "x", None), (N_STATE,), 0.0)
-        self.P = grow(g(self, "P", None), (N_STATE, N_STATE), 0.0)
-        self.F = grow(g(self, "F", None), (N_STATE, N_STATE), 0.0)
-        self.H = grow(g(self, "H", None), (N_OBS, N_STATE), 0.0)
-        self.H1 = grow(g(self, "H1", None), (len(MdsfOut), N_STATE), 0.0)
-        self.v0_row = grow(g(self, "v0_row", None), (N_STATE,), 0.0)
-        self.Q_base = grow(g(self, "Q_base", None), (N_STATE, N_STATE), 0.0)
-        self.initialized = grow(g(self, "initialized", None), (), False)
-        self.last_fused_ns = grow(g(self, "last_fused_ns", None), (), np.int64(-(2**62)))
-        self.gated_since_ns = grow(g(self, "gated_since_ns", None), (), np.int64(-1))
-        self.gnss_noise_var = grow(g(self, "gnss_noise_var", None), (), 0.0)
-        self.ref_x = grow(g(self, "ref_x", None), (len(RefState),), 0.0)
-        self.ref_P = grow(g(self, "ref_P", None), (len(RefState), len(RefState)), 0.0)
-        self.ref_aux = grow(g(self, "ref_aux", None), (len(RefAux),), 0.0)
-        self.counts = grow(g(self, "counts", None), (len(Counter),), np.int64(0))
+        n, m = self.n, self.m
+        grow("x", (n,), 0.0)
+        grow("P", (n, n), 0.0)
+        grow("F", (n, n), 0.0)
+        grow("H", (m, n), 0.0)
+        grow("H1", (len(MdsfOut), n), 0.0)
+        grow("v0_row", (n,), 0.0)
+        grow("Q_base", (n, n), 0.0)
+        grow("accel_bias_walk", (), 0.0)
+        grow("initialized", (), False)
+        grow("last_fused_ns", (), np.int64(-(2**62)))
+        grow("gated_since_ns", (), np.int64(-1))
+        grow("gnss_noise_var", (), 0.0)
+        grow("force_f", (), np.nan)
+        grow("ref_x", (len(RefState),), 0.0)
+        grow("ref_P", (len(RefState), len(RefState)), 0.0)
+        grow("ref_aux", (len(RefAux),), 0.0)
+        grow("counts", (len(Counter),), np.int64(0))
         self._free.extend(range(cap - 1, old - 1, -1))
         self._cap = cap
+
+    x: FloatArray
+    P: FloatArray
+    F: FloatArray
+    H: FloatArray
+    H1: FloatArray
+    v0_row: FloatArray
+    Q_base: FloatArray
+    accel_bias_walk: FloatArray
+    initialized: BoolArray
+    last_fused_ns: IntArray
+    gated_since_ns: IntArray
+    gnss_noise_var: FloatArray
+    force_f: FloatArray
+    ref_x: FloatArray
+    ref_P: FloatArray
+    ref_aux: FloatArray
+    counts: IntArray
 
     def add(self, vehicle: VehicleConfig) -> int:
         """Allocate and initialise a slot for a vehicle; returns the slot index."""
@@ -243,8 +266,9 @@ class MdsfEngine:
         self.last_fused_ns[s] = -(2**62)
         self.gated_since_ns[s] = -1
         self.gnss_noise_var[s] = 0.0
+        self.force_f[s] = np.nan
         self.x[s] = 0.0
-        self.P[s] = np.eye(N_STATE)
+        self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
         self.ref_P[s] = np.eye(len(RefState))
         self.ref_aux[s] = (0.0, 1.0, 0.0)
@@ -258,24 +282,45 @@ class MdsfEngine:
 
     # -- stepping ----------------------------------------------------------------------------
     def _initial_state(
-        self, slots: IntArray, z: FloatArray, imu_ok: BoolArray, v1: FloatArray
+        self,
+        slots: IntArray,
+        z: FloatArray,
+        imu_ok: BoolArray,
+        v1: FloatArray,
+        rim_ok: BoolArray,
     ) -> tuple[FloatArray, FloatArray]:
+        """State and covariance right after a (re)initialisation at speed ``v1``; (k, n), (k, n, n)."""
+        cfg = self.config
         k = slots.shape[0]
-        x = np.zeros((k, N_STATE))
-        wx = np.where(imu_ok, z[:, MdsfObs.OMEGA_X], 0.0)
-        wz = np.where(imu_ok, z[:, MdsfObs.OMEGA_Z], 0.0)
+        x = np.zeros((k, self.n))
         x[:, MdsfState.V1] = v1
         x[:, MdsfState.A1] = np.where(imu_ok, z[:, MdsfObs.A1], 0.0)
-        x[:, MdsfState.OMEGA_X] = wx
-        x[:, MdsfState.OMEGA_Z] = wz
-        p = np.zeros((k, N_STATE, N_STATE))
-        p[:, MdsfState.V1, MdsfState.V1] = self.config.initial_speed_std_mps**2
-        p[:, MdsfState.A1, MdsfState.A1] = 1.0
-        p[:, MdsfState.OMEGA_X, MdsfState.OMEGA_X] = 0.01
-        p[:, MdsfState.OMEGA_Z, MdsfState.OMEGA_Z] = 0.01
+        x[:, MdsfState.OMEGA_X] = np.where(imu_ok, z[:, MdsfObs.OMEGA_X], 0.0)
+        x[:, MdsfState.OMEGA_Z] = np.where(imu_ok, z[:, MdsfObs.OMEGA_Z], 0.0)
+        p = np.zeros((k, self.n, self.n))
+        idx = np.arange(self.n)
+        diag = np.zeros((k, self.n))
+        diag[:, MdsfState.V1] = cfg.initial_speed_std_mps**2
+        diag[:, MdsfState.A1] = 1.0
+        diag[:, MdsfState.OMEGA_X] = 0.01
+        diag[:, MdsfState.OMEGA_Z] = 0.01
+        if self.product:
+            diag[:, MdsfState.ACCEL_BIAS] = cfg.accel_bias_std_mps2**2
+            h = self.H[slots]
+            for obs, st in (
+                (MdsfObs.RIM_LEFT, MdsfState.RIM_EXCESS_LEFT),
+                (MdsfObs.RIM_RIGHT, MdsfState.RIM_EXCESS_RIGHT),
+            ):
+                ok = rim_ok[:, obs - MdsfObs.RIM_LEFT]
+                v_wheel = np.einsum("ki,ki->k", h[:, obs, : MdsfState.ACCEL_BIAS], x[:, :4])
+                x[:, st] = np.where(ok, z[:, obs] - v_wheel, 0.0)
+                diag[:, st] = cfg.initial_speed_std_mps**2 + 0.01
+        p[:, idx, idx] = diag
         return x, p
 
-    def step(self, slots: IntArray, t: TickInputs, rim_mps: FloatArray) -> StepOutput:
+    def step(
+        self, slots: IntArray, t: TickInputs, rim_mps: FloatArray, rim_std_mps: FloatArray
+    ) -> StepOutput:
         """Advance the vehicles in ``slots`` by one tick each (batched).
 
         Parameters
@@ -284,8 +329,8 @@ class MdsfEngine:
             Distinct slot indices.
         t : TickInputs
             One row per slot (``m == k``).
-        rim_mps : ndarray, shape (k, 2)
-            Rim speeds ``r·W`` (left, right), for the reference-speed filter.
+        rim_mps, rim_std_mps : ndarray, shape (k, 2)
+            Rim speeds ``r·W`` (left, right) and their std; NaN when unknown.
 
         Returns
         -------
@@ -293,47 +338,85 @@ class MdsfEngine:
         """
         cfg = self.config
         k = slots.shape[0]
+        n, m = self.n, self.m
         dt = self.dt_s
-        z = np.where(np.isfinite(t.z), t.z, 0.0)
         stamp = t.stamp_ns
+        rim_ok = np.isfinite(rim_mps) & np.isfinite(rim_std_mps)
+        z = np.zeros((k, m))
+        z[:, :N_OBS_PAPER] = np.where(np.isfinite(t.z), t.z, 0.0)
+        if self.product:
+            z[:, MdsfObs.RIM_LEFT :] = np.where(rim_ok, rim_mps, 0.0)
         H = self.H[slots]
         x = self.x[slots]
         P = self.P[slots]
         init = self.initialized[slots].copy()
         flags = np.zeros(k, dtype=np.int32)
-
         gnss_ok = t.gnss_ok.copy()
+
         # Adaptive GNSS noise: receiver/config value is the floor, innovations can raise it.
         r_gnss = np.maximum(t.gnss_var, self.gnss_noise_var[slots])
         accel_var = np.where(t.imu_ok, t.accel_var, 1.0)
         gyro_var = np.where(t.imu_ok, t.gyro_var, 1.0)
-        R = np.zeros((k, N_OBS, N_OBS))
-        R[:, MdsfObs.VG, MdsfObs.VG] = r_gnss
-        R[:, MdsfObs.A1, MdsfObs.A1] = accel_var
-        R[:, MdsfObs.OMEGA_X, MdsfObs.OMEGA_X] = gyro_var
-        R[:, MdsfObs.OMEGA_Z, MdsfObs.OMEGA_Z] = gyro_var
+        rd = np.zeros((k, m))
+        rd[:, MdsfObs.VG] = r_gnss
+        rd[:, MdsfObs.A1] = accel_var
+        rd[:, MdsfObs.OMEGA_X] = gyro_var
+        rd[:, MdsfObs.OMEGA_Z] = gyro_var
+        if self.product:
+            rd[:, MdsfObs.RIM_LEFT :] = np.where(
+                rim_ok, (cfg.wheel_noise_scale * rim_std_mps) ** 2 + 1e-6, 1.0
+            )
+        R = np.zeros((k, m, m))
+        R[:, np.arange(m), np.arange(m)] = rd
 
         # -- predict ------------------------------------------------------------------------
         Q = self.Q_base[slots].copy()
         u: FloatArray | None = None
         if self.product:
-            a_in = np.where(t.imu_ok, z[:, MdsfObs.A1], x[:, MdsfState.A1])
-            u = np.zeros((k, N_STATE))
+            a_in = np.where(
+                t.imu_ok, z[:, MdsfObs.A1], x[:, MdsfState.A1] + x[:, MdsfState.ACCEL_BIAS]
+            )
+            u = np.zeros((k, n))
             u[:, MdsfState.V1] = dt * a_in
             u[:, MdsfState.A1] = a_in
             Q[:, MdsfState.V1, MdsfState.V1] += dt * dt * accel_var
             Q[:, MdsfState.A1, MdsfState.A1] += accel_var
-        x_pr, P_pr = kalman.predict(x, P, self.F[slots], Q, u)
+            Q[:, MdsfState.V1, MdsfState.A1] += dt * accel_var
+            Q[:, MdsfState.A1, MdsfState.V1] += dt * accel_var
+            # Rim excess e = r·W − V: at constant slip ratio it scales with the speed,
+            # e' = e·(1 + dt·ā/V); on top, slip wanders with soil and load and moves when the
+            # traction demand (forward specific force) changes: variance ∝ |Δf|.
+            speed = np.abs(x[:, MdsfState.V1])
+            f_new = np.where(t.imu_ok, t.force_fwd, self.force_f[slots])
+            f_old = self.force_f[slots]
+            alpha = dt / (cfg.force_filter_tau_s + dt)
+            f_filt = np.where(np.isfinite(f_old), f_old + alpha * (f_new - f_old), f_new)
+            d_force = np.abs(np.nan_to_num(f_filt - f_old))
+            self.force_f[slots] = f_filt
+            q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
+                cfg.slip_demand_gain * speed / GRAVITY_MPS2
+            ) ** 2 * d_force * _DEMAND_SCALE_MPS2
+            F = self.F[slots].copy()
+            grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
+                speed, _SLIP_MIN_SPEED_MPS
+            )
+            for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
+                Q[:, st, st] += q_e
+                F[:, st, st] = np.clip(grow, 0.5, 1.5)
+        else:
+            F = self.F[slots]
+        x_pr, P_pr = kalman.predict(x, P, F, Q, u)
 
-        # -- gate the GNSS speed row (product) ---------------------------------------------
-        h_vg = H[:, MdsfObs.VG, :]
-        y_vg = z[:, MdsfObs.VG] - np.einsum("ki,ki->k", h_vg, x_pr)
-        s_vg = np.einsum("ki,kij,kj->k", h_vg, P_pr, h_vg) + r_gnss
-        nis_vg = y_vg * y_vg / s_vg
+        # -- gates (product): GNSS speed and rim speeds, one chi-square per row -------------
+        y_all = z - np.einsum("kmi,ki->km", H, x_pr)
+        s_all = np.einsum("kmi,kij,kmj->km", H, P_pr, H) + rd
+        nis_row = y_all * y_all / s_all
+        y_vg = y_all[:, MdsfObs.VG]
         gated = np.zeros(k, dtype=bool)
         reacq = np.zeros(k, dtype=bool)
+        rim_use = rim_ok
         if self.product:
-            gated = gnss_ok & init & ~(nis_vg <= cfg.gate_chi2)
+            gated = gnss_ok & init & ~(nis_row[:, MdsfObs.VG] <= cfg.gate_chi2)
             since = self.gated_since_ns[slots]
             since = np.where(gated & (since < 0), stamp, since)
             reacq = gated & (stamp - since >= round(cfg.reacquire_s * 1e9))
@@ -343,17 +426,19 @@ class MdsfEngine:
             # Re-acquire: open the speed variance to the disagreement so the update follows GNSS.
             P_pr[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
         use_vg = gnss_ok & ~gated
-        mask = np.empty((k, N_OBS), dtype=bool)
+        mask = np.zeros((k, m), dtype=bool)
         mask[:, MdsfObs.VG] = use_vg
         mask[:, MdsfObs.A1] = t.imu_ok & (not self.product)
         mask[:, MdsfObs.OMEGA_X] = t.imu_ok
         mask[:, MdsfObs.OMEGA_Z] = t.imu_ok
+        if self.product:
+            mask[:, MdsfObs.RIM_LEFT :] = rim_use
         res = kalman.update(x_pr, P_pr, z, H, R, mask)
         x_new, P_new = res.x, res.P
 
         # Running estimate of the GNSS speed noise from accepted innovations.
         if self.product and cfg.gnss_noise_adapt > 0:
-            hph = s_vg - r_gnss
+            hph = s_all[:, MdsfObs.VG] - r_gnss
             est = self.gnss_noise_var[slots]
             b = cfg.gnss_noise_adapt
             est = np.where(use_vg & init, (1 - b) * est + b * (y_vg * y_vg - hph), est)
@@ -366,19 +451,15 @@ class MdsfEngine:
         )
         start = ~init & gnss_ok
         # Without GNSS a vehicle can start from its wheels (reference speed, degraded).
-        rim_mean = (
-            np.nanmean(np.where(np.isfinite(rim_mps), rim_mps, np.nan), axis=1)
-            if k
-            else (np.zeros(0))
+        n_rim = rim_ok.sum(axis=1)
+        rim_mean = np.where(
+            n_rim > 0, np.where(rim_ok, rim_mps, 0.0).sum(axis=1) / np.maximum(n_rim, 1), np.nan
         )
-        start_wheels = (
-            ~init & ~gnss_ok & np.isfinite(rim_mean) & ((stamp - self.last_fused_ns[slots]) > 0)
-        )
-        start_wheels &= self._wheel_start_allowed(slots, stamp)
+        start_wheels = ~init & ~gnss_ok & (n_rim > 0) & self._wheel_start_allowed(slots)
         v_start = np.where(start, v1_from_gnss, np.nan_to_num(rim_mean))
-        if (start | start_wheels).any():
-            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_start)
-            sel = start | start_wheels
+        sel = start | start_wheels
+        if sel.any():
+            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_start, rim_ok)
             x_new = np.where(sel[:, None], x0, x_new)
             P_new = np.where(sel[:, None, None], p0, P_new)
             flags |= np.where(sel, int(_F.RESET), 0).astype(np.int32)
@@ -392,63 +473,45 @@ class MdsfEngine:
             | (diag[:, MdsfState.V1] > cfg.max_speed_var_mps2)
         )
         if diverged.any():
-            v_re = np.where(
-                gnss_ok,
-                v1_from_gnss,
-                np.where(
-                    np.isfinite(self.ref_x[slots, RefState.V]), self.ref_x[slots, RefState.V], 0.0
-                ),
-            )
-            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_re)
+            ref_v = self.ref_x[slots, RefState.V]
+            v_re = np.where(gnss_ok, v1_from_gnss, np.where(np.isfinite(ref_v), ref_v, 0.0))
+            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_re, rim_ok)
             x_new = np.where(diverged[:, None], x0, x_new)
             P_new = np.where(diverged[:, None, None], p0, P_new)
             flags |= np.where(diverged, int(_F.RESET), 0).astype(np.int32)
 
-        now_init = init | start | start_wheels
+        now_init = init | sel
         fused = use_vg & now_init
         last_fused = np.where(fused, stamp, self.last_fused_ns[slots])
         degraded = now_init & ((stamp - last_fused) > round(cfg.gnss_timeout_s * 1e9))
 
-        # -- reference-speed filter: tracks the MDSF speed while GNSS is good, carries it when not
+        # -- reference-speed filter (method.md §3): tracks V0 while GNSS is good, carries the
+        # speed from accelerometer + slip-corrected wheel speed while it is lost.
         v0_row = self.v0_row[slots]
         v0 = np.einsum("ki,ki->k", v0_row, x_new)
         v0_var = np.einsum("ki,kij,kj->k", v0_row, P_new, v0_row)
+        a_ref = z[:, MdsfObs.A1] - (x_new[:, MdsfState.ACCEL_BIAS] if self.product else 0.0)
         rx, rP, raux, _ = reference_step(
             self.ref_x[slots],
             self.ref_P[slots],
             self.ref_aux[slots],
-            accel_mps2=np.where(t.imu_ok, z[:, MdsfObs.A1], np.nan),
+            accel_mps2=np.where(t.imu_ok, a_ref, np.nan),
             dt_s=dt,
             speed_ref_mps=np.where(degraded, np.nan, v0),
             speed_ref_var=v0_var,
             rim_speed_mps=rim_mean,
             config=self.reference,
         )
-        rx = np.where(
-            (start | start_wheels | diverged)[:, None], np.stack([v0, np.zeros(k)], 1), rx
-        )
-        if self.product and degraded.any():
-            # Hand the reference speed to the MDSF state so GNSS resumes from it without a jump.
-            v1_ref = rx[:, RefState.V] - (v0 - x_new[:, MdsfState.V1])
-            x_new[:, MdsfState.V1] = np.where(degraded, v1_ref, x_new[:, MdsfState.V1])
-            pv = rP[:, RefState.V, RefState.V]
-            cross = P_new[:, MdsfState.V1, :].copy()
-            cross[:, MdsfState.V1] = pv
-            scale = np.sqrt(
-                np.maximum(pv, 0.0) / np.maximum(P_new[:, MdsfState.V1, MdsfState.V1], 1e-30)
-            )
-            cross[:, 1:] = cross[:, 1:] * np.minimum(scale, 1.0)[:, None]
-            P_new[:, MdsfState.V1, :] = np.where(
-                degraded[:, None], cross, P_new[:, MdsfState.V1, :]
-            )
-            P_new[:, :, MdsfState.V1] = np.where(
-                degraded[:, None], cross, P_new[:, :, MdsfState.V1]
-            )
+        restart = sel | diverged
+        rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
+        if not self.product and degraded.any():
+            # Paper mode has no wheel states: hand the reference speed to the MDSF state, so
+            # GNSS resumes from it without a jump.
+            self._hand_over(x_new, P_new, rx, rP, v0, degraded)
 
         # -- store --------------------------------------------------------------------------------
-        keep = now_init
-        self.x[slots] = np.where(keep[:, None], x_new, x)
-        self.P[slots] = np.where(keep[:, None, None], P_new, P)
+        self.x[slots] = np.where(now_init[:, None], x_new, x)
+        self.P[slots] = np.where(now_init[:, None, None], P_new, P)
         self.initialized[slots] = now_init
         self.last_fused_ns[slots] = last_fused
         self.ref_x[slots] = rx
@@ -468,10 +531,7 @@ class MdsfEngine:
         z1 = np.einsum("koi,ki->ko", H1, x_new)
         z1_var = np.einsum("koi,kij,koj->ko", H1, P_new, H1)
         z1_std = np.sqrt(np.maximum(z1_var, 0.0))
-        if self.product and degraded.any():
-            # The reference speed's variance already entered P_new for V1 above.
-            pass
-        flags |= np.where(fused | (~degraded & now_init), int(_F.GNSS_OK), 0).astype(np.int32)
+        flags |= np.where(now_init & ~degraded, int(_F.GNSS_OK), 0).astype(np.int32)
         flags |= np.where(degraded, int(_F.DEGRADED), 0).astype(np.int32)
         flags |= np.where(gated, int(_F.GATED), 0).astype(np.int32)
         flags |= np.where(reacq, int(_F.RESET), 0).astype(np.int32)
@@ -491,7 +551,26 @@ class MdsfEngine:
             flags=flags,
         )
 
-    def _wheel_start_allowed(self, slots: IntArray, stamp: IntArray) -> BoolArray:
+    @staticmethod
+    def _hand_over(
+        x: FloatArray, P: FloatArray, rx: FloatArray, rP: FloatArray, v0: FloatArray, sel: BoolArray
+    ) -> None:
+        """Put the reference speed into ``V1`` (in place) for the rows in ``sel``.
+
+        ``V1`` moves by the difference between the reference speed and ``V0``; its variance
+        becomes the reference's and its covariances are scaled down with its std.
+        """
+        v1_ref = rx[:, RefState.V] - (v0 - x[:, MdsfState.V1])
+        x[:, MdsfState.V1] = np.where(sel, v1_ref, x[:, MdsfState.V1])
+        pv = rP[:, RefState.V, RefState.V]
+        old = np.maximum(P[:, MdsfState.V1, MdsfState.V1], 1e-30)
+        scale = np.minimum(np.sqrt(np.maximum(pv, 0.0) / old), 1.0)
+        row = P[:, MdsfState.V1, :] * scale[:, None]
+        row[:, MdsfState.V1] = pv
+        P[:, MdsfState.V1, :] = np.where(sel[:, None], row, P[:, MdsfState.V1, :])
+        P[:, :, MdsfState.V1] = np.where(sel[:, None], row, P[:, :, MdsfState.V1])
+
+    def _wheel_start_allowed(self, slots: IntArray) -> BoolArray:
         """A vehicle may start from wheel speeds once it waited ``gnss_timeout_s`` for GNSS."""
         waited = self.counts[slots, Counter.WAITING_TICKS] * self.dt_s
         return np.asarray(waited >= self.config.gnss_timeout_s)
@@ -541,6 +620,8 @@ class _FrontEnd:
         self.frame: EnuFrame | None = None
         self.pitch_rad = 0.0
         self.pitch_known = False
+        self.pitch_gyro_bias = 0.0
+        self.pitch_fix_ns = 0
         self.last_imu_ns: int | None = None
         self.last_imu_ns_used: int | None = None
         # Latest GNSS solution held for outputs: stamp, e, n, u, ve, vn, vu, heading, pitch, roll
@@ -670,14 +751,14 @@ class _FrontEnd:
         lo = np.searchsorted(T, ticks - tn, side="right")
         n_imu = hi - lo
         imu_ok = n_imu > 0
-        vals = np.stack([a_fwd, Ws[:, 0], Ws[:, 2]], axis=1) if T.size else np.zeros((0, 3))
-        means = _cummean(vals, lo, hi) if T.size else np.full((m, 3), np.nan)
+        vals = np.stack([a_fwd, Ws[:, 0], Ws[:, 2], Fs[:, 1]], axis=1)
+        means = _cummean(vals, lo, hi) if T.size else np.full((m, 4), np.nan)
         nf = np.maximum(n_imu, 1).astype(np.float64)
         accel_var = self.accel_var_cfg / nf
         gyro_var = self.gyro_var_cfg / nf
         theta_tick = np.where(imu_ok, theta[np.maximum(hi - 1, 0)] if T.size else np.nan, np.nan)
 
-        z = np.full((m, N_OBS), np.nan)
+        z = np.full((m, N_OBS_PAPER), np.nan)
         z[:, MdsfObs.A1] = means[:, 0]
         z[:, MdsfObs.OMEGA_X] = means[:, 1]
         z[:, MdsfObs.OMEGA_Z] = means[:, 2]
@@ -738,6 +819,7 @@ class _FrontEnd:
             imu_ok=imu_ok,
             accel_var=accel_var,
             gyro_var=gyro_var,
+            force_fwd=means[:, 3],
             omega=omega,
             omega_std=omega_std,
             wheel_flags=wflags,
@@ -798,10 +880,13 @@ class _FrontEnd:
     def _pitch_track(
         self, T: IntArray, wx: FloatArray, g: dict[str, np.ndarray] | None
     ) -> FloatArray:
-        """Pitch at each IMU sample: ωx integrated, pulled to the GNSS pitch at each fix.
+        """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
 
-        Also fills ``g["vg"]`` with eq. (1) using the GNSS pitch, or the tracked pitch if the
-        receiver gives none. Returns shape ``(len(T),)``.
+        A complementary filter: at each fix with a pitch the tracked pitch moves toward it with
+        time constant ``pitch_tau_s`` and the pitch-gyro bias ``b_x`` with ``20·pitch_tau_s``
+        (product mode; paper mode takes the GNSS pitch as it is). Also fills ``g["vg"]`` with
+        eq. (1), using the GNSS pitch or the tracked pitch if the receiver gives none.
+        Returns shape ``(len(T),)``.
         """
         n = T.shape[0]
         theta = np.empty(n)
@@ -811,26 +896,34 @@ class _FrontEnd:
             dts[1:] = np.diff(T) * _NS
             dts[0] = (T[0] - prev) * _NS if prev is not None else 0.0
             dts = np.clip(dts, 0.0, 0.1)
-            inc = np.cumsum(wx * dts)
+            inc = np.cumsum((wx - self.pitch_gyro_bias) * dts)
             self.last_imu_ns_used = int(T[-1])
         else:
             inc = np.zeros(0)
         th0 = self.pitch_rad
         base_inc = 0.0
         start = 0
-        blend = 1.0 - math.exp(-0.2 / max(self.config.pitch_tau_s, 1e-6)) if self.product else 1.0
+        tau = self.config.pitch_tau_s
         if g is not None:
             for i in range(g["stamp"].shape[0]):
-                j = int(np.searchsorted(T, g["stamp"][i], side="right"))
+                tg = int(g["stamp"][i])
+                j = int(np.searchsorted(T, tg, side="right"))
                 if j > start:
                     theta[start:j] = th0 + inc[start:j] - base_inc
                     th0 = float(theta[j - 1])
                     base_inc = float(inc[j - 1])
                     start = j
-                p = g["pitch"][i]
+                p = float(g["pitch"][i])
                 if math.isfinite(p):
-                    th0 = p if not self.pitch_known else th0 + blend * (p - th0)
+                    if not self.pitch_known or not self.product:
+                        th0 = p
+                    else:
+                        gap = min(max((tg - self.pitch_fix_ns) * _NS, 0.0), 1.0)
+                        err = p - th0
+                        th0 += (1.0 - math.exp(-gap / tau)) * err
+                        self.pitch_gyro_bias -= gap / (20.0 * tau * tau) * err
                     self.pitch_known = True
+                    self.pitch_fix_ns = tg
                 pitch_used = p if math.isfinite(p) else th0
                 g["vg"][i] = gnss_vehicle_speed(
                     g["ve"][i], g["vn"][i], g["vu"][i], g["heading"][i], pitch_used
@@ -1025,7 +1118,7 @@ class MdsfFleet:
             c = int(np.count_nonzero(lengths > r))
             fi = offsets[:c] + r
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-            so = self.engine.step(slots[:c], tin, rim[fi])
+            so = self.engine.step(slots[:c], tin, rim[fi], rim_std[fi])
             emit[fi] = so.emit
             for name in cols:
                 res[name][fi] = getattr(so, name)

@@ -38,6 +38,7 @@ The batched engine (:mod:`estimator.engine`) steps many vehicles with these matr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
@@ -79,21 +80,32 @@ class MdsfMode(StrEnum):
 
 
 class MdsfState(IntEnum):
-    """Indices of the MDSF state ``X = [V1, a1, ωx, ωz]`` (eq. (6))."""
+    """Indices of the MDSF state.
+
+    The source's state ``X = [V1, a1, ωx, ωz]`` (eq. (6)) is the first four; ``paper`` mode uses
+    exactly those. ``product`` mode adds the accelerometer bias and, per driven wheel, the rim
+    speed's excess over the contact point's ground speed (``r·W − V``, the slip in m/s).
+    """
 
     V1 = 0
     A1 = 1
     OMEGA_X = 2
     OMEGA_Z = 3
+    ACCEL_BIAS = 4
+    RIM_EXCESS_LEFT = 5
+    RIM_EXCESS_RIGHT = 6
 
 
 class MdsfObs(IntEnum):
-    """Indices of the observation ``Z = [Vg, a1, ωx, ωz]`` (eq. (6))."""
+    """Indices of the observation: the source's ``Z = [Vg, a1, ωx, ωz]`` (eq. (6)), and in
+    product mode the two rim speeds ``r·W`` (left, right)."""
 
     VG = 0
     A1 = 1
     OMEGA_X = 2
     OMEGA_Z = 3
+    RIM_LEFT = 4
+    RIM_RIGHT = 5
 
 
 class MdsfOut(IntEnum):
@@ -104,8 +116,10 @@ class MdsfOut(IntEnum):
     VR = 2
 
 
-N_STATE = len(MdsfState)
-N_OBS = len(MdsfObs)
+N_STATE_PAPER = 4
+N_OBS_PAPER = 4
+N_STATE_PRODUCT = len(MdsfState)
+N_OBS_PRODUCT = len(MdsfObs)
 
 
 def _check(name: str, value: float, positive: bool = True) -> None:
@@ -128,16 +142,37 @@ class MdsfConfig:
     mode : MdsfMode
         ``paper`` or ``product`` (default).
     tick_s : float
-        Filter interval [s]. ``paper`` uses the source's 0.2 s whatever is set here.
+        Filter interval [s] (product mode; default 0.05 s). ``paper`` uses the source's 0.2 s.
     speed_walk_mps_per_sqrt_s : float
         Product mode: random walk of the speed not explained by the accelerometer (pitch error,
-        accelerometer bias, scale) [m/s/√s].
+        scale) [m/s/√s].
+    accel_bias_std_mps2 : float
+        Product mode: prior std of the accelerometer bias [m/s²].
+    accel_bias_extra_walk_mps2_per_sqrt_s : float
+        Product mode: random walk of the bias state on top of the sensor's own
+        (``NoiseConfig.accel_bias_walk_mps2``): the state also takes up gravity leaking through
+        a pitch error (``g·δθ``), which drifts while the pitch is only integrated [m/s²/√s].
+    rim_excess_walk_mps_per_sqrt_s : float
+        Product mode: random walk of each wheel's rim-speed excess ``r·W − V`` (slip in m/s)
+        at standstill [m/s/√s].
+    rim_excess_walk_rel_per_sqrt_s : float
+        Its part proportional to the speed (slip changes with soil and load) [1/√s].
+    slip_demand_gain : float
+        Product mode: slip change per change of traction demand (``ds/d(f/g)``, about the tyre
+        curve's slope); the rim-excess variance grows by ``(gain·|V|/g)²·|Δf|·1 m/s²`` per tick
+        with ``f`` the low-passed forward specific force (acceleration plus slope, what the
+        tyres must transmit) [-].
+    force_filter_tau_s : float
+        Time constant of that low-pass [s].
+    wheel_noise_scale : float
+        Product mode: factor on the wheel-speed front end's std (its errors are correlated from
+        tick to tick: the fit windows overlap and the tooth pattern repeats every turn).
     accel_walk_mps2_per_sqrt_s : float
         Paper mode: random walk of ``a1`` (the ``Qa`` of eq. (7) per second) [m/s²/√s].
-    rate_walk_radps_per_sqrt_s : float
-        Random walk of ``ωx``, ``ωz`` (``Qω`` per second) [rad/s/√s].
     paper_speed_walk_mps_per_sqrt_s : float
         Paper mode ``Qv`` per second [m/s/√s].
+    rate_walk_radps_per_sqrt_s : float
+        Random walk of ``ωx``, ``ωz`` (``Qω`` per second) [rad/s/√s].
     gate_chi2 : float
         Innovation chi-square (1 degree of freedom) above which a GNSS speed is rejected
         (product mode; 10.83 is the 99.9 % point).
@@ -155,22 +190,29 @@ class MdsfConfig:
         GNSS pitch at each fix [s]; the first fix sets it.
     gnss_noise_adapt : float
         Weight of each accepted GNSS innovation in the running estimate of the GNSS speed noise
-        (0 turns the adaptation off; the configured noise is always the floor).
+        (0 turns the adaptation off; the receiver's or configured noise is always the floor).
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
     tick_s: float = 0.05
     speed_walk_mps_per_sqrt_s: float = 0.01
+    accel_bias_std_mps2: float = 0.1
+    accel_bias_extra_walk_mps2_per_sqrt_s: float = 0.01
+    rim_excess_walk_mps_per_sqrt_s: float = 0.005
+    rim_excess_walk_rel_per_sqrt_s: float = 0.01
+    slip_demand_gain: float = 1.0
+    force_filter_tau_s: float = 0.3
+    wheel_noise_scale: float = 3.0
     accel_walk_mps2_per_sqrt_s: float = 1.0
-    rate_walk_radps_per_sqrt_s: float = 0.3
     paper_speed_walk_mps_per_sqrt_s: float = 0.05
+    rate_walk_radps_per_sqrt_s: float = 0.3
     gate_chi2: float = 10.83
     reacquire_s: float = 3.0
     gnss_timeout_s: float = 1.0
     max_speed_var_mps2: float = 100.0
     initial_speed_std_mps: float = 0.5
-    gnss_noise_adapt: float = 0.02
     pitch_tau_s: float = 1.0
+    gnss_noise_adapt: float = 0.02
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):
@@ -178,20 +220,13 @@ class MdsfConfig:
                 object.__setattr__(self, "mode", MdsfMode(self.mode))
             except ValueError as exc:
                 raise ConfigError(f"mode must be one of {[m.value for m in MdsfMode]}") from exc
-        for name in (
-            "tick_s",
-            "speed_walk_mps_per_sqrt_s",
-            "accel_walk_mps2_per_sqrt_s",
-            "rate_walk_radps_per_sqrt_s",
-            "paper_speed_walk_mps_per_sqrt_s",
-            "gate_chi2",
-            "reacquire_s",
-            "gnss_timeout_s",
-            "max_speed_var_mps2",
-            "initial_speed_std_mps",
-            "pitch_tau_s",
-        ):
-            _check(name, getattr(self, name))
+        for f in dataclasses.fields(self):
+            if f.name in ("mode", "gnss_noise_adapt", "slip_demand_gain"):
+                continue
+            _check(f.name, getattr(self, f.name))
+        _check("slip_demand_gain", self.slip_demand_gain, positive=False)
+        if self.slip_demand_gain < 0:
+            raise ConfigError("slip_demand_gain must be >= 0")
         if not 0.001 <= self.tick_s <= 1.0:
             raise ConfigError(f"tick_s must be within 0.001..1 s, got {self.tick_s!r}")
         if not (math.isfinite(self.gnss_noise_adapt) and 0.0 <= self.gnss_noise_adapt < 1.0):
@@ -206,23 +241,28 @@ class MdsfConfig:
     def tick_ns(self) -> int:
         return round(self.dt_s * 1e9)
 
+    @property
+    def n_state(self) -> int:
+        """State dimension: 4 (paper, eq. (6)) or 7 (product)."""
+        return N_STATE_PAPER if self.mode is MdsfMode.PAPER else N_STATE_PRODUCT
+
+    @property
+    def n_obs(self) -> int:
+        """Observation dimension: 4 (paper) or 6 (product)."""
+        return N_OBS_PAPER if self.mode is MdsfMode.PAPER else N_OBS_PRODUCT
+
 
 def transition_matrix(dt_s: float) -> FloatArray:
     """``A`` of eq. (6): ``V1 += dt·a1``, other states constant; shape (4, 4)."""
-    a = np.eye(N_STATE)
+    a = np.eye(N_STATE_PAPER)
     a[MdsfState.V1, MdsfState.A1] = dt_s
     return a
 
 
-def observation_matrix(h1_m: float, lever_x_m: float = 0.0) -> FloatArray:
-    """``H`` of eq. (6), shape (4, 4): ``Vg = V1 − h1·ωx (+ (x_a − x_i)·ωz)``, identity below.
-
-    ``lever_x_m`` is the product mode's horizontal antenna-minus-IMU offset ``x_a − x_i``
-    (0 in the source).
-    """
-    h = np.eye(N_OBS, N_STATE)
+def observation_matrix(h1_m: float) -> FloatArray:
+    """``H`` of eq. (6), shape (4, 4): ``Vg = V1 − h1·ωx``, identity below."""
+    h = np.eye(N_OBS_PAPER, N_STATE_PAPER)
     h[MdsfObs.VG, MdsfState.OMEGA_X] = -h1_m
-    h[MdsfObs.VG, MdsfState.OMEGA_Z] = lever_x_m
     return h
 
 
@@ -236,10 +276,45 @@ def output_matrix(
     ``VR = V1 + h0·ωx − (x_i − b/2)·ωz``.
     """
     half = 0.5 * track_width_m
-    h = np.zeros((len(MdsfOut), N_STATE))
+    h = np.zeros((len(MdsfOut), N_STATE_PAPER))
     h[MdsfOut.VG] = [1.0, 0.0, -h1_m, antenna_x_m - imu_x_m]
     h[MdsfOut.VL] = [1.0, 0.0, h0_m, -imu_x_m - half]
     h[MdsfOut.VR] = [1.0, 0.0, h0_m, -imu_x_m + half]
+    return h
+
+
+def product_transition(dt_s: float) -> FloatArray:
+    """Product-mode transition, shape (7, 7), with the control ``u = [dt·ā, ā, 0…]``:
+
+    ``V1' = V1 + dt·(ā − b)``, ``a1' = ā − b`` (the tick's mean acceleration), ``ωx, ωz, b``
+    and the rim excesses constant (random walks).
+    """
+    f = np.eye(N_STATE_PRODUCT)
+    f[MdsfState.V1, MdsfState.ACCEL_BIAS] = -dt_s
+    f[MdsfState.A1, MdsfState.A1] = 0.0
+    f[MdsfState.A1, MdsfState.ACCEL_BIAS] = -1.0
+    return f
+
+
+def product_observation(geometry: VehicleGeometry) -> FloatArray:
+    """Product-mode observation matrix, shape (6, 7).
+
+    Rows: ``Vg = V1 − h1·ωx + (x_a − x_i)·ωz`` (eq. (2) with lever arm), ``a1`` (unused: the
+    accelerometer drives the predict), ``ωx``, ``ωz``, and each rim speed
+    ``r·W = V_wheel + e_wheel`` with ``V_wheel`` from eq. (4)/(5) (lever arms included).
+    """
+    g = geometry
+    xa, xi = g.antenna_offset_m[0], g.imu_offset_m[0]
+    h1 = output_matrix(g.h0_m, g.h1_m, g.track_width_m, xa, xi)
+    h = np.zeros((N_OBS_PRODUCT, N_STATE_PRODUCT))
+    h[MdsfObs.VG, :N_STATE_PAPER] = h1[MdsfOut.VG]
+    h[MdsfObs.A1, MdsfState.A1] = 1.0
+    h[MdsfObs.OMEGA_X, MdsfState.OMEGA_X] = 1.0
+    h[MdsfObs.OMEGA_Z, MdsfState.OMEGA_Z] = 1.0
+    h[MdsfObs.RIM_LEFT, :N_STATE_PAPER] = h1[MdsfOut.VL]
+    h[MdsfObs.RIM_LEFT, MdsfState.RIM_EXCESS_LEFT] = 1.0
+    h[MdsfObs.RIM_RIGHT, :N_STATE_PAPER] = h1[MdsfOut.VR]
+    h[MdsfObs.RIM_RIGHT, MdsfState.RIM_EXCESS_RIGHT] = 1.0
     return h
 
 
@@ -287,21 +362,21 @@ def structural_speeds(
 
 @dataclass(frozen=True, slots=True)
 class MdsfMatrices:
-    """Constant matrices of one vehicle's filter.
+    """Constant matrices of one vehicle's filter (``n`` = 4 paper, 7 product; ``m`` = 4, 6).
 
     Attributes
     ----------
-    F : ndarray, shape (4, 4)
-        Transition (``A`` in paper mode; product: ``V1`` and ``a1`` driven by ``u``).
-    H : ndarray, shape (4, 4)
-        Observation matrix (eq. (6), with lever arm in product mode).
-    H1 : ndarray, shape (3, 4)
+    F : ndarray, shape (n, n)
+        Transition (``A`` of eq. (6) in paper mode; :func:`product_transition`).
+    H : ndarray, shape (m, n)
+        Observation matrix (eq. (6); :func:`product_observation`).
+    H1 : ndarray, shape (3, n)
         Output matrix (eq. (6), with lever arms in product mode).
-    v0_row : ndarray, shape (4,)
+    v0_row : ndarray, shape (n,)
         ``V0 = v0_row·X`` (eq. (3), lever arm in product mode).
-    Q_base : ndarray, shape (4, 4)
-        Process noise without the accelerometer term (product mode adds ``dt²·var(ā)`` to
-        ``V1`` and ``var(ā)`` to ``a1`` per tick).
+    Q_base : ndarray, shape (n, n)
+        Process noise without the per-tick terms (product mode adds the accelerometer noise to
+        ``V1``/``a1`` and the adaptive rim-excess noise).
     dt_s : float
     """
 
@@ -317,6 +392,7 @@ def mdsf_matrices(config: MdsfConfig, vehicle: VehicleConfig) -> MdsfMatrices:
     """Build the matrices of eq. (6)/(7) for one vehicle (see the module docstring per mode)."""
     g = vehicle.geometry
     dt = config.dt_s
+    qw = config.rate_walk_radps_per_sqrt_s**2 * dt
     if config.mode is MdsfMode.PAPER:
         F = transition_matrix(dt)
         H = observation_matrix(g.h1_m)
@@ -324,17 +400,21 @@ def mdsf_matrices(config: MdsfConfig, vehicle: VehicleConfig) -> MdsfMatrices:
         v0_row = np.array([1.0, 0.0, g.h0_m, 0.0])
         qv = config.paper_speed_walk_mps_per_sqrt_s**2 * dt
         qa = config.accel_walk_mps2_per_sqrt_s**2 * dt
+        Q = np.diag([qv, qa, qw, qw])
     else:
         xa, xi = g.antenna_offset_m[0], g.imu_offset_m[0]
-        F = np.eye(N_STATE)
-        F[MdsfState.A1, MdsfState.A1] = 0.0
-        H = observation_matrix(g.h1_m, xa - xi)
-        H1 = output_matrix(g.h0_m, g.h1_m, g.track_width_m, xa, xi)
-        v0_row = np.array([1.0, 0.0, g.h0_m, -xi])
+        F = product_transition(dt)
+        H = product_observation(g)
+        H1 = np.zeros((len(MdsfOut), N_STATE_PRODUCT))
+        H1[:, :N_STATE_PAPER] = output_matrix(g.h0_m, g.h1_m, g.track_width_m, xa, xi)
+        v0_row = np.zeros(N_STATE_PRODUCT)
+        v0_row[:N_STATE_PAPER] = [1.0, 0.0, g.h0_m, -xi]
         qv = config.speed_walk_mps_per_sqrt_s**2 * dt
-        qa = 0.0
-    qw = config.rate_walk_radps_per_sqrt_s**2 * dt
-    Q = np.diag([qv, qa, qw, qw])
+        qb = (
+            vehicle.noise.accel_bias_walk_mps2**2 + config.accel_bias_extra_walk_mps2_per_sqrt_s**2
+        ) * dt
+        qe = config.rim_excess_walk_mps_per_sqrt_s**2 * dt
+        Q = np.diag([qv, 0.0, qw, qw, qb, qe, qe])
     return MdsfMatrices(F=F, H=H, H1=H1, v0_row=v0_row, Q_base=Q, dt_s=dt)
 
 
@@ -354,26 +434,27 @@ class MdsfFilter:
         self.config = config
         self.vehicle = vehicle
         self.matrices = mdsf_matrices(config, vehicle)
-        kf = KalmanFilter(dim_x=N_STATE, dim_z=N_OBS)
+        self.n = config.n_state
+        kf = KalmanFilter(dim_x=self.n, dim_z=config.n_obs)
         kf.F = self.matrices.F.copy()
         kf.H = self.matrices.H.copy()
         kf.Q = self.matrices.Q_base.copy()
-        kf.B = np.eye(N_STATE)
+        kf.B = np.eye(self.n)
         self.kf = kf
 
     def initialize(self, x: FloatArray, P: FloatArray) -> None:
-        """Set the state ``x`` (4,) and covariance ``P`` (4, 4)."""
-        self.kf.x = np.asarray(x, dtype=np.float64).reshape(N_STATE, 1).copy()
+        """Set the state ``x`` (n,) and covariance ``P`` (n, n)."""
+        self.kf.x = np.asarray(x, dtype=np.float64).reshape(self.n, 1).copy()
         self.kf.P = np.asarray(P, dtype=np.float64).copy()
 
     @property
     def x(self) -> FloatArray:
-        """State, shape (4,)."""
-        return np.asarray(self.kf.x, dtype=np.float64).reshape(N_STATE)
+        """State, shape (n,)."""
+        return np.asarray(self.kf.x, dtype=np.float64).reshape(self.n)
 
     @property
     def P(self) -> FloatArray:  # noqa: N802 (filterpy's name for the covariance)
-        """Covariance, shape (4, 4)."""
+        """Covariance, shape (n, n)."""
         return np.asarray(self.kf.P, dtype=np.float64)
 
     def step(
@@ -388,19 +469,19 @@ class MdsfFilter:
 
         Parameters
         ----------
-        z : ndarray, shape (4,)
-            ``[Vg, a1, ωx, ωz]``.
-        R : ndarray, shape (4, 4)
+        z : ndarray, shape (m,)
+            Observation (:class:`MdsfObs`).
+        R : ndarray, shape (m, m)
             Measurement noise.
-        mask : ndarray, shape (4,), bool
-        Q : ndarray, shape (4, 4), optional
+        mask : ndarray, shape (m,), bool
+        Q : ndarray, shape (n, n), optional
             Process noise for this tick (default: the base).
-        u : ndarray, shape (4,), optional
-            Control term ``B·u`` (product mode: ``[dt·ā, ā, 0, 0]``).
+        u : ndarray, shape (n,), optional
+            Control term ``B·u`` (product mode: ``[dt·ā, ā, 0, …]``).
         """
         kf = self.kf
         kf.Q = self.matrices.Q_base if Q is None else np.asarray(Q)
-        kf.predict(u=None if u is None else np.asarray(u, dtype=np.float64).reshape(N_STATE, 1))
+        kf.predict(u=None if u is None else np.asarray(u, dtype=np.float64).reshape(self.n, 1))
         rows = np.flatnonzero(mask)
         if rows.size:
             kf.update(

@@ -285,7 +285,7 @@ def omega_at(
     u = tau_s / span[:, None]  # in [-1, 0]
     p = pos[idx] - pos[last][:, None]
     wf = w.astype(np.float64)
-    quad = fit_ok & (n_fit >= 4) & (config.fit_order >= 2)
+    quad = fit_ok & (n_fit >= 3) & (config.fit_order >= 2)
     # Normal equations of the weighted fit [1, u, u²] (u² column off for linear fits).
     u2 = u * u * quad[:, None]
     cols = np.stack([np.ones_like(u), u, u2], axis=-1) * wf[..., None]  # (m, k, 3)
