@@ -12,11 +12,16 @@ a fine grid (500 Hz) and inverts eq. (8)(9) for the wheel speeds; :mod:`estimato
 samples GNSS (10 Hz, 5 Hz in the paper scenarios), IMU (100 Hz, batches of 10) and encoder
 edges (per wheel, 100 ms packets) with their imperfections.
 
-Cost (one core of a laptop-class CPU, measured by ``tests/estimator/sim``): about 0.1 s per
-simulated minute for the truth and the IMU/GNSS streams plus ~0.02 s per 1000 encoder edges;
-a 5-minute ``field_work`` run is ≈ 0.6 s and ≈ 25 k measurement objects (a few MB). A fleet
-publisher can pre-generate a few minutes for a handful of vehicles in a few seconds; use a
-different ``seed`` (and optionally ``heading0_deg``, origin or ``config``) per vehicle.
+Cost (one core, measured on the development machine): about 0.05-0.1 s per simulated minute,
+dominated by the truth grid and the per-epoch ``GnssSample`` objects. A 5-minute ``field_work``
+run takes ≈ 0.25 s and holds ≈ 12 k measurement objects (≈ 30 k encoder edges, a few MB); a
+10-minute run ≈ 0.5 s. A fleet publisher can pre-generate a few minutes for a handful of vehicles
+in about a second; give each vehicle its own ``seed`` (and, if wanted, ``heading0_deg``, origin
+or ``config``). Memory peaks at ≈ 0.25 MB per simulated second while the fine grid is alive
+(≈ 150 MB for a 10-minute run); the finished run keeps ≈ 40 kB per second (≈ 24 MB for 10 min).
+
+Estimators should be configured with the sensors' noise figures:
+``dataclasses.replace(run.config, noise=run.sensor_noise)``.
 """
 
 from __future__ import annotations
