@@ -4,15 +4,16 @@ Every section is a frozen dataclass that validates itself in ``__post_init__`` a
 :class:`ConfigError` with the offending field named. The server turns these into JSON
 (``dataclasses.asdict``) and back (:func:`vehicle_config_from_dict`).
 
-Geometry follows ``../shared/docs/method.md`` section 1: the origin ``O`` is the ground projection of the
-rear-axle midpoint; body frame X right, Y forward, Z up. In the source's layout the IMU sits on the
-vertical through ``O`` at height ``h0`` and the antenna ``h1`` above the IMU; the horizontal
-offsets below generalise that (lever arms), zero reproduces the source.
+Geometry follows ``../shared/docs/method.md`` section 1: the origin ``O`` is the ground
+projection of the rear-axle midpoint; body frame X right, Y forward, Z up. In the source's
+layout the IMU sits on the vertical through ``O`` at height ``h0`` and the antenna ``h1`` above
+the IMU; the horizontal offsets below generalise that (lever arms), zero reproduces the source.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -109,7 +110,9 @@ class EncoderConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.teeth_per_rev, int) or not 1 <= self.teeth_per_rev <= 100_000:
-            raise ConfigError(f"teeth_per_rev must be an int in 1..100000, got {self.teeth_per_rev!r}")
+            raise ConfigError(
+                f"teeth_per_rev must be an int in 1..100000, got {self.teeth_per_rev!r}"
+            )
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,7 +166,7 @@ class SlipConfig:
         _positive("alert_threshold_pct", self.alert_threshold_pct)
         _positive("alert_hold_s", self.alert_hold_s)
         edges = list(self.band_edges_pct)
-        if not edges or any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
+        if not edges or any(b <= a for a, b in itertools.pairwise(edges)):
             raise ConfigError("band_edges_pct must be a non-empty increasing sequence")
 
 

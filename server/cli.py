@@ -2,8 +2,8 @@
 
 Subcommands::
 
-    slipfleet serve    [--config FILE]                    the server (REST, dashboard, ingest, 3D view)
-    slipfleet demo     [--vehicles N] [--scenario NAME]   embedded router + server + SQLite + simulated fleet
+    slipfleet serve    [--config FILE]                   server: REST, dashboard, ingest, 3D view
+    slipfleet demo     [--vehicles N] [--scenario NAME]  router + server + SQLite + simulated fleet
     slipfleet simulate --vehicles N --scenario NAME --duration S [--connect ENDPOINT]
     slipfleet replay   PATH [--rate X] [--connect ENDPOINT]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]

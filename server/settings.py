@@ -46,10 +46,14 @@ class ZenohSettings(BaseModel):
     With ``connect`` empty the server starts an embedded router listening on ``listen``.
     """
 
-    connect: list[str] = Field(default_factory=list, description="router endpoints, e.g. tcp/10.0.0.2:7447")
+    connect: list[str] = Field(
+        default_factory=list, description="router endpoints, e.g. tcp/10.0.0.2:7447"
+    )
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     key_prefix: str = Field("fleet", description="root of every key expression")
-    vehicle_filter: str = Field("*", description="key-expression chunk selecting this server's vehicles")
+    vehicle_filter: str = Field(
+        "*", description="key-expression chunk selecting this server's vehicles"
+    )
     username: str | None = None
     password: SecretStr | None = None
     channel_capacity: int = Field(65536, ge=16, description="bounded FIFO per subscriber, samples")
@@ -62,7 +66,9 @@ class StorageSettings(BaseModel):
     data_dir: Path = Path("./data")
     sqlite_file: str = "slipfleet.sqlite"
     batch_max_rows: int = Field(5000, ge=1, description="rows per transaction at most")
-    commit_interval_s: float = Field(0.5, gt=0, le=1.0, description="writer commits at least this often")
+    commit_interval_s: float = Field(
+        0.5, gt=0, le=1.0, description="writer commits at least this often"
+    )
     backlog_max_rows: int = Field(2_000_000, ge=1000, description="in-memory backlog bound")
     retention_days: float = Field(0, ge=0, description="delete estimates older than this; 0 = keep")
     store_raw_packets: bool = False
@@ -73,7 +79,9 @@ class IngestSettings(BaseModel):
 
     lateness_ms: int = Field(150, ge=0, le=60_000, description="reorder window by sensor timestamp")
     unknown_vehicle: UnknownVehiclePolicy = UnknownVehiclePolicy.AUTO_REGISTER
-    process_interval_ms: int = Field(20, ge=1, description="how often the pipeline steps estimators")
+    process_interval_ms: int = Field(
+        20, ge=1, description="how often the pipeline steps estimators"
+    )
     max_payload_bytes: int = Field(256 * 1024, ge=1024)
 
 

@@ -1,0 +1,316 @@
+"""Every long-lived resource of one server process, opened and closed in order.
+
+``Runtime.open`` builds, in this order: the store (migrated), the batching writer, the live hub
+and alert engine, the Zenoh session, the estimator registry and pipeline (fed with every stored
+vehicle), the counter flusher and the 3D viewer. ``close`` undoes it in reverse, so the pipeline
+hands its last rows to the writer before the writer flushes and the store closes.
+
+The app factory (:func:`server.api.app.create_app`) calls ``open``/``close`` from its lifespan;
+the API reads ``store``, ``live_hub``, ``alert_engine`` and the hooks below.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import logging
+import threading
+import time
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import zenoh
+
+from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from server.alerts import AlertEngine
+from server.api.prometheus import MetricFamily, Sample
+from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
+from server.ingest.pipeline import Pipeline
+from server.ingest.zenoh_session import open_session
+from server.live import LiveHub
+from server.settings import Settings
+from server.storage import open_store
+from server.storage.base import Store
+from server.storage.writer import StoreWriter
+
+__all__ = ["Runtime"]
+
+log = logging.getLogger(__name__)
+
+#: How often per-vehicle ingest counters are handed to the writer.
+COUNTER_FLUSH_S = 1.0
+
+
+class Runtime:
+    """The server's resources. Not thread-safe to open/close concurrently; everything else is."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._store: Store | None = None
+        self.writer: StoreWriter | None = None
+        self.live_hub: LiveHub | None = None
+        self.alert_engine: AlertEngine | None = None
+        self.session: zenoh.Session | None = None
+        self.registry: EstimatorRegistry | None = None
+        self.pipeline: Pipeline | None = None
+        self.viewer: Any = None
+        self._configs: dict[str, VehicleConfig] = {}
+        self._registrar: concurrent.futures.ThreadPoolExecutor | None = None
+        self._stop = threading.Event()
+        self._flusher: threading.Thread | None = None
+        self._alert_publishers: dict[str, zenoh.Publisher] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def store(self) -> Store:
+        if self._store is None:
+            raise RuntimeError("runtime is not open")
+        return self._store
+
+    def open(self) -> None:
+        s = self.settings
+        self._store = open_store(s.storage)
+        self.writer = StoreWriter(self._store, s.storage).start()
+        self._registrar = concurrent.futures.ThreadPoolExecutor(1, "slipfleet-registrar")
+        self.live_hub = LiveHub()
+        self.alert_engine = AlertEngine(
+            slip_config_for=lambda vid: self._config_of(vid).slip, publish=self._publish_alert
+        )
+        self.session = open_session(s.zenoh)
+        self.registry = EstimatorRegistry()
+        self.pipeline = Pipeline(
+            s,
+            self.session,
+            self.registry,
+            sinks=[self.writer, self.live_hub, self.alert_engine],
+            on_new_vehicle=self._on_new_vehicle,
+        )
+        for rec in self._store.list_vehicles():
+            try:
+                config = vehicle_config_from_dict(rec.config)
+            except ConfigError as exc:
+                log.error(
+                    "stored config of %s is invalid (%s); using defaults", rec.vehicle_id, exc
+                )
+                config = VehicleConfig()
+            self._configs[rec.vehicle_id] = config
+            self.pipeline.register_vehicle(rec.vehicle_id, config)
+        self.pipeline.start()
+        self.alert_engine.start()
+        self._stop.clear()
+        self._flusher = threading.Thread(
+            target=self._flush_loop, name="slipfleet-counters", daemon=True
+        )
+        self._flusher.start()
+        if s.viewer.enabled:
+            from server.viewer.fleet_view import FleetViewer
+
+            self.viewer = FleetViewer(self.live_hub, s.viewer)
+            self.viewer.start()
+        log.info(
+            "runtime open: %s storage, zenoh %s, %d stored vehicles",
+            self._store.dialect,
+            "client of " + ",".join(s.zenoh.connect)
+            if s.zenoh.connect
+            else "router on " + ",".join(s.zenoh.listen),
+            len(self._configs),
+        )
+
+    def close(self) -> None:
+        if self.viewer is not None:
+            self.viewer.stop()
+            self.viewer = None
+        self._stop.set()
+        if self._flusher is not None:
+            self._flusher.join(5.0)
+            self._flusher = None
+        if self.alert_engine is not None:
+            self.alert_engine.stop()
+        if self.pipeline is not None:
+            self.pipeline.stop()
+            if self.writer is not None:
+                self.writer.submit_counters(self.pipeline.counters_snapshot())
+        if self._registrar is not None:
+            self._registrar.shutdown(wait=True)
+            self._registrar = None
+        if self.writer is not None:
+            self.writer.close()
+        for pub in self._alert_publishers.values():
+            pub.undeclare()
+        self._alert_publishers.clear()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        if self._store is not None:
+            self._store.close()
+        log.info("runtime closed")
+
+    # ------------------------------------------------------------------ vehicles
+    def _config_of(self, vehicle_id: str) -> VehicleConfig:
+        return self._configs.get(vehicle_id) or VehicleConfig()
+
+    def _on_new_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """Pipeline thread: a vehicle registered itself (auto or Zenoh config); store it."""
+        self._configs[vehicle_id] = config
+        if self.alert_engine is not None:
+            self.alert_engine.set_slip_config(vehicle_id, config.slip)
+        if self._registrar is not None:
+            self._registrar.submit(self._store_vehicle, vehicle_id, config)
+
+    def _store_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        try:
+            self.store.upsert_vehicle(vehicle_id, config.to_dict(), time.time_ns())
+        except Exception:  # the store logs the cause; the vehicle stays registered in memory
+            log.exception("could not store vehicle %s", vehicle_id)
+
+    def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """API hook: refuse configs naming estimators this server does not have."""
+        registry = self.registry or EstimatorRegistry()
+        try:
+            registry.names_for(config)
+        except UnknownEstimatorError as exc:
+            raise ConfigError(str(exc)) from exc
+
+    def on_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """API hook: a config was stored; the estimators pick it up."""
+        self._configs[vehicle_id] = config
+        if self.pipeline is not None:
+            self.pipeline.register_vehicle(vehicle_id, config)
+        if self.alert_engine is not None:
+            self.alert_engine.set_slip_config(vehicle_id, config.slip)
+
+    def on_vehicle_deleted(self, vehicle_id: str) -> None:
+        """API hook: the store deleted the vehicle; forget it everywhere."""
+        self._configs.pop(vehicle_id, None)
+        if self.pipeline is not None:
+            self.pipeline.remove_vehicle(vehicle_id)
+
+    # ------------------------------------------------------------------ background
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(COUNTER_FLUSH_S):
+            if self.pipeline is not None and self.writer is not None:
+                self.writer.submit_counters(self.pipeline.counters_snapshot())
+
+    def _publish_alert(self, vehicle_id: str, event: dict[str, Any]) -> None:
+        if self.session is None:
+            return
+        key = f"{self.settings.zenoh.key_prefix}/{vehicle_id}/alerts"
+        pub = self._alert_publishers.get(key)
+        if pub is None:
+            pub = self._alert_publishers[key] = self.session.declare_publisher(key)
+        pub.put(json.dumps(event))
+
+    # ------------------------------------------------------------------ health and metrics
+    def health(self) -> Mapping[str, bool]:
+        storage_ok = False
+        if self._store is not None and self.writer is not None:
+            try:
+                storage_ok = self._store.ping() and self.writer.stats().healthy
+            except Exception:
+                storage_ok = False
+        zenoh_ok = self.session is not None and not self.session.is_closed()
+        pipeline_ok = self.pipeline is not None and bool(self.pipeline.stats()["running"])
+        return {"zenoh": zenoh_ok, "storage": storage_ok, "pipeline": pipeline_ok}
+
+    def metrics(self) -> Iterable[MetricFamily]:
+        families: list[MetricFamily] = []
+        if self.pipeline is not None:
+            families.extend(_ingest_families(self.pipeline.counters_snapshot()))
+            stats = self.pipeline.stats()
+            families.append(
+                MetricFamily(
+                    "slipfleet_estimate_rows",
+                    "counter",
+                    "Estimate rows produced by the pipeline.",
+                    [Sample(float(stats["rows"]), suffix="_total")],
+                )
+            )
+            families.append(
+                MetricFamily(
+                    "slipfleet_pipeline_queue_bursts",
+                    "gauge",
+                    "Decoded bursts waiting for the pipeline thread.",
+                    [Sample(float(stats["queue_bursts"]))],
+                )
+            )
+            families.append(
+                MetricFamily(
+                    "slipfleet_pipeline_tick_seconds",
+                    "gauge",
+                    "Duration of the pipeline's last processing tick.",
+                    [Sample(float(stats["last_tick_ms"]) / 1000.0)],
+                )
+            )
+        if self.writer is not None:
+            w = self.writer.stats()
+            for name, value, help_ in (
+                ("rows_written", w.rows_written, "Estimate rows inserted."),
+                (
+                    "rows_dropped_backlog_full",
+                    w.rows_dropped_backlog_full,
+                    "Rows refused: backlog full.",
+                ),
+                ("transactions", w.transactions, "Committed estimate transactions."),
+            ):
+                families.append(
+                    MetricFamily(
+                        f"slipfleet_writer_{name}",
+                        "counter",
+                        help_,
+                        [Sample(float(value), suffix="_total")],
+                    )
+                )
+            families.append(
+                MetricFamily(
+                    "slipfleet_writer_backlog_rows",
+                    "gauge",
+                    "Rows waiting to be written.",
+                    [Sample(float(w.backlog_rows))],
+                )
+            )
+        if self.alert_engine is not None:
+            families.append(
+                MetricFamily(
+                    "slipfleet_alerts_open",
+                    "gauge",
+                    "Open alerts.",
+                    [Sample(float(self.alert_engine.open_count()))],
+                )
+            )
+        return families
+
+
+def _ingest_families(counters: Mapping[str, Mapping[str, int]]) -> list[MetricFamily]:
+    """Per-vehicle ingest counters as Prometheus families (rejections labelled by reason)."""
+    plain = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap", "seq_restarts")
+    samples: dict[str, list[Sample]] = {name: [] for name in plain}
+    rejected: list[Sample] = []
+    for vehicle_id, counts in sorted(counters.items()):
+        for name in plain:
+            samples[name].append(
+                Sample(float(counts.get(name, 0)), {"vehicle": vehicle_id}, "_total")
+            )
+        for key, value in counts.items():
+            if key.startswith("rejected_"):
+                rejected.append(
+                    Sample(
+                        float(value),
+                        {"vehicle": vehicle_id, "reason": key.removeprefix("rejected_")},
+                        "_total",
+                    )
+                )
+    families = [
+        MetricFamily(
+            f"slipfleet_packets_{name}",
+            "counter",
+            f"Sensor packets {name.replace('_', ' ')}.",
+            samples[name],
+        )
+        for name in plain
+    ]
+    families.append(
+        MetricFamily(
+            "slipfleet_packets_rejected", "counter", "Sensor packets rejected, by reason.", rejected
+        )
+    )
+    return families
