@@ -35,7 +35,16 @@ export function makeChart(target, opts) {
       tzDate: utc,
       scales: { x: { time: true }, y: { auto: true, range: opts.yRange } },
       axes: [
-        { label: "time (UTC)", labelSize: 24, stroke: "#222", grid: { stroke: "#e3e3e3" } },
+        {
+          label: "time (UTC)",
+          labelSize: 24,
+          space: 80, // px between ticks: room for HH:MM:SS
+          stroke: "#222",
+          grid: { stroke: "#e3e3e3" },
+          // 24-hour UTC clock; seconds only when the ticks are closer than a minute
+          values: (u, splits, _axisIdx, _space, incr) =>
+            splits.map((v) => new Date(v * 1e3).toISOString().slice(11, incr < 60 ? 19 : 16)),
+        },
         {
           label: opts.yLabel,
           labelSize: 24,
@@ -65,6 +74,10 @@ export function makeChart(target, opts) {
               ctx.strokeStyle = "#8c141e";
               ctx.setLineDash([4, 4]);
               ctx.lineWidth = 1 * devicePixelRatio;
+              ctx.fillStyle = "#8c141e";
+              ctx.font = `${12 * devicePixelRatio}px system-ui, sans-serif`;
+              ctx.textAlign = "right";
+              ctx.textBaseline = "bottom";
               for (const y of [opts.threshold, -opts.threshold]) {
                 const py = u.valToPos(y, "y", true);
                 if (py >= top && py <= top + h) {
@@ -72,6 +85,7 @@ export function makeChart(target, opts) {
                   ctx.moveTo(left, py);
                   ctx.lineTo(left + w, py);
                   ctx.stroke();
+                  ctx.fillText(`alert threshold ${y > 0 ? "" : "−"}${opts.threshold} %`, left + w - 4, py - 2);
                 }
               }
               ctx.restore();
@@ -81,6 +95,7 @@ export function makeChart(target, opts) {
               if (px >= left && px <= left + w) {
                 ctx.save();
                 ctx.strokeStyle = "#6a3d9a";
+                ctx.setLineDash([]);
                 ctx.lineWidth = 2 * devicePixelRatio;
                 ctx.beginPath();
                 ctx.moveTo(px, top);
@@ -97,6 +112,7 @@ export function makeChart(target, opts) {
     target,
   );
   chart._cursorT = null;
+  target._uplot = chart; // lets tests and tools inspect the chart
   return chart;
 }
 

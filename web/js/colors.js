@@ -75,12 +75,12 @@ export function drawSlipLegend(ctx, x, y, w, h, { font = "12px system-ui, sans-s
   ctx.textAlign = "left";
   ctx.textBaseline = "bottom";
   ctx.fillText("|slip| (%)", x, y - 3);
-  // "no value" swatch
-  const gx = x + w + 14;
+  // "no value" swatch, clear of the last tick label
+  const gx = x + w + 34;
   ctx.fillStyle = slipCss(null);
   ctx.fillRect(gx, y, h, h);
   ctx.strokeRect(gx + 0.5, y + 0.5, h - 1, h - 1);
   ctx.fillStyle = ink;
-  ctx.textBaseline = "top";
-  ctx.fillText("no value", gx - 6, y + h + 5);
+  ctx.textBaseline = "middle";
+  ctx.fillText("no value", gx + h + 5, y + h / 2);
 }

@@ -88,8 +88,9 @@ export class SlipMap {
     const H = cssH - pad.t - pad.b;
     ctx.fillStyle = "#222";
     ctx.font = "bold 14px system-ui, sans-serif";
+    ctx.textAlign = "left";
     ctx.textBaseline = "top";
-    ctx.fillText(this.title, pad.l, 8);
+    ctx.fillText(this.title, 12, 8);
 
     // bounds over the track and the heat cells
     let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;
@@ -104,7 +105,7 @@ export class SlipMap {
         n0 = Math.min(n0, h.n0); n1 = Math.max(n1, h.n0 + this.heatCell);
       }
     }
-    drawSlipLegend(ctx, pad.l, cssH - 48, Math.min(300, W - 90), 14);
+    drawSlipLegend(ctx, pad.l, cssH - 48, Math.min(300, W - 110), 14);
     if (!Number.isFinite(e0)) {
       ctx.fillStyle = "#555";
       ctx.font = "14px system-ui, sans-serif";

@@ -1,0 +1,177 @@
+"""A real app with live data for the browser tests, and a headless Debian Chromium.
+
+The app is the product's ``create_app`` with the live and alerts routers and the dashboard
+mounted, over a runtime holding a real SQLite store (``tmp_path``), a :class:`LiveHub` and an
+:class:`AlertEngine`. A :class:`FeedThread` pushes synthetic estimate rows (12 vehicles, 20 Hz,
+stamped with the wall clock) into the hub, the alert engine and the store, after back-filling the
+last two minutes, as the pipeline thread would.
+
+Chromium: ``apt-get install -y chromium`` (``/usr/bin/chromium``); override with
+``SLIPFLEET_CHROMIUM``. Without it the browser tests fail (they are never skipped).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import uvicorn
+
+from estimator.config import VehicleConfig
+from server.alerts import AlertEngine
+from server.api import create_app
+from server.api.app import API_ROUTERS
+from server.api.routes import alerts as alerts_routes
+from server.api.routes import live as live_routes
+from server.bench.live import FeedThread, SyntheticFleet
+from server.live import LiveHub
+from server.settings import ApiSettings, Settings, StorageSettings
+from server.storage import Store, open_store
+from server.web import mount_web
+
+REPO = Path(__file__).resolve().parents[2]
+SCREENSHOTS = REPO / "artifacts" / "screenshots"
+CHROMIUM = os.environ.get("SLIPFLEET_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+N_VEHICLES = 12
+
+
+class _StoreSink:
+    """Writes each batch to the store (the feed thread is the store's only writer)."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+
+    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
+        self.store.write_estimates(batch)
+
+
+class LiveRuntime:
+    """Store + live hub + alert engine + synthetic feed, opened and closed by the app's lifespan."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.fleet = SyntheticFleet(N_VEHICLES, seed=7)
+        self.live_hub = LiveHub()
+        self.alert_engine = AlertEngine()
+        self._store: Store | None = None
+        self.feed: FeedThread | None = None
+
+    @property
+    def store(self) -> Store:
+        assert self._store is not None
+        return self._store
+
+    def open(self) -> None:
+        self._store = open_store(self.settings.storage)
+        now = time.time_ns()
+        for vid in self.fleet.ids:
+            self._store.upsert_vehicle(vid, VehicleConfig().to_dict(), now)
+        self.feed = FeedThread(
+            self.fleet, [self.live_hub, self.alert_engine, _StoreSink(self._store)], rate_hz=20.0
+        )
+        self.feed.backfill(120.0, rate_hz=10.0)
+        self.feed.start()
+
+    def close(self) -> None:
+        if self.feed is not None:
+            self.feed.stop()
+        if self._store is not None:
+            self._store.close()
+
+    def health(self) -> Mapping[str, bool]:
+        return {"storage": self.store.ping()}
+
+
+@dataclass
+class LiveStack:
+    base_url: str
+    runtime: LiveRuntime
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def live_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveStack]:
+    settings = Settings(
+        storage=StorageSettings.model_validate({"data_dir": tmp_path_factory.mktemp("store")}),
+        api=ApiSettings.model_validate({"require_auth": False}),
+    )
+    runtime = LiveRuntime(settings)
+    app = create_app(
+        settings, runtime, routers=[*API_ROUTERS, live_routes.router, alerts_routes.router]
+    )
+    mount_web(app)
+    port = _free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app, host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio"
+        )
+    )
+    thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert time.monotonic() < deadline, "uvicorn did not start"
+        assert thread.is_alive(), "uvicorn exited"
+        time.sleep(0.05)
+    try:
+        yield LiveStack(f"http://127.0.0.1:{port}", runtime)
+    finally:
+        server.should_exit = True
+        thread.join(timeout=15)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"Chromium not found at {CHROMIUM}: apt-get install -y chromium", pytrace=False)
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    ctx = browser.new_context(viewport={"width": 1400, "height": 900})
+    pg = ctx.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda exc: errors.append(str(exc)))
+    pg.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
+    try:
+        yield pg
+    finally:
+        ctx.close()
+    assert errors == [], f"errors in the page: {errors}"
+
+
+@pytest.fixture(scope="session")
+def screenshots() -> Path:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    return SCREENSHOTS

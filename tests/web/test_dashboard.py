@@ -1,0 +1,190 @@
+"""The dashboard in a real headless Chromium against a real app streaming live data."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.web.conftest import N_VEHICLES, LiveStack
+
+pytestmark = pytest.mark.browser
+
+VID = "veh-003"
+
+# Pixels of a canvas that are clearly coloured (not white, grey or black): slip-scale ink.
+_COLOURED_PIXELS_JS = """
+(id) => {
+  const c = document.getElementById(id);
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0;
+  for (let i = 0; i < d.length; i += 4) {
+    const mx = Math.max(d[i], d[i + 1], d[i + 2]);
+    const mn = Math.min(d[i], d[i + 1], d[i + 2]);
+    if (mx - mn > 60) n++;
+  }
+  return n;
+}
+"""
+
+
+def _get(url: str) -> Any:
+    with urllib.request.urlopen(url, timeout=10) as resp:
+        return json.loads(resp.read())
+
+
+def _page_latest(page: Any) -> tuple[int, float]:
+    """Stamp and shown left slip, read together (an update may land between two reads)."""
+    stamp, text = page.evaluate(
+        "() => { const e = document.getElementById('v-slip-left');"
+        " return [e.dataset.stampNs, e.textContent]; }"
+    )
+    return int(stamp), float(text)
+
+
+def test_fleet_overview_lists_every_vehicle_and_sorts(
+    live_stack: LiveStack, page: Any, screenshots: Path
+) -> None:
+    page.goto(live_stack.base_url + "/#/fleet")
+    page.wait_for_function(
+        "(p) => document.getElementById('fleet-summary').textContent.startsWith(p)",
+        arg=f"{N_VEHICLES} vehicles",
+        timeout=15000,
+    )
+    ids = page.eval_on_selector_all(
+        ".vrows .vrow:not([hidden]) .c-id a", "els => els.map(e => e.textContent)"
+    )
+    assert sorted(ids) == live_stack.runtime.fleet.ids
+    assert page.inner_text("#fleet-summary").startswith(
+        f"{N_VEHICLES} vehicles — {N_VEHICLES} live"
+    )
+    # sort by left slip, largest first
+    page.click("text=Slip left (%)")
+    page.wait_for_timeout(700)  # next update re-renders
+    sorted_attr = page.get_attribute(".vhead .c-slip_left_pct", "aria-sort")
+    assert sorted_attr in ("ascending", "descending")
+    if sorted_attr == "ascending":
+        page.click("text=Slip left (%)")
+    page.wait_for_function(
+        "document.querySelector('.vhead .c-slip_left_pct').getAttribute('aria-sort') === 'descending'"
+    )
+    vals = page.eval_on_selector_all(
+        ".vrows .vrow:not([hidden])",
+        """rows => rows
+            .map(r => [parseFloat(r.style.transform.match(/\\d+/)[0]),
+                       parseFloat(r.querySelector('.c-slip_left_pct span:last-child').textContent)])
+            .sort((a, b) => a[0] - b[0]).map(x => x[1])""",
+    )
+    assert vals == sorted(vals, key=abs, reverse=True)
+    # coloured by band: a slip above 15 % is in the high band
+    assert (
+        page.locator(".band-2").count()
+        + page.locator(".band-1").count()
+        + page.locator(".band-0").count()
+        == 2 * N_VEHICLES
+    )
+    page.screenshot(path=str(screenshots / "fleet.png"))
+
+
+def test_vehicle_page_streams_slip_matching_the_server(
+    live_stack: LiveStack, page: Any, screenshots: Path
+) -> None:
+    page.goto(live_stack.base_url + f"/#/vehicle/{VID}")
+    page.wait_for_selector("#v-slip-left[data-stamp-ns]", timeout=15000)
+    hub = live_stack.runtime.live_hub
+    fleet = live_stack.runtime.fleet
+    i = fleet.ids.index(VID)
+
+    seen: list[tuple[int, float]] = []
+    for _ in range(3):
+        stamp, shown = _page_latest(page)
+        got = hub.latest(VID)
+        assert got is not None
+        hub_stamp = int(got[0]["stamp_ns"])
+        # within one update (the page gets 4 updates a second; the feed runs at 20 Hz)
+        assert 0 <= hub_stamp - stamp < 1_000_000_000
+        # the value shown is the value of that very estimate, rounded for display
+        truth = float(fleet.rows_at(stamp)[i][1]["slip_left_pct"][0])
+        assert math.isclose(shown, round(truth, 1), abs_tol=0.051)
+        store_latest = _get(f"{live_stack.base_url}/api/v1/vehicles/{VID}/latest")
+        assert abs(store_latest["stamp_ns"] - stamp) < 1_500_000_000
+        seen.append((stamp, shown))
+        page.wait_for_timeout(1200)
+    assert len({s for s, _ in seen}) == 3, "the page stopped updating"
+    assert len({v for _, v in seen}) >= 2, "slip did not change over time"
+
+    # charts: uPlot rendered both, with units on the axes and data in them
+    for box, y_label, n_series in (
+        ("chart-slip", "slip (%)", 2),
+        ("chart-speed", "speed (m/s)", 5),
+    ):
+        info = page.evaluate(
+            """(id) => { const u = document.getElementById(id)._uplot;
+                return {labels: u.axes.map(a => a.label), series: u.series.length - 1,
+                        points: u.data[0].length}; }""",
+            box,
+        )
+        assert info["labels"] == ["time (UTC)", y_label]
+        assert info["series"] == n_series
+        assert info["points"] > 50
+    # the map drew the track in slip colours
+    page.wait_for_function(f"({_COLOURED_PIXELS_JS})('live-map') > 500", timeout=10000)
+    # latency sensor -> page is measured and small on loopback
+    lat = page.evaluate("() => window.slipfleetStats.latencyMs.slice()")
+    assert lat and sorted(lat)[len(lat) // 2] < 1000
+    # a longer window comes as a new snapshot from the coarse tier
+    page.click("button[data-window='1800']")
+    page.wait_for_timeout(800)
+    page.screenshot(path=str(screenshots / "vehicle.png"), full_page=True)
+
+
+def test_history_replays_charts_and_map_in_sync(
+    live_stack: LiveStack, page: Any, screenshots: Path
+) -> None:
+    page.goto(live_stack.base_url + f"/#/vehicle/{VID}/history")
+    page.wait_for_function(
+        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
+    )
+    n = int(page.inner_text("#h-msg").split()[0])
+    assert n > 100
+    page.wait_for_function(f"({_COLOURED_PIXELS_JS})('h-map') > 500", timeout=10000)
+    # scrub to the middle: the cursor time and values follow
+    page.eval_on_selector(
+        "#h-scrub",
+        "(e) => { e.value = String(Math.floor(Number(e.max) / 2)); e.dispatchEvent(new Event('input')); }",
+    )
+    mid_at = page.inner_text("#h-at")
+    assert mid_at.endswith("UTC")
+    page.check("#h-heat")
+    page.select_option("#h-speed", "10")
+    page.click("#h-play")
+    page.wait_for_timeout(1500)
+    page.click("#h-play")  # pause
+    after = page.inner_text("#h-at")
+    assert after > mid_at, "replay did not advance"
+    assert page.inner_text("#h-play").endswith("Play")
+    # the charts' replay cursor is at the same time as the map's position
+    cursor_s = page.evaluate("() => document.getElementById('h-chart-slip')._uplot._cursorT")
+    assert after.startswith(time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(cursor_s)))
+    page.screenshot(path=str(screenshots / "history.png"), full_page=True)
+
+
+def test_alerts_panel_shows_alerts(live_stack: LiveStack, page: Any, screenshots: Path) -> None:
+    engine = live_stack.runtime.alert_engine
+    deadline = time.monotonic() + 20
+    while not engine.alerts() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    expected = engine.alerts()
+    assert expected, "the synthetic fleet raised no alert"
+    page.goto(live_stack.base_url + "/#/alerts")
+    page.wait_for_selector("#alerts-body tr td a", timeout=10000)
+    shown = page.eval_on_selector_all("#alerts-body tr td a", "els => els.map(e => e.textContent)")
+    assert {a.vehicle_id for a in expected} <= set(shown) | {
+        a.vehicle_id for a in expected[len(shown) :]
+    }
+    page.screenshot(path=str(screenshots / "alerts.png"), full_page=True)
