@@ -123,7 +123,7 @@ _EstimateBase: type[BaseModel] = create_model(
 )
 
 
-class EstimatePublic(_EstimateBase):  # type: ignore[misc,valid-type]
+class EstimatePublic(_EstimateBase):
     """One estimate row: every field of ``ESTIMATE_DTYPE`` (units in the names, slip in %)."""
 
     vehicle_id: str

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 
 from estimator.types import ESTIMATE_DTYPE
 from server.api import ApiLimits, create_app
+from server.api.routes.series import encode_columns_json
 from server.storage.base import Store
 
 from ._data import T0, T0_ISO, S, hand_series, ramp_series
@@ -165,3 +167,12 @@ def test_empty_range(client: ApiClient, filled: np.ndarray) -> None:
     assert client.get(f"{U}?{q}&format=csv&fields=vg_mps").text == "stamp_ns,vg_mps\n"
     table = pq.read_table(io.BytesIO(client.get(f"{U}?{q}&format=parquet").content))
     assert table.num_rows == 0
+
+
+def test_json_encoding_of_columns() -> None:
+    rows = np.zeros(4, dtype=[("stamp_ns", "i8"), ("x", "f8")])
+    rows["stamp_ns"] = [1, 2, 3, 2**62 + 1]
+    rows["x"] = [np.nan, -np.inf, 1 / 3, 1e-300]
+    text = encode_columns_json(rows)
+    assert text == ('{"stamp_ns":[1,2,3,4611686018427387905],"x":[null,null,0.333333333,1e-300]}')
+    assert json.loads(text)["x"][2] == pytest.approx(1 / 3, rel=1e-9)
