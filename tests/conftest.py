@@ -24,6 +24,32 @@ PG_CLUSTER_SCRIPT = REPO / "scripts" / "pg-test-cluster"
 PG_URL_ENV = "SLIPFLEET_TEST_PG_URL"
 
 
+def start_pg_cluster(cluster_dir: Path, port: int = 0) -> str:
+    """Start (creating if needed) a throwaway cluster in ``cluster_dir`` with
+    ``scripts/pg-test-cluster``; return its URL. Fails the test if it cannot start."""
+    cmd = [sys.executable, str(PG_CLUSTER_SCRIPT), "start", "--dir", str(cluster_dir)]
+    if port:
+        cmd += ["--port", str(port)]
+    started = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    if started.returncode != 0:
+        pytest.fail(
+            f"could not start a PostgreSQL test cluster (set {PG_URL_ENV} to use an existing "
+            f"server):\n{started.stdout}\n{started.stderr}",
+            pytrace=False,
+        )
+    return started.stdout.strip().splitlines()[-1]
+
+
+def stop_pg_cluster(cluster_dir: Path, *, keep: bool = False) -> None:
+    """Stop a cluster started by :func:`start_pg_cluster` (and delete it unless ``keep``)."""
+    cmd = [sys.executable, str(PG_CLUSTER_SCRIPT), "stop", "--dir", str(cluster_dir)]
+    if keep:
+        cmd.append("--keep")
+    stopped = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    if stopped.returncode != 0:
+        raise RuntimeError(f"could not stop the test cluster: {stopped.stdout}{stopped.stderr}")
+
+
 @pytest.fixture(scope="session")
 def pg_url() -> Iterator[str]:
     """URL of a PostgreSQL server (superuser or CREATEDB role) for this test session."""
@@ -32,28 +58,11 @@ def pg_url() -> Iterator[str]:
         yield given
         return
     cluster_dir = Path(tempfile.mkdtemp(prefix="slipfleet-pg-"))
-    started = subprocess.run(
-        [sys.executable, str(PG_CLUSTER_SCRIPT), "start", "--dir", str(cluster_dir)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    if started.returncode != 0:
-        pytest.fail(
-            f"could not start a PostgreSQL test cluster (set {PG_URL_ENV} to use an existing "
-            f"server):\n{started.stdout}\n{started.stderr}",
-            pytrace=False,
-        )
+    url = start_pg_cluster(cluster_dir)
     try:
-        yield started.stdout.strip().splitlines()[-1]
+        yield url
     finally:
-        subprocess.run(
-            [sys.executable, str(PG_CLUSTER_SCRIPT), "stop", "--dir", str(cluster_dir)],
-            capture_output=True,
-            timeout=120,
-            check=False,
-        )
+        stop_pg_cluster(cluster_dir)
 
 
 @pytest.fixture

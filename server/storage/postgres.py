@@ -135,7 +135,7 @@ class PostgresStore:
 
     dialect = "postgresql"
 
-    def __init__(self, url: str, *, max_idle: int = 4, connect_timeout_s: float = 5.0) -> None:
+    def __init__(self, url: str, *, max_idle: int = 8, connect_timeout_s: float = 5.0) -> None:
         self._pool = _Pool(url, max_idle, connect_timeout_s)
         self._staged: weakref.WeakSet[psycopg.Connection[Any]] = weakref.WeakSet()
 

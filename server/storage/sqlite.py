@@ -122,7 +122,10 @@ class SqliteStore:
     def _write(self) -> Iterator[sqlite3.Connection]:
         """A write transaction: in-process lock, ``BEGIN IMMEDIATE``, commit or roll back."""
         conn = self._conn()
-        with self._write_lock:
+        # Bounded like the lock of another process would be (busy timeout).
+        if not self._write_lock.acquire(timeout=self.busy_timeout_s):
+            raise StorageError("sqlite: database is locked (by this process)")
+        try:
             try:
                 conn.execute("BEGIN IMMEDIATE")
             except sqlite3.Error as exc:
@@ -136,6 +139,8 @@ class SqliteStore:
                 if isinstance(exc, sqlite3.Error):
                     raise _wrap(exc) from exc
                 raise
+        finally:
+            self._write_lock.release()
 
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[Any]:
         try:

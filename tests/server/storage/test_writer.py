@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
@@ -286,3 +289,39 @@ def test_rejected_data_is_isolated_per_vehicle_and_counted(backend: Backend) -> 
     assert stats.last_error is not None and "out of range" in stats.last_error
     assert len(inner.query_series("a", 0, 2**62)) == 10
     assert len(inner.query_series("poison", 0, 2**62)) == 0
+
+
+@pytest.mark.postgres
+@pytest.mark.slow
+def test_writer_survives_postgres_server_restart() -> None:
+    """A private cluster (needs the server binaries, like ``pg_url`` without the env URL) is
+    stopped under the writer and started again: rows wait in the backlog, then are written."""
+    from server.storage.postgres import PostgresStore
+    from tests.conftest import start_pg_cluster, stop_pg_cluster
+
+    cluster_dir = Path(tempfile.mkdtemp(prefix="slipfleet-pg-restart-"))
+    url = start_pg_cluster(cluster_dir)
+    port = urlsplit(url).port or 0
+    store = PostgresStore(url, connect_timeout_s=1.0)
+    writer: StoreWriter | None = None
+    try:
+        store.migrate()
+        store.upsert_vehicle("v1", {}, now_ns=1)
+        settings = _settings(commit_interval_s=0.05, backlog_max_rows=10_000)
+        writer = StoreWriter(store, settings, retry_initial_s=0.05, retry_max_s=0.5).start()
+        rows = make_rows(700)
+        writer.submit([("v1", rows[:200])])
+        assert writer.flush(timeout=30)
+        stop_pg_cluster(cluster_dir, keep=True)
+        assert writer.submit([("v1", rows[200:])]) == 500
+        _wait_for(lambda: not writer.stats().healthy)
+        assert not store.ping()
+        start_pg_cluster(cluster_dir, port=port)
+        assert writer.flush(timeout=60)
+        assert writer.stats().healthy and writer.stats().rows_written == 700
+        assert_rows_equal(store.query_series("v1", 0, 2**62), rows)
+    finally:
+        if writer is not None:
+            writer.close(timeout=5)
+        store.close()
+        stop_pg_cluster(cluster_dir)
