@@ -56,7 +56,13 @@ from estimator.sim.sensors import (
     imu_point_m,
     wheel_emissions,
 )
-from estimator.sim.stream import completion_ns, in_arrival_order, replay
+from estimator.sim.stream import (
+    completion_ns,
+    first_ns,
+    in_arrival_order,
+    replay,
+    replay_arrivals,
+)
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -70,8 +76,10 @@ __all__ = [
     "SimRun",
     "TractionModel",
     "completion_ns",
+    "first_ns",
     "in_arrival_order",
     "replay",
+    "replay_arrivals",
     "rim_speed_from_slip",
     "scenario_names",
     "simulate",

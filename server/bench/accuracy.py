@@ -2,7 +2,8 @@
 
 ``slipfleet bench accuracy [--json PATH]`` runs every simulated scenario
 (:mod:`estimator.sim`), feeds each run to every method the way the server's pipeline does
-(sensor order, advancing to a trailing watermark every 100 ms) and compares each estimate row, at
+(arrival order with the sensors' latencies, a 150 ms reorder buffer releasing in sensor order,
+advancing to its horizon every 100 ms) and compares each estimate row, at
 its own ``stamp_ns``, with the truth interpolated at that instant. Nothing is aligned after the
 fact, so latency and lag count as error.
 
@@ -51,7 +52,7 @@ import numpy.typing as npt
 
 from estimator.base import FleetEstimator
 from estimator.config import VehicleConfig
-from estimator.sim import SCENARIOS, SimRun, replay, simulate, truth_at
+from estimator.sim import SCENARIOS, SimRun, replay_arrivals, simulate, truth_at
 from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estimates
 
 __all__ = [
@@ -88,7 +89,8 @@ FLOORS: tuple[tuple[str, str, float, str], ...] = (
 
 _VEHICLE = "bench"
 _STEP_NS = 100_000_000
-_HOLD_NS = 100_000_000
+LATENESS_NS = 150_000_000
+"""Reorder window, as the server's default ``ingest.lateness_ms``."""
 _TRAD_WINDOW_NS = 500_000_000
 
 
@@ -107,12 +109,23 @@ def default_estimators() -> dict[str, EstimatorFactory]:
 # methods
 
 
-def run_estimator(estimator: FleetEstimator, sim: SimRun, config: VehicleConfig) -> np.ndarray:
-    """Feed ``sim`` to ``estimator`` as the server's pipeline would; return all rows in order."""
+def run_estimator(
+    estimator: FleetEstimator, sim: SimRun, config: VehicleConfig, lateness_ns: int = LATENESS_NS
+) -> np.ndarray:
+    """Feed ``sim`` to ``estimator`` as the server's pipeline would; return all rows in order.
+
+    Measurements arrive with the run's latencies, wait in a reorder buffer of ``lateness_ns``
+    and are pushed in first-sample order; every 100 ms of arrival time the estimator is advanced
+    to the buffer's horizon (:func:`estimator.sim.replay_arrivals`).
+    """
     estimator.add_vehicle(_VEHICLE, config)
     parts: list[np.ndarray] = []
-    for chunk, until in replay(
-        sim.measurements, step_ns=_STEP_NS, hold_ns=_HOLD_NS, end_ns=sim.end_ns
+    for chunk, until in replay_arrivals(
+        sim.measurements,
+        sim.arrival_ns,
+        lateness_ns=lateness_ns,
+        step_ns=_STEP_NS,
+        end_ns=sim.end_ns,
     ):
         for m in chunk:
             estimator.push(_VEHICLE, m)

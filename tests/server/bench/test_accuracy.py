@@ -142,6 +142,7 @@ class _TruthEstimator:
         self.next_ns = int(truth["stamp_ns"][0])
         self.pushed = 0
         self.last_key = -1
+        self.last_until = -1
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         self.ids.append(vehicle_id)
@@ -153,17 +154,21 @@ class _TruthEstimator:
         return list(self.ids)
 
     def push(self, vehicle_id: str, measurement: Measurement) -> None:
+        # the bench pushes in first-sample order, never behind a horizon already advanced to
         key = (
             measurement.stamp_ns
             if isinstance(measurement, GnssSample)
-            else int(measurement.stamp_ns[-1])
+            else int(measurement.stamp_ns[0])
         )
         assert key >= self.last_key
+        assert key > self.last_until
         self.last_key = key
         self.pushed += 1
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         until = until_ns["bench"]
+        assert until > self.last_until
+        self.last_until = until
         stamps = np.arange(self.next_ns, until + 1, 50_000_000, dtype=np.int64)
         if stamps.size == 0:
             return []
