@@ -107,7 +107,18 @@ class Pipeline:
             else None
         )
         self._thread: threading.Thread | None = None
-        self._stats = {"ticks": 0, "rows": 0, "sink_errors": 0, "estimator_errors": 0}
+        self._stats = dict.fromkeys(
+            (
+                "ticks",
+                "rows",
+                "sink_errors",
+                "estimator_errors",
+                "pipeline_errors",
+                "dropped_not_running",
+            ),
+            0,
+        )
+        self._stopping = threading.Event()
         self._last_tick_s = 0.0
 
     # ------------------------------------------------------------------ public, any thread
@@ -133,15 +144,32 @@ class Pipeline:
             self._subscriber.stop(timeout_s)
         if self._thread is None:
             return
-        self._queue.put(None)
+        self._stopping.set()
+        try:
+            self._queue.put(None, timeout=timeout_s)
+        except queue.Full:
+            log.warning("pipeline queue stayed full for %.1f s while stopping", timeout_s)
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             log.warning("pipeline thread did not stop within %.1f s", timeout_s)
 
     def submit(self, items: list[IngestItem]) -> None:
-        """Queue decoded packets/refusals for the pipeline; blocks while the queue is full."""
-        if items:
-            self._queue.put(items)
+        """Queue decoded packets/refusals for the pipeline; blocks while the queue is full.
+
+        If the pipeline thread is not running (never started, stopped, or crashed) the items
+        are dropped and counted in ``stats()["dropped_not_running"]`` instead of blocking the
+        caller (Zenoh's backpressure) forever.
+        """
+        if not items:
+            return
+        while self._thread is not None and self._thread.is_alive() and not self._stopping.is_set():
+            try:
+                self._queue.put(items, timeout=0.5)
+                return
+            except queue.Full:
+                continue
+        self._stats["dropped_not_running"] += len(items)
+        log.error("pipeline not running: dropped %d ingest items", len(items))
 
     def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start or reconfigure a vehicle (applied on the pipeline thread).
@@ -181,13 +209,18 @@ class Pipeline:
                 items = []
             if items is None:
                 break
-            self._apply_configs()
-            if items:
-                self._handle(items)
-            now = self._clock()
-            if now >= next_tick:
-                self._tick(now, flush=False)
-                next_tick = max(next_tick + self._interval_ns, now + self._interval_ns // 4)
+            try:
+                self._apply_configs()
+                if items:
+                    self._handle(items)
+                now = self._clock()
+                if now >= next_tick:
+                    self._tick(now, flush=False)
+                    next_tick = max(next_tick + self._interval_ns, now + self._interval_ns // 4)
+            except Exception:  # a bug here must not stall ingest (Zenoh would block on us)
+                self._stats["pipeline_errors"] += 1
+                log.exception("pipeline step failed")
+                next_tick = self._clock() + self._interval_ns
         # shutdown: everything still queued, then release every buffer
         self._apply_control()
         self._apply_configs()

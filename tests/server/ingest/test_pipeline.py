@@ -144,3 +144,12 @@ def test_failing_sink_does_not_stop_others() -> None:
     pipe.submit([imu("a", 0, 0)])
     pipe.stop()
     assert "a" in sink.rows and pipe.stats()["sink_errors"] >= 1
+
+
+def test_submit_to_a_stopped_pipeline_drops_and_counts() -> None:
+    pipe, _, _ = make()
+    pipe.start()
+    pipe.stop()
+    for _ in range(300):  # more bursts than the queue holds: must not block
+        pipe.submit([imu("a", 0, 0)])
+    assert pipe.stats()["dropped_not_running"] > 0
