@@ -21,7 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.api.deps import ApiLimits, ApiRuntime
 from server.api.errors import error_response, install_error_handlers
-from server.api.routes import health, metrics, reports, series, vehicles
+from server.api.routes import alerts, health, live, metrics, reports, series, vehicles
 from server.settings import Settings
 
 __all__ = ["API_PREFIX", "API_ROUTERS", "BodySizeLimit", "create_app"]
@@ -33,6 +33,8 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     vehicles.router,
     series.router,
     reports.router,
+    alerts.router,
+    live.router,
     health.router,
     metrics.router,
 )
@@ -147,8 +149,11 @@ def create_app(
     app.state.limits = limits or ApiLimits()
     app.state.runtime = None
     install_error_handlers(app)
+    included: set[int] = set()
     for router in routers:
-        app.include_router(router, prefix=API_PREFIX)
+        if id(router) not in included:  # each router once, even if listed twice
+            included.add(id(router))
+            app.include_router(router, prefix=API_PREFIX)
     if settings.api.cors_origins:
         app.add_middleware(
             CORSMiddleware,

@@ -13,6 +13,7 @@ from anyio.from_thread import BlockingPortal, start_blocking_portal
 from fastapi import FastAPI
 
 from estimator.config import VehicleConfig
+from server.alerts import AlertEngine
 from server.api import ApiLimits, create_app
 from server.api.prometheus import MetricFamily, Sample
 from server.settings import ApiSettings, Settings, StorageSettings
@@ -43,6 +44,7 @@ class FakeRuntime:
         self.deleted: list[str] = []
         self.opened = 0
         self.closed = 0
+        self.alert_engine = AlertEngine()
 
     @property
     def store(self) -> Store:

@@ -76,6 +76,7 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
         "/api/v1/vehicles/{vehicle_id}/series",
         "/api/v1/vehicles/{vehicle_id}/report",
         "/api/v1/fleet/report",
+        "/api/v1/alerts",
         "/api/v1/health",
         "/api/v1/metrics",
     }
@@ -100,6 +101,12 @@ def test_routers_are_one_list(tmp_path: Path) -> None:
         return {"pong": "yes"}
 
     settings = make_settings(tmp_path)
-    app = create_app(settings, FakeRuntime(settings), routers=[*API_ROUTERS, extra])
+    app = create_app(settings, FakeRuntime(settings), routers=[*API_ROUTERS, extra, extra])
     with running(app) as client:
         assert client.get("/api/v1/live/ping").json() == {"pong": "yes"}
+        ids = [
+            op["operationId"]
+            for p in client.get("/openapi.json").json()["paths"].values()
+            for op in p.values()
+        ]
+        assert ids.count("live-ping") == 1
