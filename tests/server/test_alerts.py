@@ -177,3 +177,57 @@ def test_stale_thread_starts_and_stops() -> None:
     finally:
         eng.stop()
     assert [a.kind for a in eng.alerts()] == [AlertKind.STALE]
+
+
+def _get_alerts(eng: AlertEngine | None, query: str) -> tuple[int, Any]:
+    import asyncio
+
+    import httpx
+    from fastapi import FastAPI
+
+    from server.api.errors import install_error_handlers
+    from server.api.routes import alerts as alerts_routes
+
+    app = FastAPI()
+    install_error_handlers(app)
+    if eng is not None:
+        app.state.alert_engine = eng
+    app.include_router(alerts_routes.router, prefix="/api/v1")
+
+    async def go() -> tuple[int, Any]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            resp = await client.get("/api/v1/alerts" + query)
+            return resp.status_code, resp.json()
+
+    return asyncio.run(go())
+
+
+def test_alerts_route_lists_and_filters() -> None:
+    eng, _, _ = engine()
+    eng.on_estimates(
+        [
+            ("a", rows([0.0, 6.0, 7.0], [30.0, 30.0, 0.0])),
+            ("b", rows([0.0, 6.0], [0.0, 40.0], sr=40.0)),
+        ]
+    )
+    status, body = _get_alerts(eng, "")
+    assert status == 200
+    assert body["open_count"] == 1
+    assert [(a["vehicle_id"], a["kind"], a["open"]) for a in body["alerts"]] == [
+        ("b", "slip_right", True),
+        ("a", "slip_left", False),
+    ]
+    assert body["alerts"][1]["start_ns"] == T0 and body["alerts"][1]["end_ns"] == T0 + 7 * S
+    eng.on_estimates([("b", rows([7.0, 12.0], [40.0, 40.0], sr=40.0))])
+    status, body = _get_alerts(eng, "?state=open&vehicle_id=b")
+    assert status == 200
+    assert sorted(a["kind"] for a in body["alerts"]) == ["slip_left", "slip_right"]
+    assert body["open_count"] == 2
+    status, body = _get_alerts(eng, "?state=sometimes")
+    assert status == 422
+
+
+def test_alerts_route_without_engine_is_unavailable() -> None:
+    status, body = _get_alerts(None, "")
+    assert status == 503 and body["error"] == "unavailable"

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import threading
+import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -190,3 +193,120 @@ def test_rejects_bad_settings() -> None:
         LiveHub(stale_after_s=5.0, offline_after_s=2.0)
     with pytest.raises(ValueError):
         TierSpec("x", 0.0, 1.0)
+
+
+# ---------------------------------------------------------------------- WebSocket routes
+
+
+class _Served:
+    """The live routes over ``hub`` under a real uvicorn on 127.0.0.1, with a JSON WS client."""
+
+    def __init__(self, hub: LiveHub | None) -> None:
+        import socket
+
+        import uvicorn
+        from fastapi import FastAPI
+
+        from server.api.routes import live as live_routes
+
+        app = FastAPI()
+        if hub is not None:
+            app.state.live_hub = hub
+        app.include_router(live_routes.router, prefix="/api/v1")
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            self.port = int(sock.getsockname()[1])
+        config = uvicorn.Config(
+            app, host="127.0.0.1", port=self.port, log_level="warning", ws="websockets-sansio"
+        )
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    def __enter__(self) -> _Served:
+        self.thread.start()
+        for _ in range(400):
+            if self.server.started:
+                return self
+            time.sleep(0.025)
+        raise RuntimeError("uvicorn did not start")
+
+    def __exit__(self, *_exc: object) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+
+    def connect(self, path: str) -> Any:
+        from websockets.sync.client import connect
+
+        return connect(f"ws://127.0.0.1:{self.port}{path}", max_size=2**24, open_timeout=10)
+
+
+def _recv(ws: Any) -> dict[str, Any]:
+    msg: dict[str, Any] = json.loads(ws.recv(timeout=10))
+    return msg
+
+
+def test_fleet_socket_sends_the_overview() -> None:
+    hub = LiveHub()
+    hub.on_estimates([("a", rows([1.0], vg=3.0)), ("b", rows([1.0]))])
+    with _Served(hub) as srv, srv.connect("/api/v1/live/fleet?interval_ms=250") as ws:
+        msg = _recv(ws)
+        assert msg["type"] == "fleet"
+        assert msg["ids"] == ["a", "b"]
+        assert msg["vg_mps"] == [3.0, 2.0]
+        assert set(msg) >= {"status", "age_s", "slip_left_pct", "slip_right_pct", "gnss", "sent_ns"}
+        assert _recv(ws)["type"] == "fleet"  # and again at its interval
+
+
+def _merge(cols: dict[str, list[Any]], msg: dict[str, Any]) -> dict[str, list[Any]]:
+    keep = [i for i, t in enumerate(cols["stamp_ns"]) if t < msg["from_ns"]]
+    return {k: [v[i] for i in keep] + msg["columns"][k] for k, v in cols.items()}
+
+
+def test_vehicle_socket_snapshot_then_appends_that_merge_cleanly() -> None:
+    hub = LiveHub(tiers=(TierSpec("f", 0.1, 60.0), TierSpec("c", 1.0, 1800.0)))
+    hub.on_estimates([("a", rows([i * 0.05 for i in range(40)]))])
+    with _Served(hub) as srv, srv.connect("/api/v1/live/vehicles/a?window_s=30") as ws:
+        snap = _recv(ws)
+        assert snap["type"] == "snapshot" and snap["tier"] == "f"
+        cols = snap["columns"]
+        assert snap["latest"]["stamp_ns"] == cols["stamp_ns"][-1] == T0 + round(1.95 * S)
+        # new rows in several batches, the first in the bucket the client already holds
+        for k in range(3):
+            hub.on_estimates([("a", rows([1.97 + k * 0.5 + i * 0.05 for i in range(10)]))])
+            time.sleep(0.1)
+        last = T0 + round((1.97 + 1.0 + 0.45) * S)
+        while True:
+            msg = _recv(ws)
+            assert msg["type"] == "append"
+            cols = _merge(cols, msg)
+            if cols["stamp_ns"][-1] == last:
+                break
+        fresh = hub.window("a", 30.0)  # the client's copy equals a fresh window from the hub
+        assert fresh is not None
+        assert cols["stamp_ns"] == fresh["stamp_ns"]
+        assert cols["slip_left_pct"] == fresh["slip_left_pct"]
+        ws.send(json.dumps({"window_s": 600}))  # a new window: a new snapshot, coarse tier
+        while (msg := _recv(ws))["type"] != "snapshot":
+            pass
+        assert msg["window_s"] == 600 and msg["tier"] == "c"
+
+
+def test_vehicle_socket_waits_for_an_unknown_vehicle() -> None:
+    hub = LiveHub()
+    with _Served(hub) as srv, srv.connect("/api/v1/live/vehicles/x") as ws:
+        msg = _recv(ws)
+        assert (msg["type"], msg["vehicle_id"]) == ("waiting", "x")
+        hub.on_estimates([("x", rows([1.0]))])
+        while (msg := _recv(ws))["type"] == "waiting":
+            pass
+        assert msg["type"] == "snapshot"
+        assert msg["columns"]["stamp_ns"] == [T0 + S]
+
+
+def test_sockets_close_when_there_is_no_hub() -> None:
+    from websockets.exceptions import ConnectionClosed
+
+    with _Served(None) as srv, srv.connect("/api/v1/live/fleet") as ws:
+        with pytest.raises(ConnectionClosed) as exc:
+            ws.recv(timeout=10)
+        assert exc.value.rcvd is not None and exc.value.rcvd.code == 1011
