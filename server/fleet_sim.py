@@ -240,10 +240,11 @@ class FleetSim:
             simulate(self._scenario, seed=self._seed + k, start_ns=base, **self._overrides)  # type: ignore[arg-type]
             for k in range(self._distinct)
         ]
+        packetized = [packetize(run.in_arrival_order(), run.start_ns) for run in runs]
         vehicles = []
         for i, vid in enumerate(self.vehicle_ids):
             run = runs[i % self._distinct]
-            packets = packetize(run.in_arrival_order(), run.start_ns)
+            packets = packetized[i % self._distinct]  # shared, read-only
             period = run.end_ns - run.start_ns + TICK_NS
             phase = (i * TICK_NS) // self._n
             vehicles.append(

@@ -170,3 +170,22 @@ def test_config_key_registers_vehicle() -> None:
             pipe.stop()
     assert fleet.vehicles["veh-7"] == cfg
     assert ("veh-7", cfg) in stored and all(v != "veh-8" for v, _ in stored)
+
+
+def test_vehicle_filter_selects_vehicles() -> None:
+    fleet = RecordingFleet()
+    with embedded_router(vehicle_filter="keep-$*") as (router, zs, endpoint):
+        pipe = Pipeline(Settings(zenoh=zs), router, EstimatorRegistry({"mdsf": lambda: fleet}))
+        pipe.start()
+        try:
+            with client_session(endpoint) as client:
+                t = T0 + np.arange(3, dtype=np.int64) * MS
+                payload = encode_imu(ImuBatch(t, np.zeros((3, 3)), np.zeros((3, 3))), 0)
+                drop = client.declare_publisher(sensor_key(zs.key_prefix, "drop-1", Stream.IMU))
+                drop.put(payload)
+                declare(client, sensor_key(zs.key_prefix, "keep-1", Stream.IMU)).put(payload)
+                wait_for(lambda: "keep-1" in pipe.counters_snapshot(), 10.0)
+                time.sleep(0.2)
+        finally:
+            pipe.stop()
+    assert list(pipe.counters_snapshot()) == ["keep-1"]
