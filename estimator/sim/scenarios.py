@@ -6,8 +6,10 @@ defaults (fields of :class:`~estimator.sim.sensors.SensorSpec`, also overridable
 
 Speeds are forward speeds of ``O`` (the rear-axle midpoint's ground projection); yaw rates are
 body rates, counter-clockwise positive. "± bound" wobbles are sums of random sines scaled so
-their largest excursion over the run equals the bound; they fade out below 0.5 m/s so the
-vehicle does not turn or pitch while standing.
+their largest excursion over the run equals the bound; they fade out toward standstill so the
+vehicle does not turn or pitch while standing: speed and yaw wobbles below 0.5 m/s, body pitch
+and roll wobbles in proportion to speed up to ``wobble_full_speed_mps`` (3 m/s; 0.5 m/s in the
+paper scenarios, whose bounds hold over the whole motion).
 
 The two ``paper_*`` scenarios follow ``../shared/docs/method.md`` section 1 ("The paper's
 scenarios") and the source's section 2.1: GNSS at the paper's 5 Hz (dt = 0.2 s, so sample 70 is
@@ -116,6 +118,7 @@ def _wobbles(
 
 
 _COMMON: dict[str, Any] = {
+    "wobble_full_speed_mps": 3.0,
     "speed_wobble_mps": 0.05,
     "yaw_wobble_radps": 0.02,
     "pitch_rate_wobble_radps": 0.02,
@@ -165,11 +168,17 @@ def _plan(
     def yaw_f(t: FloatArray, v0: FloatArray) -> FloatArray:
         return yaw(t) + w_yaw(t) * _moving(v0)
 
+    full = float(p["wobble_full_speed_mps"])
+
+    def body_gate(v0: FloatArray) -> FloatArray:
+        # bumps come faster the faster the vehicle goes: body pitch/roll motion grows with speed
+        return np.clip(np.asarray(v0) / full, 0.0, 1.0)
+
     def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        return w_pitch(t) * _moving(v0)
+        return w_pitch(t) * body_gate(v0)
 
     def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        return w_roll(t) * _moving(v0)
+        return w_roll(t) * body_gate(v0)
 
     def zero(x: FloatArray) -> FloatArray:
         return np.zeros_like(np.asarray(x, dtype=np.float64))
@@ -488,6 +497,7 @@ SCENARIOS: Mapping[str, Scenario] = MappingProxyType(
                         "yaw_wobble_radps": 0.05,
                         "pitch_rate_wobble_radps": 0.02,
                         "roll_wobble_rad": 0.0,
+                        "wobble_full_speed_mps": 0.5,
                     }
                 ),
                 MappingProxyType(dict(_PAPER_SENSORS)),
@@ -507,6 +517,7 @@ SCENARIOS: Mapping[str, Scenario] = MappingProxyType(
                         "yaw_wobble_radps": 0.02,
                         "pitch_rate_wobble_radps": 0.02,
                         "roll_wobble_rad": 0.0,
+                        "wobble_full_speed_mps": 0.5,
                     }
                 ),
                 MappingProxyType(dict(_PAPER_SENSORS)),
