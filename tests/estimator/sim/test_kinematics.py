@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.config import VehicleConfig, VehicleGeometry
@@ -167,3 +167,28 @@ def test_heading_follows_yaw_rate_ccw() -> None:
     assert tr["north_m"][circling][0] > 0.5
     # the speed stays within 3.0 ± 0.03 m/s while circling
     assert np.all(np.abs(tr["v0_mps"][circling] - 3.0) <= 0.0301)
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    st.floats(0.5, 2.0),
+    st.floats(0.0, 3.0),
+    st.floats(1.0, 2.5),
+    st.tuples(st.floats(-0.5, 0.5), st.floats(-1.0, 1.0)),
+    st.integers(0, 2**31),
+)
+def test_structural_relations_hold_for_any_geometry(
+    h0: float, h1: float, b: float, antenna: tuple[float, float], seed: int
+) -> None:
+    geo = VehicleGeometry(h0_m=h0, h1_m=h1, track_width_m=b, antenna_offset_m=antenna)
+    run = simulate(
+        "hard_braking", seed=seed, start_ns=START_NS, config=VehicleConfig(geometry=geo), cycles=1
+    )
+    tr = run.truth
+    wx, wz = tr["pitch_rate_radps"], tr["yaw_rate_radps"]
+    np.testing.assert_allclose(
+        tr["vg_mps"], tr["v0_mps"] + wz * antenna[0] - wx * (h0 + h1), atol=1e-12
+    )
+    np.testing.assert_allclose(tr["v1_mps"], tr["v0_mps"] - wx * h0, atol=1e-12)
+    np.testing.assert_allclose(tr["vr_mps"] - tr["vl_mps"], wz * b, atol=1e-12)
+    assert np.all(tr["vl_mps"] >= 0) and np.all(tr["vr_mps"] >= 0)

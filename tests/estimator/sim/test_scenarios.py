@@ -169,3 +169,11 @@ def test_eased_knots_hold_values_and_are_c1() -> None:
 def test_smooth_window_edges() -> None:
     x = np.array([0.0, 9.0, 10.0, 11.0, 15.0, 19.0, 20.0, 21.0, 30.0])
     np.testing.assert_allclose(smooth_window(x, 10.0, 20.0, 2.0), [0, 0, 0.5, 1, 1, 1, 0.5, 0, 0])
+
+
+def test_body_wobble_grows_with_speed_in_field_scenarios() -> None:
+    run = simulate("slow_creep", seed=9, start_ns=START_NS)
+    # 0.5-0.8 m/s against full wobble at 3 m/s: at most 0.8/3 of the ±0.02 rad/s pitch rate
+    assert np.max(np.abs(run.truth["pitch_rate_radps"])) < 0.02 * 0.8 / 3 + 0.002
+    standing = run.truth["v0_mps"] == 0.0
+    assert np.all(np.abs(run.truth["pitch_rate_radps"][standing]) < 1e-4)
