@@ -29,7 +29,8 @@ __all__ = ["estimate_to_dict", "flag_names", "router"]
 router = APIRouter(prefix="/vehicles", tags=["vehicles"])
 
 VEHICLE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
-"""Ids a client may register: they must fit in one Zenoh key chunk."""
+"""Ids a client may register: one Zenoh key chunk, as
+:func:`server.protocol.keys.is_valid_vehicle_id` accepts (a test keeps the two in step)."""
 
 _FLAG_BITS = [f for f in EstimateFlag if f.value and (f.value & (f.value - 1)) == 0]
 

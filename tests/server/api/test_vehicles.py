@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
 
 from estimator.types import EstimateFlag
 from server.api import create_app
+from server.api.routes.vehicles import VEHICLE_ID_PATTERN
+from server.protocol.keys import is_valid_vehicle_id
 from server.storage.base import Store
 
 from ._data import T0, hand_series
@@ -160,3 +165,9 @@ def test_latest(client: ApiClient, store: Store) -> None:
     assert body["flag_names"] == ["GNSS_OK", "SLIP_RIGHT_VALID"]
     names = {n for n in np.dtype(store.latest("t1").dtype).names or ()}  # type: ignore[union-attr]
     assert names <= set(body)
+
+
+@given(st.text(max_size=70) | st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,70}", fullmatch=True))
+def test_id_pattern_agrees_with_the_wire_protocol(vehicle_id: str) -> None:
+    ours = re.fullmatch(VEHICLE_ID_PATTERN.strip("^$"), vehicle_id) is not None
+    assert ours == is_valid_vehicle_id(vehicle_id)
