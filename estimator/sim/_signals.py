@@ -7,7 +7,7 @@ array of the same shape. Nothing here draws random numbers except through a
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,19 +55,6 @@ class EasedKnots:
             raise ValueError("EasedKnots needs as many x as y, at least one")
         if any(b < a for a, b in zip(self.x, self.x[1:], strict=False)):
             raise ValueError("EasedKnots abscissae must be non-decreasing")
-
-    @classmethod
-    def from_segments(
-        cls, start: float, y0: float, segments: Sequence[tuple[float, float]]
-    ) -> EasedKnots:
-        """Build from ``(duration, value_at_end)`` pairs starting at ``(start, y0)``."""
-        xs, ys = [start], [y0]
-        for duration, value in segments:
-            if duration < 0:
-                raise ValueError("segment durations must be >= 0")
-            xs.append(xs[-1] + duration)
-            ys.append(value)
-        return cls(tuple(xs), tuple(ys))
 
     def __call__(self, x: FloatArray) -> FloatArray:
         xa = np.asarray(x, dtype=np.float64)

@@ -255,6 +255,8 @@ _PAPER_SENSORS: dict[str, Any] = {
 
 def _figure_eight(p: Params, rng: np.random.Generator) -> MotionPlan:
     lap, tau, laps = float(p["lap_s"]), float(p["reverse_s"]), int(p["laps"])
+    if laps < 1 or not 0.0 < tau < lap / 4:
+        raise ValueError("figure_eight needs laps >= 1 and 0 < reverse_s < lap_s / 4")
     half = lap / 2.0
     # each loop (half lap) turns exactly 2π: a cosine reversal over τ contributes Ω·τ/π on
     # each side of its midpoint, an entry/exit ramp over τ/2 contributes Ω·τ/4.
@@ -326,6 +328,11 @@ def _hard_braking(p: Params, rng: np.random.Generator) -> MotionPlan:
 
 
 def _gnss_outage(p: Params, rng: np.random.Generator) -> MotionPlan:
+    if (
+        float(p["duration_s"]) < 60.0
+        or not 0.0 < float(p["outage_s"]) <= float(p["duration_s"]) - 20.0
+    ):
+        raise ValueError("gnss_outage needs duration_s >= 60 and 0 < outage_s <= duration_s - 20")
     tl = _Timeline()
     v, w = float(p["speed_mps"]), float(p["turn_rate_radps"])
     tl.go(2.0)
@@ -358,6 +365,8 @@ def _gnss_outage(p: Params, rng: np.random.Generator) -> MotionPlan:
 
 
 def _slow_creep(p: Params, rng: np.random.Generator) -> MotionPlan:
+    if float(p["duration_s"]) < 4.0 * float(p["ramp_s"]) + 2.0:
+        raise ValueError("slow_creep needs duration_s >= 4 * ramp_s + 2")
     v_lo, v_hi = float(p["speed_min_mps"]), float(p["speed_max_mps"])
     mid, amp = 0.5 * (v_lo + v_hi), 0.5 * (v_hi - v_lo)
     dur = float(p["duration_s"])

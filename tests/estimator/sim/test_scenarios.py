@@ -177,3 +177,12 @@ def test_body_wobble_grows_with_speed_in_field_scenarios() -> None:
     assert np.max(np.abs(run.truth["pitch_rate_radps"])) < 0.02 * 0.8 / 3 + 0.002
     standing = run.truth["v0_mps"] == 0.0
     assert np.all(np.abs(run.truth["pitch_rate_radps"][standing]) < 1e-4)
+
+
+def test_impossible_settings_are_refused() -> None:
+    with pytest.raises(ValueError):
+        simulate("gnss_outage", seed=1, start_ns=START_NS, duration_s=30.0)
+    with pytest.raises(ValueError):
+        simulate("figure_eight", seed=1, start_ns=START_NS, laps=0)
+    with pytest.raises(ValueError):
+        simulate("slow_creep", seed=1, start_ns=START_NS, duration_s=5.0)
