@@ -359,8 +359,9 @@ def run(
     -------
     dict
         ``{"seed", "moving_mps", "floors", "results": [row...], "all_pass"}``; each row has
-        ``scenario``, ``method``, the metrics, ``seconds`` and, for the product mode,
-        ``floors_pass`` and ``floors_failed``.
+        ``scenario``, ``method``, the metrics, ``seconds``, ``error`` if the method raised
+        (its metrics are then NaN) and, for the product mode, ``floors_pass`` and
+        ``floors_failed``.
     """
     names = list(scenarios) if scenarios is not None else list(SCENARIOS)
     unknown = [n for n in names if n not in SCENARIOS]
@@ -377,14 +378,19 @@ def run(
         ]
         methods.append(("traditional", _traditional_runner(sim, config)))
         for method, fn in methods:
-            t0 = time.perf_counter()
-            rows = fn()
-            seconds = time.perf_counter() - t0
             row: dict[str, Any] = {"scenario": name, "method": method}
+            t0 = time.perf_counter()
+            try:
+                rows = fn()
+            except Exception as exc:  # a crashing method is reported in its row, not hidden
+                row["error"] = f"{type(exc).__name__}: {exc}"
+                rows = empty_estimates(0)
+            row["seconds"] = time.perf_counter() - t0
             row.update(evaluate(rows, sim.truth))
-            row["seconds"] = seconds
             if method == "product":
                 ok, failed = check_floors(row, name)
+                if "error" in row:
+                    ok, failed = False, [row["error"], *failed]
                 row["floors_pass"] = ok
                 row["floors_failed"] = failed
             results.append(row)
@@ -468,6 +474,8 @@ def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
         line += "".join(" " + _fmt(r.get(k), w) for k, _, w in _COLUMNS)
         if "floors_pass" in r:
             line += "  PASS" if r["floors_pass"] else "  FAIL: " + "; ".join(r["floors_failed"])
+        elif "error" in r:
+            line += "  ERROR: " + r["error"]
         print(line, file=f)
     print("", file=f)
     floors = ", ".join(

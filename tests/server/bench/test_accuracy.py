@@ -217,3 +217,22 @@ def test_run_with_fake_estimators_writes_json_and_table(tmp_path: Path) -> None:
 def test_unknown_scenario_is_refused() -> None:
     with pytest.raises(KeyError):
         run(None, scenarios=["nowhere"], estimators={}, quiet=True)
+
+
+class _Broken(_TruthEstimator):
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        raise RuntimeError("filter blew up")
+
+
+def test_a_crashing_method_is_reported_not_hidden() -> None:
+    sim = simulate("hard_braking", seed=1, start_ns=START_NS)
+
+    def make() -> FleetEstimator:
+        return _Broken(sim.truth)
+
+    out = io.StringIO()
+    res = run(None, scenarios=["hard_braking"], seed=1, estimators={"product": make}, out=out)
+    product = res["results"][0]
+    assert product["error"] == "RuntimeError: filter blew up"
+    assert product["coverage_pct"] == 0.0 and not product["floors_pass"]
+    assert "RuntimeError: filter blew up" in out.getvalue()
