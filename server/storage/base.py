@@ -50,7 +50,9 @@ class Store(Protocol):
         """True when the database answers."""
 
     # vehicles
-    def upsert_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> VehicleRecord: ...
+    def upsert_vehicle(
+        self, vehicle_id: str, config: dict[str, Any], now_ns: int
+    ) -> VehicleRecord: ...
 
     def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None: ...
 
