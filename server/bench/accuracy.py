@@ -63,6 +63,7 @@ __all__ = [
     "START_NS",
     "default_estimators",
     "evaluate",
+    "main",
     "print_table",
     "run",
     "run_estimator",
@@ -490,5 +491,18 @@ def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
     )
 
 
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m server.bench.accuracy [SCENARIO ...] [--seed N] [--json PATH]``."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m server.bench.accuracy", description=__doc__)
+    p.add_argument("scenarios", nargs="*", help="scenario names (default: all)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED)
+    p.add_argument("--json", type=Path, default=None, help="write the result here")
+    args = p.parse_args(argv)
+    result = run(args.json, scenarios=args.scenarios or None, seed=args.seed)
+    return 0 if result["all_pass"] else 1
+
+
 if __name__ == "__main__":  # pragma: no cover
-    run()
+    raise SystemExit(main())
