@@ -5,7 +5,7 @@ Scene (world = local ENU metres, see :mod:`server.viewer.scene`):
 ``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
 ``/fleet/wheels``   one batched mesh, two wheels per vehicle, coloured by their slip
 ``/follow/track``   the followed vehicle's recent track, coloured by max |slip| (line segments)
-``/follow/velocity`` its velocity arrow (1 s of travel)
+``/follow/velocity`` its velocity arrow (2 s of travel), above the body
 ``/follow/label``   its id
 
 The whole fleet is two batched meshes, so a frame for 1,000 vehicles is a handful of array
@@ -39,13 +39,16 @@ from server.viewer.scene import (
     fleet_frame,
 )
 
-__all__ = ["NO_FOLLOW", "FleetViewer"]
+__all__ = ["ARROW_SECONDS", "NO_FOLLOW", "FleetViewer"]
 
 _log = logging.getLogger(__name__)
 
 NO_FOLLOW = "(none)"
 _TRACK_WINDOW_S = 120.0
 _WHEEL_WIDTH_M = 0.45
+_CAMERA_OFFSET_M = (-14.0, -14.0, 10.0)
+#: The velocity arrow of the followed vehicle shows this many seconds of travel.
+ARROW_SECONDS = 2.0
 
 
 class FleetViewer:
@@ -84,6 +87,8 @@ class FleetViewer:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._cam_follow: dict[int, str] = {}
+        self._cam_last: np.ndarray | None = None
         self.frame: FleetFrame | None = None
         self.frames = 0
         self.last_frame_s = 0.0
@@ -163,6 +168,8 @@ class FleetViewer:
         self._on_follow_changed()
 
     def _on_follow_changed(self) -> None:
+        self._cam_follow.clear()
+        self._cam_last = None
         if self.followed is None:
             for h in (self._track, self._arrow, self._label):
                 if h is not None:
@@ -185,6 +192,7 @@ class FleetViewer:
             batched_positions=frame.body_position_m,
             batched_colors=frame.body_rgb,
             lod="off",
+            flat_shading=True,
             cast_shadow=False,
             receive_shadow=False,
         )
@@ -199,6 +207,7 @@ class FleetViewer:
             batched_positions=frame.wheel_position_m,
             batched_colors=frame.wheel_rgb,
             lod="off",
+            flat_shading=True,
             cast_shadow=False,
             receive_shadow=False,
         )
@@ -248,8 +257,8 @@ class FleetViewer:
             return
         i = frame.ids.index(vid)
         scene = self.server.scene
-        start = frame.body_position_m[i]
-        tip = start + frame.velocity_mps[i]
+        start = frame.body_position_m[i] + np.array([0.0, 0.0, BODY_SIZE_M[2] / 2 + 0.3])
+        tip = start + ARROW_SECONDS * frame.velocity_mps[i]
         arrow_pts = np.stack([start, tip])[None, :, :]
         if self._arrow is None:
             self._arrow = scene.add_arrows(
@@ -296,12 +305,27 @@ class FleetViewer:
                     thickness_units="screen",
                 )
         if self._camera_follows is not None and self._camera_follows.value:
-            target = frame.body_position_m[i]
-            for client in self.server.get_clients().values():
-                cam = client.camera
-                offset = np.asarray(cam.position) - np.asarray(cam.look_at)
-                if not np.all(np.isfinite(offset)) or np.linalg.norm(offset) < 1.0:
-                    offset = np.array([-15.0, -15.0, 12.0])
-                with client.atomic():
+            self._move_cameras(vid, frame.body_position_m[i])
+
+    def _move_cameras(self, vid: str, target: np.ndarray) -> None:
+        """Carry every client's camera along with the followed vehicle.
+
+        A client new to this vehicle gets a view from behind-left and above; after that the
+        camera is translated by the vehicle's displacement, so the user can still orbit and zoom.
+        (viser moves ``look_at`` along when ``position`` is assigned, so position goes first.)
+        """
+        assert self.server is not None
+        for client_id, client in self.server.get_clients().items():
+            cam = client.camera
+            try:
+                if self._cam_follow.get(client_id) != vid:
+                    cam.position = target + np.array(_CAMERA_OFFSET_M)
                     cam.look_at = target
-                    cam.position = target + offset
+                    self._cam_follow[client_id] = vid
+                elif self._cam_last is not None:
+                    delta = target - self._cam_last
+                    if float(np.linalg.norm(delta)) > 1e-6:
+                        cam.position = np.asarray(cam.position) + delta
+            except AssertionError:  # the client has not reported its camera yet
+                continue
+        self._cam_last = np.array(target, dtype=np.float64)

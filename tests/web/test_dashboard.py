@@ -71,7 +71,8 @@ def test_fleet_overview_lists_every_vehicle_and_sorts(
     if sorted_attr == "ascending":
         page.click("text=Slip left (%)")
     page.wait_for_function(
-        "document.querySelector('.vhead .c-slip_left_pct').getAttribute('aria-sort') === 'descending'"
+        "document.querySelector('.vhead .c-slip_left_pct')"
+        ".getAttribute('aria-sort') === 'descending'"
     )
     vals = page.eval_on_selector_all(
         ".vrows .vrow:not([hidden])",
@@ -156,7 +157,8 @@ def test_history_replays_charts_and_map_in_sync(
     # scrub to the middle: the cursor time and values follow
     page.eval_on_selector(
         "#h-scrub",
-        "(e) => { e.value = String(Math.floor(Number(e.max) / 2)); e.dispatchEvent(new Event('input')); }",
+        "(e) => { e.value = String(Math.floor(Number(e.max) / 2));"
+        " e.dispatchEvent(new Event('input')); }",
     )
     mid_at = page.inner_text("#h-at")
     assert mid_at.endswith("UTC")

@@ -16,7 +16,7 @@ from estimator.types import empty_estimates
 from server.live import LiveHub
 from server.settings import ViewerSettings
 from server.viewer.colors import slip_rgb
-from server.viewer.fleet_view import NO_FOLLOW, FleetViewer
+from server.viewer.fleet_view import ARROW_SECONDS, NO_FOLLOW, FleetViewer
 from server.viewer.scene import rotation_matrix_from_wxyz
 
 T0 = 1_700_000_000 * 1_000_000_000
@@ -104,7 +104,8 @@ def test_follow_draws_track_and_arrow_for_one_vehicle(viewer: tuple[FleetViewer,
     assert v._track is not None and v._arrow is not None
     assert np.asarray(v._track.points).shape == (19, 2, 3)
     arrow = np.asarray(v._arrow.points)[0]
-    expected = [2 * math.cos(0.05), 0.0, 2 * math.sin(0.05)]  # 2 m/s east, nose 0.05 rad up
+    # 2 m/s east, nose 0.05 rad up, over ARROW_SECONDS
+    expected = [ARROW_SECONDS * 2 * math.cos(0.05), 0.0, ARROW_SECONDS * 2 * math.sin(0.05)]
     np.testing.assert_allclose(arrow[1] - arrow[0], expected, atol=1e-5)
     v.follow(None)
     assert v._track.visible is False

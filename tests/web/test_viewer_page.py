@@ -1,0 +1,58 @@
+"""The viser fleet view in a real headless Chromium: a client connects and its camera follows."""
+
+from __future__ import annotations
+
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from server.bench.live import FeedThread, SyntheticFleet
+from server.live import LiveHub
+from server.settings import ViewerSettings
+from server.viewer.fleet_view import FleetViewer
+
+pytestmark = pytest.mark.browser
+
+
+def test_viewer_client_follows_a_vehicle(browser: Any, screenshots: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    hub = LiveHub()
+    feed = FeedThread(SyntheticFleet(30, seed=3), [hub], rate_hz=10.0)
+    feed.backfill(60.0)
+    feed.start()
+    viewer = FleetViewer(hub, ViewerSettings(host="127.0.0.1", port=port, update_hz=5.0))
+    viewer.start()
+    ctx = browser.new_context(viewport={"width": 1400, "height": 900})
+    try:
+        page = ctx.new_page()
+        page.goto(f"http://127.0.0.1:{port}/")
+        viewer.follow("veh-004")
+        assert viewer.server is not None
+        deadline = time.monotonic() + 30
+        near = False
+        while time.monotonic() < deadline and not near:
+            time.sleep(0.5)
+            frame = viewer.frame
+            clients = list(viewer.server.get_clients().values())
+            if frame is None or not clients:
+                continue
+            target = frame.body_position_m[frame.ids.index("veh-004")]
+            try:
+                look_at = np.asarray(clients[0].camera.look_at)
+            except AssertionError:  # camera not reported yet
+                continue
+            near = float(np.linalg.norm(look_at - target)) < 3.0  # one frame of travel at most
+        assert near, "the camera does not follow the vehicle"
+        assert viewer._track is not None and viewer._arrow is not None
+        page.wait_for_timeout(1500)
+        page.screenshot(path=str(screenshots / "viewer.png"))
+    finally:
+        ctx.close()
+        viewer.stop()
+        feed.stop()
