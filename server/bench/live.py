@@ -14,7 +14,8 @@ adds (hub, WebSocket cadence, JSON, network stack); the pipeline's reorder windo
 
 The synthetic fleet: each vehicle drives a figure of eight (20–60 m lobes, 1.5–4 m/s) with slip
 that wanders between about 0 and 12 % and, for 7 s out of every 40 s, a burst above 18 % on the
-left wheel (long enough for a slip alert); one vehicle in ten loses GNSS for 5 s every minute (``EstimateFlag.DEGRADED``).
+left wheel (long enough for a slip alert); one vehicle in ten loses GNSS for 5 s every minute
+(``EstimateFlag.DEGRADED``).
 """
 
 from __future__ import annotations
