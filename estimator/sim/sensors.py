@@ -50,6 +50,7 @@ __all__ = [
     "Emission",
     "SensorSpec",
     "antenna_point_m",
+    "edge_times_s",
     "gnss_emissions",
     "imu_emissions",
     "imu_point_m",
