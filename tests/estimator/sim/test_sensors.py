@@ -260,3 +260,10 @@ def test_relative_imu_noise_scales_with_the_signal() -> None:
     wz = truth_at(run.truth, stamps, "yaw_rate_radps")
     turning = np.abs(wz) > 0.02
     assert 0.015 < np.std((gyro[turning, 2] - wz[turning]) / wz[turning]) < 0.025
+
+
+def test_a_generator_can_stand_in_for_the_seed() -> None:
+    a = simulate("paper_straight", seed=np.random.default_rng(21), start_ns=START_NS)
+    b = simulate("paper_straight", seed=np.random.default_rng(21), start_ns=START_NS)
+    c = simulate("paper_straight", seed=21, start_ns=START_NS)
+    assert a.truth.tobytes() == b.truth.tobytes() == c.truth.tobytes()
