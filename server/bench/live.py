@@ -1,6 +1,7 @@
 """Sensor → page latency of the live views, and a synthetic fleet that feeds them.
 
-Run ``python -m server.bench.live [--vehicles 100] [--rate-hz 20] [--seconds 15] [--watch 10]``.
+Run ``python -m server.bench.live [--vehicles 100] [--rate-hz 20] [--seconds 15] [--watch 10]
+[--browser /usr/bin/chromium]``.
 
 A :class:`SyntheticFleet` produces estimate rows (``ESTIMATE_DTYPE``) for ``--vehicles`` vehicles
 at ``--rate-hz`` stamped with the wall clock, and :class:`FeedThread` pushes them into a
@@ -11,6 +12,11 @@ follow one vehicle each on ``/api/v1/live/vehicles/{id}`` and one client follows
 newest row in it. Sensor and server share the clock here, so this is the latency the live path
 adds (hub, WebSocket cadence, JSON, network stack); the pipeline's reorder window
 (``ingest.lateness_ms``) comes on top in production.
+
+With ``--browser`` a headless Chromium also opens the dashboard: one vehicle page, whose script
+records *receive time − stamp* of every update (``window.slipfleetStats.latencyMs``, the value
+on the page), and the fleet overview, which records the cost of applying each fleet message
+(sort + render of the virtualised table, ``window.slipfleetStats.fleetUpdateMs``).
 
 The synthetic fleet: each vehicle drives a figure of eight (20–60 m lobes, 1.5–4 m/s) with slip
 that wanders between about 0 and 12 % and, for 7 s out of every 40 s, a burst above 18 % on the
@@ -204,6 +210,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--rate-hz", type=float, default=20.0)
     p.add_argument("--seconds", type=float, default=15.0)
     p.add_argument("--watch", type=int, default=10, help="vehicle WebSocket clients")
+    p.add_argument("--browser", default=None, help="Chromium executable: also measure in a page")
     args = p.parse_args(argv)
 
     hub = LiveHub()
@@ -234,8 +241,21 @@ def main(argv: Sequence[str] | None = None) -> None:
         tasks.append(_watch(f"{base}/fleet", args.seconds, fleet_ms, "fleet"))
         await asyncio.gather(*tasks)
 
+    page_ms: list[float] = []
+    render_ms: list[float] = []
+    browser_thread = None
+    if args.browser:
+        url = f"http://127.0.0.1:{port}/"
+        browser_thread = threading.Thread(
+            target=_browser_measure,
+            args=(args.browser, url, fleet.ids[0], args.seconds, page_ms, render_ms),
+            daemon=True,
+        )
+        browser_thread.start()
     try:
         asyncio.run(run())
+        if browser_thread is not None:
+            browser_thread.join(timeout=args.seconds + 60)
     finally:
         feed.stop()
         server.should_exit = True
@@ -246,10 +266,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"{args.rate_hz:g} Hz, {args.seconds:g} s, hub rows in: {hub.rows_in})\n"
     )
     print(f"{'stream':<34}{'messages':>9}{'msg/s':>8}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}")
-    for name, vals, clients in (
+    rows: list[tuple[str, list[float], int]] = [
         (f"/live/vehicles/{{id}} x{args.watch}", vehicle_ms, args.watch),
         ("/live/fleet x1", fleet_ms, 1),
-    ):
+    ]
+    if args.browser:
+        rows.append(("vehicle page in Chromium", page_ms, 1))
+    for name, vals, clients in rows:
         if not vals:
             print(f"{name:<34}{0:>9}")
             continue
@@ -258,6 +281,48 @@ def main(argv: Sequence[str] | None = None) -> None:
             f"{name:<34}{len(vals):>9}{rate:>8.1f}{statistics.median(vals):>9.1f}"
             f"{_pct(vals, 99):>9.1f}{max(vals):>9.1f}"
         )
+
+    if args.browser and render_ms:
+        print(
+            f"\nfleet page, applying one message for {args.vehicles} vehicles: "
+            f"p50 {statistics.median(render_ms):.1f} ms, p99 {_pct(render_ms, 99):.1f} ms "
+            f"({len(render_ms)} messages)"
+        )
+
+
+def _browser_measure(
+    executable: str,
+    url: str,
+    vehicle_id: str,
+    seconds: float,
+    page_ms: list[float],
+    render_ms: list[float],
+) -> None:
+    from playwright.sync_api import sync_playwright
+
+    args = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+    ]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=executable, args=args, headless=True)
+        try:
+            ctx = browser.new_context(viewport={"width": 1400, "height": 900})
+            vehicle_page = ctx.new_page()
+            vehicle_page.goto(f"{url}#/vehicle/{vehicle_id}")
+            fleet_page = ctx.new_page()
+            fleet_page.goto(f"{url}#/fleet")
+            time.sleep(seconds)
+            page_ms.extend(vehicle_page.evaluate("() => window.slipfleetStats.latencyMs"))
+            render_ms.extend(fleet_page.evaluate("() => window.slipfleetStats.fleetUpdateMs"))
+        finally:
+            browser.close()
 
 
 if __name__ == "__main__":

@@ -18,6 +18,10 @@ const COLUMNS = [
   { key: "age_s", label: "Last update (s ago)", numeric: true },
 ];
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2 };
+
+// Cost of applying one fleet message (sort + render), ms; read by the live benchmark.
+window.slipfleetStats = window.slipfleetStats || {};
+window.slipfleetStats.fleetUpdateMs = window.slipfleetStats.fleetUpdateMs || [];
 const GNSS_ORDER = { ok: 0, gated: 1, degraded: 2, none: 3 };
 
 export function fleetView(root) {
@@ -170,11 +174,15 @@ export function fleetView(root) {
   const sock = liveSocket("/api/v1/live/fleet", { interval_ms: 500 }, {
     onMessage(msg) {
       if (msg.type !== "fleet") return;
+      const t0 = performance.now();
       state.data = msg;
       const counts = { live: 0, stale: 0, offline: 0 };
       for (const s of msg.status) counts[s] = (counts[s] || 0) + 1;
       summary.textContent = `${msg.ids.length} vehicles — ${counts.live} live, ${counts.stale} stale, ${counts.offline} offline`;
       resort();
+      const ms = window.slipfleetStats.fleetUpdateMs;
+      ms.push(performance.now() - t0);
+      if (ms.length > 1000) ms.splice(0, ms.length - 1000);
     },
     onState(s) {
       if (s !== "open") summary.textContent = `Connection ${s}; retrying…`;

@@ -18,7 +18,8 @@ const COLS = ["stamp_ns", ...SLIP_FIELDS, ...SPEED_FIELDS, "east_m", "north_m", 
 const ALERT_THRESHOLD_PCT = 15; // SlipConfig default, drawn as dashed lines on the slip chart
 
 // Shared with tests and the latency benchmark: receive time minus sensor stamp, ms.
-window.slipfleetStats = window.slipfleetStats || { latencyMs: [] };
+window.slipfleetStats = window.slipfleetStats || {};
+window.slipfleetStats.latencyMs = window.slipfleetStats.latencyMs || [];
 
 function stat(label, id, unit) {
   return el(
