@@ -44,7 +44,7 @@ def _page_latest(page: Any) -> tuple[int, float]:
         "() => { const e = document.getElementById('v-slip-left');"
         " return [e.dataset.stampNs, e.textContent]; }"
     )
-    return int(stamp), float(text)
+    return int(stamp), float("nan") if text == "–" else float(text)
 
 
 def test_fleet_overview_lists_every_vehicle_and_sorts(

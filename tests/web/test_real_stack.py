@@ -1,0 +1,127 @@
+"""The dashboard on the whole server: simulated vehicles publish over Zenoh on loopback → embedded
+router → pipeline (MDSF) → LiveHub / store → WebSocket and REST → headless Chromium.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from server.app_main import ServerThread, build_app, vehicle_session
+from server.fleet_sim import FleetSim
+from server.live import LiveHub
+from server.settings import Settings
+from tests.support import free_port
+from tests.web.test_dashboard import _COLOURED_PIXELS_JS, _page_latest
+
+pytestmark = [pytest.mark.browser, pytest.mark.zenoh, pytest.mark.slow]
+
+N_VEHICLES = 3
+
+
+@pytest.fixture(scope="module")
+def real_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, LiveHub, FleetSim]]:
+    settings = Settings(
+        zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        storage={"data_dir": tmp_path_factory.mktemp("data"), "commit_interval_s": 0.2},
+        api={"port": 0, "require_auth": False},
+        viewer={"enabled": False},
+    )
+    app = build_app(settings)
+    server = ServerThread(app, "127.0.0.1", 0)
+    server.start()
+    try:
+        with vehicle_session(list(settings.zenoh.listen)) as session:
+            sim = FleetSim(
+                session,
+                N_VEHICLES,
+                scenario="figure_eight",
+                prefix=settings.zenoh.key_prefix,
+                seed=5,
+                loop=True,
+                distinct_runs=N_VEHICLES,
+            )
+            sim.start()
+            try:
+                hub = app.state.runtime.live_hub
+                assert isinstance(hub, LiveHub)
+                deadline = time.monotonic() + 60
+                while len(hub.vehicle_ids()) < N_VEHICLES:
+                    assert time.monotonic() < deadline, "no estimates from the pipeline"
+                    time.sleep(0.2)
+                yield f"http://127.0.0.1:{server.port}", hub, sim
+            finally:
+                sim.stop()
+    finally:
+        server.stop()
+
+
+def _stored_slip_left(client: httpx.Client, vid: str, stamp: int) -> float | None:
+    """The stored row's ``slip_left_pct`` at ``stamp`` (waits for the writer's commit)."""
+    deadline = time.monotonic() + 10
+    while True:
+        body = client.get(
+            f"/api/v1/vehicles/{vid}/series",
+            params={"start": stamp, "end": stamp + 1, "fields": "slip_left_pct"},
+        ).json()
+        if body["rows"]:
+            value: float | None = body["columns"]["slip_left_pct"][0]
+            return value
+        assert time.monotonic() < deadline, f"row {stamp} never stored"
+        time.sleep(0.2)
+
+
+def test_dashboard_on_the_real_stack(
+    real_stack: tuple[str, LiveHub, FleetSim], page: Any, screenshots: Path
+) -> None:
+    base, hub, sim = real_stack
+    page.goto(base + "/#/fleet")
+    page.wait_for_function(
+        "(n) => document.getElementById('fleet-summary').textContent.startsWith(n + ' vehicles')",
+        arg=N_VEHICLES,
+        timeout=20000,
+    )
+    ids = page.eval_on_selector_all(
+        ".vrows .vrow:not([hidden]) .c-id a", "els => els.map(e => e.textContent)"
+    )
+    assert sorted(ids) == sim.vehicle_ids
+    page.screenshot(path=str(screenshots / "real_fleet.png"))
+
+    vid = sim.vehicle_ids[0]
+    page.goto(base + f"/#/vehicle/{vid}")
+    page.wait_for_selector("#v-slip-left[data-stamp-ns]", timeout=20000)
+    # let the vehicle get moving (slip needs ground speed) and the window fill
+    page.wait_for_function(
+        "() => document.getElementById('chart-slip')._uplot.data[0].length > 100", timeout=30000
+    )
+    stamps: list[int] = []
+    values: list[float] = []
+    with httpx.Client(base_url=base, timeout=10) as client:
+        for _ in range(4):
+            stamp, shown = _page_latest(page)
+            got = hub.latest(vid)
+            assert got is not None
+            row = got[0]
+            # within one update of the hub (4 updates a second)
+            assert 0 <= int(row["stamp_ns"]) - stamp < 1_000_000_000
+            stored = client.get(f"/api/v1/vehicles/{vid}/latest").json()
+            assert abs(stored["stamp_ns"] - stamp) < 2_000_000_000  # the writer commits each 0.2 s
+            # the shown slip is the stored estimate's value at that stamp, rounded for display
+            stored_value = _stored_slip_left(client, vid, stamp)
+            if stored_value is None:
+                assert math.isnan(shown)
+            else:
+                assert abs(shown - stored_value) <= 0.051
+            stamps.append(stamp)
+            values.append(shown)
+            page.wait_for_timeout(1000)
+    assert len(set(stamps)) == 4, "the page stopped updating"
+    assert len({v for v in values if not math.isnan(v)}) >= 2, "slip did not change over time"
+    page.wait_for_function(f"({_COLOURED_PIXELS_JS})('live-map') > 300", timeout=10000)
+    page.screenshot(path=str(screenshots / "real_vehicle.png"), full_page=True)
