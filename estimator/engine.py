@@ -26,6 +26,7 @@ Nothing here raises on NaN/inf: bad parts are skipped and counted (:meth:`MdsfFl
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -72,8 +73,6 @@ IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
 _NS = 1e-9
-_DEMAND_SCALE_MPS2 = 1.0
-"""Scale turning a change of traction demand (m/s²) into rim-excess variance."""
 _SLIP_MIN_SPEED_MPS = 0.5
 """Speed floor of the constant-slip-ratio growth of the rim excess."""
 _F = EstimateFlag
@@ -225,7 +224,8 @@ class MdsfEngine:
         grow("last_fused_ns", (), np.int64(-(2**62)))
         grow("gated_since_ns", (), np.int64(-1))
         grow("gnss_noise_var", (), 0.0)
-        grow("force_f", (), np.nan)
+        grow("force_fast", (), np.nan)
+        grow("force_slow", (), np.nan)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
         grow("ref_aux", (len(RefAux),), 0.0)
@@ -245,7 +245,8 @@ class MdsfEngine:
     last_fused_ns: IntArray
     gated_since_ns: IntArray
     gnss_noise_var: FloatArray
-    force_f: FloatArray
+    force_fast: FloatArray
+    force_slow: FloatArray
     ref_x: FloatArray
     ref_P: FloatArray
     ref_aux: FloatArray
@@ -266,7 +267,8 @@ class MdsfEngine:
         self.last_fused_ns[s] = -(2**62)
         self.gated_since_ns[s] = -1
         self.gnss_noise_var[s] = 0.0
-        self.force_f[s] = np.nan
+        self.force_fast[s] = np.nan
+        self.force_slow[s] = np.nan
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
@@ -364,7 +366,11 @@ class MdsfEngine:
         rd[:, MdsfObs.OMEGA_Z] = gyro_var
         if self.product:
             rd[:, MdsfObs.RIM_LEFT :] = np.where(
-                rim_ok, (cfg.wheel_noise_scale * rim_std_mps) ** 2 + 1e-6, 1.0
+                rim_ok,
+                (cfg.wheel_noise_scale * rim_std_mps) ** 2
+                + (cfg.rim_texture_rel * np.where(rim_ok, rim_mps, 0.0)) ** 2
+                + 1e-6,
+                1.0,
             )
         R = np.zeros((k, m, m))
         R[:, np.arange(m), np.arange(m)] = rd
@@ -387,15 +393,10 @@ class MdsfEngine:
             # e' = e·(1 + dt·ā/V); on top, slip wanders with soil and load and moves when the
             # traction demand (forward specific force) changes: variance ∝ |Δf|.
             speed = np.abs(x[:, MdsfState.V1])
-            f_new = np.where(t.imu_ok, t.force_fwd, self.force_f[slots])
-            f_old = self.force_f[slots]
-            alpha = dt / (cfg.force_filter_tau_s + dt)
-            f_filt = np.where(np.isfinite(f_old), f_old + alpha * (f_new - f_old), f_new)
-            d_force = np.abs(np.nan_to_num(f_filt - f_old))
-            self.force_f[slots] = f_filt
+            d2 = self._demand_change(slots, t, accel_var)
             q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
                 cfg.slip_demand_gain * speed / GRAVITY_MPS2
-            ) ** 2 * d_force * _DEMAND_SCALE_MPS2
+            ) ** 2 * d2 * (dt / cfg.force_filter_tau_s)
             F = self.F[slots].copy()
             grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
                 speed, _SLIP_MIN_SPEED_MPS
@@ -551,6 +552,32 @@ class MdsfEngine:
             flags=flags,
         )
 
+    def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
+        """Squared recent change of traction demand beyond accelerometer noise, (k,) [(m/s²)²].
+
+        The forward specific force (acceleration plus slope) is low-passed fast
+        (``force_filter_tau_s``) and slow (5×); their difference is the recent change of
+        demand. Its variance under white accelerometer noise is known, so only the excess over
+        two sigma counts.
+        """
+        dt = self.dt_s
+        tau = self.config.force_filter_tau_s
+        a1 = dt / (tau + dt)
+        a2 = dt / (5.0 * tau + dt)
+        f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
+        fast = self.force_fast[slots]
+        slow = self.force_slow[slots]
+        fresh = ~np.isfinite(fast)
+        fast = np.where(fresh, f_new, np.where(np.isfinite(f_new), fast + a1 * (f_new - fast), fast))
+        slow = np.where(fresh, f_new, np.where(np.isfinite(f_new), slow + a2 * (f_new - slow), slow))
+        self.force_fast[slots] = fast
+        self.force_slow[slots] = slow
+        var_d = accel_var * (
+            a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2)
+        )
+        d = np.nan_to_num(fast - slow)
+        return np.maximum(d * d - 4.0 * var_d, 0.0)
+
     @staticmethod
     def _hand_over(
         x: FloatArray, P: FloatArray, rx: FloatArray, rP: FloatArray, v0: FloatArray, sel: BoolArray
@@ -598,16 +625,7 @@ class _FrontEnd:
         self.config = config
         self.product = config.mode is MdsfMode.PRODUCT
         self.tick_ns = config.tick_ns
-        wcfg = WheelSpeedConfig(
-            teeth_per_rev=vehicle.encoder.teeth_per_rev,
-            window_s=wheel.window_s,
-            min_edges=wheel.min_edges,
-            max_edges=wheel.max_edges,
-            fit_order=wheel.fit_order,
-            frequency_min_count=wheel.frequency_min_count,
-            stop_timeout_s=wheel.stop_timeout_s,
-            timing_std_s=wheel.timing_std_s,
-        )
+        wcfg = dataclasses.replace(wheel, teeth_per_rev=vehicle.encoder.teeth_per_rev)
         self.trackers = (WheelTracker(wcfg), WheelTracker(wcfg))
         self.direct = DirectWheelSpeed(std_radps=0.01)
         self.has_edges = False

@@ -164,6 +164,10 @@ class MdsfConfig:
         tyres must transmit) [-].
     force_filter_tau_s : float
         Time constant of that low-pass [s].
+    rim_texture_rel : float
+        Product mode: short-term scatter of a rim speed around the contact point's speed plus
+        its mean excess, relative to the speed (soil texture, lugs; treated as measurement
+        noise of the rim-speed rows) [-].
     wheel_noise_scale : float
         Product mode: factor on the wheel-speed front end's std (its errors are correlated from
         tick to tick: the fit windows overlap and the tooth pattern repeats every turn).
@@ -197,12 +201,13 @@ class MdsfConfig:
     tick_s: float = 0.05
     speed_walk_mps_per_sqrt_s: float = 0.01
     accel_bias_std_mps2: float = 0.1
-    accel_bias_extra_walk_mps2_per_sqrt_s: float = 0.01
+    accel_bias_extra_walk_mps2_per_sqrt_s: float = 0.003
     rim_excess_walk_mps_per_sqrt_s: float = 0.005
-    rim_excess_walk_rel_per_sqrt_s: float = 0.01
+    rim_excess_walk_rel_per_sqrt_s: float = 0.002
     slip_demand_gain: float = 1.0
     force_filter_tau_s: float = 0.3
-    wheel_noise_scale: float = 3.0
+    rim_texture_rel: float = 0.003
+    wheel_noise_scale: float = 1.0
     accel_walk_mps2_per_sqrt_s: float = 1.0
     paper_speed_walk_mps_per_sqrt_s: float = 0.05
     rate_walk_radps_per_sqrt_s: float = 0.3

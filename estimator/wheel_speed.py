@@ -95,6 +95,10 @@ class WheelSpeedConfig:
         No edge for this long [s] means the wheel is stopped (``ω = 0``).
     timing_std_s : float
         1-sigma jitter of an edge time stamp [s], floor of the reported speed std.
+    stop_bound_margin : float
+        The standstill bound allows a tooth gap this much wider than nominal
+        (``|ω| ≤ (1 + margin)·2π/(Ns·τ)``): real rings have uneven teeth, and a late edge
+        after a wide tooth must not cut a steady speed [-].
     """
 
     teeth_per_rev: int = 120
@@ -105,6 +109,7 @@ class WheelSpeedConfig:
     frequency_min_count: int = 2000
     stop_timeout_s: float = 2.0
     timing_std_s: float = 2e-5
+    stop_bound_margin: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.teeth_per_rev, int) or not 1 <= self.teeth_per_rev <= 100_000:
@@ -119,6 +124,8 @@ class WheelSpeedConfig:
             raise ConfigError(f"min_edges must be an int >= 2, got {self.min_edges!r}")
         if not isinstance(self.max_edges, int) or self.max_edges < self.min_edges:
             raise ConfigError(f"max_edges must be an int >= min_edges, got {self.max_edges!r}")
+        if not (math.isfinite(self.stop_bound_margin) and self.stop_bound_margin >= 0):
+            raise ConfigError("stop_bound_margin must be a finite number >= 0")
         if self.fit_order not in (1, 2):
             raise ConfigError(f"fit_order must be 1 or 2, got {self.fit_order!r}")
         if not isinstance(self.frequency_min_count, int) or self.frequency_min_count < 2:
@@ -232,7 +239,7 @@ def omega_at(
     docstring). For each query ``t``: the edges in ``(t − window_s, t]`` (at least ``min_edges``,
     at most ``max_edges`` of the latest ones at or before ``t``) are fitted with
     ``angle(τ) = c0 + c1·τ + c2·τ²`` (``τ = edge time − t``); ``ω(t) = c1``. The standstill bound
-    and timeout are then applied.
+    (with ``stop_bound_margin``) and timeout are then applied.
 
     Parameters
     ----------
@@ -328,7 +335,7 @@ def omega_at(
     # Standstill: bound by the time since the last edge, zero after the timeout.
     single = has & ~fit_ok
     last_ns = e[np.maximum(last, 0)]
-    bound = stop_bound(last_ns, q, ns)
+    bound = stop_bound(last_ns, q, ns) * (1.0 + config.stop_bound_margin)
     sign = np.where(omega < 0, -1.0, 1.0)
     mag = np.where(single, bound, np.abs(omega))
     capped = mag > bound
