@@ -23,7 +23,7 @@ router = APIRouter(tags=["reports"])
 _log = logging.getLogger(__name__)
 
 REPORT_DESCRIPTION = """\
-Over `start <= stamp < end` (at most 24 h):
+Over `start <= stamp < end` (at most 24 h by default; 400 `range_too_large` beyond):
 
 * **time weight** of an estimate: the time to the next one; a step over 1 s is a gap (the estimate
   before it counts one median step); the last counts one median step. `covered_s` sums them.

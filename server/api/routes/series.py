@@ -212,8 +212,8 @@ def _filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         "the bucket's flags. Spikes therefore survive, but one decimated row mixes values of "
         "several estimates. With `max_points` 0 or absent the series is full rate.\n\n"
         "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
-        "**Limits**: the range may span at most 31 days; a JSON or Parquet answer at most "
-        "200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
+        "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
+        "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
     ),
 )
 def get_series(
