@@ -152,14 +152,16 @@ class ReorderBuffer:
         heapq.heappush(self._heap, (*key, packet))
         return Offer(Verdict.ACCEPTED, lost_delta, restarted)
 
+    def is_idle(self, now_ns: int) -> bool:
+        """No packet arrived for the idle time (the vehicle stopped sending, for now)."""
+        return now_ns - self._last_arrival_ns >= self._idle_ns
+
     def horizon_ns(self, now_ns: int) -> int | None:
         """The sensor time that may be released at ``now_ns`` (None while nothing arrived)."""
         if self._newest_ns is None:
             return None
-        if now_ns - self._last_arrival_ns >= self._idle_ns:
-            horizon = self._newest_ns
-        else:
-            horizon = self._newest_ns - self._lateness_ns
+        idle = self.is_idle(now_ns)
+        horizon = self._newest_ns if idle else self._newest_ns - self._lateness_ns
         if self._released_ns is not None and horizon < self._released_ns:
             return self._released_ns
         return horizon

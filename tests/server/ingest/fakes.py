@@ -28,6 +28,7 @@ class RecordingFleet:
         self.vehicles: dict[str, VehicleConfig] = {}
         self.pushed: dict[str, list[Measurement]] = {}
         self.until: dict[str, int] = {}
+        self.advances: list[dict[str, int]] = []
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         self.vehicles[vehicle_id] = config
@@ -46,6 +47,7 @@ class RecordingFleet:
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         out = []
+        self.advances.append(dict(until_ns))
         for vid, t in until_ns.items():
             assert t >= self.until.get(vid, t), "advance went back in time"
             self.until[vid] = t

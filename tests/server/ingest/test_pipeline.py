@@ -43,6 +43,7 @@ def make(
     lateness_ms: int = 100,
     on_new: Callable[[str, VehicleConfig], None] | None = None,
     sinks: list[object] | None = None,
+    advance_step_ms: int = 200,
 ) -> tuple[Pipeline, RecordingFleet, CapturingSink]:
     fleet = RecordingFleet()
     registry = EstimatorRegistry(factories={"mdsf": lambda: fleet})
@@ -52,7 +53,14 @@ def make(
             {"lateness_ms": lateness_ms, "unknown_vehicle": policy, "process_interval_ms": 5}
         )
     )
-    pipe = Pipeline(settings, None, registry, [*(sinks or []), sink], on_new)  # type: ignore[list-item]
+    pipe = Pipeline(
+        settings,
+        None,
+        registry,
+        [*(sinks or []), sink],  # type: ignore[list-item]
+        on_new,
+        advance_step_ms=advance_step_ms,
+    )
     return pipe, fleet, sink
 
 
@@ -153,3 +161,17 @@ def test_submit_to_a_stopped_pipeline_drops_and_counts() -> None:
     for _ in range(300):  # more bursts than the queue holds: must not block
         pipe.submit([imu("a", 0, 0)])
     assert pipe.stats()["dropped_not_running"] > 0
+
+
+def test_estimators_advance_in_steps_then_to_the_end() -> None:
+    pipe, fleet, _ = make(lateness_ms=0, advance_step_ms=250)
+    pipe.start()
+    for k in range(10):  # 1 s of data, one 100 ms packet at a time
+        pipe.submit([imu("a", k, 100 * k)])
+        wait_for(lambda k=k: len(fleet.pushed.get("a", [])) == k + 1)
+    pipe.stop()
+    untils = [adv["a"] for adv in fleet.advances]
+    steps = np.diff(untils)
+    assert (steps[:-1] >= 250 * MS).all()  # every call but the final one covers >= 250 ms
+    assert untils[-1] == T0 + 909 * MS  # and the last sample is reached
+    assert len(untils) <= 5
