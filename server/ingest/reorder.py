@@ -8,7 +8,8 @@ buffer holds them in a heap keyed by the packet's first sample time and releases
 
 so a packet may arrive up to ``lateness`` (sensor time) after newer data and still be fed in
 order. When the vehicle goes quiet for ``idle`` of wall time (monotonic clock, an argument;
-default ``2 * lateness + 100 ms``), the horizon jumps to the newest sample time so the tail is
+default ``max(2 * lateness, 1 s)``: a publisher stalled for a moment must not look like
+a vehicle that stopped), the horizon jumps to the newest sample time so the tail is
 released too.
 
 A packet whose first sample time is at or before the horizon already released is **late**: it
@@ -34,6 +35,8 @@ __all__ = ["SEQ_WINDOW", "Offer", "ReorderBuffer", "SeqTracker", "Verdict"]
 
 #: How far back (in sequence numbers) duplicates are recognised per stream.
 SEQ_WINDOW = 4096
+#: Shortest default idle time (wall clock) before a quiet vehicle's tail is released.
+IDLE_MIN_NS = 1_000_000_000
 
 _STREAM_ORDER = {Stream.GNSS: 0, Stream.IMU: 1, Stream.WHEELS: 2}
 
@@ -110,7 +113,7 @@ class ReorderBuffer:
         if lateness_ns < 0:
             raise ValueError("lateness_ns must be >= 0")
         self._lateness_ns = lateness_ns
-        self._idle_ns = 2 * lateness_ns + 100_000_000 if idle_ns is None else idle_ns
+        self._idle_ns = max(2 * lateness_ns, IDLE_MIN_NS) if idle_ns is None else idle_ns
         self._heap: list[tuple[int, int, int, int, Packet]] = []
         self._tie = itertools.count()
         self._seq: dict[Stream, SeqTracker] = {}
