@@ -1,4 +1,4 @@
-"""Wire protocol: key expressions and msgpack payloads (``docs/protocol.md``). Pure, no I/O."""
+"""Wire protocol (``docs/protocol.md``): key expressions, msgpack payloads, recording files."""
 
 from server.protocol.codec import (
     LIMITS,
@@ -18,6 +18,7 @@ from server.protocol.codec import (
     encode_wheel_speeds,
 )
 from server.protocol.keys import Stream, config_key, is_valid_vehicle_id, parse_key, sensor_key
+from server.protocol.recording import Record, RecordingError, read_recording, write_recording
 
 __all__ = [
     "LIMITS",
@@ -28,6 +29,8 @@ __all__ = [
     "Limits",
     "Packet",
     "ProtocolError",
+    "Record",
+    "RecordingError",
     "Stream",
     "config_key",
     "decode",
@@ -39,5 +42,7 @@ __all__ = [
     "encode_wheel_speeds",
     "is_valid_vehicle_id",
     "parse_key",
+    "read_recording",
     "sensor_key",
+    "write_recording",
 ]
