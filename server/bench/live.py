@@ -1,7 +1,12 @@
 """Sensor → page latency of the live views, and a synthetic fleet that feeds them.
 
-Run ``python -m server.bench.live [--vehicles 100] [--rate-hz 20] [--seconds 15] [--watch 10]
-[--browser /usr/bin/chromium]``.
+Run ``python -m server.bench.live [--real] [--vehicles 100] [--rate-hz 20] [--seconds 15]
+[--watch 10] [--browser /usr/bin/chromium]``.
+
+With ``--real`` the whole server runs instead (embedded Zenoh router, pipeline with the MDSF
+estimators, SQLite writer, API and dashboard) and ``--vehicles`` simulated vehicles
+(:class:`server.fleet_sim.FleetSim`, ``field_work``) publish over Zenoh on loopback in real time;
+the latency then includes ingest, the reorder window (``ingest.lateness_ms``) and estimation.
 
 A :class:`SyntheticFleet` produces estimate rows (``ESTIMATE_DTYPE``) for ``--vehicles`` vehicles
 at ``--rate-hz`` stamped with the wall clock, and :class:`FeedThread` pushes them into a
@@ -9,9 +14,8 @@ at ``--rate-hz`` stamped with the wall clock, and :class:`FeedThread` pushes the
 The app (live routes + dashboard) runs under uvicorn on 127.0.0.1; ``--watch`` WebSocket clients
 follow one vehicle each on ``/api/v1/live/vehicles/{id}`` and one client follows
 ``/api/v1/live/fleet``. Each records, per message, *receive wall time − sensor stamp* of the
-newest row in it. Sensor and server share the clock here, so this is the latency the live path
-adds (hub, WebSocket cadence, JSON, network stack); the pipeline's reorder window
-(``ingest.lateness_ms``) comes on top in production.
+newest row in it. Sensor and server share the clock here, so with the synthetic feed this is the
+latency the live path adds (hub, WebSocket cadence, JSON, network stack).
 
 With ``--browser`` a headless Chromium also opens the dashboard: one vehicle page, whose script
 records *receive time − stamp* of every update (``window.slipfleetStats.latencyMs``, the value
@@ -174,7 +178,9 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-async def _watch(url: str, seconds: float, out: list[float], key: str) -> None:
+async def _watch(
+    url: str, seconds: float, out: list[float], key: str, hub_out: list[float] | None = None
+) -> None:
     import websockets
 
     deadline = time.monotonic() + seconds
@@ -187,7 +193,10 @@ async def _watch(url: str, seconds: float, out: list[float], key: str) -> None:
             recv_ns = time.time_ns()
             msg: dict[str, Any] = json.loads(text)
             if key == "vehicle" and msg.get("latest"):
-                out.append((recv_ns - int(msg["latest"]["stamp_ns"])) / 1e6)
+                stamp = int(msg["latest"]["stamp_ns"])
+                out.append((recv_ns - stamp) / 1e6)
+                if hub_out is not None:
+                    hub_out.append((int(msg["latest"]["arrival_ns"]) - stamp) / 1e6)
             elif key == "fleet" and msg.get("stamp_ns"):
                 out.append((recv_ns - max(int(s) for s in msg["stamp_ns"])) / 1e6)
 
@@ -197,7 +206,8 @@ def _pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))]
 
 
-def main(argv: Sequence[str] | None = None) -> None:
+def _synthetic_setup(n: int, rate_hz: float) -> tuple[int, list[str], Any, Callable[[], None]]:
+    """Live routes + dashboard over a hub fed by :class:`FeedThread`: ``(port, ids, hub, stop)``."""
     import uvicorn
     from fastapi import FastAPI
 
@@ -205,38 +215,104 @@ def main(argv: Sequence[str] | None = None) -> None:
     from server.live import LiveHub
     from server.web import mount_web
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--vehicles", type=int, default=100)
-    p.add_argument("--rate-hz", type=float, default=20.0)
-    p.add_argument("--seconds", type=float, default=15.0)
-    p.add_argument("--watch", type=int, default=10, help="vehicle WebSocket clients")
-    p.add_argument("--browser", default=None, help="Chromium executable: also measure in a page")
-    args = p.parse_args(argv)
-
     hub = LiveHub()
     app = FastAPI()
     app.state.live_hub = hub
     app.include_router(live_routes.router, prefix="/api/v1")
     mount_web(app)
     port = _free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app, host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio"
+        )
+    )
     srv_thread = threading.Thread(target=server.run, daemon=True)
     srv_thread.start()
     while not server.started:
         time.sleep(0.05)
-    fleet = SyntheticFleet(args.vehicles, seed=1)
-    feed = FeedThread(fleet, [hub], rate_hz=args.rate_hz)
+    fleet = SyntheticFleet(n, seed=1)
+    feed = FeedThread(fleet, [hub], rate_hz=rate_hz)
     feed.backfill(30.0)
     feed.start()
 
+    def stop() -> None:
+        feed.stop()
+        server.should_exit = True
+        srv_thread.join(timeout=10)
+
+    return port, fleet.ids, hub, stop
+
+
+def _real_setup(n: int, data_dir: str) -> tuple[int, list[str], Any, Callable[[], None]]:
+    """The whole server (Zenoh router, pipeline, MDSF, SQLite, API, dashboard) with ``n``
+    simulated vehicles publishing in real time over Zenoh on loopback."""
+    from server.app_main import ServerThread, build_app, vehicle_session
+    from server.fleet_sim import FleetSim
+    from server.settings import Settings
+
+    settings = Settings.model_validate(
+        {
+            "zenoh": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]},
+            "storage": {"data_dir": data_dir},
+            "api": {"port": 0, "require_auth": False},
+            "viewer": {"enabled": False},
+        }
+    )
+    app = build_app(settings)
+    server = ServerThread(app, "127.0.0.1", 0)
+    server.start()
+    session = vehicle_session(list(settings.zenoh.listen))
+    sim = FleetSim(session, n, scenario="field_work", prefix=settings.zenoh.key_prefix, loop=True)
+    sim.start()
+    hub = app.state.runtime.live_hub
+    deadline = time.monotonic() + 120
+    while len(hub.vehicle_ids()) < n and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(3.0)  # past start-up
+
+    def stop() -> None:
+        sim.stop()
+        session.close()
+        server.stop()
+
+    return server.port, sim.vehicle_ids, hub, stop
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    import tempfile
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--vehicles", type=int, default=100)
+    p.add_argument("--rate-hz", type=float, default=20.0, help="synthetic feed rate")
+    p.add_argument("--seconds", type=float, default=15.0)
+    p.add_argument("--watch", type=int, default=10, help="vehicle WebSocket clients")
+    p.add_argument("--browser", default=None, help="Chromium executable: also measure in a page")
+    p.add_argument(
+        "--real",
+        action="store_true",
+        help="the whole server fed by simulated vehicles over Zenoh instead of the synthetic feed",
+    )
+    args = p.parse_args(argv)
+
+    tmp = tempfile.TemporaryDirectory(prefix="slipfleet-bench-")
+    if args.real:
+        port, ids, hub, stop = _real_setup(args.vehicles, tmp.name)
+        source = f"{args.vehicles} simulated vehicles over Zenoh, whole server"
+    else:
+        port, ids, hub, stop = _synthetic_setup(args.vehicles, args.rate_hz)
+        source = f"{args.vehicles} synthetic vehicles at {args.rate_hz:g} Hz into the hub"
+
     vehicle_ms: list[float] = []
+    hub_ms: list[float] = []  # stamp -> row reaches the hub (the pipeline's share)
     fleet_ms: list[float] = []
 
     async def run() -> None:
         base = f"ws://127.0.0.1:{port}/api/v1/live"
         tasks = [
-            _watch(f"{base}/vehicles/{vid}?window_s=60", args.seconds, vehicle_ms, "vehicle")
-            for vid in fleet.ids[: args.watch]
+            _watch(
+                f"{base}/vehicles/{vid}?window_s=60", args.seconds, vehicle_ms, "vehicle", hub_ms
+            )
+            for vid in ids[: args.watch]
         ]
         tasks.append(_watch(f"{base}/fleet", args.seconds, fleet_ms, "fleet"))
         await asyncio.gather(*tasks)
@@ -248,7 +324,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         url = f"http://127.0.0.1:{port}/"
         browser_thread = threading.Thread(
             target=_browser_measure,
-            args=(args.browser, url, fleet.ids[0], args.seconds, page_ms, render_ms),
+            args=(args.browser, url, ids[0], args.seconds, page_ms, render_ms),
             daemon=True,
         )
         browser_thread.start()
@@ -257,13 +333,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         if browser_thread is not None:
             browser_thread.join(timeout=args.seconds + 60)
     finally:
-        feed.stop()
-        server.should_exit = True
-        srv_thread.join(timeout=10)
+        stop()
+        tmp.cleanup()
 
     print(
-        f"\nLive latency, sensor stamp -> message received ({args.vehicles} vehicles at "
-        f"{args.rate_hz:g} Hz, {args.seconds:g} s, hub rows in: {hub.rows_in})\n"
+        f"\nLive latency, sensor stamp -> message received ({source}, {args.seconds:g} s, "
+        f"hub rows in: {hub.rows_in})\n"
     )
     print(f"{'stream':<34}{'messages':>9}{'msg/s':>8}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}")
     rows: list[tuple[str, list[float], int]] = [
@@ -272,6 +347,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ]
     if args.browser:
         rows.append(("vehicle page in Chromium", page_ms, 1))
+    rows.append(("  of which: stamp -> in the hub", hub_ms, args.watch))
     for name, vals, clients in rows:
         if not vals:
             print(f"{name:<34}{0:>9}")
