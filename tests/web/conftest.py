@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import uvicorn
 
-from estimator.config import VehicleConfig
+from estimator.config import SlipConfig, VehicleConfig
 from server.alerts import AlertEngine
 from server.api import create_app
 from server.api.app import API_ROUTERS
@@ -51,6 +51,7 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 N_VEHICLES = 12
+SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
 
 
 class _StoreSink:
@@ -83,7 +84,13 @@ class LiveRuntime:
         self._store = open_store(self.settings.storage)
         now = time.time_ns()
         for vid in self.fleet.ids:
-            self._store.upsert_vehicle(vid, VehicleConfig().to_dict(), now)
+            config = (
+                VehicleConfig(slip=SlipConfig(alert_threshold_pct=12.0))
+                if vid == SENSITIVE
+                else VehicleConfig()
+            )
+            self._store.upsert_vehicle(vid, config.to_dict(), now)
+            self.alert_engine.set_slip_config(vid, config.slip)
         self.feed = FeedThread(
             self.fleet, [self.live_hub, self.alert_engine, _StoreSink(self._store)], rate_hz=20.0
         )

@@ -11,11 +11,11 @@ from typing import Any
 
 import pytest
 
-from tests.web.conftest import N_VEHICLES, LiveStack
+from tests.web.conftest import N_VEHICLES, SENSITIVE, LiveStack
 
 pytestmark = pytest.mark.browser
 
-VID = "veh-003"
+VID = SENSITIVE
 
 # Pixels of a canvas that are clearly coloured (not white, grey or black): slip-scale ink.
 _COLOURED_PIXELS_JS = """
@@ -127,10 +127,12 @@ def test_vehicle_page_streams_slip_matching_the_server(
         info = page.evaluate(
             """(id) => { const u = document.getElementById(id)._uplot;
                 return {labels: u.axes.map(a => a.label), series: u.series.length - 1,
+                        threshold: u._threshold,
                         points: u.data[0].length}; }""",
             box,
         )
         assert info["labels"] == ["time (UTC)", y_label]
+        assert info["threshold"] == (12.0 if box == "chart-slip" else None)  # the vehicle's config
         assert info["series"] == n_series
         assert info["points"] > 50
     # the map drew the track in slip colours

@@ -63,6 +63,15 @@ export async function fetchSeries(vehicleId, startNs, endNs, fields, maxPoints) 
   return body.columns;
 }
 
+// Registered vehicles with their configs: {data: [{vehicle_id, config: {slip: {...}}}], count}.
+export function fetchVehicles() {
+  return getJSON("/api/v1/vehicles");
+}
+
+export function fetchVehicle(vehicleId) {
+  return getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}`);
+}
+
 export function fetchAlerts(params) {
   return getJSON("/api/v1/alerts", params);
 }

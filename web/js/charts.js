@@ -69,7 +69,8 @@ export function makeChart(target, opts) {
           (u) => {
             const ctx = u.ctx;
             const { left, top, width: w, height: h } = u.bbox;
-            if (opts.threshold) {
+            const thr = chart ? chart._threshold : opts.threshold;
+            if (thr) {
               ctx.save();
               ctx.strokeStyle = "#8c141e";
               ctx.setLineDash([4, 4]);
@@ -78,14 +79,14 @@ export function makeChart(target, opts) {
               ctx.font = `${12 * devicePixelRatio}px system-ui, sans-serif`;
               ctx.textAlign = "right";
               ctx.textBaseline = "bottom";
-              for (const y of [opts.threshold, -opts.threshold]) {
+              for (const y of [thr, -thr]) {
                 const py = u.valToPos(y, "y", true);
                 if (py >= top && py <= top + h) {
                   ctx.beginPath();
                   ctx.moveTo(left, py);
                   ctx.lineTo(left + w, py);
                   ctx.stroke();
-                  ctx.fillText(`alert threshold ${y > 0 ? "" : "−"}${opts.threshold} %`, left + w - 4, py - 2);
+                  ctx.fillText(`alert threshold ${y > 0 ? "" : "−"}${thr} %`, left + w - 4, py - 2);
                 }
               }
               ctx.restore();
@@ -112,6 +113,7 @@ export function makeChart(target, opts) {
     target,
   );
   chart._cursorT = null;
+  chart._threshold = opts.threshold ?? null;
   target._uplot = chart; // lets tests and tools inspect the chart
   return chart;
 }
@@ -119,6 +121,12 @@ export function makeChart(target, opts) {
 // Move the replay cursor (seconds since the epoch, or null) and redraw without rescaling.
 export function setCursorTime(chart, tS) {
   chart._cursorT = tS;
+  chart.redraw(false, false);
+}
+
+// Change the dashed ±threshold lines (percent, or null for none).
+export function setThreshold(chart, pct) {
+  chart._threshold = pct;
   chart.redraw(false, false);
 }
 

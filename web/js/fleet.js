@@ -2,8 +2,8 @@
 // Rows are virtualised (only the visible ones exist in the DOM) so 1,000+ vehicles stay cheap;
 // an update only rewrites the text and classes of those rows.
 
-import { liveSocket } from "./api.js";
-import { slipBand, slipCss } from "./colors.js";
+import { fetchVehicles, liveSocket } from "./api.js";
+import { SLIP_BAND_EDGES, slipBand, slipCss } from "./colors.js";
 import { el, fmt, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
@@ -25,7 +25,16 @@ window.slipfleetStats.fleetUpdateMs = window.slipfleetStats.fleetUpdateMs || [];
 const GNSS_ORDER = { ok: 0, gated: 1, degraded: 2, none: 3 };
 
 export function fleetView(root) {
-  const state = { data: null, order: [], sortKey: "id", sortDir: 1, filter: "" };
+  // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (default edges until loaded)
+  const state = { data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map() };
+  const loadBands = () =>
+    fetchVehicles()
+      .then((body) => {
+        for (const v of body.data) state.bandEdges.set(v.vehicle_id, v.config.slip.band_edges_pct);
+      })
+      .catch(() => {});
+  loadBands();
+  const bandTimer = setInterval(loadBands, 60000);
   const summary = el("p", { class: "summary", "aria-live": "polite", id: "fleet-summary" }, "Connecting…");
   const filter = el("input", {
     type: "search",
@@ -152,7 +161,10 @@ export function fleetView(root) {
       for (const key of ["slip_left_pct", "slip_right_pct"]) {
         const v = d[key][i];
         const cell = c[key];
-        cell.className = `c-${key} num slip band-${slipBand(v)}`;
+        const edges = state.bandEdges.get(id) || SLIP_BAND_EDGES;
+        const b = slipBand(v, edges); // lowest band 0, top band edges.length, none -1
+        const cls = b <= 0 ? b : b === edges.length ? 2 : 1; // styled low / moderate / high
+        cell.className = `c-${key} num slip band-${cls}`;
         cell.firstChild.style.background = slipCss(v);
         cell.lastChild.textContent = fmt(v, 1);
       }
@@ -190,6 +202,7 @@ export function fleetView(root) {
   });
   return () => {
     sock.close();
+    clearInterval(bandTimer);
     window.removeEventListener("resize", onResize);
   };
 }

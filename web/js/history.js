@@ -2,8 +2,16 @@
 // replay it at 1×–60× with the charts' cursor and the slip map's position in sync. The map can also
 // show a heat grid of mean |slip| per cell over the range.
 
-import { fetchSeries, getJSON } from "./api.js";
-import { SLIP_FIELDS, SPEED_FIELDS, alignedData, fitWidth, makeChart, setCursorTime } from "./charts.js";
+import { fetchSeries, fetchVehicle, getJSON } from "./api.js";
+import {
+  SLIP_FIELDS,
+  SPEED_FIELDS,
+  alignedData,
+  fitWidth,
+  makeChart,
+  setCursorTime,
+  setThreshold,
+} from "./charts.js";
 import { SlipMap, heatGrid, slipMetric } from "./slipmap.js";
 import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
 
@@ -80,6 +88,9 @@ export function historyView(root, vehicleId) {
   const slipChart = makeChart(slipBox, { title: "Wheel slip", yLabel: "slip (%)", fields: SLIP_FIELDS, threshold: 15, decimals: 1 });
   const speedChart = makeChart(speedBox, { title: "Speeds", yLabel: "speed (m/s)", fields: SPEED_FIELDS, decimals: 2 });
   const map = new SlipMap(canvas, { title: "Slip map of the range" });
+  fetchVehicle(vehicleId)
+    .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
+    .catch(() => {});
 
   let cols = null;
   let xs = [];

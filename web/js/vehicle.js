@@ -1,8 +1,8 @@
 // Vehicle page, live: slip and speed charts over a sliding window (30 s – 30 min) and the track on
 // the slip map, from the /live/vehicles/{id} WebSocket (snapshot, then appends at 2–4 Hz).
 
-import { liveSocket } from "./api.js";
-import { SLIP_FIELDS, SPEED_FIELDS, alignedData, fitWidth, makeChart } from "./charts.js";
+import { fetchVehicle, liveSocket } from "./api.js";
+import { SLIP_FIELDS, SPEED_FIELDS, alignedData, fitWidth, makeChart, setThreshold } from "./charts.js";
 import { slipCss } from "./colors.js";
 import { SlipMap, slipMetric } from "./slipmap.js";
 import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
@@ -15,7 +15,7 @@ const WINDOWS = [
   [1800, "30 min"],
 ];
 const COLS = ["stamp_ns", ...SLIP_FIELDS, ...SPEED_FIELDS, "east_m", "north_m", "flags"];
-const ALERT_THRESHOLD_PCT = 15; // SlipConfig default, drawn as dashed lines on the slip chart
+const ALERT_THRESHOLD_PCT = 15; // SlipConfig default, until the vehicle's own config is loaded
 
 // Shared with tests and the latency benchmark: receive time minus sensor stamp, ms.
 window.slipfleetStats = window.slipfleetStats || {};
@@ -85,6 +85,9 @@ export function vehicleView(root, vehicleId) {
     decimals: 2,
   });
   const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the two wheels" });
+  fetchVehicle(vehicleId)
+    .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
+    .catch(() => {}); // unknown to the store yet: keep the default
 
   function showLatest(latest, recvMs) {
     if (!latest) return;
