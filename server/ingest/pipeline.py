@@ -148,7 +148,12 @@ class Pipeline:
         self._thread = threading.Thread(target=self._run, name="slipfleet-pipeline", daemon=True)
         self._thread.start()
         if self._subscriber is not None:
-            self._subscriber.start()
+            try:
+                self._subscriber.start()
+            except Exception:  # e.g. an invalid vehicle filter: do not leave the thread behind
+                self._subscriber = None
+                self.stop()
+                raise
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Stop the subscriber, process what was received, flush every buffer, join."""
