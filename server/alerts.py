@@ -167,6 +167,7 @@ class AlertEngine:
         self._last_arrival = np.zeros(n, dtype=np.int64)
         self._stale_open: dict[str, int] = {}
         self._open_alerts: dict[int, Alert] = {}
+        self._open_pos: dict[int, tuple[int, int]] = {}  # open alert id -> (slot, kind column)
         self._closed: deque[Alert] = deque(maxlen=max_closed)
         self._next_id = 1
         self.publish_errors = 0
@@ -241,35 +242,42 @@ class AlertEngine:
             prev[1:] = cond[:-1]
             prev[first] = self._active[slot[first]]
             changed: np.ndarray = (cond != prev).any(axis=1)
-            waiting = np.asarray(np.any(self._active & (self._open < 0), axis=1))
-            busy = np.unique(np.r_[slot[changed], slots[waiting[slots]]])
-            quiet = ~np.isin(slot, busy)
-            if quiet.any():  # steady vehicles: only the peaks of their open slip alerts move
-                self._track_peaks(slot[quiet], rows[quiet])
-            for s in busy.tolist():
-                sel = slot == s
-                events.extend(self._walk(s, stamp[sel], cond[sel], rows[sel], now))
             last = np.r_[slot[1:] != slot[:-1], True]
-            self._last_stamp[slot[last]] = stamp[last]
-            self._last_arrival[slot[last]] = now
-            for s in slot[last].tolist():
-                vid = self._ids[s]
-                if vid in self._stale_open:
-                    aid = self._stale_open.pop(vid)
-                    events.append(("close", vid, self._close(aid, int(self._last_stamp[s]))))
+            s_last, t_last = slot[last], stamp[last]
+            # vehicles whose hold time runs out in this batch
+            due = np.asarray(
+                np.any(
+                    self._active[s_last]
+                    & (self._open[s_last] < 0)
+                    & (t_last[:, None] - self._since[s_last] >= self._hold_ns[s_last]),
+                    axis=1,
+                )
+            )
+            busy = np.unique(np.r_[slot[changed], s_last[due]])
+            quiet = ~np.isin(slot, busy) if busy.size else np.ones(slot.shape[0], dtype=bool)
+            if quiet.any():  # steady vehicles: only the peaks of running slip episodes move
+                self._track_peaks(slot[quiet], cond[quiet], rows[quiet])
+            if busy.size:
+                lo = np.searchsorted(slot, busy, side="left")
+                hi = np.searchsorted(slot, busy, side="right")
+                for s_, a_, b_ in zip(busy.tolist(), lo.tolist(), hi.tolist(), strict=True):
+                    events.extend(self._walk(s_, stamp[a_:b_], cond[a_:b_], rows[a_:b_], now))
+            self._last_stamp[s_last] = t_last
+            self._last_arrival[s_last] = now
+            if self._stale_open:
+                for s_ in s_last.tolist():
+                    vid = self._ids[s_]
+                    if vid in self._stale_open:
+                        aid = self._stale_open.pop(vid)
+                        events.append(("close", vid, self._close(aid, int(self._last_stamp[s_]))))
         self._emit(events)
 
-    def _track_peaks(self, slot: np.ndarray, rows: np.ndarray) -> None:
+    def _track_peaks(self, slot: np.ndarray, cond: np.ndarray, rows: np.ndarray) -> None:
+        """Raise the running |slip| peak of each active slip episode (vectorised)."""
         for k, field in ((_K.SLIP_LEFT, "slip_left_pct"), (_K.SLIP_RIGHT, "slip_right_pct")):
-            has = self._open[slot, k] >= 0
-            if not has.any():
-                continue
-            mag = np.abs(rows[field][has])
-            ids = self._open[slot[has], k]
-            for aid, m in zip(ids.tolist(), mag.tolist(), strict=True):
-                a = self._open_alerts[aid]
-                if a.peak is None or m > a.peak:
-                    self._open_alerts[aid] = replace(a, peak=round(m, 3))
+            m = cond[:, k]
+            if m.any():
+                np.maximum.at(self._run_peak[:, k], slot[m], np.abs(rows[field][m]))
 
     def _walk(
         self, s: int, stamp: np.ndarray, cond: np.ndarray, rows: np.ndarray, now: int
@@ -308,14 +316,10 @@ class AlertEngine:
                         )
                         self._next_id += 1
                         self._open_alerts[alert.id] = alert
+                        self._open_pos[alert.id] = (s, int(k))
                         self._open[s, k] = alert.id
                         aid = alert.id
                         events.append(("open", vid, alert))
-                    if aid >= 0 and k in mags:
-                        a = self._open_alerts[aid]
-                        m = mags[k][i]
-                        if a.peak is None or m > a.peak:
-                            self._open_alerts[aid] = replace(a, peak=round(m, 3))
                 elif self._active[s, k]:
                     self._active[s, k] = False
                     aid = int(self._open[s, k])
@@ -323,10 +327,19 @@ class AlertEngine:
                         self._open[s, k] = -1
                         events.append(("close", vid, self._close(aid, t)))
         # an alert opened in this batch carries its peak so far in the open event
-        return [(e, v, self._open_alerts.get(a.id, a)) for e, v, a in events]
+        return [(e, v, self._with_peak(a)) for e, v, a in events]
+
+    def _with_peak(self, alert: Alert) -> Alert:
+        """An open slip alert with its running peak filled in."""
+        pos = self._open_pos.get(alert.id)
+        if pos is None or alert.kind not in (AlertKind.SLIP_LEFT, AlertKind.SLIP_RIGHT):
+            return alert
+        return replace(alert, peak=round(float(self._run_peak[pos]), 3))
 
     def _close(self, aid: int, end_ns: int) -> Alert:
-        alert = replace(self._open_alerts.pop(aid), end_ns=end_ns)
+        alert = self._with_peak(self._open_alerts.pop(aid))
+        self._open_pos.pop(aid, None)
+        alert = replace(alert, end_ns=end_ns)
         self._closed.append(alert)
         return alert
 
@@ -377,7 +390,7 @@ class AlertEngine:
         with self._lock:
             found: list[Alert] = []
             if state in ("open", "all"):
-                found.extend(self._open_alerts.values())
+                found.extend(self._with_peak(a) for a in self._open_alerts.values())
             if state in ("closed", "all"):
                 found.extend(self._closed)
         if vehicle_id is not None:

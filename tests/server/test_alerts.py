@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
@@ -231,3 +232,33 @@ def test_alerts_route_lists_and_filters() -> None:
 def test_alerts_route_without_engine_is_unavailable() -> None:
     status, body = _get_alerts(None, "")
     assert status == 503 and body["error"] == "unavailable"
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_random_chunking_does_not_change_the_alerts(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = 120
+    t = np.cumsum(rng.uniform(0.2, 0.8, n)).tolist()
+    feeds = {}
+    for v in ("a", "b", "c"):
+        sl = np.where(rng.random(n) < 0.7, rng.uniform(16, 40, n), rng.uniform(0, 10, n))
+        sl[rng.random(n) < 0.05] = np.nan
+        sr = rng.uniform(-30, 30, n)
+        flags = np.where(rng.random(n) < 0.3, DEG, OK)
+        feeds[v] = rows(t, sl.tolist(), sr=0.0, flags=flags.tolist())
+        feeds[v]["slip_right_pct"] = sr
+
+    def run(cuts: list[int]) -> list[tuple[str, str, int, int | None, float | None]]:
+        eng = AlertEngine(gnss_hold_s=1.0)
+        edges = [0, *cuts, n]
+        for lo, hi in itertools.pairwise(edges):
+            eng.on_estimates([(v, r[lo:hi]) for v, r in feeds.items()])
+        return sorted(
+            (a.vehicle_id, a.kind.value, a.start_ns, a.end_ns, a.peak)
+            for a in eng.alerts(limit=5000)
+        )
+
+    whole = run([])
+    assert whole, "the random feed raised no alert"
+    assert run(list(range(1, n))) == whole
+    assert run(sorted(rng.choice(np.arange(1, n), 15, replace=False).tolist())) == whole
