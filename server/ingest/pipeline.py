@@ -48,8 +48,9 @@ __all__ = ["EstimateSink", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
-#: Decoded bursts (each up to ``subscriber.BURST`` packets) waiting for the pipeline, at most.
-QUEUE_BURSTS = 256
+#: Decoded bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at
+#: most: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
+QUEUE_BURSTS = 64
 #: Default sensor-time step between two ``advance`` calls of a vehicle (see ``Pipeline``).
 ADVANCE_STEP_MS = 200
 
