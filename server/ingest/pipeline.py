@@ -53,6 +53,9 @@ log = logging.getLogger(__name__)
 QUEUE_BURSTS = 64
 #: Default sensor-time step between two ``advance`` calls of a vehicle (see ``Pipeline``).
 ADVANCE_STEP_MS = 200
+#: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
+#: ids are counted under ``counters.NO_VEHICLE`` ("").
+MAX_UNREGISTERED_COUNTED = 1000
 
 
 @runtime_checkable
@@ -114,6 +117,7 @@ class Pipeline:
         self._buffers: dict[str, ReorderBuffer] = {}
         self._active: set[str] = set()
         self._advanced_ns: dict[str, int] = {}
+        self._unregistered_counted: set[str] = set()
         self._subscriber = (
             IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit)
             if session is not None
@@ -266,6 +270,7 @@ class Pipeline:
                 self._buffers.pop(vid, None)
                 self._active.discard(vid)
                 self._advanced_ns.pop(vid, None)
+                self._unregistered_counted.discard(vid)
                 self._counters.forget(vid)
 
     def _apply_configs(self) -> None:
@@ -292,7 +297,7 @@ class Pipeline:
         counters = self._counters
         for item in items:
             if isinstance(item, DecodeError):
-                counters.rejected(item.vehicle_id, item.reason)
+                counters.rejected(self._counter_id(item.vehicle_id), item.reason)
                 continue
             vid = item.vehicle_id
             buf = self._buffers.get(vid)
@@ -319,8 +324,20 @@ class Pipeline:
         auto = self._ingest.unknown_vehicle is UnknownVehiclePolicy.AUTO_REGISTER
         if auto and self._add(vid, VehicleConfig(), notify=True):
             return True
-        self._counters.rejected(vid, "unknown_vehicle")
+        self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
         return False
+
+    def _counter_id(self, vehicle_id: str | None) -> str | None:
+        """Counter bucket of a refused packet: its vehicle, unless that vehicle is unregistered
+        and too many unregistered ids are counted already (random ids must not grow memory)."""
+        if vehicle_id is None or self._registry.has_vehicle(vehicle_id):
+            return vehicle_id
+        if vehicle_id in self._unregistered_counted:
+            return vehicle_id
+        if len(self._unregistered_counted) < MAX_UNREGISTERED_COUNTED:
+            self._unregistered_counted.add(vehicle_id)
+            return vehicle_id
+        return None
 
     def _tick(self, now: int, *, flush: bool) -> None:
         t0 = time.perf_counter()

@@ -6,7 +6,9 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+import pytest
 
+import server.ingest.pipeline as pipeline_module
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.types import GnssSample, ImuBatch
 from server.estimators import EstimatorRegistry
@@ -175,3 +177,20 @@ def test_estimators_advance_in_steps_then_to_the_end() -> None:
     assert (steps[:-1] >= 250 * MS).all()  # every call but the final one covers >= 250 ms
     assert untils[-1] == T0 + 909 * MS  # and the last sample is reached
     assert len(untils) <= 5
+
+
+def test_refusals_of_many_unregistered_ids_share_one_bucket(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(pipeline_module, "MAX_UNREGISTERED_COUNTED", 3)
+    pipe, _, _ = make(policy=UnknownVehiclePolicy.REJECT)
+    pipe.register_vehicle("known", VehicleConfig())
+    pipe.start()
+    pipe.submit([imu(f"x{i}", 0, 0) for i in range(10)])
+    pipe.submit([DecodeError("wrong_type", vehicle_id=f"y{i}") for i in range(5)])
+    pipe.submit([DecodeError("wrong_type", vehicle_id="known")])
+    pipe.stop()
+    snap = pipe.counters_snapshot()
+    assert sorted(snap) == ["", "known", "x0", "x1", "x2"]
+    assert snap[""]["rejected_unknown_vehicle"] == 7 and snap[""]["rejected_wrong_type"] == 5
+    assert snap["known"]["rejected_wrong_type"] == 1
