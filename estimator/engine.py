@@ -408,9 +408,17 @@ class MdsfEngine:
             F = self.F[slots]
         x_pr, P_pr = kalman.predict(x, P, F, Q, u)
 
-        # -- gates (product): GNSS speed and rim speeds, one chi-square per row -------------
-        y_all = z - np.einsum("kmi,ki->km", H, x_pr)
-        s_all = np.einsum("kmi,kij,kmj->km", H, P_pr, H) + rd
+        # -- update in two stages (equal to one joint update: the rows' noises are independent)
+        # 1) the IMU rows, 2) GNSS speed and rim speeds, gated against the stage-1 posterior so
+        #    the tests see this tick's measured rates.
+        mask1 = np.zeros((k, m), dtype=bool)
+        mask1[:, MdsfObs.A1] = t.imu_ok & (not self.product)
+        mask1[:, MdsfObs.OMEGA_X] = t.imu_ok
+        mask1[:, MdsfObs.OMEGA_Z] = t.imu_ok
+        res1 = kalman.update(x_pr, P_pr, z, H, R, mask1)
+        x_1, P_1 = res1.x, res1.P
+        y_all = z - np.einsum("kmi,ki->km", H, x_1)
+        s_all = np.einsum("kmi,kij,kmj->km", H, P_1, H) + rd
         nis_row = y_all * y_all / s_all
         y_vg = y_all[:, MdsfObs.VG]
         gated = np.zeros(k, dtype=bool)
@@ -425,17 +433,44 @@ class MdsfEngine:
             since = np.where(gated, since, -1)
             self.gated_since_ns[slots] = since
             # Re-acquire: open the speed variance to the disagreement so the update follows GNSS.
-            P_pr[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
+            P_1[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
+            # A rim speed far off its prediction while the accelerometer saw no matching
+            # acceleration means the slip itself changed (soil, wet patch): open the rim
+            # excess by the unexplained part of the innovation before the update.
+            y_rim = y_all[:, MdsfObs.RIM_LEFT :]
+            s_rim = s_all[:, MdsfObs.RIM_LEFT :]
+            big = rim_use & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
+            extra = np.where(big, y_rim * y_rim - s_rim, 0.0)
+            for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
+                P_1[:, st, st] += extra[:, j]
         use_vg = gnss_ok & ~gated
-        mask = np.zeros((k, m), dtype=bool)
-        mask[:, MdsfObs.VG] = use_vg
-        mask[:, MdsfObs.A1] = t.imu_ok & (not self.product)
-        mask[:, MdsfObs.OMEGA_X] = t.imu_ok
-        mask[:, MdsfObs.OMEGA_Z] = t.imu_ok
+        mask2 = np.zeros((k, m), dtype=bool)
+        mask2[:, MdsfObs.VG] = use_vg
         if self.product:
-            mask[:, MdsfObs.RIM_LEFT :] = rim_use
-        res = kalman.update(x_pr, P_pr, z, H, R, mask)
+            mask2[:, MdsfObs.RIM_LEFT :] = rim_use
+        res = kalman.update(x_1, P_1, z, H, R, mask2)
         x_new, P_new = res.x, res.P
+        zupt = np.zeros(k, dtype=bool)
+        if self.product and cfg.zupt_speed_mps > 0:
+            # Zero-velocity update: both wheels stand and GNSS (if any) agrees.
+            zs = cfg.zupt_speed_mps
+            zupt = (
+                init
+                & rim_ok.all(axis=1)
+                & (np.abs(np.where(rim_ok, rim_mps, np.inf)) <= zs).all(axis=1)
+                & (~gnss_ok | (np.abs(z[:, MdsfObs.VG]) <= 2.0 * zs))
+            )
+            if zupt.any():
+                rz = np.full((k, 1, 1), (0.5 * zs) ** 2)
+                resz = kalman.update(
+                    x_new,
+                    P_new,
+                    np.zeros((k, 1)),
+                    self.v0_row[slots][:, None, :],
+                    rz,
+                    zupt[:, None],
+                )
+                x_new, P_new = resz.x, resz.P
 
         # Running estimate of the GNSS speed noise from accepted innovations.
         if self.product and cfg.gnss_noise_adapt > 0:
@@ -568,13 +603,15 @@ class MdsfEngine:
         fast = self.force_fast[slots]
         slow = self.force_slow[slots]
         fresh = ~np.isfinite(fast)
-        fast = np.where(fresh, f_new, np.where(np.isfinite(f_new), fast + a1 * (f_new - fast), fast))
-        slow = np.where(fresh, f_new, np.where(np.isfinite(f_new), slow + a2 * (f_new - slow), slow))
+        fast = np.where(
+            fresh, f_new, np.where(np.isfinite(f_new), fast + a1 * (f_new - fast), fast)
+        )
+        slow = np.where(
+            fresh, f_new, np.where(np.isfinite(f_new), slow + a2 * (f_new - slow), slow)
+        )
         self.force_fast[slots] = fast
         self.force_slow[slots] = slow
-        var_d = accel_var * (
-            a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2)
-        )
+        var_d = accel_var * (a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2))
         d = np.nan_to_num(fast - slow)
         return np.maximum(d * d - 4.0 * var_d, 0.0)
 

@@ -162,6 +162,12 @@ class MdsfConfig:
         curve's slope); the rim-excess variance grows by ``(gain·|V|/g)²·|Δf|·1 m/s²`` per tick
         with ``f`` the low-passed forward specific force (acceleration plus slope, what the
         tyres must transmit) [-].
+    slip_jump_sigma : float
+        Product mode: a rim speed more than this many sigma off its prediction opens the rim
+        excess by the unexplained innovation (the slip jumped: wet patch, soil change) [-].
+    zupt_speed_mps : float
+        Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
+        the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
     force_filter_tau_s : float
         Time constant of that low-pass [s].
     rim_texture_rel : float
@@ -205,6 +211,8 @@ class MdsfConfig:
     rim_excess_walk_mps_per_sqrt_s: float = 0.005
     rim_excess_walk_rel_per_sqrt_s: float = 0.002
     slip_demand_gain: float = 1.0
+    slip_jump_sigma: float = 3.0
+    zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
     rim_texture_rel: float = 0.003
     wheel_noise_scale: float = 1.0
@@ -226,12 +234,13 @@ class MdsfConfig:
             except ValueError as exc:
                 raise ConfigError(f"mode must be one of {[m.value for m in MdsfMode]}") from exc
         for f in dataclasses.fields(self):
-            if f.name in ("mode", "gnss_noise_adapt", "slip_demand_gain"):
+            if f.name in ("mode", "gnss_noise_adapt", "slip_demand_gain", "zupt_speed_mps"):
                 continue
             _check(f.name, getattr(self, f.name))
-        _check("slip_demand_gain", self.slip_demand_gain, positive=False)
-        if self.slip_demand_gain < 0:
-            raise ConfigError("slip_demand_gain must be >= 0")
+        for name in ("slip_demand_gain", "zupt_speed_mps"):
+            _check(name, getattr(self, name), positive=False)
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0")
         if not 0.001 <= self.tick_s <= 1.0:
             raise ConfigError(f"tick_s must be within 0.001..1 s, got {self.tick_s!r}")
         if not (math.isfinite(self.gnss_noise_adapt) and 0.0 <= self.gnss_noise_adapt < 1.0):

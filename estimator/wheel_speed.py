@@ -57,6 +57,8 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _NS = 1e-9
+_GAP_FACTOR = 3.0
+"""An interval this many times longer than the latest one ends the fit (a wheel restarting)."""
 
 
 class WheelSpeedMethod(IntEnum):
@@ -232,6 +234,7 @@ def omega_at(
     query_ns: IntArray,
     config: WheelSpeedConfig,
     angle_before_rad: float = 0.0,
+    signed: bool = False,
 ) -> WheelSpeedResult:
     """Causal wheel speed at each query time from the edges at or before it.
 
@@ -252,6 +255,9 @@ def omega_at(
     config : WheelSpeedConfig
     angle_before_rad : float
         Wheel angle before the first edge given (for the frequency count).
+    signed : bool
+        The angles carry direction (quadrature encoder); otherwise a negative fitted speed
+        (a fit overshooting a stop) is clamped to zero.
 
     Returns
     -------
@@ -278,15 +284,27 @@ def omega_at(
     n_win = np.maximum(last - first_in + 1, 0)
     n_fit = np.clip(n_win, config.min_edges, config.max_edges)
     n_fit = np.minimum(n_fit, last + 1)  # cannot use more edges than exist
-    fit_ok = has & (n_fit >= 2)
-
-    # Gather the fit edges: row j holds edges last, last-1, ..., weights 0 beyond n_fit.
-    kmax = int(n_fit[fit_ok].max()) if fit_ok.any() else 2
+    # Gather the candidate edges: row j holds edges last, last-1, ...
+    kmax = int(n_fit[has].max()) if has.any() else 2
+    kmax = max(kmax, 2)
     offs = np.arange(kmax)
     idx = last[:, None] - offs[None, :]
-    w = (offs[None, :] < n_fit[:, None]) & (idx >= 0) & fit_ok[:, None]
+    w = (offs[None, :] < n_fit[:, None]) & (idx >= 0) & has[:, None]
     idx = np.clip(idx, 0, max(e.shape[0] - 1, 0))
     tau_s = (e[idx] - q[:, None]).astype(np.float64) * _NS  # ≤ 0
+    # A wheel starting again after a stop: an interval longer than ``stop_timeout_s`` ends
+    # the fit (it would average over the standstill); so does an interval far longer than
+    # the latest one (a wheel leaving a near-stop).
+    gaps = tau_s[:, :-1] - tau_s[:, 1:]  # interval before edge j, j = 0..kmax-2
+    latest = np.where(w[:, 1], gaps[:, 0], np.inf)
+    cut = (gaps > config.stop_timeout_s) | (gaps > _GAP_FACTOR * latest[:, None]) & (
+        offs[None, 1:] > 1
+    )
+    keep = np.concatenate([np.ones((m, 1), bool), np.cumsum(cut, axis=1) == 0], axis=1)
+    w &= keep
+    n_fit = w.sum(axis=1)
+    fit_ok = has & (n_fit >= 2)
+    w &= fit_ok[:, None]
     span = np.where(fit_ok, -tau_s[np.arange(m), np.maximum(n_fit - 1, 0)], 1.0)
     span = np.where(span > 0, span, 1.0)
     u = tau_s / span[:, None]  # in [-1, 0]
@@ -336,14 +354,20 @@ def omega_at(
     single = has & ~fit_ok
     last_ns = e[np.maximum(last, 0)]
     bound = stop_bound(last_ns, q, ns) * (1.0 + config.stop_bound_margin)
+    if not signed:
+        omega = np.where(omega < 0, 0.0, omega)  # a fit overshooting a stop; no reverse here
     sign = np.where(omega < 0, -1.0, 1.0)
-    mag = np.where(single, bound, np.abs(omega))
+    # A lone edge after a stop: at most one tooth since the edge before it.
+    prev_ns = e[np.maximum(last - 1, 0)]
+    lone = np.where(last >= 1, stop_bound(prev_ns, last_ns, ns), 0.0)
+    mag = np.where(single, np.minimum(lone, bound), np.abs(omega))
     capped = mag > bound
     mag = np.minimum(mag, bound)
     stopped = has & ((q - last_ns) * _NS > config.stop_timeout_s)
     mag = np.where(stopped, 0.0, mag)
     omega = np.where(has, sign * mag, np.nan)
-    std = np.where(capped | single, 0.5 * mag, std)
+    # Capped or lone: the speed lies between 0 and the bound.
+    std = np.where(capped | single, 0.5 * bound, std)
     std = np.where(stopped, 2 * np.pi / (ns * config.stop_timeout_s), std)
     method = np.where((capped | single | stopped) & has, np.int8(WheelSpeedMethod.PERIOD), method)
     return WheelSpeedResult(omega, std, method.astype(np.int8))
@@ -366,6 +390,7 @@ class WheelTracker:
         self._stamp = np.zeros(0, dtype=np.int64)
         self._angle = np.zeros(0, dtype=np.float64)
         self._angle_before = 0.0
+        self._signed = False
         self.skipped = 0
         """Edges dropped because they went back in time."""
 
@@ -380,6 +405,7 @@ class WheelTracker:
         if t.size == 0:
             return
         d = None if direction is None else np.asarray(direction)
+        self._signed |= d is not None
         floor = self._stamp[-1] if self._stamp.size else np.iinfo(np.int64).min
         ok = t >= floor
         if t.size > 1:
@@ -396,7 +422,9 @@ class WheelTracker:
     def query(self, query_ns: IntArray) -> WheelSpeedResult:
         """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history."""
         q = np.asarray(query_ns, dtype=np.int64)
-        res = omega_at(self._stamp, self._angle, q, self.config, self._angle_before)
+        res = omega_at(
+            self._stamp, self._angle, q, self.config, self._angle_before, signed=self._signed
+        )
         if q.size and self._stamp.size:
             self._trim(int(q[-1]))
         return res
