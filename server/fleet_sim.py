@@ -23,7 +23,7 @@ import logging
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -170,8 +170,9 @@ class FleetSim:
 
     Parameters
     ----------
-    session : zenoh.Session
-        A client (or peer) session connected to the server's router.
+    session : zenoh.Session or sequence of zenoh.Session
+        Client session(s) connected to the server's router; vehicle ``i`` publishes on
+        ``session[i % len(session)]`` (several sessions load the router like separate vehicles).
     n_vehicles : int
     scenario : str
         An :func:`estimator.sim.scenario_names` entry.
@@ -195,7 +196,7 @@ class FleetSim:
 
     def __init__(
         self,
-        session: zenoh.Session,
+        session: zenoh.Session | Sequence[zenoh.Session],
         n_vehicles: int,
         *,
         scenario: str = "field_work",
@@ -211,7 +212,9 @@ class FleetSim:
     ) -> None:
         if n_vehicles < 1 or rate <= 0 or distinct_runs < 1:
             raise ValueError("n_vehicles >= 1, rate > 0 and distinct_runs >= 1 are required")
-        self._session = session
+        self._sessions = list(session) if isinstance(session, Sequence) else [session]
+        if not self._sessions:
+            raise ValueError("at least one session is needed")
         self._n = n_vehicles
         self._scenario = scenario
         self._prefix = prefix
@@ -256,13 +259,14 @@ class FleetSim:
         """Publish until the runs end (no loop), ``duration_s`` passes, or :meth:`stop`."""
         vehicles = self._build()
         pubs: dict[tuple[str, Stream], zenoh.Publisher] = {}
-        for v in vehicles:
+        for i, v in enumerate(vehicles):
+            session = self._sessions[i % len(self._sessions)]
             for s in Stream:
                 pubs[(v.vehicle_id, s)] = _publisher(
-                    self._session, sensor_key(self._prefix, v.vehicle_id, s)
+                    session, sensor_key(self._prefix, v.vehicle_id, s)
                 )
             if self._publish_config:
-                self._session.put(
+                session.put(
                     config_key(self._prefix, v.vehicle_id),
                     encode_config(v.config),
                     congestion_control=zenoh.CongestionControl.BLOCK,

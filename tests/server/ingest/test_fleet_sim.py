@@ -16,7 +16,12 @@ from server.ingest import Pipeline
 from server.protocol import Stream, decode, sensor_key
 from server.protocol.recording import Record, read_recording, write_recording
 from server.settings import IngestSettings, Settings
-from tests.server.ingest.fakes import CapturingSink, client_session, embedded_router
+from tests.server.ingest.fakes import (
+    CapturingSink,
+    RecordingFleet,
+    client_session,
+    embedded_router,
+)
 
 T0 = 1_763_700_000 * 10**9
 
@@ -123,3 +128,24 @@ def test_simulated_fleet_estimated_live_then_replayed(tmp_path: object) -> None:
     snap2 = pipe2.counters_snapshot()
     assert sum(c["received"] for c in snap2.values()) == stats.total_packets
     assert all(np.concatenate(sink2.rows[v]).shape[0] > 100 for v in snap2)
+
+
+@pytest.mark.zenoh
+def test_fleet_over_several_sessions() -> None:
+    with embedded_router() as (router, zs, endpoint):
+        pipe = Pipeline(Settings(zenoh=zs), router, EstimatorRegistry({"mdsf": RecordingFleet}))
+        pipe.start()
+        with client_session(endpoint) as a, client_session(endpoint) as b:
+            time.sleep(0.2)
+            sim = FleetSim([a, b], 4, scenario="hard_braking", rate=50.0, seed=2, distinct_runs=2)
+            stats = sim.run(duration_s=0.5)
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                got = sum(c["received"] for c in pipe.counters_snapshot().values())
+                if got >= stats.total_packets:
+                    break
+                time.sleep(0.02)
+        pipe.stop()
+    snap = pipe.counters_snapshot()
+    assert sorted(snap) == sim.vehicle_ids == ["sim-0001", "sim-0002", "sim-0003", "sim-0004"]
+    assert sum(c["accepted"] for c in snap.values()) == stats.total_packets > 0
