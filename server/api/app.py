@@ -154,12 +154,12 @@ def create_app(
         if id(router) not in included:  # each router once, even if listed twice
             included.add(id(router))
             app.include_router(router, prefix=API_PREFIX)
-    if settings.api.cors_origins:
+    app.add_middleware(BodySizeLimit, max_bytes=app.state.limits.max_body_bytes)
+    if settings.api.cors_origins:  # outermost, so refusals (413) carry CORS headers too
         app.add_middleware(
             CORSMiddleware,
             allow_origins=list(settings.api.cors_origins),
             allow_methods=["GET", "PUT", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
         )
-    app.add_middleware(BodySizeLimit, max_bytes=app.state.limits.max_body_bytes)
     return app

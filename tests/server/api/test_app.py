@@ -57,6 +57,13 @@ def test_cors_open_for_listed_origins(tmp_path: Path) -> None:
         assert r.headers["access-control-allow-origin"] == "http://dash.example"
         r = client.get("/api/v1/vehicles", headers={"Origin": "http://evil.example"})
         assert "access-control-allow-origin" not in r.headers
+        r = client.put(
+            "/api/v1/vehicles/t1",
+            json={"estimators": ["x" * 100_000]},
+            headers={"Origin": "http://dash.example"},
+        )
+        assert r.status_code == 413
+        assert r.headers["access-control-allow-origin"] == "http://dash.example"
 
 
 def test_default_bind_is_loopback() -> None:
