@@ -23,7 +23,8 @@ export function alignedData(cols, fields) {
   return [xs, ...fields.map((f) => cols[f] || xs.map(() => null))];
 }
 
-// opts: title, yLabel, fields, height, threshold (draw ±threshold lines), decimals
+// opts: title, yLabel, fields, height, threshold (draw ±threshold lines), decimals,
+// syncKey (share the cursor with the page's other charts), onCursor(index) (hover callback)
 export function makeChart(target, opts) {
   const width = Math.max(320, target.clientWidth || 600);
   const digits = opts.decimals ?? 2;
@@ -63,8 +64,14 @@ export function makeChart(target, opts) {
         })),
       ],
       legend: { live: true },
-      cursor: { drag: { x: true, y: false } },
+      // charts of one page share the cursor (opts.syncKey)
+      cursor: { drag: { x: true, y: false }, sync: opts.syncKey ? { key: opts.syncKey } : undefined },
       hooks: {
+        setCursor: [
+          (u) => {
+            if (opts.onCursor && u.cursor.idx != null) opts.onCursor(u.cursor.idx);
+          },
+        ],
         draw: [
           (u) => {
             const ctx = u.ctx;

@@ -85,13 +85,6 @@ export function historyView(root, vehicleId) {
     cursorStats,
     el("div", { class: "grid2" }, el("div", {}, slipBox, speedBox), el("div", {}, canvas)),
   );
-  const slipChart = makeChart(slipBox, { title: "Wheel slip", yLabel: "slip (%)", fields: SLIP_FIELDS, threshold: 15, decimals: 1 });
-  const speedChart = makeChart(speedBox, { title: "Speeds", yLabel: "speed (m/s)", fields: SPEED_FIELDS, decimals: 2 });
-  const map = new SlipMap(canvas, { title: "Slip map of the range" });
-  fetchVehicle(vehicleId)
-    .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
-    .catch(() => {});
-
   let cols = null;
   let xs = [];
   let metric = [];
@@ -99,6 +92,20 @@ export function historyView(root, vehicleId) {
   let playing = false;
   let lastFrame = 0;
   let tPlay = 0;
+  // hovering a chart moves the map's marker to that moment (the replay position stays)
+  const onCursor = (i) => {
+    if (!cols || playing) return;
+    map.cursor = i;
+    map.draw();
+  };
+  const sync = `history-${vehicleId}`;
+  const slipChart = makeChart(slipBox, { title: "Wheel slip", yLabel: "slip (%)", fields: SLIP_FIELDS, threshold: 15, decimals: 1, syncKey: sync, onCursor });
+  const speedChart = makeChart(speedBox, { title: "Speeds", yLabel: "speed (m/s)", fields: SPEED_FIELDS, decimals: 2, syncKey: sync, onCursor });
+  const map = new SlipMap(canvas, { title: "Slip map of the range" });
+  fetchVehicle(vehicleId)
+    .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
+    .catch(() => {});
+
 
   function setPresetRange(endNs) {
     const span = Number(preset.value) * 1e9;

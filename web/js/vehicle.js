@@ -77,12 +77,14 @@ export function vehicleView(root, vehicleId) {
     fields: SLIP_FIELDS,
     threshold: ALERT_THRESHOLD_PCT,
     decimals: 1,
+    syncKey: `live-${vehicleId}`,
   });
   const speedChart = makeChart(speedBox, {
     title: "Speeds",
     yLabel: "speed (m/s)",
     fields: SPEED_FIELDS,
     decimals: 2,
+    syncKey: `live-${vehicleId}`,
   });
   const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the two wheels" });
   fetchVehicle(vehicleId)
