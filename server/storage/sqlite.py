@@ -13,8 +13,18 @@ NaN: SQLite turns a NaN into NULL, so float columns are nullable and NULL reads 
 
 Read cost: the ``sqlite3`` module creates one Python object per value and releases the GIL on
 every row step, so a full vehicle-hour with all 27 fields (~1 M values) takes ~120 ms on an idle
-core, and longer while other Python threads are busy; a few fields take ~30 ms. Ask
-``query_series`` only for the fields you need.
+core, and several times that while another Python thread is busy (each row step waits to get the
+GIL back); a few fields take ~30 ms. Ask ``query_series`` only for the fields you need.
+``python -m server.bench.storage`` measures both conditions.
+
+One SQLite library per process: ``sqlite3`` uses the system's SQLite. Packages that carry their
+own copy (the ADBC SQLite driver, apsw wheels) must not open this file in the same process while
+the store is open, even only to read. POSIX file locks belong to the process, so neither copy
+sees the other's locks: readers are invisible to this store's checkpoints, and when the other
+copy closes its last connection it checkpoints and deletes the live ``-wal`` and ``-shm`` files
+under this store's connections (the next connection then fails with "disk I/O error"). A
+columnar read path through such a driver needs every connection of the process, writes
+included, to go through that one library.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,11 @@ def _check(backend: dict[str, object]) -> None:
     for key in ("query_all_fields", "query_few_fields"):
         q = backend[key]
         assert isinstance(q, dict) and q["median_ms"] > 0 and q["best_ms"] <= q["median_ms"]
+        busy = q["busy_thread"]
+        assert busy["median_ms"] > 0 and busy["best_ms"] <= busy["median_ms"]
+        assert q["busy_slowdown"] == busy["median_ms"] / q["median_ms"]
+        assert q["meets_target"] == (q["median_ms"] < 100.0)
+        assert busy["meets_target"] == (busy["median_ms"] < 100.0)
 
 
 def test_sqlite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -24,7 +30,11 @@ def test_sqlite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert set(results["backends"]) == {"sqlite"}
     _check(results["backends"]["sqlite"])
     assert json.loads(out.read_text()) == results
-    assert "one commit per row" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "one commit per row" in out
+    assert "busy thread" in out and "busy/quiet" in out
+    # no thread left spinning after the run
+    assert not [t for t in threading.enumerate() if t.name == "bench-busy-python"]
 
 
 @pytest.mark.postgres
