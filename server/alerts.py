@@ -156,6 +156,7 @@ class AlertEngine:
         self._lock = threading.Lock()
         self._ids: list[str] = []
         self._slot: dict[str, int] = {}
+        self._free: list[int] = []  # slots of forgotten vehicles, reused first
         n = 64
         self._thr = np.zeros(n)  # slip threshold, percent
         self._hold_ns = np.zeros((n, _NK), dtype=np.int64)
@@ -189,6 +190,12 @@ class AlertEngine:
     def _slot_of(self, vehicle_id: str) -> int:
         s = self._slot.get(vehicle_id)
         if s is not None:
+            return s
+        if self._free:
+            s = self._free.pop()
+            self._ids[s] = vehicle_id
+            self._slot[vehicle_id] = s
+            self._apply_config(s, self._config_for(vehicle_id))
             return s
         s = len(self._ids)
         if s >= self._thr.shape[0]:
@@ -343,6 +350,34 @@ class AlertEngine:
         self._closed.append(alert)
         return alert
 
+    def forget(self, vehicle_id: str) -> bool:
+        """Drop a vehicle (deleted from the fleet): close its open alerts at its last stamp and
+        forget its state. Closed alerts stay in the history. False if the vehicle is unknown."""
+        events: list[tuple[str, str, Alert]] = []
+        with self._lock:
+            s = self._slot.pop(vehicle_id, None)
+            if s is None:
+                return False
+            end = int(self._last_stamp[s])
+            for k in _K:
+                aid = int(self._open[s, k])
+                if aid >= 0:
+                    events.append(("close", vehicle_id, self._close(aid, end)))
+            if vehicle_id in self._stale_open:
+                events.append(
+                    ("close", vehicle_id, self._close(self._stale_open.pop(vehicle_id), end))
+                )
+            self._open[s] = -1
+            self._active[s] = False
+            self._since[s] = 0
+            self._run_peak[s] = 0.0
+            self._last_stamp[s] = 0
+            self._last_arrival[s] = 0
+            self._ids[s] = ""
+            self._free.append(s)
+        self._emit(events)
+        return True
+
     def check_stale(self, now_ns: int | None = None) -> list[Alert]:
         """Open a ``stale`` alert for every vehicle silent for ``stale_after_s``; return them."""
         now = self._clock_ns() if now_ns is None else now_ns
@@ -353,7 +388,7 @@ class AlertEngine:
             quiet = np.flatnonzero(now - self._last_arrival[:n] > limit)
             for s in quiet.tolist():
                 vid = self._ids[s]
-                if vid in self._stale_open:
+                if vid not in self._slot or vid in self._stale_open:
                     continue
                 alert = Alert(
                     id=self._next_id,

@@ -287,6 +287,7 @@ class LiveHub:
         self._lock = threading.Lock()
         self._ids: list[str] = []
         self._slot: dict[str, int] = {}
+        self._free: list[int] = []  # slots of forgotten vehicles, reused first
         n = max(1, int(initial_slots))
         self._latest = np.zeros(n, dtype=ESTIMATE_DTYPE)
         self._arrival_ns = np.zeros(n, dtype=np.int64)
@@ -306,7 +307,11 @@ class LiveHub:
 
     def _slot_of(self, vehicle_id: str) -> int:
         s = self._slot.get(vehicle_id)
-        if s is None:
+        if s is None and self._free:
+            s = self._free.pop()
+            self._ids[s] = vehicle_id
+            self._slot[vehicle_id] = s
+        elif s is None:
             s = len(self._ids)
             if s >= self._latest.shape[0]:
                 n = 2 * self._latest.shape[0]
@@ -383,6 +388,22 @@ class LiveHub:
             except RuntimeError:  # loop closed: the waiter is gone
                 self._waiters.discard((loop, ev))
 
+    def forget(self, vehicle_id: str) -> bool:
+        """Drop a vehicle (deleted from the fleet): rows, windows, status. False if unknown."""
+        with self._lock:
+            s = self._slot.pop(vehicle_id, None)
+            if s is None:
+                return False
+            self._has[s] = False
+            for t in self._tiers:
+                t.head[s] = 0
+                t.count[s] = 0
+                t.last_bucket[s] = -1
+            self._ids[s] = ""
+            self._free.append(s)
+            self._version += 1
+            return True
+
     # ------------------------------------------------------------------ waiting (event loop)
     async def wait_newer(self, version: int, timeout_s: float) -> int:
         """Wait until :attr:`version` exceeds ``version`` or ``timeout_s`` passes; return it."""
@@ -402,8 +423,9 @@ class LiveHub:
 
     # ------------------------------------------------------------------ reading (any thread)
     def vehicle_ids(self) -> list[str]:
+        """Vehicles with at least one row, in the order they first appeared."""
         with self._lock:
-            return list(self._ids)
+            return [v for v in self._ids if v in self._slot]
 
     def __contains__(self, vehicle_id: object) -> bool:
         return vehicle_id in self._slot

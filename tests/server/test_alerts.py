@@ -262,3 +262,19 @@ def test_random_chunking_does_not_change_the_alerts(seed: int) -> None:
     assert whole, "the random feed raised no alert"
     assert run(list(range(1, n))) == whole
     assert run(sorted(rng.choice(np.arange(1, n), 15, replace=False).tolist())) == whole
+
+
+def test_forget_closes_open_alerts_and_stops_stale_checks() -> None:
+    eng, pub, clock = engine(stale_after_s=10.0)
+    eng.on_estimates([("a", rows([0.0, 6.0], [30.0, 30.0])), ("b", rows([0.0], [0.0]))])
+    assert eng.open_count() == 1
+    assert eng.forget("a") is True
+    assert eng.forget("a") is False
+    assert eng.open_count() == 0
+    [closed] = eng.alerts(state="closed")
+    assert (closed.vehicle_id, closed.end_ns) == ("a", T0 + 6 * S)
+    assert [e["event"] for _, e in pub] == ["open", "close"]
+    clock.t_ns += 20 * S
+    assert [a.vehicle_id for a in eng.check_stale()] == ["b"]  # not the forgotten one
+    eng.on_estimates([("c", rows([30.0], [0.0]))])  # reuses the slot with a clean state
+    assert eng.open_count() == 1  # b's stale alert only

@@ -310,3 +310,19 @@ def test_sockets_close_when_there_is_no_hub() -> None:
         with pytest.raises(ConnectionClosed) as exc:
             ws.recv(timeout=10)
         assert exc.value.rcvd is not None and exc.value.rcvd.code == 1011
+
+
+def test_forget_drops_a_vehicle_and_reuses_its_slot() -> None:
+    hub = LiveHub(clock_ns=Clock(T0), tiers=(TierSpec("f", 0.1, 10.0),))
+    hub.on_estimates([("a", rows([1.0, 2.0])), ("b", rows([1.0], vg=7.0))])
+    assert hub.forget("a") is True
+    assert hub.forget("a") is False
+    assert hub.latest("a") is None and hub.window("a", 10.0) is None
+    assert hub.vehicle_ids() == ["b"]
+    assert hub.overview()["ids"] == ["b"]
+    hub.on_estimates([("c", rows([3.0], vg=5.0))])  # takes a's slot, starts empty
+    w = hub.window("c", 10.0)
+    assert w is not None and w["stamp_ns"] == [T0 + 3 * S]
+    assert sorted(hub.vehicle_ids()) == ["b", "c"]
+    ids, latest, _ = hub.latest_all()
+    assert dict(zip(ids, latest["vg_mps"].tolist(), strict=True)) == {"b": 7.0, "c": 5.0}
