@@ -66,7 +66,7 @@ from estimator.types import (
 )
 from estimator.wheel_speed import DirectWheelSpeed, WheelSpeedConfig, WheelSpeedMethod, WheelTracker
 
-__all__ = ["Counter", "MdsfEngine", "MdsfFleet", "TickInputs"]
+__all__ = ["Counter", "MdsfEngine", "MdsfFleet", "StepOutput", "TickInputs", "TickModel"]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -169,6 +169,46 @@ class StepOutput:
     pitch_rate: FloatArray
     yaw_rate: FloatArray
     flags: npt.NDArray[np.int32]
+    model: TickModel
+
+
+@dataclass(slots=True)
+class TickModel:
+    """What one batched step used, for diagnostics and the reference-filter tests.
+
+    Attributes
+    ----------
+    F, Q : ndarray, shape (k, n, n)
+        Transition and process noise of the predict.
+    u : ndarray, shape (k, n) or None
+        Control term of the predict (product mode).
+    z : ndarray, shape (k, m)
+        Observation (masked rows hold zeros).
+    R : ndarray, shape (k, m, m)
+        Measurement noise.
+    mask1, mask2 : ndarray, shape (k, m), bool
+        Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
+    inflated : ndarray, shape (k,), bool
+        The covariance was changed between the stages (GNSS re-acquired or a slip jump).
+    nis : ndarray, shape (k,)
+        Normalised innovation squared of stage 2, with its degrees of freedom ``dof``.
+    dof : ndarray, shape (k,), int
+    special : ndarray, shape (k,), bool
+        The row was (re)initialised, reset after divergence or handed over: not a plain
+        Kalman step.
+    """
+
+    F: FloatArray
+    Q: FloatArray
+    u: FloatArray | None
+    z: FloatArray
+    R: FloatArray
+    mask1: BoolArray
+    mask2: BoolArray
+    inflated: BoolArray
+    nis: FloatArray
+    dof: IntArray
+    special: BoolArray
 
 
 class MdsfEngine:
@@ -424,6 +464,7 @@ class MdsfEngine:
         gated = np.zeros(k, dtype=bool)
         reacq = np.zeros(k, dtype=bool)
         rim_use = rim_ok
+        inflated = np.zeros(k, dtype=bool)
         if self.product:
             gated = gnss_ok & init & ~(nis_row[:, MdsfObs.VG] <= cfg.gate_chi2)
             since = self.gated_since_ns[slots]
@@ -434,6 +475,7 @@ class MdsfEngine:
             self.gated_since_ns[slots] = since
             # Re-acquire: open the speed variance to the disagreement so the update follows GNSS.
             P_1[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
+            inflated |= reacq
             # A rim speed far off its prediction while the accelerometer saw no matching
             # acceleration means the slip itself changed (soil, wet patch): open the rim
             # excess by the unexplained part of the innovation before the update.
@@ -443,6 +485,7 @@ class MdsfEngine:
             extra = np.where(big, y_rim * y_rim - s_rim, 0.0)
             for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
                 P_1[:, st, st] += extra[:, j]
+            inflated |= big.any(axis=1)
         use_vg = gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
@@ -585,6 +628,22 @@ class MdsfEngine:
             pitch_rate=x_new[:, MdsfState.OMEGA_X],
             yaw_rate=x_new[:, MdsfState.OMEGA_Z],
             flags=flags,
+            model=TickModel(
+                F=np.asarray(np.broadcast_to(F, (k, n, n))),
+                Q=Q,
+                u=u,
+                z=z,
+                R=R,
+                mask1=mask1,
+                mask2=mask2,
+                inflated=inflated,
+                nis=res.nis,
+                dof=res.dof,
+                special=sel
+                | diverged
+                | zupt
+                | (degraded if not self.product else np.zeros(k, bool)),
+            ),
         )
 
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:

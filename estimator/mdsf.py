@@ -471,15 +471,28 @@ class MdsfFilter:
         """Covariance, shape (n, n)."""
         return np.asarray(self.kf.P, dtype=np.float64)
 
-    def step(
-        self,
-        z: FloatArray,
-        R: FloatArray,
-        mask: npt.NDArray[np.bool_],
-        Q: FloatArray | None = None,
-        u: FloatArray | None = None,
+    def predict(
+        self, Q: FloatArray | None = None, u: FloatArray | None = None, F: FloatArray | None = None
     ) -> None:
-        """Predict one tick and update with the observation rows where ``mask`` is true.
+        """Time update, eq. (7): ``x = F·x + u``, ``P = F·P·Fᵀ + Q``.
+
+        Parameters
+        ----------
+        Q : ndarray, shape (n, n), optional
+            Process noise for this tick (default: the base).
+        u : ndarray, shape (n,), optional
+            Control term ``B·u`` (product mode: ``[dt·ā, ā, 0, …]``).
+        F : ndarray, shape (n, n), optional
+            Transition for this tick (default: the constant one; product mode scales the rim
+            excess with the speed change).
+        """
+        kf = self.kf
+        kf.F = self.matrices.F if F is None else np.asarray(F, dtype=np.float64)
+        kf.Q = self.matrices.Q_base if Q is None else np.asarray(Q, dtype=np.float64)
+        kf.predict(u=None if u is None else np.asarray(u, dtype=np.float64).reshape(self.n, 1))
+
+    def update(self, z: FloatArray, R: FloatArray, mask: npt.NDArray[np.bool_]) -> None:
+        """Measurement update, eq. (7), with the observation rows where ``mask`` is true.
 
         Parameters
         ----------
@@ -488,21 +501,26 @@ class MdsfFilter:
         R : ndarray, shape (m, m)
             Measurement noise.
         mask : ndarray, shape (m,), bool
-        Q : ndarray, shape (n, n), optional
-            Process noise for this tick (default: the base).
-        u : ndarray, shape (n,), optional
-            Control term ``B·u`` (product mode: ``[dt·ā, ā, 0, …]``).
         """
-        kf = self.kf
-        kf.Q = self.matrices.Q_base if Q is None else np.asarray(Q)
-        kf.predict(u=None if u is None else np.asarray(u, dtype=np.float64).reshape(self.n, 1))
         rows = np.flatnonzero(mask)
         if rows.size:
-            kf.update(
+            self.kf.update(
                 np.asarray(z, dtype=np.float64)[rows].reshape(-1, 1),
-                R=np.asarray(R)[np.ix_(rows, rows)],
+                R=np.asarray(R, dtype=np.float64)[np.ix_(rows, rows)],
                 H=self.matrices.H[rows],
             )
+
+    def step(
+        self,
+        z: FloatArray,
+        R: FloatArray,
+        mask: npt.NDArray[np.bool_],
+        Q: FloatArray | None = None,
+        u: FloatArray | None = None,
+    ) -> None:
+        """One tick: :meth:`predict` then :meth:`update` with the rows where ``mask`` is true."""
+        self.predict(Q, u)
+        self.update(z, R, mask)
 
     def outputs(self) -> tuple[FloatArray, FloatArray]:
         """``Z1 = H1·X`` (eq. (6)) and its std ``sqrt(diag(H1·P·H1ᵀ))``; shapes (3,), (3,)."""

@@ -1,0 +1,90 @@
+"""Slip, method.md §1 eq. (8)(9): hand-computed values, standstill rule, reverse, std."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimator.slip import slip_pct
+
+THR = 0.2
+
+
+def test_driving_by_hand() -> None:
+    # rW = 3.3, V = 3.0: (3.3 - 3.0)/3.3 = 9.0909 %
+    r = slip_pct(3.3, 3.0, THR)
+    assert float(r.slip_pct) == pytest.approx(100 * 0.3 / 3.3)
+    assert bool(r.valid) and not bool(r.standstill)
+
+
+def test_braking_by_hand() -> None:
+    # rW = 2.4, V = 3.0: (2.4 - 3.0)/3.0 = -20 %
+    r = slip_pct(2.4, 3.0, THR)
+    assert float(r.slip_pct) == pytest.approx(-20.0)
+
+
+def test_locked_wheel_is_minus_100() -> None:
+    assert float(slip_pct(0.0, 2.0, THR).slip_pct) == pytest.approx(-100.0)
+
+
+def test_spinning_wheel_at_standstill_is_plus_100() -> None:
+    # The ground does not move but the rim does: full slip, not a blow-up.
+    assert float(slip_pct(1.0, 0.0, THR).slip_pct) == pytest.approx(100.0)
+
+
+def test_standstill_gives_no_value() -> None:
+    r = slip_pct(np.array([0.0, 0.1, 0.19]), np.array([0.0, 0.05, 0.1]), THR)
+    assert np.all(np.isnan(r.slip_pct)) and np.all(np.isnan(r.std_pct))
+    assert np.all(r.standstill) and not np.any(r.valid)
+
+
+def test_threshold_needs_both_speeds_low() -> None:
+    r = slip_pct(np.array([0.25, 0.1]), np.array([0.1, 0.25]), THR)
+    assert np.all(r.valid)
+    assert r.slip_pct == pytest.approx([100 * 0.15 / 0.25, -100 * 0.15 / 0.25])
+
+
+def test_reverse_uses_direction_of_travel() -> None:
+    # Backwards at 3 m/s with the wheel turning faster: positive (driving) slip.
+    r = slip_pct(-3.3, -3.0, THR)
+    assert float(r.slip_pct) == pytest.approx(100 * 0.3 / 3.3)
+    assert float(slip_pct(-2.4, -3.0, THR).slip_pct) == pytest.approx(-20.0)
+
+
+def test_non_finite_inputs_are_invalid_not_standstill() -> None:
+    r = slip_pct(np.array([np.nan, 1.0, np.inf]), np.array([1.0, np.nan, 1.0]), THR)
+    assert np.all(np.isnan(r.slip_pct))
+    assert not np.any(r.valid) and not np.any(r.standstill)
+
+
+def test_threshold_broadcasts_per_row() -> None:
+    r = slip_pct(np.array([0.3, 0.3]), np.array([0.25, 0.25]), np.array([0.2, 0.5]))
+    assert r.valid.tolist() == [True, False]
+
+
+def test_std_matches_numerical_propagation() -> None:
+    for rim, v in ((3.3, 3.0), (2.4, 3.0), (-3.3, -3.0)):
+        s_rim, s_v = 0.02, 0.05
+        r = slip_pct(rim, v, THR, s_rim, s_v)
+        h = 1e-6
+        d_rim = (slip_pct(rim + h, v, THR).slip_pct - slip_pct(rim - h, v, THR).slip_pct) / (2 * h)
+        d_v = (slip_pct(rim, v + h, THR).slip_pct - slip_pct(rim, v - h, THR).slip_pct) / (2 * h)
+        expected = np.hypot(d_rim * s_rim, d_v * s_v)
+        assert float(r.std_pct) == pytest.approx(float(expected), rel=1e-5)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    rim=st.floats(-50, 50, allow_nan=False),
+    v=st.floats(-50, 50, allow_nan=False),
+    thr=st.floats(1e-3, 2.0),
+)
+def test_never_blows_up(rim: float, v: float, thr: float) -> None:
+    r = slip_pct(rim, v, thr, 0.01, 0.01)
+    if bool(r.valid):
+        assert abs(float(r.slip_pct)) <= 200.0 + 1e-9
+        assert np.isfinite(r.std_pct)
+    else:
+        assert abs(rim) < thr and abs(v) < thr

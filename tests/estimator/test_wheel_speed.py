@@ -1,0 +1,198 @@
+"""Wheel speed from encoder edges (method.md §2): methods by hand, round trips, latency, stops."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimator.config import ConfigError
+from estimator.wheel_speed import (
+    DirectWheelSpeed,
+    WheelSpeedConfig,
+    WheelSpeedMethod,
+    WheelTracker,
+    edge_angles,
+    omega_at,
+    omega_frequency,
+    omega_k_tooth,
+    stop_bound,
+)
+
+NS = 120
+PITCH = 2 * math.pi / NS
+T0 = 1_700_000_000_000_000_000
+
+
+def edges_for(angle_of_t, t_end_s: float, n_max: int = 100_000) -> np.ndarray:
+    """Edge times (int ns) where ``angle(t)`` crosses multiples of the tooth pitch."""
+    t = np.linspace(0.0, t_end_s, 200_001)
+    a = angle_of_t(t)
+    k = np.arange(1, min(int(a[-1] / PITCH), n_max) + 1) * PITCH
+    te = np.interp(k, a, t)
+    return T0 + np.round(te * 1e9).astype(np.int64)
+
+
+def test_k_tooth_by_hand() -> None:
+    # 120 teeth, one edge every 10 ms: ω = 2π/(120·0.01) = 5.236 rad/s for any k.
+    t = T0 + np.arange(10, dtype=np.int64) * 10_000_000
+    for k in (1, 3, 9):
+        w = omega_k_tooth(t, k, NS)
+        assert w.shape == (10 - k,)
+        assert w == pytest.approx(2 * math.pi / (NS * 0.01))
+
+
+def test_frequency_by_hand() -> None:
+    # edges every 8 ms; window (390 ms, 640 ms] holds the edges at 392 … 640 ms: 32 of them,
+    # ω = 2π·32/(120·0.25) = 6.702 rad/s
+    t = T0 + np.arange(100, dtype=np.int64) * 8_000_000
+    q = np.array([t[80]])
+    assert omega_frequency(t, q, 0.25, NS) == pytest.approx(2 * math.pi * 32 / (NS * 0.25))
+
+
+def test_stop_bound_by_hand() -> None:
+    assert stop_bound(T0, T0 + 500_000_000, NS) == pytest.approx(2 * math.pi / (NS * 0.5))
+
+
+def test_edge_angles_with_direction() -> None:
+    d = np.array([1, 1, -1, 1], dtype=np.int8)
+    assert edge_angles(4, NS, d) == pytest.approx(PITCH * np.array([1, 2, 1, 2]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(omega=st.floats(0.3, 150.0), phase=st.floats(0.0, 0.999))
+def test_round_trip_constant_speed(omega: float, phase: float) -> None:
+    # pulses from a wheel turning at ω → speed back within the edge-time quantisation (1 ns)
+    n = 400
+    t = T0 + np.round((np.arange(n) + phase) * PITCH / omega * 1e9).astype(np.int64)
+    ang = edge_angles(n, NS)
+    q = t[-1] + np.array([0, int(0.2 * PITCH / omega * 1e9)])
+    r = omega_at(t, ang, q, WheelSpeedConfig(teeth_per_rev=NS))
+    assert np.all(r.method == WheelSpeedMethod.PERIOD)
+    assert r.omega_radps == pytest.approx(omega, rel=1e-4)
+
+
+def test_latency_compensation_under_acceleration() -> None:
+    # ω(t) = 2 + 1.5·t: the k-tooth average (linear fit) lags by α·(t − t_mid); the
+    # quadratic fit evaluated at t does not.
+    om0, alpha = 2.0, 1.5
+    t_edges = edges_for(lambda t: om0 * t + 0.5 * alpha * t * t, 4.0)
+    ang = edge_angles(t_edges.size, NS)
+    q = T0 + np.arange(1_000_000_000, 3_900_000_000, 50_000_000, dtype=np.int64)
+    true = om0 + alpha * (q - T0) * 1e-9
+    err = {}
+    for order in (1, 2):
+        r = omega_at(t_edges, ang, q, WheelSpeedConfig(teeth_per_rev=NS, fit_order=order))
+        err[order] = np.max(np.abs(r.omega_radps - true))
+    # the uncompensated lag is about α·(window/2 + a fraction of a tooth) ≈ 0.2 rad/s
+    assert err[1] > 0.1
+    assert err[2] < 1e-3
+    assert err[2] < err[1] / 100
+
+
+def test_stopped_wheel_decays_to_zero() -> None:
+    t = T0 + np.arange(50, dtype=np.int64) * 20_000_000  # 2π/(120·0.02) = 2.62 rad/s
+    ang = edge_angles(50, NS)
+    cfg = WheelSpeedConfig(teeth_per_rev=NS, stop_timeout_s=2.0)
+    after = np.array([0.01, 0.1, 0.5, 1.0, 1.9, 2.1, 5.0])
+    q = t[-1] + np.round(after * 1e9).astype(np.int64)
+    r = omega_at(t, ang, q, cfg)
+    bound = (1 + cfg.stop_bound_margin) * 2 * math.pi / (NS * after)
+    assert r.omega_radps[0] == pytest.approx(2 * math.pi / (NS * 0.02), rel=1e-3)
+    assert np.all(r.omega_radps[1:5] <= bound[1:5] + 1e-12)
+    assert np.all(np.diff(r.omega_radps[1:]) <= 0)
+    assert r.omega_radps[-2:] == pytest.approx([0.0, 0.0])
+
+
+def test_restart_after_stop_ignores_edges_before_the_stop() -> None:
+    fast = T0 + np.arange(40, dtype=np.int64) * 10_000_000
+    restart = fast[-1] + 5_000_000_000 + np.arange(6, dtype=np.int64) * 100_000_000
+    t = np.concatenate([fast, restart])
+    ang = edge_angles(t.size, NS)
+    r = omega_at(t, ang, restart[-1:], WheelSpeedConfig(teeth_per_rev=NS))
+    assert r.omega_radps[0] == pytest.approx(2 * math.pi / (NS * 0.1), rel=1e-3)
+
+
+def test_reverse_with_direction() -> None:
+    n = 100
+    t = T0 + np.arange(n, dtype=np.int64) * 10_000_000
+    d = np.full(n, -1, dtype=np.int8)
+    tr = WheelTracker(WheelSpeedConfig(teeth_per_rev=NS))
+    tr.push(t, d)
+    r = tr.query(t[-1:])
+    assert r.omega_radps[0] == pytest.approx(-2 * math.pi / (NS * 0.01), rel=1e-6)
+
+
+def test_without_direction_never_negative() -> None:
+    # decelerating hard into a stop: the quadratic fit would overshoot below zero
+    t_edges = edges_for(lambda t: 6.0 * t - 3.0 * t * t, 0.99)
+    ang = edge_angles(t_edges.size, NS)
+    q = t_edges[-1] + np.arange(0, 400_000_000, 20_000_000, dtype=np.int64)
+    r = omega_at(t_edges, ang, q, WheelSpeedConfig(teeth_per_rev=NS))
+    assert np.all(r.omega_radps >= 0.0)
+
+
+def test_tracker_streaming_equals_batch_and_is_causal() -> None:
+    om0, alpha = 4.0, -0.8
+    t_edges = edges_for(lambda t: om0 * t + 0.5 * alpha * t * t, 4.5)
+    ang = edge_angles(t_edges.size, NS)
+    q = T0 + np.arange(200_000_000, 4_500_000_000, 50_000_000, dtype=np.int64)
+    cfg = WheelSpeedConfig(teeth_per_rev=NS)
+    batch = omega_at(t_edges, ang, q, cfg)
+    tr = WheelTracker(cfg)
+    out = []
+    pushed = 0
+    for qi in q:
+        # push only edges up to the query time, in 100 ms packets: nothing from the future
+        hi = int(np.searchsorted(t_edges, qi, side="right"))
+        while pushed < hi:
+            nxt = min(hi, pushed + 7)
+            tr.push(t_edges[pushed:nxt])
+            pushed = nxt
+        out.append(tr.query(np.array([qi])))
+    got = np.array([o.omega_radps[0] for o in out])
+    assert got == pytest.approx(batch.omega_radps, rel=1e-9, abs=1e-12)
+    assert tr._stamp.size < t_edges.size  # history is trimmed
+
+
+def test_tracker_skips_edges_back_in_time() -> None:
+    tr = WheelTracker(WheelSpeedConfig(teeth_per_rev=NS))
+    tr.push(T0 + np.array([0, 10, 20], dtype=np.int64) * 1_000_000)
+    tr.push(T0 + np.array([15, 30], dtype=np.int64) * 1_000_000)
+    assert tr.skipped == 1
+    assert tr.last_edge_ns == T0 + 30_000_000
+
+
+def test_frequency_method_at_high_edge_rate() -> None:
+    cfg = WheelSpeedConfig(teeth_per_rev=NS, frequency_min_count=50, window_s=0.1)
+    t = T0 + np.arange(2000, dtype=np.int64) * 1_000_000  # 1000 edges/s
+    r = omega_at(t, edge_angles(t.size, NS), t[-1:], cfg)
+    assert r.method[0] == WheelSpeedMethod.FREQUENCY
+    assert r.omega_radps[0] == pytest.approx(2 * math.pi * 1000 / NS, rel=0.02)
+
+
+def test_direct_speeds_hold_and_go_stale() -> None:
+    d = DirectWheelSpeed(stale_s=0.5)
+    d.push(T0 + np.array([0, 100_000_000]), np.array([[1.0, 2.0], [np.nan, 3.0]]))
+    assert d.skipped == 1
+    om, sd = d.query(T0 + np.array([-1, 50_000_000, 400_000_000, 700_000_000]))
+    assert np.isnan(om[0]).all()
+    assert om[1] == pytest.approx([1.0, 2.0])
+    assert om[2] == pytest.approx([1.0, 2.0])
+    assert np.isnan(om[3]).all() and np.isnan(sd[3]).all()
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ConfigError):
+        WheelSpeedConfig(teeth_per_rev=0)
+    with pytest.raises(ConfigError):
+        WheelSpeedConfig(min_edges=1)
+    with pytest.raises(ConfigError):
+        WheelSpeedConfig(max_edges=2, min_edges=3)
+    with pytest.raises(ConfigError):
+        WheelSpeedConfig(fit_order=3)
+    with pytest.raises(ConfigError):
+        WheelSpeedConfig(window_s=float("nan"))
