@@ -21,8 +21,11 @@ directly (tests, benchmarks).
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
+from collections.abc import Callable
+from typing import Literal
 
 import numpy as np
 import viser
@@ -69,10 +72,18 @@ class FleetViewer:
         hub: LiveHub,
         settings: ViewerSettings,
         geometry: VehicleGeometry | None = None,
+        *,
+        origin_offset_m: Callable[[str], tuple[float, float, float] | None] | None = None,
+        layout: Literal["shared", "grid"] = "shared",
+        grid_spacing_m: float = 150.0,
     ) -> None:
         self.hub = hub
         self.settings = settings
         self.geometry = geometry or VehicleGeometry()
+        self.origin_offset_m = origin_offset_m
+        self.layout = layout
+        self.grid_spacing_m = float(grid_spacing_m)
+        self._offsets: dict[str, np.ndarray] = {}
         self.server: viser.ViserServer | None = None
         self._bodies: viser.BatchedMeshHandle | None = None
         self._wheels: viser.BatchedMeshHandle | None = None
@@ -212,6 +223,36 @@ class FleetViewer:
             receive_shadow=False,
         )
 
+    def _offsets_of(self, ids: list[str]) -> np.ndarray | None:
+        """Per-vehicle shift ``(n, 3)`` from its own ENU frame into the scene, or None.
+
+        Each vehicle's estimates are in its own local ENU frame (anchored at its first fix).
+        With ``origin_offset_m`` (vehicle id → that anchor's ENU position in the fleet's frame)
+        vehicles are drawn where they are relative to each other; the tangent planes' tilt
+        between anchors (< 0.01° per km) is neglected. Otherwise ``layout="shared"`` draws every
+        frame on one origin (right when the vehicles share an anchor) and ``"grid"`` puts each
+        vehicle's origin on a grid ``grid_spacing_m`` apart, in id order, so none overlap.
+        """
+        if self.origin_offset_m is not None:
+            out = np.zeros((len(ids), 3))
+            for i, vid in enumerate(ids):
+                off = self._offsets.get(vid)
+                if off is None:
+                    got = self.origin_offset_m(vid)
+                    if got is None:
+                        continue  # anchor unknown yet: ask again next frame
+                    off = self._offsets[vid] = np.asarray(got, dtype=np.float64)
+                out[i] = off
+            return out
+        if self.layout == "grid":
+            order = {vid: k for k, vid in enumerate(sorted(ids))}
+            cols = max(1, math.ceil(math.sqrt(len(ids))))
+            k = np.array([order[v] for v in ids])
+            return np.stack(
+                [(k % cols) * self.grid_spacing_m, (k // cols) * self.grid_spacing_m, 0.0 * k], -1
+            )
+        return None
+
     def update(self) -> float:
         """Draw one frame from the hub; return its cost in seconds."""
         if self.server is None:
@@ -220,6 +261,12 @@ class FleetViewer:
         ids, rows, _arrivals = self.hub.latest_all()
         if not ids:
             return 0.0
+        offsets = self._offsets_of(ids)
+        if offsets is not None:
+            rows = rows.copy()
+            rows["east_m"] += offsets[:, 0]
+            rows["north_m"] += offsets[:, 1]
+            rows["up_m"] += offsets[:, 2]
         status = [self.hub.status(v) or "live" for v in ids] if len(ids) <= 64 else None
         if status is None:
             ov = self.hub.overview()
@@ -244,13 +291,13 @@ class FleetViewer:
                 self._follow.options = (NO_FOLLOW, *sorted(ids))
                 self._follow.value = current if current in ids else NO_FOLLOW  # type: ignore[misc]
                 self._count.value = str(len(ids))  # type: ignore[misc]
-            self._draw_followed(frame)
+            self._draw_followed(frame, offsets)
         self.frame = frame
         self.frames += 1
         self.last_frame_s = time.perf_counter() - t0
         return self.last_frame_s
 
-    def _draw_followed(self, frame: FleetFrame) -> None:
+    def _draw_followed(self, frame: FleetFrame, offsets: np.ndarray | None) -> None:
         assert self.server is not None
         vid = self.followed
         if vid is None or vid not in frame.ids:
@@ -286,6 +333,8 @@ class FleetViewer:
             u = np.array([np.nan if v is None else v for v in win["up_m"]])
             drop = frame.antenna_m[i, 2] - frame.ground_m[i, 2]  # antenna height above ground
             pts = np.stack([e, n, u - drop + 0.05], -1)
+            if offsets is not None:  # into the scene frame: the same shift as the vehicle's pose
+                pts += offsets[i]
             ok = np.isfinite(pts).all(axis=1)
             pts = pts[ok]
             sl = np.array([np.nan if v is None else abs(v) for v in win["slip_left_pct"]])[ok]

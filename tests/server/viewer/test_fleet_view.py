@@ -121,3 +121,36 @@ def test_update_thread_runs_at_its_rate(viewer: tuple[FleetViewer, LiveHub]) -> 
         time.sleep(0.05)
     assert v.frames >= 5
     assert v._wheels is not None and np.asarray(v._wheels.batched_positions).shape == (100, 3)
+
+
+def test_origin_offsets_and_grid_layout_place_vehicle_frames() -> None:
+    hub = LiveHub()
+    hub.on_estimates([("a", _row(0, 1, 2, 0, 1, 1)), ("b", _row(0, 1, 2, 0, 1, 1))])
+    anchors = {"a": (100.0, -50.0, 3.0), "b": None}
+    placed = FleetViewer(
+        hub,
+        ViewerSettings(host="127.0.0.1", port=_free_port()),
+        origin_offset_m=lambda vid: anchors[vid],
+    )
+    grid = FleetViewer(
+        hub, ViewerSettings(host="127.0.0.1", port=_free_port()), layout="grid", grid_spacing_m=50.0
+    )
+    for v in (placed, grid):
+        v.open()
+    try:
+        placed.update()
+        assert placed.frame is not None
+        np.testing.assert_allclose(placed.frame.antenna_m, [[101, -48, 5.6], [1, 2, 2.6]])
+        placed.follow("a")
+        for k in range(1, 4):
+            hub.on_estimates([("a", _row(k, 1 + k, 2, 0, 1, 1))])
+        placed.update()
+        assert placed._track is not None
+        track = np.asarray(placed._track.points)
+        assert float(track[-1, 1, 0]) == pytest.approx(104.0, abs=1e-4)  # shifted like the pose
+        grid.update()
+        assert grid.frame is not None
+        np.testing.assert_allclose(grid.frame.antenna_m[:, :2], [[4, 2], [51, 2]])
+    finally:
+        for v in (placed, grid):
+            v.stop()
