@@ -40,6 +40,8 @@ import numpy as np
 from estimator.types import ESTIMATE_FIELDS, EstimateFlag, empty_estimates
 from server.settings import StorageSettings
 from server.storage import Store, StoreWriter
+from server.storage._columns import FIELD_NAMES
+from server.storage.sqlite import SqliteStore
 
 __all__ = ["main", "run"]
 
@@ -156,6 +158,12 @@ def _bench_store(
         q_few = _timed_query(
             lambda: store.query_series(hour_id, start_ns, end_ns, FEW_FIELDS), repeats
         )
+        column_read = None
+        if isinstance(store, SqliteStore):  # the read path before packed rows, as a baseline
+            column_read = _timed_query(
+                lambda: store.query_series_columns(hour_id, start_ns, end_ns, FIELD_NAMES),
+                repeats,
+            )
         batched_rps = _rate(len(rows), batched_s)
         baseline_rps = _rate(len(base), baseline_s)
         return {
@@ -167,6 +175,7 @@ def _bench_store(
             "insert_speedup": batched_rps / baseline_rps,
             "query_all_fields": q_all,
             "query_few_fields": q_few,
+            "query_all_fields_column_read": column_read,
         }
     finally:
         store.delete_vehicle(hour_id)
@@ -262,18 +271,26 @@ def format_table(results: dict[str, Any]) -> str:
         "",
         f"series query over the hour, warm, median / best (ms); target < {results['target_ms']:.0f}"
         " ms median",
-        f"{'backend':<11} {'fields':<8} {'quiet':>15} {'busy thread':>15} {'busy/quiet':>11}"
+        f"{'backend':<11} {'fields':<31} {'quiet':>15} {'busy thread':>15} {'busy/quiet':>11}"
         f" {'target (quiet / busy)':>22}",
     ]
     for name, r in results["backends"].items():
-        for label, q in (("all 27", r["query_all_fields"]), ("5", r["query_few_fields"])):
+        cases = [("all 27", r["query_all_fields"]), ("5", r["query_few_fields"])]
+        if r.get("query_all_fields_column_read"):
+            cases.append(("all 27, column read (baseline)", r["query_all_fields_column_read"]))
+        for label, q in cases:
             busy = q["busy_thread"]
             lines.append(
-                f"{name:<11} {label:<8} {q['median_ms']:>7.1f} / {q['best_ms']:<5.1f}"
+                f"{name:<11} {label:<31} {q['median_ms']:>7.1f} / {q['best_ms']:<5.1f}"
                 f" {busy['median_ms']:>7.1f} / {busy['best_ms']:<5.1f}"
                 f" {q['busy_slowdown']:>10.1f}x"
                 f" {_yes(q['meets_target']) + ' / ' + _yes(busy['meets_target']):>22}"
             )
+    for name, r in results["backends"].items():
+        base = r.get("query_all_fields_column_read")
+        if base:
+            ratio = base["median_ms"] / r["query_all_fields"]["median_ms"]
+            lines.append(f"{name}: packed-row read is {ratio:.1f}x faster than the column read")
     return "\n".join(lines)
 
 

@@ -193,9 +193,15 @@ _V2_POSTGRESQL = (
     "CREATE INDEX raw_packets_vkey_received ON raw_packets (vkey, received_ns)",
 )
 
+# SQLite only: every estimate row also as its packed ESTIMATE_DTYPE bytes, so a range read is
+# one Python object per row instead of one per value (see server.storage.sqlite). PostgreSQL
+# reads columns through binary COPY and needs no such copy.
+_V3_SQLITE = ("ALTER TABLE estimates ADD COLUMN packed BLOB",)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
+    Migration(3, "packed estimate rows (SQLite)", _V3_SQLITE, ()),
 )
 
 _VERSION_TABLE = {

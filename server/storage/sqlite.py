@@ -12,10 +12,12 @@ corrupts the file.
 NaN: SQLite turns a NaN into NULL, so float columns are nullable and NULL reads back as NaN.
 
 Read cost: the ``sqlite3`` module creates one Python object per value and releases the GIL on
-every row step, so a full vehicle-hour with all 27 fields (~1 M values) takes ~120 ms on an idle
-core, and several times that while another Python thread is busy (each row step waits to get the
-GIL back); a few fields take ~30 ms. Ask ``query_series`` only for the fields you need.
-``python -m server.bench.storage`` measures both conditions.
+every row step, so reading a full vehicle-hour column by column (27 fields, ~1 M values) took
+~120 ms on an idle core and several times that beside a busy Python thread. Each row is
+therefore also stored packed (column ``packed``: the row's ``ESTIMATE_DTYPE`` bytes, migration 3),
+and ``query_series`` reads one blob per row and views them as a structured array; rows without a
+blob of the current layout fall back to the column read. ``python -m server.bench.storage``
+measures both paths side by side.
 
 One SQLite library per process: ``sqlite3`` uses the system's SQLite. Packages that carry their
 own copy (the ADBC SQLite driver, apsw wheels) must not open this file in the same process while
@@ -39,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from estimator.types import ESTIMATE_DTYPE
 from server.storage import migrations
 from server.storage._columns import (
     FIELD_NAMES,
@@ -65,10 +68,26 @@ def _insert_estimates_sql(vkey: int) -> str:
     # The key is an integer from our own table, so it goes in as a literal and the row tuples
     # from ndarray.tolist() can be bound as they are (one statement per vehicle, cached).
     return (
-        f"INSERT INTO estimates (vkey, {', '.join(FIELD_NAMES)}) "
-        f"VALUES ({int(vkey)}, {', '.join('?' * len(FIELD_NAMES))}) "
+        f"INSERT INTO estimates (vkey, {', '.join(FIELD_NAMES)}, packed) "
+        f"VALUES ({int(vkey)}, {', '.join('?' * (len(FIELD_NAMES) + 1))}) "
         "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
     )
+
+
+def _with_packed(rows: np.ndarray) -> list[tuple[Any, ...]]:
+    """Row tuples for the insert: every field, then the row's packed ESTIMATE_DTYPE bytes."""
+    packed = np.ascontiguousarray(rows, dtype=ESTIMATE_DTYPE)
+    buf = packed.tobytes()
+    size = ESTIMATE_DTYPE.itemsize
+    return [(*values, buf[i * size : (i + 1) * size]) for i, values in enumerate(packed.tolist())]
+
+
+def _pick(rows: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """The ``names`` fields of full rows as a compact structured array."""
+    out = np.empty(len(rows), dtype=fields_dtype(names))
+    for name in names:
+        out[name] = rows[name]
+    return out
 
 
 def _wrap(exc: sqlite3.Error) -> StorageError:
@@ -268,8 +287,9 @@ class SqliteStore:
                 vkey = keys.get(vid)
                 if vkey is None:
                     continue
-                # tolist() builds the row tuples in C (NaN binds as NULL).
-                conn.executemany(_insert_estimates_sql(vkey), rows.tolist())
+                # tolist() builds the row tuples in C (NaN binds as NULL); each gets its packed
+                # bytes appended for the fast read path.
+                conn.executemany(_insert_estimates_sql(vkey), _with_packed(rows))
             return conn.total_changes - before
 
     @staticmethod
@@ -285,6 +305,30 @@ class SqliteStore:
         self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
     ) -> np.ndarray:
         names = select_fields(fields)
+        packed = self._query_packed(vehicle_id, int(start_ns), int(end_ns))
+        if packed is not None:
+            return _pick(packed, names)
+        return self.query_series_columns(vehicle_id, int(start_ns), int(end_ns), names)
+
+    def _query_packed(self, vehicle_id: str, start_ns: int, end_ns: int) -> np.ndarray | None:
+        """All fields from the packed blobs, or None if a row in range has none (or an old
+        layout)."""
+        blobs = self._read(
+            "SELECT packed FROM estimates "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = ?) "
+            "AND stamp_ns >= ? AND stamp_ns < ? ORDER BY stamp_ns",
+            (vehicle_id, start_ns, end_ns),
+        )
+        size = ESTIMATE_DTYPE.itemsize
+        if any(b is None or len(b[0] or b"") != size for b in blobs):
+            return None
+        return np.frombuffer(b"".join(b[0] for b in blobs), dtype=ESTIMATE_DTYPE)
+
+    def query_series_columns(
+        self, vehicle_id: str, start_ns: int, end_ns: int, names: Sequence[str]
+    ) -> np.ndarray:
+        """``query_series`` through the columns, one Python object per value: the fallback for
+        rows without packed bytes, and the benchmark's baseline."""
         dtype = fields_dtype(names)
         sql = (
             f"SELECT {_select_list(names)} FROM estimates "

@@ -15,7 +15,8 @@ from tests.server.storage.conftest import Backend
 def test_versions_are_consecutive() -> None:
     assert [m.version for m in MIGRATIONS] == list(range(1, len(MIGRATIONS) + 1))
     for m in MIGRATIONS:
-        assert m.statements("sqlite") and m.statements("postgresql")
+        # a step may be a no-op on one dialect (v3 packs rows for SQLite only), never on both
+        assert m.statements("sqlite") or m.statements("postgresql")
     with pytest.raises(ValueError):
         MIGRATIONS[0].statements("oracle")
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, empty_estimates
 from server.storage import Store, VehicleRecord
+from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 CONFIG = {"kind": "tractor", "wheel_radius_m": 0.8, "teeth_per_rev": 60, "nested": {"a": [1, 2]}}
@@ -227,4 +229,25 @@ def test_reads_from_other_threads_while_writing(store: Store) -> None:
 def test_estimate_columns_match_estimate_fields(store: Store) -> None:
     """A change to ESTIMATE_FIELDS must come with a new migration."""
     columns = store.table_columns("estimates")  # type: ignore[attr-defined]
-    assert columns == ["vkey", *(name for name, _ in ESTIMATE_FIELDS)]
+    packed = ["packed"] if store.dialect == "sqlite" else []  # SQLite's packed-row copy
+    assert columns == ["vkey", *(name for name, _ in ESTIMATE_FIELDS), *packed]
+
+
+def test_sqlite_reads_rows_without_packed_bytes(tmp_path: Path) -> None:
+    """Rows whose packed copy is missing (or of another layout) are read from the columns."""
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    rows = empty_estimates(5)
+    rows["stamp_ns"] = np.arange(5) * 100
+    rows["vl_mps"] = [1.0, np.nan, 3.0, 4.0, 5.0]
+    rows["flags"] = 7
+    store.write_estimates([("v1", rows)])
+    fast = store.query_series("v1", 0, 10**6)
+    with store._write() as conn:
+        conn.execute("UPDATE estimates SET packed = NULL WHERE stamp_ns = 200")
+    slow = store.query_series("v1", 0, 10**6, ["stamp_ns", "vl_mps", "flags"])
+    np.testing.assert_array_equal(slow["stamp_ns"], fast["stamp_ns"])
+    np.testing.assert_array_equal(slow["vl_mps"], fast["vl_mps"])  # NaN == NaN here
+    np.testing.assert_array_equal(slow["flags"], [7] * 5)
+    store.close()
