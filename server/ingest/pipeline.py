@@ -52,7 +52,6 @@ log = logging.getLogger(__name__)
 #: most: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
 QUEUE_BURSTS = 64
 #: Default sensor-time step between two ``advance`` calls of a vehicle (see ``Pipeline``).
-ADVANCE_STEP_MS = 200
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
 MAX_UNREGISTERED_COUNTED = 1000
@@ -79,11 +78,6 @@ class Pipeline:
     sinks : sequence of EstimateSink
     on_new_vehicle : callable(vehicle_id, config), optional
         Called for vehicles registered by the pipeline itself (auto or Zenoh config).
-    advance_step_ms : int, optional
-        Sensor time a vehicle's estimators advance by at least per call (the tail of a quiet
-        vehicle and shutdown advance fully). Fewer, longer ``advance`` calls cost far less: for
-        MDSF, advancing every 500 ms took a fifth of the CPU of every 100 ms. Live estimates
-        lag by up to this much more.
     clock_ns : callable, optional
         Monotonic clock in ns (for the reorder buffers' idle release); injectable for tests.
     """
@@ -96,7 +90,6 @@ class Pipeline:
         sinks: Sequence[EstimateSink] = (),
         on_new_vehicle: Callable[[str, VehicleConfig], None] | None = None,
         *,
-        advance_step_ms: int = ADVANCE_STEP_MS,
         clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self._settings = settings
@@ -107,7 +100,7 @@ class Pipeline:
         self._clock = clock_ns
         self._lateness_ns = settings.ingest.lateness_ms * 1_000_000
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
-        self._advance_step_ns = advance_step_ms * 1_000_000
+        self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
         # (monotonic receive time ns, burst); None stops the thread
         self._queue: queue.Queue[tuple[int, list[IngestItem]] | None] = queue.Queue(
             maxsize=QUEUE_BURSTS

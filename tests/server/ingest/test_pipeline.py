@@ -52,7 +52,12 @@ def make(
     sink = CapturingSink()
     settings = Settings(
         ingest=IngestSettings.model_validate(
-            {"lateness_ms": lateness_ms, "unknown_vehicle": policy, "process_interval_ms": 5}
+            {
+                "lateness_ms": lateness_ms,
+                "unknown_vehicle": policy,
+                "process_interval_ms": 5,
+                "advance_step_ms": advance_step_ms,
+            }
         )
     )
     pipe = Pipeline(
@@ -61,7 +66,6 @@ def make(
         registry,
         [*(sinks or []), sink],  # type: ignore[list-item]
         on_new,
-        advance_step_ms=advance_step_ms,
     )
     return pipe, fleet, sink
 
