@@ -191,7 +191,8 @@ class TickModel:
     inflated : ndarray, shape (k,), bool
         The covariance was changed between the stages (GNSS re-acquired or a slip jump).
     nis : ndarray, shape (k,)
-        Normalised innovation squared of stage 2, with its degrees of freedom ``dof``.
+        Normalised innovation squared of both stages (their sum is the joint update's), with
+        its degrees of freedom ``dof``.
     dof : ndarray, shape (k,), int
     special : ndarray, shape (k,), bool
         The row was (re)initialised, reset after divergence or handed over: not a plain
@@ -393,6 +394,13 @@ class MdsfEngine:
         P = self.P[slots]
         init = self.initialized[slots].copy()
         flags = np.zeros(k, dtype=np.int32)
+        # A state that is already broken (non-finite) cannot be predicted: start it afresh.
+        broken = init & ~(np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
+        if broken.any():
+            x = np.where(broken[:, None], 0.0, x)
+            P = np.where(broken[:, None, None], np.eye(n), P)
+            init &= ~broken
+            self.counts[slots, Counter.RESETS] += broken
         gnss_ok = t.gnss_ok.copy()
 
         # Adaptive GNSS noise: receiver/config value is the floor, innovations can raise it.
@@ -534,7 +542,7 @@ class MdsfEngine:
         rim_mean = np.where(
             n_rim > 0, np.where(rim_ok, rim_mps, 0.0).sum(axis=1) / np.maximum(n_rim, 1), np.nan
         )
-        start_wheels = ~init & ~gnss_ok & (n_rim > 0) & self._wheel_start_allowed(slots)
+        start_wheels = ~init & ~gnss_ok & (n_rim > 0) & (self._wheel_start_allowed(slots) | broken)
         v_start = np.where(start, v1_from_gnss, np.nan_to_num(rim_mean))
         sel = start | start_wheels
         if sel.any():
@@ -637,8 +645,8 @@ class MdsfEngine:
                 mask1=mask1,
                 mask2=mask2,
                 inflated=inflated,
-                nis=res.nis,
-                dof=res.dof,
+                nis=res1.nis + res.nis,
+                dof=res1.dof + res.dof,
                 special=sel
                 | diverged
                 | zupt
@@ -1010,22 +1018,29 @@ class _FrontEnd:
             dts[1:] = np.diff(T) * _NS
             dts[0] = (T[0] - prev) * _NS if prev is not None else 0.0
             dts = np.clip(dts, 0.0, 0.1)
-            inc = np.cumsum((wx - self.pitch_gyro_bias) * dts)
+            cum_w = np.cumsum(wx * dts)
+            cum_t = np.cumsum(dts)
             self.last_imu_ns_used = int(T[-1])
         else:
-            inc = np.zeros(0)
+            cum_w = cum_t = np.zeros(0)
         th0 = self.pitch_rad
-        base_inc = 0.0
+        base_w = base_t = 0.0
         start = 0
         tau = self.config.pitch_tau_s
+
+        def integrate(lo: int, hi: int) -> None:
+            # pitch over samples lo..hi-1 with the bias known at the segment start
+            bias = self.pitch_gyro_bias
+            theta[lo:hi] = th0 + (cum_w[lo:hi] - base_w) - bias * (cum_t[lo:hi] - base_t)
+
         if g is not None:
             for i in range(g["stamp"].shape[0]):
                 tg = int(g["stamp"][i])
                 j = int(np.searchsorted(T, tg, side="right"))
                 if j > start:
-                    theta[start:j] = th0 + inc[start:j] - base_inc
+                    integrate(start, j)
                     th0 = float(theta[j - 1])
-                    base_inc = float(inc[j - 1])
+                    base_w, base_t = float(cum_w[j - 1]), float(cum_t[j - 1])
                     start = j
                 p = float(g["pitch"][i])
                 if math.isfinite(p):
@@ -1039,11 +1054,12 @@ class _FrontEnd:
                     self.pitch_known = True
                     self.pitch_fix_ns = tg
                 pitch_used = p if math.isfinite(p) else th0
-                g["vg"][i] = gnss_vehicle_speed(
-                    g["ve"][i], g["vn"][i], g["vu"][i], g["heading"][i], pitch_used
-                )
+                if g["vel_ok"][i]:
+                    g["vg"][i] = gnss_vehicle_speed(
+                        g["ve"][i], g["vn"][i], g["vu"][i], g["heading"][i], pitch_used
+                    )
         if n > start:
-            theta[start:] = th0 + inc[start:] - base_inc
+            integrate(start, n)
             th0 = float(theta[-1])
         self.pitch_rad = th0
         return theta
