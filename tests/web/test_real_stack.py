@@ -18,7 +18,7 @@ from server.fleet_sim import FleetSim
 from server.live import LiveHub
 from server.settings import Settings
 from tests.support import free_port
-from tests.web.test_dashboard import _COLOURED_PIXELS_JS, _page_latest
+from tests.web.test_dashboard import _COLOURED_PIXELS_JS, JS_NS_RESOLUTION, _page_latest
 
 pytestmark = [pytest.mark.browser, pytest.mark.zenoh, pytest.mark.slow]
 
@@ -63,15 +63,22 @@ def real_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, 
 
 
 def _stored_slip_left(client: httpx.Client, vid: str, stamp: int) -> float | None:
-    """The stored row's ``slip_left_pct`` at ``stamp`` (waits for the writer's commit)."""
+    """The stored row's ``slip_left_pct`` at ``stamp`` (as the page knows it: to within the
+    resolution of a JS double) — waits for the writer's commit."""
     deadline = time.monotonic() + 10
     while True:
         body = client.get(
             f"/api/v1/vehicles/{vid}/series",
-            params={"start": stamp, "end": stamp + 1, "fields": "slip_left_pct"},
+            params={
+                "start": stamp - JS_NS_RESOLUTION,
+                "end": stamp + JS_NS_RESOLUTION + 1,
+                "fields": "slip_left_pct",
+            },
         ).json()
         if body["rows"]:
-            value: float | None = body["columns"]["slip_left_pct"][0]
+            cols = body["columns"]
+            i = min(range(body["rows"]), key=lambda j: abs(cols["stamp_ns"][j] - stamp))
+            value: float | None = cols["slip_left_pct"][i]
             return value
         assert time.monotonic() < deadline, f"row {stamp} never stored"
         time.sleep(0.2)
@@ -108,8 +115,8 @@ def test_dashboard_on_the_real_stack(
             got = hub.latest(vid)
             assert got is not None
             row = got[0]
-            # within one update of the hub (4 updates a second)
-            assert 0 <= int(row["stamp_ns"]) - stamp < 1_000_000_000
+            # within one update of the hub (4 updates a second; JS holds stamps as doubles)
+            assert -JS_NS_RESOLUTION <= int(row["stamp_ns"]) - stamp < 1_000_000_000
             stored = client.get(f"/api/v1/vehicles/{vid}/latest").json()
             assert abs(stored["stamp_ns"] - stamp) < 2_000_000_000  # the writer commits each 0.2 s
             # the shown slip is the stored estimate's value at that stamp, rounded for display
