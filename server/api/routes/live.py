@@ -3,7 +3,8 @@
 The hub is found as ``app.state.live_hub`` or, failing that, ``app.state.runtime.live_hub``.
 Every message is one JSON text frame with a ``type``; NaN values are sent as ``null``; times are
 integer nanoseconds (``*_ns``, sensor stamps are the vehicle clock, ``sent_ns`` and
-``arrival_ns`` the server's wall clock, UTC).
+``arrival_ns`` the server's wall clock, UTC). They exceed 2**53, so a JavaScript client holds them
+as doubles, exact to about 256 ns: enough to order, merge and display them.
 
 ``/api/v1/live/fleet?interval_ms=500`` — the whole fleet, compact and column-wise
     Server → client, every ``interval_ms`` (250..5000, default 500)::
