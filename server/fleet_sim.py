@@ -158,7 +158,7 @@ class _Vehicle:
     packets: list[SimPacket]
     period_ns: int  # sensor-time length of one loop
     phase_ns: int
-    shift_ns: int  # run stamps -> published stamps, first loop
+    shift_ns: int  # run stamps -> published stamps, first loop (anchored in run())
     config: VehicleConfig
     index: int = 0
     loop: int = 0
@@ -235,12 +235,16 @@ class FleetSim:
         return [VEHICLE_ID_FORMAT.format(self._first + i) for i in range(self._n)]
 
     def _build(self) -> list[_Vehicle]:
+        """Simulate the distinct runs and lay the vehicles out; stamps are anchored later.
+
+        ``shift_ns`` is left relative (run stamps -> phase); :meth:`run` adds the clock reading
+        taken just before publishing starts, so simulating (≈0.4 s a run) adds no latency.
+        """
         from estimator.sim import simulate  # the simulator loads only when simulating
 
-        now = self._clock()
-        base = now - now % TICK_NS
+        start = self._clock()
         runs = [
-            simulate(self._scenario, seed=self._seed + k, start_ns=base, **self._overrides)  # type: ignore[arg-type]
+            simulate(self._scenario, seed=self._seed + k, start_ns=start, **self._overrides)  # type: ignore[arg-type]
             for k in range(self._distinct)
         ]
         packetized = [packetize(run.in_arrival_order(), run.start_ns) for run in runs]
@@ -250,9 +254,7 @@ class FleetSim:
             packets = packetized[i % self._distinct]  # shared, read-only
             period = run.end_ns - run.start_ns + TICK_NS
             phase = (i * TICK_NS) // self._n
-            vehicles.append(
-                _Vehicle(vid, packets, period, phase, base - run.start_ns + phase, run.config)
-            )
+            vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, run.config))
         return vehicles
 
     def run(self, duration_s: float | None = None) -> SimStats:
@@ -272,6 +274,9 @@ class FleetSim:
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
                 self.stats.configs += 1
+        anchor_ns = self._clock()  # sensor time of the run start = now, after the setup above
+        for v in vehicles:
+            v.shift_ns += anchor_ns
         wall0 = time.perf_counter_ns()
         end_wall = None if duration_s is None else wall0 + int(duration_s * 1e9)
         heap: list[tuple[int, int]] = []

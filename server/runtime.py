@@ -27,6 +27,7 @@ from server.api.prometheus import MetricFamily, Sample
 from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
 from server.ingest.pipeline import Pipeline
 from server.ingest.zenoh_session import open_session
+from server.latency import LatencyProbe
 from server.live import LiveHub
 from server.settings import Settings
 from server.storage import open_store
@@ -59,6 +60,8 @@ class Runtime:
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self._alert_publishers: dict[str, zenoh.Publisher] = {}
+        #: sensor-time → live feed / stored latency histograms (``server.latency``)
+        self.latency = LatencyProbe()
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -70,7 +73,7 @@ class Runtime:
     def open(self) -> None:
         s = self.settings
         self._store = open_store(s.storage)
-        self.writer = StoreWriter(self._store, s.storage).start()
+        self.writer = StoreWriter(self.latency.wrap_store(self._store), s.storage).start()
         self._registrar = concurrent.futures.ThreadPoolExecutor(1, "slipfleet-registrar")
         self.live_hub = LiveHub()
         self.alert_engine = AlertEngine(
@@ -82,7 +85,7 @@ class Runtime:
             s,
             self.session,
             self.registry,
-            sinks=[self.writer, self.live_hub, self.alert_engine],
+            sinks=[self.writer, self.live_hub, self.alert_engine, self.latency],
             on_new_vehicle=self._on_new_vehicle,
         )
         for rec in self._store.list_vehicles():
@@ -184,6 +187,10 @@ class Runtime:
         self._configs.pop(vehicle_id, None)
         if self.pipeline is not None:
             self.pipeline.remove_vehicle(vehicle_id)
+        if self.live_hub is not None:
+            self.live_hub.forget(vehicle_id)
+        if self.alert_engine is not None:
+            self.alert_engine.forget(vehicle_id)
 
     # ------------------------------------------------------------------ background
     def _flush_loop(self) -> None:
@@ -268,6 +275,7 @@ class Runtime:
                     [Sample(float(w.backlog_rows))],
                 )
             )
+        families.extend(self.latency.families())
         if self.alert_engine is not None:
             families.append(
                 MetricFamily(
@@ -282,7 +290,15 @@ class Runtime:
 
 def _ingest_families(counters: Mapping[str, Mapping[str, int]]) -> list[MetricFamily]:
     """Per-vehicle ingest counters as Prometheus families (rejections labelled by reason)."""
-    plain = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap", "seq_restarts")
+    plain = (
+        "received",
+        "accepted",
+        "late",
+        "duplicate",
+        "lost_by_seq_gap",
+        "seq_restarts",
+        "clock_reanchors",
+    )
     samples: dict[str, list[Sample]] = {name: [] for name in plain}
     rejected: list[Sample] = []
     for vehicle_id, counts in sorted(counters.items()):
