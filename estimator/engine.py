@@ -467,14 +467,16 @@ class MdsfEngine:
         x_1, P_1 = res1.x, res1.P
         y_all = z - np.einsum("kmi,ki->km", H, x_1)
         s_all = np.einsum("kmi,kij,kmj->km", H, P_1, H) + rd
-        nis_row = y_all * y_all / s_all
         y_vg = y_all[:, MdsfObs.VG]
         gated = np.zeros(k, dtype=bool)
         reacq = np.zeros(k, dtype=bool)
         rim_use = rim_ok
         inflated = np.zeros(k, dtype=bool)
         if self.product:
-            gated = gnss_ok & init & ~(nis_row[:, MdsfObs.VG] <= cfg.gate_chi2)
+            # The gate has a floor: a speed that wandered by a few cm/s while the receiver
+            # reports mm/s (standing, creeping) must not lock the GNSS out.
+            s_gate = s_all[:, MdsfObs.VG] + cfg.gate_floor_mps**2
+            gated = gnss_ok & init & ~(y_vg * y_vg <= cfg.gate_chi2 * s_gate)
             since = self.gated_since_ns[slots]
             since = np.where(gated & (since < 0), stamp, since)
             reacq = gated & (stamp - since >= round(cfg.reacquire_s * 1e9))
@@ -712,6 +714,16 @@ class MdsfEngine:
 # ---------------------------------------------------------------------------------------------
 
 
+def _log_at(log: list[tuple[int, float]], T: IntArray, before: float) -> FloatArray:
+    """Value of a time-stamped log in force at each time in ``T`` (``before`` if none yet)."""
+    if not log:
+        return np.full(T.shape[0], before)
+    st_ = np.array([a for a, _ in log], dtype=np.int64)
+    va = np.array([b for _, b in log])
+    i = np.searchsorted(st_, T, side="right") - 1
+    return np.where(i >= 0, va[np.maximum(i, 0)], before)
+
+
 def _cummean(values: FloatArray, lo: IntArray, hi: IntArray) -> FloatArray:
     """Mean of ``values[lo:hi]`` per window (shape (m, ...)); NaN for empty windows."""
     c = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(values, axis=0)])
@@ -744,6 +756,17 @@ class _FrontEnd:
         self.pitch_known = False
         self.pitch_gyro_bias = 0.0
         self.pitch_fix_ns = 0
+        self.pitch_fixes = 1
+        self.pitch_var = config.pitch_std_rad**2 * 100.0  # unknown before the first fix
+        self.pitch_var_log: list[tuple[int, float]] = []
+        self._pitch_var_before = self.pitch_var
+        self.pitch_bias_log: list[tuple[int, float]] = []
+        self._pitch_bias_before = 0.0
+        self.yaw_rad = math.nan
+        self.yaw_gyro_bias = 0.0
+        self.yaw_fix_ns = 0
+        self._yaw_bias_before = 0.0
+        self.last_yaw_ns: int | None = None
         self.last_imu_ns: int | None = None
         self.last_imu_ns_used: int | None = None
         # Latest GNSS solution held for outputs: stamp, e, n, u, ve, vn, vu, heading, pitch, roll
@@ -864,6 +887,16 @@ class _FrontEnd:
         # Pitch per IMU sample (product: GNSS pitch blended with integrated ωx) and forward accel.
         theta = self._pitch_track(T, Ws[:, 0], g)
         if self.product:
+            # Gyro biases learnt against the GNSS attitude, in force at each sample.
+            bx = _log_at(self.pitch_bias_log, T, self._pitch_bias_before)
+            if self.pitch_bias_log:
+                self._pitch_bias_before = self.pitch_bias_log[-1][1]
+            self.pitch_bias_log.clear()
+            bz = self._yaw_track(T, Ws[:, 2], theta, g)
+            Ws = Ws.copy()
+            Ws[:, 0] -= bx
+            Ws[:, 2] -= bz
+        if self.product:
             a_fwd = Fs[:, 1] - GRAVITY_MPS2 * np.sin(theta)
             if self.imu_fwd_m != 0.0:
                 a_fwd = a_fwd + (Ws[:, 0] ** 2 + Ws[:, 2] ** 2) * self.imu_fwd_m
@@ -877,6 +910,14 @@ class _FrontEnd:
         means = _cummean(vals, lo, hi) if T.size else np.full((m, 4), np.nan)
         nf = np.maximum(n_imu, 1).astype(np.float64)
         accel_var = self.accel_var_cfg / nf
+        if self.product:
+            # Gravity leaks through the pitch error: g·δθ. Its variance per fix (tracked in
+            # _pitch_track) is spread as white noise with the same low-frequency power
+            # (correlation ``pitch_tau_s``).
+            pv = self._pitch_var_at(ticks)
+            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (
+                self.config.pitch_tau_s / self.config.dt_s
+            )
         gyro_var = self.gyro_var_cfg / nf
         theta_tick = np.where(imu_ok, theta[np.maximum(hi - 1, 0)] if T.size else np.nan, np.nan)
 
@@ -977,6 +1018,7 @@ class _FrontEnd:
             np.isfinite(num[:, :3]).all(axis=1) & fix_ok & (np.abs(num[:, :3]) < 200).all(axis=1)
         )
         self._count("skipped_gnss", int((~vel_ok).sum()))
+        heading_raw = num[:, 3]
         heading = np.where(np.isfinite(num[:, 3]), num[:, 3], np.arctan2(ve, vn))
         pitch_g = num[:, 4]
         pos_ok = np.isfinite(num[:, 6:9]).all(axis=1) & fix_ok
@@ -986,6 +1028,7 @@ class _FrontEnd:
             "vn": vn,
             "vu": vu,
             "heading": heading,
+            "heading_raw": heading_raw,
             "pitch": pitch_g,
             "roll": num[:, 5],
             "lat": num[:, 6],
@@ -1043,16 +1086,24 @@ class _FrontEnd:
                     base_w, base_t = float(cum_w[j - 1]), float(cum_t[j - 1])
                     start = j
                 p = float(g["pitch"][i])
+                sp2 = self.config.pitch_std_rad**2
                 if math.isfinite(p):
                     if not self.pitch_known or not self.product:
                         th0 = p
+                        self.pitch_var = sp2
                     else:
                         gap = min(max((tg - self.pitch_fix_ns) * _NS, 0.0), 1.0)
                         err = p - th0
-                        th0 += (1.0 - math.exp(-gap / tau)) * err
+                        # running mean over the first fixes, then the complementary filter
+                        self.pitch_fixes += 1
+                        gain = max(1.0 / self.pitch_fixes, 1.0 - math.exp(-gap / tau))
+                        th0 += gain * err
+                        self.pitch_var = (1 - gain) ** 2 * self.pitch_var + gain**2 * sp2
                         self.pitch_gyro_bias -= gap / (20.0 * tau * tau) * err
                     self.pitch_known = True
                     self.pitch_fix_ns = tg
+                self.pitch_var_log.append((tg, self.pitch_var))
+                self.pitch_bias_log.append((tg, self.pitch_gyro_bias))
                 pitch_used = p if math.isfinite(p) else th0
                 if g["vel_ok"][i]:
                     g["vg"][i] = gnss_vehicle_speed(
@@ -1063,6 +1114,76 @@ class _FrontEnd:
             th0 = float(theta[-1])
         self.pitch_rad = th0
         return theta
+
+    def _yaw_track(
+        self, T: IntArray, wz: FloatArray, theta: FloatArray, g: dict[str, np.ndarray] | None
+    ) -> FloatArray:
+        """Yaw-gyro bias in force at each IMU sample, learnt against the GNSS heading.
+
+        Heading is integrated from the yaw rate (``ψ̇ = −(ωz − b_z)/cos θ``) and pulled to each
+        GNSS heading with ``pitch_tau_s``; the bias integrates the disagreement with
+        ``20·pitch_tau_s``, as for the pitch. Returns shape ``(len(T),)``.
+        """
+        n = T.shape[0]
+        out = np.full(n, self.yaw_gyro_bias)
+        prev = self.last_yaw_ns
+        dts = np.empty(n)
+        if n:
+            dts[1:] = np.diff(T) * _NS
+            dts[0] = (T[0] - prev) * _NS if prev is not None else 0.0
+            dts = np.clip(dts, 0.0, 0.1)
+            self.last_yaw_ns = int(T[-1])
+        rate = -wz / np.maximum(np.cos(theta), 0.5)
+        cum_r = np.cumsum(rate * dts)
+        cum_t = np.cumsum(dts / np.maximum(np.cos(theta), 0.5))
+        base_r = base_t = 0.0
+        start = 0
+        tau = self.config.pitch_tau_s
+        psi = self.yaw_rad
+        heads = g["heading_raw"] if g is not None else np.zeros(0)
+        stamps = g["stamp"] if g is not None else np.zeros(0, dtype=np.int64)
+        for i in range(heads.shape[0]):
+            h = float(heads[i])
+            if not math.isfinite(h):
+                continue
+            tg = int(stamps[i])
+            j = int(np.searchsorted(T, tg, side="right"))
+            bias = self.yaw_gyro_bias
+            if j > start:
+                out[start:j] = bias
+                if math.isfinite(psi):
+                    psi += (cum_r[j - 1] - base_r) + bias * (cum_t[j - 1] - base_t)
+                base_r, base_t = float(cum_r[j - 1]), float(cum_t[j - 1])
+                start = j
+            elif n == 0 and math.isfinite(psi) and prev is not None and tg > prev:
+                pass  # no rate samples since the last batch: the heading is held
+            if math.isfinite(psi):
+                gap = min(max((tg - self.yaw_fix_ns) * _NS, 0.0), 1.0)
+                err = math.remainder(h - psi, 2 * math.pi)
+                psi += (1.0 - math.exp(-gap / tau)) * err
+                # ψ̇ = −(ωz − b)/cosθ: a heading that falls behind means b is too small
+                self.yaw_gyro_bias += gap / (20.0 * tau * tau) * err
+            else:
+                psi = h
+            self.yaw_fix_ns = tg
+        out[start:] = self.yaw_gyro_bias
+        if math.isfinite(psi) and n > start:
+            psi += (cum_r[-1] - base_r) + self.yaw_gyro_bias * (cum_t[-1] - base_t)
+        self.yaw_rad = psi
+        return out
+
+    def _pitch_var_at(self, ticks: IntArray) -> FloatArray:
+        """Pitch variance in force at each tick (latest fix at or before it); shape (m,)."""
+        log = self.pitch_var_log
+        if not log:
+            return np.full(ticks.shape[0], self.pitch_var)
+        st_ = np.array([a for a, _ in log], dtype=np.int64)
+        va = np.array([b for _, b in log])
+        i = np.searchsorted(st_, ticks, side="right") - 1
+        out = np.where(i >= 0, va[np.maximum(i, 0)], self._pitch_var_before)
+        self._pitch_var_before = float(va[-1])
+        log.clear()
+        return out
 
     def _hold_outputs(
         self,

@@ -186,6 +186,9 @@ class MdsfConfig:
     gate_chi2 : float
         Innovation chi-square (1 degree of freedom) above which a GNSS speed is rejected
         (product mode; 10.83 is the 99.9 % point).
+    gate_floor_mps : float
+        Floor added to the innovation std of the GNSS gate: innovations below
+        ``gate_floor·√gate_chi2`` are never rejected [m/s].
     reacquire_s : float
         After GNSS speeds were rejected this long without a break, the next one resets the
         speed (product mode) [s].
@@ -198,6 +201,9 @@ class MdsfConfig:
     pitch_tau_s : float
         Product mode: time constant with which the pitch (integrated ``ωx``) is pulled to the
         GNSS pitch at each fix [s]; the first fix sets it.
+    pitch_std_rad : float
+        Product mode: 1-sigma noise of the receiver's pitch (receivers do not report it); sets
+        how much gravity leaks into the forward acceleration through the pitch error [rad].
     gnss_noise_adapt : float
         Weight of each accepted GNSS innovation in the running estimate of the GNSS speed noise
         (0 turns the adaptation off; the receiver's or configured noise is always the floor).
@@ -220,11 +226,13 @@ class MdsfConfig:
     paper_speed_walk_mps_per_sqrt_s: float = 0.05
     rate_walk_radps_per_sqrt_s: float = 0.3
     gate_chi2: float = 10.83
+    gate_floor_mps: float = 0.1
     reacquire_s: float = 3.0
     gnss_timeout_s: float = 1.0
     max_speed_var_mps2: float = 100.0
     initial_speed_std_mps: float = 0.5
     pitch_tau_s: float = 1.0
+    pitch_std_rad: float = 0.005
     gnss_noise_adapt: float = 0.02
 
     def __post_init__(self) -> None:

@@ -97,6 +97,14 @@ class WheelSpeedConfig:
         No edge for this long [s] means the wheel is stopped (``ω = 0``).
     timing_std_s : float
         1-sigma jitter of an edge time stamp [s], floor of the reported speed std.
+    tooth_calibration : bool
+        Learn and remove the ring's tooth-spacing pattern (:class:`WheelTracker`).
+    calibration_gain : float
+        Share of each residual a tooth correction takes (0..1].
+    calibration_half_window : int
+        Neighbours on each side of an edge in the calibration fit.
+    calibration_period_s : float
+        The tooth corrections are updated on this fixed time grid [s].
     stop_bound_margin : float
         The standstill bound allows a tooth gap this much wider than nominal
         (``|ω| ≤ (1 + margin)·2π/(Ns·τ)``): real rings have uneven teeth, and a late edge
@@ -112,13 +120,17 @@ class WheelSpeedConfig:
     stop_timeout_s: float = 2.0
     timing_std_s: float = 2e-5
     stop_bound_margin: float = 0.5
+    tooth_calibration: bool = True
+    calibration_gain: float = 0.4
+    calibration_half_window: int = 6
+    calibration_period_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.teeth_per_rev, int) or not 1 <= self.teeth_per_rev <= 100_000:
             raise ConfigError(
                 f"teeth_per_rev must be an int in 1..100000, got {self.teeth_per_rev!r}"
             )
-        for name in ("window_s", "stop_timeout_s", "timing_std_s"):
+        for name in ("window_s", "stop_timeout_s", "timing_std_s", "calibration_period_s"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
@@ -128,6 +140,10 @@ class WheelSpeedConfig:
             raise ConfigError(f"max_edges must be an int >= min_edges, got {self.max_edges!r}")
         if not (math.isfinite(self.stop_bound_margin) and self.stop_bound_margin >= 0):
             raise ConfigError("stop_bound_margin must be a finite number >= 0")
+        if not (math.isfinite(self.calibration_gain) and 0 < self.calibration_gain <= 1):
+            raise ConfigError("calibration_gain must be within (0, 1]")
+        if not isinstance(self.calibration_half_window, int) or self.calibration_half_window < 2:
+            raise ConfigError("calibration_half_window must be an int >= 2")
         if self.fit_order not in (1, 2):
             raise ConfigError(f"fit_order must be 1 or 2, got {self.fit_order!r}")
         if not isinstance(self.frequency_min_count, int) or self.frequency_min_count < 2:
@@ -380,6 +396,15 @@ class WheelTracker:
     :meth:`query` for the speed at times not earlier than the previous query. Keeps only the
     edges a later query can need.
 
+    Tooth calibration: real rings have unevenly spaced teeth (a fixed pattern, a percent of
+    the pitch), which puts a fixed error on every edge's angle and, through the fit, a
+    speed error that repeats every turn. The tracker learns the pattern: each edge with
+    ``calibration_half_window`` edges on both sides (already received) is compared with a
+    local quadratic fit of its neighbours, and the tooth's angle correction moves by
+    ``calibration_gain`` of the residual (corrections kept zero-mean), on a fixed time grid.
+    Tooth ``j`` is the edge count modulo ``teeth_per_rev``. Only past edges are used, so
+    speeds stay causal.
+
     Parameters
     ----------
     config : WheelSpeedConfig
@@ -391,6 +416,11 @@ class WheelTracker:
         self._angle = np.zeros(0, dtype=np.float64)
         self._angle_before = 0.0
         self._signed = False
+        self._delta = np.zeros(config.teeth_per_rev)
+        self._cal_from = 0  # index (in the held arrays) of the next edge to calibrate on
+        self._cal_upto = np.iinfo(np.int64).min  # last calibration instant
+        self.calibrated_edges = 0
+        """Edges the tooth calibration has learnt from."""
         self.skipped = 0
         """Edges dropped because they went back in time."""
 
@@ -398,6 +428,11 @@ class WheelTracker:
     def last_edge_ns(self) -> int | None:
         """Time of the newest edge held, or None."""
         return int(self._stamp[-1]) if self._stamp.size else None
+
+    @property
+    def tooth_correction_rad(self) -> FloatArray:
+        """Learnt angle correction of each tooth, shape ``(teeth_per_rev,)``, zero mean."""
+        return self._delta.copy()
 
     def push(self, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None) -> None:
         """Append edges (non-decreasing stamps; earlier-than-held ones are skipped and counted)."""
@@ -419,25 +454,111 @@ class WheelTracker:
         self._stamp = np.concatenate([self._stamp, t])
         self._angle = np.concatenate([self._angle, ang])
 
+    def _tooth(self, angle: FloatArray) -> npt.NDArray[np.int64]:
+        ns = self.config.teeth_per_rev
+        return np.mod(np.rint(angle * ns / (2 * np.pi)).astype(np.int64), ns)
+
+    def _corrected(self) -> FloatArray:
+        if not self.config.tooth_calibration:
+            return self._angle
+        return self._angle + self._delta[self._tooth(self._angle)]
+
     def query(self, query_ns: IntArray) -> WheelSpeedResult:
-        """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history."""
+        """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history.
+
+        The tooth corrections in force at time ``t`` are those learnt from the edges up to the
+        last multiple of ``calibration_period_s`` at or before ``t``, so results do not depend
+        on how queries are batched.
+        """
         q = np.asarray(query_ns, dtype=np.int64)
-        res = omega_at(
-            self._stamp, self._angle, q, self.config, self._angle_before, signed=self._signed
-        )
+        cfg = self.config
+        if not cfg.tooth_calibration or q.size == 0:
+            res = omega_at(
+                self._stamp, self._corrected(), q, cfg, self._angle_before, signed=self._signed
+            )
+        else:
+            period = round(cfg.calibration_period_s * 1e9)
+            parts = []
+            i = 0
+            while i < q.size:
+                boundary = (int(q[i]) // period) * period
+                if boundary > self._cal_upto:
+                    self._calibrate(boundary)
+                    self._cal_upto = boundary
+                j = int(np.searchsorted(q, boundary + period, side="left"))
+                parts.append(
+                    omega_at(
+                        self._stamp,
+                        self._corrected(),
+                        q[i:j],
+                        cfg,
+                        self._angle_before,
+                        signed=self._signed,
+                    )
+                )
+                i = j
+            res = WheelSpeedResult(
+                np.concatenate([r.omega_radps for r in parts]),
+                np.concatenate([r.std_radps for r in parts]),
+                np.concatenate([r.method for r in parts]).astype(np.int8),
+            )
         if q.size and self._stamp.size:
             self._trim(int(q[-1]))
         return res
+
+    def _calibrate(self, t_ns: int) -> None:
+        """Learn tooth corrections from edges with a full window of neighbours at or before t."""
+        cfg = self.config
+        h = cfg.calibration_half_window
+        last = int(np.searchsorted(self._stamp, t_ns, side="right")) - 1
+        lo = max(self._cal_from, h)
+        hi = last - h  # inclusive
+        if hi < lo:
+            return
+        c = np.arange(lo, hi + 1)
+        self._cal_from = hi + 1
+        offs = np.arange(-h, h + 1)
+        idx = c[:, None] + offs[None, :]
+        ts = (self._stamp[idx] - self._stamp[c][:, None]).astype(np.float64) * _NS
+        ang = self._corrected()
+        a = ang[idx] - ang[c][:, None]
+        span = ts[:, -1] - ts[:, 0]
+        gaps = np.diff(ts, axis=1)
+        ok = (span > 0) & (gaps.max(axis=1) < cfg.stop_timeout_s)
+        if self._signed:
+            steps = np.diff(self._angle[idx], axis=1)
+            ok &= np.all(steps > 0, axis=1) | np.all(steps < 0, axis=1)
+        if not ok.any():
+            return
+        ts, a, c, span = ts[ok], a[ok], c[ok], span[ok]
+        u = ts / span[:, None]
+        # fit with the centre edge left out: its own error must not pull the fit
+        w = np.ones_like(u)
+        w[:, h] = 0.0
+        cols = np.stack([np.ones_like(u), u, u * u], axis=-1) * w[..., None]
+        A = np.einsum("mki,mkj->mij", cols, cols) + np.eye(3) * 1e-12
+        b = np.einsum("mki,mk->mi", cols, a)
+        coef = np.linalg.solve(A, b[..., None])[..., 0]
+        resid = -coef[:, 0]  # centre angle (0 by construction) minus the fit at the centre
+        pitch = 2 * np.pi / cfg.teeth_per_rev
+        good = np.abs(resid) < 0.3 * pitch
+        teeth = self._tooth(self._angle[c[good]])
+        np.add.at(self._delta, teeth, -cfg.calibration_gain * resid[good])
+        self._delta -= self._delta.mean()
+        self.calibrated_edges += int(good.sum())
 
     def _trim(self, t_ns: int) -> None:
         cfg = self.config
         last = int(np.searchsorted(self._stamp, t_ns, side="right")) - 1
         old = int(np.searchsorted(self._stamp, t_ns - round(cfg.window_s * 1e9), side="right")) - 1
         keep_from = max(0, min(last - cfg.max_edges - 1, old - 1))
+        if cfg.tooth_calibration:
+            keep_from = min(keep_from, max(self._cal_from - cfg.calibration_half_window - 1, 0))
         if keep_from > 0:
             self._angle_before = float(self._angle[keep_from - 1])
             self._stamp = self._stamp[keep_from:]
             self._angle = self._angle[keep_from:]
+            self._cal_from -= keep_from
 
 
 class DirectWheelSpeed:

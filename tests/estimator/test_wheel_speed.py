@@ -140,7 +140,7 @@ def test_tracker_streaming_equals_batch_and_is_causal() -> None:
     t_edges = edges_for(lambda t: om0 * t + 0.5 * alpha * t * t, 4.5)
     ang = edge_angles(t_edges.size, NS)
     q = T0 + np.arange(200_000_000, 4_500_000_000, 50_000_000, dtype=np.int64)
-    cfg = WheelSpeedConfig(teeth_per_rev=NS)
+    cfg = WheelSpeedConfig(teeth_per_rev=NS, tooth_calibration=False)
     batch = omega_at(t_edges, ang, q, cfg)
     tr = WheelTracker(cfg)
     out = []
@@ -156,6 +156,35 @@ def test_tracker_streaming_equals_batch_and_is_causal() -> None:
     got = np.array([o.omega_radps[0] for o in out])
     assert got == pytest.approx(batch.omega_radps, rel=1e-9, abs=1e-12)
     assert tr._stamp.size < t_edges.size  # history is trimmed
+
+
+def test_tooth_calibration_learns_the_ring_pattern() -> None:
+    # a ring with uneven teeth (1 % of the pitch, fixed per tooth), wheel at a steady 3 rad/s
+    rng = np.random.default_rng(4)
+    dev = rng.normal(0, 0.01, NS) * PITCH
+    omega = 3.0
+    k = np.arange(1, 3000)
+    true_angle = k * PITCH + dev[k % NS]
+    t_edges = T0 + np.round(true_angle / omega * 1e9).astype(np.int64)
+    q = T0 + np.arange(100_000_000, int(t_edges[-1] - T0), 50_000_000, dtype=np.int64)
+    errs = {}
+    for cal in (False, True):
+        tr = WheelTracker(WheelSpeedConfig(teeth_per_rev=NS, tooth_calibration=cal))
+        out = []
+        pushed = 0
+        for qi in q:  # causal: edges up to the query time only
+            hi = int(np.searchsorted(t_edges, qi, side="right"))
+            tr.push(t_edges[pushed:hi])
+            pushed = hi
+            out.append(tr.query(np.array([qi])).omega_radps[0])
+        late = np.array(out)[len(out) // 2 :]  # after about 10 turns
+        errs[cal] = np.sqrt(np.mean((late / omega - 1) ** 2))
+        if cal:
+            learnt = tr.tooth_correction_rad
+            # learnt pattern matches the ring's (up to the tooth numbering offset)
+            best = max(np.corrcoef(np.roll(learnt, s), dev)[0, 1] for s in range(NS))
+            assert best > 0.95
+    assert errs[True] < errs[False] / 2
 
 
 def test_tracker_skips_edges_back_in_time() -> None:
