@@ -7,7 +7,8 @@ Subcommands::
     slipfleet simulate --vehicles N --scenario NAME --duration S [--connect ENDPOINT]
     slipfleet replay   PATH [--rate X] [--connect ENDPOINT]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
-    slipfleet bench    {accuracy,storage,series,live,viewer} [--json PATH]
+    slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
+    slipfleet bench    {accuracy,storage,series,live,viewer,throughput} [--json PATH]
 
 Settings come from the environment (``SLIPFLEET_…``) and an optional TOML file; flags override
 both. Heavy modules are imported inside each subcommand so ``--help`` stays instant.
@@ -26,7 +27,7 @@ __all__ = ["main"]
 
 log = logging.getLogger("slipfleet")
 
-BENCHES = ("accuracy", "storage", "series", "live", "viewer")
+BENCHES = ("accuracy", "storage", "series", "live", "viewer", "throughput")
 
 
 def _settings(args: argparse.Namespace, **overrides: Any) -> Any:
@@ -92,6 +93,13 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_loadtest(args: argparse.Namespace) -> int:
+    from server.loadtest import run_from_args
+
+    result = run_from_args(args)
+    return 0 if result["loss_free"] else 1
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     import importlib
 
@@ -139,6 +147,12 @@ def _parser() -> argparse.ArgumentParser:
     rec.add_argument("--scenario", default="field_work")
     rec.add_argument("--duration", type=float, default=60.0)
     rec.set_defaults(func=_cmd_record)
+
+    lt = sub.add_parser("loadtest", help="simulated fleet against a server process, measured")
+    from server.loadtest import add_arguments as _loadtest_arguments
+
+    _loadtest_arguments(lt)
+    lt.set_defaults(func=_cmd_loadtest)
 
     b = sub.add_parser("bench", help="benchmarks that print tables")
     b.add_argument("which", choices=BENCHES)

@@ -1,0 +1,931 @@
+"""Load test: a simulated (or replayed) fleet at real rates against a real server process.
+
+::
+
+    slipfleet loadtest --vehicles 1000 --duration 60 [--scenario mix] [--rate-scale 1]
+                       [--publishers 2] [--warmup 5] [--json PATH]
+                       [--connect tcp/HOST:7447 --api http://HOST:8000 [--server-pid PID]]
+                       [--replay REC [REC ...]]
+
+Without ``--connect`` a server is started in a child process (embedded router on a free loopback
+port, SQLite in a temporary directory unless ``--storage-url``; viewer off, no access tokens;
+``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s`` tune it). ``--publishers``
+child processes publish the vehicles, each with a few client sessions, through
+:class:`server.fleet_sim.FleetSim`: GNSS 10 Hz, IMU 100 Hz in 100 ms batches, wheel edges in
+100 ms batches (≈30 packets per vehicle-second), BLOCK congestion control, sends spread over the
+100 ms tick. ``--scenario mix`` spreads vehicles over :data:`MIX`. ``--replay`` publishes
+recordings (:mod:`server.protocol.recording`) instead: vehicle ``i`` replays the drives of
+recording ``i mod len(paths)``, renamed and shifted in time (stamps moved to *now*, phases spread
+over the tick), looping.
+
+Measured over the window after the warm-up (every publisher has sent, then ``--warmup`` seconds)
+until the publishers stop, plus a drain (the server has counted every packet sent and the writer
+backlog is empty, at most ``DRAIN_S``):
+
+* packets sent (publishers) / received / accepted / rejected / late / duplicate / lost by
+  sequence gap (server ``/metrics``), and *missing* = sent − received over the whole run;
+* estimate rows produced and stored, storage rows/s;
+* latency from each estimate's sensor timestamp to the live feed and to the committed row
+  (:mod:`server.latency` histograms, differenced over the window: p50/p95/p99/max, ±2.5 %);
+* server CPU (cores: CPU seconds per wall second, all threads) and RSS (first, last, peak) via
+  psutil on the server pid; publisher CPU likewise.
+
+Everything runs on loopback and stops by itself (bounded duration and drain).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
+    import httpx
+    import psutil
+
+__all__ = [
+    "MIX",
+    "LoadSpec",
+    "ServerProcess",
+    "Target",
+    "format_report",
+    "main",
+    "run_loadtest",
+    "scrape",
+]
+
+log = logging.getLogger(__name__)
+
+#: Scenarios of ``--scenario mix`` (vehicles assigned round-robin).
+MIX = ("field_work", "figure_eight", "slope_wet_patch", "slow_creep", "hard_braking")
+#: Longest wait for the server to count every packet sent and empty its writer backlog.
+DRAIN_S = 30.0
+#: Scrape period of ``/metrics`` during the run (progress, RSS), seconds.
+POLL_S = 1.0
+_SETTINGS_ENV = "LOADTEST_SERVER_SETTINGS"
+_STORAGE_URL_ENV = "SLIPFLEET_STORAGE__URL"
+
+
+# ---------------------------------------------------------------------------------- servers
+
+
+def free_port() -> int:
+    """A loopback TCP port that was free a moment ago."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class ServerProcess:
+    """A ``slipfleet`` server in a child process on loopback.
+
+    Parameters
+    ----------
+    settings : dict
+        ``Settings`` fields (nested dicts); ``api.port`` and the Zenoh endpoints are filled in
+        when missing. The storage URL, a secret, goes through the environment, not argv.
+    storage_url : str or None
+        PostgreSQL URL; None keeps SQLite in ``data_dir``.
+    """
+
+    settings: dict[str, Any]
+    storage_url: str | None = None
+    log_path: Path | None = None
+    proc: subprocess.Popen[bytes] | None = None
+    api: str = ""
+    endpoint: str = ""
+
+    def start(self, timeout_s: float = 60.0) -> ServerProcess:
+        import httpx
+
+        s = json.loads(json.dumps(self.settings))
+        s.setdefault("api", {})
+        s["api"].setdefault("port", free_port())
+        s["api"]["host"] = "127.0.0.1"
+        s["api"]["require_auth"] = False
+        s.setdefault("viewer", {})["enabled"] = False
+        z = s.setdefault("zenoh", {})
+        if not z.get("connect"):
+            z.setdefault("listen", [f"tcp/127.0.0.1:{free_port()}"])
+            self.endpoint = z["listen"][0]
+        else:
+            self.endpoint = z["connect"][0]
+        self.api = f"http://127.0.0.1:{s['api']['port']}"
+        env = {**os.environ, _SETTINGS_ENV: json.dumps(s)}
+        if self.storage_url:
+            env[_STORAGE_URL_ENV] = self.storage_url
+        out: IO[bytes] | int = subprocess.DEVNULL
+        if self.log_path is not None:
+            out = self.log_path.open("ab")
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "server.loadtest", "_serve"],
+                env=env,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
+        finally:
+            if not isinstance(out, int):
+                out.close()  # the child has its own descriptor
+        deadline = time.monotonic() + timeout_s
+        with httpx.Client(base_url=self.api, timeout=2.0) as client:
+            while True:
+                if self.proc.poll() is not None:
+                    raise RuntimeError(f"server exited with {self.proc.returncode} while starting")
+                with contextlib.suppress(httpx.HTTPError):
+                    if client.get("/api/v1/health").status_code == 200:
+                        return self
+                if time.monotonic() > deadline:
+                    self.stop()
+                    raise TimeoutError("server did not become healthy in time")
+                time.sleep(0.1)
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    def stop(self, timeout_s: float = 60.0) -> int | None:
+        """SIGTERM (graceful: the pipeline and writer flush), SIGKILL after ``timeout_s``."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        return self.proc.returncode
+
+    def __enter__(self) -> ServerProcess:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _serve_child() -> int:
+    """Child entry point: run the server from the JSON settings in the environment."""
+    import uvicorn
+
+    from server.app_main import build_app
+    from server.settings import Settings
+
+    logging.basicConfig(
+        level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    settings = Settings.model_validate(json.loads(os.environ[_SETTINGS_ENV]))
+    uvicorn.run(
+        build_app(settings),
+        host=settings.api.host,
+        port=settings.api.port,
+        log_level="warning",
+        ws="websockets-sansio",
+    )
+    return 0
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where the load goes: router endpoint(s) for vehicles, server API(s) and pids to watch.
+
+    ``shards`` pairs each vehicle id format with the share of the fleet that uses it (server
+    replicas filter on an id prefix); one shard ``("sim-{:05d}", 1.0)`` by default.
+    """
+
+    endpoints: tuple[str, ...]
+    apis: tuple[str, ...]
+    pids: tuple[int, ...] = ()
+    shards: tuple[str, ...] = ("sim-{:05d}",)
+
+
+# ---------------------------------------------------------------------------------- metrics
+
+
+def _parse_line(line: str) -> tuple[str, dict[str, str], float] | None:
+    if not line or line[0] == "#":
+        return None
+    head, _, value = line.rpartition(" ")
+    labels: dict[str, str] = {}
+    name = head
+    if head.endswith("}") and "{" in head:
+        name, _, inner = head[:-1].partition("{")
+        for part in inner.split('",'):
+            k, _, v = part.partition("=")
+            labels[k] = v.strip('"')
+    try:
+        return name, labels, float(value)
+    except ValueError:
+        return None
+
+
+_PACKET_COUNTERS = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap")
+
+
+def scrape(api: str, client: httpx.Client | None = None) -> dict[str, Any]:
+    """Totals from one server's ``/metrics``: packet counters over every vehicle, rejections,
+    estimate rows, writer rows and backlog, the latency histograms, vehicles seen."""
+    import httpx
+
+    from server.latency import parse_histogram
+
+    own = client is None
+    c = client or httpx.Client(timeout=30.0)
+    try:
+        text = c.get(f"{api}/api/v1/metrics").raise_for_status().text
+    finally:
+        if own:
+            c.close()
+    out: dict[str, Any] = dict.fromkeys(_PACKET_COUNTERS, 0.0)
+    out.update(rejected=0.0, estimate_rows=0.0, rows_written=0.0, rows_dropped=0.0, backlog=0.0)
+    vehicles: set[str] = set()
+    wanted = {f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS}
+    for line in text.splitlines():
+        parsed = _parse_line(line)
+        if parsed is None:
+            continue
+        name, labels, value = parsed
+        key = wanted.get(name)
+        if key is not None:
+            out[key] += value
+            if key == "received" and labels.get("vehicle"):
+                vehicles.add(labels["vehicle"])
+        elif name == "slipfleet_packets_rejected_total":
+            out["rejected"] += value
+        elif name == "slipfleet_estimate_rows_total":
+            out["estimate_rows"] += value
+        elif name == "slipfleet_writer_rows_written_total":
+            out["rows_written"] += value
+        elif name == "slipfleet_writer_rows_dropped_backlog_full_total":
+            out["rows_dropped"] += value
+        elif name == "slipfleet_writer_backlog_rows":
+            out["backlog"] += value
+    out["vehicles"] = vehicles
+    out["latency"] = parse_histogram(text)
+    return out
+
+
+def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k in (*_PACKET_COUNTERS, "rejected", "estimate_rows", "rows_written", "rows_dropped"):
+        out[k] = sum(float(s[k]) for s in scrapes)
+    out["backlog"] = sum(float(s["backlog"]) for s in scrapes)
+    out["vehicles"] = set().union(*(s["vehicles"] for s in scrapes))
+    lat: dict[str, list[float]] = {}
+    for s in scrapes:
+        for stage, h in s["latency"].items():
+            acc = lat.setdefault(stage, [0.0] * len(h["counts"]))
+            for i, c in enumerate(h["counts"]):
+                acc[i] += c
+    out["latency"] = lat
+    return out
+
+
+def _latency_window(
+    before: Mapping[str, list[float]], after: Mapping[str, list[float]]
+) -> dict[str, dict[str, float]]:
+    """p50/p95/p99/max (ms) and count per stage of the rows recorded between two scrapes."""
+    from server.latency import BOUNDS_S, quantiles_from_buckets
+
+    out: dict[str, dict[str, float]] = {}
+    bounds = list(BOUNDS_S)
+    for stage, counts in after.items():
+        prev = before.get(stage, [0.0] * len(counts))
+        window = [a - b for a, b in zip(counts, prev, strict=True)]
+        q = quantiles_from_buckets(bounds, window, (0.5, 0.95, 0.99))
+        nonzero = [i for i, c in enumerate(window) if c > 0]
+        if nonzero:
+            top = nonzero[-1]
+            peak = bounds[top] if top < len(bounds) else float("inf")
+        else:
+            peak = float("nan")
+        out[stage] = {
+            "rows": sum(window),
+            "p50_ms": q[0.5] * 1e3,
+            "p95_ms": q[0.95] * 1e3,
+            "p99_ms": q[0.99] * 1e3,
+            "max_ms": peak * 1e3,
+        }
+    return out
+
+
+# ---------------------------------------------------------------------------------- publishers
+
+
+@dataclass(frozen=True)
+class LoadSpec:
+    """What to publish and for how long (see the module docstring)."""
+
+    vehicles: int
+    duration_s: float
+    scenario: str = "mix"
+    rate_scale: float = 1.0
+    publishers: int = 2
+    sessions_per_publisher: int = 8
+    warmup_s: float = 5.0
+    distinct_runs: int = 2
+    replay: tuple[str, ...] = ()
+    seed: int = 0
+
+
+def _assignments(spec: LoadSpec, shards: Sequence[str]) -> list[list[dict[str, Any]]]:
+    """Per publisher process, its groups: ``{id_format, first, count, scenario}``.
+
+    Vehicles are numbered per shard; shard ``k`` gets vehicles ``k, k + S, …`` of the fleet, and
+    each scenario's vehicles of a shard are one contiguous id range.
+    """
+    scenarios = list(MIX) if spec.scenario == "mix" else [spec.scenario]
+    if spec.replay:
+        scenarios = ["replay"]
+    groups: list[dict[str, Any]] = []
+    n_shards = len(shards)
+    for k, fmt in enumerate(shards):
+        n_shard = spec.vehicles // n_shards + (1 if k < spec.vehicles % n_shards else 0)
+        first = 1
+        for j, scen in enumerate(scenarios):
+            n = n_shard // len(scenarios) + (1 if j < n_shard % len(scenarios) else 0)
+            if n:
+                groups.append({"id_format": fmt, "first": first, "count": n, "scenario": scen})
+                first += n
+    # split groups across publishers so each gets about the same number of vehicles
+    n_pub = max(1, min(spec.publishers, spec.vehicles))
+    per_pub: list[list[dict[str, Any]]] = [[] for _ in range(n_pub)]
+    target = spec.vehicles / n_pub
+    p, load = 0, 0
+    for g in groups:
+        first, left = g["first"], g["count"]
+        while left:
+            room = max(1, round(target * (p + 1)) - load) if p < n_pub - 1 else left
+            take = min(left, room)
+            per_pub[p].append({**g, "first": first, "count": take})
+            first, left, load = first + take, left - take, load + take
+            if p < n_pub - 1 and load >= round(target * (p + 1)):
+                p += 1
+    return [g for g in per_pub if g]
+
+
+class _Publisher:
+    """One publisher child process; parses its progress lines on a reader thread."""
+
+    def __init__(self, index: int, job: dict[str, Any]) -> None:
+        self.index = index
+        self.sent = 0
+        self.behind_ms = 0.0
+        self.final: dict[str, Any] | None = None
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "server.loadtest", "_publish", json.dumps(job)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            try:
+                msg = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if "final" in msg:
+                self.final = msg["final"]
+            else:
+                self.sent = int(msg.get("sent", self.sent))
+                self.behind_ms = float(msg.get("behind_ms", self.behind_ms))
+
+    def stop(self) -> None:
+        if self.proc.stdin is not None and not self.proc.stdin.closed:
+            with contextlib.suppress(BrokenPipeError, OSError, ValueError):
+                self.proc.stdin.write("stop\n")
+                self.proc.stdin.close()
+
+    def join(self, timeout_s: float = 60.0) -> None:
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(10)
+        self._reader.join(5.0)
+        for stream in (self.proc.stdin, self.proc.stdout):
+            if stream is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    stream.close()
+
+
+def _replay_fleet_sim_class() -> type:
+    """A :class:`FleetSim` whose runs come from recordings instead of the simulator."""
+    from estimator.config import VehicleConfig
+    from server.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, packetize
+    from server.protocol.codec import DecodeError, decode
+    from server.protocol.keys import parse_key
+    from server.protocol.recording import read_recording
+
+    class ReplaySim(FleetSim):
+        """Vehicle ``i`` replays drive ``i mod n_drives`` of ``paths`` (all vehicles in them)."""
+
+        def __init__(
+            self,
+            session: Any,
+            n: int,
+            *,
+            paths: Sequence[str],
+            id_format: str,
+            prefix: str,
+            first_index: int,
+            **kw: Any,
+        ) -> None:
+            super().__init__(session, n, prefix=prefix, first_index=first_index, loop=True, **kw)
+            self._paths = list(paths)
+            self._id_format = id_format
+
+        @property
+        def vehicle_ids(self) -> list[str]:
+            return [self._id_format.format(self._first + i) for i in range(self._n)]
+
+        def _drives(self) -> list[tuple[list[SimPacket], int, int]]:
+            drives: list[tuple[list[SimPacket], int, int]] = []
+            for path in self._paths:
+                by_vehicle: dict[str, list[tuple[int, Any]]] = {}
+                for rec in read_recording(path):
+                    parts = rec.key.split("/")
+                    if "sensors" not in parts:
+                        continue
+                    prefix = "/".join(parts[: parts.index("sensors") - 1])
+                    try:
+                        vid, _ = parse_key(rec.key, prefix)
+                        pkt = decode(rec.key, rec.payload, prefix=prefix, max_payload_bytes=1 << 30)
+                    except (DecodeError, ValueError, IndexError):
+                        continue
+                    for m in pkt.measurements:
+                        by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m))
+                for items in by_vehicle.values():
+                    start = items[0][0]
+                    packets = packetize(items, start)
+                    drives.append((packets, start, items[-1][0]))
+            if not drives:
+                raise ValueError(f"no sensor packets in {self._paths}")
+            return drives
+
+        def _build(self) -> list[Any]:
+            # shift_ns relative to the drive start; FleetSim.run adds "now" before publishing
+            drives = self._drives()
+            out = []
+            for i, vid in enumerate(self.vehicle_ids):
+                packets, start, end = drives[i % len(drives)]
+                phase = (i * TICK_NS) // self._n
+                period = end - start + TICK_NS
+                out.append(_Vehicle(vid, packets, period, phase, phase - start, VehicleConfig()))
+            return out
+
+    return ReplaySim
+
+
+def _named_fleet_sim_class() -> type:
+    """A :class:`FleetSim` with a configurable vehicle id format (shard prefixes)."""
+    from server.fleet_sim import FleetSim
+
+    class NamedSim(FleetSim):
+        def __init__(self, *args: Any, id_format: str, **kw: Any) -> None:
+            super().__init__(*args, **kw)
+            self._id_format = id_format
+
+        @property
+        def vehicle_ids(self) -> list[str]:
+            return [self._id_format.format(self._first + i) for i in range(self._n)]
+
+    return NamedSim
+
+
+def _publish_child(job_json: str) -> int:
+    """Child entry point: publish the groups of one publisher until told to stop."""
+    import zenoh
+
+    from server.ingest.zenoh_session import make_config
+    from server.settings import ZenohSettings
+
+    job = json.loads(job_json)
+    sessions = [
+        zenoh.open(make_config(ZenohSettings(connect=job["endpoints"])))
+        for _ in range(job["sessions"])
+    ]
+    NamedSim = _named_fleet_sim_class()
+    ReplaySim = _replay_fleet_sim_class() if job["replay"] else None
+    sims = []
+    for g in job["groups"]:
+        common = {
+            "prefix": job["prefix"],
+            "rate": job["rate"],
+            "first_index": g["first"],
+            "id_format": g["id_format"],
+        }
+        if ReplaySim is not None:
+            sims.append(ReplaySim(sessions, g["count"], paths=job["replay"], **common))
+        else:
+            sims.append(
+                NamedSim(
+                    sessions,
+                    g["count"],
+                    scenario=g["scenario"],
+                    loop=True,
+                    seed=job["seed"],
+                    distinct_runs=job["distinct_runs"],
+                    **common,
+                )
+            )
+    for sim in sims:
+        sim.start()
+    stop = threading.Event()
+
+    def _wait_stop() -> None:
+        sys.stdin.readline()  # "stop" or EOF (parent gone)
+        stop.set()
+
+    threading.Thread(target=_wait_stop, daemon=True).start()
+    cpu0 = time.process_time()
+    t0 = time.monotonic()
+    while not stop.wait(0.5):
+        print(
+            json.dumps(
+                {
+                    "sent": sum(s.stats.total_packets for s in sims),
+                    "behind_ms": max(s.stats.max_behind_ms for s in sims),
+                }
+            ),
+            flush=True,
+        )
+    for sim in sims:
+        sim.stop(30.0)
+    final = {
+        "sent": sum(s.stats.total_packets for s in sims),
+        "configs": sum(s.stats.configs for s in sims),
+        "bytes": sum(s.stats.payload_bytes for s in sims),
+        "max_behind_ms": max(s.stats.max_behind_ms for s in sims),
+        "cpu_s": time.process_time() - cpu0,
+        "wall_s": time.monotonic() - t0,
+    }
+    time.sleep(0.5)  # let the sessions flush before closing
+    for session in sessions:
+        session.close()
+    print(json.dumps({"final": final}), flush=True)
+    return 0
+
+
+# ---------------------------------------------------------------------------------- the run
+
+
+@dataclass
+class _ProcWatch:
+    """CPU and RSS of processes, sampled on a thread."""
+
+    pids: Sequence[int]
+    procs: list[psutil.Process] = field(default_factory=list)
+    peak_rss: dict[int, int] = field(default_factory=dict)
+    rss_series: list[tuple[float, int]] = field(default_factory=list)  # (t, total rss)
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _thread: threading.Thread | None = None
+
+    def start(self) -> _ProcWatch:
+        import psutil
+
+        self.procs = [psutil.Process(p) for p in self.pids]
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        import psutil
+
+        t0 = time.monotonic()
+        while not self._stop.wait(0.5):
+            total = 0
+            for p in self.procs:
+                with contextlib.suppress(psutil.Error):
+                    rss = p.memory_info().rss
+                    total += rss
+                    self.peak_rss[p.pid] = max(self.peak_rss.get(p.pid, 0), rss)
+            self.rss_series.append((time.monotonic() - t0, total))
+
+    def cpu_s(self) -> float:
+        import psutil
+
+        total = 0.0
+        for p in self.procs:
+            with contextlib.suppress(psutil.Error):
+                t = p.cpu_times()
+                total += t.user + t.system
+        return total
+
+    def rss(self) -> int:
+        import psutil
+
+        total = 0
+        for p in self.procs:
+            with contextlib.suppress(psutil.Error):
+                total += p.memory_info().rss
+        return total
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+
+
+def run_loadtest(
+    spec: LoadSpec, target: Target, *, prefix: str = "fleet", progress: bool = True
+) -> dict[str, Any]:
+    """Publish ``spec`` to ``target`` and measure (see the module docstring); a result dict."""
+    import httpx
+    from tqdm import tqdm
+
+    jobs = [
+        {
+            "endpoints": list(target.endpoints),
+            "sessions": max(1, min(spec.sessions_per_publisher, sum(g["count"] for g in groups))),
+            "groups": groups,
+            "prefix": prefix,
+            "rate": spec.rate_scale,
+            "replay": list(spec.replay),
+            "seed": spec.seed,
+            "distinct_runs": spec.distinct_runs,
+        }
+        for groups in _assignments(spec, target.shards)
+    ]
+    http = httpx.Client(timeout=30.0)
+    server_watch = _ProcWatch(target.pids).start()
+    pubs = [_Publisher(i, job) for i, job in enumerate(jobs)]
+    pub_watch = _ProcWatch([p.proc.pid for p in pubs]).start()
+    result: dict[str, Any] = {"spec": dataclasses.asdict(spec), "publishers": len(pubs)}
+    try:
+        # warm-up: every publisher is sending, then spec.warmup_s more seconds
+        t_start = time.monotonic()
+        while not all(p.sent > 0 for p in pubs):
+            if any(p.proc.poll() is not None for p in pubs):
+                raise RuntimeError("a publisher exited before sending")
+            if time.monotonic() - t_start > 300:
+                raise TimeoutError("publishers did not start sending within 300 s")
+            time.sleep(0.1)
+        result["publisher_start_s"] = round(time.monotonic() - t_start, 2)
+        time.sleep(spec.warmup_s)
+        before = _merge([scrape(a, http) for a in target.apis])
+        sent0 = sum(p.sent for p in pubs)
+        cpu0, pcpu0, t0 = server_watch.cpu_s(), pub_watch.cpu_s(), time.monotonic()
+        rss0 = server_watch.rss()
+        bar = tqdm(
+            total=round(spec.duration_s),
+            unit="s",
+            desc=f"{spec.vehicles} vehicles",
+            disable=not progress,
+            leave=False,
+        )
+        last = before
+        with bar:
+            while (elapsed := time.monotonic() - t0) < spec.duration_s:
+                time.sleep(min(POLL_S, spec.duration_s - elapsed))
+                now = _merge([scrape(a, http) for a in target.apis])
+                dt = max(time.monotonic() - t0, 1e-9)
+                bar.n = min(round(dt), bar.total)
+                bar.set_postfix(
+                    sent_per_s=round((sum(p.sent for p in pubs) - sent0) / dt),
+                    recv_per_s=round((now["received"] - before["received"]) / dt),
+                    lost=int(now["lost_by_seq_gap"]),
+                    backlog=int(now["backlog"]),
+                    refresh=False,
+                )
+                bar.refresh()
+                last = now
+        sent1 = sum(p.sent for p in pubs)
+        wall = time.monotonic() - t0
+        cpu1, pcpu1 = server_watch.cpu_s(), pub_watch.cpu_s()
+        rss1 = server_watch.rss()
+        for p in pubs:
+            p.stop()
+        for p in pubs:
+            p.join()
+        sent_total = sum((p.final or {}).get("sent", p.sent) for p in pubs)
+        # drain: every packet counted, estimates of the window produced, writer backlog empty
+        t_drain = time.monotonic()
+        while True:
+            last = _merge([scrape(a, http) for a in target.apis])
+            if last["received"] >= sent_total and last["backlog"] == 0:
+                break
+            if time.monotonic() - t_drain > DRAIN_S:
+                break
+            time.sleep(0.25)
+        time.sleep(1.5)  # the rows of the last released horizon reach the writer and commit
+        after = _merge([scrape(a, http) for a in target.apis])
+        drain_s = time.monotonic() - t_drain
+    finally:
+        for p in pubs:
+            p.stop()
+        for p in pubs:
+            p.join(10)
+        server_watch.stop()
+        pub_watch.stop()
+        http.close()
+
+    received_total = after["received"]
+    result.update(
+        {
+            "window_s": round(wall, 2),
+            "drain_s": round(drain_s, 2),
+            "vehicles_seen": len(after["vehicles"]),
+            "packets_sent": int(sent_total),
+            "packets_sent_window": int(sent1 - sent0),
+            "packets_per_s": round((sent1 - sent0) / wall, 1),
+            "packets_received": int(received_total),
+            "packets_received_window": int(last["received"] - before["received"]),
+            "packets_accepted": int(after["accepted"]),
+            "packets_rejected": int(after["rejected"]),
+            "packets_late": int(after["late"]),
+            "packets_duplicate": int(after["duplicate"]),
+            "packets_lost_by_seq_gap": int(after["lost_by_seq_gap"]),
+            "packets_missing": int(max(0, sent_total - received_total)),
+            "estimates_produced": int(after["estimate_rows"]),
+            "estimates_stored": int(after["rows_written"]),
+            "rows_dropped_backlog_full": int(after["rows_dropped"]),
+            "storage_rows_per_s": round(
+                (after["rows_written"] - before["rows_written"]) / (wall + drain_s), 1
+            ),
+            "latency": _latency_window(before["latency"], after["latency"]),
+            "server_cpu_cores": round((cpu1 - cpu0) / wall, 3) if target.pids else None,
+            "server_rss_mb_start": round(rss0 / 2**20, 1) if target.pids else None,
+            "server_rss_mb_end": round(rss1 / 2**20, 1) if target.pids else None,
+            "server_rss_mb_peak": round(sum(server_watch.peak_rss.values()) / 2**20, 1)
+            if target.pids
+            else None,
+            "publisher_cpu_cores": round((pcpu1 - pcpu0) / wall, 3),
+            "publisher_max_behind_ms": round(
+                max((p.final or {}).get("max_behind_ms", p.behind_ms) for p in pubs), 1
+            ),
+            "machine_cpus": os.cpu_count(),
+        }
+    )
+    series = server_watch.rss_series
+    if target.pids and series:
+        result["server_rss_growth_pct"] = round(100.0 * (rss1 - rss0) / max(rss0, 1), 2)
+    total_lost = result["packets_lost_by_seq_gap"] + result["packets_missing"]
+    result["loss_free"] = total_lost == 0 and result["packets_late"] == 0
+    return result
+
+
+def format_report(r: Mapping[str, Any]) -> str:
+    """A human-readable summary of a :func:`run_loadtest` result."""
+    lat = r["latency"]
+    lines = [
+        f"vehicles {r['spec']['vehicles']} (seen {r['vehicles_seen']}), scenario "
+        f"{r['spec']['scenario'] if not r['spec']['replay'] else 'replay'}, rate x"
+        f"{r['spec']['rate_scale']}, {r['publishers']} publisher processes, window "
+        f"{r['window_s']} s (+{r['drain_s']} s drain)",
+        f"packets  sent {r['packets_sent']}  received {r['packets_received']}  rejected "
+        f"{r['packets_rejected']}  late {r['packets_late']}  duplicate {r['packets_duplicate']}  "
+        f"lost(seq gap) {r['packets_lost_by_seq_gap']}  missing {r['packets_missing']}",
+        f"rate     {r['packets_per_s']:.0f} packets/s sent in the window "
+        f"(publishers {r['publisher_cpu_cores']} cores, max behind "
+        f"{r['publisher_max_behind_ms']} ms)",
+        f"estimates produced {r['estimates_produced']}  stored {r['estimates_stored']}  "
+        f"({r['storage_rows_per_s']:.0f} rows/s)  dropped(backlog) "
+        f"{r['rows_dropped_backlog_full']}",
+    ]
+    for stage in ("live", "stored"):
+        if stage in lat:
+            s = lat[stage]
+            lines.append(
+                f"latency  sensor→{stage:<6} p50 {s['p50_ms']:.0f}  p95 {s['p95_ms']:.0f}  "
+                f"p99 {s['p99_ms']:.0f}  max {s['max_ms']:.0f} ms  ({int(s['rows'])} rows)"
+            )
+    if r.get("server_cpu_cores") is not None:
+        lines.append(
+            f"server   CPU {r['server_cpu_cores']:.2f} cores of {r['machine_cpus']}  RSS "
+            f"{r['server_rss_mb_start']} → {r['server_rss_mb_end']} MB (peak "
+            f"{r['server_rss_mb_peak']} MB, growth {r.get('server_rss_growth_pct')} %)"
+        )
+    return "\n".join(lines)
+
+
+def _pid_listening_on(api: str) -> int | None:
+    import httpx
+    import psutil
+
+    port = httpx.URL(api).port
+    with contextlib.suppress(psutil.Error):
+        for conn in psutil.net_connections("tcp"):
+            if conn.status == psutil.CONN_LISTEN and conn.laddr and conn.laddr.port == port:
+                return conn.pid
+    return None
+
+
+@contextlib.contextmanager
+def local_server(
+    settings: Mapping[str, Any] | None = None, storage_url: str | None = None
+) -> Iterator[ServerProcess]:
+    """A :class:`ServerProcess` with SQLite in a temporary directory (or ``storage_url``)."""
+    with tempfile.TemporaryDirectory(prefix="slipfleet-loadtest-") as tmp:
+        s: dict[str, Any] = json.loads(json.dumps(dict(settings or {})))
+        s.setdefault("storage", {}).setdefault("data_dir", str(Path(tmp) / "data"))
+        server = ServerProcess(s, storage_url, log_path=Path(tmp) / "server.log")
+        server.start()
+        try:
+            yield server
+        finally:
+            code = server.stop()
+            if code not in (0, None, -15):
+                log_text = (Path(tmp) / "server.log").read_text(errors="replace")[-4000:]
+                log.warning("server exited with %s:\n%s", code, log_text)
+
+
+def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
+    """Settings overrides from ``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s``."""
+    s: dict[str, Any] = {}
+    if args.lateness_ms is not None:
+        s.setdefault("ingest", {})["lateness_ms"] = args.lateness_ms
+    if args.advance_step_ms is not None:
+        s.setdefault("ingest", {})["advance_step_ms"] = args.advance_step_ms
+    if args.commit_interval_s is not None:
+        s.setdefault("storage", {})["commit_interval_s"] = args.commit_interval_s
+    return s
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``loadtest`` flags (shared by ``slipfleet loadtest`` and ``python -m``)."""
+    p.add_argument("--vehicles", type=int, required=True)
+    p.add_argument("--duration", type=float, required=True, help="measured seconds")
+    p.add_argument("--scenario", default="mix", help="a scenario name or 'mix'")
+    p.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
+    p.add_argument("--publishers", type=int, default=2, help="publisher processes")
+    p.add_argument("--sessions", type=int, default=8, help="Zenoh sessions per publisher")
+    p.add_argument("--warmup", type=float, default=5.0, help="seconds before the window")
+    p.add_argument("--replay", nargs="+", default=None, metavar="PATH", help="recordings")
+    p.add_argument("--json", type=Path, default=None, help="also write the result as JSON")
+    p.add_argument("--connect", default=None, help="router endpoint of a running server")
+    p.add_argument("--api", default=None, help="REST base URL of that server (with --connect)")
+    p.add_argument("--server-pid", type=int, default=None, help="pid for CPU/RSS (--connect)")
+    p.add_argument("--storage-url", default=None, help="PostgreSQL URL for the started server")
+    p.add_argument("--lateness-ms", type=int, default=None)
+    p.add_argument("--advance-step-ms", type=int, default=None)
+    p.add_argument("--commit-interval-s", type=float, default=None)
+
+
+def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """Run a load test as the command line asks; print the report; return the result."""
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    spec = LoadSpec(
+        vehicles=args.vehicles,
+        duration_s=args.duration,
+        scenario=args.scenario,
+        rate_scale=args.rate_scale,
+        publishers=args.publishers,
+        sessions_per_publisher=args.sessions,
+        warmup_s=args.warmup,
+        replay=tuple(str(p) for p in args.replay or ()),
+    )
+    if args.connect:
+        if not args.api:
+            raise SystemExit("--connect needs --api")
+        pid = args.server_pid or _pid_listening_on(args.api)
+        target = Target((args.connect,), (args.api.rstrip("/"),), (pid,) if pid else ())
+        result = run_loadtest(spec, target)
+        result["server_settings"] = "external"
+    else:
+        tuning = server_tuning(args)
+        with local_server(tuning, args.storage_url) as server:
+            target = Target((server.endpoint,), (server.api,), (server.pid,))
+            result = run_loadtest(spec, target)
+        result["server_settings"] = tuning or "defaults"
+    print(format_report(result))
+    if args.json is not None:
+        args.json.write_text(json.dumps(result, indent=2, default=str))
+    return result
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["_serve"]:
+        return _serve_child()
+    if argv[:1] == ["_publish"]:
+        return _publish_child(argv[1])
+    p = argparse.ArgumentParser(prog="python -m server.loadtest", description=__doc__)
+    add_arguments(p)
+    logging.basicConfig(level=logging.INFO)
+    run_from_args(p.parse_args(argv))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,91 @@
+"""Load test harness against real server processes: a small fleet with nothing lost, and two
+shards that each see only their own vehicles while both APIs list the whole fleet."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from server.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
+from server.loadtest import LoadSpec, Target, local_server, run_loadtest, scrape
+
+pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
+
+
+def test_quantiles_from_buckets_recover_known_latencies() -> None:
+    hist = LatencyHistogram()
+    latencies_ms = np.arange(1, 1001)  # 1 … 1000 ms, uniform
+    hist.add((latencies_ms * 1_000_000).astype(np.int64))
+    counts, _, max_ns = hist.snapshot()
+    q = quantiles_from_buckets(list(BOUNDS_S), counts.tolist(), (0.5, 0.99))
+    assert q[0.5] == pytest.approx(0.5, rel=0.05)  # buckets are 5 % wide
+    assert q[0.99] == pytest.approx(0.99, rel=0.05)
+    assert max_ns == 1_000_000_000
+
+
+def test_small_fleet_against_a_server_process_loses_nothing() -> None:
+    spec = LoadSpec(vehicles=5, duration_s=5.0, warmup_s=2.0, publishers=1)
+    with local_server() as server:
+        target = Target((server.endpoint,), (server.api,), (server.pid,))
+        r = run_loadtest(spec, target, progress=False)
+    assert r["vehicles_seen"] == 5
+    assert r["packets_sent"] > 5 * 5 * 20  # ≈30 packets per vehicle-second
+    assert r["packets_received"] == r["packets_sent"]
+    assert r["packets_lost_by_seq_gap"] == 0
+    assert r["packets_missing"] == 0
+    assert r["packets_rejected"] == 0
+    assert r["loss_free"]
+    assert r["estimates_stored"] > 0
+    assert r["estimates_stored"] == r["estimates_produced"]
+    for stage in ("live", "stored"):
+        lat = r["latency"][stage]
+        assert lat["rows"] > 0
+        assert 0 < lat["p50_ms"] <= lat["p95_ms"] <= lat["p99_ms"] <= lat["max_ms"]
+        assert math.isfinite(lat["max_ms"])
+    assert r["latency"]["live"]["p50_ms"] < r["latency"]["stored"]["p50_ms"]
+    assert r["server_cpu_cores"] > 0
+    assert r["server_rss_mb_peak"] > 0
+
+
+def test_replayed_recordings_load_the_server_like_simulated_vehicles(tmp_path: Path) -> None:
+    from server.app_main import record
+
+    path = tmp_path / "drive.rec"
+    record(path, vehicles=2, scenario="figure_eight", duration_s=10.0)
+    spec = LoadSpec(vehicles=4, duration_s=3.0, warmup_s=1.0, publishers=1, replay=(str(path),))
+    with local_server() as server:
+        target = Target((server.endpoint,), (server.api,), (server.pid,))
+        r = run_loadtest(spec, target, progress=False)
+    assert r["vehicles_seen"] == 4  # two recorded drives, each replayed by two renamed vehicles
+    assert r["loss_free"]
+    assert r["packets_received"] == r["packets_sent"] > 4 * 3 * 20
+    assert r["latency"]["stored"]["rows"] > 0
+
+
+@pytest.mark.postgres
+def test_two_shards_split_the_fleet_and_both_apis_list_all_of_it(pg_url: str) -> None:
+    from server.bench.throughput import PAIR, sharded_servers
+
+    spec = LoadSpec(vehicles=6, duration_s=3.0, warmup_s=1.0, publishers=1)
+    with sharded_servers(pg_url, PAIR["filters"]) as (router, servers, _):
+        target = Target(
+            (router.endpoint,),
+            tuple(s.api for s in servers),
+            tuple(s.pid for s in servers),
+            tuple(PAIR["ids"]),
+        )
+        r = run_loadtest(spec, target, progress=False)
+        assert r["loss_free"]
+        assert r["packets_received"] == r["packets_sent"]
+        seen = [scrape(s.api)["vehicles"] for s in servers]
+        assert seen[0] == {"a-00001", "a-00002", "a-00003"}
+        assert seen[1] == {"b-00001", "b-00002", "b-00003"}
+        listed = []
+        for s in servers:
+            body = httpx.get(f"{s.api}/api/v1/vehicles", timeout=10).raise_for_status().json()
+            listed.append({v["vehicle_id"] for v in body["data"]})
+        assert listed[0] == listed[1] == seen[0] | seen[1]
