@@ -67,7 +67,9 @@ __all__ = ["FLEET_MIN_INTERVAL_S", "VEHICLE_MIN_INTERVAL_S", "find_live_hub", "r
 router = APIRouter(prefix="/live", tags=["live"])
 
 FLEET_MIN_INTERVAL_S = 0.25
-VEHICLE_MIN_INTERVAL_S = 0.25
+#: A vehicle page gets new rows at most this often (10 Hz): the estimator emits rows in
+#: ``ingest.advance_step_ms`` chunks, so a slower cadence would add up to this much latency.
+VEHICLE_MIN_INTERVAL_S = 0.1
 _HEARTBEAT_S = 1.0
 _WINDOW_MIN_S, _WINDOW_MAX_S = 5.0, 1800.0
 
