@@ -21,7 +21,7 @@ as doubles, exact to about 256 ns: enough to order, merge and display them.
 
 ``/api/v1/live/vehicles/{vehicle_id}?window_s=60&max_points=1500`` — one vehicle's charts
     ``window_s`` in 5..1800 (default 60), ``max_points`` in 100..5000 (default 1500).
-    First the server sends a ``snapshot``, then an ``append`` at most every 250 ms (when new rows
+    First the server sends a ``snapshot``, then an ``append`` at most every 100 ms (when new rows
     arrived) and at least every second::
 
         {"type": "snapshot", "vehicle_id": "…", "window_s": 60, "tier": "fine", "bucket_s": 0.05,
