@@ -64,7 +64,14 @@ from estimator.types import (
     WheelSpeeds,
     empty_estimates,
 )
-from estimator.wheel_speed import DirectWheelSpeed, WheelSpeedConfig, WheelSpeedMethod, WheelTracker
+from estimator.wheel_speed import (
+    DirectWheelSpeed,
+    WheelSpeedConfig,
+    WheelSpeedMethod,
+    WheelSpeedResult,
+    WheelTracker,
+    query_many,
+)
 
 __all__ = ["Counter", "MdsfEngine", "MdsfFleet", "StepOutput", "TickInputs", "TickModel"]
 
@@ -952,25 +959,12 @@ class _FrontEnd:
                 gnss_ok[jj] = True
         enu, att = self._hold_outputs(ticks, g, z[:, MdsfObs.OMEGA_Z], theta_tick)
 
-        # Wheel speeds at the ticks.
+        # Wheel speeds at the ticks: from the encoders (filled by the fleet, batched over
+        # vehicles, see ``wheels_from``) or from direct (CAN) speeds.
         omega = np.full((m, 2), np.nan)
         omega_std = np.full((m, 2), np.nan)
         wflags = np.zeros(m, dtype=np.int32)
-        if self.has_edges or not self.direct.has_data:
-            period = np.ones(m, dtype=bool)
-            for w in Wheel:
-                r = self.trackers[w].query(ticks)
-                om = np.where(r.method == WheelSpeedMethod.NONE, 0.0, r.omega_radps)
-                sd = np.where(
-                    r.method == WheelSpeedMethod.NONE,
-                    2 * np.pi / (self.vehicle.encoder.teeth_per_rev * 2.0),
-                    r.std_radps,
-                )
-                omega[:, w] = om
-                omega_std[:, w] = sd
-                period &= r.method != WheelSpeedMethod.FREQUENCY
-            wflags |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
-        else:
+        if not self.uses_encoders:
             omega, omega_std = self.direct.query(ticks)
             wflags |= int(_F.WHEEL_DIRECT)
 
@@ -989,6 +983,23 @@ class _FrontEnd:
             enu=enu,
             attitude=att,
         )
+
+    @property
+    def uses_encoders(self) -> bool:
+        """Wheel speeds come from encoder edges (else from direct speeds, when there are any)."""
+        return self.has_edges or not self.direct.has_data
+
+    def wheels_from(self, t: TickInputs, both: list[WheelSpeedResult]) -> None:
+        """Fill ``t``'s wheel columns from the trackers' results (left, right), in place."""
+        period = np.ones(t.m, dtype=bool)
+        lone_std = 2 * np.pi / (self.vehicle.encoder.teeth_per_rev * 2.0)
+        for w in Wheel:
+            r = both[w]
+            none = r.method == WheelSpeedMethod.NONE
+            t.omega[:, w] = np.where(none, 0.0, r.omega_radps)
+            t.omega_std[:, w] = np.where(none, lone_std, r.std_radps)
+            period &= r.method != WheelSpeedMethod.FREQUENCY
+        t.wheel_flags |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
 
     def _gnss_arrays(self, gs: list[GnssSample]) -> dict[str, np.ndarray] | None:
         if not gs:
@@ -1334,6 +1345,18 @@ class MdsfFleet:
                 items.append((vid, ti))
         if not items:
             return []
+        # Encoder wheel speeds: one vectorised fit for every wheel that shares the ticks.
+        groups: dict[tuple[WheelSpeedConfig, int, int], list[tuple[_FrontEnd, TickInputs]]] = {}
+        for vid, ti in items:
+            fe = self._fe[vid]
+            if fe.uses_encoders:
+                key = (fe.trackers[0].config, int(ti.stamp_ns[0]), ti.m)
+                groups.setdefault(key, []).append((fe, ti))
+        for members in groups.values():
+            trackers = [tr for fe, _ in members for tr in fe.trackers]
+            res = query_many(trackers, members[0][1].stamp_ns)
+            for i, (fe, ti) in enumerate(members):
+                fe.wheels_from(ti, res[2 * i : 2 * i + 2])
         items.sort(key=lambda it: -it[1].m)
         lengths = np.array([ti.m for _, ti in items], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])

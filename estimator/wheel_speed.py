@@ -50,6 +50,7 @@ __all__ = [
     "omega_at",
     "omega_frequency",
     "omega_k_tooth",
+    "query_many",
     "stop_bound",
 ]
 
@@ -249,8 +250,9 @@ def omega_at(
     angle_rad: FloatArray,
     query_ns: IntArray,
     config: WheelSpeedConfig,
-    angle_before_rad: float = 0.0,
-    signed: bool = False,
+    angle_before_rad: float | FloatArray = 0.0,
+    signed: bool | npt.NDArray[np.bool_] = False,
+    segment_start: IntArray | None = None,
 ) -> WheelSpeedResult:
     """Causal wheel speed at each query time from the edges at or before it.
 
@@ -269,11 +271,14 @@ def omega_at(
     query_ns : ndarray, shape (m,), int64
         Query times, any order.
     config : WheelSpeedConfig
-    angle_before_rad : float
+    angle_before_rad : float or ndarray, shape (m,)
         Wheel angle before the first edge given (for the frequency count).
-    signed : bool
+    signed : bool or ndarray, shape (m,), bool
         The angles carry direction (quadrature encoder); otherwise a negative fitted speed
         (a fit overshooting a stop) is clamped to zero.
+    segment_start : ndarray, shape (m,), int, optional
+        When several wheels share the arrays (:func:`query_many`): index of the first edge of
+        each query's wheel; edges before it are not that wheel's.
 
     Returns
     -------
@@ -291,7 +296,8 @@ def omega_at(
     if m == 0:
         return WheelSpeedResult(omega, std, method)
     last = np.searchsorted(e, q, side="right") - 1  # index of the last edge ≤ t
-    has = last >= 0
+    seg0 = np.zeros(m, dtype=np.int64) if segment_start is None else np.asarray(segment_start)
+    has = last >= seg0
     if e.shape[0] == 0 or not has.any():
         return WheelSpeedResult(omega, std, method)
 
@@ -299,13 +305,13 @@ def omega_at(
     first_in = np.searchsorted(e, q - w_ns, side="right")
     n_win = np.maximum(last - first_in + 1, 0)
     n_fit = np.clip(n_win, config.min_edges, config.max_edges)
-    n_fit = np.minimum(n_fit, last + 1)  # cannot use more edges than exist
+    n_fit = np.minimum(n_fit, last - seg0 + 1)  # cannot use more edges than exist
     # Gather the candidate edges: row j holds edges last, last-1, ...
     kmax = int(n_fit[has].max()) if has.any() else 2
     kmax = max(kmax, 2)
     offs = np.arange(kmax)
     idx = last[:, None] - offs[None, :]
-    w = (offs[None, :] < n_fit[:, None]) & (idx >= 0) & has[:, None]
+    w = (offs[None, :] < n_fit[:, None]) & (idx >= seg0[:, None]) & has[:, None]
     idx = np.clip(idx, 0, max(e.shape[0] - 1, 0))
     tau_s = (e[idx] - q[:, None]).astype(np.float64) * _NS  # ≤ 0
     # A wheel starting again after a stop: an interval longer than ``stop_timeout_s`` ends
@@ -360,7 +366,7 @@ def omega_at(
     # Frequency method when the window is crowded.
     freq = has & (n_win >= config.frequency_min_count)
     if freq.any():
-        before = np.where(first_in >= 1, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
+        before = np.where(first_in > seg0, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
         om_f = (pos[np.maximum(last, 0)] - before) / config.window_s
         omega = np.where(freq, om_f, omega)
         std = np.where(freq, 2 * np.pi / (ns * config.window_s) / math.sqrt(3.0), std)
@@ -370,12 +376,12 @@ def omega_at(
     single = has & ~fit_ok
     last_ns = e[np.maximum(last, 0)]
     bound = stop_bound(last_ns, q, ns) * (1.0 + config.stop_bound_margin)
-    if not signed:
-        omega = np.where(omega < 0, 0.0, omega)  # a fit overshooting a stop; no reverse here
+    # a fit overshooting a stop; no reverse without direction
+    omega = np.where(~np.asarray(signed) & (omega < 0), 0.0, omega)
     sign = np.where(omega < 0, -1.0, 1.0)
     # A lone edge after a stop: at most one tooth since the edge before it.
     prev_ns = e[np.maximum(last - 1, 0)]
-    lone = np.where(last >= 1, stop_bound(prev_ns, last_ns, ns), 0.0)
+    lone = np.where(last - 1 >= seg0, stop_bound(prev_ns, last_ns, ns), 0.0)
     mag = np.where(single, np.minimum(lone, bound), np.abs(omega))
     capped = mag > bound
     mag = np.minimum(mag, bound)
@@ -559,6 +565,90 @@ class WheelTracker:
             self._stamp = self._stamp[keep_from:]
             self._angle = self._angle[keep_from:]
             self._cal_from -= keep_from
+
+
+_SEGMENT_NS = 1 << 41
+"""Spacing of trackers on the shared time axis of :func:`query_many` (about 37 minutes)."""
+_HISTORY_NS = 1 << 40
+"""Edges older than this before the first query are clamped (they only say "stopped")."""
+
+
+def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSpeedResult]:
+    """:meth:`WheelTracker.query` of several trackers at the same times, in one vectorised fit.
+
+    Equivalent to querying each tracker on its own (the fit of each query sees only its own
+    tracker's edges: trackers are laid out on one time axis, far apart); saves the per-call
+    overhead when a fleet front end asks many wheels at once.
+
+    Parameters
+    ----------
+    trackers : list of WheelTracker
+    query_ns : ndarray, shape (m,), int64, non-decreasing
+
+    Returns
+    -------
+    list of WheelSpeedResult, one per tracker, arrays of shape (m,)
+    """
+    q = np.asarray(query_ns, dtype=np.int64)
+    if not trackers:
+        return []
+    cfg = trackers[0].config
+    if q.size == 0 or any(t.config != cfg for t in trackers):
+        return [t.query(q) for t in trackers]
+    period = round(cfg.calibration_period_s * 1e9)
+    parts: list[list[WheelSpeedResult]] = [[] for _ in trackers]
+    i = 0
+    while i < q.size:
+        if cfg.tooth_calibration:
+            boundary = (int(q[i]) // period) * period
+            for t in trackers:
+                if boundary > t._cal_upto:
+                    t._calibrate(boundary)
+                    t._cal_upto = boundary
+            j = int(np.searchsorted(q, boundary + period, side="left"))
+        else:
+            j = q.size
+        qs = q[i:j]
+        base = int(qs[0]) - _HISTORY_NS
+        stamps, angles, queries, before, signed, seg = [], [], [], [], [], []
+        n_held = 0
+        for k, t in enumerate(trackers):
+            off = k * _SEGMENT_NS
+            seg.append(np.full(qs.size, n_held, dtype=np.int64))
+            n_held += t._stamp.size
+            stamps.append(np.maximum(t._stamp - base, 0) + off)
+            angles.append(t._corrected())
+            queries.append(qs - base + off)
+            before.append(np.full(qs.size, t._angle_before))
+            signed.append(np.full(qs.size, t._signed))
+        res = omega_at(
+            np.concatenate(stamps),
+            np.concatenate(angles),
+            np.concatenate(queries),
+            cfg,
+            np.concatenate(before),
+            signed=np.concatenate(signed),
+            segment_start=np.concatenate(seg),
+        )
+        n = qs.size
+        for k in range(len(trackers)):
+            sl = slice(k * n, (k + 1) * n)
+            parts[k].append(
+                WheelSpeedResult(res.omega_radps[sl], res.std_radps[sl], res.method[sl])
+            )
+        i = j
+    out = []
+    for k, t in enumerate(trackers):
+        out.append(
+            WheelSpeedResult(
+                np.concatenate([r.omega_radps for r in parts[k]]),
+                np.concatenate([r.std_radps for r in parts[k]]),
+                np.concatenate([r.method for r in parts[k]]).astype(np.int8),
+            )
+        )
+        if t._stamp.size:
+            t._trim(int(q[-1]))
+    return out
 
 
 class DirectWheelSpeed:

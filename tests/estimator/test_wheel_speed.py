@@ -19,6 +19,7 @@ from estimator.wheel_speed import (
     omega_at,
     omega_frequency,
     omega_k_tooth,
+    query_many,
     stop_bound,
 )
 
@@ -185,6 +186,31 @@ def test_tooth_calibration_learns_the_ring_pattern() -> None:
             best = max(np.corrcoef(np.roll(learnt, s), dev)[0, 1] for s in range(NS))
             assert best > 0.95
     assert errs[True] < errs[False] / 2
+
+
+def test_query_many_equals_separate_queries() -> None:
+    rng = np.random.default_rng(9)
+    cfg = WheelSpeedConfig(teeth_per_rev=NS)
+    profiles = [
+        lambda t: 3.0 * t + 0.4 * t * t,  # accelerating
+        lambda t: 2.0 * t + 0.1 * np.sin(3 * t),  # wobbling
+        lambda t: np.minimum(t, 2.0) * 1.5,  # stops at 2 s
+    ]
+    edge_sets = [edges_for(p, 4.0) + rng.integers(0, 3000, 1) for p in profiles]
+    edge_sets.append(np.zeros(0, dtype=np.int64))  # a wheel that never turned
+    single = [WheelTracker(cfg) for _ in edge_sets]
+    shared = [WheelTracker(cfg) for _ in edge_sets]
+    for qi in T0 + np.arange(100_000_000, 4_000_000_000, 100_000_000, dtype=np.int64):
+        q = np.array([qi - 50_000_000, qi])
+        for e, a, b in zip(edge_sets, single, shared, strict=True):
+            new = e[(e > (a.last_edge_ns or 0)) & (e <= qi)]
+            a.push(new)
+            b.push(new)
+        one = [t.query(q) for t in single]
+        many = query_many(shared, q)
+        for r1, r2 in zip(one, many, strict=True):
+            assert np.allclose(r1.omega_radps, r2.omega_radps, rtol=0, atol=1e-12, equal_nan=True)
+            assert np.array_equal(r1.method, r2.method)
 
 
 def test_tracker_skips_edges_back_in_time() -> None:
