@@ -296,7 +296,7 @@ class MdsfEngine:
     force_fast: FloatArray
     force_slow: FloatArray
     ref_x: FloatArray
-    ref_P: FloatArray
+    ref_P: FloatArray  # noqa: N815 (covariance, as P)
     ref_aux: FloatArray
     counts: IntArray
 
@@ -339,7 +339,7 @@ class MdsfEngine:
         v1: FloatArray,
         rim_ok: BoolArray,
     ) -> tuple[FloatArray, FloatArray]:
-        """State and covariance right after a (re)initialisation at speed ``v1``; (k, n), (k, n, n)."""
+        """State (k, n) and covariance (k, n, n) right after a (re)initialisation at ``v1``."""
         cfg = self.config
         k = slots.shape[0]
         x = np.zeros((k, self.n))
@@ -1354,9 +1354,9 @@ class MdsfFleet:
                 groups.setdefault(key, []).append((fe, ti))
         for members in groups.values():
             trackers = [tr for fe, _ in members for tr in fe.trackers]
-            res = query_many(trackers, members[0][1].stamp_ns)
+            fitted = query_many(trackers, members[0][1].stamp_ns)
             for i, (fe, ti) in enumerate(members):
-                fe.wheels_from(ti, res[2 * i : 2 * i + 2])
+                fe.wheels_from(ti, fitted[2 * i : 2 * i + 2])
         items.sort(key=lambda it: -it[1].m)
         lengths = np.array([ti.m for _, ti in items], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])

@@ -142,7 +142,7 @@ def test_rows_are_causal_and_independent_of_delivery_schedule() -> None:
     fleet.add_vehicle("v", cfg)
     for m in sim.measurements:
         fleet.push("v", m)
-    ((vid, at_once),) = fleet.advance({"v": int(stepped["stamp_ns"][-1])})
+    ((_, at_once),) = fleet.advance({"v": int(stepped["stamp_ns"][-1])})
     assert at_once.shape == stepped.shape
     for name in ESTIMATE_DTYPE.names or ():
         assert np.allclose(at_once[name], stepped[name], rtol=0, atol=1e-9, equal_nan=True), name
@@ -221,7 +221,7 @@ def test_bad_input_is_skipped_and_counted() -> None:
         m
         for m in sim.measurements
         if (m.stamp_ns if isinstance(m, GnssSample) else m.stamp_ns[-1]) < START + 3_000_000_000
-    ]  # noqa: E501
+    ]
     for m in good:
         fleet.push("v", m)
     t = START + 3_100_000_000
