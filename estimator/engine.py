@@ -1059,7 +1059,7 @@ class _FrontEnd:
         """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
 
         A complementary filter: at each fix with a pitch the tracked pitch moves toward it with
-        time constant ``pitch_tau_s`` and the pitch-gyro bias ``b_x`` with ``20·pitch_tau_s``
+        time constant ``pitch_tau_s`` and the pitch-gyro bias ``b_x`` with ``gyro_bias_tau_s``
         (product mode; paper mode takes the GNSS pitch as it is). Also fills ``g["vg"]`` with
         eq. (1), using the GNSS pitch or the tracked pitch if the receiver gives none.
         Returns shape ``(len(T),)``.
@@ -1110,7 +1110,7 @@ class _FrontEnd:
                         gain = max(1.0 / self.pitch_fixes, 1.0 - math.exp(-gap / tau))
                         th0 += gain * err
                         self.pitch_var = (1 - gain) ** 2 * self.pitch_var + gain**2 * sp2
-                        self.pitch_gyro_bias -= gap / (20.0 * tau * tau) * err
+                        self.pitch_gyro_bias -= gap / (tau * self.config.gyro_bias_tau_s) * err
                     self.pitch_known = True
                     self.pitch_fix_ns = tg
                 self.pitch_var_log.append((tg, self.pitch_var))
@@ -1133,7 +1133,7 @@ class _FrontEnd:
 
         Heading is integrated from the yaw rate (``ψ̇ = −(ωz − b_z)/cos θ``) and pulled to each
         GNSS heading with ``pitch_tau_s``; the bias integrates the disagreement with
-        ``20·pitch_tau_s``, as for the pitch. Returns shape ``(len(T),)``.
+        ``gyro_bias_tau_s``, as for the pitch. Returns shape ``(len(T),)``.
         """
         n = T.shape[0]
         out = np.full(n, self.yaw_gyro_bias)
@@ -1173,7 +1173,7 @@ class _FrontEnd:
                 err = math.remainder(h - psi, 2 * math.pi)
                 psi += (1.0 - math.exp(-gap / tau)) * err
                 # ψ̇ = −(ωz − b)/cosθ: a heading that falls behind means b is too small
-                self.yaw_gyro_bias += gap / (20.0 * tau * tau) * err
+                self.yaw_gyro_bias += gap / (tau * self.config.gyro_bias_tau_s) * err
             else:
                 psi = h
             self.yaw_fix_ns = tg

@@ -201,6 +201,9 @@ class MdsfConfig:
     pitch_tau_s : float
         Product mode: time constant with which the pitch (integrated ``ωx``) is pulled to the
         GNSS pitch at each fix [s]; the first fix sets it.
+    gyro_bias_tau_s : float
+        Product mode: time constant with which the pitch- and yaw-gyro biases are learnt
+        against the GNSS pitch and heading [s].
     pitch_std_rad : float
         Product mode: 1-sigma noise of the receiver's pitch (receivers do not report it); sets
         how much gravity leaks into the forward acceleration through the pitch error [rad].
@@ -233,6 +236,7 @@ class MdsfConfig:
     initial_speed_std_mps: float = 0.5
     pitch_tau_s: float = 1.0
     pitch_std_rad: float = 0.005
+    gyro_bias_tau_s: float = 5.0
     gnss_noise_adapt: float = 0.02
 
     def __post_init__(self) -> None:

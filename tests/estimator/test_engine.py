@@ -168,15 +168,18 @@ def test_paper_mode_outputs_keep_the_source_relations() -> None:
 
 
 def test_product_accuracy_on_the_straight_run() -> None:
-    sim, cfg = _sim("paper_straight", 2)
+    # The paper's straight run: 5 % GNSS speed noise at 5 Hz, a −1 m/s GNSS step, noisy IMU.
+    sim, cfg = _sim("paper_straight", 1)
     rows = _run(MdsfFleet(), {"v": (sim, cfg)})["v"]
     st_ = rows["stamp_ns"]
     moving = truth_at(sim.truth, st_, "v0_mps") > 0.5
-    ev = rows["vl_mps"][moving] - truth_at(sim.truth, st_[moving], "vl_mps")
-    es = rows["slip_left_pct"][moving] - truth_at(sim.truth, st_[moving], "slip_left_pct")
-    assert np.max(np.abs(ev)) / 3.0 < 0.025
-    assert np.sqrt(np.nanmean(es**2)) < 1.2
-    assert np.mean(np.isfinite(es)) > 0.98
+    for side in ("left", "right"):
+        v = "vl_mps" if side == "left" else "vr_mps"
+        ev = rows[v][moving] - truth_at(sim.truth, st_[moving], v)
+        es = rows[f"slip_{side}_pct"][moving] - truth_at(sim.truth, st_[moving], f"slip_{side}_pct")
+        assert np.max(np.abs(ev)) / 3.0 < 0.03  # traditional method: 4.13 %, source: 2.43 %
+        assert np.sqrt(np.nanmean(es**2)) < 1.0
+        assert np.mean(np.isfinite(es)) > 0.98
 
 
 def test_gnss_step_is_gated_and_counted() -> None:
