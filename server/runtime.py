@@ -98,6 +98,8 @@ class Runtime:
                 config = VehicleConfig()
             self._configs[rec.vehicle_id] = config
             self.pipeline.register_vehicle(rec.vehicle_id, config)
+            # counters are totals over the vehicle's life, not per process
+            self.pipeline.restore_counters(rec.vehicle_id, self._store.get_counters(rec.vehicle_id))
         self.pipeline.start()
         self.alert_engine.start()
         self._stop.clear()

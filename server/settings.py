@@ -83,6 +83,35 @@ class IngestSettings(BaseModel):
         20, ge=1, description="how often the pipeline steps estimators"
     )
     max_payload_bytes: int = Field(256 * 1024, ge=1024)
+    max_future_s: float = Field(
+        600.0,
+        gt=0,
+        description=(
+            "packets stamped further ahead of the server's wall clock are refused (clock_skew); "
+            "a GNSS-disciplined clock is never minutes ahead, a time-zone bug is >= 30 min"
+        ),
+    )
+    max_past_s: float = Field(
+        7 * 86_400.0,
+        gt=0,
+        description=(
+            "packets stamped further behind the wall clock are refused (clock_skew); a week "
+            "covers a vehicle forwarding data it buffered through a long connectivity outage"
+        ),
+    )
+    clock_jump_s: float = Field(
+        10.0,
+        gt=0,
+        le=3_600,
+        description=(
+            "sensor-time jump within a vehicle's stream, beyond what the wall time explains, "
+            "refused as clock_jump until confirmed (see reanchor_after_packets); also the "
+            "longest time one packet's samples may span"
+        ),
+    )
+    reanchor_after_packets: int = Field(
+        5, ge=2, le=1000, description="consistent clock-jump packets in a row that re-anchor"
+    )
     advance_step_ms: int = Field(
         200,
         ge=1,

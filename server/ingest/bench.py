@@ -32,7 +32,7 @@ from estimator.types import ESTIMATE_DTYPE
 
 __all__ = ["bench_codec", "bench_ingest", "main"]
 
-T0_NS = 1_763_700_000 * 10**9
+TICK_NS = 100_000_000
 
 
 def _encoded(n_packets: int | None = None) -> list[tuple[str, bytes]]:
@@ -40,7 +40,8 @@ def _encoded(n_packets: int | None = None) -> list[tuple[str, bytes]]:
     from estimator.sim import simulate
     from server.fleet_sim import encode_packet, packetize
 
-    run = simulate("field_work", seed=1, start_ns=T0_NS)
+    now_ns = time.time_ns()  # stamps near the wall clock: the pipeline refuses far ones
+    run = simulate("field_work", seed=1, start_ns=now_ns - now_ns % TICK_NS)
     packets = packetize(run.in_arrival_order(), run.start_ns)[:n_packets]
     seq: Counter[str] = Counter()
     out = []

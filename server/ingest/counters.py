@@ -9,7 +9,9 @@ the released horizon, dropped), ``duplicate`` (sequence number already seen) or
 
 ``lost_by_seq_gap`` counts sequence numbers that never arrived (a gap that is later filled by a
 reordered packet is taken back), so it is not part of the sum. ``seq_restarts`` counts streams
-whose sequence jumped far back (a vehicle reboot), also informational.
+whose sequence jumped far (a vehicle reboot), and ``clock_reanchors`` the times a vehicle's time
+base was started afresh (a confirmed clock jump, or data resuming after a long silence; see
+:mod:`server.ingest.reorder`), both informational.
 
 Only the pipeline thread writes; snapshots may be taken from any thread.
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import threading
 from collections import defaultdict
+from collections.abc import Mapping
 
 __all__ = ["NO_VEHICLE", "IngestCounters"]
 
@@ -25,9 +28,21 @@ __all__ = ["NO_VEHICLE", "IngestCounters"]
 NO_VEHICLE = ""
 
 
+_PLAIN = (
+    "received",
+    "accepted",
+    "late",
+    "duplicate",
+    "lost_by_seq_gap",
+    "seq_restarts",
+    "clock_reanchors",
+)
+
+
 class _VehicleCounts:
     __slots__ = (
         "accepted",
+        "clock_reanchors",
         "duplicate",
         "late",
         "lost_by_seq_gap",
@@ -43,6 +58,7 @@ class _VehicleCounts:
         self.duplicate = 0
         self.lost_by_seq_gap = 0
         self.seq_restarts = 0
+        self.clock_reanchors = 0
         self.rejected: dict[str, int] = defaultdict(int)
 
     def as_dict(self) -> dict[str, int]:
@@ -54,6 +70,7 @@ class _VehicleCounts:
             "rejected": sum(self.rejected.values()),
             "lost_by_seq_gap": self.lost_by_seq_gap,
             "seq_restarts": self.seq_restarts,
+            "clock_reanchors": self.clock_reanchors,
         }
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected_{reason}"] = n
@@ -96,17 +113,36 @@ class IngestCounters:
             c.received += 1
             c.duplicate += 1
 
-    def rejected(self, vehicle_id: str | None, reason: str) -> None:
-        """One packet refused for ``reason`` (a codec reason or ``unknown_vehicle``)."""
+    def rejected(self, vehicle_id: str | None, reason: str, lost_delta: int = 0) -> None:
+        """One packet refused for ``reason`` (a codec or pipeline reason)."""
         with self._lock:
             c = self._get(NO_VEHICLE if vehicle_id is None else vehicle_id)
             c.received += 1
             c.rejected[reason] += 1
+            c.lost_by_seq_gap += lost_delta
 
     def seq_restart(self, vehicle_id: str) -> None:
         """A stream's sequence number restarted (informational)."""
         with self._lock:
             self._get(vehicle_id).seq_restarts += 1
+
+    def clock_reanchor(self, vehicle_id: str) -> None:
+        """A vehicle's time base was started afresh (informational)."""
+        with self._lock:
+            self._get(vehicle_id).clock_reanchors += 1
+
+    def restore(self, vehicle_id: str, totals: Mapping[str, int]) -> None:
+        """Carry on from stored totals (a restarted server); adds to what is counted so far.
+
+        ``totals`` is a snapshot as :meth:`snapshot` gives it, so the invariant still holds.
+        """
+        with self._lock:
+            c = self._get(vehicle_id)
+            for name in _PLAIN:
+                setattr(c, name, getattr(c, name) + int(totals.get(name, 0)))
+            for key, value in totals.items():
+                if key.startswith("rejected_"):
+                    c.rejected[key.removeprefix("rejected_")] += int(value)
 
     def forget(self, vehicle_id: str) -> None:
         """Drop a vehicle's counters (after it is deleted)."""

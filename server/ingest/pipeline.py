@@ -21,6 +21,14 @@ Vehicles are registered with :meth:`Pipeline.register_vehicle` (REST, startup), 
 ``<prefix>/<id>/config``, or, with ``unknown_vehicle = "auto"``, on their first packet with a
 default :class:`VehicleConfig`. The last two call ``on_new_vehicle(vehicle_id, config)`` on the
 pipeline thread so the server can store the vehicle (keep it short: enqueue).
+
+Before a decoded packet reaches a reorder buffer it must lie within the server's wall clock
+(``IngestSettings.max_future_s`` ahead, ``max_past_s`` behind), else it is refused
+``clock_skew``; a packet whose samples span more than ``clock_jump_s`` is refused
+``clock_jump``. The reorder buffer refuses ``clock_jump`` packets and asks for a re-anchor
+(``docs/protocol.md`` §6): the vehicle's pending packets are fed and its estimators advanced to
+the end of the old time base, then restarted with the same config, and the packet starts the
+new one (counted ``clock_reanchors``).
 """
 
 from __future__ import annotations
@@ -44,7 +52,7 @@ from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber
 from server.protocol.codec import DecodeError, Packet
 from server.settings import Settings, UnknownVehiclePolicy
 
-__all__ = ["EstimateSink", "Pipeline"]
+__all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +63,13 @@ QUEUE_BURSTS = 64
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
 MAX_UNREGISTERED_COUNTED = 1000
+
+#: Refusal reasons the pipeline adds to the codec's (``rejected_<reason>`` counters).
+PIPELINE_REASONS: tuple[str, ...] = (
+    "clock_skew",  # stamps outside [wall clock - max_past_s, wall clock + max_future_s]
+    "clock_jump",  # sensor time jumped within the stream (not confirmed yet) or within a packet
+    "unknown_vehicle",  # no config and unknown_vehicle = "reject"
+)
 
 
 @runtime_checkable
@@ -80,6 +95,8 @@ class Pipeline:
         Called for vehicles registered by the pipeline itself (auto or Zenoh config).
     clock_ns : callable, optional
         Monotonic clock in ns (for the reorder buffers' idle release); injectable for tests.
+    wall_clock_ns : callable, optional
+        UTC clock in ns since the epoch (the ``clock_skew`` bounds); injectable for tests.
     """
 
     def __init__(
@@ -91,6 +108,7 @@ class Pipeline:
         on_new_vehicle: Callable[[str, VehicleConfig], None] | None = None,
         *,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        wall_clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self._settings = settings
         self._ingest = settings.ingest
@@ -98,6 +116,10 @@ class Pipeline:
         self._sinks = list(sinks)
         self._on_new_vehicle = on_new_vehicle
         self._clock = clock_ns
+        self._wall_clock = wall_clock_ns
+        self._max_future_ns = round(settings.ingest.max_future_s * 1e9)
+        self._max_past_ns = round(settings.ingest.max_past_s * 1e9)
+        self._clock_jump_ns = round(settings.ingest.clock_jump_s * 1e9)
         self._lateness_ns = settings.ingest.lateness_ms * 1_000_000
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
@@ -108,6 +130,7 @@ class Pipeline:
         self._control: deque[tuple[str, str, VehicleConfig | None]] = deque()
         self._counters = IngestCounters()
         self._buffers: dict[str, ReorderBuffer] = {}
+        self._configs: dict[str, VehicleConfig] = {}
         self._active: set[str] = set()
         self._advanced_ns: dict[str, int] = {}
         self._unregistered_counted: set[str] = set()
@@ -198,6 +221,10 @@ class Pipeline:
         """Forget a vehicle: estimators, reorder buffer and counters."""
         self._control.append(("remove", vehicle_id, None))
 
+    def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
+        """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`)."""
+        self._counters.restore(vehicle_id, totals)
+
     def counters_snapshot(self) -> dict[str, dict[str, int]]:
         """Per-vehicle ingest counters (see :mod:`server.ingest.counters`)."""
         return self._counters.snapshot()
@@ -261,6 +288,7 @@ class Pipeline:
             elif op == "remove":
                 self._registry.remove_vehicle(vid)
                 self._buffers.pop(vid, None)
+                self._configs.pop(vid, None)
                 self._active.discard(vid)
                 self._advanced_ns.pop(vid, None)
                 self._unregistered_counted.discard(vid)
@@ -279,6 +307,7 @@ class Pipeline:
         except UnknownEstimatorError as exc:
             log.warning("vehicle %s not registered: %s", vehicle_id, exc)
             return False
+        self._configs[vehicle_id] = config
         if notify and self._on_new_vehicle is not None:
             try:
                 self._on_new_vehicle(vehicle_id, config)
@@ -288,16 +317,26 @@ class Pipeline:
 
     def _handle(self, items: list[IngestItem], now: int) -> None:
         counters = self._counters
+        wall = self._wall_clock()
+        earliest, latest = wall - self._max_past_ns, wall + self._max_future_ns
         for item in items:
             if isinstance(item, DecodeError):
                 counters.rejected(self._counter_id(item.vehicle_id), item.reason)
                 continue
             vid = item.vehicle_id
+            if item.first_stamp_ns < earliest or item.last_stamp_ns > latest:
+                counters.rejected(self._counter_id(vid), "clock_skew")
+                continue
+            if item.last_stamp_ns - item.first_stamp_ns > self._clock_jump_ns:
+                # one batch spanning more than a clock jump is a jump inside the packet; the
+                # estimators would step through every tick of the span
+                counters.rejected(self._counter_id(vid), "clock_jump")
+                continue
             buf = self._buffers.get(vid)
             if buf is None:
                 if not self._admit(item):
                     continue
-                buf = self._buffers[vid] = ReorderBuffer(self._lateness_ns)
+                buf = self._buffers[vid] = self._new_buffer()
             offer = buf.offer(item, now)
             if offer.seq_restart:
                 counters.seq_restart(vid)
@@ -306,8 +345,50 @@ class Pipeline:
                 self._active.add(vid)
             elif offer.verdict is Verdict.LATE:
                 counters.late(vid, offer.lost_delta)
-            else:
+            elif offer.verdict is Verdict.DUPLICATE:
                 counters.duplicate(vid)
+            elif offer.verdict is Verdict.CLOCK_JUMP:
+                counters.rejected(vid, "clock_jump", offer.lost_delta)
+            else:
+                self._reanchor(vid, buf, item, now)
+                counters.clock_reanchor(vid)
+                counters.accepted(vid, offer.lost_delta)
+                self._active.add(vid)
+
+    def _new_buffer(self) -> ReorderBuffer:
+        return ReorderBuffer(
+            self._lateness_ns,
+            clock_jump_ns=self._clock_jump_ns,
+            reanchor_after=self._ingest.reanchor_after_packets,
+        )
+
+    def _reanchor(self, vid: str, buf: ReorderBuffer, packet: Packet, now: int) -> None:
+        """End ``vid``'s old time base (feed, advance, deliver), restart its estimators with the
+        same config, and start the new time base with ``packet``."""
+        registry = self._registry
+        packets, released = buf.release(now, flush=True)
+        for old in packets:
+            self._push(vid, old)
+        if released is not None and released != self._advanced_ns.get(vid):
+            try:
+                self._deliver(registry.advance({vid: released}))
+            except Exception:
+                self._stats["estimator_errors"] += 1
+                log.exception("estimator advance failed for %s", vid)
+        self._advanced_ns.pop(vid, None)
+        config = self._configs.get(vid)
+        if config is not None and registry.has_vehicle(vid):
+            registry.add_vehicle(vid, config)  # same config: a fresh state
+        log.info("vehicle %s: clock re-anchored at %d ns", vid, packet.first_stamp_ns)
+        buf.reanchor(packet, now)
+
+    def _push(self, vid: str, packet: Packet) -> None:
+        for m in packet.measurements:
+            try:
+                self._registry.push(vid, m)
+            except Exception:  # an estimator bug must not stop the fleet
+                self._stats["estimator_errors"] += 1
+                log.exception("estimator push failed for %s", vid)
 
     def _admit(self, packet: Packet) -> bool:
         """First packet of a vehicle without a buffer: known, auto-registered, or refused."""
@@ -342,12 +423,7 @@ class Pipeline:
             packets, released = buf.release(now, flush=flush)
             if registry.has_vehicle(vid):
                 for packet in packets:
-                    for m in packet.measurements:
-                        try:
-                            registry.push(vid, m)
-                        except Exception:  # an estimator bug must not stop the fleet
-                            self._stats["estimator_errors"] += 1
-                            log.exception("estimator push failed for %s", vid)
+                    self._push(vid, packet)
             last = self._advanced_ns.get(vid)
             if released is not None and (
                 last is None

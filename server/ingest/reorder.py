@@ -15,8 +15,20 @@ released too.
 A packet whose first sample time is at or before the horizon already released is **late**: it
 is counted and never fed (feeding it would break the estimators' time order). Sequence numbers
 are tracked per stream: an already-seen number is a **duplicate**; a jump forward counts the
-skipped numbers as **lost** (taken back if they arrive later); a jump back by more than
-:data:`SEQ_WINDOW` is taken as a restart of the vehicle's counter.
+skipped numbers as **lost** (taken back if they arrive later); a jump back, or forward, by more
+than :data:`SEQ_WINDOW` is taken as a restart of the vehicle's counter (a gap that large cannot be
+told from a reset or corrupted counter, so it is not counted lost).
+
+Clock jumps (when ``clock_jump_ns`` is given): sensor time is compared with the wall time that
+passed between arrivals. A packet whose first sample is more than ``clock_jump_ns`` ahead of the
+newest sample time, by more than the wall time since the previous arrival allows, or whose last
+sample is more than ``clock_jump_ns`` behind the released horizon, is a **clock jump**: refused,
+so one wild stamp cannot drag the horizon with it (which would make every later packet late).
+When ``reanchor_after`` such packets in a row agree with each other (within ``clock_jump_ns``)
+the vehicle's clock really moved: the last one is answered :attr:`Verdict.REANCHOR` and the
+caller starts the vehicle's time base afresh (:meth:`ReorderBuffer.reanchor`). A packet ahead by
+more than ``clock_jump_ns`` that the wall time does explain (the vehicle was quiet) is answered
+``REANCHOR`` at once: the estimators restart instead of stepping through the silence.
 
 Time is always an argument; nothing here reads a clock.
 """
@@ -47,6 +59,8 @@ class Verdict(Enum):
     ACCEPTED = "accepted"
     LATE = "late"
     DUPLICATE = "duplicate"
+    CLOCK_JUMP = "clock_jump"  # refused: sensor time jumped (not yet confirmed)
+    REANCHOR = "reanchor"  # not taken yet: flush, restart the estimators, then reanchor()
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +98,9 @@ class SeqTracker:
             return False, 0, False
         if seq > self._highest:
             step = seq - self._highest
+            if step > SEQ_WINDOW:  # also keeps the mask shift bounded
+                self._highest, self._first, self._mask = seq, seq, 1
+                return False, 0, True
             self._mask = ((self._mask << step) | 1) & ((1 << SEQ_WINDOW) - 1)
             self._highest = seq
             return False, step - 1, False
@@ -107,11 +124,31 @@ class ReorderBuffer:
         Reorder window in sensor time (``IngestSettings.lateness_ms``).
     idle_ns : int, optional
         Wall time without arrivals after which everything pending is released.
+    clock_jump_ns : int, optional
+        Sensor-time jump refused as a clock jump (see module docstring); None: no check.
+    reanchor_after : int
+        Consistent clock-jump packets in a row that move the vehicle's time base.
     """
 
-    def __init__(self, lateness_ns: int, idle_ns: int | None = None) -> None:
+    def __init__(
+        self,
+        lateness_ns: int,
+        idle_ns: int | None = None,
+        *,
+        clock_jump_ns: int | None = None,
+        reanchor_after: int = 5,
+    ) -> None:
         if lateness_ns < 0:
             raise ValueError("lateness_ns must be >= 0")
+        if clock_jump_ns is not None and clock_jump_ns <= 0:
+            raise ValueError("clock_jump_ns must be > 0")
+        if reanchor_after < 1:
+            raise ValueError("reanchor_after must be >= 1")
+        self._jump_ns = clock_jump_ns
+        self._reanchor_after = reanchor_after
+        self._jumps_in_row = 0
+        self._jump_newest_ns = 0
+        self._jump_arrival_ns = 0
         self._lateness_ns = lateness_ns
         self._idle_ns = max(2 * lateness_ns, IDLE_MIN_NS) if idle_ns is None else idle_ns
         self._heap: list[tuple[int, int, int, int, Packet]] = []
@@ -146,14 +183,62 @@ class ReorderBuffer:
         dup, lost_delta, restarted = tracker.observe(packet.seq)
         if dup:
             return Offer(Verdict.DUPLICATE)
+        if self._jump_ns is not None and self._newest_ns is not None:
+            jump = self._clock_jump(packet, now_ns, self._jump_ns)
+            if jump is not None:
+                return Offer(jump, lost_delta, restarted)
+        self._jumps_in_row = 0
         if self._released_ns is not None and packet.first_stamp_ns <= self._released_ns:
             return Offer(Verdict.LATE, lost_delta, restarted)
+        return Offer(self._take(packet, now_ns), lost_delta, restarted)
+
+    def _clock_jump(self, packet: Packet, now_ns: int, jump_ns: int) -> Verdict | None:
+        """CLOCK_JUMP or REANCHOR when ``packet`` leaves the vehicle's time line, else None."""
+        assert self._newest_ns is not None
+        ahead_ns = packet.first_stamp_ns - self._newest_ns
+        quiet_ns = max(0, now_ns - self._last_arrival_ns)
+        if ahead_ns > jump_ns and ahead_ns <= jump_ns + quiet_ns:
+            self._jumps_in_row = 0
+            return Verdict.REANCHOR  # the vehicle was quiet that long: a gap, not a jump
+        behind = (
+            self._released_ns is not None and packet.last_stamp_ns < self._released_ns - jump_ns
+        )
+        if ahead_ns <= jump_ns and not behind:
+            return None
+        agrees = self._jumps_in_row > 0 and abs(
+            packet.first_stamp_ns - self._jump_newest_ns
+        ) <= jump_ns + max(0, now_ns - self._jump_arrival_ns)
+        if agrees:
+            self._jumps_in_row += 1
+            self._jump_newest_ns = max(self._jump_newest_ns, packet.last_stamp_ns)
+        else:
+            self._jumps_in_row = 1
+            self._jump_newest_ns = packet.last_stamp_ns
+        self._jump_arrival_ns = now_ns
+        if self._jumps_in_row >= self._reanchor_after:
+            self._jumps_in_row = 0
+            return Verdict.REANCHOR
+        return Verdict.CLOCK_JUMP
+
+    def reanchor(self, packet: Packet, now_ns: int) -> None:
+        """Start a new time base with ``packet`` (after a REANCHOR verdict and a flush).
+
+        Pending packets and the released horizon are forgotten (flush them first); sequence
+        tracking carries on.
+        """
+        self._heap.clear()
+        self._newest_ns = None
+        self._released_ns = None
+        self._jumps_in_row = 0
+        self._take(packet, now_ns)
+
+    def _take(self, packet: Packet, now_ns: int) -> Verdict:
         self._last_arrival_ns = now_ns
         if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
             self._newest_ns = packet.last_stamp_ns
         key = (packet.first_stamp_ns, _STREAM_ORDER[packet.stream], packet.seq, next(self._tie))
         heapq.heappush(self._heap, (*key, packet))
-        return Offer(Verdict.ACCEPTED, lost_delta, restarted)
+        return Verdict.ACCEPTED
 
     def is_idle(self, now_ns: int) -> bool:
         """No packet arrived for the idle time (the vehicle stopped sending, for now)."""

@@ -33,6 +33,7 @@ def test_counters_add_up() -> None:
         "rejected": 3,
         "lost_by_seq_gap": 2,
         "seq_restarts": 1,
+        "clock_reanchors": 0,
         "rejected_non_finite": 2,
         "rejected_unknown_vehicle": 1,
     }
@@ -64,3 +65,18 @@ def test_snapshot_is_consistent_under_concurrent_writes() -> None:
     finally:
         stop.set()
         t.join()
+
+
+def test_restore_carries_on_from_stored_totals() -> None:
+    before = IngestCounters()
+    before.accepted("a", lost_delta=2)
+    before.late("a")
+    before.rejected("a", "clock_jump")
+    stored = before.snapshot()["a"]
+    after = IngestCounters()  # a restarted server
+    after.restore("a", stored)
+    after.accepted("a")
+    c = after.snapshot()["a"]
+    assert (c["received"], c["accepted"], c["late"], c["rejected_clock_jump"]) == (4, 2, 1, 1)
+    assert c["lost_by_seq_gap"] == 2
+    assert c["received"] == c["accepted"] + c["late"] + c["duplicate"] + c["rejected"]

@@ -66,6 +66,7 @@ def make(
         registry,
         [*(sinks or []), sink],  # type: ignore[list-item]
         on_new,
+        wall_clock_ns=lambda: T0,  # the packets' stamps are near T0
     )
     return pipe, fleet, sink
 

@@ -84,7 +84,13 @@ def test_burst_is_not_lost_with_block_congestion_control() -> None:
             zenoh=zs,
             ingest=IngestSettings.model_validate({"lateness_ms": 200, "process_interval_ms": 10}),
         )
-        pipe = Pipeline(settings, router, EstimatorRegistry({"mdsf": lambda: fleet}), [sink])
+        pipe = Pipeline(
+            settings,
+            router,
+            EstimatorRegistry({"mdsf": lambda: fleet}),
+            [sink],
+            wall_clock_ns=lambda: T0,
+        )
         pipe.start()
         try:
             with client_session(endpoint) as client:
@@ -151,6 +157,7 @@ def test_config_key_registers_vehicle() -> None:
             EstimatorRegistry({"mdsf": lambda: fleet}),
             [],
             lambda v, c: stored.append((v, c)),
+            wall_clock_ns=lambda: T0,
         )
         pipe.start()
         try:
@@ -175,7 +182,12 @@ def test_config_key_registers_vehicle() -> None:
 def test_vehicle_filter_selects_vehicles() -> None:
     fleet = RecordingFleet()
     with embedded_router(vehicle_filter="keep-$*") as (router, zs, endpoint):
-        pipe = Pipeline(Settings(zenoh=zs), router, EstimatorRegistry({"mdsf": lambda: fleet}))
+        pipe = Pipeline(
+            Settings(zenoh=zs),
+            router,
+            EstimatorRegistry({"mdsf": lambda: fleet}),
+            wall_clock_ns=lambda: T0,
+        )
         pipe.start()
         try:
             with client_session(endpoint) as client:
