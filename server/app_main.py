@@ -85,6 +85,8 @@ def demo(
     from server.fleet_sim import FleetSim
 
     settings.api.require_auth = False
+    # one simulator session publishes for every vehicle: it cannot log in as each of them
+    settings.zenoh.credentials_file = None
     if settings.storage.url is not None:
         log.info("demo uses the configured PostgreSQL store")
     if settings.api.host not in ("127.0.0.1", "localhost", "::1"):
@@ -99,7 +101,7 @@ def demo(
     sim.start()
     base = f"http://{settings.api.host}:{server.port}"
     print(
-        "\nSlipfleet demo — no access tokens, loopback only\n"
+        "\nSlipfleet demo — no access tokens, no vehicle credentials, loopback only\n"
         f"  dashboard  {base}/\n"
         f"  API docs   {base}/docs\n"
         f"  vehicles   {base}/api/v1/vehicles\n"

@@ -9,6 +9,8 @@ Subcommands::
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    {accuracy,storage,series,live,viewer,throughput} [--json PATH]
+    slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
+    slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
 Settings come from the environment (``SLIPFLEET_…``) and an optional TOML file; flags override
 both. Heavy modules are imported inside each subcommand so ``--help`` stays instant.
@@ -108,6 +110,74 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_token(args: argparse.Namespace) -> int:
+    import time
+
+    from server.storage import open_store
+    from server.timeparse import format_ns
+    from server.tokens import issue_token
+
+    settings = _settings(args)
+    store = open_store(settings.storage)
+    try:
+        if args.token_command == "create":
+            token, record = issue_token(store, args.name, args.role, time.time_ns())
+            print(
+                f"created token {record.id} ({record.name}, {record.role}). It is shown only "
+                "this once; keep it secret:",
+                file=sys.stderr,
+            )
+            print(token)
+            return 0
+        if args.token_command == "list":
+            print(f"{'id':>5}  {'role':<8}  {'created':<20}  {'last used':<20}  status    name")
+            for r in store.list_tokens():
+                used = format_ns(r.last_used_ns)[:19] + "Z" if r.last_used_ns else "never"
+                status = "revoked" if r.revoked else "valid"
+                print(
+                    f"{r.id:>5}  {r.role:<8}  {format_ns(r.created_ns)[:19] + 'Z':<20}  "
+                    f"{used:<20}  {status:<8}  {r.name}"
+                )
+            return 0
+        revoked = store.revoke_token(args.id, time.time_ns())
+        if revoked is None:
+            print(f"no token with id {args.id}", file=sys.stderr)
+            return 1
+        print(f"revoked token {revoked.id} ({revoked.name}, {revoked.role})")
+        return 0
+    finally:
+        store.close()
+
+
+def _cmd_zenoh_router_config(args: argparse.Namespace) -> int:
+    import json
+
+    from server.ingest.zenoh_session import router_config_dict
+
+    settings = _settings(args)
+    text = json.dumps(router_config_dict(settings.zenoh), indent=2) + "\n"
+    if args.out is None:
+        sys.stdout.write(text)
+    else:
+        args.out.write_text(text)
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def _token_name(text: str) -> str:
+    name = text.strip()
+    if not name or len(name) > 100 or any(ord(c) < 32 or ord(c) == 127 for c in name):
+        raise argparse.ArgumentTypeError("1-100 printable characters")
+    return name
+
+
+def _token_id(text: str) -> int:
+    value = int(text)
+    if not 1 <= value < 2**63:
+        raise argparse.ArgumentTypeError("a token id from `slipfleet token list`")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="slipfleet", description="Per-wheel slip telemetry server.")
     p.add_argument("--config", type=Path, default=None, help="TOML settings file")
@@ -158,6 +228,23 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("which", choices=BENCHES)
     b.add_argument("--json", type=Path, default=None, help="also write the numbers as JSON")
     b.set_defaults(func=_cmd_bench)
+
+    t = sub.add_parser("token", help="REST access tokens in the configured store")
+    tsub = t.add_subparsers(dest="token_command", required=True)
+    tc = tsub.add_parser("create", help="create a token and print it (once)")
+    tc.add_argument("--name", required=True, type=_token_name, help="whom or what it is for")
+    tc.add_argument("--role", required=True, choices=("viewer", "operator", "admin"))
+    tsub.add_parser("list", help="list tokens (never the tokens themselves)")
+    tr = tsub.add_parser("revoke", help="revoke a token by id")
+    tr.add_argument("id", type=_token_id)
+    t.set_defaults(func=_cmd_token)
+
+    z = sub.add_parser(
+        "zenoh-router-config",
+        help="JSON5 config for a standalone zenohd: vehicle credentials and ACL from settings",
+    )
+    z.add_argument("--out", type=Path, default=None, help="file to write (default: stdout)")
+    z.set_defaults(func=_cmd_zenoh_router_config)
     return p
 
 

@@ -54,8 +54,37 @@ class ZenohSettings(BaseModel):
     vehicle_filter: str = Field(
         "*", description="key-expression chunk selecting this server's vehicles"
     )
-    username: str | None = None
-    password: SecretStr | None = None
+    username: str | None = Field(
+        None,
+        description=(
+            "client mode: the name this server presents to a secured router; embedded router: "
+            "the credentials-file entry that is the server itself (never given vehicle rules)"
+        ),
+    )
+    password: SecretStr | None = Field(
+        None, description="client mode: the password going with zenoh.username"
+    )
+    credentials_file: Path | None = Field(
+        None,
+        description=(
+            "embedded router: file of 'user:password' lines, one per vehicle (user = vehicle "
+            "id); set, every session must authenticate with one of them"
+        ),
+    )
+    acl: bool = Field(
+        True,
+        description=(
+            "embedded router with credentials_file: each vehicle may publish only under "
+            "<key_prefix>/<its id>/**, everything else is denied"
+        ),
+    )
+    allow_anonymous: bool = Field(
+        False,
+        description=(
+            "let an embedded router listen beyond loopback without credentials_file "
+            "(anyone reaching the port may publish as any vehicle)"
+        ),
+    )
     channel_capacity: int = Field(65536, ge=16, description="bounded FIFO per subscriber, samples")
 
 
@@ -130,7 +159,13 @@ class ApiSettings(BaseModel):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     cors_origins: list[str] = Field(default_factory=list)
-    require_auth: bool = True
+    require_auth: bool = Field(
+        True,
+        description=(
+            "every /api/v1 route except /health needs a bearer token with the route's role "
+            "(viewer < operator < admin); off only for the loopback demo and tests"
+        ),
+    )
 
 
 class ViewerSettings(BaseModel):

@@ -5,6 +5,12 @@ the runtime (Zenoh session, store, estimators, writer — :class:`server.runtime
 runtime is passed in) on start-up and closes it on shut-down. Routers are listed once in
 :data:`API_ROUTERS`; all are mounted under ``/api/v1``; OpenAPI is at ``/openapi.json`` and
 ``/docs``.
+
+Access: every router except those in :data:`PUBLIC_ROUTERS` (``/health``, for load balancers)
+is mounted behind ``require_role("viewer")``, so a new router is closed until it says otherwise;
+routes that change things ask for more themselves (vehicle config PUT: operator, DELETE and
+``/tokens``: admin). ``/metrics`` is not public: it names every vehicle and its traffic
+(Prometheus sends a viewer token, ``authorization: {credentials_file: …}``).
 """
 
 from __future__ import annotations
@@ -12,19 +18,28 @@ from __future__ import annotations
 import importlib
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
-from typing import cast
+from typing import Any, cast
 
-from fastapi import APIRouter, FastAPI
+from fastapi import APIRouter, Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
 from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.api.deps import ApiLimits, ApiRuntime
-from server.api.errors import error_response, install_error_handlers
-from server.api.routes import alerts, health, live, metrics, reports, series, vehicles
+from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_role
+from server.api.errors import ErrorBody, error_response, install_error_handlers
+from server.api.routes import alerts, health, live, metrics, reports, series, tokens, vehicles
 from server.settings import Settings
+from server.tokens import Role
 
-__all__ = ["API_PREFIX", "API_ROUTERS", "BodySizeLimit", "create_app"]
+__all__ = [
+    "API_PREFIX",
+    "API_ROUTERS",
+    "PUBLIC_ROUTERS",
+    "BodySizeLimit",
+    "WebSocketBearerProtocol",
+    "create_app",
+]
 
 API_PREFIX = "/api/v1"
 
@@ -37,7 +52,11 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     live.router,
     health.router,
     metrics.router,
+    tokens.router,
 )
+
+#: Routers anyone may call without a token.
+PUBLIC_ROUTERS: tuple[APIRouter, ...] = (health.router,)
 
 
 class BodySizeLimit:
@@ -90,6 +109,77 @@ class BodySizeLimit:
             413, "payload_too_large", f"request body larger than {self.max_bytes} bytes"
         )
         await response(scope, receive, send)
+
+
+class WebSocketBearerProtocol:
+    """ASGI middleware: a WebSocket client that sends its token as a subprotocol
+    (``[WS_BEARER_PROTOCOL, <token>]``, see :mod:`server.api.deps`) gets ``WS_BEARER_PROTOCOL``
+    back as the accepted subprotocol, as browsers require when they offered any. Never the
+    token; a subprotocol the handler picked itself is left alone."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "websocket" or WS_BEARER_PROTOCOL not in (
+            scope.get("subprotocols") or ()
+        ):
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_protocol(message: Message) -> None:
+            if message["type"] == "websocket.accept" and not message.get("subprotocol"):
+                message = {**message, "subprotocol": WS_BEARER_PROTOCOL}
+            await send(message)
+
+        await self.app(scope, receive, send_with_protocol)
+
+
+def _openapi_with_bearer(app: FastAPI) -> dict[str, Any]:
+    """The OpenAPI document, with a bearer scheme (and its 401/403 answers) on every operation
+    that needs a role."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(
+        title=app.title,
+        version=app.version,
+        summary=app.summary,
+        routes=app.routes,
+    )
+    schema.setdefault("components", {})["securitySchemes"] = {
+        "bearer": {
+            "type": "http",
+            "scheme": "bearer",
+            "description": "An access token (`slipfleet token create`); roles: viewer < "
+            "operator < admin.",
+        }
+    }
+    schemas = schema["components"].setdefault("schemas", {})
+    schemas.setdefault("ErrorBody", ErrorBody.model_json_schema())
+    refused = {
+        "401": "no token, or an unknown or revoked one",
+        "403": "the token's role is too low for this operation",
+    }
+    public = {f"{API_PREFIX}{r.prefix}" for r in PUBLIC_ROUTERS}
+    for path, ops in schema.get("paths", {}).items():
+        if path in public:
+            continue
+        for op in ops.values():
+            op["security"] = [{"bearer": []}]
+            for code, why in refused.items():
+                op.setdefault("responses", {}).setdefault(
+                    code,
+                    {
+                        "description": why,
+                        "content": {
+                            "application/json": {
+                                "schema": {"$ref": "#/components/schemas/ErrorBody"}
+                            }
+                        },
+                    },
+                )
+    app.openapi_schema = schema
+    return schema
 
 
 def _operation_id(route: APIRoute) -> str:
@@ -150,16 +240,20 @@ def create_app(
     app.state.runtime = None
     install_error_handlers(app)
     included: set[int] = set()
+    public = {id(r) for r in PUBLIC_ROUTERS}
     for router in routers:
         if id(router) not in included:  # each router once, even if listed twice
             included.add(id(router))
-            app.include_router(router, prefix=API_PREFIX)
+            guard = [] if id(router) in public else [Depends(require_role(Role.VIEWER))]
+            app.include_router(router, prefix=API_PREFIX, dependencies=guard)
+    app.openapi = lambda: _openapi_with_bearer(app)  # type: ignore[method-assign]
     app.add_middleware(BodySizeLimit, max_bytes=app.state.limits.max_body_bytes)
+    app.add_middleware(WebSocketBearerProtocol)
     if settings.api.cors_origins:  # outermost, so refusals (413) carry CORS headers too
         app.add_middleware(
             CORSMiddleware,
             allow_origins=list(settings.api.cors_origins),
-            allow_methods=["GET", "PUT", "DELETE"],
+            allow_methods=["GET", "POST", "PUT", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
         )
     return app

@@ -1,5 +1,8 @@
 """Dependencies of the route handlers: the runtime, its store, limits, time ranges, roles.
 
+Authorisation is :func:`require_role` and nothing else: it resolves the caller's bearer token
+(hashed, looked up in the store) and compares roles.
+
 What the API needs from the server runtime is :class:`ApiRuntime` (required) plus optional hooks
 it calls when present (:class:`VehicleConfigListener`, :class:`MetricsSource`). Tests pass any
 object that fits, e.g. one holding a real SQLite store and no Zenoh session.
@@ -8,24 +11,33 @@ object that fits, e.g. one holding a real SQLite store and no Zenoh session.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Mapping
+import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, Protocol
 
-from fastapi import Depends, Query, Request
+from fastapi import Depends, Query, Request, WebSocketException, status
+from starlette.requests import HTTPConnection
 
 from estimator.config import VehicleConfig
-from server.api.errors import Forbidden, InvalidTime, NotFound, RangeTooLarge
+from server.api.errors import Forbidden, InvalidTime, NotFound, RangeTooLarge, Unauthorized
 from server.api.prometheus import MetricFamily
 from server.settings import Settings
-from server.storage.base import Store, VehicleRecord
+from server.storage.base import StorageError, Store, VehicleRecord
 from server.timeparse import TimeParseError, parse_time_ns
+from server.tokens import Role, hash_token, is_well_formed
 
 __all__ = [
+    "ANONYMOUS_ADMIN",
+    "WS_BEARER_PROTOCOL",
+    "WS_TOKEN_QUERY",
     "ApiLimits",
     "ApiRuntime",
     "LimitsDep",
     "MetricsSource",
+    "Principal",
+    "PrincipalDep",
+    "RoleRequirement",
     "RuntimeDep",
     "SettingsDep",
     "StoreDep",
@@ -225,22 +237,114 @@ def _time_range(
 TimeRangeDep = Annotated[TimeRange, Depends(_time_range)]
 
 
-def require_role(role: str) -> Callable[..., None]:
+@dataclass(frozen=True, slots=True)
+class Principal:
+    """Who is calling: the token's name and role (``token_id`` None while auth is off)."""
+
+    name: str
+    role: Role
+    token_id: int | None
+
+
+#: Who every caller is while ``api.require_auth`` is off (the loopback demo, some tests).
+ANONYMOUS_ADMIN = Principal("anonymous (require_auth off)", Role.ADMIN, None)
+
+#: WebSocket subprotocol that marks the next offered protocol as the bearer token.
+WS_BEARER_PROTOCOL = "slipfleet.bearer"
+#: Query parameter a WebSocket may carry its token in (appears in access logs: prefer the
+#: subprotocol).
+WS_TOKEN_QUERY = "token"
+#: ``last_used_ns`` is written at most this often per token (spares the database a write per
+#: request).
+TOKEN_TOUCH_INTERVAL_NS = 60 * _S
+
+
+def _credential(conn: HTTPConnection) -> str | None:
+    """The bearer token the caller presented, or None.
+
+    HTTP: ``Authorization: Bearer <token>`` only. WebSocket (browsers cannot set headers):
+    subprotocols ``[WS_BEARER_PROTOCOL, <token>]`` or the ``token`` query parameter.
+    """
+    header = conn.headers.get("authorization")
+    if header is not None:
+        scheme, _, value = header.partition(" ")
+        return value.strip() if scheme.lower() == "bearer" and value.strip() else ""
+    if conn.scope["type"] != "websocket":
+        return None
+    offered = [str(p) for p in conn.scope.get("subprotocols") or ()]
+    if WS_BEARER_PROTOCOL in offered:
+        at = offered.index(WS_BEARER_PROTOCOL)
+        return offered[at + 1] if at + 1 < len(offered) else ""
+    return conn.query_params.get(WS_TOKEN_QUERY)
+
+
+def _refuse(conn: HTTPConnection, status_code: int, reason: str) -> Exception:
+    """The error ending the request: JSON 401/403 over HTTP, close code 1008 on a WebSocket
+    (the handshake then fails with HTTP 403, which is all a browser can see)."""
+    if conn.scope["type"] == "websocket":
+        return WebSocketException(code=status.WS_1008_POLICY_VIOLATION, reason=reason)
+    if status_code == 401:
+        return Unauthorized(reason, headers={"WWW-Authenticate": 'Bearer realm="slipfleet"'})
+    return Forbidden(reason)
+
+
+def _principal(conn: HTTPConnection) -> Principal:
+    """Resolve the caller's token (once per request; every role check shares the result)."""
+    settings: Settings = conn.app.state.settings
+    if not settings.api.require_auth:
+        return ANONYMOUS_ADMIN
+    token = _credential(conn)
+    if token is None:
+        raise _refuse(conn, 401, "an access token is required: Authorization: Bearer <token>")
+    if not is_well_formed(token):
+        raise _refuse(conn, 401, "invalid or revoked access token")
+    runtime: ApiRuntime | None = getattr(conn.app.state, "runtime", None)
+    if runtime is None:
+        raise RuntimeError("the app's runtime is not open")
+    store = runtime.store
+    record = store.get_token(hash_token(token))
+    if record is None or record.revoked:
+        raise _refuse(conn, 401, "invalid or revoked access token")
+    now_ns = time.time_ns()
+    if record.last_used_ns is None or now_ns - record.last_used_ns >= TOKEN_TOUCH_INTERVAL_NS:
+        try:
+            store.touch_token(record.id, now_ns)
+        except StorageError as exc:  # bookkeeping only: never refuse a valid token for it
+            _log.warning("could not record the use of token %d: %s", record.id, exc)
+    return Principal(record.name, Role(record.role), record.id)
+
+
+PrincipalDep = Annotated[Principal, Depends(_principal)]
+"""The authenticated caller (no role check: use :func:`require_role`)."""
+
+
+class RoleRequirement:
+    """A dependency admitting callers whose token holds ``role`` or a higher one."""
+
+    def __init__(self, role: Role | str) -> None:
+        self.role = Role(role)
+
+    def __call__(self, conn: HTTPConnection, principal: PrincipalDep) -> Principal:
+        if not principal.role.admits(self.role):
+            raise _refuse(
+                conn,
+                403,
+                f"this operation needs the {self.role.value!r} role; the token "
+                f"{principal.name!r} has {principal.role.value!r}",
+            )
+        return principal
+
+    def __repr__(self) -> str:
+        return f"require_role({self.role.value!r})"
+
+
+def require_role(role: Role | str) -> RoleRequirement:
     """Dependency that admits only callers holding ``role``: the single point of authorisation.
 
-    Access tokens are not implemented yet. With ``settings.api.require_auth`` False every caller
-    is admitted. With it True (the default) nobody can be shown to hold a role, so the route
-    answers 403 instead of pretending to check: protected routes stay closed until a token system
-    replaces the body of this function.
+    With ``settings.api.require_auth`` on (the default) the caller must present a token
+    (``Authorization: Bearer …``; WebSockets: see :func:`_credential`) that the store knows and
+    that is not revoked, else 401; a token whose role is below ``role`` gets 403. Roles:
+    ``viewer`` < ``operator`` < ``admin``. With ``require_auth`` off every caller is admitted.
+    Works for HTTP routes and WebSocket routes alike.
     """
-
-    def check(settings: SettingsDep) -> None:
-        if not settings.api.require_auth:
-            return
-        raise Forbidden(
-            f"this operation needs the {role!r} role; access tokens are not available yet, so "
-            "it is refused while api.require_auth is on"
-        )
-
-    check.__name__ = f"require_role_{role}"
-    return check
+    return RoleRequirement(role)

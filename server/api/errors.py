@@ -72,10 +72,17 @@ class ApiError(Exception):
     status_code: ClassVar[int] = 500
     code: ClassVar[str] = "internal"
 
-    def __init__(self, reason: str, *, extra: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        reason: str,
+        *,
+        extra: dict[str, Any] | None = None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
         super().__init__(reason)
         self.reason = reason
         self.extra = extra or {}
+        self.headers = headers or {}
 
 
 class BadRequest(ApiError):
@@ -187,7 +194,9 @@ def install_error_handlers(app: FastAPI) -> None:
         assert isinstance(exc, ApiError)
         if exc.status_code >= 500:
             _log.warning("%s: %s", exc.code, exc.reason)
-        return error_response(exc.status_code, exc.code, exc.reason, exc.extra)
+        response = error_response(exc.status_code, exc.code, exc.reason, exc.extra)
+        response.headers.update(exc.headers)
+        return response
 
     async def on_validation(_: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)

@@ -12,7 +12,7 @@ Typical use in the app lifespan::
 from __future__ import annotations
 
 from server.settings import StorageSettings
-from server.storage.base import StorageDataError, StorageError, Store, VehicleRecord
+from server.storage.base import StorageDataError, StorageError, Store, TokenRecord, VehicleRecord
 from server.storage.writer import StoreWriter, WriterStats
 
 __all__ = [
@@ -20,6 +20,7 @@ __all__ = [
     "StorageError",
     "Store",
     "StoreWriter",
+    "TokenRecord",
     "VehicleRecord",
     "WriterStats",
     "open_store",

@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["StorageDataError", "StorageError", "Store", "VehicleRecord"]
+__all__ = ["StorageDataError", "StorageError", "Store", "TokenRecord", "VehicleRecord"]
 
 
 class StorageError(RuntimeError):
@@ -34,6 +34,26 @@ class VehicleRecord:
     config: dict[str, Any]  # VehicleConfig.to_dict()
     created_ns: int
     updated_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class TokenRecord:
+    """A REST access token as stored: never the token itself, only its hash (not shown here).
+
+    ``role`` is ``"viewer"``, ``"operator"`` or ``"admin"`` (:class:`server.tokens.Role`);
+    ``last_used_ns`` and ``revoked_ns`` are None while the token was never used / not revoked.
+    """
+
+    id: int
+    name: str
+    role: str
+    created_ns: int
+    last_used_ns: int | None
+    revoked_ns: int | None
+
+    @property
+    def revoked(self) -> bool:
+        return self.revoked_ns is not None
 
 
 class Store(Protocol):
@@ -87,3 +107,19 @@ class Store(Protocol):
         """Upsert per-vehicle counter totals: ``{vehicle_id: {counter_name: total}}``."""
 
     def get_counters(self, vehicle_id: str) -> dict[str, int]: ...
+
+    # access tokens (see server.tokens; the store keeps the token's SHA-256 only)
+    def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:
+        """Store a new token by its hash; raises :class:`StorageDataError` on a duplicate hash."""
+
+    def get_token(self, token_sha256: str) -> TokenRecord | None:
+        """The token with this hash (revoked ones too), or None."""
+
+    def list_tokens(self) -> list[TokenRecord]:
+        """Every token, revoked ones included, by id."""
+
+    def touch_token(self, token_id: int, now_ns: int) -> None:
+        """Record a use of the token (sets ``last_used_ns``)."""
+
+    def revoke_token(self, token_id: int, now_ns: int) -> TokenRecord | None:
+        """Revoke the token (a second revoke keeps the first time); None if there is none."""

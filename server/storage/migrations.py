@@ -12,7 +12,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 2):
+Schema (version 4):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -27,6 +27,10 @@ Schema (version 2):
     rejected (never registered) can be kept too.
 ``raw_packets`` (version 2)
     received payloads when ``StorageSettings.store_raw_packets`` is on.
+``api_tokens`` (version 4)
+    REST bearer tokens: ``id``, ``name``, ``role`` (``viewer`` / ``operator`` / ``admin``),
+    ``token_sha256`` (hex SHA-256 of the token, unique; the token itself is never stored),
+    ``created_ns``, ``last_used_ns`` and ``revoked_ns`` (NULL while never used / not revoked).
 """
 
 from __future__ import annotations
@@ -198,10 +202,39 @@ _V2_POSTGRESQL = (
 # reads columns through binary COPY and needs no such copy.
 _V3_SQLITE = ("ALTER TABLE estimates ADD COLUMN packed BLOB",)
 
+_V4_SQLITE = (
+    """
+    CREATE TABLE api_tokens (
+        id INTEGER PRIMARY KEY,
+        name TEXT NOT NULL,
+        role TEXT NOT NULL CHECK (role IN ('viewer', 'operator', 'admin')),
+        token_sha256 TEXT NOT NULL UNIQUE,
+        created_ns INTEGER NOT NULL,
+        last_used_ns INTEGER,
+        revoked_ns INTEGER
+    )
+    """,
+)
+
+_V4_POSTGRESQL = (
+    """
+    CREATE TABLE api_tokens (
+        id bigint GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+        name text NOT NULL,
+        role text NOT NULL CHECK (role IN ('viewer', 'operator', 'admin')),
+        token_sha256 text NOT NULL UNIQUE,
+        created_ns bigint NOT NULL,
+        last_used_ns bigint,
+        revoked_ns bigint
+    )
+    """,
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
     Migration(3, "packed estimate rows (SQLite)", _V3_SQLITE, ()),
+    Migration(4, "API access tokens (hashed)", _V4_SQLITE, _V4_POSTGRESQL),
 )
 
 _VERSION_TABLE = {

@@ -33,7 +33,7 @@ from server.storage._columns import (
     fields_dtype,
     select_fields,
 )
-from server.storage.base import StorageDataError, StorageError, VehicleRecord
+from server.storage.base import StorageDataError, StorageError, TokenRecord, VehicleRecord
 
 __all__ = ["PostgresStore"]
 
@@ -41,6 +41,7 @@ _COPY_SIGNATURE = b"PGCOPY\n\xff\r\n\x00"
 _COPY_HEADER = _COPY_SIGNATURE + b"\x00\x00\x00\x00" + b"\x00\x00\x00\x00"  # flags, ext length
 _COPY_TRAILER = b"\xff\xff"
 _WIDTH = {"f8": 8, "i8": 8, "i4": 4}
+_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
 
 
 def _copy_dtype(columns: Sequence[tuple[str, str]]) -> np.dtype:
@@ -364,6 +365,55 @@ class PostgresStore:
             (vehicle_id,),
         )
         return {str(name): int(total) for name, total in rows}
+
+    # ------------------------------------------------------------------ access tokens
+
+    @staticmethod
+    def _token(row: Sequence[Any]) -> TokenRecord:
+        return TokenRecord(
+            id=int(row[0]),
+            name=str(row[1]),
+            role=str(row[2]),
+            created_ns=int(row[3]),
+            last_used_ns=None if row[4] is None else int(row[4]),
+            revoked_ns=None if row[5] is None else int(row[5]),
+        )
+
+    def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:
+        with self._pool.connection() as conn, conn.transaction():
+            row = conn.execute(
+                "INSERT INTO api_tokens (name, role, token_sha256, created_ns) "
+                f"VALUES (%s, %s, %s, %s) RETURNING {_TOKEN_COLUMNS}",
+                (name, role, token_sha256, int(now_ns)),
+            ).fetchone()
+        assert row is not None
+        return self._token(row)
+
+    def get_token(self, token_sha256: str) -> TokenRecord | None:
+        rows = self._one_row_query(
+            f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE token_sha256 = %s", (token_sha256,)
+        )
+        return self._token(rows[0]) if rows else None
+
+    def list_tokens(self) -> list[TokenRecord]:
+        rows = self._one_row_query(f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY id", ())
+        return [self._token(r) for r in rows]
+
+    def touch_token(self, token_id: int, now_ns: int) -> None:
+        with self._pool.connection() as conn, conn.transaction():
+            conn.execute(
+                "UPDATE api_tokens SET last_used_ns = %s WHERE id = %s",
+                (int(now_ns), int(token_id)),
+            )
+
+    def revoke_token(self, token_id: int, now_ns: int) -> TokenRecord | None:
+        with self._pool.connection() as conn, conn.transaction():
+            row = conn.execute(
+                "UPDATE api_tokens SET revoked_ns = coalesce(revoked_ns, %s) WHERE id = %s "
+                f"RETURNING {_TOKEN_COLUMNS}",
+                (int(now_ns), int(token_id)),
+            ).fetchone()
+        return self._token(row) if row else None
 
     # ------------------------------------------------------------------ raw packets
 

@@ -50,12 +50,13 @@ from server.storage._columns import (
     fields_dtype,
     select_fields,
 )
-from server.storage.base import StorageDataError, StorageError, VehicleRecord
+from server.storage.base import StorageDataError, StorageError, TokenRecord, VehicleRecord
 
 __all__ = ["SqliteStore"]
 
 _PAGE_SIZE_BYTES = 8192  # only takes effect when the file is created
 _CACHE_KIB = 32 * 1024
+_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
 
 
 def _select_list(names: Sequence[str]) -> str:
@@ -401,6 +402,53 @@ class SqliteStore:
             (vehicle_id,),
         )
         return {name: int(total) for name, total in rows}
+
+    # ------------------------------------------------------------------ access tokens
+
+    @staticmethod
+    def _token(row: Sequence[Any]) -> TokenRecord:
+        return TokenRecord(
+            id=int(row[0]),
+            name=str(row[1]),
+            role=str(row[2]),
+            created_ns=int(row[3]),
+            last_used_ns=None if row[4] is None else int(row[4]),
+            revoked_ns=None if row[5] is None else int(row[5]),
+        )
+
+    def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:
+        with self._write() as conn:
+            row = conn.execute(
+                "INSERT INTO api_tokens (name, role, token_sha256, created_ns) "
+                f"VALUES (?, ?, ?, ?) RETURNING {_TOKEN_COLUMNS}",
+                (name, role, token_sha256, int(now_ns)),
+            ).fetchone()
+        return self._token(row)
+
+    def get_token(self, token_sha256: str) -> TokenRecord | None:
+        rows = self._read(
+            f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE token_sha256 = ?", (token_sha256,)
+        )
+        return self._token(rows[0]) if rows else None
+
+    def list_tokens(self) -> list[TokenRecord]:
+        rows = self._read(f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY id")
+        return [self._token(r) for r in rows]
+
+    def touch_token(self, token_id: int, now_ns: int) -> None:
+        with self._write() as conn:
+            conn.execute(
+                "UPDATE api_tokens SET last_used_ns = ? WHERE id = ?", (int(now_ns), int(token_id))
+            )
+
+    def revoke_token(self, token_id: int, now_ns: int) -> TokenRecord | None:
+        with self._write() as conn:
+            row = conn.execute(
+                "UPDATE api_tokens SET revoked_ns = coalesce(revoked_ns, ?) WHERE id = ? "
+                f"RETURNING {_TOKEN_COLUMNS}",
+                (int(now_ns), int(token_id)),
+            ).fetchone()
+        return self._token(row) if row else None
 
     # ------------------------------------------------------------------ raw packets
 

@@ -114,9 +114,10 @@ def get_vehicle(vehicle: VehicleDep) -> VehiclePublic:
     response_model=VehiclePublic,
     responses={
         201: {"model": VehiclePublic, "description": "vehicle registered"},
-        **error_responses(400, 413, 422),
+        **error_responses(400, 401, 403, 413, 422),
     },
-    summary="Register a vehicle or replace its config",
+    dependencies=[Depends(require_role("operator"))],
+    summary="Register a vehicle or replace its config (operator)",
     description=(
         "The body is a VehicleConfig; omitted parts take their defaults, so `{}` registers a "
         "vehicle with the default config. A config that does not validate is refused with 422 "
@@ -147,7 +148,7 @@ def put_vehicle(
     "/{vehicle_id}",
     status_code=status.HTTP_204_NO_CONTENT,
     dependencies=[Depends(require_role("admin"))],
-    responses=error_responses(403, 404),
+    responses=error_responses(401, 403, 404),
     summary="Delete a vehicle with all its estimates and counters (admin)",
 )
 def delete_vehicle(vehicle_id: str, store: StoreDep, runtime: RuntimeDep) -> Response:

@@ -86,7 +86,13 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
         "/api/v1/alerts",
         "/api/v1/health",
         "/api/v1/metrics",
+        "/api/v1/tokens",
+        "/api/v1/tokens/{token_id}",
     }
+    assert spec["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    for path, path_ops in spec["paths"].items():
+        for op in path_ops.values():
+            assert ("security" in op) == (path != "/api/v1/health"), path
     put = spec["paths"]["/api/v1/vehicles/{vehicle_id}"]["put"]
     body = put["requestBody"]["content"]["application/json"]["schema"]
     assert body["additionalProperties"] is False
