@@ -46,6 +46,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         settings.api.host = args.host
     if args.port is not None:
         settings.api.port = args.port
+    if settings.api.require_auth:
+        log.info(
+            "the REST API and live views need access tokens; create the first one with: "
+            "slipfleet token create --name <who> --role admin"
+        )
     serve(settings)
     return 0
 

@@ -62,3 +62,27 @@ def test_vehicles_series_report_on_postgres(client: ApiClient, store: Store) -> 
     assert client.delete("/api/v1/vehicles/t1").status_code == 204
     assert client.get("/api/v1/vehicles/t1").status_code == 404
     assert client.get("/api/v1/health").json()["checks"]["storage"] is True
+
+
+def test_access_tokens_on_postgres(tmp_path: Path, pg_database_url: str) -> None:
+    import time
+
+    from server.api import create_app
+    from server.tokens import Role, issue_token
+
+    from .conftest import FakeRuntime, running
+
+    settings = Settings(
+        storage=StorageSettings.model_validate({"data_dir": tmp_path, "url": pg_database_url}),
+        api=ApiSettings.model_validate({"require_auth": True}),
+    )
+    runtime = FakeRuntime(settings)
+    with running(create_app(settings, runtime)) as client:
+        assert runtime.store.dialect == "postgresql"
+        token, record = issue_token(runtime.store, "pg", Role.OPERATOR, time.time_ns())
+        auth = {"Authorization": f"Bearer {token}"}
+        assert client.get("/api/v1/vehicles").status_code == 401
+        assert client.put("/api/v1/vehicles/t1", json={}, headers=auth).status_code == 201
+        assert client.delete("/api/v1/vehicles/t1", headers=auth).status_code == 403
+        runtime.store.revoke_token(record.id, time.time_ns())
+        assert client.get("/api/v1/vehicles", headers=auth).status_code == 401
