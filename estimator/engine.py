@@ -274,6 +274,7 @@ class MdsfEngine:
         grow("gnss_noise_var", (), 0.0)
         grow("force_fast", (), np.nan)
         grow("force_slow", (), np.nan)
+        grow("force_model", (), np.nan)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
         grow("ref_aux", (len(RefAux),), 0.0)
@@ -295,6 +296,7 @@ class MdsfEngine:
     gnss_noise_var: FloatArray
     force_fast: FloatArray
     force_slow: FloatArray
+    force_model: FloatArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
     ref_aux: FloatArray
@@ -317,6 +319,7 @@ class MdsfEngine:
         self.gnss_noise_var[s] = 0.0
         self.force_fast[s] = np.nan
         self.force_slow[s] = np.nan
+        self.force_model[s] = np.nan
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
@@ -459,6 +462,16 @@ class MdsfEngine:
             for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
                 Q[:, st, st] += q_e
                 F[:, st, st] = np.clip(grow, 0.5, 1.5)
+            if cfg.slip_per_demand > 0:
+                # Tyre model: slip follows the traction demand, ds ≈ k·d(f/g); the expected
+                # change of the rim excess enters as a control term (the filter corrects k's
+                # error through the rim, GNSS and accelerometer rows).
+                # Only while GNSS keeps k's error in check: in an outage a wrong k would build up.
+                d_dem = self._model_demand_change(slots, t)
+                lost = (stamp - self.last_fused_ns[slots]) > round(cfg.gnss_timeout_s * 1e9)
+                gain = np.where(lost, 0.0, cfg.slip_per_demand)
+                for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
+                    u[:, st] = gain * speed * d_dem / GRAVITY_MPS2
         else:
             F = self.F[slots]
         x_pr, P_pr = kalman.predict(x, P, F, Q, u)
@@ -662,6 +675,17 @@ class MdsfEngine:
                 | (degraded if not self.product else np.zeros(k, bool)),
             ),
         )
+
+    def _model_demand_change(self, slots: IntArray, t: TickInputs) -> FloatArray:
+        """Change of the low-passed forward specific force over this tick, (k,) [m/s²]."""
+        dt = self.dt_s
+        a = dt / (self.config.slip_model_tau_s + dt)
+        f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
+        old = self.force_model[slots]
+        fresh = ~np.isfinite(old)
+        new = np.where(fresh, f_new, np.where(np.isfinite(f_new), old + a * (f_new - old), old))
+        self.force_model[slots] = new
+        return np.where(fresh, 0.0, np.nan_to_num(new - old))
 
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
         """Squared recent change of traction demand beyond accelerometer noise, (k,) [(m/s²)²].

@@ -162,6 +162,12 @@ class MdsfConfig:
         curve's slope); the rim-excess variance grows by ``(gain·|V|/g)²·|Δf|·1 m/s²`` per tick
         with ``f`` the low-passed forward specific force (acceleration plus slope, what the
         tyres must transmit) [-].
+    slip_per_demand : float
+        Product mode: tyre model, slip change per change of traction demand
+        (``ds/d(f/g)``, the inverse slope of the traction curve over the driven axle's load
+        share); the expected rim-excess change drives the predict. 0 turns it off [-].
+    slip_model_tau_s : float
+        Time constant of the demand low-pass the tyre model follows [s].
     slip_jump_sigma : float
         Product mode: a rim speed more than this many sigma off its prediction opens the rim
         excess by the unexplained innovation (the slip jumped: wet patch, soil change) [-].
@@ -220,6 +226,8 @@ class MdsfConfig:
     rim_excess_walk_mps_per_sqrt_s: float = 0.005
     rim_excess_walk_rel_per_sqrt_s: float = 0.002
     slip_demand_gain: float = 1.0
+    slip_per_demand: float = 0.8
+    slip_model_tau_s: float = 0.3
     slip_jump_sigma: float = 3.0
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
@@ -246,10 +254,16 @@ class MdsfConfig:
             except ValueError as exc:
                 raise ConfigError(f"mode must be one of {[m.value for m in MdsfMode]}") from exc
         for f in dataclasses.fields(self):
-            if f.name in ("mode", "gnss_noise_adapt", "slip_demand_gain", "zupt_speed_mps"):
+            if f.name in (
+                "mode",
+                "gnss_noise_adapt",
+                "slip_demand_gain",
+                "zupt_speed_mps",
+                "slip_per_demand",
+            ):
                 continue
             _check(f.name, getattr(self, f.name))
-        for name in ("slip_demand_gain", "zupt_speed_mps"):
+        for name in ("slip_demand_gain", "zupt_speed_mps", "slip_per_demand"):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0")
