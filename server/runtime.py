@@ -218,6 +218,9 @@ class Runtime:
             except Exception:
                 storage_ok = False
         zenoh_ok = self.session is not None and not self.session.is_closed()
+        if zenoh_ok and self.session is not None and self.settings.zenoh.connect:
+            # a client session stays open while its router is away: ask for a live router
+            zenoh_ok = any(True for _ in self.session.info.routers_zid())
         pipeline_ok = self.pipeline is not None and bool(self.pipeline.stats()["running"])
         return {"zenoh": zenoh_ok, "storage": storage_ok, "pipeline": pipeline_ok}
 

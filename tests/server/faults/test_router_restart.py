@@ -54,7 +54,13 @@ def test_router_restart_clients_reconnect_and_gap_is_counted(tmp_path: Path) -> 
             time.sleep(3.0)
             t_kill = time.monotonic()
             router.kill()
-            time.sleep(DOWN_S)
+            down_code, down_checks = 200, {}
+            while time.monotonic() - t_kill < DOWN_S:
+                r = client.get("/api/v1/health")
+                if r.status_code == 503:
+                    down_code, down_checks = 503, r.json()["checks"]
+                time.sleep(0.2)
+            assert down_code == 503 and down_checks["zenoh"] is False, "health: router away"
             router.start()
             t_up = time.monotonic()
             # counters reach the store once a second; the live report is the store's view
