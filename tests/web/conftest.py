@@ -13,10 +13,10 @@ Chromium: ``apt-get install -y chromium`` (``/usr/bin/chromium``); override with
 from __future__ import annotations
 
 import os
-import socket
 import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,7 @@ from server.live import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
 from server.web import mount_web
+from tests.support import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 SCREENSHOTS = REPO / "artifacts" / "screenshots"
@@ -113,24 +114,19 @@ class LiveStack:
     runtime: LiveRuntime
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture(scope="module")
-def live_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveStack]:
+@contextmanager
+def serve_live_stack(data_dir: Path, *, require_auth: bool) -> Iterator[LiveStack]:
+    """The dashboard app over a :class:`LiveRuntime` on a free port, until the block ends."""
     settings = Settings(
-        storage=StorageSettings.model_validate({"data_dir": tmp_path_factory.mktemp("store")}),
-        api=ApiSettings.model_validate({"require_auth": False}),
+        storage=StorageSettings.model_validate({"data_dir": data_dir}),
+        api=ApiSettings.model_validate({"require_auth": require_auth}),
     )
     runtime = LiveRuntime(settings)
     app = create_app(
         settings, runtime, routers=[*API_ROUTERS, live_routes.router, alerts_routes.router]
     )
     mount_web(app)
-    port = _free_port()
+    port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(
             app, host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio"
@@ -148,6 +144,19 @@ def live_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveStack]:
     finally:
         server.should_exit = True
         thread.join(timeout=15)
+
+
+@pytest.fixture(scope="module")
+def live_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveStack]:
+    with serve_live_stack(tmp_path_factory.mktemp("store"), require_auth=False) as stack:
+        yield stack
+
+
+@pytest.fixture(scope="module")
+def secured_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveStack]:
+    """The same stack with access tokens required (as ``slipfleet serve`` runs)."""
+    with serve_live_stack(tmp_path_factory.mktemp("store"), require_auth=True) as stack:
+        yield stack
 
 
 @pytest.fixture(scope="module")

@@ -1,13 +1,27 @@
-// Every request of the dashboard goes through this module (base URL, credentials, errors),
-// so adding a bearer token later is a change here only.
+// Every request of the dashboard goes through this module (base URL, credentials, errors).
+//
+// Access token: a server started with `slipfleet serve` answers 401 without a bearer token
+// (create one with `slipfleet token create --name NAME --role viewer`). The token is kept in
+// sessionStorage (gone when the tab closes), sent as `Authorization: Bearer …` on REST calls
+// and as the WebSocket subprotocol pair ["slipfleet.bearer", token] (browsers cannot set
+// headers on a WebSocket; a query parameter would end up in access logs). A 401 fires the
+// window event "slipfleet:auth-required", on which main.js asks for a token.
+
+const TOKEN_KEY = "slipfleet.token";
 
 const config = {
   base: "", // same origin
-  token: null, // bearer token, when the server requires one
+  token: sessionStorage.getItem(TOKEN_KEY), // bearer token, when the server requires one
 };
 
 export function setToken(token) {
   config.token = token || null;
+  if (config.token) sessionStorage.setItem(TOKEN_KEY, config.token);
+  else sessionStorage.removeItem(TOKEN_KEY);
+}
+
+export function hasToken() {
+  return Boolean(config.token);
 }
 
 function headers() {
@@ -46,6 +60,9 @@ export async function getJSON(path, params) {
     } catch (_) {
       /* not JSON */
     }
+    if (resp.status === 401) {
+      window.dispatchEvent(new CustomEvent("slipfleet:auth-required", { detail: { reason } }));
+    }
     throw new ApiError(resp.status, code, reason);
   }
   return resp.json();
@@ -80,15 +97,13 @@ export function fetchAlerts(params) {
 // onState("open" | "closed" | "error") reports the connection. Returns {send, close}.
 export function liveSocket(path, params, { onMessage, onState }) {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const p = { ...(params || {}) };
-  if (config.token) p.access_token = config.token;
-  const url = `${proto}//${location.host}${config.base}${path}${query(p)}`;
+  const url = `${proto}//${location.host}${config.base}${path}${query(params)}`;
   let ws = null;
   let closed = false;
   let delay = 500;
   let timer = null;
   const connect = () => {
-    ws = new WebSocket(url);
+    ws = config.token ? new WebSocket(url, ["slipfleet.bearer", config.token]) : new WebSocket(url);
     ws.onopen = () => {
       delay = 500;
       onState && onState("open");

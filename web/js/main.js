@@ -1,6 +1,7 @@
 // Dashboard entry: hash routes #/fleet, #/vehicle/<id>, #/vehicle/<id>/history, #/alerts.
 
 import { alertsView, startAlertBadge } from "./alerts.js";
+import { setToken } from "./api.js";
 import { fleetView } from "./fleet.js";
 import { historyView } from "./history.js";
 import { vehicleView } from "./vehicle.js";
@@ -30,6 +31,25 @@ function route() {
   document.title = `Slipfleet — ${view}`;
   main.focus({ preventScroll: true });
 }
+
+// Access token dialog: opened on any 401 (see api.js) or from the header button.
+const dialog = document.getElementById("token-dialog");
+function askToken(reason) {
+  document.getElementById("token-reason").textContent =
+    reason || "This server needs an access token to show its data.";
+  if (!dialog.open) dialog.showModal();
+}
+dialog.addEventListener("close", () => {
+  const input = document.getElementById("token-input");
+  if (dialog.returnValue === "save" && input.value.trim()) setToken(input.value.trim());
+  else if (dialog.returnValue === "forget") setToken(null);
+  input.value = "";
+  route(); // reload the view with the new credentials
+});
+window.addEventListener("slipfleet:auth-required", (ev) =>
+  askToken(`The server refused the request: ${ev.detail.reason}`),
+);
+document.getElementById("token-button").addEventListener("click", () => askToken());
 
 window.addEventListener("hashchange", route);
 startAlertBadge(document.getElementById("alert-badge"));
