@@ -3,25 +3,32 @@
 Two layers:
 
 :class:`MdsfEngine`
-    Holds every vehicle's filter state in slot arrays (``x (cap, 4)``, ``P (cap, 4, 4)``,
-    per-vehicle ``H``, ``H1``, noise) and steps any subset of vehicles with one call to the pure
-    functions of :mod:`estimator.kalman` (predict, innovation gate, masked Joseph update,
-    divergence reset, reference-speed filter while GNSS is lost).
+    Holds every vehicle's filter state in slot arrays (``x (cap, n)``, ``P (cap, n, n)`` with
+    ``n`` = 4 in paper mode, 7 in product mode; per-vehicle ``F``, ``H``, ``H1``, ``Q``) and
+    steps any subset of vehicles with a few calls to the pure functions of
+    :mod:`estimator.kalman`: predict (accelerometer-driven in product mode), update of the IMU
+    rows, chi-square gate of the GNSS speed, update of GNSS and rim speeds, divergence reset,
+    reference-speed filter (§3). Each step also returns what it used (:class:`TickModel`:
+    matrices, masks, NIS) for diagnostics and tests.
 
 :class:`MdsfFleet`
     Implements :class:`estimator.base.FleetEstimator`. Each vehicle has a front end
     (:class:`_FrontEnd`) that buffers its measurements and, on :meth:`MdsfFleet.advance`, turns
-    them into per-tick filter inputs with a few vectorised numpy calls per vehicle (no Python
-    work per tick): IMU averaged over each tick window (gravity removed with the pitch), GNSS
-    speed by eq. (1) moved to the tick by its time stamp, wheel speeds evaluated at the tick.
-    The engine then steps round by round: round ``r`` is the ``r``-th due tick of every vehicle
-    that has one, all in one batched call. Slip, positions and attitude are computed for all rows
-    at once afterwards.
+    them into per-tick filter inputs with vectorised numpy calls per vehicle and advance (no
+    Python work per tick): IMU averaged over each tick window (gravity removed with the
+    pitch, gyro biases learnt against the GNSS attitude), GNSS speed by eq. (1) moved to the
+    tick by its time stamp. The wheel speeds of all vehicles that share the ticks are fitted
+    in one call (:func:`estimator.wheel_speed.query_many`). The engine then steps round by
+    round: round ``r`` is the ``r``-th due tick of every vehicle that has one, all in one
+    batched call. Slip, positions and attitude are computed for all rows at once afterwards.
 
 Ticks sit on a fleet-wide grid (multiples of ``tick_ns`` since the epoch), so rows of different
-vehicles share time stamps. A vehicle's first row is the first tick with a usable GNSS speed
-(or, without GNSS, with wheel speeds: the reference-speed filter starts it, flagged DEGRADED).
-Nothing here raises on NaN/inf: bad parts are skipped and counted (:meth:`MdsfFleet.counters`).
+vehicles share time stamps, and a row at ``t`` uses only measurements stamped at or before
+``t`` (rows do not depend on how data was batched; tested). A vehicle's first row is the first
+tick with a usable GNSS speed (or, after ``gnss_timeout_s`` without GNSS, with wheel speeds,
+flagged DEGRADED). Nothing here raises on NaN/inf: bad parts are skipped and counted
+(:meth:`MdsfFleet.counters`); a filter whose state goes non-finite or whose speed variance
+explodes is re-initialised and the row flagged RESET.
 """
 
 from __future__ import annotations
