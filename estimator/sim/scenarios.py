@@ -130,6 +130,7 @@ _COMMON: dict[str, Any] = {
     "rear_load_fraction": 0.6,
     "turn_slip_gain": 0.1,
     "slip_texture": 0.003,
+    "slip_texture_tau_s": 1.5,
 }
 
 
@@ -140,6 +141,7 @@ def _traction(p: Params) -> TractionModel:
         rear_load_fraction=p["rear_load_fraction"],
         turn_gain=p["turn_slip_gain"],
         texture_std=p["slip_texture"],
+        texture_tau_s=p["slip_texture_tau_s"],
     )
 
 
