@@ -181,9 +181,11 @@ class MdsfConfig:
         with ``f`` the low-passed forward specific force (acceleration plus slope, what the
         tyres must transmit) [-].
     slip_per_demand : float
-        Product mode: tyre model, slip change per change of traction demand
-        (``ds/d(f/g)``, the inverse slope of the traction curve over the driven axle's load
-        share); the expected rim-excess change drives the predict. 0 turns it off [-].
+        Product mode: tyre model, rim-excess change per speed and per change of traction
+        demand, ``Δe ≈ k·V·Δ(f/g)`` (about the inverse slope of the traction curve over the
+        driven axle's load share, times ``1/(1−s)²``); drives the predict, the rows correct
+        its error. The default (1.0) was chosen on the simulator among physically plausible
+        values (0.5–1.2). 0 turns it off [-].
     slip_model_tau_s : float
         Time constant of the demand low-pass the tyre model follows [s].
     slip_jump_sigma : float
@@ -244,7 +246,7 @@ class MdsfConfig:
     rim_excess_walk_mps_per_sqrt_s: float = 0.005
     rim_excess_walk_rel_per_sqrt_s: float = 0.002
     slip_demand_gain: float = 1.0
-    slip_per_demand: float = 0.8
+    slip_per_demand: float = 1.0
     slip_model_tau_s: float = 0.3
     slip_jump_sigma: float = 3.0
     zupt_speed_mps: float = 0.0
