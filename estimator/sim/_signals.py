@@ -108,7 +108,8 @@ class BoundedSines:
         weight = rng.uniform(0.5, 1.0, n)
         if bound == 0.0:
             return cls(tuple(0.0 * weight), tuple(freq), tuple(phase))
-        grid = np.linspace(0.0, max(span, 1e-3), max(2000, int(span * 50 * f_hi_hz) + 1))
+        # 200 points per period of the fastest sine: the sampled peak is within 0.02 % of the true
+        grid = np.linspace(0.0, max(span, 1e-3), max(2000, int(span * 200 * f_hi_hz) + 1))
         arg = 2.0 * np.pi * freq[:, None] * grid[None, :] + phase[:, None]
         if bound_on == "value":
             shape = (weight[:, None] * np.sin(arg)).sum(axis=0)
