@@ -245,7 +245,7 @@ class MdsfConfig:
     accel_bias_extra_walk_mps2_per_sqrt_s: float = 0.003
     rim_excess_walk_mps_per_sqrt_s: float = 0.005
     rim_excess_walk_rel_per_sqrt_s: float = 0.002
-    slip_demand_gain: float = 0.5
+    slip_demand_gain: float = 0.75
     slip_per_demand: float = 1.0
     slip_model_tau_s: float = 0.3
     slip_jump_sigma: float = 3.0
