@@ -286,6 +286,7 @@ def test_direct_wheel_speeds_are_used_and_flagged() -> None:
     fleet = MdsfFleet()
     fleet.add_vehicle("v", cfg)
     T = sim.truth
+    parts = []
     for chunk, until in replay(sim.measurements, end_ns=sim.end_ns):
         for m in chunk:
             if isinstance(m, WheelEdges):
@@ -297,9 +298,16 @@ def test_direct_wheel_speeds_are_used_and_flagged() -> None:
                     [truth_at(T, st_, "omega_left_radps"), truth_at(T, st_, "omega_right_radps")], 1
                 )
                 fleet.push("v", WheelSpeeds(st_, om))
-        fleet.advance({"v": until})
-    ((_, rows),) = fleet.advance({"v": sim.end_ns + 10**9}) or [("v", None)]  # drain
-    assert rows is None or np.all(rows["flags"] & F.WHEEL_DIRECT)
+        parts += [r for _, r in fleet.advance({"v": until})]
+    rows = np.concatenate(parts)
+    assert np.all(rows["flags"] & F.WHEEL_DIRECT)
+    assert not np.any(rows["flags"] & F.WHEEL_PERIOD_METHOD)
+    moving = truth_at(T, rows["stamp_ns"], "v0_mps") > 0.5
+    w_true = truth_at(T, rows["stamp_ns"][moving], "omega_left_radps")
+    # the latest CAN sample is held: at most one IMU period old
+    assert np.max(np.abs(rows["omega_left_radps"][moving] - w_true) / w_true) < 0.02
+    es = rows["slip_left_pct"][moving] - truth_at(T, rows["stamp_ns"][moving], "slip_left_pct")
+    assert np.sqrt(np.nanmean(es**2)) < 1.5
 
 
 def test_nis_on_simulated_vehicle_is_reasonable() -> None:
