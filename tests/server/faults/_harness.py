@@ -27,6 +27,7 @@ import httpx
 import numpy as np
 import zenoh
 
+from estimator.mdsf import MdsfConfig
 from estimator.sim import simulate
 from server.app_main import vehicle_session
 from server.estimators import EstimatorRegistry
@@ -34,7 +35,7 @@ from server.fleet_sim import SimPacket, encode_packet, packetize
 from server.ingest import Pipeline
 from server.protocol import Stream, config_key, decode, encode_config, sensor_key
 from server.protocol.codec import Packet
-from server.settings import Settings
+from server.settings import IngestSettings, Settings
 from tests.support import free_port
 
 __all__ = [
@@ -48,9 +49,9 @@ __all__ = [
     "wait_until",
 ]
 
-TICK_NS = 50_000_000  # MDSF product tick
-LATENESS_NS = 150_000_000  # IngestSettings.lateness_ms default
-ADVANCE_STEP_NS = 200_000_000  # IngestSettings.advance_step_ms default
+TICK_NS = MdsfConfig().tick_ns  # MDSF product tick
+LATENESS_NS = IngestSettings().lateness_ms * 1_000_000
+ADVANCE_STEP_NS = IngestSettings().advance_step_ms * 1_000_000
 PREFIX = "fleet"
 REPO = Path(__file__).resolve().parents[3]
 
