@@ -34,6 +34,12 @@ Metrics (on rows whose true ``V0`` exceeds 0.5 m/s, as the source's relative err
 
 Floors (product mode): paper scenarios ``vw_max_pct ≤ 1.5``; every scenario
 ``slip_rms_pp ≤ 1.0``, ``slip_p95_pp ≤ 2.0``, ``coverage_pct ≥ 98``.
+
+Several seeds
+-------------
+``--seeds 1,2,3,4,5`` runs every scenario once per seed and reports, per scenario and method,
+the worst (largest error, smallest coverage) and the mean of each metric over the seeds; the
+floors are checked on the worst. A result that holds on one seed only is not a result.
 """
 
 from __future__ import annotations
@@ -64,9 +70,12 @@ __all__ = [
     "default_estimators",
     "evaluate",
     "main",
+    "print_seeds_table",
     "print_table",
     "run",
     "run_estimator",
+    "run_seeds",
+    "summarize_seeds",
     "traditional_estimates",
 ]
 
@@ -413,6 +422,129 @@ def run(
     return result
 
 
+_METRIC_KEYS = (
+    "vw_max_pct",
+    "vw_rms_pct",
+    "slip_rms_pp",
+    "slip_p95_pp",
+    "slip_max_pp",
+    "omega_rms_pct",
+    "omega_max_pct",
+    "coverage_pct",
+)
+_HIGHER_IS_BETTER = frozenset({"coverage_pct"})
+
+
+def summarize_seeds(per_seed: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Worst and mean of each metric over the seeds, per scenario and method.
+
+    Parameters
+    ----------
+    per_seed : sequence of :func:`run` results (one per seed, same scenarios and methods)
+
+    Returns
+    -------
+    list of dict
+        One row per (scenario, method) in the first result's order: ``scenario``, ``method``,
+        ``seeds``, ``worst`` and ``mean`` (metric → value; worst is the largest error and the
+        smallest coverage, NaN if any seed gave NaN), ``worst_seed`` (metric → seed) and, for
+        the product mode, ``floors_pass`` / ``floors_failed`` judged on the worst.
+    """
+    groups: dict[tuple[str, str], list[tuple[int, Mapping[str, Any]]]] = {}
+    for res in per_seed:
+        for r in res["results"]:
+            groups.setdefault((r["scenario"], r["method"]), []).append((int(res["seed"]), r))
+    out: list[dict[str, Any]] = []
+    for (scenario, method), items in groups.items():
+        worst: dict[str, float] = {}
+        mean: dict[str, float] = {}
+        worst_seed: dict[str, int] = {}
+        for key in _METRIC_KEYS:
+            vals = [(seed, float(r.get(key, math.nan))) for seed, r in items]
+            finite = [v for _, v in vals if math.isfinite(v)]
+            mean[key] = float(np.mean(finite)) if len(finite) == len(vals) else math.nan
+            if len(finite) < len(vals):
+                worst[key] = math.nan
+                worst_seed[key] = next(seed for seed, v in vals if not math.isfinite(v))
+                continue
+            pick = min if key in _HIGHER_IS_BETTER else max
+            seed, value = pick(vals, key=lambda sv: sv[1])
+            worst[key] = value
+            worst_seed[key] = seed
+        row: dict[str, Any] = {
+            "scenario": scenario,
+            "method": method,
+            "seeds": [seed for seed, _ in items],
+            "worst": worst,
+            "mean": mean,
+            "worst_seed": worst_seed,
+        }
+        errors = [f"seed {seed}: {r['error']}" for seed, r in items if "error" in r]
+        if errors:
+            row["errors"] = errors
+        if method == "product":
+            ok, failed = check_floors(worst, scenario)
+            if errors:
+                ok, failed = False, [*errors, *failed]
+            row["floors_pass"] = ok
+            row["floors_failed"] = failed
+        out.append(row)
+    return out
+
+
+def run_seeds(
+    json_path: Path | None = None,
+    scenarios: Sequence[str] | None = None,
+    seeds: Sequence[int] = (1, 2, 3, 4, 5),
+    *,
+    estimators: Mapping[str, EstimatorFactory] | None = None,
+    quiet: bool = False,
+    out: TextIO | None = None,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """Run the bench once per seed; report worst and mean per scenario (see the module doc).
+
+    Parameters are those of :func:`run`, with ``seeds`` instead of one seed.
+
+    Returns
+    -------
+    dict
+        ``{"seeds", "moving_mps", "floors", "summary": [row...], "runs": [run result...],
+        "all_pass"}`` with the rows of :func:`summarize_seeds`; ``all_pass`` is judged on the
+        worst over the seeds.
+    """
+    seed_list = [int(s) for s in seeds]
+    if not seed_list:
+        raise ValueError("seeds must not be empty")
+    runs = [
+        run(
+            None,
+            scenarios=scenarios,
+            seed=seed,
+            estimators=estimators,
+            quiet=True,
+            overrides=overrides,
+        )
+        for seed in seed_list
+    ]
+    summary = summarize_seeds(runs)
+    product_rows = [r for r in summary if r["method"] == "product"]
+    result: dict[str, Any] = {
+        "seeds": seed_list,
+        "start_ns": START_NS,
+        "moving_mps": MOVING_MPS,
+        "floors": runs[0]["floors"],
+        "summary": summary,
+        "runs": runs,
+        "all_pass": bool(product_rows) and all(r["floors_pass"] for r in product_rows),
+    }
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(_jsonable(result), indent=2, allow_nan=False) + "\n")
+    if not quiet:
+        print_seeds_table(result, file=out)
+    return result
+
+
 def _estimator_runner(
     factory: EstimatorFactory, sim: SimRun, config: VehicleConfig
 ) -> Callable[[], np.ndarray]:
@@ -491,16 +623,83 @@ def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
     )
 
 
+def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
+    """Plain-text table of :func:`run_seeds`: per scenario and method a ``worst`` and a
+    ``mean`` line over the seeds, floors judged on the worst."""
+    f = file if file is not None else sys.stdout
+    head = f"{'scenario':<16} {'method':<12} {'over':<5}" + "".join(
+        f" {t:>{w}}" for _, t, w in _COLUMNS
+    )
+    head += "  floors (on the worst)"
+    print(head, file=f)
+    print("-" * len(head), file=f)
+    last = None
+    for r in result["summary"]:
+        if last is not None and r["scenario"] != last:
+            print("", file=f)
+        last = r["scenario"]
+        for label in ("worst", "mean"):
+            line = f"{r['scenario']:<16} {r['method']:<12} {label:<5}"
+            line += "".join(" " + _fmt(r[label].get(k), w) for k, _, w in _COLUMNS)
+            if label == "worst" and "floors_pass" in r:
+                line += "  PASS" if r["floors_pass"] else "  FAIL: " + "; ".join(r["floors_failed"])
+            elif label == "worst" and "errors" in r:
+                line += "  ERROR: " + "; ".join(r["errors"])
+            print(line, file=f)
+    print("", file=f)
+    floors = ", ".join(
+        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
+        for k, op, b, which in FLOORS
+    )
+    print(f"floors (product mode, on the worst seed): {floors}", file=f)
+    seeds = ",".join(str(s) for s in result["seeds"])
+    print(
+        f"rows with true V0 > {result['moving_mps']} m/s; Vw relative to the wheel's mean speed; "
+        f"seeds {seeds}; overall: {'PASS' if result['all_pass'] else 'FAIL'}",
+        file=f,
+    )
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError as exc:
+        raise ValueError(f"expected comma-separated integers, got {text!r}") from exc
+    if not values:
+        raise ValueError("expected at least one seed")
+    return values
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m server.bench.accuracy [SCENARIO ...] [--seed N] [--json PATH]``."""
+    """``python -m server.bench.accuracy [SCENARIO ...] [--scenarios A,B] [--seed N |
+    --seeds 1,2,3] [--json PATH]``."""
     import argparse
 
     p = argparse.ArgumentParser(prog="python -m server.bench.accuracy", description=__doc__)
     p.add_argument("scenarios", nargs="*", help="scenario names (default: all)")
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED)
+    p.add_argument(
+        "--scenarios",
+        dest="scenario_list",
+        default=None,
+        help="comma-separated scenario names (added to the positional ones)",
+    )
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--seed", type=int, default=DEFAULT_SEED)
+    group.add_argument(
+        "--seeds",
+        type=_int_list,
+        default=None,
+        help="comma-separated seeds: worst and mean per scenario, floors on the worst",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)
-    result = run(args.json, scenarios=args.scenarios or None, seed=args.seed)
+    names = list(args.scenarios)
+    if args.scenario_list:
+        names += [n.strip() for n in args.scenario_list.split(",") if n.strip()]
+    if args.seeds is not None:
+        result = run_seeds(args.json, scenarios=names or None, seeds=args.seeds)
+    else:
+        result = run(args.json, scenarios=names or None, seed=args.seed)
     return 0 if result["all_pass"] else 1
 
 

@@ -236,3 +236,93 @@ def test_a_crashing_method_is_reported_not_hidden() -> None:
     assert product["error"] == "RuntimeError: filter blew up"
     assert product["coverage_pct"] == 0.0 and not product["floors_pass"]
     assert "RuntimeError: filter blew up" in out.getvalue()
+
+
+def _seed_result(seed: int, slip_rms: float, coverage: float, vw_max: float) -> dict[str, object]:
+    metrics = {k: 0.1 for k in accuracy._METRIC_KEYS}
+    metrics.update(slip_rms_pp=slip_rms, coverage_pct=coverage, vw_max_pct=vw_max)
+    return {
+        "seed": seed,
+        "results": [
+            {"scenario": "paper_circle", "method": "product", **metrics},
+            {"scenario": "paper_circle", "method": "traditional", **metrics},
+        ],
+    }
+
+
+def test_summarize_seeds_takes_worst_and_mean_and_judges_floors_on_the_worst() -> None:
+    rows = accuracy.summarize_seeds(
+        [
+            _seed_result(1, 0.4, 99.9, 1.0),
+            _seed_result(2, 1.2, 99.0, 1.4),
+            _seed_result(3, 0.5, 97.0, 0.9),
+        ]
+    )
+    assert [(r["scenario"], r["method"]) for r in rows] == [
+        ("paper_circle", "product"),
+        ("paper_circle", "traditional"),
+    ]
+    product = rows[0]
+    assert product["seeds"] == [1, 2, 3]
+    assert product["worst"]["slip_rms_pp"] == pytest.approx(1.2)
+    assert product["worst_seed"]["slip_rms_pp"] == 2
+    assert product["mean"]["slip_rms_pp"] == pytest.approx(0.7)
+    # coverage: higher is better, so the worst is the smallest
+    assert product["worst"]["coverage_pct"] == pytest.approx(97.0)
+    assert product["worst_seed"]["coverage_pct"] == 3
+    assert product["worst"]["vw_max_pct"] == pytest.approx(1.4)
+    assert not product["floors_pass"]
+    assert any(f.startswith("slip_rms_pp 1.20") for f in product["floors_failed"])
+    assert any(f.startswith("coverage_pct 97.00") for f in product["floors_failed"])
+    assert "floors_pass" not in rows[1]
+
+
+def test_summarize_seeds_a_nan_seed_makes_the_worst_nan() -> None:
+    rows = accuracy.summarize_seeds(
+        [_seed_result(1, 0.4, 99.9, 1.0), _seed_result(2, math.nan, 99.9, 1.0)]
+    )
+    assert math.isnan(rows[0]["worst"]["slip_rms_pp"])
+    assert rows[0]["worst_seed"]["slip_rms_pp"] == 2
+    assert not rows[0]["floors_pass"]
+
+
+def test_run_seeds_runs_each_seed_and_writes_worst_and_mean(tmp_path: Path) -> None:
+    plan = iter([(3, 0.2), (4, 0.6)])  # one estimator per seed, in seed order
+
+    def make() -> FleetEstimator:
+        seed, offset = next(plan)
+        sim = simulate("hard_braking", seed=seed, start_ns=START_NS)
+        return _TruthEstimator(sim.truth, offset)
+
+    out = io.StringIO()
+    path = tmp_path / "seeds.json"
+    res = accuracy.run_seeds(
+        path, scenarios=["hard_braking"], seeds=[3, 4], estimators={"product": make}, out=out
+    )
+    assert [r["seed"] for r in res["runs"]] == [3, 4]
+    product = next(r for r in res["summary"] if r["method"] == "product")
+    assert product["worst"]["slip_rms_pp"] == pytest.approx(0.6, abs=1e-9)
+    assert product["worst_seed"]["slip_rms_pp"] == 4
+    assert product["mean"]["slip_rms_pp"] == pytest.approx(0.4, abs=1e-9)
+    assert product["floors_pass"] and res["all_pass"]
+    data = json.loads(path.read_text())
+    assert data["seeds"] == [3, 4]
+    assert data["summary"][0]["worst"]["slip_rms_pp"] == pytest.approx(0.6, abs=1e-9)
+    text = out.getvalue()
+    assert "worst" in text and "mean" in text and "seeds 3,4" in text and "PASS" in text
+
+
+def test_main_parses_seeds_and_scenarios(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: dict[str, object] = {}
+
+    def fake_run_seeds(json_path: Path | None, **kw: object) -> dict[str, object]:
+        seen.update(kw)
+        return {"all_pass": False}
+
+    monkeypatch.setattr(accuracy, "run_seeds", fake_run_seeds)
+    code = accuracy.main(["--seeds", "1,2,5", "--scenarios", "paper_circle,slow_creep"])
+    assert code == 1
+    assert seen["seeds"] == [1, 2, 5]
+    assert seen["scenarios"] == ["paper_circle", "slow_creep"]
+    with pytest.raises(SystemExit):
+        accuracy.main(["--seeds", "1,x"])
