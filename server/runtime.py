@@ -228,6 +228,7 @@ class Runtime:
         families: list[MetricFamily] = []
         if self.pipeline is not None:
             families.extend(_ingest_families(self.pipeline.counters_snapshot()))
+            families.append(_estimator_family(self.pipeline.estimator_counters_snapshot()))
             stats = self.pipeline.stats()
             families.append(
                 MetricFamily(
@@ -291,6 +292,22 @@ class Runtime:
                 )
             )
         return families
+
+
+def _estimator_family(counters: Mapping[str, Mapping[str, Mapping[str, int]]]) -> MetricFamily:
+    """Estimator events per vehicle (MDSF: resets, gnss_gated, degraded_ticks, skipped_*, …)."""
+    samples = [
+        Sample(float(n), {"estimator": name, "vehicle": vid, "event": event}, "_total")
+        for name, per_vehicle in sorted(counters.items())
+        for vid, events in sorted(per_vehicle.items())
+        for event, n in sorted(events.items())
+    ]
+    return MetricFamily(
+        "slipfleet_estimator_events",
+        "counter",
+        "Estimator events per vehicle: filter resets, gated GNSS, degraded ticks, skipped input.",
+        samples,
+    )
 
 
 def _ingest_families(counters: Mapping[str, Mapping[str, int]]) -> list[MetricFamily]:

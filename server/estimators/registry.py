@@ -118,6 +118,19 @@ class EstimatorRegistry:
         self._estimators: dict[str, FleetEstimator] = {}
         self._routes: dict[str, tuple[str, ...]] = {}
 
+    def counters(self) -> dict[str, dict[str, dict[str, int]]]:
+        """Event counters of every estimator that keeps them (an optional ``counters(vehicle_id)``
+        method, e.g. MDSF's resets and gated GNSS): ``{estimator: {vehicle_id: {event: n}}}``.
+
+        Call on the thread that owns the registry (the pipeline's).
+        """
+        out: dict[str, dict[str, dict[str, int]]] = {}
+        for name, est in self._estimators.items():
+            per_vehicle = getattr(est, "counters", None)
+            if callable(per_vehicle):
+                out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
+        return out
+
     @property
     def available(self) -> tuple[str, ...]:
         """Every estimator name this registry can build."""

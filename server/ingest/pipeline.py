@@ -56,6 +56,9 @@ __all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
+#: How often the pipeline thread copies the estimators' event counters for other threads.
+ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
+
 #: Decoded bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at
 #: most: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
 QUEUE_BURSTS = 64
@@ -129,6 +132,7 @@ class Pipeline:
         )
         self._control: deque[tuple[str, str, VehicleConfig | None]] = deque()
         self._counters = IngestCounters()
+        self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
         self._active: set[str] = set()
@@ -225,6 +229,11 @@ class Pipeline:
         """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`)."""
         self._counters.restore(vehicle_id, totals)
 
+    def estimator_counters_snapshot(self) -> dict[str, dict[str, dict[str, int]]]:
+        """The estimators' event counters (resets, gated GNSS, …) as of the last second:
+        ``{estimator: {vehicle_id: {event: n}}}`` (see ``EstimatorRegistry.counters``)."""
+        return self._estimator_counters
+
     def counters_snapshot(self) -> dict[str, dict[str, int]]:
         """Per-vehicle ingest counters (see :mod:`server.ingest.counters`)."""
         return self._counters.snapshot()
@@ -243,6 +252,7 @@ class Pipeline:
 
     def _run(self) -> None:
         next_tick = self._clock() + self._interval_ns
+        next_counters = self._clock()
         received_ns = self._clock()
         while True:
             self._apply_control()
@@ -264,6 +274,9 @@ class Pipeline:
                     # time of the burst just handled: a backlog must not look like silence.
                     self._tick(now if self._queue.empty() else received_ns, flush=False)
                     next_tick = max(next_tick + self._interval_ns, now + self._interval_ns // 4)
+                if now >= next_counters:
+                    self._estimator_counters = self._registry.counters()
+                    next_counters = now + ESTIMATOR_COUNTERS_EVERY_NS
             except Exception:  # a bug here must not stall ingest (Zenoh would block on us)
                 self._stats["pipeline_errors"] += 1
                 log.exception("pipeline step failed")

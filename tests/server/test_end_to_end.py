@@ -113,6 +113,16 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
                 # after that is counted late. More than a handful would mean a real ordering bug.
                 assert p["late"] <= 3, f"{vid}: {p['late']} late packets"
 
+            metrics = client.get("/api/v1/metrics").text
+            for vid in ids:  # the estimator's own counters reach /metrics
+                line = next(
+                    ln
+                    for ln in metrics.splitlines()
+                    if ln.startswith("slipfleet_estimator_events_total{")
+                    and f'vehicle="{vid}"' in ln
+                    and 'event="ticks"' in ln
+                )
+                assert float(line.rsplit(" ", 1)[1]) > 100, line
             for i, vid in enumerate(ids):
                 phase = (i * TICK_NS) // N_VEHICLES
                 truth = simulate(SCENARIO, seed=SEED + i, start_ns=base, **OVERRIDES).truth

@@ -135,3 +135,17 @@ def test_estimators_built_lazily_once() -> None:
     reg.add_vehicle("z", VehicleConfig())
     assert built["mdsf"] is first and reg.estimator("mdsf") is first
     assert reg.available == ("friction", "mdsf")
+
+
+def test_counters_come_from_estimators_that_keep_them() -> None:
+    registry = EstimatorRegistry()  # the real MDSF, which counts its events
+    registry.add_vehicle("v1", VehicleConfig())
+    counters = registry.counters()
+    assert set(counters) == {"mdsf"}
+    assert set(counters["mdsf"]) == {"v1"}
+    events = counters["mdsf"]["v1"]
+    assert events["resets"] == 0 and events["ticks"] == 0 and "gnss_gated" in events
+
+    recording, _ = _registry()  # estimators without counters are left out
+    recording.add_vehicle("v2", VehicleConfig())
+    assert recording.counters() == {}
