@@ -12,7 +12,12 @@ kind               condition on one estimate row                  hold
 ``slip_right``     same for the right wheel                       same
 ``gnss_degraded``  ``flags & EstimateFlag.DEGRADED`` (GNSS lost)  ``gnss_hold_s``
 ``stale``          no row for ``stale_after_s`` of wall time      found by ``check_stale``
+``storage_down``   the server's database is unreachable/full      set by the runtime
+``zenoh_down``     the server has no Zenoh router                 set by the runtime
 =================  =============================================  ============================
+
+The last two are about the server itself: their ``vehicle_id`` is ``""`` (:data:`SYSTEM`) and their
+stamps are wall-clock times (:meth:`AlertEngine.set_system_condition`).
 
 (``alert_threshold_pct`` and ``alert_hold_s`` from the vehicle's ``SlipConfig``.)
 
@@ -44,7 +49,7 @@ import numpy as np
 from estimator.config import SlipConfig
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag
 
-__all__ = ["Alert", "AlertEngine", "AlertKind", "PublishHook"]
+__all__ = ["SYSTEM", "Alert", "AlertEngine", "AlertKind", "PublishHook"]
 
 _log = logging.getLogger(__name__)
 
@@ -58,6 +63,12 @@ class AlertKind(StrEnum):
     SLIP_RIGHT = "slip_right"
     GNSS_DEGRADED = "gnss_degraded"
     STALE = "stale"
+    STORAGE_DOWN = "storage_down"
+    ZENOH_DOWN = "zenoh_down"
+
+
+#: ``vehicle_id`` of alerts about the server itself rather than a vehicle.
+SYSTEM = ""
 
 
 class _K(IntEnum):
@@ -167,6 +178,7 @@ class AlertEngine:
         self._last_stamp = np.zeros(n, dtype=np.int64)
         self._last_arrival = np.zeros(n, dtype=np.int64)
         self._stale_open: dict[str, int] = {}
+        self._system_open: dict[AlertKind, int] = {}
         self._open_alerts: dict[int, Alert] = {}
         self._open_pos: dict[int, tuple[int, int]] = {}  # open alert id -> (slot, kind column)
         self._closed: deque[Alert] = deque(maxlen=max_closed)
@@ -377,6 +389,34 @@ class AlertEngine:
             self._free.append(s)
         self._emit(events)
         return True
+
+    def set_system_condition(
+        self, kind: AlertKind, active: bool, now_ns: int | None = None
+    ) -> Alert | None:
+        """Open (``active``) or close the server-wide alert ``kind``; repeated calls with the same
+        state do nothing. Returns the alert opened or closed, if any."""
+        now = self._clock_ns() if now_ns is None else now_ns
+        events: list[tuple[str, str, Alert]] = []
+        with self._lock:
+            aid = self._system_open.get(kind)
+            if active and aid is None:
+                alert = Alert(
+                    id=self._next_id,
+                    vehicle_id=SYSTEM,
+                    kind=kind,
+                    start_ns=now,
+                    end_ns=None,
+                    opened_wall_ns=now,
+                )
+                self._next_id += 1
+                self._open_alerts[alert.id] = alert
+                self._system_open[kind] = alert.id
+                events.append(("open", SYSTEM, alert))
+            elif not active and aid is not None:
+                del self._system_open[kind]
+                events.append(("close", SYSTEM, self._close(aid, now)))
+        self._emit(events)
+        return events[0][2] if events else None
 
     def check_stale(self, now_ns: int | None = None) -> list[Alert]:
         """Open a ``stale`` alert for every vehicle silent for ``stale_after_s``; return them."""

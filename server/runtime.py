@@ -22,7 +22,7 @@ from typing import Any
 import zenoh
 
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
-from server.alerts import AlertEngine
+from server.alerts import AlertEngine, AlertKind
 from server.api.prometheus import MetricFamily, Sample
 from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
 from server.ingest.pipeline import Pipeline
@@ -38,8 +38,14 @@ __all__ = ["Runtime"]
 
 log = logging.getLogger(__name__)
 
-#: How often per-vehicle ingest counters are handed to the writer.
+#: How often per-vehicle ingest counters are handed to the writer (and health is checked).
 COUNTER_FLUSH_S = 1.0
+
+#: Key chunk under which server-wide alerts are published: ``<prefix>/_server/alerts``.
+SERVER_ALERTS_CHUNK = "_server"
+
+#: Health parts whose failure opens a server-wide alert.
+_SYSTEM_ALERTS = {"storage": AlertKind.STORAGE_DOWN, "zenoh": AlertKind.ZENOH_DOWN}
 
 
 class Runtime:
@@ -196,14 +202,21 @@ class Runtime:
 
     # ------------------------------------------------------------------ background
     def _flush_loop(self) -> None:
+        """Once a second: hand the ingest counters to the writer and raise or clear the
+        server-wide alerts (database down or full, no Zenoh router)."""
         while not self._stop.wait(COUNTER_FLUSH_S):
             if self.pipeline is not None and self.writer is not None:
                 self.writer.submit_counters(self.pipeline.counters_snapshot())
+            if self.alert_engine is not None:
+                health = self.health()
+                for part, kind in _SYSTEM_ALERTS.items():
+                    self.alert_engine.set_system_condition(kind, not health.get(part, True))
 
     def _publish_alert(self, vehicle_id: str, event: dict[str, Any]) -> None:
         if self.session is None:
             return
-        key = f"{self.settings.zenoh.key_prefix}/{vehicle_id}/alerts"
+        owner = vehicle_id or SERVER_ALERTS_CHUNK  # server-wide alerts have no vehicle
+        key = f"{self.settings.zenoh.key_prefix}/{owner}/alerts"
         pub = self._alert_publishers.get(key)
         if pub is None:
             pub = self._alert_publishers[key] = self.session.declare_publisher(key)

@@ -10,7 +10,7 @@ import pytest
 
 from estimator.config import SlipConfig
 from estimator.types import EstimateFlag, empty_estimates
-from server.alerts import AlertEngine, AlertKind
+from server.alerts import SYSTEM, AlertEngine, AlertKind
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S
@@ -278,3 +278,21 @@ def test_forget_closes_open_alerts_and_stops_stale_checks() -> None:
     assert [a.vehicle_id for a in eng.check_stale()] == ["b"]  # not the forgotten one
     eng.on_estimates([("c", rows([30.0], [0.0]))])  # reuses the slot with a clean state
     assert eng.open_count() == 1  # b's stale alert only
+
+
+def test_system_condition_opens_once_and_closes() -> None:
+    events: list[tuple[str, dict[str, object]]] = []
+    engine = AlertEngine(publish=lambda vid, ev: events.append((vid, ev)))
+    opened = engine.set_system_condition(AlertKind.STORAGE_DOWN, True, now_ns=1_000)
+    assert opened is not None and opened.vehicle_id == SYSTEM and opened.is_open
+    assert engine.set_system_condition(AlertKind.STORAGE_DOWN, True, now_ns=2_000) is None
+    assert engine.open_count() == 1
+    assert engine.set_system_condition(AlertKind.ZENOH_DOWN, False, now_ns=2_000) is None
+    closed = engine.set_system_condition(AlertKind.STORAGE_DOWN, False, now_ns=5_000)
+    assert closed is not None and closed.id == opened.id and closed.end_ns == 5_000
+    assert engine.open_count() == 0
+    assert [(vid, ev["event"], ev["kind"]) for vid, ev in events] == [
+        (SYSTEM, "open", "storage_down"),
+        (SYSTEM, "close", "storage_down"),
+    ]
+    assert [a.kind for a in engine.alerts(state="closed")] == [AlertKind.STORAGE_DOWN]

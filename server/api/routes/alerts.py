@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from pydantic import BaseModel, Field
 from starlette.datastructures import State
 
-from server.alerts import AlertEngine
+from server.alerts import AlertEngine, AlertKind
 from server.api.errors import ServiceUnavailable, error_responses
 
 __all__ = ["AlertListPublic", "AlertPublic", "find_alert_engine", "router"]
@@ -21,11 +21,12 @@ router = APIRouter(prefix="/alerts", tags=["alerts"])
 
 
 class AlertPublic(BaseModel):
-    """One alert. Stamps are sensor time, int ns since the epoch, UTC."""
+    """One alert. Stamps are int ns since the epoch, UTC: sensor time for vehicle alerts, wall
+    time for server-wide ones (``storage_down``, ``zenoh_down``, whose ``vehicle_id`` is "")."""
 
     id: int
-    vehicle_id: str
-    kind: Literal["slip_left", "slip_right", "gnss_degraded", "stale"]
+    vehicle_id: str = Field(description='the vehicle, or "" for an alert about the server')
+    kind: AlertKind
     start_ns: int = Field(description="where the condition began (stale: the last estimate)")
     end_ns: int | None = Field(description="where it ended; null while open")
     open: bool

@@ -43,6 +43,12 @@ def _backlog_rows(client: httpx.Client) -> int:
     return int(float(m.group(1)))
 
 
+def _storage_alert_open(client: httpx.Client) -> bool:
+    r = client.get("/api/v1/alerts", params={"state": "open"})
+    r.raise_for_status()
+    return any(a["kind"] == "storage_down" and a["vehicle_id"] == "" for a in r.json()["alerts"])
+
+
 def _health(client: httpx.Client) -> tuple[int, dict[str, bool]]:
     r = client.get("/api/v1/health")
     return r.status_code, r.json().get("checks", {})
@@ -102,6 +108,7 @@ def test_postgres_outage_backlog_and_catch_up(tmp_path: Path) -> None:
                     code, checks = watch.poll(t_down)
                     time.sleep(0.2)
                 assert code == 503 and checks.get("storage") is False, (code, checks)
+                assert _storage_alert_open(client), "an open storage_down alert"
                 t_up = time.monotonic()
                 start_pg_cluster(cluster, port)
                 started_s = time.monotonic() - t_up
@@ -111,6 +118,7 @@ def test_postgres_outage_backlog_and_catch_up(tmp_path: Path) -> None:
                     return code == 200 and _backlog_rows(client) == 0
 
                 recovery_s = wait_until(caught_up, 60, "health 200 and an empty backlog")
+                wait_until(lambda: not _storage_alert_open(client), 10, "storage alert closed")
             pub.wait_done(120)
             _wait_complete(server, pub, ref)
             stored = _stored(server, pub)
