@@ -8,6 +8,8 @@ const KIND_LABEL = {
   slip_right: "Slip right above threshold",
   gnss_degraded: "GNSS degraded",
   stale: "No data (stale)",
+  storage_down: "Server: database unavailable or full",
+  zenoh_down: "Server: no Zenoh router",
 };
 
 export function alertsView(root) {
@@ -49,7 +51,13 @@ export function alertsView(root) {
           "tr",
           { class: a.open ? "alert-open" : "" },
           el("td", {}, el("span", { class: `pill ${a.open ? "st-offline" : "st-closed"}`, text: a.open ? "open" : "closed" })),
-          el("td", {}, el("a", { href: vehicleHref(a.vehicle_id), text: a.vehicle_id })),
+          el(
+            "td",
+            {},
+            a.vehicle_id
+              ? el("a", { href: vehicleHref(a.vehicle_id), text: a.vehicle_id })
+              : el("strong", { text: "server" }),
+          ),
           el("td", { text: KIND_LABEL[a.kind] || a.kind }),
           el("td", { text: fmtTimeNs(a.start_ns, false) }),
           el("td", { text: endNs ? fmtTimeNs(endNs, false) : "ongoing" }),
