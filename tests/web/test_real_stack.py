@@ -131,4 +131,12 @@ def test_dashboard_on_the_real_stack(
     assert len(set(stamps)) == 4, "the page stopped updating"
     assert len({v for v in values if not math.isnan(v)}) >= 2, "slip did not change over time"
     page.wait_for_function(f"({_COLOURED_PIXELS_JS})('live-map') > 300", timeout=10000)
+    # the packet accounting panel shows the server's counters for this vehicle
+    page.wait_for_selector("#v-ingest tr[data-counter=received]", timeout=10000)
+    shown_counts = {
+        name: int(page.inner_text(f'#v-ingest tr[data-counter="{name}"] td'))
+        for name in ("received", "accepted", "rejected")
+    }
+    assert shown_counts["received"] > 100 and shown_counts["rejected"] == 0, shown_counts
+    assert shown_counts["accepted"] <= shown_counts["received"]
     page.screenshot(path=str(screenshots / "real_vehicle.png"), full_page=True)

@@ -89,6 +89,14 @@ export function fetchVehicle(vehicleId) {
   return getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}`);
 }
 
+// Field report of one vehicle over [startNs, endNs): speeds, slip statistics, ingest counters.
+export function fetchReport(vehicleId, startNs, endNs) {
+  return getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/report`, {
+    start: String(startNs),
+    end: String(endNs),
+  });
+}
+
 export function fetchAlerts(params) {
   return getJSON("/api/v1/alerts", params);
 }

@@ -1,7 +1,7 @@
 // Vehicle page, live: slip and speed charts over a sliding window (30 s – 30 min) and the track on
 // the slip map, from the /live/vehicles/{id} WebSocket (snapshot, then appends at 2–4 Hz).
 
-import { fetchVehicle, liveSocket } from "./api.js";
+import { fetchReport, fetchVehicle, liveSocket } from "./api.js";
 import { SLIP_FIELDS, SPEED_FIELDS, alignedData, fitWidth, makeChart, setThreshold } from "./charts.js";
 import { slipCss } from "./colors.js";
 import { SlipMap, slipMetric } from "./slipmap.js";
@@ -56,6 +56,40 @@ export function vehicleView(root, vehicleId) {
     stat("Sensor time", "v-stamp"),
     stat("Latency sensor → page", "v-latency", "ms"),
   );
+  // Packet accounting of the vehicle (totals since registration): every packet the server got
+  // is accepted, late, a duplicate or rejected with a reason; lost = sequence numbers never seen.
+  const ingestBody = el("tbody", { id: "v-ingest" });
+  const ingest = el(
+    "details",
+    { class: "ingest", open: true },
+    el("summary", { text: "Packets received from this vehicle" }),
+    el("table", { class: "ingest-table" }, ingestBody),
+  );
+  async function refreshIngest() {
+    const end = BigInt(Date.now()) * 1000000n;
+    try {
+      const rep = await fetchReport(vehicleId, end - 3600n * 1000000000n, end);
+      const c = rep.ingest;
+      const rows = [
+        ["received", c.received],
+        ["accepted", c.accepted],
+        ["late (after the reorder window)", c.late],
+        ["duplicate", c.duplicate],
+        ["lost (sequence gaps)", c.lost],
+        ["rejected", c.rejected],
+        ...Object.entries(c.rejected_by_reason).map(([reason, n]) => [`  rejected: ${reason}`, n]),
+      ];
+      ingestBody.replaceChildren(
+        ...rows.map(([label, n]) =>
+          el("tr", { "data-counter": label.trim() }, el("th", { text: label }), el("td", { class: "num", text: String(n) })),
+        ),
+      );
+    } catch (_) {
+      /* not registered yet, or refused: the next refresh tries again */
+    }
+  }
+  refreshIngest();
+  const ingestTimer = setInterval(refreshIngest, 5000);
   const slipBox = el("div", { class: "chart", id: "chart-slip" });
   const speedBox = el("div", { class: "chart", id: "chart-speed" });
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
@@ -69,7 +103,7 @@ export function vehicleView(root, vehicleId) {
       winButtons,
     ),
     stats,
-    el("div", { class: "grid2" }, el("div", {}, slipBox, speedBox), el("div", {}, canvas)),
+    el("div", { class: "grid2" }, el("div", {}, slipBox, speedBox), el("div", {}, canvas, ingest)),
   );
   const slipChart = makeChart(slipBox, {
     title: "Wheel slip",
@@ -174,6 +208,7 @@ export function vehicleView(root, vehicleId) {
   const onResize = () => redraw();
   window.addEventListener("resize", onResize);
   return () => {
+    clearInterval(ingestTimer);
     sock.close();
     window.removeEventListener("resize", onResize);
     slipChart.destroy();
