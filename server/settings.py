@@ -209,14 +209,19 @@ class Settings(BaseSettings):
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
-        toml_path = os.environ.get("SLIPFLEET_CONFIG")
+        toml_path = settings_cls.model_config.get("toml_file") or os.environ.get("SLIPFLEET_CONFIG")
         if toml_path:
-            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(toml_path)))
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(str(toml_path))))
         return tuple(sources)
 
 
 def load_settings(config_file: Path | None = None, **overrides: Any) -> Settings:
-    """Build settings from env, an optional TOML file and explicit overrides (highest priority)."""
-    if config_file is not None:
-        os.environ["SLIPFLEET_CONFIG"] = str(config_file)
-    return Settings(**overrides)
+    """Build settings: explicit ``overrides`` beat the environment, which beats the TOML file
+    (``config_file``, else ``$SLIPFLEET_CONFIG``), which beats the defaults."""
+    if config_file is None:
+        return Settings(**overrides)
+
+    class _FromFile(Settings):
+        model_config = SettingsConfigDict(**{**Settings.model_config, "toml_file": config_file})
+
+    return _FromFile(**overrides)
