@@ -92,6 +92,16 @@ _SLIP_MIN_SPEED_MPS = 0.5
 _F = EstimateFlag
 
 
+class _TyreStat(IntEnum):
+    """Exponentially weighted sums of the online tyre-gain regression (per slot)."""
+
+    W = 0  # weight
+    X = 1  # Σw·x, x = low-passed forward specific force / g (traction demand)
+    Y = 2  # Σw·y, y = measured rim excess over the filtered wheel speed, per speed (slip ratio)
+    XX = 3
+    XY = 4
+
+
 class Counter(IntEnum):
     """Per-vehicle event counters (see :meth:`MdsfFleet.counters`)."""
 
@@ -282,6 +292,7 @@ class MdsfEngine:
         grow("force_fast", (), np.nan)
         grow("force_slow", (), np.nan)
         grow("force_model", (), np.nan)
+        grow("tyre_stats", (len(_TyreStat),), 0.0)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
         grow("ref_aux", (len(RefAux),), 0.0)
@@ -304,6 +315,7 @@ class MdsfEngine:
     force_fast: FloatArray
     force_slow: FloatArray
     force_model: FloatArray
+    tyre_stats: FloatArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
     ref_aux: FloatArray
@@ -327,6 +339,7 @@ class MdsfEngine:
         self.force_fast[s] = np.nan
         self.force_slow[s] = np.nan
         self.force_model[s] = np.nan
+        self.tyre_stats[s] = 0.0
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
@@ -472,11 +485,12 @@ class MdsfEngine:
             if cfg.slip_per_demand > 0:
                 # Tyre model: slip follows the traction demand, ds ≈ k·d(f/g); the expected
                 # change of the rim excess enters as a control term (the filter corrects k's
-                # error through the rim, GNSS and accelerometer rows).
-                # Only while GNSS keeps k's error in check: in an outage a wrong k would build up.
+                # error through the rim, GNSS and accelerometer rows). k is the local slope of
+                # the traction curve, learnt online (:meth:`tyre_gain`); the model stays on in
+                # a GNSS outage, where it carries the slip's response to speed changes (a
+                # demand that rises and falls back leaves no net change).
                 d_dem = self._model_demand_change(slots, t)
-                lost = (stamp - self.last_fused_ns[slots]) > round(cfg.gnss_timeout_s * 1e9)
-                gain = np.where(lost, 0.0, cfg.slip_per_demand)
+                gain = self.tyre_gain(slots)
                 for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
                     u[:, st] = gain * speed * d_dem / GRAVITY_MPS2
         else:
@@ -559,6 +573,9 @@ class MdsfEngine:
             b = cfg.gnss_noise_adapt
             est = np.where(use_vg & init, (1 - b) * est + b * (y_vg * y_vg - hph), est)
             self.gnss_noise_var[slots] = est
+
+        if self.product and cfg.slip_per_demand > 0 and cfg.tyre_gain_tau_s > 0:
+            self._learn_tyre_gain(slots, t, x_new, rim_mps, rim_ok, use_vg & init)
 
         # -- initialise vehicles that get their first GNSS speed --------------------------
         v1_from_gnss = z[:, MdsfObs.VG] - (
@@ -682,6 +699,76 @@ class MdsfEngine:
                 | (degraded if not self.product else np.zeros(k, bool)),
             ),
         )
+
+    def tyre_gain(self, slots: IntArray) -> FloatArray:
+        """Slope of the traction curve ``k = dε/d(f/g)`` in force for each slot, shape (k,).
+
+        ``ε = (r·W − V)/V`` is the slip ratio of the rim excess, ``f`` the low-passed forward
+        specific force (acceleration plus slope: what the tyres transmit beyond rolling
+        resistance and drawbar, which only shift ``ε``). A weighted least-squares line of ``ε``
+        on ``f/g`` over the recent drive (:meth:`_learn_tyre_gain`), shrunk toward the
+        configured ``slip_per_demand`` with the weight ``tyre_gain_prior`` (so a drive without
+        changes of demand keeps the prior), clipped to ``tyre_gain_range``. Without learning
+        (``tyre_gain_tau_s = 0``) the configured value.
+        """
+        cfg = self.config
+        k0 = cfg.slip_per_demand
+        if cfg.tyre_gain_tau_s <= 0:
+            return np.full(slots.shape[0], k0)
+        st = self.tyre_stats[slots]
+        w = np.maximum(st[:, _TyreStat.W], 1e-12)
+        sxx = st[:, _TyreStat.XX] - st[:, _TyreStat.X] ** 2 / w
+        sxy = st[:, _TyreStat.XY] - st[:, _TyreStat.X] * st[:, _TyreStat.Y] / w
+        lam = cfg.tyre_gain_prior
+        k = (np.maximum(sxy, -1e9) + lam * k0) / (np.maximum(sxx, 0.0) + lam)
+        lo, hi = cfg.tyre_gain_range
+        return np.asarray(np.clip(k, lo * k0, hi * k0))
+
+    def _learn_tyre_gain(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        x_post: FloatArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+        fused: BoolArray,
+    ) -> None:
+        """Add this tick's ``(f/g, ε)`` pair to the tyre-gain regression (in place).
+
+        Only ticks with a fused GNSS speed (the speed, hence ``ε``, is referenced to the ground)
+        and both rim speeds, while moving faster than ``2·_SLIP_MIN_SPEED_MPS``; ``ε`` is the
+        mean of both wheels' measured rim speed over the filtered contact-point speed. Old
+        pairs fade with ``tyre_gain_tau_s``.
+        """
+        cfg = self.config
+        h = self.H[slots]
+        v_wheel = np.einsum(
+            "kmi,ki->km", h[:, MdsfObs.RIM_LEFT :, : MdsfState.ACCEL_BIAS], x_post[:, :4]
+        )
+        speed = 0.5 * (v_wheel[:, 0] + v_wheel[:, 1])
+        f = self.force_model[slots]
+        ok = (
+            fused
+            & rim_ok.all(axis=1)
+            & (speed > 2.0 * _SLIP_MIN_SPEED_MPS)
+            & np.isfinite(f)
+            & t.imu_ok
+        )
+        with np.errstate(invalid="ignore", divide="ignore"):
+            eps = np.where(
+                ok, (np.where(rim_ok, rim_mps, 0.0) - v_wheel).sum(axis=1) / (2.0 * speed), 0.0
+            )
+        x = np.where(ok, f / GRAVITY_MPS2, 0.0)
+        decay = math.exp(-self.dt_s / cfg.tyre_gain_tau_s)
+        st = self.tyre_stats[slots]
+        w = ok.astype(np.float64)
+        st *= np.where(ok, decay, 1.0)[:, None]
+        st[:, _TyreStat.W] += w
+        st[:, _TyreStat.X] += w * x
+        st[:, _TyreStat.Y] += w * eps
+        st[:, _TyreStat.XX] += w * x * x
+        st[:, _TyreStat.XY] += w * x * eps
+        self.tyre_stats[slots] = st
 
     def _model_demand_change(self, slots: IntArray, t: TickInputs) -> FloatArray:
         """Change of the low-passed forward specific force over this tick, (k,) [m/s²]."""

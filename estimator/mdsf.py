@@ -29,7 +29,8 @@ Two modes (:class:`MdsfMode`):
       accelerometer bias;
     * **wheel speeds as measurements**: each rim speed is ``r·W = V_wheel + e_wheel`` with the
       *rim excess* ``e`` (slip in m/s) a state: it scales with the speed at constant slip
-      ratio, follows the traction demand through a tyre model (``slip_per_demand``), wanders
+      ratio, follows the traction demand through a tyre model whose gain (the traction curve's
+      local slope) is learnt online while GNSS is fused (``slip_per_demand`` its prior), wanders
       slowly, opens when the demand changes beyond the accelerometer noise and when a rim
       speed jumps away from its prediction (wet patch). Wheel and accelerometer then carry
       the fast part of the speed, GNSS the slow part; slip is
@@ -184,8 +185,20 @@ class MdsfConfig:
         Product mode: tyre model, rim-excess change per speed and per change of traction
         demand, ``Δe ≈ k·V·Δ(f/g)`` (about the inverse slope of the traction curve over the
         driven axle's load share, times ``1/(1−s)²``); drives the predict, the rows correct
-        its error. The default (1.0) was chosen on the simulator among physically plausible
-        values (0.5–1.2). 0 turns it off [-].
+        its error. The slope depends on the soil and on how far up the curve the tyre works
+        (it steepens toward saturation), so ``k`` is learnt online per vehicle
+        (``tyre_gain_tau_s``); this value is the prior it starts from and is shrunk toward
+        (1.0: about the slope at moderate demand on medium soil). The model also runs through
+        GNSS outages. 0 turns it off [-].
+    tyre_gain_tau_s : float
+        Product mode: memory of the online fit of the tyre model's gain (the traction curve's
+        local slope ``dε/d(f/g)``, ``ε`` the measured rim excess per speed while GNSS is fused);
+        0 keeps ``slip_per_demand`` fixed [s].
+    tyre_gain_prior : float
+        Weight of ``slip_per_demand`` in that fit, as a spread of demand ``Σ(Δf/g)²`` the data
+        must show before it outweighs the prior (about 1 s of ±0.1 g swings at 10 Hz) [-].
+    tyre_gain_range : tuple of float
+        Bounds of the learnt gain as factors of ``slip_per_demand`` [-].
     slip_model_tau_s : float
         Time constant of the demand low-pass the tyre model follows [s].
     slip_jump_sigma : float
@@ -248,6 +261,9 @@ class MdsfConfig:
     slip_demand_gain: float = 0.75
     slip_per_demand: float = 1.0
     slip_model_tau_s: float = 0.3
+    tyre_gain_tau_s: float = 60.0
+    tyre_gain_prior: float = 0.1
+    tyre_gain_range: tuple[float, float] = (0.2, 3.0)
     slip_jump_sigma: float = 3.0
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
@@ -280,10 +296,15 @@ class MdsfConfig:
                 "slip_demand_gain",
                 "zupt_speed_mps",
                 "slip_per_demand",
+                "tyre_gain_tau_s",
+                "tyre_gain_range",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
-        for name in ("slip_demand_gain", "zupt_speed_mps", "slip_per_demand"):
+        lo, hi = self.tyre_gain_range
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= 1.0 <= hi):
+            raise ConfigError("tyre_gain_range must be (lo, hi) with 0 < lo <= 1 <= hi")
+        for name in ("slip_demand_gain", "zupt_speed_mps", "slip_per_demand", "tyre_gain_tau_s"):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0")

@@ -444,3 +444,54 @@ def test_gravity_and_gyro_biases_on_a_slope(mode: MdsfMode) -> None:
         return
     assert np.max(np.abs(late["v0_mps"])) < 0.05
     assert np.all(late["flags"] & F.STANDSTILL)
+
+
+def _tyre_pairs(
+    engine: MdsfEngine, slot: int, x_g: np.ndarray, eps: np.ndarray, fused: bool = True
+) -> None:
+    """Feed ``(f/g, ε)`` pairs to the tyre-gain regression of ``slot`` at 3 m/s."""
+    slots = np.array([slot])
+    x_post = np.zeros((1, engine.n))
+    x_post[0, 0] = 3.0  # V1; no pitch or yaw rate: both wheels at V1
+    for xg, e in zip(x_g, eps, strict=True):
+        engine.force_model[slot] = xg * 9.80665
+        t = TickInputs(
+            stamp_ns=np.array([0]),
+            z=np.zeros((1, 4)),
+            gnss_ok=np.array([fused]),
+            gnss_var=np.ones(1),
+            imu_ok=np.array([True]),
+            accel_var=np.ones(1),
+            gyro_var=np.ones(1),
+            force_fwd=np.zeros(1),
+            omega=np.zeros((1, 2)),
+            omega_std=np.zeros((1, 2)),
+            wheel_flags=np.zeros(1, dtype=np.int32),
+            enu=np.zeros((1, 3)),
+            attitude=np.zeros((1, 3)),
+        )
+        rim = np.full((1, 2), 3.0 * (1.0 + e))
+        engine._learn_tyre_gain(slots, t, x_post, rim, np.ones((1, 2), bool), np.array([fused]))
+
+
+def test_tyre_gain_is_learnt_from_slip_against_demand() -> None:
+    """ε = c + k·f/g with k = 0.6: the learnt gain goes to 0.6; without demand changes, or
+    without GNSS, it stays at the configured prior."""
+    rng = np.random.default_rng(3)
+    cfg = MdsfConfig(slip_per_demand=1.0, tyre_gain_tau_s=60.0, tyre_gain_prior=0.1)
+    engine = MdsfEngine(cfg)
+    a, b, c = (engine.add(VehicleConfig()) for _ in range(3))
+    x_g = 0.1 * np.sin(np.arange(600) * 0.05) + 0.05  # swings of ±0.1 g over a minute
+    eps = 0.04 + 0.6 * x_g + rng.normal(0.0, 0.003, x_g.size)
+    _tyre_pairs(engine, a, x_g, eps)
+    _tyre_pairs(engine, b, np.full(600, 0.05), np.full(600, 0.07))  # steady: no information
+    _tyre_pairs(engine, c, x_g, eps, fused=False)  # no GNSS: ε not referenced to the ground
+    k = engine.tyre_gain(np.array([a, b, c]))
+    assert k[0] == pytest.approx(0.6, abs=0.05)
+    assert k[1] == pytest.approx(1.0, abs=1e-6)
+    assert k[2] == pytest.approx(1.0, abs=1e-12)
+    # bounded by the configured range (factors of the prior)
+    _tyre_pairs(engine, a, x_g, 0.04 + 20.0 * x_g)
+    assert engine.tyre_gain(np.array([a]))[0] == pytest.approx(3.0)
+    fixed = MdsfEngine(dataclasses.replace(cfg, tyre_gain_tau_s=0.0))
+    assert fixed.tyre_gain(np.array([fixed.add(VehicleConfig())]))[0] == 1.0

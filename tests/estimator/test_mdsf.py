@@ -135,3 +135,14 @@ def test_config_validation() -> None:
     with pytest.raises(ConfigError):
         MdsfConfig(slip_demand_gain=float("inf"))
     assert MdsfConfig(mode="paper").mode is MdsfMode.PAPER  # type: ignore[arg-type]
+
+
+def test_tyre_gain_settings_are_validated() -> None:
+    MdsfConfig(tyre_gain_tau_s=0.0)
+    for bad in ((0.0, 2.0), (1.2, 3.0), (0.5, 0.9), (0.5, math.inf)):
+        with pytest.raises(ConfigError):
+            MdsfConfig(tyre_gain_range=bad)
+    with pytest.raises(ConfigError):
+        MdsfConfig(tyre_gain_tau_s=-1.0)
+    with pytest.raises(ConfigError):
+        MdsfConfig(tyre_gain_prior=0.0)
