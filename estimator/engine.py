@@ -293,6 +293,7 @@ class MdsfEngine:
         grow("force_slow", (), np.nan)
         grow("force_model", (), np.nan)
         grow("tyre_stats", (len(_TyreStat),), 0.0)
+        grow("rim_innov", (2, 2), 0.0)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
         grow("ref_aux", (len(RefAux),), 0.0)
@@ -316,6 +317,7 @@ class MdsfEngine:
     force_slow: FloatArray
     force_model: FloatArray
     tyre_stats: FloatArray
+    rim_innov: FloatArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
     ref_aux: FloatArray
@@ -340,6 +342,7 @@ class MdsfEngine:
         self.force_slow[s] = np.nan
         self.force_model[s] = np.nan
         self.tyre_stats[s] = 0.0
+        self.rim_innov[s] = 0.0
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
@@ -479,8 +482,14 @@ class MdsfEngine:
             grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
                 speed, _SLIP_MIN_SPEED_MPS
             )
-            for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
+            # Slip changes the accelerometer cannot see (a drawbar load set down or lifted,
+            # soil, tyre pressure) show as rim innovations that keep one sign: their running
+            # mean beyond what white innovations explain opens that wheel's rim excess.
+            q_drift = self._rim_drift_noise(slots) if cfg.rim_drift_tau_s > 0 else None
+            for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
                 Q[:, st, st] += q_e
+                if q_drift is not None:
+                    Q[:, st, st] += q_drift[:, j]
                 F[:, st, st] = np.clip(grow, 0.5, 1.5)
             if cfg.slip_per_demand > 0:
                 # Tyre model: slip follows the traction demand, ds ≈ k·d(f/g); the expected
@@ -532,6 +541,8 @@ class MdsfEngine:
             # excess by the unexplained part of the innovation before the update.
             y_rim = y_all[:, MdsfObs.RIM_LEFT :]
             s_rim = s_all[:, MdsfObs.RIM_LEFT :]
+            if cfg.rim_drift_tau_s > 0:
+                self._track_rim_innovation(slots, y_rim, s_rim, rim_use & init[:, None])
             big = rim_use & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
             extra = np.where(big, y_rim * y_rim - s_rim, 0.0)
             for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
@@ -699,6 +710,38 @@ class MdsfEngine:
                 | (degraded if not self.product else np.zeros(k, bool)),
             ),
         )
+
+    def _track_rim_innovation(
+        self, slots: IntArray, y_rim: FloatArray, s_rim: FloatArray, ok: BoolArray
+    ) -> None:
+        """Running mean of each rim row's innovation and of its variance (in place).
+
+        ``rim_innov[slot, wheel] = [mean, var_of_mean]``: exponential mean with time constant
+        ``rim_drift_tau_s`` of the innovation ``y`` (against the stage-1 posterior), and the
+        variance that mean would have if the innovations were white with variance ``S``.
+        Wheels without a rim speed this tick keep theirs.
+        """
+        dt = self.dt_s
+        b = dt / (self.config.rim_drift_tau_s + dt)
+        st = self.rim_innov[slots]
+        mean = np.where(ok, (1 - b) * st[:, :, 0] + b * y_rim, st[:, :, 0])
+        var = np.where(ok, (1 - b) ** 2 * st[:, :, 1] + b * b * s_rim, st[:, :, 1])
+        st[:, :, 0] = mean
+        st[:, :, 1] = var
+        self.rim_innov[slots] = st
+
+    def _rim_drift_noise(self, slots: IntArray) -> FloatArray:
+        """Extra rim-excess process noise per wheel from persistent rim innovations, (k, 2).
+
+        The running mean ``m`` of a rim row's innovation (:meth:`_track_rim_innovation`)
+        beyond ``rim_drift_sigma`` of its white-noise spread means the slip moves faster than
+        the model lets it; the excess ``m² − σ²·var`` is let into the rim excess over
+        ``rim_drift_tau_s`` [(m/s)² per tick].
+        """
+        cfg = self.config
+        st = self.rim_innov[slots]
+        excess = st[:, :, 0] ** 2 - cfg.rim_drift_sigma**2 * st[:, :, 1]
+        return np.maximum(excess, 0.0) * (self.dt_s / cfg.rim_drift_tau_s)
 
     def tyre_gain(self, slots: IntArray) -> FloatArray:
         """Slope of the traction curve ``k = dε/d(f/g)`` in force for each slot, shape (k,).

@@ -204,6 +204,12 @@ class MdsfConfig:
     slip_jump_sigma : float
         Product mode: a rim speed more than this many sigma off its prediction opens the rim
         excess by the unexplained innovation (the slip jumped: wet patch, soil change) [-].
+    rim_drift_tau_s : float
+        Product mode: time constant of the running mean of each rim row's innovation; a mean
+        beyond ``rim_drift_sigma`` of its white-noise spread opens that wheel's rim excess
+        (slip moving with what the accelerometer cannot see: drawbar, soil); 0 turns it off [s].
+    rim_drift_sigma : float
+        Threshold of that test, in standard deviations of the running mean [-].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -265,6 +271,8 @@ class MdsfConfig:
     tyre_gain_prior: float = 0.1
     tyre_gain_range: tuple[float, float] = (0.2, 3.0)
     slip_jump_sigma: float = 3.0
+    rim_drift_tau_s: float = 1.0
+    rim_drift_sigma: float = 2.0
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
     rim_texture_rel: float = 0.003
@@ -298,13 +306,20 @@ class MdsfConfig:
                 "slip_per_demand",
                 "tyre_gain_tau_s",
                 "tyre_gain_range",
+                "rim_drift_tau_s",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
         lo, hi = self.tyre_gain_range
         if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= 1.0 <= hi):
             raise ConfigError("tyre_gain_range must be (lo, hi) with 0 < lo <= 1 <= hi")
-        for name in ("slip_demand_gain", "zupt_speed_mps", "slip_per_demand", "tyre_gain_tau_s"):
+        for name in (
+            "slip_demand_gain",
+            "zupt_speed_mps",
+            "slip_per_demand",
+            "tyre_gain_tau_s",
+            "rim_drift_tau_s",
+        ):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0")

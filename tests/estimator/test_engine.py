@@ -495,3 +495,27 @@ def test_tyre_gain_is_learnt_from_slip_against_demand() -> None:
     assert engine.tyre_gain(np.array([a]))[0] == pytest.approx(3.0)
     fixed = MdsfEngine(dataclasses.replace(cfg, tyre_gain_tau_s=0.0))
     assert fixed.tyre_gain(np.array([fixed.add(VehicleConfig())]))[0] == 1.0
+
+
+def test_persistent_rim_innovations_open_the_rim_excess() -> None:
+    """A rim innovation that keeps its sign (drawbar set down: slip the accelerometer cannot
+    see) adds rim-excess process noise; white innovations of the expected size add none."""
+    rng = np.random.default_rng(5)
+    cfg = MdsfConfig(rim_drift_tau_s=1.0, rim_drift_sigma=2.0)
+    engine = MdsfEngine(cfg)
+    slots = np.array([engine.add(VehicleConfig()), engine.add(VehicleConfig())])
+    s = np.full((2, 2), 0.01**2)  # innovation variance (0.01 m/s)²
+    ok = np.ones((2, 2), dtype=bool)
+    extra = []
+    for _ in range(100):
+        y = rng.normal(0.0, 0.01, (2, 2))
+        y[0, 0] += 0.02  # left wheel of the first vehicle: slip drifting away
+        engine._track_rim_innovation(slots, y, s, ok)
+        extra.append(engine._rim_drift_noise(slots))
+    q = np.array(extra[-50:])
+    assert (q[:, 0, 0] > 0).all()
+    # about the squared drift let in over the time constant
+    assert np.median(q[:, 0, 0]) == pytest.approx(0.02**2 * 0.1, rel=0.6)
+    assert np.mean(q[:, 1, :] > 0) < 0.1
+    off = MdsfEngine(dataclasses.replace(cfg, rim_drift_tau_s=0.0))
+    assert off.config.rim_drift_tau_s == 0.0
