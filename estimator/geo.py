@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["EnuFrame", "WGS84_A_M", "WGS84_F"]
+__all__ = ["WGS84_A_M", "WGS84_F", "EnuFrame"]
 
 WGS84_A_M = 6_378_137.0  # semi-major axis (WGS-84 definition)
 WGS84_F = 1.0 / 298.257223563  # flattening (WGS-84 definition)
@@ -54,7 +54,9 @@ class EnuFrame:
             [[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]], dtype=np.float64
         )
 
-    def to_enu(self, lat_deg: ArrayLike, lon_deg: ArrayLike, h_m: ArrayLike) -> tuple[Array, Array, Array]:
+    def to_enu(
+        self, lat_deg: ArrayLike, lon_deg: ArrayLike, h_m: ArrayLike
+    ) -> tuple[Array, Array, Array]:
         """Geodetic → ``(east_m, north_m, up_m)``."""
         x, y, z = _to_ecef(lat_deg, lon_deg, h_m)
         x0, y0, z0 = _to_ecef(self.lat0_deg, self.lon0_deg, self.h0_m)
@@ -63,10 +65,16 @@ class EnuFrame:
         e, n, u = np.tensordot(r, d, axes=1)
         return e, n, u
 
-    def to_geodetic(self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike) -> tuple[Array, Array, Array]:
+    def to_geodetic(
+        self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike
+    ) -> tuple[Array, Array, Array]:
         """``(east_m, north_m, up_m)`` → geodetic ``(lat_deg, lon_deg, h_m)``."""
         enu = np.stack(
-            [np.asarray(east_m, np.float64), np.asarray(north_m, np.float64), np.asarray(up_m, np.float64)]
+            [
+                np.asarray(east_m, np.float64),
+                np.asarray(north_m, np.float64),
+                np.asarray(up_m, np.float64),
+            ]
         )
         x0, y0, z0 = _to_ecef(self.lat0_deg, self.lon0_deg, self.h0_m)
         dx, dy, dz = np.tensordot(self._rotation().T, enu, axes=1)

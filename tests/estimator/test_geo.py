@@ -1,0 +1,43 @@
+"""Geodetic ↔ local ENU."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from estimator.geo import WGS84_A_M, EnuFrame
+
+
+def test_anchor_is_the_origin_and_axes_point_east_north_up() -> None:
+    f = EnuFrame(52.0, 5.6, 10.0)
+    e, n, u = f.to_enu(52.0, 5.6, 10.0)
+    assert abs(e) < 1e-9 and abs(n) < 1e-9 and abs(u) < 1e-9
+    e, n, u = f.to_enu(52.0 + 1e-4, 5.6, 10.0)  # a little north
+    assert n > 11.0 and abs(e) < 1e-6
+    e, n, u = f.to_enu(52.0, 5.6 + 1e-4, 10.0)  # a little east
+    assert e > 6.0 and abs(n) < 1e-3
+    _, _, u = f.to_enu(52.0, 5.6, 15.0)  # straight up
+    assert abs(u - 5.0) < 1e-9
+
+
+def test_one_arc_minute_of_longitude_on_the_equator() -> None:
+    # on the equator a degree of longitude is the semi-major axis times pi/180
+    e, n, _ = EnuFrame(0.0, 0.0).to_enu(0.0, 1.0 / 60.0, 0.0)
+    expected = WGS84_A_M * np.pi / 180.0 / 60.0
+    assert abs(float(e) - expected) < 0.01 * 1e-3 * expected  # chord vs arc, < 10 ppm
+    assert abs(float(n)) < 1e-6
+
+
+@given(
+    lat0=st.floats(-80, 80),
+    lon0=st.floats(-180, 180),
+    east=st.floats(-5_000, 5_000),
+    north=st.floats(-5_000, 5_000),
+    up=st.floats(-100, 500),
+)
+def test_round_trip(lat0: float, lon0: float, east: float, north: float, up: float) -> None:
+    f = EnuFrame(lat0, lon0, 50.0)
+    lat, lon, h = f.to_geodetic(east, north, up)
+    e, n, u = f.to_enu(lat, lon, h)
+    assert np.allclose([e, n, u], [east, north, up], atol=1e-6)
