@@ -93,6 +93,7 @@ class Runtime:
             self.registry,
             sinks=[self.writer, self.live_hub, self.alert_engine, self.latency],
             on_new_vehicle=self._on_new_vehicle,
+            raw_sink=self.writer.submit_raw_packets if s.storage.store_raw_packets else None,
         )
         for rec in self._store.list_vehicles():
             try:

@@ -48,7 +48,7 @@ from estimator.config import VehicleConfig
 from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
 from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, Verdict
-from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber
+from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
 from server.protocol.codec import DecodeError, Packet
 from server.settings import Settings, UnknownVehiclePolicy
 
@@ -96,6 +96,9 @@ class Pipeline:
     sinks : sequence of EstimateSink
     on_new_vehicle : callable(vehicle_id, config), optional
         Called for vehicles registered by the pipeline itself (auto or Zenoh config).
+    raw_sink : callable, optional
+        Receives the raw packets as they arrived (``StorageSettings.store_raw_packets``), on the
+        ingest thread: see :class:`IngestSubscriber`.
     clock_ns : callable, optional
         Monotonic clock in ns (for the reorder buffers' idle release); injectable for tests.
     wall_clock_ns : callable, optional
@@ -110,6 +113,7 @@ class Pipeline:
         sinks: Sequence[EstimateSink] = (),
         on_new_vehicle: Callable[[str, VehicleConfig], None] | None = None,
         *,
+        raw_sink: Callable[[list[RawPacket]], object] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         wall_clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
@@ -139,7 +143,7 @@ class Pipeline:
         self._advanced_ns: dict[str, int] = {}
         self._unregistered_counted: set[str] = set()
         self._subscriber = (
-            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit)
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit, raw_sink)
             if session is not None
             else None
         )

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -27,7 +28,7 @@ from server.protocol.codec import DecodeError, Packet, decode, decode_config
 from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK
 from server.settings import IngestSettings, ZenohSettings
 
-__all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber"]
+__all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber", "RawPacket"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,9 @@ class ConfigUpdate:
 
 IngestItem = Packet | DecodeError
 
+#: ``(vehicle_id, received_ns, key, payload)`` of one packet as it arrived.
+RawPacket = tuple[str, int, str, bytes]
+
 
 class IngestSubscriber:
     """Declares the subscribers and runs the decode thread.
@@ -58,6 +62,10 @@ class IngestSubscriber:
         Prefix, vehicle filter, channel capacity; payload size limit.
     deliver : callable
         Receives each decoded burst (a list of :data:`IngestItem`); may block (backpressure).
+    raw_sink : callable, optional
+        Receives each burst's raw packets as ``(vehicle_id, received_ns, key, payload)``
+        (wall-clock receive time; packets whose key names no vehicle are left out), for
+        ``StorageSettings.store_raw_packets``.
     """
 
     def __init__(
@@ -66,11 +74,13 @@ class IngestSubscriber:
         zenoh_settings: ZenohSettings,
         ingest_settings: IngestSettings,
         deliver: Callable[[list[IngestItem]], None],
+        raw_sink: Callable[[list[RawPacket]], object] | None = None,
     ) -> None:
         self._session = session
         self._zs = zenoh_settings
         self._max_payload = ingest_settings.max_payload_bytes
         self._deliver = deliver
+        self._raw_sink = raw_sink
         self._thread: threading.Thread | None = None
         self._sensors: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
         self._config: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
@@ -115,16 +125,19 @@ class IngestSubscriber:
             if self._thread.is_alive():
                 log.warning("ingest thread did not stop within %.1f s", timeout_s)
 
-    def _decode(self, sample: zenoh.Sample) -> IngestItem:
+    def _decode(self, sample: zenoh.Sample, raw: list[RawPacket] | None) -> IngestItem:
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        item: IngestItem
         try:
-            return decode(
-                str(sample.key_expr),
-                sample.payload.to_bytes(),
-                prefix=self._zs.key_prefix,
-                max_payload_bytes=self._max_payload,
+            item = decode(
+                key, payload, prefix=self._zs.key_prefix, max_payload_bytes=self._max_payload
             )
         except DecodeError as exc:
-            return exc
+            item = exc
+        if raw is not None and item.vehicle_id:
+            raw.append((item.vehicle_id, time.time_ns(), key, payload))
+        return item
 
     def poll_configs(self) -> list[ConfigUpdate]:
         """Configs received since the last call (refused ones are logged and skipped)."""
@@ -154,7 +167,10 @@ class IngestSubscriber:
                 first = sensors.recv()
             except zenoh.ZError:
                 return  # channel closed: subscriber undeclared
-            burst: list[IngestItem] = [self._decode(first)]
+            raw: list[RawPacket] | None = [] if self._raw_sink is not None else None
+            burst: list[IngestItem] = [self._decode(first, raw)]
             while len(burst) < BURST and (sample := sensors.try_recv()) is not None:
-                burst.append(self._decode(sample))
+                burst.append(self._decode(sample, raw))
+            if raw and self._raw_sink is not None:
+                self._raw_sink(raw)
             self._deliver(burst)

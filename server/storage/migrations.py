@@ -12,7 +12,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 4):
+Schema (version 5):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -25,8 +25,9 @@ Schema (version 4):
 ``ingest_counters``
     ``(vehicle_id, name) -> total``; keyed by the id text so counters of vehicles that were
     rejected (never registered) can be kept too.
-``raw_packets`` (version 2)
-    received payloads when ``StorageSettings.store_raw_packets`` is on.
+``raw_packets`` (version 2; keyed by ``vehicle_id`` text since version 5)
+    received payloads when ``StorageSettings.store_raw_packets`` is on, as they arrived, also
+    from vehicles not (yet) registered; deleted with their vehicle and by retention.
 ``api_tokens`` (version 4)
     REST bearer tokens: ``id``, ``name``, ``role`` (``viewer`` / ``operator`` / ``admin``),
     ``token_sha256`` (hex SHA-256 of the token, unique; the token itself is never stored),
@@ -230,11 +231,41 @@ _V4_POSTGRESQL = (
     """,
 )
 
+# Raw packets are kept as they arrived, also before (or without) the vehicle's registration, so
+# they are keyed by the vehicle id text like the ingest counters, not by the vehicles table.
+_V5_SQLITE = (
+    """
+    CREATE TABLE raw_packets_by_id (
+        id INTEGER PRIMARY KEY,
+        vehicle_id TEXT NOT NULL,
+        received_ns INTEGER NOT NULL,
+        key TEXT NOT NULL,
+        payload BLOB NOT NULL
+    )
+    """,
+    "INSERT INTO raw_packets_by_id (vehicle_id, received_ns, key, payload) "
+    "SELECT v.vehicle_id, r.received_ns, r.key, r.payload "
+    "FROM raw_packets r JOIN vehicles v ON v.vkey = r.vkey ORDER BY r.id",
+    "DROP TABLE raw_packets",
+    "ALTER TABLE raw_packets_by_id RENAME TO raw_packets",
+    "CREATE INDEX raw_packets_vehicle_received ON raw_packets (vehicle_id, received_ns)",
+)
+
+_V5_POSTGRESQL = (
+    "ALTER TABLE raw_packets ADD COLUMN vehicle_id text",
+    "UPDATE raw_packets r SET vehicle_id = v.vehicle_id FROM vehicles v WHERE v.vkey = r.vkey",
+    "ALTER TABLE raw_packets ALTER COLUMN vehicle_id SET NOT NULL",
+    "DROP INDEX raw_packets_vkey_received",
+    "ALTER TABLE raw_packets DROP COLUMN vkey",
+    "CREATE INDEX raw_packets_vehicle_received ON raw_packets (vehicle_id, received_ns)",
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
     Migration(3, "packed estimate rows (SQLite)", _V3_SQLITE, ()),
     Migration(4, "API access tokens (hashed)", _V4_SQLITE, _V4_POSTGRESQL),
+    Migration(5, "raw packets keyed by vehicle id", _V5_SQLITE, _V5_POSTGRESQL),
 )
 
 _VERSION_TABLE = {

@@ -232,7 +232,8 @@ class PostgresStore:
     def delete_vehicle(self, vehicle_id: str) -> bool:
         with self._pool.connection() as conn, conn.transaction():
             conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = %s", (vehicle_id,))
-            # estimates and raw_packets go by ON DELETE CASCADE
+            conn.execute("DELETE FROM raw_packets WHERE vehicle_id = %s", (vehicle_id,))
+            # estimates go by ON DELETE CASCADE
             cur = conn.execute("DELETE FROM vehicles WHERE vehicle_id = %s", (vehicle_id,))
             return cur.rowcount > 0
 
@@ -335,10 +336,7 @@ class PostgresStore:
                     "DELETE FROM estimates WHERE vkey = %s AND stamp_ns < %s", (vkey, int(stamp_ns))
                 )
                 deleted += max(cur.rowcount, 0)
-                conn.execute(
-                    "DELETE FROM raw_packets WHERE vkey = %s AND received_ns < %s",
-                    (vkey, int(stamp_ns)),
-                )
+            conn.execute("DELETE FROM raw_packets WHERE received_ns < %s", (int(stamp_ns),))
         return deleted
 
     # ------------------------------------------------------------------ counters
@@ -418,23 +416,17 @@ class PostgresStore:
     # ------------------------------------------------------------------ raw packets
 
     def write_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
-        """Store ``(vehicle_id, received_ns, key, payload)`` tuples; unknown vehicles skipped."""
+        """Store ``(vehicle_id, received_ns, key, payload)`` tuples (registered or not)."""
         if not packets:
             return 0
-        with self._pool.connection() as conn, conn.transaction():
-            keys = self._vkeys(conn, sorted({p[0] for p in packets}))
-            params = [
-                (keys[vid], int(t), key, bytes(payload))
-                for vid, t, key, payload in packets
-                if vid in keys
-            ]
-            with conn.cursor() as cur:
-                cur.executemany(
-                    "INSERT INTO raw_packets (vkey, received_ns, key, payload) "
-                    "VALUES (%s, %s, %s, %s)",
-                    params,
-                )
-            return len(params)
+        params = [(vid, int(t), key, bytes(payload)) for vid, t, key, payload in packets]
+        with self._pool.connection() as conn, conn.transaction(), conn.cursor() as cur:
+            cur.executemany(
+                "INSERT INTO raw_packets (vehicle_id, received_ns, key, payload) "
+                "VALUES (%s, %s, %s, %s)",
+                params,
+            )
+        return len(params)
 
     def query_raw_packets(
         self, vehicle_id: str, start_ns: int, end_ns: int
@@ -442,8 +434,8 @@ class PostgresStore:
         """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
         rows = self._one_row_query(
             "SELECT received_ns, key, payload FROM raw_packets "
-            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
-            "AND received_ns >= %s AND received_ns < %s ORDER BY received_ns, id",
+            "WHERE vehicle_id = %s AND received_ns >= %s AND received_ns < %s "
+            "ORDER BY received_ns, id",
             (vehicle_id, int(start_ns), int(end_ns)),
         )
         return [(int(t), str(k), bytes(p)) for t, k, p in rows]

@@ -263,11 +263,11 @@ class SqliteStore:
                 "SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vehicle_id,)
             ).fetchone()
             conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = ?", (vehicle_id,))
+            conn.execute("DELETE FROM raw_packets WHERE vehicle_id = ?", (vehicle_id,))
             if row is None:
                 return False
             # Explicit deletes, so correctness never depends on the foreign_keys pragma.
             conn.execute("DELETE FROM estimates WHERE vkey = ?", (row[0],))
-            conn.execute("DELETE FROM raw_packets WHERE vkey = ?", (row[0],))
             conn.execute("DELETE FROM vehicles WHERE vkey = ?", (row[0],))
         return True
 
@@ -372,10 +372,7 @@ class SqliteStore:
                 deleted += conn.execute(
                     "DELETE FROM estimates WHERE vkey = ? AND stamp_ns < ?", (vkey, int(stamp_ns))
                 ).rowcount
-                conn.execute(
-                    "DELETE FROM raw_packets WHERE vkey = ? AND received_ns < ?",
-                    (vkey, int(stamp_ns)),
-                )
+            conn.execute("DELETE FROM raw_packets WHERE received_ns < ?", (int(stamp_ns),))
         return deleted
 
     # ------------------------------------------------------------------ counters
@@ -453,21 +450,17 @@ class SqliteStore:
     # ------------------------------------------------------------------ raw packets
 
     def write_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
-        """Store ``(vehicle_id, received_ns, key, payload)`` tuples; unknown vehicles skipped."""
+        """Store ``(vehicle_id, received_ns, key, payload)`` tuples (registered or not)."""
         if not packets:
             return 0
+        params = [(vid, int(t), key, bytes(payload)) for vid, t, key, payload in packets]
         with self._write() as conn:
-            keys = self._vkeys(conn, {p[0] for p in packets})
-            params = [
-                (keys[vid], int(t), key, bytes(payload))
-                for vid, t, key, payload in packets
-                if vid in keys
-            ]
             conn.executemany(
-                "INSERT INTO raw_packets (vkey, received_ns, key, payload) VALUES (?, ?, ?, ?)",
+                "INSERT INTO raw_packets (vehicle_id, received_ns, key, payload) "
+                "VALUES (?, ?, ?, ?)",
                 params,
             )
-            return len(params)
+        return len(params)
 
     def query_raw_packets(
         self, vehicle_id: str, start_ns: int, end_ns: int
@@ -475,8 +468,8 @@ class SqliteStore:
         """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
         rows = self._read(
             "SELECT received_ns, key, payload FROM raw_packets "
-            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = ?) "
-            "AND received_ns >= ? AND received_ns < ? ORDER BY received_ns, id",
+            "WHERE vehicle_id = ? AND received_ns >= ? AND received_ns < ? "
+            "ORDER BY received_ns, id",
             (vehicle_id, int(start_ns), int(end_ns)),
         )
         return [(int(t), str(k), bytes(p)) for t, k, p in rows]

@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import sqlite3
 import threading
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from server.storage import StorageError, open_store
-from server.storage.migrations import MIGRATIONS, apply_pending, latest_version
+from server.storage.migrations import (
+    _VERSION_TABLE,
+    MIGRATIONS,
+    apply_pending,
+    latest_version,
+)
+from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import Backend
 
 
@@ -83,3 +91,32 @@ def test_newer_schema_refused_by_store(backend: Backend, monkeypatch: pytest.Mon
     monkeypatch.setattr(mig, "MIGRATIONS", mig.MIGRATIONS[:1])  # an older server
     with pytest.raises(StorageError, match="newer"):
         store.migrate()
+
+
+def test_raw_packets_survive_the_move_to_vehicle_id_keys(tmp_path: Path) -> None:
+    """A version-4 SQLite database with raw packets migrates to version 5 keeping them."""
+    path = tmp_path / "v4.sqlite"
+    conn = sqlite3.connect(path)
+    conn.execute(_VERSION_TABLE["sqlite"])
+    for m in MIGRATIONS:
+        if m.version > 4:
+            break
+        for sql in m.statements("sqlite"):
+            conn.execute(sql)
+        conn.execute(
+            "INSERT INTO schema_version (version, description, applied_ns) VALUES (?, ?, 0)",
+            (m.version, m.description),
+        )
+    conn.execute(
+        "INSERT INTO vehicles (vkey, vehicle_id, config, created_ns, updated_ns) "
+        "VALUES (7, 'old-1', '{}', 1, 1)"
+    )
+    conn.execute(
+        "INSERT INTO raw_packets (vkey, received_ns, key, payload) VALUES (7, 5, 'k', x'0102')"
+    )
+    conn.commit()
+    conn.close()
+    store = SqliteStore(path)
+    assert store.migrate() == latest_version() >= 5
+    assert store.query_raw_packets("old-1", 0, 10) == [(5, "k", b"\x01\x02")]
+    store.close()

@@ -189,9 +189,13 @@ def test_counters_upsert(store: Store) -> None:
 def test_raw_packets(store: Store) -> None:
     _register(store, "v1")
     packets = [("v1", T0_NS + i, f"fleet/v1/sensors/imu/{i}", bytes([i, 0, 255])) for i in range(5)]
-    assert store.write_raw_packets([*packets, ("ghost", T0_NS, "k", b"x")]) == 5  # type: ignore[attr-defined]
+    # packets of a vehicle not (yet) registered are kept too: they arrive before registration
+    assert store.write_raw_packets([*packets, ("ghost", T0_NS, "k", b"x")]) == 6  # type: ignore[attr-defined]
     got = store.query_raw_packets("v1", T0_NS + 1, T0_NS + 4)  # type: ignore[attr-defined]
     assert got == [(t, k, p) for _, t, k, p in packets[1:4]]
+    assert store.query_raw_packets("ghost", 0, 2**62) == [(T0_NS, "k", b"x")]  # type: ignore[attr-defined]
+    store.delete_vehicle("ghost")  # never registered: its raw packets go all the same
+    assert store.query_raw_packets("ghost", 0, 2**62) == []  # type: ignore[attr-defined]
     store.delete_older_than(T0_NS + 2)
     assert len(store.query_raw_packets("v1", 0, 2**62)) == 3  # type: ignore[attr-defined]
     store.delete_vehicle("v1")
