@@ -1485,6 +1485,15 @@ class MdsfFleet:
         """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
         self._fe[vehicle_id].push(measurement)
 
+    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame (its first GNSS
+        fix), to which ``east_m``/``north_m``/``up_m`` of its rows refer; None before that fix."""
+        fe = self._fe.get(vehicle_id)
+        frame = fe.frame if fe is not None else None
+        if frame is None:
+            return None
+        return (frame.lat0_deg, frame.lon0_deg, frame.h0_m)
+
     def counters(self, vehicle_id: str) -> dict[str, int]:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
         degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import logging
+import math
 import threading
 import time
 from collections import Counter
@@ -60,6 +61,9 @@ log = logging.getLogger(__name__)
 
 VEHICLE_ID_FORMAT = "sim-{:04d}"
 TICK_NS = 100_000_000
+#: Origin of the first simulated run (a field in the Netherlands) and the spacing of the others.
+SIM_ORIGIN_DEG = (52.0, 5.6)
+SIM_ORIGIN_SPACING_M = 250.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -234,6 +238,17 @@ class FleetSim:
     def vehicle_ids(self) -> list[str]:
         return [VEHICLE_ID_FORMAT.format(self._first + i) for i in range(self._n)]
 
+    @staticmethod
+    def spread_origin(k: int) -> dict[str, float]:
+        """Run ``k`` starts 250 m east of run ``k - 1`` (unless an origin is given), so the
+        vehicles of a demo or load test do not drive on top of each other."""
+        lat0, lon0 = SIM_ORIGIN_DEG
+        return {
+            "origin_lat_deg": lat0,
+            "origin_lon_deg": lon0
+            + k * SIM_ORIGIN_SPACING_M / (111_320.0 * math.cos(math.radians(lat0))),
+        }
+
     def _build(self) -> list[_Vehicle]:
         """Simulate the distinct runs and lay the vehicles out; stamps are anchored later.
 
@@ -244,7 +259,12 @@ class FleetSim:
 
         start = self._clock()
         runs = [
-            simulate(self._scenario, seed=self._seed + k, start_ns=start, **self._overrides)  # type: ignore[arg-type]
+            simulate(
+                self._scenario,
+                seed=self._seed + k,
+                start_ns=start,
+                **{**self.spread_origin(k), **self._overrides},  # type: ignore[arg-type]
+            )
             for k in range(self._distinct)
         ]
         packetized = [packetize(run.in_arrival_order(), run.start_ns) for run in runs]

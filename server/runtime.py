@@ -22,6 +22,7 @@ from typing import Any
 import zenoh
 
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from estimator.geo import EnuFrame
 from server.alerts import AlertEngine, AlertKind
 from server.api.prometheus import MetricFamily, Sample
 from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
@@ -66,6 +67,7 @@ class Runtime:
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self._alert_publishers: dict[str, zenoh.Publisher] = {}
+        self._fleet_frame: EnuFrame | None = None
         #: sensor-time → live feed / stored latency histograms (``server.latency``)
         self.latency = LatencyProbe()
 
@@ -117,7 +119,9 @@ class Runtime:
         if s.viewer.enabled:
             from server.viewer.fleet_view import FleetViewer
 
-            self.viewer = FleetViewer(self.live_hub, s.viewer)
+            self.viewer = FleetViewer(
+                self.live_hub, s.viewer, origin_offset_m=self._origin_offset_m
+            )
             self.viewer.start()
         log.info(
             "runtime open: %s storage, zenoh %s, %d stored vehicles",
@@ -200,6 +204,17 @@ class Runtime:
             self.live_hub.forget(vehicle_id)
         if self.alert_engine is not None:
             self.alert_engine.forget(vehicle_id)
+
+    def _origin_offset_m(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """Where a vehicle's local ENU frame sits in the fleet's frame (the 3D view's), or None
+        until its first GNSS fix. The fleet frame is anchored at the first anchor seen."""
+        anchor = self.pipeline.anchors_snapshot().get(vehicle_id) if self.pipeline else None
+        if anchor is None:
+            return None
+        if self._fleet_frame is None:
+            self._fleet_frame = EnuFrame(*anchor)
+        e, n, u = self._fleet_frame.to_enu(*anchor)
+        return (float(e), float(n), float(u))
 
     # ------------------------------------------------------------------ background
     def _flush_loop(self) -> None:

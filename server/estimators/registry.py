@@ -131,6 +131,20 @@ class EstimatorRegistry:
                 out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
         return out
 
+    def anchors(self) -> dict[str, tuple[float, float, float]]:
+        """Geodetic anchor ``(lat_deg, lon_deg, height_m)`` of each vehicle's local ENU frame,
+        from the estimators that have one (an optional ``anchor(vehicle_id)``); the vehicle's
+        primary estimator wins. Call on the thread that owns the registry."""
+        out: dict[str, tuple[float, float, float]] = {}
+        for vid, names in self._routes.items():
+            for name in names:
+                get = getattr(self._estimators.get(name), "anchor", None)
+                got = get(vid) if callable(get) else None
+                if got is not None:
+                    out[vid] = got
+                    break
+        return out
+
     @property
     def available(self) -> tuple[str, ...]:
         """Every estimator name this registry can build."""

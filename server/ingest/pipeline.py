@@ -56,7 +56,8 @@ __all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
-#: How often the pipeline thread copies the estimators' event counters for other threads.
+#: How often the pipeline thread copies the estimators' event counters and ENU anchors for
+#: other threads.
 ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
 
 #: Decoded bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at
@@ -137,6 +138,7 @@ class Pipeline:
         self._control: deque[tuple[str, str, VehicleConfig | None]] = deque()
         self._counters = IngestCounters()
         self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
+        self._anchors: dict[str, tuple[float, float, float]] = {}
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
         self._active: set[str] = set()
@@ -238,6 +240,10 @@ class Pipeline:
         ``{estimator: {vehicle_id: {event: n}}}`` (see ``EstimatorRegistry.counters``)."""
         return self._estimator_counters
 
+    def anchors_snapshot(self) -> dict[str, tuple[float, float, float]]:
+        """Each vehicle's ENU anchor ``(lat_deg, lon_deg, height_m)`` as of the last second."""
+        return self._anchors
+
     def counters_snapshot(self) -> dict[str, dict[str, int]]:
         """Per-vehicle ingest counters (see :mod:`server.ingest.counters`)."""
         return self._counters.snapshot()
@@ -280,6 +286,7 @@ class Pipeline:
                     next_tick = max(next_tick + self._interval_ns, now + self._interval_ns // 4)
                 if now >= next_counters:
                     self._estimator_counters = self._registry.counters()
+                    self._anchors = self._registry.anchors()
                     next_counters = now + ESTIMATOR_COUNTERS_EVERY_NS
             except Exception:  # a bug here must not stall ingest (Zenoh would block on us)
                 self._stats["pipeline_errors"] += 1

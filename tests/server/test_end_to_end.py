@@ -131,7 +131,9 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
                 assert float(line.rsplit(" ", 1)[1]) > 100, line
             for i, vid in enumerate(ids):
                 phase = (i * TICK_NS) // N_VEHICLES
-                truth = simulate(SCENARIO, seed=SEED + i, start_ns=base, **OVERRIDES).truth
+                truth = simulate(
+                    SCENARIO, seed=SEED + i, start_ns=base, **FleetSim.spread_origin(i), **OVERRIDES
+                ).truth
                 truth_stamps = truth["stamp_ns"] + phase
                 truth["stamp_ns"] = truth_stamps
                 cols = _series(client, vid, window)

@@ -149,3 +149,23 @@ def test_counters_come_from_estimators_that_keep_them() -> None:
     recording, _ = _registry()  # estimators without counters are left out
     recording.add_vehicle("v2", VehicleConfig())
     assert recording.counters() == {}
+
+
+def test_anchors_are_each_vehicles_first_fix() -> None:
+    from estimator.sim import simulate
+    from estimator.types import GnssSample
+
+    run = simulate("paper_straight", seed=3, start_ns=1_700_000_000_000_000_000)
+    registry = EstimatorRegistry()
+    registry.add_vehicle("v1", run.config)
+    assert registry.anchors() == {}
+    until = run.start_ns + 3_000_000_000
+    for m in run.measurements:
+        stamp = m.stamp_ns if isinstance(m, GnssSample) else int(m.stamp_ns[-1])
+        if stamp <= until:
+            registry.push("v1", m)
+    registry.advance({"v1": until})
+    first = next(m for m in run.measurements if isinstance(m, GnssSample))
+    lat, lon, h = registry.anchors()["v1"]
+    assert abs(lat - first.lat_deg) < 1e-5 and abs(lon - first.lon_deg) < 1e-5  # within ~1 m
+    assert abs(h - first.height_m) < 1.0
