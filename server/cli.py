@@ -8,7 +8,7 @@ Subcommands::
     slipfleet replay   PATH [--rate X] [--connect ENDPOINT]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
-    slipfleet bench    {accuracy,storage,series,live,viewer,throughput} [--json PATH]
+    slipfleet bench    {accuracy,storage,series,live,viewer,throughput} [OPTIONS…]
     slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
@@ -111,8 +111,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import importlib
 
     module = importlib.import_module(f"server.bench.{args.which}")
-    module.run(json_path=args.json)
-    return 0
+    return int(module.main(list(args.options)) or 0)
 
 
 def _cmd_token(args: argparse.Namespace) -> int:
@@ -231,7 +230,12 @@ def _parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmarks that print tables")
     b.add_argument("which", choices=BENCHES)
-    b.add_argument("--json", type=Path, default=None, help="also write the numbers as JSON")
+    b.add_argument(
+        "options",
+        nargs=argparse.REMAINDER,
+        help="the benchmark's own options, e.g. --json PATH, --seeds 1,2,3 "
+        "(slipfleet bench NAME --help lists them)",
+    )
     b.set_defaults(func=_cmd_bench)
 
     t = sub.add_parser("token", help="REST access tokens in the configured store")
