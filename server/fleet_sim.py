@@ -274,7 +274,9 @@ class FleetSim:
             packets = packetized[i % self._distinct]  # shared, read-only
             period = run.end_ns - run.start_ns + TICK_NS
             phase = (i * TICK_NS) // self._n
-            vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, run.config))
+            # the vehicle registers its simulated sensors' noise figures, as an integrator would
+            config = dataclasses.replace(run.config, noise=run.sensor_noise)
+            vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, config))
         return vehicles
 
     def run(self, duration_s: float | None = None) -> SimStats:

@@ -27,11 +27,12 @@ DURATION_S = 40.0  # upper bound of the run's length
 RATE = 3.0  # publish three times faster than real time
 N_VEHICLES = 2
 SEED = 11
-#: The accuracy floors themselves (slip RMS <= 1.0 pp) are measured by ``slipfleet bench
-#: accuracy`` on runs whose sensor epochs sit on the estimator's tick grid. Here the fleet
-#: simulator spreads vehicles over the 100 ms tick, so the second vehicle's epochs fall 50 ms off
-#: the grid; that has measured 0.95-1.05 pp on this drive. The bound checks that the wire path
-#: (codec, reorder buffer, pipeline, storage, REST) adds no error beyond that.
+#: The issue's floor (slip RMS <= 1.0 pp) is measured by ``slipfleet bench accuracy``. Here the
+#: drive goes through the whole wire path (codec, reorder buffer, pipeline, storage, REST), and
+#: the second vehicle's sensor epochs sit 50 ms off the estimator's tick grid, which the bench
+#: does not exercise: measured 0.79-0.85 pp for the first vehicle, 0.82-1.06 pp for the second.
+#: The bound leaves room for that spread; an off-grid vehicle at the floor is an open estimator
+#: item, not something this test should hide by shrinking the drive.
 SLIP_RMS_BOUND_PP = 1.25
 
 
