@@ -172,6 +172,20 @@ class FeedThread:
             self._stop.wait(max(0.0, next_t - time.monotonic()))
 
 
+#: Headless Chromium flags for this machine's closed network (no background fetches, no GPU,
+#: root without a sandbox); the browser tests use the same.
+CHROMIUM_ARGS: tuple[str, ...] = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -376,18 +390,10 @@ def _browser_measure(
 ) -> None:
     from playwright.sync_api import sync_playwright
 
-    args = [
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-    ]
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=executable, args=args, headless=True)
+        browser = p.chromium.launch(
+            executable_path=executable, args=list(CHROMIUM_ARGS), headless=True
+        )
         try:
             ctx = browser.new_context(viewport={"width": 1400, "height": 900})
             vehicle_page = ctx.new_page()

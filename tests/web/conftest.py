@@ -31,7 +31,7 @@ from server.api import create_app
 from server.api.app import API_ROUTERS
 from server.api.routes import alerts as alerts_routes
 from server.api.routes import live as live_routes
-from server.bench.live import FeedThread, SyntheticFleet
+from server.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.live import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
@@ -41,16 +41,6 @@ from tests.support import free_port
 REPO = Path(__file__).resolve().parents[2]
 SCREENSHOTS = REPO / "artifacts" / "screenshots"
 CHROMIUM = os.environ.get("SLIPFLEET_CHROMIUM", "/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 N_VEHICLES = 12
 SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
 
@@ -166,7 +156,7 @@ def browser() -> Iterator[Any]:
     if not Path(CHROMIUM).exists():
         pytest.fail(f"Chromium not found at {CHROMIUM}: apt-get install -y chromium", pytrace=False)
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        b = p.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_ARGS), headless=True)
         try:
             yield b
         finally:
