@@ -18,12 +18,16 @@ from __future__ import annotations
 import importlib
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any, cast
 
 from fastapi import APIRouter, Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse
 from fastapi.routing import APIRoute
+from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_role
@@ -192,6 +196,27 @@ def _default_runtime(settings: Settings) -> ApiRuntime:
     return cast(ApiRuntime, module.Runtime(settings))
 
 
+#: Swagger UI files vendored from npm (``web/vendor/README.md``), served with the API docs.
+SWAGGER_UI_DIR = Path(__file__).resolve().parents[2] / "web" / "vendor" / "swagger-ui"
+_DOCS_ASSETS = "/docs-assets"
+
+
+def _mount_docs(app: FastAPI) -> None:
+    """``/docs``: Swagger UI over ``/openapi.json``, its script and style served from this app
+    (a field server has no internet, so the CDN default would show a blank page)."""
+    app.mount(_DOCS_ASSETS, StaticFiles(directory=SWAGGER_UI_DIR), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json",
+            title="Slipfleet API",
+            swagger_js_url=f"{_DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{_DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url="data:,",
+        )
+
+
 def create_app(
     settings: Settings,
     runtime: ApiRuntime | None = None,
@@ -229,7 +254,7 @@ def create_app(
         title="Slipfleet",
         summary="Per-wheel slip telemetry of a vehicle fleet",
         version="1",
-        docs_url="/docs",
+        docs_url=None,  # served below with the vendored Swagger UI: no CDN at run time
         redoc_url=None,
         openapi_url="/openapi.json",
         lifespan=lifespan,
@@ -247,6 +272,7 @@ def create_app(
             guard = [] if id(router) in public else [Depends(require_role(Role.VIEWER))]
             app.include_router(router, prefix=API_PREFIX, dependencies=guard)
     app.openapi = lambda: _openapi_with_bearer(app)  # type: ignore[method-assign]
+    _mount_docs(app)
     app.add_middleware(BodySizeLimit, max_bytes=app.state.limits.max_body_bytes)
     app.add_middleware(WebSocketBearerProtocol)
     if settings.api.cors_origins:  # outermost, so refusals (413) carry CORS headers too

@@ -123,3 +123,16 @@ def test_routers_are_one_list(tmp_path: Path) -> None:
             for op in p.values()
         ]
         assert ids.count("live-ping") == 1
+
+
+def test_api_docs_need_no_internet(client: ApiClient) -> None:
+    """``/docs`` loads Swagger UI from this server, not from a CDN (field servers are offline)."""
+    page = client.get("/docs")
+    assert page.status_code == 200
+    html = page.text
+    assert "/docs-assets/swagger-ui-bundle.js" in html and "/docs-assets/swagger-ui.css" in html
+    assert "cdn." not in html and "https://" not in html
+    for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
+        r = client.get(f"/docs-assets/{asset}")
+        assert r.status_code == 200 and len(r.content) > 100_000
+
