@@ -56,6 +56,9 @@ __all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
+#: Counter-name prefix of a stream's highest sequence number (``seq_high_imu`` …).
+SEQ_HIGH = "seq_high_"
+
 #: How often the pipeline thread copies the estimators' event counters and ENU anchors for
 #: other threads.
 ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
@@ -139,6 +142,8 @@ class Pipeline:
         self._counters = IngestCounters()
         self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
         self._anchors: dict[str, tuple[float, float, float]] = {}
+        self._seq_high: dict[str, dict[str, int]] = {}  # copied by the pipeline thread
+        self._resume_seq: dict[str, dict[str, int]] = {}  # from a previous run, until first packet
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
         self._active: set[str] = set()
@@ -232,8 +237,14 @@ class Pipeline:
         self._control.append(("remove", vehicle_id, None))
 
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
-        """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`)."""
+        """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`);
+        its sequence tracking resumes after the stored ``seq_high_<stream>`` numbers."""
         self._counters.restore(vehicle_id, totals)
+        highest = {
+            k.removeprefix(SEQ_HIGH): int(v) for k, v in totals.items() if k.startswith(SEQ_HIGH)
+        }
+        if highest:
+            self._resume_seq[vehicle_id] = highest
 
     def estimator_counters_snapshot(self) -> dict[str, dict[str, dict[str, int]]]:
         """The estimators' event counters (resets, gated GNSS, …) as of the last second:
@@ -245,8 +256,14 @@ class Pipeline:
         return self._anchors
 
     def counters_snapshot(self) -> dict[str, dict[str, int]]:
-        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`)."""
-        return self._counters.snapshot()
+        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`), plus each stream's
+        highest sequence number as of the last second (``seq_high_<stream>``), which
+        :meth:`restore_counters` uses to count what was sent while the server was down."""
+        snap = self._counters.snapshot()
+        for vid, highest in self._seq_high.items():
+            if vid in snap:
+                snap[vid].update({f"{SEQ_HIGH}{stream}": n for stream, n in highest.items()})
+        return snap
 
     def stats(self) -> dict[str, Any]:
         """Pipeline health: queue depth, ticks, rows emitted, errors, last tick duration."""
@@ -287,6 +304,7 @@ class Pipeline:
                 if now >= next_counters:
                     self._estimator_counters = self._registry.counters()
                     self._anchors = self._registry.anchors()
+                    self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
                     next_counters = now + ESTIMATOR_COUNTERS_EVERY_NS
             except Exception:  # a bug here must not stall ingest (Zenoh would block on us)
                 self._stats["pipeline_errors"] += 1
@@ -303,6 +321,7 @@ class Pipeline:
             if rest:
                 self._handle(rest[1], rest[0])
         self._tick(self._clock(), flush=True)
+        self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}  # final counters
 
     def _apply_control(self) -> None:
         while self._control:
@@ -361,6 +380,7 @@ class Pipeline:
                 if not self._admit(item):
                     continue
                 buf = self._buffers[vid] = self._new_buffer()
+                buf.resume_seq(self._resume_seq.pop(vid, {}))
             offer = buf.offer(item, now)
             if offer.seq_restart:
                 counters.seq_restart(vid)

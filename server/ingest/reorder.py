@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum
 
@@ -90,6 +91,16 @@ class SeqTracker:
         self._highest = -1
         self._first = -1  # numbers below the first one seen were never counted lost
         self._mask = 0  # bit i set: sequence number highest - i was seen
+
+    @property
+    def highest(self) -> int:
+        """Highest sequence number seen (-1 before the first)."""
+        return self._highest
+
+    def resume(self, highest: int) -> None:
+        """Continue after ``highest`` (stored by a previous server run): numbers after it that
+        never arrive count as lost, so packets sent while the server was down are accounted."""
+        self._highest, self._first, self._mask = int(highest), int(highest), 1
 
     def observe(self, seq: int) -> tuple[bool, int, bool]:
         """Return ``(is_duplicate, lost_delta, restarted)`` and record ``seq``."""
@@ -243,6 +254,17 @@ class ReorderBuffer:
     def is_idle(self, now_ns: int) -> bool:
         """No packet arrived for the idle time (the vehicle stopped sending, for now)."""
         return now_ns - self._last_arrival_ns >= self._idle_ns
+
+    def seq_highest(self) -> dict[str, int]:
+        """Highest sequence number seen per stream, ``{stream name: seq}``."""
+        return {stream.value: t.highest for stream, t in self._seq.items() if t.highest >= 0}
+
+    def resume_seq(self, highest: Mapping[str, int]) -> None:
+        """Continue each stream's sequence tracking after ``highest[stream name]``."""
+        for stream in Stream:
+            if stream.value in highest:
+                tracker = self._seq[stream] = SeqTracker()
+                tracker.resume(highest[stream.value])
 
     def horizon_ns(self, now_ns: int) -> int | None:
         """The sensor time that may be released at ``now_ns`` (None while nothing arrived)."""

@@ -199,3 +199,21 @@ def test_refusals_of_many_unregistered_ids_share_one_bucket(
     assert sorted(snap) == ["", "known", "x0", "x1", "x2"]
     assert snap[""]["rejected_unknown_vehicle"] == 7 and snap[""]["rejected_wrong_type"] == 5
     assert snap["known"]["rejected_wrong_type"] == 1
+
+
+def test_sequence_tracking_resumes_after_a_restart() -> None:
+    """Packets sent while the server was down count as lost once it is back."""
+    pipe, _, _ = make()
+    pipe.start()
+    pipe.submit([imu("a", 0, 0), imu("a", 1, 10), imu("a", 2, 20)])
+    pipe.stop()
+    stored = pipe.counters_snapshot()["a"]
+    assert stored["seq_high_imu"] == 2 and stored["lost_by_seq_gap"] == 0
+    again, _, _ = make()  # the next server run, from the stored totals
+    again.restore_counters("a", stored)
+    again.start()
+    again.submit([imu("a", 7, 70), imu("a", 8, 80)])  # 3..6 were sent while it was down
+    again.stop()
+    c = again.counters_snapshot()["a"]
+    assert c["lost_by_seq_gap"] == 4 and c["seq_high_imu"] == 8
+    assert c["received"] == 5 == c["accepted"]
