@@ -53,6 +53,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
+from server.ports import free_port
+
 if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
     import httpx
     import psutil
@@ -81,15 +83,6 @@ _STORAGE_URL_ENV = "SLIPFLEET_STORAGE__URL"
 
 
 # ---------------------------------------------------------------------------------- servers
-
-
-def free_port() -> int:
-    """A loopback TCP port that was free a moment ago."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

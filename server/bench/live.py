@@ -34,7 +34,6 @@ import argparse
 import asyncio
 import json
 import math
-import socket
 import statistics
 import threading
 import time
@@ -44,6 +43,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from estimator.types import EstimateFlag, empty_estimates
+from server.ports import free_port as _free_port
 
 __all__ = ["FeedThread", "SyntheticFleet", "main"]
 
@@ -184,12 +184,6 @@ CHROMIUM_ARGS: tuple[str, ...] = (
     "--disable-component-update",
     "--disable-sync",
 )
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def _watch(

@@ -20,7 +20,6 @@ fit well inside the 200 ms of a 5 Hz update.
 from __future__ import annotations
 
 import argparse
-import socket
 import statistics
 import time
 from collections.abc import Sequence
@@ -31,6 +30,7 @@ import viser
 from estimator.config import VehicleGeometry
 from server.bench.live import SyntheticFleet
 from server.live import LiveHub
+from server.ports import free_port as _free_port
 from server.settings import ViewerSettings
 from server.viewer.fleet_view import FleetViewer
 from server.viewer.scene import BODY_SIZE_M, cylinder_mesh_x, fleet_frame
@@ -39,12 +39,6 @@ __all__ = ["main"]
 
 _T0 = 1_700_000_000 * 1_000_000_000
 _STEP_NS = 200_000_000
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _pct(v: list[float], q: float) -> float:

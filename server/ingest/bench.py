@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -29,6 +28,7 @@ import numpy as np
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_DTYPE
+from server.ports import free_port as _free_port
 
 __all__ = ["bench_codec", "bench_ingest", "main"]
 
@@ -129,12 +129,6 @@ with zenoh.open(config) as session:
     print(json.dumps({"publish_s": time.perf_counter() - t}), flush=True)
     time.sleep(0.5)
 """
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def bench_ingest(vehicles: int, n_packets: int, estimator: str = "null") -> dict[str, float]:

@@ -189,34 +189,44 @@ class FleetViewer:
     # ------------------------------------------------------------------ frames
     def _rebuild_fleet(self, frame: FleetFrame) -> None:
         """(Re)create the batched meshes when the number of vehicles changes."""
-        assert self.server is not None
-        scene = self.server.scene
         for h in (self._bodies, self._wheels):
             if h is not None:
                 h.remove()
-        bv, bf = box_mesh(BODY_SIZE_M)
-        self._bodies = scene.add_batched_meshes_simple(
-            "/fleet/bodies",
-            vertices=bv,
-            faces=bf,
-            batched_wxyzs=frame.body_wxyz,
-            batched_positions=frame.body_position_m,
-            batched_colors=frame.body_rgb,
-            lod="off",
-            flat_shading=True,
-            cast_shadow=False,
-            receive_shadow=False,
-        )
         g = self.geometry
         r = (g.wheel_radius_left_m + g.wheel_radius_right_m) / 2
-        wv, wf = cylinder_mesh_x(r, _WHEEL_WIDTH_M)
-        self._wheels = scene.add_batched_meshes_simple(
+        self._bodies = self._batched(
+            "/fleet/bodies",
+            box_mesh(BODY_SIZE_M),
+            frame.body_wxyz,
+            frame.body_position_m,
+            frame.body_rgb,
+        )
+        self._wheels = self._batched(
             "/fleet/wheels",
-            vertices=wv,
-            faces=wf,
-            batched_wxyzs=frame.wheel_wxyz,
-            batched_positions=frame.wheel_position_m,
-            batched_colors=frame.wheel_rgb,
+            cylinder_mesh_x(r, _WHEEL_WIDTH_M),
+            frame.wheel_wxyz,
+            frame.wheel_position_m,
+            frame.wheel_rgb,
+        )
+
+    def _batched(
+        self,
+        path: str,
+        mesh: tuple[np.ndarray, np.ndarray],
+        wxyz: np.ndarray,
+        position_m: np.ndarray,
+        rgb: np.ndarray,
+    ) -> viser.BatchedMeshHandle:
+        """One batched mesh (an instance per vehicle part), flat-shaded, no shadows."""
+        assert self.server is not None
+        vertices, faces = mesh
+        return self.server.scene.add_batched_meshes_simple(
+            path,
+            vertices=vertices,
+            faces=faces,
+            batched_wxyzs=wxyz,
+            batched_positions=position_m,
+            batched_colors=rgb,
             lod="off",
             flat_shading=True,
             cast_shadow=False,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import socket
 import threading
 from collections.abc import Iterator, Mapping
 
@@ -16,6 +15,7 @@ from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_DTYPE, GnssSample, empty_estimates
 from server.ingest.zenoh_session import open_session
 from server.settings import ZenohSettings
+from tests.support import free_port
 
 
 class RecordingFleet:
@@ -72,12 +72,6 @@ class CapturingSink:
         with self.lock:
             for vid, rows in batch:
                 self.rows.setdefault(vid, []).append(rows)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @contextlib.contextmanager

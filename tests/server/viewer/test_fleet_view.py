@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import socket
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -18,14 +17,9 @@ from server.settings import ViewerSettings
 from server.viewer.colors import slip_rgb
 from server.viewer.fleet_view import ARROW_SECONDS, NO_FOLLOW, FleetViewer
 from server.viewer.scene import rotation_matrix_from_wxyz
+from tests.support import free_port as _free_port
 
 T0 = 1_700_000_000 * 1_000_000_000
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _row(t_s: float, east: float, north: float, heading: float, sl: float, sr: float) -> np.ndarray:
