@@ -12,7 +12,8 @@
 The pipeline thread owns the estimator registry, every reorder buffer and the counters' writes,
 so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` it releases the
 packets whose time has come, pushes them to the vehicle's estimators, advances them to the
-released horizon (in sensor-time steps of at least ``advance_step_ms``) and hands the primary
+released horizon (each time it crosses a multiple of ``advance_step_ms``; with the MDSF tick
+as the step, as soon as a tick is due) and hands the primary
 estimator's rows, ``[(vehicle_id, rows), ...]``, to each sink's ``on_estimates`` (and every
 estimator's rows to a sink's optional ``on_output(name, batch)``). Sinks run on this thread:
 they must only enqueue (the storage writer and live hub do).
@@ -404,6 +405,7 @@ class Pipeline:
             self._lateness_ns,
             clock_jump_ns=self._clock_jump_ns,
             reanchor_after=self._ingest.reanchor_after_packets,
+            watermarks=self._ingest.stream_watermarks,
         )
 
     def _reanchor(self, vid: str, buf: ReorderBuffer, packet: Packet, now: int) -> None:
@@ -469,9 +471,10 @@ class Pipeline:
                 for packet in packets:
                     self._push(vid, packet)
             last = self._advanced_ns.get(vid)
+            step = self._advance_step_ns
             if released is not None and (
                 last is None
-                or released >= last + self._advance_step_ns
+                or released // step > last // step
                 or (released != last and (flush or buf.is_idle(now)))
             ):
                 until[vid] = released

@@ -7,7 +7,23 @@ buffer holds them in a heap keyed by the packet's first sample time and releases
     horizon = newest sample time seen (any stream) - lateness
 
 so a packet may arrive up to ``lateness`` (sensor time) after newer data and still be fed in
-order. When the vehicle goes quiet for ``idle`` of wall time (monotonic clock, an argument;
+order.
+
+With ``watermarks`` (the server's default) the horizon does not wait the whole window when it
+need not: each stream has a *watermark*, the last sample time of its longest run of
+consecutive sequence numbers (everything of that stream up to it has arrived, whatever the
+arrival order inside the stream), and ::
+
+    horizon = max(newest - lateness, min over the vehicle's streams of their watermarks)
+
+A packet that is missing (lost, or still on its way) holds its stream's watermark until the
+fixed window passes it; then the run resumes after the gap. During the first ``lateness`` of
+sensor time after a vehicle's first packet (at least :data:`WATERMARK_START_NS`: a stream's
+first packet arrives only when its batch is complete) only the fixed window applies, so every stream the
+vehicle sends gets a watermark before they gate the release (a stream that starts later
+may find its first packet late: nothing could wait for it). Sensor-to-estimate latency drops
+from ``lateness`` to the spread between the vehicle's streams (batches ending ~together: a few
+ms) without making more packets late. When the vehicle goes quiet for ``idle`` of wall time (monotonic clock, an argument;
 default ``max(2 * lateness, 1 s)``: a publisher stalled for a moment must not look like
 a vehicle that stopped), the horizon jumps to the newest sample time so the tail is
 released too.
@@ -48,6 +64,8 @@ __all__ = ["SEQ_WINDOW", "Offer", "ReorderBuffer", "SeqTracker", "Verdict"]
 
 #: How far back (in sequence numbers) duplicates are recognised per stream.
 SEQ_WINDOW = 4096
+#: Shortest start-up window (sensor time) before stream watermarks gate a vehicle's release.
+WATERMARK_START_NS = 1_000_000_000
 #: Shortest default idle time (wall clock) before a quiet vehicle's tail is released.
 IDLE_MIN_NS = 1_000_000_000
 
@@ -126,6 +144,47 @@ class SeqTracker:
         return False, (-1 if seq > self._first else 0), False
 
 
+class _StreamMark:
+    """One stream's watermark: the last sample time of its run of consecutive sequence numbers.
+
+    Packets ahead of a gap wait in ``ahead`` (``seq -> last stamp``) until the gap fills, or
+    until the fixed window passes them (:meth:`skip_gaps`: the missing ones are given up on).
+    """
+
+    __slots__ = ("ahead", "seq", "stamp_ns")
+
+    def __init__(self, seq: int, stamp_ns: int) -> None:
+        self.seq = seq
+        self.stamp_ns = stamp_ns
+        self.ahead: dict[int, int] = {}
+
+    def arrived(self, seq: int, last_stamp_ns: int) -> None:
+        if seq == self.seq + 1:
+            self.seq, self.stamp_ns = seq, max(self.stamp_ns, last_stamp_ns)
+            if self.ahead:
+                self._follow()
+        elif seq > self.seq + 1:
+            self.ahead[seq] = last_stamp_ns
+        # seq <= self.seq: a gap filled behind the run (already skipped): nothing to move
+
+    def _follow(self) -> None:
+        ahead = self.ahead
+        while (nxt := ahead.pop(self.seq + 1, None)) is not None:
+            self.seq += 1
+            self.stamp_ns = max(self.stamp_ns, nxt)
+
+    def skip_gaps(self, horizon_ns: int) -> None:
+        """Give up on the missing packets before every waiting one the fixed window passed."""
+        ahead = self.ahead
+        while ahead:
+            first = min(ahead)
+            if ahead[first] > horizon_ns:
+                return
+            self.seq = first
+            self.stamp_ns = max(self.stamp_ns, ahead.pop(first))
+            self._follow()
+
+
 class ReorderBuffer:
     """One vehicle's packets, released in order of first sample time.
 
@@ -139,6 +198,9 @@ class ReorderBuffer:
         Sensor-time jump refused as a clock jump (see module docstring); None: no check.
     reanchor_after : int
         Consistent clock-jump packets in a row that move the vehicle's time base.
+    watermarks : bool
+        Release up to the streams' watermarks when they are ahead of the fixed window (see
+        the module docstring); False: the fixed window alone.
     """
 
     def __init__(
@@ -148,6 +210,7 @@ class ReorderBuffer:
         *,
         clock_jump_ns: int | None = None,
         reanchor_after: int = 5,
+        watermarks: bool = False,
     ) -> None:
         if lateness_ns < 0:
             raise ValueError("lateness_ns must be >= 0")
@@ -168,6 +231,8 @@ class ReorderBuffer:
         self._newest_ns: int | None = None
         self._released_ns: int | None = None
         self._last_arrival_ns = 0
+        self._watermarks: dict[Stream, _StreamMark] | None = {} if watermarks else None
+        self._first_ns: int | None = None
 
     @property
     def pending(self) -> int:
@@ -201,7 +266,7 @@ class ReorderBuffer:
         self._jumps_in_row = 0
         if self._released_ns is not None and packet.first_stamp_ns <= self._released_ns:
             return Offer(Verdict.LATE, lost_delta, restarted)
-        return Offer(self._take(packet, now_ns), lost_delta, restarted)
+        return Offer(self._take(packet, now_ns, seq_restart=restarted), lost_delta, restarted)
 
     def _clock_jump(self, packet: Packet, now_ns: int, jump_ns: int) -> Verdict | None:
         """CLOCK_JUMP or REANCHOR when ``packet`` leaves the vehicle's time line, else None."""
@@ -241,12 +306,24 @@ class ReorderBuffer:
         self._newest_ns = None
         self._released_ns = None
         self._jumps_in_row = 0
+        self._first_ns = None
+        if self._watermarks is not None:
+            self._watermarks.clear()
         self._take(packet, now_ns)
 
-    def _take(self, packet: Packet, now_ns: int) -> Verdict:
+    def _take(self, packet: Packet, now_ns: int, *, seq_restart: bool = False) -> Verdict:
         self._last_arrival_ns = now_ns
         if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
             self._newest_ns = packet.last_stamp_ns
+        if self._first_ns is None:
+            self._first_ns = packet.first_stamp_ns
+        marks = self._watermarks
+        if marks is not None:
+            mark = marks.get(packet.stream)
+            if mark is None or seq_restart:
+                marks[packet.stream] = _StreamMark(packet.seq, packet.last_stamp_ns)
+            else:
+                mark.arrived(packet.seq, packet.last_stamp_ns)
         key = (packet.first_stamp_ns, _STREAM_ORDER[packet.stream], packet.seq, next(self._tie))
         heapq.heappush(self._heap, (*key, packet))
         return Verdict.ACCEPTED
@@ -272,6 +349,12 @@ class ReorderBuffer:
             return None
         idle = self.is_idle(now_ns)
         horizon = self._newest_ns if idle else self._newest_ns - self._lateness_ns
+        marks = self._watermarks
+        if marks and not idle and self._first_ns is not None:
+            for mark in marks.values():
+                mark.skip_gaps(horizon)
+            if self._newest_ns - self._first_ns >= max(self._lateness_ns, WATERMARK_START_NS):
+                horizon = max(horizon, min(m.stamp_ns for m in marks.values()))
         if self._released_ns is not None and horizon < self._released_ns:
             return self._released_ns
         return horizon

@@ -8,7 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.types import GnssSample, ImuBatch, Wheel, WheelEdges
-from server.ingest.reorder import SEQ_WINDOW, ReorderBuffer, SeqTracker, Verdict
+from server.ingest.reorder import (
+    SEQ_WINDOW,
+    WATERMARK_START_NS,
+    ReorderBuffer,
+    SeqTracker,
+    Verdict,
+)
 from server.protocol import Packet, Stream
 
 MS = 1_000_000
@@ -161,19 +167,22 @@ def test_property_released_in_order_and_accounted(
 @given(
     jitter_ms=st.lists(st.integers(0, 400), min_size=30, max_size=30),
     lateness_ms=st.integers(0, 300),
+    watermarks=st.booleans(),
 )
 def test_property_three_streams_never_feed_behind_an_advance(
-    jitter_ms: list[int], lateness_ms: int
+    jitter_ms: list[int], lateness_ms: int, watermarks: bool
 ) -> None:
     """Packets of three streams with random delays: whatever is accepted later starts after the
     time already released (so advancing estimators to it was safe), every packet is accounted,
-    and a packet that arrives within the lateness of the newest data is never late."""
+    and a packet that arrives within the lateness of the newest data is never late (with
+    watermarks: unless it is the first of a stream that started after the start-up window,
+    which no watermark could wait for)."""
     packets = []
     for k in range(10):
         packets.append((k, imu_packet(k, 100 * k)))  # [100k, 100k + 9] ms
         packets.append((k, gnss_packet(k, 100 * k + 50)))
         packets.append((k, wheels_packet(k, 100 * k + 3)))  # edges in [100k + 3, 100k + 99]
-    buf = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18)
+    buf = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18, watermarks=watermarks)
     arrivals = sorted(
         ((p.last_stamp_ns + jitter_ms[i] * MS, i, p) for i, (_, p) in enumerate(packets)),
         key=lambda a: (a[0], a[1]),
@@ -181,6 +190,7 @@ def test_property_three_streams_never_feed_behind_an_advance(
     released_before: int | None = None
     newest = None
     accepted = late = 0
+    streams_seen: set[Stream] = set()
     for at, _, p in arrivals:
         offer = buf.offer(p, now_ns=at)
         if offer.verdict is Verdict.ACCEPTED:
@@ -188,7 +198,113 @@ def test_property_three_streams_never_feed_behind_an_advance(
             assert released_before is None or p.first_stamp_ns > released_before
         elif offer.verdict is Verdict.LATE:
             late += 1
-            assert newest is not None and p.first_stamp_ns <= newest - lateness_ms * MS
+            new_stream = watermarks and p.stream not in streams_seen
+            assert newest is not None
+            assert new_stream or p.first_stamp_ns <= newest - lateness_ms * MS
+        streams_seen.add(p.stream)
         newest = p.last_stamp_ns if newest is None else max(newest, p.last_stamp_ns)
         _, released_before = buf.release(now_ns=at)
     assert accepted + late == len(packets)
+
+
+# -- stream watermarks ---------------------------------------------------------------------------
+
+
+def three_streams(k: int) -> list[Packet]:
+    """The k-th 100 ms of a vehicle: IMU [100k, 100k+9], GNSS at 100k+5, wheels to 100k+99."""
+    return [imu_packet(k, 100 * k), gnss_packet(k, 100 * k + 5), wheels_packet(k, 100 * k + 3)]
+
+
+def test_watermarks_release_what_every_stream_has_delivered() -> None:
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    fixed = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18)
+    for k in range(15):
+        for p in three_streams(k):
+            assert buf.offer(p, 0).verdict is Verdict.ACCEPTED
+            fixed.offer(p, 0)
+    # streams are complete up to IMU 1409, GNSS 1405, wheels 1499: the horizon is their
+    # minimum, not newest - lateness (1199 ms)
+    assert buf.release(0)[1] == T0 + 1405 * MS
+    assert fixed.release(0)[1] == T0 + 1199 * MS
+
+
+def test_watermarks_wait_the_fixed_window_at_start() -> None:
+    """Until the start-up window has passed, streams not heard yet may still come."""
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    for k in range(8):
+        buf.offer(imu_packet(k, 100 * k), 0)
+    assert buf.release(0)[1] == T0 + 709 * MS - 300 * MS
+    assert WATERMARK_START_NS > 709 * MS
+    # a GNSS stream appearing now is not late
+    assert buf.offer(gnss_packet(0, 500), 0).verdict is Verdict.ACCEPTED
+
+
+def warm(buf: ReorderBuffer, n: int = 12) -> int:
+    """Feed ``n`` IMU packets (past the start-up window); returns the next sequence number."""
+    for k in range(n):
+        buf.offer(imu_packet(k, 100 * k), 0)
+    return n
+
+
+def test_watermark_holds_at_a_sequence_gap_until_it_fills() -> None:
+    buf = ReorderBuffer(lateness_ns=500 * MS, idle_ns=10**18, watermarks=True)
+    n = warm(buf)
+    for k in range(n, n + 6):
+        if k == n + 3:
+            continue  # this IMU packet is delayed in the network
+        buf.offer(imu_packet(k, 100 * k), 0)
+    # the IMU watermark stays at the last sample before the gap
+    assert buf.release(0)[1] == T0 + (100 * (n + 2) + 9) * MS
+    assert buf.offer(imu_packet(n + 3, 100 * (n + 3)), 0).verdict is Verdict.ACCEPTED
+    out, released = buf.release(0)
+    assert released == T0 + (100 * (n + 5) + 9) * MS
+    assert [p.seq for p in out] == [n + 3, n + 4, n + 5]
+
+
+def test_watermark_gives_up_on_a_lost_packet_after_the_window() -> None:
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    n = warm(buf)
+    lost = 0
+    for k in range(n, n + 10):
+        if k == n + 3:
+            continue  # lost for good
+        lost += buf.offer(imu_packet(k, 100 * k), 0).lost_delta
+        buf.release(0)
+    assert lost == 1
+    # the fixed window passed the packet after the gap: the run resumed after it
+    assert buf.release(0)[1] == T0 + (100 * (n + 9) + 9) * MS
+    assert buf.offer(imu_packet(n + 3, 100 * (n + 3)), 0).verdict is Verdict.LATE
+
+
+def test_watermark_follows_a_sequence_restart() -> None:
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    n = warm(buf)
+    offer = buf.offer(imu_packet(SEQ_WINDOW * 3, 100 * n), 0)  # counter reset
+    assert offer.seq_restart
+    buf.offer(imu_packet(SEQ_WINDOW * 3 + 1, 100 * (n + 1)), 0)
+    assert buf.release(0)[1] == T0 + (100 * (n + 1) + 9) * MS
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    delay_ms=st.lists(st.integers(0, 60), min_size=3, max_size=3),
+    lateness_ms=st.integers(170, 400),  # > one batch (100 ms) + the delay spread
+)
+def test_property_in_order_streams_are_never_late_and_lag_only_their_spread(
+    delay_ms: list[int], lateness_ms: int
+) -> None:
+    """Each stream in order with its own constant network delay: nothing is ever late, and once
+    the start-up window has passed, the horizon trails the arrivals by at most the spread of the
+    delays plus one packet, never by the whole window."""
+    buf = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18, watermarks=True)
+    arrivals = sorted(
+        (p.last_stamp_ns + delay_ms[i] * MS, i, p)
+        for k in range(30)
+        for i, p in enumerate(three_streams(k))
+    )
+    for at, _, p in arrivals:
+        assert buf.offer(p, at).verdict is Verdict.ACCEPTED
+        _, released = buf.release(at)
+        assert released is not None
+        if at - T0 > max(lateness_ms * MS, WATERMARK_START_NS) + 200 * MS:
+            assert at - released <= (max(delay_ms) + 100) * MS + 1
