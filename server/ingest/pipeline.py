@@ -67,7 +67,9 @@ ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
 #: Decoded bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at
 #: most: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
 QUEUE_BURSTS = 64
-#: Default sensor-time step between two ``advance`` calls of a vehicle (see ``Pipeline``).
+#: Wall time between two visits of every active vehicle's reorder buffer (idle release);
+#: in between, a tick visits only the vehicles that received packets.
+IDLE_SWEEP_NS = 100_000_000
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
 MAX_UNREGISTERED_COUNTED = 1000
@@ -147,7 +149,9 @@ class Pipeline:
         self._resume_seq: dict[str, dict[str, int]] = {}  # from a previous run, until first packet
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
-        self._active: set[str] = set()
+        self._active: set[str] = set()  # vehicles with data not yet released/advanced
+        self._arrived: set[str] = set()  # vehicles with packets accepted since the last tick
+        self._next_sweep_ns = 0
         self._advanced_ns: dict[str, int] = {}
         self._unregistered_counted: set[str] = set()
         self._subscriber = (
@@ -334,6 +338,7 @@ class Pipeline:
                 self._buffers.pop(vid, None)
                 self._configs.pop(vid, None)
                 self._active.discard(vid)
+                self._arrived.discard(vid)
                 self._advanced_ns.pop(vid, None)
                 self._unregistered_counted.discard(vid)
                 self._counters.forget(vid)
@@ -388,6 +393,7 @@ class Pipeline:
             if offer.verdict is Verdict.ACCEPTED:
                 counters.accepted(vid, offer.lost_delta)
                 self._active.add(vid)
+                self._arrived.add(vid)
             elif offer.verdict is Verdict.LATE:
                 counters.late(vid, offer.lost_delta)
             elif offer.verdict is Verdict.DUPLICATE:
@@ -399,6 +405,7 @@ class Pipeline:
                 counters.clock_reanchor(vid)
                 counters.accepted(vid, offer.lost_delta)
                 self._active.add(vid)
+                self._arrived.add(vid)
 
     def _new_buffer(self) -> ReorderBuffer:
         return ReorderBuffer(
@@ -464,7 +471,15 @@ class Pipeline:
         until: dict[str, int] = {}
         registry = self._registry
         drained: list[str] = []
-        for vid in self._active:
+        # A vehicle's horizon moves when its packets arrive, or when it falls idle: visit the
+        # vehicles that received something, and every vehicle once per IDLE_SWEEP_NS.
+        if flush or now >= self._next_sweep_ns:
+            visit: set[str] = self._active
+            self._next_sweep_ns = now + IDLE_SWEEP_NS
+        else:
+            visit = self._arrived & self._active
+        self._arrived = set()
+        for vid in visit:
             buf = self._buffers[vid]
             packets, released = buf.release(now, flush=flush)
             if registry.has_vehicle(vid):

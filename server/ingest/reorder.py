@@ -7,7 +7,9 @@ buffer holds them in a heap keyed by the packet's first sample time and releases
     horizon = newest sample time seen (any stream) - lateness
 
 so a packet may arrive up to ``lateness`` (sensor time) after newer data and still be fed in
-order.
+order. When the vehicle goes quiet for ``idle`` of wall time (monotonic clock, an argument;
+default ``max(2 * lateness, 1 s)``: a publisher stalled for a moment must not look like a
+vehicle that stopped), the horizon jumps to the newest sample time so the tail is released too.
 
 With ``watermarks`` (the server's default) the horizon does not wait the whole window when it
 need not: each stream has a *watermark*, the last sample time of its longest run of
@@ -17,16 +19,13 @@ arrival order inside the stream), and ::
     horizon = max(newest - lateness, min over the vehicle's streams of their watermarks)
 
 A packet that is missing (lost, or still on its way) holds its stream's watermark until the
-fixed window passes it; then the run resumes after the gap. During the first ``lateness`` of
-sensor time after a vehicle's first packet (at least :data:`WATERMARK_START_NS`: a stream's
-first packet arrives only when its batch is complete) only the fixed window applies, so every stream the
-vehicle sends gets a watermark before they gate the release (a stream that starts later
-may find its first packet late: nothing could wait for it). Sensor-to-estimate latency drops
-from ``lateness`` to the spread between the vehicle's streams (batches ending ~together: a few
-ms) without making more packets late. When the vehicle goes quiet for ``idle`` of wall time (monotonic clock, an argument;
-default ``max(2 * lateness, 1 s)``: a publisher stalled for a moment must not look like
-a vehicle that stopped), the horizon jumps to the newest sample time so the tail is
-released too.
+fixed window passes it; then the run resumes after the gap. For the first
+``max(lateness, WATERMARK_START_NS)`` of sensor time after a vehicle's first packet only the
+fixed window applies (a stream's first packet arrives only once its batch is complete), so
+every stream the vehicle sends has a watermark before they gate the release; a stream that
+starts later may find its first packet late (nothing could wait for it). Sensor-to-estimate
+latency drops from ``lateness`` to the spread between the vehicle's streams, without making
+more packets late.
 
 A packet whose first sample time is at or before the horizon already released is **late**: it
 is counted and never fed (feeding it would break the estimators' time order). Sequence numbers
