@@ -185,7 +185,9 @@ class _Tier:
         self.spec = spec
         self.cap = spec.capacity
         self.bucket_ns = spec.bucket_ns
-        self.stamp = np.zeros((slots, self.cap), dtype=np.int64)
+        # np.full, not np.zeros: every page is written now (zeros would map them lazily and the
+        # resident size would creep up for the tier's whole span as the rings fill)
+        self.stamp = np.full((slots, self.cap), 0, dtype=np.int64)
         self.vals = np.full((slots, self.cap, _NF), np.nan, dtype=np.float32)
         self.head = np.zeros(slots, dtype=np.int64)  # next write position (monotonic counter)
         self.count = np.zeros(slots, dtype=np.int64)
@@ -193,7 +195,7 @@ class _Tier:
 
     def grow(self, slots: int) -> None:
         extra = slots - self.head.shape[0]
-        self.stamp = np.concatenate([self.stamp, np.zeros((extra, self.cap), np.int64)])
+        self.stamp = np.concatenate([self.stamp, np.full((extra, self.cap), 0, np.int64)])
         self.vals = np.concatenate([self.vals, np.full((extra, self.cap, _NF), np.nan, np.float32)])
         self.head = np.concatenate([self.head, np.zeros(extra, np.int64)])
         self.count = np.concatenate([self.count, np.zeros(extra, np.int64)])
