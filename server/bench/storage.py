@@ -6,14 +6,22 @@ For each backend, on a fresh database:
 
 * **insert, batched writer** — the vehicle-hour (36,000 rows at 10 Hz) goes through
   :class:`~server.storage.StoreWriter` in 1-second packets of 10 rows, as the pipeline submits
-  them; rows/s from the first submit until ``flush`` returns;
-* **insert, one commit per row** — the baseline: ``write_estimates`` with a single row,
-  ``--baseline-rows`` times; rows/s;
+  them; rows/s from the first submit until ``flush`` returns, and µs per row;
+* **insert, batched writer, fleet** — the same number of rows spread over ``--fleet-vehicles``
+  vehicles (1-second packets round-robin, as a fleet's traffic interleaves), so a transaction
+  carries a few rows of many vehicles;
+* SQLite only, both inserts again into the **column layout** of schema versions 3-5 (every
+  field a column plus the packed copy, the store's insert of version 5, kept in this module),
+  each in a fresh database: the baseline for the packed-only layout of version 6, with the ratio
+  of the two costs per row;
+* **insert, one commit per row** — ``write_estimates`` with a single row, ``--baseline-rows``
+  times; rows/s;
 * **warm series query** — ``query_series`` over the full hour, all 27 fields and a few fields
   (``stamp_ns``, ``vg_mps``, ``slip_left_pct``, ``slip_right_pct``, ``flags``), after one
   warm-up call; median and best of ``--repeats`` calls in ms, twice: on a quiet interpreter and
   while another Python thread keeps the interpreter busy (as the pipeline thread does while it
-  steps the estimators), with the ratio of the two medians.
+  steps the estimators), with the ratio of the two medians. SQLite also reads the hour back
+  column by column from the column-layout database (the read path before packed rows).
 
 The issue's target is a vehicle-hour series query under 100 ms warm on SQLite; the result says
 per query and per condition whether it holds. ``--postgres`` takes the server from the settings
@@ -30,26 +38,28 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from estimator.types import ESTIMATE_FIELDS, EstimateFlag, empty_estimates
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, EstimateFlag, empty_estimates
 from server.settings import StorageSettings
-from server.storage import Store, StoreWriter
-from server.storage._columns import FIELD_NAMES
+from server.storage import Store, StoreWriter, migrations
+from server.storage._columns import FIELD_NAMES, FLOAT_FIELDS, check_rows
 from server.storage.sqlite import SqliteStore
 
 __all__ = ["main", "run"]
 
 VEHICLE_HOUR_ROWS = 36_000
 RATE_HZ = 10
+FLEET_VEHICLES = 1000
 FEW_FIELDS = ("vg_mps", "slip_left_pct", "slip_right_pct", "flags")
 TARGET_MS = 100.0
 _T0_NS = 1_763_700_000_000_000_000
+_S = TypeVar("_S", bound=SqliteStore)
 
 
 def synthetic_hour(n: int = VEHICLE_HOUR_ROWS, seed: int = 0) -> np.ndarray:
@@ -72,6 +82,82 @@ def synthetic_hour(n: int = VEHICLE_HOUR_ROWS, seed: int = 0) -> np.ndarray:
 
 def _rate(rows: int, seconds: float) -> float:
     return rows / seconds if seconds > 0 else float("inf")
+
+
+class ColumnLayoutStore(SqliteStore):
+    """The SQLite store's estimate layout and insert of schema version 5, as the baseline.
+
+    Every field a column (NaN as NULL) plus the row's packed bytes, inserted with one tuple of
+    28 values per row; reads through the columns. Opened on its own file, migrated to version 5.
+    """
+
+    def migrate(self) -> int:
+        with self._write() as conn:
+            version, _ = migrations.apply_pending(
+                lambda sql, params: conn.execute(sql, params).fetchall(), self.dialect, target=5
+            )
+        return version
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
+        with self._write() as conn:
+            before = conn.total_changes
+            for vid, rows in checked:
+                found = conn.execute(
+                    "SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vid,)
+                ).fetchone()
+                if found is None:
+                    continue
+                sql = (
+                    f"INSERT INTO estimates (vkey, {', '.join(FIELD_NAMES)}, packed) "
+                    f"VALUES ({int(found[0])}, {', '.join('?' * (len(FIELD_NAMES) + 1))}) "
+                    "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
+                )
+                buf, size = rows.tobytes(), ESTIMATE_DTYPE.itemsize
+                conn.executemany(
+                    sql,
+                    [(*v, buf[i * size : (i + 1) * size]) for i, v in enumerate(rows.tolist())],
+                )
+            return conn.total_changes - before
+
+    def query_series_columns(self, vehicle_id: str, start_ns: int, end_ns: int) -> np.ndarray:
+        """Every field through the columns: one Python object per value."""
+        select = ", ".join(f"coalesce({n}, 'nan')" if n in FLOAT_FIELDS else n for n in FIELD_NAMES)
+        cur = self._conn().execute(
+            f"SELECT {select} FROM estimates "
+            "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = ?) "
+            "AND stamp_ns >= ? AND stamp_ns < ? ORDER BY stamp_ns",
+            (vehicle_id, start_ns, end_ns),
+        )
+        return np.fromiter(cur, dtype=ESTIMATE_DTYPE)
+
+
+def _insert_through_writer(store: Store, rows: np.ndarray, vehicles: int) -> tuple[float, int]:
+    """``rows`` through a :class:`StoreWriter` in 1-second packets, dealt round-robin to
+    ``vehicles`` new vehicles (deleted again); seconds from first submit to flush, and the
+    number of transactions."""
+    ids = [f"bench-{uuid.uuid4().hex[:8]}" for _ in range(vehicles)]
+    for vid in ids:
+        store.upsert_vehicle(vid, {}, now_ns=time.time_ns())
+    try:
+        packets = [rows[i : i + RATE_HZ] for i in range(0, len(rows), RATE_HZ)]
+        writer = StoreWriter(store, StorageSettings.model_validate({}))
+        writer.start()
+        t0 = time.perf_counter()
+        for i, packet in enumerate(packets):
+            # vehicle j gets packets j, j + vehicles, ...: each its own consecutive seconds
+            writer.submit([(ids[i % vehicles], packet)])
+        if not writer.flush(timeout=600):
+            raise RuntimeError("writer did not flush within 10 minutes")
+        seconds = time.perf_counter() - t0
+        writer.close()
+        wstats = writer.stats()
+        if wstats.rows_written != len(rows):
+            raise RuntimeError(f"writer wrote {wstats.rows_written} of {len(rows)} rows")
+    finally:
+        for vid in ids:
+            store.delete_vehicle(vid)
+    return seconds, wstats.transactions
 
 
 def _timed_ms(fn: Callable[[], object], repeats: int) -> dict[str, float]:
@@ -121,26 +207,64 @@ def _timed_query(fn: Callable[[], object], repeats: int) -> dict[str, Any]:
     }
 
 
+_INSERT_CASES = ("insert_batched", "insert_batched_fleet")
+
+
+def _bench_inserts(
+    stores: dict[str, Store], rows: np.ndarray, fleet_vehicles: int, repeats: int
+) -> dict[str, dict[str, dict[str, float]]]:
+    """``{layout: {case: {rows_per_s, us_per_row, best_us_per_row, transactions}}}``: each
+    case ``repeats`` times on every store, interleaved so a change in the machine's load hits
+    all alike; rates from the median run."""
+    vehicles = dict(zip(_INSERT_CASES, (1, fleet_vehicles), strict=True))
+    runs: dict[tuple[str, str], list[tuple[float, int]]] = {}
+    for _ in range(max(1, repeats)):
+        for case in _INSERT_CASES:
+            for layout, store in stores.items():
+                runs.setdefault((layout, case), []).append(
+                    _insert_through_writer(store, rows, vehicles[case])
+                )
+    out: dict[str, dict[str, dict[str, float]]] = {layout: {} for layout in stores}
+    for (layout, case), samples in runs.items():
+        seconds = statistics.median(s for s, _ in samples)
+        out[layout][case] = {
+            "rows_per_s": _rate(len(rows), seconds),
+            "us_per_row": seconds / len(rows) * 1e6,
+            "best_us_per_row": min(s for s, _ in samples) / len(rows) * 1e6,
+            "transactions": samples[0][1],
+        }
+    return out
+
+
+def _column_read(store: ColumnLayoutStore, rows: np.ndarray, repeats: int) -> dict[str, Any]:
+    """The vehicle-hour read through the columns of the column layout."""
+    hour_id = f"bench-{uuid.uuid4().hex[:8]}"
+    store.upsert_vehicle(hour_id, {}, now_ns=time.time_ns())
+    try:
+        store.write_estimates([(hour_id, rows)])
+        start_ns, end_ns = int(rows["stamp_ns"][0]), int(rows["stamp_ns"][-1]) + 1
+        return _timed_query(lambda: store.query_series_columns(hour_id, start_ns, end_ns), repeats)
+    finally:
+        store.delete_vehicle(hour_id)
+
+
 def _bench_store(
-    store: Store, rows: np.ndarray, baseline_rows: int, repeats: int
+    store: Store,
+    rows: np.ndarray,
+    baseline_rows: int,
+    repeats: int,
+    fleet_vehicles: int,
+    column_layout: ColumnLayoutStore | None = None,
 ) -> dict[str, Any]:
+    stores: dict[str, Store] = {"current": store}
+    if column_layout is not None:
+        stores["column_layout"] = column_layout
+    inserts = _bench_inserts(stores, rows, fleet_vehicles, repeats)
     hour_id, base_id = f"bench-{uuid.uuid4().hex[:8]}", f"bench-{uuid.uuid4().hex[:8]}"
     store.upsert_vehicle(hour_id, {}, now_ns=time.time_ns())
     store.upsert_vehicle(base_id, {}, now_ns=time.time_ns())
     try:
-        # batched writer, 1-second packets as the pipeline hands them over
-        writer = StoreWriter(store, StorageSettings.model_validate({}))
-        writer.start()
-        t0 = time.perf_counter()
-        for i in range(0, len(rows), RATE_HZ):
-            writer.submit([(hour_id, rows[i : i + RATE_HZ])])
-        if not writer.flush(timeout=600):
-            raise RuntimeError("writer did not flush within 10 minutes")
-        batched_s = time.perf_counter() - t0
-        writer.close()
-        wstats = writer.stats()
-        if wstats.rows_written != len(rows):
-            raise RuntimeError(f"writer wrote {wstats.rows_written} of {len(rows)} rows")
+        store.write_estimates([(hour_id, rows)])
 
         # baseline: one transaction per row
         base = rows[:baseline_rows]
@@ -158,36 +282,39 @@ def _bench_store(
         q_few = _timed_query(
             lambda: store.query_series(hour_id, start_ns, end_ns, FEW_FIELDS), repeats
         )
-        column_read = None
-        if isinstance(store, SqliteStore):  # the read path before packed rows, as a baseline
-            column_read = _timed_query(
-                lambda: store.query_series_columns(hour_id, start_ns, end_ns, FIELD_NAMES),
-                repeats,
-            )
-        batched_rps = _rate(len(rows), batched_s)
         baseline_rps = _rate(len(base), baseline_s)
-        return {
+        out: dict[str, Any] = {
             "rows": len(rows),
-            "insert_batched_rows_per_s": batched_rps,
-            "insert_batched_transactions": wstats.transactions,
+            "fleet_vehicles": fleet_vehicles,
             "insert_one_commit_per_row_rows_per_s": baseline_rps,
             "insert_baseline_rows": len(base),
-            "insert_speedup": batched_rps / baseline_rps,
+            "insert_speedup": inserts["current"]["insert_batched"]["rows_per_s"] / baseline_rps,
             "query_all_fields": q_all,
             "query_few_fields": q_few,
-            "query_all_fields_column_read": column_read,
+            "column_layout": None,
+            "query_all_fields_column_read": None,
         }
+        for case in _INSERT_CASES:
+            for key, value in inserts["current"][case].items():
+                out[f"{case}_{key}"] = value
+        if column_layout is not None:
+            old = out["column_layout"] = {}
+            for case in _INSERT_CASES:
+                for key, value in inserts["column_layout"][case].items():
+                    old[f"{case}_{key}"] = value
+                # how many times cheaper a row is now than in the column layout
+                old[f"{case}_cost_ratio"] = old[f"{case}_us_per_row"] / out[f"{case}_us_per_row"]
+            out["query_all_fields_column_read"] = _column_read(column_layout, rows, repeats)
+        return out
     finally:
         store.delete_vehicle(hour_id)
         store.delete_vehicle(base_id)
 
 
 @contextmanager
-def _sqlite_store() -> Iterator[Store]:
-    from server.storage.sqlite import SqliteStore
-
+def _sqlite_store(name: str, cls: type[_S]) -> Iterator[_S]:
     with tempfile.TemporaryDirectory(prefix="slipfleet-bench-") as tmp:
-        store = SqliteStore(Path(tmp) / "bench.sqlite")
+        store = cls(Path(tmp) / name)
         try:
             store.migrate()
             yield store
@@ -224,6 +351,7 @@ def run(
     rows: int = VEHICLE_HOUR_ROWS,
     baseline_rows: int = 2000,
     repeats: int = 7,
+    fleet_vehicles: int = FLEET_VEHICLES,
 ) -> dict[str, Any]:
     """Run the benchmark; print a table; write JSON to ``json_path`` if given; return results."""
     data = synthetic_hour(rows)
@@ -234,11 +362,19 @@ def run(
         "target_ms": TARGET_MS,
         "backends": {},
     }
-    with _sqlite_store() as store:
-        results["backends"]["sqlite"] = _bench_store(store, data, baseline_rows, repeats)
+    fleet_vehicles = max(1, min(fleet_vehicles, len(data) // RATE_HZ))
+    with (
+        _sqlite_store("bench.sqlite", SqliteStore) as store,
+        _sqlite_store("column-layout.sqlite", ColumnLayoutStore) as old,
+    ):
+        results["backends"]["sqlite"] = _bench_store(
+            store, data, baseline_rows, repeats, fleet_vehicles, old
+        )
     if postgres_url:
         with _postgres_store(postgres_url) as store:
-            results["backends"]["postgresql"] = _bench_store(store, data, baseline_rows, repeats)
+            results["backends"]["postgresql"] = _bench_store(
+                store, data, baseline_rows, repeats, fleet_vehicles
+            )
     print(format_table(results))
     if json_path is not None:
         Path(json_path).write_text(json.dumps(results, indent=2) + "\n")
@@ -257,8 +393,6 @@ def format_table(results: dict[str, Any]) -> str:
     ]
     for name, r in results["backends"].items():
         entries = [
-            ("insert, batched writer (rows/s)", f"{r['insert_batched_rows_per_s']:,.0f}"),
-            ("  transactions", f"{r['insert_batched_transactions']}"),
             (
                 "insert, one commit per row (rows/s)",
                 f"{r['insert_one_commit_per_row_rows_per_s']:,.0f}",
@@ -267,6 +401,29 @@ def format_table(results: dict[str, Any]) -> str:
         ]
         for metric, value in entries:
             lines.append(f"{name:<11} {metric:<42} {value:>14}")
+    lines += [
+        "",
+        "insert through the batched writer (1-second packets of 10 rows); column layout = the"
+        " SQLite schema before version 6",
+        f"{'backend':<11} {'case':<24} {'rows/s':>10} {'us/row':>8} {'txns':>5}"
+        f" {'column layout rows/s':>21} {'us/row':>8} {'cost ratio':>11}",
+    ]
+    for name, r in results["backends"].items():
+        old = r.get("column_layout")
+        for label, key in (
+            ("one vehicle", "insert_batched"),
+            (f"{r['fleet_vehicles']} vehicles", "insert_batched_fleet"),
+        ):
+            line = (
+                f"{name:<11} {label:<24} {r[key + '_rows_per_s']:>10,.0f}"
+                f" {r[key + '_us_per_row']:>8.2f} {r[key + '_transactions']:>5}"
+            )
+            if old:
+                line += (
+                    f" {old[key + '_rows_per_s']:>21,.0f} {old[key + '_us_per_row']:>8.2f}"
+                    f" {old[key + '_cost_ratio']:>10.2f}x"
+                )
+            lines.append(line)
     lines += [
         "",
         f"series query over the hour, warm, median / best (ms); target < {results['target_ms']:.0f}"
@@ -290,7 +447,7 @@ def format_table(results: dict[str, Any]) -> str:
         base = r.get("query_all_fields_column_read")
         if base:
             ratio = base["median_ms"] / r["query_all_fields"]["median_ms"]
-            lines.append(f"{name}: packed-row read is {ratio:.1f}x faster than the column read")
+            lines.append(f"{name}: packed read is {ratio:.1f}x faster than the column read")
     return "\n".join(lines)
 
 
@@ -303,6 +460,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rows", type=int, default=VEHICLE_HOUR_ROWS)
     parser.add_argument("--baseline-rows", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument(
+        "--fleet-vehicles", type=int, default=FLEET_VEHICLES, help="vehicles of the fleet insert"
+    )
     args = parser.parse_args(argv)
     url: str | None = None
     if args.postgres:
@@ -318,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
         rows=args.rows,
         baseline_rows=args.baseline_rows,
         repeats=args.repeats,
+        fleet_vehicles=args.fleet_vehicles,
     )
     return 0
 

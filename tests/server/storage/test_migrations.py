@@ -7,8 +7,10 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
 from server.storage import StorageError, open_store
 from server.storage.migrations import (
     _VERSION_TABLE,
@@ -17,7 +19,7 @@ from server.storage.migrations import (
     latest_version,
 )
 from server.storage.sqlite import SqliteStore
-from tests.server.storage.conftest import Backend
+from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
 def test_versions_are_consecutive() -> None:
@@ -102,6 +104,7 @@ def test_raw_packets_survive_the_move_to_vehicle_id_keys(tmp_path: Path) -> None
         if m.version > 4:
             break
         for sql in m.statements("sqlite"):
+            assert isinstance(sql, str)
             conn.execute(sql)
         conn.execute(
             "INSERT INTO schema_version (version, description, applied_ns) VALUES (?, ?, 0)",
@@ -119,4 +122,70 @@ def test_raw_packets_survive_the_move_to_vehicle_id_keys(tmp_path: Path) -> None
     store = SqliteStore(path)
     assert store.migrate() == latest_version() >= 5
     assert store.query_raw_packets("old-1", 0, 10) == [(5, "k", b"\x01\x02")]
+    store.close()
+
+
+def _version_5_database(path: Path, vehicles: dict[int, np.ndarray]) -> None:
+    """A SQLite file at schema version 5 holding ``{vkey: rows}`` the way version 5 stored them:
+    every field a column (NaN as NULL) plus the row's packed bytes."""
+    conn = sqlite3.connect(path, isolation_level=None)
+    conn.execute("BEGIN")
+    assert apply_pending(lambda sql, p: conn.execute(sql, p).fetchall(), "sqlite", target=5) == (
+        5,
+        [1, 2, 3, 4, 5],
+    )
+    names = [name for name, _ in ESTIMATE_FIELDS]
+    for vkey, rows in vehicles.items():
+        conn.execute(
+            "INSERT INTO vehicles (vkey, vehicle_id, config, created_ns, updated_ns) "
+            "VALUES (?, ?, '{}', 1, 1)",
+            (vkey, f"veh-{vkey}"),
+        )
+        size = ESTIMATE_DTYPE.itemsize
+        buf = rows.tobytes()
+        conn.executemany(
+            f"INSERT INTO estimates (vkey, {', '.join(names)}, packed) "
+            f"VALUES ({vkey}, {', '.join('?' * (len(names) + 1))})",
+            [(*v, buf[i * size : (i + 1) * size]) for i, v in enumerate(rows.tolist())],
+        )
+    conn.execute("COMMIT")
+    conn.close()
+
+
+def test_sqlite_estimates_are_packed_by_migration_6(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Version 5 rows with packed bytes, without them (written before version 3) and with bytes
+    of another size all read back identically after the move to packed-only rows."""
+    import server.storage.migrations as mig
+
+    monkeypatch.setattr(mig, "_V6_REPACK_PAGE_ROWS", 7)  # several pages of rows to pack
+    path = tmp_path / "v5.sqlite"
+    packed, mixed, unpacked = make_rows(40, seed=1), make_rows(30, seed=2), make_rows(25, seed=3)
+    mixed["vl_mps"][::3] = np.nan  # NULL in the columns of rows that lose their bytes
+    _version_5_database(path, {3: packed, 7: mixed, 12: unpacked})
+    conn = sqlite3.connect(path, isolation_level=None)
+    conn.execute("UPDATE estimates SET packed = NULL WHERE vkey = 12")
+    conn.execute("UPDATE estimates SET packed = NULL WHERE vkey = 7 AND stamp_ns % 3 = 0")
+    conn.execute("UPDATE estimates SET packed = x'00ff' WHERE vkey = 7 AND stamp_ns = ?", (T0_NS,))
+    assert conn.execute("SELECT count(*) FROM estimates WHERE packed IS NULL").fetchone()[0] > 25
+    conn.close()
+
+    store = SqliteStore(path)
+    assert store.schema_version() == 5
+    assert store.migrate() == latest_version() >= 6
+    assert store.table_columns("estimates") == ["vkey", "stamp_ns", "packed"]
+    for vkey, rows in ((3, packed), (7, mixed), (12, unpacked)):
+        vid = f"veh-{vkey}"
+        assert_rows_equal(store.query_series(vid, 0, 2**62), rows)
+        latest = store.latest(vid)
+        assert latest is not None
+        assert_rows_equal(latest.reshape(1), rows[-1:])
+    assert set(store.latest_all()) == {"veh-3", "veh-7", "veh-12"}
+    # the primary key came along: the same rows again are not duplicated
+    assert store.write_estimates([("veh-7", mixed), ("veh-12", make_rows(26, seed=3))]) == 1
+    assert store.delete_older_than(T0_NS + 10 * DT_NS) == 30
+    assert store.delete_vehicle("veh-3")
+    assert len(store.query_series("veh-3", 0, 2**62)) == 0
+    assert store.migrate() == latest_version()  # nothing left to do
     store.close()

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, empty_estimates
-from server.storage import Store, VehicleRecord
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
+from server.storage import StorageDataError, Store, VehicleRecord
+from server.storage.migrations import SQLITE_PACKED_FIELDS
 from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
@@ -233,25 +234,52 @@ def test_reads_from_other_threads_while_writing(store: Store) -> None:
 def test_estimate_columns_match_estimate_fields(store: Store) -> None:
     """A change to ESTIMATE_FIELDS must come with a new migration."""
     columns = store.table_columns("estimates")  # type: ignore[attr-defined]
-    packed = ["packed"] if store.dialect == "sqlite" else []  # SQLite's packed-row copy
-    assert columns == ["vkey", *(name for name, _ in ESTIMATE_FIELDS), *packed]
+    if store.dialect == "sqlite":  # rows only packed, in the layout frozen with migration 6
+        assert columns == ["vkey", "stamp_ns", "packed"]
+        packed = np.dtype([(name, "<" + kind) for name, kind in SQLITE_PACKED_FIELDS])
+        assert packed == ESTIMATE_DTYPE and packed.itemsize == ESTIMATE_DTYPE.itemsize
+    else:
+        assert columns == ["vkey", *(name for name, _ in ESTIMATE_FIELDS)]
 
 
-def test_sqlite_reads_rows_without_packed_bytes(tmp_path: Path) -> None:
-    """Rows whose packed copy is missing (or of another layout) are read from the columns."""
+def test_sqlite_read_spanning_several_pages(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A range longer than one read statement's page comes back whole, in order, as one
+    snapshot; a page boundary inside the range and at its end are both covered."""
+    import server.storage.sqlite as sqlite_module
+
+    monkeypatch.setattr(sqlite_module, "_READ_PAGE_ROWS", 7)
     store = SqliteStore(tmp_path / "s.sqlite")
     store.migrate()
     store.upsert_vehicle("v1", {}, now_ns=1)
-    rows = empty_estimates(5)
-    rows["stamp_ns"] = np.arange(5) * 100
-    rows["vl_mps"] = [1.0, np.nan, 3.0, 4.0, 5.0]
-    rows["flags"] = 7
-    store.write_estimates([("v1", rows)])
-    fast = store.query_series("v1", 0, 10**6)
+    store.upsert_vehicle("v2", {}, now_ns=1)
+    rows = make_rows(50)
+    store.write_estimates([("v2", make_rows(30, seed=4)), ("v1", rows)])
+    assert_rows_equal(store.query_series("v1", 0, 2**62), rows)
+    assert_rows_equal(store.query_series("v1", T0_NS + 3 * DT_NS, T0_NS + 17 * DT_NS), rows[3:17])
+    assert_rows_equal(store.query_series("v1", T0_NS + 7 * DT_NS, T0_NS + 21 * DT_NS), rows[7:21])
+    got = store.query_series("v1", 0, 2**62)
+    got["vg_mps"] = 0.0  # the caller owns the array
+    store.close()
+
+
+def test_sqlite_refuses_rows_of_another_layout(tmp_path: Path) -> None:
+    """A stored row that is not ESTIMATE_DTYPE's size (a layout change without its migration)
+    is an error, never garbage."""
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    store.upsert_vehicle("v1", {}, now_ns=1)
+    store.write_estimates([("v1", make_rows(5))])
     with store._write() as conn:
-        conn.execute("UPDATE estimates SET packed = NULL WHERE stamp_ns = 200")
-    slow = store.query_series("v1", 0, 10**6, ["stamp_ns", "vl_mps", "flags"])
-    np.testing.assert_array_equal(slow["stamp_ns"], fast["stamp_ns"])
-    np.testing.assert_array_equal(slow["vl_mps"], fast["vl_mps"])  # NaN == NaN here
-    np.testing.assert_array_equal(slow["flags"], [7] * 5)
+        conn.execute("UPDATE estimates SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS,))
+    with pytest.raises(StorageDataError, match="not 212-byte"):
+        store.query_series("v1", 0, 2**62)
+    assert len(store.query_series("v1", T0_NS + 1, 2**62)) == 4  # the other rows still read
+    with store._write() as conn:
+        conn.execute(
+            "UPDATE estimates SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS + 4 * DT_NS,)
+        )
+    with pytest.raises(StorageDataError):
+        store.latest("v1")
     store.close()
