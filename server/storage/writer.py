@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from server.settings import StorageSettings
-from server.storage._columns import check_rows
+from server.storage._columns import check_rows, concat_rows
 from server.storage.base import StorageDataError, StorageError, Store
 
 __all__ = ["StoreWriter", "WriterStats"]
@@ -379,7 +379,7 @@ class StoreWriter:
         self._queued_rows -= n
         self._inflight_rows = n
         return [
-            (vid, parts[0] if len(parts) == 1 else np.concatenate(parts))
+            (vid, parts[0] if len(parts) == 1 else concat_rows(parts))
             for vid, parts in per_vehicle.items()
         ]
 

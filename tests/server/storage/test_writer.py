@@ -15,6 +15,7 @@ import pytest
 
 from server.settings import StorageSettings
 from server.storage import StorageDataError, Store, StoreWriter
+from server.storage._columns import concat_rows
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
@@ -325,3 +326,13 @@ def test_writer_survives_postgres_server_restart() -> None:
             writer.close(timeout=5)
         store.close()
         stop_pg_cluster(cluster_dir)
+
+
+def test_concat_rows_equals_numpy_concatenate() -> None:
+    """The writer's merge of a vehicle's packets: same rows as ``np.concatenate``, also from
+    strided views and empty parts."""
+    a, b = make_rows(10, seed=1), make_rows(7, seed=2)
+    parts = [a, b[::2], make_rows(0), a[3:4]]
+    got = concat_rows(parts)
+    assert got.flags.c_contiguous and got.flags.writeable
+    assert_rows_equal(got, np.concatenate(parts))
