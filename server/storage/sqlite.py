@@ -13,8 +13,10 @@ Rows are stored packed: table ``estimates`` holds ``(vkey, stamp_ns, packed)``, 
 the row's ``ESTIMATE_DTYPE`` bytes (migration 6; NaN and infinities survive bit for bit). The
 ``sqlite3`` module creates one Python object per bound or fetched value, so
 
-* a write binds three values per row instead of 28 values and the blob (the column layout of
-  versions 1-5), several rows per statement: ~3x less time per row;
+* a write binds three values per *vehicle*: its rows' bytes as one blob, their stamps as one
+  JSON array, its key; one ``INSERT ... SELECT`` cuts the blob into rows inside SQLite, with no
+  Python per row and the GIL released once per vehicle. The column layout of versions 1-5 bound
+  28 values and the blob per row and cost ~3-6x as much per row;
 * a read does not even fetch one object per row: SQLite concatenates a range's blobs into one
   (``group_concat``, at most :data:`_READ_PAGE_ROWS` rows per statement) that numpy views as a
   structured array, in one step that runs without the GIL. Reading a vehicle-hour column by
