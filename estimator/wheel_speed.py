@@ -43,9 +43,9 @@ from estimator.config import ConfigError
 
 __all__ = [
     "DirectWheelSpeed",
+    "WheelBank",
     "WheelSpeedConfig",
     "WheelSpeedMethod",
-    "WheelBank",
     "WheelSpeedResult",
     "WheelTracker",
     "edge_angles",
@@ -334,7 +334,10 @@ def _unknown(m: int) -> WheelSpeedResult:
 
 
 def _fit_mask(
-    last: IntArray, seg0: IntArray, n_win: IntArray, has: npt.NDArray[np.bool_],
+    last: IntArray,
+    seg0: IntArray,
+    n_win: IntArray,
+    has: npt.NDArray[np.bool_],
     config: WheelSpeedConfig,
 ) -> tuple[npt.NDArray[np.bool_], IntArray]:
     """Which of the edges ``last, last − 1, …`` a query may fit: mask ``(m, kmax)`` and offsets.
@@ -346,11 +349,7 @@ def _fit_mask(
     n_fit = np.minimum(n_fit, last - seg0 + 1)  # cannot use more edges than exist
     kmax = max(int(n_fit[has].max()) if has.any() else 2, 2)
     offs = np.arange(kmax)
-    w = (
-        (offs[None, :] < n_fit[:, None])
-        & (offs[None, :] <= (last - seg0)[:, None])
-        & has[:, None]
-    )
+    w = (offs[None, :] < n_fit[:, None]) & (offs[None, :] <= (last - seg0)[:, None]) & has[:, None]
     return w, offs
 
 
@@ -534,6 +533,36 @@ def _solve_quadratic_fit(
     return coef, a_inv11
 
 
+def _quadratic_intercept(u: FloatArray, a: FloatArray) -> FloatArray:
+    """``c0`` of the least-squares fit ``a ≈ c0 + c1·u + c2·u²``, one fit per row of ``(M, k)``.
+
+    Normal equations from the power sums of ``u`` (regularised by ``1e-12·I`` like
+    :func:`_solve_quadratic_fit`, which takes the near-singular rows).
+    """
+    u2 = u * u
+    s00 = np.full(u.shape[0], float(u.shape[1])) + 1e-12
+    s01 = u.sum(axis=1)
+    s02 = u2.sum(axis=1)
+    s11 = s02 + 1e-12
+    s12 = (u2 * u).sum(axis=1)
+    s22 = (u2 * u2).sum(axis=1) + 1e-12
+    b0 = a.sum(axis=1)
+    b1 = (u * a).sum(axis=1)
+    b2 = (u2 * a).sum(axis=1)
+    c00 = s11 * s22 - s12 * s12
+    c01 = s02 * s12 - s01 * s22
+    c02 = s01 * s12 - s02 * s11
+    det = s00 * c00 + s01 * c01 + s02 * c02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+        ill = ~(np.abs(det) > _WELL_POSED * np.abs(s00 * s11 * s22))
+    if ill.any():
+        r = np.flatnonzero(ill)
+        yes = np.ones(r.shape[0], dtype=bool)
+        c0[r] = _solve_quadratic_fit(u[r], u2[r], np.ones_like(u[r]), a[r], yes, yes)[0][0]
+    return c0
+
+
 def _tooth(angle_rad: FloatArray, teeth_per_rev: int) -> IntArray:
     """Tooth number ``0 … Ns−1`` of the edge at each cumulative angle."""
     ns = teeth_per_rev
@@ -577,6 +606,7 @@ class WheelBank:
         self._alloc_slots(16)
         self._stamp = np.zeros(0, dtype=np.int64)  # the rings
         self._angle = np.zeros(0, dtype=np.float64)
+        self._dslot = np.zeros(0, dtype=np.int64)  # index of the edge's tooth in _delta.flat
         self._used = 0  # arena elements handed out
         self._abandoned = 0  # arena elements of rings that moved
         # push queue (Python lists: a push costs a few list appends)
@@ -590,8 +620,10 @@ class WheelBank:
 
     # --- slots ---------------------------------------------------------------------------
     def _alloc_slots(self, n: int) -> None:
-        def grow(a: np.ndarray | None, fill: float | int | bool, dtype: type, *tail: int) -> np.ndarray:
-            new = np.full((n, *tail), fill, dtype=dtype)
+        def grow(
+            a: np.ndarray | None, fill: float | int | bool, dtype: type, *tail: int
+        ) -> np.ndarray:
+            new: np.ndarray = np.full((n, *tail), fill, dtype=dtype)
             if a is not None:
                 new[: a.shape[0]] = a
             return new
@@ -625,9 +657,16 @@ class WheelBank:
         self._floor_ns[slot] = np.iinfo(np.int64).min
         self.skipped[slot] = 0
         for arr, value in (
-            (self._mask, 0), (self._head, 0), (self._count, 0), (self._last_angle, 0.0),
-            (self._angle_before, 0.0), (self._signed, False), (self._cal_from, 0),
-            (self._cal_upto, np.iinfo(np.int64).min), (self._calibrated, 0), (self._delta, 0.0),
+            (self._mask, 0),
+            (self._head, 0),
+            (self._count, 0),
+            (self._last_angle, 0.0),
+            (self._angle_before, 0.0),
+            (self._signed, False),
+            (self._cal_from, 0),
+            (self._cal_upto, np.iinfo(np.int64).min),
+            (self._calibrated, 0),
+            (self._delta, 0.0),
         ):
             arr[slot] = value
         return slot
@@ -686,8 +725,10 @@ class WheelBank:
             d_sum = None
         else:
             d_all = np.concatenate(
-                [np.ones(n, np.int8) if d is None else np.asarray(d).reshape(-1)
-                 for d, n in zip(dirs, self._q_len, strict=True)]
+                [
+                    np.ones(n, np.int8) if d is None else np.asarray(d).reshape(-1)
+                    for d, n in zip(dirs, self._q_len, strict=True)
+                ]
             )
             d_sum = np.cumsum(np.where(d_all < 0, -1, 1))
         self._q_slot, self._q_stamp, self._q_dir, self._q_len = [], [], [], []
@@ -719,8 +760,6 @@ class WheelBank:
             cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
         angle = np.repeat(start, lens) + step * k.astype(np.float64)
         # Edge numbers: each slot's new edges follow its held ones, in push order.
-        e_order = np.repeat(starts[order] - (ends[order] - lens[order] - 0), 0) if False else None
-        del e_order
         gather = np.repeat(starts[order], lens[order]) + (
             np.arange(n_edges) - np.repeat(np.cumsum(lens[order]) - lens[order], lens[order])
         )
@@ -729,16 +768,18 @@ class WheelBank:
         first_edge = np.cumsum(new_per_slot) - new_per_slot
         number = self._count[e_slot] + np.arange(n_edges) - first_edge[e_slot]
         touched = np.flatnonzero(new_per_slot)
+        self._fit_rings(touched, new_per_slot[touched])
         self._count[touched] += new_per_slot[touched]
-        self._fit_rings(touched)
         at = self._base[e_slot] + (number & self._mask[e_slot])
         self._stamp[at] = t[gather]
         self._angle[at] = angle[gather]
+        ns = self.config.teeth_per_rev
+        self._dslot[at] = e_slot * ns + _tooth(angle[gather], ns)
 
     # --- rings ---------------------------------------------------------------------------
-    def _fit_rings(self, slots: IntArray) -> None:
-        """Move slots whose held edges outgrow their ring into larger rings."""
-        held = self._count[slots] - self._head[slots]
+    def _fit_rings(self, slots: IntArray, extra: IntArray) -> None:
+        """Move slots whose held edges plus ``extra`` new ones outgrow their ring."""
+        held = self._count[slots] - self._head[slots] + extra
         small = held > self._mask[slots] + (self._mask[slots] > 0)
         if not small.any():
             return
@@ -749,7 +790,7 @@ class WheelBank:
         live = int((self._mask[: self._slots] + (self._mask[: self._slots] > 0)).sum())
         if self._abandoned > max(live, 1 << 16):
             self._compact()
-            self._fit_rings(slots)
+            self._fit_rings(slots, extra)
             return
         self._move(grow, size)
 
@@ -760,15 +801,14 @@ class WheelBank:
             cap = max(need, 2 * self._stamp.shape[0], 1 << 12)
             stamp = np.zeros(cap, dtype=np.int64)
             angle = np.zeros(cap, dtype=np.float64)
+            dslot = np.zeros(cap, dtype=np.int64)
             stamp[: self._used] = self._stamp[: self._used]
             angle[: self._used] = self._angle[: self._used]
-            self._stamp, self._angle = stamp, angle
+            dslot[: self._used] = self._dslot[: self._used]
+            self._stamp, self._angle, self._dslot = stamp, angle, dslot
         new_base = self._used + np.cumsum(size) - size
         self._used = need
-        held = np.minimum(self._count[slots], self._head[slots] + self._mask[slots] + 1) - (
-            self._head[slots]
-        )
-        held = np.maximum(held, 0)
+        held = self._count[slots] - self._head[slots]
         had = self._mask[slots] > 0
         n = int(held[had].sum())
         if n:
@@ -779,6 +819,7 @@ class WheelBank:
             dst = np.repeat(new_base[had], hh) + (number & np.repeat(size[had] - 1, hh))
             self._stamp[dst] = self._stamp[src]
             self._angle[dst] = self._angle[src]
+            self._dslot[dst] = self._dslot[src]
         self._abandoned += int((self._mask[slots] + had).sum())
         self._base[slots] = new_base
         self._mask[slots] = size - 1
@@ -790,11 +831,12 @@ class WheelBank:
         size = np.maximum(
             _MIN_SEGMENT, 1 << np.ceil(np.log2(np.maximum(2 * held, 1))).astype(np.int64)
         )
-        old_stamp, old_angle = self._stamp, self._angle
+        old_stamp, old_angle, old_dslot = self._stamp, self._angle, self._dslot
         old_base, old_mask = self._base[slots].copy(), self._mask[slots].copy()
         cap = max(int(size.sum()) * 2, 1 << 12)
         self._stamp = np.zeros(cap, dtype=np.int64)
         self._angle = np.zeros(cap, dtype=np.float64)
+        self._dslot = np.zeros(cap, dtype=np.int64)
         new_base = np.cumsum(size) - size
         n = int(held.sum())
         if n:
@@ -804,12 +846,13 @@ class WheelBank:
             dst = np.repeat(new_base, held) + (number & np.repeat(size - 1, held))
             self._stamp[dst] = old_stamp[src]
             self._angle[dst] = old_angle[src]
+            self._dslot[dst] = old_dslot[src]
         self._base[slots] = new_base
         self._mask[slots] = size - 1
         self._used = int(size.sum())
         self._abandoned = 0
 
-    def _at(self, slot: IntArray, number: IntArray) -> IntArray:
+    def _at(self, slot: IntArray | np.int64, number: IntArray) -> IntArray:
         """Arena index of edge ``number`` of ``slot`` (shapes broadcast)."""
         return self._base[slot] + (number & self._mask[slot])
 
@@ -884,11 +927,11 @@ class WheelBank:
         self._trim(s, *tail)
         return WheelSpeedResult(omega, std, method)
 
-    def _corrected(self, slot: IntArray, angle: FloatArray) -> FloatArray:
-        """Angles with the slot's tooth corrections (``slot`` broadcasts against ``angle``)."""
+    def _corrected(self, at: IntArray) -> FloatArray:
+        """Angles of the edges at arena indices ``at``, with their slot's tooth corrections."""
         if not self.config.tooth_calibration:
-            return angle
-        return angle + self._delta[slot, _tooth(angle, self.config.teeth_per_rev)]
+            return self._angle[at]
+        return self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
 
     def _fit(self, s: IntArray, qs: IntArray) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
         """:func:`omega_at` of every slot in ``s`` at every time in ``qs`` (rows slot-major).
@@ -916,20 +959,28 @@ class WheelBank:
         at = self._at(rs[:, None], number)
         at_last = at[:, 0]
         tau_s = (self._stamp[at] - q[:, None]).astype(np.float64) * _NS
-        pos = self._corrected(rs[:, None], self._angle[at])
+        pos = self._corrected(at)
         p = pos - pos[:, :1]
         freq = has & (n_win >= cfg.frequency_min_count)
         freq_omega = None
         if freq.any():
-            prior = self._corrected(
-                rs, self._angle[self._at(rs, np.maximum(first_in - 1, head))]
-            )
+            prior = self._corrected(self._at(rs, np.maximum(first_in - 1, head)))
             before = np.where(first_in > head, prior, self._angle_before[rs])
             freq_omega = (pos[:, 0] - before) / cfg.window_s
         last_ns = self._stamp[at_last]
         prev_ns = self._stamp[self._at(rs, np.maximum(last_c - 1, head))]
         res = _speed_from_window(
-            q, tau_s, p, w, has, freq, freq_omega, last_ns, prev_ns, last - 1 >= head, cfg,
+            q,
+            tau_s,
+            p,
+            w,
+            has,
+            freq,
+            freq_omega,
+            last_ns,
+            prev_ns,
+            last - 1 >= head,
+            cfg,
             self._signed[rs],
         )
         return res, tail
@@ -955,17 +1006,17 @@ class WheelBank:
     def _calibrate(self, slots: IntArray, t_ns: int) -> None:
         """Learn tooth corrections of ``slots`` from edges with a full window at or before t.
 
-        For each slot: the edges not yet used that have ``calibration_half_window`` neighbours
-        on both sides at or before ``t_ns``; per edge, a quadratic fit of its neighbours' angles
-        (corrected with the slot's current corrections, the edge itself left out), and the
-        tooth's correction moves by ``calibration_gain`` of the edge's residual; corrections
-        are then made zero-mean again.
+        For each slot: the edges not yet used that have ``calibration_half_window`` (``h``)
+        neighbours on both sides at or before ``t_ns``; per edge, a quadratic fit of its ``2h``
+        neighbours' angles against time (corrected with the slot's current corrections, the
+        edge itself left out), and the tooth's correction moves by ``calibration_gain`` of the
+        edge's residual; corrections are then made zero-mean again. The edges of a slot are
+        read once as one run ``lo − h … hi + h``; the windows are rows ``(M, 2h)`` over it.
         """
         cfg = self.config
         h = cfg.calibration_half_window
         head = self._head[slots]
-        count = self._count[slots]
-        last = self._search(slots, head, count, np.full(slots.shape[0], t_ns)) - 1
+        last = self._search(slots, head, self._count[slots], np.full(slots.shape[0], t_ns)) - 1
         lo = np.maximum(self._cal_from[slots], head + h)
         hi = last - h
         go = hi >= lo
@@ -973,42 +1024,50 @@ class WheelBank:
             return
         slots, lo, hi = slots[go], lo[go], hi[go]
         self._cal_from[slots] = hi + 1
-        n_c = hi - lo + 1
-        row_slot = np.repeat(slots, n_c)
-        c = np.repeat(lo, n_c) + np.arange(int(n_c.sum())) - np.repeat(np.cumsum(n_c) - n_c, n_c)
-        offs = np.arange(-h, h + 1)
-        at = self._at(row_slot[:, None], c[:, None] + offs[None, :])
+        n_c = hi - lo + 1  # centres per slot
+        run_len = n_c + 2 * h
+        run_first = np.cumsum(run_len) - run_len
+        run_slot = np.repeat(slots, run_len)
+        n_run = int(run_len.sum())
+        number = np.repeat(lo - h - run_first, run_len) + np.arange(n_run)
+        at = self._at(run_slot, number)
         stamp = self._stamp[at]
         raw = self._angle[at]
-        ts = (stamp - stamp[:, h : h + 1]).astype(np.float64) * _NS
-        ang = self._corrected(row_slot[:, None], raw)
-        a = ang - ang[:, h : h + 1]
-        span = ts[:, -1] - ts[:, 0]
-        gaps = np.diff(ts, axis=1)
-        ok = (span > 0) & (gaps.max(axis=1) < cfg.stop_timeout_s)
+        ang = raw + self._delta.reshape(-1)[self._dslot[at]] if cfg.tooth_calibration else raw
+        # window rows: centre index in the run arrays, neighbours −h … −1, 1 … h
+        m = int(n_c.sum())
+        row_slot = np.repeat(slots, n_c)
+        centre = np.repeat(run_first + h - (np.cumsum(n_c) - n_c), n_c) + np.arange(m)
+        # no interval ≥ stop_timeout_s inside the window; with direction, one way only
+        gap_ns = np.diff(stamp)
+        long_gap = np.concatenate([[0], np.cumsum(gap_ns * _NS >= cfg.stop_timeout_s)])
+        ok = long_gap[centre + h] == long_gap[centre - h]
+        ok &= stamp[centre + h] > stamp[centre - h]  # span > 0
         signed = self._signed[row_slot]
         if signed.any():
-            steps = np.diff(raw, axis=1)
-            monotone = np.all(steps > 0, axis=1) | np.all(steps < 0, axis=1)
-            ok &= monotone | ~signed
+            step = np.diff(raw)
+            up = np.concatenate([[0], np.cumsum(step > 0)])
+            down = np.concatenate([[0], np.cumsum(step < 0)])
+            n_up = up[centre + h] - up[centre - h]
+            n_down = down[centre + h] - down[centre - h]
+            ok &= (n_up == 2 * h) | (n_down == 2 * h) | ~signed
         any_ok = np.zeros(self._slots, dtype=bool)
         any_ok[row_slot[ok]] = True
         if not ok.any():
             return
-        ts, a, c, span, row_slot, raw = ts[ok], a[ok], c[ok], span[ok], row_slot[ok], raw[ok]
-        u = ts / span[:, None]
-        # fit with the centre edge left out: its own error must not pull the fit
-        wf = np.ones_like(u)
-        wf[:, h] = 0.0
-        rows = np.ones(u.shape[0], dtype=bool)
-        coef, _ = _solve_quadratic_fit(u, u * u, wf, a, rows, rows)
-        resid = -coef[0]  # centre angle (0 by construction) minus the fit at the centre
+        centre, row_slot = centre[ok], row_slot[ok]
+        nb = np.concatenate([np.arange(-h, 0), np.arange(1, h + 1)])
+        idx = centre[:, None] + nb[None, :]
+        ts = (stamp[idx] - stamp[centre][:, None]).astype(np.float64) * _NS
+        a = ang[idx] - ang[centre][:, None]
+        u = ts / (ts[:, -1] - ts[:, 0])[:, None]
+        # fit with the centre edge left out (its own error must not pull the fit)
+        c0 = _quadratic_intercept(u, a)
+        resid = -c0  # centre angle (0 by construction) minus the fit at the centre
         pitch = 2 * np.pi / cfg.teeth_per_rev
         good = np.abs(resid) < 0.3 * pitch
-        teeth = _tooth(raw[good, h], cfg.teeth_per_rev)
-        ns = cfg.teeth_per_rev
         flat = self._delta.reshape(-1)
-        np.add.at(flat, row_slot[good] * ns + teeth, -cfg.calibration_gain * resid[good])
+        np.add.at(flat, self._dslot[at[centre[good]]], -cfg.calibration_gain * resid[good])
         upd = np.flatnonzero(any_ok)
         self._delta[upd] -= self._delta[upd].mean(axis=1, keepdims=True)
         np.add.at(self._calibrated, row_slot[good], 1)
@@ -1118,16 +1177,26 @@ class WheelTracker:
         stamp = old.held_stamp_ns(slot)
         n = stamp.shape[0]
         if n:
-            angle = old._angle[old._at(np.int64(slot), np.arange(old._head[slot], old._count[slot]))]
+            angle = old._angle[
+                old._at(np.int64(slot), np.arange(old._head[slot], old._count[slot]))
+            ]
+            bank._fit_rings(np.array([new]), np.array([n]))
             bank._count[new] = n
-            bank._fit_rings(np.array([new]))
             at = bank._at(np.int64(new), np.arange(n))
             bank._stamp[at] = stamp
             bank._angle[at] = angle
+            ns = self.config.teeth_per_rev
+            bank._dslot[at] = new * ns + _tooth(angle, ns)
         shift = int(old._head[slot])
         bank._cal_from[new] = old._cal_from[slot] - shift
-        for name in ("_last_angle", "_angle_before", "_signed", "_cal_upto", "_calibrated",
-                     "_delta"):
+        for name in (
+            "_last_angle",
+            "_angle_before",
+            "_signed",
+            "_cal_upto",
+            "_calibrated",
+            "_delta",
+        ):
             getattr(bank, name)[new] = getattr(old, name)[slot]
         bank._floor_ns[new] = old._floor_ns[slot]
         bank.skipped[new] = old.skipped[slot]

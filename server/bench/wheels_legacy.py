@@ -5,8 +5,6 @@ per call) as the baseline of ``slipfleet bench wheels`` and as the oracle the ba
 compare with. Not used by the product.
 """
 
-# ruff: noqa: N806
-
 from __future__ import annotations
 
 import math

@@ -1,0 +1,211 @@
+"""Wheel-speed front end cost: encoder-edge pushes and speed queries for a fleet.
+
+``slipfleet bench wheels [--vehicles 100,1000,3000] [--intervals 50,100] [--json PATH]`` or
+``python -m server.bench.wheels``.
+
+Every vehicle replays the wheel edges of one of a few simulated runs (``field_work``,
+``hard_braking``, ``slow_creep``, ``figure_eight``; their own packets, 100 ms per wheel, in
+arrival order), the way :class:`estimator.engine.MdsfFleet` uses the front end: each packet is
+pushed into its wheel's tracker as it arrives, and every call interval (50 or 100 ms of sensor
+time) all wheels of all vehicles are asked for their speed at the due ticks (a 50 ms grid, so
+one or two ticks per call) in one :func:`~estimator.wheel_speed.query_many`.
+
+Two implementations in the same process, on the same packets:
+
+* **new**: :class:`estimator.wheel_speed.WheelTracker` / ``query_many`` (one
+  :class:`~estimator.wheel_speed.WheelBank` for the fleet);
+* **old**: the per-tracker implementation it replaced (:mod:`server.bench.wheels_legacy`).
+
+The table gives CPU time (this process, ``time.process_time``) per vehicle-second of sensor
+data, for the pushes and for the queries (tooth calibration included), after a warm-up. The old
+implementation is timed over fewer sensor seconds at the larger fleets (its cost is steady).
+The product target: push + query ≤ 0.08 ms per vehicle-second at 1,000 vehicles and 100 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator.config import EncoderConfig, VehicleConfig
+from estimator.sim import simulate
+from estimator.types import WheelEdges
+from estimator.wheel_speed import WheelSpeedConfig, WheelTracker, query_many
+from server.bench import wheels_legacy
+
+__all__ = ["main", "run"]
+
+START_NS = 1_700_000_000_000_000_000
+SCENARIOS = ("field_work", "hard_braking", "slow_creep", "figure_eight")
+TICK_NS = 50_000_000
+"""Estimate grid: ticks due at a call are those up to the call time minus ``LAG_NS``."""
+LAG_NS = 150_000_000
+WARMUP_S = 2.0
+TARGET_MS = 0.08
+
+
+@dataclass(frozen=True, slots=True)
+class _Packet:
+    arrival_ns: int
+    wheel: int
+    stamp_ns: npt.NDArray[np.int64]
+    direction: npt.NDArray[np.int8] | None
+
+
+def _runs(seconds: float) -> list[list[_Packet]]:
+    """Wheel packets of a few simulated vehicles (with and without direction encoders)."""
+    out = []
+    for seed, name in enumerate(SCENARIOS, start=1):
+        for has_dir in (False, True):
+            cfg = VehicleConfig(encoder=EncoderConfig(has_direction=has_dir))
+            run = simulate(name, seed=seed, start_ns=START_NS, config=cfg)
+            end = START_NS + round(seconds * 1e9)
+            pk = [
+                _Packet(arr, int(m.wheel), m.stamp_ns, m.direction)
+                for arr, m in run.in_arrival_order()
+                if isinstance(m, WheelEdges) and arr <= end
+            ]
+            out.append(pk)
+    return out
+
+
+def _measure(
+    runs: list[list[_Packet]],
+    vehicles: int,
+    interval_ms: int,
+    seconds: float,
+    make: Callable[[], Any],
+    many: Callable[[list[Any], npt.NDArray[np.int64]], object],
+) -> tuple[float, float]:
+    """CPU ms per vehicle-second for (push, query) over ``seconds`` after the warm-up."""
+    trackers = [make() for _ in range(2 * vehicles)]
+    step = interval_ms * 1_000_000
+    ptr = [0] * vehicles
+    feeds = [runs[v % len(runs)] for v in range(vehicles)]
+    push_cpu = query_cpu = 0.0
+    next_tick = START_NS
+    now = START_NS
+    measured_from = START_NS + round(WARMUP_S * 1e9)
+    end = measured_from + round(seconds * 1e9)
+    while now < end:
+        now += step
+        batch = []
+        for v in range(vehicles):
+            feed, i = feeds[v], ptr[v]
+            while i < len(feed) and feed[i].arrival_ns <= now:
+                pk = feed[i]
+                batch.append((trackers[2 * v + pk.wheel], pk.stamp_ns, pk.direction))
+                i += 1
+            ptr[v] = i
+        due = now - LAG_NS
+        ticks = np.arange(next_tick, due + 1, TICK_NS, dtype=np.int64)
+        timed = now > measured_from
+        c0 = time.process_time()
+        for tr, stamps, direction in batch:
+            tr.push(stamps, direction)
+        c1 = time.process_time()
+        if ticks.size:
+            many(trackers, ticks)
+            next_tick = int(ticks[-1]) + TICK_NS
+        c2 = time.process_time()
+        if timed:
+            push_cpu += c1 - c0
+            query_cpu += c2 - c1
+    vs = vehicles * seconds
+    return push_cpu * 1e3 / vs, query_cpu * 1e3 / vs
+
+
+def run(
+    json_path: Path | None = None,
+    vehicles: Sequence[int] = (100, 1000, 3000),
+    intervals_ms: Sequence[int] = (50, 100),
+    seconds: float = 10.0,
+    old_seconds: float = 3.0,
+    old: bool = True,
+) -> dict[str, Any]:
+    """Measure and print the table; returns the rows (and writes them to ``json_path``)."""
+    runs = _runs(WARMUP_S + max(seconds, old_seconds) + 1.0)
+    cfg = WheelSpeedConfig()
+    rows = []
+    header = (
+        f"{'vehicles':>8} {'call ms':>7} | {'new push':>9} {'new query':>9} {'new total':>9} |"
+        f" {'old push':>9} {'old query':>9} {'old total':>9} | {'speed-up':>8}"
+    )
+    print("CPU ms per vehicle-second of sensor data (both wheels)")
+    print(header)
+    print("-" * len(header))
+    for n in vehicles:
+        for iv in intervals_ms:
+            new = _measure(runs, n, iv, seconds, lambda: WheelTracker(cfg), query_many)
+            row: dict[str, Any] = {
+                "vehicles": n,
+                "interval_ms": iv,
+                "new_push_ms": new[0],
+                "new_query_ms": new[1],
+            }
+            line = f"{n:>8} {iv:>7} | {new[0]:>9.4f} {new[1]:>9.4f} {sum(new):>9.4f} |"
+            if old:
+                secs = seconds if n <= 100 else old_seconds
+                was = _measure(
+                    runs,
+                    n,
+                    iv,
+                    secs,
+                    lambda: wheels_legacy.WheelTracker(cfg),
+                    wheels_legacy.query_many,
+                )
+                row |= {"old_push_ms": was[0], "old_query_ms": was[1]}
+                line += (
+                    f" {was[0]:>9.4f} {was[1]:>9.4f} {sum(was):>9.4f} |"
+                    f" {sum(was) / sum(new):>7.1f}x"
+                )
+            print(line, flush=True)
+            rows.append(row)
+    at_target = [r for r in rows if r["vehicles"] == 1000 and r["interval_ms"] == 100]
+    if at_target:
+        total = at_target[0]["new_push_ms"] + at_target[0]["new_query_ms"]
+        verdict = "meets" if total <= TARGET_MS else "misses"
+        print(
+            f"1,000 vehicles, 100 ms: {total:.4f} ms per vehicle-second, {verdict} the "
+            f"{TARGET_MS} ms target"
+        )
+    result = {"rows": rows, "target_ms": TARGET_MS}
+    if json_path is not None:
+        json_path.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def _int_list(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m server.bench.wheels [--vehicles 100,1000,3000] [--intervals 50,100]
+    [--seconds S] [--old-seconds S] [--no-old] [--json PATH]``."""
+    p = argparse.ArgumentParser(prog="python -m server.bench.wheels", description=__doc__)
+    p.add_argument("--vehicles", type=_int_list, default=[100, 1000, 3000])
+    p.add_argument("--intervals", type=_int_list, default=[50, 100], help="call interval, ms")
+    p.add_argument("--seconds", type=float, default=10.0, help="sensor seconds timed (new)")
+    p.add_argument(
+        "--old-seconds",
+        type=float,
+        default=3.0,
+        help="sensor seconds timed for the old implementation above 100 vehicles",
+    )
+    p.add_argument("--no-old", action="store_true", help="skip the old implementation")
+    p.add_argument("--json", type=Path, default=None, help="write the rows here")
+    a = p.parse_args(argv)
+    run(a.json, a.vehicles, a.intervals, a.seconds, a.old_seconds, not a.no_old)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
