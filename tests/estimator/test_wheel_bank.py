@@ -69,9 +69,8 @@ def _sim_packets(name: str, seed: int, has_direction: bool) -> list[list]:
     return per
 
 
-def _replay(feeds: list[list], cfg: WheelSpeedConfig, interval_ms: int, ticks: int, new):
+def _replay(feeds: list[list], old: list, new: list, interval_ms: int, ticks: int):
     """Feed both implementations the same packets; yield their results per call."""
-    old = [wheels_legacy.WheelTracker(cfg) for _ in feeds]
     ptr = [0] * len(feeds)
     step = interval_ms * 1_000_000
     now = T0
@@ -84,7 +83,7 @@ def _replay(feeds: list[list], cfg: WheelSpeedConfig, interval_ms: int, ticks: i
                 new[i].push(s, d)
                 ptr[i] += 1
         q = (now - 150_000_000 - np.arange(ticks)[::-1] * (step // ticks)).astype(np.int64)
-        yield wheels_legacy.query_many(old, q), query_many(new, q), old
+        yield wheels_legacy.query_many(old, q), query_many(new, q)
 
 
 def _assert_same(a: list[WheelSpeedResult], b: list[WheelSpeedResult]) -> float:
@@ -118,8 +117,9 @@ def test_bank_equals_per_tracker_implementation(
     feeds.append([p for p in feeds[0] if p[0] > T0 + 6_000_000_000])  # starts late
     bank = WheelBank(cfg)
     new = [WheelTracker(cfg, bank) for _ in feeds]
+    old = [wheels_legacy.WheelTracker(cfg) for _ in feeds]
     worst = 0.0
-    for old_res, new_res, old in _replay(feeds, cfg, interval_ms, ticks, new):
+    for old_res, new_res in _replay(feeds, old, new, interval_ms, ticks):
         worst = max(worst, _assert_same(old_res, new_res))
     assert [t.skipped for t in new] == [t.skipped for t in old]
     assert sum(t.skipped for t in new) > 0
@@ -134,13 +134,24 @@ def test_trackers_of_separate_banks_merge_and_keep_their_state() -> None:
     cfg = WheelSpeedConfig(teeth_per_rev=NS)
     rng = np.random.default_rng(8)
     feeds = [_packets(rng, k) for k in ("reverse", "accel", "stop_go")]
+    old = [wheels_legacy.WheelTracker(cfg) for _ in feeds]
     new = [WheelTracker(cfg) for _ in feeds]  # one bank each
-    steps = _replay(feeds, cfg, 100, 1, new)
-    for _ in range(20):  # before query_many ever sees them together: query one by one
-        next(steps)
-    assert len({id(t._bank) for t in new}) == 1  # merged by the first query_many
-    for old_res, new_res, _ in steps:
-        _assert_same(old_res, new_res)
+    assert len({id(t._bank) for t in new}) == 3
+    ptr = [0] * len(feeds)
+    for call in range(120):
+        now = T0 + (call + 1) * 100_000_000
+        for i, feed in enumerate(feeds):
+            while ptr[i] < len(feed) and feed[ptr[i]][0] <= now:
+                old[i].push(feed[ptr[i]][1], feed[ptr[i]][2])
+                new[i].push(feed[ptr[i]][1], feed[ptr[i]][2])
+                ptr[i] += 1
+        q = np.array([now - 150_000_000], dtype=np.int64)
+        if call < 40:  # calibrated and trimmed on their own first
+            _assert_same([t.query(q) for t in old], [t.query(q) for t in new])
+        else:  # then moved into one bank by query_many, state and all
+            _assert_same(wheels_legacy.query_many(old, q), query_many(new, q))
+            assert len({id(t._bank) for t in new}) == 1
+    assert [t.skipped for t in new] == [t.skipped for t in old]
 
 
 def test_slots_are_reused_and_duplicates_answered() -> None:
