@@ -48,7 +48,9 @@ SCENARIOS = ("field_work", "hard_braking", "slow_creep", "figure_eight")
 TICK_NS = 50_000_000
 """Estimate grid: ticks due at a call are those up to the call time minus ``LAG_NS``."""
 LAG_NS = 150_000_000
-WARMUP_S = 2.0
+WARMUP_S = 3.0
+PHASES_S = (0.0, 4.0, 8.0, 12.0, 16.0)
+"""Points of each simulated run a vehicle may start its replay from [s]."""
 TARGET_MS = 0.08
 
 
@@ -61,19 +63,27 @@ class _Packet:
 
 
 def _runs(seconds: float) -> list[list[_Packet]]:
-    """Wheel packets of a few simulated vehicles (with and without direction encoders)."""
+    """Wheel packets of a few simulated vehicles (with and without direction encoders).
+
+    Each run is also replayed from later points (``PHASES_S``), shifted to start at
+    ``START_NS``, so the fleet is not all at the same point of its manoeuvres.
+    """
     out = []
     for seed, name in enumerate(SCENARIOS, start=1):
         for has_dir in (False, True):
             cfg = VehicleConfig(encoder=EncoderConfig(has_direction=has_dir))
             run = simulate(name, seed=seed, start_ns=START_NS, config=cfg)
-            end = START_NS + round(seconds * 1e9)
-            pk = [
-                _Packet(arr, int(m.wheel), m.stamp_ns, m.direction)
-                for arr, m in run.in_arrival_order()
-                if isinstance(m, WheelEdges) and arr <= end
-            ]
-            out.append(pk)
+            wheel = [(arr, m) for arr, m in run.in_arrival_order() if isinstance(m, WheelEdges)]
+            for phase_s in PHASES_S:
+                shift = round(phase_s * 1e9)
+                end = START_NS + round(seconds * 1e9)
+                out.append(
+                    [
+                        _Packet(arr - shift, int(m.wheel), m.stamp_ns - shift, m.direction)
+                        for arr, m in wheel
+                        if m.stamp_ns[0] >= START_NS + shift and arr - shift <= end
+                    ]
+                )
     return out
 
 
