@@ -38,6 +38,7 @@ from enum import IntEnum
 
 import numpy as np
 import numpy.typing as npt
+from numpy.lib.stride_tricks import sliding_window_view
 
 from estimator.config import ConfigError
 
@@ -417,7 +418,7 @@ def _speed_from_window(
     resid = (p - (coef[0][:, None] + coef[1][:, None] * u + coef[2][:, None] * u2)) * wf
     n_par = np.where(quad, 3, 2)
     dof = np.maximum(n_fit - n_par, 1)
-    s2 = (resid**2).sum(axis=1) / dof
+    s2 = _row_dot(resid, resid) / dof
     s2 = np.maximum(s2, (om_fit * config.timing_std_s) ** 2 + (2 * np.pi / ns * 1e-3) ** 2)
     std_fit = np.sqrt(s2 * np.maximum(a_inv11, 0.0)) / span
 
@@ -452,6 +453,16 @@ def _speed_from_window(
     return WheelSpeedResult(omega, std, method.astype(np.int8))
 
 
+def _row_sum(x: FloatArray) -> FloatArray:
+    """Sum of each row of ``(m, k)`` (faster than ``sum(axis=1)`` for short rows)."""
+    return np.einsum("ij->i", x)
+
+
+def _row_dot(x: FloatArray, y: FloatArray) -> FloatArray:
+    """``Σ_j x_ij·y_ij`` per row of ``(m, k)``."""
+    return np.einsum("ij,ij->i", x, y)
+
+
 _WELL_POSED = 1e-9
 """Below this ``det(A)/(A00·A11·A22)`` a normal-equation system is solved by LU, not cofactors."""
 
@@ -480,15 +491,15 @@ def _solve_quadratic_fit(
     """
     wu = wf * u
     wu2 = wf * u2
-    s00 = wf.sum(axis=1)
-    s01 = wu.sum(axis=1)
-    s02 = wu2.sum(axis=1)
-    s11 = (wu * u).sum(axis=1)
-    s12 = (wu * u2).sum(axis=1)
-    s22 = (wu2 * u2).sum(axis=1)
-    b0 = (wf * p).sum(axis=1)
-    b1 = (wu * p).sum(axis=1)
-    b2 = (wu2 * p).sum(axis=1)
+    s00 = _row_sum(wf)
+    s01 = _row_sum(wu)
+    s02 = _row_sum(wu2)
+    s11 = _row_dot(wu, u)
+    s12 = _row_dot(wu, u2)
+    s22 = _row_dot(wu2, u2)
+    b0 = _row_dot(wf, p)
+    b1 = _row_dot(wu, p)
+    b2 = _row_dot(wu2, p)
     lin = ~quad
     s22 = np.where(lin, 1.0, s22)  # u2 is 0 on linear rows: s02 = s12 = b2 = 0 already
     bad = ~fit_ok
@@ -533,22 +544,23 @@ def _solve_quadratic_fit(
     return coef, a_inv11
 
 
-def _quadratic_intercept(u: FloatArray, a: FloatArray) -> FloatArray:
+def _quadratic_intercept(u: FloatArray, a: FloatArray, n: int) -> FloatArray:
     """``c0`` of the least-squares fit ``a ≈ c0 + c1·u + c2·u²``, one fit per row of ``(M, k)``.
 
+    ``n`` points per row count (columns where both ``u`` and ``a`` are 0 add nothing else).
     Normal equations from the power sums of ``u`` (regularised by ``1e-12·I`` like
     :func:`_solve_quadratic_fit`, which takes the near-singular rows).
     """
     u2 = u * u
-    s00 = np.full(u.shape[0], float(u.shape[1])) + 1e-12
-    s01 = u.sum(axis=1)
-    s02 = u2.sum(axis=1)
+    s00 = np.full(u.shape[0], float(n)) + 1e-12
+    s01 = _row_sum(u)
+    s02 = _row_sum(u2)
     s11 = s02 + 1e-12
-    s12 = (u2 * u).sum(axis=1)
-    s22 = (u2 * u2).sum(axis=1) + 1e-12
-    b0 = a.sum(axis=1)
-    b1 = (u * a).sum(axis=1)
-    b2 = (u2 * a).sum(axis=1)
+    s12 = _row_dot(u2, u)
+    s22 = _row_dot(u2, u2) + 1e-12
+    b0 = _row_sum(a)
+    b1 = _row_dot(u, a)
+    b2 = _row_dot(u2, a)
     c00 = s11 * s22 - s12 * s12
     c01 = s02 * s12 - s01 * s22
     c02 = s01 * s12 - s02 * s11
@@ -559,7 +571,8 @@ def _quadratic_intercept(u: FloatArray, a: FloatArray) -> FloatArray:
     if ill.any():
         r = np.flatnonzero(ill)
         yes = np.ones(r.shape[0], dtype=bool)
-        c0[r] = _solve_quadratic_fit(u[r], u2[r], np.ones_like(u[r]), a[r], yes, yes)[0][0]
+        wf = (u[r] != 0.0) | (a[r] != 0.0)
+        c0[r] = _solve_quadratic_fit(u[r], u2[r], wf.astype(np.float64), a[r], yes, yes)[0][0]
     return c0
 
 
@@ -1056,20 +1069,23 @@ class WheelBank:
         if not ok.any():
             return
         centre, row_slot = centre[ok], row_slot[ok]
-        nb = np.concatenate([np.arange(-h, 0), np.arange(1, h + 1)])
-        idx = centre[:, None] + nb[None, :]
-        ts = (stamp[idx] - stamp[centre][:, None]).astype(np.float64) * _NS
-        a = ang[idx] - ang[centre][:, None]
+        # Windows as rows (M, 2h + 1) of the run; the centre column is exactly 0 in both time
+        # and angle, so it adds nothing to the fit: the centre edge is left out (its own error
+        # must not pull the fit).
+        t_run = (stamp - stamp[0]).astype(np.float64) * _NS
+        win_t = sliding_window_view(t_run, 2 * h + 1)[centre - h]
+        win_a = sliding_window_view(ang, 2 * h + 1)[centre - h]
+        ts = win_t - win_t[:, h : h + 1]
         u = ts / (ts[:, -1] - ts[:, 0])[:, None]
-        # fit with the centre edge left out (its own error must not pull the fit)
-        c0 = _quadratic_intercept(u, a)
+        a = win_a - win_a[:, h : h + 1]
+        c0 = _quadratic_intercept(u, a, 2 * h)
         resid = -c0  # centre angle (0 by construction) minus the fit at the centre
         pitch = 2 * np.pi / cfg.teeth_per_rev
         good = np.abs(resid) < 0.3 * pitch
         flat = self._delta.reshape(-1)
         np.add.at(flat, self._dslot[at[centre[good]]], -cfg.calibration_gain * resid[good])
         upd = np.flatnonzero(any_ok)
-        self._delta[upd] -= self._delta[upd].mean(axis=1, keepdims=True)
+        self._delta[upd] -= (_row_sum(self._delta[upd]) / cfg.teeth_per_rev)[:, None]
         np.add.at(self._calibrated, row_slot[good], 1)
 
     # --- per-slot views ------------------------------------------------------------------

@@ -92,7 +92,7 @@ def _assert_same(a: list[WheelSpeedResult], b: list[WheelSpeedResult]) -> float:
         assert np.array_equal(r1.method, r2.method)
         assert np.array_equal(np.isnan(r1.omega_radps), np.isnan(r2.omega_radps))
         assert np.allclose(r1.omega_radps, r2.omega_radps, rtol=0, atol=1e-9, equal_nan=True)
-        assert np.allclose(r1.std_radps, r2.std_radps, rtol=1e-9, atol=1e-12, equal_nan=True)
+        assert np.allclose(r1.std_radps, r2.std_radps, rtol=1e-8, atol=1e-12, equal_nan=True)
         d = np.abs(r1.omega_radps - r2.omega_radps)
         worst = max(worst, float(np.nanmax(d, initial=0.0)))
     return worst
