@@ -582,6 +582,14 @@ def _tooth(angle_rad: FloatArray, teeth_per_rev: int) -> IntArray:
     return np.mod(np.rint(angle_rad * ns / (2 * np.pi)).astype(np.int64), ns)
 
 
+_ARENA = (
+    ("_stamp", np.int64),
+    ("_angle", np.float64),
+    ("_dslot", np.int64),
+    ("_corr", np.float64),
+)
+"""The per-edge arrays of a :class:`WheelBank` (attribute name, dtype)."""
+
 _MIN_SEGMENT = 64
 """Smallest per-wheel ring (edges); rings are powers of two."""
 
@@ -620,12 +628,13 @@ class WheelBank:
         self._stamp = np.zeros(0, dtype=np.int64)  # the rings
         self._angle = np.zeros(0, dtype=np.float64)
         self._dslot = np.zeros(0, dtype=np.int64)  # index of the edge's tooth in _delta.flat
+        self._corr = np.zeros(0, dtype=np.float64)  # angle with the tooth correction in force
         self._used = 0  # arena elements handed out
         self._abandoned = 0  # arena elements of rings that moved
         # push queue (Python lists: a push costs a few list appends)
         self._q_slot: list[int] = []
         self._q_stamp: list[IntArray] = []
-        self._q_dir: list[npt.NDArray[np.int8] | None] = []
+        self._q_dir: list[tuple[int, npt.NDArray[np.int8]]] = []  # (batch number, directions)
         self._q_len: list[int] = []
         self._floor_ns: list[int] = []  # newest accepted stamp per slot (time-order check)
         self.skipped: list[int] = []
@@ -670,6 +679,7 @@ class WheelBank:
         self._floor_ns[slot] = np.iinfo(np.int64).min
         self.skipped[slot] = 0
         for arr, value in (
+            (self._base, 0),
             (self._mask, 0),
             (self._head, 0),
             (self._count, 0),
@@ -689,7 +699,7 @@ class WheelBank:
         if self._q_slot:
             self._flush()
         self._abandoned += int(self._mask[slot]) + 1 if self._mask[slot] else 0
-        self._mask[slot] = 0
+        self._mask[slot] = self._base[slot] = 0  # no ring: reads of it land on index 0
         self._head[slot] = self._count[slot] = 0
         self._free.append(slot)
 
@@ -721,9 +731,13 @@ class WheelBank:
             n = kept
             tl = t.tolist()
         self._floor_ns[slot] = tl[-1]
+        if direction is not None:
+            d = np.asarray(direction).reshape(-1)
+            if d.shape[0] != n:
+                raise ValueError(f"{d.shape[0]} directions for {n} edges")
+            self._q_dir.append((len(self._q_slot), d))
         self._q_slot.append(slot)
         self._q_stamp.append(t)
-        self._q_dir.append(direction)
         self._q_len.append(n)
 
     def _flush(self) -> None:
@@ -733,16 +747,12 @@ class WheelBank:
         slots = np.array(self._q_slot, dtype=np.int64)
         lens = np.array(self._q_len, dtype=np.int64)
         t = np.concatenate(self._q_stamp)
-        dirs = self._q_dir
-        if all(d is None for d in dirs):
-            d_sum = None
-        else:
-            d_all = np.concatenate(
-                [
-                    np.ones(n, np.int8) if d is None else np.asarray(d).reshape(-1)
-                    for d, n in zip(dirs, self._q_len, strict=True)
-                ]
-            )
+        d_sum = None
+        if self._q_dir:
+            with_dir = np.zeros(slots.shape[0], dtype=bool)
+            with_dir[[i for i, _ in self._q_dir]] = True
+            d_all = np.ones(t.shape[0], dtype=np.int8)
+            d_all[np.repeat(with_dir, lens)] = np.concatenate([d for _, d in self._q_dir])
             d_sum = np.cumsum(np.where(d_all < 0, -1, 1))
         self._q_slot, self._q_stamp, self._q_dir, self._q_len = [], [], [], []
         n_edges = t.shape[0]
@@ -787,7 +797,9 @@ class WheelBank:
         self._stamp[at] = t[gather]
         self._angle[at] = angle[gather]
         ns = self.config.teeth_per_rev
-        self._dslot[at] = e_slot * ns + _tooth(angle[gather], ns)
+        dslot = e_slot * ns + _tooth(angle[gather], ns)
+        self._dslot[at] = dslot
+        self._corr[at] = angle[gather] + self._delta.reshape(-1)[dslot]
 
     # --- rings ---------------------------------------------------------------------------
     def _fit_rings(self, slots: IntArray, extra: IntArray) -> None:
@@ -812,13 +824,10 @@ class WheelBank:
         need = self._used + int(size.sum())
         if need > self._stamp.shape[0]:
             cap = max(need, 2 * self._stamp.shape[0], 1 << 12)
-            stamp = np.zeros(cap, dtype=np.int64)
-            angle = np.zeros(cap, dtype=np.float64)
-            dslot = np.zeros(cap, dtype=np.int64)
-            stamp[: self._used] = self._stamp[: self._used]
-            angle[: self._used] = self._angle[: self._used]
-            dslot[: self._used] = self._dslot[: self._used]
-            self._stamp, self._angle, self._dslot = stamp, angle, dslot
+            for name, dtype in _ARENA:
+                new = np.zeros(cap, dtype=dtype)
+                new[: self._used] = getattr(self, name)[: self._used]
+                setattr(self, name, new)
         new_base = self._used + np.cumsum(size) - size
         self._used = need
         held = self._count[slots] - self._head[slots]
@@ -830,9 +839,9 @@ class WheelBank:
             number = np.repeat(self._head[hs], hh) + rel
             src = np.repeat(self._base[hs], hh) + (number & np.repeat(self._mask[hs], hh))
             dst = np.repeat(new_base[had], hh) + (number & np.repeat(size[had] - 1, hh))
-            self._stamp[dst] = self._stamp[src]
-            self._angle[dst] = self._angle[src]
-            self._dslot[dst] = self._dslot[src]
+            for name, _ in _ARENA:
+                arr = getattr(self, name)
+                arr[dst] = arr[src]
         self._abandoned += int((self._mask[slots] + had).sum())
         self._base[slots] = new_base
         self._mask[slots] = size - 1
@@ -844,12 +853,11 @@ class WheelBank:
         size = np.maximum(
             _MIN_SEGMENT, 1 << np.ceil(np.log2(np.maximum(2 * held, 1))).astype(np.int64)
         )
-        old_stamp, old_angle, old_dslot = self._stamp, self._angle, self._dslot
+        old = {name: getattr(self, name) for name, _ in _ARENA}
         old_base, old_mask = self._base[slots].copy(), self._mask[slots].copy()
         cap = max(int(size.sum()) * 2, 1 << 12)
-        self._stamp = np.zeros(cap, dtype=np.int64)
-        self._angle = np.zeros(cap, dtype=np.float64)
-        self._dslot = np.zeros(cap, dtype=np.int64)
+        for name, dtype in _ARENA:
+            setattr(self, name, np.zeros(cap, dtype=dtype))
         new_base = np.cumsum(size) - size
         n = int(held.sum())
         if n:
@@ -857,9 +865,8 @@ class WheelBank:
             number = np.repeat(self._head[slots], held) + rel
             src = np.repeat(old_base, held) + (number & np.repeat(old_mask, held))
             dst = np.repeat(new_base, held) + (number & np.repeat(size - 1, held))
-            self._stamp[dst] = old_stamp[src]
-            self._angle[dst] = old_angle[src]
-            self._dslot[dst] = old_dslot[src]
+            for name, _ in _ARENA:
+                getattr(self, name)[dst] = old[name][src]
         self._base[slots] = new_base
         self._mask[slots] = size - 1
         self._used = int(size.sum())
@@ -942,9 +949,17 @@ class WheelBank:
 
     def _corrected(self, at: IntArray) -> FloatArray:
         """Angles of the edges at arena indices ``at``, with their slot's tooth corrections."""
-        if not self.config.tooth_calibration:
-            return self._angle[at]
-        return self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
+        return self._corr[at]
+
+    def _recorrect(self, slots: IntArray) -> None:
+        """Refresh the corrected angles of the held edges of ``slots`` (their corrections moved)."""
+        held = self._count[slots] - self._head[slots]
+        n = int(held.sum())
+        if n == 0:
+            return
+        number = np.repeat(self._head[slots] - (np.cumsum(held) - held), held) + np.arange(n)
+        at = self._at(np.repeat(slots, held), number)
+        self._corr[at] = self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
 
     def _fit(self, s: IntArray, qs: IntArray) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
         """:func:`omega_at` of every slot in ``s`` at every time in ``qs`` (rows slot-major).
@@ -1046,7 +1061,7 @@ class WheelBank:
         at = self._at(run_slot, number)
         stamp = self._stamp[at]
         raw = self._angle[at]
-        ang = raw + self._delta.reshape(-1)[self._dslot[at]] if cfg.tooth_calibration else raw
+        ang = self._corr[at]
         # window rows: centre index in the run arrays, neighbours −h … −1, 1 … h
         m = int(n_c.sum())
         row_slot = np.repeat(slots, n_c)
@@ -1086,6 +1101,7 @@ class WheelBank:
         np.add.at(flat, self._dslot[at[centre[good]]], -cfg.calibration_gain * resid[good])
         upd = np.flatnonzero(any_ok)
         self._delta[upd] -= (_row_sum(self._delta[upd]) / cfg.teeth_per_rev)[:, None]
+        self._recorrect(upd)
         np.add.at(self._calibrated, row_slot[good], 1)
 
     # --- per-slot views ------------------------------------------------------------------
@@ -1203,6 +1219,9 @@ class WheelTracker:
             bank._angle[at] = angle
             ns = self.config.teeth_per_rev
             bank._dslot[at] = new * ns + _tooth(angle, ns)
+            bank._corr[at] = old._corr[
+                old._at(np.int64(slot), np.arange(old._head[slot], old._count[slot]))
+            ]
         shift = int(old._head[slot])
         bank._cal_from[new] = old._cal_from[slot] - shift
         for name in (
