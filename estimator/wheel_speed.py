@@ -389,20 +389,19 @@ def _speed_from_window(
     has_prev : ndarray, shape (m,), bool
         The edge before the last one is held.
     """
-    m, kmax = tau_s.shape
+    m = tau_s.shape[0]
     ns = config.teeth_per_rev
-    offs = np.arange(kmax)
     # A wheel starting again after a stop: an interval longer than ``stop_timeout_s`` ends
     # the fit (it would average over the standstill); so does an interval far longer than
     # the latest one (a wheel leaving a near-stop).
     gaps = tau_s[:, :-1] - tau_s[:, 1:]  # interval before edge j, j = 0..kmax-2
     latest = np.where(w[:, 1], gaps[:, 0], np.inf)
-    cut = (gaps > config.stop_timeout_s) | (gaps > _GAP_FACTOR * latest[:, None]) & (
-        offs[None, 1:] > 1
-    )
-    keep = np.concatenate([np.ones((m, 1), bool), np.cumsum(cut, axis=1) == 0], axis=1)
-    w = w & keep
-    n_fit = w.sum(axis=1)
+    cut = gaps > _GAP_FACTOR * latest[:, None]
+    cut[:, 0] = False  # (the latest interval itself)
+    cut |= gaps > config.stop_timeout_s
+    w = w.copy()
+    w[:, 1:] &= np.cumsum(cut, axis=1) == 0
+    n_fit = np.count_nonzero(w, axis=1)
     fit_ok = has & (n_fit >= 2)
     w &= fit_ok[:, None]
     span = np.where(fit_ok, -tau_s[np.arange(m), np.maximum(n_fit - 1, 0)], 1.0)
@@ -411,7 +410,9 @@ def _speed_from_window(
     wf = w.astype(np.float64)
     quad = fit_ok & (n_fit >= 3) & (config.fit_order >= 2)
     # Weighted fit of [1, u, u²] (u² column off for linear fits).
-    u2 = u * u * quad[:, None]
+    u2 = u * u
+    if not quad.all():
+        u2[~quad] = 0.0
     coef, a_inv11 = _solve_quadratic_fit(u, u2, wf, p, quad, fit_ok)
     om_fit = coef[1] / span
     # Uncertainty: residual scatter, floored by the time-stamp jitter, through (AᵀA)⁻¹.
@@ -576,6 +577,25 @@ def _quadratic_intercept(u: FloatArray, a: FloatArray, n: int) -> FloatArray:
     return c0
 
 
+def _split_by_width(k: IntArray) -> list[IntArray]:
+    """Rows ``0 … m−1`` in one or two groups so that ``Σ rows·(widest k in group)`` is least.
+
+    Returns ``[arange(m)]`` when splitting saves less than a quarter.
+    """
+    m = k.shape[0]
+    kmax = max(int(k.max()), 2)
+    if m < 256 or kmax <= 8:
+        return [np.arange(m)]
+    n_le = np.cumsum(np.bincount(k, minlength=kmax + 1))  # rows with k ≤ j
+    width = np.maximum(np.arange(kmax + 1), 2)
+    cost = n_le * width + (m - n_le) * kmax
+    j = int(np.argmin(cost))
+    if cost[j] > 0.75 * m * kmax:
+        return [np.arange(m)]
+    narrow = k <= j
+    return [np.flatnonzero(narrow), np.flatnonzero(~narrow)]
+
+
 def _tooth(angle_rad: FloatArray, teeth_per_rev: int) -> IntArray:
     """Tooth number ``0 … Ns−1`` of the edge at each cumulative angle."""
     ns = teeth_per_rev
@@ -711,13 +731,15 @@ class WheelBank:
 
         An edge is kept when it is not earlier than any edge before it (held or in the batch).
         """
-        t = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
-        n = t.shape[0]
+        t = stamp_ns
+        if type(t) is not np.ndarray or t.dtype != np.int64 or t.ndim != 1:
+            t = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
+        tl = t.tolist()
+        n = len(tl)
         if n == 0:
             return
         if direction is not None:
             self._signed[slot] = True
-        tl = t.tolist()
         floor = self._floor_ns[slot]
         if tl[0] < floor or (n > 1 and tl != sorted(tl)):
             prev = np.maximum.accumulate(np.concatenate([[floor], t[:-1]]))
@@ -981,6 +1003,35 @@ class WheelBank:
         if not has.any():
             return _unknown(rs.shape[0]), tail
         n_win = np.maximum(last - first_in + 1, 0)
+        # Rows are fitted in (at most) two groups by how many edges they may use, so slow
+        # wheels do not pay for the columns of the fastest one.
+        k = np.where(has, np.minimum(np.clip(n_win, cfg.min_edges, cfg.max_edges), end - head), 0)
+        groups = _split_by_width(k)
+        if len(groups) == 1:
+            res = self._fit_rows(rs, q, head, last, first_in, n_win, has)
+            return res, tail
+        m = rs.shape[0]
+        omega, std = np.empty(m), np.empty(m)
+        method = np.empty(m, dtype=np.int8)
+        for g in groups:
+            r = self._fit_rows(rs[g], q[g], head[g], last[g], first_in[g], n_win[g], has[g])
+            omega[g], std[g], method[g] = r.omega_radps, r.std_radps, r.method
+        return WheelSpeedResult(omega, std, method), tail
+
+    def _fit_rows(
+        self,
+        rs: IntArray,
+        q: IntArray,
+        head: IntArray,
+        last: IntArray,
+        first_in: IntArray,
+        n_win: IntArray,
+        has: npt.NDArray[np.bool_],
+    ) -> WheelSpeedResult:
+        """Gather each row's edges and fit them (:func:`_speed_from_window`)."""
+        cfg = self.config
+        if not has.any():
+            return _unknown(rs.shape[0])
         w, offs = _fit_mask(last, head, n_win, has, cfg)
         last_c = np.maximum(last, head)
         number = np.maximum(last_c[:, None] - offs[None, :], head[:, None])
@@ -997,7 +1048,7 @@ class WheelBank:
             freq_omega = (pos[:, 0] - before) / cfg.window_s
         last_ns = self._stamp[at_last]
         prev_ns = self._stamp[self._at(rs, np.maximum(last_c - 1, head))]
-        res = _speed_from_window(
+        return _speed_from_window(
             q,
             tau_s,
             p,
@@ -1011,7 +1062,6 @@ class WheelBank:
             cfg,
             self._signed[rs],
         )
-        return res, tail
 
     def _trim(self, s: IntArray, last: IntArray, first_in: IntArray) -> None:
         """Drop edges no later query can use (as the pre-bank tracker did after each query)."""
