@@ -159,6 +159,18 @@ def _bank_api(cfg: WheelSpeedConfig) -> tuple[Callable[[], Any], Callable[..., o
     return (lambda: _SlotHandle(bank)), many
 
 
+def _run_query_many(
+    runs: list[list[_Packet]], n: int, iv: int, seconds: float, cfg: WheelSpeedConfig
+) -> tuple[float, float]:
+    return _measure(runs, n, iv, seconds, lambda: WheelTracker(cfg), query_many)
+
+
+def _run_bank_api(
+    runs: list[list[_Packet]], n: int, iv: int, seconds: float, cfg: WheelSpeedConfig
+) -> tuple[float, float]:
+    return _measure(runs, n, iv, seconds, *_bank_api(cfg))
+
+
 def _best(repeats: int, measure: Callable[[], tuple[float, float]]) -> tuple[float, float]:
     """Least total over ``repeats`` runs (other load on the machine only ever adds)."""
     return min((measure() for _ in range(max(repeats, 1))), key=sum)
@@ -194,13 +206,8 @@ def run(
     print("-" * len(header))
     for n in vehicles:
         for iv in intervals_ms:
-            many_ = _best(
-                repeats,
-                lambda n=n, iv=iv: _measure(
-                    runs, n, iv, seconds, lambda: WheelTracker(cfg), query_many
-                ),
-            )
-            api = _best(repeats, lambda n=n, iv=iv: _measure(runs, n, iv, seconds, *_bank_api(cfg)))
+            many_ = _best(repeats, functools.partial(_run_query_many, runs, n, iv, seconds, cfg))
+            api = _best(repeats, functools.partial(_run_bank_api, runs, n, iv, seconds, cfg))
             row: dict[str, Any] = {
                 "vehicles": n,
                 "interval_ms": iv,
