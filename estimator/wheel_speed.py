@@ -651,12 +651,15 @@ class WheelBank:
         self._corr = np.zeros(0, dtype=np.float64)  # angle with the tooth correction in force
         self._used = 0  # arena elements handed out
         self._abandoned = 0  # arena elements of rings that moved
+        self.compactions = 0
+        """Times the rings were copied into fresh arrays (diagnostics)."""
         # push queue (Python lists: a push costs a few list appends)
         self._q_slot: list[int] = []
         self._q_stamp: list[IntArray] = []
         self._q_dir: list[tuple[int, npt.NDArray[np.int8]]] = []  # (batch number, directions)
         self._q_len: list[int] = []
         self._floor_ns: list[int] = []  # newest accepted stamp per slot (time-order check)
+        self._removed: list[int] = []  # slots removed, to clear at the next flush
         self.skipped: list[int] = []
         """Per slot: edges dropped because they went back in time."""
 
@@ -687,6 +690,8 @@ class WheelBank:
 
     def add(self) -> int:
         """A new, empty wheel; returns its slot index."""
+        if self._removed:
+            self._flush()
         if self._free:
             slot = self._free.pop()
         else:
@@ -715,9 +720,19 @@ class WheelBank:
         return slot
 
     def remove(self, slot: int) -> None:
-        """Forget a wheel; its index may be handed out again by :meth:`add`."""
-        if self._q_slot:
-            self._flush()
+        """Forget a wheel; its index may be handed out again by :meth:`add`.
+
+        Only noted here (a tracker's finalizer may call this at any allocation, even in the
+        middle of another call on the bank); the slot is cleared by the next flush.
+        """
+        self._removed.append(slot)
+
+    def _clear_removed(self) -> None:
+        removed, self._removed = self._removed, []
+        for slot in removed:
+            self._clear(slot)
+
+    def _clear(self, slot: int) -> None:
         self._abandoned += int(self._mask[slot]) + 1 if self._mask[slot] else 0
         self._mask[slot] = self._base[slot] = 0  # no ring: reads of it land on index 0
         self._head[slot] = self._count[slot] = 0
@@ -765,6 +780,8 @@ class WheelBank:
     def _flush(self) -> None:
         """Write the queued batches into the rings, with their cumulative angles."""
         if not self._q_slot:
+            if self._removed:
+                self._clear_removed()
             return
         slots = np.array(self._q_slot, dtype=np.int64)
         lens = np.array(self._q_len, dtype=np.int64)
@@ -822,10 +839,19 @@ class WheelBank:
         dslot = e_slot * ns + _tooth(angle[gather], ns)
         self._dslot[at] = dslot
         self._corr[at] = angle[gather] + self._delta.reshape(-1)[dslot]
+        if self._removed:
+            self._clear_removed()
 
     # --- rings ---------------------------------------------------------------------------
     def _fit_rings(self, slots: IntArray, extra: IntArray) -> None:
-        """Move slots whose held edges plus ``extra`` new ones outgrow their ring."""
+        """Move slots whose held edges plus ``extra`` new ones outgrow their ring.
+
+        First compacts the arena when more of it is abandoned rings than live ones.
+        """
+        if self._abandoned > (1 << 16):
+            live = int((self._mask[: self._slots] + (self._mask[: self._slots] > 0)).sum())
+            if self._abandoned > live:
+                self._compact()
         held = self._count[slots] - self._head[slots] + extra
         small = held > self._mask[slots] + (self._mask[slots] > 0)
         if not small.any():
@@ -834,11 +860,6 @@ class WheelBank:
         size = np.maximum(
             _MIN_SEGMENT, 1 << np.ceil(np.log2(np.maximum(2 * held[small], 1))).astype(np.int64)
         )
-        live = int((self._mask[: self._slots] + (self._mask[: self._slots] > 0)).sum())
-        if self._abandoned > max(live, 1 << 16):
-            self._compact()
-            self._fit_rings(slots, extra)
-            return
         self._move(grow, size)
 
     def _move(self, slots: IntArray, size: IntArray) -> None:
@@ -893,6 +914,7 @@ class WheelBank:
         self._mask[slots] = size - 1
         self._used = int(size.sum())
         self._abandoned = 0
+        self.compactions += 1
 
     def _at(self, slot: IntArray | np.int64, number: IntArray) -> IntArray:
         """Arena index of edge ``number`` of ``slot`` (shapes broadcast)."""

@@ -181,3 +181,29 @@ def test_bank_query_gives_arrays_per_slot() -> None:
     assert r.omega_radps.shape == (3, 1)
     want = [2 * np.pi / (NS * 0.01 * (i + 1)) for i in range(3)]
     assert r.omega_radps[:, 0] == pytest.approx(want, rel=1e-6)
+
+
+def test_churn_moves_and_compacts_rings_without_changing_results() -> None:
+    # wheels come and go, rings grow (unqueried wheels hold every edge) and are abandoned:
+    # the arena is compacted, and the survivors' speeds still equal the pre-bank tracker's
+    cfg = WheelSpeedConfig(teeth_per_rev=NS)
+    bank = WheelBank(cfg)
+    steady = [WheelTracker(cfg, bank) for _ in range(3)]
+    oracle = [wheels_legacy.WheelTracker(cfg) for _ in range(3)]
+    period_ns = [9_000_000, 4_000_000, 23_000_000]
+    for rnd in range(6):
+        churn = [WheelTracker(cfg, bank) for _ in range(100)]
+        for i, tr in enumerate(churn):
+            tr.push(T0 + rnd * 10**9 + np.arange(1500, dtype=np.int64) * 600_000 + i)
+        t = T0 + rnd * 10**9 + np.arange(0, 10**9, 100_000_000, dtype=np.int64)
+        for q in t:
+            for tr, old, per in zip(steady, oracle, period_ns, strict=True):
+                e = np.arange(q - 100_000_000 + per, q + 1, per, dtype=np.int64)
+                tr.push(e)
+                old.push(e)
+            qs = np.array([q - 30_000_000], dtype=np.int64)
+            _assert_same([o.query(qs) for o in oracle], query_many(steady, qs))
+        del churn
+        gc.collect()
+    assert bank.compactions > 0
+    assert bank._slots <= 203  # removed slots were handed out again
