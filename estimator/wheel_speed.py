@@ -27,6 +27,13 @@ edge came for ``τ = t − t_last``, the wheel is slower than one tooth per ``τ
 
 Direction: a quadrature encoder gives ``±1`` per edge; the wheel angle then steps back on reverse
 edges and the fitted slope is signed. Without direction every edge counts forward.
+
+Many wheels: a :class:`WheelBank` keeps the edges of thousands of wheels in shared arrays (one
+ring per wheel), queues pushes and answers a query of any set of wheels, tooth calibration
+included, in a fixed number of numpy calls. :class:`WheelTracker` is one slot of a bank and
+:func:`query_many` queries trackers through their bank; a fleet front end can hold slot indices
+and call :meth:`WheelBank.push` / :meth:`WheelBank.query` directly (arrays, no per-wheel
+objects).
 """
 
 from __future__ import annotations
