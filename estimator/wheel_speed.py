@@ -1263,7 +1263,7 @@ class WheelTracker:
         """Times of the edges held, shape ``(n,)``."""
         return self._bank.held_stamp_ns(self._slot)
 
-    _stamp = held_stamp_ns
+    _stamp = held_stamp_ns  # the name the tracker's held times had before the bank (tests use it)
 
     @property
     def tooth_correction_rad(self) -> FloatArray:
