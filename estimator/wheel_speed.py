@@ -27,21 +27,31 @@ edge came for ``τ = t − t_last``, the wheel is slower than one tooth per ``τ
 
 Direction: a quadrature encoder gives ``±1`` per edge; the wheel angle then steps back on reverse
 edges and the fitted slope is signed. Without direction every edge counts forward.
+
+Many wheels: a :class:`WheelBank` keeps the edges of thousands of wheels in shared arrays (one
+ring per wheel), queues pushes and answers a query of any set of wheels, tooth calibration
+included, in a fixed number of numpy calls. :class:`WheelTracker` is one slot of a bank and
+:func:`query_many` queries trackers through their bank; a fleet front end can hold slot indices
+and call :meth:`WheelBank.push` / :meth:`WheelBank.query` directly (arrays, no per-wheel
+objects).
 """
 
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
 import numpy.typing as npt
+from numpy.lib.stride_tricks import sliding_window_view
 
 from estimator.config import ConfigError
 
 __all__ = [
     "DirectWheelSpeed",
+    "WheelBank",
     "WheelSpeedConfig",
     "WheelSpeedMethod",
     "WheelSpeedResult",
@@ -277,8 +287,8 @@ def omega_at(
         The angles carry direction (quadrature encoder); otherwise a negative fitted speed
         (a fit overshooting a stop) is clamped to zero.
     segment_start : ndarray, shape (m,), int, optional
-        When several wheels share the arrays (:func:`query_many`): index of the first edge of
-        each query's wheel; edges before it are not that wheel's.
+        When several wheels share the arrays: index of the first edge of each query's wheel;
+        edges before it are not that wheel's.
 
     Returns
     -------
@@ -289,99 +299,155 @@ def omega_at(
     pos = np.asarray(angle_rad, dtype=np.float64)
     q = np.asarray(query_ns, dtype=np.int64)
     m = q.shape[0]
-    ns = config.teeth_per_rev
-    omega = np.full(m, np.nan)
-    std = np.full(m, np.nan)
-    method = np.full(m, int(WheelSpeedMethod.NONE), dtype=np.int8)
     if m == 0:
-        return WheelSpeedResult(omega, std, method)
+        return _unknown(0)
     last = np.searchsorted(e, q, side="right") - 1  # index of the last edge ≤ t
     seg0 = np.zeros(m, dtype=np.int64) if segment_start is None else np.asarray(segment_start)
     has = last >= seg0
     if e.shape[0] == 0 or not has.any():
-        return WheelSpeedResult(omega, std, method)
-
+        return _unknown(m)
     w_ns = round(config.window_s * 1e9)
     first_in = np.searchsorted(e, q - w_ns, side="right")
     n_win = np.maximum(last - first_in + 1, 0)
+    w, offs = _fit_mask(last, seg0, n_win, has, config)
+    idx = np.clip(last[:, None] - offs[None, :], 0, e.shape[0] - 1)
+    last_c = np.maximum(last, 0)
+    tau_s = (e[idx] - q[:, None]).astype(np.float64) * _NS
+    p = pos[idx] - pos[last_c][:, None]
+    freq = has & (n_win >= config.frequency_min_count)
+    freq_omega = None
+    if freq.any():
+        before = np.where(first_in > seg0, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
+        freq_omega = (pos[last_c] - before) / config.window_s
+    return _speed_from_window(
+        q,
+        tau_s,
+        p,
+        w,
+        has,
+        freq,
+        freq_omega,
+        e[last_c],
+        e[np.maximum(last - 1, 0)],
+        last - 1 >= seg0,
+        config,
+        signed,
+    )
+
+
+def _unknown(m: int) -> WheelSpeedResult:
+    return WheelSpeedResult(
+        np.full(m, np.nan), np.full(m, np.nan), np.full(m, int(WheelSpeedMethod.NONE), np.int8)
+    )
+
+
+def _fit_mask(
+    last: IntArray,
+    seg0: IntArray,
+    n_win: IntArray,
+    has: npt.NDArray[np.bool_],
+    config: WheelSpeedConfig,
+) -> tuple[npt.NDArray[np.bool_], IntArray]:
+    """Which of the edges ``last, last − 1, …`` a query may fit: mask ``(m, kmax)`` and offsets.
+
+    ``k`` = edges in the window, clipped to ``[min_edges, max_edges]`` and to the edges held
+    (``last − seg0 + 1``); ``kmax`` is the largest ``k`` over the queries (at least 2).
+    """
     n_fit = np.clip(n_win, config.min_edges, config.max_edges)
     n_fit = np.minimum(n_fit, last - seg0 + 1)  # cannot use more edges than exist
-    # Gather the candidate edges: row j holds edges last, last-1, ...
-    kmax = int(n_fit[has].max()) if has.any() else 2
-    kmax = max(kmax, 2)
+    kmax = max(int(n_fit[has].max()) if has.any() else 2, 2)
     offs = np.arange(kmax)
-    idx = last[:, None] - offs[None, :]
-    w = (offs[None, :] < n_fit[:, None]) & (idx >= seg0[:, None]) & has[:, None]
-    idx = np.clip(idx, 0, max(e.shape[0] - 1, 0))
-    tau_s = (e[idx] - q[:, None]).astype(np.float64) * _NS  # ≤ 0
+    w = (offs[None, :] < n_fit[:, None]) & (offs[None, :] <= (last - seg0)[:, None]) & has[:, None]
+    return w, offs
+
+
+def _speed_from_window(
+    q: IntArray,
+    tau_s: FloatArray,
+    p: FloatArray,
+    w: npt.NDArray[np.bool_],
+    has: npt.NDArray[np.bool_],
+    freq: npt.NDArray[np.bool_],
+    freq_omega: FloatArray | None,
+    last_ns: IntArray,
+    prev_ns: IntArray,
+    has_prev: npt.NDArray[np.bool_],
+    config: WheelSpeedConfig,
+    signed: bool | npt.NDArray[np.bool_],
+) -> WheelSpeedResult:
+    """Fit, frequency override and standstill bound of :func:`omega_at` on gathered edges.
+
+    Parameters
+    ----------
+    q : ndarray, shape (m,), int64
+        Query times.
+    tau_s : ndarray, shape (m, kmax)
+        Time of edge ``last − j`` minus the query time [s] (column ``j``).
+    p : ndarray, shape (m, kmax)
+        Corrected wheel angle of edge ``last − j`` minus that of edge ``last`` [rad].
+    w : ndarray, shape (m, kmax), bool
+        The edges the query may fit (:func:`_fit_mask`); entries outside are finite but unused.
+    has : ndarray, shape (m,), bool
+        The query has an edge at or before it.
+    freq, freq_omega : ndarray, shape (m,)
+        Queries taken by the frequency method and their speed (None when none is).
+    last_ns, prev_ns : ndarray, shape (m,), int64
+        Time of the last edge at or before the query and of the one before it.
+    has_prev : ndarray, shape (m,), bool
+        The edge before the last one is held.
+    """
+    m = tau_s.shape[0]
+    ns = config.teeth_per_rev
     # A wheel starting again after a stop: an interval longer than ``stop_timeout_s`` ends
     # the fit (it would average over the standstill); so does an interval far longer than
     # the latest one (a wheel leaving a near-stop).
     gaps = tau_s[:, :-1] - tau_s[:, 1:]  # interval before edge j, j = 0..kmax-2
     latest = np.where(w[:, 1], gaps[:, 0], np.inf)
-    cut = (gaps > config.stop_timeout_s) | (gaps > _GAP_FACTOR * latest[:, None]) & (
-        offs[None, 1:] > 1
-    )
-    keep = np.concatenate([np.ones((m, 1), bool), np.cumsum(cut, axis=1) == 0], axis=1)
-    w &= keep
-    n_fit = w.sum(axis=1)
+    cut = gaps > _GAP_FACTOR * latest[:, None]
+    cut[:, 0] = False  # (the latest interval itself)
+    cut |= gaps > config.stop_timeout_s
+    w = w.copy()
+    w[:, 1:] &= np.cumsum(cut, axis=1) == 0
+    n_fit = np.count_nonzero(w, axis=1)
     fit_ok = has & (n_fit >= 2)
     w &= fit_ok[:, None]
     span = np.where(fit_ok, -tau_s[np.arange(m), np.maximum(n_fit - 1, 0)], 1.0)
     span = np.where(span > 0, span, 1.0)
     u = tau_s / span[:, None]  # in [-1, 0]
-    p = pos[idx] - pos[last][:, None]
     wf = w.astype(np.float64)
     quad = fit_ok & (n_fit >= 3) & (config.fit_order >= 2)
-    # Normal equations of the weighted fit [1, u, u²] (u² column off for linear fits).
-    u2 = u * u * quad[:, None]
-    cols = np.stack([np.ones_like(u), u, u2], axis=-1) * wf[..., None]  # (m, k, 3)
-    A = np.einsum("mki,mkj->mij", cols, cols)
-    b = np.einsum("mki,mk->mi", cols, p)
-    lin = ~quad
-    A[lin, 2, :] = 0.0
-    A[lin, :, 2] = 0.0
-    A[lin, 2, 2] = 1.0
-    b[lin, 2] = 0.0
-    bad = ~fit_ok
-    A[bad] = np.eye(3)
-    b[bad] = 0.0
-    # Degenerate spans (all edges at one instant) give a singular system: regularise lightly.
-    A = A + np.eye(3) * 1e-12
-    coef = np.linalg.solve(A, b[..., None])[..., 0]
-    om_fit = coef[:, 1] / span
+    # Weighted fit of [1, u, u²] (u² column off for linear fits).
+    u2 = u * u
+    if not quad.all():
+        u2[~quad] = 0.0
+    coef, a_inv11 = _solve_quadratic_fit(u, u2, wf, p, quad, fit_ok)
+    om_fit = coef[1] / span
     # Uncertainty: residual scatter, floored by the time-stamp jitter, through (AᵀA)⁻¹.
-    resid = (p - (cols @ coef[..., None])[..., 0]) * wf
+    resid = (p - (coef[0][:, None] + coef[1][:, None] * u + coef[2][:, None] * u2)) * wf
     n_par = np.where(quad, 3, 2)
     dof = np.maximum(n_fit - n_par, 1)
-    s2 = (resid**2).sum(axis=1) / dof
+    s2 = _row_dot(resid, resid) / dof
     s2 = np.maximum(s2, (om_fit * config.timing_std_s) ** 2 + (2 * np.pi / ns * 1e-3) ** 2)
-    a_inv11 = np.linalg.inv(A)[:, 1, 1]
     std_fit = np.sqrt(s2 * np.maximum(a_inv11, 0.0)) / span
 
     omega = np.where(fit_ok, om_fit, np.nan)
     std = np.where(fit_ok, std_fit, np.nan)
-    method = np.where(fit_ok, np.int8(WheelSpeedMethod.PERIOD), method).astype(np.int8)
+    method = np.where(fit_ok, np.int8(WheelSpeedMethod.PERIOD), np.int8(WheelSpeedMethod.NONE))
 
     # Frequency method when the window is crowded.
-    freq = has & (n_win >= config.frequency_min_count)
-    if freq.any():
-        before = np.where(first_in > seg0, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
-        om_f = (pos[np.maximum(last, 0)] - before) / config.window_s
-        omega = np.where(freq, om_f, omega)
+    if freq_omega is not None:
+        omega = np.where(freq, freq_omega, omega)
         std = np.where(freq, 2 * np.pi / (ns * config.window_s) / math.sqrt(3.0), std)
-        method = np.where(freq, np.int8(WheelSpeedMethod.FREQUENCY), method).astype(np.int8)
+        method = np.where(freq, np.int8(WheelSpeedMethod.FREQUENCY), method)
 
     # Standstill: bound by the time since the last edge, zero after the timeout.
     single = has & ~fit_ok
-    last_ns = e[np.maximum(last, 0)]
     bound = stop_bound(last_ns, q, ns) * (1.0 + config.stop_bound_margin)
     # a fit overshooting a stop; no reverse without direction
     omega = np.where(~np.asarray(signed) & (omega < 0), 0.0, omega)
     sign = np.where(omega < 0, -1.0, 1.0)
     # A lone edge after a stop: at most one tooth since the edge before it.
-    prev_ns = e[np.maximum(last - 1, 0)]
-    lone = np.where(last - 1 >= seg0, stop_bound(prev_ns, last_ns, ns), 0.0)
+    lone = np.where(has_prev, stop_bound(prev_ns, last_ns, ns), 0.0)
     mag = np.where(single, np.minimum(lone, bound), np.abs(omega))
     capped = mag > bound
     mag = np.minimum(mag, bound)
@@ -393,6 +459,752 @@ def omega_at(
     std = np.where(stopped, 2 * np.pi / (ns * config.stop_timeout_s), std)
     method = np.where((capped | single | stopped) & has, np.int8(WheelSpeedMethod.PERIOD), method)
     return WheelSpeedResult(omega, std, method.astype(np.int8))
+
+
+def _row_sum(x: FloatArray) -> FloatArray:
+    """Sum of each row of ``(m, k)`` (faster than ``sum(axis=1)`` for short rows)."""
+    return np.einsum("ij->i", x)
+
+
+def _row_dot(x: FloatArray, y: FloatArray) -> FloatArray:
+    """``Σ_j x_ij·y_ij`` per row of ``(m, k)``."""
+    return np.einsum("ij,ij->i", x, y)
+
+
+_WELL_POSED = 1e-5
+"""Below this ``det(A)/(A00·A11·A22)`` a normal-equation system is solved by LU, not cofactors.
+
+A healthy quadratic fit on edges spread over ``[−1, 0]`` has a ratio near 1e-3; below 1e-5 (a
+fit over a stop, edges bunched at one end: about 0.5 % of fits on simulated fleets) cofactors
+and LU differ by up to 1e-7 in the reported std, so those rows take LU as before the bank.
+"""
+
+
+def _solve_quadratic_fit(
+    u: FloatArray,
+    u2: FloatArray,
+    wf: FloatArray,
+    p: FloatArray,
+    quad: npt.NDArray[np.bool_],
+    fit_ok: npt.NDArray[np.bool_],
+) -> tuple[FloatArray, FloatArray]:
+    """Normal equations ``A·c = b`` of the weighted least-squares fit ``p ≈ c0 + c1·u + c2·u2``.
+
+    Each row (shape ``(m, k)`` inputs) is one fit; ``quad`` off: linear (``c2 = 0``); ``fit_ok``
+    off: ``c = 0``. ``A`` is regularised by ``1e-12·I`` (degenerate spans). Solved in closed
+    form (cofactors of the symmetric 3×3 ``A``); near-singular rows go through
+    :func:`numpy.linalg.solve` as before.
+
+    Returns
+    -------
+    coef : ndarray, shape (3, m)
+        ``c0, c1, c2``.
+    a_inv11 : ndarray, shape (m,)
+        ``(A⁻¹)₁₁``, the variance factor of ``c1``.
+    """
+    wu = wf * u
+    wu2 = wf * u2
+    s00 = _row_sum(wf)
+    s01 = _row_sum(wu)
+    s02 = _row_sum(wu2)
+    s11 = _row_dot(wu, u)
+    s12 = _row_dot(wu, u2)
+    s22 = _row_dot(wu2, u2)
+    b0 = _row_dot(wf, p)
+    b1 = _row_dot(wu, p)
+    b2 = _row_dot(wu2, p)
+    lin = ~quad
+    s22 = np.where(lin, 1.0, s22)  # u2 is 0 on linear rows: s02 = s12 = b2 = 0 already
+    bad = ~fit_ok
+    if bad.any():
+        s00, s11, s22 = (np.where(bad, 1.0, s) for s in (s00, s11, s22))
+        s01, s02, s12, b0, b1, b2 = (np.where(bad, 0.0, s) for s in (s01, s02, s12, b0, b1, b2))
+    s00 = s00 + 1e-12
+    s11 = s11 + 1e-12
+    s22 = s22 + 1e-12
+    c00 = s11 * s22 - s12 * s12
+    c01 = s02 * s12 - s01 * s22
+    c02 = s01 * s12 - s02 * s11
+    c11 = s00 * s22 - s02 * s02
+    c12 = s01 * s02 - s00 * s12
+    c22 = s00 * s11 - s01 * s01
+    det = s00 * c00 + s01 * c01 + s02 * c02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_det = 1.0 / det
+        coef = np.stack(
+            [
+                (c00 * b0 + c01 * b1 + c02 * b2) * inv_det,
+                (c01 * b0 + c11 * b1 + c12 * b2) * inv_det,
+                (c02 * b0 + c12 * b1 + c22 * b2) * inv_det,
+            ]
+        )
+        a_inv11 = c11 * inv_det
+        ill = ~(np.abs(det) > _WELL_POSED * np.abs(s00 * s11 * s22))
+    if ill.any():
+        r = np.flatnonzero(ill)
+        cols = np.stack([np.ones_like(u[r]), u[r], u2[r]], axis=-1) * wf[r][..., None]
+        A = np.einsum("mki,mkj->mij", cols, cols)
+        b = np.einsum("mki,mk->mi", cols, p[r])
+        A[lin[r], 2, :] = 0.0
+        A[lin[r], :, 2] = 0.0
+        A[lin[r], 2, 2] = 1.0
+        b[lin[r], 2] = 0.0
+        A[bad[r]] = np.eye(3)
+        b[bad[r]] = 0.0
+        A = A + np.eye(3) * 1e-12
+        coef[:, r] = np.linalg.solve(A, b[..., None])[..., 0].T
+        a_inv11[r] = np.linalg.inv(A)[:, 1, 1]
+    return coef, a_inv11
+
+
+def _quadratic_intercept(u: FloatArray, a: FloatArray, n: int) -> FloatArray:
+    """``c0`` of the least-squares fit ``a ≈ c0 + c1·u + c2·u²``, one fit per row of ``(M, k)``.
+
+    ``n`` points per row count (columns where both ``u`` and ``a`` are 0 add nothing else).
+    Normal equations from the power sums of ``u`` (regularised by ``1e-12·I`` like
+    :func:`_solve_quadratic_fit`, which takes the near-singular rows).
+    """
+    u2 = u * u
+    s00 = np.full(u.shape[0], float(n)) + 1e-12
+    s01 = _row_sum(u)
+    s02 = _row_sum(u2)
+    s11 = s02 + 1e-12
+    s12 = _row_dot(u2, u)
+    s22 = _row_dot(u2, u2) + 1e-12
+    b0 = _row_sum(a)
+    b1 = _row_dot(u, a)
+    b2 = _row_dot(u2, a)
+    c00 = s11 * s22 - s12 * s12
+    c01 = s02 * s12 - s01 * s22
+    c02 = s01 * s12 - s02 * s11
+    det = s00 * c00 + s01 * c01 + s02 * c02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+        ill = ~(np.abs(det) > _WELL_POSED * np.abs(s00 * s11 * s22))
+    if ill.any():
+        r = np.flatnonzero(ill)
+        yes = np.ones(r.shape[0], dtype=bool)
+        wf = (u[r] != 0.0) | (a[r] != 0.0)
+        c0[r] = _solve_quadratic_fit(u[r], u2[r], wf.astype(np.float64), a[r], yes, yes)[0][0]
+    return c0
+
+
+def _split_by_width(k: IntArray) -> list[IntArray]:
+    """Rows ``0 … m−1`` in one or two groups so that ``Σ rows·(widest k in group)`` is least.
+
+    Returns ``[arange(m)]`` when splitting saves less than a quarter.
+    """
+    m = k.shape[0]
+    kmax = max(int(k.max()), 2)
+    if m < 256 or kmax <= 8:
+        return [np.arange(m)]
+    n_le = np.cumsum(np.bincount(k, minlength=kmax + 1))  # rows with k ≤ j
+    width = np.maximum(np.arange(kmax + 1), 2)
+    cost = n_le * width + (m - n_le) * kmax
+    j = int(np.argmin(cost))
+    if cost[j] > 0.75 * m * kmax:
+        return [np.arange(m)]
+    narrow = k <= j
+    return [np.flatnonzero(narrow), np.flatnonzero(~narrow)]
+
+
+def _tooth(angle_rad: FloatArray, teeth_per_rev: int) -> IntArray:
+    """Tooth number ``0 … Ns−1`` of the edge at each cumulative angle."""
+    ns = teeth_per_rev
+    return np.mod(np.rint(angle_rad * ns / (2 * np.pi)).astype(np.int64), ns)
+
+
+_ARENA = (
+    ("_stamp", np.int64),
+    ("_angle", np.float64),
+    ("_dslot", np.int64),
+    ("_corr", np.float64),
+)
+"""The per-edge arrays of a :class:`WheelBank` (attribute name, dtype)."""
+
+_MIN_SEGMENT = 64
+"""Smallest per-wheel ring (edges); rings are powers of two."""
+
+
+class WheelBank:
+    """Encoder edges of many wheels in shared arrays: pushes are queued, queries vectorised.
+
+    Each wheel is a *slot* (:meth:`add` returns its index). Its held edges live in a ring, a
+    power-of-two segment of two flat arrays (times, cumulative angles) shared by all slots;
+    a ring that fills up moves to a larger one at the end, and the arrays are compacted when
+    half of them is abandoned rings. Per-slot state (ring place, calibration, trimming) is in
+    arrays indexed by slot, so a query of any set of slots costs a fixed number of numpy
+    calls, whatever the number of wheels.
+
+    :meth:`push` only checks time order (skipped edges are counted at once, as
+    :class:`WheelTracker` promises) and queues the batch; the queue is written into the rings,
+    angles included, by the next query (or any read of held state) in one pass.
+
+    Results equal :class:`WheelTracker`'s of the pre-bank implementation per wheel: the same
+    edges are held and trimmed, the same tooth calibration runs at the same grid instants.
+
+    Parameters
+    ----------
+    config : WheelSpeedConfig
+        Shared by every slot.
+    """
+
+    def __init__(self, config: WheelSpeedConfig) -> None:
+        self.config = config
+        self._step_rad = 2.0 * np.pi / config.teeth_per_rev
+        self._w_ns = round(config.window_s * 1e9)
+        self._period_ns = round(config.calibration_period_s * 1e9)
+        self._slots = 0  # high-water mark
+        self._free: list[int] = []
+        self._alloc_slots(16)
+        self._stamp = np.zeros(0, dtype=np.int64)  # the rings
+        self._angle = np.zeros(0, dtype=np.float64)
+        self._dslot = np.zeros(0, dtype=np.int64)  # index of the edge's tooth in _delta.flat
+        self._corr = np.zeros(0, dtype=np.float64)  # angle with the tooth correction in force
+        self._used = 0  # arena elements handed out
+        self._abandoned = 0  # arena elements of rings that moved
+        self.compactions = 0
+        """Times the rings were copied into fresh arrays (diagnostics)."""
+        # push queue (Python lists: a push costs a few list appends)
+        self._q_slot: list[int] = []
+        self._q_stamp: list[IntArray] = []
+        self._q_dir: list[tuple[int, npt.NDArray[np.int8]]] = []  # (batch number, directions)
+        self._q_len: list[int] = []
+        self._floor_ns: list[int] = []  # newest accepted stamp per slot (time-order check)
+        self._removed: list[int] = []  # slots removed, to clear at the next flush
+        self.skipped: list[int] = []
+        """Per slot: edges dropped because they went back in time."""
+
+    # --- slots ---------------------------------------------------------------------------
+    def _alloc_slots(self, n: int) -> None:
+        def grow(
+            a: np.ndarray | None, fill: float | int | bool, dtype: type, *tail: int
+        ) -> np.ndarray:
+            new: np.ndarray = np.full((n, *tail), fill, dtype=dtype)
+            if a is not None:
+                new[: a.shape[0]] = a
+            return new
+
+        old = getattr(self, "_base", None) is not None
+        g = (lambda name: getattr(self, name)) if old else (lambda name: None)
+        imin = np.iinfo(np.int64).min
+        self._base = grow(g("_base"), 0, np.int64)  # ring start in the arena
+        self._mask = grow(g("_mask"), 0, np.int64)  # ring size − 1 (0: no ring yet)
+        self._head = grow(g("_head"), 0, np.int64)  # edge number of the oldest held edge
+        self._count = grow(g("_count"), 0, np.int64)  # edges ever accepted
+        self._last_angle = grow(g("_last_angle"), 0.0, np.float64)  # angle of the newest edge
+        self._angle_before = grow(g("_angle_before"), 0.0, np.float64)  # before the oldest held
+        self._signed = grow(g("_signed"), False, np.bool_)
+        self._cal_from = grow(g("_cal_from"), 0, np.int64)  # next edge number to calibrate on
+        self._cal_upto = grow(g("_cal_upto"), imin, np.int64)  # last calibration instant
+        self._calibrated = grow(g("_calibrated"), 0, np.int64)
+        self._delta = grow(g("_delta"), 0.0, np.float64, self.config.teeth_per_rev)
+
+    def add(self) -> int:
+        """A new, empty wheel; returns its slot index."""
+        if self._removed:
+            self._flush()
+        if self._free:
+            slot = self._free.pop()
+        else:
+            slot = self._slots
+            self._slots += 1
+            if slot >= self._base.shape[0]:
+                self._alloc_slots(2 * self._base.shape[0])
+            self._floor_ns.append(0)
+            self.skipped.append(0)
+        self._floor_ns[slot] = np.iinfo(np.int64).min
+        self.skipped[slot] = 0
+        for arr, value in (
+            (self._base, 0),
+            (self._mask, 0),
+            (self._head, 0),
+            (self._count, 0),
+            (self._last_angle, 0.0),
+            (self._angle_before, 0.0),
+            (self._signed, False),
+            (self._cal_from, 0),
+            (self._cal_upto, np.iinfo(np.int64).min),
+            (self._calibrated, 0),
+            (self._delta, 0.0),
+        ):
+            arr[slot] = value
+        return slot
+
+    def remove(self, slot: int) -> None:
+        """Forget a wheel; its index may be handed out again by :meth:`add`.
+
+        Only noted here (a tracker's finalizer may call this at any allocation, even in the
+        middle of another call on the bank); the slot is cleared by the next flush.
+        """
+        self._removed.append(slot)
+
+    def _clear_removed(self) -> None:
+        removed, self._removed = self._removed, []
+        for slot in removed:
+            self._clear(slot)
+
+    def _clear(self, slot: int) -> None:
+        self._abandoned += int(self._mask[slot]) + 1 if self._mask[slot] else 0
+        self._mask[slot] = self._base[slot] = 0  # no ring: reads of it land on index 0
+        self._head[slot] = self._count[slot] = 0
+        self._free.append(slot)
+
+    # --- push ----------------------------------------------------------------------------
+    def push(
+        self, slot: int, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None
+    ) -> None:
+        """Queue edges of ``slot`` (see :meth:`WheelTracker.push`); back-in-time ones skipped.
+
+        An edge is kept when it is not earlier than any edge before it (held or in the batch).
+        """
+        t = stamp_ns
+        if type(t) is not np.ndarray or t.dtype != np.int64 or t.ndim != 1:
+            t = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
+        tl = t.tolist()
+        n = len(tl)
+        if n == 0:
+            return
+        if direction is not None:
+            self._signed[slot] = True
+        floor = self._floor_ns[slot]
+        if tl[0] < floor or (n > 1 and tl != sorted(tl)):
+            prev = np.maximum.accumulate(np.concatenate([[floor], t[:-1]]))
+            ok = t >= prev
+            kept = int(ok.sum())
+            self.skipped[slot] += n - kept
+            if kept == 0:
+                return
+            t = t[ok]
+            direction = None if direction is None else np.asarray(direction).reshape(-1)[ok]
+            n = kept
+            tl = t.tolist()
+        self._floor_ns[slot] = tl[-1]
+        if direction is not None:
+            d = np.asarray(direction).reshape(-1)
+            if d.shape[0] != n:
+                raise ValueError(f"{d.shape[0]} directions for {n} edges")
+            self._q_dir.append((len(self._q_slot), d))
+        self._q_slot.append(slot)
+        self._q_stamp.append(t)
+        self._q_len.append(n)
+
+    def _flush(self) -> None:
+        """Write the queued batches into the rings, with their cumulative angles."""
+        if not self._q_slot:
+            if self._removed:
+                self._clear_removed()
+            return
+        slots = np.array(self._q_slot, dtype=np.int64)
+        lens = np.array(self._q_len, dtype=np.int64)
+        t = np.concatenate(self._q_stamp)
+        d_sum = None
+        if self._q_dir:
+            with_dir = np.zeros(slots.shape[0], dtype=bool)
+            with_dir[[i for i, _ in self._q_dir]] = True
+            d_all = np.ones(t.shape[0], dtype=np.int8)
+            d_all[np.repeat(with_dir, lens)] = np.concatenate([d for _, d in self._q_dir])
+            d_sum = np.cumsum(np.where(d_all < 0, -1, 1))
+        self._q_slot, self._q_stamp, self._q_dir, self._q_len = [], [], [], []
+        n_edges = t.shape[0]
+        ends = np.cumsum(lens)
+        starts = ends - lens
+        # Edge count within its batch (signed with direction): the angle is start + step·k,
+        # as edge_angles computes it batch by batch.
+        if d_sum is None:
+            k = np.arange(1, n_edges + 1) - np.repeat(starts, lens)
+            total = lens
+        else:
+            before = np.concatenate([[0], d_sum])[starts]
+            k = d_sum - np.repeat(before, lens)
+            total = d_sum[ends - 1] - before
+        # Batches of one slot, in push order: their start angles chain batch after batch.
+        order = np.argsort(slots, kind="stable")
+        s_sorted = slots[order]
+        first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
+        group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
+        rank = np.empty_like(slots)
+        rank[order] = np.arange(slots.shape[0]) - group
+        start = np.empty(slots.shape[0])
+        step = self._step_rad
+        cur = self._last_angle
+        for r in range(int(rank.max()) + 1):
+            b = np.flatnonzero(rank == r)
+            start[b] = cur[slots[b]]
+            cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
+        angle = np.repeat(start, lens) + step * k.astype(np.float64)
+        # Edge numbers: each slot's new edges follow its held ones, in push order.
+        gather = np.repeat(starts[order], lens[order]) + (
+            np.arange(n_edges) - np.repeat(np.cumsum(lens[order]) - lens[order], lens[order])
+        )
+        e_slot = np.repeat(s_sorted, lens[order])
+        new_per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
+        first_edge = np.cumsum(new_per_slot) - new_per_slot
+        number = self._count[e_slot] + np.arange(n_edges) - first_edge[e_slot]
+        touched = np.flatnonzero(new_per_slot)
+        self._fit_rings(touched, new_per_slot[touched])
+        self._count[touched] += new_per_slot[touched]
+        at = self._base[e_slot] + (number & self._mask[e_slot])
+        self._stamp[at] = t[gather]
+        self._angle[at] = angle[gather]
+        ns = self.config.teeth_per_rev
+        dslot = e_slot * ns + _tooth(angle[gather], ns)
+        self._dslot[at] = dslot
+        self._corr[at] = angle[gather] + self._delta.reshape(-1)[dslot]
+        if self._removed:
+            self._clear_removed()
+
+    # --- rings ---------------------------------------------------------------------------
+    def _fit_rings(self, slots: IntArray, extra: IntArray) -> None:
+        """Move slots whose held edges plus ``extra`` new ones outgrow their ring.
+
+        First compacts the arena when more of it is abandoned rings than live ones.
+        """
+        if self._abandoned > (1 << 16):
+            live = int((self._mask[: self._slots] + (self._mask[: self._slots] > 0)).sum())
+            if self._abandoned > live:
+                self._compact()
+        held = self._count[slots] - self._head[slots] + extra
+        small = held > self._mask[slots] + (self._mask[slots] > 0)
+        if not small.any():
+            return
+        grow = slots[small]
+        size = np.maximum(
+            _MIN_SEGMENT, 1 << np.ceil(np.log2(np.maximum(2 * held[small], 1))).astype(np.int64)
+        )
+        self._move(grow, size)
+
+    def _move(self, slots: IntArray, size: IntArray) -> None:
+        """Give ``slots`` new rings of ``size`` edges at the arena end, copying held edges."""
+        need = self._used + int(size.sum())
+        if need > self._stamp.shape[0]:
+            cap = max(need, 2 * self._stamp.shape[0], 1 << 12)
+            for name, dtype in _ARENA:
+                new = np.zeros(cap, dtype=dtype)
+                new[: self._used] = getattr(self, name)[: self._used]
+                setattr(self, name, new)
+        new_base = self._used + np.cumsum(size) - size
+        self._used = need
+        held = self._count[slots] - self._head[slots]
+        had = self._mask[slots] > 0
+        n = int(held[had].sum())
+        if n:
+            hs, hh = slots[had], held[had]
+            rel = np.arange(n) - np.repeat(np.cumsum(hh) - hh, hh)
+            number = np.repeat(self._head[hs], hh) + rel
+            src = np.repeat(self._base[hs], hh) + (number & np.repeat(self._mask[hs], hh))
+            dst = np.repeat(new_base[had], hh) + (number & np.repeat(size[had] - 1, hh))
+            for name, _ in _ARENA:
+                arr = getattr(self, name)
+                arr[dst] = arr[src]
+        self._abandoned += int((self._mask[slots] + had).sum())
+        self._base[slots] = new_base
+        self._mask[slots] = size - 1
+
+    def _compact(self) -> None:
+        """Copy every live ring into fresh arrays (abandoned rings dropped, rings resized)."""
+        slots = np.flatnonzero(self._mask[: self._slots] > 0)
+        held = self._count[slots] - self._head[slots]
+        size = np.maximum(
+            _MIN_SEGMENT, 1 << np.ceil(np.log2(np.maximum(2 * held, 1))).astype(np.int64)
+        )
+        old = {name: getattr(self, name) for name, _ in _ARENA}
+        old_base, old_mask = self._base[slots].copy(), self._mask[slots].copy()
+        cap = max(int(size.sum()) * 2, 1 << 12)
+        for name, dtype in _ARENA:
+            setattr(self, name, np.zeros(cap, dtype=dtype))
+        new_base = np.cumsum(size) - size
+        n = int(held.sum())
+        if n:
+            rel = np.arange(n) - np.repeat(np.cumsum(held) - held, held)
+            number = np.repeat(self._head[slots], held) + rel
+            src = np.repeat(old_base, held) + (number & np.repeat(old_mask, held))
+            dst = np.repeat(new_base, held) + (number & np.repeat(size - 1, held))
+            for name, _ in _ARENA:
+                getattr(self, name)[dst] = old[name][src]
+        self._base[slots] = new_base
+        self._mask[slots] = size - 1
+        self._used = int(size.sum())
+        self._abandoned = 0
+        self.compactions += 1
+
+    def _at(self, slot: IntArray | np.int64, number: IntArray) -> IntArray:
+        """Arena index of edge ``number`` of ``slot`` (shapes broadcast)."""
+        return self._base[slot] + (number & self._mask[slot])
+
+    def _search(self, slot: IntArray, lo: IntArray, hi: IntArray, value: IntArray) -> IntArray:
+        """First edge number in ``[lo, hi)`` with a time after ``value`` (``hi`` if none).
+
+        Bisection of every row at once (held times are non-decreasing).
+        """
+        lo = lo.copy()
+        hi = hi.copy()
+        base = self._base[slot]
+        mask = self._mask[slot]
+        while True:
+            active = lo < hi
+            if not active.any():
+                return lo
+            mid = (lo + hi) >> 1
+            after = self._stamp[base + (mid & mask)] > value
+            lo = np.where(active & ~after, mid + 1, lo)
+            hi = np.where(active & after, mid, hi)
+
+    # --- query ---------------------------------------------------------------------------
+    def query(self, slots: IntArray, query_ns: IntArray) -> WheelSpeedResult:
+        """Speeds of ``slots`` at the times ``query_ns``; trims their history.
+
+        Same rules as :meth:`WheelTracker.query` (times not earlier than the slot's previous
+        query; tooth corrections of the last calibration instant at or before each time).
+
+        Parameters
+        ----------
+        slots : ndarray, shape (n,), int
+            Slot indices (a slot may repeat).
+        query_ns : ndarray, shape (m,), int64, non-decreasing
+
+        Returns
+        -------
+        WheelSpeedResult
+            Arrays of shape ``(n, m)``: row ``i`` is slot ``slots[i]``.
+        """
+        s = np.asarray(slots, dtype=np.int64).reshape(-1)
+        q = np.asarray(query_ns, dtype=np.int64).reshape(-1)
+        n, m = s.shape[0], q.shape[0]
+        self._flush()
+        if n == 0 or m == 0:
+            r = _unknown(n * m)
+            return WheelSpeedResult(
+                r.omega_radps.reshape(n, m), r.std_radps.reshape(n, m), r.method.reshape(n, m)
+            )
+        cfg = self.config
+        omega = np.empty((n, m))
+        std = np.empty((n, m))
+        method = np.empty((n, m), dtype=np.int8)
+        uniq = np.unique(s) if n > 1 else s
+        i = 0
+        tail: tuple[IntArray, IntArray] | None = None
+        while i < m:
+            if cfg.tooth_calibration:
+                boundary = (int(q[i]) // self._period_ns) * self._period_ns
+                due = uniq[boundary > self._cal_upto[uniq]]
+                if due.shape[0]:
+                    self._calibrate(due, boundary)
+                    self._cal_upto[due] = boundary
+                j = int(np.searchsorted(q, boundary + self._period_ns, side="left"))
+            else:
+                j = m
+            res, tail = self._fit(s, q[i:j])
+            omega[:, i:j] = res.omega_radps.reshape(n, j - i)
+            std[:, i:j] = res.std_radps.reshape(n, j - i)
+            method[:, i:j] = res.method.reshape(n, j - i)
+            i = j
+        assert tail is not None
+        self._trim(s, *tail)
+        return WheelSpeedResult(omega, std, method)
+
+    def _corrected(self, at: IntArray) -> FloatArray:
+        """Angles of the edges at arena indices ``at``, with their slot's tooth corrections."""
+        return self._corr[at]
+
+    def _recorrect(self, slots: IntArray) -> None:
+        """Refresh the corrected angles of the held edges of ``slots`` (their corrections moved)."""
+        held = self._count[slots] - self._head[slots]
+        n = int(held.sum())
+        if n == 0:
+            return
+        number = np.repeat(self._head[slots] - (np.cumsum(held) - held), held) + np.arange(n)
+        at = self._at(np.repeat(slots, held), number)
+        self._corr[at] = self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
+
+    def _fit(self, s: IntArray, qs: IntArray) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
+        """:func:`omega_at` of every slot in ``s`` at every time in ``qs`` (rows slot-major).
+
+        Also returns, per slot, the last edge at or before ``qs[-1]`` and the first edge after
+        ``qs[-1] − window_s`` (edge numbers), for trimming.
+        """
+        cfg = self.config
+        nq = qs.shape[0]
+        rs = np.repeat(s, nq)
+        q = np.tile(qs, s.shape[0])
+        head = self._head[rs]
+        count = self._count[rs]
+        end = self._search(rs, head, count, q)
+        last = end - 1
+        first_in = self._search(rs, head, end, q - self._w_ns)
+        tail = (last[nq - 1 :: nq], first_in[nq - 1 :: nq])
+        has = last >= head
+        if not has.any():
+            return _unknown(rs.shape[0]), tail
+        n_win = np.maximum(last - first_in + 1, 0)
+        # Rows are fitted in (at most) two groups by how many edges they may use, so slow
+        # wheels do not pay for the columns of the fastest one.
+        k = np.where(has, np.minimum(np.clip(n_win, cfg.min_edges, cfg.max_edges), end - head), 0)
+        groups = _split_by_width(k)
+        if len(groups) == 1:
+            res = self._fit_rows(rs, q, head, last, first_in, n_win, has)
+            return res, tail
+        m = rs.shape[0]
+        omega, std = np.empty(m), np.empty(m)
+        method = np.empty(m, dtype=np.int8)
+        for g in groups:
+            r = self._fit_rows(rs[g], q[g], head[g], last[g], first_in[g], n_win[g], has[g])
+            omega[g], std[g], method[g] = r.omega_radps, r.std_radps, r.method
+        return WheelSpeedResult(omega, std, method), tail
+
+    def _fit_rows(
+        self,
+        rs: IntArray,
+        q: IntArray,
+        head: IntArray,
+        last: IntArray,
+        first_in: IntArray,
+        n_win: IntArray,
+        has: npt.NDArray[np.bool_],
+    ) -> WheelSpeedResult:
+        """Gather each row's edges and fit them (:func:`_speed_from_window`)."""
+        cfg = self.config
+        if not has.any():
+            return _unknown(rs.shape[0])
+        w, offs = _fit_mask(last, head, n_win, has, cfg)
+        last_c = np.maximum(last, head)
+        number = np.maximum(last_c[:, None] - offs[None, :], head[:, None])
+        at = self._at(rs[:, None], number)
+        at_last = at[:, 0]
+        tau_s = (self._stamp[at] - q[:, None]).astype(np.float64) * _NS
+        pos = self._corrected(at)
+        p = pos - pos[:, :1]
+        freq = has & (n_win >= cfg.frequency_min_count)
+        freq_omega = None
+        if freq.any():
+            prior = self._corrected(self._at(rs, np.maximum(first_in - 1, head)))
+            before = np.where(first_in > head, prior, self._angle_before[rs])
+            freq_omega = (pos[:, 0] - before) / cfg.window_s
+        last_ns = self._stamp[at_last]
+        prev_ns = self._stamp[self._at(rs, np.maximum(last_c - 1, head))]
+        return _speed_from_window(
+            q,
+            tau_s,
+            p,
+            w,
+            has,
+            freq,
+            freq_omega,
+            last_ns,
+            prev_ns,
+            last - 1 >= head,
+            cfg,
+            self._signed[rs],
+        )
+
+    def _trim(self, s: IntArray, last: IntArray, first_in: IntArray) -> None:
+        """Drop edges no later query can use (as the pre-bank tracker did after each query)."""
+        cfg = self.config
+        head = self._head[s]
+        rel_last = last - head
+        rel_old = first_in - 1 - head
+        keep = np.maximum(0, np.minimum(rel_last - cfg.max_edges - 1, rel_old - 1))
+        if cfg.tooth_calibration:
+            keep = np.minimum(
+                keep, np.maximum(self._cal_from[s] - head - cfg.calibration_half_window - 1, 0)
+            )
+        cut = (keep > 0) & (self._count[s] > head)
+        if not cut.any():
+            return
+        cs, new_head = s[cut], head[cut] + keep[cut]
+        self._angle_before[cs] = self._angle[self._at(cs, new_head - 1)]
+        self._head[cs] = new_head
+
+    def _calibrate(self, slots: IntArray, t_ns: int) -> None:
+        """Learn tooth corrections of ``slots`` from edges with a full window at or before t.
+
+        For each slot: the edges not yet used that have ``calibration_half_window`` (``h``)
+        neighbours on both sides at or before ``t_ns``; per edge, a quadratic fit of its ``2h``
+        neighbours' angles against time (corrected with the slot's current corrections, the
+        edge itself left out), and the tooth's correction moves by ``calibration_gain`` of the
+        edge's residual; corrections are then made zero-mean again. The edges of a slot are
+        read once as one run ``lo − h … hi + h``; the windows are rows ``(M, 2h)`` over it.
+        """
+        cfg = self.config
+        h = cfg.calibration_half_window
+        head = self._head[slots]
+        last = self._search(slots, head, self._count[slots], np.full(slots.shape[0], t_ns)) - 1
+        lo = np.maximum(self._cal_from[slots], head + h)
+        hi = last - h
+        go = hi >= lo
+        if not go.any():
+            return
+        slots, lo, hi = slots[go], lo[go], hi[go]
+        self._cal_from[slots] = hi + 1
+        n_c = hi - lo + 1  # centres per slot
+        run_len = n_c + 2 * h
+        run_first = np.cumsum(run_len) - run_len
+        run_slot = np.repeat(slots, run_len)
+        n_run = int(run_len.sum())
+        number = np.repeat(lo - h - run_first, run_len) + np.arange(n_run)
+        at = self._at(run_slot, number)
+        stamp = self._stamp[at]
+        raw = self._angle[at]
+        ang = self._corr[at]
+        # window rows: centre index in the run arrays, neighbours −h … −1, 1 … h
+        m = int(n_c.sum())
+        row_slot = np.repeat(slots, n_c)
+        centre = np.repeat(run_first + h - (np.cumsum(n_c) - n_c), n_c) + np.arange(m)
+        # no interval ≥ stop_timeout_s inside the window; with direction, one way only
+        gap_ns = np.diff(stamp)
+        long_gap = np.concatenate([[0], np.cumsum(gap_ns * _NS >= cfg.stop_timeout_s)])
+        ok = long_gap[centre + h] == long_gap[centre - h]
+        ok &= stamp[centre + h] > stamp[centre - h]  # span > 0
+        signed = self._signed[row_slot]
+        if signed.any():
+            step = np.diff(raw)
+            up = np.concatenate([[0], np.cumsum(step > 0)])
+            down = np.concatenate([[0], np.cumsum(step < 0)])
+            n_up = up[centre + h] - up[centre - h]
+            n_down = down[centre + h] - down[centre - h]
+            ok &= (n_up == 2 * h) | (n_down == 2 * h) | ~signed
+        any_ok = np.zeros(self._slots, dtype=bool)
+        any_ok[row_slot[ok]] = True
+        if not ok.any():
+            return
+        centre, row_slot = centre[ok], row_slot[ok]
+        # Windows as rows (M, 2h + 1) of the run; the centre column is exactly 0 in both time
+        # and angle, so it adds nothing to the fit: the centre edge is left out (its own error
+        # must not pull the fit).
+        t_run = (stamp - stamp[0]).astype(np.float64) * _NS
+        win_t = sliding_window_view(t_run, 2 * h + 1)[centre - h]
+        win_a = sliding_window_view(ang, 2 * h + 1)[centre - h]
+        ts = win_t - win_t[:, h : h + 1]
+        u = ts / (ts[:, -1] - ts[:, 0])[:, None]
+        a = win_a - win_a[:, h : h + 1]
+        c0 = _quadratic_intercept(u, a, 2 * h)
+        resid = -c0  # centre angle (0 by construction) minus the fit at the centre
+        pitch = 2 * np.pi / cfg.teeth_per_rev
+        good = np.abs(resid) < 0.3 * pitch
+        flat = self._delta.reshape(-1)
+        np.add.at(flat, self._dslot[at[centre[good]]], -cfg.calibration_gain * resid[good])
+        upd = np.flatnonzero(any_ok)
+        self._delta[upd] -= (_row_sum(self._delta[upd]) / cfg.teeth_per_rev)[:, None]
+        self._recorrect(upd)
+        np.add.at(self._calibrated, row_slot[good], 1)
+
+    # --- per-slot views ------------------------------------------------------------------
+    def held_stamp_ns(self, slot: int) -> IntArray:
+        """Times of the edges ``slot`` holds, shape ``(n,)`` (pending pushes included)."""
+        self._flush()
+        number = np.arange(self._head[slot], self._count[slot])
+        if number.shape[0] == 0:
+            return np.zeros(0, dtype=np.int64)
+        return self._stamp[self._at(np.int64(slot), number)]
+
+    def tooth_correction_rad(self, slot: int) -> FloatArray:
+        """Learnt angle correction per tooth of ``slot``, shape ``(teeth_per_rev,)``."""
+        self._flush()
+        return self._delta[slot].copy()
+
+    def calibrated_edges(self, slot: int) -> int:
+        """Edges the tooth calibration of ``slot`` has learnt from."""
+        return int(self._calibrated[slot])
 
 
 class WheelTracker:
@@ -411,63 +1223,56 @@ class WheelTracker:
     Tooth ``j`` is the edge count modulo ``teeth_per_rev``. Only past edges are used, so
     speeds stay causal.
 
+    A tracker is a slot of a :class:`WheelBank`: its own bank unless one is given. The first
+    :func:`query_many` over trackers of several banks (same config) moves them into one, so
+    later calls fit them all in one pass.
+
     Parameters
     ----------
     config : WheelSpeedConfig
+    bank : WheelBank, optional
+        Bank to hold the edges (its config must equal ``config``).
     """
 
-    def __init__(self, config: WheelSpeedConfig) -> None:
+    def __init__(self, config: WheelSpeedConfig, bank: WheelBank | None = None) -> None:
+        if bank is not None and bank.config != config:
+            raise ConfigError("a WheelTracker's bank must have the tracker's config")
         self.config = config
-        self._stamp = np.zeros(0, dtype=np.int64)
-        self._angle = np.zeros(0, dtype=np.float64)
-        self._angle_before = 0.0
-        self._signed = False
-        self._delta = np.zeros(config.teeth_per_rev)
-        self._cal_from = 0  # index (in the held arrays) of the next edge to calibrate on
-        self._cal_upto = np.iinfo(np.int64).min  # last calibration instant
-        self.calibrated_edges = 0
-        """Edges the tooth calibration has learnt from."""
-        self.skipped = 0
+        self._bank = bank if bank is not None else WheelBank(config)
+        self._slot = self._bank.add()
+        self._finalizer = weakref.finalize(self, WheelBank.remove, self._bank, self._slot)
+
+    @property
+    def skipped(self) -> int:
         """Edges dropped because they went back in time."""
+        return self._bank.skipped[self._slot]
+
+    @property
+    def calibrated_edges(self) -> int:
+        """Edges the tooth calibration has learnt from."""
+        return self._bank.calibrated_edges(self._slot)
 
     @property
     def last_edge_ns(self) -> int | None:
         """Time of the newest edge held, or None."""
-        return int(self._stamp[-1]) if self._stamp.size else None
+        stamp = self._bank.held_stamp_ns(self._slot)
+        return int(stamp[-1]) if stamp.size else None
+
+    @property
+    def held_stamp_ns(self) -> IntArray:
+        """Times of the edges held, shape ``(n,)``."""
+        return self._bank.held_stamp_ns(self._slot)
+
+    _stamp = held_stamp_ns  # the name the tracker's held times had before the bank (tests use it)
 
     @property
     def tooth_correction_rad(self) -> FloatArray:
         """Learnt angle correction of each tooth, shape ``(teeth_per_rev,)``, zero mean."""
-        return self._delta.copy()
+        return self._bank.tooth_correction_rad(self._slot)
 
     def push(self, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None) -> None:
         """Append edges (non-decreasing stamps; earlier-than-held ones are skipped and counted)."""
-        t = np.asarray(stamp_ns, dtype=np.int64)
-        if t.size == 0:
-            return
-        d = None if direction is None else np.asarray(direction)
-        self._signed |= d is not None
-        floor = self._stamp[-1] if self._stamp.size else np.iinfo(np.int64).min
-        ok = t >= floor
-        if t.size > 1:
-            ok[1:] &= t[1:] >= t[:-1]
-        if not ok.all():
-            self.skipped += int((~ok).sum())
-            t = t[ok]
-            d = None if d is None else d[ok]
-        start = float(self._angle[-1]) if self._angle.size else self._angle_before
-        ang = edge_angles(t.size, self.config.teeth_per_rev, d, start)
-        self._stamp = np.concatenate([self._stamp, t])
-        self._angle = np.concatenate([self._angle, ang])
-
-    def _tooth(self, angle: FloatArray) -> npt.NDArray[np.int64]:
-        ns = self.config.teeth_per_rev
-        return np.mod(np.rint(angle * ns / (2 * np.pi)).astype(np.int64), ns)
-
-    def _corrected(self) -> FloatArray:
-        if not self.config.tooth_calibration:
-            return self._angle
-        return self._angle + self._delta[self._tooth(self._angle)]
+        self._bank.push(self._slot, stamp_ns, direction)
 
     def query(self, query_ns: IntArray) -> WheelSpeedResult:
         """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history.
@@ -476,109 +1281,56 @@ class WheelTracker:
         last multiple of ``calibration_period_s`` at or before ``t``, so results do not depend
         on how queries are batched.
         """
-        q = np.asarray(query_ns, dtype=np.int64)
-        cfg = self.config
-        if not cfg.tooth_calibration or q.size == 0:
-            res = omega_at(
-                self._stamp, self._corrected(), q, cfg, self._angle_before, signed=self._signed
-            )
-        else:
-            period = round(cfg.calibration_period_s * 1e9)
-            parts = []
-            i = 0
-            while i < q.size:
-                boundary = (int(q[i]) // period) * period
-                if boundary > self._cal_upto:
-                    self._calibrate(boundary)
-                    self._cal_upto = boundary
-                j = int(np.searchsorted(q, boundary + period, side="left"))
-                parts.append(
-                    omega_at(
-                        self._stamp,
-                        self._corrected(),
-                        q[i:j],
-                        cfg,
-                        self._angle_before,
-                        signed=self._signed,
-                    )
-                )
-                i = j
-            res = WheelSpeedResult(
-                np.concatenate([r.omega_radps for r in parts]),
-                np.concatenate([r.std_radps for r in parts]),
-                np.concatenate([r.method for r in parts]).astype(np.int8),
-            )
-        if q.size and self._stamp.size:
-            self._trim(int(q[-1]))
-        return res
+        r = self._bank.query(np.array([self._slot]), query_ns)
+        return WheelSpeedResult(r.omega_radps[0], r.std_radps[0], r.method[0])
 
-    def _calibrate(self, t_ns: int) -> None:
-        """Learn tooth corrections from edges with a full window of neighbours at or before t."""
-        cfg = self.config
-        h = cfg.calibration_half_window
-        last = int(np.searchsorted(self._stamp, t_ns, side="right")) - 1
-        lo = max(self._cal_from, h)
-        hi = last - h  # inclusive
-        if hi < lo:
-            return
-        c = np.arange(lo, hi + 1)
-        self._cal_from = hi + 1
-        offs = np.arange(-h, h + 1)
-        idx = c[:, None] + offs[None, :]
-        ts = (self._stamp[idx] - self._stamp[c][:, None]).astype(np.float64) * _NS
-        ang = self._corrected()
-        a = ang[idx] - ang[c][:, None]
-        span = ts[:, -1] - ts[:, 0]
-        gaps = np.diff(ts, axis=1)
-        ok = (span > 0) & (gaps.max(axis=1) < cfg.stop_timeout_s)
-        if self._signed:
-            steps = np.diff(self._angle[idx], axis=1)
-            ok &= np.all(steps > 0, axis=1) | np.all(steps < 0, axis=1)
-        if not ok.any():
-            return
-        ts, a, c, span = ts[ok], a[ok], c[ok], span[ok]
-        u = ts / span[:, None]
-        # fit with the centre edge left out: its own error must not pull the fit
-        w = np.ones_like(u)
-        w[:, h] = 0.0
-        cols = np.stack([np.ones_like(u), u, u * u], axis=-1) * w[..., None]
-        A = np.einsum("mki,mkj->mij", cols, cols) + np.eye(3) * 1e-12
-        b = np.einsum("mki,mk->mi", cols, a)
-        coef = np.linalg.solve(A, b[..., None])[..., 0]
-        resid = -coef[:, 0]  # centre angle (0 by construction) minus the fit at the centre
-        pitch = 2 * np.pi / cfg.teeth_per_rev
-        good = np.abs(resid) < 0.3 * pitch
-        teeth = self._tooth(self._angle[c[good]])
-        np.add.at(self._delta, teeth, -cfg.calibration_gain * resid[good])
-        self._delta -= self._delta.mean()
-        self.calibrated_edges += int(good.sum())
-
-    def _trim(self, t_ns: int) -> None:
-        cfg = self.config
-        last = int(np.searchsorted(self._stamp, t_ns, side="right")) - 1
-        old = int(np.searchsorted(self._stamp, t_ns - round(cfg.window_s * 1e9), side="right")) - 1
-        keep_from = max(0, min(last - cfg.max_edges - 1, old - 1))
-        if cfg.tooth_calibration:
-            keep_from = min(keep_from, max(self._cal_from - cfg.calibration_half_window - 1, 0))
-        if keep_from > 0:
-            self._angle_before = float(self._angle[keep_from - 1])
-            self._stamp = self._stamp[keep_from:]
-            self._angle = self._angle[keep_from:]
-            self._cal_from -= keep_from
-
-
-_SEGMENT_NS = 1 << 41
-"""Spacing of trackers on the shared time axis of :func:`query_many` (about 37 minutes)."""
-_HISTORY_NS = 1 << 40
-"""Edges older than this before the first query are clamped (they only say "stopped")."""
+    def _move_to(self, bank: WheelBank) -> None:
+        """Carry this wheel's state (held edges, calibration, counters) into ``bank``."""
+        old, slot = self._bank, self._slot
+        old._flush()
+        bank._flush()
+        new = bank.add()
+        stamp = old.held_stamp_ns(slot)
+        n = stamp.shape[0]
+        if n:
+            angle = old._angle[
+                old._at(np.int64(slot), np.arange(old._head[slot], old._count[slot]))
+            ]
+            bank._fit_rings(np.array([new]), np.array([n]))
+            bank._count[new] = n
+            at = bank._at(np.int64(new), np.arange(n))
+            bank._stamp[at] = stamp
+            bank._angle[at] = angle
+            ns = self.config.teeth_per_rev
+            bank._dslot[at] = new * ns + _tooth(angle, ns)
+            bank._corr[at] = old._corr[
+                old._at(np.int64(slot), np.arange(old._head[slot], old._count[slot]))
+            ]
+        shift = int(old._head[slot])
+        bank._cal_from[new] = old._cal_from[slot] - shift
+        for name in (
+            "_last_angle",
+            "_angle_before",
+            "_signed",
+            "_cal_upto",
+            "_calibrated",
+            "_delta",
+        ):
+            getattr(bank, name)[new] = getattr(old, name)[slot]
+        bank._floor_ns[new] = old._floor_ns[slot]
+        bank.skipped[new] = old.skipped[slot]
+        self._finalizer.detach()
+        old.remove(slot)
+        self._bank, self._slot = bank, new
+        self._finalizer = weakref.finalize(self, WheelBank.remove, bank, new)
 
 
 def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSpeedResult]:
     """:meth:`WheelTracker.query` of several trackers at the same times, in one vectorised fit.
 
-    Equivalent to querying each tracker on its own (the fit of each query sees only its own
-    tracker's edges: trackers are laid out on one time axis, far apart); saves the per-call
-    overhead when a fleet front end asks many wheels at once.
+    Equivalent to querying each tracker on its own. Trackers of one config that sit in
+    different banks are first moved into one (the biggest), once; from then on a call costs a
+    fixed number of numpy calls plus a Python attribute read per tracker.
 
     Parameters
     ----------
@@ -592,63 +1344,40 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     q = np.asarray(query_ns, dtype=np.int64)
     if not trackers:
         return []
-    cfg = trackers[0].config
-    if q.size == 0 or any(t.config != cfg for t in trackers):
-        return [t.query(q) for t in trackers]
-    period = round(cfg.calibration_period_s * 1e9)
-    parts: list[list[WheelSpeedResult]] = [[] for _ in trackers]
-    i = 0
-    while i < q.size:
-        if cfg.tooth_calibration:
-            boundary = (int(q[i]) // period) * period
-            for t in trackers:
-                if boundary > t._cal_upto:
-                    t._calibrate(boundary)
-                    t._cal_upto = boundary
-            j = int(np.searchsorted(q, boundary + period, side="left"))
-        else:
-            j = q.size
-        qs = q[i:j]
-        base = int(qs[0]) - _HISTORY_NS
-        stamps, angles, queries, before, signed, seg = [], [], [], [], [], []
-        n_held = 0
-        for k, t in enumerate(trackers):
-            off = k * _SEGMENT_NS
-            seg.append(np.full(qs.size, n_held, dtype=np.int64))
-            n_held += t._stamp.size
-            stamps.append(np.maximum(t._stamp - base, 0) + off)
-            angles.append(t._corrected())
-            queries.append(qs - base + off)
-            before.append(np.full(qs.size, t._angle_before))
-            signed.append(np.full(qs.size, t._signed))
-        res = omega_at(
-            np.concatenate(stamps),
-            np.concatenate(angles),
-            np.concatenate(queries),
-            cfg,
-            np.concatenate(before),
-            signed=np.concatenate(signed),
-            segment_start=np.concatenate(seg),
-        )
-        n = qs.size
-        for k in range(len(trackers)):
-            sl = slice(k * n, (k + 1) * n)
-            parts[k].append(
-                WheelSpeedResult(res.omega_radps[sl], res.std_radps[sl], res.method[sl])
-            )
-        i = j
-    out = []
-    for k, t in enumerate(trackers):
-        out.append(
-            WheelSpeedResult(
-                np.concatenate([r.omega_radps for r in parts[k]]),
-                np.concatenate([r.std_radps for r in parts[k]]),
-                np.concatenate([r.method for r in parts[k]]).astype(np.int8),
-            )
-        )
-        if t._stamp.size:
-            t._trim(int(q[-1]))
-    return out
+    bank = trackers[0]._bank
+    if not all(t._bank is bank for t in trackers):
+        cfg = trackers[0].config
+        if any(t.config != cfg for t in trackers):
+            return [t.query(q) for t in trackers]
+        banks = {id(t._bank): t._bank for t in trackers}
+        bank = max(banks.values(), key=lambda b: b._slots - len(b._free))
+        for t in trackers:
+            if t._bank is not bank:
+                t._move_to(bank)
+    slots = np.fromiter((t._slot for t in trackers), dtype=np.int64, count=len(trackers))
+    r = bank.query(slots, q)
+    return list(map(_result_row, r.omega_radps, r.std_radps, r.method))
+
+
+_set_omega = WheelSpeedResult.__dict__["omega_radps"].__set__
+_set_std = WheelSpeedResult.__dict__["std_radps"].__set__
+_set_method = WheelSpeedResult.__dict__["method"].__set__
+
+
+def _result_row(
+    omega: FloatArray, std: FloatArray, method: npt.NDArray[np.int8]
+) -> WheelSpeedResult:
+    """``WheelSpeedResult(omega, std, method)`` without the frozen dataclass's ``__init__``.
+
+    That ``__init__`` sets each field through ``object.__setattr__``, about 1 µs a result: as
+    much as the whole fit of a wheel when :func:`query_many` answers thousands. The slot
+    descriptors store the same three fields directly.
+    """
+    r = object.__new__(WheelSpeedResult)
+    _set_omega(r, omega)
+    _set_std(r, std)
+    _set_method(r, method)
+    return r
 
 
 class DirectWheelSpeed:

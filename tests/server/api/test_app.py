@@ -135,4 +135,3 @@ def test_api_docs_need_no_internet(client: ApiClient) -> None:
     for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
         r = client.get(f"/docs-assets/{asset}")
         assert r.status_code == 200 and len(r.content) > 100_000
-
