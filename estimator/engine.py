@@ -969,10 +969,12 @@ class MdsfFleet:
         out["roll_rad"] = flat.attitude[:, 2]
         out["flags"] = flags
         # Emitted rows, split by vehicle (in the order of ``due``).
-        n_emit = np.add.reduceat(emit, offsets) if total else np.zeros(0, dtype=np.int64)
-        parts = np.split(out[emit], np.cumsum(n_emit)[:-1])
+        kept = out[emit]
+        ends = np.cumsum(np.add.reduceat(emit, offsets))
         return [
-            (ids[i], rows)
-            for i, rows in zip(due.index.tolist(), parts, strict=True)
-            if rows.shape[0]
+            (ids[i], kept[a:b])
+            for i, a, b in zip(
+                due.index.tolist(), [0, *ends[:-1].tolist()], ends.tolist(), strict=True
+            )
+            if b > a
         ]

@@ -306,8 +306,8 @@ def _rank_passes(rank: IntArray) -> list[IntArray]:
     if rank.shape[0] == 0:
         return []
     order = np.argsort(rank, kind="stable")
-    bounds = np.cumsum(np.bincount(rank))
-    return np.split(order, bounds[:-1])
+    bounds = np.cumsum(np.bincount(rank)).tolist()
+    return [order[a:b] for a, b in zip([0, *bounds[:-1]], bounds, strict=True)]
 
 
 def _fill_segments(
@@ -344,18 +344,27 @@ class FleetFrontEnd:
         self.wheel = wheel
         self.product = config.mode is MdsfMode.PRODUCT
         self.tick_ns = config.tick_ns
+        self.fit_wheels = query_many
+        """Batched wheel-speed fit (:func:`~estimator.wheel_speed.query_many`)."""
         self._cap = 0
         self._seq = 0  # push counter: which measurement of a vehicle came first
-        self.trackers: list[tuple[WheelTracker, WheelTracker] | None] = []
+        self.trackers: list[tuple[WheelTracker, ...]] = []  # (left, right); () if free
         self.direct: list[DirectWheelSpeed | None] = []
         self._wheel_cfgs: list[WheelSpeedConfig] = []
         self._alloc(max(capacity, 1))
         # Pushed since the last check: IMU (slot, seq, t, accel, gyro); GNSS (slot, seq, stamp)
         # and the float record of _G_* columns.
-        self._imu_new: list[tuple[int, int, IntArray, FloatArray, FloatArray]] = []
+        self._imu_new_slot: list[int] = []
+        self._imu_new_seq: list[int] = []
+        self._imu_new_t: list[IntArray] = []
+        self._imu_new_f: list[FloatArray] = []
+        self._imu_new_w: list[FloatArray] = []
+        # Vehicles without a tick grid yet, and the first wheel data (seq, stamp) of such.
+        self._gridless: set[int] = set()
+        self._first_wheel: dict[int, tuple[int, int]] = {}
         self._gnss_new_id: list[tuple[int, int, int]] = []
         self._gnss_new_val: list[tuple[float, ...]] = []
-        # Checked and waiting for their tick, sorted by slot (push order within a slot).
+        # Checked and waiting for their tick, in push order.
         self._imu_slot = np.zeros(0, dtype=np.int64)
         self._imu_t = np.zeros(0, dtype=np.int64)
         self._imu_v = np.zeros((0, 3))  # forward specific force, ωx, ωz
@@ -377,8 +386,6 @@ class FleetFrontEnd:
 
         grow("next_tick_ns", (), _NONE_NS)
         grow("done_ns", (), _NONE_NS)  # last tick emitted
-        grow("first_seq", (), 0)  # first wheel measurement (edges/speeds) before a tick grid
-        grow("first_ns", (), _NONE_NS)
         grow("last_imu_ns", (), _NONE_NS)  # newest IMU sample accepted
         grow("last_imu_used_ns", (), _NONE_NS)  # newest IMU sample integrated
         grow("pitch_rad", (), 0.0)
@@ -395,6 +402,7 @@ class FleetFrontEnd:
         grow("origin", (3,), np.nan)  # lat_deg, lon_deg, height_m of the ENU frame
         grow("has_edges", (), False)
         grow("has_direction", (), False)
+        grow("has_speeds", (), False)  # direct (CAN) wheel speeds held
         grow("gnss_var_cfg", (), 0.0)
         grow("accel_var_cfg", (), 0.0)
         grow("gyro_var_cfg", (), 0.0)
@@ -402,14 +410,12 @@ class FleetFrontEnd:
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
         grow("count", (len(COUNT_NAMES),), np.int64(0))
-        self.trackers.extend([None] * (cap - old))
+        self.trackers.extend([()] * (cap - old))
         self.direct.extend([None] * (cap - old))
         self._cap = cap
 
     next_tick_ns: IntArray
     done_ns: IntArray
-    first_seq: IntArray
-    first_ns: IntArray
     last_imu_ns: IntArray
     last_imu_used_ns: IntArray
     pitch_rad: FloatArray
@@ -426,6 +432,7 @@ class FleetFrontEnd:
     origin: FloatArray
     has_edges: BoolArray
     has_direction: BoolArray
+    has_speeds: BoolArray
     gnss_var_cfg: FloatArray
     accel_var_cfg: FloatArray
     gyro_var_cfg: FloatArray
@@ -445,9 +452,9 @@ class FleetFrontEnd:
         self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
         self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
         self.has_direction[slot] = vehicle.encoder.has_direction
-        for name in ("next_tick_ns", "done_ns", "first_ns", "last_imu_ns", "last_imu_used_ns"):
+        for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
             getattr(self, name)[slot] = _NONE_NS
-        self.first_seq[slot] = 0
+        self._gridless.add(slot)
         self.pitch_rad[slot] = 0.0
         self.pitch_known[slot] = False
         self.pitch_gyro_bias[slot] = 0.0
@@ -461,6 +468,7 @@ class FleetFrontEnd:
         self.has_frame[slot] = False
         self.origin[slot] = np.nan
         self.has_edges[slot] = False
+        self.has_speeds[slot] = False
         n = vehicle.noise
         self.gnss_var_cfg[slot] = n.gnss_vel_std_mps**2
         self.accel_var_cfg[slot] = n.accel_std_mps2**2
@@ -473,7 +481,8 @@ class FleetFrontEnd:
     def release(self, slot: int) -> None:
         """Forget the vehicle in ``slot`` and whatever it has buffered."""
         self._drop(slot)
-        self.trackers[slot] = None
+        self._gridless.discard(slot)
+        self.trackers[slot] = ()
         self.direct[slot] = None
 
     def _drop(self, slot: int) -> None:
@@ -506,10 +515,9 @@ class FleetFrontEnd:
     # -- push --------------------------------------------------------------------------------
     def _first_seen(self, slot: int, stamp_ns: int) -> None:
         # Wheel data that may open the vehicle's tick grid (unless earlier IMU/GNSS did).
-        if self.next_tick_ns[slot] == _NONE_NS and self.first_seq[slot] == 0:
+        if slot in self._gridless and slot not in self._first_wheel:
             self._seq += 1
-            self.first_seq[slot] = self._seq
-            self.first_ns[slot] = stamp_ns
+            self._first_wheel[slot] = (self._seq, stamp_ns)
 
     def push(self, slot: int, m: Measurement) -> None:
         """Buffer one measurement of the vehicle in ``slot`` (sensor-time order)."""
@@ -541,15 +549,17 @@ class FleetFrontEnd:
                 return
             if t.shape[0]:
                 self._seq += 1
-                self._imu_new.append((slot, self._seq, t, f, w))
+                self._imu_new_slot.append(slot)
+                self._imu_new_seq.append(self._seq)
+                self._imu_new_t.append(t)
+                self._imu_new_f.append(f)
+                self._imu_new_w.append(w)
         elif isinstance(m, WheelEdges):
             t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
             if t.shape[0] == 0:
                 return
-            pair = self.trackers[slot]
-            assert pair is not None
             try:
-                tracker = pair[int(m.wheel)]
+                tracker = self.trackers[slot][int(m.wheel)]
             except (IndexError, ValueError):
                 self.count[slot, _EDGES] += t.shape[0]
                 return
@@ -560,9 +570,11 @@ class FleetFrontEnd:
                 d = None
             before = tracker.skipped
             tracker.push(t, d)
-            self.count[slot, _EDGES] += tracker.skipped - before
+            if tracker.skipped != before:
+                self.count[slot, _EDGES] += tracker.skipped - before
             self.has_edges[slot] = True
-            self._first_seen(slot, int(t[0]))
+            if slot in self._gridless:
+                self._first_seen(slot, int(t[0]))
         elif isinstance(m, WheelSpeeds):
             t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
             direct = self.direct[slot]
@@ -570,6 +582,7 @@ class FleetFrontEnd:
             before = direct.skipped
             direct.push(t, m.omega_radps)
             self.count[slot, _SPEEDS] += direct.skipped - before
+            self.has_speeds[slot] = direct.has_data  # stays true once true
             if t.shape[0]:
                 self._first_seen(slot, int(t[0]))
 
@@ -578,14 +591,14 @@ class FleetFrontEnd:
         """Check the IMU samples and GNSS fixes pushed since the last call, count the bad
         ones, queue the good ones and open the tick grid of vehicles seen for the first time."""
         seen: list[tuple[IntArray, IntArray, IntArray]] = []
-        if self._imu_new:
+        if self._imu_new_slot:
             seen.append(self._check_imu())
         if self._gnss_new_id:
             seen.append(self._check_gnss())
-        opened = np.flatnonzero(self.first_seq[: self._cap] > 0)
-        if opened.size:
-            seen.append((opened, self.first_seq[opened], self.first_ns[opened]))
-            self.first_seq[opened] = 0
+        if self._first_wheel:
+            w = np.array([(k, q, t) for k, (q, t) in self._first_wheel.items()], dtype=np.int64)
+            seen.append((w[:, 0], w[:, 1], w[:, 2]))
+            self._first_wheel = {}
         if not seen:
             return
         slot = np.concatenate([s for s, _, _ in seen])
@@ -599,20 +612,23 @@ class FleetFrontEnd:
         first[1:] = slot[1:] != slot[:-1]
         tn = self.tick_ns
         self.next_tick_ns[slot[first]] = -(-stamp[first] // tn) * tn
+        self._gridless.difference_update(slot[first].tolist())
 
     def _check_imu(self) -> tuple[IntArray, IntArray, IntArray]:
         """IMU: non-finite, not after the last accepted sample or the last tick, or not
         increasing within the batch → skipped. Returns (slot, seq, first stamp) of the
         batches that kept samples."""
-        new = self._imu_new
-        self._imu_new = []
-        c_slot = np.fromiter((c[0] for c in new), dtype=np.int64, count=len(new))
-        c_seq = np.fromiter((c[1] for c in new), dtype=np.int64, count=len(new))
-        lens = np.fromiter((c[2].shape[0] for c in new), dtype=np.int64, count=len(new))
-        t = np.concatenate([c[2] for c in new])
-        f = np.concatenate([c[3] for c in new])
-        w = np.concatenate([c[4] for c in new])
-        chunk = np.repeat(np.arange(len(new)), lens)
+        c_slot = np.array(self._imu_new_slot, dtype=np.int64)
+        c_seq = np.array(self._imu_new_seq, dtype=np.int64)
+        ts = self._imu_new_t
+        lens = np.array([a.shape[0] for a in ts], dtype=np.int64)
+        t = np.concatenate(ts)
+        f = np.concatenate(self._imu_new_f)
+        w = np.concatenate(self._imu_new_w)
+        n_chunks = c_slot.shape[0]
+        self._imu_new_slot, self._imu_new_seq = [], []
+        self._imu_new_t, self._imu_new_f, self._imu_new_w = [], [], []
+        chunk = np.repeat(np.arange(n_chunks), lens)
         c_start = np.cumsum(lens) - lens
         ok = np.isfinite(f[:, 1]) & np.isfinite(w[:, 0]) & np.isfinite(w[:, 2])
         ok &= t > self.done_ns[c_slot][chunk]
@@ -623,14 +639,14 @@ class FleetFrontEnd:
         # The floor "after the last accepted sample" chains the batches of one vehicle: one pass
         # per k-th batch of each vehicle in this lot.
         by_slot = np.argsort(c_slot, kind="stable")
-        rank = np.empty(len(new), dtype=np.int64)
+        rank = np.empty(n_chunks, dtype=np.int64)
         rank[by_slot] = _ranks(c_slot[by_slot])
         for idx in _rank_passes(rank[chunk]):
             owner = c_slot[chunk[idx]]
             ok[idx] &= t[idx] > self.last_imu_ns[owner]
             kept = idx[ok[idx]]
             # last kept sample of each batch: the newest accepted stamp of its vehicle
-            last = np.full(len(new), -1, dtype=np.int64)
+            last = np.full(n_chunks, -1, dtype=np.int64)
             np.maximum.at(last, chunk[kept], kept)
             has = np.flatnonzero(last >= 0)
             self.last_imu_ns[c_slot[has]] = t[last[has]]
@@ -640,11 +656,11 @@ class FleetFrontEnd:
         keep = np.flatnonzero(ok)
         vals = np.stack([f[keep, 1], w[keep, 0], w[keep, 2]], axis=1)
         slots = c_slot[chunk[keep]]
-        self._imu_slot, self._imu_t, self._imu_v = self._merge(
-            (self._imu_slot, self._imu_t, self._imu_v), (slots, t[keep], vals)
-        )
+        self._imu_slot = np.concatenate([self._imu_slot, slots])
+        self._imu_t = np.concatenate([self._imu_t, t[keep]])
+        self._imu_v = np.concatenate([self._imu_v, vals])
         # first kept sample of each batch
-        first = np.full(len(new), t.shape[0], dtype=np.int64)
+        first = np.full(n_chunks, t.shape[0], dtype=np.int64)
         np.minimum.at(first, chunk[keep], keep)
         has = first < t.shape[0]
         return c_slot[has], c_seq[has], t[first[has]]
@@ -661,23 +677,10 @@ class FleetFrontEnd:
         if late.any():
             self.count[:, _LATE] += np.bincount(slot[late], minlength=self._cap)[: self._cap]
         ok = ~late
-        self._gnss_slot, self._gnss_t, self._gnss_v = self._merge(
-            (self._gnss_slot, self._gnss_t, self._gnss_v), (slot[ok], stamp[ok], vals[ok])
-        )
+        self._gnss_slot = np.concatenate([self._gnss_slot, slot[ok]])
+        self._gnss_t = np.concatenate([self._gnss_t, stamp[ok]])
+        self._gnss_v = np.concatenate([self._gnss_v, vals[ok]])
         return slot[ok], seq[ok], stamp[ok]
-
-    @staticmethod
-    def _merge(
-        old: tuple[IntArray, IntArray, FloatArray], new: tuple[IntArray, IntArray, FloatArray]
-    ) -> tuple[IntArray, IntArray, FloatArray]:
-        """Append ``new`` (slot, stamp, values) to the queue, keep it sorted by slot."""
-        slot = np.concatenate([old[0], new[0]])
-        order = np.argsort(slot, kind="stable")
-        return (
-            slot[order],
-            np.concatenate([old[1], new[1]])[order],
-            np.concatenate([old[2], new[2]])[order],
-        )
 
     # -- tick assembly -----------------------------------------------------------------------
     def assemble(self, slots: IntArray, until_ns: IntArray) -> FleetTicks | None:
@@ -756,14 +759,10 @@ class _Batch:
         mine = row >= 0
         after = np.zeros(row.shape[0], dtype=bool)
         after[mine] = fe._gnss_t[mine] > self.t_end[row[mine]]
-        # count of "after" fixes before each fix within its slot (queue sorted by slot)
-        c = np.cumsum(after) - after
-        if row.shape[0]:
-            new = np.ones(row.shape[0], dtype=bool)
-            new[1:] = fe._gnss_slot[1:] != fe._gnss_slot[:-1]
-            starts = np.flatnonzero(new)
-            c = c - np.repeat(c[starts], np.diff(np.append(starts, row.shape[0])))
-        take = mine & ~after & (c == 0)
+        # the first fix of each vehicle stamped after its last tick (queue in push order)
+        stop = np.full(self.n_rows, row.shape[0], dtype=np.int64)
+        np.minimum.at(stop, row[after], np.flatnonzero(after))
+        take = mine & (np.arange(row.shape[0]) < stop[row])
         idx = np.flatnonzero(take)
         idx = idx[np.argsort(row[idx], kind="stable")]
         self.g_row = row[idx]
@@ -1123,12 +1122,10 @@ class _Batch:
         omega = np.full((n_ticks, 2), np.nan)
         omega_std = np.full((n_ticks, 2), np.nan)
         wflags = np.zeros(n_ticks, dtype=np.int32)
-        directs = [fe.direct[int(s)] for s in self.slots]
-        uses_enc = fe.has_edges[self.slots] | ~np.fromiter(
-            (d is not None and d.has_data for d in directs), dtype=bool, count=self.n_rows
-        )
+        # encoders, unless the vehicle sends direct speeds and no edges
+        uses_enc = fe.has_edges[self.slots] | ~fe.has_speeds[self.slots]
         for r in np.flatnonzero(~uses_enc):  # CAN speeds: one query per such vehicle
-            d = directs[r]
+            d = fe.direct[int(self.slots[r])]
             assert d is not None
             sl = slice(self.offsets[r], self.offsets[r] + self.m[r])
             omega[sl], omega_std[sl] = d.query(self.ticks[sl])
@@ -1137,19 +1134,18 @@ class _Batch:
         if enc.size == 0:
             return omega, omega_std, wflags
         # groups of vehicles with the same wheel settings and the same ticks
-        keys = np.stack([fe.wheel_cfg[self.slots[enc]], self.first[enc], self.m[enc]], axis=1)
-        _, group = np.unique(keys, axis=0, return_inverse=True)
-        group = group.reshape(-1)
+        keys = (fe.wheel_cfg[self.slots[enc]], self.first[enc], self.m[enc])
+        order = np.lexsort(keys[::-1])
+        new = np.ones(enc.shape[0], dtype=bool)
+        new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
+        group = np.empty(enc.shape[0], dtype=np.int64)
+        group[order] = np.cumsum(new) - 1
         for members in _rank_passes(group):
             rows = enc[members]
             r0 = rows[0]
             ticks = self.ticks[self.offsets[r0] : self.offsets[r0] + self.m[r0]]
-            trackers: list[WheelTracker] = []
-            for s in self.slots[rows]:
-                pair = fe.trackers[int(s)]
-                assert pair is not None
-                trackers.extend(pair)
-            fitted = query_many(trackers, ticks)
+            trackers = [tr for s in self.slots[rows].tolist() for tr in fe.trackers[s]]
+            fitted = fe.fit_wheels(trackers, ticks)
             mt = ticks.shape[0]
             tix = (self.offsets[rows][:, None] + np.arange(mt)).reshape(-1)
             lone = fe.lone_std[self.slots[rows]]

@@ -11,8 +11,12 @@ every ``interval`` ms of sensor time with a horizon 150 ms behind (the reorder b
 
 For each fleet size and call interval the table prints the process CPU time spent in ``push``
 and in ``advance``, in milliseconds per vehicle-second of sensor data (the first ``WARMUP_S``
-seconds, before every vehicle emits, are not counted), and the rows emitted. Target: ``advance``
-≤ 0.3 ms and ``push`` ≤ 0.1 ms per vehicle-second with 1,000 vehicles at 100 ms.
+seconds, before every vehicle emits, are not counted), and the rows emitted. ``advance`` is
+split into the encoder wheel-speed fit (``FleetFrontEnd.fit_wheels``, i.e.
+:func:`estimator.wheel_speed.query_many`), the filter steps (``MdsfEngine.step``) and the rest
+(front end, slip, output rows); the two are timed by wrapping those attributes of the fleet
+under test. Target: ``advance`` ≤ 0.3 ms and ``push`` ≤ 0.1 ms per vehicle-second with 1,000
+vehicles at 100 ms.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import argparse
 import dataclasses
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,8 +62,23 @@ def measure(
     interval_ms: int,
     seconds: float,
 ) -> dict[str, float]:
-    """Run one fleet; returns ``push_ms``, ``advance_ms`` (per vehicle-second) and ``rows``."""
+    """Run one fleet; returns ``push_ms``, ``advance_ms``, its parts ``wheel_fit_ms``,
+    ``engine_ms`` (per vehicle-second of sensor data) and ``rows``."""
     fleet = MdsfFleet()
+    spent = {"wheel_fit": 0.0, "engine": 0.0}
+
+    def timed(fn: Callable[..., Any], part: str) -> Callable[..., Any]:
+        def call(*args: Any) -> Any:
+            t0 = time.process_time()
+            try:
+                return fn(*args)
+            finally:
+                spent[part] += time.process_time() - t0
+
+        return call
+
+    fleet.front.fit_wheels = timed(fleet.front.fit_wheels, "wheel_fit")
+    fleet.engine.step = timed(fleet.engine.step, "engine")  # type: ignore[method-assign]
     ids = [f"v{k:05d}" for k in range(n_vehicles)]
     for k, vid in enumerate(ids):
         fleet.add_vehicle(vid, sources[k % len(sources)][0])
@@ -71,6 +90,8 @@ def measure(
     push_s = advance_s = 0.0
     rows = 0
     for s in range(n_steps):
+        if s == warm:
+            spent["wheel_fit"] = spent["engine"] = 0.0
         now = _START_NS + (s + 1) * step_ns
         a = time.process_time()
         for k, vid in enumerate(ids):
@@ -91,6 +112,8 @@ def measure(
     return {
         "push_ms": push_s / veh_s * 1e3,
         "advance_ms": advance_s / veh_s * 1e3,
+        "wheel_fit_ms": spent["wheel_fit"] / veh_s * 1e3,
+        "engine_ms": spent["engine"] / veh_s * 1e3,
         "rows": float(rows),
     }
 
@@ -106,13 +129,18 @@ def run(
     sources = _sources(seconds)
     cases = []
     print(f"MdsfFleet CPU per vehicle-second of sensor data ({seconds:g} s of field_work)")
-    print(f"{'vehicles':>8} {'interval':>9} {'push ms':>8} {'advance ms':>11} {'rows':>9}")
+    print(
+        f"{'vehicles':>8} {'interval':>9} {'push ms':>8} {'advance ms':>11} "
+        f"{'wheel fit':>10} {'engine':>8} {'rest':>8} {'rows':>9}"
+    )
     for n in sizes:
         for iv in intervals_ms:
             r = measure(sources, n, iv, seconds)
             cases.append({"vehicles": n, "interval_ms": iv, **r})
+            rest = r["advance_ms"] - r["wheel_fit_ms"] - r["engine_ms"]
             print(
                 f"{n:>8} {iv:>6} ms {r['push_ms']:>8.3f} {r['advance_ms']:>11.3f} "
+                f"{r['wheel_fit_ms']:>10.3f} {r['engine_ms']:>8.3f} {rest:>8.3f} "
                 f"{int(r['rows']):>9}",
                 flush=True,
             )
