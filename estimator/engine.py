@@ -44,6 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator import kalman
+from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.frontend import FleetFrontEnd, TickInputs
@@ -197,12 +198,7 @@ class MdsfEngine:
         old = self._cap
 
         def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
-            a = getattr(self, name, None)
-            dtype = np.asarray(fill).dtype if a is None else a.dtype
-            new = np.full((cap, *shape), fill, dtype=dtype)
-            if a is not None:
-                new[:old] = a
-            setattr(self, name, new)
+            grow_slot_array(self, name, cap, shape, fill)
 
         n, m = self.n, self.m
         grow("x", (n,), 0.0)

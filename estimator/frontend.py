@@ -34,11 +34,14 @@ counts and rows equal a check at push time.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.geo import enu_from_geodetic
@@ -376,13 +379,8 @@ class FleetFrontEnd:
     def _alloc(self, cap: int) -> None:
         old = self._cap
 
-        def grow(name: str, shape: tuple[int, ...], fill: float | int | bool) -> None:
-            a = getattr(self, name, None)
-            dtype = np.asarray(fill).dtype if a is None else a.dtype
-            new = np.full((cap, *shape), fill, dtype=dtype)
-            if a is not None:
-                new[:old] = a
-            setattr(self, name, new)
+        def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
+            grow_slot_array(self, name, cap, shape, fill)
 
         grow("next_tick_ns", (), _NONE_NS)
         grow("done_ns", (), _NONE_NS)  # last tick emitted
@@ -872,6 +870,45 @@ class _Batch:
             attitude=att,
         )
 
+    def _between_fixes(
+        self,
+        passes: list[IntArray],
+        end_segment: Callable[[IntArray, IntArray], FloatArray],
+        at_fix: Callable[[IntArray, IntArray], None],
+    ) -> FloatArray:
+        """Run a track that integrates the IMU samples between GNSS fixes, for all rows.
+
+        For each pass (the k-th fix of each row that has one: fix indices ``fi``), the samples
+        of those rows up to the fix (``g_j``) end a segment: ``end_segment(rows, j)`` returns
+        the parameters the segment was integrated with, shape ``(len(rows), p)``, and moves
+        the track to sample ``j − 1``; then ``at_fix(fi, rows)`` applies the fix. The samples
+        after the last fix end the last segments. Returns each sample's segment parameters,
+        shape ``(n, p)``.
+        """
+        start = self.s_begin.copy()
+        lo: list[IntArray] = []
+        params: list[FloatArray] = []
+
+        def close(r: IntArray, j: IntArray) -> None:
+            lo.append(start[r])
+            params.append(end_segment(r, j))
+            start[r] = j
+
+        for fi in passes:
+            r, j = self.g_row[fi], self.g_j[fi]
+            adv = j > start[r]
+            if adv.any():
+                close(r[adv], j[adv])
+            at_fix(fi, r)
+        rest = np.flatnonzero(self.s_end > start)
+        if rest.size:
+            close(rest, self.s_end[rest])
+        n = self.T.shape[0]
+        if not params:
+            return np.zeros((n, 1))
+        which, values = _fill_segments(n, lo, params)
+        return values[which]
+
     def _pitch_track(self) -> FloatArray:
         """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
 
@@ -879,7 +916,7 @@ class _Batch:
         GNSS pitch, or the tracked pitch if the receiver gives none; and the pitch variance and
         bias in force after each fix (``g_var_after``, ``g_bias_after``). Shape ``(n,)``.
         """
-        fe, cfg = self.fe, self.config
+        fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
         cw = _seg_cumsum(self.wx * self.dts, self.begin_of)
         ct = _seg_cumsum(self.dts, self.begin_of)
@@ -891,30 +928,21 @@ class _Batch:
         fixes = fe.pitch_fixes[s].copy()
         fix_ns = fe.pitch_fix_ns[s].copy()
         known = fe.pitch_known[s].copy()
-        start = self.s_begin.copy()
         base_w = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
-        lo: list[IntArray] = []
-        seg: list[FloatArray] = []
-
-        def close(r: IntArray, j: IntArray) -> None:
-            # samples start..j-1 of rows r integrated with the bias in force; θ at j-1
-            lo.append(start[r])
-            seg.append(np.stack([th0[r], base_w[r], base_t[r], bias[r]], axis=1))
-            th0[r] = th0[r] + (cw[j - 1] - base_w[r]) - bias[r] * (ct[j - 1] - base_t[r])
-            base_w[r], base_t[r] = cw[j - 1], ct[j - 1]
-            start[r] = j
-
         nf = self.g_row.shape[0]
-        g = self.g
         self.g_vg = np.zeros(nf)
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
-        for fi in _rank_passes(self.g_rank):
-            r, j = self.g_row[fi], self.g_j[fi]
-            adv = j > start[r]
-            if adv.any():
-                close(r[adv], j[adv])
+
+        def end_segment(r: IntArray, j: IntArray) -> FloatArray:
+            # samples up to j-1 of rows r integrated with the bias in force; θ at j-1
+            used = np.stack([th0[r], base_w[r], base_t[r], bias[r]], axis=1)
+            th0[r] = th0[r] + (cw[j - 1] - base_w[r]) - bias[r] * (ct[j - 1] - base_t[r])
+            base_w[r], base_t[r] = cw[j - 1], ct[j - 1]
+            return used
+
+        def at_fix(fi: IntArray, r: IntArray) -> None:
             p = g[fi, _G_PITCH]
             th0[r], var[r], bias[r], fixes[r], fix_ns[r], known[r] = pitch_fix_update(
                 th0[r], var[r], bias[r], fixes[r], fix_ns[r], known[r], p, self.g_t[fi], cfg
@@ -930,20 +958,16 @@ class _Batch:
                 self.g_heading[fi[ok]],
                 used[ok],
             )
-        rest = np.flatnonzero(self.s_end > start)
-        if rest.size:
-            close(rest, self.s_end[rest])
+
+        q = self._between_fixes(_rank_passes(self.g_rank), end_segment, at_fix)
         fe.pitch_rad[s] = th0
         fe.pitch_var[s] = var
         fe.pitch_gyro_bias[s] = bias
         fe.pitch_fixes[s] = fixes
         fe.pitch_fix_ns[s] = fix_ns
         fe.pitch_known[s] = known
-        n = self.T.shape[0]
-        if n == 0:
+        if self.T.shape[0] == 0:
             return np.zeros(0)
-        which, p4 = _fill_segments(n, lo, seg)
-        q = p4[which]
         return np.asarray(q[:, 0] + (cw - q[:, 1]) - q[:, 3] * (ct - q[:, 2]))
 
     def _pitch_bias_at_samples(self) -> FloatArray:
@@ -970,43 +994,29 @@ class _Batch:
         psi = fe.yaw_rad[s].copy()
         bias = fe.yaw_gyro_bias[s].copy()
         fix_ns = fe.yaw_fix_ns[s].copy()
-        start = self.s_begin.copy()
         base_r = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
-        lo: list[IntArray] = []
-        seg: list[FloatArray] = []
-
-        def close(r: IntArray, j: IntArray) -> None:
-            lo.append(start[r])
-            seg.append(bias[r][:, None])
-            fin = np.isfinite(psi[r])
-            step = (cr[j - 1] - base_r[r]) + bias[r] * (ct[j - 1] - base_t[r])
-            psi[r] = np.where(fin, psi[r] + step, psi[r])
-            base_r[r], base_t[r] = cr[j - 1], ct[j - 1]
-            start[r] = j
-
         heads = self.g[:, _G_HEAD]
-        with_head = np.flatnonzero(np.isfinite(heads))
-        for part in _rank_passes(_ranks(self.g_row[with_head])):
-            fi = with_head[part]
-            r, j = self.g_row[fi], self.g_j[fi]
-            adv = j > start[r]
-            if adv.any():
-                close(r[adv], j[adv])
+
+        def end_segment(r: IntArray, j: IntArray) -> FloatArray:
+            used = bias[r][:, None]
+            step = (cr[j - 1] - base_r[r]) + bias[r] * (ct[j - 1] - base_t[r])
+            psi[r] = np.where(np.isfinite(psi[r]), psi[r] + step, psi[r])
+            base_r[r], base_t[r] = cr[j - 1], ct[j - 1]
+            return used
+
+        def at_fix(fi: IntArray, r: IntArray) -> None:
             psi[r], bias[r], fix_ns[r] = yaw_fix_update(
                 psi[r], bias[r], fix_ns[r], heads[fi], self.g_t[fi], cfg
             )
-        rest = np.flatnonzero(self.s_end > start)
-        if rest.size:
-            close(rest, self.s_end[rest])
+
+        with_head = np.flatnonzero(np.isfinite(heads))  # fixes without a heading: no update
+        passes = [with_head[p] for p in _rank_passes(_ranks(self.g_row[with_head]))]
+        b = self._between_fixes(passes, end_segment, at_fix)
         fe.yaw_rad[s] = psi
         fe.yaw_gyro_bias[s] = bias
         fe.yaw_fix_ns[s] = fix_ns
-        n = self.T.shape[0]
-        if n == 0:
-            return np.zeros(0)
-        which, b = _fill_segments(n, lo, seg)
-        return np.asarray(b[which, 0])
+        return np.asarray(b[:, 0])
 
     def _gnss_speed(self, z: FloatArray) -> tuple[BoolArray, FloatArray]:
         """GNSS speed per tick into ``z[:, VG]``: eq. (1) moved to the tick with the tick-mean
