@@ -45,9 +45,11 @@ LAG_MS = 150
 _START_NS = 1_700_000_000_000_000_000
 
 
-def _sources(seconds: float) -> list[tuple[VehicleConfig, list[tuple[int, Measurement]]]]:
+def _sources(
+    seconds: float, runs: int = SOURCE_RUNS
+) -> list[tuple[VehicleConfig, list[tuple[int, Measurement]]]]:
     out = []
-    for k in range(SOURCE_RUNS):
+    for k in range(runs):
         run = simulate("field_work", seed=k + 1, start_ns=_START_NS)
         if run.duration_s < seconds + 1.0:
             raise ValueError(f"field_work runs {run.duration_s:.0f} s, less than {seconds} s")
@@ -124,9 +126,10 @@ def run(
     sizes: Sequence[int] = (50, 200, 1000),
     intervals_ms: Sequence[int] = (50, 100, 200),
     seconds: float = 20.0,
+    source_runs: int = SOURCE_RUNS,
 ) -> dict[str, Any]:
     """Measure every (size, interval) pair, print a table; returns and optionally writes JSON."""
-    sources = _sources(seconds)
+    sources = _sources(seconds, source_runs)
     cases = []
     print(f"MdsfFleet CPU per vehicle-second of sensor data ({seconds:g} s of field_work)")
     print(
