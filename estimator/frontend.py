@@ -520,7 +520,7 @@ class FleetFrontEnd:
     def push(self, slot: int, m: Measurement) -> None:
         """Buffer one measurement of the vehicle in ``slot`` (sensor-time order)."""
         if isinstance(m, GnssSample):
-            if not isinstance(m.stamp_ns, int | np.integer):
+            if not isinstance(m.stamp_ns, int | np.integer) or len(m.vel_enu_mps) != 3:
                 self.count[slot, _GNSS] += 1
                 return
             self._seq += 1

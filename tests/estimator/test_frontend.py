@@ -239,3 +239,21 @@ def test_asof_is_searchsorted_per_row(a: list[tuple[int, int]], b: list[tuple[in
         mine = np.flatnonzero(row_a == r)
         j = int(np.searchsorted(key_a[mine], k, side="right")) - 1
         assert got[i] == (mine[j] if j >= 0 else -1)
+
+
+def test_malformed_gnss_is_counted_not_raised_and_counts_are_current_before_advance() -> None:
+    v = _vehicle("hard_braking", 10, 0.0, cycles=1)
+    fleet = MdsfFleet()
+    fleet.add_vehicle("v", v.config)
+    gnss = next(m for m in v.measurements if isinstance(m, GnssSample))
+    fleet.push("v", dataclasses.replace(gnss, vel_enu_mps=(1.0, 2.0)))  # type: ignore[arg-type]
+    fleet.push("v", dataclasses.replace(gnss, vel_enu_mps=(np.nan, 0.0, 0.0)))
+    imu = next(m for m in v.measurements if isinstance(m, ImuBatch))
+    bad = np.array(imu.accel_mps2, dtype=float)
+    bad[0, 1] = np.inf
+    fleet.push("v", ImuBatch(imu.stamp_ns, bad, imu.gyro_radps))
+    before = fleet.counters("v")
+    assert before["skipped_gnss"] == 1 and before["skipped_imu"] == 1  # checked on asking
+    fleet.advance({"v": _stamp(v.measurements[-1])})
+    after = fleet.counters("v")
+    assert after["skipped_gnss"] == 2 and after["skipped_imu"] == 1  # NaN velocity: when used
