@@ -6,9 +6,10 @@ due in one :meth:`~estimator.engine.MdsfFleet.advance` into :class:`TickInputs` 
 of numpy calls that does not grow with the fleet (ticks are ``MdsfConfig.tick_ns`` of sensor
 time on a fleet-wide grid):
 
-* IMU samples of all vehicles are kept in one array sorted by (slot, time). Per tick: the mean
-  forward acceleration (gravity removed with the tracked pitch, product mode), ``ωx`` and
-  ``ωz`` (gyro biases removed), binned with ``np.bincount`` over (vehicle row, tick) ids.
+* IMU samples of all vehicles wait in one queue (push order); an assembly takes those of the
+  due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
+  removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
+  binned with ``np.bincount`` over (vehicle row, tick) ids.
 * A complementary pitch track (``ωx − b_x`` integrated, pulled to the GNSS pitch at each fix,
   :func:`pitch_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
   the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
@@ -20,12 +21,18 @@ time on a fleet-wide grid):
   the tick with the GNSS velocity in product mode) and attitude held from the latest fix at or
   before each tick.
 * Wheel speeds: encoder trackers of all vehicles that share the ticks queried in one
-  :func:`~estimator.wheel_speed.query_many`; direct (CAN) speeds per vehicle.
+  :func:`~estimator.wheel_speed.query_many`; direct (CAN) speeds per vehicle (no batched
+  query exists for them).
+
+Within one vehicle, measurements are expected in sensor order (the pipeline's reorder buffer
+releases them so); IMU samples and fixes that go back in time are skipped or, for fixes,
+taken in push order.
 
 "Latest entry at or before ``t`` for the same vehicle" lookups are one stable sort of the
 combined (vehicle, time) keys (:func:`_asof`).
 
-Bad input is skipped and counted (:data:`COUNT_NAMES`), never raised on. IMU samples and GNSS
+Bad input is skipped and counted (:data:`COUNT_NAMES`), never raised on (a malformed array
+shape still raises in :meth:`FleetFrontEnd.push`, as ``reshape`` does). IMU samples and GNSS
 fixes are checked when the next :meth:`FleetFrontEnd.assemble` (or :meth:`FleetFrontEnd.counts`)
 takes them, against the state of their push time (nothing changes that state in between), so
 counts and rows equal a check at push time.
