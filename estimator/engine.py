@@ -12,15 +12,16 @@ Two layers:
     matrices, masks, NIS) for diagnostics and tests.
 
 :class:`MdsfFleet`
-    Implements :class:`estimator.base.FleetEstimator`. Each vehicle has a front end
-    (:class:`_FrontEnd`) that buffers its measurements and, on :meth:`MdsfFleet.advance`, turns
-    them into per-tick filter inputs with vectorised numpy calls per vehicle and advance (no
-    Python work per tick): IMU averaged over each tick window (gravity removed with the
-    pitch, gyro biases learnt against the GNSS attitude), GNSS speed by eq. (1) moved to the
-    tick by its time stamp. The wheel speeds of all vehicles that share the ticks are fitted
-    in one call (:func:`estimator.wheel_speed.query_many`). The engine then steps round by
-    round: round ``r`` is the ``r``-th due tick of every vehicle that has one, all in one
-    batched call. Slip, positions and attitude are computed for all rows at once afterwards.
+    Implements :class:`estimator.base.FleetEstimator`. One fleet front end
+    (:class:`estimator.frontend.FleetFrontEnd`, state in arrays by engine slot) buffers every
+    vehicle's measurements and, on :meth:`MdsfFleet.advance`, turns those of all due vehicles
+    into per-tick filter inputs with a number of numpy calls that does not grow with the fleet:
+    IMU averaged over each tick window (gravity removed with the pitch, gyro biases learnt
+    against the GNSS attitude), GNSS speed by eq. (1) moved to the tick by its time stamp,
+    wheel speeds of all vehicles that share the ticks fitted in one call
+    (:func:`estimator.wheel_speed.query_many`). The engine then steps round by round: round
+    ``r`` is the ``r``-th due tick of every vehicle that has one, all in one batched call.
+    Slip, positions and attitude are computed for all rows at once afterwards.
 
 Ticks sit on a fleet-wide grid (multiples of ``tick_ns`` since the epoch), so rows of different
 vehicles share time stamps, and a row at ``t`` uses only measurements stamped at or before
@@ -33,7 +34,6 @@ explodes is re-initialised and the row flagged RESET.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -44,9 +44,10 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator import kalman
+from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
-from estimator.geo import EnuFrame
+from estimator.frontend import FleetFrontEnd, TickInputs
 from estimator.mdsf import (
     GRAVITY_MPS2,
     N_OBS_PAPER,
@@ -55,30 +56,12 @@ from estimator.mdsf import (
     MdsfObs,
     MdsfOut,
     MdsfState,
-    gnss_vehicle_speed,
     mdsf_matrices,
 )
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
 from estimator.slip import slip_pct
-from estimator.types import (
-    ESTIMATE_DTYPE,
-    EstimateFlag,
-    GnssFix,
-    GnssSample,
-    ImuBatch,
-    Wheel,
-    WheelEdges,
-    WheelSpeeds,
-    empty_estimates,
-)
-from estimator.wheel_speed import (
-    DirectWheelSpeed,
-    WheelSpeedConfig,
-    WheelSpeedMethod,
-    WheelSpeedResult,
-    WheelTracker,
-    query_many,
-)
+from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
+from estimator.wheel_speed import WheelSpeedConfig
 
 __all__ = ["Counter", "MdsfEngine", "MdsfFleet", "StepOutput", "TickInputs", "TickModel"]
 
@@ -119,61 +102,7 @@ class Counter(IntEnum):
     WAITING_TICKS = 11
 
 
-@dataclass(slots=True)
-class TickInputs:
-    """One vehicle's inputs for ``m`` consecutive ticks (rows), built by its front end.
-
-    Attributes
-    ----------
-    stamp_ns : ndarray, shape (m,), int64
-    z : ndarray, shape (m, 4)
-        ``[Vg, a1, ωx, ωz]`` (eq. (6) observation); Vg aligned to the tick in product mode.
-    gnss_ok : ndarray, shape (m,), bool
-        A GNSS speed is in ``z[:, VG]``.
-    gnss_var : ndarray, shape (m,)
-        Its variance [(m/s)²].
-    imu_ok : ndarray, shape (m,), bool
-        The tick window held IMU samples.
-    accel_var, gyro_var : ndarray, shape (m,)
-        Variance of the tick-mean acceleration and rates.
-    force_fwd : ndarray, shape (m,)
-        Tick-mean forward specific force as measured (gravity included) [m/s²]: the traction
-        demand the tyres see.
-    omega : ndarray, shape (m, 2)
-        Wheel angular speeds (left, right) at the tick [rad/s]; NaN when unknown.
-    omega_std : ndarray, shape (m, 2)
-    wheel_flags : ndarray, shape (m,), int32
-        ``WHEEL_PERIOD_METHOD`` / ``WHEEL_DIRECT`` bits.
-    enu : ndarray, shape (m, 3)
-        Antenna position in the vehicle's ENU frame (NaN before the first fix).
-    attitude : ndarray, shape (m, 3)
-        Heading, pitch, roll [rad].
-    """
-
-    stamp_ns: IntArray
-    z: FloatArray
-    gnss_ok: BoolArray
-    gnss_var: FloatArray
-    imu_ok: BoolArray
-    accel_var: FloatArray
-    gyro_var: FloatArray
-    force_fwd: FloatArray
-    omega: FloatArray
-    omega_std: FloatArray
-    wheel_flags: npt.NDArray[np.int32]
-    enu: FloatArray
-    attitude: FloatArray
-
-    @property
-    def m(self) -> int:
-        return int(self.stamp_ns.shape[0])
-
-
 _TICK_FIELDS = TickInputs.__slots__
-
-
-def _concat_inputs(items: list[TickInputs]) -> TickInputs:
-    return TickInputs(*(np.concatenate([getattr(t, f) for t in items]) for f in _TICK_FIELDS))
 
 
 @dataclass(slots=True)
@@ -269,12 +198,7 @@ class MdsfEngine:
         old = self._cap
 
         def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
-            a = getattr(self, name, None)
-            dtype = np.asarray(fill).dtype if a is None else a.dtype
-            new = np.full((cap, *shape), fill, dtype=dtype)
-            if a is not None:
-                new[:old] = a
-            setattr(self, name, new)
+            grow_slot_array(self, name, cap, shape, fill)
 
         n, m = self.n, self.m
         grow("x", (n,), 0.0)
@@ -878,551 +802,6 @@ class MdsfEngine:
 
 
 # ---------------------------------------------------------------------------------------------
-# Front end: one per vehicle
-# ---------------------------------------------------------------------------------------------
-
-
-def _log_at(log: list[tuple[int, float]], T: IntArray, before: float) -> FloatArray:
-    """Value of a time-stamped log in force at each time in ``T`` (``before`` if none yet)."""
-    if not log:
-        return np.full(T.shape[0], before)
-    st_ = np.array([a for a, _ in log], dtype=np.int64)
-    va = np.array([b for _, b in log])
-    i = np.searchsorted(st_, T, side="right") - 1
-    return np.where(i >= 0, va[np.maximum(i, 0)], before)
-
-
-def _cummean(values: FloatArray, lo: IntArray, hi: IntArray) -> FloatArray:
-    """Mean of ``values[lo:hi]`` per window (shape (m, ...)); NaN for empty windows."""
-    c = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(values, axis=0)])
-    n = (hi - lo).astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = (c[hi] - c[lo]) / n.reshape(-1, *([1] * (values.ndim - 1)))
-    return np.asarray(out)
-
-
-class _FrontEnd:
-    """Buffers one vehicle's measurements and turns them into :class:`TickInputs`."""
-
-    def __init__(self, vehicle: VehicleConfig, config: MdsfConfig, wheel: WheelSpeedConfig) -> None:
-        self.vehicle = vehicle
-        self.config = config
-        self.product = config.mode is MdsfMode.PRODUCT
-        self.tick_ns = config.tick_ns
-        wcfg = dataclasses.replace(wheel, teeth_per_rev=vehicle.encoder.teeth_per_rev)
-        self.trackers = (WheelTracker(wcfg), WheelTracker(wcfg))
-        self.direct = DirectWheelSpeed(std_radps=0.01)
-        self.has_edges = False
-        self.next_tick_ns: int | None = None
-        self.done_ns: int | None = None  # last tick emitted
-        self.gnss: list[GnssSample] = []
-        self.imu_t: list[IntArray] = []
-        self.imu_f: list[FloatArray] = []
-        self.imu_w: list[FloatArray] = []
-        self.frame: EnuFrame | None = None
-        self.pitch_rad = 0.0
-        self.pitch_known = False
-        self.pitch_gyro_bias = 0.0
-        self.pitch_fix_ns = 0
-        self.pitch_fixes = 1
-        self.pitch_var = config.pitch_std_rad**2 * 100.0  # unknown before the first fix
-        self.pitch_var_log: list[tuple[int, float]] = []
-        self._pitch_var_before = self.pitch_var
-        self.pitch_bias_log: list[tuple[int, float]] = []
-        self._pitch_bias_before = 0.0
-        self.yaw_rad = math.nan
-        self.yaw_gyro_bias = 0.0
-        self.yaw_fix_ns = 0
-        self._yaw_bias_before = 0.0
-        self.last_yaw_ns: int | None = None
-        self.last_imu_ns: int | None = None
-        self.last_imu_ns_used: int | None = None
-        # Latest GNSS solution held for outputs: stamp, e, n, u, ve, vn, vu, heading, pitch, roll
-        self.hold = np.full(10, np.nan)
-        self.counts: dict[str, int] = {}
-        n = vehicle.noise
-        self.gnss_var_cfg = n.gnss_vel_std_mps**2
-        self.accel_var_cfg = n.accel_std_mps2**2
-        self.gyro_var_cfg = n.gyro_std_radps**2
-        self.imu_fwd_m = vehicle.geometry.imu_offset_m[1]
-
-    def _count(self, name: str, n: int = 1) -> None:
-        self.counts[name] = self.counts.get(name, 0) + n
-
-    def _see(self, stamp_ns: int) -> None:
-        if self.next_tick_ns is None:
-            tn = self.tick_ns
-            self.next_tick_ns = -(-int(stamp_ns) // tn) * tn
-
-    def _late(self, stamp_ns: int) -> bool:
-        return self.done_ns is not None and stamp_ns <= self.done_ns
-
-    def push(self, m: Measurement) -> None:
-        if isinstance(m, GnssSample):
-            if not isinstance(m.stamp_ns, int | np.integer):
-                self._count("skipped_gnss")
-                return
-            if self._late(int(m.stamp_ns)):
-                self._count("skipped_late")
-                return
-            self._see(int(m.stamp_ns))
-            self.gnss.append(m)
-        elif isinstance(m, ImuBatch):
-            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
-            f = np.asarray(m.accel_mps2, dtype=np.float64).reshape(-1, 3)
-            w = np.asarray(m.gyro_radps, dtype=np.float64).reshape(-1, 3)
-            if f.shape[0] != t.shape[0] or w.shape[0] != t.shape[0]:
-                self._count("skipped_imu", int(t.shape[0]))
-                return
-            ok: BoolArray = np.isfinite(f[:, 1]) & np.isfinite(w[:, 0]) & np.isfinite(w[:, 2])
-            floor = self.last_imu_ns if self.last_imu_ns is not None else np.iinfo(np.int64).min
-            if self.done_ns is not None:
-                floor = max(floor, self.done_ns)
-            ok &= t > floor
-            if t.shape[0] > 1:
-                ok[1:] &= t[1:] > t[:-1]
-            if not ok.all():
-                self._count("skipped_imu", int((~ok).sum()))
-                t, f, w = t[ok], f[ok], w[ok]
-            if t.shape[0] == 0:
-                return
-            self._see(int(t[0]))
-            self.last_imu_ns = int(t[-1])
-            self.imu_t.append(t)
-            self.imu_f.append(f)
-            self.imu_w.append(w)
-        elif isinstance(m, WheelEdges):
-            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
-            if t.shape[0] == 0:
-                return
-            try:
-                tracker = self.trackers[int(m.wheel)]
-            except (IndexError, ValueError):
-                self._count("skipped_edges", int(t.shape[0]))
-                return
-            d = None if m.direction is None else np.asarray(m.direction).reshape(-1)
-            if d is not None and d.shape[0] != t.shape[0]:
-                d = None
-            if not self.vehicle.encoder.has_direction:
-                d = None
-            before = tracker.skipped
-            tracker.push(t, d)
-            self._count("skipped_edges", tracker.skipped - before)
-            self.has_edges = True
-            self._see(int(t[0]))
-        elif isinstance(m, WheelSpeeds):
-            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
-            before = self.direct.skipped
-            self.direct.push(t, m.omega_radps)
-            self._count("skipped_wheel_speeds", self.direct.skipped - before)
-            if t.shape[0]:
-                self._see(int(t[0]))
-
-    # -- tick assembly ---------------------------------------------------------------------
-    def assemble(self, until_ns: int) -> TickInputs | None:
-        if self.next_tick_ns is None or until_ns < self.next_tick_ns:
-            return None
-        tn = self.tick_ns
-        m = (int(until_ns) - self.next_tick_ns) // tn + 1
-        ticks = self.next_tick_ns + tn * np.arange(m, dtype=np.int64)
-        t_end = int(ticks[-1])
-        self.next_tick_ns = t_end + tn
-        self.done_ns = t_end
-        # IMU samples up to the last tick.
-        if self.imu_t:
-            T = np.concatenate(self.imu_t)
-            Fs = np.concatenate(self.imu_f)
-            Ws = np.concatenate(self.imu_w)
-        else:
-            T = np.zeros(0, dtype=np.int64)
-            Fs = np.zeros((0, 3))
-            Ws = np.zeros((0, 3))
-        n_use = int(np.searchsorted(T, t_end, side="right"))
-        rest = (T[n_use:], Fs[n_use:], Ws[n_use:])
-        T, Fs, Ws = T[:n_use], Fs[:n_use], Ws[:n_use]
-        self.imu_t = [rest[0]] if rest[0].size else []
-        self.imu_f = [rest[1]] if rest[0].size else []
-        self.imu_w = [rest[2]] if rest[0].size else []
-
-        # GNSS samples up to the last tick.
-        n_g = 0
-        while n_g < len(self.gnss) and self.gnss[n_g].stamp_ns <= t_end:
-            n_g += 1
-        gs = self.gnss[:n_g]
-        del self.gnss[:n_g]
-        g = self._gnss_arrays(gs)
-
-        # Pitch per IMU sample (product: GNSS pitch blended with integrated ωx) and forward accel.
-        theta = self._pitch_track(T, Ws[:, 0], g)
-        if self.product:
-            # Gyro biases learnt against the GNSS attitude, in force at each sample.
-            bx = _log_at(self.pitch_bias_log, T, self._pitch_bias_before)
-            if self.pitch_bias_log:
-                self._pitch_bias_before = self.pitch_bias_log[-1][1]
-            self.pitch_bias_log.clear()
-            bz = self._yaw_track(T, Ws[:, 2], theta, g)
-            Ws = Ws.copy()
-            Ws[:, 0] -= bx
-            Ws[:, 2] -= bz
-        if self.product:
-            a_fwd = Fs[:, 1] - GRAVITY_MPS2 * np.sin(theta)
-            if self.imu_fwd_m != 0.0:
-                a_fwd = a_fwd + (Ws[:, 0] ** 2 + Ws[:, 2] ** 2) * self.imu_fwd_m
-        else:
-            a_fwd = Fs[:, 1]
-        hi = np.searchsorted(T, ticks, side="right")
-        lo = np.searchsorted(T, ticks - tn, side="right")
-        n_imu = hi - lo
-        imu_ok = n_imu > 0
-        vals = np.stack([a_fwd, Ws[:, 0], Ws[:, 2], Fs[:, 1]], axis=1)
-        means = _cummean(vals, lo, hi) if T.size else np.full((m, 4), np.nan)
-        nf = np.maximum(n_imu, 1).astype(np.float64)
-        accel_var = self.accel_var_cfg / nf
-        if self.product:
-            # Gravity leaks through the pitch error: g·δθ. Its variance per fix (tracked in
-            # _pitch_track) is spread as white noise with the same low-frequency power
-            # (correlation ``pitch_tau_s``).
-            pv = self._pitch_var_at(ticks)
-            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (
-                self.config.pitch_tau_s / self.config.dt_s
-            )
-        gyro_var = self.gyro_var_cfg / nf
-        theta_tick = np.where(imu_ok, theta[np.maximum(hi - 1, 0)] if T.size else np.nan, np.nan)
-
-        z = np.full((m, N_OBS_PAPER), np.nan)
-        z[:, MdsfObs.A1] = means[:, 0]
-        z[:, MdsfObs.OMEGA_X] = means[:, 1]
-        z[:, MdsfObs.OMEGA_Z] = means[:, 2]
-
-        # GNSS speed per tick: eq. (1), moved to the tick (product) and averaged, or the latest.
-        gnss_ok = np.zeros(m, dtype=bool)
-        gnss_var = np.full(m, self.gnss_var_cfg)
-        enu = np.full((m, 3), np.nan)
-        att = np.full((m, 3), np.nan)
-        if g is not None:
-            gt, vg, var, vel_ok = g["stamp"], g["vg"], g["var"], g["vel_ok"]
-            j = np.searchsorted(ticks, gt, side="left")  # tick whose window holds the sample
-            inside = (j < m) & vel_ok
-            if self.product:
-                a_t = np.nan_to_num(z[np.minimum(j, m - 1), MdsfObs.A1])
-                vg_al = vg + a_t * (ticks[np.minimum(j, m - 1)] - gt) * _NS
-                cnt = np.bincount(j[inside], minlength=m)[:m]
-                s_vg = np.bincount(j[inside], weights=vg_al[inside], minlength=m)[:m]
-                s_var = np.bincount(j[inside], weights=var[inside], minlength=m)[:m]
-                has = cnt > 0
-                z[has, MdsfObs.VG] = s_vg[has] / cnt[has]
-                gnss_var[has] = s_var[has] / cnt[has] ** 2
-                gnss_ok = has
-            else:
-                jj = j[inside]
-                z[jj, MdsfObs.VG] = vg[inside]  # later samples overwrite: the latest wins
-                gnss_var[jj] = var[inside]
-                gnss_ok[jj] = True
-        enu, att = self._hold_outputs(ticks, g, z[:, MdsfObs.OMEGA_Z], theta_tick)
-
-        # Wheel speeds at the ticks: from the encoders (filled by the fleet, batched over
-        # vehicles, see ``wheels_from``) or from direct (CAN) speeds.
-        omega = np.full((m, 2), np.nan)
-        omega_std = np.full((m, 2), np.nan)
-        wflags = np.zeros(m, dtype=np.int32)
-        if not self.uses_encoders:
-            omega, omega_std = self.direct.query(ticks)
-            wflags |= int(_F.WHEEL_DIRECT)
-
-        return TickInputs(
-            stamp_ns=ticks,
-            z=z,
-            gnss_ok=gnss_ok,
-            gnss_var=gnss_var,
-            imu_ok=imu_ok,
-            accel_var=accel_var,
-            gyro_var=gyro_var,
-            force_fwd=means[:, 3],
-            omega=omega,
-            omega_std=omega_std,
-            wheel_flags=wflags,
-            enu=enu,
-            attitude=att,
-        )
-
-    @property
-    def uses_encoders(self) -> bool:
-        """Wheel speeds come from encoder edges (else from direct speeds, when there are any)."""
-        return self.has_edges or not self.direct.has_data
-
-    def wheels_from(self, t: TickInputs, both: list[WheelSpeedResult]) -> None:
-        """Fill ``t``'s wheel columns from the trackers' results (left, right), in place."""
-        period = np.ones(t.m, dtype=bool)
-        lone_std = 2 * np.pi / (self.vehicle.encoder.teeth_per_rev * 2.0)
-        for w in Wheel:
-            r = both[w]
-            none = r.method == WheelSpeedMethod.NONE
-            t.omega[:, w] = np.where(none, 0.0, r.omega_radps)
-            t.omega_std[:, w] = np.where(none, lone_std, r.std_radps)
-            period &= r.method != WheelSpeedMethod.FREQUENCY
-        t.wheel_flags |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
-
-    def _gnss_arrays(self, gs: list[GnssSample]) -> dict[str, np.ndarray] | None:
-        if not gs:
-            return None
-        n = len(gs)
-        stamp = np.fromiter((s.stamp_ns for s in gs), dtype=np.int64, count=n)
-        num = np.array(
-            [
-                (
-                    *s.vel_enu_mps,
-                    s.heading_rad,
-                    s.pitch_rad,
-                    s.roll_rad,
-                    s.lat_deg,
-                    s.lon_deg,
-                    s.height_m,
-                    s.vel_std_mps,
-                    float(int(s.fix)),
-                )
-                for s in gs
-            ],
-            dtype=np.float64,
-        ).reshape(n, 11)
-        ve, vn, vu = num[:, 0], num[:, 1], num[:, 2]
-        fix_ok = num[:, 10] != float(GnssFix.NONE)
-        vel_ok = (
-            np.isfinite(num[:, :3]).all(axis=1) & fix_ok & (np.abs(num[:, :3]) < 200).all(axis=1)
-        )
-        self._count("skipped_gnss", int((~vel_ok).sum()))
-        heading_raw = num[:, 3]
-        heading = np.where(np.isfinite(num[:, 3]), num[:, 3], np.arctan2(ve, vn))
-        pitch_g = num[:, 4]
-        pos_ok = np.isfinite(num[:, 6:9]).all(axis=1) & fix_ok
-        return {
-            "stamp": stamp,
-            "ve": ve,
-            "vn": vn,
-            "vu": vu,
-            "heading": heading,
-            "heading_raw": heading_raw,
-            "pitch": pitch_g,
-            "roll": num[:, 5],
-            "lat": num[:, 6],
-            "lon": num[:, 7],
-            "h": num[:, 8],
-            "pos_ok": pos_ok,
-            "vel_ok": vel_ok,
-            "var": np.where(
-                np.isfinite(num[:, 9]) & (num[:, 9] > 0), num[:, 9] ** 2, self.gnss_var_cfg
-            ),
-            "vg": np.zeros(n),  # filled by _pitch_track (needs the pitch at each sample)
-        }
-
-    def _pitch_track(
-        self, T: IntArray, wx: FloatArray, g: dict[str, np.ndarray] | None
-    ) -> FloatArray:
-        """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
-
-        A complementary filter: at each fix with a pitch the tracked pitch moves toward it with
-        time constant ``pitch_tau_s`` and the pitch-gyro bias ``b_x`` with ``gyro_bias_tau_s``
-        (product mode; paper mode takes the GNSS pitch as it is). Also fills ``g["vg"]`` with
-        eq. (1), using the GNSS pitch or the tracked pitch if the receiver gives none.
-        Returns shape ``(len(T),)``.
-        """
-        n = T.shape[0]
-        theta = np.empty(n)
-        prev = self.last_imu_ns_used
-        if n:
-            dts = np.empty(n)
-            dts[1:] = np.diff(T) * _NS
-            dts[0] = (T[0] - prev) * _NS if prev is not None else 0.0
-            dts = np.clip(dts, 0.0, 0.1)
-            cum_w = np.cumsum(wx * dts)
-            cum_t = np.cumsum(dts)
-            self.last_imu_ns_used = int(T[-1])
-        else:
-            cum_w = cum_t = np.zeros(0)
-        th0 = self.pitch_rad
-        base_w = base_t = 0.0
-        start = 0
-        tau = self.config.pitch_tau_s
-
-        def integrate(lo: int, hi: int) -> None:
-            # pitch over samples lo..hi-1 with the bias known at the segment start
-            bias = self.pitch_gyro_bias
-            theta[lo:hi] = th0 + (cum_w[lo:hi] - base_w) - bias * (cum_t[lo:hi] - base_t)
-
-        if g is not None:
-            for i in range(g["stamp"].shape[0]):
-                tg = int(g["stamp"][i])
-                j = int(np.searchsorted(T, tg, side="right"))
-                if j > start:
-                    integrate(start, j)
-                    th0 = float(theta[j - 1])
-                    base_w, base_t = float(cum_w[j - 1]), float(cum_t[j - 1])
-                    start = j
-                p = float(g["pitch"][i])
-                sp2 = self.config.pitch_std_rad**2
-                if math.isfinite(p):
-                    if not self.pitch_known or not self.product:
-                        th0 = p
-                        self.pitch_var = sp2
-                    else:
-                        gap = min(max((tg - self.pitch_fix_ns) * _NS, 0.0), 1.0)
-                        err = p - th0
-                        # running mean over the first fixes, then the complementary filter
-                        self.pitch_fixes += 1
-                        gain = max(1.0 / self.pitch_fixes, 1.0 - math.exp(-gap / tau))
-                        th0 += gain * err
-                        self.pitch_var = (1 - gain) ** 2 * self.pitch_var + gain**2 * sp2
-                        self.pitch_gyro_bias -= gap / (tau * self.config.gyro_bias_tau_s) * err
-                    self.pitch_known = True
-                    self.pitch_fix_ns = tg
-                self.pitch_var_log.append((tg, self.pitch_var))
-                self.pitch_bias_log.append((tg, self.pitch_gyro_bias))
-                pitch_used = p if math.isfinite(p) else th0
-                if g["vel_ok"][i]:
-                    g["vg"][i] = gnss_vehicle_speed(
-                        g["ve"][i], g["vn"][i], g["vu"][i], g["heading"][i], pitch_used
-                    )
-        if n > start:
-            integrate(start, n)
-            th0 = float(theta[-1])
-        self.pitch_rad = th0
-        return theta
-
-    def _yaw_track(
-        self, T: IntArray, wz: FloatArray, theta: FloatArray, g: dict[str, np.ndarray] | None
-    ) -> FloatArray:
-        """Yaw-gyro bias in force at each IMU sample, learnt against the GNSS heading.
-
-        Heading is integrated from the yaw rate (``ψ̇ = −(ωz − b_z)/cos θ``) and pulled to each
-        GNSS heading with ``pitch_tau_s``; the bias integrates the disagreement with
-        ``gyro_bias_tau_s``, as for the pitch. Returns shape ``(len(T),)``.
-        """
-        n = T.shape[0]
-        out = np.full(n, self.yaw_gyro_bias)
-        prev = self.last_yaw_ns
-        dts = np.empty(n)
-        if n:
-            dts[1:] = np.diff(T) * _NS
-            dts[0] = (T[0] - prev) * _NS if prev is not None else 0.0
-            dts = np.clip(dts, 0.0, 0.1)
-            self.last_yaw_ns = int(T[-1])
-        rate = -wz / np.maximum(np.cos(theta), 0.5)
-        cum_r = np.cumsum(rate * dts)
-        cum_t = np.cumsum(dts / np.maximum(np.cos(theta), 0.5))
-        base_r = base_t = 0.0
-        start = 0
-        tau = self.config.pitch_tau_s
-        psi = self.yaw_rad
-        heads = g["heading_raw"] if g is not None else np.zeros(0)
-        stamps = g["stamp"] if g is not None else np.zeros(0, dtype=np.int64)
-        for i in range(heads.shape[0]):
-            h = float(heads[i])
-            if not math.isfinite(h):
-                continue
-            tg = int(stamps[i])
-            j = int(np.searchsorted(T, tg, side="right"))
-            bias = self.yaw_gyro_bias
-            if j > start:
-                out[start:j] = bias
-                if math.isfinite(psi):
-                    psi += (cum_r[j - 1] - base_r) + bias * (cum_t[j - 1] - base_t)
-                base_r, base_t = float(cum_r[j - 1]), float(cum_t[j - 1])
-                start = j
-            elif n == 0 and math.isfinite(psi) and prev is not None and tg > prev:
-                pass  # no rate samples since the last batch: the heading is held
-            if math.isfinite(psi):
-                gap = min(max((tg - self.yaw_fix_ns) * _NS, 0.0), 1.0)
-                err = math.remainder(h - psi, 2 * math.pi)
-                psi += (1.0 - math.exp(-gap / tau)) * err
-                # ψ̇ = −(ωz − b)/cosθ: a heading that falls behind means b is too small
-                self.yaw_gyro_bias += gap / (tau * self.config.gyro_bias_tau_s) * err
-            else:
-                psi = h
-            self.yaw_fix_ns = tg
-        out[start:] = self.yaw_gyro_bias
-        if math.isfinite(psi) and n > start:
-            psi += (cum_r[-1] - base_r) + self.yaw_gyro_bias * (cum_t[-1] - base_t)
-        self.yaw_rad = psi
-        return out
-
-    def _pitch_var_at(self, ticks: IntArray) -> FloatArray:
-        """Pitch variance in force at each tick (latest fix at or before it); shape (m,)."""
-        log = self.pitch_var_log
-        if not log:
-            return np.full(ticks.shape[0], self.pitch_var)
-        st_ = np.array([a for a, _ in log], dtype=np.int64)
-        va = np.array([b for _, b in log])
-        i = np.searchsorted(st_, ticks, side="right") - 1
-        out = np.where(i >= 0, va[np.maximum(i, 0)], self._pitch_var_before)
-        self._pitch_var_before = float(va[-1])
-        log.clear()
-        return out
-
-    def _hold_outputs(
-        self,
-        ticks: IntArray,
-        g: dict[str, np.ndarray] | None,
-        wz: FloatArray,
-        theta_tick: FloatArray,
-    ) -> tuple[FloatArray, FloatArray]:
-        """Position (ENU, moved to the tick with the GNSS velocity) and attitude per tick."""
-        if g is not None:
-            ok = g["pos_ok"]
-            if self.frame is None and ok.any():
-                i0 = int(np.flatnonzero(ok)[0])
-                self.frame = EnuFrame(float(g["lat"][i0]), float(g["lon"][i0]), float(g["h"][i0]))
-            e = np.full(ok.shape[0], np.nan)
-            nn = np.full(ok.shape[0], np.nan)
-            u = np.full(ok.shape[0], np.nan)
-            if self.frame is not None and ok.any():
-                e[ok], nn[ok], u[ok] = self.frame.to_enu(g["lat"][ok], g["lon"][ok], g["h"][ok])
-            rows = np.stack(
-                [
-                    g["stamp"].astype(np.float64),
-                    e,
-                    nn,
-                    u,
-                    g["ve"],
-                    g["vn"],
-                    g["vu"],
-                    g["heading"],
-                    g["pitch"],
-                    g["roll"],
-                ],
-                axis=1,
-            )
-        else:
-            rows = np.zeros((0, 10))
-        # For each tick: the latest GNSS row at or before it (rows are time ordered) or the hold.
-        allrows = np.vstack([self.hold[None, :], rows])
-        stamps = allrows[:, 0]
-        idx = (
-            np.searchsorted(
-                np.where(np.isnan(stamps), -np.inf, stamps), ticks.astype(np.float64), side="right"
-            )
-            - 1
-        )
-        idx = np.maximum(idx, 0)
-        sel = allrows[idx]
-        age = (ticks - np.nan_to_num(sel[:, 0], nan=0.0)) * _NS
-        age = np.where(np.isfinite(sel[:, 0]), age, 0.0)
-        vel = np.nan_to_num(sel[:, 4:7])
-        enu = sel[:, 1:4] + (vel * age[:, None] if self.product else 0.0)
-        heading = sel[:, 7] - (np.nan_to_num(wz) * age if self.product else 0.0)
-        heading = np.mod(heading, 2 * np.pi)
-        pitch = (
-            np.where(np.isfinite(theta_tick), theta_tick, sel[:, 8]) if self.product else sel[:, 8]
-        )
-        att = np.stack([heading, pitch, sel[:, 9]], axis=1)
-        if rows.shape[0]:
-            # Keep the latest row with a finite position as the hold (velocity/attitude too).
-            self.hold = rows[-1].copy()
-            okp = np.isfinite(rows[:, 1])
-            if okp.any() and not okp[-1]:
-                self.hold[1:4] = rows[np.flatnonzero(okp)[-1], 1:4]
-        return enu, att
-
-
-# ---------------------------------------------------------------------------------------------
 # Fleet estimator
 # ---------------------------------------------------------------------------------------------
 
@@ -1459,86 +838,70 @@ class MdsfFleet:
         self.config = config or MdsfConfig()
         self.wheel = wheel or WheelSpeedConfig()
         self.engine = MdsfEngine(self.config, reference)
+        self.front = FleetFrontEnd(self.config, self.wheel)
         self._slot: dict[str, int] = {}
-        self._fe: dict[str, _FrontEnd] = {}
-        self._cfg: dict[str, VehicleConfig] = {}
+        # per slot: wheel radii (left, right) [m] and the slip's minimum ground speed [m/s]
+        self._radius_m = np.zeros((0, 2))
+        self._min_speed_mps = np.zeros(0)
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
         self.remove_vehicle(vehicle_id)
-        self._slot[vehicle_id] = self.engine.add(config)
-        self._fe[vehicle_id] = _FrontEnd(config, self.config, self.wheel)
-        self._cfg[vehicle_id] = config
+        slot = self.engine.add(config)
+        self._slot[vehicle_id] = slot
+        self.front.add(slot, config)
+        if slot >= self._min_speed_mps.shape[0]:
+            cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
+            self._radius_m = np.resize(self._radius_m, (cap, 2))
+            self._min_speed_mps = np.resize(self._min_speed_mps, cap)
+        geo = config.geometry
+        self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
+        self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
         slot = self._slot.pop(vehicle_id, None)
         if slot is not None:
             self.engine.release(slot)
-        self._fe.pop(vehicle_id, None)
-        self._cfg.pop(vehicle_id, None)
+            self.front.release(slot)
 
     def vehicle_ids(self) -> list[str]:
         return list(self._slot)
 
     def push(self, vehicle_id: str, measurement: Measurement) -> None:
         """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
-        self._fe[vehicle_id].push(measurement)
+        self.front.push(self._slot[vehicle_id], measurement)
 
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame (its first GNSS
         fix), to which ``east_m``/``north_m``/``up_m`` of its rows refer; None before that fix."""
-        fe = self._fe.get(vehicle_id)
-        frame = fe.frame if fe is not None else None
-        if frame is None:
-            return None
-        return (frame.lat0_deg, frame.lon0_deg, frame.h0_m)
+        slot = self._slot.get(vehicle_id)
+        return None if slot is None else self.front.anchor(slot)
 
     def counters(self, vehicle_id: str) -> dict[str, int]:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
         degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""
         slot = self._slot[vehicle_id]
         out = {c.name.lower(): int(self.engine.counts[slot, c]) for c in Counter}
-        for k, v in self._fe[vehicle_id].counts.items():
+        for k, v in self.front.counts(slot).items():
             out[k] = out.get(k, 0) + v
         return out
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every due tick (``stamp_ns <= until_ns[id]``), vehicles stepped together."""
-        items: list[tuple[str, TickInputs]] = []
-        for vid, until in until_ns.items():
-            fe = self._fe.get(vid)
-            if fe is None:
-                continue
-            ti = fe.assemble(int(until))
-            if ti is not None and ti.m > 0:
-                items.append((vid, ti))
-        if not items:
+        ids = [vid for vid in until_ns if vid in self._slot]
+        if not ids:
             return []
-        # Encoder wheel speeds: one vectorised fit for every wheel that shares the ticks.
-        groups: dict[tuple[WheelSpeedConfig, int, int], list[tuple[_FrontEnd, TickInputs]]] = {}
-        for vid, ti in items:
-            fe = self._fe[vid]
-            if fe.uses_encoders:
-                key = (fe.trackers[0].config, int(ti.stamp_ns[0]), ti.m)
-                groups.setdefault(key, []).append((fe, ti))
-        for members in groups.values():
-            trackers = [tr for fe, _ in members for tr in fe.trackers]
-            fitted = query_many(trackers, members[0][1].stamp_ns)
-            for i, (fe, ti) in enumerate(members):
-                fe.wheels_from(ti, fitted[2 * i : 2 * i + 2])
-        items.sort(key=lambda it: -it[1].m)
-        lengths = np.array([ti.m for _, ti in items], dtype=np.int64)
-        offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-        slots = np.array([self._slot[vid] for vid, _ in items], dtype=np.int64)
-        flat = _concat_inputs([ti for _, ti in items])
-        total = int(lengths.sum())
-        radius = np.empty((total, 2))
-        min_speed = np.empty(total)
-        for (vid, _), off, ln in zip(items, offsets, lengths, strict=True):
-            geo = self._cfg[vid].geometry
-            radius[off : off + ln] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
-            min_speed[off : off + ln] = self._cfg[vid].slip.min_ground_speed_mps
+        slots = np.fromiter((self._slot[v] for v in ids), dtype=np.int64, count=len(ids))
+        until = np.fromiter((until_ns[v] for v in ids), dtype=np.int64, count=len(ids))
+        due = self.front.assemble(slots, until)
+        if due is None:
+            return []
+        lengths, offsets, flat = due.lengths, due.offsets, due.inputs
+        total = flat.m
+        row_slot = np.repeat(due.slots, lengths)
+        radius = self._radius_m[row_slot]
+        min_speed = self._min_speed_mps[row_slot]
         rim = flat.omega * radius
         rim_std = flat.omega_std * radius
         out = empty_estimates(total)
@@ -1562,7 +925,7 @@ class MdsfFleet:
             c = int(np.count_nonzero(lengths > r))
             fi = offsets[:c] + r
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-            so = self.engine.step(slots[:c], tin, rim[fi], rim_std[fi])
+            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
             emit[fi] = so.emit
             for name in cols:
                 res[name][fi] = getattr(so, name)
@@ -1601,9 +964,13 @@ class MdsfFleet:
         out["pitch_rad"] = flat.attitude[:, 1]
         out["roll_rad"] = flat.attitude[:, 2]
         out["flags"] = flags
-        result: list[tuple[str, np.ndarray]] = []
-        for (vid, _), off, ln in zip(items, offsets, lengths, strict=True):
-            rows = out[off : off + ln][emit[off : off + ln]]
-            if rows.shape[0]:
-                result.append((vid, rows))
-        return result
+        # Emitted rows, split by vehicle (in the order of ``due``).
+        kept = out[emit]
+        ends = np.cumsum(np.add.reduceat(emit, offsets))
+        return [
+            (ids[i], kept[a:b])
+            for i, a, b in zip(
+                due.index.tolist(), [0, *ends[:-1].tolist()], ends.tolist(), strict=True
+            )
+            if b > a
+        ]

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["WGS84_A_M", "WGS84_F", "EnuFrame"]
+__all__ = ["WGS84_A_M", "WGS84_F", "EnuFrame", "enu_from_geodetic"]
 
 WGS84_A_M = 6_378_137.0  # semi-major axis (WGS-84 definition)
 WGS84_F = 1.0 / 298.257223563  # flattening (WGS-84 definition)
@@ -30,6 +30,32 @@ def _to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, h_m: ArrayLike) -> tuple[Ar
     y = (n + h) * np.cos(lat) * np.sin(lon)
     z = (n * (1.0 - _E2) + h) * np.sin(lat)
     return x, y, z
+
+
+def enu_from_geodetic(
+    lat_deg: ArrayLike,
+    lon_deg: ArrayLike,
+    h_m: ArrayLike,
+    lat0_deg: ArrayLike,
+    lon0_deg: ArrayLike,
+    h0_m: ArrayLike,
+) -> tuple[Array, Array, Array]:
+    """Geodetic → ``(east_m, north_m, up_m)`` of the ENU frame anchored at ``(lat0, lon0, h0)``.
+
+    Every argument broadcasts, anchors included: one call converts the points of many frames
+    (a fleet's vehicles, each in its own frame).
+    """
+    x, y, z = _to_ecef(lat_deg, lon_deg, h_m)
+    x0, y0, z0 = _to_ecef(lat0_deg, lon0_deg, h0_m)
+    dx, dy, dz = x - x0, y - y0, z - z0
+    lat = np.radians(np.asarray(lat0_deg, dtype=np.float64))
+    lon = np.radians(np.asarray(lon0_deg, dtype=np.float64))
+    sl, cl = np.sin(lat), np.cos(lat)
+    so, co = np.sin(lon), np.cos(lon)
+    east = -so * dx + co * dy
+    north = -sl * co * dx - sl * so * dy + cl * dz
+    up = cl * co * dx + cl * so * dy + sl * dz
+    return east, north, up
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,12 +84,7 @@ class EnuFrame:
         self, lat_deg: ArrayLike, lon_deg: ArrayLike, h_m: ArrayLike
     ) -> tuple[Array, Array, Array]:
         """Geodetic → ``(east_m, north_m, up_m)``."""
-        x, y, z = _to_ecef(lat_deg, lon_deg, h_m)
-        x0, y0, z0 = _to_ecef(self.lat0_deg, self.lon0_deg, self.h0_m)
-        d = np.stack([x - x0, y - y0, z - z0])
-        r = self._rotation()
-        e, n, u = np.tensordot(r, d, axes=1)
-        return e, n, u
+        return enu_from_geodetic(lat_deg, lon_deg, h_m, self.lat0_deg, self.lon0_deg, self.h0_m)
 
     def to_geodetic(
         self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from estimator.geo import WGS84_A_M, EnuFrame
+from estimator.geo import WGS84_A_M, EnuFrame, enu_from_geodetic
 
 
 def test_anchor_is_the_origin_and_axes_point_east_north_up() -> None:
@@ -41,3 +41,15 @@ def test_round_trip(lat0: float, lon0: float, east: float, north: float, up: flo
     lat, lon, h = f.to_geodetic(east, north, up)
     e, n, u = f.to_enu(lat, lon, h)
     assert np.allclose([e, n, u], [east, north, up], atol=1e-6)
+
+
+def test_points_of_many_frames_in_one_call() -> None:
+    frames = [EnuFrame(52.0, 5.6, 10.0), EnuFrame(-33.9, 151.2, 40.0), EnuFrame(0.0, -179.9)]
+    lat = np.array([52.001, -33.899, 0.0005])
+    lon = np.array([5.602, 151.199, -179.9003])
+    h = np.array([12.0, 35.0, 1.0])
+    lat0, lon0, h0 = ([getattr(f, a) for f in frames] for a in ("lat0_deg", "lon0_deg", "h0_m"))
+    e, n, u = enu_from_geodetic(lat, lon, h, lat0, lon0, h0)
+    for i, f in enumerate(frames):
+        one = f.to_enu(lat[i], lon[i], h[i])
+        assert np.allclose([e[i], n[i], u[i]], one, rtol=0, atol=1e-9)

@@ -1,0 +1,1180 @@
+"""Fleet front end of the MDSF estimator: buffered measurements of many vehicles → tick inputs.
+
+:class:`FleetFrontEnd` holds every vehicle's front-end state in arrays indexed by the
+:class:`~estimator.engine.MdsfEngine` slot and turns the buffered measurements of all vehicles
+due in one :meth:`~estimator.engine.MdsfFleet.advance` into :class:`TickInputs` with a number
+of numpy calls that does not grow with the fleet (ticks are ``MdsfConfig.tick_ns`` of sensor
+time on a fleet-wide grid):
+
+* IMU samples of all vehicles wait in one queue (push order); an assembly takes those of the
+  due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
+  removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
+  binned with ``np.bincount`` over (vehicle row, tick) ids.
+* A complementary pitch track (``ωx − b_x`` integrated, pulled to the GNSS pitch at each fix,
+  :func:`pitch_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
+  the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
+  cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
+  pass per "k-th fix of this batch" (a handful of passes).
+* GNSS speed per tick: eq. (1) (``method.md`` §1) with the pitch in force, moved to the tick
+  with the tick-mean acceleration and averaged (product), or the latest (paper).
+* Position (ENU of each vehicle's first fix, :func:`estimator.geo.enu_from_geodetic`, moved to
+  the tick with the GNSS velocity in product mode) and attitude held from the latest fix at or
+  before each tick.
+* Wheel speeds: encoder trackers of all vehicles that share the ticks queried in one
+  :func:`~estimator.wheel_speed.query_many`; direct (CAN) speeds per vehicle (no batched
+  query exists for them).
+
+Within one vehicle, measurements are expected in sensor order (the pipeline's reorder buffer
+releases them so); IMU samples and fixes that go back in time are skipped or, for fixes,
+taken in push order.
+
+"Latest entry at or before ``t`` for the same vehicle" lookups are one stable sort of the
+combined (vehicle, time) keys (:func:`_asof`).
+
+Bad input is skipped and counted (:data:`COUNT_NAMES`), never raised on (a malformed array
+shape still raises in :meth:`FleetFrontEnd.push`, as ``reshape`` does). IMU samples and GNSS
+fixes are checked when the next :meth:`FleetFrontEnd.assemble` (or :meth:`FleetFrontEnd.counts`)
+takes them, against the state of their push time (nothing changes that state in between), so
+counts and rows equal a check at push time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator._slots import grow_slot_array
+from estimator.base import Measurement
+from estimator.config import VehicleConfig
+from estimator.geo import enu_from_geodetic
+from estimator.mdsf import (
+    GRAVITY_MPS2,
+    N_OBS_PAPER,
+    MdsfConfig,
+    MdsfMode,
+    MdsfObs,
+    gnss_vehicle_speed,
+)
+from estimator.types import (
+    EstimateFlag,
+    GnssFix,
+    GnssSample,
+    ImuBatch,
+    Wheel,
+    WheelEdges,
+    WheelSpeeds,
+)
+from estimator.wheel_speed import (
+    DirectWheelSpeed,
+    WheelSpeedConfig,
+    WheelSpeedMethod,
+    WheelTracker,
+    query_many,
+)
+
+__all__ = [
+    "COUNT_NAMES",
+    "FleetFrontEnd",
+    "FleetTicks",
+    "TickInputs",
+    "pitch_fix_update",
+    "yaw_fix_update",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+_NS = 1e-9
+_NONE_NS = np.iinfo(np.int64).min
+"""Time stamp meaning "not yet" in the slot arrays."""
+_TWO_PI = 2 * np.pi
+_F = EstimateFlag
+
+COUNT_NAMES = (
+    "skipped_gnss",
+    "skipped_imu",
+    "skipped_edges",
+    "skipped_wheel_speeds",
+    "skipped_late",
+)
+"""Per-vehicle counters kept by the front end (columns of ``FleetFrontEnd.count``)."""
+_GNSS, _IMU, _EDGES, _SPEEDS, _LATE = range(len(COUNT_NAMES))
+
+# Columns of a GNSS fix's float record (as pushed) and of a held output row.
+_G_VE, _G_VN, _G_VU, _G_HEAD, _G_PITCH, _G_ROLL, _G_LAT, _G_LON, _G_H, _G_VSTD, _G_FIX = range(11)
+_H_STAMP, _H_E, _H_N, _H_U, _H_VE, _H_VN, _H_VU, _H_HEAD, _H_PITCH, _H_ROLL = range(10)
+
+
+@dataclass(slots=True)
+class TickInputs:
+    """Inputs of ``m`` ticks (rows): one vehicle's consecutive ticks, or several vehicles' flat.
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (m,), int64
+    z : ndarray, shape (m, 4)
+        ``[Vg, a1, ωx, ωz]`` (eq. (6) observation); Vg aligned to the tick in product mode.
+    gnss_ok : ndarray, shape (m,), bool
+        A GNSS speed is in ``z[:, VG]``.
+    gnss_var : ndarray, shape (m,)
+        Its variance [(m/s)²].
+    imu_ok : ndarray, shape (m,), bool
+        The tick window held IMU samples.
+    accel_var, gyro_var : ndarray, shape (m,)
+        Variance of the tick-mean acceleration and rates.
+    force_fwd : ndarray, shape (m,)
+        Tick-mean forward specific force as measured (gravity included) [m/s²]: the traction
+        demand the tyres see.
+    omega : ndarray, shape (m, 2)
+        Wheel angular speeds (left, right) at the tick [rad/s]; NaN when unknown.
+    omega_std : ndarray, shape (m, 2)
+    wheel_flags : ndarray, shape (m,), int32
+        ``WHEEL_PERIOD_METHOD`` / ``WHEEL_DIRECT`` bits.
+    enu : ndarray, shape (m, 3)
+        Antenna position in the vehicle's ENU frame (NaN before the first fix).
+    attitude : ndarray, shape (m, 3)
+        Heading, pitch, roll [rad].
+    """
+
+    stamp_ns: IntArray
+    z: FloatArray
+    gnss_ok: BoolArray
+    gnss_var: FloatArray
+    imu_ok: BoolArray
+    accel_var: FloatArray
+    gyro_var: FloatArray
+    force_fwd: FloatArray
+    omega: FloatArray
+    omega_std: FloatArray
+    wheel_flags: npt.NDArray[np.int32]
+    enu: FloatArray
+    attitude: FloatArray
+
+    @property
+    def m(self) -> int:
+        return int(self.stamp_ns.shape[0])
+
+
+@dataclass(slots=True)
+class FleetTicks:
+    """Due ticks of several vehicles, flat: vehicle ``i``'s rows are
+    ``inputs[offsets[i] : offsets[i] + lengths[i]]``; vehicles by decreasing ``lengths``.
+
+    Attributes
+    ----------
+    index : ndarray, shape (k,), int
+        Position of each vehicle in the ``slots`` given to :meth:`FleetFrontEnd.assemble`.
+    slots : ndarray, shape (k,), int
+    lengths, offsets : ndarray, shape (k,), int
+    inputs : TickInputs
+        ``lengths.sum()`` rows.
+    """
+
+    index: IntArray
+    slots: IntArray
+    lengths: IntArray
+    offsets: IntArray
+    inputs: TickInputs
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-fix updates (arrays of vehicles: one entry per vehicle that has this fix)
+# ---------------------------------------------------------------------------------------------
+
+
+def pitch_fix_update(
+    theta_rad: FloatArray,
+    var_rad2: FloatArray,
+    bias_radps: FloatArray,
+    fixes: IntArray,
+    fix_ns: IntArray,
+    known: BoolArray,
+    pitch_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: MdsfConfig,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray, BoolArray]:
+    """Complementary pitch filter at one GNSS fix per vehicle (all arrays shape ``(k,)``).
+
+    With a GNSS pitch ``p``: the first fix (or any fix in paper mode) sets ``θ = p`` with
+    variance ``pitch_std_rad²``; later fixes move ``θ`` by ``gain·(p − θ)`` with
+    ``gain = max(1/fixes, 1 − exp(−gap/pitch_tau_s))`` (a running mean over the first fixes,
+    then the time constant; ``gap`` the time since the previous pitch fix, clipped to [0, 1] s),
+    propagate the variance ``(1 − gain)²·var + gain²·pitch_std²`` and integrate the pitch-gyro
+    bias ``b_x −= gap/(pitch_tau_s·gyro_bias_tau_s)·(p − θ)``. Without a GNSS pitch (NaN)
+    nothing changes. ``θ`` is the tracked pitch integrated up to the fix.
+
+    Returns the new ``(theta_rad, var_rad2, bias_radps, fixes, fix_ns, known)``.
+    """
+    product = config.mode is MdsfMode.PRODUCT
+    tau = config.pitch_tau_s
+    sp2 = config.pitch_std_rad**2
+    has = np.isfinite(pitch_gnss_rad)
+    first = has & (~known | (not product))
+    follow = has & ~first
+    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+    err = pitch_gnss_rad - theta_rad
+    fixes = fixes + follow
+    with np.errstate(invalid="ignore"):
+        gain = np.maximum(1.0 / np.maximum(fixes, 1), 1.0 - np.exp(-gap / tau))
+    theta = np.where(first, pitch_gnss_rad, np.where(follow, theta_rad + gain * err, theta_rad))
+    var = np.where(
+        first, sp2, np.where(follow, (1 - gain) ** 2 * var_rad2 + gain**2 * sp2, var_rad2)
+    )
+    bias = np.where(follow, bias_radps - gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
+    return theta, var, bias, fixes, np.where(has, stamp_ns, fix_ns), known | has
+
+
+def yaw_fix_update(
+    psi_rad: FloatArray,
+    bias_radps: FloatArray,
+    fix_ns: IntArray,
+    heading_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: MdsfConfig,
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Heading track and yaw-gyro bias at one GNSS heading per vehicle (arrays ``(k,)``).
+
+    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/pitch_tau_s))·err`` toward the GNSS
+    heading (``err`` wrapped to ±π) and the bias by ``b_z += gap/(pitch_tau_s·gyro_bias_tau_s)·err``
+    (``ψ̇ = −(ωz − b_z)/cos θ``: a heading that falls behind means ``b_z`` is too small); an
+    unknown ``ψ`` (NaN) is set to the GNSS heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
+    """
+    tau = config.pitch_tau_s
+    known = np.isfinite(psi_rad)
+    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+    d = heading_gnss_rad - psi_rad
+    err = d - _TWO_PI * np.rint(d / _TWO_PI)  # IEEE remainder, as math.remainder
+    psi = np.where(known, psi_rad + (1.0 - np.exp(-gap / tau)) * err, heading_gnss_rad)
+    bias = np.where(known, bias_radps + gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
+    return psi, bias, stamp_ns.copy()
+
+
+# ---------------------------------------------------------------------------------------------
+# Array helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def _asof(
+    row_a: IntArray, key_a: npt.NDArray[np.generic], row_b: IntArray, key_b: npt.NDArray[np.generic]
+) -> IntArray:
+    """For each ``b``: index of the last ``a`` of the same row with ``key_a <= key_b``, else -1.
+
+    "Last" in (row, key) order, ties in index order: what ``searchsorted(..., side="right") - 1``
+    gives on each row's sorted keys. One stable sort of both sets; shape ``(len(row_b),)``.
+    """
+    na, nb = row_a.shape[0], row_b.shape[0]
+    if nb == 0 or na == 0:
+        return np.full(nb, -1, dtype=np.int64)
+    rows = np.concatenate([row_a, row_b])
+    keys = np.concatenate([key_a, key_b])
+    kind = np.concatenate([np.zeros(na, dtype=np.int8), np.ones(nb, dtype=np.int8)])
+    order = np.lexsort((kind, keys, rows))
+    is_a = order < na
+    last = np.maximum.accumulate(np.where(is_a, np.arange(order.shape[0]), -1))
+    hit = np.where(last >= 0, order[np.maximum(last, 0)], -1)
+    at_b = ~is_a
+    out = np.empty(nb, dtype=np.int64)
+    out[order[at_b] - na] = hit[at_b]
+    ok = out >= 0
+    ok[ok] = row_a[out[ok]] == row_b[ok]
+    return np.where(ok, out, -1)
+
+
+def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
+    """``values[i]`` where ``i >= 0``, else ``otherwise`` (shapes of ``i``)."""
+    if values.shape[0] == 0:
+        return otherwise
+    return np.where(i >= 0, values[np.maximum(i, 0)], otherwise)
+
+
+def _seg_cumsum(x: FloatArray, start_of: IntArray) -> FloatArray:
+    """Cumulative sum of ``x`` restarting at each segment; ``start_of[i]`` is the index where
+    element ``i``'s segment starts."""
+    c = np.cumsum(x)
+    return c - (c[start_of] - x[start_of])
+
+
+def _ranks(group: IntArray) -> IntArray:
+    """Position of each element within its run of equal ``group`` values (groups contiguous)."""
+    n = group.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    new = np.ones(n, dtype=bool)
+    new[1:] = group[1:] != group[:-1]
+    starts = np.flatnonzero(new)
+    return np.arange(n) - np.repeat(starts, np.diff(np.append(starts, n)))
+
+
+def _rank_passes(rank: IntArray) -> list[IntArray]:
+    """Indices grouped by rank (0, 1, …), each group in index order."""
+    if rank.shape[0] == 0:
+        return []
+    order = np.argsort(rank, kind="stable")
+    bounds = np.cumsum(np.bincount(rank)).tolist()
+    return [order[a:b] for a, b in zip([0, *bounds[:-1]], bounds, strict=True)]
+
+
+def _fill_segments(
+    n: int, lo: list[IntArray], values: list[FloatArray]
+) -> tuple[IntArray, FloatArray]:
+    """Segment of each of ``n`` elements from segment starts ``lo`` (segments tile 0..n) and
+    the segments' value rows: returns ``(segment index per element, values (n_seg, k))``."""
+    starts = np.concatenate(lo) if lo else np.zeros(0, dtype=np.int64)
+    vals = np.concatenate(values) if values else np.zeros((0, 1))
+    order = np.argsort(starts, kind="stable")
+    seg = np.searchsorted(starts[order], np.arange(n), side="right") - 1
+    return order[seg], vals
+
+
+# ---------------------------------------------------------------------------------------------
+# The front end
+# ---------------------------------------------------------------------------------------------
+
+
+class FleetFrontEnd:
+    """Buffers the measurements of many vehicles (by slot) and builds their tick inputs.
+
+    Parameters
+    ----------
+    config : MdsfConfig
+    wheel : WheelSpeedConfig
+        Wheel-speed settings (``teeth_per_rev`` comes from each vehicle's encoder).
+    capacity : int
+        Initial number of slots (grows as needed).
+    """
+
+    def __init__(self, config: MdsfConfig, wheel: WheelSpeedConfig, capacity: int = 16) -> None:
+        self.config = config
+        self.wheel = wheel
+        self.product = config.mode is MdsfMode.PRODUCT
+        self.tick_ns = config.tick_ns
+        self.fit_wheels = query_many
+        """Batched wheel-speed fit (:func:`~estimator.wheel_speed.query_many`)."""
+        self._cap = 0
+        self._seq = 0  # push counter: which measurement of a vehicle came first
+        self.trackers: list[tuple[WheelTracker, ...]] = []  # (left, right); () if free
+        self.direct: list[DirectWheelSpeed | None] = []
+        self._wheel_cfgs: list[WheelSpeedConfig] = []
+        self._alloc(max(capacity, 1))
+        # Pushed since the last check: IMU (slot, seq, t, accel, gyro); GNSS (slot, seq, stamp)
+        # and the float record of _G_* columns.
+        self._imu_new_slot: list[int] = []
+        self._imu_new_seq: list[int] = []
+        self._imu_new_t: list[IntArray] = []
+        self._imu_new_f: list[FloatArray] = []
+        self._imu_new_w: list[FloatArray] = []
+        # Vehicles without a tick grid yet, and the first wheel data (seq, stamp) of such.
+        self._gridless: set[int] = set()
+        self._first_wheel: dict[int, tuple[int, int]] = {}
+        self._gnss_new_id: list[tuple[int, int, int]] = []
+        self._gnss_new_val: list[tuple[float, ...]] = []
+        # Checked and waiting for their tick, in push order.
+        self._imu_slot = np.zeros(0, dtype=np.int64)
+        self._imu_t = np.zeros(0, dtype=np.int64)
+        self._imu_v = np.zeros((0, 3))  # forward specific force, ωx, ωz
+        self._gnss_slot = np.zeros(0, dtype=np.int64)
+        self._gnss_t = np.zeros(0, dtype=np.int64)
+        self._gnss_v = np.zeros((0, 11))
+
+    # -- slots -------------------------------------------------------------------------------
+    def _alloc(self, cap: int) -> None:
+        old = self._cap
+
+        def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
+            grow_slot_array(self, name, cap, shape, fill)
+
+        grow("next_tick_ns", (), _NONE_NS)
+        grow("done_ns", (), _NONE_NS)  # last tick emitted
+        grow("last_imu_ns", (), _NONE_NS)  # newest IMU sample accepted
+        grow("last_imu_used_ns", (), _NONE_NS)  # newest IMU sample integrated
+        grow("pitch_rad", (), 0.0)
+        grow("pitch_known", (), False)
+        grow("pitch_gyro_bias", (), 0.0)
+        grow("pitch_fix_ns", (), np.int64(0))
+        grow("pitch_fixes", (), np.int64(1))
+        grow("pitch_var", (), 0.0)
+        grow("yaw_rad", (), np.nan)
+        grow("yaw_gyro_bias", (), 0.0)
+        grow("yaw_fix_ns", (), np.int64(0))
+        grow("hold", (10,), np.nan)  # latest GNSS row: stamp, e, n, u, ve, vn, vu, ψ, θ, φ
+        grow("has_frame", (), False)
+        grow("origin", (3,), np.nan)  # lat_deg, lon_deg, height_m of the ENU frame
+        grow("has_edges", (), False)
+        grow("has_direction", (), False)
+        grow("has_speeds", (), False)  # direct (CAN) wheel speeds held
+        grow("gnss_var_cfg", (), 0.0)
+        grow("accel_var_cfg", (), 0.0)
+        grow("gyro_var_cfg", (), 0.0)
+        grow("imu_fwd_m", (), 0.0)
+        grow("lone_std", (), 0.0)
+        grow("wheel_cfg", (), np.int64(0))
+        grow("count", (len(COUNT_NAMES),), np.int64(0))
+        self.trackers.extend([()] * (cap - old))
+        self.direct.extend([None] * (cap - old))
+        self._cap = cap
+
+    next_tick_ns: IntArray
+    done_ns: IntArray
+    last_imu_ns: IntArray
+    last_imu_used_ns: IntArray
+    pitch_rad: FloatArray
+    pitch_known: BoolArray
+    pitch_gyro_bias: FloatArray
+    pitch_fix_ns: IntArray
+    pitch_fixes: IntArray
+    pitch_var: FloatArray
+    yaw_rad: FloatArray
+    yaw_gyro_bias: FloatArray
+    yaw_fix_ns: IntArray
+    hold: FloatArray
+    has_frame: BoolArray
+    origin: FloatArray
+    has_edges: BoolArray
+    has_direction: BoolArray
+    has_speeds: BoolArray
+    gnss_var_cfg: FloatArray
+    accel_var_cfg: FloatArray
+    gyro_var_cfg: FloatArray
+    imu_fwd_m: FloatArray
+    lone_std: FloatArray
+    wheel_cfg: IntArray
+    count: IntArray
+
+    def add(self, slot: int, vehicle: VehicleConfig) -> None:
+        """Start a vehicle in ``slot`` (fresh state)."""
+        if slot >= self._cap:
+            self._alloc(max(2 * self._cap, slot + 1))
+        self._drop(slot)
+        wcfg = dataclasses.replace(self.wheel, teeth_per_rev=vehicle.encoder.teeth_per_rev)
+        if wcfg not in self._wheel_cfgs:
+            self._wheel_cfgs.append(wcfg)
+        self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
+        self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
+        self.has_direction[slot] = vehicle.encoder.has_direction
+        for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
+            getattr(self, name)[slot] = _NONE_NS
+        self._gridless.add(slot)
+        self.pitch_rad[slot] = 0.0
+        self.pitch_known[slot] = False
+        self.pitch_gyro_bias[slot] = 0.0
+        self.pitch_fix_ns[slot] = 0
+        self.pitch_fixes[slot] = 1
+        self.pitch_var[slot] = self.config.pitch_std_rad**2 * 100.0  # unknown before a fix
+        self.yaw_rad[slot] = np.nan
+        self.yaw_gyro_bias[slot] = 0.0
+        self.yaw_fix_ns[slot] = 0
+        self.hold[slot] = np.nan
+        self.has_frame[slot] = False
+        self.origin[slot] = np.nan
+        self.has_edges[slot] = False
+        self.has_speeds[slot] = False
+        n = vehicle.noise
+        self.gnss_var_cfg[slot] = n.gnss_vel_std_mps**2
+        self.accel_var_cfg[slot] = n.accel_std_mps2**2
+        self.gyro_var_cfg[slot] = n.gyro_std_radps**2
+        self.imu_fwd_m[slot] = vehicle.geometry.imu_offset_m[1]
+        self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
+        self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
+        self.count[slot] = 0
+
+    def release(self, slot: int) -> None:
+        """Forget the vehicle in ``slot`` and whatever it has buffered."""
+        self._drop(slot)
+        self._gridless.discard(slot)
+        self.trackers[slot] = ()
+        self.direct[slot] = None
+
+    def _drop(self, slot: int) -> None:
+        self._check_new()
+        keep = self._imu_slot != slot
+        self._imu_slot, self._imu_t, self._imu_v = (
+            self._imu_slot[keep],
+            self._imu_t[keep],
+            self._imu_v[keep],
+        )
+        keep = self._gnss_slot != slot
+        self._gnss_slot, self._gnss_t, self._gnss_v = (
+            self._gnss_slot[keep],
+            self._gnss_t[keep],
+            self._gnss_v[keep],
+        )
+
+    def counts(self, slot: int) -> dict[str, int]:
+        """The vehicle's skip counters (:data:`COUNT_NAMES`)."""
+        self._check_new()
+        return {name: int(self.count[slot, i]) for i, name in enumerate(COUNT_NAMES)}
+
+    def anchor(self, slot: int) -> tuple[float, float, float] | None:
+        """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame; None before a fix."""
+        if not self.has_frame[slot]:
+            return None
+        lat, lon, h = self.origin[slot]
+        return (float(lat), float(lon), float(h))
+
+    # -- push --------------------------------------------------------------------------------
+    def _first_seen(self, slot: int, stamp_ns: int) -> None:
+        # Wheel data that may open the vehicle's tick grid (unless earlier IMU/GNSS did).
+        if slot in self._gridless and slot not in self._first_wheel:
+            self._seq += 1
+            self._first_wheel[slot] = (self._seq, stamp_ns)
+
+    def push(self, slot: int, m: Measurement) -> None:
+        """Buffer one measurement of the vehicle in ``slot`` (sensor-time order)."""
+        if isinstance(m, GnssSample):
+            if not isinstance(m.stamp_ns, int | np.integer) or len(m.vel_enu_mps) != 3:
+                self.count[slot, _GNSS] += 1
+                return
+            self._seq += 1
+            self._gnss_new_id.append((slot, self._seq, int(m.stamp_ns)))
+            self._gnss_new_val.append(
+                (
+                    *m.vel_enu_mps,
+                    m.heading_rad,
+                    m.pitch_rad,
+                    m.roll_rad,
+                    m.lat_deg,
+                    m.lon_deg,
+                    m.height_m,
+                    m.vel_std_mps,
+                    float(int(m.fix)),
+                )
+            )
+        elif isinstance(m, ImuBatch):
+            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            f = np.asarray(m.accel_mps2, dtype=np.float64).reshape(-1, 3)
+            w = np.asarray(m.gyro_radps, dtype=np.float64).reshape(-1, 3)
+            if f.shape[0] != t.shape[0] or w.shape[0] != t.shape[0]:
+                self.count[slot, _IMU] += t.shape[0]
+                return
+            if t.shape[0]:
+                self._seq += 1
+                self._imu_new_slot.append(slot)
+                self._imu_new_seq.append(self._seq)
+                self._imu_new_t.append(t)
+                self._imu_new_f.append(f)
+                self._imu_new_w.append(w)
+        elif isinstance(m, WheelEdges):
+            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            if t.shape[0] == 0:
+                return
+            try:
+                tracker = self.trackers[slot][int(m.wheel)]
+            except (IndexError, ValueError):
+                self.count[slot, _EDGES] += t.shape[0]
+                return
+            d = None if m.direction is None else np.asarray(m.direction).reshape(-1)
+            if d is not None and d.shape[0] != t.shape[0]:
+                d = None
+            if not self.has_direction[slot]:
+                d = None
+            before = tracker.skipped
+            tracker.push(t, d)
+            if tracker.skipped != before:
+                self.count[slot, _EDGES] += tracker.skipped - before
+            self.has_edges[slot] = True
+            if slot in self._gridless:
+                self._first_seen(slot, int(t[0]))
+        elif isinstance(m, WheelSpeeds):
+            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            direct = self.direct[slot]
+            assert direct is not None
+            before = direct.skipped
+            direct.push(t, m.omega_radps)
+            self.count[slot, _SPEEDS] += direct.skipped - before
+            self.has_speeds[slot] = direct.has_data  # stays true once true
+            if t.shape[0]:
+                self._first_seen(slot, int(t[0]))
+
+    # -- checks of what was pushed -----------------------------------------------------------
+    def _check_new(self) -> None:
+        """Check the IMU samples and GNSS fixes pushed since the last call, count the bad
+        ones, queue the good ones and open the tick grid of vehicles seen for the first time."""
+        seen: list[tuple[IntArray, IntArray, IntArray]] = []
+        if self._imu_new_slot:
+            seen.append(self._check_imu())
+        if self._gnss_new_id:
+            seen.append(self._check_gnss())
+        if self._first_wheel:
+            w = np.array([(k, q, t) for k, (q, t) in self._first_wheel.items()], dtype=np.int64)
+            seen.append((w[:, 0], w[:, 1], w[:, 2]))
+            self._first_wheel = {}
+        if not seen:
+            return
+        slot = np.concatenate([s for s, _, _ in seen])
+        seq = np.concatenate([q for _, q, _ in seen])
+        stamp = np.concatenate([t for _, _, t in seen])
+        new = self.next_tick_ns[slot] == _NONE_NS
+        slot, seq, stamp = slot[new], seq[new], stamp[new]
+        order = np.lexsort((seq, slot))
+        slot, stamp = slot[order], stamp[order]
+        first = np.ones(slot.shape[0], dtype=bool)
+        first[1:] = slot[1:] != slot[:-1]
+        tn = self.tick_ns
+        self.next_tick_ns[slot[first]] = -(-stamp[first] // tn) * tn
+        self._gridless.difference_update(slot[first].tolist())
+
+    def _check_imu(self) -> tuple[IntArray, IntArray, IntArray]:
+        """IMU: non-finite, not after the last accepted sample or the last tick, or not
+        increasing within the batch → skipped. Returns (slot, seq, first stamp) of the
+        batches that kept samples."""
+        c_slot = np.array(self._imu_new_slot, dtype=np.int64)
+        c_seq = np.array(self._imu_new_seq, dtype=np.int64)
+        ts = self._imu_new_t
+        lens = np.array([a.shape[0] for a in ts], dtype=np.int64)
+        t = np.concatenate(ts)
+        f = np.concatenate(self._imu_new_f)
+        w = np.concatenate(self._imu_new_w)
+        n_chunks = c_slot.shape[0]
+        self._imu_new_slot, self._imu_new_seq = [], []
+        self._imu_new_t, self._imu_new_f, self._imu_new_w = [], [], []
+        chunk = np.repeat(np.arange(n_chunks), lens)
+        c_start = np.cumsum(lens) - lens
+        ok = np.isfinite(f[:, 1]) & np.isfinite(w[:, 0]) & np.isfinite(w[:, 2])
+        ok &= t > self.done_ns[c_slot][chunk]
+        inc = np.ones(t.shape[0], dtype=bool)
+        inc[1:] = t[1:] > t[:-1]
+        inc[c_start] = True
+        ok &= inc
+        # The floor "after the last accepted sample" chains the batches of one vehicle: one pass
+        # per k-th batch of each vehicle in this lot.
+        by_slot = np.argsort(c_slot, kind="stable")
+        rank = np.empty(n_chunks, dtype=np.int64)
+        rank[by_slot] = _ranks(c_slot[by_slot])
+        for idx in _rank_passes(rank[chunk]):
+            owner = c_slot[chunk[idx]]
+            ok[idx] &= t[idx] > self.last_imu_ns[owner]
+            kept = idx[ok[idx]]
+            # last kept sample of each batch: the newest accepted stamp of its vehicle
+            last = np.full(n_chunks, -1, dtype=np.int64)
+            np.maximum.at(last, chunk[kept], kept)
+            has = np.flatnonzero(last >= 0)
+            self.last_imu_ns[c_slot[has]] = t[last[has]]
+        bad = ~ok
+        if bad.any():
+            self.count[:, _IMU] += np.bincount(c_slot[chunk[bad]], minlength=self._cap)[: self._cap]
+        keep = np.flatnonzero(ok)
+        vals = np.stack([f[keep, 1], w[keep, 0], w[keep, 2]], axis=1)
+        slots = c_slot[chunk[keep]]
+        self._imu_slot = np.concatenate([self._imu_slot, slots])
+        self._imu_t = np.concatenate([self._imu_t, t[keep]])
+        self._imu_v = np.concatenate([self._imu_v, vals])
+        # first kept sample of each batch
+        first = np.full(n_chunks, t.shape[0], dtype=np.int64)
+        np.minimum.at(first, chunk[keep], keep)
+        has = first < t.shape[0]
+        return c_slot[has], c_seq[has], t[first[has]]
+
+    def _check_gnss(self) -> tuple[IntArray, IntArray, IntArray]:
+        """GNSS: stamped at or before the last tick emitted → skipped as late."""
+        ids = np.array(self._gnss_new_id, dtype=np.int64).reshape(-1, 3)
+        vals = np.array(self._gnss_new_val, dtype=np.float64).reshape(-1, 11)
+        self._gnss_new_id = []
+        self._gnss_new_val = []
+        slot, seq, stamp = ids[:, 0], ids[:, 1], ids[:, 2]
+        done = self.done_ns[slot]
+        late = (done != _NONE_NS) & (stamp <= done)
+        if late.any():
+            self.count[:, _LATE] += np.bincount(slot[late], minlength=self._cap)[: self._cap]
+        ok = ~late
+        self._gnss_slot = np.concatenate([self._gnss_slot, slot[ok]])
+        self._gnss_t = np.concatenate([self._gnss_t, stamp[ok]])
+        self._gnss_v = np.concatenate([self._gnss_v, vals[ok]])
+        return slot[ok], seq[ok], stamp[ok]
+
+    # -- tick assembly -----------------------------------------------------------------------
+    def assemble(self, slots: IntArray, until_ns: IntArray) -> FleetTicks | None:
+        """Tick inputs of every vehicle in ``slots`` (distinct) with ticks due at ``until_ns``.
+
+        A vehicle's ticks are due from its next tick up to ``until_ns``; each tick uses only
+        measurements stamped at or before it. Returns None when no vehicle has a due tick.
+        """
+        self._check_new()
+        slots = np.asarray(slots, dtype=np.int64)
+        until_ns = np.asarray(until_ns, dtype=np.int64)
+        nxt = self.next_tick_ns[slots]
+        cand = np.flatnonzero((nxt != _NONE_NS) & (until_ns >= nxt))
+        if cand.size == 0:
+            return None
+        tn = self.tick_ns
+        m_all = (until_ns[cand] - nxt[cand]) // tn + 1
+        order = np.argsort(-m_all, kind="stable")
+        index = cand[order]
+        v = _Batch(self, slots[index], nxt[index], m_all[order])
+        self.next_tick_ns[v.slots] = v.t_end + tn
+        self.done_ns[v.slots] = v.t_end
+        inputs = v.build()
+        return FleetTicks(index, v.slots, v.m, v.offsets, inputs)
+
+
+class _Batch:
+    """One assembly: the due vehicles (rows, in output order), their ticks, samples, fixes."""
+
+    def __init__(self, fe: FleetFrontEnd, slots: IntArray, first: IntArray, m: IntArray) -> None:
+        self.fe = fe
+        self.config = fe.config
+        self.product = fe.product
+        tn = fe.tick_ns
+        self.slots = slots
+        self.m = m
+        n_rows = slots.shape[0]
+        self.n_rows = n_rows
+        self.first = first
+        self.t_end = first + (m - 1) * tn
+        self.offsets = np.cumsum(m) - m
+        self.n_ticks = int(m.sum())
+        self.tick_row = np.repeat(np.arange(n_rows), m)
+        self.ticks = first[self.tick_row] + tn * (
+            np.arange(self.n_ticks) - self.offsets[self.tick_row]
+        )
+        self.row_of_slot = np.full(fe._cap, -1, dtype=np.int64)
+        self.row_of_slot[slots] = np.arange(n_rows)
+        self._take_imu()
+        self._take_gnss()
+
+    # -- what this assembly uses -------------------------------------------------------------
+    def _take_imu(self) -> None:
+        """IMU samples of the due vehicles up to their last tick, grouped by row."""
+        fe = self.fe
+        row = self.row_of_slot[fe._imu_slot]
+        use = row >= 0
+        use[use] = fe._imu_t[use] <= self.t_end[row[use]]
+        idx = np.flatnonzero(use)
+        idx = idx[np.argsort(row[idx], kind="stable")]
+        self.T = fe._imu_t[idx]
+        vals = fe._imu_v[idx]
+        self.fy, self.wx, self.wz = vals[:, 0], vals[:, 1], vals[:, 2]
+        self.s_row = row[idx]
+        keep = ~use
+        fe._imu_slot, fe._imu_t, fe._imu_v = fe._imu_slot[keep], fe._imu_t[keep], fe._imu_v[keep]
+        self.n_s = np.bincount(self.s_row, minlength=self.n_rows)
+        self.s_begin = np.cumsum(self.n_s) - self.n_s  # first sample of each row
+        self.s_end = self.s_begin + self.n_s
+
+    def _take_gnss(self) -> None:
+        """GNSS fixes of the due vehicles in push order while stamped at or before the last
+        tick (a later-stamped fix waits, with everything pushed after it)."""
+        fe = self.fe
+        row = self.row_of_slot[fe._gnss_slot]
+        mine = row >= 0
+        after = np.zeros(row.shape[0], dtype=bool)
+        after[mine] = fe._gnss_t[mine] > self.t_end[row[mine]]
+        # the first fix of each vehicle stamped after its last tick (queue in push order)
+        stop = np.full(self.n_rows, row.shape[0], dtype=np.int64)
+        np.minimum.at(stop, row[after], np.flatnonzero(after))
+        take = mine & (np.arange(row.shape[0]) < stop[row])
+        idx = np.flatnonzero(take)
+        idx = idx[np.argsort(row[idx], kind="stable")]
+        self.g_row = row[idx]
+        self.g_t = fe._gnss_t[idx]
+        g = fe._gnss_v[idx]
+        keep = ~take
+        fe._gnss_slot, fe._gnss_t, fe._gnss_v = (
+            fe._gnss_slot[keep],
+            fe._gnss_t[keep],
+            fe._gnss_v[keep],
+        )
+        self.g_rank = _ranks(self.g_row)
+        ve, vn = g[:, _G_VE], g[:, _G_VN]
+        fix_ok = g[:, _G_FIX] != float(GnssFix.NONE)
+        v3 = g[:, _G_VE : _G_VU + 1]
+        self.g_vel_ok = np.isfinite(v3).all(axis=1) & fix_ok & (np.abs(v3) < 200).all(axis=1)
+        bad = ~self.g_vel_ok
+        if bad.any():
+            fe.count[:, _GNSS] += np.bincount(self.slots[self.g_row[bad]], minlength=fe._cap)[
+                : fe._cap
+            ]
+        self.g = g
+        self.g_heading = np.where(np.isfinite(g[:, _G_HEAD]), g[:, _G_HEAD], np.arctan2(ve, vn))
+        self.g_pos_ok = np.isfinite(g[:, _G_LAT : _G_H + 1]).all(axis=1) & fix_ok
+        std = g[:, _G_VSTD]
+        with np.errstate(invalid="ignore"):
+            good_std = np.isfinite(std) & (std > 0)
+        self.g_var = np.where(good_std, std**2, fe.gnss_var_cfg[self.slots[self.g_row]])
+        # samples at or before each fix (global index one past the last)
+        last = _asof(self.s_row, self.T, self.g_row, self.g_t)
+        self.g_j = np.where(last >= 0, last + 1, self.s_begin[self.g_row])
+
+    # -- the build ---------------------------------------------------------------------------
+    def build(self) -> TickInputs:
+        fe, cfg = self.fe, self.config
+        n_ticks, rows = self.n_ticks, self.tick_row
+        tn = fe.tick_ns
+        # dt per sample (first of a row from the vehicle's last integrated sample), ≤ 0.1 s
+        n = self.T.shape[0]
+        dts = np.empty(n)
+        if n:
+            dts[1:] = np.diff(self.T) * _NS
+            nz = self.n_s > 0
+            b = self.s_begin[nz]
+            prev = fe.last_imu_used_ns[self.slots[nz]]
+            prev = np.where(prev != _NONE_NS, prev, self.T[b])  # none yet: dt 0
+            dts[b] = (self.T[b] - prev) * _NS
+            dts = np.clip(dts, 0.0, 0.1)
+            fe.last_imu_used_ns[self.slots[nz]] = self.T[self.s_end[nz] - 1]
+        self.dts = dts
+        self.begin_of = self.s_begin[self.s_row]
+        theta = self._pitch_track()
+        wx, wz = self.wx, self.wz
+        if self.product:
+            bx = self._pitch_bias_at_samples()
+            bz = self._yaw_track(theta)
+            wx = wx - bx
+            wz = wz - bz
+            a_fwd = self.fy - GRAVITY_MPS2 * np.sin(theta)
+            a_fwd = a_fwd + (wx**2 + wz**2) * fe.imu_fwd_m[self.slots[self.s_row]]
+        else:
+            a_fwd = self.fy
+        # tick bins: sample in (tick − tn, tick]; samples before the first tick's window count
+        # toward no tick
+        k = -((self.first[self.s_row] - self.T) // tn)
+        inb = k >= 0
+        tick_id = self.offsets[self.s_row[inb]] + k[inb]
+        n_imu = np.bincount(tick_id, minlength=n_ticks)
+        imu_ok = n_imu > 0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            means = [
+                np.bincount(tick_id, weights=x[inb], minlength=n_ticks) / n_imu
+                for x in (a_fwd, wx, wz, self.fy)
+            ]
+        # last sample of each tick window
+        before = np.bincount(self.s_row[~inb], minlength=self.n_rows)
+        cum = np.cumsum(n_imu)
+        hi = cum - (cum - n_imu)[self.offsets][rows] + self.s_begin[rows] + before[rows]
+        theta_tick = np.where(imu_ok, theta[np.maximum(hi - 1, 0)] if n else np.nan, np.nan)
+        nf = np.maximum(n_imu, 1).astype(np.float64)
+        slot_t = self.slots[rows]
+        accel_var = fe.accel_var_cfg[slot_t] / nf
+        if self.product:
+            pv = self._pitch_var_at_ticks()
+            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_tau_s / cfg.dt_s)
+        gyro_var = fe.gyro_var_cfg[slot_t] / nf
+        z = np.full((n_ticks, N_OBS_PAPER), np.nan)
+        z[:, MdsfObs.A1] = means[0]
+        z[:, MdsfObs.OMEGA_X] = means[1]
+        z[:, MdsfObs.OMEGA_Z] = means[2]
+        gnss_ok, gnss_var = self._gnss_speed(z)
+        enu, att = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick)
+        omega, omega_std, wflags = self._wheels()
+        return TickInputs(
+            stamp_ns=self.ticks,
+            z=z,
+            gnss_ok=gnss_ok,
+            gnss_var=gnss_var,
+            imu_ok=imu_ok,
+            accel_var=accel_var,
+            gyro_var=gyro_var,
+            force_fwd=means[3],
+            omega=omega,
+            omega_std=omega_std,
+            wheel_flags=wflags,
+            enu=enu,
+            attitude=att,
+        )
+
+    def _between_fixes(
+        self,
+        passes: list[IntArray],
+        end_segment: Callable[[IntArray, IntArray], FloatArray],
+        at_fix: Callable[[IntArray, IntArray], None],
+    ) -> FloatArray:
+        """Run a track that integrates the IMU samples between GNSS fixes, for all rows.
+
+        For each pass (the k-th fix of each row that has one: fix indices ``fi``), the samples
+        of those rows up to the fix (``g_j``) end a segment: ``end_segment(rows, j)`` returns
+        the parameters the segment was integrated with, shape ``(len(rows), p)``, and moves
+        the track to sample ``j − 1``; then ``at_fix(fi, rows)`` applies the fix. The samples
+        after the last fix end the last segments. Returns each sample's segment parameters,
+        shape ``(n, p)``.
+        """
+        start = self.s_begin.copy()
+        lo: list[IntArray] = []
+        params: list[FloatArray] = []
+
+        def close(r: IntArray, j: IntArray) -> None:
+            lo.append(start[r])
+            params.append(end_segment(r, j))
+            start[r] = j
+
+        for fi in passes:
+            r, j = self.g_row[fi], self.g_j[fi]
+            adv = j > start[r]
+            if adv.any():
+                close(r[adv], j[adv])
+            at_fix(fi, r)
+        rest = np.flatnonzero(self.s_end > start)
+        if rest.size:
+            close(rest, self.s_end[rest])
+        n = self.T.shape[0]
+        if not params:
+            return np.zeros((n, 1))
+        which, values = _fill_segments(n, lo, params)
+        return values[which]
+
+    def _pitch_track(self) -> FloatArray:
+        """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
+
+        A complementary filter (:func:`pitch_fix_update`). Also sets ``g_vg``: eq. (1) with the
+        GNSS pitch, or the tracked pitch if the receiver gives none; and the pitch variance and
+        bias in force after each fix (``g_var_after``, ``g_bias_after``). Shape ``(n,)``.
+        """
+        fe, cfg, g = self.fe, self.config, self.g
+        s = self.slots
+        cw = _seg_cumsum(self.wx * self.dts, self.begin_of)
+        ct = _seg_cumsum(self.dts, self.begin_of)
+        th0 = fe.pitch_rad[s].copy()
+        var = fe.pitch_var[s].copy()
+        self.var_before = var.copy()
+        bias = fe.pitch_gyro_bias[s].copy()
+        self.bias_before = bias.copy()
+        fixes = fe.pitch_fixes[s].copy()
+        fix_ns = fe.pitch_fix_ns[s].copy()
+        known = fe.pitch_known[s].copy()
+        base_w = np.zeros(self.n_rows)
+        base_t = np.zeros(self.n_rows)
+        nf = self.g_row.shape[0]
+        self.g_vg = np.zeros(nf)
+        self.g_var_after = np.empty(nf)
+        self.g_bias_after = np.empty(nf)
+
+        def end_segment(r: IntArray, j: IntArray) -> FloatArray:
+            # samples up to j-1 of rows r integrated with the bias in force; θ at j-1
+            used = np.stack([th0[r], base_w[r], base_t[r], bias[r]], axis=1)
+            th0[r] = th0[r] + (cw[j - 1] - base_w[r]) - bias[r] * (ct[j - 1] - base_t[r])
+            base_w[r], base_t[r] = cw[j - 1], ct[j - 1]
+            return used
+
+        def at_fix(fi: IntArray, r: IntArray) -> None:
+            p = g[fi, _G_PITCH]
+            th0[r], var[r], bias[r], fixes[r], fix_ns[r], known[r] = pitch_fix_update(
+                th0[r], var[r], bias[r], fixes[r], fix_ns[r], known[r], p, self.g_t[fi], cfg
+            )
+            self.g_var_after[fi] = var[r]
+            self.g_bias_after[fi] = bias[r]
+            ok = self.g_vel_ok[fi]
+            used = np.where(np.isfinite(p), p, th0[r])
+            self.g_vg[fi[ok]] = gnss_vehicle_speed(
+                g[fi[ok], _G_VE],
+                g[fi[ok], _G_VN],
+                g[fi[ok], _G_VU],
+                self.g_heading[fi[ok]],
+                used[ok],
+            )
+
+        q = self._between_fixes(_rank_passes(self.g_rank), end_segment, at_fix)
+        fe.pitch_rad[s] = th0
+        fe.pitch_var[s] = var
+        fe.pitch_gyro_bias[s] = bias
+        fe.pitch_fixes[s] = fixes
+        fe.pitch_fix_ns[s] = fix_ns
+        fe.pitch_known[s] = known
+        if self.T.shape[0] == 0:
+            return np.zeros(0)
+        return np.asarray(q[:, 0] + (cw - q[:, 1]) - q[:, 3] * (ct - q[:, 2]))
+
+    def _pitch_bias_at_samples(self) -> FloatArray:
+        """Pitch-gyro bias in force at each IMU sample (the latest fix at or before it)."""
+        i = _asof(self.g_row, self.g_t, self.s_row, self.T)
+        return _pick(i, self.g_bias_after, self.bias_before[self.s_row])
+
+    def _pitch_var_at_ticks(self) -> FloatArray:
+        """Pitch variance in force at each tick (the latest fix at or before it)."""
+        i = _asof(self.g_row, self.g_t, self.tick_row, self.ticks)
+        return _pick(i, self.g_var_after, self.var_before[self.tick_row])
+
+    def _yaw_track(self, theta: FloatArray) -> FloatArray:
+        """Yaw-gyro bias in force at each IMU sample, learnt against the GNSS heading.
+
+        Heading is integrated from the yaw rate (``ψ̇ = −(ωz − b_z)/cos θ``) and pulled to each
+        GNSS heading (:func:`yaw_fix_update`). Returns shape ``(n,)``.
+        """
+        fe, cfg = self.fe, self.config
+        s = self.slots
+        cosf = np.maximum(np.cos(theta), 0.5)
+        cr = _seg_cumsum(-self.wz / cosf * self.dts, self.begin_of)
+        ct = _seg_cumsum(self.dts / cosf, self.begin_of)
+        psi = fe.yaw_rad[s].copy()
+        bias = fe.yaw_gyro_bias[s].copy()
+        fix_ns = fe.yaw_fix_ns[s].copy()
+        base_r = np.zeros(self.n_rows)
+        base_t = np.zeros(self.n_rows)
+        heads = self.g[:, _G_HEAD]
+
+        def end_segment(r: IntArray, j: IntArray) -> FloatArray:
+            used = bias[r][:, None]
+            step = (cr[j - 1] - base_r[r]) + bias[r] * (ct[j - 1] - base_t[r])
+            psi[r] = np.where(np.isfinite(psi[r]), psi[r] + step, psi[r])
+            base_r[r], base_t[r] = cr[j - 1], ct[j - 1]
+            return used
+
+        def at_fix(fi: IntArray, r: IntArray) -> None:
+            psi[r], bias[r], fix_ns[r] = yaw_fix_update(
+                psi[r], bias[r], fix_ns[r], heads[fi], self.g_t[fi], cfg
+            )
+
+        with_head = np.flatnonzero(np.isfinite(heads))  # fixes without a heading: no update
+        passes = [with_head[p] for p in _rank_passes(_ranks(self.g_row[with_head]))]
+        b = self._between_fixes(passes, end_segment, at_fix)
+        fe.yaw_rad[s] = psi
+        fe.yaw_gyro_bias[s] = bias
+        fe.yaw_fix_ns[s] = fix_ns
+        return np.asarray(b[:, 0])
+
+    def _gnss_speed(self, z: FloatArray) -> tuple[BoolArray, FloatArray]:
+        """GNSS speed per tick into ``z[:, VG]``: eq. (1) moved to the tick with the tick-mean
+        acceleration and averaged (product), or the latest fix (paper). Returns
+        ``(gnss_ok, gnss_var)``, shape ``(n_ticks,)``."""
+        fe = self.fe
+        tn = fe.tick_ns
+        n_ticks = self.n_ticks
+        gnss_ok = np.zeros(n_ticks, dtype=bool)
+        gnss_var = fe.gnss_var_cfg[self.slots[self.tick_row]].copy()
+        if self.g_row.shape[0] == 0:
+            return gnss_ok, gnss_var
+        # the tick whose window holds the fix
+        j = np.maximum(-((self.first[self.g_row] - self.g_t) // tn), 0)
+        tid = self.offsets[self.g_row] + j
+        inside = self.g_vel_ok
+        if self.product:
+            a_t = np.nan_to_num(z[tid, MdsfObs.A1])
+            vg_al = self.g_vg + a_t * (self.ticks[tid] - self.g_t) * _NS
+            ti = tid[inside]
+            cnt = np.bincount(ti, minlength=n_ticks)
+            s_vg = np.bincount(ti, weights=vg_al[inside], minlength=n_ticks)
+            s_var = np.bincount(ti, weights=self.g_var[inside], minlength=n_ticks)
+            has = cnt > 0
+            z[has, MdsfObs.VG] = s_vg[has] / cnt[has]
+            gnss_var[has] = s_var[has] / cnt[has] ** 2
+            gnss_ok = has
+        else:
+            ti = tid[inside]
+            z[ti, MdsfObs.VG] = self.g_vg[inside]  # later fixes overwrite: the latest wins
+            gnss_var[ti] = self.g_var[inside]
+            gnss_ok[ti] = True
+        return gnss_ok, gnss_var
+
+    def _hold_outputs(
+        self, wz_tick: FloatArray, theta_tick: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Position (ENU, moved to the tick with the GNSS velocity) and attitude per tick."""
+        fe = self.fe
+        g, rows = self.g, self.g_row
+        s = self.slots
+        nf = rows.shape[0]
+        if nf:
+            # the frame of a vehicle is anchored at its first fix with a position
+            pos = np.flatnonzero(self.g_pos_ok)
+            r_pos = rows[pos]
+            new = np.ones(pos.shape[0], dtype=bool)
+            new[1:] = r_pos[1:] != r_pos[:-1]
+            first = pos[new]
+            fresh = ~fe.has_frame[s[rows[first]]]
+            anchor_at = first[fresh]
+            fe.origin[s[rows[anchor_at]]] = g[anchor_at][:, _G_LAT : _G_H + 1]
+            fe.has_frame[s[rows[anchor_at]]] = True
+            e = np.full((nf, 3), np.nan)
+            if pos.size:
+                o = fe.origin[s[r_pos]]
+                e[pos] = np.stack(
+                    enu_from_geodetic(
+                        g[pos, _G_LAT], g[pos, _G_LON], g[pos, _G_H], o[:, 0], o[:, 1], o[:, 2]
+                    ),
+                    axis=1,
+                )
+            table = np.column_stack(
+                [
+                    self.g_t.astype(np.float64),
+                    e,
+                    g[:, _G_VE : _G_VU + 1],
+                    self.g_heading,
+                    g[:, _G_PITCH],
+                    g[:, _G_ROLL],
+                ]
+            )
+        else:
+            table = np.zeros((0, 10))
+        # each tick: the latest fix at or before it (compared as float, as the stored stamps),
+        # else the row held from earlier batches
+        i = _asof(rows, table[:, _H_STAMP], self.tick_row, self.ticks.astype(np.float64))
+        sel = fe.hold[s[self.tick_row]]
+        if nf:
+            sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
+        age = (self.ticks - np.nan_to_num(sel[:, _H_STAMP], nan=0.0)) * _NS
+        age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
+        vel = np.nan_to_num(sel[:, _H_VE : _H_VU + 1])
+        enu = sel[:, _H_E : _H_U + 1] + (vel * age[:, None] if self.product else 0.0)
+        heading = sel[:, _H_HEAD] - (np.nan_to_num(wz_tick) * age if self.product else 0.0)
+        heading = np.mod(heading, 2 * np.pi)
+        pitch = (
+            np.where(np.isfinite(theta_tick), theta_tick, sel[:, _H_PITCH])
+            if self.product
+            else sel[:, _H_PITCH]
+        )
+        att = np.stack([heading, pitch, sel[:, _H_ROLL]], axis=1)
+        if nf:
+            # hold the latest fix; its position, or the latest finite one of this batch
+            last_fix = np.cumsum(np.bincount(rows, minlength=self.n_rows)) - 1
+            has = np.bincount(rows, minlength=self.n_rows) > 0
+            held = table[last_fix[has]]
+            fin = np.flatnonzero(np.isfinite(table[:, _H_E]))
+            last_pos = np.full(self.n_rows, -1, dtype=np.int64)
+            np.maximum.at(last_pos, rows[fin], fin)
+            lp = last_pos[has]
+            fix_pos = (lp >= 0) & ~np.isfinite(held[:, _H_E])
+            held[fix_pos, _H_E : _H_U + 1] = table[lp[fix_pos], _H_E : _H_U + 1]
+            fe.hold[s[has]] = held
+        return enu, att
+
+    def _wheels(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int32]]:
+        """Wheel speeds (left, right) at the ticks: encoder trackers of the vehicles that share
+        the ticks fitted together, or direct (CAN) speeds. Returns ``omega``, ``omega_std``
+        (``(n_ticks, 2)``) and the wheel flags."""
+        fe = self.fe
+        n_ticks = self.n_ticks
+        omega = np.full((n_ticks, 2), np.nan)
+        omega_std = np.full((n_ticks, 2), np.nan)
+        wflags = np.zeros(n_ticks, dtype=np.int32)
+        # encoders, unless the vehicle sends direct speeds and no edges
+        uses_enc = fe.has_edges[self.slots] | ~fe.has_speeds[self.slots]
+        for r in np.flatnonzero(~uses_enc):  # CAN speeds: one query per such vehicle
+            d = fe.direct[int(self.slots[r])]
+            assert d is not None
+            sl = slice(self.offsets[r], self.offsets[r] + self.m[r])
+            omega[sl], omega_std[sl] = d.query(self.ticks[sl])
+            wflags[sl] |= int(_F.WHEEL_DIRECT)
+        enc = np.flatnonzero(uses_enc)
+        if enc.size == 0:
+            return omega, omega_std, wflags
+        # groups of vehicles with the same wheel settings and the same ticks
+        keys = (fe.wheel_cfg[self.slots[enc]], self.first[enc], self.m[enc])
+        order = np.lexsort(keys[::-1])
+        new = np.ones(enc.shape[0], dtype=bool)
+        new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
+        group = np.empty(enc.shape[0], dtype=np.int64)
+        group[order] = np.cumsum(new) - 1
+        for members in _rank_passes(group):
+            rows = enc[members]
+            r0 = rows[0]
+            ticks = self.ticks[self.offsets[r0] : self.offsets[r0] + self.m[r0]]
+            trackers = [tr for s in self.slots[rows].tolist() for tr in fe.trackers[s]]
+            fitted = fe.fit_wheels(trackers, ticks)
+            mt = ticks.shape[0]
+            tix = (self.offsets[rows][:, None] + np.arange(mt)).reshape(-1)
+            lone = fe.lone_std[self.slots[rows]]
+            period = np.ones(rows.shape[0] * mt, dtype=bool)
+            for w in Wheel:
+                res = fitted[w::2]
+                om = np.concatenate([x.omega_radps for x in res])
+                sd = np.concatenate([x.std_radps for x in res])
+                method = np.concatenate([x.method for x in res])
+                none = method == WheelSpeedMethod.NONE
+                omega[tix, w] = np.where(none, 0.0, om)
+                omega_std[tix, w] = np.where(none, np.repeat(lone, mt), sd)
+                period &= method != WheelSpeedMethod.FREQUENCY
+            wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
+        return omega, omega_std, wflags

@@ -1,0 +1,259 @@
+"""Fleet front end: batch invariance across vehicles, joins and call intervals; the per-fix
+pitch and yaw updates by hand; the "latest at or before" join; slot reuse."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimator.base import Measurement
+from estimator.config import VehicleConfig
+from estimator.engine import MdsfFleet
+from estimator.frontend import _asof, pitch_fix_update, yaw_fix_update
+from estimator.mdsf import MdsfConfig, MdsfMode
+from estimator.sim import SimRun, simulate, truth_at
+from estimator.types import ESTIMATE_DTYPE, GnssSample, ImuBatch, WheelEdges, WheelSpeeds
+
+START = 1_767_225_600_000_000_000
+S = 1_000_000_000
+
+
+@dataclasses.dataclass
+class _Vehicle:
+    config: VehicleConfig
+    measurements: list[Measurement]
+    join_ns: int
+
+
+def _stamp(m: Measurement) -> int:
+    return int(m.stamp_ns if isinstance(m, GnssSample) else np.asarray(m.stamp_ns)[-1])
+
+
+def _vehicle(name: str, seed: int, join_s: float, variant: str = "", **kw: Any) -> _Vehicle:
+    start = START + round(join_s * S)
+    sim: SimRun = simulate(name, seed=seed, start_ns=start, **kw)
+    ms: list[Measurement] = list(sim.measurements)
+    if variant == "single_antenna":  # no receiver attitude: heading from the velocity
+        nan = float("nan")
+        ms = [
+            dataclasses.replace(m, heading_rad=nan, pitch_rad=nan, roll_rad=nan)
+            if isinstance(m, GnssSample)
+            else m
+            for m in ms
+        ]
+    elif variant == "direct":  # CAN wheel speeds (with every IMU batch) instead of edges
+        out: list[Measurement] = []
+        for m in ms:
+            if isinstance(m, WheelEdges):
+                continue
+            out.append(m)
+            if isinstance(m, ImuBatch):
+                t = np.asarray(m.stamp_ns, dtype=np.int64)[-1:]
+                om = [truth_at(sim.truth, t, f"omega_{w}_radps")[0] for w in ("left", "right")]
+                out.append(WheelSpeeds(t, np.array([om])))
+        ms = out
+    return _Vehicle(dataclasses.replace(sim.config, noise=sim.sensor_noise), ms, start)
+
+
+def _drive(
+    vehicles: dict[str, _Vehicle], step_ns: int, config: MdsfConfig | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
+    """Push each vehicle's data in sensor order and advance every ``step_ns`` to a horizon
+    0.2 s behind (at most to their last data); vehicles join when the clock reaches their
+    first data."""
+    fleet = MdsfFleet(config)
+    end = max(_stamp(v.measurements[-1]) for v in vehicles.values()) + S
+    pos = dict.fromkeys(vehicles, 0)
+    out: dict[str, list[np.ndarray]] = {vid: [] for vid in vehicles}
+    now = START
+    while now < end:
+        now += step_ns
+        until = {}
+        for vid, v in vehicles.items():
+            if now < v.join_ns:
+                continue
+            if vid not in fleet.vehicle_ids():
+                fleet.add_vehicle(vid, v.config)
+            i = pos[vid]
+            while i < len(v.measurements) and _stamp(v.measurements[i]) <= now:
+                fleet.push(vid, v.measurements[i])
+                i += 1
+            pos[vid] = i
+            until[vid] = min(now - 200_000_000, _stamp(v.measurements[-1]))
+        for vid, rows in fleet.advance(until):
+            out[vid].append(rows)
+    rows = {vid: np.concatenate(p) for vid, p in out.items()}
+    return rows, {vid: fleet.counters(vid) for vid in vehicles}
+
+
+def _assert_same_rows(a: np.ndarray, b: np.ndarray) -> None:
+    assert a.shape == b.shape and a.shape[0] > 0
+    assert np.array_equal(a["stamp_ns"], b["stamp_ns"])
+    assert np.array_equal(a["flags"], b["flags"])
+    for name in ESTIMATE_DTYPE.names or ():
+        assert np.allclose(a[name], b[name], rtol=0, atol=1e-9, equal_nan=True), name
+
+
+def test_each_vehicle_gets_the_rows_it_gets_alone_joining_late_at_any_call_interval() -> None:
+    fleet = {
+        "a": _vehicle("hard_braking", 1, 0.0, cycles=1),
+        "b": _vehicle("figure_eight", 2, 3.05, laps=1),
+        "c": _vehicle("paper_straight", 3, 7.3, "single_antenna"),
+        "d": _vehicle("hard_braking", 4, 1.5, "direct", cycles=1),
+        "e": _vehicle("slope_wet_patch", 5, 0.02),
+    }
+    together, counts = _drive(fleet, 70_000_000)
+    for vid, v in fleet.items():
+        for step_ms in (100, 200):
+            alone, alone_counts = _drive({vid: v}, step_ms * 1_000_000)
+            _assert_same_rows(together[vid], alone[vid])
+            assert counts[vid] == alone_counts[vid]
+
+
+def test_paper_mode_is_batch_invariant_too() -> None:
+    cfg = MdsfConfig(mode=MdsfMode.PAPER)
+    fleet = {
+        "a": _vehicle("paper_straight", 6, 0.0),
+        "b": _vehicle("paper_circle", 7, 2.5, "single_antenna"),
+    }
+    together, _ = _drive(fleet, 50_000_000, cfg)
+    for vid, v in fleet.items():
+        alone, _ = _drive({vid: v}, 150_000_000, cfg)
+        _assert_same_rows(together[vid], alone[vid])
+
+
+def test_a_reused_slot_starts_clean() -> None:
+    v = _vehicle("hard_braking", 8, 0.0, cycles=1)
+    other = _vehicle("figure_eight", 9, 0.0, laps=1)
+    fleet = MdsfFleet()
+    fleet.add_vehicle("old", other.config)
+    for m in other.measurements[:200]:  # buffered, never advanced
+        fleet.push("old", m)
+    fleet.remove_vehicle("old")
+    fleet.add_vehicle("v", v.config)
+    for m in v.measurements:
+        fleet.push("v", m)
+    ((_, rows),) = fleet.advance({"v": _stamp(v.measurements[-1])})
+    alone, _ = _drive({"v": v}, 100_000_000)
+    n = alone["v"].shape[0]
+    _assert_same_rows(rows[:n], alone["v"])
+
+
+# -- per-fix updates by hand -------------------------------------------------------------------
+
+
+def _pitch(cfg: MdsfConfig, **kw: Any) -> tuple[np.ndarray, ...]:
+    a = {
+        "theta_rad": np.array([0.01]),
+        "var_rad2": np.array([4e-6]),
+        "bias_radps": np.array([0.005]),
+        "fixes": np.array([1]),
+        "fix_ns": np.array([START]),
+        "known": np.array([True]),
+        "pitch_gnss_rad": np.array([0.03]),
+        "stamp_ns": np.array([START + S // 2]),
+    }
+    a.update({k: np.asarray(v) for k, v in kw.items()})
+    return pitch_fix_update(config=cfg, **a)
+
+
+def test_pitch_fix_update_by_hand() -> None:
+    cfg = MdsfConfig()  # pitch_tau_s 1, gyro_bias_tau_s 5, pitch_std_rad 0.005
+    sp2 = cfg.pitch_std_rad**2
+    # second fix 0.5 s after the first: gain = max(1/2, 1 − e^−0.5) = 1/2
+    theta, var, bias, fixes, fix_ns, known = _pitch(cfg)
+    assert math.isclose(theta[0], 0.01 + 0.5 * 0.02)
+    assert math.isclose(var[0], 0.25 * 4e-6 + 0.25 * sp2)
+    assert math.isclose(bias[0], 0.005 - 0.5 / (1.0 * 5.0) * 0.02)
+    assert fixes[0] == 2 and fix_ns[0] == START + S // 2 and known[0]
+    # many fixes later the time constant wins: gain = 1 − e^−gap (gap clipped to 1 s)
+    theta, *_ = _pitch(cfg, fixes=np.array([50]), stamp_ns=np.array([START + 3 * S]))
+    assert math.isclose(theta[0], 0.01 + (1 - math.exp(-1.0)) * 0.02)
+    # the first fix takes the GNSS pitch as it is
+    theta, var, bias, fixes, _, known = _pitch(cfg, known=np.array([False]))
+    assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005 and fixes[0] == 1 and known[0]
+    # no GNSS pitch: nothing changes
+    out = _pitch(cfg, pitch_gnss_rad=np.array([np.nan]))
+    assert out[0][0] == 0.01 and out[1][0] == 4e-6 and out[2][0] == 0.005 and out[4][0] == START
+    # paper mode: always the GNSS pitch, no bias
+    theta, var, bias, *_ = _pitch(MdsfConfig(mode=MdsfMode.PAPER))
+    assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005
+
+
+def test_pitch_fix_update_treats_each_vehicle_on_its_own() -> None:
+    cfg = MdsfConfig()
+    both = _pitch(
+        cfg,
+        theta_rad=np.array([0.01, 0.2]),
+        var_rad2=np.array([4e-6, 1e-3]),
+        bias_radps=np.array([0.005, -0.01]),
+        fixes=np.array([1, 7]),
+        fix_ns=np.array([START, START - S]),
+        known=np.array([True, False]),
+        pitch_gnss_rad=np.array([0.03, np.nan]),
+        stamp_ns=np.array([START + S // 2, START]),
+    )
+    first = _pitch(cfg)
+    assert all(b[0] == f[0] for b, f in zip(both, first, strict=True))
+    assert both[0][1] == 0.2 and both[2][1] == -0.01 and not both[5][1]
+
+
+def test_yaw_fix_update_wraps_the_heading_error() -> None:
+    cfg = MdsfConfig()
+    psi, bias, fix_ns = yaw_fix_update(
+        np.array([3.1, np.nan]),
+        np.array([0.001, 0.0]),
+        np.array([START, 0]),
+        np.array([-3.1, 1.0]),
+        np.array([START + S // 4, START]),
+        cfg,
+    )
+    err = -6.2 + 2 * math.pi  # across ±π: a small step, not a turn
+    assert math.isclose(psi[0], 3.1 + (1 - math.exp(-0.25)) * err)
+    assert math.isclose(bias[0], 0.001 + 0.25 / 5.0 * err)
+    assert psi[1] == 1.0 and bias[1] == 0.0  # unknown heading: taken as it is
+    assert list(fix_ns) == [START + S // 4, START]
+
+
+# -- "latest at or before" ---------------------------------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(0, 3), st.integers(-5, 5)), max_size=30),
+    st.lists(st.tuples(st.integers(0, 3), st.integers(-6, 6)), max_size=30),
+)
+def test_asof_is_searchsorted_per_row(a: list[tuple[int, int]], b: list[tuple[int, int]]) -> None:
+    a.sort()  # rows grouped, keys sorted within a row (as the front end's queues)
+    row_a = np.array([r for r, _ in a], dtype=np.int64)
+    key_a = np.array([k for _, k in a], dtype=np.int64)
+    row_b = np.array([r for r, _ in b], dtype=np.int64)
+    key_b = np.array([k for _, k in b], dtype=np.int64)
+    got = _asof(row_a, key_a, row_b, key_b)
+    for i, (r, k) in enumerate(b):
+        mine = np.flatnonzero(row_a == r)
+        j = int(np.searchsorted(key_a[mine], k, side="right")) - 1
+        assert got[i] == (mine[j] if j >= 0 else -1)
+
+
+def test_malformed_gnss_is_counted_not_raised_and_counts_are_current_before_advance() -> None:
+    v = _vehicle("hard_braking", 10, 0.0, cycles=1)
+    fleet = MdsfFleet()
+    fleet.add_vehicle("v", v.config)
+    gnss = next(m for m in v.measurements if isinstance(m, GnssSample))
+    fleet.push("v", dataclasses.replace(gnss, vel_enu_mps=(1.0, 2.0)))  # type: ignore[arg-type]
+    fleet.push("v", dataclasses.replace(gnss, vel_enu_mps=(np.nan, 0.0, 0.0)))
+    imu = next(m for m in v.measurements if isinstance(m, ImuBatch))
+    bad = np.array(imu.accel_mps2, dtype=float)
+    bad[0, 1] = np.inf
+    fleet.push("v", ImuBatch(imu.stamp_ns, bad, imu.gyro_radps))
+    before = fleet.counters("v")
+    assert before["skipped_gnss"] == 1 and before["skipped_imu"] == 1  # checked on asking
+    fleet.advance({"v": _stamp(v.measurements[-1])})
+    after = fleet.counters("v")
+    assert after["skipped_gnss"] == 2 and after["skipped_imu"] == 1  # NaN velocity: when used
