@@ -552,9 +552,22 @@ def _publish_child(job_json: str) -> int:
                     **common,
                 )
             )
-    for sim in sims:
-        sim.start()
+    from server.fleet_sim import SimStats, publish_fleets
+
     stop = threading.Event()
+    stats = SimStats()
+    failed: list[BaseException] = []
+
+    def _publish() -> None:
+        try:  # one thread, one merged schedule for every group of this process
+            publish_fleets(sims, stop=stop, stats=stats)
+        except BaseException as exc:
+            failed.append(exc)
+            stop.set()
+            raise
+
+    worker = threading.Thread(target=_publish, name="slipfleet-publisher", daemon=True)
+    worker.start()
 
     def _wait_stop() -> None:
         sys.stdin.readline()  # "stop" or EOF (parent gone)
@@ -565,21 +578,15 @@ def _publish_child(job_json: str) -> int:
     t0 = time.monotonic()
     while not stop.wait(0.5):
         print(
-            json.dumps(
-                {
-                    "sent": sum(s.stats.total_packets for s in sims),
-                    "behind_ms": max(s.stats.max_behind_ms for s in sims),
-                }
-            ),
+            json.dumps({"sent": stats.total_packets, "behind_ms": stats.max_behind_ms}),
             flush=True,
         )
-    for sim in sims:
-        sim.stop(30.0)
+    worker.join(30.0)
     final = {
-        "sent": sum(s.stats.total_packets for s in sims),
-        "configs": sum(s.stats.configs for s in sims),
-        "bytes": sum(s.stats.payload_bytes for s in sims),
-        "max_behind_ms": max(s.stats.max_behind_ms for s in sims),
+        "sent": stats.total_packets,
+        "configs": stats.configs,
+        "bytes": stats.payload_bytes,
+        "max_behind_ms": stats.max_behind_ms,
         "cpu_s": time.process_time() - cpu0,
         "wall_s": time.monotonic() - t0,
     }
@@ -587,7 +594,7 @@ def _publish_child(job_json: str) -> int:
     for session in sessions:
         session.close()
     print(json.dumps({"final": final}), flush=True)
-    return 0
+    return 1 if failed else 0
 
 
 # ---------------------------------------------------------------------------------- the run
