@@ -441,6 +441,7 @@ def publish_schedule(
     sleep = time.sleep
     clock = time.perf_counter_ns
     inv_rate = 1.0 / rate
+    last_due = -1  # schedule time of the last packet sent
     while not stop.is_set():
         if cur is None or k == n_cur:
             if nxt is None:
@@ -469,7 +470,8 @@ def publish_schedule(
         behind = (now - due_wall) / 1e6
         if behind > stats.max_behind_ms:
             stats.max_behind_ms = behind
-        j = bisect.bisect_right(cur.due_ns, now * rate, k)
+        limit = now if end_wall is None else min(now, end_wall - wall0)
+        j = bisect.bisect_right(cur.due_ns, limit * rate, k)
         if j == k:
             continue  # woke up early (the end of the run, or stop)
         for put, payload in zip(cur.calls[k:j], cur.payloads[k:j], strict=True):
@@ -479,11 +481,13 @@ def publish_schedule(
         stats.payload_bytes += cur.bounds[j] - cur.bounds[k]
         if stats.rounds is not None:
             stats.rounds.append((wall0 + now, behind, j - k))
+        last_due = cur.due_ns[j - 1]
         k = j
         if on_round is not None:
             on_round(stats)
         if nxt is None and (loop or t_next < end_sched):
             nxt = render(fleet, t_next, t_next + span, loop)  # the next window, ahead of time
             t_next += span
-    stats.loops = int(t_next // int(fleet.period.min())) if loop else 0
+    if loop and last_due >= 0:
+        stats.loops = max(0, int(((last_due - fleet.phase) // fleet.period).max()))
     return stats

@@ -13,7 +13,7 @@ Zenoh router in this process, where a bare subscriber only counts what arrives:
   encoding, a heap pop and a ``put`` (:func:`_per_packet_run`, kept here as the baseline);
 * **encoded** — :func:`server.fleet_sim.publish_fleets` (:mod:`server.fleet_schedule`):
   every drive encoded once, stamps patched per 100 ms window in bulk, one merged schedule and
-  one thread per process, :data:`NEW_SESSIONS` session(s) per process.
+  one thread per process, ``--sessions`` sessions per process.
 
 The children simulate, encode and declare, then start publishing together; after a warm-up
 (``--warmup`` s) each child measures ``--window`` seconds: its CPU (``time.process_time``:
@@ -48,9 +48,9 @@ __all__ = ["main", "run"]
 
 #: Publisher child processes (``slipfleet loadtest``'s default).
 PUBLISHERS = 2
-#: Zenoh sessions per publisher process: per-packet path (the former default) and encoded path.
+#: Zenoh sessions per publisher process of the per-packet path (the load test's former default;
+#: the encoded path uses ``--sessions``, by default the load test's).
 OLD_SESSIONS = 8
-NEW_SESSIONS = 2
 PATHS = ("per-packet", "encoded")
 #: Packets a vehicle sends per second with the mix scenarios (GNSS 10, IMU 10, wheels ~10).
 PACKETS_PER_VEHICLE_S = 30
@@ -299,7 +299,7 @@ def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Na
     for groups in _assignments(spec, ("sim-{:05d}",)):
         job = {
             "endpoints": [endpoint],
-            "sessions": NEW_SESSIONS if path == "encoded" else OLD_SESSIONS,
+            "sessions": args.sessions if path == "encoded" else OLD_SESSIONS,
             "groups": groups,
             "prefix": prefix,
             "path": path,
@@ -341,7 +341,7 @@ def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Na
     return {
         "vehicles": vehicles,
         "path": path,
-        "sessions_per_process": NEW_SESSIONS if path == "encoded" else OLD_SESSIONS,
+        "sessions_per_process": args.sessions if path == "encoded" else OLD_SESSIONS,
         "processes": len(outs),
         "sent_per_s": sent_w / window,
         "target_per_s": PACKETS_PER_VEHICLE_S * vehicles,
@@ -409,6 +409,8 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from server.loadtest import LoadSpec
+
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["_child"]:
         return _child(argv[1])
@@ -417,8 +419,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--paths", default=",".join(PATHS), help="per-packet,encoded")
     p.add_argument("--warmup", type=float, default=3.0, help="s after each child's first packet")
     p.add_argument("--window", type=float, default=10.0, help="measured seconds")
+    p.add_argument(
+        "--sessions",
+        type=int,
+        default=LoadSpec.sessions_per_publisher,
+        help="Zenoh sessions per process, encoded path (the per-packet path keeps 8)",
+    )
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
+    args.sessions = max(1, args.sessions)
     args.vehicles = [int(x) for x in args.vehicles.split(",")]
     args.paths = [x for x in args.paths.split(",") if x]
     if unknown := set(args.paths) - set(PATHS):
