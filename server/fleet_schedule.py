@@ -1,31 +1,36 @@
 """Publish many simulated vehicles for a small fraction of a core: encode once, patch stamps.
 
 :class:`server.fleet_sim.FleetSim` used to shift every measurement's stamps (new dataclass
-objects), encode it with msgpack and pick the next packet from a heap, per packet: ≈ 96 µs of
-CPU a packet, 2.9 cores for 1,000 vehicles. Here the work per packet is one ``bytes.join`` and
-one ``Publisher.put``; everything else is done once or in bulk:
+objects), encode it with msgpack and pick the next packet from a heap, per packet, one thread
+per scenario group: ≈ 100 µs of CPU a packet at 100 vehicles, more than the 2-core machine has
+at 1,000. Here the work per packet in the sending loop is one ``Publisher.put``; everything
+else is done once or in bulk (``slipfleet bench publisher``: 6–10 µs of CPU a packet at
+1,000–3,000 vehicles, Zenoh's own threads included):
 
-* **Encode once.** :class:`EncodedDrive` encodes each packet of a drive (a :func:`packetize`
-  list) once, with ``seq = 0``, into one byte buffer, and records where the sequence number and
-  every timestamp sit. The stamps are the only bytes that change between vehicles and loops:
-  IMU, wheel-edge and wheel-speed stamps are little-endian int64 arrays (msgpack ``bin``), the
-  GNSS stamp a msgpack ``uint 64`` (``0xcf`` + 8 bytes big-endian, fixed width for any stamp
-  after 1970 + 4.3 s). Patching adds the vehicle's shift to them; the payload is byte for byte
-  what :func:`server.fleet_sim.encode_packet` makes of the shifted measurements (a test checks
-  it), so the wire format is unchanged.
-* **Render per window.** Every ``window`` of publishing, all packets due in the next window,
-  of every vehicle, are selected, copied out of the templates, stamp-patched (vectorised,
-  numpy) and sorted by due time into one merged schedule.
+* **Encode once.** :class:`EncodedDrive` encodes each packet of a drive (a
+  :func:`server.fleet_sim.packetize` list) once, with ``seq = 0``, into one byte buffer, and
+  records where the sequence number and every timestamp sit. The stamps are the only bytes
+  that change between vehicles and loops: IMU, wheel-edge and wheel-speed stamps are
+  little-endian int64 arrays (msgpack ``bin``), the GNSS stamp a msgpack ``uint 64`` (``0xcf``
+  + 8 bytes big-endian: fixed width for any stamp after 1970 + 4.3 s).
+* **Render per window.** Every :data:`WINDOW_NS` of wall time, the packets of every vehicle due
+  in the next window are selected (``searchsorted`` per drive), copied out of the templates,
+  stamp-patched (numpy, one add per byte alignment), given their ``seq`` (packed as msgpack
+  packs an int, shortest form) and sorted by due time into one merged schedule of ready
+  payloads. Each payload is byte for byte what :func:`server.fleet_sim.encode_packet` makes of
+  the shifted measurements (a test checks it over several loops), so the wire format is
+  unchanged.
 * **Send.** One thread sleeps until the next packet is due (at least :data:`MIN_WAKE_NS`
   apart, so thousands of vehicles cost a few hundred wake-ups a second, not one per packet),
-  then puts every packet that is due: head bytes + packed ``seq`` + patched body, on the
-  vehicle's pre-declared publisher for that stream.
+  then puts every packet that is due, in due order, each on its vehicle's pre-declared
+  publisher for that stream.
 
 Time: a vehicle ``v`` with phase ``φ_v`` (its offset within the 100 ms tick, spreading vehicles
 over it) publishes packet ``p`` of loop ``L`` at schedule time ``a_p + φ_v + L·T_v`` (``a_p``:
-the packet's arrival after the drive start, i.e. its last sample's time plus the batching;
-``T_v`` the loop period), at wall time ``that / rate`` after the start; its stamps are shifted
-by ``shift_v + L·T_v``. Sequence numbers count per (vehicle, stream) from 0 across loops.
+when the simulated vehicle sends it, after the drive start — a batch once its last sample is
+in; ``T_v`` the loop period), at wall time ``that / rate`` after the start; its stamps are
+shifted by ``shift_v + L·T_v``. Sequence numbers count per (vehicle, stream) from 0 across
+loops. Memory: the drives, not the vehicles (≈4 MB per 5-minute drive; vehicles share them).
 """
 
 from __future__ import annotations

@@ -360,11 +360,12 @@ def publish_fleets(
     """Publish several :class:`FleetSim` fleets from one thread, on one merged schedule.
 
     They must share ``rate`` and ``loop``. Every distinct drive is encoded once
-    (:class:`server.fleet_schedule.EncodedDrive`); the sending loop costs one ``join`` and one
-    ``put`` per packet. ``stats`` (a fresh :class:`SimStats` by default) is updated after every
-    sending round, so another thread can follow the progress; with ``keep_lateness`` every
-    round is kept in ``stats.send_rounds``. ``ready`` is set once everything is simulated,
-    encoded and declared; publishing then waits for ``go`` (if given), so several processes
+    (:class:`server.fleet_schedule.EncodedDrive`) and payloads are built per 100 ms window in
+    bulk; the sending loop costs one ``put`` per packet. ``stats`` (a fresh :class:`SimStats`
+    by default; every fleet's ``stats`` becomes this one) is updated after every sending
+    round, so another thread can follow the progress; with ``keep_lateness`` every round is
+    kept in ``stats.send_rounds``. ``ready`` is set once everything is simulated, encoded and
+    declared; publishing then waits for ``go`` (if given), so several processes
     can start together.
     """
     if not sims:

@@ -15,7 +15,8 @@ child processes publish the vehicles, each with ``--sessions`` client sessions, 
 100 ms batches (≈30 packets per vehicle-second), BLOCK congestion control, sends spread over the
 100 ms tick. Each child publishes all its vehicles from one thread and one merged schedule of
 pre-encoded packets (:func:`server.fleet_sim.publish_fleets`, :mod:`server.fleet_schedule`):
-≈5–13 µs of CPU per packet on the 2-core reference machine (``slipfleet bench publisher``),
+≈6–10 µs of CPU per packet at 1,000–3,000 vehicles on the 2-core reference machine
+(``slipfleet bench publisher``),
 so 3,000 vehicles (90,000 packets/s) cost the load generator about half a core.
 ``--scenario mix`` spreads vehicles over :data:`MIX`. ``--replay`` publishes
 recordings (:mod:`server.protocol.recording`) instead: vehicle ``i`` replays the drives of
