@@ -8,7 +8,7 @@ Subcommands::
     slipfleet replay   PATH [--rate X] [--connect ENDPOINT]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
-    slipfleet bench    {accuracy,storage,series,live,viewer,throughput,wheels,frontend} [OPTIONS…]
+    slipfleet bench    {accuracy,storage,series,live,viewer,throughput,wheels,frontend,publisher} [OPTIONS…]
     slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
@@ -29,7 +29,17 @@ __all__ = ["main"]
 
 log = logging.getLogger("slipfleet")
 
-BENCHES = ("accuracy", "storage", "series", "live", "viewer", "throughput", "wheels", "frontend")
+BENCHES = (
+    "accuracy",
+    "storage",
+    "series",
+    "live",
+    "viewer",
+    "throughput",
+    "wheels",
+    "frontend",
+    "publisher",
+)
 
 
 def _settings(args: argparse.Namespace, **overrides: Any) -> Any:

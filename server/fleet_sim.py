@@ -1,12 +1,20 @@
 """Publish simulated vehicles over Zenoh, and record or replay Zenoh traffic.
 
 :class:`FleetSim` turns :func:`estimator.sim.simulate` runs into the wire protocol
-(``docs/protocol.md``) and publishes them the way live vehicles would: each measurement at its
-simulated arrival time (real time, or faster by ``rate``), sensor stamps shifted to *now*,
-sequence numbers per stream, vehicle ids ``sim-0001``, ``sim-0002``, ...; vehicles are spread
-over the 100 ms packet tick so they do not all publish at once. Simulating is the slow part
-(≈0.4 s per 5-minute vehicle), so ``distinct_runs`` runs are simulated and shared round-robin by
-the vehicles, each with its own time phase.
+(``docs/protocol.md``) and publishes them the way live vehicles would: each packet when its
+sensor time is due (a batch: its last sample's time; real time, or faster by ``rate``), sensor
+stamps shifted to *now*, sequence numbers per stream, vehicle ids ``sim-0001``, ``sim-0002``,
+...; vehicles are spread over the 100 ms packet tick so they do not all publish at once.
+Simulating is the slow part (≈0.4 s per 5-minute vehicle), so ``distinct_runs`` runs are
+simulated and shared round-robin by the vehicles, each with its own time phase (and the run's
+own origin, :meth:`FleetSim.spread_origin`): 3,000 vehicles of a load test play 2 drives per
+scenario, not 3,000.
+
+Publishing goes through :mod:`server.fleet_schedule`: each distinct run is encoded once, and
+only stamps and sequence numbers are patched per vehicle and loop, in bulk per 100 ms window;
+one thread sends every vehicle's packets from one merged schedule (a few µs of CPU a packet,
+:func:`publish_fleets` for several fleets at once). The payloads are byte for byte what
+:func:`encode_packet` makes of the shifted measurements.
 
 :func:`record` writes what a session receives to a recording file and :func:`replay` publishes
 one (format: :mod:`server.protocol.recording`).
@@ -18,7 +26,6 @@ simulator down instead of dropping packets.
 from __future__ import annotations
 
 import dataclasses
-import heapq
 import logging
 import math
 import threading
@@ -33,6 +40,13 @@ import zenoh
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelSpeeds
+from server.fleet_schedule import (
+    STREAMS,
+    EncodedDrive,
+    ScheduledVehicle,
+    ScheduleStats,
+    publish_schedule,
+)
 from server.protocol.codec import (
     DecodeError,
     decode,
@@ -52,6 +66,7 @@ __all__ = [
     "SimStats",
     "encode_packet",
     "packetize",
+    "publish_fleets",
     "record",
     "replay",
     "shift_measurement",
@@ -85,6 +100,8 @@ class SimStats:
     loops: int = 0
     max_behind_ms: float = 0.0
     wall_s: float = 0.0
+    #: sending rounds (``keep_lateness``): (perf_counter ns, ms late, packets)
+    send_rounds: list[tuple[int, float, int]] = field(default_factory=list)
 
     @property
     def total_packets(self) -> int:
@@ -281,14 +298,30 @@ class FleetSim:
 
     def run(self, duration_s: float | None = None) -> SimStats:
         """Publish until the runs end (no loop), ``duration_s`` passes, or :meth:`stop`."""
+        return publish_fleets([self], duration_s, stop=self._stop, stats=self.stats)
+
+    def _declare(
+        self, drive_of: dict[int, int], drives: list[EncodedDrive]
+    ) -> tuple[list[_Vehicle], list[ScheduledVehicle], list[zenoh.Publisher]]:
+        """Simulate, encode each distinct drive once, declare publishers, publish configs.
+
+        The vehicles' stamp shifts are still relative (the clock reading is added by
+        :func:`publish_fleets` just before publishing starts).
+        """
         vehicles = self._build()
-        pubs: dict[tuple[str, Stream], zenoh.Publisher] = {}
+        scheduled: list[ScheduledVehicle] = []
+        declared: list[zenoh.Publisher] = []
         for i, v in enumerate(vehicles):
+            d = drive_of.get(id(v.packets))
+            if d is None:
+                d = drive_of[id(v.packets)] = len(drives)
+                drives.append(EncodedDrive(v.packets, v.period_ns))
             session = self._sessions[i % len(self._sessions)]
-            for s in Stream:
-                pubs[(v.vehicle_id, s)] = _publisher(
-                    session, sensor_key(self._prefix, v.vehicle_id, s)
-                )
+            pubs = [_publisher(session, sensor_key(self._prefix, v.vehicle_id, s)) for s in STREAMS]
+            declared.extend(pubs)
+            scheduled.append(
+                ScheduledVehicle(d, v.phase_ns, v.shift_ns, tuple(p.put for p in pubs))
+            )
             if self._publish_config:
                 session.put(
                     config_key(self._prefix, v.vehicle_id),
@@ -296,55 +329,7 @@ class FleetSim:
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
                 self.stats.configs += 1
-        anchor_ns = self._clock()  # sensor time of the run start = now, after the setup above
-        for v in vehicles:
-            v.shift_ns += anchor_ns
-        wall0 = time.perf_counter_ns()
-        end_wall = None if duration_s is None else wall0 + int(duration_s * 1e9)
-        heap: list[tuple[int, int]] = []
-        for i, v in enumerate(vehicles):
-            if v.packets:
-                heap.append((self._due(v), i))
-        heapq.heapify(heap)
-        stats = self.stats
-        try:
-            while heap and not self._stop.is_set():
-                due, i = heap[0]
-                now = time.perf_counter_ns() - wall0
-                if end_wall is not None and wall0 + due > end_wall:
-                    break
-                if due > now:
-                    self._stop.wait(min((due - now) / 1e9, 0.05))
-                    continue
-                heapq.heappop(heap)
-                stats.max_behind_ms = max(stats.max_behind_ms, (now - due) / 1e6)
-                v = vehicles[i]
-                p = v.packets[v.index]
-                shift = v.shift_ns + v.loop * v.period_ns
-                ms = tuple(shift_measurement(m, shift) for m in p.measurements)
-                payload = encode_packet(p.stream, ms, v.seq[p.stream])
-                v.seq[p.stream] += 1
-                pubs[(v.vehicle_id, p.stream)].put(payload)
-                stats.packets[p.stream.value] += 1
-                stats.payload_bytes += len(payload)
-                v.index += 1
-                if v.index == len(v.packets):
-                    if not self._loop:
-                        continue
-                    v.index = 0
-                    v.loop += 1
-                    stats.loops = max(stats.loops, v.loop)
-                heapq.heappush(heap, (self._due(v), i))
-        finally:
-            for pub in pubs.values():
-                pub.undeclare()
-            stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
-        return stats
-
-    def _due(self, v: _Vehicle) -> int:
-        """Wall time (ns after the start) at which ``v``'s next packet is published."""
-        sensor_offset = v.packets[v.index].arrival_offset_ns + v.phase_ns + v.loop * v.period_ns
-        return int(sensor_offset / self._rate)
+        return vehicles, scheduled, declared
 
     def start(self, duration_s: float | None = None) -> None:
         """Run in a background thread."""
@@ -360,6 +345,81 @@ class FleetSim:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
+
+
+def publish_fleets(
+    sims: Sequence[FleetSim],
+    duration_s: float | None = None,
+    *,
+    stop: threading.Event | None = None,
+    stats: SimStats | None = None,
+    keep_lateness: bool = False,
+    ready: threading.Event | None = None,
+    go: threading.Event | None = None,
+) -> SimStats:
+    """Publish several :class:`FleetSim` fleets from one thread, on one merged schedule.
+
+    They must share ``rate`` and ``loop``. Every distinct drive is encoded once
+    (:class:`server.fleet_schedule.EncodedDrive`) and payloads are built per 100 ms window in
+    bulk; the sending loop costs one ``put`` per packet. ``stats`` (a fresh :class:`SimStats`
+    by default; every fleet's ``stats`` becomes this one) is updated after every sending
+    round, so another thread can follow the progress; with ``keep_lateness`` every round is
+    kept in ``stats.send_rounds``. ``ready`` is set once everything is simulated, encoded and
+    declared; publishing then waits for ``go`` (if given), so several processes
+    can start together.
+    """
+    if not sims:
+        raise ValueError("no fleets to publish")
+    rate, loop = sims[0]._rate, sims[0]._loop
+    if any(s._rate != rate or s._loop != loop for s in sims):
+        raise ValueError("fleets published together must share rate and loop")
+    stats = stats if stats is not None else SimStats()
+    for s in STREAMS:  # every key present before another thread starts summing the counts
+        stats.packets.setdefault(s.value, 0)
+    drives: list[EncodedDrive] = []
+    drive_of: dict[int, int] = {}
+    prepared = []
+    for sim in sims:
+        sim.stats = stats
+        prepared.append(sim._declare(drive_of, drives))
+    if ready is not None:
+        ready.set()
+    if go is not None:
+        go.wait()
+    scheduled: list[ScheduledVehicle] = []
+    for sim, (_, vehicles, _) in zip(sims, prepared, strict=True):
+        anchor_ns = sim._clock()  # sensor time of the run start = now, after the setup above
+        scheduled.extend(dataclasses.replace(v, shift_ns=v.shift_ns + anchor_ns) for v in vehicles)
+    names = [s.value for s in STREAMS]
+
+    def _progress(s: ScheduleStats) -> None:
+        for name, n in zip(names, s.packets, strict=True):
+            stats.packets[name] = n
+        stats.payload_bytes = s.payload_bytes
+        stats.max_behind_ms = s.max_behind_ms
+
+    wall0 = time.perf_counter_ns()
+    try:
+        done = publish_schedule(
+            drives,
+            scheduled,
+            rate=rate,
+            loop=loop,
+            duration_s=duration_s,
+            stop=stop if stop is not None else sims[0]._stop,
+            on_round=_progress,
+            keep_lateness=keep_lateness,
+        )
+        _progress(done)
+        stats.loops = done.loops
+        if done.rounds is not None:
+            stats.send_rounds = done.rounds
+    finally:
+        for _, _, declared in prepared:
+            for pub in declared:
+                pub.undeclare()
+        stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
+    return stats
 
 
 def _prefix_of(key: str) -> str:

@@ -1,0 +1,161 @@
+"""The encoded fleet schedule (load generator): byte for byte the per-packet encoding, due times
+and sequence numbers per stream, every packet published once."""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+
+import msgpack
+import numpy as np
+import pytest
+
+from estimator.sim import simulate
+from server.fleet_schedule import (
+    STREAMS,
+    EncodedDrive,
+    ScheduledVehicle,
+    _Fleet,
+    _insert_seq,
+    publish_schedule,
+    render,
+)
+from server.fleet_sim import TICK_NS, SimPacket, encode_packet, packetize, shift_measurement
+from server.protocol import decode, sensor_key
+
+T0 = 1_763_700_000 * 10**9
+SPAN = 100_000_000
+
+
+@pytest.fixture(scope="module")
+def drive() -> tuple[list[SimPacket], EncodedDrive]:
+    run = simulate("hard_braking", seed=3, start_ns=T0)  # 34 s: loops are cheap to cover
+    packets = packetize(run.in_arrival_order(), run.start_ns)
+    return packets, EncodedDrive(packets, run.end_ns - run.start_ns + TICK_NS)
+
+
+class _Sink:
+    """Stands in for the publishers: ``calls[(vehicle, stream)]`` are the payloads put."""
+
+    def __init__(self) -> None:
+        self.calls: dict[tuple[int, int], list[bytes]] = defaultdict(list)
+
+    def put(self, v: int, s: int) -> object:
+        return lambda payload: self.calls[(v, s)].append(payload)
+
+
+def _vehicles(sink: _Sink, phases: list[int]) -> list[ScheduledVehicle]:
+    return [
+        ScheduledVehicle(0, ph, 1_000_000_007 * (i + 1), tuple(sink.put(i, s) for s in range(3)))
+        for i, ph in enumerate(phases)
+    ]
+
+
+def _render_all(fleet: _Fleet, until_ns: int) -> list[tuple[int, object, bytes, int]]:
+    out = []
+    for t in range(0, until_ns, SPAN):
+        w = render(fleet, t, t + SPAN, loop=True)
+        assert w.due_ns == sorted(w.due_ns)
+        assert all(t <= d < t + SPAN for d in w.due_ns)
+        out += zip(w.due_ns, w.calls, w.payloads, w.stream.tolist(), strict=True)
+    return out
+
+
+def test_rendered_packets_equal_the_per_packet_encoding_over_loops(
+    drive: tuple[list[SimPacket], EncodedDrive],
+) -> None:
+    packets, enc = drive
+    sink = _Sink()
+    vehicles = _vehicles(sink, [0, 3_000_000, 66_000_000])
+    fleet = _Fleet([enc], vehicles)
+    rendered = _render_all(fleet, 3 * enc.period_ns)  # three loops: seq passes 127 and 255
+    by_stream = {s: [p for p in packets if p.stream is STREAMS[s]] for s in range(3)}
+    due_of: dict[tuple[int, int], list[int]] = defaultdict(list)
+    for due, call, payload, s in rendered:
+        call(payload)  # type: ignore[operator]
+        v = next(i for i, veh in enumerate(vehicles) if veh.publishers[s] is call)
+        due_of[(v, s)].append(due)
+    assert max(len(x) for x in sink.calls.values()) > 256
+    checked = 0
+    for (v, s), payloads in sink.calls.items():
+        mine = by_stream[s]
+        for seq, payload in enumerate(payloads):
+            loop, i = divmod(seq, len(mine))
+            shift = vehicles[v].shift_ns + loop * enc.period_ns
+            ms = tuple(shift_measurement(m, shift) for m in mine[i].measurements)
+            assert payload == encode_packet(mine[i].stream, ms, seq), (v, s, seq)
+            due = mine[i].arrival_offset_ns + vehicles[v].phase_ns + loop * enc.period_ns
+            assert due_of[(v, s)][seq] == due
+            checked += 1
+    assert checked == len(rendered) > 3 * 3 * len(packets) * 0.99
+    # and the server's decoder takes them: stamps, stream and seq where they belong
+    payload = sink.calls[(1, 1)][300]
+    got = decode(sensor_key("fleet", "sim-0002", STREAMS[1]), payload)
+    assert got.seq == 300 and got.stream is STREAMS[1]
+
+
+@pytest.mark.parametrize(
+    "seq", [0, 1, 127, 128, 255, 256, 65_535, 65_536, 2**32 - 1, 2**32, 2**63 - 1]
+)
+def test_sequence_numbers_are_packed_as_msgpack_packs_them(seq: int) -> None:
+    template = bytearray(b"\xaa\x00\xbb" + b"\xcc\x00\xdd")  # two packets, seq byte in the middle
+    data, bounds = _insert_seq(
+        np.frombuffer(template, np.uint8).copy(),
+        np.array([0, 3, 6]),
+        np.array([1, 4]),
+        np.array([5, seq], np.int64),
+    )
+    blob = data.tobytes()
+    assert blob[bounds[0] : bounds[1]] == b"\xaa" + msgpack.packb(5) + b"\xbb"
+    assert blob[bounds[1] : bounds[2]] == b"\xcc" + msgpack.packb(seq) + b"\xdd"
+
+
+def test_publishing_once_through_puts_every_packet_once_in_order(
+    drive: tuple[list[SimPacket], EncodedDrive],
+) -> None:
+    packets, enc = drive
+    sink = _Sink()
+    n = 20
+    vehicles = _vehicles(sink, [(i * TICK_NS) // n for i in range(n)])
+    rounds: list[int] = []
+    stats = publish_schedule(
+        [enc], vehicles, rate=400.0, loop=False, on_round=lambda s: rounds.append(s.total)
+    )
+    assert stats.total == n * len(packets) == sum(len(x) for x in sink.calls.values())
+    assert stats.packets == [n * sum(p.stream is s for p in packets) for s in STREAMS]
+    assert stats.payload_bytes == sum(len(b) for x in sink.calls.values() for b in x)
+    assert rounds == sorted(rounds) and rounds[-1] == stats.total
+    assert len(rounds) < stats.total / 10  # packets go out in rounds, not one wake-up each
+    for (_, s), payloads in sink.calls.items():
+        seqs = [decode(sensor_key("fleet", "x", STREAMS[s]), p).seq for p in payloads]
+        assert seqs == list(range(len(seqs)))
+
+
+def test_publishing_stops_on_request_and_after_the_duration(
+    drive: tuple[list[SimPacket], EncodedDrive],
+) -> None:
+    _, enc = drive
+    sink = _Sink()
+    stats = publish_schedule([enc], _vehicles(sink, [0, 50_000_000]), loop=True, duration_s=0.5)
+    # 0.5 s of real time: ≈ 30 packets per vehicle-second
+    assert 10 <= stats.total <= 45
+    stop = threading.Event()
+    stop.set()
+    assert publish_schedule([enc], _vehicles(_Sink(), [0]), loop=True, stop=stop).total == 0
+
+
+def test_rate_and_lateness_of_a_real_time_schedule(
+    drive: tuple[list[SimPacket], EncodedDrive],
+) -> None:
+    _, enc = drive
+    sink = _Sink()
+    n = 200
+    phases = [(i * TICK_NS) // n for i in range(n)]
+    stats = publish_schedule(
+        [enc], _vehicles(sink, phases), loop=True, duration_s=1.5, keep_lateness=True
+    )
+    due = sum(int(np.searchsorted(enc.arrival_ns, 1_500_000_000 - ph, "right")) for ph in phases)
+    assert 0.9 * due <= stats.total <= due
+    assert stats.rounds is not None
+    late = sorted(ms for _, ms, _ in stats.rounds)
+    assert late[len(late) // 2] < 20.0  # half the rounds within 20 ms of due (busy CI hosts)
