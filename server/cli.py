@@ -8,7 +8,8 @@ Subcommands::
     slipfleet replay   PATH [--rate X] [--connect ENDPOINT]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
-    slipfleet bench    {accuracy,storage,series,live,viewer,throughput,wheels,frontend,publisher} [OPTIONS…]
+    slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
+                                          wheels frontend publisher
     slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
