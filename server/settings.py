@@ -96,7 +96,13 @@ class StorageSettings(BaseModel):
     sqlite_file: str = "slipfleet.sqlite"
     batch_max_rows: int = Field(5000, ge=1, description="rows per transaction at most")
     commit_interval_s: float = Field(
-        0.5, gt=0, le=1.0, description="writer commits at least this often"
+        0.1,
+        gt=0,
+        le=1.0,
+        description=(
+            "writer commits at least this often (stored rows lag sensor time by up to this "
+            "much more; longer intervals mean fewer, larger transactions)"
+        ),
     )
     backlog_max_rows: int = Field(2_000_000, ge=1000, description="in-memory backlog bound")
     retention_days: float = Field(0, ge=0, description="delete estimates older than this; 0 = keep")
@@ -150,7 +156,7 @@ class IngestSettings(BaseModel):
         5, ge=2, le=1000, description="consistent clock-jump packets in a row that re-anchor"
     )
     advance_step_ms: int = Field(
-        200,
+        100,
         ge=1,
         le=5_000,
         description=(

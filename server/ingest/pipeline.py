@@ -10,7 +10,8 @@
                                                                    sinks.on_estimates(batch)
 
 The pipeline thread owns the estimator registry, every reorder buffer and the counters' writes,
-so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` it releases the
+so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` (longer when a tick
+takes more than a third of that: see :data:`TICK_DUTY`) it releases the
 packets whose time has come, pushes them to the vehicle's estimators, advances them to the
 released horizon (each time it crosses a multiple of ``advance_step_ms``; with the MDSF tick
 as the step, as soon as a tick is due) and hands the primary
@@ -67,6 +68,11 @@ ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
 #: Decoded bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at
 #: most: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
 QUEUE_BURSTS = 64
+#: A pipeline tick (release, estimate, deliver) may take at most 1/TICK_DUTY of the wall time:
+#: when ticks get slower than ``process_interval_ms / TICK_DUTY`` they are spaced further apart.
+TICK_DUTY = 3
+#: ... but ticks are never spaced further apart than this (live values lag by up to this).
+MAX_TICK_GAP_NS = 100_000_000
 #: Wall time between two visits of every active vehicle's reorder buffer (idle release);
 #: in between, a tick visits only the vehicles that received packets.
 IDLE_SWEEP_NS = 100_000_000
@@ -305,7 +311,15 @@ class Pipeline:
                     # While bursts wait in the queue, "now" for the idle release is the receive
                     # time of the burst just handled: a backlog must not look like silence.
                     self._tick(now if self._queue.empty() else received_ns, flush=False)
-                    next_tick = max(next_tick + self._interval_ns, now + self._interval_ns // 4)
+                    # A tick costs a fixed part per estimator call plus a part per vehicle: as
+                    # the fleet grows, ticks come less often (each at most 1/TICK_DUTY of the
+                    # time) and batch more vehicles per call, instead of falling behind.
+                    spent = self._clock() - now
+                    next_tick = max(
+                        next_tick + self._interval_ns,
+                        now + self._interval_ns // 4,
+                        now + min(TICK_DUTY * spent, MAX_TICK_GAP_NS),
+                    )
                 if now >= next_counters:
                     self._estimator_counters = self._registry.counters()
                     self._anchors = self._registry.anchors()
