@@ -99,6 +99,9 @@ class Offer:
     seq_restart: bool = False
 
 
+_ACCEPTED = Offer(Verdict.ACCEPTED)
+
+
 class SeqTracker:
     """Duplicate and gap detection for one stream (a bit mask over the last SEQ_WINDOW numbers)."""
 
@@ -265,7 +268,10 @@ class ReorderBuffer:
         self._jumps_in_row = 0
         if self._released_ns is not None and packet.first_stamp_ns <= self._released_ns:
             return Offer(Verdict.LATE, lost_delta, restarted)
-        return Offer(self._take(packet, now_ns, seq_restart=restarted), lost_delta, restarted)
+        verdict = self._take(packet, now_ns, seq_restart=restarted)
+        if lost_delta == 0 and not restarted:
+            return _ACCEPTED  # the common case: no new (frozen) object per packet
+        return Offer(verdict, lost_delta, restarted)
 
     def _clock_jump(self, packet: Packet, now_ns: int, jump_ns: int) -> Verdict | None:
         """CLOCK_JUMP or REANCHOR when ``packet`` leaves the vehicle's time line, else None."""
