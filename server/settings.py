@@ -155,6 +155,16 @@ class IngestSettings(BaseModel):
     reanchor_after_packets: int = Field(
         5, ge=2, le=1000, description="consistent clock-jump packets in a row that re-anchor"
     )
+    estimate_interval_ms: int = Field(
+        50,
+        ge=1,
+        le=1_000,
+        description=(
+            "the estimators are called at most this often, for every vehicle with a tick due "
+            "(a call has a fixed cost: fewer, larger calls hold more vehicles); live values lag "
+            "by up to this much more"
+        ),
+    )
     advance_step_ms: int = Field(
         100,
         ge=1,

@@ -56,6 +56,7 @@ def make(
                 "lateness_ms": lateness_ms,
                 "unknown_vehicle": policy,
                 "process_interval_ms": 5,
+                "estimate_interval_ms": 5,
                 "advance_step_ms": advance_step_ms,
             }
         )
