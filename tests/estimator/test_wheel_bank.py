@@ -1,4 +1,5 @@
-"""WheelBank / query_many against the pre-bank per-tracker implementation (the oracle)."""
+"""WheelBank / query_many against trackers queried one by one, each in a bank of its own (the
+oracle: batching many wheels into one fit must not change any wheel's result)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ from estimator.wheel_speed import (
     WheelTracker,
     query_many,
 )
-from server.bench import wheels_legacy
 
 NS = 120
 T0 = 1_700_000_000_000_000_000
@@ -83,7 +83,17 @@ def _replay(feeds: list[list], old: list, new: list, interval_ms: int, ticks: in
                 new[i].push(s, d)
                 ptr[i] += 1
         q = (now - 150_000_000 - np.arange(ticks)[::-1] * (step // ticks)).astype(np.int64)
-        yield wheels_legacy.query_many(old, q), query_many(new, q)
+        yield solo_query(old, q), query_many(new, q)
+
+
+def solo(cfg: WheelSpeedConfig, n: int) -> list[WheelTracker]:
+    """``n`` trackers, each in a bank of its own (never merged: see :func:`solo_query`)."""
+    return [WheelTracker(cfg) for _ in range(n)]
+
+
+def solo_query(trackers: list[WheelTracker], q: np.ndarray) -> list[WheelSpeedResult]:
+    """Each tracker queried on its own."""
+    return [t.query(q) for t in trackers]
 
 
 def _assert_same(a: list[WheelSpeedResult], b: list[WheelSpeedResult]) -> float:
@@ -117,14 +127,14 @@ def test_bank_equals_per_tracker_implementation(
     feeds.append([p for p in feeds[0] if p[0] > T0 + 6_000_000_000])  # starts late
     bank = WheelBank(cfg)
     new = [WheelTracker(cfg, bank) for _ in feeds]
-    old = [wheels_legacy.WheelTracker(cfg) for _ in feeds]
+    old = solo(cfg, len(feeds))
     worst = 0.0
     for old_res, new_res in _replay(feeds, old, new, interval_ms, ticks):
         worst = max(worst, _assert_same(old_res, new_res))
     assert [t.skipped for t in new] == [t.skipped for t in old]
     assert sum(t.skipped for t in new) > 0
     for a, b in zip(new, old, strict=True):
-        assert np.array_equal(a.held_stamp_ns, b._stamp)  # same history kept
+        assert np.array_equal(a.held_stamp_ns, b.held_stamp_ns)  # same history kept
         assert np.allclose(a.tooth_correction_rad, b.tooth_correction_rad, atol=1e-12)
         assert a.calibrated_edges == b.calibrated_edges
     assert worst <= 1e-9
@@ -134,7 +144,7 @@ def test_trackers_of_separate_banks_merge_and_keep_their_state() -> None:
     cfg = WheelSpeedConfig(teeth_per_rev=NS)
     rng = np.random.default_rng(8)
     feeds = [_packets(rng, k) for k in ("reverse", "accel", "stop_go")]
-    old = [wheels_legacy.WheelTracker(cfg) for _ in feeds]
+    old = solo(cfg, len(feeds))
     new = [WheelTracker(cfg) for _ in feeds]  # one bank each
     assert len({id(t._bank) for t in new}) == 3
     ptr = [0] * len(feeds)
@@ -149,7 +159,7 @@ def test_trackers_of_separate_banks_merge_and_keep_their_state() -> None:
         if call < 40:  # calibrated and trimmed on their own first
             _assert_same([t.query(q) for t in old], [t.query(q) for t in new])
         else:  # then moved into one bank by query_many, state and all
-            _assert_same(wheels_legacy.query_many(old, q), query_many(new, q))
+            _assert_same(solo_query(old, q), query_many(new, q))
             assert len({id(t._bank) for t in new}) == 1
     assert [t.skipped for t in new] == [t.skipped for t in old]
 
@@ -185,11 +195,11 @@ def test_bank_query_gives_arrays_per_slot() -> None:
 
 def test_churn_moves_and_compacts_rings_without_changing_results() -> None:
     # wheels come and go, rings grow (unqueried wheels hold every edge) and are abandoned:
-    # the arena is compacted, and the survivors' speeds still equal the pre-bank tracker's
+    # the arena is compacted, and the survivors' speeds still equal those of trackers alone
     cfg = WheelSpeedConfig(teeth_per_rev=NS)
     bank = WheelBank(cfg)
     steady = [WheelTracker(cfg, bank) for _ in range(3)]
-    oracle = [wheels_legacy.WheelTracker(cfg) for _ in range(3)]
+    oracle = solo(cfg, 3)
     period_ns = [9_000_000, 4_000_000, 23_000_000]
     for rnd in range(6):
         churn = [WheelTracker(cfg, bank) for _ in range(100)]
