@@ -16,7 +16,9 @@ split into the encoder wheel-speed fit (``FleetFrontEnd.fit_wheels``, i.e.
 :func:`estimator.wheel_speed.query_many`), the filter steps (``MdsfEngine.step``) and the rest
 (front end, slip, output rows); the two are timed by wrapping those attributes of the fleet
 under test. Target: ``advance`` ≤ 0.3 ms and ``push`` ≤ 0.1 ms per vehicle-second with 1,000
-vehicles at 100 ms.
+vehicles at 100 ms. Baseline in the same run (``alone ms``): every vehicle in a fleet of its own,
+advanced by one call each, as a per-vehicle loop would; ``× batched`` is its cost over the
+batched call's.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ WARMUP_S = 2.0
 LAG_MS = 150
 """Horizon of each ``advance`` behind the newest arrival (the pipeline's reorder buffer)."""
 _START_NS = 1_700_000_000_000_000_000
+ALONE_MAX = 50
+"""Vehicles run by the per-vehicle baseline (its cost per vehicle does not depend on N)."""
 
 
 def _sources(
@@ -120,6 +124,44 @@ def measure(
     }
 
 
+def measure_alone(
+    sources: Sequence[tuple[VehicleConfig, list[tuple[int, Measurement]]]],
+    n_vehicles: int,
+    interval_ms: int,
+    seconds: float,
+) -> float:
+    """The baseline: each vehicle in an ``MdsfFleet`` of its own, one ``advance`` call per
+    vehicle (a per-vehicle loop); ``advance`` ms per vehicle-second of sensor data. The cost
+    is linear in the vehicles, so at most ``ALONE_MAX`` of them are run."""
+    n = min(n_vehicles, ALONE_MAX)
+    fleets = []
+    for k in range(n):
+        f = MdsfFleet()
+        f.add_vehicle("v", sources[k % len(sources)][0])
+        fleets.append(f)
+    streams = [sources[k % len(sources)][1] for k in range(n)]
+    pos = [0] * n
+    step_ns = interval_ms * 1_000_000
+    n_steps = round(seconds * 1000 / interval_ms)
+    warm = round(WARMUP_S * 1000 / interval_ms)
+    advance_s = 0.0
+    for s in range(n_steps):
+        now = _START_NS + (s + 1) * step_ns
+        for k, f in enumerate(fleets):
+            st, i = streams[k], pos[k]
+            while i < len(st) and st[i][0] <= now:
+                f.push("v", st[i][1])
+                i += 1
+            pos[k] = i
+        horizon = now - LAG_MS * 1_000_000
+        b = time.process_time()
+        for f in fleets:
+            f.advance({"v": horizon})
+        if s >= warm:
+            advance_s += time.process_time() - b
+    return advance_s / (n * (n_steps - warm) * interval_ms / 1000) * 1e3
+
+
 def run(
     json_path: Path | str | None = None,
     *,
@@ -134,17 +176,20 @@ def run(
     print(f"MdsfFleet CPU per vehicle-second of sensor data ({seconds:g} s of field_work)")
     print(
         f"{'vehicles':>8} {'interval':>9} {'push ms':>8} {'advance ms':>11} "
-        f"{'wheel fit':>10} {'engine':>8} {'rest':>8} {'rows':>9}"
+        f"{'wheel fit':>10} {'engine':>8} {'rest':>8} {'rows':>9} {'alone ms':>9} "
+        f"{'× batched':>9}"
     )
     for n in sizes:
         for iv in intervals_ms:
             r = measure(sources, n, iv, seconds)
+            r["alone_advance_ms"] = measure_alone(sources, n, iv, seconds)
             cases.append({"vehicles": n, "interval_ms": iv, **r})
             rest = r["advance_ms"] - r["wheel_fit_ms"] - r["engine_ms"]
             print(
                 f"{n:>8} {iv:>6} ms {r['push_ms']:>8.3f} {r['advance_ms']:>11.3f} "
                 f"{r['wheel_fit_ms']:>10.3f} {r['engine_ms']:>8.3f} {rest:>8.3f} "
-                f"{int(r['rows']):>9}",
+                f"{int(r['rows']):>9} {r['alone_advance_ms']:>9.3f} "
+                f"{r['alone_advance_ms'] / r['advance_ms']:>8.1f}x",
                 flush=True,
             )
     result = {"seconds": seconds, "cases": cases}
