@@ -409,7 +409,10 @@ class MdsfEngine:
             # Slip changes the accelerometer cannot see (a drawbar load set down or lifted,
             # soil, tyre pressure) show as rim innovations that keep one sign: their running
             # mean beyond what white innovations explain opens that wheel's rim excess.
-            q_drift = self._rim_drift_noise(slots) if cfg.rim_drift_tau_s > 0 else None
+            q_drift = None
+            if cfg.rim_drift_tau_s > 0:
+                lost_s = (stamp - self.last_fused_ns[slots]) * _NS
+                q_drift = self._rim_drift_noise(slots, init & (lost_s > cfg.gnss_timeout_s))
             for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
                 Q[:, st, st] += q_e
                 if q_drift is not None:
@@ -654,18 +657,28 @@ class MdsfEngine:
         st[:, :, 1] = var
         self.rim_innov[slots] = st
 
-    def _rim_drift_noise(self, slots: IntArray) -> FloatArray:
+    def _rim_drift_noise(self, slots: IntArray, gnss_lost: BoolArray | None = None) -> FloatArray:
         """Extra rim-excess process noise per wheel from persistent rim innovations, (k, 2).
 
         The running mean ``m`` of a rim row's innovation (:meth:`_track_rim_innovation`)
         beyond ``rim_drift_sigma`` of its white-noise spread means the slip moves faster than
         the model lets it; the excess ``m² − σ²·var`` is let into the rim excess over
         ``rim_drift_tau_s`` [(m/s)² per tick].
+
+        That reading needs the speed anchored to the ground. While GNSS is lost
+        (``gnss_lost``, shape (k,)) a persistent rim innovation is as much the integrated
+        accelerometer error (gravity leaking through the drifting pitch, bias) as a slip
+        change, and the rows cannot tell them apart; only the share
+        ``outage_rim_drift_share`` of the excess goes to the rim excess, so the slip state
+        does not soak up the speed's drift.
         """
         cfg = self.config
         st = self.rim_innov[slots]
         excess = st[:, :, 0] ** 2 - cfg.rim_drift_sigma**2 * st[:, :, 1]
-        return np.maximum(excess, 0.0) * (self.dt_s / cfg.rim_drift_tau_s)
+        q = np.maximum(excess, 0.0) * (self.dt_s / cfg.rim_drift_tau_s)
+        if gnss_lost is not None:
+            q = q * np.where(gnss_lost, cfg.outage_rim_drift_share, 1.0)[:, None]
+        return q
 
     def tyre_gain(self, slots: IntArray) -> FloatArray:
         """Slope of the traction curve ``k = dε/d(f/g)`` in force for each slot, shape (k,).

@@ -210,6 +210,11 @@ class MdsfConfig:
         (slip moving with what the accelerometer cannot see: drawbar, soil); 0 turns it off [s].
     rim_drift_sigma : float
         Threshold of that test, in standard deviations of the running mean [-].
+    outage_rim_drift_share : float
+        Share of that extra noise kept while GNSS is lost (no fused GNSS speed for more than
+        ``gnss_timeout_s``): without a ground reference a persistent rim innovation is as
+        likely the accelerometer-driven speed drifting (pitch error, bias) as the slip moving,
+        so only this part opens the rim excess; 1 keeps it all, 0 closes it [-].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -273,6 +278,7 @@ class MdsfConfig:
     slip_jump_sigma: float = 3.0
     rim_drift_tau_s: float = 1.0
     rim_drift_sigma: float = 2.0
+    outage_rim_drift_share: float = 0.3
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
     rim_texture_rel: float = 0.003
@@ -307,6 +313,7 @@ class MdsfConfig:
                 "tyre_gain_tau_s",
                 "tyre_gain_range",
                 "rim_drift_tau_s",
+                "outage_rim_drift_share",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
@@ -325,6 +332,9 @@ class MdsfConfig:
                 raise ConfigError(f"{name} must be >= 0")
         if not 0.001 <= self.tick_s <= 1.0:
             raise ConfigError(f"tick_s must be within 0.001..1 s, got {self.tick_s!r}")
+        share = self.outage_rim_drift_share
+        if not (isinstance(share, int | float) and math.isfinite(share) and 0.0 <= share <= 1.0):
+            raise ConfigError("outage_rim_drift_share must be within [0, 1]")
         if not (math.isfinite(self.gnss_noise_adapt) and 0.0 <= self.gnss_noise_adapt < 1.0):
             raise ConfigError("gnss_noise_adapt must be within [0, 1)")
 

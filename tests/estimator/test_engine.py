@@ -519,3 +519,23 @@ def test_persistent_rim_innovations_open_the_rim_excess() -> None:
     assert np.mean(q[:, 1, :] > 0) < 0.1
     off = MdsfEngine(dataclasses.replace(cfg, rim_drift_tau_s=0.0))
     assert off.config.rim_drift_tau_s == 0.0
+
+
+def test_rim_drift_noise_is_cut_to_its_share_while_gnss_is_lost() -> None:
+    """Hand-computed: running mean m = 0.03 m/s, var of the mean 1e-4 (m/s)², σ = 2, τ = 1 s,
+    dt = 0.1 s: q = (0.03² − 4·1e-4)·0.1/1 = 5e-5 (m/s)² per tick; while GNSS is lost only the
+    share 0.3 of it, 1.5e-5; a wheel whose mean is within its white spread gets none."""
+    cfg = MdsfConfig(
+        tick_s=0.1, rim_drift_tau_s=1.0, rim_drift_sigma=2.0, outage_rim_drift_share=0.3
+    )
+    engine = MdsfEngine(cfg)
+    slots = np.array([engine.add(VehicleConfig()), engine.add(VehicleConfig())])
+    engine.rim_innov[slots, 0] = (0.03, 1e-4)
+    engine.rim_innov[slots, 1] = (0.01, 1e-4)  # 0.01² < 4·1e-4: white
+    q = engine._rim_drift_noise(slots, np.array([False, True]))
+    assert q[0, 0] == pytest.approx(5e-5, rel=1e-12)
+    assert q[1, 0] == pytest.approx(1.5e-5, rel=1e-12)
+    assert q[0, 1] == 0.0 and q[1, 1] == 0.0
+    assert np.array_equal(engine._rim_drift_noise(slots), q[[0, 0]])
+    with pytest.raises(ValueError):
+        MdsfConfig(outage_rim_drift_share=1.5)
