@@ -40,7 +40,8 @@ class SlipResult:
     slip_pct : ndarray
         Slip in percent; NaN where not valid.
     std_pct : ndarray
-        1-sigma slip uncertainty in percent; NaN where not valid.
+        1-sigma slip uncertainty in percent; NaN where not valid or where an input
+        uncertainty is not finite.
     valid : ndarray, bool
         A value was given (finite inputs, not at standstill).
     standstill : ndarray, bool
@@ -95,7 +96,10 @@ def slip_pct(
     rim_branch = abs_a >= abs_v
     d_a = np.where(rim_branch, abs_v / denom**2, 1.0 / denom)
     d_v = np.where(rim_branch, 1.0 / denom, abs_a / denom**2)
-    std = 100.0 * np.sqrt((d_a * sa) ** 2 + (d_v * sv) ** 2)
+    with np.errstate(over="ignore", invalid="ignore"):
+        std = 100.0 * np.hypot(d_a * sa, d_v * sv)
+    # an infinite input uncertainty (a degenerate encoder fit) says nothing: unknown, not inf
+    std = np.where(np.isfinite(std), std, np.nan)
     return SlipResult(
         slip_pct=np.where(valid, s, np.nan),
         std_pct=np.where(valid, std, np.nan),

@@ -59,6 +59,16 @@ def test_non_finite_inputs_are_invalid_not_standstill() -> None:
     assert not np.any(r.valid) and not np.any(r.standstill)
 
 
+def test_infinite_or_huge_uncertainty_gives_unknown_std_not_inf() -> None:
+    # a degenerate encoder fit can report an infinite (or overflowing) rim-speed std: the slip
+    # value stands, its uncertainty is unknown (NaN), never inf
+    r = slip_pct(np.array([3.3, 3.3, 3.3]), 3.0, THR, np.array([np.inf, 1e308, 0.02]), 0.05)
+    assert r.valid.tolist() == [True, True, True]
+    assert np.isnan(r.std_pct[0]) and np.isnan(r.std_pct[1])
+    assert np.isfinite(r.std_pct[2])
+    assert np.allclose(r.slip_pct, 100 * 0.3 / 3.3)  # eq. (8), driving
+
+
 def test_threshold_broadcasts_per_row() -> None:
     r = slip_pct(np.array([0.3, 0.3]), np.array([0.25, 0.25]), np.array([0.2, 0.5]))
     assert r.valid.tolist() == [True, False]
