@@ -19,6 +19,7 @@ here copies per sample, so a decoder can hand over views of its buffers.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
@@ -35,6 +36,7 @@ __all__ = [
     "Wheel",
     "WheelEdges",
     "WheelSpeeds",
+    "concat_estimates",
     "empty_estimates",
 ]
 
@@ -206,4 +208,27 @@ def empty_estimates(n: int = 0) -> np.ndarray:
     for name, kind in ESTIMATE_FIELDS:
         if kind == "f8":
             out[name] = np.nan
+    return out
+
+
+_ROW_VOID = np.dtype((np.void, ESTIMATE_DTYPE.itemsize))
+
+
+def concat_estimates(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """Concatenate estimate row arrays into one ESTIMATE_DTYPE array.
+
+    ``np.concatenate`` of structured arrays promotes their dtypes in Python code (~50 µs per
+    array: ~5 µs per row for a batch of small packets); viewed as fixed-size void rows they
+    concatenate as one copy. Parts of another structured dtype are converted field by field.
+    One part is returned as it is.
+    """
+    if len(parts) == 1:
+        return parts[0]
+    if all(p.dtype == ESTIMATE_DTYPE for p in parts):
+        return np.concatenate([p.view(_ROW_VOID) for p in parts]).view(ESTIMATE_DTYPE)
+    out = np.empty(sum(p.shape[0] for p in parts), dtype=ESTIMATE_DTYPE)
+    i = 0
+    for p in parts:
+        out[i : i + p.shape[0]] = p
+        i += p.shape[0]
     return out

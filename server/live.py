@@ -52,7 +52,7 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from estimator.types import ESTIMATE_DTYPE, EstimateFlag
+from estimator.types import ESTIMATE_DTYPE, EstimateFlag, concat_estimates
 
 __all__ = [
     "LIVE_FIELDS",
@@ -343,7 +343,7 @@ class LiveHub:
                 (self._slot_of(v) for v, _ in chunks), dtype=np.int64, count=len(chunks)
             )
             counts = np.fromiter((r.shape[0] for _, r in chunks), dtype=np.int64, count=len(chunks))
-            rows = _concat_rows([r for _, r in chunks], int(counts.sum()))
+            rows = concat_estimates([r for _, r in chunks])
             slot = np.repeat(slots, counts)
             order = np.argsort(slot, kind="stable")  # group by vehicle, keep time order
             if not np.array_equal(order, np.arange(order.shape[0])):
@@ -539,21 +539,6 @@ class LiveHub:
             col = vals[:, i]
             out[f] = [int(x) for x in col] if f == "flags" else _rounded(col, 3)
         return out
-
-
-def _concat_rows(parts: list[np.ndarray], total: int) -> np.ndarray:
-    """Concatenate structured row arrays (faster than ``np.concatenate``, which promotes fields)."""
-    if len(parts) == 1:
-        return parts[0]
-    if all(p.dtype == ESTIMATE_DTYPE for p in parts):
-        return np.frombuffer(b"".join(p.tobytes() for p in parts), dtype=ESTIMATE_DTYPE)
-    out = np.empty(total, dtype=ESTIMATE_DTYPE)
-    i = 0
-    for p in parts:
-        n = p.shape[0]
-        out[i : i + n] = p
-        i += n
-    return out
 
 
 def _rounded(a: npt.ArrayLike, digits: int) -> list[float | None]:

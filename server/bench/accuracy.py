@@ -60,6 +60,7 @@ from estimator.base import FleetEstimator
 from estimator.config import VehicleConfig
 from estimator.sim import SCENARIOS, SimRun, replay_arrivals, simulate, truth_at
 from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estimates
+from server.bench import int_list
 
 __all__ = [
     "DEFAULT_SEED",
@@ -404,7 +405,6 @@ def run(
                 row["floors_pass"] = ok
                 row["floors_failed"] = failed
             results.append(row)
-    product_rows = [r for r in results if r["method"] == "product"]
     result: dict[str, Any] = {
         "seed": seed,
         "start_ns": START_NS,
@@ -413,12 +413,24 @@ def run(
             {"metric": k, "op": op, "bound": b, "scenarios": which} for k, op, b, which in FLOORS
         ],
         "results": results,
-        "all_pass": bool(product_rows) and all(r["floors_pass"] for r in product_rows),
     }
+    return _finish(result, results, json_path, None if quiet else print_table, out)
+
+
+def _finish(
+    result: dict[str, Any],
+    rows: list[dict[str, Any]],
+    json_path: str | Path | None,
+    printer: Callable[..., None] | None,
+    out: Any,
+) -> dict[str, Any]:
+    """Judge ``all_pass`` on the product rows, write the JSON, print the table."""
+    product_rows = [r for r in rows if r["method"] == "product"]
+    result["all_pass"] = bool(product_rows) and all(r["floors_pass"] for r in product_rows)
     if json_path is not None:
         Path(json_path).write_text(json.dumps(_jsonable(result), indent=2, allow_nan=False) + "\n")
-    if not quiet:
-        print_table(result, file=out)
+    if printer is not None:
+        printer(result, file=out)
     return result
 
 
@@ -528,7 +540,6 @@ def run_seeds(
         for seed in seed_list
     ]
     summary = summarize_seeds(runs)
-    product_rows = [r for r in summary if r["method"] == "product"]
     result: dict[str, Any] = {
         "seeds": seed_list,
         "start_ns": START_NS,
@@ -536,13 +547,8 @@ def run_seeds(
         "floors": runs[0]["floors"],
         "summary": summary,
         "runs": runs,
-        "all_pass": bool(product_rows) and all(r["floors_pass"] for r in product_rows),
     }
-    if json_path is not None:
-        Path(json_path).write_text(json.dumps(_jsonable(result), indent=2, allow_nan=False) + "\n")
-    if not quiet:
-        print_seeds_table(result, file=out)
-    return result
+    return _finish(result, summary, json_path, None if quiet else print_seeds_table, out)
 
 
 def _estimator_runner(
@@ -660,14 +666,6 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
     )
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError as exc:
-        raise ValueError(f"expected comma-separated integers, got {text!r}") from exc
-    if not values:
-        raise ValueError("expected at least one seed")
-    return values
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -687,7 +685,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     group.add_argument("--seed", type=int, default=DEFAULT_SEED)
     group.add_argument(
         "--seeds",
-        type=_int_list,
+        type=int_list,
         default=None,
         help="comma-separated seeds: worst and mean per scenario, floors on the worst",
     )

@@ -35,6 +35,7 @@ from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.engine import MdsfFleet
 from estimator.sim import simulate
+from server.bench import int_list
 
 __all__ = ["main", "run"]
 
@@ -198,17 +199,15 @@ def run(
     return result
 
 
-def _int_list(text: str) -> list[int]:
-    return [int(v) for v in text.split(",") if v.strip()]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m server.bench.frontend [--sizes …] [--intervals …] [--seconds S]
     [--json PATH]``."""
     p = argparse.ArgumentParser(prog="python -m server.bench.frontend", description=__doc__)
-    p.add_argument("--sizes", type=_int_list, default=[50, 200, 1000], help="fleet sizes")
+    p.add_argument("--sizes", type=int_list, default=[50, 200, 1000], help="fleet sizes")
     p.add_argument(
-        "--intervals", type=_int_list, default=[50, 100, 200], help="advance call intervals [ms]"
+        "--intervals", type=int_list, default=[50, 100, 200], help="advance call intervals [ms]"
     )
     p.add_argument("--seconds", type=float, default=20.0, help="sensor seconds per case")
     p.add_argument("--json", type=Path, default=None, help="write the result here")

@@ -43,6 +43,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from estimator.types import EstimateFlag, empty_estimates
+from server.bench import percentile
 from server.ports import free_port as _free_port
 
 __all__ = ["FeedThread", "SyntheticFleet", "main"]
@@ -209,9 +210,6 @@ async def _watch(
                 out.append((recv_ns - max(int(s) for s in msg["stamp_ns"])) / 1e6)
 
 
-def _pct(values: list[float], q: float) -> float:
-    s = sorted(values)
-    return s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))]
 
 
 def _synthetic_setup(n: int, rate_hz: float) -> tuple[int, list[str], Any, Callable[[], None]]:
@@ -363,13 +361,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         rate = len(vals) / args.seconds / clients
         print(
             f"{name:<34}{len(vals):>9}{rate:>8.1f}{statistics.median(vals):>9.1f}"
-            f"{_pct(vals, 99):>9.1f}{max(vals):>9.1f}"
+            f"{percentile(vals, 99):>9.1f}{max(vals):>9.1f}"
         )
 
     if args.browser and render_ms:
         print(
             f"\nfleet page, applying one message for {args.vehicles} vehicles: "
-            f"p50 {statistics.median(render_ms):.1f} ms, p99 {_pct(render_ms, 99):.1f} ms "
+            f"p50 {statistics.median(render_ms):.1f} ms, p99 {percentile(render_ms, 99):.1f} ms "
             f"({len(render_ms)} messages)"
         )
 

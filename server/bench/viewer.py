@@ -24,10 +24,10 @@ import statistics
 import time
 from collections.abc import Sequence
 
-import numpy as np
 import viser
 
 from estimator.config import VehicleGeometry
+from server.bench import percentile
 from server.bench.live import SyntheticFleet
 from server.live import LiveHub
 from server.ports import free_port as _free_port
@@ -41,9 +41,6 @@ _T0 = 1_700_000_000 * 1_000_000_000
 _STEP_NS = 200_000_000
 
 
-def _pct(v: list[float], q: float) -> float:
-    s = sorted(v)
-    return s[min(len(s) - 1, max(0, int(np.ceil(q / 100 * len(s))) - 1))]
 
 
 def bench_batched(n: int, frames: int) -> list[float]:
@@ -141,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ):
         print(
             f"{name:<14}{handles:>9}{statistics.median(vals) * 1e3:>9.2f}"
-            f"{_pct(vals, 99) * 1e3:>9.2f}{statistics.mean(vals) * 1e3:>9.2f}"
+            f"{percentile(vals, 99) * 1e3:>9.2f}{statistics.mean(vals) * 1e3:>9.2f}"
         )
     ratio = statistics.median(per_vehicle) / statistics.median(batched)
     print(f"\nper-vehicle / batched (p50): {ratio:.1f}x")

@@ -52,6 +52,7 @@ from estimator.wheel_speed import (
     WheelTracker,
     query_many,
 )
+from server.bench import int_list
 
 __all__ = ["main", "run"]
 
@@ -266,16 +267,14 @@ def _one_call_per_wheel(
     return [t.query(query_ns) for t in trackers]
 
 
-def _int_list(text: str) -> list[int]:
-    return [int(x) for x in text.split(",") if x.strip()]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m server.bench.wheels [--vehicles 100,1000,3000] [--intervals 50,100]
     [--seconds S] [--baseline-seconds S] [--no-baseline] [--json PATH]``."""
     p = argparse.ArgumentParser(prog="python -m server.bench.wheels", description=__doc__)
-    p.add_argument("--vehicles", type=_int_list, default=[100, 1000, 3000])
-    p.add_argument("--intervals", type=_int_list, default=[50, 100], help="call interval, ms")
+    p.add_argument("--vehicles", type=int_list, default=[100, 1000, 3000])
+    p.add_argument("--intervals", type=int_list, default=[50, 100], help="call interval, ms")
     p.add_argument("--seconds", type=float, default=10.0, help="sensor seconds timed (new)")
     p.add_argument(
         "--baseline-seconds",

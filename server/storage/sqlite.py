@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator.types import ESTIMATE_DTYPE
+from estimator.types import ESTIMATE_DTYPE, concat_estimates
 from server.storage import migrations
 from server.storage._columns import check_rows, fields_dtype, select_fields
 from server.storage.base import StorageDataError, StorageError, TokenRecord, VehicleRecord
@@ -343,7 +343,9 @@ class SqliteStore:
                     conn.execute("COMMIT")
         except sqlite3.Error as exc:
             raise _wrap(exc) from exc
-        rows = pages[0] if len(pages) == 1 else np.concatenate(pages)
+        if not pages:
+            return np.empty(0, dtype=ESTIMATE_DTYPE)
+        rows = concat_estimates(pages)
         stamps = rows["stamp_ns"]
         if not np.all(stamps[1:] > stamps[:-1]):
             # group_concat's order follows the ordered subquery in practice, but SQLite does
@@ -355,7 +357,7 @@ class SqliteStore:
     def _packed_pages(
         conn: sqlite3.Connection, vkey: int, start_ns: int, end_ns: int
     ) -> list[np.ndarray]:
-        pages = [np.empty(0, dtype=ESTIMATE_DTYPE)]
+        pages: list[np.ndarray] = []
         while True:
             count, blob = conn.execute(
                 "SELECT count(*), CAST(group_concat(packed, x'') AS BLOB) FROM ("

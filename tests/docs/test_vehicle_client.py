@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 from collections import Counter
-from pathlib import Path
 
 import pytest
 import zenoh
@@ -15,8 +12,7 @@ import zenoh
 from estimator.types import GnssSample, ImuBatch, WheelEdges
 from server.protocol import Stream, decode, decode_config
 from tests.server.ingest.fakes import embedded_router
-
-EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "examples" / "vehicle_client.py"
+from tests.support import run_vehicle_client
 
 
 @pytest.mark.zenoh
@@ -24,22 +20,7 @@ def test_example_client_publishes_decodable_packets() -> None:
     with embedded_router() as (router, zs, endpoint):
         sensors = router.declare_subscriber("fleet/*/sensors/**", zenoh.handlers.FifoChannel(4096))
         configs = router.declare_subscriber("fleet/*/config", zenoh.handlers.FifoChannel(16))
-        proc = subprocess.run(
-            [
-                sys.executable,
-                str(EXAMPLE),
-                "--connect",
-                endpoint,
-                "--vehicle-id",
-                "doc-1",
-                "--seconds",
-                "1.5",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=False,
-        )
+        proc = run_vehicle_client(endpoint, "doc-1", 1.5)
         assert proc.returncode == 0, proc.stderr
         sent = json.loads(proc.stdout.strip().splitlines()[-1])
         time.sleep(0.2)

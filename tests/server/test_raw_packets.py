@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -12,9 +10,7 @@ import pytest
 from server.app_main import ServerThread, build_app
 from server.protocol import decode
 from server.settings import Settings
-from tests.support import free_port
-
-EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "examples" / "vehicle_client.py"
+from tests.support import free_port, run_vehicle_client
 
 
 @pytest.mark.zenoh
@@ -32,22 +28,7 @@ def test_raw_packets_are_stored_when_asked(tmp_path: Path, store_raw: bool) -> N
     server.start()
     try:
         t0 = time.time_ns()
-        proc = subprocess.run(
-            [
-                sys.executable,
-                str(EXAMPLE),
-                "--connect",
-                endpoint,
-                "--vehicle-id",
-                "raw-1",
-                "--seconds",
-                "2",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=False,
-        )
+        proc = run_vehicle_client(endpoint, "raw-1", 2)
         assert proc.returncode == 0, proc.stderr
         runtime = app.state.runtime
         deadline = time.monotonic() + 10

@@ -13,9 +13,9 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
+from estimator.types import concat_estimates
 from server.settings import StorageSettings
 from server.storage import StorageDataError, Store, StoreWriter
-from server.storage._columns import concat_rows
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
@@ -328,11 +328,11 @@ def test_writer_survives_postgres_server_restart() -> None:
         stop_pg_cluster(cluster_dir)
 
 
-def test_concat_rows_equals_numpy_concatenate() -> None:
+def test_concat_estimates_equals_numpy_concatenate() -> None:
     """The writer's merge of a vehicle's packets: same rows as ``np.concatenate``, also from
     strided views and empty parts."""
     a, b = make_rows(10, seed=1), make_rows(7, seed=2)
     parts = [a, b[::2], make_rows(0), a[3:4]]
-    got = concat_rows(parts)
+    got = concat_estimates(parts)
     assert got.flags.c_contiguous and got.flags.writeable
     assert_rows_equal(got, np.concatenate(parts))
