@@ -208,7 +208,6 @@ class MdsfEngine:
         grow("H1", (len(MdsfOut), n), 0.0)
         grow("v0_row", (n,), 0.0)
         grow("Q_base", (n, n), 0.0)
-        grow("accel_bias_walk", (), 0.0)
         grow("initialized", (), False)
         grow("last_fused_ns", (), np.int64(-(2**62)))
         grow("gated_since_ns", (), np.int64(-1))
@@ -232,7 +231,6 @@ class MdsfEngine:
     H1: FloatArray
     v0_row: FloatArray
     Q_base: FloatArray
-    accel_bias_walk: FloatArray
     initialized: BoolArray
     last_fused_ns: IntArray
     gated_since_ns: IntArray
@@ -865,8 +863,8 @@ class MdsfFleet:
         self.front.add(slot, config)
         if slot >= self._min_speed_mps.shape[0]:
             cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
-            self._radius_m = np.resize(self._radius_m, (cap, 2))
-            self._min_speed_mps = np.resize(self._min_speed_mps, cap)
+            grow_slot_array(self, "_radius_m", cap, (2,), 0.0)
+            grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
         self._min_speed_mps[slot] = config.slip.min_ground_speed_mps

@@ -1118,8 +1118,9 @@ class _Batch:
         att = np.stack([heading, pitch, sel[:, _H_ROLL]], axis=1)
         if nf:
             # hold the latest fix; its position, or the latest finite one of this batch
-            last_fix = np.cumsum(np.bincount(rows, minlength=self.n_rows)) - 1
-            has = np.bincount(rows, minlength=self.n_rows) > 0
+            n_fix = np.bincount(rows, minlength=self.n_rows)
+            last_fix = np.cumsum(n_fix) - 1
+            has = n_fix > 0
             held = table[last_fix[has]]
             fin = np.flatnonzero(np.isfinite(table[:, _H_E]))
             last_pos = np.full(self.n_rows, -1, dtype=np.int64)

@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 
+from estimator._slots import grow_slot_array
 from estimator.config import ConfigError
 
 __all__ = [
@@ -476,7 +477,7 @@ _WELL_POSED = 1e-5
 
 A healthy quadratic fit on edges spread over ``[−1, 0]`` has a ratio near 1e-3; below 1e-5 (a
 fit over a stop, edges bunched at one end: about 0.5 % of fits on simulated fleets) cofactors
-and LU differ by up to 1e-7 in the reported std, so those rows take LU as before the bank.
+and LU differ by up to 1e-7 in the reported std, so those rows take LU.
 """
 
 
@@ -640,14 +641,27 @@ class WheelBank:
     :class:`WheelTracker` promises) and queues the batch; the queue is written into the rings,
     angles included, by the next query (or any read of held state) in one pass.
 
-    Results equal :class:`WheelTracker`'s of the pre-bank implementation per wheel: the same
-    edges are held and trimmed, the same tooth calibration runs at the same grid instants.
+    A wheel's results do not depend on which bank holds it or how queries are batched: the
+    same edges are held and trimmed, the same tooth calibration runs at the same grid instants.
 
     Parameters
     ----------
     config : WheelSpeedConfig
         Shared by every slot.
     """
+
+    # per-slot state, grown by _alloc_slots
+    _base: IntArray
+    _mask: IntArray
+    _head: IntArray
+    _count: IntArray
+    _last_angle: FloatArray
+    _angle_before: FloatArray
+    _signed: npt.NDArray[np.bool_]
+    _cal_from: IntArray
+    _cal_upto: IntArray
+    _calibrated: IntArray
+    _delta: FloatArray
 
     def __init__(self, config: WheelSpeedConfig) -> None:
         self.config = config
@@ -677,28 +691,18 @@ class WheelBank:
 
     # --- slots ---------------------------------------------------------------------------
     def _alloc_slots(self, n: int) -> None:
-        def grow(
-            a: np.ndarray | None, fill: float | int | bool, dtype: type, *tail: int
-        ) -> np.ndarray:
-            new: np.ndarray = np.full((n, *tail), fill, dtype=dtype)
-            if a is not None:
-                new[: a.shape[0]] = a
-            return new
-
-        old = getattr(self, "_base", None) is not None
-        g = (lambda name: getattr(self, name)) if old else (lambda name: None)
-        imin = np.iinfo(np.int64).min
-        self._base = grow(g("_base"), 0, np.int64)  # ring start in the arena
-        self._mask = grow(g("_mask"), 0, np.int64)  # ring size − 1 (0: no ring yet)
-        self._head = grow(g("_head"), 0, np.int64)  # edge number of the oldest held edge
-        self._count = grow(g("_count"), 0, np.int64)  # edges ever accepted
-        self._last_angle = grow(g("_last_angle"), 0.0, np.float64)  # angle of the newest edge
-        self._angle_before = grow(g("_angle_before"), 0.0, np.float64)  # before the oldest held
-        self._signed = grow(g("_signed"), False, np.bool_)
-        self._cal_from = grow(g("_cal_from"), 0, np.int64)  # next edge number to calibrate on
-        self._cal_upto = grow(g("_cal_upto"), imin, np.int64)  # last calibration instant
-        self._calibrated = grow(g("_calibrated"), 0, np.int64)
-        self._delta = grow(g("_delta"), 0.0, np.float64, self.config.teeth_per_rev)
+        i64 = np.int64
+        grow_slot_array(self, "_base", n, (), i64(0))  # ring start in the arena
+        grow_slot_array(self, "_mask", n, (), i64(0))  # ring size − 1 (0: no ring yet)
+        grow_slot_array(self, "_head", n, (), i64(0))  # edge number of the oldest held edge
+        grow_slot_array(self, "_count", n, (), i64(0))  # edges ever accepted
+        grow_slot_array(self, "_last_angle", n, (), 0.0)  # angle of the newest edge
+        grow_slot_array(self, "_angle_before", n, (), 0.0)  # before the oldest held
+        grow_slot_array(self, "_signed", n, (), False)
+        grow_slot_array(self, "_cal_from", n, (), i64(0))  # next edge number to calibrate on
+        grow_slot_array(self, "_cal_upto", n, (), i64(np.iinfo(np.int64).min))  # last instant
+        grow_slot_array(self, "_calibrated", n, (), i64(0))
+        grow_slot_array(self, "_delta", n, (self.config.teeth_per_rev,), 0.0)
 
     def add(self) -> int:
         """A new, empty wheel; returns its slot index."""
@@ -1098,7 +1102,7 @@ class WheelBank:
         )
 
     def _trim(self, s: IntArray, last: IntArray, first_in: IntArray) -> None:
-        """Drop edges no later query can use (as the pre-bank tracker did after each query)."""
+        """Drop edges no later query can use."""
         cfg = self.config
         head = self._head[s]
         rel_last = last - head
@@ -1263,7 +1267,6 @@ class WheelTracker:
         """Times of the edges held, shape ``(n,)``."""
         return self._bank.held_stamp_ns(self._slot)
 
-    _stamp = held_stamp_ns  # the name the tracker's held times had before the bank (tests use it)
 
     @property
     def tooth_correction_rad(self) -> FloatArray:

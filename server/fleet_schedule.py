@@ -55,7 +55,6 @@ __all__ = [
     "ScheduleStats",
     "ScheduledVehicle",
     "Window",
-    "packed_seq",
     "publish_schedule",
     "render",
 ]
@@ -71,19 +70,12 @@ STREAMS: tuple[Stream, ...] = tuple(Stream)
 _STREAM_CODE = {s: i for i, s in enumerate(STREAMS)}
 _STAMP_KEY = msgpack.packb("stamp_ns")
 _SEQ_KEY = msgpack.packb("seq")
-_SEQ_TABLE = [msgpack.packb(i) for i in range(1 << 14)]
-
-
-def packed_seq(seq: int) -> bytes:
-    """``seq`` as msgpack packs it (shortest form), from a table for the common range."""
-    return _SEQ_TABLE[seq] if seq < len(_SEQ_TABLE) else msgpack.packb(seq)
 
 
 @dataclass(frozen=True, slots=True)
 class _Template:
     """Where the variable bytes of one encoded packet sit (offsets within the packet)."""
 
-    payload: bytes
     seq_at: int  # the placeholder ``seq = 0`` byte (0x00)
     le_stamps: list[int]  # start of each little-endian int64 stamp
     be_stamps: list[int]  # start of each big-endian (msgpack uint 64) stamp
@@ -125,7 +117,7 @@ def _locate(payload: bytes, stamp_arrays: Sequence[np.ndarray]) -> _Template:
         if n != stamps.size or not np.array_equal(got, stamps.reshape(-1)):
             raise ValueError("located stamps differ from the measurement's")
         pos = start + 8 * n
-    return _Template(payload, seq_key + len(_SEQ_KEY), le, be)
+    return _Template(seq_key + len(_SEQ_KEY), le, be)
 
 
 class EncodedDrive:
@@ -199,10 +191,6 @@ class EncodedDrive:
 
     def __len__(self) -> int:
         return len(self.arrival_ns)
-
-    @property
-    def nbytes(self) -> int:
-        return int(self.buf.nbytes + self.le_pos.nbytes + self.be_pos.nbytes + 8 * 7 * len(self))
 
 
 @dataclass(frozen=True, slots=True)

@@ -179,7 +179,7 @@ class _Vehicle:
     packets: list[SimPacket]
     period_ns: int  # sensor-time length of one loop
     phase_ns: int
-    shift_ns: int  # run stamps -> published stamps, first loop (anchored in run())
+    shift_ns: int  # run stamps -> published stamps, first loop (anchored by publish_fleets)
     config: VehicleConfig
     index: int = 0
     loop: int = 0

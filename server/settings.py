@@ -123,7 +123,12 @@ class IngestSettings(BaseModel):
     )
     unknown_vehicle: UnknownVehiclePolicy = UnknownVehiclePolicy.AUTO_REGISTER
     process_interval_ms: int = Field(
-        20, ge=1, description="how often the pipeline steps estimators"
+        20,
+        ge=1,
+        description=(
+            "how often the pipeline releases reorder buffers (estimator calls: "
+            "estimate_interval_ms)"
+        ),
     )
     max_payload_bytes: int = Field(256 * 1024, ge=1024)
     max_future_s: float = Field(

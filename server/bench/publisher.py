@@ -48,7 +48,7 @@ __all__ = ["main", "run"]
 
 #: Publisher child processes (``slipfleet loadtest``'s default).
 PUBLISHERS = 2
-#: Zenoh sessions per publisher process of the per-packet path (the load test's former default;
+#: Zenoh sessions per publisher process of the per-packet path (the load test's default;
 #: the encoded path uses ``--sessions``, by default the load test's).
 OLD_SESSIONS = 8
 PATHS = ("per-packet", "encoded")

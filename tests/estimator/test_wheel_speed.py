@@ -156,7 +156,7 @@ def test_tracker_streaming_equals_batch_and_is_causal() -> None:
         out.append(tr.query(np.array([qi])))
     got = np.array([o.omega_radps[0] for o in out])
     assert got == pytest.approx(batch.omega_radps, rel=1e-9, abs=1e-12)
-    assert tr._stamp.size < t_edges.size  # history is trimmed
+    assert tr.held_stamp_ns.size < t_edges.size  # history is trimmed
 
 
 def test_tooth_calibration_learns_the_ring_pattern() -> None:
