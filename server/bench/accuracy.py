@@ -262,20 +262,7 @@ def evaluate(rows: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     t_moving = truth["v0_mps"] > MOVING_MPS
     out: dict[str, float] = {"rows": float(rows.shape[0])}
     if rows.shape[0] == 0 or not t_moving.any():
-        out.update(
-            {
-                k: math.nan
-                for k in (
-                    "vw_max_pct",
-                    "vw_rms_pct",
-                    "slip_rms_pp",
-                    "slip_p95_pp",
-                    "slip_max_pp",
-                    "omega_rms_pct",
-                    "omega_max_pct",
-                )
-            }
-        )
+        out.update(dict.fromkeys(_METRIC_KEYS, math.nan))
         out["coverage_pct"] = 0.0 if t_moving.any() else math.nan
         return out
     stamps = rows["stamp_ns"]
