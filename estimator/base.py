@@ -51,6 +51,14 @@ class FleetEstimator(Protocol):
         skipped and counted by the estimator.
         """
 
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        """Put the vehicle's ticks on ``stamp_ns + k·tick`` from its first measurement on.
+
+        The server aligns them with the ends of the vehicle's IMU batches, so a tick can be
+        computed as soon as the batch holding it has arrived. An estimator without a tick grid
+        ignores it. ``KeyError`` for an unknown vehicle.
+        """
+
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]``, stepping vehicles batched.
 

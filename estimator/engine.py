@@ -883,6 +883,11 @@ class MdsfFleet:
         """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
         self.front.push(self._slot[vehicle_id], measurement)
 
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        """Ticks of ``vehicle_id`` fall on ``stamp_ns + k·tick`` (call before its first push;
+        see :meth:`estimator.frontend.FleetFrontEnd.align_ticks`); ``KeyError`` if unknown."""
+        self.front.align_ticks(self._slot[vehicle_id], stamp_ns)
+
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame (its first GNSS
         fix), to which ``east_m``/``north_m``/``up_m`` of its rows refer; None before that fix."""

@@ -390,6 +390,7 @@ class FleetFrontEnd:
             grow_slot_array(self, name, cap, shape, fill)
 
         grow("next_tick_ns", (), _NONE_NS)
+        grow("tick_phase_ns", (), np.int64(0))  # the grid is tick_phase_ns + k·tick_ns
         grow("done_ns", (), _NONE_NS)  # last tick emitted
         grow("last_imu_ns", (), _NONE_NS)  # newest IMU sample accepted
         grow("last_imu_used_ns", (), _NONE_NS)  # newest IMU sample integrated
@@ -420,6 +421,7 @@ class FleetFrontEnd:
         self._cap = cap
 
     next_tick_ns: IntArray
+    tick_phase_ns: IntArray
     done_ns: IntArray
     last_imu_ns: IntArray
     last_imu_used_ns: IntArray
@@ -459,6 +461,7 @@ class FleetFrontEnd:
         self.has_direction[slot] = vehicle.encoder.has_direction
         for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
             getattr(self, name)[slot] = _NONE_NS
+        self.tick_phase_ns[slot] = 0
         self._gridless.add(slot)
         self.pitch_rad[slot] = 0.0
         self.pitch_known[slot] = False
@@ -482,6 +485,12 @@ class FleetFrontEnd:
         self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
         self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
         self.count[slot] = 0
+
+    def align_ticks(self, slot: int, stamp_ns: int) -> None:
+        """Put the vehicle's tick grid on ``stamp_ns + k·tick_ns`` (default: multiples of
+        ``tick_ns``). Takes effect when the grid opens, at the vehicle's first measurement (or
+        the first after :meth:`add`); a grid already open keeps its phase."""
+        self.tick_phase_ns[slot] = int(stamp_ns) % self.tick_ns
 
     def release(self, slot: int) -> None:
         """Forget the vehicle in ``slot`` and whatever it has buffered."""
@@ -616,8 +625,9 @@ class FleetFrontEnd:
         first = np.ones(slot.shape[0], dtype=bool)
         first[1:] = slot[1:] != slot[:-1]
         tn = self.tick_ns
-        self.next_tick_ns[slot[first]] = -(-stamp[first] // tn) * tn
-        self._gridless.difference_update(slot[first].tolist())
+        opened, phase = slot[first], self.tick_phase_ns[slot[first]]
+        self.next_tick_ns[opened] = phase - (-(stamp[first] - phase) // tn) * tn
+        self._gridless.difference_update(opened.tolist())
 
     def _check_imu(self) -> tuple[IntArray, IntArray, IntArray]:
         """IMU: non-finite, not after the last accepted sample or the last tick, or not
@@ -1132,9 +1142,10 @@ class _Batch:
         return enu, att
 
     def _wheels(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int32]]:
-        """Wheel speeds (left, right) at the ticks: encoder trackers of the vehicles that share
-        the ticks fitted together, or direct (CAN) speeds. Returns ``omega``, ``omega_std``
-        (``(n_ticks, 2)``) and the wheel flags."""
+        """Wheel speeds (left, right) at the ticks: encoder trackers of the vehicles with the
+        same wheel settings and number of ticks fitted together (each at its own ticks), or
+        direct (CAN) speeds. Returns ``omega``, ``omega_std`` (``(n_ticks, 2)``) and the wheel
+        flags."""
         fe = self.fe
         n_ticks = self.n_ticks
         omega = np.full((n_ticks, 2), np.nan)
@@ -1151,8 +1162,8 @@ class _Batch:
         enc = np.flatnonzero(uses_enc)
         if enc.size == 0:
             return omega, omega_std, wflags
-        # groups of vehicles with the same wheel settings and the same ticks
-        keys = (fe.wheel_cfg[self.slots[enc]], self.first[enc], self.m[enc])
+        # groups of vehicles with the same wheel settings and the same number of ticks
+        keys = (fe.wheel_cfg[self.slots[enc]], self.m[enc])
         order = np.lexsort(keys[::-1])
         new = np.ones(enc.shape[0], dtype=bool)
         new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
@@ -1160,12 +1171,11 @@ class _Batch:
         group[order] = np.cumsum(new) - 1
         for members in _rank_passes(group):
             rows = enc[members]
-            r0 = rows[0]
-            ticks = self.ticks[self.offsets[r0] : self.offsets[r0] + self.m[r0]]
+            mt = int(self.m[rows[0]])
+            tix2 = self.offsets[rows][:, None] + np.arange(mt)
+            tix = tix2.reshape(-1)
             trackers = [tr for s in self.slots[rows].tolist() for tr in fe.trackers[s]]
-            fitted = fe.fit_wheels(trackers, ticks)
-            mt = ticks.shape[0]
-            tix = (self.offsets[rows][:, None] + np.arange(mt)).reshape(-1)
+            fitted = fe.fit_wheels(trackers, np.repeat(self.ticks[tix2], 2, axis=0))
             lone = fe.lone_std[self.slots[rows]]
             period = np.ones(rows.shape[0] * mt, dtype=bool)
             for w in Wheel:

@@ -964,8 +964,10 @@ class WheelBank:
         Parameters
         ----------
         slots : ndarray, shape (n,), int
-            Slot indices (a slot may repeat).
-        query_ns : ndarray, shape (m,), int64, non-decreasing
+            Slot indices (a slot may repeat when the times are shared).
+        query_ns : ndarray, shape (m,) or (n, m), int64, non-decreasing along m
+            The same times for every slot, or each slot's own (vehicles whose ticks lie on
+            grids of different phase); then the slots must be distinct.
 
         Returns
         -------
@@ -973,8 +975,16 @@ class WheelBank:
             Arrays of shape ``(n, m)``: row ``i`` is slot ``slots[i]``.
         """
         s = np.asarray(slots, dtype=np.int64).reshape(-1)
-        q = np.asarray(query_ns, dtype=np.int64).reshape(-1)
-        n, m = s.shape[0], q.shape[0]
+        q2 = np.asarray(query_ns, dtype=np.int64)
+        n = s.shape[0]
+        if q2.ndim == 2:
+            if q2.shape[0] != n:
+                raise ValueError(f"query_ns has {q2.shape[0]} rows for {n} slots")
+            if n > 1 and np.unique(s).shape[0] != n:
+                raise ValueError("slots must be distinct when each has its own times")
+        else:
+            q2 = np.broadcast_to(q2.reshape(1, -1), (n, q2.size))
+        m = q2.shape[1]
         self._flush()
         if n == 0 or m == 0:
             r = _unknown(n * m)
@@ -985,20 +995,24 @@ class WheelBank:
         omega = np.empty((n, m))
         std = np.empty((n, m))
         method = np.empty((n, m), dtype=np.int8)
-        uniq = np.unique(s) if n > 1 else s
+        # one row per distinct slot for the calibration (a repeated slot shares its times)
+        uniq, first = np.unique(s, return_index=True) if n > 1 else (s, np.zeros(1, np.int64))
+        period = self._period_ns
         i = 0
         tail: tuple[IntArray, IntArray] | None = None
         while i < m:
             if cfg.tooth_calibration:
-                boundary = (int(q[i]) // self._period_ns) * self._period_ns
-                due = uniq[boundary > self._cal_upto[uniq]]
-                if due.shape[0]:
-                    self._calibrate(due, boundary)
-                    self._cal_upto[due] = boundary
-                j = int(np.searchsorted(q, boundary + self._period_ns, side="left"))
+                # each row calibrates on its own grid boundaries; a chunk of columns ends where
+                # any row reaches its next boundary (other rows are not due there)
+                boundary = (q2[first, i] // period) * period
+                due = boundary > self._cal_upto[uniq]
+                if due.any():
+                    self._calibrate(uniq[due], boundary[due])
+                    self._cal_upto[uniq[due]] = boundary[due]
+                j = int((q2[first] < (boundary + period)[:, None]).sum(axis=1).min())
             else:
                 j = m
-            res, tail = self._fit(s, q[i:j])
+            res, tail = self._fit(s, q2[:, i:j])
             omega[:, i:j] = res.omega_radps.reshape(n, j - i)
             std[:, i:j] = res.std_radps.reshape(n, j - i)
             method[:, i:j] = res.method.reshape(n, j - i)
@@ -1022,15 +1036,16 @@ class WheelBank:
         self._corr[at] = self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
 
     def _fit(self, s: IntArray, qs: IntArray) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
-        """:func:`omega_at` of every slot in ``s`` at every time in ``qs`` (rows slot-major).
+        """:func:`omega_at` of every slot in ``s`` at its times ``qs[i]`` (``qs`` shape
+        ``(n, nq)``; result rows slot-major).
 
-        Also returns, per slot, the last edge at or before ``qs[-1]`` and the first edge after
-        ``qs[-1] − window_s`` (edge numbers), for trimming.
+        Also returns, per slot, the last edge at or before its last time and the first edge
+        after that time − ``window_s`` (edge numbers), for trimming.
         """
         cfg = self.config
-        nq = qs.shape[0]
+        nq = qs.shape[1]
         rs = np.repeat(s, nq)
-        q = np.tile(qs, s.shape[0])
+        q = qs.reshape(-1)
         head = self._head[rs]
         count = self._count[rs]
         end = self._search(rs, head, count, q)
@@ -1119,8 +1134,9 @@ class WheelBank:
         self._angle_before[cs] = self._angle[self._at(cs, new_head - 1)]
         self._head[cs] = new_head
 
-    def _calibrate(self, slots: IntArray, t_ns: int) -> None:
-        """Learn tooth corrections of ``slots`` from edges with a full window at or before t.
+    def _calibrate(self, slots: IntArray, t_ns: IntArray) -> None:
+        """Learn tooth corrections of ``slots`` from edges with a full window at or before
+        their ``t_ns`` (one time per slot).
 
         For each slot: the edges not yet used that have ``calibration_half_window`` (``h``)
         neighbours on both sides at or before ``t_ns``; per edge, a quadratic fit of its ``2h``
@@ -1132,7 +1148,7 @@ class WheelBank:
         cfg = self.config
         h = cfg.calibration_half_window
         head = self._head[slots]
-        last = self._search(slots, head, self._count[slots], np.full(slots.shape[0], t_ns)) - 1
+        last = self._search(slots, head, self._count[slots], t_ns) - 1
         lo = np.maximum(self._cal_from[slots], head + h)
         hi = last - h
         go = hi >= lo
@@ -1329,7 +1345,7 @@ class WheelTracker:
 
 
 def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSpeedResult]:
-    """:meth:`WheelTracker.query` of several trackers at the same times, in one vectorised fit.
+    """:meth:`WheelTracker.query` of several trackers, in one vectorised fit.
 
     Equivalent to querying each tracker on its own. Trackers of one config that sit in
     different banks are first moved into one (the biggest), once; from then on a call costs a
@@ -1338,7 +1354,9 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     Parameters
     ----------
     trackers : list of WheelTracker
-    query_ns : ndarray, shape (m,), int64, non-decreasing
+        Distinct trackers.
+    query_ns : ndarray, shape (m,) or (len(trackers), m), int64, non-decreasing along m
+        The same times for every tracker, or each tracker's own.
 
     Returns
     -------
@@ -1351,7 +1369,8 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     if not all(t._bank is bank for t in trackers):
         cfg = trackers[0].config
         if any(t.config != cfg for t in trackers):
-            return [t.query(q) for t in trackers]
+            rows = q if q.ndim == 2 else np.broadcast_to(q, (len(trackers), q.shape[0]))
+            return [t.query(r) for t, r in zip(trackers, rows, strict=True)]
         banks = {id(t._bank): t._bank for t in trackers}
         bank = max(banks.values(), key=lambda b: b._slots - len(b._free))
         for t in trackers:

@@ -173,14 +173,14 @@ def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> No
         vehicle_id = VEHICLE_ID_FORMAT.format(i + 1)
         run = run_scenario(scenario, seed=i, start_ns=start_ns, **overrides)
         seq: dict[str, int] = {}
-        for pkt in packetize(run.in_arrival_order(), run.start_ns):
+        for pkt in packetize(run.sent_in_arrival_order(), run.start_ns):
             n = seq[pkt.stream.value] = seq.get(pkt.stream.value, -1) + 1
             key = sensor_key("fleet", vehicle_id, pkt.stream)
             records.append(
                 Record(
                     key,
                     start_ns + pkt.arrival_offset_ns,
-                    encode_packet(pkt.stream, pkt.measurements, n),
+                    encode_packet(pkt.stream, pkt.measurements, n, pkt.until_ns),
                 )
             )
     records.sort(key=lambda r: r.stamp_ns)

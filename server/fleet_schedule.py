@@ -70,6 +70,7 @@ STREAMS: tuple[Stream, ...] = tuple(Stream)
 _STREAM_CODE = {s: i for i, s in enumerate(STREAMS)}
 _STAMP_KEY = msgpack.packb("stamp_ns")
 _SEQ_KEY = msgpack.packb("seq")
+_UNTIL_KEY = msgpack.packb("until_ns")
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,12 +82,15 @@ class _Template:
     be_stamps: list[int]  # start of each big-endian (msgpack uint 64) stamp
 
 
-def _locate(payload: bytes, stamp_arrays: Sequence[np.ndarray]) -> _Template:
+def _locate(
+    payload: bytes, stamp_arrays: Sequence[np.ndarray], until_ns: int | None = None
+) -> _Template:
     """Find the ``seq`` placeholder and every stamp in an encoded packet, and check them.
 
-    The stamps follow each ``"stamp_ns"`` key in encoding order (one per measurement); each
-    located value is compared with the stamp it must hold, so a codec change that moves them
-    fails loudly here instead of publishing garbage.
+    The stamps follow each ``"stamp_ns"`` key in encoding order (one per measurement), then
+    ``"until_ns"`` when given (a msgpack uint 64, patched like the GNSS stamp); each located
+    value is compared with the stamp it must hold, so a codec change that moves them fails
+    loudly here instead of publishing garbage.
     """
     seq_key = payload.find(_SEQ_KEY)
     if seq_key < 0 or payload[seq_key + len(_SEQ_KEY)] != 0:
@@ -117,6 +121,14 @@ def _locate(payload: bytes, stamp_arrays: Sequence[np.ndarray]) -> _Template:
         if n != stamps.size or not np.array_equal(got, stamps.reshape(-1)):
             raise ValueError("located stamps differ from the measurement's")
         pos = start + 8 * n
+    if until_ns is not None:
+        k = payload.find(_UNTIL_KEY, pos)
+        at = k + len(_UNTIL_KEY)
+        if k < 0 or payload[at] != 0xCF:
+            raise ValueError("encoded packet has no 'until_ns' packed as uint 64")
+        if int.from_bytes(payload[at + 1 : at + 9], "big") != until_ns:
+            raise ValueError("located until_ns differs from the packet's")
+        be.append(at + 1)
     return _Template(seq_key + len(_SEQ_KEY), le, be)
 
 
@@ -160,14 +172,14 @@ class EncodedDrive:
         size = 0
         for i, p in enumerate(packets):
             assert isinstance(p, SimPacket)
-            payload = encode_packet(p.stream, p.measurements, 0)
+            payload = encode_packet(p.stream, p.measurements, 0, p.until_ns)
             stamps = [
                 np.asarray(int(m.stamp_ns), np.int64)
                 if isinstance(m, GnssSample)
                 else np.asarray(m.stamp_ns, np.int64)
                 for m in p.measurements
             ]
-            t = _locate(payload, stamps)
+            t = _locate(payload, stamps, p.until_ns)
             self.arrival_ns[i] = p.arrival_offset_ns
             self.stream[i] = _STREAM_CODE[p.stream]
             self.seq_at[i] = t.seq_at

@@ -65,6 +65,7 @@ __all__ = [
     "SimPacket",
     "SimStats",
     "encode_packet",
+    "encode_packets",
     "packetize",
     "publish_fleets",
     "record",
@@ -88,6 +89,8 @@ class SimPacket:
     arrival_offset_ns: int
     stream: Stream
     measurements: tuple[Measurement, ...]
+    #: the packet's ``until_ns`` (absolute, shifted with the stamps), None: not sent
+    until_ns: int | None = None
 
 
 @dataclass(slots=True)
@@ -116,14 +119,17 @@ def _stream_of(m: Measurement) -> Stream:
     return Stream.WHEELS
 
 
-def packetize(measurements: list[tuple[int, Measurement]], start_ns: int) -> list[SimPacket]:
-    """Group ``(arrival_ns, measurement)`` pairs (arrival order) into wire packets.
+def packetize(
+    sent: Sequence[tuple[int, Measurement, int | None]], start_ns: int
+) -> list[SimPacket]:
+    """Group ``(arrival_ns, measurement, until_ns)`` triples (arrival order) into wire packets.
 
-    Wheel edges of both wheels arriving at the same time share one packet; empty batches (no
-    samples) are dropped, as a vehicle would not send them.
+    Wheel edges of both wheels arriving at the same time share one packet (its ``until_ns``
+    the later of the two); empty batches (no samples) are dropped, as a vehicle would not send
+    them.
     """
     out: list[SimPacket] = []
-    for arrival, m in measurements:
+    for arrival, m, until in sent:
         if not isinstance(m, GnssSample) and len(m.stamp_ns) == 0:
             continue
         stream = _stream_of(m)
@@ -137,9 +143,11 @@ def packetize(measurements: list[tuple[int, Measurement]], start_ns: int) -> lis
             and isinstance(last.measurements[0], WheelEdges)
             and last.measurements[0].wheel != m.wheel
         ):
-            out[-1] = SimPacket(last.arrival_offset_ns, stream, (*last.measurements, m))
+            both = (*last.measurements, m)
+            merged = until if last.until_ns is None or until is None else max(until, last.until_ns)
+            out[-1] = SimPacket(last.arrival_offset_ns, stream, both, merged)
             continue
-        out.append(SimPacket(arrival - start_ns, stream, (m,)))
+        out.append(SimPacket(arrival - start_ns, stream, (m,), until))
     return out
 
 
@@ -150,19 +158,35 @@ def shift_measurement(m: Measurement, dt_ns: int) -> Measurement:
     return dataclasses.replace(m, stamp_ns=m.stamp_ns + dt_ns)
 
 
-def encode_packet(stream: Stream, measurements: tuple[Measurement, ...], seq: int) -> bytes:
+def encode_packet(
+    stream: Stream,
+    measurements: tuple[Measurement, ...],
+    seq: int,
+    until_ns: int | None = None,
+) -> bytes:
     """Encode one packet's measurements (as :func:`packetize` grouped them)."""
     first = measurements[0]
     if stream is Stream.GNSS and isinstance(first, GnssSample):
-        return encode_gnss(first, seq)
+        return encode_gnss(first, seq, until_ns)
     if stream is Stream.IMU and isinstance(first, ImuBatch):
-        return encode_imu(first, seq)
+        return encode_imu(first, seq, until_ns)
     if isinstance(first, WheelSpeeds):
-        return encode_wheel_speeds(first, seq)
+        return encode_wheel_speeds(first, seq, until_ns)
     edges = [m for m in measurements if isinstance(m, WheelEdges)]
     if len(edges) != len(measurements):
         raise ValueError(f"cannot encode {[type(m).__name__ for m in measurements]} on {stream}")
-    return encode_wheel_edges(edges, seq)
+    return encode_wheel_edges(edges, seq, until_ns)
+
+
+def encode_packets(packets: Sequence[SimPacket]) -> list[tuple[str, bytes]]:
+    """``(stream name, payload)`` of ``packets`` in order, each stream's ``seq`` from 0."""
+    seq: Counter[str] = Counter()
+    out = []
+    for p in packets:
+        name = p.stream.value
+        out.append((name, encode_packet(p.stream, p.measurements, seq[name], p.until_ns)))
+        seq[name] += 1
+    return out
 
 
 def _publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
@@ -284,7 +308,7 @@ class FleetSim:
             )
             for k in range(self._distinct)
         ]
-        packetized = [packetize(run.in_arrival_order(), run.start_ns) for run in runs]
+        packetized = [packetize(run.sent_in_arrival_order(), run.start_ns) for run in runs]
         vehicles = []
         for i, vid in enumerate(self.vehicle_ids):
             run = runs[i % self._distinct]
@@ -475,7 +499,8 @@ def replay(
                         rec.key, payload, prefix=_prefix_of(rec.key), max_payload_bytes=1 << 30
                     )
                     ms = tuple(shift_measurement(m, shift) for m in pkt.measurements)
-                    payload = encode_packet(pkt.stream, ms, pkt.seq)
+                    until = None if pkt.until_ns is None else pkt.until_ns + shift
+                    payload = encode_packet(pkt.stream, ms, pkt.seq, until)
                 except DecodeError:
                     pass  # replay what was recorded: the server will count the refusal
             pub = pubs.get(rec.key)

@@ -472,7 +472,7 @@ def _replay_fleet_sim_class() -> type:
         def _drives(self) -> list[tuple[list[SimPacket], int, int]]:
             drives: list[tuple[list[SimPacket], int, int]] = []
             for path in self._paths:
-                by_vehicle: dict[str, list[tuple[int, Any]]] = {}
+                by_vehicle: dict[str, list[tuple[int, Any, int | None]]] = {}
                 for rec in read_recording(path):
                     parts = rec.key.split("/")
                     if "sensors" not in parts:
@@ -484,7 +484,7 @@ def _replay_fleet_sim_class() -> type:
                     except (DecodeError, ValueError, IndexError):
                         continue
                     for m in pkt.measurements:
-                        by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m))
+                        by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m, pkt.until_ns))
                 for items in by_vehicle.values():
                     start = items[0][0]
                     packets = packetize(items, start)

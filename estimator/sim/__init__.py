@@ -146,6 +146,9 @@ class SimRun:
         ``GnssSample | ImuBatch | WheelEdges`` in sensor order (see :mod:`estimator.sim.stream`).
     arrival_ns : ndarray, shape (len(measurements),), int64
         When each measurement reaches the server (latency included).
+    until_ns : ndarray, shape (len(measurements),), int64
+        Sensor time the stream is complete up to once each measurement is sent (the wire
+        protocol's ``until_ns``: the end of a batch window, the next GNSS epoch − 1 ns).
     truth : ndarray of TRUTH_DTYPE
         Truth at ``sensors.truth_rate_hz``.
     frame : EnuFrame
@@ -161,12 +164,21 @@ class SimRun:
     end_ns: int
     measurements: list[Measurement]
     arrival_ns: npt.NDArray[np.int64]
+    until_ns: npt.NDArray[np.int64]
     truth: np.ndarray
     frame: EnuFrame
 
     def in_arrival_order(self) -> list[tuple[int, Measurement]]:
         """``(arrival_ns, measurement)`` pairs in the order a live link would deliver them."""
         return list(in_arrival_order(self.measurements, self.arrival_ns))
+
+    def sent_in_arrival_order(self) -> list[tuple[int, Measurement, int]]:
+        """``(arrival_ns, measurement, until_ns)`` in the order a live link would deliver them."""
+        order = np.argsort(self.arrival_ns, kind="stable")
+        return [
+            (int(self.arrival_ns[i]), self.measurements[int(i)], int(self.until_ns[i]))
+            for i in order
+        ]
 
     @property
     def duration_s(self) -> float:
@@ -353,6 +365,7 @@ def simulate(
         end_ns=start_ns + round(fine.t_s[-1] * 1e9),
         measurements=[e.measurement for e in emissions],
         arrival_ns=np.array([e.arrival_ns for e in emissions], dtype=np.int64),
+        until_ns=np.array([e.until_ns for e in emissions], dtype=np.int64),
         truth=truth,
         frame=frame,
     )

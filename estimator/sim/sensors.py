@@ -188,12 +188,17 @@ class SensorSpec:
 
 
 class Emission(NamedTuple):
-    """One measurement with the sensor time that completes it and its arrival time (ns)."""
+    """One measurement with the sensor time that completes it and its arrival time (ns).
+
+    ``until_ns`` is what the sensor knows when it sends: no later sample of its stream is
+    stamped at or before it (the end of the batch window; for GNSS, the next epoch − 1 ns).
+    """
 
     key_ns: int
     arrival_ns: int
     rank: int
     measurement: Measurement
+    until_ns: int
 
 
 def imu_point_m(config: VehicleConfig) -> FloatArray:
@@ -270,6 +275,7 @@ def gnss_emissions(
 
     stamps = _stamps(start_ns, t)
     latency = round(spec.gnss_latency_ms * 1e6)
+    period_ns = round(1e9 / spec.gnss_rate_hz)
     nan = math.nan
     out: list[Emission] = []
     for k in range(n):
@@ -302,7 +308,7 @@ def gnss_emissions(
                 fix=GnssFix(int(fix_ok[k])),
                 vel_std_mps=float(reported[k]),
             )
-        out.append(Emission(stamp, stamp + latency, 0, sample))
+        out.append(Emission(stamp, stamp + latency, 0, sample, stamp + period_ns - 1))
     return out
 
 
@@ -346,6 +352,7 @@ def imu_emissions(
     )
     stamps = _stamps(start_ns, truth.t_s[idx])
     latency = round(spec.imu_latency_ms * 1e6)
+    period_ns = round(1e9 / spec.imu_rate_hz)
     out: list[Emission] = []
     for lo in range(0, n, spec.imu_batch_len):
         hi = min(lo + spec.imu_batch_len, n)
@@ -355,7 +362,7 @@ def imu_emissions(
             gyro_radps=gyro[lo:hi].copy(),
         )
         key = int(stamps[hi - 1])
-        out.append(Emission(key, key + latency, 1, batch))
+        out.append(Emission(key, key + latency, 1, batch, key + period_ns - 1))
     return out
 
 
@@ -417,6 +424,6 @@ def wheel_emissions(
         for chunk, w in zip(np.split(stamps, cuts), np.split(win, cuts), strict=True):
             direction = np.ones(chunk.size, dtype=np.int8) if config.encoder.has_direction else None
             edges = WheelEdges(wheel=wheel, stamp_ns=chunk.copy(), direction=direction)
-            arrival = start_ns + int(w[0] + 1) * window_ns + latency
-            out.append(Emission(int(chunk[-1]), arrival, 2 + int(wheel), edges))
+            end = start_ns + int(w[0] + 1) * window_ns
+            out.append(Emission(int(chunk[-1]), end + latency, 2 + int(wheel), edges, end - 1))
     return out

@@ -114,7 +114,8 @@ def _per_packet_run(
             p = v.packets[v.index]
             shift = v.shift_ns + v.loop * v.period_ns
             ms = tuple(shift_measurement(m, shift) for m in p.measurements)
-            payload = encode_packet(p.stream, ms, v.seq[p.stream])
+            until = None if p.until_ns is None else p.until_ns + shift
+            payload = encode_packet(p.stream, ms, v.seq[p.stream], until)
             v.seq[p.stream] += 1
             pubs[(v.vehicle_id, p.stream)].put(payload)
             stats.packets[p.stream.value] += 1

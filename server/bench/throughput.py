@@ -118,16 +118,10 @@ def flood_payloads(n_packets: int) -> list[tuple[str, bytes]]:
     run, sequence numbers per stream, stamps starting now (so the server's reorder windows and
     latency counters see fresh data)."""
     from estimator.sim import simulate
-    from server.fleet_sim import encode_packet, packetize
+    from server.fleet_sim import encode_packets, packetize
 
     run = simulate("field_work", seed=1, start_ns=time.time_ns(), duration_s=60.0)
-    packets = packetize(run.in_arrival_order(), run.start_ns)[:n_packets]
-    seq: collections.Counter[str] = collections.Counter()
-    out = []
-    for p in packets:
-        out.append((p.stream.value, encode_packet(p.stream, p.measurements, seq[p.stream.value])))
-        seq[p.stream.value] += 1
-    return out
+    return encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns)[:n_packets])
 
 
 @contextlib.contextmanager

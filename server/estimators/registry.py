@@ -196,6 +196,11 @@ class EstimatorRegistry:
         for name in self._routes[vehicle_id]:
             self._estimators[name].push(vehicle_id, measurement)
 
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        """Put ``vehicle_id``'s ticks on ``stamp_ns + k·tick`` in every estimator it runs."""
+        for name in self._routes[vehicle_id]:
+            self._estimators[name].align_ticks(vehicle_id, stamp_ns)
+
     def advance(self, until_ns: Mapping[str, int]) -> AdvanceResult:
         """Advance every estimator for the vehicles it holds; collect rows."""
         result = AdvanceResult()

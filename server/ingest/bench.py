@@ -38,17 +38,11 @@ TICK_NS = 100_000_000
 def _encoded(n_packets: int | None = None) -> list[tuple[str, bytes]]:
     """``(stream, payload)`` of a simulated run, sequence numbers per stream."""
     from estimator.sim import simulate
-    from server.fleet_sim import encode_packet, packetize
+    from server.fleet_sim import encode_packets, packetize
 
     now_ns = time.time_ns()  # stamps near the wall clock: the pipeline refuses far ones
     run = simulate("field_work", seed=1, start_ns=now_ns - now_ns % TICK_NS)
-    packets = packetize(run.in_arrival_order(), run.start_ns)[:n_packets]
-    seq: Counter[str] = Counter()
-    out = []
-    for p in packets:
-        out.append((p.stream.value, encode_packet(p.stream, p.measurements, seq[p.stream.value])))
-        seq[p.stream.value] += 1
-    return out
+    return encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns)[:n_packets])
 
 
 def bench_codec() -> dict[str, dict[str, float]]:
@@ -94,6 +88,9 @@ class _NullFleet:
         return list(self._ids)
 
     def push(self, vehicle_id: str, measurement: Measurement) -> None:
+        return None
+
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         return None
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:

@@ -13,8 +13,8 @@ The pipeline thread owns the estimator registry, every reorder buffer and the co
 so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` (longer when a tick
 takes more than a third of that: see :data:`TICK_DUTY`) it releases the
 packets whose time has come, pushes them to the vehicle's estimators, advances them to the
-released horizon (each time it crosses a multiple of ``advance_step_ms``; with the MDSF tick
-as the step, as soon as a tick is due) and hands the primary
+released horizon (each time it crosses a step of ``advance_step_ms`` on the vehicle's tick grid;
+with the MDSF tick as the step, as soon as a tick is due) and hands the primary
 estimator's rows, ``[(vehicle_id, rows), ...]``, to each sink's ``on_estimates`` (and every
 estimator's rows to a sink's optional ``on_output(name, batch)``). Sinks run on this thread:
 they must only enqueue (the storage writer and live hub do).
@@ -31,6 +31,12 @@ Before a decoded packet reaches a reorder buffer it must lie within the server's
 (``docs/protocol.md`` §6): the vehicle's pending packets are fed and its estimators advanced to
 the end of the old time base, then restarted with the same config, and the packet starts the
 new one (counted ``clock_reanchors``).
+
+Tick alignment: a vehicle's ticks are put on the last sample time of its first IMU batch
+(``registry.align_ticks``, before its first push), so with batches as long as the tick (or a
+whole fraction of it) every tick falls on a batch end and is computed as soon as that batch
+(and the other streams' data covering it, ``until_ns``) has arrived, instead of waiting for
+the next batch: up to one batch length less latency.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, Verdict
 from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
 from server.protocol.codec import DecodeError, Packet
+from server.protocol.keys import Stream
 from server.settings import Settings, UnknownVehiclePolicy
 
 __all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
@@ -159,6 +166,10 @@ class Pipeline:
         self._arrived: set[str] = set()  # vehicles with packets accepted since the last tick
         self._next_sweep_ns = 0
         self._advanced_ns: dict[str, int] = {}
+        # vehicle -> stamp its ticks are put on (last sample of its first IMU batch), and the
+        # vehicles whose estimators were told since they last (re)started
+        self._tick_anchor_ns: dict[str, int] = {}
+        self._aligned: set[str] = set()
         self._due: dict[str, int] = {}  # vehicle -> sensor time to advance to at the next call
         self._estimate_interval_ns = settings.ingest.estimate_interval_ms * 1_000_000
         self._next_estimate_ns = 0
@@ -357,6 +368,8 @@ class Pipeline:
                 self._active.discard(vid)
                 self._arrived.discard(vid)
                 self._advanced_ns.pop(vid, None)
+                self._tick_anchor_ns.pop(vid, None)
+                self._aligned.discard(vid)
                 self._due.pop(vid, None)
                 self._unregistered_counted.discard(vid)
                 self._counters.forget(vid)
@@ -371,6 +384,7 @@ class Pipeline:
     def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
         try:
             self._registry.add_vehicle(vehicle_id, config)
+            self._aligned.discard(vehicle_id)  # a fresh estimator state opens a fresh grid
         except UnknownEstimatorError as exc:
             log.warning("vehicle %s not registered: %s", vehicle_id, exc)
             return False
@@ -412,6 +426,8 @@ class Pipeline:
                 counters.accepted(vid, offer.lost_delta)
                 self._active.add(vid)
                 self._arrived.add(vid)
+                if item.stream is Stream.IMU and vid not in self._tick_anchor_ns:
+                    self._tick_anchor_ns[vid] = item.last_stamp_ns
             elif offer.verdict is Verdict.LATE:
                 counters.late(vid, offer.lost_delta)
             elif offer.verdict is Verdict.DUPLICATE:
@@ -451,10 +467,23 @@ class Pipeline:
         config = self._configs.get(vid)
         if config is not None and registry.has_vehicle(vid):
             registry.add_vehicle(vid, config)  # same config: a fresh state
+        self._aligned.discard(vid)
+        self._tick_anchor_ns.pop(vid, None)
+        if packet.stream is Stream.IMU:
+            self._tick_anchor_ns[vid] = packet.last_stamp_ns
         log.info("vehicle %s: clock re-anchored at %d ns", vid, packet.first_stamp_ns)
         buf.reanchor(packet, now)
 
     def _push(self, vid: str, packet: Packet) -> None:
+        if vid not in self._aligned:
+            self._aligned.add(vid)
+            anchor = self._tick_anchor_ns.get(vid)
+            if anchor is not None:
+                try:
+                    self._registry.align_ticks(vid, anchor)
+                except Exception:
+                    self._stats["estimator_errors"] += 1
+                    log.exception("estimator align_ticks failed for %s", vid)
         for m in packet.measurements:
             try:
                 self._registry.push(vid, m)
@@ -506,9 +535,10 @@ class Pipeline:
                     self._push(vid, packet)
             last = self._advanced_ns.get(vid)
             step = self._advance_step_ns
+            phase = self._tick_anchor_ns.get(vid, 0)
             if released is not None and (
                 last is None
-                or released // step > last // step
+                or (released - phase) // step > (last - phase) // step
                 or (released != last and (flush or buf.is_idle(now)))
             ):
                 until[vid] = released

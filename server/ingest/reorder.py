@@ -12,9 +12,10 @@ default ``max(2 * lateness, 1 s)``: a publisher stalled for a moment must not lo
 vehicle that stopped), the horizon jumps to the newest sample time so the tail is released too.
 
 With ``watermarks`` (the server's default) the horizon does not wait the whole window when it
-need not: each stream has a *watermark*, the last sample time of its longest run of
-consecutive sequence numbers (everything of that stream up to it has arrived, whatever the
-arrival order inside the stream), and ::
+need not: each stream has a *watermark*, the last sample time (or the packet's ``until_ns``,
+the end of its batch window, when the sender gives it) of its longest run of consecutive
+sequence numbers (everything of that stream up to it has arrived, whatever the arrival order
+inside the stream), and ::
 
     horizon = max(newest - lateness, min over the vehicle's streams of their watermarks)
 
@@ -147,7 +148,7 @@ class SeqTracker:
 
 
 class _StreamMark:
-    """One stream's watermark: the last sample time of its run of consecutive sequence numbers.
+    """One stream's watermark: the time its run of consecutive sequence numbers covers.
 
     Packets ahead of a gap wait in ``ahead`` (``seq -> last stamp``) until the gap fills, or
     until the fixed window passes them (:meth:`skip_gaps`: the missing ones are given up on).
@@ -318,17 +319,18 @@ class ReorderBuffer:
 
     def _take(self, packet: Packet, now_ns: int, *, seq_restart: bool = False) -> Verdict:
         self._last_arrival_ns = now_ns
-        if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
-            self._newest_ns = packet.last_stamp_ns
+        covers = packet.covers_ns
+        if self._newest_ns is None or covers > self._newest_ns:
+            self._newest_ns = covers
         if self._first_ns is None:
             self._first_ns = packet.first_stamp_ns
         marks = self._watermarks
         if marks is not None:
             mark = marks.get(packet.stream)
             if mark is None or seq_restart:
-                marks[packet.stream] = _StreamMark(packet.seq, packet.last_stamp_ns)
+                marks[packet.stream] = _StreamMark(packet.seq, covers)
             else:
-                mark.arrived(packet.seq, packet.last_stamp_ns)
+                mark.arrived(packet.seq, covers)
         key = (packet.first_stamp_ns, _STREAM_ORDER[packet.stream], packet.seq, next(self._tie))
         heapq.heappush(self._heap, (*key, packet))
         return Verdict.ACCEPTED

@@ -85,6 +85,7 @@ class Limits:
     min_stamp_ns: int = 946_684_800 * 10**9  # 2000-01-01T00:00:00Z
     max_stamp_ns: int = 4_102_444_800 * 10**9  # 2100-01-01T00:00:00Z
     max_batch: int = 65_536  # samples or edges in one packet
+    max_until_ahead_ns: int = 5_000_000_000  # until_ns at most this far past the last sample
     max_height_m: float = 20_000.0
     min_height_m: float = -1_000.0
 
@@ -149,6 +150,9 @@ class Packet:
         wheel present in the packet.
     first_stamp_ns, last_stamp_ns : int
         Earliest and latest sample time in the packet (vehicle clock).
+    until_ns : int or None
+        The sender's promise that every sample of this stream stamped at or before it is in
+        this packet or an earlier one (the end of the batch window); ``None`` if not given.
     """
 
     vehicle_id: str
@@ -158,6 +162,13 @@ class Packet:
     measurements: tuple[Measurement, ...]
     first_stamp_ns: int
     last_stamp_ns: int
+    until_ns: int | None = None
+
+    @property
+    def covers_ns(self) -> int:
+        """Sensor time up to which this stream is complete once this packet is in: ``until_ns``
+        when the sender gave it, else the last sample time."""
+        return self.last_stamp_ns if self.until_ns is None else self.until_ns
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,12 +197,16 @@ def _f8(a: Any, shape: tuple[int, int], name: str) -> bytes:
     return np.ascontiguousarray(arr, dtype="<f8").tobytes()
 
 
-def _pack(obj: dict[str, Any]) -> bytes:
+def _pack(obj: dict[str, Any], until_ns: int | None = None) -> bytes:
+    if until_ns is not None:
+        if not isinstance(until_ns, int | np.integer) or not 0 <= int(until_ns) < 2**63:
+            raise EncodeError(f"until_ns must be an int in [0, 2**63), got {until_ns!r}")
+        obj["until_ns"] = int(until_ns)
     packed: bytes = msgpack.packb(obj, use_bin_type=True)
     return packed
 
 
-def encode_gnss(sample: GnssSample, seq: int) -> bytes:
+def encode_gnss(sample: GnssSample, seq: int, until_ns: int | None = None) -> bytes:
     """Encode one GNSS epoch for ``<prefix>/<id>/sensors/gnss``."""
     vel = [float(x) for x in sample.vel_enu_mps]
     if len(vel) != 3:
@@ -211,11 +226,12 @@ def encode_gnss(sample: GnssSample, seq: int) -> bytes:
             "height_m": float(sample.height_m),
             "fix": int(sample.fix),
             "vel_std_mps": float(sample.vel_std_mps),
-        }
+        },
+        until_ns,
     )
 
 
-def encode_imu(batch: ImuBatch, seq: int) -> bytes:
+def encode_imu(batch: ImuBatch, seq: int, until_ns: int | None = None) -> bytes:
     """Encode a batch of ``n`` IMU samples for ``<prefix>/<id>/sensors/imu``."""
     n = int(np.asarray(batch.stamp_ns).shape[0]) if np.ndim(batch.stamp_ns) == 1 else -1
     if n < 0:
@@ -228,11 +244,12 @@ def encode_imu(batch: ImuBatch, seq: int) -> bytes:
             "stamp_ns": _i8(batch.stamp_ns, n),
             "accel_mps2": _f8(batch.accel_mps2, (n, 3), "accel_mps2"),
             "gyro_radps": _f8(batch.gyro_radps, (n, 3), "gyro_radps"),
-        }
+        },
+        until_ns,
     )
 
 
-def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int) -> bytes:
+def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int, until_ns: int | None = None) -> bytes:
     """Encode the encoder edges of one or both wheels for ``<prefix>/<id>/sensors/wheels``."""
     items: list[dict[str, Any]] = []
     for e in edges:
@@ -253,11 +270,12 @@ def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int) -> bytes:
             "seq": _seq(seq),
             "mode": "edges",
             "edges": items,
-        }
+        },
+        until_ns,
     )
 
 
-def encode_wheel_speeds(speeds: WheelSpeeds, seq: int) -> bytes:
+def encode_wheel_speeds(speeds: WheelSpeeds, seq: int, until_ns: int | None = None) -> bytes:
     """Encode ``n`` wheel angular-speed samples for ``<prefix>/<id>/sensors/wheels``."""
     n = int(np.asarray(speeds.stamp_ns).shape[0]) if np.ndim(speeds.stamp_ns) == 1 else -1
     if n < 0:
@@ -270,7 +288,8 @@ def encode_wheel_speeds(speeds: WheelSpeeds, seq: int) -> bytes:
             "mode": "speeds",
             "stamp_ns": _i8(speeds.stamp_ns, n),
             "omega_radps": _f8(speeds.omega_radps, (n, 2), "omega_radps"),
-        }
+        },
+        until_ns,
     )
 
 
@@ -542,7 +561,16 @@ def decode(
         else:
             raise ctx.fail("wrong_type", f"wheels mode {mode!r} is not 'edges' or 'speeds'")
     first, last = _stamp_span(ms)
-    return Packet(vehicle_id, stream, seq, version, ms, first, last)
+    until = None
+    if "until_ns" in m:
+        until = _int(ctx, m, "until_ns")
+        if not last <= until <= last + limits.max_until_ahead_ns:
+            raise ctx.fail(
+                "out_of_range",
+                f"until_ns must lie between the last sample and "
+                f"{limits.max_until_ahead_ns / 1e9:g} s after it",
+            )
+    return Packet(vehicle_id, stream, seq, version, ms, first, last, until)
 
 
 def decode_config(

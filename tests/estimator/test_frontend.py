@@ -28,6 +28,7 @@ class _Vehicle:
     config: VehicleConfig
     measurements: list[Measurement]
     join_ns: int
+    tick_anchor_ns: int | None = None
 
 
 def _stamp(m: Measurement) -> int:
@@ -79,6 +80,8 @@ def _drive(
                 continue
             if vid not in fleet.vehicle_ids():
                 fleet.add_vehicle(vid, v.config)
+                if v.tick_anchor_ns is not None:
+                    fleet.align_ticks(vid, v.tick_anchor_ns)
             i = pos[vid]
             while i < len(v.measurements) and _stamp(v.measurements[i]) <= now:
                 fleet.push(vid, v.measurements[i])
@@ -113,6 +116,32 @@ def test_each_vehicle_gets_the_rows_it_gets_alone_joining_late_at_any_call_inter
             alone, alone_counts = _drive({vid: v}, step_ms * 1_000_000)
             _assert_same_rows(together[vid], alone[vid])
             assert counts[vid] == alone_counts[vid]
+
+
+def test_ticks_on_each_vehicles_own_phase_equal_the_vehicle_alone() -> None:
+    """Vehicles whose tick grids are put on their first IMU batch's end (different phases)
+    are batched together, and each gets exactly what it gets alone."""
+    fleet = {
+        "a": _vehicle("hard_braking", 1, 0.013, cycles=1),
+        "b": _vehicle("figure_eight", 2, 3.071, laps=1),
+        "c": _vehicle("slope_wet_patch", 5, 0.046),
+        "d": _vehicle("hard_braking", 4, 1.5, "direct", cycles=1),
+    }
+    for v in fleet.values():
+        first_imu = next(m for m in v.measurements if isinstance(m, ImuBatch))
+        v.tick_anchor_ns = int(first_imu.stamp_ns[-1])
+    together, counts = _drive(fleet, 70_000_000)
+    tick = MdsfConfig().tick_ns
+    phases = set()
+    for vid, v in fleet.items():
+        assert v.tick_anchor_ns is not None
+        stamps = together[vid]["stamp_ns"]
+        assert np.all((stamps - v.tick_anchor_ns) % tick == 0)  # on the vehicle's own grid
+        phases.add(v.tick_anchor_ns % tick)
+        alone, alone_counts = _drive({vid: v}, 100_000_000)
+        _assert_same_rows(together[vid], alone[vid])
+        assert counts[vid] == alone_counts[vid]
+    assert len(phases) == len(fleet)  # four grids of different phase
 
 
 def test_paper_mode_is_batch_invariant_too() -> None:

@@ -69,8 +69,11 @@ def _sim_packets(name: str, seed: int, has_direction: bool) -> list[list]:
     return per
 
 
-def _replay(feeds: list[list], old: list, new: list, interval_ms: int, ticks: int):
-    """Feed both implementations the same packets; yield their results per call."""
+def _replay(
+    feeds: list[list], old: list, new: list, interval_ms: int, ticks: int, phased: bool = False
+):
+    """Feed both implementations the same packets; yield their results per call. ``phased``:
+    each tracker queried at its own times (the shared times moved by a per-tracker phase)."""
     ptr = [0] * len(feeds)
     step = interval_ms * 1_000_000
     now = T0
@@ -83,7 +86,11 @@ def _replay(feeds: list[list], old: list, new: list, interval_ms: int, ticks: in
                 new[i].push(s, d)
                 ptr[i] += 1
         q = (now - 150_000_000 - np.arange(ticks)[::-1] * (step // ticks)).astype(np.int64)
-        yield solo_query(old, q), query_many(new, q)
+        if phased:
+            rows = q[None, :] + (np.arange(len(feeds)) * 7_777_777 % step)[:, None]
+            yield [t.query(r) for t, r in zip(old, rows, strict=True)], query_many(new, rows)
+        else:
+            yield solo_query(old, q), query_many(new, q)
 
 
 def solo(cfg: WheelSpeedConfig, n: int) -> list[WheelTracker]:
@@ -109,16 +116,18 @@ def _assert_same(a: list[WheelSpeedResult], b: list[WheelSpeedResult]) -> float:
 
 
 @pytest.mark.parametrize(
-    ("cfg", "interval_ms", "ticks"),
+    ("cfg", "interval_ms", "ticks", "phased"),
     [
-        (WheelSpeedConfig(teeth_per_rev=NS), 50, 1),
-        (WheelSpeedConfig(teeth_per_rev=NS), 200, 2),
-        (WheelSpeedConfig(teeth_per_rev=NS, tooth_calibration=False, fit_order=1), 100, 2),
-        (WheelSpeedConfig(teeth_per_rev=NS, frequency_min_count=40, max_edges=16), 100, 1),
+        (WheelSpeedConfig(teeth_per_rev=NS), 50, 1, False),
+        (WheelSpeedConfig(teeth_per_rev=NS), 200, 2, False),
+        (WheelSpeedConfig(teeth_per_rev=NS, tooth_calibration=False, fit_order=1), 100, 2, False),
+        (WheelSpeedConfig(teeth_per_rev=NS, frequency_min_count=40, max_edges=16), 100, 1, False),
+        (WheelSpeedConfig(teeth_per_rev=NS), 100, 1, True),
+        (WheelSpeedConfig(teeth_per_rev=NS), 200, 3, True),
     ],
 )
 def test_bank_equals_per_tracker_implementation(
-    cfg: WheelSpeedConfig, interval_ms: int, ticks: int
+    cfg: WheelSpeedConfig, interval_ms: int, ticks: int, phased: bool
 ) -> None:
     rng = np.random.default_rng(3)
     feeds = [_packets(rng, k) for k in ("reverse", "fast", "stop_go", "accel")]
@@ -129,7 +138,7 @@ def test_bank_equals_per_tracker_implementation(
     new = [WheelTracker(cfg, bank) for _ in feeds]
     old = solo(cfg, len(feeds))
     worst = 0.0
-    for old_res, new_res in _replay(feeds, old, new, interval_ms, ticks):
+    for old_res, new_res in _replay(feeds, old, new, interval_ms, ticks, phased):
         worst = max(worst, _assert_same(old_res, new_res))
     assert [t.skipped for t in new] == [t.skipped for t in old]
     assert sum(t.skipped for t in new) > 0

@@ -30,7 +30,7 @@ SPAN = 100_000_000
 @pytest.fixture(scope="module")
 def drive() -> tuple[list[SimPacket], EncodedDrive]:
     run = simulate("hard_braking", seed=3, start_ns=T0)  # 34 s: loops are cheap to cover
-    packets = packetize(run.in_arrival_order(), run.start_ns)
+    packets = packetize(run.sent_in_arrival_order(), run.start_ns)
     return packets, EncodedDrive(packets, run.end_ns - run.start_ns + TICK_NS)
 
 
@@ -83,7 +83,10 @@ def test_rendered_packets_equal_the_per_packet_encoding_over_loops(
             loop, i = divmod(seq, len(mine))
             shift = vehicles[v].shift_ns + loop * enc.period_ns
             ms = tuple(shift_measurement(m, shift) for m in mine[i].measurements)
-            assert payload == encode_packet(mine[i].stream, ms, seq), (v, s, seq)
+            until = mine[i].until_ns
+            assert until is not None  # the simulator states how far each packet covers
+            expected = encode_packet(mine[i].stream, ms, seq, until + shift)
+            assert payload == expected, (v, s, seq)
             due = mine[i].arrival_offset_ns + vehicles[v].phase_ns + loop * enc.period_ns
             assert due_of[(v, s)][seq] == due
             checked += 1

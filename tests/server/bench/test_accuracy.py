@@ -165,6 +165,9 @@ class _TruthEstimator:
         self.last_key = key
         self.pushed += 1
 
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        return None  # ticks on the fixed 50 ms grid
+
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         until = until_ns["bench"]
         assert until > self.last_until

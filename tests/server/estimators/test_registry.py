@@ -28,6 +28,7 @@ class RecordingFleet:
         self.name = name
         self.vehicles: dict[str, VehicleConfig] = {}
         self.pushed: list[tuple[str, Measurement]] = []
+        self.aligned: list[tuple[str, int]] = []
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         self.vehicles[vehicle_id] = config
@@ -42,6 +43,9 @@ class RecordingFleet:
         if vehicle_id not in self.vehicles:
             raise KeyError(vehicle_id)
         self.pushed.append((vehicle_id, measurement))
+
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        self.aligned.append((vehicle_id, stamp_ns))
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         out = []

@@ -258,7 +258,7 @@ class Publisher:
             self.runs.append(
                 _Run(
                     vid,
-                    packetize(run.in_arrival_order(), run.start_ns),
+                    packetize(run.sent_in_arrival_order(), run.start_ns),
                     encode_config(run.config),
                     (i * 100_000_000) // self.n_vehicles,
                 )

@@ -110,7 +110,7 @@ def source() -> Source:
     global _SOURCE
     if _SOURCE is None:
         run = simulate("field_work", seed=5, start_ns=T0, duration_s=60.0)
-        pk = packetize(run.in_arrival_order(), run.start_ns)
+        pk = packetize(run.sent_in_arrival_order(), run.start_ns)
         _SOURCE = Source(
             [(p.stream, p.measurements) for p in pk], run.end_ns - run.start_ns + 100_000_000
         )

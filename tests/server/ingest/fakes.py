@@ -29,6 +29,7 @@ class RecordingFleet:
         self.pushed: dict[str, list[Measurement]] = {}
         self.until: dict[str, int] = {}
         self.advances: list[dict[str, int]] = []
+        self.aligned: dict[str, int] = {}
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         self.vehicles[vehicle_id] = config
@@ -44,6 +45,11 @@ class RecordingFleet:
         if vehicle_id not in self.vehicles:
             raise KeyError(vehicle_id)
         self.pushed[vehicle_id].append(measurement)
+
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        if vehicle_id not in self.vehicles:
+            raise KeyError(vehicle_id)
+        self.aligned[vehicle_id] = stamp_ns
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         out = []

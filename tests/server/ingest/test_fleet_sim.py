@@ -28,7 +28,7 @@ T0 = 1_763_700_000 * 10**9
 
 def test_packetize_merges_wheels_and_round_trips() -> None:
     run = simulate("hard_braking", seed=3, start_ns=T0)
-    packets = packetize(run.in_arrival_order(), run.start_ns)
+    packets = packetize(run.sent_in_arrival_order(), run.start_ns)
     wheel_packets = [p for p in packets if p.stream is Stream.WHEELS]
     assert any(len(p.measurements) == 2 for p in wheel_packets)
     assert sum(len(p.measurements) for p in packets) == len(run.measurements)
