@@ -160,7 +160,7 @@ def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> No
     """Simulate ``vehicles`` and write their packets to a recording file (no network)."""
     from estimator.sim import SCENARIOS
     from estimator.sim import simulate as run_scenario
-    from server.fleet_sim import VEHICLE_ID_FORMAT, encode_packet, packetize
+    from server.fleet_sim import VEHICLE_ID_FORMAT, packetize
     from server.protocol.keys import sensor_key
     from server.protocol.recording import Record, write_recording
 
@@ -180,7 +180,7 @@ def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> No
                 Record(
                     key,
                     start_ns + pkt.arrival_offset_ns,
-                    encode_packet(pkt.stream, pkt.measurements, n, pkt.until_ns),
+                    pkt.encode(n),
                 )
             )
     records.sort(key=lambda r: r.stamp_ns)

@@ -156,7 +156,7 @@ class EncodedDrive:
 
     def __init__(self, packets: Sequence[object], period_ns: int) -> None:
         from estimator.types import GnssSample
-        from server.fleet_sim import SimPacket, encode_packet
+        from server.fleet_sim import SimPacket
 
         n = len(packets)
         self.period_ns = int(period_ns)
@@ -172,13 +172,14 @@ class EncodedDrive:
         size = 0
         for i, p in enumerate(packets):
             assert isinstance(p, SimPacket)
-            payload = encode_packet(p.stream, p.measurements, 0, p.until_ns)
+            payload = p.encode(0)
             stamps = [
                 np.asarray(int(m.stamp_ns), np.int64)
                 if isinstance(m, GnssSample)
                 else np.asarray(m.stamp_ns, np.int64)
                 for m in p.measurements
             ]
+            stamps = [t for t in stamps if t.size]  # a wheel without edges has no entry
             t = _locate(payload, stamps, p.until_ns)
             self.arrival_ns[i] = p.arrival_offset_ns
             self.stream[i] = _STREAM_CODE[p.stream]

@@ -92,6 +92,15 @@ class SimPacket:
     #: the packet's ``until_ns`` (absolute, shifted with the stamps), None: not sent
     until_ns: int | None = None
 
+    def encode(self, seq: int, shift_ns: int = 0) -> bytes:
+        """The packet on the wire as sequence number ``seq``, its stamps and ``until_ns`` moved
+        by ``shift_ns`` (a later loop of the drive, another vehicle's phase)."""
+        ms = self.measurements
+        if shift_ns:
+            ms = tuple(shift_measurement(m, shift_ns) for m in ms)
+        until = None if self.until_ns is None else self.until_ns + shift_ns
+        return encode_packet(self.stream, ms, seq, until)
+
 
 @dataclass(slots=True)
 class SimStats:
@@ -125,13 +134,13 @@ def packetize(
     """Group ``(arrival_ns, measurement, until_ns)`` triples (arrival order) into wire packets.
 
     Wheel edges of both wheels arriving at the same time share one packet (its ``until_ns``
-    the later of the two); empty batches (no samples) are dropped, as a vehicle would not send
-    them.
+    the later of the two); empty batches (no samples) are dropped unless they carry an
+    ``until_ns`` (a wheel heartbeat: encoded with no edges).
     """
     out: list[SimPacket] = []
     for arrival, m, until in sent:
-        if not isinstance(m, GnssSample) and len(m.stamp_ns) == 0:
-            continue
+        if not isinstance(m, GnssSample) and len(m.stamp_ns) == 0 and until is None:
+            continue  # nothing measured and no window end to tell
         stream = _stream_of(m)
         last = out[-1] if out else None
         if (
@@ -164,7 +173,10 @@ def encode_packet(
     seq: int,
     until_ns: int | None = None,
 ) -> bytes:
-    """Encode one packet's measurements (as :func:`packetize` grouped them)."""
+    """Encode one packet's measurements (as :func:`packetize` grouped them); a wheels packet
+    without edges is a heartbeat (needs ``until_ns``)."""
+    if not measurements and stream is Stream.WHEELS:
+        return encode_wheel_edges([], seq, until_ns)
     first = measurements[0]
     if stream is Stream.GNSS and isinstance(first, GnssSample):
         return encode_gnss(first, seq, until_ns)
@@ -184,7 +196,7 @@ def encode_packets(packets: Sequence[SimPacket]) -> list[tuple[str, bytes]]:
     out = []
     for p in packets:
         name = p.stream.value
-        out.append((name, encode_packet(p.stream, p.measurements, seq[name], p.until_ns)))
+        out.append((name, p.encode(seq[name])))
         seq[name] += 1
     return out
 
@@ -498,9 +510,8 @@ def replay(
                     pkt = decode(
                         rec.key, payload, prefix=_prefix_of(rec.key), max_payload_bytes=1 << 30
                     )
-                    ms = tuple(shift_measurement(m, shift) for m in pkt.measurements)
-                    until = None if pkt.until_ns is None else pkt.until_ns + shift
-                    payload = encode_packet(pkt.stream, ms, pkt.seq, until)
+                    again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
+                    payload = again.encode(pkt.seq, shift)
                 except DecodeError:
                     pass  # replay what was recorded: the server will count the refusal
             pub = pubs.get(rec.key)

@@ -137,8 +137,9 @@ def run(endpoint: str, vehicle_id: str, seconds: float, prefix: str = "fleet") -
                 "gnss": tractor.gnss(window_start),
             }
             for stream, body in packets.items():
-                if stream == "wheels" and not body["edges"]:
-                    continue  # no edge in this window: nothing to send
+                # the stream is complete up to the window's end: the server need not wait (a
+                # wheels packet without edges is a heartbeat: the wheels stood still)
+                body["until_ns"] = window_end - 1
                 pubs[stream].put(pack(stream, seq[stream], body))
                 seq[stream] += 1
                 sent[stream] += 1

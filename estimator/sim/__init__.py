@@ -55,6 +55,7 @@ from estimator.sim.sensors import (
     imu_emissions,
     imu_point_m,
     wheel_emissions,
+    wheel_heartbeats,
 )
 from estimator.sim.stream import (
     completion_ns,
@@ -63,6 +64,7 @@ from estimator.sim.stream import (
     replay,
     replay_arrivals,
 )
+from estimator.types import Wheel, WheelEdges
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -149,6 +151,9 @@ class SimRun:
     until_ns : ndarray, shape (len(measurements),), int64
         Sensor time the stream is complete up to once each measurement is sent (the wire
         protocol's ``until_ns``: the end of a batch window, the next GNSS epoch − 1 ns).
+    heartbeat_ns : ndarray, shape (k, 2), int64
+        ``(arrival_ns, until_ns)`` of each wheel window without an edge on either wheel (see
+        :func:`estimator.sim.sensors.wheel_heartbeats`); not measurements, only sent.
     truth : ndarray of TRUTH_DTYPE
         Truth at ``sensors.truth_rate_hz``.
     frame : EnuFrame
@@ -165,6 +170,7 @@ class SimRun:
     measurements: list[Measurement]
     arrival_ns: npt.NDArray[np.int64]
     until_ns: npt.NDArray[np.int64]
+    heartbeat_ns: npt.NDArray[np.int64]
     truth: np.ndarray
     frame: EnuFrame
 
@@ -173,12 +179,16 @@ class SimRun:
         return list(in_arrival_order(self.measurements, self.arrival_ns))
 
     def sent_in_arrival_order(self) -> list[tuple[int, Measurement, int]]:
-        """``(arrival_ns, measurement, until_ns)`` in the order a live link would deliver them."""
-        order = np.argsort(self.arrival_ns, kind="stable")
-        return [
-            (int(self.arrival_ns[i]), self.measurements[int(i)], int(self.until_ns[i]))
-            for i in order
+        """``(arrival_ns, measurement, until_ns)`` in the order a live link would deliver them,
+        wheel heartbeats included (as edges of no stamps: nothing on either wheel)."""
+        no_edges = WheelEdges(Wheel.LEFT, np.zeros(0, dtype=np.int64))
+        sent = [
+            (int(a), m, int(u))
+            for a, m, u in zip(self.arrival_ns, self.measurements, self.until_ns, strict=True)
         ]
+        sent += [(int(a), no_edges, int(u)) for a, u in self.heartbeat_ns]
+        order = np.argsort([a for a, _, _ in sent], kind="stable")
+        return [sent[int(i)] for i in order]
 
     @property
     def duration_s(self) -> float:
@@ -352,7 +362,10 @@ def simulate(
     emissions: list[Emission] = []
     emissions += gnss_emissions(fine, spec, cfg, frame, start_ns, r_gnss)
     emissions += imu_emissions(fine, spec, cfg, start_ns, r_imu)
-    emissions += wheel_emissions(fine, spec, cfg, start_ns, r_wheel)
+    wheels = wheel_emissions(fine, spec, cfg, start_ns, r_wheel)
+    end_ns = start_ns + round(fine.t_s[-1] * 1e9)
+    heartbeats = wheel_heartbeats(wheels, spec, start_ns, end_ns)
+    emissions += wheels
     emissions.sort(key=lambda e: (e.key_ns, e.rank))
     truth = _truth_table(fine, spec, cfg, start_ns)
     return SimRun(
@@ -362,10 +375,11 @@ def simulate(
         config=cfg,
         sensor_noise=_noise_figures(spec, fine, cfg),
         start_ns=start_ns,
-        end_ns=start_ns + round(fine.t_s[-1] * 1e9),
+        end_ns=end_ns,
         measurements=[e.measurement for e in emissions],
         arrival_ns=np.array([e.arrival_ns for e in emissions], dtype=np.int64),
         until_ns=np.array([e.until_ns for e in emissions], dtype=np.int64),
+        heartbeat_ns=heartbeats,
         truth=truth,
         frame=frame,
     )

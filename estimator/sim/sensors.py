@@ -20,8 +20,9 @@ Wheel encoders
     Rising-edge times where the integrated wheel angle crosses a tooth edge. Each ring has a
     fixed random pattern of tooth-edge deviations (``tooth_error_rel`` of the tooth pitch, 1σ),
     and the wheel starts at a random angle. Edge times are quantised to the capture timer
-    (``edge_clock_hz``) and grouped per wheel in windows of ``wheel_batch_ms``; windows without
-    an edge send nothing.
+    (``edge_clock_hz``) and grouped per wheel in windows of ``wheel_batch_ms``; a window in
+    which neither wheel had an edge sends a heartbeat (:func:`wheel_heartbeats`: the window's
+    end, no edges) when ``wheel_heartbeats`` is on, else nothing.
 
 Every generator returns :class:`Emission` records: the measurement, the sensor time that
 completes it (``key_ns``, the last sample's stamp) and the time it reaches the server
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -97,6 +99,8 @@ class SensorSpec:
     edge_clock_hz : 1e6 — edge capture timer; must divide 1e9.
     wheel_batch_ms : 100.0 — one packet per wheel per window.
     wheel_latency_ms : delivery delay after the window's end.
+    wheel_heartbeats : True — a window without an edge on either wheel sends an empty packet
+    saying so (the wheels stream is complete to the window's end).
     wheel_radius_error_rel : (left, right) — true radius = configured × (1 + error).
 
     Truth grid
@@ -137,6 +141,7 @@ class SensorSpec:
     edge_clock_hz: float = 1e6
     wheel_batch_ms: float = 100.0
     wheel_latency_ms: float = 5.0
+    wheel_heartbeats: bool = True
     wheel_radius_error_rel: tuple[float, float] = (0.0, 0.0)
     fine_rate_hz: float = 500.0
     truth_rate_hz: float = 100.0
@@ -427,3 +432,39 @@ def wheel_emissions(
             end = start_ns + int(w[0] + 1) * window_ns
             out.append(Emission(int(chunk[-1]), end + latency, 2 + int(wheel), edges, end - 1))
     return out
+
+
+def wheel_heartbeats(
+    wheels: Sequence[Emission], spec: SensorSpec, start_ns: int, end_ns: int
+) -> npt.NDArray[np.int64]:
+    """The wheel windows in which neither wheel had an edge, as heartbeats.
+
+    A vehicle standing still (or creeping slower than one tooth per window) has no edge to send;
+    a heartbeat tells the server that nothing is missing up to the window's end, so it need not
+    hold the vehicle's other streams back waiting for wheel data.
+
+    Parameters
+    ----------
+    wheels : sequence of Emission
+        What :func:`wheel_emissions` returned for the run.
+    spec : SensorSpec
+        ``wheel_batch_ms``, ``wheel_latency_ms``, ``wheel_heartbeats``.
+    start_ns, end_ns : int
+        The run's first and last sensor time; whole windows in between are covered.
+
+    Returns
+    -------
+    ndarray, shape (k, 2), int64
+        ``(arrival_ns, until_ns)`` per heartbeat, in time order: ``until_ns`` is the window's
+        end − 1 ns; it arrives ``wheel_latency_ms`` after the end. Empty when heartbeats are off.
+    """
+    window_ns = round(spec.wheel_batch_ms * 1e6)
+    n = (end_ns - start_ns) // window_ns if spec.wheel_heartbeats else 0
+    sent = np.zeros(max(n, 0), dtype=bool)
+    if wheels and n > 0:
+        until = np.array([e.until_ns for e in wheels], dtype=np.int64)
+        windows = (until + 1 - start_ns) // window_ns - 1
+        sent[windows[windows < n]] = True
+    ends = start_ns + (np.flatnonzero(~sent).astype(np.int64) + 1) * window_ns
+    latency = round(spec.wheel_latency_ms * 1e6)
+    return np.stack([ends + latency, ends - 1], axis=1).astype(np.int64).reshape(-1, 2)

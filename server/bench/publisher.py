@@ -72,7 +72,7 @@ def _per_packet_run(
     """
     import zenoh
 
-    from server.fleet_sim import _publisher, encode_packet, shift_measurement
+    from server.fleet_sim import _publisher
     from server.protocol.codec import encode_config
     from server.protocol.keys import Stream, config_key, sensor_key
 
@@ -112,10 +112,7 @@ def _per_packet_run(
             late.append((now + wall0, (now - d) / 1e6))
             v = vehicles[i]
             p = v.packets[v.index]
-            shift = v.shift_ns + v.loop * v.period_ns
-            ms = tuple(shift_measurement(m, shift) for m in p.measurements)
-            until = None if p.until_ns is None else p.until_ns + shift
-            payload = encode_packet(p.stream, ms, v.seq[p.stream], until)
+            payload = p.encode(v.seq[p.stream], v.shift_ns + v.loop * v.period_ns)
             v.seq[p.stream] += 1
             pubs[(v.vehicle_id, p.stream)].put(payload)
             stats.packets[p.stream.value] += 1

@@ -20,13 +20,19 @@ inside the stream), and ::
     horizon = max(newest - lateness, min over the vehicle's streams of their watermarks)
 
 A packet that is missing (lost, or still on its way) holds its stream's watermark until the
-fixed window passes it; then the run resumes after the gap. For the first
-``max(lateness, WATERMARK_START_NS)`` of sensor time after a vehicle's first packet only the
-fixed window applies (a stream's first packet arrives only once its batch is complete), so
-every stream the vehicle sends has a watermark before they gate the release; a stream that
-starts later may find its first packet late (nothing could wait for it). Sensor-to-estimate
-latency drops from ``lateness`` to the spread between the vehicle's streams, without making
-more packets late.
+fixed window passes it; then the run resumes after the gap. The watermarks gate the release only
+once every stream the vehicle is expected to send (``streams``, all three by default) has one,
+and not before ``max(lateness, WATERMARK_START_NS)`` of sensor time after the vehicle's first
+packet (a stream's first packet arrives only once its batch is complete): a vehicle standing
+still sends no wheel edges, and a horizon driven by its IMU and GNSS alone would make the first
+wheel packet late once it moves. Until then the fixed window applies. ``newest`` is always a
+sample time, never a sender's ``until_ns`` (which may lie ahead of the arrival: a GNSS epoch
+covers up to the next one), so the fixed window keeps its full margin. Sensor-to-estimate
+latency drops from ``lateness`` to the spread between the vehicle's streams (down to the
+batch ends, with ``until_ns``), without making more packets late.
+
+A wheels *heartbeat* (a packet without edges, only ``until_ns``: the wheels stood still up to
+it) moves the stream's watermark and its sequence tracking and is never late; it is not queued.
 
 A packet whose first sample time is at or before the horizon already released is **late**: it
 is counted and never fed (feeding it would break the estimators' time order). Sequence numbers
@@ -53,7 +59,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from enum import Enum
 
@@ -204,6 +210,8 @@ class ReorderBuffer:
     watermarks : bool
         Release up to the streams' watermarks when they are ahead of the fixed window (see
         the module docstring); False: the fixed window alone.
+    streams : collection of Stream
+        The streams the vehicle is expected to send: watermarks gate only once each has one.
     """
 
     def __init__(
@@ -214,6 +222,7 @@ class ReorderBuffer:
         clock_jump_ns: int | None = None,
         reanchor_after: int = 5,
         watermarks: bool = False,
+        streams: Collection[Stream] = tuple(Stream),
     ) -> None:
         if lateness_ns < 0:
             raise ValueError("lateness_ns must be >= 0")
@@ -236,6 +245,9 @@ class ReorderBuffer:
         self._last_arrival_ns = 0
         self._watermarks: dict[Stream, _StreamMark] | None = {} if watermarks else None
         self._first_ns: int | None = None
+        self._expected = frozenset(streams)
+        if not self._expected:
+            raise ValueError("streams must not be empty")
 
     @property
     def pending(self) -> int:
@@ -267,7 +279,11 @@ class ReorderBuffer:
             if jump is not None:
                 return Offer(jump, lost_delta, restarted)
         self._jumps_in_row = 0
-        if self._released_ns is not None and packet.first_stamp_ns <= self._released_ns:
+        if (
+            self._released_ns is not None
+            and packet.first_stamp_ns <= self._released_ns
+            and packet.measurements  # a heartbeat has nothing to feed: never late
+        ):
             return Offer(Verdict.LATE, lost_delta, restarted)
         verdict = self._take(packet, now_ns, seq_restart=restarted)
         if lost_delta == 0 and not restarted:
@@ -319,21 +335,29 @@ class ReorderBuffer:
 
     def _take(self, packet: Packet, now_ns: int, *, seq_restart: bool = False) -> Verdict:
         self._last_arrival_ns = now_ns
-        covers = packet.covers_ns
-        if self._newest_ns is None or covers > self._newest_ns:
-            self._newest_ns = covers
+        marks = self._watermarks
+        if not packet.measurements:  # a heartbeat moves its stream's watermark, nothing else
+            if marks is not None:
+                self._mark(marks, packet, seq_restart)
+            return Verdict.ACCEPTED
+        if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
+            self._newest_ns = packet.last_stamp_ns
         if self._first_ns is None:
             self._first_ns = packet.first_stamp_ns
-        marks = self._watermarks
         if marks is not None:
-            mark = marks.get(packet.stream)
-            if mark is None or seq_restart:
-                marks[packet.stream] = _StreamMark(packet.seq, covers)
-            else:
-                mark.arrived(packet.seq, covers)
+            self._mark(marks, packet, seq_restart)
         key = (packet.first_stamp_ns, _STREAM_ORDER[packet.stream], packet.seq, next(self._tie))
         heapq.heappush(self._heap, (*key, packet))
         return Verdict.ACCEPTED
+
+    @staticmethod
+    def _mark(marks: dict[Stream, _StreamMark], packet: Packet, seq_restart: bool) -> None:
+        """Move ``packet``'s stream watermark to what the packet covers."""
+        mark = marks.get(packet.stream)
+        if mark is None or seq_restart:
+            marks[packet.stream] = _StreamMark(packet.seq, packet.covers_ns)
+        else:
+            mark.arrived(packet.seq, packet.covers_ns)
 
     def is_idle(self, now_ns: int) -> bool:
         """No packet arrived for the idle time (the vehicle stopped sending, for now)."""
@@ -360,8 +384,10 @@ class ReorderBuffer:
         if marks and not idle and self._first_ns is not None:
             for mark in marks.values():
                 mark.skip_gaps(horizon)
-            if self._newest_ns - self._first_ns >= max(self._lateness_ns, WATERMARK_START_NS):
-                horizon = max(horizon, min(m.stamp_ns for m in marks.values()))
+            if self._expected.issubset(marks) and self._newest_ns - self._first_ns >= max(
+                self._lateness_ns, WATERMARK_START_NS
+            ):
+                horizon = max(horizon, min(marks[s].stamp_ns for s in self._expected))
         if self._released_ns is not None and horizon < self._released_ns:
             return self._released_ns
         return horizon

@@ -153,6 +153,8 @@ class Packet:
     until_ns : int or None
         The sender's promise that every sample of this stream stamped at or before it is in
         this packet or an earlier one (the end of the batch window); ``None`` if not given.
+        A wheels packet may be a *heartbeat*: no measurements, only ``until_ns`` (no edge on
+        either wheel up to it); its first and last stamps are ``until_ns``.
     """
 
     vehicle_id: str
@@ -250,12 +252,18 @@ def encode_imu(batch: ImuBatch, seq: int, until_ns: int | None = None) -> bytes:
 
 
 def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int, until_ns: int | None = None) -> bytes:
-    """Encode the encoder edges of one or both wheels for ``<prefix>/<id>/sensors/wheels``."""
+    """Encode the encoder edges of one or both wheels for ``<prefix>/<id>/sensors/wheels``.
+
+    Wheels without edges are left out; with none at all the packet is a heartbeat (``"edges":
+    []``) and needs ``until_ns``: no edge on either wheel up to it.
+    """
     items: list[dict[str, Any]] = []
     for e in edges:
         n = int(np.asarray(e.stamp_ns).shape[0]) if np.ndim(e.stamp_ns) == 1 else -1
         if n < 0:
             raise EncodeError("stamp_ns must be one-dimensional")
+        if n == 0:
+            continue  # a wheel without an edge in the window: no entry
         item: dict[str, Any] = {"wheel": int(Wheel(e.wheel)), "stamp_ns": _i8(e.stamp_ns, n)}
         if e.direction is not None:
             d = np.asarray(e.direction)
@@ -263,6 +271,8 @@ def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int, until_ns: int | No
                 raise EncodeError(f"direction must have shape ({n},)")
             item["direction"] = np.ascontiguousarray(d, dtype=np.int8).tobytes()
         items.append(item)
+    if not items and until_ns is None:
+        raise EncodeError("a wheels packet without edges must carry until_ns (a heartbeat)")
     return _pack(
         {
             "v": SCHEMA_VERSION,
@@ -444,8 +454,12 @@ def _decode_imu(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement,
 
 def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
     items = _field(ctx, m, "edges")
+    if isinstance(items, list) and not items and "until_ns" in m:
+        return ()  # a heartbeat: no edge on either wheel up to until_ns
     if not isinstance(items, list) or not 1 <= len(items) <= len(Wheel):
-        raise ctx.fail("wrong_type", "edges must be an array of 1 or 2 wheel entries")
+        raise ctx.fail(
+            "wrong_type", "edges must be an array of 1 or 2 wheel entries (0 with until_ns)"
+        )
     out: list[Measurement] = []
     seen: set[int] = set()
     for item in items:
@@ -560,16 +574,19 @@ def decode(
             ms = _decode_speeds(ctx, m, limits)
         else:
             raise ctx.fail("wrong_type", f"wheels mode {mode!r} is not 'edges' or 'speeds'")
-    first, last = _stamp_span(ms)
     until = None
     if "until_ns" in m:
         until = _int(ctx, m, "until_ns")
-        if not last <= until <= last + limits.max_until_ahead_ns:
-            raise ctx.fail(
-                "out_of_range",
-                f"until_ns must lie between the last sample and "
-                f"{limits.max_until_ahead_ns / 1e9:g} s after it",
-            )
+        if not ms:  # a heartbeat: its span is until_ns
+            _stamp(ctx, until, "until_ns", limits)
+            return Packet(vehicle_id, stream, seq, version, ms, until, until, until)
+    first, last = _stamp_span(ms)
+    if until is not None and not last <= until <= last + limits.max_until_ahead_ns:
+        raise ctx.fail(
+            "out_of_range",
+            f"until_ns must lie between the last sample and "
+            f"{limits.max_until_ahead_ns / 1e9:g} s after it",
+        )
     return Packet(vehicle_id, stream, seq, version, ms, first, last, until)
 
 

@@ -267,3 +267,20 @@ def test_a_generator_can_stand_in_for_the_seed() -> None:
     b = simulate("paper_straight", seed=np.random.default_rng(21), start_ns=START_NS)
     c = simulate("paper_straight", seed=21, start_ns=START_NS)
     assert a.truth.tobytes() == b.truth.tobytes() == c.truth.tobytes()
+
+
+def test_heartbeats_fill_exactly_the_wheel_windows_without_an_edge() -> None:
+    run = simulate("hard_braking", seed=4, start_ns=START_NS)  # stands still before and after
+    window_ns = round(run.sensors.wheel_batch_ms * 1e6)
+    n_windows = (run.end_ns - run.start_ns) // window_ns
+    edges = np.concatenate([m.stamp_ns for m in run.measurements if isinstance(m, WheelEdges)])
+    with_edges = set(((edges - run.start_ns) // window_ns).tolist())
+    arrival, until = run.heartbeat_ns[:, 0], run.heartbeat_ns[:, 1]
+    beats = ((until + 1 - run.start_ns) // window_ns - 1).tolist()
+    assert len(beats) > 10
+    assert sorted(set(beats) | (with_edges & set(range(n_windows)))) == list(range(n_windows))
+    assert not set(beats) & with_edges
+    assert np.all((until + 1 - run.start_ns) % window_ns == 0)  # a window's end - 1 ns
+    assert np.all(arrival - until - 1 == round(run.sensors.wheel_latency_ms * 1e6))
+    quiet = simulate("hard_braking", seed=4, start_ns=START_NS, wheel_heartbeats=False)
+    assert quiet.heartbeat_ns.shape == (0, 2)

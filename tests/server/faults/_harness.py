@@ -31,7 +31,7 @@ from estimator.mdsf import MdsfConfig
 from estimator.sim import simulate
 from server.app_main import vehicle_session
 from server.estimators import EstimatorRegistry
-from server.fleet_sim import SimPacket, encode_packet, packetize
+from server.fleet_sim import SimPacket, packetize
 from server.ingest import Pipeline
 from server.protocol import Stream, config_key, decode, encode_config, sensor_key
 from server.protocol.codec import Packet
@@ -281,16 +281,13 @@ class Publisher:
     def encoded(self) -> list[tuple[str, bytes, int]]:
         """``(key, payload, newest stamp)`` of every packet in publishing order (phases applied,
         sequence numbers per stream)."""
-        from server.fleet_sim import shift_measurement
-
         seq: dict[tuple[str, Stream], int] = {}
         out = []
         for _, vid, p in self.schedule():
             phase = next(r.phase_ns for r in self.runs if r.vehicle_id == vid)
-            ms = tuple(shift_measurement(m, phase) for m in p.measurements)
             n = seq.get((vid, p.stream), 0)
             seq[(vid, p.stream)] = n + 1
-            payload = encode_packet(p.stream, ms, n)
+            payload = p.encode(n, phase)
             pk = decode(sensor_key(PREFIX, vid, p.stream), payload, prefix=PREFIX)
             out.append((sensor_key(PREFIX, vid, p.stream), payload, pk.last_stamp_ns))
         return out

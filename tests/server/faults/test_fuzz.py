@@ -36,7 +36,7 @@ from estimator.engine import MdsfFleet
 from estimator.sim import simulate
 from estimator.types import GnssSample
 from server.estimators import EstimatorRegistry
-from server.fleet_sim import encode_packet, packetize, shift_measurement
+from server.fleet_sim import SimPacket, packetize
 from server.ingest import Pipeline
 from server.ingest.subscriber import IngestItem
 from server.protocol import LIMITS, DecodeError, Packet, Stream, decode, sensor_key
@@ -89,18 +89,24 @@ _WILD_INTS = (0, -1, 1, 2**63 - 1, -(2**63), 2**64 - 1, 2**31, 4, 5, 3, 255)
 class Source:
     """Valid packets of one simulated run, replayable with shifted stamps (like FleetSim)."""
 
-    packets: list[tuple[Stream, tuple[Any, ...]]]
+    packets: list[SimPacket]
     period_ns: int
 
     def encoded(self, index: int, seq: dict[Stream, int]) -> tuple[Stream, bytes, int]:
         loop, i = divmod(index, len(self.packets))
-        stream, ms = self.packets[i]
-        shifted = tuple(shift_measurement(m, loop * self.period_ns) for m in ms)
-        payload = encode_packet(stream, shifted, seq[stream])
-        seq[stream] += 1
-        first = shifted[0]
-        stamp = first.stamp_ns if isinstance(first, GnssSample) else int(first.stamp_ns[-1])
-        return stream, payload, int(stamp)
+        p = self.packets[i]
+        shift = loop * self.period_ns
+        payload = p.encode(seq[p.stream], shift)
+        seq[p.stream] += 1
+        first = p.measurements[0]
+        if isinstance(first, GnssSample):
+            stamp = first.stamp_ns
+        elif len(first.stamp_ns):
+            stamp = int(first.stamp_ns[-1])
+        else:  # a wheel heartbeat
+            assert p.until_ns is not None
+            stamp = p.until_ns
+        return p.stream, payload, int(stamp) + shift
 
 
 _SOURCE: Source | None = None
@@ -112,7 +118,7 @@ def source() -> Source:
         run = simulate("field_work", seed=5, start_ns=T0, duration_s=60.0)
         pk = packetize(run.sent_in_arrival_order(), run.start_ns)
         _SOURCE = Source(
-            [(p.stream, p.measurements) for p in pk], run.end_ns - run.start_ns + 100_000_000
+            pk, run.end_ns - run.start_ns + 100_000_000
         )
     return _SOURCE
 

@@ -11,7 +11,7 @@ import pytest
 from estimator.sim import simulate
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, WheelEdges
 from server.estimators import EstimatorRegistry
-from server.fleet_sim import FleetSim, encode_packet, packetize, record, replay
+from server.fleet_sim import FleetSim, packetize, record, replay
 from server.ingest import Pipeline
 from server.protocol import Stream, decode, sensor_key
 from server.protocol.recording import Record, read_recording, write_recording
@@ -31,13 +31,21 @@ def test_packetize_merges_wheels_and_round_trips() -> None:
     packets = packetize(run.sent_in_arrival_order(), run.start_ns)
     wheel_packets = [p for p in packets if p.stream is Stream.WHEELS]
     assert any(len(p.measurements) == 2 for p in wheel_packets)
-    assert sum(len(p.measurements) for p in packets) == len(run.measurements)
+    heartbeats = [p for p in wheel_packets if all(len(m.stamp_ns) == 0 for m in p.measurements)]
+    assert len(heartbeats) == len(run.heartbeat_ns) > 0  # it stands still before braking ends
+    assert all(len(p.measurements) == 1 and p.until_ns is not None for p in heartbeats)
+    assert sum(len(p.measurements) for p in packets) == len(run.measurements) + len(heartbeats)
     offsets = [p.arrival_offset_ns for p in packets]
     assert offsets == sorted(offsets)
-    for seq, p in enumerate(packets[:200]):
+    for seq, p in enumerate(packets):
         got = decode(
-            sensor_key("fleet", "sim-0001", p.stream), encode_packet(p.stream, p.measurements, seq)
+            sensor_key("fleet", "sim-0001", p.stream),
+            p.encode(seq),
         )
+        assert got.until_ns == p.until_ns
+        if p in heartbeats:
+            assert got.measurements == () and got.first_stamp_ns == p.until_ns
+            continue
         assert len(got.measurements) == len(p.measurements)
         for a, b in zip(p.measurements, got.measurements, strict=True):
             assert type(a) is type(b)

@@ -186,6 +186,24 @@ def test_estimators_advance_in_steps_then_to_the_end() -> None:
     assert len(untils) <= 5
 
 
+def test_ticks_are_put_on_the_end_of_the_first_imu_batch() -> None:
+    """The estimators learn the vehicle's tick phase (the last sample of its first IMU batch)
+    before its first push, and advance steps fall on that grid, so a tick at a batch's end is
+    computed as soon as that batch is released."""
+    pipe, fleet, _ = make(lateness_ms=0, advance_step_ms=100)
+    pipe.start()
+    pipe.submit([gnss("a", 0, 60)])  # GNSS first: not what the ticks are put on
+    for k in range(8):  # 50 ms IMU batches ending at 77, 127, 177, ... ms
+        pipe.submit([imu("a", k, 73 + 50 * k, n=5)])
+        wait_for(lambda k=k: len(fleet.pushed.get("a", [])) == k + 2)
+    pipe.stop()
+    anchor = T0 + 77 * MS
+    assert fleet.aligned == {"a": anchor}
+    untils = [adv["a"] for adv in fleet.advances][:-1]  # the last one is the final flush
+    assert len(untils) >= 3
+    assert all((u - anchor) % (100 * MS) == 0 for u in untils)
+
+
 def test_refusals_of_many_unregistered_ids_share_one_bucket(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

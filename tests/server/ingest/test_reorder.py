@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -239,6 +241,10 @@ def test_watermarks_wait_the_fixed_window_at_start() -> None:
     assert buf.offer(gnss_packet(0, 500), 0).verdict is Verdict.ACCEPTED
 
 
+#: a vehicle that sends IMU packets only (the single-stream watermark tests)
+IMU_ONLY = (Stream.IMU,)
+
+
 def warm(buf: ReorderBuffer, n: int = 12) -> int:
     """Feed ``n`` IMU packets (past the start-up window); returns the next sequence number."""
     for k in range(n):
@@ -247,7 +253,7 @@ def warm(buf: ReorderBuffer, n: int = 12) -> int:
 
 
 def test_watermark_holds_at_a_sequence_gap_until_it_fills() -> None:
-    buf = ReorderBuffer(lateness_ns=500 * MS, idle_ns=10**18, watermarks=True)
+    buf = ReorderBuffer(lateness_ns=500 * MS, idle_ns=10**18, watermarks=True, streams=IMU_ONLY)
     n = warm(buf)
     for k in range(n, n + 6):
         if k == n + 3:
@@ -262,7 +268,7 @@ def test_watermark_holds_at_a_sequence_gap_until_it_fills() -> None:
 
 
 def test_watermark_gives_up_on_a_lost_packet_after_the_window() -> None:
-    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True, streams=IMU_ONLY)
     n = warm(buf)
     lost = 0
     for k in range(n, n + 10):
@@ -277,12 +283,68 @@ def test_watermark_gives_up_on_a_lost_packet_after_the_window() -> None:
 
 
 def test_watermark_follows_a_sequence_restart() -> None:
-    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True, streams=IMU_ONLY)
     n = warm(buf)
     offer = buf.offer(imu_packet(SEQ_WINDOW * 3, 100 * n), 0)  # counter reset
     assert offer.seq_restart
     buf.offer(imu_packet(SEQ_WINDOW * 3 + 1, 100 * (n + 1)), 0)
     assert buf.release(0)[1] == T0 + (100 * (n + 1) + 9) * MS
+
+
+def test_watermarks_wait_for_a_stream_not_heard_yet() -> None:
+    """A vehicle standing still sends IMU and GNSS but no wheel edges: its horizon keeps to the
+    fixed window, so the first wheel packet after it starts moving is not late."""
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    for k in range(20):
+        buf.offer(imu_packet(k, 100 * k), 0)
+        buf.offer(gnss_packet(k, 100 * k + 5), 0)
+    assert buf.release(0)[1] == T0 + (1909 - 300) * MS  # not 1905 (IMU and GNSS marks)
+    assert buf.offer(wheels_packet(0, 1700), 0).verdict is Verdict.ACCEPTED
+    only_these = ReorderBuffer(
+        lateness_ns=300 * MS, idle_ns=10**18, watermarks=True, streams=(Stream.IMU, Stream.GNSS)
+    )
+    for k in range(20):
+        only_these.offer(imu_packet(k, 100 * k), 0)
+        only_these.offer(gnss_packet(k, 100 * k + 5), 0)
+    assert only_these.release(0)[1] == T0 + 1905 * MS
+
+
+def test_until_moves_the_watermark_but_not_the_fixed_window() -> None:
+    """``until_ns`` (the end of the batch window) lets a stream's watermark run to the end of
+    its batch; the fixed window still counts from the newest sample time."""
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    fixed = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18)
+    for k in range(15):
+        for p in three_streams(k):
+            end = T0 + (100 * k + 99) * MS  # every stream complete to the end of the 100 ms
+            q = dataclasses.replace(p, until_ns=end)
+            assert buf.offer(q, 0).verdict is Verdict.ACCEPTED
+            fixed.offer(q, 0)
+    assert buf.release(0)[1] == T0 + 1499 * MS  # the windows' end, not the GNSS epoch (1405)
+    # newest is the wheels' last edge (1499), not moved by until_ns
+    assert fixed.release(0)[1] == T0 + (1499 - 300) * MS
+
+
+def heartbeat(seq: int, until_ms: int) -> Packet:
+    t = T0 + until_ms * MS
+    return Packet("v1", Stream.WHEELS, seq, 1, (), t, t, t)
+
+
+def test_wheel_heartbeats_move_the_watermark_and_are_never_late() -> None:
+    """A vehicle standing still: heartbeats say the wheels stream is complete, so the horizon
+    follows IMU and GNSS; a heartbeat behind the horizon is not late; none is fed."""
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    for k in range(20):
+        buf.offer(imu_packet(k, 100 * k), 0)
+        buf.offer(gnss_packet(k, 100 * k + 5), 0)
+        assert buf.offer(heartbeat(k, 100 * k + 99), 0).verdict is Verdict.ACCEPTED
+    out, released = buf.release(0)
+    assert released == T0 + 1905 * MS  # GNSS is the stream behind now
+    assert all(p.measurements for p in out) and len(out) == 40
+    assert buf.offer(heartbeat(5, 599), 0).verdict is Verdict.DUPLICATE
+    behind = buf.offer(heartbeat(20, 1800), 0)  # not a promise broken: nothing to feed
+    assert behind.verdict is Verdict.ACCEPTED
+    assert buf.offer(wheels_packet(21, 1910), 0).verdict is Verdict.ACCEPTED
 
 
 @settings(max_examples=60, deadline=None)

@@ -436,3 +436,61 @@ def test_encode_errors() -> None:
     with pytest.raises(EncodeError):
         floats: Any = np.arange(3.0)  # float seconds are refused: stamps are int ns
         encode_wheel_speeds(WheelSpeeds(floats, np.zeros((3, 2))), 0)
+
+
+# ------------------------------------------------------------------------- until_ns
+
+
+@pytest.mark.parametrize("ahead_ns", [0, 1, 97_999_999, LIMITS.max_until_ahead_ns])
+def test_until_round_trips_and_is_optional(ahead_ns: int) -> None:
+    batch = _imu(10)
+    last = int(batch.stamp_ns[-1])
+    p = decode(KEY[Stream.IMU], encode_imu(batch, 4, last + ahead_ns))
+    assert p.until_ns == last + ahead_ns
+    assert p.covers_ns == last + ahead_ns
+    plain = decode(KEY[Stream.IMU], encode_imu(batch, 4))
+    assert plain.until_ns is None
+    assert plain.covers_ns == last
+    g = decode(KEY[Stream.GNSS], encode_gnss(_gnss(), 0, T0 + 99_999_999))
+    assert g.until_ns == T0 + 99_999_999
+
+
+@pytest.mark.parametrize(
+    ("until", "reason"),
+    [
+        (T0 + 19_999_999, "out_of_range"),  # before the batch's last sample (T0 + 20 ms)
+        (T0 + 20_000_000 + LIMITS.max_until_ahead_ns + 1, "out_of_range"),
+        (1.5e18, "wrong_type"),
+        ("soon", "wrong_type"),
+    ],
+)
+def test_reason_until_outside_its_range(until: object, reason: str) -> None:
+    assert _reason(KEY[Stream.IMU], _raw(Stream.IMU, until_ns=until)) == reason
+
+
+def test_encode_refuses_a_bad_until() -> None:
+    with pytest.raises(EncodeError):
+        encode_imu(_imu(2), 0, -1)
+    with pytest.raises(EncodeError):
+        bad: Any = 1.0e18
+        encode_gnss(_gnss(), 0, bad)
+
+
+def test_wheel_heartbeat_is_edges_without_entries_and_needs_until() -> None:
+    """A window without an edge on either wheel: ``"edges": []`` and ``until_ns``."""
+    hb = decode(KEY[Stream.WHEELS], encode_wheel_edges([], 9, T0 + 99_999_999))
+    assert hb.measurements == () and hb.seq == 9
+    assert hb.first_stamp_ns == hb.last_stamp_ns == hb.until_ns == T0 + 99_999_999
+    # wheels without edges are left out of a packet that has some
+    empty = WheelEdges(Wheel.LEFT, np.zeros(0, dtype=np.int64))
+    right = WheelEdges(Wheel.RIGHT, T0 + np.arange(3, dtype=np.int64))
+    (only,) = decode(KEY[Stream.WHEELS], encode_wheel_edges([empty, right], 0)).measurements
+    assert isinstance(only, WheelEdges) and only.wheel is Wheel.RIGHT
+    with pytest.raises(EncodeError):
+        encode_wheel_edges([empty], 0)  # nothing to say without until_ns
+    no_until = msgpack.unpackb(encode_wheel_edges([], 0, T0), raw=False)
+    del no_until["until_ns"]
+    assert _reason(KEY[Stream.WHEELS], msgpack.packb(no_until)) == "wrong_type"
+    bad = msgpack.unpackb(encode_wheel_edges([], 0, T0), raw=False)
+    bad["until_ns"] = 10**15  # 1970: not a vehicle clock
+    assert _reason(KEY[Stream.WHEELS], msgpack.packb(bad)) == "out_of_range"
