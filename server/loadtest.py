@@ -441,11 +441,16 @@ class _Publisher:
 
 def _replay_fleet_sim_class() -> type:
     """A :class:`FleetSim` whose runs come from recordings instead of the simulator."""
+    import numpy as np
+
     from estimator.config import VehicleConfig
+    from estimator.types import Wheel, WheelEdges
     from server.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, packetize
     from server.protocol.codec import DecodeError, decode
     from server.protocol.keys import parse_key
     from server.protocol.recording import read_recording
+
+    no_edges = WheelEdges(Wheel.LEFT, np.zeros(0, dtype=np.int64))
 
     class ReplaySim(FleetSim):
         """Vehicle ``i`` replays drive ``i mod n_drives`` of ``paths`` (all vehicles in them)."""
@@ -483,7 +488,8 @@ def _replay_fleet_sim_class() -> type:
                         pkt = decode(rec.key, rec.payload, prefix=prefix, max_payload_bytes=1 << 30)
                     except (DecodeError, ValueError, IndexError):
                         continue
-                    for m in pkt.measurements:
+                    # a wheel heartbeat has no measurement: carried as edges of no stamps
+                    for m in pkt.measurements or (no_edges,):
                         by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m, pkt.until_ns))
                 for items in by_vehicle.values():
                     start = items[0][0]

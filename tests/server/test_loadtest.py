@@ -12,6 +12,7 @@ import pytest
 
 from server.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
 from server.loadtest import LoadSpec, Target, local_server, run_loadtest, scrape
+from server.protocol import Stream, decode, sensor_key
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -89,3 +90,25 @@ def test_two_shards_split_the_fleet_and_both_apis_list_all_of_it(pg_url: str) ->
             body = httpx.get(f"{s.api}/api/v1/vehicles", timeout=10).raise_for_status().json()
             listed.append({v["vehicle_id"] for v in body["data"]})
         assert listed[0] == listed[1] == seen[0] | seen[1]
+
+
+def test_replay_keeps_the_recorded_wheel_heartbeats(tmp_path: Path) -> None:
+    """A recorded drive that stands still holds heartbeats (wheels packets of no edges); the
+    replay sends them again with their until_ns."""
+    from server.app_main import record
+    from server.loadtest import _replay_fleet_sim_class
+
+    path = tmp_path / "drive.rec"
+    record(path, vehicles=1, scenario="hard_braking", duration_s=10.0)
+    sim = _replay_fleet_sim_class()(
+        None, 1, paths=[str(path)], id_format="r-{:03d}", prefix="fleet", first_index=1
+    )
+    ((packets, _, _),) = sim._drives()
+    beats = [
+        p
+        for p in packets
+        if p.stream is Stream.WHEELS and not any(len(m.stamp_ns) for m in p.measurements)
+    ]
+    assert beats and all(p.until_ns is not None for p in beats)
+    decoded = decode(sensor_key("fleet", "r-001", Stream.WHEELS), beats[0].encode(0))
+    assert decoded.measurements == () and decoded.until_ns == beats[0].until_ns
