@@ -207,8 +207,8 @@ def _serve_child() -> int:
 class Target:
     """Where the load goes: router endpoint(s) for vehicles, server API(s) and pids to watch.
 
-    ``shards`` pairs each vehicle id format with the share of the fleet that uses it (server
-    replicas filter on an id prefix); one shard ``("sim-{:05d}", 1.0)`` by default.
+    ``shards`` holds one vehicle id format per server replica (replicas filter on an id
+    prefix, :func:`server.shards.shard_layout`); the fleet is split evenly between them.
     """
 
     endpoints: tuple[str, ...]
@@ -911,6 +911,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--api", default=None, help="REST base URL of that server (with --connect)")
     p.add_argument("--server-pid", type=int, default=None, help="pid for CPU/RSS (--connect)")
     p.add_argument("--storage-url", default=None, help="PostgreSQL URL for the started server")
+    p.add_argument(
+        "--shards",
+        type=int,
+        default=1,
+        help="start a router and this many server processes, each owning a share of the "
+        "fleet (needs --storage-url: they share one PostgreSQL database)",
+    )
     p.add_argument("--lateness-ms", type=int, default=None)
     p.add_argument("--advance-step-ms", type=int, default=None)
     p.add_argument("--commit-interval-s", type=float, default=None)
@@ -936,6 +943,18 @@ def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
         target = Target((args.connect,), (args.api.rstrip("/"),), (pid,) if pid else ())
         result = run_loadtest(spec, target)
         result["server_settings"] = "external"
+    elif args.shards > 1:
+        from server.shards import shard_layout, sharded_servers
+
+        if not args.storage_url:
+            raise SystemExit("--shards needs --storage-url (a PostgreSQL database they share)")
+        tuning = server_tuning(args)
+        filters, ids = shard_layout(args.shards)
+        with sharded_servers(args.storage_url, filters, tuning) as (router, servers):
+            apis = tuple(s.api for s in servers)
+            target = Target((router.endpoint,), apis, tuple(s.pid for s in servers), ids)
+            result = run_loadtest(spec, target)
+        result["server_settings"] = {"shards": args.shards, **tuning}
     else:
         tuning = server_tuning(args)
         with local_server(tuning, args.storage_url) as server:

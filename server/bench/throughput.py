@@ -61,6 +61,8 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from server.shards import RouterProcess, shard_layout, sharded_servers
+
 __all__ = ["run"]
 
 #: Vehicles and packets per vehicle of the flood tests.
@@ -453,69 +455,25 @@ def postgres_admin_url() -> Iterator[str]:
         shutil.rmtree(cluster, ignore_errors=True)
 
 
-class RouterProcess:
-    """``python -m server.router`` on a free loopback port."""
-
-    def __init__(self) -> None:
-        self.endpoint = _endpoint()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "server.router", "--listen", self.endpoint],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if "listening" not in line:
-            self.stop()
-            raise RuntimeError(f"router did not start: {line!r}")
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-
-
 @contextlib.contextmanager
-def sharded_servers(
-    admin_url: str, shards: Sequence[str], settings: dict[str, Any] | None = None
-) -> Iterator[tuple[RouterProcess, list[Any], str]]:
-    """A router process and one server process per vehicle filter in ``shards`` (clients of
-    the router), all writing to one fresh PostgreSQL database; yields (router, servers, url)."""
-    from server.loadtest import ServerProcess
+def fresh_shards(
+    admin_url: str, filters: Sequence[str], settings: dict[str, Any] | None = None
+) -> Iterator[tuple[RouterProcess, list[Any]]]:
+    """:func:`server.shards.sharded_servers` on a fresh database, dropped afterwards."""
     from server.storage._pgadmin import create_database, drop_database
 
     name = f"slipfleet_bench_{uuid.uuid4().hex[:10]}"
     url = create_database(admin_url, name)
-    router = RouterProcess()
-    servers: list[ServerProcess] = []
-    tmp = Path(tempfile.mkdtemp(prefix="slipfleet-shards-"))
     try:
-        for k, vehicle_filter in enumerate(shards):
-            s = json.loads(json.dumps(settings or {}))
-            s.setdefault("zenoh", {}).update(
-                {"connect": [router.endpoint], "vehicle_filter": vehicle_filter}
-            )
-            server = ServerProcess(s, url, log_path=tmp / f"server-{k}.log")
-            server.start()
-            servers.append(server)
-        yield router, servers, url
+        with sharded_servers(url, filters, settings) as shards:
+            yield shards
     finally:
-        for server in servers:
-            server.stop()
-        router.stop()
         with contextlib.suppress(Exception):
             drop_database(admin_url, name)
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
-SINGLE = {"filters": ("*",), "ids": ("sim-{:05d}",)}
-PAIR = {"filters": ("a-$*", "b-$*"), "ids": ("a-{:05d}", "b-{:05d}")}
+SINGLE = dict(zip(("filters", "ids"), shard_layout(1), strict=True))
+PAIR = dict(zip(("filters", "ids"), shard_layout(2), strict=True))
 #: (name, layout). Both run the server defaults, which target low latency (reorder by stream
 #: watermarks, estimators advanced every MDSF tick, commits every 0.1 s); a rung holds while the
 #: server keeps up (p99 < KEEP_UP_P99_MS), and the ``floor`` column says whether it also meets
@@ -533,7 +491,7 @@ def rung(
     from server.loadtest import LoadSpec, Target, run_loadtest
 
     spec = LoadSpec(vehicles=vehicles, duration_s=RUNG_WINDOW_S, warmup_s=RUNG_WARMUP_S)
-    with sharded_servers(admin_url, layout["filters"]) as (router, servers, _):
+    with fresh_shards(admin_url, layout["filters"]) as (router, servers):
         target = Target(
             (router.endpoint,),
             tuple(s.api for s in servers),

@@ -68,16 +68,14 @@ def test_replayed_recordings_load_the_server_like_simulated_vehicles(tmp_path: P
 
 
 @pytest.mark.postgres
-def test_two_shards_split_the_fleet_and_both_apis_list_all_of_it(pg_url: str) -> None:
-    from server.bench.throughput import PAIR, sharded_servers
+def test_two_shards_split_the_fleet_and_both_apis_list_all_of_it(pg_database_url: str) -> None:
+    from server.shards import shard_layout, sharded_servers
 
+    filters, ids = shard_layout(2)
     spec = LoadSpec(vehicles=6, duration_s=3.0, warmup_s=1.0, publishers=1)
-    with sharded_servers(pg_url, PAIR["filters"]) as (router, servers, _):
+    with sharded_servers(pg_database_url, filters) as (router, servers):
         target = Target(
-            (router.endpoint,),
-            tuple(s.api for s in servers),
-            tuple(s.pid for s in servers),
-            tuple(PAIR["ids"]),
+            (router.endpoint,), tuple(s.api for s in servers), tuple(s.pid for s in servers), ids
         )
         r = run_loadtest(spec, target, progress=False)
         assert r["loss_free"]
@@ -112,3 +110,37 @@ def test_replay_keeps_the_recorded_wheel_heartbeats(tmp_path: Path) -> None:
     assert beats and all(p.until_ns is not None for p in beats)
     decoded = decode(sensor_key("fleet", "r-001", Stream.WHEELS), beats[0].encode(0))
     assert decoded.measurements == () and decoded.until_ns == beats[0].until_ns
+
+
+def test_shard_layout_gives_each_shard_its_own_prefix() -> None:
+    from server.shards import MAX_SHARDS, shard_layout
+
+    assert shard_layout(1) == (("*",), ("sim-{:05d}",))
+    filters, ids = shard_layout(3)
+    assert filters == ("a-$*", "b-$*", "c-$*")
+    assert [f.format(7) for f in ids] == ["a-00007", "b-00007", "c-00007"]
+    for bad in (0, MAX_SHARDS + 1):
+        with pytest.raises(ValueError):
+            shard_layout(bad)
+
+
+@pytest.mark.postgres
+def test_loadtest_command_starts_shards_sharing_one_database(
+    pg_database_url: str, tmp_path: Path
+) -> None:
+    import argparse
+    import json
+
+    from server.loadtest import add_arguments, run_from_args
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    out = tmp_path / "r.json"
+    args = ["--vehicles", "4", "--duration", "3", "--warmup", "1", "--publishers", "1"]
+    args += ["--shards", "2", "--storage-url", pg_database_url, "--json", str(out)]
+    r = run_from_args(p.parse_args(args))
+    assert r["vehicles_seen"] == 4 and r["loss_free"]
+    assert r["server_settings"] == {"shards": 2}
+    assert json.loads(out.read_text())["packets_received"] == r["packets_sent"] > 0
+    with pytest.raises(SystemExit):
+        run_from_args(p.parse_args(["--vehicles", "2", "--duration", "1", "--shards", "2"]))
