@@ -23,9 +23,11 @@ Two layers:
     ``r`` is the ``r``-th due tick of every vehicle that has one, all in one batched call.
     Slip, positions and attitude are computed for all rows at once afterwards.
 
-Ticks sit on a fleet-wide grid (multiples of ``tick_ns`` since the epoch), so rows of different
-vehicles share time stamps, and a row at ``t`` uses only measurements stamped at or before
-``t`` (rows do not depend on how data was batched; tested). A vehicle's first row is the first
+Ticks sit on a grid of ``tick_ns``: multiples of it since the epoch by default, or moved by
+:meth:`MdsfFleet.align_ticks` (the server puts a vehicle's ticks on the end of its first IMU
+batch, so a tick is computed as soon as the batch holding it arrives). A row at ``t`` uses only
+measurements stamped at or before ``t`` (rows do not depend on how data was batched, nor on the
+other vehicles of a call; tested). A vehicle's first row is the first
 tick with a usable GNSS speed (or, after ``gnss_timeout_s`` without GNSS, with wheel speeds,
 flagged DEGRADED). Nothing here raises on NaN/inf: bad parts are skipped and counted
 (:meth:`MdsfFleet.counters`); a filter whose state goes non-finite or whose speed variance
