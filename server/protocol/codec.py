@@ -547,7 +547,7 @@ def _open(
     if type(version) is not int or version != SCHEMA_VERSION:
         raise ctx.fail("schema_version", f"unsupported schema version {version!r}")
     sensor = _field(ctx, m, "sensor")
-    if sensor != stream.value:
+    if sensor != stream:  # a StrEnum equals its value
         raise ctx.fail("key_mismatch", f"payload sensor {sensor!r} on a {stream.value} key")
     seq = _int(ctx, m, "seq")
     if not 0 <= seq < 2**63:
