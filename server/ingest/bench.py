@@ -84,7 +84,7 @@ def _decode_bursts(received: list[tuple[str, bytes]]) -> None:
 
 
 def _cpu_us_per_packet(
-    paths: dict[str, Callable[[list[tuple[str, bytes]]], None]],
+    paths: Mapping[str, Callable[[list[tuple[str, bytes]]], None]],
     received: list[tuple[str, bytes]],
     repeats: int,
 ) -> dict[str, float]:
