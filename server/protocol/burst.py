@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -40,15 +40,15 @@ from server.protocol.codec import (
 )
 from server.protocol.keys import Stream
 
-__all__ = ["decode_burst"]
+__all__ = ["BurstItem", "decode_burst"]
 
 #: The result for one packet: the decoded packet, or why it was refused.
 BurstItem = Packet | DecodeError
 
-_I8_BYTES = 8
-_NO_FIRST_NS = 2**63 - 1  # min() start of a packet's first sample time
-_NO_LAST_NS = -(2**63)
-_F8_BYTES = 8
+_I8_BYTES = 8  # a packed int64 stamp
+_F8_BYTES = 8  # a packed float64 value
+_NO_FIRST_NS = 2**63 - 1  # start of the min() over a packet's first sample times
+_NO_LAST_NS = -(2**63)  # start of the max() over its last ones
 
 
 class _Opened:
@@ -135,6 +135,34 @@ def _abs_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
     return ok
 
 
+def _run_bounds(counts: list[int]) -> tuple[list[int], list[int]]:
+    """Start and end (exclusive) of each run of ``counts[k]`` samples in the joined array."""
+    ends = list(itertools.accumulate(counts))
+    return [e - n for e, n in zip(ends, counts, strict=True)], ends
+
+
+def _steps_ok(t: np.ndarray, starts: list[int], *, strict: bool) -> np.ndarray:
+    """Per sample: its stamp is after the previous one of its run (or not before it, unless
+    ``strict``); a run's first sample always is."""
+    ok = np.empty(t.shape[0], dtype=bool)
+    ok[0] = True
+    compare = np.greater if strict else np.greater_equal
+    compare(t[1:], t[:-1], out=ok[1:])
+    ok[starts] = True  # a run's first stamp follows another run's last
+    return ok
+
+
+class _Checked(NamedTuple):
+    """The joined stamps of a group's runs and the verdict on each run."""
+
+    t: np.ndarray  #: all runs' stamps (int64), joined
+    starts: list[int]  #: each run's slice of ``t``
+    ends: list[int]
+    first_ns: list[int]  #: each run's first and last stamp
+    last_ns: list[int]
+    good: list[bool]  #: the run passed every check (else: decode its packet alone)
+
+
 class _Runs:
     """Sample-time runs (one per packet, or per wheel entry) joined for one check."""
 
@@ -151,40 +179,23 @@ class _Runs:
         self.counts.append(n)
         return len(self.counts) - 1
 
-    def check(
-        self, lim: Limits, rows_ok: np.ndarray | None = None
-    ) -> tuple[np.ndarray, list[int], list[int], list[int], list[int], list[bool]]:
-        """Check every run's stamps (and ``rows_ok``, a flag per sample) at once.
-
-        Returns
-        -------
-        t : ndarray of int64
-            All runs' stamps, joined.
-        starts, ends : list of int
-            Each run's slice of ``t``.
-        first_ns, last_ns : list of int
-            Each run's first and last stamp.
-        good : list of bool
-            The run's stamps lie within the limits and increase (strictly, if ``strict``),
-            and its rows are ok.
-        """
+    def check(self, lim: Limits, rows_ok: np.ndarray | None = None) -> _Checked:
+        """Check every run's stamps, and ``rows_ok`` (a flag per sample, None: all ok), at once:
+        a run is good when its stamps lie within the limits and increase (strictly, if
+        ``strict``) and its rows are ok."""
         t = _joined(self.raws, "<i8", 1)
-        ends = list(itertools.accumulate(self.counts))
-        starts = [e - n for e, n in zip(ends, self.counts, strict=True)]
-        step_ok = np.empty(t.shape[0], dtype=bool)
-        step_ok[0] = True
-        compare = np.greater if self.strict else np.greater_equal
-        compare(t[1:], t[:-1], out=step_ok[1:])
-        step_ok[starts] = True  # a run's first stamp follows another run's last
-        runs_ok = _runs_ok(step_ok if rows_ok is None else step_ok & rows_ok, starts)
+        starts, ends = _run_bounds(self.counts)
+        steps_ok = _steps_ok(t, starts, strict=self.strict)
+        runs_ok = _runs_ok(steps_ok if rows_ok is None else steps_ok & rows_ok, starts)
         first_ns: list[int] = t[starts].tolist()
         last_ns: list[int] = t[[e - 1 for e in ends]].tolist()
+        # stamps that increase lie between their run's first and last
         lo, hi = lim.min_stamp_ns, lim.max_stamp_ns
         good = [
             lo <= first and last <= hi and (runs_ok is None or runs_ok[k])
             for k, (first, last) in enumerate(zip(first_ns, last_ns, strict=True))
         ]
-        return t, starts, ends, first_ns, last_ns, good
+        return _Checked(t, starts, ends, first_ns, last_ns, good)
 
 
 class _SampledGroup:
@@ -232,13 +243,13 @@ class _SampledGroup:
             _joined(raws, "<f8", width)
             for raws, (_, width) in zip(self.rows, self.FIELDS, strict=True)
         ]
-        t, starts, ends, first_ns, last_ns, good = self.runs.check(lim, self.rows_ok(arrays, lim))
+        c = self.runs.check(lim, self.rows_ok(arrays, lim))
         measurement = self.measurement
         for op, a, b, first, last, ok in zip(
-            self.opened, starts, ends, first_ns, last_ns, good, strict=True
+            self.opened, c.starts, c.ends, c.first_ns, c.last_ns, c.good, strict=True
         ):
             if ok:
-                out[op.index] = op.packet((measurement(t, arrays, a, b),), first, last, lim)
+                out[op.index] = op.packet((measurement(c.t, arrays, a, b),), first, last, lim)
             else:
                 out[op.index] = op.alone(lim)
 
@@ -331,9 +342,7 @@ class _EdgesGroup:
         if not self.directions:
             return views
         d = _joined(list(self.directions.values()), "i1", 1)
-        counts = [self.runs.counts[r] for r in self.directions]
-        ends = list(itertools.accumulate(counts))
-        starts = [e - n for e, n in zip(ends, counts, strict=True)]
+        starts, ends = _run_bounds([self.runs.counts[r] for r in self.directions])
         ok = _runs_ok((d == 1) | (d == -1), starts)
         for k, r in enumerate(self.directions):
             if ok is None or ok[k]:
@@ -346,17 +355,17 @@ class _EdgesGroup:
         """Check the group and put each packet's result at its index in ``out``."""
         if not self.opened:
             return
-        t, starts, ends, first_ns, last_ns, good = self.runs.check(lim)
+        c = self.runs.check(lim)
         directions = self._direction_views()
         for op, entries in zip(self.opened, self.entries, strict=True):
             ms: list[Measurement] = []
             first, last = _NO_FIRST_NS, _NO_LAST_NS
             for wheel, r in entries:
-                if not good[r] or r not in directions:
+                if not c.good[r] or r not in directions:
                     out[op.index] = op.alone(lim)
                     break
-                ms.append(WheelEdges(wheel, t[starts[r] : ends[r]], directions[r]))
-                first, last = min(first, first_ns[r]), max(last, last_ns[r])
+                ms.append(WheelEdges(wheel, c.t[c.starts[r] : c.ends[r]], directions[r]))
+                first, last = min(first, c.first_ns[r]), max(last, c.last_ns[r])
             else:
                 out[op.index] = op.packet(tuple(ms), first, last, lim)
 
