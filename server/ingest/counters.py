@@ -98,6 +98,16 @@ class IngestCounters:
             c.accepted += 1
             c.lost_by_seq_gap += lost_delta
 
+    def accepted_many(self, counts: Mapping[str, tuple[int, int]]) -> None:
+        """Packets received and accepted, ``counts[vehicle_id] = (packets, lost_delta)`` (a
+        burst's worth: one lock for all of them)."""
+        with self._lock:
+            for vehicle_id, (packets, lost_delta) in counts.items():
+                c = self._get(vehicle_id)
+                c.received += packets
+                c.accepted += packets
+                c.lost_by_seq_gap += lost_delta
+
     def late(self, vehicle_id: str, lost_delta: int = 0) -> None:
         """One packet received after its time was released."""
         with self._lock:

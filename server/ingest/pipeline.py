@@ -87,6 +87,8 @@ IDLE_SWEEP_NS = 100_000_000
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
 MAX_UNREGISTERED_COUNTED = 1000
 
+_NONE_ACCEPTED = (0, 0)  # (packets, lost_delta) of a vehicle before its first accepted one
+
 #: Refusal reasons the pipeline adds to the codec's (``rejected_<reason>`` counters).
 PIPELINE_REASONS: tuple[str, ...] = (
     "clock_skew",  # stamps outside [wall clock - max_past_s, wall clock + max_future_s]
@@ -397,6 +399,18 @@ class Pipeline:
         return True
 
     def _handle(self, items: list[IngestItem], now: int) -> None:
+        # accepted packets are counted once per vehicle and burst: (packets, lost_delta)
+        accepted: dict[str, tuple[int, int]] = {}
+        try:
+            self._offer_all(items, now, accepted)
+        finally:
+            self._counters.accepted_many(accepted)
+
+    def _offer_all(
+        self, items: list[IngestItem], now: int, accepted: dict[str, tuple[int, int]]
+    ) -> None:
+        """Count refusals, offer each packet to its vehicle's reorder buffer; the accepted
+        ones are added up in ``accepted``."""
         counters = self._counters
         wall = self._wall_clock()
         earliest, latest = wall - self._max_past_ns, wall + self._max_future_ns
@@ -423,7 +437,8 @@ class Pipeline:
             if offer.seq_restart:
                 counters.seq_restart(vid)
             if offer.verdict is Verdict.ACCEPTED:
-                counters.accepted(vid, offer.lost_delta)
+                n, lost = accepted.get(vid, _NONE_ACCEPTED)
+                accepted[vid] = (n + 1, lost + offer.lost_delta)
                 self._active.add(vid)
                 self._arrived.add(vid)
                 if item.stream is Stream.IMU and vid not in self._tick_anchor_ns:

@@ -169,7 +169,9 @@ class _StreamMark:
 
     def arrived(self, seq: int, last_stamp_ns: int) -> None:
         if seq == self.seq + 1:
-            self.seq, self.stamp_ns = seq, max(self.stamp_ns, last_stamp_ns)
+            self.seq = seq
+            if last_stamp_ns > self.stamp_ns:
+                self.stamp_ns = last_stamp_ns
             if self.ahead:
                 self._follow()
         elif seq > self.seq + 1:
@@ -294,15 +296,15 @@ class ReorderBuffer:
         """CLOCK_JUMP or REANCHOR when ``packet`` leaves the vehicle's time line, else None."""
         assert self._newest_ns is not None
         ahead_ns = packet.first_stamp_ns - self._newest_ns
-        quiet_ns = max(0, now_ns - self._last_arrival_ns)
-        if ahead_ns > jump_ns and ahead_ns <= jump_ns + quiet_ns:
-            self._jumps_in_row = 0
-            return Verdict.REANCHOR  # the vehicle was quiet that long: a gap, not a jump
         behind = (
             self._released_ns is not None and packet.last_stamp_ns < self._released_ns - jump_ns
         )
         if ahead_ns <= jump_ns and not behind:
-            return None
+            return None  # on the vehicle's time line (the common case)
+        quiet_ns = max(0, now_ns - self._last_arrival_ns)
+        if ahead_ns > jump_ns and ahead_ns <= jump_ns + quiet_ns:
+            self._jumps_in_row = 0
+            return Verdict.REANCHOR  # the vehicle was quiet that long: a gap, not a jump
         agrees = self._jumps_in_row > 0 and abs(
             packet.first_stamp_ns - self._jump_newest_ns
         ) <= jump_ns + max(0, now_ns - self._jump_arrival_ns)
@@ -346,8 +348,16 @@ class ReorderBuffer:
             self._first_ns = packet.first_stamp_ns
         if marks is not None:
             self._mark(marks, packet, seq_restart)
-        key = (packet.first_stamp_ns, _STREAM_ORDER[packet.stream], packet.seq, next(self._tie))
-        heapq.heappush(self._heap, (*key, packet))
+        heapq.heappush(
+            self._heap,
+            (
+                packet.first_stamp_ns,
+                _STREAM_ORDER[packet.stream],
+                packet.seq,
+                next(self._tie),
+                packet,
+            ),
+        )
         return Verdict.ACCEPTED
 
     @staticmethod

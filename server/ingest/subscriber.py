@@ -4,10 +4,11 @@ Two subscriptions under ``<prefix>/<vehicle_filter>/``:
 
 * ``sensors/**`` into a bounded :class:`zenoh.handlers.FifoChannel` of
   ``ZenohSettings.channel_capacity`` samples. Zenoh's threads only enqueue; the ingest thread
-  takes samples in bursts, decodes them with the pure codec and hands each burst as one list to
-  ``deliver`` (the pipeline's bounded queue). When the pipeline falls behind, ``deliver``
-  blocks, the channel fills, and Zenoh's BLOCK congestion control slows the publishers: nothing
-  is dropped silently.
+  takes samples in bursts (up to :data:`BURST`), decodes each burst together with the pure codec
+  (:func:`server.protocol.burst.decode_burst`: one numpy pass per stream for the array checks)
+  and hands it as one list to ``deliver`` (the pipeline's bounded queue). When the pipeline
+  falls behind, ``deliver`` blocks, the channel fills, and Zenoh's BLOCK congestion control
+  slows the publishers: nothing is dropped silently.
 * ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
   (configs are rare; polling is one non-blocking ``try_recv``).
 """
@@ -24,7 +25,8 @@ from dataclasses import dataclass
 import zenoh
 
 from estimator.config import VehicleConfig
-from server.protocol.codec import DecodeError, Packet, decode, decode_config
+from server.protocol.burst import decode_burst
+from server.protocol.codec import DecodeError, Packet, decode_config
 from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK
 from server.settings import IngestSettings, ZenohSettings
 
@@ -125,19 +127,11 @@ class IngestSubscriber:
             if self._thread.is_alive():
                 log.warning("ingest thread did not stop within %.1f s", timeout_s)
 
-    def _decode(self, sample: zenoh.Sample, raw: list[RawPacket] | None) -> IngestItem:
-        key = str(sample.key_expr)
-        payload = sample.payload.to_bytes()
-        item: IngestItem
-        try:
-            item = decode(
-                key, payload, prefix=self._zs.key_prefix, max_payload_bytes=self._max_payload
-            )
-        except DecodeError as exc:
-            item = exc
-        if raw is not None and item.vehicle_id:
-            raw.append((item.vehicle_id, time.time_ns(), key, payload))
-        return item
+    def _decode(self, received: list[tuple[str, bytes]]) -> list[IngestItem]:
+        """Decode a burst's ``(key, payload)`` packets together (see ``decode_burst``)."""
+        return decode_burst(
+            received, prefix=self._zs.key_prefix, max_payload_bytes=self._max_payload
+        )
 
     def poll_configs(self) -> list[ConfigUpdate]:
         """Configs received since the last call (refused ones are logged and skipped)."""
@@ -167,10 +161,21 @@ class IngestSubscriber:
                 first = sensors.recv()
             except zenoh.ZError:
                 return  # channel closed: subscriber undeclared
-            raw: list[RawPacket] | None = [] if self._raw_sink is not None else None
-            burst: list[IngestItem] = [self._decode(first, raw)]
-            while len(burst) < BURST and (sample := sensors.try_recv()) is not None:
-                burst.append(self._decode(sample, raw))
-            if raw and self._raw_sink is not None:
-                self._raw_sink(raw)
+            received = [(str(first.key_expr), first.payload.to_bytes())]
+            while len(received) < BURST and (sample := sensors.try_recv()) is not None:
+                received.append((str(sample.key_expr), sample.payload.to_bytes()))
+            burst = self._decode(received)
+            if self._raw_sink is not None:
+                self._sink_raw(received, burst)
             self._deliver(burst)
+
+    def _sink_raw(self, received: list[tuple[str, bytes]], burst: list[IngestItem]) -> None:
+        """Hand the burst's packets whose key names a vehicle to the raw sink."""
+        assert self._raw_sink is not None
+        raw: list[RawPacket] = [
+            (item.vehicle_id, time.time_ns(), key, payload)
+            for (key, payload), item in zip(received, burst, strict=True)
+            if item.vehicle_id
+        ]
+        if raw:
+            self._raw_sink(raw)

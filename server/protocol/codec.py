@@ -95,6 +95,7 @@ LIMITS = Limits()
 # packed little-endian arrays are native here: frombuffer views need no conversion
 _LITTLE_ENDIAN = sys.byteorder == "little"
 _WHEEL = {int(w): w for w in Wheel}
+_GNSS_FIX = {int(f): f for f in GnssFix}
 
 
 class ProtocolError(ValueError):
@@ -339,16 +340,16 @@ def _int(ctx: _Ctx, m: dict[str, Any], name: str) -> int:
     return v
 
 
-def _float(
-    ctx: _Ctx, m: dict[str, Any], name: str, *, nan_ok: bool, default: float | None = None
-) -> float:
-    if default is not None and name not in m:
-        return default
+def _float(ctx: _Ctx, m: dict[str, Any], name: str) -> float:
+    """A required number; NaN ("not available") passes, ``±inf`` is refused."""
     v = _field(ctx, m, name)
-    if type(v) is not float and type(v) is not int:
+    if type(v) is float:
+        f = v
+    elif type(v) is int:
+        f = float(v)
+    else:
         raise ctx.fail("wrong_type", f"{name} must be a number")
-    f = float(v)
-    if math.isinf(f) or (math.isnan(f) and not nan_ok):
+    if math.isinf(f):
         raise ctx.fail("non_finite", name)
     return f
 
@@ -377,19 +378,20 @@ def _array(
 
 def _stamps(
     ctx: _Ctx, m: dict[str, Any], lim: Limits, *, strict: bool, name: str = "stamp_ns"
-) -> np.ndarray:
+) -> tuple[np.ndarray, int, int]:
+    """A batch's sample times and its first and last one (ns)."""
     t = _array(ctx, m, name, "<i8", 1, lim)
     if t.shape[0] == 0:
         raise ctx.fail("wrong_shape", f"{name}: empty batch")
-    _stamp(ctx, int(t[0]), name, lim)
-    _stamp(ctx, int(t[-1]), name, lim)
+    first_ns = _stamp(ctx, int(t[0]), name, lim)
+    last_ns = _stamp(ctx, int(t[-1]), name, lim)
     if t.shape[0] > 1:
         ok = (t[1:] > t[:-1]).all() if strict else (t[1:] >= t[:-1]).all()
         if not ok:
             raise ctx.fail(
                 "non_monotonic", f"{name} must {'increase' if strict else 'not decrease'}"
             )
-    return t if _LITTLE_ENDIAN else t.astype(np.int64)
+    return (t if _LITTLE_ENDIAN else t.astype(np.int64)), first_ns, last_ns
 
 
 def _finite_rows(ctx: _Ctx, a: np.ndarray, name: str, n: int, bound: float) -> np.ndarray:
@@ -404,44 +406,61 @@ def _finite_rows(ctx: _Ctx, a: np.ndarray, name: str, n: int, bound: float) -> n
     return a if _LITTLE_ENDIAN else a.astype(np.float64)
 
 
-def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
-    t = _stamp(ctx, _int(ctx, m, "stamp_ns"), "stamp_ns", lim)
+#: What a stream's decoder returns: the packet's measurements, its first and last sample time.
+_Body = tuple[tuple[Measurement, ...], int, int]
+
+
+def _velocity(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[float, float, float]:
+    """``vel_enu_mps``: three numbers, no ``±inf``, speed within the limit (NaN passes)."""
     vel = _field(ctx, m, "vel_enu_mps")
-    if not isinstance(vel, list) or len(vel) != 3:
+    if type(vel) is not list or len(vel) != 3:
         raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
-    if any(type(x) is not float and type(x) is not int for x in vel):
-        raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
-    ve, vn, vu = (float(x) for x in vel)
+    for x in vel:
+        if type(x) is not float and type(x) is not int:
+            raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
+    ve, vn, vu = float(vel[0]), float(vel[1]), float(vel[2])
     if math.isinf(ve) or math.isinf(vn) or math.isinf(vu):
         raise ctx.fail("non_finite", "vel_enu_mps")
     # NaN (no velocity, e.g. fix NONE) passes: NaN comparisons are False
     if ve * ve + vn * vn + vu * vu > lim.max_speed_mps**2:
         raise ctx.fail("out_of_range", f"speed exceeds {lim.max_speed_mps:g} m/s")
-    heading = _float(ctx, m, "heading_rad", nan_ok=True)
-    pitch = _float(ctx, m, "pitch_rad", nan_ok=True)
-    roll = _float(ctx, m, "roll_rad", nan_ok=True)
+    return ve, vn, vu
+
+
+def _fix(ctx: _Ctx, m: dict[str, Any]) -> GnssFix:
+    """``fix`` (RTK fixed when absent)."""
+    if "fix" not in m:
+        return GnssFix.RTK_FIXED
+    fix_raw = _int(ctx, m, "fix")
+    fix = _GNSS_FIX.get(fix_raw)
+    if fix is None:
+        raise ctx.fail("wrong_type", f"fix {fix_raw} is not a GnssFix value")
+    return fix
+
+
+def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
+    t = _stamp(ctx, _int(ctx, m, "stamp_ns"), "stamp_ns", lim)
+    vel = _velocity(ctx, m, lim)
+    heading = _float(ctx, m, "heading_rad")
+    pitch = _float(ctx, m, "pitch_rad")
+    roll = _float(ctx, m, "roll_rad")
     if abs(heading) > 2 * math.pi or abs(pitch) > math.pi / 2 or abs(roll) > math.pi:
         raise ctx.fail("out_of_range", "attitude angle out of range")
-    lat = _float(ctx, m, "lat_deg", nan_ok=True)
-    lon = _float(ctx, m, "lon_deg", nan_ok=True)
-    h = _float(ctx, m, "height_m", nan_ok=True)
+    lat = _float(ctx, m, "lat_deg")
+    lon = _float(ctx, m, "lon_deg")
+    h = _float(ctx, m, "height_m")
     # NaN (position unknown) compares False, so only finite out-of-range values are refused
     if abs(lat) > 90 or abs(lon) > 180 or h < lim.min_height_m or h > lim.max_height_m:
         raise ctx.fail("out_of_range", "position out of range")
-    fix_raw = _int(ctx, m, "fix") if "fix" in m else int(GnssFix.RTK_FIXED)
-    try:
-        fix = GnssFix(fix_raw)
-    except ValueError:
-        raise ctx.fail("wrong_type", f"fix {fix_raw} is not a GnssFix value") from None
-    vel_std = _float(ctx, m, "vel_std_mps", nan_ok=True, default=float("nan"))
+    fix = _fix(ctx, m)
+    vel_std = _float(ctx, m, "vel_std_mps") if "vel_std_mps" in m else math.nan
     if vel_std < 0 or vel_std > lim.max_speed_mps:
         raise ctx.fail("out_of_range", "vel_std_mps")
-    sample = GnssSample(t, (ve, vn, vu), heading, pitch, roll, lat, lon, h, fix, vel_std)
-    return (sample,)
+    return (GnssSample(t, vel, heading, pitch, roll, lat, lon, h, fix, vel_std),), t, t
 
 
-def _decode_imu(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
-    t = _stamps(ctx, m, lim, strict=True)
+def _decode_imu(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
+    t, first_ns, last_ns = _stamps(ctx, m, lim, strict=True)
     n = t.shape[0]
     acc = _finite_rows(
         ctx, _array(ctx, m, "accel_mps2", "<f8", 3, lim), "accel_mps2", n, lim.max_accel_mps2
@@ -449,19 +468,22 @@ def _decode_imu(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement,
     gyr = _finite_rows(
         ctx, _array(ctx, m, "gyro_radps", "<f8", 3, lim), "gyro_radps", n, lim.max_gyro_radps
     )
-    return (ImuBatch(t, acc, gyr),)
+    return (ImuBatch(t, acc, gyr),), first_ns, last_ns
 
 
-def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
+def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
     items = _field(ctx, m, "edges")
     if isinstance(items, list) and not items and "until_ns" in m:
-        return ()  # a heartbeat: no edge on either wheel up to until_ns
+        # a heartbeat: no edge on either wheel up to until_ns, which is its span
+        until_ns = _stamp(ctx, _int(ctx, m, "until_ns"), "until_ns", lim)
+        return (), until_ns, until_ns
     if not isinstance(items, list) or not 1 <= len(items) <= len(Wheel):
         raise ctx.fail(
             "wrong_type", "edges must be an array of 1 or 2 wheel entries (0 with until_ns)"
         )
     out: list[Measurement] = []
     seen: set[int] = set()
+    first_ns, last_ns = 2**63 - 1, -(2**63)
     for item in items:
         if not isinstance(item, dict):
             raise ctx.fail("wrong_type", "each edges entry must be a map")
@@ -469,7 +491,8 @@ def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measuremen
         if w not in (0, 1) or w in seen:
             raise ctx.fail("out_of_range", f"wheel {w} is not 0 (left) or 1 (right), or repeated")
         seen.add(w)
-        t = _stamps(ctx, item, lim, strict=False)
+        t, lo_ns, hi_ns = _stamps(ctx, item, lim, strict=False)
+        first_ns, last_ns = min(first_ns, lo_ns), max(last_ns, hi_ns)
         direction = None
         if "direction" in item:
             d = _array(ctx, item, "direction", "i1", 1, lim)
@@ -479,11 +502,11 @@ def _decode_edges(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measuremen
                 raise ctx.fail("out_of_range", "direction must be +1 or -1")
             direction = d
         out.append(WheelEdges(_WHEEL[w], t, direction))
-    return tuple(out)
+    return tuple(out), first_ns, last_ns
 
 
-def _decode_speeds(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measurement, ...]:
-    t = _stamps(ctx, m, lim, strict=True)
+def _decode_speeds(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
+    t, first_ns, last_ns = _stamps(ctx, m, lim, strict=True)
     om = _array(ctx, m, "omega_radps", "<f8", 2, lim)
     if om.shape[0] != t.shape[0]:
         raise ctx.fail("wrong_shape", "omega_radps and stamp_ns lengths differ")
@@ -491,17 +514,7 @@ def _decode_speeds(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> tuple[Measureme
         raise ctx.fail("non_finite", "omega_radps")
     if (np.abs(om) > lim.max_wheel_omega_radps).any():
         raise ctx.fail("out_of_range", f"|omega_radps| exceeds {lim.max_wheel_omega_radps:g}")
-    return (WheelSpeeds(t, om if _LITTLE_ENDIAN else om.astype(np.float64)),)
-
-
-def _stamp_span(ms: tuple[Measurement, ...]) -> tuple[int, int]:
-    lo, hi = 2**63 - 1, -(2**63)
-    for x in ms:
-        if isinstance(x, GnssSample):
-            lo, hi = min(lo, x.stamp_ns), max(hi, x.stamp_ns)
-        else:
-            lo, hi = min(lo, int(x.stamp_ns[0])), max(hi, int(x.stamp_ns[-1]))
-    return lo, hi
+    return (WheelSpeeds(t, om if _LITTLE_ENDIAN else om.astype(np.float64)),), first_ns, last_ns
 
 
 def _unpack(
@@ -516,6 +529,87 @@ def _unpack(
     if not isinstance(m, dict):
         raise ctx.fail("undecodable", "payload is not a map")
     return m
+
+
+def _open(
+    key: str, payload: bytes | bytearray | memoryview, prefix: str, max_payload_bytes: int
+) -> tuple[_Ctx, Stream, dict[str, Any], int]:
+    """Parse the key and the header every sensor packet carries.
+
+    Returns
+    -------
+    ctx : _Ctx
+        Raise helpers bound to the key's vehicle and stream.
+    stream : Stream
+    m : dict
+        The unpacked msgpack map, header checked (``v``, ``sensor``, ``seq``).
+    seq : int
+
+    Raises
+    ------
+    DecodeError
+        ``bad_key``, ``oversize``, ``undecodable``, ``schema_version``, ``key_mismatch``,
+        ``missing_field``, ``wrong_type`` or ``out_of_range`` (of ``seq``).
+    """
+    try:
+        vehicle_id, stream = parse_key(key, prefix)
+    except ValueError as exc:
+        raise DecodeError("bad_key", str(exc)) from None
+    ctx = _Ctx(vehicle_id, stream)
+    if stream is None:
+        raise ctx.fail("bad_key", "a config key carries no sensor packet")
+    m = _unpack(ctx, payload, max_payload_bytes)
+    version = m.get("v")
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise ctx.fail("schema_version", f"unsupported schema version {version!r}")
+    sensor = _field(ctx, m, "sensor")
+    if sensor != stream:  # a StrEnum equals its value
+        raise ctx.fail("key_mismatch", f"payload sensor {sensor!r} on a {stream.value} key")
+    seq = _int(ctx, m, "seq")
+    if not 0 <= seq < 2**63:
+        raise ctx.fail("out_of_range", "seq must be in [0, 2**63)")
+    return ctx, stream, m, seq
+
+
+def _until(ctx: _Ctx, m: dict[str, Any], last_ns: int, lim: Limits) -> int | None:
+    """The packet's ``until_ns`` (None when absent), checked against its last sample."""
+    if "until_ns" not in m:
+        return None
+    until_ns = _int(ctx, m, "until_ns")
+    if not last_ns <= until_ns <= last_ns + lim.max_until_ahead_ns:
+        raise ctx.fail(
+            "out_of_range",
+            f"until_ns must lie between the last sample and "
+            f"{lim.max_until_ahead_ns / 1e9:g} s after it",
+        )
+    return until_ns
+
+
+def _packet(ctx: _Ctx, stream: Stream, m: dict[str, Any], seq: int, lim: Limits) -> Packet:
+    """Check and build the packet of an opened map (see :func:`_open`).
+
+    Raises
+    ------
+    DecodeError
+        The first rule of ``docs/protocol.md`` §6 the stream's fields break.
+    """
+    body: _Body
+    if stream is Stream.GNSS:
+        body = _decode_gnss(ctx, m, lim)
+    elif stream is Stream.IMU:
+        body = _decode_imu(ctx, m, lim)
+    else:
+        mode = _field(ctx, m, "mode")
+        if mode == "edges":
+            body = _decode_edges(ctx, m, lim)
+        elif mode == "speeds":
+            body = _decode_speeds(ctx, m, lim)
+        else:
+            raise ctx.fail("wrong_type", f"wheels mode {mode!r} is not 'edges' or 'speeds'")
+    ms, first_ns, last_ns = body
+    until_ns = _until(ctx, m, last_ns, lim)
+    assert ctx.vehicle_id is not None
+    return Packet(ctx.vehicle_id, stream, seq, SCHEMA_VERSION, ms, first_ns, last_ns, until_ns)
 
 
 def decode(
@@ -544,50 +638,8 @@ def decode(
     DecodeError
         With ``reason`` from :data:`REASONS`.
     """
-    try:
-        vehicle_id, stream = parse_key(key, prefix)
-    except ValueError as exc:
-        raise DecodeError("bad_key", str(exc)) from None
-    ctx = _Ctx(vehicle_id, stream)
-    if stream is None:
-        raise ctx.fail("bad_key", "a config key carries no sensor packet")
-    m = _unpack(ctx, payload, max_payload_bytes)
-    version = m.get("v")
-    if type(version) is not int or version != SCHEMA_VERSION:
-        raise ctx.fail("schema_version", f"unsupported schema version {version!r}")
-    sensor = _field(ctx, m, "sensor")
-    if sensor != stream.value:
-        raise ctx.fail("key_mismatch", f"payload sensor {sensor!r} on a {stream.value} key")
-    seq = _int(ctx, m, "seq")
-    if not 0 <= seq < 2**63:
-        raise ctx.fail("out_of_range", "seq must be in [0, 2**63)")
-    ms: tuple[Measurement, ...]
-    if stream is Stream.GNSS:
-        ms = _decode_gnss(ctx, m, limits)
-    elif stream is Stream.IMU:
-        ms = _decode_imu(ctx, m, limits)
-    else:
-        mode = _field(ctx, m, "mode")
-        if mode == "edges":
-            ms = _decode_edges(ctx, m, limits)
-        elif mode == "speeds":
-            ms = _decode_speeds(ctx, m, limits)
-        else:
-            raise ctx.fail("wrong_type", f"wheels mode {mode!r} is not 'edges' or 'speeds'")
-    until = None
-    if "until_ns" in m:
-        until = _int(ctx, m, "until_ns")
-        if not ms:  # a heartbeat: its span is until_ns
-            _stamp(ctx, until, "until_ns", limits)
-            return Packet(vehicle_id, stream, seq, version, ms, until, until, until)
-    first, last = _stamp_span(ms)
-    if until is not None and not last <= until <= last + limits.max_until_ahead_ns:
-        raise ctx.fail(
-            "out_of_range",
-            f"until_ns must lie between the last sample and "
-            f"{limits.max_until_ahead_ns / 1e9:g} s after it",
-        )
-    return Packet(vehicle_id, stream, seq, version, ms, first, last, until)
+    ctx, stream, m, seq = _open(key, payload, prefix, max_payload_bytes)
+    return _packet(ctx, stream, m, seq, limits)
 
 
 def decode_config(

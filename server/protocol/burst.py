@@ -1,0 +1,444 @@
+"""Decode a burst of sensor packets together: the array checks of a stream in one numpy pass.
+
+The ingest thread takes packets off the Zenoh channel in bursts. Decoding them one by one
+(:func:`server.protocol.codec.decode`) costs about fifteen small numpy calls per array packet;
+here every packet's header is read by the codec's own code, then the packed arrays of all IMU,
+wheel-edge and wheel-speed packets of the burst are joined per stream and checked at once
+(finite, within the limits, stamps monotonic inside each packet), and split again into
+per-packet read-only views of the joined buffer.
+
+Anything unusual sends a packet to the codec's per-packet rules, which give the reason it is
+refused: a packet whose fields are not what a valid packet has (missing, wrong type, lengths
+that disagree, an empty batch, ``until_ns`` out of range), and a packet whose arrays fail a
+batch check (the checks find *which* packets, one numpy call per check). The other packets of
+the burst are unaffected, so :func:`decode_burst` returns, item for item, what ``decode``
+returns or raises.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from estimator.base import Measurement
+from estimator.types import ImuBatch, Wheel, WheelEdges, WheelSpeeds
+from server.protocol.codec import (
+    _LITTLE_ENDIAN,
+    _WHEEL,
+    LIMITS,
+    SCHEMA_VERSION,
+    DecodeError,
+    Limits,
+    Packet,
+    _Ctx,
+    _open,
+    _packet,
+    _until,
+)
+from server.protocol.keys import Stream
+
+__all__ = ["BurstItem", "decode_burst"]
+
+#: The result for one packet: the decoded packet, or why it was refused.
+BurstItem = Packet | DecodeError
+
+_I8_BYTES = 8  # a packed int64 stamp
+_F8_BYTES = 8  # a packed float64 value
+_NO_FIRST_NS = 2**63 - 1  # start of the min() over a packet's first sample times
+_NO_LAST_NS = -(2**63)  # start of the max() over its last ones
+
+
+class _Opened:
+    """A packet whose header passed :func:`codec._open`, waiting for its stream's batch check."""
+
+    __slots__ = ("ctx", "index", "m", "seq", "stream")
+
+    def __init__(self, index: int, ctx: _Ctx, stream: Stream, m: dict[str, Any], seq: int):
+        self.index = index
+        self.ctx = ctx
+        self.stream = stream
+        self.m = m
+        self.seq = seq
+
+    def alone(self, lim: Limits) -> BurstItem:
+        """Decode this packet by the per-packet rules (the reason when it is refused)."""
+        try:
+            return _packet(self.ctx, self.stream, self.m, self.seq, lim)
+        except DecodeError as exc:
+            return exc
+
+    def packet(
+        self, ms: tuple[Measurement, ...], first_ns: int, last_ns: int, lim: Limits
+    ) -> BurstItem:
+        """The packet of checked measurements; per-packet rules if ``until_ns`` is refused."""
+        try:
+            until_ns = _until(self.ctx, self.m, last_ns, lim)
+        except DecodeError:
+            return self.alone(lim)
+        vehicle_id = self.ctx.vehicle_id
+        assert vehicle_id is not None
+        return Packet(
+            vehicle_id, self.stream, self.seq, SCHEMA_VERSION, ms, first_ns, last_ns, until_ns
+        )
+
+
+def _sample_count(m: dict[str, Any], lim: Limits) -> int:
+    """Samples in ``m["stamp_ns"]``, or 0 when it is not a non-empty packed int64 array within
+    the batch limit."""
+    raw = m.get("stamp_ns")
+    if type(raw) is not bytes:
+        return 0
+    n, rest = divmod(len(raw), _I8_BYTES)
+    return n if not rest and n <= lim.max_batch else 0
+
+
+def _has_packed(m: dict[str, Any], name: str, n_bytes: int) -> bool:
+    """``m[name]`` is a bin of exactly ``n_bytes``."""
+    raw = m.get(name)
+    return type(raw) is bytes and len(raw) == n_bytes
+
+
+def _joined(raws: list[bytes], dtype: str, width: int) -> np.ndarray:
+    """One read-only array over the concatenated packed arrays, ``width`` values a row."""
+    arr = np.frombuffer(b"".join(raws), dtype=dtype)
+    return arr.reshape(-1, width) if width > 1 else arr
+
+
+def _runs_ok(ok: np.ndarray, starts: list[int]) -> list[bool] | None:
+    """Whether every element of each run (starting at ``starts``) is ok; None: all are."""
+    if ok.all():
+        return None
+    flags: list[bool] = np.logical_and.reduceat(ok, starts).tolist()
+    return flags
+
+
+def _norm_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
+    """Rows without ``±inf`` whose norm is within ``bound`` (a NaN row passes); None: all.
+
+    The rule of the per-packet ``_finite_rows``, on many packets' rows at once."""
+    norm2 = np.einsum("ij,ij->i", a, a)
+    if (norm2 <= bound * bound).all():
+        return None
+    ok: np.ndarray = ~((norm2 > bound * bound) | np.isinf(a).any(axis=1))
+    return ok
+
+
+def _abs_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
+    """Rows whose values are all within ``±bound`` (NaN passes, ``±inf`` does not); None: all."""
+    bad = np.abs(a) > bound
+    if not bad.any():
+        return None
+    ok: np.ndarray = ~bad.any(axis=1)
+    return ok
+
+
+def _run_bounds(counts: list[int]) -> tuple[list[int], list[int]]:
+    """Start and end (exclusive) of each run of ``counts[k]`` samples in the joined array."""
+    ends = list(itertools.accumulate(counts))
+    return [e - n for e, n in zip(ends, counts, strict=True)], ends
+
+
+def _steps_ok(t: np.ndarray, starts: list[int], *, strict: bool) -> np.ndarray:
+    """Per sample: its stamp is after the previous one of its run (or not before it, unless
+    ``strict``); a run's first sample always is."""
+    ok = np.empty(t.shape[0], dtype=bool)
+    ok[0] = True
+    compare = np.greater if strict else np.greater_equal
+    compare(t[1:], t[:-1], out=ok[1:])
+    ok[starts] = True  # a run's first stamp follows another run's last
+    return ok
+
+
+class _Checked(NamedTuple):
+    """The joined stamps of a group's runs and the verdict on each run."""
+
+    t: np.ndarray  #: all runs' stamps (int64), joined
+    starts: list[int]  #: each run's slice of ``t``
+    ends: list[int]
+    first_ns: list[int]  #: each run's first and last stamp
+    last_ns: list[int]
+    good: list[bool]  #: the run passed every check (else: decode its packet alone)
+
+
+class _Runs:
+    """Sample-time runs (one per packet, or per wheel entry) joined for one check."""
+
+    __slots__ = ("counts", "raws", "strict")
+
+    def __init__(self, *, strict: bool) -> None:
+        self.strict = strict
+        self.raws: list[bytes] = []
+        self.counts: list[int] = []
+
+    def add(self, raw: bytes, n: int) -> int:
+        """Append a run of ``n`` stamps; return its index."""
+        self.raws.append(raw)
+        self.counts.append(n)
+        return len(self.counts) - 1
+
+    def check(self, lim: Limits, rows_ok: np.ndarray | None = None) -> _Checked:
+        """Check every run's stamps, and ``rows_ok`` (a flag per sample, None: all ok), at once:
+        a run is good when its stamps lie within the limits and increase (strictly, if
+        ``strict``) and its rows are ok."""
+        t = _joined(self.raws, "<i8", 1)
+        starts, ends = _run_bounds(self.counts)
+        steps_ok = _steps_ok(t, starts, strict=self.strict)
+        runs_ok = _runs_ok(steps_ok if rows_ok is None else steps_ok & rows_ok, starts)
+        first_ns: list[int] = t[starts].tolist()
+        last_ns: list[int] = t[[e - 1 for e in ends]].tolist()
+        # stamps that increase lie between their run's first and last
+        lo, hi = lim.min_stamp_ns, lim.max_stamp_ns
+        good = [
+            lo <= first and last <= hi and (runs_ok is None or runs_ok[k])
+            for k, (first, last) in enumerate(zip(first_ns, last_ns, strict=True))
+        ]
+        return _Checked(t, starts, ends, first_ns, last_ns, good)
+
+
+class _SampledGroup:
+    """Packets of one stream with a single stamp run and row arrays of the same length
+    (IMU batches, wheel speeds), checked together."""
+
+    __slots__ = ("opened", "rows", "runs")
+
+    #: (field, values a row) of the row arrays beside ``stamp_ns``
+    FIELDS: tuple[tuple[str, int], ...] = ()
+
+    def __init__(self) -> None:
+        self.opened: list[_Opened] = []
+        self.runs = _Runs(strict=True)
+        self.rows: list[list[bytes]] = [[] for _ in self.FIELDS]
+
+    def add(self, op: _Opened, lim: Limits) -> bool:
+        """Take ``op`` when its fields have a valid packet's types and lengths."""
+        m = op.m
+        n = _sample_count(m, lim)
+        if not n:
+            return False
+        for name, width in self.FIELDS:
+            if not _has_packed(m, name, n * width * _F8_BYTES):
+                return False
+        self.opened.append(op)
+        self.runs.add(m["stamp_ns"], n)
+        for raws, (name, _) in zip(self.rows, self.FIELDS, strict=True):
+            raws.append(m[name])
+        return True
+
+    def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
+        """The per-row rule of the stream over the joined row arrays; None: every row is ok."""
+        raise NotImplementedError
+
+    def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
+        """The measurement of one packet: samples ``a:b`` of the joined arrays."""
+        raise NotImplementedError
+
+    def finish(self, out: list[BurstItem | None], lim: Limits) -> None:
+        """Check the group and put each packet's result at its index in ``out``."""
+        if not self.opened:
+            return
+        arrays = [
+            _joined(raws, "<f8", width)
+            for raws, (_, width) in zip(self.rows, self.FIELDS, strict=True)
+        ]
+        c = self.runs.check(lim, self.rows_ok(arrays, lim))
+        measurement = self.measurement
+        for op, a, b, first, last, ok in zip(
+            self.opened, c.starts, c.ends, c.first_ns, c.last_ns, c.good, strict=True
+        ):
+            if ok:
+                out[op.index] = op.packet((measurement(c.t, arrays, a, b),), first, last, lim)
+            else:
+                out[op.index] = op.alone(lim)
+
+
+class _ImuGroup(_SampledGroup):
+    """IMU batches: accelerometer and gyroscope row norms within the limits."""
+
+    __slots__ = ()
+    FIELDS = (("accel_mps2", 3), ("gyro_radps", 3))
+
+    def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
+        accel_ok = _norm_ok(arrays[0], lim.max_accel_mps2)
+        gyro_ok = _norm_ok(arrays[1], lim.max_gyro_radps)
+        if accel_ok is None or gyro_ok is None:
+            return gyro_ok if accel_ok is None else accel_ok
+        return accel_ok & gyro_ok
+
+    def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
+        return ImuBatch(t[a:b], arrays[0][a:b], arrays[1][a:b])
+
+
+class _SpeedsGroup(_SampledGroup):
+    """Wheel speeds: ``|omega|`` within the limit."""
+
+    __slots__ = ()
+    FIELDS = (("omega_radps", 2),)
+
+    def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
+        return _abs_ok(arrays[0], lim.max_wheel_omega_radps)
+
+    def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
+        return WheelSpeeds(t[a:b], arrays[0][a:b])
+
+
+class _EdgesGroup:
+    """Wheel-edge packets (one run per wheel entry, optional direction), checked together."""
+
+    __slots__ = ("directions", "entries", "opened", "runs")
+
+    def __init__(self) -> None:
+        self.opened: list[_Opened] = []
+        self.entries: list[list[tuple[Wheel, int]]] = []  # per packet: (wheel, run index)
+        self.runs = _Runs(strict=False)
+        self.directions: dict[int, bytes] = {}  # run index -> packed int8 directions
+
+    def add(self, op: _Opened, lim: Limits) -> bool:
+        """Take ``op`` when its ``edges`` entries have a valid packet's types and lengths."""
+        items = op.m.get("edges")
+        if type(items) is not list or not 1 <= len(items) <= len(_WHEEL):
+            return False
+        entries: list[tuple[Wheel, int]] = []
+        for item in items:
+            entry = self._add_entry(item, lim)
+            if entry is None or (entries and entries[0][0] is entry[0]):
+                self._drop_runs(len(entries) + (entry is not None))
+                return False
+            entries.append(entry)
+        self.opened.append(op)
+        self.entries.append(entries)
+        return True
+
+    def _add_entry(self, item: object, lim: Limits) -> tuple[Wheel, int] | None:
+        """Add one wheel entry's run; None (nothing added) when the entry is not valid."""
+        if type(item) is not dict:
+            return None
+        w = item.get("wheel")
+        wheel = _WHEEL.get(w) if type(w) is int else None
+        n = _sample_count(item, lim)
+        if wheel is None or not n:
+            return None
+        has_direction = "direction" in item
+        if has_direction and not _has_packed(item, "direction", n):
+            return None
+        run = self.runs.add(item["stamp_ns"], n)
+        if has_direction:
+            self.directions[run] = item["direction"]
+        return wheel, run
+
+    def _drop_runs(self, count: int) -> None:
+        """Take back the last ``count`` runs (of a packet that turned out not valid)."""
+        for _ in range(count):
+            self.directions.pop(len(self.runs.counts) - 1, None)
+            self.runs.raws.pop()
+            self.runs.counts.pop()
+
+    def _direction_views(self) -> dict[int, np.ndarray | None]:
+        """Each run's directions (None when it has none), checked: a run whose directions are
+        not all +1 or -1 is left out."""
+        views: dict[int, np.ndarray | None] = dict.fromkeys(range(len(self.runs.counts)))
+        if not self.directions:
+            return views
+        d = _joined(list(self.directions.values()), "i1", 1)
+        starts, ends = _run_bounds([self.runs.counts[r] for r in self.directions])
+        ok = _runs_ok((d == 1) | (d == -1), starts)
+        for k, r in enumerate(self.directions):
+            if ok is None or ok[k]:
+                views[r] = d[starts[k] : ends[k]]
+            else:
+                del views[r]
+        return views
+
+    def finish(self, out: list[BurstItem | None], lim: Limits) -> None:
+        """Check the group and put each packet's result at its index in ``out``."""
+        if not self.opened:
+            return
+        c = self.runs.check(lim)
+        directions = self._direction_views()
+        for op, entries in zip(self.opened, self.entries, strict=True):
+            ms: list[Measurement] = []
+            first, last = _NO_FIRST_NS, _NO_LAST_NS
+            for wheel, r in entries:
+                if not c.good[r] or r not in directions:
+                    out[op.index] = op.alone(lim)
+                    break
+                ms.append(WheelEdges(wheel, c.t[c.starts[r] : c.ends[r]], directions[r]))
+                first, last = min(first, c.first_ns[r]), max(last, c.last_ns[r])
+            else:
+                out[op.index] = op.packet(tuple(ms), first, last, lim)
+
+
+def _group(op: _Opened, groups: _Groups) -> _SampledGroup | _EdgesGroup | None:
+    """The batch check ``op`` belongs to (None: GNSS, or not a wheels mode a batch knows)."""
+    if op.stream is Stream.IMU:
+        return groups.imu
+    mode = op.m.get("mode")
+    if op.stream is Stream.WHEELS and type(mode) is str:
+        return groups.wheels.get(mode)
+    return None
+
+
+class _Groups:
+    """One burst's batch checks: IMU, and wheels by mode."""
+
+    __slots__ = ("imu", "wheels")
+
+    def __init__(self) -> None:
+        self.imu = _ImuGroup()
+        self.wheels: dict[str, _SampledGroup | _EdgesGroup] = {
+            "edges": _EdgesGroup(),
+            "speeds": _SpeedsGroup(),
+        }
+
+    def finish(self, out: list[BurstItem | None], lim: Limits) -> None:
+        """Check every group and put each packet's result at its index in ``out``."""
+        self.imu.finish(out, lim)
+        for group in self.wheels.values():
+            group.finish(out, lim)
+
+
+def decode_burst(
+    received: Sequence[tuple[str, bytes]],
+    *,
+    prefix: str = "fleet",
+    max_payload_bytes: int = 256 * 1024,
+    limits: Limits = LIMITS,
+) -> list[BurstItem]:
+    """Decode the sensor packets of a burst; item ``i`` is what ``decode(*received[i])`` would
+    return, or the :class:`DecodeError` it would raise.
+
+    Parameters
+    ----------
+    received : sequence of (key, payload)
+        The packets in the order they arrived.
+    prefix, max_payload_bytes, limits
+        As for :func:`server.protocol.codec.decode`.
+
+    Returns
+    -------
+    list of Packet or DecodeError
+    """
+    out: list[BurstItem | None] = [None] * len(received)
+    groups = _Groups()
+    for i, (key, payload) in enumerate(received):
+        try:
+            ctx, stream, m, seq = _open(key, payload, prefix, max_payload_bytes)
+        except DecodeError as exc:
+            out[i] = exc
+            continue
+        if stream is Stream.GNSS or not _LITTLE_ENDIAN:  # nothing to batch: plain Python
+            try:
+                out[i] = _packet(ctx, stream, m, seq, limits)
+            except DecodeError as exc:
+                out[i] = exc
+            continue
+        op = _Opened(i, ctx, stream, m, seq)
+        group = _group(op, groups)
+        if group is None or not group.add(op, limits):
+            out[i] = op.alone(limits)
+    groups.finish(out, limits)
+    items = [item for item in out if item is not None]
+    assert len(items) == len(out), "every packet gets a result"
+    return items

@@ -1,0 +1,205 @@
+"""Burst decoding: item for item what the per-packet decoder returns or raises."""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+
+from estimator.sim import simulate
+from estimator.types import GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
+from server.fleet_sim import encode_packets, packetize
+from server.protocol import (
+    DecodeError,
+    Packet,
+    Stream,
+    decode,
+    encode_imu,
+    encode_wheel_edges,
+    encode_wheel_speeds,
+    sensor_key,
+)
+from server.protocol.burst import decode_burst
+from tests.server.faults.test_fuzz import MAX_PAYLOAD, PREFIX, Feeder
+
+T0 = 1_763_700_000 * 10**9
+STEP_NS = 10_000_000
+
+Item = Packet | DecodeError
+
+
+def _decode_one(key: str, payload: bytes, **kw: Any) -> Item:
+    try:
+        return decode(key, payload, **kw)
+    except DecodeError as exc:
+        return exc
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and a.flags.writeable == b.flags.writeable
+            and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+        )
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) and isinstance(b, float) and a != a:
+        return b != b  # NaN: "not available" on both sides
+    return type(a) is type(b) and bool(a == b)
+
+
+def assert_same(expected: Item, got: Item) -> None:
+    """``got`` equals ``expected`` field by field (arrays by value, dtype and flags)."""
+    assert type(got) is type(expected)
+    if isinstance(expected, DecodeError):
+        assert isinstance(got, DecodeError)
+        fields = ("reason", "detail", "vehicle_id", "stream")
+        assert [getattr(got, f) for f in fields] == [getattr(expected, f) for f in fields]
+        return
+    assert isinstance(got, Packet)
+    for name in Packet.__slots__:
+        if name != "measurements":
+            assert getattr(got, name) == getattr(expected, name), name
+    assert len(got.measurements) == len(expected.measurements)
+    for x, y in zip(expected.measurements, got.measurements, strict=True):
+        assert type(x) is type(y)
+        for name in type(x).__slots__:
+            assert _same_value(getattr(x, name), getattr(y, name)), name
+
+
+def assert_burst_matches(received: list[tuple[str, bytes]], **kw: Any) -> list[Item]:
+    got = decode_burst(received, **kw)
+    assert len(got) == len(received)
+    for (key, payload), item in zip(received, got, strict=True):
+        assert_same(_decode_one(key, payload, **kw), item)
+    return got
+
+
+def _simulated(vehicles: int = 4, n_packets: int = 600) -> list[tuple[str, bytes]]:
+    run = simulate("field_work", seed=3, start_ns=T0, duration_s=20.0)
+    enc = encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns)[:n_packets])
+    return [
+        (sensor_key("fleet", f"veh-{i % vehicles}", stream), payload)
+        for i, (stream, payload) in enumerate(enc)
+    ]
+
+
+def _imu_payload(seq: int, t0: int = T0, n: int = 5, **override: Any) -> bytes:
+    t = t0 + np.arange(n, dtype=np.int64) * STEP_NS
+    acc = np.tile([0.1, 0.5, 9.81], (n, 1))
+    gyr = np.tile([0.01, 0.0, -0.2], (n, 1))
+    for name, (row, value) in override.items():
+        (acc if name == "accel" else gyr)[row, 0] = value
+    return encode_imu(ImuBatch(t, acc, gyr), seq, until_ns=int(t0 + n * STEP_NS))
+
+
+def _edges_payload(seq: int, t0: int = T0, direction: int = 1) -> bytes:
+    t = t0 + np.arange(4, dtype=np.int64) * STEP_NS
+    d = np.array([1, 1, direction, -1], dtype=np.int8)
+    return encode_wheel_edges([WheelEdges(Wheel.LEFT, t, d), WheelEdges(Wheel.RIGHT, t + 1)], seq)
+
+
+def _speeds_payload(seq: int, t0: int = T0, omega: float = 3.0) -> bytes:
+    t = t0 + np.arange(3, dtype=np.int64) * STEP_NS
+    om = np.full((3, 2), 2.0)
+    om[1, 1] = omega
+    return encode_wheel_speeds(WheelSpeeds(t, om), seq)
+
+
+def _with(payload: bytes, **fields: Any) -> bytes:
+    m = msgpack.unpackb(payload, raw=False)
+    m.update(fields)
+    return msgpack.packb(m, use_bin_type=True)
+
+
+KEY = {s: sensor_key("fleet", "veh-1", s) for s in Stream}
+
+
+def test_burst_equals_per_packet_decode_on_simulated_packets() -> None:
+    received = _simulated()
+    got = assert_burst_matches(received)
+    assert all(isinstance(item, Packet) for item in got)
+    assert {item.stream for item in got if isinstance(item, Packet)} == set(Stream)
+
+
+def test_burst_equals_per_packet_decode_on_every_array_kind() -> None:
+    received = [
+        (KEY[Stream.IMU], _imu_payload(0)),
+        (KEY[Stream.WHEELS], _edges_payload(0)),
+        (KEY[Stream.WHEELS], _speeds_payload(1)),
+        (KEY[Stream.IMU], _imu_payload(1, T0 + 10**8, n=1)),
+        (KEY[Stream.WHEELS], _speeds_payload(2, T0 + 10**8, omega=float("nan"))),
+        (KEY[Stream.IMU], _imu_payload(2, T0 + 2 * 10**8, accel=(2, float("nan")))),
+        (KEY[Stream.WHEELS], encode_wheel_edges([], 3, T0 + 3 * 10**8)),  # a heartbeat
+    ]
+    got = assert_burst_matches(received)
+    assert all(isinstance(item, Packet) for item in got)
+    beat = got[-1]
+    assert isinstance(beat, Packet) and beat.measurements == ()
+    assert beat.first_stamp_ns == beat.until_ns == T0 + 3 * 10**8
+
+
+def test_bad_packets_in_a_burst_are_refused_alone_with_their_reason() -> None:
+    inf, t_back = float("inf"), np.array([T0, T0 + 2, T0 + 1], dtype=np.int64).tobytes()
+    bad: dict[int, tuple[Stream, bytes, str]] = {
+        1: (Stream.IMU, _imu_payload(1, accel=(3, inf)), "non_finite"),
+        3: (Stream.IMU, _imu_payload(3, gyro=(0, 50.0)), "out_of_range"),
+        4: (Stream.IMU, _with(_imu_payload(4), stamp_ns=t_back), "non_monotonic"),
+        6: (Stream.WHEELS, _edges_payload(6, direction=0), "out_of_range"),
+        7: (Stream.WHEELS, _speeds_payload(7, omega=-inf), "non_finite"),
+        9: (Stream.WHEELS, _speeds_payload(9, omega=600.0), "out_of_range"),
+        10: (Stream.IMU, _with(_imu_payload(10), until_ns=T0), "out_of_range"),
+        12: (Stream.IMU, _with(_imu_payload(12), accel_mps2=b"\0" * 24), "wrong_shape"),
+        13: (
+            Stream.IMU,
+            _with(_imu_payload(13), stamp_ns=(T0 // 100).to_bytes(8, "little") * 5),
+            "out_of_range",
+        ),
+        15: (Stream.WHEELS, _with(_edges_payload(15), edges=[]), "wrong_type"),
+        16: (Stream.IMU, _imu_payload(16, n=0), "wrong_shape"),
+    }
+    received = []
+    for i in range(18):
+        t0 = T0 + i * 10**8
+        if i in bad:
+            stream, payload, _ = bad[i]
+        elif i % 3 == 0:
+            stream, payload = Stream.WHEELS, _edges_payload(i, t0)
+        elif i % 3 == 1:
+            stream, payload = Stream.WHEELS, _speeds_payload(i, t0)
+        else:
+            stream, payload = Stream.IMU, _imu_payload(i, t0)
+        received.append((KEY[stream], payload))
+    got = assert_burst_matches(received)
+    refused = {i: item.reason for i, item in enumerate(got) if isinstance(item, DecodeError)}
+    assert refused == {i: reason for i, (_, _, reason) in bad.items()}
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_burst_equals_per_packet_decode_on_mutated_packets(seed: int) -> None:
+    rng = random.Random(seed)
+    feeder = Feeder()
+    feeder.index = {v: rng.randrange(2000) for v in feeder.index}
+    received = feeder.batch(rng, 500, rng.uniform(0.05, 1.0))
+    got = assert_burst_matches(received, prefix=PREFIX, max_payload_bytes=MAX_PAYLOAD)
+    assert any(isinstance(item, Packet) for item in got)
+    assert any(isinstance(item, DecodeError) for item in got)
+
+
+def test_empty_burst() -> None:
+    assert decode_burst([]) == []
+
+
+def test_gnss_in_a_burst_is_decoded_as_alone() -> None:
+    received = [(k, p) for k, p in _simulated(n_packets=60) if k.endswith("gnss")]
+    got = assert_burst_matches(received)
+    assert all(
+        isinstance(item, Packet) and isinstance(item.measurements[0], GnssSample) for item in got
+    )
