@@ -130,6 +130,15 @@ class IngestSettings(BaseModel):
             "estimate_interval_ms)"
         ),
     )
+    gather_ms: int = Field(
+        5,
+        ge=0,
+        le=50,
+        description=(
+            "the ingest thread waits this long after a burst's first packet for more to decode "
+            "together (fewer, larger bursts cost less CPU per packet); 0 = decode what is there"
+        ),
+    )
     max_payload_bytes: int = Field(256 * 1024, ge=1024)
     max_future_s: float = Field(
         600.0,

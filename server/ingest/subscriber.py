@@ -4,11 +4,13 @@ Two subscriptions under ``<prefix>/<vehicle_filter>/``:
 
 * ``sensors/**`` into a bounded :class:`zenoh.handlers.FifoChannel` of
   ``ZenohSettings.channel_capacity`` samples. Zenoh's threads only enqueue; the ingest thread
-  takes samples in bursts (up to :data:`BURST`), decodes each burst together with the pure codec
-  (:func:`server.protocol.burst.decode_burst`: one numpy pass per stream for the array checks)
-  and hands it as one list to ``deliver`` (the pipeline's bounded queue). When the pipeline
-  falls behind, ``deliver`` blocks, the channel fills, and Zenoh's BLOCK congestion control
-  slows the publishers: nothing is dropped silently.
+  takes samples in bursts (up to :data:`BURST`; after the first sample of a burst it waits
+  ``IngestSettings.gather_ms`` for more, unless a backlog fills whole bursts), decodes each
+  burst together with the pure codec (:func:`server.protocol.burst.decode_burst`: one numpy
+  pass per stream for the array checks) and hands it as one list to ``deliver`` (the
+  pipeline's bounded queue). When the pipeline falls behind, ``deliver`` blocks, the channel
+  fills, and Zenoh's BLOCK congestion control slows the publishers: nothing is dropped
+  silently.
 * ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
   (configs are rare; polling is one non-blocking ``try_recv``).
 """
@@ -81,6 +83,7 @@ class IngestSubscriber:
         self._session = session
         self._zs = zenoh_settings
         self._max_payload = ingest_settings.max_payload_bytes
+        self._gather_s = ingest_settings.gather_ms / 1000
         self._deliver = deliver
         self._raw_sink = raw_sink
         self._thread: threading.Thread | None = None
@@ -156,14 +159,20 @@ class IngestSubscriber:
     def _run(self) -> None:
         assert self._sensors is not None
         sensors = self._sensors.handler
+        full = False
         while True:
             try:
                 first = sensors.recv()
             except zenoh.ZError:
                 return  # channel closed: subscriber undeclared
+            if not full and self._gather_s > 0:
+                # let a burst gather: the decoder's cost per packet falls with the burst size,
+                # and the pipeline releases packets only at its ticks anyway
+                time.sleep(self._gather_s)
             received = [(str(first.key_expr), first.payload.to_bytes())]
             while len(received) < BURST and (sample := sensors.try_recv()) is not None:
                 received.append((str(sample.key_expr), sample.payload.to_bytes()))
+            full = len(received) == BURST  # a backlog: no gathering until it is worked off
             burst = self._decode(received)
             if self._raw_sink is not None:
                 self._sink_raw(received, burst)

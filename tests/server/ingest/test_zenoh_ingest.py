@@ -201,3 +201,34 @@ def test_vehicle_filter_selects_vehicles() -> None:
         finally:
             pipe.stop()
     assert list(pipe.counters_snapshot()) == ["keep-1"]
+
+
+@pytest.mark.parametrize("gather_ms", [0, 40])
+def test_ingest_gathers_packets_into_bursts(gather_ms: int) -> None:
+    """With ``gather_ms`` the ingest thread waits after a burst's first packet, so packets
+    published close together are decoded and delivered together; without it, as they come."""
+    from server.ingest.subscriber import IngestSubscriber
+
+    bursts: list[int] = []
+    with embedded_router() as (router, zs, endpoint), client_session(endpoint) as client:
+        ingest = IngestSettings.model_validate({"gather_ms": gather_ms})
+        sub = IngestSubscriber(router, zs, ingest, lambda items: bursts.append(len(items)))
+        sub.start()
+        try:
+            pub = declare(client, sensor_key("fleet", "sim-0001", Stream.IMU))
+            for k in range(30):
+                t = T0 + k * 100 * MS
+                pub.put(
+                    encode_imu(
+                        ImuBatch(t + np.arange(10) * 10 * MS, np.zeros((10, 3)), np.zeros((10, 3))),
+                        k,
+                    )
+                )
+                time.sleep(0.004)  # 4 ms apart: 120 ms in all
+            wait_for(lambda: sum(bursts) == 30, 10.0)
+        finally:
+            sub.stop()
+    if gather_ms:
+        assert len(bursts) <= 6  # a burst gathers ~40 ms of packets: about 3
+    else:
+        assert len(bursts) >= 10  # delivered nearly one by one: about 30
