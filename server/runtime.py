@@ -253,11 +253,15 @@ class Runtime:
         pipeline_ok = self.pipeline is not None and bool(self.pipeline.stats()["running"])
         return {"zenoh": zenoh_ok, "storage": storage_ok, "pipeline": pipeline_ok}
 
-    def metrics(self) -> Iterable[MetricFamily]:
+    def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]:
+        """Metric families for ``/metrics``; ``by_vehicle=False`` sums the per-vehicle counters
+        to fleet totals (one sample per counter instead of one per vehicle)."""
         families: list[MetricFamily] = []
         if self.pipeline is not None:
-            families.extend(_ingest_families(self.pipeline.counters_snapshot()))
-            families.append(_estimator_family(self.pipeline.estimator_counters_snapshot()))
+            families.extend(_ingest_families(self.pipeline.counters_snapshot(), by_vehicle))
+            families.append(
+                _estimator_family(self.pipeline.estimator_counters_snapshot(), by_vehicle)
+            )
             stats = self.pipeline.stats()
             families.append(
                 MetricFamily(
@@ -323,12 +327,34 @@ class Runtime:
         return families
 
 
-def _estimator_family(counters: Mapping[str, Mapping[str, Mapping[str, int]]]) -> MetricFamily:
-    """Estimator events per vehicle (MDSF: resets, gnss_gated, degraded_ticks, skipped_*, …)."""
+def _fleet_totals(per_vehicle: Mapping[str, Mapping[str, int]]) -> dict[str, dict[str, int]]:
+    """``{"": {counter: sum over the vehicles}}``: the fleet as one unlabelled vehicle."""
+    totals: dict[str, int] = {}
+    for counts in per_vehicle.values():
+        for name, n in counts.items():
+            totals[name] = totals.get(name, 0) + int(n)
+    return {"": totals}
+
+
+def _vehicle_label(vehicle_id: str, by_vehicle: bool) -> dict[str, str]:
+    return {"vehicle": vehicle_id} if by_vehicle else {}
+
+
+def _estimator_family(
+    counters: Mapping[str, Mapping[str, Mapping[str, int]]], by_vehicle: bool = True
+) -> MetricFamily:
+    """Estimator events per vehicle (MDSF: resets, gnss_gated, degraded_ticks, skipped_*, …),
+    or their fleet totals."""
     samples = [
-        Sample(float(n), {"estimator": name, "vehicle": vid, "event": event}, "_total")
+        Sample(
+            float(n),
+            {"estimator": name, **_vehicle_label(vid, by_vehicle), "event": event},
+            "_total",
+        )
         for name, per_vehicle in sorted(counters.items())
-        for vid, events in sorted(per_vehicle.items())
+        for vid, events in sorted(
+            (per_vehicle if by_vehicle else _fleet_totals(per_vehicle)).items()
+        )
         for event, n in sorted(events.items())
     ]
     return MetricFamily(
@@ -339,8 +365,11 @@ def _estimator_family(counters: Mapping[str, Mapping[str, Mapping[str, int]]]) -
     )
 
 
-def _ingest_families(counters: Mapping[str, Mapping[str, int]]) -> list[MetricFamily]:
-    """Per-vehicle ingest counters as Prometheus families (rejections labelled by reason)."""
+def _ingest_families(
+    counters: Mapping[str, Mapping[str, int]], by_vehicle: bool = True
+) -> list[MetricFamily]:
+    """Per-vehicle ingest counters (or their fleet totals) as Prometheus families (rejections
+    labelled by reason)."""
     plain = (
         "received",
         "accepted",
@@ -352,17 +381,16 @@ def _ingest_families(counters: Mapping[str, Mapping[str, int]]) -> list[MetricFa
     )
     samples: dict[str, list[Sample]] = {name: [] for name in plain}
     rejected: list[Sample] = []
-    for vehicle_id, counts in sorted(counters.items()):
+    for vehicle_id, counts in sorted((counters if by_vehicle else _fleet_totals(counters)).items()):
+        label = _vehicle_label(vehicle_id, by_vehicle)
         for name in plain:
-            samples[name].append(
-                Sample(float(counts.get(name, 0)), {"vehicle": vehicle_id}, "_total")
-            )
+            samples[name].append(Sample(float(counts.get(name, 0)), label, "_total"))
         for key, value in counts.items():
             if key.startswith("rejected_"):
                 rejected.append(
                     Sample(
                         float(value),
-                        {"vehicle": vehicle_id, "reason": key.removeprefix("rejected_")},
+                        {**label, "reason": key.removeprefix("rejected_")},
                         "_total",
                     )
                 )

@@ -93,7 +93,7 @@ class VehicleConfigListener(Protocol):
 class MetricsSource(Protocol):
     """Optional: the runtime's metric families for ``GET /metrics``."""
 
-    def metrics(self) -> Iterable[MetricFamily]: ...
+    def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]: ...
 
 
 def call_hook(runtime: object, name: str, *args: Any) -> Any:

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Annotated
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Query, Response
 
 from server.api.deps import RuntimeDep, call_hook
 from server.api.prometheus import CONTENT_TYPE, MetricFamily, Sample, render
@@ -31,7 +32,16 @@ router = APIRouter(prefix="/metrics", tags=["metrics"])
         "backlog and commits, …)."
     ),
 )
-def get_metrics(runtime: RuntimeDep) -> Response:
+def get_metrics(
+    runtime: RuntimeDep,
+    by_vehicle: Annotated[
+        bool,
+        Query(
+            description="false: per-vehicle counters summed to fleet totals (no `vehicle` label; "
+            "far fewer samples for a large fleet)"
+        ),
+    ] = True,
+) -> Response:
     up = MetricFamily(
         name="slipfleet_up",
         type="gauge",
@@ -41,5 +51,5 @@ def get_metrics(runtime: RuntimeDep) -> Response:
             for name, ok in sorted(checks(runtime).items())
         ),
     )
-    provided: Iterable[MetricFamily] = call_hook(runtime, "metrics") or ()
+    provided: Iterable[MetricFamily] = call_hook(runtime, "metrics", by_vehicle) or ()
     return Response(render([up, *provided]), media_type=CONTENT_TYPE)

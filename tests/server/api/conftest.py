@@ -44,6 +44,7 @@ class FakeRuntime:
         self.deleted: list[str] = []
         self.opened = 0
         self.closed = 0
+        self.metrics_by_vehicle: list[bool] = []  # what each /metrics call asked for
         self.alert_engine = AlertEngine()
 
     @property
@@ -63,7 +64,8 @@ class FakeRuntime:
     def health(self) -> Mapping[str, bool]:
         return {"zenoh": self.zenoh_up, "storage": self.store.ping()}
 
-    def metrics(self) -> list[MetricFamily]:
+    def metrics(self, by_vehicle: bool = True) -> list[MetricFamily]:
+        self.metrics_by_vehicle.append(by_vehicle)
         samples = []
         for rec in self.store.list_vehicles():
             for name, value in sorted(self.store.get_counters(rec.vehicle_id).items()):

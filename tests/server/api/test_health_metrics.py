@@ -89,6 +89,36 @@ def test_metrics_parse_as_exposition(client: ApiClient, store: Store, runtime: F
     assert fams["slipfleet_writer_backlog_rows"] == [("slipfleet_writer_backlog_rows", "", 0.0)]
 
 
+def test_metrics_by_vehicle_flag_reaches_the_runtime(
+    client: ApiClient, runtime: FakeRuntime
+) -> None:
+    assert client.get("/api/v1/metrics").status_code == 200
+    assert client.get("/api/v1/metrics?by_vehicle=false").status_code == 200
+    assert client.get("/api/v1/metrics?by_vehicle=maybe").status_code == 422
+    assert runtime.metrics_by_vehicle == [True, False]
+
+
+def test_fleet_totals_sum_the_vehicles_and_drop_their_label() -> None:
+    from server.runtime import _estimator_family, _ingest_families
+
+    counters = {
+        "v1": {"received": 10, "accepted": 8, "late": 2, "rejected_non_finite": 1},
+        "v2": {"received": 5, "accepted": 5, "rejected_non_finite": 2, "rejected_bad_key": 1},
+    }
+    text = render(_ingest_families(counters, by_vehicle=False))
+    assert 'vehicle="' not in text
+    assert "slipfleet_packets_received_total 15" in text
+    assert "slipfleet_packets_late_total 2" in text
+    assert 'slipfleet_packets_rejected_total{reason="non_finite"} 3' in text
+    assert 'slipfleet_packets_rejected_total{reason="bad_key"} 1' in text
+    per_vehicle = render(_ingest_families(counters))
+    assert 'slipfleet_packets_received_total{vehicle="v2"} 5' in per_vehicle
+    events = {"mdsf": {"v1": {"resets": 1, "gnss_gated": 4}, "v2": {"gnss_gated": 3}}}
+    fleet = render([_estimator_family(events, by_vehicle=False)])
+    assert 'slipfleet_estimator_events_total{estimator="mdsf",event="gnss_gated"} 7' in fleet
+    assert 'vehicle="' not in fleet
+
+
 def test_render_escapes_and_special_values() -> None:
     text = render(
         [
