@@ -34,7 +34,14 @@ from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_DTYPE
 from server.ports import free_port as _free_port
 
-__all__ = ["bench_codec", "bench_ingest", "format_codec_table", "main"]
+__all__ = [
+    "bench_burst_sizes",
+    "bench_codec",
+    "bench_ingest",
+    "format_burst_table",
+    "format_codec_table",
+    "main",
+]
 
 TICK_NS = 100_000_000
 
@@ -74,13 +81,15 @@ def _decode_alone(received: list[tuple[str, bytes]]) -> None:
                 burst.append(exc)
 
 
-def _decode_bursts(received: list[tuple[str, bytes]]) -> None:
-    """The ingest path: the packets of a burst decoded together."""
+def _decode_bursts(received: list[tuple[str, bytes]], size: int | None = None) -> None:
+    """The ingest path: the packets of a burst (``size``, default ``subscriber.BURST``)
+    decoded together."""
     from server.ingest.subscriber import BURST
     from server.protocol.burst import decode_burst
 
-    for i in range(0, len(received), BURST):
-        decode_burst(received[i : i + BURST])
+    step = size or BURST
+    for i in range(0, len(received), step):
+        decode_burst(received[i : i + step])
 
 
 def _cpu_us_per_packet(
@@ -117,6 +126,37 @@ def bench_codec(vehicles: int = 100, repeats: int = 7) -> dict[str, dict[str, fl
             "packets": float(len(items)),
         }
     return out
+
+
+#: Burst sizes of :func:`bench_burst_sizes`: a real-time server's bursts are as large as what
+#: arrives in ``ingest.gather_ms`` (5 ms: ~45 packets at 300 vehicles, ~150 at 1,000).
+BURST_SIZES = (1, 8, 32, 128, 512)
+
+
+def bench_burst_sizes(
+    vehicles: int = 100, repeats: int = 7, sizes: tuple[int, ...] = BURST_SIZES
+) -> dict[int, float]:
+    """Burst-decode CPU in µs per packet (all streams) by burst size, with the per-packet
+    decode (size 0 in the result) as the baseline of the same run."""
+    enc = _keyed(vehicles)
+
+    def sized(n: int) -> Callable[[list[tuple[str, bytes]]], None]:
+        return lambda received: _decode_bursts(received, n)
+
+    paths: dict[str, Callable[[list[tuple[str, bytes]]], None]] = {"0": _decode_alone}
+    paths.update({str(n): sized(n) for n in sizes})
+    return {int(k): round(v, 2) for k, v in _cpu_us_per_packet(paths, enc, repeats).items()}
+
+
+def format_burst_table(result: Mapping[int, float]) -> str:
+    """The :func:`bench_burst_sizes` result as a table."""
+    alone = result[0]
+    lines = ["decode CPU per packet by burst size (all streams)", "burst    µs/packet  alone/burst"]
+    lines.append(f"{'alone':<8} {alone:>10.2f} {1.0:>12.2f}")
+    for n, us in result.items():
+        if n:
+            lines.append(f"{n:<8} {us:>10.2f} {alone / us:>12.2f}")
+    return "\n".join(lines)
 
 
 def format_codec_table(result: Mapping[str, Mapping[str, float]]) -> str:
@@ -256,7 +296,12 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.what == "codec":
         codec = bench_codec(args.vehicles, args.repeats)
-        print(json.dumps(codec, indent=2) if args.json else format_codec_table(codec))
+        sizes = bench_burst_sizes(args.vehicles, args.repeats)
+        if args.json:
+            print(json.dumps({"streams": codec, "burst_sizes": sizes}, indent=2))
+        else:
+            print(format_codec_table(codec))
+            print(format_burst_table(sizes))
         return
     print(json.dumps(bench_ingest(args.vehicles, args.packets, args.estimator), indent=2))
 

@@ -16,6 +16,7 @@ from server.protocol import (
     DecodeError,
     Packet,
     Stream,
+    burst,
     decode,
     encode_imu,
     encode_wheel_edges,
@@ -27,6 +28,12 @@ from tests.server.faults.test_fuzz import MAX_PAYLOAD, PREFIX, Feeder
 
 T0 = 1_763_700_000 * 10**9
 STEP_NS = 10_000_000
+
+
+@pytest.fixture(autouse=True)
+def batch_every_burst(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The tests here check the batched path, whatever the burst's length."""
+    monkeypatch.setattr(burst, "MIN_BATCHED", 1)
 
 Item = Packet | DecodeError
 
@@ -203,3 +210,19 @@ def test_gnss_in_a_burst_is_decoded_as_alone() -> None:
     assert all(
         isinstance(item, Packet) and isinstance(item.measurements[0], GnssSample) for item in got
     )
+
+
+def test_short_bursts_are_decoded_packet_by_packet(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Below MIN_BATCHED packets the arrays are not joined (it would cost more than it saves);
+    the items are the same either way."""
+    monkeypatch.setattr(burst, "MIN_BATCHED", 8)
+    joined: list[int] = []
+    finish = burst._Groups.finish
+    monkeypatch.setattr(
+        burst._Groups, "finish", lambda self, *a: (joined.append(1), finish(self, *a))[1]
+    )
+    received = _simulated(n_packets=20)
+    assert_burst_matches(received[:7])
+    assert joined == []
+    assert_burst_matches(received[:8])
+    assert joined == [1]
