@@ -997,6 +997,7 @@ class _Batch:
         self.g_vg = np.zeros(nf)
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
+        self.g_theta_after = np.empty(nf)
 
         def end_segment(r: IntArray, j: IntArray) -> FloatArray:
             # samples up to j-1 of rows r integrated with the bias in force; θ at j-1
@@ -1012,6 +1013,7 @@ class _Batch:
             )
             self.g_var_after[fi] = var[r]
             self.g_bias_after[fi] = bias[r]
+            self.g_theta_after[fi] = th0[r]
             ok = self.g_vel_ok[fi]
             used = np.where(np.isfinite(p), p, th0[r])
             self.g_vg[fi[ok]] = gnss_vehicle_speed(
@@ -1193,9 +1195,11 @@ class _Batch:
         ok[tid] = True
         dt_s = (self.ticks[tid] - t) * _NS
         vg = self.g_vg[idx]
-        d_imu = d_ant + fe.h1_m[s] * att[:, 1] - fe.ant_x_m[s] * yaw + vg * dt_s
+        # the lever arm with the tracked pitch (gyro between fixes, smoother than the fix's)
+        theta = self.g_theta_after[idx]
+        d_imu = d_ant + fe.h1_m[s] * theta - fe.ant_x_m[s] * yaw + vg * dt_s
         dist[tid] = d_imu  # later fixes overwrite: the latest wins
-        lever_var = (fe.h1_m[s] * cfg.pitch_std_rad) ** 2  # the GNSS pitch in h1·θ
+        lever_var = fe.h1_m[s] ** 2 * self.g_var_after[idx]
         var[tid] = fe.pos_var_cfg[s] + lever_var + self.g_var[idx] * dt_s**2
         np.logical_or.at(restart, tid, ~chained)
         return ok, dist, var, restart
