@@ -129,12 +129,16 @@ class NoiseConfig:
         Gyro white noise per sample.
     accel_bias_walk_mps2 : float
         Accelerometer bias random walk per sqrt(second).
+    gnss_pos_std_m : float
+        RTK-fixed horizontal position noise per axis (receivers rarely report it; 1-2 cm is
+        typical) [m].
     """
 
     gnss_vel_std_mps: float = 0.05
     accel_std_mps2: float = 0.05
     gyro_std_radps: float = 0.005
     accel_bias_walk_mps2: float = 0.002
+    gnss_pos_std_m: float = 0.02
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -4,12 +4,12 @@ Two layers:
 
 :class:`MdsfEngine`
     Holds every vehicle's filter state in slot arrays (``x (cap, n)``, ``P (cap, n, n)`` with
-    ``n`` = 4 in paper mode, 7 in product mode; per-vehicle ``F``, ``H``, ``H1``, ``Q``) and
+    ``n`` = 4 in paper mode, 8 in product mode; per-vehicle ``F``, ``H``, ``H1``, ``Q``) and
     steps any subset of vehicles with a few calls to the pure functions of
     :mod:`estimator.kalman`: predict (accelerometer-driven in product mode), update of the IMU
-    rows, chi-square gate of the GNSS speed, update of GNSS and rim speeds, divergence reset,
-    reference-speed filter (§3). Each step also returns what it used (:class:`TickModel`:
-    matrices, masks, NIS) for diagnostics and tests.
+    rows, chi-square gate of the GNSS speed and distance, update of GNSS speed, rim speeds and
+    RTK distance, divergence reset, reference-speed filter (§3). Each step also returns what it
+    used (:class:`TickModel`: matrices, masks, NIS) for diagnostics and tests.
 
 :class:`MdsfFleet`
     Implements :class:`estimator.base.FleetEstimator`. One fleet front end
@@ -18,9 +18,10 @@ Two layers:
     into per-tick filter inputs with a number of numpy calls that does not grow with the fleet:
     IMU averaged over each tick window (gravity removed with the pitch, gyro biases learnt
     against the GNSS attitude), GNSS speed by eq. (1) moved to the tick by its time stamp,
-    wheel speeds of all vehicles that share the ticks fitted in one call
-    (:func:`estimator.wheel_speed.query_many`). The engine then steps round by round: round
-    ``r`` is the ``r``-th due tick of every vehicle that has one, all in one batched call.
+    along-track distance from the RTK positions, wheel speeds of all vehicles that share the
+    ticks fitted in one call (:func:`estimator.wheel_speed.query_many`). The engine then steps
+    round by round: round ``r`` is the ``r``-th due tick of every vehicle that has one, all in
+    one batched call.
     Slip, positions and attitude are computed for all rows at once afterwards.
 
 Ticks sit on a grid of ``tick_ns``: multiples of it since the epoch by default, or moved by
@@ -75,6 +76,9 @@ _NS = 1e-9
 _SLIP_MIN_SPEED_MPS = 0.5
 """Speed floor of the constant-slip-ratio growth of the rim excess."""
 _F = EstimateFlag
+_RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
+_DIST_OPEN_VAR_M2 = 1.0e4
+"""Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
 
 
 class _TyreStat(IntEnum):
@@ -171,7 +175,7 @@ class MdsfEngine:
     """Slot arrays of many vehicles' MDSF filters, stepped in batches.
 
     State ``x (cap, n)``, covariance ``P (cap, n, n)`` and per-vehicle ``F``, ``H``, ``H1``,
-    ``Q`` (``n`` = 4 in paper mode, 7 in product mode; see :class:`~estimator.mdsf.MdsfState`).
+    ``Q`` (``n`` = 4 in paper mode, 8 in product mode; see :class:`~estimator.mdsf.MdsfState`).
 
     Parameters
     ----------
@@ -219,6 +223,7 @@ class MdsfEngine:
         grow("force_model", (), np.nan)
         grow("tyre_stats", (len(_TyreStat),), 0.0)
         grow("rim_innov", (2, 2), 0.0)
+        grow("dist_gated", (), False)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
         grow("ref_aux", (len(RefAux),), 0.0)
@@ -242,6 +247,7 @@ class MdsfEngine:
     force_model: FloatArray
     tyre_stats: FloatArray
     rim_innov: FloatArray
+    dist_gated: BoolArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
     ref_aux: FloatArray
@@ -267,6 +273,7 @@ class MdsfEngine:
         self.force_model[s] = np.nan
         self.tyre_stats[s] = 0.0
         self.rim_innov[s] = 0.0
+        self.dist_gated[s] = False
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
@@ -315,6 +322,8 @@ class MdsfEngine:
                 v_wheel = np.einsum("ki,ki->k", h[:, obs, : MdsfState.ACCEL_BIAS], x[:, :4])
                 x[:, st] = np.where(ok, z[:, obs] - v_wheel, 0.0)
                 diag[:, st] = cfg.initial_speed_std_mps**2 + 0.01
+            x[:, MdsfState.DIST] = z[:, MdsfObs.DIST]  # origin arbitrary: opened wide
+            diag[:, MdsfState.DIST] = _DIST_OPEN_VAR_M2
         p[:, idx, idx] = diag
         return x, p
 
@@ -345,7 +354,8 @@ class MdsfEngine:
         z = np.zeros((k, m))
         z[:, :N_OBS_PAPER] = np.where(np.isfinite(t.z), t.z, 0.0)
         if self.product:
-            z[:, MdsfObs.RIM_LEFT :] = np.where(rim_ok, rim_mps, 0.0)
+            z[:, _RIM] = np.where(rim_ok, rim_mps, 0.0)
+            z[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_m, 0.0)
         H = self.H[slots]
         x = self.x[slots]
         P = self.P[slots]
@@ -370,13 +380,14 @@ class MdsfEngine:
         rd[:, MdsfObs.OMEGA_X] = gyro_var
         rd[:, MdsfObs.OMEGA_Z] = gyro_var
         if self.product:
-            rd[:, MdsfObs.RIM_LEFT :] = np.where(
+            rd[:, _RIM] = np.where(
                 rim_ok,
                 (cfg.wheel_noise_scale * rim_std_mps) ** 2
                 + (cfg.rim_texture_rel * np.where(rim_ok, rim_mps, 0.0)) ** 2
                 + 1e-6,
                 1.0,
             )
+            rd[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_var, 1.0)
         R = np.zeros((k, m, m))
         R[:, np.arange(m), np.arange(m)] = rd
 
@@ -394,6 +405,23 @@ class MdsfEngine:
             Q[:, MdsfState.A1, MdsfState.A1] += accel_var
             Q[:, MdsfState.V1, MdsfState.A1] += dt * accel_var
             Q[:, MdsfState.A1, MdsfState.V1] += dt * accel_var
+            # The distance integrates the speed: D' = D + dt·V1 + dt²·(ā − b)/2, so the tick's
+            # acceleration noise reaches it through dt²/2 (correlated with V1 and a1).
+            half = 0.5 * dt * dt
+            u[:, MdsfState.DIST] = half * a_in
+            D, V1, A1 = MdsfState.DIST, MdsfState.V1, MdsfState.A1
+            Q[:, D, D] += half * half * accel_var
+            Q[:, D, V1] += half * dt * accel_var
+            Q[:, V1, D] += half * dt * accel_var
+            Q[:, D, A1] += half * accel_var
+            Q[:, A1, D] += half * accel_var
+            # A new chain of RTK positions (or one after a gated distance) has its own origin:
+            # the predicted distance is moved onto the measured one and opened, so the chain's
+            # offset carries no information on the speed.
+            new_chain = t.dist_ok & (t.dist_restart | self.dist_gated[slots])
+            d_pred = x[:, D] + dt * x[:, V1] - half * x[:, MdsfState.ACCEL_BIAS] + half * a_in
+            u[:, D] += np.where(new_chain, z[:, MdsfObs.DIST] - d_pred, 0.0)
+            Q[:, D, D] += np.where(new_chain, _DIST_OPEN_VAR_M2, 0.0)
             # Rim excess e = r·W − V: at constant slip ratio it scales with the speed,
             # e' = e·(1 + dt·ā/V); on top, slip wanders with soil and load and moves when the
             # traction demand (forward specific force) changes: variance ∝ |Δf|.
@@ -466,8 +494,8 @@ class MdsfEngine:
             # A rim speed far off its prediction while the accelerometer saw no matching
             # acceleration means the slip itself changed (soil, wet patch): open the rim
             # excess by the unexplained part of the innovation before the update.
-            y_rim = y_all[:, MdsfObs.RIM_LEFT :]
-            s_rim = s_all[:, MdsfObs.RIM_LEFT :]
+            y_rim = y_all[:, _RIM]
+            s_rim = s_all[:, _RIM]
             if cfg.rim_drift_tau_s > 0:
                 self._track_rim_innovation(slots, y_rim, s_rim, rim_use & init[:, None])
             big = rim_use & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
@@ -479,7 +507,14 @@ class MdsfEngine:
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
         if self.product:
-            mask2[:, MdsfObs.RIM_LEFT :] = rim_use
+            mask2[:, _RIM] = rim_use
+            # The distance row is gated like the speed (a position jump: wrong fix); the next
+            # fix then starts a new chain.
+            y_d = y_all[:, MdsfObs.DIST]
+            s_d = s_all[:, MdsfObs.DIST] + cfg.gnss_distance_gate_floor_m**2
+            d_gated = t.dist_ok & init & ~(y_d * y_d <= cfg.gate_chi2 * s_d)
+            self.dist_gated[slots] = np.where(t.dist_ok, d_gated, self.dist_gated[slots])
+            mask2[:, MdsfObs.DIST] = t.dist_ok & ~d_gated
         res = kalman.update(x_1, P_1, z, H, R, mask2)
         x_new, P_new = res.x, res.P
         zupt = np.zeros(k, dtype=bool)
@@ -722,9 +757,7 @@ class MdsfEngine:
         """
         cfg = self.config
         h = self.H[slots]
-        v_wheel = np.einsum(
-            "kmi,ki->km", h[:, MdsfObs.RIM_LEFT :, : MdsfState.ACCEL_BIAS], x_post[:, :4]
-        )
+        v_wheel = np.einsum("kmi,ki->km", h[:, _RIM, : MdsfState.ACCEL_BIAS], x_post[:, :4])
         speed = 0.5 * (v_wheel[:, 0] + v_wheel[:, 1])
         f = self.force_model[slots]
         ok = (

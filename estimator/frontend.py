@@ -140,6 +140,16 @@ class TickInputs:
         Antenna position in the vehicle's ENU frame (NaN before the first fix).
     attitude : ndarray, shape (m, 3)
         Heading, pitch, roll [rad].
+    dist_ok : ndarray, shape (m,), bool
+        An RTK-fixed position gave the along-track distance of this tick (product mode).
+    dist_m : ndarray, shape (m,)
+        Along-track distance of the IMU point from the RTK positions, moved to the tick
+        (:meth:`_Batch._gnss_distance`); an arbitrary offset per chain [m].
+    dist_var : ndarray, shape (m,)
+        Its variance [m²].
+    dist_restart : ndarray, shape (m,), bool
+        A new chain of positions starts at this tick (first fix, or a gap): the distance has a
+        new offset.
     """
 
     stamp_ns: IntArray
@@ -155,6 +165,10 @@ class TickInputs:
     wheel_flags: npt.NDArray[np.int32]
     enu: FloatArray
     attitude: FloatArray
+    dist_ok: BoolArray
+    dist_m: FloatArray
+    dist_var: FloatArray
+    dist_restart: BoolArray
 
     @property
     def m(self) -> int:
@@ -416,6 +430,16 @@ class FleetFrontEnd:
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
         grow("count", (len(COUNT_NAMES),), np.int64(0))
+        # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
+        # pitch, and the chain's distance there
+        grow("chain_ns", (), _NONE_NS)
+        grow("chain_enu", (3,), 0.0)
+        grow("chain_att", (2,), 0.0)
+        grow("chain_m", (), 0.0)
+        grow("chain_yaw_rad", (), 0.0)  # heading unwrapped along the chain
+        grow("h1_m", (), 0.0)
+        grow("ant_x_m", (), 0.0)  # antenna's lateral offset from the IMU, x_a − x_i
+        grow("pos_var_cfg", (), 0.0)
         self.trackers.extend([()] * (cap - old))
         self.direct.extend([None] * (cap - old))
         self._cap = cap
@@ -447,6 +471,14 @@ class FleetFrontEnd:
     lone_std: FloatArray
     wheel_cfg: IntArray
     count: IntArray
+    chain_ns: IntArray
+    chain_enu: FloatArray
+    chain_att: FloatArray
+    chain_m: FloatArray
+    chain_yaw_rad: FloatArray
+    h1_m: FloatArray
+    ant_x_m: FloatArray
+    pos_var_cfg: FloatArray
 
     def add(self, slot: int, vehicle: VehicleConfig) -> None:
         """Start a vehicle in ``slot`` (fresh state)."""
@@ -485,6 +517,15 @@ class FleetFrontEnd:
         self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
         self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
         self.count[slot] = 0
+        self.chain_ns[slot] = _NONE_NS
+        self.chain_enu[slot] = 0.0
+        self.chain_att[slot] = 0.0
+        self.chain_m[slot] = 0.0
+        self.chain_yaw_rad[slot] = 0.0
+        geo = vehicle.geometry
+        self.h1_m[slot] = geo.h1_m
+        self.ant_x_m[slot] = geo.antenna_offset_m[0] - geo.imu_offset_m[0]
+        self.pos_var_cfg[slot] = n.gnss_pos_std_m**2
 
     def align_ticks(self, slot: int, stamp_ns: int) -> None:
         """Put the vehicle's tick grid on ``stamp_ns + k·tick_ns`` (default: multiples of
@@ -870,6 +911,7 @@ class _Batch:
         z[:, MdsfObs.OMEGA_Z] = means[2]
         gnss_ok, gnss_var = self._gnss_speed(z)
         enu, att = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick)
+        dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
         omega, omega_std, wflags = self._wheels()
         return TickInputs(
             stamp_ns=self.ticks,
@@ -885,6 +927,10 @@ class _Batch:
             wheel_flags=wflags,
             enu=enu,
             attitude=att,
+            dist_ok=dist_ok,
+            dist_m=dist_m,
+            dist_var=dist_var,
+            dist_restart=dist_restart,
         )
 
     def _between_fixes(
@@ -951,6 +997,7 @@ class _Batch:
         self.g_vg = np.zeros(nf)
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
+        self.g_theta_after = np.empty(nf)
 
         def end_segment(r: IntArray, j: IntArray) -> FloatArray:
             # samples up to j-1 of rows r integrated with the bias in force; θ at j-1
@@ -966,6 +1013,7 @@ class _Batch:
             )
             self.g_var_after[fi] = var[r]
             self.g_bias_after[fi] = bias[r]
+            self.g_theta_after[fi] = th0[r]
             ok = self.g_vel_ok[fi]
             used = np.where(np.isfinite(p), p, th0[r])
             self.g_vg[fi[ok]] = gnss_vehicle_speed(
@@ -1068,6 +1116,94 @@ class _Batch:
             gnss_ok[ti] = True
         return gnss_ok, gnss_var
 
+    def _gnss_distance(self) -> tuple[BoolArray, FloatArray, FloatArray, BoolArray]:
+        """Along-track distance of the IMU point from RTK-fixed positions, per tick.
+
+        Eq. (1) integrated: between consecutive RTK-fixed positions ``p`` of a vehicle the
+        distance grows by ``(p_k − p_{k−1})·u`` with ``u = [sinψ·cosθ, cosψ·cosθ, sinθ]`` the
+        body's forward axis at the mid heading and pitch of the two fixes (the GNSS speed's
+        projection, eq. (1), applied to the displacement). The sum telescopes while ``u``
+        barely turns, so each distance carries about one position's noise and no random walk:
+        a speed reference over seconds with centimetre noise, where the Doppler speed has
+        percent noise. The antenna's distance differs from the IMU point's by the integral of
+        the lever-arm terms of the ``Vg`` row, ``−h1·ωx + (x_a − x_i)·ωz``:
+        ``D_imu = D_ant + h1·θ − (x_a − x_i)·ψ`` (``ψ`` unwrapped along the chain; constant
+        parts fall into the chain's offset). A fix taken more than
+        ``gnss_distance_gap_s`` after the chain's last (outage, float spell, start) starts a
+        new chain with a new offset (``dist_restart``). Each tick takes the latest fix in its
+        window, moved to the tick with that fix's speed (eq. (1)). Product mode only.
+
+        Returns ``(dist_ok, dist_m, dist_var, dist_restart)``, shape ``(n_ticks,)``.
+        """
+        fe, cfg = self.fe, self.config
+        n_ticks = self.n_ticks
+        ok = np.zeros(n_ticks, dtype=bool)
+        dist = np.full(n_ticks, np.nan)
+        var = np.zeros(n_ticks)
+        restart = np.zeros(n_ticks, dtype=bool)
+        if not self.product or cfg.gnss_distance_gap_s <= 0 or self.g_row.shape[0] == 0:
+            return ok, dist, var, restart
+        g = self.g
+        use = (
+            self.g_pos_ok
+            & (g[:, _G_FIX] == float(GnssFix.RTK_FIXED))
+            & np.isfinite(self.g_enu).all(axis=1)
+            & np.isfinite(self.g_heading)
+            & self.g_vel_ok
+        )
+        idx = np.flatnonzero(use)
+        if idx.size == 0:
+            return ok, dist, var, restart
+        r = self.g_row[idx]
+        s = self.slots[r]
+        p = self.g_enu[idx]
+        t = self.g_t[idx]
+        att = np.stack([self.g_heading[idx], np.nan_to_num(g[idx, _G_PITCH])], axis=1)
+        first = np.ones(idx.size, dtype=bool)
+        first[1:] = r[1:] != r[:-1]
+        p_prev = np.empty_like(p)
+        p_prev[1:] = p[:-1]
+        p_prev[first] = fe.chain_enu[s[first]]
+        t_prev = np.empty_like(t)
+        t_prev[1:] = t[:-1]
+        t_prev[first] = fe.chain_ns[s[first]]
+        a_prev = np.empty_like(att)
+        a_prev[1:] = att[:-1]
+        a_prev[first] = fe.chain_att[s[first]]
+        gap_s = (t - t_prev) * _NS
+        chained = (t_prev != _NONE_NS) & (gap_s > 0) & (gap_s <= cfg.gnss_distance_gap_s)
+        d_head = np.mod(att[:, 0] - a_prev[:, 0] + np.pi, 2 * np.pi) - np.pi
+        psi = a_prev[:, 0] + 0.5 * d_head
+        th = 0.5 * (att[:, 1] + a_prev[:, 1])
+        u = np.stack([np.sin(psi) * np.cos(th), np.cos(psi) * np.cos(th), np.sin(th)], axis=1)
+        inc = np.where(chained, np.einsum("ni,ni->n", p - p_prev, u), 0.0)
+        seg_start = np.maximum.accumulate(np.where(first, np.arange(idx.size), 0))
+        d_ant = fe.chain_m[s] + _seg_cumsum(inc, seg_start)
+        yaw = fe.chain_yaw_rad[s] + _seg_cumsum(np.where(chained, d_head, 0.0), seg_start)
+        # the chain's state after this batch: its last fix per vehicle
+        last = np.ones(idx.size, dtype=bool)
+        last[:-1] = r[1:] != r[:-1]
+        sl = s[last]
+        fe.chain_ns[sl] = t[last]
+        fe.chain_enu[sl] = p[last]
+        fe.chain_att[sl] = att[last]
+        fe.chain_m[sl] = d_ant[last]
+        fe.chain_yaw_rad[sl] = yaw[last]
+        # to the ticks: the latest fix in each tick's window, a restart if any fix broke the chain
+        tn = fe.tick_ns
+        tid = self.offsets[r] + np.maximum(-((self.first[r] - t) // tn), 0)
+        ok[tid] = True
+        dt_s = (self.ticks[tid] - t) * _NS
+        vg = self.g_vg[idx]
+        # the lever arm with the tracked pitch (gyro between fixes, smoother than the fix's)
+        theta = self.g_theta_after[idx]
+        d_imu = d_ant + fe.h1_m[s] * theta - fe.ant_x_m[s] * yaw + vg * dt_s
+        dist[tid] = d_imu  # later fixes overwrite: the latest wins
+        lever_var = fe.h1_m[s] ** 2 * self.g_var_after[idx]
+        var[tid] = fe.pos_var_cfg[s] + lever_var + self.g_var[idx] * dt_s**2
+        np.logical_or.at(restart, tid, ~chained)
+        return ok, dist, var, restart
+
     def _hold_outputs(
         self, wz_tick: FloatArray, theta_tick: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
@@ -1088,6 +1224,7 @@ class _Batch:
             fe.origin[s[rows[anchor_at]]] = g[anchor_at][:, _G_LAT : _G_H + 1]
             fe.has_frame[s[rows[anchor_at]]] = True
             e = np.full((nf, 3), np.nan)
+            self.g_enu = e
             if pos.size:
                 o = fe.origin[s[r_pos]]
                 e[pos] = np.stack(
@@ -1108,6 +1245,7 @@ class _Batch:
             )
         else:
             table = np.zeros((0, 10))
+            self.g_enu = np.zeros((0, 3))
         # each tick: the latest fix at or before it (compared as float, as the stored stamps),
         # else the row held from earlier batches
         i = _asof(rows, table[:, _H_STAMP], self.tick_row, self.ticks.astype(np.float64))

@@ -16,7 +16,7 @@ Two modes (:class:`MdsfMode`):
 
 ``product``
     What a field needs where the source is silent (each point is tested). The state grows to
-    ``[V1, a1, ωx, ωz, b_a, e_L, e_R]`` (:class:`MdsfState`); outputs are still ``H1·X``:
+    ``[V1, a1, ωx, ωz, b_a, e_L, e_R, D]`` (:class:`MdsfState`); outputs are still ``H1·X``:
 
     * **gravity**: the forward specific force carries ``g·sinθ``; ``a_fwd = f_y − g·sinθ`` with
       the pitch from the GNSS attitude, integrated ``ωx`` between fixes (pitch- and yaw-gyro
@@ -35,6 +35,14 @@ Two modes (:class:`MdsfMode`):
       speed jumps away from its prediction (wet patch). Wheel and accelerometer then carry
       the fast part of the speed, GNSS the slow part; slip is
       ``(r·W − V)/max(r·W, V)`` with ``V = H1·X``;
+    * **RTK positions as distance**: the source uses only the GNSS velocity, whose noise (5 %
+      in its own scenarios) leaks into the wheel speeds; an RTK receiver's position is good to
+      centimetres. Eq. (1) applied to the displacement between consecutive fixes gives the
+      distance travelled along the body's forward axis; its sum is fused as a measurement of
+      the distance state ``D`` (``D' = D + dt·V1``), so over a few seconds the speed is pinned
+      to about ``σ_pos/T`` instead of averaging the Doppler noise. Chains break at gaps
+      (outage, RTK float); each new chain has its own origin, which carries no speed
+      information;
     * **GNSS outliers** are gated by the innovation chi-square of the ``Vg`` row (with a floor)
       and counted; a persistent disagreement re-acquires the GNSS speed after ``reacquire_s``
       (flag RESET);
@@ -102,8 +110,10 @@ class MdsfState(IntEnum):
     """Indices of the MDSF state.
 
     The source's state ``X = [V1, a1, ωx, ωz]`` (eq. (6)) is the first four; ``paper`` mode uses
-    exactly those. ``product`` mode adds the accelerometer bias and, per driven wheel, the rim
-    speed's excess over the contact point's ground speed (``r·W − V``, the slip in m/s).
+    exactly those. ``product`` mode adds the accelerometer bias, per driven wheel the rim
+    speed's excess over the contact point's ground speed (``r·W − V``, the slip in m/s), and the
+    distance the IMU point travelled along the body's forward axis (``D' = V1``, the integral
+    of eq. (2); its origin is arbitrary, re-set with each chain of RTK positions).
     """
 
     V1 = 0
@@ -113,11 +123,13 @@ class MdsfState(IntEnum):
     ACCEL_BIAS = 4
     RIM_EXCESS_LEFT = 5
     RIM_EXCESS_RIGHT = 6
+    DIST = 7
 
 
 class MdsfObs(IntEnum):
     """Indices of the observation: the source's ``Z = [Vg, a1, ωx, ωz]`` (eq. (6)), and in
-    product mode the two rim speeds ``r·W`` (left, right)."""
+    product mode the two rim speeds ``r·W`` (left, right) and the along-track distance from
+    the RTK positions."""
 
     VG = 0
     A1 = 1
@@ -125,6 +137,7 @@ class MdsfObs(IntEnum):
     OMEGA_Z = 3
     RIM_LEFT = 4
     RIM_RIGHT = 5
+    DIST = 6
 
 
 class MdsfOut(IntEnum):
@@ -260,6 +273,17 @@ class MdsfConfig:
     gnss_noise_adapt : float
         Weight of each accepted GNSS innovation in the running estimate of the GNSS speed noise
         (0 turns the adaptation off; the receiver's or configured noise is always the floor).
+    gnss_distance_gap_s : float
+        Product mode: RTK-fixed positions at most this far apart chain into an along-track
+        distance (eq. (1) applied to the displacement), fused as a measurement of the distance
+        state: centimetre position noise over seconds pins the speed far tighter than the
+        Doppler speed's percent noise. A longer gap (outage, float spell) starts a new chain,
+        because the straight projection over the gap would miss the turns; 0 turns the
+        distance off [s].
+    gnss_distance_gate_floor_m : float
+        Floor added to the innovation std of the distance gate (as ``gate_floor_mps`` for the
+        speed): a distance more than ``√gate_chi2`` times off its prediction (a wrong fix, a
+        position jump) is not fused and the next fix starts a new chain [m].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -296,6 +320,8 @@ class MdsfConfig:
     pitch_std_rad: float = 0.005
     gyro_bias_tau_s: float = 5.0
     gnss_noise_adapt: float = 0.02
+    gnss_distance_gap_s: float = 1.0
+    gnss_distance_gate_floor_m: float = 0.1
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):
@@ -314,6 +340,7 @@ class MdsfConfig:
                 "tyre_gain_range",
                 "rim_drift_tau_s",
                 "outage_rim_drift_share",
+                "gnss_distance_gap_s",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
@@ -326,6 +353,7 @@ class MdsfConfig:
             "slip_per_demand",
             "tyre_gain_tau_s",
             "rim_drift_tau_s",
+            "gnss_distance_gap_s",
         ):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:
@@ -349,12 +377,12 @@ class MdsfConfig:
 
     @property
     def n_state(self) -> int:
-        """State dimension: 4 (paper, eq. (6)) or 7 (product)."""
+        """State dimension: 4 (paper, eq. (6)) or 8 (product)."""
         return N_STATE_PAPER if self.mode is MdsfMode.PAPER else N_STATE_PRODUCT
 
     @property
     def n_obs(self) -> int:
-        """Observation dimension: 4 (paper) or 6 (product)."""
+        """Observation dimension: 4 (paper) or 7 (product)."""
         return N_OBS_PAPER if self.mode is MdsfMode.PAPER else N_OBS_PRODUCT
 
 
@@ -390,24 +418,29 @@ def output_matrix(
 
 
 def product_transition(dt_s: float) -> FloatArray:
-    """Product-mode transition, shape (7, 7), with the control ``u = [dt·ā, ā, 0…]``:
+    """Product-mode transition, shape (8, 8), with the control
+    ``u = [dt·ā, ā, 0, 0, 0, 0, 0, dt²·ā/2]``:
 
-    ``V1' = V1 + dt·(ā − b)``, ``a1' = ā − b`` (the tick's mean acceleration), ``ωx, ωz, b``
-    and the rim excesses constant (random walks).
+    ``V1' = V1 + dt·(ā − b)``, ``a1' = ā − b`` (the tick's mean acceleration),
+    ``D' = D + dt·V1 + dt²·(ā − b)/2`` (the distance integrates eq. (2)'s ``V1``), ``ωx, ωz,
+    b`` and the rim excesses constant (random walks).
     """
     f = np.eye(N_STATE_PRODUCT)
     f[MdsfState.V1, MdsfState.ACCEL_BIAS] = -dt_s
     f[MdsfState.A1, MdsfState.A1] = 0.0
     f[MdsfState.A1, MdsfState.ACCEL_BIAS] = -1.0
+    f[MdsfState.DIST, MdsfState.V1] = dt_s
+    f[MdsfState.DIST, MdsfState.ACCEL_BIAS] = -0.5 * dt_s * dt_s
     return f
 
 
 def product_observation(geometry: VehicleGeometry) -> FloatArray:
-    """Product-mode observation matrix, shape (6, 7).
+    """Product-mode observation matrix, shape (7, 8).
 
     Rows: ``Vg = V1 − h1·ωx + (x_a − x_i)·ωz`` (eq. (2) with lever arm), ``a1`` (unused: the
-    accelerometer drives the predict), ``ωx``, ``ωz``, and each rim speed
-    ``r·W = V_wheel + e_wheel`` with ``V_wheel`` from eq. (4)/(5) (lever arms included).
+    accelerometer drives the predict), ``ωx``, ``ωz``, each rim speed
+    ``r·W = V_wheel + e_wheel`` with ``V_wheel`` from eq. (4)/(5) (lever arms included), and
+    the along-track distance ``D`` (the front end moves the antenna's to the IMU point).
     """
     g = geometry
     xa, xi = g.antenna_offset_m[0], g.imu_offset_m[0]
@@ -421,6 +454,7 @@ def product_observation(geometry: VehicleGeometry) -> FloatArray:
     h[MdsfObs.RIM_LEFT, MdsfState.RIM_EXCESS_LEFT] = 1.0
     h[MdsfObs.RIM_RIGHT, :N_STATE_PAPER] = h1[MdsfOut.VR]
     h[MdsfObs.RIM_RIGHT, MdsfState.RIM_EXCESS_RIGHT] = 1.0
+    h[MdsfObs.DIST, MdsfState.DIST] = 1.0
     return h
 
 
@@ -468,7 +502,7 @@ def structural_speeds(
 
 @dataclass(frozen=True, slots=True)
 class MdsfMatrices:
-    """Constant matrices of one vehicle's filter (``n`` = 4 paper, 7 product; ``m`` = 4, 6).
+    """Constant matrices of one vehicle's filter (``n`` = 4 paper, 8 product; ``m`` = 4, 7).
 
     Attributes
     ----------
@@ -520,7 +554,7 @@ def mdsf_matrices(config: MdsfConfig, vehicle: VehicleConfig) -> MdsfMatrices:
             vehicle.noise.accel_bias_walk_mps2**2 + config.accel_bias_extra_walk_mps2_per_sqrt_s**2
         ) * dt
         qe = config.rim_excess_walk_mps_per_sqrt_s**2 * dt
-        Q = np.diag([qv, 0.0, qw, qw, qb, qe, qe])
+        Q = np.diag([qv, 0.0, qw, qw, qb, qe, qe, 0.0])
     return MdsfMatrices(F=F, H=H, H1=H1, v0_row=v0_row, Q_base=Q, dt_s=dt)
 
 

@@ -256,6 +256,7 @@ def _noise_figures(spec: SensorSpec, truth: FineTruth, config: VehicleConfig) ->
         accel_std_mps2=max(accel, tiny),
         gyro_std_radps=max(gyro, tiny),
         accel_bias_walk_mps2=max(spec.accel_bias_walk_mps2, tiny),
+        gnss_pos_std_m=max(spec.gnss_pos_std_m, tiny),
     )
 
 

@@ -8,16 +8,19 @@ import math
 from typing import Any
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.base import Measurement
-from estimator.config import VehicleConfig
+from estimator.config import NoiseConfig, VehicleConfig
 from estimator.engine import MdsfFleet
-from estimator.frontend import _asof, pitch_fix_update, yaw_fix_update
+from estimator.frontend import FleetFrontEnd, _asof, pitch_fix_update, yaw_fix_update
+from estimator.geo import EnuFrame
 from estimator.mdsf import MdsfConfig, MdsfMode
 from estimator.sim import SimRun, simulate, truth_at
 from estimator.types import ESTIMATE_DTYPE, GnssSample, ImuBatch, WheelEdges, WheelSpeeds
+from estimator.wheel_speed import WheelSpeedConfig
 
 START = 1_767_225_600_000_000_000
 S = 1_000_000_000
@@ -286,3 +289,86 @@ def test_malformed_gnss_is_counted_not_raised_and_counts_are_current_before_adva
     fleet.advance({"v": _stamp(v.measurements[-1])})
     after = fleet.counters("v")
     assert after["skipped_gnss"] == 2 and after["skipped_imu"] == 1  # NaN velocity: when used
+
+
+# -- along-track distance from RTK positions ---------------------------------------------------
+
+
+def _fixes_along(
+    heading_rad: float, pitch_rad: float, steps_m: list[float], side_m: list[float], skip: set[int]
+) -> list[GnssSample]:
+    """10 Hz RTK-fixed samples of an antenna moving ``steps_m[k]`` along the body's forward axis
+    (heading ``ψ``, pitch ``θ``) and ``side_m[k]`` sideways (body X) per epoch; epochs in
+    ``skip`` are left out."""
+    frame = EnuFrame(52.0, 5.0, 10.0)
+    fwd = np.array(
+        [
+            math.sin(heading_rad) * math.cos(pitch_rad),
+            math.cos(heading_rad) * math.cos(pitch_rad),
+            math.sin(pitch_rad),
+        ]
+    )
+    right = np.array([math.cos(heading_rad), -math.sin(heading_rad), 0.0])
+    p = np.zeros(3)
+    out = []
+    for k, (ds, dx) in enumerate(zip(steps_m, side_m, strict=True)):
+        p = p + ds * fwd + dx * right
+        if k in skip:
+            continue
+        lat, lon, h = frame.to_geodetic(p[0], p[1], p[2])
+        vel = tuple(float(v) for v in 10.0 * ds * fwd)
+        out.append(
+            GnssSample(
+                START + k * S // 10,
+                (vel[0], vel[1], vel[2]),
+                heading_rad,
+                pitch_rad,
+                0.0,
+                float(lat),
+                float(lon),
+                float(h),
+                vel_std_mps=0.03,
+            )
+        )
+    return out
+
+
+def test_distance_sums_the_forward_displacement_by_hand() -> None:
+    """Heading 30°, pitch 0.02 rad, 0.2 m per 0.1 s along the body axis plus 5 cm sideways per
+    epoch (side-slip): the distance grows by exactly 0.2 m a tick (eq. (1) on the
+    displacement removes the sideways part); the IMU point's distance is the antenna's plus
+    ``h1·θ = 1.6·0.02 = 0.032 m`` (the tracked pitch: no IMU, so the fixes' 0.02 rad). Its
+    variance is the position noise (0.015 m)² plus ``h1²`` times the tracked pitch's variance
+    (``pitch_std² = 0.005²`` after the first fix). Epochs 5-16 missing (1.2 s >
+    ``gnss_distance_gap_s``): the fix at epoch 17 starts a new chain, whose offset continues
+    from the last distance."""
+    cfg = MdsfConfig(gnss_distance_gap_s=1.0)
+    fe = FleetFrontEnd(cfg, WheelSpeedConfig())
+    veh = dataclasses.replace(VehicleConfig(), noise=NoiseConfig(gnss_pos_std_m=0.015))
+    fe.add(0, veh)
+    n = 22
+    for m in _fixes_along(math.radians(30.0), 0.02, [0.2] * n, [0.05] * n, set(range(5, 17))):
+        fe.push(0, m)
+    ticks = fe.assemble(np.array([0]), np.array([START + (n - 1) * S // 10]))
+    assert ticks is not None
+    t = ticks.inputs
+    k = ((t.stamp_ns - START) // (S // 10)).astype(int)
+    ok = t.dist_ok
+    assert np.array_equal(k[ok], [*range(5), *range(17, n)])
+    d = t.dist_m[ok]
+    h1_theta = 1.6 * 0.02
+    assert np.allclose(d[:5], 0.2 * np.arange(5) + h1_theta, atol=1e-6)  # chain from fix 0
+    assert np.allclose(d[5:], 0.2 * 4 + 0.2 * np.arange(5) + h1_theta, atol=1e-6)
+    assert np.array_equal(t.dist_restart[ok], [True, False, False, False, False] * 2)
+    # position noise plus the lever arm's share of the tracked pitch's variance, which the
+    # first fix sets to pitch_std² and later fixes shrink
+    var = t.dist_var[ok]
+    assert var[0] == pytest.approx(0.015**2 + (1.6 * 0.005) ** 2)
+    assert np.all((var > 0.015**2) & (var <= var[0] + 1e-15))
+    # the chain carries over to the next assembly: one more fix continues it
+    for m in _fixes_along(math.radians(30.0), 0.02, [0.2] * (n + 1), [0.0] * (n + 1), set())[n:]:
+        fe.push(0, m)
+    more = fe.assemble(np.array([0]), np.array([START + n * S // 10]))
+    assert more is not None
+    assert more.inputs.dist_ok[-1] and not more.inputs.dist_restart[-1]
+    assert more.inputs.dist_m[-1] == pytest.approx(d[-1] + 0.2, abs=1e-6)

@@ -70,17 +70,34 @@ def test_paper_mode_uses_source_matrices_and_dt() -> None:
 def test_product_rows_reduce_to_source_without_offsets() -> None:
     cfg = MdsfConfig()
     m = mdsf_matrices(cfg, VehicleConfig(geometry=GEO))
-    assert cfg.n_state == 7 and cfg.n_obs == 6
+    assert cfg.n_state == 8 and cfg.n_obs == 7
     assert np.array_equal(m.H1[:, :4], output_matrix(1.0, 1.6, 1.8))
     assert np.all(m.H1[:, 4:] == 0)
     assert np.array_equal(m.H[MdsfObs.VG, :4], [1, 0, -1.6, 0])
     # rim speed = wheel ground speed + that wheel's excess
-    assert np.array_equal(m.H[MdsfObs.RIM_LEFT], [1, 0, 1.0, -0.9, 0, 1, 0])
-    assert np.array_equal(m.H[MdsfObs.RIM_RIGHT], [1, 0, 1.0, 0.9, 0, 0, 1])
+    assert np.array_equal(m.H[MdsfObs.RIM_LEFT], [1, 0, 1.0, -0.9, 0, 1, 0, 0])
+    assert np.array_equal(m.H[MdsfObs.RIM_RIGHT], [1, 0, 1.0, 0.9, 0, 0, 1, 0])
+    # the RTK distance observes the distance state alone
+    assert np.array_equal(m.H[MdsfObs.DIST], [0, 0, 0, 0, 0, 0, 0, 1])
     # V1' = V1 + dt·(ā − b): the bias enters the speed and the acceleration
     assert m.F[MdsfState.V1, MdsfState.ACCEL_BIAS] == pytest.approx(-cfg.tick_s)
     assert m.F[MdsfState.A1, MdsfState.A1] == 0.0
     assert m.F[MdsfState.A1, MdsfState.ACCEL_BIAS] == -1.0
+
+
+def test_distance_integrates_the_speed() -> None:
+    """Hand-computed, dt = 0.1 s: D = 5 m, V1 = 2 m/s, b = 0.2 m/s², ā = 1.2 m/s² (the
+    control ``dt²·ā/2 = 0.006 m``): D' = 5 + 0.1·2 − 0.005·0.2 + 0.006 = 5.205 m, which is
+    D + dt·V1 + dt²·(ā − b)/2 = 5 + 0.2 + 0.005."""
+    cfg = MdsfConfig(tick_s=0.1)
+    m = mdsf_matrices(cfg, VehicleConfig(geometry=GEO))
+    x = np.zeros(cfg.n_state)
+    x[MdsfState.DIST], x[MdsfState.V1], x[MdsfState.ACCEL_BIAS] = 5.0, 2.0, 0.2
+    u = np.zeros(cfg.n_state)
+    u[MdsfState.DIST] = 0.5 * 0.1**2 * 1.2
+    assert (m.F @ x + u)[MdsfState.DIST] == pytest.approx(5.205, abs=1e-12)
+    assert m.F[MdsfState.DIST, MdsfState.V1] == pytest.approx(0.1)
+    assert m.F[MdsfState.DIST, MdsfState.ACCEL_BIAS] == pytest.approx(-0.005)
 
 
 def test_lever_arms_follow_rigid_body_motion() -> None:
@@ -99,7 +116,7 @@ def test_lever_arms_follow_rigid_body_motion() -> None:
 
     p_imu = np.array([-0.2, 0.4, 1.2])
     p_ant = np.array([0.3, -0.5, 2.0])
-    x = np.zeros(7)
+    x = np.zeros(8)
     x[MdsfState.V1], x[MdsfState.OMEGA_X], x[MdsfState.OMEGA_Z] = fwd(p_imu), wx, wz
     m = mdsf_matrices(MdsfConfig(), VehicleConfig(geometry=geo))
     z1 = m.H1 @ x
