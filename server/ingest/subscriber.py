@@ -160,7 +160,8 @@ class IngestSubscriber:
         assert self._sensors is not None
         sensors = self._sensors.handler
         full = False
-        while True:
+        closed = False
+        while not closed:
             try:
                 first = sensors.recv()
             except zenoh.ZError:
@@ -170,8 +171,11 @@ class IngestSubscriber:
                 # and the pipeline releases packets only at its ticks anyway
                 time.sleep(self._gather_s)
             received = [(str(first.key_expr), first.payload.to_bytes())]
-            while len(received) < BURST and (sample := sensors.try_recv()) is not None:
-                received.append((str(sample.key_expr), sample.payload.to_bytes()))
+            try:
+                while len(received) < BURST and (sample := sensors.try_recv()) is not None:
+                    received.append((str(sample.key_expr), sample.payload.to_bytes()))
+            except zenoh.ZError:
+                closed = True  # undeclared while the burst gathered: deliver it, then stop
             full = len(received) == BURST  # a backlog: no gathering until it is worked off
             burst = self._decode(received)
             if self._raw_sink is not None:

@@ -232,3 +232,22 @@ def test_ingest_gathers_packets_into_bursts(gather_ms: int) -> None:
         assert len(bursts) <= 6  # a burst gathers ~40 ms of packets: about 3
     else:
         assert len(bursts) >= 10  # delivered nearly one by one: about 30
+
+
+def test_stop_while_a_burst_gathers_delivers_it_and_ends_cleanly() -> None:
+    """The subscriber is undeclared during the gather wait: the packets already taken are
+    delivered and the thread ends without an error (an error there fails the test run)."""
+    from server.ingest.subscriber import IngestSubscriber
+
+    bursts: list[int] = []
+    with embedded_router() as (router, zs, endpoint), client_session(endpoint) as client:
+        ingest = IngestSettings.model_validate({"gather_ms": 50})
+        sub = IngestSubscriber(router, zs, ingest, lambda items: bursts.append(len(items)))
+        sub.start()
+        pub = declare(client, sensor_key("fleet", "sim-0001", Stream.IMU))
+        t = T0 + np.arange(10) * 10 * MS
+        pub.put(encode_imu(ImuBatch(t, np.zeros((10, 3)), np.zeros((10, 3))), 0))
+        time.sleep(0.02)  # taken by the thread, which now waits for more
+        sub.stop()
+        assert sub._thread is not None and not sub._thread.is_alive()
+    assert bursts == [1]
