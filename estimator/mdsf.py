@@ -268,11 +268,12 @@ class MdsfConfig:
         Product mode: time constant with which the pitch- and yaw-gyro biases are learnt
         against the GNSS pitch and heading [s].
     roll_tau_s : float
-        Product mode: time constant of the low-pass of the GNSS roll ``φ`` (right side down +,
-        body axes of ``method.md`` §1) that the pitch integration uses in the Euler kinematics
-        ``θ̇ = ωx·cosφ + ωz·sinφ`` (in a banked turn the yaw rate turns the nose up or down);
-        low-passed because the receiver's roll noise multiplies the yaw rate; 0 leaves the
-        roll out (``θ̇ = ωx``) [s].
+        Product mode: time constant with which the roll ``φ`` (right side down +, body axes of
+        ``method.md`` §1; ``ωy`` integrated) is pulled to the GNSS roll at each fix; the
+        roll-gyro bias is learnt with ``gyro_bias_tau_s``. The pitch integration uses it in
+        the Euler kinematics ``θ̇ = ωx·cosφ + ωz·sinφ`` (in a banked turn the yaw rate turns
+        the nose up or down); the gyro keeps the receiver's roll noise, which the yaw rate
+        multiplies, out of the pitch. 0 leaves the roll out (``θ̇ = ωx``) [s].
     pitch_std_rad : float
         Product mode: 1-sigma noise of the receiver's pitch (receivers do not report it); sets
         how much gravity leaks into the forward acceleration through the pitch error [rad].
