@@ -10,11 +10,9 @@ time on a fleet-wide grid):
   due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
   removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
   binned with ``np.bincount`` over (vehicle row, tick) ids.
-* A complementary pitch track (the Euler pitch rate ``(ωx − b_x)·cosφ + ωz·sinφ`` integrated,
-  :func:`pitch_rate_radps`, pulled to the GNSS pitch at each fix, :func:`pitch_fix_update`),
-  with the roll ``φ`` of a complementary roll track (``ωy`` integrated, pulled to the GNSS
-  roll, :func:`roll_fix_update`), and a yaw-gyro-bias track (heading integrated from ``ωz``,
-  pulled to the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
+* A complementary pitch track (``ωx − b_x`` integrated, pulled to the GNSS pitch at each fix,
+  :func:`pitch_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
+  the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
   cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
   pass per "k-th fix of this batch" (a handful of passes).
 * GNSS speed per tick: eq. (1) (``method.md`` §1) with the pitch in force, moved to the tick
@@ -85,7 +83,6 @@ __all__ = [
     "FleetTicks",
     "TickInputs",
     "pitch_fix_update",
-    "roll_fix_update",
     "yaw_fix_update",
 ]
 
@@ -247,48 +244,6 @@ def pitch_fix_update(
     return theta, var, bias, fixes, np.where(has, stamp_ns, fix_ns), known | has
 
 
-def roll_fix_update(
-    phi_rad: FloatArray,
-    bias_radps: FloatArray,
-    fix_ns: IntArray,
-    roll_gnss_rad: FloatArray,
-    stamp_ns: IntArray,
-    config: MdsfConfig,
-) -> tuple[FloatArray, FloatArray, IntArray]:
-    """Complementary roll filter at one GNSS roll per vehicle (arrays ``(k,)``).
-
-    The roll ``φ`` integrated from the roll rate (``φ̇ = ωy − b_y − ωz·tanθ``,
-    :meth:`_Batch._roll_track`) moves by ``(1 − exp(−gap/roll_tau_s))·err`` toward the GNSS
-    roll (``err = φ_gnss − φ``, ``gap`` the time since the previous roll fix, clipped to
-    [0, 1] s) and the roll-gyro bias by ``b_y −= gap/(roll_tau_s·gyro_bias_tau_s)·err``; an
-    unknown ``φ`` (NaN) takes the GNSS roll as it is; no GNSS roll (NaN) changes nothing.
-    Returns ``(phi_rad, bias_radps, fix_ns)``.
-    """
-    tau = config.roll_tau_s
-    has = np.isfinite(roll_gnss_rad)
-    known = np.isfinite(phi_rad)
-    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
-    err = roll_gnss_rad - phi_rad
-    follow = has & known
-    phi = np.where(follow, phi_rad + (1.0 - np.exp(-gap / tau)) * err, phi_rad)
-    phi = np.where(has & ~known, roll_gnss_rad, phi)
-    bias = np.where(follow, bias_radps - gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
-    return phi, bias, np.where(has, stamp_ns, fix_ns)
-
-
-def pitch_rate_radps(
-    omega_x_radps: FloatArray, omega_z_radps: FloatArray, roll_rad: FloatArray
-) -> FloatArray:
-    """Euler pitch rate from the body rates: ``θ̇ = ωx·cosφ + ωz·sinφ`` (same shapes).
-
-    Body X right (pitch axis), Y forward, Z up (``method.md`` §1), roll ``φ`` right side
-    down +: from ``ωx = θ̇·cosφ + ψ̇·cosθ·sinφ`` and ``ωz = −ψ̇·cosθ·cosφ + θ̇·sinφ`` (the
-    simulator's kinematics) eliminate ``ψ̇``. An unknown roll (NaN) counts as level.
-    """
-    phi = np.nan_to_num(roll_rad)
-    return np.asarray(omega_x_radps * np.cos(phi) + omega_z_radps * np.sin(phi))
-
-
 def yaw_fix_update(
     psi_rad: FloatArray,
     bias_radps: FloatArray,
@@ -436,7 +391,7 @@ class FleetFrontEnd:
         # Checked and waiting for their tick, in push order.
         self._imu_slot = np.zeros(0, dtype=np.int64)
         self._imu_t = np.zeros(0, dtype=np.int64)
-        self._imu_v = np.zeros((0, 4))  # forward specific force, ωx, ωz, ωy
+        self._imu_v = np.zeros((0, 3))  # forward specific force, ωx, ωz
         self._gnss_slot = np.zeros(0, dtype=np.int64)
         self._gnss_t = np.zeros(0, dtype=np.int64)
         self._gnss_v = np.zeros((0, 11))
@@ -459,9 +414,6 @@ class FleetFrontEnd:
         grow("pitch_fix_ns", (), np.int64(0))
         grow("pitch_fixes", (), np.int64(1))
         grow("pitch_var", (), 0.0)
-        grow("roll_rad", (), np.nan)  # low-passed GNSS roll (NaN: none yet)
-        grow("roll_fix_ns", (), np.int64(0))
-        grow("roll_gyro_bias", (), 0.0)
         grow("yaw_rad", (), np.nan)
         grow("yaw_gyro_bias", (), 0.0)
         grow("yaw_fix_ns", (), np.int64(0))
@@ -503,9 +455,6 @@ class FleetFrontEnd:
     pitch_fix_ns: IntArray
     pitch_fixes: IntArray
     pitch_var: FloatArray
-    roll_rad: FloatArray
-    roll_fix_ns: IntArray
-    roll_gyro_bias: FloatArray
     yaw_rad: FloatArray
     yaw_gyro_bias: FloatArray
     yaw_fix_ns: IntArray
@@ -552,9 +501,6 @@ class FleetFrontEnd:
         self.pitch_fix_ns[slot] = 0
         self.pitch_fixes[slot] = 1
         self.pitch_var[slot] = self.config.pitch_std_rad**2 * 100.0  # unknown before a fix
-        self.roll_rad[slot] = np.nan
-        self.roll_fix_ns[slot] = 0
-        self.roll_gyro_bias[slot] = 0.0
         self.yaw_rad[slot] = np.nan
         self.yaw_gyro_bias[slot] = 0.0
         self.yaw_fix_ns[slot] = 0
@@ -764,9 +710,7 @@ class FleetFrontEnd:
         if bad.any():
             self.count[:, _IMU] += np.bincount(c_slot[chunk[bad]], minlength=self._cap)[: self._cap]
         keep = np.flatnonzero(ok)
-        # ωy only feeds the roll track: a non-finite one counts as no roll rate
-        wy = np.nan_to_num(w[keep, 1], nan=0.0, posinf=0.0, neginf=0.0)
-        vals = np.stack([f[keep, 1], w[keep, 0], w[keep, 2], wy], axis=1)
+        vals = np.stack([f[keep, 1], w[keep, 0], w[keep, 2]], axis=1)
         slots = c_slot[chunk[keep]]
         self._imu_slot = np.concatenate([self._imu_slot, slots])
         self._imu_t = np.concatenate([self._imu_t, t[keep]])
@@ -855,7 +799,7 @@ class _Batch:
         idx = idx[np.argsort(row[idx], kind="stable")]
         self.T = fe._imu_t[idx]
         vals = fe._imu_v[idx]
-        self.fy, self.wx, self.wz, self.wy = vals[:, 0], vals[:, 1], vals[:, 2], vals[:, 3]
+        self.fy, self.wx, self.wz = vals[:, 0], vals[:, 1], vals[:, 2]
         self.s_row = row[idx]
         keep = ~use
         fe._imu_slot, fe._imu_t, fe._imu_v = fe._imu_slot[keep], fe._imu_t[keep], fe._imu_v[keep]
@@ -1029,9 +973,7 @@ class _Batch:
         return values[which]
 
     def _pitch_track(self) -> FloatArray:
-        """Pitch at each IMU sample: ``θ̇ = (ωx − b_x)·cosφ + ωz·sinφ`` integrated
-        (:func:`pitch_rate_radps`; ``φ`` the roll track, :meth:`_roll_track`, product mode;
-        level otherwise), corrected at each GNSS fix.
+        """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
 
         A complementary filter (:func:`pitch_fix_update`). Also sets ``g_vg``: eq. (1) with the
         GNSS pitch, or the tracked pitch if the receiver gives none; and the pitch variance and
@@ -1039,13 +981,8 @@ class _Batch:
         """
         fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
-        if self.product and cfg.roll_tau_s > 0:
-            phi = self._roll_track()
-            cw = _seg_cumsum(pitch_rate_radps(self.wx, self.wz, phi) * self.dts, self.begin_of)
-            ct = _seg_cumsum(np.cos(np.nan_to_num(phi)) * self.dts, self.begin_of)
-        else:
-            cw = _seg_cumsum(self.wx * self.dts, self.begin_of)
-            ct = _seg_cumsum(self.dts, self.begin_of)
+        cw = _seg_cumsum(self.wx * self.dts, self.begin_of)
+        ct = _seg_cumsum(self.dts, self.begin_of)
         th0 = fe.pitch_rad[s].copy()
         var = fe.pitch_var[s].copy()
         self.var_before = var.copy()
@@ -1097,61 +1034,6 @@ class _Batch:
         if self.T.shape[0] == 0:
             return np.zeros(0)
         return np.asarray(q[:, 0] + (cw - q[:, 1]) - q[:, 3] * (ct - q[:, 2]))
-
-    def _roll_track(self) -> FloatArray:
-        """Roll at each IMU sample, for the pitch kinematics (NaN before the first GNSS roll).
-
-        ``φ̇ = ωy − b_y + ψ̇·sinθ ≈ ωy − b_y − ωz·tanθ`` (the simulator's
-        ``ωy = φ̇ − ψ̇·sinθ`` with ``ψ̇ ≈ −ωz/cosθ``; ``θ`` the latest GNSS pitch, which does
-        not depend on how the samples are batched) integrated and pulled to each GNSS roll
-        (:func:`roll_fix_update`): the gyro follows the body's roll wobble, the GNSS roll
-        holds the integral. More than ``gnss_timeout_s`` after the latest GNSS roll (an
-        outage) the roll is NaN (level): the roll gyro's bias would carry the roll away and,
-        times the yaw rate, the pitch with it. Shape ``(n,)``.
-        """
-        fe, cfg = self.fe, self.config
-        s = self.slots
-        i = _asof(self.g_row, self.g_t, self.s_row, self.T)
-        held = fe.hold[s[self.s_row], _H_PITCH]
-        theta_g = np.nan_to_num(_pick(i, self.g[:, _G_PITCH], held))
-        rate = self.wy - self.wz * np.tan(np.clip(theta_g, -0.5, 0.5))
-        cr = _seg_cumsum(rate * self.dts, self.begin_of)
-        ct = _seg_cumsum(self.dts, self.begin_of)
-        phi = fe.roll_rad[s].copy()
-        bias = fe.roll_gyro_bias[s].copy()
-        fix_ns = fe.roll_fix_ns[s].copy()
-        fix_before_ns = fix_ns.copy()
-        base_r = np.zeros(self.n_rows)
-        base_t = np.zeros(self.n_rows)
-        rolls = self.g[:, _G_ROLL]
-
-        def end_segment(r: IntArray, j: IntArray) -> FloatArray:
-            used = np.stack([phi[r], base_r[r], base_t[r], bias[r]], axis=1)
-            phi[r] = phi[r] + (cr[j - 1] - base_r[r]) - bias[r] * (ct[j - 1] - base_t[r])
-            base_r[r], base_t[r] = cr[j - 1], ct[j - 1]
-            return used
-
-        def at_fix(fi: IntArray, r: IntArray) -> None:
-            phi[r], bias[r], fix_ns[r] = roll_fix_update(
-                phi[r], bias[r], fix_ns[r], rolls[fi], self.g_t[fi], cfg
-            )
-
-        with_roll = np.flatnonzero(np.isfinite(rolls))  # fixes without a roll: no update
-        passes = [with_roll[p] for p in _rank_passes(_ranks(self.g_row[with_roll]))]
-        q = self._between_fixes(passes, end_segment, at_fix)
-        fe.roll_rad[s] = phi
-        fe.roll_gyro_bias[s] = bias
-        fe.roll_fix_ns[s] = fix_ns
-        if self.T.shape[0] == 0:
-            return np.zeros(0)
-        phi_s = q[:, 0] + (cr - q[:, 1]) - q[:, 3] * (ct - q[:, 2])
-        roll_ns = self.g_t[with_roll]
-        k = _asof(self.g_row[with_roll], roll_ns, self.s_row, self.T)
-        last_ns = fix_before_ns[self.s_row]
-        if roll_ns.size:
-            last_ns = np.where(k >= 0, roll_ns[np.maximum(k, 0)], last_ns)
-        fresh = (self.T - last_ns) * _NS <= cfg.gnss_timeout_s
-        return np.where(fresh, phi_s, np.nan)
 
     def _pitch_bias_at_samples(self) -> FloatArray:
         """Pitch-gyro bias in force at each IMU sample (the latest fix at or before it)."""

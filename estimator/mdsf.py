@@ -267,13 +267,6 @@ class MdsfConfig:
     gyro_bias_tau_s : float
         Product mode: time constant with which the pitch- and yaw-gyro biases are learnt
         against the GNSS pitch and heading [s].
-    roll_tau_s : float
-        Product mode: time constant with which the roll ``φ`` (right side down +, body axes of
-        ``method.md`` §1; ``ωy`` integrated) is pulled to the GNSS roll at each fix; the
-        roll-gyro bias is learnt with ``gyro_bias_tau_s``. The pitch integration uses it in
-        the Euler kinematics ``θ̇ = ωx·cosφ + ωz·sinφ`` (in a banked turn the yaw rate turns
-        the nose up or down); the gyro keeps the receiver's roll noise, which the yaw rate
-        multiplies, out of the pitch. 0 leaves the roll out (``θ̇ = ωx``) [s].
     pitch_std_rad : float
         Product mode: 1-sigma noise of the receiver's pitch (receivers do not report it); sets
         how much gravity leaks into the forward acceleration through the pitch error [rad].
@@ -325,7 +318,6 @@ class MdsfConfig:
     initial_speed_std_mps: float = 0.5
     pitch_tau_s: float = 1.0
     pitch_std_rad: float = 0.005
-    roll_tau_s: float = 1.0
     gyro_bias_tau_s: float = 5.0
     gnss_noise_adapt: float = 0.02
     gnss_distance_gap_s: float = 1.0
@@ -349,7 +341,6 @@ class MdsfConfig:
                 "rim_drift_tau_s",
                 "outage_rim_drift_share",
                 "gnss_distance_gap_s",
-                "roll_tau_s",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
@@ -363,7 +354,6 @@ class MdsfConfig:
             "tyre_gain_tau_s",
             "rim_drift_tau_s",
             "gnss_distance_gap_s",
-            "roll_tau_s",
         ):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:

@@ -1,6 +1,5 @@
 """Fleet front end: batch invariance across vehicles, joins and call intervals; the per-fix
-pitch, roll and yaw updates and the pitch kinematics by hand; the "latest at or before" join;
-slot reuse."""
+pitch and yaw updates by hand; the "latest at or before" join; slot reuse."""
 
 from __future__ import annotations
 
@@ -16,14 +15,7 @@ from hypothesis import strategies as st
 from estimator.base import Measurement
 from estimator.config import NoiseConfig, VehicleConfig
 from estimator.engine import MdsfFleet
-from estimator.frontend import (
-    FleetFrontEnd,
-    _asof,
-    pitch_fix_update,
-    pitch_rate_radps,
-    roll_fix_update,
-    yaw_fix_update,
-)
+from estimator.frontend import FleetFrontEnd, _asof, pitch_fix_update, yaw_fix_update
 from estimator.geo import EnuFrame
 from estimator.mdsf import MdsfConfig, MdsfMode
 from estimator.sim import SimRun, simulate, truth_at
@@ -258,44 +250,6 @@ def test_yaw_fix_update_wraps_the_heading_error() -> None:
     assert math.isclose(bias[0], 0.001 + 0.25 / 5.0 * err)
     assert psi[1] == 1.0 and bias[1] == 0.0  # unknown heading: taken as it is
     assert list(fix_ns) == [START + S // 4, START]
-
-
-def test_pitch_rate_is_the_euler_pitch_rate() -> None:
-    # θ̇ = ωx·cosφ + ωz·sinφ; φ = 0.1: cos 0.995004165, sin 0.099833417
-    got = pitch_rate_radps(
-        np.array([0.02, 0.0, 0.02]), np.array([0.3, 0.3, 0.3]), np.array([0.1, 0.1, np.nan])
-    )
-    assert math.isclose(got[0], 0.02 * 0.9950041652780258 + 0.3 * 0.09983341664682815)
-    assert math.isclose(got[1], 0.029950024994)  # a level-pitch banked turn still pitches
-    assert got[2] == 0.02  # unknown roll: level
-    # the simulator's kinematics (ωx = θ̇·cosφ + ψ̇·cosθ·sinφ, ωz = −ψ̇·cosθ·cosφ + θ̇·sinφ)
-    # with θ̇ = 0.01, ψ̇ = −0.4, θ = 0.05, φ = 0.08 give back θ̇
-    th_dot, psi_dot, th, ph = 0.01, -0.4, 0.05, 0.08
-    wx = th_dot * math.cos(ph) + psi_dot * math.cos(th) * math.sin(ph)
-    wz = -psi_dot * math.cos(th) * math.cos(ph) + th_dot * math.sin(ph)
-    back = pitch_rate_radps(np.array([wx]), np.array([wz]), np.array([ph]))
-    assert math.isclose(back[0], th_dot, rel_tol=1e-12)
-
-
-def test_roll_fix_update_by_hand() -> None:
-    cfg = MdsfConfig(roll_tau_s=1.0)  # gyro_bias_tau_s 5
-    phi, bias, fix_ns = roll_fix_update(
-        np.array([0.01, np.nan, 0.02, 0.01]),
-        np.array([0.001, 0.002, 0.003, 0.0]),
-        np.array([START, 0, START, START]),
-        np.array([0.05, 0.04, np.nan, 0.05]),
-        np.array([START + S // 5, START, START + S // 5, START + 3 * S]),
-        cfg,
-    )
-    # 0.2 s after the previous roll fix: gain 1 − e^−0.2, bias step 0.2/(1·5)·err
-    assert math.isclose(phi[0], 0.01 + (1 - math.exp(-0.2)) * 0.04)
-    assert math.isclose(bias[0], 0.001 - 0.2 / 5.0 * 0.04)
-    assert phi[1] == 0.04 and bias[1] == 0.002  # unknown roll: the GNSS roll as it is
-    assert phi[2] == 0.02 and bias[2] == 0.003  # no GNSS roll: nothing changes
-    # the gap is clipped to 1 s
-    assert math.isclose(phi[3], 0.01 + (1 - math.exp(-1.0)) * 0.04)
-    assert math.isclose(bias[3], -1.0 / 5.0 * 0.04)
-    assert list(fix_ns) == [START + S // 5, START, START, START + 3 * S]
 
 
 # -- "latest at or before" ---------------------------------------------------------------------
