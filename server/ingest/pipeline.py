@@ -36,7 +36,8 @@ Tick alignment: a vehicle's ticks are put on the last sample time of its first I
 (``registry.align_ticks``, before its first push), so with batches as long as the tick (or a
 whole fraction of it) every tick falls on a batch end and is computed as soon as that batch
 (and the other streams' data covering it, ``until_ns``) has arrived, instead of waiting for
-the next batch: up to one batch length less latency.
+the next batch: up to one batch length less latency. The phase is fixed at the vehicle's first
+push (the default grid if no IMU batch had come by then), and advance steps use the same one.
 """
 
 from __future__ import annotations
@@ -168,10 +169,11 @@ class Pipeline:
         self._arrived: set[str] = set()  # vehicles with packets accepted since the last tick
         self._next_sweep_ns = 0
         self._advanced_ns: dict[str, int] = {}
-        # vehicle -> stamp its ticks are put on (last sample of its first IMU batch), and the
-        # vehicles whose estimators were told since they last (re)started
+        # vehicle -> last sample of its first IMU batch (what its ticks are to be put on), and
+        # vehicle -> the phase its estimators' ticks got at their first push since they last
+        # (re)started: the anchor if one was known by then, else 0 (the default grid)
         self._tick_anchor_ns: dict[str, int] = {}
-        self._aligned: set[str] = set()
+        self._tick_phase_ns: dict[str, int] = {}
         self._due: dict[str, int] = {}  # vehicle -> sensor time to advance to at the next call
         self._estimate_interval_ns = settings.ingest.estimate_interval_ms * 1_000_000
         self._next_estimate_ns = 0
@@ -371,7 +373,7 @@ class Pipeline:
                 self._arrived.discard(vid)
                 self._advanced_ns.pop(vid, None)
                 self._tick_anchor_ns.pop(vid, None)
-                self._aligned.discard(vid)
+                self._tick_phase_ns.pop(vid, None)
                 self._due.pop(vid, None)
                 self._unregistered_counted.discard(vid)
                 self._counters.forget(vid)
@@ -386,7 +388,7 @@ class Pipeline:
     def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
         try:
             self._registry.add_vehicle(vehicle_id, config)
-            self._aligned.discard(vehicle_id)  # a fresh estimator state opens a fresh grid
+            self._tick_phase_ns.pop(vehicle_id, None)  # a fresh estimator state, a fresh grid
         except UnknownEstimatorError as exc:
             log.warning("vehicle %s not registered: %s", vehicle_id, exc)
             return False
@@ -482,7 +484,7 @@ class Pipeline:
         config = self._configs.get(vid)
         if config is not None and registry.has_vehicle(vid):
             registry.add_vehicle(vid, config)  # same config: a fresh state
-        self._aligned.discard(vid)
+        self._tick_phase_ns.pop(vid, None)
         self._tick_anchor_ns.pop(vid, None)
         if packet.stream is Stream.IMU:
             self._tick_anchor_ns[vid] = packet.last_stamp_ns
@@ -490,15 +492,8 @@ class Pipeline:
         buf.reanchor(packet, now)
 
     def _push(self, vid: str, packet: Packet) -> None:
-        if vid not in self._aligned:
-            self._aligned.add(vid)
-            anchor = self._tick_anchor_ns.get(vid)
-            if anchor is not None:
-                try:
-                    self._registry.align_ticks(vid, anchor)
-                except Exception:
-                    self._stats["estimator_errors"] += 1
-                    log.exception("estimator align_ticks failed for %s", vid)
+        if vid not in self._tick_phase_ns:
+            self._tick_phase_ns[vid] = self._align(vid)
         for m in packet.measurements:
             try:
                 self._registry.push(vid, m)
@@ -529,6 +524,20 @@ class Pipeline:
             return vehicle_id
         return None
 
+    def _align(self, vid: str) -> int:
+        """Put ``vid``'s ticks on its anchor (before its first push); returns the phase its
+        estimators use, 0 (the default grid) when no IMU batch had come before that push."""
+        anchor = self._tick_anchor_ns.get(vid)
+        if anchor is None:
+            return 0
+        try:
+            self._registry.align_ticks(vid, anchor)
+        except Exception:
+            self._stats["estimator_errors"] += 1
+            log.exception("estimator align_ticks failed for %s", vid)
+            return 0
+        return anchor
+
     def _tick(self, now: int, *, flush: bool) -> None:
         t0 = time.perf_counter()
         until: dict[str, int] = {}
@@ -550,7 +559,7 @@ class Pipeline:
                     self._push(vid, packet)
             last = self._advanced_ns.get(vid)
             step = self._advance_step_ns
-            phase = self._tick_anchor_ns.get(vid, 0)
+            phase = self._tick_phase_ns.get(vid, 0)
             if released is not None and (
                 last is None
                 or (released - phase) // step > (last - phase) // step

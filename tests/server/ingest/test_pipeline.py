@@ -192,8 +192,11 @@ def test_ticks_are_put_on_the_end_of_the_first_imu_batch() -> None:
     computed as soon as that batch is released."""
     pipe, fleet, _ = make(lateness_ms=0, advance_step_ms=100)
     pipe.start()
-    pipe.submit([gnss("a", 0, 60)])  # GNSS first: not what the ticks are put on
-    for k in range(8):  # 50 ms IMU batches ending at 77, 127, 177, ... ms
+    # GNSS first in the burst: not what the ticks are put on (in one burst with the first IMU
+    # batch, so both are offered before anything is pushed)
+    pipe.submit([gnss("a", 0, 60), imu("a", 0, 73, n=5)])
+    wait_for(lambda: len(fleet.pushed.get("a", [])) == 2)
+    for k in range(1, 8):  # 50 ms IMU batches ending at 77, 127, 177, ... ms
         pipe.submit([imu("a", k, 73 + 50 * k, n=5)])
         wait_for(lambda k=k: len(fleet.pushed.get("a", [])) == k + 2)
     pipe.stop()
