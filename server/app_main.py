@@ -160,7 +160,7 @@ def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> No
     """Simulate ``vehicles`` and write their packets to a recording file (no network)."""
     from estimator.sim import SCENARIOS
     from estimator.sim import simulate as run_scenario
-    from server.fleet_sim import VEHICLE_ID_FORMAT, packetize
+    from server.fleet_sim import VEHICLE_ID_FORMAT, encode_packets, packetize
     from server.protocol.keys import sensor_key
     from server.protocol.recording import Record, write_recording
 
@@ -172,17 +172,10 @@ def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> No
     for i in range(vehicles):
         vehicle_id = VEHICLE_ID_FORMAT.format(i + 1)
         run = run_scenario(scenario, seed=i, start_ns=start_ns, **overrides)
-        seq: dict[str, int] = {}
-        for pkt in packetize(run.sent_in_arrival_order(), run.start_ns):
-            n = seq[pkt.stream.value] = seq.get(pkt.stream.value, -1) + 1
+        packets = packetize(run.sent_in_arrival_order(), run.start_ns)
+        for pkt, (_, payload) in zip(packets, encode_packets(packets), strict=True):
             key = sensor_key("fleet", vehicle_id, pkt.stream)
-            records.append(
-                Record(
-                    key,
-                    start_ns + pkt.arrival_offset_ns,
-                    pkt.encode(n),
-                )
-            )
+            records.append(Record(key, start_ns + pkt.arrival_offset_ns, payload))
     records.sort(key=lambda r: r.stamp_ns)
     n_written = write_recording(path, records)
     print(f"wrote {n_written} records from {vehicles} vehicles to {path}")

@@ -446,16 +446,12 @@ class _Publisher:
 
 def _replay_fleet_sim_class() -> type:
     """A :class:`FleetSim` whose runs come from recordings instead of the simulator."""
-    import numpy as np
-
     from estimator.config import VehicleConfig
-    from estimator.types import Wheel, WheelEdges
+    from estimator.sim.sensors import NO_EDGES
     from server.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, packetize
     from server.protocol.codec import DecodeError, decode
     from server.protocol.keys import parse_key
     from server.protocol.recording import read_recording
-
-    no_edges = WheelEdges(Wheel.LEFT, np.zeros(0, dtype=np.int64))
 
     class ReplaySim(FleetSim):
         """Vehicle ``i`` replays drive ``i mod n_drives`` of ``paths`` (all vehicles in them)."""
@@ -494,7 +490,7 @@ def _replay_fleet_sim_class() -> type:
                     except (DecodeError, ValueError, IndexError):
                         continue
                     # a wheel heartbeat has no measurement: carried as edges of no stamps
-                    for m in pkt.measurements or (no_edges,):
+                    for m in pkt.measurements or (NO_EDGES,):
                         by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m, pkt.until_ns))
                 for items in by_vehicle.values():
                     start = items[0][0]

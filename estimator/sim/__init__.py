@@ -48,6 +48,7 @@ from estimator.sim.kinematics import (
 )
 from estimator.sim.scenarios import SCENARIOS, Scenario, scenario_names
 from estimator.sim.sensors import (
+    NO_EDGES,
     Emission,
     SensorSpec,
     antenna_point_m,
@@ -64,7 +65,6 @@ from estimator.sim.stream import (
     replay,
     replay_arrivals,
 )
-from estimator.types import Wheel, WheelEdges
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -181,12 +181,11 @@ class SimRun:
     def sent_in_arrival_order(self) -> list[tuple[int, Measurement, int]]:
         """``(arrival_ns, measurement, until_ns)`` in the order a live link would deliver them,
         wheel heartbeats included (as edges of no stamps: nothing on either wheel)."""
-        no_edges = WheelEdges(Wheel.LEFT, np.zeros(0, dtype=np.int64))
         sent = [
             (int(a), m, int(u))
             for a, m, u in zip(self.arrival_ns, self.measurements, self.until_ns, strict=True)
         ]
-        sent += [(int(a), no_edges, int(u)) for a, u in self.heartbeat_ns]
+        sent += [(int(a), NO_EDGES, int(u)) for a, u in self.heartbeat_ns]
         order = np.argsort([a for a, _, _ in sent], kind="stable")
         return [sent[int(i)] for i in order]
 

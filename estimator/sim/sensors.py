@@ -434,6 +434,11 @@ def wheel_emissions(
     return out
 
 
+#: A wheel heartbeat as a measurement: edges of no stamps (nothing on either wheel); with an
+#: ``until_ns`` it is sent as an empty wheels packet.
+NO_EDGES = WheelEdges(Wheel.LEFT, np.zeros(0, dtype=np.int64))
+
+
 def wheel_heartbeats(
     wheels: Sequence[Emission], spec: SensorSpec, start_ns: int, end_ns: int
 ) -> npt.NDArray[np.int64]:

@@ -451,13 +451,10 @@ def decode_burst(
         except DecodeError as exc:
             out[i] = exc
             continue
-        if stream is Stream.GNSS or not _LITTLE_ENDIAN:  # nothing to batch: plain Python
-            try:
-                out[i] = _packet(ctx, stream, m, seq, limits)
-            except DecodeError as exc:
-                out[i] = exc
-            continue
         op = _Opened(i, ctx, stream, m, seq)
+        if stream is Stream.GNSS or not _LITTLE_ENDIAN:  # nothing to batch: plain Python
+            out[i] = op.alone(limits)
+            continue
         group = _group(op, groups)
         if group is None or not group.add(op, limits):
             out[i] = op.alone(limits)
