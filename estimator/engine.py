@@ -129,6 +129,12 @@ class StepOutput:
     yaw_rate: FloatArray
     flags: npt.NDArray[np.int32]
     model: TickModel
+    rim: FloatArray | None = None
+    """Product mode: filtered rim speeds ``r·W = V_wheel + e`` (left, right), shape (k, 2)."""
+    rim_std: FloatArray | None = None
+    """Their 1-sigma, shape (k, 2)."""
+    rim_ground_cov: FloatArray | None = None
+    """Covariance of each filtered rim speed with its wheel's ground speed, shape (k, 2)."""
 
 
 @dataclass(slots=True)
@@ -641,6 +647,16 @@ class MdsfEngine:
         flags |= np.where(degraded, int(_F.DEGRADED), 0).astype(np.int32)
         flags |= np.where(gated, int(_F.GATED), 0).astype(np.int32)
         flags |= np.where(reacq, int(_F.RESET), 0).astype(np.int32)
+        rim_post = rim_std_post = rim_cov = None
+        if self.product:
+            # The rim rows of the posterior: the wheel fit fused with the accelerometer-driven
+            # prediction of V and the rim excess (what the slip is computed from).
+            h_rim = H[:, _RIM]
+            h_v = H1[:, (MdsfOut.VL, MdsfOut.VR)]
+            rim_post = np.einsum("kmi,ki->km", h_rim, x_new)
+            ph = np.einsum("kij,kmj->kmi", P_new, h_rim)
+            rim_std_post = np.sqrt(np.maximum(np.einsum("kmi,kmi->km", h_rim, ph), 0.0))
+            rim_cov = np.einsum("kmi,kmi->km", h_v, ph)
         return StepOutput(
             emit=now_init,
             vg=z1[:, MdsfOut.VG],
@@ -671,6 +687,9 @@ class MdsfEngine:
                 | zupt
                 | (degraded if not self.product else np.zeros(k, bool)),
             ),
+            rim=rim_post,
+            rim_std=rim_std_post,
+            rim_ground_cov=rim_cov,
         )
 
     def _track_rim_innovation(
@@ -972,6 +991,9 @@ class MdsfFleet:
         )
         res: dict[str, FloatArray] = {c: np.full(total, np.nan) for c in cols}
         flags = np.zeros(total, dtype=np.int32)
+        # Slip from the filtered rim speeds where the filter has them (product mode), so the
+        # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
+        rim_cov = np.zeros((total, 2))
         for r in range(int(lengths[0])):
             c = int(np.count_nonzero(lengths > r))
             fi = offsets[:c] + r
@@ -981,9 +1003,14 @@ class MdsfFleet:
             for name in cols:
                 res[name][fi] = getattr(so, name)
             flags[fi] = so.flags
+            if so.rim is not None and so.rim_std is not None and so.rim_ground_cov is not None:
+                use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim[fi])
+                rim[fi] = np.where(use, so.rim, rim[fi])
+                rim_std[fi] = np.where(use, so.rim_std, rim_std[fi])
+                rim_cov[fi] = np.where(use, so.rim_ground_cov, 0.0)
         # Slip for all rows at once (eq. (8)(9)).
-        sl = slip_pct(rim[:, 0], res["vl"], min_speed, rim_std[:, 0], res["vl_std"])
-        sr = slip_pct(rim[:, 1], res["vr"], min_speed, rim_std[:, 1], res["vr_std"])
+        sl = slip_pct(rim[:, 0], res["vl"], min_speed, rim_std[:, 0], res["vl_std"], rim_cov[:, 0])
+        sr = slip_pct(rim[:, 1], res["vr"], min_speed, rim_std[:, 1], res["vr_std"], rim_cov[:, 1])
         flags |= np.where(sl.valid, int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
         flags |= np.where(sr.valid, int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
         flags |= np.where(sl.standstill & sr.standstill, int(_F.STANDSTILL), 0).astype(np.int32)
@@ -996,8 +1023,8 @@ class MdsfFleet:
         out["vr_mps"] = res["vr"]
         out["rim_left_mps"] = rim[:, 0]
         out["rim_right_mps"] = rim[:, 1]
-        out["omega_left_radps"] = flat.omega[:, 0]
-        out["omega_right_radps"] = flat.omega[:, 1]
+        out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
+        out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
         out["slip_left_pct"] = sl.slip_pct
         out["slip_right_pct"] = sr.slip_pct
         out["vg_std_mps"] = res["vg_std"]

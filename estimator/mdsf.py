@@ -34,7 +34,10 @@ Two modes (:class:`MdsfMode`):
       slowly, opens when the demand changes beyond the accelerometer noise and when a rim
       speed jumps away from its prediction (wet patch). Wheel and accelerometer then carry
       the fast part of the speed, GNSS the slow part; slip is
-      ``(r·W − V)/max(r·W, V)`` with ``V = H1·X``;
+      ``(r·W − V)/max(r·W, V)`` with ``V = H1·X`` and ``r·W = V + e`` the *filtered* rim
+      speed (the wheel fit weighed by its std against the prediction, so a slow wheel's
+      few-edge fit does not pass its noise straight into the slip; the rows' rim speed and
+      ``ω`` are that filtered value);
     * **RTK positions as distance**: the source uses only the GNSS velocity, whose noise (5 %
       in its own scenarios) leaks into the wheel speeds; an RTK receiver's position is good to
       centimetres. Eq. (1) applied to the displacement between consecutive fixes gives the

@@ -14,9 +14,11 @@ Choices the source leaves open (stated here, tested in ``tests/estimator/test_sl
   (of ``r·W`` when ``V`` is near zero), ``S = s·(r·W − V)/max(|r·W|, |V|)``. Driving backwards
   with the wheel turning faster than the ground passes is positive slip, as forwards.
   ``|S| ≤ 200 %`` (reached only when the wheel turns against the direction of travel).
-* **Uncertainty.** First-order propagation from independent ``σ_V`` and ``σ_rW``: on the branch
-  ``|r·W| ≥ |V|``, ``∂S/∂(rW) = |V|/(rW)²``, ``∂S/∂V = 1/|rW|``; on the other branch
-  ``∂S/∂(rW) = 1/|V|``, ``∂S/∂V = |rW|/V²`` (times 100 %).
+* **Uncertainty.** First-order propagation from ``σ_V``, ``σ_rW`` and their covariance ``c``
+  (zero for independent inputs; a filter that estimates both speeds correlates them): on the
+  branch ``|r·W| ≥ |V|``, ``|∂S/∂(rW)| = |V|/(rW)²``, ``|∂S/∂V| = 1/|rW|``; on the other branch
+  ``|∂S/∂(rW)| = 1/|V|``, ``|∂S/∂V| = |rW|/V²`` (times 100 %). The two partials have opposite
+  signs, so ``σ_S² = (∂_rW·σ_rW)² + (∂_V·σ_V)² − 2·|∂_rW|·|∂_V|·c``.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ def slip_pct(
     min_ground_speed_mps: float | npt.ArrayLike,
     rim_std_mps: npt.ArrayLike = 0.0,
     ground_std_mps: npt.ArrayLike = 0.0,
+    rim_ground_cov_mps2: npt.ArrayLike = 0.0,
 ) -> SlipResult:
     """Slip of a wheel, ``method.md`` §1 eq. (8)(9), with standstill rule and std.
 
@@ -73,6 +76,8 @@ def slip_pct(
         Standstill threshold (``SlipConfig.min_ground_speed_mps``), > 0; broadcasts.
     rim_std_mps, ground_std_mps : array_like
         1-sigma uncertainties of the two speeds.
+    rim_ground_cov_mps2 : array_like
+        Their covariance [(m/s)²] (default 0: independent).
 
     Returns
     -------
@@ -82,8 +87,9 @@ def slip_pct(
     v = np.asarray(ground_speed_mps, dtype=np.float64)
     sa = np.asarray(rim_std_mps, dtype=np.float64)
     sv = np.asarray(ground_std_mps, dtype=np.float64)
+    cov = np.asarray(rim_ground_cov_mps2, dtype=np.float64)
     thr = np.asarray(min_ground_speed_mps, dtype=np.float64)
-    a, v, sa, sv, thr = np.broadcast_arrays(a, v, sa, sv, thr)
+    a, v, sa, sv, cov, thr = np.broadcast_arrays(a, v, sa, sv, cov, thr)
     finite = np.isfinite(a) & np.isfinite(v)
     abs_a = np.abs(np.where(finite, a, 0.0))
     abs_v = np.abs(np.where(finite, v, 0.0))
@@ -97,7 +103,8 @@ def slip_pct(
     d_a = np.where(rim_branch, abs_v / denom**2, 1.0 / denom)
     d_v = np.where(rim_branch, 1.0 / denom, abs_a / denom**2)
     with np.errstate(over="ignore", invalid="ignore"):
-        std = 100.0 * np.hypot(d_a * sa, d_v * sv)
+        var = (d_a * sa) ** 2 + (d_v * sv) ** 2 - 2.0 * d_a * d_v * cov
+        std = 100.0 * np.sqrt(np.maximum(var, 0.0))
     # an infinite input uncertainty (a degenerate encoder fit) says nothing: unknown, not inf
     std = np.where(np.isfinite(std), std, np.nan)
     return SlipResult(

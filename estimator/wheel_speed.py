@@ -117,6 +117,13 @@ class WheelSpeedConfig:
         Neighbours on each side of an edge in the calibration fit.
     calibration_period_s : float
         The tooth corrections are updated on this fixed time grid [s].
+    angle_noise_rel : float
+        Prior 1-sigma angle error of one edge, as a fraction of the tooth pitch: a ring's
+        tooth spacing before calibration (default 0.01, one percent). A fit's residual scatter
+        is floored by it, so a fit through few edges (a slow wheel, a restart) whose residuals
+        happen to be small does not report an error below what the ring gives. With tooth
+        calibration the floor follows the calibration residuals instead
+        (:meth:`WheelBank._calibrate`), shrinking as the pattern is learnt.
     stop_bound_margin : float
         The standstill bound allows a tooth gap this much wider than nominal
         (``|ω| ≤ (1 + margin)·2π/(Ns·τ)``): real rings have uneven teeth, and a late edge
@@ -132,6 +139,7 @@ class WheelSpeedConfig:
     stop_timeout_s: float = 2.0
     timing_std_s: float = 2e-5
     stop_bound_margin: float = 0.5
+    angle_noise_rel: float = 0.01
     tooth_calibration: bool = True
     calibration_gain: float = 0.4
     calibration_half_window: int = 6
@@ -150,6 +158,8 @@ class WheelSpeedConfig:
             raise ConfigError(f"min_edges must be an int >= 2, got {self.min_edges!r}")
         if not isinstance(self.max_edges, int) or self.max_edges < self.min_edges:
             raise ConfigError(f"max_edges must be an int >= min_edges, got {self.max_edges!r}")
+        if not (math.isfinite(self.angle_noise_rel) and 0 <= self.angle_noise_rel < 0.5):
+            raise ConfigError("angle_noise_rel must be within [0, 0.5)")
         if not (math.isfinite(self.stop_bound_margin) and self.stop_bound_margin >= 0):
             raise ConfigError("stop_bound_margin must be a finite number >= 0")
         if not (math.isfinite(self.calibration_gain) and 0 < self.calibration_gain <= 1):
@@ -320,6 +330,7 @@ def omega_at(
     if freq.any():
         before = np.where(first_in > seg0, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
         freq_omega = (pos[last_c] - before) / config.window_s
+    prior_var = (config.angle_noise_rel * 2.0 * np.pi / config.teeth_per_rev) ** 2
     return _speed_from_window(
         q,
         tau_s,
@@ -333,6 +344,7 @@ def omega_at(
         last - 1 >= seg0,
         config,
         signed,
+        prior_var,
     )
 
 
@@ -375,6 +387,7 @@ def _speed_from_window(
     has_prev: npt.NDArray[np.bool_],
     config: WheelSpeedConfig,
     signed: bool | npt.NDArray[np.bool_],
+    angle_var_rad2: float | FloatArray,
 ) -> WheelSpeedResult:
     """Fit, frequency override and standstill bound of :func:`omega_at` on gathered edges.
 
@@ -396,6 +409,9 @@ def _speed_from_window(
         Time of the last edge at or before the query and of the one before it.
     has_prev : ndarray, shape (m,), bool
         The edge before the last one is held.
+    angle_var_rad2 : float or ndarray, shape (m,)
+        Variance of one edge's angle error [rad²]: the floor of the fit's residual variance
+        (``angle_noise_rel`` of the pitch, or what the tooth calibration measured).
     """
     m = tau_s.shape[0]
     ns = config.teeth_per_rev
@@ -423,12 +439,14 @@ def _speed_from_window(
         u2[~quad] = 0.0
     coef, a_inv11 = _solve_quadratic_fit(u, u2, wf, p, quad, fit_ok)
     om_fit = coef[1] / span
-    # Uncertainty: residual scatter, floored by the time-stamp jitter, through (AᵀA)⁻¹.
+    # Uncertainty: residual scatter, floored by the ring's angle noise and the time-stamp
+    # jitter, through (AᵀA)⁻¹. With three edges a quadratic leaves no residual at all; the
+    # floor keeps such a fit from claiming the jitter's precision.
     resid = (p - (coef[0][:, None] + coef[1][:, None] * u + coef[2][:, None] * u2)) * wf
     n_par = np.where(quad, 3, 2)
     dof = np.maximum(n_fit - n_par, 1)
     s2 = _row_dot(resid, resid) / dof
-    s2 = np.maximum(s2, (om_fit * config.timing_std_s) ** 2 + (2 * np.pi / ns * 1e-3) ** 2)
+    s2 = np.maximum(s2, (om_fit * config.timing_std_s) ** 2 + angle_var_rad2)
     std_fit = np.sqrt(s2 * np.maximum(a_inv11, 0.0)) / span
 
     omega = np.where(fit_ok, om_fit, np.nan)
@@ -661,6 +679,7 @@ class WheelBank:
     _cal_from: IntArray
     _cal_upto: IntArray
     _calibrated: IntArray
+    _angle_var: FloatArray
     _delta: FloatArray
 
     def __init__(self, config: WheelSpeedConfig) -> None:
@@ -668,6 +687,7 @@ class WheelBank:
         self._step_rad = 2.0 * np.pi / config.teeth_per_rev
         self._w_ns = round(config.window_s * 1e9)
         self._period_ns = round(config.calibration_period_s * 1e9)
+        self._prior_var = (config.angle_noise_rel * self._step_rad) ** 2
         self._slots = 0  # high-water mark
         self._free: list[int] = []
         self._alloc_slots(16)
@@ -702,6 +722,7 @@ class WheelBank:
         grow_slot_array(self, "_cal_from", n, (), i64(0))  # next edge number to calibrate on
         grow_slot_array(self, "_cal_upto", n, (), i64(np.iinfo(np.int64).min))  # last instant
         grow_slot_array(self, "_calibrated", n, (), i64(0))
+        grow_slot_array(self, "_angle_var", n, (), self._prior_var)  # edge angle noise [rad²]
         grow_slot_array(self, "_delta", n, (self.config.teeth_per_rev,), 0.0)
 
     def add(self) -> int:
@@ -730,6 +751,7 @@ class WheelBank:
             (self._cal_from, 0),
             (self._cal_upto, np.iinfo(np.int64).min),
             (self._calibrated, 0),
+            (self._angle_var, self._prior_var),
             (self._delta, 0.0),
         ):
             arr[slot] = value
@@ -1114,6 +1136,7 @@ class WheelBank:
             last - 1 >= head,
             cfg,
             self._signed[rs],
+            self._angle_var[rs],
         )
 
     def _trim(self, s: IntArray, last: IntArray, first_in: IntArray) -> None:
@@ -1207,6 +1230,25 @@ class WheelBank:
         self._delta[upd] -= (_row_sum(self._delta[upd]) / cfg.teeth_per_rev)[:, None]
         self._recorrect(upd)
         np.add.at(self._calibrated, row_slot[good], 1)
+        self._learn_angle_noise(row_slot[good], resid[good])
+
+    def _learn_angle_noise(self, row_slot: IntArray, resid: FloatArray) -> None:
+        """Move each slot's edge angle variance toward its calibration residuals (in place).
+
+        ``resid`` are this calibration's residuals (before their correction), ``row_slot``
+        their slots. The residual of an edge against its neighbours' fit is the error a fit
+        would see with the corrections then in force; its mean square over the ``M`` new
+        residuals of a slot enters an exponential mean with a memory of one revolution
+        (``teeth_per_rev`` edges): ``v ← (1 − β)·v + β·mean(r²)``, ``β = 1 − (1 − 1/Ns)^M``.
+        (The residual also carries the neighbours' fit error, a few percent of its variance
+        with the default window: the floor errs on the safe side.)
+        """
+        if resid.shape[0] == 0:
+            return
+        slots, inverse, n = np.unique(row_slot, return_inverse=True, return_counts=True)
+        mean_sq = np.bincount(inverse, weights=resid * resid) / n
+        beta = 1.0 - (1.0 - 1.0 / self.config.teeth_per_rev) ** n
+        self._angle_var[slots] += beta * (mean_sq - self._angle_var[slots])
 
     # --- per-slot views ------------------------------------------------------------------
     def held_stamp_ns(self, slot: int) -> IntArray:
@@ -1225,6 +1267,11 @@ class WheelBank:
     def calibrated_edges(self, slot: int) -> int:
         """Edges the tooth calibration of ``slot`` has learnt from."""
         return int(self._calibrated[slot])
+
+    def angle_noise_rad(self, slot: int) -> float:
+        """1-sigma angle error of one edge of ``slot`` that its fits are floored by [rad]."""
+        self._flush()
+        return math.sqrt(float(self._angle_var[slot]))
 
 
 class WheelTracker:
@@ -1273,6 +1320,12 @@ class WheelTracker:
         return self._bank.calibrated_edges(self._slot)
 
     @property
+    def angle_noise_rad(self) -> float:
+        """1-sigma angle error of one edge: the prior ``angle_noise_rel`` of the pitch, then
+        what the tooth calibration measures."""
+        return self._bank.angle_noise_rad(self._slot)
+
+    @property
     def last_edge_ns(self) -> int | None:
         """Time of the newest edge held, or None."""
         stamp = self._bank.held_stamp_ns(self._slot)
@@ -1282,7 +1335,6 @@ class WheelTracker:
     def held_stamp_ns(self) -> IntArray:
         """Times of the edges held, shape ``(n,)``."""
         return self._bank.held_stamp_ns(self._slot)
-
 
     @property
     def tooth_correction_rad(self) -> FloatArray:
@@ -1333,6 +1385,7 @@ class WheelTracker:
             "_signed",
             "_cal_upto",
             "_calibrated",
+            "_angle_var",
             "_delta",
         ):
             getattr(bank, name)[new] = getattr(old, name)[slot]

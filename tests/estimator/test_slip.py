@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -98,3 +100,18 @@ def test_never_blows_up(rim: float, v: float, thr: float) -> None:
         assert np.isfinite(r.std_pct)
     else:
         assert abs(rim) < thr and abs(v) < thr
+
+
+def test_std_with_correlated_speeds_matches_numerical_propagation() -> None:
+    # A filter estimating both speeds correlates them; the std propagates the covariance:
+    # var = J Σ Jᵀ with J = (∂S/∂rW, ∂S/∂V), Σ = [[σ_rW², c], [c, σ_V²]].
+    h = 1e-6
+    for rim, v, c in ((3.3, 3.0, 0.0008), (2.4, 3.0, 0.0005), (-3.3, -3.0, 0.0009)):
+        s_rim, s_v = 0.03, 0.04
+        r = slip_pct(rim, v, THR, s_rim, s_v, c)
+        d_rim = (slip_pct(rim + h, v, THR).slip_pct - slip_pct(rim - h, v, THR).slip_pct) / (2 * h)
+        d_v = (slip_pct(rim, v + h, THR).slip_pct - slip_pct(rim, v - h, THR).slip_pct) / (2 * h)
+        jac = np.array([float(d_rim), float(d_v)])
+        cov = np.array([[s_rim**2, c], [c, s_v**2]])
+        assert float(r.std_pct) == pytest.approx(math.sqrt(jac @ cov @ jac), rel=1e-5)
+        assert float(r.std_pct) < float(slip_pct(rim, v, THR, s_rim, s_v).std_pct)

@@ -251,3 +251,56 @@ def test_config_validation() -> None:
         WheelSpeedConfig(fit_order=3)
     with pytest.raises(ConfigError):
         WheelSpeedConfig(window_s=float("nan"))
+
+
+def _uneven_ring(seed: int, omega: float, n_edges: int) -> np.ndarray:
+    """Edge times of a ring with teeth off by 1 % of the pitch (fixed per tooth) at ``omega``."""
+    dev = np.random.default_rng(seed).normal(0, 0.01, NS) * PITCH
+    k = np.arange(1, n_edges)
+    return T0 + np.round((k * PITCH + dev[k % NS]) / omega * 1e9).astype(np.int64)
+
+
+def test_a_fit_through_three_edges_is_not_more_certain_than_the_ring() -> None:
+    # Three edges fit a quadratic exactly: no residual to measure the error from. The std
+    # must still carry the ring's angle noise (prior: 1 % of the pitch), not the jitter alone.
+    cfg = WheelSpeedConfig(teeth_per_rev=NS, min_edges=3, window_s=0.01, tooth_calibration=False)
+    omega = 1.0
+    e = T0 + np.round(np.arange(1, 4) * PITCH / omega * 1e9).astype(np.int64)
+    r = omega_at(e, edge_angles(3, NS), e[-1:], cfg)
+    # the quadratic's slope at the last edge from edges at u = -1, -1/2, 0 has gain 3/span
+    span_s = 2 * PITCH / omega
+    # angle noise of the ring plus the edge-time jitter (timing_std_s at ω)
+    sigma = math.hypot(0.01 * PITCH, omega * cfg.timing_std_s)
+    floor = sigma * math.sqrt(1 + 16 + 9) / span_s  # ∂ω/∂θ_i = (1, -4, 3)/span
+    assert float(r.std_radps[0]) == pytest.approx(floor, rel=1e-4)
+    looser = WheelSpeedConfig(
+        teeth_per_rev=NS, min_edges=3, window_s=0.01, tooth_calibration=False, angle_noise_rel=0.02
+    )
+    r2 = omega_at(e, edge_angles(3, NS), e[-1:], looser)
+    assert float(r2.std_radps[0]) > 1.99 * floor
+
+
+def test_calibration_measures_the_remaining_angle_noise() -> None:
+    # Before calibration the fits are floored by the prior (1 % of the pitch) and their std is
+    # consistent with the actual error; as the pattern is learnt the measured angle noise
+    # falls far below the prior. Without calibration nothing is learnt: the prior stays.
+    omega = 3.0
+    t_edges = _uneven_ring(4, omega, 3000)
+    tr = WheelTracker(WheelSpeedConfig(teeth_per_rev=NS))
+    off = WheelTracker(WheelSpeedConfig(teeth_per_rev=NS, tooth_calibration=False))
+    assert tr.angle_noise_rad == pytest.approx(0.01 * PITCH)
+    q = T0 + np.arange(100_000_000, int(t_edges[-1] - T0), 50_000_000, dtype=np.int64)
+    first_turn_s = 2 * math.pi / omega
+    pushed, z = 0, []
+    for qi in q:
+        hi = int(np.searchsorted(t_edges, qi, side="right"))
+        tr.push(t_edges[pushed:hi])
+        off.push(t_edges[pushed:hi])
+        pushed = hi
+        r = tr.query(np.array([qi]))
+        off.query(np.array([qi]))
+        if (qi - T0) * 1e-9 < first_turn_s:
+            z.append((r.omega_radps[0] - omega) / r.std_radps[0])
+    assert 0.3 < float(np.sqrt(np.mean(np.square(z)))) < 2.0
+    assert tr.angle_noise_rad < 0.1 * 0.01 * PITCH
+    assert off.angle_noise_rad == pytest.approx(0.01 * PITCH)
