@@ -433,6 +433,9 @@ class MdsfEngine:
             # traction demand (forward specific force) changes: variance ∝ |Δf|.
             speed = np.abs(x[:, MdsfState.V1])
             d2 = self._demand_change(slots, t, accel_var)
+            # Without GNSS only ``outage_demand_share`` of it (the tyre model carries the rest).
+            lost = init & ((stamp - self.last_fused_ns[slots]) * _NS > cfg.gnss_timeout_s)
+            d2 = d2 * np.where(lost, cfg.outage_demand_share, 1.0)
             q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
                 cfg.slip_demand_gain * speed / GRAVITY_MPS2
             ) ** 2 * d2 * (dt / cfg.force_filter_tau_s)
@@ -445,8 +448,7 @@ class MdsfEngine:
             # mean beyond what white innovations explain opens that wheel's rim excess.
             q_drift = None
             if cfg.rim_drift_tau_s > 0:
-                lost_s = (stamp - self.last_fused_ns[slots]) * _NS
-                q_drift = self._rim_drift_noise(slots, init & (lost_s > cfg.gnss_timeout_s))
+                q_drift = self._rim_drift_noise(slots, lost)
             for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
                 Q[:, st, st] += q_e
                 if q_drift is not None:

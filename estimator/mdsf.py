@@ -231,6 +231,14 @@ class MdsfConfig:
         ``gnss_timeout_s``): without a ground reference a persistent rim innovation is as
         likely the accelerometer-driven speed drifting (pitch error, bias) as the slip moving,
         so only this part opens the rim excess; 1 keeps it all, 0 closes it [-].
+    outage_demand_share : float
+        Share of the demand-driven rim-excess noise (``slip_demand_gain``) kept while GNSS is
+        lost. The tyre model's control term already moves the rim excess by the slip change it
+        expects; the opened variance lets the rows put the rest there. With GNSS that is
+        cheap (the speed stays pinned); without it, an opened rim excess soaks up the
+        accelerometer-driven speed's drift instead (a 20 s outage starting in an acceleration:
+        slip 2.9 pp off after 15 s). Default 0: the tyre model alone carries the slip's
+        response to demand, the jump and drift tests still open it [-].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -306,6 +314,7 @@ class MdsfConfig:
     rim_drift_tau_s: float = 1.0
     rim_drift_sigma: float = 2.0
     outage_rim_drift_share: float = 0.3
+    outage_demand_share: float = 0.0
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
     rim_texture_rel: float = 0.003
@@ -343,6 +352,7 @@ class MdsfConfig:
                 "tyre_gain_range",
                 "rim_drift_tau_s",
                 "outage_rim_drift_share",
+                "outage_demand_share",
                 "gnss_distance_gap_s",
             ):
                 continue
@@ -363,9 +373,11 @@ class MdsfConfig:
                 raise ConfigError(f"{name} must be >= 0")
         if not 0.001 <= self.tick_s <= 1.0:
             raise ConfigError(f"tick_s must be within 0.001..1 s, got {self.tick_s!r}")
-        share = self.outage_rim_drift_share
-        if not (isinstance(share, int | float) and math.isfinite(share) and 0.0 <= share <= 1.0):
-            raise ConfigError("outage_rim_drift_share must be within [0, 1]")
+        for name in ("outage_rim_drift_share", "outage_demand_share"):
+            share = getattr(self, name)
+            ok = isinstance(share, int | float) and math.isfinite(share) and 0.0 <= share <= 1.0
+            if not ok:
+                raise ConfigError(f"{name} must be within [0, 1]")
         if not (math.isfinite(self.gnss_noise_adapt) and 0.0 <= self.gnss_noise_adapt < 1.0):
             raise ConfigError("gnss_noise_adapt must be within [0, 1)")
 

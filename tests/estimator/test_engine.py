@@ -638,3 +638,30 @@ def test_product_slip_uses_the_filtered_rim_speed() -> None:
     filtered = rows["rim_left_mps"][early] - truth
     measured = np.array([fit_rim[s] for s in st_[early].tolist()]) - truth
     assert np.sqrt(np.mean(filtered**2)) < 0.75 * np.sqrt(np.mean(measured**2))
+
+
+def test_outage_leaves_the_slip_response_to_the_tyre_model() -> None:
+    # A 20 s outage that starts as the vehicle speeds up: with GNSS a change of demand opens
+    # the rim excess (the speed stays pinned); without it an opened rim excess takes up the
+    # accelerometer-driven speed's drift, so only the tyre model moves it (outage_demand_share).
+    sim, cfg = _sim("gnss_outage", 8)
+    errs, q_rim = {}, {}
+    for share in (0.0, 1.0):
+        fleet = MdsfFleet(MdsfConfig(outage_demand_share=share))
+        rec = _record(fleet)
+        rows = _run(fleet, {"v": (sim, cfg)})["v"]
+        t = (rows["stamp_ns"] - sim.start_ns) * 1e-9
+        out = (rows["flags"] & F.DEGRADED != 0) & np.isfinite(rows["slip_left_pct"])
+        truth = truth_at(sim.truth, rows["stamp_ns"][out], "slip_left_pct")
+        errs[share] = float(np.sqrt(np.mean((rows["slip_left_pct"][out] - truth) ** 2)))
+        q = np.concatenate(
+            [r[4].model.Q[:, MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_LEFT] for r in rec]
+        )
+        q_rim[share] = q
+        assert out.sum() > 150 and t[out].min() > 50.0
+    # the same noise while GNSS is there (the first 45 s: 450 ticks), less in the outage,
+    # and a better slip
+    assert q_rim[0.0].shape == q_rim[1.0].shape
+    assert np.array_equal(q_rim[0.0][:450], q_rim[1.0][:450])
+    assert q_rim[0.0].sum() < q_rim[1.0].sum()
+    assert errs[0.0] < 0.5 * errs[1.0]
