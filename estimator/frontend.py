@@ -21,7 +21,7 @@ time on a fleet-wide grid):
   the tick with the GNSS velocity in product mode) and attitude held from the latest fix at or
   before each tick.
 * Wheel speeds: encoder trackers of all vehicles that share the ticks queried in one
-  :func:`~estimator.wheel_speed.query_many`; direct (CAN) speeds per vehicle (no batched
+  :func:`~estimator.wheel_speed.query_stacked`; direct (CAN) speeds per vehicle (no batched
   query exists for them).
 
 Within one vehicle, measurements are expected in sensor order (the pipeline's reorder buffer
@@ -74,7 +74,7 @@ from estimator.wheel_speed import (
     WheelSpeedConfig,
     WheelSpeedMethod,
     WheelTracker,
-    query_many,
+    query_stacked,
 )
 
 __all__ = [
@@ -368,8 +368,8 @@ class FleetFrontEnd:
         self.wheel = wheel
         self.product = config.mode is MdsfMode.PRODUCT
         self.tick_ns = config.tick_ns
-        self.fit_wheels = query_many
-        """Batched wheel-speed fit (:func:`~estimator.wheel_speed.query_many`)."""
+        self.fit_wheels = query_stacked
+        """Batched wheel-speed fit (:func:`~estimator.wheel_speed.query_stacked`)."""
         self._cap = 0
         self._seq = 0  # push counter: which measurement of a vehicle came first
         self.trackers: list[tuple[WheelTracker, ...]] = []  # (left, right); () if free
@@ -1313,14 +1313,14 @@ class _Batch:
             tix2 = self.offsets[rows][:, None] + np.arange(mt)
             tix = tix2.reshape(-1)
             trackers = [tr for s in self.slots[rows].tolist() for tr in fe.trackers[s]]
+            # rows of the fit: left, right of the first vehicle, then of the next, …
             fitted = fe.fit_wheels(trackers, np.repeat(self.ticks[tix2], 2, axis=0))
             lone = fe.lone_std[self.slots[rows]]
             period = np.ones(rows.shape[0] * mt, dtype=bool)
             for w in Wheel:
-                res = fitted[w::2]
-                om = np.concatenate([x.omega_radps for x in res])
-                sd = np.concatenate([x.std_radps for x in res])
-                method = np.concatenate([x.method for x in res])
+                om = fitted.omega_radps[w::2].reshape(-1)
+                sd = fitted.std_radps[w::2].reshape(-1)
+                method = fitted.method[w::2].reshape(-1)
                 none = method == WheelSpeedMethod.NONE
                 omega[tix, w] = np.where(none, 0.0, om)
                 omega_std[tix, w] = np.where(none, np.repeat(lone, mt), sd)

@@ -62,6 +62,7 @@ __all__ = [
     "omega_frequency",
     "omega_k_tooth",
     "query_many",
+    "query_stacked",
     "stop_bound",
 ]
 
@@ -1402,7 +1403,8 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
 
     Equivalent to querying each tracker on its own. Trackers of one config that sit in
     different banks are first moved into one (the biggest), once; from then on a call costs a
-    fixed number of numpy calls plus a Python attribute read per tracker.
+    fixed number of numpy calls plus a Python attribute read per tracker. The rows of
+    :func:`query_stacked`, one result per tracker.
 
     Parameters
     ----------
@@ -1415,23 +1417,55 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     -------
     list of WheelSpeedResult, one per tracker, arrays of shape (m,)
     """
-    q = np.asarray(query_ns, dtype=np.int64)
     if not trackers:
         return []
+    r = query_stacked(trackers, query_ns)
+    return list(map(_result_row, r.omega_radps, r.std_radps, r.method))
+
+
+def query_stacked(trackers: list[WheelTracker], query_ns: IntArray) -> WheelSpeedResult:
+    """:func:`query_many` with the results as one array per field, row ``i`` tracker ``i``.
+
+    Same fit and values; callers that want every tracker's speeds in one array (the fleet
+    front end) skip making a result and three array views per tracker, which costs more than
+    the fit itself for short queries.
+
+    Parameters
+    ----------
+    trackers : list of WheelTracker
+        Distinct trackers.
+    query_ns : ndarray, shape (m,) or (len(trackers), m), int64, non-decreasing along m
+
+    Returns
+    -------
+    WheelSpeedResult
+        Arrays of shape ``(len(trackers), m)``.
+    """
+    q = np.asarray(query_ns, dtype=np.int64)
+    if not trackers:
+        r = _unknown(0)
+        m = q.shape[-1]
+        return WheelSpeedResult(
+            r.omega_radps.reshape(0, m), r.std_radps.reshape(0, m), r.method.reshape(0, m)
+        )
     bank = trackers[0]._bank
     if not all(t._bank is bank for t in trackers):
         cfg = trackers[0].config
         if any(t.config != cfg for t in trackers):
             rows = q if q.ndim == 2 else np.broadcast_to(q, (len(trackers), q.shape[0]))
-            return [t.query(r) for t, r in zip(trackers, rows, strict=True)]
+            res = [t.query(r) for t, r in zip(trackers, rows, strict=True)]
+            return WheelSpeedResult(
+                np.stack([x.omega_radps for x in res]),
+                np.stack([x.std_radps for x in res]),
+                np.stack([x.method for x in res]),
+            )
         banks = {id(t._bank): t._bank for t in trackers}
         bank = max(banks.values(), key=lambda b: b._slots - len(b._free))
         for t in trackers:
             if t._bank is not bank:
                 t._move_to(bank)
     slots = np.fromiter((t._slot for t in trackers), dtype=np.int64, count=len(trackers))
-    r = bank.query(slots, q)
-    return list(map(_result_row, r.omega_radps, r.std_radps, r.method))
+    return bank.query(slots, q)
 
 
 _set_omega = WheelSpeedResult.__dict__["omega_radps"].__set__
