@@ -109,6 +109,20 @@ class Counter(IntEnum):
 
 
 _TICK_FIELDS = TickInputs.__slots__
+_STEP_COLS = (
+    "vg",
+    "v1",
+    "v0",
+    "vl",
+    "vr",
+    "vg_std",
+    "vl_std",
+    "vr_std",
+    "accel",
+    "pitch_rate",
+    "yaw_rate",
+)
+"""Per-row outputs of :class:`StepOutput` that go into the estimate rows."""
 
 
 @dataclass(slots=True)
@@ -871,6 +885,22 @@ class MdsfEngine:
 # ---------------------------------------------------------------------------------------------
 
 
+def _filtered_rims(
+    so: StepOutput, rim: FloatArray, rim_std: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rim speeds (k, 2), their std and covariance with the wheel's ground speed for the slip:
+    the filtered ones where the step has them (product mode, emitted rows, measured rim
+    speed), else the measured ones with no covariance."""
+    if so.rim is None or so.rim_std is None or so.rim_ground_cov is None:
+        return rim, rim_std, np.zeros(rim.shape)
+    use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim)
+    return (
+        np.where(use, so.rim, rim),
+        np.where(use, so.rim_std, rim_std),
+        np.where(use, so.rim_ground_cov, 0.0),
+    )
+
+
 class MdsfFleet:
     """MDSF for a fleet of wheeled vehicles; implements :class:`estimator.base.FleetEstimator`.
 
@@ -974,47 +1004,37 @@ class MdsfFleet:
         min_speed = self._min_speed_mps[row_slot]
         rim = flat.omega * radius
         rim_std = flat.omega_std * radius
-        out = empty_estimates(total)
-        emit = np.zeros(total, dtype=bool)
-        cols = (
-            "vg",
-            "v1",
-            "v0",
-            "vl",
-            "vr",
-            "vg_std",
-            "vl_std",
-            "vr_std",
-            "accel",
-            "pitch_rate",
-            "yaw_rate",
-        )
-        res: dict[str, FloatArray] = {c: np.full(total, np.nan) for c in cols}
-        flags = np.zeros(total, dtype=np.int32)
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
-        rim_cov = np.zeros((total, 2))
-        for r in range(int(lengths[0])):
-            c = int(np.count_nonzero(lengths > r))
-            fi = offsets[:c] + r
-            tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
-            emit[fi] = so.emit
-            for name in cols:
-                res[name][fi] = getattr(so, name)
-            flags[fi] = so.flags
-            if so.rim is not None and so.rim_std is not None and so.rim_ground_cov is not None:
-                use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim[fi])
-                rim[fi] = np.where(use, so.rim, rim[fi])
-                rim_std[fi] = np.where(use, so.rim_std, rim_std[fi])
-                rim_cov[fi] = np.where(use, so.rim_ground_cov, 0.0)
+        if int(lengths[0]) == 1:
+            # One tick per vehicle (the usual call): the flat rows are the step's rows.
+            so = self.engine.step(due.slots, flat, rim, rim_std)
+            emit, flags = so.emit, so.flags
+            res = {name: getattr(so, name) for name in _STEP_COLS}
+            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
+        else:
+            emit = np.zeros(total, dtype=bool)
+            flags = np.zeros(total, dtype=np.int32)
+            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+            rim_cov = np.zeros((total, 2))
+            for r in range(int(lengths[0])):
+                c = int(np.count_nonzero(lengths > r))
+                fi = offsets[:c] + r
+                tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
+                so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
+                emit[fi] = so.emit
+                for name in _STEP_COLS:
+                    res[name][fi] = getattr(so, name)
+                flags[fi] = so.flags
+                rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
         # Slip for all rows at once (eq. (8)(9)).
         sl = slip_pct(rim[:, 0], res["vl"], min_speed, rim_std[:, 0], res["vl_std"], rim_cov[:, 0])
         sr = slip_pct(rim[:, 1], res["vr"], min_speed, rim_std[:, 1], res["vr_std"], rim_cov[:, 1])
-        flags |= np.where(sl.valid, int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
+        flags = flags | np.where(sl.valid, int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
         flags |= np.where(sr.valid, int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
         flags |= np.where(sl.standstill & sr.standstill, int(_F.STANDSTILL), 0).astype(np.int32)
         flags |= flat.wheel_flags
+        out = empty_estimates(total)
         out["stamp_ns"] = flat.stamp_ns
         out["vg_mps"] = res["vg"]
         out["v1_mps"] = res["v1"]
@@ -1043,7 +1063,7 @@ class MdsfFleet:
         out["roll_rad"] = flat.attitude[:, 2]
         out["flags"] = flags
         # Emitted rows, split by vehicle (in the order of ``due``).
-        kept = out[emit]
+        kept = out if emit.all() else out[emit]
         ends = np.cumsum(np.add.reduceat(emit, offsets))
         return [
             (ids[i], kept[a:b])
