@@ -386,8 +386,8 @@ class FleetFrontEnd:
         # Vehicles without a tick grid yet, and the first wheel data (seq, stamp) of such.
         self._gridless: set[int] = set()
         self._first_wheel: dict[int, tuple[int, int]] = {}
-        self._gnss_new_id: list[tuple[int, int, int]] = []
-        self._gnss_new_val: list[tuple[float, ...]] = []
+        self._gnss_new_id: list[int] = []  # slot, seq, stamp of each fix, flat
+        self._gnss_new_val: list[float] = []  # the _G_* columns of each fix, flat
         # Checked and waiting for their tick, in push order.
         self._imu_slot = np.zeros(0, dtype=np.int64)
         self._imu_t = np.zeros(0, dtype=np.int64)
@@ -581,8 +581,8 @@ class FleetFrontEnd:
                 self.count[slot, _GNSS] += 1
                 return
             self._seq += 1
-            self._gnss_new_id.append((slot, self._seq, int(m.stamp_ns)))
-            self._gnss_new_val.append(
+            self._gnss_new_id.extend((slot, self._seq, int(m.stamp_ns)))
+            self._gnss_new_val.extend(
                 (
                     *m.vel_enu_mps,
                     m.heading_rad,

@@ -962,20 +962,20 @@ class WheelBank:
     def _search(self, slot: IntArray, lo: IntArray, hi: IntArray, value: IntArray) -> IntArray:
         """First edge number in ``[lo, hi)`` with a time after ``value`` (``hi`` if none).
 
-        Bisection of every row at once (held times are non-decreasing).
+        Bisection of every row at once (held times are non-decreasing), as many halvings as
+        the widest range needs; a row whose range is already empty stays where it is.
         """
-        lo = lo.copy()
-        hi = hi.copy()
         base = self._base[slot]
         mask = self._mask[slot]
-        while True:
-            active = lo < hi
-            if not active.any():
-                return lo
+        width = int((hi - lo).max()) if lo.size else 0
+        if width <= 0:
+            return lo.copy()
+        for _ in range(width.bit_length()):
             mid = (lo + hi) >> 1
             after = self._stamp[base + (mid & mask)] > value
-            lo = np.where(active & ~after, mid + 1, lo)
-            hi = np.where(active & after, mid, hi)
+            lo = np.where(after, lo, np.minimum(mid + 1, hi))
+            hi = np.where(after, mid, hi)
+        return lo
 
     # --- query ---------------------------------------------------------------------------
     def query(self, slots: IntArray, query_ns: IntArray) -> WheelSpeedResult:
@@ -1000,10 +1000,12 @@ class WheelBank:
         s = np.asarray(slots, dtype=np.int64).reshape(-1)
         q2 = np.asarray(query_ns, dtype=np.int64)
         n = s.shape[0]
+        # one row per distinct slot for the calibration (a repeated slot shares its times)
+        uniq, first = np.unique(s, return_index=True) if n > 1 else (s, np.zeros(1, np.int64))
         if q2.ndim == 2:
             if q2.shape[0] != n:
                 raise ValueError(f"query_ns has {q2.shape[0]} rows for {n} slots")
-            if n > 1 and np.unique(s).shape[0] != n:
+            if uniq.shape[0] != n:
                 raise ValueError("slots must be distinct when each has its own times")
         else:
             q2 = np.broadcast_to(q2.reshape(1, -1), (n, q2.size))
@@ -1018,8 +1020,6 @@ class WheelBank:
         omega = np.empty((n, m))
         std = np.empty((n, m))
         method = np.empty((n, m), dtype=np.int8)
-        # one row per distinct slot for the calibration (a repeated slot shares its times)
-        uniq, first = np.unique(s, return_index=True) if n > 1 else (s, np.zeros(1, np.int64))
         period = self._period_ns
         i = 0
         tail: tuple[IntArray, IntArray] | None = None
