@@ -171,11 +171,13 @@ class TickModel:
         The covariance was changed between the stages (GNSS re-acquired or a slip jump).
     nis : ndarray, shape (k,)
         Normalised innovation squared of both stages (their sum is the joint update's), with
-        its degrees of freedom ``dof``.
+        its degrees of freedom ``dof``; computed when read, from the two ``stages``.
     dof : ndarray, shape (k,), int
     special : ndarray, shape (k,), bool
         The row was (re)initialised, reset after divergence or handed over: not a plain
         Kalman step.
+    stages : tuple of kalman.UpdateResult
+        The two update stages.
     """
 
     F: FloatArray
@@ -186,9 +188,14 @@ class TickModel:
     mask1: BoolArray
     mask2: BoolArray
     inflated: BoolArray
-    nis: FloatArray
     dof: IntArray
     special: BoolArray
+    stages: tuple[kalman.UpdateResult, kalman.UpdateResult]
+
+    @property
+    def nis(self) -> FloatArray:
+        first, second = self.stages
+        return first.nis + second.nis
 
 
 class MdsfEngine:
@@ -694,12 +701,12 @@ class MdsfEngine:
                 mask1=mask1,
                 mask2=mask2,
                 inflated=inflated,
-                nis=res1.nis + res.nis,
                 dof=res1.dof + res.dof,
                 special=sel
                 | diverged
                 | zupt
                 | (degraded if not self.product else np.zeros(k, bool)),
+                stages=(res1, res),
             ),
             rim=rim_post,
             rim_std=rim_std_post,
