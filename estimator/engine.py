@@ -999,8 +999,8 @@ class MdsfFleet:
         ids = [vid for vid in until_ns if vid in self._slot]
         if not ids:
             return []
-        slots = np.fromiter((self._slot[v] for v in ids), dtype=np.int64, count=len(ids))
-        until = np.fromiter((until_ns[v] for v in ids), dtype=np.int64, count=len(ids))
+        slots = np.fromiter(map(self._slot.__getitem__, ids), dtype=np.int64, count=len(ids))
+        until = np.fromiter(map(until_ns.__getitem__, ids), dtype=np.int64, count=len(ids))
         due = self.front.assemble(slots, until)
         if due is None:
             return []
@@ -1034,12 +1034,18 @@ class MdsfFleet:
                     res[name][fi] = getattr(so, name)
                 flags[fi] = so.flags
                 rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
-        # Slip for all rows at once (eq. (8)(9)).
-        sl = slip_pct(rim[:, 0], res["vl"], min_speed, rim_std[:, 0], res["vl_std"], rim_cov[:, 0])
-        sr = slip_pct(rim[:, 1], res["vr"], min_speed, rim_std[:, 1], res["vr_std"], rim_cov[:, 1])
-        flags = flags | np.where(sl.valid, int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
-        flags |= np.where(sr.valid, int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
-        flags |= np.where(sl.standstill & sr.standstill, int(_F.STANDSTILL), 0).astype(np.int32)
+        # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
+        sp = slip_pct(
+            rim,
+            np.stack([res["vl"], res["vr"]], axis=1),
+            min_speed[:, None],
+            rim_std,
+            np.stack([res["vl_std"], res["vr_std"]], axis=1),
+            rim_cov,
+        )
+        flags = flags | np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
+        flags |= np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
+        flags |= np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0).astype(np.int32)
         flags |= flat.wheel_flags
         out = empty_estimates(total)
         out["stamp_ns"] = flat.stamp_ns
@@ -1052,13 +1058,13 @@ class MdsfFleet:
         out["rim_right_mps"] = rim[:, 1]
         out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
         out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
-        out["slip_left_pct"] = sl.slip_pct
-        out["slip_right_pct"] = sr.slip_pct
+        out["slip_left_pct"] = sp.slip_pct[:, 0]
+        out["slip_right_pct"] = sp.slip_pct[:, 1]
         out["vg_std_mps"] = res["vg_std"]
         out["vl_std_mps"] = res["vl_std"]
         out["vr_std_mps"] = res["vr_std"]
-        out["slip_left_std_pct"] = sl.std_pct
-        out["slip_right_std_pct"] = sr.std_pct
+        out["slip_left_std_pct"] = sp.std_pct[:, 0]
+        out["slip_right_std_pct"] = sp.std_pct[:, 1]
         out["accel_mps2"] = res["accel"]
         out["pitch_rate_radps"] = res["pitch_rate"]
         out["yaw_rate_radps"] = res["yaw_rate"]
