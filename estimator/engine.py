@@ -19,7 +19,7 @@ Two layers:
     IMU averaged over each tick window (gravity removed with the pitch, gyro biases learnt
     against the GNSS attitude), GNSS speed by eq. (1) moved to the tick by its time stamp,
     along-track distance from the RTK positions, wheel speeds of all vehicles that share the
-    ticks fitted in one call (:func:`estimator.wheel_speed.query_stacked`). The engine then steps
+    ticks fitted in one call (:meth:`estimator.wheel_speed.WheelBank.query`). The engine steps
     round by round: round ``r`` is the ``r``-th due tick of every vehicle that has one, all in
     one batched call.
     Slip, positions and attitude are computed for all rows at once afterwards.

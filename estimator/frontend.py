@@ -21,7 +21,7 @@ time on a fleet-wide grid):
   the tick with the GNSS velocity in product mode) and attitude held from the latest fix at or
   before each tick.
 * Wheel speeds: encoder trackers of all vehicles that share the ticks queried in one
-  :func:`~estimator.wheel_speed.query_stacked`; direct (CAN) speeds per vehicle (no batched
+  :meth:`~estimator.wheel_speed.WheelBank.query`; direct (CAN) speeds per vehicle (no batched
   query exists for them).
 
 Within one vehicle, measurements are expected in sensor order (the pipeline's reorder buffer
@@ -71,10 +71,12 @@ from estimator.types import (
 )
 from estimator.wheel_speed import (
     DirectWheelSpeed,
+    WheelBank,
     WheelSpeedConfig,
     WheelSpeedMethod,
+    WheelSpeedResult,
     WheelTracker,
-    query_stacked,
+    gather_bank,
 )
 
 __all__ = [
@@ -368,11 +370,16 @@ class FleetFrontEnd:
         self.wheel = wheel
         self.product = config.mode is MdsfMode.PRODUCT
         self.tick_ns = config.tick_ns
-        self.fit_wheels = query_stacked
-        """Batched wheel-speed fit (:func:`~estimator.wheel_speed.query_stacked`)."""
+        self.fit_wheels: Callable[[WheelBank, IntArray, IntArray], WheelSpeedResult]
+        self.fit_wheels = WheelBank.query
+        """Batched wheel-speed fit of encoder wheels in one bank
+        (:meth:`~estimator.wheel_speed.WheelBank.query`)."""
         self._cap = 0
         self._seq = 0  # push counter: which measurement of a vehicle came first
         self.trackers: list[tuple[WheelTracker, ...]] = []  # (left, right); () if free
+        # Banks that held the trackers of a whole wheel query (index: wheel_bank), and where:
+        # the trackers stay there until the next gather_bank of them (in _wheels).
+        self._banks: list[WheelBank] = []
         self.direct: list[DirectWheelSpeed | None] = []
         self._wheel_cfgs: list[WheelSpeedConfig] = []
         self._alloc(max(capacity, 1))
@@ -429,6 +436,8 @@ class FleetFrontEnd:
         grow("imu_fwd_m", (), 0.0)
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
+        grow("wheel_bank", (), np.int64(-1))  # index in _banks of the trackers' bank; -1: unknown
+        grow("wheel_slot", (len(Wheel),), np.int64(0))  # their slots in it (left, right)
         grow("count", (len(COUNT_NAMES),), np.int64(0))
         # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
         # pitch, and the chain's distance there
@@ -470,6 +479,8 @@ class FleetFrontEnd:
     imu_fwd_m: FloatArray
     lone_std: FloatArray
     wheel_cfg: IntArray
+    wheel_bank: IntArray
+    wheel_slot: IntArray
     count: IntArray
     chain_ns: IntArray
     chain_enu: FloatArray
@@ -489,6 +500,7 @@ class FleetFrontEnd:
         if wcfg not in self._wheel_cfgs:
             self._wheel_cfgs.append(wcfg)
         self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
+        self.wheel_bank[slot] = -1
         self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
         self.has_direction[slot] = vehicle.encoder.has_direction
         for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
@@ -538,6 +550,7 @@ class FleetFrontEnd:
         self._drop(slot)
         self._gridless.discard(slot)
         self.trackers[slot] = ()
+        self.wheel_bank[slot] = -1
         self.direct[slot] = None
 
     def _drop(self, slot: int) -> None:
@@ -1312,9 +1325,23 @@ class _Batch:
             mt = int(self.m[rows[0]])
             tix2 = self.offsets[rows][:, None] + np.arange(mt)
             tix = tix2.reshape(-1)
-            trackers = [tr for s in self.slots[rows].tolist() for tr in fe.trackers[s]]
             # rows of the fit: left, right of the first vehicle, then of the next, …
-            fitted = fe.fit_wheels(trackers, np.repeat(self.ticks[tix2], 2, axis=0))
+            vs = self.slots[rows]
+            bank_of = fe.wheel_bank[vs]
+            if bank_of[0] < 0 or not (bank_of == bank_of[0]).all():
+                # trackers new or spread over banks: into one (as query_many), noted per slot
+                trackers = [tr for s in vs.tolist() for tr in fe.trackers[s]]
+                held = gather_bank(trackers)
+                assert held is not None  # one wheel config
+                bank, wheel_slots = held
+                known = [i for i, b in enumerate(fe._banks) if b is bank]
+                if not known:
+                    fe._banks.append(bank)
+                fe.wheel_bank[vs] = known[0] if known else len(fe._banks) - 1
+                fe.wheel_slot[vs] = wheel_slots.reshape(-1, len(Wheel))
+            bank = fe._banks[int(fe.wheel_bank[vs[0]])]
+            wheel_slots = fe.wheel_slot[vs].reshape(-1)
+            fitted = fe.fit_wheels(bank, wheel_slots, np.repeat(self.ticks[tix2], 2, axis=0))
             lone = fe.lone_std[self.slots[rows]]
             period = np.ones(rows.shape[0] * mt, dtype=bool)
             for w in Wheel:

@@ -58,11 +58,11 @@ __all__ = [
     "WheelSpeedResult",
     "WheelTracker",
     "edge_angles",
+    "gather_bank",
     "omega_at",
     "omega_frequency",
     "omega_k_tooth",
     "query_many",
-    "query_stacked",
     "stop_bound",
 ]
 
@@ -1402,9 +1402,8 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     """:meth:`WheelTracker.query` of several trackers, in one vectorised fit.
 
     Equivalent to querying each tracker on its own. Trackers of one config that sit in
-    different banks are first moved into one (the biggest), once; from then on a call costs a
-    fixed number of numpy calls plus a Python attribute read per tracker. The rows of
-    :func:`query_stacked`, one result per tracker.
+    different banks are first moved into one (the biggest), once (:func:`gather_bank`); from
+    then on a call costs a fixed number of numpy calls plus a Python attribute read per tracker.
 
     Parameters
     ----------
@@ -1417,55 +1416,39 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     -------
     list of WheelSpeedResult, one per tracker, arrays of shape (m,)
     """
+    q = np.asarray(query_ns, dtype=np.int64)
     if not trackers:
         return []
-    r = query_stacked(trackers, query_ns)
+    held = gather_bank(trackers)
+    if held is None:
+        rows = q if q.ndim == 2 else np.broadcast_to(q, (len(trackers), q.shape[0]))
+        return [t.query(r) for t, r in zip(trackers, rows, strict=True)]
+    bank, slots = held
+    r = bank.query(slots, q)
     return list(map(_result_row, r.omega_radps, r.std_radps, r.method))
 
 
-def query_stacked(trackers: list[WheelTracker], query_ns: IntArray) -> WheelSpeedResult:
-    """:func:`query_many` with the results as one array per field, row ``i`` tracker ``i``.
+def gather_bank(trackers: list[WheelTracker]) -> tuple[WheelBank, IntArray] | None:
+    """The bank that holds every one of ``trackers`` (not empty) and their slots in it.
 
-    Same fit and values; callers that want every tracker's speeds in one array (the fleet
-    front end) skip making a result and three array views per tracker, which costs more than
-    the fit itself for short queries.
-
-    Parameters
-    ----------
-    trackers : list of WheelTracker
-        Distinct trackers.
-    query_ns : ndarray, shape (m,) or (len(trackers), m), int64, non-decreasing along m
-
-    Returns
-    -------
-    WheelSpeedResult
-        Arrays of shape ``(len(trackers), m)``.
+    Trackers spread over several banks are moved into the biggest of them first. Only this
+    function (also through :func:`query_many`) moves trackers, so a caller may keep the answer
+    and query the bank directly (:meth:`WheelBank.query`, one row per slot) as long as it
+    takes the answer of every later call for the trackers of that call. None when the
+    trackers' configs differ (they cannot share a bank).
     """
-    q = np.asarray(query_ns, dtype=np.int64)
-    if not trackers:
-        r = _unknown(0)
-        m = q.shape[-1]
-        return WheelSpeedResult(
-            r.omega_radps.reshape(0, m), r.std_radps.reshape(0, m), r.method.reshape(0, m)
-        )
     bank = trackers[0]._bank
     if not all(t._bank is bank for t in trackers):
         cfg = trackers[0].config
         if any(t.config != cfg for t in trackers):
-            rows = q if q.ndim == 2 else np.broadcast_to(q, (len(trackers), q.shape[0]))
-            res = [t.query(r) for t, r in zip(trackers, rows, strict=True)]
-            return WheelSpeedResult(
-                np.stack([x.omega_radps for x in res]),
-                np.stack([x.std_radps for x in res]),
-                np.stack([x.method for x in res]),
-            )
+            return None
         banks = {id(t._bank): t._bank for t in trackers}
         bank = max(banks.values(), key=lambda b: b._slots - len(b._free))
         for t in trackers:
             if t._bank is not bank:
                 t._move_to(bank)
     slots = np.fromiter((t._slot for t in trackers), dtype=np.int64, count=len(trackers))
-    return bank.query(slots, q)
+    return bank, slots
 
 
 _set_omega = WheelSpeedResult.__dict__["omega_radps"].__set__
