@@ -19,7 +19,7 @@ Two layers:
     IMU averaged over each tick window (gravity removed with the pitch, gyro biases learnt
     against the GNSS attitude), GNSS speed by eq. (1) moved to the tick by its time stamp,
     along-track distance from the RTK positions, wheel speeds of all vehicles that share the
-    ticks fitted in one call (:func:`estimator.wheel_speed.query_many`). The engine then steps
+    ticks fitted in one call (:meth:`estimator.wheel_speed.WheelBank.query`). The engine steps
     round by round: round ``r`` is the ``r``-th due tick of every vehicle that has one, all in
     one batched call.
     Slip, positions and attitude are computed for all rows at once afterwards.
@@ -109,6 +109,20 @@ class Counter(IntEnum):
 
 
 _TICK_FIELDS = TickInputs.__slots__
+_STEP_COLS = (
+    "vg",
+    "v1",
+    "v0",
+    "vl",
+    "vr",
+    "vg_std",
+    "vl_std",
+    "vr_std",
+    "accel",
+    "pitch_rate",
+    "yaw_rate",
+)
+"""Per-row outputs of :class:`StepOutput` that go into the estimate rows."""
 
 
 @dataclass(slots=True)
@@ -157,11 +171,13 @@ class TickModel:
         The covariance was changed between the stages (GNSS re-acquired or a slip jump).
     nis : ndarray, shape (k,)
         Normalised innovation squared of both stages (their sum is the joint update's), with
-        its degrees of freedom ``dof``.
+        its degrees of freedom ``dof``; computed when read, from the two ``stages``.
     dof : ndarray, shape (k,), int
     special : ndarray, shape (k,), bool
         The row was (re)initialised, reset after divergence or handed over: not a plain
         Kalman step.
+    stages : tuple of kalman.UpdateResult
+        The two update stages.
     """
 
     F: FloatArray
@@ -172,9 +188,14 @@ class TickModel:
     mask1: BoolArray
     mask2: BoolArray
     inflated: BoolArray
-    nis: FloatArray
     dof: IntArray
     special: BoolArray
+    stages: tuple[kalman.UpdateResult, kalman.UpdateResult]
+
+    @property
+    def nis(self) -> FloatArray:
+        first, second = self.stages
+        return first.nis + second.nis
 
 
 class MdsfEngine:
@@ -682,12 +703,12 @@ class MdsfEngine:
                 mask1=mask1,
                 mask2=mask2,
                 inflated=inflated,
-                nis=res1.nis + res.nis,
                 dof=res1.dof + res.dof,
                 special=sel
                 | diverged
                 | zupt
                 | (degraded if not self.product else np.zeros(k, bool)),
+                stages=(res1, res),
             ),
             rim=rim_post,
             rim_std=rim_std_post,
@@ -873,6 +894,22 @@ class MdsfEngine:
 # ---------------------------------------------------------------------------------------------
 
 
+def _filtered_rims(
+    so: StepOutput, rim: FloatArray, rim_std: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rim speeds (k, 2), their std and covariance with the wheel's ground speed for the slip:
+    the filtered ones where the step has them (product mode, emitted rows, measured rim
+    speed), else the measured ones with no covariance."""
+    if so.rim is None or so.rim_std is None or so.rim_ground_cov is None:
+        return rim, rim_std, np.zeros(rim.shape)
+    use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim)
+    return (
+        np.where(use, so.rim, rim),
+        np.where(use, so.rim_std, rim_std),
+        np.where(use, so.rim_ground_cov, 0.0),
+    )
+
+
 class MdsfFleet:
     """MDSF for a fleet of wheeled vehicles; implements :class:`estimator.base.FleetEstimator`.
 
@@ -964,8 +1001,8 @@ class MdsfFleet:
         ids = [vid for vid in until_ns if vid in self._slot]
         if not ids:
             return []
-        slots = np.fromiter((self._slot[v] for v in ids), dtype=np.int64, count=len(ids))
-        until = np.fromiter((until_ns[v] for v in ids), dtype=np.int64, count=len(ids))
+        slots = np.fromiter(map(self._slot.__getitem__, ids), dtype=np.int64, count=len(ids))
+        until = np.fromiter(map(until_ns.__getitem__, ids), dtype=np.int64, count=len(ids))
         due = self.front.assemble(slots, until)
         if due is None:
             return []
@@ -976,47 +1013,43 @@ class MdsfFleet:
         min_speed = self._min_speed_mps[row_slot]
         rim = flat.omega * radius
         rim_std = flat.omega_std * radius
-        out = empty_estimates(total)
-        emit = np.zeros(total, dtype=bool)
-        cols = (
-            "vg",
-            "v1",
-            "v0",
-            "vl",
-            "vr",
-            "vg_std",
-            "vl_std",
-            "vr_std",
-            "accel",
-            "pitch_rate",
-            "yaw_rate",
-        )
-        res: dict[str, FloatArray] = {c: np.full(total, np.nan) for c in cols}
-        flags = np.zeros(total, dtype=np.int32)
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
-        rim_cov = np.zeros((total, 2))
-        for r in range(int(lengths[0])):
-            c = int(np.count_nonzero(lengths > r))
-            fi = offsets[:c] + r
-            tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
-            emit[fi] = so.emit
-            for name in cols:
-                res[name][fi] = getattr(so, name)
-            flags[fi] = so.flags
-            if so.rim is not None and so.rim_std is not None and so.rim_ground_cov is not None:
-                use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim[fi])
-                rim[fi] = np.where(use, so.rim, rim[fi])
-                rim_std[fi] = np.where(use, so.rim_std, rim_std[fi])
-                rim_cov[fi] = np.where(use, so.rim_ground_cov, 0.0)
-        # Slip for all rows at once (eq. (8)(9)).
-        sl = slip_pct(rim[:, 0], res["vl"], min_speed, rim_std[:, 0], res["vl_std"], rim_cov[:, 0])
-        sr = slip_pct(rim[:, 1], res["vr"], min_speed, rim_std[:, 1], res["vr_std"], rim_cov[:, 1])
-        flags |= np.where(sl.valid, int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
-        flags |= np.where(sr.valid, int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
-        flags |= np.where(sl.standstill & sr.standstill, int(_F.STANDSTILL), 0).astype(np.int32)
+        if int(lengths[0]) == 1:
+            # One tick per vehicle (the usual call): the flat rows are the step's rows.
+            so = self.engine.step(due.slots, flat, rim, rim_std)
+            emit, flags = so.emit, so.flags
+            res = {name: getattr(so, name) for name in _STEP_COLS}
+            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
+        else:
+            emit = np.zeros(total, dtype=bool)
+            flags = np.zeros(total, dtype=np.int32)
+            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+            rim_cov = np.zeros((total, 2))
+            for r in range(int(lengths[0])):
+                c = int(np.count_nonzero(lengths > r))
+                fi = offsets[:c] + r
+                tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
+                so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
+                emit[fi] = so.emit
+                for name in _STEP_COLS:
+                    res[name][fi] = getattr(so, name)
+                flags[fi] = so.flags
+                rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
+        # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
+        sp = slip_pct(
+            rim,
+            np.stack([res["vl"], res["vr"]], axis=1),
+            min_speed[:, None],
+            rim_std,
+            np.stack([res["vl_std"], res["vr_std"]], axis=1),
+            rim_cov,
+        )
+        flags = flags | np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
+        flags |= np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
+        flags |= np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0).astype(np.int32)
         flags |= flat.wheel_flags
+        out = empty_estimates(total)
         out["stamp_ns"] = flat.stamp_ns
         out["vg_mps"] = res["vg"]
         out["v1_mps"] = res["v1"]
@@ -1027,13 +1060,13 @@ class MdsfFleet:
         out["rim_right_mps"] = rim[:, 1]
         out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
         out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
-        out["slip_left_pct"] = sl.slip_pct
-        out["slip_right_pct"] = sr.slip_pct
+        out["slip_left_pct"] = sp.slip_pct[:, 0]
+        out["slip_right_pct"] = sp.slip_pct[:, 1]
         out["vg_std_mps"] = res["vg_std"]
         out["vl_std_mps"] = res["vl_std"]
         out["vr_std_mps"] = res["vr_std"]
-        out["slip_left_std_pct"] = sl.std_pct
-        out["slip_right_std_pct"] = sr.std_pct
+        out["slip_left_std_pct"] = sp.std_pct[:, 0]
+        out["slip_right_std_pct"] = sp.std_pct[:, 1]
         out["accel_mps2"] = res["accel"]
         out["pitch_rate_radps"] = res["pitch_rate"]
         out["yaw_rate_radps"] = res["yaw_rate"]
@@ -1045,7 +1078,7 @@ class MdsfFleet:
         out["roll_rad"] = flat.attitude[:, 2]
         out["flags"] = flags
         # Emitted rows, split by vehicle (in the order of ``due``).
-        kept = out[emit]
+        kept = out if emit.all() else out[emit]
         ends = np.cumsum(np.add.reduceat(emit, offsets))
         return [
             (ids[i], kept[a:b])

@@ -21,7 +21,7 @@ time on a fleet-wide grid):
   the tick with the GNSS velocity in product mode) and attitude held from the latest fix at or
   before each tick.
 * Wheel speeds: encoder trackers of all vehicles that share the ticks queried in one
-  :func:`~estimator.wheel_speed.query_many`; direct (CAN) speeds per vehicle (no batched
+  :meth:`~estimator.wheel_speed.WheelBank.query`; direct (CAN) speeds per vehicle (no batched
   query exists for them).
 
 Within one vehicle, measurements are expected in sensor order (the pipeline's reorder buffer
@@ -71,10 +71,12 @@ from estimator.types import (
 )
 from estimator.wheel_speed import (
     DirectWheelSpeed,
+    WheelBank,
     WheelSpeedConfig,
     WheelSpeedMethod,
+    WheelSpeedResult,
     WheelTracker,
-    query_many,
+    gather_bank,
 )
 
 __all__ = [
@@ -300,6 +302,15 @@ def _asof(
     return np.where(ok, out, -1)
 
 
+_F64_MAX = float(np.finfo(np.float64).max)
+
+
+def _nan_to_num(x: FloatArray) -> FloatArray:
+    """``np.nan_to_num(x)`` of a float array (NaN → 0, ±inf → ± the largest float) in three
+    array calls instead of its dozen (called a few times on every assembly)."""
+    return np.where(np.isfinite(x), x, np.where(np.isnan(x), 0.0, np.copysign(_F64_MAX, x)))
+
+
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
     """``values[i]`` where ``i >= 0``, else ``otherwise`` (shapes of ``i``)."""
     if values.shape[0] == 0:
@@ -368,11 +379,16 @@ class FleetFrontEnd:
         self.wheel = wheel
         self.product = config.mode is MdsfMode.PRODUCT
         self.tick_ns = config.tick_ns
-        self.fit_wheels = query_many
-        """Batched wheel-speed fit (:func:`~estimator.wheel_speed.query_many`)."""
+        self.fit_wheels: Callable[[WheelBank, IntArray, IntArray], WheelSpeedResult]
+        self.fit_wheels = WheelBank.query
+        """Batched wheel-speed fit of encoder wheels in one bank
+        (:meth:`~estimator.wheel_speed.WheelBank.query`)."""
         self._cap = 0
         self._seq = 0  # push counter: which measurement of a vehicle came first
         self.trackers: list[tuple[WheelTracker, ...]] = []  # (left, right); () if free
+        # Banks that held the trackers of a whole wheel query (index: wheel_bank), and where:
+        # the trackers stay there until the next gather_bank of them (in _wheels).
+        self._banks: list[WheelBank] = []
         self.direct: list[DirectWheelSpeed | None] = []
         self._wheel_cfgs: list[WheelSpeedConfig] = []
         self._alloc(max(capacity, 1))
@@ -386,8 +402,8 @@ class FleetFrontEnd:
         # Vehicles without a tick grid yet, and the first wheel data (seq, stamp) of such.
         self._gridless: set[int] = set()
         self._first_wheel: dict[int, tuple[int, int]] = {}
-        self._gnss_new_id: list[tuple[int, int, int]] = []
-        self._gnss_new_val: list[tuple[float, ...]] = []
+        self._gnss_new_id: list[int] = []  # slot, seq, stamp of each fix, flat
+        self._gnss_new_val: list[float] = []  # the _G_* columns of each fix, flat
         # Checked and waiting for their tick, in push order.
         self._imu_slot = np.zeros(0, dtype=np.int64)
         self._imu_t = np.zeros(0, dtype=np.int64)
@@ -429,6 +445,8 @@ class FleetFrontEnd:
         grow("imu_fwd_m", (), 0.0)
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
+        grow("wheel_bank", (), np.int64(-1))  # index in _banks of the trackers' bank; -1: unknown
+        grow("wheel_slot", (len(Wheel),), np.int64(0))  # their slots in it (left, right)
         grow("count", (len(COUNT_NAMES),), np.int64(0))
         # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
         # pitch, and the chain's distance there
@@ -470,6 +488,8 @@ class FleetFrontEnd:
     imu_fwd_m: FloatArray
     lone_std: FloatArray
     wheel_cfg: IntArray
+    wheel_bank: IntArray
+    wheel_slot: IntArray
     count: IntArray
     chain_ns: IntArray
     chain_enu: FloatArray
@@ -489,6 +509,7 @@ class FleetFrontEnd:
         if wcfg not in self._wheel_cfgs:
             self._wheel_cfgs.append(wcfg)
         self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
+        self.wheel_bank[slot] = -1
         self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
         self.has_direction[slot] = vehicle.encoder.has_direction
         for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
@@ -538,6 +559,7 @@ class FleetFrontEnd:
         self._drop(slot)
         self._gridless.discard(slot)
         self.trackers[slot] = ()
+        self.wheel_bank[slot] = -1
         self.direct[slot] = None
 
     def _drop(self, slot: int) -> None:
@@ -581,8 +603,8 @@ class FleetFrontEnd:
                 self.count[slot, _GNSS] += 1
                 return
             self._seq += 1
-            self._gnss_new_id.append((slot, self._seq, int(m.stamp_ns)))
-            self._gnss_new_val.append(
+            self._gnss_new_id.extend((slot, self._seq, int(m.stamp_ns)))
+            self._gnss_new_val.extend(
                 (
                     *m.vel_enu_mps,
                     m.heading_rad,
@@ -1099,7 +1121,7 @@ class _Batch:
         tid = self.offsets[self.g_row] + j
         inside = self.g_vel_ok
         if self.product:
-            a_t = np.nan_to_num(z[tid, MdsfObs.A1])
+            a_t = _nan_to_num(z[tid, MdsfObs.A1])
             vg_al = self.g_vg + a_t * (self.ticks[tid] - self.g_t) * _NS
             ti = tid[inside]
             cnt = np.bincount(ti, minlength=n_ticks)
@@ -1158,7 +1180,7 @@ class _Batch:
         s = self.slots[r]
         p = self.g_enu[idx]
         t = self.g_t[idx]
-        att = np.stack([self.g_heading[idx], np.nan_to_num(g[idx, _G_PITCH])], axis=1)
+        att = np.stack([self.g_heading[idx], _nan_to_num(g[idx, _G_PITCH])], axis=1)
         first = np.ones(idx.size, dtype=bool)
         first[1:] = r[1:] != r[:-1]
         p_prev = np.empty_like(p)
@@ -1252,11 +1274,11 @@ class _Batch:
         sel = fe.hold[s[self.tick_row]]
         if nf:
             sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
-        age = (self.ticks - np.nan_to_num(sel[:, _H_STAMP], nan=0.0)) * _NS
+        age = (self.ticks - _nan_to_num(sel[:, _H_STAMP])) * _NS
         age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
-        vel = np.nan_to_num(sel[:, _H_VE : _H_VU + 1])
+        vel = _nan_to_num(sel[:, _H_VE : _H_VU + 1])
         enu = sel[:, _H_E : _H_U + 1] + (vel * age[:, None] if self.product else 0.0)
-        heading = sel[:, _H_HEAD] - (np.nan_to_num(wz_tick) * age if self.product else 0.0)
+        heading = sel[:, _H_HEAD] - (_nan_to_num(wz_tick) * age if self.product else 0.0)
         heading = np.mod(heading, 2 * np.pi)
         pitch = (
             np.where(np.isfinite(theta_tick), theta_tick, sel[:, _H_PITCH])
@@ -1312,15 +1334,29 @@ class _Batch:
             mt = int(self.m[rows[0]])
             tix2 = self.offsets[rows][:, None] + np.arange(mt)
             tix = tix2.reshape(-1)
-            trackers = [tr for s in self.slots[rows].tolist() for tr in fe.trackers[s]]
-            fitted = fe.fit_wheels(trackers, np.repeat(self.ticks[tix2], 2, axis=0))
+            # rows of the fit: left, right of the first vehicle, then of the next, …
+            vs = self.slots[rows]
+            bank_of = fe.wheel_bank[vs]
+            if bank_of[0] < 0 or not (bank_of == bank_of[0]).all():
+                # trackers new or spread over banks: into one (as query_many), noted per slot
+                trackers = [tr for s in vs.tolist() for tr in fe.trackers[s]]
+                held = gather_bank(trackers)
+                assert held is not None  # one wheel config
+                bank, wheel_slots = held
+                known = [i for i, b in enumerate(fe._banks) if b is bank]
+                if not known:
+                    fe._banks.append(bank)
+                fe.wheel_bank[vs] = known[0] if known else len(fe._banks) - 1
+                fe.wheel_slot[vs] = wheel_slots.reshape(-1, len(Wheel))
+            bank = fe._banks[int(fe.wheel_bank[vs[0]])]
+            wheel_slots = fe.wheel_slot[vs].reshape(-1)
+            fitted = fe.fit_wheels(bank, wheel_slots, np.repeat(self.ticks[tix2], 2, axis=0))
             lone = fe.lone_std[self.slots[rows]]
             period = np.ones(rows.shape[0] * mt, dtype=bool)
             for w in Wheel:
-                res = fitted[w::2]
-                om = np.concatenate([x.omega_radps for x in res])
-                sd = np.concatenate([x.std_radps for x in res])
-                method = np.concatenate([x.method for x in res])
+                om = fitted.omega_radps[w::2].reshape(-1)
+                sd = fitted.std_radps[w::2].reshape(-1)
+                method = fitted.method[w::2].reshape(-1)
                 none = method == WheelSpeedMethod.NONE
                 omega[tix, w] = np.where(none, 0.0, om)
                 omega_std[tix, w] = np.where(none, np.repeat(lone, mt), sd)

@@ -58,6 +58,7 @@ __all__ = [
     "WheelSpeedResult",
     "WheelTracker",
     "edge_angles",
+    "gather_bank",
     "omega_at",
     "omega_frequency",
     "omega_k_tooth",
@@ -961,20 +962,20 @@ class WheelBank:
     def _search(self, slot: IntArray, lo: IntArray, hi: IntArray, value: IntArray) -> IntArray:
         """First edge number in ``[lo, hi)`` with a time after ``value`` (``hi`` if none).
 
-        Bisection of every row at once (held times are non-decreasing).
+        Bisection of every row at once (held times are non-decreasing), as many halvings as
+        the widest range needs; a row whose range is already empty stays where it is.
         """
-        lo = lo.copy()
-        hi = hi.copy()
         base = self._base[slot]
         mask = self._mask[slot]
-        while True:
-            active = lo < hi
-            if not active.any():
-                return lo
+        width = int((hi - lo).max()) if lo.size else 0
+        if width <= 0:
+            return lo.copy()
+        for _ in range(width.bit_length()):
             mid = (lo + hi) >> 1
             after = self._stamp[base + (mid & mask)] > value
-            lo = np.where(active & ~after, mid + 1, lo)
-            hi = np.where(active & after, mid, hi)
+            lo = np.where(after, lo, np.minimum(mid + 1, hi))
+            hi = np.where(after, mid, hi)
+        return lo
 
     # --- query ---------------------------------------------------------------------------
     def query(self, slots: IntArray, query_ns: IntArray) -> WheelSpeedResult:
@@ -999,10 +1000,12 @@ class WheelBank:
         s = np.asarray(slots, dtype=np.int64).reshape(-1)
         q2 = np.asarray(query_ns, dtype=np.int64)
         n = s.shape[0]
+        # one row per distinct slot for the calibration (a repeated slot shares its times)
+        uniq, first = np.unique(s, return_index=True) if n > 1 else (s, np.zeros(1, np.int64))
         if q2.ndim == 2:
             if q2.shape[0] != n:
                 raise ValueError(f"query_ns has {q2.shape[0]} rows for {n} slots")
-            if n > 1 and np.unique(s).shape[0] != n:
+            if uniq.shape[0] != n:
                 raise ValueError("slots must be distinct when each has its own times")
         else:
             q2 = np.broadcast_to(q2.reshape(1, -1), (n, q2.size))
@@ -1017,8 +1020,6 @@ class WheelBank:
         omega = np.empty((n, m))
         std = np.empty((n, m))
         method = np.empty((n, m), dtype=np.int8)
-        # one row per distinct slot for the calibration (a repeated slot shares its times)
-        uniq, first = np.unique(s, return_index=True) if n > 1 else (s, np.zeros(1, np.int64))
         period = self._period_ns
         i = 0
         tail: tuple[IntArray, IntArray] | None = None
@@ -1401,8 +1402,8 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     """:meth:`WheelTracker.query` of several trackers, in one vectorised fit.
 
     Equivalent to querying each tracker on its own. Trackers of one config that sit in
-    different banks are first moved into one (the biggest), once; from then on a call costs a
-    fixed number of numpy calls plus a Python attribute read per tracker.
+    different banks are first moved into one (the biggest), once (:func:`gather_bank`); from
+    then on a call costs a fixed number of numpy calls plus a Python attribute read per tracker.
 
     Parameters
     ----------
@@ -1418,20 +1419,36 @@ def query_many(trackers: list[WheelTracker], query_ns: IntArray) -> list[WheelSp
     q = np.asarray(query_ns, dtype=np.int64)
     if not trackers:
         return []
+    held = gather_bank(trackers)
+    if held is None:
+        rows = q if q.ndim == 2 else np.broadcast_to(q, (len(trackers), q.shape[0]))
+        return [t.query(r) for t, r in zip(trackers, rows, strict=True)]
+    bank, slots = held
+    r = bank.query(slots, q)
+    return list(map(_result_row, r.omega_radps, r.std_radps, r.method))
+
+
+def gather_bank(trackers: list[WheelTracker]) -> tuple[WheelBank, IntArray] | None:
+    """The bank that holds every one of ``trackers`` (not empty) and their slots in it.
+
+    Trackers spread over several banks are moved into the biggest of them first. Only this
+    function (also through :func:`query_many`) moves trackers, so a caller may keep the answer
+    and query the bank directly (:meth:`WheelBank.query`, one row per slot) as long as it
+    takes the answer of every later call for the trackers of that call. None when the
+    trackers' configs differ (they cannot share a bank).
+    """
     bank = trackers[0]._bank
     if not all(t._bank is bank for t in trackers):
         cfg = trackers[0].config
         if any(t.config != cfg for t in trackers):
-            rows = q if q.ndim == 2 else np.broadcast_to(q, (len(trackers), q.shape[0]))
-            return [t.query(r) for t, r in zip(trackers, rows, strict=True)]
+            return None
         banks = {id(t._bank): t._bank for t in trackers}
         bank = max(banks.values(), key=lambda b: b._slots - len(b._free))
         for t in trackers:
             if t._bank is not bank:
                 t._move_to(bank)
     slots = np.fromiter((t._slot for t in trackers), dtype=np.int64, count=len(trackers))
-    r = bank.query(slots, q)
-    return list(map(_result_row, r.omega_radps, r.std_radps, r.method))
+    return bank, slots
 
 
 _set_omega = WheelSpeedResult.__dict__["omega_radps"].__set__

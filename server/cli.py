@@ -9,7 +9,7 @@ Subcommands::
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
-                                          wheels frontend publisher ingest
+                                          wheels frontend advance publisher ingest
     slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
@@ -39,6 +39,7 @@ BENCHES = (
     "throughput",
     "wheels",
     "frontend",
+    "advance",
     "publisher",
     "ingest",
 )

@@ -13,7 +13,7 @@ For each fleet size and call interval the table prints the process CPU time spen
 and in ``advance``, in milliseconds per vehicle-second of sensor data (the first ``WARMUP_S``
 seconds, before every vehicle emits, are not counted), and the rows emitted. ``advance`` is
 split into the encoder wheel-speed fit (``FleetFrontEnd.fit_wheels``, i.e.
-:func:`estimator.wheel_speed.query_many`), the filter steps (``MdsfEngine.step``) and the rest
+:meth:`estimator.wheel_speed.WheelBank.query`), the filter steps (``MdsfEngine.step``) and the rest
 (front end, slip, output rows); the two are timed by wrapping those attributes of the fleet
 under test. Target: ``advance`` ≤ 0.3 ms and ``push`` ≤ 0.1 ms per vehicle-second with 1,000
 vehicles at 100 ms. Baseline in the same run (``alone ms``): every vehicle in a fleet of its own,
