@@ -304,3 +304,25 @@ def test_calibration_measures_the_remaining_angle_noise() -> None:
     assert 0.3 < float(np.sqrt(np.mean(np.square(z)))) < 2.0
     assert tr.angle_noise_rad < 0.1 * 0.01 * PITCH
     assert off.angle_noise_rad == pytest.approx(0.01 * PITCH)
+
+
+def test_fast_wheel_fit_is_short_enough_to_follow_a_changing_acceleration() -> None:
+    # Braking onset: the wheel's deceleration grows at 5 rad/s³ from 4.5 rad/s (86 edges/s).
+    # The quadratic fit is exact under constant acceleration only; over the full 0.3 s window
+    # (26 edges) the jerk biases it, the default 16 edges keep that bias small.
+    w0, jerk = 4.5, -5.0
+
+    def angle(t: np.ndarray) -> np.ndarray:
+        return w0 * t + jerk * t**3 / 6.0
+
+    e = edges_for(angle, 0.8)
+    q = T0 + np.array([500_000_000, 600_000_000, 700_000_000], dtype=np.int64)
+    truth = w0 + 0.5 * jerk * ((q - T0) * 1e-9) ** 2
+    errs = {}
+    for max_edges in (16, 64):
+        cfg = WheelSpeedConfig(teeth_per_rev=NS, max_edges=max_edges, tooth_calibration=False)
+        r = omega_at(e, edge_angles(e.shape[0], NS), q, cfg)
+        errs[max_edges] = float(np.max(np.abs(r.omega_radps - truth)))
+    assert WheelSpeedConfig().max_edges == 16
+    assert errs[16] < 0.7 * errs[64]
+    assert errs[16] / w0 < 0.008
