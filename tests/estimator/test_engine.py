@@ -665,3 +665,23 @@ def test_outage_leaves_the_slip_response_to_the_tyre_model() -> None:
     assert np.array_equal(q_rim[0.0][:450], q_rim[1.0][:450])
     assert q_rim[0.0].sum() < q_rim[1.0].sum()
     assert errs[0.0] < 0.5 * errs[1.0]
+
+
+def test_a_slip_jump_still_opens_the_rim_excess() -> None:
+    # Entering a wet patch the slip jumps from ~5 % to 20-30 %: the rim rows run far off their
+    # prediction and the jump test opens the rim excess, so the slip follows within a second.
+    # Without the test (an unreachable threshold) the filter lags behind the jump.
+    sim, cfg = _sim("slope_wet_patch", 1)
+    tr = sim.truth
+    t_truth = (tr["stamp_ns"] - sim.start_ns) * 1e-9
+    wet = tr["mu_max"] < tr["mu_max"].max() - 1e-9
+    t_in = float(t_truth[wet][0])
+    errs = {}
+    for sigma in (MdsfConfig().slip_jump_sigma, 1e9):
+        rows = _run(MdsfFleet(MdsfConfig(slip_jump_sigma=sigma)), {"v": (sim, cfg)})["v"]
+        t = (rows["stamp_ns"] - sim.start_ns) * 1e-9
+        entry = (t > t_in + 0.5) & (t < t_in + 3.0)
+        truth = truth_at(tr, rows["stamp_ns"][entry], "slip_left_pct")
+        errs[sigma] = float(np.sqrt(np.mean((rows["slip_left_pct"][entry] - truth) ** 2)))
+    assert errs[4.0] < 1.5
+    assert errs[4.0] < 0.5 * errs[1e9]
