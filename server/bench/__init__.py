@@ -6,10 +6,15 @@ writes the same numbers as JSON.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
+from typing import Any
 
-__all__ = ["int_list", "percentile"]
+__all__ = ["SOURCE_START_NS", "field_work_sources", "int_list", "percentile", "push_until"]
+
+SOURCE_START_NS = 1_700_000_000_000_000_000
+"""Sensor time at which the field_work sources start."""
 
 
 def int_list(text: str) -> list[int]:
@@ -27,3 +32,38 @@ def percentile(values: Sequence[float], q: float) -> float:
     """The ``q``-th percentile (nearest rank) of ``values`` (not empty)."""
     s = sorted(values)
     return s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))]
+
+
+def field_work_sources(seconds: float, runs: int) -> list[tuple[Any, list[Any]]]:
+    """``runs`` simulated ``field_work`` drives (seeds 1…runs) for fleets that replay them.
+
+    Returns ``(vehicle config with the run's noise figures, measurements in arrival order)``
+    per run; ValueError if a run is shorter than ``seconds`` + 1 s. The estimator is imported
+    here, not at module level, so a bench that measures another revision's estimator in a
+    child process gets that revision's.
+    """
+    from estimator.sim import simulate
+
+    out = []
+    for k in range(runs):
+        sim = simulate("field_work", seed=k + 1, start_ns=SOURCE_START_NS)
+        if sim.duration_s < seconds + 1.0:
+            raise ValueError(f"field_work runs {sim.duration_s:.0f} s, less than {seconds} s")
+        config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
+        out.append((config, sim.in_arrival_order()))
+    return out
+
+
+def push_until(
+    fleet: Any, ids: Sequence[str], streams: Sequence[Sequence[Any]], pos: list[int], now_ns: int
+) -> None:
+    """Push each vehicle's ``(arrival_ns, measurement)`` stream up to ``now_ns`` into ``fleet``.
+
+    ``pos[k]`` is how far stream ``k`` has been pushed; it is advanced in place.
+    """
+    for k, vid in enumerate(ids):
+        st, i = streams[k], pos[k]
+        while i < len(st) and st[i][0] <= now_ns:
+            fleet.push(vid, st[i][1])
+            i += 1
+        pos[k] = i

@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from server.bench import int_list
+from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until
 
 __all__ = ["main", "measure", "run"]
 
@@ -49,7 +49,6 @@ LAG_MS = 150
 """Horizon of each ``advance`` behind the newest arrival (the pipeline's reorder buffer)."""
 WARMUP_S = 2.0
 """Sensor seconds at the start that are not measured."""
-_START_NS = 1_700_000_000_000_000_000
 _REPO = Path(__file__).resolve().parents[2]
 
 
@@ -58,18 +57,9 @@ def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS
 
     Returns ``{"cases": [{vehicles, calls, ticks, advance_s}], "digest": sha256 of the rows}``.
     """
-    import dataclasses
-
     from estimator.engine import MdsfFleet
-    from estimator.sim import simulate
 
-    sources = []
-    for k in range(source_runs):
-        sim = simulate("field_work", seed=k + 1, start_ns=_START_NS)
-        if sim.duration_s < seconds + 1.0:
-            raise ValueError(f"field_work runs {sim.duration_s:.0f} s, less than {seconds} s")
-        config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
-        sources.append((config, sim.in_arrival_order()))
+    sources = field_work_sources(seconds, source_runs)
     digest = hashlib.sha256()
     cases = []
     for n in sizes:
@@ -78,7 +68,7 @@ def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS
         ids = [f"v{k:05d}" for k in range(n)]
         for k, vid in enumerate(ids):
             fleet.add_vehicle(vid, sources[k % source_runs][0])
-            fleet.align_ticks(vid, _START_NS + k * tick_ns // n)
+            fleet.align_ticks(vid, SOURCE_START_NS + k * tick_ns // n)
         streams = [sources[k % source_runs][1] for k in range(n)]
         pos = [0] * n
         step_ns = INTERVAL_MS * 1_000_000
@@ -86,13 +76,8 @@ def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS
         spent = 0.0
         calls = ticks = 0
         for s in range(round(seconds * 1000 / INTERVAL_MS)):
-            now = _START_NS + (s + 1) * step_ns
-            for k, vid in enumerate(ids):
-                st, i = streams[k], pos[k]
-                while i < len(st) and st[i][0] <= now:
-                    fleet.push(vid, st[i][1])
-                    i += 1
-                pos[k] = i
+            now = SOURCE_START_NS + (s + 1) * step_ns
+            push_until(fleet, ids, streams, pos, now)
             horizon = dict.fromkeys(ids, now - LAG_MS * 1_000_000)
             t0 = time.process_time()
             out = fleet.advance(horizon)

@@ -24,7 +24,6 @@ batched call's.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -34,8 +33,7 @@ from typing import Any
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.engine import MdsfFleet
-from estimator.sim import simulate
-from server.bench import int_list
+from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until
 
 __all__ = ["main", "run"]
 
@@ -45,22 +43,8 @@ WARMUP_S = 2.0
 """Sensor seconds at the start that are not measured."""
 LAG_MS = 150
 """Horizon of each ``advance`` behind the newest arrival (the pipeline's reorder buffer)."""
-_START_NS = 1_700_000_000_000_000_000
 ALONE_MAX = 50
 """Vehicles run by the per-vehicle baseline (its cost per vehicle does not depend on N)."""
-
-
-def _sources(
-    seconds: float, runs: int = SOURCE_RUNS
-) -> list[tuple[VehicleConfig, list[tuple[int, Measurement]]]]:
-    out = []
-    for k in range(runs):
-        run = simulate("field_work", seed=k + 1, start_ns=_START_NS)
-        if run.duration_s < seconds + 1.0:
-            raise ValueError(f"field_work runs {run.duration_s:.0f} s, less than {seconds} s")
-        cfg = dataclasses.replace(run.config, noise=run.sensor_noise)
-        out.append((cfg, run.in_arrival_order()))
-    return out
 
 
 def measure(
@@ -99,14 +83,9 @@ def measure(
     for s in range(n_steps):
         if s == warm:
             spent["wheel_fit"] = spent["engine"] = 0.0
-        now = _START_NS + (s + 1) * step_ns
+        now = SOURCE_START_NS + (s + 1) * step_ns
         a = time.process_time()
-        for k, vid in enumerate(ids):
-            st, i = streams[k], pos[k]
-            while i < len(st) and st[i][0] <= now:
-                fleet.push(vid, st[i][1])
-                i += 1
-            pos[k] = i
+        push_until(fleet, ids, streams, pos, now)
         b = time.process_time()
         horizon = now - LAG_MS * 1_000_000
         out = fleet.advance(dict.fromkeys(ids, horizon))
@@ -147,7 +126,7 @@ def measure_alone(
     warm = round(WARMUP_S * 1000 / interval_ms)
     advance_s = 0.0
     for s in range(n_steps):
-        now = _START_NS + (s + 1) * step_ns
+        now = SOURCE_START_NS + (s + 1) * step_ns
         for k, f in enumerate(fleets):
             st, i = streams[k], pos[k]
             while i < len(st) and st[i][0] <= now:
@@ -172,7 +151,7 @@ def run(
     source_runs: int = SOURCE_RUNS,
 ) -> dict[str, Any]:
     """Measure every (size, interval) pair, print a table; returns and optionally writes JSON."""
-    sources = _sources(seconds, source_runs)
+    sources = field_work_sources(seconds, source_runs)
     cases = []
     print(f"MdsfFleet CPU per vehicle-second of sensor data ({seconds:g} s of field_work)")
     print(
@@ -197,8 +176,6 @@ def run(
     if json_path is not None:
         Path(json_path).write_text(json.dumps(result, indent=2))
     return result
-
-
 
 
 def main(argv: Sequence[str] | None = None) -> int:
