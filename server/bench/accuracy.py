@@ -40,6 +40,14 @@ Several seeds
 ``--seeds 1,2,3,4,5`` runs every scenario once per seed and reports, per scenario and method,
 the worst (largest error, smallest coverage) and the mean of each metric over the seeds; the
 floors are checked on the worst. A result that holds on one seed only is not a result.
+
+Variants
+--------
+``--variants`` runs, instead of the named scenarios, :data:`VARIANTS`: the same scenarios with
+a sensor or drive changed (a rougher or finer encoder ring, a 40 s outage, frequent GNSS
+outliers, a wet patch at 1 m/s, GNSS at 10 Hz), so a change tuned to the named runs shows
+what it does elsewhere. Their rows are labelled ``scenario[setting=value]`` and judged
+on the floors of their scenario.
 """
 
 from __future__ import annotations
@@ -68,6 +76,7 @@ __all__ = [
     "METHODS",
     "MOVING_MPS",
     "START_NS",
+    "VARIANTS",
     "default_estimators",
     "evaluate",
     "main",
@@ -78,6 +87,7 @@ __all__ = [
     "run_seeds",
     "summarize_seeds",
     "traditional_estimates",
+    "variant_label",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -89,6 +99,23 @@ MOVING_MPS = 0.5
 """Rows count when the true ``V0`` exceeds this (the source's relative errors are on motion)."""
 
 METHODS = ("product", "paper", "traditional")
+
+#: Scenario variants for ``--variants``: (scenario, overrides of :func:`estimator.sim.simulate`).
+VARIANTS: tuple[tuple[str, Mapping[str, Any]], ...] = (
+    ("slow_creep", {"tooth_error_rel": 0.02}),
+    ("field_work", {"tooth_error_rel": 0.02}),
+    ("hard_braking", {"tooth_error_rel": 0.005}),
+    ("gnss_outage", {"outage_s": 40.0}),
+    ("figure_eight", {"gnss_outlier_prob": 0.02}),
+    ("slope_wet_patch", {"speed_mps": 1.0}),
+    ("paper_circle", {"gnss_rate_hz": 10.0}),
+)
+
+
+def variant_label(scenario: str, overrides: Mapping[str, Any]) -> str:
+    """``"slow_creep[tooth_error_rel=0.02]"``."""
+    return f"{scenario}[{','.join(f'{k}={v}' for k, v in overrides.items())}]"
+
 
 #: Floors the product mode must meet: (metric, comparison, bound, scenario selector).
 FLOORS: tuple[tuple[str, str, float, str], ...] = (
@@ -336,6 +363,7 @@ def run(
     quiet: bool = False,
     out: TextIO | None = None,
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    variants: bool = False,
 ) -> dict[str, Any]:
     """Run the bench; print the table (unless ``quiet``) and write JSON if ``json_path`` is given.
 
@@ -352,6 +380,8 @@ def run(
         :func:`default_estimators`). The traditional method is always added.
     overrides : mapping, optional
         Scenario name → overrides passed to :func:`estimator.sim.simulate`.
+    variants : bool
+        Run :data:`VARIANTS` (of the given scenarios, default all) instead.
 
     Returns
     -------
@@ -367,8 +397,12 @@ def run(
         raise KeyError(f"unknown scenario(s) {unknown}; known: {list(SCENARIOS)}")
     factories = dict(estimators) if estimators is not None else default_estimators()
     results: list[dict[str, Any]] = []
-    for name in names:
-        sim = simulate(name, seed=seed, start_ns=START_NS, **dict((overrides or {}).get(name, {})))
+    if variants:
+        cases = [(variant_label(n, kw), n, kw) for n, kw in VARIANTS if n in names]
+    else:
+        cases = [(n, n, (overrides or {}).get(n, {})) for n in names]
+    for label, name, kw in cases:
+        sim = simulate(name, seed=seed, start_ns=START_NS, **dict(kw))
         config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
         methods: list[tuple[str, Callable[[], np.ndarray]]] = [
             (method, _estimator_runner(factory, sim, config))
@@ -376,7 +410,7 @@ def run(
         ]
         methods.append(("traditional", _traditional_runner(sim, config)))
         for method, fn in methods:
-            row: dict[str, Any] = {"scenario": name, "method": method}
+            row: dict[str, Any] = {"scenario": label, "method": method}
             t0 = time.perf_counter()
             try:
                 rows = fn()
@@ -500,6 +534,7 @@ def run_seeds(
     quiet: bool = False,
     out: TextIO | None = None,
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    variants: bool = False,
 ) -> dict[str, Any]:
     """Run the bench once per seed; report worst and mean per scenario (see the module doc).
 
@@ -523,6 +558,7 @@ def run_seeds(
             estimators=estimators,
             quiet=True,
             overrides=overrides,
+            variants=variants,
         )
         for seed in seed_list
     ]
@@ -583,11 +619,16 @@ def _fmt(value: Any, width: int) -> str:
     return f"{value:{width}.2f}"
 
 
+def _scenario_width(rows: Iterable[Mapping[str, Any]]) -> int:
+    return max([16, *(len(r["scenario"]) for r in rows)])
+
+
 def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
     """Plain-text table of :func:`run`'s result, one line per scenario and method."""
     f = file if file is not None else sys.stdout
-    rows: Iterable[Mapping[str, Any]] = result["results"]
-    head = f"{'scenario':<16} {'method':<12}" + "".join(f" {t:>{w}}" for _, t, w in _COLUMNS)
+    rows: list[Mapping[str, Any]] = list(result["results"])
+    sw = _scenario_width(rows)
+    head = f"{'scenario':<{sw}} {'method':<12}" + "".join(f" {t:>{w}}" for _, t, w in _COLUMNS)
     head += "  floors"
     print(head, file=f)
     print("-" * len(head), file=f)
@@ -596,7 +637,7 @@ def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
         if last is not None and r["scenario"] != last:
             print("", file=f)
         last = r["scenario"]
-        line = f"{r['scenario']:<16} {r['method']:<12}"
+        line = f"{r['scenario']:<{sw}} {r['method']:<12}"
         line += "".join(" " + _fmt(r.get(k), w) for k, _, w in _COLUMNS)
         if "floors_pass" in r:
             line += "  PASS" if r["floors_pass"] else "  FAIL: " + "; ".join(r["floors_failed"])
@@ -620,7 +661,8 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
     """Plain-text table of :func:`run_seeds`: per scenario and method a ``worst`` and a
     ``mean`` line over the seeds, floors judged on the worst."""
     f = file if file is not None else sys.stdout
-    head = f"{'scenario':<16} {'method':<12} {'over':<5}" + "".join(
+    sw = _scenario_width(result["summary"])
+    head = f"{'scenario':<{sw}} {'method':<12} {'over':<5}" + "".join(
         f" {t:>{w}}" for _, t, w in _COLUMNS
     )
     head += "  floors (on the worst)"
@@ -632,7 +674,7 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
             print("", file=f)
         last = r["scenario"]
         for label in ("worst", "mean"):
-            line = f"{r['scenario']:<16} {r['method']:<12} {label:<5}"
+            line = f"{r['scenario']:<{sw}} {r['method']:<12} {label:<5}"
             line += "".join(" " + _fmt(r[label].get(k), w) for k, _, w in _COLUMNS)
             if label == "worst" and "floors_pass" in r:
                 line += "  PASS" if r["floors_pass"] else "  FAIL: " + "; ".join(r["floors_failed"])
@@ -651,8 +693,6 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
         f"seeds {seeds}; overall: {'PASS' if result['all_pass'] else 'FAIL'}",
         file=f,
     )
-
-
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -676,15 +716,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=None,
         help="comma-separated seeds: worst and mean per scenario, floors on the worst",
     )
+    p.add_argument(
+        "--variants",
+        action="store_true",
+        help="run the scenario variants (VARIANTS) instead of the named scenarios",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)
     names = list(args.scenarios)
     if args.scenario_list:
         names += [n.strip() for n in args.scenario_list.split(",") if n.strip()]
     if args.seeds is not None:
-        result = run_seeds(args.json, scenarios=names or None, seeds=args.seeds)
+        result = run_seeds(
+            args.json, scenarios=names or None, seeds=args.seeds, variants=args.variants
+        )
     else:
-        result = run(args.json, scenarios=names or None, seed=args.seed)
+        result = run(args.json, scenarios=names or None, seed=args.seed, variants=args.variants)
     return 0 if result["all_pass"] else 1
 
 

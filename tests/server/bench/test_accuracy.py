@@ -329,3 +329,26 @@ def test_main_parses_seeds_and_scenarios(monkeypatch: pytest.MonkeyPatch) -> Non
     assert seen["scenarios"] == ["paper_circle", "slow_creep"]
     with pytest.raises(SystemExit):
         accuracy.main(["--seeds", "1,x"])
+
+
+def test_variants_run_the_changed_scenarios_under_their_own_label() -> None:
+    def factories() -> dict[str, accuracy.EstimatorFactory]:
+        def make() -> FleetEstimator:
+            return _TruthEstimator(simulate("figure_eight", seed=5, start_ns=START_NS).truth)
+
+        return {"product": make}
+
+    plain = run(None, scenarios=["figure_eight"], seed=5, estimators=factories(), quiet=True)
+    out = io.StringIO()
+    res = run(
+        None, scenarios=["figure_eight"], seed=5, estimators=factories(), variants=True, out=out
+    )
+    label = "figure_eight[gnss_outlier_prob=0.02]"
+    assert ("figure_eight", {"gnss_outlier_prob": 0.02}) in accuracy.VARIANTS
+    assert {r["scenario"] for r in res["results"]} == {label}
+    # the override reached the simulator: GNSS outliers move the GNSS-based traditional method
+    trad = next(r for r in res["results"] if r["method"] == "traditional")
+    trad0 = next(r for r in plain["results"] if r["method"] == "traditional")
+    assert trad["vw_rms_pct"] != pytest.approx(trad0["vw_rms_pct"], rel=1e-9)
+    lines = [ln for ln in out.getvalue().splitlines() if ln.startswith(label)]
+    assert len(lines) == 2 and lines[0].index("product") == lines[1].index("traditional")
