@@ -1015,27 +1015,23 @@ class MdsfFleet:
         rim_std = flat.omega_std * radius
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
-        if int(lengths[0]) == 1:
-            # One tick per vehicle (the usual call): the flat rows are the step's rows.
-            so = self.engine.step(due.slots, flat, rim, rim_std)
-            emit, flags = so.emit, so.flags
-            res = {name: getattr(so, name) for name in _STEP_COLS}
-            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
-        else:
-            emit = np.zeros(total, dtype=bool)
-            flags = np.zeros(total, dtype=np.int32)
-            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
-            rim_cov = np.zeros((total, 2))
-            for r in range(int(lengths[0])):
-                c = int(np.count_nonzero(lengths > r))
-                fi = offsets[:c] + r
-                tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-                so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
-                emit[fi] = so.emit
-                for name in _STEP_COLS:
-                    res[name][fi] = getattr(so, name)
-                flags[fi] = so.flags
-                rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
+        rounds = int(lengths[0])
+        emit = np.zeros(total, dtype=bool)
+        flags = np.zeros(total, dtype=np.int32)
+        res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+        rim_cov = np.zeros((total, 2))
+        for r in range(rounds):
+            c = int(np.count_nonzero(lengths > r))
+            # round r: the r-th tick of every vehicle with one; with one tick per vehicle (the
+            # usual call) that is every row, taken as views instead of copies
+            fi: slice | IntArray = slice(None) if rounds == 1 else offsets[:c] + r
+            tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
+            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
+            emit[fi] = so.emit
+            for name in _STEP_COLS:
+                res[name][fi] = getattr(so, name)
+            flags[fi] = so.flags
+            rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
         # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
         sp = slip_pct(
             rim,
