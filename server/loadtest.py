@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from server.ports import free_port
+from server.procs import stop_process
 
 if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
     import httpx
@@ -166,14 +167,7 @@ class ServerProcess:
         """SIGTERM (graceful: the pipeline and writer flush), SIGKILL after ``timeout_s``."""
         if self.proc is None:
             return None
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        return self.proc.returncode
+        return stop_process(self.proc, timeout_s)
 
     def __enter__(self) -> ServerProcess:
         return self.start()

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from server.ports import free_port
+from server.procs import stop_process
 
 if TYPE_CHECKING:
     from server.loadtest import ServerProcess
@@ -63,13 +64,7 @@ class RouterProcess:
             raise RuntimeError(f"router did not start: {line!r}")
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
+        stop_process(self.proc, 10, kill_wait_s=5)
         if self.proc.stdout is not None:
             self.proc.stdout.close()
 

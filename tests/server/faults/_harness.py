@@ -33,6 +33,7 @@ from server.app_main import vehicle_session
 from server.estimators import EstimatorRegistry
 from server.fleet_sim import SimPacket, packetize
 from server.ingest import Pipeline
+from server.procs import stop_process
 from server.protocol import Stream, config_key, decode, encode_config, sensor_key
 from server.protocol.codec import Packet
 from server.settings import IngestSettings, Settings
@@ -146,13 +147,7 @@ class ServerProcess:
         """Leave nothing behind (SIGTERM, then SIGKILL)."""
         if self.proc is None:
             return
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
+        stop_process(self.proc, 30)
         self.proc = None
 
     def log_tail(self, n: int = 40) -> str:
@@ -206,12 +201,7 @@ class RouterProcess:
 
     def stop(self) -> None:
         if self.proc is not None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
+            stop_process(self.proc, 10)
             self.proc = None
 
 
