@@ -10,8 +10,9 @@ time on a fleet-wide grid):
   due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
   removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
   binned with ``np.bincount`` over (vehicle row, tick) ids.
-* A complementary pitch track (``ωx − b_x`` integrated, pulled to the GNSS pitch at each fix,
-  :func:`pitch_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
+* A complementary pitch track (the pitch rate ``ωx·cos φ + ωz·sin φ − b_x`` integrated, pulled
+  to the GNSS pitch at each fix, :func:`pitch_fix_update`; ``φ`` a low-passed GNSS roll,
+  :func:`roll_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
   the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
   cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
   pass per "k-th fix of this batch" (a handful of passes).
@@ -85,6 +86,7 @@ __all__ = [
     "FleetTicks",
     "TickInputs",
     "pitch_fix_update",
+    "roll_fix_update",
     "yaw_fix_update",
 ]
 
@@ -271,6 +273,29 @@ def yaw_fix_update(
     return psi, bias, stamp_ns.copy()
 
 
+def roll_fix_update(
+    roll_rad: FloatArray,
+    fix_ns: IntArray,
+    roll_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: MdsfConfig,
+) -> tuple[FloatArray, IntArray]:
+    """Roll track at one GNSS roll per vehicle (arrays ``(k,)``): the receiver's roll low-passed,
+    ``φ += (1 − exp(−gap/pitch_tau_s))·(φ_gnss − φ)`` (``gap`` since the previous roll, clipped
+    to [0, 1] s); an unknown ``φ`` (NaN) takes the GNSS roll; a NaN GNSS roll changes nothing.
+
+    The pitch track needs the roll only to turn the body rates into the pitch rate
+    (``θ̇ = ωx·cos φ + ωz·sin φ``), where its noise is multiplied by the yaw rate; terrain roll
+    changes over metres, so the low-pass costs little. Returns ``(roll_rad, fix_ns)``.
+    """
+    has = np.isfinite(roll_gnss_rad)
+    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+    w = 1.0 - np.exp(-gap / config.pitch_tau_s)
+    known = np.isfinite(roll_rad)
+    follow = np.where(known, roll_rad + w * (roll_gnss_rad - roll_rad), roll_gnss_rad)
+    return np.where(has, follow, roll_rad), np.where(has, stamp_ns, fix_ns)
+
+
 # ---------------------------------------------------------------------------------------------
 # Array helpers
 # ---------------------------------------------------------------------------------------------
@@ -430,6 +455,8 @@ class FleetFrontEnd:
         grow("pitch_fix_ns", (), np.int64(0))
         grow("pitch_fixes", (), np.int64(1))
         grow("pitch_var", (), 0.0)
+        grow("roll_rad", (), np.nan)  # low-passed GNSS roll; NaN before the first
+        grow("roll_fix_ns", (), np.int64(0))
         grow("yaw_rad", (), np.nan)
         grow("yaw_gyro_bias", (), 0.0)
         grow("yaw_fix_ns", (), np.int64(0))
@@ -473,6 +500,8 @@ class FleetFrontEnd:
     pitch_fix_ns: IntArray
     pitch_fixes: IntArray
     pitch_var: FloatArray
+    roll_rad: FloatArray
+    roll_fix_ns: IntArray
     yaw_rad: FloatArray
     yaw_gyro_bias: FloatArray
     yaw_fix_ns: IntArray
@@ -522,6 +551,8 @@ class FleetFrontEnd:
         self.pitch_fix_ns[slot] = 0
         self.pitch_fixes[slot] = 1
         self.pitch_var[slot] = self.config.pitch_std_rad**2 * 100.0  # unknown before a fix
+        self.roll_rad[slot] = np.nan
+        self.roll_fix_ns[slot] = 0
         self.yaw_rad[slot] = np.nan
         self.yaw_gyro_bias[slot] = 0.0
         self.yaw_fix_ns[slot] = 0
@@ -807,6 +838,7 @@ class _Batch:
         )
         self.row_of_slot = np.full(fe._cap, -1, dtype=np.int64)
         self.row_of_slot[slots] = np.arange(n_rows)
+        self._fix_of_sample_cache: IntArray | None = None
         self._take_imu()
         self._take_gnss()
 
@@ -995,16 +1027,26 @@ class _Batch:
         return values[which]
 
     def _pitch_track(self) -> FloatArray:
-        """Pitch at each IMU sample: ``ωx − b_x`` integrated, corrected at each GNSS fix.
+        """Pitch at each IMU sample: the pitch rate integrated, corrected at each GNSS fix.
 
-        A complementary filter (:func:`pitch_fix_update`). Also sets ``g_vg``: eq. (1) with the
-        GNSS pitch, or the tracked pitch if the receiver gives none; and the pitch variance and
-        bias in force after each fix (``g_var_after``, ``g_bias_after``). Shape ``(n,)``.
+        The pitch rate is ``ωx − b_x`` in paper mode; in product mode ``ωx·cos φ + ωz·sin φ −
+        b_x`` (from ``ωx = θ̇·cos φ + ψ̇·cos θ·sin φ`` and ``ωz = −ψ̇·cos θ·cos φ + θ̇·sin φ``):
+        on a side slope the yaw rate of a turn shows on the ``ωx`` gyro, and integrated as pitch
+        it let gravity into the forward acceleration (a 6° bank on ``field_work``: pitch RMS error
+        5.5 mrad against 1.5 with the roll). A complementary filter (:func:`pitch_fix_update`).
+        Also sets ``g_vg``: eq. (1) with the GNSS pitch, or the tracked pitch if the receiver
+        gives none; and the pitch variance and bias in force after each fix (``g_var_after``,
+        ``g_bias_after``). Shape ``(n,)``.
         """
         fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
-        cw = _seg_cumsum(self.wx * self.dts, self.begin_of)
         ct = _seg_cumsum(self.dts, self.begin_of)
+        rate = self.wx
+        if self.product and self.T.shape[0]:
+            # θ̇ = ωx·cos φ + ωz·sin φ (Euler kinematics of the body rates), φ the roll track
+            phi = self._roll_at_samples()
+            rate = self.wx * np.cos(phi) + self.wz * np.sin(phi)
+        cw = _seg_cumsum(rate * self.dts, self.begin_of)
         th0 = fe.pitch_rad[s].copy()
         var = fe.pitch_var[s].copy()
         self.var_before = var.copy()
@@ -1057,10 +1099,33 @@ class _Batch:
             return np.zeros(0)
         return np.asarray(q[:, 0] + (cw - q[:, 1]) - q[:, 3] * (ct - q[:, 2]))
 
+    def _fix_of_sample(self) -> IntArray:
+        """Index of the latest fix at or before each IMU sample of the same row (−1: none)."""
+        if self._fix_of_sample_cache is None:
+            self._fix_of_sample_cache = _asof(self.g_row, self.g_t, self.s_row, self.T)
+        return self._fix_of_sample_cache
+
+    def _roll_at_samples(self) -> FloatArray:
+        """Roll track at each IMU sample (:func:`roll_fix_update` at each fix, in force until
+        the next; 0 before any roll is known). Shape ``(n,)``."""
+        fe, s = self.fe, self.slots
+        roll = fe.roll_rad[s].copy()
+        fix_ns = fe.roll_fix_ns[s].copy()
+        after = np.empty(self.g_row.shape[0])
+        for fi in _rank_passes(self.g_rank):
+            r = self.g_row[fi]
+            roll[r], fix_ns[r] = roll_fix_update(
+                roll[r], fix_ns[r], self.g[fi, _G_ROLL], self.g_t[fi], self.config
+            )
+            after[fi] = roll[r]
+        before = fe.roll_rad[s][self.s_row]
+        fe.roll_rad[s] = roll
+        fe.roll_fix_ns[s] = fix_ns
+        return _nan_to_num(_pick(self._fix_of_sample(), after, before))
+
     def _pitch_bias_at_samples(self) -> FloatArray:
         """Pitch-gyro bias in force at each IMU sample (the latest fix at or before it)."""
-        i = _asof(self.g_row, self.g_t, self.s_row, self.T)
-        return _pick(i, self.g_bias_after, self.bias_before[self.s_row])
+        return _pick(self._fix_of_sample(), self.g_bias_after, self.bias_before[self.s_row])
 
     def _pitch_var_at_ticks(self) -> FloatArray:
         """Pitch variance in force at each tick (the latest fix at or before it)."""

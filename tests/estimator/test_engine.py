@@ -450,6 +450,17 @@ def test_gravity_and_gyro_biases_on_a_slope(mode: MdsfMode) -> None:
     assert np.all(late["flags"] & F.STANDSTILL)
 
 
+def test_pitch_track_keeps_a_turn_on_a_side_slope_out_of_the_pitch() -> None:
+    # 6° bank: in a turn the yaw rate shows on the ωx gyro (ωx = θ̇·cos φ + ψ̇·cos θ·sin φ);
+    # integrated as pitch rate it put ~5 mrad of pitch error (0.05 m/s² of gravity) into the
+    # forward acceleration
+    sim, cfg = _sim("field_work", seed=1, bank_roll_deg=6.0, duration_s=120.0)
+    rows = _run(MdsfFleet(MdsfConfig()), {"v": (sim, cfg)})["v"]
+    moving = truth_at(sim.truth, rows["stamp_ns"], "v0_mps") > 0.5
+    err = rows["pitch_rad"] - truth_at(sim.truth, rows["stamp_ns"], "pitch_rad")
+    assert np.sqrt(np.mean(err[moving] ** 2)) < 2.5e-3
+
+
 def _tyre_pairs(
     engine: MdsfEngine, slot: int, x_g: np.ndarray, eps: np.ndarray, fused: bool = True
 ) -> None:
