@@ -259,17 +259,21 @@ def test_yaw_fix_update_wraps_the_heading_error() -> None:
 
 
 def test_roll_fix_update_low_passes_the_gnss_roll() -> None:
-    cfg = MdsfConfig()  # pitch_tau_s 1
-    roll, fix_ns = roll_fix_update(
+    cfg = MdsfConfig()  # pitch_tau_s 1, pitch_std_rad 0.005
+    r2 = cfg.pitch_std_rad**2
+    roll, var, fix_ns = roll_fix_update(
         np.array([0.02, np.nan, 0.02, 0.02]),
+        np.array([1e-6, 0.0, 1e-6, 1e-6]),
         np.array([START, 0, START, START]),
         np.array([0.06, 0.05, np.nan, 0.06]),
         np.array([START + S // 10, START, START + S // 10, START + 5 * S]),
         cfg,
     )
-    assert math.isclose(roll[0], 0.02 + (1 - math.exp(-0.1)) * 0.04)
-    assert roll[1] == 0.05  # unknown roll: taken as it is
-    assert roll[2] == 0.02 and fix_ns[2] == START  # no GNSS roll: nothing changes
+    w = 1 - math.exp(-0.1)
+    assert math.isclose(roll[0], 0.02 + w * 0.04)
+    assert math.isclose(var[0], (1 - w) ** 2 * 1e-6 + w * w * r2)
+    assert roll[1] == 0.05 and var[1] == r2  # unknown roll: taken as it is
+    assert roll[2] == 0.02 and var[2] == 1e-6 and fix_ns[2] == START  # no GNSS roll
     assert math.isclose(roll[3], 0.02 + (1 - math.exp(-1.0)) * 0.04)  # gap clipped to 1 s
     assert list(fix_ns[[0, 1, 3]]) == [START + S // 10, START, START + 5 * S]
 
