@@ -352,6 +352,13 @@ def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
     return np.where(i >= 0, values[np.maximum(i, 0)], otherwise)
 
 
+def _shrunk_roll(roll_rad: FloatArray, var_rad2: FloatArray) -> FloatArray:
+    """``φ·φ²/(φ² + var)``: a roll estimate shrunk toward 0 by its noise; NaN (unknown) → 0."""
+    p2 = np.where(np.isfinite(roll_rad), roll_rad * roll_rad, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(p2 > 0, roll_rad * p2 / (p2 + var_rad2), 0.0)
+
+
 def _seg_cumsum(x: FloatArray, start_of: IntArray) -> FloatArray:
     """Cumulative sum of ``x`` restarting at each segment; ``start_of[i]`` is the index where
     element ``i``'s segment starts."""
@@ -492,6 +499,7 @@ class FleetFrontEnd:
         grow("chain_att", (2,), 0.0)
         grow("chain_m", (), 0.0)
         grow("chain_yaw_rad", (), 0.0)  # heading unwrapped along the chain
+        grow("chain_turn_rad", (), 0.0)  # Σ Δψ·cos θ·sin φ along the chain (∫ωx beyond θ)
         grow("h1_m", (), 0.0)
         grow("ant_x_m", (), 0.0)  # antenna's lateral offset from the IMU, x_a − x_i
         grow("pos_var_cfg", (), 0.0)
@@ -536,6 +544,7 @@ class FleetFrontEnd:
     chain_att: FloatArray
     chain_m: FloatArray
     chain_yaw_rad: FloatArray
+    chain_turn_rad: FloatArray
     h1_m: FloatArray
     ant_x_m: FloatArray
     pos_var_cfg: FloatArray
@@ -586,6 +595,7 @@ class FleetFrontEnd:
         self.chain_att[slot] = 0.0
         self.chain_m[slot] = 0.0
         self.chain_yaw_rad[slot] = 0.0
+        self.chain_turn_rad[slot] = 0.0
         geo = vehicle.geometry
         self.h1_m[slot] = geo.h1_m
         self.ant_x_m[slot] = geo.antenna_offset_m[0] - geo.imu_offset_m[0]
@@ -1054,7 +1064,8 @@ class _Batch:
         s = self.slots
         ct = _seg_cumsum(self.dts, self.begin_of)
         rate = self.wx
-        if self.product and self.T.shape[0]:
+        self.g_roll_after = np.zeros(self.g_row.shape[0])
+        if self.product:
             # θ̇ = ωx·cos φ + ωz·sin φ (Euler kinematics of the body rates), φ the roll track
             phi = self._roll_at_samples()
             rate = self.wx * np.cos(phi) + self.wz * np.sin(phi)
@@ -1139,14 +1150,13 @@ class _Batch:
             after[fi] = roll[r]
             after_var[fi] = var[r]
         i = self._fix_of_sample()
-        phi = _nan_to_num(_pick(i, after, fe.roll_rad[s][self.s_row]))
+        phi = _pick(i, after, fe.roll_rad[s][self.s_row])
         v = _pick(i, after_var, fe.roll_var[s][self.s_row])
         fe.roll_rad[s] = roll
         fe.roll_var[s] = var
         fe.roll_fix_ns[s] = fix_ns
-        p2 = phi * phi
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(p2 > 0, phi * p2 / (p2 + v), 0.0)
+        self.g_roll_after = _shrunk_roll(after, after_var)
+        return _shrunk_roll(phi, v)
 
     def _pitch_bias_at_samples(self) -> FloatArray:
         """Pitch-gyro bias in force at each IMU sample (the latest fix at or before it)."""
@@ -1238,12 +1248,15 @@ class _Batch:
         barely turns, so each distance carries about one position's noise and no random walk:
         a speed reference over seconds with centimetre noise, where the Doppler speed has
         percent noise. The antenna's distance differs from the IMU point's by the integral of
-        the lever-arm terms of the ``Vg`` row, ``−h1·ωx + (x_a − x_i)·ωz``:
-        ``D_imu = D_ant + h1·θ − (x_a − x_i)·ψ`` (``ψ`` unwrapped along the chain; constant
-        parts fall into the chain's offset). A fix taken more than
-        ``gnss_distance_gap_s`` after the chain's last (outage, float spell, start) starts a
-        new chain with a new offset (``dist_restart``). Each tick takes the latest fix in its
-        window, moved to the tick with that fix's speed (eq. (1)). Product mode only.
+        the lever-arm terms of the ``Vg`` row, ``−h1·ωx + (x_a − x_i)·ωz``, with
+        ``∫ωx = θ + Σ Δψ·cos θ·sin φ`` (``ωx = θ̇·cos φ + ψ̇·cos θ·sin φ``: a turn on a side
+        slope turns the antenna about the body's X axis) and ``∫ωz = −ψ``:
+        ``D_imu = D_ant + h1·(θ + Σ Δψ·cos θ·sin φ) + (x_a − x_i)·ψ`` (``ψ`` unwrapped along
+        the chain, ``φ`` the roll track; constant parts fall into the chain's offset). A fix
+        taken more than ``gnss_distance_gap_s`` after the chain's last (outage, float spell,
+        start) starts a new chain with a new offset (``dist_restart``). Each tick takes the
+        latest fix in its window, moved to the tick with that fix's speed (eq. (1)). Product
+        mode only.
 
         Returns ``(dist_ok, dist_m, dist_var, dist_restart)``, shape ``(n_ticks,)``.
         """
@@ -1291,7 +1304,10 @@ class _Batch:
         inc = np.where(chained, np.einsum("ni,ni->n", p - p_prev, u), 0.0)
         seg_start = np.maximum.accumulate(np.where(first, np.arange(idx.size), 0))
         d_ant = fe.chain_m[s] + _seg_cumsum(inc, seg_start)
-        yaw = fe.chain_yaw_rad[s] + _seg_cumsum(np.where(chained, d_head, 0.0), seg_start)
+        step_yaw = np.where(chained, d_head, 0.0)
+        yaw = fe.chain_yaw_rad[s] + _seg_cumsum(step_yaw, seg_start)
+        roll = self.g_roll_after[idx]
+        turn = fe.chain_turn_rad[s] + _seg_cumsum(step_yaw * np.cos(th) * np.sin(roll), seg_start)
         # the chain's state after this batch: its last fix per vehicle
         last = np.ones(idx.size, dtype=bool)
         last[:-1] = r[1:] != r[:-1]
@@ -1301,6 +1317,7 @@ class _Batch:
         fe.chain_att[sl] = att[last]
         fe.chain_m[sl] = d_ant[last]
         fe.chain_yaw_rad[sl] = yaw[last]
+        fe.chain_turn_rad[sl] = turn[last]
         # to the ticks: the latest fix in each tick's window, a restart if any fix broke the chain
         tn = fe.tick_ns
         tid = self.offsets[r] + np.maximum(-((self.first[r] - t) // tn), 0)
@@ -1309,7 +1326,7 @@ class _Batch:
         vg = self.g_vg[idx]
         # the lever arm with the tracked pitch (gyro between fixes, smoother than the fix's)
         theta = self.g_theta_after[idx]
-        d_imu = d_ant + fe.h1_m[s] * theta - fe.ant_x_m[s] * yaw + vg * dt_s
+        d_imu = d_ant + fe.h1_m[s] * (theta + turn) + fe.ant_x_m[s] * yaw + vg * dt_s
         dist[tid] = d_imu  # later fixes overwrite: the latest wins
         lever_var = fe.h1_m[s] ** 2 * self.g_var_after[idx]
         var[tid] = fe.pos_var_cfg[s] + lever_var + self.g_var[idx] * dt_s**2
