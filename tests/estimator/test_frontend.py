@@ -15,7 +15,13 @@ from hypothesis import strategies as st
 from estimator.base import Measurement
 from estimator.config import NoiseConfig, VehicleConfig
 from estimator.engine import MdsfFleet
-from estimator.frontend import FleetFrontEnd, _asof, pitch_fix_update, yaw_fix_update
+from estimator.frontend import (
+    FleetFrontEnd,
+    _asof,
+    pitch_fix_update,
+    roll_fix_update,
+    yaw_fix_update,
+)
 from estimator.geo import EnuFrame
 from estimator.mdsf import MdsfConfig, MdsfMode
 from estimator.sim import SimRun, simulate, truth_at
@@ -250,6 +256,26 @@ def test_yaw_fix_update_wraps_the_heading_error() -> None:
     assert math.isclose(bias[0], 0.001 + 0.25 / 5.0 * err)
     assert psi[1] == 1.0 and bias[1] == 0.0  # unknown heading: taken as it is
     assert list(fix_ns) == [START + S // 4, START]
+
+
+def test_roll_fix_update_low_passes_the_gnss_roll() -> None:
+    cfg = MdsfConfig()  # pitch_tau_s 1, pitch_std_rad 0.005
+    r2 = cfg.pitch_std_rad**2
+    roll, var, fix_ns = roll_fix_update(
+        np.array([0.02, np.nan, 0.02, 0.02]),
+        np.array([1e-6, 0.0, 1e-6, 1e-6]),
+        np.array([START, 0, START, START]),
+        np.array([0.06, 0.05, np.nan, 0.06]),
+        np.array([START + S // 10, START, START + S // 10, START + 5 * S]),
+        cfg,
+    )
+    w = 1 - math.exp(-0.1)
+    assert math.isclose(roll[0], 0.02 + w * 0.04)
+    assert math.isclose(var[0], (1 - w) ** 2 * 1e-6 + w * w * r2)
+    assert roll[1] == 0.05 and var[1] == r2  # unknown roll: taken as it is
+    assert roll[2] == 0.02 and var[2] == 1e-6 and fix_ns[2] == START  # no GNSS roll
+    assert math.isclose(roll[3], 0.02 + (1 - math.exp(-1.0)) * 0.04)  # gap clipped to 1 s
+    assert list(fix_ns[[0, 1, 3]]) == [START + S // 10, START, START + 5 * S]
 
 
 # -- "latest at or before" ---------------------------------------------------------------------
