@@ -68,12 +68,51 @@ def test_batches_at_least_1000_rows_per_transaction_under_load(backend: Backend)
     stats = writer.stats()
     assert stats.rows_written == total and stats.rows_submitted == total
     assert stats.transactions == len(store.batches) and sum(store.batches) == total
-    # every transaction but the final flush on close carries ≥ 1000 rows
-    assert min(store.batches[:-1]) >= 1000, store.batches
+    # the first tick finds the writer idle and is committed at once; every later transaction
+    # but the final flush on close carries ≥ 1000 rows
+    assert store.batches[0] == rows_per_tick * len(vehicles), store.batches
+    assert min(store.batches[1:-1]) >= 1000, store.batches
     assert max(store.batches) <= settings.batch_max_rows
-    assert stats.transactions <= total // 1000 + 1
+    assert stats.transactions <= total // 1000 + 2
     for vid in vehicles[:3]:
         assert len(inner.query_series(vid, 0, 2**62)) == ticks * rows_per_tick
+
+
+class TimedStore(CountingStore):
+    """Also records when (monotonic s) each estimate transaction started."""
+
+    def __init__(self, inner: Store) -> None:
+        super().__init__(inner)
+        self.started_s: list[float] = []
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        self.started_s.append(time.monotonic())
+        return super().write_estimates(batch)
+
+
+def test_rows_after_a_pause_commit_at_once_later_ones_wait_the_interval(
+    backend: Backend,
+) -> None:
+    """A burst reaching an idle writer is committed without waiting out the interval; a burst
+    arriving right after it waits until an interval after that transaction started."""
+    inner = backend.open()
+    inner.upsert_vehicle("v1", {}, now_ns=1)
+    store = TimedStore(inner)
+    interval_s = 1.0
+    with StoreWriter(store, _settings(commit_interval_s=interval_s)) as writer:
+        submitted_s = time.monotonic()
+        writer.submit([("v1", make_rows(3))])
+        _wait_for(lambda: writer.stats().rows_written == 3)
+        first_done_s = time.monotonic()
+        writer.submit([("v1", make_rows(4, T0_NS + 3 * DT_NS, seed=2))])
+        _wait_for(lambda: writer.stats().rows_written == 7)
+    assert store.batches == [3, 4]
+    # the first went out well before an interval had passed (idle writer)
+    assert store.started_s[0] - submitted_s < interval_s / 2
+    assert first_done_s - submitted_s < interval_s / 2
+    # the second waited for the interval, counted from the first transaction's start
+    assert store.started_s[1] - store.started_s[0] >= interval_s * 0.99
+    assert len(inner.query_series("v1", 0, 2**62)) == 7
 
 
 def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
