@@ -342,19 +342,24 @@ class PostgresStore:
     # ------------------------------------------------------------------ counters
 
     def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
-        params = [
-            (vid, name, int(total), int(now_ns))
-            for vid, named in counters.items()
-            for name, total in named.items()
-        ]
-        if not params:
+        # One statement over three arrays: an upsert per counter (executemany) cost ~5x the
+        # client CPU with a fleet's worth of counters (500 vehicles x 11 counters a second).
+        vids: list[str] = []
+        names: list[str] = []
+        totals: list[int] = []
+        for vid, named in counters.items():
+            vids.extend([vid] * len(named))
+            names.extend(named)
+            totals.extend(int(total) for total in named.values())
+        if not vids:
             return
-        with self._pool.connection() as conn, conn.transaction(), conn.cursor() as cur:
-            cur.executemany(
+        with self._pool.connection() as conn, conn.transaction():
+            conn.execute(
                 "INSERT INTO ingest_counters (vehicle_id, name, total, updated_ns) "
-                "VALUES (%s, %s, %s, %s) ON CONFLICT (vehicle_id, name) DO UPDATE SET "
+                "SELECT v, n, t, %s FROM unnest(%s::text[], %s::text[], %s::bigint[]) "
+                "AS u(v, n, t) ON CONFLICT (vehicle_id, name) DO UPDATE SET "
                 "total = excluded.total, updated_ns = excluded.updated_ns",
-                params,
+                (int(now_ns), vids, names, totals),
             )
 
     def get_counters(self, vehicle_id: str) -> dict[str, int]:
