@@ -16,6 +16,7 @@ import pytest
 from estimator.types import concat_estimates
 from server.settings import StorageSettings
 from server.storage import StorageDataError, Store, StoreWriter
+from server.storage.writer import COUNTER_VEHICLES_PER_WRITE
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
@@ -113,6 +114,48 @@ def test_rows_after_a_pause_commit_at_once_later_ones_wait_the_interval(
     # the second waited for the interval, counted from the first transaction's start
     assert store.started_s[1] - store.started_s[0] >= interval_s * 0.99
     assert len(inner.query_series("v1", 0, 2**62)) == 7
+
+
+class SlowCountersStore(CountingStore):
+    """Records the order of writes; each counters write takes ``counters_s``."""
+
+    def __init__(self, inner: Store, counters_s: float) -> None:
+        super().__init__(inner)
+        self.calls: list[tuple[str, int]] = []
+        self.counters_s = counters_s
+        self.counters_started = threading.Event()
+
+    def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
+        self.calls.append(("counters", len(counters)))
+        self.counters_started.set()
+        time.sleep(self.counters_s)
+        self.inner.write_counters(counters, now_ns)
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        self.calls.append(("estimates", sum(len(rows) for _, rows in batch)))
+        return super().write_estimates(batch)
+
+
+def test_fleet_counters_go_in_slices_with_due_estimates_in_between(backend: Backend) -> None:
+    inner = backend.open()
+    inner.upsert_vehicle("v1", {}, now_ns=1)
+    store = SlowCountersStore(inner, counters_s=0.2)
+    per_write = COUNTER_VEHICLES_PER_WRITE
+    fleet = {f"sim-{v:04d}": {"received": v, "accepted": v} for v in range(3 * per_write - 10)}
+    with StoreWriter(store, _settings(commit_interval_s=0.05)) as writer:
+        writer.submit_counters(fleet)
+        assert store.counters_started.wait(10)  # the first slice is being written
+        writer.submit([("v1", make_rows(5))])
+        assert writer.flush(timeout=30)
+    assert store.calls == [
+        ("counters", per_write),
+        ("estimates", 5),
+        ("counters", per_write),
+        ("counters", per_write - 10),
+    ]
+    for vid in ("sim-0000", f"sim-{per_write:04d}", f"sim-{3 * per_write - 11:04d}"):
+        assert inner.get_counters(vid) == fleet[vid]
+    assert len(inner.query_series("v1", 0, 2**62)) == 5
 
 
 def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
