@@ -97,6 +97,17 @@ class WriterStats:
     retention_rows_deleted: int
 
 
+def _copy_rows(parts: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """A copy of every ``ESTIMATE_DTYPE`` array in ``parts``: views of one joined copy."""
+    if not parts:
+        return []
+    joined = concat_estimates(parts) if len(parts) > 1 else parts[0]
+    if len(parts) == 1 or joined is parts[0]:
+        joined = joined.copy()
+    bounds = [0, *itertools.accumulate(len(p) for p in parts)]
+    return [joined[a:b] for a, b in itertools.pairwise(bounds)]
+
+
 class StoreWriter:
     """Batching writer thread in front of a :class:`Store`.
 
@@ -258,12 +269,15 @@ class StoreWriter:
             The writer is closed.
         """
         items = [(str(vid), check_rows(rows)) for vid, rows in batch]
+        # One copy of the whole batch, queued as a view per vehicle: a copy per vehicle of its
+        # one or two rows cost ~4 µs (structured dtype), ten times the join.
+        copied = _copy_rows([rows for _, rows in items])
         accepted = 0
         deadline = time.monotonic() + self._submit_block_s
         with self._cond:
             if self._closing:
                 raise RuntimeError("StoreWriter is closed")
-            for vid, rows in items:
+            for vid, rows in zip((vid for vid, _ in items), copied, strict=True):
                 n = len(rows)
                 if n == 0:
                     continue
@@ -283,7 +297,7 @@ class StoreWriter:
                             self._rows_dropped_full,
                         )
                     continue
-                self._queue.append((vid, np.array(rows, copy=True)))
+                self._queue.append((vid, rows))
                 self._queued_rows += n
                 self._seq_submitted += n
                 self._rows_submitted += n

@@ -241,7 +241,22 @@ def test_submit_validates_and_copies(backend: Backend) -> None:
         writer.submit([("v1", rows)])
         rows["vg_mps"] = 0.0  # the caller reuses its buffer
         assert writer.flush(timeout=30)
-    assert_rows_equal(store.query_series("v1", 0, 2**62), expected)
+        # several vehicles in one batch, an empty array and a strided view among them
+        store.upsert_vehicle("v2", {}, now_ns=1)
+        store.upsert_vehicle("v3", {}, now_ns=1)
+        more = make_rows(20, T0_NS + 10 * DT_NS, seed=3)
+        other = make_rows(5, seed=4)
+        expected_more, expected_other = more[::2].copy(), other.copy()
+        empty = make_rows(0)
+        assert writer.submit([("v1", more[::2]), ("v2", empty), ("v3", other)]) == 15
+        more["vg_mps"] = 0.0
+        other["vg_mps"] = 0.0
+        assert writer.flush(timeout=30)
+    assert_rows_equal(
+        store.query_series("v1", 0, 2**62), concat_estimates([expected, expected_more])
+    )
+    assert len(store.query_series("v2", 0, 2**62)) == 0
+    assert_rows_equal(store.query_series("v3", 0, 2**62), expected_other)
 
 
 def test_survives_outage_with_bounded_backlog_and_catches_up(backend: Backend) -> None:
