@@ -96,7 +96,7 @@ class StorageSettings(BaseModel):
     sqlite_file: str = "slipfleet.sqlite"
     batch_max_rows: int = Field(5000, ge=1, description="rows per transaction at most")
     commit_interval_s: float = Field(
-        0.05,
+        0.02,
         gt=0,
         le=1.0,
         description=(
