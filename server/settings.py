@@ -96,12 +96,13 @@ class StorageSettings(BaseModel):
     sqlite_file: str = "slipfleet.sqlite"
     batch_max_rows: int = Field(5000, ge=1, description="rows per transaction at most")
     commit_interval_s: float = Field(
-        0.1,
+        0.02,
         gt=0,
         le=1.0,
         description=(
-            "writer commits at least this often (stored rows lag sensor time by up to this "
-            "much more; longer intervals mean fewer, larger transactions)"
+            "writer transactions start at most this often; rows arriving after a longer pause "
+            "are committed at once, others wait up to this long (stored rows lag sensor time "
+            "by up to this much more; longer intervals mean fewer, larger transactions)"
         ),
     )
     backlog_max_rows: int = Field(2_000_000, ge=1000, description="in-memory backlog bound")

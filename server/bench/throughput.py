@@ -475,9 +475,9 @@ def fresh_shards(
 SINGLE = dict(zip(("filters", "ids"), shard_layout(1), strict=True))
 PAIR = dict(zip(("filters", "ids"), shard_layout(2), strict=True))
 #: (name, layout). Both run the server defaults, which target low latency (reorder by stream
-#: watermarks, estimators advanced every MDSF tick, commits every 0.1 s); a rung holds while the
-#: server keeps up (p99 < KEEP_UP_P99_MS), and the ``floor`` column says whether it also meets
-#: the product target (0 loss, p99 < FLOOR_P99_MS).
+#: watermarks, estimators advanced every MDSF tick, commits at most every 0.02 s); a rung holds
+#: while the server keeps up (p99 < KEEP_UP_P99_MS), and the ``floor`` column says whether it
+#: also meets the product target (0 loss, p99 < FLOOR_P99_MS).
 LADDERS: tuple[tuple[str, dict[str, Any]], ...] = (("single", SINGLE), ("pair", PAIR))
 
 

@@ -25,6 +25,7 @@ import numpy as np
 import psycopg
 from psycopg.types.json import Jsonb
 
+from estimator.types import concat_estimates
 from server.storage import migrations
 from server.storage._columns import (
     FIELD_KIND,
@@ -342,19 +343,24 @@ class PostgresStore:
     # ------------------------------------------------------------------ counters
 
     def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
-        params = [
-            (vid, name, int(total), int(now_ns))
-            for vid, named in counters.items()
-            for name, total in named.items()
-        ]
-        if not params:
+        # One statement over three arrays: an upsert per counter (executemany) cost ~5x the
+        # client CPU with a fleet's worth of counters (500 vehicles x 11 counters a second).
+        vids: list[str] = []
+        names: list[str] = []
+        totals: list[int] = []
+        for vid, named in counters.items():
+            vids.extend([vid] * len(named))
+            names.extend(named)
+            totals.extend(int(total) for total in named.values())
+        if not vids:
             return
-        with self._pool.connection() as conn, conn.transaction(), conn.cursor() as cur:
-            cur.executemany(
+        with self._pool.connection() as conn, conn.transaction():
+            conn.execute(
                 "INSERT INTO ingest_counters (vehicle_id, name, total, updated_ns) "
-                "VALUES (%s, %s, %s, %s) ON CONFLICT (vehicle_id, name) DO UPDATE SET "
+                "SELECT v, n, t, %s FROM unnest(%s::text[], %s::text[], %s::bigint[]) "
+                "AS u(v, n, t) ON CONFLICT (vehicle_id, name) DO UPDATE SET "
                 "total = excluded.total, updated_ns = excluded.updated_ns",
-                params,
+                (int(now_ns), vids, names, totals),
             )
 
     def get_counters(self, vehicle_id: str) -> dict[str, int]:
@@ -442,18 +448,23 @@ class PostgresStore:
 
 
 def _copy_in_payload(known: Sequence[tuple[int, np.ndarray]]) -> bytes:
-    """The binary COPY stream of ``estimates`` rows: ``(vkey, rows)`` pairs laid out by numpy."""
-    buf = np.empty(sum(len(r) for _, r in known), dtype=_STAGE_DTYPE)
+    """The binary COPY stream of ``estimates`` rows: ``(vkey, rows)`` pairs laid out by numpy.
+
+    The rows of every vehicle are joined first and each column is then laid out in one
+    assignment: a transaction holds one or two rows of each of hundreds of vehicles, and a
+    column assignment per vehicle cost ~20 numpy calls per vehicle.
+    """
+    rows = concat_estimates([r for _, r in known])
+    buf = np.empty(len(rows), dtype=_STAGE_DTYPE)
     buf["_nfields"] = len(_STAGE_COLUMNS)
     for name, kind in _STAGE_COLUMNS:
         buf[f"_len_{name}"] = _WIDTH[kind]
-    at = 0
-    for vkey, rows in known:
-        seg = buf[at : at + len(rows)]
-        seg["vkey"] = vkey
-        for name in FIELD_NAMES:
-            seg[name] = rows[name]  # byte-swapped to big-endian by the assignment
-        at += len(rows)
+    buf["vkey"] = np.repeat(
+        np.fromiter((k for k, _ in known), dtype=np.int64, count=len(known)),
+        np.fromiter((len(r) for _, r in known), dtype=np.int64, count=len(known)),
+    )
+    for name in FIELD_NAMES:
+        buf[name] = rows[name]  # byte-swapped to big-endian by the assignment
     return _COPY_HEADER + buf.tobytes() + _COPY_TRAILER
 
 

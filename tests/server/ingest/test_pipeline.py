@@ -240,3 +240,30 @@ def test_sequence_tracking_resumes_after_a_restart() -> None:
     c = again.counters_snapshot()["a"]
     assert c["lost_by_seq_gap"] == 4 and c["seq_high_imu"] == 8
     assert c["received"] == 5 == c["accepted"]
+
+
+def test_tick_schedule_keeps_the_estimator_cadence_and_the_duty() -> None:
+    """Ticks every process_interval_ms; none later than the next estimator call is due (so calls
+    come every estimate_interval_ms instead of at the first tick after it); a slow tick spaced
+    by its duty, never further than MAX_TICK_GAP_NS."""
+    settings = Settings(
+        ingest=IngestSettings.model_validate(
+            {"process_interval_ms": 20, "estimate_interval_ms": 50}
+        )
+    )
+    pipe = Pipeline(settings, None, EstimatorRegistry(factories={"mdsf": RecordingFleet}))
+    now = 1_000 * MS
+    # an estimator call started at `now`: the next one is due 50 ms later
+    pipe._next_estimate_ns = now + 50 * MS
+    # a cheap tick: the next one a process interval later
+    assert pipe._next_tick_ns(now, now, 1 * MS) == now + 20 * MS
+    # the regular tick after 40 ms would come at 60 ms: it comes when the call is due, at 50
+    assert pipe._next_tick_ns(now + 40 * MS, now + 40 * MS, 1 * MS) == now + 50 * MS
+    # a 20 ms tick is followed by a gap of its duty, not by the next regular tick
+    spaced = now + int(pipeline_module.TICK_DUTY * 20 * MS)
+    assert pipe._next_tick_ns(now, now, 20 * MS) == spaced > now + 20 * MS
+    # however slow the tick, the next one comes within MAX_TICK_GAP_NS
+    assert pipe._next_tick_ns(now, now, 10_000 * MS) == now + pipeline_module.MAX_TICK_GAP_NS
+    # no estimator call pending (its due time passed): the regular interval
+    pipe._next_estimate_ns = now - 1
+    assert pipe._next_tick_ns(now + 40 * MS, now + 40 * MS, 1 * MS) == now + 60 * MS

@@ -184,6 +184,20 @@ def test_counters_upsert(store: Store) -> None:
     assert store.get_counters("unknown-7") == {"rejected_unknown_vehicle": 4}
 
 
+def test_counters_of_a_fleet_in_one_write(store: Store) -> None:
+    """A fleet's counters as the server flushes them (every vehicle, several names each, totals
+    past 32 bits), twice: the second write replaces every total."""
+    names = ("received", "accepted", "late", "seq_high_imu")
+    fleet = {
+        f"sim-{v:04d}": {name: v * 10 + k + 2**40 for k, name in enumerate(names)}
+        for v in range(300)
+    }
+    store.write_counters(fleet, 1)
+    store.write_counters({vid: {n: t + 1 for n, t in c.items()} for vid, c in fleet.items()}, 2)
+    for vid in ("sim-0000", "sim-0150", "sim-0299"):
+        assert store.get_counters(vid) == {n: t + 1 for n, t in fleet[vid].items()}
+
+
 # ---------------------------------------------------------------------------- raw packets
 
 

@@ -16,6 +16,7 @@ import pytest
 from estimator.types import concat_estimates
 from server.settings import StorageSettings
 from server.storage import StorageDataError, Store, StoreWriter
+from server.storage.writer import COUNTER_VEHICLES_PER_WRITE
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
@@ -68,12 +69,93 @@ def test_batches_at_least_1000_rows_per_transaction_under_load(backend: Backend)
     stats = writer.stats()
     assert stats.rows_written == total and stats.rows_submitted == total
     assert stats.transactions == len(store.batches) and sum(store.batches) == total
-    # every transaction but the final flush on close carries ≥ 1000 rows
-    assert min(store.batches[:-1]) >= 1000, store.batches
+    # the first tick finds the writer idle and is committed at once; every later transaction
+    # but the final flush on close carries ≥ 1000 rows
+    assert store.batches[0] == rows_per_tick * len(vehicles), store.batches
+    assert min(store.batches[1:-1]) >= 1000, store.batches
     assert max(store.batches) <= settings.batch_max_rows
-    assert stats.transactions <= total // 1000 + 1
+    assert stats.transactions <= total // 1000 + 2
     for vid in vehicles[:3]:
         assert len(inner.query_series(vid, 0, 2**62)) == ticks * rows_per_tick
+
+
+class TimedStore(CountingStore):
+    """Also records when (monotonic s) each estimate transaction started."""
+
+    def __init__(self, inner: Store) -> None:
+        super().__init__(inner)
+        self.started_s: list[float] = []
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        self.started_s.append(time.monotonic())
+        return super().write_estimates(batch)
+
+
+def test_rows_after_a_pause_commit_at_once_later_ones_wait_the_interval(
+    backend: Backend,
+) -> None:
+    """A burst reaching an idle writer is committed without waiting out the interval; a burst
+    arriving right after it waits until an interval after that transaction started."""
+    inner = backend.open()
+    inner.upsert_vehicle("v1", {}, now_ns=1)
+    store = TimedStore(inner)
+    interval_s = 1.0
+    with StoreWriter(store, _settings(commit_interval_s=interval_s)) as writer:
+        submitted_s = time.monotonic()
+        writer.submit([("v1", make_rows(3))])
+        _wait_for(lambda: writer.stats().rows_written == 3)
+        first_done_s = time.monotonic()
+        writer.submit([("v1", make_rows(4, T0_NS + 3 * DT_NS, seed=2))])
+        _wait_for(lambda: writer.stats().rows_written == 7)
+    assert store.batches == [3, 4]
+    # the first went out well before an interval had passed (idle writer)
+    assert store.started_s[0] - submitted_s < interval_s / 2
+    assert first_done_s - submitted_s < interval_s / 2
+    # the second waited for the interval, counted from the first transaction's start
+    assert store.started_s[1] - store.started_s[0] >= interval_s * 0.99
+    assert len(inner.query_series("v1", 0, 2**62)) == 7
+
+
+class SlowCountersStore(CountingStore):
+    """Records the order of writes; each counters write takes ``counters_s``."""
+
+    def __init__(self, inner: Store, counters_s: float) -> None:
+        super().__init__(inner)
+        self.calls: list[tuple[str, int]] = []
+        self.counters_s = counters_s
+        self.counters_started = threading.Event()
+
+    def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
+        self.calls.append(("counters", len(counters)))
+        self.counters_started.set()
+        time.sleep(self.counters_s)
+        self.inner.write_counters(counters, now_ns)
+
+    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+        self.calls.append(("estimates", sum(len(rows) for _, rows in batch)))
+        return super().write_estimates(batch)
+
+
+def test_fleet_counters_go_in_slices_with_due_estimates_in_between(backend: Backend) -> None:
+    inner = backend.open()
+    inner.upsert_vehicle("v1", {}, now_ns=1)
+    store = SlowCountersStore(inner, counters_s=0.2)
+    per_write = COUNTER_VEHICLES_PER_WRITE
+    fleet = {f"sim-{v:04d}": {"received": v, "accepted": v} for v in range(3 * per_write - 10)}
+    with StoreWriter(store, _settings(commit_interval_s=0.05)) as writer:
+        writer.submit_counters(fleet)
+        assert store.counters_started.wait(10)  # the first slice is being written
+        writer.submit([("v1", make_rows(5))])
+        assert writer.flush(timeout=30)
+    assert store.calls == [
+        ("counters", per_write),
+        ("estimates", 5),
+        ("counters", per_write),
+        ("counters", per_write - 10),
+    ]
+    for vid in ("sim-0000", f"sim-{per_write:04d}", f"sim-{3 * per_write - 11:04d}"):
+        assert inner.get_counters(vid) == fleet[vid]
+    assert len(inner.query_series("v1", 0, 2**62)) == 5
 
 
 def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
@@ -159,7 +241,22 @@ def test_submit_validates_and_copies(backend: Backend) -> None:
         writer.submit([("v1", rows)])
         rows["vg_mps"] = 0.0  # the caller reuses its buffer
         assert writer.flush(timeout=30)
-    assert_rows_equal(store.query_series("v1", 0, 2**62), expected)
+        # several vehicles in one batch, an empty array and a strided view among them
+        store.upsert_vehicle("v2", {}, now_ns=1)
+        store.upsert_vehicle("v3", {}, now_ns=1)
+        more = make_rows(20, T0_NS + 10 * DT_NS, seed=3)
+        other = make_rows(5, seed=4)
+        expected_more, expected_other = more[::2].copy(), other.copy()
+        empty = make_rows(0)
+        assert writer.submit([("v1", more[::2]), ("v2", empty), ("v3", other)]) == 15
+        more["vg_mps"] = 0.0
+        other["vg_mps"] = 0.0
+        assert writer.flush(timeout=30)
+    assert_rows_equal(
+        store.query_series("v1", 0, 2**62), concat_estimates([expected, expected_more])
+    )
+    assert len(store.query_series("v2", 0, 2**62)) == 0
+    assert_rows_equal(store.query_series("v3", 0, 2**62), expected_other)
 
 
 def test_survives_outage_with_bounded_backlog_and_catches_up(backend: Backend) -> None:
