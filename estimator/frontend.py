@@ -11,7 +11,8 @@ time on a fleet-wide grid):
   removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
   binned with ``np.bincount`` over (vehicle row, tick) ids.
 * A complementary pitch track (the pitch rate ``ωx·cos φ + ωz·sin φ − b_x`` integrated, pulled
-  to the GNSS pitch at each fix, :func:`pitch_fix_update`; ``φ`` a low-passed GNSS roll,
+  to the GNSS pitch at each fix, or, from a receiver without attitude, to the GNSS velocity's
+  elevation, :func:`pitch_fix_update`; ``φ`` a low-passed GNSS roll,
   :func:`roll_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
   the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
   cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
@@ -210,42 +211,40 @@ def pitch_fix_update(
     theta_rad: FloatArray,
     var_rad2: FloatArray,
     bias_radps: FloatArray,
-    fixes: IntArray,
     fix_ns: IntArray,
     known: BoolArray,
     pitch_gnss_rad: FloatArray,
     stamp_ns: IntArray,
     config: MdsfConfig,
-) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray, BoolArray]:
-    """Complementary pitch filter at one GNSS fix per vehicle (all arrays shape ``(k,)``).
+    pitch_var_rad2: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
+    """Complementary pitch filter at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
 
-    With a GNSS pitch ``p``: the first fix (or any fix in paper mode) sets ``θ = p`` with
-    variance ``pitch_std_rad²``; later fixes move ``θ`` by ``gain·(p − θ)`` with
-    ``gain = max(1/fixes, 1 − exp(−gap/pitch_tau_s))`` (a running mean over the first fixes,
-    then the time constant; ``gap`` the time since the previous pitch fix, clipped to [0, 1] s),
-    propagate the variance ``(1 − gain)²·var + gain²·pitch_std²`` and integrate the pitch-gyro
-    bias ``b_x −= gap/(pitch_tau_s·gyro_bias_tau_s)·(p − θ)``. Without a GNSS pitch (NaN)
-    nothing changes. ``θ`` is the tracked pitch integrated up to the fix.
+    A measured pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``):
+    the first (or any in paper mode) sets ``θ = p`` with variance ``R``; later ones move ``θ``
+    by ``gain·(p − θ)`` with ``gain = max(var/(var + R), 1 − exp(−gap/pitch_tau_s))``: an
+    inverse-variance mean while the track is young (with equal ``R`` the running mean
+    ``1/n``), then the time constant (``gap`` the time since the previous pitch, clipped to
+    [0, 1] s). The variance follows as ``(1 − gain)²·var + gain²·R`` and the pitch-gyro bias
+    integrates ``b_x −= gap/(pitch_tau_s·gyro_bias_tau_s)·(p − θ)``. A NaN pitch changes
+    nothing. ``θ`` is the tracked pitch integrated up to the fix.
 
-    Returns the new ``(theta_rad, var_rad2, bias_radps, fixes, fix_ns, known)``.
+    Returns the new ``(theta_rad, var_rad2, bias_radps, fix_ns, known)``.
     """
     product = config.mode is MdsfMode.PRODUCT
     tau = config.pitch_tau_s
-    sp2 = config.pitch_std_rad**2
+    r2 = config.pitch_std_rad**2 if pitch_var_rad2 is None else pitch_var_rad2
     has = np.isfinite(pitch_gnss_rad)
     first = has & (~known | (not product))
     follow = has & ~first
     gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
     err = pitch_gnss_rad - theta_rad
-    fixes = fixes + follow
-    with np.errstate(invalid="ignore"):
-        gain = np.maximum(1.0 / np.maximum(fixes, 1), 1.0 - np.exp(-gap / tau))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gain = np.maximum(var_rad2 / (var_rad2 + r2), 1.0 - np.exp(-gap / tau))
     theta = np.where(first, pitch_gnss_rad, np.where(follow, theta_rad + gain * err, theta_rad))
-    var = np.where(
-        first, sp2, np.where(follow, (1 - gain) ** 2 * var_rad2 + gain**2 * sp2, var_rad2)
-    )
+    var = np.where(first, r2, np.where(follow, (1 - gain) ** 2 * var_rad2 + gain**2 * r2, var_rad2))
     bias = np.where(follow, bias_radps - gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
-    return theta, var, bias, fixes, np.where(has, stamp_ns, fix_ns), known | has
+    return theta, var, bias, np.where(has, stamp_ns, fix_ns), known | has
 
 
 def yaw_fix_update(
@@ -337,6 +336,10 @@ def _asof(
 
 
 _F64_MAX = float(np.finfo(np.float64).max)
+_PITCH_PRIOR_STD_RAD = 0.1
+"""Pitch before any measurement: level ± 0.1 rad (6°; field slopes rarely pass 15°)."""
+_VEL_PITCH_MIN_SPEED_MPS = 0.5
+"""Horizontal speed from which the GNSS velocity's elevation is a pitch measurement."""
 
 
 def _nan_to_num(x: FloatArray) -> FloatArray:
@@ -469,7 +472,6 @@ class FleetFrontEnd:
         grow("pitch_known", (), False)
         grow("pitch_gyro_bias", (), 0.0)
         grow("pitch_fix_ns", (), np.int64(0))
-        grow("pitch_fixes", (), np.int64(1))
         grow("pitch_var", (), 0.0)
         grow("roll_rad", (), np.nan)  # low-passed GNSS roll; NaN before the first
         grow("roll_var", (), 0.0)
@@ -487,6 +489,7 @@ class FleetFrontEnd:
         grow("accel_var_cfg", (), 0.0)
         grow("gyro_var_cfg", (), 0.0)
         grow("imu_fwd_m", (), 0.0)
+        grow("ant_fwd_m", (), 0.0)
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
         grow("wheel_bank", (), np.int64(-1))  # index in _banks of the trackers' bank; -1: unknown
@@ -516,7 +519,6 @@ class FleetFrontEnd:
     pitch_known: BoolArray
     pitch_gyro_bias: FloatArray
     pitch_fix_ns: IntArray
-    pitch_fixes: IntArray
     pitch_var: FloatArray
     roll_rad: FloatArray
     roll_var: FloatArray
@@ -534,6 +536,7 @@ class FleetFrontEnd:
     accel_var_cfg: FloatArray
     gyro_var_cfg: FloatArray
     imu_fwd_m: FloatArray
+    ant_fwd_m: FloatArray
     lone_std: FloatArray
     wheel_cfg: IntArray
     wheel_bank: IntArray
@@ -569,8 +572,7 @@ class FleetFrontEnd:
         self.pitch_known[slot] = False
         self.pitch_gyro_bias[slot] = 0.0
         self.pitch_fix_ns[slot] = 0
-        self.pitch_fixes[slot] = 1
-        self.pitch_var[slot] = self.config.pitch_std_rad**2 * 100.0  # unknown before a fix
+        self.pitch_var[slot] = _PITCH_PRIOR_STD_RAD**2  # unknown before a fix
         self.roll_rad[slot] = np.nan
         self.roll_var[slot] = 0.0
         self.roll_fix_ns[slot] = 0
@@ -587,6 +589,7 @@ class FleetFrontEnd:
         self.accel_var_cfg[slot] = n.accel_std_mps2**2
         self.gyro_var_cfg[slot] = n.gyro_std_radps**2
         self.imu_fwd_m[slot] = vehicle.geometry.imu_offset_m[1]
+        self.ant_fwd_m[slot] = vehicle.geometry.antenna_offset_m[1]
         self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
         self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
         self.count[slot] = 0
@@ -1075,7 +1078,6 @@ class _Batch:
         self.var_before = var.copy()
         bias = fe.pitch_gyro_bias[s].copy()
         self.bias_before = bias.copy()
-        fixes = fe.pitch_fixes[s].copy()
         fix_ns = fe.pitch_fix_ns[s].copy()
         known = fe.pitch_known[s].copy()
         base_w = np.zeros(self.n_rows)
@@ -1095,8 +1097,18 @@ class _Batch:
 
         def at_fix(fi: IntArray, r: IntArray) -> None:
             p = g[fi, _G_PITCH]
-            th0[r], var[r], bias[r], fixes[r], fix_ns[r], known[r] = pitch_fix_update(
-                th0[r], var[r], bias[r], fixes[r], fix_ns[r], known[r], p, self.g_t[fi], cfg
+            pm, pm_var = p, None
+            if self.product:
+                pm, pm_var = self._velocity_pitch(fi, r)
+                # chi-square gate: an outlying velocity is a wild pitch (before the first pitch
+                # against the prior, ±_PITCH_PRIOR_STD_RAD about level)
+                wild = (pm - th0[r]) ** 2 > cfg.gate_chi2 * (var[r] + pm_var)
+                pm = np.where(wild, np.nan, pm)
+                att = np.isfinite(p)
+                pm = np.where(att, p, pm)
+                pm_var = np.where(att, cfg.pitch_std_rad**2, pm_var)
+            th0[r], var[r], bias[r], fix_ns[r], known[r] = pitch_fix_update(
+                th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg, pm_var
             )
             self.g_var_after[fi] = var[r]
             self.g_bias_after[fi] = bias[r]
@@ -1115,7 +1127,6 @@ class _Batch:
         fe.pitch_rad[s] = th0
         fe.pitch_var[s] = var
         fe.pitch_gyro_bias[s] = bias
-        fe.pitch_fixes[s] = fixes
         fe.pitch_fix_ns[s] = fix_ns
         fe.pitch_known[s] = known
         if self.T.shape[0] == 0:
@@ -1157,6 +1168,37 @@ class _Batch:
         fe.roll_fix_ns[s] = fix_ns
         self.g_roll_after = _shrunk_roll(after, after_var)
         return _shrunk_roll(phi, v)
+
+    def _velocity_pitch(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Pitch from the GNSS velocity's elevation at fixes ``fi`` (rows ``r``) and its variance.
+
+        The body moves along its forward axis, so ``tan θ = v_up/v_fwd``: ``v_fwd`` the
+        horizontal velocity along the heading, ``v_up`` the vertical velocity less the antenna's
+        lever-arm term ``ωx·y_a`` (latest gyro sample). Variance ``(k·σ_v/v_fwd)² + floor²``:
+        ``σ_v`` the velocity noise (``NoiseConfig.gnss_vel_std_mps``), ``k``
+        ``gnss_vertical_vel_factor``, the floor ``velocity_pitch_floor_rad`` (the body pitching
+        on its tyres against its path). NaN below ``_VEL_PITCH_MIN_SPEED_MPS``. Far noisier than
+        a receiver's attitude (3 cm/s at 2.5 m/s: 18 mrad against 5), it stands in for one that
+        gives none (single antenna), where the pitch would otherwise be the gyro's integral.
+        """
+        fe, g, cfg = self.fe, self.g, self.config
+        slot = self.slots[r]
+        vel_ok = self.g_vel_ok[fi] & np.isfinite(self.g_heading[fi])
+        psi = np.where(vel_ok, self.g_heading[fi], 0.0)
+        ve, vn, vu = (np.where(vel_ok, g[fi, c], 0.0) for c in (_G_VE, _G_VN, _G_VU))
+        v_fwd = ve * np.sin(psi) + vn * np.cos(psi)
+        j = self.g_j[fi] - 1
+        wx = self.wx[np.maximum(j, 0)] if self.wx.shape[0] else np.zeros(fi.shape[0])
+        wx = np.where(j >= self.s_begin[r], wx, 0.0)
+        v_up = vu - wx * fe.ant_fwd_m[slot]
+        ok = vel_ok & np.isfinite(v_up) & (np.abs(v_fwd) >= _VEL_PITCH_MIN_SPEED_MPS)
+        safe = np.where(ok, v_fwd, 1.0)
+        pitch = np.where(ok, np.arctan(np.where(ok, v_up, 0.0) / safe), np.nan)
+        var = (
+            fe.gnss_var_cfg[slot] * cfg.gnss_vertical_vel_factor**2 / (safe * safe)
+            + cfg.velocity_pitch_floor_rad**2
+        )
+        return pitch, var
 
     def _pitch_bias_at_samples(self) -> FloatArray:
         """Pitch-gyro bias in force at each IMU sample (the latest fix at or before it)."""

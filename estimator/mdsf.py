@@ -289,6 +289,13 @@ class MdsfConfig:
     pitch_std_rad : float
         Product mode: 1-sigma noise of the receiver's pitch (receivers do not report it); sets
         how much gravity leaks into the forward acceleration through the pitch error [rad].
+    gnss_vertical_vel_factor : float
+        Product mode: the receiver's vertical velocity noise over its horizontal one (typically
+        1.5–2, the satellites being above); sets the noise of the pitch taken from the GNSS
+        velocity's elevation where the receiver gives no attitude (one antenna) [-].
+    velocity_pitch_floor_rad : float
+        Product mode: noise floor of that velocity pitch: the body pitching on its tyres
+        against its path [rad].
     gnss_noise_adapt : float
         Weight of each accepted GNSS innovation in the running estimate of the GNSS speed noise
         (0 turns the adaptation off; the receiver's or configured noise is always the floor).
@@ -339,6 +346,8 @@ class MdsfConfig:
     pitch_tau_s: float = 1.0
     pitch_std_rad: float = 0.005
     gyro_bias_tau_s: float = 5.0
+    gnss_vertical_vel_factor: float = 1.5
+    velocity_pitch_floor_rad: float = 0.002
     gnss_noise_adapt: float = 0.02
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1

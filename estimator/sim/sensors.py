@@ -73,6 +73,8 @@ class SensorSpec:
     gnss_speed_noise_rel : 0.0 — multiplicative speed noise, uniform in ±this (0.05 = "5 %").
     gnss_pos_std_m : 0.015 — horizontal position noise (vertical ×2).
     gnss_heading_std_rad, gnss_pitch_std_rad, gnss_roll_std_rad : dual-antenna attitude noise.
+    gnss_attitude : True — the receiver reports heading, pitch and roll; False: one antenna,
+    NaN attitude (noise still drawn, so the other imperfections keep their values).
     gnss_outlier_prob : 0.0 — chance per epoch of an unflagged velocity outlier.
     gnss_outlier_mps : 1.0 — outlier size, 1σ per axis.
     gnss_speed_steps : ((t_s, dv_mps, duration_s), ...) — forward-speed disturbances.
@@ -117,6 +119,7 @@ class SensorSpec:
     gnss_heading_std_rad: float = 0.0035
     gnss_pitch_std_rad: float = 0.005
     gnss_roll_std_rad: float = 0.005
+    gnss_attitude: bool = True
     gnss_outlier_prob: float = 0.0
     gnss_outlier_mps: float = 1.0
     gnss_speed_steps: tuple[tuple[float, float, float], ...] = ()
@@ -270,6 +273,8 @@ def gnss_emissions(
     heading = np.mod(truth.psi_rad[src] + att_noise[:, 0] * spec.gnss_heading_std_rad, 2 * np.pi)
     pitch = truth.theta_rad[src] + att_noise[:, 1] * spec.gnss_pitch_std_rad
     roll = truth.phi_rad[src] + att_noise[:, 2] * spec.gnss_roll_std_rad
+    if not spec.gnss_attitude:
+        heading, pitch, roll = (np.full(n, np.nan) for _ in range(3))
     lat, lon, h = frame.to_geodetic(pos_meas[:, 0], pos_meas[:, 1], pos_meas[:, 2])
     speed = np.linalg.norm(vel, axis=1)
     reported = np.sqrt(

@@ -45,9 +45,9 @@ Variants
 --------
 ``--variants`` runs, instead of the named scenarios, :data:`VARIANTS`: the same scenarios with
 a sensor or drive changed (a rougher or finer encoder ring, a 40 s outage, frequent GNSS
-outliers, a wet patch at 1 m/s, GNSS at 10 Hz, field work on a 6° side slope), so a change
-tuned to the named runs shows what it does elsewhere. Their rows are labelled
-``scenario[setting=value]`` and judged on the floors of their scenario.
+outliers, a wet patch at 1 m/s, GNSS at 10 Hz, field work on a 6° side slope, a receiver
+without attitude), so a change tuned to the named runs shows what it does elsewhere. Their
+rows are labelled ``scenario[setting=value]`` and judged on the floors of their scenario.
 """
 
 from __future__ import annotations
@@ -110,6 +110,7 @@ VARIANTS: tuple[tuple[str, Mapping[str, Any]], ...] = (
     ("slope_wet_patch", {"speed_mps": 1.0}),
     ("paper_circle", {"gnss_rate_hz": 10.0}),
     ("field_work", {"bank_roll_deg": 6.0}),
+    ("field_work", {"gnss_attitude": False}),
 )
 
 

@@ -652,6 +652,25 @@ def test_rtk_distance_through_a_turn_on_a_side_slope() -> None:
     assert banked < 1.3 * _wheel_speed_rms_mps(flat, flat_cfg, "turns")
 
 
+def test_single_antenna_receiver_takes_the_pitch_from_the_velocity() -> None:
+    # A receiver without attitude (one antenna): the pitch was the pitch gyro's integral alone,
+    # its bias let gravity into the forward acceleration without bound. The GNSS velocity's
+    # elevation now pulls it back (noisier than a receiver's attitude, so a little worse).
+    sim, cfg = _sim("field_work", 1, duration_s=120.0)
+    nan = float("nan")
+    single = dataclasses.replace(
+        sim,
+        measurements=tuple(
+            dataclasses.replace(m, heading_rad=nan, pitch_rad=nan, roll_rad=nan)
+            if isinstance(m, GnssSample)
+            else m
+            for m in sim.measurements
+        ),
+    )
+    dual_rms = _wheel_speed_rms_mps(sim, cfg)
+    assert _wheel_speed_rms_mps(single, cfg) < 2.0 * dual_rms
+
+
 def test_product_slip_uses_the_filtered_rim_speed() -> None:
     # Creeping at 0.5-0.8 m/s, a wheel gives a dozen edges a second and its fit is noisy until
     # the ring is calibrated. The filter weighs it (honest std) against the accelerometer-driven

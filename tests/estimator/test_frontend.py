@@ -20,7 +20,6 @@ from estimator.frontend import (
     _asof,
     pitch_fix_update,
     roll_fix_update,
-    yaw_fix_update,
 )
 from estimator.geo import EnuFrame
 from estimator.mdsf import MdsfConfig, MdsfMode
@@ -190,7 +189,6 @@ def _pitch(cfg: MdsfConfig, **kw: Any) -> tuple[np.ndarray, ...]:
         "theta_rad": np.array([0.01]),
         "var_rad2": np.array([4e-6]),
         "bias_radps": np.array([0.005]),
-        "fixes": np.array([1]),
         "fix_ns": np.array([START]),
         "known": np.array([True]),
         "pitch_gnss_rad": np.array([0.03]),
@@ -203,21 +201,35 @@ def _pitch(cfg: MdsfConfig, **kw: Any) -> tuple[np.ndarray, ...]:
 def test_pitch_fix_update_by_hand() -> None:
     cfg = MdsfConfig()  # pitch_tau_s 1, gyro_bias_tau_s 5, pitch_std_rad 0.005
     sp2 = cfg.pitch_std_rad**2
-    # second fix 0.5 s after the first: gain = max(1/2, 1 − e^−0.5) = 1/2
-    theta, var, bias, fixes, fix_ns, known = _pitch(cfg)
-    assert math.isclose(theta[0], 0.01 + 0.5 * 0.02)
-    assert math.isclose(var[0], 0.25 * 4e-6 + 0.25 * sp2)
+    # a young track (variance 4e-6 against R = 25e-6) 0.5 s after the last fix: the
+    # inverse-variance gain 4/29 is below 1 − e^−0.5 = 0.39, so the time constant wins
+    g = 1 - math.exp(-0.5)
+    theta, var, bias, fix_ns, known = _pitch(cfg)
+    assert math.isclose(theta[0], 0.01 + g * 0.02)
+    assert math.isclose(var[0], (1 - g) ** 2 * 4e-6 + g**2 * sp2)
     assert math.isclose(bias[0], 0.005 - 0.5 / (1.0 * 5.0) * 0.02)
-    assert fixes[0] == 2 and fix_ns[0] == START + S // 2 and known[0]
-    # many fixes later the time constant wins: gain = 1 − e^−gap (gap clipped to 1 s)
-    theta, *_ = _pitch(cfg, fixes=np.array([50]), stamp_ns=np.array([START + 3 * S]))
+    assert fix_ns[0] == START + S // 2 and known[0]
+    # a track as uncertain as one fix, 0.1 s later: the running mean of two, gain 1/2
+    theta, var, *_ = _pitch(cfg, var_rad2=np.array([sp2]), stamp_ns=np.array([START + S // 10]))
+    assert math.isclose(theta[0], 0.01 + 0.5 * 0.02)
+    assert math.isclose(var[0], sp2 / 2)
+    # a measurement 9 times less certain than the track (velocity's elevation at low speed)
+    theta, *_ = _pitch(
+        cfg,
+        var_rad2=np.array([sp2]),
+        pitch_var_rad2=np.array([9 * sp2]),
+        stamp_ns=np.array([START + S // 10]),
+    )
+    assert math.isclose(theta[0], 0.01 + 0.1 * 0.02)
+    # gap clipped to 1 s
+    theta, *_ = _pitch(cfg, var_rad2=np.array([0.0]), stamp_ns=np.array([START + 3 * S]))
     assert math.isclose(theta[0], 0.01 + (1 - math.exp(-1.0)) * 0.02)
-    # the first fix takes the GNSS pitch as it is
-    theta, var, bias, fixes, _, known = _pitch(cfg, known=np.array([False]))
-    assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005 and fixes[0] == 1 and known[0]
+    # the first fix takes the measured pitch as it is
+    theta, var, bias, _, known = _pitch(cfg, known=np.array([False]))
+    assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005 and known[0]
     # no GNSS pitch: nothing changes
     out = _pitch(cfg, pitch_gnss_rad=np.array([np.nan]))
-    assert out[0][0] == 0.01 and out[1][0] == 4e-6 and out[2][0] == 0.005 and out[4][0] == START
+    assert out[0][0] == 0.01 and out[1][0] == 4e-6 and out[2][0] == 0.005 and out[3][0] == START
     # paper mode: always the GNSS pitch, no bias
     theta, var, bias, *_ = _pitch(MdsfConfig(mode=MdsfMode.PAPER))
     assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005
@@ -230,7 +242,6 @@ def test_pitch_fix_update_treats_each_vehicle_on_its_own() -> None:
         theta_rad=np.array([0.01, 0.2]),
         var_rad2=np.array([4e-6, 1e-3]),
         bias_radps=np.array([0.005, -0.01]),
-        fixes=np.array([1, 7]),
         fix_ns=np.array([START, START - S]),
         known=np.array([True, False]),
         pitch_gnss_rad=np.array([0.03, np.nan]),
@@ -238,24 +249,7 @@ def test_pitch_fix_update_treats_each_vehicle_on_its_own() -> None:
     )
     first = _pitch(cfg)
     assert all(b[0] == f[0] for b, f in zip(both, first, strict=True))
-    assert both[0][1] == 0.2 and both[2][1] == -0.01 and not both[5][1]
-
-
-def test_yaw_fix_update_wraps_the_heading_error() -> None:
-    cfg = MdsfConfig()
-    psi, bias, fix_ns = yaw_fix_update(
-        np.array([3.1, np.nan]),
-        np.array([0.001, 0.0]),
-        np.array([START, 0]),
-        np.array([-3.1, 1.0]),
-        np.array([START + S // 4, START]),
-        cfg,
-    )
-    err = -6.2 + 2 * math.pi  # across ±π: a small step, not a turn
-    assert math.isclose(psi[0], 3.1 + (1 - math.exp(-0.25)) * err)
-    assert math.isclose(bias[0], 0.001 + 0.25 / 5.0 * err)
-    assert psi[1] == 1.0 and bias[1] == 0.0  # unknown heading: taken as it is
-    assert list(fix_ns) == [START + S // 4, START]
+    assert both[0][1] == 0.2 and both[2][1] == -0.01 and not both[4][1]
 
 
 def test_roll_fix_update_low_passes_the_gnss_roll() -> None:

@@ -221,6 +221,16 @@ def test_gnss_outliers_latency_and_data_lag() -> None:
     assert s2[0] == START_NS
 
 
+def test_a_single_antenna_receiver_reports_no_attitude_and_the_same_rest() -> None:
+    dual = _gnss(simulate("figure_eight", seed=3, start_ns=START_NS))
+    single = _gnss(simulate("figure_eight", seed=3, start_ns=START_NS, gnss_attitude=False))
+    assert len(single) == len(dual)
+    for s, d in zip(single, dual, strict=True):
+        assert math.isnan(s.heading_rad) and math.isnan(s.pitch_rad) and math.isnan(s.roll_rad)
+        assert s.vel_enu_mps == d.vel_enu_mps and s.lat_deg == d.lat_deg
+    assert all(math.isfinite(d.pitch_rad) for d in dual if d.fix != GnssFix.NONE)
+
+
 def test_imu_at_rest_reads_gravity_plus_bias() -> None:
     run = simulate(
         "hard_braking", seed=9, start_ns=START_NS, accel_std_mps2=0.0, accel_bias_walk_mps2=0.0
