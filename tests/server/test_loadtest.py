@@ -47,7 +47,9 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
         assert lat["rows"] > 0
         assert 0 < lat["p50_ms"] <= lat["p95_ms"] <= lat["p99_ms"] <= lat["max_ms"]
         assert math.isfinite(lat["max_ms"])
-    assert r["latency"]["live"]["p50_ms"] < r["latency"]["stored"]["p50_ms"]
+        # five vehicles on an idle server: nothing waits (the writer commits when rows reach
+        # it idle, so stored and live are both about one batch window behind the sensors)
+        assert lat["p99_ms"] < 2_000
     assert r["server_cpu_cores"] > 0
     assert r["server_rss_mb_peak"] > 0
 
