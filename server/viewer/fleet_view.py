@@ -50,6 +50,8 @@ NO_FOLLOW = "(none)"
 _TRACK_WINDOW_S = 120.0
 _WHEEL_WIDTH_M = 0.45
 _CAMERA_OFFSET_M = (-14.0, -14.0, 10.0)
+#: A follow camera aimed further than this off its vehicle is aimed again [m].
+_AIM_TOLERANCE_M = 0.5
 #: The velocity arrow of the followed vehicle shows this many seconds of travel.
 ARROW_SECONDS = 2.0
 
@@ -372,6 +374,8 @@ class FleetViewer:
         A client new to this vehicle gets a view from behind-left and above; after that the
         camera is translated by the vehicle's displacement, so the user can still orbit and zoom.
         (viser moves ``look_at`` along when ``position`` is assigned, so position goes first.)
+        A ``look_at`` still off the vehicle afterwards (the browser's own camera message crossed
+        ours, and the first aim was lost) is set again.
         """
         assert self.server is not None
         for client_id, client in self.server.get_clients().items():
@@ -385,6 +389,8 @@ class FleetViewer:
                     delta = target - self._cam_last
                     if float(np.linalg.norm(delta)) > 1e-6:
                         cam.position = np.asarray(cam.position) + delta
+                    if float(np.linalg.norm(np.asarray(cam.look_at) - target)) > _AIM_TOLERANCE_M:
+                        cam.look_at = target
             except AssertionError:  # the client has not reported its camera yet
                 continue
         self._cam_last = np.array(target, dtype=np.float64)
