@@ -207,6 +207,11 @@ class FleetTicks:
 # ---------------------------------------------------------------------------------------------
 
 
+def _fix_gap_s(stamp_ns: IntArray, fix_ns: IntArray) -> FloatArray:
+    """Time since a track's previous fix, clipped to [0, 1] s (the per-fix updates' ``gap``)."""
+    return np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+
+
 def pitch_fix_update(
     theta_rad: FloatArray,
     var_rad2: FloatArray,
@@ -237,7 +242,7 @@ def pitch_fix_update(
     has = np.isfinite(pitch_gnss_rad)
     first = has & (~known | (not product))
     follow = has & ~first
-    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+    gap = _fix_gap_s(stamp_ns, fix_ns)
     err = pitch_gnss_rad - theta_rad
     with np.errstate(invalid="ignore", divide="ignore"):
         gain = np.maximum(var_rad2 / (var_rad2 + r2), 1.0 - np.exp(-gap / tau))
@@ -264,7 +269,7 @@ def yaw_fix_update(
     """
     tau = config.pitch_tau_s
     known = np.isfinite(psi_rad)
-    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+    gap = _fix_gap_s(stamp_ns, fix_ns)
     d = heading_gnss_rad - psi_rad
     err = d - _TWO_PI * np.rint(d / _TWO_PI)  # IEEE remainder, as math.remainder
     psi = np.where(known, psi_rad + (1.0 - np.exp(-gap / tau)) * err, heading_gnss_rad)
@@ -292,7 +297,7 @@ def roll_fix_update(
     """
     r2 = config.pitch_std_rad**2
     has = np.isfinite(roll_gnss_rad)
-    gap = np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+    gap = _fix_gap_s(stamp_ns, fix_ns)
     w = 1.0 - np.exp(-gap / config.pitch_tau_s)
     known = np.isfinite(roll_rad)
     roll = np.where(known, roll_rad + w * (roll_gnss_rad - roll_rad), roll_gnss_rad)
@@ -1098,15 +1103,17 @@ class _Batch:
         def at_fix(fi: IntArray, r: IntArray) -> None:
             p = g[fi, _G_PITCH]
             pm, pm_var = p, None
-            if self.product:
-                pm, pm_var = self._velocity_pitch(fi, r)
-                # chi-square gate: an outlying velocity is a wild pitch (before the first pitch
-                # against the prior, ±_PITCH_PRIOR_STD_RAD about level)
-                wild = (pm - th0[r]) ** 2 > cfg.gate_chi2 * (var[r] + pm_var)
-                pm = np.where(wild, np.nan, pm)
-                att = np.isfinite(p)
-                pm = np.where(att, p, pm)
-                pm_var = np.where(att, cfg.pitch_std_rad**2, pm_var)
+            need = np.flatnonzero(~np.isfinite(p)) if self.product else ()
+            if len(need):
+                # no receiver attitude: the velocity's elevation, chi-square gated (an outlying
+                # velocity is a wild pitch; before the first pitch against the prior,
+                # ±_PITCH_PRIOR_STD_RAD about level)
+                rn = r[need]
+                pv, pv_var = self._velocity_pitch(fi[need], rn)
+                wild = (pv - th0[rn]) ** 2 > cfg.gate_chi2 * (var[rn] + pv_var)
+                pm, pm_var = p.copy(), np.full(p.shape[0], cfg.pitch_std_rad**2)
+                pm[need] = np.where(wild, np.nan, pv)
+                pm_var[need] = pv_var
             th0[r], var[r], bias[r], fix_ns[r], known[r] = pitch_fix_update(
                 th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg, pm_var
             )
