@@ -102,9 +102,8 @@ def _copy_rows(parts: Sequence[np.ndarray]) -> list[np.ndarray]:
     """A copy of every ``ESTIMATE_DTYPE`` array in ``parts``: views of one joined copy."""
     if not parts:
         return []
-    joined = concat_estimates(parts) if len(parts) > 1 else parts[0]
-    if len(parts) == 1 or joined is parts[0]:
-        joined = joined.copy()
+    # concat_estimates copies several parts, and hands one back as it is
+    joined = concat_estimates(parts) if len(parts) > 1 else parts[0].copy()
     bounds = [0, *itertools.accumulate(len(p) for p in parts)]
     return [joined[a:b] for a, b in itertools.pairwise(bounds)]
 
