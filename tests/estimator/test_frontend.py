@@ -45,17 +45,11 @@ def _stamp(m: Measurement) -> int:
 
 def _vehicle(name: str, seed: int, join_s: float, variant: str = "", **kw: Any) -> _Vehicle:
     start = START + round(join_s * S)
+    if variant == "single_antenna":  # no receiver attitude: heading from the velocity
+        kw = {**kw, "gnss_attitude": False}
     sim: SimRun = simulate(name, seed=seed, start_ns=start, **kw)
     ms: list[Measurement] = list(sim.measurements)
-    if variant == "single_antenna":  # no receiver attitude: heading from the velocity
-        nan = float("nan")
-        ms = [
-            dataclasses.replace(m, heading_rad=nan, pitch_rad=nan, roll_rad=nan)
-            if isinstance(m, GnssSample)
-            else m
-            for m in ms
-        ]
-    elif variant == "direct":  # CAN wheel speeds (with every IMU batch) instead of edges
+    if variant == "direct":  # CAN wheel speeds (with every IMU batch) instead of edges
         out: list[Measurement] = []
         for m in ms:
             if isinstance(m, WheelEdges):
