@@ -9,7 +9,7 @@ Subcommands::
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
-                                          wheels frontend advance publisher ingest
+                                          wheels frontend advance publisher ingest pipeline
     slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
@@ -42,6 +42,7 @@ BENCHES = (
     "advance",
     "publisher",
     "ingest",
+    "pipeline",
 )
 
 
