@@ -880,8 +880,11 @@ def local_server(
 
 
 def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
-    """Settings overrides from ``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s``."""
+    """Settings overrides from ``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s``,
+    ``--workers``."""
     s: dict[str, Any] = {}
+    if args.workers is not None:
+        s.setdefault("ingest", {})["workers"] = args.workers
     if args.lateness_ms is not None:
         s.setdefault("ingest", {})["lateness_ms"] = args.lateness_ms
     if args.advance_step_ms is not None:
@@ -898,6 +901,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="mix", help="a scenario name or 'mix'")
     p.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
     p.add_argument("--publishers", type=int, default=2, help="publisher processes")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="worker processes of the started server(s) (ingest.workers; default: its setting)",
+    )
     p.add_argument("--sessions", type=int, default=8, help="Zenoh sessions per publisher")
     p.add_argument("--warmup", type=float, default=5.0, help="seconds before the window")
     p.add_argument("--replay", nargs="+", default=None, metavar="PATH", help="recordings")

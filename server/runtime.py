@@ -26,7 +26,8 @@ from estimator.geo import EnuFrame
 from server.alerts import AlertEngine, AlertKind
 from server.api.prometheus import MetricFamily, Sample
 from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
-from server.ingest.pipeline import Pipeline
+from server.ingest.pipeline import EstimateSink, Pipeline
+from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
 from server.latency import LatencyProbe
 from server.live import LiveHub
@@ -60,7 +61,7 @@ class Runtime:
         self.alert_engine: AlertEngine | None = None
         self.session: zenoh.Session | None = None
         self.registry: EstimatorRegistry | None = None
-        self.pipeline: Pipeline | None = None
+        self.pipeline: Pipeline | WorkerPool | None = None
         self.viewer: Any = None
         self._configs: dict[str, VehicleConfig] = {}
         self._registrar: concurrent.futures.ThreadPoolExecutor | None = None
@@ -89,13 +90,19 @@ class Runtime:
         )
         self.session = open_session(s.zenoh)
         self.registry = EstimatorRegistry()
-        self.pipeline = Pipeline(
-            s,
-            self.session,
-            self.registry,
-            sinks=[self.writer, self.live_hub, self.alert_engine, self.latency],
-            on_new_vehicle=self._on_new_vehicle,
-            raw_sink=self.writer.submit_raw_packets if s.storage.store_raw_packets else None,
+        sinks: list[EstimateSink] = [self.writer, self.live_hub, self.alert_engine, self.latency]
+        raw_sink = self.writer.submit_raw_packets if s.storage.store_raw_packets else None
+        self.pipeline = (
+            WorkerPool(s, self.session, sinks, self._on_new_vehicle, raw_sink=raw_sink)
+            if s.ingest.workers
+            else Pipeline(
+                s,
+                self.session,
+                self.registry,
+                sinks=sinks,
+                on_new_vehicle=self._on_new_vehicle,
+                raw_sink=raw_sink,
+            )
         )
         for rec in self._store.list_vehicles():
             try:

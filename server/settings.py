@@ -180,6 +180,16 @@ class IngestSettings(BaseModel):
             "by up to this much more"
         ),
     )
+    workers: int = Field(
+        0,
+        ge=0,
+        le=64,
+        description=(
+            "worker processes that decode, reorder and estimate, each for its share of the "
+            "vehicles (one interpreter lock each: more cores for one server); 0 = all of it "
+            "in the server process"
+        ),
+    )
     advance_step_ms: int = Field(
         100,
         ge=1,

@@ -160,7 +160,8 @@ class Pipeline:
         self._queue: queue.Queue[tuple[int, list[IngestItem]] | None] = queue.Queue(
             maxsize=QUEUE_BURSTS
         )
-        self._control: deque[tuple[str, str, VehicleConfig | None]] = deque()
+        # (op, vehicle_id, config or None, notify)
+        self._control: deque[tuple[str, str, VehicleConfig | None, bool]] = deque()
         self._counters = IngestCounters()
         self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
         self._anchors: dict[str, tuple[float, float, float]] = {}
@@ -257,16 +258,20 @@ class Pipeline:
         self._stats["dropped_not_running"] += len(items)
         log.error("pipeline not running: dropped %d ingest items", len(items))
 
-    def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+    def register_vehicle(
+        self, vehicle_id: str, config: VehicleConfig, *, notify: bool = False
+    ) -> None:
         """Start or reconfigure a vehicle (applied on the pipeline thread).
 
         Validate first with ``registry.names_for(config)`` to report unknown estimators.
+        ``notify``: call ``on_new_vehicle`` once registered (a config that came over Zenoh to
+        a worker pool's server, see :mod:`server.ingest.workers`).
         """
-        self._control.append(("add", vehicle_id, config))
+        self._control.append(("add", vehicle_id, config, notify))
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget a vehicle: estimators, reorder buffer and counters."""
-        self._control.append(("remove", vehicle_id, None))
+        self._control.append(("remove", vehicle_id, None, False))
 
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
         """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`);
@@ -372,9 +377,9 @@ class Pipeline:
 
     def _apply_control(self) -> None:
         while self._control:
-            op, vid, config = self._control.popleft()
+            op, vid, config, notify = self._control.popleft()
             if op == "add" and config is not None:
-                self._add(vid, config, notify=False)
+                self._add(vid, config, notify=notify)
             elif op == "remove":
                 self._registry.remove_vehicle(vid)
                 self._buffers.pop(vid, None)

@@ -29,7 +29,7 @@ import zenoh
 from estimator.config import VehicleConfig
 from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet, decode_config
-from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK
+from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK, parse_key
 from server.settings import IngestSettings, ZenohSettings
 
 __all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber", "RawPacket"]
@@ -70,6 +70,10 @@ class IngestSubscriber:
         Receives each burst's raw packets as ``(vehicle_id, received_ns, key, payload)``
         (wall-clock receive time; packets whose key names no vehicle are left out), for
         ``StorageSettings.store_raw_packets``.
+    route : callable, optional
+        Takes each burst's ``(key, payload)`` packets undecoded instead (the worker pool hands
+        them to the process that owns the vehicle, which decodes them); ``deliver`` is then
+        not called, and ``raw_sink`` gets the packets whose key names a vehicle.
     """
 
     def __init__(
@@ -79,8 +83,10 @@ class IngestSubscriber:
         ingest_settings: IngestSettings,
         deliver: Callable[[list[IngestItem]], None],
         raw_sink: Callable[[list[RawPacket]], object] | None = None,
+        route: Callable[[list[tuple[str, bytes]]], None] | None = None,
     ) -> None:
         self._session = session
+        self._route = route
         self._zs = zenoh_settings
         self._max_payload = ingest_settings.max_payload_bytes
         self._gather_s = ingest_settings.gather_ms / 1000
@@ -177,18 +183,33 @@ class IngestSubscriber:
             except zenoh.ZError:
                 closed = True  # undeclared while the burst gathered: deliver it, then stop
             full = len(received) == BURST  # a backlog: no gathering until it is worked off
+            if self._route is not None:
+                if self._raw_sink is not None:
+                    prefix = self._zs.key_prefix
+                    self._sink_raw(received, [_vehicle_of(key, prefix) for key, _ in received])
+                self._route(received)
+                continue
             burst = self._decode(received)
             if self._raw_sink is not None:
-                self._sink_raw(received, burst)
+                self._sink_raw(received, [item.vehicle_id for item in burst])
             self._deliver(burst)
 
-    def _sink_raw(self, received: list[tuple[str, bytes]], burst: list[IngestItem]) -> None:
+    def _sink_raw(self, received: list[tuple[str, bytes]], vehicles: list[str | None]) -> None:
         """Hand the burst's packets whose key names a vehicle to the raw sink."""
         assert self._raw_sink is not None
         raw: list[RawPacket] = [
-            (item.vehicle_id, time.time_ns(), key, payload)
-            for (key, payload), item in zip(received, burst, strict=True)
-            if item.vehicle_id
+            (vid, time.time_ns(), key, payload)
+            for (key, payload), vid in zip(received, vehicles, strict=True)
+            if vid
         ]
         if raw:
             self._raw_sink(raw)
+
+
+def _vehicle_of(key: str, prefix: str) -> str | None:
+    """The vehicle a sensor key names (None: not a valid sensor key)."""
+    try:
+        vid, stream = parse_key(key, prefix)
+    except ValueError:
+        return None
+    return vid if stream is not None else None

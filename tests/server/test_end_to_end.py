@@ -36,22 +36,30 @@ SEED = 11
 SLIP_RMS_BOUND_PP = 1.25
 
 
-def _settings(tmp_path: Path, storage_url: str | None) -> Settings:
+def _settings(tmp_path: Path, storage_url: str | None, workers: int) -> Settings:
     zenoh_port = free_port()
     return Settings(
         zenoh={"listen": [f"tcp/127.0.0.1:{zenoh_port}"]},
         storage={"url": storage_url, "data_dir": tmp_path / "data", "commit_interval_s": 0.2},
+        ingest={"workers": workers},
         api={"port": 0, "require_auth": False},
         viewer={"enabled": False},
     )
 
 
-@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
-def storage_url(request: pytest.FixtureRequest) -> Iterator[str | None]:
-    if request.param == "sqlite":
-        yield None
+@pytest.fixture(
+    params=[
+        "sqlite",
+        "sqlite, 2 worker processes",
+        pytest.param("postgresql", marks=pytest.mark.postgres),
+    ]
+)
+def backend(request: pytest.FixtureRequest) -> Iterator[tuple[str | None, int]]:
+    """``(storage URL or None for SQLite, ingest.workers)``."""
+    if request.param.startswith("sqlite"):
+        yield None, 2 if "worker" in request.param else 0
     else:
-        yield request.getfixturevalue("pg_database_url")
+        yield request.getfixturevalue("pg_database_url"), 0
 
 
 def _series(client: httpx.Client, vehicle_id: str, window: dict[str, int]) -> dict[str, np.ndarray]:
@@ -70,9 +78,9 @@ def _series(client: httpx.Client, vehicle_id: str, window: dict[str, int]) -> di
 
 
 def test_simulated_fleet_reaches_rest_and_matches_truth(
-    tmp_path: Path, storage_url: str | None
+    tmp_path: Path, backend: tuple[str | None, int]
 ) -> None:
-    settings = _settings(tmp_path, storage_url)
+    settings = _settings(tmp_path, *backend)
     server = ServerThread(build_app(settings), "127.0.0.1", 0)
     server.start()
     try:

@@ -1,0 +1,467 @@
+"""The pipeline spread over worker processes: one GIL per share of the fleet.
+
+One server process holds one Python interpreter lock, and decoding, reordering and estimating
+are Python work under it: on its own a process falls behind at some hundreds of vehicles while
+a second core idles. With ``IngestSettings.workers = N`` (N ≥ 1) the server keeps Zenoh, the
+REST API, the sinks (store writer, live hub, alerts) and the vehicles' registrations, and
+starts ``N`` worker processes, each running a :class:`~server.ingest.pipeline.Pipeline` (decode,
+reorder buffers, estimator registry) for the vehicles it owns::
+
+    Zenoh ─▶ FifoChannel ─▶ route thread ──(key, payload) bursts──▶ worker k: decode, Pipeline
+                            (vehicle → owner)                             │ rows, counters
+                                                                          ▼
+                     sinks ◀── collect thread ◀───────────── result pipes of all workers
+
+* **Ownership.** Vehicle ``v`` belongs to worker ``crc32(v) mod N`` (:func:`owner_of`): stable
+  across restarts, no table to share. Packets whose key names no vehicle go to worker 0,
+  which refuses them (counted as usual).
+* **Route thread** (the subscriber's thread, :class:`~server.ingest.subscriber.IngestSubscriber`
+  with ``route``): takes the samples in bursts as in-process ingest does, splits each burst by
+  owner and sends each share undecoded down that worker's pipe. A worker that falls behind
+  fills its pipe, the send blocks, the Zenoh channel fills, and BLOCK congestion control slows
+  the publishers: nothing is dropped silently.
+* **Workers** (:func:`_worker_main`, started with ``spawn``: Zenoh's threads do not survive
+  ``fork``) decode each share (``decode_burst``) and submit it to their pipeline, whose one sink
+  sends every estimator call's rows back as one array (``ESTIMATE_DTYPE``) with the vehicles'
+  ids and row counts. Once a second (and when they stop) they send a snapshot of their ingest
+  counters, estimator counters, ENU anchors and pipeline stats. Vehicles they register
+  themselves (``unknown_vehicle = "auto"``) are reported to the server, which stores them.
+* **Collect thread**: waits on every worker's result pipe and hands rows to the sinks (one
+  thread, as the in-process pipeline thread calls them), snapshots to the merged views below,
+  new vehicles to ``on_new_vehicle``.
+* **Control**: :meth:`WorkerPool.register_vehicle`, :meth:`~WorkerPool.remove_vehicle` and
+  :meth:`~WorkerPool.restore_counters` go to the owner's control pipe; vehicle configs received
+  over Zenoh are decoded here and registered the same way.
+
+:class:`WorkerPool` has :class:`~server.ingest.pipeline.Pipeline`'s public interface, so the
+runtime uses either. Its snapshots are as of the workers' last report (at most a second old,
+as the in-process estimator counters already are).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import threading
+import zlib
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection, wait
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from estimator.config import VehicleConfig
+from estimator.types import concat_estimates
+from server.ingest.pipeline import EstimateSink
+from server.ingest.subscriber import IngestSubscriber, RawPacket
+from server.protocol.keys import parse_key
+from server.settings import IngestSettings, Settings, ZenohSettings
+
+__all__ = ["WorkerPool", "owner_of"]
+
+log = logging.getLogger(__name__)
+
+#: How often a worker reports its counters, anchors and stats (seconds).
+SNAPSHOT_EVERY_S = 1.0
+#: Longest wait for a worker to start (imports, estimator registry) or to stop.
+START_TIMEOUT_S = 60.0
+
+# pipeline stats that are not summed over workers
+_STATS_MAX = ("last_tick_ms",)
+_STATS_ALL = ("running",)
+
+
+def owner_of(vehicle_id: str, workers: int) -> int:
+    """The worker (0 … ``workers`` − 1) that owns ``vehicle_id``: ``crc32(id) mod workers``."""
+    return zlib.crc32(vehicle_id.encode()) % workers
+
+
+class _Worker:
+    """The server's end of one worker process: its pipes and its last snapshot."""
+
+    def __init__(
+        self, index: int, settings: Settings, ctx: Any, initial: list[tuple[Any, ...]]
+    ) -> None:
+        self.index = index
+        feed_recv, self.feed = ctx.Pipe(duplex=False)
+        self.results, results_send = ctx.Pipe(duplex=False)
+        control_recv, self.control = ctx.Pipe(duplex=False)
+        self.feed_lock = threading.Lock()
+        self.control_lock = threading.Lock()
+        self.process = ctx.Process(
+            target=_worker_main,
+            args=(
+                index,
+                settings.ingest.model_dump_json(),
+                settings.zenoh.key_prefix,
+                initial,
+                feed_recv,
+                results_send,
+                control_recv,
+            ),
+            name=f"slipfleet-worker-{index}",
+            daemon=True,
+        )
+        self.process.start()
+        for end in (feed_recv, results_send, control_recv):
+            end.close()  # the child holds them now
+        self.snapshot: dict[str, Any] = {}
+        self.done = threading.Event()
+
+    def send_control(self, message: tuple[Any, ...]) -> None:
+        with self.control_lock:
+            self.control.send(message)
+
+
+class WorkerPool:
+    """Decode, reorder and estimate in ``settings.ingest.workers`` processes.
+
+    Parameters are those of :class:`~server.ingest.pipeline.Pipeline` but the registry: each
+    worker builds its own. ``session`` None runs without Zenoh (feed with :meth:`route`).
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        session: zenoh.Session | None,
+        sinks: Sequence[EstimateSink] = (),
+        on_new_vehicle: Callable[[str, VehicleConfig], None] | None = None,
+        *,
+        raw_sink: Callable[[list[RawPacket]], object] | None = None,
+    ) -> None:
+        if settings.ingest.workers < 1:
+            raise ValueError("WorkerPool needs ingest.workers >= 1")
+        self._settings = settings
+        self._prefix = settings.zenoh.key_prefix
+        self._n = settings.ingest.workers
+        self._sinks = list(sinks)
+        self._on_new_vehicle = on_new_vehicle
+        self._pending: list[tuple[int, tuple[Any, ...]]] = []  # control before start()
+        self._workers: list[_Worker] = []
+        self._collector: threading.Thread | None = None
+        self._stats = {"sink_errors": 0, "worker_messages": 0, "dropped_worker_down": 0}
+        self._subscriber = (
+            IngestSubscriber(
+                session,
+                settings.zenoh,
+                settings.ingest,
+                deliver=lambda _items: None,
+                raw_sink=raw_sink,
+                route=self.route,
+            )
+            if session is not None
+            else None
+        )
+        self._config_thread: threading.Thread | None = None
+        self._stopping = threading.Event()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def add_sink(self, sink: EstimateSink) -> None:
+        """Add a sink before :meth:`start`."""
+        if self._workers:
+            raise RuntimeError("add sinks before start()")
+        self._sinks.append(sink)
+
+    def start(self) -> None:
+        """Start the workers (and wait until each is ready), the collector, the subscriber."""
+        if self._workers:
+            raise RuntimeError("already started")
+        ctx = mp.get_context("spawn")
+        initial: list[list[tuple[Any, ...]]] = [[] for _ in range(self._n)]
+        for owner, message in self._pending:
+            initial[owner].append(message)
+        self._pending.clear()
+        self._workers = [_Worker(k, self._settings, ctx, initial[k]) for k in range(self._n)]
+        for w in self._workers:
+            if not w.results.poll(START_TIMEOUT_S):
+                self.stop()
+                raise RuntimeError(f"worker {w.index} did not start")
+            w.results.recv()  # ("ready",)
+        self._collector = threading.Thread(
+            target=self._collect, name="slipfleet-collect", daemon=True
+        )
+        self._collector.start()
+        if self._subscriber is not None:
+            self._subscriber.start()
+            self._config_thread = threading.Thread(
+                target=self._poll_configs, name="slipfleet-configs", daemon=True
+            )
+            self._config_thread.start()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop the subscriber, let every worker work off what it has, collect, join."""
+        self._stopping.set()
+        if self._subscriber is not None:
+            self._subscriber.stop(timeout_s)
+        if self._config_thread is not None:
+            self._config_thread.join(timeout_s)
+        for w in self._workers:
+            try:
+                with w.feed_lock:
+                    w.feed.send(None)  # end of input: the worker flushes and says "done"
+            except (OSError, ValueError):
+                w.done.set()  # already gone
+        if self._collector is not None:
+            self._collector.join(START_TIMEOUT_S)
+            if self._collector.is_alive():
+                log.warning("worker results still coming after %.0f s", START_TIMEOUT_S)
+        for w in self._workers:
+            w.process.join(timeout_s)
+            if w.process.is_alive():
+                log.warning("worker %d did not stop; terminating it", w.index)
+                w.process.terminate()
+                w.process.join(timeout_s)
+
+    # ------------------------------------------------------------------ input
+
+    def route(self, received: list[tuple[str, bytes]]) -> None:
+        """Send each packet of a burst, undecoded, to the worker that owns its vehicle."""
+        shares: list[list[tuple[str, bytes]]] = [[] for _ in self._workers]
+        n, prefix = self._n, self._prefix
+        for key, payload in received:
+            try:
+                vid = parse_key(key, prefix)[0]
+            except ValueError:
+                shares[0].append((key, payload))  # refused there, counted without a vehicle
+                continue
+            shares[owner_of(vid, n)].append((key, payload))
+        for w, share in zip(self._workers, shares, strict=True):
+            if not share:
+                continue
+            try:
+                if w.done.is_set():
+                    raise BrokenPipeError
+                with w.feed_lock:
+                    w.feed.send(share)
+            except (OSError, ValueError):
+                self._stats["dropped_worker_down"] += len(share)
+                log.error("worker %d is down: dropped %d packets", w.index, len(share))
+
+    def _poll_configs(self) -> None:
+        """Vehicle configs received over Zenoh: register with the owner, report them."""
+        assert self._subscriber is not None
+        while not self._stopping.wait(0.1):
+            for update in self._subscriber.poll_configs():
+                # the owner reports it back ("new") once its estimators took the config
+                self._control(update.vehicle_id, ("add", update.vehicle_id, update.config, True))
+
+    # ------------------------------------------------------------------ control
+
+    def _control(self, vehicle_id: str, message: tuple[Any, ...]) -> None:
+        owner = owner_of(vehicle_id, self._n)
+        if not self._workers:
+            self._pending.append((owner, message))
+        else:
+            self._workers[owner].send_control(message)
+
+    def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """Start or reconfigure a vehicle (in the worker that owns it)."""
+        self._control(vehicle_id, ("add", vehicle_id, config, False))
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        """Forget a vehicle: estimators, reorder buffer and counters."""
+        self._control(vehicle_id, ("remove", vehicle_id))
+
+    def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
+        """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`)."""
+        self._control(vehicle_id, ("restore", vehicle_id, dict(totals)))
+
+    # ------------------------------------------------------------------ output
+
+    def _collect(self) -> None:
+        """Results of every worker until each has said it is done (or died)."""
+        left = {w.results: w for w in self._workers}
+        while left:
+            for ready in wait(list(left), timeout=1.0):
+                assert isinstance(ready, Connection)
+                w = left[ready]
+                try:
+                    message = ready.recv()
+                except (EOFError, OSError):
+                    log.error("worker %d exited", w.index)
+                    message = ("done", w.snapshot)
+                self._stats["worker_messages"] += 1
+                if self._take(w, message):
+                    w.done.set()
+                    del left[ready]
+
+    def _take(self, w: _Worker, message: tuple[Any, ...]) -> bool:
+        """Act on one worker message; True when the worker is done."""
+        kind = message[0]
+        if kind == "rows":
+            _, ids, counts, rows = message
+            bounds = np.cumsum([0, *counts]).tolist()
+            batch = [(vid, rows[a:b]) for vid, a, b in zip(ids, bounds, bounds[1:], strict=False)]
+            for sink in self._sinks:
+                try:
+                    sink.on_estimates(batch)
+                except Exception:
+                    self._stats["sink_errors"] += 1
+                    log.exception("sink %r failed", sink)
+        elif kind == "new":
+            if self._on_new_vehicle is not None:
+                try:
+                    self._on_new_vehicle(message[1], message[2])
+                except Exception:
+                    log.exception("on_new_vehicle failed for %s", message[1])
+        elif kind in ("snapshot", "done"):
+            w.snapshot = message[1]
+        return kind == "done"
+
+    # ------------------------------------------------------------------ views
+
+    def _merged(self, name: str) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for w in self._workers:
+            out.update(w.snapshot.get(name, {}))
+        return out
+
+    def counters_snapshot(self) -> dict[str, dict[str, int]]:
+        """Per-vehicle ingest counters (as of each worker's last report)."""
+        return self._merged("counters")
+
+    def estimator_counters_snapshot(self) -> dict[str, dict[str, dict[str, int]]]:
+        """``{estimator: {vehicle_id: {event: n}}}`` over every worker."""
+        out: dict[str, dict[str, dict[str, int]]] = {}
+        for w in self._workers:
+            for name, per_vehicle in w.snapshot.get("estimator_counters", {}).items():
+                out.setdefault(name, {}).update(per_vehicle)
+        return out
+
+    def anchors_snapshot(self) -> dict[str, tuple[float, float, float]]:
+        """Each vehicle's ENU anchor."""
+        return self._merged("anchors")
+
+    def stats(self) -> dict[str, Any]:
+        """The workers' pipeline stats summed (``last_tick_ms`` the largest), plus the pool's;
+        ``running`` only while every worker and the collector run."""
+        merged: dict[str, Any] = dict(self._stats)
+        for w in self._workers:
+            for key, value in w.snapshot.get("stats", {}).items():
+                if key in _STATS_MAX:
+                    merged[key] = max(merged.get(key, 0), value)
+                elif key not in _STATS_ALL and isinstance(value, int | float):
+                    merged[key] = merged.get(key, 0) + value
+        merged["workers"] = len(self._workers)
+        merged["running"] = (
+            bool(self._workers)
+            and all(w.process.is_alive() and not w.done.is_set() for w in self._workers)
+            and self._collector is not None
+            and self._collector.is_alive()
+        )
+        return merged
+
+
+# ---------------------------------------------------------------------------- worker process
+
+
+class _Results:
+    """A worker's result pipe, shared by its pipeline thread and its snapshot loop."""
+
+    def __init__(self, conn: Connection) -> None:
+        self._conn = conn
+        self._lock = threading.Lock()
+
+    def send(self, message: tuple[Any, ...]) -> None:
+        with self._lock:
+            self._conn.send(message)
+
+    def on_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None:
+        """Pipeline sink: the call's rows as one array, with ids and counts."""
+        self.send(
+            (
+                "rows",
+                [vid for vid, _ in batch],
+                [len(rows) for _, rows in batch],
+                concat_estimates([rows for _, rows in batch]),
+            )
+        )
+
+
+def _snapshot(pipeline: Any) -> dict[str, Any]:
+    return {
+        "counters": pipeline.counters_snapshot(),
+        "estimator_counters": pipeline.estimator_counters_snapshot(),
+        "anchors": pipeline.anchors_snapshot(),
+        "stats": pipeline.stats(),
+    }
+
+
+def _apply(pipeline: Any, message: tuple[Any, ...]) -> None:
+    """One control message from the server."""
+    if message[0] == "add":
+        pipeline.register_vehicle(message[1], message[2], notify=message[3])
+    elif message[0] == "remove":
+        pipeline.remove_vehicle(message[1])
+    elif message[0] == "restore":
+        pipeline.restore_counters(message[1], message[2])
+
+
+def _worker_main(
+    index: int,
+    ingest_json: str,
+    key_prefix: str,
+    initial: list[tuple[Any, ...]],
+    feed: Connection,
+    results_conn: Connection,
+    control: Connection,
+) -> None:
+    """A worker process: decode what the server routes here and run a pipeline on it."""
+    from server.estimators.registry import EstimatorRegistry
+    from server.ingest.pipeline import Pipeline
+    from server.protocol.burst import decode_burst
+
+    logging.basicConfig(level=logging.WARNING, format=f"worker {index}: %(levelname)s %(message)s")
+    # what a pipeline without a Zenoh session reads; nothing from the environment or files
+    settings = Settings.model_construct(
+        ingest=IngestSettings.model_validate_json(ingest_json),
+        zenoh=ZenohSettings(key_prefix=key_prefix),
+    )
+    results = _Results(results_conn)
+    pipeline = Pipeline(
+        settings,
+        None,
+        EstimatorRegistry(),
+        sinks=[results],
+        on_new_vehicle=lambda vid, config: results.send(("new", vid, config)),
+    )
+    stop = threading.Event()
+
+    def controls() -> None:
+        while not stop.is_set():
+            try:
+                if not control.poll(0.2):
+                    continue
+                message = control.recv()
+            except (EOFError, OSError):
+                return
+            _apply(pipeline, message)
+
+    def snapshots() -> None:
+        while not stop.wait(SNAPSHOT_EVERY_S):
+            results.send(("snapshot", _snapshot(pipeline)))
+
+    for message in initial:  # registrations and stored counters, before the first packet
+        _apply(pipeline, message)
+    threading.Thread(target=controls, name="worker-control", daemon=True).start()
+    pipeline.start()
+    snapshot_thread = threading.Thread(target=snapshots, name="worker-snapshots", daemon=True)
+    snapshot_thread.start()
+    results.send(("ready",))
+    prefix, max_payload = settings.zenoh.key_prefix, settings.ingest.max_payload_bytes
+    try:
+        while True:
+            try:
+                share = feed.recv()
+            except (EOFError, OSError):
+                break
+            if share is None:
+                break
+            pipeline.submit(decode_burst(share, prefix=prefix, max_payload_bytes=max_payload))
+    finally:
+        stop.set()
+        pipeline.stop()
+        snapshot_thread.join(5.0)
+        results.send(("done", _snapshot(pipeline)))

@@ -1,0 +1,140 @@
+"""Worker pool: the pipeline in worker processes, each owning a share of the vehicles."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from estimator.config import VehicleConfig
+from estimator.sim import simulate
+from server.fleet_sim import encode_packets, packetize
+from server.ingest.workers import WorkerPool, owner_of
+from server.protocol import sensor_key
+from server.settings import Settings
+from tests.server.ingest.fakes import CapturingSink
+
+VEHICLES = [f"w{i:03d}" for i in range(6)]
+
+
+def _packets(vehicles: list[str]) -> list[tuple[str, bytes]]:
+    """A 20 s drive per vehicle, interleaved as a fleet's packets arrive."""
+    run = simulate("paper_straight", seed=1, start_ns=time.time_ns() - 60 * 10**9)
+    encoded = encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns))
+    limit = sum(1 for _ in encoded) * 20 // max(1, round(run.duration_s))
+    return [
+        (sensor_key("fleet", vid, stream), payload)
+        for stream, payload in encoded[:limit]
+        for vid in vehicles
+    ]
+
+
+def _feed(pool: WorkerPool, packets: list[tuple[str, bytes]], burst: int = 64) -> None:
+    for i in range(0, len(packets), burst):
+        pool.route(packets[i : i + burst])
+
+
+def _pool(sink: CapturingSink, workers: int = 2, **ingest: object) -> WorkerPool:
+    settings = Settings(ingest={"workers": workers, **ingest}, viewer={"enabled": False})
+    return WorkerPool(settings, None, [sink])
+
+
+def test_owner_is_stable_and_spreads_the_fleet() -> None:
+    owners = [owner_of(f"sim-{i:04d}", 3) for i in range(3000)]
+    assert owners == [owner_of(f"sim-{i:04d}", 3) for i in range(3000)]
+    assert set(owners) == {0, 1, 2}
+    assert min(np.bincount(owners)) > 800  # crc32 spreads numbered ids about evenly
+
+
+def test_every_vehicle_is_estimated_once_and_counted() -> None:
+    sink = CapturingSink()
+    pool = _pool(sink)
+    packets = _packets(VEHICLES)
+    # one packet the worker must refuse, with its reason, for w001 alone
+    bad = (sensor_key("fleet", "w001", "imu"), b"\xc1not msgpack")
+    assert len({owner_of(v, 2) for v in VEHICLES}) == 2, "both workers own vehicles"
+    pool.start()
+    try:
+        _feed(pool, [*packets[:100], bad, *packets[100:]])
+        deadline = time.monotonic() + 30
+        while sum(c["received"] for c in pool.counters_snapshot().values()) < len(packets) + 1:
+            assert time.monotonic() < deadline, pool.counters_snapshot()
+            time.sleep(0.2)
+        assert pool.stats()["running"] and pool.stats()["workers"] == 2
+    finally:
+        pool.stop()
+    assert not pool.stats()["running"]
+    counters = pool.counters_snapshot()
+    per_vehicle = len(packets) // len(VEHICLES)
+    for vid in VEHICLES:
+        c = counters[vid]
+        assert c["accepted"] == per_vehicle and c["late"] == 0, (vid, c)
+        assert c["rejected"] == (1 if vid == "w001" else 0), (vid, c)
+    assert counters["w001"]["rejected_undecodable"] == 1
+    # every vehicle's ticks, each once, in time order, from exactly one worker
+    stamps = {vid: np.concatenate([r["stamp_ns"] for r in sink.rows[vid]]) for vid in VEHICLES}
+    lengths = {len(s) for s in stamps.values()}
+    assert len(lengths) == 1 and lengths.pop() >= 190  # 20 s of 100 ms ticks
+    for s in stamps.values():
+        assert np.all(np.diff(s) > 0)
+    # the estimators' own counters and anchors come back from both workers
+    ticks = pool.estimator_counters_snapshot()["mdsf"]
+    assert sorted(ticks) == VEHICLES
+    assert sorted(pool.anchors_snapshot()) == VEHICLES
+
+
+def test_registrations_and_stored_counters_reach_the_owner() -> None:
+    sink = CapturingSink()
+    pool = _pool(sink, unknown_vehicle="reject")
+    pool.register_vehicle("w000", VehicleConfig())
+    pool.register_vehicle("w003", VehicleConfig())
+    pool.restore_counters("w003", {"received": 1000, "accepted": 1000})
+    pool.start()
+    try:
+        _feed(pool, _packets(["w000", "w003", "w004"]))
+    finally:
+        pool.stop()
+    counters = pool.counters_snapshot()
+    assert sorted(sink.rows) == ["w000", "w003"]  # w004 is not registered
+    assert counters["w004"]["accepted"] == 0
+    assert counters["w004"]["rejected_unknown_vehicle"] == counters["w004"]["received"] > 0
+    assert counters["w003"]["received"] == 1000 + counters["w000"]["received"]
+
+
+def test_new_vehicles_are_reported_to_the_server() -> None:
+    sink = CapturingSink()
+    settings = Settings(ingest={"workers": 2}, viewer={"enabled": False})
+    seen: list[str] = []
+    pool = WorkerPool(settings, None, [sink], on_new_vehicle=lambda vid, _cfg: seen.append(vid))
+    pool.start()
+    try:
+        _feed(pool, _packets(VEHICLES[:3])[:30])
+    finally:
+        pool.stop()
+    assert sorted(seen) == VEHICLES[:3]
+
+
+def test_a_dead_worker_is_reported_and_its_packets_counted_not_lost_silently() -> None:
+    sink = CapturingSink()
+    pool = _pool(sink)
+    pool.start()
+    try:
+        victim = pool._workers[owner_of("w000", 2)]
+        victim.process.kill()
+        victim.process.join(5)
+        deadline = time.monotonic() + 10
+        while pool.stats()["running"]:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        packets = _packets(["w000"])[:20]
+        _feed(pool, packets)  # must not raise on the route thread
+        assert pool.stats()["dropped_worker_down"] == len(packets)
+    finally:
+        pool.stop()
+
+
+@pytest.mark.parametrize("workers", [0, -1])
+def test_needs_at_least_one_worker(workers: int) -> None:
+    with pytest.raises(ValueError):  # the pool's own check, or the setting's validation
+        _pool(CapturingSink(), workers=workers)
