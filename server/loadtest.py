@@ -622,7 +622,13 @@ class _ProcWatch:
     def start(self) -> _ProcWatch:
         import psutil
 
-        self.procs = [psutil.Process(p) for p in self.pids]
+        # a server's worker processes (ingest.workers) count as the server
+        self.procs = []
+        for pid in self.pids:
+            proc = psutil.Process(pid)
+            self.procs.append(proc)
+            with contextlib.suppress(psutil.Error):
+                self.procs.extend(proc.children(recursive=True))
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
         return self

@@ -24,16 +24,18 @@ Three parts, all on loopback, in one run:
    speed tracking, no slip or pitch): it bounds what a plain per-vehicle loop costs.
 
 2. **Ladder** — real-time simulated fleets (:func:`server.loadtest.run_loadtest`, scenario
-   mix) of ``RUNGS`` vehicles against (a) one server and (b) two server processes that each
+   mix) of ``RUNGS`` vehicles against (a) one server, (b) two server processes that each
    own half the fleet by key expression (``zenoh.vehicle_filter`` ``a-$*`` / ``b-$*``), all
    clients of one router process (:mod:`server.router`) and writing to one PostgreSQL
    database (``$SLIPFLEET_TEST_PG_URL``, else a throwaway cluster from
    ``scripts/pg-test-cluster``). A rung *holds* when no packet is lost, late or missing, the
    server received ≥ 98 % of what was sent in the window and the p99 sensor→stored latency
    stays under the ladder's bound; each ladder stops at the first rung that does not hold.
-   Two ladders, ``single`` and ``pair``, both with the default server settings (bound
-   ``KEEP_UP_P99_MS``: the server keeps up). The ``floor`` column: 0 loss and p99 < 250 ms,
-   the product target.
+   Three ladders, ``single``, ``pair`` and ``workers`` (one server whose decode, reorder and
+   estimators run in two worker processes, ``ingest.workers = 2``, :mod:`server.ingest.workers`),
+   otherwise with the default server settings (bound ``KEEP_UP_P99_MS``: the server keeps up).
+   The ``floor`` column: 0 loss and p99 < 250 ms, the product target. ``--ladders`` picks
+   some of them and ``--from N`` starts each at the first rung of at least ``N`` vehicles.
 
 3. **Profile** — the single server at the ``PROFILE_VEHICLES`` rung is sampled with py-spy
    (when installed) and the heaviest frames are printed.
@@ -78,8 +80,8 @@ RUNG_WARMUP_S = 5.0
 KEEP_UP_P99_MS = 2500.0
 #: The product target: p99 sensor→stored latency with zero loss.
 FLOOR_P99_MS = 250.0
-#: The whole ladder stops starting rungs after this many seconds.
-LADDER_BUDGET_S = 420.0
+#: A ladder stops starting rungs after this many seconds.
+LADDER_BUDGET_S = 240.0
 PROFILE_VEHICLES = 100
 #: py-spy sampling of the profiled server: rate (Hz) and duration (s).
 PROFILE_RATE_HZ = 100
@@ -478,7 +480,13 @@ PAIR = dict(zip(("filters", "ids"), shard_layout(2), strict=True))
 #: watermarks, estimators advanced every MDSF tick, commits at most every 0.02 s); a rung holds
 #: while the server keeps up (p99 < KEEP_UP_P99_MS), and the ``floor`` column says whether it
 #: also meets the product target (0 loss, p99 < FLOOR_P99_MS).
-LADDERS: tuple[tuple[str, dict[str, Any]], ...] = (("single", SINGLE), ("pair", PAIR))
+#: ``workers``: one server whose pipeline runs in two worker processes (``ingest.workers``).
+WORKERS = {**SINGLE, "settings": {"ingest": {"workers": 2}}}
+LADDERS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("single", SINGLE),
+    ("pair", PAIR),
+    ("workers", WORKERS),
+)
 
 
 def rung(
@@ -491,7 +499,7 @@ def rung(
     from server.loadtest import LoadSpec, Target, run_loadtest
 
     spec = LoadSpec(vehicles=vehicles, duration_s=RUNG_WINDOW_S, warmup_s=RUNG_WARMUP_S)
-    with fresh_shards(admin_url, layout["filters"]) as (router, servers):
+    with fresh_shards(admin_url, layout["filters"], layout.get("settings")) as (router, servers):
         target = Target(
             (router.endpoint,),
             tuple(s.api for s in servers),
@@ -531,11 +539,13 @@ def ladder(
     name: str,
     layout: dict[str, Any],
     budget_s: float,
+    first: int = 0,
 ) -> list[dict[str, Any]]:
-    """Rungs of ``RUNGS`` until one does not hold or the time budget is spent."""
+    """Rungs of ``RUNGS`` from ``first`` vehicles on, until one does not hold or the time
+    budget is spent."""
     out = []
     t0 = time.monotonic()
-    for n in RUNGS:
+    for n in (n for n in RUNGS if n >= first):
         if time.monotonic() - t0 > budget_s:
             print(f"  {name}: time budget spent before {n} vehicles", flush=True)
             break
@@ -588,7 +598,11 @@ def _row(r: dict[str, Any]) -> str:
 
 
 def run(
-    json_path: str | Path | None = None, *, ladder_budget_s: float = LADDER_BUDGET_S
+    json_path: str | Path | None = None,
+    *,
+    ladder_budget_s: float = LADDER_BUDGET_S,
+    ladders: Sequence[str] | None = None,
+    first: int = 0,
 ) -> dict[str, Any]:
     """Run the benchmark; print the tables; write JSON to ``json_path`` if given."""
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per /metrics scrape
@@ -623,11 +637,12 @@ def run(
             "router process; stored latency = sensor stamp → committed row"
         )
         print("  " + _HEADER, flush=True)
-        ladders = {
-            name: ladder(admin, name, layout, ladder_budget_s / len(LADDERS))
+        picked = {
+            name: ladder(admin, name, layout, ladder_budget_s, first)
             for name, layout in LADDERS
+            if ladders is None or name in ladders
         }
-        results["ladder"] = ladders
+        results["ladder"] = picked
         print(f"\nprofile: single server at {PROFILE_VEHICLES} vehicles (py-spy, inclusive)")
         prof = rung(admin, SINGLE, PROFILE_VEHICLES, profile=prof_path)
         prof["layout"] = "single"
@@ -645,8 +660,8 @@ def run(
         return max((r["spec"]["vehicles"] for r in rows if r[key]), default=0)
 
     summary: dict[str, Any] = {
-        "holds_vehicles": {name: top(rows, "holds") for name, rows in ladders.items()},
-        "floor_vehicles": {name: top(rows, "floor_ok") for name, rows in ladders.items()},
+        "holds_vehicles": {name: top(rows, "holds") for name, rows in picked.items()},
+        "floor_vehicles": {name: top(rows, "floor_ok") for name, rows in picked.items()},
         "product_over_naive": product["packets_per_s"] / naive["packets_per_s"],
         "product_over_raw": product["packets_per_s"] / raw["packets_per_s"],
         "total_s": time.monotonic() - t_start,
@@ -666,8 +681,18 @@ def run(
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m server.bench.throughput", description=__doc__)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--ladders",
+        type=lambda text: [n for n in text.split(",") if n],
+        default=None,
+        help=f"comma-separated, of {', '.join(name for name, _ in LADDERS)} (default: all)",
+    )
+    parser.add_argument("--from", dest="first", type=int, default=0, help="first rung, vehicles")
     args = parser.parse_args(argv)
-    run(json_path=args.json)
+    unknown = set(args.ladders or ()) - {name for name, _ in LADDERS}
+    if unknown:
+        parser.error(f"unknown ladders: {', '.join(sorted(unknown))}")
+    run(json_path=args.json, ladders=args.ladders, first=args.first)
 
 
 if __name__ == "__main__":

@@ -486,8 +486,8 @@ class Pipeline:
         same config, and start the new time base with ``packet``."""
         registry = self._registry
         packets, released = buf.release(now, flush=True)
-        for old in packets:
-            self._push(vid, old)
+        if packets:
+            self._push(vid, packets)
         self._due.pop(vid, None)  # advanced right here, to the end of the old time base
         if released is not None and released != self._advanced_ns.get(vid):
             try:
@@ -506,15 +506,18 @@ class Pipeline:
         log.info("vehicle %s: clock re-anchored at %d ns", vid, packet.first_stamp_ns)
         buf.reanchor(packet, now)
 
-    def _push(self, vid: str, packet: Packet) -> None:
+    def _push(self, vid: str, packets: list[Packet]) -> None:
+        """Feed ``packets`` (released, in sensor-time order) to ``vid``'s estimators."""
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
-        for m in packet.measurements:
-            try:
-                self._registry.push(vid, m)
-            except Exception:  # an estimator bug must not stop the fleet
-                self._stats["estimator_errors"] += 1
-                log.exception("estimator push failed for %s", vid)
+        push = self._registry.push
+        for packet in packets:
+            for m in packet.measurements:
+                try:
+                    push(vid, m)
+                except Exception:  # an estimator bug must not stop the fleet
+                    self._stats["estimator_errors"] += 1
+                    log.exception("estimator push failed for %s", vid)
 
     def _admit(self, packet: Packet) -> bool:
         """First packet of a vehicle without a buffer: known, auto-registered, or refused."""
@@ -566,23 +569,26 @@ class Pipeline:
         else:
             visit = self._arrived & self._active
         self._arrived = set()
+        buffers, advanced, phases = self._buffers, self._advanced_ns, self._tick_phase_ns
+        step = self._advance_step_ns
         for vid in visit:
-            buf = self._buffers[vid]
+            buf = buffers[vid]
             packets, released = buf.release(now, flush=flush)
-            if registry.has_vehicle(vid):
-                for packet in packets:
-                    self._push(vid, packet)
-            last = self._advanced_ns.get(vid)
-            step = self._advance_step_ns
-            phase = self._tick_phase_ns.get(vid, 0)
-            if released is not None and (
-                last is None
-                or (released - phase) // step > (last - phase) // step
-                or (released != last and (flush or buf.is_idle(now)))
+            if packets and registry.has_vehicle(vid):
+                self._push(vid, packets)
+            if released is None:
+                continue
+            last = advanced.get(vid)
+            if last is None or (
+                released != last
+                and (
+                    (released - (phase := phases.get(vid, 0))) // step > (last - phase) // step
+                    or flush
+                    or buf.is_idle(now)
+                )
             ):
-                until[vid] = released
-                self._advanced_ns[vid] = released
-            if buf.drained and released == self._advanced_ns.get(vid):
+                until[vid] = last = advanced[vid] = released
+            if released == last and buf.drained:
                 drained.append(vid)
         self._active.difference_update(drained)
         # One estimator call per estimate interval for every vehicle with a tick due: a call

@@ -247,9 +247,12 @@ class ReorderBuffer:
         self._last_arrival_ns = 0
         self._watermarks: dict[Stream, _StreamMark] | None = {} if watermarks else None
         self._first_ns: int | None = None
-        self._expected = frozenset(streams)
+        self._expected = tuple(frozenset(streams))
         if not self._expected:
             raise ValueError("streams must not be empty")
+        # the watermarks gate the release (every expected stream has one and the start-up
+        # window has passed): once true it stays true until reanchor(), so it is kept
+        self._gating = False
 
     @property
     def pending(self) -> int:
@@ -331,6 +334,7 @@ class ReorderBuffer:
         self._released_ns = None
         self._jumps_in_row = 0
         self._first_ns = None
+        self._gating = False
         if self._watermarks is not None:
             self._watermarks.clear()
         self._take(packet, now_ns)
@@ -386,21 +390,34 @@ class ReorderBuffer:
 
     def horizon_ns(self, now_ns: int) -> int | None:
         """The sensor time that may be released at ``now_ns`` (None while nothing arrived)."""
-        if self._newest_ns is None:
+        newest = self._newest_ns
+        if newest is None:
             return None
-        idle = self.is_idle(now_ns)
-        horizon = self._newest_ns if idle else self._newest_ns - self._lateness_ns
-        marks = self._watermarks
-        if marks and not idle and self._first_ns is not None:
-            for mark in marks.values():
-                mark.skip_gaps(horizon)
-            if self._expected.issubset(marks) and self._newest_ns - self._first_ns >= max(
-                self._lateness_ns, WATERMARK_START_NS
-            ):
-                horizon = max(horizon, min(marks[s].stamp_ns for s in self._expected))
-        if self._released_ns is not None and horizon < self._released_ns:
-            return self._released_ns
+        if now_ns - self._last_arrival_ns >= self._idle_ns:  # idle: release everything
+            horizon = newest
+        else:
+            horizon = newest - self._lateness_ns
+            marks = self._watermarks
+            if marks and self._first_ns is not None:
+                for mark in marks.values():
+                    if mark.ahead:
+                        mark.skip_gaps(horizon)
+                if self._gating or self._starts_gating(newest, marks):
+                    lowest = min([marks[s].stamp_ns for s in self._expected])
+                    if lowest > horizon:
+                        horizon = lowest
+        released = self._released_ns
+        if released is not None and horizon < released:
+            return released
         return horizon
+
+    def _starts_gating(self, newest_ns: int, marks: dict[Stream, _StreamMark]) -> bool:
+        """Whether the watermarks gate from now on (see :attr:`_gating`)."""
+        assert self._first_ns is not None
+        self._gating = all(
+            s in marks for s in self._expected
+        ) and newest_ns - self._first_ns >= max(self._lateness_ns, WATERMARK_START_NS)
+        return self._gating
 
     def release(self, now_ns: int, *, flush: bool = False) -> tuple[list[Packet], int | None]:
         """Pop every packet at or before the horizon, in order.

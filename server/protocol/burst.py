@@ -356,17 +356,20 @@ class _EdgesGroup:
         """Check the group and put each packet's result at its index in ``out``."""
         if not self.opened:
             return
-        c = self.runs.check(lim)
+        t, starts, ends, first_ns, last_ns, good = self.runs.check(lim)
         directions = self._direction_views()
         for op, entries in zip(self.opened, self.entries, strict=True):
             ms: list[Measurement] = []
             first, last = _NO_FIRST_NS, _NO_LAST_NS
             for wheel, r in entries:
-                if not c.good[r] or r not in directions:
+                if not good[r] or r not in directions:
                     out[op.index] = op.alone(lim)
                     break
-                ms.append(WheelEdges(wheel, c.t[c.starts[r] : c.ends[r]], directions[r]))
-                first, last = min(first, c.first_ns[r]), max(last, c.last_ns[r])
+                ms.append(WheelEdges(wheel, t[starts[r] : ends[r]], directions[r]))
+                if first_ns[r] < first:
+                    first = first_ns[r]
+                if last_ns[r] > last:
+                    last = last_ns[r]
             else:
                 out[op.index] = op.packet(tuple(ms), first, last, lim)
 

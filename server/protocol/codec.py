@@ -333,20 +333,27 @@ def _field(ctx: _Ctx, m: dict[str, Any], name: str) -> Any:
         raise ctx.fail("missing_field", name) from None
 
 
+_MISSING = object()
+
+
 def _int(ctx: _Ctx, m: dict[str, Any], name: str) -> int:
-    v = _field(ctx, m, name)
-    if type(v) is not int:
-        raise ctx.fail("wrong_type", f"{name} must be an integer")
-    return v
+    v = m.get(name, _MISSING)
+    if type(v) is int:  # the common case first: one lookup, one check
+        return v
+    if v is _MISSING:
+        raise ctx.fail("missing_field", name)
+    raise ctx.fail("wrong_type", f"{name} must be an integer")
 
 
 def _float(ctx: _Ctx, m: dict[str, Any], name: str) -> float:
     """A required number; NaN ("not available") passes, ``±inf`` is refused."""
-    v = _field(ctx, m, name)
+    v = m.get(name, _MISSING)
     if type(v) is float:
         f = v
     elif type(v) is int:
         f = float(v)
+    elif v is _MISSING:
+        raise ctx.fail("missing_field", name)
     else:
         raise ctx.fail("wrong_type", f"{name} must be a number")
     if math.isinf(f):
