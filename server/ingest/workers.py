@@ -29,6 +29,10 @@ reorder buffers, estimator registry) for the vehicles it owns::
 * **Collect thread**: waits on every worker's result pipe and hands rows to the sinks (one
   thread, as the in-process pipeline thread calls them), snapshots to the merged views below,
   new vehicles to ``on_new_vehicle``.
+* **A worker that dies** is started again by the collect thread (:meth:`WorkerPool._restart`)
+  with its vehicles registered again and their counters continued from its last snapshot; its
+  vehicles' estimators start afresh. Packets routed to it meanwhile are counted
+  (``dropped_worker_down``); ``running`` is false until it is back.
 * **Control**: :meth:`WorkerPool.register_vehicle`, :meth:`~WorkerPool.remove_vehicle` and
   :meth:`~WorkerPool.restore_counters` go to the owner's control pipe; vehicle configs received
   over Zenoh are decoded here and registered the same way.
@@ -139,8 +143,16 @@ class WorkerPool:
         self._on_new_vehicle = on_new_vehicle
         self._pending: list[tuple[int, tuple[Any, ...]]] = []  # control before start()
         self._workers: list[_Worker] = []
+        self._ctx = mp.get_context("spawn")
+        # every registered vehicle's config, to register them again in a restarted worker
+        self._configs: dict[str, VehicleConfig] = {}
         self._collector: threading.Thread | None = None
-        self._stats = {"sink_errors": 0, "worker_messages": 0, "dropped_worker_down": 0}
+        self._stats = {
+            "sink_errors": 0,
+            "worker_messages": 0,
+            "dropped_worker_down": 0,
+            "worker_restarts": 0,
+        }
         self._subscriber = (
             IngestSubscriber(
                 session,
@@ -168,17 +180,15 @@ class WorkerPool:
         """Start the workers (and wait until each is ready), the collector, the subscriber."""
         if self._workers:
             raise RuntimeError("already started")
-        ctx = mp.get_context("spawn")
         initial: list[list[tuple[Any, ...]]] = [[] for _ in range(self._n)]
         for owner, message in self._pending:
             initial[owner].append(message)
         self._pending.clear()
-        self._workers = [_Worker(k, self._settings, ctx, initial[k]) for k in range(self._n)]
+        self._workers = [_Worker(k, self._settings, self._ctx, initial[k]) for k in range(self._n)]
         for w in self._workers:
-            if not w.results.poll(START_TIMEOUT_S):
+            if not _ready(w):
                 self.stop()
                 raise RuntimeError(f"worker {w.index} did not start")
-            w.results.recv()  # ("ready",)
         self._collector = threading.Thread(
             target=self._collect, name="slipfleet-collect", daemon=True
         )
@@ -258,10 +268,12 @@ class WorkerPool:
 
     def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start or reconfigure a vehicle (in the worker that owns it)."""
+        self._configs[vehicle_id] = config
         self._control(vehicle_id, ("add", vehicle_id, config, False))
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget a vehicle: estimators, reorder buffer and counters."""
+        self._configs.pop(vehicle_id, None)
         self._control(vehicle_id, ("remove", vehicle_id))
 
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
@@ -271,7 +283,8 @@ class WorkerPool:
     # ------------------------------------------------------------------ output
 
     def _collect(self) -> None:
-        """Results of every worker until each has said it is done (or died)."""
+        """Results of every worker until each has said it is done; a worker that dies
+        before is started again (:meth:`_restart`)."""
         left = {w.results: w for w in self._workers}
         while left:
             for ready in wait(list(left), timeout=1.0):
@@ -280,12 +293,43 @@ class WorkerPool:
                 try:
                     message = ready.recv()
                 except (EOFError, OSError):
-                    log.error("worker %d exited", w.index)
-                    message = ("done", w.snapshot)
+                    del left[ready]
+                    w.done.set()
+                    if not self._stopping.is_set() and (new := self._restart(w)) is not None:
+                        left[new.results] = new
+                    continue
                 self._stats["worker_messages"] += 1
                 if self._take(w, message):
                     w.done.set()
                     del left[ready]
+
+    def _restart(self, dead: _Worker) -> _Worker | None:
+        """Start a worker in place of ``dead`` with its vehicles registered again and their
+        counters continued from its last snapshot (at most a second old). The vehicles'
+        estimators start afresh; packets routed to it meanwhile are counted as dropped (and
+        as sequence gaps by the new worker)."""
+        dead.process.join(1.0)
+        log.error(
+            "worker %d exited (code %s): starting it again", dead.index, dead.process.exitcode
+        )
+        k = dead.index
+        initial: list[tuple[Any, ...]] = [
+            ("add", vid, config, False)
+            for vid, config in list(self._configs.items())
+            if owner_of(vid, self._n) == k
+        ]
+        initial += [
+            ("restore", vid, totals) for vid, totals in dead.snapshot.get("counters", {}).items()
+        ]
+        new = _Worker(k, self._settings, self._ctx, initial)
+        if not _ready(new):
+            log.error("worker %d did not start again", k)
+            new.process.kill()
+            return None
+        new.snapshot = dead.snapshot  # until its own first report
+        self._workers[k] = new
+        self._stats["worker_restarts"] += 1
+        return new
 
     def _take(self, w: _Worker, message: tuple[Any, ...]) -> bool:
         """Act on one worker message; True when the worker is done."""
@@ -301,6 +345,7 @@ class WorkerPool:
                     self._stats["sink_errors"] += 1
                     log.exception("sink %r failed", sink)
         elif kind == "new":
+            self._configs[message[1]] = message[2]
             if self._on_new_vehicle is not None:
                 try:
                     self._on_new_vehicle(message[1], message[2])
@@ -352,6 +397,14 @@ class WorkerPool:
             and self._collector.is_alive()
         )
         return merged
+
+
+def _ready(w: _Worker) -> bool:
+    """Wait for a new worker's "ready" (False: it died or took too long)."""
+    try:
+        return bool(w.results.poll(START_TIMEOUT_S)) and w.results.recv()[0] == "ready"
+    except (EOFError, OSError):
+        return False
 
 
 # ---------------------------------------------------------------------------- worker process

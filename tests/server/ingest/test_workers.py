@@ -115,23 +115,42 @@ def test_new_vehicles_are_reported_to_the_server() -> None:
     assert sorted(seen) == VEHICLES[:3]
 
 
-def test_a_dead_worker_is_reported_and_its_packets_counted_not_lost_silently() -> None:
+def test_a_dead_worker_is_started_again_with_its_vehicles_and_counters() -> None:
     sink = CapturingSink()
     pool = _pool(sink)
+    mine = [v for v in VEHICLES if owner_of(v, 2) == owner_of("w000", 2)]
+    packets = _packets(mine)
+    half = len(packets) // 2
     pool.start()
     try:
+        _feed(pool, packets[:half])
+        deadline = time.monotonic() + 30
+        while sum(pool.counters_snapshot().get(v, {}).get("received", 0) for v in mine) < half:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
         victim = pool._workers[owner_of("w000", 2)]
         victim.process.kill()
-        victim.process.join(5)
-        deadline = time.monotonic() + 10
-        while pool.stats()["running"]:
+        while not victim.done.is_set():  # the collector saw it go
             assert time.monotonic() < deadline
+            time.sleep(0.01)
+        _feed(pool, packets[half : half + 12])  # must not raise on the route thread
+        while not pool.stats()["running"]:
+            assert time.monotonic() < deadline, pool.stats()
             time.sleep(0.05)
-        packets = _packets(["w000"])[:20]
-        _feed(pool, packets)  # must not raise on the route thread
-        assert pool.stats()["dropped_worker_down"] == len(packets)
+        rows_before = {v: sum(len(r) for r in sink.rows.get(v, [])) for v in mine}
+        _feed(pool, packets[half + 12 :])
     finally:
         pool.stop()
+    stats = pool.stats()
+    assert stats["worker_restarts"] == 1
+    counters = pool.counters_snapshot()
+    received = sum(counters[v]["received"] for v in mine)
+    # counted on from the dead worker's last snapshot (which had all of the first half): what
+    # was routed while it was down is counted as dropped, everything else as received
+    assert received + stats["dropped_worker_down"] == len(packets)
+    assert stats["dropped_worker_down"] > 0
+    for v in mine:  # the restarted worker estimates its vehicles again
+        assert sum(len(r) for r in sink.rows[v]) > rows_before[v] + 50
 
 
 @pytest.mark.parametrize("workers", [0, -1])
