@@ -165,6 +165,8 @@ class StoreWriter:
         self._seq_submitted = 0  # rows accepted so far
         self._seq_done = 0  # rows finished (committed, ignored or dropped as bad data)
         self._counters: dict[str, dict[str, int]] = {}
+        # totals already queued (or written): a counter that did not change is not written again
+        self._counters_sent: dict[str, dict[str, int]] = {}
         self._raw: list[tuple[str, int, str, bytes]] = []
         self._aux_seq = 0
         self._aux_done = 0
@@ -310,14 +312,20 @@ class StoreWriter:
         self.submit(batch)
 
     def submit_counters(self, counters: dict[str, dict[str, int]]) -> None:
-        """Queue ingest counter totals ``{vehicle_id: {name: total}}`` (latest totals win)."""
+        """Queue ingest counter totals ``{vehicle_id: {name: total}}`` (latest totals win).
+
+        Only totals that changed since they were last queued are written: most of a vehicle's
+        counters (refusal reasons, restarts) stay put from one second to the next, and a
+        1,000-vehicle fleet's full set was ~15,000 upserts a second."""
         with self._cond:
             if self._closing:
                 raise RuntimeError("StoreWriter is closed")
             for vid, named in counters.items():
-                self._counters.setdefault(str(vid), {}).update(
-                    {str(k): int(v) for k, v in named.items()}
-                )
+                sent = self._counters_sent.setdefault(str(vid), {})
+                changed = {str(k): int(v) for k, v in named.items() if sent.get(str(k)) != v}
+                if changed:
+                    sent.update(changed)
+                    self._counters.setdefault(str(vid), {}).update(changed)
             self._aux_touched_locked()
 
     def submit_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
@@ -568,6 +576,8 @@ class StoreWriter:
         except StorageDataError as exc:
             log.error("store rejected counters or raw packets, dropped: %s", exc)
             with self._cond:
+                for vid in counters:  # not written: their next totals go in whole
+                    self._counters_sent.pop(vid, None)
                 self._raw_dropped += len(raw)
                 self._last_error = str(exc)
                 if seq is not None:

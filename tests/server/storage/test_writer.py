@@ -158,6 +158,36 @@ def test_fleet_counters_go_in_slices_with_due_estimates_in_between(backend: Back
     assert len(inner.query_series("v1", 0, 2**62)) == 5
 
 
+class CounterWritesStore(CountingStore):
+    """Records what every counters write carries."""
+
+    def __init__(self, inner: Store) -> None:
+        super().__init__(inner)
+        self.written: list[dict[str, dict[str, int]]] = []
+
+    def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:
+        self.written.append({vid: dict(named) for vid, named in counters.items()})
+        self.inner.write_counters(counters, now_ns)
+
+
+def test_only_counters_that_changed_are_written_again(backend: Backend) -> None:
+    inner = backend.open()
+    store = CounterWritesStore(inner)
+    with StoreWriter(store, _settings(commit_interval_s=0.02)) as writer:
+        writer.submit_counters({"v1": {"received": 5, "late": 0}, "v2": {"received": 1}})
+        assert writer.flush(timeout=30)
+        writer.submit_counters({"v1": {"received": 9, "late": 0}, "v2": {"received": 1}})
+        assert writer.flush(timeout=30)
+        writer.submit_counters({"v1": {"received": 9, "late": 0}, "v2": {"received": 1}})
+        assert writer.flush(timeout=30)
+    assert store.written == [
+        {"v1": {"received": 5, "late": 0}, "v2": {"received": 1}},
+        {"v1": {"received": 9}},
+    ]
+    assert inner.get_counters("v1") == {"received": 9, "late": 0}
+    assert inner.get_counters("v2") == {"received": 1}
+
+
 def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
     inner = backend.open()
     inner.upsert_vehicle("v1", {}, now_ns=1)
