@@ -15,7 +15,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 6):
+Schema (version 7):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -27,6 +27,11 @@ Schema (version 6):
     its ``ESTIMATE_DTYPE`` bytes (layout :data:`SQLITE_PACKED_FIELDS`, little-endian), in a
     clustered ``WITHOUT ROWID`` table; versions 1-5 had every field as a column (NaN as NULL)
     and, from version 3, ``packed`` beside them.
+``estimates_recent`` (SQLite, version 7)
+    New rows land here first, keyed ``(stamp_ns, vkey)`` so a commit of one row per vehicle
+    appends to a few pages instead of touching one page per vehicle; the store moves them to
+    ``estimates`` a few seconds later, many rows per vehicle at a time
+    (:meth:`~server.storage.sqlite.SqliteStore.maintain`). Reads look at both.
 ``ingest_counters``
     ``(vehicle_id, name) -> total``; keyed by the id text so counters of vehicles that were
     rejected (never registered) can be kept too.
@@ -368,6 +373,17 @@ _V6_SQLITE: tuple[Step, ...] = (
     "ALTER TABLE estimates_v6 RENAME TO estimates",
 )
 
+_V7_SQLITE: tuple[Step, ...] = (
+    """
+    CREATE TABLE estimates_recent (
+        stamp_ns INTEGER NOT NULL,
+        vkey INTEGER NOT NULL,
+        packed BLOB NOT NULL,
+        PRIMARY KEY (stamp_ns, vkey)
+    ) WITHOUT ROWID
+    """,
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -375,6 +391,7 @@ MIGRATIONS: tuple[Migration, ...] = (
     Migration(4, "API access tokens (hashed)", _V4_SQLITE, _V4_POSTGRESQL),
     Migration(5, "raw packets keyed by vehicle id", _V5_SQLITE, _V5_POSTGRESQL),
     Migration(6, "estimate rows only packed (SQLite)", _V6_SQLITE, ()),
+    Migration(7, "time-ordered table of new estimate rows (SQLite)", _V7_SQLITE, ()),
 )
 
 _VERSION_TABLE = {

@@ -29,7 +29,9 @@ Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win) and, wh
 ``store_raw_packets`` is on, raw packets (:meth:`StoreWriter.submit_raw_packets`) ride the same
 thread; counters go in slices of :data:`COUNTER_VEHICLES_PER_WRITE` vehicles, with the estimate
 transactions that fall due in between. With ``retention_days > 0`` the writer also deletes old
-estimates every ``retention_interval_s``.
+estimates every ``retention_interval_s``. A store with a ``maintain()`` method (SQLite: moving
+new rows from its staging table, see :meth:`server.storage.sqlite.SqliteStore.maintain`) gets
+it called, one short step at a time, whenever no write is due.
 
 The writer does not own the store: close the writer first, then the store.
 """
@@ -64,6 +66,10 @@ _RAW_PACKETS_MAX = 100_000
 #: a second) written in one statement held the estimate commits back for tens of ms; in
 #: slices, estimates that fall due in between go first.
 COUNTER_VEHICLES_PER_WRITE = 100
+#: Seconds between calls of the store's ``maintain`` while it has nothing to do, and after a
+#: failed one.
+MAINTAIN_IDLE_S = 0.25
+MAINTAIN_RETRY_S = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -177,6 +183,9 @@ class StoreWriter:
         self._retry_at = 0.0
         self._next_retention_at = 0.0
         self._last_txn_start = -float("inf")  # monotonic s the last estimate transaction began
+        # the store's own upkeep between writes (SQLite: moving new rows to their final table)
+        self._maintain: Callable[[], bool] | None = getattr(store, "maintain", None)
+        self._next_maintain_at = 0.0
 
         self._rows_submitted = 0
         self._rows_written = 0
@@ -452,6 +461,8 @@ class StoreWriter:
                 return "aux", (counters, raw, None if self._counters else self._aux_seq)
             if self._retention_ns > 0 and not self._closing and now >= self._next_retention_at:
                 return "retention", None
+            if self._maintain is not None and not self._closing and now >= self._next_maintain_at:
+                return "maintain", None
             deadlines = []
             if self._queued_rows:
                 deadlines.append(self._last_txn_start + self._interval_s)
@@ -459,6 +470,8 @@ class StoreWriter:
                 deadlines.append(self._aux_due_at)
             if self._retention_ns > 0 and not self._closing:
                 deadlines.append(self._next_retention_at)
+            if self._maintain is not None and not self._closing:
+                deadlines.append(self._next_maintain_at)
             if self._closing:
                 deadlines.append(self._close_deadline)
             self._cond.wait(max(min(deadlines) - now, 0.0) if deadlines else None)
@@ -475,6 +488,8 @@ class StoreWriter:
                     self._write_estimates(payload)
                 elif kind == "aux":
                     self._write_aux(*payload)
+                elif kind == "maintain":
+                    self._run_maintain()
                 else:
                     self._run_retention()
         except BaseException:
@@ -599,6 +614,20 @@ class StoreWriter:
                 self._aux_done = seq
             self._succeeded_locked()
             self._cond.notify_all()
+
+    def _run_maintain(self) -> None:
+        """One step of the store's upkeep; the next one at once while it has more to do (but
+        after any write that fell due), else after :data:`MAINTAIN_IDLE_S`."""
+        assert self._maintain is not None
+        try:
+            more = self._maintain()
+        except StorageError as exc:
+            log.warning("store upkeep failed, retrying in %.0f s: %s", MAINTAIN_RETRY_S, exc)
+            more, wait_s = False, MAINTAIN_RETRY_S
+        else:
+            wait_s = 0.0 if more else MAINTAIN_IDLE_S
+        with self._cond:
+            self._next_maintain_at = time.monotonic() + wait_s
 
     def _run_retention(self) -> None:
         cutoff_ns = self._clock_ns() - self._retention_ns

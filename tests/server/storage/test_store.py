@@ -278,22 +278,117 @@ def test_sqlite_read_spanning_several_pages(
     store.close()
 
 
-def test_sqlite_refuses_rows_of_another_layout(tmp_path: Path) -> None:
+def _move_all(store: SqliteStore) -> None:
+    """Move every staged row to ``estimates`` (what the writer does over time)."""
+    while store.maintain(everything=True):
+        pass
+
+
+def _count(store: SqliteStore, table: str) -> int:
+    with store._write() as conn:
+        return int(conn.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
+
+
+@pytest.mark.parametrize("table", ["estimates", "estimates_recent"])
+def test_sqlite_refuses_rows_of_another_layout(tmp_path: Path, table: str) -> None:
     """A stored row that is not ESTIMATE_DTYPE's size (a layout change without its migration)
-    is an error, never garbage."""
+    is an error, never garbage, in the staging table as in the final one."""
     store = SqliteStore(tmp_path / "s.sqlite")
     store.migrate()
     store.upsert_vehicle("v1", {}, now_ns=1)
     store.write_estimates([("v1", make_rows(5))])
+    if table == "estimates":
+        _move_all(store)
+    assert _count(store, table) == 5
     with store._write() as conn:
-        conn.execute("UPDATE estimates SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS,))
+        conn.execute(f"UPDATE {table} SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS,))
     with pytest.raises(StorageDataError, match="not 212-byte"):
         store.query_series("v1", 0, 2**62)
     assert len(store.query_series("v1", T0_NS + 1, 2**62)) == 4  # the other rows still read
     with store._write() as conn:
         conn.execute(
-            "UPDATE estimates SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS + 4 * DT_NS,)
+            f"UPDATE {table} SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS + 4 * DT_NS,)
         )
     with pytest.raises(StorageDataError):
         store.latest("v1")
+    store.close()
+
+
+def test_sqlite_new_rows_are_staged_then_moved_and_read_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """New rows land in the time-ordered staging table; maintain() moves the ones older than
+    the newest second once the staged rows span three seconds, a few vehicles a transaction;
+    reads see every row exactly once, before, during and after a move."""
+    monkeypatch.setattr("server.storage.sqlite._MOVE_VEHICLES", 1)
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    ids = ["v1", "v2", "v3"]
+    for vid in ids:
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    rows = {vid: make_rows(50, seed=k) for k, vid in enumerate(ids)}  # 5 s at 10 Hz
+    assert store.write_estimates([(vid, r[:20]) for vid, r in rows.items()]) == 60
+    assert not store.maintain()  # 1.9 s staged: nothing to move yet
+    assert store.write_estimates([(vid, r[20:]) for vid, r in rows.items()]) == 90
+    assert _count(store, "estimates_recent") == 150 and _count(store, "estimates") == 0
+    assert store.maintain()  # v1's rows older than the newest second: copied
+    # the newest row is at 4.9 s: the 39 rows of v1 before 3.9 s are copied
+    assert _count(store, "estimates") == 39
+    for vid in ids:  # v1's moved rows are in both tables now: read once
+        assert_rows_equal(store.query_series(vid, 0, 2**62), rows[vid])
+    while store.maintain():
+        pass
+    assert _count(store, "estimates") == 117 and _count(store, "estimates_recent") == 33
+    for vid in ids:
+        assert_rows_equal(store.query_series(vid, 0, 2**62), rows[vid])
+        assert_rows_equal(
+            store.query_series(vid, T0_NS + 35 * DT_NS, T0_NS + 45 * DT_NS), rows[vid][35:45]
+        )  # a range across both tables
+        assert store.latest(vid)["stamp_ns"] == rows[vid]["stamp_ns"][-1]
+    assert {vid: int(r["stamp_ns"]) for vid, r in store.latest_all().items()} == {
+        vid: int(r["stamp_ns"][-1]) for vid, r in rows.items()
+    }
+    # a replay of rows already moved, or still staged, is not stored twice
+    assert store.write_estimates([("v1", rows["v1"])]) == 0
+    store.close()
+
+
+def test_sqlite_deletes_reach_staged_rows(tmp_path: Path) -> None:
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    for vid in ("v1", "v2"):
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    store.write_estimates([("v1", make_rows(40)), ("v2", make_rows(40))])
+    while store.maintain():  # the older 29 of each moved, the newest 11 still staged
+        pass
+    assert _count(store, "estimates") == 58 and _count(store, "estimates_recent") == 22
+    assert store.delete_older_than(T0_NS + 35 * DT_NS) == 2 * 35
+    assert len(store.query_series("v1", 0, 2**62)) == 5
+    assert store.delete_vehicle("v1")
+    assert len(store.query_series("v2", 0, 2**62)) == 5
+    assert _count(store, "estimates_recent") == 5 and _count(store, "estimates") == 0
+    store.close()
+
+
+def test_sqlite_rows_arriving_during_a_move_are_never_lost(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A vehicle already copied in a move round that then sends rows older than the round's
+    cutoff (data it buffered while offline) keeps them: only copied rows leave the staging
+    table."""
+    monkeypatch.setattr("server.storage.sqlite._MOVE_VEHICLES", 1)
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    for vid in ("v1", "v2"):
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    late = make_rows(10, start_ns=T0_NS - 3600 * 10**9, seed=5)  # an hour older
+    store.write_estimates([("v1", make_rows(50)), ("v2", make_rows(50, seed=1))])
+    assert store.maintain()  # v1 copied
+    store.write_estimates([("v1", late)])  # v1 again, below the cutoff, after its copy
+    while store.maintain():
+        pass
+    assert len(store.query_series("v1", 0, 2**62)) == 60
+    assert_rows_equal(store.query_series("v1", 0, T0_NS), late)
+    _move_all(store)
+    assert len(store.query_series("v1", 0, 2**62)) == 60 and _count(store, "estimates_recent") == 0
     store.close()

@@ -463,3 +463,27 @@ def test_concat_estimates_equals_numpy_concatenate() -> None:
     got = concat_estimates(parts)
     assert got.flags.c_contiguous and got.flags.writeable
     assert_rows_equal(got, np.concatenate(parts))
+
+
+def test_writer_moves_staged_sqlite_rows_while_idle(tmp_path: Path) -> None:
+    """Between writes the writer runs the store's upkeep: SQLite's staged rows older than the
+    newest second move to their final table, and every row still reads once."""
+    from server.storage.sqlite import SqliteStore
+
+    store = SqliteStore(tmp_path / "w.sqlite")
+    store.migrate()
+    for vid in ("v1", "v2"):
+        store.upsert_vehicle(vid, {}, now_ns=1)
+
+    def staged() -> int:
+        with store._write() as conn:
+            return int(conn.execute("SELECT count(*) FROM estimates_recent").fetchone()[0])
+
+    rows = make_rows(50)  # 5 s at 10 Hz
+    with StoreWriter(store, _settings(commit_interval_s=0.02)) as writer:
+        writer.submit([("v1", rows), ("v2", rows)])
+        assert writer.flush(timeout=30)
+        _wait_for(lambda: staged() == 2 * 11)  # the newest second (11 rows) stays staged
+    for vid in ("v1", "v2"):
+        assert len(store.query_series(vid, 0, 2**62)) == 50
+    store.close()
