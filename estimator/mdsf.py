@@ -195,9 +195,10 @@ class MdsfConfig:
         Its part proportional to the speed (slip changes with soil and load) [1/√s].
     slip_demand_gain : float
         Product mode: slip change per change of traction demand (``ds/d(f/g)``, about the tyre
-        curve's slope); the rim-excess variance grows by ``(gain·|V|/g)²·|Δf|·1 m/s²`` per tick
-        with ``f`` the low-passed forward specific force (acceleration plus slope, what the
-        tyres must transmit) [-].
+        curve's slope); while the demand changes the rim-excess variance grows by
+        ``(gain·|V|/g)²·2·D·|Δf|`` per tick, ``f`` the low-passed forward specific force
+        (acceleration plus slope, what the tyres must transmit) and ``D`` its recent change, so
+        a change ``D`` opens the rim excess by ``gain·|V|·D/g`` in std [-].
     slip_per_demand : float
         Product mode: tyre model, rim-excess change per speed and per change of traction
         demand, ``Δe ≈ k·V·Δ(f/g)`` (about the inverse slope of the traction curve over the

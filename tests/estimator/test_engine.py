@@ -772,3 +772,44 @@ def test_a_slip_jump_still_opens_the_rim_excess() -> None:
         errs[sigma] = float(np.sqrt(np.mean((rows["slip_left_pct"][entry] - truth) ** 2)))
     assert errs[default] < 1.5
     assert errs[default] < 0.5 * errs[1e9]
+
+
+def test_demand_noise_opens_the_rim_excess_while_the_demand_changes() -> None:
+    # The slip follows the traction demand as it changes; a change D of the forward specific
+    # force opens the rim excess by slip_demand_gain·V·D/g in std, added while the force moves.
+    # Before, the squared difference of a fast and a slow low-pass was added on every tick, so
+    # the rim excess kept opening for the slow low-pass's memory (≈1.5 s) after the demand had
+    # settled, while the wheels could have held the speed.
+    cfg = MdsfConfig()
+    engine = MdsfEngine(cfg)
+    slot = engine.add(VehicleConfig())
+    slots = np.array([slot])
+    force = np.concatenate([np.zeros(20), np.linspace(0.0, 1.0, 11)[1:], np.ones(40)])
+    grow = []
+    for f in force:
+        t = TickInputs(
+            stamp_ns=np.array([0]),
+            z=np.zeros((1, 4)),
+            gnss_ok=np.array([True]),
+            gnss_var=np.ones(1),
+            imu_ok=np.array([True]),
+            accel_var=np.full(1, 1e-4),
+            gyro_var=np.ones(1),
+            force_fwd=np.array([f]),
+            omega=np.zeros((1, 2)),
+            omega_std=np.zeros((1, 2)),
+            wheel_flags=np.zeros(1, dtype=np.int32),
+            enu=np.zeros((1, 3)),
+            attitude=np.zeros((1, 3)),
+            dist_ok=np.zeros(1, bool),
+            dist_m=np.zeros(1),
+            dist_var=np.zeros(1),
+            dist_restart=np.zeros(1, bool),
+        )
+        grow.append(float(engine._demand_change(slots, t, t.accel_var)[0]))
+    g = np.array(grow)
+    assert np.all(g >= 0.0) and np.all(g[:20] == 0.0)  # steady: nothing beyond the noise
+    # a change of 1 m/s² adds about 1 (m/s²)² in all (the slow low-pass follows part of it)
+    assert 0.3 < g.sum() < 1.0
+    # most of it while the force moves (ramp and the fast low-pass's 0.3 s), little later
+    assert g[35:].sum() < 0.1 * g.sum()
