@@ -451,7 +451,8 @@ class MdsfEngine:
             Q[:, D, D] += np.where(new_chain, _DIST_OPEN_VAR_M2, 0.0)
             # Rim excess e = r·W − V: at constant slip ratio it scales with the speed,
             # e' = e·(1 + dt·ā/V); on top, slip wanders with soil and load and moves when the
-            # traction demand (forward specific force) changes: variance ∝ |Δf|.
+            # traction demand (forward specific force) changes, while it changes: a change D of
+            # demand adds (gain·V·D/g)² in all (:meth:`_demand_change`).
             speed = np.abs(x[:, MdsfState.V1])
             d2 = self._demand_change(slots, t, accel_var)
             # Without GNSS only ``outage_demand_share`` of it (the tyre model carries the rest).
@@ -459,7 +460,7 @@ class MdsfEngine:
             d2 = d2 * np.where(lost, cfg.outage_demand_share, 1.0)
             q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
                 cfg.slip_demand_gain * speed / GRAVITY_MPS2
-            ) ** 2 * d2 * (dt / cfg.force_filter_tau_s)
+            ) ** 2 * d2
             F = self.F[slots].copy()
             grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
                 speed, _SLIP_MIN_SPEED_MPS
@@ -837,23 +838,31 @@ class MdsfEngine:
         return np.where(fresh, 0.0, np.nan_to_num(new - old))
 
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
-        """Squared recent change of traction demand beyond accelerometer noise, (k,) [(m/s²)²].
+        """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
 
         The forward specific force (acceleration plus slope) is low-passed fast
-        (``force_filter_tau_s``) and slow (5×); their difference is the recent change of
+        (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change of
         demand. Its variance under white accelerometer noise is known, so only the excess over
-        two sigma counts.
+        two sigma counts. The slip follows the demand as it changes (the tyre settles within a
+        relaxation length, a fraction of a second), so the tyre model's error grows while the
+        demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with ``ΔF`` the fast
+        low-pass's move over the tick, and a whole change ``D`` adds ``D²`` (the rim excess
+        then opens by ``slip_demand_gain·|V|·D/g`` in std). Using ``D²`` itself per tick, as
+        before, kept the rim excess opening for the slow low-pass's memory (≈1.5 s) after the
+        demand had settled, while the wheels could have held the speed.
         """
         dt = self.dt_s
         tau = self.config.force_filter_tau_s
         a1 = dt / (tau + dt)
         a2 = dt / (5.0 * tau + dt)
         f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
-        fast = self.force_fast[slots]
+        fast_old = self.force_fast[slots]
         slow = self.force_slow[slots]
-        fresh = ~np.isfinite(fast)
+        fresh = ~np.isfinite(fast_old)
         fast = np.where(
-            fresh, f_new, np.where(np.isfinite(f_new), fast + a1 * (f_new - fast), fast)
+            fresh,
+            f_new,
+            np.where(np.isfinite(f_new), fast_old + a1 * (f_new - fast_old), fast_old),
         )
         slow = np.where(
             fresh, f_new, np.where(np.isfinite(f_new), slow + a2 * (f_new - slow), slow)
@@ -862,7 +871,9 @@ class MdsfEngine:
         self.force_slow[slots] = slow
         var_d = accel_var * (a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2))
         d = np.nan_to_num(fast - slow)
-        return np.maximum(d * d - 4.0 * var_d, 0.0)
+        excess = np.sqrt(np.maximum(d * d - 4.0 * var_d, 0.0))
+        moved = np.where(fresh, 0.0, np.abs(np.nan_to_num(fast - fast_old)))
+        return 2.0 * excess * moved
 
     @staticmethod
     def _hand_over(

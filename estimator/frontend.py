@@ -10,11 +10,13 @@ time on a fleet-wide grid):
   due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
   removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
   binned with ``np.bincount`` over (vehicle row, tick) ids.
-* A complementary pitch track (the pitch rate ``ωx·cos φ + ωz·sin φ − b_x`` integrated, pulled
-  to the GNSS pitch at each fix, or, from a receiver without attitude, to the GNSS velocity's
-  elevation, :func:`pitch_fix_update`; ``φ`` a low-passed GNSS roll,
+* A pitch track (the pitch rate ``ωx·cos φ + ωz·sin φ − b_x`` integrated; at each fix a
+  Kalman update of pitch and pitch-gyro bias with the GNSS pitch or, from a receiver without
+  attitude, the GNSS velocity's elevation, and a zero-rate update of the bias when the vehicle
+  stood since the previous fix, :func:`pitch_kf_update`; ``φ`` a low-passed GNSS roll,
   :func:`roll_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
-  the GNSS heading, :func:`yaw_fix_update`), product mode. The integrals are segmented
+  the GNSS heading, :func:`yaw_fix_update`), product mode. Paper mode takes each GNSS pitch
+  as it is (:func:`pitch_fix_update`). The integrals are segmented
   cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
   pass per "k-th fix of this batch" (a handful of passes).
 * GNSS speed per tick: eq. (1) (``method.md`` §1) with the pitch in force, moved to the tick
@@ -87,6 +89,7 @@ __all__ = [
     "FleetTicks",
     "TickInputs",
     "pitch_fix_update",
+    "pitch_kf_update",
     "roll_fix_update",
     "yaw_fix_update",
 ]
@@ -221,35 +224,126 @@ def pitch_fix_update(
     pitch_gnss_rad: FloatArray,
     stamp_ns: IntArray,
     config: MdsfConfig,
-    pitch_var_rad2: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
-    """Complementary pitch filter at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
+    """Paper-mode pitch at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
 
-    A measured pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``):
-    the first (or any in paper mode) sets ``θ = p`` with variance ``R``; later ones move ``θ``
-    by ``gain·(p − θ)`` with ``gain = max(var/(var + R), 1 − exp(−gap/pitch_tau_s))``: an
-    inverse-variance mean while the track is young (with equal ``R`` the running mean
-    ``1/n``), then the time constant (``gap`` the time since the previous pitch, clipped to
-    [0, 1] s). The variance follows as ``(1 − gain)²·var + gain²·R`` and the pitch-gyro bias
-    integrates ``b_x −= gap/(pitch_tau_s·gyro_bias_tau_s)·(p − θ)``. A NaN pitch changes
-    nothing. ``θ`` is the tracked pitch integrated up to the fix.
+    ``method.md`` §1, eq. (1): the source takes the pitch ``θ`` of eq. (1) as measured, so each
+    GNSS pitch ``p`` sets ``θ = p`` with variance ``pitch_std_rad²``, whatever the track held;
+    the pitch-gyro bias is left as it is (the source has none). A NaN pitch changes nothing.
+    Product mode runs :func:`pitch_kf_update` instead.
 
     Returns the new ``(theta_rad, var_rad2, bias_radps, fix_ns, known)``.
     """
-    product = config.mode is MdsfMode.PRODUCT
-    tau = config.pitch_tau_s
-    r2 = config.pitch_std_rad**2 if pitch_var_rad2 is None else pitch_var_rad2
     has = np.isfinite(pitch_gnss_rad)
-    first = has & (~known | (not product))
-    follow = has & ~first
-    gap = _fix_gap_s(stamp_ns, fix_ns)
-    err = pitch_gnss_rad - theta_rad
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gain = np.maximum(var_rad2 / (var_rad2 + r2), 1.0 - np.exp(-gap / tau))
-    theta = np.where(first, pitch_gnss_rad, np.where(follow, theta_rad + gain * err, theta_rad))
-    var = np.where(first, r2, np.where(follow, (1 - gain) ** 2 * var_rad2 + gain**2 * r2, var_rad2))
-    bias = np.where(follow, bias_radps - gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
-    return theta, var, bias, np.where(has, stamp_ns, fix_ns), known | has
+    theta = np.where(has, pitch_gnss_rad, theta_rad)
+    var = np.where(has, config.pitch_std_rad**2, var_rad2)
+    return theta, var, bias_radps.copy(), np.where(has, stamp_ns, fix_ns), known | has
+
+
+def pitch_kf_update(
+    theta_rad: FloatArray,
+    cov: FloatArray,
+    bias_radps: FloatArray,
+    fix_ns: IntArray,
+    known: BoolArray,
+    pitch_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: MdsfConfig,
+    pitch_var_rad2: FloatArray | None = None,
+    angle_walk_rad2: FloatArray | None = None,
+    still_rate_radps: FloatArray | None = None,
+    still_rate_var: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
+    """Pitch and pitch-gyro bias ``[θ, b_x]`` as a Kalman filter, at one fix per vehicle.
+
+    Product mode (``method.md`` §1, gravity removal): between fixes the pitch is the pitch rate
+    integrated with the bias in force, so its error grows as ``δθ' = δθ − T·δb`` plus the
+    gyro's angle noise over the interval (``angle_walk_rad2``, summed over the samples by the
+    caller); the bias is a random walk (``gyro_bias_walk_radps_per_sqrt_s``). At the fix, in
+    this order:
+
+    * a *standstill* update of the bias: when the vehicle stood through the interval (the
+      caller passes the interval's mean pitch rate ``still_rate_radps`` and its variance, NaN
+      otherwise) the body did not rotate, so the gyro read its bias; chi-square gated;
+    * the GNSS pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``).
+
+    The gains follow from the variances, so the pitch averages the receiver's pitch over as
+    long as the gyro holds it (seconds with a known bias) instead of a fixed time constant:
+    the gravity that leaks through the pitch error (``g·δθ``) then varies slowly, where the
+    speed filter's accelerometer-bias state and the RTK distance take it up. The first fix sets
+    ``θ = p`` (variance ``R``, bias variance ``gyro_bias_std_radps²``).
+
+    Parameters
+    ----------
+    theta_rad, bias_radps : ndarray, shape (k,)
+        Pitch integrated up to the fix, and the bias in force.
+    cov : ndarray, shape (k, 3)
+        Covariance ``[P_θθ, P_θb, P_bb]``.
+    fix_ns : ndarray, shape (k,), int
+        Time of the previous fix of each track.
+    known : ndarray, shape (k,), bool
+        The track has had a pitch.
+    pitch_gnss_rad : ndarray, shape (k,)
+        Measured pitch; NaN: no pitch update (the standstill update still applies).
+    stamp_ns : ndarray, shape (k,), int
+    angle_walk_rad2 : ndarray, shape (k,), optional
+        Variance the integrated rate's noise added since the previous fix.
+    still_rate_radps, still_rate_var : ndarray, shape (k,), optional
+        Standstill rate measurement of the bias and its variance (NaN: not standing).
+
+    Returns
+    -------
+    (theta_rad, cov, bias_radps, fix_ns, known)
+    """
+    k = theta_rad.shape[0]
+    r2 = np.full(k, config.pitch_std_rad**2) if pitch_var_rad2 is None else pitch_var_rad2
+    q_ang = np.zeros(k) if angle_walk_rad2 is None else angle_walk_rad2
+    gap = np.where(known, np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 0.0)
+    qb = config.gyro_bias_walk_radps_per_sqrt_s**2
+    ptt, ptb, pbb = cov[:, 0], cov[:, 1], cov[:, 2]
+    # propagate: F = [[1, −T], [0, 1]], Q of the bias walk integrated over T
+    ptt = ptt - 2 * gap * ptb + gap * gap * pbb + q_ang + qb * gap**3 / 3
+    ptb = ptb - gap * pbb - qb * gap * gap / 2
+    pbb = pbb + qb * gap
+    theta, bias = theta_rad.copy(), bias_radps.copy()
+    # standstill: the gyro reads its bias, z = b + noise (H = [0, 1])
+    if still_rate_radps is not None and still_rate_var is not None:
+        zb = still_rate_radps
+        with np.errstate(invalid="ignore"):
+            s = pbb + still_rate_var
+            yb = zb - bias
+            use = known & np.isfinite(zb) & (yb * yb <= config.gate_chi2 * s)
+        s = np.where(use, s, 1.0)
+        yb = np.where(use, yb, 0.0)
+        kt, kb = ptb / s, pbb / s
+        theta = theta + np.where(use, kt * yb, 0.0)
+        bias = bias + np.where(use, kb * yb, 0.0)
+        ptt, ptb, pbb = (
+            np.where(use, ptt - kt * ptb, ptt),
+            np.where(use, ptb - kt * pbb, ptb),
+            np.where(use, pbb - kb * pbb, pbb),
+        )
+    # the pitch: z = θ + noise (H = [1, 0])
+    has = np.isfinite(pitch_gnss_rad)
+    first = has & ~known
+    follow = has & known
+    s = np.where(follow, ptt + r2, 1.0)
+    y = np.where(follow, pitch_gnss_rad - theta, 0.0)
+    kt, kb = ptt / s, ptb / s
+    theta = np.where(first, pitch_gnss_rad, theta + np.where(follow, kt * y, 0.0))
+    bias = bias + np.where(follow, kb * y, 0.0)
+    new_tt = np.where(follow, ptt - kt * ptt, ptt)
+    new_tb = np.where(follow, ptb - kt * ptb, ptb)
+    new_bb = np.where(follow, pbb - kb * ptb, pbb)
+    out = np.stack(
+        [
+            np.where(first, r2, new_tt),
+            np.where(first, 0.0, new_tb),
+            np.where(first, config.gyro_bias_std_radps**2, new_bb),
+        ],
+        axis=1,
+    )
+    return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
 
 
 def yaw_fix_update(
@@ -262,12 +356,13 @@ def yaw_fix_update(
 ) -> tuple[FloatArray, FloatArray, IntArray]:
     """Heading track and yaw-gyro bias at one GNSS heading per vehicle (arrays ``(k,)``).
 
-    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/pitch_tau_s))·err`` toward the GNSS
-    heading (``err`` wrapped to ±π) and the bias by ``b_z += gap/(pitch_tau_s·gyro_bias_tau_s)·err``
-    (``ψ̇ = −(ωz − b_z)/cos θ``: a heading that falls behind means ``b_z`` is too small); an
-    unknown ``ψ`` (NaN) is set to the GNSS heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
+    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/attitude_tau_s))·err`` toward the
+    GNSS heading (``err`` wrapped to ±π) and the bias by
+    ``b_z += gap/(attitude_tau_s·gyro_bias_tau_s)·err`` (``ψ̇ = −(ωz − b_z)/cos θ``: a heading
+    that falls behind means ``b_z`` is too small); an unknown ``ψ`` (NaN) is set to the GNSS
+    heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
     """
-    tau = config.pitch_tau_s
+    tau = config.attitude_tau_s
     known = np.isfinite(psi_rad)
     gap = _fix_gap_s(stamp_ns, fix_ns)
     d = heading_gnss_rad - psi_rad
@@ -286,10 +381,10 @@ def roll_fix_update(
     config: MdsfConfig,
 ) -> tuple[FloatArray, FloatArray, IntArray]:
     """Roll track at one GNSS roll per vehicle (arrays ``(k,)``): the receiver's roll low-passed,
-    ``φ += w·(φ_gnss − φ)`` with ``w = 1 − exp(−gap/pitch_tau_s)`` (``gap`` since the previous
-    roll, clipped to [0, 1] s), and its noise variance ``(1 − w)²·var + w²·pitch_std_rad²``; an
-    unknown ``φ`` (NaN) takes the GNSS roll (variance ``pitch_std_rad²``); a NaN GNSS roll
-    changes nothing.
+    ``φ += w·(φ_gnss − φ)`` with ``w = 1 − exp(−gap/attitude_tau_s)`` (``gap`` since the
+    previous roll, clipped to [0, 1] s), and its noise variance
+    ``(1 − w)²·var + w²·pitch_std_rad²``; an unknown ``φ`` (NaN) takes the GNSS roll (variance
+    ``pitch_std_rad²``); a NaN GNSS roll changes nothing.
 
     The pitch track needs the roll only to turn the body rates into the pitch rate
     (``θ̇ = ωx·cos φ + ωz·sin φ``), where its noise is multiplied by the yaw rate; terrain roll
@@ -298,7 +393,7 @@ def roll_fix_update(
     r2 = config.pitch_std_rad**2
     has = np.isfinite(roll_gnss_rad)
     gap = _fix_gap_s(stamp_ns, fix_ns)
-    w = 1.0 - np.exp(-gap / config.pitch_tau_s)
+    w = 1.0 - np.exp(-gap / config.attitude_tau_s)
     known = np.isfinite(roll_rad)
     roll = np.where(known, roll_rad + w * (roll_gnss_rad - roll_rad), roll_gnss_rad)
     var = np.where(known, (1.0 - w) ** 2 * var_rad2 + w * w * r2, r2)
@@ -478,6 +573,10 @@ class FleetFrontEnd:
         grow("pitch_gyro_bias", (), 0.0)
         grow("pitch_fix_ns", (), np.int64(0))
         grow("pitch_var", (), 0.0)
+        grow("pitch_cov_tb", (), 0.0)  # covariance of pitch and pitch-gyro bias
+        grow("pitch_var_b", (), 0.0)  # variance of the pitch-gyro bias
+        grow("pitch_acc", (4,), 0.0)  # since the last fix: angle noise var, ∫rate, ∫dt, samples
+        grow("pitch_still", (), False)  # the last fix was standing
         grow("roll_rad", (), np.nan)  # low-passed GNSS roll; NaN before the first
         grow("roll_var", (), 0.0)
         grow("roll_fix_ns", (), np.int64(0))
@@ -525,6 +624,10 @@ class FleetFrontEnd:
     pitch_gyro_bias: FloatArray
     pitch_fix_ns: IntArray
     pitch_var: FloatArray
+    pitch_cov_tb: FloatArray
+    pitch_var_b: FloatArray
+    pitch_acc: FloatArray
+    pitch_still: BoolArray
     roll_rad: FloatArray
     roll_var: FloatArray
     roll_fix_ns: IntArray
@@ -578,6 +681,10 @@ class FleetFrontEnd:
         self.pitch_gyro_bias[slot] = 0.0
         self.pitch_fix_ns[slot] = 0
         self.pitch_var[slot] = _PITCH_PRIOR_STD_RAD**2  # unknown before a fix
+        self.pitch_cov_tb[slot] = 0.0
+        self.pitch_var_b[slot] = self.config.gyro_bias_std_radps**2
+        self.pitch_acc[slot] = 0.0
+        self.pitch_still[slot] = False
         self.roll_rad[slot] = np.nan
         self.roll_var[slot] = 0.0
         self.roll_fix_ns[slot] = 0
@@ -986,8 +1093,10 @@ class _Batch:
         slot_t = self.slots[rows]
         accel_var = fe.accel_var_cfg[slot_t] / nf
         if self.product:
+            # the gravity leak g·δθ as white accelerometer noise over the pitch error's
+            # assumed correlation time (pitch_leak_corr_s)
             pv = self._pitch_var_at_ticks()
-            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_tau_s / cfg.dt_s)
+            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_leak_corr_s / cfg.dt_s)
         gyro_var = fe.gyro_var_cfg[slot_t] / nf
         z = np.full((n_ticks, N_OBS_PAPER), np.nan)
         z[:, MdsfObs.A1] = means[0]
@@ -1063,10 +1172,15 @@ class _Batch:
         b_x`` (from ``ωx = θ̇·cos φ + ψ̇·cos θ·sin φ`` and ``ωz = −ψ̇·cos θ·cos φ + θ̇·sin φ``):
         on a side slope the yaw rate of a turn shows on the ``ωx`` gyro, and integrated as pitch
         it let gravity into the forward acceleration (a 6° bank on ``field_work``: pitch RMS error
-        5.5 mrad against 1.5 with the roll). A complementary filter (:func:`pitch_fix_update`).
-        Also sets ``g_vg``: eq. (1) with the GNSS pitch, or the tracked pitch if the receiver
-        gives none; and the pitch variance and bias in force after each fix (``g_var_after``,
-        ``g_bias_after``). Shape ``(n,)``.
+        5.5 mrad against 1.5 with the roll). Product mode: a Kalman filter of pitch and
+        pitch-gyro bias (:func:`pitch_kf_update`); the angle noise it adds between fixes is the
+        gyro's white noise summed over the samples (``Σ σ²·dt²``) and the roll track's error
+        carried by the yaw rate (``Σ ωz²·var_φ·2·attitude_tau_s·dt``, correlated over the roll's
+        low-pass); a standing fix that follows a standing one gives the bias the interval's mean
+        rate. Paper mode: :func:`pitch_fix_update`. Also sets ``g_vg``:
+        eq. (1) with the GNSS pitch, or the tracked pitch if the receiver gives none; and the
+        pitch variance and bias in force after each fix (``g_var_after``, ``g_bias_after``).
+        Shape ``(n,)``.
         """
         fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
@@ -1080,24 +1194,50 @@ class _Batch:
         cw = _seg_cumsum(rate * self.dts, self.begin_of)
         th0 = fe.pitch_rad[s].copy()
         var = fe.pitch_var[s].copy()
+        cov_tb = fe.pitch_cov_tb[s].copy()
+        var_b = fe.pitch_var_b[s].copy()
         self.var_before = var.copy()
         bias = fe.pitch_gyro_bias[s].copy()
         self.bias_before = bias.copy()
         fix_ns = fe.pitch_fix_ns[s].copy()
         known = fe.pitch_known[s].copy()
+        still = fe.pitch_still[s].copy()
         base_w = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
+        # since the last fix: the rate noise's angle variance, ∫rate·dt, ∫dt, sample count
+        acc = fe.pitch_acc[s].copy()
+        if self.product:
+            # white gyro noise (per sample) integrated: Σ σ²·dt²; the roll track's error
+            # times the yaw rate (θ̇ = ωx·cos φ + ωz·sin φ), correlated over the roll's low-pass
+            # (attitude_tau_s): Σ ωz²·var_φ·2·τ·dt
+            roll_var = self._roll_var_at_samples()
+            walk = self.dts * (
+                fe.gyro_var_cfg[s][self.s_row] * self.dts
+                + self.wz * self.wz * roll_var * 2.0 * cfg.attitude_tau_s
+            )
+        else:
+            walk = np.zeros(self.T.shape[0])
+        cq = _seg_cumsum(walk, self.begin_of)
+        base_q = np.zeros(self.n_rows)
+        cn = _seg_cumsum(np.ones(self.T.shape[0]), self.begin_of)
+        base_n = np.zeros(self.n_rows)
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
         self.g_theta_after = np.empty(nf)
+        g_still = self.g_vel_ok & (np.hypot(g[:, _G_VE], g[:, _G_VN]) < cfg.standstill_speed_mps)
 
         def end_segment(r: IntArray, j: IntArray) -> FloatArray:
             # samples up to j-1 of rows r integrated with the bias in force; θ at j-1
             used = np.stack([th0[r], base_w[r], base_t[r], bias[r]], axis=1)
             th0[r] = th0[r] + (cw[j - 1] - base_w[r]) - bias[r] * (ct[j - 1] - base_t[r])
+            acc[r, 0] += cq[j - 1] - base_q[r]
+            acc[r, 1] += cw[j - 1] - base_w[r]
+            acc[r, 2] += ct[j - 1] - base_t[r]
+            acc[r, 3] += cn[j - 1] - base_n[r]
             base_w[r], base_t[r] = cw[j - 1], ct[j - 1]
+            base_q[r], base_n[r] = cq[j - 1], cn[j - 1]
             return used
 
         def at_fix(fi: IntArray, r: IntArray) -> None:
@@ -1114,9 +1254,37 @@ class _Batch:
                 pm, pm_var = p.copy(), np.full(p.shape[0], cfg.pitch_std_rad**2)
                 pm[need] = np.where(wild, np.nan, pv)
                 pm_var[need] = pv_var
-            th0[r], var[r], bias[r], fix_ns[r], known[r] = pitch_fix_update(
-                th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg, pm_var
-            )
+            if self.product:
+                # stood through the interval since the previous fix: the mean rate is the bias
+                stood = still[r] & g_still[fi] & (acc[r, 2] > 0) & (cfg.standstill_speed_mps > 0)
+                span = np.where(stood, acc[r, 2], 1.0)
+                z_still = np.where(stood, acc[r, 1] / span, np.nan)
+                r_still = (
+                    fe.gyro_var_cfg[s[r]] / np.maximum(acc[r, 3], 1.0)
+                    + cfg.standstill_rate_floor_radps**2
+                )
+                cov = np.stack([var[r], cov_tb[r], var_b[r]], axis=1)
+                th0[r], cov, bias[r], fix_ns[r], known[r] = pitch_kf_update(
+                    th0[r],
+                    cov,
+                    bias[r],
+                    fix_ns[r],
+                    known[r],
+                    pm,
+                    self.g_t[fi],
+                    cfg,
+                    pm_var,
+                    acc[r, 0],
+                    z_still,
+                    r_still,
+                )
+                var[r], cov_tb[r], var_b[r] = cov[:, 0], cov[:, 1], cov[:, 2]
+                acc[r] = 0.0
+                still[r] = g_still[fi]
+            else:
+                th0[r], var[r], bias[r], fix_ns[r], known[r] = pitch_fix_update(
+                    th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg
+                )
             self.g_var_after[fi] = var[r]
             self.g_bias_after[fi] = bias[r]
             self.g_theta_after[fi] = th0[r]
@@ -1133,6 +1301,10 @@ class _Batch:
         q = self._between_fixes(_rank_passes(self.g_rank), end_segment, at_fix)
         fe.pitch_rad[s] = th0
         fe.pitch_var[s] = var
+        fe.pitch_cov_tb[s] = cov_tb
+        fe.pitch_var_b[s] = var_b
+        fe.pitch_acc[s] = acc
+        fe.pitch_still[s] = still
         fe.pitch_gyro_bias[s] = bias
         fe.pitch_fix_ns[s] = fix_ns
         fe.pitch_known[s] = known
@@ -1174,7 +1346,12 @@ class _Batch:
         fe.roll_var[s] = var
         fe.roll_fix_ns[s] = fix_ns
         self.g_roll_after = _shrunk_roll(after, after_var)
+        self._roll_var_s = np.where(np.isfinite(v), v, 0.0)
         return _shrunk_roll(phi, v)
+
+    def _roll_var_at_samples(self) -> FloatArray:
+        """Variance of the roll track at each IMU sample (after :meth:`_roll_at_samples`)."""
+        return self._roll_var_s
 
     def _velocity_pitch(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray]:
         """Pitch from the GNSS velocity's elevation at fixes ``fi`` (rows ``r``) and its variance.

@@ -19,9 +19,10 @@ Two modes (:class:`MdsfMode`):
     ``[V1, a1, ωx, ωz, b_a, e_L, e_R, D]`` (:class:`MdsfState`); outputs are still ``H1·X``:
 
     * **gravity**: the forward specific force carries ``g·sinθ``; ``a_fwd = f_y − g·sinθ`` with
-      the pitch from the GNSS attitude, integrated ``ωx`` between fixes (pitch- and yaw-gyro
-      biases learnt against the GNSS pitch and heading); the pitch error's gravity leak is part
-      of the accelerometer noise;
+      the pitch from the GNSS attitude and the integrated pitch rate in a Kalman filter with
+      the pitch-gyro bias (learnt against the GNSS pitch, and from the gyro itself while the
+      vehicle stands), the yaw-gyro bias learnt against the GNSS heading; the pitch error's
+      gravity leak is part of the accelerometer noise;
     * **the accelerometer drives the speed** (``u`` of the predict): ``V1(k+1) = V1(k) +
       dt·(ā − b_a)`` with ``ā`` the mean forward acceleration over ``(t_k, t_k+1]``. Taking
       ``a1`` from the previous tick, as eq. (6) does, makes the speed lag by ``dt·a`` (0.2 m/s
@@ -194,9 +195,10 @@ class MdsfConfig:
         Its part proportional to the speed (slip changes with soil and load) [1/√s].
     slip_demand_gain : float
         Product mode: slip change per change of traction demand (``ds/d(f/g)``, about the tyre
-        curve's slope); the rim-excess variance grows by ``(gain·|V|/g)²·|Δf|·1 m/s²`` per tick
-        with ``f`` the low-passed forward specific force (acceleration plus slope, what the
-        tyres must transmit) [-].
+        curve's slope); while the demand changes the rim-excess variance grows by
+        ``(gain·|V|/g)²·2·D·|Δf|`` per tick, ``f`` the low-passed forward specific force
+        (acceleration plus slope, what the tyres must transmit) and ``D`` its recent change, so
+        a change ``D`` opens the rim excess by ``gain·|V|·D/g`` in std [-].
     slip_per_demand : float
         Product mode: tyre model, rim-excess change per speed and per change of traction
         demand, ``Δe ≈ k·V·Δ(f/g)`` (about the inverse slope of the traction curve over the
@@ -280,15 +282,36 @@ class MdsfConfig:
         A speed variance above this (or any non-finite value) counts as divergence: reset.
     initial_speed_std_mps : float
         Speed std right after a (re)initialisation.
-    pitch_tau_s : float
-        Product mode: time constant with which the pitch (integrated ``ωx``) is pulled to the
-        GNSS pitch at each fix [s]; the first fix sets it.
+    attitude_tau_s : float
+        Product mode: time constant of the roll track's and the heading track's pull to the
+        GNSS roll and heading (:func:`estimator.frontend.roll_fix_update`,
+        :func:`estimator.frontend.yaw_fix_update`), hence also the correlation time of the roll
+        error where it enters the pitch rate [s]. The pitch has no time constant: it is a
+        Kalman filter with the gyro bias (:func:`estimator.frontend.pitch_kf_update`).
+    pitch_leak_corr_s : float
+        Product mode: correlation time taken for the pitch filter's error where its gravity
+        leak (``g·δθ``) is added to the accelerometer noise as white noise,
+        ``g²·P_θθ·pitch_leak_corr_s/dt`` per tick [s]. An assumption, not derived from the
+        filter: 1 s is the time constant of the complementary pull the pitch had before its
+        Kalman filter, kept because it passed the floors with it.
     gyro_bias_tau_s : float
-        Product mode: time constant with which the pitch- and yaw-gyro biases are learnt
-        against the GNSS pitch and heading [s].
+        Product mode: time constant with which the yaw-gyro bias is learnt against the GNSS
+        heading [s].
     pitch_std_rad : float
         Product mode: 1-sigma noise of the receiver's pitch (receivers do not report it); sets
         how much gravity leaks into the forward acceleration through the pitch error [rad].
+    gyro_bias_std_radps : float
+        Product mode: prior std of the pitch gyro's bias (MEMS turn-on bias, a few mrad/s)
+        in the pitch filter (:func:`estimator.frontend.pitch_kf_update`) [rad/s].
+    gyro_bias_walk_radps_per_sqrt_s : float
+        Product mode: random walk of that bias (in-run drift) [rad/s/√s].
+    standstill_speed_mps : float
+        Product mode: a GNSS fix whose horizontal speed is below this, after one that was too,
+        closes an interval the vehicle stood through: the pitch gyro's mean reading over it is
+        a measurement of its bias (zero angular rate). 0 turns it off [m/s].
+    standstill_rate_floor_radps : float
+        Product mode: noise floor of that measurement (engine vibration, a vehicle creeping
+        below the speed threshold) [rad/s].
     gnss_vertical_vel_factor : float
         Product mode: the receiver's vertical velocity noise over its horizontal one (typically
         1.5–2, the satellites being above); sets the noise of the pitch taken from the GNSS
@@ -343,9 +366,14 @@ class MdsfConfig:
     gnss_timeout_s: float = 1.0
     max_speed_var_mps2: float = 100.0
     initial_speed_std_mps: float = 0.5
-    pitch_tau_s: float = 1.0
+    attitude_tau_s: float = 1.0
+    pitch_leak_corr_s: float = 1.0
     pitch_std_rad: float = 0.005
     gyro_bias_tau_s: float = 5.0
+    gyro_bias_std_radps: float = 0.005
+    gyro_bias_walk_radps_per_sqrt_s: float = 1e-4
+    standstill_speed_mps: float = 0.05
+    standstill_rate_floor_radps: float = 5e-4
     gnss_vertical_vel_factor: float = 1.5
     velocity_pitch_floor_rad: float = 0.002
     gnss_noise_adapt: float = 0.02
@@ -371,6 +399,7 @@ class MdsfConfig:
                 "outage_rim_drift_share",
                 "outage_demand_share",
                 "gnss_distance_gap_s",
+                "standstill_speed_mps",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
@@ -384,6 +413,7 @@ class MdsfConfig:
             "tyre_gain_tau_s",
             "rim_drift_tau_s",
             "gnss_distance_gap_s",
+            "standstill_speed_mps",
         ):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:
