@@ -68,6 +68,8 @@ log = logging.getLogger(__name__)
 
 #: How often a worker reports its counters, anchors and stats (seconds).
 SNAPSHOT_EVERY_S = 1.0
+#: Sensor keys whose owner the route thread remembers (three per vehicle), at most.
+OWNER_KEYS = 100_000
 #: Longest wait for a worker to start (imports, estimator registry) or to stop.
 START_TIMEOUT_S = 60.0
 
@@ -146,6 +148,7 @@ class WorkerPool:
         self._ctx = mp.get_context("spawn")
         # every registered vehicle's config, to register them again in a restarted worker
         self._configs: dict[str, VehicleConfig] = {}
+        self._owner_by_key: dict[str, int] = {}  # sensor key -> worker (route thread only)
         self._collector: threading.Thread | None = None
         self._stats = {
             "sink_errors": 0,
@@ -229,14 +232,12 @@ class WorkerPool:
     def route(self, received: list[tuple[str, bytes]]) -> None:
         """Send each packet of a burst, undecoded, to the worker that owns its vehicle."""
         shares: list[list[tuple[str, bytes]]] = [[] for _ in self._workers]
-        n, prefix = self._n, self._prefix
+        owners = self._owner_by_key
         for key, payload in received:
-            try:
-                vid = parse_key(key, prefix)[0]
-            except ValueError:
-                shares[0].append((key, payload))  # refused there, counted without a vehicle
-                continue
-            shares[owner_of(vid, n)].append((key, payload))
+            owner = owners.get(key)
+            if owner is None:
+                owner = self._owner_of_key(key)
+            shares[owner].append((key, payload))
         for w, share in zip(self._workers, shares, strict=True):
             if not share:
                 continue
@@ -248,6 +249,17 @@ class WorkerPool:
             except (OSError, ValueError):
                 self._stats["dropped_worker_down"] += len(share)
                 log.error("worker %d is down: dropped %d packets", w.index, len(share))
+
+    def _owner_of_key(self, key: str) -> int:
+        """The worker for a sensor key (0 for a key that names no vehicle: it is refused
+        there and counted); remembered for up to :data:`OWNER_KEYS` keys."""
+        try:
+            owner = owner_of(parse_key(key, self._prefix)[0], self._n)
+        except ValueError:
+            return 0
+        if len(self._owner_by_key) < OWNER_KEYS:
+            self._owner_by_key[key] = owner
+        return owner
 
     def _poll_configs(self) -> None:
         """Vehicle configs received over Zenoh: register with the owner, report them."""
