@@ -224,39 +224,20 @@ def pitch_fix_update(
     pitch_gnss_rad: FloatArray,
     stamp_ns: IntArray,
     config: MdsfConfig,
-    pitch_var_rad2: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
-    """Complementary pitch filter at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
+    """Paper-mode pitch at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
 
-    The front end uses it in paper mode (every fix sets ``θ = p``); product mode runs
-    :func:`pitch_kf_update`, whose gains follow from the gyro's and the receiver's noise
-    instead of the fixed ``pitch_tau_s``.
-
-    A measured pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``):
-    the first (or any in paper mode) sets ``θ = p`` with variance ``R``; later ones move ``θ``
-    by ``gain·(p − θ)`` with ``gain = max(var/(var + R), 1 − exp(−gap/pitch_tau_s))``: an
-    inverse-variance mean while the track is young (with equal ``R`` the running mean
-    ``1/n``), then the time constant (``gap`` the time since the previous pitch, clipped to
-    [0, 1] s). The variance follows as ``(1 − gain)²·var + gain²·R`` and the pitch-gyro bias
-    integrates ``b_x −= gap/(pitch_tau_s·gyro_bias_tau_s)·(p − θ)``. A NaN pitch changes
-    nothing. ``θ`` is the tracked pitch integrated up to the fix.
+    ``method.md`` §1, eq. (1): the source takes the pitch ``θ`` of eq. (1) as measured, so each
+    GNSS pitch ``p`` sets ``θ = p`` with variance ``pitch_std_rad²``, whatever the track held;
+    the pitch-gyro bias is left as it is (the source has none). A NaN pitch changes nothing.
+    Product mode runs :func:`pitch_kf_update` instead.
 
     Returns the new ``(theta_rad, var_rad2, bias_radps, fix_ns, known)``.
     """
-    product = config.mode is MdsfMode.PRODUCT
-    tau = config.pitch_tau_s
-    r2 = config.pitch_std_rad**2 if pitch_var_rad2 is None else pitch_var_rad2
     has = np.isfinite(pitch_gnss_rad)
-    first = has & (~known | (not product))
-    follow = has & ~first
-    gap = _fix_gap_s(stamp_ns, fix_ns)
-    err = pitch_gnss_rad - theta_rad
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gain = np.maximum(var_rad2 / (var_rad2 + r2), 1.0 - np.exp(-gap / tau))
-    theta = np.where(first, pitch_gnss_rad, np.where(follow, theta_rad + gain * err, theta_rad))
-    var = np.where(first, r2, np.where(follow, (1 - gain) ** 2 * var_rad2 + gain**2 * r2, var_rad2))
-    bias = np.where(follow, bias_radps - gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
-    return theta, var, bias, np.where(has, stamp_ns, fix_ns), known | has
+    theta = np.where(has, pitch_gnss_rad, theta_rad)
+    var = np.where(has, config.pitch_std_rad**2, var_rad2)
+    return theta, var, bias_radps.copy(), np.where(has, stamp_ns, fix_ns), known | has
 
 
 def pitch_kf_update(
@@ -375,12 +356,13 @@ def yaw_fix_update(
 ) -> tuple[FloatArray, FloatArray, IntArray]:
     """Heading track and yaw-gyro bias at one GNSS heading per vehicle (arrays ``(k,)``).
 
-    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/pitch_tau_s))·err`` toward the GNSS
-    heading (``err`` wrapped to ±π) and the bias by ``b_z += gap/(pitch_tau_s·gyro_bias_tau_s)·err``
-    (``ψ̇ = −(ωz − b_z)/cos θ``: a heading that falls behind means ``b_z`` is too small); an
-    unknown ``ψ`` (NaN) is set to the GNSS heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
+    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/attitude_tau_s))·err`` toward the
+    GNSS heading (``err`` wrapped to ±π) and the bias by
+    ``b_z += gap/(attitude_tau_s·gyro_bias_tau_s)·err`` (``ψ̇ = −(ωz − b_z)/cos θ``: a heading
+    that falls behind means ``b_z`` is too small); an unknown ``ψ`` (NaN) is set to the GNSS
+    heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
     """
-    tau = config.pitch_tau_s
+    tau = config.attitude_tau_s
     known = np.isfinite(psi_rad)
     gap = _fix_gap_s(stamp_ns, fix_ns)
     d = heading_gnss_rad - psi_rad
@@ -399,10 +381,10 @@ def roll_fix_update(
     config: MdsfConfig,
 ) -> tuple[FloatArray, FloatArray, IntArray]:
     """Roll track at one GNSS roll per vehicle (arrays ``(k,)``): the receiver's roll low-passed,
-    ``φ += w·(φ_gnss − φ)`` with ``w = 1 − exp(−gap/pitch_tau_s)`` (``gap`` since the previous
-    roll, clipped to [0, 1] s), and its noise variance ``(1 − w)²·var + w²·pitch_std_rad²``; an
-    unknown ``φ`` (NaN) takes the GNSS roll (variance ``pitch_std_rad²``); a NaN GNSS roll
-    changes nothing.
+    ``φ += w·(φ_gnss − φ)`` with ``w = 1 − exp(−gap/attitude_tau_s)`` (``gap`` since the
+    previous roll, clipped to [0, 1] s), and its noise variance
+    ``(1 − w)²·var + w²·pitch_std_rad²``; an unknown ``φ`` (NaN) takes the GNSS roll (variance
+    ``pitch_std_rad²``); a NaN GNSS roll changes nothing.
 
     The pitch track needs the roll only to turn the body rates into the pitch rate
     (``θ̇ = ωx·cos φ + ωz·sin φ``), where its noise is multiplied by the yaw rate; terrain roll
@@ -411,7 +393,7 @@ def roll_fix_update(
     r2 = config.pitch_std_rad**2
     has = np.isfinite(roll_gnss_rad)
     gap = _fix_gap_s(stamp_ns, fix_ns)
-    w = 1.0 - np.exp(-gap / config.pitch_tau_s)
+    w = 1.0 - np.exp(-gap / config.attitude_tau_s)
     known = np.isfinite(roll_rad)
     roll = np.where(known, roll_rad + w * (roll_gnss_rad - roll_rad), roll_gnss_rad)
     var = np.where(known, (1.0 - w) ** 2 * var_rad2 + w * w * r2, r2)
@@ -1111,8 +1093,10 @@ class _Batch:
         slot_t = self.slots[rows]
         accel_var = fe.accel_var_cfg[slot_t] / nf
         if self.product:
+            # the gravity leak g·δθ as white accelerometer noise over the pitch error's
+            # assumed correlation time (pitch_leak_corr_s)
             pv = self._pitch_var_at_ticks()
-            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_tau_s / cfg.dt_s)
+            accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_leak_corr_s / cfg.dt_s)
         gyro_var = fe.gyro_var_cfg[slot_t] / nf
         z = np.full((n_ticks, N_OBS_PAPER), np.nan)
         z[:, MdsfObs.A1] = means[0]
@@ -1191,7 +1175,7 @@ class _Batch:
         5.5 mrad against 1.5 with the roll). Product mode: a Kalman filter of pitch and
         pitch-gyro bias (:func:`pitch_kf_update`); the angle noise it adds between fixes is the
         gyro's white noise summed over the samples (``Σ σ²·dt²``) and the roll track's error
-        carried by the yaw rate (``Σ ωz²·var_φ·2·pitch_tau_s·dt``, correlated over the roll's
+        carried by the yaw rate (``Σ ωz²·var_φ·2·attitude_tau_s·dt``, correlated over the roll's
         low-pass); a standing fix that follows a standing one gives the bias the interval's mean
         rate. Paper mode: :func:`pitch_fix_update`. Also sets ``g_vg``:
         eq. (1) with the GNSS pitch, or the tracked pitch if the receiver gives none; and the
@@ -1225,11 +1209,11 @@ class _Batch:
         if self.product:
             # white gyro noise (per sample) integrated: Σ σ²·dt²; the roll track's error
             # times the yaw rate (θ̇ = ωx·cos φ + ωz·sin φ), correlated over the roll's low-pass
-            # (pitch_tau_s): Σ ωz²·var_φ·2·τ·dt
+            # (attitude_tau_s): Σ ωz²·var_φ·2·τ·dt
             roll_var = self._roll_var_at_samples()
             walk = self.dts * (
                 fe.gyro_var_cfg[s][self.s_row] * self.dts
-                + self.wz * self.wz * roll_var * 2.0 * cfg.pitch_tau_s
+                + self.wz * self.wz * roll_var * 2.0 * cfg.attitude_tau_s
             )
         else:
             walk = np.zeros(self.T.shape[0])
@@ -1299,7 +1283,7 @@ class _Batch:
                 still[r] = g_still[fi]
             else:
                 th0[r], var[r], bias[r], fix_ns[r], known[r] = pitch_fix_update(
-                    th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg, pm_var
+                    th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg
                 )
             self.g_var_after[fi] = var[r]
             self.g_bias_after[fi] = bias[r]

@@ -282,12 +282,18 @@ class MdsfConfig:
         A speed variance above this (or any non-finite value) counts as divergence: reset.
     initial_speed_std_mps : float
         Speed std right after a (re)initialisation.
-    pitch_tau_s : float
+    attitude_tau_s : float
         Product mode: time constant of the roll track's and the heading track's pull to the
-        GNSS roll and heading [s]; also the correlation time taken for the pitch error where
-        its gravity leak is added to the accelerometer noise, and for the roll error where it
-        enters the pitch rate. (The pitch itself is a Kalman filter with the gyro bias,
-        :func:`estimator.frontend.pitch_kf_update`.)
+        GNSS roll and heading (:func:`estimator.frontend.roll_fix_update`,
+        :func:`estimator.frontend.yaw_fix_update`), hence also the correlation time of the roll
+        error where it enters the pitch rate [s]. The pitch has no time constant: it is a
+        Kalman filter with the gyro bias (:func:`estimator.frontend.pitch_kf_update`).
+    pitch_leak_corr_s : float
+        Product mode: correlation time taken for the pitch filter's error where its gravity
+        leak (``g·δθ``) is added to the accelerometer noise as white noise,
+        ``g²·P_θθ·pitch_leak_corr_s/dt`` per tick [s]. An assumption, not derived from the
+        filter: 1 s is the time constant of the complementary pull the pitch had before its
+        Kalman filter, kept because it passed the floors with it.
     gyro_bias_tau_s : float
         Product mode: time constant with which the yaw-gyro bias is learnt against the GNSS
         heading [s].
@@ -360,7 +366,8 @@ class MdsfConfig:
     gnss_timeout_s: float = 1.0
     max_speed_var_mps2: float = 100.0
     initial_speed_std_mps: float = 0.5
-    pitch_tau_s: float = 1.0
+    attitude_tau_s: float = 1.0
+    pitch_leak_corr_s: float = 1.0
     pitch_std_rad: float = 0.005
     gyro_bias_tau_s: float = 5.0
     gyro_bias_std_radps: float = 0.005
