@@ -67,10 +67,9 @@ _TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
 
 
 _ROW_BYTES = ESTIMATE_DTYPE.itemsize
-# All rows of one vehicle in one statement: the rows' bytes as one blob and their stamps as one
-# JSON array; SQLite cuts the blob (row i at byte 212 i) and walks the array, so no Python runs
-# per row and the GIL is released once per vehicle, not once per row. Rows go to the
-# time-ordered ``estimates_recent`` first (unless ``estimates`` has them: a replay), and
+# One row per parameter set of an ``executemany`` over the whole transaction (a commit carries
+# one or two rows per vehicle, so a statement per vehicle would not pay): into the time-ordered
+# ``estimates_recent`` unless ``estimates`` has the row already (a replay);
 # :meth:`SqliteStore.maintain` moves them on.
 _INSERT_SQL = (
     "INSERT INTO estimates_recent (stamp_ns, vkey, packed) SELECT ?1, ?2, ?3 "
