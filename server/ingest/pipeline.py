@@ -58,6 +58,7 @@ from server.estimators.registry import AdvanceResult, EstimatorRegistry, Unknown
 from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, Verdict
 from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
+from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet
 from server.protocol.keys import Stream
 from server.settings import Settings, UnknownVehiclePolicy
@@ -183,7 +184,7 @@ class Pipeline:
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
         self._subscriber = (
-            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit, raw_sink)
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self._take, raw_sink)
             if session is not None
             else None
         )
@@ -257,6 +258,16 @@ class Pipeline:
                 continue
         self._stats["dropped_not_running"] += len(items)
         log.error("pipeline not running: dropped %d ingest items", len(items))
+
+    def _take(self, received: list[tuple[str, bytes]]) -> None:
+        """Ingest thread: decode a burst together (``decode_burst``) and queue it."""
+        self.submit(
+            decode_burst(
+                received,
+                prefix=self._settings.zenoh.key_prefix,
+                max_payload_bytes=self._ingest.max_payload_bytes,
+            )
+        )
 
     def register_vehicle(
         self, vehicle_id: str, config: VehicleConfig, *, notify: bool = False

@@ -1,16 +1,16 @@
-"""Zenoh subscribers and the ingest (decode) thread.
+"""Zenoh subscribers and the ingest thread.
 
 Two subscriptions under ``<prefix>/<vehicle_filter>/``:
 
 * ``sensors/**`` into a bounded :class:`zenoh.handlers.FifoChannel` of
   ``ZenohSettings.channel_capacity`` samples. Zenoh's threads only enqueue; the ingest thread
   takes samples in bursts (up to :data:`BURST`; after the first sample of a burst it waits
-  ``IngestSettings.gather_ms`` for more, unless a backlog fills whole bursts), decodes each
-  burst together with the pure codec (:func:`server.protocol.burst.decode_burst`: one numpy
-  pass per stream for the array checks) and hands it as one list to ``deliver`` (the
-  pipeline's bounded queue). When the pipeline falls behind, ``deliver`` blocks, the channel
-  fills, and Zenoh's BLOCK congestion control slows the publishers: nothing is dropped
-  silently.
+  ``IngestSettings.gather_ms`` for more, unless a backlog fills whole bursts) and hands each
+  burst's ``(key, payload)`` list to ``take``, on this thread: the in-process pipeline decodes
+  it together with the pure codec (:func:`server.protocol.burst.decode_burst`: one numpy pass
+  per stream for the array checks) and queues it; the worker pool sends each vehicle's packets
+  to its worker. When they fall behind, ``take`` blocks, the channel fills, and Zenoh's BLOCK
+  congestion control slows the publishers: nothing is dropped silently.
 * ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
   (configs are rare; polling is one non-blocking ``try_recv``).
 """
@@ -27,7 +27,6 @@ from dataclasses import dataclass
 import zenoh
 
 from estimator.config import VehicleConfig
-from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet, decode_config
 from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK, parse_key
 from server.settings import IngestSettings, ZenohSettings
@@ -64,16 +63,13 @@ class IngestSubscriber:
     session : zenoh.Session
     zenoh_settings, ingest_settings
         Prefix, vehicle filter, channel capacity; payload size limit.
-    deliver : callable
-        Receives each decoded burst (a list of :data:`IngestItem`); may block (backpressure).
+    take : callable
+        Receives each burst's ``(key, payload)`` packets as they arrived; may block
+        (backpressure).
     raw_sink : callable, optional
         Receives each burst's raw packets as ``(vehicle_id, received_ns, key, payload)``
         (wall-clock receive time; packets whose key names no vehicle are left out), for
         ``StorageSettings.store_raw_packets``.
-    route : callable, optional
-        Takes each burst's ``(key, payload)`` packets undecoded instead (the worker pool hands
-        them to the process that owns the vehicle, which decodes them); ``deliver`` is then
-        not called, and ``raw_sink`` gets the packets whose key names a vehicle.
     """
 
     def __init__(
@@ -81,16 +77,14 @@ class IngestSubscriber:
         session: zenoh.Session,
         zenoh_settings: ZenohSettings,
         ingest_settings: IngestSettings,
-        deliver: Callable[[list[IngestItem]], None],
+        take: Callable[[list[tuple[str, bytes]]], None],
         raw_sink: Callable[[list[RawPacket]], object] | None = None,
-        route: Callable[[list[tuple[str, bytes]]], None] | None = None,
     ) -> None:
         self._session = session
-        self._route = route
-        self._zs = zenoh_settings
+        self._take = take
         self._max_payload = ingest_settings.max_payload_bytes
+        self._zs = zenoh_settings
         self._gather_s = ingest_settings.gather_ms / 1000
-        self._deliver = deliver
         self._raw_sink = raw_sink
         self._thread: threading.Thread | None = None
         self._sensors: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
@@ -136,12 +130,6 @@ class IngestSubscriber:
             if self._thread.is_alive():
                 log.warning("ingest thread did not stop within %.1f s", timeout_s)
 
-    def _decode(self, received: list[tuple[str, bytes]]) -> list[IngestItem]:
-        """Decode a burst's ``(key, payload)`` packets together (see ``decode_burst``)."""
-        return decode_burst(
-            received, prefix=self._zs.key_prefix, max_payload_bytes=self._max_payload
-        )
-
     def poll_configs(self) -> list[ConfigUpdate]:
         """Configs received since the last call (refused ones are logged and skipped)."""
         out: list[ConfigUpdate] = []
@@ -183,24 +171,19 @@ class IngestSubscriber:
             except zenoh.ZError:
                 closed = True  # undeclared while the burst gathered: deliver it, then stop
             full = len(received) == BURST  # a backlog: no gathering until it is worked off
-            if self._route is not None:
-                if self._raw_sink is not None:
-                    prefix = self._zs.key_prefix
-                    self._sink_raw(received, [_vehicle_of(key, prefix) for key, _ in received])
-                self._route(received)
-                continue
-            burst = self._decode(received)
             if self._raw_sink is not None:
-                self._sink_raw(received, [item.vehicle_id for item in burst])
-            self._deliver(burst)
+                self._sink_raw(received)
+            self._take(received)
 
-    def _sink_raw(self, received: list[tuple[str, bytes]], vehicles: list[str | None]) -> None:
+    def _sink_raw(self, received: list[tuple[str, bytes]]) -> None:
         """Hand the burst's packets whose key names a vehicle to the raw sink."""
         assert self._raw_sink is not None
+        prefix = self._zs.key_prefix
+        now_ns = time.time_ns()
         raw: list[RawPacket] = [
-            (vid, time.time_ns(), key, payload)
-            for (key, payload), vid in zip(received, vehicles, strict=True)
-            if vid
+            (vid, now_ns, key, payload)
+            for key, payload in received
+            if (vid := _vehicle_of(key, prefix)) is not None
         ]
         if raw:
             self._raw_sink(raw)

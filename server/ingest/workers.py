@@ -15,11 +15,11 @@ reorder buffers, estimator registry) for the vehicles it owns::
 * **Ownership.** Vehicle ``v`` belongs to worker ``crc32(v) mod N`` (:func:`owner_of`): stable
   across restarts, no table to share. Packets whose key names no vehicle go to worker 0,
   which refuses them (counted as usual).
-* **Route thread** (the subscriber's thread, :class:`~server.ingest.subscriber.IngestSubscriber`
-  with ``route``): takes the samples in bursts as in-process ingest does, splits each burst by
-  owner and sends each share undecoded down that worker's pipe. A worker that falls behind
-  fills its pipe, the send blocks, the Zenoh channel fills, and BLOCK congestion control slows
-  the publishers: nothing is dropped silently.
+* **Route thread** (the subscriber's thread, :class:`~server.ingest.subscriber.IngestSubscriber`,
+  whose ``take`` is :meth:`WorkerPool.route`): takes the samples in bursts as in-process ingest
+  does, splits each burst by owner and sends each share undecoded down that worker's pipe. A
+  worker that falls behind fills its pipe, the send blocks, the Zenoh channel fills, and BLOCK
+  congestion control slows the publishers: nothing is dropped silently.
 * **Workers** (:func:`_worker_main`, started with ``spawn``: Zenoh's threads do not survive
   ``fork``) decode each share (``decode_burst``) and submit it to their pipeline, whose one sink
   sends every estimator call's rows back as one array (``ESTIMATE_DTYPE``) with the vehicles'
@@ -157,14 +157,7 @@ class WorkerPool:
             "worker_restarts": 0,
         }
         self._subscriber = (
-            IngestSubscriber(
-                session,
-                settings.zenoh,
-                settings.ingest,
-                deliver=lambda _items: None,
-                raw_sink=raw_sink,
-                route=self.route,
-            )
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.route, raw_sink)
             if session is not None
             else None
         )

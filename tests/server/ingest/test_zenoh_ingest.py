@@ -212,7 +212,7 @@ def test_ingest_gathers_packets_into_bursts(gather_ms: int) -> None:
     bursts: list[int] = []
     with embedded_router() as (router, zs, endpoint), client_session(endpoint) as client:
         ingest = IngestSettings.model_validate({"gather_ms": gather_ms})
-        sub = IngestSubscriber(router, zs, ingest, lambda items: bursts.append(len(items)))
+        sub = IngestSubscriber(router, zs, ingest, lambda received: bursts.append(len(received)))
         sub.start()
         try:
             pub = declare(client, sensor_key("fleet", "sim-0001", Stream.IMU))
@@ -242,7 +242,7 @@ def test_stop_while_a_burst_gathers_delivers_it_and_ends_cleanly() -> None:
     bursts: list[int] = []
     with embedded_router() as (router, zs, endpoint), client_session(endpoint) as client:
         ingest = IngestSettings.model_validate({"gather_ms": 50})
-        sub = IngestSubscriber(router, zs, ingest, lambda items: bursts.append(len(items)))
+        sub = IngestSubscriber(router, zs, ingest, lambda received: bursts.append(len(received)))
         sub.start()
         pub = declare(client, sensor_key("fleet", "sim-0001", Stream.IMU))
         t = T0 + np.arange(10) * 10 * MS
