@@ -143,11 +143,11 @@ class WorkerPool:
         self._n = settings.ingest.workers
         self._sinks = list(sinks)
         self._on_new_vehicle = on_new_vehicle
-        self._pending: list[tuple[int, tuple[Any, ...]]] = []  # control before start()
         self._workers: list[_Worker] = []
         self._ctx = mp.get_context("spawn")
-        # every registered vehicle's config, to register them again in a restarted worker
+        # every registered vehicle's config: what a worker is started (or restarted) with
         self._configs: dict[str, VehicleConfig] = {}
+        self._stored_counters: dict[str, dict[str, int]] = {}  # restore_counters before start
         self._owner_by_key: dict[str, int] = {}  # sensor key -> worker (route thread only)
         self._collector: threading.Thread | None = None
         self._stats = {
@@ -176,11 +176,11 @@ class WorkerPool:
         """Start the workers (and wait until each is ready), the collector, the subscriber."""
         if self._workers:
             raise RuntimeError("already started")
-        initial: list[list[tuple[Any, ...]]] = [[] for _ in range(self._n)]
-        for owner, message in self._pending:
-            initial[owner].append(message)
-        self._pending.clear()
-        self._workers = [_Worker(k, self._settings, self._ctx, initial[k]) for k in range(self._n)]
+        self._workers = [
+            _Worker(k, self._settings, self._ctx, self._initial(k, self._stored_counters))
+            for k in range(self._n)
+        ]
+        self._stored_counters = {}
         for w in self._workers:
             if not _ready(w):
                 self.stop()
@@ -265,11 +265,19 @@ class WorkerPool:
     # ------------------------------------------------------------------ control
 
     def _control(self, vehicle_id: str, message: tuple[Any, ...]) -> None:
-        owner = owner_of(vehicle_id, self._n)
-        if not self._workers:
-            self._pending.append((owner, message))
-        else:
-            self._workers[owner].send_control(message)
+        """Send ``message`` to the owner (before start: its start takes ``_configs``)."""
+        if self._workers:
+            self._workers[owner_of(vehicle_id, self._n)].send_control(message)
+
+    def _initial(self, k: int, counters: dict[str, dict[str, int]]) -> list[tuple[Any, ...]]:
+        """What worker ``k`` starts with: its vehicles' registrations and, of ``counters``,
+        its vehicles' totals to continue from."""
+        configs = list(self._configs.items())  # a copy: registrations may come meanwhile
+        return [("add", vid, c, False) for vid, c in configs if owner_of(vid, self._n) == k] + [
+            ("restore", vid, totals)
+            for vid, totals in counters.items()
+            if owner_of(vid, self._n) == k
+        ]
 
     def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start or reconfigure a vehicle (in the worker that owns it)."""
@@ -283,7 +291,10 @@ class WorkerPool:
 
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
         """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`)."""
-        self._control(vehicle_id, ("restore", vehicle_id, dict(totals)))
+        if self._workers:
+            self._control(vehicle_id, ("restore", vehicle_id, dict(totals)))
+        else:
+            self._stored_counters[vehicle_id] = dict(totals)
 
     # ------------------------------------------------------------------ output
 
@@ -318,15 +329,9 @@ class WorkerPool:
             "worker %d exited (code %s): starting it again", dead.index, dead.process.exitcode
         )
         k = dead.index
-        initial: list[tuple[Any, ...]] = [
-            ("add", vid, config, False)
-            for vid, config in list(self._configs.items())
-            if owner_of(vid, self._n) == k
-        ]
-        initial += [
-            ("restore", vid, totals) for vid, totals in dead.snapshot.get("counters", {}).items()
-        ]
-        new = _Worker(k, self._settings, self._ctx, initial)
+        new = _Worker(
+            k, self._settings, self._ctx, self._initial(k, dead.snapshot.get("counters", {}))
+        )
         if not _ready(new):
             log.error("worker %d did not start again", k)
             new.process.kill()
