@@ -16,6 +16,7 @@ import zenoh
 from fastapi import FastAPI
 
 from server.api.app import create_app
+from server.gc_policy import settle
 from server.ingest.zenoh_session import make_config
 from server.settings import Settings, ZenohSettings
 from server.web import mount_web
@@ -32,13 +33,16 @@ def build_app(settings: Settings) -> FastAPI:
     return app
 
 
-def serve(settings: Settings) -> None:
-    """Run the server until interrupted."""
+def serve(settings: Settings, *, log_level: str = "info") -> None:
+    """Run the server until interrupted (this process's collector settled first: see
+    :mod:`server.gc_policy`)."""
+    app = build_app(settings)
+    settle(settings.ingest.gc_gen0)
     uvicorn.run(
-        build_app(settings),
+        app,
         host=settings.api.host,
         port=settings.api.port,
-        log_level="info",
+        log_level=log_level,
         ws="websockets-sansio",
     )
 

@@ -178,22 +178,13 @@ class ServerProcess:
 
 def _serve_child() -> int:
     """Child entry point: run the server from the JSON settings in the environment."""
-    import uvicorn
-
-    from server.app_main import build_app
+    from server.app_main import serve
     from server.settings import Settings
 
     logging.basicConfig(
         level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    settings = Settings.model_validate(json.loads(os.environ[_SETTINGS_ENV]))
-    uvicorn.run(
-        build_app(settings),
-        host=settings.api.host,
-        port=settings.api.port,
-        log_level="warning",
-        ws="websockets-sansio",
-    )
+    serve(Settings.model_validate(json.loads(os.environ[_SETTINGS_ENV])), log_level="warning")
     return 0
 
 

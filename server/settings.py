@@ -190,6 +190,15 @@ class IngestSettings(BaseModel):
             "in the server process"
         ),
     )
+    gc_gen0: int = Field(
+        50_000,
+        ge=0,
+        description=(
+            "net allocations between the garbage collector's young-generation passes in the "
+            "server and worker processes, after start-up objects are frozen out of its sight "
+            "(server.gc_policy); 0 = the interpreter's default (700, every pass walks more)"
+        ),
+    )
     advance_step_ms: int = Field(
         100,
         ge=1,

@@ -473,6 +473,7 @@ def _worker_main(
 ) -> None:
     """A worker process: decode what the server routes here and run a pipeline on it."""
     from server.estimators.registry import EstimatorRegistry
+    from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
     from server.protocol.burst import decode_burst
 
@@ -508,6 +509,7 @@ def _worker_main(
 
     for message in initial:  # registrations and stored counters, before the first packet
         _apply(pipeline, message)
+    settle(settings.ingest.gc_gen0)
     threading.Thread(target=controls, name="worker-control", daemon=True).start()
     pipeline.start()
     snapshot_thread = threading.Thread(target=snapshots, name="worker-snapshots", daemon=True)
