@@ -19,9 +19,11 @@ here copies per sample, so a decoder can hand over views of its buffers.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
+from typing import overload
 
 import numpy as np
 import numpy.typing as npt
@@ -29,6 +31,7 @@ import numpy.typing as npt
 __all__ = [
     "ESTIMATE_DTYPE",
     "ESTIMATE_FIELDS",
+    "EstimateBatch",
     "EstimateFlag",
     "GnssFix",
     "GnssSample",
@@ -239,3 +242,62 @@ def concat_estimates(parts: Sequence[np.ndarray]) -> np.ndarray:
         out[i : i + p.shape[0]] = p
         i += p.shape[0]
     return out
+
+
+class EstimateBatch(Sequence[tuple[str, np.ndarray]]):
+    """Estimate rows of several vehicles in one array, grouped by vehicle.
+
+    A sequence of ``(vehicle_id, rows)`` like the list an estimator call returns, whose items
+    are views of one joined array: consumers that work on all rows at once read :attr:`rows`
+    instead of joining the parts again, each of them.
+
+    Parameters
+    ----------
+    ids : list of str, length k
+        The vehicles, in the order of their rows.
+    counts : list of int, length k
+        Rows of each vehicle (> 0).
+    rows : ndarray, shape (sum(counts),), ESTIMATE_DTYPE
+        ``counts[0]`` rows of ``ids[0]``, then ``counts[1]`` of ``ids[1]`` …
+    """
+
+    __slots__ = ("_bounds", "counts", "ids", "rows")
+
+    def __init__(self, ids: list[str], counts: list[int], rows: np.ndarray) -> None:
+        if len(ids) != len(counts) or sum(counts) != rows.shape[0]:
+            raise ValueError("ids, counts and rows disagree")
+        self.ids = ids
+        self.counts = counts
+        self.rows = rows
+        self._bounds = [0, *itertools.accumulate(counts)]
+
+    @classmethod
+    def of(cls, batch: Sequence[tuple[str, np.ndarray]]) -> EstimateBatch:
+        """``batch`` itself when it is one, else its non-empty parts joined (one copy)."""
+        if isinstance(batch, EstimateBatch):
+            return batch
+        parts = [(vid, rows) for vid, rows in batch if rows.shape[0] > 0]
+        if not parts:
+            return cls([], [], empty_estimates(0))
+        return cls(
+            [vid for vid, _ in parts],
+            [rows.shape[0] for _, rows in parts],
+            concat_estimates([rows for _, rows in parts]),
+        )
+
+    def row_vehicle(self) -> npt.NDArray[np.int64]:
+        """Index into :attr:`ids` of each row, shape ``(len(rows),)``."""
+        return np.repeat(np.arange(len(self.ids), dtype=np.int64), self.counts)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @overload
+    def __getitem__(self, i: int) -> tuple[str, np.ndarray]: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[tuple[str, np.ndarray]]: ...
+    def __getitem__(self, i: int | slice) -> tuple[str, np.ndarray] | list[tuple[str, np.ndarray]]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        k = range(len(self.ids))[i]  # negative indices, IndexError
+        return self.ids[k], self.rows[self._bounds[k] : self._bounds[k + 1]]

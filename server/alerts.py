@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from estimator.config import SlipConfig
-from estimator.types import ESTIMATE_DTYPE, EstimateFlag
+from estimator.types import EstimateBatch, EstimateFlag
 
 __all__ = ["SYSTEM", "Alert", "AlertEngine", "AlertKind", "PublishHook"]
 
@@ -116,14 +116,6 @@ class Alert:
             "threshold": self.threshold,
             "peak": self.peak,
         }
-
-
-def _concat(parts: list[np.ndarray]) -> np.ndarray:
-    if len(parts) == 1:
-        return parts[0]
-    if all(p.dtype == ESTIMATE_DTYPE for p in parts):
-        return np.frombuffer(b"".join(p.tobytes() for p in parts), dtype=ESTIMATE_DTYPE)
-    return np.concatenate([np.asarray(p, dtype=ESTIMATE_DTYPE) for p in parts])
 
 
 class AlertEngine:
@@ -238,17 +230,17 @@ class AlertEngine:
         time) are walked row by row.
         """
         now = self._clock_ns()
-        chunks = [(v, r) for v, r in batch if r.shape[0] > 0]
-        if not chunks:
+        joined = EstimateBatch.of(batch)
+        if not joined:
             return
         events: list[tuple[str, str, Alert]] = []
         with self._lock:
-            slots = np.array([self._slot_of(v) for v, _ in chunks], dtype=np.int64)
-            counts = np.array([r.shape[0] for _, r in chunks], dtype=np.int64)
-            rows = _concat([r for _, r in chunks])
-            slot = np.repeat(slots, counts)
-            order = np.argsort(slot, kind="stable")
-            rows, slot = rows[order], slot[order]
+            slots = np.array([self._slot_of(v) for v in joined.ids], dtype=np.int64)
+            rows = joined.rows
+            slot = np.repeat(slots, joined.counts)
+            if len(set(joined.ids)) < len(joined):  # a vehicle twice: group, keep time order
+                order = np.argsort(slot, kind="stable")
+                rows, slot = rows[order], slot[order]
             stamp = rows["stamp_ns"].astype(np.int64)
             cond = np.empty((rows.shape[0], _NK), dtype=bool)
             thr = self._thr[slot]
@@ -276,10 +268,13 @@ class AlertEngine:
             quiet = ~np.isin(slot, busy) if busy.size else np.ones(slot.shape[0], dtype=bool)
             if quiet.any():  # steady vehicles: only the peaks of running slip episodes move
                 self._track_peaks(slot[quiet], cond[quiet], rows[quiet])
-            if busy.size:
-                lo = np.searchsorted(slot, busy, side="left")
-                hi = np.searchsorted(slot, busy, side="right")
-                for s_, a_, b_ in zip(busy.tolist(), lo.tolist(), hi.tolist(), strict=True):
+            if busy.size:  # each vehicle's rows are one run: walk the busy runs
+                lo = np.flatnonzero(first)
+                hi = np.r_[lo[1:], slot.shape[0]]
+                walk = np.isin(slot[lo], busy)
+                for s_, a_, b_ in zip(
+                    slot[lo[walk]].tolist(), lo[walk].tolist(), hi[walk].tolist(), strict=True
+                ):
                     events.extend(self._walk(s_, stamp[a_:b_], cond[a_:b_], rows[a_:b_], now))
             self._last_stamp[s_last] = t_last
             self._last_arrival[s_last] = now

@@ -28,6 +28,7 @@ from typing import Any, cast
 import numpy as np
 import numpy.typing as npt
 
+from estimator.types import EstimateBatch
 from server.api.prometheus import MetricFamily, Sample
 from server.storage.base import Store
 
@@ -105,9 +106,9 @@ class LatencyProbe:
 
     def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
         now = self._clock_ns()
-        stamps = [rows["stamp_ns"] for _, rows in batch if len(rows)]
-        if stamps:
-            self.live.add(now - np.concatenate(stamps).astype(np.int64))
+        rows = EstimateBatch.of(batch).rows
+        if rows.shape[0]:
+            self.live.add(now - rows["stamp_ns"].astype(np.int64))
 
     def wrap_store(self, store: Store) -> Store:
         """``store`` with commit latencies recorded in :attr:`stored`."""

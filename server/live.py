@@ -52,7 +52,7 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from estimator.types import ESTIMATE_DTYPE, EstimateFlag, concat_estimates
+from estimator.types import ESTIMATE_DTYPE, EstimateBatch, EstimateFlag
 
 __all__ = [
     "LIVE_FIELDS",
@@ -335,18 +335,17 @@ class LiveHub:
         ignored (the pipeline already reorders by sensor time).
         """
         now_ns = self._clock_ns()
-        chunks = [(vid, rows) for vid, rows in batch if rows.shape[0] > 0]
-        if not chunks:
+        joined = EstimateBatch.of(batch)
+        if not joined:
             return
         with self._lock:
             slots = np.fromiter(
-                (self._slot_of(v) for v, _ in chunks), dtype=np.int64, count=len(chunks)
+                (self._slot_of(v) for v in joined.ids), dtype=np.int64, count=len(joined)
             )
-            counts = np.fromiter((r.shape[0] for _, r in chunks), dtype=np.int64, count=len(chunks))
-            rows = concat_estimates([r for _, r in chunks])
-            slot = np.repeat(slots, counts)
-            order = np.argsort(slot, kind="stable")  # group by vehicle, keep time order
-            if not np.array_equal(order, np.arange(order.shape[0])):
+            rows = joined.rows
+            slot = np.repeat(slots, joined.counts)
+            if len(set(joined.ids)) < len(joined):  # a vehicle twice: group, keep time order
+                order = np.argsort(slot, kind="stable")
                 rows, slot = rows[order], slot[order]
             stamp = rows["stamp_ns"].astype(np.int64)
             # drop rows not newer than the vehicle's newest row or than their predecessor

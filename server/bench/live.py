@@ -210,8 +210,6 @@ async def _watch(
                 out.append((recv_ns - max(int(s) for s in msg["stamp_ns"])) / 1e6)
 
 
-
-
 def _synthetic_setup(n: int, rate_hz: float) -> tuple[int, list[str], Any, Callable[[], None]]:
     """Live routes + dashboard over a hub fed by :class:`FeedThread`: ``(port, ids, hub, stop)``."""
     import uvicorn

@@ -41,8 +41,6 @@ _T0 = 1_700_000_000 * 1_000_000_000
 _STEP_NS = 200_000_000
 
 
-
-
 def bench_batched(n: int, frames: int) -> list[float]:
     fleet = SyntheticFleet(n, seed=2)
     hub = LiveHub(initial_slots=n)

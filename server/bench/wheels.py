@@ -267,8 +267,6 @@ def _one_call_per_wheel(
     return [t.query(query_ns) for t in trackers]
 
 
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m server.bench.wheels [--vehicles 100,1000,3000] [--intervals 50,100]
     [--seconds S] [--baseline-seconds S] [--no-baseline] [--json PATH]``."""

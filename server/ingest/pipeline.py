@@ -54,6 +54,7 @@ import numpy as np
 import zenoh
 
 from estimator.config import VehicleConfig
+from estimator.types import EstimateBatch
 from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
 from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, Verdict
@@ -104,9 +105,13 @@ PIPELINE_REASONS: tuple[str, ...] = (
 
 @runtime_checkable
 class EstimateSink(Protocol):
-    """Receives estimate rows on the pipeline thread; must not block for long."""
+    """Receives estimate rows on the pipeline thread; must not block for long.
 
-    def on_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None: ...
+    ``batch`` is a sequence of ``(vehicle_id, rows)``; the pipelines hand over an
+    :class:`~estimator.types.EstimateBatch`, whose ``rows`` are all of them joined once.
+    """
+
+    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None: ...
 
 
 class Pipeline:
@@ -622,12 +627,12 @@ class Pipeline:
         self._last_tick_s = time.perf_counter() - t0
 
     def _deliver(self, result: AdvanceResult) -> None:
-        if result.primary:
-            self._stats["rows"] += sum(len(rows) for _, rows in result.primary)
+        primary = EstimateBatch.of(result.primary)  # joined once for every sink
+        self._stats["rows"] += primary.rows.shape[0]
         for sink in self._sinks:
             try:
-                if result.primary:
-                    sink.on_estimates(result.primary)
+                if primary:
+                    sink.on_estimates(primary)
                 on_output = getattr(sink, "on_output", None)
                 if on_output is not None:
                     for name, batch in result.by_estimator.items():

@@ -56,7 +56,7 @@ import numpy as np
 import zenoh
 
 from estimator.config import VehicleConfig
-from estimator.types import concat_estimates
+from estimator.types import EstimateBatch
 from server.ingest.pipeline import EstimateSink
 from server.ingest.subscriber import IngestSubscriber, RawPacket
 from server.protocol.keys import parse_key
@@ -345,9 +345,7 @@ class WorkerPool:
         """Act on one worker message; True when the worker is done."""
         kind = message[0]
         if kind == "rows":
-            _, ids, counts, rows = message
-            bounds = np.cumsum([0, *counts]).tolist()
-            batch = [(vid, rows[a:b]) for vid, a, b in zip(ids, bounds, bounds[1:], strict=False)]
+            batch = EstimateBatch(*message[1:])
             for sink in self._sinks:
                 try:
                     sink.on_estimates(batch)
@@ -431,16 +429,10 @@ class _Results:
         with self._lock:
             self._conn.send(message)
 
-    def on_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None:
+    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
         """Pipeline sink: the call's rows as one array, with ids and counts."""
-        self.send(
-            (
-                "rows",
-                [vid for vid, _ in batch],
-                [len(rows) for _, rows in batch],
-                concat_estimates([rows for _, rows in batch]),
-            )
-        )
+        joined = EstimateBatch.of(batch)
+        self.send(("rows", joined.ids, joined.counts, joined.rows))
 
 
 def _snapshot(pipeline: Any) -> dict[str, Any]:

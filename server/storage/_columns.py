@@ -43,7 +43,3 @@ def fields_dtype(names: Sequence[str]) -> np.dtype:
     if tuple(names) == FIELD_NAMES:
         return ESTIMATE_DTYPE
     return np.dtype([(n, FIELD_KIND[n]) for n in names])
-
-
-
-

@@ -1,0 +1,45 @@
+"""EstimateBatch: several vehicles' rows joined once, read as (vehicle_id, rows) pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.types import ESTIMATE_DTYPE, EstimateBatch, empty_estimates
+
+
+def _rows(*stamps: int) -> np.ndarray:
+    rows = empty_estimates(len(stamps))
+    rows["stamp_ns"] = stamps
+    return rows
+
+
+def test_of_joins_the_non_empty_parts_in_order() -> None:
+    batch = EstimateBatch.of([("a", _rows(1, 2)), ("b", _rows()), ("c", _rows(3))])
+    assert batch.ids == ["a", "c"]
+    assert batch.counts == [2, 1]
+    assert batch.rows.dtype == ESTIMATE_DTYPE
+    assert batch.rows["stamp_ns"].tolist() == [1, 2, 3]
+    assert [(vid, rows["stamp_ns"].tolist()) for vid, rows in batch] == [("a", [1, 2]), ("c", [3])]
+    assert batch.row_vehicle().tolist() == [0, 0, 1]
+
+
+def test_items_are_views_of_the_joined_rows() -> None:
+    batch = EstimateBatch.of([("a", _rows(1, 2)), ("c", _rows(3))])
+    _, rows = batch[-1]
+    assert np.shares_memory(rows, batch.rows)
+    assert batch[0:2][1][0] == "c"
+    with pytest.raises(IndexError):
+        batch[2]
+
+
+def test_of_a_batch_is_that_batch_and_an_empty_one_is_falsy() -> None:
+    batch = EstimateBatch.of([("a", _rows(1))])
+    assert EstimateBatch.of(batch) is batch
+    empty = EstimateBatch.of([("a", _rows())])
+    assert not empty and empty.rows.shape == (0,)
+
+
+def test_counts_that_do_not_add_up_are_refused() -> None:
+    with pytest.raises(ValueError, match="disagree"):
+        EstimateBatch(["a", "b"], [1, 1], _rows(1))
