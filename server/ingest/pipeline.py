@@ -2,20 +2,21 @@
 
 ::
 
-    Zenoh threads ─▶ FifoChannel ─▶ ingest thread (decode) ─▶ bounded queue ─▶ pipeline thread
-                                                                                 │ reorder buffers
-                                                                                 │ registry.push
-                                                                                 │ registry.advance
-                                                                                 ▼
-                                                                   sinks.on_estimates(batch)
+    Zenoh threads ─▶ FifoChannel ─▶ ingest thread ─▶ bounded queue ─▶ pipeline thread
+                                    (bursts, undecoded)                 │ decode_burst
+                                                                        │ reorder buffers
+                                                                        │ registry.push
+                                                                        │ registry.advance
+                                                                        ▼
+                                                          sinks.on_estimates(batch)
 
 The pipeline thread owns the estimator registry, every reorder buffer and the counters' writes,
 so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` (longer when a tick
 takes more than a third of that: see :data:`TICK_DUTY`) it releases the
 packets whose time has come, pushes them to the vehicle's estimators, advances them to the
 released horizon (each time it crosses a step of ``advance_step_ms`` on the vehicle's tick grid;
-with the MDSF tick as the step, as soon as a tick is due) and hands the primary
-estimator's rows, ``[(vehicle_id, rows), ...]``, to each sink's ``on_estimates`` (and every
+with the MDSF tick as the step, as soon as a tick is due) and hands the primary estimator's
+rows (an :class:`~estimator.types.EstimateBatch`) to each sink's ``on_estimates`` (and every
 estimator's rows to a sink's optional ``on_output(name, batch)``). Sinks run on this thread:
 they must only enqueue (the storage writer and live hub do).
 
@@ -103,6 +104,18 @@ PIPELINE_REASONS: tuple[str, ...] = (
 )
 
 
+class _Raw:
+    """An undecoded burst in the pipeline's queue: ``[(key, payload), ...]``."""
+
+    __slots__ = ("received",)
+
+    def __init__(self, received: list[tuple[str, bytes]]) -> None:
+        self.received = received
+
+    def __len__(self) -> int:
+        return len(self.received)
+
+
 @runtime_checkable
 class EstimateSink(Protocol):
     """Receives estimate rows on the pipeline thread; must not block for long.
@@ -162,8 +175,8 @@ class Pipeline:
         self._lateness_ns = settings.ingest.lateness_ms * 1_000_000
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
-        # (monotonic receive time ns, burst); None stops the thread
-        self._queue: queue.Queue[tuple[int, list[IngestItem]] | None] = queue.Queue(
+        # (monotonic receive time ns, decoded burst or undecoded _Raw); None stops the thread
+        self._queue: queue.Queue[tuple[int, list[IngestItem] | _Raw] | None] = queue.Queue(
             maxsize=QUEUE_BURSTS
         )
         # (op, vehicle_id, config or None, notify)
@@ -189,7 +202,7 @@ class Pipeline:
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
         self._subscriber = (
-            IngestSubscriber(session, settings.zenoh, settings.ingest, self._take, raw_sink)
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink)
             if session is not None
             else None
         )
@@ -252,6 +265,19 @@ class Pipeline:
         are dropped and counted in ``stats()["dropped_not_running"]`` instead of blocking the
         caller (Zenoh's backpressure) forever.
         """
+        self._put(items)
+
+    def submit_raw(self, received: list[tuple[str, bytes]]) -> None:
+        """Queue a burst of undecoded ``(key, payload)`` packets, decoded together
+        (``decode_burst``) on the pipeline thread; blocks while the queue is full.
+
+        The subscriber's ``take``. Decoding where the packets are then handled, instead of on
+        the thread that receives them, keeps the two from taking turns on the interpreter lock
+        for every burst.
+        """
+        self._put(_Raw(received))
+
+    def _put(self, items: list[IngestItem] | _Raw) -> None:
         if not items:
             return
         received_ns = self._clock()
@@ -264,14 +290,13 @@ class Pipeline:
         self._stats["dropped_not_running"] += len(items)
         log.error("pipeline not running: dropped %d ingest items", len(items))
 
-    def _take(self, received: list[tuple[str, bytes]]) -> None:
-        """Ingest thread: decode a burst together (``decode_burst``) and queue it."""
-        self.submit(
-            decode_burst(
-                received,
-                prefix=self._settings.zenoh.key_prefix,
-                max_payload_bytes=self._ingest.max_payload_bytes,
-            )
+    def _decoded(self, items: list[IngestItem] | _Raw) -> list[IngestItem]:
+        if not isinstance(items, _Raw):
+            return items
+        return decode_burst(
+            items.received,
+            prefix=self._settings.zenoh.key_prefix,
+            max_payload_bytes=self._ingest.max_payload_bytes,
         )
 
     def register_vehicle(
@@ -347,7 +372,7 @@ class Pipeline:
             try:
                 self._apply_configs()
                 if items:
-                    self._handle(items, received_ns)
+                    self._handle(self._decoded(items), received_ns)
                 now = self._clock()
                 if now >= next_tick:
                     # While bursts wait in the queue, "now" for the idle release is the receive
@@ -376,7 +401,7 @@ class Pipeline:
             except queue.Empty:
                 break
             if rest:
-                self._handle(rest[1], rest[0])
+                self._handle(self._decoded(rest[1]), rest[0])
         self._tick(self._clock(), flush=True)
         self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}  # final counters
 

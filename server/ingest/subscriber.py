@@ -6,10 +6,11 @@ Two subscriptions under ``<prefix>/<vehicle_filter>/``:
   ``ZenohSettings.channel_capacity`` samples. Zenoh's threads only enqueue; the ingest thread
   takes samples in bursts (up to :data:`BURST`; after the first sample of a burst it waits
   ``IngestSettings.gather_ms`` for more, unless a backlog fills whole bursts) and hands each
-  burst's ``(key, payload)`` list to ``take``, on this thread: the in-process pipeline decodes
-  it together with the pure codec (:func:`server.protocol.burst.decode_burst`: one numpy pass
-  per stream for the array checks) and queues it; the worker pool sends each vehicle's packets
-  to its worker. When they fall behind, ``take`` blocks, the channel fills, and Zenoh's BLOCK
+  burst's ``(key, payload)`` list to ``take``, on this thread: the in-process pipeline queues
+  it for its own thread, which decodes it together with the pure codec
+  (:func:`server.protocol.burst.decode_burst`: one numpy pass per stream for the array checks);
+  the worker pool sends each vehicle's packets to its worker, which does the same. When they
+  fall behind, ``take`` blocks, the channel fills, and Zenoh's BLOCK
   congestion control slows the publishers: nothing is dropped silently.
 * ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
   (configs are rare; polling is one non-blocking ``try_recv``).
@@ -56,7 +57,7 @@ RawPacket = tuple[str, int, str, bytes]
 
 
 class IngestSubscriber:
-    """Declares the subscribers and runs the decode thread.
+    """Declares the subscribers and runs the ingest thread.
 
     Parameters
     ----------
@@ -105,7 +106,7 @@ class IngestSubscriber:
         )
 
     def start(self) -> None:
-        """Declare the subscribers and start the decode thread."""
+        """Declare the subscribers and start the ingest thread."""
         if self._thread is not None:
             raise RuntimeError("already started")
         self._sensors = self._session.declare_subscriber(

@@ -467,7 +467,6 @@ def _worker_main(
     from server.estimators.registry import EstimatorRegistry
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
-    from server.protocol.burst import decode_burst
 
     logging.basicConfig(level=logging.WARNING, format=f"worker {index}: %(levelname)s %(message)s")
     # what a pipeline without a Zenoh session reads; nothing from the environment or files
@@ -507,7 +506,6 @@ def _worker_main(
     snapshot_thread = threading.Thread(target=snapshots, name="worker-snapshots", daemon=True)
     snapshot_thread.start()
     results.send(("ready",))
-    prefix, max_payload = settings.zenoh.key_prefix, settings.ingest.max_payload_bytes
     try:
         while True:
             try:
@@ -516,7 +514,7 @@ def _worker_main(
                 break
             if share is None:
                 break
-            pipeline.submit(decode_burst(share, prefix=prefix, max_payload_bytes=max_payload))
+            pipeline.submit_raw(share)
     finally:
         stop.set()
         pipeline.stop()
