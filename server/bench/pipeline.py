@@ -76,6 +76,7 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
     from server.estimators.registry import EstimatorRegistry
     from server.fleet_schedule import STREAMS, EncodedDrive, ScheduledVehicle, _Fleet, render
     from server.fleet_sim import TICK_NS, packetize
+    from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
     from server.latency import LatencyProbe
     from server.live import LiveHub
@@ -129,6 +130,7 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
         for vid, config in configs.items():
             pipeline.register_vehicle(vid, config)
         pipeline._apply_control()  # what the pipeline thread does first
+        settle(settings.ingest.gc_gen0)  # as a server or worker process does once started
         tick_every = settings.ingest.process_interval_ms // GATHER_MS
         spent = dict.fromkeys(STAGES, 0.0)
         proc0 = thread0 = generate = 0.0

@@ -13,7 +13,7 @@ from estimator.config import VehicleConfig, VehicleKind
 from estimator.types import GnssSample, ImuBatch
 from server.estimators import EstimatorRegistry
 from server.ingest import Pipeline
-from server.protocol import DecodeError, Packet, Stream
+from server.protocol import DecodeError, Packet, Stream, encode_imu
 from server.settings import IngestSettings, Settings, UnknownVehiclePolicy
 from tests.server.ingest.fakes import CapturingSink, RecordingFleet, first_stamp
 
@@ -21,17 +21,15 @@ MS = 1_000_000
 T0 = 1_763_700_000 * 10**9
 
 
-def imu(vid: str, seq: int, first_ms: int, n: int = 10) -> Packet:
+def imu_batch(first_ms: int, n: int = 10) -> ImuBatch:
     t = T0 + (first_ms + np.arange(n)) * MS
-    return Packet(
-        vid,
-        Stream.IMU,
-        seq,
-        1,
-        (ImuBatch(t, np.zeros((n, 3)), np.zeros((n, 3))),),
-        int(t[0]),
-        int(t[-1]),
-    )
+    return ImuBatch(t, np.zeros((n, 3)), np.zeros((n, 3)))
+
+
+def imu(vid: str, seq: int, first_ms: int, n: int = 10) -> Packet:
+    batch = imu_batch(first_ms, n)
+    t = batch.stamp_ns
+    return Packet(vid, Stream.IMU, seq, 1, (batch,), int(t[0]), int(t[-1]))
 
 
 def gnss(vid: str, seq: int, at_ms: int) -> Packet:
@@ -267,3 +265,17 @@ def test_tick_schedule_keeps_the_estimator_cadence_and_the_duty() -> None:
     # no estimator call pending (its due time passed): the regular interval
     pipe._next_estimate_ns = now - 1
     assert pipe._next_tick_ns(now + 40 * MS, now + 40 * MS, 1 * MS) == now + 60 * MS
+
+
+def test_raw_bursts_are_decoded_on_the_pipeline_thread_refusals_counted() -> None:
+    pipe, fleet, _ = make()
+    pipe.start()
+    good = [("fleet/a/sensors/imu", encode_imu(imu_batch(10 * k), k)) for k in range(12)]
+    bad = [("fleet/a/sensors/imu", b"\xc1 not msgpack"), ("fleet/a/oops", b"")]
+    pipe.submit_raw(good[:6] + bad)  # a burst large enough to be decoded together
+    pipe.submit_raw(good[6:])
+    pipe.stop()
+    assert len(fleet.pushed["a"]) == 12
+    snap = pipe.counters_snapshot()
+    assert snap["a"]["accepted"] == 12 and snap["a"]["rejected_undecodable"] == 1
+    assert snap[""]["rejected_bad_key"] == 1
