@@ -64,18 +64,39 @@ from server.settings import IngestSettings, Settings, ZenohSettings
 
 __all__ = ["WorkerPool", "owner_of"]
 
+try:
+    import fcntl
+except ImportError:  # not POSIX
+    fcntl = None  # type: ignore[assignment]
+
 log = logging.getLogger(__name__)
 
 #: How often a worker reports its counters, anchors and stats (seconds).
 SNAPSHOT_EVERY_S = 1.0
 #: Sensor keys whose owner the route thread remembers (three per vehicle), at most.
 OWNER_KEYS = 100_000
+#: Buffer of the pipes to and from a worker (Linux's default is 64 KiB, about three bursts):
+#: room for ~0.1 s of a worker's packets at 1,000 vehicles, so the route thread does not block
+#: each time the worker's receiving thread waits a few milliseconds for the interpreter lock.
+PIPE_BYTES = 1 << 20
 #: Longest wait for a worker to start (imports, estimator registry) or to stop.
 START_TIMEOUT_S = 60.0
 
 # pipeline stats that are not summed over workers
 _STATS_MAX = ("last_tick_ms",)
 _STATS_ALL = ("running",)
+
+
+def _widen(conn: Connection) -> None:
+    """Give the pipe under ``conn`` :data:`PIPE_BYTES` of buffer where the OS allows it
+    (Linux; elsewhere, or above ``/proc/sys/fs/pipe-max-size``, it keeps its own)."""
+    set_size = getattr(fcntl, "F_SETPIPE_SZ", None) if fcntl is not None else None
+    if set_size is None:
+        return
+    try:
+        fcntl.fcntl(conn.fileno(), set_size, PIPE_BYTES)
+    except OSError as exc:
+        log.debug("pipe buffer left as it is: %s", exc)
 
 
 def owner_of(vehicle_id: str, workers: int) -> int:
@@ -92,6 +113,8 @@ class _Worker:
         self.index = index
         feed_recv, self.feed = ctx.Pipe(duplex=False)
         self.results, results_send = ctx.Pipe(duplex=False)
+        for conn in (self.feed, self.results):
+            _widen(conn)
         control_recv, self.control = ctx.Pipe(duplex=False)
         self.feed_lock = threading.Lock()
         self.control_lock = threading.Lock()

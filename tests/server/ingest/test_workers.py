@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import time
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from estimator.config import VehicleConfig
 from estimator.sim import simulate
 from server.fleet_sim import encode_packets, packetize
-from server.ingest.workers import WorkerPool, owner_of
+from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
 from server.protocol import sensor_key
 from server.settings import Settings
 from tests.server.ingest.fakes import CapturingSink
@@ -45,6 +46,17 @@ def test_owner_is_stable_and_spreads_the_fleet() -> None:
     assert owners == [owner_of(f"sim-{i:04d}", 3) for i in range(3000)]
     assert set(owners) == {0, 1, 2}
     assert min(np.bincount(owners)) > 800  # crc32 spreads numbered ids about evenly
+
+
+def test_pipes_to_and_from_a_worker_are_widened() -> None:
+    pool = _pool(CapturingSink(), workers=1)
+    pool.start()
+    try:
+        w = pool._workers[0]
+        for conn in (w.feed, w.results):
+            assert fcntl.fcntl(conn.fileno(), fcntl.F_GETPIPE_SZ) >= PIPE_BYTES
+    finally:
+        pool.stop()
 
 
 def test_every_vehicle_is_estimated_once_and_counted() -> None:
