@@ -76,9 +76,12 @@ SEQ_HIGH = "seq_high_"
 #: other threads.
 ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
 
-#: Decoded bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at
-#: most: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
+#: Bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at most:
+#: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
 QUEUE_BURSTS = 64
+#: Undecoded bursts waiting one after another are decoded as one, up to this many packets: a
+#: pipeline that fell behind catches up with larger bursts, which cost less per packet.
+COALESCE_PACKETS = 1024
 #: A pipeline tick (release, estimate, deliver) may take at most 1/TICK_DUTY of the wall time:
 #: when ticks get slower than ``process_interval_ms / TICK_DUTY`` they are spaced further apart.
 #: (3 spaced a 17 ms tick 50 ms apart: at 400 vehicles an estimator call came every ~70 ms
@@ -114,6 +117,11 @@ class _Raw:
 
     def __len__(self) -> int:
         return len(self.received)
+
+
+#: What the pipeline's queue holds: (monotonic receive time ns, decoded burst or undecoded
+#: _Raw); None stops the thread.
+_QueueItem = tuple[int, list[IngestItem] | _Raw] | None
 
 
 @runtime_checkable
@@ -175,10 +183,8 @@ class Pipeline:
         self._lateness_ns = settings.ingest.lateness_ms * 1_000_000
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
-        # (monotonic receive time ns, decoded burst or undecoded _Raw); None stops the thread
-        self._queue: queue.Queue[tuple[int, list[IngestItem] | _Raw] | None] = queue.Queue(
-            maxsize=QUEUE_BURSTS
-        )
+        self._queue: queue.Queue[_QueueItem] = queue.Queue(maxsize=QUEUE_BURSTS)
+        self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
         # (op, vehicle_id, config or None, notify)
         self._control: deque[tuple[str, str, VehicleConfig | None, bool]] = deque()
         self._counters = IngestCounters()
@@ -363,12 +369,14 @@ class Pipeline:
             self._apply_control()
             timeout_s = max(0.0, (next_tick - self._clock()) / 1e9)
             try:
-                got = self._queue.get(timeout=timeout_s)
+                got = self._next_item(timeout_s)
             except queue.Empty:
                 got = (self._clock(), [])
             if got is None:
                 break
             received_ns, items = got
+            if isinstance(items, _Raw):
+                received_ns, items = self._coalesce(received_ns, items)
             try:
                 self._apply_configs()
                 if items:
@@ -377,7 +385,8 @@ class Pipeline:
                 if now >= next_tick:
                     # While bursts wait in the queue, "now" for the idle release is the receive
                     # time of the burst just handled: a backlog must not look like silence.
-                    self._tick(now if self._queue.empty() else received_ns, flush=False)
+                    backlog = not self._queue.empty() or self._held
+                    self._tick(received_ns if backlog else now, flush=False)
                     # A tick costs a fixed part per estimator call plus a part per vehicle: as
                     # the fleet grows, ticks come less often (each at most 1/TICK_DUTY of the
                     # time) and batch more vehicles per call, instead of falling behind.
@@ -397,13 +406,43 @@ class Pipeline:
         self._apply_configs()
         while True:
             try:
-                rest = self._queue.get_nowait()
+                rest = self._next_item(None)
             except queue.Empty:
                 break
             if rest:
                 self._handle(self._decoded(rest[1]), rest[0])
         self._tick(self._clock(), flush=True)
         self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}  # final counters
+
+    def _next_item(self, timeout_s: float | None) -> _QueueItem:
+        """The next queue item (one taken early by :meth:`_coalesce` first); waits up to
+        ``timeout_s`` (None: not at all) before raising ``queue.Empty``."""
+        if self._held:
+            return self._held.popleft()
+        if timeout_s is None:
+            return self._queue.get_nowait()
+        return self._queue.get(timeout=timeout_s)
+
+    def _coalesce(self, received_ns: int, raw: _Raw) -> tuple[int, _Raw]:
+        """``raw`` joined with the undecoded bursts queued right behind it, up to
+        :data:`COALESCE_PACKETS`; returns the receive time of the last one joined and the
+        joined burst. An item that cannot be joined is held for the next turn."""
+        parts = [raw.received]
+        n = len(raw)
+        while n < COALESCE_PACKETS and not self._held:
+            try:
+                nxt = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if nxt is None or not isinstance(nxt[1], _Raw):
+                self._held.append(nxt)  # the stop mark or decoded items: after this burst
+                break
+            received_ns = nxt[0]
+            parts.append(nxt[1].received)
+            n += len(nxt[1])
+        if len(parts) == 1:
+            return received_ns, raw
+        return received_ns, _Raw([p for part in parts for p in part])
 
     def _next_tick_ns(self, scheduled_ns: int, now: int, spent_ns: int) -> int:
         """When the tick after the one ``scheduled_ns`` (started at ``now``, ``spent_ns`` long)

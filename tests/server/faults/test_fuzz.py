@@ -117,9 +117,7 @@ def source() -> Source:
     if _SOURCE is None:
         run = simulate("field_work", seed=5, start_ns=T0, duration_s=60.0)
         pk = packetize(run.sent_in_arrival_order(), run.start_ns)
-        _SOURCE = Source(
-            pk, run.end_ns - run.start_ns + 100_000_000
-        )
+        _SOURCE = Source(pk, run.end_ns - run.start_ns + 100_000_000)
     return _SOURCE
 
 

@@ -279,3 +279,27 @@ def test_raw_bursts_are_decoded_on_the_pipeline_thread_refusals_counted() -> Non
     snap = pipe.counters_snapshot()
     assert snap["a"]["accepted"] == 12 and snap["a"]["rejected_undecodable"] == 1
     assert snap[""]["rejected_bad_key"] == 1
+
+
+def test_undecoded_bursts_queued_back_to_back_are_decoded_as_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pipe, _, _ = make()  # not started: the queue is filled by hand, as a backlog would be
+    key = "fleet/a/sensors/imu"
+    burst = [[(key, encode_imu(imu_batch(10 * k), k))] * n for k, n in enumerate((4, 3, 2, 1))]
+    raw = pipeline_module._Raw
+    pipe._queue.put((2, raw(burst[1])))
+    pipe._queue.put((3, raw(burst[2])))
+    pipe._queue.put((4, [imu("a", 9, 90)]))  # decoded items: not joined, held for next turn
+    pipe._queue.put((5, raw(burst[3])))
+    received_ns, joined = pipe._coalesce(1, raw(burst[0]))
+    assert (received_ns, len(joined)) == (3, 9)
+    assert joined.received == burst[0] + burst[1] + burst[2]
+    assert pipe._next_item(None)[0] == 4 and pipe._next_item(None)[0] == 5
+    # a bound on the joined burst's size
+    monkeypatch.setattr(pipeline_module, "COALESCE_PACKETS", 5)
+    for k in (1, 2, 3):
+        pipe._queue.put((k, raw(burst[k])))
+    received_ns, joined = pipe._coalesce(0, raw(burst[0]))
+    assert (received_ns, len(joined)) == (1, 7)
+    assert pipe._next_item(None)[0] == 2

@@ -35,6 +35,7 @@ def batch_every_burst(monkeypatch: pytest.MonkeyPatch) -> None:
     """The tests here check the batched path, whatever the burst's length."""
     monkeypatch.setattr(burst, "MIN_BATCHED", 1)
 
+
 Item = Packet | DecodeError
 
 
