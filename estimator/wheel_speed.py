@@ -968,10 +968,14 @@ class WheelBank:
 
         Bisection of every row at once (held times are non-decreasing), as many halvings as
         the widest range needs; a row whose range is already empty stays where it is.
+        ``slot``, ``lo``, ``hi`` have shape ``(n,)``; ``value`` shape ``(n,)`` or ``(s, n)``
+        (``s`` searches of the same rows in one pass; the result has ``value``'s shape).
         """
         base = self._base[slot]
         mask = self._mask[slot]
         width = int((hi - lo).max()) if lo.size else 0
+        lo = np.broadcast_to(lo, value.shape)
+        hi = np.broadcast_to(hi, value.shape)
         if width <= 0:
             return lo.copy()
         for _ in range(width.bit_length()):
@@ -1075,9 +1079,10 @@ class WheelBank:
         q = qs.reshape(-1)
         head = self._head[rs]
         count = self._count[rs]
-        end = self._search(rs, head, count, q)
+        # The first edge after ``q − window_s`` is at or before the first edge after ``q``, so
+        # both are searched over the held edges in one bisection.
+        end, first_in = self._search(rs, head, count, np.stack([q, q - self._w_ns]))
         last = end - 1
-        first_in = self._search(rs, head, end, q - self._w_ns)
         tail = (last[nq - 1 :: nq], first_in[nq - 1 :: nq])
         has = last >= head
         if not has.any():
