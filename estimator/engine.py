@@ -1027,15 +1027,22 @@ class MdsfFleet:
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
         rounds = int(lengths[0])
-        emit = np.zeros(total, dtype=bool)
-        flags = np.zeros(total, dtype=np.int32)
-        res = {c: np.full(total, np.nan) for c in _STEP_COLS}
-        rim_cov = np.zeros((total, 2))
-        for r in range(rounds):
+        if rounds == 1:
+            # one tick per vehicle (the usual call): the step's rows are the call's rows, its
+            # outputs are used as they are
+            so = self.engine.step(due.slots, flat, rim, rim_std)
+            emit, flags = so.emit, so.flags
+            res = {name: getattr(so, name) for name in _STEP_COLS}
+            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
+        else:
+            emit = np.zeros(total, dtype=bool)
+            flags = np.zeros(total, dtype=np.int32)
+            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+            rim_cov = np.zeros((total, 2))
+        for r in range(rounds if rounds > 1 else 0):
+            # round r: the r-th tick of every vehicle with one
             c = int(np.count_nonzero(lengths > r))
-            # round r: the r-th tick of every vehicle with one; with one tick per vehicle (the
-            # usual call) that is every row, taken as views instead of copies
-            fi: slice | IntArray = slice(None) if rounds == 1 else offsets[:c] + r
+            fi = offsets[:c] + r
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
             emit[fi] = so.emit

@@ -1684,15 +1684,15 @@ class _Batch:
             bank = fe._banks[int(fe.wheel_bank[vs[0]])]
             wheel_slots = fe.wheel_slot[vs].reshape(-1)
             fitted = fe.fit_wheels(bank, wheel_slots, np.repeat(self.ticks[tix2], 2, axis=0))
-            lone = fe.lone_std[self.slots[rows]]
-            period = np.ones(rows.shape[0] * mt, dtype=bool)
-            for w in Wheel:
-                om = fitted.omega_radps[w::2].reshape(-1)
-                sd = fitted.std_radps[w::2].reshape(-1)
-                method = fitted.method[w::2].reshape(-1)
-                none = method == WheelSpeedMethod.NONE
-                omega[tix, w] = np.where(none, 0.0, om)
-                omega_std[tix, w] = np.where(none, np.repeat(lone, mt), sd)
-                period &= method != WheelSpeedMethod.FREQUENCY
+            lone = np.repeat(fe.lone_std[self.slots[rows]], mt)[:, None]
+            # fit rows (vehicle, wheel) × ticks → (vehicle·tick, wheel), both wheels at once
+            om, sd, method = (
+                a.reshape(rows.shape[0], len(Wheel), mt).swapaxes(1, 2).reshape(-1, len(Wheel))
+                for a in (fitted.omega_radps, fitted.std_radps, fitted.method)
+            )
+            none = method == WheelSpeedMethod.NONE
+            omega[tix] = np.where(none, 0.0, om)
+            omega_std[tix] = np.where(none, lone, sd)
+            period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)
             wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
         return omega, omega_std, wflags
