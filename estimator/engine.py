@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator import kalman
+from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
@@ -592,9 +593,9 @@ class MdsfEngine:
             n_rim > 0, np.where(rim_ok, rim_mps, 0.0).sum(axis=1) / np.maximum(n_rim, 1), np.nan
         )
         start_wheels = ~init & ~gnss_ok & (n_rim > 0) & (self._wheel_start_allowed(slots) | broken)
-        v_start = np.where(start, v1_from_gnss, np.nan_to_num(rim_mean))
         sel = start | start_wheels
         if sel.any():
+            v_start = np.where(start, v1_from_gnss, nan_to_num(rim_mean))
             x0, p0 = self._initial_state(slots, z, t.imu_ok, v_start, rim_ok)
             x_new = np.where(sel[:, None], x0, x_new)
             P_new = np.where(sel[:, None, None], p0, P_new)
@@ -835,7 +836,7 @@ class MdsfEngine:
         fresh = ~np.isfinite(old)
         new = np.where(fresh, f_new, np.where(np.isfinite(f_new), old + a * (f_new - old), old))
         self.force_model[slots] = new
-        return np.where(fresh, 0.0, np.nan_to_num(new - old))
+        return np.where(fresh, 0.0, nan_to_num(new - old))
 
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
         """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
@@ -870,9 +871,9 @@ class MdsfEngine:
         self.force_fast[slots] = fast
         self.force_slow[slots] = slow
         var_d = accel_var * (a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2))
-        d = np.nan_to_num(fast - slow)
+        d = nan_to_num(fast - slow)
         excess = np.sqrt(np.maximum(d * d - 4.0 * var_d, 0.0))
-        moved = np.where(fresh, 0.0, np.abs(np.nan_to_num(fast - fast_old)))
+        moved = np.where(fresh, 0.0, np.abs(nan_to_num(fast - fast_old)))
         return 2.0 * excess * moved
 
     @staticmethod

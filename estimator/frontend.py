@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
@@ -435,17 +436,10 @@ def _asof(
     return np.where(ok, out, -1)
 
 
-_F64_MAX = float(np.finfo(np.float64).max)
 _PITCH_PRIOR_STD_RAD = 0.1
 """Pitch before any measurement: level ± 0.1 rad (6°; field slopes rarely pass 15°)."""
 _VEL_PITCH_MIN_SPEED_MPS = 0.5
 """Horizontal speed from which the GNSS velocity's elevation is a pitch measurement."""
-
-
-def _nan_to_num(x: FloatArray) -> FloatArray:
-    """``np.nan_to_num(x)`` of a float array (NaN → 0, ±inf → ± the largest float) in three
-    array calls instead of its dozen (called a few times on every assembly)."""
-    return np.where(np.isfinite(x), x, np.where(np.isnan(x), 0.0, np.copysign(_F64_MAX, x)))
 
 
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
@@ -476,8 +470,8 @@ def _ranks(group: IntArray) -> IntArray:
         return np.zeros(0, dtype=np.int64)
     new = np.ones(n, dtype=bool)
     new[1:] = group[1:] != group[:-1]
-    starts = np.flatnonzero(new)
-    return np.arange(n) - np.repeat(starts, np.diff(np.append(starts, n)))
+    index = np.arange(n)
+    return index - np.maximum.accumulate(np.where(new, index, 0))  # minus its run's start
 
 
 def _rank_passes(rank: IntArray) -> list[IntArray]:
@@ -1447,7 +1441,7 @@ class _Batch:
         tid = self.offsets[self.g_row] + j
         inside = self.g_vel_ok
         if self.product:
-            a_t = _nan_to_num(z[tid, MdsfObs.A1])
+            a_t = nan_to_num(z[tid, MdsfObs.A1])
             vg_al = self.g_vg + a_t * (self.ticks[tid] - self.g_t) * _NS
             ti = tid[inside]
             cnt = np.bincount(ti, minlength=n_ticks)
@@ -1509,7 +1503,7 @@ class _Batch:
         s = self.slots[r]
         p = self.g_enu[idx]
         t = self.g_t[idx]
-        att = np.stack([self.g_heading[idx], _nan_to_num(g[idx, _G_PITCH])], axis=1)
+        att = np.stack([self.g_heading[idx], nan_to_num(g[idx, _G_PITCH])], axis=1)
         first = np.ones(idx.size, dtype=bool)
         first[1:] = r[1:] != r[:-1]
         p_prev = np.empty_like(p)
@@ -1607,11 +1601,11 @@ class _Batch:
         sel = fe.hold[s[self.tick_row]]
         if nf:
             sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
-        age = (self.ticks - _nan_to_num(sel[:, _H_STAMP])) * _NS
+        age = (self.ticks - nan_to_num(sel[:, _H_STAMP])) * _NS
         age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
-        vel = _nan_to_num(sel[:, _H_VE : _H_VU + 1])
+        vel = nan_to_num(sel[:, _H_VE : _H_VU + 1])
         enu = sel[:, _H_E : _H_U + 1] + (vel * age[:, None] if self.product else 0.0)
-        heading = sel[:, _H_HEAD] - (_nan_to_num(wz_tick) * age if self.product else 0.0)
+        heading = sel[:, _H_HEAD] - (nan_to_num(wz_tick) * age if self.product else 0.0)
         heading = np.mod(heading, 2 * np.pi)
         pitch = (
             np.where(np.isfinite(theta_tick), theta_tick, sel[:, _H_PITCH])
