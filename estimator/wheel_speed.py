@@ -1032,18 +1032,32 @@ class WheelBank:
         i = 0
         tail: tuple[IntArray, IntArray] | None = None
         while i < m:
+            due = None
             if cfg.tooth_calibration:
                 # each row calibrates on its own grid boundaries; a chunk of columns ends where
                 # any row reaches its next boundary (other rows are not due there)
                 boundary = (q2[first, i] // period) * period
                 due = boundary > self._cal_upto[uniq]
-                if due.any():
-                    self._calibrate(uniq[due], boundary[due])
-                    self._cal_upto[uniq[due]] = boundary[due]
+                if not due.any():
+                    due = None
                 j = int((q2[first] < (boundary + period)[:, None]).sum(axis=1).min())
             else:
                 j = m
-            res, tail = self._fit(s, q2[:, i:j])
+            # The edges each fit and calibration needs, found in one bisection over the held
+            # edges (a calibration moves no edge): the first after each query time, after it
+            # − window_s (at or before the former) and, when a calibration is due, after the
+            # slot's grid boundary.
+            nq = j - i
+            rs = np.repeat(s, nq)
+            q = q2[:, i:j].reshape(-1)
+            times = [q, q - self._w_ns]
+            if due is not None:
+                times.append(np.repeat((q2[:, i] // period) * period, nq))
+            after = self._search(rs, self._head[rs], self._count[rs], np.stack(times))
+            if due is not None:
+                self._calibrate(uniq[due], after[2][first[due] * nq] - 1)
+                self._cal_upto[uniq[due]] = boundary[due]
+            res, tail = self._fit(rs, q, nq, after[0], after[1])
             omega[:, i:j] = res.omega_radps.reshape(n, j - i)
             std[:, i:j] = res.std_radps.reshape(n, j - i)
             method[:, i:j] = res.method.reshape(n, j - i)
@@ -1066,22 +1080,19 @@ class WheelBank:
         at = self._at(np.repeat(slots, held), number)
         self._corr[at] = self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
 
-    def _fit(self, s: IntArray, qs: IntArray) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
-        """:func:`omega_at` of every slot in ``s`` at its times ``qs[i]`` (``qs`` shape
-        ``(n, nq)``; result rows slot-major).
+    def _fit(
+        self, rs: IntArray, q: IntArray, nq: int, end: IntArray, first_in: IntArray
+    ) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
+        """:func:`omega_at` of slot ``rs[r]`` at time ``q[r]`` for every row ``r`` (shape
+        ``(n·nq,)``: ``nq`` times of each slot in turn).
 
-        Also returns, per slot, the last edge at or before its last time and the first edge
-        after that time − ``window_s`` (edge numbers), for trimming.
+        ``end`` and ``first_in`` are each row's first edge after ``q`` and after
+        ``q − window_s`` (edge numbers, :meth:`_search`). Also returns, per slot, the last edge
+        at or before its last time and the first edge after that time − ``window_s``, for
+        trimming.
         """
         cfg = self.config
-        nq = qs.shape[1]
-        rs = np.repeat(s, nq)
-        q = qs.reshape(-1)
         head = self._head[rs]
-        count = self._count[rs]
-        # The first edge after ``q − window_s`` is at or before the first edge after ``q``, so
-        # both are searched over the held edges in one bisection.
-        end, first_in = self._search(rs, head, count, np.stack([q, q - self._w_ns]))
         last = end - 1
         tail = (last[nq - 1 :: nq], first_in[nq - 1 :: nq])
         has = last >= head
@@ -1167,9 +1178,10 @@ class WheelBank:
         self._angle_before[cs] = self._angle[self._at(cs, new_head - 1)]
         self._head[cs] = new_head
 
-    def _calibrate(self, slots: IntArray, t_ns: IntArray) -> None:
-        """Learn tooth corrections of ``slots`` from edges with a full window at or before
-        their ``t_ns`` (one time per slot).
+    def _calibrate(self, slots: IntArray, last: IntArray) -> None:
+        """Learn tooth corrections of ``slots`` (distinct, ascending) from edges with a full
+        window at or before their calibration instant ``t_ns``; ``last`` is the number of each
+        slot's last edge at or before it (``head − 1`` if none).
 
         For each slot: the edges not yet used that have ``calibration_half_window`` (``h``)
         neighbours on both sides at or before ``t_ns``; per edge, a quadratic fit of its ``2h``
@@ -1181,7 +1193,6 @@ class WheelBank:
         cfg = self.config
         h = cfg.calibration_half_window
         head = self._head[slots]
-        last = self._search(slots, head, self._count[slots], t_ns) - 1
         lo = np.maximum(self._cal_from[slots], head + h)
         hi = last - h
         go = hi >= lo
@@ -1246,17 +1257,22 @@ class WheelBank:
         """Move each slot's edge angle variance toward its calibration residuals (in place).
 
         ``resid`` are this calibration's residuals (before their correction), ``row_slot``
-        their slots. The residual of an edge against its neighbours' fit is the error a fit
-        would see with the corrections then in force; its mean square over the ``M`` new
-        residuals of a slot enters an exponential mean with a memory of one revolution
+        their slots (non-decreasing). The residual of an edge against its neighbours' fit is
+        the error a fit would see with the corrections then in force; its mean square over the
+        ``M`` new residuals of a slot enters an exponential mean with a memory of one revolution
         (``teeth_per_rev`` edges): ``v ← (1 − β)·v + β·mean(r²)``, ``β = 1 − (1 − 1/Ns)^M``.
         (The residual also carries the neighbours' fit error, a few percent of its variance
         with the default window: the floor errs on the safe side.)
         """
         if resid.shape[0] == 0:
             return
-        slots, inverse, n = np.unique(row_slot, return_inverse=True, return_counts=True)
-        mean_sq = np.bincount(inverse, weights=resid * resid) / n
+        # row_slot is non-decreasing (from _calibrate): its runs are the slots
+        new = np.ones(row_slot.shape[0], dtype=bool)
+        new[1:] = row_slot[1:] != row_slot[:-1]
+        slots = row_slot[new]
+        run = np.cumsum(new) - 1
+        n = np.bincount(run)
+        mean_sq = np.bincount(run, weights=resid * resid) / n
         beta = 1.0 - (1.0 - 1.0 / self.config.teeth_per_rev) ** n
         self._angle_var[slots] += beta * (mean_sq - self._angle_var[slots])
 
