@@ -78,6 +78,8 @@ _SLIP_MIN_SPEED_MPS = 0.5
 """Speed floor of the constant-slip-ratio growth of the rim excess."""
 _F = EstimateFlag
 _RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
+_RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
+"""The rim-excess states (left, right), for indexing both diagonals at once."""
 _DIST_OPEN_VAR_M2 = 1.0e4
 """Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
 
@@ -109,6 +111,18 @@ class Counter(IntEnum):
     WAITING_TICKS = 11
 
 
+_STEP_COUNTERS = np.array(
+    [
+        Counter.TICKS,
+        Counter.GNSS_FUSED,
+        Counter.GNSS_GATED,
+        Counter.GNSS_REACQUIRED,
+        Counter.RESETS,
+        Counter.DEGRADED_TICKS,
+        Counter.WAITING_TICKS,
+    ]
+)
+"""Counters :meth:`MdsfEngine.step` adds to every tick (ticks, then its events)."""
 _TICK_FIELDS = TickInputs.__slots__
 _STEP_COLS = (
     "vg",
@@ -226,6 +240,25 @@ class MdsfEngine:
         self._free: list[int] = []
         self._cap = 0
         self._alloc(max(capacity, 1))
+        # Product mode: the entries of Q the tick's accelerometer variance enters, as (row,
+        # column, factor) for one indexed add a step: V1 and a1 through dt, the distance
+        # through dt²/2 (method.md §1).
+        dt, half = self.dt_s, 0.5 * self.dt_s * self.dt_s
+        D, V1, A1 = MdsfState.DIST, MdsfState.V1, MdsfState.A1
+        q_accel = (
+            (V1, V1, dt * dt),
+            (A1, A1, 1.0),
+            (V1, A1, dt),
+            (A1, V1, dt),
+            (D, D, half * half),
+            (D, V1, half * dt),
+            (V1, D, half * dt),
+            (D, A1, half),
+            (A1, D, half),
+        )
+        self._q_accel_rows = np.array([int(r) for r, _, _ in q_accel])
+        self._q_accel_cols = np.array([int(c) for _, c, _ in q_accel])
+        self._q_accel = np.array([f for _, _, f in q_accel])
 
     # -- slots -------------------------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
@@ -417,7 +450,7 @@ class MdsfEngine:
             )
             rd[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_var, 1.0)
         R = np.zeros((k, m, m))
-        R[:, np.arange(m), np.arange(m)] = rd
+        R.reshape(k, m * m)[:, :: m + 1] = rd  # the diagonals
 
         # -- predict ------------------------------------------------------------------------
         Q = self.Q_base[slots].copy()
@@ -429,20 +462,13 @@ class MdsfEngine:
             u = np.zeros((k, n))
             u[:, MdsfState.V1] = dt * a_in
             u[:, MdsfState.A1] = a_in
-            Q[:, MdsfState.V1, MdsfState.V1] += dt * dt * accel_var
-            Q[:, MdsfState.A1, MdsfState.A1] += accel_var
-            Q[:, MdsfState.V1, MdsfState.A1] += dt * accel_var
-            Q[:, MdsfState.A1, MdsfState.V1] += dt * accel_var
-            # The distance integrates the speed: D' = D + dt·V1 + dt²·(ā − b)/2, so the tick's
-            # acceleration noise reaches it through dt²/2 (correlated with V1 and a1).
+            # The acceleration noise drives V1 and a1; the distance integrates the speed:
+            # D' = D + dt·V1 + dt²·(ā − b)/2, so the tick's acceleration noise reaches it
+            # through dt²/2 (correlated with V1 and a1). One indexed add: (row, column, factor).
             half = 0.5 * dt * dt
-            u[:, MdsfState.DIST] = half * a_in
-            D, V1, A1 = MdsfState.DIST, MdsfState.V1, MdsfState.A1
-            Q[:, D, D] += half * half * accel_var
-            Q[:, D, V1] += half * dt * accel_var
-            Q[:, V1, D] += half * dt * accel_var
-            Q[:, D, A1] += half * accel_var
-            Q[:, A1, D] += half * accel_var
+            D, V1 = MdsfState.DIST, MdsfState.V1
+            u[:, D] = half * a_in
+            Q[:, self._q_accel_rows, self._q_accel_cols] += accel_var[:, None] * self._q_accel
             # A new chain of RTK positions (or one after a gated distance) has its own origin:
             # the predicted distance is moved onto the measured one and opened, so the chain's
             # offset carries no information on the speed.
@@ -472,11 +498,10 @@ class MdsfEngine:
             q_drift = None
             if cfg.rim_drift_tau_s > 0:
                 q_drift = self._rim_drift_noise(slots, lost)
-            for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
-                Q[:, st, st] += q_e
-                if q_drift is not None:
-                    Q[:, st, st] += q_drift[:, j]
-                F[:, st, st] = np.clip(grow, 0.5, 1.5)
+            Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
+            if q_drift is not None:
+                Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
+            F[:, _RIM_EXCESS, _RIM_EXCESS] = np.clip(grow, 0.5, 1.5)[:, None]
             if cfg.slip_per_demand > 0:
                 # Tyre model: slip follows the traction demand, ds ≈ k·d(f/g); the expected
                 # change of the rim excess enters as a control term (the filter corrects k's
@@ -486,8 +511,7 @@ class MdsfEngine:
                 # demand that rises and falls back leaves no net change).
                 d_dem = self._model_demand_change(slots, t)
                 gain = self.tyre_gain(slots)
-                for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
-                    u[:, st] = gain * speed * d_dem / GRAVITY_MPS2
+                u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
         else:
             F = self.F[slots]
         x_pr, P_pr = kalman.predict(x, P, F, Q, u)
@@ -531,8 +555,7 @@ class MdsfEngine:
                 self._track_rim_innovation(slots, y_rim, s_rim, rim_use & init[:, None])
             big = rim_use & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
             extra = np.where(big, y_rim * y_rim - s_rim, 0.0)
-            for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
-                P_1[:, st, st] += extra[:, j]
+            P_1[:, _RIM_EXCESS, _RIM_EXCESS] += extra
             inflated |= big.any(axis=1)
         use_vg = gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
@@ -640,11 +663,13 @@ class MdsfEngine:
             config=self.reference,
         )
         restart = sel | diverged
-        rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
+        if restart.any():
+            rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
         if not self.product and degraded.any():
             # Paper mode has no wheel states: hand the reference speed to the MDSF state, so
             # GNSS resumes from it without a jump.
             self._hand_over(x_new, P_new, rx, rP, v0, degraded)
+            v0 = np.einsum("ki,ki->k", v0_row, x_new)  # V1 moved, V0 with it (output)
 
         # -- store --------------------------------------------------------------------------------
         self.x[slots] = np.where(now_init[:, None], x_new, x)
@@ -654,24 +679,23 @@ class MdsfEngine:
         self.ref_x[slots] = rx
         self.ref_P[slots] = rP
         self.ref_aux[slots] = raux
-        cnt = self.counts
-        cnt[slots, Counter.TICKS] += 1
-        cnt[slots, Counter.GNSS_FUSED] += fused
-        cnt[slots, Counter.GNSS_GATED] += gated
-        cnt[slots, Counter.GNSS_REACQUIRED] += reacq
-        cnt[slots, Counter.RESETS] += diverged | reacq
-        cnt[slots, Counter.DEGRADED_TICKS] += degraded
-        cnt[slots, Counter.WAITING_TICKS] += ~now_init
+        # one indexed add of the tick's events (columns _STEP_COUNTERS)
+        self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
+            [np.ones(k, dtype=bool), fused, gated, reacq, diverged | reacq, degraded, ~now_init],
+            axis=1,
+        )
 
         # -- outputs -------------------------------------------------------------------------
         H1 = self.H1[slots]
         z1 = np.einsum("koi,ki->ko", H1, x_new)
         z1_var = np.einsum("koi,kij,koj->ko", H1, P_new, H1)
         z1_std = np.sqrt(np.maximum(z1_var, 0.0))
-        flags |= np.where(now_init & ~degraded, int(_F.GNSS_OK), 0).astype(np.int32)
-        flags |= np.where(degraded, int(_F.DEGRADED), 0).astype(np.int32)
-        flags |= np.where(gated, int(_F.GATED), 0).astype(np.int32)
-        flags |= np.where(reacq, int(_F.RESET), 0).astype(np.int32)
+        flags |= (
+            np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
+            | np.where(degraded, int(_F.DEGRADED), 0)
+            | np.where(gated, int(_F.GATED), 0)
+            | np.where(reacq, int(_F.RESET), 0)
+        ).astype(np.int32)
         rim_post = rim_std_post = rim_cov = None
         if self.product:
             # The rim rows of the posterior: the wheel fit fused with the accelerometer-driven
@@ -686,7 +710,7 @@ class MdsfEngine:
             emit=now_init,
             vg=z1[:, MdsfOut.VG],
             v1=x_new[:, MdsfState.V1],
-            v0=np.einsum("ki,ki->k", v0_row, x_new),
+            v0=v0,
             vl=z1[:, MdsfOut.VL],
             vr=z1[:, MdsfOut.VR],
             vg_std=z1_std[:, MdsfOut.VG],
