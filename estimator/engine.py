@@ -417,10 +417,11 @@ class MdsfEngine:
         if self.product:
             z[:, _RIM] = np.where(rim_ok, rim_mps, 0.0)
             z[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_m, 0.0)
+        # rows gathered by an index array are copies: the working state of this step
         H = self.H[slots]
         x = self.x[slots]
         P = self.P[slots]
-        init = self.initialized[slots].copy()
+        init = self.initialized[slots]
         flags = np.zeros(k, dtype=np.int32)
         # A state that is already broken (non-finite) cannot be predicted: start it afresh.
         broken = init & ~(np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
@@ -453,7 +454,7 @@ class MdsfEngine:
         R.reshape(k, m * m)[:, :: m + 1] = rd  # the diagonals
 
         # -- predict ------------------------------------------------------------------------
-        Q = self.Q_base[slots].copy()
+        Q = self.Q_base[slots]
         u: FloatArray | None = None
         if self.product:
             a_in = np.where(
@@ -488,7 +489,7 @@ class MdsfEngine:
             q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
                 cfg.slip_demand_gain * speed / GRAVITY_MPS2
             ) ** 2 * d2
-            F = self.F[slots].copy()
+            F = self.F[slots]
             grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
                 speed, _SLIP_MIN_SPEED_MPS
             )

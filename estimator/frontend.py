@@ -1186,20 +1186,21 @@ class _Batch:
             phi = self._roll_at_samples()
             rate = self.wx * np.cos(phi) + self.wz * np.sin(phi)
         cw = _seg_cumsum(rate * self.dts, self.begin_of)
-        th0 = fe.pitch_rad[s].copy()
-        var = fe.pitch_var[s].copy()
-        cov_tb = fe.pitch_cov_tb[s].copy()
-        var_b = fe.pitch_var_b[s].copy()
+        # the tracks' state of the batch's vehicles (copies: s is an index array)
+        th0 = fe.pitch_rad[s]
+        var = fe.pitch_var[s]
+        cov_tb = fe.pitch_cov_tb[s]
+        var_b = fe.pitch_var_b[s]
         self.var_before = var.copy()
-        bias = fe.pitch_gyro_bias[s].copy()
+        bias = fe.pitch_gyro_bias[s]
         self.bias_before = bias.copy()
-        fix_ns = fe.pitch_fix_ns[s].copy()
-        known = fe.pitch_known[s].copy()
-        still = fe.pitch_still[s].copy()
+        fix_ns = fe.pitch_fix_ns[s]
+        known = fe.pitch_known[s]
+        still = fe.pitch_still[s]
         base_w = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
         # since the last fix: the rate noise's angle variance, ∫rate·dt, ∫dt, sample count
-        acc = fe.pitch_acc[s].copy()
+        acc = fe.pitch_acc[s]
         if self.product:
             # white gyro noise (per sample) integrated: Σ σ²·dt²; the roll track's error
             # times the yaw rate (θ̇ = ωx·cos φ + ωz·sin φ), correlated over the roll's low-pass
@@ -1321,9 +1322,9 @@ class _Batch:
         a roll well above its noise (a side slope) passes unchanged.
         """
         fe, s = self.fe, self.slots
-        roll = fe.roll_rad[s].copy()
-        var = fe.roll_var[s].copy()
-        fix_ns = fe.roll_fix_ns[s].copy()
+        roll = fe.roll_rad[s]  # copies (s is an index array)
+        var = fe.roll_var[s]
+        fix_ns = fe.roll_fix_ns[s]
         after = np.empty(self.g_row.shape[0])
         after_var = np.empty(self.g_row.shape[0])
         for fi in _rank_passes(self.g_rank):
@@ -1398,9 +1399,9 @@ class _Batch:
         cosf = np.maximum(np.cos(theta), 0.5)
         cr = _seg_cumsum(-self.wz / cosf * self.dts, self.begin_of)
         ct = _seg_cumsum(self.dts / cosf, self.begin_of)
-        psi = fe.yaw_rad[s].copy()
-        bias = fe.yaw_gyro_bias[s].copy()
-        fix_ns = fe.yaw_fix_ns[s].copy()
+        psi = fe.yaw_rad[s]  # copies (s is an index array)
+        bias = fe.yaw_gyro_bias[s]
+        fix_ns = fe.yaw_fix_ns[s]
         base_r = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
         heads = self.g[:, _G_HEAD]

@@ -17,6 +17,7 @@ only. Everything here is allocation-light numpy; nothing loops over the batch in
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 from typing import cast
 
 import numpy as np
@@ -31,6 +32,14 @@ BoolArray = npt.NDArray[np.bool_]
 def symmetrize(P: FloatArray) -> FloatArray:
     """Return ``(P + Pᵀ)/2`` over the last two axes; shape ``(..., n, n)``."""
     return 0.5 * (P + P.swapaxes(-1, -2))
+
+
+@cache
+def _eye(n: int) -> FloatArray:
+    """The identity ``(n, n)``, built once per size and shared (read-only)."""
+    eye = np.eye(n)
+    eye.flags.writeable = False
+    return eye
 
 
 def _batched(a: FloatArray, n_batch: int, ndim: int) -> FloatArray:
@@ -179,7 +188,7 @@ def update(
     maskf = mask.astype(np.float64)
     Hm = Hb * maskf[:, :, None]
     # Decouple masked rows: keep R between active rows, unit variance on inactive ones.
-    eye_m = np.eye(m)
+    eye_m = _eye(m)
     Rm = Rb * (maskf[:, :, None] * maskf[:, None, :]) + eye_m * (1.0 - maskf)[:, None, :]
     y = np.where(mask, z - np.einsum("nij,nj->ni", Hm, x), 0.0)
     PHt = P @ Hm.swapaxes(-1, -2)  # (N, n, m)
@@ -187,7 +196,7 @@ def update(
     # K = P Hᵀ S⁻¹  ⇔  S Kᵀ = H P  (S symmetric)
     K = cast(FloatArray, np.linalg.solve(S, PHt.swapaxes(-1, -2)).swapaxes(-1, -2))
     x_post = x + np.einsum("nij,nj->ni", K, y)
-    IKH = np.eye(n) - K @ Hm
+    IKH = _eye(n) - K @ Hm
     P_post = IKH @ P @ IKH.swapaxes(-1, -2) + K @ Rm @ K.swapaxes(-1, -2)
     return UpdateResult(
         x=x_post,
