@@ -613,6 +613,10 @@ def _quadratic_intercept(u: FloatArray, a: FloatArray, n: int) -> FloatArray:
     return c0
 
 
+_SPLIT_MIN_ROWS = 256
+"""Fewer fit rows than this are fitted as one group (:func:`_split_by_width`)."""
+
+
 def _split_by_width(k: IntArray) -> list[IntArray]:
     """Rows ``0 … m−1`` in one or two groups so that ``Σ rows·(widest k in group)`` is least.
 
@@ -620,7 +624,7 @@ def _split_by_width(k: IntArray) -> list[IntArray]:
     """
     m = k.shape[0]
     kmax = max(int(k.max()), 2)
-    if m < 256 or kmax <= 8:
+    if m < _SPLIT_MIN_ROWS or kmax <= 8:
         return [np.arange(m)]
     n_le = np.cumsum(np.bincount(k, minlength=kmax + 1))  # rows with k ≤ j
     width = np.maximum(np.arange(kmax + 1), 2)
@@ -1101,9 +1105,11 @@ class WheelBank:
         n_win = np.maximum(last - first_in + 1, 0)
         # Rows are fitted in (at most) two groups by how many edges they may use, so slow
         # wheels do not pay for the columns of the fastest one.
-        k = np.where(has, np.minimum(np.clip(n_win, cfg.min_edges, cfg.max_edges), end - head), 0)
-        groups = _split_by_width(k)
-        if len(groups) == 1:
+        groups = None
+        if rs.shape[0] >= _SPLIT_MIN_ROWS:
+            k = np.minimum(np.clip(n_win, cfg.min_edges, cfg.max_edges), end - head)
+            groups = _split_by_width(np.where(has, k, 0))
+        if groups is None or len(groups) == 1:
             res = self._fit_rows(rs, q, head, last, first_in, n_win, has)
             return res, tail
         m = rs.shape[0]
@@ -1132,8 +1138,8 @@ class WheelBank:
         last_c = np.maximum(last, head)
         number = np.maximum(last_c[:, None] - offs[None, :], head[:, None])
         at = self._at(rs[:, None], number)
-        at_last = at[:, 0]
-        tau_s = (self._stamp[at] - q[:, None]).astype(np.float64) * _NS
+        stamp = self._stamp[at]  # column 0: the last edge, 1: the one before it (or head)
+        tau_s = (stamp - q[:, None]).astype(np.float64) * _NS
         pos = self._corrected(at)
         p = pos - pos[:, :1]
         freq = has & (n_win >= cfg.frequency_min_count)
@@ -1142,8 +1148,6 @@ class WheelBank:
             prior = self._corrected(self._at(rs, np.maximum(first_in - 1, head)))
             before = np.where(first_in > head, prior, self._angle_before[rs])
             freq_omega = (pos[:, 0] - before) / cfg.window_s
-        last_ns = self._stamp[at_last]
-        prev_ns = self._stamp[self._at(rs, np.maximum(last_c - 1, head))]
         return _speed_from_window(
             q,
             tau_s,
@@ -1152,8 +1156,8 @@ class WheelBank:
             has,
             freq,
             freq_omega,
-            last_ns,
-            prev_ns,
+            stamp[:, 0],
+            stamp[:, 1],
             last - 1 >= head,
             cfg,
             self._signed[rs],
