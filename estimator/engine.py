@@ -1085,10 +1085,15 @@ class MdsfFleet:
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
             rim_cov,
         )
-        flags = flags | np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
-        flags |= np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
-        flags |= np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0).astype(np.int32)
-        flags |= flat.wheel_flags
+        flags = (
+            flags
+            | (
+                np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
+                | np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
+                | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
+            ).astype(np.int32)
+            | flat.wheel_flags
+        )
         out = empty_estimates(total)
         out["stamp_ns"] = flat.stamp_ns
         out["vg_mps"] = res["vg"]

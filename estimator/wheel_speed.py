@@ -482,7 +482,7 @@ def _speed_from_window(
     std = np.where(capped | single, 0.5 * bound, std)
     std = np.where(stopped, 2 * np.pi / (ns * config.stop_timeout_s), std)
     method = np.where((capped | single | stopped) & has, np.int8(WheelSpeedMethod.PERIOD), method)
-    return WheelSpeedResult(omega, std, method.astype(np.int8))
+    return WheelSpeedResult(omega, std, method.astype(np.int8, copy=False))
 
 
 def _row_sum(x: FloatArray) -> FloatArray:
