@@ -1653,14 +1653,19 @@ class _Batch:
         enc = np.flatnonzero(uses_enc)
         if enc.size == 0:
             return omega, omega_std, wflags
-        # groups of vehicles with the same wheel settings and the same number of ticks
+        # groups of vehicles with the same wheel settings and the same number of ticks (often
+        # one group: every vehicle)
         keys = (fe.wheel_cfg[self.slots[enc]], self.m[enc])
-        order = np.lexsort(keys[::-1])
-        new = np.ones(enc.shape[0], dtype=bool)
-        new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
-        group = np.empty(enc.shape[0], dtype=np.int64)
-        group[order] = np.cumsum(new) - 1
-        for members in _rank_passes(group):
+        if ((keys[0] == keys[0][0]) & (keys[1] == keys[1][0])).all():
+            groups = [np.arange(enc.shape[0])]
+        else:
+            order = np.lexsort(keys[::-1])
+            new = np.ones(enc.shape[0], dtype=bool)
+            new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
+            group = np.empty(enc.shape[0], dtype=np.int64)
+            group[order] = np.cumsum(new) - 1
+            groups = _rank_passes(group)
+        for members in groups:
             rows = enc[members]
             mt = int(self.m[rows[0]])
             tix2 = self.offsets[rows][:, None] + np.arange(mt)
