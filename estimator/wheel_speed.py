@@ -832,6 +832,8 @@ class WheelBank:
             return
         slots = np.array(self._q_slot, dtype=np.int64)
         lens = np.array(self._q_len, dtype=np.int64)
+        # usually every slot has one batch queued: no chaining of batches within a slot
+        one_each = len(set(self._q_slot)) == len(self._q_slot)
         t = np.concatenate(self._q_stamp)
         d_sum = None
         if self._q_dir:
@@ -844,48 +846,57 @@ class WheelBank:
         n_edges = t.shape[0]
         ends = np.cumsum(lens)
         starts = ends - lens
+        in_batch = np.arange(n_edges) - np.repeat(starts, lens)  # edge index within its batch
         # Edge count within its batch (signed with direction): the angle is start + step·k,
         # as edge_angles computes it batch by batch.
         if d_sum is None:
-            k = np.arange(1, n_edges + 1) - np.repeat(starts, lens)
+            k = in_batch + 1
             total = lens
         else:
             before = np.concatenate([[0], d_sum])[starts]
             k = d_sum - np.repeat(before, lens)
             total = d_sum[ends - 1] - before
-        # Batches of one slot, in push order: their start angles chain batch after batch.
-        order = np.argsort(slots, kind="stable")
-        s_sorted = slots[order]
-        first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
-        group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
-        rank = np.empty_like(slots)
-        rank[order] = np.arange(slots.shape[0]) - group
-        start = np.empty(slots.shape[0])
         step = self._step_rad
         cur = self._last_angle
-        for r in range(int(rank.max()) + 1):
-            b = np.flatnonzero(rank == r)
-            start[b] = cur[slots[b]]
-            cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
+        if one_each:
+            start = cur[slots]
+            cur[slots] = start + step * total.astype(np.float64)
+            earlier = np.zeros_like(lens)
+            by_slot = np.argsort(slots)
+            touched, new_per_slot = slots[by_slot], lens[by_slot]
+        else:
+            # Batches of one slot, in push order: their start angles chain batch after batch,
+            # and their edges follow the edges of the slot's earlier batches (``earlier``).
+            order = np.argsort(slots, kind="stable")
+            s_sorted = slots[order]
+            first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
+            group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
+            rank = np.empty_like(slots)
+            rank[order] = np.arange(slots.shape[0]) - group
+            start = np.empty(slots.shape[0])
+            for r in range(int(rank.max()) + 1):
+                b = np.flatnonzero(rank == r)
+                start[b] = cur[slots[b]]
+                cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
+            before_sorted = np.cumsum(lens[order]) - lens[order]
+            earlier = np.empty_like(lens)
+            earlier[order] = before_sorted - before_sorted[group]
+            per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
+            touched = np.flatnonzero(per_slot)
+            new_per_slot = per_slot[touched]
         angle = np.repeat(start, lens) + step * k.astype(np.float64)
         # Edge numbers: each slot's new edges follow its held ones, in push order.
-        gather = np.repeat(starts[order], lens[order]) + (
-            np.arange(n_edges) - np.repeat(np.cumsum(lens[order]) - lens[order], lens[order])
-        )
-        e_slot = np.repeat(s_sorted, lens[order])
-        new_per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
-        first_edge = np.cumsum(new_per_slot) - new_per_slot
-        number = self._count[e_slot] + np.arange(n_edges) - first_edge[e_slot]
-        touched = np.flatnonzero(new_per_slot)
-        self._fit_rings(touched, new_per_slot[touched])
-        self._count[touched] += new_per_slot[touched]
+        e_slot = np.repeat(slots, lens)
+        number = self._count[e_slot] + np.repeat(earlier, lens) + in_batch
+        self._fit_rings(touched, new_per_slot)
+        self._count[touched] += new_per_slot
         at = self._base[e_slot] + (number & self._mask[e_slot])
-        self._stamp[at] = t[gather]
-        self._angle[at] = angle[gather]
+        self._stamp[at] = t
+        self._angle[at] = angle
         ns = self.config.teeth_per_rev
-        dslot = e_slot * ns + _tooth(angle[gather], ns)
+        dslot = e_slot * ns + _tooth(angle, ns)
         self._dslot[at] = dslot
-        self._corr[at] = angle[gather] + self._delta.reshape(-1)[dslot]
+        self._corr[at] = angle + self._delta.reshape(-1)[dslot]
         if self._removed:
             self._clear_removed()
 
