@@ -866,6 +866,7 @@ class FleetFrontEnd:
         f = np.concatenate(self._imu_new_f)
         w = np.concatenate(self._imu_new_w)
         n_chunks = c_slot.shape[0]
+        one_each = len(set(self._imu_new_slot)) == n_chunks  # one batch per vehicle
         self._imu_new_slot, self._imu_new_seq = [], []
         self._imu_new_t, self._imu_new_f, self._imu_new_w = [], [], []
         chunk = np.repeat(np.arange(n_chunks), lens)
@@ -877,11 +878,15 @@ class FleetFrontEnd:
         inc[c_start] = True
         ok &= inc
         # The floor "after the last accepted sample" chains the batches of one vehicle: one pass
-        # per k-th batch of each vehicle in this lot.
-        by_slot = np.argsort(c_slot, kind="stable")
-        rank = np.empty(n_chunks, dtype=np.int64)
-        rank[by_slot] = _ranks(c_slot[by_slot])
-        for idx in _rank_passes(rank[chunk]):
+        # per k-th batch of each vehicle in this lot (one pass when each vehicle sent one).
+        if one_each:
+            passes = [np.arange(t.shape[0])]
+        else:
+            by_slot = np.argsort(c_slot, kind="stable")
+            rank = np.empty(n_chunks, dtype=np.int64)
+            rank[by_slot] = _ranks(c_slot[by_slot])
+            passes = _rank_passes(rank[chunk])
+        for idx in passes:
             owner = c_slot[chunk[idx]]
             ok[idx] &= t[idx] > self.last_imu_ns[owner]
             kept = idx[ok[idx]]
