@@ -457,9 +457,9 @@ def _shrunk_roll(roll_rad: FloatArray, var_rad2: FloatArray) -> FloatArray:
 
 
 def _seg_cumsum(x: FloatArray, start_of: IntArray) -> FloatArray:
-    """Cumulative sum of ``x`` (shape ``(n,)``, or ``(n, c)``: each column) restarting at
-    each segment; ``start_of[i]`` is the index where element ``i``'s segment starts."""
-    c = np.cumsum(x, axis=0)
+    """Cumulative sum of ``x`` restarting at each segment; ``start_of[i]`` is the index where
+    element ``i``'s segment starts."""
+    c = np.cumsum(x)
     return c - (c[start_of] - x[start_of])
 
 
@@ -1183,12 +1183,14 @@ class _Batch:
         """
         fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
+        ct = _seg_cumsum(self.dts, self.begin_of)
         rate = self.wx
         self.g_roll_after = np.zeros(self.g_row.shape[0])
         if self.product:
             # θ̇ = ωx·cos φ + ωz·sin φ (Euler kinematics of the body rates), φ the roll track
             phi = self._roll_at_samples()
             rate = self.wx * np.cos(phi) + self.wz * np.sin(phi)
+        cw = _seg_cumsum(rate * self.dts, self.begin_of)
         # the tracks' state of the batch's vehicles (copies: s is an index array)
         th0 = fe.pitch_rad[s]
         var = fe.pitch_var[s]
@@ -1215,13 +1217,9 @@ class _Batch:
             )
         else:
             walk = np.zeros(self.T.shape[0])
-        # running sums along each row, in one pass: ∫dt, ∫rate·dt, the rate noise's angle
-        # variance, the sample count
-        ct, cw, cq, cn = _seg_cumsum(
-            np.stack([self.dts, rate * self.dts, walk, np.ones(self.T.shape[0])], axis=1),
-            self.begin_of,
-        ).T
+        cq = _seg_cumsum(walk, self.begin_of)
         base_q = np.zeros(self.n_rows)
+        cn = _seg_cumsum(np.ones(self.T.shape[0]), self.begin_of)
         base_n = np.zeros(self.n_rows)
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
@@ -1404,9 +1402,8 @@ class _Batch:
         fe, cfg = self.fe, self.config
         s = self.slots
         cosf = np.maximum(np.cos(theta), 0.5)
-        cr, ct = _seg_cumsum(
-            np.stack([-self.wz / cosf * self.dts, self.dts / cosf], axis=1), self.begin_of
-        ).T
+        cr = _seg_cumsum(-self.wz / cosf * self.dts, self.begin_of)
+        ct = _seg_cumsum(self.dts / cosf, self.begin_of)
         psi = fe.yaw_rad[s]  # copies (s is an index array)
         bias = fe.yaw_gyro_bias[s]
         fix_ns = fe.yaw_fix_ns[s]
