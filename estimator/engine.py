@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator import kalman
+from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
@@ -77,6 +78,8 @@ _SLIP_MIN_SPEED_MPS = 0.5
 """Speed floor of the constant-slip-ratio growth of the rim excess."""
 _F = EstimateFlag
 _RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
+_RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
+"""The rim-excess states (left, right), for indexing both diagonals at once."""
 _DIST_OPEN_VAR_M2 = 1.0e4
 """Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
 
@@ -108,6 +111,18 @@ class Counter(IntEnum):
     WAITING_TICKS = 11
 
 
+_STEP_COUNTERS = np.array(
+    [
+        Counter.TICKS,
+        Counter.GNSS_FUSED,
+        Counter.GNSS_GATED,
+        Counter.GNSS_REACQUIRED,
+        Counter.RESETS,
+        Counter.DEGRADED_TICKS,
+        Counter.WAITING_TICKS,
+    ]
+)
+"""Counters :meth:`MdsfEngine.step` adds to every tick (ticks, then its events)."""
 _TICK_FIELDS = TickInputs.__slots__
 _STEP_COLS = (
     "vg",
@@ -225,6 +240,25 @@ class MdsfEngine:
         self._free: list[int] = []
         self._cap = 0
         self._alloc(max(capacity, 1))
+        # Product mode: the entries of Q the tick's accelerometer variance enters, as (row,
+        # column, factor) for one indexed add a step: V1 and a1 through dt, the distance
+        # through dt²/2 (method.md §1).
+        dt, half = self.dt_s, 0.5 * self.dt_s * self.dt_s
+        D, V1, A1 = MdsfState.DIST, MdsfState.V1, MdsfState.A1
+        q_accel = (
+            (V1, V1, dt * dt),
+            (A1, A1, 1.0),
+            (V1, A1, dt),
+            (A1, V1, dt),
+            (D, D, half * half),
+            (D, V1, half * dt),
+            (V1, D, half * dt),
+            (D, A1, half),
+            (A1, D, half),
+        )
+        self._q_accel_rows = np.array([int(r) for r, _, _ in q_accel])
+        self._q_accel_cols = np.array([int(c) for _, c, _ in q_accel])
+        self._q_accel = np.array([f for _, _, f in q_accel])
 
     # -- slots -------------------------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
@@ -383,10 +417,11 @@ class MdsfEngine:
         if self.product:
             z[:, _RIM] = np.where(rim_ok, rim_mps, 0.0)
             z[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_m, 0.0)
+        # rows gathered by an index array are copies: the working state of this step
         H = self.H[slots]
         x = self.x[slots]
         P = self.P[slots]
-        init = self.initialized[slots].copy()
+        init = self.initialized[slots]
         flags = np.zeros(k, dtype=np.int32)
         # A state that is already broken (non-finite) cannot be predicted: start it afresh.
         broken = init & ~(np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
@@ -416,10 +451,10 @@ class MdsfEngine:
             )
             rd[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_var, 1.0)
         R = np.zeros((k, m, m))
-        R[:, np.arange(m), np.arange(m)] = rd
+        R.reshape(k, m * m)[:, :: m + 1] = rd  # the diagonals
 
         # -- predict ------------------------------------------------------------------------
-        Q = self.Q_base[slots].copy()
+        Q = self.Q_base[slots]
         u: FloatArray | None = None
         if self.product:
             a_in = np.where(
@@ -428,20 +463,13 @@ class MdsfEngine:
             u = np.zeros((k, n))
             u[:, MdsfState.V1] = dt * a_in
             u[:, MdsfState.A1] = a_in
-            Q[:, MdsfState.V1, MdsfState.V1] += dt * dt * accel_var
-            Q[:, MdsfState.A1, MdsfState.A1] += accel_var
-            Q[:, MdsfState.V1, MdsfState.A1] += dt * accel_var
-            Q[:, MdsfState.A1, MdsfState.V1] += dt * accel_var
-            # The distance integrates the speed: D' = D + dt·V1 + dt²·(ā − b)/2, so the tick's
-            # acceleration noise reaches it through dt²/2 (correlated with V1 and a1).
+            # The acceleration noise drives V1 and a1; the distance integrates the speed:
+            # D' = D + dt·V1 + dt²·(ā − b)/2, so the tick's acceleration noise reaches it
+            # through dt²/2 (correlated with V1 and a1). One indexed add: (row, column, factor).
             half = 0.5 * dt * dt
-            u[:, MdsfState.DIST] = half * a_in
-            D, V1, A1 = MdsfState.DIST, MdsfState.V1, MdsfState.A1
-            Q[:, D, D] += half * half * accel_var
-            Q[:, D, V1] += half * dt * accel_var
-            Q[:, V1, D] += half * dt * accel_var
-            Q[:, D, A1] += half * accel_var
-            Q[:, A1, D] += half * accel_var
+            D, V1 = MdsfState.DIST, MdsfState.V1
+            u[:, D] = half * a_in
+            Q[:, self._q_accel_rows, self._q_accel_cols] += accel_var[:, None] * self._q_accel
             # A new chain of RTK positions (or one after a gated distance) has its own origin:
             # the predicted distance is moved onto the measured one and opened, so the chain's
             # offset carries no information on the speed.
@@ -461,7 +489,7 @@ class MdsfEngine:
             q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
                 cfg.slip_demand_gain * speed / GRAVITY_MPS2
             ) ** 2 * d2
-            F = self.F[slots].copy()
+            F = self.F[slots]
             grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
                 speed, _SLIP_MIN_SPEED_MPS
             )
@@ -471,11 +499,10 @@ class MdsfEngine:
             q_drift = None
             if cfg.rim_drift_tau_s > 0:
                 q_drift = self._rim_drift_noise(slots, lost)
-            for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
-                Q[:, st, st] += q_e
-                if q_drift is not None:
-                    Q[:, st, st] += q_drift[:, j]
-                F[:, st, st] = np.clip(grow, 0.5, 1.5)
+            Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
+            if q_drift is not None:
+                Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
+            F[:, _RIM_EXCESS, _RIM_EXCESS] = np.clip(grow, 0.5, 1.5)[:, None]
             if cfg.slip_per_demand > 0:
                 # Tyre model: slip follows the traction demand, ds ≈ k·d(f/g); the expected
                 # change of the rim excess enters as a control term (the filter corrects k's
@@ -485,8 +512,7 @@ class MdsfEngine:
                 # demand that rises and falls back leaves no net change).
                 d_dem = self._model_demand_change(slots, t)
                 gain = self.tyre_gain(slots)
-                for st in (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT):
-                    u[:, st] = gain * speed * d_dem / GRAVITY_MPS2
+                u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
         else:
             F = self.F[slots]
         x_pr, P_pr = kalman.predict(x, P, F, Q, u)
@@ -530,8 +556,7 @@ class MdsfEngine:
                 self._track_rim_innovation(slots, y_rim, s_rim, rim_use & init[:, None])
             big = rim_use & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
             extra = np.where(big, y_rim * y_rim - s_rim, 0.0)
-            for j, st in enumerate((MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)):
-                P_1[:, st, st] += extra[:, j]
+            P_1[:, _RIM_EXCESS, _RIM_EXCESS] += extra
             inflated |= big.any(axis=1)
         use_vg = gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
@@ -592,9 +617,9 @@ class MdsfEngine:
             n_rim > 0, np.where(rim_ok, rim_mps, 0.0).sum(axis=1) / np.maximum(n_rim, 1), np.nan
         )
         start_wheels = ~init & ~gnss_ok & (n_rim > 0) & (self._wheel_start_allowed(slots) | broken)
-        v_start = np.where(start, v1_from_gnss, np.nan_to_num(rim_mean))
         sel = start | start_wheels
         if sel.any():
+            v_start = np.where(start, v1_from_gnss, nan_to_num(rim_mean))
             x0, p0 = self._initial_state(slots, z, t.imu_ok, v_start, rim_ok)
             x_new = np.where(sel[:, None], x0, x_new)
             P_new = np.where(sel[:, None, None], p0, P_new)
@@ -639,11 +664,13 @@ class MdsfEngine:
             config=self.reference,
         )
         restart = sel | diverged
-        rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
+        if restart.any():
+            rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
         if not self.product and degraded.any():
             # Paper mode has no wheel states: hand the reference speed to the MDSF state, so
             # GNSS resumes from it without a jump.
             self._hand_over(x_new, P_new, rx, rP, v0, degraded)
+            v0 = np.einsum("ki,ki->k", v0_row, x_new)  # V1 moved, V0 with it (output)
 
         # -- store --------------------------------------------------------------------------------
         self.x[slots] = np.where(now_init[:, None], x_new, x)
@@ -653,24 +680,23 @@ class MdsfEngine:
         self.ref_x[slots] = rx
         self.ref_P[slots] = rP
         self.ref_aux[slots] = raux
-        cnt = self.counts
-        cnt[slots, Counter.TICKS] += 1
-        cnt[slots, Counter.GNSS_FUSED] += fused
-        cnt[slots, Counter.GNSS_GATED] += gated
-        cnt[slots, Counter.GNSS_REACQUIRED] += reacq
-        cnt[slots, Counter.RESETS] += diverged | reacq
-        cnt[slots, Counter.DEGRADED_TICKS] += degraded
-        cnt[slots, Counter.WAITING_TICKS] += ~now_init
+        # one indexed add of the tick's events (columns _STEP_COUNTERS)
+        self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
+            [np.ones(k, dtype=bool), fused, gated, reacq, diverged | reacq, degraded, ~now_init],
+            axis=1,
+        )
 
         # -- outputs -------------------------------------------------------------------------
         H1 = self.H1[slots]
         z1 = np.einsum("koi,ki->ko", H1, x_new)
         z1_var = np.einsum("koi,kij,koj->ko", H1, P_new, H1)
         z1_std = np.sqrt(np.maximum(z1_var, 0.0))
-        flags |= np.where(now_init & ~degraded, int(_F.GNSS_OK), 0).astype(np.int32)
-        flags |= np.where(degraded, int(_F.DEGRADED), 0).astype(np.int32)
-        flags |= np.where(gated, int(_F.GATED), 0).astype(np.int32)
-        flags |= np.where(reacq, int(_F.RESET), 0).astype(np.int32)
+        flags |= (
+            np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
+            | np.where(degraded, int(_F.DEGRADED), 0)
+            | np.where(gated, int(_F.GATED), 0)
+            | np.where(reacq, int(_F.RESET), 0)
+        ).astype(np.int32)
         rim_post = rim_std_post = rim_cov = None
         if self.product:
             # The rim rows of the posterior: the wheel fit fused with the accelerometer-driven
@@ -685,7 +711,7 @@ class MdsfEngine:
             emit=now_init,
             vg=z1[:, MdsfOut.VG],
             v1=x_new[:, MdsfState.V1],
-            v0=np.einsum("ki,ki->k", v0_row, x_new),
+            v0=v0,
             vl=z1[:, MdsfOut.VL],
             vr=z1[:, MdsfOut.VR],
             vg_std=z1_std[:, MdsfOut.VG],
@@ -835,7 +861,7 @@ class MdsfEngine:
         fresh = ~np.isfinite(old)
         new = np.where(fresh, f_new, np.where(np.isfinite(f_new), old + a * (f_new - old), old))
         self.force_model[slots] = new
-        return np.where(fresh, 0.0, np.nan_to_num(new - old))
+        return np.where(fresh, 0.0, nan_to_num(new - old))
 
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
         """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
@@ -870,9 +896,9 @@ class MdsfEngine:
         self.force_fast[slots] = fast
         self.force_slow[slots] = slow
         var_d = accel_var * (a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2))
-        d = np.nan_to_num(fast - slow)
+        d = nan_to_num(fast - slow)
         excess = np.sqrt(np.maximum(d * d - 4.0 * var_d, 0.0))
-        moved = np.where(fresh, 0.0, np.abs(np.nan_to_num(fast - fast_old)))
+        moved = np.where(fresh, 0.0, np.abs(nan_to_num(fast - fast_old)))
         return 2.0 * excess * moved
 
     @staticmethod
@@ -1027,15 +1053,22 @@ class MdsfFleet:
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
         rounds = int(lengths[0])
-        emit = np.zeros(total, dtype=bool)
-        flags = np.zeros(total, dtype=np.int32)
-        res = {c: np.full(total, np.nan) for c in _STEP_COLS}
-        rim_cov = np.zeros((total, 2))
-        for r in range(rounds):
+        if rounds == 1:
+            # one tick per vehicle (the usual call): the step's rows are the call's rows, its
+            # outputs are used as they are
+            so = self.engine.step(due.slots, flat, rim, rim_std)
+            emit, flags = so.emit, so.flags
+            res = {name: getattr(so, name) for name in _STEP_COLS}
+            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
+        else:
+            emit = np.zeros(total, dtype=bool)
+            flags = np.zeros(total, dtype=np.int32)
+            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+            rim_cov = np.zeros((total, 2))
+        for r in range(rounds if rounds > 1 else 0):
+            # round r: the r-th tick of every vehicle with one
             c = int(np.count_nonzero(lengths > r))
-            # round r: the r-th tick of every vehicle with one; with one tick per vehicle (the
-            # usual call) that is every row, taken as views instead of copies
-            fi: slice | IntArray = slice(None) if rounds == 1 else offsets[:c] + r
+            fi = offsets[:c] + r
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
             emit[fi] = so.emit
@@ -1052,10 +1085,15 @@ class MdsfFleet:
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
             rim_cov,
         )
-        flags = flags | np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0).astype(np.int32)
-        flags |= np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0).astype(np.int32)
-        flags |= np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0).astype(np.int32)
-        flags |= flat.wheel_flags
+        flags = (
+            flags
+            | (
+                np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
+                | np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
+                | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
+            ).astype(np.int32)
+            | flat.wheel_flags
+        )
         out = empty_estimates(total)
         out["stamp_ns"] = flat.stamp_ns
         out["vg_mps"] = res["vg"]

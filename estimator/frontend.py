@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
@@ -435,17 +436,10 @@ def _asof(
     return np.where(ok, out, -1)
 
 
-_F64_MAX = float(np.finfo(np.float64).max)
 _PITCH_PRIOR_STD_RAD = 0.1
 """Pitch before any measurement: level ± 0.1 rad (6°; field slopes rarely pass 15°)."""
 _VEL_PITCH_MIN_SPEED_MPS = 0.5
 """Horizontal speed from which the GNSS velocity's elevation is a pitch measurement."""
-
-
-def _nan_to_num(x: FloatArray) -> FloatArray:
-    """``np.nan_to_num(x)`` of a float array (NaN → 0, ±inf → ± the largest float) in three
-    array calls instead of its dozen (called a few times on every assembly)."""
-    return np.where(np.isfinite(x), x, np.where(np.isnan(x), 0.0, np.copysign(_F64_MAX, x)))
 
 
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
@@ -476,8 +470,8 @@ def _ranks(group: IntArray) -> IntArray:
         return np.zeros(0, dtype=np.int64)
     new = np.ones(n, dtype=bool)
     new[1:] = group[1:] != group[:-1]
-    starts = np.flatnonzero(new)
-    return np.arange(n) - np.repeat(starts, np.diff(np.append(starts, n)))
+    index = np.arange(n)
+    return index - np.maximum.accumulate(np.where(new, index, 0))  # minus its run's start
 
 
 def _rank_passes(rank: IntArray) -> list[IntArray]:
@@ -872,6 +866,7 @@ class FleetFrontEnd:
         f = np.concatenate(self._imu_new_f)
         w = np.concatenate(self._imu_new_w)
         n_chunks = c_slot.shape[0]
+        one_each = len(set(self._imu_new_slot)) == n_chunks  # one batch per vehicle
         self._imu_new_slot, self._imu_new_seq = [], []
         self._imu_new_t, self._imu_new_f, self._imu_new_w = [], [], []
         chunk = np.repeat(np.arange(n_chunks), lens)
@@ -883,11 +878,15 @@ class FleetFrontEnd:
         inc[c_start] = True
         ok &= inc
         # The floor "after the last accepted sample" chains the batches of one vehicle: one pass
-        # per k-th batch of each vehicle in this lot.
-        by_slot = np.argsort(c_slot, kind="stable")
-        rank = np.empty(n_chunks, dtype=np.int64)
-        rank[by_slot] = _ranks(c_slot[by_slot])
-        for idx in _rank_passes(rank[chunk]):
+        # per k-th batch of each vehicle in this lot (one pass when each vehicle sent one).
+        if one_each:
+            passes = [np.arange(t.shape[0])]
+        else:
+            by_slot = np.argsort(c_slot, kind="stable")
+            rank = np.empty(n_chunks, dtype=np.int64)
+            rank[by_slot] = _ranks(c_slot[by_slot])
+            passes = _rank_passes(rank[chunk])
+        for idx in passes:
             owner = c_slot[chunk[idx]]
             ok[idx] &= t[idx] > self.last_imu_ns[owner]
             kept = idx[ok[idx]]
@@ -1192,20 +1191,21 @@ class _Batch:
             phi = self._roll_at_samples()
             rate = self.wx * np.cos(phi) + self.wz * np.sin(phi)
         cw = _seg_cumsum(rate * self.dts, self.begin_of)
-        th0 = fe.pitch_rad[s].copy()
-        var = fe.pitch_var[s].copy()
-        cov_tb = fe.pitch_cov_tb[s].copy()
-        var_b = fe.pitch_var_b[s].copy()
+        # the tracks' state of the batch's vehicles (copies: s is an index array)
+        th0 = fe.pitch_rad[s]
+        var = fe.pitch_var[s]
+        cov_tb = fe.pitch_cov_tb[s]
+        var_b = fe.pitch_var_b[s]
         self.var_before = var.copy()
-        bias = fe.pitch_gyro_bias[s].copy()
+        bias = fe.pitch_gyro_bias[s]
         self.bias_before = bias.copy()
-        fix_ns = fe.pitch_fix_ns[s].copy()
-        known = fe.pitch_known[s].copy()
-        still = fe.pitch_still[s].copy()
+        fix_ns = fe.pitch_fix_ns[s]
+        known = fe.pitch_known[s]
+        still = fe.pitch_still[s]
         base_w = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
         # since the last fix: the rate noise's angle variance, ∫rate·dt, ∫dt, sample count
-        acc = fe.pitch_acc[s].copy()
+        acc = fe.pitch_acc[s]
         if self.product:
             # white gyro noise (per sample) integrated: Σ σ²·dt²; the roll track's error
             # times the yaw rate (θ̇ = ωx·cos φ + ωz·sin φ), correlated over the roll's low-pass
@@ -1327,9 +1327,9 @@ class _Batch:
         a roll well above its noise (a side slope) passes unchanged.
         """
         fe, s = self.fe, self.slots
-        roll = fe.roll_rad[s].copy()
-        var = fe.roll_var[s].copy()
-        fix_ns = fe.roll_fix_ns[s].copy()
+        roll = fe.roll_rad[s]  # copies (s is an index array)
+        var = fe.roll_var[s]
+        fix_ns = fe.roll_fix_ns[s]
         after = np.empty(self.g_row.shape[0])
         after_var = np.empty(self.g_row.shape[0])
         for fi in _rank_passes(self.g_rank):
@@ -1404,9 +1404,9 @@ class _Batch:
         cosf = np.maximum(np.cos(theta), 0.5)
         cr = _seg_cumsum(-self.wz / cosf * self.dts, self.begin_of)
         ct = _seg_cumsum(self.dts / cosf, self.begin_of)
-        psi = fe.yaw_rad[s].copy()
-        bias = fe.yaw_gyro_bias[s].copy()
-        fix_ns = fe.yaw_fix_ns[s].copy()
+        psi = fe.yaw_rad[s]  # copies (s is an index array)
+        bias = fe.yaw_gyro_bias[s]
+        fix_ns = fe.yaw_fix_ns[s]
         base_r = np.zeros(self.n_rows)
         base_t = np.zeros(self.n_rows)
         heads = self.g[:, _G_HEAD]
@@ -1447,7 +1447,7 @@ class _Batch:
         tid = self.offsets[self.g_row] + j
         inside = self.g_vel_ok
         if self.product:
-            a_t = _nan_to_num(z[tid, MdsfObs.A1])
+            a_t = nan_to_num(z[tid, MdsfObs.A1])
             vg_al = self.g_vg + a_t * (self.ticks[tid] - self.g_t) * _NS
             ti = tid[inside]
             cnt = np.bincount(ti, minlength=n_ticks)
@@ -1509,7 +1509,7 @@ class _Batch:
         s = self.slots[r]
         p = self.g_enu[idx]
         t = self.g_t[idx]
-        att = np.stack([self.g_heading[idx], _nan_to_num(g[idx, _G_PITCH])], axis=1)
+        att = np.stack([self.g_heading[idx], nan_to_num(g[idx, _G_PITCH])], axis=1)
         first = np.ones(idx.size, dtype=bool)
         first[1:] = r[1:] != r[:-1]
         p_prev = np.empty_like(p)
@@ -1607,11 +1607,11 @@ class _Batch:
         sel = fe.hold[s[self.tick_row]]
         if nf:
             sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
-        age = (self.ticks - _nan_to_num(sel[:, _H_STAMP])) * _NS
+        age = (self.ticks - nan_to_num(sel[:, _H_STAMP])) * _NS
         age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
-        vel = _nan_to_num(sel[:, _H_VE : _H_VU + 1])
+        vel = nan_to_num(sel[:, _H_VE : _H_VU + 1])
         enu = sel[:, _H_E : _H_U + 1] + (vel * age[:, None] if self.product else 0.0)
-        heading = sel[:, _H_HEAD] - (_nan_to_num(wz_tick) * age if self.product else 0.0)
+        heading = sel[:, _H_HEAD] - (nan_to_num(wz_tick) * age if self.product else 0.0)
         heading = np.mod(heading, 2 * np.pi)
         pitch = (
             np.where(np.isfinite(theta_tick), theta_tick, sel[:, _H_PITCH])
@@ -1655,14 +1655,19 @@ class _Batch:
         enc = np.flatnonzero(uses_enc)
         if enc.size == 0:
             return omega, omega_std, wflags
-        # groups of vehicles with the same wheel settings and the same number of ticks
+        # groups of vehicles with the same wheel settings and the same number of ticks (often
+        # one group: every vehicle)
         keys = (fe.wheel_cfg[self.slots[enc]], self.m[enc])
-        order = np.lexsort(keys[::-1])
-        new = np.ones(enc.shape[0], dtype=bool)
-        new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
-        group = np.empty(enc.shape[0], dtype=np.int64)
-        group[order] = np.cumsum(new) - 1
-        for members in _rank_passes(group):
+        if ((keys[0] == keys[0][0]) & (keys[1] == keys[1][0])).all():
+            groups = [np.arange(enc.shape[0])]
+        else:
+            order = np.lexsort(keys[::-1])
+            new = np.ones(enc.shape[0], dtype=bool)
+            new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
+            group = np.empty(enc.shape[0], dtype=np.int64)
+            group[order] = np.cumsum(new) - 1
+            groups = _rank_passes(group)
+        for members in groups:
             rows = enc[members]
             mt = int(self.m[rows[0]])
             tix2 = self.offsets[rows][:, None] + np.arange(mt)
@@ -1684,15 +1689,15 @@ class _Batch:
             bank = fe._banks[int(fe.wheel_bank[vs[0]])]
             wheel_slots = fe.wheel_slot[vs].reshape(-1)
             fitted = fe.fit_wheels(bank, wheel_slots, np.repeat(self.ticks[tix2], 2, axis=0))
-            lone = fe.lone_std[self.slots[rows]]
-            period = np.ones(rows.shape[0] * mt, dtype=bool)
-            for w in Wheel:
-                om = fitted.omega_radps[w::2].reshape(-1)
-                sd = fitted.std_radps[w::2].reshape(-1)
-                method = fitted.method[w::2].reshape(-1)
-                none = method == WheelSpeedMethod.NONE
-                omega[tix, w] = np.where(none, 0.0, om)
-                omega_std[tix, w] = np.where(none, np.repeat(lone, mt), sd)
-                period &= method != WheelSpeedMethod.FREQUENCY
+            lone = np.repeat(fe.lone_std[self.slots[rows]], mt)[:, None]
+            # fit rows (vehicle, wheel) × ticks → (vehicle·tick, wheel), both wheels at once
+            om, sd, method = (
+                a.reshape(rows.shape[0], len(Wheel), mt).swapaxes(1, 2).reshape(-1, len(Wheel))
+                for a in (fitted.omega_radps, fitted.std_radps, fitted.method)
+            )
+            none = method == WheelSpeedMethod.NONE
+            omega[tix] = np.where(none, 0.0, om)
+            omega_std[tix] = np.where(none, lone, sd)
+            period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)
             wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
         return omega, omega_std, wflags

@@ -17,6 +17,8 @@ only. Everything here is allocation-light numpy; nothing loops over the batch in
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -29,7 +31,15 @@ BoolArray = npt.NDArray[np.bool_]
 
 def symmetrize(P: FloatArray) -> FloatArray:
     """Return ``(P + Pᵀ)/2`` over the last two axes; shape ``(..., n, n)``."""
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
+    return 0.5 * (P + P.swapaxes(-1, -2))
+
+
+@cache
+def _eye(n: int) -> FloatArray:
+    """The identity ``(n, n)``, built once per size and shared (read-only)."""
+    eye = np.eye(n)
+    eye.flags.writeable = False
+    return eye
 
 
 def _batched(a: FloatArray, n_batch: int, ndim: int) -> FloatArray:
@@ -72,7 +82,7 @@ def predict(
     x_prior = np.einsum("nij,nj->ni", Fb, x)
     if u is not None:
         x_prior = x_prior + u
-    P_prior = Fb @ P @ np.swapaxes(Fb, -1, -2) + Q
+    P_prior = Fb @ P @ Fb.swapaxes(-1, -2) + Q
     return x_prior, symmetrize(P_prior)
 
 
@@ -100,7 +110,7 @@ def innovation(
     """
     Hb = _batched(H, x.shape[0], 2)
     y = z - np.einsum("nij,nj->ni", Hb, x)
-    S = Hb @ P @ np.swapaxes(Hb, -1, -2) + R
+    S = Hb @ P @ Hb.swapaxes(-1, -2) + R
     return y, S
 
 
@@ -178,16 +188,16 @@ def update(
     maskf = mask.astype(np.float64)
     Hm = Hb * maskf[:, :, None]
     # Decouple masked rows: keep R between active rows, unit variance on inactive ones.
-    eye_m = np.eye(m)
+    eye_m = _eye(m)
     Rm = Rb * (maskf[:, :, None] * maskf[:, None, :]) + eye_m * (1.0 - maskf)[:, None, :]
     y = np.where(mask, z - np.einsum("nij,nj->ni", Hm, x), 0.0)
-    PHt = P @ np.swapaxes(Hm, -1, -2)  # (N, n, m)
+    PHt = P @ Hm.swapaxes(-1, -2)  # (N, n, m)
     S = symmetrize(Hm @ PHt + Rm)
     # K = P Hᵀ S⁻¹  ⇔  S Kᵀ = H P  (S symmetric)
-    K = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
+    K = cast(FloatArray, np.linalg.solve(S, PHt.swapaxes(-1, -2)).swapaxes(-1, -2))
     x_post = x + np.einsum("nij,nj->ni", K, y)
-    IKH = np.eye(n) - K @ Hm
-    P_post = IKH @ P @ np.swapaxes(IKH, -1, -2) + K @ Rm @ np.swapaxes(K, -1, -2)
+    IKH = _eye(n) - K @ Hm
+    P_post = IKH @ P @ IKH.swapaxes(-1, -2) + K @ Rm @ K.swapaxes(-1, -2)
     return UpdateResult(
         x=x_post,
         P=symmetrize(P_post),

@@ -482,7 +482,7 @@ def _speed_from_window(
     std = np.where(capped | single, 0.5 * bound, std)
     std = np.where(stopped, 2 * np.pi / (ns * config.stop_timeout_s), std)
     method = np.where((capped | single | stopped) & has, np.int8(WheelSpeedMethod.PERIOD), method)
-    return WheelSpeedResult(omega, std, method.astype(np.int8))
+    return WheelSpeedResult(omega, std, method.astype(np.int8, copy=False))
 
 
 def _row_sum(x: FloatArray) -> FloatArray:
@@ -613,6 +613,10 @@ def _quadratic_intercept(u: FloatArray, a: FloatArray, n: int) -> FloatArray:
     return c0
 
 
+_SPLIT_MIN_ROWS = 256
+"""Fewer fit rows than this are fitted as one group (:func:`_split_by_width`)."""
+
+
 def _split_by_width(k: IntArray) -> list[IntArray]:
     """Rows ``0 … m−1`` in one or two groups so that ``Σ rows·(widest k in group)`` is least.
 
@@ -620,7 +624,7 @@ def _split_by_width(k: IntArray) -> list[IntArray]:
     """
     m = k.shape[0]
     kmax = max(int(k.max()), 2)
-    if m < 256 or kmax <= 8:
+    if m < _SPLIT_MIN_ROWS or kmax <= 8:
         return [np.arange(m)]
     n_le = np.cumsum(np.bincount(k, minlength=kmax + 1))  # rows with k ≤ j
     width = np.maximum(np.arange(kmax + 1), 2)
@@ -828,6 +832,8 @@ class WheelBank:
             return
         slots = np.array(self._q_slot, dtype=np.int64)
         lens = np.array(self._q_len, dtype=np.int64)
+        # usually every slot has one batch queued: no chaining of batches within a slot
+        one_each = len(set(self._q_slot)) == len(self._q_slot)
         t = np.concatenate(self._q_stamp)
         d_sum = None
         if self._q_dir:
@@ -840,48 +846,57 @@ class WheelBank:
         n_edges = t.shape[0]
         ends = np.cumsum(lens)
         starts = ends - lens
+        in_batch = np.arange(n_edges) - np.repeat(starts, lens)  # edge index within its batch
         # Edge count within its batch (signed with direction): the angle is start + step·k,
         # as edge_angles computes it batch by batch.
         if d_sum is None:
-            k = np.arange(1, n_edges + 1) - np.repeat(starts, lens)
+            k = in_batch + 1
             total = lens
         else:
             before = np.concatenate([[0], d_sum])[starts]
             k = d_sum - np.repeat(before, lens)
             total = d_sum[ends - 1] - before
-        # Batches of one slot, in push order: their start angles chain batch after batch.
-        order = np.argsort(slots, kind="stable")
-        s_sorted = slots[order]
-        first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
-        group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
-        rank = np.empty_like(slots)
-        rank[order] = np.arange(slots.shape[0]) - group
-        start = np.empty(slots.shape[0])
         step = self._step_rad
         cur = self._last_angle
-        for r in range(int(rank.max()) + 1):
-            b = np.flatnonzero(rank == r)
-            start[b] = cur[slots[b]]
-            cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
+        if one_each:
+            start = cur[slots]
+            cur[slots] = start + step * total.astype(np.float64)
+            earlier = np.zeros_like(lens)
+            by_slot = np.argsort(slots)
+            touched, new_per_slot = slots[by_slot], lens[by_slot]
+        else:
+            # Batches of one slot, in push order: their start angles chain batch after batch,
+            # and their edges follow the edges of the slot's earlier batches (``earlier``).
+            order = np.argsort(slots, kind="stable")
+            s_sorted = slots[order]
+            first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
+            group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
+            rank = np.empty_like(slots)
+            rank[order] = np.arange(slots.shape[0]) - group
+            start = np.empty(slots.shape[0])
+            for r in range(int(rank.max()) + 1):
+                b = np.flatnonzero(rank == r)
+                start[b] = cur[slots[b]]
+                cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
+            before_sorted = np.cumsum(lens[order]) - lens[order]
+            earlier = np.empty_like(lens)
+            earlier[order] = before_sorted - before_sorted[group]
+            per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
+            touched = np.flatnonzero(per_slot)
+            new_per_slot = per_slot[touched]
         angle = np.repeat(start, lens) + step * k.astype(np.float64)
         # Edge numbers: each slot's new edges follow its held ones, in push order.
-        gather = np.repeat(starts[order], lens[order]) + (
-            np.arange(n_edges) - np.repeat(np.cumsum(lens[order]) - lens[order], lens[order])
-        )
-        e_slot = np.repeat(s_sorted, lens[order])
-        new_per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
-        first_edge = np.cumsum(new_per_slot) - new_per_slot
-        number = self._count[e_slot] + np.arange(n_edges) - first_edge[e_slot]
-        touched = np.flatnonzero(new_per_slot)
-        self._fit_rings(touched, new_per_slot[touched])
-        self._count[touched] += new_per_slot[touched]
+        e_slot = np.repeat(slots, lens)
+        number = self._count[e_slot] + np.repeat(earlier, lens) + in_batch
+        self._fit_rings(touched, new_per_slot)
+        self._count[touched] += new_per_slot
         at = self._base[e_slot] + (number & self._mask[e_slot])
-        self._stamp[at] = t[gather]
-        self._angle[at] = angle[gather]
+        self._stamp[at] = t
+        self._angle[at] = angle
         ns = self.config.teeth_per_rev
-        dslot = e_slot * ns + _tooth(angle[gather], ns)
+        dslot = e_slot * ns + _tooth(angle, ns)
         self._dslot[at] = dslot
-        self._corr[at] = angle[gather] + self._delta.reshape(-1)[dslot]
+        self._corr[at] = angle + self._delta.reshape(-1)[dslot]
         if self._removed:
             self._clear_removed()
 
@@ -968,10 +983,14 @@ class WheelBank:
 
         Bisection of every row at once (held times are non-decreasing), as many halvings as
         the widest range needs; a row whose range is already empty stays where it is.
+        ``slot``, ``lo``, ``hi`` have shape ``(n,)``; ``value`` shape ``(n,)`` or ``(s, n)``
+        (``s`` searches of the same rows in one pass; the result has ``value``'s shape).
         """
         base = self._base[slot]
         mask = self._mask[slot]
         width = int((hi - lo).max()) if lo.size else 0
+        lo = np.broadcast_to(lo, value.shape)
+        hi = np.broadcast_to(hi, value.shape)
         if width <= 0:
             return lo.copy()
         for _ in range(width.bit_length()):
@@ -1028,18 +1047,32 @@ class WheelBank:
         i = 0
         tail: tuple[IntArray, IntArray] | None = None
         while i < m:
+            due = None
             if cfg.tooth_calibration:
                 # each row calibrates on its own grid boundaries; a chunk of columns ends where
                 # any row reaches its next boundary (other rows are not due there)
                 boundary = (q2[first, i] // period) * period
                 due = boundary > self._cal_upto[uniq]
-                if due.any():
-                    self._calibrate(uniq[due], boundary[due])
-                    self._cal_upto[uniq[due]] = boundary[due]
+                if not due.any():
+                    due = None
                 j = int((q2[first] < (boundary + period)[:, None]).sum(axis=1).min())
             else:
                 j = m
-            res, tail = self._fit(s, q2[:, i:j])
+            # The edges each fit and calibration needs, found in one bisection over the held
+            # edges (a calibration moves no edge): the first after each query time, after it
+            # − window_s (at or before the former) and, when a calibration is due, after the
+            # slot's grid boundary.
+            nq = j - i
+            rs = np.repeat(s, nq)
+            q = q2[:, i:j].reshape(-1)
+            times = [q, q - self._w_ns]
+            if due is not None:
+                times.append(np.repeat((q2[:, i] // period) * period, nq))
+            after = self._search(rs, self._head[rs], self._count[rs], np.stack(times))
+            if due is not None:
+                self._calibrate(uniq[due], after[2][first[due] * nq] - 1)
+                self._cal_upto[uniq[due]] = boundary[due]
+            res, tail = self._fit(rs, q, nq, after[0], after[1])
             omega[:, i:j] = res.omega_radps.reshape(n, j - i)
             std[:, i:j] = res.std_radps.reshape(n, j - i)
             method[:, i:j] = res.method.reshape(n, j - i)
@@ -1062,22 +1095,20 @@ class WheelBank:
         at = self._at(np.repeat(slots, held), number)
         self._corr[at] = self._angle[at] + self._delta.reshape(-1)[self._dslot[at]]
 
-    def _fit(self, s: IntArray, qs: IntArray) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
-        """:func:`omega_at` of every slot in ``s`` at its times ``qs[i]`` (``qs`` shape
-        ``(n, nq)``; result rows slot-major).
+    def _fit(
+        self, rs: IntArray, q: IntArray, nq: int, end: IntArray, first_in: IntArray
+    ) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
+        """:func:`omega_at` of slot ``rs[r]`` at time ``q[r]`` for every row ``r`` (shape
+        ``(n·nq,)``: ``nq`` times of each slot in turn).
 
-        Also returns, per slot, the last edge at or before its last time and the first edge
-        after that time − ``window_s`` (edge numbers), for trimming.
+        ``end`` and ``first_in`` are each row's first edge after ``q`` and after
+        ``q − window_s`` (edge numbers, :meth:`_search`). Also returns, per slot, the last edge
+        at or before its last time and the first edge after that time − ``window_s``, for
+        trimming.
         """
         cfg = self.config
-        nq = qs.shape[1]
-        rs = np.repeat(s, nq)
-        q = qs.reshape(-1)
         head = self._head[rs]
-        count = self._count[rs]
-        end = self._search(rs, head, count, q)
         last = end - 1
-        first_in = self._search(rs, head, end, q - self._w_ns)
         tail = (last[nq - 1 :: nq], first_in[nq - 1 :: nq])
         has = last >= head
         if not has.any():
@@ -1085,9 +1116,11 @@ class WheelBank:
         n_win = np.maximum(last - first_in + 1, 0)
         # Rows are fitted in (at most) two groups by how many edges they may use, so slow
         # wheels do not pay for the columns of the fastest one.
-        k = np.where(has, np.minimum(np.clip(n_win, cfg.min_edges, cfg.max_edges), end - head), 0)
-        groups = _split_by_width(k)
-        if len(groups) == 1:
+        groups = None
+        if rs.shape[0] >= _SPLIT_MIN_ROWS:
+            k = np.minimum(np.clip(n_win, cfg.min_edges, cfg.max_edges), end - head)
+            groups = _split_by_width(np.where(has, k, 0))
+        if groups is None or len(groups) == 1:
             res = self._fit_rows(rs, q, head, last, first_in, n_win, has)
             return res, tail
         m = rs.shape[0]
@@ -1116,8 +1149,8 @@ class WheelBank:
         last_c = np.maximum(last, head)
         number = np.maximum(last_c[:, None] - offs[None, :], head[:, None])
         at = self._at(rs[:, None], number)
-        at_last = at[:, 0]
-        tau_s = (self._stamp[at] - q[:, None]).astype(np.float64) * _NS
+        stamp = self._stamp[at]  # column 0: the last edge, 1: the one before it (or head)
+        tau_s = (stamp - q[:, None]).astype(np.float64) * _NS
         pos = self._corrected(at)
         p = pos - pos[:, :1]
         freq = has & (n_win >= cfg.frequency_min_count)
@@ -1126,8 +1159,6 @@ class WheelBank:
             prior = self._corrected(self._at(rs, np.maximum(first_in - 1, head)))
             before = np.where(first_in > head, prior, self._angle_before[rs])
             freq_omega = (pos[:, 0] - before) / cfg.window_s
-        last_ns = self._stamp[at_last]
-        prev_ns = self._stamp[self._at(rs, np.maximum(last_c - 1, head))]
         return _speed_from_window(
             q,
             tau_s,
@@ -1136,8 +1167,8 @@ class WheelBank:
             has,
             freq,
             freq_omega,
-            last_ns,
-            prev_ns,
+            stamp[:, 0],
+            stamp[:, 1],
             last - 1 >= head,
             cfg,
             self._signed[rs],
@@ -1162,9 +1193,10 @@ class WheelBank:
         self._angle_before[cs] = self._angle[self._at(cs, new_head - 1)]
         self._head[cs] = new_head
 
-    def _calibrate(self, slots: IntArray, t_ns: IntArray) -> None:
-        """Learn tooth corrections of ``slots`` from edges with a full window at or before
-        their ``t_ns`` (one time per slot).
+    def _calibrate(self, slots: IntArray, last: IntArray) -> None:
+        """Learn tooth corrections of ``slots`` (distinct, ascending) from edges with a full
+        window at or before their calibration instant ``t_ns``; ``last`` is the number of each
+        slot's last edge at or before it (``head − 1`` if none).
 
         For each slot: the edges not yet used that have ``calibration_half_window`` (``h``)
         neighbours on both sides at or before ``t_ns``; per edge, a quadratic fit of its ``2h``
@@ -1176,7 +1208,6 @@ class WheelBank:
         cfg = self.config
         h = cfg.calibration_half_window
         head = self._head[slots]
-        last = self._search(slots, head, self._count[slots], t_ns) - 1
         lo = np.maximum(self._cal_from[slots], head + h)
         hi = last - h
         go = hi >= lo
@@ -1241,17 +1272,22 @@ class WheelBank:
         """Move each slot's edge angle variance toward its calibration residuals (in place).
 
         ``resid`` are this calibration's residuals (before their correction), ``row_slot``
-        their slots. The residual of an edge against its neighbours' fit is the error a fit
-        would see with the corrections then in force; its mean square over the ``M`` new
-        residuals of a slot enters an exponential mean with a memory of one revolution
+        their slots (non-decreasing). The residual of an edge against its neighbours' fit is
+        the error a fit would see with the corrections then in force; its mean square over the
+        ``M`` new residuals of a slot enters an exponential mean with a memory of one revolution
         (``teeth_per_rev`` edges): ``v ← (1 − β)·v + β·mean(r²)``, ``β = 1 − (1 − 1/Ns)^M``.
         (The residual also carries the neighbours' fit error, a few percent of its variance
         with the default window: the floor errs on the safe side.)
         """
         if resid.shape[0] == 0:
             return
-        slots, inverse, n = np.unique(row_slot, return_inverse=True, return_counts=True)
-        mean_sq = np.bincount(inverse, weights=resid * resid) / n
+        # row_slot is non-decreasing (from _calibrate): its runs are the slots
+        new = np.ones(row_slot.shape[0], dtype=bool)
+        new[1:] = row_slot[1:] != row_slot[:-1]
+        slots = row_slot[new]
+        run = np.cumsum(new) - 1
+        n = np.bincount(run)
+        mean_sq = np.bincount(run, weights=resid * resid) / n
         beta = 1.0 - (1.0 - 1.0 / self.config.teeth_per_rev) ** n
         self._angle_var[slots] += beta * (mean_sq - self._angle_var[slots])
 
