@@ -285,9 +285,19 @@ class EstimateBatch(Sequence[tuple[str, np.ndarray]]):
             concat_estimates([rows for _, rows in parts]),
         )
 
-    def row_vehicle(self) -> npt.NDArray[np.int64]:
-        """Index into :attr:`ids` of each row, shape ``(len(rows),)``."""
-        return np.repeat(np.arange(len(self.ids), dtype=np.int64), self.counts)
+    def grouped(self, keys: npt.NDArray[np.int64]) -> tuple[np.ndarray, npt.NDArray[np.int64]]:
+        """The rows with each vehicle's rows as one run, and each row's key.
+
+        ``keys`` (shape ``(len(ids),)``) is a number per vehicle (a consumer's slot); returns
+        ``(rows, key per row)``. A vehicle is listed once per estimator call, so its rows are
+        one run already; only a batch naming a vehicle twice is reordered (stable: time order
+        within a vehicle kept).
+        """
+        key = np.repeat(keys, self.counts)
+        if len(set(self.ids)) == len(self.ids):
+            return self.rows, key
+        order = np.argsort(key, kind="stable")
+        return self.rows[order], key[order]
 
     def __len__(self) -> int:
         return len(self.ids)

@@ -236,11 +236,7 @@ class AlertEngine:
         events: list[tuple[str, str, Alert]] = []
         with self._lock:
             slots = np.array([self._slot_of(v) for v in joined.ids], dtype=np.int64)
-            rows = joined.rows
-            slot = np.repeat(slots, joined.counts)
-            if len(set(joined.ids)) < len(joined):  # a vehicle twice: group, keep time order
-                order = np.argsort(slot, kind="stable")
-                rows, slot = rows[order], slot[order]
+            rows, slot = joined.grouped(slots)
             stamp = rows["stamp_ns"].astype(np.int64)
             cond = np.empty((rows.shape[0], _NK), dtype=bool)
             thr = self._thr[slot]

@@ -342,11 +342,7 @@ class LiveHub:
             slots = np.fromiter(
                 (self._slot_of(v) for v in joined.ids), dtype=np.int64, count=len(joined)
             )
-            rows = joined.rows
-            slot = np.repeat(slots, joined.counts)
-            if len(set(joined.ids)) < len(joined):  # a vehicle twice: group, keep time order
-                order = np.argsort(slot, kind="stable")
-                rows, slot = rows[order], slot[order]
+            rows, slot = joined.grouped(slots)
             stamp = rows["stamp_ns"].astype(np.int64)
             # drop rows not newer than the vehicle's newest row or than their predecessor
             prev = np.where(self._has[slot], self._latest["stamp_ns"][slot], np.iinfo(np.int64).min)

@@ -21,7 +21,8 @@ def test_of_joins_the_non_empty_parts_in_order() -> None:
     assert batch.rows.dtype == ESTIMATE_DTYPE
     assert batch.rows["stamp_ns"].tolist() == [1, 2, 3]
     assert [(vid, rows["stamp_ns"].tolist()) for vid, rows in batch] == [("a", [1, 2]), ("c", [3])]
-    assert batch.row_vehicle().tolist() == [0, 0, 1]
+    rows, key = batch.grouped(np.array([7, 3]))
+    assert rows is batch.rows and key.tolist() == [7, 7, 3]
 
 
 def test_items_are_views_of_the_joined_rows() -> None:
@@ -43,3 +44,10 @@ def test_of_a_batch_is_that_batch_and_an_empty_one_is_falsy() -> None:
 def test_counts_that_do_not_add_up_are_refused() -> None:
     with pytest.raises(ValueError, match="disagree"):
         EstimateBatch(["a", "b"], [1, 1], _rows(1))
+
+
+def test_a_vehicle_named_twice_is_grouped_in_time_order() -> None:
+    batch = EstimateBatch.of([("a", _rows(1, 2)), ("b", _rows(5)), ("a", _rows(3))])
+    rows, key = batch.grouped(np.array([0, 1, 0]))
+    assert key.tolist() == [0, 0, 0, 1]
+    assert rows["stamp_ns"].tolist() == [1, 2, 3, 5]
