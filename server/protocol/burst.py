@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from estimator._frozen import builder
 from estimator.base import Measurement
 from estimator.types import ImuBatch, Wheel, WheelEdges, WheelSpeeds
 from server.protocol.codec import (
@@ -34,6 +35,8 @@ from server.protocol.codec import (
     Limits,
     Packet,
     _Ctx,
+    _gnss_sample,
+    _new_packet,
     _open,
     _packet,
     _until,
@@ -50,6 +53,10 @@ _I8_BYTES = 8  # a packed int64 stamp
 _F8_BYTES = 8  # a packed float64 value
 _NO_FIRST_NS = 2**63 - 1  # start of the min() over a packet's first sample times
 _NO_LAST_NS = -(2**63)  # start of the max() over its last ones
+# a packet's measurements are built without the frozen classes' __init__ (estimator._frozen)
+_new_imu = builder(ImuBatch)
+_new_speeds = builder(WheelSpeeds)
+_new_edges = builder(WheelEdges)
 
 
 class _Opened:
@@ -81,7 +88,7 @@ class _Opened:
             return self.alone(lim)
         vehicle_id = self.ctx.vehicle_id
         assert vehicle_id is not None
-        return Packet(
+        return _new_packet(
             vehicle_id, self.stream, self.seq, SCHEMA_VERSION, ms, first_ns, last_ns, until_ns
         )
 
@@ -269,7 +276,7 @@ class _ImuGroup(_SampledGroup):
         return accel_ok & gyro_ok
 
     def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
-        return ImuBatch(t[a:b], arrays[0][a:b], arrays[1][a:b])
+        return _new_imu(t[a:b], arrays[0][a:b], arrays[1][a:b])
 
 
 class _SpeedsGroup(_SampledGroup):
@@ -282,7 +289,7 @@ class _SpeedsGroup(_SampledGroup):
         return _abs_ok(arrays[0], lim.max_wheel_omega_radps)
 
     def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
-        return WheelSpeeds(t[a:b], arrays[0][a:b])
+        return _new_speeds(t[a:b], arrays[0][a:b])
 
 
 class _EdgesGroup:
@@ -365,7 +372,7 @@ class _EdgesGroup:
                 if not good[r] or r not in directions:
                     out[op.index] = op.alone(lim)
                     break
-                ms.append(WheelEdges(wheel, t[starts[r] : ends[r]], directions[r]))
+                ms.append(_new_edges(wheel, t[starts[r] : ends[r]], directions[r]))
                 if first_ns[r] < first:
                     first = first_ns[r]
                 if last_ns[r] > last:
@@ -421,6 +428,21 @@ def _alone(
         return exc
 
 
+def _gnss_item(ctx: _Ctx, m: dict[str, Any], seq: int, lim: Limits) -> BurstItem:
+    """A GNSS packet: the usual one by :func:`codec._gnss_sample`'s single check, any other
+    by the per-packet rules."""
+    try:
+        sample = _gnss_sample(m, lim)
+        if sample is None:
+            return _packet(ctx, Stream.GNSS, m, seq, lim)
+        t = sample.stamp_ns
+        until_ns = _until(ctx, m, t, lim)  # the rule _packet checks after a valid body
+    except DecodeError as exc:
+        return exc
+    assert ctx.vehicle_id is not None
+    return _new_packet(ctx.vehicle_id, Stream.GNSS, seq, SCHEMA_VERSION, (sample,), t, t, until_ns)
+
+
 def decode_burst(
     received: Sequence[tuple[str, bytes]],
     *,
@@ -454,8 +476,11 @@ def decode_burst(
         except DecodeError as exc:
             out[i] = exc
             continue
+        if stream is Stream.GNSS:  # nothing to batch: checked on its own
+            out[i] = _gnss_item(ctx, m, seq, limits)
+            continue
         op = _Opened(i, ctx, stream, m, seq)
-        if stream is Stream.GNSS or not _LITTLE_ENDIAN:  # nothing to batch: plain Python
+        if not _LITTLE_ENDIAN:  # packed arrays need converting: plain Python
             out[i] = op.alone(limits)
             continue
         group = _group(op, groups)

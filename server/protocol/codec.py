@@ -32,6 +32,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from estimator._frozen import builder
 from estimator.base import Measurement
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
 from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
@@ -445,7 +446,72 @@ def _fix(ctx: _Ctx, m: dict[str, Any]) -> GnssFix:
     return fix
 
 
+_TWO_PI = 2 * math.pi
+_HALF_PI = math.pi / 2
+_NO_FIX = object()  # "fix" absent: RTK fixed
+_NO_VEL_STD = object()  # "vel_std_mps" absent: NaN
+_FIX_OF = {**_GNSS_FIX, _NO_FIX: GnssFix.RTK_FIXED}
+_new_gnss = builder(GnssSample)
+_new_packet = builder(Packet)
+
+
+def _gnss_sample(m: dict[str, Any], lim: Limits) -> GnssSample | None:
+    """The GNSS sample of a map whose fields are floats (``int`` stamp and fix) within their
+    limits; None otherwise (:func:`_decode_gnss`'s rules then decide).
+
+    The receivers' usual packet, checked in one expression instead of a call per field (the
+    check per field, with its reason, is for the others). Velocities with a NaN (no fix) and
+    integers where a float goes are valid but go the long way, which accepts them.
+    """
+    get = m.get
+    t = get("stamp_ns")
+    vel = get("vel_enu_mps")
+    heading, pitch, roll = get("heading_rad"), get("pitch_rad"), get("roll_rad")
+    lat, lon, h = get("lat_deg"), get("lon_deg"), get("height_m")
+    fix_raw = get("fix", _NO_FIX)
+    fix = _FIX_OF.get(fix_raw) if type(fix_raw) is int or fix_raw is _NO_FIX else None
+    vel_std = get("vel_std_mps", _NO_VEL_STD)
+    if not (
+        type(t) is int
+        and lim.min_stamp_ns <= t <= lim.max_stamp_ns
+        and type(vel) is list
+        and len(vel) == 3
+        and type(ve := vel[0]) is float
+        and type(vn := vel[1]) is float
+        and type(vu := vel[2]) is float
+        and ve * ve + vn * vn + vu * vu <= lim.max_speed_mps**2  # False for inf and NaN
+        and type(heading) is float
+        and type(pitch) is float
+        and type(roll) is float
+        # attitude and position: NaN ("not available") passes, as the long way lets it
+        and not abs(heading) > _TWO_PI
+        and not abs(pitch) > _HALF_PI
+        and not abs(roll) > math.pi
+        and type(lat) is float
+        and type(lon) is float
+        and type(h) is float
+        and not abs(lat) > 90
+        and not abs(lon) > 180
+        and not (h < lim.min_height_m or h > lim.max_height_m)
+        and fix is not None
+    ):
+        return None
+    if vel_std is _NO_VEL_STD:
+        vel_std = math.nan
+    elif type(vel_std) is not float or not 0 <= vel_std <= lim.max_speed_mps:
+        return None
+    return _new_gnss(t, (ve, vn, vu), heading, pitch, roll, lat, lon, h, fix, vel_std)
+
+
 def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
+    sample = _gnss_sample(m, lim)
+    if sample is None:
+        sample = _gnss_checked(ctx, m, lim)
+    return (sample,), sample.stamp_ns, sample.stamp_ns
+
+
+def _gnss_checked(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> GnssSample:
+    """The GNSS sample, field by field: the first rule a field breaks is the refusal."""
     t = _stamp(ctx, _int(ctx, m, "stamp_ns"), "stamp_ns", lim)
     vel = _velocity(ctx, m, lim)
     heading = _float(ctx, m, "heading_rad")
@@ -463,7 +529,7 @@ def _decode_gnss(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
     vel_std = _float(ctx, m, "vel_std_mps") if "vel_std_mps" in m else math.nan
     if vel_std < 0 or vel_std > lim.max_speed_mps:
         raise ctx.fail("out_of_range", "vel_std_mps")
-    return (GnssSample(t, vel, heading, pitch, roll, lat, lon, h, fix, vel_std),), t, t
+    return GnssSample(t, vel, heading, pitch, roll, lat, lon, h, fix, vel_std)
 
 
 def _decode_imu(ctx: _Ctx, m: dict[str, Any], lim: Limits) -> _Body:
@@ -616,7 +682,7 @@ def _packet(ctx: _Ctx, stream: Stream, m: dict[str, Any], seq: int, lim: Limits)
     ms, first_ns, last_ns = body
     until_ns = _until(ctx, m, last_ns, lim)
     assert ctx.vehicle_id is not None
-    return Packet(ctx.vehicle_id, stream, seq, SCHEMA_VERSION, ms, first_ns, last_ns, until_ns)
+    return _new_packet(ctx.vehicle_id, stream, seq, SCHEMA_VERSION, ms, first_ns, last_ns, until_ns)
 
 
 def decode(

@@ -494,3 +494,74 @@ def test_wheel_heartbeat_is_edges_without_entries_and_needs_until() -> None:
     bad = msgpack.unpackb(encode_wheel_edges([], 0, T0), raw=False)
     bad["until_ns"] = 10**15  # 1970: not a vehicle clock
     assert _reason(KEY[Stream.WHEELS], msgpack.packb(bad)) == "out_of_range"
+
+
+# ------------------------------------------------------------------------- GNSS fast check
+
+_GNSS_FLOATS = ("heading_rad", "pitch_rad", "roll_rad", "lat_deg", "lon_deg", "height_m")
+#: values a GNSS field may be given: valid ones, edge cases and wrong types
+_ODD = st.sampled_from(
+    [
+        0,
+        1,
+        True,
+        -1.0,
+        2.0,
+        4.0,
+        7.0,
+        95.0,
+        200.0,
+        -2000.0,
+        30_000.0,
+        math.nan,
+        math.inf,
+        -math.inf,
+        "1.0",
+        None,
+        [1.0],
+    ]
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    changes=st.dictionaries(
+        st.sampled_from([*_GNSS_FLOATS, "stamp_ns", "fix", "vel_std_mps", "vel_enu_mps"]),
+        _ODD | st.lists(_ODD, min_size=2, max_size=4),
+        max_size=3,
+    ),
+    drop=st.sets(st.sampled_from(["fix", "vel_std_mps", "heading_rad"]), max_size=2),
+)
+def test_gnss_fast_check_agrees_with_the_field_rules(
+    changes: dict[str, Any], drop: set[str]
+) -> None:
+    """The one-expression check accepts only what the field-by-field rules accept, with the
+    same values; what it leaves to them (None) they accept or refuse."""
+    from server.protocol.codec import _Ctx, _gnss_checked, _gnss_sample
+
+    m: dict[str, Any] = msgpack.unpackb(encode_gnss(_gnss(vel_std_mps=0.05), 3), raw=False)
+    m.update(changes)
+    for k in drop:
+        m.pop(k, None)
+    fast = _gnss_sample(m, LIMITS)
+    try:
+        checked = _gnss_checked(_Ctx("veh-1", Stream.GNSS), m, LIMITS)
+    except DecodeError:
+        assert fast is None
+        return
+    if fast is not None:
+        assert type(fast) is GnssSample
+        for f in GnssSample.__slots__:
+            a, b = getattr(fast, f), getattr(checked, f)
+            assert a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b)), f
+            assert type(a) is type(b), f
+
+
+def test_gnss_fast_check_takes_the_usual_packet_and_nan_attitude() -> None:
+    from server.protocol.codec import _gnss_sample
+
+    usual = msgpack.unpackb(encode_gnss(_gnss(vel_std_mps=0.05), 3), raw=False)
+    assert _gnss_sample(usual, LIMITS) is not None
+    no_attitude = {**usual, "heading_rad": math.nan, "pitch_rad": math.nan, "roll_rad": math.nan}
+    assert _gnss_sample(no_attitude, LIMITS) is not None
+    assert _gnss_sample({**usual, "heading_rad": math.inf}, LIMITS) is None
