@@ -450,8 +450,8 @@ _TWO_PI = 2 * math.pi
 _HALF_PI = math.pi / 2
 _NO_FIX = object()  # "fix" absent: RTK fixed
 _NO_VEL_STD = object()  # "vel_std_mps" absent: NaN
-_FIX_OF: dict[object, GnssFix] = {_NO_FIX: GnssFix.RTK_FIXED}
-_FIX_OF.update(_GNSS_FIX)
+_FIX_OF: dict[object, GnssFix] = {int(f): f for f in GnssFix}
+_FIX_OF[_NO_FIX] = GnssFix.RTK_FIXED
 _new_gnss = builder(GnssSample)
 _new_packet = builder(Packet)
 
