@@ -359,8 +359,12 @@ class SqliteStore:
         """
         with self._write() as conn:
             if self._move is None:
+                # One subquery each: ``min`` and ``max`` in one SELECT scan the whole table
+                # (SQLite's min/max shortcut takes a lone aggregate only), ~3 µs per staged
+                # row at 1,000 vehicles since this runs after every commit.
                 lo, hi = conn.execute(
-                    "SELECT min(stamp_ns), max(stamp_ns) FROM estimates_recent"
+                    "SELECT (SELECT min(stamp_ns) FROM estimates_recent), "
+                    "(SELECT max(stamp_ns) FROM estimates_recent)"
                 ).fetchone()
                 if lo is None or (not everything and hi - lo < _MOVE_SPAN_NS):
                     return False
