@@ -22,10 +22,12 @@ the row's ``ESTIMATE_DTYPE`` bytes (migration 6; NaN and infinities survive bit 
   ``estimates``) are looked up there first, so a replay of a moved row is not staged again.
   :meth:`SqliteStore.maintain`, which the writer thread calls between writes, moves the
   rows older than the newest second to ``estimates`` once the staged rows span three seconds,
-  ~20-30 rows per vehicle and 100 vehicles per transaction (≤ ~35 ms each at 1,000 vehicles):
-  ~13 µs a row in all, staging and moving (one-off measurement, 1,000 vehicles, one row per
-  vehicle and commit). Reads, ``latest`` and deletes look at both tables; a row being moved is
-  in both for a moment and is read once. The column layout of versions 1-5 bound 28 values and
+  ~20-30 rows per vehicle and 100 vehicles per transaction (≤ ~35 ms each at 1,000 vehicles,
+  ≤ ~25 ms of it CPU): ~9-9.5 µs a row in all, ~3.6-4.1 staging and ~5.1-5.7 moving (1,000
+  vehicles at 10 Hz, 250-1,000 rows a commit and ``maintain`` after each, CPU time, two runs
+  each; ~13-17 µs before version 8 and the one-seek span query in ``maintain``). Reads,
+  ``latest`` and deletes look at both tables; a row being moved is in both for a moment and is
+  read once. The column layout of versions 1-5 bound 28 values and
   the blob per row and cost ~3-6x as much per row as version 6's packed rows;
 * a read does not even fetch one object per row: SQLite concatenates a range's blobs into one
   (``group_concat``, at most :data:`_READ_PAGE_ROWS` rows per statement) that numpy views as a
@@ -93,8 +95,11 @@ _INSERT_FINAL_SQL = (
 )
 #: Rows newer than this behind the newest staged row stay in ``estimates_recent``; older ones
 #: are moved once the staged rows span :data:`_MOVE_SPAN_NS` (so a vehicle moves ~20-30 rows
-#: at a time: ~6 µs a row in all, against ~33 µs for one row per vehicle and commit written
-#: straight into ``estimates``, 1,000 vehicles, one-off measurement).
+#: at a time: ~5-6 µs a row, against ~33 µs for one row per vehicle and commit written
+#: straight into ``estimates``, 1,000 vehicles). Most of it is SQLite splitting a vehicle's
+#: last page with its neighbours, ~5 pages written to the WAL per vehicle and round: a wider
+#: span (5 s, 50 vehicles a transaction) saved ~0.5 µs a row but made the longest step ~30 ms
+#: of CPU instead of ~20 (pattern runs, two each).
 _KEEP_RECENT_NS = 1_000_000_000
 _MOVE_SPAN_NS = 3_000_000_000
 #: Vehicles whose rows one move transaction carries (a few ms at 1,000 vehicles, so estimate
