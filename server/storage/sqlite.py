@@ -27,8 +27,8 @@ the row's ``ESTIMATE_DTYPE`` bytes (migration 6; NaN and infinities survive bit 
   vehicles at 10 Hz, 250-1,000 rows a commit and ``maintain`` after each, CPU time, two runs
   each; ~13-17 µs before version 8 and the one-seek span query in ``maintain``). Reads,
   ``latest`` and deletes look at both tables; a row being moved is in both for a moment and is
-  read once. The column layout of versions 1-5 bound 28 values and
-  the blob per row and cost ~3-6x as much per row as version 6's packed rows;
+  read once. The column layout of versions 1-5 bound 28 values and the blob per row and cost
+  ~3-6x as much per row as version 6's packed rows;
 * a read does not even fetch one object per row: SQLite concatenates a range's blobs into one
   (``group_concat``, at most :data:`_READ_PAGE_ROWS` rows per statement) that numpy views as a
   structured array, in one step that runs without the GIL. Reading a vehicle-hour column by
