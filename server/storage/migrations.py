@@ -15,7 +15,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 7):
+Schema (version 8):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -32,6 +32,9 @@ Schema (version 7):
     appends to a few pages instead of touching one page per vehicle; the store moves them to
     ``estimates`` a few seconds later, many rows per vehicle at a time
     (:meth:`~server.storage.sqlite.SqliteStore.maintain`). Reads look at both.
+``estimates_horizon`` (SQLite, version 8)
+    One row: ``newest_ns``, at or above the ``stamp_ns`` of every row in ``estimates`` (raised
+    before rows move there), so a new row above it is known not to be a replay of a moved one.
 ``ingest_counters``
     ``(vehicle_id, name) -> total``; keyed by the id text so counters of vehicles that were
     rejected (never registered) can be kept too.
@@ -384,6 +387,23 @@ _V7_SQLITE: tuple[Step, ...] = (
     """,
 )
 
+# A staged row was checked against ``estimates`` one by one (a replay of a row moved already
+# is not staged again), ~2.5 µs of the ~6 µs a row of a write at 1,000 vehicles; no row of
+# ``estimates`` is newer than this bound, so rows above it skip that look-up. Seeded with the
+# newest final row of every vehicle (a primary-key seek each; a foreign key ties every row to
+# a vehicle).
+_V8_SQLITE: tuple[Step, ...] = (
+    """
+    CREATE TABLE estimates_horizon (
+        id INTEGER PRIMARY KEY CHECK (id = 0),
+        newest_ns INTEGER NOT NULL
+    )
+    """,
+    "INSERT INTO estimates_horizon (id, newest_ns) SELECT 0, coalesce(max("
+    "(SELECT max(e.stamp_ns) FROM estimates e WHERE e.vkey = v.vkey)), -9223372036854775808) "
+    "FROM vehicles v",
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -392,6 +412,7 @@ MIGRATIONS: tuple[Migration, ...] = (
     Migration(5, "raw packets keyed by vehicle id", _V5_SQLITE, _V5_POSTGRESQL),
     Migration(6, "estimate rows only packed (SQLite)", _V6_SQLITE, ()),
     Migration(7, "time-ordered table of new estimate rows (SQLite)", _V7_SQLITE, ()),
+    Migration(8, "bound on the stamps of final estimate rows (SQLite)", _V8_SQLITE, ()),
 )
 
 _VERSION_TABLE = {

@@ -18,13 +18,17 @@ the row's ``ESTIMATE_DTYPE`` bytes (migration 6; NaN and infinities survive bit 
   vehicle-ordered ``estimates`` each such row dirtied a page of its own (~33 µs of CPU a row at
   1,000 vehicles, most of it writing those pages to the WAL); appended in time order the rows
   of a commit share a few pages. One ``executemany`` binds ``(stamp, vkey, packed bytes)`` per
-  row. :meth:`SqliteStore.maintain`, which the writer thread calls between writes, moves the
+  row; only rows at or below ``estimates_horizon`` (version 8, a bound on the stamps in
+  ``estimates``) are looked up there first, so a replay of a moved row is not staged again.
+  :meth:`SqliteStore.maintain`, which the writer thread calls between writes, moves the
   rows older than the newest second to ``estimates`` once the staged rows span three seconds,
-  ~20-30 rows per vehicle and 100 vehicles per transaction (≤ ~35 ms each at 1,000 vehicles):
-  ~13 µs a row in all, staging and moving (one-off measurement, 1,000 vehicles, one row per
-  vehicle and commit). Reads, ``latest`` and deletes look at both tables; a row being moved is
-  in both for a moment and is read once. The column layout of versions 1-5 bound 28 values and
-  the blob per row and cost ~3-6x as much per row as version 6's packed rows;
+  ~20-30 rows per vehicle and 100 vehicles per transaction (≤ ~35 ms each at 1,000 vehicles,
+  ≤ ~25 ms of it CPU): ~9-9.5 µs a row in all, ~3.6-4.1 staging and ~5.1-5.7 moving (1,000
+  vehicles at 10 Hz, 250-1,000 rows a commit and ``maintain`` after each, CPU time, two runs
+  each; ~13-17 µs before version 8 and the one-seek span query in ``maintain``). Reads,
+  ``latest`` and deletes look at both tables; a row being moved is in both for a moment and is
+  read once. The column layout of versions 1-5 bound 28 values and the blob per row and cost
+  ~3-6x as much per row as version 6's packed rows;
 * a read does not even fetch one object per row: SQLite concatenates a range's blobs into one
   (``group_concat``, at most :data:`_READ_PAGE_ROWS` rows per statement) that numpy views as a
   structured array, in one step that runs without the GIL. Reading a vehicle-hour column by
@@ -68,9 +72,17 @@ _TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
 
 _ROW_BYTES = ESTIMATE_DTYPE.itemsize
 # One row per parameter set of an ``executemany`` over the whole transaction (a commit carries
-# one or two rows per vehicle, so a statement per vehicle would not pay): into the time-ordered
-# ``estimates_recent`` unless ``estimates`` has the row already (a replay);
-# :meth:`SqliteStore.maintain` moves them on.
+# one or two rows per vehicle, so a statement per vehicle would not pay), into the time-ordered
+# ``estimates_recent``; :meth:`SqliteStore.maintain` moves them on. A row above the stamp
+# bound of ``estimates`` (``estimates_horizon``, version 8: every new row in the server's
+# pattern) cannot be there already and is staged as it is ...
+_STAGE_SQL = (
+    "INSERT INTO estimates_recent (stamp_ns, vkey, packed) VALUES (?, ?, ?) "
+    "ON CONFLICT (stamp_ns, vkey) DO NOTHING"
+)
+# ... one at or below it is staged unless ``estimates`` has it already (a replay): that
+# look-up cost ~2.5 µs of ~6 µs a row when every row took it (1,000 vehicles, 500 rows a
+# commit, pattern script).
 _INSERT_SQL = (
     "INSERT INTO estimates_recent (stamp_ns, vkey, packed) SELECT ?1, ?2, ?3 "
     "WHERE NOT EXISTS (SELECT 1 FROM estimates WHERE vkey = ?2 AND stamp_ns = ?1) "
@@ -83,14 +95,16 @@ _INSERT_FINAL_SQL = (
 )
 #: Rows newer than this behind the newest staged row stay in ``estimates_recent``; older ones
 #: are moved once the staged rows span :data:`_MOVE_SPAN_NS` (so a vehicle moves ~20-30 rows
-#: at a time: ~6 µs a row in all, against ~33 µs for one row per vehicle and commit written
-#: straight into ``estimates``, 1,000 vehicles, one-off measurement).
+#: at a time: ~5-6 µs a row, against ~33 µs for one row per vehicle and commit written
+#: straight into ``estimates``, 1,000 vehicles). Most of it is SQLite splitting a vehicle's
+#: last page with its neighbours, ~5 pages written to the WAL per vehicle and round: a wider
+#: span (5 s, 50 vehicles a transaction) saved ~0.5 µs a row but made the longest step ~30 ms
+#: of CPU instead of ~20 (pattern runs, two each).
 _KEEP_RECENT_NS = 1_000_000_000
 _MOVE_SPAN_NS = 3_000_000_000
 #: Vehicles whose rows one move transaction carries (a few ms at 1,000 vehicles, so estimate
 #: commits are not held back).
 _MOVE_VEHICLES = 100
-_MAX_STAMP_NS = 2**63 - 1
 # A read concatenates at most this many rows per statement (21 MB), far below SQLite's 1 GB
 # limit on one value; longer ranges take several statements in one read transaction.
 _READ_PAGE_ROWS = 100_000
@@ -140,7 +154,8 @@ class SqliteStore:
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._closed = False
-        # the move of staged rows in progress (maintain): (cutoff_ns, last vkey copied)
+        # the move of staged rows in progress (maintain): (newest stamp_ns it moves, last
+        # vkey copied)
         self._move: tuple[int, int] | None = None
         # vehicle_id -> vkey of registered vehicles (a vkey never changes; delete_vehicle
         # drops its entry in the same write transaction that deletes the vehicle)
@@ -328,18 +343,26 @@ class SqliteStore:
             stamps = rows["stamp_ns"].astype(np.int64)
             vkeys = np.repeat([k for k, _ in known], [len(r) for _, r in known])
             packed = [blob[i : i + _ROW_BYTES] for i in range(0, len(blob), _ROW_BYTES)]
+            (newest,) = conn.execute("SELECT newest_ns FROM estimates_horizon").fetchone()
+            probe = stamps <= newest
             before = conn.total_changes
-            if self._move is None:
+            if self._move is None and not probe.any():
                 conn.executemany(
-                    _INSERT_SQL, zip(stamps.tolist(), vkeys.tolist(), packed, strict=True)
+                    _STAGE_SQL, zip(stamps.tolist(), vkeys.tolist(), packed, strict=True)
                 )
                 return conn.total_changes - before
-            # A move round is under way: a row of a vehicle it has copied already, older than
-            # its cutoff (data a vehicle buffered offline), goes straight to ``estimates``, so
-            # the round's closing delete only ever drops rows that were copied.
-            cutoff, last = self._move
-            direct = (stamps < cutoff) & (vkeys <= last)
-            for sql, sel in ((_INSERT_SQL, ~direct), (_INSERT_FINAL_SQL, direct)):
+            # A move round is under way: a row of a vehicle it has copied already, not newer
+            # than the round's rows (data a vehicle buffered offline), goes straight to
+            # ``estimates``, so the round's closing delete only ever drops rows that were copied.
+            direct = np.zeros(len(stamps), dtype=bool)
+            if self._move is not None:
+                upto, last = self._move
+                direct = (stamps <= upto) & (vkeys <= last)
+            for sql, sel in (
+                (_STAGE_SQL, ~probe & ~direct),
+                (_INSERT_SQL, probe & ~direct),
+                (_INSERT_FINAL_SQL, direct),
+            ):
                 idx = np.flatnonzero(sel).tolist()
                 if idx:
                     st, vk = stamps[idx].tolist(), vkeys[idx].tolist()
@@ -353,21 +376,30 @@ class SqliteStore:
         A round starts once the staged rows span :data:`_MOVE_SPAN_NS`: every row older than
         :data:`_KEEP_RECENT_NS` before the newest one (``everything``: every row) is copied,
         :data:`_MOVE_VEHICLES` vehicles per transaction, then deleted from the staging table
-        in one range delete (rows below the cutoff of vehicles already copied that come in
+        in one range delete (rows in the round's range of vehicles already copied that come in
         during the round go straight to ``estimates``: see :meth:`write_estimates`). Between
         the copy and the delete a row is in both tables; reads keep one.
         """
         with self._write() as conn:
             if self._move is None:
+                # One subquery each: ``min`` and ``max`` in one SELECT scan the whole table
+                # (SQLite's min/max shortcut takes a lone aggregate only), ~3 µs per staged
+                # row at 1,000 vehicles since this runs after every commit.
                 lo, hi = conn.execute(
-                    "SELECT min(stamp_ns), max(stamp_ns) FROM estimates_recent"
+                    "SELECT (SELECT min(stamp_ns) FROM estimates_recent), "
+                    "(SELECT max(stamp_ns) FROM estimates_recent)"
                 ).fetchone()
                 if lo is None or (not everything and hi - lo < _MOVE_SPAN_NS):
                     return False
-                cutoff = _MAX_STAMP_NS if everything else hi - _KEEP_RECENT_NS
+                # ``everything``: the rows staged now (later ones are the next round's), so
+                # the stamp bound below holds for every row the round copies
+                upto = hi if everything else hi - _KEEP_RECENT_NS - 1
+                # raised before any row of the round reaches ``estimates`` (copied, or written
+                # straight there while the round runs: all at or below ``upto``)
+                conn.execute("UPDATE estimates_horizon SET newest_ns = max(newest_ns, ?)", (upto,))
                 after = -1
             else:
-                cutoff, after = self._move
+                upto, after = self._move
             keys = conn.execute(
                 "SELECT vkey FROM vehicles WHERE vkey > ? ORDER BY vkey LIMIT ?",
                 (after, _MOVE_VEHICLES),
@@ -378,13 +410,13 @@ class SqliteStore:
                     "INSERT INTO estimates (vkey, stamp_ns, packed) "
                     "SELECT r.vkey, r.stamp_ns, r.packed FROM estimates_recent r "
                     "JOIN vehicles v ON v.vkey = r.vkey "  # rows of a vehicle still there
-                    "WHERE r.stamp_ns < ? AND r.vkey > ? AND r.vkey <= ? "
+                    "WHERE r.stamp_ns <= ? AND r.vkey > ? AND r.vkey <= ? "
                     "ORDER BY r.vkey, r.stamp_ns ON CONFLICT (vkey, stamp_ns) DO NOTHING",
-                    (cutoff, after, last),
+                    (upto, after, last),
                 )
-                move: tuple[int, int] | None = (cutoff, last)
+                move: tuple[int, int] | None = (upto, last)
             else:  # every vehicle copied: drop the copies
-                conn.execute("DELETE FROM estimates_recent WHERE stamp_ns < ?", (cutoff,))
+                conn.execute("DELETE FROM estimates_recent WHERE stamp_ns <= ?", (upto,))
                 move = None
         self._move = move
         return True

@@ -189,3 +189,49 @@ def test_sqlite_estimates_are_packed_by_migration_6(
     assert len(store.query_series("veh-3", 0, 2**62)) == 0
     assert store.migrate() == latest_version()  # nothing left to do
     store.close()
+
+
+def test_sqlite_migration_8_bounds_the_rows_already_final(tmp_path: Path) -> None:
+    """A version-7 file with final and staged rows gets ``estimates_horizon`` at its newest
+    final row: replays of those rows are still refused (keeping the stored values), newer rows
+    are staged."""
+    path = tmp_path / "v7.sqlite"
+    rows = {1: make_rows(40), 2: make_rows(40, seed=1)}
+    conn = sqlite3.connect(path, isolation_level=None)
+    conn.execute("BEGIN")
+    assert apply_pending(lambda sql, p: conn.execute(sql, p).fetchall(), "sqlite", target=7)[0] == 7
+    for vkey, r in rows.items():
+        conn.execute(
+            "INSERT INTO vehicles (vkey, vehicle_id, config, created_ns, updated_ns) "
+            "VALUES (?, ?, '{}', 1, 1)",
+            (vkey, f"v{vkey}"),
+        )
+        for table, part in (("estimates", r[:30]), ("estimates_recent", r[30:])):
+            conn.executemany(
+                f"INSERT INTO {table} (vkey, stamp_ns, packed) VALUES (?, ?, ?)",
+                [(vkey, int(one["stamp_ns"]), one.tobytes()) for one in part],
+            )
+    conn.execute("COMMIT")
+    conn.close()
+    store = SqliteStore(path)
+    assert store.migrate() == latest_version() >= 8
+    assert store._read("SELECT newest_ns FROM estimates_horizon") == [
+        (int(rows[1]["stamp_ns"][29]),)
+    ]
+    changed = {f"v{vkey}": r.copy() for vkey, r in rows.items()}
+    for r in changed.values():
+        r["vg_mps"] += 1.0
+    assert store.write_estimates(list(changed.items())) == 0  # final and staged: both refused
+    for vkey, r in rows.items():
+        assert_rows_equal(store.query_series(f"v{vkey}", 0, 2**62), r)
+    newer = make_rows(5, start_ns=T0_NS + 40 * DT_NS, seed=3)
+    assert store.write_estimates([("v1", newer)]) == 5
+    assert_rows_equal(store.query_series("v1", 0, 2**62), np.concatenate([rows[1], newer]))
+    store.close()
+
+
+def test_sqlite_migration_8_on_an_empty_database(tmp_path: Path) -> None:
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    assert store._read("SELECT id, newest_ns FROM estimates_horizon") == [(0, -(2**63))]
+    store.close()

@@ -353,6 +353,76 @@ def test_sqlite_new_rows_are_staged_then_moved_and_read_once(
     store.close()
 
 
+def test_sqlite_a_replay_keeps_the_stored_rows_wherever_they_are(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Rows written again with other values (a replay) are refused and leave the stored ones,
+    whether those are final, staged, or copied in a move round that has not ended; a replay
+    older than the final rows' stamp bound is checked against them too."""
+    monkeypatch.setattr("server.storage.sqlite._MOVE_VEHICLES", 1)
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    for vid in ("v1", "v2"):
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    rows = {"v1": make_rows(50), "v2": make_rows(50, seed=1)}
+    store.write_estimates([(vid, r[:40]) for vid, r in rows.items()])
+    _move_all(store)  # the first 40 of each final, the bound at the 40th
+    newest = store._read("SELECT newest_ns FROM estimates_horizon")[0][0]
+    assert newest == int(rows["v1"]["stamp_ns"][39])
+    store.write_estimates([(vid, r[40:]) for vid, r in rows.items()])  # staged, above it
+    store.write_estimates([("v1", make_rows(50, start_ns=T0_NS + 50 * DT_NS, seed=2))])
+    assert store.maintain()  # a round: v1 copied, still staged too
+
+    def replay() -> int:
+        changed = {vid: r.copy() for vid, r in rows.items()}
+        for r in changed.values():
+            r["vg_mps"] += 1.0
+        return store.write_estimates(list(changed.items()))
+
+    assert replay() == 0
+    for vid, r in rows.items():
+        assert_rows_equal(store.query_series(vid, 0, T0_NS + 50 * DT_NS), r)
+    while store.maintain():
+        pass
+    assert replay() == 0
+    for vid, r in rows.items():
+        assert_rows_equal(store.query_series(vid, 0, T0_NS + 50 * DT_NS), r)
+        assert_rows_equal(store.latest(vid).reshape(1), store.query_series(vid, 0, 2**62)[-1:])
+    store.close()
+
+
+def test_sqlite_rows_are_read_once_at_every_step_of_a_move(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every read path sees each row once after every step of a move round, one vehicle a
+    step, with rows written between the steps."""
+    monkeypatch.setattr("server.storage.sqlite._MOVE_VEHICLES", 1)
+    store = SqliteStore(tmp_path / "s.sqlite")
+    store.migrate()
+    ids = ["v1", "v2", "v3"]
+    for vid in ids:
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    rows = {vid: make_rows(80, seed=k) for k, vid in enumerate(ids)}
+    store.write_estimates([(vid, r[:40]) for vid, r in rows.items()])
+    done = dict.fromkeys(ids, 40)
+    more = True
+    while more:
+        more = store.maintain()
+        for vid in ids:  # a row of each vehicle between the steps
+            if done[vid] < 80:
+                store.write_estimates([(vid, rows[vid][done[vid] : done[vid] + 1])])
+                done[vid] += 1
+        for vid in ids:
+            want = rows[vid][: done[vid]]
+            assert_rows_equal(store.query_series(vid, 0, 2**62), want)
+            assert int(store.latest(vid)["stamp_ns"]) == int(want["stamp_ns"][-1])
+        assert {v: int(r["stamp_ns"]) for v, r in store.latest_all().items()} == {
+            vid: int(rows[vid]["stamp_ns"][done[vid] - 1]) for vid in ids
+        }
+    assert _count(store, "estimates") > 0
+    store.close()
+
+
 def test_sqlite_deletes_reach_staged_rows(tmp_path: Path) -> None:
     store = SqliteStore(tmp_path / "s.sqlite")
     store.migrate()
