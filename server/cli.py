@@ -10,6 +10,7 @@ Subcommands::
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
                                           wheels frontend advance publisher ingest pipeline
+                                          writes
     slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
@@ -43,6 +44,7 @@ BENCHES = (
     "publisher",
     "ingest",
     "pipeline",
+    "writes",
 )
 
 

@@ -7,11 +7,27 @@ writes the same numbers as JSON.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
+import subprocess
+import sys
+import tempfile
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
-__all__ = ["SOURCE_START_NS", "field_work_sources", "int_list", "percentile", "push_until"]
+__all__ = [
+    "SOURCE_START_NS",
+    "extract_revision",
+    "field_work_sources",
+    "int_list",
+    "json_from_child",
+    "percentile",
+    "push_until",
+]
+
+_REPO = Path(__file__).resolve().parents[2]
 
 SOURCE_START_NS = 1_700_000_000_000_000_000
 """Sensor time at which the field_work sources start."""
@@ -26,6 +42,35 @@ def int_list(text: str) -> list[int]:
     if not values:
         raise ValueError("expected at least one integer")
     return values
+
+
+def extract_revision(
+    rev: str, into: Path, packages: Sequence[str] = ("estimator", "server")
+) -> None:
+    """The ``packages`` of git revision ``rev`` (of this repository) into the directory ``into``,
+    for a baseline measured side by side in a child process (:func:`json_from_child`)."""
+    tar = subprocess.run(
+        ["git", "-C", str(_REPO), "archive", "--format=tar", rev, *packages],
+        check=True,
+        capture_output=True,
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(into)], input=tar, check=True)
+
+
+def json_from_child(path: str, args: Sequence[str]) -> dict[str, Any]:
+    """Run ``python <args>`` with the packages under ``path`` first on its path (this
+    repository after them) and return the JSON it prints.
+
+    The same modules cannot be imported twice in one interpreter, so each version runs in its
+    own; the working directory is a temporary one, so it does not come first on ``sys.path``.
+    """
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([path, str(_REPO)]))
+    with tempfile.TemporaryDirectory() as cwd:
+        done = subprocess.run(
+            [sys.executable, *args], env=env, cwd=cwd, check=True, capture_output=True, text=True
+        )
+    result: dict[str, Any] = json.loads(done.stdout)
+    return result
 
 
 def percentile(values: Sequence[float], q: float) -> float:

@@ -28,16 +28,20 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until
+from server.bench import (
+    SOURCE_START_NS,
+    extract_revision,
+    field_work_sources,
+    int_list,
+    json_from_child,
+    push_until,
+)
 
 __all__ = ["main", "measure", "run"]
 
@@ -93,27 +97,12 @@ def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS
     return {"cases": cases, "digest": digest.hexdigest()}
 
 
-def _extract(rev: str, into: Path) -> None:
-    """``estimator/`` of git revision ``rev`` into ``into``."""
-    tar = subprocess.run(
-        ["git", "-C", str(_REPO), "archive", "--format=tar", rev, "estimator"],
-        check=True,
-        capture_output=True,
-    ).stdout
-    subprocess.run(["tar", "-x", "-C", str(into)], input=tar, check=True)
-
-
 def _child(path: str, sizes: Sequence[int], seconds: float, source_runs: int) -> dict[str, Any]:
     """:func:`measure` in a fresh interpreter whose ``estimator`` comes from ``path``."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([path, str(_REPO)]))
-    args = [sys.executable, "-m", "server.bench.advance", "--child"]
+    args = ["-m", "server.bench.advance", "--child"]
     args += ["--sizes", ",".join(map(str, sizes)), "--seconds", str(seconds)]
     args += ["--source-runs", str(source_runs)]
-    # run outside the repository so the working directory does not come first on sys.path
-    with tempfile.TemporaryDirectory() as cwd:
-        done = subprocess.run(args, env=env, cwd=cwd, check=True, capture_output=True, text=True)
-    result: dict[str, Any] = json.loads(done.stdout)
-    return result
+    return json_from_child(path, args)
 
 
 def _line(points: list[tuple[float, float]]) -> tuple[float, float]:
@@ -159,7 +148,7 @@ def run(
     versions = {"after": str(_REPO)}
     with tempfile.TemporaryDirectory() as tmp:
         if baseline is not None:
-            _extract(baseline, Path(tmp))
+            extract_revision(baseline, Path(tmp), ("estimator",))
             versions = {"before": tmp, "after": str(_REPO)}
         runs: dict[str, list[dict[str, Any]]] = {v: [] for v in versions}
         for rep in range(repeats):

@@ -31,8 +31,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -184,25 +182,13 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
     }
 
 
-def _extract(rev: str, into: Path) -> None:
-    """``estimator/`` and ``server/`` of git revision ``rev`` into ``into``."""
-    tar = subprocess.run(
-        ["git", "-C", str(_REPO), "archive", "--format=tar", rev, "estimator", "server"],
-        check=True,
-        capture_output=True,
-    ).stdout
-    subprocess.run(["tar", "-x", "-C", str(into)], input=tar, check=True)
-
-
 def _child(path: str, vehicles: int, seconds: float) -> dict[str, Any]:
     """:func:`measure` in a fresh interpreter whose packages come from ``path``."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([path, str(_REPO)]))
-    args = [sys.executable, str(Path(__file__).resolve()), "--child"]
+    from server.bench import json_from_child  # not at the top: the child runs this file
+
+    args = [str(Path(__file__).resolve()), "--child"]
     args += ["--vehicles", str(vehicles), "--seconds", str(seconds)]
-    with tempfile.TemporaryDirectory() as cwd:
-        done = subprocess.run(args, env=env, cwd=cwd, check=True, capture_output=True, text=True)
-    result: dict[str, Any] = json.loads(done.stdout)
-    return result
+    return json_from_child(path, args)
 
 
 def _per_vehicle_second_us(case: dict[str, Any]) -> dict[str, float]:
@@ -219,10 +205,12 @@ def run(
     json_path: Path | str | None = None,
 ) -> dict[str, Any]:
     """Measure each size (and the baseline's); print the table; return the numbers."""
+    from server.bench import extract_revision
+
     cases: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         if baseline is not None:
-            _extract(baseline, Path(tmp))
+            extract_revision(baseline, Path(tmp))
         for n in sizes:
             best: dict[str, dict[str, Any]] = {}
             for _ in range(repeats if baseline else 1):
