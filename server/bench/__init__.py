@@ -6,6 +6,7 @@ writes the same numbers as JSON.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -13,18 +14,20 @@ import os
 import subprocess
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 __all__ = [
     "SOURCE_START_NS",
+    "best_of",
     "extract_revision",
     "field_work_sources",
     "int_list",
     "json_from_child",
     "percentile",
     "push_until",
+    "versions",
 ]
 
 _REPO = Path(__file__).resolve().parents[2]
@@ -71,6 +74,36 @@ def json_from_child(path: str, args: Sequence[str]) -> dict[str, Any]:
         )
     result: dict[str, Any] = json.loads(done.stdout)
     return result
+
+
+@contextlib.contextmanager
+def versions(baseline: str | None) -> Iterator[dict[str, str]]:
+    """Where each measured version's packages are: ``{"after": this repository}``, and with a
+    ``baseline`` revision first ``"before"``: its packages extracted to a temporary directory
+    (removed on exit)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = {"after": str(_REPO)}
+        if baseline is not None:
+            extract_revision(baseline, Path(tmp))
+            paths = {"before": tmp, **paths}
+        yield paths
+
+
+def best_of(
+    paths: Mapping[str, str],
+    repeats: int,
+    measure: Callable[[str], dict[str, Any]],
+    cost: Callable[[dict[str, Any]], float],
+) -> dict[str, dict[str, Any]]:
+    """Each version's result of least ``cost`` over ``repeats`` rounds that run the versions
+    one after the other (so a machine shared with other work slows both alike)."""
+    best: dict[str, dict[str, Any]] = {}
+    for _ in range(repeats):
+        for name, path in paths.items():
+            got = measure(path)
+            if name not in best or cost(got) < cost(best[name]):
+                best[name] = got
+    return best
 
 
 def percentile(values: Sequence[float], q: float) -> float:

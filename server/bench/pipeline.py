@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 import tempfile
@@ -205,22 +206,17 @@ def run(
     json_path: Path | str | None = None,
 ) -> dict[str, Any]:
     """Measure each size (and the baseline's); print the table; return the numbers."""
-    from server.bench import extract_revision
+    from server.bench import best_of, versions
 
     cases: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        if baseline is not None:
-            extract_revision(baseline, Path(tmp))
+    with versions(baseline) as paths:
         for n in sizes:
-            best: dict[str, dict[str, Any]] = {}
-            for _ in range(repeats if baseline else 1):
-                versions = {"after": str(_REPO)}
-                if baseline is not None:
-                    versions = {"before": tmp, **versions}
-                for name, path in versions.items():
-                    got = _child(path, n, seconds)
-                    if name not in best or got["total_s"] < best[name]["total_s"]:
-                        best[name] = got
+            best = best_of(
+                paths,
+                repeats if baseline else 1,
+                functools.partial(_child, vehicles=n, seconds=seconds),
+                lambda got: float(got["total_s"]),
+            )
             case: dict[str, Any] = {"vehicles": n}
             for name, got in best.items():
                 case[name] = {**_per_vehicle_second_us(got), "rows": got["rows"]}

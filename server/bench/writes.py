@@ -21,6 +21,7 @@ each case keeps its least total. ``after/before`` is the ratio of the totals.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import tempfile
 import time
@@ -97,6 +98,13 @@ def _child(path: str, vehicles: int, rows_per_commit: int, seconds: float) -> di
     return json_from_child(path, args)
 
 
+def _per_row_us_of(
+    vehicles: int, rows_per_commit: int, seconds: float, path: str
+) -> dict[str, Any]:
+    """:func:`_child`'s case in µs per row (:func:`_per_row_us`)."""
+    return _per_row_us(_child(path, vehicles, rows_per_commit, seconds))
+
+
 def _per_row_us(got: dict[str, Any]) -> dict[str, float]:
     rows = max(1, got["rows"])
     write, maintain = got["write_s"] / rows * 1e6, got["maintain_s"] / rows * 1e6
@@ -118,22 +126,17 @@ def run(
     json_path: Path | str | None = None,
 ) -> dict[str, Any]:
     """Measure each commit size (and the baseline's); print the table; return the numbers."""
-    from server.bench import extract_revision
+    from server.bench import best_of, versions
 
     cases: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        if baseline is not None:
-            extract_revision(baseline, Path(tmp))
+    with versions(baseline) as paths:
         for per_commit in rows_per_commit:
-            best: dict[str, dict[str, Any]] = {}
-            for _ in range(repeats):
-                versions = {"after": str(_REPO)}
-                if baseline is not None:
-                    versions = {"before": tmp, **versions}
-                for name, path in versions.items():
-                    got = _per_row_us(_child(path, vehicles, per_commit, seconds))
-                    if name not in best or got["total"] < best[name]["total"]:
-                        best[name] = got
+            best = best_of(
+                paths,
+                repeats,
+                functools.partial(_per_row_us_of, vehicles, per_commit, seconds),
+                lambda got: float(got["total"]),
+            )
             case: dict[str, Any] = {"rows_per_commit": per_commit, **best}
             if "before" in case:
                 case["after_over_before"] = case["after"]["total"] / case["before"]["total"]

@@ -314,18 +314,26 @@ def test_sqlite_refuses_rows_of_another_layout(tmp_path: Path, table: str) -> No
     store.close()
 
 
-def test_sqlite_new_rows_are_staged_then_moved_and_read_once(
+def _moving_one_vehicle_a_step(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """New rows land in the time-ordered staging table; maintain() moves the ones older than
-    the newest second once the staged rows span three seconds, a few vehicles a transaction;
-    reads see every row exactly once, before, during and after a move."""
+) -> tuple[SqliteStore, list[str]]:
+    """A migrated SQLite store with three vehicles whose move rounds copy one a transaction."""
     monkeypatch.setattr("server.storage.sqlite._MOVE_VEHICLES", 1)
     store = SqliteStore(tmp_path / "s.sqlite")
     store.migrate()
     ids = ["v1", "v2", "v3"]
     for vid in ids:
         store.upsert_vehicle(vid, {}, now_ns=1)
+    return store, ids
+
+
+def test_sqlite_new_rows_are_staged_then_moved_and_read_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """New rows land in the time-ordered staging table; maintain() moves the ones older than
+    the newest second once the staged rows span three seconds, a few vehicles a transaction;
+    reads see every row exactly once, before, during and after a move."""
+    store, ids = _moving_one_vehicle_a_step(tmp_path, monkeypatch)
     rows = {vid: make_rows(50, seed=k) for k, vid in enumerate(ids)}  # 5 s at 10 Hz
     assert store.write_estimates([(vid, r[:20]) for vid, r in rows.items()]) == 60
     assert not store.maintain()  # 1.9 s staged: nothing to move yet
@@ -396,12 +404,7 @@ def test_sqlite_rows_are_read_once_at_every_step_of_a_move(
 ) -> None:
     """Every read path sees each row once after every step of a move round, one vehicle a
     step, with rows written between the steps."""
-    monkeypatch.setattr("server.storage.sqlite._MOVE_VEHICLES", 1)
-    store = SqliteStore(tmp_path / "s.sqlite")
-    store.migrate()
-    ids = ["v1", "v2", "v3"]
-    for vid in ids:
-        store.upsert_vehicle(vid, {}, now_ns=1)
+    store, ids = _moving_one_vehicle_a_step(tmp_path, monkeypatch)
     rows = {vid: make_rows(80, seed=k) for k, vid in enumerate(ids)}
     store.write_estimates([(vid, r[:40]) for vid, r in rows.items()])
     done = dict.fromkeys(ids, 40)
