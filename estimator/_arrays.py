@@ -7,9 +7,27 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["nan_to_num"]
+__all__ = ["as_rows", "as_stamps", "nan_to_num"]
 
 _F64_MAX = float(np.finfo(np.float64).max)
+_I8 = np.dtype(np.int64)
+_F8 = np.dtype(np.float64)
+
+
+def as_stamps(t: object) -> npt.NDArray[np.int64]:
+    """``np.asarray(t, dtype=np.int64).reshape(-1)``; an array that is that already (what the
+    decoder hands over) is returned as it is, without the two calls (~0.35 µs a packet)."""
+    if type(t) is np.ndarray and t.dtype == _I8 and t.ndim == 1:
+        return t
+    return np.asarray(t, dtype=np.int64).reshape(-1)
+
+
+def as_rows(a: object, width: int) -> npt.NDArray[np.float64]:
+    """``np.asarray(a, dtype=np.float64).reshape(-1, width)``, returning a float array of
+    shape ``(n, width)`` as it is."""
+    if type(a) is np.ndarray and a.dtype == _F8 and a.ndim == 2 and a.shape[1] == width:
+        return a
+    return np.asarray(a, dtype=np.float64).reshape(-1, width)
 
 
 def nan_to_num(x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:

@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import nan_to_num
+from estimator._arrays import as_rows, as_stamps, nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
@@ -780,9 +780,9 @@ class FleetFrontEnd:
                 )
             )
         elif isinstance(m, ImuBatch):
-            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
-            f = np.asarray(m.accel_mps2, dtype=np.float64).reshape(-1, 3)
-            w = np.asarray(m.gyro_radps, dtype=np.float64).reshape(-1, 3)
+            t = as_stamps(m.stamp_ns)
+            f = as_rows(m.accel_mps2, 3)
+            w = as_rows(m.gyro_radps, 3)
             if f.shape[0] != t.shape[0] or w.shape[0] != t.shape[0]:
                 self.count[slot, _IMU] += t.shape[0]
                 return
@@ -794,7 +794,7 @@ class FleetFrontEnd:
                 self._imu_new_f.append(f)
                 self._imu_new_w.append(w)
         elif isinstance(m, WheelEdges):
-            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            t = as_stamps(m.stamp_ns)
             if t.shape[0] == 0:
                 return
             try:
@@ -802,15 +802,14 @@ class FleetFrontEnd:
             except (IndexError, ValueError):
                 self.count[slot, _EDGES] += t.shape[0]
                 return
-            d = None if m.direction is None else np.asarray(m.direction).reshape(-1)
-            if d is not None and d.shape[0] != t.shape[0]:
-                d = None
-            if not self.has_direction[slot]:
-                d = None
-            before = tracker.skipped
-            tracker.push(t, d)
-            if tracker.skipped != before:
-                self.count[slot, _EDGES] += tracker.skipped - before
+            d = None
+            if m.direction is not None and self.has_direction[slot]:
+                d = np.asarray(m.direction).reshape(-1)
+                if d.shape[0] != t.shape[0]:
+                    d = None
+            skipped = tracker.push(t, d)
+            if skipped:
+                self.count[slot, _EDGES] += skipped
             self.has_edges[slot] = True
             if slot in self._gridless:
                 self._first_seen(slot, int(t[0]))

@@ -788,10 +788,11 @@ class WheelBank:
     # --- push ----------------------------------------------------------------------------
     def push(
         self, slot: int, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None
-    ) -> None:
+    ) -> int:
         """Queue edges of ``slot`` (see :meth:`WheelTracker.push`); back-in-time ones skipped.
 
         An edge is kept when it is not earlier than any edge before it (held or in the batch).
+        Returns how many of these edges were skipped (also added to ``skipped[slot]``).
         """
         t = stamp_ns
         if type(t) is not np.ndarray or t.dtype != np.int64 or t.ndim != 1:
@@ -799,17 +800,19 @@ class WheelBank:
         tl = t.tolist()
         n = len(tl)
         if n == 0:
-            return
+            return 0
         if direction is not None:
             self._signed[slot] = True
         floor = self._floor_ns[slot]
+        skipped = 0
         if tl[0] < floor or (n > 1 and tl != sorted(tl)):
             prev = np.maximum.accumulate(np.concatenate([[floor], t[:-1]]))
             ok = t >= prev
             kept = int(ok.sum())
-            self.skipped[slot] += n - kept
+            skipped = n - kept
+            self.skipped[slot] += skipped
             if kept == 0:
-                return
+                return skipped
             t = t[ok]
             direction = None if direction is None else np.asarray(direction).reshape(-1)[ok]
             n = kept
@@ -823,6 +826,7 @@ class WheelBank:
         self._q_slot.append(slot)
         self._q_stamp.append(t)
         self._q_len.append(n)
+        return skipped
 
     def _flush(self) -> None:
         """Write the queued batches into the rings, with their cumulative angles."""
@@ -1382,9 +1386,10 @@ class WheelTracker:
         """Learnt angle correction of each tooth, shape ``(teeth_per_rev,)``, zero mean."""
         return self._bank.tooth_correction_rad(self._slot)
 
-    def push(self, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None) -> None:
-        """Append edges (non-decreasing stamps; earlier-than-held ones are skipped and counted)."""
-        self._bank.push(self._slot, stamp_ns, direction)
+    def push(self, stamp_ns: IntArray, direction: npt.NDArray[np.int8] | None = None) -> int:
+        """Append edges (non-decreasing stamps; earlier-than-held ones are skipped and counted);
+        returns how many of these were skipped."""
+        return self._bank.push(self._slot, stamp_ns, direction)
 
     def query(self, query_ns: IntArray) -> WheelSpeedResult:
         """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history.
