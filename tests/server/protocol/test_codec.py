@@ -565,3 +565,23 @@ def test_gnss_fast_check_takes_the_usual_packet_and_nan_attitude() -> None:
     no_attitude = {**usual, "heading_rad": math.nan, "pitch_rad": math.nan, "roll_rad": math.nan}
     assert _gnss_sample(no_attitude, LIMITS) is not None
     assert _gnss_sample({**usual, "heading_rad": math.inf}, LIMITS) is None
+
+
+@pytest.mark.parametrize(
+    ("fields", "reason"),
+    [
+        ({"v": True}, "schema_version"),  # True == 1, but not an integer version
+        ({"v": 1.0}, "schema_version"),
+        ({"seq": True}, "wrong_type"),
+        ({"seq": -1}, "out_of_range"),
+        ({"seq": 2**63}, "out_of_range"),
+        ({"sensor": "IMU"}, "key_mismatch"),
+        ({"sensor": 1}, "key_mismatch"),
+    ],
+)
+def test_header_values_the_one_expression_check_must_not_take(
+    fields: dict[str, object], reason: str
+) -> None:
+    """The usual header is checked in one expression; values next to valid ones still get
+    the field rules' reason."""
+    assert _reason(KEY[Stream.IMU], _raw(Stream.IMU, **fields)) == reason
