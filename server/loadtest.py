@@ -36,6 +36,9 @@ backlog is empty, at most ``DRAIN_S``):
   ±2.5 %);
 * server CPU (cores: CPU seconds per wall second, all threads) and RSS (first, last, peak) via
   psutil on the server pid; publisher CPU likewise.
+* the machine's speed before the load and after it (:mod:`server.speed_probe`: a fixed Python
+  loop, best of three): near the machine's limit a shared machine's drift decides the tail, so
+  runs are compared at a like speed.
 
 Everything runs on loopback and stops by itself (bounded duration and drain).
 """
@@ -60,6 +63,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 from server.ports import free_port
 from server.procs import stop_process
+from server.speed_probe import probe_s
 
 if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
     import httpx
@@ -682,6 +686,7 @@ def run_loadtest(
         }
         for groups in _assignments(spec, target.shards)
     ]
+    probe_before_s = probe_s()  # before any load: the machine's speed at the start
     http = httpx.Client(timeout=30.0)
     server_watch = _ProcWatch(target.pids).start()
     pubs = [_Publisher(i, job) for i, job in enumerate(jobs)]
@@ -796,6 +801,7 @@ def run_loadtest(
                 max((p.final or {}).get("max_behind_ms", p.behind_ms) for p in pubs), 1
             ),
             "machine_cpus": os.cpu_count(),
+            "machine_probe_s": [round(probe_before_s, 3), round(probe_s(), 3)],
         }
     )
     series = server_watch.rss_series
@@ -841,6 +847,12 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"server   CPU {r['server_cpu_cores']:.2f} cores of {r['machine_cpus']}  RSS "
             f"{r['server_rss_mb_start']} → {r['server_rss_mb_end']} MB (peak "
             f"{r['server_rss_mb_peak']} MB, growth {r.get('server_rss_growth_pct')} %)"
+        )
+    if r.get("machine_probe_s"):
+        before, after = r["machine_probe_s"]
+        lines.append(
+            f"machine  Python probe {before:.3f} s before, {after:.3f} s after (a fixed loop, "
+            "best of 3: runs are comparable at a like speed)"
         )
     return "\n".join(lines)
 

@@ -11,7 +11,14 @@ import numpy as np
 import pytest
 
 from server.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
-from server.loadtest import LoadSpec, Target, local_server, run_loadtest, scrape
+from server.loadtest import (
+    LoadSpec,
+    Target,
+    format_report,
+    local_server,
+    run_loadtest,
+    scrape,
+)
 from server.protocol import Stream, decode, sensor_key
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
@@ -52,6 +59,9 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
         assert lat["p99_ms"] < 2_000
     assert r["server_cpu_cores"] > 0
     assert r["server_rss_mb_peak"] > 0
+    before, after = r["machine_probe_s"]
+    assert 0 < before < 60 and 0 < after < 60
+    assert f"Python probe {before:.3f} s before" in format_report(r)
 
 
 def test_replayed_recordings_load_the_server_like_simulated_vehicles(tmp_path: Path) -> None:
