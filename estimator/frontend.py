@@ -814,7 +814,7 @@ class FleetFrontEnd:
             if slot in self._gridless:
                 self._first_seen(slot, int(t[0]))
         elif isinstance(m, WheelSpeeds):
-            t = np.asarray(m.stamp_ns, dtype=np.int64).reshape(-1)
+            t = as_stamps(m.stamp_ns)
             direct = self.direct[slot]
             assert direct is not None
             before = direct.skipped

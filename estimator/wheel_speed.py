@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 
+from estimator._arrays import as_stamps
 from estimator._slots import grow_slot_array
 from estimator.config import ConfigError
 
@@ -794,9 +795,7 @@ class WheelBank:
         An edge is kept when it is not earlier than any edge before it (held or in the batch).
         Returns how many of these edges were skipped (also added to ``skipped[slot]``).
         """
-        t = stamp_ns
-        if type(t) is not np.ndarray or t.dtype != np.int64 or t.ndim != 1:
-            t = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
+        t = as_stamps(stamp_ns)
         tl = t.tolist()
         n = len(tl)
         if n == 0:
