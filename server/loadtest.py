@@ -24,12 +24,14 @@ recording ``i mod len(paths)``, renamed and shifted in time (stamps moved to *no
 over the tick), looping.
 
 Measured over the window after the warm-up (every publisher has sent, then ``--warmup`` seconds)
-until the publishers stop, plus a drain (the server has counted every packet sent and the writer
-backlog is empty, at most ``DRAIN_S``):
+until the publishers stop, plus a drain (the server has counted every packet sent, the writer
+backlog is empty and, 1.5 s on, the writer has taken every estimate row produced; at most
+``DRAIN_S``):
 
 * packets sent (publishers) / received / accepted / rejected / late / duplicate / lost by
   sequence gap (server ``/metrics``), and *missing* = sent − received over the whole run;
-* estimate rows produced and stored, storage rows/s;
+* estimate rows produced, stored and not inserted (stored already, or of a vehicle the store
+  does not know), storage rows/s;
 * latency from each estimate's sensor timestamp to the live feed and to the committed row
   (:mod:`server.latency` histograms, differenced over the window — without the drain, whose
   rows the reorder buffers release only after the vehicles fall silent: p50/p95/p99/max,
@@ -249,7 +251,14 @@ def scrape(
         if own:
             c.close()
     out: dict[str, Any] = dict.fromkeys(_PACKET_COUNTERS, 0.0)
-    out.update(rejected=0.0, estimate_rows=0.0, rows_written=0.0, rows_dropped=0.0, backlog=0.0)
+    out.update(
+        rejected=0.0,
+        estimate_rows=0.0,
+        rows_written=0.0,
+        rows_dropped=0.0,
+        rows_not_inserted=0.0,
+        backlog=0.0,
+    )
     out["rejected_by_reason"] = {}
     vehicles: set[str] = set()
     wanted = {f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS}
@@ -271,6 +280,11 @@ def scrape(
             out["estimate_rows"] += value
         elif name == "slipfleet_writer_rows_written_total":
             out["rows_written"] += value
+        elif name in (
+            "slipfleet_writer_rows_ignored_total",
+            "slipfleet_writer_rows_dropped_error_total",
+        ):
+            out["rows_not_inserted"] += value
         elif name == "slipfleet_writer_rows_dropped_backlog_full_total":
             out["rows_dropped"] += value
         elif name == "slipfleet_writer_backlog_rows":
@@ -282,7 +296,8 @@ def scrape(
 
 def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for k in (*_PACKET_COUNTERS, "rejected", "estimate_rows", "rows_written", "rows_dropped"):
+    counted = ("rejected", "estimate_rows", "rows_written", "rows_dropped", "rows_not_inserted")
+    for k in (*_PACKET_COUNTERS, *counted):
         out[k] = sum(float(s[k]) for s in scrapes)
     out["backlog"] = sum(float(s["backlog"]) for s in scrapes)
     reasons: dict[str, float] = {}
@@ -742,16 +757,19 @@ def run_loadtest(
         for p in pubs:
             p.join()
         sent_total = sum((p.final or {}).get("sent", p.sent) for p in pubs)
-        # drain: every packet counted, estimates of the window produced, writer backlog empty
+        # drain: every packet counted, writer backlog empty, and (after a pause in which the
+        # vehicles' idle release emits their last rows) every row produced taken by the writer:
+        # inserted, not inserted (stored already, unknown vehicle) or dropped
         t_drain = time.monotonic()
-        while True:
+        settled_at: float | None = None
+        while time.monotonic() - t_drain <= DRAIN_S:
             last = _merge([scrape(a, http, by_vehicle=False) for a in target.apis])
+            taken = last["rows_written"] + last["rows_not_inserted"] + last["rows_dropped"]
             if last["received"] >= sent_total and last["backlog"] == 0:
-                break
-            if time.monotonic() - t_drain > DRAIN_S:
-                break
+                settled_at = settled_at or time.monotonic()
+                if time.monotonic() - settled_at >= 1.5 and taken >= last["estimate_rows"]:
+                    break
             time.sleep(0.25)
-        time.sleep(1.5)  # the rows of the last released horizon reach the writer and commit
         after = _merge([scrape(a, http) for a in target.apis])
         drain_s = time.monotonic() - t_drain
     finally:
@@ -785,6 +803,7 @@ def run_loadtest(
             "packets_missing": int(max(0, sent_total - received_total)),
             "estimates_produced": int(after["estimate_rows"]),
             "estimates_stored": int(after["rows_written"]),
+            "estimates_not_inserted": int(after["rows_not_inserted"]),
             "rows_dropped_backlog_full": int(after["rows_dropped"]),
             "storage_rows_per_s": round(
                 (after["rows_written"] - before["rows_written"]) / (wall + drain_s), 1
@@ -832,6 +851,7 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"(publishers {r['publisher_cpu_cores']} cores, max behind "
         f"{r['publisher_max_behind_ms']} ms)",
         f"estimates produced {r['estimates_produced']}  stored {r['estimates_stored']}  "
+        f"not inserted {r.get('estimates_not_inserted', 0)}  "
         f"({r['storage_rows_per_s']:.0f} rows/s)  dropped(backlog) "
         f"{r['rows_dropped_backlog_full']}",
     ]

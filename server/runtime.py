@@ -303,6 +303,12 @@ class Runtime:
                     w.rows_dropped_backlog_full,
                     "Rows refused: backlog full.",
                 ),
+                (
+                    "rows_ignored",
+                    w.rows_ignored,
+                    "Rows the store did not insert: stored already, or of an unknown vehicle.",
+                ),
+                ("rows_dropped_error", w.rows_dropped_error, "Rows refused by the store."),
                 ("transactions", w.transactions, "Committed estimate transactions."),
             ):
                 families.append(

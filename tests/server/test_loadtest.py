@@ -49,6 +49,7 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
     assert r["loss_free"]
     assert r["estimates_stored"] > 0
     assert r["estimates_stored"] == r["estimates_produced"]
+    assert r["estimates_not_inserted"] == 0
     for stage in ("live", "stored"):
         lat = r["latency"][stage]
         assert lat["rows"] > 0
