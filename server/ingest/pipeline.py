@@ -393,9 +393,7 @@ class Pipeline:
                     spent = self._clock() - now
                     next_tick = self._next_tick_ns(next_tick, now, spent)
                 if now >= next_counters:
-                    self._estimator_counters = self._registry.counters()
-                    self._anchors = self._registry.anchors()
-                    self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
+                    self._refresh_snapshots()
                     next_counters = now + ESTIMATOR_COUNTERS_EVERY_NS
             except Exception:  # a bug here must not stall ingest (Zenoh would block on us)
                 self._stats["pipeline_errors"] += 1
@@ -412,7 +410,15 @@ class Pipeline:
             if rest:
                 self._handle(self._decoded(rest[1]), rest[0])
         self._tick(self._clock(), flush=True)
-        self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}  # final counters
+        self._refresh_snapshots()  # the final counters include vehicles seen since the last one
+
+    def _refresh_snapshots(self) -> None:
+        """Copy the estimators' counters and anchors and the buffers' highest sequence
+        numbers for the snapshot readers (other threads read these copies, never the live
+        state)."""
+        self._estimator_counters = self._registry.counters()
+        self._anchors = self._registry.anchors()
+        self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
 
     def _next_item(self, timeout_s: float | None) -> _QueueItem:
         """The next queue item (one taken early by :meth:`_coalesce` first); waits up to

@@ -240,6 +240,22 @@ def test_sequence_tracking_resumes_after_a_restart() -> None:
     assert c["received"] == 5 == c["accepted"]
 
 
+def test_final_snapshots_include_vehicles_seen_since_the_last_refresh(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Stopping refreshes the estimators' counters and anchors one last time: a vehicle first
+    seen after the periodic refresh is in them (a worker's final report is this snapshot)."""
+    monkeypatch.setattr(pipeline_module, "ESTIMATOR_COUNTERS_EVERY_NS", 3600 * 10**9)
+    settings = Settings(ingest=IngestSettings.model_validate({"process_interval_ms": 5}))
+    pipe = Pipeline(settings, None, EstimatorRegistry(), [], wall_clock_ns=lambda: T0)
+    pipe.start()
+    time.sleep(0.1)  # the periodic refresh at start runs before any vehicle is seen
+    pipe.submit([gnss("late", 0, 0), imu("late", 0, 0)])
+    pipe.stop()
+    assert "late" in pipe.estimator_counters_snapshot()["mdsf"]
+    assert pipe.anchors_snapshot()["late"] == pytest.approx((48.0, 11.0, 500.0))
+
+
 def test_tick_schedule_keeps_the_estimator_cadence_and_the_duty() -> None:
     """Ticks every process_interval_ms; none later than the next estimator call is due (so calls
     come every estimate_interval_ms instead of at the first tick after it); a slow tick spaced
