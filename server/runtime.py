@@ -11,7 +11,6 @@ the API reads ``store``, ``live_hub``, ``alert_engine`` and the hooks below.
 
 from __future__ import annotations
 
-import concurrent.futures
 import json
 import logging
 import threading
@@ -64,7 +63,6 @@ class Runtime:
         self.pipeline: Pipeline | WorkerPool | None = None
         self.viewer: Any = None
         self._configs: dict[str, VehicleConfig] = {}
-        self._registrar: concurrent.futures.ThreadPoolExecutor | None = None
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self._alert_publishers: dict[str, zenoh.Publisher] = {}
@@ -83,7 +81,6 @@ class Runtime:
         s = self.settings
         self._store = open_store(s.storage)
         self.writer = StoreWriter(self.latency.wrap_store(self._store), s.storage).start()
-        self._registrar = concurrent.futures.ThreadPoolExecutor(1, "slipfleet-registrar")
         self.live_hub = LiveHub()
         self.alert_engine = AlertEngine(
             slip_config_for=lambda vid: self._config_of(vid).slip, publish=self._publish_alert
@@ -153,9 +150,6 @@ class Runtime:
             self.pipeline.stop()
             if self.writer is not None:
                 self.writer.submit_counters(self.pipeline.counters_snapshot())
-        if self._registrar is not None:
-            self._registrar.shutdown(wait=True)
-            self._registrar = None
         if self.writer is not None:
             self.writer.close()
         for pub in self._alert_publishers.values():
@@ -177,14 +171,9 @@ class Runtime:
         self._configs[vehicle_id] = config
         if self.alert_engine is not None:
             self.alert_engine.set_slip_config(vehicle_id, config.slip)
-        if self._registrar is not None:
-            self._registrar.submit(self._store_vehicle, vehicle_id, config)
-
-    def _store_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
-        try:
-            self.store.upsert_vehicle(vehicle_id, config.to_dict(), time.time_ns())
-        except Exception:  # the store logs the cause; the vehicle stays registered in memory
-            log.exception("could not store vehicle %s", vehicle_id)
+        if self.writer is not None:
+            # through the writer: stored before the vehicle's first rows are written
+            self.writer.submit_vehicle(vehicle_id, config.to_dict(), time.time_ns())
 
     def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
         """API hook: refuse configs naming estimators this server does not have."""
@@ -205,6 +194,8 @@ class Runtime:
     def on_vehicle_deleted(self, vehicle_id: str) -> None:
         """API hook: the store deleted the vehicle; forget it everywhere."""
         self._configs.pop(vehicle_id, None)
+        if self.writer is not None:
+            self.writer.forget_vehicle(vehicle_id)
         if self.pipeline is not None:
             self.pipeline.remove_vehicle(vehicle_id)
         if self.live_hub is not None:
@@ -310,6 +301,12 @@ class Runtime:
                 ),
                 ("rows_dropped_error", w.rows_dropped_error, "Rows refused by the store."),
                 ("transactions", w.transactions, "Committed estimate transactions."),
+                ("vehicles_stored", w.vehicles_stored, "Vehicles the pipeline registered, stored."),
+                (
+                    "vehicles_dropped_error",
+                    w.vehicles_dropped_error,
+                    "Vehicle registrations refused by the store.",
+                ),
             ):
                 families.append(
                     MetricFamily(

@@ -25,6 +25,12 @@ Bounded backlog, no silent loss:
 * :meth:`StoreWriter.close` writes everything out, retrying until ``close_timeout_s``; what is
   still pending then is counted in ``rows_lost_on_close`` and logged as an error.
 
+Vehicles the pipeline registers itself (auto-registered on a first packet, or a config sent
+over Zenoh) are stored by the writer too (:meth:`StoreWriter.submit_vehicle`), before any
+estimate transaction that starts after the call: the store keeps only rows of vehicles it knows,
+so a vehicle stored by another thread could lose its first rows to the race (it did: 5-49 rows a
+1,000-vehicle load test, each a new vehicle's first).
+
 Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win) and, when
 ``store_raw_packets`` is on, raw packets (:meth:`StoreWriter.submit_raw_packets`) ride the same
 thread; counters go in slices of :data:`COUNTER_VEHICLES_PER_WRITE` vehicles, with the estimate
@@ -102,6 +108,10 @@ class WriterStats:
     raw_packets_written: int
     raw_packets_dropped: int
     retention_rows_deleted: int
+    vehicles_stored: int = 0
+    """Vehicle registrations written (:meth:`StoreWriter.submit_vehicle`)."""
+    vehicles_dropped_error: int = 0
+    """Vehicle registrations the database rejected as data (not retried)."""
 
 
 def _copied(batch: EstimateBatch) -> list[np.ndarray]:
@@ -172,6 +182,10 @@ class StoreWriter:
         # totals already queued (or written): a counter that did not change is not written again
         self._counters_sent: dict[str, dict[str, int]] = {}
         self._raw: list[tuple[str, int, str, bytes]] = []
+        # vehicle registrations to store before the next estimate transaction (latest wins)
+        self._vehicles: dict[str, tuple[dict[str, Any], int]] = {}
+        self._vehicles_stored = 0
+        self._vehicles_dropped = 0
         self._aux_seq = 0
         self._aux_done = 0
         self._aux_due_at = 0.0
@@ -317,6 +331,22 @@ class StoreWriter:
         """Pipeline sink: same as :meth:`submit`."""
         self.submit(batch)
 
+    def submit_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> None:
+        """Queue a vehicle's registration (``Store.upsert_vehicle``); it is written before
+        any estimate transaction that starts after this call, so rows submitted after it find
+        the vehicle stored. A later call for the same vehicle replaces one not yet written."""
+        with self._cond:
+            if self._closing:
+                raise RuntimeError("StoreWriter is closed")
+            self._vehicles.pop(vehicle_id, None)
+            self._vehicles[vehicle_id] = (dict(config), int(now_ns))
+            self._cond.notify_all()
+
+    def forget_vehicle(self, vehicle_id: str) -> None:
+        """Drop a registration not yet written (the vehicle was deleted meanwhile)."""
+        with self._cond:
+            self._vehicles.pop(vehicle_id, None)
+
     def submit_counters(self, counters: dict[str, dict[str, int]]) -> None:
         """Queue ingest counter totals ``{vehicle_id: {name: total}}`` (latest totals win).
 
@@ -360,7 +390,11 @@ class StoreWriter:
             self._cond.notify_all()
             try:
                 return self._cond.wait_for(
-                    lambda: self._seq_done >= rows_target and self._aux_done >= aux_target,
+                    lambda: (
+                        self._seq_done >= rows_target
+                        and self._aux_done >= aux_target
+                        and not self._vehicles
+                    ),
                     timeout,
                 )
             finally:
@@ -385,6 +419,8 @@ class StoreWriter:
                 raw_packets_written=self._raw_written,
                 raw_packets_dropped=self._raw_dropped,
                 retention_rows_deleted=self._retention_deleted,
+                vehicles_stored=self._vehicles_stored,
+                vehicles_dropped_error=self._vehicles_dropped,
             )
 
     # ------------------------------------------------------------------ writer thread
@@ -393,7 +429,7 @@ class StoreWriter:
         return self._queued_rows + self._inflight_rows
 
     def _pending_locked(self) -> bool:
-        return bool(self._pending_rows_locked() or self._aux_done < self._aux_seq)
+        return bool(self._pending_rows_locked() or self._aux_done < self._aux_seq or self._vehicles)
 
     def _aux_touched_locked(self) -> None:
         if self._aux_done == self._aux_seq:  # first change since the last write
@@ -441,6 +477,9 @@ class StoreWriter:
                 self._cond.wait(max(until - now, 0.0))
                 continue
             urgent = self._closing or self._flush_waiters > 0
+            if self._vehicles:  # before the rows: the store keeps rows of known vehicles only
+                taken, self._vehicles = self._vehicles, {}
+                return "vehicles", taken
             if self._inflight is not None:
                 return "estimates", self._inflight
             if self._queued_rows and (
@@ -483,6 +522,8 @@ class StoreWriter:
                 kind, payload = job
                 if kind == "estimates":
                     self._write_estimates(payload)
+                elif kind == "vehicles":
+                    self._write_vehicles(payload)
                 elif kind == "aux":
                     self._write_aux(*payload)
                 elif kind == "maintain":
@@ -563,6 +604,38 @@ class StoreWriter:
                 with self._cond:
                     self._last_error = str(exc) or type(exc).__name__
         return written, bad
+
+    def _write_vehicles(self, vehicles: dict[str, tuple[dict[str, Any], int]]) -> None:
+        """Store registrations in order; on a database outage put back what is left (a newer
+        registration of the same vehicle, submitted meanwhile, wins) and retry later."""
+        pending = list(vehicles.items())
+        while pending:
+            vid, (config, now_ns) = pending[0]
+            pending.pop(0)
+            try:
+                self._store.upsert_vehicle(vid, config, now_ns)
+            except StorageError as exc:
+                if not isinstance(exc, StorageDataError):
+                    with self._cond:
+                        pending.insert(0, (vid, (config, now_ns)))
+                        self._vehicles = {**dict(pending), **self._vehicles}
+                        self._failed_locked(exc)
+                    return
+                self._vehicle_refused(vid, exc)
+            except Exception as exc:  # as a data error: this vehicle only, the rest go on
+                self._vehicle_refused(vid, exc)
+            else:
+                with self._cond:
+                    self._vehicles_stored += 1
+        with self._cond:
+            self._succeeded_locked()
+            self._cond.notify_all()
+
+    def _vehicle_refused(self, vehicle_id: str, exc: Exception) -> None:
+        log.error("store refused vehicle %s, not stored: %s", vehicle_id, exc)
+        with self._cond:
+            self._vehicles_dropped += 1
+            self._last_error = str(exc) or type(exc).__name__
 
     def _write_aux(
         self,

@@ -259,6 +259,59 @@ def test_flush_and_counters_and_duplicates(backend: Backend) -> None:
     assert stats.healthy and stats.last_error is None
 
 
+def test_a_vehicle_is_stored_before_the_rows_submitted_after_it(backend: Backend) -> None:
+    """The pipeline registers a new vehicle and hands over its first rows right after: the
+    writer stores the vehicle first, so none of those rows is refused as of an unknown one."""
+    store = backend.open()
+    rows = make_rows(40)
+    with StoreWriter(store, _settings(commit_interval_s=0.001)) as writer:
+        for i in range(20):
+            writer.submit_vehicle(f"new{i}", {"kind": "wheeled", "n": i}, now_ns=5)
+            writer.submit([(f"new{i}", rows[: 2 * i + 1])])
+        assert writer.flush(timeout=30)
+        writer.submit_vehicle("new0", {"kind": "wheeled", "n": 99}, now_ns=6)  # a newer config
+        assert writer.flush(timeout=30)
+        stats = writer.stats()
+    assert stats.rows_ignored == 0 and stats.rows_written == sum(2 * i + 1 for i in range(20))
+    assert stats.vehicles_stored == 21 and stats.vehicles_dropped_error == 0
+    for i in range(20):
+        assert_rows_equal(store.query_series(f"new{i}", 0, 2**62), rows[: 2 * i + 1])
+    first = store.get_vehicle("new0")
+    assert first is not None and first.config == {"kind": "wheeled", "n": 99}
+
+
+def test_vehicles_wait_out_an_outage_and_a_refused_one_is_counted(backend: Backend) -> None:
+    store = backend.open(fast_fail=True)
+    writer = StoreWriter(store, _settings(commit_interval_s=0.05), retry_initial_s=0.05).start()
+    try:
+        with backend.outage():
+            writer.submit_vehicle("v1", {}, now_ns=1)
+            writer.submit_vehicle("bad", {"not json": {1, 2}}, now_ns=1)  # a set: no JSON
+            writer.submit_vehicle("v2", {}, now_ns=1)
+            writer.submit([("v1", make_rows(10)), ("v2", make_rows(3))])
+            _wait_for(lambda: not writer.stats().healthy)
+            assert not writer.flush(timeout=0.3)
+        assert writer.flush(timeout=60)
+        stats = writer.stats()
+    finally:
+        writer.close(timeout=30)
+    assert stats.healthy and stats.rows_written == 13 and stats.rows_ignored == 0
+    assert stats.vehicles_stored == 2 and stats.vehicles_dropped_error == 1
+    assert sorted(v.vehicle_id for v in store.list_vehicles()) == ["v1", "v2"]
+
+
+def test_a_deleted_vehicle_is_not_stored_again(backend: Backend) -> None:
+    store = backend.open()
+    writer = StoreWriter(store, _settings())  # not started: the registration waits
+    writer.submit_vehicle("gone", {}, now_ns=1)
+    writer.submit_vehicle("kept", {}, now_ns=1)
+    writer.forget_vehicle("gone")
+    writer.close()
+    assert [v.vehicle_id for v in store.list_vehicles()] == ["kept"]
+    with pytest.raises(RuntimeError):
+        writer.submit_vehicle("late", {}, now_ns=2)
+
+
 def test_submit_validates_and_copies(backend: Backend) -> None:
     store = backend.open()
     store.upsert_vehicle("v1", {}, now_ns=1)
