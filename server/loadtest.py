@@ -3,14 +3,15 @@
 ::
 
     slipfleet loadtest --vehicles 1000 --duration 60 [--scenario mix] [--rate-scale 1]
-                       [--publishers 2] [--warmup 5] [--json PATH]
+                       [--publishers N] [--warmup 5] [--json PATH]
                        [--connect tcp/HOST:7447 --api http://HOST:8000 [--server-pid PID]]
                        [--replay REC [REC ...]]
 
 Without ``--connect`` a server is started in a child process (embedded router on a free loopback
 port, SQLite in a temporary directory unless ``--storage-url``; viewer off, no access tokens;
 ``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s`` tune it). ``--publishers``
-child processes publish the vehicles, each with ``--sessions`` client sessions, through
+child processes (default: one per :data:`VEHICLES_PER_PUBLISHER` vehicles) publish the
+vehicles, each with ``--sessions`` client sessions, through
 :class:`server.fleet_sim.FleetSim`: GNSS 10 Hz, IMU 100 Hz in 100 ms batches, wheel edges in
 100 ms batches (≈30 packets per vehicle-second), BLOCK congestion control, sends spread over the
 100 ms tick. Each child publishes all its vehicles from one thread and one merged schedule of
@@ -52,6 +53,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -73,11 +75,14 @@ if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
 
 __all__ = [
     "MIX",
+    "VEHICLES_PER_PUBLISHER",
     "LoadSpec",
     "ServerProcess",
     "Target",
+    "assignments",
     "format_report",
     "main",
+    "publisher_count",
     "run_loadtest",
     "scrape",
 ]
@@ -346,6 +351,13 @@ def _latency_window(
 
 # ---------------------------------------------------------------------------------- publishers
 
+#: Vehicles one publisher process sends by default. One process sends 1,000 vehicles (30,000
+#: packets/s) for 0.18-0.22 cores of the 2-core reference machine and was at most 62-125 ms
+#: behind its schedule; two processes sharing them cost 0.27-0.30 cores (each has its own
+#: Zenoh runtime and sending loop), CPU the server under test then lacks (loadtest, 1,000
+#: vehicles, 20 s windows, the two alternating).
+VEHICLES_PER_PUBLISHER = 1500
+
 
 @dataclass(frozen=True)
 class LoadSpec:
@@ -355,7 +367,8 @@ class LoadSpec:
     duration_s: float
     scenario: str = "mix"
     rate_scale: float = 1.0
-    publishers: int = 2
+    publishers: int | None = None
+    """Publisher processes; None: one per :data:`VEHICLES_PER_PUBLISHER` vehicles."""
     sessions_per_publisher: int = 8
     warmup_s: float = 5.0
     distinct_runs: int = 2
@@ -363,7 +376,14 @@ class LoadSpec:
     seed: int = 0
 
 
-def _assignments(spec: LoadSpec, shards: Sequence[str]) -> list[list[dict[str, Any]]]:
+def publisher_count(spec: LoadSpec) -> int:
+    """The publisher processes ``spec`` asks for, or one per :data:`VEHICLES_PER_PUBLISHER`."""
+    if spec.publishers is not None:
+        return max(1, spec.publishers)
+    return max(1, math.ceil(spec.vehicles / VEHICLES_PER_PUBLISHER))
+
+
+def assignments(spec: LoadSpec, shards: Sequence[str]) -> list[list[dict[str, Any]]]:
     """Per publisher process, its groups: ``{id_format, first, count, scenario}``.
 
     Vehicles are numbered per shard; shard ``k`` gets vehicles ``k, k + S, …`` of the fleet, and
@@ -383,7 +403,7 @@ def _assignments(spec: LoadSpec, shards: Sequence[str]) -> list[list[dict[str, A
                 groups.append({"id_format": fmt, "first": first, "count": n, "scenario": scen})
                 first += n
     # split groups across publishers so each gets about the same number of vehicles
-    n_pub = max(1, min(spec.publishers, spec.vehicles))
+    n_pub = max(1, min(publisher_count(spec), spec.vehicles))
     per_pub: list[list[dict[str, Any]]] = [[] for _ in range(n_pub)]
     target = spec.vehicles / n_pub
     p, load = 0, 0
@@ -699,7 +719,7 @@ def run_loadtest(
             "seed": spec.seed,
             "distinct_runs": spec.distinct_runs,
         }
-        for groups in _assignments(spec, target.shards)
+        for groups in assignments(spec, target.shards)
     ]
     probe_before_s = probe_s()  # before any load: the machine's speed at the start
     http = httpx.Client(timeout=30.0)
@@ -929,7 +949,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, required=True, help="measured seconds")
     p.add_argument("--scenario", default="mix", help="a scenario name or 'mix'")
     p.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
-    p.add_argument("--publishers", type=int, default=2, help="publisher processes")
+    p.add_argument(
+        "--publishers",
+        type=int,
+        default=None,
+        help=f"publisher processes (default: one per {VEHICLES_PER_PUBLISHER:,} vehicles)",
+    )
     p.add_argument(
         "--workers",
         type=int,

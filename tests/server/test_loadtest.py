@@ -12,10 +12,13 @@ import pytest
 
 from server.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
 from server.loadtest import (
+    VEHICLES_PER_PUBLISHER,
     LoadSpec,
     Target,
+    assignments,
     format_report,
     local_server,
+    publisher_count,
     run_loadtest,
     scrape,
 )
@@ -33,6 +36,18 @@ def test_quantiles_from_buckets_recover_known_latencies() -> None:
     assert q[0.5] == pytest.approx(0.5, rel=0.05)  # buckets are 5 % wide
     assert q[0.99] == pytest.approx(0.99, rel=0.05)
     assert max_ns == 1_000_000_000
+
+
+def test_one_publisher_process_per_1500_vehicles_unless_asked() -> None:
+    def shares(spec: LoadSpec) -> list[int]:
+        return [sum(g["count"] for g in groups) for groups in assignments(spec, ["sim-{:05d}"])]
+
+    assert publisher_count(LoadSpec(vehicles=1000, duration_s=1)) == 1
+    assert shares(LoadSpec(vehicles=1000, duration_s=1)) == [1000]
+    assert publisher_count(LoadSpec(vehicles=VEHICLES_PER_PUBLISHER + 1, duration_s=1)) == 2
+    assert shares(LoadSpec(vehicles=3000, duration_s=1)) == [1500, 1500]
+    assert shares(LoadSpec(vehicles=1000, duration_s=1, publishers=4)) == [250] * 4
+    assert shares(LoadSpec(vehicles=3, duration_s=1, publishers=8)) == [1, 1, 1]
 
 
 def test_small_fleet_against_a_server_process_loses_nothing() -> None:
