@@ -287,14 +287,14 @@ class _Counter:
 def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Namespace) -> dict:
     import zenoh
 
-    from server.loadtest import LoadSpec, _assignments
+    from server.loadtest import LoadSpec, assignments
 
     prefix = f"bench-{path}-{vehicles}"
     counter = _Counter()
     sub = router.declare_subscriber(zenoh.KeyExpr(prefix).join("*/sensors/*"), counter)
     spec = LoadSpec(vehicles=vehicles, duration_s=args.window, publishers=PUBLISHERS)
     procs = []
-    for groups in _assignments(spec, ("sim-{:05d}",)):
+    for groups in assignments(spec, ("sim-{:05d}",)):
         job = {
             "endpoints": [endpoint],
             "sessions": args.sessions if path == "encoded" else OLD_SESSIONS,
