@@ -79,6 +79,15 @@ _SLIP_MIN_SPEED_MPS = 0.5
 _F = EstimateFlag
 _RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
 _RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
+#: Observation rows of the two update stages (the rows a stage's mask can switch on).
+_STAGE1_ROWS = (int(MdsfObs.A1), int(MdsfObs.OMEGA_X), int(MdsfObs.OMEGA_Z))
+_STAGE2_ROWS_PAPER = (int(MdsfObs.VG),)
+_STAGE2_ROWS_PRODUCT = (
+    int(MdsfObs.VG),
+    int(MdsfObs.RIM_LEFT),
+    int(MdsfObs.RIM_RIGHT),
+    int(MdsfObs.DIST),
+)
 """The rim-excess states (left, right), for indexing both diagonals at once."""
 _DIST_OPEN_VAR_M2 = 1.0e4
 """Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
@@ -191,7 +200,7 @@ class TickModel:
     special : ndarray, shape (k,), bool
         The row was (re)initialised, reset after divergence or handed over: not a plain
         Kalman step.
-    stages : tuple of kalman.UpdateResult
+    stages : tuple of kalman.IndependentUpdateResult
         The two update stages.
     """
 
@@ -205,7 +214,7 @@ class TickModel:
     inflated: BoolArray
     dof: IntArray
     special: BoolArray
-    stages: tuple[kalman.UpdateResult, kalman.UpdateResult]
+    stages: tuple[kalman.IndependentUpdateResult, kalman.IndependentUpdateResult]
 
     @property
     def nis(self) -> FloatArray:
@@ -517,14 +526,15 @@ class MdsfEngine:
             F = self.F[slots]
         x_pr, P_pr = kalman.predict(x, P, F, Q, u)
 
-        # -- update in two stages (equal to one joint update: the rows' noises are independent)
+        # -- update in two stages (equal to one joint update: the rows' noises are independent,
+        #    so each stage also applies its rows one at a time, kalman.update_independent)
         # 1) the IMU rows, 2) GNSS speed and rim speeds, gated against the stage-1 posterior so
         #    the tests see this tick's measured rates.
         mask1 = np.zeros((k, m), dtype=bool)
         mask1[:, MdsfObs.A1] = t.imu_ok & (not self.product)
         mask1[:, MdsfObs.OMEGA_X] = t.imu_ok
         mask1[:, MdsfObs.OMEGA_Z] = t.imu_ok
-        res1 = kalman.update(x_pr, P_pr, z, H, R, mask1)
+        res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS)
         x_1, P_1 = res1.x, res1.P
         y_all = z - np.einsum("kmi,ki->km", H, x_1)
         s_all = np.einsum("kmi,kij,kmj->km", H, P_1, H) + rd
@@ -570,7 +580,8 @@ class MdsfEngine:
             d_gated = t.dist_ok & init & ~(y_d * y_d <= cfg.gate_chi2 * s_d)
             self.dist_gated[slots] = np.where(t.dist_ok, d_gated, self.dist_gated[slots])
             mask2[:, MdsfObs.DIST] = t.dist_ok & ~d_gated
-        res = kalman.update(x_1, P_1, z, H, R, mask2)
+        stage2 = _STAGE2_ROWS_PRODUCT if self.product else _STAGE2_ROWS_PAPER
+        res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2)
         x_new, P_new = res.x, res.P
         zupt = np.zeros(k, dtype=bool)
         if self.product and cfg.zupt_speed_mps > 0:
@@ -583,13 +594,12 @@ class MdsfEngine:
                 & (~gnss_ok | (np.abs(z[:, MdsfObs.VG]) <= 2.0 * zs))
             )
             if zupt.any():
-                rz = np.full((k, 1, 1), (0.5 * zs) ** 2)
-                resz = kalman.update(
+                resz = kalman.update_independent(
                     x_new,
                     P_new,
                     np.zeros((k, 1)),
                     self.v0_row[slots][:, None, :],
-                    rz,
+                    np.full((k, 1), (0.5 * zs) ** 2),
                     zupt[:, None],
                 )
                 x_new, P_new = resz.x, resz.P

@@ -23,7 +23,15 @@ from typing import cast
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["UpdateResult", "innovation", "predict", "symmetrize", "update"]
+__all__ = [
+    "IndependentUpdateResult",
+    "UpdateResult",
+    "innovation",
+    "predict",
+    "symmetrize",
+    "update",
+    "update_independent",
+]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -206,3 +214,94 @@ def update(
         K=K,
         dof=mask.sum(axis=1).astype(np.int64),
     )
+
+
+@dataclass(frozen=True, slots=True)
+class IndependentUpdateResult:
+    """Result of :func:`update_independent`.
+
+    Attributes
+    ----------
+    x : ndarray, shape (N, n)
+        Posterior state.
+    P : ndarray, shape (N, n, n)
+        Posterior covariance (Joseph form, symmetrised).
+    nis : ndarray, shape (N,)
+        Normalised innovation squared over the active rows, the sum of the rows' ``y_j²/s_j``
+        (equal to the joint update's ``yᵀ·S⁻¹·y``).
+    dof : ndarray, shape (N,), int
+        Number of active rows.
+    """
+
+    x: FloatArray
+    P: FloatArray
+    nis: FloatArray
+    dof: npt.NDArray[np.int64]
+
+
+def update_independent(
+    x: FloatArray,
+    P: FloatArray,
+    z: FloatArray,
+    H: FloatArray,
+    r: FloatArray,
+    mask: BoolArray,
+    rows: tuple[int, ...] | None = None,
+) -> IndependentUpdateResult:
+    """Measurement update for rows with independent noises (diagonal ``R``), one row at a time.
+
+    With ``R`` diagonal the joint update of :func:`update` equals the rows applied one after
+    the other, each a scalar update of the previous row's posterior (the same ``x⁺`` and
+    ``P⁺`` up to rounding, and the rows' ``y_j²/s_j`` add up to the joint ``yᵀ·S⁻¹·y``). For
+    row ``j`` with ``h = H_j``:
+
+        s = h·P·hᵀ + r_j           k = P·hᵀ / s           x⁺ = x + k·(z_j − h·x)
+        P⁺ = (I − k·h)·P·(I − k·h)ᵀ + r_j·k·kᵀ = P − k·(P·hᵀ)ᵀ − (P·hᵀ)·kᵀ + s·k·kᵀ
+
+    (Joseph form). No ``m × m`` solve: about a third of :func:`update`'s cost for the MDSF
+    filter's stages (3-4 active rows of 7, 8 states, a few hundred vehicles a call).
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, n)
+        Prior states.
+    P : ndarray, shape (N, n, n)
+        Prior covariances.
+    z : ndarray, shape (N, m)
+        Measurements; values on masked rows are ignored (they may be NaN).
+    H : ndarray, shape (m, n) or (N, m, n)
+        Observation matrix.
+    r : ndarray, shape (N, m)
+        Measurement noise variances (the diagonal of ``R``).
+    mask : ndarray, shape (N, m), bool
+        ``True`` where the row is used.
+    rows : tuple of int, optional
+        The rows to apply (default: every row); a row left out is treated as masked.
+
+    Returns
+    -------
+    IndependentUpdateResult
+    """
+    n_batch = x.shape[0]
+    Hb = _batched(H, n_batch, 2)
+    x = np.array(x, dtype=np.float64)
+    P = np.array(P, dtype=np.float64)
+    nis = np.zeros(n_batch)
+    dof = np.zeros(n_batch, dtype=np.int64)
+    for j in range(Hb.shape[1]) if rows is None else rows:
+        active = mask[:, j]
+        if not active.any():
+            continue
+        h = Hb[:, j, :]
+        Ph = (P @ h[:, :, None])[:, :, 0]  # P·hᵀ, (N, n)
+        s = (h * Ph).sum(axis=1) + r[:, j]
+        inv = np.where(active, 1.0 / np.where(active, s, 1.0), 0.0)  # 0: the row is inert
+        y = np.where(active, z[:, j] - (h * x).sum(axis=1), 0.0)
+        k = Ph * inv[:, None]
+        x += k * y[:, None]
+        # P − k·Phᵀ − Ph·kᵀ + s·k·kᵀ, symmetric by construction: k·(s·k − 2·Ph)ᵀ symmetrised
+        half = k[:, :, None] * (s[:, None] * k - 2.0 * Ph)[:, None, :]
+        P += 0.5 * (half + half.swapaxes(-1, -2))
+        nis += y * y * inv
+        dof += active
+    return IndependentUpdateResult(x=x, P=P, nis=nis, dof=dof)

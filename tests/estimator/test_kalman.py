@@ -136,3 +136,77 @@ def test_covariance_stays_symmetric_positive_definite(
         assert np.allclose(P, np.swapaxes(P, 1, 2), atol=0.0)
         assert np.all(np.linalg.eigvalsh(P) > 0.0)
         assert np.all(np.isfinite(res.nis)) and np.all(res.nis >= 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    steps=st.integers(1, 30),
+    scale=st.floats(1e-6, 1e3),
+    mask_bits=st.integers(0, 7),
+)
+def test_independent_update_keeps_the_covariance_positive_definite(
+    seed: int, steps: int, scale: float, mask_bits: int
+) -> None:
+    """As above, one row at a time (diagonal R, variances from 1e-6 to 10)."""
+    rng = np.random.default_rng(seed)
+    n, m = 4, 3
+    x = rng.normal(size=(2, n))
+    P = np.stack([_spd(seed, n), _spd(seed + 1, n)]) * scale
+    F = np.eye(n) + np.diag(np.full(n - 1, 0.2), 1)
+    Q = np.diag(rng.uniform(1e-8, 1e-2, n))
+    H = rng.normal(size=(m, n))
+    r = np.tile(rng.uniform(1e-6, 10.0, m), (2, 1))
+    mask = np.array([[(mask_bits >> j) & 1 == 1 for j in range(m)]] * 2)
+    for _ in range(steps):
+        x, P = kalman.predict(x, P, F, Q)
+        res = kalman.update_independent(x, P, rng.normal(size=(2, m)) * scale, H, r, mask)
+        x, P = res.x, res.P
+        assert np.array_equal(P, np.swapaxes(P, 1, 2))
+        assert np.all(np.linalg.eigvalsh(P) > 0.0)
+        assert np.all(np.isfinite(res.nis)) and np.all(res.nis >= 0.0)
+
+
+def _spd_batch(rng: np.random.Generator, batch: int, n: int) -> np.ndarray:
+    A = rng.normal(size=(batch, n, n))
+    return np.asarray(A @ A.swapaxes(1, 2) + np.eye(n))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_independent_rows_one_at_a_time_equal_the_joint_update(seed: int) -> None:
+    """With a diagonal R, rows applied one after the other give the joint update's posterior
+    and NIS, masks and left-out rows included (the MDSF filter's 7 rows, 8 states)."""
+    rng = np.random.default_rng(seed)
+    N, n, m = 64, 8, 7
+    x, P = rng.normal(size=(N, n)), _spd_batch(rng, N, n)
+    H = rng.normal(size=(N, m, n))
+    r = rng.uniform(0.05, 3.0, size=(N, m))
+    z = rng.normal(size=(N, m))
+    mask = rng.random((N, m)) < 0.6
+    rows = (0, 2, 3, 6)
+    mask_joint = np.zeros_like(mask)
+    mask_joint[:, rows] = mask[:, rows]
+    z[~mask] = np.nan  # masked values are never read
+    R = np.zeros((N, m, m))
+    R[:, np.arange(m), np.arange(m)] = r
+    joint = kalman.update(x, P, z, H, R, mask_joint)
+    seq = kalman.update_independent(x, P, z, H, r, mask, rows)
+    assert np.allclose(seq.x, joint.x, rtol=0, atol=1e-10)
+    assert np.allclose(seq.P, joint.P, rtol=0, atol=1e-10)
+    assert np.allclose(seq.nis, joint.nis, rtol=1e-9, atol=1e-12)
+    assert np.array_equal(seq.dof, joint.dof)
+    assert np.array_equal(seq.P, seq.P.swapaxes(1, 2))
+    assert np.all(np.linalg.eigvalsh(seq.P) > 0)
+
+
+def test_independent_update_leaves_items_without_an_active_row_untouched() -> None:
+    rng = np.random.default_rng(11)
+    x, P = rng.normal(size=(3, 4)), _spd_batch(rng, 3, 4)
+    H = np.eye(4)[:2]
+    mask = np.array([[True, False], [False, False], [False, True]])
+    res = kalman.update_independent(x, P, rng.normal(size=(3, 2)), H, np.ones((3, 2)), mask)
+    assert np.array_equal(res.x[1], x[1]) and np.array_equal(res.P[1], P[1])  # bit for bit
+    assert res.dof.tolist() == [1, 0, 1] and res.nis[1] == 0.0
+    # by hand, item 0: v ~ N(x0, P00) measured z0 with unit variance
+    assert not np.array_equal(res.x[0], x[0])
+    assert res.x is not x and res.P is not P  # inputs are not written to
