@@ -537,7 +537,7 @@ class MdsfEngine:
         res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS)
         x_1, P_1 = res1.x, res1.P
         y_all = z - np.einsum("kmi,ki->km", H, x_1)
-        s_all = np.einsum("kmi,kij,kmj->km", H, P_1, H) + rd
+        s_all = kalman.row_variances(H, P_1) + rd
         y_vg = y_all[:, MdsfObs.VG]
         gated = np.zeros(k, dtype=bool)
         reacq = np.zeros(k, dtype=bool)
@@ -660,7 +660,7 @@ class MdsfEngine:
         # speed from accelerometer + slip-corrected wheel speed while it is lost.
         v0_row = self.v0_row[slots]
         v0 = np.einsum("ki,ki->k", v0_row, x_new)
-        v0_var = np.einsum("ki,kij,kj->k", v0_row, P_new, v0_row)
+        v0_var = kalman.row_variances(v0_row[:, None, :], P_new)[:, 0]
         a_ref = z[:, MdsfObs.A1] - (x_new[:, MdsfState.ACCEL_BIAS] if self.product else 0.0)
         rx, rP, raux, _ = reference_step(
             self.ref_x[slots],
@@ -699,7 +699,7 @@ class MdsfEngine:
         # -- outputs -------------------------------------------------------------------------
         H1 = self.H1[slots]
         z1 = np.einsum("koi,ki->ko", H1, x_new)
-        z1_var = np.einsum("koi,kij,koj->ko", H1, P_new, H1)
+        z1_var = kalman.row_variances(H1, P_new)
         z1_std = np.sqrt(np.maximum(z1_var, 0.0))
         flags |= (
             np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)

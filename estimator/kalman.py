@@ -28,6 +28,7 @@ __all__ = [
     "UpdateResult",
     "innovation",
     "predict",
+    "row_variances",
     "symmetrize",
     "update",
     "update_independent",
@@ -48,6 +49,27 @@ def _eye(n: int) -> FloatArray:
     eye = np.eye(n)
     eye.flags.writeable = False
     return eye
+
+
+def row_variances(H: FloatArray, P: FloatArray) -> FloatArray:
+    """The diagonal of ``H·P·Hᵀ`` per batch item: each row's variance under ``P``.
+
+    Parameters
+    ----------
+    H : ndarray, shape (N, m, n)
+    P : ndarray, shape (N, n, n)
+
+    Returns
+    -------
+    ndarray, shape (N, m)
+
+    Notes
+    -----
+    ``((H @ P) * H).sum(-1)``: a batched product and a row sum, about twice as fast as the
+    three-operand ``einsum("kmi,kij,kmj->km")`` (which loops over every index combination) for
+    the MDSF sizes, four times for three rows.
+    """
+    return np.asarray(((H @ P) * H).sum(axis=-1))
 
 
 def _batched(a: FloatArray, n_batch: int, ndim: int) -> FloatArray:

@@ -210,3 +210,10 @@ def test_independent_update_leaves_items_without_an_active_row_untouched() -> No
     # by hand, item 0: v ~ N(x0, P00) measured z0 with unit variance
     assert not np.array_equal(res.x[0], x[0])
     assert res.x is not x and res.P is not P  # inputs are not written to
+
+
+def test_row_variances_are_the_diagonal_of_h_p_ht() -> None:
+    rng = np.random.default_rng(5)
+    H, P = rng.normal(size=(6, 3, 4)), _spd_batch(rng, 6, 4)
+    full = H @ P @ H.swapaxes(1, 2)
+    assert np.allclose(kalman.row_variances(H, P), np.diagonal(full, axis1=1, axis2=2))
