@@ -110,6 +110,7 @@ def _spd(seed: int, n: int) -> np.ndarray:
     return A @ A.T + 1e-3 * np.eye(n)
 
 
+@pytest.mark.parametrize("independent", [False, True], ids=["joint", "row_by_row"])
 @settings(max_examples=60, deadline=None)
 @given(
     seed=st.integers(0, 10_000),
@@ -118,8 +119,10 @@ def _spd(seed: int, n: int) -> np.ndarray:
     mask_bits=st.integers(0, 7),
 )
 def test_covariance_stays_symmetric_positive_definite(
-    seed: int, steps: int, scale: float, mask_bits: int
+    independent: bool, seed: int, steps: int, scale: float, mask_bits: int
 ) -> None:
+    """Both updates (``update_independent`` with the diagonal R it needs), noise variances from
+    1e-6 to 10, covariances scaled from 1e-6 to 1e3."""
     rng = np.random.default_rng(seed)
     n, m = 4, 3
     x = rng.normal(size=(2, n))
@@ -127,40 +130,18 @@ def test_covariance_stays_symmetric_positive_definite(
     F = np.eye(n) + np.diag(np.full(n - 1, 0.2), 1)
     Q = np.diag(rng.uniform(1e-8, 1e-2, n))
     H = rng.normal(size=(m, n))
-    R = np.diag(rng.uniform(1e-6, 10.0, m))
+    r = rng.uniform(1e-6, 10.0, m)
+    R = np.diag(r) if independent else r[:, None] * r[None, :] * 0.1 + np.diag(r)
     mask = np.array([[(mask_bits >> j) & 1 == 1 for j in range(m)]] * 2)
     for _ in range(steps):
         x, P = kalman.predict(x, P, F, Q)
-        res = kalman.update(x, P, rng.normal(size=(2, m)) * scale, H, R, mask)
-        x, P = res.x, res.P
-        assert np.allclose(P, np.swapaxes(P, 1, 2), atol=0.0)
-        assert np.all(np.linalg.eigvalsh(P) > 0.0)
-        assert np.all(np.isfinite(res.nis)) and np.all(res.nis >= 0.0)
-
-
-@settings(max_examples=60, deadline=None)
-@given(
-    seed=st.integers(0, 10_000),
-    steps=st.integers(1, 30),
-    scale=st.floats(1e-6, 1e3),
-    mask_bits=st.integers(0, 7),
-)
-def test_independent_update_keeps_the_covariance_positive_definite(
-    seed: int, steps: int, scale: float, mask_bits: int
-) -> None:
-    """As above, one row at a time (diagonal R, variances from 1e-6 to 10)."""
-    rng = np.random.default_rng(seed)
-    n, m = 4, 3
-    x = rng.normal(size=(2, n))
-    P = np.stack([_spd(seed, n), _spd(seed + 1, n)]) * scale
-    F = np.eye(n) + np.diag(np.full(n - 1, 0.2), 1)
-    Q = np.diag(rng.uniform(1e-8, 1e-2, n))
-    H = rng.normal(size=(m, n))
-    r = np.tile(rng.uniform(1e-6, 10.0, m), (2, 1))
-    mask = np.array([[(mask_bits >> j) & 1 == 1 for j in range(m)]] * 2)
-    for _ in range(steps):
-        x, P = kalman.predict(x, P, F, Q)
-        res = kalman.update_independent(x, P, rng.normal(size=(2, m)) * scale, H, r, mask)
+        z = rng.normal(size=(2, m)) * scale
+        if independent:
+            res: kalman.UpdateResult | kalman.IndependentUpdateResult = kalman.update_independent(
+                x, P, z, H, np.tile(r, (2, 1)), mask
+            )
+        else:
+            res = kalman.update(x, P, z, H, R, mask)
         x, P = res.x, res.P
         assert np.array_equal(P, np.swapaxes(P, 1, 2))
         assert np.all(np.linalg.eigvalsh(P) > 0.0)
