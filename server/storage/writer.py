@@ -608,17 +608,14 @@ class StoreWriter:
     def _write_vehicles(self, vehicles: dict[str, tuple[dict[str, Any], int]]) -> None:
         """Store registrations in order; on a database outage put back what is left (a newer
         registration of the same vehicle, submitted meanwhile, wins) and retry later."""
-        pending = list(vehicles.items())
-        while pending:
-            vid, (config, now_ns) = pending[0]
-            pending.pop(0)
+        items = list(vehicles.items())
+        for i, (vid, (config, now_ns)) in enumerate(items):
             try:
                 self._store.upsert_vehicle(vid, config, now_ns)
             except StorageError as exc:
                 if not isinstance(exc, StorageDataError):
                     with self._cond:
-                        pending.insert(0, (vid, (config, now_ns)))
-                        self._vehicles = {**dict(pending), **self._vehicles}
+                        self._vehicles = {**dict(items[i:]), **self._vehicles}
                         self._failed_locked(exc)
                     return
                 self._vehicle_refused(vid, exc)
