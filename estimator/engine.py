@@ -79,6 +79,7 @@ _SLIP_MIN_SPEED_MPS = 0.5
 _F = EstimateFlag
 _RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
 _RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
+"""The rim-excess states (left, right), for indexing both diagonals at once."""
 #: Observation rows of the two update stages (the rows a stage's mask can switch on).
 _STAGE1_ROWS = (int(MdsfObs.A1), int(MdsfObs.OMEGA_X), int(MdsfObs.OMEGA_Z))
 _STAGE2_ROWS_PAPER = (int(MdsfObs.VG),)
@@ -88,7 +89,6 @@ _STAGE2_ROWS_PRODUCT = (
     int(MdsfObs.RIM_RIGHT),
     int(MdsfObs.DIST),
 )
-"""The rim-excess states (left, right), for indexing both diagonals at once."""
 _DIST_OPEN_VAR_M2 = 1.0e4
 """Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
 
