@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -27,7 +28,9 @@ __all__ = [
     "json_from_child",
     "percentile",
     "push_until",
+    "side_by_side",
     "versions",
+    "write_json",
 ]
 
 _REPO = Path(__file__).resolve().parents[2]
@@ -104,6 +107,44 @@ def best_of(
             if name not in best or cost(got) < cost(best[name]):
                 best[name] = got
     return best
+
+
+def side_by_side(
+    baseline: str | None,
+    repeats: int,
+    name: str,
+    params: Sequence[Any],
+    measure: Callable[[Any, str], dict[str, Any]],
+) -> list[dict[str, Any]]:
+    """Per parameter (a fleet size, a commit size, …) each version's best result:
+    ``[{name: param, "after": …, ["before": …, "after_over_before": …]}]``.
+
+    ``measure(param, path)`` runs one case with the packages at ``path`` and returns a dict
+    with a ``"total"`` cost; each version keeps its least ``"total"`` over ``repeats``
+    alternating rounds (:func:`best_of`), and ``after_over_before`` is their ratio.
+    """
+    cases: list[dict[str, Any]] = []
+    with versions(baseline) as paths:
+        for param in params:
+            case: dict[str, Any] = {
+                name: param,
+                **best_of(
+                    paths,
+                    repeats,
+                    functools.partial(measure, param),
+                    lambda got: float(got["total"]),
+                ),
+            }
+            if "before" in case:
+                case["after_over_before"] = case["after"]["total"] / case["before"]["total"]
+            cases.append(case)
+    return cases
+
+
+def write_json(result: Any, json_path: Path | str | None) -> None:
+    """Write a bench's result as indented JSON when a path is given."""
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(result, indent=2))
 
 
 def percentile(values: Sequence[float], q: float) -> float:

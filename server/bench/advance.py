@@ -41,6 +41,7 @@ from server.bench import (
     int_list,
     json_from_child,
     push_until,
+    write_json,
 )
 
 __all__ = ["main", "measure", "run"]
@@ -191,8 +192,7 @@ def run(
         "rows_identical": same,
         **best,
     }
-    if json_path is not None:
-        Path(json_path).write_text(json.dumps(result, indent=2))
+    write_json(result, json_path)
     return result
 
 

@@ -24,7 +24,6 @@ batched call's.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -33,7 +32,7 @@ from typing import Any
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
 from estimator.engine import MdsfFleet
-from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until
+from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until, write_json
 
 __all__ = ["main", "run"]
 
@@ -173,8 +172,7 @@ def run(
                 flush=True,
             )
     result = {"seconds": seconds, "cases": cases}
-    if json_path is not None:
-        Path(json_path).write_text(json.dumps(result, indent=2))
+    write_json(result, json_path)
     return result
 
 

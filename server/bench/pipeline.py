@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import json
 import sys
 import tempfile
@@ -206,27 +205,18 @@ def run(
     json_path: Path | str | None = None,
 ) -> dict[str, Any]:
     """Measure each size (and the baseline's); print the table; return the numbers."""
-    from server.bench import best_of, versions
+    from server.bench import side_by_side, write_json
 
-    cases: list[dict[str, Any]] = []
-    with versions(baseline) as paths:
-        for n in sizes:
-            best = best_of(
-                paths,
-                repeats if baseline else 1,
-                functools.partial(_child, vehicles=n, seconds=seconds),
-                lambda got: float(got["total_s"]),
-            )
-            case: dict[str, Any] = {"vehicles": n}
-            for name, got in best.items():
-                case[name] = {**_per_vehicle_second_us(got), "rows": got["rows"]}
-            if "before" in case:
-                case["after_over_before"] = case["after"]["total"] / case["before"]["total"]
-            cases.append(case)
+    def per_vehicle_second(n: int, path: str) -> dict[str, Any]:
+        got = _child(path, vehicles=n, seconds=seconds)
+        return {**_per_vehicle_second_us(got), "rows": got["rows"]}
+
+    cases = side_by_side(
+        baseline, repeats if baseline else 1, "vehicles", sizes, per_vehicle_second
+    )
     result = {"seconds": seconds, "baseline": baseline, "cases": cases}
     print(format_table(result))
-    if json_path is not None:
-        Path(json_path).write_text(json.dumps(result, indent=2))
+    write_json(result, json_path)
     return result
 
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import math
 import os
 import time
@@ -52,7 +51,7 @@ from estimator.wheel_speed import (
     WheelTracker,
     query_many,
 )
-from server.bench import int_list
+from server.bench import int_list, write_json
 
 __all__ = ["main", "run"]
 
@@ -256,8 +255,7 @@ def run(
                     f"{verdict} the {TARGET_MS} ms target"
                 )
     result = {"rows": rows, "target_ms": TARGET_MS, "load_average": os.getloadavg()[0]}
-    if json_path is not None:
-        json_path.write_text(json.dumps(result, indent=2))
+    write_json(result, json_path)
     return result
 
 

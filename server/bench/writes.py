@@ -21,7 +21,6 @@ each case keeps its least total. ``after/before`` is the ratio of the totals.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import tempfile
 import time
@@ -98,13 +97,6 @@ def _child(path: str, vehicles: int, rows_per_commit: int, seconds: float) -> di
     return json_from_child(path, args)
 
 
-def _per_row_us_of(
-    vehicles: int, rows_per_commit: int, seconds: float, path: str
-) -> dict[str, Any]:
-    """:func:`_child`'s case in µs per row (:func:`_per_row_us`)."""
-    return _per_row_us(_child(path, vehicles, rows_per_commit, seconds))
-
-
 def _per_row_us(got: dict[str, Any]) -> dict[str, float]:
     rows = max(1, got["rows"])
     write, maintain = got["write_s"] / rows * 1e6, got["maintain_s"] / rows * 1e6
@@ -126,25 +118,18 @@ def run(
     json_path: Path | str | None = None,
 ) -> dict[str, Any]:
     """Measure each commit size (and the baseline's); print the table; return the numbers."""
-    from server.bench import best_of, versions
+    from server.bench import side_by_side, write_json
 
-    cases: list[dict[str, Any]] = []
-    with versions(baseline) as paths:
-        for per_commit in rows_per_commit:
-            best = best_of(
-                paths,
-                repeats,
-                functools.partial(_per_row_us_of, vehicles, per_commit, seconds),
-                lambda got: float(got["total"]),
-            )
-            case: dict[str, Any] = {"rows_per_commit": per_commit, **best}
-            if "before" in case:
-                case["after_over_before"] = case["after"]["total"] / case["before"]["total"]
-            cases.append(case)
+    cases = side_by_side(
+        baseline,
+        repeats,
+        "rows_per_commit",
+        rows_per_commit,
+        lambda per_commit, path: _per_row_us(_child(path, vehicles, per_commit, seconds)),
+    )
     result = {"vehicles": vehicles, "seconds": seconds, "baseline": baseline, "cases": cases}
     print(format_table(result))
-    if json_path is not None:
-        Path(json_path).write_text(json.dumps(result, indent=2))
+    write_json(result, json_path)
     return result
 
 
