@@ -1,31 +1,38 @@
 """Decode a burst of sensor packets together: the array checks of a stream in one numpy pass.
 
 The ingest thread takes packets off the Zenoh channel in bursts. Decoding them one by one
-(:func:`server.protocol.codec.decode`) costs about fifteen small numpy calls per array packet;
-here every packet's header is read by the codec's own code, then the packed arrays of all IMU,
-wheel-edge and wheel-speed packets of the burst are joined per stream and checked at once
-(finite, within the limits, stamps monotonic inside each packet), and split again into
-per-packet read-only views of the joined buffer.
+(:func:`server.protocol.codec.decode`) costs about fifteen small numpy calls per array packet
+and a Python check per field; here
+
+* every payload is decoded by msgspec into the struct of its stream
+  (:mod:`server.protocol.wire`), which checks the fields' names and types in C while it
+  decodes;
+* the packed arrays of all IMU, wheel-edge and wheel-speed packets of the burst are joined per
+  stream and checked at once (finite, within the limits, stamps monotonic inside each packet),
+  and split again into per-packet read-only views of the joined buffer; GNSS fixes are checked
+  one by one (a few comparisons).
 
 Anything unusual sends a packet to the codec's per-packet rules, which give the reason it is
-refused: a packet whose fields are not what a valid packet has (missing, wrong type, lengths
-that disagree, an empty batch, ``until_ns`` out of range), and a packet whose arrays fail a
-batch check (the checks find *which* packets, one numpy call per check). The other packets of
-the burst are unaffected, so :func:`decode_burst` returns, item for item, what ``decode``
-returns or raises.
+refused, or accept it: a payload that is not a struct of :mod:`~server.protocol.wire` (a field
+missing, of another type, an extra one), lengths that disagree, an empty batch, ``until_ns``
+out of range, and a packet whose arrays fail a batch check (the checks find *which* packets,
+one numpy call per check). The other packets of the burst are unaffected, so
+:func:`decode_burst` returns, item for item, what ``decode`` returns or raises.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
+import msgspec
 import numpy as np
 
 from estimator._frozen import builder
 from estimator.base import Measurement
-from estimator.types import ImuBatch, Wheel, WheelEdges, WheelSpeeds
+from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
 from server.protocol.codec import (
     _LITTLE_ENDIAN,
     _WHEEL,
@@ -34,15 +41,12 @@ from server.protocol.codec import (
     DecodeError,
     Limits,
     Packet,
-    _Ctx,
-    _gnss_sample,
     _new_packet,
-    _open,
-    _packet,
-    _until,
     decode,
 )
-from server.protocol.keys import Stream
+from server.protocol.keys import Stream, parse_key
+from server.protocol.wire import DECODER as _DECODER
+from server.protocol.wire import UNSET, EdgesEntry, GnssPacket, ImuPacket, WheelsPacket
 
 __all__ = ["BurstItem", "decode_burst"]
 
@@ -59,56 +63,90 @@ _GNSS, _IMU, _WHEELS = Stream.GNSS, Stream.IMU, Stream.WHEELS
 _new_imu = builder(ImuBatch)
 _new_speeds = builder(WheelSpeeds)
 _new_edges = builder(WheelEdges)
+_new_gnss = builder(GnssSample)
+_FIX_OF: dict[object, GnssFix] = {int(f): f for f in GnssFix}
+_FIX_OF[UNSET] = GnssFix.RTK_FIXED  # "fix" absent: RTK fixed
+_SEQ_END = 2**63  # sequence numbers lie in [0, 2**63)
+_STREAM_OF: dict[type, Stream] = {GnssPacket: _GNSS, ImuPacket: _IMU, WheelsPacket: _WHEELS}
 
 
 class _Opened:
-    """A packet whose header passed :func:`codec._open`, waiting for its stream's batch check."""
+    """A packet whose payload fitted a valid packet's shape (:mod:`server.protocol.wire`),
+    waiting for its stream's batch check."""
 
-    __slots__ = ("ctx", "index", "m", "seq", "stream")
+    __slots__ = ("index", "p", "received", "stream", "vehicle_id")
 
-    def __init__(self, index: int, ctx: _Ctx, stream: Stream, m: dict[str, Any], seq: int):
+    def __init__(
+        self, index: int, received: tuple[str, bytes], vehicle_id: str, stream: Stream, p: Any
+    ):
         self.index = index
-        self.ctx = ctx
+        self.received = received
+        self.vehicle_id = vehicle_id
         self.stream = stream
-        self.m = m
-        self.seq = seq
+        self.p = p
 
-    def alone(self, lim: Limits) -> BurstItem:
+    def alone(self, opts: _Options) -> BurstItem:
         """Decode this packet by the per-packet rules (the reason when it is refused)."""
-        try:
-            return _packet(self.ctx, self.stream, self.m, self.seq, lim)
-        except DecodeError as exc:
-            return exc
+        return opts.alone(*self.received)
 
     def packet(
-        self, ms: tuple[Measurement, ...], first_ns: int, last_ns: int, lim: Limits
+        self, ms: tuple[Measurement, ...], first_ns: int, last_ns: int, opts: _Options
     ) -> BurstItem:
         """The packet of checked measurements; per-packet rules if ``until_ns`` is refused."""
-        try:
-            until_ns = _until(self.ctx, self.m, last_ns, lim)
-        except DecodeError:
-            return self.alone(lim)
-        vehicle_id = self.ctx.vehicle_id
-        assert vehicle_id is not None
+        until_ns = _until(self.p)
+        if (
+            until_ns is not None
+            and not last_ns <= until_ns <= last_ns + opts.limits.max_until_ahead_ns
+        ):
+            return self.alone(opts)
         return _new_packet(
-            vehicle_id, self.stream, self.seq, SCHEMA_VERSION, ms, first_ns, last_ns, until_ns
+            self.vehicle_id,
+            self.stream,
+            self.p.seq,
+            SCHEMA_VERSION,
+            ms,
+            first_ns,
+            last_ns,
+            until_ns,
         )
 
 
-def _sample_count(m: dict[str, Any], lim: Limits) -> int:
-    """Samples in ``m["stamp_ns"]``, or 0 when it is not a non-empty packed int64 array within
-    the batch limit."""
-    raw = m.get("stamp_ns")
+def _until(p: GnssPacket | ImuPacket | WheelsPacket) -> int | None:
+    """The packet's ``until_ns``; None when it has none."""
+    return p.until_ns if isinstance(p.until_ns, int) else None  # or UNSET
+
+
+class _Options:
+    """The decoding options of one burst, and the per-packet decode under them."""
+
+    __slots__ = ("limits", "max_payload_bytes", "prefix")
+
+    def __init__(self, prefix: str, max_payload_bytes: int, limits: Limits) -> None:
+        self.prefix = prefix
+        self.max_payload_bytes = max_payload_bytes
+        self.limits = limits
+
+    def alone(self, key: str, payload: bytes) -> BurstItem:
+        """:func:`~server.protocol.codec.decode` of one packet, its refusal as the item."""
+        try:
+            return decode(
+                key,
+                payload,
+                prefix=self.prefix,
+                max_payload_bytes=self.max_payload_bytes,
+                limits=self.limits,
+            )
+        except DecodeError as exc:
+            return exc
+
+
+def _sample_count(raw: object, lim: Limits) -> int:
+    """Samples in the packed stamps ``raw``, or 0 when they are not a non-empty packed int64
+    array within the batch limit (or not there: ``UNSET``)."""
     if type(raw) is not bytes:
         return 0
     n, rest = divmod(len(raw), _I8_BYTES)
     return n if not rest and n <= lim.max_batch else 0
-
-
-def _has_packed(m: dict[str, Any], name: str, n_bytes: int) -> bool:
-    """``m[name]`` is a bin of exactly ``n_bytes``."""
-    raw = m.get(name)
-    return type(raw) is bytes and len(raw) == n_bytes
 
 
 def _joined(raws: list[bytes], dtype: str, width: int) -> np.ndarray:
@@ -223,19 +261,26 @@ class _SampledGroup:
         self.rows: list[list[bytes]] = [[] for _ in self.FIELDS]
 
     def add(self, op: _Opened, lim: Limits) -> bool:
-        """Take ``op`` when its fields have a valid packet's types and lengths."""
-        m = op.m
-        n = _sample_count(m, lim)
+        """Take ``op`` when its arrays have a valid packet's lengths."""
+        p = op.p
+        stamps = p.stamp_ns
+        n = _sample_count(stamps, lim)
         if not n:
             return False
-        for name, width in self.FIELDS:
-            if not _has_packed(m, name, n * width * _F8_BYTES):
+        raws: list[bytes] = []
+        for raw, (_, width) in zip(self.row_arrays(p), self.FIELDS, strict=True):
+            if not isinstance(raw, bytes) or len(raw) != n * width * _F8_BYTES:
                 return False
+            raws.append(raw)
         self.opened.append(op)
-        self.runs.add(m["stamp_ns"], n)
-        for raws, (name, _) in zip(self.rows, self.FIELDS, strict=True):
-            raws.append(m[name])
+        self.runs.add(stamps, n)
+        for joined, raw in zip(self.rows, raws, strict=True):
+            joined.append(raw)
         return True
+
+    def row_arrays(self, p: Any) -> tuple[object, ...]:
+        """The packet's packed row arrays, in the order of :attr:`FIELDS`."""
+        raise NotImplementedError
 
     def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
         """The per-row rule of the stream over the joined row arrays; None: every row is ok."""
@@ -245,10 +290,11 @@ class _SampledGroup:
         """The measurement of one packet: samples ``a:b`` of the joined arrays."""
         raise NotImplementedError
 
-    def finish(self, out: list[BurstItem | None], lim: Limits) -> None:
+    def finish(self, out: list[BurstItem | None], opts: _Options) -> None:
         """Check the group and put each packet's result at its index in ``out``."""
         if not self.opened:
             return
+        lim = opts.limits
         arrays = [
             _joined(raws, "<f8", width)
             for raws, (_, width) in zip(self.rows, self.FIELDS, strict=True)
@@ -259,9 +305,9 @@ class _SampledGroup:
             self.opened, c.starts, c.ends, c.first_ns, c.last_ns, c.good, strict=True
         ):
             if ok:
-                out[op.index] = op.packet((measurement(c.t, arrays, a, b),), first, last, lim)
+                out[op.index] = op.packet((measurement(c.t, arrays, a, b),), first, last, opts)
             else:
-                out[op.index] = op.alone(lim)
+                out[op.index] = op.alone(opts)
 
 
 class _ImuGroup(_SampledGroup):
@@ -269,6 +315,9 @@ class _ImuGroup(_SampledGroup):
 
     __slots__ = ()
     FIELDS = (("accel_mps2", 3), ("gyro_radps", 3))
+
+    def row_arrays(self, p: Any) -> tuple[object, ...]:
+        return p.accel_mps2, p.gyro_radps
 
     def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
         accel_ok = _norm_ok(arrays[0], lim.max_accel_mps2)
@@ -286,6 +335,9 @@ class _SpeedsGroup(_SampledGroup):
 
     __slots__ = ()
     FIELDS = (("omega_radps", 2),)
+
+    def row_arrays(self, p: Any) -> tuple[object, ...]:
+        return (p.omega_radps,)
 
     def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
         return _abs_ok(arrays[0], lim.max_wheel_omega_radps)
@@ -306,8 +358,8 @@ class _EdgesGroup:
         self.directions: dict[int, bytes] = {}  # run index -> packed int8 directions
 
     def add(self, op: _Opened, lim: Limits) -> bool:
-        """Take ``op`` when its ``edges`` entries have a valid packet's types and lengths."""
-        items = op.m.get("edges")
+        """Take ``op`` when its ``edges`` entries have a valid packet's lengths."""
+        items = op.p.edges
         if type(items) is not list or not 1 <= len(items) <= len(_WHEEL):
             return False
         entries: list[tuple[Wheel, int]] = []
@@ -321,21 +373,18 @@ class _EdgesGroup:
         self.entries.append(entries)
         return True
 
-    def _add_entry(self, item: object, lim: Limits) -> tuple[Wheel, int] | None:
+    def _add_entry(self, item: EdgesEntry, lim: Limits) -> tuple[Wheel, int] | None:
         """Add one wheel entry's run; None (nothing added) when the entry is not valid."""
-        if type(item) is not dict:
-            return None
-        w = item.get("wheel")
-        wheel = _WHEEL.get(w) if type(w) is int else None
-        n = _sample_count(item, lim)
+        wheel = _WHEEL.get(item.wheel)
+        n = _sample_count(item.stamp_ns, lim)
         if wheel is None or not n:
             return None
-        has_direction = "direction" in item
-        if has_direction and not _has_packed(item, "direction", n):
+        direction = item.direction if isinstance(item.direction, bytes) else None  # or UNSET
+        if direction is not None and len(direction) != n:
             return None
-        run = self.runs.add(item["stamp_ns"], n)
-        if has_direction:
-            self.directions[run] = item["direction"]
+        run = self.runs.add(item.stamp_ns, n)
+        if direction is not None:
+            self.directions[run] = direction
         return wheel, run
 
     def _drop_runs(self, count: int) -> None:
@@ -361,18 +410,18 @@ class _EdgesGroup:
                 del views[r]
         return views
 
-    def finish(self, out: list[BurstItem | None], lim: Limits) -> None:
+    def finish(self, out: list[BurstItem | None], opts: _Options) -> None:
         """Check the group and put each packet's result at its index in ``out``."""
         if not self.opened:
             return
-        t, starts, ends, first_ns, last_ns, good = self.runs.check(lim)
+        t, starts, ends, first_ns, last_ns, good = self.runs.check(opts.limits)
         directions = self._direction_views()
         for op, entries in zip(self.opened, self.entries, strict=True):
             ms: list[Measurement] = []
             first, last = _NO_FIRST_NS, _NO_LAST_NS
             for wheel, r in entries:
                 if not good[r] or r not in directions:
-                    out[op.index] = op.alone(lim)
+                    out[op.index] = op.alone(opts)
                     break
                 ms.append(_new_edges(wheel, t[starts[r] : ends[r]], directions[r]))
                 if first_ns[r] < first:
@@ -380,17 +429,14 @@ class _EdgesGroup:
                 if last_ns[r] > last:
                     last = last_ns[r]
             else:
-                out[op.index] = op.packet(tuple(ms), first, last, lim)
+                out[op.index] = op.packet(tuple(ms), first, last, opts)
 
 
-def _group(op: _Opened, groups: _Groups) -> _SampledGroup | _EdgesGroup | None:
-    """The batch check ``op`` belongs to (None: GNSS, or not a wheels mode a batch knows)."""
+def _group(op: _Opened, groups: _Groups) -> _SampledGroup | _EdgesGroup:
+    """The batch check ``op`` (an IMU or wheels packet) belongs to."""
     if op.stream is _IMU:
         return groups.imu
-    mode = op.m.get("mode")
-    if op.stream is _WHEELS and type(mode) is str:
-        return groups.wheels.get(mode)
-    return None
+    return groups.wheels[op.p.mode]
 
 
 class _Groups:
@@ -405,11 +451,11 @@ class _Groups:
             "speeds": _SpeedsGroup(),
         }
 
-    def finish(self, out: list[BurstItem | None], lim: Limits) -> None:
+    def finish(self, out: list[BurstItem | None], opts: _Options) -> None:
         """Check every group and put each packet's result at its index in ``out``."""
-        self.imu.finish(out, lim)
+        self.imu.finish(out, opts)
         for group in self.wheels.values():
-            group.finish(out, lim)
+            group.finish(out, opts)
 
 
 #: Bursts shorter than this are decoded packet by packet: joining and splitting the arrays of a
@@ -417,32 +463,71 @@ class _Groups:
 #: 15.4 µs per packet in bursts of 1, 9.2 in bursts of 8, 6.4 in bursts of 32; alone 9.3).
 MIN_BATCHED = 8
 
+_TWO_PI, _HALF_PI, _PI = 2 * math.pi, math.pi / 2, math.pi
 
-def _alone(
-    key: str, payload: bytes, prefix: str, max_payload_bytes: int, limits: Limits
-) -> BurstItem:
-    """:func:`~server.protocol.codec.decode` of one packet, its refusal as the item."""
+
+def _gnss_sample(p: GnssPacket, lim: Limits) -> GnssSample | None:
+    """The sample of a GNSS packet whose values are within their limits; None otherwise (the
+    codec's rules then decide: NaN velocities, for one, are valid but go that way).
+
+    The types were checked by the decoder; NaN ("not available") attitude and position pass,
+    as the codec lets them.
+    """
+    t = p.stamp_ns
+    ve, vn, vu = p.vel_enu_mps
+    heading, pitch, roll = p.heading_rad, p.pitch_rad, p.roll_rad
+    lat, lon, h = p.lat_deg, p.lon_deg, p.height_m
+    fix = _FIX_OF.get(p.fix)
+    vel_std = p.vel_std_mps
+    if vel_std is UNSET:
+        vel_std = math.nan
+    elif not 0 <= vel_std <= lim.max_speed_mps:
+        return None
+    if not (
+        lim.min_stamp_ns <= t <= lim.max_stamp_ns
+        and ve * ve + vn * vn + vu * vu <= lim.max_speed_mps**2  # False for inf and NaN
+        and not abs(heading) > _TWO_PI
+        and not abs(pitch) > _HALF_PI
+        and not abs(roll) > _PI
+        and not abs(lat) > 90
+        and not abs(lon) > 180
+        and not (h < lim.min_height_m or h > lim.max_height_m)
+        and fix is not None
+    ):
+        return None
+    return _new_gnss(t, (ve, vn, vu), heading, pitch, roll, lat, lon, h, fix, vel_std)
+
+
+def _gnss_packet(vehicle_id: str, p: GnssPacket, lim: Limits) -> Packet | None:
+    """The packet of a GNSS fix within its limits; None: the codec's rules decide."""
+    sample = _gnss_sample(p, lim)
+    if sample is None:
+        return None
+    t = sample.stamp_ns
+    until_ns = _until(p)
+    if until_ns is not None and not t <= until_ns <= t + lim.max_until_ahead_ns:
+        return None
+    return _new_packet(vehicle_id, _GNSS, p.seq, SCHEMA_VERSION, (sample,), t, t, until_ns)
+
+
+def _heartbeat(op: _Opened, lim: Limits) -> BurstItem | None:
+    """The wheels heartbeat of a packet with no edges entry (no edge on either wheel up to
+    ``until_ns``); None when its ``until_ns`` is absent or out of range."""
+    until_ns = _until(op.p)
+    if until_ns is None or not lim.min_stamp_ns <= until_ns <= lim.max_stamp_ns:
+        return None
+    return _new_packet(
+        op.vehicle_id, _WHEELS, op.p.seq, SCHEMA_VERSION, (), until_ns, until_ns, until_ns
+    )
+
+
+def _stream_of(key: str, prefix: str) -> tuple[str, Stream] | None:
+    """``(vehicle_id, stream)`` of a sensor key; None for any other key."""
     try:
-        return decode(
-            key, payload, prefix=prefix, max_payload_bytes=max_payload_bytes, limits=limits
-        )
-    except DecodeError as exc:
-        return exc
-
-
-def _gnss_item(ctx: _Ctx, m: dict[str, Any], seq: int, lim: Limits) -> BurstItem:
-    """A GNSS packet: the usual one by :func:`codec._gnss_sample`'s single check, any other
-    by the per-packet rules."""
-    try:
-        sample = _gnss_sample(m, lim)
-        if sample is None:
-            return _packet(ctx, Stream.GNSS, m, seq, lim)
-        t = sample.stamp_ns
-        until_ns = _until(ctx, m, t, lim)  # the rule _packet checks after a valid body
-    except DecodeError as exc:
-        return exc
-    assert ctx.vehicle_id is not None
-    return _new_packet(ctx.vehicle_id, Stream.GNSS, seq, SCHEMA_VERSION, (sample,), t, t, until_ns)
+        vehicle_id, stream = parse_key(key, prefix)
+    except ValueError:
+        return None
+    return None if stream is None else (vehicle_id, stream)
 
 
 def decode_burst(
@@ -466,29 +551,41 @@ def decode_burst(
     -------
     list of Packet or DecodeError
     """
-    if len(received) < MIN_BATCHED:
-        return [
-            _alone(key, payload, prefix, max_payload_bytes, limits) for key, payload in received
-        ]
+    opts = _Options(prefix, max_payload_bytes, limits)
+    if len(received) < MIN_BATCHED or not _LITTLE_ENDIAN:  # big-endian: plain Python
+        return [opts.alone(key, payload) for key, payload in received]
     out: list[BurstItem | None] = [None] * len(received)
     groups = _Groups()
-    for i, (key, payload) in enumerate(received):
+    streams: dict[str, tuple[str, Stream] | None] = {}
+    typed = _DECODER.decode
+    for i, item in enumerate(received):
+        key, payload = item
         try:
-            ctx, stream, m, seq = _open(key, payload, prefix, max_payload_bytes)
-        except DecodeError as exc:
-            out[i] = exc
+            vs = streams[key]
+        except KeyError:  # the first packet of this key in the burst
+            vs = streams[key] = _stream_of(key, prefix)
+        if vs is None or len(payload) > max_payload_bytes:
+            out[i] = opts.alone(key, payload)
+            continue
+        try:
+            p = typed(payload)
+        except (msgspec.DecodeError, ValueError):  # ValidationError, or bad UTF-8 in a string
+            out[i] = opts.alone(key, payload)  # its reason, or valid beyond the usual shape
+            continue
+        vehicle_id, stream = vs
+        if p.seq >= _SEQ_END or _STREAM_OF[type(p)] is not stream:
+            out[i] = opts.alone(key, payload)
             continue
         if stream is _GNSS:  # nothing to batch: checked on its own
-            out[i] = _gnss_item(ctx, m, seq, limits)
+            out[i] = _gnss_packet(vehicle_id, p, limits) or opts.alone(key, payload)
             continue
-        op = _Opened(i, ctx, stream, m, seq)
-        if not _LITTLE_ENDIAN:  # packed arrays need converting: plain Python
-            out[i] = op.alone(limits)
+        op = _Opened(i, item, vehicle_id, stream, p)
+        if stream is _WHEELS and p.mode == "edges" and p.edges == []:
+            out[i] = _heartbeat(op, limits) or op.alone(opts)
             continue
-        group = _group(op, groups)
-        if group is None or not group.add(op, limits):
-            out[i] = op.alone(limits)
-    groups.finish(out, limits)
+        if not _group(op, groups).add(op, limits):
+            out[i] = op.alone(opts)
+    groups.finish(out, opts)
     items = [item for item in out if item is not None]
     assert len(items) == len(out), "every packet gets a result"
     return items

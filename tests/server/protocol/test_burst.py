@@ -190,6 +190,52 @@ def test_bad_packets_in_a_burst_are_refused_alone_with_their_reason() -> None:
     assert refused == {i: reason for i, (_, _, reason) in bad.items()}
 
 
+def _gnss_payload(seq: int, t0: int = T0, **fields: Any) -> bytes:
+    m = {
+        "v": 1,
+        "sensor": "gnss",
+        "seq": seq,
+        "stamp_ns": t0,
+        "vel_enu_mps": [1.0, 0.5, 0.0],
+        "heading_rad": 0.3,
+        "pitch_rad": 0.01,
+        "roll_rad": -0.02,
+        "lat_deg": 52.0,
+        "lon_deg": 5.6,
+        "height_m": 12.0,
+        "fix": 4,
+        "vel_std_mps": 0.03,
+        **fields,
+    }
+    return msgpack.packb(m, use_bin_type=True)
+
+
+def test_packets_beyond_the_usual_shape_are_decoded_as_alone() -> None:
+    """Valid packets the typed decoder does not take (an extra field, integers where a float
+    goes, NaN velocity), and invalid ones it would take if it only checked types (``nil`` for
+    an optional field, ``seq`` of 2**63, a sensor that is not the key's, a wheels packet in
+    ``speeds`` mode with a stray ``edges`` entry, a heartbeat without ``until_ns``), come out
+    as the codec decodes them."""
+    nan = float("nan")
+    received = [
+        (KEY[Stream.GNSS], _gnss_payload(0)),
+        (KEY[Stream.GNSS], _gnss_payload(1, T0 + 10**8, vendor_note="rtk")),
+        (KEY[Stream.GNSS], _gnss_payload(2, T0 + 2 * 10**8, vel_enu_mps=[1, 0, 0], height_m=3)),
+        (KEY[Stream.GNSS], _gnss_payload(3, T0 + 3 * 10**8, vel_enu_mps=[nan, nan, nan])),
+        (KEY[Stream.GNSS], _gnss_payload(4, T0 + 4 * 10**8, until_ns=None)),
+        (KEY[Stream.GNSS], _gnss_payload(5, T0 + 5 * 10**8, fix=None)),
+        (KEY[Stream.IMU], _with(_imu_payload(6), seq=2**63)),
+        (KEY[Stream.IMU], _with(_imu_payload(7), sensor="gnss")),
+        (KEY[Stream.IMU], _with(_imu_payload(8), until_ns=None)),
+        (KEY[Stream.WHEELS], _with(_speeds_payload(9), edges=[{"wheel": 7}])),
+        (KEY[Stream.WHEELS], _with(_edges_payload(10), edges=[])),
+        (KEY[Stream.WHEELS], _with(_edges_payload(11), mode="pulses")),
+    ]
+    got = assert_burst_matches(received)
+    decoded = [isinstance(item, Packet) for item in got]
+    assert decoded == [True, True, True, True] + [False] * 5 + [True, False, False]
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_burst_equals_per_packet_decode_on_mutated_packets(seed: int) -> None:
     rng = random.Random(seed)

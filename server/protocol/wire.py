@@ -1,0 +1,91 @@
+"""The shapes of valid sensor packets, decoded by msgspec in one C pass.
+
+:func:`server.protocol.codec.decode` unpacks a payload into a dict with msgpack and then checks
+each field's presence and type in Python, a few dozen operations per packet. The structs here
+state the same field names and msgpack types (``docs/protocol.md`` §3–5) once, and
+:data:`DECODER` checks them while it decodes: a payload that decodes is a map with exactly
+these fields, each of its type, ``v`` the schema version and ``seq`` not negative. What is left
+to check in Python is values (limits, stamps, lengths of the packed arrays, ``seq < 2**63``):
+:mod:`server.protocol.burst` does that in batches.
+
+Anything else raises ``msgspec.ValidationError`` or ``msgspec.DecodeError``, and the caller
+decodes that packet with the codec, whose rules give the refusal and its reason (or accept it:
+integers where a float goes, an unknown extra field). So these structs decide only which
+packets take the fast path, never what a packet means.
+
+Two differences from a plain dict decode are on purpose:
+
+* absent optional fields are :data:`UNSET`, not ``None``: a packet that sends ``nil`` for
+  ``until_ns`` is not valid and must not decode as one without it;
+* unknown fields are refused (``forbid_unknown_fields``): msgpack-python validates every
+  string of a payload, msgspec skips unknown fields unread, so a packet with a broken string
+  under an unknown name would decode here and be refused ``undecodable`` by the codec.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+from msgspec import UNSET, UnsetType
+
+from server.protocol.codec import SCHEMA_VERSION
+
+__all__ = ["DECODER", "UNSET", "EdgesEntry", "GnssPacket", "ImuPacket", "WheelsPacket"]
+
+_Seq = Annotated[int, msgspec.Meta(ge=0)]  # the upper bound (2**63) is checked by the caller
+_Version = Literal[SCHEMA_VERSION]  # type: ignore[valid-type]
+
+
+class _Packet(msgspec.Struct, tag_field="sensor", forbid_unknown_fields=True):
+    """The header every sensor packet carries (``sensor`` is the tag)."""
+
+    v: _Version
+    seq: _Seq
+
+
+class GnssPacket(_Packet, tag="gnss"):
+    """One GNSS fix; numbers may come as msgpack ints (decoded to float, as the codec does)."""
+
+    stamp_ns: int
+    vel_enu_mps: tuple[float, float, float]
+    heading_rad: float
+    pitch_rad: float
+    roll_rad: float
+    lat_deg: float
+    lon_deg: float
+    height_m: float
+    fix: int | UnsetType = UNSET
+    vel_std_mps: float | UnsetType = UNSET
+    until_ns: int | UnsetType = UNSET
+
+
+class ImuPacket(_Packet, tag="imu"):
+    """An IMU batch: packed little-endian int64 stamps and ``(n, 3)`` float64 rows."""
+
+    stamp_ns: bytes
+    accel_mps2: bytes
+    gyro_radps: bytes
+    until_ns: int | UnsetType = UNSET
+
+
+class EdgesEntry(msgspec.Struct, forbid_unknown_fields=True):
+    """One wheel's edges in a wheels packet of mode ``edges``."""
+
+    wheel: int
+    stamp_ns: bytes
+    direction: bytes | UnsetType = UNSET
+
+
+class WheelsPacket(_Packet, tag="wheels"):
+    """Wheel edges (``edges``) or wheel speeds (``stamp_ns`` and ``omega_radps``)."""
+
+    mode: Literal["edges", "speeds"]
+    edges: list[EdgesEntry] | UnsetType = UNSET
+    stamp_ns: bytes | UnsetType = UNSET
+    omega_radps: bytes | UnsetType = UNSET
+    until_ns: int | UnsetType = UNSET
+
+
+#: Decodes a payload into the packet struct of its ``sensor``.
+DECODER = msgspec.msgpack.Decoder(GnssPacket | ImuPacket | WheelsPacket)
