@@ -120,6 +120,10 @@ class Counter(IntEnum):
     WAITING_TICKS = 11
 
 
+# counters(): each counter's key and column, in declaration order
+_COUNTER_KEYS = tuple(c.name.lower() for c in Counter)
+_COUNTER_COLUMNS = np.array(list(Counter), dtype=np.intp)
+
 _STEP_COUNTERS = np.array(
     [
         Counter.TICKS,
@@ -1038,7 +1042,9 @@ class MdsfFleet:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
         degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""
         slot = self._slot[vehicle_id]
-        out = {c.name.lower(): int(self.engine.counts[slot, c]) for c in Counter}
+        out = dict(
+            zip(_COUNTER_KEYS, self.engine.counts[slot, _COUNTER_COLUMNS].tolist(), strict=True)
+        )
         for k, v in self.front.counts(slot).items():
             out[k] = out.get(k, 0) + v
         return out

@@ -742,7 +742,7 @@ class FleetFrontEnd:
     def counts(self, slot: int) -> dict[str, int]:
         """The vehicle's skip counters (:data:`COUNT_NAMES`)."""
         self._check_new()
-        return {name: int(self.count[slot, i]) for i, name in enumerate(COUNT_NAMES)}
+        return dict(zip(COUNT_NAMES, self.count[slot, : len(COUNT_NAMES)].tolist(), strict=True))
 
     def anchor(self, slot: int) -> tuple[float, float, float] | None:
         """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame; None before a fix."""
