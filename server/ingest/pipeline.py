@@ -544,7 +544,8 @@ class Pipeline:
                 n, lost = accepted.get(vid, _NONE_ACCEPTED)
                 accepted[vid] = (n + 1, lost + offer.lost_delta)
                 self._active.add(vid)
-                self._arrived.add(vid)
+                if buf.may_release:
+                    self._arrived.add(vid)
                 if item.stream is imu and vid not in self._tick_anchor_ns:
                     self._tick_anchor_ns[vid] = item.last_stamp_ns
             elif offer.verdict is Verdict.LATE:
@@ -649,7 +650,8 @@ class Pipeline:
         registry = self._registry
         drained: list[str] = []
         # A vehicle's horizon moves when its packets arrive, or when it falls idle: visit the
-        # vehicles that received something, and every vehicle once per IDLE_SWEEP_NS.
+        # vehicles that received something that may move it (ReorderBuffer.may_release), and
+        # every vehicle once per IDLE_SWEEP_NS.
         if flush or now >= self._next_sweep_ns:
             visit: set[str] = self._active
             self._next_sweep_ns = now + IDLE_SWEEP_NS

@@ -254,6 +254,9 @@ class ReorderBuffer:
         # the watermarks gate the release (every expected stream has one and the start-up
         # window has passed): once true it stays true until reanchor(), so it is kept
         self._gating = False
+        # the stream whose watermark held the horizon at the last release (gating only)
+        self._low_stream: Stream | None = None
+        self._may_release = False
 
     @property
     def pending(self) -> int:
@@ -266,6 +269,17 @@ class ReorderBuffer:
         return (
             not self._heap and self._newest_ns is not None and self._released_ns == self._newest_ns
         )
+
+    @property
+    def may_release(self) -> bool:
+        """Packets taken since the last :meth:`release` may have moved the horizon (else only
+        the idle time can: see :meth:`is_idle`).
+
+        With watermarks gating, a packet moves the horizon only when it comes on the stream
+        whose watermark held it, or its samples push the fixed window past what was released;
+        a vehicle's other packets wait without costing a release each.
+        """
+        return self._may_release
 
     @property
     def released_ns(self) -> int | None:
@@ -346,6 +360,7 @@ class ReorderBuffer:
         self._jumps_in_row = 0
         self._first_ns = None
         self._gating = False
+        self._low_stream = None
         if self._watermarks is not None:
             self._watermarks.clear()
         self._take(packet, now_ns)
@@ -356,6 +371,7 @@ class ReorderBuffer:
         if not packet.measurements:  # a heartbeat moves its stream's watermark, nothing else
             if marks is not None:
                 self._mark(marks, packet, seq_restart)
+                self._note_arrival(packet.stream)
             return _ACCEPTED_VERDICT
         if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
             self._newest_ns = packet.last_stamp_ns
@@ -373,7 +389,24 @@ class ReorderBuffer:
                 packet,
             ),
         )
+        self._note_arrival(packet.stream)
         return _ACCEPTED_VERDICT
+
+    def _note_arrival(self, stream: Stream) -> None:
+        """Whether a packet of ``stream`` just taken may move the horizon (:attr:`may_release`):
+        the released horizon is at least the lowest watermark, so while that stream's mark
+        and the fixed window stay where they were, the horizon does too."""
+        if self._may_release:
+            return
+        released = self._released_ns
+        low = self._low_stream
+        self._may_release = (
+            low is None  # no watermark gating, or released at an idle time or a flush
+            or stream is low
+            or released is None
+            or self._newest_ns is None
+            or self._newest_ns - self._lateness_ns > released
+        )
 
     @staticmethod
     def _mark(marks: dict[Stream, _StreamMark], packet: Packet, seq_restart: bool) -> None:
@@ -404,6 +437,7 @@ class ReorderBuffer:
         newest = self._newest_ns
         if newest is None:
             return None
+        self._low_stream = None  # unless the watermarks gate below
         if now_ns - self._last_arrival_ns >= self._idle_ns:  # idle: release everything
             horizon = newest
         else:
@@ -414,8 +448,13 @@ class ReorderBuffer:
                     if mark.ahead:
                         mark.skip_gaps(horizon)
                 if self._gating or self._starts_gating(newest, marks):
-                    lowest = min([marks[s].stamp_ns for s in self._expected])
-                    if lowest > horizon:
+                    low, lowest = None, None
+                    for s in self._expected:
+                        stamp = marks[s].stamp_ns
+                        if lowest is None or stamp < lowest:
+                            low, lowest = s, stamp
+                    self._low_stream = low
+                    if lowest is not None and lowest > horizon:
                         horizon = lowest
         released = self._released_ns
         if released is not None and horizon < released:
@@ -437,9 +476,13 @@ class ReorderBuffer:
         estimators may advance to (None before anything was released). ``flush`` releases
         everything (shutdown).
         """
-        horizon = self._newest_ns if flush else self.horizon_ns(now_ns)
+        if flush:
+            horizon, self._low_stream = self._newest_ns, None
+        else:
+            horizon = self.horizon_ns(now_ns)
         if horizon is None:
             return [], self._released_ns
+        self._may_release = False
         out: list[Packet] = []
         heap = self._heap
         while heap and heap[0][0] <= horizon:

@@ -370,3 +370,45 @@ def test_property_in_order_streams_are_never_late_and_lag_only_their_spread(
         assert released is not None
         if at - T0 > max(lateness_ms * MS, WATERMARK_START_NS) + 200 * MS:
             assert at - released <= (max(delay_ms) + 100) * MS + 1
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    jitter_ms=st.lists(st.integers(0, 250), min_size=60, max_size=60),
+    lateness_ms=st.integers(0, 300),
+    watermarks=st.booleans(),
+    heartbeats=st.booleans(),
+)
+def test_property_may_release_never_holds_back_a_release(
+    jitter_ms: list[int], lateness_ms: int, watermarks: bool, heartbeats: bool
+) -> None:
+    """A buffer released only after packets that set ``may_release`` releases the same packets
+    at the same moments, up to the same horizon, as one released after every packet: the
+    packets it skips could not have moved the horizon."""
+    packets = []
+    for k in range(20):
+        wheels = (
+            heartbeat(k, 100 * k + 99)
+            if heartbeats and k % 4 == 1
+            else wheels_packet(k, 100 * k + 3)
+        )
+        packets += [imu_packet(k, 100 * k), gnss_packet(k, 100 * k + 50), wheels]
+    arrivals = sorted(
+        ((p.last_stamp_ns + jitter_ms[i] * MS, i, p) for i, p in enumerate(packets)),
+        key=lambda a: (a[0], a[1]),
+    )
+    every = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18, watermarks=watermarks)
+    gated = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18, watermarks=watermarks)
+    skipped = 0
+    for at, _, p in arrivals:
+        assert every.offer(p, at).verdict is gated.offer(p, at).verdict
+        got_every = every.release(at)
+        if gated.may_release:
+            assert gated.release(at) == got_every
+        else:
+            skipped += 1
+            assert got_every[0] == []  # nothing was due
+            assert got_every[1] == gated.released_ns  # and the horizon stood still
+    assert every.release(0, flush=True) == gated.release(0, flush=True)
+    if watermarks and lateness_ms >= 150:
+        assert skipped > 0  # gating by watermarks: most packets wait without a release
