@@ -90,8 +90,8 @@ COALESCE_PACKETS = 1024
 TICK_DUTY = 1.5
 #: ... but ticks are never spaced further apart than this (live values lag by up to this).
 MAX_TICK_GAP_NS = 100_000_000
-#: Wall time between two visits of every active vehicle's reorder buffer (idle release);
-#: in between, a tick visits only the vehicles that received packets.
+#: Wall time between two looks for active vehicles that fell idle (their tail is released);
+#: otherwise a tick visits only the vehicles that received packets.
 IDLE_SWEEP_NS = 100_000_000
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
@@ -651,14 +651,15 @@ class Pipeline:
         drained: list[str] = []
         # A vehicle's horizon moves when its packets arrive, or when it falls idle: visit the
         # vehicles that received something that may move it (ReorderBuffer.may_release), and
-        # every vehicle once per IDLE_SWEEP_NS.
-        if flush or now >= self._next_sweep_ns:
-            visit: set[str] = self._active
-            self._next_sweep_ns = now + IDLE_SWEEP_NS
-        else:
-            visit = self._arrived & self._active
-        self._arrived = set()
+        # once per IDLE_SWEEP_NS the ones that fell idle.
         buffers, advanced, phases = self._buffers, self._advanced_ns, self._tick_phase_ns
+        visit: set[str] = self._arrived & self._active
+        if flush:
+            visit = self._active
+        elif now >= self._next_sweep_ns:
+            visit |= {vid for vid in self._active if buffers[vid].is_idle(now)}
+            self._next_sweep_ns = now + IDLE_SWEEP_NS
+        self._arrived = set()
         step = self._advance_step_ns
         for vid in visit:
             buf = buffers[vid]

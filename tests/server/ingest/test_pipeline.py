@@ -44,6 +44,7 @@ def make(
     on_new: Callable[[str, VehicleConfig], None] | None = None,
     sinks: list[object] | None = None,
     advance_step_ms: int = 200,
+    clock_ns: Callable[[], int] = time.monotonic_ns,
 ) -> tuple[Pipeline, RecordingFleet, CapturingSink]:
     fleet = RecordingFleet()
     registry = EstimatorRegistry(factories={"mdsf": lambda: fleet})
@@ -65,6 +66,7 @@ def make(
         registry,
         [*(sinks or []), sink],  # type: ignore[list-item]
         on_new,
+        clock_ns=clock_ns,
         wall_clock_ns=lambda: T0,  # the packets' stamps are near T0
     )
     return pipe, fleet, sink
@@ -182,6 +184,29 @@ def test_estimators_advance_in_steps_then_to_the_end() -> None:
     assert list(steps) == list(range(len(steps)))
     assert untils[-1] == T0 + 909 * MS  # and the last sample is reached
     assert len(untils) <= 5
+
+
+def test_a_vehicle_that_falls_silent_gets_its_tail_released() -> None:
+    """The reorder window holds a vehicle's newest packets back; when the vehicle stops
+    sending, the idle look-out releases them (the pipeline keeps running)."""
+    skew = [0]  # the pipeline's monotonic clock runs ahead by this much
+
+    def clock() -> int:
+        return time.monotonic_ns() + skew[0]
+
+    pipe, fleet, _ = make(lateness_ms=300, advance_step_ms=100, clock_ns=clock)
+    pipe.start()
+    try:
+        pipe.submit([imu("a", k, 100 * k) for k in range(8)])
+        wait_for(lambda: len(fleet.pushed.get("a", [])) >= 4)
+        time.sleep(0.1)  # a few ticks: the window still holds the newest batches
+        held = len(fleet.pushed["a"])
+        assert held < 8
+        skew[0] = 5 * 10**9  # longer than the idle time (1 s) without a packet
+        wait_for(lambda: len(fleet.pushed["a"]) == 8)
+        wait_for(lambda: bool(fleet.advances) and fleet.advances[-1]["a"] == T0 + 709 * MS)
+    finally:
+        pipe.stop()
 
 
 def test_ticks_are_put_on_the_end_of_the_first_imu_batch() -> None:

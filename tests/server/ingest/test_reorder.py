@@ -399,16 +399,32 @@ def test_property_may_release_never_holds_back_a_release(
     )
     every = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18, watermarks=watermarks)
     gated = ReorderBuffer(lateness_ns=lateness_ms * MS, idle_ns=10**18, watermarks=watermarks)
-    skipped = 0
     for at, _, p in arrivals:
         assert every.offer(p, at).verdict is gated.offer(p, at).verdict
         got_every = every.release(at)
         if gated.may_release:
             assert gated.release(at) == got_every
         else:
-            skipped += 1
             assert got_every[0] == []  # nothing was due
             assert got_every[1] == gated.released_ns  # and the horizon stood still
     assert every.release(0, flush=True) == gated.release(0, flush=True)
-    if watermarks and lateness_ms >= 150:
-        assert skipped > 0  # gating by watermarks: most packets wait without a release
+
+
+def test_packets_behind_a_lagging_stream_do_not_ask_for_a_release() -> None:
+    """Wheel packets arrive 250 ms after their last edge: once the watermarks gate, the wheels
+    hold the horizon, IMU and GNSS packets wait without a release, and every wheels packet
+    asks for one."""
+    buf = ReorderBuffer(lateness_ns=400 * MS, idle_ns=10**18, watermarks=True)
+    arrivals = sorted(
+        (p.last_stamp_ns + (250 if p.stream is Stream.WHEELS else 0) * MS, i, p)
+        for k in range(30)
+        for i, p in enumerate(three_streams(k))
+    )
+    asked: dict[Stream, list[bool]] = {s: [] for s in Stream}
+    for at, _, p in arrivals:
+        assert buf.offer(p, at).verdict is Verdict.ACCEPTED
+        if at - T0 > 2 * WATERMARK_START_NS:
+            asked[p.stream].append(buf.may_release)
+        buf.release(at)
+    assert asked[Stream.WHEELS] and all(asked[Stream.WHEELS])
+    assert asked[Stream.IMU] and not any(asked[Stream.IMU] + asked[Stream.GNSS])
