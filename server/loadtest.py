@@ -9,7 +9,8 @@
 
 Without ``--connect`` a server is started in a child process (embedded router on a free loopback
 port, SQLite in a temporary directory unless ``--storage-url``; viewer off, no access tokens;
-``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s`` tune it). ``--publishers``
+``--lateness-ms``, ``--advance-step-ms``, ``--estimate-interval-ms``, ``--commit-interval-s``
+tune it). ``--publishers``
 child processes (default: one per :data:`VEHICLES_PER_PUBLISHER` vehicles) publish the
 vehicles, each with ``--sessions`` client sessions, through
 :class:`server.fleet_sim.FleetSim`: GNSS 10 Hz, IMU 100 Hz in 100 ms batches, wheel edges in
@@ -929,8 +930,8 @@ def local_server(
 
 
 def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
-    """Settings overrides from ``--lateness-ms``, ``--advance-step-ms``, ``--commit-interval-s``,
-    ``--workers``."""
+    """Settings overrides from ``--lateness-ms``, ``--advance-step-ms``,
+    ``--estimate-interval-ms``, ``--commit-interval-s``, ``--workers``."""
     s: dict[str, Any] = {}
     if args.workers is not None:
         s.setdefault("ingest", {})["workers"] = args.workers
@@ -938,6 +939,8 @@ def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
         s.setdefault("ingest", {})["lateness_ms"] = args.lateness_ms
     if args.advance_step_ms is not None:
         s.setdefault("ingest", {})["advance_step_ms"] = args.advance_step_ms
+    if args.estimate_interval_ms is not None:
+        s.setdefault("ingest", {})["estimate_interval_ms"] = args.estimate_interval_ms
     if args.commit_interval_s is not None:
         s.setdefault("storage", {})["commit_interval_s"] = args.commit_interval_s
     return s
@@ -978,6 +981,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--lateness-ms", type=int, default=None)
     p.add_argument("--advance-step-ms", type=int, default=None)
+    p.add_argument("--estimate-interval-ms", type=int, default=None)
     p.add_argument("--commit-interval-s", type=float, default=None)
 
 

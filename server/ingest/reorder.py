@@ -31,6 +31,12 @@ covers up to the next one), so the fixed window keeps its full margin. Sensor-to
 latency drops from ``lateness`` to the spread between the vehicle's streams (down to the
 batch ends, with ``until_ns``), without making more packets late.
 
+Between packets the horizon moves only when the vehicle falls idle. A packet moves it only
+when it comes on the stream whose watermark held it at the last release (the lowest one), or
+when its samples push the fixed window past what was released; :attr:`ReorderBuffer.may_release`
+says so, and the pipeline visits a buffer only then (or when it fell idle): the packets of
+the streams ahead of a lagging one wait without a release each.
+
 A wheels *heartbeat* (a packet without edges, only ``until_ns``: the wheels stood still up to
 it) moves the stream's watermark and its sequence tracking and is never late; it is not queued.
 
