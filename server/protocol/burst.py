@@ -32,7 +32,7 @@ import numpy as np
 
 from estimator._frozen import builder
 from estimator.base import Measurement
-from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
+from estimator.types import GnssFix, ImuBatch, Wheel, WheelEdges, WheelSpeeds
 from server.protocol.codec import (
     _LITTLE_ENDIAN,
     _WHEEL,
@@ -41,6 +41,7 @@ from server.protocol.codec import (
     DecodeError,
     Limits,
     Packet,
+    _gnss_within,
     _new_packet,
     decode,
 )
@@ -63,7 +64,6 @@ _GNSS, _IMU, _WHEELS = Stream.GNSS, Stream.IMU, Stream.WHEELS
 _new_imu = builder(ImuBatch)
 _new_speeds = builder(WheelSpeeds)
 _new_edges = builder(WheelEdges)
-_new_gnss = builder(GnssSample)
 _FIX_OF: dict[object, GnssFix] = {int(f): f for f in GnssFix}
 _FIX_OF[UNSET] = GnssFix.RTK_FIXED  # "fix" absent: RTK fixed
 _SEQ_END = 2**63  # sequence numbers lie in [0, 2**63)
@@ -463,44 +463,23 @@ class _Groups:
 #: 15.4 µs per packet in bursts of 1, 9.2 in bursts of 8, 6.4 in bursts of 32; alone 9.3).
 MIN_BATCHED = 8
 
-_TWO_PI, _HALF_PI, _PI = 2 * math.pi, math.pi / 2, math.pi
-
-
-def _gnss_sample(p: GnssPacket, lim: Limits) -> GnssSample | None:
-    """The sample of a GNSS packet whose values are within their limits; None otherwise (the
-    codec's rules then decide: NaN velocities, for one, are valid but go that way).
-
-    The types were checked by the decoder; NaN ("not available") attitude and position pass,
-    as the codec lets them.
-    """
-    t = p.stamp_ns
-    ve, vn, vu = p.vel_enu_mps
-    heading, pitch, roll = p.heading_rad, p.pitch_rad, p.roll_rad
-    lat, lon, h = p.lat_deg, p.lon_deg, p.height_m
-    fix = _FIX_OF.get(p.fix)
-    vel_std = p.vel_std_mps
-    if vel_std is UNSET:
-        vel_std = math.nan
-    elif not 0 <= vel_std <= lim.max_speed_mps:
-        return None
-    if not (
-        lim.min_stamp_ns <= t <= lim.max_stamp_ns
-        and ve * ve + vn * vn + vu * vu <= lim.max_speed_mps**2  # False for inf and NaN
-        and not abs(heading) > _TWO_PI
-        and not abs(pitch) > _HALF_PI
-        and not abs(roll) > _PI
-        and not abs(lat) > 90
-        and not abs(lon) > 180
-        and not (h < lim.min_height_m or h > lim.max_height_m)
-        and fix is not None
-    ):
-        return None
-    return _new_gnss(t, (ve, vn, vu), heading, pitch, roll, lat, lon, h, fix, vel_std)
-
 
 def _gnss_packet(vehicle_id: str, p: GnssPacket, lim: Limits) -> Packet | None:
     """The packet of a GNSS fix within its limits; None: the codec's rules decide."""
-    sample = _gnss_sample(p, lim)
+    vel_std = p.vel_std_mps if isinstance(p.vel_std_mps, float) else math.nan  # or UNSET
+    sample = _gnss_within(
+        p.stamp_ns,
+        p.vel_enu_mps,
+        p.heading_rad,
+        p.pitch_rad,
+        p.roll_rad,
+        p.lat_deg,
+        p.lon_deg,
+        p.height_m,
+        _FIX_OF.get(p.fix),
+        vel_std,
+        lim,
+    )
     if sample is None:
         return None
     t = sample.stamp_ns

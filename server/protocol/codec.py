@@ -449,7 +449,6 @@ def _fix(ctx: _Ctx, m: dict[str, Any]) -> GnssFix:
 _TWO_PI = 2 * math.pi
 _HALF_PI = math.pi / 2
 _NO_FIX = object()  # "fix" absent: RTK fixed
-_NO_VEL_STD = object()  # "vel_std_mps" absent: NaN
 _FIX_OF: dict[object, GnssFix] = {int(f): f for f in GnssFix}
 _FIX_OF[_NO_FIX] = GnssFix.RTK_FIXED
 _new_gnss = builder(GnssSample)
@@ -470,36 +469,61 @@ def _gnss_sample(m: dict[str, Any], lim: Limits) -> GnssSample | None:
     heading, pitch, roll = get("heading_rad"), get("pitch_rad"), get("roll_rad")
     lat, lon, h = get("lat_deg"), get("lon_deg"), get("height_m")
     fix_raw = get("fix", _NO_FIX)
-    fix = _FIX_OF.get(fix_raw) if type(fix_raw) is int or fix_raw is _NO_FIX else None
-    vel_std = get("vel_std_mps", _NO_VEL_STD)
+    vel_std = get("vel_std_mps", math.nan)
     if not (
         type(t) is int
-        and lim.min_stamp_ns <= t <= lim.max_stamp_ns
         and type(vel) is list
         and len(vel) == 3
-        and type(ve := vel[0]) is float
-        and type(vn := vel[1]) is float
-        and type(vu := vel[2]) is float
-        and ve * ve + vn * vn + vu * vu <= lim.max_speed_mps**2  # False for inf and NaN
+        and type(vel[0]) is float
+        and type(vel[1]) is float
+        and type(vel[2]) is float
         and type(heading) is float
         and type(pitch) is float
         and type(roll) is float
-        # attitude and position: NaN ("not available") passes, as the long way lets it
-        and not abs(heading) > _TWO_PI
-        and not abs(pitch) > _HALF_PI
-        and not abs(roll) > math.pi
         and type(lat) is float
         and type(lon) is float
         and type(h) is float
+        and (type(fix_raw) is int or fix_raw is _NO_FIX)
+        and type(vel_std) is float
+    ):
+        return None
+    return _gnss_within(
+        t, vel, heading, pitch, roll, lat, lon, h, _FIX_OF.get(fix_raw), vel_std, lim
+    )
+
+
+def _gnss_within(
+    t: int,
+    vel: Sequence[float],
+    heading: float,
+    pitch: float,
+    roll: float,
+    lat: float,
+    lon: float,
+    h: float,
+    fix: GnssFix | None,
+    vel_std: float,
+    lim: Limits,
+) -> GnssSample | None:
+    """The GNSS sample of these values (``vel_std`` NaN when not given) when each lies within
+    its limits, one expression for all; None when one does not, or ``fix`` is None (unknown).
+
+    NaN attitude, position and ``vel_std`` ("not available") pass, as the field-by-field rules
+    let them; a NaN or infinite velocity does not (those fixes go the field-by-field way).
+    """
+    ve, vn, vu = vel
+    if not (
+        fix is not None
+        and lim.min_stamp_ns <= t <= lim.max_stamp_ns
+        and ve * ve + vn * vn + vu * vu <= lim.max_speed_mps**2  # False for inf and NaN
+        and not abs(heading) > _TWO_PI
+        and not abs(pitch) > _HALF_PI
+        and not abs(roll) > math.pi
         and not abs(lat) > 90
         and not abs(lon) > 180
         and not (h < lim.min_height_m or h > lim.max_height_m)
-        and fix is not None
+        and not (vel_std < 0 or vel_std > lim.max_speed_mps)
     ):
-        return None
-    if vel_std is _NO_VEL_STD:
-        vel_std = math.nan
-    elif type(vel_std) is not float or not 0 <= vel_std <= lim.max_speed_mps:
         return None
     return _new_gnss(t, (ve, vn, vu), heading, pitch, roll, lat, lon, h, fix, vel_std)
 
