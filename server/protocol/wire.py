@@ -17,9 +17,10 @@ Two differences from a plain dict decode are on purpose:
 
 * absent optional fields are :data:`UNSET`, not ``None``: a packet that sends ``nil`` for
   ``until_ns`` is not valid and must not decode as one without it;
-* unknown fields are refused (``forbid_unknown_fields``): msgpack-python validates every
-  string of a payload, msgspec skips unknown fields unread, so a packet with a broken string
-  under an unknown name would decode here and be refused ``undecodable`` by the codec.
+* unknown fields are refused (``forbid_unknown_fields``): msgpack-python decodes every string
+  of a payload and refuses the packet (``undecodable``) for one that is not UTF-8, while a
+  decoder may skip an unknown field without reading it; refusing them here leaves that case,
+  and every packet with extra fields, to the codec.
 """
 
 from __future__ import annotations
