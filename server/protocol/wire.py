@@ -9,9 +9,10 @@ to check in Python is values (limits, stamps, lengths of the packed arrays, ``se
 :mod:`server.protocol.burst` does that in batches.
 
 Anything else raises ``msgspec.ValidationError`` or ``msgspec.DecodeError``, and the caller
-decodes that packet with the codec, whose rules give the refusal and its reason (or accept it:
-integers where a float goes, an unknown extra field). So these structs decide only which
-packets take the fast path, never what a packet means.
+decodes that packet with the codec, whose rules give the refusal and its reason (or accept it,
+e.g. with an unknown extra field). So these structs decide only which packets take the fast
+path, never what a packet means. (Integers where a float goes decode here as floats, as the
+codec converts them.)
 
 Two differences from a plain dict decode are on purpose:
 

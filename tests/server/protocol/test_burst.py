@@ -211,11 +211,11 @@ def _gnss_payload(seq: int, t0: int = T0, **fields: Any) -> bytes:
 
 
 def test_packets_beyond_the_usual_shape_are_decoded_as_alone() -> None:
-    """Valid packets the typed decoder does not take (an extra field, integers where a float
-    goes, NaN velocity), and invalid ones it would take if it only checked types (``nil`` for
-    an optional field, ``seq`` of 2**63, a sensor that is not the key's, a wheels packet in
-    ``speeds`` mode with a stray ``edges`` entry, a heartbeat without ``until_ns``), come out
-    as the codec decodes them."""
+    """Valid packets the fast path leaves to the codec (an extra field, NaN velocity) or takes
+    with a conversion (integers where a float goes), and invalid ones it would take if it only
+    checked types (``nil`` for an optional field, ``seq`` of 2**63, a sensor that is not the
+    key's, a wheels packet in ``speeds`` mode with a stray ``edges`` entry, a heartbeat
+    without ``until_ns``), come out as the codec decodes them."""
     nan = float("nan")
     received = [
         (KEY[Stream.GNSS], _gnss_payload(0)),
