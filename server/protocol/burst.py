@@ -23,7 +23,6 @@ one numpy call per check). The other packets of the burst are unaffected, so
 from __future__ import annotations
 
 import itertools
-import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -32,8 +31,9 @@ import numpy as np
 
 from estimator._frozen import builder
 from estimator.base import Measurement
-from estimator.types import GnssFix, ImuBatch, Wheel, WheelEdges, WheelSpeeds
+from estimator.types import ImuBatch, Wheel, WheelEdges, WheelSpeeds
 from server.protocol.codec import (
+    _GNSS_FIX,
     _LITTLE_ENDIAN,
     _WHEEL,
     LIMITS,
@@ -47,7 +47,7 @@ from server.protocol.codec import (
 )
 from server.protocol.keys import Stream, parse_key
 from server.protocol.wire import DECODER as _DECODER
-from server.protocol.wire import UNSET, EdgesEntry, GnssPacket, ImuPacket, WheelsPacket
+from server.protocol.wire import EdgesEntry, GnssPacket, ImuPacket, WheelsPacket
 
 __all__ = ["BurstItem", "decode_burst"]
 
@@ -64,8 +64,6 @@ _GNSS, _IMU, _WHEELS = Stream.GNSS, Stream.IMU, Stream.WHEELS
 _new_imu = builder(ImuBatch)
 _new_speeds = builder(WheelSpeeds)
 _new_edges = builder(WheelEdges)
-_FIX_OF: dict[object, GnssFix] = {int(f): f for f in GnssFix}
-_FIX_OF[UNSET] = GnssFix.RTK_FIXED  # "fix" absent: RTK fixed
 _SEQ_END = 2**63  # sequence numbers lie in [0, 2**63)
 _STREAM_OF: dict[type, Stream] = {GnssPacket: _GNSS, ImuPacket: _IMU, WheelsPacket: _WHEELS}
 
@@ -466,7 +464,6 @@ MIN_BATCHED = 8
 
 def _gnss_packet(vehicle_id: str, p: GnssPacket, lim: Limits) -> Packet | None:
     """The packet of a GNSS fix within its limits; None: the codec's rules decide."""
-    vel_std = p.vel_std_mps if isinstance(p.vel_std_mps, float) else math.nan  # or UNSET
     sample = _gnss_within(
         p.stamp_ns,
         p.vel_enu_mps,
@@ -476,8 +473,8 @@ def _gnss_packet(vehicle_id: str, p: GnssPacket, lim: Limits) -> Packet | None:
         p.lat_deg,
         p.lon_deg,
         p.height_m,
-        _FIX_OF.get(p.fix),
-        vel_std,
+        _GNSS_FIX.get(p.fix),
+        p.vel_std_mps,
         lim,
     )
     if sample is None:

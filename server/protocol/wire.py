@@ -16,8 +16,9 @@ codec converts them.)
 
 Two differences from a plain dict decode are on purpose:
 
-* absent optional fields are :data:`UNSET`, not ``None``: a packet that sends ``nil`` for
-  ``until_ns`` is not valid and must not decode as one without it;
+* absent optional fields are :data:`UNSET` (or the value the codec gives them: ``fix`` RTK
+  fixed, ``vel_std_mps`` NaN), never ``None``: a packet that sends ``nil`` for ``until_ns``
+  is not valid and must not decode as one without it;
 * unknown fields are refused (``forbid_unknown_fields``): msgpack-python decodes every string
   of a payload and refuses the packet (``undecodable``) for one that is not UTF-8, while a
   decoder may skip an unknown field without reading it; refusing them here leaves that case,
@@ -26,11 +27,13 @@ Two differences from a plain dict decode are on purpose:
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
 import msgspec
 from msgspec import UNSET, UnsetType
 
+from estimator.types import GnssFix
 from server.protocol.codec import SCHEMA_VERSION
 
 __all__ = ["DECODER", "UNSET", "EdgesEntry", "GnssPacket", "ImuPacket", "WheelsPacket"]
@@ -57,8 +60,8 @@ class GnssPacket(_Packet, tag="gnss"):
     lat_deg: float
     lon_deg: float
     height_m: float
-    fix: int | UnsetType = UNSET
-    vel_std_mps: float | UnsetType = UNSET
+    fix: int = int(GnssFix.RTK_FIXED)  # absent: RTK fixed, as the codec reads it
+    vel_std_mps: float = math.nan  # absent: not known
     until_ns: int | UnsetType = UNSET
 
 
