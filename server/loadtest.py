@@ -39,7 +39,11 @@ backlog is empty and, 1.5 s on, the writer has taken every estimate row produced
   rows the reorder buffers release only after the vehicles fall silent: p50/p95/p99/max,
   ±2.5 %);
 * server CPU (cores: CPU seconds per wall second, all threads) and RSS (first, last, peak) via
-  psutil on the server pid; publisher CPU likewise.
+  psutil on the server pid; publisher CPU likewise;
+* cores by server thread over the window (``slipfleet_thread_cpu_seconds_total``,
+  :mod:`server.thread_cpu`: the server process's threads and each ingest worker's, the
+  workers' as of their last report, at most a second old), the busiest
+  :data:`THREADS_SHOWN` in the report: where the server's CPU goes;
 * the machine's speed before the load and after it (:mod:`server.speed_probe`: a fixed Python
   loop, best of three): near the machine's limit a shared machine's drift decides the tail, so
   runs are compared at a like speed.
@@ -98,6 +102,8 @@ DRAIN_S = 30.0
 #: fleet totals (``by_vehicle=false``); only the scrapes before and after the window render every
 #: vehicle's counters (~25 series each, ~0.1 s of the server's CPU at 1,000 vehicles).
 POLL_S = 3.0
+#: Busiest server threads the report names (``server_thread_cores`` in the JSON has them all).
+THREADS_SHOWN = 8
 _SETTINGS_ENV = "LOADTEST_SERVER_SETTINGS"
 _STORAGE_URL_ENV = "SLIPFLEET_STORAGE__URL"
 
@@ -266,6 +272,8 @@ def scrape(
         backlog=0.0,
     )
     out["rejected_by_reason"] = {}
+    out["thread_cpu"] = {}
+    out["at_s"] = time.monotonic()
     vehicles: set[str] = set()
     wanted = {f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS}
     for line in text.splitlines():
@@ -295,6 +303,8 @@ def scrape(
             out["rows_dropped"] += value
         elif name == "slipfleet_writer_backlog_rows":
             out["backlog"] += value
+        elif name == "slipfleet_thread_cpu_seconds_total":
+            out["thread_cpu"][f"{labels.get('process', '?')}/{labels.get('thread', '?')}"] = value
     out["vehicles"] = vehicles
     out["latency"] = parse_histogram(text)
     return out
@@ -312,6 +322,12 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             reasons[reason] = reasons.get(reason, 0.0) + n
     out["rejected_by_reason"] = reasons
     out["vehicles"] = set().union(*(s["vehicles"] for s in scrapes))
+    out["at_s"] = max(s["at_s"] for s in scrapes)
+    out["thread_cpu"] = {
+        (f"server-{i}:{k}" if len(scrapes) > 1 else k): v
+        for i, s in enumerate(scrapes)
+        for k, v in s["thread_cpu"].items()
+    }
     lat: dict[str, list[float]] = {}
     for s in scrapes:
         for stage, h in s["latency"].items():
@@ -320,6 +336,18 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                 acc[i] += c
     out["latency"] = lat
     return out
+
+
+def thread_cores(before: Mapping[str, Any], after: Mapping[str, Any]) -> dict[str, float]:
+    """Cores each server thread used between two merged scrapes (``process/thread``: CPU
+    seconds over wall seconds), busiest first; a thread started in between counts from zero,
+    one that ended is left out."""
+    wall = after["at_s"] - before["at_s"]
+    if wall <= 0:
+        return {}
+    start = before["thread_cpu"]
+    cores = {k: (v - start.get(k, 0.0)) / wall for k, v in after["thread_cpu"].items()}
+    return {k: round(c, 3) for k, c in sorted(cores.items(), key=lambda kv: -kv[1]) if c >= 0.001}
 
 
 def _latency_window(
@@ -830,6 +858,7 @@ def run_loadtest(
                 (after["rows_written"] - before["rows_written"]) / (wall + drain_s), 1
             ),
             "latency": _latency_window(before["latency"], window_end["latency"]),
+            "server_thread_cores": thread_cores(before, window_end),
             "server_cpu_cores": round((cpu1 - cpu0) / wall, 3) if target.pids else None,
             "server_rss_mb_start": round(rss0 / 2**20, 1) if target.pids else None,
             "server_rss_mb_end": round(rss1 / 2**20, 1) if target.pids else None,
@@ -888,6 +917,16 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"server   CPU {r['server_cpu_cores']:.2f} cores of {r['machine_cpus']}  RSS "
             f"{r['server_rss_mb_start']} → {r['server_rss_mb_end']} MB (peak "
             f"{r['server_rss_mb_peak']} MB, growth {r.get('server_rss_growth_pct')} %)"
+        )
+    threads = r.get("server_thread_cores") or {}
+    if threads:
+        top = list(threads.items())[:THREADS_SHOWN]
+        rest = sum(list(threads.values())[THREADS_SHOWN:])
+        lines.append(
+            "threads  "
+            + "  ".join(f"{name} {cores:.2f}" for name, cores in top)
+            + (f"  +{len(threads) - len(top)} more {rest:.2f}" if len(threads) > len(top) else "")
+            + " (cores)"
         )
     if r.get("machine_probe_s"):
         before, after = r["machine_probe_s"]

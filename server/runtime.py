@@ -34,6 +34,7 @@ from server.settings import Settings
 from server.storage import open_store
 from server.storage.base import Store
 from server.storage.writer import StoreWriter
+from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["Runtime"]
 
@@ -325,6 +326,7 @@ class Runtime:
                 )
             )
         families.extend(self.latency.families())
+        families.append(self._thread_cpu_family())
         if self.alert_engine is not None:
             families.append(
                 MetricFamily(
@@ -335,6 +337,23 @@ class Runtime:
                 )
             )
         return families
+
+    def _thread_cpu_family(self) -> MetricFamily:
+        """CPU seconds by thread of the server process and of each ingest worker."""
+        per_process = {"server": thread_cpu_seconds()}
+        if isinstance(self.pipeline, WorkerPool):
+            per_process.update(self.pipeline.thread_cpu_snapshot())
+        return MetricFamily(
+            "slipfleet_thread_cpu_seconds",
+            "counter",
+            "CPU seconds (user + system) of the live threads of the server and its ingest "
+            "workers, by thread name.",
+            [
+                Sample(seconds, {"process": process, "thread": thread}, "_total")
+                for process, threads in per_process.items()
+                for thread, seconds in sorted(threads.items())
+            ],
+        )
 
 
 def _fleet_totals(per_vehicle: Mapping[str, Mapping[str, int]]) -> dict[str, dict[str, int]]:

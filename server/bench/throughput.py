@@ -579,7 +579,7 @@ def profile_summary(raw: Path, top: int = 15) -> list[tuple[str, float, float]]:
 _HEADER = (
     f"{'ladder':<9} {'vehicles':>8} {'pkts/s':>8} {'recv %':>7} {'loss':>5} {'p50 ms':>7} "
     f"{'p99 ms':>7} {'live p99':>8} {'CPU cores':>9} {'RSS MB':>7} {'rows/s':>7} {'holds':>6} "
-    f"{'floor':>5}"
+    f"{'floor':>5}  busiest server thread (cores)"
 )
 
 
@@ -593,8 +593,17 @@ def _row(r: dict[str, Any]) -> str:
         f"{lat.get('p99_ms', float('nan')):>7.0f} {live.get('p99_ms', float('nan')):>8.0f} "
         f"{r['server_cpu_cores']:>9.2f} {r['server_rss_mb_peak']:>7.0f} "
         f"{r['storage_rows_per_s']:>7.0f} {'yes' if r['holds'] else 'NO':>6} "
-        f"{'yes' if r['floor_ok'] else 'no':>5}"
+        f"{'yes' if r['floor_ok'] else 'no':>5}  {_busiest(r)}"
     )
+
+
+def _busiest(r: dict[str, Any]) -> str:
+    """The rung's busiest server thread and its cores (``server_thread_cores``)."""
+    threads = r.get("server_thread_cores") or {}
+    if not threads:
+        return "-"
+    name, cores = next(iter(threads.items()))
+    return f"{name} {cores:.2f}"
 
 
 def run(

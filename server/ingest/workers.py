@@ -61,6 +61,7 @@ from server.ingest.pipeline import EstimateSink
 from server.ingest.subscriber import IngestSubscriber, RawPacket
 from server.protocol.keys import parse_key
 from server.settings import IngestSettings, Settings, ZenohSettings
+from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["WorkerPool", "owner_of"]
 
@@ -410,6 +411,11 @@ class WorkerPool:
         """Each vehicle's ENU anchor."""
         return self._merged("anchors")
 
+    def thread_cpu_snapshot(self) -> dict[str, dict[str, float]]:
+        """``{"worker-k": {thread name: CPU seconds}}`` (:mod:`server.thread_cpu`) of each
+        worker process, as of its last report; a restarted worker counts from zero again."""
+        return {f"worker-{w.index}": dict(w.snapshot.get("thread_cpu", {})) for w in self._workers}
+
     def stats(self) -> dict[str, Any]:
         """The workers' pipeline stats summed (``last_tick_ms`` the largest), plus the pool's;
         ``running`` only while every worker and the collector run."""
@@ -464,6 +470,7 @@ def _snapshot(pipeline: Any) -> dict[str, Any]:
         "estimator_counters": pipeline.estimator_counters_snapshot(),
         "anchors": pipeline.anchors_snapshot(),
         "stats": pipeline.stats(),
+        "thread_cpu": thread_cpu_seconds(),
     }
 
 

@@ -138,6 +138,18 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
                     and 'event="ticks"' in ln
                 )
                 assert float(line.rsplit(" ", 1)[1]) > 100, line
+            # the pipeline threads' CPU is charged to them by name, in the process they run in
+            pipeline_cpu = {
+                ln.split('process="', 1)[1].split('"', 1)[0]: float(ln.rsplit(" ", 1)[1])
+                for ln in metrics.splitlines()
+                if ln.startswith("slipfleet_thread_cpu_seconds_total{")
+                and 'thread="slipfleet-pipeline"' in ln
+            }
+            workers = settings.ingest.workers
+            assert sorted(pipeline_cpu) == (
+                [f"worker-{k}" for k in range(workers)] if workers else ["server"]
+            ), pipeline_cpu
+            assert all(seconds > 0.0 for seconds in pipeline_cpu.values()), pipeline_cpu
             for i, vid in enumerate(ids):
                 phase = (i * TICK_NS) // N_VEHICLES
                 truth = simulate(

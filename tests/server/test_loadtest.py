@@ -21,6 +21,7 @@ from server.loadtest import (
     publisher_count,
     run_loadtest,
     scrape,
+    thread_cores,
 )
 from server.protocol import Stream, decode, sensor_key
 
@@ -78,6 +79,32 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
     before, after = r["machine_probe_s"]
     assert 0 < before < 60 and 0 < after < 60
     assert f"Python probe {before:.3f} s before" in format_report(r)
+    # the server's pipeline thread decoded and estimated: it used CPU in the window, and no
+    # thread used more than a whole core
+    threads = r["server_thread_cores"]
+    assert threads.get("server/slipfleet-pipeline", 0.0) > 0.0, threads
+    assert all(0.0 < cores <= 1.05 for cores in threads.values()), threads
+    assert list(threads.values()) == sorted(threads.values(), reverse=True)
+    assert "threads  " in format_report(r)
+
+
+def test_thread_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
+    before = {"at_s": 100.0, "thread_cpu": {"server/writer": 5.0, "worker-0/pipeline": 10.0}}
+    after = {
+        "at_s": 110.0,
+        "thread_cpu": {
+            "server/writer": 7.0,  # 2 s of CPU in 10 s
+            "worker-0/pipeline": 16.0,
+            "server/AnyIO worker thread": 0.5,  # started in the window: from zero
+            "server/idle": 0.0,
+        },
+    }
+    assert thread_cores(before, after) == {
+        "worker-0/pipeline": 0.6,
+        "server/writer": 0.2,
+        "server/AnyIO worker thread": 0.05,
+    }
+    assert thread_cores(after, before) == {}  # no window
 
 
 def test_replayed_recordings_load_the_server_like_simulated_vehicles(tmp_path: Path) -> None:

@@ -74,6 +74,14 @@ def test_every_vehicle_is_estimated_once_and_counted() -> None:
             assert time.monotonic() < deadline, pool.counters_snapshot()
             time.sleep(0.2)
         assert pool.stats()["running"] and pool.stats()["workers"] == 2
+        # each worker reports its threads' CPU; its pipeline thread did the decoding and
+        # estimating (the snapshots come once a second)
+        while not all(
+            cpu.get("slipfleet-pipeline", 0.0) > 0.0 for cpu in pool.thread_cpu_snapshot().values()
+        ):
+            assert time.monotonic() < deadline, pool.thread_cpu_snapshot()
+            time.sleep(0.2)
+        assert sorted(pool.thread_cpu_snapshot()) == ["worker-0", "worker-1"]
     finally:
         pool.stop()
     assert not pool.stats()["running"]
