@@ -43,7 +43,9 @@ backlog is empty and, 1.5 s on, the writer has taken every estimate row produced
 * cores by server thread over the window (``slipfleet_thread_cpu_seconds_total``,
   :mod:`server.thread_cpu`: the server process's threads and each ingest worker's, the
   workers' as of their last report, at most a second old), the busiest
-  :data:`THREADS_SHOWN` in the report: where the server's CPU goes;
+  :data:`THREADS_SHOWN` in the report: where the server's CPU goes; and the pipeline threads'
+  cores by phase (decode, reorder, release, estimate, deliver:
+  ``slipfleet_pipeline_cpu_seconds_total``);
 * the machine's speed before the load and after it (:mod:`server.speed_probe`: a fixed Python
   loop, best of three): near the machine's limit a shared machine's drift decides the tail, so
   runs are compared at a like speed.
@@ -273,6 +275,7 @@ def scrape(
     )
     out["rejected_by_reason"] = {}
     out["thread_cpu"] = {}
+    out["pipeline_cpu"] = {}
     out["at_s"] = time.monotonic()
     vehicles: set[str] = set()
     wanted = {f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS}
@@ -303,6 +306,9 @@ def scrape(
             out["rows_dropped"] += value
         elif name == "slipfleet_writer_backlog_rows":
             out["backlog"] += value
+        elif name == "slipfleet_pipeline_cpu_seconds_total":
+            phase = labels.get("phase", "?")
+            out["pipeline_cpu"][phase] = out["pipeline_cpu"].get(phase, 0.0) + value
         elif name == "slipfleet_thread_cpu_seconds_total":
             out["thread_cpu"][f"{labels.get('process', '?')}/{labels.get('thread', '?')}"] = value
     out["vehicles"] = vehicles
@@ -328,6 +334,11 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         for i, s in enumerate(scrapes)
         for k, v in s["thread_cpu"].items()
     }
+    phases: dict[str, float] = {}
+    for s in scrapes:
+        for phase, seconds in s["pipeline_cpu"].items():
+            phases[phase] = phases.get(phase, 0.0) + seconds
+    out["pipeline_cpu"] = phases
     lat: dict[str, list[float]] = {}
     for s in scrapes:
         for stage, h in s["latency"].items():
@@ -338,15 +349,17 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def thread_cores(before: Mapping[str, Any], after: Mapping[str, Any]) -> dict[str, float]:
+def thread_cores(
+    before: Mapping[str, Any], after: Mapping[str, Any], what: str = "thread_cpu"
+) -> dict[str, float]:
     """Cores each server thread used between two merged scrapes (``process/thread``: CPU
     seconds over wall seconds), busiest first; a thread started in between counts from zero,
-    one that ended is left out."""
+    one that ended is left out. ``what="pipeline_cpu"``: the pipeline threads' phases."""
     wall = after["at_s"] - before["at_s"]
     if wall <= 0:
         return {}
-    start = before["thread_cpu"]
-    cores = {k: (v - start.get(k, 0.0)) / wall for k, v in after["thread_cpu"].items()}
+    start = before[what]
+    cores = {k: (v - start.get(k, 0.0)) / wall for k, v in after[what].items()}
     return {k: round(c, 3) for k, c in sorted(cores.items(), key=lambda kv: -kv[1]) if c >= 0.001}
 
 
@@ -859,6 +872,7 @@ def run_loadtest(
             ),
             "latency": _latency_window(before["latency"], window_end["latency"]),
             "server_thread_cores": thread_cores(before, window_end),
+            "pipeline_phase_cores": thread_cores(before, window_end, "pipeline_cpu"),
             "server_cpu_cores": round((cpu1 - cpu0) / wall, 3) if target.pids else None,
             "server_rss_mb_start": round(rss0 / 2**20, 1) if target.pids else None,
             "server_rss_mb_end": round(rss1 / 2**20, 1) if target.pids else None,
@@ -927,6 +941,13 @@ def format_report(r: Mapping[str, Any]) -> str:
             + "  ".join(f"{name} {cores:.2f}" for name, cores in top)
             + (f"  +{len(threads) - len(top)} more {rest:.2f}" if len(threads) > len(top) else "")
             + " (cores)"
+        )
+    phases = r.get("pipeline_phase_cores") or {}
+    if phases:
+        lines.append(
+            "pipeline "
+            + "  ".join(f"{phase} {cores:.2f}" for phase, cores in phases.items())
+            + " (cores, every pipeline thread)"
         )
     if r.get("machine_probe_s"):
         before, after = r["machine_probe_s"]

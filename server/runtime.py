@@ -25,7 +25,7 @@ from estimator.geo import EnuFrame
 from server.alerts import AlertEngine, AlertKind
 from server.api.prometheus import MetricFamily, Sample
 from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
-from server.ingest.pipeline import EstimateSink, Pipeline
+from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
 from server.latency import LatencyProbe
@@ -284,6 +284,18 @@ class Runtime:
                     "gauge",
                     "Duration of the pipeline's last processing tick.",
                     [Sample(float(stats["last_tick_ms"]) / 1000.0)],
+                )
+            )
+            families.append(
+                MetricFamily(
+                    "slipfleet_pipeline_cpu_seconds",
+                    "counter",
+                    "CPU seconds of the pipeline thread (every ingest worker's, added up) by "
+                    "phase: decode, reorder, release, estimate, deliver.",
+                    [
+                        Sample(float(stats.get(f"cpu_{phase}_s", 0.0)), {"phase": phase}, "_total")
+                        for phase in PHASES
+                    ],
                 )
             )
         if self.writer is not None:

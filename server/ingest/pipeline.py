@@ -72,6 +72,13 @@ log = logging.getLogger(__name__)
 #: Counter-name prefix of a stream's highest sequence number (``seq_high_imu`` …).
 SEQ_HIGH = "seq_high_"
 
+#: Parts of the pipeline thread's work whose CPU time it adds up (``stats()["cpu_<phase>_s"]``,
+#: ``slipfleet_pipeline_cpu_seconds_total{phase}``): decoding bursts, offering packets to the
+#: reorder buffers, releasing them to the estimators' buffers, estimator calls, handing rows to
+#: the sinks (in a worker: the pipe to the server). The rest of the thread's time (control
+#: messages, counter snapshots) is not counted in any of them.
+PHASES = ("decode", "reorder", "release", "estimate", "deliver")
+
 #: How often the pipeline thread copies the estimators' event counters and ENU anchors for
 #: other threads.
 ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
@@ -226,6 +233,7 @@ class Pipeline:
         )
         self._stopping = threading.Event()
         self._last_tick_s = 0.0
+        self._cpu_s = dict.fromkeys(PHASES, 0.0)  # thread CPU by phase (PHASES)
 
     # ------------------------------------------------------------------ public, any thread
 
@@ -357,11 +365,13 @@ class Pipeline:
             "queue_capacity": QUEUE_BURSTS,
             "last_tick_ms": round(self._last_tick_s * 1000, 3),
             "running": self._thread is not None and self._thread.is_alive(),
+            **{f"cpu_{phase}_s": seconds for phase, seconds in self._cpu_s.items()},
         }
 
     # ------------------------------------------------------------------ pipeline thread
 
     def _run(self) -> None:
+        cpu = self._cpu_s
         next_tick = self._clock() + self._interval_ns
         next_counters = self._clock()
         received_ns = self._clock()
@@ -380,7 +390,12 @@ class Pipeline:
             try:
                 self._apply_configs()
                 if items:
-                    self._handle(self._decoded(items), received_ns)
+                    c0 = time.thread_time()
+                    decoded = self._decoded(items)
+                    c1 = time.thread_time()
+                    self._handle(decoded, received_ns)
+                    cpu["decode"] += c1 - c0
+                    cpu["reorder"] += time.thread_time() - c1
                 now = self._clock()
                 if now >= next_tick:
                     # While bursts wait in the queue, "now" for the idle release is the receive
@@ -646,6 +661,8 @@ class Pipeline:
 
     def _tick(self, now: int, *, flush: bool) -> None:
         t0 = time.perf_counter()
+        c0 = time.thread_time()
+        cpu = self._cpu_s
         until: dict[str, int] = {}
         registry = self._registry
         drained: list[str] = []
@@ -681,6 +698,8 @@ class Pipeline:
             if released == last and buf.drained:
                 drained.append(vid)
         self._active.difference_update(drained)
+        c1 = time.thread_time()
+        cpu["release"] += c1 - c0
         # One estimator call per estimate interval for every vehicle with a tick due: a call
         # has a fixed cost, so fewer, larger calls hold more vehicles.
         self._due.update(until)
@@ -696,7 +715,10 @@ class Pipeline:
         except Exception:
             self._stats["estimator_errors"] += 1
             log.exception("estimator advance failed")
+        c2 = time.thread_time()
         self._deliver(result)
+        cpu["estimate"] += c2 - c1
+        cpu["deliver"] += time.thread_time() - c2
         self._stats["ticks"] += 1
         self._last_tick_s = time.perf_counter() - t0
 

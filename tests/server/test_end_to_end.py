@@ -16,6 +16,7 @@ import pytest
 from estimator.sim import simulate, truth_at
 from server.app_main import ServerThread, build_app, vehicle_session
 from server.fleet_sim import TICK_NS, FleetSim
+from server.ingest.pipeline import PHASES
 from server.settings import Settings
 from tests.support import free_port
 
@@ -150,6 +151,14 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
                 [f"worker-{k}" for k in range(workers)] if workers else ["server"]
             ), pipeline_cpu
             assert all(seconds > 0.0 for seconds in pipeline_cpu.values()), pipeline_cpu
+            # ... and split by phase (the workers' added up)
+            phases = {
+                ln.split('phase="', 1)[1].split('"', 1)[0]: float(ln.rsplit(" ", 1)[1])
+                for ln in metrics.splitlines()
+                if ln.startswith("slipfleet_pipeline_cpu_seconds_total{")
+            }
+            assert sorted(phases) == sorted(PHASES), phases
+            assert phases["estimate"] > 0.0 and phases["decode"] > 0.0, phases
             for i, vid in enumerate(ids):
                 phase = (i * TICK_NS) // N_VEHICLES
                 truth = simulate(

@@ -86,6 +86,11 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
     assert all(0.0 < cores <= 1.05 for cores in threads.values()), threads
     assert list(threads.values()) == sorted(threads.values(), reverse=True)
     assert "threads  " in format_report(r)
+    # ... and its phases are reported: estimator calls and decoding at least
+    phases = r["pipeline_phase_cores"]
+    assert phases.get("estimate", 0.0) > 0.0 and phases.get("decode", 0.0) > 0.0, phases
+    assert sum(phases.values()) <= threads["server/slipfleet-pipeline"] + 0.05, (phases, threads)
+    assert "pipeline estimate" in format_report(r) or "pipeline decode" in format_report(r)
 
 
 def test_thread_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
@@ -105,6 +110,9 @@ def test_thread_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
         "server/AnyIO worker thread": 0.05,
     }
     assert thread_cores(after, before) == {}  # no window
+    before["pipeline_cpu"] = {"decode": 1.0}
+    after["pipeline_cpu"] = {"decode": 2.5, "estimate": 3.0}
+    assert thread_cores(before, after, "pipeline_cpu") == {"estimate": 0.3, "decode": 0.15}
 
 
 def test_replayed_recordings_load_the_server_like_simulated_vehicles(tmp_path: Path) -> None:

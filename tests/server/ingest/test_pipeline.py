@@ -322,6 +322,24 @@ def test_raw_bursts_are_decoded_on_the_pipeline_thread_refusals_counted() -> Non
     assert snap[""]["rejected_bad_key"] == 1
 
 
+def test_the_pipeline_thread_adds_up_its_cpu_by_phase() -> None:
+    pipe, _, sink = make()
+    assert all(pipe.stats()[f"cpu_{phase}_s"] == 0.0 for phase in pipeline_module.PHASES)
+    pipe.start()
+    try:
+        pipe.submit_raw(
+            [("fleet/a/sensors/imu", encode_imu(imu_batch(10 * k), k)) for k in range(12)]
+        )
+        wait_for(lambda: pipe.counters_snapshot().get("a", {}).get("accepted") == 12)
+        wait_for(lambda: bool(sink.rows.get("a")))  # released, estimated, delivered
+        stats = pipe.stats()
+    finally:
+        pipe.stop()
+    # each phase ran on the pipeline thread and its CPU time was added up
+    assert all(stats[f"cpu_{phase}_s"] > 0.0 for phase in pipeline_module.PHASES), stats
+    assert sum(stats[f"cpu_{phase}_s"] for phase in pipeline_module.PHASES) < 5.0
+
+
 def test_undecoded_bursts_queued_back_to_back_are_decoded_as_one(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
