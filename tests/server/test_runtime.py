@@ -1,0 +1,88 @@
+"""Runtime: alerts reach Zenoh subscribers, with the server as the router or as its client."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from estimator.types import EstimateFlag, empty_estimates
+from server.alerts import AlertKind
+from server.app_main import vehicle_session
+from server.router import router_config
+from server.runtime import SERVER_ALERTS_CHUNK, Runtime
+from server.settings import Settings
+from tests.support import free_port
+
+pytestmark = pytest.mark.zenoh
+
+S = 1_000_000_000
+VEHICLES = [f"v{i:02d}" for i in range(30)]
+
+
+def _slipping(seconds: int) -> np.ndarray:
+    """Rows of a vehicle whose left wheel slips 40 % for ``seconds`` (past any alert hold)."""
+    r = empty_estimates(seconds * 10)
+    r["stamp_ns"] = time.time_ns() - seconds * S + np.arange(seconds * 10) * (S // 10)
+    r["slip_left_pct"] = 40.0
+    r["slip_right_pct"] = 0.0
+    r["flags"] = int(EstimateFlag.GNSS_OK)
+    return r
+
+
+@pytest.fixture(params=["embedded router", "client of a router"])
+def runtime(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[tuple[Runtime, str]]:
+    """A running server and the endpoint vehicles connect to."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = None
+    zs: dict[str, object] = {"listen": [endpoint]}
+    if request.param == "client of a router":
+        router = zenoh.open(router_config([endpoint]))
+        zs = {"connect": [endpoint]}
+    settings = Settings.model_validate(
+        {
+            "zenoh": zs,
+            "storage": {"data_dir": str(tmp_path / "data")},
+            "viewer": {"enabled": False},
+        }
+    )
+    rt = Runtime(settings)
+    rt.open()
+    try:
+        yield rt, endpoint
+    finally:
+        rt.close()
+        if router is not None:
+            router.close()
+
+
+def test_vehicle_and_server_alerts_are_published_under_their_keys(
+    runtime: tuple[Runtime, str],
+) -> None:
+    rt, endpoint = runtime
+    assert rt.alert_engine is not None
+    with vehicle_session([endpoint]) as session:
+        sub = session.declare_subscriber("fleet/*/alerts", zenoh.handlers.FifoChannel(1000))
+        time.sleep(0.5)  # the subscription reaches the router
+        for vid in VEHICLES:
+            rt.alert_engine.on_estimates([(vid, _slipping(12))])
+        rt.alert_engine.set_system_condition(AlertKind.STORAGE_DOWN, True)
+        got: dict[str, list[dict[str, object]]] = {}
+        deadline = time.monotonic() + 10
+        while len(got) < len(VEHICLES) + 1 and time.monotonic() < deadline:
+            sample = sub.handler.try_recv()
+            if sample is None:
+                time.sleep(0.01)
+                continue
+            owner = str(sample.key_expr).split("/")[1]
+            got.setdefault(owner, []).append(json.loads(sample.payload.to_bytes()))
+    assert sorted(got) == sorted([*VEHICLES, SERVER_ALERTS_CHUNK])
+    for vid in VEHICLES:
+        assert [e["event"] for e in got[vid]] == ["open"], got[vid]
+        assert got[vid][0]["kind"] == AlertKind.SLIP_LEFT.value
+    assert got[SERVER_ALERTS_CHUNK][0]["kind"] == AlertKind.STORAGE_DOWN.value
