@@ -349,12 +349,13 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def thread_cores(
+def window_cores(
     before: Mapping[str, Any], after: Mapping[str, Any], what: str = "thread_cpu"
 ) -> dict[str, float]:
-    """Cores each server thread used between two merged scrapes (``process/thread``: CPU
-    seconds over wall seconds), busiest first; a thread started in between counts from zero,
-    one that ended is left out. ``what="pipeline_cpu"``: the pipeline threads' phases."""
+    """Cores used between two merged scrapes (CPU seconds over wall seconds), busiest first:
+    by server thread (``what="thread_cpu"``, keys ``process/thread``) or by pipeline phase
+    (``what="pipeline_cpu"``). A thread started in between counts from zero, one that ended
+    is left out."""
     wall = after["at_s"] - before["at_s"]
     if wall <= 0:
         return {}
@@ -871,8 +872,8 @@ def run_loadtest(
                 (after["rows_written"] - before["rows_written"]) / (wall + drain_s), 1
             ),
             "latency": _latency_window(before["latency"], window_end["latency"]),
-            "server_thread_cores": thread_cores(before, window_end),
-            "pipeline_phase_cores": thread_cores(before, window_end, "pipeline_cpu"),
+            "server_thread_cores": window_cores(before, window_end),
+            "pipeline_phase_cores": window_cores(before, window_end, "pipeline_cpu"),
             "server_cpu_cores": round((cpu1 - cpu0) / wall, 3) if target.pids else None,
             "server_rss_mb_start": round(rss0 / 2**20, 1) if target.pids else None,
             "server_rss_mb_end": round(rss1 / 2**20, 1) if target.pids else None,

@@ -21,7 +21,7 @@ from server.loadtest import (
     publisher_count,
     run_loadtest,
     scrape,
-    thread_cores,
+    window_cores,
 )
 from server.protocol import Stream, decode, sensor_key
 
@@ -93,7 +93,7 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
     assert "pipeline estimate" in format_report(r) or "pipeline decode" in format_report(r)
 
 
-def test_thread_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
+def test_window_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
     before = {"at_s": 100.0, "thread_cpu": {"server/writer": 5.0, "worker-0/pipeline": 10.0}}
     after = {
         "at_s": 110.0,
@@ -104,15 +104,15 @@ def test_thread_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
             "server/idle": 0.0,
         },
     }
-    assert thread_cores(before, after) == {
+    assert window_cores(before, after) == {
         "worker-0/pipeline": 0.6,
         "server/writer": 0.2,
         "server/AnyIO worker thread": 0.05,
     }
-    assert thread_cores(after, before) == {}  # no window
+    assert window_cores(after, before) == {}  # no window
     before["pipeline_cpu"] = {"decode": 1.0}
     after["pipeline_cpu"] = {"decode": 2.5, "estimate": 3.0}
-    assert thread_cores(before, after, "pipeline_cpu") == {"estimate": 0.3, "decode": 0.15}
+    assert window_cores(before, after, "pipeline_cpu") == {"estimate": 0.3, "decode": 0.15}
 
 
 def test_replayed_recordings_load_the_server_like_simulated_vehicles(tmp_path: Path) -> None:
