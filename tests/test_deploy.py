@@ -41,6 +41,9 @@ def test_replicas_own_disjoint_shares_of_one_database() -> None:
     assert env_a["SLIPFLEET_ZENOH__VEHICLE_FILTER"] == "a-$$*"
     assert env_b["SLIPFLEET_ZENOH__VEHICLE_FILTER"] == "b-$$*"
     assert env_a["SLIPFLEET_STORAGE__URL"] == env_b["SLIPFLEET_STORAGE__URL"]
+    # each replica runs its pipeline in worker processes, as many as the operator says
+    for env in (env_a, env_b):
+        assert re.fullmatch(r"\$\{INGEST_WORKERS:-\d+\}", env["SLIPFLEET_INGEST__WORKERS"])
     for service in services.values():
         for port in service.get("ports", []):
             assert port.startswith("${"), port  # host address comes from a variable (loopback)
