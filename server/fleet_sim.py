@@ -82,6 +82,16 @@ SIM_ORIGIN_DEG = (52.0, 5.6)
 SIM_ORIGIN_SPACING_M = 250.0
 
 
+def loop_period_ns(start_ns: int, end_ns: int) -> int:
+    """Sensor time of one loop of a drive spanning ``start_ns … end_ns``: the span and a tick,
+    rounded up to whole ticks, so that a looped vehicle's batches keep their phase like a
+    vehicle streaming on. (The server puts a vehicle's ticks on the end of its first IMU batch;
+    ``figure_eight``'s 68.374 s loop moved every batch of the next loop 74 ms off its ticks and
+    each tick then waited for one more batch: 300 such vehicles for 100 s, sensor→stored p50 /
+    p95 / p99 75 / 151 / 161 ms, 58 / 82 / 91 with whole-tick loops.)"""
+    return -(-(end_ns - start_ns + TICK_NS) // TICK_NS) * TICK_NS
+
+
 @dataclass(frozen=True, slots=True)
 class SimPacket:
     """One packet of a simulated run: when it arrives (ns after the run start) and what it holds."""
@@ -325,7 +335,7 @@ class FleetSim:
         for i, vid in enumerate(self.vehicle_ids):
             run = runs[i % self._distinct]
             packets = packetized[i % self._distinct]  # shared, read-only
-            period = run.end_ns - run.start_ns + TICK_NS
+            period = loop_period_ns(run.start_ns, run.end_ns)
             phase = (i * TICK_NS) // self._n
             # the vehicle registers its simulated sensors' noise figures, as an integrator would
             config = dataclasses.replace(run.config, noise=run.sensor_noise)

@@ -515,7 +515,7 @@ def _replay_fleet_sim_class() -> type:
     """A :class:`FleetSim` whose runs come from recordings instead of the simulator."""
     from estimator.config import VehicleConfig
     from estimator.sim.sensors import NO_EDGES
-    from server.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, packetize
+    from server.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, loop_period_ns, packetize
     from server.protocol.codec import DecodeError, decode
     from server.protocol.keys import parse_key
     from server.protocol.recording import read_recording
@@ -574,7 +574,7 @@ def _replay_fleet_sim_class() -> type:
             for i, vid in enumerate(self.vehicle_ids):
                 packets, start, end = drives[i % len(drives)]
                 phase = (i * TICK_NS) // self._n
-                period = end - start + TICK_NS
+                period = loop_period_ns(start, end)
                 out.append(_Vehicle(vid, packets, period, phase, phase - start, VehicleConfig()))
             return out
 

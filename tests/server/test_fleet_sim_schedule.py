@@ -20,8 +20,8 @@ from server.fleet_schedule import (
     publish_schedule,
     render,
 )
-from server.fleet_sim import TICK_NS, SimPacket, packetize
-from server.protocol import decode, sensor_key
+from server.fleet_sim import TICK_NS, SimPacket, loop_period_ns, packetize
+from server.protocol import Stream, decode, sensor_key
 
 T0 = 1_763_700_000 * 10**9
 SPAN = 100_000_000
@@ -159,3 +159,26 @@ def test_rate_and_lateness_of_a_real_time_schedule(
     assert stats.rounds is not None
     late = sorted(ms for _, ms, _ in stats.rounds)
     assert late[len(late) // 2] < 20.0  # half the rounds within 20 ms of due (busy CI hosts)
+
+
+def test_a_looped_drive_keeps_its_imu_batches_on_the_tick_grid() -> None:
+    run = simulate("figure_eight", seed=1, start_ns=T0)  # 68.374 s: a span off the 100 ms grid
+    assert (run.end_ns - run.start_ns + TICK_NS) % TICK_NS != 0
+    period = loop_period_ns(run.start_ns, run.end_ns)
+    assert period % TICK_NS == 0
+    assert run.end_ns - run.start_ns + TICK_NS <= period < run.end_ns - run.start_ns + 2 * TICK_NS
+    packets = packetize(run.sent_in_arrival_order(), run.start_ns)
+    sink = _Sink()
+    vehicles = _vehicles(sink, [0])
+    fleet = _Fleet([EncodedDrive(packets, period)], vehicles)
+    for _, call, payload, _ in _render_all(fleet, 2 * period):
+        call(payload)  # type: ignore[operator]
+    calls = sink.calls[(0, STREAMS.index(Stream.IMU))]
+    imu = [decode(sensor_key("fleet", "sim-0001", Stream.IMU), p) for p in calls]
+    per_loop = len([p for p in packets if p.stream is Stream.IMU])
+    assert len(imu) == 2 * per_loop
+    # the second loop's batches end where the first loop's do, modulo the tick: the server's
+    # ticks (put on the end of a vehicle's first IMU batch) stay on every batch end
+    first = {p.last_stamp_ns % TICK_NS for p in imu[:per_loop]}
+    second = {p.last_stamp_ns % TICK_NS for p in imu[per_loop:]}
+    assert second == first
