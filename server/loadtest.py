@@ -322,11 +322,7 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     for k in (*_PACKET_COUNTERS, *counted):
         out[k] = sum(float(s[k]) for s in scrapes)
     out["backlog"] = sum(float(s["backlog"]) for s in scrapes)
-    reasons: dict[str, float] = {}
-    for s in scrapes:
-        for reason, n in s["rejected_by_reason"].items():
-            reasons[reason] = reasons.get(reason, 0.0) + n
-    out["rejected_by_reason"] = reasons
+    out["rejected_by_reason"] = _summed(scrapes, "rejected_by_reason")
     out["vehicles"] = set().union(*(s["vehicles"] for s in scrapes))
     out["at_s"] = max(s["at_s"] for s in scrapes)
     out["thread_cpu"] = {
@@ -334,11 +330,7 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         for i, s in enumerate(scrapes)
         for k, v in s["thread_cpu"].items()
     }
-    phases: dict[str, float] = {}
-    for s in scrapes:
-        for phase, seconds in s["pipeline_cpu"].items():
-            phases[phase] = phases.get(phase, 0.0) + seconds
-    out["pipeline_cpu"] = phases
+    out["pipeline_cpu"] = _summed(scrapes, "pipeline_cpu")
     lat: dict[str, list[float]] = {}
     for s in scrapes:
         for stage, h in s["latency"].items():
@@ -346,6 +338,15 @@ def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             for i, c in enumerate(h["counts"]):
                 acc[i] += c
     out["latency"] = lat
+    return out
+
+
+def _summed(scrapes: Sequence[Mapping[str, Any]], key: str) -> dict[str, float]:
+    """The scrapes' ``{name: value}`` maps under ``key``, added up name by name."""
+    out: dict[str, float] = {}
+    for s in scrapes:
+        for name, value in s[key].items():
+            out[name] = out.get(name, 0.0) + value
     return out
 
 
