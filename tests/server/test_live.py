@@ -202,20 +202,17 @@ class _Served:
     """The live routes over ``hub`` under a real uvicorn on 127.0.0.1, with a JSON WS client."""
 
     def __init__(self, hub: LiveHub | None) -> None:
-        import socket
-
         import uvicorn
         from fastapi import FastAPI
 
         from server.api.routes import live as live_routes
+        from tests.support import free_port
 
         app = FastAPI()
         if hub is not None:
             app.state.live_hub = hub
         app.include_router(live_routes.router, prefix="/api/v1")
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            self.port = int(sock.getsockname()[1])
+        self.port = free_port()
         config = uvicorn.Config(
             app, host="127.0.0.1", port=self.port, log_level="warning", ws="websockets-sansio"
         )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -14,14 +13,13 @@ from server.bench.live import FeedThread, SyntheticFleet
 from server.live import LiveHub
 from server.settings import ViewerSettings
 from server.viewer.fleet_view import FleetViewer
+from tests.support import free_port
 
 pytestmark = pytest.mark.browser
 
 
 def test_viewer_client_follows_a_vehicle(browser: Any, screenshots: Path) -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = int(s.getsockname()[1])
+    port = free_port()
     hub = LiveHub()
     feed = FeedThread(SyntheticFleet(30, seed=3), [hub], rate_hz=10.0)
     feed.backfill(60.0)
