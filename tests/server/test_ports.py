@@ -7,9 +7,9 @@ from server.ports import LOWEST_PORT, _ephemeral_low, free_port
 
 
 def test_ports_are_never_handed_out_twice_and_bind() -> None:
-    ports = [free_port() for _ in range(300)]
-    assert len(set(ports)) == len(ports)
-    for port in ports[:20]:
+    handed = [free_port() for _ in range(300)]
+    assert len(set(handed)) == len(handed)
+    for port in handed[:20]:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             s.bind(("127.0.0.1", port))
 
