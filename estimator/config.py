@@ -158,15 +158,22 @@ class SlipConfig:
     alert_threshold_pct : float
         |slip| above this for ``alert_hold_s`` raises an alert.
     alert_hold_s : float
+    settle_max_change : float
+        A slip value is given only while the wheel's ground speed changes by at most this
+        fraction of itself over the span of the wheel-speed fit (``estimator.slip.unsettled``):
+        starting and stopping at low speed, the fit lags and the slip is withheld (flag
+        SETTLING). A large value (e.g. 1e9) turns the rule off.
     """
 
     min_ground_speed_mps: float = 0.2
     band_edges_pct: tuple[float, ...] = (5.0, 15.0)
     alert_threshold_pct: float = 15.0
     alert_hold_s: float = 5.0
+    settle_max_change: float = 0.5
 
     def __post_init__(self) -> None:
         _positive("min_ground_speed_mps", self.min_ground_speed_mps)
+        _positive("settle_max_change", self.settle_max_change)
         _positive("alert_threshold_pct", self.alert_threshold_pct)
         _positive("alert_hold_s", self.alert_hold_s)
         edges = list(self.band_edges_pct)

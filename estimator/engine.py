@@ -63,7 +63,7 @@ from estimator.mdsf import (
     mdsf_matrices,
 )
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
-from estimator.slip import slip_pct
+from estimator.slip import fit_span_s, slip_pct, unsettled
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
 from estimator.wheel_speed import WheelSpeedConfig
 
@@ -995,9 +995,12 @@ class MdsfFleet:
         self.engine = MdsfEngine(self.config, reference)
         self.front = FleetFrontEnd(self.config, self.wheel)
         self._slot: dict[str, int] = {}
-        # per slot: wheel radii (left, right) [m] and the slip's minimum ground speed [m/s]
+        # per slot: wheel radii and rim travel per encoder tooth (left, right) [m], the slip's
+        # minimum ground speed [m/s] and settling limit (SlipConfig)
         self._radius_m = np.zeros((0, 2))
+        self._tooth_arc_m = np.zeros((0, 2))
         self._min_speed_mps = np.zeros(0)
+        self._settle_max_change = np.zeros(0)
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
@@ -1008,10 +1011,15 @@ class MdsfFleet:
         if slot >= self._min_speed_mps.shape[0]:
             cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
             grow_slot_array(self, "_radius_m", cap, (2,), 0.0)
+            grow_slot_array(self, "_tooth_arc_m", cap, (2,), 0.0)
             grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
+            grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
+        teeth = config.encoder.teeth_per_rev
+        self._tooth_arc_m[slot] = self._radius_m[slot] * (2.0 * np.pi / teeth)
         self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
+        self._settle_max_change[slot] = config.slip.settle_max_change
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
@@ -1093,20 +1101,35 @@ class MdsfFleet:
             flags[fi] = so.flags
             rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
         # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
+        ground = np.stack([res["vl"], res["vr"]], axis=1)
         sp = slip_pct(
             rim,
-            np.stack([res["vl"], res["vr"]], axis=1),
+            ground,
             min_speed[:, None],
             rim_std,
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
             rim_cov,
         )
+        # starting / stopping faster than the wheel fit follows: no slip value (SETTLING)
+        fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
+        span = np.where(
+            fitted[:, None],
+            fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
+            0.0,
+        )
+        settling = sp.valid & unsettled(
+            ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
+        )
+        valid = sp.valid & ~settling
+        slip_out = np.where(valid, sp.slip_pct, np.nan)
+        slip_std_out = np.where(valid, sp.std_pct, np.nan)
         flags = (
             flags
             | (
-                np.where(sp.valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
-                | np.where(sp.valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
+                np.where(valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
+                | np.where(valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
                 | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
+                | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
             ).astype(np.int32)
             | flat.wheel_flags
         )
@@ -1121,13 +1144,13 @@ class MdsfFleet:
         out["rim_right_mps"] = rim[:, 1]
         out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
         out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
-        out["slip_left_pct"] = sp.slip_pct[:, 0]
-        out["slip_right_pct"] = sp.slip_pct[:, 1]
+        out["slip_left_pct"] = slip_out[:, 0]
+        out["slip_right_pct"] = slip_out[:, 1]
         out["vg_std_mps"] = res["vg_std"]
         out["vl_std_mps"] = res["vl_std"]
         out["vr_std_mps"] = res["vr_std"]
-        out["slip_left_std_pct"] = sp.std_pct[:, 0]
-        out["slip_right_std_pct"] = sp.std_pct[:, 1]
+        out["slip_left_std_pct"] = slip_std_out[:, 0]
+        out["slip_right_std_pct"] = slip_std_out[:, 1]
         out["accel_mps2"] = res["accel"]
         out["pitch_rate_radps"] = res["pitch_rate"]
         out["yaw_rate_radps"] = res["yaw_rate"]

@@ -169,6 +169,9 @@ class EstimateFlag(IntFlag):
     """Wheel speed was given directly (CAN), not from pulses."""
     RESET = 1 << 8
     """The filter was reset on this tick (divergence or re-initialisation)."""
+    SETTLING = 1 << 9
+    """Starting or stopping: the speed changes too fast for the wheel-speed fit at this low
+    speed (``SlipConfig.settle_max_change``); no slip value for a wheel so judged."""
 
 
 #: Fields of one estimate row, in storage order. Units are in the names; slip is in percent.

@@ -28,6 +28,12 @@ Metrics (on rows whose true ``V0`` exceeds 0.5 m/s, as the source's relative err
     Slip error in percentage points (both wheels pooled; rows with a slip value).
 ``omega_rms_pct``, ``omega_max_pct``
     Wheel angular-speed error relative to the true angular speed.
+``slip_low_max_pp`` (the one metric on slow rows)
+    Largest slip error of the rows that carry a slip value while the true ``V0`` is at most
+    0.5 m/s: starting and stopping, where the other metrics do not look; 0 when no such row
+    carries one (a wrong value shown is the error; none shown is none). Not a floor: it shows
+    what a user sees at a start, which the standstill and settling rules
+    (:mod:`estimator.slip`) decide.
 ``coverage_pct``
     Share of the moving time (truth grid) for which the latest row at or before that instant,
     no older than twice the method's row interval, carries a slip value; mean of both wheels.
@@ -321,7 +327,19 @@ def evaluate(rows: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     out["omega_rms_pct"] = _nan_stat(so, _rms)
     out["omega_max_pct"] = _nan_stat(so, np.max)
     out["coverage_pct"] = _coverage(rows, t_stamp[t_moving])
+    out["slip_low_max_pp"] = _slip_low_max_pp(rows[~moving], truth)
     return out
+
+
+def _slip_low_max_pp(slow: np.ndarray, truth: np.ndarray) -> float:
+    """Largest slip error of the rows in ``slow`` (true ``V0`` at most MOVING_MPS); 0 when
+    none carries a slip value."""
+    errs = [
+        slow[f"slip_{side}_pct"] - truth_at(truth, slow["stamp_ns"], f"slip_{side}_pct")
+        for side in ("left", "right")
+    ]
+    e = np.abs(np.concatenate(errs))
+    return float(np.max(e[np.isfinite(e)], initial=0.0))
 
 
 def _coverage(rows: np.ndarray, moving_ns: npt.NDArray[np.int64]) -> float:
@@ -466,6 +484,7 @@ _METRIC_KEYS = (
     "omega_rms_pct",
     "omega_max_pct",
     "coverage_pct",
+    "slip_low_max_pp",
 )
 _HIGHER_IS_BETTER = frozenset({"coverage_pct"})
 
@@ -612,6 +631,7 @@ _COLUMNS: tuple[tuple[str, str, int], ...] = (
     ("omega_rms_pct", "W rms%", 7),
     ("omega_max_pct", "W max%", 7),
     ("coverage_pct", "cover%", 7),
+    ("slip_low_max_pp", "slow S max", 10),
 )
 
 

@@ -281,6 +281,38 @@ def test_standstill_rows_carry_no_slip() -> None:
     assert np.all(rows["flags"][moving] & F.WHEEL_PERIOD_METHOD)
 
 
+def _slow_slip_errors_pp(rows: np.ndarray, sim: SimRun) -> np.ndarray:
+    """|slip error| of the rows given while the true V0 is at most 0.5 m/s (both wheels)."""
+    slow = rows[truth_at(sim.truth, rows["stamp_ns"], "v0_mps") <= 0.5]
+    errs = [
+        slow[f"slip_{s}_pct"] - truth_at(sim.truth, slow["stamp_ns"], f"slip_{s}_pct")
+        for s in ("left", "right")
+    ]
+    e = np.abs(np.concatenate(errs))
+    return e[np.isfinite(e)]
+
+
+@pytest.mark.parametrize("scenario", ["paper_straight", "hard_braking"])
+def test_starting_and_stopping_withhold_slip_the_wheel_fit_cannot_follow(scenario: str) -> None:
+    # A start from standstill (and a hard stop) at low speed: the wheel-speed fit spans too
+    # few, too long edge intervals to follow the speed; without the settling rule the slip is
+    # tens of points off there, with it the slip given stays within a few points.
+    sim, cfg = _sim(scenario, 1)
+    rows = _run(MdsfFleet(), {"v": (sim, cfg)})["v"]
+    off = dataclasses.replace(cfg, slip=dataclasses.replace(cfg.slip, settle_max_change=1e9))
+    rows_off = _run(MdsfFleet(), {"v": (sim, off)})["v"]
+    assert _slow_slip_errors_pp(rows_off, sim).max() > 25.0
+    assert _slow_slip_errors_pp(rows, sim).max(initial=0.0) < 10.0
+    settling = (rows["flags"] & F.SETTLING) != 0
+    assert settling.any() and not (rows_off["flags"] & F.SETTLING).any()
+    both = settling & ~(rows["flags"] & F.STANDSTILL).astype(bool)
+    withheld = np.isnan(rows["slip_left_pct"]) | np.isnan(rows["slip_right_pct"])
+    assert np.all(withheld[both])
+    # the rule is about low speed: above 1 m/s every row of these runs keeps its slip
+    fast = truth_at(sim.truth, rows["stamp_ns"], "v0_mps") > 1.0
+    assert np.all(rows["flags"][fast] & F.SLIP_LEFT_VALID)
+
+
 def test_direct_wheel_speeds_are_used_and_flagged() -> None:
     sim, cfg = _sim("paper_straight", 1)
     fleet = MdsfFleet()

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.slip import slip_pct
+from estimator.slip import fit_span_s, slip_pct, unsettled
 
 THR = 0.2
 
@@ -115,3 +115,45 @@ def test_std_with_correlated_speeds_matches_numerical_propagation() -> None:
         cov = np.array([[s_rim**2, c], [c, s_v**2]])
         assert float(r.std_pct) == pytest.approx(math.sqrt(jac @ cov @ jac), rel=1e-5)
         assert float(r.std_pct) < float(slip_pct(rim, v, THR, s_rim, s_v).std_pct)
+
+
+# --- settling: starting and stopping faster than the wheel fit follows ---------------------
+
+
+def test_fit_span_by_hand() -> None:
+    # r = 0.85 m, 120 teeth: arc = 2π·0.85/120 = 0.04451 m; 3 edges at 0.25 m/s take 0.534 s
+    arc = 2 * math.pi * 0.85 / 120
+    span = fit_span_s(np.array([0.25, -0.5, 2.0]), arc, 3)
+    np.testing.assert_allclose(span, 3 * arc / np.array([0.25, 0.5, 2.0]))
+
+
+def test_fit_span_at_standstill_is_infinite_and_zero_without_a_fit() -> None:
+    assert float(fit_span_s(0.0, 0.05, 3)) == math.inf
+    assert float(fit_span_s(np.nan, 0.05, 3)) == math.inf
+    # wheel speeds given directly (arc 0): no fit, no span
+    assert float(fit_span_s(0.3, 0.0, 3)) == 0.0
+
+
+def test_unsettled_by_hand() -> None:
+    # |a|·τ against 0.5·|V|: 0.9·0.534 = 0.48 > 0.125 (a start at 0.25 m/s); 0.9·0.067 = 0.06
+    # < 1.0 (the same acceleration at 2 m/s); braking counts like accelerating
+    v = np.array([0.25, 2.0, 0.25, 0.25])
+    a = np.array([0.9, 0.9, -0.9, 0.05])
+    span = fit_span_s(v, 2 * math.pi * 0.85 / 120, 3)
+    assert unsettled(v, a, span, 0.5).tolist() == [True, False, True, False]
+
+
+def test_unsettled_needs_finite_inputs_and_a_fit() -> None:
+    v = np.array([0.3, np.nan, 0.3, 0.0])
+    a = np.array([np.nan, 1.0, 1.0, 0.0])
+    span = np.array([0.4, 0.4, 0.0, np.inf])
+    # unknown acceleration, unknown speed, no fit, standing with no acceleration: not marked
+    assert not unsettled(v, a, span, 0.5).any()
+
+
+def test_unsettled_limit_broadcasts_per_row() -> None:
+    v = np.array([[0.5, 0.5], [0.5, 0.5]])
+    # change |a|·τ = 1.0·0.2 = 0.2 m/s; limits 0.3·0.5 = 0.15 m/s (row 0) and 0.5·0.5 = 0.25 m/s
+    span = np.full((2, 2), 0.2)
+    got = unsettled(v, np.array([[1.0], [1.0]]), span, np.array([[0.3], [0.5]]))
+    assert got.tolist() == [[True, True], [False, False]]

@@ -13,10 +13,17 @@ import pytest
 
 from estimator.base import FleetEstimator, Measurement
 from estimator.config import VehicleConfig
-from estimator.sim import TRUTH_DTYPE, simulate
+from estimator.sim import TRUTH_DTYPE, simulate, truth_at
 from estimator.types import ESTIMATE_DTYPE, GnssSample, empty_estimates
 from server.bench import accuracy
-from server.bench.accuracy import check_floors, evaluate, print_table, run, traditional_estimates
+from server.bench.accuracy import (
+    MOVING_MPS,
+    check_floors,
+    evaluate,
+    print_table,
+    run,
+    traditional_estimates,
+)
 
 START_NS = accuracy.START_NS
 
@@ -352,3 +359,22 @@ def test_variants_run_the_changed_scenarios_under_their_own_label() -> None:
     assert trad["vw_rms_pct"] != pytest.approx(trad0["vw_rms_pct"], rel=1e-9)
     lines = [ln for ln in out.getvalue().splitlines() if ln.startswith(label)]
     assert len(lines) == 2 and lines[0].index("product") == lines[1].index("traditional")
+
+
+def test_slow_rows_report_their_largest_slip_error_apart() -> None:
+    tr = _truth()
+    ramp = np.clip((np.arange(tr.shape[0]) - 100) * 0.02, 0.0, 2.0)  # 0 -> 2 m/s in 1 s
+    tr["v0_mps"] = ramp
+    tr["slip_left_pct"] = np.where(ramp > 0, 10.0, np.nan)
+    tr["slip_right_pct"] = np.where(ramp > 0, 5.0, np.nan)
+    rows = _rows_from_truth(tr)
+    v0 = truth_at(tr, rows["stamp_ns"], "v0_mps")
+    slow = np.flatnonzero((v0 <= MOVING_MPS) & np.isfinite(rows["slip_left_pct"]))
+    assert slow.size  # the hand-made run passes through low speed with slip values
+    rows["slip_left_pct"][slow[0]] += 40.0
+    m = evaluate(rows, tr)
+    assert m["slip_low_max_pp"] == pytest.approx(40.0)
+    assert m["slip_max_pp"] == pytest.approx(0.0)  # the moving rows' metrics do not see it
+    rows["slip_left_pct"][slow] = np.nan
+    rows["slip_right_pct"][slow] = np.nan
+    assert evaluate(rows, tr)["slip_low_max_pp"] == 0.0  # none shown: no error shown
