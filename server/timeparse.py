@@ -1,11 +1,16 @@
 """Parse query times into integer nanoseconds since the Unix epoch (UTC).
 
-Two spellings are accepted:
+Three spellings are accepted:
 
 * **Epoch nanoseconds**: a string of decimal digits, e.g. ``1700000000000000000``. Any string
   made only of digits is read this way (so the ISO *basic* date ``20240102`` is not a date here).
 * **ISO 8601 with a UTC offset**: ``2024-05-01T12:00:00Z``, ``2024-05-01T14:00:00.123456789+02:00``.
   Fractions of a second keep up to 9 digits (nanoseconds); further digits are truncated.
+
+* **Relative to now**: ``now``, or ``now-`` a number and a unit (``s``, ``m``, ``h``, ``d``),
+  e.g. ``now-15m``, ``now-1.5h``, ``now-7d``: the caller passes its clock as ``now_ns`` (the
+  API passes the server's wall clock when the request is read). Only the past: a report
+  reaches no further than now.
 
 A time without an offset (``2024-05-01T12:00:00``, ``2024-05-01``) is **rejected**, not taken as
 UTC: the server cannot know which clock the caller meant, and guessing shifts data by hours.
@@ -24,14 +29,19 @@ _DIGITS = re.compile(r"[0-9]+")
 # Seconds with a decimal fraction right after the date/time separator: hh:mm:ss.fff or hhmmss,fff.
 _SECONDS_FRACTION = re.compile(r"([0-9]{2}:?[0-9]{2}:?[0-9]{2})[.,]([0-9]+)")
 _MAX_LEN = 64
+_RELATIVE = re.compile(r"now(?:-([0-9]+(?:\.[0-9]+)?)([smhd]))?")
+_UNIT_S = {"s": 1, "m": 60, "h": 3_600, "d": 86_400}
 
 
 class TimeParseError(ValueError):
     """The text is neither epoch nanoseconds nor an ISO 8601 time with a UTC offset."""
 
 
-def parse_time_ns(text: str) -> int:
+def parse_time_ns(text: str, now_ns: int | None = None) -> int:
     """Return the time ``text`` names as int nanoseconds since the epoch, UTC.
+
+    ``now_ns`` is the clock relative times (``now``, ``now-15m``) count from; without it they
+    are refused.
 
     Raises
     ------
@@ -48,7 +58,26 @@ def parse_time_ns(text: str) -> int:
         if ns > INT64_MAX:
             raise TimeParseError(f"epoch nanoseconds out of range (max {INT64_MAX})")
         return ns
+    if value.lower().startswith("now"):
+        return _parse_relative(value, text, now_ns)
     return _parse_iso(value)
+
+
+def _parse_relative(value: str, text: str, now_ns: int | None) -> int:
+    m = _RELATIVE.fullmatch(value.lower())
+    if m is None:
+        raise TimeParseError(
+            f"not a relative time: {text!r}; write 'now' or 'now-' a number and s, m, h or d"
+        )
+    if now_ns is None:
+        raise TimeParseError("a relative time needs a clock to count from")
+    ago_ns = (
+        0 if m.group(1) is None else round(float(m.group(1)) * _UNIT_S[m.group(2)] * 1_000_000_000)
+    )
+    ns = now_ns - ago_ns
+    if ns < 0:
+        raise TimeParseError(f"{text!r} lies before 1970-01-01")
+    return ns
 
 
 def _parse_iso(text: str) -> int:

@@ -198,8 +198,10 @@ class TimeRange:
 
 
 _TIME_DOC = (
-    "ISO 8601 with a UTC offset (e.g. `2024-05-01T12:00:00Z`, nanosecond fractions kept) or "
-    "integer nanoseconds since the Unix epoch. Times without an offset are refused."
+    "ISO 8601 with a UTC offset (e.g. `2024-05-01T12:00:00Z`, nanosecond fractions kept), "
+    "integer nanoseconds since the Unix epoch, or a time relative to the server's clock "
+    "(`now`, `now-15m`, `now-24h`, `now-7d`; units s, m, h, d). Times without an offset are "
+    "refused."
 )
 
 
@@ -208,7 +210,7 @@ def _time_range(
         str,
         Query(
             description="Start of the range (inclusive). " + _TIME_DOC,
-            examples=["2024-05-01T12:00:00Z"],
+            examples=["2024-05-01T12:00:00Z", "now-24h"],
             max_length=64,
         ),
     ],
@@ -216,17 +218,18 @@ def _time_range(
         str,
         Query(
             description="End of the range (exclusive). " + _TIME_DOC,
-            examples=["2024-05-01T13:00:00Z"],
+            examples=["2024-05-01T13:00:00Z", "now"],
             max_length=64,
         ),
     ],
 ) -> TimeRange:
+    now_ns = time.time_ns()  # one clock reading: "now-1h" and "now" span exactly an hour
     try:
-        start_ns = parse_time_ns(start)
+        start_ns = parse_time_ns(start, now_ns)
     except TimeParseError as exc:
         raise InvalidTime(f"start: {exc}") from exc
     try:
-        end_ns = parse_time_ns(end)
+        end_ns = parse_time_ns(end, now_ns)
     except TimeParseError as exc:
         raise InvalidTime(f"end: {exc}") from exc
     if end_ns <= start_ns:

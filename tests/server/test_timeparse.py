@@ -57,3 +57,42 @@ def test_format_round_trips(stamp_ns: int) -> None:
     text = format_ns(stamp_ns)
     assert text.endswith("Z")
     assert parse_time_ns(text) == stamp_ns
+
+
+NOW = 1_800_000_000_123_456_789
+
+
+@pytest.mark.parametrize(
+    ("text", "ago_ns"),
+    [
+        ("now", 0),
+        ("NOW", 0),
+        (" now-15m ", 15 * 60 * 10**9),
+        ("now-1.5h", 5_400 * 10**9),
+        ("now-7d", 7 * 86_400 * 10**9),
+        ("now-0.25s", 250_000_000),
+    ],
+)
+def test_relative_times_count_back_from_the_given_clock(text: str, ago_ns: int) -> None:
+    assert parse_time_ns(text, now_ns=NOW) == NOW - ago_ns
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("now+5m", "not a relative time"),  # the future holds no data
+        ("now-5", "not a relative time"),
+        ("now-5w", "not a relative time"),
+        ("now-m", "not a relative time"),
+        ("nowhere", "not a relative time"),
+        ("now-99999999d", "before 1970"),
+    ],
+)
+def test_malformed_relative_times_are_refused(text: str, reason: str) -> None:
+    with pytest.raises(TimeParseError, match=reason):
+        parse_time_ns(text, now_ns=NOW)
+
+
+def test_relative_time_without_a_clock_is_refused() -> None:
+    with pytest.raises(TimeParseError, match="needs a clock"):
+        parse_time_ns("now-1h")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import time
 
 import pytest
 
@@ -80,6 +81,30 @@ def test_report_errors(client: ApiClient, two_vehicles: None) -> None:
     r = client.get("/api/v1/vehicles/t1/report?start=soon&end=later")
     assert r.status_code == 422
     assert r.json()["error"] == "invalid_time"
+
+
+def test_report_over_a_range_relative_to_the_server_clock(
+    client: ApiClient, store: Store
+) -> None:
+    client.put("/api/v1/vehicles/t3", json={})
+    rows = hand_series()
+    rows["stamp_ns"] += time.time_ns() - 60 * S - T0  # the 10 s series ended 50 s ago
+    store.write_estimates([("t3", rows)])
+    body = client.get("/api/v1/vehicles/t3/report?start=now-15m&end=now").json()
+    assert body["report"]["rows"] == 10
+    assert body["report"]["distance_m"] == pytest.approx(16.0)
+    span_ns = body["report"]["end_ns"] - body["report"]["start_ns"]
+    assert span_ns == 15 * 60 * S  # both ends read one clock
+    assert client.get("/api/v1/vehicles/t3/report?start=now-2m&end=now-1s").json()["report"][
+        "rows"
+    ] == 10
+    assert client.get("/api/v1/vehicles/t3/report?start=now-30s&end=now").json()["report"][
+        "rows"
+    ] == 0
+    r = client.get("/api/v1/vehicles/t3/report?start=now&end=now-1h")
+    assert r.status_code == 422 and r.json()["error"] == "invalid_time"
+    r = client.get("/api/v1/vehicles/t3/report?start=now-1w&end=now")
+    assert r.status_code == 422 and "start: not a relative time" in r.json()["reason"]
 
 
 def test_fleet_report_json_and_csv(client: ApiClient, two_vehicles: None) -> None:
