@@ -60,6 +60,7 @@ __all__ = [
     "TierSpec",
     "VehicleStatus",
     "gnss_quality",
+    "slip_note",
 ]
 
 #: Columns kept in the sliding windows, in this order (``stamp_ns`` is stored apart as int64).
@@ -104,6 +105,17 @@ def gnss_quality(flags: int) -> str:
     if f & EstimateFlag.GNSS_OK:
         return "ok"
     return "none"
+
+
+def slip_note(flags: int) -> str:
+    """Why an estimate carries no slip value: ``"standstill"``, ``"starting/stopping"``
+    (:attr:`EstimateFlag.SETTLING`), or ``""`` (a value, or no known reason)."""
+    f = EstimateFlag(int(flags))
+    if f & EstimateFlag.STANDSTILL:
+        return "standstill"
+    if f & EstimateFlag.SETTLING:
+        return "starting/stopping"
+    return ""
 
 
 @dataclass(frozen=True, slots=True)

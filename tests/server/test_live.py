@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from estimator.types import EstimateFlag, empty_estimates
-from server.live import LiveHub, TierSpec, gnss_quality
+from server.live import LiveHub, TierSpec, gnss_quality, slip_note
 
 S = 1_000_000_000  # ns per second
 T0 = 1_700_000_000 * S
@@ -169,6 +169,14 @@ def test_gnss_quality_from_flags() -> None:
     assert gnss_quality(0) == "none"
 
 
+def test_slip_note_says_why_a_slip_value_is_missing() -> None:
+    assert slip_note(int(EstimateFlag.STANDSTILL | EstimateFlag.GNSS_OK)) == "standstill"
+    assert slip_note(int(EstimateFlag.SETTLING | EstimateFlag.SLIP_RIGHT_VALID)) == (
+        "starting/stopping"
+    )
+    assert slip_note(int(EstimateFlag.SLIP_LEFT_VALID | EstimateFlag.SLIP_RIGHT_VALID)) == ""
+
+
 def test_wait_newer_wakes_on_a_batch_from_another_thread() -> None:
     hub = LiveHub(clock_ns=Clock(T0))
 
@@ -267,6 +275,7 @@ def test_vehicle_socket_snapshot_then_appends_that_merge_cleanly() -> None:
         assert snap["type"] == "snapshot" and snap["tier"] == "f"
         cols = snap["columns"]
         assert snap["latest"]["stamp_ns"] == cols["stamp_ns"][-1] == T0 + round(1.95 * S)
+        assert snap["latest"]["slip_note"] == slip_note(snap["latest"]["flags"])
         # new rows in several batches, the first in the bucket the client already holds
         for k in range(3):
             hub.on_estimates([("a", rows([1.97 + k * 0.5 + i * 0.05 for i in range(10)]))])

@@ -11,6 +11,8 @@ from typing import Any
 
 import pytest
 
+from estimator.types import EstimateFlag as F
+from estimator.types import empty_estimates
 from tests.web.conftest import N_VEHICLES, SENSITIVE, LiveStack
 
 pytestmark = pytest.mark.browser
@@ -204,3 +206,46 @@ def test_api_docs_render_offline(live_stack: LiveStack, page: Any, screenshots: 
     assert operations >= 10, operations
     assert "Slipfleet" in page.inner_text(".info .title")
     page.screenshot(path=str(screenshots / "api_docs.png"))
+
+
+def test_vehicle_page_says_why_slip_is_missing(live_stack: LiveStack, page: Any) -> None:
+    hub = live_stack.runtime.live_hub
+    vid = "standing-1"  # a vehicle of its own: the synthetic feed does not touch it
+
+    def send(flags: int, slip_pct: float) -> None:
+        row = empty_estimates(1)
+        row["stamp_ns"] = time.time_ns()
+        row["vg_mps"] = 0.0 if flags & F.STANDSTILL else 0.3
+        row["slip_left_pct"] = row["slip_right_pct"] = slip_pct
+        row["flags"] = flags
+        hub.on_estimates([(vid, row)])
+
+    def call(method: str, body: bytes | None = None) -> int:
+        url = f"{live_stack.base_url}/api/v1/vehicles/{vid}"
+        req = urllib.request.Request(url, data=body, method=method)
+        req.add_header("Content-Type", "application/json")
+        with urllib.request.urlopen(req, timeout=10) as resp:
+            return int(resp.status)
+
+    note = "#v-slip-left-note"
+    assert call("PUT", b"{}") in (200, 201)  # registered, as the pipeline would
+    try:
+        send(int(F.STANDSTILL | F.GNSS_OK), math.nan)
+        page.goto(live_stack.base_url + f"/#/vehicle/{vid}")
+        page.wait_for_function(
+            f"document.querySelector('{note}')?.textContent === 'standstill'", timeout=15000
+        )
+        assert page.text_content("#v-slip-left") == "–"
+        send(int(F.SETTLING | F.GNSS_OK), math.nan)
+        page.wait_for_function(
+            f"document.querySelector('{note}').textContent === 'starting/stopping'", timeout=10000
+        )
+        send(int(F.GNSS_OK | F.SLIP_LEFT_VALID | F.SLIP_RIGHT_VALID), 7.0)
+        page.wait_for_function(
+            f"document.querySelector('{note}').textContent === ''", timeout=10000
+        )
+        assert page.text_content("#v-slip-left") == "7.0"
+        assert not page.is_visible(note)
+    finally:
+        hub.forget(vid)
+        call("DELETE")

@@ -27,6 +27,7 @@ function stat(label, id, unit) {
     { class: "stat" },
     el("div", { class: "stat-label", text: label }),
     el("div", { class: "stat-value" }, el("span", { id, text: "–" }), unit ? el("span", { class: "unit", text: ` ${unit}` }) : null),
+    el("div", { class: "stat-note", id: `${id}-note` }),
   );
 }
 
@@ -135,6 +136,9 @@ export function vehicleView(root, vehicleId) {
     b.textContent = fmt(sr, 1);
     a.style.borderColor = slipCss(sl);
     b.style.borderColor = slipCss(sr);
+    // why a wheel has no slip value (standing, starting or stopping), from the estimate's flags
+    document.getElementById("v-slip-left-note").textContent = sl == null ? latest.slip_note || "" : "";
+    document.getElementById("v-slip-right-note").textContent = sr == null ? latest.slip_note || "" : "";
     a.dataset.stampNs = String(latest.stamp_ns);
     document.getElementById("v-vg").textContent = fmt(latest.vg_mps, 2);
     document.getElementById("v-gnss").textContent = latest.gnss;

@@ -29,7 +29,7 @@ as doubles, exact to about 256 ns: enough to order, merge and display them.
                      "rim_left_mps": [...], "rim_right_mps": [...], "slip_left_pct": [...],
                      "slip_right_pct": [...], "east_m": [...], "north_m": [...], "flags": [...]},
          "latest": {<every ESTIMATE_DTYPE field>, "arrival_ns": …, "status": "live", "age_s": 0.2,
-                    "gnss": "ok"},
+                    "gnss": "ok", "slip_note": "" | "standstill" | "starting/stopping"},
          "sent_ns": 1717…}
 
         {"type": "append", "from_ns": 1717…, "columns": {…same keys…}, "latest": {…},
@@ -60,7 +60,7 @@ from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from starlette.datastructures import State
 
 from estimator.types import ESTIMATE_DTYPE
-from server.live import LiveHub, gnss_quality
+from server.live import LiveHub, gnss_quality, slip_note
 
 __all__ = ["FLEET_MIN_INTERVAL_S", "VEHICLE_MIN_INTERVAL_S", "find_live_hub", "router"]
 
@@ -102,6 +102,7 @@ def _latest_dict(hub: LiveHub, vehicle_id: str) -> dict[str, Any] | None:
     out["status"] = hub.status(vehicle_id)
     out["age_s"] = round(max(0.0, (time.time_ns() - arrival_ns) / 1e9), 2)
     out["gnss"] = gnss_quality(out["flags"])
+    out["slip_note"] = slip_note(out["flags"])
     return out
 
 
