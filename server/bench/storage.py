@@ -96,10 +96,12 @@ class ColumnLayoutStore(SqliteStore):
             version, _ = migrations.apply_pending(
                 lambda sql, params: conn.execute(sql, params).fetchall(), self.dialect, target=5
             )
-            # the (empty) staging table of version 7, which the inherited deletes also clear
-            (staging,) = next(m for m in migrations.MIGRATIONS if m.version == 7).sqlite
-            assert isinstance(staging, str)
-            conn.execute(staging)
+            # the (empty) tables of versions 7 (staging) and 9 (anchors), which the inherited
+            # deletes also clear
+            for later in (7, 9):
+                (create,) = next(m for m in migrations.MIGRATIONS if m.version == later).sqlite
+                assert isinstance(create, str)
+                conn.execute(create)
         return version
 
     def maintain(self, *, everything: bool = False) -> bool:

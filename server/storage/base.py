@@ -9,13 +9,16 @@ Estimate rows travel as numpy structured arrays of ``estimator.types.ESTIMATE_DT
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["StorageDataError", "StorageError", "Store", "TokenRecord", "VehicleRecord"]
+__all__ = ["Anchor", "StorageDataError", "StorageError", "Store", "TokenRecord", "VehicleRecord"]
+
+#: A local ENU frame's origin: ``(lat_deg, lon_deg, height_m)``.
+Anchor = tuple[float, float, float]
 
 
 class StorageError(RuntimeError):
@@ -79,7 +82,8 @@ class Store(Protocol):
     def list_vehicles(self) -> list[VehicleRecord]: ...
 
     def delete_vehicle(self, vehicle_id: str) -> bool:
-        """Delete the vehicle with all its estimates and counters; False if it did not exist."""
+        """Delete the vehicle with all its estimates, counters and its anchor; False if it did
+        not exist."""
 
     # estimates
     def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
@@ -107,6 +111,14 @@ class Store(Protocol):
         """Upsert per-vehicle counter totals: ``{vehicle_id: {counter_name: total}}``."""
 
     def get_counters(self, vehicle_id: str) -> dict[str, int]: ...
+
+    # ENU anchors: (lat_deg, lon_deg, height_m) of each vehicle's local frame
+    def put_anchors(self, anchors: Mapping[str, Anchor], now_ns: int) -> int:
+        """Store the anchors of vehicles that have none yet (an anchor, once stored, stays:
+        the rows in its frame rely on it); return how many were stored."""
+
+    def get_anchors(self) -> dict[str, Anchor]:
+        """Every stored anchor by vehicle id."""
 
     # access tokens (see server.tokens; the store keeps the token's SHA-256 only)
     def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:

@@ -15,7 +15,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 8):
+Schema (version 9):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -41,6 +41,11 @@ Schema (version 8):
 ``raw_packets`` (version 2; keyed by ``vehicle_id`` text since version 5)
     received payloads when ``StorageSettings.store_raw_packets`` is on, as they arrived, also
     from vehicles not (yet) registered; deleted with their vehicle and by retention.
+``vehicle_anchors`` (version 9)
+    ``vehicle_id`` (text key, like the counters) -> ``lat_deg``, ``lon_deg``, ``height_m``: the
+    origin of the vehicle's local ENU frame (``east_m``, ``north_m``, ``up_m`` of its estimates),
+    its first GNSS fix with a position; kept so that a restarted server goes on in the same
+    frame. Written once; deleted with the vehicle.
 ``api_tokens`` (version 4)
     REST bearer tokens: ``id``, ``name``, ``role`` (``viewer`` / ``operator`` / ``admin``),
     ``token_sha256`` (hex SHA-256 of the token, unique; the token itself is never stored),
@@ -404,6 +409,31 @@ _V8_SQLITE: tuple[Step, ...] = (
     "FROM vehicles v",
 )
 
+# Each vehicle's ENU anchor. Before this, a restarted server anchored the frame at the first
+# fix it saw, so east/north of rows stored before and after a restart lay in different frames.
+_V9_SQLITE: tuple[Step, ...] = (
+    """
+    CREATE TABLE vehicle_anchors (
+        vehicle_id TEXT PRIMARY KEY,
+        lat_deg REAL NOT NULL,
+        lon_deg REAL NOT NULL,
+        height_m REAL NOT NULL,
+        set_ns INTEGER NOT NULL
+    )
+    """,
+)
+_V9_POSTGRESQL: tuple[Step, ...] = (
+    """
+    CREATE TABLE vehicle_anchors (
+        vehicle_id text PRIMARY KEY,
+        lat_deg double precision NOT NULL,
+        lon_deg double precision NOT NULL,
+        height_m double precision NOT NULL,
+        set_ns bigint NOT NULL
+    )
+    """,
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -413,6 +443,7 @@ MIGRATIONS: tuple[Migration, ...] = (
     Migration(6, "estimate rows only packed (SQLite)", _V6_SQLITE, ()),
     Migration(7, "time-ordered table of new estimate rows (SQLite)", _V7_SQLITE, ()),
     Migration(8, "bound on the stamps of final estimate rows (SQLite)", _V8_SQLITE, ()),
+    Migration(9, "ENU anchors of the vehicles", _V9_SQLITE, _V9_POSTGRESQL),
 )
 
 _VERSION_TABLE = {

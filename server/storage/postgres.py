@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import weakref
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -34,7 +34,13 @@ from server.storage._columns import (
     fields_dtype,
     select_fields,
 )
-from server.storage.base import StorageDataError, StorageError, TokenRecord, VehicleRecord
+from server.storage.base import (
+    Anchor,
+    StorageDataError,
+    StorageError,
+    TokenRecord,
+    VehicleRecord,
+)
 
 __all__ = ["PostgresStore"]
 
@@ -234,6 +240,7 @@ class PostgresStore:
         with self._pool.connection() as conn, conn.transaction():
             conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = %s", (vehicle_id,))
             conn.execute("DELETE FROM raw_packets WHERE vehicle_id = %s", (vehicle_id,))
+            conn.execute("DELETE FROM vehicle_anchors WHERE vehicle_id = %s", (vehicle_id,))
             # estimates go by ON DELETE CASCADE
             cur = conn.execute("DELETE FROM vehicles WHERE vehicle_id = %s", (vehicle_id,))
             return cur.rowcount > 0
@@ -369,6 +376,30 @@ class PostgresStore:
             (vehicle_id,),
         )
         return {str(name): int(total) for name, total in rows}
+
+    # ------------------------------------------------------------------ ENU anchors
+
+    def put_anchors(self, anchors: Mapping[str, Anchor], now_ns: int) -> int:
+        if not anchors:
+            return 0
+        vids = list(anchors)
+        lat = [float(a[0]) for a in anchors.values()]
+        lon = [float(a[1]) for a in anchors.values()]
+        h = [float(a[2]) for a in anchors.values()]
+        with self._pool.connection() as conn, conn.transaction():
+            cur = conn.execute(
+                "INSERT INTO vehicle_anchors (vehicle_id, lat_deg, lon_deg, height_m, set_ns) "
+                "SELECT v, a, o, h, %s FROM unnest(%s::text[], %s::float8[], %s::float8[], "
+                "%s::float8[]) AS u(v, a, o, h) ON CONFLICT (vehicle_id) DO NOTHING",
+                (int(now_ns), vids, lat, lon, h),
+            )
+            return int(cur.rowcount)
+
+    def get_anchors(self) -> dict[str, Anchor]:
+        rows = self._one_row_query(
+            "SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors", ()
+        )
+        return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
 
     # ------------------------------------------------------------------ access tokens
 

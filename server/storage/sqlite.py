@@ -52,7 +52,7 @@ import contextlib
 import json
 import sqlite3
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +61,13 @@ import numpy as np
 from estimator.types import ESTIMATE_DTYPE, concat_estimates
 from server.storage import migrations
 from server.storage._columns import check_rows, fields_dtype, select_fields
-from server.storage.base import StorageDataError, StorageError, TokenRecord, VehicleRecord
+from server.storage.base import (
+    Anchor,
+    StorageDataError,
+    StorageError,
+    TokenRecord,
+    VehicleRecord,
+)
 
 __all__ = ["SqliteStore"]
 
@@ -311,6 +317,7 @@ class SqliteStore:
             ).fetchone()
             conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = ?", (vehicle_id,))
             conn.execute("DELETE FROM raw_packets WHERE vehicle_id = ?", (vehicle_id,))
+            conn.execute("DELETE FROM vehicle_anchors WHERE vehicle_id = ?", (vehicle_id,))
             if row is None:
                 return False
             # Explicit deletes, so correctness never depends on the foreign_keys pragma.
@@ -595,6 +602,25 @@ class SqliteStore:
             (vehicle_id,),
         )
         return {name: int(total) for name, total in rows}
+
+    # ------------------------------------------------------------------ ENU anchors
+
+    def put_anchors(self, anchors: Mapping[str, Anchor], now_ns: int) -> int:
+        params = [(vid, *map(float, a), int(now_ns)) for vid, a in anchors.items()]
+        if not params:
+            return 0
+        with self._write() as conn:
+            before = conn.total_changes
+            conn.executemany(
+                "INSERT INTO vehicle_anchors (vehicle_id, lat_deg, lon_deg, height_m, set_ns) "
+                "VALUES (?, ?, ?, ?, ?) ON CONFLICT (vehicle_id) DO NOTHING",
+                params,
+            )
+            return int(conn.total_changes - before)
+
+    def get_anchors(self) -> dict[str, Anchor]:
+        rows = self._read("SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors", ())
+        return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
 
     # ------------------------------------------------------------------ access tokens
 

@@ -198,6 +198,25 @@ def test_counters_of_a_fleet_in_one_write(store: Store) -> None:
         assert store.get_counters(vid) == {n: t + 1 for n, t in fleet[vid].items()}
 
 
+# ---------------------------------------------------------------------------- ENU anchors
+
+
+def test_anchors_are_stored_once_and_deleted_with_their_vehicle(store: Store) -> None:
+    _register(store, "v1")
+    _register(store, "v2")
+    assert store.get_anchors() == {}
+    a1 = (52.520008123456789, 13.404954987654321, 34.125)
+    assert store.put_anchors({"v1": a1, "v2": (-33.9, 151.2, -2.5)}, 1) == 2
+    # a second anchor for v1 does not move its frame: the first one stays
+    assert store.put_anchors({"v1": (0.0, 0.0, 0.0), "v3": (1.0, 2.0, 3.0)}, 2) == 1
+    assert store.put_anchors({}, 3) == 0
+    got = store.get_anchors()
+    assert got == {"v1": a1, "v2": (-33.9, 151.2, -2.5), "v3": (1.0, 2.0, 3.0)}  # bit-exact
+    assert store.delete_vehicle("v1")
+    assert "v1" not in store.get_anchors()
+    assert store.put_anchors({"v1": (5.0, 6.0, 7.0)}, 4) == 1  # a new vehicle of that name
+
+
 # ---------------------------------------------------------------------------- raw packets
 
 
