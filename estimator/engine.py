@@ -1046,6 +1046,12 @@ class MdsfFleet:
         slot = self._slot.get(vehicle_id)
         return None if slot is None else self.front.anchor(slot)
 
+    def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Give the vehicle's ENU frame this origin (e.g. the anchor its stored estimates were
+        given in before a restart) instead of its next first fix; ``KeyError`` if unknown,
+        ``ValueError`` if not a geodetic position. Later fixes do not move it."""
+        self.front.set_anchor(self._slot[vehicle_id], lat_deg, lon_deg, height_m)
+
     def counters(self, vehicle_id: str) -> dict[str, int]:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
         degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""

@@ -751,6 +751,15 @@ class FleetFrontEnd:
         lat, lon, h = self.origin[slot]
         return (float(lat), float(lon), float(h))
 
+    def set_anchor(self, slot: int, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Anchor the vehicle's ENU frame at a given origin instead of its first fix (a frame
+        its earlier estimates were given in: see ``MdsfFleet.set_anchor``)."""
+        origin = np.array([lat_deg, lon_deg, height_m], dtype=np.float64)
+        if not (np.all(np.isfinite(origin)) and abs(lat_deg) <= 90.0 and abs(lon_deg) <= 180.0):
+            raise ValueError(f"not a geodetic anchor: {(lat_deg, lon_deg, height_m)}")
+        self.origin[slot] = origin
+        self.has_frame[slot] = True
+
     # -- push --------------------------------------------------------------------------------
     def _first_seen(self, slot: int, stamp_ns: int) -> None:
         # Wheel data that may open the vehicle's tick grid (unless earlier IMU/GNSS did).

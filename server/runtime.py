@@ -101,6 +101,7 @@ class Runtime:
                 raw_sink=raw_sink,
             )
         )
+        anchors = self._store.get_anchors()
         for rec in self._store.list_vehicles():
             try:
                 config = vehicle_config_from_dict(rec.config)
@@ -113,6 +114,9 @@ class Runtime:
             self.pipeline.register_vehicle(rec.vehicle_id, config)
             # counters are totals over the vehicle's life, not per process
             self.pipeline.restore_counters(rec.vehicle_id, self._store.get_counters(rec.vehicle_id))
+            # its stored estimates' ENU frame: east/north go on in the same frame
+            if rec.vehicle_id in anchors:
+                self.pipeline.restore_anchor(rec.vehicle_id, anchors[rec.vehicle_id])
         self.pipeline.start()
         self.alert_engine.start()
         self._stop.clear()
@@ -150,6 +154,7 @@ class Runtime:
             self.pipeline.stop()
             if self.writer is not None:
                 self.writer.submit_counters(self.pipeline.counters_snapshot())
+                self.writer.submit_anchors(self.pipeline.anchors_snapshot())
         if self.writer is not None:
             self.writer.close()
         if self.session is not None:
@@ -213,11 +218,12 @@ class Runtime:
 
     # ------------------------------------------------------------------ background
     def _flush_loop(self) -> None:
-        """Once a second: hand the ingest counters to the writer and raise or clear the
-        server-wide alerts (database down or full, no Zenoh router)."""
+        """Once a second: hand the ingest counters and new ENU anchors to the writer and raise
+        or clear the server-wide alerts (database down or full, no Zenoh router)."""
         while not self._stop.wait(COUNTER_FLUSH_S):
             if self.pipeline is not None and self.writer is not None:
                 self.writer.submit_counters(self.pipeline.counters_snapshot())
+                self.writer.submit_anchors(self.pipeline.anchors_snapshot())
             if self.alert_engine is not None:
                 health = self.health()
                 for part, kind in _SYSTEM_ALERTS.items():

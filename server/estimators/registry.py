@@ -131,18 +131,37 @@ class EstimatorRegistry:
                 out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
         return out
 
+    def set_anchor(self, vehicle_id: str, anchor: tuple[float, float, float]) -> bool:
+        """Give the vehicle's ENU frame this origin in every estimator of it that has one (an
+        optional ``set_anchor(vehicle_id, lat_deg, lon_deg, height_m)``); False when none has
+        or the vehicle is unknown. Call on the thread that owns the registry."""
+        done = False
+        for name in self._routes.get(vehicle_id, ()):
+            put = getattr(self._estimators.get(name), "set_anchor", None)
+            if callable(put):
+                put(vehicle_id, *anchor)
+                done = True
+        return done
+
+    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """Geodetic anchor ``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame,
+        from the first of its estimators that has one (an optional ``anchor(vehicle_id)``;
+        the primary first); None before any has one. Call on the thread that owns the
+        registry."""
+        for name in self._routes.get(vehicle_id, ()):
+            get = getattr(self._estimators.get(name), "anchor", None)
+            got = get(vehicle_id) if callable(get) else None
+            if got is not None:
+                return got
+        return None
+
     def anchors(self) -> dict[str, tuple[float, float, float]]:
-        """Geodetic anchor ``(lat_deg, lon_deg, height_m)`` of each vehicle's local ENU frame,
-        from the estimators that have one (an optional ``anchor(vehicle_id)``); the vehicle's
-        primary estimator wins. Call on the thread that owns the registry."""
+        """:meth:`anchor` of every vehicle that has one."""
         out: dict[str, tuple[float, float, float]] = {}
-        for vid, names in self._routes.items():
-            for name in names:
-                get = getattr(self._estimators.get(name), "anchor", None)
-                got = get(vid) if callable(get) else None
-                if got is not None:
-                    out[vid] = got
-                    break
+        for vid in self._routes:
+            got = self.anchor(vid)
+            if got is not None:
+                out[vid] = got
         return out
 
     @property

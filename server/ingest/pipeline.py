@@ -64,6 +64,7 @@ from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet
 from server.protocol.keys import Stream
 from server.settings import Settings, UnknownVehiclePolicy
+from server.storage.base import Anchor
 
 __all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
 
@@ -193,7 +194,10 @@ class Pipeline:
         self._queue: queue.Queue[_QueueItem] = queue.Queue(maxsize=QUEUE_BURSTS)
         self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
         # (op, vehicle_id, config or None, notify)
-        self._control: deque[tuple[str, str, VehicleConfig | None, bool]] = deque()
+        self._control: deque[tuple[str, str, VehicleConfig | Anchor | None, bool]] = deque()
+        # each vehicle's ENU frame origin, kept across re-registrations (a new config starts a
+        # fresh estimator, which would otherwise anchor anew): restored ones and learnt ones
+        self._frames: dict[str, Anchor] = {}
         self._counters = IngestCounters()
         self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
         self._anchors: dict[str, tuple[float, float, float]] = {}
@@ -325,8 +329,14 @@ class Pipeline:
         self._control.append(("add", vehicle_id, config, notify))
 
     def remove_vehicle(self, vehicle_id: str) -> None:
-        """Forget a vehicle: estimators, reorder buffer and counters."""
+        """Forget a vehicle: estimators, reorder buffer, counters and its ENU frame."""
         self._control.append(("remove", vehicle_id, None, False))
+
+    def restore_anchor(self, vehicle_id: str, anchor: Anchor) -> None:
+        """Go on in the ENU frame the vehicle's stored estimates were given in (its stored
+        anchor), from now on and after any re-registration (applied on the pipeline thread,
+        after the registrations asked for before it)."""
+        self._control.append(("anchor", vehicle_id, anchor, False))
 
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
         """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`);
@@ -433,6 +443,7 @@ class Pipeline:
         state)."""
         self._estimator_counters = self._registry.counters()
         self._anchors = self._registry.anchors()
+        self._frames.update(self._anchors)
         self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
 
     def _next_item(self, timeout_s: float | None) -> _QueueItem:
@@ -478,10 +489,15 @@ class Pipeline:
 
     def _apply_control(self) -> None:
         while self._control:
-            op, vid, config, notify = self._control.popleft()
-            if op == "add" and config is not None:
-                self._add(vid, config, notify=notify)
+            op, vid, arg, notify = self._control.popleft()
+            if op == "add" and isinstance(arg, VehicleConfig):
+                self._add(vid, arg, notify=notify)
+            elif op == "anchor" and isinstance(arg, tuple):
+                self._frames[vid] = arg
+                if vid in self._configs:
+                    self._set_anchor(vid, arg)
             elif op == "remove":
+                self._frames.pop(vid, None)
                 self._registry.remove_vehicle(vid)
                 self._buffers.pop(vid, None)
                 self._configs.pop(vid, None)
@@ -501,7 +517,18 @@ class Pipeline:
         for update in self._subscriber.poll_configs():
             self._add(update.vehicle_id, update.config, notify=True)
 
+    def _frame_of(self, vehicle_id: str) -> Anchor | None:
+        """The vehicle's ENU frame origin to keep: restored, or learnt (also within the last
+        second, before the snapshot took it)."""
+        frame = self._frames.get(vehicle_id)
+        if frame is None:
+            frame = self._registry.anchor(vehicle_id)
+            if frame is not None:
+                self._frames[vehicle_id] = frame
+        return frame
+
     def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
+        self._frame_of(vehicle_id)  # a new config restarts its estimators: keep the frame
         try:
             self._registry.add_vehicle(vehicle_id, config)
             self._tick_phase_ns.pop(vehicle_id, None)  # a fresh estimator state, a fresh grid
@@ -509,12 +536,22 @@ class Pipeline:
             log.warning("vehicle %s not registered: %s", vehicle_id, exc)
             return False
         self._configs[vehicle_id] = config
+        frame = self._frames.get(vehicle_id)
+        if frame is not None:
+            self._set_anchor(vehicle_id, frame)
         if notify and self._on_new_vehicle is not None:
             try:
                 self._on_new_vehicle(vehicle_id, config)
             except Exception:  # a failing callback must not stop ingest
                 log.exception("on_new_vehicle failed for %s", vehicle_id)
         return True
+
+    def _set_anchor(self, vehicle_id: str, anchor: Anchor) -> None:
+        try:
+            self._registry.set_anchor(vehicle_id, anchor)
+        except ValueError as exc:  # a stored anchor that is no position: anchor anew
+            log.error("anchor of %s not used: %s", vehicle_id, exc)
+            self._frames.pop(vehicle_id, None)
 
     def _handle(self, items: list[IngestItem], now: int) -> None:
         # accepted packets are counted once per vehicle and burst: (packets, lost_delta)
@@ -601,7 +638,10 @@ class Pipeline:
         self._advanced_ns.pop(vid, None)
         config = self._configs.get(vid)
         if config is not None and registry.has_vehicle(vid):
-            registry.add_vehicle(vid, config)  # same config: a fresh state
+            frame = self._frame_of(vid)
+            registry.add_vehicle(vid, config)  # same config: a fresh state, the same frame
+            if frame is not None:
+                self._set_anchor(vid, frame)
         self._tick_phase_ns.pop(vid, None)
         self._tick_anchor_ns.pop(vid, None)
         if packet.stream is Stream.IMU:

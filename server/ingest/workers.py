@@ -30,12 +30,13 @@ reorder buffers, estimator registry) for the vehicles it owns::
   thread, as the in-process pipeline thread calls them), snapshots to the merged views below,
   new vehicles to ``on_new_vehicle``.
 * **A worker that dies** is started again by the collect thread (:meth:`WorkerPool._restart`)
-  with its vehicles registered again and their counters continued from its last snapshot; its
-  vehicles' estimators start afresh. Packets routed to it meanwhile are counted
-  (``dropped_worker_down``); ``running`` is false until it is back.
-* **Control**: :meth:`WorkerPool.register_vehicle`, :meth:`~WorkerPool.remove_vehicle` and
-  :meth:`~WorkerPool.restore_counters` go to the owner's control pipe; vehicle configs received
-  over Zenoh are decoded here and registered the same way.
+  with its vehicles registered again, their counters continued from its last snapshot and
+  their ENU frames kept; its vehicles' estimators start afresh. Packets routed to it meanwhile
+  are counted (``dropped_worker_down``); ``running`` is false until it is back.
+* **Control**: :meth:`WorkerPool.register_vehicle`, :meth:`~WorkerPool.remove_vehicle`,
+  :meth:`~WorkerPool.restore_counters` and :meth:`~WorkerPool.restore_anchor` go to the owner's
+  control pipe; vehicle configs received over Zenoh are decoded here and registered the same
+  way.
 
 :class:`WorkerPool` has :class:`~server.ingest.pipeline.Pipeline`'s public interface, so the
 runtime uses either. Its snapshots are as of the workers' last report (at most a second old,
@@ -61,6 +62,7 @@ from server.ingest.pipeline import EstimateSink
 from server.ingest.subscriber import IngestSubscriber, RawPacket
 from server.protocol.keys import parse_key
 from server.settings import IngestSettings, Settings, ZenohSettings
+from server.storage.base import Anchor
 from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["WorkerPool", "owner_of"]
@@ -172,6 +174,7 @@ class WorkerPool:
         # every registered vehicle's config: what a worker is started (or restarted) with
         self._configs: dict[str, VehicleConfig] = {}
         self._stored_counters: dict[str, dict[str, int]] = {}  # restore_counters before start
+        self._stored_anchors: dict[str, Anchor] = {}  # restore_anchor before start
         self._owner_by_key: dict[str, int] = {}  # sensor key -> worker (route thread only)
         self._collector: threading.Thread | None = None
         self._stats = {
@@ -201,10 +204,16 @@ class WorkerPool:
         if self._workers:
             raise RuntimeError("already started")
         self._workers = [
-            _Worker(k, self._settings, self._ctx, self._initial(k, self._stored_counters))
+            _Worker(
+                k,
+                self._settings,
+                self._ctx,
+                self._initial(k, self._stored_counters, self._stored_anchors),
+            )
             for k in range(self._n)
         ]
         self._stored_counters = {}
+        self._stored_anchors = {}
         for w in self._workers:
             if not _ready(w):
                 self.stop()
@@ -293,15 +302,18 @@ class WorkerPool:
         if self._workers:
             self._workers[owner_of(vehicle_id, self._n)].send_control(message)
 
-    def _initial(self, k: int, counters: dict[str, dict[str, int]]) -> list[tuple[Any, ...]]:
-        """What worker ``k`` starts with: its vehicles' registrations and, of ``counters``,
-        its vehicles' totals to continue from."""
+    def _initial(
+        self, k: int, counters: dict[str, dict[str, int]], anchors: dict[str, Anchor]
+    ) -> list[tuple[Any, ...]]:
+        """What worker ``k`` starts with: its vehicles' registrations and, of ``counters`` and
+        ``anchors``, its vehicles' totals to continue from and ENU frames to go on in."""
         configs = list(self._configs.items())  # a copy: registrations may come meanwhile
-        return [("add", vid, c, False) for vid, c in configs if owner_of(vid, self._n) == k] + [
-            ("restore", vid, totals)
-            for vid, totals in counters.items()
-            if owner_of(vid, self._n) == k
-        ]
+        mine = owner_of
+        return (
+            [("add", vid, c, False) for vid, c in configs if mine(vid, self._n) == k]
+            + [("restore", vid, t) for vid, t in counters.items() if mine(vid, self._n) == k]
+            + [("anchor", vid, a) for vid, a in anchors.items() if mine(vid, self._n) == k]
+        )
 
     def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start or reconfigure a vehicle (in the worker that owns it)."""
@@ -319,6 +331,14 @@ class WorkerPool:
             self._control(vehicle_id, ("restore", vehicle_id, dict(totals)))
         else:
             self._stored_counters[vehicle_id] = dict(totals)
+
+    def restore_anchor(self, vehicle_id: str, anchor: Anchor) -> None:
+        """Go on in the vehicle's stored ENU frame (in the worker that owns it)."""
+        if self._workers:
+            self._control(vehicle_id, ("anchor", vehicle_id, tuple(anchor)))
+        else:
+            lat, lon, h = anchor
+            self._stored_anchors[vehicle_id] = (float(lat), float(lon), float(h))
 
     # ------------------------------------------------------------------ output
 
@@ -344,18 +364,19 @@ class WorkerPool:
                     del left[ready]
 
     def _restart(self, dead: _Worker) -> _Worker | None:
-        """Start a worker in place of ``dead`` with its vehicles registered again and their
-        counters continued from its last snapshot (at most a second old). The vehicles'
-        estimators start afresh; packets routed to it meanwhile are counted as dropped (and
-        as sequence gaps by the new worker)."""
+        """Start a worker in place of ``dead`` with its vehicles registered again, their
+        counters continued from its last snapshot (at most a second old) and their ENU frames
+        kept. The vehicles' estimators start afresh; packets routed to it meanwhile are
+        counted as dropped (and as sequence gaps by the new worker)."""
         dead.process.join(1.0)
         log.error(
             "worker %d exited (code %s): starting it again", dead.index, dead.process.exitcode
         )
         k = dead.index
-        new = _Worker(
-            k, self._settings, self._ctx, self._initial(k, dead.snapshot.get("counters", {}))
+        initial = self._initial(
+            k, dead.snapshot.get("counters", {}), dict(dead.snapshot.get("anchors", {}))
         )
+        new = _Worker(k, self._settings, self._ctx, initial)
         if not _ready(new):
             log.error("worker %d did not start again", k)
             new.process.kill()
@@ -482,6 +503,8 @@ def _apply(pipeline: Any, message: tuple[Any, ...]) -> None:
         pipeline.remove_vehicle(message[1])
     elif message[0] == "restore":
         pipeline.restore_counters(message[1], message[2])
+    elif message[0] == "anchor":
+        pipeline.restore_anchor(message[1], tuple(message[2]))
 
 
 def _worker_main(

@@ -31,10 +31,11 @@ estimate transaction that starts after the call: the store keeps only rows of ve
 so a vehicle stored by another thread could lose its first rows to the race (it did: 5-49 rows a
 1,000-vehicle load test, each a new vehicle's first).
 
-Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win) and, when
-``store_raw_packets`` is on, raw packets (:meth:`StoreWriter.submit_raw_packets`) ride the same
-thread; counters go in slices of :data:`COUNTER_VEHICLES_PER_WRITE` vehicles, with the estimate
-transactions that fall due in between. With ``retention_days > 0`` the writer also deletes old
+Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win), the vehicles' ENU
+anchors (:meth:`StoreWriter.submit_anchors`, each stored once) and, when ``store_raw_packets``
+is on, raw packets (:meth:`StoreWriter.submit_raw_packets`) ride the same thread; counters go
+in slices of :data:`COUNTER_VEHICLES_PER_WRITE` vehicles, with the estimate transactions that
+fall due in between. With ``retention_days > 0`` the writer also deletes old
 estimates every ``retention_interval_s``. A store with a ``maintain()`` method (SQLite: moving
 new rows from its staging table, see :meth:`server.storage.sqlite.SqliteStore.maintain`) gets
 it called, one short step at a time, whenever no write is due.
@@ -49,7 +50,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -59,7 +60,7 @@ import numpy as np
 from estimator.types import EstimateBatch, concat_estimates
 from server.settings import StorageSettings
 from server.storage._columns import check_rows
-from server.storage.base import StorageDataError, StorageError, Store
+from server.storage.base import Anchor, StorageDataError, StorageError, Store
 
 __all__ = ["StoreWriter", "WriterStats"]
 
@@ -182,6 +183,9 @@ class StoreWriter:
         # totals already queued (or written): a counter that did not change is not written again
         self._counters_sent: dict[str, dict[str, int]] = {}
         self._raw: list[tuple[str, int, str, bytes]] = []
+        # ENU anchors to store, and the vehicles whose anchor was queued (each is stored once)
+        self._anchors: dict[str, Anchor] = {}
+        self._anchors_sent: set[str] = set()
         # vehicle registrations to store before the next estimate transaction (latest wins)
         self._vehicles: dict[str, tuple[dict[str, Any], int]] = {}
         self._vehicles_stored = 0
@@ -343,9 +347,24 @@ class StoreWriter:
             self._cond.notify_all()
 
     def forget_vehicle(self, vehicle_id: str) -> None:
-        """Drop a registration not yet written (the vehicle was deleted meanwhile)."""
+        """Drop a registration not yet written (the vehicle was deleted meanwhile); a vehicle
+        registered again under that id gets its anchor stored anew."""
         with self._cond:
             self._vehicles.pop(vehicle_id, None)
+            self._anchors.pop(vehicle_id, None)
+            self._anchors_sent.discard(vehicle_id)
+
+    def submit_anchors(self, anchors: Mapping[str, Anchor]) -> None:
+        """Queue the ENU anchors ``{vehicle_id: (lat_deg, lon_deg, height_m)}`` of vehicles
+        whose anchor was not queued before (the store keeps the first one anyway)."""
+        with self._cond:
+            if self._closing:
+                raise RuntimeError("StoreWriter is closed")
+            new = {vid: a for vid, a in anchors.items() if vid not in self._anchors_sent}
+            if new:
+                self._anchors_sent.update(new)
+                self._anchors.update(new)
+                self._aux_touched_locked()
 
     def submit_counters(self, counters: dict[str, dict[str, int]]) -> None:
         """Queue ingest counter totals ``{vehicle_id: {name: total}}`` (latest totals win).
@@ -493,8 +512,10 @@ class StoreWriter:
             if self._aux_done < self._aux_seq and (urgent or now >= self._aux_due_at):
                 counters = self._take_counters_locked()
                 raw, self._raw = self._raw, []
+                anchors, self._anchors = self._anchors, {}
                 # the aux data counts as written once the last slice of counters is
-                return "aux", (counters, raw, None if self._counters else self._aux_seq)
+                seq = None if self._counters else self._aux_seq
+                return "aux", (counters, raw, anchors, seq)
             if self._retention_ns > 0 and not self._closing and now >= self._next_retention_at:
                 return "retention", None
             if self._maintain is not None and not self._closing and now >= self._next_maintain_at:
@@ -638,14 +659,18 @@ class StoreWriter:
         self,
         counters: dict[str, dict[str, int]],
         raw: list[tuple[str, int, str, bytes]],
+        anchors: dict[str, Anchor],
         seq: int | None,
     ) -> None:
-        """Write counters and raw packets; ``seq`` (None: more counters of this round wait)
-        is the aux change the write completes."""
+        """Write counters, anchors and raw packets; ``seq`` (None: more counters of this round
+        wait) is the aux change the write completes."""
         try:
             if counters:
                 self._store.write_counters(counters, self._clock_ns())
                 counters = {}
+            if anchors:
+                self._store.put_anchors(anchors, self._clock_ns())
+                anchors = {}
             if raw:
                 writer: Callable[[Sequence[tuple[str, int, str, bytes]]], int] | None = getattr(
                     self._store, "write_raw_packets", None
@@ -656,7 +681,7 @@ class StoreWriter:
                     self._raw_dropped += len(raw) - written
                 raw = []
         except StorageDataError as exc:
-            log.error("store rejected counters or raw packets, dropped: %s", exc)
+            log.error("store rejected counters, anchors or raw packets, dropped: %s", exc)
             with self._cond:
                 for vid in counters:  # not written: their next totals go in whole
                     self._counters_sent.pop(vid, None)
@@ -674,6 +699,7 @@ class StoreWriter:
                     merged.update(self._counters.get(vid, {}))
                     self._counters[vid] = merged
                 self._raw[:0] = raw
+                self._anchors = {**anchors, **self._anchors}
                 self._failed_locked(exc)
             return
         with self._cond:

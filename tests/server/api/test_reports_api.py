@@ -83,9 +83,7 @@ def test_report_errors(client: ApiClient, two_vehicles: None) -> None:
     assert r.json()["error"] == "invalid_time"
 
 
-def test_report_over_a_range_relative_to_the_server_clock(
-    client: ApiClient, store: Store
-) -> None:
+def test_report_over_a_range_relative_to_the_server_clock(client: ApiClient, store: Store) -> None:
     client.put("/api/v1/vehicles/t3", json={})
     rows = hand_series()
     rows["stamp_ns"] += time.time_ns() - 60 * S - T0  # the 10 s series ended 50 s ago
@@ -95,12 +93,13 @@ def test_report_over_a_range_relative_to_the_server_clock(
     assert body["report"]["distance_m"] == pytest.approx(16.0)
     span_ns = body["report"]["end_ns"] - body["report"]["start_ns"]
     assert span_ns == 15 * 60 * S  # both ends read one clock
-    assert client.get("/api/v1/vehicles/t3/report?start=now-2m&end=now-1s").json()["report"][
-        "rows"
-    ] == 10
-    assert client.get("/api/v1/vehicles/t3/report?start=now-30s&end=now").json()["report"][
-        "rows"
-    ] == 0
+    assert (
+        client.get("/api/v1/vehicles/t3/report?start=now-2m&end=now-1s").json()["report"]["rows"]
+        == 10
+    )
+    assert (
+        client.get("/api/v1/vehicles/t3/report?start=now-30s&end=now").json()["report"]["rows"] == 0
+    )
     r = client.get("/api/v1/vehicles/t3/report?start=now&end=now-1h")
     assert r.status_code == 422 and r.json()["error"] == "invalid_time"
     r = client.get("/api/v1/vehicles/t3/report?start=now-1w&end=now")

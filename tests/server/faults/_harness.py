@@ -382,6 +382,24 @@ def series_stamps(client: httpx.Client, vehicle_id: str, start_ns: int, end_ns: 
     return np.asarray(r.json()["columns"]["stamp_ns"], dtype=np.int64)
 
 
+def series_positions(
+    client: httpx.Client, vehicle_id: str, start_ns: int, end_ns: int
+) -> dict[str, np.ndarray]:
+    """Stored ``stamp_ns``, ``east_m`` and ``north_m`` of one vehicle (REST series, every row;
+    a missing position is NaN)."""
+    r = client.get(
+        f"/api/v1/vehicles/{vehicle_id}/series",
+        params={"start": start_ns, "end": end_ns, "fields": "east_m,north_m", "format": "json"},
+    )
+    r.raise_for_status()
+    cols = r.json()["columns"]
+    return {
+        "stamp_ns": np.asarray(cols["stamp_ns"], dtype=np.int64),
+        "east_m": np.array([np.nan if v is None else v for v in cols["east_m"]], dtype=float),
+        "north_m": np.array([np.nan if v is None else v for v in cols["north_m"]], dtype=float),
+    }
+
+
 def stamp_gaps(stamps: np.ndarray) -> list[tuple[int, int]]:
     """``(last stamp before, first stamp after)`` of every break in the tick spacing."""
     d = np.diff(stamps)

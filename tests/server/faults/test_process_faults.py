@@ -23,6 +23,7 @@ from tests.server.faults._harness import (
     Publisher,
     ServerProcess,
     reference_rows,
+    series_positions,
     series_stamps,
     stamp_gaps,
     wait_until,
@@ -94,7 +95,9 @@ def test_sigkill_then_restart_keeps_committed_estimates_once(tmp_path: Path) -> 
         pub.wait_done(120)
         _wait_for_tail(server, pub, ref)
         stored = _stored(server, pub)
+        start, end = _window(pub)
         with server.client() as client:
+            positions = {vid: series_positions(client, vid, start, end) for vid in pub.vehicle_ids}
             reports = {
                 vid: client.get(
                     f"/api/v1/vehicles/{vid}/report",
@@ -123,6 +126,16 @@ def test_sigkill_then_restart_keeps_committed_estimates_once(tmp_path: Path) -> 
             f"only up to {(before - r[0]) / 1e9:.2f} s"
         )
         assert int(s[-1]) == int(r[-1]), f"{vid}: estimation resumed and reached the end"
+        # east/north after the restart are in the frame of the rows before it (the stored
+        # anchor), where a server that never failed puts them, not in a frame anchored anew
+        pos, ref_rows = positions[vid], ref[vid]
+        later = np.isin(ref_rows["stamp_ns"], pos["stamp_ns"][pos["stamp_ns"] >= after])
+        mine = np.isin(pos["stamp_ns"], ref_rows["stamp_ns"][later])
+        assert mine.sum() > 50, f"{vid}: rows after the restart to compare"
+        for axis in ("east_m", "north_m"):
+            off = np.abs(pos[axis][mine] - ref_rows[axis][later])
+            worst = float(np.nanmax(off))
+            assert worst < 1.0, f"{vid}: {axis} after the restart off by {worst:.1f} m"
         rep = reports[vid]
         # counters are totals over the vehicle's life: what was flushed before the kill stays
         sent_before = sum(

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import server.ingest.pipeline as pipeline_module
-from estimator.config import VehicleConfig, VehicleKind
+from estimator.config import SlipConfig, VehicleConfig, VehicleKind
+from estimator.geo import enu_from_geodetic
 from estimator.types import GnssSample, ImuBatch
 from server.estimators import EstimatorRegistry
 from server.ingest import Pipeline
@@ -279,6 +280,73 @@ def test_final_snapshots_include_vehicles_seen_since_the_last_refresh(
     pipe.stop()
     assert "late" in pipe.estimator_counters_snapshot()["mdsf"]
     assert pipe.anchors_snapshot()["late"] == pytest.approx((48.0, 11.0, 500.0))
+
+
+def _drive(pipe: Pipeline, vid: str, seconds: range) -> None:
+    """GNSS and IMU packets of ``vid`` in time order, one of each per 100 ms."""
+    pipe.submit([p for i in seconds for p in (gnss(vid, i, 100 * i), imu(vid, i, 100 * i, 100))])
+
+
+def test_a_restored_anchor_keeps_the_frame_across_runs_and_reconfigurations() -> None:
+    """East/north go on in the frame a previous run stored (not at this run's first fix), also
+    after the vehicle is configured again (a fresh estimator); a deleted vehicle starts anew."""
+    stored = (47.99, 11.01, 480.0)  # the earlier run's anchor; this run's first fix is 48/11
+    settings = Settings(ingest=IngestSettings.model_validate({"process_interval_ms": 5}))
+    sink = CapturingSink()
+    pipe = Pipeline(settings, None, EstimatorRegistry(), [sink], wall_clock_ns=lambda: T0)
+    pipe.register_vehicle("a", VehicleConfig())
+    pipe.restore_anchor("a", stored)
+    pipe.start()
+    try:
+        _drive(pipe, "a", range(12))
+        wait_for(lambda: pipe.anchors_snapshot().get("a") == stored)
+        pipe.register_vehicle("a", VehicleConfig(slip=SlipConfig(alert_threshold_pct=20.0)))
+        time.sleep(0.2)  # control is applied on the pipeline thread, between bursts
+        _drive(pipe, "a", range(12, 24))
+        wait_for(lambda: pipe.counters_snapshot()["a"]["accepted"] == 48)
+        time.sleep(1.2)  # one more snapshot of the anchors
+        assert pipe.anchors_snapshot()["a"] == stored  # not this run's first fix
+        first_rows = np.concatenate(sink.rows["a"])
+        pipe.remove_vehicle("a")
+        pipe.register_vehicle("a", VehicleConfig())
+        time.sleep(0.2)
+        _drive(pipe, "a", range(24, 36))
+        wait_for(lambda: pipe.anchors_snapshot().get("a") == pytest.approx((48.0, 11.0, 500.0)))
+    finally:
+        pipe.stop()
+    east, north, _ = enu_from_geodetic(48.0, 11.0, 500.0, *stored)
+    assert abs(east) > 500 and abs(north) > 500  # far from where a new frame would put it
+    placed = np.isfinite(first_rows["east_m"])
+    assert placed.sum() >= 10
+    # the first two registrations' rows lie where 48/11 is in the stored frame
+    np.testing.assert_allclose(first_rows["east_m"][placed], east, atol=1.0)
+    np.testing.assert_allclose(first_rows["north_m"][placed], north, atol=1.0)
+
+
+def test_a_clock_reanchor_restarts_the_estimators_in_the_same_frame() -> None:
+    settings = Settings(ingest=IngestSettings.model_validate({"process_interval_ms": 5}))
+    pipe = Pipeline(
+        settings, None, EstimatorRegistry(), [CapturingSink()], wall_clock_ns=lambda: T0
+    )
+    pipe.register_vehicle("a", VehicleConfig())
+    pipe.start()
+    try:
+        _drive(pipe, "a", range(12))
+        wait_for(lambda: "a" in pipe.anchors_snapshot())
+        moved = []  # the vehicle's clock jumps 5 min ahead; it stands 1 km further north
+        for i in range(12, 24):
+            t = T0 + (300_000 + 100 * i) * MS
+            g = GnssSample(t, (0.0, 1.0, 0.0), 0.0, 0.0, 0.0, 48.009, 11.0, 500.0)
+            moved += [
+                Packet("a", Stream.GNSS, i, 1, (g,), t, t),
+                imu("a", i, 300_000 + 100 * i, 100),
+            ]
+        pipe.submit(moved)
+        wait_for(lambda: pipe.counters_snapshot()["a"]["clock_reanchors"] == 1)
+        time.sleep(1.2)  # the next snapshot of the anchors
+        assert pipe.anchors_snapshot()["a"] == pytest.approx((48.0, 11.0, 500.0))
+    finally:
+        pipe.stop()
 
 
 def test_tick_schedule_keeps_the_estimator_cadence_and_the_duty() -> None:

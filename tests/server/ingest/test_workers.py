@@ -110,11 +110,15 @@ def test_registrations_and_stored_counters_reach_the_owner() -> None:
     pool.register_vehicle("w000", VehicleConfig())
     pool.register_vehicle("w003", VehicleConfig())
     pool.restore_counters("w003", {"received": 1000, "accepted": 1000})
+    pool.restore_anchor("w003", (47.5, 10.5, 400.0))  # the frame of its stored rows
     pool.start()
     try:
         _feed(pool, _packets(["w000", "w003", "w004"]))
     finally:
         pool.stop()
+    anchors = pool.anchors_snapshot()
+    assert anchors["w003"] == (47.5, 10.5, 400.0)
+    assert anchors["w000"] != anchors["w003"]  # its own first fix
     counters = pool.counters_snapshot()
     assert sorted(sink.rows) == ["w000", "w003"]  # w004 is not registered
     assert counters["w004"]["accepted"] == 0
@@ -135,7 +139,7 @@ def test_new_vehicles_are_reported_to_the_server() -> None:
     assert sorted(seen) == VEHICLES[:3]
 
 
-def test_a_dead_worker_is_started_again_with_its_vehicles_and_counters() -> None:
+def test_a_dead_worker_is_started_again_with_its_vehicles_counters_and_frames() -> None:
     sink = CapturingSink()
     pool = _pool(sink)
     mine = [v for v in VEHICLES if owner_of(v, 2) == owner_of("w000", 2)]
@@ -148,6 +152,10 @@ def test_a_dead_worker_is_started_again_with_its_vehicles_and_counters() -> None
         while sum(pool.counters_snapshot().get(v, {}).get("received", 0) for v in mine) < half:
             assert time.monotonic() < deadline
             time.sleep(0.1)
+        while not set(mine) <= set(pool.anchors_snapshot()):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        frames = {v: pool.anchors_snapshot()[v] for v in mine}
         victim = pool._workers[owner_of("w000", 2)]
         victim.process.kill()
         while not victim.done.is_set():  # the collector saw it go
@@ -171,6 +179,8 @@ def test_a_dead_worker_is_started_again_with_its_vehicles_and_counters() -> None
     assert stats["dropped_worker_down"] > 0
     for v in mine:  # the restarted worker estimates its vehicles again
         assert sum(len(r) for r in sink.rows[v]) > rows_before[v] + 50
+    # in the frames they had: east/north go on where they were, not at the next first fix
+    assert {v: pool.anchors_snapshot()[v] for v in mine} == frames
 
 
 @pytest.mark.parametrize("workers", [0, -1])

@@ -170,6 +170,24 @@ class CounterWritesStore(CountingStore):
         self.inner.write_counters(counters, now_ns)
 
 
+def test_anchors_are_written_once_and_again_after_the_vehicle_is_forgotten(
+    backend: Backend,
+) -> None:
+    store = backend.open()
+    with StoreWriter(store, _settings(commit_interval_s=0.02)) as writer:
+        writer.submit_anchors({"v1": (48.0, 11.0, 500.0), "v2": (-33.9, 151.2, 20.0)})
+        assert writer.flush(timeout=30)
+        assert store.get_anchors() == {"v1": (48.0, 11.0, 500.0), "v2": (-33.9, 151.2, 20.0)}
+        writer.submit_anchors({"v1": (1.0, 2.0, 3.0)})  # queued once: not again
+        assert writer.flush(timeout=30)
+        assert store.get_anchors()["v1"] == (48.0, 11.0, 500.0)
+        store.delete_vehicle("v1")  # as the API deletes it, then tells the writer
+        writer.forget_vehicle("v1")
+        writer.submit_anchors({"v1": (1.0, 2.0, 3.0)})  # the new vehicle of that id
+        assert writer.flush(timeout=30)
+    assert store.get_anchors() == {"v1": (1.0, 2.0, 3.0), "v2": (-33.9, 151.2, 20.0)}
+
+
 def test_only_counters_that_changed_are_written_again(backend: Backend) -> None:
     inner = backend.open()
     store = CounterWritesStore(inner)
