@@ -92,6 +92,14 @@ VehicleConfigOut = Annotated[
 ]
 
 
+class AnchorPublic(BaseModel):
+    """Origin of a vehicle's local ENU frame (WGS 84)."""
+
+    lat_deg: float
+    lon_deg: float
+    height_m: float = Field(description="ellipsoidal height")
+
+
 class VehiclePublic(BaseModel):
     """A registered vehicle."""
 
@@ -99,6 +107,12 @@ class VehiclePublic(BaseModel):
     config: VehicleConfigOut
     created_ns: int = Field(description="registration time, ns since the epoch, UTC")
     updated_ns: int = Field(description="last config change, ns since the epoch, UTC")
+    anchor: AnchorPublic | None = Field(
+        default=None,
+        description="origin of the frame of the estimates' east_m, north_m and up_m (the "
+        "vehicle's first GNSS fix with a position, kept for good); null until it is stored, "
+        "a second or so after that fix",
+    )
 
 
 class VehiclesPublic(BaseModel):

@@ -117,8 +117,8 @@ class Store(Protocol):
         """Store the anchors of vehicles that have none yet (an anchor, once stored, stays:
         the rows in its frame rely on it); return how many were stored."""
 
-    def get_anchors(self) -> dict[str, Anchor]:
-        """Every stored anchor by vehicle id."""
+    def get_anchors(self, vehicle_id: str | None = None) -> dict[str, Anchor]:
+        """Stored anchors by vehicle id: every one, or only ``vehicle_id``'s."""
 
     # access tokens (see server.tokens; the store keeps the token's SHA-256 only)
     def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:

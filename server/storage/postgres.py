@@ -395,9 +395,12 @@ class PostgresStore:
             )
             return int(cur.rowcount)
 
-    def get_anchors(self) -> dict[str, Anchor]:
-        rows = self._one_row_query(
-            "SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors", ()
+    def get_anchors(self, vehicle_id: str | None = None) -> dict[str, Anchor]:
+        sql = "SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors"
+        rows = (
+            self._one_row_query(sql, ())
+            if vehicle_id is None
+            else self._one_row_query(f"{sql} WHERE vehicle_id = %s", (vehicle_id,))
         )
         return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
 

@@ -618,8 +618,12 @@ class SqliteStore:
             )
             return int(conn.total_changes - before)
 
-    def get_anchors(self) -> dict[str, Anchor]:
-        rows = self._read("SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors", ())
+    def get_anchors(self, vehicle_id: str | None = None) -> dict[str, Anchor]:
+        sql = "SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors"
+        if vehicle_id is None:
+            rows = self._read(sql)
+        else:
+            rows = self._read(f"{sql} WHERE vehicle_id = ?", (vehicle_id,))
         return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
 
     # ------------------------------------------------------------------ access tokens

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Mapping
 from typing import Annotated, Any
 
 import numpy as np
@@ -16,12 +17,13 @@ from estimator.types import EstimateFlag
 from server.api.deps import RuntimeDep, StoreDep, VehicleDep, call_hook, require_role
 from server.api.errors import InvalidConfig, NotFound, error_responses
 from server.api.models import (
+    AnchorPublic,
     EstimatePublic,
     VehicleConfigIn,
     VehiclePublic,
     VehiclesPublic,
 )
-from server.storage.base import VehicleRecord
+from server.storage.base import Anchor, VehicleRecord
 from server.timeparse import format_ns
 
 __all__ = ["estimate_to_dict", "flag_names", "router"]
@@ -53,12 +55,16 @@ def estimate_to_dict(row: np.ndarray) -> dict[str, Any]:
     return out
 
 
-def _public(record: VehicleRecord) -> VehiclePublic:
+def _public(record: VehicleRecord, anchors: Mapping[str, Anchor]) -> VehiclePublic:
+    anchor = anchors.get(record.vehicle_id)
     return VehiclePublic(
         vehicle_id=record.vehicle_id,
         config=record.config,
         created_ns=record.created_ns,
         updated_ns=record.updated_ns,
+        anchor=None
+        if anchor is None
+        else AnchorPublic(lat_deg=anchor[0], lon_deg=anchor[1], height_m=anchor[2]),
     )
 
 
@@ -95,7 +101,8 @@ def _parse_config(data: Any) -> VehicleConfig:
 
 @router.get("", response_model=VehiclesPublic, summary="List registered vehicles")
 def list_vehicles(store: StoreDep) -> VehiclesPublic:
-    vehicles = [_public(r) for r in store.list_vehicles()]
+    anchors = store.get_anchors()
+    vehicles = [_public(r, anchors) for r in store.list_vehicles()]
     return VehiclesPublic(data=vehicles, count=len(vehicles))
 
 
@@ -105,8 +112,8 @@ def list_vehicles(store: StoreDep) -> VehiclesPublic:
     responses=error_responses(404),
     summary="One vehicle and its config",
 )
-def get_vehicle(vehicle: VehicleDep) -> VehiclePublic:
-    return _public(vehicle)
+def get_vehicle(vehicle: VehicleDep, store: StoreDep) -> VehiclePublic:
+    return _public(vehicle, store.get_anchors(vehicle.vehicle_id))
 
 
 @router.put(
@@ -141,7 +148,7 @@ def put_vehicle(
     record = store.upsert_vehicle(vehicle_id, config.to_dict(), time.time_ns())
     call_hook(runtime, "on_vehicle_config", vehicle_id, config)
     response.status_code = status.HTTP_200_OK if existed else status.HTTP_201_CREATED
-    return _public(record)
+    return _public(record, store.get_anchors(vehicle_id))
 
 
 @router.delete(

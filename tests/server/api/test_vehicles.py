@@ -49,6 +49,19 @@ def test_register_update_list_get(client: ApiClient, runtime: FakeRuntime) -> No
     assert one["created_ns"] <= one["updated_ns"]
 
 
+def test_vehicle_shows_the_anchor_of_its_frame_once_stored(client: ApiClient, store: Store) -> None:
+    client.put(f"{V}/t1", json={})
+    client.put(f"{V}/t2", json={})
+    assert client.get(f"{V}/t1").json()["anchor"] is None  # no fix yet
+    store.put_anchors({"t1": (48.1372, 11.5755, 519.25)}, T0)
+    want = {"lat_deg": 48.1372, "lon_deg": 11.5755, "height_m": 519.25}
+    assert client.get(f"{V}/t1").json()["anchor"] == want
+    listed = {v["vehicle_id"]: v["anchor"] for v in client.get(V).json()["data"]}
+    assert listed == {"t1": want, "t2": None}
+    r = client.put(f"{V}/t1", json={"geometry": {"track_width_m": 2.0}})  # a new config
+    assert r.json()["anchor"] == want  # the frame stays
+
+
 def test_unknown_vehicle_is_404_json(client: ApiClient) -> None:
     for path in ("nope", "nope/latest", "nope/series?start=0&end=1", "nope/report?start=0&end=1"):
         r = client.get(f"{V}/{path}")

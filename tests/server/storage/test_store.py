@@ -212,6 +212,8 @@ def test_anchors_are_stored_once_and_deleted_with_their_vehicle(store: Store) ->
     assert store.put_anchors({}, 3) == 0
     got = store.get_anchors()
     assert got == {"v1": a1, "v2": (-33.9, 151.2, -2.5), "v3": (1.0, 2.0, 3.0)}  # bit-exact
+    assert store.get_anchors("v2") == {"v2": (-33.9, 151.2, -2.5)}
+    assert store.get_anchors("nobody") == {}
     assert store.delete_vehicle("v1")
     assert "v1" not in store.get_anchors()
     assert store.put_anchors({"v1": (5.0, 6.0, 7.0)}, 4) == 1  # a new vehicle of that name
