@@ -193,7 +193,7 @@ class Pipeline:
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
         self._queue: queue.Queue[_QueueItem] = queue.Queue(maxsize=QUEUE_BURSTS)
         self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
-        # (op, vehicle_id, config, anchor or None, notify): "add", "anchor", "remove"
+        # (op, vehicle_id, config | anchor | None, notify), op "add", "anchor" or "remove"
         self._control: deque[tuple[str, str, VehicleConfig | Anchor | None, bool]] = deque()
         # each vehicle's ENU frame origin, kept across re-registrations (a new config starts a
         # fresh estimator, which would otherwise anchor anew): restored ones and learnt ones
