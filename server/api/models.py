@@ -34,7 +34,7 @@ __all__ = [
 
 ESTIMATE_FIELD_NAMES: tuple[str, ...] = tuple(name for name, _ in ESTIMATE_FIELDS)
 
-SeriesFormat = Literal["json", "csv", "parquet"]
+SeriesFormat = Literal["json", "csv", "parquet", "geojson"]
 
 
 def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import re
 from collections.abc import Iterator, Sequence
 from typing import Annotated
@@ -21,14 +22,15 @@ import pyarrow.parquet as pq
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import StreamingResponse
 
+from estimator.geo import EnuFrame
 from estimator.types import ESTIMATE_DTYPE
 from server.api.deps import ApiLimits, LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
 from server.api.errors import RangeTooLarge, Unprocessable, error_responses
 from server.api.models import ESTIMATE_FIELD_NAMES, SeriesFormat, SeriesPublic
 from server.downsample import bucket_width_ns, downsample_minmax
-from server.storage.base import Store
+from server.storage.base import Anchor, Store
 
-__all__ = ["PARQUET_MEDIA_TYPE", "encode_columns_json", "router"]
+__all__ = ["GEOJSON_MEDIA_TYPE", "PARQUET_MEDIA_TYPE", "encode_columns_json", "router"]
 
 router = APIRouter(prefix="/vehicles", tags=["series"])
 
@@ -183,6 +185,65 @@ def _parquet_bytes(rows: np.ndarray) -> bytes:
     return sink.getvalue()
 
 
+GEOJSON_MEDIA_TYPE = "application/geo+json"
+_POSITION = ("east_m", "north_m", "up_m")
+
+
+def _thinned(reader: _Reader, max_points: int, max_rows: int) -> np.ndarray:
+    """The reader's rows at full rate, or with ``max_points`` >= 2 the first whole row of each
+    of its time buckets (min/max decimation would mix one position from several rows).
+    :class:`RangeTooLarge` past ``max_rows`` rows."""
+    if max_points < 2:
+        return reader.collect(max_rows)
+    tr = reader.tr
+    width = max(-(-(tr.end_ns - tr.start_ns) // max_points), 1)  # max_points buckets
+    parts: list[np.ndarray] = []
+    last = -1
+    for rows in reader.chunks():  # raw chunks: the reader itself does not decimate
+        bucket = (rows["stamp_ns"] - tr.start_ns) // width
+        _, first = np.unique(bucket, return_index=True)
+        keep = first[bucket[first] > last]
+        if keep.size:
+            parts.append(rows[keep])
+            last = int(bucket[keep[-1]])
+    if not parts:
+        return np.empty(0, dtype=[(f, ESTIMATE_DTYPE[f]) for f in reader.fields])
+    return np.concatenate(parts)
+
+
+def _geojson(vehicle_id: str, rows: np.ndarray, names: Sequence[str], anchor: Anchor | None) -> str:
+    """A FeatureCollection of one Point (WGS 84 longitude, latitude, ellipsoidal height) per
+    row with a position, carrying the row's ``names`` fields (NaN as null); no features while
+    the vehicle has no anchor (no fix yet)."""
+    features: list[dict[str, object]] = []
+    placed = np.isfinite(rows["east_m"]) & np.isfinite(rows["north_m"])
+    if anchor is not None and placed.any():
+        rows = rows[placed]
+        up = np.nan_to_num(rows["up_m"], nan=0.0)
+        lat, lon, h = EnuFrame(*anchor).to_geodetic(rows["east_m"], rows["north_m"], up)
+        cols = {n: rows[n].tolist() for n in names}
+        for i, (x, y, z) in enumerate(zip(lon.tolist(), lat.tolist(), h.tolist(), strict=True)):
+            props = {
+                n: (None if isinstance(v[i], float) and not math.isfinite(v[i]) else v[i])
+                for n, v in cols.items()
+            }
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "Point", "coordinates": [x, y, round(z, 3)]},
+                    "properties": props,
+                }
+            )
+    return json.dumps(
+        {
+            "type": "FeatureCollection",
+            "vehicle_id": vehicle_id,
+            "anchor": None if anchor is None else list(anchor),
+            "features": features,
+        }
+    )
+
+
 def _filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
     safe = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle_id)[:64] or "vehicle"
     return f"{safe}_{tr.start_ns}_{tr.end_ns}.{ext}"
@@ -198,6 +259,7 @@ def _filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
             "content": {
                 "text/csv": {"schema": {"type": "string"}},
                 PARQUET_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}},
+                GEOJSON_MEDIA_TYPE: {"schema": {"type": "object"}},
             },
         },
         **error_responses(400, 404, 422),
@@ -211,6 +273,12 @@ def _filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         "`stamp_ns` of the two rows is the bucket's first and last stamp and `flags` the OR of "
         "the bucket's flags. Spikes therefore survive, but one decimated row mixes values of "
         "several estimates. With `max_points` 0 or absent the series is full rate.\n\n"
+        "**Map** (`format=geojson`): a FeatureCollection with one Point per row that has a "
+        "position, in WGS 84 (longitude, latitude, ellipsoidal height) from the vehicle's "
+        "anchor and the row's `east_m`, `north_m`, `up_m`; the properties are the fields asked "
+        "for. With `max_points` the range is cut into that many equal time buckets and each "
+        "gives its first row, whole (a position is never mixed from several rows). No features "
+        "before the vehicle's first fix.\n\n"
         "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
         "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
         "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
@@ -247,6 +315,14 @@ def get_series(
     if points > limits.series_max_points:
         raise Unprocessable(f"max_points must be at most {limits.series_max_points}")
     tr.check_span(limits.series_max_range_ns)
+    if format == "geojson":  # whole rows: a position is one row's east, north and up
+        read = [*names, *(f for f in _POSITION if f not in names)]
+        reader = _Reader(store, vehicle.vehicle_id, tr, read, 0, limits)
+        rows = _thinned(reader, points, limits.series_max_rows)
+        anchor = store.get_anchors(vehicle.vehicle_id).get(vehicle.vehicle_id)
+        return Response(
+            _geojson(vehicle.vehicle_id, rows, names, anchor), media_type=GEOJSON_MEDIA_TYPE
+        )
     reader = _Reader(store, vehicle.vehicle_id, tr, names, points, limits)
 
     if format == "csv":

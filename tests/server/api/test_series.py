@@ -11,6 +11,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from estimator.geo import EnuFrame
 from estimator.types import ESTIMATE_DTYPE
 from server.api import ApiLimits, create_app
 from server.api.routes.series import encode_columns_json
@@ -176,3 +177,45 @@ def test_json_encoding_of_columns() -> None:
     text = encode_columns_json(rows)
     assert text == ('{"stamp_ns":[1,2,3,4611686018427387905],"x":[null,null,0.333333333,1e-300]}')
     assert json.loads(text)["x"][2] == pytest.approx(1 / 3, rel=1e-9)
+
+
+def test_geojson_map_of_whole_rows_in_wgs84(client: ApiClient, store: Store) -> None:
+    client.put("/api/v1/vehicles/t1", json={})
+    rows = ramp_series(3_000)  # 5 min at 10 Hz, driving east at 2 m/s from the anchor
+    rows["east_m"] = np.arange(3_000) * 0.2
+    rows["north_m"] = 10.0
+    rows["up_m"] = 0.5
+    rows["east_m"][:5] = np.nan  # no position yet: no feature
+    store.write_estimates([("t1", rows)])
+    q = f"{U}?start={T0}&end={T0 + 300 * S}&format=geojson&fields=slip_left_pct,vg_mps"
+    r = client.get(q)
+    assert r.status_code == 200 and r.headers["content-type"] == "application/geo+json"
+    assert r.json()["features"] == []  # the vehicle has no anchor yet
+    anchor = (52.0, 5.6, 12.0)
+    store.put_anchors({"t1": anchor}, T0)
+    fc = client.get(q).json()
+    assert fc["type"] == "FeatureCollection" and fc["anchor"] == list(anchor)
+    feats = fc["features"]
+    assert len(feats) == 3_000 - 5
+    lat, lon, h = EnuFrame(*anchor).to_geodetic(
+        rows["east_m"][5:], rows["north_m"][5:], rows["up_m"][5:]
+    )
+    got = np.array([f["geometry"]["coordinates"] for f in feats])
+    np.testing.assert_allclose(got[:, 0], lon, atol=1e-9)
+    np.testing.assert_allclose(got[:, 1], lat, atol=1e-9)
+    np.testing.assert_allclose(got[:, 2], h, atol=1e-3)
+    # 10 m north of the anchor is 10 m north on the ellipsoid, to the millimetre
+    assert EnuFrame(*anchor).to_enu(got[0, 1], got[0, 0], got[0, 2])[1] == pytest.approx(10.0)
+    props = feats[7]["properties"]
+    assert set(props) == {"stamp_ns", "slip_left_pct", "vg_mps"}
+    assert props["stamp_ns"] == int(rows["stamp_ns"][12])
+    assert props["slip_left_pct"] == pytest.approx(float(rows["slip_left_pct"][12]))
+    # thinned: the first whole row of each of max_points time buckets, never a mixed position
+    thin = client.get(f"{q}&max_points=60").json()["features"]
+    assert 55 <= len(thin) <= 60
+    stamps = [f["properties"]["stamp_ns"] for f in thin]
+    by_stamp = {int(s): i for i, s in enumerate(rows["stamp_ns"])}
+    for f, s in zip(thin, stamps, strict=True):
+        i = by_stamp[s]
+        assert f["geometry"]["coordinates"][0] == pytest.approx(float(lon[i - 5]), abs=1e-9)
+    assert np.all(np.diff(stamps) >= 4 * S)  # 5 s buckets
