@@ -6,7 +6,6 @@ Three spellings are accepted:
   made only of digits is read this way (so the ISO *basic* date ``20240102`` is not a date here).
 * **ISO 8601 with a UTC offset**: ``2024-05-01T12:00:00Z``, ``2024-05-01T14:00:00.123456789+02:00``.
   Fractions of a second keep up to 9 digits (nanoseconds); further digits are truncated.
-
 * **Relative to now**: ``now``, or ``now-`` a number and a unit (``s``, ``m``, ``h``, ``d``),
   e.g. ``now-15m``, ``now-1.5h``, ``now-7d``: the caller passes its clock as ``now_ns`` (the
   API passes the server's wall clock when the request is read). Only the past: a report
@@ -34,7 +33,8 @@ _UNIT_S = {"s": 1, "m": 60, "h": 3_600, "d": 86_400}
 
 
 class TimeParseError(ValueError):
-    """The text is neither epoch nanoseconds nor an ISO 8601 time with a UTC offset."""
+    """The text is not epoch nanoseconds, an ISO 8601 time with a UTC offset or a time
+    relative to now (or is one that no clock was given for)."""
 
 
 def parse_time_ns(text: str, now_ns: int | None = None) -> int:

@@ -131,17 +131,14 @@ class EstimatorRegistry:
                 out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
         return out
 
-    def set_anchor(self, vehicle_id: str, anchor: tuple[float, float, float]) -> bool:
+    def set_anchor(self, vehicle_id: str, anchor: tuple[float, float, float]) -> None:
         """Give the vehicle's ENU frame this origin in every estimator of it that has one (an
-        optional ``set_anchor(vehicle_id, lat_deg, lon_deg, height_m)``); False when none has
-        or the vehicle is unknown. Call on the thread that owns the registry."""
-        done = False
+        optional ``set_anchor(vehicle_id, lat_deg, lon_deg, height_m)``; the others and unknown
+        vehicles are left alone). Call on the thread that owns the registry."""
         for name in self._routes.get(vehicle_id, ()):
             put = getattr(self._estimators.get(name), "set_anchor", None)
             if callable(put):
                 put(vehicle_id, *anchor)
-                done = True
-        return done
 
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """Geodetic anchor ``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame,

@@ -527,18 +527,23 @@ class Pipeline:
                 self._frames[vehicle_id] = frame
         return frame
 
+    def _start_estimators(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """(Re)start the vehicle's estimators with ``config``: a fresh state and tick grid, in
+        the ENU frame the vehicle had (restored or learnt); ``UnknownEstimatorError`` as
+        ``EstimatorRegistry.add_vehicle``."""
+        frame = self._frame_of(vehicle_id)
+        self._registry.add_vehicle(vehicle_id, config)
+        self._tick_phase_ns.pop(vehicle_id, None)
+        if frame is not None:
+            self._set_anchor(vehicle_id, frame)
+
     def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
-        self._frame_of(vehicle_id)  # a new config restarts its estimators: keep the frame
         try:
-            self._registry.add_vehicle(vehicle_id, config)
-            self._tick_phase_ns.pop(vehicle_id, None)  # a fresh estimator state, a fresh grid
+            self._start_estimators(vehicle_id, config)
         except UnknownEstimatorError as exc:
             log.warning("vehicle %s not registered: %s", vehicle_id, exc)
             return False
         self._configs[vehicle_id] = config
-        frame = self._frames.get(vehicle_id)
-        if frame is not None:
-            self._set_anchor(vehicle_id, frame)
         if notify and self._on_new_vehicle is not None:
             try:
                 self._on_new_vehicle(vehicle_id, config)
@@ -638,10 +643,7 @@ class Pipeline:
         self._advanced_ns.pop(vid, None)
         config = self._configs.get(vid)
         if config is not None and registry.has_vehicle(vid):
-            frame = self._frame_of(vid)
-            registry.add_vehicle(vid, config)  # same config: a fresh state, the same frame
-            if frame is not None:
-                self._set_anchor(vid, frame)
+            self._start_estimators(vid, config)  # same config: a fresh state, the same frame
         self._tick_phase_ns.pop(vid, None)
         self._tick_anchor_ns.pop(vid, None)
         if packet.stream is Stream.IMU:

@@ -308,11 +308,14 @@ class WorkerPool:
         """What worker ``k`` starts with: its vehicles' registrations and, of ``counters`` and
         ``anchors``, its vehicles' totals to continue from and ENU frames to go on in."""
         configs = list(self._configs.items())  # a copy: registrations may come meanwhile
-        mine = owner_of
+
+        def mine(vid: str) -> bool:
+            return owner_of(vid, self._n) == k
+
         return (
-            [("add", vid, c, False) for vid, c in configs if mine(vid, self._n) == k]
-            + [("restore", vid, t) for vid, t in counters.items() if mine(vid, self._n) == k]
-            + [("anchor", vid, a) for vid, a in anchors.items() if mine(vid, self._n) == k]
+            [("add", vid, c, False) for vid, c in configs if mine(vid)]
+            + [("restore", vid, t) for vid, t in counters.items() if mine(vid)]
+            + [("anchor", vid, a) for vid, a in anchors.items() if mine(vid)]
         )
 
     def register_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
@@ -334,11 +337,12 @@ class WorkerPool:
 
     def restore_anchor(self, vehicle_id: str, anchor: Anchor) -> None:
         """Go on in the vehicle's stored ENU frame (in the worker that owns it)."""
+        lat, lon, h = anchor
+        frame = (float(lat), float(lon), float(h))
         if self._workers:
-            self._control(vehicle_id, ("anchor", vehicle_id, tuple(anchor)))
+            self._control(vehicle_id, ("anchor", vehicle_id, frame))
         else:
-            lat, lon, h = anchor
-            self._stored_anchors[vehicle_id] = (float(lat), float(lon), float(h))
+            self._stored_anchors[vehicle_id] = frame
 
     # ------------------------------------------------------------------ output
 
@@ -504,7 +508,7 @@ def _apply(pipeline: Any, message: tuple[Any, ...]) -> None:
     elif message[0] == "restore":
         pipeline.restore_counters(message[1], message[2])
     elif message[0] == "anchor":
-        pipeline.restore_anchor(message[1], tuple(message[2]))
+        pipeline.restore_anchor(message[1], message[2])
 
 
 def _worker_main(

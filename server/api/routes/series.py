@@ -122,8 +122,12 @@ class _Reader:
                 )
             parts.append(rows)
         if not parts:
-            return np.empty(0, dtype=[(f, ESTIMATE_DTYPE[f]) for f in self.fields])
+            return self.empty()
         return np.concatenate(parts) if len(parts) > 1 else parts[0]
+
+    def empty(self) -> np.ndarray:
+        """No rows, with the reader's fields."""
+        return np.empty(0, dtype=[(f, ESTIMATE_DTYPE[f]) for f in self.fields])
 
 
 JSON_FLOAT_DIGITS = 9
@@ -206,9 +210,7 @@ def _thinned(reader: _Reader, max_points: int, max_rows: int) -> np.ndarray:
         if keep.size:
             parts.append(rows[keep])
             last = int(bucket[keep[-1]])
-    if not parts:
-        return np.empty(0, dtype=[(f, ESTIMATE_DTYPE[f]) for f in reader.fields])
-    return np.concatenate(parts)
+    return np.concatenate(parts) if parts else reader.empty()
 
 
 def _geojson(vehicle_id: str, rows: np.ndarray, names: Sequence[str], anchor: Anchor | None) -> str:
