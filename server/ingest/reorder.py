@@ -31,11 +31,21 @@ covers up to the next one), so the fixed window keeps its full margin. Sensor-to
 latency drops from ``lateness`` to the spread between the vehicle's streams (down to the
 batch ends, with ``until_ns``), without making more packets late.
 
-Between packets the horizon moves only when the vehicle falls idle. A packet moves it only
-when it comes on the stream whose watermark held it at the last release (the lowest one), or
-when its samples push the fixed window past what was released; :attr:`ReorderBuffer.may_release`
-says so, and the pipeline visits a buffer only then (or when it fell idle): the packets of
-the streams ahead of a lagging one wait without a release each.
+While the watermarks gate, falling idle does not move the horizon: the lowest watermark already
+says how far every stream is complete, and past it a stream's data may still be on its way. A
+link that stalls for longer than ``idle`` (a cellular drop-out, a starved host) would otherwise
+look like a vehicle that stopped: the horizon would jump to the newest sample, the estimators
+would compute the wheels' speed over edges not yet received (a row of about −70 % slip, seen on
+every demo vehicle after a 1.5 s stall), and the stalled wheel packet, when it came, would be
+late and dropped. A vehicle that really stopped
+sending keeps back at most the part after its lowest watermark (a batch window, the streams'
+last ``until_ns`` permitting) until it sends again.
+
+Between packets the horizon moves only when the vehicle falls idle (and no watermarks gate). A
+packet moves it only when it comes on the stream whose watermark held it at the last release
+(the lowest one), or when its samples push the fixed window past what was released;
+:attr:`ReorderBuffer.may_release` says so, and the pipeline visits a buffer only then (or when
+it fell idle): the packets of the streams ahead of a lagging one wait without a release each.
 
 A wheels *heartbeat* (a packet without edges, only ``until_ns``: the wheels stood still up to
 it) moves the stream's watermark and its sequence tracking and is never late; it is not queued.
@@ -211,7 +221,8 @@ class ReorderBuffer:
     lateness_ns : int
         Reorder window in sensor time (``IngestSettings.lateness_ms``).
     idle_ns : int, optional
-        Wall time without arrivals after which everything pending is released.
+        Wall time without arrivals after which everything pending is released (unless the
+        watermarks gate: see the module docstring).
     clock_jump_ns : int, optional
         Sensor-time jump refused as a clock jump (see module docstring); None: no check.
     reanchor_after : int
@@ -444,24 +455,24 @@ class ReorderBuffer:
         if newest is None:
             return None
         self._low_stream = None  # unless the watermarks gate below
-        if now_ns - self._last_arrival_ns >= self._idle_ns:  # idle: release everything
+        horizon = newest - self._lateness_ns
+        marks = self._watermarks
+        if marks and self._first_ns is not None:
+            for mark in marks.values():
+                if mark.ahead:
+                    mark.skip_gaps(horizon)
+            if self._gating or self._starts_gating(newest, marks):
+                low, lowest = None, None
+                for s in self._expected:
+                    stamp = marks[s].stamp_ns
+                    if lowest is None or stamp < lowest:
+                        low, lowest = s, stamp
+                self._low_stream = low
+                if lowest is not None and lowest > horizon:
+                    horizon = lowest
+        if self._low_stream is None and now_ns - self._last_arrival_ns >= self._idle_ns:
+            # idle, and no watermarks tell how far each stream is complete: release everything
             horizon = newest
-        else:
-            horizon = newest - self._lateness_ns
-            marks = self._watermarks
-            if marks and self._first_ns is not None:
-                for mark in marks.values():
-                    if mark.ahead:
-                        mark.skip_gaps(horizon)
-                if self._gating or self._starts_gating(newest, marks):
-                    low, lowest = None, None
-                    for s in self._expected:
-                        stamp = marks[s].stamp_ns
-                        if lowest is None or stamp < lowest:
-                            low, lowest = s, stamp
-                    self._low_stream = low
-                    if lowest is not None and lowest > horizon:
-                        horizon = lowest
         released = self._released_ns
         if released is not None and horizon < released:
             return released

@@ -227,6 +227,10 @@ class Publisher:
     rate: float = 2.0
     start_ns: int = 0
     id_prefix: str = "flt"
+    #: pause publishing for ``stall_s`` of wall time once ``stall_at_s`` of sensor time is out
+    #: (a link that stalls: everything after it comes late, nothing is lost)
+    stall_at_s: float | None = None
+    stall_s: float = 0.0
     runs: list[_Run] = field(default_factory=list)
     timeline: list[tuple[float, dict[str, int]]] = field(default_factory=list)
     published: dict[str, list[tuple[str, bytes]]] = field(default_factory=dict)
@@ -318,9 +322,14 @@ class Publisher:
             time.sleep(0.5)  # configs first, so the vehicles start with their own config
             newest: dict[str, int] = {}
             t0 = time.monotonic()
+            stall_at_ns = None if self.stall_at_s is None else int(self.stall_at_s * 1e9)
             for (key, payload, stamp), off in zip(packets, offsets, strict=True):
                 if self._stop.is_set():
                     return
+                if stall_at_ns is not None and off >= stall_at_ns:
+                    stall_at_ns = None
+                    time.sleep(self.stall_s)
+                    t0 += self.stall_s  # then on at the usual pace, everything late by stall_s
                 due = t0 + off / 1e9 / self.rate
                 delay = due - time.monotonic()
                 if delay > 0:

@@ -230,6 +230,26 @@ def test_watermarks_release_what_every_stream_has_delivered() -> None:
     assert fixed.release(0)[1] == T0 + 1199 * MS
 
 
+def test_falling_idle_does_not_overtake_a_stream_the_watermarks_wait_for() -> None:
+    """A link stall longer than the idle time: the horizon stays at the lowest watermark (the
+    wheels', whose packet is held up), so that packet is fed when it comes, not late."""
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=1000 * MS, watermarks=True)
+    for k in range(15):
+        for p in three_streams(k):
+            buf.offer(p, 0)
+    imu, gnss, wheels = three_streams(15)
+    buf.offer(imu, 0)
+    buf.offer(gnss, 0)
+    buf.release(0)
+    assert buf.is_idle(5000 * MS)
+    _, released = buf.release(5000 * MS)
+    assert released == T0 + 1499 * MS  # the wheels' watermark, not the newest sample (1509)
+    assert buf.offer(wheels, 5001 * MS).verdict is Verdict.ACCEPTED
+    out, released = buf.release(5001 * MS)
+    assert [p.stream for p in out] == [Stream.IMU, Stream.WHEELS, Stream.GNSS]
+    assert released == T0 + 1505 * MS  # now the GNSS fix's
+
+
 def test_watermarks_wait_the_fixed_window_at_start() -> None:
     """Until the start-up window has passed, streams not heard yet may still come."""
     buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
