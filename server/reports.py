@@ -53,9 +53,16 @@ __all__ = [
     "SpeedStats",
     "VehicleReport",
     "WheelSlipStats",
+    "band_bounds",
+    "band_index",
+    "band_label",
+    "check_band_edges",
     "flatten_report",
+    "ground_speed",
     "ingest_counts",
+    "time_weights_ns",
     "vehicle_report",
+    "wheel_slips",
 ]
 
 #: The estimate fields a report reads (ask the store for these only).
@@ -164,8 +171,11 @@ def ingest_counts(counters: Mapping[str, int]) -> IngestCounts:
     )
 
 
-def _time_weights_ns(stamps: np.ndarray, end_ns: int, max_gap_ns: int) -> np.ndarray:
-    """``w_i`` of every row in ns (see the module docstring), int64, shape (n,)."""
+def time_weights_ns(stamps: np.ndarray, end_ns: int, max_gap_ns: int) -> np.ndarray:
+    """``w_i`` of every row in ns (see the module docstring), int64, shape (n,).
+
+    ``stamps`` : int64, shape (n,), sorted; ``end_ns`` clips the last row's weight.
+    """
     n = stamps.shape[0]
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -176,6 +186,63 @@ def _time_weights_ns(stamps: np.ndarray, end_ns: int, max_gap_ns: int) -> np.nda
     w[:-1] = np.where(steps <= max_gap_ns, steps, period)
     w[-1] = max(min(period, int(end_ns) - int(stamps[-1])), 0)
     return w
+
+
+def ground_speed(rows: np.ndarray, min_ground_speed_mps: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(|vg_mps|, moving)`` of every row, float64 and bool, shape (n,) each.
+
+    Moving: ``|vg_mps| >= min_ground_speed_mps`` and finite (the module docstring).
+    """
+    speed = np.abs(rows["vg_mps"].astype(np.float64))
+    return speed, np.isfinite(speed) & (speed >= min_ground_speed_mps)
+
+
+_SLIP_WHEELS = (
+    ("slip_left_pct", EstimateFlag.SLIP_LEFT_VALID),
+    ("slip_right_pct", EstimateFlag.SLIP_RIGHT_VALID),
+)
+
+
+def wheel_slips(rows: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Per wheel (left, right): ``(slip_pct, valid)``, float64 and bool, shape (n,) each.
+
+    ``valid``: the wheel's ``SLIP_*_VALID`` flag is set and its slip is finite.
+    """
+    flags = rows["flags"].astype(np.int64)
+    out = []
+    for name, flag in _SLIP_WHEELS:
+        slip = rows[name].astype(np.float64)
+        out.append((slip, ((flags & int(flag)) != 0) & np.isfinite(slip)))
+    return tuple(out)
+
+
+def check_band_edges(band_edges_pct: Sequence[float]) -> tuple[float, ...]:
+    """The band edges as floats; ValueError unless a non-empty increasing sequence."""
+    edges = tuple(float(e) for e in band_edges_pct)
+    if not edges or any(b <= a for a, b in pairwise(edges)):
+        raise ValueError("band_edges_pct must be a non-empty increasing sequence")
+    return edges
+
+
+def band_index(abs_slip_pct: np.ndarray, edges: Sequence[float]) -> np.ndarray:
+    """Band of each ``|slip|``, 0 … ``len(edges)`` (an edge belongs to the upper band).
+
+    ``abs_slip_pct`` : shape (n,); returns intp, shape (n,).
+    """
+    return np.searchsorted(np.asarray(edges, dtype=np.float64), abs_slip_pct, side="right")
+
+
+def band_bounds(edges: Sequence[float]) -> tuple[tuple[float, float | None], ...]:
+    """``(lower_pct, upper_pct)`` of each band; the last has no upper edge (None)."""
+    lowers = (0.0, *map(float, edges))
+    uppers: tuple[float | None, ...] = (*map(float, edges), None)
+    return tuple(zip(lowers, uppers, strict=True))
+
+
+def band_label(lower_pct: float, upper_pct: float | None) -> str:
+    """A band's name in table columns: ``0_5``, ``5_15``, ``15_up``."""
+    lo = f"{lower_pct:g}"
+    return f"{lo}_{upper_pct:g}" if upper_pct is not None else f"{lo}_up"
 
 
 def _stat(values: np.ndarray, how: str) -> float | None:
@@ -194,18 +261,16 @@ def _stat(values: np.ndarray, how: str) -> float | None:
 
 def _wheel_stats(
     slip: np.ndarray,
-    valid_flag: np.ndarray,
+    valid: np.ndarray,
     w_ns: np.ndarray,
     edges: Sequence[float],
 ) -> WheelSlipStats:
-    valid = valid_flag & np.isfinite(slip)
     s = slip[valid]
     w = w_ns[valid]
     total_ns = int(w.sum())
-    band_idx = np.searchsorted(np.asarray(edges, dtype=np.float64), np.abs(s), side="right")
-    per_band = np.bincount(band_idx, weights=w.astype(np.float64), minlength=len(edges) + 1)
-    lowers = (0.0, *map(float, edges))
-    uppers: tuple[float | None, ...] = (*map(float, edges), None)
+    per_band = np.bincount(
+        band_index(np.abs(s), edges), weights=w.astype(np.float64), minlength=len(edges) + 1
+    )
     bands = tuple(
         SlipBand(
             lower_pct=lo,
@@ -213,7 +278,7 @@ def _wheel_stats(
             seconds=float(sec_ns) / _NS,
             share=float(sec_ns) / total_ns if total_ns > 0 else None,
         )
-        for lo, up, sec_ns in zip(lowers, uppers, per_band, strict=True)
+        for (lo, up), sec_ns in zip(band_bounds(edges), per_band, strict=True)
     )
     return WheelSlipStats(
         samples=int(s.size),
@@ -246,15 +311,12 @@ def vehicle_report(
     min_ground_speed_mps : speed from which the vehicle counts as moving.
     max_gap_s : a step between rows longer than this is a data gap.
     """
-    edges = [float(e) for e in band_edges_pct]
-    if not edges or any(b <= a for a, b in pairwise(edges)):
-        raise ValueError("band_edges_pct must be a non-empty increasing sequence")
+    edges = check_band_edges(band_edges_pct)
     stamps = rows["stamp_ns"].astype(np.int64)
-    w_ns = _time_weights_ns(stamps, end_ns, round(max_gap_s * _NS))
-    speed = np.abs(rows["vg_mps"].astype(np.float64))
+    w_ns = time_weights_ns(stamps, end_ns, round(max_gap_s * _NS))
+    speed, moving = ground_speed(rows, min_ground_speed_mps)
     flags = rows["flags"].astype(np.int64)
     finite_speed = np.isfinite(speed)
-    moving = finite_speed & (speed >= min_ground_speed_mps)
     moving_ns = int(w_ns[moving].sum())
     distance_m = float(np.dot(speed[moving], w_ns[moving].astype(np.float64)) / _NS)
     moving_speed = speed[moving]
@@ -265,8 +327,7 @@ def vehicle_report(
         max_mps=_stat(speed[finite_speed], "max"),
     )
     degraded = (flags & int(EstimateFlag.DEGRADED)) != 0
-    left_valid = (flags & int(EstimateFlag.SLIP_LEFT_VALID)) != 0
-    right_valid = (flags & int(EstimateFlag.SLIP_RIGHT_VALID)) != 0
+    (left, left_valid), (right, right_valid) = wheel_slips(rows)
     n = int(stamps.shape[0])
     return VehicleReport(
         start_ns=int(start_ns),
@@ -279,14 +340,9 @@ def vehicle_report(
         distance_m=distance_m,
         degraded_s=int(w_ns[degraded].sum()) / _NS,
         speed=speed_stats,
-        slip_left=_wheel_stats(rows["slip_left_pct"], left_valid, w_ns, edges),
-        slip_right=_wheel_stats(rows["slip_right_pct"], right_valid, w_ns, edges),
+        slip_left=_wheel_stats(left, left_valid, w_ns, edges),
+        slip_right=_wheel_stats(right, right_valid, w_ns, edges),
     )
-
-
-def _band_label(band: SlipBand) -> str:
-    lo = f"{band.lower_pct:g}"
-    return f"{lo}_{band.upper_pct:g}" if band.upper_pct is not None else f"{lo}_up"
 
 
 def flatten_report(vehicle_id: str, report: VehicleReport, counts: IngestCounts) -> dict[str, Any]:
@@ -317,7 +373,7 @@ def flatten_report(vehicle_id: str, report: VehicleReport, counts: IngestCounts)
         row[f"slip_{side}_min_pct"] = stats.min_pct
         row[f"slip_{side}_max_pct"] = stats.max_pct
         for band in stats.bands:
-            row[f"slip_{side}_share_{_band_label(band)}"] = band.share
+            row[f"slip_{side}_share_{band_label(band.lower_pct, band.upper_pct)}"] = band.share
     row["packets_received"] = counts.received
     row["packets_accepted"] = counts.accepted
     row["packets_rejected"] = counts.rejected

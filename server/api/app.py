@@ -32,7 +32,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_role
 from server.api.errors import ErrorBody, error_response, install_error_handlers
-from server.api.routes import alerts, health, live, metrics, reports, series, tokens, vehicles
+from server.api.routes import (
+    alerts,
+    health,
+    live,
+    metrics,
+    reports,
+    series,
+    slipmap,
+    tokens,
+    vehicles,
+)
 from server.settings import Settings
 from server.tokens import Role
 
@@ -52,6 +62,7 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     vehicles.router,
     series.router,
     reports.router,
+    slipmap.router,
     alerts.router,
     live.router,
     health.router,

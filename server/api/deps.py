@@ -19,7 +19,7 @@ from typing import Annotated, Any, Protocol
 from fastapi import Depends, Query, Request, WebSocketException, status
 from starlette.requests import HTTPConnection
 
-from estimator.config import VehicleConfig
+from estimator.config import ConfigError, SlipConfig, VehicleConfig, vehicle_config_from_dict
 from server.api.errors import Forbidden, InvalidTime, NotFound, RangeTooLarge, Unauthorized
 from server.api.prometheus import MetricFamily
 from server.settings import Settings
@@ -47,6 +47,7 @@ __all__ = [
     "VehicleDep",
     "call_hook",
     "require_role",
+    "slip_config",
 ]
 
 _log = logging.getLogger(__name__)
@@ -128,7 +129,10 @@ class ApiLimits:
         Longest ``end - start`` of a report (a report holds its range's rows in memory, about
         36 bytes per row).
     report_max_gap_s : float
-        A step between rows longer than this is a data gap in reports.
+        A step between rows longer than this is a data gap in reports (and slip maps).
+    slipmap_max_cells : int
+        Most cells a slip map may hold (a GeoJSON cell is about 0.7 kB); its range is bounded
+        by ``report_max_range_ns``.
     """
 
     max_body_bytes: int = 64 * 1024
@@ -138,6 +142,7 @@ class ApiLimits:
     query_chunk_ns: int = _H
     report_max_range_ns: int = _DAY
     report_max_gap_s: float = 1.0
+    slipmap_max_cells: int = 50_000
 
 
 def _runtime(request: Request) -> ApiRuntime:
@@ -176,6 +181,20 @@ def _vehicle(vehicle_id: str, store: StoreDep) -> VehicleRecord:
 
 VehicleDep = Annotated[VehicleRecord, Depends(_vehicle)]
 """The vehicle named by the ``{vehicle_id}`` path parameter, or 404."""
+
+
+def slip_config(record: VehicleRecord) -> SlipConfig:
+    """The vehicle's slip settings (moving threshold, band edges) for reports and maps; the
+    defaults, with a warning, when its stored config no longer validates."""
+    try:
+        return vehicle_config_from_dict(record.config).slip
+    except (ConfigError, TypeError, ValueError) as exc:
+        _log.warning(
+            "stored config of %s is invalid (%s); its statistics use the default slip settings",
+            record.vehicle_id,
+            exc,
+        )
+        return SlipConfig()
 
 
 @dataclass(frozen=True, slots=True)

@@ -25,6 +25,9 @@ __all__ = [
     "HealthUnavailable",
     "SeriesFormat",
     "SeriesPublic",
+    "SlipMapCellPublic",
+    "SlipMapFormat",
+    "SlipMapPublic",
     "VehicleConfigIn",
     "VehicleConfigOut",
     "VehiclePublic",
@@ -35,6 +38,7 @@ __all__ = [
 ESTIMATE_FIELD_NAMES: tuple[str, ...] = tuple(name for name, _ in ESTIMATE_FIELDS)
 
 SeriesFormat = Literal["json", "csv", "parquet", "geojson"]
+SlipMapFormat = Literal["json", "geojson", "csv"]
 
 
 def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:
@@ -173,6 +177,44 @@ class FleetReportPublic(BaseModel):
     start_ns: int
     end_ns: int
     vehicles: list[VehicleReportPublic]
+
+
+class SlipMapCellPublic(BaseModel):
+    """One cell of a slip map (definitions in the API description of the route)."""
+
+    index_east: int = Field(description="i = floor(east_m / cell_m)")
+    index_north: int = Field(description="j = floor(north_m / cell_m)")
+    east_m: float = Field(description="east of the cell's south-west corner, i · cell_m")
+    north_m: float = Field(description="north of the cell's south-west corner, j · cell_m")
+    time_s: float = Field(description="moving time in the cell")
+    distance_m: float
+    rows: int = Field(description="moving estimates in the cell")
+    slip_left_valid_s: float = Field(description="time with a valid left-wheel slip")
+    slip_right_valid_s: float = Field(description="time with a valid right-wheel slip")
+    slip_left_mean_pct: float | None = Field(description="time-weighted mean signed slip")
+    slip_right_mean_pct: float | None = Field(description="time-weighted mean signed slip")
+    mean_abs_slip_pct: float | None = Field(description="time-weighted mean |slip|, both wheels")
+    max_abs_slip_pct: float | None
+    slip_band_shares: dict[str, float | None] = Field(
+        description="time share of |slip| in each band, by band label (`0_5`, `5_15`, "
+        "`15_up`); null without valid slip time"
+    )
+
+
+class SlipMapPublic(BaseModel):
+    """A vehicle's slip map: the cells it drove through while moving, in its own ENU frame."""
+
+    vehicle_id: str
+    start_ns: int
+    end_ns: int
+    cell_m: float
+    anchor: AnchorPublic | None = Field(
+        description="origin of the frame the cells are cut in (null: no position known yet)"
+    )
+    band_edges_pct: list[float]
+    band_labels: list[str]
+    count: int = Field(description="number of cells")
+    cells: list[SlipMapCellPublic]
 
 
 class HealthPublic(BaseModel):

@@ -2,25 +2,28 @@
 
 from __future__ import annotations
 
-import csv
-import io
-import logging
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Response
 
-from estimator.config import ConfigError, SlipConfig, vehicle_config_from_dict
 from estimator.types import empty_estimates
-from server.api.deps import LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
+from server.api.deps import (
+    LimitsDep,
+    StoreDep,
+    TimeRange,
+    TimeRangeDep,
+    VehicleDep,
+    slip_config,
+)
 from server.api.errors import error_responses
 from server.api.models import FleetReportPublic, VehicleReportPublic
+from server.api.tables import csv_table
 from server.reports import REPORT_FIELDS, flatten_report, ingest_counts, vehicle_report
 from server.storage.base import Store, VehicleRecord
 
 __all__ = ["REPORT_DESCRIPTION", "router"]
 
 router = APIRouter(tags=["reports"])
-_log = logging.getLogger(__name__)
 
 REPORT_DESCRIPTION = """\
 Over `start <= stamp < end` (at most 24 h by default; 400 `range_too_large` beyond):
@@ -41,20 +44,10 @@ Over `start <= stamp < end` (at most 24 h by default; 400 `range_too_large` beyo
 """
 
 
-def _slip_config(record: VehicleRecord) -> SlipConfig:
-    try:
-        return vehicle_config_from_dict(record.config).slip
-    except (ConfigError, TypeError, ValueError) as exc:
-        _log.warning(
-            "stored config of %s is invalid (%s); report uses defaults", record.vehicle_id, exc
-        )
-        return SlipConfig()
-
-
 def _report(
     store: Store, record: VehicleRecord, tr: TimeRange, max_gap_s: float
 ) -> VehicleReportPublic:
-    slip = _slip_config(record)
+    slip = slip_config(record)
     rows = store.query_series(record.vehicle_id, tr.start_ns, tr.end_ns, REPORT_FIELDS)
     report = vehicle_report(
         rows,
@@ -89,17 +82,11 @@ def get_vehicle_report(
 def _csv_table(rows: list[dict[str, Any]]) -> str:
     if not rows:  # an empty fleet still gets the header of the default-config columns
         empty = vehicle_report(empty_estimates(0)[list(REPORT_FIELDS)], start_ns=0, end_ns=1)
-        columns = dict.fromkeys(flatten_report("", empty, ingest_counts({})))
-        return ",".join(columns) + "\n"
-    columns = {}
+        return csv_table(list(flatten_report("", empty, ingest_counts({}))), [])
+    columns: dict[str, None] = {}
     for row in rows:
         columns.update(dict.fromkeys(row))
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n", restval="")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
-    return buf.getvalue()
+    return csv_table(list(columns), rows)
 
 
 @router.get(

@@ -30,7 +30,13 @@ from server.api.models import ESTIMATE_FIELD_NAMES, SeriesFormat, SeriesPublic
 from server.downsample import bucket_width_ns, downsample_minmax
 from server.storage.base import Anchor, Store
 
-__all__ = ["GEOJSON_MEDIA_TYPE", "PARQUET_MEDIA_TYPE", "encode_columns_json", "router"]
+__all__ = [
+    "GEOJSON_MEDIA_TYPE",
+    "PARQUET_MEDIA_TYPE",
+    "encode_columns_json",
+    "export_filename",
+    "router",
+]
 
 router = APIRouter(prefix="/vehicles", tags=["series"])
 
@@ -246,7 +252,8 @@ def _geojson(vehicle_id: str, rows: np.ndarray, names: Sequence[str], anchor: An
     )
 
 
-def _filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
+def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
+    """``<vehicle id, safe characters only>_<start_ns>_<end_ns>.<ext>`` for a download."""
     safe = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle_id)[:64] or "vehicle"
     return f"{safe}_{tr.start_ns}_{tr.end_ns}.{ext}"
 
@@ -333,7 +340,7 @@ def get_series(
             media_type="text/csv; charset=utf-8",
             headers={
                 "Content-Disposition": f'attachment; filename="'
-                f'{_filename(vehicle.vehicle_id, tr, "csv")}"'
+                f'{export_filename(vehicle.vehicle_id, tr, "csv")}"'
             },
         )
     rows = reader.collect(limits.series_max_rows)
@@ -343,7 +350,7 @@ def get_series(
             media_type=PARQUET_MEDIA_TYPE,
             headers={
                 "Content-Disposition": f'attachment; filename="'
-                f'{_filename(vehicle.vehicle_id, tr, "parquet")}"'
+                f'{export_filename(vehicle.vehicle_id, tr, "parquet")}"'
             },
         )
     head = {
