@@ -19,7 +19,7 @@ Three parts, all on loopback, in one run:
    (packets/s ÷ 30), and the CPU the product and the baseline spent (this process, all
    threads) per vehicle-second of sensor data. All three rates count packets handled, first
    to last (the product's pipeline estimates each vehicle up to its streams' watermarks as the
-   packets come; only each vehicle's last tick waits for the idle release after the flood).
+   packets come; what lies past a vehicle's lowest watermark at the end stays held).
    The baseline is lighter than the product's model (four observations, no wheel-edge
    speed tracking, no slip or pitch): it bounds what a plain per-vehicle loop costs.
 
@@ -257,11 +257,10 @@ def flood_product(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) 
                 _go(procs)
                 # packets handled first to last, as for raw and naive: the pipeline counts a
                 # packet when it takes it, and estimates each vehicle up to its streams'
-                # watermarks as it goes (only the last tick of each vehicle waits for the idle
-                # release after the flood, which is not counted)
+                # watermarks as it goes
                 n, dt = _wait_count(count, total)
                 rows, t_last = pipe.stats()["rows"], time.perf_counter()
-                while time.perf_counter() - t_last < 1.5:  # the idle tail, for the row count
+                while time.perf_counter() - t_last < 1.5:  # the last rows, for the row count
                     time.sleep(0.01)
                     now_rows = pipe.stats()["rows"]
                     if now_rows != rows:
