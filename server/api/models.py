@@ -21,6 +21,9 @@ __all__ = [
     "ESTIMATE_FIELD_NAMES",
     "EstimatePublic",
     "FleetReportPublic",
+    "FleetSlipMapCellPublic",
+    "FleetSlipMapPublic",
+    "FleetSlipMapVehiclePublic",
     "HealthPublic",
     "HealthUnavailable",
     "SeriesFormat",
@@ -28,6 +31,7 @@ __all__ = [
     "SlipMapCellPublic",
     "SlipMapFormat",
     "SlipMapPublic",
+    "SlipMapSkippedPublic",
     "VehicleConfigIn",
     "VehicleConfigOut",
     "VehiclePublic",
@@ -215,6 +219,54 @@ class SlipMapPublic(BaseModel):
     band_labels: list[str]
     count: int = Field(description="number of cells")
     cells: list[SlipMapCellPublic]
+
+
+class FleetSlipMapCellPublic(SlipMapCellPublic):
+    """One cell of a fleet slip map: the sums over every vehicle's samples in it."""
+
+    vehicles: int = Field(description="vehicles with samples in the cell")
+
+
+class FleetSlipMapVehiclePublic(BaseModel):
+    """A vehicle placed in a fleet slip map."""
+
+    vehicle_id: str
+    rows: int = Field(description="its samples in the map (moving estimates with a position)")
+    cells: int = Field(description="cells it has samples in")
+
+
+class SlipMapSkippedPublic(BaseModel):
+    """A vehicle left out of a fleet slip map, and why."""
+
+    vehicle_id: str
+    reason: Literal["no_anchor"] = Field(
+        description="`no_anchor`: no position stored yet, so its frame cannot be placed"
+    )
+
+
+class FleetSlipMapPublic(BaseModel):
+    """The slip map of several vehicles in one shared ENU frame."""
+
+    start_ns: int
+    end_ns: int
+    cell_m: float
+    origin: AnchorPublic | None = Field(
+        description="origin of the shared frame the cells are cut in (null: no origin given and "
+        "no vehicle has a stored anchor; then there are no cells)"
+    )
+    origin_vehicle_id: str | None = Field(
+        description="the vehicle whose anchor is the origin; null when the origin was given"
+    )
+    band_edges_pct: list[float]
+    band_labels: list[str]
+    band_edges_source: Literal["query", "vehicles", "default"] = Field(
+        description="`query`: the band_edges_pct parameter; `vehicles`: the edges every placed "
+        "vehicle's config has; `default`: 5 and 15 % (none given and the configs differ)"
+    )
+    vehicles: list[FleetSlipMapVehiclePublic] = Field(description="placed vehicles, by id")
+    skipped: list[SlipMapSkippedPublic] = Field(description="vehicles left out, by id")
+    count: int = Field(description="number of cells")
+    cells: list[FleetSlipMapCellPublic]
 
 
 class HealthPublic(BaseModel):

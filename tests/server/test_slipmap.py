@@ -5,9 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from estimator.geo import EnuFrame
 from estimator.types import EstimateFlag, empty_estimates
 from server.reports import vehicle_report
-from server.slipmap import TooManyCells, bin_cells, map_samples, slip_map
+from server.slipmap import (
+    MapSamples,
+    SlipMap,
+    TooManyCells,
+    bin_cells,
+    cell_sums,
+    finish_cells,
+    map_samples,
+    merge_cell_sums,
+    reframe,
+    slip_map,
+)
 
 S = 1_000_000_000
 L = int(EstimateFlag.SLIP_LEFT_VALID)
@@ -108,9 +120,9 @@ def test_non_moving_and_unplaced_rows_are_left_out() -> None:
     assert fast.rows.tolist() == [2]
 
 
-def test_band_shares_sum_to_one_and_follow_the_edges() -> None:
-    rng = np.random.default_rng(7)
-    n = 2_000
+def random_series(n: int = 2_000, seed: int = 7) -> np.ndarray:
+    """``n`` moving rows with random steps, positions in ±50 m, slips and validity flags."""
+    rng = np.random.default_rng(seed)
     rows = empty_estimates(n)
     rows["stamp_ns"] = np.cumsum(rng.integers(S // 20, S // 5, n))
     rows["vg_mps"] = rng.uniform(0.5, 3.0, n)
@@ -119,6 +131,11 @@ def test_band_shares_sum_to_one_and_follow_the_edges() -> None:
     rows["slip_left_pct"] = rng.normal(0, 15, n)
     rows["slip_right_pct"] = rng.normal(0, 15, n)
     rows["flags"] = rng.choice([0, L, R, L | R], n)
+    return rows
+
+
+def test_band_shares_sum_to_one_and_follow_the_edges() -> None:
+    rows = random_series()
     m = slip_map(
         rows, end_ns=int(rows["stamp_ns"][-1]) + S, cell_m=25.0, band_edges_pct=(2.0, 8.0, 20.0)
     )
@@ -158,3 +175,139 @@ def test_empty_series_gives_no_cells() -> None:
     m = slip_map(empty_estimates(0), end_ns=S, cell_m=1.0)
     assert m.cells == 0
     assert m.band_share.shape == (0, 3)
+
+
+def _half(samples: MapSamples, part: slice) -> MapSamples:
+    return MapSamples(*(getattr(samples, name)[part] for name in MapSamples.__dataclass_fields__))
+
+
+def _assert_same_statistics(a: SlipMap, b: SlipMap) -> None:
+    """Every statistic of two maps equal to 1e-12 (``vehicles`` aside)."""
+    assert (a.cell_m, a.band_edges_pct) == (b.cell_m, b.band_edges_pct)
+    np.testing.assert_array_equal(a.index_east, b.index_east)
+    np.testing.assert_array_equal(a.index_north, b.index_north)
+    np.testing.assert_array_equal(a.rows, b.rows)
+    for name in (
+        "time_s",
+        "distance_m",
+        "slip_valid_s",
+        "slip_mean_pct",
+        "mean_abs_slip_pct",
+        "max_abs_slip_pct",
+        "band_share",
+    ):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12, atol=1e-12)
+
+
+def test_merged_halves_equal_binning_all_at_once() -> None:
+    rows = random_series(600)  # ~3 samples a cell: some cells hold samples of one half only
+    samples = map_samples(rows, end_ns=int(rows["stamp_ns"][-1]) + S)
+    edges = (2.0, 8.0, 20.0)
+    whole = bin_cells(samples, cell_m=5.0, band_edges_pct=edges)
+    first = cell_sums(_half(samples, slice(0, 280)), cell_m=5.0, band_edges_pct=edges)
+    second = cell_sums(_half(samples, slice(280, None)), cell_m=5.0, band_edges_pct=edges)
+    merged = finish_cells(merge_cell_sums([first, second], cell_m=5.0, band_edges_pct=edges))
+    _assert_same_statistics(merged, whole)
+    # the other order gives the same map
+    swapped = finish_cells(merge_cell_sums([second, first], cell_m=5.0, band_edges_pct=edges))
+    _assert_same_statistics(swapped, whole)
+    # each part counts once in every cell it has samples in
+    in_first = {(int(i), int(j)) for i, j in zip(first.index_east, first.index_north, strict=True)}
+    in_second = {
+        (int(i), int(j)) for i, j in zip(second.index_east, second.index_north, strict=True)
+    }
+    expected = [
+        ((i, j) in in_first) + ((i, j) in in_second)
+        for i, j in zip(merged.index_east.tolist(), merged.index_north.tolist(), strict=True)
+    ]
+    assert merged.vehicles.tolist() == expected
+    assert set(expected) == {1, 2}
+    assert whole.vehicles.tolist() == [1] * whole.cells
+
+
+def test_merge_arguments_and_limit() -> None:
+    samples = map_samples(two_cell_series(), end_ns=END_NS, max_gap_s=2.5)
+    part = cell_sums(samples, cell_m=10.0)
+    none = merge_cell_sums([], cell_m=10.0)
+    assert none.cells == 0 and finish_cells(none).band_share.shape == (0, 3)
+    alone = finish_cells(merge_cell_sums([part], cell_m=10.0))
+    _assert_same_statistics(alone, bin_cells(samples, cell_m=10.0))
+    with pytest.raises(ValueError, match="cannot merge"):
+        merge_cell_sums([part], cell_m=5.0)
+    with pytest.raises(ValueError, match="cannot merge"):
+        merge_cell_sums([part], cell_m=10.0, band_edges_pct=(10.0,))
+    moved = cell_sums(
+        MapSamples(**{**_fields(samples), "east_m": samples.east_m + 100.0}), cell_m=10.0
+    )
+    assert merge_cell_sums([part, part], cell_m=10.0, max_cells=3).cells == 3
+    with pytest.raises(TooManyCells) as info:
+        merge_cell_sums([part, moved], cell_m=10.0, max_cells=5)
+    assert (info.value.cells, info.value.max_cells) == (6, 5)
+
+
+def _fields(samples: MapSamples) -> dict[str, np.ndarray]:
+    return {name: getattr(samples, name) for name in MapSamples.__dataclass_fields__}
+
+
+A = EnuFrame(52.0, 5.6, 12.0)
+B = EnuFrame(52.0031, 5.6047, 40.0)  # ~450 m north-east of A, 28 m higher
+
+
+def _rows_at(frame: EnuFrame, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Moving rows (1 s apart, 2 m/s, left slip 10 %) at the geodetic points, in ``frame``."""
+    rows = empty_estimates(lat.shape[0])
+    rows["stamp_ns"] = np.arange(lat.shape[0]) * S
+    rows["vg_mps"] = 2.0
+    rows["east_m"], rows["north_m"], rows["up_m"] = frame.to_enu(lat, lon, h)
+    rows["slip_left_pct"] = 10.0
+    rows["flags"] = L
+    return rows
+
+
+def test_two_frames_same_ground_same_cells() -> None:
+    shared = EnuFrame(52.001, 5.602, 0.0)
+    # cell centres of the shared frame (10 m cells), on the ground 15 m above the ellipsoid;
+    # the last point only vehicle "a" drives over
+    east = np.array([5.0, 15.0, 25.0, 205.0])
+    north = np.array([5.0, 5.0, -35.0, 95.0])
+    lat, lon, h = shared.to_geodetic(east, north, np.full(4, 15.0))
+    end_ns = 4 * S
+    a = map_samples(_rows_at(A, lat, lon, h), end_ns=end_ns)
+    b = map_samples(_rows_at(B, lat[:3], lon[:3], h[:3]), end_ns=end_ns)
+    assert not np.allclose(a.east_m[:3], b.east_m)  # the two frames differ by hundreds of metres
+    a_shared, b_shared = reframe(a, A, shared), reframe(b, B, shared)
+    np.testing.assert_allclose(a_shared.east_m, east, atol=1e-6)
+    np.testing.assert_allclose(b_shared.north_m, north[:3], atol=1e-6)
+    np.testing.assert_allclose(b_shared.up_m, 15.0, atol=1e-6)
+    merged = finish_cells(
+        merge_cell_sums(
+            [cell_sums(a_shared, cell_m=10.0), cell_sums(b_shared, cell_m=10.0)], cell_m=10.0
+        )
+    )
+    cells = list(zip(merged.index_east.tolist(), merged.index_north.tolist(), strict=True))
+    assert cells == [(0, 0), (1, 0), (2, -4), (20, 9)]
+    assert merged.vehicles.tolist() == [2, 2, 2, 1]
+    assert merged.rows.tolist() == [2, 2, 2, 1]
+    np.testing.assert_allclose(merged.time_s, [2.0, 2.0, 2.0, 1.0])
+    np.testing.assert_allclose(merged.slip_mean_pct[:, 0], 10.0)
+    # in its own frame, the same samples are elsewhere: the shared frame is what joins them
+    own = bin_cells(b, cell_m=10.0)
+    assert not set(zip(own.index_east.tolist(), own.index_north.tolist(), strict=True)) & set(cells)
+
+
+def test_reframe_keeps_samples_in_the_same_frame_and_reads_up() -> None:
+    rows = two_cell_series()
+    samples = map_samples(rows, end_ns=END_NS, max_gap_s=2.5)
+    assert reframe(samples, A, EnuFrame(*(52.0, 5.6, 12.0))) is samples
+    np.testing.assert_array_equal(samples.up_m, 0.0)  # the series has no height: NaN → 0
+    rows["up_m"] = 3.0
+    with_up = map_samples(rows, end_ns=END_NS, max_gap_s=2.5)
+    np.testing.assert_array_equal(with_up.up_m, 3.0)
+    no_up = map_samples(
+        rows[
+            ["stamp_ns", "vg_mps", "slip_left_pct", "slip_right_pct", "flags", "east_m", "north_m"]
+        ],
+        end_ns=END_NS,
+        max_gap_s=2.5,
+    )
+    np.testing.assert_array_equal(no_up.up_m, 0.0)

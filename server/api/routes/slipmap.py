@@ -1,69 +1,148 @@
-"""Slip map: ``/vehicles/{id}/slipmap`` (JSON, GeoJSON or CSV).
+"""Slip maps: ``/vehicles/{id}/slipmap`` and ``/fleet/slipmap`` (JSON, GeoJSON or CSV).
 
 The statistics are :mod:`server.slipmap`'s; this module reads the rows, picks the frame and
 writes the answer. GeoJSON cells are polygons whose corners go through the frame's
 :meth:`estimator.geo.EnuFrame.to_geodetic` on its horizontal plane (``up`` 0).
+
+The fleet map reads and reduces one vehicle at a time (:func:`_vehicle_cells`) and merges the
+partial sums as it goes (:func:`server.slipmap.merge_cell_sums`): memory holds one vehicle's
+rows and the merged cells, never the fleet's rows.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Query, Response
 
+from estimator.config import SlipConfig
 from estimator.geo import EnuFrame
 from server.api.deps import (
+    ApiLimits,
     LimitsDep,
     StoreDep,
+    TimeRange,
     TimeRangeDep,
     VehicleDep,
     slip_config,
 )
-from server.api.errors import RangeTooLarge, error_responses
-from server.api.models import SlipMapCellPublic, SlipMapFormat, SlipMapPublic
+from server.api.errors import NotFound, RangeTooLarge, Unprocessable, error_responses
+from server.api.models import (
+    FleetSlipMapCellPublic,
+    FleetSlipMapPublic,
+    SlipMapCellPublic,
+    SlipMapFormat,
+    SlipMapPublic,
+)
 from server.api.routes.series import GEOJSON_MEDIA_TYPE, export_filename
 from server.api.tables import csv_table
-from server.slipmap import SLIPMAP_FIELDS, SlipMap, TooManyCells, slip_map
-from server.storage.base import Anchor
+from server.reports import check_band_edges
+from server.slipmap import (
+    FLEET_SLIPMAP_FIELDS,
+    SLIPMAP_FIELDS,
+    CellSums,
+    SlipMap,
+    TooManyCells,
+    cell_sums,
+    finish_cells,
+    map_samples,
+    merge_cell_sums,
+    reframe,
+    slip_map,
+)
+from server.storage.base import Anchor, Store, VehicleRecord
 
-__all__ = ["SLIPMAP_DESCRIPTION", "router"]
+__all__ = ["FLEET_SLIPMAP_DESCRIPTION", "SLIPMAP_DESCRIPTION", "router"]
 
 router = APIRouter(tags=["slipmap"])
 
-SLIPMAP_DESCRIPTION = """\
-Moving estimates binned into square cells of `cell_m` metres of an east/north (ENU) frame,
-over `start <= stamp < end` (server defaults: at most 24 h, 400 `range_too_large` beyond, and
-at most 50 000 cells, 400 `range_too_large` beyond: take a larger `cell_m` or a shorter range).
-The server-side, time-weighted form of the dashboard's heat grid; the definitions are the field
-report's.
-
+_DEFINITIONS = """\
 * **cell** `(i, j)`: the positions with `i = floor(east_m / cell_m)`, `j = floor(north_m /
   cell_m)`; south-west corner `(i · cell_m, j · cell_m)`.
 * **samples**: estimates that are **moving** (`|vg_mps| >= slip.min_ground_speed_mps` of the
   vehicle's config) and have a position. Each weighs `w`, its report **time weight** (the
   time to the next estimate; a step over 1 s is a gap and the estimate before it counts one
-  median step; the last counts one median step), taken over all the range's estimates.
+  median step; the last counts one median step), taken over all the range's estimates of its
+  vehicle.
 * per cell: `time_s = Σ w`; `distance_m = Σ |vg_mps| · w`; `rows` = number of samples.
 * per wheel: `slip_<wheel>_valid_s = Σ w` over samples with the wheel's `SLIP_*_VALID` flag and
   a finite slip; `slip_<wheel>_mean_pct = Σ w · slip / slip_<wheel>_valid_s` (**signed**
   percent), null when that time is 0.
 * over the valid wheel-samples of both wheels (a sample with both valid counts twice):
   `mean_abs_slip_pct = Σ w · |slip| / Σ w`, `max_abs_slip_pct = max |slip|`, and per slip band
-  (`[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the edges `slip.band_edges_pct` of the
-  vehicle's config, default 5 and 15 %; labels `0_5`, `5_15`, `15_up`) the time share
-  `Σ_band w / Σ w`. Null when the cell has no valid slip time (time and distance still given);
-  otherwise the shares sum to 1.
-
-**Formats**: `json` (cells in the frame, with the frame's anchor, null until the vehicle's first
-fix is stored); `geojson` (`application/geo+json`, RFC 7946): one Polygon per cell, WGS 84
-`[longitude, latitude]` corners of the cell on the frame's horizontal plane, counter-clockwise
-from the south-west corner, the statistics as properties (band shares as `slip_share_<label>`),
-no features while there is no anchor; `csv`: one row per cell, the same columns plus the cell
-centre's `center_lat_deg`, `center_lon_deg` (empty without an anchor).
+  (`[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the map's `band_edges_pct`, labels `0_5`,
+  `5_15`, `15_up` for the default 5 and 15 %) the time share `Σ_band w / Σ w`. Null when the
+  cell has no valid slip time (time and distance still given); otherwise the shares sum to 1.
 """
+
+_FORMATS = """\
+**Formats**: `json` (cells in the frame, with the frame's {origin}); `geojson`
+(`application/geo+json`, RFC 7946): one Polygon per cell, WGS 84 `[longitude, latitude]` corners
+of the cell on the frame's horizontal plane, counter-clockwise from the south-west corner, the
+statistics as properties (band shares as `slip_share_<label>`), no features while there is no
+{origin_short}; `csv`: one row per cell, the same columns plus the cell centre's
+`center_lat_deg`, `center_lon_deg` (empty without {origin_short_a}).
+"""
+
+SLIPMAP_DESCRIPTION = (
+    """\
+Moving estimates binned into square cells of `cell_m` metres of an east/north (ENU) frame,
+over `start <= stamp < end` (server defaults: at most 24 h, 400 `range_too_large` beyond, and
+at most 50 000 cells, 400 `range_too_large` beyond: take a larger `cell_m` or a shorter range).
+The server-side, time-weighted form of the dashboard's heat grid; the definitions are the field
+report's. The frame is the vehicle's own; the band edges are `slip.band_edges_pct` of the
+vehicle's config (default 5 and 15 %).
+
+"""
+    + _DEFINITIONS
+    + "\n"
+    + _FORMATS.format(
+        origin="anchor, null until the vehicle's first fix is stored",
+        origin_short="anchor",
+        origin_short_a="an anchor",
+    )
+)
+
+FLEET_SLIPMAP_DESCRIPTION = (
+    """\
+The slip map of a field from every vehicle that worked it: each vehicle's moving estimates
+binned into square cells of `cell_m` metres of **one shared** east/north (ENU) frame, over
+`start <= stamp < end` (server defaults: at most 24 h, 400 `range_too_large` beyond, and at most
+50 000 cells over all vehicles, 400 `range_too_large` beyond: take a larger `cell_m`, a shorter
+range or fewer vehicles).
+
+* **shared frame**: anchored at `origin_lat_deg`, `origin_lon_deg` (give both or neither, else
+  422; height 0, which moves no cell: east and north do not depend on it), or else at the stored
+  anchor of the first vehicle in id order that has one (`origin_vehicle_id`).
+* **vehicles**: every registered vehicle, or those of `vehicles=id1,id2` (an unknown id: 404
+  `not_found` naming it). A vehicle's `east_m`, `north_m`, `up_m` are metres from its own
+  anchor: they go to WGS 84 through that anchor and into the shared frame (exact ECEF
+  transformations; a missing `up_m` is taken as 0). A vehicle without a stored anchor cannot be
+  placed: it is left out and listed in `skipped` (`reason` `no_anchor`).
+* **moving** and the time weights are each vehicle's own (its config's
+  `slip.min_ground_speed_mps`).
+* **band edges**, one set for the whole map: `band_edges_pct` if given (e.g. `5,15`); else
+  `slip.band_edges_pct` of the placed vehicles' configs when they all have the same; else the
+  default 5 and 15 %. `band_edges_source` says which (`query`, `vehicles`, `default`).
+* `vehicles` in the answer: each placed vehicle's samples (`rows`) and cells.
+
+**Cells and statistics**, as in a vehicle's map, each sum over the samples of every vehicle in
+the cell (a vehicle weighs by its time there); per cell also `vehicles`, how many vehicles have
+samples in it:
+
+"""
+    + _DEFINITIONS
+    + "\n"
+    + _FORMATS.format(
+        origin="origin, null when no origin is given and no vehicle has an anchor",
+        origin_short="origin",
+        origin_short_a="an origin",
+    )
+)
 
 _RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
@@ -73,18 +152,35 @@ _RESPONSES: dict[int | str, dict[str, Any]] = {
             "text/csv": {"schema": {"type": "string"}},
         },
     },
+    **error_responses(400, 404, 422),
 }
 
+CellM = Annotated[
+    float,
+    Query(
+        ge=0.5,
+        le=1000.0,
+        allow_inf_nan=False,
+        description="Side of a cell, metres (0.5 to 1000).",
+    ),
+]
+FormatQuery = Annotated[SlipMapFormat, Query(description="Answer format")]
 
 _ANCHOR_KEYS = ("lat_deg", "lon_deg", "height_m")
+_DEFAULT_BAND_EDGES_PCT = SlipConfig().band_edges_pct
 
 
 def _opt(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def _cells(smap: SlipMap) -> list[dict[str, Any]]:
-    """Every cell's fields of :class:`SlipMapCellPublic`, NaN as None."""
+def _anchor(anchor: Anchor | None) -> dict[str, float] | None:
+    return None if anchor is None else dict(zip(_ANCHOR_KEYS, anchor, strict=True))
+
+
+def _cells(smap: SlipMap, *, vehicles: bool = False) -> list[dict[str, Any]]:
+    """Every cell's fields of :class:`SlipMapCellPublic` (and ``vehicles`` of
+    :class:`FleetSlipMapCellPublic` when asked), NaN as None."""
     labels = smap.band_labels
     index_east = smap.index_east.tolist()
     index_north = smap.index_north.tolist()
@@ -98,7 +194,7 @@ def _cells(smap: SlipMap) -> list[dict[str, Any]]:
     mean_abs_pct = smap.mean_abs_slip_pct.tolist()
     max_abs_pct = smap.max_abs_slip_pct.tolist()
     shares = smap.band_share.tolist()
-    return [
+    cells = [
         {
             "index_east": index_east[c],
             "index_north": index_north[c],
@@ -117,6 +213,10 @@ def _cells(smap: SlipMap) -> list[dict[str, Any]]:
         }
         for c in range(smap.cells)
     ]
+    if vehicles:
+        for cell, count in zip(cells, smap.vehicles.tolist(), strict=True):
+            cell["vehicles"] = count
+    return cells
 
 
 def _flat(cell: dict[str, Any]) -> dict[str, Any]:
@@ -138,11 +238,11 @@ def _corners_lonlat(smap: SlipMap, frame: EnuFrame) -> np.ndarray:
 
 
 def _geojson(
-    head: dict[str, Any], smap: SlipMap, cells: list[dict[str, Any]], anchor: Anchor | None
+    head: dict[str, Any], smap: SlipMap, cells: list[dict[str, Any]], frame: EnuFrame | None
 ) -> str:
     features: list[dict[str, Any]] = []
-    if anchor is not None:
-        rings = _corners_lonlat(smap, EnuFrame(*anchor)).tolist()
+    if frame is not None:
+        rings = _corners_lonlat(smap, frame).tolist()
         features = [
             {
                 "type": "Feature",
@@ -154,14 +254,19 @@ def _geojson(
     return json.dumps({"type": "FeatureCollection", **head, "features": features})
 
 
-def _csv(smap: SlipMap, cells: list[dict[str, Any]], anchor: Anchor | None) -> str:
-    columns = [k for k in SlipMapCellPublic.model_fields if k != "slip_band_shares"]
+def _csv(
+    smap: SlipMap,
+    cells: list[dict[str, Any]],
+    frame: EnuFrame | None,
+    cell_model: type[SlipMapCellPublic],
+) -> str:
+    columns = [k for k in cell_model.model_fields if k != "slip_band_shares"]
     columns += [f"slip_share_{k}" for k in smap.band_labels]
     columns += ["center_lat_deg", "center_lon_deg"]
     rows = [_flat(cell) for cell in cells]
-    if anchor is not None:
+    if frame is not None:
         half_m = smap.cell_m / 2
-        lat, lon, _ = EnuFrame(*anchor).to_geodetic(
+        lat, lon, _ = frame.to_geodetic(
             smap.east_m + half_m, smap.north_m + half_m, np.zeros(smap.cells)
         )
         for row, lat_deg, lon_deg in zip(rows, lat.tolist(), lon.tolist(), strict=True):
@@ -170,10 +275,45 @@ def _csv(smap: SlipMap, cells: list[dict[str, Any]], anchor: Anchor | None) -> s
     return csv_table(columns, rows)
 
 
+def _answer(
+    body: SlipMapPublic | FleetSlipMapPublic,
+    smap: SlipMap,
+    cells: list[dict[str, Any]],
+    frame: EnuFrame | None,
+    format: SlipMapFormat,
+    download: str,
+) -> Response:
+    """The map in ``format``; ``body`` holds ``cells`` only for JSON. ``download``: the CSV
+    file's name; its columns are the fields of ``body``'s cell model."""
+    if format == "json":
+        return Response(body.model_dump_json(), media_type="application/json")
+    if format == "geojson":
+        head = body.model_dump(mode="json", exclude={"cells"})
+        return Response(_geojson(head, smap, cells, frame), media_type=GEOJSON_MEDIA_TYPE)
+    fleet = isinstance(body, FleetSlipMapPublic)
+    cell_model = FleetSlipMapCellPublic if fleet else SlipMapCellPublic
+    return Response(
+        _csv(smap, cells, frame, cell_model),
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{download}"'},
+    )
+
+
+def _too_many_cells(exc: TooManyCells, cell_m: float, *, fleet: bool = False) -> RangeTooLarge:
+    """The 400 for a map over the cell limit (a fleet map stops at the first vehicle past it,
+    so its count is a lower bound)."""
+    count = f"at least {exc.cells}" if fleet else f"{exc.cells}"
+    fewer = "a shorter range or fewer vehicles" if fleet else "a shorter range"
+    return RangeTooLarge(
+        f"the map would hold {count} cells of {cell_m:g} m, more than the limit of "
+        f"{exc.max_cells}; take a larger cell_m or {fewer}"
+    )
+
+
 @router.get(
     "/vehicles/{vehicle_id}/slipmap",
     response_model=SlipMapPublic,
-    responses={**_RESPONSES, **error_responses(400, 404, 422)},
+    responses=_RESPONSES,
     summary="Slip map of one vehicle: time-weighted statistics per square cell",
     description=SLIPMAP_DESCRIPTION,
 )
@@ -182,16 +322,8 @@ def get_vehicle_slipmap(
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
-    cell_m: Annotated[
-        float,
-        Query(
-            ge=0.5,
-            le=1000.0,
-            allow_inf_nan=False,
-            description="Side of a cell, metres (0.5 to 1000).",
-        ),
-    ] = 10.0,
-    format: Annotated[SlipMapFormat, Query(description="Answer format")] = "json",
+    cell_m: CellM = 10.0,
+    format: FormatQuery = "json",
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     slip = slip_config(vehicle)
@@ -207,10 +339,7 @@ def get_vehicle_slipmap(
             max_cells=limits.slipmap_max_cells,
         )
     except TooManyCells as exc:
-        raise RangeTooLarge(
-            f"the map would hold {exc.cells} cells of {cell_m:g} m, more than the limit of "
-            f"{exc.max_cells}; take a larger cell_m or a shorter range"
-        ) from exc
+        raise _too_many_cells(exc, cell_m) from exc
     anchor = store.get_anchors(vehicle.vehicle_id).get(vehicle.vehicle_id)
     cells = _cells(smap)
     body = SlipMapPublic.model_validate(
@@ -219,21 +348,198 @@ def get_vehicle_slipmap(
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,
-            "anchor": None if anchor is None else dict(zip(_ANCHOR_KEYS, anchor, strict=True)),
+            "anchor": _anchor(anchor),
             "band_edges_pct": list(smap.band_edges_pct),
             "band_labels": list(smap.band_labels),
             "count": smap.cells,
             "cells": cells if format == "json" else [],
         }
     )
-    if format == "json":
-        return Response(body.model_dump_json(), media_type="application/json")
-    if format == "geojson":
-        head = body.model_dump(mode="json", exclude={"cells"})
-        return Response(_geojson(head, smap, cells, anchor), media_type=GEOJSON_MEDIA_TYPE)
+    frame = None if anchor is None else EnuFrame(*anchor)
     name = export_filename(f"{vehicle.vehicle_id}_slipmap", tr, "csv")
-    return Response(
-        _csv(smap, cells, anchor),
-        media_type="text/csv; charset=utf-8",
-        headers={"Content-Disposition": f'attachment; filename="{name}"'},
+    return _answer(body, smap, cells, frame, format, name)
+
+
+def _origin(lat_deg: float | None, lon_deg: float | None) -> Anchor | None:
+    """The origin asked for (height 0), None when neither is given; 422 for one alone."""
+    if lat_deg is None and lon_deg is None:
+        return None
+    if lat_deg is None or lon_deg is None:
+        raise Unprocessable("give both origin_lat_deg and origin_lon_deg, or neither")
+    return (lat_deg, lon_deg, 0.0)
+
+
+def _band_edges(text: str | None) -> tuple[float, ...] | None:
+    """The ``band_edges_pct`` parameter (``"5,15"``) as floats, None when not given; 422 unless
+    non-negative, finite and increasing."""
+    if text is None:
+        return None
+    try:
+        edges = check_band_edges([float(part) for part in text.split(",")])
+    except ValueError as exc:
+        raise Unprocessable(
+            f"band_edges_pct must be increasing numbers separated by commas, e.g. 5,15 ({exc})"
+        ) from exc
+    if not all(math.isfinite(e) and e >= 0 for e in edges):
+        raise Unprocessable("band_edges_pct: the edges must be finite and not negative")
+    return edges
+
+
+def _fleet_vehicles(store: Store, wanted: str | None) -> list[VehicleRecord]:
+    """The vehicles of the map in id order: all, or those named in ``wanted`` (``"a,b"``; an
+    unknown id is a 404, an empty list a 422)."""
+    records = sorted(store.list_vehicles(), key=lambda r: r.vehicle_id)
+    if wanted is None:
+        return records
+    ids = {part.strip() for part in wanted.split(",")} - {""}
+    if not ids:
+        raise Unprocessable("vehicles: name at least one vehicle id, e.g. vehicles=t1,t2")
+    unknown = ids - {r.vehicle_id for r in records}
+    if unknown:
+        raise NotFound("unknown vehicles: " + ", ".join(sorted(unknown)))
+    return [r for r in records if r.vehicle_id in ids]
+
+
+def _vehicle_cells(
+    store: Store,
+    vehicle_id: str,
+    slip: SlipConfig,
+    anchor: Anchor,
+    frame: EnuFrame,
+    tr: TimeRange,
+    limits: ApiLimits,
+    cell_m: float,
+    band_edges_pct: tuple[float, ...],
+) -> CellSums:
+    """One vehicle's partial sums in the shared ``frame`` (its rows are dropped on return)."""
+    rows = store.query_series(vehicle_id, tr.start_ns, tr.end_ns, FLEET_SLIPMAP_FIELDS)
+    samples = map_samples(
+        rows,
+        end_ns=tr.end_ns,
+        min_ground_speed_mps=slip.min_ground_speed_mps,
+        max_gap_s=limits.report_max_gap_s,
     )
+    return cell_sums(
+        reframe(samples, EnuFrame(*anchor), frame),
+        cell_m=cell_m,
+        band_edges_pct=band_edges_pct,
+        max_cells=limits.slipmap_max_cells,
+    )
+
+
+@router.get(
+    "/fleet/slipmap",
+    response_model=FleetSlipMapPublic,
+    responses=_RESPONSES,
+    summary="Slip map of the fleet: every vehicle's statistics per cell of one shared frame",
+    description=FLEET_SLIPMAP_DESCRIPTION,
+)
+def get_fleet_slipmap(
+    tr: TimeRangeDep,
+    store: StoreDep,
+    limits: LimitsDep,
+    cell_m: CellM = 10.0,
+    format: FormatQuery = "json",
+    origin_lat_deg: Annotated[
+        float | None,
+        Query(
+            ge=-90.0,
+            le=90.0,
+            allow_inf_nan=False,
+            description="Latitude of the shared frame's origin, WGS 84 degrees (with "
+            "origin_lon_deg). Default: the first anchored vehicle's anchor.",
+        ),
+    ] = None,
+    origin_lon_deg: Annotated[
+        float | None,
+        Query(
+            ge=-180.0,
+            le=180.0,
+            allow_inf_nan=False,
+            description="Longitude of the shared frame's origin, WGS 84 degrees (with "
+            "origin_lat_deg).",
+        ),
+    ] = None,
+    vehicles: Annotated[
+        str | None,
+        Query(
+            max_length=8192,
+            description="Comma-separated vehicle ids to map (default: every vehicle); an "
+            "unknown id is a 404.",
+            examples=["tractor-1,tractor-2"],
+        ),
+    ] = None,
+    band_edges_pct: Annotated[
+        str | None,
+        Query(
+            max_length=256,
+            description="Comma-separated increasing slip band edges, percent (e.g. `5,15`). "
+            "Default: the vehicles' common edges, or 5,15 when their configs differ.",
+            examples=["5,15"],
+        ),
+    ] = None,
+) -> Response:
+    tr.check_span(limits.report_max_range_ns)
+    origin = _origin(origin_lat_deg, origin_lon_deg)
+    edges_asked = _band_edges(band_edges_pct)
+    anchors = store.get_anchors()
+    records = _fleet_vehicles(store, vehicles)
+    placed = [r for r in records if r.vehicle_id in anchors]
+    slips = {r.vehicle_id: slip_config(r) for r in placed}
+    origin_vehicle_id = None
+    if origin is None and placed:
+        origin_vehicle_id = placed[0].vehicle_id
+        origin = anchors[origin_vehicle_id]
+    frame = None if origin is None else EnuFrame(*origin)
+
+    their_edges = {slip.band_edges_pct for slip in slips.values()}
+    if edges_asked is not None:
+        edges, edges_source = edges_asked, "query"
+    elif len(their_edges) == 1:
+        edges, edges_source = check_band_edges(their_edges.pop()), "vehicles"
+    else:
+        edges, edges_source = _DEFAULT_BAND_EDGES_PCT, "default"
+
+    summary: list[dict[str, Any]] = []
+
+    def parts(shared: EnuFrame) -> Iterator[CellSums]:
+        for record in placed:
+            vid = record.vehicle_id
+            part = _vehicle_cells(
+                store, vid, slips[vid], anchors[vid], shared, tr, limits, cell_m, edges
+            )
+            summary.append({"vehicle_id": vid, "rows": int(part.rows.sum()), "cells": part.cells})
+            yield part
+
+    try:
+        total = merge_cell_sums(
+            parts(frame) if frame is not None else (),  # no frame: no vehicle placed
+            cell_m=cell_m,
+            band_edges_pct=edges,
+            max_cells=limits.slipmap_max_cells,
+        )
+    except TooManyCells as exc:
+        raise _too_many_cells(exc, cell_m, fleet=True) from exc
+    smap = finish_cells(total)
+    cells = _cells(smap, vehicles=True)
+    body = FleetSlipMapPublic.model_validate(
+        {
+            "start_ns": tr.start_ns,
+            "end_ns": tr.end_ns,
+            "cell_m": smap.cell_m,
+            "origin": _anchor(origin),
+            "origin_vehicle_id": origin_vehicle_id,
+            "band_edges_pct": list(smap.band_edges_pct),
+            "band_labels": list(smap.band_labels),
+            "band_edges_source": edges_source,
+            "vehicles": summary,
+            "skipped": [
+                {"vehicle_id": r.vehicle_id, "reason": "no_anchor"}
+                for r in records
+                if r.vehicle_id not in anchors
+            ],
+            "count": smap.cells,
+            "cells": cells if format == "json" else [],
+        }
+    )
+    return _answer(body, smap, cells, frame, format, export_filename("fleet_slipmap", tr, "csv"))

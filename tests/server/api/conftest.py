@@ -25,10 +25,14 @@ def open_test_store(settings: Settings) -> Store:
     return open_store(settings.storage)
 
 
-def make_settings(tmp_path: Path, **api: Any) -> Settings:
-    """Settings with storage in ``tmp_path``; ``api`` overrides (tokens off unless given)."""
+def make_settings(tmp_path: Path, *, url: str | None = None, **api: Any) -> Settings:
+    """Settings with storage in ``tmp_path`` (or at the database ``url``); ``api`` overrides
+    (tokens off unless given)."""
+    storage: dict[str, Any] = {"data_dir": tmp_path}
+    if url is not None:
+        storage["url"] = url
     return Settings(
-        storage=StorageSettings.model_validate({"data_dir": tmp_path}),
+        storage=StorageSettings.model_validate(storage),
         api=ApiSettings.model_validate({"require_auth": False, **api}),
     )
 
@@ -150,6 +154,23 @@ def running(app: FastAPI) -> Iterator[ApiClient]:
         finally:
             portal.call(client.aclose)
             portal.call(lifespan.__aexit__, None, None, None)
+
+
+def error_of(response: httpx.Response, status_code: int) -> tuple[str, str]:
+    """``(error, reason)`` of an error answer, which must have ``status_code``."""
+    assert response.status_code == status_code, response.text
+    body = response.json()
+    return body["error"], body["reason"]
+
+
+@contextmanager
+def running_on(
+    settings: Settings, limits: ApiLimits | None = None
+) -> Iterator[tuple[ApiClient, FakeRuntime]]:
+    """An app over a test runtime of ``settings`` (with ``limits``), running, and its runtime."""
+    runtime = FakeRuntime(settings)
+    with running(create_app(settings, runtime, limits=limits or ApiLimits())) as client:
+        yield client, runtime
 
 
 @pytest.fixture

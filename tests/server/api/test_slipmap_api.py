@@ -6,16 +6,16 @@ import csv
 import io
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
 from estimator.geo import EnuFrame
-from server.api import ApiLimits, create_app
-from server.settings import ApiSettings, Settings, StorageSettings
+from server.api import ApiLimits
 from server.storage.base import Store
 
 from ._data import T0, S, hand_series
-from .conftest import ApiClient, FakeRuntime, running
+from .conftest import ApiClient, error_of, make_settings, running_on
 
 Q = f"start={T0}&end={T0 + 10 * S}"
 U = "/api/v1/vehicles/t1/slipmap"
@@ -120,13 +120,18 @@ def test_geojson_polygons_map_back_to_the_cell_corners(client: ApiClient, store:
     assert feats[2]["properties"]["slip_right_mean_pct"] is None  # NaN → null
 
 
+def csv_download(response: httpx.Response, name: str) -> list[dict[str, str]]:
+    """The rows of a CSV answer, which must be a download whose file name holds ``name``."""
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"].startswith("text/csv")
+    assert name in response.headers["content-disposition"]
+    return list(csv.DictReader(io.StringIO(response.text)))
+
+
 def test_csv_one_row_per_cell(client: ApiClient, store: Store) -> None:
     _put(client, store)
     store.put_anchors({"t1": ANCHOR}, T0)
-    r = client.get(f"{U}?{Q}&cell_m=10&format=csv")
-    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
-    assert "t1_slipmap" in r.headers["content-disposition"]
-    table = list(csv.DictReader(io.StringIO(r.text)))
+    table = csv_download(client.get(f"{U}?{Q}&cell_m=10&format=csv"), "t1_slipmap")
     assert [int(row["index_east"]) for row in table] == [0, 1, 2]
     assert [float(row["time_s"]) for row in table] == [2.0, 3.0, 1.0]
     assert table[1]["slip_right_mean_pct"] == ""  # null
@@ -136,46 +141,36 @@ def test_csv_one_row_per_cell(client: ApiClient, store: Store) -> None:
     assert float(table[1]["center_lon_deg"]) == pytest.approx(float(lon), abs=1e-9)
 
 
-def test_errors(client: ApiClient, store: Store) -> None:
+@pytest.mark.parametrize("url", [U, "/api/v1/fleet/slipmap"])
+def test_errors(client: ApiClient, store: Store, url: str) -> None:
+    """The arguments both maps share are checked alike."""
     _put(client, store)
+    store.put_anchors({"t1": ANCHOR}, T0)
     for bad in ("0.4", "1001", "nan", "inf", "x"):
-        r = client.get(f"{U}?{Q}&cell_m={bad}")
-        assert r.status_code == 422, bad
-        assert r.json()["error"] == "invalid_request"
-    assert client.get(f"{U}?{Q}&cell_m=0.5").status_code == 200
-    assert client.get(f"{U}?{Q}&cell_m=1000").status_code == 200
-    r = client.get(f"{U}?start={T0}&end={T0 + 2 * 86_400 * S}")
-    assert r.status_code == 400 and r.json()["error"] == "range_too_large"
-    r = client.get(f"/api/v1/vehicles/nope/slipmap?{Q}")
-    assert r.status_code == 404 and r.json()["error"] == "not_found"
-    assert client.get(f"{U}?{Q}&format=kml").status_code == 422
+        assert error_of(client.get(f"{url}?{Q}&cell_m={bad}"), 422)[0] == "invalid_request", bad
+    assert client.get(f"{url}?{Q}&cell_m=0.5").status_code == 200
+    assert client.get(f"{url}?{Q}&cell_m=1000").status_code == 200
+    r = client.get(f"{url}?start={T0}&end={T0 + 2 * 86_400 * S}")
+    assert error_of(r, 400)[0] == "range_too_large"
+    assert client.get(f"{url}?{Q}&format=kml").status_code == 422
+
+
+def test_unknown_vehicle(client: ApiClient) -> None:
+    assert error_of(client.get(f"/api/v1/vehicles/nope/slipmap?{Q}"), 404)[0] == "not_found"
 
 
 def test_cell_limit(tmp_path: Path) -> None:
-    settings = Settings(
-        storage=StorageSettings.model_validate({"data_dir": tmp_path}),
-        api=ApiSettings.model_validate({"require_auth": False}),
-    )
-    runtime = FakeRuntime(settings)
-    app = create_app(settings, runtime, limits=ApiLimits(slipmap_max_cells=2))
-    with running(app) as client:
+    with running_on(make_settings(tmp_path), ApiLimits(slipmap_max_cells=2)) as (client, runtime):
         _put(client, runtime.store)
-        r = client.get(f"{U}?{Q}&cell_m=10")  # 3 cells
-        assert r.status_code == 400
-        body = r.json()
-        assert body["error"] == "range_too_large"
-        assert "3 cells" in body["reason"] and "limit of 2" in body["reason"]
+        error, reason = error_of(client.get(f"{U}?{Q}&cell_m=10"), 400)  # 3 cells
+        assert error == "range_too_large"
+        assert "3 cells" in reason and "limit of 2" in reason
         assert client.get(f"{U}?{Q}&cell_m=20").json()["count"] == 2  # east 6..18 | 21
 
 
 @pytest.mark.postgres
 def test_slipmap_on_postgres(tmp_path: Path, pg_database_url: str) -> None:
-    settings = Settings(
-        storage=StorageSettings.model_validate({"data_dir": tmp_path, "url": pg_database_url}),
-        api=ApiSettings.model_validate({"require_auth": False}),
-    )
-    runtime = FakeRuntime(settings)
-    with running(create_app(settings, runtime)) as client:
+    with running_on(make_settings(tmp_path, url=pg_database_url)) as (client, runtime):
         assert runtime.store.dialect == "postgresql"
         _put(client, runtime.store)
         runtime.store.put_anchors({"t1": ANCHOR}, T0)
