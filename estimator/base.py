@@ -13,11 +13,14 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from estimator.config import VehicleConfig
-from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelSpeeds
+from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelGap, WheelSpeeds
 
-__all__ = ["FleetEstimator", "Measurement"]
+__all__ = ["FleetEstimator", "Measurement", "Pushed"]
 
 Measurement = GnssSample | ImuBatch | WheelEdges | WheelSpeeds
+
+#: What :meth:`FleetEstimator.push` takes: a measurement, or a notice of lost data.
+Pushed = Measurement | WheelGap
 
 
 @runtime_checkable
@@ -44,8 +47,9 @@ class FleetEstimator(Protocol):
     def vehicle_ids(self) -> list[str]:
         """Vehicles currently held."""
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
-        """Hand over one measurement (or batch). Per vehicle, calls come in sensor-time order.
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
+        """Hand over one measurement (or batch), or a notice of lost data (:class:`WheelGap`,
+        before the first data after the gap). Per vehicle, calls come in sensor-time order.
 
         Raises ``KeyError`` for an unknown vehicle. Never raises on bad values: NaN/inf parts are
         skipped and counted by the estimator.

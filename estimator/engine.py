@@ -49,7 +49,7 @@ import numpy.typing as npt
 from estimator import kalman
 from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
-from estimator.base import Measurement
+from estimator.base import Pushed
 from estimator.config import VehicleConfig
 from estimator.frontend import FleetFrontEnd, TickInputs
 from estimator.mdsf import (
@@ -1031,7 +1031,7 @@ class MdsfFleet:
     def vehicle_ids(self) -> list[str]:
         return list(self._slot)
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
         """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
         self.front.push(self._slot[vehicle_id], measurement)
 

@@ -54,7 +54,7 @@ import numpy.typing as npt
 
 from estimator._arrays import as_rows, as_stamps, nan_to_num
 from estimator._slots import grow_slot_array
-from estimator.base import Measurement
+from estimator.base import Pushed
 from estimator.config import VehicleConfig
 from estimator.geo import enu_from_geodetic
 from estimator.mdsf import (
@@ -72,6 +72,7 @@ from estimator.types import (
     ImuBatch,
     Wheel,
     WheelEdges,
+    WheelGap,
     WheelSpeeds,
 )
 from estimator.wheel_speed import (
@@ -101,6 +102,7 @@ BoolArray = npt.NDArray[np.bool_]
 
 _NS = 1e-9
 _NONE_NS = np.iinfo(np.int64).min
+_PENDING_NS = np.iinfo(np.int64).max
 """Time stamp meaning "not yet" in the slot arrays."""
 _TWO_PI = 2 * np.pi
 _F = EstimateFlag
@@ -592,6 +594,10 @@ class FleetFrontEnd:
         grow("wheel_cfg", (), np.int64(0))
         grow("wheel_bank", (), np.int64(-1))  # index in _banks of the trackers' bank; -1: unknown
         grow("wheel_slot", (len(Wheel),), np.int64(0))  # their slots in it (left, right)
+        # after lost wheel data (WheelGap): ticks before this have no wheel speed (the fit's
+        # first min_edges edges after the gap; _PENDING_NS until they came, _NONE_NS: none)
+        grow("wheel_resume_ns", (len(Wheel),), _NONE_NS)
+        grow("wheel_need", (len(Wheel),), np.int64(0))  # edges still to come before that
         grow("count", (len(COUNT_NAMES),), np.int64(0))
         # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
         # pitch, and the chain's distance there
@@ -643,6 +649,8 @@ class FleetFrontEnd:
     wheel_cfg: IntArray
     wheel_bank: IntArray
     wheel_slot: IntArray
+    wheel_resume_ns: IntArray
+    wheel_need: IntArray
     count: IntArray
     chain_ns: IntArray
     chain_enu: FloatArray
@@ -664,6 +672,8 @@ class FleetFrontEnd:
             self._wheel_cfgs.append(wcfg)
         self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
         self.wheel_bank[slot] = -1
+        self.wheel_resume_ns[slot] = _NONE_NS
+        self.wheel_need[slot] = 0
         self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
         self.has_direction[slot] = vehicle.encoder.has_direction
         for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
@@ -767,7 +777,7 @@ class FleetFrontEnd:
             self._seq += 1
             self._first_wheel[slot] = (self._seq, stamp_ns)
 
-    def push(self, slot: int, m: Measurement) -> None:
+    def push(self, slot: int, m: Pushed) -> None:
         """Buffer one measurement of the vehicle in ``slot`` (sensor-time order)."""
         if isinstance(m, GnssSample):
             if not isinstance(m.stamp_ns, int | np.integer) or len(m.vel_enu_mps) != 3:
@@ -819,9 +829,13 @@ class FleetFrontEnd:
             skipped = tracker.push(t, d)
             if skipped:
                 self.count[slot, _EDGES] += skipped
+            if self.wheel_need[slot, int(m.wheel)]:
+                self._count_resume(slot, int(m.wheel), t)
             self.has_edges[slot] = True
             if slot in self._gridless:
                 self._first_seen(slot, int(t[0]))
+        elif isinstance(m, WheelGap):
+            self._restart_wheels(slot)
         elif isinstance(m, WheelSpeeds):
             t = as_stamps(m.stamp_ns)
             direct = self.direct[slot]
@@ -832,6 +846,31 @@ class FleetFrontEnd:
             self.has_speeds[slot] = direct.has_data  # stays true once true
             if t.shape[0]:
                 self._first_seen(slot, int(t[0]))
+
+    def _restart_wheels(self, slot: int) -> None:
+        """Start the vehicle's encoder fits afresh after lost wheel data (:class:`WheelGap`).
+
+        The edges before the gap are dropped with their trackers (a fit across the gap would
+        count its missing edges as wheel angle not turned, and the tooth calibration's phase is
+        lost with them). No tick gets a wheel speed until each wheel's fit holds ``min_edges``
+        edges after the gap (``wheel_resume_ns``): without edges a fresh tracker reads as a
+        wheel standing still. The pipeline computes the ticks before the gap first.
+        """
+        wcfg = self._wheel_cfgs[int(self.wheel_cfg[slot])]
+        self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
+        self.wheel_bank[slot] = -1
+        self.wheel_resume_ns[slot] = _PENDING_NS
+        self.wheel_need[slot] = wcfg.min_edges
+
+    def _count_resume(self, slot: int, wheel: int, t: IntArray) -> None:
+        """Count edges ``t`` of a wheel waiting to resume after a gap; the stamp of the last
+        one its fit needs ends the wait."""
+        need = int(self.wheel_need[slot, wheel])
+        if t.shape[0] >= need:
+            self.wheel_resume_ns[slot, wheel] = t[need - 1]
+            self.wheel_need[slot, wheel] = 0
+        else:
+            self.wheel_need[slot, wheel] = need - t.shape[0]
 
     # -- checks of what was pushed -----------------------------------------------------------
     def _check_new(self) -> None:
@@ -1704,8 +1743,17 @@ class _Batch:
                 for a in (fitted.omega_radps, fitted.std_radps, fitted.method)
             )
             none = method == WheelSpeedMethod.NONE
-            omega[tix] = np.where(none, 0.0, om)
-            omega_std[tix] = np.where(none, lone, sd)
+            om, sd = np.where(none, 0.0, om), np.where(none, lone, sd)
+            resume = fe.wheel_resume_ns[vs]
+            if (resume != _NONE_NS).any():  # some wheel lost data: no speed until it resumes
+                waiting = (self.ticks[tix2][:, :, None] < resume[:, None, :]).reshape(-1, 2)
+                om = np.where(waiting, np.nan, om)
+                sd = np.where(waiting, np.nan, sd)
+                wflags[tix] |= np.where(waiting.any(axis=1), int(_F.WHEEL_GAP), 0).astype(np.int32)
+                resumed = (resume != _PENDING_NS) & (resume <= self.ticks[tix2[:, -1]][:, None])
+                fe.wheel_resume_ns[vs] = np.where(resumed, _NONE_NS, resume)
+            omega[tix] = om
+            omega_std[tix] = sd
             period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)
             wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
         return omega, omega_std, wflags

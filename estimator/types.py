@@ -38,6 +38,7 @@ __all__ = [
     "ImuBatch",
     "Wheel",
     "WheelEdges",
+    "WheelGap",
     "WheelSpeeds",
     "concat_estimates",
     "empty_estimates",
@@ -135,6 +136,26 @@ class WheelEdges:
 
 
 @dataclass(frozen=True, slots=True)
+class WheelGap:
+    """Wheel edges missing: the encoder stream is complete only up to ``after_ns``.
+
+    The server sends one when it computes ticks past the time a vehicle's wheel data is
+    complete up to while the other streams go on (a wheel packet lost, or later than the
+    reorder window, or the encoder stream silent), before the first wheel data after that time.
+    Edges count wheel angle and a missing edge reads as a wheel turning slower, so the
+    estimator starts the wheels' fits afresh and gives no wheel speed until they hold enough
+    edges again.
+
+    Attributes
+    ----------
+    after_ns : int
+        Sensor time up to which the wheel stream was complete.
+    """
+
+    after_ns: int
+
+
+@dataclass(frozen=True, slots=True)
 class WheelSpeeds:
     """Wheel angular speeds given directly (for example from the CAN bus).
 
@@ -172,6 +193,9 @@ class EstimateFlag(IntFlag):
     SETTLING = 1 << 9
     """Starting or stopping: the speed changes too fast for the wheel-speed fit at this low
     speed (``SlipConfig.settle_max_change``); no slip value for a wheel so judged."""
+    WHEEL_GAP = 1 << 10
+    """Wheel data was missing (:class:`WheelGap`): a wheel's fit starts afresh and has no
+    speed, hence no slip, until it holds enough new edges."""
 
 
 #: Fields of one estimate row, in storage order. Units are in the names; slip is in percent.

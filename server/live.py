@@ -109,12 +109,15 @@ def gnss_quality(flags: int) -> str:
 
 def slip_note(flags: int) -> str:
     """Why an estimate carries no slip value: ``"standstill"``, ``"starting/stopping"``
-    (:attr:`EstimateFlag.SETTLING`), or ``""`` (a value, or no known reason)."""
+    (:attr:`EstimateFlag.SETTLING`), ``"wheel data lost"`` (:attr:`EstimateFlag.WHEEL_GAP`), or
+    ``""`` (a value, or no known reason)."""
     f = EstimateFlag(int(flags))
     if f & EstimateFlag.STANDSTILL:
         return "standstill"
     if f & EstimateFlag.SETTLING:
         return "starting/stopping"
+    if f & EstimateFlag.WHEEL_GAP:
+        return "wheel data lost"
     return ""
 
 

@@ -423,6 +423,7 @@ def _ingest_families(
         "lost_by_seq_gap",
         "seq_restarts",
         "clock_reanchors",
+        "wheel_gaps",
     )
     samples: dict[str, list[Sample]] = {name: [] for name in plain}
     rejected: list[Sample] = []

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.base import FleetEstimator, Measurement
+from estimator.base import FleetEstimator, Pushed
 from estimator.config import VehicleConfig, VehicleKind
 
 __all__ = [
@@ -207,7 +207,7 @@ class EstimatorRegistry:
         """Names ``vehicle_id`` runs, primary first (empty if unknown)."""
         return self._routes.get(vehicle_id, ())
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
         """Hand ``measurement`` to every estimator ``vehicle_id`` runs (KeyError if unknown)."""
         for name in self._routes[vehicle_id]:
             self._estimators[name].push(vehicle_id, measurement)

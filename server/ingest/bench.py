@@ -29,7 +29,7 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from estimator.base import Measurement
+from estimator.base import Pushed
 from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_DTYPE
 from server.ports import free_port as _free_port
@@ -192,7 +192,7 @@ class _NullFleet:
     def vehicle_ids(self) -> list[str]:
         return list(self._ids)
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
         return None
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:

@@ -11,7 +11,9 @@ the released horizon, dropped), ``duplicate`` (sequence number already seen) or
 reordered packet is taken back), so it is not part of the sum. ``seq_restarts`` counts streams
 whose sequence jumped far (a vehicle reboot), and ``clock_reanchors`` the times a vehicle's time
 base was started afresh (a confirmed clock jump, or data resuming after a long silence; see
-:mod:`server.ingest.reorder`), both informational.
+:mod:`server.ingest.reorder`), and ``wheel_gaps`` the times wheel data was lost before
+a released wheel packet (the wheels' speed fits started afresh: ``estimator.types.WheelGap``),
+all informational.
 
 Only the pipeline thread writes; snapshots may be taken from any thread.
 """
@@ -36,6 +38,7 @@ _PLAIN = (
     "lost_by_seq_gap",
     "seq_restarts",
     "clock_reanchors",
+    "wheel_gaps",
 )
 
 
@@ -49,6 +52,7 @@ class _VehicleCounts:
         "received",
         "rejected",
         "seq_restarts",
+        "wheel_gaps",
     )
 
     def __init__(self) -> None:
@@ -59,6 +63,7 @@ class _VehicleCounts:
         self.lost_by_seq_gap = 0
         self.seq_restarts = 0
         self.clock_reanchors = 0
+        self.wheel_gaps = 0
         self.rejected: dict[str, int] = defaultdict(int)
 
     def as_dict(self) -> dict[str, int]:
@@ -71,6 +76,7 @@ class _VehicleCounts:
             "lost_by_seq_gap": self.lost_by_seq_gap,
             "seq_restarts": self.seq_restarts,
             "clock_reanchors": self.clock_reanchors,
+            "wheel_gaps": self.wheel_gaps,
         }
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected_{reason}"] = n
@@ -140,6 +146,11 @@ class IngestCounters:
         """A vehicle's time base was started afresh (informational)."""
         with self._lock:
             self._get(vehicle_id).clock_reanchors += 1
+
+    def wheel_gap(self, vehicle_id: str) -> None:
+        """Wheel data was lost before a released packet; the wheel fits started afresh."""
+        with self._lock:
+            self._get(vehicle_id).wheel_gaps += 1
 
     def restore(self, vehicle_id: str, totals: Mapping[str, int]) -> None:
         """Carry on from stored totals (a restarted server); adds to what is counted so far.

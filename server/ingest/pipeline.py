@@ -55,7 +55,7 @@ import numpy as np
 import zenoh
 
 from estimator.config import VehicleConfig
-from estimator.types import EstimateBatch
+from estimator.types import EstimateBatch, WheelGap
 from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
 from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, Verdict
@@ -98,7 +98,8 @@ COALESCE_PACKETS = 1024
 TICK_DUTY = 1.5
 #: ... but ticks are never spaced further apart than this (live values lag by up to this).
 MAX_TICK_GAP_NS = 100_000_000
-#: Wall time between two looks for active vehicles that fell idle (their tail is released);
+#: Wall time between two looks for active vehicles that fell idle (a tail no watermark holds is
+#: released);
 #: otherwise a tick visits only the vehicles that received packets.
 IDLE_SWEEP_NS = 100_000_000
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
@@ -631,8 +632,9 @@ class Pipeline:
         same config, and start the new time base with ``packet``."""
         registry = self._registry
         packets, released = buf.release(now, flush=True)
-        if packets:
-            self._push(vid, packets)
+        gaps = buf.take_gaps()
+        if packets or gaps:
+            self._push(vid, packets, gaps)
         self._due.pop(vid, None)  # advanced right here, to the end of the old time base
         if released is not None and released != self._advanced_ns.get(vid):
             try:
@@ -651,18 +653,43 @@ class Pipeline:
         log.info("vehicle %s: clock re-anchored at %d ns", vid, packet.first_stamp_ns)
         buf.reanchor(packet, now)
 
-    def _push(self, vid: str, packets: list[Packet]) -> None:
-        """Feed ``packets`` (released, in sensor-time order) to ``vid``'s estimators."""
+    def _push(
+        self, vid: str, packets: list[Packet], gaps: Sequence[tuple[int, Packet | None]] = ()
+    ) -> None:
+        """Feed ``packets`` (released, in sensor-time order) to ``vid``'s estimators; ``gaps``
+        (:meth:`ReorderBuffer.take_gaps`) says where wheel data is missing."""
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
         push = self._registry.push
+        gap_before = {id(p): after_ns for after_ns, p in gaps if p is not None} if gaps else None
         for packet in packets:
+            if gap_before is not None and id(packet) in gap_before:
+                self._wheel_gap(vid, gap_before[id(packet)])
             for m in packet.measurements:
                 try:
                     push(vid, m)
                 except Exception:  # an estimator bug must not stop the fleet
                     self._stats["estimator_errors"] += 1
                     log.exception("estimator push failed for %s", vid)
+        for after_ns, p in gaps:
+            if p is None:  # no packet after the gap in this release
+                self._wheel_gap(vid, after_ns)
+
+    def _wheel_gap(self, vid: str, after_ns: int) -> None:
+        """``vid``'s wheel data is missing after ``after_ns`` while the other streams go on:
+        compute the ticks up to ``after_ns`` with the edges before the gap (everything they
+        need is fed), then tell the estimators, which start the wheels' fits afresh."""
+        self._counters.wheel_gap(vid)
+        registry = self._registry
+        last = self._advanced_ns.get(vid)
+        try:
+            if last is None or after_ns > last:
+                self._deliver(registry.advance({vid: after_ns}))
+                self._advanced_ns[vid] = after_ns
+            registry.push(vid, WheelGap(after_ns))
+        except Exception:  # an estimator bug must not stop the fleet
+            self._stats["estimator_errors"] += 1
+            log.exception("estimator wheel gap failed for %s", vid)
 
     def _admit(self, packet: Packet) -> bool:
         """First packet of a vehicle without a buffer: known, auto-registered, or refused."""
@@ -723,8 +750,9 @@ class Pipeline:
         for vid in visit:
             buf = buffers[vid]
             packets, released = buf.release(now, flush=flush)
-            if packets and registry.has_vehicle(vid):
-                self._push(vid, packets)
+            gaps = buf.take_gaps()
+            if (packets or gaps) and registry.has_vehicle(vid):
+                self._push(vid, packets, gaps)
             if released is None:
                 continue
             last = advanced.get(vid)

@@ -47,6 +47,14 @@ packet moves it only when it comes on the stream whose watermark held it at the 
 :attr:`ReorderBuffer.may_release` says so, and the pipeline visits a buffer only then (or when
 it fell idle): the packets of the streams ahead of a lagging one wait without a release each.
 
+Wheel data missing at a release: wheel edges count the wheel's angle, and no edge up to a
+tick reads as a wheel turning slower than one tooth since the last, so the estimators must know
+when the horizon passes the time the wheels stream is complete up to (its watermark: a wheel
+packet lost, or later than the fixed window, or the stream silent while the others go on).
+:meth:`ReorderBuffer.take_gaps` names such a release once, with that time and the first
+released packet after it; the pipeline tells the estimators there (``estimator.types.WheelGap``).
+The gap closes when the wheels' watermark is at or past the horizon again.
+
 A wheels *heartbeat* (a packet without edges, only ``until_ns``: the wheels stood still up to
 it) moves the stream's watermark and its sequence tracking and is never late; it is not queued.
 
@@ -124,6 +132,7 @@ class Offer:
 
 _ACCEPTED = Offer(Verdict.ACCEPTED)
 _ACCEPTED_VERDICT = Verdict.ACCEPTED  # an enum member looked up on its class costs ~70 ns
+_WHEELS = Stream.WHEELS
 
 
 class SeqTracker:
@@ -271,6 +280,11 @@ class ReorderBuffer:
         # the watermarks gate the release (every expected stream has one and the start-up
         # window has passed): once true it stays true until reanchor(), so it is kept
         self._gating = False
+        # the horizon passed the wheels' watermark (a gap in the wheel data is open), and the
+        # gaps opened since the last take_gaps(): (watermark then, first packet after it)
+        self._wheel_gap_open = False
+        self._gap_after_ns: int | None = None  # opened by the last horizon, not yet released
+        self._gaps: list[tuple[int, Packet | None]] = []
         # the stream whose watermark held the horizon at the last release (gating only)
         self._low_stream: Stream | None = None
         self._may_release = False
@@ -378,6 +392,8 @@ class ReorderBuffer:
         self._first_ns = None
         self._gating = False
         self._low_stream = None
+        self._wheel_gap_open = False  # the estimators restart
+        self._gap_after_ns = None
         if self._watermarks is not None:
             self._watermarks.clear()
         self._take(packet, now_ns)
@@ -434,6 +450,16 @@ class ReorderBuffer:
         else:
             mark.arrived(packet.seq, packet.covers_ns)
 
+    def take_gaps(self) -> tuple[tuple[int, Packet | None], ...]:
+        """Gaps in the wheel data opened by the releases since the last call, oldest first:
+        ``(after_ns, packet)``, the time the wheels stream was complete up to, and the first
+        packet of that release starting after it (None: none did), before which the
+        estimators are to be told."""
+        if not self._gaps:
+            return ()
+        gaps, self._gaps = tuple(self._gaps), []
+        return gaps
+
     def is_idle(self, now_ns: int) -> bool:
         """No packet arrived for the idle time (the vehicle stopped sending, for now)."""
         return now_ns - self._last_arrival_ns >= self._idle_ns
@@ -457,7 +483,11 @@ class ReorderBuffer:
         self._low_stream = None  # unless the watermarks gate below
         horizon = newest - self._lateness_ns
         marks = self._watermarks
+        wheels_ns = None
         if marks and self._first_ns is not None:
+            wheels = marks.get(_WHEELS)
+            if wheels is not None:
+                wheels_ns = wheels.stamp_ns  # before a gap is skipped
             for mark in marks.values():
                 if mark.ahead:
                     mark.skip_gaps(horizon)
@@ -470,6 +500,8 @@ class ReorderBuffer:
                 self._low_stream = low
                 if lowest is not None and lowest > horizon:
                     horizon = lowest
+                if wheels_ns is not None and _WHEELS in self._expected:
+                    self._note_wheel_gap(wheels_ns, marks[_WHEELS].stamp_ns, horizon)
         if self._low_stream is None and now_ns - self._last_arrival_ns >= self._idle_ns:
             # idle, and no watermarks tell how far each stream is complete: release everything
             horizon = newest
@@ -477,6 +509,19 @@ class ReorderBuffer:
         if released is not None and horizon < released:
             return released
         return horizon
+
+    def _note_wheel_gap(self, before_skip_ns: int, wheels_ns: int, horizon_ns: int) -> None:
+        """Open a wheel gap when ``horizon_ns`` passes the wheels' watermark (``before_skip_ns``,
+        before this look skipped a sequence gap), close it once the watermark is back at or
+        past the horizon."""
+        released = self._released_ns
+        if self._wheel_gap_open:
+            if wheels_ns >= horizon_ns:
+                self._wheel_gap_open = False
+        elif horizon_ns > before_skip_ns and (released is None or horizon_ns > released):
+            self._wheel_gap_open = True
+            after = before_skip_ns if released is None else max(before_skip_ns, released)
+            self._gap_after_ns = after
 
     def _starts_gating(self, newest_ns: int, marks: dict[Stream, _StreamMark]) -> bool:
         """Whether the watermarks gate from now on (see :attr:`_gating`)."""
@@ -504,6 +549,11 @@ class ReorderBuffer:
         heap = self._heap
         while heap and heap[0][0] <= horizon:
             out.append(heapq.heappop(heap)[-1])
+        if self._gap_after_ns is not None:
+            after = self._gap_after_ns
+            self._gap_after_ns = None
+            first = next((p for p in out if p.first_stamp_ns > after), None)
+            self._gaps.append((after, first))
         if self._released_ns is None or horizon > self._released_ns:
             self._released_ns = horizon
         return out, self._released_ns

@@ -174,6 +174,7 @@ def test_slip_note_says_why_a_slip_value_is_missing() -> None:
     assert slip_note(int(EstimateFlag.SETTLING | EstimateFlag.SLIP_RIGHT_VALID)) == (
         "starting/stopping"
     )
+    assert slip_note(int(EstimateFlag.WHEEL_GAP | EstimateFlag.GNSS_OK)) == "wheel data lost"
     assert slip_note(int(EstimateFlag.SLIP_LEFT_VALID | EstimateFlag.SLIP_RIGHT_VALID)) == ""
 
 

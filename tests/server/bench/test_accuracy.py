@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimator.base import FleetEstimator, Measurement
+from estimator.base import FleetEstimator, Pushed
 from estimator.config import VehicleConfig
 from estimator.sim import TRUTH_DTYPE, simulate, truth_at
 from estimator.types import ESTIMATE_DTYPE, GnssSample, empty_estimates
@@ -160,7 +160,7 @@ class _TruthEstimator:
     def vehicle_ids(self) -> list[str]:
         return list(self.ids)
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
         # the bench pushes in first-sample order, never behind a horizon already advanced to
         key = (
             measurement.stamp_ns

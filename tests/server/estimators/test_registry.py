@@ -7,7 +7,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import pytest
 
-from estimator.base import FleetEstimator, Measurement
+from estimator.base import FleetEstimator, Measurement, Pushed
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.types import ESTIMATE_DTYPE, ImuBatch, empty_estimates
 from server.estimators import (
@@ -39,7 +39,7 @@ class RecordingFleet:
     def vehicle_ids(self) -> list[str]:
         return list(self.vehicles)
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
         if vehicle_id not in self.vehicles:
             raise KeyError(vehicle_id)
         self.pushed.append((vehicle_id, measurement))

@@ -231,10 +231,13 @@ class Publisher:
     #: (a link that stalls: everything after it comes late, nothing is lost)
     stall_at_s: float | None = None
     stall_s: float = 0.0
+    #: leave out the wheel packets sent in this span of sensor time, s (lost on the link)
+    drop_wheels_s: tuple[float, float] | None = None
     runs: list[_Run] = field(default_factory=list)
     timeline: list[tuple[float, dict[str, int]]] = field(default_factory=list)
     published: dict[str, list[tuple[str, bytes]]] = field(default_factory=dict)
     sent_order: list[tuple[str, bytes]] = field(default_factory=list)
+    dropped: list[tuple[str, bytes]] = field(default_factory=list)
     done: threading.Event = field(default_factory=threading.Event)
     _stop: threading.Event = field(default_factory=threading.Event)
     _thread: threading.Thread | None = None
@@ -323,6 +326,7 @@ class Publisher:
             newest: dict[str, int] = {}
             t0 = time.monotonic()
             stall_at_ns = None if self.stall_at_s is None else int(self.stall_at_s * 1e9)
+            drop = self.drop_wheels_s and [int(x * 1e9) for x in self.drop_wheels_s]
             for (key, payload, stamp), off in zip(packets, offsets, strict=True):
                 if self._stop.is_set():
                     return
@@ -330,6 +334,9 @@ class Publisher:
                     stall_at_ns = None
                     time.sleep(self.stall_s)
                     t0 += self.stall_s  # then on at the usual pace, everything late by stall_s
+                if drop is not None and key.endswith("/wheels") and drop[0] <= off < drop[1]:
+                    self.dropped.append((key, payload))
+                    continue
                 due = t0 + off / 1e9 / self.rate
                 delay = due - time.monotonic()
                 if delay > 0:

@@ -10,7 +10,7 @@ from collections.abc import Iterator, Mapping
 import numpy as np
 import zenoh
 
-from estimator.base import Measurement
+from estimator.base import Measurement, Pushed
 from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_DTYPE, GnssSample, empty_estimates
 from server.ingest.zenoh_session import open_session
@@ -41,7 +41,7 @@ class RecordingFleet:
     def vehicle_ids(self) -> list[str]:
         return list(self.vehicles)
 
-    def push(self, vehicle_id: str, measurement: Measurement) -> None:
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
         if vehicle_id not in self.vehicles:
             raise KeyError(vehicle_id)
         self.pushed[vehicle_id].append(measurement)

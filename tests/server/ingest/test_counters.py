@@ -23,6 +23,7 @@ def test_counters_add_up() -> None:
     c.rejected("a", "unknown_vehicle")
     c.rejected(None, "bad_key")
     c.seq_restart("a")
+    c.wheel_gap("a")
     snap = c.snapshot()
     a = snap["a"]
     assert a == {
@@ -34,6 +35,7 @@ def test_counters_add_up() -> None:
         "lost_by_seq_gap": 2,
         "seq_restarts": 1,
         "clock_reanchors": 0,
+        "wheel_gaps": 1,
         "rejected_non_finite": 2,
         "rejected_unknown_vehicle": 1,
     }

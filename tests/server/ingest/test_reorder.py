@@ -228,6 +228,7 @@ def test_watermarks_release_what_every_stream_has_delivered() -> None:
     # minimum, not newest - lateness (1199 ms)
     assert buf.release(0)[1] == T0 + 1405 * MS
     assert fixed.release(0)[1] == T0 + 1199 * MS
+    assert buf.take_gaps() == ()  # every stream complete: no gap in the wheel data
 
 
 def test_falling_idle_does_not_overtake_a_stream_the_watermarks_wait_for() -> None:
@@ -248,6 +249,52 @@ def test_falling_idle_does_not_overtake_a_stream_the_watermarks_wait_for() -> No
     out, released = buf.release(5001 * MS)
     assert [p.stream for p in out] == [Stream.IMU, Stream.WHEELS, Stream.GNSS]
     assert released == T0 + 1505 * MS  # now the GNSS fix's
+
+
+def test_lost_wheel_packets_open_one_gap_where_the_wheel_data_ends() -> None:
+    """Two wheel packets lost: once the fixed window passes the wheels' watermark the release
+    names the gap once, at the end of the last wheel data."""
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    for k in range(15):
+        for p in three_streams(k):
+            buf.offer(p, 0)
+    buf.release(0)
+    gaps, wheels_fed = [], []
+    for k in range(15, 25):
+        imu, gnss, wheels = three_streams(k)
+        for p in (imu, gnss) if k in (15, 16) else (imu, gnss, wheels):
+            buf.offer(p, 0)
+        out, _ = buf.release(0)
+        gaps += [(after, p and p.first_stamp_ns) for after, p in buf.take_gaps()]
+        wheels_fed += [p.seq for p in out if p.stream is Stream.WHEELS and p.seq >= 15]
+    assert wheels_fed == list(range(17, 25))
+    # before the first packet released that starts after the wheel data ends (IMU at 1500 ms)
+    assert gaps == [(T0 + 1499 * MS, T0 + 1500 * MS)]
+
+
+def test_a_silent_wheel_stream_is_one_gap_until_it_comes_back() -> None:
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
+    gaps: list[int] = []
+
+    def window(k: int, wheels_seq: int | None) -> None:
+        imu, gnss, _ = three_streams(k)
+        buf.offer(imu, 0)
+        buf.offer(gnss, 0)
+        if wheels_seq is not None:
+            buf.offer(wheels_packet(wheels_seq, 100 * k + 3), 0)
+        buf.release(0)
+        gaps.extend(after for after, _ in buf.take_gaps())
+
+    for k in range(15):
+        window(k, k)
+    for k in range(15, 30):  # the encoder stream stops, IMU and GNSS go on
+        window(k, None)
+    assert gaps == [T0 + 1499 * MS]
+    for k in range(30, 40):  # back, with the next sequence number (nothing lost)
+        window(k, 15 + k - 30)
+    for k in range(40, 45):  # silent again
+        window(k, None)
+    assert gaps == [T0 + 1499 * MS, T0 + 3999 * MS]
 
 
 def test_watermarks_wait_the_fixed_window_at_start() -> None:
