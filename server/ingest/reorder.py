@@ -500,7 +500,11 @@ class ReorderBuffer:
                 self._low_stream = low
                 if lowest is not None and lowest > horizon:
                     horizon = lowest
-                if wheels_ns is not None and _WHEELS in self._expected:
+                if (
+                    wheels_ns is not None
+                    and (self._wheel_gap_open or horizon > wheels_ns)
+                    and _WHEELS in self._expected
+                ):
                     self._note_wheel_gap(wheels_ns, marks[_WHEELS].stamp_ns, horizon)
         if self._low_stream is None and now_ns - self._last_arrival_ns >= self._idle_ns:
             # idle, and no watermarks tell how far each stream is complete: release everything
