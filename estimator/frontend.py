@@ -598,6 +598,10 @@ class FleetFrontEnd:
         # first min_edges edges after the gap; _PENDING_NS until they came, _NONE_NS: none)
         grow("wheel_resume_ns", (len(Wheel),), _NONE_NS)
         grow("wheel_need", (len(Wheel),), np.int64(0))  # edges still to come before that
+        # ticks in (from, to] are due without the wheel data (WheelGap with until_ns): none
+        # get a wheel speed (_NONE_NS: no such span)
+        grow("wheel_wait_from_ns", (), _NONE_NS)
+        grow("wheel_wait_to_ns", (), _NONE_NS)
         grow("count", (len(COUNT_NAMES),), np.int64(0))
         # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
         # pitch, and the chain's distance there
@@ -651,6 +655,8 @@ class FleetFrontEnd:
     wheel_slot: IntArray
     wheel_resume_ns: IntArray
     wheel_need: IntArray
+    wheel_wait_from_ns: IntArray
+    wheel_wait_to_ns: IntArray
     count: IntArray
     chain_ns: IntArray
     chain_enu: FloatArray
@@ -674,6 +680,7 @@ class FleetFrontEnd:
         self.wheel_bank[slot] = -1
         self.wheel_resume_ns[slot] = _NONE_NS
         self.wheel_need[slot] = 0
+        self.wheel_wait_from_ns[slot] = self.wheel_wait_to_ns[slot] = _NONE_NS
         self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
         self.has_direction[slot] = vehicle.encoder.has_direction
         for name in ("next_tick_ns", "done_ns", "last_imu_ns", "last_imu_used_ns"):
@@ -835,7 +842,10 @@ class FleetFrontEnd:
             if slot in self._gridless:
                 self._first_seen(slot, int(t[0]))
         elif isinstance(m, WheelGap):
-            self._restart_wheels(slot)
+            if m.until_ns is None:
+                self._restart_wheels(slot)
+            else:
+                self._wait_wheels(slot, int(m.after_ns), int(m.until_ns))
         elif isinstance(m, WheelSpeeds):
             t = as_stamps(m.stamp_ns)
             direct = self.direct[slot]
@@ -861,6 +871,16 @@ class FleetFrontEnd:
         self.wheel_bank[slot] = -1
         self.wheel_resume_ns[slot] = _PENDING_NS
         self.wheel_need[slot] = wcfg.min_edges
+
+    def _wait_wheels(self, slot: int, after_ns: int, until_ns: int) -> None:
+        """Ticks in ``(after_ns, until_ns]`` are due without the wheel data: no wheel speed
+        for them (a span not yet computed is widened)."""
+        if self.wheel_wait_from_ns[slot] == _NONE_NS:
+            self.wheel_wait_from_ns[slot] = after_ns
+            self.wheel_wait_to_ns[slot] = until_ns
+        else:
+            self.wheel_wait_from_ns[slot] = min(int(self.wheel_wait_from_ns[slot]), after_ns)
+            self.wheel_wait_to_ns[slot] = max(int(self.wheel_wait_to_ns[slot]), until_ns)
 
     def _count_resume(self, slot: int, wheel: int, t: IntArray) -> None:
         """Count edges ``t`` of a wheel waiting to resume after a gap; the stamp of the last
@@ -1681,6 +1701,28 @@ class _Batch:
             fe.hold[s[has]] = held
         return enu, att
 
+    def _no_wheel_data(
+        self, vs: IntArray, tix2: IntArray, om: FloatArray, sd: FloatArray
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """Wheel speeds ``om``, ``sd`` (``(k·m, 2)``: vehicles ``vs``, ticks ``tix2`` of shape
+        ``(k, m)``) with NaN where the wheel data is missing (:class:`WheelGap`): before a
+        wheel's fit resumes after lost data, or in a span due without the data. Returns them
+        and which ticks lack a wheel; spans and waits the ticks have passed are cleared."""
+        fe = self.fe
+        t = self.ticks[tix2]  # (k, m)
+        resume = fe.wheel_resume_ns[vs]  # (k, 2)
+        lo, hi = fe.wheel_wait_from_ns[vs], fe.wheel_wait_to_ns[vs]  # (k,)
+        due = (lo != _NONE_NS)[:, None] & (t > lo[:, None]) & (t <= hi[:, None])
+        missing = ((t[:, :, None] < resume[:, None, :]) | due[:, :, None]).reshape(-1, len(Wheel))
+        last = t[:, -1]
+        resumed = (resume != _PENDING_NS) & (resume <= last[:, None])
+        fe.wheel_resume_ns[vs] = np.where(resumed, _NONE_NS, resume)
+        passed = (lo != _NONE_NS) & (hi <= last)
+        fe.wheel_wait_from_ns[vs] = np.where(passed, _NONE_NS, lo)
+        fe.wheel_wait_to_ns[vs] = np.where(passed, _NONE_NS, hi)
+        nan = np.nan
+        return np.where(missing, nan, om), np.where(missing, nan, sd), missing.any(axis=1)
+
     def _wheels(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int32]]:
         """Wheel speeds (left, right) at the ticks: encoder trackers of the vehicles with the
         same wheel settings and number of ticks fitted together (each at its own ticks), or
@@ -1743,15 +1785,13 @@ class _Batch:
                 for a in (fitted.omega_radps, fitted.std_radps, fitted.method)
             )
             none = method == WheelSpeedMethod.NONE
-            om, sd = np.where(none, 0.0, om), np.where(none, lone, sd)
+            om = np.where(none, 0.0, om).astype(np.float64, copy=False)
+            sd = np.where(none, lone, sd).astype(np.float64, copy=False)
             resume = fe.wheel_resume_ns[vs]
-            if (resume != _NONE_NS).any():  # some wheel lost data: no speed until it resumes
-                waiting = (self.ticks[tix2][:, :, None] < resume[:, None, :]).reshape(-1, 2)
-                om = np.where(waiting, np.nan, om)
-                sd = np.where(waiting, np.nan, sd)
-                wflags[tix] |= np.where(waiting.any(axis=1), int(_F.WHEEL_GAP), 0).astype(np.int32)
-                resumed = (resume != _PENDING_NS) & (resume <= self.ticks[tix2[:, -1]][:, None])
-                fe.wheel_resume_ns[vs] = np.where(resumed, _NONE_NS, resume)
+            wait_from = fe.wheel_wait_from_ns[vs]
+            if (resume != _NONE_NS).any() or (wait_from != _NONE_NS).any():
+                om, sd, gap = self._no_wheel_data(vs, tix2, om, sd)
+                wflags[tix] |= np.where(gap, int(_F.WHEEL_GAP), 0).astype(np.int32)
             omega[tix] = om
             omega_std[tix] = sd
             period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)

@@ -137,22 +137,30 @@ class WheelEdges:
 
 @dataclass(frozen=True, slots=True)
 class WheelGap:
-    """Wheel edges missing: the encoder stream is complete only up to ``after_ns``.
+    """Wheel edges missing where the estimator is about to go on without them.
 
-    The server sends one when it computes ticks past the time a vehicle's wheel data is
-    complete up to while the other streams go on (a wheel packet lost, or later than the
-    reorder window, or the encoder stream silent), before the first wheel data after that time.
-    Edges count wheel angle and a missing edge reads as a wheel turning slower, so the
-    estimator starts the wheels' fits afresh and gives no wheel speed until they hold enough
-    edges again.
+    The server sends one before the first data it feeds after ``after_ns``, the time a
+    vehicle's wheel data is complete up to, in two cases:
+
+    * ``until_ns`` given: the ticks up to ``until_ns`` are due while the wheel data after
+      ``after_ns`` has not come (the wheel stream later than the reorder window). No edge up
+      to a tick reads as a wheel turning slower than one tooth since the last, which is only
+      true if none is on its way, so those ticks get no wheel speed; the fits go on.
+    * ``until_ns`` None: wheel data after ``after_ns`` is lost (a packet that never came, or
+      came too late to be fed). Edges count wheel angle and a fit across the loss would read a
+      slower wheel, so the wheels' fits start afresh and no tick gets a wheel speed until each
+      holds enough edges again.
 
     Attributes
     ----------
     after_ns : int
-        Sensor time up to which the wheel stream was complete.
+        Sensor time up to which the wheel stream is complete.
+    until_ns : int or None
+        End of the span of ticks due without wheel data; None: the data is lost.
     """
 
     after_ns: int
+    until_ns: int | None = None
 
 
 @dataclass(frozen=True, slots=True)

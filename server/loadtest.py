@@ -242,7 +242,7 @@ def _parse_line(line: str) -> tuple[str, dict[str, str], float] | None:
         return None
 
 
-_PACKET_COUNTERS = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap")
+_PACKET_COUNTERS = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap", "wheel_gaps")
 
 
 def scrape(
@@ -864,6 +864,7 @@ def run_loadtest(
             "packets_late": int(after["late"]),
             "packets_duplicate": int(after["duplicate"]),
             "packets_lost_by_seq_gap": int(after["lost_by_seq_gap"]),
+            "wheel_gaps": int(after["wheel_gaps"] - before["wheel_gaps"]),
             "packets_missing": int(max(0, sent_total - received_total)),
             "estimates_produced": int(after["estimate_rows"]),
             "estimates_stored": int(after["rows_written"]),
@@ -912,7 +913,8 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"packets  sent {r['packets_sent']}  received {r['packets_received']}  rejected "
         f"{r['packets_rejected']} {r['packets_rejected_by_reason'] or ''}  late "
         f"{r['packets_late']}  duplicate {r['packets_duplicate']}  "
-        f"lost(seq gap) {r['packets_lost_by_seq_gap']}  missing {r['packets_missing']}",
+        f"lost(seq gap) {r['packets_lost_by_seq_gap']}  missing {r['packets_missing']}  "
+        f"wheel gaps {r.get('wheel_gaps', 0)}",
         f"rate     {r['packets_per_s']:.0f} packets/s sent in the window "
         f"(publishers {r['publisher_cpu_cores']} cores, max behind "
         f"{r['publisher_max_behind_ms']} ms)",

@@ -410,6 +410,12 @@ def _estimator_family(
     )
 
 
+_INGEST_HELP = {
+    "wheel_gaps": "Times the estimators went on past a vehicle's wheel data (a wheel packet "
+    "lost or late, the encoder silent): its wheel fits started afresh.",
+}
+
+
 def _ingest_families(
     counters: Mapping[str, Mapping[str, int]], by_vehicle: bool = True
 ) -> list[MetricFamily]:
@@ -444,7 +450,7 @@ def _ingest_families(
         MetricFamily(
             f"slipfleet_packets_{name}",
             "counter",
-            f"Sensor packets {name.replace('_', ' ')}.",
+            _INGEST_HELP.get(name, f"Sensor packets {name.replace('_', ' ')}."),
             samples[name],
         )
         for name in plain

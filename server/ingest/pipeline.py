@@ -654,39 +654,50 @@ class Pipeline:
         buf.reanchor(packet, now)
 
     def _push(
-        self, vid: str, packets: list[Packet], gaps: Sequence[tuple[int, Packet | None]] = ()
+        self,
+        vid: str,
+        packets: list[Packet],
+        gaps: Sequence[tuple[int, int | None, Packet | None]] = (),
     ) -> None:
         """Feed ``packets`` (released, in sensor-time order) to ``vid``'s estimators; ``gaps``
         (:meth:`ReorderBuffer.take_gaps`) says where wheel data is missing."""
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
         push = self._registry.push
-        gap_before = {id(p): after_ns for after_ns, p in gaps if p is not None} if gaps else None
+        before: dict[int, list[tuple[int, int | None]]] | None = None
+        if gaps:
+            before = {}
+            for after_ns, until_ns, p in gaps:
+                if p is not None:
+                    before.setdefault(id(p), []).append((after_ns, until_ns))
         for packet in packets:
-            if gap_before is not None and id(packet) in gap_before:
-                self._wheel_gap(vid, gap_before[id(packet)])
+            if before is not None and id(packet) in before:
+                for after_ns, until_ns in before[id(packet)]:
+                    self._wheel_gap(vid, after_ns, until_ns)
             for m in packet.measurements:
                 try:
                     push(vid, m)
                 except Exception:  # an estimator bug must not stop the fleet
                     self._stats["estimator_errors"] += 1
                     log.exception("estimator push failed for %s", vid)
-        for after_ns, p in gaps:
+        for after_ns, until_ns, p in gaps:
             if p is None:  # no packet after the gap in this release
-                self._wheel_gap(vid, after_ns)
+                self._wheel_gap(vid, after_ns, until_ns)
 
-    def _wheel_gap(self, vid: str, after_ns: int) -> None:
-        """``vid``'s wheel data is missing after ``after_ns`` while the other streams go on:
-        compute the ticks up to ``after_ns`` with the edges before the gap (everything they
-        need is fed), then tell the estimators, which start the wheels' fits afresh."""
-        self._counters.wheel_gap(vid)
+    def _wheel_gap(self, vid: str, after_ns: int, until_ns: int | None) -> None:
+        """Tell ``vid``'s estimators that its wheel data after ``after_ns`` is missing
+        (``estimator.types.WheelGap``): due without it up to ``until_ns``, or lost (None):
+        then the ticks up to ``after_ns`` are computed first, with the edges before the loss
+        (everything they need is fed), and the estimators start the wheels' fits afresh."""
         registry = self._registry
-        last = self._advanced_ns.get(vid)
         try:
-            if last is None or after_ns > last:
-                self._deliver(registry.advance({vid: after_ns}))
-                self._advanced_ns[vid] = after_ns
-            registry.push(vid, WheelGap(after_ns))
+            if until_ns is None:
+                self._counters.wheel_gap(vid)
+                last = self._advanced_ns.get(vid)
+                if last is None or after_ns > last:
+                    self._deliver(registry.advance({vid: after_ns}))
+                    self._advanced_ns[vid] = after_ns
+            registry.push(vid, WheelGap(after_ns, until_ns))
         except Exception:  # an estimator bug must not stop the fleet
             self._stats["estimator_errors"] += 1
             log.exception("estimator wheel gap failed for %s", vid)

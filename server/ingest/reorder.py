@@ -47,13 +47,15 @@ packet moves it only when it comes on the stream whose watermark held it at the 
 :attr:`ReorderBuffer.may_release` says so, and the pipeline visits a buffer only then (or when
 it fell idle): the packets of the streams ahead of a lagging one wait without a release each.
 
-Wheel data missing at a release: wheel edges count the wheel's angle, and no edge up to a
-tick reads as a wheel turning slower than one tooth since the last, so the estimators must know
-when the horizon passes the time the wheels stream is complete up to (its watermark: a wheel
-packet lost, or later than the fixed window, or the stream silent while the others go on).
-:meth:`ReorderBuffer.take_gaps` names such a release once, with that time and the first
-released packet after it; the pipeline tells the estimators there (``estimator.types.WheelGap``).
-The gap closes when the wheels' watermark is at or past the horizon again.
+Wheel data missing: wheel edges count the wheel's angle, and no edge up to a tick reads as a
+wheel turning slower than one tooth since the last, so the estimators must know when ticks are
+due past the wheel data. When the horizon passes the wheels' watermark (the wheel stream later
+than the fixed window), :meth:`ReorderBuffer.take_gaps` names the span from the watermark to the
+horizon: those ticks get no wheel speed, the fits go on. The wheel data is *lost* when a wheels
+sequence number is missing while later wheel packets came (told once a loss, as soon as the
+horizon passes the watermark), or when a wheels packet is refused late: then the wheels' fits
+start afresh. Each names the first released packet after the watermark, before which the
+pipeline tells the estimators (``estimator.types.WheelGap``).
 
 A wheels *heartbeat* (a packet without edges, only ``until_ns``: the wheels stood still up to
 it) moves the stream's watermark and its sequence tracking and is never late; it is not queued.
@@ -280,11 +282,16 @@ class ReorderBuffer:
         # the watermarks gate the release (every expected stream has one and the start-up
         # window has passed): once true it stays true until reanchor(), so it is kept
         self._gating = False
-        # the horizon passed the wheels' watermark (a gap in the wheel data is open), and the
-        # gaps opened since the last take_gaps(): (watermark then, first packet after it)
-        self._wheel_gap_open = False
-        self._gap_after_ns: int | None = None  # opened by the last horizon, not yet released
-        self._gaps: list[tuple[int, Packet | None]] = []
+        # wheel data missing (take_gaps): the wheels run's last number whose loss was told
+        # (one notice a loss); a loss found and not yet released (the time the wheel data was
+        # complete up to); a span due without wheel data, not yet released, and the end of the
+        # last one told; the gaps released since the last take_gaps()
+        self._wheel_gap_seq: int | None = None
+        self._gap_after_ns: int | None = None
+        self._wait: tuple[int, int] | None = None
+        self._wait_told_ns: int | None = None
+        self._gaps: list[tuple[int, int | None, Packet | None]] = []
+
         # the stream whose watermark held the horizon at the last release (gating only)
         self._low_stream: Stream | None = None
         self._may_release = False
@@ -345,6 +352,8 @@ class ReorderBuffer:
             and packet.first_stamp_ns <= released
             and packet.measurements  # a heartbeat has nothing to feed: never late
         ):
+            if packet.stream is _WHEELS:
+                self._wheel_gap(released)  # its edges are lost to the fits from here on
             return Offer(Verdict.LATE, lost_delta, restarted)
         verdict = self._take(packet, now_ns, seq_restart=restarted)
         if lost_delta == 0 and not restarted:
@@ -392,8 +401,8 @@ class ReorderBuffer:
         self._first_ns = None
         self._gating = False
         self._low_stream = None
-        self._wheel_gap_open = False  # the estimators restart
-        self._gap_after_ns = None
+        self._wheel_gap_seq = None  # the estimators restart
+        self._gap_after_ns = self._wait = self._wait_told_ns = None
         if self._watermarks is not None:
             self._watermarks.clear()
         self._take(packet, now_ns)
@@ -450,11 +459,12 @@ class ReorderBuffer:
         else:
             mark.arrived(packet.seq, packet.covers_ns)
 
-    def take_gaps(self) -> tuple[tuple[int, Packet | None], ...]:
-        """Gaps in the wheel data opened by the releases since the last call, oldest first:
-        ``(after_ns, packet)``, the time the wheels stream was complete up to, and the first
-        packet of that release starting after it (None: none did), before which the
-        estimators are to be told."""
+    def take_gaps(self) -> tuple[tuple[int, int | None, Packet | None], ...]:
+        """Wheel data missing at the releases since the last call, oldest first:
+        ``(after_ns, until_ns, packet)``: the time the wheel data is complete up to; the end of
+        the ticks due without it, or None when it is lost; and the first packet of that
+        release starting after ``after_ns`` (None: none did), before which the estimators are
+        to be told (``estimator.types.WheelGap``)."""
         if not self._gaps:
             return ()
         gaps, self._gaps = tuple(self._gaps), []
@@ -483,11 +493,13 @@ class ReorderBuffer:
         self._low_stream = None  # unless the watermarks gate below
         horizon = newest - self._lateness_ns
         marks = self._watermarks
-        wheels_ns = None
+        wheels_ns = wheels_seq = None
         if marks and self._first_ns is not None:
             wheels = marks.get(_WHEELS)
             if wheels is not None:
                 wheels_ns = wheels.stamp_ns  # before a gap is skipped
+                if wheels.ahead:  # a wheels packet missing, later ones here
+                    wheels_seq = wheels.seq
             for mark in marks.values():
                 if mark.ahead:
                     mark.skip_gaps(horizon)
@@ -500,12 +512,8 @@ class ReorderBuffer:
                 self._low_stream = low
                 if lowest is not None and lowest > horizon:
                     horizon = lowest
-                if (
-                    wheels_ns is not None
-                    and (self._wheel_gap_open or horizon > wheels_ns)
-                    and _WHEELS in self._expected
-                ):
-                    self._note_wheel_gap(wheels_ns, marks[_WHEELS].stamp_ns, horizon)
+                if wheels_ns is not None and horizon > wheels_ns and _WHEELS in self._expected:
+                    self._wheel_missing(wheels_ns, wheels_seq, marks[_WHEELS].stamp_ns, horizon)
         if self._low_stream is None and now_ns - self._last_arrival_ns >= self._idle_ns:
             # idle, and no watermarks tell how far each stream is complete: release everything
             horizon = newest
@@ -514,18 +522,30 @@ class ReorderBuffer:
             return released
         return horizon
 
-    def _note_wheel_gap(self, before_skip_ns: int, wheels_ns: int, horizon_ns: int) -> None:
-        """Open a wheel gap when ``horizon_ns`` passes the wheels' watermark (``before_skip_ns``,
-        before this look skipped a sequence gap), close it once the watermark is back at or
-        past the horizon."""
+    def _wheel_missing(
+        self, wheels_ns: int, wheels_seq: int | None, skipped_ns: int, horizon_ns: int
+    ) -> None:
+        """The horizon passes the wheels' watermark ``wheels_ns``: lost data if a wheels
+        packet is missing and later ones came (``wheels_seq``, the run's last number; told
+        once a loss); the ticks up to the horizon past the watermark after skipping the
+        missing packets (``skipped_ns``) are due without wheel data."""
+        if wheels_seq is not None and wheels_seq != self._wheel_gap_seq:
+            self._wheel_gap_seq = wheels_seq
+            self._wheel_gap(wheels_ns)
+        told = self._wait_told_ns
+        after = skipped_ns if told is None else max(skipped_ns, told)
+        if horizon_ns > after:
+            lo = after if self._wait is None else min(self._wait[0], after)
+            self._wait = (lo, horizon_ns)
+            self._wait_told_ns = horizon_ns
+
+    def _wheel_gap(self, after_ns: int) -> None:
+        """Wheel data after ``after_ns`` is lost: tell the estimators at the next release."""
         released = self._released_ns
-        if self._wheel_gap_open:
-            if wheels_ns >= horizon_ns:
-                self._wheel_gap_open = False
-        elif horizon_ns > before_skip_ns and (released is None or horizon_ns > released):
-            self._wheel_gap_open = True
-            after = before_skip_ns if released is None else max(before_skip_ns, released)
-            self._gap_after_ns = after
+        if released is not None and released > after_ns:
+            after_ns = released  # what was released is done with
+        if self._gap_after_ns is None or after_ns < self._gap_after_ns:
+            self._gap_after_ns = after_ns
 
     def _starts_gating(self, newest_ns: int, marks: dict[Stream, _StreamMark]) -> bool:
         """Whether the watermarks gate from now on (see :attr:`_gating`)."""
@@ -553,11 +573,18 @@ class ReorderBuffer:
         heap = self._heap
         while heap and heap[0][0] <= horizon:
             out.append(heapq.heappop(heap)[-1])
-        if self._gap_after_ns is not None:
+        if self._gap_after_ns is not None:  # lost: first, the fits start afresh
             after = self._gap_after_ns
             self._gap_after_ns = None
-            first = next((p for p in out if p.first_stamp_ns > after), None)
-            self._gaps.append((after, first))
+            self._gaps.append(
+                (after, None, next((p for p in out if p.first_stamp_ns > after), None))
+            )
+        if self._wait is not None:
+            after, until = self._wait
+            self._wait = None
+            self._gaps.append(
+                (after, until, next((p for p in out if p.first_stamp_ns > after), None))
+            )
         if self._released_ns is None or horizon > self._released_ns:
             self._released_ns = horizon
         return out, self._released_ns

@@ -67,3 +67,38 @@ def test_a_gap_gives_no_slip_across_it_and_resumes_within_a_few_ticks() -> None:
     assert t[unknown].max() < LOST_TO_S + 0.2  # ...and the fit is back within two ticks of it
     assert (flags[unknown] & EstimateFlag.WHEEL_GAP).all()  # flagged: the page says why
     assert not (flags[~unknown] & EstimateFlag.WHEEL_GAP).any()
+
+
+def _rows(told: WheelGap | None) -> np.ndarray:
+    """Every row of the drive with no data lost, ``told`` pushed once the release passes its
+    ``after_ns`` (before the advance)."""
+    run = simulate("field_work", seed=1, start_ns=START_NS, duration_s=40.0)
+    fleet = MdsfFleet()
+    fleet.add_vehicle("v", dataclasses.replace(run.config, noise=run.sensor_noise))
+    rows = []
+    for chunk, until in replay_arrivals(run.measurements, run.arrival_ns):
+        for m in chunk:
+            fleet.push("v", m)
+        if told is not None and until > told.after_ns:
+            fleet.push("v", told)
+            told = None
+        rows += [r for _, r in fleet.advance({"v": until})]
+    return np.concatenate(rows)
+
+
+def test_ticks_due_without_wheel_data_get_no_wheel_speed_and_the_fits_go_on() -> None:
+    after, until = START_NS + 30_000_000_000, START_NS + 30_250_000_000
+    plain, told = _rows(None), _rows(WheelGap(after, until))
+    assert np.array_equal(plain["stamp_ns"], told["stamp_ns"])
+    t = told["stamp_ns"]
+    span = (t > after) & (t <= until)
+    assert span.sum() >= 2
+    assert (
+        np.isnan(told["rim_left_mps"][span]).all() and np.isnan(told["slip_left_pct"][span]).all()
+    )
+    assert (told["flags"][span] & EstimateFlag.WHEEL_GAP).all()
+    # before the span the same rows; after it the fits never stopped: the same wheel speeds
+    before, later = t <= after, t > until + 1_000_000_000
+    for name in told.dtype.names:
+        np.testing.assert_array_equal(told[name][before], plain[name][before])
+    np.testing.assert_allclose(told["rim_left_mps"][later], plain["rim_left_mps"][later], atol=1e-3)

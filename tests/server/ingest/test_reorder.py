@@ -252,8 +252,9 @@ def test_falling_idle_does_not_overtake_a_stream_the_watermarks_wait_for() -> No
 
 
 def test_lost_wheel_packets_open_one_gap_where_the_wheel_data_ends() -> None:
-    """Two wheel packets lost: once the fixed window passes the wheels' watermark the release
-    names the gap once, at the end of the last wheel data."""
+    """Two wheel packets lost: once the fixed window passes the wheels' watermark (the next
+    wheel packet has come) the release names the loss once, at the end of the last wheel data,
+    and the spans due without wheel data until the missing packets are given up on."""
     buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
     for k in range(15):
         for p in three_streams(k):
@@ -265,36 +266,38 @@ def test_lost_wheel_packets_open_one_gap_where_the_wheel_data_ends() -> None:
         for p in (imu, gnss) if k in (15, 16) else (imu, gnss, wheels):
             buf.offer(p, 0)
         out, _ = buf.release(0)
-        gaps += [(after, p and p.first_stamp_ns) for after, p in buf.take_gaps()]
+        gaps += [(a - T0, u and u - T0, p and p.first_stamp_ns - T0) for a, u, p in buf.take_gaps()]
         wheels_fed += [p.seq for p in out if p.stream is Stream.WHEELS and p.seq >= 15]
     assert wheels_fed == list(range(17, 25))
-    # before the first packet released that starts after the wheel data ends (IMU at 1500 ms)
-    assert gaps == [(T0 + 1499 * MS, T0 + 1500 * MS)]
+    # each before the first packet released that starts after the wheel data (IMU)
+    assert gaps == [
+        (1499 * MS, None, 1500 * MS),  # lost: the wheel fits start afresh
+        (1499 * MS, 1599 * MS, 1500 * MS),  # ticks due without wheel data
+        (1599 * MS, 1699 * MS, 1600 * MS),  # ... until the gap is given up on
+    ]
 
 
-def test_a_silent_wheel_stream_is_one_gap_until_it_comes_back() -> None:
+def test_wheel_data_only_later_is_no_gap_but_a_late_wheel_packet_is() -> None:
+    """The wheel stream falls behind the fixed window: no edge is known lost (a slow wheel may
+    have none), so only the ticks due meanwhile go without wheel speed; its packet then comes,
+    late, and is refused: its edges are lost, the fits start afresh from what was released."""
     buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True)
-    gaps: list[int] = []
-
-    def window(k: int, wheels_seq: int | None) -> None:
+    for k in range(15):
+        for p in three_streams(k):
+            buf.offer(p, 0)
+    waits = []
+    for k in range(15, 20):  # IMU and GNSS go on, the wheels packets are held up
         imu, gnss, _ = three_streams(k)
         buf.offer(imu, 0)
         buf.offer(gnss, 0)
-        if wheels_seq is not None:
-            buf.offer(wheels_packet(wheels_seq, 100 * k + 3), 0)
-        buf.release(0)
-        gaps.extend(after for after, _ in buf.take_gaps())
-
-    for k in range(15):
-        window(k, k)
-    for k in range(15, 30):  # the encoder stream stops, IMU and GNSS go on
-        window(k, None)
-    assert gaps == [T0 + 1499 * MS]
-    for k in range(30, 40):  # back, with the next sequence number (nothing lost)
-        window(k, 15 + k - 30)
-    for k in range(40, 45):  # silent again
-        window(k, None)
-    assert gaps == [T0 + 1499 * MS, T0 + 3999 * MS]
+        _, released = buf.release(0)
+        waits += [(a - T0, u and u - T0) for a, u, _ in buf.take_gaps()]
+    assert released == T0 + 1609 * MS  # past the wheels' watermark (1499 ms)
+    assert waits == [(1499 * MS, 1509 * MS), (1509 * MS, 1609 * MS)]  # no loss named
+    assert buf.offer(wheels_packet(15, 1503), 0).verdict is Verdict.LATE
+    out, _ = buf.release(0)
+    assert out == [] and buf.take_gaps() == ((T0 + 1609 * MS, None, None),)
+    assert buf.take_gaps() == ()  # once
 
 
 def test_watermarks_wait_the_fixed_window_at_start() -> None:
