@@ -113,9 +113,11 @@ COUNT_NAMES = (
     "skipped_edges",
     "skipped_wheel_speeds",
     "skipped_late",
+    "ticks_without_wheel_data",
 )
-"""Per-vehicle counters kept by the front end (columns of ``FleetFrontEnd.count``)."""
-_GNSS, _IMU, _EDGES, _SPEEDS, _LATE = range(len(COUNT_NAMES))
+"""Per-vehicle counters kept by the front end (columns of ``FleetFrontEnd.count``); the last
+counts ticks that had no wheel speed for missing wheel data (:class:`WheelGap`)."""
+_GNSS, _IMU, _EDGES, _SPEEDS, _LATE, _NO_WHEEL_DATA = range(len(COUNT_NAMES))
 
 # Columns of a GNSS fix's float record (as pushed) and of a held output row.
 _G_VE, _G_VN, _G_VU, _G_HEAD, _G_PITCH, _G_ROLL, _G_LAT, _G_LON, _G_H, _G_VSTD, _G_FIX = range(11)
@@ -1720,8 +1722,10 @@ class _Batch:
         passed = (lo != _NONE_NS) & (hi <= last)
         fe.wheel_wait_from_ns[vs] = np.where(passed, _NONE_NS, lo)
         fe.wheel_wait_to_ns[vs] = np.where(passed, _NONE_NS, hi)
+        gap = missing.any(axis=1)
+        fe.count[vs, _NO_WHEEL_DATA] += gap.reshape(t.shape).sum(axis=1)
         nan = np.nan
-        return np.where(missing, nan, om), np.where(missing, nan, sd), missing.any(axis=1)
+        return np.where(missing, nan, om), np.where(missing, nan, sd), gap
 
     def _wheels(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int32]]:
         """Wheel speeds (left, right) at the ticks: encoder trackers of the vehicles with the

@@ -272,6 +272,7 @@ def scrape(
         rows_dropped=0.0,
         rows_not_inserted=0.0,
         backlog=0.0,
+        ticks_without_wheel_data=0.0,
     )
     out["rejected_by_reason"] = {}
     out["thread_cpu"] = {}
@@ -295,6 +296,11 @@ def scrape(
             out["rejected_by_reason"][reason] = out["rejected_by_reason"].get(reason, 0) + value
         elif name == "slipfleet_estimate_rows_total":
             out["estimate_rows"] += value
+        elif (
+            name == "slipfleet_estimator_events_total"
+            and labels.get("event") == "ticks_without_wheel_data"
+        ):
+            out["ticks_without_wheel_data"] += value
         elif name == "slipfleet_writer_rows_written_total":
             out["rows_written"] += value
         elif name in (
@@ -318,7 +324,14 @@ def scrape(
 
 def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    counted = ("rejected", "estimate_rows", "rows_written", "rows_dropped", "rows_not_inserted")
+    counted = (
+        "rejected",
+        "estimate_rows",
+        "rows_written",
+        "rows_dropped",
+        "rows_not_inserted",
+        "ticks_without_wheel_data",
+    )
     for k in (*_PACKET_COUNTERS, *counted):
         out[k] = sum(float(s[k]) for s in scrapes)
     out["backlog"] = sum(float(s["backlog"]) for s in scrapes)
@@ -865,6 +878,9 @@ def run_loadtest(
             "packets_duplicate": int(after["duplicate"]),
             "packets_lost_by_seq_gap": int(after["lost_by_seq_gap"]),
             "wheel_gaps": int(after["wheel_gaps"] - before["wheel_gaps"]),
+            "ticks_without_wheel_data": int(
+                after["ticks_without_wheel_data"] - before["ticks_without_wheel_data"]
+            ),
             "packets_missing": int(max(0, sent_total - received_total)),
             "estimates_produced": int(after["estimate_rows"]),
             "estimates_stored": int(after["rows_written"]),
@@ -921,7 +937,8 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"estimates produced {r['estimates_produced']}  stored {r['estimates_stored']}  "
         f"not inserted {r.get('estimates_not_inserted', 0)}  "
         f"({r['storage_rows_per_s']:.0f} rows/s)  dropped(backlog) "
-        f"{r['rows_dropped_backlog_full']}",
+        f"{r['rows_dropped_backlog_full']}  without wheel data "
+        f"{r.get('ticks_without_wheel_data', 0)}",
     ]
     for stage in ("live", "stored"):
         if stage in lat:
