@@ -98,9 +98,8 @@ COALESCE_PACKETS = 1024
 TICK_DUTY = 1.5
 #: ... but ticks are never spaced further apart than this (live values lag by up to this).
 MAX_TICK_GAP_NS = 100_000_000
-#: Wall time between two looks for active vehicles that fell idle (a tail no watermark holds is
-#: released);
-#: otherwise a tick visits only the vehicles that received packets.
+#: Wall time between two looks for active vehicles that fell idle (a tail no watermark holds
+#: is released); otherwise a tick visits only the vehicles that received packets.
 IDLE_SWEEP_NS = 100_000_000
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
@@ -664,14 +663,12 @@ class Pipeline:
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
         push = self._registry.push
-        before: dict[int, list[tuple[int, int | None]]] | None = None
-        if gaps:
-            before = {}
-            for after_ns, until_ns, p in gaps:
-                if p is not None:
-                    before.setdefault(id(p), []).append((after_ns, until_ns))
+        before: dict[int, list[tuple[int, int | None]]] = {}  # id(packet) -> gaps before it
+        for after_ns, until_ns, p in gaps:
+            if p is not None:
+                before.setdefault(id(p), []).append((after_ns, until_ns))
         for packet in packets:
-            if before is not None and id(packet) in before:
+            if before and id(packet) in before:
                 for after_ns, until_ns in before[id(packet)]:
                     self._wheel_gap(vid, after_ns, until_ns)
             for m in packet.measurements:

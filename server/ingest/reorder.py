@@ -37,9 +37,9 @@ link that stalls for longer than ``idle`` (a cellular drop-out, a starved host) 
 look like a vehicle that stopped: the horizon would jump to the newest sample, the estimators
 would compute the wheels' speed over edges not yet received (a row of about −70 % slip, seen on
 every demo vehicle after a 1.5 s stall), and the stalled wheel packet, when it came, would be
-late and dropped. A vehicle that really stopped
-sending keeps back at most the part after its lowest watermark (a batch window, the streams'
-last ``until_ns`` permitting) until it sends again.
+late and dropped. A vehicle that really stopped sending keeps back at most the part after its
+lowest watermark (a batch window, the streams' last ``until_ns`` permitting) until it sends
+again.
 
 Between packets the horizon moves only when the vehicle falls idle (and no watermarks gate). A
 packet moves it only when it comes on the stream whose watermark held it at the last release
@@ -291,7 +291,6 @@ class ReorderBuffer:
         self._wait: tuple[int, int] | None = None
         self._wait_told_ns: int | None = None
         self._gaps: list[tuple[int, int | None, Packet | None]] = []
-
         # the stream whose watermark held the horizon at the last release (gating only)
         self._low_stream: Stream | None = None
         self._may_release = False
