@@ -92,33 +92,40 @@ class VehicleStatus:
     OFFLINE: Final[str] = "offline"
 
 
+_GNSS_LABELS = (
+    (EstimateFlag.DEGRADED, "degraded"),
+    (EstimateFlag.GATED, "gated"),
+    (EstimateFlag.GNSS_OK, "ok"),
+)
+_SLIP_NOTES = (
+    (EstimateFlag.STANDSTILL, "standstill"),
+    (EstimateFlag.SETTLING, "starting/stopping"),
+    (EstimateFlag.WHEEL_GAP, "wheel data lost"),
+)
+
+
+def _first_label(flags: int, labels: tuple[tuple[EstimateFlag, str], ...], default: str) -> str:
+    """The label of the first flag of ``labels`` set in ``flags``, else ``default``."""
+    f = int(flags)
+    for flag, label in labels:
+        if f & flag:
+            return label
+    return default
+
+
 def gnss_quality(flags: int) -> str:
     """Summarise an estimate's flags as ``"ok"``, ``"gated"``, ``"degraded"`` or ``"none"``.
 
     ``degraded`` means GNSS is lost and the speed is carried by IMU + wheels.
     """
-    f = EstimateFlag(int(flags))
-    if f & EstimateFlag.DEGRADED:
-        return "degraded"
-    if f & EstimateFlag.GATED:
-        return "gated"
-    if f & EstimateFlag.GNSS_OK:
-        return "ok"
-    return "none"
+    return _first_label(flags, _GNSS_LABELS, "none")
 
 
 def slip_note(flags: int) -> str:
     """Why an estimate carries no slip value: ``"standstill"``, ``"starting/stopping"``
     (:attr:`EstimateFlag.SETTLING`), ``"wheel data lost"`` (:attr:`EstimateFlag.WHEEL_GAP`), or
     ``""`` (a value, or no known reason)."""
-    f = EstimateFlag(int(flags))
-    if f & EstimateFlag.STANDSTILL:
-        return "standstill"
-    if f & EstimateFlag.SETTLING:
-        return "starting/stopping"
-    if f & EstimateFlag.WHEEL_GAP:
-        return "wheel data lost"
-    return ""
+    return _first_label(flags, _SLIP_NOTES, "")
 
 
 @dataclass(frozen=True, slots=True)

@@ -266,13 +266,19 @@ def _cell_keys(
     return index_east, index_north, cell.reshape(-1)
 
 
+def _sum_at(
+    cell: np.ndarray, column: np.ndarray, k: int, weights: np.ndarray, m: int
+) -> np.ndarray:
+    """Sums of ``weights`` at ``(cell, column)`` (all shape (n,)) in an ``(m, k)`` table."""
+    return np.bincount(cell * k + column, weights=weights, minlength=m * k).reshape(m, k)
+
+
 def _sum_by(cell: np.ndarray, values: np.ndarray, m: int) -> np.ndarray:
     """Sum of ``values`` (shape (n,) or (n, k)) over equal ``cell`` (shape (n,)): (m,) or (m, k)."""
     if values.ndim == 1:
         return np.bincount(cell, weights=values, minlength=m)
-    k = values.shape[1]
-    codes = (cell[:, None] * k + np.arange(k)).reshape(-1)
-    return np.bincount(codes, weights=values.reshape(-1), minlength=m * k).reshape(m, k)
+    n, k = values.shape
+    return _sum_at(np.repeat(cell, k), np.tile(np.arange(k), n), k, values.reshape(-1), m)
 
 
 def cell_sums(
@@ -319,7 +325,6 @@ def cell_sums(
     pair_w = w[pair_row]
     pair_slip = samples.slip_pct[pair_row, pair_wheel]
     pair_abs = np.abs(pair_slip)
-    per_wheel = pair_cell * _WHEELS + pair_wheel
     max_abs = np.full(m, np.nan)
     np.fmax.at(max_abs, pair_cell, pair_abs)
     return CellSums(
@@ -330,16 +335,10 @@ def cell_sums(
         time_ns=_sum_by(cell, w, m),
         speed_ns=_sum_by(cell, w * samples.speed_mps, m),
         rows=np.bincount(cell, minlength=m).astype(np.int64),
-        valid_ns=np.bincount(per_wheel, weights=pair_w, minlength=m * _WHEELS).reshape(m, _WHEELS),
-        signed_ns=np.bincount(per_wheel, weights=pair_w * pair_slip, minlength=m * _WHEELS).reshape(
-            m, _WHEELS
-        ),
+        valid_ns=_sum_at(pair_cell, pair_wheel, _WHEELS, pair_w, m),
+        signed_ns=_sum_at(pair_cell, pair_wheel, _WHEELS, pair_w * pair_slip, m),
         abs_ns=_sum_by(pair_cell, pair_w * pair_abs, m),
-        band_ns=np.bincount(
-            pair_cell * n_bands + band_index(pair_abs, edges),
-            weights=pair_w,
-            minlength=m * n_bands,
-        ).reshape(m, n_bands),
+        band_ns=_sum_at(pair_cell, band_index(pair_abs, edges), n_bands, pair_w, m),
         max_abs_pct=max_abs,
         vehicles=np.ones(m, dtype=np.int64),
     )

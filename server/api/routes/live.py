@@ -29,7 +29,8 @@ as doubles, exact to about 256 ns: enough to order, merge and display them.
                      "rim_left_mps": [...], "rim_right_mps": [...], "slip_left_pct": [...],
                      "slip_right_pct": [...], "east_m": [...], "north_m": [...], "flags": [...]},
          "latest": {<every ESTIMATE_DTYPE field>, "arrival_ns": …, "status": "live", "age_s": 0.2,
-                    "gnss": "ok", "slip_note": "" | "standstill" | "starting/stopping"},
+                    "gnss": "ok",
+                    "slip_note": "" | "standstill" | "starting/stopping" | "wheel data lost"},
          "sent_ns": 1717…}
 
         {"type": "append", "from_ns": 1717…, "columns": {…same keys…}, "latest": {…},
