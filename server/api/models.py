@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, WithJsonSchema, 
 from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_FIELDS
 from server.reports import IngestCounts, VehicleReport
+from server.storage.base import Anchor
 
 __all__ = [
     "ESTIMATE_FIELD_NAMES",
@@ -106,6 +107,17 @@ class AnchorPublic(BaseModel):
     lat_deg: float
     lon_deg: float
     height_m: float = Field(description="ellipsoidal height")
+
+    @classmethod
+    def of(cls, anchor: Anchor) -> AnchorPublic:
+        """The stored ``(lat, lon, height)`` by name (one shape in every answer that has one)."""
+        lat_deg, lon_deg, height_m = anchor
+        return cls(lat_deg=lat_deg, lon_deg=lon_deg, height_m=height_m)
+
+    @classmethod
+    def as_json(cls, anchor: Anchor | None) -> dict[str, float] | None:
+        """:meth:`of` as a plain object for a hand-built JSON body; None while there is none."""
+        return None if anchor is None else cls.of(anchor).model_dump()
 
 
 class VehiclePublic(BaseModel):

@@ -26,7 +26,7 @@ from estimator.geo import EnuFrame
 from estimator.types import ESTIMATE_DTYPE
 from server.api.deps import ApiLimits, LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
 from server.api.errors import RangeTooLarge, Unprocessable, error_responses
-from server.api.models import ESTIMATE_FIELD_NAMES, SeriesFormat, SeriesPublic
+from server.api.models import ESTIMATE_FIELD_NAMES, AnchorPublic, SeriesFormat, SeriesPublic
 from server.downsample import bucket_width_ns, downsample_minmax
 from server.storage.base import Anchor, Store
 
@@ -246,7 +246,7 @@ def _geojson(vehicle_id: str, rows: np.ndarray, names: Sequence[str], anchor: An
         {
             "type": "FeatureCollection",
             "vehicle_id": vehicle_id,
-            "anchor": None if anchor is None else list(anchor),
+            "anchor": AnchorPublic.as_json(anchor),
             "features": features,
         }
     )
@@ -287,7 +287,8 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         "anchor and the row's `east_m`, `north_m`, `up_m`; the properties are the fields asked "
         "for. With `max_points` the range is cut into that many equal time buckets and each "
         "gives its first row, whole (a position is never mixed from several rows). No features "
-        "before the vehicle's first fix.\n\n"
+        "before the vehicle's first fix. The collection's `anchor` is that origin by name "
+        "(`lat_deg`, `lon_deg`, `height_m`, as in the vehicle's answer), null before it.\n\n"
         "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
         "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
         "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."

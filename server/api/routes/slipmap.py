@@ -32,6 +32,7 @@ from server.api.deps import (
 )
 from server.api.errors import NotFound, RangeTooLarge, Unprocessable, error_responses
 from server.api.models import (
+    AnchorPublic,
     FleetSlipMapCellPublic,
     FleetSlipMapPublic,
     SlipMapCellPublic,
@@ -166,16 +167,11 @@ CellM = Annotated[
 ]
 FormatQuery = Annotated[SlipMapFormat, Query(description="Answer format")]
 
-_ANCHOR_KEYS = ("lat_deg", "lon_deg", "height_m")
 _DEFAULT_BAND_EDGES_PCT = SlipConfig().band_edges_pct
 
 
 def _opt(value: float) -> float | None:
     return value if math.isfinite(value) else None
-
-
-def _anchor(anchor: Anchor | None) -> dict[str, float] | None:
-    return None if anchor is None else dict(zip(_ANCHOR_KEYS, anchor, strict=True))
 
 
 def _cells(smap: SlipMap, *, vehicles: bool = False) -> list[dict[str, Any]]:
@@ -348,7 +344,7 @@ def get_vehicle_slipmap(
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,
-            "anchor": _anchor(anchor),
+            "anchor": AnchorPublic.as_json(anchor),
             "band_edges_pct": list(smap.band_edges_pct),
             "band_labels": list(smap.band_labels),
             "count": smap.cells,
@@ -527,7 +523,7 @@ def get_fleet_slipmap(
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,
-            "origin": _anchor(origin),
+            "origin": AnchorPublic.as_json(origin),
             "origin_vehicle_id": origin_vehicle_id,
             "band_edges_pct": list(smap.band_edges_pct),
             "band_labels": list(smap.band_labels),

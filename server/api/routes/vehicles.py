@@ -62,9 +62,7 @@ def _public(record: VehicleRecord, anchors: Mapping[str, Anchor]) -> VehiclePubl
         config=record.config,
         created_ns=record.created_ns,
         updated_ns=record.updated_ns,
-        anchor=None
-        if anchor is None
-        else AnchorPublic(lat_deg=anchor[0], lon_deg=anchor[1], height_m=anchor[2]),
+        anchor=None if anchor is None else AnchorPublic.of(anchor),
     )
 
 

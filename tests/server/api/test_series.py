@@ -194,7 +194,10 @@ def test_geojson_map_of_whole_rows_in_wgs84(client: ApiClient, store: Store) -> 
     anchor = (52.0, 5.6, 12.0)
     store.put_anchors({"t1": anchor}, T0)
     fc = client.get(q).json()
-    assert fc["type"] == "FeatureCollection" and fc["anchor"] == list(anchor)
+    assert fc["type"] == "FeatureCollection"
+    # named, as in the vehicle and slip-map answers (a bare list would read lat,lon beside
+    # coordinates in lon,lat)
+    assert fc["anchor"] == {"lat_deg": 52.0, "lon_deg": 5.6, "height_m": 12.0}
     feats = fc["features"]
     assert len(feats) == 3_000 - 5
     lat, lon, h = EnuFrame(*anchor).to_geodetic(
