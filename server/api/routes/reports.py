@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
 
@@ -17,6 +17,7 @@ from server.api.deps import (
 )
 from server.api.errors import error_responses
 from server.api.models import FleetReportPublic, VehicleReportPublic
+from server.api.routes.series import export_filename
 from server.api.tables import csv_table
 from server.reports import REPORT_FIELDS, flatten_report, ingest_counts, vehicle_report
 from server.storage.base import Store, VehicleRecord
@@ -65,28 +66,54 @@ def _report(
     )
 
 
+ReportFormat = Annotated[Literal["json", "csv"], Query(description="Answer format")]
+
+
 @router.get(
     "/vehicles/{vehicle_id}/report",
     response_model=VehicleReportPublic,
-    responses=error_responses(400, 404, 422),
+    responses={
+        200: {
+            "description": "The vehicle's report; CSV: one row, the columns of the fleet "
+            "report's CSV.",
+            "content": {"text/csv": {"schema": {"type": "string"}}},
+        },
+        **error_responses(400, 404, 422),
+    },
     summary="Field report of one vehicle",
     description=REPORT_DESCRIPTION,
 )
 def get_vehicle_report(
-    vehicle: VehicleDep, tr: TimeRangeDep, store: StoreDep, limits: LimitsDep
-) -> VehicleReportPublic:
+    vehicle: VehicleDep,
+    tr: TimeRangeDep,
+    store: StoreDep,
+    limits: LimitsDep,
+    format: ReportFormat = "json",
+) -> Response:
     tr.check_span(limits.report_max_range_ns)
-    return _report(store, vehicle, tr, limits.report_max_gap_s)
+    report = _report(store, vehicle, tr, limits.report_max_gap_s)
+    if format == "csv":
+        name = export_filename(f"{vehicle.vehicle_id}_report", tr, "csv")
+        return _csv_response([report], name)
+    return Response(report.model_dump_json(), media_type="application/json")
 
 
-def _csv_table(rows: list[dict[str, Any]]) -> str:
-    if not rows:  # an empty fleet still gets the header of the default-config columns
+def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response:
+    """One CSV row per report (:func:`server.reports.flatten_report`), as a download."""
+    rows = [flatten_report(r.vehicle_id, r.report, r.ingest) for r in reports]
+    if rows:
+        columns: dict[str, None] = {}
+        for row in rows:  # band columns: the union over the reports, empty where not used
+            columns.update(dict.fromkeys(row))
+        table = csv_table(list(columns), rows)
+    else:  # an empty fleet still gets the header of the default-config columns
         empty = vehicle_report(empty_estimates(0)[list(REPORT_FIELDS)], start_ns=0, end_ns=1)
-        return csv_table(list(flatten_report("", empty, ingest_counts({}))), [])
-    columns: dict[str, None] = {}
-    for row in rows:
-        columns.update(dict.fromkeys(row))
-    return csv_table(list(columns), rows)
+        table = csv_table(list(flatten_report("", empty, ingest_counts({}))), [])
+    return Response(
+        table,
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
+    )
 
 
 @router.get(
@@ -107,18 +134,13 @@ def get_fleet_report(
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
-    format: Annotated[Literal["json", "csv"], Query(description="Answer format")] = "json",
+    format: ReportFormat = "json",
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     reports = [
         _report(store, record, tr, limits.report_max_gap_s) for record in store.list_vehicles()
     ]
     if format == "csv":
-        table = [flatten_report(r.vehicle_id, r.report, r.ingest) for r in reports]
-        return Response(
-            _csv_table(table),
-            media_type="text/csv; charset=utf-8",
-            headers={"Content-Disposition": 'attachment; filename="fleet_report.csv"'},
-        )
+        return _csv_response(reports, "fleet_report.csv")
     body = FleetReportPublic(start_ns=tr.start_ns, end_ns=tr.end_ns, vehicles=reports)
     return Response(body.model_dump_json(), media_type="application/json")

@@ -126,6 +126,28 @@ def test_fleet_report_json_and_csv(client: ApiClient, two_vehicles: None) -> Non
     assert table["t1"]["packets_rejected_bad_payload"] == "2"
 
 
+def test_vehicle_report_csv_is_its_row_of_the_fleet_csv(
+    client: ApiClient, two_vehicles: None
+) -> None:
+    r = client.get(f"/api/v1/vehicles/t2/report?{Q}&format=csv")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    assert r.headers["content-disposition"] == (
+        f'attachment; filename="t2_report_{T0}_{T0 + 10 * S}.csv"'
+    )
+    (row,) = list(csv.DictReader(io.StringIO(r.text)))
+    fleet = client.get(f"/api/v1/fleet/report?{Q}&format=csv").text
+    in_fleet = {f["vehicle_id"]: f for f in csv.DictReader(io.StringIO(fleet))}["t2"]
+    # the same values; the fleet's table also has the other vehicle's band and refusal-reason
+    # columns, empty in this vehicle's row
+    assert row == {k: v for k, v in in_fleet.items() if k in row}
+    others = {k: v for k, v in in_fleet.items() if k not in row}
+    assert "slip_left_share_5_15" in others and "packets_rejected_bad_payload" in others
+    assert set(others.values()) == {""}
+    assert float(row["moving_s"]) == 2.0 and float(row["slip_left_share_10_up"]) == 0.5
+    r = client.get(f"/api/v1/vehicles/t1/report?{Q}&format=xlsx")
+    assert r.status_code == 422 and r.json()["error"] == "invalid_request"
+
+
 def test_fleet_report_empty_fleet(client: ApiClient) -> None:
     assert client.get(f"/api/v1/fleet/report?{Q}").json()["vehicles"] == []
     header = client.get(f"/api/v1/fleet/report?{Q}&format=csv").text.splitlines()
