@@ -12,6 +12,13 @@ const KIND_LABEL = {
   zenoh_down: "Server: no Zenoh router",
 };
 
+// "2026-05-01 12:00:03" (the column header says UTC); date and time each kept on one line, so a
+// narrow column breaks between them and nowhere else
+function timeCell(ns) {
+  const [day, time] = fmtTimeNs(ns, false).replace(/ UTC$/, "").split(" ");
+  return el("td", { class: "when" }, el("span", { text: day }), " ", el("span", { text: time }));
+}
+
 export function alertsView(root) {
   const stateSel = el("select", { id: "a-state", "aria-label": "Which alerts" });
   for (const [v, t] of [["open", "open"], ["all", "open and closed"], ["closed", "closed"]]) {
@@ -22,21 +29,26 @@ export function alertsView(root) {
   const tbody = el("tbody", { id: "alerts-body" });
   root.append(
     el("div", { class: "toolbar" }, el("h1", { text: "Alerts" }), el("label", {}, "Show ", stateSel), msg),
+    // on a narrow screen the table scrolls sideways in its own box, its header with it
     el(
-      "table",
-      { class: "plain" },
+      "div",
+      { class: "table-scroll", id: "alerts-scroll" },
       el(
-        "thead",
-        {},
+        "table",
+        { class: "plain" },
         el(
-          "tr",
+          "thead",
           {},
-          ...["State", "Vehicle", "Kind", "Start (UTC)", "End (UTC)", "Duration", "Peak |slip| (%)", "Threshold (%)"].map((h) =>
-            el("th", { scope: "col", text: h }),
+          el(
+            "tr",
+            {},
+            ...["State", "Vehicle", "Kind", "Start (UTC)", "End (UTC)", "Duration", "Peak |slip| (%)", "Threshold (%)"].map((h) =>
+              el("th", { scope: "col", text: h }),
+            ),
           ),
         ),
+        tbody,
       ),
-      tbody,
     ),
   );
   let timer = null;
@@ -59,8 +71,8 @@ export function alertsView(root) {
               : el("strong", { text: "server" }),
           ),
           el("td", { text: KIND_LABEL[a.kind] || a.kind }),
-          el("td", { text: fmtTimeNs(a.start_ns, false) }),
-          el("td", { text: endNs ? fmtTimeNs(endNs, false) : "ongoing" }),
+          timeCell(a.start_ns),
+          endNs ? timeCell(endNs) : el("td", { text: "ongoing" }),
           el("td", { text: fmtDuration(Math.max(0, dur)) }),
           el("td", { class: "num", text: fmt(a.peak, 1) }),
           el("td", { class: "num", text: fmt(a.threshold, 1) }),

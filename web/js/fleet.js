@@ -1,6 +1,9 @@
 // Fleet overview: one row per vehicle, fed by the /live/fleet WebSocket at 2 Hz.
 // Rows are virtualised (only the visible ones exist in the DOM) so 1,000+ vehicles stay cheap;
-// an update only rewrites the text and classes of those rows.
+// an update only rewrites the text and classes of those rows. The header sits inside the same
+// scroll box as the rows (sticky at its top), so header and rows always share one width and
+// scroll sideways together. Rows of stale and offline vehicles carry row-stale / row-offline:
+// their last values are shown greyed and without slip-band shading, never as if live.
 
 import { fetchVehicles, liveSocket } from "./api.js";
 import { SLIP_BAND_EDGES, slipBand, slipCss } from "./colors.js";
@@ -8,14 +11,15 @@ import { el, fmt, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
 
+// short: the label shown on narrow screens (app.css switches .lab-long / .lab-short)
 const COLUMNS = [
   { key: "id", label: "Vehicle", numeric: false },
   { key: "status", label: "Status", numeric: false },
-  { key: "vg_mps", label: "Speed (m/s)", numeric: true },
-  { key: "slip_left_pct", label: "Slip left (%)", numeric: true },
-  { key: "slip_right_pct", label: "Slip right (%)", numeric: true },
+  { key: "vg_mps", label: "Speed (m/s)", short: "m/s", numeric: true },
+  { key: "slip_left_pct", label: "Slip left (%)", short: "Slip L", numeric: true },
+  { key: "slip_right_pct", label: "Slip right (%)", short: "Slip R", numeric: true },
   { key: "gnss", label: "GNSS", numeric: false },
-  { key: "age_s", label: "Last update (s ago)", numeric: true },
+  { key: "age_s", label: "Last update (s ago)", short: "Age (s)", numeric: true },
 ];
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2 };
 
@@ -45,7 +49,13 @@ export function fleetView(root) {
   const header = el("div", { class: "vrow vhead", role: "row" });
   const headButtons = {};
   for (const c of COLUMNS) {
-    const b = el("button", { type: "button", class: c.numeric ? "num" : "", text: c.label });
+    const b = el(
+      "button",
+      { type: "button", class: c.numeric ? "num" : "", title: c.short ? c.label : null },
+      ...(c.short
+        ? [el("span", { class: "lab-long", text: c.label }), el("span", { class: "lab-short", text: c.short })]
+        : [c.label]),
+    );
     b.addEventListener("click", () => {
       if (state.sortKey === c.key) state.sortDir = -state.sortDir;
       else {
@@ -58,13 +68,20 @@ export function fleetView(root) {
     headButtons[c.key] = cell;
     header.append(cell);
   }
-  const spacer = el("div", { class: "vspacer" });
+  // Rows are absolutely placed inside .vrows (its height is that of every matching row); the
+  // header row group is sticky at the top of the same scroll box.
   const rowsBox = el("div", { class: "vrows", role: "rowgroup" });
-  const scroller = el("div", { class: "vscroll", id: "fleet-rows" }, spacer, rowsBox);
+  const empty = el("p", { class: "vempty", hidden: true });
+  const scroller = el(
+    "div",
+    { class: "vscroll", id: "fleet-rows" },
+    el("div", { role: "rowgroup", class: "vheadgroup" }, header),
+    rowsBox,
+    empty,
+  );
   const table = el(
     "div",
     { class: "vtable", role: "table", "aria-label": "Fleet overview", "aria-rowcount": "0" },
-    el("div", { role: "rowgroup" }, header),
     scroller,
   );
   root.append(
@@ -126,20 +143,45 @@ export function fleetView(root) {
       );
     }
     table.setAttribute("aria-rowcount", String(state.order.length + 1));
-    spacer.style.height = `${state.order.length * ROW_H}px`;
+    rowsBox.style.height = `${state.order.length * ROW_H}px`;
+    showSummary();
     render();
+  }
+
+  // "12 vehicles — 11 live, 1 stale, 0 offline"; with a filter, the counts are of the matching
+  // vehicles: "3 of 12 vehicles shown — …", or that none matches.
+  function showSummary() {
+    const d = state.data;
+    const total = d.ids.length;
+    const counts = { live: 0, stale: 0, offline: 0 };
+    for (const i of state.order) counts[d.status[i]] = (counts[d.status[i]] || 0) + 1;
+    const states = `${counts.live} live, ${counts.stale} stale, ${counts.offline} offline`;
+    const noun = total === 1 ? "vehicle" : "vehicles";
+    if (!state.filter) {
+      summary.textContent = `${total} ${noun} — ${states}`;
+      empty.hidden = total > 0;
+      empty.textContent = "No vehicle has sent data yet.";
+    } else if (state.order.length) {
+      summary.textContent = `${state.order.length} of ${total} ${noun} shown — ${states}`;
+      empty.hidden = true;
+    } else {
+      summary.textContent = `No vehicle matches “${state.filter}” (${total} ${noun} in all)`;
+      empty.hidden = false;
+      empty.textContent = `No vehicle id contains “${state.filter}”.`;
+    }
   }
 
   function render() {
     const d = state.data;
     if (!d) return;
-    const first = Math.max(0, Math.floor(scroller.scrollTop / ROW_H) - 5);
-    const count = Math.min(state.order.length - first, Math.ceil(scroller.clientHeight / ROW_H) + 10);
+    const top = Math.max(0, scroller.scrollTop - rowsBox.offsetTop);
+    const first = Math.max(0, Math.floor(top / ROW_H) - 5);
+    const count = Math.max(0, Math.min(state.order.length - first, Math.ceil(scroller.clientHeight / ROW_H) + 10));
     while (pool.length < count) pool.push(makeRow());
     for (let k = 0; k < pool.length; k++) {
       const row = pool[k];
       if (k >= count) {
-        row.hidden = true;
+        row.hidden = true; // app.css: [hidden] wins over .vrow's display: grid
         continue;
       }
       row.hidden = false;
@@ -154,6 +196,10 @@ export function fleetView(root) {
         row._link.href = vehicleHref(id);
       }
       const st = d.status[i];
+      const live = st === "live";
+      const age = fmt(d.age_s[i], 1);
+      row.className = live ? "vrow" : `vrow row-old row-${st}`;
+      row.title = live ? "" : `${st}: last data ${age} s ago; the values shown are not live`;
       const pill = c.status.firstChild;
       pill.textContent = st;
       pill.className = `pill st-${st}`;
@@ -161,17 +207,20 @@ export function fleetView(root) {
       for (const key of ["slip_left_pct", "slip_right_pct"]) {
         const v = d[key][i];
         const cell = c[key];
-        const edges = state.bandEdges.get(id) || SLIP_BAND_EDGES;
-        const b = slipBand(v, edges); // lowest band 0, top band edges.length, none -1
-        const cls = b <= 0 ? b : b === edges.length ? 2 : 1; // styled low / moderate / high
+        let cls = "old";
+        if (live) {
+          const edges = state.bandEdges.get(id) || SLIP_BAND_EDGES;
+          const b = slipBand(v, edges); // lowest band 0, top band edges.length, none -1
+          cls = b <= 0 ? b : b === edges.length ? 2 : 1; // styled low / moderate / high
+        }
         cell.className = `c-${key} num slip band-${cls}`;
-        cell.firstChild.style.background = slipCss(v);
+        cell.firstChild.style.background = live ? slipCss(v) : "";
         cell.lastChild.textContent = fmt(v, 1);
       }
       const g = d.gnss[i];
       c.gnss.textContent = g;
-      c.gnss.className = `c-gnss gnss-${g}`;
-      c.age_s.textContent = fmt(d.age_s[i], 1);
+      c.gnss.className = live ? `c-gnss gnss-${g}` : "c-gnss";
+      c.age_s.textContent = age;
     }
   }
 
@@ -188,9 +237,6 @@ export function fleetView(root) {
       if (msg.type !== "fleet") return;
       const t0 = performance.now();
       state.data = msg;
-      const counts = { live: 0, stale: 0, offline: 0 };
-      for (const s of msg.status) counts[s] = (counts[s] || 0) + 1;
-      summary.textContent = `${msg.ids.length} vehicles — ${counts.live} live, ${counts.stale} stale, ${counts.offline} offline`;
       resort();
       const ms = window.slipfleetStats.fleetUpdateMs;
       ms.push(performance.now() - t0);

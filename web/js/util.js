@@ -13,8 +13,12 @@ export function el(tag, attrs = {}, ...children) {
   return e;
 }
 
+// v with `digits` decimals; "–" for no value. A value that rounds to zero prints without a minus
+// sign ("0.00", not "-0.00" for -0.001).
 export function fmt(v, digits) {
-  return v === null || v === undefined || Number.isNaN(v) ? "–" : v.toFixed(digits);
+  if (v === null || v === undefined || Number.isNaN(v)) return "–";
+  const s = v.toFixed(digits);
+  return s.startsWith("-") && Number(s) === 0 ? s.slice(1) : s;
 }
 
 // "2024-05-01 12:00:03.250 UTC" from integer nanoseconds (number precision is enough for display)
