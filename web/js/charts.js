@@ -23,10 +23,52 @@ export function alignedData(cols, fields) {
   return [xs, ...fields.map((f) => cols[f] || xs.map(() => null))];
 }
 
+// Width of target's content box (inside its padding), CSS px; 0 when not laid out.
+function contentWidth(target) {
+  const cs = getComputedStyle(target);
+  const w = target.clientWidth - (parseFloat(cs.paddingLeft) || 0) - (parseFloat(cs.paddingRight) || 0);
+  return Math.max(0, Math.floor(w));
+}
+
+// Time axis ticks: steps in seconds. A step is taken when its labels fit between ticks: HH:MM:SS
+// (steps under a minute), HH:MM, or MM-DD (steps of a day or more), measured in the axis font, plus
+// a gap. So a short span on a phone still gets several labels.
+const AXIS_FONT = '12px system-ui, -apple-system, "Segoe UI", Roboto, sans-serif';
+const TIME_INCRS = [
+  1, 2, 5, 10, 15, 20, 30, 60, 120, 300, 600, 900, 1200, 1800, 3600, 7200, 10800, 21600, 43200,
+  86400, 2 * 86400, 7 * 86400, 14 * 86400, 28 * 86400,
+];
+const LABEL_GAP_PX = 10;
+let labelWidths = null; // [HH:MM:SS, HH:MM] in CSS px
+function labelRoom(incr) {
+  if (!labelWidths) {
+    const ctx = document.createElement("canvas").getContext("2d");
+    ctx.font = AXIS_FONT;
+    labelWidths = ["00:00:00", "00:00"].map((t) => Math.ceil(ctx.measureText(t).width));
+  }
+  return labelWidths[incr < 60 ? 0 : 1] + LABEL_GAP_PX;
+}
+function timeSpace(_u, _axisIdx, min, max, plotWidth) {
+  const pxPerS = plotWidth / (max - min);
+  if (!(pxPerS > 0) || !Number.isFinite(pxPerS)) return labelRoom(1);
+  // uPlot takes the first step whose gap is at least the space returned: the gap of the first
+  // step whose label fits, a hair less against rounding (a smaller step's gap is much smaller)
+  for (const incr of TIME_INCRS) if (incr * pxPerS >= labelRoom(incr)) return incr * pxPerS * 0.999;
+  return labelRoom(86400);
+}
+function timeLabel(v, incr) {
+  const iso = new Date(v * 1e3).toISOString();
+  if (incr >= 86400) return iso.slice(5, 10); // MM-DD
+  return iso.slice(11, incr < 60 ? 19 : 16); // 24-hour UTC clock, seconds when steps are shorter
+}
+
 // opts: title, yLabel, fields, height, threshold (draw ±threshold lines), decimals,
 // syncKey (share the cursor with the page's other charts), onCursor(index) (hover callback)
+//
+// The chart is as wide as target's content box and follows it (ResizeObserver); target must get
+// its width from the layout, not from the chart (e.g. a grid column minmax(0, 1fr)).
 export function makeChart(target, opts) {
-  const width = Math.max(320, target.clientWidth || 600);
+  const width = contentWidth(target) || 600;
   const digits = opts.decimals ?? 2;
   const chart = new uPlot(
     {
@@ -39,17 +81,18 @@ export function makeChart(target, opts) {
         {
           label: "time (UTC)",
           labelSize: 24,
-          space: 80, // px between ticks: room for HH:MM:SS
+          incrs: TIME_INCRS,
+          space: timeSpace,
+          font: AXIS_FONT,
           stroke: "#222",
           grid: { stroke: "#e3e3e3" },
-          // 24-hour UTC clock; seconds only when the ticks are closer than a minute
-          values: (u, splits, _axisIdx, _space, incr) =>
-            splits.map((v) => new Date(v * 1e3).toISOString().slice(11, incr < 60 ? 19 : 16)),
+          values: (u, splits, _axisIdx, _space, incr) => splits.map((v) => timeLabel(v, incr)),
         },
         {
           label: opts.yLabel,
           labelSize: 24,
           size: 56,
+          font: AXIS_FONT,
           stroke: "#222",
           grid: { stroke: "#e3e3e3" },
         },
@@ -122,6 +165,20 @@ export function makeChart(target, opts) {
   chart._cursorT = null;
   chart._threshold = opts.threshold ?? null;
   target._uplot = chart; // lets tests and tools inspect the chart
+  // follow the box's width (window resize, scroll bar, layout change); resized on the next frame,
+  // not inside the observer's callback, so the chart's new size is not observed in the same pass
+  let frame = 0;
+  const observer = new ResizeObserver(() => {
+    cancelAnimationFrame(frame);
+    frame = requestAnimationFrame(() => fitWidth(chart, target));
+  });
+  observer.observe(target);
+  const destroy = chart.destroy.bind(chart);
+  chart.destroy = () => {
+    observer.disconnect();
+    cancelAnimationFrame(frame);
+    destroy();
+  };
   return chart;
 }
 
@@ -137,7 +194,8 @@ export function setThreshold(chart, pct) {
   chart.redraw(false, false);
 }
 
+// Size the chart to target's content box (nothing to do while target is not laid out).
 export function fitWidth(chart, target) {
-  const w = Math.max(320, target.clientWidth);
-  if (Math.abs(w - chart.width) > 2) chart.setSize({ width: w, height: chart.height });
+  const w = contentWidth(target);
+  if (w > 0 && w !== chart.width) chart.setSize({ width: w, height: chart.height });
 }

@@ -1,8 +1,13 @@
 // Vehicle page, live: slip and speed charts over a sliding window (30 s – 30 min) and the track on
 // the slip map, from the /live/vehicles/{id} WebSocket (snapshot, then appends at 2–4 Hz).
+//
+// A vehicle that is not live (the feed's status "stale" or "offline", or the connection lost) keeps
+// its last values on the page, dimmed, with the age of its data ("last data 52 s ago"); that age is
+// not latency. A vehicle the server does not know (404, and no live data) gets a message and the
+// page stops asking for it.
 
-import { fetchReport, fetchVehicle, liveSocket } from "./api.js";
-import { SLIP_FIELDS, SPEED_FIELDS, alignedData, fitWidth, makeChart, setThreshold } from "./charts.js";
+import { ApiError, fetchReport, fetchVehicle, liveSocket } from "./api.js";
+import { SLIP_FIELDS, SPEED_FIELDS, alignedData, makeChart, setThreshold } from "./charts.js";
 import { slipCss } from "./colors.js";
 import { SlipMap, slipMetric } from "./slipmap.js";
 import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
@@ -16,10 +21,25 @@ const WINDOWS = [
 ];
 const COLS = ["stamp_ns", ...SLIP_FIELDS, ...SPEED_FIELDS, "east_m", "north_m", "flags"];
 const ALERT_THRESHOLD_PCT = 15; // SlipConfig default, until the vehicle's own config is loaded
+// GNSS quality (the live feed's label) said in words where it is not "ok" or "gated"; the value
+// takes the fleet table's class gnss-<label> (colour and weight)
+const GNSS_NOTES = {
+  degraded: "GNSS lost: speed from IMU + wheels",
+  none: "no GNSS fix",
+};
 
-// Shared with tests and the latency benchmark: receive time minus sensor stamp, ms.
+// Shared with tests and the latency benchmark: receive time minus sensor stamp, ms, of each new
+// estimate of a live vehicle (a repeated estimate or a stale vehicle's is data age, not latency).
 window.slipfleetStats = window.slipfleetStats || {};
 window.slipfleetStats.latencyMs = window.slipfleetStats.latencyMs || [];
+
+// "52 s", "3 min 5 s", "2 h 4 min"
+function fmtAge(s) {
+  const t = Math.max(0, Math.round(s));
+  if (t < 60) return `${t} s`;
+  if (t < 3600) return `${Math.floor(t / 60)} min ${t % 60} s`;
+  return `${Math.floor(t / 3600)} h ${Math.floor((t % 3600) / 60)} min`;
+}
 
 function stat(label, id, unit) {
   return el(
@@ -35,8 +55,16 @@ export function vehicleView(root, vehicleId) {
   let windowS = 60;
   let cols = null;
   let pending = false;
+  let stopped = false;
+  let connected = false;
+  let latest = null; // newest "latest" of the feed, and its receive time (ms since the epoch)
+  let latestRecvMs = 0;
+  let latencyStamp = null; // stamp of the estimate last measured for latency
+  let notStored = null; // the 404 of GET /vehicles/{id}
+  let liveEmpty = false; // the live feed has nothing for the vehicle ("waiting", or no socket)
   const title = el("h1", {}, "Vehicle ", el("span", { class: "mono", text: vehicleId }));
   const statusPill = el("span", { class: "pill", id: "v-status", text: "connecting" });
+  const ageNote = el("span", { class: "data-age", id: "v-age", hidden: true });
   const winButtons = el("div", { class: "seg", role: "group", "aria-label": "Chart window" });
   for (const [s, label] of WINDOWS) {
     const b = el("button", { type: "button", "data-window": s, "aria-pressed": String(s === windowS), text: label });
@@ -89,8 +117,12 @@ export function vehicleView(root, vehicleId) {
       /* not registered yet, or refused: the next refresh tries again */
     }
   }
-  refreshIngest();
-  const ingestTimer = setInterval(refreshIngest, 5000);
+  let ingestTimer = null;
+  function startIngest() {
+    if (stopped || ingestTimer !== null) return;
+    refreshIngest();
+    ingestTimer = setInterval(refreshIngest, 5000);
+  }
   const slipBox = el("div", { class: "chart", id: "chart-slip" });
   const speedBox = el("div", { class: "chart", id: "chart-speed" });
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
@@ -100,6 +132,7 @@ export function vehicleView(root, vehicleId) {
       { class: "toolbar" },
       title,
       statusPill,
+      ageNote,
       el("a", { href: vehicleHref(vehicleId, "history"), class: "button", text: "History & slip map" }),
       winButtons,
     ),
@@ -123,11 +156,57 @@ export function vehicleView(root, vehicleId) {
   });
   const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the two wheels" });
   fetchVehicle(vehicleId)
-    .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
-    .catch(() => {}); // unknown to the store yet: keep the default
+    .then((v) => {
+      if (stopped) return;
+      setThreshold(slipChart, v.config.slip.alert_threshold_pct);
+      startIngest();
+    })
+    .catch((err) => {
+      if (stopped) return;
+      if (err instanceof ApiError && err.status === 404) {
+        // not stored: unknown, unless the live feed has data of it (stored a moment later)
+        notStored = err;
+        ingest.hidden = true;
+        checkUnknown();
+      } else startIngest(); // keep the default threshold
+    });
 
-  function showLatest(latest, recvMs) {
+  // The server does not know the vehicle: say so, stop the socket and the polling.
+  function checkUnknown() {
+    if (!notStored || !liveEmpty || cols || stopped) return;
+    stop();
+    root.replaceChildren(
+      el("div", { class: "toolbar" }, title),
+      el(
+        "div",
+        { class: "panel-msg", id: "v-unknown", role: "alert" },
+        el("p", {}, "Unknown vehicle ", el("strong", { class: "mono", text: vehicleId }), ": the server has no vehicle with this id."),
+        el("p", {}, el("a", { href: "#/fleet", text: "Back to the fleet" })),
+      ),
+    );
+  }
+
+  // Old or current: dim the values of a vehicle that is not live and show their age (the feed's
+  // age at receipt plus the time since, so it goes on counting without messages).
+  function showAge() {
     if (!latest) return;
+    const old = !connected || latest.status !== "live";
+    stats.classList.toggle("is-old", old);
+    ageNote.hidden = !old;
+    if (old) {
+      const age = (latest.age_s ?? 0) + (performance.timeOrigin + performance.now() - latestRecvMs) / 1000;
+      ageNote.textContent = `last data ${fmtAge(age)} ago`;
+      document.getElementById("v-latency").textContent = "–";
+      document.getElementById("v-latency-note").textContent = "not measured: no new data";
+      latencyStamp = null;
+    }
+  }
+  const ageTimer = setInterval(showAge, 1000);
+
+  function showLatest(lt, recvMs) {
+    if (!lt) return;
+    latest = lt;
+    latestRecvMs = recvMs;
     const sl = latest.slip_left_pct;
     const sr = latest.slip_right_pct;
     const a = document.getElementById("v-slip-left");
@@ -141,22 +220,31 @@ export function vehicleView(root, vehicleId) {
     document.getElementById("v-slip-right-note").textContent = sr == null ? latest.slip_note || "" : "";
     a.dataset.stampNs = String(latest.stamp_ns);
     document.getElementById("v-vg").textContent = fmt(latest.vg_mps, 2);
-    document.getElementById("v-gnss").textContent = latest.gnss;
+    const gnss = document.getElementById("v-gnss");
+    gnss.textContent = latest.gnss;
+    gnss.className = `gnss-${latest.gnss}`; // the fleet table's rule
+    document.getElementById("v-gnss-note").textContent = GNSS_NOTES[latest.gnss] || "";
     document.getElementById("v-stamp").textContent = fmtTimeNs(latest.stamp_ns);
-    const lat = recvMs - latest.stamp_ns / 1e6;
-    document.getElementById("v-latency").textContent = fmt(lat, 0);
-    const L = window.slipfleetStats.latencyMs;
-    L.push(lat);
-    if (L.length > 10000) L.splice(0, L.length - 10000);
+    // latency: only a new estimate of a live vehicle (a heartbeat repeats the newest estimate, and
+    // a stale vehicle's is as old as its silence)
+    if (latest.status === "live" && latest.stamp_ns !== latencyStamp) {
+      latencyStamp = latest.stamp_ns;
+      const lat = recvMs - latest.stamp_ns / 1e6;
+      document.getElementById("v-latency").textContent = fmt(lat, 0);
+      document.getElementById("v-latency-note").textContent = "";
+      const L = window.slipfleetStats.latencyMs;
+      L.push(lat);
+      if (L.length > 10000) L.splice(0, L.length - 10000);
+    }
     statusPill.textContent = latest.status;
     statusPill.className = `pill st-${latest.status}`;
+    showAge();
   }
 
   function redraw() {
     pending = false;
-    if (!cols) return;
-    fitWidth(slipChart, slipBox);
-    fitWidth(speedChart, speedBox);
+    if (!cols || stopped) return;
+    // the charts follow their boxes' widths themselves (charts.js)
     slipChart.setData(alignedData(cols, SLIP_FIELDS));
     speedChart.setData(alignedData(cols, SPEED_FIELDS));
     map.setTrack(cols.east_m, cols.north_m, slipMetric(cols.slip_left_pct, cols.slip_right_pct));
@@ -183,8 +271,11 @@ export function vehicleView(root, vehicleId) {
 
   const sock = liveSocket(`/api/v1/live/vehicles/${encodeURIComponent(vehicleId)}`, { window_s: windowS }, {
     onMessage(msg, recvMs) {
+      if (stopped) return;
       if (msg.type === "waiting") {
         statusPill.textContent = "no data yet";
+        liveEmpty = true;
+        checkUnknown();
         return;
       }
       if (msg.type === "snapshot") {
@@ -203,19 +294,31 @@ export function vehicleView(root, vehicleId) {
       }
     },
     onState(s) {
+      if (stopped) return;
+      connected = s === "open";
       if (s !== "open") {
         statusPill.textContent = `connection ${s}`;
         statusPill.className = "pill st-offline";
+        showAge();
+        if (!cols) {
+          liveEmpty = true;
+          checkUnknown();
+        }
       }
     },
   });
   const onResize = () => redraw();
   window.addEventListener("resize", onResize);
-  return () => {
+
+  function stop() {
+    if (stopped) return;
+    stopped = true;
     clearInterval(ingestTimer);
+    clearInterval(ageTimer);
     sock.close();
     window.removeEventListener("resize", onResize);
     slipChart.destroy();
     speedChart.destroy();
-  };
+  }
+  return stop;
 }
