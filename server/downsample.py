@@ -1,11 +1,12 @@
-"""Peak-keeping decimation of estimate series (pure numpy).
+"""Decimation of estimate series (pure numpy): min/max envelopes and whole-row thinning.
 
-Method (min/max per time bucket)
---------------------------------
-The time range ``[start_ns, end_ns)`` is cut into ``B = max_points // 2`` buckets of equal width
-``w = ceil((end_ns - start_ns) / B)``; bucket ``k`` holds the rows with
-``start_ns + k·w <= stamp_ns < start_ns + (k+1)·w``. Every non-empty bucket becomes at most two
-output rows:
+Two methods, both over time buckets of equal width ``w`` anchored at ``start_ns`` (bucket ``k``
+holds the rows with ``start_ns + k·w <= stamp_ns < start_ns + (k+1)·w``); empty buckets give no
+rows, so gaps in the data stay gaps.
+
+Min/max per bucket (:func:`downsample_minmax`), for charts
+-----------------------------------------------------------
+Every non-empty bucket becomes at most two output rows:
 
 * for each float field, one row carries the bucket's minimum and the other its maximum, in the
   order they occurred (the extreme seen first goes in the first row), so a spike and a dip both
@@ -15,30 +16,78 @@ output rows:
 * ``flags`` of both rows is the bitwise OR of the bucket's flags (any ``DEGRADED`` row shows);
 * a bucket holding one row gives that row unchanged.
 
-So the output has at most ``max_points`` rows, every column's envelope (min and max per bucket)
-is exact, but one output row mixes values of different input rows; use full rate
-(``max_points`` 0) where rows must be read as a whole. Empty buckets give no rows, so gaps in the
-data stay gaps.
+So ``B`` buckets give at most ``2·B`` rows and every column's envelope (min and max per bucket)
+is exact, but one output row mixes values of different input rows: ``east_m`` of one row and
+``north_m`` of another are no position the vehicle ever had. Read rows as a whole only at full
+rate or from :func:`thin_first`.
+
+First whole row per bucket (:func:`thin_first`), for positions
+--------------------------------------------------------------
+Every non-empty bucket gives its first row, unchanged: each output row is a stored row, so a
+position, its slip and its flags belong together. ``B`` buckets give at most ``B`` rows.
+
+Sizing the buckets
+------------------
+:func:`bucket_width_ns` gives the width for at most ``max_points`` output rows over a span.
+The server takes the span of the data itself, from the first to the last stored row in the
+requested range (``[first, last + 1)``, anchored at ``first``), not the requested range: a
+14-minute drive asked for as "the last 12 hours" keeps 14 minutes' worth of detail. For a
+12-hour drive at 10 Hz (432,000 rows) and ``max_points`` 2,000, min/max buckets are 43.2 s
+wide (1,000 buckets of two rows) and whole-row buckets 21.6 s wide (one row each).
 
 Buckets are anchored at ``start_ns``, so decimating ``[a, c)`` equals concatenating the
 decimation of ``[a, b)`` and ``[b, c)`` when ``b - a`` is a multiple of the bucket width; the
-server uses this to decimate long ranges chunk by chunk (:func:`bucket_width_ns`).
+server uses this to decimate long ranges chunk by chunk.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["bucket_width_ns", "downsample_minmax"]
+__all__ = ["bucket_width_ns", "downsample_minmax", "thin_first"]
 
 
-def bucket_width_ns(start_ns: int, end_ns: int, max_points: int) -> int:
-    """Width of one bucket for ``max_points`` output rows over ``[start_ns, end_ns)``, >= 1 ns."""
+def bucket_width_ns(
+    start_ns: int, end_ns: int, max_points: int, *, rows_per_bucket: int = 2
+) -> int:
+    """Width of one bucket, >= 1 ns, so that ``[start_ns, end_ns)`` cut into buckets of at most
+    ``rows_per_bucket`` output rows (2 for :func:`downsample_minmax`, 1 for :func:`thin_first`)
+    gives at most ``max_points`` rows: ``ceil(span / (max_points // rows_per_bucket))``."""
     if max_points < 2:
         raise ValueError("max_points must be >= 2")
+    if rows_per_bucket not in (1, 2):
+        raise ValueError("rows_per_bucket must be 1 or 2")
     span = max(int(end_ns) - int(start_ns), 1)
-    buckets = max_points // 2
+    buckets = max_points // rows_per_bucket
     return max(-(-span // buckets), 1)
+
+
+def thin_first(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndarray:
+    """The first row of each time bucket, whole (see the module docstring).
+
+    Parameters
+    ----------
+    rows : ndarray, shape (n,), structured with an int ``stamp_ns`` field
+        Sorted by ``stamp_ns``; any subset of ``ESTIMATE_DTYPE`` fields.
+    start_ns : int
+        Anchor of the first bucket (<= every stamp).
+    width_ns : int
+        Bucket width, >= 1 (:func:`bucket_width_ns` with ``rows_per_bucket=1``).
+
+    Returns
+    -------
+    ndarray, shape (m,), same dtype as ``rows``: rows of ``rows`` (a copy), one per non-empty
+    bucket, in order.
+    """
+    if width_ns < 1:
+        raise ValueError("width_ns must be >= 1")
+    n = rows.shape[0]
+    if n == 0:
+        return rows.copy()
+    bucket = (rows["stamp_ns"].astype(np.int64) - np.int64(start_ns)) // np.int64(width_ns)
+    # Rows are sorted, so each bucket is one contiguous run: keep where a run starts.
+    first = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
+    return rows[first]
 
 
 def downsample_minmax(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndarray:

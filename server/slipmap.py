@@ -1,6 +1,6 @@
 """Slip map: estimates binned into square cells of a local ENU frame (pure numpy, no I/O).
 
-The server-side, time-weighted counterpart of the dashboard's heat grid (``web/js/slipmap.js``).
+The dashboard's history page draws its heat grid from this map (``GET /vehicles/{id}/slipmap``).
 Time weights, "moving", slip validity and slip bands are those of the field reports
 (:mod:`server.reports`), so a map over a range and the report over the same range agree: the
 ``time_s`` of all cells is the report's ``moving_s`` less the moving time without a position.

@@ -173,8 +173,18 @@ class SeriesPublic(BaseModel):
     end_ns: int
     fields: list[str]
     max_points: int = Field(description="0 means full rate")
-    downsampled: bool = Field(description="true when rows were decimated by min/max buckets")
-    rows: int
+    decimation: Literal["minmax", "first"] = Field(
+        description="minmax: per bucket the min and max of each field (rows mix estimates); "
+        "first: per bucket its first row, whole"
+    )
+    downsampled: bool = Field(description="true when rows were decimated (see decimation)")
+    bucket_ns: int = Field(
+        description="width of one time bucket, sized on the stored rows' span; 0 at full rate"
+    )
+    rows: int = Field(description="rows in this answer")
+    stored_rows: int = Field(description="rows stored in the range")
+    first_ns: int | None = Field(description="stamp of the first stored row in the range")
+    last_ns: int | None = Field(description="stamp of the last stored row in the range")
     columns: dict[str, list[float | int | None]]
 
 

@@ -1,4 +1,4 @@
-"""Peak-keeping min/max decimation, checked by hand."""
+"""Peak-keeping min/max decimation and whole-row thinning, checked by hand."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
-from server.downsample import bucket_width_ns, downsample_minmax
+from server.downsample import bucket_width_ns, downsample_minmax, thin_first
 
 S = 1_000_000_000
 
@@ -101,3 +101,93 @@ def test_properties(values: list[float], max_points: int, spike_at: int) -> None
     right = rows[rows["stamp_ns"] >= cut]
     joined = np.concatenate([downsample_minmax(left, 0, width), downsample_minmax(right, 0, width)])
     assert joined.tobytes() == out.tobytes()
+
+
+H = 3600 * S
+
+
+def _drive(n: int, step_ns: int, t0: int = 0) -> np.ndarray:
+    """``n`` rows of a drive: every field varies from row to row (a mixed row would show)."""
+    rows = empty_estimates(n)
+    rows["stamp_ns"] = t0 + np.arange(n, dtype=np.int64) * step_ns
+    k = np.arange(n, dtype=np.float64)
+    for i, name in enumerate(rows.dtype.names or ()):
+        if rows.dtype[name].kind == "f":
+            rows[name] = np.sin(k * (0.013 + 0.007 * i) + i) * (10 + i)
+    rows["flags"] = (np.arange(n) % 3).astype(np.int32) << 4
+    return rows
+
+
+def test_bucket_width_of_a_12_hour_drive() -> None:
+    # 2,000 points over 12 h: 1,000 min/max buckets of 43.2 s, or 2,000 whole rows 21.6 s apart
+    assert bucket_width_ns(0, 12 * H, 2000) == 43_200_000_000
+    assert bucket_width_ns(0, 12 * H, 2000, rows_per_bucket=1) == 21_600_000_000
+    with pytest.raises(ValueError):
+        bucket_width_ns(0, 10, 4, rows_per_bucket=3)
+
+
+def test_a_short_burst_keeps_its_detail_when_buckets_follow_the_data() -> None:
+    """5 min of 10 Hz rows late in a 12 h range: buckets sized on the burst's own span give
+    far more than the ~14 rows of buckets sized on the range."""
+    t0 = 11 * H
+    burst = _drive(3000, S // 10, t0=t0)
+    first, last = int(burst["stamp_ns"][0]), int(burst["stamp_ns"][-1])
+    on_range = downsample_minmax(burst, 0, bucket_width_ns(0, 12 * H, 2000))
+    assert on_range.shape[0] <= 16  # what sizing on the requested range gave: junk
+    width = bucket_width_ns(first, last + 1, 2000)
+    out = downsample_minmax(burst, first, width)
+    assert 1900 <= out.shape[0] <= 2000
+    thin = thin_first(burst, first, bucket_width_ns(first, last + 1, 2000, rows_per_bucket=1))
+    assert 1500 <= thin.shape[0] <= 2000
+
+
+def test_thin_first_by_hand() -> None:
+    rows = _series([1, 2, 3, 4, 5, 6, 7])
+    rows["stamp_ns"] = [0, 1, 4, 5, 6, 30, 31]  # buckets of 5: {0,1,4}, {5,6}, -, -, -, -, {30,31}
+    out = thin_first(rows, 0, 5)
+    assert out["stamp_ns"].tolist() == [0, 5, 30]
+    assert out.tobytes() == rows[[0, 3, 5]].tobytes()
+    assert thin_first(rows[:0], 0, 5).shape == (0,)
+    with pytest.raises(ValueError):
+        thin_first(rows, 0, 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(1, 400),
+    step=st.integers(1, 50),
+    max_points=st.integers(2, 60),
+    holes=st.lists(st.integers(0, 399), max_size=40),
+)
+def test_thin_first_returns_only_stored_rows(
+    n: int, step: int, max_points: int, holes: list[int]
+) -> None:
+    """Every returned row equals a stored row, byte for byte (no field is taken from another
+    row), at most max_points of them, in time order, one per non-empty bucket; chunking at a
+    bucket boundary changes nothing."""
+    rows = _drive(n, step)
+    rows = rows[np.setdiff1d(np.arange(n), holes)] if len(holes) < n else rows
+    first, last = int(rows["stamp_ns"][0]), int(rows["stamp_ns"][-1])
+    width = bucket_width_ns(first, last + 1, max_points, rows_per_bucket=1)
+    out = thin_first(rows, first, width)
+    stored = {r.tobytes() for r in rows}
+    assert all(r.tobytes() in stored for r in out)
+    assert out.shape[0] <= max_points
+    assert np.all(np.diff(out["stamp_ns"]) > 0)
+    buckets = (rows["stamp_ns"] - first) // width
+    assert out.shape[0] == np.unique(buckets).shape[0]
+    assert out[0].tobytes() == rows[0].tobytes()
+    cut = first + width * max(1, int(buckets[-1]) // 2)
+    left = rows[rows["stamp_ns"] < cut]
+    right = rows[rows["stamp_ns"] >= cut]
+    joined = np.concatenate([thin_first(left, first, width), thin_first(right, first, width)])
+    assert joined.tobytes() == out.tobytes()
+
+
+def test_minmax_rows_are_not_stored_rows() -> None:
+    """Why positions need thin_first: a min/max row pairs an east of one row with a north of
+    another."""
+    rows = _drive(200, S)
+    out = downsample_minmax(rows, 0, 20 * S)
+    stored = {r.tobytes() for r in rows}
+    assert sum(r.tobytes() not in stored for r in out) > out.shape[0] // 2

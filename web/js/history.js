@@ -1,8 +1,20 @@
-// History of one vehicle: pick a time range, load it from the REST series endpoint, then scrub or
-// replay it at 1×–60× with the charts' cursor and the slip map's position in sync. The map can also
-// show a heat grid of mean |slip| per cell over the range.
+// History of one vehicle: pick a time range (UTC), load it from the REST series endpoint, then
+// scrub or replay it at 1×–60× with the charts' cursor and the slip map's position in sync. The
+// map can also show a heat grid of mean |slip| per cell over the range.
+//
+// Three requests, each right for what it draws:
+// * charts: the series decimated to min/max per time bucket (`decimation=minmax`): the envelope
+//   of every field is exact, spikes survive, but one row mixes values of several estimates;
+// * track, replay position and the values at the cursor: whole stored rows (`decimation=first`,
+//   the first row of each bucket), so a position, its slip and its speed belong together;
+// * heat grid: the REST slip map of the range (`GET /vehicles/{id}/slipmap`), the same cells and
+//   numbers as a GIS export (time-weighted mean |slip| over both wheels' valid slips, moving
+//   rows only, at full rate).
+// The server sizes its buckets on the span of the stored rows in the range, not on the range, so
+// a short drive in a long range keeps its detail; the page says how many points it shows of how
+// many stored rows, and how wide the buckets are.
 
-import { fetchSeries, fetchVehicle, getJSON } from "./api.js";
+import { fetchVehicle, getJSON } from "./api.js";
 import {
   SLIP_FIELDS,
   SPEED_FIELDS,
@@ -12,35 +24,107 @@ import {
   setCursorTime,
   setThreshold,
 } from "./charts.js";
-import { SlipMap, heatGrid, slipMetric } from "./slipmap.js";
+import { SlipMap, slipMetric } from "./slipmap.js";
 import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
 
-const FIELDS = [...SLIP_FIELDS, ...SPEED_FIELDS, "east_m", "north_m", "flags"];
+const CHART_FIELDS = [...SLIP_FIELDS, ...SPEED_FIELDS, "flags"];
+const TRACK_FIELDS = ["east_m", "north_m", "slip_left_pct", "slip_right_pct", "vg_mps", "flags"];
+const CHART_POINTS = 4000; // min/max: 2,000 buckets
+const TRACK_POINTS = 10000; // whole rows: a 12 h drive gives one every 4.3 s
 const PRESETS = [
   [300, "last 5 min"],
   [1800, "last 30 min"],
   [7200, "last 2 h"],
   [43200, "last 12 h"],
 ];
+const CUSTOM = "custom";
 const SPEEDS = [1, 2, 5, 10, 30, 60];
-const MAX_POINTS = 4000;
+const CELLS_M = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000]; // the auto cell size picks from these
+const CELL_CHOICES = [1, 2, 5, 10, 20, 50];
+const AUTO_CELLS_ACROSS = 60; // auto: the smallest cell giving at most this many across the track
+const SLIPMAP_MAX_RANGE_S = 24 * 3600; // the slip map endpoint's limit
+const NS = 1000000000n;
 
-function toInputValue(ns) {
-  return new Date(ns / 1e6).toISOString().slice(0, 19);
+// Times in the inputs: 24-hour ISO UTC, "2026-11-26 22:48:43" (a "T" instead of the space, a
+// fraction of a second and a trailing "Z" or "UTC" are accepted). Values are BigInt nanoseconds:
+// a Number holds an epoch nanosecond only to 256 ns.
+const TIME_RE =
+  /^\s*(\d{4})-(\d{2})-(\d{2})(?:T|\s+)(\d{2}):(\d{2})(?::(\d{2})(?:\.(\d{1,9}))?)?\s*(?:Z|UTC)?\s*$/i;
+
+export function formatUtc(ns) {
+  return new Date(Number(BigInt(ns) / 1000000n)).toISOString().slice(0, 19).replace("T", " ");
 }
-function fromInputValue(v) {
-  const ms = Date.parse(v.endsWith("Z") ? v : `${v}Z`);
-  return Number.isNaN(ms) ? null : ms * 1e6;
+
+export function parseUtc(text) {
+  const m = TIME_RE.exec(text || "");
+  if (!m) return null;
+  const [y, mo, d, h, mi, s] = m.slice(1, 7).map((v) => Number(v || 0));
+  const ms = Date.UTC(y, mo - 1, d, h, mi, s);
+  const t = new Date(ms);
+  const same =
+    t.getUTCFullYear() === y && t.getUTCMonth() === mo - 1 && t.getUTCDate() === d &&
+    t.getUTCHours() === h && t.getUTCMinutes() === mi && t.getUTCSeconds() === s;
+  if (!same) return null; // 2026-02-30, 24:00, …
+  return BigInt(ms / 1000) * NS + BigInt((m[7] || "").padEnd(9, "0"));
+}
+
+// "0.300 s", "21.6 s", "14 min 2 s", "30 min", "12 h", "1 h 30 min"
+function fmtSeconds(s) {
+  if (s < 100) return `${s >= 10 ? s.toFixed(1) : s >= 1 ? s.toFixed(2) : s.toFixed(3)} s`;
+  if (s < 3600) {
+    const t = Math.round(s);
+    return t % 60 ? `${Math.floor(t / 60)} min ${t % 60} s` : `${t / 60} min`;
+  }
+  const m = Math.round(s / 60);
+  return m % 60 ? `${Math.floor(m / 60)} h ${m % 60} min` : `${m / 60} h`;
+}
+
+// "2026-11-26 22:36:10–22:50:12 UTC" (the date again when the day changes)
+function fmtSpanNs(first, last) {
+  const a = formatUtc(BigInt(Math.round(first / 1e6)) * 1000000n);
+  const b = formatUtc(BigInt(Math.round(last / 1e6)) * 1000000n);
+  return `${a}–${a.slice(0, 10) === b.slice(0, 10) ? b.slice(11) : b} UTC`;
+}
+
+function setInvalid(input, bad) {
+  if (bad) input.setAttribute("aria-invalid", "true");
+  else input.removeAttribute("aria-invalid");
+}
+
+function seriesRequest(vehicleId, startNs, endNs, fields, maxPoints, decimation) {
+  return getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/series`, {
+    start: startNs.toString(),
+    end: endNs.toString(),
+    fields: fields.join(","),
+    max_points: maxPoints,
+    decimation,
+    format: "json",
+  });
 }
 
 export function historyView(root, vehicleId) {
   const preset = el("select", { id: "h-preset", "aria-label": "Range" });
   for (const [s, label] of PRESETS) preset.append(el("option", { value: String(s), text: label }));
+  preset.append(el("option", { value: CUSTOM, text: "custom" }));
   preset.value = "1800";
-  const start = el("input", { type: "datetime-local", step: "1", id: "h-start", "aria-label": "Start (UTC)" });
-  const end = el("input", { type: "datetime-local", step: "1", id: "h-end", "aria-label": "End (UTC)" });
+  const timeInput = (id, label) =>
+    el("input", {
+      type: "text",
+      id,
+      class: "mono",
+      size: "19",
+      inputmode: "numeric",
+      spellcheck: "false",
+      autocomplete: "off",
+      placeholder: "YYYY-MM-DD HH:MM:SS",
+      title: "UTC, 24-hour clock: YYYY-MM-DD HH:MM:SS",
+      "aria-label": label,
+    });
+  const start = timeInput("h-start", "Start (UTC)");
+  const end = timeInput("h-end", "End (UTC)");
   const load = el("button", { type: "button", id: "h-load", class: "primary", text: "Load" });
-  const msg = el("p", { class: "summary", id: "h-msg", "aria-live": "polite" });
+  const msg = el("span", { id: "h-msg" });
+  const detail = el("span", { id: "h-detail" });
   const play = el("button", { type: "button", id: "h-play", text: "▶ Play", disabled: true });
   const speed = el("select", { id: "h-speed", "aria-label": "Replay speed" });
   for (const s of SPEEDS) speed.append(el("option", { value: String(s), text: `${s}×` }));
@@ -49,8 +133,11 @@ export function historyView(root, vehicleId) {
   const at = el("span", { id: "h-at", class: "mono", text: "–" });
   const heatOn = el("input", { type: "checkbox", id: "h-heat" });
   const cell = el("select", { id: "h-cell", "aria-label": "Heat grid cell size" });
-  for (const m of [1, 2, 5, 10, 20]) cell.append(el("option", { value: String(m), text: `${m} m` }));
-  cell.value = "5";
+  const autoOption = el("option", { value: "auto", text: "auto" });
+  cell.append(autoOption);
+  for (const m of CELL_CHOICES) cell.append(el("option", { value: String(m), text: `${m} m` }));
+  cell.value = "auto";
+  const heatMsg = el("span", { id: "h-heat-msg", class: "summary" });
   const slipBox = el("div", { class: "chart", id: "h-chart-slip" });
   const speedBox = el("div", { class: "chart", id: "h-chart-speed" });
   const canvas = el("canvas", { class: "map", id: "h-map", role: "img", "aria-label": "Slip map of the range" });
@@ -70,8 +157,8 @@ export function historyView(root, vehicleId) {
       el("label", {}, "Start (UTC) ", start),
       el("label", {}, "End (UTC) ", end),
       load,
-      msg,
     ),
+    el("div", { class: "toolbar" }, el("p", { class: "summary", id: "h-summary", "aria-live": "polite" }, msg, " ", detail)),
     el(
       "div",
       { class: "toolbar" },
@@ -79,57 +166,139 @@ export function historyView(root, vehicleId) {
       el("label", {}, "Speed ", speed),
       el("label", { class: "grow" }, "Position ", scrub),
       at,
-      el("label", {}, heatOn, " Heat grid of mean |slip|, cell "),
+      el(
+        "label",
+        { title: "Per cell: the time-weighted mean |slip| over both wheels' valid slips while moving, at full rate (GET /api/v1/vehicles/{id}/slipmap)" },
+        heatOn,
+        " Heat grid of mean |slip|, cell ",
+      ),
       cell,
+      heatMsg,
     ),
     cursorStats,
     el("div", { class: "grid2" }, el("div", {}, slipBox, speedBox), el("div", {}, canvas)),
   );
-  let cols = null;
-  let xs = [];
+  let env = null; // chart columns: min/max envelope
+  let track = null; // whole stored rows
+  let range = null; // {s, e} BigInt ns of the loaded range
+  let xs = []; // track stamps, seconds
   let metric = [];
   let idx = 0;
   let playing = false;
   let lastFrame = 0;
   let tPlay = 0;
+  let loadGen = 0;
+  let heatGen = 0;
+  const heatCache = new Map();
   // hovering a chart moves the map's marker to that moment (the replay position stays)
   const onCursor = (i) => {
-    if (!cols || playing) return;
-    map.cursor = i;
+    if (!env || !track || playing || !xs.length) return;
+    const t = env.stamp_ns[i];
+    if (t == null) return;
+    map.cursor = bisect(t / 1e9);
     map.draw();
   };
   const sync = `history-${vehicleId}`;
   const slipChart = makeChart(slipBox, { title: "Wheel slip", yLabel: "slip (%)", fields: SLIP_FIELDS, threshold: 15, decimals: 1, syncKey: sync, onCursor });
   const speedChart = makeChart(speedBox, { title: "Speeds", yLabel: "speed (m/s)", fields: SPEED_FIELDS, decimals: 2, syncKey: sync, onCursor });
-  const map = new SlipMap(canvas, { title: "Slip map of the range" });
+  const map = new SlipMap(canvas, { title: "Track coloured by max |slip| of the two wheels" });
   fetchVehicle(vehicleId)
     .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
     .catch(() => {});
 
-
   function setPresetRange(endNs) {
-    const span = Number(preset.value) * 1e9;
-    end.value = toInputValue(endNs);
-    start.value = toInputValue(endNs - span);
+    // whole seconds, the end rounded up so the newest row stays inside
+    const e = ((BigInt(endNs) + NS - 1n) / NS) * NS;
+    end.value = formatUtc(e);
+    start.value = formatUtc(e - BigInt(preset.value) * NS);
+    setInvalid(start, false);
+    setInvalid(end, false);
   }
 
-  function applyHeat() {
-    if (!cols) return;
-    if (heatOn.checked) {
-      const m = Number(cell.value);
-      map.setHeat(heatGrid(cols.east_m, cols.north_m, metric, m), m);
-    } else map.setHeat(null, 0);
+  function autoCellM() {
+    let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;
+    if (track) {
+      for (let i = 0; i < track.east_m.length; i++) {
+        const e = track.east_m[i], n = track.north_m[i];
+        if (e == null || n == null) continue;
+        if (e < e0) e0 = e; if (e > e1) e1 = e; if (n < n0) n0 = n; if (n > n1) n1 = n;
+      }
+    }
+    const extent = Number.isFinite(e0) ? Math.max(e1 - e0, n1 - n0) : 0;
+    for (const c of CELLS_M) if (extent / c <= AUTO_CELLS_ACROSS) return c;
+    return CELLS_M[CELLS_M.length - 1];
+  }
+
+  async function fetchHeat(s, e, cellM) {
+    const key = `${s}/${e}/${cellM}`;
+    if (!heatCache.has(key)) {
+      const p = getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/slipmap`, {
+        start: s.toString(),
+        end: e.toString(),
+        cell_m: cellM,
+        format: "json",
+      });
+      heatCache.set(key, p);
+      p.catch(() => heatCache.delete(key));
+    }
+    return heatCache.get(key);
+  }
+
+  async function applyHeat() {
+    const my = ++heatGen;
+    if (!heatOn.checked || !range) {
+      map.setHeat(null, 0);
+      map.title = "Track coloured by max |slip| of the two wheels";
+      heatMsg.textContent = "";
+      if (range) map.draw();
+      return;
+    }
+    const { s, e } = range;
+    if (Number(e - s) / 1e9 > SLIPMAP_MAX_RANGE_S) {
+      map.setHeat(null, 0);
+      map.draw();
+      heatMsg.textContent = "no heat grid: the slip map covers at most 24 h";
+      return;
+    }
+    const auto = cell.value === "auto";
+    let cellM = auto ? autoCellM() : Number(cell.value);
+    autoOption.textContent = auto ? `auto (${cellM} m)` : "auto";
+    heatMsg.textContent = "loading…";
+    let body = null;
+    for (;;) {
+      try {
+        body = await fetchHeat(s, e, cellM);
+        break;
+      } catch (err) {
+        if (my !== heatGen) return;
+        const next = CELLS_M.find((c) => c > cellM);
+        if (auto && err.code === "range_too_large" && next) {
+          cellM = next; // too many cells: a coarser grid
+          autoOption.textContent = `auto (${cellM} m)`;
+          continue;
+        }
+        map.setHeat(null, 0);
+        map.draw();
+        heatMsg.textContent = `no heat grid: ${err.reason || err.message}`;
+        return;
+      }
+    }
+    if (my !== heatGen) return;
+    const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.mean_abs_slip_pct }));
+    map.setHeat(cells, body.cell_m);
+    map.title = "Track by max |slip|; cells by time-weighted mean |slip|";
+    heatMsg.textContent = `${cells.length} cells`;
     map.draw();
   }
 
   function showAt(i) {
-    if (!cols || !xs.length) return;
+    if (!track || !xs.length) return;
     idx = Math.max(0, Math.min(xs.length - 1, i));
     scrub.value = String(idx);
-    at.textContent = fmtTimeNs(cols.stamp_ns[idx]);
-    document.getElementById("h-sl").textContent = fmt(cols.slip_left_pct[idx], 1);
-    document.getElementById("h-sr").textContent = fmt(cols.slip_right_pct[idx], 1);
-    document.getElementById("h-vg").textContent = fmt(cols.vg_mps[idx], 2);
+    at.textContent = fmtTimeNs(track.stamp_ns[idx]);
+    document.getElementById("h-sl").textContent = fmt(track.slip_left_pct[idx], 1);
+    document.getElementById("h-sr").textContent = fmt(track.slip_right_pct[idx], 1);
+    document.getElementById("h-vg").textContent = fmt(track.vg_mps[idx], 2);
     setCursorTime(slipChart, xs[idx]);
     setCursorTime(speedChart, xs[idx]);
     map.cursor = idx;
@@ -137,28 +306,68 @@ export function historyView(root, vehicleId) {
     map.draw();
   }
 
+  function describe(envBody, trackBody, s, e) {
+    const stored = envBody.stored_rows;
+    if (!stored) return "– no rows stored in this range";
+    const parts = [];
+    if (envBody.downsampled) {
+      parts.push(`of ${stored} stored rows (charts: min/max per ${fmtSeconds(envBody.bucket_ns / 1e9)})`);
+    } else parts.push(`= all ${stored} stored rows`);
+    if (trackBody.downsampled) {
+      parts.push(`map: ${trackBody.rows} whole rows, one per ${fmtSeconds(trackBody.bucket_ns / 1e9)}`);
+    } else parts.push(`map: all ${trackBody.rows} rows`);
+    const first = envBody.first_ns, last = envBody.last_ns;
+    parts.push(
+      `data ${fmtSpanNs(first, last)}: ${fmtSeconds((last - first) / 1e9)} of the ` +
+        `${fmtSeconds(Number(e - s) / 1e9)} range`,
+    );
+    return parts.join(" · ");
+  }
+
   async function doLoad() {
-    const s = fromInputValue(start.value);
-    const e = fromInputValue(end.value);
-    if (s == null || e == null || e <= s) {
+    const s = parseUtc(start.value);
+    const e = parseUtc(end.value);
+    setInvalid(start, s == null);
+    setInvalid(end, e == null);
+    if (s == null || e == null) {
+      msg.textContent = "Enter the times as YYYY-MM-DD HH:MM:SS (UTC).";
+      detail.textContent = "";
+      return;
+    }
+    if (e <= s) {
       msg.textContent = "Pick a start before the end.";
+      detail.textContent = "";
       return;
     }
+    if (preset.value !== CUSTOM && e - s !== BigInt(preset.value) * NS) preset.value = CUSTOM;
+    const my = ++loadGen;
+    stop();
     msg.textContent = "Loading…";
+    detail.textContent = "";
+    let envBody, trackBody;
     try {
-      cols = await fetchSeries(vehicleId, s, e, FIELDS, MAX_POINTS);
+      [envBody, trackBody] = await Promise.all([
+        seriesRequest(vehicleId, s, e, CHART_FIELDS, CHART_POINTS, "minmax"),
+        seriesRequest(vehicleId, s, e, TRACK_FIELDS, TRACK_POINTS, "first"),
+      ]);
     } catch (err) {
-      msg.textContent = `Could not load: ${err.message}`;
+      if (my === loadGen) msg.textContent = `Could not load: ${err.message}`;
       return;
     }
-    xs = cols.stamp_ns.map((t) => t / 1e9);
-    metric = slipMetric(cols.slip_left_pct, cols.slip_right_pct);
-    msg.textContent = `${xs.length} points`;
+    if (my !== loadGen) return;
+    env = envBody.columns;
+    track = trackBody.columns;
+    range = { s, e };
+    heatCache.clear();
+    xs = track.stamp_ns.map((t) => t / 1e9);
+    metric = slipMetric(track.slip_left_pct, track.slip_right_pct, track.flags);
+    msg.textContent = `${envBody.rows} points`;
+    detail.textContent = describe(envBody, trackBody, s, e);
     fitWidth(slipChart, slipBox);
     fitWidth(speedChart, speedBox);
-    slipChart.setData(alignedData(cols, SLIP_FIELDS));
-    speedChart.setData(alignedData(cols, SPEED_FIELDS));
-    map.setTrack(cols.east_m, cols.north_m, metric);
+    slipChart.setData(alignedData(env, SLIP_FIELDS));
+    speedChart.setData(alignedData(env, SPEED_FIELDS));
+    map.setTrack(track.east_m, track.north_m, metric);
     scrub.max = String(Math.max(0, xs.length - 1));
     scrub.disabled = xs.length === 0;
     play.disabled = xs.length === 0;
@@ -209,19 +418,33 @@ export function historyView(root, vehicleId) {
   });
   heatOn.addEventListener("change", applyHeat);
   cell.addEventListener("change", applyHeat);
-  preset.addEventListener("change", () => setPresetRange(fromInputValue(end.value) || Date.now() * 1e6));
+  preset.addEventListener("change", () => {
+    if (preset.value === CUSTOM) return;
+    const e = parseUtc(end.value);
+    setPresetRange(e != null ? e : BigInt(Date.now()) * 1000000n);
+  });
+  // a time typed by hand is a custom range
+  for (const input of [start, end]) {
+    input.addEventListener("input", () => {
+      preset.value = CUSTOM;
+      setInvalid(input, false);
+    });
+    input.addEventListener("keydown", (ev) => {
+      if (ev.key === "Enter") doLoad();
+    });
+  }
   load.addEventListener("click", doLoad);
 
   // default range: the last 30 min up to the vehicle's newest estimate (or now)
   getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/latest`)
-    .then((row) => row.stamp_ns + 1)
-    .catch(() => Date.now() * 1e6)
+    .then((row) => BigInt(Math.floor(row.stamp_ns / 1e6)) * 1000000n + 1000000n)
+    .catch(() => BigInt(Date.now()) * 1000000n)
     .then((endNs) => {
       setPresetRange(endNs);
       doLoad();
     });
   const onResize = () => {
-    if (!cols) return;
+    if (!env) return;
     fitWidth(slipChart, slipBox);
     fitWidth(speedChart, speedBox);
     map.draw();
@@ -229,6 +452,8 @@ export function historyView(root, vehicleId) {
   window.addEventListener("resize", onResize);
   return () => {
     stop();
+    loadGen++;
+    heatGen++;
     window.removeEventListener("resize", onResize);
     slipChart.destroy();
     speedChart.destroy();

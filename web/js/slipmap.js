@@ -1,42 +1,36 @@
 // Slip map: the track in local metres (east right, north up, equal scale) on a canvas, coloured by
-// |slip| with the fixed scale of colors.js, an optional heat grid of mean |slip| per cell, a scale
-// bar, axis labels and the colour legend.
+// |slip| with the fixed scale of colors.js, an optional heat grid of cells, a scale bar, axis
+// labels and the colour legend.
+//
+// The track's points are drawn as given: give it whole rows (full rate, or the series endpoint's
+// `decimation=first`), never min/max-decimated rows, whose east and north may come from
+// different estimates. The heat grid is drawn from cells computed elsewhere: the history page
+// takes them from the REST slip map (`GET /api/v1/vehicles/{id}/slipmap`), so the page and a
+// GIS export show the same cells and numbers.
 
 import { drawSlipLegend, slipCss } from "./colors.js";
 
-// Per-row slip metric of the map: the larger |slip| of the two wheels, null when neither has one.
-export function slipMetric(left, right) {
+const SLIP_LEFT_VALID = 1 << 4; // EstimateFlag bits
+const SLIP_RIGHT_VALID = 1 << 5;
+
+// Per-row slip metric of the track: the larger |slip| of the two wheels, null when neither has
+// one. With `flags`, a wheel counts only where its SLIP_*_VALID bit is set (as in the REST
+// reports and slip maps).
+export function slipMetric(left, right, flags) {
   const n = left.length;
   const out = new Array(n);
   for (let i = 0; i < n; i++) {
-    const a = left[i];
-    const b = right[i];
+    let a = left[i];
+    let b = right[i];
+    if (flags) {
+      const f = flags[i] ?? 0;
+      if (!(f & SLIP_LEFT_VALID)) a = null;
+      if (!(f & SLIP_RIGHT_VALID)) b = null;
+    }
     if (a == null && b == null) out[i] = null;
     else out[i] = Math.max(a == null ? 0 : Math.abs(a), b == null ? 0 : Math.abs(b));
   }
   return out;
-}
-
-// Mean of `values` per square cell of `cellM` metres: [{e0, n0, mean, count}] (cells with a value).
-export function heatGrid(east, north, values, cellM) {
-  const cells = new Map();
-  for (let i = 0; i < east.length; i++) {
-    const e = east[i];
-    const n = north[i];
-    const v = values[i];
-    if (e == null || n == null || v == null) continue;
-    const ie = Math.floor(e / cellM);
-    const in_ = Math.floor(n / cellM);
-    const key = `${ie},${in_}`;
-    let c = cells.get(key);
-    if (!c) {
-      c = { e0: ie * cellM, n0: in_ * cellM, sum: 0, count: 0 };
-      cells.set(key, c);
-    }
-    c.sum += v;
-    c.count += 1;
-  }
-  return [...cells.values()].map((c) => ({ e0: c.e0, n0: c.n0, mean: c.sum / c.count, count: c.count }));
 }
 
 function niceStep(span) {
@@ -49,6 +43,7 @@ function niceStep(span) {
 export class SlipMap {
   constructor(canvas, { title = "Track coloured by |slip|" } = {}) {
     this.canvas = canvas;
+    canvas._slipmap = this; // lets tests and tools inspect the map
     this.title = title;
     this.east = [];
     this.north = [];
@@ -65,6 +60,7 @@ export class SlipMap {
     this.slip = slip;
   }
 
+  // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey)
   setHeat(cells, cellM) {
     this.heat = cells;
     this.heatCell = cellM;

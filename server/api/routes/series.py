@@ -2,8 +2,11 @@
 
 Rows are read from the store in chunks (``ApiLimits.query_chunk_ns``) so a long range never sits
 in memory at full rate. With ``max_points`` >= 2 and more rows than that, every chunk is decimated
-by :func:`server.downsample.downsample_minmax` (per time bucket the min and max of each field);
-chunks are whole numbers of buckets, so chunking does not change the result.
+by :func:`server.downsample.downsample_minmax` (per time bucket the min and max of each field, for
+charts) or :func:`server.downsample.thin_first` (per time bucket its first row, whole, for
+positions and GeoJSON). The buckets are sized on the span of the stored rows in the range (first
+to last), not on the requested range; chunks are whole numbers of buckets, so chunking does not
+change the result.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import json
 import math
 import re
 from collections.abc import Iterator, Sequence
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -27,7 +30,7 @@ from estimator.types import ESTIMATE_DTYPE
 from server.api.deps import ApiLimits, LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
 from server.api.errors import RangeTooLarge, Unprocessable, error_responses
 from server.api.models import ESTIMATE_FIELD_NAMES, AnchorPublic, SeriesFormat, SeriesPublic
-from server.downsample import bucket_width_ns, downsample_minmax
+from server.downsample import bucket_width_ns, downsample_minmax, thin_first
 from server.storage.base import Anchor, Store
 
 __all__ = [
@@ -58,8 +61,21 @@ def _parse_fields(fields: str | None) -> list[str]:
     return out
 
 
+Decimation = Literal["minmax", "first"]
+"""``minmax``: per time bucket the min and max of each field (:func:`downsample_minmax`, for
+charts); ``first``: per time bucket its first row, whole (:func:`thin_first`, for positions)."""
+
+_PROBE_NS = 1_000_000_000  # first probe window when looking for the data's edges
+
+
 class _Reader:
-    """Reads a range chunk by chunk and decimates once there are more rows than ``max_points``."""
+    """Reads a range chunk by chunk and decimates once there are more rows than ``max_points``.
+
+    Decimating, the buckets are sized on the data's own span in the range, from its first to
+    its last stored row (:meth:`span`), and anchored at the first row: a short drive in a long
+    range keeps its detail. Chunks are whole numbers of buckets, so chunking does not change
+    the result.
+    """
 
     def __init__(
         self,
@@ -69,50 +85,97 @@ class _Reader:
         fields: Sequence[str],
         max_points: int,
         limits: ApiLimits,
+        decimation: Decimation = "minmax",
     ) -> None:
         self.store = store
         self.vehicle_id = vehicle_id
         self.tr = tr
         self.fields = list(fields)
         self.max_points = max_points
+        self.decimation = decimation
+        self.limits = limits
         self.downsampled = False
-        if max_points >= 2:
-            self.width_ns = bucket_width_ns(tr.start_ns, tr.end_ns, max_points)
-            buckets_per_chunk = max(limits.query_chunk_ns // self.width_ns, 1)
-            self.chunk_ns = buckets_per_chunk * self.width_ns
-        else:
-            self.width_ns = 0
-            self.chunk_ns = limits.query_chunk_ns
+        self.stored_rows = 0  # rows read from the store so far
+        self.first_ns: int | None = None  # stamps of the first and last stored row in the range
+        self.last_ns: int | None = None
+        self.width_ns = 0  # bucket width once decimating is possible (0: full rate)
 
-    def _raw_chunks(self) -> Iterator[np.ndarray]:
-        t = self.tr.start_ns
-        while t < self.tr.end_ns:
-            t_next = min(t + self.chunk_ns, self.tr.end_ns)
+    def _stamps(self, lo: int, hi: int) -> np.ndarray:
+        return self.store.query_series(self.vehicle_id, lo, hi, ["stamp_ns"])["stamp_ns"]
+
+    def span(self) -> tuple[int, int] | None:
+        """Stamps of the first and the last stored row in the range (None: no rows).
+
+        Found by probing inward from each end with windows of 1 s, 2 s, 4 s, … (at most one
+        query chunk): a range whose data reaches its ends costs two small reads; hours without
+        rows before or after the data cost a few index look-ups more."""
+        chunk = self.limits.query_chunk_ns
+        lo, hi = self.tr.start_ns, self.tr.end_ns
+        first = None
+        t, w = lo, _PROBE_NS
+        while t < hi:
+            t_next = min(t + w, hi)
+            stamps = self._stamps(t, t_next)
+            if stamps.shape[0]:
+                first = int(stamps[0])
+                break
+            t, w = t_next, min(2 * w, chunk)
+        if first is None:
+            return None
+        t, w = hi, _PROBE_NS
+        while t > first:  # ends at the latest on the row at ``first``
+            t_prev = max(t - w, first)
+            stamps = self._stamps(t_prev, t)
+            if stamps.shape[0]:
+                return first, int(stamps[-1])
+            t, w = t_prev, min(2 * w, chunk)
+        return None  # the row at ``first`` went in between (retention)
+
+    def _read(self, lo: int, hi: int, chunk_ns: int) -> Iterator[np.ndarray]:
+        t = lo
+        while t < hi:
+            t_next = min(t + chunk_ns, hi)
             rows = self.store.query_series(self.vehicle_id, t, t_next, self.fields)
             if rows.shape[0]:
+                self.stored_rows += rows.shape[0]
+                if self.first_ns is None:
+                    self.first_ns = int(rows["stamp_ns"][0])
+                self.last_ns = int(rows["stamp_ns"][-1])
                 yield rows
             t = t_next
-
-    def _decimate(self, rows: np.ndarray) -> np.ndarray:
-        return downsample_minmax(rows, self.tr.start_ns, self.width_ns)
 
     def chunks(self) -> Iterator[np.ndarray]:
         """Output rows, chunk by chunk (full rate until the row count passes ``max_points``)."""
         if self.max_points < 2:
-            yield from self._raw_chunks()
+            yield from self._read(self.tr.start_ns, self.tr.end_ns, self.limits.query_chunk_ns)
             return
+        span = self.span()
+        if span is None:
+            return
+        first, last = span
+        per_bucket = 2 if self.decimation == "minmax" else 1
+        width = bucket_width_ns(first, last + 1, self.max_points, rows_per_bucket=per_bucket)
+        self.width_ns = width
+        chunk_ns = max(self.limits.query_chunk_ns // width, 1) * width
+
+        def decimate(rows: np.ndarray) -> np.ndarray:
+            if self.decimation == "minmax":
+                return downsample_minmax(rows, first, width)
+            return thin_first(rows, first, width)
+
         held: list[np.ndarray] = []
         n_held = 0
-        for rows in self._raw_chunks():
+        # rows stored after the probe beyond ``last`` would fall outside the buckets: not read
+        for rows in self._read(first, last + 1, chunk_ns):
             if self.downsampled:
-                yield self._decimate(rows)
+                yield decimate(rows)
                 continue
             held.append(rows)
             n_held += rows.shape[0]
             if n_held > self.max_points:
                 self.downsampled = True
                 for h in held:
-                    yield self._decimate(h)
+                    yield decimate(h)
                 held = []
         yield from held
 
@@ -199,26 +262,6 @@ GEOJSON_MEDIA_TYPE = "application/geo+json"
 _POSITION = ("east_m", "north_m", "up_m")
 
 
-def _thinned(reader: _Reader, max_points: int, max_rows: int) -> np.ndarray:
-    """The reader's rows at full rate, or with ``max_points`` >= 2 the first whole row of each
-    of its time buckets (min/max decimation would mix one position from several rows).
-    :class:`RangeTooLarge` past ``max_rows`` rows."""
-    if max_points < 2:
-        return reader.collect(max_rows)
-    tr = reader.tr
-    width = max(-(-(tr.end_ns - tr.start_ns) // max_points), 1)  # max_points buckets
-    parts: list[np.ndarray] = []
-    last = -1
-    for rows in reader.chunks():  # raw chunks: the reader itself does not decimate
-        bucket = (rows["stamp_ns"] - tr.start_ns) // width
-        _, first = np.unique(bucket, return_index=True)
-        keep = first[bucket[first] > last]
-        if keep.size:
-            parts.append(rows[keep])
-            last = int(bucket[keep[-1]])
-    return np.concatenate(parts) if parts else reader.empty()
-
-
 def _geojson(vehicle_id: str, rows: np.ndarray, names: Sequence[str], anchor: Anchor | None) -> str:
     """A FeatureCollection of one Point (WGS 84 longitude, latitude, ellipsoidal height) per
     row with a position, carrying the row's ``names`` fields (NaN as null); no features while
@@ -276,19 +319,30 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
     summary="Estimate series of one vehicle",
     description=(
         "Rows with `start <= stamp < end`, ordered by time.\n\n"
-        "**Decimation**: with `max_points` >= 2 and more rows than that, the range is cut into "
-        "`max_points // 2` equal time buckets and each bucket gives at most two rows holding, per "
-        "field, the bucket's minimum and maximum in the order they occurred (NaN ignored); "
-        "`stamp_ns` of the two rows is the bucket's first and last stamp and `flags` the OR of "
-        "the bucket's flags. Spikes therefore survive, but one decimated row mixes values of "
-        "several estimates. With `max_points` 0 or absent the series is full rate.\n\n"
+        "**Decimation**: with `max_points` >= 2 and more rows than that in the range, the "
+        "span of the data itself, from its first to its last stored row in the range (not the "
+        "requested range: a short drive in a long range keeps its detail), is cut into equal "
+        "time buckets anchored at the first row, and each bucket gives:\n\n"
+        "* `decimation=minmax` (default; for charts): `max_points // 2` buckets, each giving at "
+        "most two rows holding, per field, the bucket's minimum and maximum in the order they "
+        "occurred (NaN ignored); `stamp_ns` of the two rows is the bucket's first and last stamp "
+        "and `flags` the OR of the bucket's flags. Spikes therefore survive, but one decimated "
+        "row mixes values of several estimates (an `east_m` and a `north_m` of different rows "
+        "are no position the vehicle had).\n"
+        "* `decimation=first` (for positions and anything read row by row): `max_points` "
+        "buckets, each giving its first row, whole: every row returned is a stored row.\n\n"
+        "With `max_points` 0 or absent the series is full rate. A 12 h drive at 10 Hz (432 000 "
+        "rows) with `max_points=2000` gives 43.2 s buckets with `minmax` and 21.6 s buckets with "
+        "`first`. The JSON answer says what it holds: `rows` returned of `stored_rows` stored in "
+        "the range, `first_ns` and `last_ns` of the stored rows, and `bucket_ns` (0 at full "
+        "rate).\n\n"
         "**Map** (`format=geojson`): a FeatureCollection with one Point per row that has a "
         "position, in WGS 84 (longitude, latitude, ellipsoidal height) from the vehicle's "
         "anchor and the row's `east_m`, `north_m`, `up_m`; the properties are the fields asked "
-        "for. With `max_points` the range is cut into that many equal time buckets and each "
-        "gives its first row, whole (a position is never mixed from several rows). No features "
-        "before the vehicle's first fix. The collection's `anchor` is that origin by name "
-        "(`lat_deg`, `lon_deg`, `height_m`, as in the vehicle's answer), null before it.\n\n"
+        "for. With `max_points` the rows are thinned as with `decimation=first` (a position is "
+        "never mixed from several rows; `decimation=minmax` is refused). No features before the "
+        "vehicle's first fix. The collection's `anchor` is that origin by name (`lat_deg`, "
+        "`lon_deg`, `height_m`, as in the vehicle's answer), null before it.\n\n"
         "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
         "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
         "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
@@ -316,6 +370,14 @@ def get_series(
             description="Decimate to at most this many rows; 0 or absent: full rate; 1 is refused.",
         ),
     ] = None,
+    decimation: Annotated[
+        Decimation | None,
+        Query(
+            description="How `max_points` decimates: `minmax` (default; per time bucket the min "
+            "and max of each field, for charts) or `first` (per time bucket its first row, whole; "
+            "for positions). `format=geojson` always thins with `first`.",
+        ),
+    ] = None,
     format: Annotated[SeriesFormat, Query(description="Answer format")] = "json",
 ) -> Response:
     names = _parse_fields(fields)
@@ -326,14 +388,17 @@ def get_series(
         raise Unprocessable(f"max_points must be at most {limits.series_max_points}")
     tr.check_span(limits.series_max_range_ns)
     if format == "geojson":  # whole rows: a position is one row's east, north and up
+        if decimation == "minmax":
+            raise Unprocessable("format=geojson thins to whole rows: decimation=minmax is refused")
         read = [*names, *(f for f in _POSITION if f not in names)]
-        reader = _Reader(store, vehicle.vehicle_id, tr, read, 0, limits)
-        rows = _thinned(reader, points, limits.series_max_rows)
+        reader = _Reader(store, vehicle.vehicle_id, tr, read, points, limits, "first")
+        rows = reader.collect(limits.series_max_rows)
         anchor = store.get_anchors(vehicle.vehicle_id).get(vehicle.vehicle_id)
         return Response(
             _geojson(vehicle.vehicle_id, rows, names, anchor), media_type=GEOJSON_MEDIA_TYPE
         )
-    reader = _Reader(store, vehicle.vehicle_id, tr, names, points, limits)
+    how: Decimation = decimation or "minmax"
+    reader = _Reader(store, vehicle.vehicle_id, tr, names, points, limits, how)
 
     if format == "csv":
         return StreamingResponse(
@@ -360,8 +425,13 @@ def get_series(
         "end_ns": tr.end_ns,
         "fields": names,
         "max_points": points,
+        "decimation": how,
         "downsampled": reader.downsampled,
+        "bucket_ns": reader.width_ns if reader.downsampled else 0,
         "rows": int(rows.shape[0]),
+        "stored_rows": reader.stored_rows,
+        "first_ns": reader.first_ns,
+        "last_ns": reader.last_ns,
     }
     body = json.dumps(head)[:-1] + ',"columns":' + encode_columns_json(rows) + "}"
     return Response(body, media_type="application/json")

@@ -94,7 +94,7 @@ SLIPMAP_DESCRIPTION = (
 Moving estimates binned into square cells of `cell_m` metres of an east/north (ENU) frame,
 over `start <= stamp < end` (server defaults: at most 24 h, 400 `range_too_large` beyond, and
 at most 50 000 cells, 400 `range_too_large` beyond: take a larger `cell_m` or a shorter range).
-The server-side, time-weighted form of the dashboard's heat grid; the definitions are the field
+The dashboard's history page draws its heat grid from this map; the definitions are the field
 report's. The frame is the vehicle's own; the band edges are `slip.band_edges_pct` of the
 vehicle's config (default 5 and 15 %).
 

@@ -222,3 +222,94 @@ def test_geojson_map_of_whole_rows_in_wgs84(client: ApiClient, store: Store) -> 
         i = by_stamp[s]
         assert f["geometry"]["coordinates"][0] == pytest.approx(float(lon[i - 5]), abs=1e-9)
     assert np.all(np.diff(stamps) >= 4 * S)  # 5 s buckets
+
+
+def _burst(n: int, t0: int) -> np.ndarray:
+    """``n`` rows at 10 Hz from ``t0``, driving a lawnmower pattern; every field varies."""
+    rows = ramp_series(n, t0=t0)
+    k = np.arange(n, dtype=np.float64)
+    rows["east_m"] = 20.0 * np.sin(k * 0.02)
+    rows["north_m"] = 0.25 * k
+    rows["slip_left_pct"] = 8.0 + 6.0 * np.sin(k * 0.05)
+    rows["slip_right_pct"] = 7.0 + 6.0 * np.cos(k * 0.03)
+    return rows
+
+
+def test_buckets_follow_the_stored_data_not_the_requested_range(
+    client: ApiClient, store: Store
+) -> None:
+    """A 5-minute drive at the end of a 12 h range keeps its detail: the buckets are sized on
+    the stored rows' own span (0.3 s for 2,000 min/max points), not on the 12 h (43.2 s, which
+    gave 14 rows: a zig-zag between a few extremes)."""
+    client.put("/api/v1/vehicles/t1", json={})
+    rows = _burst(3000, T0 + 11 * 3600 * S)
+    store.write_estimates([("t1", rows)])
+    q = f"{U}?start={T0}&end={T0 + 12 * 3600 * S}&max_points=2000"
+    body = client.get(f"{q}&fields=vg_mps,slip_left_pct").json()
+    assert 1900 <= body["rows"] <= 2000
+    assert body["downsampled"] is True and body["decimation"] == "minmax"
+    assert body["stored_rows"] == 3000
+    assert body["first_ns"] == int(rows["stamp_ns"][0])
+    assert body["last_ns"] == int(rows["stamp_ns"][-1])
+    assert body["bucket_ns"] == -(-(299_900_000_000 + 1) // 1000)  # ceil(span / 1000 buckets)
+    cols = body["columns"]
+    assert max(cols["slip_left_pct"]) == pytest.approx(rows["slip_left_pct"].max(), rel=1e-9)
+    assert min(cols["slip_left_pct"]) == pytest.approx(rows["slip_left_pct"].min(), rel=1e-9)
+    # the same burst in a range holding only it gives the same answer
+    tight = client.get(
+        f"{U}?start={rows['stamp_ns'][0]}&end={rows['stamp_ns'][-1] + 1}"
+        "&max_points=2000&fields=vg_mps,slip_left_pct"
+    ).json()
+    assert tight["columns"] == cols
+    # fewer stored rows than max_points: all of them, whatever the range
+    body = client.get(f"{U}?start={T0}&end={T0 + 12 * 3600 * S}&max_points=4000").json()
+    assert body["downsampled"] is False and body["rows"] == body["stored_rows"] == 3000
+    assert body["bucket_ns"] == 0
+
+
+def test_whole_row_thinning_returns_stored_rows(client: ApiClient, store: Store) -> None:
+    """decimation=first: every returned row is one stored row, all of its fields (a min/max
+    row pairs the east of one estimate with the north of another)."""
+    client.put("/api/v1/vehicles/t1", json={})
+    rows = _burst(3000, T0 + 6 * 3600 * S)
+    store.write_estimates([("t1", rows)])
+    q = f"{U}?start={T0}&end={T0 + 12 * 3600 * S}&max_points=500"
+    body = client.get(f"{q}&decimation=first").json()
+    full = client.get(f"{U}?start={T0}&end={T0 + 12 * 3600 * S}").json()["columns"]
+    names = list(full)
+    stored = {tuple(full[n][i] for n in names): i for i in range(len(full["stamp_ns"]))}
+    cols = body["columns"]
+    got = [tuple(cols[n][i] for n in names) for i in range(body["rows"])]
+    assert all(g in stored for g in got)
+    assert got[0] == tuple(full[n][0] for n in names)
+    assert 450 <= body["rows"] <= 500 and body["stored_rows"] == 3000
+    assert body["decimation"] == "first" and body["downsampled"] is True
+    assert body["bucket_ns"] == -(-(299_900_000_000 + 1) // 500)
+    # min/max rows are not stored rows: that is why positions need `first`
+    mixed = client.get(q).json()["columns"]
+    n_mixed = len(mixed["stamp_ns"])
+    not_stored = sum(tuple(mixed[n][i] for n in names) not in stored for i in range(n_mixed))
+    assert not_stored > 0
+    # GeoJSON thins the same way and refuses min/max
+    geo = client.get(f"{q}&format=geojson&fields=east_m")
+    assert geo.status_code == 200
+    r = client.get(f"{q}&format=geojson&decimation=minmax")
+    assert r.status_code == 422 and "decimation" in r.json()["reason"]
+    r = client.get(f"{q}&decimation=median")
+    assert r.status_code == 422
+
+
+def test_a_12_hour_drive_at_2000_points(client: ApiClient, store: Store) -> None:
+    """A drive filling 12 h (here at 1 Hz) at 2,000 points: 43.2 s min/max buckets, 21.6 s
+    whole-row buckets, and the answer says so."""
+    client.put("/api/v1/vehicles/t1", json={})
+    rows = ramp_series(43_200, step_ns=S)
+    store.write_estimates([("t1", rows)])
+    q = f"{U}?start={T0}&end={T0 + 12 * 3600 * S}&max_points=2000&fields=vg_mps"
+    mm = client.get(q).json()
+    # the span is first to last row, 1 s short of 12 h: buckets 1 ms short of 43.2 s
+    assert mm["bucket_ns"] == pytest.approx(43.2e9, abs=1e6) and mm["stored_rows"] == 43_200
+    assert 1990 <= mm["rows"] <= 2000
+    first = client.get(f"{q}&decimation=first").json()
+    assert first["bucket_ns"] == pytest.approx(21.6e9, abs=1e6) and first["rows"] == 2000
+    assert np.all(np.diff(first["columns"]["stamp_ns"]) >= 21 * S)
