@@ -51,7 +51,8 @@ from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import VehicleConfig
-from estimator.frontend import FleetFrontEnd, TickInputs
+from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
+from estimator.frontend import FleetFrontEnd, FleetTicks, TickInputs
 from estimator.mdsf import (
     GRAVITY_MPS2,
     N_OBS_PAPER,
@@ -972,6 +973,8 @@ class MdsfFleet:
         Wheel-speed front-end settings (``teeth_per_rev`` comes from each vehicle's encoder).
     reference : ReferenceSpeedConfig, optional
         Settings of the speed filter used while GNSS is lost.
+    dead_reckoning : DeadReckoningConfig, optional
+        How the position is carried while GNSS gives none (:mod:`estimator.dead_reckoning`).
 
     Examples
     --------
@@ -989,11 +992,13 @@ class MdsfFleet:
         config: MdsfConfig | None = None,
         wheel: WheelSpeedConfig | None = None,
         reference: ReferenceSpeedConfig | None = None,
+        dead_reckoning: DeadReckoningConfig | None = None,
     ) -> None:
         self.config = config or MdsfConfig()
         self.wheel = wheel or WheelSpeedConfig()
         self.engine = MdsfEngine(self.config, reference)
         self.front = FleetFrontEnd(self.config, self.wheel)
+        self.carry = DeadReckoning(dead_reckoning or DeadReckoningConfig(), self.config.dt_s)
         self._slot: dict[str, int] = {}
         # per slot: wheel radii and rim travel per encoder tooth (left, right) [m], the slip's
         # minimum ground speed [m/s] and settling limit (SlipConfig)
@@ -1008,6 +1013,7 @@ class MdsfFleet:
         slot = self.engine.add(config)
         self._slot[vehicle_id] = slot
         self.front.add(slot, config)
+        self.carry.add(slot, config.geometry.antenna_offset_m)
         if slot >= self._min_speed_mps.shape[0]:
             cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
             grow_slot_array(self, "_radius_m", cap, (2,), 0.0)
@@ -1127,6 +1133,7 @@ class MdsfFleet:
             ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
         )
         valid = sp.valid & ~settling
+        enu, heading, carried = self._carry(due, res)
         slip_out = np.where(valid, sp.slip_pct, np.nan)
         slip_std_out = np.where(valid, sp.std_pct, np.nan)
         flags = (
@@ -1136,6 +1143,7 @@ class MdsfFleet:
                 | np.where(valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
                 | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
                 | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
+                | np.where(carried, int(_F.DEAD_RECKONED), 0)
             ).astype(np.int32)
             | flat.wheel_flags
         )
@@ -1160,10 +1168,10 @@ class MdsfFleet:
         out["accel_mps2"] = res["accel"]
         out["pitch_rate_radps"] = res["pitch_rate"]
         out["yaw_rate_radps"] = res["yaw_rate"]
-        out["east_m"] = flat.enu[:, 0]
-        out["north_m"] = flat.enu[:, 1]
-        out["up_m"] = flat.enu[:, 2]
-        out["heading_rad"] = flat.attitude[:, 0]
+        out["east_m"] = enu[:, 0]
+        out["north_m"] = enu[:, 1]
+        out["up_m"] = enu[:, 2]
+        out["heading_rad"] = heading
         out["pitch_rad"] = flat.attitude[:, 1]
         out["roll_rad"] = flat.attitude[:, 2]
         out["flags"] = flags
@@ -1177,3 +1185,26 @@ class MdsfFleet:
             )
             if b > a
         ]
+
+    def _carry(
+        self, due: FleetTicks, res: dict[str, FloatArray]
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """Positions and headings of the call's ticks with GNSS outages dead-reckoned, and which
+        ticks were (a vehicle's ticks in order: one round per tick, as the filter's steps)."""
+        flat, lengths, offsets = due.inputs, due.lengths, due.offsets
+        enu = flat.enu.copy()
+        heading = flat.attitude[:, 0].copy()
+        carried = np.zeros(flat.m, dtype=bool)
+        for r in range(int(lengths[0])):
+            c = int(np.count_nonzero(lengths > r))
+            fi = offsets[:c] + r
+            enu[fi], heading[fi], carried[fi] = self.carry.step(
+                due.slots[:c],
+                flat.enu[fi],
+                flat.fix_age_s[fi],
+                flat.attitude[fi, 0],
+                res["v0"][fi],
+                res["yaw_rate"][fi],
+                flat.attitude[fi, 1],
+            )
+        return enu, heading, carried

@@ -163,6 +163,9 @@ class TickInputs:
     dist_restart : ndarray, shape (m,), bool
         A new chain of positions starts at this tick (first fix, or a gap): the distance has a
         new offset.
+    fix_age_s : ndarray, shape (m,)
+        Age of the fix ``enu`` and ``attitude`` were moved to the tick from (``inf``: none yet)
+        [s]; :mod:`estimator.dead_reckoning` carries the position past a stale one.
     """
 
     stamp_ns: IntArray
@@ -182,6 +185,7 @@ class TickInputs:
     dist_m: FloatArray
     dist_var: FloatArray
     dist_restart: BoolArray
+    fix_age_s: FloatArray
 
     @property
     def m(self) -> int:
@@ -1171,7 +1175,7 @@ class _Batch:
         z[:, MdsfObs.OMEGA_X] = means[1]
         z[:, MdsfObs.OMEGA_Z] = means[2]
         gnss_ok, gnss_var = self._gnss_speed(z)
-        enu, att = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick)
+        enu, att, fix_age_s = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick)
         dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
         omega, omega_std, wflags = self._wheels()
         return TickInputs(
@@ -1192,6 +1196,7 @@ class _Batch:
             dist_m=dist_m,
             dist_var=dist_var,
             dist_restart=dist_restart,
+            fix_age_s=fix_age_s,
         )
 
     def _between_fixes(
@@ -1630,8 +1635,9 @@ class _Batch:
 
     def _hold_outputs(
         self, wz_tick: FloatArray, theta_tick: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """Position (ENU, moved to the tick with the GNSS velocity) and attitude per tick."""
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Position (ENU, moved to the tick with the GNSS velocity), attitude and the age of the
+        fix they come from (``inf``: none) per tick."""
         fe = self.fe
         g, rows = self.g, self.g_row
         s = self.slots
@@ -1677,6 +1683,7 @@ class _Batch:
         if nf:
             sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
         age = (self.ticks - nan_to_num(sel[:, _H_STAMP])) * _NS
+        fix_age_s = np.where(np.isfinite(sel[:, _H_STAMP]), age, np.inf)
         age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
         vel = nan_to_num(sel[:, _H_VE : _H_VU + 1])
         enu = sel[:, _H_E : _H_U + 1] + (vel * age[:, None] if self.product else 0.0)
@@ -1701,7 +1708,7 @@ class _Batch:
             fix_pos = (lp >= 0) & ~np.isfinite(held[:, _H_E])
             held[fix_pos, _H_E : _H_U + 1] = table[lp[fix_pos], _H_E : _H_U + 1]
             fe.hold[s[has]] = held
-        return enu, att
+        return enu, att, fix_age_s
 
     def _no_wheel_data(
         self, vs: IntArray, tix2: IntArray, om: FloatArray, sd: FloatArray

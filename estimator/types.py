@@ -204,6 +204,9 @@ class EstimateFlag(IntFlag):
     WHEEL_GAP = 1 << 10
     """Wheel data was missing (:class:`WheelGap`): a wheel's fit starts afresh and has no
     speed, hence no slip, until it holds enough new edges."""
+    DEAD_RECKONED = 1 << 11
+    """No GNSS position for longer than ``DeadReckoningConfig.after_s``: position and heading
+    are carried from the last fix by the speed and the gyro (:mod:`estimator.dead_reckoning`)."""
 
 
 #: Fields of one estimate row, in storage order. Units are in the names; slip is in percent.

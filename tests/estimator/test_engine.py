@@ -374,6 +374,7 @@ def _synthetic_inputs(z: np.ndarray, r_diag: np.ndarray, stamp: int) -> TickInpu
         dist_m=np.full(k, np.nan),
         dist_var=np.zeros(k),
         dist_restart=np.zeros(k, bool),
+        fix_age_s=np.full(k, np.inf),
     )
 
 
@@ -398,6 +399,7 @@ def _one_vehicle_inputs(**fields: np.ndarray) -> TickInputs:
         "dist_m": np.zeros(1),
         "dist_var": np.zeros(1),
         "dist_restart": np.zeros(1, bool),
+        "fix_age_s": np.zeros(1),
     }
     return TickInputs(**{**base, **fields})
 
