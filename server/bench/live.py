@@ -18,8 +18,10 @@ newest row in it. Sensor and server share the clock here, so with the synthetic 
 latency the live path adds (hub, WebSocket cadence, JSON, network stack).
 
 With ``--browser`` a headless Chromium also opens the dashboard: one vehicle page, whose script
-records *receive time − stamp* of every update (``window.slipfleetStats.latencyMs``, the value
-on the page), and the fleet overview, which records the cost of applying each fleet message
+records *receive time − stamp* of every update that brings a new estimate of a live vehicle
+(``window.slipfleetStats.latencyMs``, the value on the page; the heartbeat that repeats the
+last estimate and a stale vehicle's data are not latency and are left out), and the fleet
+overview, which records the cost of applying each fleet message
 (sort + render of the virtualised table, ``window.slipfleetStats.fleetUpdateMs``).
 
 The synthetic fleet: each vehicle drives a figure of eight (20–60 m lobes, 1.5–4 m/s) with slip
