@@ -92,6 +92,7 @@ class DeadReckoning:
         self.since_s = np.zeros(0)  # time since the last measured position [s]
         self.has = np.zeros(0, dtype=bool)  # origin and heading hold a value
         self.antenna_m = np.zeros((0, 2))  # antenna (x right, y forward) of O [m]
+        self._any_lever = False  # some slot's antenna is off O (else the arm is skipped)
 
     def add(self, slot: int, antenna_offset_m: tuple[float, float]) -> None:
         """Start ``slot`` with nothing to carry (its first fix gives the origin)."""
@@ -105,9 +106,12 @@ class DeadReckoning:
             self.antenna_m = np.concatenate([self.antenna_m, np.zeros((n, 2))])
         self.has[slot] = False
         self.antenna_m[slot] = antenna_offset_m
+        self._any_lever = self._any_lever or any(antenna_offset_m)
 
     def _lever(self, slots: IntArray, heading_rad: FloatArray) -> FloatArray:
         """Antenna minus ``O`` in (east, north), shape ``(n, 2)``, at headings ``heading_rad``."""
+        if not self._any_lever:
+            return np.zeros((slots.shape[0], 2))
         x, y = self.antenna_m[slots, 0], self.antenna_m[slots, 1]
         s, c = np.sin(heading_rad), np.cos(heading_rad)
         return np.stack([x * c + y * s, y * c - x * s], axis=1)
@@ -148,18 +152,22 @@ class DeadReckoning:
         measured = np.isfinite(enu_m).all(axis=1) & (fix_age_s <= cfg.after_s)
         speed = np.nan_to_num(v0_mps)
         moving = np.abs(speed) >= cfg.min_course_speed_mps
+        has = self.has[slots]
         # the heading: a moving fix's, else the gyro's integral from the last one
         turn = np.nan_to_num(yaw_rate_radps) * dt
-        psi = self.heading_rad[slots] - turn
-        mid = self.heading_rad[slots] - 0.5 * turn
-        take = measured & np.isfinite(heading_rad) & (moving | ~self.has[slots])
-        psi = np.mod(np.where(take, heading_rad, psi), 2.0 * np.pi)
-        carried = (
-            ~measured
-            & self.has[slots]
-            & np.isfinite(v0_mps)
-            & (self.since_s[slots] + dt <= cfg.max_s)
-        )
+        before = self.heading_rad[slots]
+        take = measured & np.isfinite(heading_rad) & (moving | ~has)
+        psi = np.mod(np.where(take, heading_rad, before - turn), 2.0 * np.pi)
+        if measured.all():  # the usual tick: every vehicle placed by its fix
+            origin = enu_m.copy()
+            origin[:, :2] -= self._lever(slots, psi)
+            self.origin[slots] = origin
+            self.heading_rad[slots] = psi
+            self.since_s[slots] = 0.0
+            self.has[slots] = True
+            return enu_m, heading_rad, np.zeros(slots.shape[0], dtype=bool)
+        mid = before - 0.5 * turn
+        carried = ~measured & has & np.isfinite(v0_mps) & (self.since_s[slots] + dt <= cfg.max_s)
         horiz = speed * np.cos(np.nan_to_num(pitch_rad)) * dt
         moved = self.origin[slots].copy()
         moved[:, 0] += horiz * np.sin(mid)

@@ -1192,13 +1192,13 @@ class MdsfFleet:
         """Positions and headings of the call's ticks with GNSS outages dead-reckoned, and which
         ticks were (a vehicle's ticks in order: one round per tick, as the filter's steps)."""
         flat, lengths, offsets = due.inputs, due.lengths, due.offsets
-        enu = flat.enu.copy()
-        heading = flat.attitude[:, 0].copy()
+        enu, heading = flat.enu, flat.attitude[:, 0]
         carried = np.zeros(flat.m, dtype=bool)
+        copied = False
         for r in range(int(lengths[0])):
             c = int(np.count_nonzero(lengths > r))
             fi = offsets[:c] + r
-            enu[fi], heading[fi], carried[fi] = self.carry.step(
+            e, h, k = self.carry.step(
                 due.slots[:c],
                 flat.enu[fi],
                 flat.fix_age_s[fi],
@@ -1207,4 +1207,8 @@ class MdsfFleet:
                 res["yaw_rate"][fi],
                 flat.attitude[fi, 1],
             )
+            if k.any():  # outputs copied only when some tick is carried (rare)
+                if not copied:
+                    enu, heading, copied = enu.copy(), heading.copy(), True
+                enu[fi], heading[fi], carried[fi] = e, h, k
         return enu, heading, carried
