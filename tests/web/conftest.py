@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,18 +163,32 @@ def browser() -> Iterator[Any]:
             b.close()
 
 
-@pytest.fixture
-def page(browser: Any) -> Iterator[Any]:
-    ctx = browser.new_context(viewport={"width": 1400, "height": 900})
+@contextmanager
+def checked_page(
+    browser: Any, allowed: Callable[[Any], bool] = lambda msg: False, **context: Any
+) -> Iterator[Any]:
+    """A page in a new browser context (``context``: Playwright's ``new_context`` options)
+    that fails the test on any page error, or console error other than the ``allowed`` ones
+    (a predicate on Playwright's console message)."""
+    ctx = browser.new_context(**context)
     pg = ctx.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda exc: errors.append(str(exc)))
-    pg.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
+    pg.on(
+        "console",
+        lambda msg: errors.append(msg.text) if msg.type == "error" and not allowed(msg) else None,
+    )
     try:
         yield pg
     finally:
         ctx.close()
     assert errors == [], f"errors in the page: {errors}"
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    with checked_page(browser, viewport={"width": 1400, "height": 900}) as pg:
+        yield pg
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from server.tokens import Role, issue_token
-from tests.web.conftest import N_VEHICLES, LiveStack
+from tests.web.conftest import N_VEHICLES, LiveStack, checked_page
 
 pytestmark = pytest.mark.browser
 
@@ -30,23 +30,12 @@ REFUSED = re.compile(r"status of 401|Unexpected response code: 403")
 @pytest.fixture
 def page(browser: Any) -> Iterator[Any]:
     """A page that may log refused requests (401, refused socket handshakes) and nothing else."""
-    ctx = browser.new_context(viewport={"width": 1400, "height": 900})
-    pg = ctx.new_page()
-    errors: list[str] = []
-    pg.on("pageerror", lambda exc: errors.append(str(exc)))
-    pg.on(
-        "console",
-        lambda msg: (
-            errors.append(msg.text)
-            if msg.type == "error" and not REFUSED.search(msg.text)
-            else None
-        ),
-    )
-    try:
+    with checked_page(
+        browser,
+        allowed=lambda msg: REFUSED.search(msg.text) is not None,
+        viewport={"width": 1400, "height": 900},
+    ) as pg:
         yield pg
-    finally:
-        ctx.close()
-    assert errors == [], f"errors in the page: {errors}"
 
 
 def test_dashboard_asks_for_a_token_and_uses_it(

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +18,7 @@ import numpy as np
 import pytest
 
 from server.bench.live import SyntheticFleet
-from tests.web.conftest import N_VEHICLES, LiveStack
+from tests.web.conftest import N_VEHICLES, LiveStack, checked_page
 
 pytestmark = pytest.mark.browser
 
@@ -167,18 +166,8 @@ def test_desktop_header_and_rows_line_up(live_stack: LiveStack, page: Any) -> No
     assert page.inner_text(".vhead .c-slip_left_pct") == "Slip left (%)"
 
 
-@contextmanager
-def _phone_page(browser: Any) -> Iterator[Any]:
-    ctx = browser.new_context(viewport=PHONE, is_mobile=True, has_touch=True)
-    pg = ctx.new_page()
-    errors: list[str] = []
-    pg.on("pageerror", lambda exc: errors.append(str(exc)))
-    pg.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
-    try:
-        yield pg
-    finally:
-        ctx.close()
-    assert errors == [], f"errors in the page: {errors}"
+def _phone_page(browser: Any) -> AbstractContextManager[Any]:
+    return checked_page(browser, viewport=PHONE, is_mobile=True, has_touch=True)
 
 
 def _assert_phone_columns(got: dict[str, Any], keys: list[str]) -> None:

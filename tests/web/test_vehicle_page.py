@@ -20,7 +20,7 @@ import pytest
 
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
-from tests.web.conftest import SENSITIVE, LiveStack
+from tests.web.conftest import SENSITIVE, LiveStack, checked_page
 
 pytestmark = pytest.mark.browser
 
@@ -45,29 +45,10 @@ _LAYOUT_JS = """
 """
 
 
-def _page(
-    browser: Any, viewport: dict[str, int], allowed: Callable[[Any], bool] = lambda m: False
-) -> tuple[Any, Any, list[str]]:
-    """A page whose console errors and page errors are collected (except ``allowed`` ones)."""
-    ctx = browser.new_context(viewport=viewport)
-    pg = ctx.new_page()
-    errors: list[str] = []
-    pg.on("pageerror", lambda exc: errors.append(str(exc)))
-    pg.on(
-        "console",
-        lambda msg: errors.append(msg.text) if msg.type == "error" and not allowed(msg) else None,
-    )
-    return ctx, pg, errors
-
-
 @pytest.fixture
 def phone(browser: Any) -> Iterator[Any]:
-    ctx, pg, errors = _page(browser, PHONE)
-    try:
+    with checked_page(browser, viewport=PHONE) as pg:
         yield pg
-    finally:
-        ctx.close()
-    assert errors == [], f"errors in the page: {errors}"
 
 
 def _call(stack: LiveStack, method: str, path: str, body: bytes | None = None) -> int:
@@ -194,12 +175,11 @@ def test_unknown_vehicle_says_so_and_stops_asking(
 
     # the one refusal the page has to ask for (GET /api/v1/vehicles/nope -> 404) is logged by
     # Chromium as a console error; nothing else may be
-    ctx, pg, errors = _page(
+    with checked_page(
         browser,
-        DESKTOP,
         allowed=lambda m: "404" in m.text and about_vehicle(m.location.get("url", "")),
-    )
-    try:
+        viewport=DESKTOP,
+    ) as pg:
         asked: list[str] = []
         pg.on("request", lambda r: asked.append(r.url) if about_vehicle(r.url) else None)
         pg.on("websocket", lambda ws: asked.append(ws.url) if about_vehicle(ws.url) else None)
@@ -222,9 +202,6 @@ def test_unknown_vehicle_says_so_and_stops_asking(
             "unknown vehicle",
         )
         pg.screenshot(path=str(screenshots / "vehicle-unknown.png"))
-    finally:
-        ctx.close()
-    assert errors == [], f"errors in the page: {errors}"
 
 
 def test_silent_vehicle_is_shown_stale_with_its_age_not_as_latency(
