@@ -33,6 +33,19 @@ export function slipMetric(left, right, flags) {
   return out;
 }
 
+// `text` cut to fit `maxW` pixels in the context's font, ending in "…" when cut.
+export function fitText(ctx, text, maxW) {
+  if (ctx.measureText(text).width <= maxW) return text;
+  let lo = 0;
+  let hi = text.length;
+  while (lo < hi) {
+    const mid = (lo + hi + 1) >> 1;
+    if (ctx.measureText(text.slice(0, mid).trimEnd() + "…").width <= maxW) lo = mid;
+    else hi = mid - 1;
+  }
+  return text.slice(0, lo).trimEnd() + "…";
+}
+
 function niceStep(span) {
   const raw = span / 5;
   const p = 10 ** Math.floor(Math.log10(raw));
@@ -86,7 +99,7 @@ export class SlipMap {
     ctx.font = "bold 14px system-ui, sans-serif";
     ctx.textAlign = "left";
     ctx.textBaseline = "top";
-    ctx.fillText(this.title, 12, 8);
+    ctx.fillText(fitText(ctx, this.title, cssW - 24), 12, 8); // a phone's canvas is narrow
 
     // bounds over the track and the heat cells
     let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;
