@@ -289,6 +289,28 @@ def test_fmt_never_prints_negative_zero(live_stack: LiveStack, page: Any) -> Non
     assert got == [want for _, _, want in cases]
 
 
+def test_durations_round_once(live_stack: LiveStack, page: Any) -> None:
+    """``fmtDuration`` (alerts, history): 599.6 s printed "9 min 60 s" before."""
+    page.goto(live_stack.base_url + "/#/fleet")
+    cases = [
+        (0.3912, "0.391 s"),
+        (4.25, "4.25 s"),
+        (21.6, "21.6 s"),
+        (599.6, "10 min"),
+        (842.0, "14 min 2 s"),
+        (3599.7, "1 h"),
+        (5400.0, "1 h 30 min"),
+        (43200.0, "12 h"),
+        (None, "–"),
+    ]
+    got = page.evaluate(
+        "async (cases) => { const { fmtDuration } = await import('/js/util.js');"
+        " return cases.map((v) => fmtDuration(v)); }",
+        [v for v, _ in cases],
+    )
+    assert got == [want for _, want in cases]
+
+
 class _Silenced:
     """The synthetic fleet less one vehicle, as if that vehicle had stopped sending."""
 

@@ -25,7 +25,7 @@ import {
   setThreshold,
 } from "./charts.js";
 import { SlipMap, slipMetric } from "./slipmap.js";
-import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
+import { el, fmt, fmtDuration, fmtTimeNs, vehicleHref } from "./util.js";
 
 const CHART_FIELDS = [...SLIP_FIELDS, ...SPEED_FIELDS, "flags"];
 const TRACK_FIELDS = ["east_m", "north_m", "slip_left_pct", "slip_right_pct", "vg_mps", "flags"];
@@ -66,17 +66,6 @@ export function parseUtc(text) {
     t.getUTCHours() === h && t.getUTCMinutes() === mi && t.getUTCSeconds() === s;
   if (!same) return null; // 2026-02-30, 24:00, …
   return BigInt(ms / 1000) * NS + BigInt((m[7] || "").padEnd(9, "0"));
-}
-
-// "0.300 s", "21.6 s", "14 min 2 s", "30 min", "12 h", "1 h 30 min"
-function fmtSeconds(s) {
-  if (s < 100) return `${s >= 10 ? s.toFixed(1) : s >= 1 ? s.toFixed(2) : s.toFixed(3)} s`;
-  if (s < 3600) {
-    const t = Math.round(s);
-    return t % 60 ? `${Math.floor(t / 60)} min ${t % 60} s` : `${t / 60} min`;
-  }
-  const m = Math.round(s / 60);
-  return m % 60 ? `${Math.floor(m / 60)} h ${m % 60} min` : `${m / 60} h`;
 }
 
 // "2026-11-26 22:36:10–22:50:12 UTC" (the date again when the day changes)
@@ -311,15 +300,15 @@ export function historyView(root, vehicleId) {
     if (!stored) return "– no rows stored in this range";
     const parts = [];
     if (envBody.downsampled) {
-      parts.push(`of ${stored} stored rows (charts: min/max per ${fmtSeconds(envBody.bucket_ns / 1e9)})`);
+      parts.push(`of ${stored} stored rows (charts: min/max per ${fmtDuration(envBody.bucket_ns / 1e9)})`);
     } else parts.push(`= all ${stored} stored rows`);
     if (trackBody.downsampled) {
-      parts.push(`map: ${trackBody.rows} whole rows, one per ${fmtSeconds(trackBody.bucket_ns / 1e9)}`);
+      parts.push(`map: ${trackBody.rows} whole rows, one per ${fmtDuration(trackBody.bucket_ns / 1e9)}`);
     } else parts.push(`map: all ${trackBody.rows} rows`);
     const first = envBody.first_ns, last = envBody.last_ns;
     parts.push(
-      `data ${fmtSpanNs(first, last)}: ${fmtSeconds((last - first) / 1e9)} of the ` +
-        `${fmtSeconds(Number(e - s) / 1e9)} range`,
+      `data ${fmtSpanNs(first, last)}: ${fmtDuration((last - first) / 1e9)} of the ` +
+        `${fmtDuration(Number(e - s) / 1e9)} range`,
     );
     return parts.join(" · ");
   }

@@ -29,11 +29,18 @@ export function fmtTimeNs(ns, withMs = true) {
   return (withMs ? iso.slice(0, 23) : iso.slice(0, 19)) + " UTC";
 }
 
+// A duration in seconds: "0.300 s", "4.25 s", "21.6 s", "14 min 2 s", "30 min", "1 h 30 min",
+// "12 h" (whole seconds and minutes rounded once, so never "9 min 60 s"); "–" for no value.
 export function fmtDuration(s) {
-  if (s === null || s === undefined) return "–";
-  if (s < 60) return `${s.toFixed(1)} s`;
-  if (s < 3600) return `${Math.floor(s / 60)} min ${Math.round(s % 60)} s`;
-  return `${Math.floor(s / 3600)} h ${Math.round((s % 3600) / 60)} min`;
+  if (s === null || s === undefined || Number.isNaN(s)) return "–";
+  if (s < 60) return `${s >= 10 ? s.toFixed(1) : s >= 1 ? s.toFixed(2) : s.toFixed(3)} s`;
+  if (s < 3600) {
+    const t = Math.round(s);
+    if (t >= 3600) return "1 h";
+    return t % 60 ? `${Math.floor(t / 60)} min ${t % 60} s` : `${t / 60} min`;
+  }
+  const m = Math.round(s / 60);
+  return m % 60 ? `${Math.floor(m / 60)} h ${m % 60} min` : `${m / 60} h`;
 }
 
 export function vehicleHref(id, sub) {
