@@ -185,6 +185,14 @@ def checked_page(
     assert errors == [], f"errors in the page: {errors}"
 
 
+def history_loaded(page: Any) -> int:
+    """Wait until the history page says it has drawn its points; return how many."""
+    page.wait_for_function(
+        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
+    )
+    return int(page.inner_text("#h-msg").split()[0])
+
+
 @pytest.fixture
 def page(browser: Any) -> Iterator[Any]:
     with checked_page(browser, viewport={"width": 1400, "height": 900}) as pg:

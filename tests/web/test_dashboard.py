@@ -13,7 +13,7 @@ import pytest
 
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
-from tests.web.conftest import N_VEHICLES, SENSITIVE, LiveStack
+from tests.web.conftest import N_VEHICLES, SENSITIVE, LiveStack, history_loaded
 
 pytestmark = pytest.mark.browser
 
@@ -154,10 +154,7 @@ def test_history_replays_charts_and_map_in_sync(
     live_stack: LiveStack, page: Any, screenshots: Path
 ) -> None:
     page.goto(live_stack.base_url + f"/#/vehicle/{VID}/history")
-    page.wait_for_function(
-        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
-    )
-    n = int(page.inner_text("#h-msg").split()[0])
+    n = history_loaded(page)
     assert n > 100
     page.wait_for_function(f"({_COLOURED_PIXELS_JS})('h-map') > 500", timeout=10000)
     # scrub to the middle: the cursor time and values follow

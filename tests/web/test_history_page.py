@@ -25,7 +25,7 @@ import pytest
 from estimator.config import VehicleConfig
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
-from tests.web.conftest import LiveStack
+from tests.web.conftest import LiveStack, history_loaded
 
 pytestmark = pytest.mark.browser
 
@@ -94,15 +94,11 @@ def _parse_utc(text: str) -> int:
 def _open_last_12h(page: Any, base: str) -> tuple[int, int]:
     """The history page of VID loaded over "last 12 h"; returns the range of its inputs."""
     page.goto(f"{base}/#/vehicle/{VID}/history")
-    page.wait_for_function(
-        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
-    )
+    history_loaded(page)
     page.select_option("#h-preset", "43200")
     with page.expect_response(lambda r: "/series?" in r.url and "max_points=4000" in r.url):
         page.click("#h-load")
-    page.wait_for_function(
-        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
-    )
+    history_loaded(page)
     return _parse_utc(page.input_value("#h-start")), _parse_utc(page.input_value("#h-end"))
 
 
@@ -248,9 +244,7 @@ def test_range_inputs_are_24_hour_utc_and_a_typed_range_is_custom(
     query = urllib.parse.parse_qs(urllib.parse.urlparse(req.value.url).query)
     assert int(query["start"][0]) == (first // S + 60) * S
     assert int(query["end"][0]) == (first // S + 180) * S
-    page.wait_for_function(
-        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
-    )
+    history_loaded(page)
     assert page.input_value("#h-preset") == "custom"
     assert page.inner_text("#h-preset option:checked") == "custom"
     assert "2 min of the 2 min range" in page.inner_text("#h-detail")

@@ -20,7 +20,7 @@ import pytest
 
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
-from tests.web.conftest import SENSITIVE, LiveStack, checked_page
+from tests.web.conftest import SENSITIVE, LiveStack, checked_page, history_loaded
 
 pytestmark = pytest.mark.browser
 
@@ -150,9 +150,7 @@ def test_phone_history_charts_fit_and_have_time_ticks(
     live_stack: LiveStack, phone: Any, screenshots: Path
 ) -> None:
     phone.goto(live_stack.base_url + f"/#/vehicle/{SENSITIVE}/history")
-    phone.wait_for_function(
-        "/^\\d+ points$/.test(document.getElementById('h-msg').textContent)", timeout=20000
-    )
+    history_loaded(phone)
     lay = phone.evaluate(_LAYOUT_JS)
     assert lay["scroll"] <= PHONE["width"], lay
     for c in lay["charts"]:
