@@ -38,7 +38,7 @@ explodes is re-initialised and the row flagged RESET.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -946,6 +946,15 @@ class MdsfEngine:
 # ---------------------------------------------------------------------------------------------
 
 
+def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArray]]:
+    """Round ``r`` of a call's ticks: the ``r``-th tick of every vehicle that has one, as
+    ``(c, rows)`` (the first ``c`` vehicles: ``lengths`` decrease), for steps that must see a
+    vehicle's ticks in order."""
+    for r in range(int(lengths[0]) if lengths.shape[0] else 0):
+        c = int(np.count_nonzero(lengths > r))
+        yield c, offsets[:c] + r
+
+
 def _filtered_rims(
     so: StepOutput, rim: FloatArray, rim_std: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -1101,10 +1110,7 @@ class MdsfFleet:
             flags = np.zeros(total, dtype=np.int32)
             res = {c: np.full(total, np.nan) for c in _STEP_COLS}
             rim_cov = np.zeros((total, 2))
-        for r in range(rounds if rounds > 1 else 0):
-            # round r: the r-th tick of every vehicle with one
-            c = int(np.count_nonzero(lengths > r))
-            fi = offsets[:c] + r
+        for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
             emit[fi] = so.emit
@@ -1195,9 +1201,7 @@ class MdsfFleet:
         enu, heading = flat.enu, flat.attitude[:, 0]
         carried = np.zeros(flat.m, dtype=bool)
         copied = False
-        for r in range(int(lengths[0])):
-            c = int(np.count_nonzero(lengths > r))
-            fi = offsets[:c] + r
+        for c, fi in _rounds(lengths, offsets):
             e, h, k = self.carry.step(
                 due.slots[:c],
                 flat.enu[fi],
