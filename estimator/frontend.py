@@ -10,12 +10,13 @@ time on a fleet-wide grid):
   due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
   removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
   binned with ``np.bincount`` over (vehicle row, tick) ids.
-* A pitch track (the pitch rate ``ωx·cos φ + ωz·sin φ − b_x`` integrated; at each fix a
-  Kalman update of pitch and pitch-gyro bias with the GNSS pitch or, from a receiver without
-  attitude, the GNSS velocity's elevation, and a zero-rate update of the bias when the vehicle
-  stood since the previous fix, :func:`pitch_kf_update`; ``φ`` a low-passed GNSS roll,
-  :func:`roll_fix_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled to
-  the GNSS heading, :func:`yaw_fix_update`), product mode. Paper mode takes each GNSS pitch
+* A tilt track (pitch and roll as ``θ + iφ``, the body rates integrated with the yaw rate
+  turning the tilt, :meth:`_Batch._pitch_track`; at each fix a Kalman update of pitch and
+  pitch-gyro bias with the GNSS pitch or, from a receiver without attitude, the GNSS
+  velocity's elevation, the same update of roll and roll-gyro bias with the GNSS roll, and
+  zero-rate updates of the biases when the vehicle stood since the previous fix,
+  :func:`pitch_kf_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled
+  to the GNSS heading, :func:`yaw_fix_update`), product mode. Paper mode takes each GNSS pitch
   as it is (:func:`pitch_fix_update`). The integrals are segmented
   cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
   pass per "k-th fix of this batch" (a handful of passes).
@@ -92,13 +93,18 @@ __all__ = [
     "TickInputs",
     "pitch_fix_update",
     "pitch_kf_update",
-    "roll_fix_update",
     "yaw_fix_update",
 ]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
+CArray = npt.NDArray[np.complexfloating[Any, Any]]
+
+# columns of the tilt track's integrals (_Batch._pitch_track): ∫dt, ∫ωx·dt, samples, then
+# (product mode) ∫e^{iΨ}·(ωx + iωy)·dt (real, imaginary), ∫e^{iΨ}·dt (real, imaginary),
+# ∫ωy·dt, Σσ²·dt², ∫ωz²·dt
+_C_T, _C_WX, _C_N, _C_U, _C_E, _C_WY, _C_GYRO_VAR, _C_WZ2 = 0, 1, 2, 3, 5, 7, 8, 9
 
 _NS = 1e-9
 _NONE_NS = np.iinfo(np.int64).min
@@ -381,38 +387,6 @@ def yaw_fix_update(
     return psi, bias, stamp_ns.copy()
 
 
-def roll_fix_update(
-    roll_rad: FloatArray,
-    var_rad2: FloatArray,
-    fix_ns: IntArray,
-    roll_gnss_rad: FloatArray,
-    stamp_ns: IntArray,
-    config: MdsfConfig,
-) -> tuple[FloatArray, FloatArray, IntArray]:
-    """Roll track at one GNSS roll per vehicle (arrays ``(k,)``): the receiver's roll low-passed,
-    ``φ += w·(φ_gnss − φ)`` with ``w = 1 − exp(−gap/attitude_tau_s)`` (``gap`` since the
-    previous roll, clipped to [0, 1] s), and its noise variance
-    ``(1 − w)²·var + w²·pitch_std_rad²``; an unknown ``φ`` (NaN) takes the GNSS roll (variance
-    ``pitch_std_rad²``); a NaN GNSS roll changes nothing.
-
-    The pitch track needs the roll only to turn the body rates into the pitch rate
-    (``θ̇ = ωx·cos φ + ωz·sin φ``), where its noise is multiplied by the yaw rate; terrain roll
-    changes over metres, so the low-pass costs little. Returns ``(roll_rad, var_rad2, fix_ns)``.
-    """
-    r2 = config.pitch_std_rad**2
-    has = np.isfinite(roll_gnss_rad)
-    gap = _fix_gap_s(stamp_ns, fix_ns)
-    w = 1.0 - np.exp(-gap / config.attitude_tau_s)
-    known = np.isfinite(roll_rad)
-    roll = np.where(known, roll_rad + w * (roll_gnss_rad - roll_rad), roll_gnss_rad)
-    var = np.where(known, (1.0 - w) ** 2 * var_rad2 + w * w * r2, r2)
-    return (
-        np.where(has, roll, roll_rad),
-        np.where(has, var, var_rad2),
-        np.where(has, stamp_ns, fix_ns),
-    )
-
-
 # ---------------------------------------------------------------------------------------------
 # Array helpers
 # ---------------------------------------------------------------------------------------------
@@ -465,9 +439,9 @@ def _shrunk_roll(roll_rad: FloatArray, var_rad2: FloatArray) -> FloatArray:
 
 
 def _seg_cumsum(x: FloatArray, start_of: IntArray) -> FloatArray:
-    """Cumulative sum of ``x`` restarting at each segment; ``start_of[i]`` is the index where
-    element ``i``'s segment starts."""
-    c = np.cumsum(x)
+    """Cumulative sum of ``x`` along its first axis restarting at each segment; ``start_of[i]``
+    is the index where element ``i``'s segment starts."""
+    c = np.cumsum(x, axis=0)
     return c - (c[start_of] - x[start_of])
 
 
@@ -553,7 +527,7 @@ class FleetFrontEnd:
         # Checked and waiting for their tick, in push order.
         self._imu_slot = np.zeros(0, dtype=np.int64)
         self._imu_t = np.zeros(0, dtype=np.int64)
-        self._imu_v = np.zeros((0, 3))  # forward specific force, ωx, ωz
+        self._imu_v = np.zeros((0, 4))  # forward specific force, ωx, ωz, ωy
         self._gnss_slot = np.zeros(0, dtype=np.int64)
         self._gnss_t = np.zeros(0, dtype=np.int64)
         self._gnss_v = np.zeros((0, 11))
@@ -579,9 +553,12 @@ class FleetFrontEnd:
         grow("pitch_var_b", (), 0.0)  # variance of the pitch-gyro bias
         grow("pitch_acc", (4,), 0.0)  # since the last fix: angle noise var, ∫rate, ∫dt, samples
         grow("pitch_still", (), False)  # the last fix was standing
-        grow("roll_rad", (), np.nan)  # low-passed GNSS roll; NaN before the first
-        grow("roll_var", (), 0.0)
+        grow("roll_rad", (), 0.0)  # roll track (pitch_kf_update with the GNSS roll)
+        grow("roll_known", (), False)  # the track has had a GNSS roll
+        grow("roll_gyro_bias", (), 0.0)
         grow("roll_fix_ns", (), np.int64(0))
+        grow("roll_cov", (3,), 0.0)  # covariance of roll and roll-gyro bias
+        grow("roll_acc", (2,), 0.0)  # since the last fix: angle noise var, ∫ωy·dt
         grow("yaw_rad", (), np.nan)
         grow("yaw_gyro_bias", (), 0.0)
         grow("yaw_fix_ns", (), np.int64(0))
@@ -639,8 +616,11 @@ class FleetFrontEnd:
     pitch_acc: FloatArray
     pitch_still: BoolArray
     roll_rad: FloatArray
-    roll_var: FloatArray
+    roll_known: BoolArray
+    roll_gyro_bias: FloatArray
     roll_fix_ns: IntArray
+    roll_cov: FloatArray
+    roll_acc: FloatArray
     yaw_rad: FloatArray
     yaw_gyro_bias: FloatArray
     yaw_fix_ns: IntArray
@@ -702,9 +682,12 @@ class FleetFrontEnd:
         self.pitch_var_b[slot] = self.config.gyro_bias_std_radps**2
         self.pitch_acc[slot] = 0.0
         self.pitch_still[slot] = False
-        self.roll_rad[slot] = np.nan
-        self.roll_var[slot] = 0.0
+        self.roll_rad[slot] = 0.0
+        self.roll_known[slot] = False
+        self.roll_gyro_bias[slot] = 0.0
         self.roll_fix_ns[slot] = 0
+        self.roll_cov[slot] = (_PITCH_PRIOR_STD_RAD**2, 0.0, self.config.gyro_bias_std_radps**2)
+        self.roll_acc[slot] = 0.0
         self.yaw_rad[slot] = np.nan
         self.yaw_gyro_bias[slot] = 0.0
         self.yaw_fix_ns[slot] = 0
@@ -944,6 +927,8 @@ class FleetFrontEnd:
         self._imu_new_t, self._imu_new_f, self._imu_new_w = [], [], []
         chunk = np.repeat(np.arange(n_chunks), lens)
         c_start = np.cumsum(lens) - lens
+        # a NaN roll rate alone keeps the sample, read as no roll rate (the roll then moves
+        # only with the yaw rate and the fixes)
         ok = np.isfinite(f[:, 1]) & np.isfinite(w[:, 0]) & np.isfinite(w[:, 2])
         ok &= t > self.done_ns[c_slot][chunk]
         inc = np.ones(t.shape[0], dtype=bool)
@@ -972,7 +957,15 @@ class FleetFrontEnd:
         if bad.any():
             self.count[:, _IMU] += np.bincount(c_slot[chunk[bad]], minlength=self._cap)[: self._cap]
         keep = np.flatnonzero(ok)
-        vals = np.stack([f[keep, 1], w[keep, 0], w[keep, 2]], axis=1)
+        vals = np.stack(
+            [
+                f[keep, 1],
+                w[keep, 0],
+                w[keep, 2],
+                np.where(np.isfinite(w[keep, 1]), w[keep, 1], 0.0),
+            ],
+            axis=1,
+        )
         slots = c_slot[chunk[keep]]
         self._imu_slot = np.concatenate([self._imu_slot, slots])
         self._imu_t = np.concatenate([self._imu_t, t[keep]])
@@ -1062,7 +1055,7 @@ class _Batch:
         idx = idx[np.argsort(row[idx], kind="stable")]
         self.T = fe._imu_t[idx]
         vals = fe._imu_v[idx]
-        self.fy, self.wx, self.wz = vals[:, 0], vals[:, 1], vals[:, 2]
+        self.fy, self.wx, self.wz, self.wy = vals[:, 0], vals[:, 1], vals[:, 2], vals[:, 3]
         self.s_row = row[idx]
         keep = ~use
         fe._imu_slot, fe._imu_t, fe._imu_v = fe._imu_slot[keep], fe._imu_t[keep], fe._imu_v[keep]
@@ -1160,7 +1153,9 @@ class _Batch:
         before = np.bincount(self.s_row[~inb], minlength=self.n_rows)
         cum = np.cumsum(n_imu)
         hi = cum - (cum - n_imu)[self.offsets][rows] + self.s_begin[rows] + before[rows]
-        theta_tick = np.where(imu_ok, theta[np.maximum(hi - 1, 0)] if n else np.nan, np.nan)
+        at_tick = np.maximum(hi - 1, 0)
+        theta_tick = np.where(imu_ok, theta[at_tick] if n else np.nan, np.nan)
+        phi_tick = np.where(imu_ok, self.phi[at_tick] if n else np.nan, np.nan)
         nf = np.maximum(n_imu, 1).astype(np.float64)
         slot_t = self.slots[rows]
         accel_var = fe.accel_var_cfg[slot_t] / nf
@@ -1175,7 +1170,7 @@ class _Batch:
         z[:, MdsfObs.OMEGA_X] = means[1]
         z[:, MdsfObs.OMEGA_Z] = means[2]
         gnss_ok, gnss_var = self._gnss_speed(z)
-        enu, att, fix_age_s = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick)
+        enu, att, fix_age_s = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick, phi_tick)
         dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
         omega, omega_std, wflags = self._wheels()
         return TickInputs(
@@ -1239,131 +1234,182 @@ class _Batch:
         return values[which]
 
     def _pitch_track(self) -> FloatArray:
-        """Pitch at each IMU sample: the pitch rate integrated, corrected at each GNSS fix.
+        """Pitch at each IMU sample: the body rates integrated, corrected at each GNSS fix.
 
-        The pitch rate is ``ωx − b_x`` in paper mode; in product mode ``ωx·cos φ + ωz·sin φ −
-        b_x`` (from ``ωx = θ̇·cos φ + ψ̇·cos θ·sin φ`` and ``ωz = −ψ̇·cos θ·cos φ + θ̇·sin φ``):
-        on a side slope the yaw rate of a turn shows on the ``ωx`` gyro, and integrated as pitch
-        it let gravity into the forward acceleration (a 6° bank on ``field_work``: pitch RMS error
-        5.5 mrad against 1.5 with the roll). Product mode: a Kalman filter of pitch and
-        pitch-gyro bias (:func:`pitch_kf_update`); the angle noise it adds between fixes is the
-        gyro's white noise summed over the samples (``Σ σ²·dt²``) and the roll track's error
-        carried by the yaw rate (``Σ ωz²·var_φ·2·attitude_tau_s·dt``, correlated over the roll's
-        low-pass); a standing fix that follows a standing one gives the bias the interval's mean
-        rate. Paper mode: :func:`pitch_fix_update`. Also sets ``g_vg``:
-        eq. (1) with the GNSS pitch, or the tracked pitch if the receiver gives none; and the
-        pitch variance and bias in force after each fix (``g_var_after``, ``g_bias_after``).
-        Shape ``(n,)``.
+        Paper mode: the pitch rate ``ωx − b_x`` integrated, each GNSS pitch taken as it is
+        (:func:`pitch_fix_update`).
+
+        Product mode: pitch and roll as one tilt ``z = θ + iφ``. The Euler kinematics
+        ``θ̇ = ωx·cos φ + ωz·sin φ`` and ``φ̇ = ωy − tan θ·(ωz·cos φ − ωx·sin φ)`` (from
+        ``ωx = θ̇·cos φ − ψ̇·cos θ·sin φ``, ``ωy = φ̇ + ψ̇·sin θ``, ``ωz = θ̇·sin φ +
+        ψ̇·cos θ·cos φ``, ``ψ̇`` counter-clockwise) are, to first order in the angles,
+
+            ż = (ωx − b_x) + i·(ωy − b_y) − i·ωz·z,
+
+        solved between fixes in closed form with ``Ψ(t) = ∫ωz dt`` (segmented cumulative sums):
+        ``z(t) = e^{−iΨ(t)}·[e^{iΨ(t₀)}·z(t₀) + ∫e^{iΨ}·(ωx + iωy) dt − (b_x + i·b_y)·∫e^{iΨ} dt]``.
+        A turn on a side slope turns the tilt with the heading: the bank's roll is pitch halfway
+        through a U-turn and roll of the other sign at its end, which a roll held from the last
+        fix cannot follow (GNSS lost through a headland turn on ``field_work``: the pitch went 8°
+        off and the speed ran away). At each fix a Kalman filter of pitch and pitch-gyro bias
+        takes the GNSS pitch (:func:`pitch_kf_update`; a receiver without attitude: the
+        velocity's elevation), and the same update of roll and roll-gyro bias the GNSS roll, so
+        the roll gyro's bias learnt while the receiver gives roll holds the roll through an
+        outage. The angle noise either adds between fixes is the gyro's white noise summed over
+        the samples (``Σ σ²·dt²``) and the other angle's error carried by the yaw rate
+        (``Σ ωz²·var·2·attitude_tau_s·dt``); a standing fix after a standing one gives both
+        biases the interval's mean rate. Until its first GNSS roll (a receiver without
+        attitude) a vehicle's roll is 0 and its pitch rate ``ωx − b_x``.
+
+        Also sets ``g_vg`` (eq. (1) with the GNSS pitch, or the tracked pitch if the receiver
+        gives none), the pitch variance, bias and pitch after each fix (``g_var_after``,
+        ``g_bias_after``, ``g_theta_after``), the roll after each fix shrunk by its noise
+        (``g_roll_after``, :func:`_shrunk_roll`) and the roll at each sample (``phi``, NaN
+        where unknown). Returns the pitch, shape ``(n,)``.
         """
         fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
-        ct = _seg_cumsum(self.dts, self.begin_of)
-        rate = self.wx
-        self.g_roll_after = np.zeros(self.g_row.shape[0])
-        if self.product:
-            # θ̇ = ωx·cos φ + ωz·sin φ (Euler kinematics of the body rates), φ the roll track
-            phi = self._roll_at_samples()
-            rate = self.wx * np.cos(phi) + self.wz * np.sin(phi)
-        cw = _seg_cumsum(rate * self.dts, self.begin_of)
+        n = self.T.shape[0]
+        begin, dts, product = self.begin_of, self.dts, self.product
+        # the integrals since each row's first sample, one column each (_C_*)
+        cols = [dts, self.wx * dts, np.ones(n)]
+        rot = np.ones(n, dtype=np.complex128)  # e^{iΨ}, Ψ turned since the row's first sample
+        if product:
+            rot = np.exp(1j * _seg_cumsum(self.wz * dts, begin))
+            u = rot * (self.wx + 1j * self.wy) * dts
+            cols += [u.real, u.imag, rot.real * dts, rot.imag * dts, self.wy * dts]
+            cols += [fe.gyro_var_cfg[s][self.s_row] * dts * dts, self.wz * self.wz * dts]
+        cum = _seg_cumsum(np.column_stack(cols), begin)
         # the tracks' state of the batch's vehicles (copies: s is an index array)
-        th0 = fe.pitch_rad[s]
+        th = fe.pitch_rad[s]
         var = fe.pitch_var[s]
         cov_tb = fe.pitch_cov_tb[s]
         var_b = fe.pitch_var_b[s]
         self.var_before = var.copy()
-        bias = fe.pitch_gyro_bias[s]
-        self.bias_before = bias.copy()
+        bx = fe.pitch_gyro_bias[s]
+        self.bias_before = bx.copy()
         fix_ns = fe.pitch_fix_ns[s]
         known = fe.pitch_known[s]
         still = fe.pitch_still[s]
-        base_w = np.zeros(self.n_rows)
-        base_t = np.zeros(self.n_rows)
-        # since the last fix: the rate noise's angle variance, ∫rate·dt, ∫dt, sample count
-        acc = fe.pitch_acc[s]
-        if self.product:
-            # white gyro noise (per sample) integrated: Σ σ²·dt²; the roll track's error
-            # times the yaw rate (θ̇ = ωx·cos φ + ωz·sin φ), correlated over the roll's low-pass
-            # (attitude_tau_s): Σ ωz²·var_φ·2·τ·dt
-            roll_var = self._roll_var_at_samples()
-            walk = self.dts * (
-                fe.gyro_var_cfg[s][self.s_row] * self.dts
-                + self.wz * self.wz * roll_var * 2.0 * cfg.attitude_tau_s
-            )
-        else:
-            walk = np.zeros(self.T.shape[0])
-        cq = _seg_cumsum(walk, self.begin_of)
-        base_q = np.zeros(self.n_rows)
-        cn = _seg_cumsum(np.ones(self.T.shape[0]), self.begin_of)
-        base_n = np.zeros(self.n_rows)
+        acc = fe.pitch_acc[s]  # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples
+        ph = fe.roll_rad[s]
+        by = fe.roll_gyro_bias[s]
+        rcov = fe.roll_cov[s]
+        rfix_ns = fe.roll_fix_ns[s]
+        rknown = fe.roll_known[s]
+        racc = fe.roll_acc[s]  # since the last fix: angle noise var, ∫ωy·dt
+        last = np.full(self.n_rows, -1, dtype=np.int64)  # last sample integrated, per row
+
+        def tilt(m: IntArray | slice, a: CArray, beta: CArray, coupled: BoolArray) -> CArray:
+            """``θ + iφ`` at samples ``m`` of segments with parameters ``a``, ``beta``: uncoupled
+            ``θ = Re a + ∫ωx·dt − Re β·∫dt``, ``φ = Im a``; coupled
+            ``e^{−iΨ}·(a + ∫e^{iΨ}·(ωx + iωy)·dt − β·∫e^{iΨ}·dt)``."""
+            c = cum[m]
+            z = (a.real + c[:, _C_WX] - beta.real * c[:, _C_T]) + 1j * a.imag
+            if product:
+                cz = c[:, _C_U] + 1j * c[:, _C_U + 1]
+                ez = c[:, _C_E] + 1j * c[:, _C_E + 1]
+                z = np.where(coupled, rot[m].conj() * (a + cz - beta * ez), z)
+            return z
+
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
         self.g_theta_after = np.empty(nf)
+        self.g_roll_after = np.zeros(nf)
         g_still = self.g_vel_ok & (np.hypot(g[:, _G_VE], g[:, _G_VN]) < cfg.standstill_speed_mps)
 
         def end_segment(r: IntArray, j: IntArray) -> FloatArray:
-            # samples up to j-1 of rows r integrated with the bias in force; θ at j-1
-            used = np.stack([th0[r], base_w[r], base_t[r], bias[r]], axis=1)
-            th0[r] = th0[r] + (cw[j - 1] - base_w[r]) - bias[r] * (ct[j - 1] - base_t[r])
-            acc[r, 0] += cq[j - 1] - base_q[r]
-            acc[r, 1] += cw[j - 1] - base_w[r]
-            acc[r, 2] += ct[j - 1] - base_t[r]
-            acc[r, 3] += cn[j - 1] - base_n[r]
-            base_w[r], base_t[r] = cw[j - 1], ct[j - 1]
-            base_q[r], base_n[r] = cq[j - 1], cn[j - 1]
-            return used
+            # samples up to j-1 of rows r integrated with the biases in force; θ, φ at j-1
+            k, lk = j - 1, last[r]
+            begun = lk >= 0
+            c0 = np.where(begun[:, None], cum[np.maximum(lk, 0)], 0.0)  # at the segment's start
+            d = cum[k] - c0
+            acc[r, 1:4] += d[:, [_C_WX, _C_T, _C_N]]
+            a = (th[r] - c0[:, _C_WX] + bx[r] * c0[:, _C_T]) + 1j * ph[r]
+            beta = bx[r] + 0j
+            coupled = np.zeros(r.shape[0], dtype=bool)
+            if product:
+                coupled = rknown[r]
+                beta = bx[r] + 1j * np.where(coupled, by[r], 0.0)
+                turn0 = np.where(begun, rot[np.maximum(lk, 0)], 1.0)
+                cz0 = c0[:, _C_U] + 1j * c0[:, _C_U + 1]
+                ez0 = c0[:, _C_E] + 1j * c0[:, _C_E + 1]
+                a = np.where(coupled, turn0 * (th[r] + 1j * ph[r]) - cz0 + beta * ez0, a)
+                tau2 = 2.0 * cfg.attitude_tau_s
+                d_g, d_z2 = d[:, _C_GYRO_VAR], d[:, _C_WZ2]
+                acc[r, 0] += d_g + tau2 * np.where(coupled, rcov[r, 0], 0.0) * d_z2
+                racc[r, 0] += d_g + tau2 * var[r] * d_z2
+                racc[r, 1] += d[:, _C_WY]
+            z = tilt(k, a, beta, coupled)
+            th[r], ph[r] = z.real, z.imag
+            last[r] = k
+            return np.stack([a.real, a.imag, beta.real, beta.imag, coupled], axis=1)
 
         def at_fix(fi: IntArray, r: IntArray) -> None:
             p = g[fi, _G_PITCH]
             pm, pm_var = p, None
-            need = np.flatnonzero(~np.isfinite(p)) if self.product else ()
+            need = np.flatnonzero(~np.isfinite(p)) if product else ()
             if len(need):
                 # no receiver attitude: the velocity's elevation, chi-square gated (an outlying
                 # velocity is a wild pitch; before the first pitch against the prior,
                 # ±_PITCH_PRIOR_STD_RAD about level)
                 rn = r[need]
                 pv, pv_var = self._velocity_pitch(fi[need], rn)
-                wild = (pv - th0[rn]) ** 2 > cfg.gate_chi2 * (var[rn] + pv_var)
+                wild = (pv - th[rn]) ** 2 > cfg.gate_chi2 * (var[rn] + pv_var)
                 pm, pm_var = p.copy(), np.full(p.shape[0], cfg.pitch_std_rad**2)
                 pm[need] = np.where(wild, np.nan, pv)
                 pm_var[need] = pv_var
-            if self.product:
-                # stood through the interval since the previous fix: the mean rate is the bias
+            if product:
+                # stood through the interval since the previous fix: the mean rates are the biases
                 stood = still[r] & g_still[fi] & (acc[r, 2] > 0) & (cfg.standstill_speed_mps > 0)
                 span = np.where(stood, acc[r, 2], 1.0)
-                z_still = np.where(stood, acc[r, 1] / span, np.nan)
                 r_still = (
                     fe.gyro_var_cfg[s[r]] / np.maximum(acc[r, 3], 1.0)
                     + cfg.standstill_rate_floor_radps**2
                 )
+                # pitch (first k) and roll (last k) in one call
+                r2 = np.full(r.shape[0], cfg.pitch_std_rad**2)
                 cov = np.stack([var[r], cov_tb[r], var_b[r]], axis=1)
-                th0[r], cov, bias[r], fix_ns[r], known[r] = pitch_kf_update(
-                    th0[r],
-                    cov,
-                    bias[r],
-                    fix_ns[r],
-                    known[r],
-                    pm,
-                    self.g_t[fi],
+                angle, cov2, bias2, fix2, known2 = pitch_kf_update(
+                    np.concatenate([th[r], ph[r]]),
+                    np.concatenate([cov, rcov[r]]),
+                    np.concatenate([bx[r], by[r]]),
+                    np.concatenate([fix_ns[r], rfix_ns[r]]),
+                    np.concatenate([known[r], rknown[r]]),
+                    np.concatenate([pm, g[fi, _G_ROLL]]),
+                    np.concatenate([self.g_t[fi], self.g_t[fi]]),
                     cfg,
-                    pm_var,
-                    acc[r, 0],
-                    z_still,
-                    r_still,
+                    np.concatenate([r2 if pm_var is None else pm_var, r2]),
+                    np.concatenate([acc[r, 0], racc[r, 0]]),
+                    np.where(
+                        np.tile(stood, 2),
+                        np.concatenate([acc[r, 1], racc[r, 1]]) / np.tile(span, 2),
+                        np.nan,
+                    ),
+                    np.concatenate([r_still, r_still]),
                 )
-                var[r], cov_tb[r], var_b[r] = cov[:, 0], cov[:, 1], cov[:, 2]
+                kr = r.shape[0]
+                th[r], ph[r] = angle[:kr], angle[kr:]
+                var[r], cov_tb[r], var_b[r] = cov2[:kr, 0], cov2[:kr, 1], cov2[:kr, 2]
+                rcov[r] = cov2[kr:]
+                bx[r], by[r] = bias2[:kr], bias2[kr:]
+                fix_ns[r], rfix_ns[r] = fix2[:kr], fix2[kr:]
+                known[r], rknown[r] = known2[:kr], known2[kr:]
                 acc[r] = 0.0
+                racc[r] = 0.0
                 still[r] = g_still[fi]
+                self.g_roll_after[fi] = np.where(rknown[r], _shrunk_roll(ph[r], rcov[r, 0]), 0.0)
             else:
-                th0[r], var[r], bias[r], fix_ns[r], known[r] = pitch_fix_update(
-                    th0[r], var[r], bias[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg
+                th[r], var[r], bx[r], fix_ns[r], known[r] = pitch_fix_update(
+                    th[r], var[r], bx[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg
                 )
             self.g_var_after[fi] = var[r]
-            self.g_bias_after[fi] = bias[r]
-            self.g_theta_after[fi] = th0[r]
+            self.g_bias_after[fi] = bx[r]
+            self.g_theta_after[fi] = th[r]
             ok = self.g_vel_ok[fi]
-            used = np.where(np.isfinite(p), p, th0[r])
+            used = np.where(np.isfinite(p), p, th[r])
             self.g_vg[fi[ok]] = gnss_vehicle_speed(
                 g[fi[ok], _G_VE],
                 g[fi[ok], _G_VN],
@@ -1373,59 +1419,34 @@ class _Batch:
             )
 
         q = self._between_fixes(_rank_passes(self.g_rank), end_segment, at_fix)
-        fe.pitch_rad[s] = th0
+        fe.pitch_rad[s] = th
         fe.pitch_var[s] = var
         fe.pitch_cov_tb[s] = cov_tb
         fe.pitch_var_b[s] = var_b
         fe.pitch_acc[s] = acc
         fe.pitch_still[s] = still
-        fe.pitch_gyro_bias[s] = bias
+        fe.pitch_gyro_bias[s] = bx
         fe.pitch_fix_ns[s] = fix_ns
         fe.pitch_known[s] = known
-        if self.T.shape[0] == 0:
+        fe.roll_rad[s] = ph
+        fe.roll_gyro_bias[s] = by
+        fe.roll_cov[s] = rcov
+        fe.roll_fix_ns[s] = rfix_ns
+        fe.roll_known[s] = rknown
+        fe.roll_acc[s] = racc
+        if n == 0:
+            self.phi = np.zeros(0)
             return np.zeros(0)
-        return np.asarray(q[:, 0] + (cw - q[:, 1]) - q[:, 3] * (ct - q[:, 2]))
+        coupled = q[:, 4] > 0.5
+        z = tilt(slice(None), q[:, 0] + 1j * q[:, 1], q[:, 2] + 1j * q[:, 3], coupled)
+        self.phi = np.where(coupled, z.imag, np.nan)
+        return np.asarray(z.real)
 
     def _fix_of_sample(self) -> IntArray:
         """Index of the latest fix at or before each IMU sample of the same row (−1: none)."""
         if self._fix_of_sample_cache is None:
             self._fix_of_sample_cache = _asof(self.g_row, self.g_t, self.s_row, self.T)
         return self._fix_of_sample_cache
-
-    def _roll_at_samples(self) -> FloatArray:
-        """Roll for the pitch rate at each IMU sample, shape ``(n,)``.
-
-        The roll track (:func:`roll_fix_update`) in force at the sample, shrunk by its noise:
-        ``φ·φ²/(φ² + var)`` (0 before any roll). On flat ground the track is noise, which the
-        yaw rate of a turn would carry into the pitch (a circle at 0.4 rad/s: 0.6 mrad/s);
-        a roll well above its noise (a side slope) passes unchanged.
-        """
-        fe, s = self.fe, self.slots
-        roll = fe.roll_rad[s]  # copies (s is an index array)
-        var = fe.roll_var[s]
-        fix_ns = fe.roll_fix_ns[s]
-        after = np.empty(self.g_row.shape[0])
-        after_var = np.empty(self.g_row.shape[0])
-        for fi in _rank_passes(self.g_rank):
-            r = self.g_row[fi]
-            roll[r], var[r], fix_ns[r] = roll_fix_update(
-                roll[r], var[r], fix_ns[r], self.g[fi, _G_ROLL], self.g_t[fi], self.config
-            )
-            after[fi] = roll[r]
-            after_var[fi] = var[r]
-        i = self._fix_of_sample()
-        phi = _pick(i, after, fe.roll_rad[s][self.s_row])
-        v = _pick(i, after_var, fe.roll_var[s][self.s_row])
-        fe.roll_rad[s] = roll
-        fe.roll_var[s] = var
-        fe.roll_fix_ns[s] = fix_ns
-        self.g_roll_after = _shrunk_roll(after, after_var)
-        self._roll_var_s = np.where(np.isfinite(v), v, 0.0)
-        return _shrunk_roll(phi, v)
-
-    def _roll_var_at_samples(self) -> FloatArray:
-        """Variance of the roll track at each IMU sample (after :meth:`_roll_at_samples`)."""
-        return self._roll_var_s
 
     def _velocity_pitch(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray]:
         """Pitch from the GNSS velocity's elevation at fixes ``fi`` (rows ``r``) and its variance.
@@ -1634,10 +1655,11 @@ class _Batch:
         return ok, dist, var, restart
 
     def _hold_outputs(
-        self, wz_tick: FloatArray, theta_tick: FloatArray
+        self, wz_tick: FloatArray, theta_tick: FloatArray, phi_tick: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Position (ENU, moved to the tick with the GNSS velocity), attitude and the age of the
-        fix they come from (``inf``: none) per tick."""
+        fix they come from (``inf``: none) per tick. Product mode: pitch and roll from the
+        tracks at the tick (``theta_tick``, ``phi_tick``) where known."""
         fe = self.fe
         g, rows = self.g, self.g_row
         s = self.slots
@@ -1689,12 +1711,11 @@ class _Batch:
         enu = sel[:, _H_E : _H_U + 1] + (vel * age[:, None] if self.product else 0.0)
         heading = sel[:, _H_HEAD] - (nan_to_num(wz_tick) * age if self.product else 0.0)
         heading = np.mod(heading, 2 * np.pi)
-        pitch = (
-            np.where(np.isfinite(theta_tick), theta_tick, sel[:, _H_PITCH])
-            if self.product
-            else sel[:, _H_PITCH]
-        )
-        att = np.stack([heading, pitch, sel[:, _H_ROLL]], axis=1)
+        pitch, roll = sel[:, _H_PITCH], sel[:, _H_ROLL]
+        if self.product:
+            pitch = np.where(np.isfinite(theta_tick), theta_tick, pitch)
+            roll = np.where(np.isfinite(phi_tick), phi_tick, roll)
+        att = np.stack([heading, pitch, roll], axis=1)
         if nf:
             # hold the latest fix; its position, or the latest finite one of this batch
             n_fix = np.bincount(rows, minlength=self.n_rows)

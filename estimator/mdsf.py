@@ -283,11 +283,11 @@ class MdsfConfig:
     initial_speed_std_mps : float
         Speed std right after a (re)initialisation.
     attitude_tau_s : float
-        Product mode: time constant of the roll track's and the heading track's pull to the
-        GNSS roll and heading (:func:`estimator.frontend.roll_fix_update`,
-        :func:`estimator.frontend.yaw_fix_update`), hence also the correlation time of the roll
-        error where it enters the pitch rate [s]. The pitch has no time constant: it is a
-        Kalman filter with the gyro bias (:func:`estimator.frontend.pitch_kf_update`).
+        Product mode: time constant of the heading track's pull to the GNSS heading
+        (:func:`estimator.frontend.yaw_fix_update`), and the correlation time taken for the
+        roll's error where the yaw rate carries it into the pitch rate, and the pitch's into
+        the roll rate [s]. Pitch and roll have no time constant: each is a Kalman filter with
+        its gyro's bias (:func:`estimator.frontend.pitch_kf_update`).
     pitch_leak_corr_s : float
         Product mode: correlation time taken for the pitch filter's error where its gravity
         leak (``g·δθ``) is added to the accelerometer noise as white noise,

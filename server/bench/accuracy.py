@@ -117,8 +117,8 @@ VARIANTS: tuple[tuple[str, Mapping[str, Any]], ...] = (
     ("paper_circle", {"gnss_rate_hz": 10.0}),
     ("field_work", {"bank_roll_deg": 6.0}),
     ("field_work", {"gnss_attitude": False}),
-    # GNSS lost for 30 s through a headland U-turn on the banked field: the known limit of the
-    # outage handling (docs/architecture.md, "Through a GNSS outage"); fails the floors
+    # GNSS lost for 30 s through a headland U-turn on the banked field: the case the tilt track
+    # is for (docs/architecture.md, "Through a GNSS outage")
     ("field_work", {"gnss_outages": ((30.0, 60.0),)}),
 )
 
