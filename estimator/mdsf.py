@@ -319,6 +319,9 @@ class MdsfConfig:
     velocity_pitch_floor_rad : float
         Product mode: noise floor of that velocity pitch: the body pitching on its tyres
         against its path [rad].
+    accel_roll_floor_rad : float
+        Product mode: noise floor of the roll taken from the lateral accelerometer where the
+        receiver gives no roll (body sway, side slip, the sensor's bias) [rad].
     gnss_noise_adapt : float
         Weight of each accepted GNSS innovation in the running estimate of the GNSS speed noise
         (0 turns the adaptation off; the receiver's or configured noise is always the floor).
@@ -376,6 +379,7 @@ class MdsfConfig:
     standstill_rate_floor_radps: float = 5e-4
     gnss_vertical_vel_factor: float = 1.5
     velocity_pitch_floor_rad: float = 0.002
+    accel_roll_floor_rad: float = 0.05
     gnss_noise_adapt: float = 0.02
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1

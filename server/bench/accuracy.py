@@ -52,8 +52,9 @@ Variants
 ``--variants`` runs, instead of the named scenarios, :data:`VARIANTS`: the same scenarios with
 a sensor or drive changed (a rougher or finer encoder ring, a 40 s outage, frequent GNSS
 outliers, a wet patch at 1 m/s, GNSS at 10 Hz, field work on a 6° side slope, a receiver
-without attitude), so a change tuned to the named runs shows what it does elsewhere. Their
-rows are labelled ``scenario[setting=value]`` and judged on the floors of their scenario.
+without attitude, GNSS lost through a headland turn), so a change tuned to the named runs shows
+what it does elsewhere. Their rows are labelled ``scenario[setting=value]`` and judged on the
+floors of their scenario.
 """
 
 from __future__ import annotations
@@ -120,6 +121,10 @@ VARIANTS: tuple[tuple[str, Mapping[str, Any]], ...] = (
     # GNSS lost for 30 s through a headland U-turn on the banked field: the case the tilt track
     # is for (docs/architecture.md, "Through a GNSS outage")
     ("field_work", {"gnss_outages": ((30.0, 60.0),)}),
+    # a receiver without attitude on the bank, and through that outage: the roll comes from
+    # the lateral accelerometer
+    ("field_work", {"gnss_attitude": False, "bank_roll_deg": 6.0}),
+    ("field_work", {"gnss_attitude": False, "gnss_outages": ((30.0, 60.0),)}),
 )
 
 
