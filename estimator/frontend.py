@@ -103,9 +103,10 @@ CArray = npt.NDArray[np.complexfloating[Any, Any]]
 
 # columns of the tilt track's integrals (_Batch._pitch_track): ∫dt, ∫ωx·dt, samples, then
 # (product mode) ∫e^{iΨ}·(ωx + iωy)·dt (real, imaginary), ∫e^{iΨ}·dt (real, imaginary),
-# ∫ωy·dt, Σσ²·dt², ∫ωz²·dt, ∫ωz·dt, ∫f_x·dt and ∫dt over the samples with a lateral force
+# ∫ωy·dt, Σσ²·dt², ∫ωz²·dt, ∫ωz·dt, ∫f_x·dt and ∫dt over the samples with a lateral force,
+# ∫f_y·dt
 _C_T, _C_WX, _C_N, _C_U, _C_E, _C_WY, _C_GYRO_VAR, _C_WZ2 = 0, 1, 2, 3, 5, 7, 8, 9
-_C_WZ, _C_FX, _C_FX_T = 10, 11, 12
+_C_WZ, _C_FX, _C_FX_T, _C_FY = 10, 11, 12, 13
 # what the roll track sums since its last fix (FleetFrontEnd.roll_acc): angle noise variance,
 # then the differences of the columns _C_WY, _C_WZ, _C_FX, _C_FX_T
 _RACC_VAR, _RACC_WY, _RACC_WZ, _RACC_FX, _RACC_FX_T = range(5)
@@ -556,7 +557,8 @@ class FleetFrontEnd:
         grow("pitch_var", (), 0.0)
         grow("pitch_cov_tb", (), 0.0)  # covariance of pitch and pitch-gyro bias
         grow("pitch_var_b", (), 0.0)  # variance of the pitch-gyro bias
-        grow("pitch_acc", (4,), 0.0)  # since the last fix: angle noise var, ∫rate, ∫dt, samples
+        # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
+        grow("pitch_acc", (5,), 0.0)
         grow("pitch_still", (), False)  # the last fix was standing
         grow("roll_rad", (), 0.0)  # roll track (pitch_kf_update with the GNSS roll)
         grow("roll_known", (), False)  # the track has had a GNSS roll
@@ -1260,7 +1262,9 @@ class _Batch:
         fix cannot follow (GNSS lost through a headland turn on ``field_work``: the pitch went 8°
         off and the speed ran away). At each fix a Kalman filter of pitch and pitch-gyro bias
         takes the GNSS pitch (:func:`pitch_kf_update`; a receiver without attitude: the
-        velocity's elevation), and the same update of roll and roll-gyro bias the GNSS roll, so
+        velocity's elevation, or standing, where that is too noisy, gravity's share of the
+        forward specific force ``sin θ = f̄_y/g`` with variance ``σ_a²/(n·g²) +
+        pitch_std_rad²``), and the same update of roll and roll-gyro bias the GNSS roll, so
         the roll gyro's bias learnt while the receiver gives roll holds the roll through an
         outage. The angle noise either adds between fixes is the gyro's white noise summed over
         the samples (``Σ σ²·dt²``) and the other angle's error carried by the yaw rate
@@ -1290,6 +1294,7 @@ class _Batch:
             cols += [fe.gyro_var_cfg[s][self.s_row] * dts * dts, self.wz * self.wz * dts]
             has_fx = np.isfinite(self.fx)
             cols += [self.wz * dts, np.where(has_fx, self.fx, 0.0) * dts, has_fx * dts]
+            cols += [self.fy * dts]
         cum = _seg_cumsum(np.column_stack(cols), begin)
         # the tracks' state of the batch's vehicles (copies: s is an index array)
         th = fe.pitch_rad[s]
@@ -1302,7 +1307,9 @@ class _Batch:
         fix_ns = fe.pitch_fix_ns[s]
         known = fe.pitch_known[s]
         still = fe.pitch_still[s]
-        acc = fe.pitch_acc[s]  # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples
+        acc = fe.pitch_acc[
+            s
+        ]  # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
         ph = fe.roll_rad[s]
         by = fe.roll_gyro_bias[s]
         rcov = fe.roll_cov[s]
@@ -1353,6 +1360,7 @@ class _Batch:
                 acc[r, 0] += d_g + tau2 * np.where(coupled, rcov[r, 0], 0.0) * d_z2
                 racc[r, _RACC_VAR] += d_g + tau2 * var[r] * d_z2
                 racc[r, _RACC_WY:] += d[:, _RACC_COLS]
+                acc[r, 4] += d[:, _C_FY]
             z = tilt(k, a, beta, coupled)
             th[r], ph[r] = z.real, z.imag
             last[r] = k
@@ -1361,21 +1369,30 @@ class _Batch:
         def at_fix(fi: IntArray, r: IntArray) -> None:
             p = g[fi, _G_PITCH]
             pm, pm_var = p, None
+            # stood through the interval since the previous fix: the mean rates are the biases
+            stood = still[r] & g_still[fi] & (acc[r, 2] > 0) & (cfg.standstill_speed_mps > 0)
+            span = np.where(stood, acc[r, 2], 1.0)
             need = np.flatnonzero(~np.isfinite(p)) if product else ()
             if len(need):
-                # no receiver attitude: the velocity's elevation, chi-square gated (an outlying
-                # velocity is a wild pitch; before the first pitch against the prior,
-                # ±_PITCH_PRIOR_STD_RAD about level)
+                # no receiver attitude: the velocity's elevation or, standing, the forward
+                # accelerometer's gravity, chi-square gated (an outlying velocity is a wild
+                # pitch; before the first pitch against the prior, ±_PITCH_PRIOR_STD_RAD about
+                # level)
                 rn = r[need]
                 pv, pv_var = self._velocity_pitch(fi[need], rn)
+                st_pitch = np.arcsin(np.clip(acc[rn, 4] / span[need] / GRAVITY_MPS2, -1.0, 1.0))
+                st_var = (
+                    fe.accel_var_cfg[s[rn]] / (np.maximum(acc[rn, 3], 1.0) * GRAVITY_MPS2**2)
+                    + cfg.pitch_std_rad**2
+                )
+                standing = stood[need] & ~np.isfinite(pv)
+                pv = np.where(standing, st_pitch, pv)
+                pv_var = np.where(standing, st_var, pv_var)
                 wild = (pv - th[rn]) ** 2 > cfg.gate_chi2 * (var[rn] + pv_var)
                 pm, pm_var = p.copy(), np.full(p.shape[0], cfg.pitch_std_rad**2)
                 pm[need] = np.where(wild, np.nan, pv)
                 pm_var[need] = pv_var
             if product:
-                # stood through the interval since the previous fix: the mean rates are the biases
-                stood = still[r] & g_still[fi] & (acc[r, 2] > 0) & (cfg.standstill_speed_mps > 0)
-                span = np.where(stood, acc[r, 2], 1.0)
                 r_still = (
                     fe.gyro_var_cfg[s[r]] / np.maximum(acc[r, 3], 1.0)
                     + cfg.standstill_rate_floor_radps**2
