@@ -401,6 +401,27 @@ def _one_antenna_circle(speed_mps: float, rate_radps: float, n: int) -> list[Gns
     return out
 
 
+def _one_antenna_drive(
+    speed_mps: float, rate_radps: float, accel_mps2: np.ndarray, gyro_radps: np.ndarray
+) -> tuple[FleetFrontEnd, Any, np.ndarray]:
+    """20 s of a receiver without attitude (:func:`_one_antenna_circle`) and a 100 Hz IMU that
+    reads ``accel_mps2`` and ``gyro_radps`` (shape ``(3,)``) throughout: the front end, its tick
+    inputs and which ticks have IMU data after the first 5 s."""
+    n = 200
+    fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
+    fe.add(0, VehicleConfig())
+    for m in _one_antenna_circle(speed_mps, rate_radps, n):
+        fe.push(0, m)
+    t_ns = START + np.arange(10 * (n - 1) + 1) * (S // 100)
+    k = t_ns.shape[0]
+    fe.push(0, ImuBatch(t_ns, np.tile(accel_mps2, (k, 1)), np.tile(gyro_radps, (k, 1))))
+    ticks = fe.assemble(np.array([0]), np.array([t_ns[-1]]))
+    assert ticks is not None
+    late = (ticks.inputs.stamp_ns > START + 5 * S) & ticks.inputs.imu_ok
+    assert late.sum() >= 140
+    return fe, ticks.inputs, late
+
+
 @pytest.mark.parametrize(
     ("speed_mps", "rate_radps", "bank_rad"),
     [(0.0, 0.0, 0.08), (2.5, 0.0, -0.05), (2.5, 0.3, 0.0)],
@@ -413,22 +434,11 @@ def test_without_a_receiver_roll_the_lateral_accelerometer_gives_it(
     centripetal acceleration, ``sin φ = −(f_x + v·ωz)/(g·cos θ)``. On a bank the track finds
     the bank's roll; on a level circle (``f_x = −v·ωz = −0.75 m/s²``, 4.4° if read as roll)
     none. Before, the roll of such a receiver was 0 whatever the ground."""
-    n = 200
-    fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
-    fe.add(0, VehicleConfig())
-    for m in _one_antenna_circle(speed_mps, rate_radps, n):
-        fe.push(0, m)
-    t_ns = START + np.arange(10 * (n - 1) + 1) * (S // 100)
-    accel = _still_on(bank_rad, np.zeros(t_ns.shape[0]))
-    accel[:, 0] -= speed_mps * rate_radps  # centripetal, towards the centre (left)
-    gyro = np.zeros((t_ns.shape[0], 3))
-    gyro[:, 2] = rate_radps
-    fe.push(0, ImuBatch(t_ns, accel, gyro))
-    ticks = fe.assemble(np.array([0]), np.array([t_ns[-1]]))
-    assert ticks is not None
-    inp = ticks.inputs
-    late = (inp.stamp_ns > START + 5 * S) & inp.imu_ok
-    assert late.sum() >= 140
+    accel = _still_on(bank_rad, np.zeros(1))[0]
+    accel[0] -= speed_mps * rate_radps  # centripetal, towards the centre (left)
+    _, inp, late = _one_antenna_drive(
+        speed_mps, rate_radps, accel, np.array([0.0, 0.0, rate_radps])
+    )
     assert np.abs(inp.attitude[late, 2] - bank_rad).max() < 0.004
     assert np.abs(inp.attitude[late, 1]).max() < 0.004  # level: no pitch
 
@@ -439,22 +449,9 @@ def test_standing_without_a_receiver_pitch_the_forward_accelerometer_gives_it() 
     specific force does (``sin θ = f̄_y/g`` while standing); the pitch is the slope's and the
     gyro's bias is learnt. Before, the pitch stayed level and then drifted with the bias
     (a gravity leak of 0.6 m/s² into the speed filter at the first metre)."""
-    slope, bias, n = 0.06, 0.002, 200
-    fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
-    fe.add(0, VehicleConfig())
-    for m in _one_antenna_circle(0.0, 0.0, n):
-        fe.push(0, m)
-    t_ns = START + np.arange(10 * (n - 1) + 1) * (S // 100)
-    accel = np.zeros((t_ns.shape[0], 3))
-    accel[:, 1], accel[:, 2] = 9.80665 * math.sin(slope), 9.80665 * math.cos(slope)
-    gyro = np.zeros((t_ns.shape[0], 3))
-    gyro[:, 0] = bias
-    fe.push(0, ImuBatch(t_ns, accel, gyro))
-    ticks = fe.assemble(np.array([0]), np.array([t_ns[-1]]))
-    assert ticks is not None
-    inp = ticks.inputs
-    late = (inp.stamp_ns > START + 5 * S) & inp.imu_ok
-    assert late.sum() >= 140
+    slope, bias = 0.06, 0.002
+    accel = 9.80665 * np.array([0.0, math.sin(slope), math.cos(slope)])
+    fe, inp, late = _one_antenna_drive(0.0, 0.0, accel, np.array([bias, 0.0, 0.0]))
     assert np.abs(inp.attitude[late, 1] - slope).max() < 0.004
     assert fe.pitch_gyro_bias[0] == pytest.approx(bias, rel=0.1)
 
