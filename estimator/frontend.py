@@ -560,8 +560,8 @@ class FleetFrontEnd:
         # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
         grow("pitch_acc", (5,), 0.0)
         grow("pitch_still", (), False)  # the last fix was standing
-        grow("roll_rad", (), 0.0)  # roll track (pitch_kf_update with the GNSS roll)
-        grow("roll_known", (), False)  # the track has had a GNSS roll
+        grow("roll_rad", (), 0.0)  # roll track (pitch_kf_update with the roll measured)
+        grow("roll_known", (), False)  # the track has had a roll (GNSS or accelerometer)
         grow("roll_gyro_bias", (), 0.0)
         grow("roll_fix_ns", (), np.int64(0))
         grow("roll_cov", (3,), 0.0)  # covariance of roll and roll-gyro bias
@@ -1307,9 +1307,8 @@ class _Batch:
         fix_ns = fe.pitch_fix_ns[s]
         known = fe.pitch_known[s]
         still = fe.pitch_still[s]
-        acc = fe.pitch_acc[
-            s
-        ]  # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
+        # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
+        acc = fe.pitch_acc[s]
         ph = fe.roll_rad[s]
         by = fe.roll_gyro_bias[s]
         rcov = fe.roll_cov[s]
