@@ -1322,12 +1322,16 @@ class _Batch:
             ``θ = Re a + ∫ωx·dt − Re β·∫dt``, ``φ = Im a``; coupled
             ``e^{−iΨ}·(a + ∫e^{iΨ}·(ωx + iωy)·dt − β·∫e^{iΨ}·dt)``."""
             c = cum[m]
-            z = (a.real + c[:, _C_WX] - beta.real * c[:, _C_T]) + 1j * a.imag
-            if product:
-                cz = c[:, _C_U] + 1j * c[:, _C_U + 1]
-                ez = c[:, _C_E] + 1j * c[:, _C_E + 1]
-                z = np.where(coupled, rot[m].conj() * (a + cz - beta * ez), z)
-            return z
+            flat = None
+            if not (product and coupled.all()):
+                flat = (a.real + c[:, _C_WX] - beta.real * c[:, _C_T]) + 1j * a.imag
+            if not (product and coupled.any()):
+                assert flat is not None
+                return flat
+            cz = c[:, _C_U] + 1j * c[:, _C_U + 1]
+            ez = c[:, _C_E] + 1j * c[:, _C_E + 1]
+            z = rot[m].conj() * (a + cz - beta * ez)
+            return z if flat is None else np.where(coupled, z, flat)
 
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
