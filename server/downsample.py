@@ -62,6 +62,20 @@ def bucket_width_ns(
     return max(-(-span // buckets), 1)
 
 
+def _check_width(width_ns: int) -> None:
+    if width_ns < 1:
+        raise ValueError("width_ns must be >= 1")
+
+
+def _bucket_runs(rows: np.ndarray, start_ns: int, width_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(stamps, starts)``: the rows' stamps (int64) and the index where each non-empty bucket's
+    run begins (rows are sorted, so each bucket is one contiguous run). ``rows`` non-empty."""
+    _check_width(width_ns)
+    stamps = rows["stamp_ns"].astype(np.int64)
+    bucket = (stamps - np.int64(start_ns)) // np.int64(width_ns)
+    return stamps, np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
+
+
 def thin_first(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndarray:
     """The first row of each time bucket, whole (see the module docstring).
 
@@ -79,15 +93,11 @@ def thin_first(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndarray:
     ndarray, shape (m,), same dtype as ``rows``: rows of ``rows`` (a copy), one per non-empty
     bucket, in order.
     """
-    if width_ns < 1:
-        raise ValueError("width_ns must be >= 1")
-    n = rows.shape[0]
-    if n == 0:
+    if rows.shape[0] == 0:
+        _check_width(width_ns)
         return rows.copy()
-    bucket = (rows["stamp_ns"].astype(np.int64) - np.int64(start_ns)) // np.int64(width_ns)
-    # Rows are sorted, so each bucket is one contiguous run: keep where a run starts.
-    first = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
-    return rows[first]
+    _, starts = _bucket_runs(rows, start_ns, width_ns)
+    return rows[starts]
 
 
 def downsample_minmax(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndarray:
@@ -106,15 +116,11 @@ def downsample_minmax(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndar
     -------
     ndarray, shape (m,), same dtype as ``rows``, ``m <= 2 * number of non-empty buckets``.
     """
-    if width_ns < 1:
-        raise ValueError("width_ns must be >= 1")
     n = rows.shape[0]
     if n == 0:
+        _check_width(width_ns)
         return rows.copy()
-    stamps = rows["stamp_ns"].astype(np.int64)
-    bucket = (stamps - np.int64(start_ns)) // np.int64(width_ns)
-    # Rows are sorted, so each bucket is one contiguous run.
-    starts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
+    stamps, starts = _bucket_runs(rows, start_ns, width_ns)
     ends = np.r_[starts[1:], n]  # exclusive
     counts = ends - starts
     nb = starts.shape[0]
