@@ -103,14 +103,14 @@ CArray = npt.NDArray[np.complexfloating[Any, Any]]
 
 # columns of the tilt track's integrals (_Batch._pitch_track): ∫dt, ∫ωx·dt, samples, then
 # (product mode) ∫e^{iΨ}·(ωx + iωy)·dt (real, imaginary), ∫e^{iΨ}·dt (real, imaginary),
-# ∫ωy·dt, Σσ²·dt², ∫ωz²·dt, ∫ωz·dt, ∫f_x·dt and ∫dt over the samples with a lateral force,
-# ∫f_y·dt
+# ∫ωy·dt, Σσ²·dt², ∫ωz²·dt, ∫f_x·dt and ∫dt over the samples with a lateral force, ∫f_y·dt
+# (∫ωz·dt is Ψ, kept beside them)
 _C_T, _C_WX, _C_N, _C_U, _C_E, _C_WY, _C_GYRO_VAR, _C_WZ2 = 0, 1, 2, 3, 5, 7, 8, 9
-_C_WZ, _C_FX, _C_FX_T, _C_FY = 10, 11, 12, 13
+_C_FX, _C_FX_T, _C_FY = 10, 11, 12
 # what the roll track sums since its last fix (FleetFrontEnd.roll_acc): angle noise variance,
-# then the differences of the columns _C_WY, _C_WZ, _C_FX, _C_FX_T
-_RACC_VAR, _RACC_WY, _RACC_WZ, _RACC_FX, _RACC_FX_T = range(5)
-_RACC_COLS = [_C_WY, _C_WZ, _C_FX, _C_FX_T]
+# the differences of the columns _C_WY, _C_FX, _C_FX_T, and ∫ωz·dt
+_RACC_VAR, _RACC_WY, _RACC_FX, _RACC_FX_T, _RACC_WZ = range(5)
+_RACC_COLS = [_C_WY, _C_FX, _C_FX_T]
 
 _NS = 1e-9
 _NONE_NS = np.iinfo(np.int64).min
@@ -1286,15 +1286,16 @@ class _Batch:
         begin, dts, product = self.begin_of, self.dts, self.product
         # the integrals since each row's first sample, one column each (_C_*)
         cols = [dts, self.wx * dts, np.ones(n)]
-        rot = np.ones(n, dtype=np.complex128)  # e^{iΨ}, Ψ turned since the row's first sample
+        psi = np.zeros(n)  # Ψ = ∫ωz·dt, turned since the row's first sample (product mode)
+        rot = np.ones(n, dtype=np.complex128)  # e^{iΨ}
         if product:
-            rot = np.exp(1j * _seg_cumsum(self.wz * dts, begin))
+            psi = _seg_cumsum(self.wz * dts, begin)
+            rot = np.exp(1j * psi)
             u = rot * (self.wx + 1j * self.wy) * dts
             cols += [u.real, u.imag, rot.real * dts, rot.imag * dts, self.wy * dts]
             cols += [fe.gyro_var_cfg[s][self.s_row] * dts * dts, self.wz * self.wz * dts]
             has_fx = np.isfinite(self.fx)
-            cols += [self.wz * dts, np.where(has_fx, self.fx, 0.0) * dts, has_fx * dts]
-            cols += [self.fy * dts]
+            cols += [np.where(has_fx, self.fx, 0.0) * dts, has_fx * dts, self.fy * dts]
         cum = _seg_cumsum(np.column_stack(cols), begin)
         # the tracks' state of the batch's vehicles (copies: s is an index array)
         th = fe.pitch_rad[s]
@@ -1354,7 +1355,8 @@ class _Batch:
             if product:
                 coupled = rknown[r]
                 beta = bx[r] + 1j * np.where(coupled, by[r], 0.0)
-                turn0 = np.where(begun, rot[np.maximum(lk, 0)], 1.0)
+                at0 = np.maximum(lk, 0)
+                turn0 = np.where(begun, rot[at0], 1.0)
                 cz0 = c0[:, _C_U] + 1j * c0[:, _C_U + 1]
                 ez0 = c0[:, _C_E] + 1j * c0[:, _C_E + 1]
                 a = np.where(coupled, turn0 * (th[r] + 1j * ph[r]) - cz0 + beta * ez0, a)
@@ -1362,7 +1364,8 @@ class _Batch:
                 d_g, d_z2 = d[:, _C_GYRO_VAR], d[:, _C_WZ2]
                 acc[r, 0] += d_g + tau2 * np.where(coupled, rcov[r, 0], 0.0) * d_z2
                 racc[r, _RACC_VAR] += d_g + tau2 * var[r] * d_z2
-                racc[r, _RACC_WY:] += d[:, _RACC_COLS]
+                racc[r, _RACC_WY : _RACC_FX_T + 1] += d[:, _RACC_COLS]
+                racc[r, _RACC_WZ] += psi[k] - np.where(begun, psi[at0], 0.0)
                 acc[r, 4] += d[:, _C_FY]
             z = tilt(k, a, beta, coupled)
             th[r], ph[r] = z.real, z.imag
@@ -1383,10 +1386,8 @@ class _Batch:
                 # level)
                 rn = r[need]
                 pv, pv_var = self._velocity_pitch(fi[need], rn)
-                st_pitch = np.arcsin(np.clip(acc[rn, 4] / span[need] / GRAVITY_MPS2, -1.0, 1.0))
-                st_var = (
-                    fe.accel_var_cfg[s[rn]] / (np.maximum(acc[rn, 3], 1.0) * GRAVITY_MPS2**2)
-                    + cfg.pitch_std_rad**2
+                st_pitch, st_var = self._gravity_angle(
+                    rn, acc[rn, 4] / span[need], acc[rn, 3], cfg.pitch_std_rad
                 )
                 standing = stood[need] & ~np.isfinite(pv)
                 pv = np.where(standing, st_pitch, pv)
@@ -1537,19 +1538,27 @@ class _Batch:
         slope then drives the pitch off (single antenna, 6° bank on ``field_work``: slip 5.4 pp
         RMS; 57 pp with an outage through a headland turn).
         """
-        fe, g, cfg = self.fe, self.g, self.config
-        slot = self.slots[r]
+        g = self.g
         t_fx = racc[:, _RACC_FX_T]
         ok = self.g_vel_ok[fi] & (t_fx > 0) & (acc[:, 2] > 0)
         psi = np.where(np.isfinite(self.g_heading[fi]), self.g_heading[fi], 0.0)
         v = np.where(ok, g[fi, _G_VE] * np.sin(psi) + g[fi, _G_VN] * np.cos(psi), 0.0)
         f_x = racc[:, _RACC_FX] / np.where(ok, t_fx, 1.0)
         w_z = racc[:, _RACC_WZ] / np.where(ok, acc[:, 2], 1.0)
-        sin_phi = -(f_x + v * w_z) / (GRAVITY_MPS2 * np.cos(theta))
-        ok &= np.abs(sin_phi) < 1.0
-        roll = np.where(ok, np.arcsin(np.where(ok, sin_phi, 0.0)), np.nan)
-        var = fe.accel_var_cfg[slot] / (np.maximum(acc[:, 3], 1.0) * GRAVITY_MPS2**2)
-        return roll, var + cfg.accel_roll_floor_rad**2
+        force = -(f_x + v * w_z) / np.cos(theta)
+        ok &= np.abs(force) < GRAVITY_MPS2
+        roll, var = self._gravity_angle(r, force, acc[:, 3], self.config.accel_roll_floor_rad)
+        return np.where(ok, roll, np.nan), var
+
+    def _gravity_angle(
+        self, r: IntArray, force_mps2: FloatArray, n: FloatArray, floor_rad: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """Angle whose sine is gravity's share ``force_mps2/g`` of a mean specific force over
+        ``n`` samples (rows ``r``; clipped to ±π/2), and its variance ``σ_a²/(n·g²) + floor²``
+        (``σ_a`` the vehicle's accelerometer noise)."""
+        angle = np.arcsin(np.clip(force_mps2 / GRAVITY_MPS2, -1.0, 1.0))
+        var = self.fe.accel_var_cfg[self.slots[r]] / (np.maximum(n, 1.0) * GRAVITY_MPS2**2)
+        return angle, var + floor_rad**2
 
     def _pitch_bias_at_samples(self) -> FloatArray:
         """Pitch-gyro bias in force at each IMU sample (the latest fix at or before it)."""
