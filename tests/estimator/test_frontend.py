@@ -24,7 +24,7 @@ from estimator.frontend import (
 )
 from estimator.geo import EnuFrame
 from estimator.mdsf import MdsfConfig, MdsfMode
-from estimator.sim import SimRun, replay_arrivals, simulate, truth_at
+from estimator.sim import SimRun, simulate, truth_at
 from estimator.types import ESTIMATE_DTYPE, GnssSample, ImuBatch, WheelEdges, WheelSpeeds
 from estimator.wheel_speed import WheelSpeedConfig
 
@@ -476,16 +476,8 @@ def test_an_outage_through_a_headland_turn_on_a_bank_keeps_speed_and_slip(
         gnss_outages=((30.0, 60.0),),
         gnss_attitude=attitude,
     )
-    fleet = MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT))
-    fleet.add_vehicle("v", sim.config)
-    parts = []
-    for chunk, until in replay_arrivals(
-        sim.measurements, sim.arrival_ns, step_ns=S // 10, end_ns=sim.end_ns
-    ):
-        for m in chunk:
-            fleet.push("v", m)
-        parts += [rows for _, rows in fleet.advance({"v": until})]
-    rows = np.concatenate(parts)
+    vehicle = _Vehicle(sim.config, list(sim.measurements), START)
+    rows = _drive({"v": vehicle}, S // 10, MdsfConfig(mode=MdsfMode.PRODUCT))[0]["v"]
     st = rows["stamp_ns"]
     t = (st - START) * 1e-9
     assert abs(np.sum(truth_at(sim.truth, st[(t >= 30) & (t < 60)], "yaw_rate_radps"))) * 0.1 > 3.0
