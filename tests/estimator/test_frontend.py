@@ -334,13 +334,8 @@ def test_the_roll_gyros_bias_is_learnt_and_holds_the_roll_without_fixes() -> Non
     alpha, bias = 0.05, 0.003
     fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
     fe.add(0, VehicleConfig())
-    frame = EnuFrame(52.0, 5.0, 10.0)
-    for k in range(601):
-        lat, lon, h = frame.to_geodetic(0.0, 0.2 * k, 0.0)
-        fe.push(
-            0,
-            GnssSample(START + k * S // 10, (0.0, 2.0, 0.0), 0.0, 0.0, alpha, lat, lon, h),
-        )
+    for m in _fixes_along(0.0, 0.0, [0.2] * 601, [0.0] * 601, set(), roll_rad=alpha):
+        fe.push(0, m)
     t_ns = START + np.arange(8001) * (S // 100)
     gyro = np.zeros((t_ns.shape[0], 3))
     gyro[:, 1] = bias
@@ -538,11 +533,16 @@ def test_malformed_gnss_is_counted_not_raised_and_counts_are_current_before_adva
 
 
 def _fixes_along(
-    heading_rad: float, pitch_rad: float, steps_m: list[float], side_m: list[float], skip: set[int]
+    heading_rad: float,
+    pitch_rad: float,
+    steps_m: list[float],
+    side_m: list[float],
+    skip: set[int],
+    roll_rad: float = 0.0,
 ) -> list[GnssSample]:
     """10 Hz RTK-fixed samples of an antenna moving ``steps_m[k]`` along the body's forward axis
-    (heading ``ψ``, pitch ``θ``) and ``side_m[k]`` sideways (body X) per epoch; epochs in
-    ``skip`` are left out."""
+    (heading ``ψ``, pitch ``θ``, roll ``φ`` as given) and ``side_m[k]`` sideways (body X) per
+    epoch; epochs in ``skip`` are left out."""
     frame = EnuFrame(52.0, 5.0, 10.0)
     fwd = np.array(
         [
@@ -566,7 +566,7 @@ def _fixes_along(
                 (vel[0], vel[1], vel[2]),
                 heading_rad,
                 pitch_rad,
-                0.0,
+                roll_rad,
                 float(lat),
                 float(lon),
                 float(h),
