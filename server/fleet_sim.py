@@ -225,7 +225,7 @@ class _Vehicle:
     packets: list[SimPacket]
     period_ns: int  # sensor-time length of one loop
     phase_ns: int
-    shift_ns: int  # run stamps -> published stamps, first loop (anchored by publish_fleets)
+    shift_ns: int  # run stamps -> published stamps, first loop (anchored as publishing starts)
     config: VehicleConfig
     index: int = 0
     loop: int = 0
@@ -352,7 +352,7 @@ class FleetSim:
         """Simulate, encode each distinct drive once, declare publishers, publish configs.
 
         The vehicles' stamp shifts are still relative (the clock reading is added by
-        :func:`publish_fleets` just before publishing starts).
+        :func:`~server.fleet_schedule.publish_schedule` as publishing starts).
         """
         vehicles = self._build()
         scheduled: list[ScheduledVehicle] = []
@@ -416,9 +416,9 @@ def publish_fleets(
     """
     if not sims:
         raise ValueError("no fleets to publish")
-    rate, loop = sims[0]._rate, sims[0]._loop
-    if any(s._rate != rate or s._loop != loop for s in sims):
-        raise ValueError("fleets published together must share rate and loop")
+    rate, loop, clock = sims[0]._rate, sims[0]._loop, sims[0]._clock
+    if any(s._rate != rate or s._loop != loop or s._clock is not clock for s in sims):
+        raise ValueError("fleets published together must share rate, loop and clock")
     stats = stats if stats is not None else SimStats()
     for s in STREAMS:  # every key present before another thread starts summing the counts
         stats.packets.setdefault(s.value, 0)
@@ -432,10 +432,8 @@ def publish_fleets(
         ready.set()
     if go is not None:
         go.wait()
-    scheduled: list[ScheduledVehicle] = []
-    for sim, (_, vehicles, _) in zip(sims, prepared, strict=True):
-        anchor_ns = sim._clock()  # sensor time of the run start = now, after the setup above
-        scheduled.extend(dataclasses.replace(v, shift_ns=v.shift_ns + anchor_ns) for v in vehicles)
+    # the stamps' time base ("now") is read by publish_schedule once its set-up is done
+    scheduled = [v for _, vehicles, _ in prepared for v in vehicles]
     names = [s.value for s in STREAMS]
 
     def _progress(s: ScheduleStats) -> None:
@@ -455,6 +453,7 @@ def publish_fleets(
             stop=stop if stop is not None else sims[0]._stop,
             on_round=_progress,
             keep_lateness=keep_lateness,
+            stamp_clock_ns=clock,
         )
         _progress(done)
         stats.loops = done.loops

@@ -582,7 +582,7 @@ def _replay_fleet_sim_class() -> type:
             return drives
 
         def _build(self) -> list[Any]:
-            # shift_ns relative to the drive start; publish_fleets adds "now" before publishing
+            # shift_ns relative to the drive start; "now" is added as publishing starts
             drives = self._drives()
             out = []
             for i, vid in enumerate(self.vehicle_ids):
