@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import tempfile
 import threading
 import time
@@ -16,7 +17,7 @@ import pytest
 from estimator.types import concat_estimates
 from server.settings import StorageSettings
 from server.storage import StorageDataError, Store, StoreWriter
-from server.storage.writer import COUNTER_VEHICLES_PER_WRITE
+from server.storage.writer import COUNTER_VEHICLES_PER_WRITE, MAINTAIN_PAUSE_PER_STEP
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
 
@@ -557,4 +558,46 @@ def test_writer_moves_staged_sqlite_rows_while_idle(tmp_path: Path) -> None:
         _wait_for(lambda: staged() == 2 * 11)  # the newest second (11 rows) stays staged
     for vid in ("v1", "v2"):
         assert len(store.query_series(vid, 0, 2**62)) == 50
+    store.close()
+
+
+class StepTimedStore(CountingStore):
+    """Also records when (monotonic s) each upkeep step started and ended."""
+
+    def __init__(self, inner: Store) -> None:
+        super().__init__(inner)
+        self.steps: list[tuple[float, float, bool]] = []
+
+    def maintain(self) -> bool:
+        started = time.monotonic()
+        more = bool(self.inner.maintain())  # type: ignore[attr-defined]
+        self.steps.append((started, time.monotonic(), more))
+        return more
+
+
+def test_upkeep_steps_are_paced_by_their_own_duration(tmp_path: Path) -> None:
+    """A move round's steps do not run back to back: after a step with more to do, the next
+    starts at least MAINTAIN_PAUSE_PER_STEP times that step's duration later, so the round's
+    CPU is spread out instead of taken from the pipeline all at once."""
+    from server.storage.sqlite import SqliteStore
+
+    store = SqliteStore(tmp_path / "p.sqlite")
+    store.migrate()
+    ids = [f"v{k:03d}" for k in range(350)]  # 100 vehicles a step: four copy steps, a delete
+    for vid in ids:
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    timed = StepTimedStore(store)
+    rows = make_rows(40)  # 4 s at 10 Hz: a round is due
+    with StoreWriter(timed, _settings(commit_interval_s=0.02)) as writer:
+        writer.submit([(vid, rows) for vid in ids])
+        assert writer.flush(timeout=30)
+        _wait_for(lambda: sum(more for *_, more in timed.steps) >= 5)
+    paced = 0
+    for (start, end, more), (next_start, _, _) in itertools.pairwise(timed.steps):
+        if more:
+            assert next_start - end >= MAINTAIN_PAUSE_PER_STEP * (end - start)
+            paced += 1
+    assert paced >= 4
+    for vid in ids[::50]:
+        assert len(store.query_series(vid, 0, 2**62)) == 40
     store.close()
