@@ -37,10 +37,11 @@ from __future__ import annotations
 
 import bisect
 import itertools
+import math
 import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
@@ -55,6 +56,7 @@ __all__ = [
     "ScheduleStats",
     "ScheduledVehicle",
     "Window",
+    "lateness_quantiles",
     "publish_schedule",
     "render",
 ]
@@ -401,10 +403,24 @@ class ScheduleStats:
     #: per sending round (with ``keep_lateness``): (``perf_counter_ns`` when it started, ms its
     #: first — earliest due — packet was late, packets sent)
     rounds: list[tuple[int, float, int]] | None = None
+    #: packets sent, by how late their round's first packet was, in whole ms rounded up (an
+    #: upper bound for the round's other packets): ``{ms: packets}``
+    late_packets: dict[int, int] = field(default_factory=dict)
 
     @property
     def total(self) -> int:
         return sum(self.packets)
+
+
+def lateness_quantiles(late_packets: Mapping[int, int], qs: Sequence[float]) -> list[int | None]:
+    """The ``qs`` quantiles (ms, rounded up) of a :attr:`ScheduleStats.late_packets` count;
+    None each when it counts no packet."""
+    total = sum(late_packets.values())
+    if total <= 0:
+        return [None] * len(qs)
+    ms = sorted(k for k, n in late_packets.items() if n > 0)
+    cum = np.cumsum([late_packets[k] for k in ms])
+    return [ms[min(int(np.searchsorted(cum, q * total)), len(ms) - 1)] for q in qs]
 
 
 def publish_schedule(
@@ -496,6 +512,8 @@ def publish_schedule(
         for s, n in enumerate(np.bincount(cur.stream[k:j], minlength=len(STREAMS)).tolist()):
             per_stream[s] += n
         stats.payload_bytes += cur.bounds[j] - cur.bounds[k]
+        late_ms = max(0, math.ceil(behind))
+        stats.late_packets[late_ms] = stats.late_packets.get(late_ms, 0) + j - k
         if stats.rounds is not None:
             stats.rounds.append((wall0 + now, behind, j - k))
         last_due = cur.due_ns[j - 1]

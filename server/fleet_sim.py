@@ -124,6 +124,8 @@ class SimStats:
     wall_s: float = 0.0
     #: sending rounds (``keep_lateness``): (perf_counter ns, ms late, packets)
     send_rounds: list[tuple[int, float, int]] = field(default_factory=list)
+    #: packets by lateness (``ScheduleStats.late_packets``), updated as they are sent
+    late_packets: dict[int, int] = field(default_factory=dict)
 
     @property
     def total_packets(self) -> int:
@@ -441,6 +443,7 @@ def publish_fleets(
             stats.packets[name] = n
         stats.payload_bytes = s.payload_bytes
         stats.max_behind_ms = s.max_behind_ms
+        stats.late_packets = s.late_packets
 
     wall0 = time.perf_counter_ns()
     try:

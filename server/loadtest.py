@@ -38,6 +38,9 @@ backlog is empty and, 1.5 s on, the writer has taken every estimate row produced
   (:mod:`server.latency` histograms, differenced over the window — without the drain, whose
   rows the reorder buffers release only after the vehicles fall silent: p50/p95/p99/max,
   ±2.5 %);
+* how late the publishers sent their packets over the window (p50/p99/max, whole ms, each
+  packet counted by its sending round's first: an upper bound), which the latencies above
+  include, and the most they fell behind over the whole run (start-up included);
 * server CPU (cores: CPU seconds per wall second, all threads) and RSS (first, last, peak) via
   psutil on the server pid; publisher CPU likewise;
 * cores by server thread over the window (``slipfleet_thread_cpu_seconds_total``,
@@ -506,6 +509,13 @@ class _Publisher:
                 self.sent = int(msg.get("sent", self.sent))
                 self.behind_ms = float(msg.get("behind_ms", self.behind_ms))
 
+    def mark(self) -> None:
+        """The measured window starts: the child counts its send lateness from here."""
+        if self.proc.stdin is not None and not self.proc.stdin.closed:
+            with contextlib.suppress(BrokenPipeError, OSError, ValueError):
+                self.proc.stdin.write("mark\n")
+                self.proc.stdin.flush()
+
     def stop(self) -> None:
         if self.proc.stdin is not None and not self.proc.stdin.closed:
             with contextlib.suppress(BrokenPipeError, OSError, ValueError):
@@ -664,8 +674,13 @@ def _publish_child(job_json: str) -> int:
     worker = threading.Thread(target=_publish, name="slipfleet-publisher", daemon=True)
     worker.start()
 
+    marked: dict[int, int] = {}  # packets by lateness when the window started
+
     def _wait_stop() -> None:
-        sys.stdin.readline()  # "stop" or EOF (parent gone)
+        for line in sys.stdin:  # "mark": the window starts; "stop"; EOF: the parent is gone
+            if line.strip() != "mark":
+                break
+            marked.update(stats.late_packets)  # a copy in one step (under the GIL)
         stop.set()
 
     threading.Thread(target=_wait_stop, daemon=True).start()
@@ -682,6 +697,9 @@ def _publish_child(job_json: str) -> int:
         "configs": stats.configs,
         "bytes": stats.payload_bytes,
         "max_behind_ms": stats.max_behind_ms,
+        "late_packets": {  # since "mark"
+            ms: n - marked.get(ms, 0) for ms, n in dict(stats.late_packets).items()
+        },
         "cpu_s": time.process_time() - cpu0,
         "wall_s": time.monotonic() - t0,
     }
@@ -797,6 +815,8 @@ def run_loadtest(
         time.sleep(spec.warmup_s)
         before = _merge([scrape(a, http) for a in target.apis])
         sent0 = sum(p.sent for p in pubs)
+        for p in pubs:
+            p.mark()
         cpu0, pcpu0, t0 = server_watch.cpu_s(), pub_watch.cpu_s(), time.monotonic()
         rss0 = server_watch.rss()
         bar = tqdm(
@@ -902,6 +922,7 @@ def run_loadtest(
             "publisher_max_behind_ms": round(
                 max((p.final or {}).get("max_behind_ms", p.behind_ms) for p in pubs), 1
             ),
+            "publisher_late_ms": _send_lateness(pubs),
             "machine_cpus": os.cpu_count(),
             "machine_probe_s": [round(probe_before_s, 3), round(probe_s(), 3)],
         }
@@ -918,9 +939,24 @@ def run_loadtest(
     return result
 
 
+def _send_lateness(pubs: Sequence[_Publisher]) -> dict[str, int | None]:
+    """p50 / p99 / max of how late the publishers sent their packets in the window (ms, each
+    packet counted by its sending round's first packet: an upper bound); the sensor→stored
+    latency includes it."""
+    from server.fleet_schedule import lateness_quantiles
+
+    merged: dict[int, int] = {}
+    for p in pubs:
+        for ms, n in ((p.final or {}).get("late_packets") or {}).items():
+            merged[int(ms)] = merged.get(int(ms), 0) + int(n)
+    p50, p99, top = lateness_quantiles(merged, (0.5, 0.99, 1.0))
+    return {"p50": p50, "p99": p99, "max": top}
+
+
 def format_report(r: Mapping[str, Any]) -> str:
     """A human-readable summary of a :func:`run_loadtest` result."""
     lat = r["latency"]
+    late = r.get("publisher_late_ms") or {}
     lines = [
         f"vehicles {r['spec']['vehicles']} (seen {r['vehicles_seen']}), scenario "
         f"{r['spec']['scenario'] if not r['spec']['replay'] else 'replay'}, rate x"
@@ -932,8 +968,9 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"lost(seq gap) {r['packets_lost_by_seq_gap']}  missing {r['packets_missing']}  "
         f"wheel gaps {r.get('wheel_gaps', 0)}",
         f"rate     {r['packets_per_s']:.0f} packets/s sent in the window "
-        f"(publishers {r['publisher_cpu_cores']} cores, max behind "
-        f"{r['publisher_max_behind_ms']} ms)",
+        f"(publishers {r['publisher_cpu_cores']} cores, sent late by p50 "
+        f"{late.get('p50')} / p99 {late.get('p99')} / max {late.get('max')} ms in the window, "
+        f"{r['publisher_max_behind_ms']} ms at most in the run)",
         f"estimates produced {r['estimates_produced']}  stored {r['estimates_stored']}  "
         f"not inserted {r.get('estimates_not_inserted', 0)}  "
         f"({r['storage_rows_per_s']:.0f} rows/s)  dropped(backlog) "

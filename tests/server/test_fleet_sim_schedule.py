@@ -18,6 +18,7 @@ from server.fleet_schedule import (
     ScheduledVehicle,
     _Fleet,
     _insert_seq,
+    lateness_quantiles,
     publish_schedule,
     render,
 )
@@ -126,6 +127,8 @@ def test_publishing_once_through_puts_every_packet_once_in_order(
     assert stats.packets == [n * sum(p.stream is s for p in packets) for s in STREAMS]
     assert stats.payload_bytes == sum(len(b) for x in sink.calls.values() for b in x)
     assert rounds == sorted(rounds) and rounds[-1] == stats.total
+    assert sum(stats.late_packets.values()) == stats.total  # every packet by its lateness
+    assert all(ms >= 0 for ms in stats.late_packets)
     assert len(rounds) < stats.total / 10  # packets go out in rounds, not one wake-up each
     for (_, s), payloads in sink.calls.items():
         seqs = [decode(sensor_key("fleet", "x", STREAMS[s]), p).seq for p in payloads]
@@ -246,3 +249,10 @@ def test_packets_leave_when_their_stamps_say_they_were_sent(
     assert min(late_ms) >= 0.0  # never before the vehicle has it
     late_ms.sort()
     assert late_ms[len(late_ms) // 2] < 20.0  # as the rounds' own lateness (busy CI hosts)
+
+
+def test_lateness_quantiles_count_packets_by_whole_ms() -> None:
+    late = {0: 50, 3: 40, 20: 9, 250: 1}  # 100 packets
+    assert lateness_quantiles(late, (0.5, 0.9, 0.99, 1.0)) == [0, 3, 20, 250]
+    assert lateness_quantiles({}, (0.5, 1.0)) == [None, None]
+    assert lateness_quantiles({7: 0}, (0.5,)) == [None]

@@ -74,6 +74,11 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
         # five vehicles on an idle server: nothing waits (the writer commits when rows reach
         # it idle, so stored and live are both about one batch window behind the sensors)
         assert lat["p99_ms"] < 2_000
+    # how late the load generator sent, over the window's packets only
+    late = r["publisher_late_ms"]
+    assert late["p50"] is not None and 0 <= late["p50"] <= late["p99"] <= late["max"]
+    assert late["max"] <= r["publisher_max_behind_ms"] + 1  # the run's maximum covers it
+    assert f"sent late by p50 {late['p50']} / p99 {late['p99']}" in format_report(r)
     assert r["server_cpu_cores"] > 0
     assert r["server_rss_mb_peak"] > 0
     before, after = r["machine_probe_s"]
