@@ -59,6 +59,7 @@ __all__ = [
     "lateness_quantiles",
     "publish_schedule",
     "render",
+    "weighted_quantiles",
 ]
 
 #: Shortest sleep between two sending rounds, ns (every packet due by then goes out together):
@@ -412,15 +413,27 @@ class ScheduleStats:
         return sum(self.packets)
 
 
+def weighted_quantiles(
+    values: Sequence[float], weights: Sequence[int], qs: Sequence[float]
+) -> list[float] | None:
+    """The ``qs`` quantiles of ``values``, each counted ``weights`` times (a round's lateness
+    once per packet it sent); None when nothing is counted."""
+    w = np.asarray(weights, dtype=np.int64)
+    kept = w > 0
+    if not kept.any():
+        return None
+    v = np.asarray(values, dtype=np.float64)[kept]
+    order = np.argsort(v, kind="stable")
+    v, cum = v[order], np.cumsum(w[kept][order])
+    at = np.minimum(np.searchsorted(cum, np.asarray(qs) * cum[-1]), v.size - 1)
+    return [float(x) for x in v[at]]
+
+
 def lateness_quantiles(late_packets: Mapping[int, int], qs: Sequence[float]) -> list[int | None]:
     """The ``qs`` quantiles (ms, rounded up) of a :attr:`ScheduleStats.late_packets` count;
     None each when it counts no packet."""
-    total = sum(late_packets.values())
-    if total <= 0:
-        return [None] * len(qs)
-    ms = sorted(k for k, n in late_packets.items() if n > 0)
-    cum = np.cumsum([late_packets[k] for k in ms])
-    return [ms[min(int(np.searchsorted(cum, q * total)), len(ms) - 1)] for q in qs]
+    q = weighted_quantiles(list(late_packets), list(late_packets.values()), qs)
+    return [None] * len(qs) if q is None else [round(x) for x in q]
 
 
 def publish_schedule(

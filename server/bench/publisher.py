@@ -259,16 +259,11 @@ def _rss_bytes() -> int:
 
 def _weighted_quantiles(rounds: Sequence[tuple[int, float, int]]) -> dict[str, float]:
     """p50/p99/max (ms) of lateness, each round's value counted once per packet it sent."""
-    import numpy as np
+    from server.fleet_schedule import weighted_quantiles
 
-    if not rounds:
-        return {"p50_ms": float("nan"), "p99_ms": float("nan"), "max_ms": float("nan")}
-    ms = np.array([r[1] for r in rounds])
-    n = np.array([r[2] for r in rounds], dtype=np.int64)
-    order = np.argsort(ms)
-    ms, cum = ms[order], np.cumsum(n[order])
-    q = {p: float(ms[np.searchsorted(cum, p * cum[-1])]) for p in (0.5, 0.99)}
-    return {"p50_ms": q[0.5], "p99_ms": q[0.99], "max_ms": float(ms[-1])}
+    q = weighted_quantiles([r[1] for r in rounds], [r[2] for r in rounds], (0.5, 0.99, 1.0))
+    p50, p99, top = q if q is not None else (float("nan"),) * 3
+    return {"p50_ms": p50, "p99_ms": p99, "max_ms": top}
 
 
 # ------------------------------------------------------------------------------ the parent
