@@ -3,6 +3,9 @@
 An estimator is *fleet-wide*: one object holds every vehicle that runs it, so it can step them
 in one numpy call. The server feeds each vehicle's measurements in sensor-time order (its reorder
 buffer guarantees that) and then asks for every tick that the released data completes.
+
+Its :class:`~estimator.spec.EstimatorSpec` says which wire streams it takes (``inputs``: the
+server pushes it only those, see :func:`stream_of`) and what its rows are (``spec.dtype``).
 """
 
 from __future__ import annotations
@@ -13,14 +16,36 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from estimator.config import VehicleConfig
+from estimator.spec import EstimatorSpec
 from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelGap, WheelSpeeds
 
-__all__ = ["FleetEstimator", "Measurement", "Pushed"]
+__all__ = ["STREAMS", "FleetEstimator", "Measurement", "Pushed", "stream_of"]
 
 Measurement = GnssSample | ImuBatch | WheelEdges | WheelSpeeds
 
 #: What :meth:`FleetEstimator.push` takes: a measurement, or a notice of lost data.
 Pushed = Measurement | WheelGap
+
+#: Wire stream each pushed type comes from (the names a spec's ``inputs`` list); a wheel gap
+#: is news of the ``wheels`` stream.
+_STREAM_OF_TYPE: Mapping[type, str] = {
+    GnssSample: "gnss",
+    ImuBatch: "imu",
+    WheelEdges: "wheels",
+    WheelSpeeds: "wheels",
+    WheelGap: "wheels",
+}
+
+#: Every wire stream a spec's ``inputs`` may name.
+STREAMS: tuple[str, ...] = ("gnss", "imu", "wheels")
+
+
+def stream_of(pushed: Pushed) -> str:
+    """The wire stream ``pushed`` belongs to (``TypeError`` for anything else)."""
+    try:
+        return _STREAM_OF_TYPE[type(pushed)]
+    except KeyError:
+        raise TypeError(f"not a measurement: {type(pushed).__name__}") from None
 
 
 @runtime_checkable
@@ -30,13 +55,14 @@ class FleetEstimator(Protocol):
     Attributes
     ----------
     name : str
-        Registry name (``"mdsf"``, later ``"tracked"``, ``"friction"``).
-    output_dtype : numpy.dtype
-        Structured dtype of the rows :meth:`advance` returns (``ESTIMATE_DTYPE`` for MDSF).
+        Registry name, the same as ``spec.name`` (``"mdsf"``, ``"reference_speed"``).
+    spec : EstimatorSpec
+        What it takes (``spec.inputs``: only those streams are pushed) and gives: the rows
+        :meth:`advance` returns are of ``spec.dtype`` (``ESTIMATE_DTYPE`` for MDSF).
     """
 
     name: str
-    output_dtype: np.dtype
+    spec: EstimatorSpec
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id``; replaces its config if it is already there."""
@@ -66,6 +92,6 @@ class FleetEstimator(Protocol):
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]``, stepping vehicles batched.
 
-        Returns a list of ``(vehicle_id, rows)`` with ``rows`` of :attr:`output_dtype`, only for
+        Returns a list of ``(vehicle_id, rows)`` with ``rows`` of ``spec.dtype``, only for
         vehicles that produced at least one row.
         """

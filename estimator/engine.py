@@ -63,6 +63,7 @@ from estimator.mdsf import (
     MdsfState,
     mdsf_matrices,
 )
+from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
 from estimator.slip import fit_span_s, slip_pct, unsettled
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
@@ -994,6 +995,7 @@ class MdsfFleet:
     """
 
     name = "mdsf"
+    spec = MDSF_SPEC
     output_dtype = ESTIMATE_DTYPE
 
     def __init__(

@@ -31,6 +31,7 @@ import numpy as np
 
 from estimator.base import Pushed
 from estimator.config import VehicleConfig
+from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import ESTIMATE_DTYPE
 from server.ports import free_port as _free_port
 
@@ -178,6 +179,7 @@ class _NullFleet:
     """A FleetEstimator that does nothing (measures the ingest path alone)."""
 
     name = "mdsf"
+    spec = MDSF_SPEC
     output_dtype = ESTIMATE_DTYPE
 
     def __init__(self) -> None:
