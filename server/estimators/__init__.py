@@ -3,7 +3,8 @@
 from server.estimators.registry import (
     DEFAULT_FACTORIES,
     KIND_DEFAULTS,
-    AdvanceResult,
+    ConfigRefusedError,
+    ErrorHandler,
     EstimatorRegistry,
     UnknownEstimatorError,
     estimator_names_for,
@@ -12,7 +13,8 @@ from server.estimators.registry import (
 __all__ = [
     "DEFAULT_FACTORIES",
     "KIND_DEFAULTS",
-    "AdvanceResult",
+    "ConfigRefusedError",
+    "ErrorHandler",
     "EstimatorRegistry",
     "UnknownEstimatorError",
     "estimator_names_for",

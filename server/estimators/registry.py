@@ -1,9 +1,14 @@
 """Estimator registry: which estimators exist, which ones each vehicle runs, and routing.
 
-Names map to factories of :class:`estimator.base.FleetEstimator` (imported lazily, so the
-server starts without loading an estimator nobody runs)::
+Names map to factories of :class:`estimator.base.FleetEstimator`, one for every spec of the
+catalog (:data:`estimator.catalog.SPECS`), imported lazily so the server starts without loading
+an estimator nobody runs::
 
-    "mdsf"  -> estimator.engine.MdsfFleet     (wheeled rear-drive tractors; ESTIMATE_DTYPE rows)
+    "mdsf"             -> estimator.engine.MdsfFleet                (ESTIMATE_DTYPE rows)
+    "reference_speed"  -> estimator.reference_fleet.ReferenceSpeedFleet
+
+An estimator's name is its spec's name (checked when it is built): storage, REST and live
+views key its rows by it.
 
 A vehicle runs ``config.estimators`` when that is non-empty, otherwise its kind's defaults:
 
@@ -15,31 +20,43 @@ A vehicle runs ``config.estimators`` when that is non-empty, otherwise its kind'
     ``wheeled_4wd_steered``       none yet (a steered-4WD estimator is planned)
     ============================  ===================================================
 
-A vehicle may run several estimators; the first one is its *primary*, whose rows go to the
-sinks' ``on_estimates`` (storage, live views). Rows of the others are handed out per estimator
-name. Unknown names raise :class:`UnknownEstimatorError`.
+The first one is the vehicle's *primary* (REST's default). :meth:`EstimatorRegistry.advance`
+returns one :class:`~estimator.types.EstimateBatch` per estimator; a measurement is pushed only
+to the estimators whose ``spec.inputs`` name its stream (:func:`estimator.base.stream_of`).
+
+Isolation: every call into an estimator is guarded on its own. One that raises is reported to
+``on_error(vehicle_id, estimator, operation, exc)`` and costs that vehicle that call only: a
+batched ``advance`` that raises is retried on halves of its vehicles down to the one that
+fails, so the other vehicles' rows and the other estimators' are all delivered. A config that
+an estimator refuses is taken back (:class:`ConfigRefusedError`; the vehicle keeps its old
+config). Unknown names raise :class:`UnknownEstimatorError`.
 
 The registry holds one ``FleetEstimator`` per name and is used from one thread (the pipeline).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.base import FleetEstimator, Pushed
+from estimator.base import STREAMS, FleetEstimator, Pushed, stream_of
 from estimator.config import VehicleConfig, VehicleKind
+from estimator.spec import EstimatorSpec
+from estimator.types import EstimateBatch
 
 __all__ = [
     "DEFAULT_FACTORIES",
     "KIND_DEFAULTS",
-    "AdvanceResult",
+    "ConfigRefusedError",
+    "ErrorHandler",
     "EstimatorRegistry",
     "UnknownEstimatorError",
     "estimator_names_for",
 ]
+
+log = logging.getLogger(__name__)
 
 EstimatorFactory = Callable[[], FleetEstimator]
 
@@ -51,7 +68,17 @@ def _mdsf() -> FleetEstimator:
     return fleet
 
 
-DEFAULT_FACTORIES: Mapping[str, EstimatorFactory] = {"mdsf": _mdsf}
+def _reference_speed() -> FleetEstimator:
+    from estimator.reference_fleet import ReferenceSpeedFleet  # lazy, as MDSF
+
+    fleet: FleetEstimator = ReferenceSpeedFleet()
+    return fleet
+
+
+DEFAULT_FACTORIES: Mapping[str, EstimatorFactory] = {
+    "mdsf": _mdsf,
+    "reference_speed": _reference_speed,
+}
 
 KIND_DEFAULTS: Mapping[VehicleKind, tuple[str, ...]] = {
     VehicleKind.WHEELED_REAR_DRIVE: ("mdsf",),
@@ -81,20 +108,23 @@ def estimator_names_for(
     return names
 
 
-@dataclass(slots=True)
-class AdvanceResult:
-    """Rows produced by one :meth:`EstimatorRegistry.advance`.
+#: Told of every estimator call that raised: ``(vehicle_id, estimator, operation, exception)``.
+ErrorHandler = Callable[[str, str, str, Exception], None]
 
-    Attributes
-    ----------
-    primary : list of (vehicle_id, rows)
-        Rows of each vehicle's primary estimator (``ESTIMATE_DTYPE`` for MDSF).
-    by_estimator : dict of name -> list of (vehicle_id, rows)
-        Every estimator's rows, primary included.
-    """
 
-    primary: list[tuple[str, np.ndarray]] = field(default_factory=list)
-    by_estimator: dict[str, list[tuple[str, np.ndarray]]] = field(default_factory=dict)
+class ConfigRefusedError(RuntimeError):
+    """An estimator raised while taking a vehicle's config (or could not be built); the
+    vehicle keeps the config and estimators it had."""
+
+    def __init__(self, vehicle_id: str, estimator: str, cause: Exception) -> None:
+        super().__init__(f"estimator {estimator!r} refused the config of {vehicle_id}: {cause!r}")
+        self.vehicle_id = vehicle_id
+        self.estimator = estimator
+        self.cause = cause
+
+
+def _log_error(vehicle_id: str, estimator: str, operation: str, exc: Exception) -> None:
+    log.error("estimator %s: %s failed for %s: %r", estimator, operation, vehicle_id, exc)
 
 
 class EstimatorRegistry:
@@ -106,29 +136,43 @@ class EstimatorRegistry:
         Defaults to :data:`DEFAULT_FACTORIES`. Estimators are built on first use.
     kind_defaults : mapping of VehicleKind -> names, optional
         Defaults to :data:`KIND_DEFAULTS`.
+    on_error : ErrorHandler, optional
+        Told of every estimator call that raised (default: a log line); may be set later
+        through the attribute of that name (the pipeline counts them per vehicle).
     """
 
     def __init__(
         self,
         factories: Mapping[str, EstimatorFactory] | None = None,
         kind_defaults: Mapping[VehicleKind, tuple[str, ...]] | None = None,
+        on_error: ErrorHandler | None = None,
     ) -> None:
         self._factories = dict(DEFAULT_FACTORIES if factories is None else factories)
         self._kind_defaults = dict(KIND_DEFAULTS if kind_defaults is None else kind_defaults)
+        self.on_error: ErrorHandler = _log_error if on_error is None else on_error
         self._estimators: dict[str, FleetEstimator] = {}
-        self._routes: dict[str, tuple[str, ...]] = {}
+        self._routes: dict[str, tuple[str, ...]] = {}  # vehicle -> names, primary first
+        self._configs: dict[str, VehicleConfig] = {}  # vehicle -> the config it runs
+        self._members: dict[str, set[str]] = {}  # estimator -> its vehicles
+        # vehicle -> stream -> ((name, estimator), ...) whose spec takes that stream
+        self._by_stream: dict[str, dict[str, tuple[tuple[str, FleetEstimator], ...]]] = {}
 
     def counters(self) -> dict[str, dict[str, dict[str, int]]]:
         """Event counters of every estimator that keeps them (an optional ``counters(vehicle_id)``
-        method, e.g. MDSF's resets and gated GNSS): ``{estimator: {vehicle_id: {event: n}}}``.
+        method, e.g. MDSF's resets and gated GNSS): ``{estimator: {vehicle_id: {event: n}}}``;
+        an estimator whose counters raise is left out (and logged).
 
         Call on the thread that owns the registry (the pipeline's).
         """
         out: dict[str, dict[str, dict[str, int]]] = {}
         for name, est in self._estimators.items():
             per_vehicle = getattr(est, "counters", None)
-            if callable(per_vehicle):
+            if not callable(per_vehicle):
+                continue
+            try:
                 out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
+            except Exception:
+                log.exception("estimator %s: counters failed", name)
         return out
 
     def set_anchor(self, vehicle_id: str, anchor: tuple[float, float, float]) -> None:
@@ -171,31 +215,96 @@ class EstimatorRegistry:
         return estimator_names_for(config, self._factories, self._kind_defaults)
 
     def estimator(self, name: str) -> FleetEstimator:
-        """The fleet estimator ``name``, built on first use."""
+        """The fleet estimator ``name``, built on first use (``TypeError`` when what its
+        factory builds has a spec of another name)."""
         est = self._estimators.get(name)
         if est is None:
             try:
                 factory = self._factories[name]
             except KeyError:
                 raise UnknownEstimatorError(f"unknown estimator {name!r}") from None
-            est = self._estimators[name] = factory()
+            est = factory()
+            if est.spec.name != name:
+                raise TypeError(f"estimator {name!r} was built with the spec {est.spec.name!r}")
+            self._estimators[name] = est
         return est
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> tuple[str, ...]:
-        """Start (or reconfigure) ``vehicle_id``; return the estimator names it runs."""
+        """Start (or reconfigure) ``vehicle_id``; return the estimator names it runs.
+
+        ``UnknownEstimatorError`` for names nobody knows; ``ConfigRefusedError`` when one of
+        its estimators cannot be built or raises on the config: then the estimators that took
+        it already get the old config again (a fresh state) and the vehicle keeps its old
+        config and estimators (a new vehicle stays unknown).
+        """
         names = self.names_for(config)
+        done: list[str] = []
+        for name in names:
+            try:
+                self.estimator(name).add_vehicle(vehicle_id, config)
+            except Exception as exc:
+                self._take_back(vehicle_id, [*done, name])
+                raise ConfigRefusedError(vehicle_id, name, exc) from exc
+            done.append(name)
         for old in self._routes.get(vehicle_id, ()):
             if old not in names:
-                self._estimators[old].remove_vehicle(vehicle_id)
-        for name in names:
-            self.estimator(name).add_vehicle(vehicle_id, config)
-        self._routes[vehicle_id] = names
+                self._guard(vehicle_id, old, "remove_vehicle", self._estimators[old].remove_vehicle)
+        self._route(vehicle_id, names, config)
         return names
+
+    def _take_back(self, vehicle_id: str, touched: list[str]) -> None:
+        """Undo a refused config in the estimators ``touched`` (see :meth:`add_vehicle`): the
+        ones the vehicle ran before take its old config again, the others forget it."""
+        old = self._configs.get(vehicle_id)
+        kept = self._routes.get(vehicle_id, ())
+        for name in touched:
+            est = self._estimators.get(name)
+            if est is None:  # its factory failed
+                continue
+            if old is not None and name in kept:
+                if self._guard(vehicle_id, name, "add_vehicle", est.add_vehicle, old):
+                    continue
+                kept = tuple(n for n in kept if n != name)
+            self._guard(vehicle_id, name, "remove_vehicle", est.remove_vehicle)
+        if old is not None:
+            self._route(vehicle_id, kept, old)
+
+    def _route(self, vehicle_id: str, names: tuple[str, ...], config: VehicleConfig) -> None:
+        """Record that ``vehicle_id`` runs ``names`` (built) with ``config``."""
+        self._unroute(vehicle_id)
+        self._routes[vehicle_id] = names
+        self._configs[vehicle_id] = config
+        for name in names:
+            self._members.setdefault(name, set()).add(vehicle_id)
+        ests = [(name, self._estimators[name]) for name in names]
+        self._by_stream[vehicle_id] = {
+            stream: tuple((n, e) for n, e in ests if stream in e.spec.inputs) for stream in STREAMS
+        }
+
+    def _unroute(self, vehicle_id: str) -> tuple[str, ...]:
+        """Forget the routes of ``vehicle_id``; return the names it ran."""
+        names = self._routes.pop(vehicle_id, ())
+        self._configs.pop(vehicle_id, None)
+        self._by_stream.pop(vehicle_id, None)
+        for name in names:
+            self._members[name].discard(vehicle_id)
+        return names
+
+    def _guard(
+        self, vehicle_id: str, name: str, operation: str, call: Callable[..., object], *args: object
+    ) -> bool:
+        """``call(vehicle_id, *args)``; False (and ``on_error`` told) if it raised."""
+        try:
+            call(vehicle_id, *args)
+        except Exception as exc:
+            self.on_error(vehicle_id, name, operation, exc)
+            return False
+        return True
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Stop estimating ``vehicle_id`` (no error if unknown)."""
-        for name in self._routes.pop(vehicle_id, ()):
-            self._estimators[name].remove_vehicle(vehicle_id)
+        for name in self._unroute(vehicle_id):
+            self._guard(vehicle_id, name, "remove_vehicle", self._estimators[name].remove_vehicle)
 
     def has_vehicle(self, vehicle_id: str) -> bool:
         return vehicle_id in self._routes
@@ -208,28 +317,67 @@ class EstimatorRegistry:
         return self._routes.get(vehicle_id, ())
 
     def push(self, vehicle_id: str, measurement: Pushed) -> None:
-        """Hand ``measurement`` to every estimator ``vehicle_id`` runs (KeyError if unknown)."""
-        for name in self._routes[vehicle_id]:
-            self._estimators[name].push(vehicle_id, measurement)
+        """Hand ``measurement`` to every estimator ``vehicle_id`` runs whose spec takes its
+        stream (``KeyError`` if the vehicle is unknown)."""
+        for name, est in self._by_stream[vehicle_id][stream_of(measurement)]:
+            try:
+                est.push(vehicle_id, measurement)
+            except Exception as exc:
+                self.on_error(vehicle_id, name, "push", exc)
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         """Put ``vehicle_id``'s ticks on ``stamp_ns + k·tick`` in every estimator it runs."""
         for name in self._routes[vehicle_id]:
-            self._estimators[name].align_ticks(vehicle_id, stamp_ns)
+            self._guard(
+                vehicle_id, name, "align_ticks", self._estimators[name].align_ticks, stamp_ns
+            )
 
-    def advance(self, until_ns: Mapping[str, int]) -> AdvanceResult:
-        """Advance every estimator for the vehicles it holds; collect rows."""
-        result = AdvanceResult()
+    def advance(self, until_ns: Mapping[str, int]) -> list[EstimateBatch]:
+        """Advance every estimator for the vehicles it holds: one batch per estimator that
+        gave rows (of its spec), in the order the estimators were built."""
+        out: list[EstimateBatch] = []
         for name, est in self._estimators.items():
-            mine = {vid: t for vid, t in until_ns.items() if name in self._routes.get(vid, ())}
+            members = self._members.get(name)
+            if not members:
+                continue
+            mine = {vid: t for vid, t in until_ns.items() if vid in members}
             if not mine:
                 continue
-            rows = est.advance(mine)
-            if not rows:
+            batch = self._batch(name, est.spec, self._advance(name, est, mine))
+            if batch:
+                out.append(batch)
+        return out
+
+    def _advance(
+        self, name: str, est: FleetEstimator, until_ns: dict[str, int]
+    ) -> list[tuple[str, np.ndarray]]:
+        """``est.advance(until_ns)``; when it raises, the same on each half of the vehicles,
+        down to the single vehicles that fail (told to ``on_error``, their rows lost). Rows an
+        estimator had computed for others in a call that raised are lost with that call if it
+        had moved their state on already."""
+        try:
+            return est.advance(until_ns)
+        except Exception as exc:
+            if len(until_ns) == 1:
+                self.on_error(next(iter(until_ns)), name, "advance", exc)
+                return []
+        items = list(until_ns.items())
+        half = len(items) // 2
+        return self._advance(name, est, dict(items[:half])) + self._advance(
+            name, est, dict(items[half:])
+        )
+
+    def _batch(
+        self, name: str, spec: EstimatorSpec, parts: list[tuple[str, np.ndarray]]
+    ) -> EstimateBatch:
+        """``parts`` joined as one batch of ``spec``; a vehicle's rows of another dtype or
+        shape are dropped and told to ``on_error``."""
+        good = []
+        for vid, rows in parts:
+            try:
+                spec.check_rows(rows)
+            except TypeError as exc:
+                self.on_error(vid, name, "advance", exc)
                 continue
-            result.by_estimator[name] = rows
-            for vid, arr in rows:
-                route = self._routes.get(vid)
-                if route and route[0] == name:
-                    result.primary.append((vid, arr))
-        return result
+            good.append((vid, rows))
+        return EstimateBatch.of(good, spec)
