@@ -413,6 +413,8 @@ def _estimator_family(
 _INGEST_HELP = {
     "wheel_gaps": "Times the estimators went on past a vehicle's wheel data (a wheel packet "
     "lost or late, the encoder silent): its wheel fits started afresh.",
+    "estimator_errors": "Estimator calls that raised for a vehicle (its rows of that call lost).",
+    "configs_refused": "Vehicle configs an estimator refused (the old config kept).",
 }
 
 
@@ -430,6 +432,8 @@ def _ingest_families(
         "seq_restarts",
         "clock_reanchors",
         "wheel_gaps",
+        "estimator_errors",
+        "configs_refused",
     )
     samples: dict[str, list[Sample]] = {name: [] for name in plain}
     rejected: list[Sample] = []

@@ -13,7 +13,9 @@ whose sequence jumped far (a vehicle reboot), and ``clock_reanchors`` the times 
 base was started afresh (a confirmed clock jump, or data resuming after a long silence; see
 :mod:`server.ingest.reorder`), and ``wheel_gaps`` the times wheel data was lost before
 a released wheel packet (the wheels' speed fits started afresh: ``estimator.types.WheelGap``),
-all informational.
+all informational. ``estimator_errors`` counts the estimator calls that raised for the vehicle
+(its rows of that call lost) and ``configs_refused`` the configs an estimator refused (the
+vehicle kept its old one).
 
 Only the pipeline thread writes; snapshots may be taken from any thread.
 """
@@ -39,6 +41,8 @@ _PLAIN = (
     "seq_restarts",
     "clock_reanchors",
     "wheel_gaps",
+    "estimator_errors",
+    "configs_refused",
 )
 
 
@@ -46,7 +50,9 @@ class _VehicleCounts:
     __slots__ = (
         "accepted",
         "clock_reanchors",
+        "configs_refused",
         "duplicate",
+        "estimator_errors",
         "late",
         "lost_by_seq_gap",
         "received",
@@ -64,6 +70,8 @@ class _VehicleCounts:
         self.seq_restarts = 0
         self.clock_reanchors = 0
         self.wheel_gaps = 0
+        self.estimator_errors = 0
+        self.configs_refused = 0
         self.rejected: dict[str, int] = defaultdict(int)
 
     def as_dict(self) -> dict[str, int]:
@@ -77,6 +85,8 @@ class _VehicleCounts:
             "seq_restarts": self.seq_restarts,
             "clock_reanchors": self.clock_reanchors,
             "wheel_gaps": self.wheel_gaps,
+            "estimator_errors": self.estimator_errors,
+            "configs_refused": self.configs_refused,
         }
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected_{reason}"] = n
@@ -151,6 +161,16 @@ class IngestCounters:
         """Wheel data was lost before a released packet; the wheel fits started afresh."""
         with self._lock:
             self._get(vehicle_id).wheel_gaps += 1
+
+    def estimator_error(self, vehicle_id: str | None) -> None:
+        """An estimator call raised for the vehicle (informational)."""
+        with self._lock:
+            self._get(NO_VEHICLE if vehicle_id is None else vehicle_id).estimator_errors += 1
+
+    def config_refused(self, vehicle_id: str | None) -> None:
+        """An estimator refused the vehicle's new config; the old one is kept."""
+        with self._lock:
+            self._get(NO_VEHICLE if vehicle_id is None else vehicle_id).configs_refused += 1
 
     def restore(self, vehicle_id: str, totals: Mapping[str, int]) -> None:
         """Carry on from stored totals (a restarted server); adds to what is counted so far.

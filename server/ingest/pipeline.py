@@ -15,10 +15,15 @@ so none of them needs a lock. Every ``IngestSettings.process_interval_ms`` (long
 takes more than a third of that: see :data:`TICK_DUTY`) it releases the
 packets whose time has come, pushes them to the vehicle's estimators, advances them to the
 released horizon (each time it crosses a step of ``advance_step_ms`` on the vehicle's tick grid;
-with the MDSF tick as the step, as soon as a tick is due) and hands the primary estimator's
-rows (an :class:`~estimator.types.EstimateBatch`) to each sink's ``on_estimates`` (and every
-estimator's rows to a sink's optional ``on_output(name, batch)``). Sinks run on this thread:
-they must only enqueue (the storage writer and live hub do).
+with the MDSF tick as the step, as soon as a tick is due) and hands each estimator's rows (one
+:class:`~estimator.types.EstimateBatch` per estimator and call, read through its ``spec``) to
+each sink's ``on_estimates``. Sinks run on this thread: they must only enqueue (the storage
+writer and live hub do).
+
+An estimator that raises costs only the vehicle it raised for (the registry guards every call,
+see :mod:`server.estimators.registry`): counted in that vehicle's ``estimator_errors`` and
+logged at most once per :data:`ERROR_LOG_EVERY_NS` per vehicle and estimator. A config that an
+estimator refuses is not applied (the vehicle keeps its old one; counted ``configs_refused``).
 
 Vehicles are registered with :meth:`Pipeline.register_vehicle` (REST, startup), by a config on
 ``<prefix>/<id>/config``, or, with ``unknown_vehicle = "auto"``, on their first packet with a
@@ -51,12 +56,15 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
 
-import numpy as np
 import zenoh
 
 from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch, WheelGap
-from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
+from server.estimators.registry import (
+    ConfigRefusedError,
+    EstimatorRegistry,
+    UnknownEstimatorError,
+)
 from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, Verdict
 from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
@@ -83,6 +91,10 @@ PHASES = ("decode", "reorder", "release", "estimate", "deliver")
 #: How often the pipeline thread copies the estimators' event counters and ENU anchors for
 #: other threads.
 ESTIMATOR_COUNTERS_EVERY_NS = 1_000_000_000
+
+#: A vehicle's failing estimator is logged at most once per this long (later failures are
+#: counted, and their number given in the next line).
+ERROR_LOG_EVERY_NS = 10_000_000_000
 
 #: Bursts (each up to ``subscriber.BURST`` = 512 packets) waiting for the pipeline, at most:
 #: about 32 k packets (~50 MB) behind the Zenoh channel before backpressure reaches it.
@@ -136,11 +148,12 @@ _QueueItem = tuple[int, list[IngestItem] | _Raw] | None
 class EstimateSink(Protocol):
     """Receives estimate rows on the pipeline thread; must not block for long.
 
-    ``batch`` is a sequence of ``(vehicle_id, rows)``; the pipelines hand over an
-    :class:`~estimator.types.EstimateBatch`, whose ``rows`` are all of them joined once.
+    Called once per estimator and estimator call with that estimator's
+    :class:`~estimator.types.EstimateBatch` (``batch.spec`` says what the rows are; ``rows`` are
+    every vehicle's joined once); every estimator a vehicle runs reaches every sink.
     """
 
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None: ...
+    def on_estimates(self, batch: EstimateBatch) -> None: ...
 
 
 class Pipeline:
@@ -181,6 +194,9 @@ class Pipeline:
         self._settings = settings
         self._ingest = settings.ingest
         self._registry = registry
+        registry.on_error = self._estimator_failed
+        # (vehicle, estimator) -> (wall ns before which it is not logged again, failures since)
+        self._error_log: dict[tuple[str, str], tuple[int, int]] = {}
         self._sinks = list(sinks)
         self._on_new_vehicle = on_new_vehicle
         self._clock = clock_ns
@@ -490,25 +506,36 @@ class Pipeline:
     def _apply_control(self) -> None:
         while self._control:
             op, vid, arg, notify = self._control.popleft()
-            if op == "add" and isinstance(arg, VehicleConfig):
-                self._add(vid, arg, notify=notify)
-            elif op == "anchor" and isinstance(arg, tuple):
-                self._frames[vid] = arg
-                if vid in self._configs:
-                    self._set_anchor(vid, arg)
-            elif op == "remove":
-                self._frames.pop(vid, None)
-                self._registry.remove_vehicle(vid)
-                self._buffers.pop(vid, None)
-                self._configs.pop(vid, None)
-                self._active.discard(vid)
-                self._arrived.discard(vid)
-                self._advanced_ns.pop(vid, None)
-                self._tick_anchor_ns.pop(vid, None)
-                self._tick_phase_ns.pop(vid, None)
-                self._due.pop(vid, None)
-                self._unregistered_counted.discard(vid)
-                self._counters.forget(vid)
+            try:
+                self._control_step(op, vid, arg, notify)
+            except Exception:  # a bug here must not end the thread nor drop later steps
+                self._stats["pipeline_errors"] += 1
+                log.exception("control step %s failed for %s", op, vid)
+
+    def _control_step(
+        self, op: str, vid: str, arg: VehicleConfig | Anchor | None, notify: bool
+    ) -> None:
+        if op == "add" and isinstance(arg, VehicleConfig):
+            self._add(vid, arg, notify=notify)
+        elif op == "anchor" and isinstance(arg, tuple):
+            self._frames[vid] = arg
+            if vid in self._configs:
+                self._set_anchor(vid, arg)
+        elif op == "remove":
+            self._frames.pop(vid, None)
+            self._registry.remove_vehicle(vid)
+            self._buffers.pop(vid, None)
+            self._configs.pop(vid, None)
+            self._active.discard(vid)
+            self._arrived.discard(vid)
+            self._advanced_ns.pop(vid, None)
+            self._tick_anchor_ns.pop(vid, None)
+            self._tick_phase_ns.pop(vid, None)
+            self._due.pop(vid, None)
+            self._unregistered_counted.discard(vid)
+            self._counters.forget(vid)
+            for key in [k for k in self._error_log if k[0] == vid]:
+                del self._error_log[key]
 
     def _apply_configs(self) -> None:
         if self._subscriber is None:
@@ -527,21 +554,28 @@ class Pipeline:
                 self._frames[vehicle_id] = frame
         return frame
 
-    def _start_estimators(self, vehicle_id: str, config: VehicleConfig) -> None:
+    def _start_estimators(self, vehicle_id: str, config: VehicleConfig) -> bool:
         """(Re)start the vehicle's estimators with ``config``: a fresh state and tick grid, in
-        the ENU frame the vehicle had (restored or learnt); ``UnknownEstimatorError`` as
-        ``EstimatorRegistry.add_vehicle``."""
+        the ENU frame the vehicle had (restored or learnt). False when the config names an
+        unknown estimator or an estimator refuses it: the vehicle keeps what it had (a refusal
+        is counted ``configs_refused``)."""
         frame = self._frame_of(vehicle_id)
-        self._registry.add_vehicle(vehicle_id, config)
+        try:
+            self._registry.add_vehicle(vehicle_id, config)
+        except UnknownEstimatorError as exc:
+            log.warning("vehicle %s not registered: %s", vehicle_id, exc)
+            return False
+        except ConfigRefusedError as exc:
+            self._counters.config_refused(self._counter_id(vehicle_id))
+            log.error("config of %s refused, the old one kept: %s", vehicle_id, exc)
+            return False
         self._tick_phase_ns.pop(vehicle_id, None)
         if frame is not None:
             self._set_anchor(vehicle_id, frame)
+        return True
 
     def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
-        try:
-            self._start_estimators(vehicle_id, config)
-        except UnknownEstimatorError as exc:
-            log.warning("vehicle %s not registered: %s", vehicle_id, exc)
+        if not self._start_estimators(vehicle_id, config):
             return False
         self._configs[vehicle_id] = config
         if notify and self._on_new_vehicle is not None:
@@ -636,11 +670,7 @@ class Pipeline:
             self._push(vid, packets, gaps)
         self._due.pop(vid, None)  # advanced right here, to the end of the old time base
         if released is not None and released != self._advanced_ns.get(vid):
-            try:
-                self._deliver(registry.advance({vid: released}))
-            except Exception:
-                self._stats["estimator_errors"] += 1
-                log.exception("estimator advance failed for %s", vid)
+            self._deliver(registry.advance({vid: released}))
         self._advanced_ns.pop(vid, None)
         config = self._configs.get(vid)
         if config is not None and registry.has_vehicle(vid):
@@ -672,11 +702,7 @@ class Pipeline:
                 for after_ns, until_ns in before[id(packet)]:
                     self._wheel_gap(vid, after_ns, until_ns)
             for m in packet.measurements:
-                try:
-                    push(vid, m)
-                except Exception:  # an estimator bug must not stop the fleet
-                    self._stats["estimator_errors"] += 1
-                    log.exception("estimator push failed for %s", vid)
+                push(vid, m)  # guarded per estimator by the registry
         for after_ns, until_ns, p in gaps:
             if p is None:  # no packet after the gap in this release
                 self._wheel_gap(vid, after_ns, until_ns)
@@ -687,17 +713,13 @@ class Pipeline:
         then the ticks up to ``after_ns`` are computed first, with the edges before the loss
         (everything they need is fed), and the estimators start the wheels' fits afresh."""
         registry = self._registry
-        try:
-            if until_ns is None:
-                self._counters.wheel_gap(vid)
-                last = self._advanced_ns.get(vid)
-                if last is None or after_ns > last:
-                    self._deliver(registry.advance({vid: after_ns}))
-                    self._advanced_ns[vid] = after_ns
-            registry.push(vid, WheelGap(after_ns, until_ns))
-        except Exception:  # an estimator bug must not stop the fleet
-            self._stats["estimator_errors"] += 1
-            log.exception("estimator wheel gap failed for %s", vid)
+        if until_ns is None:
+            self._counters.wheel_gap(vid)
+            last = self._advanced_ns.get(vid)
+            if last is None or after_ns > last:
+                self._deliver(registry.advance({vid: after_ns}))
+                self._advanced_ns[vid] = after_ns
+        registry.push(vid, WheelGap(after_ns, until_ns))
 
     def _admit(self, packet: Packet) -> bool:
         """First packet of a vehicle without a buffer: known, auto-registered, or refused."""
@@ -728,12 +750,7 @@ class Pipeline:
         anchor = self._tick_anchor_ns.get(vid)
         if anchor is None:
             return 0
-        try:
-            self._registry.align_ticks(vid, anchor)
-        except Exception:
-            self._stats["estimator_errors"] += 1
-            log.exception("estimator align_ticks failed for %s", vid)
-            return 0
+        self._registry.align_ticks(vid, anchor)
         return anchor
 
     def _tick(self, now: int, *, flush: bool) -> None:
@@ -787,30 +804,42 @@ class Pipeline:
             return
         due, self._due = self._due, {}
         self._next_estimate_ns = now + self._estimate_interval_ns
-        result = AdvanceResult()
-        try:
-            result = registry.advance(due)
-        except Exception:
-            self._stats["estimator_errors"] += 1
-            log.exception("estimator advance failed")
+        batches = registry.advance(due)
         c2 = time.thread_time()
-        self._deliver(result)
+        self._deliver(batches)
         cpu["estimate"] += c2 - c1
         cpu["deliver"] += time.thread_time() - c2
         self._stats["ticks"] += 1
         self._last_tick_s = time.perf_counter() - t0
 
-    def _deliver(self, result: AdvanceResult) -> None:
-        primary = EstimateBatch.of(result.primary)  # joined once for every sink
-        self._stats["rows"] += primary.rows.shape[0]
-        for sink in self._sinks:
-            try:
-                if primary:
-                    sink.on_estimates(primary)
-                on_output = getattr(sink, "on_output", None)
-                if on_output is not None:
-                    for name, batch in result.by_estimator.items():
-                        on_output(name, batch)
-            except Exception:  # one faulty sink must not stop the others or ingest
-                self._stats["sink_errors"] += 1
-                log.exception("sink %r failed", sink)
+    def _deliver(self, batches: list[EstimateBatch]) -> None:
+        """Hand each estimator's batch to every sink."""
+        for batch in batches:
+            self._stats["rows"] += batch.rows.shape[0]
+            for sink in self._sinks:
+                try:
+                    sink.on_estimates(batch)
+                except Exception:  # one faulty sink must not stop the others or ingest
+                    self._stats["sink_errors"] += 1
+                    log.exception("sink %r failed", sink)
+
+    def _estimator_failed(self, vid: str, estimator: str, operation: str, exc: Exception) -> None:
+        """The registry's ``on_error``: count the failure for ``vid``; log it unless this
+        vehicle's estimator was logged less than :data:`ERROR_LOG_EVERY_NS` ago."""
+        self._stats["estimator_errors"] += 1
+        self._counters.estimator_error(self._counter_id(vid))
+        now = self._clock()
+        key = (vid, estimator)
+        quiet_until, unlogged = self._error_log.get(key, (now, 0))
+        if now < quiet_until:
+            self._error_log[key] = (quiet_until, unlogged + 1)
+            return
+        self._error_log[key] = (now + ERROR_LOG_EVERY_NS, 0)
+        log.error(
+            "estimator %s: %s failed for vehicle %s (%d more failures since the last line)",
+            estimator,
+            operation,
+            vid,
+            unlogged,
+            exc_info=exc,
+        )

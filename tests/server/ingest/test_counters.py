@@ -24,6 +24,10 @@ def test_counters_add_up() -> None:
     c.rejected(None, "bad_key")
     c.seq_restart("a")
     c.wheel_gap("a")
+    c.estimator_error("a")
+    c.estimator_error("a")
+    c.config_refused("a")
+    c.config_refused(None)
     snap = c.snapshot()
     a = snap["a"]
     assert a == {
@@ -36,6 +40,8 @@ def test_counters_add_up() -> None:
         "seq_restarts": 1,
         "clock_reanchors": 0,
         "wheel_gaps": 1,
+        "estimator_errors": 2,
+        "configs_refused": 1,
         "rejected_non_finite": 2,
         "rejected_unknown_vehicle": 1,
     }
@@ -74,11 +80,13 @@ def test_restore_carries_on_from_stored_totals() -> None:
     before.accepted("a", lost_delta=2)
     before.late("a")
     before.rejected("a", "clock_jump")
+    before.estimator_error("a")
     stored = before.snapshot()["a"]
     after = IngestCounters()  # a restarted server
     after.restore("a", stored)
     after.accepted("a")
+    after.estimator_error("a")
     c = after.snapshot()["a"]
     assert (c["received"], c["accepted"], c["late"], c["rejected_clock_jump"]) == (4, 2, 1, 1)
-    assert c["lost_by_seq_gap"] == 2
+    assert c["lost_by_seq_gap"] == 2 and c["estimator_errors"] == 2
     assert c["received"] == c["accepted"] + c["late"] + c["duplicate"] + c["rejected"]

@@ -11,12 +11,15 @@ import pytest
 import server.ingest.pipeline as pipeline_module
 from estimator.config import SlipConfig, VehicleConfig, VehicleKind
 from estimator.geo import enu_from_geodetic
-from estimator.types import GnssSample, ImuBatch
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.types import EstimateBatch, GnssSample, ImuBatch
 from server.estimators import EstimatorRegistry
 from server.ingest import Pipeline
 from server.protocol import DecodeError, Packet, Stream, encode_imu
 from server.settings import IngestSettings, Settings, UnknownVehiclePolicy
 from tests.server.ingest.fakes import CapturingSink, RecordingFleet, first_stamp
+
+BOTH = ("mdsf", "reference_speed")
 
 MS = 1_000_000
 T0 = 1_763_700_000 * 10**9
@@ -46,9 +49,15 @@ def make(
     sinks: list[object] | None = None,
     advance_step_ms: int = 200,
     clock_ns: Callable[[], int] = time.monotonic_ns,
+    second: RecordingFleet | None = None,
 ) -> tuple[Pipeline, RecordingFleet, CapturingSink]:
+    """A pipeline on a recording MDSF (and ``second``, a recording reference-speed estimator,
+    for vehicles that name it) whose rows go to ``sinks`` and a capturing sink."""
     fleet = RecordingFleet()
-    registry = EstimatorRegistry(factories={"mdsf": lambda: fleet})
+    factories = {"mdsf": lambda: fleet}
+    if second is not None:
+        factories["reference_speed"] = lambda: second
+    registry = EstimatorRegistry(factories=factories)
     sink = CapturingSink()
     settings = Settings(
         ingest=IngestSettings.model_validate(
@@ -151,7 +160,7 @@ def test_tracked_vehicle_accepted_without_estimators() -> None:
 
 
 class BrokenSink:
-    def on_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None:
+    def on_estimates(self, batch: EstimateBatch) -> None:
         raise RuntimeError("disk full")
 
 
@@ -430,3 +439,98 @@ def test_undecoded_bursts_queued_back_to_back_are_decoded_as_one(
     received_ns, joined = pipe._coalesce(0, raw(burst[0]))
     assert (received_ns, len(joined)) == (1, 7)
     assert pipe._next_item(None)[0] == 2
+
+
+def _mixed_fleet_drive(pipe: Pipeline, vehicles: list[str], seconds: int) -> None:
+    """GNSS and IMU packets of every vehicle, one of each per 100 ms, bursts interleaved."""
+    for i in range(seconds * 10):
+        pipe.submit([p for vid in vehicles for p in (gnss(vid, i, 100 * i), imu(vid, i, 100 * i))])
+
+
+def _rows_of(sink: CapturingSink, estimator: str, vid: str) -> np.ndarray:
+    return np.concatenate([r["stamp_ns"] for r in sink.by_estimator[estimator][vid]])
+
+
+def test_a_mixed_fleet_delivers_every_row_of_every_estimator_once() -> None:
+    """MDSF vehicles and MDSF + reference-speed vehicles: each estimator's rows reach every
+    sink once, as batches of that estimator's spec; reference speed gets no GNSS."""
+    second = RecordingFleet(REFERENCE_SPEED_SPEC)
+    other = CapturingSink()
+    pipe, fleet, sink = make(
+        policy=UnknownVehiclePolicy.REJECT, sinks=[other], second=second, advance_step_ms=100
+    )
+    mdsf_only, mixed = ["m0", "m1", "m2"], ["x0", "x1"]
+    for vid in mdsf_only:
+        pipe.register_vehicle(vid, VehicleConfig())
+    for vid in mixed:
+        pipe.register_vehicle(vid, VehicleConfig(estimators=BOTH))
+    pipe.start()
+    _mixed_fleet_drive(pipe, mdsf_only + mixed, seconds=2)
+    pipe.stop()
+    for s in (sink, other):
+        assert sorted(s.by_estimator["mdsf"]) == sorted(mdsf_only + mixed)
+        assert sorted(s.by_estimator["reference_speed"]) == mixed
+        for name, est in (("mdsf", fleet), ("reference_speed", second)):
+            for vid, emitted in est.rows_emitted.items():
+                stamps = _rows_of(s, name, vid)
+                assert len(stamps) == emitted > 1 and np.all(np.diff(stamps) > 0), (name, vid)
+    assert pipe.stats()["rows"] == sum(fleet.rows_emitted.values()) + sum(
+        second.rows_emitted.values()
+    )
+    assert all(isinstance(m, ImuBatch) for vid in mixed for m in second.pushed[vid])
+    assert len(second.pushed["x0"]) == 20 and len(fleet.pushed["x0"]) == 40
+    assert all(c["estimator_errors"] == 0 for c in pipe.counters_snapshot().values())
+
+
+def test_an_estimator_failing_for_one_vehicle_costs_only_that_vehicle_its_rows(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    second = RecordingFleet(REFERENCE_SPEED_SPEC, fail_for=frozenset({"x1"}))
+    pipe, fleet, sink = make(policy=UnknownVehiclePolicy.REJECT, second=second)
+    vehicles = ["x0", "x1", "x2", "x3"]
+    for vid in vehicles:
+        pipe.register_vehicle(vid, VehicleConfig(estimators=BOTH))
+    pipe.start()
+    _mixed_fleet_drive(pipe, vehicles, seconds=2)
+    pipe.stop()
+    assert sorted(sink.by_estimator["reference_speed"]) == ["x0", "x2", "x3"]
+    for vid in ("x0", "x2", "x3"):
+        assert len(_rows_of(sink, "reference_speed", vid)) == second.rows_emitted[vid] > 1
+    for vid in vehicles:  # MDSF of the failing vehicle goes on as if nothing happened
+        assert len(_rows_of(sink, "mdsf", vid)) == fleet.rows_emitted[vid] > 1
+    counters = pipe.counters_snapshot()
+    assert counters["x1"]["estimator_errors"] >= 20  # its 20 IMU pushes, then its advances
+    assert all(counters[vid]["estimator_errors"] == 0 for vid in ("x0", "x2", "x3"))
+    stats = pipe.stats()
+    assert stats["estimator_errors"] == counters["x1"]["estimator_errors"]
+    assert stats["pipeline_errors"] == 0
+    # one line names the vehicle and the estimator; the repeats within ERROR_LOG_EVERY_NS
+    # are counted, not logged
+    lines = [r.getMessage() for r in caplog.records if r.name == pipeline_module.__name__]
+    assert len(lines) == 1 and "estimator reference_speed:" in lines[0]
+    assert "for vehicle x1 (0 more failures" in lines[0]
+
+
+def test_a_config_an_estimator_refuses_is_not_applied_and_the_pipeline_lives_on() -> None:
+    second = RecordingFleet(REFERENCE_SPEED_SPEC, refuse_threshold_pct=99.0)
+    pipe, fleet, sink = make(policy=UnknownVehiclePolicy.REJECT, second=second)
+    old = VehicleConfig()
+    pipe.register_vehicle("a", old)
+    pipe.start()
+    try:
+        pipe.submit([imu("a", 0, 0)])
+        wait_for(lambda: len(fleet.pushed.get("a", [])) == 1)
+        refused = VehicleConfig(estimators=BOTH, slip=SlipConfig(alert_threshold_pct=99.0))
+        pipe.register_vehicle("a", refused)
+        pipe.register_vehicle("new", refused)  # a vehicle that never got a config it takes
+        wait_for(lambda: pipe.counters_snapshot().get("a", {}).get("configs_refused") == 1)
+        pipe.submit([imu("a", 1, 100), imu("new", 0, 0)])
+        wait_for(lambda: len(fleet.pushed["a"]) == 2)
+        assert pipe.stats()["running"]
+    finally:
+        pipe.stop()
+    assert fleet.vehicles == {"a": old} and second.vehicles == {}
+    counters = pipe.counters_snapshot()
+    assert counters["new"]["configs_refused"] == 1
+    assert counters["new"]["rejected_unknown_vehicle"] == 1
+    assert list(sink.by_estimator) == ["mdsf"] and pipe.stats()["pipeline_errors"] == 0
