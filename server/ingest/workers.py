@@ -22,10 +22,12 @@ reorder buffers, estimator registry) for the vehicles it owns::
   congestion control slows the publishers: nothing is dropped silently.
 * **Workers** (:func:`_worker_main`, started with ``spawn``: Zenoh's threads do not survive
   ``fork``) decode each share (``decode_burst``) and submit it to their pipeline, whose one sink
-  sends every estimator call's rows back as one array (``ESTIMATE_DTYPE``) with the vehicles'
-  ids and row counts. Once a second (and when they stop) they send a snapshot of their ingest
-  counters, estimator counters, ENU anchors and pipeline stats. Vehicles they register
-  themselves (``unknown_vehicle = "auto"``) are reported to the server, which stores them.
+  sends every estimator call's rows back as one array with the estimator's name and the
+  vehicles' ids and row counts; the server rebuilds the batch with that name's spec
+  (:func:`estimator.catalog.spec_of`). Once a second (and when they stop) they send a
+  snapshot of their ingest counters, estimator counters, ENU anchors and pipeline stats.
+  Vehicles they register themselves (``unknown_vehicle = "auto"``) are reported to the server,
+  which stores them.
 * **Collect thread**: waits on every worker's result pipe and hands rows to the sinks (one
   thread, as the in-process pipeline thread calls them), snapshots to the merged views below,
   new vehicles to ``on_new_vehicle``.
@@ -53,11 +55,12 @@ from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
-import numpy as np
 import zenoh
 
+from estimator.catalog import spec_of
 from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
+from server.estimators.registry import EstimatorRegistry
 from server.ingest.pipeline import EstimateSink
 from server.ingest.subscriber import IngestSubscriber, RawPacket
 from server.protocol.keys import parse_key
@@ -111,7 +114,12 @@ class _Worker:
     """The server's end of one worker process: its pipes and its last snapshot."""
 
     def __init__(
-        self, index: int, settings: Settings, ctx: Any, initial: list[tuple[Any, ...]]
+        self,
+        index: int,
+        settings: Settings,
+        ctx: Any,
+        initial: list[tuple[Any, ...]],
+        registry_factory: Callable[[], EstimatorRegistry],
     ) -> None:
         self.index = index
         feed_recv, self.feed = ctx.Pipe(duplex=False)
@@ -128,6 +136,7 @@ class _Worker:
                 settings.ingest.model_dump_json(),
                 settings.zenoh.key_prefix,
                 initial,
+                registry_factory,
                 feed_recv,
                 results_send,
                 control_recv,
@@ -150,7 +159,8 @@ class WorkerPool:
     """Decode, reorder and estimate in ``settings.ingest.workers`` processes.
 
     Parameters are those of :class:`~server.ingest.pipeline.Pipeline` but the registry: each
-    worker builds its own. ``session`` None runs without Zenoh (feed with :meth:`route`).
+    worker builds its own with ``registry_factory`` (a module-level callable: it is pickled to
+    the spawned workers). ``session`` None runs without Zenoh (feed with :meth:`route`).
     """
 
     def __init__(
@@ -161,6 +171,7 @@ class WorkerPool:
         on_new_vehicle: Callable[[str, VehicleConfig], None] | None = None,
         *,
         raw_sink: Callable[[list[RawPacket]], object] | None = None,
+        registry_factory: Callable[[], EstimatorRegistry] = EstimatorRegistry,
     ) -> None:
         if settings.ingest.workers < 1:
             raise ValueError("WorkerPool needs ingest.workers >= 1")
@@ -169,6 +180,7 @@ class WorkerPool:
         self._n = settings.ingest.workers
         self._sinks = list(sinks)
         self._on_new_vehicle = on_new_vehicle
+        self._registry_factory = registry_factory
         self._workers: list[_Worker] = []
         self._ctx = mp.get_context("spawn")
         # every registered vehicle's config: what a worker is started (or restarted) with
@@ -209,6 +221,7 @@ class WorkerPool:
                 self._settings,
                 self._ctx,
                 self._initial(k, self._stored_counters, self._stored_anchors),
+                self._registry_factory,
             )
             for k in range(self._n)
         ]
@@ -380,7 +393,7 @@ class WorkerPool:
         initial = self._initial(
             k, dead.snapshot.get("counters", {}), dict(dead.snapshot.get("anchors", {}))
         )
-        new = _Worker(k, self._settings, self._ctx, initial)
+        new = _Worker(k, self._settings, self._ctx, initial, self._registry_factory)
         if not _ready(new):
             log.error("worker %d did not start again", k)
             new.process.kill()
@@ -394,7 +407,8 @@ class WorkerPool:
         """Act on one worker message; True when the worker is done."""
         kind = message[0]
         if kind == "rows":
-            batch = EstimateBatch(*message[1:])
+            name, ids, counts, rows = message[1:]
+            batch = EstimateBatch(ids, counts, rows, spec_of(name))
             for sink in self._sinks:
                 try:
                     sink.on_estimates(batch)
@@ -483,10 +497,10 @@ class _Results:
         with self._lock:
             self._conn.send(message)
 
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        """Pipeline sink: the call's rows as one array, with ids and counts."""
-        joined = EstimateBatch.of(batch)
-        self.send(("rows", joined.ids, joined.counts, joined.rows))
+    def on_estimates(self, batch: EstimateBatch) -> None:
+        """Pipeline sink: one estimator call's rows as one array, with the estimator's name
+        and the vehicles' ids and row counts."""
+        self.send(("rows", batch.estimator, batch.ids, batch.counts, batch.rows))
 
 
 def _snapshot(pipeline: Any) -> dict[str, Any]:
@@ -516,12 +530,12 @@ def _worker_main(
     ingest_json: str,
     key_prefix: str,
     initial: list[tuple[Any, ...]],
+    registry_factory: Callable[[], EstimatorRegistry],
     feed: Connection,
     results_conn: Connection,
     control: Connection,
 ) -> None:
     """A worker process: decode what the server routes here and run a pipeline on it."""
-    from server.estimators.registry import EstimatorRegistry
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
 
@@ -535,7 +549,7 @@ def _worker_main(
     pipeline = Pipeline(
         settings,
         None,
-        EstimatorRegistry(),
+        registry_factory(),
         sinks=[results],
         on_new_vehicle=lambda vid, config: results.send(("new", vid, config)),
     )

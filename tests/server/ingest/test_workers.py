@@ -14,7 +14,7 @@ from server.fleet_sim import encode_packets, packetize
 from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
 from server.protocol import sensor_key
 from server.settings import Settings
-from tests.server.ingest.fakes import CapturingSink
+from tests.server.ingest.fakes import FAILING_VEHICLE, CapturingSink, mixed_registry
 
 VEHICLES = [f"w{i:03d}" for i in range(6)]
 
@@ -181,6 +181,51 @@ def test_a_dead_worker_is_started_again_with_its_vehicles_counters_and_frames() 
         assert sum(len(r) for r in sink.rows[v]) > rows_before[v] + 50
     # in the frames they had: east/north go on where they were, not at the next first fix
     assert {v: pool.anchors_snapshot()[v] for v in mine} == frames
+
+
+def test_a_mixed_fleet_through_workers_loses_only_the_failing_vehicles_estimator() -> None:
+    """Workers run MDSF and, for some vehicles, a reference-speed estimator that fails for
+    one of them: every estimator's rows come back as batches of its spec, the failing
+    vehicle's MDSF rows all come, and its failures are counted for it alone."""
+    sink = CapturingSink()
+    settings = Settings(
+        ingest={"workers": 2, "unknown_vehicle": "reject"}, viewer={"enabled": False}
+    )
+    pool = WorkerPool(settings, None, [sink], registry_factory=mixed_registry)
+    mixed = [FAILING_VEHICLE, "w002", "w004"]
+    assert len({owner_of(v, 2) for v in mixed}) == 2, "both workers run the second estimator"
+    for vid in VEHICLES:
+        both = ("mdsf", "reference_speed") if vid in mixed else ()
+        pool.register_vehicle(vid, VehicleConfig(estimators=both))
+    packets = _packets(VEHICLES)
+    pool.start()
+    try:
+        _feed(pool, packets)
+        deadline = time.monotonic() + 60
+        while sum(c["received"] for c in pool.counters_snapshot().values()) < len(packets):
+            assert time.monotonic() < deadline, pool.counters_snapshot()
+            time.sleep(0.2)
+    finally:
+        pool.stop()
+    stamps = {
+        name: {vid: np.concatenate([r["stamp_ns"] for r in parts]) for vid, parts in got.items()}
+        for name, got in sink.by_estimator.items()
+    }
+    assert sorted(stamps["mdsf"]) == VEHICLES
+    assert sorted(stamps["reference_speed"]) == ["w002", "w004"]
+    for per_vehicle in stamps.values():
+        for s in per_vehicle.values():
+            assert np.all(np.diff(s) > 0)  # each row once, in time order
+    assert {len(s) for s in stamps["mdsf"].values()} == {len(stamps["mdsf"]["w000"])}
+    assert len(stamps["mdsf"]["w000"]) >= 190  # 20 s of 100 ms ticks
+    for vid in ("w002", "w004"):  # the recording estimator's rows reach the last advance,
+        # which MDSF's last tick (on its 100 ms grid) is at most a tick before
+        lead_ns = stamps["reference_speed"][vid][-1] - stamps["mdsf"][vid][-1]
+        assert 0 <= lead_ns < 100_000_000
+    counters = pool.counters_snapshot()
+    assert counters[FAILING_VEHICLE]["estimator_errors"] > 0
+    assert all(counters[v]["estimator_errors"] == 0 for v in VEHICLES if v != FAILING_VEHICLE)
+    assert pool.stats()["estimator_errors"] == counters[FAILING_VEHICLE]["estimator_errors"]
 
 
 @pytest.mark.parametrize("workers", [0, -1])
