@@ -6,10 +6,11 @@ Two stages are measured inside the server process:
   this is when it reaches the live feed);
 * ``stored``: the writer's transaction holding the row committed.
 
-For every row, ``latency = wall clock now − row["stamp_ns"]`` (the row's sensor timestamp, the
-vehicle's GNSS-disciplined clock). On one machine, or with synchronized clocks, that is the full
-sensor-to-stage delay: batching on the vehicle, network, reorder window (``ingest.lateness_ms``),
-estimator stepping (``ingest.advance_step_ms``) and, for ``stored``, the writer's commit interval.
+For every row of every estimator, ``latency = wall clock now − row["stamp_ns"]`` (the row's
+sensor timestamp, the vehicle's GNSS-disciplined clock; every spec's rows start with it). On
+one machine, or with synchronized clocks, that is the full sensor-to-stage delay: batching on
+the vehicle, network, reorder window (``ingest.lateness_ms``), estimator stepping
+(``ingest.advance_step_ms``) and, for ``stored``, the writer's commit interval.
 
 Latencies are counted in a fixed histogram per stage (log-spaced bounds, 5 % apart, 1 ms … 100 s),
 exposed on ``/metrics`` as cumulative ``slipfleet_estimate_latency_seconds_bucket{stage,le}``
@@ -80,12 +81,9 @@ class _TimedStore:
         self._histogram = histogram
         self._clock_ns = clock_ns
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+    def write_estimates(self, batch: EstimateBatch) -> int:
         written = self._store.write_estimates(batch)
-        now = self._clock_ns()
-        stamps = [rows["stamp_ns"] for _, rows in batch if len(rows)]
-        if stamps:
-            self._histogram.add(now - np.concatenate(stamps).astype(np.int64))
+        self._histogram.add(self._clock_ns() - batch.rows["stamp_ns"].astype(np.int64))
         return written
 
     def __getattr__(self, name: str) -> Any:
@@ -104,11 +102,9 @@ class LatencyProbe:
         self.live = LatencyHistogram()
         self.stored = LatencyHistogram()
 
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        now = self._clock_ns()
-        rows = EstimateBatch.of(batch).rows
-        if rows.shape[0]:
-            self.live.add(now - rows["stamp_ns"].astype(np.int64))
+    def on_estimates(self, batch: EstimateBatch) -> None:
+        """Pipeline sink: count the batch's rows (any estimator's) in :attr:`live`."""
+        self.live.add(self._clock_ns() - batch.rows["stamp_ns"].astype(np.int64))
 
     def wrap_store(self, store: Store) -> Store:
         """``store`` with commit latencies recorded in :attr:`stored`."""
