@@ -66,6 +66,13 @@ def test_defaults_per_kind_and_a_factory_per_spec() -> None:
     assert set(DEFAULT_FACTORIES) == set(SPECS)
 
 
+def test_every_default_factory_builds_the_estimator_of_its_spec() -> None:
+    registry = EstimatorRegistry()
+    for name, spec in SPECS.items():
+        est = registry.estimator(name)
+        assert est.spec is spec and est.name == name
+
+
 def test_config_overrides_kind_defaults() -> None:
     reg, _, _ = _registry()
     cfg = VehicleConfig(kind=VehicleKind.TRACKED, estimators=BOTH)

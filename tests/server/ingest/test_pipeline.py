@@ -11,11 +11,14 @@ import pytest
 import server.ingest.pipeline as pipeline_module
 from estimator.config import SlipConfig, VehicleConfig, VehicleKind
 from estimator.geo import enu_from_geodetic
+from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.sim import simulate
 from estimator.types import EstimateBatch, GnssSample, ImuBatch
 from server.estimators import EstimatorRegistry
+from server.fleet_sim import encode_packets, packetize
 from server.ingest import Pipeline
-from server.protocol import DecodeError, Packet, Stream, encode_imu
+from server.protocol import DecodeError, Packet, Stream, encode_imu, sensor_key
 from server.settings import IngestSettings, Settings, UnknownVehiclePolicy
 from tests.server.ingest.fakes import CapturingSink, RecordingFleet, first_stamp
 
@@ -534,3 +537,36 @@ def test_a_config_an_estimator_refuses_is_not_applied_and_the_pipeline_lives_on(
     assert counters["new"]["configs_refused"] == 1
     assert counters["new"]["rejected_unknown_vehicle"] == 1
     assert list(sink.by_estimator) == ["mdsf"] and pipe.stats()["pipeline_errors"] == 0
+
+
+def test_real_estimators_of_a_mixed_fleet_reach_the_sinks_as_batches_of_their_specs() -> None:
+    """The real MDSF and reference-speed estimators on simulated drives: MDSF for every
+    vehicle, reference speed for the ones that run it too, each as its own spec's rows."""
+    run = simulate("paper_straight", seed=2, start_ns=time.time_ns() - 60 * 10**9)
+    encoded = encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns))
+    encoded = encoded[: len(encoded) * 10 // max(1, round(run.duration_s))]  # 10 s
+    sink = CapturingSink()
+    settings = Settings(ingest=IngestSettings.model_validate({"unknown_vehicle": "reject"}))
+    pipe = Pipeline(settings, None, EstimatorRegistry(), [sink])
+    pipe.register_vehicle("m", VehicleConfig())
+    pipe.register_vehicle("x", VehicleConfig(estimators=BOTH))
+    pipe.start()
+    for k in range(0, len(encoded), 32):
+        pipe.submit_raw(
+            [(sensor_key("fleet", vid, st), pl) for st, pl in encoded[k : k + 32] for vid in "mx"]
+        )
+    pipe.stop()
+    assert sorted(sink.by_estimator["mdsf"]) == ["m", "x"]
+    assert sorted(sink.by_estimator["reference_speed"]) == ["x"]
+    mdsf = {vid: np.concatenate(parts) for vid, parts in sink.by_estimator["mdsf"].items()}
+    np.testing.assert_array_equal(mdsf["m"]["stamp_ns"], mdsf["x"]["stamp_ns"])
+    ref = np.concatenate(sink.by_estimator["reference_speed"]["x"])
+    assert ref.dtype == REFERENCE_SPEED_SPEC.dtype and len(ref) >= 90  # 10 s of 100 ms ticks
+    assert np.all(np.diff(ref["stamp_ns"]) > 0)
+    # the GNSS-free speed follows MDSF's once both have settled (a straight drive, no slip),
+    # up to the last tick, which the final flush computes without all of its wheel data
+    both = np.intersect1d(ref["stamp_ns"], mdsf["x"]["stamp_ns"])[20:-1]
+    v_ref = ref[REFERENCE_SPEED_SPEC.motion_field][np.isin(ref["stamp_ns"], both)]
+    v_mdsf = mdsf["x"][MDSF_SPEC.motion_field][np.isin(mdsf["x"]["stamp_ns"], both)]
+    assert len(both) > 50 and np.nanmax(np.abs(v_ref - v_mdsf)) < 0.5
+    assert pipe.stats()["estimator_errors"] == 0
