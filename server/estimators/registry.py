@@ -370,14 +370,22 @@ class EstimatorRegistry:
     def _batch(
         self, name: str, spec: EstimatorSpec, parts: list[tuple[str, np.ndarray]]
     ) -> EstimateBatch:
-        """``parts`` joined as one batch of ``spec``; a vehicle's rows of another dtype or
-        shape are dropped and told to ``on_error``."""
+        """``parts`` joined as one batch of ``spec``; when that fails, without the vehicles
+        whose rows are not of ``spec``."""
+        try:
+            return EstimateBatch.of(parts, spec)
+        except (TypeError, AttributeError):  # some rows are no 1-d array of spec.dtype
+            return EstimateBatch.of(self._of_spec(name, spec, parts), spec)
+
+    def _of_spec(
+        self, name: str, spec: EstimatorSpec, parts: list[tuple[str, np.ndarray]]
+    ) -> list[tuple[str, np.ndarray]]:
+        """The parts whose rows are of ``spec`` (dtype, shape); the others told to
+        ``on_error``."""
         good = []
         for vid, rows in parts:
             try:
-                spec.check_rows(rows)
+                good.append((vid, spec.check_rows(rows)))
             except TypeError as exc:
                 self.on_error(vid, name, "advance", exc)
-                continue
-            good.append((vid, rows))
-        return EstimateBatch.of(good, spec)
+        return good

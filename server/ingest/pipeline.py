@@ -195,7 +195,7 @@ class Pipeline:
         self._ingest = settings.ingest
         self._registry = registry
         registry.on_error = self._estimator_failed
-        # (vehicle, estimator) -> (wall ns before which it is not logged again, failures since)
+        # (vehicle, estimator) -> (clock ns before which it is not logged again, failures since)
         self._error_log: dict[tuple[str, str], tuple[int, int]] = {}
         self._sinks = list(sinks)
         self._on_new_vehicle = on_new_vehicle
