@@ -86,3 +86,16 @@ def test_vehicle_and_server_alerts_are_published_under_their_keys(
         assert [e["event"] for e in got[vid]] == ["open"], got[vid]
         assert got[vid][0]["kind"] == AlertKind.SLIP_LEFT.value
     assert got[SERVER_ALERTS_CHUNK][0]["kind"] == AlertKind.STORAGE_DOWN.value
+
+
+def test_estimator_failures_and_refused_configs_are_metrics_per_vehicle() -> None:
+    from server.runtime import _ingest_families
+
+    families = {
+        f.name: f
+        for f in _ingest_families({"v1": {"estimator_errors": 3, "configs_refused": 1}, "v2": {}})
+    }
+    for name, v1 in (("estimator_errors", 3.0), ("configs_refused", 1.0)):
+        family = families[f"slipfleet_packets_{name}"]
+        assert family.type == "counter"
+        assert {s.labels["vehicle"]: s.value for s in family.samples} == {"v1": v1, "v2": 0.0}
