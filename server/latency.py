@@ -81,9 +81,13 @@ class _TimedStore:
         self._histogram = histogram
         self._clock_ns = clock_ns
 
-    def write_estimates(self, batch: EstimateBatch) -> int:
-        written = self._store.write_estimates(batch)
-        self._histogram.add(self._clock_ns() - batch.rows["stamp_ns"].astype(np.int64))
+    def write_estimates(self, *batches: EstimateBatch) -> int:
+        """The store's ``write_estimates`` (one transaction, any estimators' batches), then
+        each row's commit latency recorded."""
+        written = self._store.write_estimates(*batches)
+        now = self._clock_ns()
+        for batch in batches:
+            self._histogram.add(now - batch.rows["stamp_ns"].astype(np.int64))
         return written
 
     def __getattr__(self, name: str) -> Any:
