@@ -24,8 +24,10 @@ The first one is the vehicle's *primary* (REST's default). :meth:`EstimatorRegis
 returns one :class:`~estimator.types.EstimateBatch` per estimator; a measurement is pushed only
 to the estimators whose ``spec.inputs`` name its stream (:func:`estimator.base.stream_of`).
 
-Isolation: every call into an estimator is guarded on its own. One that raises is reported to
-``on_error(vehicle_id, estimator, operation, exc)`` and costs that vehicle that call only: a
+Isolation: every call that configures, feeds or steps an estimator (``add_vehicle``,
+``remove_vehicle``, ``push``, ``align_ticks``, ``advance``; also ``counters``) is guarded on
+its own. One that raises is reported to ``on_error(vehicle_id, estimator, operation, exc)``
+and costs that vehicle that call only: a
 batched ``advance`` that raises is retried on halves of its vehicles down to the one that
 fails, so the other vehicles' rows and the other estimators' are all delivered. A config that
 an estimator refuses is taken back (:class:`ConfigRefusedError`; the vehicle keeps its old
