@@ -16,7 +16,7 @@ from estimator.spec import (
     WheelPosition,
     flags_from,
 )
-from estimator.types import ESTIMATE_FIELDS, EstimateFlag
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, EstimateFlag
 
 __all__ = ["MDSF_SPEC"]
 
@@ -123,4 +123,5 @@ MDSF_SPEC = EstimatorSpec(
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEGRADED",),
+    row_dtype=ESTIMATE_DTYPE,
 )

@@ -305,7 +305,7 @@ class EstimateBatch(Sequence[tuple[str, np.ndarray]]):
     ) -> None:
         if len(ids) != len(counts) or sum(counts) != rows.shape[0]:
             raise ValueError("ids, counts and rows disagree")
-        if rows.dtype != spec.dtype:
+        if rows.dtype is not spec.dtype and rows.dtype != spec.dtype:
             raise TypeError(f"rows of {spec.name!r} must have its dtype, got {rows.dtype}")
         self.ids = ids
         self.counts = counts
