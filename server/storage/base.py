@@ -91,7 +91,7 @@ class Store(Protocol):
         anchor; False if it did not exist."""
 
     # estimates
-    def write_estimates(self, *batches: EstimateBatch) -> int:
+    def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
         """Insert the rows of one or more estimators in one transaction; return rows written.
 
         Rows whose ``(vehicle_id, stamp_ns)`` already exist in their estimator's table are

@@ -402,7 +402,7 @@ class SqliteStore:
             )
         return t
 
-    def write_estimates(self, *batches: EstimateBatch) -> int:
+    def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
         """Insert the rows of one or more estimators in one transaction; rows of unregistered
         vehicles are not written. Returns the rows inserted (duplicates and unknown vehicles
         excluded)."""
