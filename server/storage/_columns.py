@@ -15,7 +15,7 @@ import numpy as np
 
 from estimator.catalog import SPECS, spec_of
 from estimator.spec import EstimatorSpec
-from estimator.types import EstimateBatch
+from estimator.types import EstimateBatch, concat_estimates
 from server.storage.base import StorageError
 
 #: The estimator of rows handed over as plain ``[(vehicle_id, rows), …]`` and the default of
@@ -64,12 +64,30 @@ def as_batches(batches: Sequence[Any]) -> list[EstimateBatch]:
     out: list[EstimateBatch] = []
     for batch in batches:
         if not isinstance(batch, EstimateBatch):
-            batch = EstimateBatch.of(
-                [(str(vid), rows) for vid, rows in batch], spec_of(DEFAULT_ESTIMATOR)
-            )
+            batch = _plain_batch(batch, spec_of(DEFAULT_ESTIMATOR))
         if batch.rows.shape[0]:
             out.append(batch)
     return out
+
+
+def _plain_batch(pairs: Sequence[tuple[str, np.ndarray]], spec: EstimatorSpec) -> EstimateBatch:
+    """``pairs`` as one batch of ``spec``, a dtype compared with the spec's only when it is
+    not the object the previous rows had: two equal structured dtypes that are not one object
+    compare field by field (~3 µs for MDSF's 28), and a fleet's commit holds one or two rows
+    of each of hundreds of vehicles."""
+    last = None
+    for _, rows in pairs:
+        if rows.__class__ is not np.ndarray or rows.dtype is not last or rows.ndim != 1:
+            last = spec.check_rows(rows).dtype
+    kept = [(vid, rows) for vid, rows in pairs if len(rows)]
+    if not kept:
+        return EstimateBatch([], [], spec.empty_rows(0), spec)
+    return EstimateBatch(
+        [vid for vid, _ in kept],
+        [len(rows) for _, rows in kept],
+        concat_estimates([rows for _, rows in kept]),
+        spec,
+    )
 
 
 def select_fields(spec: EstimatorSpec, fields: Sequence[str] | None) -> tuple[str, ...]:

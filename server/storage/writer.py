@@ -537,8 +537,14 @@ class StoreWriter:
             n += len(part)
         self._queued_rows -= n
         self._inflight_rows = n
+        # the rows were checked against their spec when submitted: joined as they are
         return [
-            EstimateBatch.of([(v, concat_estimates(p)) for v, p in parts.items()], specs[name])
+            EstimateBatch(
+                list(parts),
+                [sum(len(p) for p in ps) for ps in parts.values()],
+                concat_estimates([p for ps in parts.values() for p in ps]),
+                specs[name],
+            )
             for name, parts in per_vehicle.items()
         ]
 
