@@ -357,7 +357,7 @@ class StoreWriter:
             self._cond.notify_all()
         return accepted
 
-    def on_estimates(self, batch: EstimateBatch) -> None:
+    def on_estimates(self, batch: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> None:
         """Pipeline sink (once per estimator and tick): same as :meth:`submit`."""
         self.submit(batch)
 
