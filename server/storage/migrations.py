@@ -30,9 +30,9 @@ Schema (version 10):
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
-    PostgreSQL: ``vkey`` + every ``ESTIMATE_FIELDS`` column, all ``NOT NULL`` (NaN is stored
+    PostgreSQL: ``vkey`` + a column per field of MDSF's spec, all ``NOT NULL`` (NaN is stored
     natively). SQLite (since version 6): ``vkey``, ``stamp_ns`` and ``packed``, the whole row as
-    its ``ESTIMATE_DTYPE`` bytes (layout :data:`SQLITE_PACKED_FIELDS`, little-endian), in a
+    its bytes (layout :data:`SQLITE_PACKED_FIELDS`, little-endian), in a
     clustered ``WITHOUT ROWID`` table; versions 1-5 had every field as a column (NaN as NULL)
     and, from version 3, ``packed`` beside them.
 ``estimates_recent`` (SQLite, version 7)
@@ -306,9 +306,10 @@ _V5_POSTGRESQL = (
     "CREATE INDEX raw_packets_vehicle_received ON raw_packets (vehicle_id, received_ns)",
 )
 
-#: The field layout of SQLite's packed rows from version 6 on: ``(name, numpy kind)``, packed
-#: without padding, little-endian. Frozen with the migration: when ``ESTIMATE_FIELDS`` changes, a
-#: new migration repacks the rows (a test compares the two).
+#: The field layout of MDSF's rows in its tables (SQLite: packed from version 6 on, without
+#: padding, little-endian; PostgreSQL: the columns of version 1), ``(name, numpy kind)``. Frozen
+#: with the migrations: when MDSF's spec changes, a new migration converts the rows (a test
+#: compares the two).
 SQLITE_PACKED_FIELDS: tuple[tuple[str, str], ...] = (
     ("stamp_ns", "i8"),
     *(
