@@ -9,7 +9,9 @@ per estimator call) are committed at once instead of waiting out an interval, an
 at most ``commit_interval_s`` for its transaction to start. The default (0.02 s) is well under
 the estimator calls' 50 ms, so each call's rows go out at once even when calls come a little
 early or a commit ran late; under a flood transactions start once per interval, each carrying
-what arrived in one.
+what arrived in one. Rows of every estimator share the backlog; a transaction carries a batch
+per estimator (``Store.write_estimates(*batches)``), so every estimator's rows of a tick are
+stored together.
 
 Bounded backlog, no silent loss:
 
@@ -30,6 +32,11 @@ over Zenoh) are stored by the writer too (:meth:`StoreWriter.submit_vehicle`), b
 estimate transaction that starts after the call: the store keeps only rows of vehicles it knows,
 so a vehicle stored by another thread could lose its first rows to the race (it did: 5-49 rows a
 1,000-vehicle load test, each a new vehicle's first).
+
+Writes other threads make (REST: vehicle upserts and deletes, tokens) go through the same
+thread by :meth:`StoreWriter.call`, which runs ``fn(store)`` there between two writes and hands
+back its result or error: one writer, so no REST write waits on the database lock behind an
+estimate transaction or races a queued registration.
 
 Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win), the vehicles' ENU
 anchors (:meth:`StoreWriter.submit_anchors`, each stored once) and, when ``store_raw_packets``
