@@ -35,8 +35,8 @@ so a vehicle stored by another thread could lose its first rows to the race (it 
 
 Writes other threads make (REST: vehicle upserts and deletes, tokens) go through the same
 thread by :meth:`StoreWriter.call`, which runs ``fn(store)`` there between two writes and hands
-back its result or error: one writer, so no REST write waits on the database lock behind an
-estimate transaction or races a queued registration.
+back its result or error: one writer, so REST writes and estimate transactions never contend
+for the database lock, and a REST upsert never races a queued registration.
 
 Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win), the vehicles' ENU
 anchors (:meth:`StoreWriter.submit_anchors`, each stored once) and, when ``store_raw_packets``
