@@ -91,13 +91,13 @@ def _axis_quat(angle: FloatArray, axis: int) -> FloatArray:
 
 
 def wxyz_from_attitude(
-    heading_rad: npt.ArrayLike, pitch_rad: npt.ArrayLike, roll_rad: npt.ArrayLike
+    psi_rad: npt.ArrayLike, theta_rad: npt.ArrayLike, phi_rad: npt.ArrayLike
 ) -> FloatArray:
     """Unit quaternion of ``R = Rz(-ψ)·Rx(θ)·Ry(φ)``, shape ``(..., 4)``, ``w >= 0``."""
-    psi = np.asarray(heading_rad, dtype=np.float64)
+    psi = np.asarray(psi_rad, dtype=np.float64)
     q = quat_mul(
-        quat_mul(_axis_quat(-psi, 2), _axis_quat(np.asarray(pitch_rad, dtype=np.float64), 0)),
-        _axis_quat(np.asarray(roll_rad, dtype=np.float64), 1),
+        quat_mul(_axis_quat(-psi, 2), _axis_quat(np.asarray(theta_rad, dtype=np.float64), 0)),
+        _axis_quat(np.asarray(phi_rad, dtype=np.float64), 1),
     )
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0, -q, q)

@@ -34,7 +34,7 @@ vehicle's rows of one estimator (default: its primary)
          "window_s": 60, "tier": "fine", "bucket_s": 0.05,
          "columns": {"stamp_ns": [...], <each live field of the spec>: [...]},
          "latest": {<every field of the spec>, "arrival_ns": …, "status": "live", "age_s": 0.2,
-                    "quality": "ok", "flag_names": ["GNSS_OK", …]},
+                    "quality": "ok", "flag_names": [<names of the flags set>]},
          "sent_ns": 1717…}
 
         {"type": "append", "estimator": "mdsf", "estimators": […], "from_ns": 1717…,
