@@ -22,6 +22,14 @@ window.slipfleetStats = window.slipfleetStats || {};
 window.slipfleetStats.fleetUpdateMs = window.slipfleetStats.fleetUpdateMs || [];
 const QUALITY_ORDER = { ok: 0, degraded: 1, none: 2 };
 
+// "L" for channel key "left", "RL" for "rear_left": the short label of a slip column
+function initials(key) {
+  return key
+    .split(/[_-]/)
+    .map((w) => w.charAt(0).toUpperCase())
+    .join("");
+}
+
 // The table's columns for these slip channel keys; short: the label shown on narrow screens
 // (app.css switches .lab-long / .lab-short). A slip column's key is "slip:<channel key>".
 function columnsFor(slipKeys, specs) {
@@ -36,7 +44,7 @@ function columnsFor(slipKeys, specs) {
     { key: "id", label: "Vehicle", numeric: false },
     { key: "status", label: "Status", numeric: false },
     { key: "speed_mps", label: "Speed (m/s)", short: "m/s", numeric: true },
-    ...slipKeys.map((k) => ({ key: `slip:${k}`, label: `Slip ${label(k)} (%)`, short: `Slip ${k}`, numeric: true, slip: k })),
+    ...slipKeys.map((k) => ({ key: `slip:${k}`, label: `Slip ${label(k)} (%)`, short: `Slip ${initials(k)}`, numeric: true, slip: k })),
     { key: "quality", label: "Quality", numeric: false },
     { key: "age_s", label: "Last update (s ago)", short: "Age (s)", numeric: true },
   ];

@@ -230,7 +230,7 @@ export function historyView(root, vehicleId) {
     const motion = motionChannel(spec);
     cursorStats.replaceChildren(
       ...spec.slips.map((ch) => tile(`Slip ${ch.label}`, `h-slip-${ch.key}`, "%")),
-      ...(motion ? [tile(motion.label, "h-speed", fieldOf(spec, motion.field).unit)] : []),
+      ...(motion ? [tile(motion.label, "h-motion", fieldOf(spec, motion.field).unit)] : []),
     );
     canvas.hidden = !spec.position;
     heatOn.disabled = !spec.position || !spec.slips.length;
@@ -350,7 +350,7 @@ export function historyView(root, vehicleId) {
     at.textContent = fmtTimeNs(track.stamp_ns[idx]);
     for (const ch of spec.slips) document.getElementById(`h-slip-${ch.key}`).textContent = fmt(track[ch.field][idx], 1);
     const motion = motionChannel(spec);
-    if (motion) document.getElementById("h-speed").textContent = fmt(track[motion.field][idx], 2);
+    if (motion) document.getElementById("h-motion").textContent = fmt(track[motion.field][idx], 2);
     for (const c of charts) setCursorTime(c.chart, xs[idx]);
     map.cursor = idx;
     map.upTo = idx;

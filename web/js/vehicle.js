@@ -109,7 +109,7 @@ function estimatorPanel(spec, page, primary) {
       e.dataset.stampNs = String(lt.stamp_ns);
       // why a channel has no value: the row's flags other than its quality (standstill, …)
       const why = lt.flag_names.filter((f) => f !== spec.ok_flag && !spec.slips.some((c) => c.valid_flag === f));
-      document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase() || "unknown"}` : "";
+      document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase().replace(/_/g, " ") || "unknown"}` : "";
     }
     if (motion) document.getElementById(id("speed")).textContent = fmt(lt[motion.field], 2);
     const q = document.getElementById(id("quality"));
