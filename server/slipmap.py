@@ -109,7 +109,7 @@ def slipmap_fields(spec: EstimatorSpec, *, fleet: bool = False) -> list[str]:
     motion field, the slip channels' fields, ``flags``, east and north, and with ``fleet`` the
     up field too (the change of frame needs it). :class:`NotMappable` if it cannot be mapped."""
     position, motion = check_mappable(spec)
-    wanted = ["stamp_ns", motion, *(s.field for s in spec.slips)]
+    wanted: list[str | None] = ["stamp_ns", motion, *(s.field for s in spec.slips)]
     if spec.has_field("flags"):
         wanted.append("flags")
     wanted += [position.east_field, position.north_field]
