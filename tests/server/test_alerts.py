@@ -10,6 +10,8 @@ import pytest
 
 from estimator.config import SlipConfig
 from estimator.mdsf_spec import MDSF_SPEC
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.spec import EstimatorSpec, FieldSpec, SlipChannel, WheelPosition
 from estimator.types import EstimateBatch, EstimateFlag, empty_estimates
 from server.alerts import SYSTEM, AlertEngine, AlertKind
 
@@ -229,6 +231,7 @@ def test_alerts_route_lists_and_filters() -> None:
         ("a", SLIP_LEFT, False),
     ]
     assert body["alerts"][1]["start_ns"] == T0 and body["alerts"][1]["end_ns"] == T0 + 7 * S
+    assert (body["alerts"][0]["estimator"], body["alerts"][0]["channel"]) == ("mdsf", "right")
     eng.on_estimates(mdsf([("b", rows([7.0, 12.0], [40.0, 40.0], sr=40.0))]))
     status, body = _get_alerts(eng, "?state=open&vehicle_id=b")
     assert status == 200
@@ -304,3 +307,72 @@ def test_system_condition_opens_once_and_closes() -> None:
         (SYSTEM, "close", "storage_down"),
     ]
     assert [a.kind for a in engine.alerts(state="closed")] == [AlertKind.STORAGE_DOWN]
+
+
+def ref_rows(t_s: list[float], no_wheel: list[bool]) -> EstimateBatch:
+    """Reference-speed rows of vehicle ``a``: NO_WHEEL where asked, WHEEL_OK elsewhere."""
+    r = REFERENCE_SPEED_SPEC.empty_rows(len(t_s))
+    r["stamp_ns"] = [T0 + round(t * S) for t in t_s]
+    r["speed_mps"] = 2.0
+    lost, ok = (
+        REFERENCE_SPEED_SPEC.flag_mask("NO_WHEEL"),
+        REFERENCE_SPEED_SPEC.flag_mask("WHEEL_OK"),
+    )
+    r["flags"] = [lost if n else ok for n in no_wheel]
+    return EstimateBatch.of([("a", r)], REFERENCE_SPEED_SPEC)
+
+
+def test_rules_of_each_estimator_are_its_own() -> None:
+    """One vehicle, two estimators: MDSF's slip rule and the reference speed's flag rule open
+    and close apart; the reference speed has no slip rule (no slip channel)."""
+    eng, pub, _ = engine(flag_hold_s=1.0)
+    t = [0.0, 1.0, 2.0, 3.0, 4.0]
+    eng.on_estimates(ref_rows(t, [False, True, True, True, False]))
+    eng.on_estimates(mdsf([("a", rows([*t, 5.0, 6.0], [30.0] * 7))]))
+    kinds = [(e["event"], e["kind"], e["estimator"], e["channel"]) for _, e in pub]
+    assert kinds == [
+        ("open", "flag:reference_speed:NO_WHEEL", "reference_speed", "NO_WHEEL"),
+        ("close", "flag:reference_speed:NO_WHEEL", "reference_speed", "NO_WHEEL"),
+        ("open", SLIP_LEFT, "mdsf", "left"),
+    ]
+    [flag] = eng.alerts(state="closed")
+    assert (flag.start_ns, flag.end_ns) == (T0 + S, T0 + 4 * S)
+    assert flag.threshold is None and flag.peak is None
+    [slip] = eng.alerts(state="open")
+    assert slip.to_dict()["estimator"] == "mdsf" and slip.peak == 30.0
+    # forgetting the vehicle closes what is open of every estimator
+    eng.on_estimates(ref_rows([7.0, 8.0, 9.0], [True, True, True]))
+    assert eng.open_count() == 2
+    assert eng.forget("a") and eng.open_count() == 0
+
+
+TRACKS = EstimatorSpec(
+    name="tracks",
+    title="track slip",
+    kinds=("tracked",),
+    inputs=("imu",),
+    fields=(
+        FieldSpec("stamp_ns", "i8", "ns", "time"),
+        FieldSpec("left_pct", "f8", "%", "left track slip"),
+        FieldSpec("right_pct", "f8", "%", "right track slip"),
+    ),
+    slips=(
+        SlipChannel("lt", "left track", "left_pct", WheelPosition.TRACK_LEFT),
+        SlipChannel("rt", "right track", "right_pct", WheelPosition.TRACK_RIGHT),
+    ),
+)
+
+
+def test_slip_rule_per_channel_of_a_spec_without_flags() -> None:
+    eng, pub, _ = engine()
+    r = TRACKS.empty_rows(8)
+    r["stamp_ns"] = T0 + np.arange(8) * S
+    r["left_pct"] = 1.0
+    r["right_pct"] = [20, 20, 25, 20, 20, 20, 2, 2]
+    eng.on_estimates(EstimateBatch.of([("crawler", r)], TRACKS))
+    assert [(e["event"], e["kind"], e["channel"]) for _, e in pub] == [
+        ("open", "slip:tracks:rt", "rt"),
+        ("close", "slip:tracks:rt", "rt"),
+    ]
+    [a] = eng.alerts()
+    assert (a.start_ns, a.end_ns, a.peak, a.threshold) == (T0, T0 + 6 * S, 25.0, 15.0)
