@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import io
 
-import numpy as np
 import pytest
 
 from estimator.catalog import SPECS
@@ -18,22 +17,11 @@ from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC as REF
 from estimator.types import EstimateBatch
 from server.storage.base import Store
 
-from ._data import T0, S, hand_series
+from ._data import T0, S, hand_series, reference_series
 from .conftest import ApiClient, FakeRuntime, error_of
 
 Q = f"start={T0}&end={T0 + 10 * S}"
 V = "/api/v1/vehicles"
-
-
-def reference_series() -> np.ndarray:
-    """10 rows, 1 s apart: speed 0 0 1 2 2 3 3 1 0.1 0; the wheel lost on rows 2 and 3."""
-    rows = REF.empty_rows(10)
-    rows["stamp_ns"] = T0 + np.arange(10) * S
-    rows["speed_mps"] = [0, 0, 1, 2, 2, 3, 3, 1, 0.1, 0]
-    rows["rim_mps"] = 1.5
-    rows["flags"] = REF.flag_mask("WHEEL_OK")
-    rows["flags"][2:4] = REF.flag_mask("NO_WHEEL")
-    return rows
 
 
 @pytest.fixture
