@@ -349,8 +349,8 @@ class SlipChannelRefPublic(BaseModel):
 class SlipMapCellPublic(BaseModel):
     """One cell of a slip map (definitions in the API description of the route)."""
 
-    index_east: int = Field(description="i = floor(east_m / cell_m)")
-    index_north: int = Field(description="j = floor(north_m / cell_m)")
+    index_east: int = Field(description="i = floor(east / cell_m)")
+    index_north: int = Field(description="j = floor(north / cell_m)")
     east_m: float = Field(description="east of the cell's south-west corner, i · cell_m")
     north_m: float = Field(description="north of the cell's south-west corner, j · cell_m")
     time_s: float = Field(description="moving time in the cell")

@@ -51,7 +51,7 @@ estimator's rows (`estimator`, default the vehicle's primary), read through its 
 * **bands**: time share of **absolute** slip in `[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the
   edges `slip.band_edges_pct` of the vehicle's config (default 5 and 15 %); share of the
   channel's valid-slip time.
-* **degraded_s**: time with any of the spec's `degraded_flags` set (MDSF: `DEGRADED`, GNSS lost).
+* **degraded_s**: time with any of the spec's `degraded_flags` set (its main reference lost).
 * **ingest**: packet counter totals since registration (received, accepted, rejected by reason,
   late, duplicate, lost).
 """

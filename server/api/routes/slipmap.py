@@ -75,8 +75,9 @@ __all__ = ["FLEET_SLIPMAP_DESCRIPTION", "SLIPMAP_DESCRIPTION", "router"]
 router = APIRouter(tags=["slipmap"])
 
 _DEFINITIONS = """\
-* **cell** `(i, j)`: the positions with `i = floor(east_m / cell_m)`, `j = floor(north_m /
-  cell_m)`; south-west corner `(i · cell_m, j · cell_m)`.
+* **cell** `(i, j)`: the positions (east, north) with `i = floor(east / cell_m)`,
+  `j = floor(north / cell_m)`; south-west corner `(i · cell_m, j · cell_m)` (the cell's `east_m`,
+  `north_m`).
 * **estimator**: the rows are one estimator's (`estimator`); it needs a `position` and a
   `motion` speed channel in its spec (400 `bad_request` otherwise). Positions are its position
   fields (east, north) in metres from the vehicle's anchor.
@@ -137,10 +138,10 @@ range or fewer vehicles).
   422; height 0, which moves no cell: east and north do not depend on it), or else at the stored
   anchor of the first vehicle in id order that has one (`origin_vehicle_id`).
 * **vehicles**: every registered vehicle, or those of `vehicles=id1,id2` (an unknown id: 404
-  `not_found` naming it). A vehicle's `east_m`, `north_m`, `up_m` are metres from its own
-  anchor: they go to WGS 84 through that anchor and into the shared frame (exact ECEF
-  transformations; a missing `up_m` is taken as 0). A vehicle without a stored anchor cannot be
-  placed: it is left out and listed in `skipped` (`reason` `no_anchor`).
+  `not_found` naming it). A vehicle's positions (east, north, up of the estimator's `position`)
+  are metres from its own anchor: they go to WGS 84 through that anchor and into the shared
+  frame (exact ECEF transformations; a missing up is taken as 0). A vehicle without a stored
+  anchor cannot be placed: it is left out and listed in `skipped` (`reason` `no_anchor`).
 * **estimator**, one for the whole map: `estimator` if given, else the primary of the first
   placed vehicle (by id); without `estimator=`, a vehicle whose primary is another estimator is
   left out and listed in `skipped` (`reason` `other_estimator`).
