@@ -146,8 +146,10 @@ def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response
     response_model=FleetReportPublic,
     responses={
         200: {
-            "description": "One report per registered vehicle; CSV: one row per vehicle, band "
-            "columns named by their edges (the union over the fleet, empty where not used).",
+            "description": "One report per registered vehicle, of `estimator` or else of each "
+            "vehicle's primary (a vehicle that runs no estimator is left out); CSV: one row per "
+            "vehicle, slip columns named by channel key and band edges (the union over the "
+            "fleet, empty where not used).",
             "content": {"text/csv": {"schema": {"type": "string"}}},
         },
         **error_responses(400, 422),
