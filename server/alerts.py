@@ -267,12 +267,11 @@ class AlertEngine:
             self._ids[s] = vehicle_id
         else:
             s = len(self._ids)
-            if s >= self._thr.shape[0]:
-                grow = s  # double
-                self._thr = np.concatenate([self._thr, np.zeros(grow)])
-                self._slip_hold_ns = np.concatenate([self._slip_hold_ns, np.zeros(grow, np.int64)])
-                self._last_stamp = np.concatenate([self._last_stamp, np.zeros(grow, np.int64)])
-                self._last_arrival = np.concatenate([self._last_arrival, np.zeros(grow, np.int64)])
+            if s >= self._thr.shape[0]:  # double every per-vehicle array
+                self._thr = np.r_[self._thr, np.zeros(s)]
+                self._slip_hold_ns = np.r_[self._slip_hold_ns, np.zeros(s, np.int64)]
+                self._last_stamp = np.r_[self._last_stamp, np.zeros(s, np.int64)]
+                self._last_arrival = np.r_[self._last_arrival, np.zeros(s, np.int64)]
             self._ids.append(vehicle_id)
         self._slot[vehicle_id] = s
         self._apply_config(s, self._config_for(vehicle_id))
