@@ -110,7 +110,13 @@ MDSF_SPEC = EstimatorSpec(
     ),
     motion="ground",
     position=PositionChannel(
-        "east_m", "north_m", "up_m", "heading_rad", carried_flag="DEAD_RECKONED"
+        "east_m",
+        "north_m",
+        "up_m",
+        "heading_rad",
+        carried_flag="DEAD_RECKONED",
+        pitch_field="pitch_rad",
+        roll_field="roll_rad",
     ),
     charts=(
         ChartSpec("slip", "Wheel slip", "%", ("slip_left_pct", "slip_right_pct")),

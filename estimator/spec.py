@@ -136,7 +136,8 @@ class SpeedChannel:
 class PositionChannel:
     """Where the vehicle is: metres in its local ENU frame (origin: the vehicle's anchor).
 
-    ``carried_flag`` marks rows whose position was dead-reckoned rather than measured.
+    ``carried_flag`` marks rows whose position was dead-reckoned rather than measured;
+    ``pitch_field`` / ``roll_field`` (rad) give the body's attitude where the estimator has it.
     """
 
     east_field: str
@@ -144,6 +145,8 @@ class PositionChannel:
     up_field: str | None = None
     heading_field: str | None = None
     carried_flag: str | None = None
+    pitch_field: str | None = None
+    roll_field: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,7 +268,8 @@ class EstimatorSpec:
             raise SpecError(f"{self.name}: motion names unknown speed channel {self.motion!r}")
         if self.position is not None:
             p = self.position
-            for name in (p.east_field, p.north_field, p.up_field, p.heading_field):
+            fields = (p.east_field, p.north_field, p.up_field, p.heading_field)
+            for name in (*fields, p.pitch_field, p.roll_field):
                 self._need_field(name, "position")
             self._need_flag(p.carried_flag, "position")
         for c in self.charts:
@@ -389,6 +393,8 @@ class EstimatorSpec:
                 "up_field": self.position.up_field,
                 "heading_field": self.position.heading_field,
                 "carried_flag": self.position.carried_flag,
+                "pitch_field": self.position.pitch_field,
+                "roll_field": self.position.roll_field,
             },
             "charts": [
                 {"key": c.key, "title": c.title, "unit": c.unit, "fields": list(c.fields)}

@@ -19,8 +19,8 @@ Vehicle layout (from :class:`estimator.config.VehicleGeometry`): the estimate's 
 antenna, ``h0 + h1`` above the origin ``O`` (ground under the rear-axle midpoint) plus its
 horizontal ``antenna_offset_m``; rear wheels sit at ``O + R·(±b/2, 0, r)``, front wheels
 :data:`FRONT_AXLE_M` ahead, tracks under the body's centre (:func:`wheel_offset_m`). Pitch and
-roll are the spec's fields labelled ``pitch`` / ``roll`` in rad (:func:`attitude_fields`), level
-when it has none.
+roll are the position channel's ``pitch_field`` / ``roll_field`` (:func:`attitude_fields`),
+level when it has none.
 """
 
 from __future__ import annotations
@@ -183,12 +183,10 @@ def wheel_offset_m(position: WheelPosition, geometry: VehicleGeometry) -> FloatA
 
 
 def attitude_fields(spec: EstimatorSpec) -> tuple[str | None, str | None]:
-    """The spec's pitch and roll fields: labelled ``pitch`` / ``roll``, in rad (None: none)."""
-
-    def find(label: str) -> str | None:
-        return next((f.name for f in spec.fields if (f.label, f.unit) == (label, "rad")), None)
-
-    return find("pitch"), find("roll")
+    """The spec's pitch and roll fields (rad), from its position channel (None: none)."""
+    if spec.position is None:
+        return None, None
+    return spec.position.pitch_field, spec.position.roll_field
 
 
 def _column(rows: np.ndarray, name: str | None, default: float) -> FloatArray:
