@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import uvicorn
 
-from estimator.config import SlipConfig, VehicleConfig
+from estimator.config import SlipConfig, WheeledRearDriveConfig
 from server.alerts import AlertEngine
 from server.api import create_app
 from server.api.app import API_ROUTERS
@@ -76,9 +76,9 @@ class LiveRuntime:
         now = time.time_ns()
         for vid in self.fleet.ids:
             config = (
-                VehicleConfig(slip=SlipConfig(alert_threshold_pct=12.0))
+                WheeledRearDriveConfig(slip=SlipConfig(alert_threshold_pct=12.0))
                 if vid == SENSITIVE
-                else VehicleConfig()
+                else WheeledRearDriveConfig()
             )
             self._store.upsert_vehicle(vid, config.to_dict(), now)
             self.alert_engine.set_slip_config(vid, config.slip)

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.config import VehicleConfig, VehicleKind
+from estimator.config import TrackedConfig
 from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
 from server.protocol import (
     LIMITS,
@@ -192,7 +192,7 @@ def test_decoded_arrays_are_zero_copy_views() -> None:
 
 
 def test_config_round_trip() -> None:
-    cfg = VehicleConfig(kind=VehicleKind.TRACKED, estimators=("mdsf",))
+    cfg = TrackedConfig(estimators=("mdsf",))
     vid, got = decode_config("fleet/veh-1/config", encode_config(cfg))
     assert vid == "veh-1" and got == cfg
 
