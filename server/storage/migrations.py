@@ -15,11 +15,12 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 9):
+Schema (version 10):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
-    ``jsonb``), ``created_ns``, ``updated_ns``.
+    ``jsonb``), ``created_ns``, ``updated_ns``. Since version 10 every config names its
+    ``kind`` and has that kind's sections (:mod:`estimator.config`).
 ``estimates``
     Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range read.
     PostgreSQL: ``vkey`` + every ``ESTIMATE_FIELDS`` column, all ``NOT NULL`` (NaN is stored
@@ -54,12 +55,15 @@ Schema (version 9):
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from estimator.config import VehicleKind, upgrade_legacy_config
 
 __all__ = [
     "ADVISORY_LOCK_KEY",
@@ -434,6 +438,39 @@ _V9_POSTGRESQL: tuple[Step, ...] = (
     """,
 )
 
+
+def _v10_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
+    """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
+
+    Configs were written without ``kind`` (meaning a rear-drive vehicle) or, for every kind,
+    with the rear-drive sections; :func:`upgrade_legacy_config` maps those. Values are kept
+    as they are (a config out of range is still refused when read, as before).
+    """
+
+    def step(execute: Execute) -> None:
+        for vkey, text in execute(read_sql, ()):
+            old = json.loads(text)
+            if not isinstance(old, dict):
+                continue
+            new = upgrade_legacy_config({"kind": VehicleKind.WHEELED_REAR_DRIVE.value, **old})
+            if new != old:
+                execute(write_sql, (json.dumps(new), vkey))
+
+    return step
+
+
+_V10_SQLITE: tuple[Step, ...] = (
+    _v10_configs_by_kind(
+        "SELECT vkey, config FROM vehicles", "UPDATE vehicles SET config = ? WHERE vkey = ?"
+    ),
+)
+_V10_POSTGRESQL: tuple[Step, ...] = (
+    _v10_configs_by_kind(
+        "SELECT vkey, config::text FROM vehicles",
+        "UPDATE vehicles SET config = %s::jsonb WHERE vkey = %s",
+    ),
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -444,6 +481,7 @@ MIGRATIONS: tuple[Migration, ...] = (
     Migration(7, "time-ordered table of new estimate rows (SQLite)", _V7_SQLITE, ()),
     Migration(8, "bound on the stamps of final estimate rows (SQLite)", _V8_SQLITE, ()),
     Migration(9, "ENU anchors of the vehicles", _V9_SQLITE, _V9_POSTGRESQL),
+    Migration(10, "vehicle configs by kind", _V10_SQLITE, _V10_POSTGRESQL),
 )
 
 _VERSION_TABLE = {
