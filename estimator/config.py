@@ -104,7 +104,7 @@ class Bound:
     items: tuple[int, int] | None = None
 
     def describe(self) -> str:
-        """``"0.0001..10 m/s²"``: the range and unit as messages and schemas show them."""
+        """``"1e-06..10 m/s²"``: the range and unit as messages and schemas show them."""
         return f"{self.low:g}..{self.high:g} {self.unit or '(dimensionless)'}"
 
     def check(self, name: str, value: Any) -> None:
@@ -235,15 +235,15 @@ class NoiseConfig(_Checked):
     """Sensor noise figures (1-sigma), used to build the filters' Q and R."""
 
     gnss_vel_std_mps: float = _bounded(
-        0.05, 0.001, 10.0, "m/s", "GNSS velocity noise per axis when the receiver gives none"
+        0.05, 1e-6, 10.0, "m/s", "GNSS velocity noise per axis when the receiver gives none"
     )
-    accel_std_mps2: float = _bounded(0.05, 1e-4, 10.0, "m/s²", "accelerometer white noise")
+    accel_std_mps2: float = _bounded(0.05, 1e-6, 10.0, "m/s²", "accelerometer white noise")
     gyro_std_radps: float = _bounded(0.005, 1e-6, 1.0, "rad/s", "gyro white noise")
     accel_bias_walk_mps2: float = _bounded(
         0.002, 1e-7, 1.0, "m/s² per √s", "accelerometer bias random walk"
     )
     gnss_pos_std_m: float = _bounded(
-        0.02, 0.001, 100.0, "m", "horizontal position noise per axis (RTK fixed: 1-2 cm)"
+        0.02, 1e-6, 100.0, "m", "horizontal position noise per axis (RTK fixed: 1-2 cm)"
     )
 
 
@@ -521,15 +521,16 @@ def vehicle_config_from_dict(data: Any) -> VehicleConfig:
 def upgrade_legacy_config(data: dict[str, Any]) -> dict[str, Any]:
     """Today's shape of a config dict written in an earlier shape; others returned unchanged.
 
-    Before configs had a class per kind, every kind was stored with the rear-drive sections
-    (``geometry`` of :class:`VehicleGeometry`, ``encoder``). A tracked or four-wheel config in
-    that shape (recognised by its ``encoder`` section) keeps its ``noise``, ``slip`` and
-    ``estimators``; its rear track width becomes the gauge (tracked) or both track widths, the
-    IMU and antenna offsets and heights become lever arms, and the mean wheel radius becomes
-    the unloaded tyre radius. The rear-drive shape never changed. Values are not validated here.
+    Before configs had a class per kind, every kind was written whole with the rear-drive
+    sections (``geometry`` of :class:`VehicleGeometry`, ``encoder``). A tracked or four-wheel
+    config with exactly those keys (a part of them is read as today's shape, and refused)
+    keeps its ``noise``, ``slip`` and ``estimators``; its rear track width becomes the gauge
+    (tracked) or both track widths, the IMU and antenna offsets and heights become lever arms,
+    and the mean wheel radius becomes the unloaded tyre radius. The rear-drive shape never
+    changed. Values are not validated here.
     """
     kind = data.get("kind")
-    if kind not in (VehicleKind.TRACKED, VehicleKind.WHEELED_4WD_STEERED) or "encoder" not in data:
+    if kind not in (VehicleKind.TRACKED, VehicleKind.WHEELED_4WD_STEERED) or set(data) != _LEGACY:
         return data
     geo = data.get("geometry")
     geo = geo if isinstance(geo, dict) else {}
@@ -547,6 +548,10 @@ def upgrade_legacy_config(data: dict[str, Any]) -> dict[str, Any]:
     if radii:
         out["tyre"] = {"unloaded_radius_m": sum(radii) / len(radii)}
     return out
+
+
+_LEGACY = {"kind", "geometry", "encoder", "noise", "slip", "estimators"}
+"""The keys every config had before configs had a class per kind."""
 
 
 def _rename(section: dict[str, Any], names: Mapping[str, str]) -> dict[str, Any]:

@@ -188,7 +188,7 @@ def test_issue_examples_are_refused() -> None:
     with pytest.raises(ConfigError) as info:
         vehicle_config_from_dict({"noise": {"accel_std_mps2": 1e200}})
     assert str(info.value) == (
-        "wheeled_rear_drive: noise.accel_std_mps2 must be a number in 0.0001..10 m/s², got 1e+200"
+        "wheeled_rear_drive: noise.accel_std_mps2 must be a number in 1e-06..10 m/s², got 1e+200"
     )
     with pytest.raises(ConfigError) as info:
         vehicle_config_from_dict({"slip": {"alert_hold_s": 1e12}})

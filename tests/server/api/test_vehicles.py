@@ -273,7 +273,7 @@ def test_config_schema_is_a_union_on_kind_with_ranges_and_units(client: ApiClien
     by_kind = {s["properties"]["kind"]["const"]: s for s in schema["oneOf"]}
     assert set(by_kind) == {k.value for k in VehicleKind}
     accel = by_kind["tracked"]["properties"]["noise"]["properties"]["accel_std_mps2"]
-    assert (accel["minimum"], accel["maximum"]) == (1e-4, 10.0)
+    assert (accel["minimum"], accel["maximum"]) == (1e-6, 10.0)
     assert "m/s²" in accel["description"]
     hold = by_kind["wheeled_rear_drive"]["properties"]["slip"]["properties"]["alert_hold_s"]
     assert hold["maximum"] == 3600.0 and hold["description"].endswith("0.1..3600 s")
