@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
@@ -115,16 +116,21 @@ class Bound:
         lo, hi = self.items
         if not isinstance(value, tuple) or not lo <= len(value) <= hi:
             count = f"{lo}" if lo == hi else f"{lo} to {hi}"
-            raise ConfigError(f"{name} must be a list of {count} numbers, got {value!r}")
+            raise ConfigError(
+                f"{name} must be a list of {count} numbers, got {reprlib.repr(value)}"
+            )
         for i, v in enumerate(value):
             self._check_number(f"{name}[{i}]", v)
 
     def _check_number(self, name: str, value: Any) -> None:
         kind = (int,) if self.integer else (int, float)
         ok = isinstance(value, kind) and not isinstance(value, bool)
-        if not (ok and math.isfinite(value) and self.low <= value <= self.high):
+        finite = ok and (isinstance(value, int) or math.isfinite(value))  # no float of 10**400
+        if not (finite and self.low <= value <= self.high):
             what = "an integer" if self.integer else "a number"
-            raise ConfigError(f"{name} must be {what} in {self.describe()}, got {value!r}")
+            raise ConfigError(
+                f"{name} must be {what} in {self.describe()}, got {reprlib.repr(value)}"
+            )
 
 
 _BOUND = "bound"
@@ -172,9 +178,11 @@ class _Checked:
             if bound is not None:
                 bound.check(f.name, value)
             elif isinstance(section, type) and not isinstance(value, section):
-                raise ConfigError(f"{f.name} must be a {section.__name__}, got {value!r}")
+                raise ConfigError(
+                    f"{f.name} must be a {section.__name__}, got {reprlib.repr(value)}"
+                )
             elif isinstance(f.default, bool) and not isinstance(value, bool):
-                raise ConfigError(f"{f.name} must be true or false, got {value!r}")
+                raise ConfigError(f"{f.name} must be true or false, got {reprlib.repr(value)}")
             elif isinstance(f.default, Enum):
                 object.__setattr__(self, f.name, _choice(f.name, type(f.default), value))
         self._check()
@@ -191,7 +199,7 @@ def _choice(name: str, enum: type[E], value: Any) -> E:
         return enum(value)
     except ValueError:
         raise ConfigError(
-            f"{name} must be one of {[e.value for e in enum]}, got {value!r}"
+            f"{name} must be one of {[e.value for e in enum]}, got {reprlib.repr(value)}"
         ) from None
 
 
@@ -274,7 +282,9 @@ class SlipConfig(_Checked):
 
     def _check(self) -> None:
         if any(b <= a for a, b in itertools.pairwise(self.band_edges_pct)):
-            raise ConfigError(f"band_edges_pct must be increasing, got {self.band_edges_pct!r}")
+            raise ConfigError(
+                f"band_edges_pct must be increasing, got {reprlib.repr(self.band_edges_pct)}"
+            )
 
 
 @dataclass(frozen=True, slots=True)
@@ -360,10 +370,14 @@ class TyreConfig(_Checked):
 
 def _estimator_names(value: Any) -> None:
     if not isinstance(value, tuple) or len(value) > 8:
-        raise ConfigError(f"estimators must be a list of at most 8 names, got {value!r}")
+        raise ConfigError(
+            f"estimators must be a list of at most 8 names, got {reprlib.repr(value)}"
+        )
     for name in value:
         if not isinstance(name, str) or not 1 <= len(name) <= 64:
-            raise ConfigError(f"estimators must hold names of 1 to 64 characters, got {name!r}")
+            raise ConfigError(
+                f"estimators must hold names of 1 to 64 characters, got {reprlib.repr(name)}"
+            )
 
 
 class _Kind(_Checked):

@@ -208,6 +208,8 @@ def test_issue_examples_are_refused() -> None:
         ({"estimators": "mdsf"}, "estimators must be a list"),
         ({"estimators": ["mdsf", 3]}, "estimators must hold names"),
         ({"wheels": 4}, "unknown field(s) ['wheels']"),
+        ({"encoder": {"teeth_per_rev": 10**400}}, "teeth_per_rev must be an integer in 1..100000"),
+        ({"noise": {"gyro_std_radps": -(10**400)}}, "gyro_std_radps must be a number in 1e-06"),
     ],
 )
 def test_shape_errors_name_the_field(data: dict[str, Any], words: str) -> None:
