@@ -51,9 +51,10 @@ def make(
     sinks: list[object] | None = None,
     advance_step_ms: int = 200,
     clock_ns: Callable[[], int] = time.monotonic_ns,
+    registry: EstimatorRegistry | None = None,
 ) -> tuple[Pipeline, RecordingFleet, CapturingSink]:
     fleet = RecordingFleet()
-    registry = EstimatorRegistry(factories={"mdsf": lambda: fleet})
+    registry = registry or EstimatorRegistry(factories={"mdsf": lambda: fleet})
     sink = CapturingSink()
     settings = Settings(
         ingest=IngestSettings.model_validate(
@@ -153,6 +154,16 @@ def test_tracked_vehicle_accepted_without_estimators() -> None:
     pipe.stop()
     assert pipe.counters_snapshot()["t1"]["accepted"] == 1
     assert "t1" not in fleet.vehicles and "t1" not in sink.rows
+
+
+def test_a_config_an_estimator_refuses_is_not_applied_and_ingest_goes_on() -> None:
+    pipe, _, _ = make(registry=EstimatorRegistry())  # the real MDSF: rear-drive vehicles only
+    pipe.register_vehicle("crawler", TrackedConfig(estimators=("mdsf",)))
+    pipe.start()
+    pipe.submit([imu("a", 0, 0), gnss("a", 0, 5), imu("a", 1, 10)])
+    wait_for(lambda: "a" in pipe.counters_snapshot())
+    assert pipe.stats()["running"]
+    pipe.stop()
 
 
 class BrokenSink:
