@@ -537,7 +537,7 @@ class _Publisher:
 
 def _replay_fleet_sim_class() -> type:
     """A :class:`FleetSim` whose runs come from recordings instead of the simulator."""
-    from estimator.config import VehicleConfig
+    from estimator.config import WheeledRearDriveConfig
     from estimator.sim.sensors import NO_EDGES
     from server.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, loop_period_ns, packetize
     from server.protocol.codec import DecodeError, decode
@@ -599,7 +599,9 @@ def _replay_fleet_sim_class() -> type:
                 packets, start, end = drives[i % len(drives)]
                 phase = (i * TICK_NS) // self._n
                 period = loop_period_ns(start, end)
-                out.append(_Vehicle(vid, packets, period, phase, phase - start, VehicleConfig()))
+                out.append(
+                    _Vehicle(vid, packets, period, phase, phase - start, WheeledRearDriveConfig())
+                )
             return out
 
     return ReplaySim

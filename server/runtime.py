@@ -20,7 +20,12 @@ from typing import Any
 
 import zenoh
 
-from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from estimator.config import (
+    ConfigError,
+    VehicleConfig,
+    WheeledRearDriveConfig,
+    vehicle_config_from_dict,
+)
 from estimator.geo import EnuFrame
 from server.alerts import AlertEngine, AlertKind
 from server.api.prometheus import MetricFamily, Sample
@@ -113,7 +118,7 @@ class Runtime:
                 log.error(
                     "stored config of %s is invalid (%s); using defaults", rec.vehicle_id, exc
                 )
-                config = VehicleConfig()
+                config = WheeledRearDriveConfig()
             self._configs[rec.vehicle_id] = config
             self.pipeline.register_vehicle(rec.vehicle_id, config)
             # counters are totals over the vehicle's life, not per process
@@ -170,7 +175,7 @@ class Runtime:
 
     # ------------------------------------------------------------------ vehicles
     def _config_of(self, vehicle_id: str) -> VehicleConfig:
-        return self._configs.get(vehicle_id) or VehicleConfig()
+        return self._configs.get(vehicle_id) or WheeledRearDriveConfig()
 
     def _primary_estimator(self, vehicle_id: str) -> str | None:
         """The vehicle's primary estimator (first of its config's), None if it runs none."""

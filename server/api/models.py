@@ -2,7 +2,8 @@
 
 Vehicle configs travel as plain JSON objects validated by
 :func:`estimator.config.vehicle_config_from_dict` (so a client gets that function's reasons); their
-OpenAPI schema is generated from :class:`estimator.config.VehicleConfig` itself, so the two cannot
+OpenAPI schema is a union on ``kind`` built from the config dataclasses of
+:mod:`estimator.config` and their ranges (:func:`estimator.config.bound_of`), so the two cannot
 drift. Report bodies reuse the frozen dataclasses of :mod:`server.reports`.
 
 Estimates are described per estimator from the catalog of specs (:data:`estimator.catalog.SPECS`):
@@ -12,12 +13,29 @@ one model per spec, told apart by ``estimator``, each field with its label, unit
 from __future__ import annotations
 
 import copy
+import dataclasses
+import typing
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, WithJsonSchema, create_model
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    TypeAdapter,
+    WithJsonSchema,
+    create_model,
+)
 
 from estimator.catalog import SPECS
-from estimator.config import VehicleConfig
+from estimator.config import (
+    Bound,
+    TrackedConfig,
+    VehicleKind,
+    Wheeled4wdSteeredConfig,
+    WheeledRearDriveConfig,
+    bound_of,
+)
 from estimator.spec import EstimatorSpec
 from server.reports import IngestCounts, VehicleReport
 from server.storage.base import Anchor
@@ -41,6 +59,7 @@ __all__ = [
     "SlipMapFormat",
     "SlipMapPublic",
     "SlipMapSkippedPublic",
+    "VehicleConfigAdapter",
     "VehicleConfigIn",
     "VehicleConfigOut",
     "VehiclePublic",
@@ -81,26 +100,98 @@ def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:
     return result
 
 
-_CONFIG_SCHEMA = TypeAdapter(VehicleConfig).json_schema()
+def _bounded_field(bound: Bound, default: Any) -> tuple[Any, Any]:
+    """A pydantic field of a config number (or list of numbers) with its range and unit."""
+    number: type = int if bound.integer else float
+    text = f"{bound.doc}; {bound.describe()}"
+    if bound.items is None:
+        return number, Field(default, ge=bound.low, le=bound.high, description=text)
+    item = Annotated[number, Field(ge=bound.low, le=bound.high)]  # type: ignore[valid-type]
+    lo, hi = bound.items
+    field = Field(list(default), min_length=lo, max_length=hi, description=text)
+    return list[item], field
+
+
+_EstimatorName = Annotated[str, StringConstraints(min_length=1, max_length=64)]
+
+
+def _config_model(cls: type, models: dict[type, type[BaseModel]]) -> type[BaseModel]:
+    """The pydantic model of config dataclass ``cls`` (sections built once, in ``models``)."""
+    if cls in models:
+        return models[cls]
+    hints = typing.get_type_hints(cls)
+    fields: dict[str, Any] = {}
+    kind = getattr(cls, "kind", None)
+    if kind is not None:  # optional for the default kind (an empty body registers one)
+        default = kind.value if kind is VehicleKind.WHEELED_REAR_DRIVE else ...
+        fields["kind"] = (Literal[kind.value], Field(default, description="the vehicle kind"))
+    for f in dataclasses.fields(cls):
+        bound = bound_of(f)
+        if bound is not None:
+            fields[f.name] = _bounded_field(bound, f.default)
+        elif isinstance(f.default_factory, type):
+            section = _config_model(f.default_factory, models)
+            fields[f.name] = (section, Field(default_factory=section))
+        elif f.name == "estimators":
+            fields[f.name] = (
+                list[_EstimatorName],
+                Field(default_factory=list, max_length=8, description="empty: the kind's"),
+            )
+        else:  # a flag or a choice
+            fields[f.name] = (hints[f.name], f.default)
+    doc = (cls.__doc__ or "").strip().split("\n\n")[0]
+    model = create_model(cls.__name__, __config__=ConfigDict(extra="forbid"), __doc__=doc, **fields)
+    models[cls] = model
+    return model
+
+
+def _config_models() -> tuple[type[BaseModel], ...]:
+    models: dict[type, type[BaseModel]] = {}
+    kinds = (WheeledRearDriveConfig, TrackedConfig, Wheeled4wdSteeredConfig)
+    return tuple(_config_model(cls, models) for cls in kinds)
+
+
+VehicleConfigAdapter: TypeAdapter[Any] = TypeAdapter(
+    Annotated[Union[_config_models()], Field(discriminator="kind")]  # noqa: UP007
+)
+"""Checks the JSON types and ranges of a config of any kind (``kind`` present)."""
+
+
+def _config_schema(*, request: bool) -> dict[str, Any]:
+    """The union's JSON schema, inlined: one object per kind, told apart by ``kind``'s const.
+
+    A request may omit ``kind`` (a rear-drive vehicle), so only answers, where every config
+    names its kind, carry the OpenAPI discriminator (by property name: its mapping pointed into
+    the ``$defs`` that inlining removes).
+    """
+    schema = _inline_refs(VehicleConfigAdapter.json_schema(), closed=request)
+    schema.pop("discriminator", None)
+    if not request:
+        for member in schema["oneOf"]:
+            member["required"] = sorted({"kind", *member.get("required", ())})
+        schema["discriminator"] = {"propertyName": "kind"}
+    return schema
+
 
 VehicleConfigIn = Annotated[
     dict[str, Any],
     WithJsonSchema(
         {
-            **_inline_refs(_CONFIG_SCHEMA, closed=True),
+            **_config_schema(request=True),
             "title": "VehicleConfigIn",
-            "description": "Vehicle configuration; omitted parts take their defaults, unknown "
-            "fields are refused.",
+            "description": "Vehicle configuration of one kind (`wheeled_rear_drive` when "
+            "`kind` is omitted); omitted parts take their defaults, unknown fields are "
+            "refused, every number has its range and unit in its description.",
         }
     ),
 ]
-"""Body of ``PUT /vehicles/{id}``: a VehicleConfig as JSON (validated by the handler)."""
+"""Body of ``PUT /vehicles/{id}``: a vehicle config as JSON (validated by the handler)."""
 
 VehicleConfigOut = Annotated[
     dict[str, Any],
     WithJsonSchema(
         {
-            **_inline_refs(_CONFIG_SCHEMA, closed=False),
+            **_config_schema(request=False),
             "title": "VehicleConfigOut",
             "description": "Vehicle configuration as stored (every field present).",
         }

@@ -72,7 +72,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.base import FleetEstimator
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.sim import SCENARIOS, SimRun, replay_arrivals, simulate, truth_at
 from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estimates
 from server.bench import int_list
@@ -164,7 +164,10 @@ def default_estimators() -> dict[str, EstimatorFactory]:
 
 
 def run_estimator(
-    estimator: FleetEstimator, sim: SimRun, config: VehicleConfig, lateness_ns: int = LATENESS_NS
+    estimator: FleetEstimator,
+    sim: SimRun,
+    config: WheeledRearDriveConfig,
+    lateness_ns: int = LATENESS_NS,
 ) -> np.ndarray:
     """Feed ``sim`` to ``estimator`` as the server's pipeline would; return all rows in order.
 
@@ -234,7 +237,7 @@ def _causal_median3(x: FloatArray) -> FloatArray:
     return out
 
 
-def traditional_estimates(sim: SimRun, config: VehicleConfig) -> np.ndarray:
+def traditional_estimates(sim: SimRun, config: WheeledRearDriveConfig) -> np.ndarray:
     """The traditional method: GNSS vehicle speed as both wheels' ground speed (see module doc).
 
     Returns rows of ``ESTIMATE_DTYPE`` at every GNSS epoch with a velocity.
@@ -604,7 +607,7 @@ def run_seeds(
 
 
 def _estimator_runner(
-    factory: EstimatorFactory, sim: SimRun, config: VehicleConfig
+    factory: EstimatorFactory, sim: SimRun, config: WheeledRearDriveConfig
 ) -> Callable[[], np.ndarray]:
     def go() -> np.ndarray:
         return run_estimator(factory(), sim, config)
@@ -612,7 +615,7 @@ def _estimator_runner(
     return go
 
 
-def _traditional_runner(sim: SimRun, config: VehicleConfig) -> Callable[[], np.ndarray]:
+def _traditional_runner(sim: SimRun, config: WheeledRearDriveConfig) -> Callable[[], np.ndarray]:
     def go() -> np.ndarray:
         return traditional_estimates(sim, config)
 

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from estimator.base import Measurement
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.engine import MdsfFleet
 from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until, write_json
 
@@ -47,7 +47,7 @@ ALONE_MAX = 50
 
 
 def measure(
-    sources: Sequence[tuple[VehicleConfig, list[tuple[int, Measurement]]]],
+    sources: Sequence[tuple[WheeledRearDriveConfig, list[tuple[int, Measurement]]]],
     n_vehicles: int,
     interval_ms: int,
     seconds: float,
@@ -104,7 +104,7 @@ def measure(
 
 
 def measure_alone(
-    sources: Sequence[tuple[VehicleConfig, list[tuple[int, Measurement]]]],
+    sources: Sequence[tuple[WheeledRearDriveConfig, list[tuple[int, Measurement]]]],
     n_vehicles: int,
     interval_ms: int,
     seconds: float,

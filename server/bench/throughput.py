@@ -287,7 +287,7 @@ def flood_naive(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) ->
     import pydantic
     import zenoh
 
-    from estimator.config import VehicleConfig
+    from estimator.config import WheeledRearDriveConfig
     from estimator.mdsf import MdsfConfig, MdsfFilter, MdsfObs
     from server.ingest.zenoh_session import make_config
     from server.settings import ZenohSettings
@@ -339,7 +339,7 @@ def flood_naive(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) ->
                         raw = msgpack.unpackb(sample.payload.to_bytes())
                         entry = filters.get(vid)
                         if entry is None:
-                            f = MdsfFilter(config, VehicleConfig())
+                            f = MdsfFilter(config, WheeledRearDriveConfig())
                             f.initialize(np.zeros(config.n_state), np.eye(config.n_state))
                             entry = filters[vid] = (f, [0], {"v": 0.0})
                         f, last, latest = entry

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from estimator.config import EncoderConfig, VehicleConfig
+from estimator.config import EncoderConfig, WheeledRearDriveConfig
 from estimator.sim import simulate
 from estimator.types import WheelEdges
 from estimator.wheel_speed import (
@@ -83,7 +83,7 @@ def _runs(seconds: float) -> list[list[_Packet]]:
     out = []
     for seed, name in enumerate(SCENARIOS, start=1):
         for has_dir in (False, True):
-            cfg = VehicleConfig(encoder=EncoderConfig(has_direction=has_dir))
+            cfg = WheeledRearDriveConfig(encoder=EncoderConfig(has_direction=has_dir))
             run = simulate(name, seed=seed, start_ns=START_NS, config=cfg)
             wheel = [(arr, m) for arr, m in run.in_arrival_order() if isinstance(m, WheelEdges)]
             for phase_s in PHASES_S:

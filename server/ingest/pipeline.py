@@ -54,7 +54,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import zenoh
 
-from estimator.config import VehicleConfig
+from estimator.config import ConfigError, VehicleConfig, WheeledRearDriveConfig
 from estimator.types import EstimateBatch, WheelGap
 from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
 from server.ingest.counters import IngestCounters
@@ -540,7 +540,7 @@ class Pipeline:
     def _add(self, vehicle_id: str, config: VehicleConfig, *, notify: bool) -> bool:
         try:
             self._start_estimators(vehicle_id, config)
-        except UnknownEstimatorError as exc:
+        except (UnknownEstimatorError, ConfigError) as exc:  # e.g. an estimator of another kind
             log.warning("vehicle %s not registered: %s", vehicle_id, exc)
             return False
         self._configs[vehicle_id] = config
@@ -705,7 +705,7 @@ class Pipeline:
         if self._registry.has_vehicle(vid):
             return True
         auto = self._ingest.unknown_vehicle is UnknownVehiclePolicy.AUTO_REGISTER
-        if auto and self._add(vid, VehicleConfig(), notify=True):
+        if auto and self._add(vid, WheeledRearDriveConfig(), notify=True):
             return True
         self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
         return False

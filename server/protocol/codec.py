@@ -756,9 +756,10 @@ def decode_config(
     prefix: str = "fleet",
     max_payload_bytes: int = 256 * 1024,
 ) -> tuple[str, VehicleConfig]:
-    """Decode a ``<prefix>/<vehicle_id>/config`` payload (UTF-8 JSON of ``VehicleConfig``).
+    """Decode a ``<prefix>/<vehicle_id>/config`` payload (UTF-8 JSON of a config of any kind).
 
-    Raises :class:`DecodeError` (``bad_key``, ``oversize``, ``undecodable``, ``bad_config``).
+    Raises :class:`DecodeError` (``bad_key``, ``oversize``, ``undecodable``, ``bad_config``
+    with :func:`vehicle_config_from_dict`'s reason: kind, field, range and unit).
     """
     try:
         vehicle_id, stream = parse_key(key, prefix)

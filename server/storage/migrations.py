@@ -16,11 +16,12 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 10):
+Schema (version 11):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
-    ``jsonb``), ``created_ns``, ``updated_ns``.
+    ``jsonb``), ``created_ns``, ``updated_ns``. Since version 11 every config names its
+    ``kind`` and has that kind's sections (:mod:`estimator.config`).
 ``estimator_tables`` (version 10)
     ``estimator`` (spec name) -> ``table_name``, ``fields`` (JSON ``[[name, kind], …]``): the
     tables of each estimator's rows and the field list they were made from; a store refuses a
@@ -70,6 +71,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from estimator.config import VehicleKind, upgrade_legacy_config
 
 __all__ = [
     "ADVISORY_LOCK_KEY",
@@ -546,6 +549,39 @@ def _v10(dialect: str) -> tuple[Step, ...]:
     )
 
 
+
+def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
+    """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
+
+    Configs were written without ``kind`` (meaning a rear-drive vehicle) or, for every kind,
+    with the rear-drive sections; :func:`upgrade_legacy_config` maps those. Values are kept
+    as they are (a config out of range is still refused when read, as before).
+    """
+
+    def step(execute: Execute) -> None:
+        for vkey, text in execute(read_sql, ()):
+            old = json.loads(text)
+            if not isinstance(old, dict):
+                continue
+            new = upgrade_legacy_config({"kind": VehicleKind.WHEELED_REAR_DRIVE.value, **old})
+            if new != old:
+                execute(write_sql, (json.dumps(new), vkey))
+
+    return step
+
+
+_V11_SQLITE: tuple[Step, ...] = (
+    _v11_configs_by_kind(
+        "SELECT vkey, config FROM vehicles", "UPDATE vehicles SET config = ? WHERE vkey = ?"
+    ),
+)
+_V11_POSTGRESQL: tuple[Step, ...] = (
+    _v11_configs_by_kind(
+        "SELECT vkey, config::text FROM vehicles",
+        "UPDATE vehicles SET config = %s::jsonb WHERE vkey = %s",
+    ),
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -562,6 +598,7 @@ MIGRATIONS: tuple[Migration, ...] = (
         _v10("sqlite"),
         _v10("postgresql"),
     ),
+    Migration(11, "vehicle configs by kind", _V11_SQLITE, _V11_POSTGRESQL),
 )
 
 _VERSION_TABLE = {

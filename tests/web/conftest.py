@@ -27,7 +27,7 @@ import uvicorn
 from fastapi import APIRouter
 
 from estimator.catalog import SPECS
-from estimator.config import SlipConfig, VehicleConfig
+from estimator.config import SlipConfig, WheeledRearDriveConfig
 from server.alerts import AlertEngine
 from server.api import create_app
 from server.api.app import API_ROUTERS
@@ -91,9 +91,9 @@ class LiveRuntime:
         now = time.time_ns()
         for vid in self.fleet.ids:
             config = (
-                VehicleConfig(slip=SlipConfig(alert_threshold_pct=12.0))
+                WheeledRearDriveConfig(slip=SlipConfig(alert_threshold_pct=12.0))
                 if vid == SENSITIVE
-                else VehicleConfig()
+                else WheeledRearDriveConfig()
             )
             self._store.upsert_vehicle(vid, config.to_dict(), now)
             self.alert_engine.set_slip_config(vid, config.slip)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
 from tests.web.conftest import LiveStack, history_loaded
@@ -73,7 +73,7 @@ def _drive(end_ns: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def drive(live_stack: LiveStack) -> np.ndarray:
     store = live_stack.runtime.store
-    store.upsert_vehicle(VID, VehicleConfig().to_dict(), time.time_ns())
+    store.upsert_vehicle(VID, WheeledRearDriveConfig().to_dict(), time.time_ns())
     rows = _drive(time.time_ns() - 60 * S)
     store.write_estimates([(VID, rows)])
     return rows

@@ -14,9 +14,15 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Body, Depends, Path, Response, status
-from pydantic import TypeAdapter, ValidationError
+from pydantic import ValidationError
 
-from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from estimator.config import (
+    ConfigError,
+    VehicleConfig,
+    VehicleKind,
+    upgrade_legacy_config,
+    vehicle_config_from_dict,
+)
 from estimator.spec import EstimatorSpec
 from server.api.deps import (
     EstimatorDep,
@@ -32,6 +38,7 @@ from server.api.errors import InvalidConfig, NotFound, error_responses
 from server.api.models import (
     AnchorPublic,
     EstimatePublic,
+    VehicleConfigAdapter,
     VehicleConfigIn,
     VehiclePublic,
     VehiclesPublic,
@@ -65,15 +72,12 @@ def _public(record: VehicleRecord, anchors: Mapping[str, Anchor]) -> VehiclePubl
     anchor = anchors.get(record.vehicle_id)
     return VehiclePublic(
         vehicle_id=record.vehicle_id,
-        config=record.config,
+        config=_stored_config(record.config),
         created_ns=record.created_ns,
         updated_ns=record.updated_ns,
         anchor=None if anchor is None else AnchorPublic.of(anchor),
         estimators=list(vehicle_estimators(record)),
     )
-
-
-_CONFIG_ADAPTER = TypeAdapter(VehicleConfig)
 
 
 def _type_errors(exc: ValidationError) -> str:
@@ -84,23 +88,31 @@ def _type_errors(exc: ValidationError) -> str:
     return "; ".join(parts)
 
 
+def _stored_config(data: dict[str, Any]) -> dict[str, Any]:
+    """A stored config as answers show it: every field of its kind; one that no longer
+    validates (ranges narrowed since it was stored) as stored, in its kind's shape."""
+    try:
+        return vehicle_config_from_dict(data).to_dict()
+    except ConfigError:
+        return upgrade_legacy_config({"kind": VehicleKind.WHEELED_REAR_DRIVE.value, **data})
+
+
 def _parse_config(data: Any) -> VehicleConfig:
     """Validate a config body: the config's own checks, then the JSON types of every field.
 
-    :func:`vehicle_config_from_dict` names ranges and unknown fields; the strict type pass
-    catches what it lets through (booleans as numbers, non-numbers among band edges, …).
+    :func:`vehicle_config_from_dict` names the kind, field, range and unit at fault; the strict
+    pass of the same schema OpenAPI shows catches what it lets through (``1.0`` for an integer).
     """
     try:
         config = vehicle_config_from_dict(data)
     except (ConfigError, TypeError, ValueError) as exc:
         raise InvalidConfig(str(exc)) from exc
     try:
-        _CONFIG_ADAPTER.validate_json(json.dumps(data), strict=True)
+        body = upgrade_legacy_config({"kind": config.kind.value, **data})
+        VehicleConfigAdapter.validate_json(json.dumps(body), strict=True)
     except (ValidationError, ValueError) as exc:
         reason = _type_errors(exc) if isinstance(exc, ValidationError) else str(exc)
         raise InvalidConfig(f"wrong type: {reason}") from exc
-    if not all(math.isfinite(e) and e > 0 for e in config.slip.band_edges_pct):
-        raise InvalidConfig("slip.band_edges_pct must be finite numbers > 0")
     return config
 
 
@@ -131,10 +143,13 @@ def get_vehicle(vehicle: VehicleDep, store: StoreDep) -> VehiclePublic:
     dependencies=[Depends(require_role("operator"))],
     summary="Register a vehicle or replace its config (operator)",
     description=(
-        "The body is a VehicleConfig; omitted parts take their defaults, so `{}` registers a "
-        "vehicle with the default config. A config that does not validate is refused with 422 "
-        "and the reason. The running estimator picks the new config up. Answers 201 when the "
-        "vehicle is new, 200 when its config was replaced."
+        "The body is a vehicle config of one `kind` (`wheeled_rear_drive` when omitted, "
+        "`tracked`, `wheeled_4wd_steered`), each with its own sections; omitted parts take "
+        "their defaults, so `{}` registers a rear-drive vehicle with the default config. Every "
+        "number has a plausible range with its unit (in the schema). A config that does not "
+        "validate is refused with 422 and the reason (kind, field, range and unit). The running "
+        "estimator picks the new config up. Answers 201 when the vehicle is new, 200 when its "
+        "config was replaced."
     ),
 )
 def put_vehicle(

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from estimator.base import FleetEstimator, Measurement, Pushed
-from estimator.config import VehicleConfig, VehicleKind
+from estimator.config import (
+    TrackedConfig,
+    VehicleConfig,
+    VehicleKind,
+    Wheeled4wdSteeredConfig,
+    WheeledRearDriveConfig,
+)
 from estimator.types import ESTIMATE_DTYPE, ImuBatch, empty_estimates
 from server.estimators import (
     DEFAULT_FACTORIES,
@@ -74,25 +80,25 @@ def _registry() -> tuple[EstimatorRegistry, dict[str, RecordingFleet]]:
 
 
 def test_defaults_per_kind() -> None:
-    assert estimator_names_for(VehicleConfig()) == ("mdsf",)
-    assert estimator_names_for(VehicleConfig(kind=VehicleKind.TRACKED)) == ()
-    assert estimator_names_for(VehicleConfig(kind=VehicleKind.WHEELED_4WD_STEERED)) == ()
+    assert estimator_names_for(WheeledRearDriveConfig()) == ("mdsf",)
+    assert estimator_names_for(TrackedConfig()) == ()
+    assert estimator_names_for(Wheeled4wdSteeredConfig()) == ()
     assert set(KIND_DEFAULTS) == set(VehicleKind)
     assert "mdsf" in DEFAULT_FACTORIES
 
 
 def test_config_overrides_kind_defaults() -> None:
     reg, _ = _registry()
-    cfg = VehicleConfig(kind=VehicleKind.TRACKED, estimators=("friction", "mdsf"))
+    cfg = TrackedConfig(estimators=("friction", "mdsf"))
     assert reg.names_for(cfg) == ("friction", "mdsf")
 
 
 def test_unknown_estimator_is_a_clear_error() -> None:
     reg, built = _registry()
     with pytest.raises(UnknownEstimatorError, match="nope"):
-        reg.add_vehicle("v", VehicleConfig(estimators=("nope",)))
+        reg.add_vehicle("v", WheeledRearDriveConfig(estimators=("nope",)))
     with pytest.raises(UnknownEstimatorError):
-        reg.names_for(VehicleConfig(estimators=("mdsf", "mdsf")))
+        reg.names_for(WheeledRearDriveConfig(estimators=("mdsf", "mdsf")))
     with pytest.raises(UnknownEstimatorError):
         reg.estimator("nope")
     assert not reg.has_vehicle("v") and not built
@@ -100,12 +106,12 @@ def test_unknown_estimator_is_a_clear_error() -> None:
 
 def test_routing_push_and_advance() -> None:
     reg, built = _registry()
-    assert reg.add_vehicle("a", VehicleConfig()) == ("mdsf",)
-    assert reg.add_vehicle("b", VehicleConfig(estimators=("friction", "mdsf"))) == (
+    assert reg.add_vehicle("a", WheeledRearDriveConfig()) == ("mdsf",)
+    assert reg.add_vehicle("b", WheeledRearDriveConfig(estimators=("friction", "mdsf"))) == (
         "friction",
         "mdsf",
     )
-    assert reg.add_vehicle("c", VehicleConfig(kind=VehicleKind.TRACKED)) == ()
+    assert reg.add_vehicle("c", TrackedConfig()) == ()
     m = ImuBatch(np.array([1], np.int64), np.zeros((1, 3)), np.zeros((1, 3)))
     for vid in ("a", "b", "c"):
         reg.push(vid, m)
@@ -122,8 +128,8 @@ def test_routing_push_and_advance() -> None:
 
 def test_reconfigure_and_remove() -> None:
     reg, built = _registry()
-    reg.add_vehicle("b", VehicleConfig(estimators=("friction", "mdsf")))
-    reg.add_vehicle("b", VehicleConfig(estimators=("mdsf",)))
+    reg.add_vehicle("b", WheeledRearDriveConfig(estimators=("friction", "mdsf")))
+    reg.add_vehicle("b", WheeledRearDriveConfig(estimators=("mdsf",)))
     assert built["friction"].vehicle_ids() == [] and built["mdsf"].vehicle_ids() == ["b"]
     assert reg.estimators_of("b") == ("mdsf",)
     reg.remove_vehicle("b")
@@ -134,16 +140,16 @@ def test_reconfigure_and_remove() -> None:
 def test_estimators_built_lazily_once() -> None:
     reg, built = _registry()
     assert built == {}
-    reg.add_vehicle("a", VehicleConfig())
+    reg.add_vehicle("a", WheeledRearDriveConfig())
     first = built["mdsf"]
-    reg.add_vehicle("z", VehicleConfig())
+    reg.add_vehicle("z", WheeledRearDriveConfig())
     assert built["mdsf"] is first and reg.estimator("mdsf") is first
     assert reg.available == ("friction", "mdsf")
 
 
 def test_counters_come_from_estimators_that_keep_them() -> None:
     registry = EstimatorRegistry()  # the real MDSF, which counts its events
-    registry.add_vehicle("v1", VehicleConfig())
+    registry.add_vehicle("v1", WheeledRearDriveConfig())
     counters = registry.counters()
     assert set(counters) == {"mdsf"}
     assert set(counters["mdsf"]) == {"v1"}
@@ -151,7 +157,7 @@ def test_counters_come_from_estimators_that_keep_them() -> None:
     assert events["resets"] == 0 and events["ticks"] == 0 and "gnss_gated" in events
 
     recording, _ = _registry()  # estimators without counters are left out
-    recording.add_vehicle("v2", VehicleConfig())
+    recording.add_vehicle("v2", WheeledRearDriveConfig())
     assert recording.counters() == {}
 
 

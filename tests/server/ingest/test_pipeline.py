@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 import server.ingest.pipeline as pipeline_module
-from estimator.config import SlipConfig, VehicleConfig, VehicleKind
+from estimator.config import (
+    SlipConfig,
+    TrackedConfig,
+    VehicleConfig,
+    WheeledRearDriveConfig,
+)
 from estimator.geo import enu_from_geodetic
 from estimator.types import GnssSample, ImuBatch
 from server.estimators import EstimatorRegistry
@@ -46,9 +51,10 @@ def make(
     sinks: list[object] | None = None,
     advance_step_ms: int = 200,
     clock_ns: Callable[[], int] = time.monotonic_ns,
+    registry: EstimatorRegistry | None = None,
 ) -> tuple[Pipeline, RecordingFleet, CapturingSink]:
     fleet = RecordingFleet()
-    registry = EstimatorRegistry(factories={"mdsf": lambda: fleet})
+    registry = registry or EstimatorRegistry(factories={"mdsf": lambda: fleet})
     sink = CapturingSink()
     settings = Settings(
         ingest=IngestSettings.model_validate(
@@ -99,7 +105,7 @@ def test_feeds_in_order_and_counts_add_up() -> None:
     assert snap[""]["rejected_bad_key"] == 1
     for c in snap.values():
         assert c["received"] == c["accepted"] + c["late"] + c["duplicate"] + c["rejected"]
-    assert [v for v, _ in new] == ["a", "b"] and new[0][1] == VehicleConfig()
+    assert [v for v, _ in new] == ["a", "b"] and new[0][1] == WheeledRearDriveConfig()
     # the sink saw rows up to the last released time of each vehicle
     assert int(sink.rows["a"][-1]["stamp_ns"][-1]) == T0 + 59 * MS
     assert pipe.stats()["rows"] >= 2 and not pipe.stats()["running"]
@@ -107,7 +113,7 @@ def test_feeds_in_order_and_counts_add_up() -> None:
 
 def test_unknown_vehicle_rejected_unless_registered() -> None:
     pipe, fleet, _ = make(policy=UnknownVehiclePolicy.REJECT)
-    pipe.register_vehicle("known", VehicleConfig(kind=VehicleKind.WHEELED_REAR_DRIVE))
+    pipe.register_vehicle("known", WheeledRearDriveConfig())
     pipe.start()
     pipe.submit([imu("known", 0, 0), imu("stranger", 0, 0), imu("stranger", 1, 10)])
     pipe.stop()
@@ -142,12 +148,22 @@ def test_remove_vehicle_forgets_everything() -> None:
 
 def test_tracked_vehicle_accepted_without_estimators() -> None:
     pipe, fleet, sink = make(policy=UnknownVehiclePolicy.REJECT)
-    pipe.register_vehicle("t1", VehicleConfig(kind=VehicleKind.TRACKED))
+    pipe.register_vehicle("t1", TrackedConfig())
     pipe.start()
     pipe.submit([imu("t1", 0, 0)])
     pipe.stop()
     assert pipe.counters_snapshot()["t1"]["accepted"] == 1
     assert "t1" not in fleet.vehicles and "t1" not in sink.rows
+
+
+def test_a_config_an_estimator_refuses_is_not_applied_and_ingest_goes_on() -> None:
+    pipe, _, _ = make(registry=EstimatorRegistry())  # the real MDSF: rear-drive vehicles only
+    pipe.register_vehicle("crawler", TrackedConfig(estimators=("mdsf",)))
+    pipe.start()
+    pipe.submit([imu("a", 0, 0), gnss("a", 0, 5), imu("a", 1, 10)])
+    wait_for(lambda: "a" in pipe.counters_snapshot())
+    assert pipe.stats()["running"]
+    pipe.stop()
 
 
 class BrokenSink:
@@ -236,7 +252,7 @@ def test_refusals_of_many_unregistered_ids_share_one_bucket(
 ) -> None:
     monkeypatch.setattr(pipeline_module, "MAX_UNREGISTERED_COUNTED", 3)
     pipe, _, _ = make(policy=UnknownVehiclePolicy.REJECT)
-    pipe.register_vehicle("known", VehicleConfig())
+    pipe.register_vehicle("known", WheeledRearDriveConfig())
     pipe.start()
     pipe.submit([imu(f"x{i}", 0, 0) for i in range(10)])
     pipe.submit([DecodeError("wrong_type", vehicle_id=f"y{i}") for i in range(5)])
@@ -294,13 +310,15 @@ def test_a_restored_anchor_keeps_the_frame_across_runs_and_reconfigurations() ->
     settings = Settings(ingest=IngestSettings.model_validate({"process_interval_ms": 5}))
     sink = CapturingSink()
     pipe = Pipeline(settings, None, EstimatorRegistry(), [sink], wall_clock_ns=lambda: T0)
-    pipe.register_vehicle("a", VehicleConfig())
+    pipe.register_vehicle("a", WheeledRearDriveConfig())
     pipe.restore_anchor("a", stored)
     pipe.start()
     try:
         _drive(pipe, "a", range(12))
         wait_for(lambda: pipe.anchors_snapshot().get("a") == stored)
-        pipe.register_vehicle("a", VehicleConfig(slip=SlipConfig(alert_threshold_pct=20.0)))
+        pipe.register_vehicle(
+            "a", WheeledRearDriveConfig(slip=SlipConfig(alert_threshold_pct=20.0))
+        )
         time.sleep(0.2)  # control is applied on the pipeline thread, between bursts
         _drive(pipe, "a", range(12, 24))
         wait_for(lambda: pipe.counters_snapshot()["a"]["accepted"] == 48)
@@ -308,7 +326,7 @@ def test_a_restored_anchor_keeps_the_frame_across_runs_and_reconfigurations() ->
         assert pipe.anchors_snapshot()["a"] == stored  # not this run's first fix
         first_rows = np.concatenate(sink.rows["a"])
         pipe.remove_vehicle("a")
-        pipe.register_vehicle("a", VehicleConfig())
+        pipe.register_vehicle("a", WheeledRearDriveConfig())
         time.sleep(0.2)
         _drive(pipe, "a", range(24, 36))
         wait_for(lambda: pipe.anchors_snapshot().get("a") == pytest.approx((48.0, 11.0, 500.0)))
@@ -328,7 +346,7 @@ def test_a_clock_reanchor_restarts_the_estimators_in_the_same_frame() -> None:
     pipe = Pipeline(
         settings, None, EstimatorRegistry(), [CapturingSink()], wall_clock_ns=lambda: T0
     )
-    pipe.register_vehicle("a", VehicleConfig())
+    pipe.register_vehicle("a", WheeledRearDriveConfig())
     pipe.start()
     try:
         _drive(pipe, "a", range(12))

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.sim import simulate
 from server.fleet_sim import encode_packets, packetize
 from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
@@ -107,8 +107,8 @@ def test_every_vehicle_is_estimated_once_and_counted() -> None:
 def test_registrations_and_stored_counters_reach_the_owner() -> None:
     sink = CapturingSink()
     pool = _pool(sink, unknown_vehicle="reject")
-    pool.register_vehicle("w000", VehicleConfig())
-    pool.register_vehicle("w003", VehicleConfig())
+    pool.register_vehicle("w000", WheeledRearDriveConfig())
+    pool.register_vehicle("w003", WheeledRearDriveConfig())
     pool.restore_counters("w003", {"received": 1000, "accepted": 1000})
     pool.restore_anchor("w003", (47.5, 10.5, 400.0))  # the frame of its stored rows
     pool.start()
