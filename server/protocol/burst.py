@@ -166,11 +166,12 @@ def _norm_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
 
 
 def _abs_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
-    """Rows whose values are all within ``±bound`` (NaN passes, ``±inf`` does not); None: all."""
+    """Rows (values of a one-dimensional ``a``) all within ``±bound`` (NaN passes, ``±inf``
+    does not); None: all."""
     bad = np.abs(a) > bound
     if not bad.any():
         return None
-    ok: np.ndarray = ~bad.any(axis=1)
+    ok: np.ndarray = ~(bad if bad.ndim == 1 else bad.any(axis=1))
     return ok
 
 
