@@ -1,9 +1,8 @@
 """Per-vehicle reorder buffer: hand packets to the estimators in sensor-time order.
 
 Packets of one vehicle arrive on several streams (:mod:`server.protocol.streams`), each possibly
-reordered by the network. The
-buffer holds them in a heap keyed by the packet's first sample time and releases them once the
-*horizon* has passed them::
+reordered by the network. The buffer holds them in a heap keyed by the packet's first sample
+time and releases them once the *horizon* has passed them::
 
     horizon = newest sample time seen (any stream) - lateness
 
@@ -643,10 +642,11 @@ class ReorderBuffer:
         heap = self._heap
         while heap and heap[0][0] <= horizon:
             out.append(heapq.heappop(heap)[-1])
-        for stream in _CUMULATIVE:
-            missing = self._missing.get(stream)
-            if missing is not None:
-                missing.released(stream, out, self._gaps)
+        if self._missing:
+            for stream in _CUMULATIVE:
+                missing = self._missing.get(stream)
+                if missing is not None:
+                    missing.released(stream, out, self._gaps)
         if self._released_ns is None or horizon > self._released_ns:
             self._released_ns = horizon
         return out, self._released_ns
