@@ -309,10 +309,24 @@ class _EdgesGroup:
     """Packets of one :class:`~server.protocol.layouts.Edges` layout (one run per entry,
     optional direction), checked together."""
 
-    __slots__ = ("directions", "entries", "layout", "opened", "runs")
+    __slots__ = (
+        "by_number",
+        "directions",
+        "entries",
+        "key",
+        "layout",
+        "most",
+        "named",
+        "opened",
+        "runs",
+    )
 
     def __init__(self, layout: Edges) -> None:
         self.layout = layout
+        self.key = layout.key
+        self.by_number = layout.by_number  # the struct's number is an int already
+        self.most = len(layout.by_number)  # entries in a packet
+        self.named = {m: {layout.key: m} for m in layout.by_number.values()}  # build's keyword
         self.opened: list[_Opened] = []
         self.entries: list[list[tuple[Any, int]]] = []  # per packet: (member, run index)
         self.runs = _Runs(strict=False)
@@ -321,7 +335,7 @@ class _EdgesGroup:
     def add(self, op: _Opened, lim: Limits) -> bool:
         """Take ``op`` when its ``edges`` entries have a valid packet's lengths."""
         items = op.p.edges
-        if type(items) is not list or not 1 <= len(items) <= len(self.layout.members):
+        if type(items) is not list or not 1 <= len(items) <= self.most:
             return False
         entries: list[tuple[Any, int]] = []
         members: list[Any] = []
@@ -338,7 +352,7 @@ class _EdgesGroup:
 
     def _add_entry(self, item: Any, lim: Limits) -> tuple[Any, int] | None:
         """Add one entry's run; None (nothing added) when the entry is not valid."""
-        member = self.layout.member(getattr(item, self.layout.key))
+        member = self.by_number.get(getattr(item, self.key))
         n = _sample_count(item.stamp_ns, lim)
         if member is None or not n:
             return None
@@ -379,7 +393,7 @@ class _EdgesGroup:
             return
         t, starts, ends, first_ns, last_ns, good = self.runs.check(opts.limits)
         directions = self._direction_views()
-        build, key = self.layout.build, self.layout.key
+        build, named = self.layout.build, self.named
         for op, entries in zip(self.opened, self.entries, strict=True):
             ms: list[Measurement] = []
             first, last = _NO_FIRST_NS, _NO_LAST_NS
@@ -388,7 +402,7 @@ class _EdgesGroup:
                     out[op.index] = op.alone(opts)
                     break
                 ms.append(
-                    build(**{key: member}, stamp_ns=t[starts[r] : ends[r]], direction=directions[r])
+                    build(**named[member], stamp_ns=t[starts[r] : ends[r]], direction=directions[r])
                 )
                 if first_ns[r] < first:
                     first = first_ns[r]
@@ -459,20 +473,6 @@ def _single(op: _Opened, check: Callable[[Any, Limits], Body | None], opts: _Opt
     return op.alone(opts) if body is None else op.packet(*body, opts)
 
 
-def _batched(
-    op: _Opened, layout: Layout | None, groups: _Groups, opts: _Options
-) -> BurstItem | None:
-    """The result of a packet of a batched stream when it is known at once (decoded alone, a
-    heartbeat); None when the group of its layout took it."""
-    if layout is None:
-        return op.alone(opts)
-    if isinstance(layout, Edges) and op.p.edges == []:
-        return _heartbeat(op, opts.limits) or op.alone(opts)
-    if not groups.of(layout).add(op, opts.limits):
-        return op.alone(opts)
-    return None
-
-
 def decode_burst(
     received: Sequence[tuple[str, bytes]],
     *,
@@ -523,8 +523,14 @@ def decode_burst(
         op = _Opened(i, item, vehicle_id, stream, p)
         if spec.single is not None:  # nothing to batch: checked on its own
             out[i] = _single(op, spec.single, opts)
-        else:
-            out[i] = _batched(op, spec.batch(p), groups, opts)
+            continue
+        layout = spec.batch(p)
+        if layout is None:
+            out[i] = op.alone(opts)
+        elif isinstance(layout, Edges) and p.edges == []:
+            out[i] = _heartbeat(op, limits) or op.alone(opts)
+        elif not groups.of(layout).add(op, limits):
+            out[i] = op.alone(opts)
     groups.finish(out, opts)
     items = [item for item in out if item is not None]
     assert len(items) == len(out), "every packet gets a result"

@@ -115,14 +115,11 @@ class Edges:
     key: str
     members: type[IntEnum]
     build: Callable[..., Measurement]
-    _by_number: dict[object, IntEnum] = field(init=False, repr=False, compare=False)
+    #: Each member by its number (derived from ``members``).
+    by_number: dict[object, IntEnum] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "_by_number", {int(x): x for x in self.members})
-
-    def member(self, value: object) -> IntEnum | None:
-        """The member numbered ``value`` (an ``int``); None when there is none."""
-        return self._by_number.get(value) if type(value) is int else None
+        object.__setattr__(self, "by_number", {int(x): x for x in self.members})
 
     def decode(self, ctx: Ctx, m: dict[str, Any], lim: Limits) -> Body:
         """The packet's measurements by the per-packet rules (the first broken one refuses)."""
@@ -144,7 +141,7 @@ class Edges:
             if not isinstance(item, dict):
                 raise ctx.fail("wrong_type", "each edges entry must be a map")
             number = int_field(ctx, item, self.key)
-            member = self.member(number)
+            member = self.by_number.get(number)
             if member is None or number in seen:
                 raise ctx.fail(
                     "out_of_range",
