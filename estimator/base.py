@@ -13,11 +13,31 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from estimator.config import VehicleConfig
-from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelGap, WheelSpeeds
+from estimator.types import (
+    GnssSample,
+    ImuBatch,
+    OdometerEdges,
+    SprocketEdges,
+    SteeringAngles,
+    WheelEdges,
+    WheelGap,
+    WheelSpeeds,
+    WheelSpeeds4,
+)
 
 __all__ = ["FleetEstimator", "Measurement", "Pushed"]
 
-Measurement = GnssSample | ImuBatch | WheelEdges | WheelSpeeds
+#: A measurement of any sensor stream; an estimator is handed those of the streams it takes.
+Measurement = (
+    GnssSample
+    | ImuBatch
+    | WheelEdges
+    | WheelSpeeds
+    | OdometerEdges
+    | SprocketEdges
+    | SteeringAngles
+    | WheelSpeeds4
+)
 
 #: What :meth:`FleetEstimator.push` takes: a measurement, or a notice of lost data.
 Pushed = Measurement | WheelGap

@@ -69,7 +69,7 @@ MIN_WAKE_NS = 4_000_000
 #: Wall time rendered at once (packets selected, copied, stamp-patched, sorted), ns.
 WINDOW_NS = 100_000_000
 
-STREAMS: tuple[Stream, ...] = tuple(Stream)
+STREAMS: tuple[Stream, ...] = (Stream.GNSS, Stream.IMU, Stream.WHEELS)  # a simulated vehicle
 _STREAM_CODE = {s: i for i, s in enumerate(STREAMS)}
 _STAMP_KEY = msgpack.packb("stamp_ns")
 _SEQ_KEY = msgpack.packb("seq")

@@ -16,10 +16,27 @@ from estimator.config import (
     WheeledRearDriveConfig,
 )
 from estimator.geo import enu_from_geodetic
-from estimator.types import GnssSample, ImuBatch
+from estimator.types import (
+    GnssSample,
+    ImuBatch,
+    OdometerEdges,
+    SprocketEdges,
+    SteeringAngles,
+    TrackSide,
+    WheelSpeeds4,
+)
 from server.estimators import EstimatorRegistry
 from server.ingest import Pipeline
-from server.protocol import DecodeError, Packet, Stream, encode_imu
+from server.protocol import (
+    DecodeError,
+    Packet,
+    Stream,
+    encode_imu,
+    encode_odometer,
+    encode_sprockets,
+    encode_steering,
+    encode_wheel_speeds4,
+)
 from server.settings import IngestSettings, Settings, UnknownVehiclePolicy
 from tests.server.ingest.fakes import CapturingSink, RecordingFleet, first_stamp
 
@@ -448,3 +465,26 @@ def test_undecoded_bursts_queued_back_to_back_are_decoded_as_one(
     received_ns, joined = pipe._coalesce(0, raw(burst[0]))
     assert (received_ns, len(joined)) == (1, 7)
     assert pipe._next_item(None)[0] == 2
+
+
+def test_new_streams_are_accepted_counted_and_ordered_but_reach_no_estimator() -> None:
+    """Odometer, sprockets, steering and four-wheel-speed packets go through decoding,
+    counting and the reorder buffer; the estimators here read GNSS, IMU and wheels only."""
+    pipe, fleet, _ = make()
+    pipe.start()
+    t = T0 + np.arange(10, dtype=np.int64) * 10 * MS
+    direction = np.ones(10, dtype=np.int8)
+    others = [
+        ("odometer", encode_odometer(OdometerEdges(t, direction), 0)),
+        ("sprockets", encode_sprockets([SprocketEdges(TrackSide.TRACK_RIGHT, t)], 0)),
+        ("steering", encode_steering(SteeringAngles(t, np.full(10, 0.3)), 0)),
+        ("wheel_speeds4", encode_wheel_speeds4(WheelSpeeds4(t, np.full((10, 4), 2.0)), 0)),
+        ("steering", encode_steering(SteeringAngles(t, np.full(10, np.inf)), 1)),
+    ]
+    imus = [("fleet/a/sensors/imu", encode_imu(imu_batch(10 * k), k)) for k in range(12)]
+    pipe.submit_raw(imus[:4] + [(f"fleet/a/sensors/{s}", p) for s, p in others] + imus[4:])
+    pipe.stop()
+    assert [type(m) for m in fleet.pushed["a"]] == [ImuBatch] * 12
+    snap = pipe.counters_snapshot()["a"]
+    assert snap["accepted"] == 12 + 4 and snap["rejected_non_finite"] == 1
+    assert pipe.stats()["estimator_errors"] == 0

@@ -583,7 +583,9 @@ def test_gnss_fast_check_agrees_with_the_field_rules(
 ) -> None:
     """The one-expression check accepts only what the field-by-field rules accept, with the
     same values; what it leaves to them (None) they accept or refuse."""
-    from server.protocol.codec import _Ctx, _gnss_checked, _gnss_sample
+    from server.protocol.base import Ctx as _Ctx
+    from server.protocol.sensors import gnss_checked as _gnss_checked
+    from server.protocol.sensors import gnss_sample as _gnss_sample
 
     m: dict[str, Any] = msgpack.unpackb(encode_gnss(_gnss(vel_std_mps=0.05), 3), raw=False)
     m.update(changes)
@@ -604,7 +606,7 @@ def test_gnss_fast_check_agrees_with_the_field_rules(
 
 
 def test_gnss_fast_check_takes_the_usual_packet_and_nan_attitude() -> None:
-    from server.protocol.codec import _gnss_sample
+    from server.protocol.sensors import gnss_sample as _gnss_sample
 
     usual = msgpack.unpackb(encode_gnss(_gnss(vel_std_mps=0.05), 3), raw=False)
     assert _gnss_sample(usual, LIMITS) is not None
