@@ -9,7 +9,8 @@ Scene (world = local ENU metres, see :mod:`server.viewer.scene`):
 ``/follow/label``   its id
 
 The whole fleet is two batched meshes, so a frame for 1,000 vehicles is a handful of array
-assignments inside one ``server.atomic()`` block (``server/bench/viewer.py`` compares it with one
+assignments inside one ``server.atomic()`` block (``server/tooling/bench/viewer.py`` compares it
+with one
 handle per vehicle). Per-vehicle detail exists only for the followed vehicle, chosen in the GUI
 dropdown ("Follow"); "Camera follows" keeps every client's camera looking at it.
 

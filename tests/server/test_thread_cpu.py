@@ -8,8 +8,8 @@ import time
 
 import zenoh
 
-from server.router import router_config
 from server.thread_cpu import thread_cpu_seconds
+from server.tooling.router import router_config
 from tests.support import free_port
 
 

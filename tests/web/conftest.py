@@ -31,10 +31,10 @@ from server.api import create_app
 from server.api.app import API_ROUTERS
 from server.api.routes import alerts as alerts_routes
 from server.api.routes import live as live_routes
-from server.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.live import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
+from server.tooling.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.web import mount_web
 from tests.support import free_port
 

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.bench.live import FeedThread, SyntheticFleet
 from server.live import LiveHub
 from server.settings import ViewerSettings
+from server.tooling.bench.live import FeedThread, SyntheticFleet
 from server.viewer.fleet_view import FleetViewer
 from tests.support import free_port
 

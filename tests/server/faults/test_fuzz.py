@@ -36,11 +36,11 @@ from estimator.engine import MdsfFleet
 from estimator.sim import simulate
 from estimator.types import GnssSample
 from server.estimators import EstimatorRegistry
-from server.fleet_sim import SimPacket, packetize
 from server.ingest import Pipeline
 from server.ingest.subscriber import IngestItem
 from server.protocol import LIMITS, DecodeError, Packet, Stream, decode, sensor_key
 from server.settings import IngestSettings, Settings
+from server.tooling.fleet_sim import SimPacket, packetize
 
 pytestmark = pytest.mark.slow
 
