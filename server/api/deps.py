@@ -21,7 +21,7 @@ from starlette.requests import HTTPConnection
 
 from estimator.config import ConfigError, SlipConfig, VehicleConfig, vehicle_config_from_dict
 from server.api.errors import Forbidden, InvalidTime, NotFound, RangeTooLarge, Unauthorized
-from server.api.prometheus import MetricFamily
+from server.metrics.prometheus import MetricFamily
 from server.settings import Settings
 from server.storage.base import StorageError, Store, VehicleRecord
 from server.timeparse import TimeParseError, parse_time_ns

@@ -3,7 +3,7 @@
 Vehicle configs travel as plain JSON objects validated by
 :func:`estimator.config.vehicle_config_from_dict` (so a client gets that function's reasons); their
 OpenAPI schema is generated from :class:`estimator.config.VehicleConfig` itself, so the two cannot
-drift. Report bodies reuse the frozen dataclasses of :mod:`server.reports`.
+drift. Report bodies reuse the frozen dataclasses of :mod:`server.analytics.reports`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, WithJsonSchema, 
 
 from estimator.config import VehicleConfig
 from estimator.types import ESTIMATE_FIELDS
-from server.reports import IngestCounts, VehicleReport
+from server.analytics.reports import IngestCounts, VehicleReport
 from server.storage.base import Anchor
 
 __all__ = [

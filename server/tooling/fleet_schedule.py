@@ -18,8 +18,7 @@ else is done once or in bulk (``slipfleet bench publisher``: 6–10 µs of CPU a
   stamp-patched (numpy, one add per byte alignment), given their ``seq`` (packed as msgpack
   packs an int, shortest form) and sorted by due time into one merged schedule of ready
   payloads. Each payload is byte for byte what :func:`server.tooling.fleet_sim.encode_packet` makes
-  of
-  the shifted measurements (a test checks it over several loops), so the wire format is
+  of the shifted measurements (a test checks it over several loops), so the wire format is
   unchanged.
 * **Send.** One thread sleeps until the next packet is due (at least :data:`MIN_WAKE_NS`
   apart, so thousands of vehicles cost a few hundred wake-ups a second, not one per packet),

@@ -409,8 +409,7 @@ def publish_fleets(
 
     They must share ``rate`` and ``loop``. Every distinct drive is encoded once
     (:class:`server.tooling.fleet_schedule.EncodedDrive`) and payloads are built per 100 ms window
-    in
-    bulk; the sending loop costs one ``put`` per packet. ``stats`` (a fresh :class:`SimStats`
+    in bulk; the sending loop costs one ``put`` per packet. ``stats`` (a fresh :class:`SimStats`
     by default; every fleet's ``stats`` becomes this one) is updated after every sending
     round, so another thread can follow the progress; with ``keep_lateness`` every round is
     kept in ``stats.send_rounds``. ``ready`` is set once everything is simulated, encoded and

@@ -17,9 +17,8 @@ vehicles, each with ``--sessions`` client sessions, through
 100 ms batches (≈30 packets per vehicle-second), BLOCK congestion control, sends spread over the
 100 ms tick. Each child publishes all its vehicles from one thread and one merged schedule of
 pre-encoded packets (:func:`server.tooling.fleet_sim.publish_fleets`,
-:mod:`server.tooling.fleet_schedule`):
-≈6–10 µs of CPU per packet at 1,000–3,000 vehicles on the 2-core reference machine
-(``slipfleet bench publisher``),
+:mod:`server.tooling.fleet_schedule`): ≈6–10 µs of CPU per packet at 1,000–3,000 vehicles on
+the 2-core reference machine (``slipfleet bench publisher``),
 so 3,000 vehicles (90,000 packets/s) cost the load generator about half a core.
 ``--scenario mix`` spreads vehicles over :data:`MIX`. ``--replay`` publishes
 recordings (:mod:`server.protocol.recording`) instead: vehicle ``i`` replays the drives of
@@ -36,7 +35,7 @@ backlog is empty and, 1.5 s on, the writer has taken every estimate row produced
 * estimate rows produced, stored and not inserted (stored already, or of a vehicle the store
   does not know), storage rows/s;
 * latency from each estimate's sensor timestamp to the live feed and to the committed row
-  (:mod:`server.latency` histograms, differenced over the window — without the drain, whose
+  (:mod:`server.metrics.latency` histograms, differenced over the window — without the drain, whose
   rows the reorder buffers release only after the vehicles fall silent: p50/p95/p99/max,
   ±2.5 %);
 * how late the publishers sent their packets over the window (p50/p99/max, whole ms, each
@@ -45,7 +44,7 @@ backlog is empty and, 1.5 s on, the writer has taken every estimate row produced
 * server CPU (cores: CPU seconds per wall second, all threads) and RSS (first, last, peak) via
   psutil on the server pid; publisher CPU likewise;
 * cores by server thread over the window (``slipfleet_thread_cpu_seconds_total``,
-  :mod:`server.thread_cpu`: the server process's threads and each ingest worker's, the
+  :mod:`server.metrics.thread_cpu`: the server process's threads and each ingest worker's, the
   workers' as of their last report, at most a second old), the busiest
   :data:`THREADS_SHOWN` in the report: where the server's CPU goes; and the pipeline threads'
   cores by phase (decode, reorder, release, estimate, deliver:
@@ -159,7 +158,7 @@ def scrape(
     fleet)."""
     import httpx
 
-    from server.latency import parse_histogram
+    from server.metrics.latency import parse_histogram
 
     own = client is None
     c = client or httpx.Client(timeout=30.0)
@@ -287,7 +286,7 @@ def _latency_window(
     before: Mapping[str, list[float]], after: Mapping[str, list[float]]
 ) -> dict[str, dict[str, float]]:
     """p50/p95/p99/max (ms) and count per stage of the rows recorded between two scrapes."""
-    from server.latency import BOUNDS_S, quantiles_from_buckets
+    from server.metrics.latency import BOUNDS_S, quantiles_from_buckets
 
     out: dict[str, dict[str, float]] = {}
     bounds = list(BOUNDS_S)

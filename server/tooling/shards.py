@@ -2,9 +2,8 @@
 
 The multi-host layout (``deploy/compose.yaml``) on one machine: :class:`RouterProcess` runs
 ``python -m server.tooling.router``; :func:`sharded_servers` starts one ``slipfleet serve`` process
-per
-vehicle filter as clients of that router, all writing to one PostgreSQL database, so the REST API
-of each answers for the whole fleet. Shard ``k`` of :func:`shard_layout` owns the vehicle ids
+per vehicle filter as clients of that router, all writing to one PostgreSQL database, so the REST
+API of each answers for the whole fleet. Shard ``k`` of :func:`shard_layout` owns the vehicle ids
 that start with the ``k``-th letter (``a-…``, ``b-…``): Zenoh delivers each shard only its
 share, by key expression (``zenoh.vehicle_filter``). Used by ``slipfleet loadtest --shards N``
 and the throughput ladder.

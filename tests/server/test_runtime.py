@@ -12,7 +12,7 @@ import pytest
 import zenoh
 
 from estimator.types import EstimateFlag, empty_estimates
-from server.alerts import AlertKind
+from server.analytics.alerts import AlertKind
 from server.runtime import SERVER_ALERTS_CHUNK, Runtime
 from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session

@@ -14,7 +14,7 @@ import httpx
 import pytest
 
 from server.app_main import ServerThread, build_app
-from server.live import LiveHub
+from server.live.hub import LiveHub
 from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import FleetSim

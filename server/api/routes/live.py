@@ -1,4 +1,4 @@
-"""Live WebSockets for the dashboard, fed by :class:`server.live.LiveHub`.
+"""Live WebSockets for the dashboard, fed by :class:`server.live.hub.LiveHub`.
 
 The hub is found as ``app.state.live_hub`` or, failing that, ``app.state.runtime.live_hub``.
 Every message is one JSON text frame with a ``type``; NaN values are sent as ``null``; times are
@@ -61,7 +61,7 @@ from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from starlette.datastructures import State
 
 from estimator.types import ESTIMATE_DTYPE
-from server.live import LiveHub, gnss_quality, slip_note
+from server.live.hub import LiveHub, gnss_quality, slip_note
 
 __all__ = ["FLEET_MIN_INTERVAL_S", "VEHICLE_MIN_INTERVAL_S", "find_live_hub", "router"]
 

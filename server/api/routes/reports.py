@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Response
 
 from estimator.types import empty_estimates
+from server.analytics.reports import REPORT_FIELDS, flatten_report, ingest_counts, vehicle_report
 from server.api.deps import (
     LimitsDep,
     StoreDep,
@@ -19,7 +20,6 @@ from server.api.errors import error_responses
 from server.api.models import FleetReportPublic, VehicleReportPublic
 from server.api.routes.series import export_filename
 from server.api.tables import csv_table
-from server.reports import REPORT_FIELDS, flatten_report, ingest_counts, vehicle_report
 from server.storage.base import Store, VehicleRecord
 
 __all__ = ["REPORT_DESCRIPTION", "router"]
@@ -99,7 +99,7 @@ def get_vehicle_report(
 
 
 def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response:
-    """One CSV row per report (:func:`server.reports.flatten_report`), as a download."""
+    """One CSV row per report (:func:`server.analytics.reports.flatten_report`), as a download."""
     rows = [flatten_report(r.vehicle_id, r.report, r.ingest) for r in reports]
     if rows:
         columns: dict[str, None] = {}

@@ -1,12 +1,12 @@
 """Slip maps: ``/vehicles/{id}/slipmap`` and ``/fleet/slipmap`` (JSON, GeoJSON or CSV).
 
-The statistics are :mod:`server.slipmap`'s; this module reads the rows, picks the frame and
-writes the answer. GeoJSON cells are polygons whose corners go through the frame's
+The statistics are :mod:`server.analytics.slipmap`'s; this module reads the rows, picks the frame
+and writes the answer. GeoJSON cells are polygons whose corners go through the frame's
 :meth:`estimator.geo.EnuFrame.to_geodetic` on its horizontal plane (``up`` 0).
 
 The fleet map reads and reduces one vehicle at a time (:func:`_vehicle_cells`) and merges the
-partial sums as it goes (:func:`server.slipmap.merge_cell_sums`): memory holds one vehicle's
-rows and the merged cells, never the fleet's rows.
+partial sums as it goes (:func:`server.analytics.slipmap.merge_cell_sums`): memory holds one
+vehicle's rows and the merged cells, never the fleet's rows.
 """
 
 from __future__ import annotations
@@ -21,6 +21,20 @@ from fastapi import APIRouter, Query, Response
 
 from estimator.config import SlipConfig
 from estimator.geo import EnuFrame
+from server.analytics.reports import check_band_edges
+from server.analytics.slipmap import (
+    FLEET_SLIPMAP_FIELDS,
+    SLIPMAP_FIELDS,
+    CellSums,
+    SlipMap,
+    TooManyCells,
+    cell_sums,
+    finish_cells,
+    map_samples,
+    merge_cell_sums,
+    reframe,
+    slip_map,
+)
 from server.api.deps import (
     ApiLimits,
     LimitsDep,
@@ -41,20 +55,6 @@ from server.api.models import (
 )
 from server.api.routes.series import GEOJSON_MEDIA_TYPE, export_filename
 from server.api.tables import csv_table
-from server.reports import check_band_edges
-from server.slipmap import (
-    FLEET_SLIPMAP_FIELDS,
-    SLIPMAP_FIELDS,
-    CellSums,
-    SlipMap,
-    TooManyCells,
-    cell_sums,
-    finish_cells,
-    map_samples,
-    merge_cell_sums,
-    reframe,
-    slip_map,
-)
 from server.storage.base import Anchor, Store, VehicleRecord
 
 __all__ = ["FLEET_SLIPMAP_DESCRIPTION", "SLIPMAP_DESCRIPTION", "router"]

@@ -7,9 +7,8 @@ The server's pipeline calls ``advance`` every ``ingest.estimate_interval_ms`` (5
 vehicle, each vehicle's ticks on its own phase (its first IMU batch), so a call steps about
 half the fleet. This bench does the same: ``N`` simulated ``field_work`` vehicles (``N mod
 SOURCE_RUNS`` replays of a few runs, as :mod:`server.tooling.bench.frontend`) with tick phases
-spread
-evenly over the tick, measurements pushed in arrival order, ``advance`` every ``INTERVAL_MS`` of
-sensor time with a horizon ``LAG_MS`` behind. Only ``advance`` is timed (process CPU time),
+spread evenly over the tick, measurements pushed in arrival order, ``advance`` every ``INTERVAL_MS``
+of sensor time with a horizon ``LAG_MS`` behind. Only ``advance`` is timed (process CPU time),
 after ``WARMUP_S`` seconds of sensor time.
 
 Per fleet size the table gives the CPU per call [ms] and per vehicle-tick (emitted row) [µs],

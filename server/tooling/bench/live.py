@@ -6,12 +6,11 @@ Run ``python -m server.tooling.bench.live [--real] [--vehicles 100] [--rate-hz 2
 With ``--real`` the whole server runs instead (embedded Zenoh router, pipeline with the MDSF
 estimators, SQLite writer, API and dashboard) and ``--vehicles`` simulated vehicles
 (:class:`server.tooling.fleet_sim.FleetSim`, ``field_work``) publish over Zenoh on loopback in real
-time;
-the latency then includes ingest, the reorder window (``ingest.lateness_ms``) and estimation.
+time; the latency then includes ingest, the reorder window (``ingest.lateness_ms``) and estimation.
 
 A :class:`SyntheticFleet` produces estimate rows (``ESTIMATE_DTYPE``) for ``--vehicles`` vehicles
 at ``--rate-hz`` stamped with the wall clock, and :class:`FeedThread` pushes them into a
-:class:`~server.live.LiveHub` (and any other sink) in real time, as the pipeline thread would.
+:class:`~server.live.hub.LiveHub` (and any other sink) in real time, as the pipeline thread would.
 The app (live routes + dashboard) runs under uvicorn on 127.0.0.1; ``--watch`` WebSocket clients
 follow one vehicle each on ``/api/v1/live/vehicles/{id}`` and one client follows
 ``/api/v1/live/fleet``. Each records, per message, *receive wall time − sensor stamp* of the
@@ -219,7 +218,7 @@ def _synthetic_setup(n: int, rate_hz: float) -> tuple[int, list[str], Any, Calla
     from fastapi import FastAPI
 
     from server.api.routes import live as live_routes
-    from server.live import LiveHub
+    from server.live.hub import LiveHub
     from server.web import mount_web
 
     hub = LiveHub()

@@ -70,12 +70,12 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
     in a child process). Returns ``{"vehicles", "seconds", "rows", <stage>_s…, "total_s"}``.
     """
     from estimator.sim import simulate
-    from server.alerts import AlertEngine
+    from server.analytics.alerts import AlertEngine
     from server.estimators.registry import EstimatorRegistry
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
-    from server.latency import LatencyProbe
-    from server.live import LiveHub
+    from server.live.hub import LiveHub
+    from server.metrics.latency import LatencyProbe
     from server.protocol.burst import decode_burst
     from server.protocol.keys import sensor_key
     from server.settings import Settings

@@ -12,9 +12,9 @@ Zenoh router in this process, where a bare subscriber only counts what arrives:
   sessions per process, and per packet new measurement objects with shifted stamps, msgpack
   encoding, a heap pop and a ``put`` (:func:`_per_packet_run`, kept here as the baseline);
 * **encoded** — :func:`server.tooling.fleet_sim.publish_fleets`
-(:mod:`server.tooling.fleet_schedule`):
-  every drive encoded once, stamps patched per 100 ms window in bulk, one merged schedule and
-  one thread per process, ``--sessions`` sessions per process.
+  (:mod:`server.tooling.fleet_schedule`): every drive encoded once, stamps patched per 100 ms
+  window in bulk, one merged schedule and one thread per process, ``--sessions`` sessions per
+  process.
 
 The children simulate, encode and declare, then start publishing together; after a warm-up
 (``--warmup`` s) each child measures ``--window`` seconds: its CPU (``time.process_time``:

@@ -28,8 +28,8 @@ import httpx
 import numpy as np
 
 from estimator.types import EstimateFlag, empty_estimates
+from server.analytics.reports import REPORT_FIELDS
 from server.api import create_app
-from server.reports import REPORT_FIELDS
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
 

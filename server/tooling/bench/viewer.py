@@ -3,12 +3,11 @@
 Run ``python -m server.tooling.bench.viewer [--vehicles 1000] [--frames 30]``.
 
 Both modes start a real viser server on a free 127.0.0.1 port and draw the same fleet (the
-synthetic fleet of :mod:`server.tooling.bench.live`, fed into a :class:`~server.live.LiveHub`),
-advancing
-sensor time by 0.2 s per frame (5 Hz):
+synthetic fleet of :mod:`server.tooling.bench.live`, fed into a :class:`~server.live.hub.LiveHub`),
+advancing sensor time by 0.2 s per frame (5 Hz):
 
-* ``batched`` — :meth:`server.viewer.fleet_view.FleetViewer.update`: read the hub, map rows to
-  poses and colours (:func:`server.viewer.scene.fleet_frame`), assign six arrays to the two
+* ``batched`` — :meth:`server.live.viewer.fleet_view.FleetViewer.update`: read the hub, map rows to
+  poses and colours (:func:`server.live.viewer.scene.fleet_frame`), assign six arrays to the two
   batched meshes inside one ``server.atomic()``.
 * ``per-vehicle`` — the same frame mapping, then for each vehicle a body box and two wheel meshes
   (``/fleet/<id>/body``, ``/fleet/<id>/wheel_left``, ``/fleet/<id>/wheel_right``) whose
@@ -28,13 +27,13 @@ from collections.abc import Sequence
 import viser
 
 from estimator.config import VehicleGeometry
-from server.live import LiveHub
+from server.live.hub import LiveHub
+from server.live.viewer.fleet_view import FleetViewer
+from server.live.viewer.scene import BODY_SIZE_M, cylinder_mesh_x, fleet_frame
 from server.settings import ViewerSettings
 from server.tooling.bench import percentile
 from server.tooling.bench.live import SyntheticFleet
 from server.tooling.ports import free_port as _free_port
-from server.viewer.fleet_view import FleetViewer
-from server.viewer.scene import BODY_SIZE_M, cylinder_mesh_x, fleet_frame
 
 __all__ = ["main"]
 

@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from server.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
+from server.metrics.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
 from server.protocol import Stream, decode, sensor_key
 from server.tooling.loadtest import (
     VEHICLES_PER_PUBLISHER,

@@ -12,11 +12,11 @@ import pytest
 
 from estimator.config import VehicleGeometry
 from estimator.types import empty_estimates
-from server.live import LiveHub
+from server.live.hub import LiveHub
+from server.live.viewer.colors import slip_rgb
+from server.live.viewer.fleet_view import ARROW_SECONDS, NO_FOLLOW, FleetViewer
+from server.live.viewer.scene import rotation_matrix_from_wxyz
 from server.settings import ViewerSettings
-from server.viewer.colors import slip_rgb
-from server.viewer.fleet_view import ARROW_SECONDS, NO_FOLLOW, FleetViewer
-from server.viewer.scene import rotation_matrix_from_wxyz
 from tests.support import free_port as _free_port
 
 T0 = 1_700_000_000 * 1_000_000_000

@@ -10,7 +10,7 @@ import pytest
 
 from estimator.config import SlipConfig
 from estimator.types import EstimateFlag, empty_estimates
-from server.alerts import SYSTEM, AlertEngine, AlertKind
+from server.analytics.alerts import SYSTEM, AlertEngine, AlertKind
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

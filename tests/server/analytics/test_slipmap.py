@@ -7,8 +7,8 @@ import pytest
 
 from estimator.geo import EnuFrame
 from estimator.types import EstimateFlag, empty_estimates
-from server.reports import vehicle_report
-from server.slipmap import (
+from server.analytics.reports import vehicle_report
+from server.analytics.slipmap import (
     MapSamples,
     SlipMap,
     TooManyCells,

@@ -1,6 +1,6 @@
 """viser 3D fleet view: every vehicle at its GNSS pose, wheels coloured by slip, one followed.
 
-Scene (world = local ENU metres, see :mod:`server.viewer.scene`):
+Scene (world = local ENU metres, see :mod:`server.live.viewer.scene`):
 
 ``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
 ``/fleet/wheels``   one batched mesh, two wheels per vehicle, coloured by their slip
@@ -10,11 +10,10 @@ Scene (world = local ENU metres, see :mod:`server.viewer.scene`):
 
 The whole fleet is two batched meshes, so a frame for 1,000 vehicles is a handful of array
 assignments inside one ``server.atomic()`` block (``server/tooling/bench/viewer.py`` compares it
-with one
-handle per vehicle). Per-vehicle detail exists only for the followed vehicle, chosen in the GUI
-dropdown ("Follow"); "Camera follows" keeps every client's camera looking at it.
+with one handle per vehicle). Per-vehicle detail exists only for the followed vehicle, chosen in the
+GUI dropdown ("Follow"); "Camera follows" keeps every client's camera looking at it.
 
-:class:`FleetViewer` reads a :class:`server.live.LiveHub` on its own thread at
+:class:`FleetViewer` reads a :class:`server.live.hub.LiveHub` on its own thread at
 ``ViewerSettings.update_hz``; :meth:`FleetViewer.update` draws one frame and can be called
 directly (tests, benchmarks).
 """
@@ -32,16 +31,16 @@ import numpy as np
 import viser
 
 from estimator.config import VehicleGeometry
-from server.live import LiveHub
-from server.settings import ViewerSettings
-from server.viewer.colors import slip_rgb
-from server.viewer.scene import (
+from server.live.hub import LiveHub
+from server.live.viewer.colors import slip_rgb
+from server.live.viewer.scene import (
     BODY_SIZE_M,
     FleetFrame,
     box_mesh,
     cylinder_mesh_x,
     fleet_frame,
 )
+from server.settings import ViewerSettings
 
 __all__ = ["ARROW_SECONDS", "NO_FOLLOW", "FleetViewer"]
 

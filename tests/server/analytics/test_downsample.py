@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
-from server.downsample import bucket_width_ns, downsample_minmax, thin_first
+from server.analytics.downsample import bucket_width_ns, downsample_minmax, thin_first
 
 S = 1_000_000_000
 

@@ -2,8 +2,8 @@
 
 The dashboard's history page draws its heat grid from this map (``GET /vehicles/{id}/slipmap``).
 Time weights, "moving", slip validity and slip bands are those of the field reports
-(:mod:`server.reports`), so a map over a range and the report over the same range agree: the
-``time_s`` of all cells is the report's ``moving_s`` less the moving time without a position.
+(:mod:`server.analytics.reports`), so a map over a range and the report over the same range agree:
+the ``time_s`` of all cells is the report's ``moving_s`` less the moving time without a position.
 
 Definitions
 -----------
@@ -56,7 +56,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from estimator.geo import EnuFrame
-from server.reports import (
+from server.analytics.reports import (
     band_bounds,
     band_index,
     band_label,

@@ -6,9 +6,9 @@ import json
 import re
 from pathlib import Path
 
-from server.viewer.colors import SLIP_COLOR_NONE, SLIP_COLOR_STOPS
+from server.live.viewer.colors import SLIP_COLOR_NONE, SLIP_COLOR_STOPS
 
-COLORS_JS = Path(__file__).resolve().parents[3] / "web" / "js" / "colors.js"
+COLORS_JS = Path(__file__).resolve().parents[4] / "web" / "js" / "colors.js"
 
 
 def _js_constant(name: str) -> object:

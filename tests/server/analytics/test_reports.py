@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.types import EstimateFlag, empty_estimates
-from server.reports import (
+from server.analytics.reports import (
     REPORT_FIELDS,
     IngestCounts,
     flatten_report,

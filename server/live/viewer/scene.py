@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.config import VehicleGeometry
-from server.viewer.colors import slip_rgb
+from server.live.viewer.colors import slip_rgb
 
 __all__ = [
     "BODY_CENTRE_M",
@@ -133,7 +133,7 @@ class FleetFrame:
     body_rgb : (n, 3) uint8, by status
     wheel_position_m : (2n, 3) wheel centres, left and right of vehicle 0, then vehicle 1, …
     wheel_wxyz : (2n, 4) the body's rotation, repeated per wheel
-    wheel_rgb : (2n, 3) uint8, slip colour (``server.viewer.colors``) of that wheel
+    wheel_rgb : (2n, 3) uint8, slip colour (``server.live.viewer.colors``) of that wheel
     velocity_mps : (n, 3) ``vg_mps`` along the forward axis
     antenna_m : (n, 3) the estimate's position
     ground_m : (n, 3) ``O``, the ground point under the rear-axle midpoint

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from estimator.types import EstimateFlag, empty_estimates
-from server.live import LiveHub, TierSpec, gnss_quality, slip_note
+from server.live.hub import LiveHub, TierSpec, gnss_quality, slip_note
 
 S = 1_000_000_000  # ns per second
 T0 = 1_700_000_000 * S

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 
 from estimator.config import VehicleGeometry
 from estimator.types import empty_estimates
-from server.viewer.colors import SLIP_COLOR_NONE, slip_rgb
-from server.viewer.scene import (
+from server.live.viewer.colors import SLIP_COLOR_NONE, slip_rgb
+from server.live.viewer.scene import (
     attitude_from_wxyz,
     box_mesh,
     cylinder_mesh_x,

@@ -2,7 +2,7 @@
 
 Colour is a function of ``|slip|`` in percent, linear in RGB between :data:`SLIP_COLOR_STOPS`
 and clamped beyond the last stop; no slip value (NaN: standstill, invalid) is
-:data:`SLIP_COLOR_NONE`. ``tests/server/viewer/test_colors.py`` checks that both files agree.
+:data:`SLIP_COLOR_NONE`. ``tests/server/live/viewer/test_colors.py`` checks that both files agree.
 
 =========  ==========  =========
 |slip| %   colour      hex

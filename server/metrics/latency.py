@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.types import EstimateBatch
-from server.api.prometheus import MetricFamily, Sample
+from server.metrics.prometheus import MetricFamily, Sample
 from server.storage.base import Store
 
 __all__ = [

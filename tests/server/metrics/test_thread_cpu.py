@@ -8,7 +8,7 @@ import time
 
 import zenoh
 
-from server.thread_cpu import thread_cpu_seconds
+from server.metrics.thread_cpu import thread_cpu_seconds
 from server.tooling.router import router_config
 from tests.support import free_port
 
