@@ -23,7 +23,7 @@ import zenoh
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
 from estimator.geo import EnuFrame
 from server.analytics.alerts import AlertEngine, AlertKind
-from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
+from server.estimation.registry import EstimatorRegistry, UnknownEstimatorError
 from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session

@@ -521,7 +521,7 @@ def _worker_main(
     control: Connection,
 ) -> None:
     """A worker process: decode what the server routes here and run a pipeline on it."""
-    from server.estimators.registry import EstimatorRegistry
+    from server.estimation.registry import EstimatorRegistry
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
 

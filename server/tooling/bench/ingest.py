@@ -235,7 +235,7 @@ with zenoh.open(config) as session:
 
 def bench_ingest(vehicles: int, n_packets: int, estimator: str = "null") -> dict[str, float]:
     """Packets per second from a publisher process through router, decode and pipeline."""
-    from server.estimators import EstimatorRegistry
+    from server.estimation import EstimatorRegistry
     from server.ingest.pipeline import Pipeline
     from server.ingest.zenoh_session import open_session
     from server.settings import Settings

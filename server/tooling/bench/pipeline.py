@@ -71,7 +71,7 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
     """
     from estimator.sim import simulate
     from server.analytics.alerts import AlertEngine
-    from server.estimators.registry import EstimatorRegistry
+    from server.estimation.registry import EstimatorRegistry
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
     from server.live.hub import LiveHub

@@ -29,7 +29,7 @@ import zenoh
 
 from estimator.mdsf import MdsfConfig
 from estimator.sim import simulate
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
 from server.protocol import Stream, config_key, decode, encode_config, sensor_key
 from server.protocol.codec import Packet

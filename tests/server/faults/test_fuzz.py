@@ -35,7 +35,7 @@ from hypothesis import strategies as st
 from estimator.engine import MdsfFleet
 from estimator.sim import simulate
 from estimator.types import GnssSample
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
 from server.ingest.subscriber import IngestItem
 from server.protocol import LIMITS, DecodeError, Packet, Stream, decode, sensor_key

@@ -12,7 +12,7 @@ import server.ingest.pipeline as pipeline_module
 from estimator.config import SlipConfig, VehicleConfig, VehicleKind
 from estimator.geo import enu_from_geodetic
 from estimator.types import GnssSample, ImuBatch
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
 from server.protocol import DecodeError, Packet, Stream, encode_imu
 from server.settings import IngestSettings, Settings, UnknownVehiclePolicy

@@ -10,7 +10,7 @@ import pytest
 
 from estimator.sim import simulate
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, WheelEdges
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
 from server.protocol import Stream, decode, sensor_key
 from server.protocol.recording import Record, read_recording, write_recording

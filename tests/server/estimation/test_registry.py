@@ -10,7 +10,7 @@ import pytest
 from estimator.base import FleetEstimator, Measurement, Pushed
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.types import ESTIMATE_DTYPE, ImuBatch, empty_estimates
-from server.estimators import (
+from server.estimation import (
     DEFAULT_FACTORIES,
     KIND_DEFAULTS,
     EstimatorRegistry,

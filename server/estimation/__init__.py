@@ -1,6 +1,6 @@
 """Estimator registry: names → FleetEstimator factories, vehicle kinds → default estimators."""
 
-from server.estimators.registry import (
+from server.estimation.registry import (
     DEFAULT_FACTORIES,
     KIND_DEFAULTS,
     AdvanceResult,
