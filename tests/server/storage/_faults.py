@@ -1,4 +1,4 @@
-"""Fault injection for tests and benchmarks (not used by the server)."""
+"""Fault injection for the storage tests: a SQLite database locked by another connection."""
 
 from __future__ import annotations
 
