@@ -2,8 +2,9 @@
 
 Dependencies point down: no import cycle between modules; the runtime (everything in
 ``server/`` outside ``server/tooling/``) never imports the tooling, except the ``slipfleet``
-command line, which offers the tooling's commands and is imported by nothing; ``estimator/``
-never imports the server. Every import counts, at module level or inside a function
+command line, which offers the tooling's commands and is imported by nothing; of the runtime
+only the app (``server/app_main.py``) imports the API layer; ``estimator/`` never imports the
+server. Every import counts, at module level or inside a function
 (``TYPE_CHECKING`` blocks too), and so does ``importlib.import_module`` with a literal name or an
 f-string's literal prefix.
 """
@@ -19,6 +20,8 @@ PACKAGES = ("server", "estimator")
 TOOLING = "server.tooling"
 #: The ``slipfleet`` console script (pyproject.toml): it offers serve and the tooling commands.
 COMMAND_LINE = "server.cli"
+#: The one runtime module that builds the REST app (the runtime hands the API what it serves).
+APP = "server.app_main"
 
 Graph = Mapping[str, frozenset[str]]
 
@@ -134,6 +137,18 @@ def test_the_runtime_never_imports_the_tooling() -> None:
     }
     assert {m: t for m, t in offending.items() if t} == {}
     assert sorted(m for m, targets in graph.items() if COMMAND_LINE in targets) == []
+
+
+def test_only_the_app_imports_the_api_layer() -> None:
+    graph = import_graph(REPO)
+    importers = {
+        m
+        for m, targets in graph.items()
+        if any(_in(t, "server.api") for t in targets)
+        and not _in(m, "server.api")
+        and not _in(m, TOOLING)
+    }
+    assert importers == {APP}
 
 
 def test_the_estimator_never_imports_the_server() -> None:
