@@ -13,14 +13,16 @@ from fastapi import FastAPI
 
 from server.api.app import create_app
 from server.gc_policy import settle
+from server.runtime import Runtime
 from server.settings import Settings
 from server.web import mount_web
 
 __all__ = ["ServerThread", "build_app", "serve"]
 
 def build_app(settings: Settings) -> FastAPI:
-    """The whole server app: REST API, live feeds, dashboard at ``/``; runtime in the lifespan."""
-    app = create_app(settings)
+    """The whole server app: REST API, live feeds, dashboard at ``/``; the runtime (opened in the
+    app's lifespan) serves them."""
+    app = create_app(settings, Runtime(settings))
     mount_web(app)
     return app
 

@@ -139,7 +139,7 @@ def test_the_runtime_never_imports_the_tooling() -> None:
     assert sorted(m for m, targets in graph.items() if COMMAND_LINE in targets) == []
 
 
-def test_only_the_app_imports_the_api_layer() -> None:
+def test_the_api_layer_is_imported_by_the_app_only_and_imports_no_composition() -> None:
     graph = import_graph(REPO)
     importers = {
         m
@@ -149,6 +149,9 @@ def test_only_the_app_imports_the_api_layer() -> None:
         and not _in(m, TOOLING)
     }
     assert importers == {APP}
+    composition = {"server.runtime", APP, COMMAND_LINE}
+    api_imports = {t for m, targets in graph.items() if _in(m, "server.api") for t in targets}
+    assert api_imports & composition == set()
 
 
 def test_the_estimator_never_imports_the_server() -> None:
@@ -166,7 +169,7 @@ def test_the_graph_sees_known_imports_of_every_kind() -> None:
     assert "server.live.hub" in graph["server.runtime"]  # module level
     assert "server.tooling.fleet_commands" in graph[COMMAND_LINE]  # inside a function
     assert "server.tooling.bench" in graph[COMMAND_LINE]  # import_module(f"…{name}")
-    assert "server.runtime" in graph["server.api.app"]  # import_module("…")
+    assert "server.api.app" in graph[APP]
 
 
 def test_a_planted_cycle_and_a_relative_import_are_found(tmp_path: Path) -> None:
@@ -177,7 +180,9 @@ def test_a_planted_cycle_and_a_relative_import_are_found(tmp_path: Path) -> None
     (package / "a.py").write_text("def f():\n    from pkg.sub.b import g\n")
     (package / "sub" / "b.py").write_text("from ..a import f\n\ndef g(): ...\n")
     (package / "c.py").write_text("import pkg.a\n")
+    (package / "d.py").write_text("import importlib\n\nimportlib.import_module('pkg.c')\n")
     graph = import_graph(tmp_path, ("pkg",))
+    assert graph["pkg.c"] == {"pkg.a"} and graph["pkg.d"] == {"pkg.c"}
     assert graph["pkg.sub"] == {"pkg.sub.b"}
     assert graph["pkg.sub.b"] == {"pkg.a"}
     assert cycles(graph) == [["pkg.a", "pkg.sub.b"]]
