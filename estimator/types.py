@@ -28,6 +28,8 @@ from typing import overload
 import numpy as np
 import numpy.typing as npt
 
+from estimator.spec import EstimatorSpec
+
 __all__ = [
     "ESTIMATE_DTYPE",
     "ESTIMATE_FIELDS",
@@ -259,35 +261,30 @@ def empty_estimates(n: int = 0) -> np.ndarray:
     return np.repeat(_EMPTY_ROW, n)  # one copy, not one fill per field (the estimator's hot path)
 
 
-_ROW_VOID = np.dtype((np.void, ESTIMATE_DTYPE.itemsize))
-
-
 def concat_estimates(parts: Sequence[np.ndarray]) -> np.ndarray:
-    """Concatenate estimate row arrays into one ESTIMATE_DTYPE array.
+    """Concatenate row arrays of one structured dtype into one array.
 
     ``np.concatenate`` of structured arrays promotes their dtypes in Python code (~50 µs per
     array: ~5 µs per row for a batch of small packets); viewed as fixed-size void rows they
-    concatenate as one copy. Parts of another structured dtype are converted field by field.
-    One part is returned as it is.
+    concatenate as one copy. One part is returned as it is; parts of different dtypes raise
+    ``TypeError`` (rows of two estimators never mix).
     """
     if len(parts) == 1:
         return parts[0]
-    if all(p.dtype == ESTIMATE_DTYPE for p in parts):
-        return np.concatenate([p.view(_ROW_VOID) for p in parts]).view(ESTIMATE_DTYPE)
-    out = np.empty(sum(p.shape[0] for p in parts), dtype=ESTIMATE_DTYPE)
-    i = 0
-    for p in parts:
-        out[i : i + p.shape[0]] = p
-        i += p.shape[0]
-    return out
+    dtype = parts[0].dtype
+    if any(p.dtype != dtype for p in parts):
+        raise TypeError(f"rows of different dtypes cannot be joined: {[p.dtype for p in parts]}")
+    void = np.dtype((np.void, dtype.itemsize))
+    return np.concatenate([p.view(void) for p in parts]).view(dtype)
 
 
 class EstimateBatch(Sequence[tuple[str, np.ndarray]]):
-    """Estimate rows of several vehicles in one array, grouped by vehicle.
+    """One estimator's rows of several vehicles in one array, grouped by vehicle.
 
     A sequence of ``(vehicle_id, rows)`` like the list an estimator call returns, whose items
     are views of one joined array: consumers that work on all rows at once read :attr:`rows`
-    instead of joining the parts again, each of them.
+    instead of joining the parts again, each of them. :attr:`spec` says what the rows are
+    (every sink reads them through it, never by one estimator's field names).
 
     Parameters
     ----------
@@ -295,32 +292,46 @@ class EstimateBatch(Sequence[tuple[str, np.ndarray]]):
         The vehicles, in the order of their rows.
     counts : list of int, length k
         Rows of each vehicle (> 0).
-    rows : ndarray, shape (sum(counts),), ESTIMATE_DTYPE
+    rows : ndarray, shape (sum(counts),), ``spec.dtype``
         ``counts[0]`` rows of ``ids[0]``, then ``counts[1]`` of ``ids[1]`` …
+    spec : EstimatorSpec
+        The estimator that produced them.
     """
 
-    __slots__ = ("_bounds", "counts", "ids", "rows")
+    __slots__ = ("_bounds", "counts", "ids", "rows", "spec")
 
-    def __init__(self, ids: list[str], counts: list[int], rows: np.ndarray) -> None:
+    def __init__(
+        self, ids: list[str], counts: list[int], rows: np.ndarray, spec: EstimatorSpec
+    ) -> None:
         if len(ids) != len(counts) or sum(counts) != rows.shape[0]:
             raise ValueError("ids, counts and rows disagree")
+        if rows.dtype is not spec.dtype and rows.dtype != spec.dtype:
+            raise TypeError(f"rows of {spec.name!r} must have its dtype, got {rows.dtype}")
         self.ids = ids
         self.counts = counts
         self.rows = rows
+        self.spec = spec
         self._bounds = [0, *itertools.accumulate(counts)]
 
+    @property
+    def estimator(self) -> str:
+        """Name of the estimator whose rows these are."""
+        return self.spec.name
+
     @classmethod
-    def of(cls, batch: Sequence[tuple[str, np.ndarray]]) -> EstimateBatch:
-        """``batch`` itself when it is one, else its non-empty parts joined (one copy)."""
-        if isinstance(batch, EstimateBatch):
+    def of(cls, batch: Sequence[tuple[str, np.ndarray]], spec: EstimatorSpec) -> EstimateBatch:
+        """``batch`` itself when it is one of ``spec``, else its non-empty parts joined (one
+        copy); ``TypeError`` for rows of another dtype."""
+        if isinstance(batch, EstimateBatch) and batch.spec is spec:
             return batch
-        parts = [(vid, rows) for vid, rows in batch if rows.shape[0] > 0]
+        parts = [(vid, spec.check_rows(rows)) for vid, rows in batch if rows.shape[0] > 0]
         if not parts:
-            return cls([], [], empty_estimates(0))
+            return cls([], [], spec.empty_rows(0), spec)
         return cls(
             [vid for vid, _ in parts],
             [rows.shape[0] for _, rows in parts],
             concat_estimates([rows for _, rows in parts]),
+            spec,
         )
 
     def grouped(self, keys: npt.NDArray[np.int64]) -> tuple[np.ndarray, npt.NDArray[np.int64]]:

@@ -23,7 +23,11 @@ import zenoh
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
 from estimator.geo import EnuFrame
 from server.analytics.alerts import AlertEngine, AlertKind
-from server.estimation.registry import EstimatorRegistry, UnknownEstimatorError
+from server.estimation.registry import (
+    EstimatorRegistry,
+    UnknownEstimatorError,
+    estimator_names_for,
+)
 from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
@@ -81,7 +85,7 @@ class Runtime:
         s = self.settings
         self._store = open_store(s.storage)
         self.writer = StoreWriter(self.latency.wrap_store(self._store), s.storage).start()
-        self.live_hub = LiveHub()
+        self.live_hub = LiveHub(primary_of=self._primary_estimator)
         self.alert_engine = AlertEngine(
             slip_config_for=lambda vid: self._config_of(vid).slip, publish=self._publish_alert
         )
@@ -167,6 +171,10 @@ class Runtime:
     # ------------------------------------------------------------------ vehicles
     def _config_of(self, vehicle_id: str) -> VehicleConfig:
         return self._configs.get(vehicle_id) or VehicleConfig()
+
+    def _primary_estimator(self, vehicle_id: str) -> str | None:
+        """The vehicle's primary estimator (first of its config's), None if it runs none."""
+        return next(iter(estimator_names_for(self._config_of(vehicle_id))), None)
 
     def _on_new_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Pipeline thread: a vehicle registered itself (auto or Zenoh config); store it."""

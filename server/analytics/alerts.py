@@ -1,20 +1,22 @@
-"""Fleet alerts: sustained wheel slip, degraded GNSS, vehicles gone quiet.
+"""Fleet alerts from any estimator's rows: sustained slip, degraded rows, vehicles gone quiet.
 
-:class:`AlertEngine` is a pipeline sink (``on_estimates(batch)`` on the pipeline thread). It keeps,
-per vehicle and alert kind, whether the condition holds and since when (sensor time), opens an
-alert once it has held for the kind's hold time and closes it on the first row where it no longer
-holds:
+:class:`AlertEngine` is a pipeline sink (``on_estimates(batch)`` on the pipeline thread, once per
+estimator per tick). Its rules name a channel of the batch's
+:class:`estimator.spec.EstimatorSpec`, never a column. It keeps, per vehicle and condition,
+whether the condition holds and since when (sensor time), opens an alert once it has held for
+the condition's hold time and closes it on the first row where it no longer holds:
 
-=================  =============================================  ============================
-kind               condition on one estimate row                  hold
-=================  =============================================  ============================
-``slip_left``      ``|slip_left_pct| > alert_threshold_pct``      ``alert_hold_s``
-``slip_right``     same for the right wheel                       same
-``gnss_degraded``  ``flags & EstimateFlag.DEGRADED`` (GNSS lost)  ``gnss_hold_s``
-``stale``          no row for ``stale_after_s`` of wall time      found by ``check_stale``
-``storage_down``   the server's database is unreachable/full      set by the runtime
-``zenoh_down``     the server has no Zenoh router                 set by the runtime
-=================  =============================================  ============================
+==============================  ===========================================  =================
+kind                            condition on one row of estimator ``e``      hold
+==============================  ===========================================  =================
+``slip:<e>:<channel key>``      ``|slip| > alert_threshold_pct`` of one of    ``alert_hold_s``
+                                ``e``'s slip channels
+``flag:<e>:<FLAG>``             one of ``e``'s ``degraded_flags`` is set      ``flag_hold_s``
+``stale``                       no row of any estimator for                  ``check_stale``
+                                ``stale_after_s`` of wall time
+``storage_down``                the server's database is unreachable/full    set by the runtime
+``zenoh_down``                  the server has no Zenoh router               set by the runtime
+==============================  ===========================================  =================
 
 The last two are about the server itself: their ``vehicle_id`` is ``""`` (:data:`SYSTEM`) and their
 stamps are wall-clock times (:meth:`AlertEngine.set_system_condition`).
@@ -24,6 +26,8 @@ stamps are wall-clock times (:meth:`AlertEngine.set_system_condition`).
 A NaN slip (standstill, invalid) does not hold. ``start_ns`` is the sensor stamp where the
 condition began (for ``stale``: the vehicle's last stamp), ``end_ns`` where it stopped (for
 ``stale``: the first new stamp). ``peak`` is the largest ``|slip|`` (percent) seen in a slip alert.
+An alert names its ``estimator`` and ``channel`` (slip channel key or flag name; None for the
+others).
 
 Every open and close is passed to ``publish(vehicle_id, event)`` when given: ``event`` is
 ``Alert.to_dict()`` plus ``"event": "open" | "close"``; the runtime puts it, JSON-encoded, on the
@@ -39,17 +43,18 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from enum import IntEnum, StrEnum
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
 
 from estimator.config import SlipConfig
-from estimator.types import EstimateBatch, EstimateFlag
+from estimator.spec import EstimatorSpec
+from estimator.types import EstimateBatch
 
-__all__ = ["SYSTEM", "Alert", "AlertEngine", "AlertKind", "PublishHook"]
+__all__ = ["SYSTEM", "Alert", "AlertEngine", "AlertKind", "PublishHook", "flag_kind", "slip_kind"]
 
 _log = logging.getLogger(__name__)
 
@@ -57,34 +62,25 @@ PublishHook = Callable[[str, dict[str, Any]], None]
 
 
 class AlertKind(StrEnum):
-    """What an alert is about."""
+    """Alert kinds that name no estimator channel (those: :func:`slip_kind`, :func:`flag_kind`)."""
 
-    SLIP_LEFT = "slip_left"
-    SLIP_RIGHT = "slip_right"
-    GNSS_DEGRADED = "gnss_degraded"
     STALE = "stale"
     STORAGE_DOWN = "storage_down"
     ZENOH_DOWN = "zenoh_down"
 
 
+def slip_kind(estimator: str, channel: str) -> str:
+    """Kind of a slip alert on ``estimator``'s slip channel ``channel``: ``slip:<e>:<key>``."""
+    return f"slip:{estimator}:{channel}"
+
+
+def flag_kind(estimator: str, flag: str) -> str:
+    """Kind of an alert on ``estimator``'s degraded flag ``flag``: ``flag:<e>:<FLAG>``."""
+    return f"flag:{estimator}:{flag}"
+
+
 #: ``vehicle_id`` of alerts about the server itself rather than a vehicle.
 SYSTEM = ""
-
-
-class _K(IntEnum):
-    """Column of a row condition in the per-vehicle state arrays."""
-
-    SLIP_LEFT = 0
-    SLIP_RIGHT = 1
-    GNSS = 2
-
-
-_KIND_OF = {
-    _K.SLIP_LEFT: AlertKind.SLIP_LEFT,
-    _K.SLIP_RIGHT: AlertKind.SLIP_RIGHT,
-    _K.GNSS: AlertKind.GNSS_DEGRADED,
-}
-_NK = len(_K)
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,12 +89,14 @@ class Alert:
 
     id: int
     vehicle_id: str
-    kind: AlertKind
+    kind: str
     start_ns: int
     end_ns: int | None
     opened_wall_ns: int
     threshold: float | None = None
     peak: float | None = None
+    estimator: str | None = None
+    channel: str | None = None
 
     @property
     def is_open(self) -> bool:
@@ -108,7 +106,9 @@ class Alert:
         return {
             "id": self.id,
             "vehicle_id": self.vehicle_id,
-            "kind": self.kind.value,
+            "kind": str(self.kind),
+            "estimator": self.estimator,
+            "channel": self.channel,
             "start_ns": self.start_ns,
             "end_ns": self.end_ns,
             "open": self.is_open,
@@ -118,8 +118,78 @@ class Alert:
         }
 
 
+@dataclass(frozen=True, slots=True)
+class _Rule:
+    """One condition on a row of a spec: a slip channel's ``|field| > threshold`` (``field``
+    set) or a flag set (``mask``)."""
+
+    kind: str
+    channel: str
+    field: str | None = None
+    mask: int = 0
+
+
+def _rules(spec: EstimatorSpec) -> tuple[_Rule, ...]:
+    slips = [_Rule(slip_kind(spec.name, c.key), c.key, field=c.field) for c in spec.slips]
+    flags = [_Rule(flag_kind(spec.name, f), f, mask=spec.flag_mask(f)) for f in spec.degraded_flags]
+    return (*slips, *flags)
+
+
+class _SpecState:
+    """Per-vehicle state of one estimator's rules: arrays of shape (slots, rules)."""
+
+    def __init__(self, spec: EstimatorSpec) -> None:
+        self.spec = spec
+        self.rules = _rules(spec)
+        k = len(self.rules)
+        self.is_slip = np.array([r.field is not None for r in self.rules], dtype=bool)
+        self.active = np.zeros((0, k), dtype=bool)  # condition held on the newest row
+        self.since = np.zeros((0, k), dtype=np.int64)
+        self.run_peak = np.zeros((0, k))  # largest |slip| of the current run, percent
+        self.open = np.full((0, k), -1, dtype=np.int64)  # id of the open alert or -1
+
+    def ensure(self, n: int) -> None:
+        """Room for ``n`` vehicle slots."""
+        have = self.active.shape[0]
+        if n <= have:
+            return
+        n = max(n, 2 * have, 64)
+
+        def grow(a: np.ndarray, fill: float | int | bool) -> np.ndarray:
+            extra = np.full((n - a.shape[0], *a.shape[1:]), fill, dtype=a.dtype)
+            return np.concatenate([a, extra])
+
+        self.active = grow(self.active, False)
+        self.since = grow(self.since, 0)
+        self.run_peak = grow(self.run_peak, 0.0)
+        self.open = grow(self.open, -1)
+
+    def reset(self, s: int) -> None:
+        if s < self.active.shape[0]:
+            self.active[s] = False
+            self.since[s] = 0
+            self.run_peak[s] = 0.0
+            self.open[s] = -1
+
+    def conditions(self, rows: np.ndarray, thr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(cond, mag)``, shape (n, rules) each: whether each rule holds on each row, and
+        ``|slip|`` of slip rules (0 for flag rules). ``thr``: each row's threshold, shape (n,)."""
+        n = rows.shape[0]
+        cond = np.zeros((n, len(self.rules)), dtype=bool)
+        mag = np.zeros((n, len(self.rules)))
+        flags = rows["flags"].astype(np.int64) if self.spec.has_field("flags") else None
+        for k, rule in enumerate(self.rules):
+            if rule.field is not None:
+                mag[:, k] = np.abs(rows[rule.field])
+                with np.errstate(invalid="ignore"):
+                    cond[:, k] = mag[:, k] > thr
+            elif flags is not None:
+                cond[:, k] = (flags & rule.mask) != 0
+        return cond, mag
+
+
 class AlertEngine:
-    """Open and close alerts from estimate rows (a thread-safe pipeline sink).
+    """Open and close alerts from any estimator's rows (a thread-safe pipeline sink).
 
     Parameters
     ----------
@@ -127,8 +197,8 @@ class AlertEngine:
         ``vehicle_id -> SlipConfig``, asked once when a vehicle is first seen (the runtime passes a
         lookup in the vehicle registry). Default: ``SlipConfig()`` for every vehicle. Change a
         vehicle's later with :meth:`set_slip_config`.
-    gnss_hold_s : float
-        GNSS must be degraded this long (sensor time) before an alert opens.
+    flag_hold_s : float
+        A degraded flag must hold this long (sensor time) before an alert opens.
     stale_after_s : float
         Wall time without a row after which :meth:`check_stale` opens a ``stale`` alert.
     publish : callable, optional
@@ -143,16 +213,16 @@ class AlertEngine:
         self,
         *,
         slip_config_for: Callable[[str], SlipConfig] | None = None,
-        gnss_hold_s: float = 2.0,
+        flag_hold_s: float = 2.0,
         stale_after_s: float = 10.0,
         publish: PublishHook | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
         max_closed: int = 10_000,
     ) -> None:
-        if gnss_hold_s < 0 or stale_after_s <= 0 or max_closed < 1:
-            raise ValueError("need gnss_hold_s >= 0, stale_after_s > 0, max_closed >= 1")
+        if flag_hold_s < 0 or stale_after_s <= 0 or max_closed < 1:
+            raise ValueError("need flag_hold_s >= 0, stale_after_s > 0, max_closed >= 1")
         self._config_for = slip_config_for or (lambda _vid: SlipConfig())
-        self.gnss_hold_s = float(gnss_hold_s)
+        self.flag_hold_ns = round(flag_hold_s * 1e9)
         self.stale_after_s = float(stale_after_s)
         self.publish = publish
         self._clock_ns = clock_ns
@@ -162,17 +232,15 @@ class AlertEngine:
         self._free: list[int] = []  # slots of forgotten vehicles, reused first
         n = 64
         self._thr = np.zeros(n)  # slip threshold, percent
-        self._hold_ns = np.zeros((n, _NK), dtype=np.int64)
-        self._active = np.zeros((n, _NK), dtype=bool)  # condition held on the newest row
-        self._since = np.zeros((n, _NK), dtype=np.int64)
-        self._run_peak = np.zeros((n, _NK))  # largest |slip| of the current run, percent
-        self._open = np.full((n, _NK), -1, dtype=np.int64)  # id of the open alert or -1
+        self._slip_hold_ns = np.zeros(n, dtype=np.int64)
         self._last_stamp = np.zeros(n, dtype=np.int64)
         self._last_arrival = np.zeros(n, dtype=np.int64)
+        self._specs: dict[str, _SpecState] = {}
         self._stale_open: dict[str, int] = {}
         self._system_open: dict[AlertKind, int] = {}
         self._open_alerts: dict[int, Alert] = {}
-        self._open_pos: dict[int, tuple[int, int]] = {}  # open alert id -> (slot, kind column)
+        # open alert id -> (estimator, slot, rule column)
+        self._open_pos: dict[int, tuple[str, int, int]] = {}
         self._closed: deque[Alert] = deque(maxlen=max_closed)
         self._next_id = 1
         self.publish_errors = 0
@@ -188,8 +256,7 @@ class AlertEngine:
 
     def _apply_config(self, s: int, config: SlipConfig) -> None:
         self._thr[s] = config.alert_threshold_pct
-        hold = round(config.alert_hold_s * 1e9)
-        self._hold_ns[s] = (hold, hold, round(self.gnss_hold_s * 1e9))
+        self._slip_hold_ns[s] = round(config.alert_hold_s * 1e9)
 
     def _slot_of(self, vehicle_id: str) -> int:
         s = self._slot.get(vehicle_id)
@@ -198,81 +265,47 @@ class AlertEngine:
         if self._free:
             s = self._free.pop()
             self._ids[s] = vehicle_id
-            self._slot[vehicle_id] = s
-            self._apply_config(s, self._config_for(vehicle_id))
-            return s
-        s = len(self._ids)
-        if s >= self._thr.shape[0]:
-            n = 2 * s
-
-            def grow(a: np.ndarray, fill: float | int | bool) -> np.ndarray:
-                extra = np.full((n - a.shape[0], *a.shape[1:]), fill, dtype=a.dtype)
-                return np.concatenate([a, extra])
-
-            self._thr = grow(self._thr, 0.0)
-            self._hold_ns = grow(self._hold_ns, 0)
-            self._active = grow(self._active, False)
-            self._since = grow(self._since, 0)
-            self._run_peak = grow(self._run_peak, 0.0)
-            self._open = grow(self._open, -1)
-            self._last_stamp = grow(self._last_stamp, 0)
-            self._last_arrival = grow(self._last_arrival, 0)
-        self._ids.append(vehicle_id)
+        else:
+            s = len(self._ids)
+            if s >= self._thr.shape[0]:  # double every per-vehicle array
+                self._thr = np.r_[self._thr, np.zeros(s)]
+                self._slip_hold_ns = np.r_[self._slip_hold_ns, np.zeros(s, np.int64)]
+                self._last_stamp = np.r_[self._last_stamp, np.zeros(s, np.int64)]
+                self._last_arrival = np.r_[self._last_arrival, np.zeros(s, np.int64)]
+            self._ids.append(vehicle_id)
         self._slot[vehicle_id] = s
         self._apply_config(s, self._config_for(vehicle_id))
         return s
 
+    def _state(self, spec: EstimatorSpec) -> _SpecState:
+        state = self._specs.get(spec.name)
+        if state is None or state.spec is not spec:
+            state = self._specs[spec.name] = _SpecState(spec)
+        state.ensure(len(self._ids))
+        return state
+
     # ---------------------------------------------------------------- sink
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        """Update alert state from ``[(vehicle_id, rows of ESTIMATE_DTYPE), ...]``.
+    def on_estimates(self, batch: EstimateBatch) -> None:
+        """Update alert state from one estimator's rows of several vehicles.
 
         Vectorised over the batch; only vehicles where a condition changes (or waits out its hold
         time) are walked row by row.
         """
-        now = self._clock_ns()
-        joined = EstimateBatch.of(batch)
-        if not joined:
+        if not batch:
             return
+        now = self._clock_ns()
         events: list[tuple[str, str, Alert]] = []
         with self._lock:
-            slots = np.array([self._slot_of(v) for v in joined.ids], dtype=np.int64)
-            rows, slot = joined.grouped(slots)
+            slots = np.array([self._slot_of(v) for v in batch.ids], dtype=np.int64)
+            st = self._state(batch.spec)
+            rows, slot = batch.grouped(slots)
             stamp = rows["stamp_ns"].astype(np.int64)
-            cond = np.empty((rows.shape[0], _NK), dtype=bool)
-            thr = self._thr[slot]
-            with np.errstate(invalid="ignore"):
-                cond[:, _K.SLIP_LEFT] = np.abs(rows["slip_left_pct"]) > thr
-                cond[:, _K.SLIP_RIGHT] = np.abs(rows["slip_right_pct"]) > thr
-            cond[:, _K.GNSS] = (rows["flags"].astype(np.int64) & int(EstimateFlag.DEGRADED)) != 0
             first = np.r_[True, slot[1:] != slot[:-1]]
-            prev = np.empty_like(cond)
-            prev[1:] = cond[:-1]
-            prev[first] = self._active[slot[first]]
-            changed: np.ndarray = (cond != prev).any(axis=1)
             last = np.r_[slot[1:] != slot[:-1], True]
+            if st.rules:
+                events.extend(self._apply_rules(st, rows, slot, stamp, first, last, now))
             s_last, t_last = slot[last], stamp[last]
-            # vehicles whose hold time runs out in this batch
-            due = np.asarray(
-                np.any(
-                    self._active[s_last]
-                    & (self._open[s_last] < 0)
-                    & (t_last[:, None] - self._since[s_last] >= self._hold_ns[s_last]),
-                    axis=1,
-                )
-            )
-            busy = np.unique(np.r_[slot[changed], s_last[due]])
-            quiet = ~np.isin(slot, busy) if busy.size else np.ones(slot.shape[0], dtype=bool)
-            if quiet.any():  # steady vehicles: only the peaks of running slip episodes move
-                self._track_peaks(slot[quiet], cond[quiet], rows[quiet])
-            if busy.size:  # each vehicle's rows are one run: walk the busy runs
-                lo = np.flatnonzero(first)
-                hi = np.r_[lo[1:], slot.shape[0]]
-                walk = np.isin(slot[lo], busy)
-                for s_, a_, b_ in zip(
-                    slot[lo[walk]].tolist(), lo[walk].tolist(), hi[walk].tolist(), strict=True
-                ):
-                    events.extend(self._walk(s_, stamp[a_:b_], cond[a_:b_], rows[a_:b_], now))
-            self._last_stamp[s_last] = t_last
+            self._last_stamp[s_last] = np.maximum(self._last_stamp[s_last], t_last)
             self._last_arrival[s_last] = now
             if self._stale_open:
                 for s_ in s_last.tolist():
@@ -282,59 +315,104 @@ class AlertEngine:
                         events.append(("close", vid, self._close(aid, int(self._last_stamp[s_]))))
         self._emit(events)
 
-    def _track_peaks(self, slot: np.ndarray, cond: np.ndarray, rows: np.ndarray) -> None:
-        """Raise the running |slip| peak of each active slip episode (vectorised)."""
-        for k, field in ((_K.SLIP_LEFT, "slip_left_pct"), (_K.SLIP_RIGHT, "slip_right_pct")):
-            m = cond[:, k]
-            if m.any():
-                np.maximum.at(self._run_peak[:, k], slot[m], np.abs(rows[field][m]))
+    def _apply_rules(
+        self,
+        st: _SpecState,
+        rows: np.ndarray,
+        slot: np.ndarray,
+        stamp: np.ndarray,
+        first: np.ndarray,
+        last: np.ndarray,
+        now: int,
+    ) -> list[tuple[str, str, Alert]]:
+        """Run one estimator's rules over its rows (each vehicle's rows one run, ``first`` /
+        ``last`` marking the runs' ends)."""
+        cond, mag = st.conditions(rows, self._thr[slot])
+        prev = np.empty_like(cond)
+        prev[1:] = cond[:-1]
+        prev[first] = st.active[slot[first]]
+        changed: np.ndarray = (cond != prev).any(axis=1)
+        s_last, t_last = slot[last], stamp[last]
+        hold = self._hold_ns(st, s_last)
+        # vehicles whose hold time runs out in this batch
+        due = np.asarray(
+            np.any(
+                st.active[s_last]
+                & (st.open[s_last] < 0)
+                & (t_last[:, None] - st.since[s_last] >= hold),
+                axis=1,
+            )
+        )
+        busy = np.unique(np.r_[slot[changed], s_last[due]])
+        quiet = ~np.isin(slot, busy) if busy.size else np.ones(slot.shape[0], dtype=bool)
+        if quiet.any():  # steady vehicles: only the peaks of running slip episodes move
+            m = cond[quiet] & st.is_slip
+            rr, kk = np.nonzero(m)
+            np.maximum.at(st.run_peak, (slot[quiet][rr], kk), mag[quiet][rr, kk])
+        events: list[tuple[str, str, Alert]] = []
+        if busy.size:  # each vehicle's rows are one run: walk the busy runs
+            lo = np.flatnonzero(first)
+            hi = np.r_[lo[1:], slot.shape[0]]
+            walk = np.isin(slot[lo], busy)
+            for s_, a_, b_ in zip(
+                slot[lo[walk]].tolist(), lo[walk].tolist(), hi[walk].tolist(), strict=True
+            ):
+                events.extend(self._walk(st, s_, stamp[a_:b_], cond[a_:b_], mag[a_:b_], now))
+        return events
+
+    def _hold_ns(self, st: _SpecState, slots: np.ndarray) -> np.ndarray:
+        """Hold time of each rule for each slot, shape (len(slots), rules)."""
+        return np.where(st.is_slip, self._slip_hold_ns[slots][:, None], self.flag_hold_ns)
 
     def _walk(
-        self, s: int, stamp: np.ndarray, cond: np.ndarray, rows: np.ndarray, now: int
+        self,
+        st: _SpecState,
+        s: int,
+        stamp: np.ndarray,
+        cond: np.ndarray,
+        mag: np.ndarray,
+        now: int,
     ) -> list[tuple[str, str, Alert]]:
         """Row-by-row state machine for one vehicle (only where something changes)."""
         events: list[tuple[str, str, Alert]] = []
         vid = self._ids[s]
-        mags = {
-            _K.SLIP_LEFT: np.abs(rows["slip_left_pct"]).tolist(),
-            _K.SLIP_RIGHT: np.abs(rows["slip_right_pct"]).tolist(),
-        }
         stamps = stamp.tolist()
-        for k in _K:
-            col = cond[:, k].tolist()
-            hold = int(self._hold_ns[s, k])
-            for i, c in enumerate(col):
+        holds = self._hold_ns(st, np.array([s]))[0].tolist()
+        for k, rule in enumerate(st.rules):
+            slip = rule.field is not None
+            mags = mag[:, k].tolist()
+            for i, c in enumerate(cond[:, k].tolist()):
                 t = stamps[i]
                 if c:
-                    if not self._active[s, k]:
-                        self._active[s, k] = True
-                        self._since[s, k] = t
-                        self._run_peak[s, k] = 0.0
-                    if k in mags:
-                        self._run_peak[s, k] = max(self._run_peak[s, k], mags[k][i])
-                    aid = int(self._open[s, k])
-                    if aid < 0 and t - int(self._since[s, k]) >= hold:
+                    if not st.active[s, k]:
+                        st.active[s, k] = True
+                        st.since[s, k] = t
+                        st.run_peak[s, k] = 0.0
+                    if slip:
+                        st.run_peak[s, k] = max(st.run_peak[s, k], mags[i])
+                    if st.open[s, k] < 0 and t - int(st.since[s, k]) >= holds[k]:
                         alert = Alert(
                             id=self._next_id,
                             vehicle_id=vid,
-                            kind=_KIND_OF[k],
-                            start_ns=int(self._since[s, k]),
+                            kind=rule.kind,
+                            start_ns=int(st.since[s, k]),
                             end_ns=None,
                             opened_wall_ns=now,
-                            threshold=float(self._thr[s]) if k != _K.GNSS else None,
-                            peak=round(float(self._run_peak[s, k]), 3) if k in mags else None,
+                            threshold=float(self._thr[s]) if slip else None,
+                            peak=round(float(st.run_peak[s, k]), 3) if slip else None,
+                            estimator=st.spec.name,
+                            channel=rule.channel,
                         )
                         self._next_id += 1
                         self._open_alerts[alert.id] = alert
-                        self._open_pos[alert.id] = (s, int(k))
-                        self._open[s, k] = alert.id
-                        aid = alert.id
+                        self._open_pos[alert.id] = (st.spec.name, s, k)
+                        st.open[s, k] = alert.id
                         events.append(("open", vid, alert))
-                elif self._active[s, k]:
-                    self._active[s, k] = False
-                    aid = int(self._open[s, k])
+                elif st.active[s, k]:
+                    st.active[s, k] = False
+                    aid = int(st.open[s, k])
                     if aid >= 0:
-                        self._open[s, k] = -1
+                        st.open[s, k] = -1
                         events.append(("close", vid, self._close(aid, t)))
         # an alert opened in this batch carries its peak so far in the open event
         return [(e, v, self._with_peak(a)) for e, v, a in events]
@@ -342,9 +420,10 @@ class AlertEngine:
     def _with_peak(self, alert: Alert) -> Alert:
         """An open slip alert with its running peak filled in."""
         pos = self._open_pos.get(alert.id)
-        if pos is None or alert.kind not in (AlertKind.SLIP_LEFT, AlertKind.SLIP_RIGHT):
+        if pos is None or alert.peak is None:
             return alert
-        return replace(alert, peak=round(float(self._run_peak[pos]), 3))
+        name, s, k = pos
+        return replace(alert, peak=round(float(self._specs[name].run_peak[s, k]), 3))
 
     def _close(self, aid: int, end_ns: int) -> Alert:
         alert = self._with_peak(self._open_alerts.pop(aid))
@@ -362,18 +441,15 @@ class AlertEngine:
             if s is None:
                 return False
             end = int(self._last_stamp[s])
-            for k in _K:
-                aid = int(self._open[s, k])
-                if aid >= 0:
-                    events.append(("close", vehicle_id, self._close(aid, end)))
+            for st in self._specs.values():
+                if s < st.open.shape[0]:
+                    for aid in st.open[s][st.open[s] >= 0].tolist():
+                        events.append(("close", vehicle_id, self._close(aid, end)))
+                st.reset(s)
             if vehicle_id in self._stale_open:
                 events.append(
                     ("close", vehicle_id, self._close(self._stale_open.pop(vehicle_id), end))
                 )
-            self._open[s] = -1
-            self._active[s] = False
-            self._since[s] = 0
-            self._run_peak[s] = 0.0
             self._last_stamp[s] = 0
             self._last_arrival[s] = 0
             self._ids[s] = ""

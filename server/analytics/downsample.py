@@ -1,4 +1,6 @@
-"""Decimation of estimate series (pure numpy): min/max envelopes and whole-row thinning.
+"""Decimation of estimate series of any estimator (pure numpy): min/max envelopes and whole-row
+thinning. Rows are any structured array with an int ``stamp_ns``; a ``flags`` field (the bit
+field of :class:`estimator.spec.EstimatorSpec`) is OR-ed, not enveloped.
 
 Two methods, both over time buckets of equal width ``w`` anchored at ``start_ns`` (bucket ``k``
 holds the rows with ``start_ns + k·w <= stamp_ns < start_ns + (k+1)·w``); empty buckets give no
@@ -13,12 +15,12 @@ Every non-empty bucket becomes at most two output rows:
   survive and a line drawn through the points has the right shape;
 * NaN is ignored (a bucket whose values are all NaN gives NaN);
 * ``stamp_ns`` of the two rows is the first and the last stamp of the bucket;
-* ``flags`` of both rows is the bitwise OR of the bucket's flags (any ``DEGRADED`` row shows);
+* ``flags`` of both rows is the bitwise OR of the bucket's flags (any degraded row shows);
 * a bucket holding one row gives that row unchanged.
 
 So ``B`` buckets give at most ``2·B`` rows and every column's envelope (min and max per bucket)
-is exact, but one output row mixes values of different input rows: ``east_m`` of one row and
-``north_m`` of another are no position the vehicle ever had. Read rows as a whole only at full
+is exact, but one output row mixes values of different input rows: the east of one row and the
+north of another are no position the vehicle ever had. Read rows as a whole only at full
 rate or from :func:`thin_first`.
 
 First whole row per bucket (:func:`thin_first`), for positions
@@ -82,7 +84,7 @@ def thin_first(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndarray:
     Parameters
     ----------
     rows : ndarray, shape (n,), structured with an int ``stamp_ns`` field
-        Sorted by ``stamp_ns``; any subset of ``ESTIMATE_DTYPE`` fields.
+        Sorted by ``stamp_ns``; any subset of a spec's fields.
     start_ns : int
         Anchor of the first bucket (<= every stamp).
     width_ns : int
@@ -106,7 +108,7 @@ def downsample_minmax(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndar
     Parameters
     ----------
     rows : ndarray, shape (n,), structured with an int ``stamp_ns`` field
-        Sorted by ``stamp_ns``; any subset of ``ESTIMATE_DTYPE`` fields.
+        Sorted by ``stamp_ns``; any subset of a spec's fields.
     start_ns : int
         Anchor of the first bucket (<= every stamp).
     width_ns : int

@@ -1,4 +1,8 @@
-"""Field reports over estimate series (pure numpy, no I/O).
+"""Field reports over one estimator's series (pure numpy, no I/O), read through its spec.
+
+Every number is defined from the estimator's :class:`estimator.spec.EstimatorSpec`, never from
+one estimator's field names: "moving" from its ``motion`` speed channel, slip from its slip
+channels, "degraded" from its ``degraded_flags``.
 
 Definitions (what every number in a report means)
 -------------------------------------------------
@@ -8,27 +12,29 @@ Time weight of a row
     step) instead, and the gap itself counts as no data. The last row counts ``T`` too, clipped to
     the end of the report range. ``covered_s = Σ w_i``.
 Moving
-    A row is moving when ``|vg_mps| >= min_ground_speed_mps`` (the vehicle's ``SlipConfig``).
-    ``moving_s = Σ w_i`` over moving rows.
+    A row is moving when ``|v| >= min_ground_speed_mps`` (the vehicle's ``SlipConfig``), ``v``
+    the spec's motion field (``spec.motion_field``). ``moving_s = Σ w_i`` over moving rows. A
+    spec without a motion channel has no moving time, distance or speed (None).
 Distance
-    ``distance_m = Σ |vg_mps|_i · w_i`` over moving rows (sample-and-hold integration of the
-    ground speed; reversing adds distance too). So ``distance_m / moving_s`` is the time-weighted
-    mean moving speed.
+    ``distance_m = Σ |v|_i · w_i`` over moving rows (sample-and-hold integration of the motion
+    speed; reversing adds distance too). So ``distance_m / moving_s`` is the time-weighted mean
+    moving speed.
 Speed statistics
     ``mean_mps`` is that time-weighted mean; ``median_mps`` and ``p95_mps`` are over the moving
-    rows' ``|vg_mps|`` samples; ``max_mps`` is the largest ``|vg_mps|`` of any row.
-Slip statistics, per wheel
-    Over rows whose ``SLIP_LEFT_VALID`` / ``SLIP_RIGHT_VALID`` flag is set and whose slip is
-    finite. ``mean_pct``, ``median_pct``, ``p95_pct``, ``min_pct``, ``max_pct`` are of the
-    **signed** slip in percent (traction slip positive, skid negative), per sample.
+    rows' ``|v|`` samples; ``max_mps`` is the largest ``|v|`` of any row.
+Slip statistics, per slip channel
+    Over rows where the channel's ``valid_flag`` is set (a channel without one: every row) and
+    whose slip is finite. ``mean_pct``, ``median_pct``, ``p95_pct``, ``min_pct``, ``max_pct`` are
+    of the **signed** slip in percent (traction slip positive, skid negative), per sample.
     Percentiles interpolate linearly between samples.
-Slip bands, per wheel
-    Time share of **absolute** slip ``|s|`` in the bands cut by ``band_edges_pct``
-    ``(e0, e1, …)``: ``[0, e0)``, ``[e0, e1)``, …, ``[e_last, ∞)`` — a value equal to an edge
-    belongs to the upper band. Absolute, because a 20 % skid wears and compacts like a 20 % spin.
-    ``seconds = Σ w_i`` of valid rows in the band; ``share = seconds / Σ w_i`` of valid rows.
-GNSS-degraded time
-    ``degraded_s = Σ w_i`` over rows flagged ``EstimateFlag.DEGRADED``.
+Slip bands, per slip channel
+    Time share of **absolute** slip ``|s|`` in the bands cut by the edges ``(e0, e1, …)`` (the
+    vehicle's ``band_edges_pct``, else the channel's): ``[0, e0)``, ``[e0, e1)``, …,
+    ``[e_last, ∞)`` — a value equal to an edge belongs to the upper band. Absolute, because a
+    20 % skid wears and compacts like a 20 % spin. ``seconds = Σ w_i`` of valid rows in the
+    band; ``share = seconds / Σ w_i`` of valid rows.
+Degraded time
+    ``degraded_s = Σ w_i`` over rows with any of the spec's ``degraded_flags`` set.
 Ingest counters
     Totals since the vehicle was registered (the store keeps totals, not a history), split into
     the named counts and the ``rejected_<reason>`` counters; ``lost`` is the ingest's
@@ -44,31 +50,39 @@ from typing import Any
 
 import numpy as np
 
-from estimator.types import EstimateFlag
+from estimator.spec import EstimatorSpec, SlipChannel
 
 __all__ = [
-    "REPORT_FIELDS",
+    "ChannelSlipStats",
     "IngestCounts",
     "SlipBand",
     "SpeedStats",
     "VehicleReport",
-    "WheelSlipStats",
     "band_bounds",
     "band_index",
     "band_label",
+    "channel_edges",
+    "channel_slips",
     "check_band_edges",
+    "degraded_rows",
     "flatten_report",
-    "ground_speed",
     "ingest_counts",
+    "motion_speed",
+    "report_fields",
     "time_weights_ns",
     "vehicle_report",
-    "wheel_slips",
 ]
 
-#: The estimate fields a report reads (ask the store for these only).
-REPORT_FIELDS: tuple[str, ...] = ("stamp_ns", "vg_mps", "slip_left_pct", "slip_right_pct", "flags")
-
 _NS = 1_000_000_000
+
+
+def report_fields(spec: EstimatorSpec) -> list[str]:
+    """The fields of ``spec`` a report reads (ask the store for these only): ``stamp_ns``, the
+    motion field, each slip channel's field and ``flags`` when the spec has one."""
+    wanted = ["stamp_ns", spec.motion_field, *(s.field for s in spec.slips)]
+    if spec.has_field("flags"):
+        wanted.append("flags")
+    return list(dict.fromkeys(f for f in wanted if f is not None))
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,13 +92,20 @@ class SlipBand:
     lower_pct: float
     upper_pct: float | None
     seconds: float
-    share: float | None  # of the wheel's valid-slip time; None when there is none
+    share: float | None  # of the channel's valid-slip time; None when there is none
 
 
 @dataclass(frozen=True, slots=True)
-class WheelSlipStats:
-    """Slip of one wheel over the report range (signed percent; NaN-free samples only)."""
+class ChannelSlipStats:
+    """Slip of one slip channel over the report range (signed percent; NaN-free samples only).
 
+    ``label`` and ``field`` are the channel's (:class:`estimator.spec.SlipChannel`);
+    ``band_edges_pct`` the edges its ``bands`` are cut by.
+    """
+
+    label: str
+    field: str
+    band_edges_pct: tuple[float, ...]
     samples: int
     valid_s: float
     mean_pct: float | None
@@ -97,7 +118,7 @@ class WheelSlipStats:
 
 @dataclass(frozen=True, slots=True)
 class SpeedStats:
-    """Ground speed ``|vg_mps|``: mean/median/p95 while moving, max over all rows."""
+    """Motion speed ``|v|``: mean/median/p95 while moving, max over all rows (None: none)."""
 
     mean_mps: float | None
     median_mps: float | None
@@ -121,7 +142,12 @@ class IngestCounts:
 
 @dataclass(frozen=True, slots=True)
 class VehicleReport:
-    """Everything a field report says about one vehicle over ``[start_ns, end_ns)``."""
+    """Everything a field report says about one vehicle's estimator over ``[start_ns, end_ns)``.
+
+    ``motion`` / ``motion_field``: the speed channel (key and field) that decides "moving", None
+    when the spec has none (then ``moving_s``, ``distance_m`` and the speeds are None).
+    ``slips``: per slip channel key, in the spec's order.
+    """
 
     start_ns: int
     end_ns: int
@@ -129,12 +155,13 @@ class VehicleReport:
     first_stamp_ns: int | None
     last_stamp_ns: int | None
     covered_s: float
-    moving_s: float
-    distance_m: float
+    motion: str | None
+    motion_field: str | None
+    moving_s: float | None
+    distance_m: float | None
     degraded_s: float
     speed: SpeedStats
-    slip_left: WheelSlipStats
-    slip_right: WheelSlipStats
+    slips: dict[str, ChannelSlipStats]
 
 
 _NAMED_COUNTERS = ("received", "accepted", "late", "duplicate", "lost")
@@ -188,32 +215,61 @@ def time_weights_ns(stamps: np.ndarray, end_ns: int, max_gap_ns: int) -> np.ndar
     return w
 
 
-def ground_speed(rows: np.ndarray, min_ground_speed_mps: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(|vg_mps|, moving)`` of every row, float64 and bool, shape (n,) each.
+def motion_speed(
+    rows: np.ndarray, spec: EstimatorSpec, min_ground_speed_mps: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(|v|, moving)`` of every row, float64 and bool, shape (n,) each; None when ``spec``
+    has no motion channel.
 
-    Moving: ``|vg_mps| >= min_ground_speed_mps`` and finite (the module docstring).
+    ``v`` is ``spec.motion_field``; moving: ``|v| >= min_ground_speed_mps`` and finite.
     """
-    speed = np.abs(rows["vg_mps"].astype(np.float64))
+    name = spec.motion_field
+    if name is None:
+        return None
+    speed = np.abs(rows[name].astype(np.float64))
     return speed, np.isfinite(speed) & (speed >= min_ground_speed_mps)
 
 
-_SLIP_WHEELS = (
-    ("slip_left_pct", EstimateFlag.SLIP_LEFT_VALID),
-    ("slip_right_pct", EstimateFlag.SLIP_RIGHT_VALID),
-)
+def _flag_bits(rows: np.ndarray) -> np.ndarray:
+    """The rows' ``flags`` as int64, zeros when the rows have none, shape (n,)."""
+    if "flags" in (rows.dtype.names or ()):
+        return rows["flags"].astype(np.int64)
+    return np.zeros(rows.shape[0], dtype=np.int64)
 
 
-def wheel_slips(rows: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """Per wheel (left, right): ``(slip_pct, valid)``, float64 and bool, shape (n,) each.
+def channel_slips(
+    rows: np.ndarray, spec: EstimatorSpec
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Per slip channel of ``spec`` (its order): ``(slip_pct, valid)``, float64 and bool,
+    shape (n,) each.
 
-    ``valid``: the wheel's ``SLIP_*_VALID`` flag is set and its slip is finite.
+    ``valid``: the channel's ``valid_flag`` is set (no flag: every row) and its slip is finite.
     """
-    flags = rows["flags"].astype(np.int64)
+    flags = _flag_bits(rows)
     out = []
-    for name, flag in _SLIP_WHEELS:
-        slip = rows[name].astype(np.float64)
-        out.append((slip, ((flags & int(flag)) != 0) & np.isfinite(slip)))
+    for channel in spec.slips:
+        slip = rows[channel.field].astype(np.float64)
+        valid = np.isfinite(slip)
+        if channel.valid_flag is not None:
+            valid &= (flags & spec.flag_mask(channel.valid_flag)) != 0
+        out.append((slip, valid))
     return tuple(out)
+
+
+def degraded_rows(rows: np.ndarray, spec: EstimatorSpec) -> np.ndarray:
+    """Whether each row has any of ``spec.degraded_flags`` set, bool, shape (n,)."""
+    mask = 0
+    for name in spec.degraded_flags:
+        mask |= spec.flag_mask(name)
+    return (_flag_bits(rows) & mask) != 0
+
+
+def channel_edges(
+    channel: SlipChannel, band_edges_pct: Sequence[float] | None
+) -> tuple[float, ...]:
+    """The band edges of ``channel``: ``band_edges_pct`` (the vehicle's) when given, else the
+    channel's own."""
+    return check_band_edges(channel.band_edges_pct if band_edges_pct is None else band_edges_pct)
 
 
 def check_band_edges(band_edges_pct: Sequence[float]) -> tuple[float, ...]:
@@ -259,12 +315,13 @@ def _stat(values: np.ndarray, how: str) -> float | None:
     return float(np.max(values))
 
 
-def _wheel_stats(
+def _channel_stats(
+    channel: SlipChannel,
     slip: np.ndarray,
     valid: np.ndarray,
     w_ns: np.ndarray,
-    edges: Sequence[float],
-) -> WheelSlipStats:
+    edges: tuple[float, ...],
+) -> ChannelSlipStats:
     s = slip[valid]
     w = w_ns[valid]
     total_ns = int(w.sum())
@@ -280,7 +337,10 @@ def _wheel_stats(
         )
         for (lo, up), sec_ns in zip(band_bounds(edges), per_band, strict=True)
     )
-    return WheelSlipStats(
+    return ChannelSlipStats(
+        label=channel.label,
+        field=channel.field,
+        band_edges_pct=edges,
         samples=int(s.size),
         valid_s=total_ns / _NS,
         mean_pct=_stat(s, "mean"),
@@ -292,42 +352,59 @@ def _wheel_stats(
     )
 
 
-def vehicle_report(
-    rows: np.ndarray,
-    *,
-    start_ns: int,
-    end_ns: int,
-    band_edges_pct: Sequence[float] = (5.0, 15.0),
-    min_ground_speed_mps: float = 0.2,
-    max_gap_s: float = 1.0,
-) -> VehicleReport:
-    """Compute the report of one vehicle (definitions in the module docstring).
-
-    Parameters
-    ----------
-    rows : ndarray, shape (n,), structured with at least :data:`REPORT_FIELDS`
-        Estimates with ``start_ns <= stamp_ns < end_ns``, sorted by ``stamp_ns``.
-    band_edges_pct : increasing edges of the slip bands, percent of ``|slip|``.
-    min_ground_speed_mps : speed from which the vehicle counts as moving.
-    max_gap_s : a step between rows longer than this is a data gap.
-    """
-    edges = check_band_edges(band_edges_pct)
-    stamps = rows["stamp_ns"].astype(np.int64)
-    w_ns = time_weights_ns(stamps, end_ns, round(max_gap_s * _NS))
-    speed, moving = ground_speed(rows, min_ground_speed_mps)
-    flags = rows["flags"].astype(np.int64)
-    finite_speed = np.isfinite(speed)
+def _motion_stats(
+    speed: np.ndarray, moving: np.ndarray, w_ns: np.ndarray
+) -> tuple[float, float, SpeedStats]:
+    """``(moving_s, distance_m, speed statistics)`` of the module docstring."""
     moving_ns = int(w_ns[moving].sum())
     distance_m = float(np.dot(speed[moving], w_ns[moving].astype(np.float64)) / _NS)
     moving_speed = speed[moving]
-    speed_stats = SpeedStats(
+    stats = SpeedStats(
         mean_mps=distance_m / (moving_ns / _NS) if moving_ns > 0 else None,
         median_mps=_stat(moving_speed, "median"),
         p95_mps=_stat(moving_speed, "p95"),
-        max_mps=_stat(speed[finite_speed], "max"),
+        max_mps=_stat(speed[np.isfinite(speed)], "max"),
     )
-    degraded = (flags & int(EstimateFlag.DEGRADED)) != 0
-    (left, left_valid), (right, right_valid) = wheel_slips(rows)
+    return moving_ns / _NS, distance_m, stats
+
+
+_NO_SPEED = SpeedStats(None, None, None, None)
+
+
+def vehicle_report(
+    rows: np.ndarray,
+    spec: EstimatorSpec,
+    *,
+    start_ns: int,
+    end_ns: int,
+    band_edges_pct: Sequence[float] | None = None,
+    min_ground_speed_mps: float = 0.2,
+    max_gap_s: float = 1.0,
+) -> VehicleReport:
+    """Compute the report of one vehicle's estimator (definitions in the module docstring).
+
+    Parameters
+    ----------
+    rows : ndarray, shape (n,), structured with at least :func:`report_fields` of ``spec``
+        Estimates with ``start_ns <= stamp_ns < end_ns``, sorted by ``stamp_ns``.
+    spec : the estimator whose rows these are.
+    band_edges_pct : increasing edges of the slip bands, percent of ``|slip|``, for every slip
+        channel (the vehicle's); None: each channel's own.
+    min_ground_speed_mps : speed from which the vehicle counts as moving.
+    max_gap_s : a step between rows longer than this is a data gap.
+    """
+    stamps = rows["stamp_ns"].astype(np.int64)
+    w_ns = time_weights_ns(stamps, end_ns, round(max_gap_s * _NS))
+    motion = motion_speed(rows, spec, min_ground_speed_mps)
+    moving_s, distance_m, speed = None, None, _NO_SPEED
+    if motion is not None:
+        moving_s, distance_m, speed = _motion_stats(*motion, w_ns)
+    slips = {
+        channel.key: _channel_stats(
+            channel, slip, valid, w_ns, channel_edges(channel, band_edges_pct)
+        )
+        for channel, (slip, valid) in zip(spec.slips, channel_slips(rows, spec), strict=True)
+    }
     n = int(stamps.shape[0])
     return VehicleReport(
         start_ns=int(start_ns),
@@ -336,23 +413,28 @@ def vehicle_report(
         first_stamp_ns=int(stamps[0]) if n else None,
         last_stamp_ns=int(stamps[-1]) if n else None,
         covered_s=int(w_ns.sum()) / _NS,
-        moving_s=moving_ns / _NS,
+        motion=spec.motion,
+        motion_field=spec.motion_field,
+        moving_s=moving_s,
         distance_m=distance_m,
-        degraded_s=int(w_ns[degraded].sum()) / _NS,
-        speed=speed_stats,
-        slip_left=_wheel_stats(left, left_valid, w_ns, edges),
-        slip_right=_wheel_stats(right, right_valid, w_ns, edges),
+        degraded_s=int(w_ns[degraded_rows(rows, spec)].sum()) / _NS,
+        speed=speed,
+        slips=slips,
     )
 
 
-def flatten_report(vehicle_id: str, report: VehicleReport, counts: IngestCounts) -> dict[str, Any]:
+def flatten_report(
+    vehicle_id: str, estimator: str, report: VehicleReport, counts: IngestCounts
+) -> dict[str, Any]:
     """One flat table row (column name → scalar) of a vehicle's report, for fleet tables.
 
-    Band columns are named by their edges, e.g. ``slip_left_share_5_15``; vehicles with
-    different band edges get different columns (a fleet table takes the union).
+    Slip columns are named by the channel key, e.g. ``slip_left_mean_pct``; band columns by
+    their edges, e.g. ``slip_left_share_5_15``. Vehicles with other channels or band edges get
+    other columns (a fleet table takes the union).
     """
     row: dict[str, Any] = {
         "vehicle_id": vehicle_id,
+        "estimator": estimator,
         "rows": report.rows,
         "first_stamp_ns": report.first_stamp_ns,
         "last_stamp_ns": report.last_stamp_ns,
@@ -365,15 +447,15 @@ def flatten_report(vehicle_id: str, report: VehicleReport, counts: IngestCounts)
         "speed_p95_mps": report.speed.p95_mps,
         "speed_max_mps": report.speed.max_mps,
     }
-    for side, stats in (("left", report.slip_left), ("right", report.slip_right)):
-        row[f"slip_{side}_samples"] = stats.samples
-        row[f"slip_{side}_mean_pct"] = stats.mean_pct
-        row[f"slip_{side}_median_pct"] = stats.median_pct
-        row[f"slip_{side}_p95_pct"] = stats.p95_pct
-        row[f"slip_{side}_min_pct"] = stats.min_pct
-        row[f"slip_{side}_max_pct"] = stats.max_pct
+    for key, stats in report.slips.items():
+        row[f"slip_{key}_samples"] = stats.samples
+        row[f"slip_{key}_mean_pct"] = stats.mean_pct
+        row[f"slip_{key}_median_pct"] = stats.median_pct
+        row[f"slip_{key}_p95_pct"] = stats.p95_pct
+        row[f"slip_{key}_min_pct"] = stats.min_pct
+        row[f"slip_{key}_max_pct"] = stats.max_pct
         for band in stats.bands:
-            row[f"slip_{side}_share_{band_label(band.lower_pct, band.upper_pct)}"] = band.share
+            row[f"slip_{key}_share_{band_label(band.lower_pct, band.upper_pct)}"] = band.share
     row["packets_received"] = counts.received
     row["packets_accepted"] = counts.accepted
     row["packets_rejected"] = counts.rejected

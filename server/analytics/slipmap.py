@@ -1,27 +1,31 @@
-"""Slip map: estimates binned into square cells of a local ENU frame (pure numpy, no I/O).
+"""Slip map: one estimator's rows binned into square cells of a local ENU frame (pure numpy).
 
 The dashboard's history page draws its heat grid from this map (``GET /vehicles/{id}/slipmap``).
 Time weights, "moving", slip validity and slip bands are those of the field reports
 (:mod:`server.analytics.reports`), so a map over a range and the report over the same range agree:
 the ``time_s`` of all cells is the report's ``moving_s`` less the moving time without a position.
+Every field is read through the estimator's spec: its ``position`` channel (east, north, up),
+its ``motion`` speed channel and its slip channels; a spec without a position or a motion channel
+cannot be mapped (:func:`check_mappable`), one without slip channels gives time and distance only.
 
 Definitions
 -----------
 Cell
-    Cell ``(i, j)`` of side ``c = cell_m`` holds the positions with ``i = floor(east_m / c)``,
-    ``j = floor(north_m / c)``; its south-west corner is ``(i·c, j·c)`` in the frame.
+    Cell ``(i, j)`` of side ``c = cell_m`` holds the positions with ``i = floor(east / c)``,
+    ``j = floor(north / c)``; its south-west corner is ``(i·c, j·c)`` in the frame.
 Samples
-    Rows that are **moving** (``|vg_mps| >= min_ground_speed_mps``) and have a finite
-    ``east_m`` and ``north_m``. Row ``i`` weighs ``w_i``, the report's time weight, computed over
-    the vehicle's whole series in the range (moving or not, placed or not), so a row's weight
-    does not depend on which rows the map keeps.
-Per cell, over its samples ``i`` (and wheels ``k`` in {left, right})
-    * ``time_s = Σ w_i``; ``distance_m = Σ |vg_mps|_i · w_i``; ``rows`` = number of samples.
-    * ``slip_k_valid_s = Σ w_i`` over the samples whose wheel ``k`` slip is valid
-      (``SLIP_*_VALID`` flag and finite); ``slip_k_mean_pct = Σ w_i s_ik / slip_k_valid_s``,
-      the time-weighted mean **signed** slip; NaN when ``slip_k_valid_s`` is 0.
-    * Over the valid wheel-samples ``(i, k)`` of both wheels (a row with both wheels valid counts
-      twice): ``mean_abs_slip_pct = Σ w_i |s_ik| / Σ w_i``; ``max_abs_slip_pct = max |s_ik|``;
+    Rows that are **moving** (``|v| >= min_ground_speed_mps``, ``v`` the spec's motion field)
+    and have a finite east and north. Row ``i`` weighs ``w_i``, the report's time weight,
+    computed over the vehicle's whole series in the range (moving or not, placed or not), so a
+    row's weight does not depend on which rows the map keeps.
+Per cell, over its samples ``i`` (and slip channels ``k`` of the spec)
+    * ``time_s = Σ w_i``; ``distance_m = Σ |v|_i · w_i``; ``rows`` = number of samples.
+    * ``slip_valid_s[k] = Σ w_i`` over the samples whose channel ``k`` slip is valid (its
+      ``valid_flag`` and finite); ``slip_mean_pct[k] = Σ w_i s_ik / slip_valid_s[k]``, the
+      time-weighted mean **signed** slip; NaN when ``slip_valid_s[k]`` is 0.
+    * Over the valid channel-samples ``(i, k)`` of every channel (a row with two channels
+      valid counts twice): ``mean_abs_slip_pct = Σ w_i |s_ik| / Σ w_i``;
+      ``max_abs_slip_pct = max |s_ik|``;
       the share of band ``b`` (edges ``band_edges_pct``, an edge in the upper band)
       ``Σ_{|s_ik| in b} w_i / Σ w_i``. NaN when the cell has no valid slip time (its time and
       distance are still given); the shares then sum to 1.
@@ -32,7 +36,7 @@ Reduce, merge, finish
 ---------------------
 Every statistic above is a ratio of sums (or a maximum), so a map is made in three steps:
 :func:`cell_sums` reduces samples to per-cell **partial sums** (:class:`CellSums`: ``Σ w``,
-``Σ |v| w``, row count, per wheel ``Σ w`` and ``Σ w s`` over valid slips, ``Σ w |s|``,
+``Σ |v| w``, row count, per channel ``Σ w`` and ``Σ w s`` over valid slips, ``Σ w |s|``,
 ``Σ w`` per band, ``max |s|``, contributors); :func:`merge_cell_sums` adds the sums of cells
 with the same index (and takes the larger maximum); :func:`finish_cells` divides. Merging the
 sums of two halves of a series gives the map of the whole (to rounding). A fleet map reduces
@@ -40,11 +44,11 @@ one vehicle at a time and merges, so it never holds more than one vehicle's rows
 
 Fleet maps: one frame for all
 -----------------------------
-Each vehicle's ``east_m``/``north_m``/``up_m`` are metres in its own ENU frame. Before binning
-into a shared frame, :func:`reframe` takes its samples through WGS 84 (its frame's
-``to_geodetic``, then the shared frame's ``to_enu``; exact ECEF transformations, no small-field
-approximation). A row without a finite ``up_m`` is taken on its frame's horizontal plane
-(``up_m`` 0): over a field of ``d`` metres that moves it horizontally by about
+Each vehicle's east/north/up are metres in its own ENU frame. Before binning into a shared
+frame, :func:`reframe` takes its samples through WGS 84 (its frame's ``to_geodetic``, then the
+shared frame's ``to_enu``; exact ECEF transformations, no small-field approximation). A row
+without a finite up is taken on its frame's horizontal plane (up 0): over a field of ``d``
+metres that moves it horizontally by about
 ``|up| · d / 6.4e6`` m.
 """
 
@@ -56,49 +60,62 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from estimator.geo import EnuFrame
+from estimator.spec import EstimatorSpec, PositionChannel
 from server.analytics.reports import (
     band_bounds,
     band_index,
     band_label,
+    channel_slips,
     check_band_edges,
-    ground_speed,
+    motion_speed,
     time_weights_ns,
-    wheel_slips,
 )
 
 __all__ = [
-    "FLEET_SLIPMAP_FIELDS",
-    "SLIPMAP_FIELDS",
     "CellSums",
     "MapSamples",
+    "NotMappable",
     "SlipMap",
     "TooManyCells",
     "bin_cells",
     "cell_sums",
+    "check_mappable",
     "finish_cells",
     "map_samples",
     "merge_cell_sums",
     "reframe",
     "slip_map",
+    "slipmap_fields",
 ]
 
-#: The estimate fields a slip map reads (ask the store for these only).
-SLIPMAP_FIELDS: tuple[str, ...] = (
-    "stamp_ns",
-    "vg_mps",
-    "slip_left_pct",
-    "slip_right_pct",
-    "flags",
-    "east_m",
-    "north_m",
-)
-
-#: The fields a fleet map reads: those of :data:`SLIPMAP_FIELDS` and ``up_m``, which the
-#: change of frame needs.
-FLEET_SLIPMAP_FIELDS: tuple[str, ...] = (*SLIPMAP_FIELDS, "up_m")
-
 _NS = 1_000_000_000
-_WHEELS = 2
+
+
+class NotMappable(ValueError):  # noqa: N818  (a ValueError: the estimator cannot give a map)
+    """The estimator's spec has no position or no motion channel."""
+
+
+def check_mappable(spec: EstimatorSpec) -> tuple[PositionChannel, str]:
+    """``(spec.position, spec.motion_field)``, or :class:`NotMappable` naming what is missing."""
+    if spec.position is None:
+        raise NotMappable(f"estimator {spec.name!r} gives no position: it cannot be mapped")
+    if spec.motion_field is None:
+        raise NotMappable(f"estimator {spec.name!r} has no motion speed: it cannot be mapped")
+    return spec.position, spec.motion_field
+
+
+def slipmap_fields(spec: EstimatorSpec, *, fleet: bool = False) -> list[str]:
+    """The fields of ``spec`` a map reads (ask the store for these only): ``stamp_ns``, the
+    motion field, the slip channels' fields, ``flags``, east and north, and with ``fleet`` the
+    up field too (the change of frame needs it). :class:`NotMappable` if it cannot be mapped."""
+    position, motion = check_mappable(spec)
+    wanted: list[str | None] = ["stamp_ns", motion, *(s.field for s in spec.slips)]
+    if spec.has_field("flags"):
+        wanted.append("flags")
+    wanted += [position.east_field, position.north_field]
+    if fleet:
+        wanted.append(position.up_field)
+    return list(dict.fromkeys(f for f in wanted if f is not None))
 
 
 class TooManyCells(ValueError):  # noqa: N818  (a ValueError: the arguments ask too much)
@@ -112,10 +129,12 @@ class TooManyCells(ValueError):  # noqa: N818  (a ValueError: the arguments ask 
 
 @dataclass(frozen=True, slots=True)
 class MapSamples:
-    """The rows a map bins (see the module docstring), ``n`` of them.
+    """The rows a map bins (see the module docstring), ``n`` of them, ``K`` slip channels.
 
     Attributes
     ----------
+    channels : tuple of str, length K
+        Keys of the slip channels, in the spec's order.
     east_m, north_m : float64, shape (n,)
         Position in the map's frame, finite.
     up_m : float64, shape (n,)
@@ -123,13 +142,14 @@ class MapSamples:
     w_ns : int64, shape (n,)
         Time weight of each sample.
     speed_mps : float64, shape (n,)
-        ``|vg_mps|``.
-    slip_pct : float64, shape (n, 2)
-        Signed slip of the left and right wheel (column 0 and 1).
-    slip_valid : bool, shape (n, 2)
-        Whether each wheel's slip is valid.
+        ``|v|`` of the motion field.
+    slip_pct : float64, shape (n, K)
+        Signed slip of each channel.
+    slip_valid : bool, shape (n, K)
+        Whether each channel's slip is valid.
     """
 
+    channels: tuple[str, ...]
     east_m: np.ndarray
     north_m: np.ndarray
     up_m: np.ndarray
@@ -145,6 +165,7 @@ class MapSamples:
 
 def map_samples(
     rows: np.ndarray,
+    spec: EstimatorSpec,
     *,
     end_ns: int,
     min_ground_speed_mps: float = 0.2,
@@ -154,31 +175,43 @@ def map_samples(
 
     Parameters
     ----------
-    rows : ndarray, shape (n,), structured with at least :data:`SLIPMAP_FIELDS`
-        One vehicle's estimates of the range, sorted by ``stamp_ns``; ``up_m`` is read when
-        present (:data:`FLEET_SLIPMAP_FIELDS`), else taken as 0.
+    rows : ndarray, shape (n,), structured with at least :func:`slipmap_fields` of ``spec``
+        One vehicle's estimates of the range, sorted by ``stamp_ns``; the up field is read when
+        present (``fleet=True``), else taken as 0.
+    spec : the estimator whose rows these are (:class:`NotMappable` without position or motion).
     end_ns : end of the range (clips the last row's weight, as in the report).
     min_ground_speed_mps : speed from which a row counts as moving.
     max_gap_s : a step between rows longer than this is a data gap.
     """
+    position, _ = check_mappable(spec)
     w_ns = time_weights_ns(rows["stamp_ns"].astype(np.int64), end_ns, round(max_gap_s * _NS))
-    speed, moving = ground_speed(rows, min_ground_speed_mps)
-    east = rows["east_m"].astype(np.float64)
-    north = rows["north_m"].astype(np.float64)
+    motion = motion_speed(rows, spec, min_ground_speed_mps)
+    assert motion is not None  # check_mappable: the spec has a motion field
+    speed, moving = motion
+    east = rows[position.east_field].astype(np.float64)
+    north = rows[position.north_field].astype(np.float64)
     keep = moving & np.isfinite(east) & np.isfinite(north)
     up = np.zeros(int(keep.sum()))
-    if "up_m" in (rows.dtype.names or ()):
-        up_kept = rows["up_m"][keep].astype(np.float64)
+    if position.up_field is not None and position.up_field in (rows.dtype.names or ()):
+        up_kept = rows[position.up_field][keep].astype(np.float64)
         up = np.where(np.isfinite(up_kept), up_kept, 0.0)
-    wheels = wheel_slips(rows)
+    slips = channel_slips(rows, spec)
+    k = len(slips)
     return MapSamples(
+        channels=tuple(c.key for c in spec.slips),
         east_m=east[keep],
         north_m=north[keep],
         up_m=up,
         w_ns=w_ns[keep],
         speed_mps=speed[keep],
-        slip_pct=np.stack([slip[keep] for slip, _ in wheels], axis=1),
-        slip_valid=np.stack([valid[keep] for _, valid in wheels], axis=1),
+        slip_pct=np.stack([slip[keep] for slip, _ in slips], axis=1)
+        if k
+        else np.zeros((up.size, 0)),
+        slip_valid=(
+            np.stack([valid[keep] for _, valid in slips], axis=1)
+            if k
+            else np.zeros((up.size, 0), dtype=bool)
+        ),
     )
 
 
@@ -206,18 +239,20 @@ class CellSums:
     ----------
     cell_m : side of a cell.
     band_edges_pct : the slip band edges (``B - 1`` of them).
+    channels : tuple of str, length K
+        Keys of the slip channels.
     index_east, index_north : int64, shape (m,)
     time_ns : float64, shape (m,)
         ``Σ w``.
     speed_ns : float64, shape (m,)
-        ``Σ |vg_mps| · w`` (metres times 1e9).
+        ``Σ |v| · w`` (metres times 1e9).
     rows : int64, shape (m,)
-    valid_ns, signed_ns : float64, shape (m, 2)
-        Per wheel, over its valid slips: ``Σ w`` and ``Σ w · s``.
+    valid_ns, signed_ns : float64, shape (m, K)
+        Per channel, over its valid slips: ``Σ w`` and ``Σ w · s``.
     abs_ns : float64, shape (m,)
-        ``Σ w · |s|`` over the valid wheel-samples of both wheels.
+        ``Σ w · |s|`` over the valid channel-samples of every channel.
     band_ns : float64, shape (m, B)
-        ``Σ w`` of the valid wheel-samples with ``|s|`` in each band.
+        ``Σ w`` of the valid channel-samples with ``|s|`` in each band.
     max_abs_pct : float64, shape (m,)
         ``max |s|``; NaN where the cell has no valid slip.
     vehicles : int64, shape (m,)
@@ -226,6 +261,7 @@ class CellSums:
 
     cell_m: float
     band_edges_pct: tuple[float, ...]
+    channels: tuple[str, ...]
     index_east: np.ndarray
     index_north: np.ndarray
     time_ns: np.ndarray
@@ -291,8 +327,8 @@ def cell_sums(
     """Reduce samples to the partial sums of the cells of ``cell_m`` they fall into.
 
     ``np.unique`` over the cell indices gives every sample its cell ``c``; each sum of the
-    module docstring is then one ``np.bincount`` with weights, over ``c`` (per wheel over
-    ``2c + k``, per band over ``c·B + b`` for ``B`` bands), the maximum one ``np.fmax.at``.
+    module docstring is then one ``np.bincount`` with weights, over ``c`` (per channel over
+    ``K·c + k``, per band over ``c·B + b`` for ``B`` bands), the maximum one ``np.fmax.at``.
 
     Parameters
     ----------
@@ -320,23 +356,25 @@ def cell_sums(
     m = int(index_east.shape[0])
 
     w = samples.w_ns.astype(np.float64)  # sums of int ns stay exact in float64 (< 2**53)
-    pair_row, pair_wheel = np.nonzero(samples.slip_valid)  # the valid wheel-samples (i, k)
+    n_channels = len(samples.channels)
+    pair_row, pair_channel = np.nonzero(samples.slip_valid)  # the valid channel-samples (i, k)
     pair_cell = cell[pair_row]
     pair_w = w[pair_row]
-    pair_slip = samples.slip_pct[pair_row, pair_wheel]
+    pair_slip = samples.slip_pct[pair_row, pair_channel]
     pair_abs = np.abs(pair_slip)
     max_abs = np.full(m, np.nan)
     np.fmax.at(max_abs, pair_cell, pair_abs)
     return CellSums(
         cell_m=float(cell_m),
         band_edges_pct=edges,
+        channels=samples.channels,
         index_east=index_east,
         index_north=index_north,
         time_ns=_sum_by(cell, w, m),
         speed_ns=_sum_by(cell, w * samples.speed_mps, m),
         rows=np.bincount(cell, minlength=m).astype(np.int64),
-        valid_ns=_sum_at(pair_cell, pair_wheel, _WHEELS, pair_w, m),
-        signed_ns=_sum_at(pair_cell, pair_wheel, _WHEELS, pair_w * pair_slip, m),
+        valid_ns=_sum_at(pair_cell, pair_channel, n_channels, pair_w, m),
+        signed_ns=_sum_at(pair_cell, pair_channel, n_channels, pair_w * pair_slip, m),
         abs_ns=_sum_by(pair_cell, pair_w * pair_abs, m),
         band_ns=_sum_at(pair_cell, band_index(pair_abs, edges), n_bands, pair_w, m),
         max_abs_pct=max_abs,
@@ -348,6 +386,7 @@ def merge_cell_sums(
     parts: Iterable[CellSums],
     *,
     cell_m: float,
+    channels: tuple[str, ...],
     band_edges_pct: Sequence[float] = (5.0, 15.0),
     max_cells: int | None = None,
 ) -> CellSums:
@@ -359,43 +398,45 @@ def merge_cell_sums(
 
     Parameters
     ----------
-    parts : CellSums, each of ``cell_m`` and ``band_edges_pct``.
-    cell_m, band_edges_pct : those of every part (checked).
+    parts : CellSums, each of ``cell_m``, ``channels`` and ``band_edges_pct``.
+    cell_m, channels, band_edges_pct : those of every part (checked).
     max_cells : refuse a total of more cells than this (None: no limit); checked after each
         merge, so :class:`TooManyCells` names the count at the first merge that passed it.
 
     Raises
     ------
     ValueError
-        A part of another ``cell_m`` or other band edges.
+        A part of another ``cell_m``, other slip channels or other band edges.
     TooManyCells
         The merged cells exceed ``max_cells``.
     """
     edges = check_band_edges(band_edges_pct)
-    total = _no_cells(float(cell_m), edges)
+    total = _no_cells(float(cell_m), edges, tuple(channels))
     for part in parts:
-        if part.cell_m != total.cell_m or part.band_edges_pct != edges:
+        if (part.cell_m, part.band_edges_pct, part.channels) != (cell_m, edges, total.channels):
             raise ValueError(
                 f"cannot merge cells of {part.cell_m:g} m with bands {part.band_edges_pct} "
-                f"into cells of {total.cell_m:g} m with bands {edges}"
+                f"and slip channels {part.channels} into cells of {total.cell_m:g} m with "
+                f"bands {edges} and slip channels {total.channels}"
             )
         total = _merge_two(total, part, max_cells)
     return total
 
 
-def _no_cells(cell_m: float, edges: tuple[float, ...]) -> CellSums:
+def _no_cells(cell_m: float, edges: tuple[float, ...], channels: tuple[str, ...]) -> CellSums:
     none = np.zeros(0)
     ids = np.zeros(0, dtype=np.int64)
     return CellSums(
         cell_m=cell_m,
         band_edges_pct=edges,
+        channels=channels,
         index_east=ids,
         index_north=ids,
         time_ns=none,
         speed_ns=none,
         rows=ids,
-        valid_ns=np.zeros((0, _WHEELS)),
-        signed_ns=np.zeros((0, _WHEELS)),
+        valid_ns=np.zeros((0, len(channels))),
+        signed_ns=np.zeros((0, len(channels))),
         abs_ns=none,
         band_ns=np.zeros((0, len(edges) + 1)),
         max_abs_pct=none,
@@ -419,6 +460,7 @@ def _merge_two(a: CellSums, b: CellSums, max_cells: int | None) -> CellSums:
     return CellSums(
         cell_m=a.cell_m,
         band_edges_pct=a.band_edges_pct,
+        channels=a.channels,
         index_east=index_east,
         index_north=index_north,
         time_ns=add("time_ns"),
@@ -443,12 +485,14 @@ class SlipMap:
     ----------
     cell_m : side of a cell.
     band_edges_pct : the slip band edges.
+    channels : tuple of str, length K
+        Keys of the slip channels (columns of ``slip_valid_s`` and ``slip_mean_pct``).
     index_east, index_north : int64, shape (m,)
         Cell indices ``i``, ``j``; the south-west corner is ``(i·cell_m, j·cell_m)``.
     time_s, distance_m : float64, shape (m,)
     rows : int64, shape (m,)
-    slip_valid_s, slip_mean_pct : float64, shape (m, 2)
-        Per wheel (left, right): valid-slip time and time-weighted mean signed slip.
+    slip_valid_s, slip_mean_pct : float64, shape (m, K)
+        Per slip channel: valid-slip time and time-weighted mean signed slip.
     mean_abs_slip_pct, max_abs_slip_pct : float64, shape (m,)
     band_share : float64, shape (m, len(band_edges_pct) + 1)
         Time share of ``|slip|`` in each band, lowest band first.
@@ -458,6 +502,7 @@ class SlipMap:
 
     cell_m: float
     band_edges_pct: tuple[float, ...]
+    channels: tuple[str, ...]
     index_east: np.ndarray
     index_north: np.ndarray
     time_s: np.ndarray
@@ -503,6 +548,7 @@ def finish_cells(sums: CellSums) -> SlipMap:
     return SlipMap(
         cell_m=sums.cell_m,
         band_edges_pct=sums.band_edges_pct,
+        channels=sums.channels,
         index_east=sums.index_east,
         index_north=sums.index_north,
         time_s=sums.time_ns / _NS,
@@ -533,6 +579,7 @@ def bin_cells(
 
 def slip_map(
     rows: np.ndarray,
+    spec: EstimatorSpec,
     *,
     end_ns: int,
     cell_m: float,
@@ -544,6 +591,6 @@ def slip_map(
     """The slip map of one vehicle's series in its own frame: :func:`map_samples` then
     :func:`bin_cells` (parameters as there)."""
     samples = map_samples(
-        rows, end_ns=end_ns, min_ground_speed_mps=min_ground_speed_mps, max_gap_s=max_gap_s
+        rows, spec, end_ns=end_ns, min_ground_speed_mps=min_ground_speed_mps, max_gap_s=max_gap_s
     )
     return bin_cells(samples, cell_m=cell_m, band_edges_pct=band_edges_pct, max_cells=max_cells)

@@ -33,6 +33,7 @@ from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_r
 from server.api.errors import ErrorBody, error_response, install_error_handlers
 from server.api.routes import (
     alerts,
+    estimators,
     health,
     live,
     metrics,
@@ -59,6 +60,7 @@ API_PREFIX = "/api/v1"
 #: Every router of the REST API, in the order they appear in the docs. Add new routers here.
 API_ROUTERS: tuple[APIRouter, ...] = (
     vehicles.router,
+    estimators.router,
     series.router,
     reports.router,
     slipmap.router,

@@ -1,13 +1,14 @@
 """Latest estimates and decimated sliding windows for live views (dashboard, viser).
 
-:class:`LiveHub` is a pipeline sink: the pipeline thread calls :meth:`LiveHub.on_estimates` with
-``[(vehicle_id, rows), ...]`` where ``rows`` is a structured array of
-:data:`estimator.types.ESTIMATE_DTYPE`, time-ordered per vehicle. Everything else (WebSocket
-handlers on the event loop, the viser update thread, tests) reads through the hub's methods, which
-take one short lock and return copies.
+:class:`LiveHub` is a pipeline sink: the pipeline thread calls :meth:`LiveHub.on_estimates` once
+per estimator per tick with an :class:`estimator.types.EstimateBatch` (rows of that estimator's
+spec, time-ordered per vehicle). Everything else (WebSocket handlers on the event loop, the viser
+update thread, tests) reads through the hub's methods, which take one short lock and return
+copies. Rows are kept per *(vehicle, estimator)* and read through the estimator's
+:class:`estimator.spec.EstimatorSpec`, never by one estimator's field names.
 
-Memory is bounded and independent of history length. Each vehicle owns one ring per *tier*; a tier
-keeps one row per time bucket of ``bucket_s`` for ``span_s`` seconds:
+Memory is bounded and independent of history length. Each (vehicle, estimator) owns one ring per
+*tier*; a tier keeps one row per time bucket of ``bucket_s`` for ``span_s`` seconds:
 
 ================  ==========  ==========  ======  ==============================================
 tier              bucket_s    span_s      rows    used for
@@ -16,21 +17,26 @@ tier              bucket_s    span_s      rows    used for
 ``coarse``        0.5         1800        3600    windows up to 30 min (2 Hz)
 ================  ==========  ==========  ======  ==============================================
 
-About 250 kB per vehicle with the defaults (eleven float32 columns and an int64 stamp per row).
-A bucket's row holds the values of its newest estimate, except the two slip columns, which keep
-the value of largest magnitude seen in the bucket (peaks survive decimation). The newest bucket is
-written while it fills, so the newest estimate is always visible.
+A ring row holds the spec's *live fields* (:func:`live_fields`: chart, slip, motion and position
+fields and ``flags``) as float32 plus an int64 stamp: about 250 kB per vehicle for MDSF's eleven.
+A bucket's row holds the values of its newest estimate, except the slip channels' fields, which
+keep the value of largest magnitude seen in the bucket (peaks survive decimation). The newest
+bucket is written while it fills, so the newest estimate is always visible.
 
-Status of a vehicle (``live`` / ``stale`` / ``offline``) comes from the age of its newest estimate,
-the larger of
+A vehicle's *primary* estimator (``primary_of``, e.g. the first of
+``server.estimation.registry.estimator_names_for``; else the first estimator that brought rows)
+is what the fleet overview shows: its motion speed, slip channels and quality.
 
-* *sensor age*: newest sensor stamp of the whole fleet minus the vehicle's newest stamp, and
-* *wall age*: wall clock now minus the wall time the vehicle's newest row arrived at the hub,
+Status of a (vehicle, estimator) (``live`` / ``stale`` / ``offline``) comes from the age of its
+newest estimate, the larger of
+
+* *sensor age*: newest sensor stamp of the whole fleet minus the newest stamp, and
+* *wall age*: wall clock now minus the wall time the newest row arrived at the hub,
 
 compared with ``stale_after_s`` and ``offline_after_s``.
 
-For each vehicle the hub records the wall time its newest row arrived (``arrival_ns``), so a page
-can measure sensor → page latency (``receive time - stamp_ns``) and the hub's share of it.
+For each row the hub records the wall time it arrived (``arrival_ns``), so a page can measure
+sensor → page latency (``receive time - stamp_ns``) and the hub's share of it.
 
 Waking async readers: every batch increments :attr:`LiveHub.version`; :meth:`LiveHub.wait_newer`
 awaits a newer version without blocking the event loop (``loop.call_soon_threadsafe`` on
@@ -42,6 +48,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import logging
 import math
 import threading
 import time
@@ -52,36 +59,19 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from estimator.types import ESTIMATE_DTYPE, EstimateBatch, EstimateFlag
+from estimator.catalog import SPECS
+from estimator.spec import EstimatorSpec
+from estimator.types import EstimateBatch
 
 __all__ = [
-    "LIVE_FIELDS",
     "LiveHub",
     "TierSpec",
     "VehicleStatus",
-    "gnss_quality",
-    "slip_note",
+    "live_fields",
+    "quality",
 ]
 
-#: Columns kept in the sliding windows, in this order (``stamp_ns`` is stored apart as int64).
-LIVE_FIELDS: Final[tuple[str, ...]] = (
-    "vg_mps",
-    "vl_mps",
-    "vr_mps",
-    "rim_left_mps",
-    "rim_right_mps",
-    "slip_left_pct",
-    "slip_right_pct",
-    "east_m",
-    "north_m",
-    "up_m",
-    "flags",
-)
-_SLIP_COLS: Final[tuple[int, ...]] = (
-    LIVE_FIELDS.index("slip_left_pct"),
-    LIVE_FIELDS.index("slip_right_pct"),
-)
-_NF: Final[int] = len(LIVE_FIELDS)
+log = logging.getLogger(__name__)
 
 
 class VehicleStatus:
@@ -92,40 +82,33 @@ class VehicleStatus:
     OFFLINE: Final[str] = "offline"
 
 
-_GNSS_LABELS = (
-    (EstimateFlag.DEGRADED, "degraded"),
-    (EstimateFlag.GATED, "gated"),
-    (EstimateFlag.GNSS_OK, "ok"),
-)
-_SLIP_NOTES = (
-    (EstimateFlag.STANDSTILL, "standstill"),
-    (EstimateFlag.SETTLING, "starting/stopping"),
-    (EstimateFlag.WHEEL_GAP, "wheel data lost"),
-)
+def live_fields(spec: EstimatorSpec) -> tuple[str, ...]:
+    """Fields of ``spec`` kept in the sliding windows, in this order, each once.
 
-
-def _first_label(flags: int, labels: tuple[tuple[EstimateFlag, str], ...], default: str) -> str:
-    """The label of the first flag of ``labels`` set in ``flags``, else ``default``."""
-    f = int(flags)
-    for flag, label in labels:
-        if f & flag:
-            return label
-    return default
-
-
-def gnss_quality(flags: int) -> str:
-    """Summarise an estimate's flags as ``"ok"``, ``"gated"``, ``"degraded"`` or ``"none"``.
-
-    ``degraded`` means GNSS is lost and the speed is carried by IMU + wheels.
+    The fields of its charts, slip channels and motion speed, its position's east/north/up and
+    ``flags`` (``stamp_ns`` is stored apart as int64).
     """
-    return _first_label(flags, _GNSS_LABELS, "none")
+    names: list[str] = [f for c in spec.charts for f in c.fields]
+    names += [s.field for s in spec.slips]
+    if spec.motion_field is not None:
+        names.append(spec.motion_field)
+    p = spec.position
+    if p is not None:
+        names += [f for f in (p.east_field, p.north_field, p.up_field) if f is not None]
+    if spec.has_field("flags"):
+        names.append("flags")
+    return tuple(dict.fromkeys(names))
 
 
-def slip_note(flags: int) -> str:
-    """Why an estimate carries no slip value: ``"standstill"``, ``"starting/stopping"``
-    (:attr:`EstimateFlag.SETTLING`), ``"wheel data lost"`` (:attr:`EstimateFlag.WHEEL_GAP`), or
-    ``""`` (a value, or no known reason)."""
-    return _first_label(flags, _SLIP_NOTES, "")
+def quality(spec: EstimatorSpec, flags: int) -> str:
+    """A row's quality at a glance: ``"degraded"`` (a degraded flag set), ``"ok"`` (its
+    ``ok_flag`` set), else ``"none"``."""
+    f = int(flags)
+    if any(f & spec.flag_mask(name) for name in spec.degraded_flags):
+        return "degraded"
+    if spec.ok_flag is not None and f & spec.flag_mask(spec.ok_flag):
+        return "ok"
+    return "none"
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,21 +139,25 @@ DEFAULT_TIERS: Final[tuple[TierSpec, ...]] = (
 
 
 def _group_aggregate(
-    keys: npt.NDArray[np.int64], stamps: npt.NDArray[np.int64], vals: npt.NDArray[np.float32]
-) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    keys: npt.NDArray[np.int64],
+    stamps: npt.NDArray[np.int64],
+    vals: npt.NDArray[np.floating],
+    peak_cols: tuple[int, ...],
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.int64], npt.NDArray[np.floating]]:
     """Aggregate runs of equal ``keys`` (rows already grouped): newest values, peak |slip|.
 
     Parameters
     ----------
     keys : (n,) int64, runs of equal values are one group
     stamps : (n,) int64
-    vals : (n, len(LIVE_FIELDS)) float32
+    vals : (n, f) float, the live fields
+    peak_cols : columns of ``vals`` that keep their value of largest magnitude (slips)
 
     Returns
     -------
     starts : (g,) index of each group's first row
     g_stamps : (g,) stamp of each group's newest row
-    g_vals : (g, len(LIVE_FIELDS)) newest values, slip columns replaced by the signed peak
+    g_vals : (g, f) newest values, ``peak_cols`` replaced by the signed peak
     """
     n = keys.shape[0]
     change = np.empty(n, dtype=bool)
@@ -183,7 +170,7 @@ def _group_aggregate(
     g_vals = vals[ends].copy()
     if n != starts.shape[0]:  # some group has more than one row: find the slip peaks
         gid = np.cumsum(change) - 1
-        for c in _SLIP_COLS:
+        for c in peak_cols:
             mag = np.abs(vals[:, c])
             mag = np.where(np.isnan(mag), -1.0, mag)
             # by group, then magnitude: the last row of a group is its peak
@@ -193,7 +180,7 @@ def _group_aggregate(
     return starts, stamps[ends], g_vals
 
 
-def _peak(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+def _peak(a: npt.NDArray[np.floating], b: npt.NDArray[np.floating]) -> npt.NDArray[np.floating]:
     """Element-wise value of larger magnitude (NaN loses to any number)."""
     ma = np.where(np.isnan(a), -1.0, np.abs(a))
     mb = np.where(np.isnan(b), -1.0, np.abs(b))
@@ -201,16 +188,24 @@ def _peak(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]) -> npt.NDArray
 
 
 class _Tier:
-    """Per-vehicle rings of one tier, stored as 2-D arrays indexed ``[slot, position]``."""
+    """Per-vehicle rings of one tier, stored as 2-D arrays indexed ``[slot, position]``.
 
-    def __init__(self, spec: TierSpec, slots: int) -> None:
+    ``vals`` is ``(slots, capacity, nf)`` of ``dtype``; ``peak_cols`` keep their peak per bucket.
+    """
+
+    def __init__(
+        self, spec: TierSpec, slots: int, nf: int, dtype: type, peak_cols: tuple[int, ...]
+    ) -> None:
         self.spec = spec
+        self.nf = nf
+        self.dtype = dtype
+        self.peak_cols = peak_cols
         self.cap = spec.capacity
         self.bucket_ns = spec.bucket_ns
         # np.full, not np.zeros: every page is written now (zeros would map them lazily and the
         # resident size would creep up for the tier's whole span as the rings fill)
         self.stamp = np.full((slots, self.cap), 0, dtype=np.int64)
-        self.vals = np.full((slots, self.cap, _NF), np.nan, dtype=np.float32)
+        self.vals: npt.NDArray[np.floating] = np.full((slots, self.cap, nf), np.nan, dtype=dtype)
         self.head = np.zeros(slots, dtype=np.int64)  # next write position (monotonic counter)
         self.count = np.zeros(slots, dtype=np.int64)
         self.last_bucket = np.full(slots, -1, dtype=np.int64)
@@ -218,7 +213,8 @@ class _Tier:
     def grow(self, slots: int) -> None:
         extra = slots - self.head.shape[0]
         self.stamp = np.concatenate([self.stamp, np.full((extra, self.cap), 0, np.int64)])
-        self.vals = np.concatenate([self.vals, np.full((extra, self.cap, _NF), np.nan, np.float32)])
+        more: npt.NDArray[np.floating] = np.full((extra, self.cap, self.nf), np.nan, self.dtype)
+        self.vals = np.concatenate([self.vals, more])
         self.head = np.concatenate([self.head, np.zeros(extra, np.int64)])
         self.count = np.concatenate([self.count, np.zeros(extra, np.int64)])
         self.last_bucket = np.concatenate([self.last_bucket, np.full(extra, -1, np.int64)])
@@ -227,7 +223,7 @@ class _Tier:
         self,
         slot: npt.NDArray[np.int64],
         stamp: npt.NDArray[np.int64],
-        vals: npt.NDArray[np.float32],
+        vals: npt.NDArray[np.floating],
     ) -> None:
         """Add rows grouped by slot, time-ordered within a slot (vectorised over the batch)."""
         bucket = stamp // self.bucket_ns
@@ -237,7 +233,7 @@ class _Tier:
         run_start = slot_change.copy()
         run_start[1:] |= bucket[1:] != bucket[:-1]
         key = np.cumsum(run_start)  # one key per run of equal (slot, bucket)
-        starts, g_stamp, g_vals = _group_aggregate(key, stamp, vals)
+        starts, g_stamp, g_vals = _group_aggregate(key, stamp, vals, self.peak_cols)
         g_slot = slot[starts]
         g_bucket = bucket[starts]
         first_of_slot = slot_change[starts]
@@ -250,7 +246,7 @@ class _Tier:
         if merge.any():
             mi = np.flatnonzero(merge)
             old = self.vals[g_slot[mi], pos[mi]]
-            for c in _SLIP_COLS:
+            for c in self.peak_cols:
                 g_vals[mi, c] = _peak(old[:, c], g_vals[mi, c])
         self.stamp[g_slot, pos] = g_stamp
         self.vals[g_slot, pos] = g_vals
@@ -260,11 +256,11 @@ class _Tier:
         last = np.r_[g_slot[1:] != g_slot[:-1], True]
         self.last_bucket[g_slot[last]] = g_bucket[last]
 
-    def read(self, s: int, start_ns: int) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    def read(self, s: int, start_ns: int) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.floating]]:
         """Rows of slot ``s`` with ``stamp_ns >= start_ns``, oldest first (copies)."""
         n = int(self.count[s])
         if n == 0:
-            return np.zeros(0, np.int64), np.zeros((0, _NF), np.float32)
+            return np.zeros(0, np.int64), np.zeros((0, self.nf), self.dtype)
         idx = (int(self.head[s]) - n + np.arange(n)) % self.cap
         st = self.stamp[s, idx]
         first = int(np.searchsorted(st, start_ns, side="left"))
@@ -277,8 +273,147 @@ class _Tier:
         return int(self.stamp[s, (int(self.head[s]) - n) % self.cap])
 
 
+class _Board:
+    """One estimator's rows of every vehicle: newest row, arrival time and tier rings per slot.
+
+    Not locked itself: the hub holds its lock around every call.
+    """
+
+    def __init__(self, spec: EstimatorSpec, tiers: Sequence[TierSpec], slots: int) -> None:
+        self.spec = spec
+        self.fields = live_fields(spec)
+        # float32 holds integers exactly below 2**24: wider flag words need float64
+        top_bit = max((f.bit for f in spec.flags), default=0)
+        dtype: type = np.float32 if top_bit < 24 else np.float64
+        peak = tuple(self.fields.index(s.field) for s in spec.slips)
+        self.ids: list[str] = []
+        self.slot: dict[str, int] = {}
+        self.free: list[int] = []  # slots of forgotten vehicles, reused first
+        self.latest = np.zeros(slots, dtype=spec.dtype)
+        self.arrival_ns = np.zeros(slots, dtype=np.int64)
+        self.has = np.zeros(slots, dtype=bool)
+        self.tiers = [_Tier(t, slots, len(self.fields), dtype, peak) for t in tiers]
+        self.rows_dropped_late = 0
+
+    def slot_of(self, vehicle_id: str) -> int:
+        s = self.slot.get(vehicle_id)
+        if s is not None:
+            return s
+        if self.free:
+            s = self.free.pop()
+            self.ids[s] = vehicle_id
+        else:
+            s = len(self.ids)
+            if s >= self.latest.shape[0]:
+                self._grow(2 * self.latest.shape[0])
+            self.ids.append(vehicle_id)
+        self.slot[vehicle_id] = s
+        return s
+
+    def _grow(self, n: int) -> None:
+        s = self.latest.shape[0]
+        latest = np.zeros(n, dtype=self.spec.dtype)
+        latest[:s] = self.latest
+        self.latest = latest
+        self.arrival_ns = np.r_[self.arrival_ns, np.zeros(n - s, np.int64)]
+        self.has = np.r_[self.has, np.zeros(n - s, bool)]
+        for t in self.tiers:
+            t.grow(n)
+
+    def _keep(
+        self, slot: npt.NDArray[np.int64], stamp: npt.NDArray[np.int64]
+    ) -> npt.NDArray[np.bool_] | None:
+        """Rows newer than their vehicle's newest row and their predecessor (None: all are)."""
+        prev = np.where(self.has[slot], self.latest["stamp_ns"][slot], np.iinfo(np.int64).min)
+        same = np.r_[False, slot[1:] == slot[:-1]]
+        prev = np.where(same, np.r_[np.int64(0), stamp[:-1]], prev)
+        if (stamp > prev).all():
+            return None
+        # rare: compare with the running newest stamp of each vehicle
+        newest = np.where(self.has[slot], self.latest["stamp_ns"][slot], 0).tolist()
+        keep = [False] * stamp.shape[0]
+        cur = newest[0]
+        for i, st in enumerate(stamp.tolist()):
+            if not same[i]:
+                cur = newest[i]
+            if st > cur:
+                keep[i] = True
+                cur = st
+        return np.array(keep, dtype=bool)
+
+    def add(self, batch: EstimateBatch, now_ns: int) -> tuple[list[str], int, int]:
+        """Take ``batch``; return (vehicles with their first row here, rows kept, newest stamp)."""
+        slots = np.fromiter((self.slot_of(v) for v in batch.ids), np.int64, count=len(batch))
+        rows, slot = batch.grouped(slots)
+        stamp = rows["stamp_ns"].astype(np.int64)
+        keep = self._keep(slot, stamp)
+        if keep is not None:
+            self.rows_dropped_late += int((~keep).sum())
+            rows, slot, stamp = rows[keep], slot[keep], stamp[keep]
+            if rows.shape[0] == 0:
+                return [], 0, 0
+        vals: npt.NDArray[np.floating] = np.empty(
+            (rows.shape[0], len(self.fields)), dtype=self.tiers[0].dtype
+        )
+        for i, f in enumerate(self.fields):
+            vals[:, i] = rows[f]
+        for t in self.tiers:
+            t.append(slot, stamp, vals)
+        last = np.r_[slot[1:] != slot[:-1], True]
+        ls = slot[last]
+        first = [self.ids[s] for s in ls[~self.has[ls]].tolist()]
+        self.latest[ls] = rows[last]
+        self.arrival_ns[ls] = now_ns
+        self.has[ls] = True
+        return first, int(rows.shape[0]), int(stamp.max())
+
+    def drop(self, vehicle_id: str) -> None:
+        s = self.slot.pop(vehicle_id, None)
+        if s is None:
+            return
+        self.has[s] = False
+        for t in self.tiers:
+            t.head[s] = 0
+            t.count[s] = 0
+            t.last_bucket[s] = -1
+        self.ids[s] = ""
+        self.free.append(s)
+
+    def window(
+        self, s: int, window_s: float, since_ns: int | None
+    ) -> tuple[TierSpec, npt.NDArray[np.int64], npt.NDArray[np.floating]]:
+        """The finest tier covering ``window_s`` and its rows of slot ``s`` in the window."""
+        newest = int(self.latest["stamp_ns"][s])
+        tier = next((t for t in self.tiers if t.spec.span_s >= window_s), self.tiers[-1])
+        start = newest - round(window_s * 1e9)
+        if since_ns is not None:
+            start = max(start, since_ns)
+        st, vals = tier.read(s, start)
+        return tier.spec, st, vals
+
+
+def _as_batch(batch: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> EstimateBatch | None:
+    """``batch`` as an :class:`EstimateBatch`; a plain ``[(vehicle_id, rows), ...]`` is taken as
+    rows of the catalog's spec with their dtype. None when there are no rows."""
+    if isinstance(batch, EstimateBatch):
+        return batch if batch.rows.shape[0] else None
+    parts = [(vid, rows) for vid, rows in batch if rows.shape[0] > 0]
+    if not parts:
+        return None
+    dtype = parts[0][1].dtype
+    spec = next((s for s in SPECS.values() if s.dtype == dtype), None)
+    if spec is None:
+        raise TypeError(f"rows of dtype {dtype} are no catalog estimator's; pass an EstimateBatch")
+    return EstimateBatch.of(parts, spec)
+
+
+#: Vehicles whose primary is one estimator: (indices into the ids, newest rows, arrival times).
+_Group = tuple[list[int], np.ndarray, npt.NDArray[np.int64]]
+
+
 class LiveHub:
-    """Latest row, decimated windows and status of every vehicle; a thread-safe pipeline sink.
+    """Latest row, decimated windows and status of every (vehicle, estimator); a thread-safe
+    pipeline sink.
 
     Parameters
     ----------
@@ -290,6 +425,9 @@ class LiveHub:
         Decimation tiers, finest first (see the module docstring).
     clock_ns : callable
         Wall clock in ns (injected in tests).
+    primary_of : callable, optional
+        Vehicle id → name of its primary estimator (None or an estimator without rows here: the
+        first estimator that brought rows). Called under the hub's lock: cheap, never the hub.
     """
 
     def __init__(
@@ -300,6 +438,7 @@ class LiveHub:
         tiers: Sequence[TierSpec] = DEFAULT_TIERS,
         clock_ns: Callable[[], int] = time.time_ns,
         initial_slots: int = 64,
+        primary_of: Callable[[str], str | None] | None = None,
     ) -> None:
         if not 0 < stale_after_s < offline_after_s:
             raise ValueError("need 0 < stale_after_s < offline_after_s")
@@ -307,20 +446,17 @@ class LiveHub:
             raise ValueError("tiers must be non-empty, finest (shortest span) first")
         self.stale_after_s = float(stale_after_s)
         self.offline_after_s = float(offline_after_s)
+        self._tier_specs = tuple(tiers)
+        self._initial_slots = max(1, int(initial_slots))
         self._clock_ns = clock_ns
+        self._primary_of = primary_of
         self._lock = threading.Lock()
-        self._ids: list[str] = []
-        self._slot: dict[str, int] = {}
-        self._free: list[int] = []  # slots of forgotten vehicles, reused first
-        n = max(1, int(initial_slots))
-        self._latest = np.zeros(n, dtype=ESTIMATE_DTYPE)
-        self._arrival_ns = np.zeros(n, dtype=np.int64)
-        self._has = np.zeros(n, dtype=bool)
-        self._tiers = [_Tier(t, n) for t in tiers]
+        self._boards: dict[str, _Board] = {}
+        #: vehicle id -> estimators with rows here, in the order they first brought rows
+        self._estimators: dict[str, list[str]] = {}
         self._fleet_stamp_ns = 0
         self._version = 0
         self.rows_in = 0
-        self.rows_dropped_late = 0
         self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()
 
     # ------------------------------------------------------------------ writing (pipeline thread)
@@ -329,76 +465,37 @@ class LiveHub:
         """Increments on every batch that added rows."""
         return self._version
 
-    def _slot_of(self, vehicle_id: str) -> int:
-        s = self._slot.get(vehicle_id)
-        if s is None and self._free:
-            s = self._free.pop()
-            self._ids[s] = vehicle_id
-            self._slot[vehicle_id] = s
-        elif s is None:
-            s = len(self._ids)
-            if s >= self._latest.shape[0]:
-                n = 2 * self._latest.shape[0]
-                latest = np.zeros(n, dtype=ESTIMATE_DTYPE)
-                latest[:s] = self._latest
-                self._latest = latest
-                self._arrival_ns = np.r_[self._arrival_ns, np.zeros(n - s, np.int64)]
-                self._has = np.r_[self._has, np.zeros(n - s, bool)]
-                for t in self._tiers:
-                    t.grow(n)
-            self._ids.append(vehicle_id)
-            self._slot[vehicle_id] = s
-        return s
+    @property
+    def rows_dropped_late(self) -> int:
+        """Rows not newer than their (vehicle, estimator)'s newest row, ignored."""
+        return sum(b.rows_dropped_late for b in self._boards.values())
 
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        """Take new estimate rows: ``[(vehicle_id, rows of ESTIMATE_DTYPE), ...]``.
+    def _board(self, spec: EstimatorSpec) -> _Board:
+        board = self._boards.get(spec.name)
+        if board is None:
+            board = self._boards[spec.name] = _Board(spec, self._tier_specs, self._initial_slots)
+        elif board.spec.dtype != spec.dtype:
+            raise TypeError(f"estimator {spec.name!r} changed its row dtype")
+        return board
 
-        Rows not newer than the vehicle's newest row are counted in ``rows_dropped_late`` and
-        ignored (the pipeline already reorders by sensor time).
+    def on_estimates(self, batch: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> None:
+        """Take one estimator's new rows (an :class:`EstimateBatch`, see :func:`_as_batch`).
+
+        Rows not newer than the (vehicle, estimator)'s newest row are counted in
+        ``rows_dropped_late`` and ignored (the pipeline already reorders by sensor time).
         """
         now_ns = self._clock_ns()
-        joined = EstimateBatch.of(batch)
-        if not joined:
+        joined = _as_batch(batch)
+        if joined is None:
             return
         with self._lock:
-            slots = np.fromiter(
-                (self._slot_of(v) for v in joined.ids), dtype=np.int64, count=len(joined)
-            )
-            rows, slot = joined.grouped(slots)
-            stamp = rows["stamp_ns"].astype(np.int64)
-            # drop rows not newer than the vehicle's newest row or than their predecessor
-            prev = np.where(self._has[slot], self._latest["stamp_ns"][slot], np.iinfo(np.int64).min)
-            same = np.r_[False, slot[1:] == slot[:-1]]
-            prev = np.where(same, np.r_[np.int64(0), stamp[:-1]], prev)
-            keep = stamp > prev
-            if not keep.all():  # rare: compare with the running newest stamp of each vehicle
-                newest = np.where(self._has[slot], self._latest["stamp_ns"][slot], 0).tolist()
-                st_list = stamp.tolist()
-                keep_list = [False] * len(st_list)
-                cur = newest[0]
-                for i, st in enumerate(st_list):
-                    if not same[i]:
-                        cur = newest[i]
-                    if st > cur:
-                        keep_list[i] = True
-                        cur = st
-                keep = np.array(keep_list, dtype=bool)
-                self.rows_dropped_late += int((~keep).sum())
-                rows, slot, stamp = rows[keep], slot[keep], stamp[keep]
-                if rows.shape[0] == 0:
-                    return
-            vals = np.empty((rows.shape[0], _NF), dtype=np.float32)
-            for i, f in enumerate(LIVE_FIELDS):
-                vals[:, i] = rows[f]
-            for t in self._tiers:
-                t.append(slot, stamp, vals)
-            last = np.r_[slot[1:] != slot[:-1], True]
-            ls = slot[last]
-            self._latest[ls] = rows[last]
-            self._arrival_ns[ls] = now_ns
-            self._has[ls] = True
-            self._fleet_stamp_ns = max(self._fleet_stamp_ns, int(stamp.max()))
-            self.rows_in += int(rows.shape[0])
+            first, n, newest = self._board(joined.spec).add(joined, now_ns)
+            if n == 0:
+                return
+            for vid in first:
+                self._estimators.setdefault(vid, []).append(joined.spec.name)
+            self._fleet_stamp_ns = max(self._fleet_stamp_ns, newest)
+            self.rows_in += n
             self._version += 1
             waiters = list(self._waiters)
         for loop, ev in waiters:
@@ -408,18 +505,14 @@ class LiveHub:
                 self._waiters.discard((loop, ev))
 
     def forget(self, vehicle_id: str) -> bool:
-        """Drop a vehicle (deleted from the fleet): rows, windows, status. False if unknown."""
+        """Drop a vehicle (deleted from the fleet): every estimator's rows, windows, status.
+        False if unknown."""
         with self._lock:
-            s = self._slot.pop(vehicle_id, None)
-            if s is None:
+            names = self._estimators.pop(vehicle_id, None)
+            if names is None:
                 return False
-            self._has[s] = False
-            for t in self._tiers:
-                t.head[s] = 0
-                t.count[s] = 0
-                t.last_bucket[s] = -1
-            self._ids[s] = ""
-            self._free.append(s)
+            for name in names:
+                self._boards[name].drop(vehicle_id)
             self._version += 1
             return True
 
@@ -444,26 +537,82 @@ class LiveHub:
     def vehicle_ids(self) -> list[str]:
         """Vehicles with at least one row, in the order they first appeared."""
         with self._lock:
-            return [v for v in self._ids if v in self._slot]
+            return list(self._estimators)
 
     def __contains__(self, vehicle_id: object) -> bool:
-        return vehicle_id in self._slot
+        return vehicle_id in self._estimators
 
-    def latest(self, vehicle_id: str) -> tuple[np.ndarray, int] | None:
-        """``(row, arrival_ns)`` of the vehicle's newest estimate (0-d structured array) or None."""
+    def spec(self, estimator: str) -> EstimatorSpec | None:
+        """The spec of an estimator whose rows reached the hub (None if none did)."""
+        board = self._boards.get(estimator)
+        return None if board is None else board.spec
+
+    def _primary(self, vehicle_id: str) -> str | None:
+        names = self._estimators.get(vehicle_id)
+        if not names:
+            return None
+        if self._primary_of is not None:
+            try:
+                name = self._primary_of(vehicle_id)
+            except Exception:  # a vehicle whose config names no estimator: keep the hub's order
+                log.debug("primary estimator of %s unknown", vehicle_id, exc_info=True)
+                name = None
+            if name in names:
+                return name
+        return names[0]
+
+    def specs(self) -> list[EstimatorSpec]:
+        """Specs of every estimator whose rows reached the hub, in that order."""
         with self._lock:
-            s = self._slot.get(vehicle_id)
-            if s is None or not self._has[s]:
+            return [b.spec for b in self._boards.values()]
+
+    def primary(self, vehicle_id: str) -> str | None:
+        """Name of the vehicle's primary estimator (among those with rows), None if unknown."""
+        with self._lock:
+            return self._primary(vehicle_id)
+
+    def estimators(self, vehicle_id: str) -> list[str]:
+        """Estimators with rows of the vehicle, primary first ([] when unknown)."""
+        with self._lock:
+            p = self._primary(vehicle_id)
+            return sorted(self._estimators.get(vehicle_id, ()), key=lambda n: n != p)
+
+    def _slot(self, vehicle_id: str, estimator: str | None) -> tuple[_Board, int] | None:
+        name = self._primary(vehicle_id) if estimator is None else estimator
+        board = None if name is None else self._boards.get(name)
+        s = None if board is None else board.slot.get(vehicle_id)
+        if board is None or s is None or not board.has[s]:
+            return None
+        return board, s
+
+    def latest(
+        self, vehicle_id: str, estimator: str | None = None
+    ) -> tuple[np.ndarray, int] | None:
+        """``(row, arrival_ns)`` of the newest row of the vehicle's ``estimator`` (default: its
+        primary) as a 0-d array of that spec's dtype, or None."""
+        with self._lock:
+            got = self._slot(vehicle_id, estimator)
+            if got is None:
                 return None
-            return self._latest[s].copy(), int(self._arrival_ns[s])
+            board, s = got
+            return board.latest[s].copy(), int(board.arrival_ns[s])
 
-    def latest_all(self) -> tuple[list[str], np.ndarray, npt.NDArray[np.int64]]:
-        """Ids, newest rows ``(n,)`` and arrival times ``(n,)`` of every vehicle with a row."""
+    def latest_all(
+        self, estimator: str, *, primary_only: bool = False
+    ) -> tuple[list[str], np.ndarray, npt.NDArray[np.int64]]:
+        """Ids, newest rows ``(n,)`` and arrival times ``(n,)`` of every vehicle with rows of
+        ``estimator`` (only those whose primary it is with ``primary_only``)."""
         with self._lock:
-            n = len(self._ids)
-            has = self._has[:n]
-            ids = [v for v, h in zip(self._ids, has, strict=True) if h]
-            return ids, self._latest[:n][has].copy(), self._arrival_ns[:n][has].copy()
+            board = self._boards.get(estimator)
+            if board is None:
+                return [], np.zeros(0, np.int64), np.zeros(0, np.int64)
+            n = len(board.ids)
+            has = board.has[:n].copy()
+            if primary_only:
+                for s in np.flatnonzero(has).tolist():
+                    has[s] = self._primary(board.ids[s]) == estimator
+            ids = [v for v, h in zip(board.ids, has.tolist(), strict=True) if h]
+            return ids, board.latest[:n][has].copy(), board.arrival_ns[:n][has].copy()
 
     def _ages(
         self, stamps: npt.NDArray[np.int64], arrivals: npt.NDArray[np.int64], now_ns: int
@@ -482,77 +631,120 @@ class LiveHub:
             for a in age_s.tolist()
         ]
 
-    def status(self, vehicle_id: str, now_ns: int | None = None) -> str | None:
-        """``live`` / ``stale`` / ``offline`` for a known vehicle, None for an unknown one."""
-        got = self.latest(vehicle_id)
+    def status_of_rows(
+        self, stamps_ns: npt.ArrayLike, arrivals_ns: npt.ArrayLike, now_ns: int | None = None
+    ) -> list[str]:
+        """Status of rows (``latest_all``'s stamps and arrival times), one per row."""
+        now = self._clock_ns() if now_ns is None else now_ns
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        return self._status(self._ages(stamps, np.asarray(arrivals_ns, dtype=np.int64), now))
+
+    def status(
+        self, vehicle_id: str, estimator: str | None = None, now_ns: int | None = None
+    ) -> str | None:
+        """``live`` / ``stale`` / ``offline`` of a known (vehicle, estimator) (default: its
+        primary), None for an unknown one."""
+        got = self.latest(vehicle_id, estimator)
         if got is None:
             return None
-        now = self._clock_ns() if now_ns is None else now_ns
         row, arr = got
-        age = self._ages(np.array([int(row["stamp_ns"])]), np.array([arr]), now)
-        return self._status(age)[0]
+        return self.status_of_rows([int(row["stamp_ns"])], [arr], now_ns)[0]
+
+    def _primary_rows(self) -> tuple[list[str], dict[str, _Group]]:
+        """Every vehicle id, and per primary estimator: (indices into ids, rows, arrivals)."""
+        with self._lock:
+            ids = list(self._estimators)
+            groups: dict[str, list[int]] = {}
+            for i, vid in enumerate(ids):
+                groups.setdefault(self._primary(vid) or "", []).append(i)
+            out: dict[str, _Group] = {}
+            for name, idx in groups.items():
+                board = self._boards[name]
+                slots = [board.slot[ids[i]] for i in idx]
+                out[name] = (idx, board.latest[slots], board.arrival_ns[slots])
+        return ids, out
 
     def overview(self, now_ns: int | None = None) -> dict[str, Any]:
-        """Compact column-wise state of the whole fleet (the ``fleet`` WebSocket message body).
+        """Compact column-wise state of the whole fleet (the ``fleet`` WebSocket message body),
+        each vehicle by its primary estimator.
 
-        Keys: ``ids``, ``status``, ``stamp_ns``, ``age_s``, ``vg_mps``, ``slip_left_pct``,
-        ``slip_right_pct``, ``gnss`` and ``flags``, each a list with one entry per vehicle.
+        Keys, each a list with one entry per vehicle: ``ids``, ``estimator`` (the primary),
+        ``status``, ``stamp_ns``, ``age_s``, ``speed_mps`` (its motion channel), ``quality``
+        (:func:`quality`), ``flags``; and ``slip_pct``: ``{channel key: [...]}`` for every slip
+        channel key of any primary (null where a vehicle's primary has no such channel).
         Floats are rounded (speeds to 0.01 m/s, slip to 0.1 %, ages to 0.1 s); NaN becomes null.
         """
         now = self._clock_ns() if now_ns is None else now_ns
-        ids, rows, arr = self.latest_all()
-        ages = self._ages(rows["stamp_ns"].astype(np.int64), arr, now)
-        flags = rows["flags"].astype(np.int64).tolist()
-        return {
-            "t_ns": now,
-            "ids": ids,
-            "status": self._status(ages),
-            "stamp_ns": rows["stamp_ns"].astype(np.int64).tolist(),
-            "age_s": _rounded(ages, 1),
-            "vg_mps": _rounded(rows["vg_mps"], 2),
-            "slip_left_pct": _rounded(rows["slip_left_pct"], 1),
-            "slip_right_pct": _rounded(rows["slip_right_pct"], 1),
-            "gnss": [gnss_quality(f) for f in flags],
-            "flags": flags,
+        ids, groups = self._primary_rows()
+        n = len(ids)
+        out: dict[str, Any] = {"t_ns": now, "ids": ids, "estimator": [""] * n}
+        cols: dict[str, list[Any]] = {
+            k: [None] * n for k in ("status", "stamp_ns", "age_s", "speed_mps", "quality", "flags")
         }
+        slips: dict[str, list[float | None]] = {}
+        for name, (idx, rows, arr) in groups.items():
+            spec = self._boards[name].spec
+            stamps = rows["stamp_ns"].astype(np.int64)
+            ages = self._ages(stamps, arr, now)
+            flags = rows["flags"].astype(np.int64).tolist() if spec.has_field("flags") else None
+            part: dict[str, list[Any]] = {
+                "status": self._status(ages),
+                "stamp_ns": stamps.tolist(),
+                "age_s": _rounded(ages, 1),
+                "speed_mps": _rounded(rows[spec.motion_field], 2)
+                if spec.motion_field
+                else [None] * len(idx),
+                "flags": flags or [0] * len(idx),
+                "quality": [quality(spec, f) for f in flags or [0] * len(idx)],
+            }
+            for s in spec.slips:
+                col = slips.setdefault(s.key, [None] * n)
+                for i, v in zip(idx, _rounded(rows[s.field], 1), strict=True):
+                    col[i] = v
+            for key, values in part.items():
+                for i, v in zip(idx, values, strict=True):
+                    cols[key][i] = v
+            for i in idx:
+                out["estimator"][i] = name
+        return {**out, **cols, "slip_pct": slips}
 
     def window(
         self,
         vehicle_id: str,
         window_s: float,
         *,
+        estimator: str | None = None,
         since_ns: int | None = None,
         max_points: int | None = None,
     ) -> dict[str, Any] | None:
-        """Decimated series of one vehicle over the last ``window_s`` seconds (sensor time).
+        """Decimated series of one (vehicle, estimator) over the last ``window_s`` seconds
+        (sensor time); ``estimator`` defaults to the vehicle's primary.
 
         Picks the finest tier whose span covers the window. With ``since_ns`` only rows with
         ``stamp_ns >= since_ns`` are returned (incremental updates). With ``max_points`` rows are
         further bucketed in time so that at most about that many remain.
 
-        Returns None for an unknown vehicle, else ``{"tier", "bucket_s", "stamp_ns": [...],
-        <field>: [...] for field in LIVE_FIELDS}`` (NaN → None).
+        Returns None for an unknown (vehicle, estimator), else ``{"estimator", "tier",
+        "bucket_s", "stamp_ns": [...], <field>: [...] for field in live_fields(spec)}`` (NaN →
+        None).
         """
         with self._lock:
-            s = self._slot.get(vehicle_id)
-            if s is None or not self._has[s]:
+            got = self._slot(vehicle_id, estimator)
+            if got is None:
                 return None
-            newest = int(self._latest["stamp_ns"][s])
-            tier = next((t for t in self._tiers if t.spec.span_s >= window_s), self._tiers[-1])
-            start = newest - round(window_s * 1e9)
-            if since_ns is not None:
-                start = max(start, since_ns)
-            st, vals = tier.read(s, start)
+            board, s = got
+            tier, st, vals = board.window(s, window_s, since_ns)
         if max_points is not None and st.shape[0] > max_points > 0:
             width = max(1, (int(st[-1]) - int(st[0])) // max_points + 1)
             key = (st - st[0]) // width
-            _, st, vals = _group_aggregate(key, st, vals)
+            _, st, vals = _group_aggregate(key, st, vals, board.tiers[0].peak_cols)
         out: dict[str, Any] = {
-            "tier": tier.spec.name,
-            "bucket_s": tier.spec.bucket_s,
+            "estimator": board.spec.name,
+            "tier": tier.name,
+            "bucket_s": tier.bucket_s,
             "stamp_ns": st.tolist(),
         }
-        for i, f in enumerate(LIVE_FIELDS):
+        for i, f in enumerate(board.fields):
             col = vals[:, i]
             out[f] = [int(x) for x in col] if f == "flags" else _rounded(col, 3)
         return out

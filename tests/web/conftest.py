@@ -24,7 +24,9 @@ from typing import Any
 import numpy as np
 import pytest
 import uvicorn
+from fastapi import APIRouter
 
+from estimator.catalog import SPECS
 from estimator.config import SlipConfig, VehicleConfig
 from server.analytics.alerts import AlertEngine
 from server.api import create_app
@@ -43,6 +45,19 @@ SCREENSHOTS = REPO / "artifacts" / "screenshots"
 CHROMIUM = os.environ.get("SLIPFLEET_CHROMIUM", "/usr/bin/chromium")
 N_VEHICLES = 12
 SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
+
+
+def _estimators_router() -> APIRouter:
+    """``GET /api/v1/estimators`` from the catalog, for an app whose API does not serve it yet
+    (the app's own route, registered first, wins where it exists)."""
+    router = APIRouter()
+
+    @router.get("/estimators")
+    def estimators() -> dict[str, Any]:
+        data = [SPECS[name].to_dict() for name in sorted(SPECS)]
+        return {"data": data, "count": len(data)}
+
+    return router
 
 
 class _StoreSink:
@@ -113,7 +128,9 @@ def serve_live_stack(data_dir: Path, *, require_auth: bool) -> Iterator[LiveStac
     )
     runtime = LiveRuntime(settings)
     app = create_app(
-        settings, runtime, routers=[*API_ROUTERS, live_routes.router, alerts_routes.router]
+        settings,
+        runtime,
+        routers=[*API_ROUTERS, live_routes.router, alerts_routes.router, _estimators_router()],
     )
     mount_web(app)
     port = free_port()

@@ -170,8 +170,8 @@ def test_the_track_goes_through_stored_positions(
     j = int(np.argmin(np.abs(np.asarray(full["stamp_ns"]) / 1e6 - stamp_ms)))
     assert abs(full["stamp_ns"][j] / 1e6 - stamp_ms) < 1
     assert points[i] == (full["east_m"][j], full["north_m"][j])
-    assert page.inner_text("#h-sl") == f"{full['slip_left_pct'][j]:.1f}"
-    assert page.inner_text("#h-vg") == f"{full['vg_mps'][j]:.2f}"
+    assert page.inner_text("#h-slip-left") == f"{full['slip_left_pct'][j]:.1f}"
+    assert page.inner_text("#h-motion") == f"{full['vg_mps'][j]:.2f}"
 
 
 def test_the_heat_grid_is_the_rest_slip_map(

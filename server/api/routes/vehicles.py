@@ -1,4 +1,8 @@
-"""``/vehicles``: register, configure, list and delete vehicles; their newest estimate."""
+"""``/vehicles``: register, configure, list and delete vehicles; their newest estimate.
+
+Registrations, config changes and deletions go through the runtime's single store writer
+(:data:`server.api.deps.WriterDep`), like every other write.
+"""
 
 from __future__ import annotations
 
@@ -13,8 +17,17 @@ from fastapi import APIRouter, Body, Depends, Path, Response, status
 from pydantic import TypeAdapter, ValidationError
 
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
-from estimator.types import EstimateFlag
-from server.api.deps import RuntimeDep, StoreDep, VehicleDep, call_hook, require_role
+from estimator.spec import EstimatorSpec
+from server.api.deps import (
+    EstimatorDep,
+    RuntimeDep,
+    StoreDep,
+    VehicleDep,
+    WriterDep,
+    call_hook,
+    require_role,
+    vehicle_estimators,
+)
 from server.api.errors import InvalidConfig, NotFound, error_responses
 from server.api.models import (
     AnchorPublic,
@@ -26,20 +39,13 @@ from server.api.models import (
 from server.storage.base import Anchor, VehicleRecord
 from server.timeparse import format_ns
 
-__all__ = ["estimate_to_dict", "flag_names", "router"]
+__all__ = ["estimate_to_dict", "router"]
 
 router = APIRouter(prefix="/vehicles", tags=["vehicles"])
 
 VEHICLE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 """Ids a client may register: one Zenoh key chunk, as
 :func:`server.protocol.keys.is_valid_vehicle_id` accepts (a test keeps the two in step)."""
-
-_FLAG_BITS = [f for f in EstimateFlag if f.value and (f.value & (f.value - 1)) == 0]
-
-
-def flag_names(flags: int) -> list[str]:
-    """Names of the single-bit :class:`EstimateFlag` members set in ``flags``, low bit first."""
-    return [str(f.name) for f in _FLAG_BITS if flags & f.value]
 
 
 def estimate_to_dict(row: np.ndarray) -> dict[str, Any]:
@@ -63,6 +69,7 @@ def _public(record: VehicleRecord, anchors: Mapping[str, Anchor]) -> VehiclePubl
         created_ns=record.created_ns,
         updated_ns=record.updated_ns,
         anchor=None if anchor is None else AnchorPublic.of(anchor),
+        estimators=list(vehicle_estimators(record)),
     )
 
 
@@ -134,6 +141,7 @@ def put_vehicle(
     vehicle_id: Annotated[str, Path(pattern=VEHICLE_ID_PATTERN)],
     body: Annotated[VehicleConfigIn, Body()],
     store: StoreDep,
+    writer: WriterDep,
     runtime: RuntimeDep,
     response: Response,
 ) -> VehiclePublic:
@@ -143,7 +151,8 @@ def put_vehicle(
     except ConfigError as exc:
         raise InvalidConfig(str(exc)) from exc
     existed = store.get_vehicle(vehicle_id) is not None
-    record = store.upsert_vehicle(vehicle_id, config.to_dict(), time.time_ns())
+    stored = config.to_dict()
+    record = writer.call(lambda s: s.upsert_vehicle(vehicle_id, stored, time.time_ns()))
     call_hook(runtime, "on_vehicle_config", vehicle_id, config)
     response.status_code = status.HTTP_200_OK if existed else status.HTTP_201_CREATED
     return _public(record, store.get_anchors(vehicle_id))
@@ -156,8 +165,8 @@ def put_vehicle(
     responses=error_responses(401, 403, 404),
     summary="Delete a vehicle with all its estimates and counters (admin)",
 )
-def delete_vehicle(vehicle_id: str, store: StoreDep, runtime: RuntimeDep) -> Response:
-    if not store.delete_vehicle(vehicle_id):
+def delete_vehicle(vehicle_id: str, writer: WriterDep, runtime: RuntimeDep) -> Response:
+    if not writer.call(lambda s: s.delete_vehicle(vehicle_id)):
         raise NotFound(f"unknown vehicle {vehicle_id!r}")
     call_hook(runtime, "on_vehicle_deleted", vehicle_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
@@ -166,16 +175,25 @@ def delete_vehicle(vehicle_id: str, store: StoreDep, runtime: RuntimeDep) -> Res
 @router.get(
     "/{vehicle_id}/latest",
     response_model=EstimatePublic,
-    responses=error_responses(404),
-    summary="The vehicle's newest estimate",
-    description="Every estimate field (NaN as null) plus `flags` decoded into `flag_names`.",
+    responses=error_responses(404, 422),
+    summary="The vehicle's newest estimate of one estimator",
+    description="Every field of the estimator's row (`estimator`, default the vehicle's "
+    "primary; NaN as null) plus its `flags` decoded into `flag_names` by the estimator's spec.",
 )
-def latest_estimate(vehicle: VehicleDep, store: StoreDep) -> dict[str, Any]:
-    row = store.latest(vehicle.vehicle_id)
+def latest_estimate(vehicle: VehicleDep, spec: EstimatorDep, store: StoreDep) -> dict[str, Any]:
+    row = store.latest(vehicle.vehicle_id, estimator=spec.name)
     if row is None:
-        raise NotFound(f"vehicle {vehicle.vehicle_id!r} has no estimates yet")
+        raise NotFound(f"vehicle {vehicle.vehicle_id!r} has no {spec.name} estimates yet")
+    return _latest(vehicle.vehicle_id, spec, row)
+
+
+def _latest(vehicle_id: str, spec: EstimatorSpec, row: np.ndarray) -> dict[str, Any]:
     out = estimate_to_dict(row)
-    out["vehicle_id"] = vehicle.vehicle_id
-    out["time"] = format_ns(out["stamp_ns"])
-    out["flag_names"] = flag_names(out["flags"])
-    return out
+    flags = int(out["flags"]) if spec.has_field("flags") else 0
+    return {
+        "vehicle_id": vehicle_id,
+        "estimator": spec.name,
+        "time": format_ns(out["stamp_ns"]),
+        "flag_names": spec.flag_names(flags),
+        **out,
+    }

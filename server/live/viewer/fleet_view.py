@@ -1,10 +1,15 @@
-"""viser 3D fleet view: every vehicle at its GNSS pose, wheels coloured by slip, one followed.
+"""viser 3D fleet view: every vehicle at its pose, wheels coloured by slip, one followed.
+
+Each vehicle is drawn from its primary estimator's rows when that estimator's spec has a position
+(vehicles whose primary has none are not drawn), read through the spec
+(:mod:`server.live.viewer.scene`).
 
 Scene (world = local ENU metres, see :mod:`server.live.viewer.scene`):
 
 ``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
-``/fleet/wheels``   one batched mesh, two wheels per vehicle, coloured by their slip
-``/follow/track``   the followed vehicle's recent track, coloured by max |slip| (line segments)
+``/fleet/wheels``   one batched mesh, a wheel or track per slip channel of the vehicle's spec,
+                    coloured by that channel's slip
+``/follow/track``   the followed vehicle's recent track, coloured by max |slip| of its channels
 ``/follow/velocity`` its velocity arrow (2 s of travel), above the body
 ``/follow/label``   its id
 
@@ -31,12 +36,14 @@ import numpy as np
 import viser
 
 from estimator.config import VehicleGeometry
+from estimator.spec import EstimatorSpec
 from server.live.hub import LiveHub
 from server.live.viewer.colors import slip_rgb
 from server.live.viewer.scene import (
     BODY_SIZE_M,
     FleetFrame,
     box_mesh,
+    concat_frames,
     cylinder_mesh_x,
     fleet_frame,
 )
@@ -95,7 +102,7 @@ class FleetViewer:
         self._follow: viser.GuiDropdownHandle[str] | None = None
         self._camera_follows: viser.GuiCheckboxHandle | None = None
         self._count: viser.GuiTextHandle | None = None
-        self._n = -1
+        self._n: tuple[int, int] = (-1, -1)  # vehicles and wheels of the batched meshes
         self._ids: list[str] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -194,6 +201,7 @@ class FleetViewer:
         for h in (self._bodies, self._wheels):
             if h is not None:
                 h.remove()
+        self._wheels = None
         g = self.geometry
         r = (g.wheel_radius_left_m + g.wheel_radius_right_m) / 2
         self._bodies = self._batched(
@@ -203,13 +211,14 @@ class FleetViewer:
             frame.body_position_m,
             frame.body_rgb,
         )
-        self._wheels = self._batched(
-            "/fleet/wheels",
-            cylinder_mesh_x(r, _WHEEL_WIDTH_M),
-            frame.wheel_wxyz,
-            frame.wheel_position_m,
-            frame.wheel_rgb,
-        )
+        if frame.wheel_owner.shape[0]:
+            self._wheels = self._batched(
+                "/fleet/wheels",
+                cylinder_mesh_x(r, _WHEEL_WIDTH_M),
+                frame.wheel_wxyz,
+                frame.wheel_position_m,
+                frame.wheel_rgb,
+            )
 
     def _batched(
         self,
@@ -270,32 +279,35 @@ class FleetViewer:
         if self.server is None:
             raise RuntimeError("viewer not open")
         t0 = time.perf_counter()
-        ids, rows, _arrivals = self.hub.latest_all()
+        groups = [
+            (spec, *self.hub.latest_all(spec.name, primary_only=True))
+            for spec in self.hub.specs()
+            if spec.position is not None
+        ]
+        ids = [v for g in groups for v in g[1]]
         if not ids:
             return 0.0
         offsets = self._offsets_of(ids)
-        if offsets is not None:
-            rows = rows.copy()
-            rows["east_m"] += offsets[:, 0]
-            rows["north_m"] += offsets[:, 1]
-            rows["up_m"] += offsets[:, 2]
-        status = [self.hub.status(v) or "live" for v in ids] if len(ids) <= 64 else None
-        if status is None:
-            ov = self.hub.overview()
-            status = ov["status"]
-        frame = fleet_frame(ids, rows, self.geometry, status)
+        frames, start = [], 0
+        for spec, gids, rows, arrivals in groups:
+            part = None if offsets is None else offsets[start : start + len(gids)]
+            frames.append(self._frame_of(spec, gids, rows, arrivals, part))
+            start += len(gids)
+        frame = concat_frames(frames)
+        shape = (len(ids), frame.wheel_owner.shape[0])
         with self._lock, self.server.atomic():
-            if len(ids) != self._n or self._bodies is None or self._wheels is None:
+            if shape != self._n or self._bodies is None:
                 self._rebuild_fleet(frame)
-                self._n = len(ids)
+                self._n = shape
             else:
                 f32 = np.float32
                 self._bodies.batched_positions = frame.body_position_m.astype(f32)
                 self._bodies.batched_wxyzs = frame.body_wxyz.astype(f32)
                 self._bodies.batched_colors = frame.body_rgb
-                self._wheels.batched_positions = frame.wheel_position_m.astype(f32)
-                self._wheels.batched_wxyzs = frame.wheel_wxyz.astype(f32)
-                self._wheels.batched_colors = frame.wheel_rgb
+                if self._wheels is not None:
+                    self._wheels.batched_positions = frame.wheel_position_m.astype(f32)
+                    self._wheels.batched_wxyzs = frame.wheel_wxyz.astype(f32)
+                    self._wheels.batched_colors = frame.wheel_rgb
             if ids != self._ids:
                 self._ids = list(ids)
                 assert self._follow is not None and self._count is not None
@@ -308,6 +320,24 @@ class FleetViewer:
         self.frames += 1
         self.last_frame_s = time.perf_counter() - t0
         return self.last_frame_s
+
+    def _frame_of(
+        self,
+        spec: EstimatorSpec,
+        ids: list[str],
+        rows: np.ndarray,
+        arrivals: np.ndarray,
+        offsets: np.ndarray | None,
+    ) -> FleetFrame:
+        """The newest ``rows`` of ``spec`` of vehicles ``ids``, shifted by ``offsets`` (n, 3)."""
+        p = spec.position
+        if offsets is not None and p is not None:
+            rows = rows.copy()
+            for k, name in enumerate((p.east_field, p.north_field, p.up_field)):
+                if name is not None:
+                    rows[name] += offsets[:, k]
+        status = self.hub.status_of_rows(rows["stamp_ns"], arrivals)
+        return fleet_frame(ids, rows, spec, self.geometry, status)
 
     def _draw_followed(self, frame: FleetFrame, offsets: np.ndarray | None) -> None:
         assert self.server is not None
@@ -338,20 +368,23 @@ class FleetViewer:
             self._label.text = vid
             self._label.position = label_pos
             self._label.visible = True
-        win = self.hub.window(vid, _TRACK_WINDOW_S)
-        if win is not None and len(win["stamp_ns"]) >= 2:
-            e = np.array([np.nan if v is None else v for v in win["east_m"]])
-            n = np.array([np.nan if v is None else v for v in win["north_m"]])
-            u = np.array([np.nan if v is None else v for v in win["up_m"]])
+        spec = self.hub.spec(frame.estimators[i])
+        win = self.hub.window(vid, _TRACK_WINDOW_S, estimator=frame.estimators[i])
+        if spec is not None and spec.position is not None and win is not None:
+            p = spec.position
+            n_pts = len(win["stamp_ns"])
+            e, n, u = (_col(win, name, n_pts) for name in (p.east_field, p.north_field, p.up_field))
             drop = frame.antenna_m[i, 2] - frame.ground_m[i, 2]  # antenna height above ground
+            if p.up_field is None:
+                u = np.zeros(n_pts)
             pts = np.stack([e, n, u - drop + 0.05], -1)
             if offsets is not None:  # into the scene frame: the same shift as the vehicle's pose
                 pts += offsets[i]
             ok = np.isfinite(pts).all(axis=1)
             pts = pts[ok]
-            sl = np.array([np.nan if v is None else abs(v) for v in win["slip_left_pct"]])[ok]
-            sr = np.array([np.nan if v is None else abs(v) for v in win["slip_right_pct"]])[ok]
-            metric = np.fmax(sl, sr)
+            mags = [np.abs(_col(win, s.field, n_pts)) for s in spec.slips]
+            metric = np.fmax.reduce(mags) if mags else np.full(n_pts, np.nan)
+            metric = metric[ok]
             if pts.shape[0] >= 2:
                 segs = np.stack([pts[:-1], pts[1:]], axis=1)
                 rgb = slip_rgb(metric[1:])
@@ -394,3 +427,10 @@ class FleetViewer:
             except AssertionError:  # the client has not reported its camera yet
                 continue
         self._cam_last = np.array(target, dtype=np.float64)
+
+
+def _col(win: dict[str, list[float | None]], name: str | None, n: int) -> np.ndarray:
+    """A window column as floats (None → NaN); NaN throughout for no field."""
+    if name is None:
+        return np.full(n, np.nan)
+    return np.array([np.nan if v is None else v for v in win[name]], dtype=np.float64)

@@ -1,8 +1,10 @@
 """Pure maps from estimate rows to the 3D fleet scene: poses, wheel placement, colours.
 
-World frame of the scene = the vehicles' local ENU frame: ``x`` east, ``y`` north, ``z`` up,
-metres (``east_m``, ``north_m``, ``up_m`` of the estimates). Body frame (``estimator.types``):
-X right, Y forward, Z up.
+Rows are read through their estimator's spec: position and heading from its
+:class:`estimator.spec.PositionChannel`, one wheel (or track) per slip channel placed by
+:class:`estimator.spec.WheelPosition` and coloured by that channel's value, the velocity arrow
+from its motion speed. World frame of the scene = the vehicles' local ENU frame: ``x`` east,
+``y`` north, ``z`` up, metres. Body frame (``estimator.types``): X right, Y forward, Z up.
 
 Attitude → rotation body → ENU. With heading ``ψ`` from north clockwise, pitch ``θ`` nose up
 positive and roll ``φ`` right side down positive::
@@ -15,7 +17,10 @@ tips down for ``φ > 0`` (its up component is ``-cos θ sin φ``). Quaternions a
 
 Vehicle layout (from :class:`estimator.config.VehicleGeometry`): the estimate's position is the
 antenna, ``h0 + h1`` above the origin ``O`` (ground under the rear-axle midpoint) plus its
-horizontal ``antenna_offset_m``; the driven wheels sit at ``O + R·(±b/2, 0, r)``.
+horizontal ``antenna_offset_m``; rear wheels sit at ``O + R·(±b/2, 0, r)``, front wheels
+:data:`FRONT_AXLE_M` ahead, tracks under the body's centre (:func:`wheel_offset_m`). Pitch and
+roll are the spec's fields labelled ``pitch`` / ``roll`` in rad (:func:`attitude_fields`), level
+when it has none.
 """
 
 from __future__ import annotations
@@ -27,19 +32,24 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.config import VehicleGeometry
+from estimator.spec import EstimatorSpec, WheelPosition
 from server.live.viewer.colors import slip_rgb
 
 __all__ = [
     "BODY_CENTRE_M",
     "BODY_SIZE_M",
+    "FRONT_AXLE_M",
     "FleetFrame",
+    "attitude_fields",
     "attitude_from_wxyz",
     "box_mesh",
+    "concat_frames",
     "cylinder_mesh_x",
     "fleet_frame",
     "quat_mul",
     "rotate",
     "rotation_matrix_from_wxyz",
+    "wheel_offset_m",
     "wxyz_from_attitude",
 ]
 
@@ -48,6 +58,8 @@ FloatArray = npt.NDArray[np.float64]
 #: Body box (width X, length Y, height Z) and its centre relative to ``O`` in the body frame.
 BODY_SIZE_M = (1.3, 3.2, 1.1)
 BODY_CENTRE_M = (0.0, 1.1, 1.35)
+#: Drawn front axle, ahead of ``O`` (the geometry has no wheelbase: for drawing only).
+FRONT_AXLE_M = 2.3
 
 _STATUS_RGB = {
     "live": (70, 110, 170),
@@ -79,13 +91,13 @@ def _axis_quat(angle: FloatArray, axis: int) -> FloatArray:
 
 
 def wxyz_from_attitude(
-    heading_rad: npt.ArrayLike, pitch_rad: npt.ArrayLike, roll_rad: npt.ArrayLike
+    psi_rad: npt.ArrayLike, theta_rad: npt.ArrayLike, phi_rad: npt.ArrayLike
 ) -> FloatArray:
     """Unit quaternion of ``R = Rz(-ψ)·Rx(θ)·Ry(φ)``, shape ``(..., 4)``, ``w >= 0``."""
-    psi = np.asarray(heading_rad, dtype=np.float64)
+    psi = np.asarray(psi_rad, dtype=np.float64)
     q = quat_mul(
-        quat_mul(_axis_quat(-psi, 2), _axis_quat(np.asarray(pitch_rad, dtype=np.float64), 0)),
-        _axis_quat(np.asarray(roll_rad, dtype=np.float64), 1),
+        quat_mul(_axis_quat(-psi, 2), _axis_quat(np.asarray(theta_rad, dtype=np.float64), 0)),
+        _axis_quat(np.asarray(phi_rad, dtype=np.float64), 1),
     )
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0, -q, q)
@@ -128,22 +140,27 @@ class FleetFrame:
     Attributes
     ----------
     ids : list[str], length n
+    estimators : list[str], length n, the estimator each vehicle is drawn from
     body_position_m : (n, 3) centre of each body box
     body_wxyz : (n, 4) body → world rotation
     body_rgb : (n, 3) uint8, by status
-    wheel_position_m : (2n, 3) wheel centres, left and right of vehicle 0, then vehicle 1, …
-    wheel_wxyz : (2n, 4) the body's rotation, repeated per wheel
-    wheel_rgb : (2n, 3) uint8, slip colour (``server.live.viewer.colors``) of that wheel
-    velocity_mps : (n, 3) ``vg_mps`` along the forward axis
+    wheel_position_m : (w, 3) wheel centres: vehicle 0's in its spec's slip channel order, then
+        vehicle 1's, …
+    wheel_owner : (w,) int, the vehicle (index into ``ids``) of each wheel
+    wheel_wxyz : (w, 4) the body's rotation, repeated per wheel
+    wheel_rgb : (w, 3) uint8, slip colour (``server.live.viewer.colors``) of that wheel's channel
+    velocity_mps : (n, 3) the motion speed along the forward axis
     antenna_m : (n, 3) the estimate's position
     ground_m : (n, 3) ``O``, the ground point under the rear-axle midpoint
     """
 
     ids: list[str]
+    estimators: list[str]
     body_position_m: FloatArray
     body_wxyz: FloatArray
     body_rgb: npt.NDArray[np.uint8]
     wheel_position_m: FloatArray
+    wheel_owner: npt.NDArray[np.int64]
     wheel_wxyz: FloatArray
     wheel_rgb: npt.NDArray[np.uint8]
     velocity_mps: FloatArray
@@ -156,57 +173,109 @@ def _nan_to(a: npt.ArrayLike, value: float) -> FloatArray:
     return np.where(np.isfinite(arr), arr, value)
 
 
+def wheel_offset_m(position: WheelPosition, geometry: VehicleGeometry) -> FloatArray:
+    """Body-frame centre ``(3,)`` of the wheel or track at ``position``, relative to ``O``."""
+    left = position.value.endswith("left")
+    half = geometry.track_width_m / 2
+    radius = geometry.wheel_radius_left_m if left else geometry.wheel_radius_right_m
+    ahead = {"rear": 0.0, "front": FRONT_AXLE_M, "track": BODY_CENTRE_M[1]}
+    return np.array([-half if left else half, ahead[position.value.split("_")[0]], radius])
+
+
+def attitude_fields(spec: EstimatorSpec) -> tuple[str | None, str | None]:
+    """The spec's pitch and roll fields: labelled ``pitch`` / ``roll``, in rad (None: none)."""
+
+    def find(label: str) -> str | None:
+        return next((f.name for f in spec.fields if (f.label, f.unit) == (label, "rad")), None)
+
+    return find("pitch"), find("roll")
+
+
+def _column(rows: np.ndarray, name: str | None, default: float) -> FloatArray:
+    """``rows[name]`` with NaN as ``default``; all ``default`` when there is no such field."""
+    if name is None:
+        return np.full(rows.shape[0], default)
+    return _nan_to(rows[name], default)
+
+
 def fleet_frame(
     ids: Sequence[str],
     rows: np.ndarray,
+    spec: EstimatorSpec,
     geometry: VehicleGeometry | None = None,
     status: Sequence[str] | None = None,
 ) -> FleetFrame:
-    """Map the newest estimate row of each vehicle (``rows``, shape ``(n,)``) to the scene.
+    """Map the newest row of ``spec`` of each vehicle (``rows``, shape ``(n,)``) to the scene.
 
-    Missing attitude (NaN) is taken as level; missing heading as north; missing position as the
-    origin; a missing slip colours the wheel grey.
+    ``spec`` must have a position. Missing attitude (NaN, or no such field) is taken as level;
+    missing heading as north; missing position as the origin; a missing slip colours the wheel
+    grey.
     """
+    if spec.position is None:
+        raise ValueError(f"estimator {spec.name!r} has no position to draw")
+    pos = spec.position
     g = geometry or VehicleGeometry()
     n = rows.shape[0]
+    pitch, roll = attitude_fields(spec)
     q = wxyz_from_attitude(
-        _nan_to(rows["heading_rad"], 0.0),
-        _nan_to(rows["pitch_rad"], 0.0),
-        _nan_to(rows["roll_rad"], 0.0),
+        _column(rows, pos.heading_field, 0.0),
+        _column(rows, pitch, 0.0),
+        _column(rows, roll, 0.0),
     )
     R = rotation_matrix_from_wxyz(q)
     antenna = np.stack(
-        [_nan_to(rows["east_m"], 0.0), _nan_to(rows["north_m"], 0.0), _nan_to(rows["up_m"], 0.0)],
-        -1,
+        [_column(rows, f, 0.0) for f in (pos.east_field, pos.north_field, pos.up_field)], -1
     )
     ax, ay = g.antenna_offset_m
     ground = antenna - rotate(R, (ax, ay, g.h0_m + g.h1_m))
-    body = ground + rotate(R, BODY_CENTRE_M)
-    half = g.track_width_m / 2
-    left = ground + rotate(R, (-half, 0.0, g.wheel_radius_left_m))
-    right = ground + rotate(R, (half, 0.0, g.wheel_radius_right_m))
-    wheels = np.empty((2 * n, 3))
-    wheels[0::2] = left
-    wheels[1::2] = right
-    slip = np.empty(2 * n)
-    slip[0::2] = rows["slip_left_pct"]
-    slip[1::2] = rows["slip_right_pct"]
-    forward = R[:, :, 1]
-    vel = forward * _nan_to(rows["vg_mps"], 0.0)[:, None]
+    k = len(spec.slips)
+    wheels = np.empty((k * n, 3))
+    slip = np.empty(k * n)
+    for j, channel in enumerate(spec.slips):
+        wheels[j::k] = ground + rotate(R, wheel_offset_m(channel.position, g))
+        slip[j::k] = rows[channel.field]
+    vel = R[:, :, 1] * _column(rows, spec.motion_field, 0.0)[:, None]
     body_rgb = np.array(
         [_STATUS_RGB.get(s, _STATUS_RGB["live"]) for s in (status or ["live"] * n)], dtype=np.uint8
     ).reshape(n, 3)
     return FleetFrame(
         ids=list(ids),
-        body_position_m=body,
+        estimators=[spec.name] * n,
+        body_position_m=ground + rotate(R, BODY_CENTRE_M),
         body_wxyz=q,
         body_rgb=body_rgb,
         wheel_position_m=wheels,
-        wheel_wxyz=np.repeat(q, 2, axis=0),
+        wheel_owner=np.repeat(np.arange(n, dtype=np.int64), k),
+        wheel_wxyz=np.repeat(q, k, axis=0),
         wheel_rgb=slip_rgb(slip),
         velocity_mps=vel,
         antenna_m=antenna,
         ground_m=ground,
+    )
+
+
+def concat_frames(frames: Sequence[FleetFrame]) -> FleetFrame:
+    """One frame of the vehicles of ``frames`` (e.g. one per estimator), in that order."""
+    offsets = np.cumsum([0, *(len(f.ids) for f in frames[:-1])])
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(f, name) for f in frames])
+
+    return FleetFrame(
+        ids=[v for f in frames for v in f.ids],
+        estimators=[e for f in frames for e in f.estimators],
+        body_position_m=cat("body_position_m"),
+        body_wxyz=cat("body_wxyz"),
+        body_rgb=cat("body_rgb"),
+        wheel_position_m=cat("wheel_position_m"),
+        wheel_owner=np.concatenate(
+            [f.wheel_owner + o for f, o in zip(frames, offsets.tolist(), strict=True)]
+        ),
+        wheel_wxyz=cat("wheel_wxyz"),
+        wheel_rgb=cat("wheel_rgb"),
+        velocity_mps=cat("velocity_mps"),
+        antenna_m=cat("antenna_m"),
+        ground_m=cat("ground_m"),
     )
 
 

@@ -72,8 +72,9 @@ def bench_per_vehicle(n: int, frames: int) -> list[float]:
         for k in range(frames + 1):
             hub.on_estimates(fleet.rows_at(_T0 + k * _STEP_NS))
             t0 = time.perf_counter()
-            ids, rows, _ = hub.latest_all()
-            f = fleet_frame(ids, rows, g, hub.overview()["status"])
+            spec = hub.specs()[0]
+            ids, rows, arrivals = hub.latest_all(spec.name)
+            f = fleet_frame(ids, rows, spec, g, hub.status_of_rows(rows["stamp_ns"], arrivals))
             with server.atomic():
                 if not bodies:
                     for i, vid in enumerate(ids):

@@ -9,8 +9,15 @@ import numpy as np
 import pytest
 
 from estimator.config import SlipConfig
-from estimator.types import EstimateFlag, empty_estimates
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.spec import EstimatorSpec, FieldSpec, SlipChannel, WheelPosition
+from estimator.types import EstimateBatch, EstimateFlag, empty_estimates
 from server.analytics.alerts import SYSTEM, AlertEngine, AlertKind
+
+SLIP_LEFT = "slip:mdsf:left"
+SLIP_RIGHT = "slip:mdsf:right"
+GNSS_DEGRADED = "flag:mdsf:DEGRADED"
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S
@@ -27,6 +34,10 @@ def rows(
     r["slip_right_pct"] = sr
     r["flags"] = flags
     return r
+
+
+def mdsf(pairs: list[tuple[str, np.ndarray]]) -> EstimateBatch:
+    return EstimateBatch.of(pairs, MDSF_SPEC)
 
 
 class Clock:
@@ -55,12 +66,12 @@ def test_slip_alert_opens_after_hold_and_closes_when_slip_drops() -> None:
     t = [float(i) for i in range(12)]
     sl = [1, 20, 25, -30, 20, 20, 20, 22, 3, 20, 20, 1]
     for ti, si in zip(t, sl, strict=True):  # one row per batch
-        eng.on_estimates([("a", rows([ti], [si]))])
+        eng.on_estimates(mdsf([("a", rows([ti], [si]))]))
     assert [e["event"] for _, e in pub] == ["open", "close"]
     closed = eng.alerts(state="closed")
     assert len(closed) == 1
     a = closed[0]
-    assert a.kind is AlertKind.SLIP_LEFT
+    assert a.kind == SLIP_LEFT
     assert a.start_ns == T0 + 1 * S  # where slip went above 15 %
     assert a.end_ns == T0 + 8 * S  # first row back below
     assert a.peak == 30.0 and a.threshold == 15.0
@@ -74,25 +85,25 @@ def test_same_alerts_in_one_batch_as_in_many() -> None:
     t = [i * 0.5 for i in range(40)]
     sl = [20.0 if 4 <= i < 30 else 0.0 for i in range(40)]
     one, _, _ = engine()
-    one.on_estimates([("a", rows(t, sl, sr=0.0)), ("b", rows(t, [0.0] * 40, sr=-18.0))])
+    one.on_estimates(mdsf([("a", rows(t, sl, sr=0.0)), ("b", rows(t, [0.0] * 40, sr=-18.0))]))
     many, _, _ = engine()
     for i in range(0, 40, 3):
         many.on_estimates(
-            [
-                ("b", rows(t[i : i + 3], [0.0] * len(t[i : i + 3]), sr=-18.0)),
-                ("a", rows(t[i : i + 3], sl[i : i + 3])),
-            ]
+            mdsf(
+                [
+                    ("b", rows(t[i : i + 3], [0.0] * len(t[i : i + 3]), sr=-18.0)),
+                    ("a", rows(t[i : i + 3], sl[i : i + 3])),
+                ]
+            )
         )
 
     def key(eng: AlertEngine) -> list[tuple[str, str, int, int | None, float | None]]:
-        return sorted(
-            (a.vehicle_id, a.kind.value, a.start_ns, a.end_ns, a.peak) for a in eng.alerts()
-        )
+        return sorted((a.vehicle_id, a.kind, a.start_ns, a.end_ns, a.peak) for a in eng.alerts())
 
     assert key(one) == key(many)
     assert key(one) == [
-        ("a", "slip_left", T0 + 2 * S, T0 + 15 * S, 20.0),
-        ("b", "slip_right", T0, None, 18.0),
+        ("a", SLIP_LEFT, T0 + 2 * S, T0 + 15 * S, 20.0),
+        ("b", SLIP_RIGHT, T0, None, 18.0),
     ]
 
 
@@ -100,7 +111,7 @@ def test_nan_slip_breaks_the_run() -> None:
     eng, pub, _ = engine()
     t = [float(i) for i in range(8)]
     sl = [20, 20, 20, float("nan"), 20, 20, 20, 20]
-    eng.on_estimates([("a", rows(t, sl))])
+    eng.on_estimates(mdsf([("a", rows(t, sl))]))
     assert pub == []
 
 
@@ -108,34 +119,32 @@ def test_per_vehicle_threshold_and_later_change() -> None:
     eng, _, _ = engine()
     eng.set_slip_config("gentle", SlipConfig(alert_threshold_pct=5.0, alert_hold_s=1.0))
     t = [float(i) for i in range(4)]
-    eng.on_estimates([("gentle", rows(t, [8.0] * 4)), ("std", rows(t, [8.0] * 4))])
-    assert [(a.vehicle_id, a.kind) for a in eng.alerts(state="open")] == [
-        ("gentle", AlertKind.SLIP_LEFT)
-    ]
+    eng.on_estimates(mdsf([("gentle", rows(t, [8.0] * 4)), ("std", rows(t, [8.0] * 4))]))
+    assert [(a.vehicle_id, a.kind) for a in eng.alerts(state="open")] == [("gentle", SLIP_LEFT)]
 
 
 def test_gnss_degraded_alert() -> None:
-    eng, pub, _ = engine(gnss_hold_s=1.0)
+    eng, pub, _ = engine(flag_hold_s=1.0)
     t = [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]
     flags = [OK, DEG, DEG, DEG, OK, OK]
-    eng.on_estimates([("a", rows(t, [0.0] * 6, flags=flags))])
+    eng.on_estimates(mdsf([("a", rows(t, [0.0] * 6, flags=flags))]))
     [a] = eng.alerts()
-    assert a.kind is AlertKind.GNSS_DEGRADED
+    assert a.kind == GNSS_DEGRADED
     assert (a.start_ns, a.end_ns) == (T0 + S // 2, T0 + 2 * S)
     assert [e["event"] for _, e in pub] == ["open", "close"]
 
 
 def test_stale_opens_on_silence_and_closes_on_new_data() -> None:
     eng, pub, clock = engine(stale_after_s=10.0)
-    eng.on_estimates([("a", rows([0.0], [0.0])), ("b", rows([0.0], [0.0]))])
+    eng.on_estimates(mdsf([("a", rows([0.0], [0.0])), ("b", rows([0.0], [0.0]))]))
     clock.t_ns += 5 * S
-    eng.on_estimates([("b", rows([5.0], [0.0]))])
+    eng.on_estimates(mdsf([("b", rows([5.0], [0.0]))]))
     clock.t_ns += 6 * S  # a silent 11 s, b 6 s
     opened = eng.check_stale()
     assert [(a.vehicle_id, a.kind) for a in opened] == [("a", AlertKind.STALE)]
     assert eng.check_stale() == []  # already open
     assert opened[0].start_ns == T0
-    eng.on_estimates([("a", rows([11.0], [0.0]))])
+    eng.on_estimates(mdsf([("a", rows([11.0], [0.0]))]))
     [closed] = eng.alerts(state="closed")
     assert closed.end_ns == T0 + 11 * S
     assert [(v, e["event"], e["kind"]) for v, e in pub] == [
@@ -149,14 +158,14 @@ def test_publish_errors_are_counted_not_raised() -> None:
         raise RuntimeError("bus down")
 
     eng = AlertEngine(publish=boom, slip_config_for=lambda _v: SlipConfig(alert_hold_s=1.0))
-    eng.on_estimates([("a", rows([0.0, 1.0, 2.0], [50.0, 50.0, 50.0]))])
+    eng.on_estimates(mdsf([("a", rows([0.0, 1.0, 2.0], [50.0, 50.0, 50.0]))]))
     assert eng.publish_errors == 1
     assert eng.open_count() == 1
 
 
 def test_many_vehicles_grow_state() -> None:
     eng, _, _ = engine()
-    eng.on_estimates([(f"v{i}", rows([0.0, 6.0], [30.0, 30.0])) for i in range(100)])
+    eng.on_estimates(mdsf([(f"v{i}", rows([0.0, 6.0], [30.0, 30.0])) for i in range(100)]))
     assert eng.open_count() == 100
     assert len(eng.alerts(limit=10)) == 10
     assert {a.vehicle_id for a in eng.alerts(vehicle_id="v42")} == {"v42"}
@@ -166,7 +175,7 @@ def test_many_vehicles_grow_state() -> None:
 
 def test_stale_thread_starts_and_stops() -> None:
     eng = AlertEngine(stale_after_s=0.01)
-    eng.on_estimates([("a", rows([0.0], [0.0]))])
+    eng.on_estimates(mdsf([("a", rows([0.0], [0.0]))]))
     eng.start(interval_s=0.01)
     try:
         for _ in range(200):
@@ -207,23 +216,26 @@ def _get_alerts(eng: AlertEngine | None, query: str) -> tuple[int, Any]:
 def test_alerts_route_lists_and_filters() -> None:
     eng, _, _ = engine()
     eng.on_estimates(
-        [
-            ("a", rows([0.0, 6.0, 7.0], [30.0, 30.0, 0.0])),
-            ("b", rows([0.0, 6.0], [0.0, 40.0], sr=40.0)),
-        ]
+        mdsf(
+            [
+                ("a", rows([0.0, 6.0, 7.0], [30.0, 30.0, 0.0])),
+                ("b", rows([0.0, 6.0], [0.0, 40.0], sr=40.0)),
+            ]
+        )
     )
     status, body = _get_alerts(eng, "")
     assert status == 200
     assert body["open_count"] == 1
     assert [(a["vehicle_id"], a["kind"], a["open"]) for a in body["alerts"]] == [
-        ("b", "slip_right", True),
-        ("a", "slip_left", False),
+        ("b", SLIP_RIGHT, True),
+        ("a", SLIP_LEFT, False),
     ]
     assert body["alerts"][1]["start_ns"] == T0 and body["alerts"][1]["end_ns"] == T0 + 7 * S
-    eng.on_estimates([("b", rows([7.0, 12.0], [40.0, 40.0], sr=40.0))])
+    assert (body["alerts"][0]["estimator"], body["alerts"][0]["channel"]) == ("mdsf", "right")
+    eng.on_estimates(mdsf([("b", rows([7.0, 12.0], [40.0, 40.0], sr=40.0))]))
     status, body = _get_alerts(eng, "?state=open&vehicle_id=b")
     assert status == 200
-    assert sorted(a["kind"] for a in body["alerts"]) == ["slip_left", "slip_right"]
+    assert sorted(a["kind"] for a in body["alerts"]) == [SLIP_LEFT, SLIP_RIGHT]
     assert body["open_count"] == 2
     status, body = _get_alerts(eng, "?state=sometimes")
     assert status == 422
@@ -249,13 +261,12 @@ def test_random_chunking_does_not_change_the_alerts(seed: int) -> None:
         feeds[v]["slip_right_pct"] = sr
 
     def run(cuts: list[int]) -> list[tuple[str, str, int, int | None, float | None]]:
-        eng = AlertEngine(gnss_hold_s=1.0)
+        eng = AlertEngine(flag_hold_s=1.0)
         edges = [0, *cuts, n]
         for lo, hi in itertools.pairwise(edges):
-            eng.on_estimates([(v, r[lo:hi]) for v, r in feeds.items()])
+            eng.on_estimates(mdsf([(v, r[lo:hi]) for v, r in feeds.items()]))
         return sorted(
-            (a.vehicle_id, a.kind.value, a.start_ns, a.end_ns, a.peak)
-            for a in eng.alerts(limit=5000)
+            (a.vehicle_id, a.kind, a.start_ns, a.end_ns, a.peak) for a in eng.alerts(limit=5000)
         )
 
     whole = run([])
@@ -266,7 +277,7 @@ def test_random_chunking_does_not_change_the_alerts(seed: int) -> None:
 
 def test_forget_closes_open_alerts_and_stops_stale_checks() -> None:
     eng, pub, clock = engine(stale_after_s=10.0)
-    eng.on_estimates([("a", rows([0.0, 6.0], [30.0, 30.0])), ("b", rows([0.0], [0.0]))])
+    eng.on_estimates(mdsf([("a", rows([0.0, 6.0], [30.0, 30.0])), ("b", rows([0.0], [0.0]))]))
     assert eng.open_count() == 1
     assert eng.forget("a") is True
     assert eng.forget("a") is False
@@ -276,7 +287,7 @@ def test_forget_closes_open_alerts_and_stops_stale_checks() -> None:
     assert [e["event"] for _, e in pub] == ["open", "close"]
     clock.t_ns += 20 * S
     assert [a.vehicle_id for a in eng.check_stale()] == ["b"]  # not the forgotten one
-    eng.on_estimates([("c", rows([30.0], [0.0]))])  # reuses the slot with a clean state
+    eng.on_estimates(mdsf([("c", rows([30.0], [0.0]))]))  # reuses the slot with a clean state
     assert eng.open_count() == 1  # b's stale alert only
 
 
@@ -296,3 +307,72 @@ def test_system_condition_opens_once_and_closes() -> None:
         (SYSTEM, "close", "storage_down"),
     ]
     assert [a.kind for a in engine.alerts(state="closed")] == [AlertKind.STORAGE_DOWN]
+
+
+def ref_rows(t_s: list[float], no_wheel: list[bool]) -> EstimateBatch:
+    """Reference-speed rows of vehicle ``a``: NO_WHEEL where asked, WHEEL_OK elsewhere."""
+    r = REFERENCE_SPEED_SPEC.empty_rows(len(t_s))
+    r["stamp_ns"] = [T0 + round(t * S) for t in t_s]
+    r["speed_mps"] = 2.0
+    lost, ok = (
+        REFERENCE_SPEED_SPEC.flag_mask("NO_WHEEL"),
+        REFERENCE_SPEED_SPEC.flag_mask("WHEEL_OK"),
+    )
+    r["flags"] = [lost if n else ok for n in no_wheel]
+    return EstimateBatch.of([("a", r)], REFERENCE_SPEED_SPEC)
+
+
+def test_rules_of_each_estimator_are_its_own() -> None:
+    """One vehicle, two estimators: MDSF's slip rule and the reference speed's flag rule open
+    and close apart; the reference speed has no slip rule (no slip channel)."""
+    eng, pub, _ = engine(flag_hold_s=1.0)
+    t = [0.0, 1.0, 2.0, 3.0, 4.0]
+    eng.on_estimates(ref_rows(t, [False, True, True, True, False]))
+    eng.on_estimates(mdsf([("a", rows([*t, 5.0, 6.0], [30.0] * 7))]))
+    kinds = [(e["event"], e["kind"], e["estimator"], e["channel"]) for _, e in pub]
+    assert kinds == [
+        ("open", "flag:reference_speed:NO_WHEEL", "reference_speed", "NO_WHEEL"),
+        ("close", "flag:reference_speed:NO_WHEEL", "reference_speed", "NO_WHEEL"),
+        ("open", SLIP_LEFT, "mdsf", "left"),
+    ]
+    [flag] = eng.alerts(state="closed")
+    assert (flag.start_ns, flag.end_ns) == (T0 + S, T0 + 4 * S)
+    assert flag.threshold is None and flag.peak is None
+    [slip] = eng.alerts(state="open")
+    assert slip.to_dict()["estimator"] == "mdsf" and slip.peak == 30.0
+    # forgetting the vehicle closes what is open of every estimator
+    eng.on_estimates(ref_rows([7.0, 8.0, 9.0], [True, True, True]))
+    assert eng.open_count() == 2
+    assert eng.forget("a") and eng.open_count() == 0
+
+
+TRACKS = EstimatorSpec(
+    name="tracks",
+    title="track slip",
+    kinds=("tracked",),
+    inputs=("imu",),
+    fields=(
+        FieldSpec("stamp_ns", "i8", "ns", "time"),
+        FieldSpec("left_pct", "f8", "%", "left track slip"),
+        FieldSpec("right_pct", "f8", "%", "right track slip"),
+    ),
+    slips=(
+        SlipChannel("lt", "left track", "left_pct", WheelPosition.TRACK_LEFT),
+        SlipChannel("rt", "right track", "right_pct", WheelPosition.TRACK_RIGHT),
+    ),
+)
+
+
+def test_slip_rule_per_channel_of_a_spec_without_flags() -> None:
+    eng, pub, _ = engine()
+    r = TRACKS.empty_rows(8)
+    r["stamp_ns"] = T0 + np.arange(8) * S
+    r["left_pct"] = 1.0
+    r["right_pct"] = [20, 20, 25, 20, 20, 20, 2, 2]
+    eng.on_estimates(EstimateBatch.of([("crawler", r)], TRACKS))
+    assert [(e["event"], e["kind"], e["channel"]) for _, e in pub] == [
+        ("open", "slip:tracks:rt", "rt"),
+        ("close", "slip:tracks:rt", "rt"),
+    ]
+    [a] = eng.alerts()
+    assert (a.start_ns, a.end_ns, a.peak, a.threshold) == (T0, T0 + 6 * S, 25.0, 15.0)

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
 from server.analytics.downsample import bucket_width_ns, downsample_minmax, thin_first
 
@@ -191,3 +192,17 @@ def test_minmax_rows_are_not_stored_rows() -> None:
     out = downsample_minmax(rows, 0, 20 * S)
     stored = {r.tobytes() for r in rows}
     assert sum(r.tobytes() not in stored for r in out) > out.shape[0] // 2
+
+
+def test_rows_of_another_spec() -> None:
+    """Any spec's rows: its floats enveloped, its ``flags`` OR-ed, its dtype kept."""
+    ref = REFERENCE_SPEED_SPEC
+    rows = ref.empty_rows(4)
+    rows["stamp_ns"] = np.arange(4) * S
+    rows["speed_mps"] = [1.0, 3.0, 2.0, 0.5]
+    rows["flags"] = [ref.flag_mask("WHEEL_OK"), 0, ref.flag_mask("NO_WHEEL"), 0]
+    out = downsample_minmax(rows, 0, 4 * S)
+    assert out.dtype == ref.dtype
+    assert out["speed_mps"].tolist() == [3.0, 0.5]
+    assert ref.flag_names(int(out["flags"][0])) == ["WHEEL_OK", "NO_WHEEL"]
+    assert thin_first(rows, 0, 2 * S)["speed_mps"].tolist() == [1.0, 2.0]

@@ -5,12 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from estimator.mdsf_spec import MDSF_SPEC as MDSF
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC as REF
+from estimator.spec import EstimatorSpec, FieldSpec, SlipChannel, WheelPosition
 from estimator.types import EstimateFlag, empty_estimates
 from server.analytics.reports import (
-    REPORT_FIELDS,
     IngestCounts,
     flatten_report,
     ingest_counts,
+    report_fields,
     vehicle_report,
 )
 
@@ -40,7 +43,7 @@ def hand_series() -> np.ndarray:
 
 
 def test_hand_series() -> None:
-    rep = vehicle_report(hand_series(), start_ns=0, end_ns=10 * S)
+    rep = vehicle_report(hand_series(), MDSF, start_ns=0, end_ns=10 * S)
     assert rep.rows == 10
     assert (rep.first_stamp_ns, rep.last_stamp_ns) == (0, 9 * S)
     assert rep.covered_s == 10.0  # 9 steps of 1 s + the last row's 1 s period
@@ -52,7 +55,14 @@ def test_hand_series() -> None:
     assert rep.speed.p95_mps == pytest.approx(4.0)
     assert rep.speed.max_mps == 4.0
 
-    left = rep.slip_left
+    assert (rep.motion, rep.motion_field) == ("ground", "vg_mps")
+    assert list(rep.slips) == ["left", "right"]
+    left = rep.slips["left"]
+    assert (left.label, left.field, left.band_edges_pct) == (
+        "rear left wheel",
+        "slip_left_pct",
+        (5, 15),
+    )
     assert left.samples == 6
     assert left.valid_s == 6.0
     assert left.mean_pct == pytest.approx(9 / 6)
@@ -64,7 +74,7 @@ def test_hand_series() -> None:
     assert [b.seconds for b in left.bands] == [2.0, 2.0, 2.0]
     assert [b.share for b in left.bands] == pytest.approx([1 / 3] * 3)
 
-    right = rep.slip_right
+    right = rep.slips["right"]
     assert right.samples == 2
     assert right.mean_pct == 0.0
     assert [b.seconds for b in right.bands] == [2.0, 0.0, 0.0]
@@ -73,11 +83,16 @@ def test_hand_series() -> None:
 
 def test_band_edges_and_min_speed_come_from_arguments() -> None:
     rep = vehicle_report(
-        hand_series(), start_ns=0, end_ns=10 * S, band_edges_pct=(10.0,), min_ground_speed_mps=3.0
+        hand_series(),
+        MDSF,
+        start_ns=0,
+        end_ns=10 * S,
+        band_edges_pct=(10.0,),
+        min_ground_speed_mps=3.0,
     )
     assert rep.moving_s == 2.0  # only the two rows at 4 m/s
     assert rep.distance_m == pytest.approx(8.0)
-    assert [b.seconds for b in rep.slip_left.bands] == [
+    assert [b.seconds for b in rep.slips["left"].bands] == [
         3.0,
         3.0,
     ]  # |s|<10: 1 3 5; else 10 20 30
@@ -87,7 +102,7 @@ def test_gaps_are_not_counted() -> None:
     rows = empty_estimates(5)
     rows["stamp_ns"] = np.array([0, 1, 2, 10, 11]) * S
     rows["vg_mps"] = 1.0
-    rep = vehicle_report(rows, start_ns=0, end_ns=20 * S, max_gap_s=1.0)
+    rep = vehicle_report(rows, MDSF, start_ns=0, end_ns=20 * S, max_gap_s=1.0)
     # steps 1 1 8 1: the 8 s gap counts one 1 s period; last row one period
     assert rep.covered_s == 5.0
     assert rep.moving_s == 5.0
@@ -98,23 +113,23 @@ def test_last_row_clipped_to_range_end() -> None:
     rows = empty_estimates(3)
     rows["stamp_ns"] = [0, 2 * S, 4 * S]
     rows["vg_mps"] = 1.0
-    rep = vehicle_report(rows, start_ns=0, end_ns=4 * S + S // 2, max_gap_s=5)
+    rep = vehicle_report(rows, MDSF, start_ns=0, end_ns=4 * S + S // 2, max_gap_s=5)
     assert rep.covered_s == 4.5
 
 
 def test_empty_series() -> None:
-    rep = vehicle_report(empty_estimates(0)[list(REPORT_FIELDS)], start_ns=0, end_ns=S)
+    rep = vehicle_report(MDSF.empty_rows(0)[report_fields(MDSF)], MDSF, start_ns=0, end_ns=S)
     assert rep.rows == 0
     assert rep.first_stamp_ns is None
     assert rep.covered_s == rep.moving_s == rep.distance_m == 0.0
     assert rep.speed.mean_mps is None and rep.speed.max_mps is None
-    assert rep.slip_left.samples == 0 and rep.slip_left.mean_pct is None
-    assert all(b.share is None and b.seconds == 0.0 for b in rep.slip_left.bands)
+    assert rep.slips["left"].samples == 0 and rep.slips["left"].mean_pct is None
+    assert all(b.share is None and b.seconds == 0.0 for b in rep.slips["left"].bands)
 
 
 def test_bad_band_edges() -> None:
     with pytest.raises(ValueError):
-        vehicle_report(hand_series(), start_ns=0, end_ns=S, band_edges_pct=(15.0, 5.0))
+        vehicle_report(hand_series(), MDSF, start_ns=0, end_ns=S, band_edges_pct=(15.0, 5.0))
 
 
 def test_ingest_counts() -> None:
@@ -156,11 +171,74 @@ def test_ingest_counts() -> None:
 
 
 def test_flatten_report() -> None:
-    rep = vehicle_report(hand_series(), start_ns=0, end_ns=10 * S)
-    row = flatten_report("t1", rep, ingest_counts({"received": 3, "rejected_late_clock": 1}))
-    assert row["vehicle_id"] == "t1"
+    rep = vehicle_report(hand_series(), MDSF, start_ns=0, end_ns=10 * S)
+    row = flatten_report(
+        "t1", "mdsf", rep, ingest_counts({"received": 3, "rejected_late_clock": 1})
+    )
+    assert (row["vehicle_id"], row["estimator"]) == ("t1", "mdsf")
+    assert row["slip_left_mean_pct"] == pytest.approx(9 / 6)
+    assert row["slip_right_samples"] == 2
     assert row["distance_m"] == pytest.approx(16.0)
     assert row["slip_left_share_0_5"] == pytest.approx(1 / 3)
     assert row["slip_left_share_15_up"] == pytest.approx(1 / 3)
     assert row["packets_received"] == 3
     assert row["packets_rejected_late_clock"] == 1
+
+
+def test_report_fields_follow_the_spec() -> None:
+    assert report_fields(MDSF) == ["stamp_ns", "vg_mps", "slip_left_pct", "slip_right_pct", "flags"]
+    assert report_fields(REF) == ["stamp_ns", "speed_mps", "flags"]
+
+
+def test_spec_without_slip_channels_gives_time_speed_and_distance() -> None:
+    """The reference-speed estimator: motion from ``speed_mps``, degraded from NO_WHEEL."""
+    rows = REF.empty_rows(6)
+    rows["stamp_ns"] = np.arange(6) * S
+    rows["speed_mps"] = [0.0, 1.0, -2.0, 2.0, 0.1, 3.0]
+    rows["flags"][[1, 2]] = REF.flag_mask("NO_WHEEL")
+    rows["flags"][3] = REF.flag_mask("WHEEL_OK")
+    rep = vehicle_report(rows[report_fields(REF)], REF, start_ns=0, end_ns=6 * S)
+    assert (rep.motion, rep.motion_field) == ("reference", "speed_mps")
+    assert rep.slips == {}
+    assert rep.moving_s == 4.0  # |v| >= 0.2 on rows 1, 2, 3, 5
+    assert rep.distance_m == pytest.approx(1 + 2 + 2 + 3)
+    assert rep.degraded_s == 2.0
+    assert rep.speed.max_mps == 3.0
+    row = flatten_report("r1", "reference_speed", rep, IngestCounts())
+    assert not any(k.startswith("slip_") for k in row)
+
+
+TRACKS = EstimatorSpec(
+    name="tracks",
+    title="track slip",
+    kinds=("tracked",),
+    inputs=("imu",),
+    fields=(
+        FieldSpec("stamp_ns", "i8", "ns", "time"),
+        FieldSpec("track_slip_pct", "f8", "%", "track slip"),
+    ),
+    slips=(
+        SlipChannel(
+            "track",
+            "left track",
+            "track_slip_pct",
+            WheelPosition.TRACK_LEFT,
+            band_edges_pct=(10.0,),
+        ),
+    ),
+)
+
+
+def test_channel_without_flag_or_motion_uses_finite_values_and_its_own_edges() -> None:
+    rows = TRACKS.empty_rows(4)
+    rows["stamp_ns"] = np.arange(4) * S
+    rows["track_slip_pct"] = [2.0, np.nan, 12.0, -4.0]
+    rep = vehicle_report(rows, TRACKS, start_ns=0, end_ns=4 * S)
+    assert rep.moving_s is None and rep.distance_m is None and rep.speed.mean_mps is None
+    assert rep.degraded_s == 0.0
+    track = rep.slips["track"]
+    assert track.samples == 3 and track.band_edges_pct == (10.0,)
+    assert [b.seconds for b in track.bands] == [2.0, 1.0]
+    # the vehicle's edges, when given, win over the channel's
+    rep5 = vehicle_report(rows, TRACKS, start_ns=0, end_ns=4 * S, band_edges_pct=(3.0,))
+    assert [b.seconds for b in rep5.slips["track"].bands] == [1.0, 2.0]

@@ -6,10 +6,14 @@ import numpy as np
 import pytest
 
 from estimator.geo import EnuFrame
+from estimator.mdsf_spec import MDSF_SPEC as MDSF
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.spec import EstimatorSpec, FieldSpec, PositionChannel, SpeedChannel
 from estimator.types import EstimateFlag, empty_estimates
 from server.analytics.reports import vehicle_report
 from server.analytics.slipmap import (
     MapSamples,
+    NotMappable,
     SlipMap,
     TooManyCells,
     bin_cells,
@@ -19,6 +23,7 @@ from server.analytics.slipmap import (
     merge_cell_sums,
     reframe,
     slip_map,
+    slipmap_fields,
 )
 
 S = 1_000_000_000
@@ -54,10 +59,11 @@ def two_cell_series() -> np.ndarray:
 
 
 END_NS = int(7.5 * S)
+LR = ("left", "right")
 
 
 def test_two_cells_time_weighted() -> None:
-    m = slip_map(two_cell_series(), end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
+    m = slip_map(two_cell_series(), MDSF, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
     assert m.cells == 3
     # ordered by east index, then north
     assert m.index_east.tolist() == [-1, 0, 1]
@@ -87,8 +93,8 @@ def test_two_cells_time_weighted() -> None:
 def test_cells_add_up_to_the_report() -> None:
     rows = two_cell_series()
     rows["east_m"][7] = 20.0  # every moving row placed: the cells hold the report's moving time
-    m = slip_map(rows, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
-    rep = vehicle_report(rows, start_ns=0, end_ns=END_NS, max_gap_s=2.5)
+    m = slip_map(rows, MDSF, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
+    rep = vehicle_report(rows, MDSF, start_ns=0, end_ns=END_NS, max_gap_s=2.5)
     assert m.time_s.sum() == pytest.approx(rep.moving_s)
     assert m.distance_m.sum() == pytest.approx(rep.distance_m)
 
@@ -96,7 +102,7 @@ def test_cells_add_up_to_the_report() -> None:
 def test_cell_without_valid_slip_keeps_time_and_distance() -> None:
     rows = two_cell_series()
     rows["flags"] = 0  # no wheel valid anywhere
-    m = slip_map(rows, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
+    m = slip_map(rows, MDSF, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
     np.testing.assert_allclose(m.time_s, [0.5, 2.0, 3.0])
     assert np.isnan(m.slip_mean_pct).all()
     assert np.isnan(m.mean_abs_slip_pct).all() and np.isnan(m.max_abs_slip_pct).all()
@@ -106,16 +112,16 @@ def test_cell_without_valid_slip_keeps_time_and_distance() -> None:
 
 def test_non_moving_and_unplaced_rows_are_left_out() -> None:
     rows = two_cell_series()
-    base = slip_map(rows, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
+    base = slip_map(rows, MDSF, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
     # the standstill row (0), the slow row (6) and the unplaced row (7) carry large slips:
     # changing them changes nothing
     rows["slip_left_pct"][[0, 6, 7]] = 99.0
     rows["flags"][[0, 6, 7]] = L | R
-    again = slip_map(rows, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
+    again = slip_map(rows, MDSF, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5)
     np.testing.assert_array_equal(base.max_abs_slip_pct, again.max_abs_slip_pct)
     np.testing.assert_array_equal(base.rows, again.rows)
     # with a higher moving threshold, rows at 2 m/s and 1 m/s drop out too
-    fast = slip_map(rows, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5, min_ground_speed_mps=3.0)
+    fast = slip_map(rows, MDSF, end_ns=END_NS, cell_m=10.0, max_gap_s=2.5, min_ground_speed_mps=3.0)
     assert fast.index_east.tolist() == [1]
     assert fast.rows.tolist() == [2]
 
@@ -137,14 +143,18 @@ def random_series(n: int = 2_000, seed: int = 7) -> np.ndarray:
 def test_band_shares_sum_to_one_and_follow_the_edges() -> None:
     rows = random_series()
     m = slip_map(
-        rows, end_ns=int(rows["stamp_ns"][-1]) + S, cell_m=25.0, band_edges_pct=(2.0, 8.0, 20.0)
+        rows,
+        MDSF,
+        end_ns=int(rows["stamp_ns"][-1]) + S,
+        cell_m=25.0,
+        band_edges_pct=(2.0, 8.0, 20.0),
     )
     assert m.band_share.shape == (m.cells, 4)
     has_slip = m.slip_valid_s.sum(axis=1) > 0
     np.testing.assert_allclose(m.band_share[has_slip].sum(axis=1), 1.0)
     assert m.band_labels == ("0_2", "2_8", "8_20", "20_up")
     # the cells' sums equal a direct sum over the samples of the same cell
-    samples = map_samples(rows, end_ns=int(rows["stamp_ns"][-1]) + S)
+    samples = map_samples(rows, MDSF, end_ns=int(rows["stamp_ns"][-1]) + S)
     i = np.floor(samples.east_m / 25.0)
     j = np.floor(samples.north_m / 25.0)
     for c in range(m.cells):
@@ -159,7 +169,7 @@ def test_band_shares_sum_to_one_and_follow_the_edges() -> None:
 
 def test_cell_limit_and_arguments() -> None:
     rows = two_cell_series()
-    samples = map_samples(rows, end_ns=END_NS, max_gap_s=2.5)
+    samples = map_samples(rows, MDSF, end_ns=END_NS, max_gap_s=2.5)
     with pytest.raises(TooManyCells) as info:
         bin_cells(samples, cell_m=10.0, max_cells=2)
     assert (info.value.cells, info.value.max_cells) == (3, 2)
@@ -172,13 +182,16 @@ def test_cell_limit_and_arguments() -> None:
 
 
 def test_empty_series_gives_no_cells() -> None:
-    m = slip_map(empty_estimates(0), end_ns=S, cell_m=1.0)
+    m = slip_map(empty_estimates(0), MDSF, end_ns=S, cell_m=1.0)
     assert m.cells == 0
     assert m.band_share.shape == (0, 3)
 
 
 def _half(samples: MapSamples, part: slice) -> MapSamples:
-    return MapSamples(*(getattr(samples, name)[part] for name in MapSamples.__dataclass_fields__))
+    arrays = {
+        n: getattr(samples, n)[part] for n in MapSamples.__dataclass_fields__ if n != "channels"
+    }
+    return MapSamples(channels=samples.channels, **arrays)
 
 
 def _assert_same_statistics(a: SlipMap, b: SlipMap) -> None:
@@ -201,15 +214,19 @@ def _assert_same_statistics(a: SlipMap, b: SlipMap) -> None:
 
 def test_merged_halves_equal_binning_all_at_once() -> None:
     rows = random_series(600)  # ~3 samples a cell: some cells hold samples of one half only
-    samples = map_samples(rows, end_ns=int(rows["stamp_ns"][-1]) + S)
+    samples = map_samples(rows, MDSF, end_ns=int(rows["stamp_ns"][-1]) + S)
     edges = (2.0, 8.0, 20.0)
     whole = bin_cells(samples, cell_m=5.0, band_edges_pct=edges)
     first = cell_sums(_half(samples, slice(0, 280)), cell_m=5.0, band_edges_pct=edges)
     second = cell_sums(_half(samples, slice(280, None)), cell_m=5.0, band_edges_pct=edges)
-    merged = finish_cells(merge_cell_sums([first, second], cell_m=5.0, band_edges_pct=edges))
+    merged = finish_cells(
+        merge_cell_sums([first, second], cell_m=5.0, channels=LR, band_edges_pct=edges)
+    )
     _assert_same_statistics(merged, whole)
     # the other order gives the same map
-    swapped = finish_cells(merge_cell_sums([second, first], cell_m=5.0, band_edges_pct=edges))
+    swapped = finish_cells(
+        merge_cell_sums([second, first], cell_m=5.0, channels=LR, band_edges_pct=edges)
+    )
     _assert_same_statistics(swapped, whole)
     # each part counts once in every cell it has samples in
     in_first = {(int(i), int(j)) for i, j in zip(first.index_east, first.index_north, strict=True)}
@@ -226,22 +243,22 @@ def test_merged_halves_equal_binning_all_at_once() -> None:
 
 
 def test_merge_arguments_and_limit() -> None:
-    samples = map_samples(two_cell_series(), end_ns=END_NS, max_gap_s=2.5)
+    samples = map_samples(two_cell_series(), MDSF, end_ns=END_NS, max_gap_s=2.5)
     part = cell_sums(samples, cell_m=10.0)
-    none = merge_cell_sums([], cell_m=10.0)
+    none = merge_cell_sums([], cell_m=10.0, channels=LR)
     assert none.cells == 0 and finish_cells(none).band_share.shape == (0, 3)
-    alone = finish_cells(merge_cell_sums([part], cell_m=10.0))
+    alone = finish_cells(merge_cell_sums([part], cell_m=10.0, channels=LR))
     _assert_same_statistics(alone, bin_cells(samples, cell_m=10.0))
     with pytest.raises(ValueError, match="cannot merge"):
-        merge_cell_sums([part], cell_m=5.0)
+        merge_cell_sums([part], cell_m=5.0, channels=LR)
     with pytest.raises(ValueError, match="cannot merge"):
-        merge_cell_sums([part], cell_m=10.0, band_edges_pct=(10.0,))
+        merge_cell_sums([part], cell_m=10.0, channels=LR, band_edges_pct=(10.0,))
     moved = cell_sums(
         MapSamples(**{**_fields(samples), "east_m": samples.east_m + 100.0}), cell_m=10.0
     )
-    assert merge_cell_sums([part, part], cell_m=10.0, max_cells=3).cells == 3
+    assert merge_cell_sums([part, part], cell_m=10.0, channels=LR, max_cells=3).cells == 3
     with pytest.raises(TooManyCells) as info:
-        merge_cell_sums([part, moved], cell_m=10.0, max_cells=5)
+        merge_cell_sums([part, moved], cell_m=10.0, channels=LR, max_cells=5)
     assert (info.value.cells, info.value.max_cells) == (6, 5)
 
 
@@ -272,8 +289,8 @@ def test_two_frames_same_ground_same_cells() -> None:
     north = np.array([5.0, 5.0, -35.0, 95.0])
     lat, lon, h = shared.to_geodetic(east, north, np.full(4, 15.0))
     end_ns = 4 * S
-    a = map_samples(_rows_at(A, lat, lon, h), end_ns=end_ns)
-    b = map_samples(_rows_at(B, lat[:3], lon[:3], h[:3]), end_ns=end_ns)
+    a = map_samples(_rows_at(A, lat, lon, h), MDSF, end_ns=end_ns)
+    b = map_samples(_rows_at(B, lat[:3], lon[:3], h[:3]), MDSF, end_ns=end_ns)
     assert not np.allclose(a.east_m[:3], b.east_m)  # the two frames differ by hundreds of metres
     a_shared, b_shared = reframe(a, A, shared), reframe(b, B, shared)
     np.testing.assert_allclose(a_shared.east_m, east, atol=1e-6)
@@ -281,7 +298,9 @@ def test_two_frames_same_ground_same_cells() -> None:
     np.testing.assert_allclose(b_shared.up_m, 15.0, atol=1e-6)
     merged = finish_cells(
         merge_cell_sums(
-            [cell_sums(a_shared, cell_m=10.0), cell_sums(b_shared, cell_m=10.0)], cell_m=10.0
+            [cell_sums(a_shared, cell_m=10.0), cell_sums(b_shared, cell_m=10.0)],
+            cell_m=10.0,
+            channels=LR,
         )
     )
     cells = list(zip(merged.index_east.tolist(), merged.index_north.tolist(), strict=True))
@@ -297,17 +316,77 @@ def test_two_frames_same_ground_same_cells() -> None:
 
 def test_reframe_keeps_samples_in_the_same_frame_and_reads_up() -> None:
     rows = two_cell_series()
-    samples = map_samples(rows, end_ns=END_NS, max_gap_s=2.5)
+    samples = map_samples(rows, MDSF, end_ns=END_NS, max_gap_s=2.5)
     assert reframe(samples, A, EnuFrame(*(52.0, 5.6, 12.0))) is samples
     np.testing.assert_array_equal(samples.up_m, 0.0)  # the series has no height: NaN → 0
     rows["up_m"] = 3.0
-    with_up = map_samples(rows, end_ns=END_NS, max_gap_s=2.5)
+    with_up = map_samples(rows, MDSF, end_ns=END_NS, max_gap_s=2.5)
     np.testing.assert_array_equal(with_up.up_m, 3.0)
     no_up = map_samples(
         rows[
             ["stamp_ns", "vg_mps", "slip_left_pct", "slip_right_pct", "flags", "east_m", "north_m"]
         ],
+        MDSF,
         end_ns=END_NS,
         max_gap_s=2.5,
     )
     np.testing.assert_array_equal(no_up.up_m, 0.0)
+
+
+PLACED = EstimatorSpec(
+    name="placed",
+    title="speed and position, no slip",
+    kinds=("tracked",),
+    inputs=("gnss",),
+    fields=(
+        FieldSpec("stamp_ns", "i8", "ns", "time"),
+        FieldSpec("v_mps", "f8", "m/s", "speed"),
+        FieldSpec("x_m", "f8", "m", "east"),
+        FieldSpec("y_m", "f8", "m", "north"),
+    ),
+    speeds=(SpeedChannel("v", "speed", "v_mps"),),
+    motion="v",
+    position=PositionChannel("x_m", "y_m"),
+)
+
+
+def test_spec_without_slip_channels_maps_time_and_distance() -> None:
+    rows = PLACED.empty_rows(4)
+    rows["stamp_ns"] = np.arange(4) * S
+    rows["v_mps"] = [2.0, 2.0, 0.0, 3.0]
+    rows["x_m"] = [1.0, 11.0, 12.0, 13.0]
+    rows["y_m"] = 0.5
+    assert slipmap_fields(PLACED, fleet=True) == ["stamp_ns", "v_mps", "x_m", "y_m"]
+    m = slip_map(rows, PLACED, end_ns=4 * S, cell_m=10.0)
+    assert m.channels == ()
+    assert m.index_east.tolist() == [0, 1]
+    np.testing.assert_allclose(m.time_s, [1.0, 2.0])
+    np.testing.assert_allclose(m.distance_m, [2.0, 5.0])
+    assert m.slip_valid_s.shape == (2, 0)
+    assert np.isnan(m.mean_abs_slip_pct).all() and np.isnan(m.band_share).all()
+
+
+def test_fields_follow_the_spec_and_unmappable_specs_are_refused() -> None:
+    assert slipmap_fields(MDSF) == [
+        "stamp_ns",
+        "vg_mps",
+        "slip_left_pct",
+        "slip_right_pct",
+        "flags",
+        "east_m",
+        "north_m",
+    ]
+    assert slipmap_fields(MDSF, fleet=True)[-1] == "up_m"
+    with pytest.raises(NotMappable, match=r"reference_speed.*no position"):
+        slipmap_fields(REFERENCE_SPEED_SPEC)
+    rows = REFERENCE_SPEED_SPEC.empty_rows(2)
+    with pytest.raises(NotMappable):
+        map_samples(rows, REFERENCE_SPEED_SPEC, end_ns=S)
+
+
+def test_parts_of_other_channels_do_not_merge() -> None:
+    samples = map_samples(two_cell_series(), MDSF, end_ns=END_NS, max_gap_s=2.5)
+    part = cell_sums(samples, cell_m=10.0)
+    assert part.channels == LR
+    with pytest.raises(ValueError, match="slip channels"):
+        merge_cell_sums([part], cell_m=10.0, channels=("left",))

@@ -85,6 +85,7 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
         "/api/v1/vehicles/{vehicle_id}/slipmap",
         "/api/v1/fleet/report",
         "/api/v1/fleet/slipmap",
+        "/api/v1/estimators",
         "/api/v1/alerts",
         "/api/v1/health",
         "/api/v1/metrics",

@@ -160,14 +160,14 @@ def test_latest(client: ApiClient, store: Store) -> None:
     client.put(f"{V}/t1", json={})
     r = client.get(f"{V}/t1/latest")
     assert r.status_code == 404
-    assert "no estimates" in r.json()["reason"]
+    assert "no mdsf estimates" in r.json()["reason"]
 
     rows = hand_series()
     rows["flags"][-1] = int(EstimateFlag.GNSS_OK | EstimateFlag.SLIP_RIGHT_VALID)
     rows["slip_right_pct"][-1] = 12.5
     store.write_estimates([("t1", rows)])
     body = client.get(f"{V}/t1/latest").json()
-    assert body["vehicle_id"] == "t1"
+    assert (body["vehicle_id"], body["estimator"]) == ("t1", "mdsf")
     assert body["stamp_ns"] == T0 + 9 * 1_000_000_000
     assert body["time"] == "2024-05-01T12:00:09.000000000Z"
     assert body["vg_mps"] == 0.0

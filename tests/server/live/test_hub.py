@@ -1,4 +1,5 @@
-"""LiveHub: latest rows, decimated windows, status and async wake-ups, on hand-made rows."""
+"""LiveHub: latest rows, decimated windows, status and async wake-ups per (vehicle, estimator),
+on hand-made rows of two specs (MDSF and the reference speed)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from estimator.types import EstimateFlag, empty_estimates
-from server.live.hub import LiveHub, TierSpec, gnss_quality, slip_note
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC, ReferenceFlag
+from estimator.types import EstimateBatch, EstimateFlag, empty_estimates
+from server.live.hub import LiveHub, TierSpec, live_fields, quality
 
 S = 1_000_000_000  # ns per second
 T0 = 1_700_000_000 * S
@@ -32,6 +35,21 @@ def rows(
     r["north_m"] = 0.0
     r["flags"] = int(EstimateFlag.GNSS_OK | EstimateFlag.SLIP_LEFT_VALID)
     return r
+
+
+def ref_rows(stamps_s: list[float], *, speed: float = 1.5, no_wheel: bool = False) -> np.ndarray:
+    """Reference-speed rows (its spec's dtype)."""
+    r = REFERENCE_SPEED_SPEC.empty_rows(len(stamps_s))
+    r["stamp_ns"] = [T0 + round(t * S) for t in stamps_s]
+    r["speed_mps"] = speed
+    r["rim_mps"] = speed + 0.1
+    r["accel_bias_mps2"] = 0.02
+    r["flags"] = int(ReferenceFlag.NO_WHEEL if no_wheel else ReferenceFlag.WHEEL_OK)
+    return r
+
+
+def ref_batch(*parts: tuple[str, np.ndarray]) -> EstimateBatch:
+    return EstimateBatch.of(list(parts), REFERENCE_SPEED_SPEC)
 
 
 class Clock:
@@ -131,7 +149,7 @@ def test_incremental_window_and_max_points() -> None:
 def test_vehicles_beyond_initial_capacity() -> None:
     hub = LiveHub(clock_ns=Clock(T0), initial_slots=2)
     hub.on_estimates([(f"v{i}", rows([1.0, 2.0], vg=float(i))) for i in range(9)])
-    ids, latest, _ = hub.latest_all()
+    ids, latest, _ = hub.latest_all("mdsf")
     assert ids == [f"v{i}" for i in range(9)]
     assert latest["vg_mps"].tolist() == [float(i) for i in range(9)]
     w = hub.window("v8", 10.0)
@@ -151,31 +169,43 @@ def test_status_from_sensor_age_and_wall_age() -> None:
     assert ov["ids"] == ["a", "b", "c"]
     assert ov["status"] == ["stale", "stale", "offline"]
     assert ov["age_s"] == [3.0, 5.0, 20.0]
-    assert ov["gnss"] == ["ok", "ok", "ok"]
-    assert ov["slip_left_pct"] == [1.0, 1.0, 1.0]
+    assert ov["quality"] == ["ok", "ok", "ok"]
+    assert ov["slip_pct"] == {"left": [1.0, 1.0, 1.0], "right": [2.0, 2.0, 2.0]}
+    assert ov["speed_mps"] == [2.0, 2.0, 2.0]
+    assert ov["estimator"] == ["mdsf"] * 3
 
 
 def test_overview_turns_nan_into_null() -> None:
     hub = LiveHub(clock_ns=Clock(T0))
     r = rows([1.0], slip_left=[float("nan")])
     hub.on_estimates([("a", r)])
-    assert hub.overview()["slip_left_pct"] == [None]
+    assert hub.overview()["slip_pct"]["left"] == [None]
 
 
-def test_gnss_quality_from_flags() -> None:
-    assert gnss_quality(int(EstimateFlag.GNSS_OK)) == "ok"
-    assert gnss_quality(int(EstimateFlag.DEGRADED)) == "degraded"
-    assert gnss_quality(int(EstimateFlag.GNSS_OK | EstimateFlag.GATED)) == "gated"
-    assert gnss_quality(0) == "none"
+def test_quality_from_the_specs_ok_and_degraded_flags() -> None:
+    ok, degraded = int(EstimateFlag.GNSS_OK), int(EstimateFlag.DEGRADED | EstimateFlag.GATED)
+    assert quality(MDSF_SPEC, ok) == "ok"
+    assert quality(MDSF_SPEC, degraded | ok) == "degraded"
+    assert quality(MDSF_SPEC, 0) == "none"
+    assert quality(REFERENCE_SPEED_SPEC, int(ReferenceFlag.WHEEL_OK)) == "ok"
+    assert quality(REFERENCE_SPEED_SPEC, int(ReferenceFlag.NO_WHEEL)) == "degraded"
 
 
-def test_slip_note_says_why_a_slip_value_is_missing() -> None:
-    assert slip_note(int(EstimateFlag.STANDSTILL | EstimateFlag.GNSS_OK)) == "standstill"
-    assert slip_note(int(EstimateFlag.SETTLING | EstimateFlag.SLIP_RIGHT_VALID)) == (
-        "starting/stopping"
+def test_live_fields_come_from_the_spec_channels() -> None:
+    assert set(live_fields(MDSF_SPEC)) == {
+        *MDSF_SPEC.charts[0].fields,
+        *MDSF_SPEC.charts[1].fields,
+        "east_m",
+        "north_m",
+        "up_m",
+        "flags",
+    }
+    assert live_fields(REFERENCE_SPEED_SPEC) == (
+        "speed_mps",
+        "rim_mps",
+        "accel_bias_mps2",
+        "flags",
     )
-    assert slip_note(int(EstimateFlag.WHEEL_GAP | EstimateFlag.GNSS_OK)) == "wheel data lost"
-    assert slip_note(int(EstimateFlag.SLIP_LEFT_VALID | EstimateFlag.SLIP_RIGHT_VALID)) == ""
 
 
 def test_wait_newer_wakes_on_a_batch_from_another_thread() -> None:
@@ -258,8 +288,9 @@ def test_fleet_socket_sends_the_overview() -> None:
         msg = _recv(ws)
         assert msg["type"] == "fleet"
         assert msg["ids"] == ["a", "b"]
-        assert msg["vg_mps"] == [3.0, 2.0]
-        assert set(msg) >= {"status", "age_s", "slip_left_pct", "slip_right_pct", "gnss", "sent_ns"}
+        assert msg["speed_mps"] == [3.0, 2.0]
+        assert msg["slip_pct"] == {"left": [1.0, 1.0], "right": [2.0, 2.0]}
+        assert set(msg) >= {"status", "age_s", "estimator", "quality", "sent_ns"}
         assert _recv(ws)["type"] == "fleet"  # and again at its interval
 
 
@@ -276,7 +307,10 @@ def test_vehicle_socket_snapshot_then_appends_that_merge_cleanly() -> None:
         assert snap["type"] == "snapshot" and snap["tier"] == "f"
         cols = snap["columns"]
         assert snap["latest"]["stamp_ns"] == cols["stamp_ns"][-1] == T0 + round(1.95 * S)
-        assert snap["latest"]["slip_note"] == slip_note(snap["latest"]["flags"])
+        assert snap["estimator"] == "mdsf" and snap["estimators"] == ["mdsf"]
+        assert snap["latest"]["flag_names"] == ["GNSS_OK", "SLIP_LEFT_VALID"]
+        assert snap["latest"]["quality"] == "ok"
+        assert set(cols) == {"stamp_ns", *live_fields(MDSF_SPEC)}
         # new rows in several batches, the first in the bucket the client already holds
         for k in range(3):
             hub.on_estimates([("a", rows([1.97 + k * 0.5 + i * 0.05 for i in range(10)]))])
@@ -331,5 +365,98 @@ def test_forget_drops_a_vehicle_and_reuses_its_slot() -> None:
     w = hub.window("c", 10.0)
     assert w is not None and w["stamp_ns"] == [T0 + 3 * S]
     assert sorted(hub.vehicle_ids()) == ["b", "c"]
-    ids, latest, _ = hub.latest_all()
+    ids, latest, _ = hub.latest_all("mdsf")
     assert dict(zip(ids, latest["vg_mps"].tolist(), strict=True)) == {"b": 7.0, "c": 5.0}
+
+
+# ---------------------------------------------------------------------- two estimators
+
+
+def test_rows_of_two_estimators_are_kept_apart_per_vehicle() -> None:
+    hub = LiveHub(clock_ns=Clock(T0 + 10 * S), tiers=(TierSpec("f", 0.1, 10.0),))
+    hub.on_estimates(ref_batch(("a", ref_rows([1.0, 1.5], speed=3.0)), ("b", ref_rows([1.0]))))
+    hub.on_estimates(EstimateBatch.of([("a", rows([1.2]))], MDSF_SPEC))
+    # the first estimator that brought rows is the primary when nobody says otherwise
+    assert hub.estimators("a") == ["reference_speed", "mdsf"]
+    assert hub.estimators("b") == ["reference_speed"] and hub.estimators("x") == []
+    ref, _ = hub.latest("a", "reference_speed")  # type: ignore[misc]
+    assert ref.dtype == REFERENCE_SPEED_SPEC.dtype and float(ref["speed_mps"]) == 3.0
+    mdsf, _ = hub.latest("a", "mdsf")  # type: ignore[misc]
+    assert mdsf.dtype == MDSF_SPEC.dtype and int(mdsf["stamp_ns"]) == T0 + round(1.2 * S)
+    assert hub.latest("b", "mdsf") is None
+    w = hub.window("a", 5.0, estimator="reference_speed")
+    assert w is not None and w["estimator"] == "reference_speed"
+    assert set(w) == {
+        "estimator",
+        "tier",
+        "bucket_s",
+        "stamp_ns",
+        *live_fields(REFERENCE_SPEED_SPEC),
+    }
+    assert w["speed_mps"] == [3.0, 3.0] and w["flags"] == [int(ReferenceFlag.WHEEL_OK)] * 2
+    assert hub.window("a", 5.0, estimator="mdsf")["slip_right_pct"] == [2.0]  # type: ignore[index]
+    ids, latest, _ = hub.latest_all("reference_speed")
+    assert ids == ["a", "b"] and latest.dtype == REFERENCE_SPEED_SPEC.dtype
+    assert hub.forget("a") and hub.latest("a", "mdsf") is None
+    assert hub.latest_all("mdsf")[0] == [] and hub.vehicle_ids() == ["b"]
+
+
+def test_primary_of_decides_what_the_fleet_overview_shows() -> None:
+    primaries = {"a": "mdsf", "b": "reference_speed", "c": "mdsf"}
+    hub = LiveHub(clock_ns=Clock(T0 + 2 * S), primary_of=primaries.get)
+    hub.on_estimates(ref_batch(("a", ref_rows([1.0])), ("b", ref_rows([1.0], no_wheel=True))))
+    hub.on_estimates([("a", rows([1.0], vg=4.0)), ("c", rows([1.0], slip_left=[-7.0]))])
+    assert hub.estimators("a") == ["mdsf", "reference_speed"]
+    assert hub.primary("b") == "reference_speed"
+    ov = hub.overview()
+    assert ov["ids"] == ["a", "b", "c"]
+    assert ov["estimator"] == ["mdsf", "reference_speed", "mdsf"]
+    assert ov["speed_mps"] == [4.0, 1.5, 2.0]
+    assert ov["slip_pct"] == {"left": [1.0, None, -7.0], "right": [2.0, None, 2.0]}
+    assert ov["quality"] == ["ok", "degraded", "ok"]
+    assert ov["flags"][1] == int(ReferenceFlag.NO_WHEEL)
+    assert hub.latest_all("mdsf", primary_only=True)[0] == ["a", "c"]
+    # a primary without rows here (yet) falls back to the first estimator with rows
+    primaries["b"] = "mdsf"
+    assert hub.primary("b") == "reference_speed"
+
+
+def test_late_rows_are_counted_per_estimator() -> None:
+    hub = LiveHub(clock_ns=Clock(T0))
+    hub.on_estimates(ref_batch(("a", ref_rows([5.0]))))
+    hub.on_estimates([("a", rows([3.0]))])  # older than the other estimator's row: not late
+    hub.on_estimates(ref_batch(("a", ref_rows([4.0, 6.0]))))
+    assert hub.rows_dropped_late == 1 and hub.rows_in == 3
+
+
+def test_plain_rows_of_no_catalog_dtype_are_refused() -> None:
+    hub = LiveHub()
+    with pytest.raises(TypeError, match="EstimateBatch"):
+        hub.on_estimates([("a", np.zeros(2, dtype=[("stamp_ns", "i8"), ("x_m", "f8")]))])
+
+
+def test_vehicle_socket_per_estimator() -> None:
+    hub = LiveHub(primary_of={"a": "mdsf"}.get)
+    hub.on_estimates([("a", rows([1.0, 1.05]))])
+    hub.on_estimates(ref_batch(("a", ref_rows([1.0, 1.05], speed=2.5))))
+    with _Served(hub) as srv:
+        with srv.connect("/api/v1/live/vehicles/a?estimator=reference_speed") as ws:
+            snap = _recv(ws)
+            assert snap["type"] == "snapshot" and snap["estimator"] == "reference_speed"
+            assert snap["estimators"] == ["mdsf", "reference_speed"]
+            assert set(snap["columns"]) == {"stamp_ns", *live_fields(REFERENCE_SPEED_SPEC)}
+            assert snap["columns"]["speed_mps"] == [2.5, 2.5]
+            latest = snap["latest"]
+            assert set(latest) >= set(REFERENCE_SPEED_SPEC.field_names)
+            assert latest["flag_names"] == ["WHEEL_OK"] and latest["quality"] == "ok"
+            hub.on_estimates(ref_batch(("a", ref_rows([1.1], speed=2.75))))
+            while (msg := _recv(ws))["columns"]["stamp_ns"][-1:] != [T0 + round(1.1 * S)]:
+                pass
+            assert msg["type"] == "append" and msg["estimator"] == "reference_speed"
+            assert msg["columns"]["speed_mps"][-1] == 2.75
+        with srv.connect("/api/v1/live/vehicles/a") as ws:  # default: the primary
+            snap = _recv(ws)
+            assert snap["estimator"] == "mdsf" and "slip_left_pct" in snap["columns"]
+        with srv.connect("/api/v1/live/vehicles/a?estimator=other") as ws:
+            msg = _recv(ws)
+            assert (msg["type"], msg["estimator"]) == ("waiting", "other")

@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 
 from estimator.config import VehicleGeometry
-from estimator.types import empty_estimates
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.types import EstimateBatch, empty_estimates
 from server.live.hub import LiveHub
 from server.live.viewer.colors import slip_rgb
 from server.live.viewer.fleet_view import ARROW_SECONDS, NO_FOLLOW, FleetViewer
 from server.live.viewer.scene import rotation_matrix_from_wxyz
 from server.settings import ViewerSettings
+from tests.server.live.viewer.test_scene import FOUR_WHEEL
 from tests.support import free_port as _free_port
 
 T0 = 1_700_000_000 * 1_000_000_000
@@ -148,3 +150,44 @@ def test_origin_offsets_and_grid_layout_place_vehicle_frames() -> None:
     finally:
         for v in (placed, grid):
             v.stop()
+
+
+def test_mixed_fleet_drawn_from_each_vehicles_primary_spec() -> None:
+    primaries = {"m": "mdsf", "mr": "mdsf", "r": "reference_speed", "w": "four_wheel_test"}
+    hub = LiveHub(primary_of=primaries.get)
+    hub.on_estimates(
+        EstimateBatch.of([("mr", REFERENCE_SPEED_SPEC.empty_rows(1))], REFERENCE_SPEED_SPEC)
+    )
+    hub.on_estimates(
+        EstimateBatch.of([("r", REFERENCE_SPEED_SPEC.empty_rows(1))], REFERENCE_SPEED_SPEC)
+    )
+    hub.on_estimates([("m", _row(0, 0, 0, 0, 1.0, 2.0)), ("mr", _row(0, 9, 0, 0, 3.0, 4.0))])
+    four = FOUR_WHEEL.empty_rows(1)
+    four["stamp_ns"] = T0
+    four["x_m"], four["y_m"] = 30.0, 0.0
+    for k, slip in zip(("fl", "fr", "rl", "rr"), (5.0, 6.0, 7.0, 8.0), strict=True):
+        four[f"s_{k}_pct"] = slip
+    hub.on_estimates(EstimateBatch.of([("w", four)], FOUR_WHEEL))
+    v = FleetViewer(hub, ViewerSettings(host="127.0.0.1", port=_free_port()))
+    v.open()
+    try:
+        v.update()
+        assert v.frame is not None and v._wheels is not None
+        # "r" runs only an estimator without a position: not drawn
+        assert sorted(v.frame.ids) == ["m", "mr", "w"]
+        by_vehicle: dict[str, list[list[int]]] = {}
+        colors = np.asarray(v._wheels.batched_colors).tolist()
+        for owner, rgb in zip(v.frame.wheel_owner.tolist(), colors, strict=True):
+            by_vehicle.setdefault(v.frame.ids[owner], []).append(rgb)
+        assert by_vehicle["mr"] == slip_rgb([3.0, 4.0]).tolist()
+        assert by_vehicle["w"] == slip_rgb([5.0, 6.0, 7.0, 8.0]).tolist()
+        v.follow("w")
+        for step in range(1, 4):
+            four["stamp_ns"] = T0 + step * 10**9
+            four["x_m"] = 30.0 + step
+            hub.on_estimates(EstimateBatch.of([("w", four)], FOUR_WHEEL))
+        v.update()
+        assert v._track is not None and np.asarray(v._track.points).shape == (3, 2, 3)
+        assert np.asarray(v._track.colors)[0, 0].tolist() == slip_rgb(8.0).tolist()
+    finally:
+        v.stop()

@@ -1,19 +1,33 @@
-"""Pure scene maps: attitude quaternions, vehicle layout and slip colours."""
+"""Pure scene maps: attitude quaternions, vehicle layout from the spec's channels, colours."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.config import VehicleGeometry
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.spec import (
+    EstimatorSpec,
+    FieldSpec,
+    PositionChannel,
+    SlipChannel,
+    SpeedChannel,
+    WheelPosition,
+)
 from estimator.types import empty_estimates
 from server.live.viewer.colors import SLIP_COLOR_NONE, slip_rgb
 from server.live.viewer.scene import (
+    FRONT_AXLE_M,
+    attitude_fields,
     attitude_from_wxyz,
     box_mesh,
+    concat_frames,
     cylinder_mesh_x,
     fleet_frame,
     quat_mul,
@@ -89,7 +103,7 @@ def test_fleet_frame_places_wheels_and_colours_them() -> None:
     rows["vg_mps"] = [2.0, 3.0]
     rows["slip_left_pct"] = [0.0, 40.0]
     rows["slip_right_pct"] = [5.0, float("nan")]
-    f = fleet_frame(["a", "b"], rows, g, ["live", "offline"])
+    f = fleet_frame(["a", "b"], rows, MDSF_SPEC, g, ["live", "offline"])
     np.testing.assert_allclose(f.ground_m, [[10, 20, 0], [-5, 3, 0]], atol=1e-12)
     # vehicle a faces north: left wheel to the west, right to the east
     np.testing.assert_allclose(f.wheel_position_m[0], [9.0, 20.0, 0.8], atol=1e-12)
@@ -112,8 +126,80 @@ def test_missing_attitude_is_level_and_north() -> None:
     rows["east_m"] = 1.0
     rows["north_m"] = 2.0
     rows["up_m"] = 0.0
-    f = fleet_frame(["a"], rows)
+    f = fleet_frame(["a"], rows, MDSF_SPEC)
     np.testing.assert_allclose(f.body_wxyz, [[1, 0, 0, 0]])
+
+
+#: A steered four-wheel estimator's spec: a slip channel per wheel, no up, pitch or roll.
+FOUR_WHEEL = EstimatorSpec(
+    name="four_wheel_test",
+    title="four wheels",
+    kinds=("wheeled_4wd_steered",),
+    inputs=("gnss", "wheels"),
+    fields=(
+        FieldSpec("stamp_ns", "i8", "ns", "time"),
+        FieldSpec("x_m", "f8", "m", "east"),
+        FieldSpec("y_m", "f8", "m", "north"),
+        FieldSpec("yaw_rad", "f8", "rad", "heading"),
+        FieldSpec("v_mps", "f8", "m/s", "speed"),
+        *(FieldSpec(f"s_{k}_pct", "f8", "%", f"slip {k}") for k in ("fl", "fr", "rl", "rr")),
+    ),
+    slips=tuple(
+        SlipChannel(k, k, f"s_{k}_pct", WheelPosition(p))
+        for k, p in (
+            ("fl", "front_left"),
+            ("fr", "front_right"),
+            ("rl", "rear_left"),
+            ("rr", "rear_right"),
+        )
+    ),
+    speeds=(SpeedChannel("v", "speed", "v_mps"),),
+    motion="v",
+    position=PositionChannel("x_m", "y_m", heading_field="yaw_rad"),
+)
+
+
+def test_one_wheel_per_slip_channel_placed_by_its_position() -> None:
+    g = VehicleGeometry(h0_m=1.0, h1_m=1.0, track_width_m=2.0)
+    rows = FOUR_WHEEL.empty_rows(2)
+    rows["x_m"] = [0.0, 50.0]
+    rows["y_m"] = 0.0
+    rows["yaw_rad"] = [0.0, math.pi / 2]
+    rows["v_mps"] = [1.0, 2.0]
+    for k, v in zip(("fl", "fr", "rl", "rr"), (0.0, 5.0, 40.0, math.nan), strict=True):
+        rows[f"s_{k}_pct"] = v
+    f = fleet_frame(["a", "b"], rows, FOUR_WHEEL, g)
+    r = g.wheel_radius_left_m
+    # vehicle a faces north, its antenna (no up field: 0) 2 m above the ground point
+    np.testing.assert_allclose(
+        f.wheel_position_m[:4],
+        [[-1, FRONT_AXLE_M, r - 2], [1, FRONT_AXLE_M, r - 2], [-1, 0, r - 2], [1, 0, r - 2]],
+        atol=1e-12,
+    )
+    # vehicle b faces east: its front wheels are east of its rear wheels
+    assert f.wheel_position_m[4, 0] - f.wheel_position_m[6, 0] == pytest.approx(FRONT_AXLE_M)
+    assert f.wheel_owner.tolist() == [0, 0, 0, 0, 1, 1, 1, 1]
+    assert f.wheel_rgb[:4].tolist() == slip_rgb([0.0, 5.0, 40.0, math.nan]).tolist()
+    np.testing.assert_allclose(f.velocity_mps, [[0, 1, 0], [2, 0, 0]], atol=1e-12)
+    assert attitude_fields(FOUR_WHEEL) == (None, None)
+    assert attitude_fields(MDSF_SPEC) == ("pitch_rad", "roll_rad")
+
+
+def test_frames_of_two_specs_join_with_their_wheel_owners() -> None:
+    four = FOUR_WHEEL.empty_rows(1)
+    two = empty_estimates(2)
+    f = concat_frames(
+        [fleet_frame(["m1", "m2"], two, MDSF_SPEC), fleet_frame(["w"], four, FOUR_WHEEL)]
+    )
+    assert f.ids == ["m1", "m2", "w"]
+    assert f.estimators == ["mdsf", "mdsf", "four_wheel_test"]
+    assert f.wheel_owner.tolist() == [0, 0, 1, 1, 2, 2, 2, 2]
+    assert f.wheel_rgb.shape == (8, 3) and f.body_wxyz.shape == (3, 4)
+
+
+def test_a_spec_without_position_is_not_drawn() -> None:
+    with pytest.raises(ValueError, match="no position"):
+        fleet_frame(["a"], REFERENCE_SPEED_SPEC.empty_rows(1), REFERENCE_SPEED_SPEC)
 
 
 def test_slip_colour_scale_interpolates_and_clamps() -> None:

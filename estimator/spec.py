@@ -1,0 +1,399 @@
+"""Estimator specs: what an estimator takes and gives, declared once, as plain data.
+
+Everything after an estimator's ``advance()`` (storage, REST, reports, slip maps, live views,
+alerts, the 3D view, the dashboard) works from its :class:`EstimatorSpec`, never from one
+estimator's field names. A spec says:
+
+* ``fields``: the output row, a numpy structured dtype (``stamp_ns`` int64 first, units in the
+  names) with a label, unit and description per field;
+* ``flags``: the bits of its ``flags`` field, by name;
+* *channels*, what the rest of the product may read of a row:
+
+  - :class:`SlipChannel`: a per-wheel or per-track slip-like value in percent (label, validity
+    flag, standard deviation, band edges), what reports, slip maps, alerts and colours read;
+  - :class:`SpeedChannel`: a speed; ``motion`` names the one that decides "moving";
+  - :class:`PositionChannel`: east/north/up in the vehicle's local ENU frame (its anchor) and a
+    heading, with the flag that marks a dead-reckoned position;
+  - :class:`ChartSpec`: which fields a live or history chart draws together;
+  - ``ok_flag`` / ``degraded_flags``: the row's quality at a glance.
+
+A spec is pure data (no numerics, no I/O) so the server can read every spec without building an
+estimator. ``to_dict()`` is what REST (``/api/v1/estimators``) and the dashboard receive.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import IntFlag, StrEnum
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "ChartSpec",
+    "EstimatorSpec",
+    "FieldSpec",
+    "FlagSpec",
+    "PositionChannel",
+    "SlipChannel",
+    "SpecError",
+    "SpeedChannel",
+    "WheelPosition",
+    "flags_from",
+]
+
+#: numpy kinds a field may have: float64, int64, int32.
+FIELD_KINDS = ("f8", "i8", "i4")
+
+
+class SpecError(ValueError):
+    """A spec contradicts itself (unknown field in a channel, duplicate name or bit, ...)."""
+
+
+class WheelPosition(StrEnum):
+    """Named place of a wheel or track on a vehicle (what a slip channel belongs to)."""
+
+    REAR_LEFT = "rear_left"
+    REAR_RIGHT = "rear_right"
+    FRONT_LEFT = "front_left"
+    FRONT_RIGHT = "front_right"
+    TRACK_LEFT = "track_left"
+    TRACK_RIGHT = "track_right"
+
+
+@dataclass(frozen=True, slots=True)
+class FieldSpec:
+    """One column of an estimator's output row.
+
+    ``kind`` is a numpy type code (``f8``, ``i8``, ``i4``); floats are NaN where unknown.
+    ``unit`` is what the name's suffix says (``m/s``, ``%``, ``rad``, ``ns``, ``""`` for counts
+    and bit fields).
+    """
+
+    name: str
+    kind: str
+    unit: str
+    label: str
+    description: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class FlagSpec:
+    """One bit of the ``flags`` field."""
+
+    name: str
+    bit: int
+    description: str = ""
+
+    @property
+    def mask(self) -> int:
+        return 1 << self.bit
+
+
+def flags_from(bits: type[IntFlag], descriptions: Mapping[str, str]) -> tuple[FlagSpec, ...]:
+    """One :class:`FlagSpec` per single-bit member of ``bits``, described by ``descriptions``
+    (every member must have one: a flag nobody can read is a flag nobody can use)."""
+    out = []
+    for member in bits:
+        if member.value and member.name is not None:
+            out.append(
+                FlagSpec(member.name, member.value.bit_length() - 1, descriptions[member.name])
+            )
+    return tuple(out)
+
+
+@dataclass(frozen=True, slots=True)
+class SlipChannel:
+    """A slip-like value of one wheel or track, in percent (+ traction slip, − skid).
+
+    A row's value counts where ``valid_flag`` is set (or, without one, where it is finite).
+    ``band_edges_pct`` cut |slip| into bands for reports, maps and colours (a vehicle's config
+    may override them).
+    """
+
+    key: str
+    label: str
+    field: str
+    position: WheelPosition
+    valid_flag: str | None = None
+    std_field: str | None = None
+    band_edges_pct: tuple[float, ...] = (5.0, 15.0)
+
+
+@dataclass(frozen=True, slots=True)
+class SpeedChannel:
+    """A speed in m/s (signed, forward positive)."""
+
+    key: str
+    label: str
+    field: str
+    std_field: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PositionChannel:
+    """Where the vehicle is: metres in its local ENU frame (origin: the vehicle's anchor).
+
+    ``carried_flag`` marks rows whose position was dead-reckoned rather than measured.
+    """
+
+    east_field: str
+    north_field: str
+    up_field: str | None = None
+    heading_field: str | None = None
+    carried_flag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ChartSpec:
+    """Fields one chart draws together, all in ``unit``."""
+
+    key: str
+    title: str
+    unit: str
+    fields: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """Everything the product needs to know of one estimator's inputs and outputs.
+
+    Parameters
+    ----------
+    name : str
+        Registry name (``"mdsf"``); also the storage and REST key.
+    title, description : str
+        For people (dashboard, OpenAPI).
+    kinds : tuple of str
+        Vehicle kinds (``estimator.config.VehicleKind`` values) it can run on.
+    inputs : tuple of str
+        Wire stream names it consumes (``"gnss"``, ``"imu"``, ``"wheels"`` …); others are not
+        pushed to it.
+    fields : tuple of FieldSpec
+        Output row, ``stamp_ns`` (``i8``) first; a ``flags`` field (``i4``) when ``flags`` is set.
+    flags : tuple of FlagSpec
+    slips, speeds : tuple of SlipChannel / SpeedChannel
+    motion : str or None
+        Key of the speed channel whose ``|value|`` decides whether the vehicle moves.
+    position : PositionChannel or None
+    charts : tuple of ChartSpec
+    ok_flag : str or None
+        Flag of a row whose main reference is sound (for MDSF: GNSS fused).
+    degraded_flags : tuple of str
+        Flags of a row computed without its main reference (shaded in charts).
+    row_dtype : numpy.dtype, optional
+        The estimator's own dtype object for its rows, when it has one: it must equal the
+        fields' dtype, and :attr:`dtype` is then that very object, so checking a row array's
+        dtype is an identity test rather than a field-by-field comparison.
+    """
+
+    name: str
+    title: str
+    kinds: tuple[str, ...]
+    inputs: tuple[str, ...]
+    fields: tuple[FieldSpec, ...]
+    flags: tuple[FlagSpec, ...] = ()
+    slips: tuple[SlipChannel, ...] = ()
+    speeds: tuple[SpeedChannel, ...] = ()
+    motion: str | None = None
+    position: PositionChannel | None = None
+    charts: tuple[ChartSpec, ...] = ()
+    ok_flag: str | None = None
+    degraded_flags: tuple[str, ...] = ()
+    description: str = ""
+    row_dtype: np.dtype | None = field(default=None, repr=False, compare=False)
+    _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        names = [f.name for f in self.fields]
+        if not names or names[0] != "stamp_ns" or self.fields[0].kind != "i8":
+            raise SpecError(f"{self.name}: the first field must be stamp_ns (i8)")
+        if len(set(names)) != len(names):
+            raise SpecError(f"{self.name}: duplicate field names")
+        for f in self.fields:
+            if f.kind not in FIELD_KINDS:
+                raise SpecError(f"{self.name}.{f.name}: kind {f.kind!r} not in {FIELD_KINDS}")
+        object.__setattr__(self, "_by_name", {f.name: f for f in self.fields})
+        built = np.dtype([(f.name, f.kind) for f in self.fields])
+        if self.row_dtype is not None and self.row_dtype != built:
+            raise SpecError(f"{self.name}: row_dtype differs from the fields")
+        object.__setattr__(
+            self, "row_dtype", self.row_dtype if self.row_dtype is not None else built
+        )
+        self._check_flags()
+        self._check_channels()
+
+    def _check_flags(self) -> None:
+        if not self.flags:
+            return
+        if self._by_name.get("flags") is None or self._by_name["flags"].kind != "i4":
+            raise SpecError(f"{self.name}: flags declared but no i4 'flags' field")
+        bits = [f.bit for f in self.flags]
+        if len(set(bits)) != len(bits) or not all(0 <= b < 31 for b in bits):
+            raise SpecError(f"{self.name}: flag bits must be distinct, 0..30")
+        if len({f.name for f in self.flags}) != len(self.flags):
+            raise SpecError(f"{self.name}: duplicate flag names")
+
+    def _need_field(self, name: str | None, what: str, kind: str = "f8") -> None:
+        if name is None:
+            return
+        f = self._by_name.get(name)
+        if f is None or f.kind != kind:
+            raise SpecError(f"{self.name}: {what} names {name!r}, not a {kind} field")
+
+    def _need_flag(self, name: str | None, what: str) -> None:
+        if name is not None and name not in {f.name for f in self.flags}:
+            raise SpecError(f"{self.name}: {what} names unknown flag {name!r}")
+
+    def _check_channels(self) -> None:
+        for s in self.slips:
+            self._need_field(s.field, f"slip channel {s.key}")
+            self._need_field(s.std_field, f"slip channel {s.key}")
+            self._need_flag(s.valid_flag, f"slip channel {s.key}")
+            edges = list(s.band_edges_pct)
+            if not edges or edges != sorted(set(edges)) or not all(map(math.isfinite, edges)):
+                raise SpecError(f"{self.name}: slip channel {s.key} band edges must increase")
+        for v in self.speeds:
+            self._need_field(v.field, f"speed channel {v.key}")
+            self._need_field(v.std_field, f"speed channel {v.key}")
+        for keys in ([s.key for s in self.slips], [v.key for v in self.speeds]):
+            if len(set(keys)) != len(keys):
+                raise SpecError(f"{self.name}: duplicate channel keys {keys}")
+        if self.motion is not None and self.motion not in {v.key for v in self.speeds}:
+            raise SpecError(f"{self.name}: motion names unknown speed channel {self.motion!r}")
+        if self.position is not None:
+            p = self.position
+            for name in (p.east_field, p.north_field, p.up_field, p.heading_field):
+                self._need_field(name, "position")
+            self._need_flag(p.carried_flag, "position")
+        for c in self.charts:
+            for name in c.fields:
+                self._need_field(name, f"chart {c.key}")
+        self._need_flag(self.ok_flag, "ok_flag")
+        for name in self.degraded_flags:
+            self._need_flag(name, "degraded_flags")
+
+    # --- reading -----------------------------------------------------------------------------
+    @property
+    def dtype(self) -> np.dtype:
+        """Structured dtype of one output row (native byte order, in field order)."""
+        assert self.row_dtype is not None  # set in __post_init__
+        return self.row_dtype
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.fields)
+
+    def field(self, name: str) -> FieldSpec:
+        """The field ``name`` (``KeyError`` naming the estimator if it has none)."""
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise KeyError(f"estimator {self.name!r} has no field {name!r}") from None
+
+    def has_field(self, name: str) -> bool:
+        return name in self._by_name
+
+    def flag_mask(self, name: str) -> int:
+        """Bit mask of the flag ``name`` (``KeyError`` if it has none)."""
+        for f in self.flags:
+            if f.name == name:
+                return f.mask
+        raise KeyError(f"estimator {self.name!r} has no flag {name!r}")
+
+    def flag_names(self, bits: int) -> list[str]:
+        """Names of the flags set in ``bits``, lowest bit first."""
+        return [f.name for f in sorted(self.flags, key=lambda f: f.bit) if bits & f.mask]
+
+    def speed(self, key: str) -> SpeedChannel:
+        for v in self.speeds:
+            if v.key == key:
+                return v
+        raise KeyError(f"estimator {self.name!r} has no speed channel {key!r}")
+
+    @property
+    def motion_field(self) -> str | None:
+        """Field whose ``|value|`` decides "moving", or None."""
+        return None if self.motion is None else self.speed(self.motion).field
+
+    def slip(self, key: str) -> SlipChannel:
+        for s in self.slips:
+            if s.key == key:
+                return s
+        raise KeyError(f"estimator {self.name!r} has no slip channel {key!r}")
+
+    def empty_rows(self, n: int = 0) -> np.ndarray:
+        """``n`` rows, floats NaN, integers zero."""
+        out = np.zeros(n, dtype=self.dtype)
+        for f in self.fields:
+            if f.kind == "f8":
+                out[f.name] = np.nan
+        return out
+
+    def check_rows(self, rows: object) -> np.ndarray:
+        """``rows`` as a 1-d array of :attr:`dtype`, or ``TypeError`` naming what is wrong."""
+        if not isinstance(rows, np.ndarray) or (
+            rows.dtype is not self.row_dtype and rows.dtype != self.row_dtype
+        ):
+            got = getattr(rows, "dtype", type(rows).__name__)
+            raise TypeError(f"rows of {self.name!r} must have its dtype, got {got}")
+        if rows.ndim != 1:
+            raise TypeError(f"rows of {self.name!r} must be 1-d, got shape {rows.shape}")
+        return rows
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (REST ``/api/v1/estimators``, the dashboard)."""
+        return {
+            "name": self.name,
+            "title": self.title,
+            "description": self.description,
+            "kinds": list(self.kinds),
+            "inputs": list(self.inputs),
+            "fields": [
+                {
+                    "name": f.name,
+                    "kind": f.kind,
+                    "unit": f.unit,
+                    "label": f.label,
+                    "description": f.description,
+                }
+                for f in self.fields
+            ],
+            "flags": [
+                {"name": f.name, "bit": f.bit, "description": f.description} for f in self.flags
+            ],
+            "slips": [
+                {
+                    "key": s.key,
+                    "label": s.label,
+                    "field": s.field,
+                    "position": str(s.position),
+                    "valid_flag": s.valid_flag,
+                    "std_field": s.std_field,
+                    "band_edges_pct": list(s.band_edges_pct),
+                }
+                for s in self.slips
+            ],
+            "speeds": [
+                {"key": v.key, "label": v.label, "field": v.field, "std_field": v.std_field}
+                for v in self.speeds
+            ],
+            "motion": self.motion,
+            "position": None
+            if self.position is None
+            else {
+                "east_field": self.position.east_field,
+                "north_field": self.position.north_field,
+                "up_field": self.position.up_field,
+                "heading_field": self.position.heading_field,
+                "carried_flag": self.position.carried_flag,
+            },
+            "charts": [
+                {"key": c.key, "title": c.title, "unit": c.unit, "fields": list(c.fields)}
+                for c in self.charts
+            ],
+            "ok_flag": self.ok_flag,
+            "degraded_flags": list(self.degraded_flags),
+        }

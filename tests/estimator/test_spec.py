@@ -1,0 +1,111 @@
+"""Estimator specs: self-consistency checks and what the catalog declares."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from estimator.catalog import SPECS, spec_of
+from estimator.spec import EstimatorSpec, FieldSpec, FlagSpec, SlipChannel, SpecError, WheelPosition
+from estimator.types import ESTIMATE_DTYPE, EstimateFlag
+
+
+def _spec(**kw: object) -> EstimatorSpec:
+    base: dict[str, object] = {
+        "name": "x",
+        "title": "X",
+        "kinds": ("wheeled_rear_drive",),
+        "inputs": ("imu",),
+        "fields": (
+            FieldSpec("stamp_ns", "i8", "ns", "time"),
+            FieldSpec("s_pct", "f8", "%", "slip"),
+            FieldSpec("flags", "i4", "", "flags"),
+        ),
+        "flags": (FlagSpec("OK", 0), FlagSpec("S_VALID", 3)),
+    }
+    base.update(kw)
+    return EstimatorSpec(**base)  # type: ignore[arg-type]
+
+
+def test_mdsf_spec_describes_the_rows_mdsf_emits() -> None:
+    spec = spec_of("mdsf")
+    assert spec.dtype == ESTIMATE_DTYPE
+    assert {f.name: f.mask for f in spec.flags} == {
+        f.name: int(f) for f in EstimateFlag if f.value
+    }
+    assert [s.field for s in spec.slips] == ["slip_left_pct", "slip_right_pct"]
+    assert spec.motion_field == "vg_mps"
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_every_spec_is_json_and_has_units(name: str) -> None:
+    spec = SPECS[name]
+    doc = json.loads(json.dumps(spec.to_dict()))
+    assert doc["name"] == name
+    assert [f["name"] for f in doc["fields"]] == list(spec.field_names)
+    for f in spec.fields:
+        assert f.label, f.name
+        assert f.description, f.name
+    rows = spec.empty_rows(3)
+    assert rows.dtype == spec.dtype and rows.shape == (3,)
+    assert spec.check_rows(rows) is rows
+
+
+def test_flag_names_and_masks() -> None:
+    spec = _spec()
+    assert spec.flag_mask("S_VALID") == 8
+    assert spec.flag_names(1 | 8) == ["OK", "S_VALID"]
+    with pytest.raises(KeyError, match="no flag 'NOPE'"):
+        spec.flag_mask("NOPE")
+
+
+def test_empty_rows_are_nan_floats_and_zero_ints() -> None:
+    rows = _spec().empty_rows(2)
+    assert np.isnan(rows["s_pct"]).all()
+    assert (rows["flags"] == 0).all() and (rows["stamp_ns"] == 0).all()
+
+
+def test_check_rows_refuses_another_dtype() -> None:
+    with pytest.raises(TypeError, match="rows of 'x' must have its dtype"):
+        _spec().check_rows(np.zeros(2, dtype=ESTIMATE_DTYPE))
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"fields": (FieldSpec("t", "i8", "ns", "t"),)}, "first field must be stamp_ns"),
+        (
+            {"slips": (SlipChannel("l", "left", "nope_pct", WheelPosition.REAR_LEFT),)},
+            "names 'nope_pct'",
+        ),
+        (
+            {"slips": (SlipChannel("l", "left", "s_pct", WheelPosition.REAR_LEFT, "NOPE"),)},
+            "unknown flag 'NOPE'",
+        ),
+        ({"flags": (FlagSpec("A", 1), FlagSpec("B", 1))}, "distinct"),
+        ({"motion": "ground"}, "unknown speed channel"),
+        (
+            {
+                "slips": (
+                    SlipChannel(
+                        "l", "left", "s_pct", WheelPosition.REAR_LEFT, band_edges_pct=(15, 5)
+                    ),
+                )
+            },
+            "band edges",
+        ),
+    ],
+)
+def test_contradictions_are_refused(change: dict[str, object], message: str) -> None:
+    with pytest.raises(SpecError, match=message):
+        _spec(**change)
+
+
+def test_a_row_dtype_is_the_specs_dtype_object_and_must_match_the_fields() -> None:
+    own = np.dtype([("stamp_ns", "i8"), ("s_pct", "f8"), ("flags", "i4")])
+    assert _spec(row_dtype=own).dtype is own
+    with pytest.raises(SpecError, match="row_dtype differs"):
+        _spec(row_dtype=np.dtype([("stamp_ns", "i8")]))
+    assert spec_of("mdsf").dtype is ESTIMATE_DTYPE
