@@ -27,9 +27,8 @@ from estimator.config import (
     vehicle_config_from_dict,
 )
 from estimator.geo import EnuFrame
-from server.alerts import AlertEngine, AlertKind
-from server.api.prometheus import MetricFamily, Sample
-from server.estimators.registry import (
+from server.analytics.alerts import AlertEngine, AlertKind
+from server.estimation.registry import (
     EstimatorRegistry,
     UnknownEstimatorError,
     estimator_names_for,
@@ -37,13 +36,14 @@ from server.estimators.registry import (
 from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
-from server.latency import LatencyProbe
-from server.live import LiveHub
+from server.live.hub import LiveHub
+from server.metrics.latency import LatencyProbe
+from server.metrics.prometheus import MetricFamily, Sample
+from server.metrics.thread_cpu import thread_cpu_seconds
 from server.settings import Settings
 from server.storage import open_store
 from server.storage.base import Store
 from server.storage.writer import StoreWriter
-from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["Runtime"]
 
@@ -76,7 +76,7 @@ class Runtime:
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self._fleet_frame: EnuFrame | None = None
-        #: sensor-time → live feed / stored latency histograms (``server.latency``)
+        #: sensor-time → live feed / stored latency histograms (``server.metrics.latency``)
         self.latency = LatencyProbe()
 
     # ------------------------------------------------------------------ lifecycle
@@ -134,7 +134,7 @@ class Runtime:
         )
         self._flusher.start()
         if s.viewer.enabled:
-            from server.viewer.fleet_view import FleetViewer
+            from server.live.viewer.fleet_view import FleetViewer
 
             self.viewer = FleetViewer(
                 self.live_hub, s.viewer, origin_offset_m=self._origin_offset_m

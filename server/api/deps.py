@@ -37,8 +37,8 @@ from server.api.errors import (
     Unauthorized,
     Unprocessable,
 )
-from server.api.prometheus import MetricFamily
-from server.estimators.registry import UnknownEstimatorError, estimator_names_for
+from server.estimation.registry import UnknownEstimatorError, estimator_names_for
+from server.metrics.prometheus import MetricFamily
 from server.settings import Settings
 from server.storage.base import StorageError, Store, VehicleRecord
 from server.timeparse import TimeParseError, parse_time_ns
@@ -246,7 +246,7 @@ def slip_config(record: VehicleRecord) -> SlipConfig:
 
 def vehicle_estimators(record: VehicleRecord) -> tuple[str, ...]:
     """The estimators the vehicle's config runs, primary first
-    (:func:`server.estimators.registry.estimator_names_for`); none when its stored config no
+    (:func:`server.estimation.registry.estimator_names_for`); none when its stored config no
     longer validates or names an estimator the server does not know."""
     try:
         return estimator_names_for(vehicle_config_from_dict(record.config))

@@ -4,7 +4,7 @@ Vehicle configs travel as plain JSON objects validated by
 :func:`estimator.config.vehicle_config_from_dict` (so a client gets that function's reasons); their
 OpenAPI schema is a union on ``kind`` built from the config dataclasses of
 :mod:`estimator.config` and their ranges (:func:`estimator.config.bound_of`), so the two cannot
-drift. Report bodies reuse the frozen dataclasses of :mod:`server.reports`.
+drift. Report bodies reuse the frozen dataclasses of :mod:`server.analytics.reports`.
 
 Estimates are described per estimator from the catalog of specs (:data:`estimator.catalog.SPECS`):
 one model per spec, told apart by ``estimator``, each field with its label, unit and description.
@@ -37,7 +37,7 @@ from estimator.config import (
     bound_of,
 )
 from estimator.spec import EstimatorSpec
-from server.reports import IngestCounts, VehicleReport
+from server.analytics.reports import IngestCounts, VehicleReport
 from server.storage.base import Anchor
 
 __all__ = [

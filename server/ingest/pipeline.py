@@ -56,7 +56,7 @@ import zenoh
 
 from estimator.config import ConfigError, VehicleConfig, WheeledRearDriveConfig
 from estimator.types import EstimateBatch, WheelGap
-from server.estimators.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
+from server.estimation.registry import AdvanceResult, EstimatorRegistry, UnknownEstimatorError
 from server.ingest.adapter import fed, wheel_gaps
 from server.ingest.counters import IngestCounters
 from server.ingest.reorder import ReorderBuffer, StreamGap, Verdict

@@ -60,10 +60,10 @@ from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
 from server.ingest.pipeline import EstimateSink
 from server.ingest.subscriber import IngestSubscriber, RawPacket
+from server.metrics.thread_cpu import thread_cpu_seconds
 from server.protocol.keys import parse_key
 from server.settings import IngestSettings, Settings, ZenohSettings
 from server.storage.base import Anchor
-from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["WorkerPool", "owner_of"]
 
@@ -437,7 +437,7 @@ class WorkerPool:
         return self._merged("anchors")
 
     def thread_cpu_snapshot(self) -> dict[str, dict[str, float]]:
-        """``{"worker-k": {thread name: CPU seconds}}`` (:mod:`server.thread_cpu`) of each
+        """``{"worker-k": {thread name: CPU seconds}}`` (:mod:`server.metrics.thread_cpu`) of each
         worker process, as of its last report; a restarted worker counts from zero again."""
         return {f"worker-{w.index}": dict(w.snapshot.get("thread_cpu", {})) for w in self._workers}
 
@@ -521,7 +521,7 @@ def _worker_main(
     control: Connection,
 ) -> None:
     """A worker process: decode what the server routes here and run a pipeline on it."""
-    from server.estimators.registry import EstimatorRegistry
+    from server.estimation.registry import EstimatorRegistry
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
 

@@ -43,7 +43,8 @@ the row's bytes in its spec's dtype (migration 6; NaN and infinities survive bit
   structured array, in one step that runs without the GIL. Reading a vehicle-hour column by
   column took ~120 ms on an idle core and several times that beside a busy Python thread.
 
-``python -m server.bench.storage`` measures these paths against the column layout side by side.
+``python -m server.tooling.bench.storage`` measures these paths against the column layout
+side by side.
 
 One SQLite library per process: ``sqlite3`` uses the system's SQLite. Packages that carry their
 own copy (the ADBC SQLite driver, apsw wheels) must not open this file in the same process while

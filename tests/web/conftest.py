@@ -28,15 +28,15 @@ from fastapi import APIRouter
 
 from estimator.catalog import SPECS
 from estimator.config import SlipConfig, WheeledRearDriveConfig
-from server.alerts import AlertEngine
+from server.analytics.alerts import AlertEngine
 from server.api import create_app
 from server.api.app import API_ROUTERS
 from server.api.routes import alerts as alerts_routes
 from server.api.routes import live as live_routes
-from server.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
-from server.live import LiveHub
+from server.live.hub import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
+from server.tooling.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.web import mount_web
 from tests.support import free_port
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.bench.live import SyntheticFleet
+from server.tooling.bench.live import SyntheticFleet
 from tests.web.conftest import N_VEHICLES, LiveStack, checked_page
 
 pytestmark = pytest.mark.browser

@@ -13,10 +13,11 @@ from typing import Any
 import httpx
 import pytest
 
-from server.app_main import ServerThread, build_app, vehicle_session
-from server.fleet_sim import FleetSim
-from server.live import LiveHub
+from server.app_main import ServerThread, build_app
+from server.live.hub import LiveHub
 from server.settings import Settings
+from server.tooling.fleet_commands import vehicle_session
+from server.tooling.fleet_sim import FleetSim
 from tests.support import free_port
 from tests.web.test_dashboard import _COLOURED_PIXELS_JS, JS_NS_RESOLUTION, _page_latest
 

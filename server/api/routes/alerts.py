@@ -1,4 +1,4 @@
-"""``GET /alerts``: open and recent alerts from :class:`server.alerts.AlertEngine`.
+"""``GET /alerts``: open and recent alerts from :class:`server.analytics.alerts.AlertEngine`.
 
 The engine is found as ``app.state.alert_engine`` or, failing that,
 ``app.state.runtime.alert_engine``.
@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from pydantic import BaseModel, Field
 from starlette.datastructures import State
 
-from server.alerts import AlertEngine
+from server.analytics.alerts import AlertEngine
 from server.api.errors import ServiceUnavailable, error_responses
 
 __all__ = ["AlertListPublic", "AlertPublic", "find_alert_engine", "router"]

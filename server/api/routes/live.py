@@ -1,4 +1,4 @@
-"""Live WebSockets for the dashboard, fed by :class:`server.live.LiveHub`.
+"""Live WebSockets for the dashboard, fed by :class:`server.live.hub.LiveHub`.
 
 The hub is found as ``app.state.live_hub`` or, failing that, ``app.state.runtime.live_hub``.
 Every message is one JSON text frame with a ``type``; NaN values are sent as ``null``; times are
@@ -40,7 +40,7 @@ vehicle's rows of one estimator (default: its primary)
         {"type": "append", "estimator": "mdsf", "estimators": […], "from_ns": 1717…,
          "columns": {…same keys…}, "latest": {…}, "sent_ns": …}
 
-    The live fields (``server.live.live_fields``) are the spec's chart, slip, motion and
+    The live fields (``server.live.hub.live_fields``) are the spec's chart, slip, motion and
     position fields and ``flags``. On ``append`` the client drops its points with
     ``stamp_ns >= from_ns`` and then appends ``columns`` (the newest, still-filling bucket of a
     decimated window is re-sent that way), then trims points older than ``newest - window_s``.
@@ -66,7 +66,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from starlette.datastructures import State
 
-from server.live import LiveHub, quality
+from server.live.hub import LiveHub, quality
 
 __all__ = ["FLEET_MIN_INTERVAL_S", "VEHICLE_MIN_INTERVAL_S", "find_live_hub", "router"]
 

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query, Response
 
 from estimator.catalog import SPECS
 from estimator.spec import EstimatorSpec
+from server.analytics.reports import flatten_report, ingest_counts, report_fields, vehicle_report
 from server.api.deps import (
     EstimatorDep,
     EstimatorQuery,
@@ -25,7 +26,6 @@ from server.api.errors import error_responses
 from server.api.models import FleetReportPublic, VehicleReportPublic
 from server.api.routes.series import export_filename
 from server.api.tables import csv_table
-from server.reports import flatten_report, ingest_counts, report_fields, vehicle_report
 from server.storage.base import Store, VehicleRecord
 
 __all__ = ["REPORT_DESCRIPTION", "router"]
@@ -125,7 +125,7 @@ def get_vehicle_report(
 
 
 def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response:
-    """One CSV row per report (:func:`server.reports.flatten_report`), as a download."""
+    """One CSV row per report (:func:`server.analytics.reports.flatten_report`), as a download."""
     rows = [flatten_report(r.vehicle_id, r.estimator, r.report, r.ingest) for r in reports]
     columns: dict[str, None] = {}
     for row in rows:  # channel and band columns: the union over the reports, empty where unused

@@ -4,11 +4,11 @@ vehicle's primary); GeoJSON places rows by the spec's position channel.
 
 Rows are read from the store in chunks (``ApiLimits.query_chunk_ns``) so a long range never sits
 in memory at full rate. With ``max_points`` >= 2 and more rows than that, every chunk is decimated
-by :func:`server.downsample.downsample_minmax` (per time bucket the min and max of each field, for
-charts) or :func:`server.downsample.thin_first` (per time bucket its first row, whole, for
-positions and GeoJSON). The buckets are sized on the span of the stored rows in the range (first
-to last), not on the requested range; chunks are whole numbers of buckets, so chunking does not
-change the result.
+by :func:`server.analytics.downsample.downsample_minmax` (per time bucket the min and max of each
+field, for charts) or :func:`server.analytics.downsample.thin_first` (per time bucket its first
+row, whole, for positions and GeoJSON). The buckets are sized on the span of the stored rows in
+the range (first to last), not on the requested range; chunks are whole numbers of buckets, so
+chunking does not change the result.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from fastapi.responses import StreamingResponse
 
 from estimator.geo import EnuFrame
 from estimator.spec import EstimatorSpec, PositionChannel
+from server.analytics.downsample import bucket_width_ns, downsample_minmax, thin_first
 from server.api.deps import (
     ApiLimits,
     EstimatorDep,
@@ -40,7 +41,6 @@ from server.api.deps import (
 )
 from server.api.errors import BadRequest, RangeTooLarge, Unprocessable, error_responses
 from server.api.models import AnchorPublic, SeriesFormat, SeriesPublic, fields_doc
-from server.downsample import bucket_width_ns, downsample_minmax, thin_first
 from server.storage.base import Anchor, Store
 
 __all__ = [

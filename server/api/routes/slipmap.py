@@ -1,13 +1,13 @@
 """Slip maps: ``/vehicles/{id}/slipmap`` and ``/fleet/slipmap`` (JSON, GeoJSON or CSV).
 
-The statistics are :mod:`server.slipmap`'s, over one estimator's rows read through its spec
-(``?estimator=``, default the vehicle's primary); this module reads the rows, picks the frame and
-writes the answer. GeoJSON cells are polygons whose corners go through the frame's
+The statistics are :mod:`server.analytics.slipmap`'s, over one estimator's rows read through its
+spec (``?estimator=``, default the vehicle's primary); this module reads the rows, picks the frame
+and writes the answer. GeoJSON cells are polygons whose corners go through the frame's
 :meth:`estimator.geo.EnuFrame.to_geodetic` on its horizontal plane (``up`` 0).
 
 The fleet map reads and reduces one vehicle at a time (:func:`_vehicle_cells`) and merges the
-partial sums as it goes (:func:`server.slipmap.merge_cell_sums`): memory holds one vehicle's
-rows and the merged cells, never the fleet's rows.
+partial sums as it goes (:func:`server.analytics.slipmap.merge_cell_sums`): memory holds one
+vehicle's rows and the merged cells, never the fleet's rows.
 """
 
 from __future__ import annotations
@@ -24,6 +24,20 @@ from estimator.catalog import SPECS
 from estimator.config import SlipConfig
 from estimator.geo import EnuFrame
 from estimator.spec import EstimatorSpec
+from server.analytics.reports import check_band_edges
+from server.analytics.slipmap import (
+    CellSums,
+    NotMappable,
+    SlipMap,
+    TooManyCells,
+    cell_sums,
+    finish_cells,
+    map_samples,
+    merge_cell_sums,
+    reframe,
+    slip_map,
+    slipmap_fields,
+)
 from server.api.deps import (
     ApiLimits,
     EstimatorDep,
@@ -54,20 +68,6 @@ from server.api.models import (
 )
 from server.api.routes.series import GEOJSON_MEDIA_TYPE, export_filename
 from server.api.tables import csv_table
-from server.reports import check_band_edges
-from server.slipmap import (
-    CellSums,
-    NotMappable,
-    SlipMap,
-    TooManyCells,
-    cell_sums,
-    finish_cells,
-    map_samples,
-    merge_cell_sums,
-    reframe,
-    slip_map,
-    slipmap_fields,
-)
 from server.storage.base import Anchor, Store, VehicleRecord
 
 __all__ = ["FLEET_SLIPMAP_DESCRIPTION", "SLIPMAP_DESCRIPTION", "router"]

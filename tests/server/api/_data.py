@@ -13,7 +13,7 @@ T0_ISO = "2024-05-01T12:00:00Z"
 
 
 def hand_series(t0: int = T0) -> np.ndarray:
-    """10 rows, 1 s apart from ``t0`` (the series of tests/server/test_reports.py)."""
+    """10 rows, 1 s apart from ``t0`` (the series of tests/server/analytics/test_reports.py)."""
     rows = empty_estimates(10)
     rows["stamp_ns"] = t0 + np.arange(10) * S
     rows["vg_mps"] = [0, 0, 2, 2, 2, 2, 4, 4, 0.1, 0]

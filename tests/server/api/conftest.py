@@ -14,9 +14,9 @@ from anyio.from_thread import BlockingPortal, start_blocking_portal
 from fastapi import FastAPI
 
 from estimator.config import VehicleConfig
-from server.alerts import AlertEngine
+from server.analytics.alerts import AlertEngine
 from server.api import ApiLimits, create_app
-from server.api.prometheus import MetricFamily, Sample
+from server.metrics.prometheus import MetricFamily, Sample
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, StoreWriter, open_store
 

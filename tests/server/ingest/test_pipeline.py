@@ -25,7 +25,7 @@ from estimator.types import (
     TrackSide,
     WheelSpeeds4,
 )
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
 from server.protocol import (
     DecodeError,

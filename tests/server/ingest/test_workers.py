@@ -10,10 +10,10 @@ import pytest
 
 from estimator.config import WheeledRearDriveConfig
 from estimator.sim import simulate
-from server.fleet_sim import encode_packets, packetize
 from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
 from server.protocol import sensor_key
 from server.settings import Settings
+from server.tooling.fleet_sim import encode_packets, packetize
 from tests.server.ingest.fakes import CapturingSink
 
 VEHICLES = [f"w{i:03d}" for i in range(6)]

@@ -11,7 +11,7 @@ import zenoh
 
 from estimator.config import VehicleConfig, WheeledRearDriveConfig
 from estimator.types import GnssSample, ImuBatch, Wheel, WheelEdges
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline, make_config
 from server.protocol import (
     Stream,

@@ -19,10 +19,10 @@ from estimator.spec import EstimatorSpec
 from estimator.types import ESTIMATE_FIELDS, EstimateBatch, empty_estimates
 from server.settings import StorageSettings
 from server.storage import Store
-from server.storage._pgadmin import set_connections_allowed
-from server.storage._testing import sqlite_write_locked
 from server.storage.postgres import PostgresStore
 from server.storage.sqlite import SqliteStore
+from server.tooling.pgadmin import set_connections_allowed
+from tests.server.storage._faults import sqlite_write_locked
 
 T0_NS = 1_763_700_000_000_000_000  # 2025-11-21, a realistic epoch in ns
 DT_NS = 100_000_000  # 10 Hz
