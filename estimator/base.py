@@ -17,27 +17,52 @@ import numpy as np
 
 from estimator.config import VehicleConfig
 from estimator.spec import EstimatorSpec
-from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelGap, WheelSpeeds
+from estimator.types import (
+    GnssSample,
+    ImuBatch,
+    OdometerEdges,
+    SprocketEdges,
+    SteeringAngles,
+    WheelEdges,
+    WheelGap,
+    WheelSpeeds,
+    WheelSpeeds4,
+)
 
 __all__ = ["STREAMS", "FleetEstimator", "Measurement", "Pushed", "stream_of"]
 
-Measurement = GnssSample | ImuBatch | WheelEdges | WheelSpeeds
+#: A measurement of any sensor stream; an estimator is handed those of the streams it takes.
+Measurement = (
+    GnssSample
+    | ImuBatch
+    | WheelEdges
+    | WheelSpeeds
+    | OdometerEdges
+    | SprocketEdges
+    | SteeringAngles
+    | WheelSpeeds4
+)
 
 #: What :meth:`FleetEstimator.push` takes: a measurement, or a notice of lost data.
 Pushed = Measurement | WheelGap
 
 #: Wire stream each pushed type comes from (the names a spec's ``inputs`` list); a wheel gap
 #: is news of the ``wheels`` stream.
+#: (The server's stream declarations, ``server.protocol.streams``, are checked against it.)
 _STREAM_OF_TYPE: Mapping[type, str] = {
     GnssSample: "gnss",
     ImuBatch: "imu",
     WheelEdges: "wheels",
     WheelSpeeds: "wheels",
     WheelGap: "wheels",
+    OdometerEdges: "odometer",
+    SprocketEdges: "sprockets",
+    SteeringAngles: "steering",
+    WheelSpeeds4: "wheel_speeds4",
 }
 
 #: Every wire stream a spec's ``inputs`` may name.
-STREAMS: tuple[str, ...] = ("gnss", "imu", "wheels")
+STREAMS: tuple[str, ...] = tuple(dict.fromkeys(_STREAM_OF_TYPE.values()))
 
 
 def stream_of(pushed: Pushed) -> str:

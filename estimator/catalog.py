@@ -1,7 +1,7 @@
 """Every estimator's spec by name: what the server reads before it builds any estimator.
 
 Adding an estimator: declare its :class:`estimator.spec.EstimatorSpec` beside it and list it here;
-its factory goes in the server's registry (``server.estimators.registry``).
+its factory goes in the server's registry (``server.estimation.registry``).
 """
 
 from __future__ import annotations

@@ -1,13 +1,23 @@
-"""Vehicle configuration: geometry, encoders, noise and slip thresholds.
+"""Vehicle configuration by kind: one frozen, self-validating dataclass per vehicle kind.
 
-Every section is a frozen dataclass that validates itself in ``__post_init__`` and raises
-:class:`ConfigError` with the offending field named. The server turns these into JSON
-(``dataclasses.asdict``) and back (:func:`vehicle_config_from_dict`).
+:data:`VehicleConfig` is the union of :class:`WheeledRearDriveConfig` (a rear-drive tractor:
+rear-axle geometry, wheel encoders), :class:`TrackedConfig` (a crawler, ``method.md`` §4) and
+:class:`Wheeled4wdSteeredConfig` (a steered four-wheel vehicle, ``method.md`` §5). Every kind
+has ``noise``, ``slip`` and ``estimators``; its class attribute ``kind`` names it in JSON and
+``positions`` names its wheels or tracks (:class:`WheelPosition`).
 
-Geometry follows ``../shared/docs/method.md`` section 1: the origin ``O`` is the ground
-projection of the rear-axle midpoint; body frame X right, Y forward, Z up. In the source's
-layout the IMU sits on the vertical through ``O`` at height ``h0`` and the antenna ``h1`` above
-the IMU; the horizontal offsets below generalise that (lever arms), zero reproduces the source.
+Every numeric field carries its plausible physical range and unit once, as field metadata
+(:class:`Bound`, read with :func:`bound_of`); ``__post_init__`` refuses a value outside it with
+:class:`ConfigError` naming the field, the range and the unit, and the REST models are built
+from the same metadata. :func:`vehicle_config_from_dict` dispatches on ``"kind"`` (default
+``wheeled_rear_drive``) and reads every shape this module ever wrote (see
+:func:`upgrade_legacy_config`); ``to_dict`` gives it back as JSON-ready data.
+
+Geometry of a wheeled rear-drive vehicle follows ``method.md`` section 1: the origin ``O`` is
+the ground projection of the rear-axle midpoint; body frame X right, Y forward, Z up. In the
+source's layout the IMU sits on the vertical through ``O`` at height ``h0`` and the antenna
+``h1`` above the IMU; the horizontal offsets generalise that (lever arms), zero reproduces the
+source. The other kinds give lever arms as (x right, y forward, z up) from their own origin.
 """
 
 from __future__ import annotations
@@ -15,18 +25,36 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import reprlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from enum import StrEnum
-from typing import Any
+from enum import Enum, StrEnum
+from typing import Any, ClassVar, TypeVar
 
 __all__ = [
+    "Bound",
+    "ChassisConfig",
     "ConfigError",
+    "DrivenAxle",
     "EncoderConfig",
     "NoiseConfig",
+    "OdometerConfig",
     "SlipConfig",
+    "SprocketConfig",
+    "TrackedConfig",
+    "TrackedGeometry",
+    "TrackedMotionConfig",
+    "TyreConfig",
     "VehicleConfig",
     "VehicleGeometry",
     "VehicleKind",
+    "WheelPosition",
+    "Wheeled4wdSteeredConfig",
+    "WheeledRearDriveConfig",
+    "bound_of",
+    "config_class",
+    "expect_kind",
+    "upgrade_legacy_config",
     "vehicle_config_from_dict",
 ]
 
@@ -36,217 +64,522 @@ class ConfigError(ValueError):
 
 
 class VehicleKind(StrEnum):
-    """What kind of vehicle this is; the kind picks the default estimators."""
+    """What kind of vehicle this is; the kind picks the config class and default estimators."""
 
     WHEELED_REAR_DRIVE = "wheeled_rear_drive"
     TRACKED = "tracked"
     WHEELED_4WD_STEERED = "wheeled_4wd_steered"
 
 
-def _positive(name: str, value: float) -> None:
-    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
+class WheelPosition(StrEnum):
+    """A named wheel or track (instead of a column of an ``(n, 2)`` array)."""
+
+    REAR_LEFT = "rear_left"
+    REAR_RIGHT = "rear_right"
+    FRONT_LEFT = "front_left"
+    FRONT_RIGHT = "front_right"
+    TRACK_LEFT = "track_left"
+    TRACK_RIGHT = "track_right"
 
 
-def _finite(name: str, value: float) -> None:
-    if not (isinstance(value, int | float) and math.isfinite(value)):
-        raise ConfigError(f"{name} must be a finite number, got {value!r}")
+class DrivenAxle(StrEnum):
+    """Which axle of a four-wheel vehicle drives."""
+
+    FRONT = "front"
+    REAR = "rear"
+    ALL = "all"
 
 
 @dataclass(frozen=True, slots=True)
-class VehicleGeometry:
-    """Where the sensors and wheels are.
+class Bound:
+    """The plausible range ``low..high`` (inclusive) of a numeric field, with its unit.
 
-    Attributes
-    ----------
-    h0_m : float
-        IMU height above the ground (source symbol ``h0``).
-    h1_m : float
-        Antenna height above the IMU (source symbol ``h1``).
-    track_width_m : float
-        Rear track width ``b`` (wheel contact centre to contact centre).
-    wheel_radius_left_m, wheel_radius_right_m : float
-        Effective rolling radius ``r`` of each driven wheel.
-    antenna_offset_m : tuple[float, float]
-        Antenna (x right, y forward) offset from the vertical through ``O``.
-    imu_offset_m : tuple[float, float]
-        IMU (x right, y forward) offset from the vertical through ``O``.
+    ``items`` set means the field is a tuple of ``items[0]..items[1]`` numbers, each in range.
     """
 
-    h0_m: float = 1.0
-    h1_m: float = 1.6
-    track_width_m: float = 1.8
-    wheel_radius_left_m: float = 0.85
-    wheel_radius_right_m: float = 0.85
-    antenna_offset_m: tuple[float, float] = (0.0, 0.0)
-    imu_offset_m: tuple[float, float] = (0.0, 0.0)
+    low: float
+    high: float
+    unit: str  # "" for a dimensionless ratio
+    doc: str
+    integer: bool = False
+    items: tuple[int, int] | None = None
+
+    def describe(self) -> str:
+        """``"1e-06..10 m/s²"``: the range and unit as messages and schemas show them."""
+        return f"{self.low:g}..{self.high:g} {self.unit or '(dimensionless)'}"
+
+    def check(self, name: str, value: Any) -> None:
+        """Raise :class:`ConfigError` naming ``name`` unless ``value`` fits."""
+        if self.items is None:
+            self._check_number(name, value)
+            return
+        lo, hi = self.items
+        if not isinstance(value, tuple) or not lo <= len(value) <= hi:
+            count = f"{lo}" if lo == hi else f"{lo} to {hi}"
+            raise ConfigError(
+                f"{name} must be a list of {count} numbers, got {reprlib.repr(value)}"
+            )
+        for i, v in enumerate(value):
+            self._check_number(f"{name}[{i}]", v)
+
+    def _check_number(self, name: str, value: Any) -> None:
+        kind = (int,) if self.integer else (int, float)
+        ok = isinstance(value, kind) and not isinstance(value, bool)
+        finite = ok and (isinstance(value, int) or math.isfinite(value))  # no float of 10**400
+        if not (finite and self.low <= value <= self.high):
+            what = "an integer" if self.integer else "a number"
+            raise ConfigError(
+                f"{name} must be {what} in {self.describe()}, got {reprlib.repr(value)}"
+            )
+
+
+_BOUND = "bound"
+
+
+def _bounded(
+    default: Any,
+    low: float,
+    high: float,
+    unit: str,
+    doc: str,
+    *,
+    integer: bool = False,
+    items: tuple[int, int] | None = None,
+) -> Any:
+    """A dataclass field with its :class:`Bound` as metadata (the one place a range is written)."""
+    return field(default=default, metadata={_BOUND: Bound(low, high, unit, doc, integer, items)})
+
+
+def _vector(default: tuple[float, ...], doc: str) -> Any:
+    """A lever arm or offset: one component per axis, each within ±10 m."""
+    n = len(default)
+    return _bounded(default, -10.0, 10.0, "m", doc, items=(n, n))
+
+
+def bound_of(f: dataclasses.Field[Any]) -> Bound | None:
+    """The :class:`Bound` of a config dataclass field (None for booleans, choices, sections)."""
+    bound = f.metadata.get(_BOUND)
+    return bound if isinstance(bound, Bound) else None
+
+
+class _Checked:
+    """Validation shared by every config dataclass: ranges, booleans and choices per field."""
+
+    __slots__ = ()
 
     def __post_init__(self) -> None:
-        for name in ("h0_m", "track_width_m", "wheel_radius_left_m", "wheel_radius_right_m"):
-            _positive(name, getattr(self, name))
-        _finite("h1_m", self.h1_m)
-        for name in ("antenna_offset_m", "imu_offset_m"):
-            value = getattr(self, name)
-            if len(value) != 2:
-                raise ConfigError(f"{name} must have two components (x right, y forward)")
-            for i, v in enumerate(value):
-                _finite(f"{name}[{i}]", v)
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            value = getattr(self, f.name)
+            if isinstance(value, list):  # JSON arrays: kept as tuples (frozen, hashable)
+                value = tuple(value)
+                object.__setattr__(self, f.name, value)
+            bound = bound_of(f)
+            section = f.default_factory
+            if bound is not None:
+                bound.check(f.name, value)
+            elif isinstance(section, type) and not isinstance(value, section):
+                raise ConfigError(
+                    f"{f.name} must be a {section.__name__}, got {reprlib.repr(value)}"
+                )
+            elif isinstance(f.default, bool) and not isinstance(value, bool):
+                raise ConfigError(f"{f.name} must be true or false, got {reprlib.repr(value)}")
+            elif isinstance(f.default, Enum):
+                object.__setattr__(self, f.name, _choice(f.name, type(f.default), value))
+        self._check()
+
+    def _check(self) -> None:
+        """Checks across fields (none by default)."""
+
+
+E = TypeVar("E", bound=Enum)
+
+
+def _choice(name: str, enum: type[E], value: Any) -> E:
+    try:
+        return enum(value)
+    except ValueError:
+        raise ConfigError(
+            f"{name} must be one of {[e.value for e in enum]}, got {reprlib.repr(value)}"
+        ) from None
+
+
+# ---------------------------------------------------------------------------------------------
+# sections
 
 
 @dataclass(frozen=True, slots=True)
-class EncoderConfig:
+class VehicleGeometry(_Checked):
+    """Where the sensors and wheels of a rear-drive vehicle are (``method.md`` §1).
+
+    ``h0_m`` is the source's ``h0`` (IMU height above ground), ``h1_m`` its ``h1`` (antenna
+    above the IMU), ``track_width_m`` the rear track ``b``, the wheel radii the effective rolling
+    radius ``r`` of each driven wheel; offsets are (x right, y forward) from the vertical
+    through ``O``.
+    """
+
+    h0_m: float = _bounded(1.0, 0.05, 6.0, "m", "IMU height above the ground (h0)")
+    h1_m: float = _bounded(1.6, -3.0, 6.0, "m", "antenna height above the IMU (h1)")
+    track_width_m: float = _bounded(1.8, 0.3, 6.0, "m", "rear track width b, contact to contact")
+    wheel_radius_left_m: float = _bounded(0.85, 0.1, 2.0, "m", "rolling radius, rear left wheel")
+    wheel_radius_right_m: float = _bounded(0.85, 0.1, 2.0, "m", "rolling radius, rear right wheel")
+    antenna_offset_m: tuple[float, float] = _vector((0.0, 0.0), "antenna (x right, y forward)")
+    imu_offset_m: tuple[float, float] = _vector((0.0, 0.0), "IMU (x right, y forward)")
+
+
+@dataclass(frozen=True, slots=True)
+class EncoderConfig(_Checked):
     """Wheel encoder: a toothed ring read by a Hall or optical sensor.
 
-    Attributes
-    ----------
-    teeth_per_rev : int
-        ``Ns``, teeth (pulses) per wheel revolution.
-    has_direction : bool
-        Whether the encoder reports direction (quadrature); otherwise speed is taken as forward.
+    ``teeth_per_rev`` is ``Ns`` (pulses per wheel revolution); without ``has_direction``
+    (quadrature) the speed is taken as forward.
     """
 
-    teeth_per_rev: int = 120
+    teeth_per_rev: int = _bounded(120, 1, 100_000, "/rev", "Ns, teeth a turn", integer=True)
     has_direction: bool = False
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.teeth_per_rev, int) or not 1 <= self.teeth_per_rev <= 100_000:
+
+@dataclass(frozen=True, slots=True)
+class NoiseConfig(_Checked):
+    """Sensor noise figures (1-sigma), used to build the filters' Q and R."""
+
+    gnss_vel_std_mps: float = _bounded(
+        0.05, 1e-6, 10.0, "m/s", "GNSS velocity noise per axis when the receiver gives none"
+    )
+    accel_std_mps2: float = _bounded(0.05, 1e-6, 10.0, "m/s²", "accelerometer white noise")
+    gyro_std_radps: float = _bounded(0.005, 1e-6, 1.0, "rad/s", "gyro white noise")
+    accel_bias_walk_mps2: float = _bounded(
+        0.002, 1e-7, 1.0, "m/s² per √s", "accelerometer bias random walk"
+    )
+    gnss_pos_std_m: float = _bounded(
+        0.02, 1e-6, 100.0, "m", "horizontal position noise per axis (RTK fixed: 1-2 cm)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class SlipConfig(_Checked):
+    """When a slip value is given, and the bands reports count time in.
+
+    Below ``min_ground_speed_mps`` ground *and* rim speed the vehicle stands: no slip value.
+    |slip| above ``alert_threshold_pct`` for ``alert_hold_s`` raises an alert. A slip value is
+    given only while the ground speed changes by at most ``settle_max_change`` of itself over
+    the wheel-speed fit's span (``estimator.slip.unsettled``; 1e9 turns the rule off).
+    """
+
+    min_ground_speed_mps: float = _bounded(0.2, 0.01, 5.0, "m/s", "standstill below this speed")
+    band_edges_pct: tuple[float, ...] = _bounded(
+        (5.0, 15.0),
+        0.1,
+        100.0,
+        "%",
+        "upper edges of the report's slip bands, increasing",
+        items=(1, 10),
+    )
+    alert_threshold_pct: float = _bounded(15.0, 0.1, 100.0, "%", "|slip| that raises an alert")
+    alert_hold_s: float = _bounded(5.0, 0.1, 3600.0, "s", "time above the threshold to alert")
+    settle_max_change: float = _bounded(
+        0.5, 1e-3, 1e9, "", "largest relative change of ground speed over the fit span"
+    )
+
+    def _check(self) -> None:
+        if any(b <= a for a, b in itertools.pairwise(self.band_edges_pct)):
             raise ConfigError(
-                f"teeth_per_rev must be an int in 1..100000, got {self.teeth_per_rev!r}"
+                f"band_edges_pct must be increasing, got {reprlib.repr(self.band_edges_pct)}"
             )
 
 
 @dataclass(frozen=True, slots=True)
-class NoiseConfig:
-    """Sensor noise figures (1-sigma), used to build the filters' Q and R.
+class TrackedGeometry(_Checked):
+    """A crawler's hull (``method.md`` §4): gauge ``B``, contact length ``L`` and lever arms.
 
-    Attributes
-    ----------
-    gnss_vel_std_mps : float
-        GNSS velocity noise per axis when the receiver does not report it.
-    accel_std_mps2 : float
-        Accelerometer white noise per sample.
-    gyro_std_radps : float
-        Gyro white noise per sample.
-    accel_bias_walk_mps2 : float
-        Accelerometer bias random walk per sqrt(second).
-    gnss_pos_std_m : float
-        RTK-fixed horizontal position noise per axis (receivers rarely report it; 1-2 cm is
-        typical) [m].
+    Lever arms are (x right, y forward, z up) from the ground point midway between the two
+    tracks' contact centres; the odometer's is the point whose speed it reads.
     """
 
-    gnss_vel_std_mps: float = 0.05
-    accel_std_mps2: float = 0.05
-    gyro_std_radps: float = 0.005
-    accel_bias_walk_mps2: float = 0.002
-    gnss_pos_std_m: float = 0.02
-
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            _positive(f.name, getattr(self, f.name))
+    track_gauge_m: float = _bounded(2.0, 0.5, 6.0, "m", "track gauge B, centre to centre")
+    contact_length_m: float = _bounded(2.5, 0.3, 8.0, "m", "track contact length L")
+    imu_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 1.0), "IMU")
+    antenna_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 2.6), "antenna")
+    odometer_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 0.0), "odometer")
 
 
 @dataclass(frozen=True, slots=True)
-class SlipConfig:
-    """When a slip value is given, and the bands reports count time in.
+class SprocketConfig(_Checked):
+    """Sprocket encoders, one per track: edges per revolution and the pitch radius."""
 
-    Attributes
-    ----------
-    min_ground_speed_mps : float
-        Below this ground speed *and* rim speed the vehicle is at standstill: no slip value.
-    band_edges_pct : tuple[float, ...]
-        Upper edges of the slip bands for reports, increasing (default <5 %, 5-15 %, >15 %).
-    alert_threshold_pct : float
-        |slip| above this for ``alert_hold_s`` raises an alert.
-    alert_hold_s : float
-    settle_max_change : float
-        A slip value is given only while the wheel's ground speed changes by at most this
-        fraction of itself over the span of the wheel-speed fit (``estimator.slip.unsettled``):
-        starting and stopping at low speed, the fit lags and the slip is withheld (flag
-        SETTLING). A large value (e.g. 1e9) turns the rule off.
-    """
-
-    min_ground_speed_mps: float = 0.2
-    band_edges_pct: tuple[float, ...] = (5.0, 15.0)
-    alert_threshold_pct: float = 15.0
-    alert_hold_s: float = 5.0
-    settle_max_change: float = 0.5
-
-    def __post_init__(self) -> None:
-        _positive("min_ground_speed_mps", self.min_ground_speed_mps)
-        _positive("settle_max_change", self.settle_max_change)
-        _positive("alert_threshold_pct", self.alert_threshold_pct)
-        _positive("alert_hold_s", self.alert_hold_s)
-        edges = list(self.band_edges_pct)
-        if not edges or any(b <= a for a, b in itertools.pairwise(edges)):
-            raise ConfigError("band_edges_pct must be a non-empty increasing sequence")
+    pitch_radius_m: float = _bounded(0.35, 0.05, 1.5, "m", "sprocket pitch radius")
+    teeth_per_rev: int = _bounded(13, 1, 10_000, "/rev", "edges per sprocket turn", integer=True)
+    has_direction: bool = False
 
 
 @dataclass(frozen=True, slots=True)
-class VehicleConfig:
-    """Everything the estimators need to know about one vehicle.
+class OdometerConfig(_Checked):
+    """Transmission odometer: one edge per ``K_D`` metres of gearbox output."""
 
-    Attributes
-    ----------
-    kind : VehicleKind
-        Picks the default estimators (see the server's estimator registry).
-    estimators : tuple[str, ...]
-        Estimator names to run; empty means the kind's defaults.
+    distance_per_edge_m: float = _bounded(0.01, 1e-4, 1.0, "m", "K_D, distance per edge")
+    scale_std_pct: float = _bounded(0.5, 0.0, 10.0, "%", "1-sigma uncertainty of K_D")
+
+
+@dataclass(frozen=True, slots=True)
+class TrackedMotionConfig(_Checked):
+    """Transmission and motion-state constants of ``method.md`` §4 (the source's values).
+
+    Pivot turns below ``r = pivot_radius_per_half_gauge · B/2``; separated turns above
+    ``2·R_II`` with ``R_II = separated_radius_per_gauge · B``; arcs between.
     """
 
-    kind: VehicleKind = VehicleKind.WHEELED_REAR_DRIVE
+    low_gear_ratio: float = _bounded(1.42, 1.0, 4.0, "", "low-gear transmission ratio")
+    arc_odometer_ratio: float = _bounded(0.8688, 0.3, 1.0, "", "v_y / v_o in arc turns")
+    pivot_radius_per_half_gauge: float = _bounded(1.531, 0.5, 5.0, "", "pivot radius over B/2")
+    separated_radius_per_gauge: float = _bounded(2.88, 0.5, 20.0, "", "R_II over B")
+
+
+@dataclass(frozen=True, slots=True)
+class ChassisConfig(_Checked):
+    """A steered four-wheel vehicle's body (``method.md`` §5); lever arms from below the CG."""
+
+    mass_kg: float = _bounded(2500.0, 100.0, 60_000.0, "kg", "total mass")
+    yaw_inertia_kgm2: float = _bounded(4000.0, 10.0, 1e6, "kg·m²", "yaw moment of inertia")
+    cg_to_front_axle_m: float = _bounded(1.3, 0.1, 6.0, "m", "lf, CG to front axle")
+    cg_to_rear_axle_m: float = _bounded(1.5, 0.1, 6.0, "m", "lr, CG to rear axle")
+    front_track_m: float = _bounded(1.6, 0.5, 4.0, "m", "bf, front track width")
+    rear_track_m: float = _bounded(1.6, 0.5, 4.0, "m", "br, rear track width")
+    cg_height_m: float = _bounded(0.7, 0.1, 4.0, "m", "hg, CG height above ground")
+    steering_ratio: float = _bounded(16.0, 1.0, 50.0, "", "steering wheel over road wheel angle")
+    drag_area_m2: float = _bounded(1.0, 0.0, 20.0, "m²", "drag coefficient times frontal area")
+    rolling_resistance: float = _bounded(0.015, 0.0, 0.5, "", "rolling resistance coefficient")
+    roll_gradient_deg_per_g: float = _bounded(4.0, 0.0, 30.0, "deg/g", "body roll per lateral g")
+    pitch_gradient_deg_per_g: float = _bounded(2.0, 0.0, 30.0, "deg/g", "body pitch per long. g")
+    driven_axle: DrivenAxle = DrivenAxle.ALL
+    imu_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 0.7), "IMU")
+    antenna_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 1.8), "antenna")
+
+
+@dataclass(frozen=True, slots=True)
+class TyreConfig(_Checked):
+    """Brush-model tyre of ``method.md`` §5: ``c_x = 2a²·c_px``, ``c_y = 2a²·c_py``."""
+
+    c_px_npm2: float = _bounded(1e7, 1e5, 1e9, "N/m²", "c_px, longitudinal stiffness per area")
+    c_py_npm2: float = _bounded(6e6, 1e5, 1e9, "N/m²", "c_py, lateral stiffness per area")
+    kz_npm: float = _bounded(2.5e5, 1e4, 5e6, "N/m", "kz, vertical stiffness")
+    unloaded_radius_m: float = _bounded(0.33, 0.15, 1.5, "m", "r_u, unloaded radius")
+
+
+# ---------------------------------------------------------------------------------------------
+# kinds
+
+
+def _estimator_names(value: Any) -> None:
+    if not isinstance(value, tuple) or len(value) > 8:
+        raise ConfigError(
+            f"estimators must be a list of at most 8 names, got {reprlib.repr(value)}"
+        )
+    for name in value:
+        if not isinstance(name, str) or not 1 <= len(name) <= 64:
+            raise ConfigError(
+                f"estimators must hold names of 1 to 64 characters, got {reprlib.repr(name)}"
+            )
+
+
+class _Kind(_Checked):
+    """What every kind has: a ``kind`` name, named wheel positions, ``noise``, ``slip``."""
+
+    __slots__ = ()
+    kind: ClassVar[VehicleKind]
+    positions: ClassVar[tuple[WheelPosition, ...]]
+    estimators: tuple[str, ...]
+
+    def _check(self) -> None:
+        _estimator_names(self.estimators)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict: ``kind`` first, tuples as lists, choices as their strings."""
+        return {"kind": self.kind.value, **_plain(dataclasses.asdict(self))}  # type: ignore[call-overload]
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    if isinstance(value, Enum):
+        return value.value
+    return value
+
+
+@dataclass(frozen=True, slots=True)
+class WheeledRearDriveConfig(_Kind):
+    """A rear-drive wheeled vehicle (a tractor): what MDSF needs (``method.md`` §1-3).
+
+    ``estimators`` names the estimators to run; empty means the kind's defaults.
+    """
+
+    kind: ClassVar[VehicleKind] = VehicleKind.WHEELED_REAR_DRIVE
+    positions: ClassVar[tuple[WheelPosition, ...]] = (
+        WheelPosition.REAR_LEFT,
+        WheelPosition.REAR_RIGHT,
+    )
     geometry: VehicleGeometry = field(default_factory=VehicleGeometry)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     slip: SlipConfig = field(default_factory=SlipConfig)
     estimators: tuple[str, ...] = ()
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.kind, VehicleKind):
-            try:
-                object.__setattr__(self, "kind", VehicleKind(self.kind))
-            except ValueError as exc:
-                raise ConfigError(f"kind must be one of {[k.value for k in VehicleKind]}") from exc
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (tuples become lists)."""
-        return dataclasses.asdict(self)
+@dataclass(frozen=True, slots=True)
+class TrackedConfig(_Kind):
+    """A crawler with a transmission odometer and sprocket encoders (``method.md`` §4)."""
+
+    kind: ClassVar[VehicleKind] = VehicleKind.TRACKED
+    positions: ClassVar[tuple[WheelPosition, ...]] = (
+        WheelPosition.TRACK_LEFT,
+        WheelPosition.TRACK_RIGHT,
+    )
+    geometry: TrackedGeometry = field(default_factory=TrackedGeometry)
+    sprocket: SprocketConfig = field(default_factory=SprocketConfig)
+    odometer: OdometerConfig = field(default_factory=OdometerConfig)
+    motion: TrackedMotionConfig = field(default_factory=TrackedMotionConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    slip: SlipConfig = field(default_factory=SlipConfig)
+    estimators: tuple[str, ...] = ()
 
 
-_SECTIONS: dict[str, type] = {
-    "geometry": VehicleGeometry,
-    "encoder": EncoderConfig,
-    "noise": NoiseConfig,
-    "slip": SlipConfig,
+@dataclass(frozen=True, slots=True)
+class Wheeled4wdSteeredConfig(_Kind):
+    """A steered four-wheel vehicle: chassis and tyres for the friction estimate (§5)."""
+
+    kind: ClassVar[VehicleKind] = VehicleKind.WHEELED_4WD_STEERED
+    positions: ClassVar[tuple[WheelPosition, ...]] = (
+        WheelPosition.FRONT_LEFT,
+        WheelPosition.FRONT_RIGHT,
+        WheelPosition.REAR_LEFT,
+        WheelPosition.REAR_RIGHT,
+    )
+    chassis: ChassisConfig = field(default_factory=ChassisConfig)
+    tyre: TyreConfig = field(default_factory=TyreConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    slip: SlipConfig = field(default_factory=SlipConfig)
+    estimators: tuple[str, ...] = ()
+
+
+VehicleConfig = WheeledRearDriveConfig | TrackedConfig | Wheeled4wdSteeredConfig
+"""Everything the estimators need to know about one vehicle: one class per kind."""
+
+_KINDS: Mapping[VehicleKind, type[VehicleConfig]] = {
+    cls.kind: cls for cls in (WheeledRearDriveConfig, TrackedConfig, Wheeled4wdSteeredConfig)
 }
 
+C = TypeVar("C", WheeledRearDriveConfig, TrackedConfig, Wheeled4wdSteeredConfig)
 
-def _section(cls: type, data: dict[str, Any], name: str) -> Any:
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - known
+
+def config_class(kind: VehicleKind | str) -> type[VehicleConfig]:
+    """The config class of ``kind`` (raises :class:`ConfigError` for an unknown kind)."""
+    return _KINDS[_choice("kind", VehicleKind, kind)]
+
+
+def expect_kind(config: VehicleConfig, cls: type[C], estimator: str) -> C:
+    """``config`` if it is a ``cls``, else :class:`ConfigError`: ``estimator`` cannot run it."""
+    if not isinstance(config, cls):
+        raise ConfigError(
+            f"estimator {estimator!r} runs on {cls.kind.value} vehicles, "
+            f"not on {getattr(config, 'kind', type(config).__name__)}"
+        )
+    return config
+
+
+# ---------------------------------------------------------------------------------------------
+# from JSON
+
+
+def _section(cls: Any, data: Any, name: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{name} must be an object")
+    fields = [f.name for f in dataclasses.fields(cls)]
+    unknown = set(data) - set(fields)
     if unknown:
-        raise ConfigError(f"{name}: unknown field(s) {sorted(unknown)}")
+        raise ConfigError(f"{name}: unknown field(s) {sorted(unknown)}; known: {fields}")
     kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
     try:
         return cls(**kwargs)
-    except TypeError as exc:
-        raise ConfigError(f"{name}: {exc}") from exc
+    except ConfigError as exc:
+        raise ConfigError(f"{name}.{exc}") from None
 
 
-def vehicle_config_from_dict(data: dict[str, Any]) -> VehicleConfig:
-    """Build a validated :class:`VehicleConfig` from a JSON-like dict (missing parts default)."""
+def vehicle_config_from_dict(data: Any) -> VehicleConfig:
+    """Build a validated config of the kind ``data["kind"]`` names (missing parts default).
+
+    Reads today's shape and every earlier one (:func:`upgrade_legacy_config`). Raises
+    :class:`ConfigError` naming the kind, section and field at fault.
+    """
     if not isinstance(data, dict):
         raise ConfigError("vehicle config must be an object")
-    unknown = set(data) - {"kind", "estimators", *_SECTIONS}
+    data = upgrade_legacy_config(data)
+    cls = config_class(data.get("kind", VehicleKind.WHEELED_REAR_DRIVE))
+    sections = {f.name: f.default_factory for f in dataclasses.fields(cls)}
+    known = ["kind", *sections]
+    unknown = set(data) - set(known)
     if unknown:
-        raise ConfigError(f"unknown field(s) {sorted(unknown)}")
-    kwargs: dict[str, Any] = {}
-    for name, cls in _SECTIONS.items():
-        if name in data:
-            if not isinstance(data[name], dict):
-                raise ConfigError(f"{name} must be an object")
-            kwargs[name] = _section(cls, data[name], name)
-    if "kind" in data:
-        kwargs["kind"] = data["kind"]
-    if "estimators" in data:
-        kwargs["estimators"] = tuple(data["estimators"])
-    return VehicleConfig(**kwargs)
+        raise ConfigError(f"{cls.kind.value}: unknown field(s) {sorted(unknown)}; known: {known}")
+    try:
+        kwargs = {
+            name: data[name]
+            if section is dataclasses.MISSING
+            else _section(section, data[name], name)
+            for name, section in sections.items()
+            if name in data
+        }
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(f"{cls.kind.value}: {exc}") from None
+
+
+def upgrade_legacy_config(data: dict[str, Any]) -> dict[str, Any]:
+    """Today's shape of a config dict written in an earlier shape; others returned unchanged.
+
+    Before configs had a class per kind, every kind was written whole with the rear-drive
+    sections (``geometry`` of :class:`VehicleGeometry`, ``encoder``). A tracked or four-wheel
+    config with exactly those keys (a part of them is read as today's shape, and refused)
+    keeps its ``noise``, ``slip`` and ``estimators``; its rear track width becomes the gauge
+    (tracked) or both track widths, the IMU and antenna offsets and heights become lever arms,
+    and the mean wheel radius becomes the unloaded tyre radius. The rear-drive shape never
+    changed. Values are not validated here.
+    """
+    kind = data.get("kind")
+    if kind not in (VehicleKind.TRACKED, VehicleKind.WHEELED_4WD_STEERED) or set(data) != _LEGACY:
+        return data
+    geo = data.get("geometry")
+    geo = geo if isinstance(geo, dict) else {}
+    out: dict[str, Any] = {k: data[k] for k in ("kind", "noise", "slip", "estimators") if k in data}
+    arms = _legacy_lever_arms(geo)
+    if kind == VehicleKind.TRACKED:
+        out["geometry"] = {**_rename(geo, {"track_width_m": "track_gauge_m"}), **arms}
+        return out
+    out["chassis"] = {
+        **_rename(geo, {"track_width_m": "front_track_m"}),
+        **_rename(geo, {"track_width_m": "rear_track_m"}),
+        **arms,
+    }
+    radii = [geo[k] for k in ("wheel_radius_left_m", "wheel_radius_right_m") if k in geo]
+    if radii:
+        out["tyre"] = {"unloaded_radius_m": sum(radii) / len(radii)}
+    return out
+
+
+_LEGACY = {"kind", "geometry", "encoder", "noise", "slip", "estimators"}
+"""The keys every config had before configs had a class per kind."""
+
+
+def _rename(section: dict[str, Any], names: Mapping[str, str]) -> dict[str, Any]:
+    return {new: section[old] for old, new in names.items() if old in section}
+
+
+def _legacy_lever_arms(geo: dict[str, Any]) -> dict[str, list[float]]:
+    """Rear-drive offsets (x, y) and heights h0, h0 + h1 as (x, y, z) lever arms."""
+    default = VehicleGeometry()
+    h0, h1 = (geo.get(k, getattr(default, k)) for k in ("h0_m", "h1_m"))
+    if not all(isinstance(h, int | float) for h in (h0, h1)):
+        return {}  # a value no config could hold: left to the defaults
+    arms = {
+        "imu_lever_arm_m": ("imu_offset_m", h0),
+        "antenna_lever_arm_m": ("antenna_offset_m", h0 + h1),
+    }
+    return {arm: [*geo.get(offset, (0.0, 0.0)), z] for arm, (offset, z) in arms.items()}

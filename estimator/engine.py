@@ -50,7 +50,7 @@ from estimator import kalman
 from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
-from estimator.config import VehicleConfig
+from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
 from estimator.frontend import FleetFrontEnd, FleetTicks, TickInputs
 from estimator.mdsf import (
@@ -329,7 +329,7 @@ class MdsfEngine:
     ref_aux: FloatArray
     counts: IntArray
 
-    def add(self, vehicle: VehicleConfig) -> int:
+    def add(self, vehicle: WheeledRearDriveConfig) -> int:
         """Allocate and initialise a slot for a vehicle; returns the slot index."""
         if not self._free:
             self._alloc(2 * self._cap)
@@ -989,7 +989,7 @@ class MdsfFleet:
     Examples
     --------
     >>> fleet = MdsfFleet()
-    >>> fleet.add_vehicle("t1", VehicleConfig())          # doctest: +SKIP
+    >>> fleet.add_vehicle("t1", WheeledRearDriveConfig())          # doctest: +SKIP
     >>> fleet.push("t1", imu_batch); fleet.push("t1", gnss_sample)   # doctest: +SKIP
     >>> for vid, rows in fleet.advance({"t1": now_ns}): ...          # doctest: +SKIP
     """
@@ -1020,6 +1020,7 @@ class MdsfFleet:
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
+        config = expect_kind(config, WheeledRearDriveConfig, "mdsf")
         self.remove_vehicle(vehicle_id)
         slot = self.engine.add(config)
         self._slot[vehicle_id] = slot

@@ -56,7 +56,7 @@ import numpy.typing as npt
 from estimator._arrays import as_rows, as_stamps, nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.geo import enu_from_geodetic
 from estimator.mdsf import (
     GRAVITY_MPS2,
@@ -661,7 +661,7 @@ class FleetFrontEnd:
     ant_x_m: FloatArray
     pos_var_cfg: FloatArray
 
-    def add(self, slot: int, vehicle: VehicleConfig) -> None:
+    def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
         """Start a vehicle in ``slot`` (fresh state)."""
         if slot >= self._cap:
             self._alloc(max(2 * self._cap, slot + 1))

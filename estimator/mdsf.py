@@ -78,7 +78,7 @@ import numpy as np
 import numpy.typing as npt
 from filterpy.kalman import KalmanFilter
 
-from estimator.config import ConfigError, VehicleConfig, VehicleGeometry
+from estimator.config import ConfigError, VehicleGeometry, WheeledRearDriveConfig
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -594,7 +594,7 @@ class MdsfMatrices:
     dt_s: float
 
 
-def mdsf_matrices(config: MdsfConfig, vehicle: VehicleConfig) -> MdsfMatrices:
+def mdsf_matrices(config: MdsfConfig, vehicle: WheeledRearDriveConfig) -> MdsfMatrices:
     """Build the matrices of eq. (6)/(7) for one vehicle (see the module docstring per mode)."""
     g = vehicle.geometry
     dt = config.dt_s
@@ -633,10 +633,10 @@ class MdsfFilter:
     Parameters
     ----------
     config : MdsfConfig
-    vehicle : VehicleConfig
+    vehicle : WheeledRearDriveConfig
     """
 
-    def __init__(self, config: MdsfConfig, vehicle: VehicleConfig) -> None:
+    def __init__(self, config: MdsfConfig, vehicle: WheeledRearDriveConfig) -> None:
         self.config = config
         self.vehicle = vehicle
         self.matrices = mdsf_matrices(config, vehicle)

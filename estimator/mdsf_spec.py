@@ -16,7 +16,7 @@ from estimator.spec import (
     WheelPosition,
     flags_from,
 )
-from estimator.types import ESTIMATE_FIELDS, EstimateFlag
+from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, EstimateFlag
 
 __all__ = ["MDSF_SPEC"]
 
@@ -110,7 +110,13 @@ MDSF_SPEC = EstimatorSpec(
     ),
     motion="ground",
     position=PositionChannel(
-        "east_m", "north_m", "up_m", "heading_rad", carried_flag="DEAD_RECKONED"
+        "east_m",
+        "north_m",
+        "up_m",
+        "heading_rad",
+        carried_flag="DEAD_RECKONED",
+        pitch_field="pitch_rad",
+        roll_field="roll_rad",
     ),
     charts=(
         ChartSpec("slip", "Wheel slip", "%", ("slip_left_pct", "slip_right_pct")),
@@ -123,4 +129,5 @@ MDSF_SPEC = EstimatorSpec(
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEGRADED",),
+    row_dtype=ESTIMATE_DTYPE,
 )

@@ -27,7 +27,6 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import IntFlag, StrEnum
-from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -137,7 +136,8 @@ class SpeedChannel:
 class PositionChannel:
     """Where the vehicle is: metres in its local ENU frame (origin: the vehicle's anchor).
 
-    ``carried_flag`` marks rows whose position was dead-reckoned rather than measured.
+    ``carried_flag`` marks rows whose position was dead-reckoned rather than measured;
+    ``pitch_field`` / ``roll_field`` (rad) give the body's attitude where the estimator has it.
     """
 
     east_field: str
@@ -145,6 +145,8 @@ class PositionChannel:
     up_field: str | None = None
     heading_field: str | None = None
     carried_flag: str | None = None
+    pitch_field: str | None = None
+    roll_field: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -184,6 +186,10 @@ class EstimatorSpec:
         Flag of a row whose main reference is sound (for MDSF: GNSS fused).
     degraded_flags : tuple of str
         Flags of a row computed without its main reference (shaded in charts).
+    row_dtype : numpy.dtype, optional
+        The estimator's own dtype object for its rows, when it has one: it must equal the
+        fields' dtype, and :attr:`dtype` is then that very object, so checking a row array's
+        dtype is an identity test rather than a field-by-field comparison.
     """
 
     name: str
@@ -200,6 +206,7 @@ class EstimatorSpec:
     ok_flag: str | None = None
     degraded_flags: tuple[str, ...] = ()
     description: str = ""
+    row_dtype: np.dtype | None = field(default=None, repr=False, compare=False)
     _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -212,6 +219,12 @@ class EstimatorSpec:
             if f.kind not in FIELD_KINDS:
                 raise SpecError(f"{self.name}.{f.name}: kind {f.kind!r} not in {FIELD_KINDS}")
         object.__setattr__(self, "_by_name", {f.name: f for f in self.fields})
+        built = np.dtype([(f.name, f.kind) for f in self.fields])
+        if self.row_dtype is not None and self.row_dtype != built:
+            raise SpecError(f"{self.name}: row_dtype differs from the fields")
+        object.__setattr__(
+            self, "row_dtype", self.row_dtype if self.row_dtype is not None else built
+        )
         self._check_flags()
         self._check_channels()
 
@@ -255,7 +268,8 @@ class EstimatorSpec:
             raise SpecError(f"{self.name}: motion names unknown speed channel {self.motion!r}")
         if self.position is not None:
             p = self.position
-            for name in (p.east_field, p.north_field, p.up_field, p.heading_field):
+            fields = (p.east_field, p.north_field, p.up_field, p.heading_field)
+            for name in (*fields, p.pitch_field, p.roll_field):
                 self._need_field(name, "position")
             self._need_flag(p.carried_flag, "position")
         for c in self.charts:
@@ -266,10 +280,11 @@ class EstimatorSpec:
             self._need_flag(name, "degraded_flags")
 
     # --- reading -----------------------------------------------------------------------------
-    @cached_property
+    @property
     def dtype(self) -> np.dtype:
         """Structured dtype of one output row (native byte order, in field order)."""
-        return np.dtype([(f.name, f.kind) for f in self.fields])
+        assert self.row_dtype is not None  # set in __post_init__
+        return self.row_dtype
 
     @property
     def field_names(self) -> tuple[str, ...]:
@@ -323,7 +338,9 @@ class EstimatorSpec:
 
     def check_rows(self, rows: object) -> np.ndarray:
         """``rows`` as a 1-d array of :attr:`dtype`, or ``TypeError`` naming what is wrong."""
-        if not isinstance(rows, np.ndarray) or rows.dtype != self.dtype:
+        if not isinstance(rows, np.ndarray) or (
+            rows.dtype is not self.row_dtype and rows.dtype != self.row_dtype
+        ):
             got = getattr(rows, "dtype", type(rows).__name__)
             raise TypeError(f"rows of {self.name!r} must have its dtype, got {got}")
         if rows.ndim != 1:
@@ -376,6 +393,8 @@ class EstimatorSpec:
                 "up_field": self.position.up_field,
                 "heading_field": self.position.heading_field,
                 "carried_flag": self.position.carried_flag,
+                "pitch_field": self.position.pitch_field,
+                "roll_field": self.position.roll_field,
             },
             "charts": [
                 {"key": c.key, "title": c.title, "unit": c.unit, "fields": list(c.fields)}

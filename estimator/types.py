@@ -33,15 +33,21 @@ from estimator.spec import EstimatorSpec
 __all__ = [
     "ESTIMATE_DTYPE",
     "ESTIMATE_FIELDS",
+    "Corner",
     "EstimateBatch",
     "EstimateFlag",
     "GnssFix",
     "GnssSample",
     "ImuBatch",
+    "OdometerEdges",
+    "SprocketEdges",
+    "SteeringAngles",
+    "TrackSide",
     "Wheel",
     "WheelEdges",
     "WheelGap",
     "WheelSpeeds",
+    "WheelSpeeds4",
     "concat_estimates",
     "empty_estimates",
 ]
@@ -180,6 +186,90 @@ class WheelSpeeds:
     omega_radps: FloatArray
 
 
+class TrackSide(IntEnum):
+    """Which track a sprocket drives (crawlers)."""
+
+    TRACK_LEFT = 0
+    TRACK_RIGHT = 1
+
+
+class Corner(IntEnum):
+    """Column of a wheel in a four-wheel array (:class:`WheelSpeeds4`)."""
+
+    FRONT_LEFT = 0
+    FRONT_RIGHT = 1
+    REAR_LEFT = 2
+    REAR_RIGHT = 3
+
+
+@dataclass(frozen=True, slots=True)
+class OdometerEdges:
+    """Edges of the transmission's odometer sensor (a toothed output shaft).
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Edge times, non-decreasing.
+    direction : ndarray, shape (n,), int8, or None
+        +1 forward, -1 reverse, when the sensor tells; None if it cannot.
+    """
+
+    stamp_ns: IntArray
+    direction: npt.NDArray[np.int8] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SprocketEdges:
+    """Rising edges of one track's sprocket encoder (like :class:`WheelEdges`, per track).
+
+    Attributes
+    ----------
+    side : TrackSide
+    stamp_ns : ndarray, shape (n,), int64
+        Edge times, non-decreasing.
+    direction : ndarray, shape (n,), int8, or None
+        +1 forward, -1 reverse, when the encoder is quadrature; None if it cannot tell.
+    """
+
+    side: TrackSide
+    stamp_ns: IntArray
+    direction: npt.NDArray[np.int8] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SteeringAngles:
+    """Steering-wheel angle samples.
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Sample times, strictly increasing.
+    angle_rad : ndarray, shape (n,), float64
+        Steering-wheel angle from straight ahead, counter-clockwise (a left turn) positive;
+        NaN when not available.
+    """
+
+    stamp_ns: IntArray
+    angle_rad: FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSpeeds4:
+    """Angular speeds of four wheels from the CAN bus.
+
+    Attributes
+    ----------
+    stamp_ns : ndarray, shape (n,), int64
+        Sample times, strictly increasing.
+    omega_radps : ndarray, shape (n, 4)
+        Signed angular speed (forward positive), columns in :class:`Corner` order: front left,
+        front right, rear left, rear right.
+    """
+
+    stamp_ns: IntArray
+    omega_radps: FloatArray
+
+
 class EstimateFlag(IntFlag):
     """Quality flags of one estimate (bit field stored with every row)."""
 
@@ -305,7 +395,7 @@ class EstimateBatch(Sequence[tuple[str, np.ndarray]]):
     ) -> None:
         if len(ids) != len(counts) or sum(counts) != rows.shape[0]:
             raise ValueError("ids, counts and rows disagree")
-        if rows.dtype != spec.dtype:
+        if rows.dtype is not spec.dtype and rows.dtype != spec.dtype:
             raise TypeError(f"rows of {spec.name!r} must have its dtype, got {rows.dtype}")
         self.ids = ids
         self.counts = counts

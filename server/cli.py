@@ -72,7 +72,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from server.app_main import demo
+    from server.tooling.fleet_commands import demo
 
     settings = _settings(args)
     if args.port is not None:
@@ -84,7 +84,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from server.app_main import simulate
+    from server.tooling.fleet_commands import simulate
 
     settings = _settings(args)
     if args.connect:
@@ -100,7 +100,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from server.app_main import replay
+    from server.tooling.fleet_commands import replay
 
     settings = _settings(args)
     if args.connect:
@@ -110,14 +110,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from server.app_main import record
+    from server.tooling.fleet_commands import record
 
     record(args.path, vehicles=args.vehicles, scenario=args.scenario, duration_s=args.duration)
     return 0
 
 
 def _cmd_loadtest(args: argparse.Namespace) -> int:
-    from server.loadtest import run_from_args
+    from server.tooling.loadtest import run_from_args
 
     result = run_from_args(args)
     return 0 if result["loss_free"] else 1
@@ -126,7 +126,7 @@ def _cmd_loadtest(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import importlib
 
-    module = importlib.import_module(f"server.bench.{args.which}")
+    module = importlib.import_module(f"server.tooling.bench.{args.which}")
     return int(module.main(list(args.options)) or 0)
 
 
@@ -239,7 +239,7 @@ def _parser() -> argparse.ArgumentParser:
     rec.set_defaults(func=_cmd_record)
 
     lt = sub.add_parser("loadtest", help="simulated fleet against a server process, measured")
-    from server.loadtest import add_arguments as _loadtest_arguments
+    from server.tooling.loadtest import add_arguments as _loadtest_arguments
 
     _loadtest_arguments(lt)
     lt.set_defaults(func=_cmd_loadtest)

@@ -13,7 +13,7 @@ sight (:func:`gc.freeze`; such objects are still freed by reference counting) an
 first threshold (``IngestSettings.gc_gen0``), so the young generation is collected after that
 many net allocations instead of 700. The older generations keep their default ratios: a full
 collection still comes, less often by the same factor. What it changed, measured, is in
-``docs/architecture.md`` (Capacity).
+``docs/perf/server.md`` (the settled garbage collector).
 """
 
 from __future__ import annotations

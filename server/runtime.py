@@ -20,21 +20,30 @@ from typing import Any
 
 import zenoh
 
-from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
+from estimator.config import (
+    ConfigError,
+    VehicleConfig,
+    WheeledRearDriveConfig,
+    vehicle_config_from_dict,
+)
 from estimator.geo import EnuFrame
-from server.alerts import AlertEngine, AlertKind
-from server.api.prometheus import MetricFamily, Sample
-from server.estimators.registry import EstimatorRegistry, UnknownEstimatorError
+from server.analytics.alerts import AlertEngine, AlertKind
+from server.estimation.registry import (
+    EstimatorRegistry,
+    UnknownEstimatorError,
+    estimator_names_for,
+)
 from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
-from server.latency import LatencyProbe
-from server.live import LiveHub
+from server.live.hub import LiveHub
+from server.metrics.latency import LatencyProbe
+from server.metrics.prometheus import MetricFamily, Sample
+from server.metrics.thread_cpu import thread_cpu_seconds
 from server.settings import Settings
 from server.storage import open_store
 from server.storage.base import Store
 from server.storage.writer import StoreWriter
-from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["Runtime"]
 
@@ -67,7 +76,7 @@ class Runtime:
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self._fleet_frame: EnuFrame | None = None
-        #: sensor-time → live feed / stored latency histograms (``server.latency``)
+        #: sensor-time → live feed / stored latency histograms (``server.metrics.latency``)
         self.latency = LatencyProbe()
 
     # ------------------------------------------------------------------ lifecycle
@@ -81,7 +90,7 @@ class Runtime:
         s = self.settings
         self._store = open_store(s.storage)
         self.writer = StoreWriter(self.latency.wrap_store(self._store), s.storage).start()
-        self.live_hub = LiveHub()
+        self.live_hub = LiveHub(primary_of=self._primary_estimator)
         self.alert_engine = AlertEngine(
             slip_config_for=lambda vid: self._config_of(vid).slip, publish=self._publish_alert
         )
@@ -109,7 +118,7 @@ class Runtime:
                 log.error(
                     "stored config of %s is invalid (%s); using defaults", rec.vehicle_id, exc
                 )
-                config = VehicleConfig()
+                config = WheeledRearDriveConfig()
             self._configs[rec.vehicle_id] = config
             self.pipeline.register_vehicle(rec.vehicle_id, config)
             # counters are totals over the vehicle's life, not per process
@@ -125,7 +134,7 @@ class Runtime:
         )
         self._flusher.start()
         if s.viewer.enabled:
-            from server.viewer.fleet_view import FleetViewer
+            from server.live.viewer.fleet_view import FleetViewer
 
             self.viewer = FleetViewer(
                 self.live_hub, s.viewer, origin_offset_m=self._origin_offset_m
@@ -166,7 +175,11 @@ class Runtime:
 
     # ------------------------------------------------------------------ vehicles
     def _config_of(self, vehicle_id: str) -> VehicleConfig:
-        return self._configs.get(vehicle_id) or VehicleConfig()
+        return self._configs.get(vehicle_id) or WheeledRearDriveConfig()
+
+    def _primary_estimator(self, vehicle_id: str) -> str | None:
+        """The vehicle's primary estimator (first of its config's), None if it runs none."""
+        return next(iter(estimator_names_for(self._config_of(vehicle_id))), None)
 
     def _on_new_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Pipeline thread: a vehicle registered itself (auto or Zenoh config); store it."""

@@ -68,7 +68,7 @@ def pg_url() -> Iterator[str]:
 @pytest.fixture
 def pg_database_url(pg_url: str) -> Iterator[str]:
     """A fresh, empty database on the ``pg_url`` server for one test; dropped afterwards."""
-    from server.storage._pgadmin import create_database, drop_database
+    from server.tooling.pgadmin import create_database, drop_database
 
     name = f"slipfleet_test_{uuid.uuid4().hex[:12]}"
     url = create_database(pg_url, name)

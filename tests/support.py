@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from server.ports import free_port
+from server.tooling.ports import free_port
 
 __all__ = ["VEHICLE_CLIENT", "free_port", "run_vehicle_client"]
 

@@ -68,19 +68,19 @@ def main(argv: list[str] | None = None) -> int:
     with httpx.Client(base_url=args.url, headers=headers, timeout=30) as client:
         vehicles = fleet_report(client, start_ns, end_ns)
         print(
-            f"{'vehicle':<12} {'dist m':>8} {'moving s':>9} {'slip L mean %':>14} "
-            f"{'slip R mean %':>14} {'slip p95 %':>11}"
+            f"{'vehicle':<12} {'estimator':<16} {'dist m':>8} {'moving s':>9} "
+            f"{'slip p95 %':>11}  mean slip % per channel"
         )
         for v in vehicles:
             rep = v["report"]
-            left, right = rep["slip_left"], rep["slip_right"]
+            slips = rep["slips"]  # one entry per slip channel of the estimator, by key
             p95 = max(
-                (s["p95_pct"] for s in (left, right) if s["p95_pct"] is not None), default=None
+                (s["p95_pct"] for s in slips.values() if s["p95_pct"] is not None), default=None
             )
+            means = " ".join(f"{key}={_fmt(s['mean_pct'], '.2f')}" for key, s in slips.items())
             print(
-                f"{v['vehicle_id']:<12} {rep['distance_m']:>8.1f} {rep['moving_s']:>9.1f} "
-                f"{_fmt(left['mean_pct'], '>14.2f')} {_fmt(right['mean_pct'], '>14.2f')} "
-                f"{_fmt(p95, '>11.2f')}"
+                f"{v['vehicle_id']:<12} {v['estimator']:<16} {_fmt(rep['distance_m'], '>8.1f')} "
+                f"{_fmt(rep['moving_s'], '>9.1f')} {_fmt(p95, '>11.2f')}  {means}"
             )
         csv_rows = None
         if args.csv_vehicle:

@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.base import Measurement
-from estimator.config import NoiseConfig, VehicleConfig
+from estimator.config import NoiseConfig, WheeledRearDriveConfig
 from estimator.geo import EnuFrame
 from estimator.sim.kinematics import (
     GRAVITY_MPS2,
@@ -137,7 +137,7 @@ class SimRun:
         Scenario parameters actually used (defaults merged with overrides).
     sensors : SensorSpec
         Sensor settings actually used.
-    config : VehicleConfig
+    config : WheeledRearDriveConfig
         The vehicle configuration the run was simulated for (as given).
     sensor_noise : NoiseConfig
         Noise figures of the simulated sensors, for tuning an estimator to this run
@@ -163,7 +163,7 @@ class SimRun:
     name: str
     params: Mapping[str, Any]
     sensors: SensorSpec
-    config: VehicleConfig
+    config: WheeledRearDriveConfig
     sensor_noise: NoiseConfig
     start_ns: int
     end_ns: int
@@ -241,7 +241,9 @@ def _resolve(
     return params, sensors, common
 
 
-def _noise_figures(spec: SensorSpec, truth: FineTruth, config: VehicleConfig) -> NoiseConfig:
+def _noise_figures(
+    spec: SensorSpec, truth: FineTruth, config: WheeledRearDriveConfig
+) -> NoiseConfig:
     """RMS noise figures of the simulated sensors over the run (relative parts included)."""
     speed = float(np.sqrt(np.mean(truth.v0_mps**2)))
     gnss = math.hypot(spec.gnss_vel_std_mps, spec.gnss_speed_noise_rel * speed / math.sqrt(3.0))
@@ -260,7 +262,7 @@ def _noise_figures(spec: SensorSpec, truth: FineTruth, config: VehicleConfig) ->
 
 
 def _truth_table(
-    fine: FineTruth, spec: SensorSpec, config: VehicleConfig, start_ns: int
+    fine: FineTruth, spec: SensorSpec, config: WheeledRearDriveConfig, start_ns: int
 ) -> np.ndarray:
     step = round(spec.fine_rate_hz / spec.truth_rate_hz)
     idx = np.arange(0, fine.t_s.size, step)
@@ -303,7 +305,7 @@ def simulate(
     *,
     seed: int | np.random.Generator,
     start_ns: int,
-    config: VehicleConfig | None = None,
+    config: WheeledRearDriveConfig | None = None,
     **overrides: Any,
 ) -> SimRun:
     """Simulate scenario ``name``.
@@ -317,8 +319,8 @@ def simulate(
         same seed gives bit-identical output.
     start_ns : int
         Stamp of t = 0 (UTC ns).
-    config : VehicleConfig, optional
-        Vehicle geometry and encoder (default ``VehicleConfig()``).
+    config : WheeledRearDriveConfig, optional
+        Vehicle geometry and encoder (default ``WheeledRearDriveConfig()``).
     **overrides
         Scenario parameters (``SCENARIOS[name].defaults``), :class:`SensorSpec` fields, or the
         run's origin ``origin_lat_deg``, ``origin_lon_deg``, ``origin_height_m``.
@@ -335,7 +337,7 @@ def simulate(
     if name not in SCENARIOS:
         raise KeyError(f"unknown scenario {name!r}; known: {scenario_names()}")
     scenario = SCENARIOS[name]
-    cfg = config if config is not None else VehicleConfig()
+    cfg = config if config is not None else WheeledRearDriveConfig()
     params, sensor_kw, common = _resolve(scenario, overrides)
     spec = SensorSpec(**sensor_kw)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)

@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.base import Measurement
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.geo import EnuFrame
 from estimator.sim.kinematics import FineTruth
 from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges
@@ -209,13 +209,13 @@ class Emission(NamedTuple):
     until_ns: int
 
 
-def imu_point_m(config: VehicleConfig) -> FloatArray:
+def imu_point_m(config: WheeledRearDriveConfig) -> FloatArray:
     """IMU position in the body frame from ``O``: ``(x, y, h0)``."""
     g = config.geometry
     return np.array([g.imu_offset_m[0], g.imu_offset_m[1], g.h0_m])
 
 
-def antenna_point_m(config: VehicleConfig) -> FloatArray:
+def antenna_point_m(config: WheeledRearDriveConfig) -> FloatArray:
     """Antenna position in the body frame from ``O``: ``(x, y, h0 + h1)``."""
     g = config.geometry
     return np.array([g.antenna_offset_m[0], g.antenna_offset_m[1], g.h0_m + g.h1_m])
@@ -235,7 +235,7 @@ def _stamps(start_ns: int, t_s: FloatArray) -> npt.NDArray[np.int64]:
 def gnss_emissions(
     truth: FineTruth,
     spec: SensorSpec,
-    config: VehicleConfig,
+    config: WheeledRearDriveConfig,
     frame: EnuFrame,
     start_ns: int,
     rng: np.random.Generator,
@@ -330,7 +330,7 @@ def _random_walk(rng: np.random.Generator, n: int, dt: float, walk: float) -> Fl
 def imu_emissions(
     truth: FineTruth,
     spec: SensorSpec,
-    config: VehicleConfig,
+    config: WheeledRearDriveConfig,
     start_ns: int,
     rng: np.random.Generator,
 ) -> list[Emission]:
@@ -408,7 +408,7 @@ def edge_times_s(
 def wheel_emissions(
     truth: FineTruth,
     spec: SensorSpec,
-    config: VehicleConfig,
+    config: WheeledRearDriveConfig,
     start_ns: int,
     rng: np.random.Generator,
 ) -> list[Emission]:

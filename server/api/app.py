@@ -1,10 +1,10 @@
 """The FastAPI app factory and its lifespan.
 
 ``create_app(settings, runtime)`` builds the app; nothing is built at import. The lifespan opens
-the runtime (Zenoh session, store, estimators, writer — :class:`server.runtime.Runtime` unless a
-runtime is passed in) on start-up and closes it on shut-down. Routers are listed once in
-:data:`API_ROUTERS`; all are mounted under ``/api/v1``; OpenAPI is at ``/openapi.json`` and
-``/docs``.
+the runtime (Zenoh session, store, estimators, writer: :class:`server.runtime.Runtime`, which
+:func:`server.app_main.build_app` passes in) on start-up and closes it on shut-down. Routers are
+listed once in :data:`API_ROUTERS`; all are mounted under ``/api/v1``; OpenAPI is at
+``/openapi.json`` and ``/docs``.
 
 Access: every router except those in :data:`PUBLIC_ROUTERS` (``/health``, for load balancers)
 is mounted behind ``require_role("viewer")``, so a new router is closed until it says otherwise;
@@ -15,11 +15,10 @@ routes that change things ask for more themselves (vehicle config PUT: operator,
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from fastapi import APIRouter, Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
@@ -34,6 +33,7 @@ from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_r
 from server.api.errors import ErrorBody, error_response, install_error_handlers
 from server.api.routes import (
     alerts,
+    estimators,
     health,
     live,
     metrics,
@@ -60,6 +60,7 @@ API_PREFIX = "/api/v1"
 #: Every router of the REST API, in the order they appear in the docs. Add new routers here.
 API_ROUTERS: tuple[APIRouter, ...] = (
     vehicles.router,
+    estimators.router,
     series.router,
     reports.router,
     slipmap.router,
@@ -202,11 +203,6 @@ def _operation_id(route: APIRoute) -> str:
     return f"{tag}-{route.name}"
 
 
-def _default_runtime(settings: Settings) -> ApiRuntime:
-    module = importlib.import_module("server.runtime")
-    return cast(ApiRuntime, module.Runtime(settings))
-
-
 #: Swagger UI files vendored from npm (``web/vendor/README.md``), served with the API docs.
 SWAGGER_UI_DIR = Path(__file__).resolve().parents[2] / "web" / "vendor" / "swagger-ui"
 _DOCS_ASSETS = "/docs-assets"
@@ -230,7 +226,7 @@ def _mount_docs(app: FastAPI) -> None:
 
 def create_app(
     settings: Settings,
-    runtime: ApiRuntime | None = None,
+    runtime: ApiRuntime,
     *,
     limits: ApiLimits | None = None,
     routers: Sequence[APIRouter] = API_ROUTERS,
@@ -241,9 +237,8 @@ def create_app(
     ----------
     settings : Settings
         The server's settings (``settings.api`` for CORS and auth).
-    runtime : ApiRuntime, optional
-        Opened and closed by the app's lifespan; default ``server.runtime.Runtime(settings)``,
-        created when the app starts.
+    runtime : ApiRuntime
+        Opened and closed by the app's lifespan (the server's: ``server.runtime.Runtime``).
     limits : ApiLimits, optional
         Request and query bounds (defaults: :class:`ApiLimits`).
     routers : sequence of APIRouter
@@ -252,14 +247,13 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        rt = runtime if runtime is not None else _default_runtime(settings)
-        rt.open()
-        app.state.runtime = rt
+        runtime.open()
+        app.state.runtime = runtime
         try:
             yield
         finally:
             app.state.runtime = None
-            rt.close()
+            runtime.close()
 
     app = FastAPI(
         title="Slipfleet",

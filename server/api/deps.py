@@ -5,23 +5,40 @@ Authorisation is :func:`require_role` and nothing else: it resolves the caller's
 
 What the API needs from the server runtime is :class:`ApiRuntime` (required) plus optional hooks
 it calls when present (:class:`VehicleConfigListener`, :class:`MetricsSource`). Tests pass any
-object that fits, e.g. one holding a real SQLite store and no Zenoh session.
+object that fits, e.g. one holding a real SQLite store and writer and no Zenoh session. Reads go
+to the store from the request's thread; writes (vehicles, tokens) through the runtime's single
+store writer (:data:`WriterDep`), like every other write.
+
+Estimate routes read one estimator's rows: :data:`EstimatorDep` resolves the ``estimator`` query
+parameter (default: the vehicle's primary, the first of the estimators its config runs) to that
+estimator's :class:`estimator.spec.EstimatorSpec`.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Protocol
+from typing import Annotated, Any, Protocol, TypeVar
 
 from fastapi import Depends, Query, Request, WebSocketException, status
 from starlette.requests import HTTPConnection
 
+from estimator.catalog import SPECS, spec_of
 from estimator.config import ConfigError, SlipConfig, VehicleConfig, vehicle_config_from_dict
-from server.api.errors import Forbidden, InvalidTime, NotFound, RangeTooLarge, Unauthorized
-from server.api.prometheus import MetricFamily
+from estimator.spec import EstimatorSpec
+from server.api.errors import (
+    Forbidden,
+    InvalidTime,
+    NotFound,
+    RangeTooLarge,
+    ServiceUnavailable,
+    Unauthorized,
+    Unprocessable,
+)
+from server.estimation.registry import UnknownEstimatorError, estimator_names_for
+from server.metrics.prometheus import MetricFamily
 from server.settings import Settings
 from server.storage.base import StorageError, Store, VehicleRecord
 from server.timeparse import TimeParseError, parse_time_ns
@@ -33,6 +50,8 @@ __all__ = [
     "WS_TOKEN_QUERY",
     "ApiLimits",
     "ApiRuntime",
+    "EstimatorDep",
+    "EstimatorQuery",
     "LimitsDep",
     "MetricsSource",
     "Principal",
@@ -40,14 +59,18 @@ __all__ = [
     "RoleRequirement",
     "RuntimeDep",
     "SettingsDep",
+    "StoreCalls",
     "StoreDep",
     "TimeRange",
     "TimeRangeDep",
     "VehicleConfigListener",
     "VehicleDep",
+    "WriterDep",
     "call_hook",
+    "estimator_spec",
     "require_role",
     "slip_config",
+    "vehicle_estimators",
 ]
 
 _log = logging.getLogger(__name__)
@@ -57,16 +80,31 @@ _H = 3600 * _S
 _DAY = 24 * _H
 
 
+_T = TypeVar("_T")
+
+
+class StoreCalls(Protocol):
+    """The single store writer, as the API uses it: ``call(fn)`` runs ``fn(store)`` on the
+    writer's thread and returns its result or raises its error
+    (:meth:`server.storage.writer.StoreWriter.call`)."""
+
+    def call(self, fn: Callable[[Store], _T]) -> _T: ...
+
+
 class ApiRuntime(Protocol):
     """What the API needs from the server runtime.
 
-    The app's lifespan calls ``open()`` on start-up and ``close()`` on shut-down; ``store`` is read
-    only between the two. ``health()`` names each part (``"zenoh"``, ``"storage"``, …) and
-    whether it is up; the API is ready only when every part is.
+    The app's lifespan calls ``open()`` on start-up and ``close()`` on shut-down; ``store`` and
+    ``writer`` are read only between the two (``writer`` None: not open). ``health()`` names
+    each part (``"zenoh"``, ``"storage"``, …) and whether it is up; the API is ready only when
+    every part is.
     """
 
     @property
     def store(self) -> Store: ...
+
+    @property
+    def writer(self) -> StoreCalls | None: ...
 
     def open(self) -> None: ...
 
@@ -166,8 +204,17 @@ def _limits(request: Request) -> ApiLimits:
     return limits
 
 
+def _writer(runtime: Annotated[ApiRuntime, Depends(_runtime)]) -> StoreCalls:
+    writer = runtime.writer
+    if writer is None:
+        raise ServiceUnavailable("the store writer is not running")
+    return writer
+
+
 RuntimeDep = Annotated[ApiRuntime, Depends(_runtime)]
 StoreDep = Annotated[Store, Depends(_store)]
+WriterDep = Annotated[StoreCalls, Depends(_writer)]
+"""The runtime's single store writer: every REST write goes through its ``call``."""
 SettingsDep = Annotated[Settings, Depends(_settings)]
 LimitsDep = Annotated[ApiLimits, Depends(_limits)]
 
@@ -195,6 +242,58 @@ def slip_config(record: VehicleRecord) -> SlipConfig:
             exc,
         )
         return SlipConfig()
+
+
+def vehicle_estimators(record: VehicleRecord) -> tuple[str, ...]:
+    """The estimators the vehicle's config runs, primary first
+    (:func:`server.estimation.registry.estimator_names_for`); none when its stored config no
+    longer validates or names an estimator the server does not know."""
+    try:
+        return estimator_names_for(vehicle_config_from_dict(record.config))
+    except (ConfigError, UnknownEstimatorError, TypeError, ValueError) as exc:
+        _log.warning("stored config of %s runs no estimator: %s", record.vehicle_id, exc)
+        return ()
+
+
+def _catalog_doc() -> str:
+    return "; ".join(f"`{name}` ({spec.title})" for name, spec in sorted(SPECS.items()))
+
+
+EstimatorQuery = Annotated[
+    str | None,
+    Query(
+        max_length=64,
+        description="Estimator whose rows to read (`GET /api/v1/estimators`): "
+        + _catalog_doc()
+        + ". Default: the vehicle's primary estimator (the first of its `estimators`).",
+        examples=sorted(SPECS),
+    ),
+]
+
+
+def estimator_spec(name: str) -> EstimatorSpec:
+    """The spec of the estimator ``name``, or 422 naming it and the known ones."""
+    try:
+        return spec_of(name)
+    except KeyError:
+        raise Unprocessable(
+            f"unknown estimator {name!r}; known: {', '.join(sorted(SPECS))}"
+        ) from None
+
+
+def _estimator(vehicle: VehicleDep, estimator: EstimatorQuery = None) -> EstimatorSpec:
+    if estimator is not None:
+        return estimator_spec(estimator)
+    names = vehicle_estimators(vehicle)
+    if not names:
+        raise NotFound(
+            f"vehicle {vehicle.vehicle_id!r} runs no estimator; name one with estimator="
+        )
+    return estimator_spec(names[0])
+
+
+EstimatorDep = Annotated[EstimatorSpec, Depends(_estimator)]
+"""The spec of the estimator an estimate route reads: ``estimator=`` or the vehicle's primary."""
 
 
 @dataclass(frozen=True, slots=True)

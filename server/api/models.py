@@ -2,25 +2,49 @@
 
 Vehicle configs travel as plain JSON objects validated by
 :func:`estimator.config.vehicle_config_from_dict` (so a client gets that function's reasons); their
-OpenAPI schema is generated from :class:`estimator.config.VehicleConfig` itself, so the two cannot
-drift. Report bodies reuse the frozen dataclasses of :mod:`server.reports`.
+OpenAPI schema is a union on ``kind`` built from the config dataclasses of
+:mod:`estimator.config` and their ranges (:func:`estimator.config.bound_of`), so the two cannot
+drift. Report bodies reuse the frozen dataclasses of :mod:`server.analytics.reports`.
+
+Estimates are described per estimator from the catalog of specs (:data:`estimator.catalog.SPECS`):
+one model per spec, told apart by ``estimator``, each field with its label, unit and description.
 """
 
 from __future__ import annotations
 
 import copy
-from typing import Annotated, Any, Literal
+import dataclasses
+import typing
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, WithJsonSchema, create_model
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    TypeAdapter,
+    WithJsonSchema,
+    create_model,
+)
 
-from estimator.config import VehicleConfig
-from estimator.types import ESTIMATE_FIELDS
-from server.reports import IngestCounts, VehicleReport
+from estimator.catalog import SPECS
+from estimator.config import (
+    Bound,
+    TrackedConfig,
+    VehicleKind,
+    Wheeled4wdSteeredConfig,
+    WheeledRearDriveConfig,
+    bound_of,
+)
+from estimator.spec import EstimatorSpec
+from server.analytics.reports import IngestCounts, VehicleReport
 from server.storage.base import Anchor
 
 __all__ = [
-    "ESTIMATE_FIELD_NAMES",
+    "ESTIMATE_MODELS",
     "EstimatePublic",
+    "EstimatorSpecPublic",
+    "EstimatorsPublic",
     "FleetReportPublic",
     "FleetSlipMapCellPublic",
     "FleetSlipMapPublic",
@@ -29,18 +53,20 @@ __all__ = [
     "HealthUnavailable",
     "SeriesFormat",
     "SeriesPublic",
+    "SlipChannelCellPublic",
+    "SlipChannelRefPublic",
     "SlipMapCellPublic",
     "SlipMapFormat",
     "SlipMapPublic",
     "SlipMapSkippedPublic",
+    "VehicleConfigAdapter",
     "VehicleConfigIn",
     "VehicleConfigOut",
     "VehiclePublic",
     "VehicleReportPublic",
     "VehiclesPublic",
+    "fields_doc",
 ]
-
-ESTIMATE_FIELD_NAMES: tuple[str, ...] = tuple(name for name, _ in ESTIMATE_FIELDS)
 
 SeriesFormat = Literal["json", "csv", "parquet", "geojson"]
 SlipMapFormat = Literal["json", "geojson", "csv"]
@@ -74,26 +100,98 @@ def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:
     return result
 
 
-_CONFIG_SCHEMA = TypeAdapter(VehicleConfig).json_schema()
+def _bounded_field(bound: Bound, default: Any) -> tuple[Any, Any]:
+    """A pydantic field of a config number (or list of numbers) with its range and unit."""
+    number: type = int if bound.integer else float
+    text = f"{bound.doc}; {bound.describe()}"
+    if bound.items is None:
+        return number, Field(default, ge=bound.low, le=bound.high, description=text)
+    item = Annotated[number, Field(ge=bound.low, le=bound.high)]  # type: ignore[valid-type]
+    lo, hi = bound.items
+    field = Field(list(default), min_length=lo, max_length=hi, description=text)
+    return list[item], field
+
+
+_EstimatorName = Annotated[str, StringConstraints(min_length=1, max_length=64)]
+
+
+def _config_model(cls: type, models: dict[type, type[BaseModel]]) -> type[BaseModel]:
+    """The pydantic model of config dataclass ``cls`` (sections built once, in ``models``)."""
+    if cls in models:
+        return models[cls]
+    hints = typing.get_type_hints(cls)
+    fields: dict[str, Any] = {}
+    kind = getattr(cls, "kind", None)
+    if kind is not None:  # optional for the default kind (an empty body registers one)
+        default = kind.value if kind is VehicleKind.WHEELED_REAR_DRIVE else ...
+        fields["kind"] = (Literal[kind.value], Field(default, description="the vehicle kind"))
+    for f in dataclasses.fields(cls):
+        bound = bound_of(f)
+        if bound is not None:
+            fields[f.name] = _bounded_field(bound, f.default)
+        elif isinstance(f.default_factory, type):
+            section = _config_model(f.default_factory, models)
+            fields[f.name] = (section, Field(default_factory=section))
+        elif f.name == "estimators":
+            fields[f.name] = (
+                list[_EstimatorName],
+                Field(default_factory=list, max_length=8, description="empty: the kind's"),
+            )
+        else:  # a flag or a choice
+            fields[f.name] = (hints[f.name], f.default)
+    doc = (cls.__doc__ or "").strip().split("\n\n")[0]
+    model = create_model(cls.__name__, __config__=ConfigDict(extra="forbid"), __doc__=doc, **fields)
+    models[cls] = model
+    return model
+
+
+def _config_models() -> tuple[type[BaseModel], ...]:
+    models: dict[type, type[BaseModel]] = {}
+    kinds = (WheeledRearDriveConfig, TrackedConfig, Wheeled4wdSteeredConfig)
+    return tuple(_config_model(cls, models) for cls in kinds)
+
+
+VehicleConfigAdapter: TypeAdapter[Any] = TypeAdapter(
+    Annotated[Union[_config_models()], Field(discriminator="kind")]  # noqa: UP007
+)
+"""Checks the JSON types and ranges of a config of any kind (``kind`` present)."""
+
+
+def _config_schema(*, request: bool) -> dict[str, Any]:
+    """The union's JSON schema, inlined: one object per kind, told apart by ``kind``'s const.
+
+    A request may omit ``kind`` (a rear-drive vehicle), so only answers, where every config
+    names its kind, carry the OpenAPI discriminator (by property name: its mapping pointed into
+    the ``$defs`` that inlining removes).
+    """
+    schema = _inline_refs(VehicleConfigAdapter.json_schema(), closed=request)
+    schema.pop("discriminator", None)
+    if not request:
+        for member in schema["oneOf"]:
+            member["required"] = sorted({"kind", *member.get("required", ())})
+        schema["discriminator"] = {"propertyName": "kind"}
+    return schema
+
 
 VehicleConfigIn = Annotated[
     dict[str, Any],
     WithJsonSchema(
         {
-            **_inline_refs(_CONFIG_SCHEMA, closed=True),
+            **_config_schema(request=True),
             "title": "VehicleConfigIn",
-            "description": "Vehicle configuration; omitted parts take their defaults, unknown "
-            "fields are refused.",
+            "description": "Vehicle configuration of one kind (`wheeled_rear_drive` when "
+            "`kind` is omitted); omitted parts take their defaults, unknown fields are "
+            "refused, every number has its range and unit in its description.",
         }
     ),
 ]
-"""Body of ``PUT /vehicles/{id}``: a VehicleConfig as JSON (validated by the handler)."""
+"""Body of ``PUT /vehicles/{id}``: a vehicle config as JSON (validated by the handler)."""
 
 VehicleConfigOut = Annotated[
     dict[str, Any],
     WithJsonSchema(
         {
-            **_inline_refs(_CONFIG_SCHEMA, closed=False),
+            **_config_schema(request=False),
             "title": "VehicleConfigOut",
             "description": "Vehicle configuration as stored (every field present).",
         }
@@ -133,6 +231,11 @@ class VehiclePublic(BaseModel):
         "vehicle's first GNSS fix with a position, kept for good); null until it is stored, "
         "a second or so after that fix",
     )
+    estimators: list[str] = Field(
+        default_factory=list,
+        description="estimators the vehicle runs (`GET /api/v1/estimators`), its primary first: "
+        "the default of every estimate route's `estimator`; empty when its config runs none",
+    )
 
 
 class VehiclesPublic(BaseModel):
@@ -142,33 +245,146 @@ class VehiclesPublic(BaseModel):
     count: int
 
 
-def _estimate_fields() -> dict[str, Any]:
-    fields: dict[str, Any] = {}
-    for name, kind in ESTIMATE_FIELDS:
-        if kind == "f8":
-            fields[name] = (float | None, Field(description="null when not available"))
+def _field_doc(spec: EstimatorSpec, name: str) -> str:
+    f = spec.field(name)
+    unit = f" [{f.unit}]" if f.unit else ""
+    return f"{f.label}{unit}: {f.description}" if f.description else f"{f.label}{unit}"
+
+
+def fields_doc() -> str:
+    """Every estimator's fields with their units, one line per estimator (for OpenAPI)."""
+    return "\n".join(
+        f"* `{spec.name}`: "
+        + ", ".join(f"`{f.name}`" + (f" ({f.unit})" if f.unit else "") for f in spec.fields)
+        for _, spec in sorted(SPECS.items())
+    )
+
+
+def _estimate_model(spec: EstimatorSpec) -> type[BaseModel]:
+    """One row of ``spec`` as JSON: every field (floats null when not available) plus who, when
+    and the decoded flags."""
+    fields: dict[str, Any] = {
+        "vehicle_id": (str, ...),
+        "estimator": (Literal[spec.name], Field(description="the estimator of this row")),
+        "time": (str, Field(description="stamp_ns as ISO 8601 UTC with nanoseconds")),
+        "flag_names": (list[str], Field(description="names of the flags set in `flags`")),
+    }
+    for f in spec.fields:
+        doc = _field_doc(spec, f.name)
+        if f.kind == "f8":
+            fields[f.name] = (float | None, Field(description=doc + "; null when not available"))
         else:
-            fields[name] = (int, ...)
-    return fields
+            fields[f.name] = (int, Field(description=doc))
+    title = "".join(part.title() for part in spec.name.split("_"))
+    return create_model(
+        f"Estimate{title}Public",
+        __config__=ConfigDict(extra="forbid", title=f"Estimate{title}Public"),
+        __doc__=f"One row of the estimator `{spec.name}` ({spec.title}).",
+        **fields,
+    )
 
 
-_EstimateBase: type[BaseModel] = create_model(
-    "EstimateFieldsPublic", __config__=ConfigDict(extra="forbid"), **_estimate_fields()
-)
+#: One response model per estimator of the catalog, by name.
+ESTIMATE_MODELS: dict[str, type[BaseModel]] = {
+    name: _estimate_model(spec) for name, spec in sorted(SPECS.items())
+}
+
+EstimatePublic: Any = Annotated[
+    Union[tuple(ESTIMATE_MODELS.values())],  # noqa: UP007  (a union built from the catalog)
+    Field(discriminator="estimator"),
+]
+"""One estimate row of any estimator, told apart by ``estimator``."""
 
 
-class EstimatePublic(_EstimateBase):
-    """One estimate row: every field of ``ESTIMATE_DTYPE`` (units in the names, slip in %)."""
+class FieldSpecPublic(BaseModel):
+    """One field of an estimator's row."""
 
-    vehicle_id: str
-    time: str = Field(description="stamp_ns as ISO 8601 UTC with nanoseconds")
-    flag_names: list[str] = Field(description="names of the EstimateFlag bits set in flags")
+    name: str
+    kind: Literal["f8", "i8", "i4"] = Field(description="numpy type: float64, int64, int32")
+    unit: str
+    label: str
+    description: str
+
+
+class FlagSpecPublic(BaseModel):
+    """One bit of an estimator's `flags` field."""
+
+    name: str
+    bit: int
+    description: str
+
+
+class SlipChannelSpecPublic(BaseModel):
+    """A slip-like value of one wheel or track, in percent."""
+
+    key: str
+    label: str
+    field: str
+    position: str = Field(description="rear_left, rear_right, front_left, …, track_left, …")
+    valid_flag: str | None = Field(description="flag marking a valid value; null: finite")
+    std_field: str | None
+    band_edges_pct: list[float]
+
+
+class SpeedChannelSpecPublic(BaseModel):
+    """A speed, m/s, forward positive."""
+
+    key: str
+    label: str
+    field: str
+    std_field: str | None
+
+
+class PositionChannelSpecPublic(BaseModel):
+    """Fields of the position in the vehicle's ENU frame (metres from its anchor)."""
+
+    east_field: str
+    north_field: str
+    up_field: str | None
+    heading_field: str | None
+    carried_flag: str | None = Field(description="flag of a dead-reckoned position")
+
+
+class ChartSpecPublic(BaseModel):
+    """Fields one chart draws together."""
+
+    key: str
+    title: str
+    unit: str
+    fields: list[str]
+
+
+class EstimatorSpecPublic(BaseModel):
+    """What an estimator takes and gives (``estimator.spec.EstimatorSpec.to_dict()``)."""
+
+    name: str
+    title: str
+    description: str
+    kinds: list[str] = Field(description="vehicle kinds it runs on")
+    inputs: list[str] = Field(description="wire streams it reads")
+    fields: list[FieldSpecPublic]
+    flags: list[FlagSpecPublic]
+    slips: list[SlipChannelSpecPublic]
+    speeds: list[SpeedChannelSpecPublic]
+    motion: str | None = Field(description="key of the speed channel that decides moving")
+    position: PositionChannelSpecPublic | None
+    charts: list[ChartSpecPublic]
+    ok_flag: str | None
+    degraded_flags: list[str]
+
+
+class EstimatorsPublic(BaseModel):
+    """Every estimator the server knows, by name."""
+
+    data: list[EstimatorSpecPublic]
+    count: int
 
 
 class SeriesPublic(BaseModel):
     """A series as column arrays: ``columns[field][i]`` is row ``i``; NaN is null."""
 
     vehicle_id: str
+    estimator: str = Field(description="the estimator whose fields `columns` holds")
     start_ns: int
     end_ns: int
     fields: list[str]
@@ -189,10 +405,11 @@ class SeriesPublic(BaseModel):
 
 
 class VehicleReportPublic(BaseModel):
-    """Field report of one vehicle (definitions in the API description of the route)."""
+    """Field report of one vehicle's estimator (definitions in the API description of the route)."""
 
     vehicle_id: str
-    band_edges_pct: list[float]
+    estimator: str
+    band_edges_pct: list[float] = Field(description="the vehicle's slip band edges")
     report: VehicleReport
     ingest: IngestCounts
 
@@ -205,21 +422,37 @@ class FleetReportPublic(BaseModel):
     vehicles: list[VehicleReportPublic]
 
 
+class SlipChannelCellPublic(BaseModel):
+    """One slip channel in one cell."""
+
+    valid_s: float = Field(description="time with a valid slip of the channel")
+    mean_pct: float | None = Field(description="time-weighted mean signed slip")
+
+
+class SlipChannelRefPublic(BaseModel):
+    """A slip channel of the map's estimator (`slips` keys of the cells)."""
+
+    key: str
+    label: str
+    field: str
+
+
 class SlipMapCellPublic(BaseModel):
     """One cell of a slip map (definitions in the API description of the route)."""
 
-    index_east: int = Field(description="i = floor(east_m / cell_m)")
-    index_north: int = Field(description="j = floor(north_m / cell_m)")
+    index_east: int = Field(description="i = floor(east / cell_m)")
+    index_north: int = Field(description="j = floor(north / cell_m)")
     east_m: float = Field(description="east of the cell's south-west corner, i · cell_m")
     north_m: float = Field(description="north of the cell's south-west corner, j · cell_m")
     time_s: float = Field(description="moving time in the cell")
     distance_m: float
     rows: int = Field(description="moving estimates in the cell")
-    slip_left_valid_s: float = Field(description="time with a valid left-wheel slip")
-    slip_right_valid_s: float = Field(description="time with a valid right-wheel slip")
-    slip_left_mean_pct: float | None = Field(description="time-weighted mean signed slip")
-    slip_right_mean_pct: float | None = Field(description="time-weighted mean signed slip")
-    mean_abs_slip_pct: float | None = Field(description="time-weighted mean |slip|, both wheels")
+    slips: dict[str, SlipChannelCellPublic] = Field(
+        description="per slip channel of the estimator, by key (`slip_channels`)"
+    )
+    mean_abs_slip_pct: float | None = Field(
+        description="time-weighted mean |slip| over every slip channel's valid slips"
+    )
     max_abs_slip_pct: float | None
     slip_band_shares: dict[str, float | None] = Field(
         description="time share of |slip| in each band, by band label (`0_5`, `5_15`, "
@@ -231,6 +464,8 @@ class SlipMapPublic(BaseModel):
     """A vehicle's slip map: the cells it drove through while moving, in its own ENU frame."""
 
     vehicle_id: str
+    estimator: str
+    slip_channels: list[SlipChannelRefPublic]
     start_ns: int
     end_ns: int
     cell_m: float
@@ -261,14 +496,19 @@ class SlipMapSkippedPublic(BaseModel):
     """A vehicle left out of a fleet slip map, and why."""
 
     vehicle_id: str
-    reason: Literal["no_anchor"] = Field(
-        description="`no_anchor`: no position stored yet, so its frame cannot be placed"
+    reason: Literal["no_anchor", "other_estimator"] = Field(
+        description="`no_anchor`: no position stored yet, so its frame cannot be placed; "
+        "`other_estimator`: its primary estimator is not the map's (no `estimator=` given)"
     )
 
 
 class FleetSlipMapPublic(BaseModel):
     """The slip map of several vehicles in one shared ENU frame."""
 
+    estimator: str | None = Field(
+        description="the estimator mapped (null: none given and no vehicle placed)"
+    )
+    slip_channels: list[SlipChannelRefPublic]
     start_ns: int
     end_ns: int
     cell_m: float

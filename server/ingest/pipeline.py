@@ -21,7 +21,7 @@ each sink's ``on_estimates``. Sinks run on this thread: they must only enqueue (
 writer and live hub do).
 
 An estimator that raises costs only the vehicle it raised for (the registry guards every call,
-see :mod:`server.estimators.registry`): counted in that vehicle's ``estimator_errors`` and
+see :mod:`server.estimation.registry`): counted in that vehicle's ``estimator_errors`` and
 logged at most once per :data:`ERROR_LOG_EVERY_NS` per vehicle and estimator. A config that an
 estimator refuses is not applied (the vehicle keeps its old one; counted ``configs_refused``).
 
@@ -58,15 +58,16 @@ from typing import Any, Protocol, runtime_checkable
 
 import zenoh
 
-from estimator.config import VehicleConfig
+from estimator.config import VehicleConfig, WheeledRearDriveConfig
 from estimator.types import EstimateBatch, WheelGap
-from server.estimators.registry import (
+from server.estimation.registry import (
     ConfigRefusedError,
     EstimatorRegistry,
     UnknownEstimatorError,
 )
+from server.ingest.adapter import fed, wheel_gaps
 from server.ingest.counters import IngestCounters
-from server.ingest.reorder import ReorderBuffer, Verdict
+from server.ingest.reorder import ReorderBuffer, StreamGap, Verdict
 from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
 from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet
@@ -686,40 +687,42 @@ class Pipeline:
         self,
         vid: str,
         packets: list[Packet],
-        gaps: Sequence[tuple[int, int | None, Packet | None]] = (),
+        gaps: Sequence[StreamGap] = (),
     ) -> None:
         """Feed ``packets`` (released, in sensor-time order) to ``vid``'s estimators; ``gaps``
-        (:meth:`ReorderBuffer.take_gaps`) says where wheel data is missing."""
+        (:meth:`ReorderBuffer.take_gaps`) says where data is missing (:mod:`.adapter`)."""
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
         push = self._registry.push
-        before: dict[int, list[tuple[int, int | None]]] = {}  # id(packet) -> gaps before it
-        for after_ns, until_ns, p in gaps:
+        notices = wheel_gaps(gaps)
+        before: dict[int, list[WheelGap]] = {}  # id(packet) -> notices before it
+        for gap, p in notices:
             if p is not None:
-                before.setdefault(id(p), []).append((after_ns, until_ns))
+                before.setdefault(id(p), []).append(gap)
         for packet in packets:
             if before and id(packet) in before:
-                for after_ns, until_ns in before[id(packet)]:
-                    self._wheel_gap(vid, after_ns, until_ns)
-            for m in packet.measurements:
+                for gap in before[id(packet)]:
+                    self._wheel_gap(vid, gap)
+            for m in fed(packet):
                 push(vid, m)  # guarded per estimator by the registry
-        for after_ns, until_ns, p in gaps:
+        for gap, p in notices:
             if p is None:  # no packet after the gap in this release
-                self._wheel_gap(vid, after_ns, until_ns)
+                self._wheel_gap(vid, gap)
 
-    def _wheel_gap(self, vid: str, after_ns: int, until_ns: int | None) -> None:
-        """Tell ``vid``'s estimators that its wheel data after ``after_ns`` is missing
-        (``estimator.types.WheelGap``): due without it up to ``until_ns``, or lost (None):
-        then the ticks up to ``after_ns`` are computed first, with the edges before the loss
-        (everything they need is fed), and the estimators start the wheels' fits afresh."""
+    def _wheel_gap(self, vid: str, gap: WheelGap) -> None:
+        """Tell ``vid``'s estimators that its wheel data after ``gap.after_ns`` is missing:
+        due without it up to ``gap.until_ns``, or lost (None): then the ticks up to
+        ``after_ns`` are computed first, with the edges before the loss (everything they need
+        is fed), and the estimators start the wheels' fits afresh."""
         registry = self._registry
-        if until_ns is None:
+        after_ns = gap.after_ns
+        if gap.until_ns is None:
             self._counters.wheel_gap(vid)
             last = self._advanced_ns.get(vid)
             if last is None or after_ns > last:
                 self._deliver(registry.advance({vid: after_ns}))
                 self._advanced_ns[vid] = after_ns
-        registry.push(vid, WheelGap(after_ns, until_ns))
+        registry.push(vid, gap)
 
     def _admit(self, packet: Packet) -> bool:
         """First packet of a vehicle without a buffer: known, auto-registered, or refused."""
@@ -727,7 +730,7 @@ class Pipeline:
         if self._registry.has_vehicle(vid):
             return True
         auto = self._ingest.unknown_vehicle is UnknownVehiclePolicy.AUTO_REGISTER
-        if auto and self._add(vid, VehicleConfig(), notify=True):
+        if auto and self._add(vid, WheeledRearDriveConfig(), notify=True):
             return True
         self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
         return False

@@ -1,8 +1,8 @@
 """Per-vehicle reorder buffer: hand packets to the estimators in sensor-time order.
 
-Packets of one vehicle arrive on three streams, each possibly reordered by the network. The
-buffer holds them in a heap keyed by the packet's first sample time and releases them once the
-*horizon* has passed them::
+Packets of one vehicle arrive on several streams (:mod:`server.protocol.streams`), each possibly
+reordered by the network. The buffer holds them in a heap keyed by the packet's first sample
+time and releases them once the *horizon* has passed them::
 
     horizon = newest sample time seen (any stream) - lateness
 
@@ -21,7 +21,8 @@ inside the stream), and ::
 
 A packet that is missing (lost, or still on its way) holds its stream's watermark until the
 fixed window passes it; then the run resumes after the gap. The watermarks gate the release only
-once every stream the vehicle is expected to send (``streams``, all three by default) has one,
+once every stream the vehicle is expected to send (``streams``: GNSS, IMU and wheels by
+default) has one,
 and not before ``max(lateness, WATERMARK_START_NS)`` of sensor time after the vehicle's first
 packet (a stream's first packet arrives only once its batch is complete): a vehicle standing
 still sends no wheel edges, and a horizon driven by its IMU and GNSS alone would make the first
@@ -47,18 +48,18 @@ packet moves it only when it comes on the stream whose watermark held it at the 
 :attr:`ReorderBuffer.may_release` says so, and the pipeline visits a buffer only then (or when
 it fell idle): the packets of the streams ahead of a lagging one wait without a release each.
 
-Wheel data missing: wheel edges count the wheel's angle, and no edge up to a tick reads as a
-wheel turning slower than one tooth since the last, so the estimators must know when ticks are
-due past the wheel data. When the horizon passes the wheels' watermark (the wheel stream later
-than the fixed window), :meth:`ReorderBuffer.take_gaps` names the span from the watermark to the
-horizon: those ticks get no wheel speed, the fits go on. The wheel data is *lost* when a wheels
-sequence number is missing while later wheel packets came (told once a loss, as soon as the
-horizon passes the watermark), or when a wheels packet is refused late: then the wheels' fits
-start afresh. Each names the first released packet after the watermark, before which the
-pipeline tells the estimators (``estimator.types.WheelGap``).
+Data missing on a *cumulative* stream (``StreamSpec.cumulative``: edges count an angle, so no
+edge up to a time reads as something turning slower, true only if none is on its way): when
+the horizon passes the watermark of such an expected stream (it is later than the fixed
+window), :meth:`ReorderBuffer.take_gaps` names the span from the watermark to the horizon, due
+without that stream's data. The stream's data is *lost* when one of its sequence numbers is
+missing while later packets came (told once a loss, as soon as the horizon passes the
+watermark), or when one of its packets is refused late. Each :class:`StreamGap` names the first
+released packet after the watermark; what an estimator is told is the pipeline's adapter's
+business (:mod:`server.ingest.adapter`).
 
-A wheels *heartbeat* (a packet without edges, only ``until_ns``: the wheels stood still up to
-it) moves the stream's watermark and its sequence tracking and is never late; it is not queued.
+A *heartbeat* (a packet without data, only ``until_ns``: nothing happened up to it) moves the
+stream's watermark and its sequence tracking and is never late; it is not queued.
 
 A packet whose first sample time is at or before the horizon already released is **late**: it
 is counted and never fed (feeding it would break the estimators' time order). Sequence numbers
@@ -89,10 +90,19 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from enum import Enum
 
-from server.protocol.codec import Packet
+from server.protocol.base import Packet
 from server.protocol.keys import Stream
+from server.protocol.streams import STREAMS
 
-__all__ = ["SEQ_WINDOW", "Offer", "ReorderBuffer", "SeqTracker", "Verdict"]
+__all__ = [
+    "DEFAULT_STREAMS",
+    "SEQ_WINDOW",
+    "Offer",
+    "ReorderBuffer",
+    "SeqTracker",
+    "StreamGap",
+    "Verdict",
+]
 
 #: How far back (in sequence numbers) duplicates are recognised per stream.
 SEQ_WINDOW = 4096
@@ -101,7 +111,14 @@ WATERMARK_START_NS = 1_000_000_000
 #: Shortest default idle time (wall clock) before a quiet vehicle's tail is released.
 IDLE_MIN_NS = 1_000_000_000
 
-_STREAM_ORDER = {Stream.GNSS: 0, Stream.IMU: 1, Stream.WHEELS: 2}
+#: The streams a vehicle is expected to send unless told otherwise.
+DEFAULT_STREAMS: tuple[Stream, ...] = (Stream.GNSS, Stream.IMU, Stream.WHEELS)
+
+_PRIORITY = {stream: spec.priority for stream, spec in STREAMS.items()}
+# streams whose missing data is told (StreamGap), in priority order
+_CUMULATIVE = tuple(
+    sorted((s for s, spec in STREAMS.items() if spec.cumulative), key=_PRIORITY.__getitem__)
+)
 
 
 class Verdict(Enum):
@@ -134,7 +151,71 @@ class Offer:
 
 _ACCEPTED = Offer(Verdict.ACCEPTED)
 _ACCEPTED_VERDICT = Verdict.ACCEPTED  # an enum member looked up on its class costs ~70 ns
-_WHEELS = Stream.WHEELS
+
+
+@dataclass(frozen=True, slots=True)
+class StreamGap:
+    """Data of a cumulative stream missing where the release goes on without it.
+
+    Attributes
+    ----------
+    stream : Stream
+    after_ns : int
+        Sensor time up to which the stream is complete.
+    until_ns : int or None
+        End of the released span due without the stream's data; None: the data is lost.
+    before : Packet or None
+        The first released packet starting after ``after_ns`` (None: none in that release):
+        whoever must know is told before it is fed.
+    """
+
+    stream: Stream
+    after_ns: int
+    until_ns: int | None
+    before: Packet | None
+
+
+class _Missing:
+    """One cumulative stream's missing data, found and not yet released."""
+
+    __slots__ = ("lost_after_ns", "told_seq", "wait", "wait_told_ns")
+
+    def __init__(self) -> None:
+        self.told_seq: int | None = None  # the run's last number whose loss was told
+        self.lost_after_ns: int | None = None  # a loss: the time the data was complete up to
+        self.wait: tuple[int, int] | None = None  # a span due without the data
+        self.wait_told_ns: int | None = None  # the end of the last span told
+
+    def lost(self, after_ns: int, released_ns: int | None) -> None:
+        """The data after ``after_ns`` is lost (told from what was released on, at least)."""
+        if released_ns is not None and released_ns > after_ns:
+            after_ns = released_ns  # what was released is done with
+        if self.lost_after_ns is None or after_ns < self.lost_after_ns:
+            self.lost_after_ns = after_ns
+
+    def behind(self, skipped_ns: int, horizon_ns: int) -> None:
+        """The horizon passes the stream's watermark: the span up to the horizon past the
+        watermark after skipping missing packets (``skipped_ns``) is due without the stream."""
+        told = self.wait_told_ns
+        after = skipped_ns if told is None else max(skipped_ns, told)
+        if horizon_ns > after:
+            lo = after if self.wait is None else min(self.wait[0], after)
+            self.wait = (lo, horizon_ns)
+            self.wait_told_ns = horizon_ns
+
+    def released(self, stream: Stream, out: list[Packet], gaps: list[StreamGap]) -> None:
+        """Append the gaps found to ``gaps`` (the loss first), at a release of ``out``."""
+        if self.lost_after_ns is not None:
+            after, self.lost_after_ns = self.lost_after_ns, None
+            gaps.append(StreamGap(stream, after, None, _first_after(out, after)))
+        if self.wait is not None:
+            (after, until), self.wait = self.wait, None
+            gaps.append(StreamGap(stream, after, until, _first_after(out, after)))
+
+
+def _first_after(packets: list[Packet], after_ns: int) -> Packet | None:
+    """The first of ``packets`` that starts after ``after_ns`` (None: none does)."""
+    return next((p for p in packets if p.first_stamp_ns > after_ns), None)
 
 
 class SeqTracker:
@@ -253,7 +334,7 @@ class ReorderBuffer:
         clock_jump_ns: int | None = None,
         reanchor_after: int = 5,
         watermarks: bool = False,
-        streams: Collection[Stream] = tuple(Stream),
+        streams: Collection[Stream] = DEFAULT_STREAMS,
     ) -> None:
         if lateness_ns < 0:
             raise ValueError("lateness_ns must be >= 0")
@@ -279,18 +360,15 @@ class ReorderBuffer:
         self._expected = tuple(frozenset(streams))
         if not self._expected:
             raise ValueError("streams must not be empty")
+        # the expected cumulative streams, whose missing data is told (take_gaps)
+        self._watched = tuple(s for s in _CUMULATIVE if s in self._expected)
         # the watermarks gate the release (every expected stream has one and the start-up
         # window has passed): once true it stays true until reanchor(), so it is kept
         self._gating = False
-        # wheel data missing (take_gaps): the wheels run's last number whose loss was told
-        # (one notice a loss); a loss found and not yet released (the time the wheel data was
-        # complete up to); a span due without wheel data, not yet released, and the end of the
-        # last one told; the gaps released since the last take_gaps()
-        self._wheel_gap_seq: int | None = None
-        self._gap_after_ns: int | None = None
-        self._wait: tuple[int, int] | None = None
-        self._wait_told_ns: int | None = None
-        self._gaps: list[tuple[int, int | None, Packet | None]] = []
+        # cumulative streams' missing data not yet released, and the gaps released since the
+        # last take_gaps()
+        self._missing: dict[Stream, _Missing] = {}
+        self._gaps: list[StreamGap] = []
         # the stream whose watermark held the horizon at the last release (gating only)
         self._low_stream: Stream | None = None
         self._may_release = False
@@ -351,8 +429,8 @@ class ReorderBuffer:
             and packet.first_stamp_ns <= released
             and packet.measurements  # a heartbeat has nothing to feed: never late
         ):
-            if packet.stream is _WHEELS:
-                self._wheel_gap(released)  # its edges are lost to the fits from here on
+            if packet.stream in _CUMULATIVE:  # its data is lost to the estimators from here on
+                self._missing_of(packet.stream).lost(released, released)
             return Offer(Verdict.LATE, lost_delta, restarted)
         verdict = self._take(packet, now_ns, seq_restart=restarted)
         if lost_delta == 0 and not restarted:
@@ -400,8 +478,7 @@ class ReorderBuffer:
         self._first_ns = None
         self._gating = False
         self._low_stream = None
-        self._wheel_gap_seq = None  # the estimators restart
-        self._gap_after_ns = self._wait = self._wait_told_ns = None
+        self._missing.clear()  # the estimators restart
         if self._watermarks is not None:
             self._watermarks.clear()
         self._take(packet, now_ns)
@@ -424,7 +501,7 @@ class ReorderBuffer:
             self._heap,
             (
                 packet.first_stamp_ns,
-                _STREAM_ORDER[packet.stream],
+                _PRIORITY[packet.stream],
                 packet.seq,
                 next(self._tie),
                 packet,
@@ -458,12 +535,15 @@ class ReorderBuffer:
         else:
             mark.arrived(packet.seq, packet.covers_ns)
 
-    def take_gaps(self) -> tuple[tuple[int, int | None, Packet | None], ...]:
-        """Wheel data missing at the releases since the last call, oldest first:
-        ``(after_ns, until_ns, packet)``: the time the wheel data is complete up to; the end of
-        the ticks due without it, or None when it is lost; and the first packet of that
-        release starting after ``after_ns`` (None: none did), before which the estimators are
-        to be told (``estimator.types.WheelGap``)."""
+    def _missing_of(self, stream: Stream) -> _Missing:
+        missing = self._missing.get(stream)
+        if missing is None:
+            missing = self._missing[stream] = _Missing()
+        return missing
+
+    def take_gaps(self) -> tuple[StreamGap, ...]:
+        """Data of cumulative streams missing at the releases since the last call, oldest
+        first (per release: by stream priority, a loss before a span due)."""
         if not self._gaps:
             return ()
         gaps, self._gaps = tuple(self._gaps), []
@@ -492,13 +572,14 @@ class ReorderBuffer:
         self._low_stream = None  # unless the watermarks gate below
         horizon = newest - self._lateness_ns
         marks = self._watermarks
-        wheels_ns = wheels_seq = None
         if marks and self._first_ns is not None:
-            wheels = marks.get(_WHEELS)
-            if wheels is not None:
-                wheels_ns = wheels.stamp_ns  # before a gap is skipped
-                if wheels.ahead:  # a wheels packet missing, later ones here
-                    wheels_seq = wheels.seq
+            # each cumulative stream's watermark before a gap is skipped, and its run's last
+            # number when a packet is missing and later ones are here
+            before: list[tuple[Stream, int, int | None]] = []
+            for s in self._watched:
+                watched = marks.get(s)
+                if watched is not None:
+                    before.append((s, watched.stamp_ns, watched.seq if watched.ahead else None))
             for mark in marks.values():
                 if mark.ahead:
                     mark.skip_gaps(horizon)
@@ -511,8 +592,9 @@ class ReorderBuffer:
                 self._low_stream = low
                 if lowest is not None and lowest > horizon:
                     horizon = lowest
-                if wheels_ns is not None and horizon > wheels_ns and _WHEELS in self._expected:
-                    self._wheel_missing(wheels_ns, wheels_seq, marks[_WHEELS].stamp_ns, horizon)
+                for s, mark_ns, run_seq in before:
+                    if horizon > mark_ns:
+                        self._behind(s, mark_ns, run_seq, marks[s].stamp_ns, horizon)
         if self._low_stream is None and now_ns - self._last_arrival_ns >= self._idle_ns:
             # idle, and no watermarks tell how far each stream is complete: release everything
             horizon = newest
@@ -521,30 +603,18 @@ class ReorderBuffer:
             return released
         return horizon
 
-    def _wheel_missing(
-        self, wheels_ns: int, wheels_seq: int | None, skipped_ns: int, horizon_ns: int
+    def _behind(
+        self, stream: Stream, mark_ns: int, run_seq: int | None, skipped_ns: int, horizon_ns: int
     ) -> None:
-        """The horizon passes the wheels' watermark ``wheels_ns``: lost data if a wheels
-        packet is missing and later ones came (``wheels_seq``, the run's last number; told
-        once a loss); the ticks up to the horizon past the watermark after skipping the
-        missing packets (``skipped_ns``) are due without wheel data."""
-        if wheels_seq is not None and wheels_seq != self._wheel_gap_seq:
-            self._wheel_gap_seq = wheels_seq
-            self._wheel_gap(wheels_ns)
-        told = self._wait_told_ns
-        after = skipped_ns if told is None else max(skipped_ns, told)
-        if horizon_ns > after:
-            lo = after if self._wait is None else min(self._wait[0], after)
-            self._wait = (lo, horizon_ns)
-            self._wait_told_ns = horizon_ns
-
-    def _wheel_gap(self, after_ns: int) -> None:
-        """Wheel data after ``after_ns`` is lost: tell the estimators at the next release."""
-        released = self._released_ns
-        if released is not None and released > after_ns:
-            after_ns = released  # what was released is done with
-        if self._gap_after_ns is None or after_ns < self._gap_after_ns:
-            self._gap_after_ns = after_ns
+        """The horizon passes ``stream``'s watermark ``mark_ns``: lost data if a packet is
+        missing and later ones came (``run_seq``, the run's last number; told once a loss);
+        the span past the watermark after skipping the missing packets (``skipped_ns``) up to
+        the horizon is due without the stream."""
+        missing = self._missing_of(stream)
+        if run_seq is not None and run_seq != missing.told_seq:
+            missing.told_seq = run_seq
+            missing.lost(mark_ns, self._released_ns)
+        missing.behind(skipped_ns, horizon_ns)
 
     def _starts_gating(self, newest_ns: int, marks: dict[Stream, _StreamMark]) -> bool:
         """Whether the watermarks gate from now on (see :attr:`_gating`)."""
@@ -572,18 +642,11 @@ class ReorderBuffer:
         heap = self._heap
         while heap and heap[0][0] <= horizon:
             out.append(heapq.heappop(heap)[-1])
-        if self._gap_after_ns is not None:  # lost: first, the fits start afresh
-            after = self._gap_after_ns
-            self._gap_after_ns = None
-            self._gaps.append(
-                (after, None, next((p for p in out if p.first_stamp_ns > after), None))
-            )
-        if self._wait is not None:
-            after, until = self._wait
-            self._wait = None
-            self._gaps.append(
-                (after, until, next((p for p in out if p.first_stamp_ns > after), None))
-            )
+        if self._missing:
+            for stream in _CUMULATIVE:
+                missing = self._missing.get(stream)
+                if missing is not None:
+                    missing.released(stream, out, self._gaps)
         if self._released_ns is None or horizon > self._released_ns:
             self._released_ns = horizon
         return out, self._released_ns

@@ -60,13 +60,13 @@ import zenoh
 from estimator.catalog import spec_of
 from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
-from server.estimators.registry import EstimatorRegistry
+from server.estimation.registry import EstimatorRegistry
 from server.ingest.pipeline import EstimateSink
 from server.ingest.subscriber import IngestSubscriber, RawPacket
+from server.metrics.thread_cpu import thread_cpu_seconds
 from server.protocol.keys import parse_key
 from server.settings import IngestSettings, Settings, ZenohSettings
 from server.storage.base import Anchor
-from server.thread_cpu import thread_cpu_seconds
 
 __all__ = ["WorkerPool", "owner_of"]
 
@@ -451,7 +451,7 @@ class WorkerPool:
         return self._merged("anchors")
 
     def thread_cpu_snapshot(self) -> dict[str, dict[str, float]]:
-        """``{"worker-k": {thread name: CPU seconds}}`` (:mod:`server.thread_cpu`) of each
+        """``{"worker-k": {thread name: CPU seconds}}`` (:mod:`server.metrics.thread_cpu`) of each
         worker process, as of its last report; a restarted worker counts from zero again."""
         return {f"worker-{w.index}": dict(w.snapshot.get("thread_cpu", {})) for w in self._workers}
 

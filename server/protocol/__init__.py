@@ -14,16 +14,22 @@ from server.protocol.codec import (
     encode_config,
     encode_gnss,
     encode_imu,
+    encode_odometer,
+    encode_sprockets,
+    encode_steering,
     encode_wheel_edges,
     encode_wheel_speeds,
+    encode_wheel_speeds4,
 )
 from server.protocol.keys import Stream, config_key, is_valid_vehicle_id, parse_key, sensor_key
 from server.protocol.recording import Record, RecordingError, read_recording, write_recording
+from server.protocol.streams import STREAMS, StreamSpec, spec_of
 
 __all__ = [
     "LIMITS",
     "REASONS",
     "SCHEMA_VERSION",
+    "STREAMS",
     "DecodeError",
     "EncodeError",
     "Limits",
@@ -32,17 +38,23 @@ __all__ = [
     "Record",
     "RecordingError",
     "Stream",
+    "StreamSpec",
     "config_key",
     "decode",
     "decode_config",
     "encode_config",
     "encode_gnss",
     "encode_imu",
+    "encode_odometer",
+    "encode_sprockets",
+    "encode_steering",
     "encode_wheel_edges",
     "encode_wheel_speeds",
+    "encode_wheel_speeds4",
     "is_valid_vehicle_id",
     "parse_key",
     "read_recording",
     "sensor_key",
+    "spec_of",
     "write_recording",
 ]

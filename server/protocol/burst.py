@@ -7,10 +7,11 @@ and a Python check per field; here
 * every payload is decoded by msgspec into the struct of its stream
   (:mod:`server.protocol.wire`), which checks the fields' names and types in C while it
   decodes;
-* the packed arrays of all IMU, wheel-edge and wheel-speed packets of the burst are joined per
-  stream and checked at once (finite, within the limits, stamps monotonic inside each packet),
-  and split again into per-packet read-only views of the joined buffer; GNSS fixes are checked
-  one by one (a few comparisons).
+* the packed arrays of all packets of one layout (:mod:`server.protocol.layouts`: IMU, wheel
+  edges, wheel speeds, ...; ``StreamSpec.batch`` says which) are joined and checked at once
+  (finite, within the limits, stamps monotonic inside each packet), and split again into
+  per-packet read-only views of the joined buffer; GNSS fixes are checked one by one
+  (``StreamSpec.single``, a few comparisons).
 
 Anything unusual sends a packet to the codec's per-packet rules, which give the reason it is
 refused, or accept it: a payload that is not a struct of :mod:`~server.protocol.wire` (a field
@@ -23,33 +24,30 @@ one numpy call per check). The other packets of the burst are unaffected, so
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import msgspec
 import numpy as np
 
-from estimator._frozen import builder
 from estimator.base import Measurement
-from estimator.types import ImuBatch, Wheel, WheelEdges, WheelSpeeds
-from server.protocol.codec import (
-    _GNSS_FIX,
-    _LITTLE_ENDIAN,
-    _WHEEL,
+from server.protocol.base import (
     LIMITS,
+    LITTLE_ENDIAN,
     SCHEMA_VERSION,
+    Body,
     DecodeError,
     Limits,
     Packet,
-    _gnss_within,
-    _new_packet,
-    decode,
+    new_packet,
 )
+from server.protocol.codec import decode
 from server.protocol.keys import Stream, parse_key
+from server.protocol.layouts import Edges, Sampled
+from server.protocol.streams import STREAMS, WIRE_STREAM, Layout
 from server.protocol.wire import DECODER as _DECODER
-from server.protocol.wire import EdgesEntry, GnssPacket, ImuPacket, WheelsPacket
 
-__all__ = ["BurstItem", "decode_burst"]
+__all__ = ["MIN_BATCHED", "BurstItem", "decode_burst"]
 
 #: The result for one packet: the decoded packet, or why it was refused.
 BurstItem = Packet | DecodeError
@@ -58,14 +56,9 @@ _I8_BYTES = 8  # a packed int64 stamp
 _F8_BYTES = 8  # a packed float64 value
 _NO_FIRST_NS = 2**63 - 1  # start of the min() over a packet's first sample times
 _NO_LAST_NS = -(2**63)  # start of the max() over its last ones
-# the streams as module constants: an enum member looked up on its class costs ~70 ns
-_GNSS, _IMU, _WHEELS = Stream.GNSS, Stream.IMU, Stream.WHEELS
-# a packet's measurements are built without the frozen classes' __init__ (estimator._frozen)
-_new_imu = builder(ImuBatch)
-_new_speeds = builder(WheelSpeeds)
-_new_edges = builder(WheelEdges)
 _SEQ_END = 2**63  # sequence numbers lie in [0, 2**63)
-_STREAM_OF: dict[type, Stream] = {GnssPacket: _GNSS, ImuPacket: _IMU, WheelsPacket: _WHEELS}
+_SPECS = dict(STREAMS)  # a dict looks up faster than the read-only mapping
+_WIRE_STREAM = dict(WIRE_STREAM)
 
 
 class _Opened:
@@ -97,19 +90,19 @@ class _Opened:
             and not last_ns <= until_ns <= last_ns + opts.limits.max_until_ahead_ns
         ):
             return self.alone(opts)
-        return _new_packet(
-            self.vehicle_id,
-            self.stream,
-            self.p.seq,
-            SCHEMA_VERSION,
-            ms,
-            first_ns,
-            last_ns,
-            until_ns,
+        return new_packet(
+            vehicle_id=self.vehicle_id,
+            stream=self.stream,
+            seq=self.p.seq,
+            schema_version=SCHEMA_VERSION,
+            measurements=ms,
+            first_stamp_ns=first_ns,
+            last_stamp_ns=last_ns,
+            until_ns=until_ns,
         )
 
 
-def _until(p: GnssPacket | ImuPacket | WheelsPacket) -> int | None:
+def _until(p: Any) -> int | None:
     """The packet's ``until_ns``; None when it has none."""
     return p.until_ns if isinstance(p.until_ns, int) else None  # or UNSET
 
@@ -173,11 +166,12 @@ def _norm_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
 
 
 def _abs_ok(a: np.ndarray, bound: float) -> np.ndarray | None:
-    """Rows whose values are all within ``±bound`` (NaN passes, ``±inf`` does not); None: all."""
+    """Rows (values of a one-dimensional ``a``) all within ``±bound`` (NaN passes, ``±inf``
+    does not); None: all."""
     bad = np.abs(a) > bound
     if not bad.any():
         return None
-    ok: np.ndarray = ~bad.any(axis=1)
+    ok: np.ndarray = ~(bad if bad.ndim == 1 else bad.any(axis=1))
     return ok
 
 
@@ -245,18 +239,18 @@ class _Runs:
 
 
 class _SampledGroup:
-    """Packets of one stream with a single stamp run and row arrays of the same length
-    (IMU batches, wheel speeds), checked together."""
+    """Packets of one :class:`~server.protocol.layouts.Sampled` layout (a single stamp run and
+    row arrays of the same length), checked together."""
 
-    __slots__ = ("opened", "rows", "runs")
+    __slots__ = ("layout", "names", "opened", "row_bytes", "rows", "runs")
 
-    #: (field, values a row) of the row arrays beside ``stamp_ns``
-    FIELDS: tuple[tuple[str, int], ...] = ()
-
-    def __init__(self) -> None:
+    def __init__(self, layout: Sampled) -> None:
+        self.layout = layout
+        self.names = tuple(r.name for r in layout.rows)
+        self.row_bytes = tuple((r.name, r.width * _F8_BYTES) for r in layout.rows)
         self.opened: list[_Opened] = []
         self.runs = _Runs(strict=True)
-        self.rows: list[list[bytes]] = [[] for _ in self.FIELDS]
+        self.rows: list[list[bytes]] = [[] for _ in layout.rows]
 
     def add(self, op: _Opened, lim: Limits) -> bool:
         """Take ``op`` when its arrays have a valid packet's lengths."""
@@ -266,8 +260,9 @@ class _SampledGroup:
         if not n:
             return False
         raws: list[bytes] = []
-        for raw, (_, width) in zip(self.row_arrays(p), self.FIELDS, strict=True):
-            if not isinstance(raw, bytes) or len(raw) != n * width * _F8_BYTES:
+        for name, row_bytes in self.row_bytes:
+            raw = getattr(p, name)
+            if type(raw) is not bytes or len(raw) != n * row_bytes:
                 return False
             raws.append(raw)
         self.opened.append(op)
@@ -276,17 +271,15 @@ class _SampledGroup:
             joined.append(raw)
         return True
 
-    def row_arrays(self, p: Any) -> tuple[object, ...]:
-        """The packet's packed row arrays, in the order of :attr:`FIELDS`."""
-        raise NotImplementedError
-
-    def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
-        """The per-row rule of the stream over the joined row arrays; None: every row is ok."""
-        raise NotImplementedError
-
-    def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
-        """The measurement of one packet: samples ``a:b`` of the joined arrays."""
-        raise NotImplementedError
+    def _rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
+        """Each row passes every row array's rule (``Rows``); None: every row does."""
+        ok: np.ndarray | None = None
+        for r, a in zip(self.layout.rows, arrays, strict=True):
+            bound = getattr(lim, r.bound)
+            this = _norm_ok(a, bound) if r.norm else _abs_ok(a, bound)
+            if this is not None:
+                ok = this if ok is None else ok & this
+        return ok
 
     def finish(self, out: list[BurstItem | None], opts: _Options) -> None:
         """Check the group and put each packet's result at its index in ``out``."""
@@ -294,88 +287,74 @@ class _SampledGroup:
             return
         lim = opts.limits
         arrays = [
-            _joined(raws, "<f8", width)
-            for raws, (_, width) in zip(self.rows, self.FIELDS, strict=True)
+            _joined(raws, "<f8", r.width)
+            for raws, r in zip(self.rows, self.layout.rows, strict=True)
         ]
-        c = self.runs.check(lim, self.rows_ok(arrays, lim))
-        measurement = self.measurement
+        c = self.runs.check(lim, self._rows_ok(arrays, lim))
+        build, t = self.layout.build, c.t
+        named = list(zip(self.names, arrays, strict=True))
         for op, a, b, first, last, ok in zip(
             self.opened, c.starts, c.ends, c.first_ns, c.last_ns, c.good, strict=True
         ):
             if ok:
-                out[op.index] = op.packet((measurement(c.t, arrays, a, b),), first, last, opts)
+                values = {"stamp_ns": t[a:b]}
+                for name, x in named:  # a loop: a comprehension costs a call per packet
+                    values[name] = x[a:b]
+                out[op.index] = op.packet((build(**values),), first, last, opts)
             else:
                 out[op.index] = op.alone(opts)
 
 
-class _ImuGroup(_SampledGroup):
-    """IMU batches: accelerometer and gyroscope row norms within the limits."""
-
-    __slots__ = ()
-    FIELDS = (("accel_mps2", 3), ("gyro_radps", 3))
-
-    def row_arrays(self, p: Any) -> tuple[object, ...]:
-        return p.accel_mps2, p.gyro_radps
-
-    def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
-        accel_ok = _norm_ok(arrays[0], lim.max_accel_mps2)
-        gyro_ok = _norm_ok(arrays[1], lim.max_gyro_radps)
-        if accel_ok is None or gyro_ok is None:
-            return gyro_ok if accel_ok is None else accel_ok
-        return accel_ok & gyro_ok
-
-    def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
-        return _new_imu(t[a:b], arrays[0][a:b], arrays[1][a:b])
-
-
-class _SpeedsGroup(_SampledGroup):
-    """Wheel speeds: ``|omega|`` within the limit."""
-
-    __slots__ = ()
-    FIELDS = (("omega_radps", 2),)
-
-    def row_arrays(self, p: Any) -> tuple[object, ...]:
-        return (p.omega_radps,)
-
-    def rows_ok(self, arrays: list[np.ndarray], lim: Limits) -> np.ndarray | None:
-        return _abs_ok(arrays[0], lim.max_wheel_omega_radps)
-
-    def measurement(self, t: np.ndarray, arrays: list[np.ndarray], a: int, b: int) -> Measurement:
-        return _new_speeds(t[a:b], arrays[0][a:b])
-
-
 class _EdgesGroup:
-    """Wheel-edge packets (one run per wheel entry, optional direction), checked together."""
+    """Packets of one :class:`~server.protocol.layouts.Edges` layout (one run per entry,
+    optional direction), checked together."""
 
-    __slots__ = ("directions", "entries", "opened", "runs")
+    __slots__ = (
+        "by_number",
+        "directions",
+        "entries",
+        "key",
+        "layout",
+        "most",
+        "named",
+        "opened",
+        "runs",
+    )
 
-    def __init__(self) -> None:
+    def __init__(self, layout: Edges) -> None:
+        self.layout = layout
+        self.key = layout.key
+        self.by_number = layout.by_number  # the struct's number is an int already
+        self.most = len(layout.by_number)  # entries in a packet
+        self.named = {m: {layout.key: m} for m in layout.by_number.values()}  # build's keyword
         self.opened: list[_Opened] = []
-        self.entries: list[list[tuple[Wheel, int]]] = []  # per packet: (wheel, run index)
+        self.entries: list[list[tuple[Any, int]]] = []  # per packet: (member, run index)
         self.runs = _Runs(strict=False)
         self.directions: dict[int, bytes] = {}  # run index -> packed int8 directions
 
     def add(self, op: _Opened, lim: Limits) -> bool:
         """Take ``op`` when its ``edges`` entries have a valid packet's lengths."""
         items = op.p.edges
-        if type(items) is not list or not 1 <= len(items) <= len(_WHEEL):
+        if type(items) is not list or not 1 <= len(items) <= self.most:
             return False
-        entries: list[tuple[Wheel, int]] = []
+        entries: list[tuple[Any, int]] = []
+        members: list[Any] = []
         for item in items:
             entry = self._add_entry(item, lim)
-            if entry is None or (entries and entries[0][0] is entry[0]):
+            if entry is None or entry[0] in members:
                 self._drop_runs(len(entries) + (entry is not None))
                 return False
             entries.append(entry)
+            members.append(entry[0])
         self.opened.append(op)
         self.entries.append(entries)
         return True
 
-    def _add_entry(self, item: EdgesEntry, lim: Limits) -> tuple[Wheel, int] | None:
-        """Add one wheel entry's run; None (nothing added) when the entry is not valid."""
-        wheel = _WHEEL.get(item.wheel)
+    def _add_entry(self, item: Any, lim: Limits) -> tuple[Any, int] | None:
+        """Add one entry's run; None (nothing added) when the entry is not valid."""
+        member = self.by_number.get(getattr(item, self.key))
         n = _sample_count(item.stamp_ns, lim)
-        if wheel is None or not n:
+        if member is None or not n:
             return None
         direction = item.direction if isinstance(item.direction, bytes) else None  # or UNSET
         if direction is not None and len(direction) != n:
@@ -383,7 +362,7 @@ class _EdgesGroup:
         run = self.runs.add(item.stamp_ns, n)
         if direction is not None:
             self.directions[run] = direction
-        return wheel, run
+        return member, run
 
     def _drop_runs(self, count: int) -> None:
         """Take back the last ``count`` runs (of a packet that turned out not valid)."""
@@ -414,14 +393,17 @@ class _EdgesGroup:
             return
         t, starts, ends, first_ns, last_ns, good = self.runs.check(opts.limits)
         directions = self._direction_views()
+        build, named = self.layout.build, self.named
         for op, entries in zip(self.opened, self.entries, strict=True):
             ms: list[Measurement] = []
             first, last = _NO_FIRST_NS, _NO_LAST_NS
-            for wheel, r in entries:
+            for member, r in entries:
                 if not good[r] or r not in directions:
                     out[op.index] = op.alone(opts)
                     break
-                ms.append(_new_edges(wheel, t[starts[r] : ends[r]], directions[r]))
+                ms.append(
+                    build(**named[member], stamp_ns=t[starts[r] : ends[r]], direction=directions[r])
+                )
                 if first_ns[r] < first:
                     first = first_ns[r]
                 if last_ns[r] > last:
@@ -430,29 +412,25 @@ class _EdgesGroup:
                 out[op.index] = op.packet(tuple(ms), first, last, opts)
 
 
-def _group(op: _Opened, groups: _Groups) -> _SampledGroup | _EdgesGroup:
-    """The batch check ``op`` (an IMU or wheels packet) belongs to."""
-    if op.stream is _IMU:
-        return groups.imu
-    return groups.wheels[op.p.mode]
-
-
 class _Groups:
-    """One burst's batch checks: IMU, and wheels by mode."""
+    """One burst's batch checks, one group per layout met."""
 
-    __slots__ = ("imu", "wheels")
+    __slots__ = ("by_layout",)
 
     def __init__(self) -> None:
-        self.imu = _ImuGroup()
-        self.wheels: dict[str, _SampledGroup | _EdgesGroup] = {
-            "edges": _EdgesGroup(),
-            "speeds": _SpeedsGroup(),
-        }
+        self.by_layout: dict[int, _SampledGroup | _EdgesGroup] = {}
+
+    def of(self, layout: Layout) -> _SampledGroup | _EdgesGroup:
+        """The group checking ``layout``'s packets."""
+        group = self.by_layout.get(id(layout))
+        if group is None:
+            group = _SampledGroup(layout) if isinstance(layout, Sampled) else _EdgesGroup(layout)
+            self.by_layout[id(layout)] = group
+        return group
 
     def finish(self, out: list[BurstItem | None], opts: _Options) -> None:
         """Check every group and put each packet's result at its index in ``out``."""
-        self.imu.finish(out, opts)
-        for group in self.wheels.values():
+        for group in self.by_layout.values():
             group.finish(out, opts)
 
 
@@ -462,38 +440,21 @@ class _Groups:
 MIN_BATCHED = 8
 
 
-def _gnss_packet(vehicle_id: str, p: GnssPacket, lim: Limits) -> Packet | None:
-    """The packet of a GNSS fix within its limits; None: the codec's rules decide."""
-    sample = _gnss_within(
-        p.stamp_ns,
-        p.vel_enu_mps,
-        p.heading_rad,
-        p.pitch_rad,
-        p.roll_rad,
-        p.lat_deg,
-        p.lon_deg,
-        p.height_m,
-        _GNSS_FIX.get(p.fix),
-        p.vel_std_mps,
-        lim,
-    )
-    if sample is None:
-        return None
-    t = sample.stamp_ns
-    until_ns = _until(p)
-    if until_ns is not None and not t <= until_ns <= t + lim.max_until_ahead_ns:
-        return None
-    return _new_packet(vehicle_id, _GNSS, p.seq, SCHEMA_VERSION, (sample,), t, t, until_ns)
-
-
 def _heartbeat(op: _Opened, lim: Limits) -> BurstItem | None:
-    """The wheels heartbeat of a packet with no edges entry (no edge on either wheel up to
-    ``until_ns``); None when its ``until_ns`` is absent or out of range."""
+    """The heartbeat of an edges packet without entries (no edge up to ``until_ns``); None
+    when its ``until_ns`` is absent or out of range."""
     until_ns = _until(op.p)
     if until_ns is None or not lim.min_stamp_ns <= until_ns <= lim.max_stamp_ns:
         return None
-    return _new_packet(
-        op.vehicle_id, _WHEELS, op.p.seq, SCHEMA_VERSION, (), until_ns, until_ns, until_ns
+    return new_packet(
+        vehicle_id=op.vehicle_id,
+        stream=op.stream,
+        seq=op.p.seq,
+        schema_version=SCHEMA_VERSION,
+        measurements=(),
+        first_stamp_ns=until_ns,
+        last_stamp_ns=until_ns,
+        until_ns=until_ns,
     )
 
 
@@ -504,6 +465,12 @@ def _stream_of(key: str, prefix: str) -> tuple[str, Stream] | None:
     except ValueError:
         return None
     return None if stream is None else (vehicle_id, stream)
+
+
+def _single(op: _Opened, check: Callable[[Any, Limits], Body | None], opts: _Options) -> BurstItem:
+    """The packet of a stream checked one struct at a time (``StreamSpec.single``)."""
+    body = check(op.p, opts.limits)
+    return op.alone(opts) if body is None else op.packet(*body, opts)
 
 
 def decode_burst(
@@ -528,12 +495,12 @@ def decode_burst(
     list of Packet or DecodeError
     """
     opts = _Options(prefix, max_payload_bytes, limits)
-    if len(received) < MIN_BATCHED or not _LITTLE_ENDIAN:  # big-endian: plain Python
+    if len(received) < MIN_BATCHED or not LITTLE_ENDIAN:  # big-endian: plain Python
         return [opts.alone(key, payload) for key, payload in received]
     out: list[BurstItem | None] = [None] * len(received)
     groups = _Groups()
     streams: dict[str, tuple[str, Stream] | None] = {}
-    typed = _DECODER.decode
+    typed, specs = _DECODER.decode, _SPECS
     for i, item in enumerate(received):
         key, payload = item
         try:
@@ -549,17 +516,20 @@ def decode_burst(
             out[i] = opts.alone(key, payload)  # its reason, or valid beyond the usual shape
             continue
         vehicle_id, stream = vs
-        if p.seq >= _SEQ_END or _STREAM_OF[type(p)] is not stream:
+        if p.seq >= _SEQ_END or _WIRE_STREAM[type(p)] is not stream:
             out[i] = opts.alone(key, payload)
             continue
-        if stream is _GNSS:  # nothing to batch: checked on its own
-            out[i] = _gnss_packet(vehicle_id, p, limits) or opts.alone(key, payload)
-            continue
+        spec = specs[stream]
         op = _Opened(i, item, vehicle_id, stream, p)
-        if stream is _WHEELS and p.mode == "edges" and p.edges == []:
-            out[i] = _heartbeat(op, limits) or op.alone(opts)
+        if spec.single is not None:  # nothing to batch: checked on its own
+            out[i] = _single(op, spec.single, opts)
             continue
-        if not _group(op, groups).add(op, limits):
+        layout = spec.batch(p)
+        if layout is None:
+            out[i] = op.alone(opts)
+        elif isinstance(layout, Edges) and p.edges == []:
+            out[i] = _heartbeat(op, limits) or op.alone(opts)
+        elif not groups.of(layout).add(op, limits):
             out[i] = op.alone(opts)
     groups.finish(out, opts)
     items = [item for item in out if item is not None]

@@ -5,6 +5,7 @@ Every vehicle publishes under ``<prefix>/<vehicle_id>/``::
     <prefix>/<vehicle_id>/sensors/gnss     one GNSS epoch per packet
     <prefix>/<vehicle_id>/sensors/imu      a batch of IMU samples
     <prefix>/<vehicle_id>/sensors/wheels   a batch of wheel edges or wheel speeds
+    <prefix>/<vehicle_id>/sensors/<stream> any other stream of :class:`Stream`
     <prefix>/<vehicle_id>/config           optional: the vehicle's configuration (JSON)
 
 ``prefix`` is ``ZenohSettings.key_prefix`` (default ``fleet``) and may itself contain ``/``.
@@ -35,11 +36,16 @@ _VEHICLE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
 
 
 class Stream(StrEnum):
-    """A vehicle's sensor stream; the last chunk of its key expression."""
+    """A vehicle's sensor stream; the last chunk of its key expression and the ``sensor`` of
+    its payloads. What each carries is declared in :mod:`server.protocol.streams`."""
 
     GNSS = "gnss"
     IMU = "imu"
     WHEELS = "wheels"
+    ODOMETER = "odometer"
+    SPROCKETS = "sprockets"
+    STEERING = "steering"
+    WHEEL_SPEEDS4 = "wheel_speeds4"
 
 
 def is_valid_vehicle_id(vehicle_id: str) -> bool:

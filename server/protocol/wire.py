@@ -2,11 +2,13 @@
 
 :func:`server.protocol.codec.decode` unpacks a payload into a dict with msgpack and then checks
 each field's presence and type in Python, a few dozen operations per packet. The structs here
-state the same field names and msgpack types (``docs/protocol.md`` §3–5) once, and
+state the same field names and msgpack types (``docs/protocol.md`` §3–5), and
 :data:`DECODER` checks them while it decodes: a payload that decodes is a map with exactly
 these fields, each of its type, ``v`` the schema version and ``seq`` not negative. What is left
 to check in Python is values (limits, stamps, lengths of the packed arrays, ``seq < 2**63``):
-:mod:`server.protocol.burst` does that in batches.
+:mod:`server.protocol.burst` does that in batches. The GNSS struct is derived from
+:class:`~estimator.types.GnssSample`, whose fields a GNSS payload carries by name; which struct
+belongs to which stream is declared in :mod:`server.protocol.streams`.
 
 Anything else raises ``msgspec.ValidationError`` or ``msgspec.DecodeError``, and the caller
 decodes that packet with the codec, whose rules give the refusal and its reason (or accept it,
@@ -27,16 +29,29 @@ Two differences from a plain dict decode are on purpose:
 
 from __future__ import annotations
 
-import math
+import dataclasses
+import typing
 from typing import Annotated, Literal
 
 import msgspec
 from msgspec import UNSET, UnsetType
 
-from estimator.types import GnssFix
-from server.protocol.codec import SCHEMA_VERSION
+from estimator.types import GnssSample
+from server.protocol.base import SCHEMA_VERSION
 
-__all__ = ["DECODER", "UNSET", "EdgesEntry", "GnssPacket", "ImuPacket", "WheelsPacket"]
+__all__ = [
+    "DECODER",
+    "UNSET",
+    "EdgesEntry",
+    "GnssPacket",
+    "ImuPacket",
+    "OdometerPacket",
+    "SideEntry",
+    "SprocketsPacket",
+    "SteeringPacket",
+    "WheelSpeeds4Packet",
+    "WheelsPacket",
+]
 
 _Seq = Annotated[int, msgspec.Meta(ge=0)]  # the upper bound (2**63) is checked by the caller
 _Version = Literal[SCHEMA_VERSION]  # type: ignore[valid-type]
@@ -49,20 +64,25 @@ class _Packet(msgspec.Struct, tag_field="sensor", forbid_unknown_fields=True):
     seq: _Seq
 
 
-class GnssPacket(_Packet, tag="gnss"):
-    """One GNSS fix; numbers may come as msgpack ints (decoded to float, as the codec does)."""
+def _gnss_fields() -> list[tuple[str, object, object]]:
+    """``GnssSample``'s fields as struct fields: name, type, default (absent: the sample's)."""
+    hints = typing.get_type_hints(GnssSample)
+    out: list[tuple[str, object, object]] = []
+    for f in dataclasses.fields(GnssSample):
+        default = msgspec.NODEFAULT if f.default is dataclasses.MISSING else f.default
+        out.append((f.name, hints[f.name], default))
+    return [*out, ("until_ns", int | UnsetType, UNSET)]
 
-    stamp_ns: int
-    vel_enu_mps: tuple[float, float, float]
-    heading_rad: float
-    pitch_rad: float
-    roll_rad: float
-    lat_deg: float
-    lon_deg: float
-    height_m: float
-    fix: int = int(GnssFix.RTK_FIXED)  # absent: RTK fixed, as the codec reads it
-    vel_std_mps: float = math.nan  # absent: not known
-    until_ns: int | UnsetType = UNSET
+
+#: One GNSS epoch: the fields of ``GnssSample`` (``fix`` and ``vel_std_mps`` optional, as there;
+#: numbers may come as msgpack ints, decoded to float as the codec does).
+GnssPacket = msgspec.defstruct(
+    "GnssPacket",
+    _gnss_fields(),
+    bases=(_Packet,),
+    tag="gnss",
+    module=__name__,
+)
 
 
 class ImuPacket(_Packet, tag="imu"):
@@ -92,5 +112,52 @@ class WheelsPacket(_Packet, tag="wheels"):
     until_ns: int | UnsetType = UNSET
 
 
+class OdometerPacket(_Packet, tag="odometer"):
+    """The transmission odometer's edge run (empty: a heartbeat)."""
+
+    stamp_ns: bytes
+    direction: bytes | UnsetType = UNSET
+    until_ns: int | UnsetType = UNSET
+
+
+class SideEntry(msgspec.Struct, forbid_unknown_fields=True):
+    """One track's edges in a sprockets packet."""
+
+    side: int
+    stamp_ns: bytes
+    direction: bytes | UnsetType = UNSET
+
+
+class SprocketsPacket(_Packet, tag="sprockets"):
+    """Sprocket edges per track (no entry: a heartbeat)."""
+
+    edges: list[SideEntry]
+    until_ns: int | UnsetType = UNSET
+
+
+class SteeringPacket(_Packet, tag="steering"):
+    """Steering-wheel angles: packed int64 stamps and ``(n,)`` float64 angles."""
+
+    stamp_ns: bytes
+    angle_rad: bytes
+    until_ns: int | UnsetType = UNSET
+
+
+class WheelSpeeds4Packet(_Packet, tag="wheel_speeds4"):
+    """Four wheel speeds: packed int64 stamps and ``(n, 4)`` float64 rows."""
+
+    stamp_ns: bytes
+    omega_radps: bytes
+    until_ns: int | UnsetType = UNSET
+
+
 #: Decodes a payload into the packet struct of its ``sensor``.
-DECODER = msgspec.msgpack.Decoder(GnssPacket | ImuPacket | WheelsPacket)
+DECODER = msgspec.msgpack.Decoder(
+    GnssPacket
+    | ImuPacket
+    | WheelsPacket
+    | OdometerPacket
+    | SprocketsPacket
+    | SteeringPacket
+    | WheelSpeeds4Packet
+)

@@ -4,7 +4,10 @@ Two implementations: :mod:`server.storage.sqlite` (embedded default, WAL) and
 :mod:`server.storage.postgres` (selected by URL). Both are used from exactly one writer thread for
 writes (:class:`server.storage.writer.StoreWriter`) and from any thread for reads.
 
-Estimate rows travel as numpy structured arrays of ``estimator.types.ESTIMATE_DTYPE``.
+Estimate rows travel as numpy structured arrays of their estimator's dtype
+(``EstimatorSpec.dtype``), written as :class:`estimator.types.EstimateBatch` es (one estimator's
+rows of several vehicles) and read per estimator by name. A store serves the specs it was built
+with (default: the whole catalog), each in tables of its own made by a versioned migration.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+
+from estimator.types import EstimateBatch
 
 __all__ = ["Anchor", "StorageDataError", "StorageError", "Store", "TokenRecord", "VehicleRecord"]
 
@@ -82,29 +87,43 @@ class Store(Protocol):
     def list_vehicles(self) -> list[VehicleRecord]: ...
 
     def delete_vehicle(self, vehicle_id: str) -> bool:
-        """Delete the vehicle with all its estimates, counters and its anchor; False if it did
-        not exist."""
+        """Delete the vehicle with the estimates of every estimator, its counters and its
+        anchor; False if it did not exist."""
 
     # estimates
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        """Insert rows for several vehicles in one transaction; return rows written.
+    def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
+        """Insert the rows of one or more estimators in one transaction; return rows written.
 
-        Rows whose ``(vehicle_id, stamp_ns)`` already exist are ignored (idempotent replays).
+        Rows whose ``(vehicle_id, stamp_ns)`` already exist in their estimator's table are
+        ignored (idempotent replays), so are rows of unregistered vehicles. A plain
+        ``[(vehicle_id, rows), …]`` is taken as rows of ``"mdsf"`` (callers of the single
+        estimator era).
         """
 
     def query_series(
-        self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
+        self,
+        vehicle_id: str,
+        start_ns: int,
+        end_ns: int,
+        fields: Sequence[str] | None = None,
+        estimator: str = "mdsf",
     ) -> np.ndarray:
-        """Rows with ``start_ns <= stamp_ns < end_ns`` ordered by time (``stamp_ns`` always in)."""
+        """Rows with ``start_ns <= stamp_ns < end_ns`` ordered by time (``stamp_ns`` always in),
+        of the estimator's dtype or the subset ``fields``; ``ValueError`` for an estimator or
+        field the store does not have."""
 
-    def latest(self, vehicle_id: str) -> np.ndarray | None:
+    def latest(self, vehicle_id: str, estimator: str = "mdsf") -> np.ndarray | None:
         """The newest row (a 0-d structured array) or None."""
 
-    def latest_all(self) -> dict[str, np.ndarray]:
+    def latest_all(self, estimator: str = "mdsf") -> dict[str, np.ndarray]:
         """Newest row of every vehicle."""
 
+    def estimators_with_rows(self, vehicle_id: str) -> list[str]:
+        """The estimators (in the store's spec order) with stored rows of ``vehicle_id``."""
+
     def delete_older_than(self, stamp_ns: int) -> int:
-        """Retention: delete estimates older than ``stamp_ns``; return rows deleted."""
+        """Retention: delete estimates of every estimator older than ``stamp_ns``; return rows
+        deleted."""
 
     # ingest counters
     def write_counters(self, counters: dict[str, dict[str, int]], now_ns: int) -> None:

@@ -4,9 +4,10 @@ Each :class:`Migration` has a version number, a description and the steps for SQ
 PostgreSQL: SQL statements, or a Python function given the same ``execute`` (for data a
 statement cannot convert, such as packing SQLite rows in version 6). Applied versions are
 recorded in ``schema_version``. A migration is frozen once released: later schema changes are
-new migrations, never edits (tests check that the PostgreSQL ``estimates`` columns still match
-``ESTIMATE_FIELDS`` and that :data:`SQLITE_PACKED_FIELDS` is still ``ESTIMATE_DTYPE``'s layout,
-so a change there forces a new one).
+new migrations, never edits. The field lists a migration makes tables from are frozen in it
+(:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`); tests compare them with
+today's specs, and the stores refuse a spec that no longer matches its recorded table, so a
+spec change forces a new migration.
 
 Applying is idempotent and safe when several processes start at once:
 
@@ -15,16 +16,24 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 9):
+Schema (version 11):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
-    ``jsonb``), ``created_ns``, ``updated_ns``.
+    ``jsonb``), ``created_ns``, ``updated_ns``. Since version 11 every config names its
+    ``kind`` and has that kind's sections (:mod:`estimator.config`).
+``estimator_tables`` (version 10)
+    ``estimator`` (spec name) -> ``table_name``, ``fields`` (JSON ``[[name, kind], …]``): the
+    tables of each estimator's rows and the field list they were made from; a store refuses a
+    spec whose fields differ. MDSF's are ``estimates`` below; every other estimator's are made
+    by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
+    ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``).
 ``estimates``
-    Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range read.
-    PostgreSQL: ``vkey`` + every ``ESTIMATE_FIELDS`` column, all ``NOT NULL`` (NaN is stored
+    MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
+    read.
+    PostgreSQL: ``vkey`` + a column per field of MDSF's spec, all ``NOT NULL`` (NaN is stored
     natively). SQLite (since version 6): ``vkey``, ``stamp_ns`` and ``packed``, the whole row as
-    its ``ESTIMATE_DTYPE`` bytes (layout :data:`SQLITE_PACKED_FIELDS`, little-endian), in a
+    its bytes (layout :data:`SQLITE_PACKED_FIELDS`, little-endian), in a
     clustered ``WITHOUT ROWID`` table; versions 1-5 had every field as a column (NaN as NULL)
     and, from version 3, ``packed`` beside them.
 ``estimates_recent`` (SQLite, version 7)
@@ -54,6 +63,8 @@ Schema (version 9):
 
 from __future__ import annotations
 
+import json
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -61,13 +72,18 @@ from typing import Any
 
 import numpy as np
 
+from estimator.config import VehicleKind, upgrade_legacy_config
+
 __all__ = [
     "ADVISORY_LOCK_KEY",
     "MIGRATIONS",
+    "REFERENCE_SPEED_FIELDS_V10",
     "SQLITE_PACKED_FIELDS",
     "Execute",
     "Migration",
     "Step",
+    "estimator_table_steps",
+    "fields_json",
     "latest_version",
 ]
 
@@ -293,9 +309,10 @@ _V5_POSTGRESQL = (
     "CREATE INDEX raw_packets_vehicle_received ON raw_packets (vehicle_id, received_ns)",
 )
 
-#: The field layout of SQLite's packed rows from version 6 on: ``(name, numpy kind)``, packed
-#: without padding, little-endian. Frozen with the migration: when ``ESTIMATE_FIELDS`` changes, a
-#: new migration repacks the rows (a test compares the two).
+#: The field layout of MDSF's rows in its tables (SQLite: packed from version 6 on, without
+#: padding, little-endian; PostgreSQL: the columns of version 1), ``(name, numpy kind)``. Frozen
+#: with the migrations: when MDSF's spec changes, a new migration converts the rows (a test
+#: compares the two).
 SQLITE_PACKED_FIELDS: tuple[tuple[str, str], ...] = (
     ("stamp_ns", "i8"),
     *(
@@ -434,6 +451,137 @@ _V9_POSTGRESQL: tuple[Step, ...] = (
     """,
 )
 
+# --- one set of tables per estimator -------------------------------------------------------
+# An estimator's rows live in tables of their own, named after it, laid out as MDSF's have been
+# since versions 6-8: the SQLite write path (staging table, horizon, paced moves) and the
+# PostgreSQL COPY path then serve every estimator unchanged. ``estimator_tables`` records which
+# field list each table was made from; the stores refuse a spec whose fields differ (its rows
+# would not fit), until a migration converts the table.
+
+_IDENTIFIER = re.compile(r"[a-z][a-z0-9_]*")
+_SQL_TYPE = {
+    "sqlite": {"f8": "REAL", "i8": "INTEGER", "i4": "INTEGER"},
+    "postgresql": {"f8": "double precision", "i8": "bigint", "i4": "integer"},
+}
+
+
+def fields_json(fields: tuple[tuple[str, str], ...]) -> str:
+    """How ``estimator_tables.fields`` records a field list: ``[[name, numpy kind], …]``."""
+    return json.dumps([list(f) for f in fields], separators=(",", ":"))
+
+
+def estimator_table_steps(
+    estimator: str, table: str, fields: tuple[tuple[str, str], ...], dialect: str
+) -> tuple[Step, ...]:
+    """Create the tables of ``estimator``'s rows and record them in ``estimator_tables``.
+
+    ``fields`` is the spec's ``(name, kind)`` list *frozen in the migration* (a later spec
+    change is a later migration). SQLite: ``table (vkey, stamp_ns, packed)`` (the row's bytes,
+    little-endian, no padding), ``table_recent`` (staging, keyed ``(stamp_ns, vkey)``) and
+    ``table_horizon`` (the bound on the stamps in ``table``); PostgreSQL: ``table (vkey,
+    <fields>)``, every column ``NOT NULL``. Both keyed ``(vkey, stamp_ns)``.
+    """
+    if fields[0] != ("stamp_ns", "i8"):
+        raise ValueError(f"{estimator}: the first field must be stamp_ns (i8)")
+    for name in (estimator, table, *(n for n, _ in fields)):
+        if not _IDENTIFIER.fullmatch(name):
+            raise ValueError(f"{estimator}: {name!r} is not a plain lower-case SQL identifier")
+    record = (
+        "INSERT INTO estimator_tables (estimator, table_name, fields) "
+        f"VALUES ('{estimator}', '{table}', '{fields_json(fields)}')"
+    )
+    if dialect == "postgresql":
+        columns = ",\n".join(f"{name} {_SQL_TYPE[dialect][kind]} NOT NULL" for name, kind in fields)
+        return (
+            f"CREATE TABLE {table} (\n"
+            "vkey integer NOT NULL REFERENCES vehicles (vkey) ON DELETE CASCADE,\n"
+            f"{columns},\nPRIMARY KEY (vkey, stamp_ns))",
+            record,
+        )
+    return (
+        f"CREATE TABLE {table} ("
+        " vkey INTEGER NOT NULL REFERENCES vehicles (vkey) ON DELETE CASCADE,"
+        " stamp_ns INTEGER NOT NULL, packed BLOB NOT NULL,"
+        " PRIMARY KEY (vkey, stamp_ns)) WITHOUT ROWID",
+        f"CREATE TABLE {table}_recent ("
+        " stamp_ns INTEGER NOT NULL, vkey INTEGER NOT NULL, packed BLOB NOT NULL,"
+        " PRIMARY KEY (stamp_ns, vkey)) WITHOUT ROWID",
+        f"CREATE TABLE {table}_horizon ("
+        " id INTEGER PRIMARY KEY CHECK (id = 0), newest_ns INTEGER NOT NULL)",
+        f"INSERT INTO {table}_horizon (id, newest_ns) VALUES (0, -9223372036854775808)",
+        record,
+    )
+
+
+_ESTIMATOR_TABLES = {
+    "sqlite": (
+        "CREATE TABLE estimator_tables ("
+        " estimator TEXT PRIMARY KEY, table_name TEXT NOT NULL UNIQUE, fields TEXT NOT NULL)"
+    ),
+    "postgresql": (
+        "CREATE TABLE estimator_tables ("
+        " estimator text PRIMARY KEY, table_name text NOT NULL UNIQUE, fields text NOT NULL)"
+    ),
+}
+
+#: The reference-speed row as version 10 made its table (``REFERENCE_SPEED_SPEC``'s fields).
+REFERENCE_SPEED_FIELDS_V10: tuple[tuple[str, str], ...] = (
+    ("stamp_ns", "i8"),
+    ("speed_mps", "f8"),
+    ("speed_std_mps", "f8"),
+    ("rim_mps", "f8"),
+    ("accel_mps2", "f8"),
+    ("accel_bias_mps2", "f8"),
+    ("flags", "i4"),
+)
+
+
+def _v10(dialect: str) -> tuple[Step, ...]:
+    """The table registry; MDSF's existing tables (``estimates``, the layout of versions 1 and
+    6, rows untouched) recorded as its own; the reference speed's tables created."""
+    return (
+        _ESTIMATOR_TABLES[dialect],
+        "INSERT INTO estimator_tables (estimator, table_name, fields) "
+        f"VALUES ('mdsf', 'estimates', '{fields_json(SQLITE_PACKED_FIELDS)}')",
+        *estimator_table_steps(
+            "reference_speed", "estimates_reference_speed", REFERENCE_SPEED_FIELDS_V10, dialect
+        ),
+    )
+
+
+
+def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
+    """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
+
+    Configs were written without ``kind`` (meaning a rear-drive vehicle) or, for every kind,
+    with the rear-drive sections; :func:`upgrade_legacy_config` maps those. Values are kept
+    as they are (a config out of range is still refused when read, as before).
+    """
+
+    def step(execute: Execute) -> None:
+        for vkey, text in execute(read_sql, ()):
+            old = json.loads(text)
+            if not isinstance(old, dict):
+                continue
+            new = upgrade_legacy_config({"kind": VehicleKind.WHEELED_REAR_DRIVE.value, **old})
+            if new != old:
+                execute(write_sql, (json.dumps(new), vkey))
+
+    return step
+
+
+_V11_SQLITE: tuple[Step, ...] = (
+    _v11_configs_by_kind(
+        "SELECT vkey, config FROM vehicles", "UPDATE vehicles SET config = ? WHERE vkey = ?"
+    ),
+)
+_V11_POSTGRESQL: tuple[Step, ...] = (
+    _v11_configs_by_kind(
+        "SELECT vkey, config::text FROM vehicles",
+        "UPDATE vehicles SET config = %s::jsonb WHERE vkey = %s",
+    ),
+)
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -444,6 +592,13 @@ MIGRATIONS: tuple[Migration, ...] = (
     Migration(7, "time-ordered table of new estimate rows (SQLite)", _V7_SQLITE, ()),
     Migration(8, "bound on the stamps of final estimate rows (SQLite)", _V8_SQLITE, ()),
     Migration(9, "ENU anchors of the vehicles", _V9_SQLITE, _V9_POSTGRESQL),
+    Migration(
+        10,
+        "a table set per estimator, recorded with its fields",
+        _v10("sqlite"),
+        _v10("postgresql"),
+    ),
+    Migration(11, "vehicle configs by kind", _V11_SQLITE, _V11_POSTGRESQL),
 )
 
 _VERSION_TABLE = {

@@ -18,21 +18,24 @@ from __future__ import annotations
 import contextlib
 import threading
 import weakref
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import psycopg
 from psycopg.types.json import Jsonb
 
-from estimator.types import concat_estimates
+from estimator.spec import EstimatorSpec
+from estimator.types import EstimateBatch
 from server.storage import migrations
 from server.storage._columns import (
-    FIELD_KIND,
-    FIELD_NAMES,
-    check_rows,
+    DEFAULT_ESTIMATOR,
+    as_batches,
+    catalog_specs,
     fields_dtype,
+    resolve_tables,
     select_fields,
+    spec_fields,
 )
 from server.storage.base import (
     Anchor,
@@ -59,8 +62,15 @@ def _copy_dtype(columns: Sequence[tuple[str, str]]) -> np.dtype:
     return np.dtype(parts)
 
 
-_STAGE_COLUMNS = (("vkey", "i4"), *((n, FIELD_KIND[n]) for n in FIELD_NAMES))
-_STAGE_DTYPE = _copy_dtype(_STAGE_COLUMNS)
+class _PgTable:
+    """One estimator's table (``vkey`` and the spec's fields as columns, in field order), its
+    per-connection temporary staging table and its binary COPY row layout."""
+
+    def __init__(self, spec: EstimatorSpec, table: str) -> None:
+        self.spec = spec
+        self.table = table
+        self.stage = f"{table}_stage"
+        self.copy_dtype = _copy_dtype((("vkey", "i4"), *spec_fields(spec)))
 
 
 def _wrap(exc: psycopg.Error) -> StorageError:
@@ -143,9 +153,22 @@ class PostgresStore:
 
     dialect = "postgresql"
 
-    def __init__(self, url: str, *, max_idle: int = 8, connect_timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        url: str,
+        *,
+        max_idle: int = 8,
+        connect_timeout_s: float = 5.0,
+        specs: Iterable[EstimatorSpec] | None = None,
+    ) -> None:
         self._pool = _Pool(url, max_idle, connect_timeout_s)
+        # connections holding the staging tables of every served estimator
         self._staged: weakref.WeakSet[psycopg.Connection[Any]] = weakref.WeakSet()
+        self._specs = tuple(catalog_specs() if specs is None else specs)
+        # the served specs' tables (read from the database on first use, again after migrate)
+        # and every estimator table the database records (deletes reach them all)
+        self._tables: dict[str, _PgTable] | None = None
+        self._all_tables: list[str] = []
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -161,6 +184,8 @@ class PostgresStore:
                 version, _ = migrations.apply_pending(execute, self.dialect)
             except RuntimeError as exc:
                 raise StorageError(str(exc)) from exc
+        self._tables = None
+        self._load_tables()  # refuses a spec its table no longer fits, at start
         return version
 
     def close(self) -> None:
@@ -241,11 +266,43 @@ class PostgresStore:
             conn.execute("DELETE FROM ingest_counters WHERE vehicle_id = %s", (vehicle_id,))
             conn.execute("DELETE FROM raw_packets WHERE vehicle_id = %s", (vehicle_id,))
             conn.execute("DELETE FROM vehicle_anchors WHERE vehicle_id = %s", (vehicle_id,))
-            # estimates go by ON DELETE CASCADE
+            # the estimates of every estimator go by ON DELETE CASCADE
             cur = conn.execute("DELETE FROM vehicles WHERE vehicle_id = %s", (vehicle_id,))
             return cur.rowcount > 0
 
     # ------------------------------------------------------------------ estimates
+
+    def _load_tables(self) -> dict[str, _PgTable]:
+        """The served specs' tables (read once from ``estimator_tables``, checked)."""
+        if self._tables is None:
+            try:
+                records = self._one_row_query(
+                    "SELECT estimator, table_name, fields FROM estimator_tables", ()
+                )
+            except StorageError as exc:
+                raise StorageError(f"{exc} (is the database migrated?)") from exc
+            tables, every = resolve_tables(records, self._specs)
+            self._all_tables = every
+            self._tables = {s.name: _PgTable(s, tables[s.name]) for s in self._specs}
+        return self._tables
+
+    def _served(self, estimator: str) -> _PgTable:
+        """The table of ``estimator`` (``ValueError`` when this store does not serve it)."""
+        t = self._load_tables().get(estimator)
+        if t is None:
+            raise ValueError(
+                f"unknown estimator {estimator!r}; known: {sorted(self._tables or ())}"
+            )
+        return t
+
+    def _tables_of(self, batch: EstimateBatch) -> _PgTable:
+        t = self._load_tables().get(batch.estimator)
+        if t is None or t.spec.dtype != batch.spec.dtype:
+            raise StorageDataError(
+                f"postgresql: rows of estimator {batch.estimator!r} do not fit a table of this "
+                "store"
+            )
+        return t
 
     @staticmethod
     def _vkeys(conn: psycopg.Connection[Any], vehicle_ids: Sequence[str]) -> dict[str, int]:
@@ -257,48 +314,56 @@ class PostgresStore:
         ).fetchall()
         return {str(v): int(k) for v, k in rows}
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        """Insert rows in one transaction; rows of unregistered vehicles are not written.
-
-        Returns the number of rows inserted (duplicates and unknown vehicles excluded).
-        """
-        checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
-        if not checked:
+    def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
+        """Insert the rows of one or more estimators in one transaction; rows of unregistered
+        vehicles are not written. Returns the rows inserted (duplicates and unknown vehicles
+        excluded)."""
+        parts = [(self._tables_of(b), b) for b in as_batches(batches)]
+        if not parts:
             return 0
         with self._pool.connection() as conn:
             if conn not in self._staged:
                 # Outside the write transaction, so a rolled-back write cannot undo it.
-                conn.execute(
-                    "CREATE TEMPORARY TABLE IF NOT EXISTS estimates_stage "
-                    "(LIKE estimates) ON COMMIT DELETE ROWS"
-                )
+                for t in self._load_tables().values():
+                    conn.execute(
+                        f"CREATE TEMPORARY TABLE IF NOT EXISTS {t.stage} "
+                        f"(LIKE {t.table}) ON COMMIT DELETE ROWS"
+                    )
                 self._staged.add(conn)
             with conn.transaction():
-                keys = self._vkeys(conn, sorted({vid for vid, _ in checked}))
-                known = [(keys[vid], rows) for vid, rows in checked if vid in keys]
-                if not known:
-                    return 0
-                payload = _copy_in_payload(known)
-                with conn.cursor() as cur:
-                    with cur.copy("COPY estimates_stage FROM STDIN (FORMAT BINARY)") as cp:
-                        cp.write(payload)
-                    cur.execute(
-                        "INSERT INTO estimates SELECT * FROM estimates_stage "
-                        "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
-                    )
-                    return max(cur.rowcount, 0)
+                keys = self._vkeys(conn, sorted({vid for _, b in parts for vid in b.ids}))
+                written = 0
+                for t, batch in parts:
+                    payload = _copy_in_payload(t, batch, keys)
+                    if payload is None:
+                        continue
+                    with conn.cursor() as cur:
+                        with cur.copy(f"COPY {t.stage} FROM STDIN (FORMAT BINARY)") as cp:
+                            cp.write(payload)
+                        cur.execute(
+                            f"INSERT INTO {t.table} SELECT * FROM {t.stage} "
+                            "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
+                        )
+                        written += max(cur.rowcount, 0)
+                return written
 
     def query_series(
-        self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
+        self,
+        vehicle_id: str,
+        start_ns: int,
+        end_ns: int,
+        fields: Sequence[str] | None = None,
+        estimator: str = DEFAULT_ESTIMATOR,
     ) -> np.ndarray:
-        names = select_fields(fields)
-        wire = _copy_dtype([(n, FIELD_KIND[n]) for n in names])
+        t = self._served(estimator)
+        names = select_fields(t.spec, fields)
+        wire = _copy_dtype([(n, t.spec.field(n).kind) for n in names])
         chunks = bytearray()
         with (
             self._pool.connection() as conn,
             conn.cursor() as cur,
             cur.copy(
-                f"COPY (SELECT {', '.join(names)} FROM estimates "
+                f"COPY (SELECT {', '.join(names)} FROM {t.table} "
                 "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
                 "AND stamp_ns >= %s AND stamp_ns < %s ORDER BY stamp_ns) "
                 "TO STDOUT (FORMAT BINARY)",
@@ -307,43 +372,62 @@ class PostgresStore:
         ):
             for data in cp:
                 chunks += data
-        return _decode_copy(bytes(chunks), wire, fields_dtype(names))
+        return _decode_copy(bytes(chunks), wire, fields_dtype(t.spec, names))
 
     def _one_row_query(self, sql: str, params: Sequence[Any]) -> list[tuple[Any, ...]]:
         with self._pool.connection() as conn:
             return conn.execute(sql, params).fetchall()
 
-    def latest(self, vehicle_id: str) -> np.ndarray | None:
+    def latest(self, vehicle_id: str, estimator: str = DEFAULT_ESTIMATOR) -> np.ndarray | None:
+        t = self._served(estimator)
         rows = self._one_row_query(
-            f"SELECT {', '.join(FIELD_NAMES)} FROM estimates "
+            f"SELECT {', '.join(t.spec.field_names)} FROM {t.table} "
             "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
             "ORDER BY stamp_ns DESC LIMIT 1",
             (vehicle_id,),
         )
         if not rows:
             return None
-        return np.array(rows, dtype=fields_dtype(FIELD_NAMES)).reshape(())
+        return np.array(rows, dtype=t.spec.dtype).reshape(())
 
-    def latest_all(self) -> dict[str, np.ndarray]:
+    def latest_all(self, estimator: str = DEFAULT_ESTIMATOR) -> dict[str, np.ndarray]:
+        t = self._served(estimator)
         rows = self._one_row_query(
-            f"SELECT v.vehicle_id, {', '.join('e.' + n for n in FIELD_NAMES)} "
-            "FROM vehicles v JOIN estimates e ON e.vkey = v.vkey "
-            "AND e.stamp_ns = (SELECT max(stamp_ns) FROM estimates WHERE vkey = v.vkey)",
+            f"SELECT v.vehicle_id, {', '.join('e.' + n for n in t.spec.field_names)} "
+            f"FROM vehicles v JOIN {t.table} e ON e.vkey = v.vkey "
+            f"AND e.stamp_ns = (SELECT max(stamp_ns) FROM {t.table} WHERE vkey = v.vkey)",
             (),
         )
-        dtype = fields_dtype(FIELD_NAMES)
-        return {r[0]: np.array([tuple(r[1:])], dtype=dtype).reshape(()) for r in rows}
+        return {r[0]: np.array([tuple(r[1:])], dtype=t.spec.dtype).reshape(()) for r in rows}
+
+    def estimators_with_rows(self, vehicle_id: str) -> list[str]:
+        tables = self._load_tables()
+        if not tables:
+            return []
+        exists = " UNION ALL ".join(
+            f"SELECT %s WHERE EXISTS (SELECT 1 FROM {t.table} WHERE vkey = "
+            "(SELECT vkey FROM vehicles WHERE vehicle_id = %s))"
+            for t in tables.values()
+        )
+        params = [p for name in tables for p in (name, vehicle_id)]
+        found = {str(r[0]) for r in self._one_row_query(exists, params)}
+        return [name for name in tables if name in found]
 
     def delete_older_than(self, stamp_ns: int) -> int:
-        """Delete estimates (and raw packets) older than ``stamp_ns``; return estimates deleted."""
+        """Delete the estimates of every estimator (and raw packets) older than ``stamp_ns``;
+        return estimates deleted."""
+        self._load_tables()
         deleted = 0
         with self._pool.connection() as conn, conn.transaction():
-            for (vkey,) in conn.execute("SELECT vkey FROM vehicles").fetchall():
-                # Per vehicle, so each delete is a primary-key range scan.
-                cur = conn.execute(
-                    "DELETE FROM estimates WHERE vkey = %s AND stamp_ns < %s", (vkey, int(stamp_ns))
-                )
-                deleted += max(cur.rowcount, 0)
+            vkeys = conn.execute("SELECT vkey FROM vehicles").fetchall()
+            for table in self._all_tables:
+                for (vkey,) in vkeys:
+                    # Per vehicle, so each delete is a primary-key range scan.
+                    cur = conn.execute(
+                        f"DELETE FROM {table} WHERE vkey = %s AND stamp_ns < %s",
+                        (vkey, int(stamp_ns)),
+                    )
+                    deleted += max(cur.rowcount, 0)
             conn.execute("DELETE FROM raw_packets WHERE received_ns < %s", (int(stamp_ns),))
         return deleted
 
@@ -481,24 +565,28 @@ class PostgresStore:
         return [(int(t), str(k), bytes(p)) for t, k, p in rows]
 
 
-def _copy_in_payload(known: Sequence[tuple[int, np.ndarray]]) -> bytes:
-    """The binary COPY stream of ``estimates`` rows: ``(vkey, rows)`` pairs laid out by numpy.
+def _copy_in_payload(t: _PgTable, batch: EstimateBatch, keys: Mapping[str, int]) -> bytes | None:
+    """The binary COPY stream of ``t``'s rows of the registered vehicles of ``batch`` (None:
+    there are none), laid out by numpy.
 
-    The rows of every vehicle are joined first and each column is then laid out in one
-    assignment: a transaction holds one or two rows of each of hundreds of vehicles, and a
-    column assignment per vehicle cost ~20 numpy calls per vehicle.
+    Each column is laid out in one assignment over the whole batch: a transaction holds one or
+    two rows of each of hundreds of vehicles, and a column assignment per vehicle cost ~20
+    numpy calls per vehicle.
     """
-    rows = concat_estimates([r for _, r in known])
-    buf = np.empty(len(rows), dtype=_STAGE_DTYPE)
-    buf["_nfields"] = len(_STAGE_COLUMNS)
-    for name, kind in _STAGE_COLUMNS:
-        buf[f"_len_{name}"] = _WIDTH[kind]
-    buf["vkey"] = np.repeat(
-        np.fromiter((k for k, _ in known), dtype=np.int64, count=len(known)),
-        np.fromiter((len(r) for _, r in known), dtype=np.int64, count=len(known)),
-    )
-    for name in FIELD_NAMES:
-        buf[name] = rows[name]  # byte-swapped to big-endian by the assignment
+    per_vehicle = np.fromiter((keys.get(v, -1) for v in batch.ids), np.int64, len(batch.ids))
+    vkeys = np.repeat(per_vehicle, batch.counts)
+    rows = batch.rows
+    if (per_vehicle < 0).any():
+        rows, vkeys = rows[vkeys >= 0], vkeys[vkeys >= 0]
+    if not len(rows):
+        return None
+    buf = np.empty(len(rows), dtype=t.copy_dtype)
+    buf["_nfields"] = len(t.spec.fields) + 1
+    buf["_len_vkey"] = 4
+    buf["vkey"] = vkeys
+    for f in t.spec.fields:
+        buf[f"_len_{f.name}"] = _WIDTH[f.kind]
+        buf[f.name] = rows[f.name]  # byte-swapped to big-endian by the assignment
     return _COPY_HEADER + buf.tobytes() + _COPY_TRAILER
 
 

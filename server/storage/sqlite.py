@@ -9,8 +9,16 @@ makes a write wait up to the busy timeout and then raise :class:`StorageError`.
 Durability: ``synchronous=NORMAL`` — in WAL mode a power loss can lose the last commits but never
 corrupts the file.
 
+Each estimator has its own tables (:mod:`server.storage.migrations`, version 10): MDSF the
+``estimates`` tables it always had, every other one the same three named after it
+(``estimates_<name>``, ``…_recent``, ``…_horizon``). One layout and one code path for all
+(:class:`_Tables` holds an estimator's statements): the write path below was tuned for 1,000
+vehicles and stays what it was for MDSF, and each further estimator gets it as it is, its rows
+apart from the others' so that no read or move of one estimator walks another's rows. Below,
+``estimates`` stands for any estimator's final table.
+
 Rows are stored packed: table ``estimates`` holds ``(vkey, stamp_ns, packed)``, ``packed`` being
-the row's ``ESTIMATE_DTYPE`` bytes (migration 6; NaN and infinities survive bit for bit). The
+the row's bytes in its spec's dtype (migration 6; NaN and infinities survive bit for bit). The
 ``sqlite3`` module creates one Python object per bound or fetched value, so
 
 * a write goes to ``estimates_recent`` (version 7), keyed ``(stamp_ns, vkey)``: a server
@@ -27,14 +35,16 @@ the row's ``ESTIMATE_DTYPE`` bytes (migration 6; NaN and infinities survive bit 
   vehicles at 10 Hz, 250-1,000 rows a commit and ``maintain`` after each, CPU time, two runs
   each; ~13-17 µs before version 8 and the one-seek span query in ``maintain``). Reads,
   ``latest`` and deletes look at both tables; a row being moved is in both for a moment and is
-  read once. The column layout of versions 1-5 bound 28 values and the blob per row and cost
+  read once. Each estimator's move rounds run on their own, one step per ``maintain`` call.
+  The column layout of versions 1-5 bound 28 values and the blob per row and cost
   ~3-6x as much per row as version 6's packed rows;
 * a read does not even fetch one object per row: SQLite concatenates a range's blobs into one
   (``group_concat``, at most :data:`_READ_PAGE_ROWS` rows per statement) that numpy views as a
   structured array, in one step that runs without the GIL. Reading a vehicle-hour column by
   column took ~120 ms on an idle core and several times that beside a busy Python thread.
 
-``python -m server.bench.storage`` measures these paths against the column layout side by side.
+``python -m server.tooling.bench.storage`` measures these paths against the column layout
+side by side.
 
 One SQLite library per process: ``sqlite3`` uses the system's SQLite. Packages that carry their
 own copy (the ADBC SQLite driver, apsw wheels) must not open this file in the same process while
@@ -52,15 +62,23 @@ import contextlib
 import json
 import sqlite3
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from estimator.types import ESTIMATE_DTYPE, concat_estimates
+from estimator.spec import EstimatorSpec
+from estimator.types import EstimateBatch, concat_estimates
 from server.storage import migrations
-from server.storage._columns import check_rows, fields_dtype, select_fields
+from server.storage._columns import (
+    DEFAULT_ESTIMATOR,
+    as_batches,
+    catalog_specs,
+    fields_dtype,
+    resolve_tables,
+    select_fields,
+)
 from server.storage.base import (
     Anchor,
     StorageDataError,
@@ -75,34 +93,10 @@ _PAGE_SIZE_BYTES = 8192  # only takes effect when the file is created
 _CACHE_KIB = 32 * 1024
 _TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
 
-
-_ROW_BYTES = ESTIMATE_DTYPE.itemsize
-# One row per parameter set of an ``executemany`` over the whole transaction (a commit carries
-# one or two rows per vehicle, so a statement per vehicle would not pay), into the time-ordered
-# ``estimates_recent``; :meth:`SqliteStore.maintain` moves them on. A row above the stamp
-# bound of ``estimates`` (``estimates_horizon``, version 8: every new row in the server's
-# pattern) cannot be there already and is staged as it is ...
-_STAGE_SQL = (
-    "INSERT INTO estimates_recent (stamp_ns, vkey, packed) VALUES (?, ?, ?) "
-    "ON CONFLICT (stamp_ns, vkey) DO NOTHING"
-)
-# ... one at or below it is staged unless ``estimates`` has it already (a replay): that
-# look-up cost ~2.5 µs of ~6 µs a row when every row took it (1,000 vehicles, 500 rows a
-# commit, pattern script).
-_INSERT_SQL = (
-    "INSERT INTO estimates_recent (stamp_ns, vkey, packed) SELECT ?1, ?2, ?3 "
-    "WHERE NOT EXISTS (SELECT 1 FROM estimates WHERE vkey = ?2 AND stamp_ns = ?1) "
-    "ON CONFLICT (stamp_ns, vkey) DO NOTHING"
-)
-#: A row written straight to ``estimates`` (see ``SqliteStore.write_estimates``).
-_INSERT_FINAL_SQL = (
-    "INSERT INTO estimates (stamp_ns, vkey, packed) VALUES (?, ?, ?) "
-    "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
-)
-#: Rows newer than this behind the newest staged row stay in ``estimates_recent``; older ones
+#: Rows newer than this behind the newest staged row stay in the staging table; older ones
 #: are moved once the staged rows span :data:`_MOVE_SPAN_NS` (so a vehicle moves ~20-30 rows
 #: at a time: ~5-6 µs a row, against ~33 µs for one row per vehicle and commit written
-#: straight into ``estimates``, 1,000 vehicles). Most of it is SQLite splitting a vehicle's
+#: straight into the final table, 1,000 vehicles). Most of it is SQLite splitting a vehicle's
 #: last page with its neighbours, ~5 pages written to the WAL per vehicle and round: a wider
 #: span (5 s, 50 vehicles a transaction) saved ~0.5 µs a row but made the longest step ~30 ms
 #: of CPU instead of ~20 (pattern runs, two each).
@@ -117,17 +111,56 @@ _READ_PAGE_ROWS = 100_000
 _VKEYS_PER_QUERY = 500  # below the oldest SQLite's 999 parameters per statement
 
 
-def _unpack_one(packed: bytes) -> np.ndarray:
+class _Tables:
+    """One estimator's tables: final ``table`` keyed ``(vkey, stamp_ns)``, staging
+    ``table_recent`` keyed ``(stamp_ns, vkey)``, ``table_horizon`` (the bound on the stamps in
+    ``table``), with their statements and the move round in progress.
+
+    Rows are the spec's dtype as bytes, ``row_bytes`` each.
+    """
+
+    def __init__(self, spec: EstimatorSpec, table: str) -> None:
+        self.spec = spec
+        self.final = table
+        self.recent = f"{table}_recent"
+        self.horizon = f"{table}_horizon"
+        self.row_bytes = spec.dtype.itemsize
+        # One row per parameter set of an ``executemany`` over the whole transaction (a
+        # commit carries one or two rows per vehicle, so a statement per vehicle would not
+        # pay), into the time-ordered staging table. A row above the horizon (every new row in
+        # the server's pattern) cannot be in the final table already and is staged as it is;
+        self.stage_sql = (
+            f"INSERT INTO {self.recent} (stamp_ns, vkey, packed) VALUES (?, ?, ?) "
+            "ON CONFLICT (stamp_ns, vkey) DO NOTHING"
+        )
+        # one at or below it is staged unless the final table has it already (a replay): that
+        # look-up cost ~2.5 µs of ~6 µs a row when every row took it (1,000 vehicles, 500 rows
+        # a commit, pattern script);
+        self.insert_sql = (
+            f"INSERT INTO {self.recent} (stamp_ns, vkey, packed) SELECT ?1, ?2, ?3 "
+            f"WHERE NOT EXISTS (SELECT 1 FROM {self.final} WHERE vkey = ?2 AND stamp_ns = ?1) "
+            "ON CONFLICT (stamp_ns, vkey) DO NOTHING"
+        )
+        # a row of a vehicle a move round has copied already goes straight to the final table.
+        self.insert_final_sql = (
+            f"INSERT INTO {self.final} (stamp_ns, vkey, packed) VALUES (?, ?, ?) "
+            "ON CONFLICT (vkey, stamp_ns) DO NOTHING"
+        )
+        # the move in progress: (newest stamp_ns it moves, last vkey copied)
+        self.move: tuple[int, int] | None = None
+
+
+def _unpack_one(packed: bytes, dtype: np.dtype) -> np.ndarray:
     """One stored row as a writable 0-d structured array."""
-    if len(packed) != _ROW_BYTES:
+    if len(packed) != dtype.itemsize:
         raise StorageDataError(f"sqlite: stored estimate row of {len(packed)} bytes")
-    return np.frombuffer(packed, dtype=ESTIMATE_DTYPE).reshape(()).copy()
+    return np.frombuffer(packed, dtype=dtype).reshape(()).copy()
 
 
-def _pick(rows: np.ndarray, names: Sequence[str]) -> np.ndarray:
-    """The ``names`` fields of full rows as a compact structured array."""
-    out = np.empty(len(rows), dtype=fields_dtype(names))
-    for name in names:
+def _pick(rows: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """The fields of ``dtype`` of full rows as a compact structured array."""
+    out = np.empty(len(rows), dtype=dtype)
+    for name in dtype.names or ():
         out[name] = rows[name]
     return out
 
@@ -152,7 +185,13 @@ class SqliteStore:
 
     dialect = "sqlite"
 
-    def __init__(self, path: Path | str, *, busy_timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        busy_timeout_s: float = 5.0,
+        specs: Iterable[EstimatorSpec] | None = None,
+    ) -> None:
         self.path = Path(path)
         self.busy_timeout_s = float(busy_timeout_s)
         self._local = threading.local()
@@ -160,9 +199,11 @@ class SqliteStore:
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._closed = False
-        # the move of staged rows in progress (maintain): (newest stamp_ns it moves, last
-        # vkey copied)
-        self._move: tuple[int, int] | None = None
+        self._specs = tuple(catalog_specs() if specs is None else specs)
+        # the served specs' tables (read from the database on first use, again after migrate)
+        # and every estimator table the database records (deletes reach them all)
+        self._tables: dict[str, _Tables] | None = None
+        self._all_tables: list[str] = []
         # vehicle_id -> vkey of registered vehicles (a vkey never changes; delete_vehicle
         # drops its entry in the same write transaction that deletes the vehicle)
         self._vkey_of: dict[str, int] = {}
@@ -247,6 +288,8 @@ class SqliteStore:
                 version, _ = migrations.apply_pending(execute, self.dialect)
             except RuntimeError as exc:
                 raise StorageError(str(exc)) from exc
+        self._tables = None
+        self._load_tables()  # refuses a spec its table no longer fits, at start
         return version
 
     def close(self) -> None:
@@ -311,6 +354,7 @@ class SqliteStore:
         return [self._record(r) for r in rows]
 
     def delete_vehicle(self, vehicle_id: str) -> bool:
+        self._load_tables()
         with self._write() as conn:
             row = conn.execute(
                 "SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vehicle_id,)
@@ -322,111 +366,163 @@ class SqliteStore:
                 return False
             # Explicit deletes, so correctness never depends on the foreign_keys pragma.
             self._vkey_of.pop(vehicle_id, None)
-            conn.execute("DELETE FROM estimates WHERE vkey = ?", (row[0],))
-            conn.execute("DELETE FROM estimates_recent WHERE vkey = ?", (row[0],))
+            for table in self._all_tables:
+                conn.execute(f"DELETE FROM {table} WHERE vkey = ?", (row[0],))
+                conn.execute(f"DELETE FROM {table}_recent WHERE vkey = ?", (row[0],))
             conn.execute("DELETE FROM vehicles WHERE vkey = ?", (row[0],))
         return True
 
     # ------------------------------------------------------------------ estimates
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        """Insert rows in one transaction; rows of unregistered vehicles are not written.
+    def _load_tables(self) -> dict[str, _Tables]:
+        """The served specs' tables (read once from ``estimator_tables``, checked)."""
+        if self._tables is None:
+            try:
+                records = self._read("SELECT estimator, table_name, fields FROM estimator_tables")
+            except StorageError as exc:
+                raise StorageError(f"{exc} (is the database migrated?)") from exc
+            tables, every = resolve_tables(records, self._specs)
+            self._all_tables = every
+            self._tables = {s.name: _Tables(s, tables[s.name]) for s in self._specs}
+        return self._tables
 
-        Returns the number of rows inserted (duplicates and unknown vehicles excluded).
-        """
-        checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
-        if not checked:
+    def _served(self, estimator: str) -> _Tables:
+        """The tables of ``estimator`` (``ValueError`` when this store does not serve it)."""
+        t = self._load_tables().get(estimator)
+        if t is None:
+            raise ValueError(
+                f"unknown estimator {estimator!r}; known: {sorted(self._tables or ())}"
+            )
+        return t
+
+    def _tables_of(self, batch: EstimateBatch) -> _Tables:
+        t = self._load_tables().get(batch.estimator)
+        if t is None or t.spec.dtype != batch.spec.dtype:
+            raise StorageDataError(
+                f"sqlite: rows of estimator {batch.estimator!r} do not fit a table of this store"
+            )
+        return t
+
+    def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
+        """Insert the rows of one or more estimators in one transaction; rows of unregistered
+        vehicles are not written. Returns the rows inserted (duplicates and unknown vehicles
+        excluded)."""
+        parts = as_batches(batches)
+        if not parts:
             return 0
         with self._write() as conn:
             keys = self._vkey_of
-            missing = {vid for vid, _ in checked if vid not in keys}
+            missing = {vid for b in parts for vid in b.ids if vid not in keys}
             if missing:
                 keys.update(self._vkeys(conn, missing))
-            known = [(keys[vid], rows) for vid, rows in checked if vid in keys]
-            if not known:
+            return sum(self._stage(conn, self._tables_of(b), b, keys) for b in parts)
+
+    @staticmethod
+    def _stage(
+        conn: sqlite3.Connection, t: _Tables, batch: EstimateBatch, keys: Mapping[str, int]
+    ) -> int:
+        """Write one estimator's rows (see :meth:`write_estimates`); return rows inserted."""
+        per_vehicle = np.fromiter((keys.get(v, -1) for v in batch.ids), np.int64, len(batch.ids))
+        vkeys = np.repeat(per_vehicle, batch.counts)
+        rows = batch.rows
+        if (per_vehicle < 0).any():
+            rows, vkeys = rows[vkeys >= 0], vkeys[vkeys >= 0]
+            if not len(rows):
                 return 0
-            rows = concat_estimates([r for _, r in known])
-            blob = rows.tobytes()
-            stamps = rows["stamp_ns"].astype(np.int64)
-            vkeys = np.repeat([k for k, _ in known], [len(r) for _, r in known])
-            packed = [blob[i : i + _ROW_BYTES] for i in range(0, len(blob), _ROW_BYTES)]
-            (newest,) = conn.execute("SELECT newest_ns FROM estimates_horizon").fetchone()
-            probe = stamps <= newest
-            before = conn.total_changes
-            if self._move is None and not probe.any():
-                conn.executemany(
-                    _STAGE_SQL, zip(stamps.tolist(), vkeys.tolist(), packed, strict=True)
-                )
-                return conn.total_changes - before
-            # A move round is under way: a row of a vehicle it has copied already, not newer
-            # than the round's rows (data a vehicle buffered offline), goes straight to
-            # ``estimates``, so the round's closing delete only ever drops rows that were copied.
-            direct = np.zeros(len(stamps), dtype=bool)
-            if self._move is not None:
-                upto, last = self._move
-                direct = (stamps <= upto) & (vkeys <= last)
-            for sql, sel in (
-                (_STAGE_SQL, ~probe & ~direct),
-                (_INSERT_SQL, probe & ~direct),
-                (_INSERT_FINAL_SQL, direct),
-            ):
-                idx = np.flatnonzero(sel).tolist()
-                if idx:
-                    st, vk = stamps[idx].tolist(), vkeys[idx].tolist()
-                    conn.executemany(sql, zip(st, vk, [packed[i] for i in idx], strict=True))
+        size = t.row_bytes
+        blob = rows.tobytes()
+        stamps = rows["stamp_ns"].astype(np.int64)
+        packed = [blob[i : i + size] for i in range(0, len(blob), size)]
+        (newest,) = conn.execute(f"SELECT newest_ns FROM {t.horizon}").fetchone()
+        probe = stamps <= newest
+        before = conn.total_changes
+        if t.move is None and not probe.any():
+            conn.executemany(t.stage_sql, zip(stamps.tolist(), vkeys.tolist(), packed, strict=True))
             return conn.total_changes - before
+        # A move round is under way: a row of a vehicle it has copied already, not newer than
+        # the round's rows (data a vehicle buffered offline), goes straight to the final table,
+        # so the round's closing delete only ever drops rows that were copied.
+        direct = np.zeros(len(stamps), dtype=bool)
+        if t.move is not None:
+            upto, last = t.move
+            direct = (stamps <= upto) & (vkeys <= last)
+        for sql, sel in (
+            (t.stage_sql, ~probe & ~direct),
+            (t.insert_sql, probe & ~direct),
+            (t.insert_final_sql, direct),
+        ):
+            idx = np.flatnonzero(sel).tolist()
+            if idx:
+                st, vk = stamps[idx].tolist(), vkeys[idx].tolist()
+                conn.executemany(sql, zip(st, vk, [packed[i] for i in idx], strict=True))
+        return conn.total_changes - before
 
     def maintain(self, *, everything: bool = False) -> bool:
-        """One step of moving rows from ``estimates_recent`` to ``estimates``; True while
-        more steps are due (the writer calls this while it has nothing else to do).
+        """One step of moving staged rows to their final table, of the first estimator with a
+        round under way or due; True while more steps are due (the writer calls this while it
+        has nothing else to do).
 
-        A round starts once the staged rows span :data:`_MOVE_SPAN_NS`: every row older than
-        :data:`_KEEP_RECENT_NS` before the newest one (``everything``: every row) is copied,
-        :data:`_MOVE_VEHICLES` vehicles per transaction, then deleted from the staging table
-        in one range delete (rows in the round's range of vehicles already copied that come in
-        during the round go straight to ``estimates``: see :meth:`write_estimates`). Between
-        the copy and the delete a row is in both tables; reads keep one.
+        A round starts once an estimator's staged rows span :data:`_MOVE_SPAN_NS`: every row
+        older than :data:`_KEEP_RECENT_NS` before the newest one (``everything``: every row)
+        is copied, :data:`_MOVE_VEHICLES` vehicles per transaction, then deleted from the
+        staging table in one range delete (rows in the round's range of vehicles already
+        copied that come in during the round go straight to the final table: see
+        :meth:`_stage`). Between the copy and the delete a row is in both tables; reads keep
+        one.
         """
+        tables = sorted(self._load_tables().values(), key=lambda t: t.move is None)
         with self._write() as conn:
-            if self._move is None:
-                # One subquery each: ``min`` and ``max`` in one SELECT scan the whole table
-                # (SQLite's min/max shortcut takes a lone aggregate only), ~3 µs per staged
-                # row at 1,000 vehicles since this runs after every commit.
-                lo, hi = conn.execute(
-                    "SELECT (SELECT min(stamp_ns) FROM estimates_recent), "
-                    "(SELECT max(stamp_ns) FROM estimates_recent)"
-                ).fetchone()
-                if lo is None or (not everything and hi - lo < _MOVE_SPAN_NS):
-                    return False
-                # ``everything``: the rows staged now (later ones are the next round's), so
-                # the stamp bound below holds for every row the round copies
-                upto = hi if everything else hi - _KEEP_RECENT_NS - 1
-                # raised before any row of the round reaches ``estimates`` (copied, or written
-                # straight there while the round runs: all at or below ``upto``)
-                conn.execute("UPDATE estimates_horizon SET newest_ns = max(newest_ns, ?)", (upto,))
-                after = -1
+            for t in tables:
+                worked, move = self._move_step(conn, t, everything)
+                if worked:
+                    break
             else:
-                upto, after = self._move
-            keys = conn.execute(
-                "SELECT vkey FROM vehicles WHERE vkey > ? ORDER BY vkey LIMIT ?",
-                (after, _MOVE_VEHICLES),
-            ).fetchall()
-            if keys:
-                last = int(keys[-1][0])
-                conn.execute(
-                    "INSERT INTO estimates (vkey, stamp_ns, packed) "
-                    "SELECT r.vkey, r.stamp_ns, r.packed FROM estimates_recent r "
-                    "JOIN vehicles v ON v.vkey = r.vkey "  # rows of a vehicle still there
-                    "WHERE r.stamp_ns <= ? AND r.vkey > ? AND r.vkey <= ? "
-                    "ORDER BY r.vkey, r.stamp_ns ON CONFLICT (vkey, stamp_ns) DO NOTHING",
-                    (upto, after, last),
-                )
-                move: tuple[int, int] | None = (upto, last)
-            else:  # every vehicle copied: drop the copies
-                conn.execute("DELETE FROM estimates_recent WHERE stamp_ns <= ?", (upto,))
-                move = None
-        self._move = move
+                return False
+        t.move = move  # committed: the round goes on from here
         return True
+
+    @staticmethod
+    def _move_step(
+        conn: sqlite3.Connection, t: _Tables, everything: bool
+    ) -> tuple[bool, tuple[int, int] | None]:
+        """One transaction's work of ``t``'s move round: ``(whether there was any, the
+        round's next state)``."""
+        if t.move is None:
+            # One subquery each: ``min`` and ``max`` in one SELECT scan the whole table
+            # (SQLite's min/max shortcut takes a lone aggregate only), ~3 µs per staged row at
+            # 1,000 vehicles since this runs after every commit.
+            lo, hi = conn.execute(
+                f"SELECT (SELECT min(stamp_ns) FROM {t.recent}), "
+                f"(SELECT max(stamp_ns) FROM {t.recent})"
+            ).fetchone()
+            if lo is None or (not everything and hi - lo < _MOVE_SPAN_NS):
+                return False, None
+            # ``everything``: the rows staged now (later ones are the next round's), so the
+            # stamp bound below holds for every row the round copies
+            upto = hi if everything else hi - _KEEP_RECENT_NS - 1
+            # raised before any row of the round reaches the final table (copied, or written
+            # straight there while the round runs: all at or below ``upto``)
+            conn.execute(f"UPDATE {t.horizon} SET newest_ns = max(newest_ns, ?)", (upto,))
+            after = -1
+        else:
+            upto, after = t.move
+        keys = conn.execute(
+            "SELECT vkey FROM vehicles WHERE vkey > ? ORDER BY vkey LIMIT ?",
+            (after, _MOVE_VEHICLES),
+        ).fetchall()
+        if not keys:  # every vehicle copied: drop the copies
+            conn.execute(f"DELETE FROM {t.recent} WHERE stamp_ns <= ?", (upto,))
+            return True, None
+        last = int(keys[-1][0])
+        conn.execute(
+            f"INSERT INTO {t.final} (vkey, stamp_ns, packed) "
+            f"SELECT r.vkey, r.stamp_ns, r.packed FROM {t.recent} r "
+            "JOIN vehicles v ON v.vkey = r.vkey "  # rows of a vehicle still there
+            "WHERE r.stamp_ns <= ? AND r.vkey > ? AND r.vkey <= ? "
+            "ORDER BY r.vkey, r.stamp_ns ON CONFLICT (vkey, stamp_ns) DO NOTHING",
+            (upto, after, last),
+        )
+        return True, (upto, last)
 
     @staticmethod
     def _vkeys(conn: sqlite3.Connection, vehicle_ids: set[str]) -> dict[str, int]:
@@ -445,16 +541,22 @@ class SqliteStore:
         return out
 
     def query_series(
-        self, vehicle_id: str, start_ns: int, end_ns: int, fields: Sequence[str] | None = None
+        self,
+        vehicle_id: str,
+        start_ns: int,
+        end_ns: int,
+        fields: Sequence[str] | None = None,
+        estimator: str = DEFAULT_ESTIMATOR,
     ) -> np.ndarray:
-        names = select_fields(fields)
-        rows = self._query_packed(vehicle_id, int(start_ns), int(end_ns))
-        if names != ESTIMATE_DTYPE.names:
-            return _pick(rows, names)
+        t = self._served(estimator)
+        names = select_fields(t.spec, fields)
+        rows = self._query_packed(t, vehicle_id, int(start_ns), int(end_ns))
+        if names != t.spec.field_names:
+            return _pick(rows, fields_dtype(t.spec, names))
         # a view of the fetched bytes is read-only; callers get their own array as before
         return rows if rows.flags.writeable else rows.copy()
 
-    def _query_packed(self, vehicle_id: str, start_ns: int, end_ns: int) -> np.ndarray:
+    def _query_packed(self, t: _Tables, vehicle_id: str, start_ns: int, end_ns: int) -> np.ndarray:
         """All fields of the rows in ``[start_ns, end_ns)``, ordered by time (may be a
         read-only view of the fetched bytes)."""
         conn = self._conn()
@@ -463,21 +565,21 @@ class SqliteStore:
                 "SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vehicle_id,)
             ).fetchone()
             if found is None:
-                return np.empty(0, dtype=ESTIMATE_DTYPE)
+                return t.spec.empty_rows(0)
             # Several statements see one snapshot (unless this thread is inside a write).
             own = not conn.in_transaction
             if own:
                 conn.execute("BEGIN")
             try:
-                pages = self._packed_pages(conn, "estimates", found[0], start_ns, end_ns)
-                staged = self._packed_pages(conn, "estimates_recent", found[0], start_ns, end_ns)
+                pages = self._packed_pages(conn, t, t.final, found[0], start_ns, end_ns)
+                staged = self._packed_pages(conn, t, t.recent, found[0], start_ns, end_ns)
             finally:
                 if own:
                     conn.execute("COMMIT")
         except sqlite3.Error as exc:
             raise _wrap(exc) from exc
         if not pages and not staged:
-            return np.empty(0, dtype=ESTIMATE_DTYPE)
+            return t.spec.empty_rows(0)
         rows = concat_estimates(pages + staged)
         stamps = rows["stamp_ns"]
         if not np.all(stamps[1:] > stamps[:-1]):
@@ -494,9 +596,9 @@ class SqliteStore:
 
     @staticmethod
     def _packed_pages(
-        conn: sqlite3.Connection, table: str, vkey: int, start_ns: int, end_ns: int
+        conn: sqlite3.Connection, t: _Tables, table: str, vkey: int, start_ns: int, end_ns: int
     ) -> list[np.ndarray]:
-        """``table``'s (``estimates`` or ``estimates_recent``) rows of ``vkey`` in the range."""
+        """``table``'s (``t``'s final or staging table) rows of ``vkey`` in the range."""
         pages: list[np.ndarray] = []
         while True:
             count, blob = conn.execute(
@@ -507,9 +609,9 @@ class SqliteStore:
             ).fetchone()
             if not count:
                 return pages
-            if len(blob) != count * _ROW_BYTES:
-                blob = SqliteStore._packed_rows(conn, table, vkey, start_ns, end_ns)
-            page = np.frombuffer(blob, dtype=ESTIMATE_DTYPE)
+            if len(blob) != count * t.row_bytes:
+                blob = SqliteStore._packed_rows(conn, t, table, vkey, start_ns, end_ns)
+            page = np.frombuffer(blob, dtype=t.spec.dtype)
             pages.append(page)
             if count < _READ_PAGE_ROWS:
                 return pages
@@ -517,7 +619,7 @@ class SqliteStore:
 
     @staticmethod
     def _packed_rows(
-        conn: sqlite3.Connection, table: str, vkey: int, start_ns: int, end_ns: int
+        conn: sqlite3.Connection, t: _Tables, table: str, vkey: int, start_ns: int, end_ns: int
     ) -> bytes:
         """One page the slow way, a blob per row: when the concatenation came out of the wrong
         length (a database in a UTF-16 encoding transcodes it)."""
@@ -527,54 +629,75 @@ class SqliteStore:
             (vkey, start_ns, end_ns),
         ).fetchall()
         data = b"".join([b for (b,) in blobs])
-        if len(data) != len(blobs) * _ROW_BYTES:
+        if len(data) != len(blobs) * t.row_bytes:
             raise StorageDataError(
-                f"sqlite: estimate rows of vehicle key {vkey} are not {_ROW_BYTES}-byte "
-                "ESTIMATE_DTYPE rows (a layout change without its migration?)"
+                f"sqlite: estimate rows of vehicle key {vkey} in {table} are not "
+                f"{t.row_bytes}-byte {t.spec.name} rows (a layout change without its migration?)"
             )
         return data
 
-    def latest(self, vehicle_id: str) -> np.ndarray | None:
+    def latest(self, vehicle_id: str, estimator: str = DEFAULT_ESTIMATOR) -> np.ndarray | None:
+        t = self._served(estimator)
         rows = self._read(
             "SELECT stamp_ns, packed FROM ("
-            " SELECT stamp_ns, packed FROM estimates WHERE vkey = (SELECT vkey FROM vehicles"
+            f" SELECT stamp_ns, packed FROM {t.final} WHERE vkey = (SELECT vkey FROM vehicles"
             " WHERE vehicle_id = ?1) ORDER BY stamp_ns DESC LIMIT 1) "
             "UNION ALL SELECT stamp_ns, packed FROM ("
-            " SELECT stamp_ns, packed FROM estimates_recent WHERE vkey = (SELECT vkey FROM"
+            f" SELECT stamp_ns, packed FROM {t.recent} WHERE vkey = (SELECT vkey FROM"
             " vehicles WHERE vehicle_id = ?1) ORDER BY stamp_ns DESC LIMIT 1) "
             "ORDER BY stamp_ns DESC LIMIT 1",
             (vehicle_id,),
         )
-        return _unpack_one(rows[0][1]) if rows else None
+        return _unpack_one(rows[0][1], t.spec.dtype) if rows else None
 
-    def latest_all(self) -> dict[str, np.ndarray]:
+    def latest_all(self, estimator: str = DEFAULT_ESTIMATOR) -> dict[str, np.ndarray]:
+        t = self._served(estimator)
         rows = self._read(
-            "SELECT v.vehicle_id, e.stamp_ns, e.packed FROM vehicles v JOIN estimates e "
+            f"SELECT v.vehicle_id, e.stamp_ns, e.packed FROM vehicles v JOIN {t.final} e "
             "ON e.vkey = v.vkey "
-            "AND e.stamp_ns = (SELECT max(stamp_ns) FROM estimates WHERE vkey = v.vkey) "
+            f"AND e.stamp_ns = (SELECT max(stamp_ns) FROM {t.final} WHERE vkey = v.vkey) "
             "UNION ALL SELECT v.vehicle_id, r.stamp_ns, r.packed FROM ("
-            " SELECT vkey, max(stamp_ns) AS newest FROM estimates_recent GROUP BY vkey) m "
-            "JOIN estimates_recent r ON r.stamp_ns = m.newest AND r.vkey = m.vkey "
+            f" SELECT vkey, max(stamp_ns) AS newest FROM {t.recent} GROUP BY vkey) m "
+            f"JOIN {t.recent} r ON r.stamp_ns = m.newest AND r.vkey = m.vkey "
             "JOIN vehicles v ON v.vkey = m.vkey"
         )
         newest: dict[str, tuple[int, bytes]] = {}
         for vid, stamp, packed in rows:
             if vid not in newest or stamp > newest[vid][0]:
                 newest[vid] = (stamp, packed)
-        return {vid: _unpack_one(packed) for vid, (_, packed) in newest.items()}
+        return {vid: _unpack_one(packed, t.spec.dtype) for vid, (_, packed) in newest.items()}
+
+    def estimators_with_rows(self, vehicle_id: str) -> list[str]:
+        found = self._read("SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vehicle_id,))
+        if not found:
+            return []
+        return [
+            name
+            for name, t in self._load_tables().items()
+            if self._read(
+                f"SELECT EXISTS (SELECT 1 FROM {t.final} WHERE vkey = ?1) "
+                f"OR EXISTS (SELECT 1 FROM {t.recent} WHERE vkey = ?1)",
+                (found[0][0],),
+            )[0][0]
+        ]
 
     def delete_older_than(self, stamp_ns: int) -> int:
-        """Delete estimates (and raw packets) older than ``stamp_ns``; return estimates deleted."""
+        """Delete the estimates of every estimator (and raw packets) older than ``stamp_ns``;
+        return estimates deleted."""
+        self._load_tables()
         deleted = 0
         with self._write() as conn:
-            # Per vehicle, so each delete is a primary-key range scan.
-            for (vkey,) in conn.execute("SELECT vkey FROM vehicles").fetchall():
+            vkeys = conn.execute("SELECT vkey FROM vehicles").fetchall()
+            for table in self._all_tables:
+                # Per vehicle, so each delete is a primary-key range scan.
+                for (vkey,) in vkeys:
+                    deleted += conn.execute(
+                        f"DELETE FROM {table} WHERE vkey = ? AND stamp_ns < ?",
+                        (vkey, int(stamp_ns)),
+                    ).rowcount
                 deleted += conn.execute(
-                    "DELETE FROM estimates WHERE vkey = ? AND stamp_ns < ?", (vkey, int(stamp_ns))
+                    f"DELETE FROM {table}_recent WHERE stamp_ns < ?", (int(stamp_ns),)
                 ).rowcount
-            deleted += conn.execute(
-                "DELETE FROM estimates_recent WHERE stamp_ns < ?", (int(stamp_ns),)
-            ).rowcount
             conn.execute("DELETE FROM raw_packets WHERE received_ns < ?", (int(stamp_ns),))
         return deleted
 

@@ -9,7 +9,9 @@ per estimator call) are committed at once instead of waiting out an interval, an
 at most ``commit_interval_s`` for its transaction to start. The default (0.02 s) is well under
 the estimator calls' 50 ms, so each call's rows go out at once even when calls come a little
 early or a commit ran late; under a flood transactions start once per interval, each carrying
-what arrived in one.
+what arrived in one. Rows of every estimator share the backlog; a transaction carries a batch
+per estimator (``Store.write_estimates(*batches)``), so every estimator's rows of a tick are
+stored together.
 
 Bounded backlog, no silent loss:
 
@@ -31,6 +33,11 @@ estimate transaction that starts after the call: the store keeps only rows of ve
 so a vehicle stored by another thread could lose its first rows to the race (it did: 5-49 rows a
 1,000-vehicle load test, each a new vehicle's first).
 
+Writes other threads make (REST: vehicle upserts and deletes, tokens) go through the same
+thread by :meth:`StoreWriter.call`, which runs ``fn(store)`` there between two writes and hands
+back its result or error: one writer, so REST writes and estimate transactions never contend
+for the database lock, and a REST upsert never races a queued registration.
+
 Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win), the vehicles' ENU
 anchors (:meth:`StoreWriter.submit_anchors`, each stored once) and, when ``store_raw_packets``
 is on, raw packets (:meth:`StoreWriter.submit_raw_packets`) ride the same thread; counters go
@@ -46,6 +53,7 @@ The writer does not own the store: close the writer first, then the store.
 
 from __future__ import annotations
 
+import concurrent.futures
 import itertools
 import logging
 import threading
@@ -54,18 +62,23 @@ from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
+from estimator.spec import EstimatorSpec
 from estimator.types import EstimateBatch, concat_estimates
 from server.settings import StorageSettings
-from server.storage._columns import check_rows
+from server.storage._columns import as_batches
 from server.storage.base import Anchor, StorageDataError, StorageError, Store
 
 __all__ = ["StoreWriter", "WriterStats"]
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+#: How long :meth:`StoreWriter.call` waits for its answer by default.
+CALL_TIMEOUT_S = 10.0
 
 _NS_PER_DAY = 86_400 * 1_000_000_000
 _LOG_EVERY_S = 30.0
@@ -125,7 +138,7 @@ class WriterStats:
 def _copied(batch: EstimateBatch) -> list[np.ndarray]:
     """A copy of the batch's rows, as a view per vehicle of one copy (a copy per vehicle of its
     one or two rows costs ~4 µs, structured dtype: ten times the whole batch's)."""
-    joined = check_rows(batch.rows).copy()
+    joined = batch.rows.copy()
     bounds = [0, *itertools.accumulate(batch.counts)]
     return [joined[a:b] for a, b in itertools.pairwise(bounds)]
 
@@ -179,10 +192,10 @@ class StoreWriter:
 
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
-        # backlog: (vehicle_id, rows)
-        self._queue: deque[tuple[str, np.ndarray]] = deque()
+        # backlog: (estimator spec, vehicle_id, rows)
+        self._queue: deque[tuple[EstimatorSpec, str, np.ndarray]] = deque()
         self._queued_rows = 0
-        self._inflight: list[tuple[str, np.ndarray]] | None = None
+        self._inflight: list[EstimateBatch] | None = None
         self._inflight_rows = 0
         self._seq_submitted = 0  # rows accepted so far
         self._seq_done = 0  # rows finished (committed, ignored or dropped as bad data)
@@ -193,6 +206,8 @@ class StoreWriter:
         # ENU anchors to store, and the vehicles whose anchor was queued (each is stored once)
         self._anchors: dict[str, Anchor] = {}
         self._anchors_sent: set[str] = set()
+        # store calls (StoreWriter.call) waiting for the writer thread, in order
+        self._calls: deque[tuple[Callable[[Store], Any], concurrent.futures.Future[Any]]] = deque()
         # vehicle registrations to store before the next estimate transaction (latest wins)
         self._vehicles: dict[str, tuple[dict[str, Any], int]] = {}
         self._vehicles_stored = 0
@@ -273,6 +288,11 @@ class StoreWriter:
         if thread is not None:
             thread.join()
         with self._cond:
+            calls, self._calls = self._calls, deque()
+        for _, future in calls:
+            if future.set_running_or_notify_cancel():
+                future.set_exception(RuntimeError("StoreWriter is closed"))
+        with self._cond:
             lost = self._queued_rows + self._inflight_rows
             if lost:
                 self._rows_lost_on_close += lost
@@ -289,22 +309,28 @@ class StoreWriter:
 
     # ------------------------------------------------------------------ producers
 
-    def submit(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        """Queue ``[(vehicle_id, rows), …]`` for writing; return the rows accepted.
+    def submit(self, batch: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
+        """Queue one estimator's rows of several vehicles for writing; return the rows accepted.
 
-        Never blocks longer than ``submit_block_s``. Rows are copied, so the caller may reuse
-        its buffers. Rows that do not fit are counted in ``rows_dropped_backlog_full``.
+        A plain ``[(vehicle_id, rows), …]`` is taken as rows of ``"mdsf"``. Never blocks
+        longer than ``submit_block_s``. Rows are copied, so the caller may reuse its buffers.
+        Rows that do not fit are counted in ``rows_dropped_backlog_full``.
 
         Raises
         ------
         TypeError
-            ``rows`` is not a 1-d ``ESTIMATE_DTYPE`` array (nothing of the batch is queued).
+            Rows of a plain list are not 1-d arrays of the estimator's dtype (nothing of the
+            batch is queued).
         RuntimeError
             The writer is closed.
         """
-        if not isinstance(batch, EstimateBatch):
-            batch = EstimateBatch.of([(str(vid), check_rows(rows)) for vid, rows in batch])
-        ids, copied = batch.ids, _copied(batch)
+        parts = as_batches([batch])
+        if not parts:
+            with self._cond:
+                if self._closing:
+                    raise RuntimeError("StoreWriter is closed")
+            return 0
+        spec, ids, copied = parts[0].spec, parts[0].ids, _copied(parts[0])
         accepted = 0
         deadline = time.monotonic() + self._submit_block_s
         with self._cond:
@@ -330,7 +356,7 @@ class StoreWriter:
                             self._rows_dropped_full,
                         )
                     continue
-                self._queue.append((vid, rows))
+                self._queue.append((spec, vid, rows))
                 self._queued_rows += n
                 self._seq_submitted += n
                 self._rows_submitted += n
@@ -338,8 +364,8 @@ class StoreWriter:
             self._cond.notify_all()
         return accepted
 
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        """Pipeline sink: same as :meth:`submit`."""
+    def on_estimates(self, batch: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> None:
+        """Pipeline sink (once per estimator and tick): same as :meth:`submit`."""
         self.submit(batch)
 
     def submit_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> None:
@@ -408,6 +434,36 @@ class StoreWriter:
                 self._aux_touched_locked()
             return len(take)
 
+    def call(self, fn: Callable[[Store], T], timeout_s: float = CALL_TIMEOUT_S) -> T:
+        """Run ``fn(store)`` on the writer thread and return its result or raise its error.
+
+        For the writes other threads make (REST: vehicles, tokens), so that every write goes
+        through this one thread: a call runs as soon as the write in progress ends, after the
+        vehicle registrations queued before it and ahead of queued rows, also while estimate
+        writes wait out a database outage (the call gets the outage's error at once).
+
+        Raises
+        ------
+        StorageError
+            No answer within ``timeout_s`` (the call is dropped if it has not started; one that
+            has runs to its end).
+        RuntimeError
+            The writer is closed or not started.
+        """
+        if threading.current_thread() is self._thread:
+            return fn(self._store)
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+        with self._cond:
+            if self._closing or self._thread is None:
+                raise RuntimeError("StoreWriter is closed or not started")
+            self._calls.append((fn, future))
+            self._cond.notify_all()
+        try:
+            return future.result(timeout_s)
+        except concurrent.futures.TimeoutError:
+            future.cancel()
+            raise StorageError(f"store writer gave no answer within {timeout_s:.1f} s") from None
+
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until everything submitted before this call is committed; False on timeout."""
         with self._cond:
@@ -455,7 +511,12 @@ class StoreWriter:
         return self._queued_rows + self._inflight_rows
 
     def _pending_locked(self) -> bool:
-        return bool(self._pending_rows_locked() or self._aux_done < self._aux_seq or self._vehicles)
+        return bool(
+            self._pending_rows_locked()
+            or self._aux_done < self._aux_seq
+            or self._vehicles
+            or self._calls
+        )
 
     def _aux_touched_locked(self) -> None:
         if self._aux_done == self._aux_seq:  # first change since the last write
@@ -463,24 +524,36 @@ class StoreWriter:
         self._aux_seq += 1
         self._cond.notify_all()
 
-    def _take_locked(self) -> list[tuple[str, np.ndarray]]:
-        """Pop up to ``batch_max_rows`` rows off the backlog, merged per vehicle in order."""
-        per_vehicle: dict[str, list[np.ndarray]] = {}
+    def _take_locked(self) -> list[EstimateBatch]:
+        """Pop up to ``batch_max_rows`` rows off the backlog: a batch per estimator, its rows
+        merged per vehicle in order."""
+        specs: dict[str, EstimatorSpec] = {}
+        per_vehicle: dict[str, dict[str, list[np.ndarray]]] = {}
         n = 0
         while self._queue and n < self._batch_max:
-            vid, rows = self._queue[0]
+            spec, vid, rows = self._queue[0]
             room = self._batch_max - n
             if len(rows) <= room:
                 self._queue.popleft()
                 part = rows
             else:
                 part = rows[:room]
-                self._queue[0] = (vid, rows[room:])
-            per_vehicle.setdefault(vid, []).append(part)
+                self._queue[0] = (spec, vid, rows[room:])
+            specs.setdefault(spec.name, spec)
+            per_vehicle.setdefault(spec.name, {}).setdefault(vid, []).append(part)
             n += len(part)
         self._queued_rows -= n
         self._inflight_rows = n
-        return [(vid, concat_estimates(parts)) for vid, parts in per_vehicle.items()]
+        # the rows were checked against their spec when submitted: joined as they are
+        return [
+            EstimateBatch(
+                list(parts),
+                [sum(len(p) for p in ps) for ps in parts.values()],
+                concat_estimates([p for ps in parts.values() for p in ps]),
+                specs[name],
+            )
+            for name, parts in per_vehicle.items()
+        ]
 
     def _take_counters_locked(self) -> dict[str, dict[str, int]]:
         """Pop the counters of up to :data:`COUNTER_VEHICLES_PER_WRITE` vehicles."""
@@ -496,6 +569,11 @@ class StoreWriter:
             now = time.monotonic()
             if self._closing and (not self._pending_locked() or now >= self._close_deadline):
                 return None
+            if self._calls:  # also during a backoff, after the registrations queued before
+                if self._vehicles and now >= self._retry_at:
+                    taken, self._vehicles = self._vehicles, {}
+                    return "vehicles", taken
+                return "call", self._calls.popleft()
             if now < self._retry_at:
                 until = self._retry_at
                 if self._closing:
@@ -554,6 +632,8 @@ class StoreWriter:
                     self._write_vehicles(payload)
                 elif kind == "aux":
                     self._write_aux(*payload)
+                elif kind == "call":
+                    self._run_call(*payload)
                 elif kind == "maintain":
                     self._run_maintain()
                 else:
@@ -592,19 +672,20 @@ class StoreWriter:
         self._healthy = True
         self._retry_at = 0.0
 
-    def _write_estimates(self, batch: list[tuple[str, np.ndarray]]) -> None:
-        n = sum(len(rows) for _, rows in batch)
+    def _write_estimates(self, batches: list[EstimateBatch]) -> None:
+        """One transaction of every estimator's rows taken off the backlog."""
+        n = sum(len(b.rows) for b in batches)
         written, bad = 0, 0
         try:
-            written = self._store.write_estimates(batch)
+            written = self._store.write_estimates(*batches)
         except StorageDataError as exc:
-            written, bad = self._write_one_by_one(batch, exc)
+            written, bad = self._write_one_by_one(batches, exc)
         except StorageError as exc:
             with self._cond:
                 self._failed_locked(exc)  # keep the batch in flight and retry it
             return
         except Exception as exc:
-            written, bad = self._write_one_by_one(batch, exc)
+            written, bad = self._write_one_by_one(batches, exc)
         with self._cond:
             self._rows_written += written
             self._rows_ignored += n - written - bad
@@ -618,19 +699,29 @@ class StoreWriter:
             self._cond.notify_all()
 
     def _write_one_by_one(
-        self, batch: list[tuple[str, np.ndarray]], first: BaseException
+        self, batches: list[EstimateBatch], first: BaseException
     ) -> tuple[int, int]:
-        """After a data error, write each vehicle's rows alone; drop only the ones refused."""
+        """After a data error, write each estimator's rows of each vehicle alone; drop only
+        the ones refused."""
         log.error("store rejected a batch as data, isolating per vehicle: %s", first)
         written, bad = 0, 0
-        for vid, rows in batch:
-            try:
-                written += self._store.write_estimates([(vid, rows)])
-            except Exception as exc:
-                bad += len(rows)
-                log.exception("dropping %d rows of vehicle %s: %s", len(rows), vid, exc)
-                with self._cond:
-                    self._last_error = str(exc) or type(exc).__name__
+        for batch in batches:
+            for vid, rows in batch:
+                try:
+                    written += self._store.write_estimates(
+                        EstimateBatch([vid], [len(rows)], rows, batch.spec)
+                    )
+                except Exception as exc:
+                    bad += len(rows)
+                    log.exception(
+                        "dropping %d %s rows of vehicle %s: %s",
+                        len(rows),
+                        batch.estimator,
+                        vid,
+                        exc,
+                    )
+                    with self._cond:
+                        self._last_error = str(exc) or type(exc).__name__
         return written, bad
 
     def _write_vehicles(self, vehicles: dict[str, tuple[dict[str, Any], int]]) -> None:
@@ -714,6 +805,17 @@ class StoreWriter:
                 self._aux_done = seq
             self._succeeded_locked()
             self._cond.notify_all()
+
+    def _run_call(self, fn: Callable[[Store], Any], future: concurrent.futures.Future[Any]) -> None:
+        """Answer one :meth:`call` (unless its caller gave up already)."""
+        if not future.set_running_or_notify_cancel():
+            return
+        try:
+            result = fn(self._store)
+        except Exception as exc:  # the caller's to handle
+            future.set_exception(exc)
+        else:
+            future.set_result(result)
 
     def _run_maintain(self) -> None:
         """One step of the store's upkeep; while it has more to do the next one after a pause

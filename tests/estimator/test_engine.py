@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from estimator.base import FleetEstimator
-from estimator.config import VehicleConfig
+from estimator.config import VehicleConfig, WheeledRearDriveConfig
 from estimator.engine import MdsfEngine, MdsfFleet, StepOutput, TickInputs
 from estimator.mdsf import MdsfConfig, MdsfFilter, MdsfMode, MdsfObs, MdsfState, mdsf_matrices
 from estimator.sim import SimRun, replay, simulate, truth_at
@@ -83,8 +83,8 @@ def test_implements_the_fleet_protocol() -> None:
     fleet = MdsfFleet()
     assert isinstance(fleet, FleetEstimator)
     assert fleet.name == "mdsf" and fleet.output_dtype == ESTIMATE_DTYPE
-    fleet.add_vehicle("a", VehicleConfig())
-    fleet.add_vehicle("b", VehicleConfig())
+    fleet.add_vehicle("a", WheeledRearDriveConfig())
+    fleet.add_vehicle("b", WheeledRearDriveConfig())
     fleet.remove_vehicle("a")
     fleet.remove_vehicle("zzz")
     assert fleet.vehicle_ids() == ["b"]
@@ -407,7 +407,7 @@ def _one_vehicle_inputs(**fields: np.ndarray) -> TickInputs:
 def test_nis_and_nees_consistent_on_data_from_the_model() -> None:
     """Paper mode on measurements drawn from its own model: NIS and NEES are chi-square."""
     cfg = MdsfConfig(mode=MdsfMode.PAPER)
-    veh = VehicleConfig()
+    veh = WheeledRearDriveConfig()
     eng = MdsfEngine(cfg)
     n_veh = 8
     slots = np.array([eng.add(veh) for _ in range(n_veh)])
@@ -451,7 +451,7 @@ def test_engine_covariance_stays_symmetric_positive_definite(
     rng = np.random.default_rng(seed)
     cfg = MdsfConfig(mode=mode)
     eng = MdsfEngine(cfg)
-    slots = np.array([eng.add(VehicleConfig()) for _ in range(3)])
+    slots = np.array([eng.add(WheeledRearDriveConfig()) for _ in range(3)])
     for k in range(60):
         z = rng.normal(size=(3, 4)) * [3.0, 1.0, 0.05, 0.3] + [3.0, 0.0, 0.0, 0.0]
         z[rng.random((3, 4)) < nan_rate] = np.nan
@@ -488,7 +488,7 @@ def _standing_on_slope(
 def test_gravity_and_gyro_biases_on_a_slope(mode: MdsfMode) -> None:
     pitch = math.radians(8.0)
     fleet = MdsfFleet(MdsfConfig(mode=mode))
-    fleet.add_vehicle("v", VehicleConfig())
+    fleet.add_vehicle("v", WheeledRearDriveConfig())
     for m in _standing_on_slope(pitch, (0.003, 0.0, -0.004)):
         fleet.push("v", m)
     ((_, rows),) = fleet.advance({"v": START + 29_000_000_000})
@@ -515,7 +515,7 @@ def test_gyro_bias_is_learnt_while_standing() -> None:
     # learning it from the drift against the 5 mrad GNSS pitch took tens of seconds.
     pitch = math.radians(3.0)
     fleet = MdsfFleet(MdsfConfig())
-    fleet.add_vehicle("v", VehicleConfig())
+    fleet.add_vehicle("v", WheeledRearDriveConfig())
     for m in _standing_on_slope(pitch, (0.003, 0.0, 0.0), seconds=4.0):
         fleet.push("v", m)
     ((_, rows),) = fleet.advance({"v": START + 3_900_000_000})
@@ -570,7 +570,7 @@ def test_tyre_gain_is_learnt_from_slip_against_demand() -> None:
     rng = np.random.default_rng(3)
     cfg = MdsfConfig(slip_per_demand=1.0, tyre_gain_tau_s=60.0, tyre_gain_prior=0.1)
     engine = MdsfEngine(cfg)
-    a, b, c = (engine.add(VehicleConfig()) for _ in range(3))
+    a, b, c = (engine.add(WheeledRearDriveConfig()) for _ in range(3))
     x_g = 0.1 * np.sin(np.arange(600) * 0.05) + 0.05  # swings of ±0.1 g over a minute
     eps = 0.04 + 0.6 * x_g + rng.normal(0.0, 0.003, x_g.size)
     _tyre_pairs(engine, a, x_g, eps)
@@ -584,7 +584,7 @@ def test_tyre_gain_is_learnt_from_slip_against_demand() -> None:
     _tyre_pairs(engine, a, x_g, 0.04 + 20.0 * x_g)
     assert engine.tyre_gain(np.array([a]))[0] == pytest.approx(3.0)
     fixed = MdsfEngine(dataclasses.replace(cfg, tyre_gain_tau_s=0.0))
-    assert fixed.tyre_gain(np.array([fixed.add(VehicleConfig())]))[0] == 1.0
+    assert fixed.tyre_gain(np.array([fixed.add(WheeledRearDriveConfig())]))[0] == 1.0
 
 
 def test_persistent_rim_innovations_open_the_rim_excess() -> None:
@@ -593,7 +593,7 @@ def test_persistent_rim_innovations_open_the_rim_excess() -> None:
     rng = np.random.default_rng(5)
     cfg = MdsfConfig(rim_drift_tau_s=1.0, rim_drift_sigma=2.0)
     engine = MdsfEngine(cfg)
-    slots = np.array([engine.add(VehicleConfig()), engine.add(VehicleConfig())])
+    slots = np.array([engine.add(WheeledRearDriveConfig()), engine.add(WheeledRearDriveConfig())])
     s = np.full((2, 2), 0.01**2)  # innovation variance (0.01 m/s)²
     ok = np.ones((2, 2), dtype=bool)
     extra = []
@@ -619,7 +619,7 @@ def test_rim_drift_noise_is_cut_to_its_share_while_gnss_is_lost() -> None:
         tick_s=0.1, rim_drift_tau_s=1.0, rim_drift_sigma=2.0, outage_rim_drift_share=0.3
     )
     engine = MdsfEngine(cfg)
-    slots = np.array([engine.add(VehicleConfig()), engine.add(VehicleConfig())])
+    slots = np.array([engine.add(WheeledRearDriveConfig()), engine.add(WheeledRearDriveConfig())])
     engine.rim_innov[slots, 0] = (0.03, 1e-4)
     engine.rim_innov[slots, 1] = (0.01, 1e-4)  # 0.01² < 4·1e-4: white
     q = engine._rim_drift_noise(slots, np.array([False, True]))
@@ -649,7 +649,7 @@ def test_a_new_distance_chain_moves_the_state_and_tells_nothing_of_the_speed() -
     the speed ends where it ends without any distance at that tick."""
     cfg = MdsfConfig()
     engines = [MdsfEngine(cfg), MdsfEngine(cfg)]
-    slots = [np.array([e.add(VehicleConfig())]) for e in engines]
+    slots = [np.array([e.add(WheeledRearDriveConfig())]) for e in engines]
     nan2 = np.full((1, 2), np.nan)
     for k in range(30):
         for e, s in zip(engines, slots, strict=True):
@@ -704,7 +704,7 @@ def test_rtk_distance_of_an_antenna_off_the_centre_line() -> None:
     # wrong the distance drifted 0.4 m/s off (wheel speed RMS error 13.7 % against 0.32 %).
     errors = []
     for x_m in (0.0, 0.5, -0.5):
-        base = VehicleConfig()
+        base = WheeledRearDriveConfig()
         vehicle = dataclasses.replace(
             base, geometry=dataclasses.replace(base.geometry, antenna_offset_m=(x_m, 0.0))
         )
@@ -823,7 +823,7 @@ def test_demand_noise_opens_the_rim_excess_while_the_demand_changes() -> None:
     # settled, while the wheels could have held the speed.
     cfg = MdsfConfig()
     engine = MdsfEngine(cfg)
-    slot = engine.add(VehicleConfig())
+    slot = engine.add(WheeledRearDriveConfig())
     slots = np.array([slot])
     force = np.concatenate([np.zeros(20), np.linspace(0.0, 1.0, 11)[1:], np.ones(40)])
     grow = []

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.base import Measurement
-from estimator.config import NoiseConfig, VehicleConfig
+from estimator.config import NoiseConfig, VehicleConfig, WheeledRearDriveConfig
 from estimator.engine import MdsfFleet
 from estimator.frontend import (
     FleetFrontEnd,
@@ -308,7 +308,7 @@ def test_the_tilt_turns_with_the_heading_on_a_side_slope() -> None:
     throughout and put ``r·sin α`` into the pitch rate: 0.31 rad of pitch at the end)."""
     alpha, rate = 0.1, 0.4
     fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
-    fe.add(0, VehicleConfig())
+    fe.add(0, WheeledRearDriveConfig())
     fe.push(0, GnssSample(START, (0.0, 0.0, 0.0), 0.0, 0.0, alpha, 52.0, 5.0, 10.0))
     t_ns = START + np.arange(round(math.pi / rate * 100) + 1) * (S // 100)
     psi = rate * (t_ns - START) * 1e-9
@@ -333,7 +333,7 @@ def test_the_roll_gyros_bias_is_learnt_and_holds_the_roll_without_fixes() -> Non
     the roll stays put (an unknown bias would carry it 0.06 rad away)."""
     alpha, bias = 0.05, 0.003
     fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
-    fe.add(0, VehicleConfig())
+    fe.add(0, WheeledRearDriveConfig())
     for m in _fixes_along(0.0, 0.0, [0.2] * 601, [0.0] * 601, set(), roll_rad=alpha):
         fe.push(0, m)
     t_ns = START + np.arange(8001) * (S // 100)
@@ -404,7 +404,7 @@ def _one_antenna_drive(
     inputs and which ticks have IMU data after the first 5 s."""
     n = 200
     fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
-    fe.add(0, VehicleConfig())
+    fe.add(0, WheeledRearDriveConfig())
     for m in _one_antenna_circle(speed_mps, rate_radps, n):
         fe.push(0, m)
     t_ns = START + np.arange(10 * (n - 1) + 1) * (S // 100)
@@ -587,7 +587,7 @@ def test_distance_sums_the_forward_displacement_by_hand() -> None:
     from the last distance."""
     cfg = MdsfConfig(gnss_distance_gap_s=1.0)
     fe = FleetFrontEnd(cfg, WheelSpeedConfig())
-    veh = dataclasses.replace(VehicleConfig(), noise=NoiseConfig(gnss_pos_std_m=0.015))
+    veh = dataclasses.replace(WheeledRearDriveConfig(), noise=NoiseConfig(gnss_pos_std_m=0.015))
     fe.add(0, veh)
     n = 22
     for m in _fixes_along(math.radians(30.0), 0.02, [0.2] * n, [0.05] * n, set(range(5, 17))):

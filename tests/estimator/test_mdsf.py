@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from estimator.config import ConfigError, VehicleConfig, VehicleGeometry
+from estimator.config import ConfigError, VehicleGeometry, WheeledRearDriveConfig
 from estimator.mdsf import (
     MdsfConfig,
     MdsfFilter,
@@ -61,7 +61,7 @@ def test_matrices_exactly_as_written() -> None:
 def test_paper_mode_uses_source_matrices_and_dt() -> None:
     cfg = MdsfConfig(mode=MdsfMode.PAPER, tick_s=0.05)
     assert cfg.dt_s == 0.2 and cfg.n_state == 4 and cfg.n_obs == 4
-    m = mdsf_matrices(cfg, VehicleConfig(geometry=GEO))
+    m = mdsf_matrices(cfg, WheeledRearDriveConfig(geometry=GEO))
     assert np.array_equal(m.F, transition_matrix(0.2))
     assert np.array_equal(m.H, observation_matrix(1.6))
     assert np.array_equal(m.H1, output_matrix(1.0, 1.6, 1.8))
@@ -69,7 +69,7 @@ def test_paper_mode_uses_source_matrices_and_dt() -> None:
 
 def test_product_rows_reduce_to_source_without_offsets() -> None:
     cfg = MdsfConfig()
-    m = mdsf_matrices(cfg, VehicleConfig(geometry=GEO))
+    m = mdsf_matrices(cfg, WheeledRearDriveConfig(geometry=GEO))
     assert cfg.n_state == 8 and cfg.n_obs == 7
     assert np.array_equal(m.H1[:, :4], output_matrix(1.0, 1.6, 1.8))
     assert np.all(m.H1[:, 4:] == 0)
@@ -90,7 +90,7 @@ def test_distance_integrates_the_speed() -> None:
     control ``dt²·ā/2 = 0.006 m``): D' = 5 + 0.1·2 − 0.005·0.2 + 0.006 = 5.205 m, which is
     D + dt·V1 + dt²·(ā − b)/2 = 5 + 0.2 + 0.005."""
     cfg = MdsfConfig(tick_s=0.1)
-    m = mdsf_matrices(cfg, VehicleConfig(geometry=GEO))
+    m = mdsf_matrices(cfg, WheeledRearDriveConfig(geometry=GEO))
     x = np.zeros(cfg.n_state)
     x[MdsfState.DIST], x[MdsfState.V1], x[MdsfState.ACCEL_BIAS] = 5.0, 2.0, 0.2
     u = np.zeros(cfg.n_state)
@@ -118,7 +118,7 @@ def test_lever_arms_follow_rigid_body_motion() -> None:
     p_ant = np.array([0.3, -0.5, 2.0])
     x = np.zeros(8)
     x[MdsfState.V1], x[MdsfState.OMEGA_X], x[MdsfState.OMEGA_Z] = fwd(p_imu), wx, wz
-    m = mdsf_matrices(MdsfConfig(), VehicleConfig(geometry=geo))
+    m = mdsf_matrices(MdsfConfig(), WheeledRearDriveConfig(geometry=geo))
     z1 = m.H1 @ x
     assert z1[MdsfOut.VG] == pytest.approx(fwd(p_ant))
     assert z1[MdsfOut.VL] == pytest.approx(fwd(np.array([-1.0, 0.0, 0.0])))
@@ -129,7 +129,7 @@ def test_lever_arms_follow_rigid_body_motion() -> None:
 
 
 def test_filter_outputs_follow_h1() -> None:
-    f = MdsfFilter(MdsfConfig(mode=MdsfMode.PAPER), VehicleConfig(geometry=GEO))
+    f = MdsfFilter(MdsfConfig(mode=MdsfMode.PAPER), WheeledRearDriveConfig(geometry=GEO))
     f.initialize(np.array([3.0, 0.2, 0.1, 0.4]), np.eye(4) * 0.01)
     z1, std = f.outputs()
     v1, v0, vl, vr = 3.0, 3.1, 3.1 - 0.36, 3.1 + 0.36

@@ -101,3 +101,11 @@ def test_check_rows_refuses_another_dtype() -> None:
 def test_contradictions_are_refused(change: dict[str, object], message: str) -> None:
     with pytest.raises(SpecError, match=message):
         _spec(**change)
+
+
+def test_a_row_dtype_is_the_specs_dtype_object_and_must_match_the_fields() -> None:
+    own = np.dtype([("stamp_ns", "i8"), ("s_pct", "f8"), ("flags", "i4")])
+    assert _spec(row_dtype=own).dtype is own
+    with pytest.raises(SpecError, match="row_dtype differs"):
+        _spec(row_dtype=np.dtype([("stamp_ns", "i8")]))
+    assert spec_of("mdsf").dtype is ESTIMATE_DTYPE

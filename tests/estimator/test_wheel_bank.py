@@ -8,7 +8,7 @@ import gc
 import numpy as np
 import pytest
 
-from estimator.config import EncoderConfig, VehicleConfig
+from estimator.config import EncoderConfig, WheeledRearDriveConfig
 from estimator.sim import simulate
 from estimator.types import WheelEdges
 from estimator.wheel_speed import (
@@ -60,7 +60,7 @@ def _sim_packets(name: str, seed: int, has_direction: bool) -> list[list]:
         name,
         seed=seed,
         start_ns=T0,
-        config=VehicleConfig(encoder=EncoderConfig(has_direction=has_direction)),
+        config=WheeledRearDriveConfig(encoder=EncoderConfig(has_direction=has_direction)),
     )
     per: list[list] = [[], []]
     for arrival, m in run.in_arrival_order():

@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 
 from estimator.sim import simulate, truth_at
-from server.app_main import ServerThread, build_app, vehicle_session
-from server.fleet_sim import TICK_NS, FleetSim
+from server.app_main import ServerThread, build_app
 from server.ingest.pipeline import PHASES
 from server.settings import Settings
+from server.tooling.fleet_commands import vehicle_session
+from server.tooling.fleet_sim import TICK_NS, FleetSim
 from tests.support import free_port
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]

@@ -12,11 +12,11 @@ import pytest
 import zenoh
 
 from estimator.types import EstimateFlag, empty_estimates
-from server.alerts import AlertKind
-from server.app_main import vehicle_session
-from server.router import router_config
+from server.analytics.alerts import AlertKind
 from server.runtime import SERVER_ALERTS_CHUNK, Runtime
 from server.settings import Settings
+from server.tooling.fleet_commands import vehicle_session
+from server.tooling.router import router_config
 from tests.support import free_port
 
 pytestmark = pytest.mark.zenoh

@@ -24,17 +24,19 @@ from typing import Any
 import numpy as np
 import pytest
 import uvicorn
+from fastapi import APIRouter
 
-from estimator.config import SlipConfig, VehicleConfig
-from server.alerts import AlertEngine
+from estimator.catalog import SPECS
+from estimator.config import SlipConfig, WheeledRearDriveConfig
+from server.analytics.alerts import AlertEngine
 from server.api import create_app
 from server.api.app import API_ROUTERS
 from server.api.routes import alerts as alerts_routes
 from server.api.routes import live as live_routes
-from server.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
-from server.live import LiveHub
+from server.live.hub import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
+from server.tooling.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.web import mount_web
 from tests.support import free_port
 
@@ -43,6 +45,19 @@ SCREENSHOTS = REPO / "artifacts" / "screenshots"
 CHROMIUM = os.environ.get("SLIPFLEET_CHROMIUM", "/usr/bin/chromium")
 N_VEHICLES = 12
 SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
+
+
+def _estimators_router() -> APIRouter:
+    """``GET /api/v1/estimators`` from the catalog, for an app whose API does not serve it yet
+    (the app's own route, registered first, wins where it exists)."""
+    router = APIRouter()
+
+    @router.get("/estimators")
+    def estimators() -> dict[str, Any]:
+        data = [SPECS[name].to_dict() for name in sorted(SPECS)]
+        return {"data": data, "count": len(data)}
+
+    return router
 
 
 class _StoreSink:
@@ -76,9 +91,9 @@ class LiveRuntime:
         now = time.time_ns()
         for vid in self.fleet.ids:
             config = (
-                VehicleConfig(slip=SlipConfig(alert_threshold_pct=12.0))
+                WheeledRearDriveConfig(slip=SlipConfig(alert_threshold_pct=12.0))
                 if vid == SENSITIVE
-                else VehicleConfig()
+                else WheeledRearDriveConfig()
             )
             self._store.upsert_vehicle(vid, config.to_dict(), now)
             self.alert_engine.set_slip_config(vid, config.slip)
@@ -113,7 +128,9 @@ def serve_live_stack(data_dir: Path, *, require_auth: bool) -> Iterator[LiveStac
     )
     runtime = LiveRuntime(settings)
     app = create_app(
-        settings, runtime, routers=[*API_ROUTERS, live_routes.router, alerts_routes.router]
+        settings,
+        runtime,
+        routers=[*API_ROUTERS, live_routes.router, alerts_routes.router, _estimators_router()],
     )
     mount_web(app)
     port = free_port()

@@ -44,7 +44,7 @@ def _get(url: str) -> Any:
 def _page_latest(page: Any) -> tuple[int, float]:
     """Stamp and shown left slip, read together (an update may land between two reads)."""
     stamp, text = page.evaluate(
-        "() => { const e = document.getElementById('v-slip-left');"
+        "() => { const e = document.getElementById('v-mdsf-slip-left');"
         " return [e.dataset.stampNs, e.textContent]; }"
     )
     return int(stamp), float("nan") if text == "–" else float(text)
@@ -67,21 +67,20 @@ def test_fleet_overview_lists_every_vehicle_and_sorts(
         f"{N_VEHICLES} vehicles — {N_VEHICLES} live"
     )
     # sort by left slip, largest first
-    page.click("text=Slip left (%)")
+    page.click("text=Slip rear left wheel (%)")
     page.wait_for_timeout(700)  # next update re-renders
-    sorted_attr = page.get_attribute(".vhead .c-slip_left_pct", "aria-sort")
+    sorted_attr = page.get_attribute(".vhead .c-slip-left", "aria-sort")
     assert sorted_attr in ("ascending", "descending")
     if sorted_attr == "ascending":
-        page.click("text=Slip left (%)")
+        page.click("text=Slip rear left wheel (%)")
     page.wait_for_function(
-        "document.querySelector('.vhead .c-slip_left_pct')"
-        ".getAttribute('aria-sort') === 'descending'"
+        "document.querySelector('.vhead .c-slip-left').getAttribute('aria-sort') === 'descending'"
     )
     vals = page.eval_on_selector_all(
         ".vrows .vrow:not([hidden])",
         """rows => rows
             .map(r => [parseFloat(r.style.transform.match(/\\d+/)[0]),
-                       parseFloat(r.querySelector('.c-slip_left_pct span:last-child').textContent)])
+                       parseFloat(r.querySelector('.c-slip-left span:last-child').textContent)])
             .sort((a, b) => a[0] - b[0]).map(x => x[1])""",
     )
     assert vals == sorted(vals, key=abs, reverse=True)
@@ -99,7 +98,7 @@ def test_vehicle_page_streams_slip_matching_the_server(
     live_stack: LiveStack, page: Any, screenshots: Path
 ) -> None:
     page.goto(live_stack.base_url + f"/#/vehicle/{VID}")
-    page.wait_for_selector("#v-slip-left[data-stamp-ns]", timeout=15000)
+    page.wait_for_selector("#v-mdsf-slip-left[data-stamp-ns]", timeout=15000)
     hub = live_stack.runtime.live_hub
     fleet = live_stack.runtime.fleet
     i = fleet.ids.index(VID)
@@ -125,8 +124,8 @@ def test_vehicle_page_streams_slip_matching_the_server(
 
     # charts: uPlot rendered both, with units on the axes and data in them
     for box, y_label, n_series in (
-        ("chart-slip", "slip (%)", 2),
-        ("chart-speed", "speed (m/s)", 5),
+        ("chart-mdsf-slip", "wheel slip (%)", 2),
+        ("chart-mdsf-speed", "speeds (m/s)", 5),
     ):
         info = page.evaluate(
             """(id) => { const u = document.getElementById(id)._uplot;
@@ -136,7 +135,9 @@ def test_vehicle_page_streams_slip_matching_the_server(
             box,
         )
         assert info["labels"] == ["time (UTC)", y_label]
-        assert info["threshold"] == (12.0 if box == "chart-slip" else None)  # the vehicle's config
+        assert info["threshold"] == (
+            12.0 if box == "chart-mdsf-slip" else None
+        )  # the vehicle's config
         assert info["series"] == n_series
         assert info["points"] > 50
     # the map drew the track in slip colours
@@ -224,24 +225,25 @@ def test_vehicle_page_says_why_slip_is_missing(live_stack: LiveStack, page: Any)
         with urllib.request.urlopen(req, timeout=10) as resp:
             return int(resp.status)
 
-    note = "#v-slip-left-note"
+    note = "#v-mdsf-slip-left-note"
     assert call("PUT", b"{}") in (200, 201)  # registered, as the pipeline would
     try:
         send(int(F.STANDSTILL | F.GNSS_OK), math.nan)
         page.goto(live_stack.base_url + f"/#/vehicle/{vid}")
         page.wait_for_function(
-            f"document.querySelector('{note}')?.textContent === 'standstill'", timeout=15000
+            f"document.querySelector('{note}')?.textContent === 'no value: standstill'",
+            timeout=15000,
         )
-        assert page.text_content("#v-slip-left") == "–"
+        assert page.text_content("#v-mdsf-slip-left") == "–"
         send(int(F.SETTLING | F.GNSS_OK), math.nan)
         page.wait_for_function(
-            f"document.querySelector('{note}').textContent === 'starting/stopping'", timeout=10000
+            f"document.querySelector('{note}').textContent === 'no value: settling'", timeout=10000
         )
         send(int(F.GNSS_OK | F.SLIP_LEFT_VALID | F.SLIP_RIGHT_VALID), 7.0)
         page.wait_for_function(
             f"document.querySelector('{note}').textContent === ''", timeout=10000
         )
-        assert page.text_content("#v-slip-left") == "7.0"
+        assert page.text_content("#v-mdsf-slip-left") == "7.0"
         assert not page.is_visible(note)
     finally:
         hub.forget(vid)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.bench.live import SyntheticFleet
+from server.tooling.bench.live import SyntheticFleet
 from tests.web.conftest import N_VEHICLES, LiveStack, checked_page
 
 pytestmark = pytest.mark.browser
@@ -85,12 +85,12 @@ _ROW_OF_JS = """
   return {
     cls: r.className,
     status: r.querySelector('.c-status .pill').textContent,
-    speedColor: cs(r.querySelector('.c-vg_mps')).color,
-    speedStyle: cs(r.querySelector('.c-vg_mps')).fontStyle,
-    gnssCls: r.querySelector('.c-gnss').className,
+    speedColor: cs(r.querySelector('.c-speed_mps')).color,
+    speedStyle: cs(r.querySelector('.c-speed_mps')).fontStyle,
+    gnssCls: r.querySelector('.c-quality').className,
     age: r.querySelector('.c-age_s').textContent,
-    left: slip('slip_left_pct'),
-    right: slip('slip_right_pct'),
+    left: slip('slip-left'),
+    right: slip('slip-right'),
   };
 }
 """
@@ -154,7 +154,7 @@ def test_filter_leaves_exactly_the_matching_rows_on_screen(
 
 
 def test_desktop_header_and_rows_line_up(live_stack: LiveStack, page: Any) -> None:
-    keys = ["id", "status", "vg_mps", "slip_left_pct", "slip_right_pct", "gnss", "age_s"]
+    keys = ["id", "status", "speed_mps", "slip-left", "slip-right", "quality", "age_s"]
     _open_fleet(page, live_stack.base_url)
     got = page.evaluate(_CELLS_JS, keys)
     for k in keys:
@@ -163,7 +163,7 @@ def test_desktop_header_and_rows_line_up(live_stack: LiveStack, page: Any) -> No
         assert abs(h["right"] - r["right"]) <= ALIGN_PX, k
         assert r["display"] != "none" and r["left"] >= 0 and r["right"] <= 1400, k
     # the full labels are shown on a wide screen
-    assert page.inner_text(".vhead .c-slip_left_pct") == "Slip left (%)"
+    assert page.inner_text(".vhead .c-slip-left") == "Slip rear left wheel (%)"  # its label
 
 
 def _phone_page(browser: Any) -> AbstractContextManager[Any]:
@@ -189,7 +189,7 @@ def _assert_phone_columns(got: dict[str, Any], keys: list[str]) -> None:
 def test_phone_fleet_table_fits_and_lines_up(
     live_stack: LiveStack, browser: Any, screenshots: Path
 ) -> None:
-    keys = ["id", "status", "vg_mps", "slip_left_pct", "slip_right_pct"]
+    keys = ["id", "status", "speed_mps", "slip-left", "slip-right"]
     with _phone_page(browser) as pg:
         _open_fleet(pg, live_stack.base_url)
         pg.wait_for_timeout(600)
@@ -211,7 +211,7 @@ def test_phone_fleet_table_fits_and_lines_up(
         row_text = pg.evaluate(
             "(vid) => [...document.querySelectorAll('.vrows .vrow')]"
             ".find(r => r.querySelector('.c-id a').textContent === vid)"
-            ".querySelector('.c-slip_right_pct').textContent",
+            ".querySelector('.c-slip-right').textContent",
             got["rowId"],
         )
         assert re.fullmatch(r"-?\d+\.\d|–", row_text)
@@ -348,7 +348,7 @@ def _assert_marked_old(row: dict[str, Any], live_row: dict[str, Any], status: st
         assert cell["color"] != live_row[k]["color"], cell  # greyed against a live row
     assert row["speedColor"] != live_row["speedColor"]
     assert row["speedStyle"] == "italic"
-    assert not re.search(r"gnss-", row["gnssCls"])  # GNSS "ok" not shown as current
+    assert not re.search(r"quality-", row["gnssCls"])  # "ok" not shown as current
     assert float(row["age"]) >= 3.0
 
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
 from tests.web.conftest import LiveStack, history_loaded
@@ -73,7 +73,7 @@ def _drive(end_ns: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def drive(live_stack: LiveStack) -> np.ndarray:
     store = live_stack.runtime.store
-    store.upsert_vehicle(VID, VehicleConfig().to_dict(), time.time_ns())
+    store.upsert_vehicle(VID, WheeledRearDriveConfig().to_dict(), time.time_ns())
     rows = _drive(time.time_ns() - 60 * S)
     store.write_estimates([(VID, rows)])
     return rows
@@ -170,8 +170,8 @@ def test_the_track_goes_through_stored_positions(
     j = int(np.argmin(np.abs(np.asarray(full["stamp_ns"]) / 1e6 - stamp_ms)))
     assert abs(full["stamp_ns"][j] / 1e6 - stamp_ms) < 1
     assert points[i] == (full["east_m"][j], full["north_m"][j])
-    assert page.inner_text("#h-sl") == f"{full['slip_left_pct'][j]:.1f}"
-    assert page.inner_text("#h-vg") == f"{full['vg_mps'][j]:.2f}"
+    assert page.inner_text("#h-slip-left") == f"{full['slip_left_pct'][j]:.1f}"
+    assert page.inner_text("#h-motion") == f"{full['vg_mps'][j]:.2f}"
 
 
 def test_the_heat_grid_is_the_rest_slip_map(

@@ -13,10 +13,11 @@ from typing import Any
 import httpx
 import pytest
 
-from server.app_main import ServerThread, build_app, vehicle_session
-from server.fleet_sim import FleetSim
-from server.live import LiveHub
+from server.app_main import ServerThread, build_app
+from server.live.hub import LiveHub
 from server.settings import Settings
+from server.tooling.fleet_commands import vehicle_session
+from server.tooling.fleet_sim import FleetSim
 from tests.support import free_port
 from tests.web.test_dashboard import _COLOURED_PIXELS_JS, JS_NS_RESOLUTION, _page_latest
 
@@ -102,10 +103,11 @@ def test_dashboard_on_the_real_stack(
 
     vid = sim.vehicle_ids[0]
     page.goto(base + f"/#/vehicle/{vid}")
-    page.wait_for_selector("#v-slip-left[data-stamp-ns]", timeout=20000)
+    page.wait_for_selector("#v-mdsf-slip-left[data-stamp-ns]", timeout=20000)
     # let the vehicle get moving (slip needs ground speed) and the window fill
     page.wait_for_function(
-        "() => document.getElementById('chart-slip')._uplot.data[0].length > 100", timeout=30000
+        "() => document.getElementById('chart-mdsf-slip')._uplot.data[0].length > 100",
+        timeout=30000,
     )
     stamps: list[int] = []
     values: list[float] = []

@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 
+from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import EstimateFlag as F
 from estimator.types import empty_estimates
 from tests.web.conftest import SENSITIVE, LiveStack, checked_page, history_loaded
@@ -87,7 +88,7 @@ def _wait_updates(page: Any, n: int, check: Callable[[], None]) -> None:
     last = None
     for _ in range(n):
         last = page.wait_for_function(
-            "(prev) => { const s = document.getElementById('v-slip-left').dataset.stampNs;"
+            "(prev) => { const s = document.getElementById('v-mdsf-slip-left').dataset.stampNs;"
             " return s && s !== prev ? s : false; }",
             arg=last,
             timeout=10000,
@@ -101,7 +102,7 @@ def test_phone_vehicle_page_keeps_to_the_viewport(
 ) -> None:
     """At 390 px the page does not grow with each redraw (it did by ~8 px per update)."""
     phone.goto(live_stack.base_url + f"/#/vehicle/{SENSITIVE}")
-    phone.wait_for_selector("#v-slip-left[data-stamp-ns]", timeout=15000)
+    phone.wait_for_selector("#v-mdsf-slip-left[data-stamp-ns]", timeout=15000)
     seen: list[dict[str, Any]] = []
 
     def check() -> None:
@@ -269,7 +270,7 @@ def test_silent_vehicle_is_shown_stale_with_its_age_not_as_latency(
                        ageVisible: !document.getElementById('v-age').hidden,
                        stats: document.querySelector('.stats').className,
                        opacity: getComputedStyle(document.querySelector('.stat-value')).opacity,
-                       slip: document.getElementById('v-slip-left').textContent})"""
+                       slip: document.getElementById('v-mdsf-slip-left').textContent})"""
         )
         # the data's age is not latency: no new sample, none of the samples as old as the data
         assert len(got["lat"]) == n_lat, got["lat"][n_lat:]
@@ -292,16 +293,19 @@ def test_silent_vehicle_is_shown_stale_with_its_age_not_as_latency(
         assert page.is_hidden("#v-age")
 
 
-def test_degraded_gnss_is_marked(live_stack: LiveStack, page: Any) -> None:
+_DEGRADED_TEXT = next(f.description for f in MDSF_SPEC.flags if f.name == "DEGRADED")
+
+
+def test_degraded_quality_is_marked_with_the_specs_words(live_stack: LiveStack, page: Any) -> None:
     vid = "gnss-lost-1"
     with _own_vehicle(live_stack, vid) as send:
         send(_OK)
         page.goto(live_stack.base_url + f"/#/vehicle/{vid}")
         page.wait_for_function(
-            "document.getElementById('v-gnss').textContent === 'ok'", timeout=15000
+            "document.getElementById('v-mdsf-quality').textContent === 'ok'", timeout=15000
         )
         plain = page.evaluate(
-            "() => { const s = getComputedStyle(document.getElementById('v-gnss'));"
+            "() => { const s = getComputedStyle(document.getElementById('v-mdsf-quality'));"
             " return [s.color, s.fontWeight]; }"
         )
         for flags, label in (
@@ -310,23 +314,27 @@ def test_degraded_gnss_is_marked(live_stack: LiveStack, page: Any) -> None:
         ):
             send(flags)
             page.wait_for_function(
-                "(l) => document.getElementById('v-gnss').textContent === l",
+                "(l) => document.getElementById('v-mdsf-quality').textContent === l",
                 arg=label,
                 timeout=10000,
             )
             marked = page.evaluate(
-                """() => { const e = document.getElementById('v-gnss');
+                """() => { const e = document.getElementById('v-mdsf-quality');
                     const s = getComputedStyle(e);
                     return {cls: e.className, color: s.color, weight: s.fontWeight,
-                            note: document.getElementById('v-gnss-note').textContent}; }"""
+                            note: document.getElementById('v-mdsf-quality-note').textContent}; }"""
             )
             # the fleet table's rule: the same class, so the same colour and weight
-            assert marked["cls"] == f"gnss-{label}", marked
+            assert marked["cls"] == f"quality-{label}", marked
             assert marked["color"] == "rgb(179, 38, 30)" and marked["color"] != plain[0], marked
             assert int(marked["weight"]) >= 600, marked
             assert marked["note"], marked  # said in words too, not by colour alone
+            if label == "degraded":  # the degraded flag's own description
+                assert marked["note"] == _DEGRADED_TEXT, marked
         send(_OK)
         page.wait_for_function(
-            "document.getElementById('v-gnss').textContent === 'ok'", timeout=10000
+            "document.getElementById('v-mdsf-quality').textContent === 'ok'", timeout=10000
         )
-        assert page.evaluate("() => document.getElementById('v-gnss-note').textContent") == ""
+        assert (
+            page.evaluate("() => document.getElementById('v-mdsf-quality-note').textContent") == ""
+        )

@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.bench.live import FeedThread, SyntheticFleet
-from server.live import LiveHub
+from server.live.hub import LiveHub
+from server.live.viewer.fleet_view import FleetViewer
 from server.settings import ViewerSettings
-from server.viewer.fleet_view import FleetViewer
+from server.tooling.bench.live import FeedThread, SyntheticFleet
 from tests.support import free_port
 
 pytestmark = pytest.mark.browser

@@ -1,16 +1,28 @@
 // Alerts panel: open and recent alerts from GET /api/v1/alerts, refreshed every 2 s.
 
 import { fetchAlerts } from "./api.js";
+import { loadSpecs } from "./specs.js";
 import { el, fmt, fmtDuration, fmtTimeNs, vehicleHref } from "./util.js";
 
+// Alert kinds of no estimator; slip and flag alerts ("slip:<estimator>:<channel key>",
+// "flag:<estimator>:<FLAG>") are said from the estimator's spec (kindLabel).
 const KIND_LABEL = {
-  slip_left: "Slip left above threshold",
-  slip_right: "Slip right above threshold",
-  gnss_degraded: "GNSS degraded",
   stale: "No data (stale)",
   storage_down: "Server: database unavailable or full",
   zenoh_down: "Server: no Zenoh router",
 };
+
+// "Slip rear left wheel above threshold (MDSF wheel slip)", "GNSS lost: … (MDSF wheel slip)"
+function kindLabel(a, specs) {
+  const spec = a.estimator && specs ? specs.get(a.estimator) : null;
+  if (!spec) return KIND_LABEL[a.kind] || a.kind;
+  if (a.kind.startsWith("slip:")) {
+    const ch = spec.slips.find((c) => c.key === a.channel);
+    return `Slip ${ch ? ch.label : a.channel} above threshold (${spec.title})`;
+  }
+  const flag = spec.flags.find((f) => f.name === a.channel);
+  return `${flag ? flag.description : a.channel} (${spec.title})`;
+}
 
 // "2026-05-01 12:00:03" (the column header says UTC); date and time each kept on one line, so a
 // narrow column breaks between them and nowhere else
@@ -52,6 +64,13 @@ export function alertsView(root) {
     ),
   );
   let timer = null;
+  let specs = null; // estimator specs, for the kinds' labels (raw kinds until loaded)
+  loadSpecs()
+    .then((all) => {
+      specs = all;
+      refresh();
+    })
+    .catch(() => {});
   async function refresh() {
     try {
       const body = await fetchAlerts({ state: stateSel.value, limit: 500 });
@@ -70,7 +89,7 @@ export function alertsView(root) {
               ? el("a", { href: vehicleHref(a.vehicle_id), text: a.vehicle_id })
               : el("strong", { text: "server" }),
           ),
-          el("td", { text: KIND_LABEL[a.kind] || a.kind }),
+          el("td", { text: kindLabel(a, specs) }),
           timeCell(a.start_ns),
           endNs ? timeCell(endNs) : el("td", { text: "ongoing" }),
           el("td", { text: fmtDuration(Math.max(0, dur)) }),

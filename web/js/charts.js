@@ -1,17 +1,50 @@
-// uPlot charts of slip and speeds, with units on the axes and a colour-blind-safe palette
-// (Okabe–Ito). Time runs on the x axis in UTC; x values are seconds since the epoch.
+// uPlot charts of an estimator's fields (a spec's ChartSpec: title, unit, fields, labels from
+// the spec), with units on the axes and a colour-blind-safe palette (Okabe–Ito). Time runs on the
+// x axis in UTC; x values are seconds since the epoch. Stretches of degraded rows (the spec's
+// degraded_flags) can be shaded.
 
-export const SERIES_STYLE = {
-  slip_left_pct: { label: "SL slip left", stroke: "#0072B2", width: 2 },
-  slip_right_pct: { label: "SR slip right", stroke: "#D55E00", width: 2 },
-  vg_mps: { label: "Vg ground", stroke: "#111111", width: 2.5 },
-  vl_mps: { label: "VL left wheel ground", stroke: "#0072B2", width: 1.5 },
-  vr_mps: { label: "VR right wheel ground", stroke: "#D55E00", width: 1.5 },
-  rim_left_mps: { label: "rim left r·ω", stroke: "#56B4E9", width: 1.5, dash: [6, 4] },
-  rim_right_mps: { label: "rim right r·ω", stroke: "#E69F00", width: 1.5, dash: [6, 4] },
-};
-export const SLIP_FIELDS = ["slip_left_pct", "slip_right_pct"];
-export const SPEED_FIELDS = ["vg_mps", "vl_mps", "vr_mps", "rim_left_mps", "rim_right_mps"];
+import { degradedMask, fieldOf } from "./specs.js";
+
+// Series colours in chart order; the first series is drawn thicker.
+const PALETTE = ["#0072B2", "#D55E00", "#111111", "#56B4E9", "#E69F00", "#009E73", "#CC79A7", "#F0E442"];
+
+export function seriesStyle(i, label) {
+  return { label, stroke: PALETTE[i % PALETTE.length], width: i === 0 ? 2.5 : 1.5, dash: i >= PALETTE.length ? [6, 4] : undefined };
+}
+
+// makeChart options of a spec's chart: title, unit on the y axis, its fields and their labels;
+// slip charts (every field a slip channel's) draw with one decimal.
+export function chartOptions(spec, chart) {
+  const slipFields = new Set(spec.slips.map((s) => s.field));
+  return {
+    title: chart.title,
+    yLabel: chart.unit ? `${chart.title.toLowerCase()} (${chart.unit})` : chart.title.toLowerCase(),
+    fields: chart.fields,
+    labels: chart.fields.map((f) => fieldOf(spec, f).label),
+    decimals: chart.fields.every((f) => slipFields.has(f)) ? 1 : 2,
+    isSlip: chart.fields.some((f) => slipFields.has(f)),
+  };
+}
+
+// [[x0, x1], ...] (seconds) of the runs of rows whose flags have a bit of the spec's degraded
+// flags; a run ends at the next row's time.
+export function degradedSpans(spec, cols) {
+  const mask = degradedMask(spec);
+  const out = [];
+  const flags = cols.flags;
+  if (!mask || !flags) return out;
+  let start = null;
+  for (let i = 0; i < flags.length; i++) {
+    const on = ((flags[i] ?? 0) & mask) !== 0;
+    if (on && start === null) start = cols.stamp_ns[i] / 1e9;
+    if (!on && start !== null) {
+      out.push([start, cols.stamp_ns[i] / 1e9]);
+      start = null;
+    }
+  }
+  if (start !== null) out.push([start, cols.stamp_ns[flags.length - 1] / 1e9]);
+  return out;
+}
 
 function utc(ts) {
   return uPlot.tzDate(new Date(ts * 1e3), "Etc/UTC");
@@ -62,8 +95,9 @@ function timeLabel(v, incr) {
   return iso.slice(11, incr < 60 ? 19 : 16); // 24-hour UTC clock, seconds when steps are shorter
 }
 
-// opts: title, yLabel, fields, height, threshold (draw ±threshold lines), decimals,
-// syncKey (share the cursor with the page's other charts), onCursor(index) (hover callback)
+// opts: title, yLabel, fields, labels (one per field; default the field names), height,
+// threshold (draw ±threshold lines), decimals, syncKey (share the cursor with the page's other
+// charts), onCursor(index) (hover callback)
 //
 // The chart is as wide as target's content box and follows it (ResizeObserver); target must get
 // its width from the layout, not from the chart (e.g. a grid column minmax(0, 1fr)).
@@ -99,8 +133,8 @@ export function makeChart(target, opts) {
       ],
       series: [
         { label: "time (UTC)", value: (u, v) => (v == null ? "–" : utc(v).toISOString().slice(11, 23)) },
-        ...opts.fields.map((f) => ({
-          ...SERIES_STYLE[f],
+        ...opts.fields.map((f, i) => ({
+          ...seriesStyle(i, (opts.labels || opts.fields)[i]),
           value: (u, v) => (v == null ? "–" : v.toFixed(digits)),
           points: { show: false },
           spanGaps: false,
@@ -119,6 +153,16 @@ export function makeChart(target, opts) {
           (u) => {
             const ctx = u.ctx;
             const { left, top, width: w, height: h } = u.bbox;
+            if (chart && chart._shade.length) {
+              ctx.save();
+              ctx.fillStyle = "rgba(120, 120, 120, 0.18)";
+              for (const [x0, x1] of chart._shade) {
+                const p0 = Math.max(left, u.valToPos(x0, "x", true));
+                const p1 = Math.min(left + w, u.valToPos(x1, "x", true));
+                if (p1 > p0) ctx.fillRect(p0, top, Math.max(1, p1 - p0), h);
+              }
+              ctx.restore();
+            }
             const thr = chart ? chart._threshold : opts.threshold;
             if (thr) {
               ctx.save();
@@ -163,6 +207,7 @@ export function makeChart(target, opts) {
     target,
   );
   chart._cursorT = null;
+  chart._shade = [];
   chart._threshold = opts.threshold ?? null;
   target._uplot = chart; // lets tests and tools inspect the chart
   // follow the box's width (window resize, scroll bar, layout change); resized on the next frame,
@@ -186,6 +231,11 @@ export function makeChart(target, opts) {
 export function setCursorTime(chart, tS) {
   chart._cursorT = tS;
   chart.redraw(false, false);
+}
+
+// Shade these [[x0, x1], ...] stretches (seconds) on the next draw (degraded rows).
+export function setShading(chart, spans) {
+  chart._shade = spans;
 }
 
 // Change the dashed ±threshold lines (percent, or null for none).

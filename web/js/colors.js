@@ -2,7 +2,7 @@
 //
 // Colour is a function of |slip| in percent, linear in RGB between these stops and clamped
 // beyond the last one; a missing slip value (standstill, invalid) is grey. The 3D viewer uses the
-// same stops (server/viewer/colors.py; a test checks that the two agree).
+// same stops (server/live/viewer/colors.py; a test checks that the two agree).
 //
 //   |slip| %   colour
 //   0          green      #1a9850

@@ -4,33 +4,68 @@
 // scroll box as the rows (sticky at its top), so header and rows always share one width and
 // scroll sideways together. Rows of stale and offline vehicles carry row-stale / row-offline:
 // their last values are shown greyed and without slip-band shading, never as if live.
+//
+// Each vehicle is shown by its primary estimator (the feed's `estimator`): its motion speed, a
+// column per slip channel key of any primary (labelled from the specs, GET /api/v1/estimators;
+// band edges from the vehicle's config, else the channel's) and its quality.
 
 import { fetchVehicles, liveSocket } from "./api.js";
-import { SLIP_BAND_EDGES, slipBand, slipCss } from "./colors.js";
+import { slipBand, slipCss } from "./colors.js";
+import { loadSpecs } from "./specs.js";
 import { el, fmt, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
-
-// short: the label shown on narrow screens (app.css switches .lab-long / .lab-short)
-const COLUMNS = [
-  { key: "id", label: "Vehicle", numeric: false },
-  { key: "status", label: "Status", numeric: false },
-  { key: "vg_mps", label: "Speed (m/s)", short: "m/s", numeric: true },
-  { key: "slip_left_pct", label: "Slip left (%)", short: "Slip L", numeric: true },
-  { key: "slip_right_pct", label: "Slip right (%)", short: "Slip R", numeric: true },
-  { key: "gnss", label: "GNSS", numeric: false },
-  { key: "age_s", label: "Last update (s ago)", short: "Age (s)", numeric: true },
-];
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2 };
 
 // Cost of applying one fleet message (sort + render), ms; read by the live benchmark.
 window.slipfleetStats = window.slipfleetStats || {};
 window.slipfleetStats.fleetUpdateMs = window.slipfleetStats.fleetUpdateMs || [];
-const GNSS_ORDER = { ok: 0, gated: 1, degraded: 2, none: 3 };
+const QUALITY_ORDER = { ok: 0, degraded: 1, none: 2 };
+
+// "L" for channel key "left", "RL" for "rear_left": the short label of a slip column
+function initials(key) {
+  return key
+    .split(/[_-]/)
+    .map((w) => w.charAt(0).toUpperCase())
+    .join("");
+}
+
+// The table's columns for these slip channel keys; short: the label shown on narrow screens
+// (app.css switches .lab-long / .lab-short). A slip column's key is "slip:<channel key>".
+function columnsFor(slipKeys, specs) {
+  const label = (key) => {
+    for (const spec of specs.values()) {
+      const ch = spec.slips.find((c) => c.key === key);
+      if (ch) return ch.label;
+    }
+    return key;
+  };
+  return [
+    { key: "id", label: "Vehicle", numeric: false },
+    { key: "status", label: "Status", numeric: false },
+    { key: "speed_mps", label: "Speed (m/s)", short: "m/s", numeric: true },
+    ...slipKeys.map((k) => ({ key: `slip:${k}`, label: `Slip ${label(k)} (%)`, short: `Slip ${initials(k)}`, numeric: true, slip: k })),
+    { key: "quality", label: "Quality", numeric: false },
+    { key: "age_s", label: "Last update (s ago)", short: "Age (s)", numeric: true },
+  ];
+}
+
+// A column's value of vehicle i in a fleet message.
+function cellValue(d, i, c) {
+  return c.slip ? d.slip_pct[c.slip][i] : d[c.key][i];
+}
 
 export function fleetView(root) {
-  // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (default edges until loaded)
-  const state = { data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map() };
+  // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (the channel's edges until loaded)
+  const state = { data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map() };
+  loadSpecs()
+    .then((specs) => {
+      state.specs = specs;
+      columns = [];
+      resort();
+    })
+    .catch(() => {});
+  let columns = [];
   const loadBands = () =>
     fetchVehicles()
       .then((body) => {
@@ -47,26 +82,37 @@ export function fleetView(root) {
     id: "fleet-filter",
   });
   const header = el("div", { class: "vrow vhead", role: "row" });
-  const headButtons = {};
-  for (const c of COLUMNS) {
-    const b = el(
-      "button",
-      { type: "button", class: c.numeric ? "num" : "", title: c.short ? c.label : null },
-      ...(c.short
-        ? [el("span", { class: "lab-long", text: c.label }), el("span", { class: "lab-short", text: c.short })]
-        : [c.label]),
-    );
-    b.addEventListener("click", () => {
-      if (state.sortKey === c.key) state.sortDir = -state.sortDir;
-      else {
-        state.sortKey = c.key;
-        state.sortDir = c.numeric && c.key !== "age_s" ? -1 : 1;
-      }
-      resort();
-    });
-    const cell = el("div", { role: "columnheader", class: `c-${c.key}` }, b);
-    headButtons[c.key] = cell;
-    header.append(cell);
+  let headButtons = {};
+  // (Re)build the header and drop the row pool when the slip channel keys change.
+  function setColumns(slipKeys) {
+    const next = columnsFor(slipKeys, state.specs);
+    if (columns.length && next.map((c) => c.label).join() === columns.map((c) => c.label).join()) return;
+    columns = next;
+    headButtons = {};
+    header.replaceChildren();
+    table.style.setProperty("--slip-cols", String(slipKeys.length));
+    for (const c of columns) {
+      const b = el(
+        "button",
+        { type: "button", class: c.numeric ? "num" : "", title: c.short ? c.label : null },
+        ...(c.short
+          ? [el("span", { class: "lab-long", text: c.label }), el("span", { class: "lab-short", text: c.short })]
+          : [c.label]),
+      );
+      b.addEventListener("click", () => {
+        if (state.sortKey === c.key) state.sortDir = -state.sortDir;
+        else {
+          state.sortKey = c.key;
+          state.sortDir = c.numeric && c.key !== "age_s" ? -1 : 1;
+        }
+        resort();
+      });
+      const cell = el("div", { role: "columnheader", class: cssClass(c) }, b);
+      headButtons[c.key] = cell;
+      header.append(cell);
+    }
+    for (const row of pool) row.remove();
+    pool.length = 0;
   }
   // Rows are absolutely placed inside .vrows (its height is that of every matching row); the
   // header row group is sticky at the top of the same scroll box.
@@ -90,17 +136,19 @@ export function fleetView(root) {
   );
 
   const pool = [];
+  // c-<key> class of a column's cells ("c-slip-left" for slip channel "left")
+  function cssClass(c) {
+    return `c-${c.slip ? `slip-${c.slip}` : c.key}${c.numeric ? " num" : ""}`;
+  }
   function makeRow() {
     const link = el("a", {});
-    const cells = {
-      id: el("div", { role: "cell", class: "c-id" }, link),
-      status: el("div", { role: "cell", class: "c-status" }, el("span", { class: "pill" })),
-      vg_mps: el("div", { role: "cell", class: "c-vg_mps num" }),
-      slip_left_pct: el("div", { role: "cell", class: "c-slip_left_pct num slip" }, el("span", { class: "dot", "aria-hidden": "true" }), el("span")),
-      slip_right_pct: el("div", { role: "cell", class: "c-slip_right_pct num slip" }, el("span", { class: "dot", "aria-hidden": "true" }), el("span")),
-      gnss: el("div", { role: "cell", class: "c-gnss" }),
-      age_s: el("div", { role: "cell", class: "c-age_s num" }),
-    };
+    const cells = {};
+    for (const c of columns) {
+      if (c.key === "id") cells.id = el("div", { role: "cell", class: "c-id" }, link);
+      else if (c.key === "status") cells.status = el("div", { role: "cell", class: "c-status" }, el("span", { class: "pill" }));
+      else if (c.slip) cells[c.key] = el("div", { role: "cell", class: `${cssClass(c)} slip` }, el("span", { class: "dot", "aria-hidden": "true" }), el("span"));
+      else cells[c.key] = el("div", { role: "cell", class: cssClass(c) });
+    }
     const row = el("div", { class: "vrow", role: "row" }, ...Object.values(cells));
     row._cells = cells;
     row._link = link;
@@ -108,13 +156,13 @@ export function fleetView(root) {
     return row;
   }
 
-  function sortValue(d, i, key) {
-    if (key === "id") return d.ids[i];
-    if (key === "status") return STATUS_ORDER[d.status[i]] ?? 9;
-    if (key === "gnss") return GNSS_ORDER[d.gnss[i]] ?? 9;
-    const v = d[key][i];
-    if (v === null) return null;
-    return key.startsWith("slip") ? Math.abs(v) : v;
+  function sortValue(d, i, c) {
+    if (c.key === "id") return d.ids[i];
+    if (c.key === "status") return STATUS_ORDER[d.status[i]] ?? 9;
+    if (c.key === "quality") return QUALITY_ORDER[d.quality[i]] ?? 9;
+    const v = cellValue(d, i, c);
+    if (v === null || v === undefined) return null;
+    return c.slip ? Math.abs(v) : v;
   }
 
   function resort() {
@@ -123,9 +171,11 @@ export function fleetView(root) {
     const f = state.filter.toLowerCase();
     let idx = d.ids.map((_, i) => i);
     if (f) idx = idx.filter((i) => d.ids[i].toLowerCase().includes(f));
+    setColumns(Object.keys(d.slip_pct));
     const key = state.sortKey;
     const dir = state.sortDir;
-    const vals = idx.map((i) => sortValue(d, i, key));
+    const col = columns.find((c) => c.key === key) || columns[0];
+    const vals = idx.map((i) => sortValue(d, i, col));
     const pos = idx.map((_, k) => k);
     pos.sort((a, b) => {
       const va = vals[a];
@@ -136,7 +186,7 @@ export function fleetView(root) {
       return va < vb ? -dir : dir;
     });
     state.order = pos.map((k) => idx[k]);
-    for (const c of COLUMNS) {
+    for (const c of columns) {
       headButtons[c.key].setAttribute(
         "aria-sort",
         c.key === key ? (dir > 0 ? "ascending" : "descending") : "none",
@@ -203,23 +253,27 @@ export function fleetView(root) {
       const pill = c.status.firstChild;
       pill.textContent = st;
       pill.className = `pill st-${st}`;
-      c.vg_mps.textContent = fmt(d.vg_mps[i], 2);
-      for (const key of ["slip_left_pct", "slip_right_pct"]) {
-        const v = d[key][i];
-        const cell = c[key];
+      c.speed_mps.textContent = fmt(d.speed_mps[i], 2);
+      const spec = state.specs.get(d.estimator[i]);
+      for (const col of columns) {
+        if (!col.slip) continue;
+        const v = cellValue(d, i, col);
+        const cell = c[col.key];
         let cls = "old";
         if (live) {
-          const edges = state.bandEdges.get(id) || SLIP_BAND_EDGES;
+          const ch = spec && spec.slips.find((s) => s.key === col.slip);
+          const edges = state.bandEdges.get(id) || (ch ? ch.band_edges_pct : [5, 15]);
           const b = slipBand(v, edges); // lowest band 0, top band edges.length, none -1
           cls = b <= 0 ? b : b === edges.length ? 2 : 1; // styled low / moderate / high
         }
-        cell.className = `c-${key} num slip band-${cls}`;
+        cell.className = `${cssClass(col)} slip band-${cls}`;
         cell.firstChild.style.background = live ? slipCss(v) : "";
         cell.lastChild.textContent = fmt(v, 1);
       }
-      const g = d.gnss[i];
-      c.gnss.textContent = g;
-      c.gnss.className = live ? `c-gnss gnss-${g}` : "c-gnss";
+      const q = d.quality[i];
+      c.quality.textContent = q;
+      c.quality.className = live ? `c-quality quality-${q}` : "c-quality";
+      c.quality.title = spec ? `${spec.title}` : "";
       c.age_s.textContent = age;
     }
   }

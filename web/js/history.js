@@ -1,6 +1,8 @@
-// History of one vehicle: pick a time range (UTC), load it from the REST series endpoint, then
-// scrub or replay it at 1×–60× with the charts' cursor and the slip map's position in sync. The
-// map can also show a heat grid of mean |slip| per cell over the range.
+// History of one vehicle: pick an estimator (default its primary) and a time range (UTC), load
+// it from the REST series endpoint, then scrub or replay it at 1×–60× with the charts' cursor and
+// the slip map's position in sync. The map can also show a heat grid of mean |slip| per cell over
+// the range. Charts, cursor values and the track come from the estimator's spec (its charts, slip
+// channels, motion speed and position), so any estimator is drawn without code of its own.
 //
 // Three requests, each right for what it draws:
 // * charts: the series decimated to min/max per time bucket (`decimation=minmax`): the envelope
@@ -8,27 +10,42 @@
 // * track, replay position and the values at the cursor: whole stored rows (`decimation=first`,
 //   the first row of each bucket), so a position, its slip and its speed belong together;
 // * heat grid: the REST slip map of the range (`GET /vehicles/{id}/slipmap`), the same cells and
-//   numbers as a GIS export (time-weighted mean |slip| over both wheels' valid slips, moving
-//   rows only, at full rate).
+//   numbers as a GIS export (time-weighted mean |slip| over every slip channel's valid slips,
+//   moving rows only, at full rate).
 // The server sizes its buckets on the span of the stored rows in the range, not on the range, so
 // a short drive in a long range keeps its detail; the page says how many points it shows of how
 // many stored rows, and how wide the buckets are.
 
 import { fetchVehicle, getJSON } from "./api.js";
 import {
-  SLIP_FIELDS,
-  SPEED_FIELDS,
   alignedData,
+  chartOptions,
+  degradedSpans,
   fitWidth,
   makeChart,
   setCursorTime,
-  setThreshold,
+  setShading,
 } from "./charts.js";
-import { SlipMap, slipMetric } from "./slipmap.js";
+import { SlipMap } from "./slipmap.js";
+import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
 import { el, fmt, fmtDuration, fmtTimeNs, vehicleHref } from "./util.js";
 
-const CHART_FIELDS = [...SLIP_FIELDS, ...SPEED_FIELDS, "flags"];
-const TRACK_FIELDS = ["east_m", "north_m", "slip_left_pct", "slip_right_pct", "vg_mps", "flags"];
+// Fields of a spec the charts need: every chart's, and flags (degraded stretches).
+function chartFields(spec) {
+  const f = spec.charts.flatMap((c) => c.fields);
+  if (spec.flags.length) f.push("flags");
+  return [...new Set(f)];
+}
+
+// Fields of a spec the track and the cursor values need: position, slips, motion speed, flags.
+function trackFields(spec) {
+  const f = spec.position ? [spec.position.east_field, spec.position.north_field] : [];
+  f.push(...spec.slips.map((c) => c.field));
+  const motion = motionChannel(spec);
+  if (motion) f.push(motion.field);
+  if (spec.flags.length) f.push("flags");
+  return [...new Set(f)];
+}
 const CHART_POINTS = 4000; // min/max: 2,000 buckets
 const TRACK_POINTS = 10000; // whole rows: a 12 h drive gives one every 4.3 s
 const PRESETS = [
@@ -80,8 +97,9 @@ function setInvalid(input, bad) {
   else input.removeAttribute("aria-invalid");
 }
 
-function seriesRequest(vehicleId, startNs, endNs, fields, maxPoints, decimation) {
+function seriesRequest(vehicleId, estimator, startNs, endNs, fields, maxPoints, decimation) {
   return getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/series`, {
+    estimator,
     start: startNs.toString(),
     end: endNs.toString(),
     fields: fields.join(","),
@@ -127,18 +145,18 @@ export function historyView(root, vehicleId) {
   for (const m of CELL_CHOICES) cell.append(el("option", { value: String(m), text: `${m} m` }));
   cell.value = "auto";
   const heatMsg = el("span", { id: "h-heat-msg", class: "summary" });
-  const slipBox = el("div", { class: "chart", id: "h-chart-slip" });
-  const speedBox = el("div", { class: "chart", id: "h-chart-speed" });
+  const estimatorSel = el("select", { id: "h-estimator", "aria-label": "Estimator" });
+  const chartsBox = el("div", { id: "h-charts" });
   const canvas = el("canvas", { class: "map", id: "h-map", role: "img", "aria-label": "Slip map of the range" });
-  const cursorStats = el(
-    "div",
-    { class: "stats" },
-    el("div", { class: "stat" }, el("div", { class: "stat-label", text: "Slip left" }), el("div", { class: "stat-value" }, el("span", { id: "h-sl", text: "–" }), el("span", { class: "unit", text: " %" }))),
-    el("div", { class: "stat" }, el("div", { class: "stat-label", text: "Slip right" }), el("div", { class: "stat-value" }, el("span", { id: "h-sr", text: "–" }), el("span", { class: "unit", text: " %" }))),
-    el("div", { class: "stat" }, el("div", { class: "stat-label", text: "Ground speed Vg" }), el("div", { class: "stat-value" }, el("span", { id: "h-vg", text: "–" }), el("span", { class: "unit", text: " m/s" }))),
-  );
+  const cursorStats = el("div", { class: "stats", id: "h-cursor" });
   root.append(
-    el("div", { class: "toolbar" }, el("h1", {}, "History ", el("span", { class: "mono", text: vehicleId })), el("a", { href: vehicleHref(vehicleId), class: "button", text: "Live" })),
+    el(
+      "div",
+      { class: "toolbar" },
+      el("h1", {}, "History ", el("span", { class: "mono", text: vehicleId })),
+      el("a", { href: vehicleHref(vehicleId), class: "button", text: "Live" }),
+      el("label", {}, "Estimator ", estimatorSel),
+    ),
     el(
       "div",
       { class: "toolbar" },
@@ -157,7 +175,7 @@ export function historyView(root, vehicleId) {
       at,
       el(
         "label",
-        { title: "Per cell: the time-weighted mean |slip| over both wheels' valid slips while moving, at full rate (GET /api/v1/vehicles/{id}/slipmap)" },
+        { title: "Per cell: the time-weighted mean |slip| over every slip channel's valid slips while moving, at full rate (GET /api/v1/vehicles/{id}/slipmap)" },
         heatOn,
         " Heat grid of mean |slip|, cell ",
       ),
@@ -165,8 +183,12 @@ export function historyView(root, vehicleId) {
       heatMsg,
     ),
     cursorStats,
-    el("div", { class: "grid2" }, el("div", {}, slipBox, speedBox), el("div", {}, canvas)),
+    el("div", { class: "grid2" }, chartsBox, el("div", {}, canvas)),
   );
+  let spec = null; // the chosen estimator's spec
+  let specs = null;
+  let threshold = 15; // SlipConfig default until the vehicle's config is loaded
+  let charts = []; // [{box, chart, fields}] of the spec's charts
   let env = null; // chart columns: min/max envelope
   let track = null; // whole stored rows
   let range = null; // {s, e} BigInt ns of the loaded range
@@ -188,12 +210,50 @@ export function historyView(root, vehicleId) {
     map.draw();
   };
   const sync = `history-${vehicleId}`;
-  const slipChart = makeChart(slipBox, { title: "Wheel slip", yLabel: "slip (%)", fields: SLIP_FIELDS, threshold: 15, decimals: 1, syncKey: sync, onCursor });
-  const speedChart = makeChart(speedBox, { title: "Speeds", yLabel: "speed (m/s)", fields: SPEED_FIELDS, decimals: 2, syncKey: sync, onCursor });
-  const map = new SlipMap(canvas, { title: "Track coloured by max |slip| of the two wheels" });
-  fetchVehicle(vehicleId)
-    .then((v) => setThreshold(slipChart, v.config.slip.alert_threshold_pct))
-    .catch(() => {});
+  const TRACK_TITLE = "Track coloured by max |slip| of the wheels";
+  const map = new SlipMap(canvas, { title: TRACK_TITLE });
+
+  // Charts and cursor tiles of the chosen spec (its chart keys name the boxes: h-chart-<key>).
+  function useSpec(name) {
+    spec = specs.get(name);
+    for (const c of charts) c.chart.destroy();
+    chartsBox.replaceChildren();
+    charts = spec.charts.map((c) => {
+      const box = el("div", { class: "chart", id: `h-chart-${c.key}` });
+      chartsBox.append(box);
+      const o = chartOptions(spec, c);
+      const chart = makeChart(box, { ...o, threshold: o.isSlip ? threshold : null, syncKey: sync, onCursor });
+      return { box, chart, fields: c.fields };
+    });
+    const tile = (label, id, unit) =>
+      el("div", { class: "stat" }, el("div", { class: "stat-label", text: label }), el("div", { class: "stat-value" }, el("span", { id, text: "–" }), el("span", { class: "unit", text: ` ${unit}` })));
+    const motion = motionChannel(spec);
+    cursorStats.replaceChildren(
+      ...spec.slips.map((ch) => tile(`Slip ${ch.label}`, `h-slip-${ch.key}`, "%")),
+      ...(motion ? [tile(motion.label, "h-motion", fieldOf(spec, motion.field).unit)] : []),
+    );
+    canvas.hidden = !spec.position;
+    heatOn.disabled = !spec.position || !spec.slips.length;
+  }
+
+  // The estimators the vehicle runs (primary first; every spec with a position when the server
+  // does not say), then the default range and the first load.
+  Promise.all([loadSpecs(), fetchVehicle(vehicleId).catch(() => null)])
+    .then(([all, v]) => {
+      specs = all;
+      if (v) threshold = v.config.slip.alert_threshold_pct;
+      const names = v && v.estimators && v.estimators.length ? v.estimators : [...all.values()].filter((s) => s.position).map((s) => s.name);
+      for (const n of names) estimatorSel.append(el("option", { value: n, text: all.get(n)?.title || n }));
+      useSpec(names[0]);
+      return loadDefaultRange();
+    })
+    .catch((err) => {
+      msg.textContent = `Could not load: ${err.message}`;
+    });
+  estimatorSel.addEventListener("change", () => {
+    useSpec(estimatorSel.value);
+    doLoad();
+  });
 
   function setPresetRange(endNs) {
     // whole seconds, the end rounded up so the newest row stays inside
@@ -206,9 +266,11 @@ export function historyView(root, vehicleId) {
 
   function autoCellM() {
     let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;
-    if (track) {
-      for (let i = 0; i < track.east_m.length; i++) {
-        const e = track.east_m[i], n = track.north_m[i];
+    if (track && spec.position) {
+      const east = track[spec.position.east_field];
+      const north = track[spec.position.north_field];
+      for (let i = 0; i < east.length; i++) {
+        const e = east[i], n = north[i];
         if (e == null || n == null) continue;
         if (e < e0) e0 = e; if (e > e1) e1 = e; if (n < n0) n0 = n; if (n > n1) n1 = n;
       }
@@ -219,9 +281,10 @@ export function historyView(root, vehicleId) {
   }
 
   async function fetchHeat(s, e, cellM) {
-    const key = `${s}/${e}/${cellM}`;
+    const key = `${spec.name}/${s}/${e}/${cellM}`;
     if (!heatCache.has(key)) {
       const p = getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/slipmap`, {
+        estimator: spec.name,
         start: s.toString(),
         end: e.toString(),
         cell_m: cellM,
@@ -235,9 +298,9 @@ export function historyView(root, vehicleId) {
 
   async function applyHeat() {
     const my = ++heatGen;
-    if (!heatOn.checked || !range) {
+    if (!heatOn.checked || !range || heatOn.disabled) {
       map.setHeat(null, 0);
-      map.title = "Track coloured by max |slip| of the two wheels";
+      map.title = TRACK_TITLE;
       heatMsg.textContent = "";
       if (range) map.draw();
       return;
@@ -285,11 +348,10 @@ export function historyView(root, vehicleId) {
     idx = Math.max(0, Math.min(xs.length - 1, i));
     scrub.value = String(idx);
     at.textContent = fmtTimeNs(track.stamp_ns[idx]);
-    document.getElementById("h-sl").textContent = fmt(track.slip_left_pct[idx], 1);
-    document.getElementById("h-sr").textContent = fmt(track.slip_right_pct[idx], 1);
-    document.getElementById("h-vg").textContent = fmt(track.vg_mps[idx], 2);
-    setCursorTime(slipChart, xs[idx]);
-    setCursorTime(speedChart, xs[idx]);
+    for (const ch of spec.slips) document.getElementById(`h-slip-${ch.key}`).textContent = fmt(track[ch.field][idx], 1);
+    const motion = motionChannel(spec);
+    if (motion) document.getElementById("h-motion").textContent = fmt(track[motion.field][idx], 2);
+    for (const c of charts) setCursorTime(c.chart, xs[idx]);
     map.cursor = idx;
     map.upTo = idx;
     map.draw();
@@ -314,6 +376,7 @@ export function historyView(root, vehicleId) {
   }
 
   async function doLoad() {
+    if (!spec) return; // the estimators are not loaded yet
     const s = parseUtc(start.value);
     const e = parseUtc(end.value);
     setInvalid(start, s == null);
@@ -336,8 +399,8 @@ export function historyView(root, vehicleId) {
     let envBody, trackBody;
     try {
       [envBody, trackBody] = await Promise.all([
-        seriesRequest(vehicleId, s, e, CHART_FIELDS, CHART_POINTS, "minmax"),
-        seriesRequest(vehicleId, s, e, TRACK_FIELDS, TRACK_POINTS, "first"),
+        seriesRequest(vehicleId, spec.name, s, e, chartFields(spec), CHART_POINTS, "minmax"),
+        seriesRequest(vehicleId, spec.name, s, e, trackFields(spec), TRACK_POINTS, "first"),
       ]);
     } catch (err) {
       if (my === loadGen) msg.textContent = `Could not load: ${err.message}`;
@@ -349,14 +412,18 @@ export function historyView(root, vehicleId) {
     range = { s, e };
     heatCache.clear();
     xs = track.stamp_ns.map((t) => t / 1e9);
-    metric = slipMetric(track.slip_left_pct, track.slip_right_pct, track.flags);
+    metric = slipMetric(spec, track);
     msg.textContent = `${envBody.rows} points`;
     detail.textContent = describe(envBody, trackBody, s, e);
-    fitWidth(slipChart, slipBox);
-    fitWidth(speedChart, speedBox);
-    slipChart.setData(alignedData(env, SLIP_FIELDS));
-    speedChart.setData(alignedData(env, SPEED_FIELDS));
-    map.setTrack(track.east_m, track.north_m, metric);
+    const shade = degradedSpans(spec, env);
+    for (const c of charts) {
+      fitWidth(c.chart, c.box);
+      setShading(c.chart, shade);
+      c.chart.setData(alignedData(env, c.fields));
+    }
+    const pos = spec.position;
+    if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric);
+    else map.setTrack([], [], []);
     scrub.max = String(Math.max(0, xs.length - 1));
     scrub.disabled = xs.length === 0;
     play.disabled = xs.length === 0;
@@ -424,18 +491,19 @@ export function historyView(root, vehicleId) {
   }
   load.addEventListener("click", doLoad);
 
-  // default range: the last 30 min up to the vehicle's newest estimate (or now)
-  getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/latest`)
-    .then((row) => BigInt(Math.floor(row.stamp_ns / 1e6)) * 1000000n + 1000000n)
-    .catch(() => BigInt(Date.now()) * 1000000n)
-    .then((endNs) => {
-      setPresetRange(endNs);
-      doLoad();
-    });
+  // default range: the last 30 min up to the newest estimate (or now)
+  function loadDefaultRange() {
+    return getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/latest`, { estimator: spec.name })
+      .then((row) => BigInt(Math.floor(row.stamp_ns / 1e6)) * 1000000n + 1000000n)
+      .catch(() => BigInt(Date.now()) * 1000000n)
+      .then((endNs) => {
+        setPresetRange(endNs);
+        doLoad();
+      });
+  }
   const onResize = () => {
     if (!env) return;
-    fitWidth(slipChart, slipBox);
-    fitWidth(speedChart, speedBox);
+    for (const c of charts) fitWidth(c.chart, c.box);
     map.draw();
   };
   window.addEventListener("resize", onResize);
@@ -444,7 +512,6 @@ export function historyView(root, vehicleId) {
     loadGen++;
     heatGen++;
     window.removeEventListener("resize", onResize);
-    slipChart.destroy();
-    speedChart.destroy();
+    for (const c of charts) c.chart.destroy();
   };
 }

@@ -10,29 +10,6 @@
 
 import { drawSlipLegend, slipCss } from "./colors.js";
 
-const SLIP_LEFT_VALID = 1 << 4; // EstimateFlag bits
-const SLIP_RIGHT_VALID = 1 << 5;
-
-// Per-row slip metric of the track: the larger |slip| of the two wheels, null when neither has
-// one. With `flags`, a wheel counts only where its SLIP_*_VALID bit is set (as in the REST
-// reports and slip maps).
-export function slipMetric(left, right, flags) {
-  const n = left.length;
-  const out = new Array(n);
-  for (let i = 0; i < n; i++) {
-    let a = left[i];
-    let b = right[i];
-    if (flags) {
-      const f = flags[i] ?? 0;
-      if (!(f & SLIP_LEFT_VALID)) a = null;
-      if (!(f & SLIP_RIGHT_VALID)) b = null;
-    }
-    if (a == null && b == null) out[i] = null;
-    else out[i] = Math.max(a == null ? 0 : Math.abs(a), b == null ? 0 : Math.abs(b));
-  }
-  return out;
-}
-
 // `text` cut to fit `maxW` pixels in the context's font, ending in "…" when cut.
 export function fitText(ctx, text, maxW) {
   if (ctx.measureText(text).width <= maxW) return text;

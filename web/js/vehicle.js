@@ -1,5 +1,9 @@
-// Vehicle page, live: slip and speed charts over a sliding window (30 s – 30 min) and the track on
-// the slip map, from the /live/vehicles/{id} WebSocket (snapshot, then appends at 2–4 Hz).
+// Vehicle page, live: one panel per estimator the vehicle runs (its primary first), each drawn
+// from the estimator's spec (GET /api/v1/estimators): a tile per slip channel (band colour from
+// the band edges), its motion speed, quality and flags, and a chart per ChartSpec with its
+// degraded stretches shaded; the primary's track on the slip map. Each panel has its own
+// /live/vehicles/{id}?estimator= WebSocket (snapshot, then appends at 2–10 Hz); the primary's
+// messages list the vehicle's other estimators, whose panels are added as they appear.
 //
 // A vehicle that is not live (the feed's status "stale" or "offline", or the connection lost) keeps
 // its last values on the page, dimmed, with the age of its data ("last data 52 s ago"); that age is
@@ -7,9 +11,10 @@
 // page stops asking for it.
 
 import { ApiError, fetchReport, fetchVehicle, liveSocket } from "./api.js";
-import { SLIP_FIELDS, SPEED_FIELDS, alignedData, makeChart, setThreshold } from "./charts.js";
-import { slipCss } from "./colors.js";
-import { SlipMap, slipMetric } from "./slipmap.js";
+import { alignedData, chartOptions, degradedSpans, makeChart, setShading, setThreshold } from "./charts.js";
+import { slipBand, slipCss } from "./colors.js";
+import { SlipMap } from "./slipmap.js";
+import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
 import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
 
 const WINDOWS = [
@@ -19,13 +24,11 @@ const WINDOWS = [
   [600, "10 min"],
   [1800, "30 min"],
 ];
-const COLS = ["stamp_ns", ...SLIP_FIELDS, ...SPEED_FIELDS, "east_m", "north_m", "flags"];
 const ALERT_THRESHOLD_PCT = 15; // SlipConfig default, until the vehicle's own config is loaded
-// GNSS quality (the live feed's label) said in words where it is not "ok" or "gated"; the value
-// takes the fleet table's class gnss-<label> (colour and weight)
-const GNSS_NOTES = {
-  degraded: "GNSS lost: speed from IMU + wheels",
-  none: "no GNSS fix",
+// Quality of a row (the live feed's label) said in words where it is not "ok"
+const QUALITY_NOTES = {
+  degraded: "computed without its main reference",
+  none: "no reference yet",
 };
 
 // Shared with tests and the latency benchmark: receive time minus sensor stamp, ms, of each new
@@ -51,17 +54,128 @@ function stat(label, id, unit) {
   );
 }
 
-export function vehicleView(root, vehicleId) {
-  let windowS = 60;
+// Window columns of a live message: drop points at or after fromNs, append, trim to the window.
+function mergeColumns(cols, fromNs, add, windowS) {
+  let keep = cols.stamp_ns.length;
+  while (keep > 0 && cols.stamp_ns[keep - 1] >= fromNs) keep--;
+  for (const k of Object.keys(cols)) {
+    cols[k].length = keep;
+    for (const v of add[k] || []) cols[k].push(v);
+  }
+  const n = cols.stamp_ns.length;
+  if (!n) return;
+  const start = cols.stamp_ns[n - 1] - windowS * 1e9;
+  let drop = 0;
+  while (drop < n && cols.stamp_ns[drop] < start) drop++;
+  if (drop) for (const k of Object.keys(cols)) cols[k].splice(0, drop);
+}
+
+// One estimator's panel: tiles and charts from its spec; the page hands it its socket's messages.
+// page: {vehicleId, windowS(), bandEdges(channel), threshold(), onLatest(name, latest, recvMs),
+// onColumns(name, cols)}
+function estimatorPanel(spec, page, primary) {
+  const id = (part) => `v-${spec.name}-${part}`;
+  const motion = motionChannel(spec);
+  const tiles = el(
+    "div",
+    { class: "stats" },
+    ...spec.slips.map((ch) => stat(`Slip ${ch.label}`, id(`slip-${ch.key}`), "%")),
+    motion ? stat(motion.label, id("speed"), fieldOf(spec, motion.field).unit) : null,
+    stat("Quality", id("quality")),
+    spec.flags.length ? stat("Flags", id("flags")) : null,
+  );
+  const boxes = spec.charts.map((c) => el("div", { class: "chart", id: `chart-${spec.name}-${c.key}` }));
+  const root = el(
+    "section",
+    { class: "est-panel", "data-estimator": spec.name, "aria-label": spec.title },
+    el("h2", {}, spec.title, primary ? el("span", { class: "pill", text: "primary" }) : null),
+    tiles,
+    el("div", { class: "est-charts" }, ...boxes),
+  );
+  const charts = spec.charts.map((c, i) => {
+    const o = chartOptions(spec, c);
+    return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}` });
+  });
   let cols = null;
   let pending = false;
+
+  function showLatest(lt) {
+    for (const ch of spec.slips) {
+      const v = lt[ch.field];
+      const e = document.getElementById(id(`slip-${ch.key}`));
+      e.textContent = fmt(v, 1);
+      e.style.borderColor = slipCss(v);
+      e.dataset.band = String(slipBand(v, page.bandEdges(ch)));
+      e.dataset.stampNs = String(lt.stamp_ns);
+      // why a channel has no value: the row's flags other than its quality (standstill, …)
+      const why = lt.flag_names.filter((f) => f !== spec.ok_flag && !spec.slips.some((c) => c.valid_flag === f));
+      document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase().replace(/_/g, " ") || "unknown"}` : "";
+    }
+    if (motion) document.getElementById(id("speed")).textContent = fmt(lt[motion.field], 2);
+    const q = document.getElementById(id("quality"));
+    q.textContent = lt.quality;
+    q.className = `quality-${lt.quality}`;
+    const degraded = lt.flag_names.filter((f) => spec.degraded_flags.includes(f));
+    const notes = degraded.map((f) => spec.flags.find((x) => x.name === f).description);
+    document.getElementById(`${id("quality")}-note`).textContent = notes.join("; ") || (QUALITY_NOTES[lt.quality] ?? "");
+    if (spec.flags.length) document.getElementById(id("flags")).textContent = lt.flag_names.join(" ") || "none";
+  }
+
+  function redraw() {
+    pending = false;
+    if (!cols) return;
+    const shade = degradedSpans(spec, cols);
+    spec.charts.forEach((c, i) => {
+      setShading(charts[i], shade);
+      charts[i].setData(alignedData(cols, c.fields));
+    });
+    page.onColumns(spec.name, cols);
+  }
+
+  function onMessage(msg, recvMs) {
+    if (msg.type === "snapshot") {
+      cols = {};
+      for (const [k, v] of Object.entries(msg.columns)) cols[k] = v.slice();
+    } else if (msg.type === "append" && cols) {
+      mergeColumns(cols, msg.from_ns, msg.columns, page.windowS());
+    } else return false;
+    if (msg.latest) {
+      showLatest(msg.latest);
+      page.onLatest(spec.name, msg.latest, recvMs);
+    }
+    if (!pending) {
+      pending = true;
+      requestAnimationFrame(redraw);
+    }
+    return true;
+  }
+  return {
+    root,
+    tiles,
+    onMessage,
+    setThreshold: (pct) => spec.charts.forEach((c, i) => chartOptions(spec, c).isSlip && setThreshold(charts[i], pct)),
+    redraw,
+    stop() {
+      for (const c of charts) c.destroy();
+    },
+  };
+}
+
+export function vehicleView(root, vehicleId) {
+  let windowS = 60;
   let stopped = false;
   let connected = false;
-  let latest = null; // newest "latest" of the feed, and its receive time (ms since the epoch)
+  let threshold = ALERT_THRESHOLD_PCT;
+  let bandEdges = null; // the vehicle's SlipConfig.band_edges_pct, once loaded
+  let specs = null; // name -> spec
+  let primary = null; // name of the primary estimator, from its socket's first message
+  let latest = null; // newest "latest" of the primary, and its receive time (ms since the epoch)
   let latestRecvMs = 0;
   let latencyStamp = null; // stamp of the estimate last measured for latency
   let notStored = null; // the 404 of GET /vehicles/{id}
   let liveEmpty = false; // the live feed has nothing for the vehicle ("waiting", or no socket)
+  const panels = new Map(); // estimator -> panel
+  const sockets = new Map(); // estimator ("" for the primary's until it is known) -> socket
   const title = el("h1", {}, "Vehicle ", el("span", { class: "mono", text: vehicleId }));
   const statusPill = el("span", { class: "pill", id: "v-status", text: "connecting" });
   const ageNote = el("span", { class: "data-age", id: "v-age", hidden: true });
@@ -71,22 +185,15 @@ export function vehicleView(root, vehicleId) {
     b.addEventListener("click", () => {
       windowS = s;
       for (const x of winButtons.children) x.setAttribute("aria-pressed", String(x === b));
-      sock.send({ window_s: s });
+      for (const sock of new Set(sockets.values())) sock.send({ window_s: s });
     });
     winButtons.append(b);
   }
-  const stats = el(
-    "div",
-    { class: "stats" },
-    stat("Slip left", "v-slip-left", "%"),
-    stat("Slip right", "v-slip-right", "%"),
-    stat("Ground speed Vg", "v-vg", "m/s"),
-    stat("GNSS", "v-gnss"),
-    stat("Sensor time", "v-stamp"),
-    stat("Latency sensor → page", "v-latency", "ms"),
-  );
+  const stats = el("div", { class: "stats" }, stat("Sensor time", "v-stamp"), stat("Latency sensor → page", "v-latency", "ms"));
+  const panelBox = el("div", { class: "est-panels", id: "v-panels" });
   // Packet accounting of the vehicle (totals since registration): every packet the server got
-  // is accepted, late, a duplicate or rejected with a reason; lost = sequence numbers never seen.
+  // is accepted, late, a duplicate or rejected with a reason; lost = sequence numbers never seen;
+  // estimator errors = rows an estimator failed to compute for this vehicle.
   const ingestBody = el("tbody", { id: "v-ingest" });
   const ingest = el(
     "details",
@@ -107,6 +214,7 @@ export function vehicleView(root, vehicleId) {
         ["lost (sequence gaps)", c.lost],
         ["rejected", c.rejected],
         ...Object.entries(c.rejected_by_reason).map(([reason, n]) => [`  rejected: ${reason}`, n]),
+        ...(c.estimator_errors === undefined ? [] : [["estimator errors", c.estimator_errors]]),
       ];
       ingestBody.replaceChildren(
         ...rows.map(([label, n]) =>
@@ -123,8 +231,6 @@ export function vehicleView(root, vehicleId) {
     refreshIngest();
     ingestTimer = setInterval(refreshIngest, 5000);
   }
-  const slipBox = el("div", { class: "chart", id: "chart-slip" });
-  const speedBox = el("div", { class: "chart", id: "chart-speed" });
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
   root.append(
     el(
@@ -137,28 +243,15 @@ export function vehicleView(root, vehicleId) {
       winButtons,
     ),
     stats,
-    el("div", { class: "grid2" }, el("div", {}, slipBox, speedBox), el("div", {}, canvas, ingest)),
+    el("div", { class: "grid2" }, panelBox, el("div", {}, canvas, ingest)),
   );
-  const slipChart = makeChart(slipBox, {
-    title: "Wheel slip",
-    yLabel: "slip (%)",
-    fields: SLIP_FIELDS,
-    threshold: ALERT_THRESHOLD_PCT,
-    decimals: 1,
-    syncKey: `live-${vehicleId}`,
-  });
-  const speedChart = makeChart(speedBox, {
-    title: "Speeds",
-    yLabel: "speed (m/s)",
-    fields: SPEED_FIELDS,
-    decimals: 2,
-    syncKey: `live-${vehicleId}`,
-  });
-  const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the two wheels" });
+  const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels" });
   fetchVehicle(vehicleId)
     .then((v) => {
       if (stopped) return;
-      setThreshold(slipChart, v.config.slip.alert_threshold_pct);
+      threshold = v.config.slip.alert_threshold_pct;
+      bandEdges = v.config.slip.band_edges_pct;
+      for (const p of panels.values()) p.setThreshold(threshold);
       startIngest();
     })
     .catch((err) => {
@@ -171,9 +264,9 @@ export function vehicleView(root, vehicleId) {
       } else startIngest(); // keep the default threshold
     });
 
-  // The server does not know the vehicle: say so, stop the socket and the polling.
+  // The server does not know the vehicle: say so, stop the sockets and the polling.
   function checkUnknown() {
-    if (!notStored || !liveEmpty || cols || stopped) return;
+    if (!notStored || !liveEmpty || panels.size || stopped) return;
     stop();
     root.replaceChildren(
       el("div", { class: "toolbar" }, title),
@@ -191,7 +284,7 @@ export function vehicleView(root, vehicleId) {
   function showAge() {
     if (!latest) return;
     const old = !connected || latest.status !== "live";
-    stats.classList.toggle("is-old", old);
+    for (const box of [stats, ...[...panels.values()].map((p) => p.tiles)]) box.classList.toggle("is-old", old);
     ageNote.hidden = !old;
     if (old) {
       const age = (latest.age_s ?? 0) + (performance.timeOrigin + performance.now() - latestRecvMs) / 1000;
@@ -203,111 +296,105 @@ export function vehicleView(root, vehicleId) {
   }
   const ageTimer = setInterval(showAge, 1000);
 
+  // The primary's newest row: sensor time, latency, status.
   function showLatest(lt, recvMs) {
-    if (!lt) return;
     latest = lt;
     latestRecvMs = recvMs;
-    const sl = latest.slip_left_pct;
-    const sr = latest.slip_right_pct;
-    const a = document.getElementById("v-slip-left");
-    const b = document.getElementById("v-slip-right");
-    a.textContent = fmt(sl, 1);
-    b.textContent = fmt(sr, 1);
-    a.style.borderColor = slipCss(sl);
-    b.style.borderColor = slipCss(sr);
-    // why a wheel has no slip value (standing, starting or stopping), from the estimate's flags
-    document.getElementById("v-slip-left-note").textContent = sl == null ? latest.slip_note || "" : "";
-    document.getElementById("v-slip-right-note").textContent = sr == null ? latest.slip_note || "" : "";
-    a.dataset.stampNs = String(latest.stamp_ns);
-    document.getElementById("v-vg").textContent = fmt(latest.vg_mps, 2);
-    const gnss = document.getElementById("v-gnss");
-    gnss.textContent = latest.gnss;
-    gnss.className = `gnss-${latest.gnss}`; // the fleet table's rule
-    document.getElementById("v-gnss-note").textContent = GNSS_NOTES[latest.gnss] || "";
-    document.getElementById("v-stamp").textContent = fmtTimeNs(latest.stamp_ns);
+    document.getElementById("v-stamp").textContent = fmtTimeNs(lt.stamp_ns);
+    document.getElementById("v-stamp").dataset.stampNs = String(lt.stamp_ns);
     // latency: only a new estimate of a live vehicle (a heartbeat repeats the newest estimate, and
     // a stale vehicle's is as old as its silence)
-    if (latest.status === "live" && latest.stamp_ns !== latencyStamp) {
-      latencyStamp = latest.stamp_ns;
-      const lat = recvMs - latest.stamp_ns / 1e6;
+    if (lt.status === "live" && lt.stamp_ns !== latencyStamp) {
+      latencyStamp = lt.stamp_ns;
+      const lat = recvMs - lt.stamp_ns / 1e6;
       document.getElementById("v-latency").textContent = fmt(lat, 0);
       document.getElementById("v-latency-note").textContent = "";
       const L = window.slipfleetStats.latencyMs;
       L.push(lat);
       if (L.length > 10000) L.splice(0, L.length - 10000);
     }
-    statusPill.textContent = latest.status;
-    statusPill.className = `pill st-${latest.status}`;
+    statusPill.textContent = lt.status;
+    statusPill.className = `pill st-${lt.status}`;
     showAge();
   }
 
-  function redraw() {
-    pending = false;
-    if (!cols || stopped) return;
-    // the charts follow their boxes' widths themselves (charts.js)
-    slipChart.setData(alignedData(cols, SLIP_FIELDS));
-    speedChart.setData(alignedData(cols, SPEED_FIELDS));
-    map.setTrack(cols.east_m, cols.north_m, slipMetric(cols.slip_left_pct, cols.slip_right_pct));
-    map.draw();
+  const page = {
+    vehicleId,
+    windowS: () => windowS,
+    threshold: () => threshold,
+    bandEdges: (ch) => bandEdges || ch.band_edges_pct,
+    onLatest(name, lt, recvMs) {
+      if (name === primary) showLatest(lt, recvMs);
+    },
+    onColumns(name, cols) {
+      const spec = specs.get(name);
+      if (name !== primary || !spec.position) return;
+      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols));
+      map.draw();
+    },
+  };
+
+  function addPanel(name) {
+    const spec = specs.get(name);
+    if (!spec || panels.has(name)) return;
+    const panel = estimatorPanel(spec, page, name === primary);
+    panels.set(name, panel);
+    panelBox.append(panel.root);
   }
 
-  function merge(fromNs, add) {
-    // drop points at or after fromNs, append, trim to the window
-    let keep = cols.stamp_ns.length;
-    while (keep > 0 && cols.stamp_ns[keep - 1] >= fromNs) keep--;
-    for (const k of COLS) {
-      cols[k].length = keep;
-      const extra = add[k] || [];
-      for (const v of extra) cols[k].push(v);
-    }
-    const n = cols.stamp_ns.length;
-    if (n) {
-      const start = cols.stamp_ns[n - 1] - windowS * 1e9;
-      let drop = 0;
-      while (drop < n && cols.stamp_ns[drop] < start) drop++;
-      if (drop) for (const k of COLS) cols[k].splice(0, drop);
-    }
+  // A socket of one estimator (null: the vehicle's primary, named by its first message).
+  function openSocket(name) {
+    const sock = liveSocket(
+      `/api/v1/live/vehicles/${encodeURIComponent(vehicleId)}`,
+      name ? { estimator: name, window_s: windowS } : { window_s: windowS },
+      {
+        onMessage(msg, recvMs) {
+          if (stopped) return;
+          if (name === null && msg.estimator && primary === null) {
+            primary = msg.estimator;
+            sockets.set(primary, sock);
+          }
+          for (const other of msg.estimators || []) if (!sockets.has(other)) openSocket(other);
+          const key = name ?? primary;
+          if (msg.type === "waiting") {
+            if (key === primary && !panels.size) {
+              statusPill.textContent = "no data yet";
+              liveEmpty = true;
+              checkUnknown();
+            }
+            return;
+          }
+          if (key) addPanel(key);
+          if (key && panels.get(key)) panels.get(key).onMessage(msg, recvMs);
+        },
+        onState(s) {
+          if (stopped || (name ?? primary) !== primary) return;
+          connected = s === "open";
+          if (s !== "open") {
+            statusPill.textContent = `connection ${s}`;
+            statusPill.className = "pill st-offline";
+            showAge();
+            if (!panels.size) {
+              liveEmpty = true;
+              checkUnknown();
+            }
+          }
+        },
+      },
+    );
+    sockets.set(name ?? "", sock);
   }
+  loadSpecs()
+    .then((all) => {
+      if (stopped) return;
+      specs = all;
+      openSocket(null);
+    })
+    .catch(() => {
+      if (!stopped) statusPill.textContent = "estimators unavailable";
+    });
 
-  const sock = liveSocket(`/api/v1/live/vehicles/${encodeURIComponent(vehicleId)}`, { window_s: windowS }, {
-    onMessage(msg, recvMs) {
-      if (stopped) return;
-      if (msg.type === "waiting") {
-        statusPill.textContent = "no data yet";
-        liveEmpty = true;
-        checkUnknown();
-        return;
-      }
-      if (msg.type === "snapshot") {
-        cols = {};
-        for (const k of COLS) cols[k] = (msg.columns[k] || []).slice();
-        windowS = msg.window_s;
-      } else if (msg.type === "append" && cols) {
-        merge(msg.from_ns, msg.columns);
-      } else {
-        return;
-      }
-      showLatest(msg.latest, recvMs);
-      if (!pending) {
-        pending = true;
-        requestAnimationFrame(redraw);
-      }
-    },
-    onState(s) {
-      if (stopped) return;
-      connected = s === "open";
-      if (s !== "open") {
-        statusPill.textContent = `connection ${s}`;
-        statusPill.className = "pill st-offline";
-        showAge();
-        if (!cols) {
-          liveEmpty = true;
-          checkUnknown();
-        }
-      }
-    },
-  });
-  const onResize = () => redraw();
+  const onResize = () => panels.forEach((p) => p.redraw());
   window.addEventListener("resize", onResize);
 
   function stop() {
@@ -315,10 +402,9 @@ export function vehicleView(root, vehicleId) {
     stopped = true;
     clearInterval(ingestTimer);
     clearInterval(ageTimer);
-    sock.close();
+    for (const sock of new Set(sockets.values())) sock.close();
     window.removeEventListener("resize", onResize);
-    slipChart.destroy();
-    speedChart.destroy();
+    for (const p of panels.values()) p.stop();
   }
   return stop;
 }

@@ -1,4 +1,4 @@
-"""``GET /alerts``: open and recent alerts from :class:`server.alerts.AlertEngine`.
+"""``GET /alerts``: open and recent alerts from :class:`server.analytics.alerts.AlertEngine`.
 
 The engine is found as ``app.state.alert_engine`` or, failing that,
 ``app.state.runtime.alert_engine``.
@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from pydantic import BaseModel, Field
 from starlette.datastructures import State
 
-from server.alerts import AlertEngine, AlertKind
+from server.analytics.alerts import AlertEngine
 from server.api.errors import ServiceUnavailable, error_responses
 
 __all__ = ["AlertListPublic", "AlertPublic", "find_alert_engine", "router"]
@@ -26,7 +26,12 @@ class AlertPublic(BaseModel):
 
     id: int
     vehicle_id: str = Field(description='the vehicle, or "" for an alert about the server')
-    kind: AlertKind
+    kind: str = Field(
+        description="`slip:<estimator>:<slip channel key>`, `flag:<estimator>:<FLAG>`, `stale`, "
+        "`storage_down` or `zenoh_down`"
+    )
+    estimator: str | None = Field(description="estimator whose rows raised it (slip and flag)")
+    channel: str | None = Field(description="its slip channel key or flag name (slip and flag)")
     start_ns: int = Field(description="where the condition began (stale: the last estimate)")
     end_ns: int | None = Field(description="where it ended; null while open")
     open: bool
@@ -63,9 +68,12 @@ def _engine(request: Request) -> AlertEngine:
     responses=error_responses(503),
     summary="Open and recent alerts",
     description=(
-        "Kinds: `slip_left` / `slip_right` (|slip| above the vehicle's `alert_threshold_pct` for "
-        "longer than its `alert_hold_s`), `gnss_degraded` (GNSS lost), `stale` (no estimate for "
-        "a while). Newest first."
+        "Rules name a channel of an estimator's spec (`GET /api/v1/estimators`): "
+        "`slip:<estimator>:<channel>` (|slip| of one of its slip channels above the vehicle's "
+        "`alert_threshold_pct` for longer than its `alert_hold_s`), `flag:<estimator>:<FLAG>` "
+        "(one of its `degraded_flags` held, e.g. `flag:mdsf:DEGRADED`: GNSS lost), `stale` (no "
+        "estimate for a while); `storage_down` and `zenoh_down` are about the server. Newest "
+        "first."
     ),
 )
 def list_alerts(

@@ -1,4 +1,4 @@
-"""Live WebSockets for the dashboard, fed by :class:`server.live.LiveHub`.
+"""Live WebSockets for the dashboard, fed by :class:`server.live.hub.LiveHub`.
 
 The hub is found as ``app.state.live_hub`` or, failing that, ``app.state.runtime.live_hub``.
 Every message is one JSON text frame with a ``type``; NaN values are sent as ``null``; times are
@@ -7,45 +7,51 @@ integer nanoseconds (``*_ns``, sensor stamps are the vehicle clock, ``sent_ns`` 
 as doubles, exact to about 256 ns: enough to order, merge and display them.
 
 ``/api/v1/live/fleet?interval_ms=500`` — the whole fleet, compact and column-wise
-    Server → client, every ``interval_ms`` (250..5000, default 500)::
+    Server → client, every ``interval_ms`` (250..5000, default 500); each vehicle by its primary
+    estimator (``GET /api/v1/estimators`` describes every estimator's channels)::
 
         {"type": "fleet", "t_ns": 1717…, "sent_ns": 1717…,
          "ids": ["tractor-1", …],           # one entry per vehicle in each list below
+         "estimator": ["mdsf", …],          # the vehicle's primary estimator
          "status": ["live" | "stale" | "offline", …],
          "stamp_ns": [1717…, …],            # newest estimate's sensor stamp
          "age_s": [0.3, …],                 # max(sensor age, wall age) of that estimate
-         "vg_mps": [2.41, …], "slip_left_pct": [3.2 | null, …], "slip_right_pct": [...],
-         "gnss": ["ok" | "gated" | "degraded" | "none", …], "flags": [17, …]}
+         "speed_mps": [2.41, …],            # the primary's motion speed channel
+         "slip_pct": {"<slip channel key>": [3.2 | null, …], …},
+         "quality": ["ok" | "degraded" | "none", …],   # ok_flag / degraded_flags of the spec
+         "flags": [17, …]}
 
     The client sends nothing.
 
-``/api/v1/live/vehicles/{vehicle_id}?window_s=60&max_points=1500`` — one vehicle's charts
+``/api/v1/live/vehicles/{vehicle_id}?estimator=mdsf&window_s=60&max_points=1500`` — one
+vehicle's rows of one estimator (default: its primary)
     ``window_s`` in 5..1800 (default 60), ``max_points`` in 100..5000 (default 1500).
     First the server sends a ``snapshot``, then an ``append`` at most every 100 ms (when new rows
     arrived) and at least every second::
 
-        {"type": "snapshot", "vehicle_id": "…", "window_s": 60, "tier": "fine", "bucket_s": 0.05,
-         "columns": {"stamp_ns": [...], "vg_mps": [...], "vl_mps": [...], "vr_mps": [...],
-                     "rim_left_mps": [...], "rim_right_mps": [...], "slip_left_pct": [...],
-                     "slip_right_pct": [...], "east_m": [...], "north_m": [...], "flags": [...]},
-         "latest": {<every ESTIMATE_DTYPE field>, "arrival_ns": …, "status": "live", "age_s": 0.2,
-                    "gnss": "ok",
-                    "slip_note": "" | "standstill" | "starting/stopping" | "wheel data lost"},
+        {"type": "snapshot", "vehicle_id": "…", "estimator": "mdsf",
+         "estimators": ["mdsf", "reference_speed"],   # every estimator with rows, primary first
+         "window_s": 60, "tier": "fine", "bucket_s": 0.05,
+         "columns": {"stamp_ns": [...], <each live field of the spec>: [...]},
+         "latest": {<every field of the spec>, "arrival_ns": …, "status": "live", "age_s": 0.2,
+                    "quality": "ok", "flag_names": [<names of the flags set>]},
          "sent_ns": 1717…}
 
-        {"type": "append", "from_ns": 1717…, "columns": {…same keys…}, "latest": {…},
-         "sent_ns": …}
+        {"type": "append", "estimator": "mdsf", "estimators": […], "from_ns": 1717…,
+         "columns": {…same keys…}, "latest": {…}, "sent_ns": …}
 
-    On ``append`` the client drops its points with ``stamp_ns >= from_ns`` and then appends
-    ``columns`` (the newest, still-filling bucket of a decimated window is re-sent that way), then
-    trims points older than ``newest - window_s``. Columns hold the hub's decimated rows: one per
-    ``bucket_s`` with the bucket's newest values and its peak slip; a snapshot longer than
-    ``max_points`` is decimated further. Latency sensor → page is ``receive time - latest.stamp_ns``
-    when vehicle and server clocks agree.
+    The live fields (``server.live.hub.live_fields``) are the spec's chart, slip, motion and
+    position fields and ``flags``. On ``append`` the client drops its points with
+    ``stamp_ns >= from_ns`` and then appends ``columns`` (the newest, still-filling bucket of a
+    decimated window is re-sent that way), then trims points older than ``newest - window_s``.
+    Columns hold the hub's decimated rows: one per ``bucket_s`` with the bucket's newest values
+    and its peak slips; a snapshot longer than ``max_points`` is decimated further. Latency
+    sensor → page is ``receive time - latest.stamp_ns`` when vehicle and server clocks agree.
 
-    While the vehicle has no estimate yet the server sends ``{"type": "waiting", "vehicle_id": …}``
-    every second. The client may send ``{"window_s": 300}`` at any time; the server answers with a
-    new ``snapshot`` for that window.
+    While the vehicle has no rows of the estimator yet the server sends ``{"type": "waiting",
+    "vehicle_id": …, "estimator": … | null, "estimators": […]}`` every second. The client may
+    send ``{"window_s": 300}`` at any time; the server answers with a new ``snapshot`` for that
+    window.
 """
 
 from __future__ import annotations
@@ -60,8 +66,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from starlette.datastructures import State
 
-from estimator.types import ESTIMATE_DTYPE
-from server.live import LiveHub, gnss_quality, slip_note
+from server.live.hub import LiveHub, quality
 
 __all__ = ["FLEET_MIN_INTERVAL_S", "VEHICLE_MIN_INTERVAL_S", "find_live_hub", "router"]
 
@@ -87,28 +92,31 @@ def _dumps(msg: dict[str, Any]) -> str:
     return json.dumps(msg, separators=(",", ":"), allow_nan=False)
 
 
-def _latest_dict(hub: LiveHub, vehicle_id: str) -> dict[str, Any] | None:
-    got = hub.latest(vehicle_id)
-    if got is None:
+def _latest_dict(hub: LiveHub, vehicle_id: str, estimator: str) -> dict[str, Any] | None:
+    """The newest row of (vehicle, estimator), every field of its spec, with its status."""
+    got = hub.latest(vehicle_id, estimator)
+    spec = hub.spec(estimator)
+    if got is None or spec is None:
         return None
     row, arrival_ns = got
     out: dict[str, Any] = {}
-    for name in ESTIMATE_DTYPE.names or ():
+    for name in spec.field_names:
         v = row[name].item()
         if isinstance(v, float):
             out[name] = None if math.isnan(v) else round(v, 4)
         else:
             out[name] = int(v)
+    flags = int(out.get("flags", 0))
     out["arrival_ns"] = arrival_ns
-    out["status"] = hub.status(vehicle_id)
+    out["status"] = hub.status(vehicle_id, estimator)
     out["age_s"] = round(max(0.0, (time.time_ns() - arrival_ns) / 1e9), 2)
-    out["gnss"] = gnss_quality(out["flags"])
-    out["slip_note"] = slip_note(out["flags"])
+    out["quality"] = quality(spec, flags)
+    out["flag_names"] = spec.flag_names(flags)
     return out
 
 
 def _columns(window: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in window.items() if k not in ("tier", "bucket_s")}
+    return {k: v for k, v in window.items() if k not in ("estimator", "tier", "bucket_s")}
 
 
 async def _close_unavailable(websocket: WebSocket) -> None:
@@ -165,10 +173,12 @@ def _clamp_window(value: Any, default: float) -> float:
 async def live_vehicle(
     websocket: WebSocket,
     vehicle_id: str,
+    estimator: Annotated[str | None, Query(max_length=64)] = None,
     window_s: Annotated[float, Query(ge=_WINDOW_MIN_S, le=_WINDOW_MAX_S)] = 60.0,
     max_points: Annotated[int, Query(ge=100, le=5000)] = 1500,
 ) -> None:
-    """One vehicle's sliding-window series, incrementally (see the module docstring)."""
+    """One vehicle's sliding-window series of one estimator (default: its primary),
+    incrementally (see the module docstring)."""
     hub = find_live_hub(websocket.app.state)
     if hub is None:
         await _close_unavailable(websocket)
@@ -190,6 +200,7 @@ async def live_vehicle(
 
     receiver = asyncio.create_task(receive())
     window = window_s
+    name = estimator  # None until the vehicle's primary is known
     last_stamp: int | None = None  # newest stamp the client holds; None: send a snapshot
     version = -1
     try:
@@ -198,33 +209,37 @@ async def live_vehicle(
                 window = requests.get_nowait()
                 last_stamp = None
             version = hub.version
-            if last_stamp is None:
-                snap = hub.window(vehicle_id, window, max_points=max_points)
-                if snap is None:
-                    msg: dict[str, Any] = {"type": "waiting", "vehicle_id": vehicle_id}
-                else:
-                    msg = {
-                        "type": "snapshot",
-                        "vehicle_id": vehicle_id,
-                        "window_s": window,
-                        "tier": snap["tier"],
-                        "bucket_s": snap["bucket_s"],
-                        "columns": _columns(snap),
-                        "latest": _latest_dict(hub, vehicle_id),
-                    }
-                    stamps = snap["stamp_ns"]
-                    last_stamp = stamps[-1] if stamps else 0
+            name = name or hub.primary(vehicle_id)
+            snap = None
+            if last_stamp is None and name is not None:
+                snap = hub.window(vehicle_id, window, estimator=name, max_points=max_points)
+            if name is None or (last_stamp is None and snap is None):
+                msg: dict[str, Any] = {"type": "waiting", "vehicle_id": vehicle_id}
+            elif snap is not None:
+                msg = {
+                    "type": "snapshot",
+                    "vehicle_id": vehicle_id,
+                    "window_s": window,
+                    "tier": snap["tier"],
+                    "bucket_s": snap["bucket_s"],
+                    "columns": _columns(snap),
+                    "latest": _latest_dict(hub, vehicle_id, name),
+                }
+                stamps = snap["stamp_ns"]
+                last_stamp = stamps[-1] if stamps else 0
             else:
-                inc = hub.window(vehicle_id, window, since_ns=last_stamp)
+                inc = hub.window(vehicle_id, window, estimator=name, since_ns=last_stamp)
                 cols = _columns(inc) if inc is not None else {"stamp_ns": []}
                 msg = {
                     "type": "append",
                     "from_ns": last_stamp,
                     "columns": cols,
-                    "latest": _latest_dict(hub, vehicle_id),
+                    "latest": _latest_dict(hub, vehicle_id, name),
                 }
                 if cols["stamp_ns"]:
                     last_stamp = cols["stamp_ns"][-1]
+            msg["estimator"] = name
+            msg["estimators"] = hub.estimators(vehicle_id)
             msg["sent_ns"] = time.time_ns()
             await websocket.send_text(_dumps(msg))
             await asyncio.sleep(VEHICLE_MIN_INTERVAL_S)

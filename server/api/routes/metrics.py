@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 
 from server.api.deps import RuntimeDep, call_hook
-from server.api.prometheus import CONTENT_TYPE, MetricFamily, Sample, render
 from server.api.routes.health import checks
+from server.metrics.prometheus import CONTENT_TYPE, MetricFamily, Sample, render
 
 __all__ = ["router"]
 

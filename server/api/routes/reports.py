@@ -1,4 +1,5 @@
-"""Field reports: ``/vehicles/{id}/report`` and ``/fleet/report`` (JSON or CSV table)."""
+"""Field reports: ``/vehicles/{id}/report`` and ``/fleet/report`` (JSON or CSV table), of one
+estimator's rows read through its spec (``?estimator=``, default each vehicle's primary)."""
 
 from __future__ import annotations
 
@@ -6,20 +7,25 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
 
-from estimator.types import empty_estimates
+from estimator.catalog import SPECS
+from estimator.spec import EstimatorSpec
+from server.analytics.reports import flatten_report, ingest_counts, report_fields, vehicle_report
 from server.api.deps import (
+    EstimatorDep,
+    EstimatorQuery,
     LimitsDep,
     StoreDep,
     TimeRange,
     TimeRangeDep,
     VehicleDep,
+    estimator_spec,
     slip_config,
+    vehicle_estimators,
 )
 from server.api.errors import error_responses
 from server.api.models import FleetReportPublic, VehicleReportPublic
 from server.api.routes.series import export_filename
 from server.api.tables import csv_table
-from server.reports import REPORT_FIELDS, flatten_report, ingest_counts, vehicle_report
 from server.storage.base import Store, VehicleRecord
 
 __all__ = ["REPORT_DESCRIPTION", "router"]
@@ -27,31 +33,40 @@ __all__ = ["REPORT_DESCRIPTION", "router"]
 router = APIRouter(tags=["reports"])
 
 REPORT_DESCRIPTION = """\
-Over `start <= stamp < end` (at most 24 h by default; 400 `range_too_large` beyond):
+Over `start <= stamp < end` (at most 24 h by default; 400 `range_too_large` beyond), of one
+estimator's rows (`estimator`, default the vehicle's primary), read through its spec
+(`GET /api/v1/estimators`):
 
 * **time weight** of an estimate: the time to the next one; a step over 1 s is a gap (the estimate
   before it counts one median step); the last counts one median step. `covered_s` sums them.
-* **moving**: `|vg_mps| >= slip.min_ground_speed_mps` of the vehicle's config; `moving_s`.
-* **distance_m**: sum of `|vg_mps| · weight` over moving estimates.
-* **speed**: time-weighted mean and median/p95 of `|vg_mps|` while moving; max over all.
-* **slip per wheel**: estimates with the wheel's `SLIP_*_VALID` flag and a finite value; mean,
-  median, p95 (linear interpolation), min, max of the **signed** slip in percent.
+* **moving**: `|v| >= slip.min_ground_speed_mps` of the vehicle's config, `v` the field of the
+  spec's `motion` speed channel (`report.motion`, `report.motion_field`); `moving_s`. An
+  estimator without one has no moving time, distance or speeds (null).
+* **distance_m**: sum of `|v| · weight` over moving estimates.
+* **speed**: time-weighted mean and median/p95 of `|v|` while moving; max over all.
+* **slips**, per slip channel of the spec (by its key, e.g. `left`): estimates with the channel's
+  `valid_flag` set (none: every estimate) and a finite value; mean, median, p95 (linear
+  interpolation), min, max of the **signed** slip in percent. An estimator without slip channels
+  gives `{}`.
 * **bands**: time share of **absolute** slip in `[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the
-  edges `slip.band_edges_pct` of the vehicle's config (default 5 and 15 %); share of the wheel's
-  valid-slip time.
-* **degraded_s**: time flagged `DEGRADED` (GNSS lost).
+  edges `slip.band_edges_pct` of the vehicle's config (default 5 and 15 %); share of the
+  channel's valid-slip time.
+* **degraded_s**: time with any of the spec's `degraded_flags` set (its main reference lost).
 * **ingest**: packet counter totals since registration (received, accepted, rejected by reason,
   late, duplicate, lost).
 """
 
 
 def _report(
-    store: Store, record: VehicleRecord, tr: TimeRange, max_gap_s: float
+    store: Store, record: VehicleRecord, spec: EstimatorSpec, tr: TimeRange, max_gap_s: float
 ) -> VehicleReportPublic:
     slip = slip_config(record)
-    rows = store.query_series(record.vehicle_id, tr.start_ns, tr.end_ns, REPORT_FIELDS)
+    rows = store.query_series(
+        record.vehicle_id, tr.start_ns, tr.end_ns, report_fields(spec), estimator=spec.name
+    )
     report = vehicle_report(
         rows,
+        spec,
         start_ns=tr.start_ns,
         end_ns=tr.end_ns,
         band_edges_pct=slip.band_edges_pct,
@@ -60,11 +75,21 @@ def _report(
     )
     return VehicleReportPublic(
         vehicle_id=record.vehicle_id,
+        estimator=spec.name,
         band_edges_pct=list(slip.band_edges_pct),
         report=report,
         ingest=ingest_counts(store.get_counters(record.vehicle_id)),
     )
 
+
+def _primary(record: VehicleRecord) -> EstimatorSpec | None:
+    """The vehicle's primary estimator's spec; None when it runs none."""
+    names = vehicle_estimators(record)
+    return SPECS.get(names[0]) if names else None
+
+
+#: The spec with the fewest columns (no slip channel): the header of an empty fleet's table.
+_NO_SLIP = min(SPECS.values(), key=lambda spec: len(spec.slips))
 
 ReportFormat = Annotated[Literal["json", "csv"], Query(description="Answer format")]
 
@@ -85,13 +110,14 @@ ReportFormat = Annotated[Literal["json", "csv"], Query(description="Answer forma
 )
 def get_vehicle_report(
     vehicle: VehicleDep,
+    spec: EstimatorDep,
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
     format: ReportFormat = "json",
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
-    report = _report(store, vehicle, tr, limits.report_max_gap_s)
+    report = _report(store, vehicle, spec, tr, limits.report_max_gap_s)
     if format == "csv":
         name = export_filename(f"{vehicle.vehicle_id}_report", tr, "csv")
         return _csv_response([report], name)
@@ -99,16 +125,15 @@ def get_vehicle_report(
 
 
 def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response:
-    """One CSV row per report (:func:`server.reports.flatten_report`), as a download."""
-    rows = [flatten_report(r.vehicle_id, r.report, r.ingest) for r in reports]
-    if rows:
-        columns: dict[str, None] = {}
-        for row in rows:  # band columns: the union over the reports, empty where not used
-            columns.update(dict.fromkeys(row))
-        table = csv_table(list(columns), rows)
-    else:  # an empty fleet still gets the header of the default-config columns
-        empty = vehicle_report(empty_estimates(0)[list(REPORT_FIELDS)], start_ns=0, end_ns=1)
-        table = csv_table(list(flatten_report("", empty, ingest_counts({}))), [])
+    """One CSV row per report (:func:`server.analytics.reports.flatten_report`), as a download."""
+    rows = [flatten_report(r.vehicle_id, r.estimator, r.report, r.ingest) for r in reports]
+    columns: dict[str, None] = {}
+    for row in rows:  # channel and band columns: the union over the reports, empty where unused
+        columns.update(dict.fromkeys(row))
+    if not rows:  # an empty fleet still gets the columns every report has
+        empty = vehicle_report(_NO_SLIP.empty_rows(0), _NO_SLIP, start_ns=0, end_ns=1)
+        columns.update(dict.fromkeys(flatten_report("", "", empty, ingest_counts({}))))
+    table = csv_table(list(columns), rows)
     return Response(
         table,
         media_type="text/csv; charset=utf-8",
@@ -121,8 +146,10 @@ def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response
     response_model=FleetReportPublic,
     responses={
         200: {
-            "description": "One report per registered vehicle; CSV: one row per vehicle, band "
-            "columns named by their edges (the union over the fleet, empty where not used).",
+            "description": "One report per registered vehicle, of `estimator` or else of each "
+            "vehicle's primary (a vehicle that runs no estimator is left out); CSV: one row per "
+            "vehicle, slip columns named by channel key and band edges (the union over the "
+            "fleet, empty where not used).",
             "content": {"text/csv": {"schema": {"type": "string"}}},
         },
         **error_responses(400, 422),
@@ -135,11 +162,15 @@ def get_fleet_report(
     store: StoreDep,
     limits: LimitsDep,
     format: ReportFormat = "json",
+    estimator: EstimatorQuery = None,
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
-    reports = [
-        _report(store, record, tr, limits.report_max_gap_s) for record in store.list_vehicles()
-    ]
+    asked = None if estimator is None else estimator_spec(estimator)
+    reports = []
+    for record in store.list_vehicles():
+        spec = asked or _primary(record)
+        if spec is not None:
+            reports.append(_report(store, record, spec, tr, limits.report_max_gap_s))
     if format == "csv":
         return _csv_response(reports, "fleet_report.csv")
     body = FleetReportPublic(start_ns=tr.start_ns, end_ns=tr.end_ns, vehicles=reports)

@@ -1,12 +1,14 @@
-"""``/vehicles/{id}/series``: estimate series as JSON columns, CSV or Parquet, optionally decimated.
+"""``/vehicles/{id}/series``: one estimator's series as JSON columns, CSV, Parquet or GeoJSON,
+optionally decimated. Fields are those of the estimator's spec (``?estimator=``, default the
+vehicle's primary); GeoJSON places rows by the spec's position channel.
 
 Rows are read from the store in chunks (``ApiLimits.query_chunk_ns``) so a long range never sits
 in memory at full rate. With ``max_points`` >= 2 and more rows than that, every chunk is decimated
-by :func:`server.downsample.downsample_minmax` (per time bucket the min and max of each field, for
-charts) or :func:`server.downsample.thin_first` (per time bucket its first row, whole, for
-positions and GeoJSON). The buckets are sized on the span of the stored rows in the range (first
-to last), not on the requested range; chunks are whole numbers of buckets, so chunking does not
-change the result.
+by :func:`server.analytics.downsample.downsample_minmax` (per time bucket the min and max of each
+field, for charts) or :func:`server.analytics.downsample.thin_first` (per time bucket its first
+row, whole, for positions and GeoJSON). The buckets are sized on the span of the stored rows in
+the range (first to last), not on the requested range; chunks are whole numbers of buckets, so
+chunking does not change the result.
 """
 
 from __future__ import annotations
@@ -26,11 +28,19 @@ from fastapi import APIRouter, Query, Response
 from fastapi.responses import StreamingResponse
 
 from estimator.geo import EnuFrame
-from estimator.types import ESTIMATE_DTYPE
-from server.api.deps import ApiLimits, LimitsDep, StoreDep, TimeRange, TimeRangeDep, VehicleDep
-from server.api.errors import RangeTooLarge, Unprocessable, error_responses
-from server.api.models import ESTIMATE_FIELD_NAMES, AnchorPublic, SeriesFormat, SeriesPublic
-from server.downsample import bucket_width_ns, downsample_minmax, thin_first
+from estimator.spec import EstimatorSpec, PositionChannel
+from server.analytics.downsample import bucket_width_ns, downsample_minmax, thin_first
+from server.api.deps import (
+    ApiLimits,
+    EstimatorDep,
+    LimitsDep,
+    StoreDep,
+    TimeRange,
+    TimeRangeDep,
+    VehicleDep,
+)
+from server.api.errors import BadRequest, RangeTooLarge, Unprocessable, error_responses
+from server.api.models import AnchorPublic, SeriesFormat, SeriesPublic, fields_doc
 from server.storage.base import Anchor, Store
 
 __all__ = [
@@ -47,13 +57,18 @@ PARQUET_MEDIA_TYPE = "application/vnd.apache.parquet"
 _CSV_ROWS_PER_WRITE = 5000
 
 
-def _parse_fields(fields: str | None) -> list[str]:
+def _parse_fields(fields: str | None, spec: EstimatorSpec) -> list[str]:
+    """The fields asked for (all of ``spec``'s when none), ``stamp_ns`` first; 422 naming the
+    estimator and the fields it does not have."""
     if fields is None or not fields.strip():
-        return list(ESTIMATE_FIELD_NAMES)
+        return list(spec.field_names)
     wanted = [f.strip() for f in fields.split(",") if f.strip()]
-    unknown = sorted({f for f in wanted if f not in ESTIMATE_FIELD_NAMES})
+    unknown = sorted({f for f in wanted if not spec.has_field(f)})
     if unknown:
-        raise Unprocessable(f"unknown field(s) {unknown}; known: {list(ESTIMATE_FIELD_NAMES)}")
+        raise Unprocessable(
+            f"estimator {spec.name!r} has no field(s) {unknown}; its fields: "
+            f"{list(spec.field_names)}"
+        )
     out = ["stamp_ns"]
     for f in wanted:
         if f not in out:
@@ -81,6 +96,7 @@ class _Reader:
         self,
         store: Store,
         vehicle_id: str,
+        spec: EstimatorSpec,
         tr: TimeRange,
         fields: Sequence[str],
         max_points: int,
@@ -89,6 +105,7 @@ class _Reader:
     ) -> None:
         self.store = store
         self.vehicle_id = vehicle_id
+        self.spec = spec
         self.tr = tr
         self.fields = list(fields)
         self.max_points = max_points
@@ -101,7 +118,10 @@ class _Reader:
         self.width_ns = 0  # bucket width once decimating is possible (0: full rate)
 
     def _stamps(self, lo: int, hi: int) -> np.ndarray:
-        return self.store.query_series(self.vehicle_id, lo, hi, ["stamp_ns"])["stamp_ns"]
+        rows = self.store.query_series(
+            self.vehicle_id, lo, hi, ["stamp_ns"], estimator=self.spec.name
+        )
+        return rows["stamp_ns"]
 
     def span(self) -> tuple[int, int] | None:
         """Stamps of the first and the last stored row in the range (None: no rows).
@@ -135,7 +155,9 @@ class _Reader:
         t = lo
         while t < hi:
             t_next = min(t + chunk_ns, hi)
-            rows = self.store.query_series(self.vehicle_id, t, t_next, self.fields)
+            rows = self.store.query_series(
+                self.vehicle_id, t, t_next, self.fields, estimator=self.spec.name
+            )
             if rows.shape[0]:
                 self.stored_rows += rows.shape[0]
                 if self.first_ns is None:
@@ -196,7 +218,7 @@ class _Reader:
 
     def empty(self) -> np.ndarray:
         """No rows, with the reader's fields."""
-        return np.empty(0, dtype=[(f, ESTIMATE_DTYPE[f]) for f in self.fields])
+        return self.spec.empty_rows(0)[self.fields]
 
 
 JSON_FLOAT_DIGITS = 9
@@ -259,19 +281,40 @@ def _parquet_bytes(rows: np.ndarray) -> bytes:
 
 
 GEOJSON_MEDIA_TYPE = "application/geo+json"
-_POSITION = ("east_m", "north_m", "up_m")
 
 
-def _geojson(vehicle_id: str, rows: np.ndarray, names: Sequence[str], anchor: Anchor | None) -> str:
+def _position_fields(spec: EstimatorSpec) -> tuple[PositionChannel, list[str]]:
+    """The spec's position channel and its east, north (and up) fields; 400 without one."""
+    p = spec.position
+    if p is None:
+        raise BadRequest(
+            f"estimator {spec.name!r} gives no position: format=geojson needs one "
+            "(use json, csv or parquet)"
+        )
+    return p, [f for f in (p.east_field, p.north_field, p.up_field) if f is not None]
+
+
+def _geojson(
+    vehicle_id: str,
+    rows: np.ndarray,
+    names: Sequence[str],
+    position: PositionChannel,
+    anchor: Anchor | None,
+) -> str:
     """A FeatureCollection of one Point (WGS 84 longitude, latitude, ellipsoidal height) per
-    row with a position, carrying the row's ``names`` fields (NaN as null); no features while
-    the vehicle has no anchor (no fix yet)."""
+    row with a position (``position``'s fields), carrying the row's ``names`` fields (NaN as
+    null); no features while the vehicle has no anchor (no fix yet)."""
     features: list[dict[str, object]] = []
-    placed = np.isfinite(rows["east_m"]) & np.isfinite(rows["north_m"])
+    east, north = rows[position.east_field], rows[position.north_field]
+    placed = np.isfinite(east) & np.isfinite(north)
     if anchor is not None and placed.any():
         rows = rows[placed]
-        up = np.nan_to_num(rows["up_m"], nan=0.0)
-        lat, lon, h = EnuFrame(*anchor).to_geodetic(rows["east_m"], rows["north_m"], up)
+        up = np.zeros(rows.shape[0])
+        if position.up_field is not None:
+            up = np.nan_to_num(rows[position.up_field], nan=0.0)
+        lat, lon, h = EnuFrame(*anchor).to_geodetic(
+            rows[position.east_field], rows[position.north_field], up
+        )
         cols = {n: rows[n].tolist() for n in names}
         for i, (x, y, z) in enumerate(zip(lon.tolist(), lat.tolist(), h.tolist(), strict=True)):
             props = {
@@ -316,9 +359,11 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         },
         **error_responses(400, 404, 422),
     },
-    summary="Estimate series of one vehicle",
+    summary="Estimate series of one vehicle's estimator",
     description=(
-        "Rows with `start <= stamp < end`, ordered by time.\n\n"
+        "Rows of one estimator (`estimator`, default the vehicle's primary) with "
+        "`start <= stamp < end`, ordered by time; the fields are that estimator's "
+        "(`GET /api/v1/estimators`):\n\n" + fields_doc() + "\n\n"
         "**Decimation**: with `max_points` >= 2 and more rows than that in the range, the "
         "span of the data itself, from its first to its last stored row in the range (not the "
         "requested range: a short drive in a long range keeps its detail), is cut into equal "
@@ -327,7 +372,7 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         "most two rows holding, per field, the bucket's minimum and maximum in the order they "
         "occurred (NaN ignored); `stamp_ns` of the two rows is the bucket's first and last stamp "
         "and `flags` the OR of the bucket's flags. Spikes therefore survive, but one decimated "
-        "row mixes values of several estimates (an `east_m` and a `north_m` of different rows "
+        "row mixes values of several estimates (an east and a north of different rows "
         "are no position the vehicle had).\n"
         "* `decimation=first` (for positions and anything read row by row): `max_points` "
         "buckets, each giving its first row, whole: every row returned is a stored row.\n\n"
@@ -336,13 +381,15 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         "`first`. The JSON answer says what it holds: `rows` returned of `stored_rows` stored in "
         "the range, `first_ns` and `last_ns` of the stored rows, and `bucket_ns` (0 at full "
         "rate).\n\n"
-        "**Map** (`format=geojson`): a FeatureCollection with one Point per row that has a "
-        "position, in WGS 84 (longitude, latitude, ellipsoidal height) from the vehicle's "
-        "anchor and the row's `east_m`, `north_m`, `up_m`; the properties are the fields asked "
-        "for. With `max_points` the rows are thinned as with `decimation=first` (a position is "
-        "never mixed from several rows; `decimation=minmax` is refused). No features before the "
-        "vehicle's first fix. The collection's `anchor` is that origin by name (`lat_deg`, "
-        "`lon_deg`, `height_m`, as in the vehicle's answer), null before it.\n\n"
+        "**Map** (`format=geojson`, for an estimator with a `position`; 400 `bad_request` "
+        "otherwise): a FeatureCollection with one Point per row that has a position, in WGS 84 "
+        "(longitude, latitude, ellipsoidal height) from the vehicle's anchor and the row's "
+        "position fields (east, north, up of the spec's `position`); the properties are the "
+        "fields asked for. With `max_points` the rows are thinned as with `decimation=first` "
+        "(a position is never mixed from several rows; `decimation=minmax` is refused). No "
+        "features before the vehicle's first fix. The collection's `anchor` is that origin by "
+        "name (`lat_deg`, `lon_deg`, `height_m`, as in the vehicle's answer), null before it."
+        "\n\n"
         "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
         "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
         "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
@@ -350,15 +397,17 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
 )
 def get_series(
     vehicle: VehicleDep,
+    spec: EstimatorDep,
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
     fields: Annotated[
         str | None,
         Query(
-            description="Comma-separated estimate fields (default: all); `stamp_ns` is always "
-            "included.",
-            examples=["vg_mps,slip_left_pct,slip_right_pct,flags"],
+            description="Comma-separated fields of the estimator (default: all); `stamp_ns` is "
+            "always included; a field the estimator does not have is a 422 naming it. "
+            "Fields by estimator:\n\n" + fields_doc(),
+            examples=["stamp_ns,flags"],
             max_length=2000,
         ),
     ] = None,
@@ -380,7 +429,7 @@ def get_series(
     ] = None,
     format: Annotated[SeriesFormat, Query(description="Answer format")] = "json",
 ) -> Response:
-    names = _parse_fields(fields)
+    names = _parse_fields(fields, spec)
     points = max_points or 0
     if points == 1:
         raise Unprocessable("max_points must be 0 (full rate) or at least 2")
@@ -390,15 +439,17 @@ def get_series(
     if format == "geojson":  # whole rows: a position is one row's east, north and up
         if decimation == "minmax":
             raise Unprocessable("format=geojson thins to whole rows: decimation=minmax is refused")
-        read = [*names, *(f for f in _POSITION if f not in names)]
-        reader = _Reader(store, vehicle.vehicle_id, tr, read, points, limits, "first")
+        position, placed_by = _position_fields(spec)
+        read = [*names, *(f for f in placed_by if f not in names)]
+        reader = _Reader(store, vehicle.vehicle_id, spec, tr, read, points, limits, "first")
         rows = reader.collect(limits.series_max_rows)
         anchor = store.get_anchors(vehicle.vehicle_id).get(vehicle.vehicle_id)
         return Response(
-            _geojson(vehicle.vehicle_id, rows, names, anchor), media_type=GEOJSON_MEDIA_TYPE
+            _geojson(vehicle.vehicle_id, rows, names, position, anchor),
+            media_type=GEOJSON_MEDIA_TYPE,
         )
     how: Decimation = decimation or "minmax"
-    reader = _Reader(store, vehicle.vehicle_id, tr, names, points, limits, how)
+    reader = _Reader(store, vehicle.vehicle_id, spec, tr, names, points, limits, how)
 
     if format == "csv":
         return StreamingResponse(
@@ -421,6 +472,7 @@ def get_series(
         )
     head = {
         "vehicle_id": vehicle.vehicle_id,
+        "estimator": spec.name,
         "start_ns": tr.start_ns,
         "end_ns": tr.end_ns,
         "fields": names,

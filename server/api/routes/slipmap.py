@@ -1,36 +1,63 @@
 """Slip maps: ``/vehicles/{id}/slipmap`` and ``/fleet/slipmap`` (JSON, GeoJSON or CSV).
 
-The statistics are :mod:`server.slipmap`'s; this module reads the rows, picks the frame and
-writes the answer. GeoJSON cells are polygons whose corners go through the frame's
+The statistics are :mod:`server.analytics.slipmap`'s, over one estimator's rows read through its
+spec (``?estimator=``, default the vehicle's primary); this module reads the rows, picks the frame
+and writes the answer. GeoJSON cells are polygons whose corners go through the frame's
 :meth:`estimator.geo.EnuFrame.to_geodetic` on its horizontal plane (``up`` 0).
 
 The fleet map reads and reduces one vehicle at a time (:func:`_vehicle_cells`) and merges the
-partial sums as it goes (:func:`server.slipmap.merge_cell_sums`): memory holds one vehicle's
-rows and the merged cells, never the fleet's rows.
+partial sums as it goes (:func:`server.analytics.slipmap.merge_cell_sums`): memory holds one
+vehicle's rows and the merged cells, never the fleet's rows.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Query, Response
 
+from estimator.catalog import SPECS
 from estimator.config import SlipConfig
 from estimator.geo import EnuFrame
+from estimator.spec import EstimatorSpec
+from server.analytics.reports import check_band_edges
+from server.analytics.slipmap import (
+    CellSums,
+    NotMappable,
+    SlipMap,
+    TooManyCells,
+    cell_sums,
+    finish_cells,
+    map_samples,
+    merge_cell_sums,
+    reframe,
+    slip_map,
+    slipmap_fields,
+)
 from server.api.deps import (
     ApiLimits,
+    EstimatorDep,
+    EstimatorQuery,
     LimitsDep,
     StoreDep,
     TimeRange,
     TimeRangeDep,
     VehicleDep,
+    estimator_spec,
     slip_config,
+    vehicle_estimators,
 )
-from server.api.errors import NotFound, RangeTooLarge, Unprocessable, error_responses
+from server.api.errors import (
+    BadRequest,
+    NotFound,
+    RangeTooLarge,
+    Unprocessable,
+    error_responses,
+)
 from server.api.models import (
     AnchorPublic,
     FleetSlipMapCellPublic,
@@ -41,20 +68,6 @@ from server.api.models import (
 )
 from server.api.routes.series import GEOJSON_MEDIA_TYPE, export_filename
 from server.api.tables import csv_table
-from server.reports import check_band_edges
-from server.slipmap import (
-    FLEET_SLIPMAP_FIELDS,
-    SLIPMAP_FIELDS,
-    CellSums,
-    SlipMap,
-    TooManyCells,
-    cell_sums,
-    finish_cells,
-    map_samples,
-    merge_cell_sums,
-    reframe,
-    slip_map,
-)
 from server.storage.base import Anchor, Store, VehicleRecord
 
 __all__ = ["FLEET_SLIPMAP_DESCRIPTION", "SLIPMAP_DESCRIPTION", "router"]
@@ -62,18 +75,22 @@ __all__ = ["FLEET_SLIPMAP_DESCRIPTION", "SLIPMAP_DESCRIPTION", "router"]
 router = APIRouter(tags=["slipmap"])
 
 _DEFINITIONS = """\
-* **cell** `(i, j)`: the positions with `i = floor(east_m / cell_m)`, `j = floor(north_m /
-  cell_m)`; south-west corner `(i · cell_m, j · cell_m)`.
-* **samples**: estimates that are **moving** (`|vg_mps| >= slip.min_ground_speed_mps` of the
-  vehicle's config) and have a position. Each weighs `w`, its report **time weight** (the
-  time to the next estimate; a step over 1 s is a gap and the estimate before it counts one
-  median step; the last counts one median step), taken over all the range's estimates of its
-  vehicle.
-* per cell: `time_s = Σ w`; `distance_m = Σ |vg_mps| · w`; `rows` = number of samples.
-* per wheel: `slip_<wheel>_valid_s = Σ w` over samples with the wheel's `SLIP_*_VALID` flag and
-  a finite slip; `slip_<wheel>_mean_pct = Σ w · slip / slip_<wheel>_valid_s` (**signed**
-  percent), null when that time is 0.
-* over the valid wheel-samples of both wheels (a sample with both valid counts twice):
+* **cell** `(i, j)`: the positions (east, north) with `i = floor(east / cell_m)`,
+  `j = floor(north / cell_m)`; south-west corner `(i · cell_m, j · cell_m)` (the cell's `east_m`,
+  `north_m`).
+* **estimator**: the rows are one estimator's (`estimator`); it needs a `position` and a
+  `motion` speed channel in its spec (400 `bad_request` otherwise). Positions are its position
+  fields (east, north) in metres from the vehicle's anchor.
+* **samples**: estimates that are **moving** (`|v| >= slip.min_ground_speed_mps` of the
+  vehicle's config, `v` the spec's motion field) and have a position. Each weighs `w`, its
+  report **time weight** (the time to the next estimate; a step over 1 s is a gap and the
+  estimate before it counts one median step; the last counts one median step), taken over all
+  the range's estimates of its vehicle.
+* per cell: `time_s = Σ w`; `distance_m = Σ |v| · w`; `rows` = number of samples.
+* per slip channel `k` of the spec (`slip_channels`; cells' `slips.<k>`): `valid_s = Σ w` over
+  samples with the channel's `valid_flag` and a finite slip; `mean_pct = Σ w · slip / valid_s`
+  (**signed** percent), null when that time is 0.
+* over the valid channel-samples of every channel (a sample with two valid counts twice):
   `mean_abs_slip_pct = Σ w · |slip| / Σ w`, `max_abs_slip_pct = max |slip|`, and per slip band
   (`[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the map's `band_edges_pct`, labels `0_5`,
   `5_15`, `15_up` for the default 5 and 15 %) the time share `Σ_band w / Σ w`. Null when the
@@ -84,7 +101,8 @@ _FORMATS = """\
 **Formats**: `json` (cells in the frame, with the frame's {origin}); `geojson`
 (`application/geo+json`, RFC 7946): one Polygon per cell, WGS 84 `[longitude, latitude]` corners
 of the cell on the frame's horizontal plane, counter-clockwise from the south-west corner, the
-statistics as properties (band shares as `slip_share_<label>`), no features while there is no
+statistics as flat properties (`slip_<k>_valid_s`, `slip_<k>_mean_pct` per slip channel, band
+shares as `slip_share_<label>`), no features while there is no
 {origin_short}; `csv`: one row per cell, the same columns plus the cell centre's
 `center_lat_deg`, `center_lon_deg` (empty without {origin_short_a}).
 """
@@ -120,10 +138,13 @@ range or fewer vehicles).
   422; height 0, which moves no cell: east and north do not depend on it), or else at the stored
   anchor of the first vehicle in id order that has one (`origin_vehicle_id`).
 * **vehicles**: every registered vehicle, or those of `vehicles=id1,id2` (an unknown id: 404
-  `not_found` naming it). A vehicle's `east_m`, `north_m`, `up_m` are metres from its own
-  anchor: they go to WGS 84 through that anchor and into the shared frame (exact ECEF
-  transformations; a missing `up_m` is taken as 0). A vehicle without a stored anchor cannot be
-  placed: it is left out and listed in `skipped` (`reason` `no_anchor`).
+  `not_found` naming it). A vehicle's positions (east, north, up of the estimator's `position`)
+  are metres from its own anchor: they go to WGS 84 through that anchor and into the shared
+  frame (exact ECEF transformations; a missing up is taken as 0). A vehicle without a stored
+  anchor cannot be placed: it is left out and listed in `skipped` (`reason` `no_anchor`).
+* **estimator**, one for the whole map: `estimator` if given, else the primary of the first
+  placed vehicle (by id); without `estimator=`, a vehicle whose primary is another estimator is
+  left out and listed in `skipped` (`reason` `other_estimator`).
 * **moving** and the time weights are each vehicle's own (its config's
   `slip.min_ground_speed_mps`).
 * **band edges**, one set for the whole map: `band_edges_pct` if given (e.g. `5,15`); else
@@ -187,6 +208,7 @@ def _cells(smap: SlipMap, *, vehicles: bool = False) -> list[dict[str, Any]]:
     rows = smap.rows.tolist()
     valid_s = smap.slip_valid_s.tolist()
     mean_pct = smap.slip_mean_pct.tolist()
+    keys = list(enumerate(smap.channels))
     mean_abs_pct = smap.mean_abs_slip_pct.tolist()
     max_abs_pct = smap.max_abs_slip_pct.tolist()
     shares = smap.band_share.tolist()
@@ -199,10 +221,9 @@ def _cells(smap: SlipMap, *, vehicles: bool = False) -> list[dict[str, Any]]:
             "time_s": time_s[c],
             "distance_m": distance_m[c],
             "rows": rows[c],
-            "slip_left_valid_s": valid_s[c][0],
-            "slip_right_valid_s": valid_s[c][1],
-            "slip_left_mean_pct": _opt(mean_pct[c][0]),
-            "slip_right_mean_pct": _opt(mean_pct[c][1]),
+            "slips": {
+                key: {"valid_s": valid_s[c][k], "mean_pct": _opt(mean_pct[c][k])} for k, key in keys
+            },
             "mean_abs_slip_pct": _opt(mean_abs_pct[c]),
             "max_abs_slip_pct": _opt(max_abs_pct[c]),
             "slip_band_shares": {k: _opt(v) for k, v in zip(labels, shares[c], strict=True)},
@@ -215,9 +236,16 @@ def _cells(smap: SlipMap, *, vehicles: bool = False) -> list[dict[str, Any]]:
     return cells
 
 
+_NESTED = ("slips", "slip_band_shares")
+
+
 def _flat(cell: dict[str, Any]) -> dict[str, Any]:
-    """A cell as one flat row: band shares as ``slip_share_<label>`` columns."""
-    out = {k: v for k, v in cell.items() if k != "slip_band_shares"}
+    """A cell as one flat row: ``slip_<key>_valid_s``, ``slip_<key>_mean_pct`` per slip
+    channel and band shares as ``slip_share_<label>`` columns."""
+    out = {k: v for k, v in cell.items() if k not in _NESTED}
+    for key, stats in cell["slips"].items():
+        out[f"slip_{key}_valid_s"] = stats["valid_s"]
+        out[f"slip_{key}_mean_pct"] = stats["mean_pct"]
     out.update({f"slip_share_{k}": v for k, v in cell["slip_band_shares"].items()})
     return out
 
@@ -256,7 +284,9 @@ def _csv(
     frame: EnuFrame | None,
     cell_model: type[SlipMapCellPublic],
 ) -> str:
-    columns = [k for k in cell_model.model_fields if k != "slip_band_shares"]
+    columns = [k for k in cell_model.model_fields if k not in _NESTED]
+    for key in smap.channels:
+        columns += [f"slip_{key}_valid_s", f"slip_{key}_mean_pct"]
     columns += [f"slip_share_{k}" for k in smap.band_labels]
     columns += ["center_lat_deg", "center_lon_deg"]
     rows = [_flat(cell) for cell in cells]
@@ -295,6 +325,21 @@ def _answer(
     )
 
 
+def _map_fields(spec: EstimatorSpec, *, fleet: bool = False) -> list[str]:
+    """The fields a map of ``spec`` reads; 400 when it cannot be mapped."""
+    try:
+        return slipmap_fields(spec, fleet=fleet)
+    except NotMappable as exc:
+        raise BadRequest(str(exc)) from exc
+
+
+def _channel_refs(spec: EstimatorSpec | None) -> list[dict[str, str]]:
+    """The slip channels of a map's estimator, as named in its cells."""
+    if spec is None:
+        return []
+    return [{"key": c.key, "label": c.label, "field": c.field} for c in spec.slips]
+
+
 def _too_many_cells(exc: TooManyCells, cell_m: float, *, fleet: bool = False) -> RangeTooLarge:
     """The 400 for a map over the cell limit (a fleet map stops at the first vehicle past it,
     so its count is a lower bound)."""
@@ -315,6 +360,7 @@ def _too_many_cells(exc: TooManyCells, cell_m: float, *, fleet: bool = False) ->
 )
 def get_vehicle_slipmap(
     vehicle: VehicleDep,
+    spec: EstimatorDep,
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
@@ -323,10 +369,13 @@ def get_vehicle_slipmap(
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     slip = slip_config(vehicle)
-    rows = store.query_series(vehicle.vehicle_id, tr.start_ns, tr.end_ns, SLIPMAP_FIELDS)
+    rows = store.query_series(
+        vehicle.vehicle_id, tr.start_ns, tr.end_ns, _map_fields(spec), estimator=spec.name
+    )
     try:
         smap = slip_map(
             rows,
+            spec,
             end_ns=tr.end_ns,
             cell_m=cell_m,
             band_edges_pct=slip.band_edges_pct,
@@ -341,6 +390,8 @@ def get_vehicle_slipmap(
     body = SlipMapPublic.model_validate(
         {
             "vehicle_id": vehicle.vehicle_id,
+            "estimator": spec.name,
+            "slip_channels": _channel_refs(spec),
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,
@@ -396,9 +447,35 @@ def _fleet_vehicles(store: Store, wanted: str | None) -> list[VehicleRecord]:
     return [r for r in records if r.vehicle_id in ids]
 
 
+def _fleet_estimator(
+    asked: EstimatorSpec | None, records: list[VehicleRecord], anchors: Mapping[str, Anchor]
+) -> tuple[EstimatorSpec | None, list[VehicleRecord], list[dict[str, str]]]:
+    """``(estimator, placed vehicles, skipped vehicles)`` of a fleet map, by id.
+
+    The estimator is ``asked``, else the primary of the first anchored vehicle that has one;
+    vehicles without an anchor are skipped (``no_anchor``), and without ``asked`` those whose
+    primary is another estimator (``other_estimator``). 400 when the estimator cannot be mapped.
+    """
+    anchored = [r for r in records if r.vehicle_id in anchors]
+    skipped = {r.vehicle_id: "no_anchor" for r in records if r.vehicle_id not in anchors}
+    spec = asked
+    if asked is None:
+        primary = {r.vehicle_id: next(iter(vehicle_estimators(r)), None) for r in anchored}
+        first = next((name for name in primary.values() if name is not None), None)
+        spec = None if first is None else SPECS[first]
+        for vid, name in primary.items():
+            if spec is None or name != spec.name:
+                skipped[vid] = "other_estimator"
+        anchored = [r for r in anchored if r.vehicle_id not in skipped]
+    if spec is not None:
+        _map_fields(spec, fleet=True)
+    return spec, anchored, [{"vehicle_id": v, "reason": skipped[v]} for v in sorted(skipped)]
+
+
 def _vehicle_cells(
     store: Store,
     vehicle_id: str,
+    spec: EstimatorSpec,
     slip: SlipConfig,
     anchor: Anchor,
     frame: EnuFrame,
@@ -408,9 +485,11 @@ def _vehicle_cells(
     band_edges_pct: tuple[float, ...],
 ) -> CellSums:
     """One vehicle's partial sums in the shared ``frame`` (its rows are dropped on return)."""
-    rows = store.query_series(vehicle_id, tr.start_ns, tr.end_ns, FLEET_SLIPMAP_FIELDS)
+    fields = _map_fields(spec, fleet=True)
+    rows = store.query_series(vehicle_id, tr.start_ns, tr.end_ns, fields, estimator=spec.name)
     samples = map_samples(
         rows,
+        spec,
         end_ns=tr.end_ns,
         min_ground_speed_mps=slip.min_ground_speed_mps,
         max_gap_s=limits.report_max_gap_s,
@@ -474,13 +553,16 @@ def get_fleet_slipmap(
             examples=["5,15"],
         ),
     ] = None,
+    estimator: EstimatorQuery = None,
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     origin = _origin(origin_lat_deg, origin_lon_deg)
     edges_asked = _band_edges(band_edges_pct)
     anchors = store.get_anchors()
     records = _fleet_vehicles(store, vehicles)
-    placed = [r for r in records if r.vehicle_id in anchors]
+    asked = None if estimator is None else estimator_spec(estimator)
+    spec, placed, skipped = _fleet_estimator(asked, records, anchors)
+    channels = () if spec is None else tuple(c.key for c in spec.slips)
     slips = {r.vehicle_id: slip_config(r) for r in placed}
     origin_vehicle_id = None
     if origin is None and placed:
@@ -498,19 +580,21 @@ def get_fleet_slipmap(
 
     summary: list[dict[str, Any]] = []
 
-    def parts(shared: EnuFrame) -> Iterator[CellSums]:
+    def parts(shared: EnuFrame, spec: EstimatorSpec) -> Iterator[CellSums]:
         for record in placed:
             vid = record.vehicle_id
             part = _vehicle_cells(
-                store, vid, slips[vid], anchors[vid], shared, tr, limits, cell_m, edges
+                store, vid, spec, slips[vid], anchors[vid], shared, tr, limits, cell_m, edges
             )
             summary.append({"vehicle_id": vid, "rows": int(part.rows.sum()), "cells": part.cells})
             yield part
 
     try:
         total = merge_cell_sums(
-            parts(frame) if frame is not None else (),  # no frame: no vehicle placed
+            # no frame or estimator: no vehicle placed
+            parts(frame, spec) if frame is not None and spec is not None else (),
             cell_m=cell_m,
+            channels=channels,
             band_edges_pct=edges,
             max_cells=limits.slipmap_max_cells,
         )
@@ -520,6 +604,8 @@ def get_fleet_slipmap(
     cells = _cells(smap, vehicles=True)
     body = FleetSlipMapPublic.model_validate(
         {
+            "estimator": None if spec is None else spec.name,
+            "slip_channels": _channel_refs(spec),
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,
@@ -529,11 +615,7 @@ def get_fleet_slipmap(
             "band_labels": list(smap.band_labels),
             "band_edges_source": edges_source,
             "vehicles": summary,
-            "skipped": [
-                {"vehicle_id": r.vehicle_id, "reason": "no_anchor"}
-                for r in records
-                if r.vehicle_id not in anchors
-            ],
+            "skipped": skipped,
             "count": smap.cells,
             "cells": cells if format == "json" else [],
         }

@@ -2,7 +2,8 @@
 
 A new token is in the answer to its ``POST`` only; the server keeps its SHA-256
 (:mod:`server.tokens`). Revoking is immediate (every request looks its token up) and final; the
-record stays listed with ``revoked_ns`` so its use can still be traced.
+record stays listed with ``revoked_ns`` so its use can still be traced. Creating and revoking go
+through the runtime's single store writer.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Depends, Path, Response, status
 from pydantic import BaseModel, Field
 
-from server.api.deps import StoreDep, require_role
+from server.api.deps import StoreDep, WriterDep, require_role
 from server.api.errors import NotFound, error_responses
 from server.storage.base import TokenRecord
 from server.tokens import Role, issue_token
@@ -90,8 +91,8 @@ def list_tokens(store: StoreDep) -> TokensPublic:
     responses=error_responses(400, 401, 403, 413, 422),
     summary="Create an access token (admin); the answer is the only place it appears",
 )
-def create_token(body: Annotated[TokenCreate, Body()], store: StoreDep) -> TokenCreated:
-    token, record = issue_token(store, body.name, body.role, time.time_ns())
+def create_token(body: Annotated[TokenCreate, Body()], writer: WriterDep) -> TokenCreated:
+    token, record = writer.call(lambda s: issue_token(s, body.name, body.role, time.time_ns()))
     return TokenCreated(**_public(record).model_dump(), token=token)
 
 
@@ -101,7 +102,7 @@ def create_token(body: Annotated[TokenCreate, Body()], store: StoreDep) -> Token
     responses=error_responses(401, 403, 404),
     summary="Revoke an access token (admin); takes effect on the next request",
 )
-def revoke_token(token_id: Annotated[int, Path(ge=1, le=2**63 - 1)], store: StoreDep) -> Response:
-    if store.revoke_token(token_id, time.time_ns()) is None:
+def revoke_token(token_id: Annotated[int, Path(ge=1, le=2**63 - 1)], writer: WriterDep) -> Response:
+    if writer.call(lambda s: s.revoke_token(token_id, time.time_ns())) is None:
         raise NotFound(f"unknown token {token_id}")
     return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -1,4 +1,8 @@
-"""``/vehicles``: register, configure, list and delete vehicles; their newest estimate."""
+"""``/vehicles``: register, configure, list and delete vehicles; their newest estimate.
+
+Registrations, config changes and deletions go through the runtime's single store writer
+(:data:`server.api.deps.WriterDep`), like every other write.
+"""
 
 from __future__ import annotations
 
@@ -10,15 +14,31 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Body, Depends, Path, Response, status
-from pydantic import TypeAdapter, ValidationError
+from pydantic import ValidationError
 
-from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
-from estimator.types import EstimateFlag
-from server.api.deps import RuntimeDep, StoreDep, VehicleDep, call_hook, require_role
+from estimator.config import (
+    ConfigError,
+    VehicleConfig,
+    VehicleKind,
+    upgrade_legacy_config,
+    vehicle_config_from_dict,
+)
+from estimator.spec import EstimatorSpec
+from server.api.deps import (
+    EstimatorDep,
+    RuntimeDep,
+    StoreDep,
+    VehicleDep,
+    WriterDep,
+    call_hook,
+    require_role,
+    vehicle_estimators,
+)
 from server.api.errors import InvalidConfig, NotFound, error_responses
 from server.api.models import (
     AnchorPublic,
     EstimatePublic,
+    VehicleConfigAdapter,
     VehicleConfigIn,
     VehiclePublic,
     VehiclesPublic,
@@ -26,20 +46,13 @@ from server.api.models import (
 from server.storage.base import Anchor, VehicleRecord
 from server.timeparse import format_ns
 
-__all__ = ["estimate_to_dict", "flag_names", "router"]
+__all__ = ["estimate_to_dict", "router"]
 
 router = APIRouter(prefix="/vehicles", tags=["vehicles"])
 
 VEHICLE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 """Ids a client may register: one Zenoh key chunk, as
 :func:`server.protocol.keys.is_valid_vehicle_id` accepts (a test keeps the two in step)."""
-
-_FLAG_BITS = [f for f in EstimateFlag if f.value and (f.value & (f.value - 1)) == 0]
-
-
-def flag_names(flags: int) -> list[str]:
-    """Names of the single-bit :class:`EstimateFlag` members set in ``flags``, low bit first."""
-    return [str(f.name) for f in _FLAG_BITS if flags & f.value]
 
 
 def estimate_to_dict(row: np.ndarray) -> dict[str, Any]:
@@ -59,14 +72,12 @@ def _public(record: VehicleRecord, anchors: Mapping[str, Anchor]) -> VehiclePubl
     anchor = anchors.get(record.vehicle_id)
     return VehiclePublic(
         vehicle_id=record.vehicle_id,
-        config=record.config,
+        config=_stored_config(record.config),
         created_ns=record.created_ns,
         updated_ns=record.updated_ns,
         anchor=None if anchor is None else AnchorPublic.of(anchor),
+        estimators=list(vehicle_estimators(record)),
     )
-
-
-_CONFIG_ADAPTER = TypeAdapter(VehicleConfig)
 
 
 def _type_errors(exc: ValidationError) -> str:
@@ -77,23 +88,31 @@ def _type_errors(exc: ValidationError) -> str:
     return "; ".join(parts)
 
 
+def _stored_config(data: dict[str, Any]) -> dict[str, Any]:
+    """A stored config as answers show it: every field of its kind; one that no longer
+    validates (ranges narrowed since it was stored) as stored, in its kind's shape."""
+    try:
+        return vehicle_config_from_dict(data).to_dict()
+    except ConfigError:
+        return upgrade_legacy_config({"kind": VehicleKind.WHEELED_REAR_DRIVE.value, **data})
+
+
 def _parse_config(data: Any) -> VehicleConfig:
     """Validate a config body: the config's own checks, then the JSON types of every field.
 
-    :func:`vehicle_config_from_dict` names ranges and unknown fields; the strict type pass
-    catches what it lets through (booleans as numbers, non-numbers among band edges, …).
+    :func:`vehicle_config_from_dict` names the kind, field, range and unit at fault; the strict
+    pass of the same schema OpenAPI shows catches what it lets through (``1.0`` for an integer).
     """
     try:
         config = vehicle_config_from_dict(data)
     except (ConfigError, TypeError, ValueError) as exc:
         raise InvalidConfig(str(exc)) from exc
     try:
-        _CONFIG_ADAPTER.validate_json(json.dumps(data), strict=True)
+        body = upgrade_legacy_config({"kind": config.kind.value, **data})
+        VehicleConfigAdapter.validate_json(json.dumps(body), strict=True)
     except (ValidationError, ValueError) as exc:
         reason = _type_errors(exc) if isinstance(exc, ValidationError) else str(exc)
         raise InvalidConfig(f"wrong type: {reason}") from exc
-    if not all(math.isfinite(e) and e > 0 for e in config.slip.band_edges_pct):
-        raise InvalidConfig("slip.band_edges_pct must be finite numbers > 0")
     return config
 
 
@@ -124,16 +143,20 @@ def get_vehicle(vehicle: VehicleDep, store: StoreDep) -> VehiclePublic:
     dependencies=[Depends(require_role("operator"))],
     summary="Register a vehicle or replace its config (operator)",
     description=(
-        "The body is a VehicleConfig; omitted parts take their defaults, so `{}` registers a "
-        "vehicle with the default config. A config that does not validate is refused with 422 "
-        "and the reason. The running estimator picks the new config up. Answers 201 when the "
-        "vehicle is new, 200 when its config was replaced."
+        "The body is a vehicle config of one `kind` (`wheeled_rear_drive` when omitted, "
+        "`tracked`, `wheeled_4wd_steered`), each with its own sections; omitted parts take "
+        "their defaults, so `{}` registers a rear-drive vehicle with the default config. Every "
+        "number has a plausible range with its unit (in the schema). A config that does not "
+        "validate is refused with 422 and the reason (kind, field, range and unit). The running "
+        "estimator picks the new config up. Answers 201 when the vehicle is new, 200 when its "
+        "config was replaced."
     ),
 )
 def put_vehicle(
     vehicle_id: Annotated[str, Path(pattern=VEHICLE_ID_PATTERN)],
     body: Annotated[VehicleConfigIn, Body()],
     store: StoreDep,
+    writer: WriterDep,
     runtime: RuntimeDep,
     response: Response,
 ) -> VehiclePublic:
@@ -143,7 +166,8 @@ def put_vehicle(
     except ConfigError as exc:
         raise InvalidConfig(str(exc)) from exc
     existed = store.get_vehicle(vehicle_id) is not None
-    record = store.upsert_vehicle(vehicle_id, config.to_dict(), time.time_ns())
+    stored = config.to_dict()
+    record = writer.call(lambda s: s.upsert_vehicle(vehicle_id, stored, time.time_ns()))
     call_hook(runtime, "on_vehicle_config", vehicle_id, config)
     response.status_code = status.HTTP_200_OK if existed else status.HTTP_201_CREATED
     return _public(record, store.get_anchors(vehicle_id))
@@ -156,8 +180,8 @@ def put_vehicle(
     responses=error_responses(401, 403, 404),
     summary="Delete a vehicle with all its estimates and counters (admin)",
 )
-def delete_vehicle(vehicle_id: str, store: StoreDep, runtime: RuntimeDep) -> Response:
-    if not store.delete_vehicle(vehicle_id):
+def delete_vehicle(vehicle_id: str, writer: WriterDep, runtime: RuntimeDep) -> Response:
+    if not writer.call(lambda s: s.delete_vehicle(vehicle_id)):
         raise NotFound(f"unknown vehicle {vehicle_id!r}")
     call_hook(runtime, "on_vehicle_deleted", vehicle_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
@@ -166,16 +190,25 @@ def delete_vehicle(vehicle_id: str, store: StoreDep, runtime: RuntimeDep) -> Res
 @router.get(
     "/{vehicle_id}/latest",
     response_model=EstimatePublic,
-    responses=error_responses(404),
-    summary="The vehicle's newest estimate",
-    description="Every estimate field (NaN as null) plus `flags` decoded into `flag_names`.",
+    responses=error_responses(404, 422),
+    summary="The vehicle's newest estimate of one estimator",
+    description="Every field of the estimator's row (`estimator`, default the vehicle's "
+    "primary; NaN as null) plus its `flags` decoded into `flag_names` by the estimator's spec.",
 )
-def latest_estimate(vehicle: VehicleDep, store: StoreDep) -> dict[str, Any]:
-    row = store.latest(vehicle.vehicle_id)
+def latest_estimate(vehicle: VehicleDep, spec: EstimatorDep, store: StoreDep) -> dict[str, Any]:
+    row = store.latest(vehicle.vehicle_id, estimator=spec.name)
     if row is None:
-        raise NotFound(f"vehicle {vehicle.vehicle_id!r} has no estimates yet")
+        raise NotFound(f"vehicle {vehicle.vehicle_id!r} has no {spec.name} estimates yet")
+    return _latest(vehicle.vehicle_id, spec, row)
+
+
+def _latest(vehicle_id: str, spec: EstimatorSpec, row: np.ndarray) -> dict[str, Any]:
     out = estimate_to_dict(row)
-    out["vehicle_id"] = vehicle.vehicle_id
-    out["time"] = format_ns(out["stamp_ns"])
-    out["flag_names"] = flag_names(out["flags"])
-    return out
+    flags = int(out["flags"]) if spec.has_field("flags") else 0
+    return {
+        "vehicle_id": vehicle_id,
+        "estimator": spec.name,
+        "time": format_ns(out["stamp_ns"]),
+        "flag_names": spec.flag_names(flags),
+        **out,
+    }

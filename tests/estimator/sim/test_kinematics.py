@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.config import VehicleConfig, VehicleGeometry
+from estimator.config import VehicleGeometry, WheeledRearDriveConfig
 from estimator.sim import GRAVITY_MPS2, rim_speed_from_slip, simulate, slip_from_speeds
 from estimator.sim.kinematics import MotionPlan, integrate_plan, rotation_body_to_enu
 
@@ -56,7 +56,9 @@ def test_slip_definition_hand_cases() -> None:
 
 def test_truth_satisfies_structural_relations() -> None:
     geo = VehicleGeometry(h0_m=1.1, h1_m=1.5, track_width_m=1.6)
-    run = simulate("figure_eight", seed=3, start_ns=START_NS, config=VehicleConfig(geometry=geo))
+    run = simulate(
+        "figure_eight", seed=3, start_ns=START_NS, config=WheeledRearDriveConfig(geometry=geo)
+    )
     tr = run.truth
     wx, wz = tr["pitch_rate_radps"], tr["yaw_rate_radps"]
     # eq. (2)(3): V1 = Vg + ωx·h1, V0 = V1 + ωx·h0
@@ -75,7 +77,9 @@ def test_truth_satisfies_structural_relations() -> None:
 
 def test_lever_arm_offsets_add_yaw_terms() -> None:
     geo = VehicleGeometry(antenna_offset_m=(0.3, 0.8), imu_offset_m=(-0.2, 0.5))
-    run = simulate("paper_circle", seed=4, start_ns=START_NS, config=VehicleConfig(geometry=geo))
+    run = simulate(
+        "paper_circle", seed=4, start_ns=START_NS, config=WheeledRearDriveConfig(geometry=geo)
+    )
     tr = run.truth
     wx, wz = tr["pitch_rate_radps"], tr["yaw_rate_radps"]
     np.testing.assert_allclose(
@@ -182,7 +186,11 @@ def test_structural_relations_hold_for_any_geometry(
 ) -> None:
     geo = VehicleGeometry(h0_m=h0, h1_m=h1, track_width_m=b, antenna_offset_m=antenna)
     run = simulate(
-        "hard_braking", seed=seed, start_ns=START_NS, config=VehicleConfig(geometry=geo), cycles=1
+        "hard_braking",
+        seed=seed,
+        start_ns=START_NS,
+        config=WheeledRearDriveConfig(geometry=geo),
+        cycles=1,
     )
     tr = run.truth
     wx, wz = tr["pitch_rate_radps"], tr["yaw_rate_radps"]

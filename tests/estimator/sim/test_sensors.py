@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from estimator.config import EncoderConfig, VehicleConfig
+from estimator.config import EncoderConfig, WheeledRearDriveConfig
 from estimator.sim import SCENARIOS, completion_ns, simulate, truth_at
 from estimator.sim.sensors import edge_times_s
 from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges
@@ -72,7 +72,7 @@ def test_stream_is_in_sensor_order_with_int_stamps(name: str) -> None:
 
 @pytest.mark.parametrize("teeth", [1, 48, 120])
 def test_edge_count_matches_integrated_angle(teeth: int) -> None:
-    cfg = VehicleConfig(encoder=EncoderConfig(teeth_per_rev=teeth))
+    cfg = WheeledRearDriveConfig(encoder=EncoderConfig(teeth_per_rev=teeth))
     run = simulate("figure_eight", seed=2, start_ns=START_NS, config=cfg)
     t = (run.truth["stamp_ns"] - START_NS) * 1e-9
     for wheel, field in ((Wheel.LEFT, "omega_left_radps"), (Wheel.RIGHT, "omega_right_radps")):
@@ -109,7 +109,7 @@ def test_period_of_k_teeth_recovers_wheel_speed() -> None:
 
 
 def test_direction_given_when_encoder_is_quadrature() -> None:
-    cfg = VehicleConfig(encoder=EncoderConfig(has_direction=True))
+    cfg = WheeledRearDriveConfig(encoder=EncoderConfig(has_direction=True))
     run = simulate("hard_braking", seed=1, start_ns=START_NS, config=cfg)
     packets = [m for m in run.measurements if isinstance(m, WheelEdges)]
     assert packets and all(p.direction is not None and np.all(p.direction == 1) for p in packets)

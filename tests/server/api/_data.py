@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC as REF
 from estimator.types import EstimateFlag, empty_estimates
 
 S = 1_000_000_000
@@ -12,7 +13,7 @@ T0_ISO = "2024-05-01T12:00:00Z"
 
 
 def hand_series(t0: int = T0) -> np.ndarray:
-    """10 rows, 1 s apart from ``t0`` (the series of tests/server/test_reports.py)."""
+    """10 rows, 1 s apart from ``t0`` (the series of tests/server/analytics/test_reports.py)."""
     rows = empty_estimates(10)
     rows["stamp_ns"] = t0 + np.arange(10) * S
     rows["vg_mps"] = [0, 0, 2, 2, 2, 2, 4, 4, 0.1, 0]
@@ -34,4 +35,15 @@ def ramp_series(n: int, step_ns: int = S // 10, t0: int = T0) -> np.ndarray:
             rows[name] = np.sin(np.arange(n) * 0.01 + i)
     rows["vg_mps"] = 2.0 + np.arange(n) * 1e-4
     rows["flags"] = int(EstimateFlag.GNSS_OK | EstimateFlag.SLIP_LEFT_VALID)
+    return rows
+
+
+def reference_series(t0: int = T0) -> np.ndarray:
+    """10 rows, 1 s apart: speed 0 0 1 2 2 3 3 1 0.1 0; the wheel lost on rows 2 and 3."""
+    rows = REF.empty_rows(10)
+    rows["stamp_ns"] = t0 + np.arange(10) * S
+    rows["speed_mps"] = [0, 0, 1, 2, 2, 3, 3, 1, 0.1, 0]
+    rows["rim_mps"] = 1.5
+    rows["flags"] = REF.flag_mask("WHEEL_OK")
+    rows["flags"][2:4] = REF.flag_mask("NO_WHEEL")
     return rows

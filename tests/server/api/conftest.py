@@ -1,4 +1,5 @@
-"""A test runtime (real SQLite store in tmp_path, no Zenoh) and a client for the app."""
+"""A test runtime (real SQLite store in tmp_path and its writer, no Zenoh) and a client for the
+app."""
 
 from __future__ import annotations
 
@@ -13,11 +14,11 @@ from anyio.from_thread import BlockingPortal, start_blocking_portal
 from fastapi import FastAPI
 
 from estimator.config import VehicleConfig
-from server.alerts import AlertEngine
+from server.analytics.alerts import AlertEngine
 from server.api import ApiLimits, create_app
-from server.api.prometheus import MetricFamily, Sample
+from server.metrics.prometheus import MetricFamily, Sample
 from server.settings import ApiSettings, Settings, StorageSettings
-from server.storage import Store, open_store
+from server.storage import Store, StoreWriter, open_store
 
 
 def open_test_store(settings: Settings) -> Store:
@@ -38,11 +39,13 @@ def make_settings(tmp_path: Path, *, url: str | None = None, **api: Any) -> Sett
 
 
 class FakeRuntime:
-    """What the API needs from the runtime: a real store, settable health, recorded hooks."""
+    """What the API needs from the runtime: a real store and its writer, settable health,
+    recorded hooks."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self._store: Store | None = None
+        self.writer: StoreWriter | None = None
         self.zenoh_up = True
         self.config_calls: list[tuple[str, VehicleConfig]] = []
         self.deleted: list[str] = []
@@ -58,9 +61,13 @@ class FakeRuntime:
 
     def open(self) -> None:
         self._store = open_test_store(self.settings)
+        self.writer = StoreWriter(self._store, self.settings.storage).start()
         self.opened += 1
 
     def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = None
         if self._store is not None:
             self._store.close()
         self.closed += 1

@@ -85,6 +85,7 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
         "/api/v1/vehicles/{vehicle_id}/slipmap",
         "/api/v1/fleet/report",
         "/api/v1/fleet/slipmap",
+        "/api/v1/estimators",
         "/api/v1/alerts",
         "/api/v1/health",
         "/api/v1/metrics",
@@ -97,8 +98,9 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
             assert ("security" in op) == (path != "/api/v1/health"), path
     put = spec["paths"]["/api/v1/vehicles/{vehicle_id}"]["put"]
     body = put["requestBody"]["content"]["application/json"]["schema"]
-    assert body["additionalProperties"] is False
-    assert "geometry" in body["properties"]
+    for kind in body["oneOf"]:  # one closed object per vehicle kind
+        assert kind["additionalProperties"] is False
+        assert {"kind", "noise", "slip", "estimators"} <= set(kind["properties"])
     assert (
         "text/csv"
         in spec["paths"]["/api/v1/vehicles/{vehicle_id}/series"]["get"]["responses"]["200"][

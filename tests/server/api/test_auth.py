@@ -18,7 +18,7 @@ import pytest
 from server.api import create_app
 from server.api.deps import TOKEN_TOUCH_INTERVAL_NS, WS_BEARER_PROTOCOL
 from server.app_main import ServerThread
-from server.live import LiveHub
+from server.live.hub import LiveHub
 from server.settings import Settings
 from server.storage.base import Store
 from server.tokens import Role, hash_token, is_well_formed, issue_token

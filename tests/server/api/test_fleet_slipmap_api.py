@@ -83,9 +83,10 @@ def test_same_ground_gives_one_set_of_cells(client: ApiClient, store: Store) -> 
     assert [c["time_s"] for c in cells] == [4.0, 6.0, 2.0]
     assert [c["distance_m"] for c in cells] == pytest.approx([8.0, 16.0, 8.0])
     # t1 left slip 1 3 | 10 20 -30 | 5, t2 twice that: the time-weighted mean of both
-    assert [c["slip_left_mean_pct"] for c in cells] == pytest.approx([3.0, 0.0, 7.5])
+    assert body["estimator"] == "mdsf"
+    assert [c["slips"]["left"]["mean_pct"] for c in cells] == pytest.approx([3.0, 0.0, 7.5])
     assert [c["max_abs_slip_pct"] for c in cells] == [6.0, 60.0, 10.0]
-    assert [c["slip_right_mean_pct"] for c in cells] == [0.0, None, None]
+    assert [c["slips"]["right"]["mean_pct"] for c in cells] == [0.0, None, None]
     # cell 2: 5 % (an edge belongs to the upper band) and 10 %
     assert cells[2]["slip_band_shares"] == {"0_5": 0.0, "5_15": 1.0, "15_up": 0.0}
 

@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from server.api.prometheus import MetricFamily, Sample, render
+from server.metrics.prometheus import MetricFamily, Sample, render
 from server.storage.base import Store
 
 from .conftest import ApiClient, FakeRuntime

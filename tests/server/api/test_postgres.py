@@ -9,10 +9,12 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
+from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
+from estimator.types import EstimateBatch
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage.base import Store
 
-from ._data import T0, S, hand_series
+from ._data import T0, S, hand_series, reference_series
 from .conftest import ApiClient
 
 pytestmark = pytest.mark.postgres
@@ -52,8 +54,14 @@ def test_vehicles_series_report_on_postgres(client: ApiClient, store: Store) -> 
 
     rep = client.get(f"/api/v1/vehicles/t1/report?{Q}").json()
     assert rep["report"]["distance_m"] == pytest.approx(16.0)
-    assert rep["report"]["slip_left"]["p95_pct"] == pytest.approx(17.5)
+    assert rep["report"]["slips"]["left"]["p95_pct"] == pytest.approx(17.5)
     assert rep["ingest"]["rejected_by_reason"] == {"decode": 1}
+
+    # a second estimator's rows of the same vehicle, read by name
+    store.write_estimates(EstimateBatch.of([("t1", reference_series())], REFERENCE_SPEED_SPEC))
+    ref = client.get(f"/api/v1/vehicles/t1/report?{Q}&estimator=reference_speed").json()
+    assert ref["report"]["distance_m"] == pytest.approx(12.0) and ref["report"]["slips"] == {}
+    assert client.get(f"/api/v1/vehicles/t1/report?{Q}").json()["estimator"] == "mdsf"
 
     latest = client.get("/api/v1/vehicles/t1/latest").json()
     assert latest["stamp_ns"] == T0 + 9 * S

@@ -34,7 +34,7 @@ def test_vehicle_report(client: ApiClient, two_vehicles: None) -> None:
     r = client.get(f"/api/v1/vehicles/t1/report?{Q}")
     assert r.status_code == 200
     body = r.json()
-    assert body["vehicle_id"] == "t1"
+    assert (body["vehicle_id"], body["estimator"]) == ("t1", "mdsf")
     assert body["band_edges_pct"] == [5.0, 15.0]
     rep = body["report"]
     assert rep["rows"] == 10
@@ -44,7 +44,7 @@ def test_vehicle_report(client: ApiClient, two_vehicles: None) -> None:
     assert rep["degraded_s"] == 2.0
     assert rep["speed"]["mean_mps"] == pytest.approx(16 / 6)
     assert rep["speed"]["max_mps"] == 4.0
-    left = rep["slip_left"]
+    left = rep["slips"]["left"]
     assert left["mean_pct"] == pytest.approx(1.5)
     assert left["median_pct"] == pytest.approx(4.0)
     assert left["p95_pct"] == pytest.approx(17.5)
@@ -56,7 +56,7 @@ def test_vehicle_report(client: ApiClient, two_vehicles: None) -> None:
         "seconds": 2.0,
         "share": pytest.approx(1 / 3),
     }
-    assert rep["slip_right"]["samples"] == 2
+    assert rep["slips"]["right"]["samples"] == 2
     ingest = body["ingest"]
     assert ingest["received"] == 12
     assert ingest["accepted"] == 10
@@ -70,7 +70,7 @@ def test_report_uses_vehicle_slip_config(client: ApiClient, two_vehicles: None) 
     assert body["band_edges_pct"] == [10.0]
     assert body["report"]["moving_s"] == 2.0
     assert body["report"]["distance_m"] == pytest.approx(8.0)
-    assert [b["seconds"] for b in body["report"]["slip_left"]["bands"]] == [3.0, 3.0]
+    assert [b["seconds"] for b in body["report"]["slips"]["left"]["bands"]] == [3.0, 3.0]
     assert body["ingest"]["received"] == 0
 
 
@@ -152,5 +152,6 @@ def test_fleet_report_empty_fleet(client: ApiClient) -> None:
     assert client.get(f"/api/v1/fleet/report?{Q}").json()["vehicles"] == []
     header = client.get(f"/api/v1/fleet/report?{Q}&format=csv").text.splitlines()
     assert len(header) == 1
-    assert header[0].startswith("vehicle_id,rows,")
-    assert "slip_left_share_5_15" in header[0]
+    # no vehicle, no slip channel: the columns every report has
+    assert header[0].startswith("vehicle_id,estimator,rows,")
+    assert "distance_m" in header[0] and "slip_" not in header[0]

@@ -58,9 +58,11 @@ def test_json_cells_by_hand(client: ApiClient, store: Store) -> None:
     assert [c["time_s"] for c in cells] == [2.0, 3.0, 1.0]
     assert [c["distance_m"] for c in cells] == pytest.approx([4.0, 8.0, 4.0])
     assert [c["rows"] for c in cells] == [2, 3, 1]
-    assert [c["slip_left_mean_pct"] for c in cells] == pytest.approx([2.0, 0.0, 5.0])
-    assert [c["slip_right_mean_pct"] for c in cells] == [0.0, None, None]
-    assert [c["slip_right_valid_s"] for c in cells] == [2.0, 0.0, 0.0]
+    assert body["estimator"] == "mdsf"
+    assert [c["key"] for c in body["slip_channels"]] == ["left", "right"]
+    assert [c["slips"]["left"]["mean_pct"] for c in cells] == pytest.approx([2.0, 0.0, 5.0])
+    assert [c["slips"]["right"]["mean_pct"] for c in cells] == [0.0, None, None]
+    assert [c["slips"]["right"]["valid_s"] for c in cells] == [2.0, 0.0, 0.0]
     assert [c["mean_abs_slip_pct"] for c in cells] == pytest.approx([1.0, 20.0, 5.0])
     assert [c["max_abs_slip_pct"] for c in cells] == [3.0, 30.0, 5.0]
     assert cells[1]["slip_band_shares"] == {
@@ -112,7 +114,8 @@ def test_geojson_polygons_map_back_to_the_cell_corners(client: ApiClient, store:
         props = feat["properties"]
         assert props["index_east"] == cell["index_east"]
         assert props["time_s"] == cell["time_s"]
-        assert props["slip_right_mean_pct"] == cell["slip_right_mean_pct"]
+        assert props["slip_right_mean_pct"] == cell["slips"]["right"]["mean_pct"]
+        assert props["slip_left_valid_s"] == cell["slips"]["left"]["valid_s"]
         for label, share in cell["slip_band_shares"].items():
             assert props[f"slip_share_{label}"] == share
     # neighbours share their edge exactly (no slivers in a GIS)

@@ -5,11 +5,20 @@ from __future__ import annotations
 import re
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+from estimator.config import (
+    DrivenAxle,
+    TrackedConfig,
+    VehicleKind,
+    Wheeled4wdSteeredConfig,
+    config_class,
+    vehicle_config_from_dict,
+)
 from estimator.types import EstimateFlag
 from server.api import create_app
 from server.api.routes.vehicles import VEHICLE_ID_PATTERN
@@ -160,14 +169,14 @@ def test_latest(client: ApiClient, store: Store) -> None:
     client.put(f"{V}/t1", json={})
     r = client.get(f"{V}/t1/latest")
     assert r.status_code == 404
-    assert "no estimates" in r.json()["reason"]
+    assert "no mdsf estimates" in r.json()["reason"]
 
     rows = hand_series()
     rows["flags"][-1] = int(EstimateFlag.GNSS_OK | EstimateFlag.SLIP_RIGHT_VALID)
     rows["slip_right_pct"][-1] = 12.5
     store.write_estimates([("t1", rows)])
     body = client.get(f"{V}/t1/latest").json()
-    assert body["vehicle_id"] == "t1"
+    assert (body["vehicle_id"], body["estimator"]) == ("t1", "mdsf")
     assert body["stamp_ns"] == T0 + 9 * 1_000_000_000
     assert body["time"] == "2024-05-01T12:00:09.000000000Z"
     assert body["vg_mps"] == 0.0
@@ -183,3 +192,99 @@ def test_latest(client: ApiClient, store: Store) -> None:
 def test_id_pattern_agrees_with_the_wire_protocol(vehicle_id: str) -> None:
     ours = re.fullmatch(VEHICLE_ID_PATTERN.strip("^$"), vehicle_id) is not None
     assert ours == is_valid_vehicle_id(vehicle_id)
+
+
+KIND_BODIES: dict[str, dict[str, Any]] = {
+    "wheeled_rear_drive": {"kind": "wheeled_rear_drive", "geometry": {"track_width_m": 2.1}},
+    "tracked": {
+        "kind": "tracked",
+        "geometry": {"track_gauge_m": 2.4, "imu_lever_arm_m": [0.1, -0.3, 1.4]},
+        "odometer": {"distance_per_edge_m": 0.02},
+        "motion": {"low_gear_ratio": 1.5},
+    },
+    "wheeled_4wd_steered": {
+        "kind": "wheeled_4wd_steered",
+        "chassis": {"mass_kg": 1800, "driven_axle": "rear"},
+        "tyre": {"kz_npm": 50_000},
+    },
+}
+
+
+def test_register_each_kind(client: ApiClient, runtime: FakeRuntime, store: Store) -> None:
+    for kind, body in KIND_BODIES.items():
+        r = client.put(f"{V}/{kind}", json=body)
+        assert r.status_code == 201, r.json()
+        stored = r.json()["config"]
+        assert stored == _merged(config_class(kind)().to_dict(), body)
+        assert type(runtime.config_calls[-1][1]) is config_class(kind)
+        assert client.get(f"{V}/{kind}").json()["config"] == stored
+        record = store.get_vehicle(kind)
+        assert record is not None and vehicle_config_from_dict(record.config).to_dict() == stored
+    steered, tracked = runtime.config_calls[-1][1], runtime.config_calls[-2][1]
+    assert isinstance(steered, Wheeled4wdSteeredConfig)
+    assert steered.chassis.driven_axle is DrivenAxle.REAR and steered.tyre.kz_npm == 50_000
+    assert isinstance(tracked, TrackedConfig) and tracked.geometry.imu_lever_arm_m == (
+        0.1,
+        -0.3,
+        1.4,
+    )
+
+
+def _merged(full: dict[str, Any], body: dict[str, Any]) -> dict[str, Any]:
+    """``full`` with every section's fields as ``body`` gives them (and the rest as is)."""
+    out = dict(full)
+    for name, part in body.items():
+        out[name] = {**full[name], **part} if isinstance(part, dict) else part
+    return out
+
+
+def test_wrong_kind_or_field_is_422_naming_it(client: ApiClient, runtime: FakeRuntime) -> None:
+    cases = [
+        ({"kind": "tracked", "geometry": {"track_width_m": 2.0}}, "tracked: geometry: unknown"),
+        ({"kind": "tracked", "encoder": {"teeth_per_rev": 60}}, "tracked: unknown field"),
+        ({"kind": "wheeled_4wd_steered", "geometry": {}}, "wheeled_4wd_steered: unknown field"),
+        ({"kind": "wheeled_4wd_steered", "chassis": {"driven_axle": "middle"}}, "driven_axle"),
+        ({"kind": "tracked", "sprocket": {"teeth_per_rev": 12.0}}, "teeth_per_rev"),
+        ({"kind": "tracked", "geometry": {"imu_lever_arm_m": [0, 0]}}, "imu_lever_arm_m"),
+        ({"kind": "tracked", "motion": {"low_gear_ratio": True}}, "low_gear_ratio"),
+        ({"kind": 3}, "kind"),
+        ({"noise": {"accel_std_mps2": 1e200}}, "noise.accel_std_mps2 must be a number in "),
+        ({"slip": {"alert_hold_s": 1e12}}, "slip.alert_hold_s must be a number in 0.1..3600 s"),
+        ({"kind": "tracked", "odometer": {"distance_per_edge_m": 5}}, "0.0001..1 m"),
+        ({"kind": "wheeled_4wd_steered", "tyre": {"kz_npm": 1e3}}, "10000..5e+06 N/m"),
+        ({"estimators": [""]}, "estimators"),
+    ]
+    for body, words in cases:
+        r = client.put(f"{V}/t1", json=body)
+        assert r.status_code == 422, body
+        assert r.json()["error"] == "invalid_config"
+        assert words in r.json()["reason"], (body, r.json())
+    assert client.get(f"{V}/t1").status_code == 404
+    assert runtime.config_calls == []
+
+
+def test_config_schema_is_a_union_on_kind_with_ranges_and_units(client: ApiClient) -> None:
+    op = client.get("/openapi.json").json()["paths"]["/api/v1/vehicles/{vehicle_id}"]["put"]
+    schema = op["requestBody"]["content"]["application/json"]["schema"]
+    answer = op["responses"]["200"]["content"]["application/json"]["schema"]
+    assert client.get("/openapi.json").json()["components"]["schemas"][
+        answer["$ref"].split("/")[-1]
+    ]["properties"]["config"]["discriminator"] == {"propertyName": "kind"}
+    by_kind = {s["properties"]["kind"]["const"]: s for s in schema["oneOf"]}
+    assert set(by_kind) == {k.value for k in VehicleKind}
+    accel = by_kind["tracked"]["properties"]["noise"]["properties"]["accel_std_mps2"]
+    assert (accel["minimum"], accel["maximum"]) == (1e-6, 10.0)
+    assert "m/s²" in accel["description"]
+    hold = by_kind["wheeled_rear_drive"]["properties"]["slip"]["properties"]["alert_hold_s"]
+    assert hold["maximum"] == 3600.0 and hold["description"].endswith("0.1..3600 s")
+    kz = by_kind["wheeled_4wd_steered"]["properties"]["tyre"]["properties"]["kz_npm"]
+    assert kz["minimum"] == 1e4 and "N/m" in kz["description"]
+    teeth = by_kind["tracked"]["properties"]["sprocket"]["properties"]["teeth_per_rev"]
+    assert teeth["type"] == "integer"
+    # every number of every kind has a range and a unit
+    for kind in by_kind.values():
+        for name, section in kind["properties"].items():
+            for field, spec in section.get("properties", {}).items():
+                if spec.get("type") in ("number", "integer", "array") and name != "estimators":
+                    assert "minimum" in spec or "minimum" in spec.get("items", {}), field
+                    assert ".." in spec["description"], field

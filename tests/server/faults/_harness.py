@@ -2,7 +2,7 @@
 a deterministic vehicle publisher, and the reference estimates the server must store.
 
 The publisher replays simulated runs (fixed start time, fixed seeds) over a Zenoh client
-session, like :class:`server.fleet_sim.FleetSim`, and records when it published what: the
+session, like :class:`server.tooling.fleet_sim.FleetSim`, and records when it published what: the
 newest sensor stamp per vehicle over wall time, so a test can say which estimates the server
 must have produced before a fault. :func:`reference_rows` feeds the same packets, in the same
 order, through an in-process :class:`Pipeline` with the real estimators: what a server that
@@ -29,14 +29,14 @@ import zenoh
 
 from estimator.mdsf import MdsfConfig
 from estimator.sim import simulate
-from server.app_main import vehicle_session
-from server.estimators import EstimatorRegistry
-from server.fleet_sim import SimPacket, packetize
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
-from server.procs import stop_process
 from server.protocol import Stream, config_key, decode, encode_config, sensor_key
 from server.protocol.codec import Packet
 from server.settings import IngestSettings, Settings
+from server.tooling.fleet_commands import vehicle_session
+from server.tooling.fleet_sim import SimPacket, packetize
+from server.tooling.procs import stop_process
 from tests.support import free_port
 
 __all__ = [

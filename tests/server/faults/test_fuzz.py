@@ -35,12 +35,12 @@ from hypothesis import strategies as st
 from estimator.engine import MdsfFleet
 from estimator.sim import simulate
 from estimator.types import GnssSample
-from server.estimators import EstimatorRegistry
-from server.fleet_sim import SimPacket, packetize
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline
 from server.ingest.subscriber import IngestItem
 from server.protocol import LIMITS, DecodeError, Packet, Stream, decode, sensor_key
 from server.settings import IngestSettings, Settings
+from server.tooling.fleet_sim import SimPacket, packetize
 
 pytestmark = pytest.mark.slow
 

@@ -20,7 +20,7 @@ import httpx
 import numpy as np
 import pytest
 
-from server.storage._pgadmin import create_database
+from server.tooling.pgadmin import create_database
 from tests.conftest import start_pg_cluster, stop_pg_cluster
 from tests.server.faults._harness import (
     Publisher,

@@ -17,7 +17,7 @@ from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.spec import EstimatorSpec
 from estimator.types import EstimateBatch, GnssSample
-from server.estimators import DEFAULT_FACTORIES, EstimatorRegistry
+from server.estimation import DEFAULT_FACTORIES, EstimatorRegistry
 from server.ingest.zenoh_session import open_session
 from server.settings import ZenohSettings
 from tests.support import free_port

@@ -87,7 +87,7 @@ def test_far_sequence_jump_forward_is_a_restart_not_a_loss() -> None:
 
 
 def _pipeline(fleet: RecordingFleet, sink: CapturingSink) -> Pipeline:
-    from server.estimators import EstimatorRegistry
+    from server.estimation import EstimatorRegistry
 
     settings = Settings(
         ingest=IngestSettings(

@@ -9,12 +9,21 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.types import GnssSample, ImuBatch, Wheel, WheelEdges
+from estimator.types import (
+    GnssSample,
+    ImuBatch,
+    SprocketEdges,
+    SteeringAngles,
+    TrackSide,
+    Wheel,
+    WheelEdges,
+)
 from server.ingest.reorder import (
     SEQ_WINDOW,
     WATERMARK_START_NS,
     ReorderBuffer,
     SeqTracker,
+    StreamGap,
     Verdict,
 )
 from server.protocol import Packet, Stream
@@ -38,6 +47,13 @@ def gnss_packet(seq: int, at_ms: int) -> Packet:
     t = T0 + at_ms * MS
     g = GnssSample(t, (0.0, 1.0, 0.0), 0.0, 0.0, 0.0, 48.0, 11.0, 500.0)
     return Packet("v1", Stream.GNSS, seq, 1, (g,), t, t)
+
+
+def _wheel(buf: ReorderBuffer) -> list[tuple[int, int | None, Packet | None]]:
+    """``(after_ns, until_ns, before)`` of the gaps taken, every one of the wheels."""
+    gaps = buf.take_gaps()
+    assert all(g.stream is Stream.WHEELS for g in gaps)
+    return [(g.after_ns, g.until_ns, g.before) for g in gaps]
 
 
 def test_releases_in_first_stamp_order_after_lateness() -> None:
@@ -266,7 +282,7 @@ def test_lost_wheel_packets_open_one_gap_where_the_wheel_data_ends() -> None:
         for p in (imu, gnss) if k in (15, 16) else (imu, gnss, wheels):
             buf.offer(p, 0)
         out, _ = buf.release(0)
-        gaps += [(a - T0, u and u - T0, p and p.first_stamp_ns - T0) for a, u, p in buf.take_gaps()]
+        gaps += [(a - T0, u and u - T0, p and p.first_stamp_ns - T0) for a, u, p in _wheel(buf)]
         wheels_fed += [p.seq for p in out if p.stream is Stream.WHEELS and p.seq >= 15]
     assert wheels_fed == list(range(17, 25))
     # each before the first packet released that starts after the wheel data (IMU)
@@ -291,12 +307,12 @@ def test_wheel_data_only_later_is_no_gap_but_a_late_wheel_packet_is() -> None:
         buf.offer(imu, 0)
         buf.offer(gnss, 0)
         _, released = buf.release(0)
-        waits += [(a - T0, u and u - T0) for a, u, _ in buf.take_gaps()]
+        waits += [(a - T0, u and u - T0) for a, u, _ in _wheel(buf)]
     assert released == T0 + 1609 * MS  # past the wheels' watermark (1499 ms)
     assert waits == [(1499 * MS, 1509 * MS), (1509 * MS, 1609 * MS)]  # no loss named
     assert buf.offer(wheels_packet(15, 1503), 0).verdict is Verdict.LATE
     out, _ = buf.release(0)
-    assert out == [] and buf.take_gaps() == ((T0 + 1609 * MS, None, None),)
+    assert out == [] and buf.take_gaps() == (StreamGap(Stream.WHEELS, T0 + 1609 * MS, None, None),)
     assert buf.take_gaps() == ()  # once
 
 
@@ -498,3 +514,61 @@ def test_packets_behind_a_lagging_stream_do_not_ask_for_a_release() -> None:
         buf.release(at)
     assert asked[Stream.WHEELS] and all(asked[Stream.WHEELS])
     assert asked[Stream.IMU] and not any(asked[Stream.IMU] + asked[Stream.GNSS])
+
+
+def sprockets_packet(seq: int, first_ms: int) -> Packet:
+    t = T0 + (first_ms + np.arange(0, 97, 8)) * MS
+    m = SprocketEdges(TrackSide.TRACK_LEFT, t)
+    return Packet("v1", Stream.SPROCKETS, seq, 1, (m,), int(t[0]), int(t[-1]))
+
+
+def steering_packet(seq: int, first_ms: int) -> Packet:
+    t = T0 + (first_ms + np.arange(10) * 10) * MS
+    m = SteeringAngles(t, np.zeros(10))
+    return Packet("v1", Stream.STEERING, seq, 1, (m,), int(t[0]), int(t[-1]))
+
+
+def test_lost_data_of_any_cumulative_stream_is_a_gap_of_that_stream() -> None:
+    """A crawler sends sprocket edges instead of wheel edges: a lost sprockets packet opens the
+    same gaps the wheels would, named for the sprockets."""
+    tracked = (Stream.GNSS, Stream.IMU, Stream.SPROCKETS)
+    buf = ReorderBuffer(lateness_ns=300 * MS, idle_ns=10**18, watermarks=True, streams=tracked)
+
+    def crawler(k: int) -> list[Packet]:
+        return [
+            imu_packet(k, 100 * k),
+            gnss_packet(k, 100 * k + 5),
+            sprockets_packet(k, 100 * k + 3),
+        ]
+
+    for k in range(15):
+        for p in crawler(k):
+            buf.offer(p, 0)
+    buf.release(0)
+    gaps: list[StreamGap] = []
+    for k in range(15, 20):
+        imu, gnss, sprockets = crawler(k)
+        for p in (imu, gnss) if k == 15 else (imu, gnss, sprockets):
+            buf.offer(p, 0)
+        buf.release(0)
+        gaps += buf.take_gaps()
+    assert {g.stream for g in gaps} == {Stream.SPROCKETS}
+    lost = [g for g in gaps if g.until_ns is None]
+    assert [(g.after_ns - T0, g.before and g.before.first_stamp_ns - T0) for g in lost] == [
+        (1499 * MS, 1500 * MS)
+    ]
+
+
+def test_a_stream_that_counts_nothing_has_no_gap_and_is_ordered_by_its_priority() -> None:
+    """A late steering packet is refused without a gap (a missing angle reads as nothing);
+    packets starting at the same time are released in the streams' declared order."""
+    buf = ReorderBuffer(lateness_ns=50 * MS, idle_ns=10**18)
+    steering, imu = steering_packet(0, 0), imu_packet(0, 0)
+    assert buf.offer(steering, 0).verdict is Verdict.ACCEPTED
+    assert buf.offer(imu, 0).verdict is Verdict.ACCEPTED
+    assert buf.offer(imu_packet(1, 200), 0).verdict is Verdict.ACCEPTED
+    out, _ = buf.release(0)
+    assert [p.stream for p in out] == [Stream.IMU, Stream.STEERING]  # priority 1 before 5
+    assert buf.offer(steering_packet(1, 100), 0).verdict is Verdict.LATE
+    buf.release(0)
+    assert buf.take_gaps() == ()

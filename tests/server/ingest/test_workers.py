@@ -8,12 +8,12 @@ import time
 import numpy as np
 import pytest
 
-from estimator.config import VehicleConfig
+from estimator.config import WheeledRearDriveConfig
 from estimator.sim import simulate
-from server.fleet_sim import encode_packets, packetize
 from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
 from server.protocol import sensor_key
 from server.settings import Settings
+from server.tooling.fleet_sim import encode_packets, packetize
 from tests.server.ingest.fakes import FAILING_VEHICLE, CapturingSink, mixed_registry
 
 VEHICLES = [f"w{i:03d}" for i in range(6)]
@@ -107,8 +107,8 @@ def test_every_vehicle_is_estimated_once_and_counted() -> None:
 def test_registrations_and_stored_counters_reach_the_owner() -> None:
     sink = CapturingSink()
     pool = _pool(sink, unknown_vehicle="reject")
-    pool.register_vehicle("w000", VehicleConfig())
-    pool.register_vehicle("w003", VehicleConfig())
+    pool.register_vehicle("w000", WheeledRearDriveConfig())
+    pool.register_vehicle("w003", WheeledRearDriveConfig())
     pool.restore_counters("w003", {"received": 1000, "accepted": 1000})
     pool.restore_anchor("w003", (47.5, 10.5, 400.0))  # the frame of its stored rows
     pool.start()
@@ -196,7 +196,7 @@ def test_a_mixed_fleet_through_workers_loses_only_the_failing_vehicles_estimator
     assert len({owner_of(v, 2) for v in mixed}) == 2, "both workers run the second estimator"
     for vid in VEHICLES:
         both = ("mdsf", "reference_speed") if vid in mixed else ()
-        pool.register_vehicle(vid, VehicleConfig(estimators=both))
+        pool.register_vehicle(vid, WheeledRearDriveConfig(estimators=both))
     packets = _packets(VEHICLES)
     pool.start()
     try:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from estimator.config import VehicleConfig, VehicleKind
+from estimator.config import VehicleConfig, WheeledRearDriveConfig
 from estimator.types import GnssSample, ImuBatch, Wheel, WheelEdges
-from server.estimators import EstimatorRegistry
+from server.estimation import EstimatorRegistry
 from server.ingest import Pipeline, make_config
 from server.protocol import (
     Stream,
@@ -162,7 +162,7 @@ def test_config_key_registers_vehicle() -> None:
         pipe.start()
         try:
             with client_session(endpoint) as client:
-                cfg = VehicleConfig(kind=VehicleKind.WHEELED_REAR_DRIVE, estimators=("mdsf",))
+                cfg = WheeledRearDriveConfig(estimators=("mdsf",))
                 cpub = declare(client, config_key(zs.key_prefix, "veh-7"))
                 cpub.put(encode_config(cfg))
                 bad = declare(client, config_key(zs.key_prefix, "veh-8"))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
@@ -11,7 +12,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.config import VehicleConfig, VehicleKind
+from estimator.config import (
+    ChassisConfig,
+    DrivenAxle,
+    OdometerConfig,
+    TrackedConfig,
+    VehicleConfig,
+    VehicleGeometry,
+    Wheeled4wdSteeredConfig,
+    WheeledRearDriveConfig,
+)
 from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges, WheelSpeeds
 from server.protocol import (
     LIMITS,
@@ -191,10 +201,46 @@ def test_decoded_arrays_are_zero_copy_views() -> None:
     assert not m.accel_mps2.flags.writeable  # a view of the payload, not a copy
 
 
-def test_config_round_trip() -> None:
-    cfg = VehicleConfig(kind=VehicleKind.TRACKED, estimators=("mdsf",))
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        WheeledRearDriveConfig(geometry=VehicleGeometry(track_width_m=2.2), estimators=("mdsf",)),
+        TrackedConfig(odometer=OdometerConfig(distance_per_edge_m=0.02)),
+        Wheeled4wdSteeredConfig(chassis=ChassisConfig(mass_kg=1800.0, driven_axle=DrivenAxle.REAR)),
+    ],
+)
+def test_config_round_trip(cfg: VehicleConfig) -> None:
     vid, got = decode_config("fleet/veh-1/config", encode_config(cfg))
-    assert vid == "veh-1" and got == cfg
+    assert vid == "veh-1" and got == cfg and type(got) is type(cfg)
+
+
+@pytest.mark.parametrize(
+    ("body", "kind"),
+    [
+        ({}, WheeledRearDriveConfig),
+        ({"kind": "tracked", "sprocket": {"pitch_radius_m": 0.4}}, TrackedConfig),
+        ({"kind": "wheeled_4wd_steered", "tyre": {"kz_npm": 50000}}, Wheeled4wdSteeredConfig),
+    ],
+)
+def test_config_of_each_kind_decodes(body: dict[str, Any], kind: type) -> None:
+    _, got = decode_config("fleet/veh-1/config", json.dumps(body).encode())
+    assert type(got) is kind
+
+
+@pytest.mark.parametrize(
+    ("body", "words"),
+    [
+        ({"kind": "tracked", "encoder": {}}, "tracked: unknown field(s) ['encoder']"),
+        ({"kind": "wheeled_4wd_steered", "tyre": {"kz_npm": 1}}, "tyre.kz_npm must be"),
+        ({"noise": {"accel_std_mps2": 1e200}}, "1e-06..10 m/s²"),
+    ],
+)
+def test_config_of_a_wrong_kind_is_refused_naming_the_field(
+    body: dict[str, Any], words: str
+) -> None:
+    with pytest.raises(DecodeError) as info:
+        decode_config("fleet/veh-1/config", json.dumps(body).encode())
+    assert info.value.reason == "bad_config" and words in str(info.value)
 
 
 def test_custom_prefix_with_slash() -> None:
@@ -537,7 +583,9 @@ def test_gnss_fast_check_agrees_with_the_field_rules(
 ) -> None:
     """The one-expression check accepts only what the field-by-field rules accept, with the
     same values; what it leaves to them (None) they accept or refuse."""
-    from server.protocol.codec import _Ctx, _gnss_checked, _gnss_sample
+    from server.protocol.base import Ctx as _Ctx
+    from server.protocol.sensors import gnss_checked as _gnss_checked
+    from server.protocol.sensors import gnss_sample as _gnss_sample
 
     m: dict[str, Any] = msgpack.unpackb(encode_gnss(_gnss(vel_std_mps=0.05), 3), raw=False)
     m.update(changes)
@@ -558,7 +606,7 @@ def test_gnss_fast_check_agrees_with_the_field_rules(
 
 
 def test_gnss_fast_check_takes_the_usual_packet_and_nan_attitude() -> None:
-    from server.protocol.codec import _gnss_sample
+    from server.protocol.sensors import gnss_sample as _gnss_sample
 
     usual = msgpack.unpackb(encode_gnss(_gnss(vel_std_mps=0.05), 3), raw=False)
     assert _gnss_sample(usual, LIMITS) is not None

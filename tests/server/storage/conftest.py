@@ -15,13 +15,14 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
-from estimator.types import ESTIMATE_FIELDS, empty_estimates
+from estimator.spec import EstimatorSpec
+from estimator.types import ESTIMATE_FIELDS, EstimateBatch, empty_estimates
 from server.settings import StorageSettings
 from server.storage import Store
-from server.storage._pgadmin import set_connections_allowed
-from server.storage._testing import sqlite_write_locked
 from server.storage.postgres import PostgresStore
 from server.storage.sqlite import SqliteStore
+from server.tooling.pgadmin import set_connections_allowed
+from tests.server.storage._faults import sqlite_write_locked
 
 T0_NS = 1_763_700_000_000_000_000  # 2025-11-21, a realistic epoch in ns
 DT_NS = 100_000_000  # 10 Hz
@@ -44,6 +45,30 @@ def make_rows(n: int, start_ns: int = T0_NS, *, seed: int = 0, dt_ns: int = DT_N
         rows["accel_mps2"][-1] = -np.inf
         rows["east_m"][n // 2] = 1e-300
     return rows
+
+
+def make_spec_rows(
+    spec: EstimatorSpec, n: int, start_ns: int = T0_NS, *, seed: int = 0, dt_ns: int = DT_NS
+) -> np.ndarray:
+    """``n`` rows of ``spec``'s dtype at ``dt_ns`` spacing: random values, a NaN and an
+    infinity in its second field, random flags."""
+    rng = np.random.default_rng(seed)
+    rows = spec.empty_rows(n)
+    rows["stamp_ns"] = start_ns + np.arange(n, dtype=np.int64) * dt_ns
+    for f in spec.fields[1:]:
+        if f.kind == "f8":
+            rows[f.name] = rng.normal(0.0, 10.0, n)
+        else:
+            rows[f.name] = rng.integers(0, 1 << 9, n)
+    if n > 1:
+        second = spec.fields[1].name
+        rows[second][0], rows[second][1] = np.nan, -np.inf
+    return rows
+
+
+def batch_of(spec: EstimatorSpec, rows: dict[str, np.ndarray]) -> EstimateBatch:
+    """One estimator's rows of several vehicles, ``{vehicle_id: rows}``."""
+    return EstimateBatch.of(list(rows.items()), spec)
 
 
 def assert_rows_equal(got: np.ndarray, want: np.ndarray) -> None:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from estimator.config import TrackedConfig, Wheeled4wdSteeredConfig, vehicle_config_from_dict
 from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
 from server.storage import StorageError, open_store
 from server.storage.migrations import (
@@ -235,3 +236,74 @@ def test_sqlite_migration_8_on_an_empty_database(tmp_path: Path) -> None:
     store.migrate()
     assert store._read("SELECT id, newest_ns FROM estimates_horizon") == [(0, -(2**63))]
     store.close()
+
+
+_V9_REAR = {  # what version 9's code stored for a rear-drive vehicle
+    "kind": "wheeled_rear_drive",
+    "geometry": {
+        "h0_m": 1.1,
+        "h1_m": 1.5,
+        "track_width_m": 1.9,
+        "wheel_radius_left_m": 0.8,
+        "wheel_radius_right_m": 0.9,
+        "antenna_offset_m": [0.2, 0.4],
+        "imu_offset_m": [0.0, 0.1],
+    },
+    "encoder": {"teeth_per_rev": 90, "has_direction": True},
+    "noise": {
+        "gnss_vel_std_mps": 0.04,
+        "accel_std_mps2": 0.06,
+        "gyro_std_radps": 0.004,
+        "accel_bias_walk_mps2": 0.003,
+        "gnss_pos_std_m": 0.02,
+    },
+    "slip": {
+        "min_ground_speed_mps": 0.3,
+        "band_edges_pct": [10.0, 20.0],
+        "alert_threshold_pct": 25.0,
+        "alert_hold_s": 4.0,
+        "settle_max_change": 0.5,
+    },
+    "estimators": ["mdsf"],
+}
+
+
+def test_stored_configs_move_to_the_shape_of_their_kind(
+    backend: Backend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Configs stored by version 9 (every kind in the rear-drive shape, or no kind at all) read
+    as their kind after version 11, values kept; an invalid one is kept as it was."""
+    import server.storage.migrations as mig
+
+    store = backend.open(migrate=False)
+    with monkeypatch.context() as m:
+        m.setattr(mig, "MIGRATIONS", mig.MIGRATIONS[:9])
+        assert store.migrate() == 9
+    old = {
+        "rear": _V9_REAR,
+        "empty": {},
+        "crawler": {**_V9_REAR, "kind": "tracked", "estimators": []},
+        "utility": {**_V9_REAR, "kind": "wheeled_4wd_steered"},
+        "broken": {"geometry": {"h0_m": -1}},
+    }
+    for vid, config in old.items():
+        store.upsert_vehicle(vid, config, now_ns=1)
+    assert store.migrate() == 11 == latest_version()
+    new = {vid: store.get_vehicle(vid).config for vid in old}  # type: ignore[union-attr]
+
+    assert new["rear"] == _V9_REAR  # the rear-drive shape did not change
+    assert new["empty"] == {"kind": "wheeled_rear_drive"}
+    assert new["broken"] == {"kind": "wheeled_rear_drive", "geometry": {"h0_m": -1}}
+    crawler = vehicle_config_from_dict(new["crawler"])
+    assert isinstance(crawler, TrackedConfig)
+    assert crawler.geometry.track_gauge_m == 1.9
+    assert crawler.geometry.imu_lever_arm_m == (0.0, 0.1, 1.1)
+    assert crawler.geometry.antenna_lever_arm_m == pytest.approx((0.2, 0.4, 2.6))
+    assert crawler.noise.accel_std_mps2 == 0.06 and crawler.slip.band_edges_pct == (10.0, 20.0)
+    utility = vehicle_config_from_dict(new["utility"])
+    assert isinstance(utility, Wheeled4wdSteeredConfig)
+    assert utility.chassis.front_track_m == utility.chassis.rear_track_m == 1.9
+    assert utility.tyre.unloaded_radius_m == pytest.approx(0.85)
+    assert utility.estimators == ("mdsf",)
+    assert store.migrate() == 11  # a second run changes nothing
+    assert store.get_vehicle("crawler").config == new["crawler"]  # type: ignore[union-attr]

@@ -50,7 +50,7 @@ def test_postgres_by_url(pg_database_url: str) -> None:
 @pytest.mark.postgres
 def test_postgres_unreachable_raises_storage_error(pg_url: str) -> None:
     from server.storage import StorageError
-    from server.storage._pgadmin import database_url
+    from server.tooling.pgadmin import database_url
 
     url = database_url(pg_url, "slipfleet_does_not_exist")
     with pytest.raises(StorageError):

@@ -6,7 +6,7 @@ import itertools
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -14,7 +14,7 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
-from estimator.types import concat_estimates
+from estimator.types import EstimateBatch, concat_estimates
 from server.settings import StorageSettings
 from server.storage import StorageDataError, Store, StoreWriter
 from server.storage.writer import COUNTER_VEHICLES_PER_WRITE, MAINTAIN_PAUSE_PER_STEP
@@ -28,9 +28,9 @@ class CountingStore:
         self.inner = inner
         self.batches: list[int] = []
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        written = self.inner.write_estimates(batch)
-        self.batches.append(sum(len(rows) for _, rows in batch))
+    def write_estimates(self, *batches: EstimateBatch) -> int:
+        written = self.inner.write_estimates(*batches)
+        self.batches.append(sum(len(b.rows) for b in batches))
         return written
 
     def __getattr__(self, name: str) -> Any:
@@ -87,9 +87,9 @@ class TimedStore(CountingStore):
         super().__init__(inner)
         self.started_s: list[float] = []
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
+    def write_estimates(self, *batches: EstimateBatch) -> int:
         self.started_s.append(time.monotonic())
-        return super().write_estimates(batch)
+        return super().write_estimates(*batches)
 
 
 def test_rows_after_a_pause_commit_at_once_later_ones_wait_the_interval(
@@ -132,9 +132,9 @@ class SlowCountersStore(CountingStore):
         time.sleep(self.counters_s)
         self.inner.write_counters(counters, now_ns)
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        self.calls.append(("estimates", sum(len(rows) for _, rows in batch)))
-        return super().write_estimates(batch)
+    def write_estimates(self, *batches: EstimateBatch) -> int:
+        self.calls.append(("estimates", sum(len(b.rows) for b in batches)))
+        return super().write_estimates(*batches)
 
 
 def test_fleet_counters_go_in_slices_with_due_estimates_in_between(backend: Backend) -> None:
@@ -469,10 +469,10 @@ def test_producers_on_several_threads(backend: Backend) -> None:
 class PoisonStore(CountingStore):
     """Refuses, as the database would refuse bad data, any batch holding vehicle ``poison``."""
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        if any(vid == "poison" for vid, _ in batch):
+    def write_estimates(self, *batches: EstimateBatch) -> int:
+        if any(vid == "poison" for b in batches for vid in b.ids):
             raise StorageDataError("value out of range")
-        return super().write_estimates(batch)
+        return super().write_estimates(*batches)
 
 
 def test_rejected_data_is_isolated_per_vehicle_and_counted(backend: Backend) -> None:

@@ -1,0 +1,566 @@
+"""Fleet alerts from any estimator's rows: sustained slip, degraded rows, vehicles gone quiet.
+
+:class:`AlertEngine` is a pipeline sink (``on_estimates(batch)`` on the pipeline thread, once per
+estimator per tick). Its rules name a channel of the batch's
+:class:`estimator.spec.EstimatorSpec`, never a column. It keeps, per vehicle and condition,
+whether the condition holds and since when (sensor time), opens an alert once it has held for
+the condition's hold time and closes it on the first row where it no longer holds:
+
+==============================  ===========================================  =================
+kind                            condition on one row of estimator ``e``      hold
+==============================  ===========================================  =================
+``slip:<e>:<channel key>``      ``|slip| > alert_threshold_pct`` of one of    ``alert_hold_s``
+                                ``e``'s slip channels
+``flag:<e>:<FLAG>``             one of ``e``'s ``degraded_flags`` is set      ``flag_hold_s``
+``stale``                       no row of any estimator for                  ``check_stale``
+                                ``stale_after_s`` of wall time
+``storage_down``                the server's database is unreachable/full    set by the runtime
+``zenoh_down``                  the server has no Zenoh router               set by the runtime
+==============================  ===========================================  =================
+
+The last two are about the server itself: their ``vehicle_id`` is ``""`` (:data:`SYSTEM`) and their
+stamps are wall-clock times (:meth:`AlertEngine.set_system_condition`).
+
+(``alert_threshold_pct`` and ``alert_hold_s`` from the vehicle's ``SlipConfig``.)
+
+A NaN slip (standstill, invalid) does not hold. ``start_ns`` is the sensor stamp where the
+condition began (for ``stale``: the vehicle's last stamp), ``end_ns`` where it stopped (for
+``stale``: the first new stamp). ``peak`` is the largest ``|slip|`` (percent) seen in a slip alert.
+An alert names its ``estimator`` and ``channel`` (slip channel key or flag name; None for the
+others).
+
+Every open and close is passed to ``publish(vehicle_id, event)`` when given: ``event`` is
+``Alert.to_dict()`` plus ``"event": "open" | "close"``; the runtime puts it, JSON-encoded, on the
+Zenoh key ``<prefix>/<vehicle_id>/alerts``. ``publish`` runs on the calling thread (pipeline or
+the stale-check thread) and must not block; exceptions it raises are logged and counted.
+
+Closed alerts are kept in a bounded deque (``max_closed``), newest last.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from enum import StrEnum
+from typing import Any
+
+import numpy as np
+
+from estimator.config import SlipConfig
+from estimator.spec import EstimatorSpec
+from estimator.types import EstimateBatch
+
+__all__ = ["SYSTEM", "Alert", "AlertEngine", "AlertKind", "PublishHook", "flag_kind", "slip_kind"]
+
+_log = logging.getLogger(__name__)
+
+PublishHook = Callable[[str, dict[str, Any]], None]
+
+
+class AlertKind(StrEnum):
+    """Alert kinds that name no estimator channel (those: :func:`slip_kind`, :func:`flag_kind`)."""
+
+    STALE = "stale"
+    STORAGE_DOWN = "storage_down"
+    ZENOH_DOWN = "zenoh_down"
+
+
+def slip_kind(estimator: str, channel: str) -> str:
+    """Kind of a slip alert on ``estimator``'s slip channel ``channel``: ``slip:<e>:<key>``."""
+    return f"slip:{estimator}:{channel}"
+
+
+def flag_kind(estimator: str, flag: str) -> str:
+    """Kind of an alert on ``estimator``'s degraded flag ``flag``: ``flag:<e>:<FLAG>``."""
+    return f"flag:{estimator}:{flag}"
+
+
+#: ``vehicle_id`` of alerts about the server itself rather than a vehicle.
+SYSTEM = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Alert:
+    """One alert; ``end_ns`` is None while it is open."""
+
+    id: int
+    vehicle_id: str
+    kind: str
+    start_ns: int
+    end_ns: int | None
+    opened_wall_ns: int
+    threshold: float | None = None
+    peak: float | None = None
+    estimator: str | None = None
+    channel: str | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.end_ns is None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "vehicle_id": self.vehicle_id,
+            "kind": str(self.kind),
+            "estimator": self.estimator,
+            "channel": self.channel,
+            "start_ns": self.start_ns,
+            "end_ns": self.end_ns,
+            "open": self.is_open,
+            "opened_wall_ns": self.opened_wall_ns,
+            "threshold": self.threshold,
+            "peak": self.peak,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class _Rule:
+    """One condition on a row of a spec: a slip channel's ``|field| > threshold`` (``field``
+    set) or a flag set (``mask``)."""
+
+    kind: str
+    channel: str
+    field: str | None = None
+    mask: int = 0
+
+
+def _rules(spec: EstimatorSpec) -> tuple[_Rule, ...]:
+    slips = [_Rule(slip_kind(spec.name, c.key), c.key, field=c.field) for c in spec.slips]
+    flags = [_Rule(flag_kind(spec.name, f), f, mask=spec.flag_mask(f)) for f in spec.degraded_flags]
+    return (*slips, *flags)
+
+
+class _SpecState:
+    """Per-vehicle state of one estimator's rules: arrays of shape (slots, rules)."""
+
+    def __init__(self, spec: EstimatorSpec) -> None:
+        self.spec = spec
+        self.rules = _rules(spec)
+        k = len(self.rules)
+        self.is_slip = np.array([r.field is not None for r in self.rules], dtype=bool)
+        self.active = np.zeros((0, k), dtype=bool)  # condition held on the newest row
+        self.since = np.zeros((0, k), dtype=np.int64)
+        self.run_peak = np.zeros((0, k))  # largest |slip| of the current run, percent
+        self.open = np.full((0, k), -1, dtype=np.int64)  # id of the open alert or -1
+
+    def ensure(self, n: int) -> None:
+        """Room for ``n`` vehicle slots."""
+        have = self.active.shape[0]
+        if n <= have:
+            return
+        n = max(n, 2 * have, 64)
+
+        def grow(a: np.ndarray, fill: float | int | bool) -> np.ndarray:
+            extra = np.full((n - a.shape[0], *a.shape[1:]), fill, dtype=a.dtype)
+            return np.concatenate([a, extra])
+
+        self.active = grow(self.active, False)
+        self.since = grow(self.since, 0)
+        self.run_peak = grow(self.run_peak, 0.0)
+        self.open = grow(self.open, -1)
+
+    def reset(self, s: int) -> None:
+        if s < self.active.shape[0]:
+            self.active[s] = False
+            self.since[s] = 0
+            self.run_peak[s] = 0.0
+            self.open[s] = -1
+
+    def conditions(self, rows: np.ndarray, thr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(cond, mag)``, shape (n, rules) each: whether each rule holds on each row, and
+        ``|slip|`` of slip rules (0 for flag rules). ``thr``: each row's threshold, shape (n,)."""
+        n = rows.shape[0]
+        cond = np.zeros((n, len(self.rules)), dtype=bool)
+        mag = np.zeros((n, len(self.rules)))
+        flags = rows["flags"].astype(np.int64) if self.spec.has_field("flags") else None
+        for k, rule in enumerate(self.rules):
+            if rule.field is not None:
+                mag[:, k] = np.abs(rows[rule.field])
+                with np.errstate(invalid="ignore"):
+                    cond[:, k] = mag[:, k] > thr
+            elif flags is not None:
+                cond[:, k] = (flags & rule.mask) != 0
+        return cond, mag
+
+
+class AlertEngine:
+    """Open and close alerts from any estimator's rows (a thread-safe pipeline sink).
+
+    Parameters
+    ----------
+    slip_config_for : callable, optional
+        ``vehicle_id -> SlipConfig``, asked once when a vehicle is first seen (the runtime passes a
+        lookup in the vehicle registry). Default: ``SlipConfig()`` for every vehicle. Change a
+        vehicle's later with :meth:`set_slip_config`.
+    flag_hold_s : float
+        A degraded flag must hold this long (sensor time) before an alert opens.
+    stale_after_s : float
+        Wall time without a row after which :meth:`check_stale` opens a ``stale`` alert.
+    publish : callable, optional
+        ``publish(vehicle_id, event_dict)`` on every open and close.
+    clock_ns : callable
+        Wall clock (injected in tests).
+    max_closed : int
+        How many closed alerts are kept.
+    """
+
+    def __init__(
+        self,
+        *,
+        slip_config_for: Callable[[str], SlipConfig] | None = None,
+        flag_hold_s: float = 2.0,
+        stale_after_s: float = 10.0,
+        publish: PublishHook | None = None,
+        clock_ns: Callable[[], int] = time.time_ns,
+        max_closed: int = 10_000,
+    ) -> None:
+        if flag_hold_s < 0 or stale_after_s <= 0 or max_closed < 1:
+            raise ValueError("need flag_hold_s >= 0, stale_after_s > 0, max_closed >= 1")
+        self._config_for = slip_config_for or (lambda _vid: SlipConfig())
+        self.flag_hold_ns = round(flag_hold_s * 1e9)
+        self.stale_after_s = float(stale_after_s)
+        self.publish = publish
+        self._clock_ns = clock_ns
+        self._lock = threading.Lock()
+        self._ids: list[str] = []
+        self._slot: dict[str, int] = {}
+        self._free: list[int] = []  # slots of forgotten vehicles, reused first
+        n = 64
+        self._thr = np.zeros(n)  # slip threshold, percent
+        self._slip_hold_ns = np.zeros(n, dtype=np.int64)
+        self._last_stamp = np.zeros(n, dtype=np.int64)
+        self._last_arrival = np.zeros(n, dtype=np.int64)
+        self._specs: dict[str, _SpecState] = {}
+        self._stale_open: dict[str, int] = {}
+        self._system_open: dict[AlertKind, int] = {}
+        self._open_alerts: dict[int, Alert] = {}
+        # open alert id -> (estimator, slot, rule column)
+        self._open_pos: dict[int, tuple[str, int, int]] = {}
+        self._closed: deque[Alert] = deque(maxlen=max_closed)
+        self._next_id = 1
+        self.publish_errors = 0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # ---------------------------------------------------------------- configuration
+    def set_slip_config(self, vehicle_id: str, config: SlipConfig) -> None:
+        """Use ``config``'s threshold and hold for this vehicle from now on."""
+        with self._lock:
+            s = self._slot_of(vehicle_id)
+            self._apply_config(s, config)
+
+    def _apply_config(self, s: int, config: SlipConfig) -> None:
+        self._thr[s] = config.alert_threshold_pct
+        self._slip_hold_ns[s] = round(config.alert_hold_s * 1e9)
+
+    def _slot_of(self, vehicle_id: str) -> int:
+        s = self._slot.get(vehicle_id)
+        if s is not None:
+            return s
+        if self._free:
+            s = self._free.pop()
+            self._ids[s] = vehicle_id
+        else:
+            s = len(self._ids)
+            if s >= self._thr.shape[0]:  # double every per-vehicle array
+                self._thr = np.r_[self._thr, np.zeros(s)]
+                self._slip_hold_ns = np.r_[self._slip_hold_ns, np.zeros(s, np.int64)]
+                self._last_stamp = np.r_[self._last_stamp, np.zeros(s, np.int64)]
+                self._last_arrival = np.r_[self._last_arrival, np.zeros(s, np.int64)]
+            self._ids.append(vehicle_id)
+        self._slot[vehicle_id] = s
+        self._apply_config(s, self._config_for(vehicle_id))
+        return s
+
+    def _state(self, spec: EstimatorSpec) -> _SpecState:
+        state = self._specs.get(spec.name)
+        if state is None or state.spec is not spec:
+            state = self._specs[spec.name] = _SpecState(spec)
+        state.ensure(len(self._ids))
+        return state
+
+    # ---------------------------------------------------------------- sink
+    def on_estimates(self, batch: EstimateBatch) -> None:
+        """Update alert state from one estimator's rows of several vehicles.
+
+        Vectorised over the batch; only vehicles where a condition changes (or waits out its hold
+        time) are walked row by row.
+        """
+        if not batch:
+            return
+        now = self._clock_ns()
+        events: list[tuple[str, str, Alert]] = []
+        with self._lock:
+            slots = np.array([self._slot_of(v) for v in batch.ids], dtype=np.int64)
+            st = self._state(batch.spec)
+            rows, slot = batch.grouped(slots)
+            stamp = rows["stamp_ns"].astype(np.int64)
+            first = np.r_[True, slot[1:] != slot[:-1]]
+            last = np.r_[slot[1:] != slot[:-1], True]
+            if st.rules:
+                events.extend(self._apply_rules(st, rows, slot, stamp, first, last, now))
+            s_last, t_last = slot[last], stamp[last]
+            self._last_stamp[s_last] = np.maximum(self._last_stamp[s_last], t_last)
+            self._last_arrival[s_last] = now
+            if self._stale_open:
+                for s_ in s_last.tolist():
+                    vid = self._ids[s_]
+                    if vid in self._stale_open:
+                        aid = self._stale_open.pop(vid)
+                        events.append(("close", vid, self._close(aid, int(self._last_stamp[s_]))))
+        self._emit(events)
+
+    def _apply_rules(
+        self,
+        st: _SpecState,
+        rows: np.ndarray,
+        slot: np.ndarray,
+        stamp: np.ndarray,
+        first: np.ndarray,
+        last: np.ndarray,
+        now: int,
+    ) -> list[tuple[str, str, Alert]]:
+        """Run one estimator's rules over its rows (each vehicle's rows one run, ``first`` /
+        ``last`` marking the runs' ends)."""
+        cond, mag = st.conditions(rows, self._thr[slot])
+        prev = np.empty_like(cond)
+        prev[1:] = cond[:-1]
+        prev[first] = st.active[slot[first]]
+        changed: np.ndarray = (cond != prev).any(axis=1)
+        s_last, t_last = slot[last], stamp[last]
+        hold = self._hold_ns(st, s_last)
+        # vehicles whose hold time runs out in this batch
+        due = np.asarray(
+            np.any(
+                st.active[s_last]
+                & (st.open[s_last] < 0)
+                & (t_last[:, None] - st.since[s_last] >= hold),
+                axis=1,
+            )
+        )
+        busy = np.unique(np.r_[slot[changed], s_last[due]])
+        quiet = ~np.isin(slot, busy) if busy.size else np.ones(slot.shape[0], dtype=bool)
+        if quiet.any():  # steady vehicles: only the peaks of running slip episodes move
+            m = cond[quiet] & st.is_slip
+            rr, kk = np.nonzero(m)
+            np.maximum.at(st.run_peak, (slot[quiet][rr], kk), mag[quiet][rr, kk])
+        events: list[tuple[str, str, Alert]] = []
+        if busy.size:  # each vehicle's rows are one run: walk the busy runs
+            lo = np.flatnonzero(first)
+            hi = np.r_[lo[1:], slot.shape[0]]
+            walk = np.isin(slot[lo], busy)
+            for s_, a_, b_ in zip(
+                slot[lo[walk]].tolist(), lo[walk].tolist(), hi[walk].tolist(), strict=True
+            ):
+                events.extend(self._walk(st, s_, stamp[a_:b_], cond[a_:b_], mag[a_:b_], now))
+        return events
+
+    def _hold_ns(self, st: _SpecState, slots: np.ndarray) -> np.ndarray:
+        """Hold time of each rule for each slot, shape (len(slots), rules)."""
+        return np.where(st.is_slip, self._slip_hold_ns[slots][:, None], self.flag_hold_ns)
+
+    def _walk(
+        self,
+        st: _SpecState,
+        s: int,
+        stamp: np.ndarray,
+        cond: np.ndarray,
+        mag: np.ndarray,
+        now: int,
+    ) -> list[tuple[str, str, Alert]]:
+        """Row-by-row state machine for one vehicle (only where something changes)."""
+        events: list[tuple[str, str, Alert]] = []
+        vid = self._ids[s]
+        stamps = stamp.tolist()
+        holds = self._hold_ns(st, np.array([s]))[0].tolist()
+        for k, rule in enumerate(st.rules):
+            slip = rule.field is not None
+            mags = mag[:, k].tolist()
+            for i, c in enumerate(cond[:, k].tolist()):
+                t = stamps[i]
+                if c:
+                    if not st.active[s, k]:
+                        st.active[s, k] = True
+                        st.since[s, k] = t
+                        st.run_peak[s, k] = 0.0
+                    if slip:
+                        st.run_peak[s, k] = max(st.run_peak[s, k], mags[i])
+                    if st.open[s, k] < 0 and t - int(st.since[s, k]) >= holds[k]:
+                        alert = Alert(
+                            id=self._next_id,
+                            vehicle_id=vid,
+                            kind=rule.kind,
+                            start_ns=int(st.since[s, k]),
+                            end_ns=None,
+                            opened_wall_ns=now,
+                            threshold=float(self._thr[s]) if slip else None,
+                            peak=round(float(st.run_peak[s, k]), 3) if slip else None,
+                            estimator=st.spec.name,
+                            channel=rule.channel,
+                        )
+                        self._next_id += 1
+                        self._open_alerts[alert.id] = alert
+                        self._open_pos[alert.id] = (st.spec.name, s, k)
+                        st.open[s, k] = alert.id
+                        events.append(("open", vid, alert))
+                elif st.active[s, k]:
+                    st.active[s, k] = False
+                    aid = int(st.open[s, k])
+                    if aid >= 0:
+                        st.open[s, k] = -1
+                        events.append(("close", vid, self._close(aid, t)))
+        # an alert opened in this batch carries its peak so far in the open event
+        return [(e, v, self._with_peak(a)) for e, v, a in events]
+
+    def _with_peak(self, alert: Alert) -> Alert:
+        """An open slip alert with its running peak filled in."""
+        pos = self._open_pos.get(alert.id)
+        if pos is None or alert.peak is None:
+            return alert
+        name, s, k = pos
+        return replace(alert, peak=round(float(self._specs[name].run_peak[s, k]), 3))
+
+    def _close(self, aid: int, end_ns: int) -> Alert:
+        alert = self._with_peak(self._open_alerts.pop(aid))
+        self._open_pos.pop(aid, None)
+        alert = replace(alert, end_ns=end_ns)
+        self._closed.append(alert)
+        return alert
+
+    def forget(self, vehicle_id: str) -> bool:
+        """Drop a vehicle (deleted from the fleet): close its open alerts at its last stamp and
+        forget its state. Closed alerts stay in the history. False if the vehicle is unknown."""
+        events: list[tuple[str, str, Alert]] = []
+        with self._lock:
+            s = self._slot.pop(vehicle_id, None)
+            if s is None:
+                return False
+            end = int(self._last_stamp[s])
+            for st in self._specs.values():
+                if s < st.open.shape[0]:
+                    for aid in st.open[s][st.open[s] >= 0].tolist():
+                        events.append(("close", vehicle_id, self._close(aid, end)))
+                st.reset(s)
+            if vehicle_id in self._stale_open:
+                events.append(
+                    ("close", vehicle_id, self._close(self._stale_open.pop(vehicle_id), end))
+                )
+            self._last_stamp[s] = 0
+            self._last_arrival[s] = 0
+            self._ids[s] = ""
+            self._free.append(s)
+        self._emit(events)
+        return True
+
+    def set_system_condition(
+        self, kind: AlertKind, active: bool, now_ns: int | None = None
+    ) -> Alert | None:
+        """Open (``active``) or close the server-wide alert ``kind``; repeated calls with the same
+        state do nothing. Returns the alert opened or closed, if any."""
+        now = self._clock_ns() if now_ns is None else now_ns
+        events: list[tuple[str, str, Alert]] = []
+        with self._lock:
+            aid = self._system_open.get(kind)
+            if active and aid is None:
+                alert = Alert(
+                    id=self._next_id,
+                    vehicle_id=SYSTEM,
+                    kind=kind,
+                    start_ns=now,
+                    end_ns=None,
+                    opened_wall_ns=now,
+                )
+                self._next_id += 1
+                self._open_alerts[alert.id] = alert
+                self._system_open[kind] = alert.id
+                events.append(("open", SYSTEM, alert))
+            elif not active and aid is not None:
+                del self._system_open[kind]
+                events.append(("close", SYSTEM, self._close(aid, now)))
+        self._emit(events)
+        return events[0][2] if events else None
+
+    def check_stale(self, now_ns: int | None = None) -> list[Alert]:
+        """Open a ``stale`` alert for every vehicle silent for ``stale_after_s``; return them."""
+        now = self._clock_ns() if now_ns is None else now_ns
+        events: list[tuple[str, str, Alert]] = []
+        limit = round(self.stale_after_s * 1e9)
+        with self._lock:
+            n = len(self._ids)
+            quiet = np.flatnonzero(now - self._last_arrival[:n] > limit)
+            for s in quiet.tolist():
+                vid = self._ids[s]
+                if vid not in self._slot or vid in self._stale_open:
+                    continue
+                alert = Alert(
+                    id=self._next_id,
+                    vehicle_id=vid,
+                    kind=AlertKind.STALE,
+                    start_ns=int(self._last_stamp[s]),
+                    end_ns=None,
+                    opened_wall_ns=now,
+                )
+                self._next_id += 1
+                self._open_alerts[alert.id] = alert
+                self._stale_open[vid] = alert.id
+                events.append(("open", vid, alert))
+        self._emit(events)
+        return [a for _, _, a in events]
+
+    def _emit(self, events: list[tuple[str, str, Alert]]) -> None:
+        if self.publish is None:
+            return
+        for event, vid, alert in events:
+            try:
+                self.publish(vid, {"event": event, **alert.to_dict()})
+            except Exception:
+                self.publish_errors += 1
+                _log.exception("alert publish failed for %s", vid)
+
+    # ---------------------------------------------------------------- reading
+    def alerts(
+        self, *, state: str = "all", vehicle_id: str | None = None, limit: int = 500
+    ) -> list[Alert]:
+        """Alerts, newest first; ``state`` is ``open``, ``closed`` or ``all``."""
+        if state not in ("open", "closed", "all"):
+            raise ValueError("state must be open, closed or all")
+        with self._lock:
+            found: list[Alert] = []
+            if state in ("open", "all"):
+                found.extend(self._with_peak(a) for a in self._open_alerts.values())
+            if state in ("closed", "all"):
+                found.extend(self._closed)
+        if vehicle_id is not None:
+            found = [a for a in found if a.vehicle_id == vehicle_id]
+        found.sort(key=lambda a: a.id, reverse=True)
+        return found[:limit]
+
+    def open_count(self) -> int:
+        with self._lock:
+            return len(self._open_alerts)
+
+    # ---------------------------------------------------------------- stale-check thread
+    def start(self, interval_s: float = 1.0) -> None:
+        """Run :meth:`check_stale` every ``interval_s`` on a daemon thread until :meth:`stop`."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+
+        def loop() -> None:
+            while not self._stop.wait(interval_s):
+                self.check_stale()
+
+        self._thread = threading.Thread(target=loop, name="alert-stale-check", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        if self._thread is None:
+            return
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self._thread = None

@@ -1,0 +1,436 @@
+"""viser 3D fleet view: every vehicle at its pose, wheels coloured by slip, one followed.
+
+Each vehicle is drawn from its primary estimator's rows when that estimator's spec has a position
+(vehicles whose primary has none are not drawn), read through the spec
+(:mod:`server.live.viewer.scene`).
+
+Scene (world = local ENU metres, see :mod:`server.live.viewer.scene`):
+
+``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
+``/fleet/wheels``   one batched mesh, a wheel or track per slip channel of the vehicle's spec,
+                    coloured by that channel's slip
+``/follow/track``   the followed vehicle's recent track, coloured by max |slip| of its channels
+``/follow/velocity`` its velocity arrow (2 s of travel), above the body
+``/follow/label``   its id
+
+The whole fleet is two batched meshes, so a frame for 1,000 vehicles is a handful of array
+assignments inside one ``server.atomic()`` block (``server/tooling/bench/viewer.py`` compares it
+with one handle per vehicle). Per-vehicle detail exists only for the followed vehicle, chosen in the
+GUI dropdown ("Follow"); "Camera follows" keeps every client's camera looking at it.
+
+:class:`FleetViewer` reads a :class:`server.live.hub.LiveHub` on its own thread at
+``ViewerSettings.update_hz``; :meth:`FleetViewer.update` draws one frame and can be called
+directly (tests, benchmarks).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+import viser
+
+from estimator.config import VehicleGeometry
+from estimator.spec import EstimatorSpec
+from server.live.hub import LiveHub
+from server.live.viewer.colors import slip_rgb
+from server.live.viewer.scene import (
+    BODY_SIZE_M,
+    FleetFrame,
+    box_mesh,
+    concat_frames,
+    cylinder_mesh_x,
+    fleet_frame,
+)
+from server.settings import ViewerSettings
+
+__all__ = ["ARROW_SECONDS", "NO_FOLLOW", "FleetViewer"]
+
+_log = logging.getLogger(__name__)
+
+NO_FOLLOW = "(none)"
+_TRACK_WINDOW_S = 120.0
+_WHEEL_WIDTH_M = 0.45
+_CAMERA_OFFSET_M = (-14.0, -14.0, 10.0)
+#: A follow camera aimed further than this off its vehicle is aimed again [m].
+_AIM_TOLERANCE_M = 0.5
+#: The velocity arrow of the followed vehicle shows this many seconds of travel.
+ARROW_SECONDS = 2.0
+
+
+class FleetViewer:
+    """The 3D fleet scene on its own port.
+
+    Parameters
+    ----------
+    hub : LiveHub
+        Source of the newest rows and of the followed vehicle's track.
+    settings : ViewerSettings
+        ``host`` (keep 127.0.0.1), ``port`` (0 picks a free one), ``update_hz``.
+    geometry : VehicleGeometry, optional
+        Drawn layout of every vehicle (default geometry).
+    """
+
+    def __init__(
+        self,
+        hub: LiveHub,
+        settings: ViewerSettings,
+        geometry: VehicleGeometry | None = None,
+        *,
+        origin_offset_m: Callable[[str], tuple[float, float, float] | None] | None = None,
+        layout: Literal["shared", "grid"] = "shared",
+        grid_spacing_m: float = 150.0,
+    ) -> None:
+        self.hub = hub
+        self.settings = settings
+        self.geometry = geometry or VehicleGeometry()
+        self.origin_offset_m = origin_offset_m
+        self.layout = layout
+        self.grid_spacing_m = float(grid_spacing_m)
+        self._offsets: dict[str, np.ndarray] = {}
+        self.server: viser.ViserServer | None = None
+        self._bodies: viser.BatchedMeshHandle | None = None
+        self._wheels: viser.BatchedMeshHandle | None = None
+        self._track: viser.LineSegmentsHandle | None = None
+        self._arrow: viser.ArrowsHandle | None = None
+        self._label: viser.LabelHandle | None = None
+        self._follow: viser.GuiDropdownHandle[str] | None = None
+        self._camera_follows: viser.GuiCheckboxHandle | None = None
+        self._count: viser.GuiTextHandle | None = None
+        self._n: tuple[int, int] = (-1, -1)  # vehicles and wheels of the batched meshes
+        self._ids: list[str] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._cam_follow: dict[int, str] = {}
+        self._cam_last: np.ndarray | None = None
+        self.frame: FleetFrame | None = None
+        self.frames = 0
+        self.last_frame_s = 0.0
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def port(self) -> int:
+        if self.server is None:
+            raise RuntimeError("viewer not started")
+        return self.server.get_port()
+
+    def open(self) -> None:
+        """Start the viser server and build the static scene and GUI (no update thread)."""
+        if self.server is not None:
+            return
+        server = viser.ViserServer(
+            host=self.settings.host, port=self.settings.port, label="Slipfleet", verbose=False
+        )
+        self.server = server
+        server.scene.set_up_direction("+z")
+        server.scene.add_grid("/ground", width=400.0, height=400.0, cell_size=10.0, plane="xy")
+        self._follow = server.gui.add_dropdown(
+            "Follow", options=(NO_FOLLOW,), initial_value=NO_FOLLOW
+        )
+        self._camera_follows = server.gui.add_checkbox("Camera follows", initial_value=True)
+        self._count = server.gui.add_text("Vehicles", initial_value="0", disabled=True)
+        self._follow.on_update(lambda _event: self._on_follow_changed())
+
+    def start(self) -> None:
+        """:meth:`open`, then redraw at ``settings.update_hz`` on a thread until :meth:`stop`."""
+        self.open()
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="fleet-viewer", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the update thread and the viser server."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    def _run(self) -> None:
+        period = 1.0 / self.settings.update_hz
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.update()
+            except Exception:  # keep the view alive; the next frame retries
+                _log.exception("viewer frame failed")
+            next_t += period
+            now = time.monotonic()
+            if next_t < now:  # fell behind: skip frames rather than queue them
+                next_t = now
+            self._stop.wait(next_t - now)
+
+    # ------------------------------------------------------------------ following
+    @property
+    def followed(self) -> str | None:
+        if self._follow is None or self._follow.value == NO_FOLLOW:
+            return None
+        return self._follow.value
+
+    def follow(self, vehicle_id: str | None) -> None:
+        """Follow ``vehicle_id`` (None: nobody), as if picked in the dropdown."""
+        if self._follow is None:
+            raise RuntimeError("viewer not open")
+        value = NO_FOLLOW if vehicle_id is None else vehicle_id
+        if value not in self._follow.options:
+            self._follow.options = (*self._follow.options, value)
+        self._follow.value = value  # type: ignore[misc]  # viser's setter, untyped
+        self._on_follow_changed()
+
+    def _on_follow_changed(self) -> None:
+        self._cam_follow.clear()
+        self._cam_last = None
+        if self.followed is None:
+            for h in (self._track, self._arrow, self._label):
+                if h is not None:
+                    h.visible = False
+
+    # ------------------------------------------------------------------ frames
+    def _rebuild_fleet(self, frame: FleetFrame) -> None:
+        """(Re)create the batched meshes when the number of vehicles changes."""
+        for h in (self._bodies, self._wheels):
+            if h is not None:
+                h.remove()
+        self._wheels = None
+        g = self.geometry
+        r = (g.wheel_radius_left_m + g.wheel_radius_right_m) / 2
+        self._bodies = self._batched(
+            "/fleet/bodies",
+            box_mesh(BODY_SIZE_M),
+            frame.body_wxyz,
+            frame.body_position_m,
+            frame.body_rgb,
+        )
+        if frame.wheel_owner.shape[0]:
+            self._wheels = self._batched(
+                "/fleet/wheels",
+                cylinder_mesh_x(r, _WHEEL_WIDTH_M),
+                frame.wheel_wxyz,
+                frame.wheel_position_m,
+                frame.wheel_rgb,
+            )
+
+    def _batched(
+        self,
+        path: str,
+        mesh: tuple[np.ndarray, np.ndarray],
+        wxyz: np.ndarray,
+        position_m: np.ndarray,
+        rgb: np.ndarray,
+    ) -> viser.BatchedMeshHandle:
+        """One batched mesh (an instance per vehicle part), flat-shaded, no shadows."""
+        assert self.server is not None
+        vertices, faces = mesh
+        return self.server.scene.add_batched_meshes_simple(
+            path,
+            vertices=vertices,
+            faces=faces,
+            batched_wxyzs=wxyz,
+            batched_positions=position_m,
+            batched_colors=rgb,
+            lod="off",
+            flat_shading=True,
+            cast_shadow=False,
+            receive_shadow=False,
+        )
+
+    def _offsets_of(self, ids: list[str]) -> np.ndarray | None:
+        """Per-vehicle shift ``(n, 3)`` from its own ENU frame into the scene, or None.
+
+        Each vehicle's estimates are in its own local ENU frame (anchored at its first fix).
+        With ``origin_offset_m`` (vehicle id → that anchor's ENU position in the fleet's frame)
+        vehicles are drawn where they are relative to each other; the tangent planes' tilt
+        between anchors (< 0.01° per km) is neglected. Otherwise ``layout="shared"`` draws every
+        frame on one origin (right when the vehicles share an anchor) and ``"grid"`` puts each
+        vehicle's origin on a grid ``grid_spacing_m`` apart, in id order, so none overlap.
+        """
+        if self.origin_offset_m is not None:
+            out = np.zeros((len(ids), 3))
+            for i, vid in enumerate(ids):
+                off = self._offsets.get(vid)
+                if off is None:
+                    got = self.origin_offset_m(vid)
+                    if got is None:
+                        continue  # anchor unknown yet: ask again next frame
+                    off = self._offsets[vid] = np.asarray(got, dtype=np.float64)
+                out[i] = off
+            return out
+        if self.layout == "grid":
+            order = {vid: k for k, vid in enumerate(sorted(ids))}
+            cols = max(1, math.ceil(math.sqrt(len(ids))))
+            k = np.array([order[v] for v in ids])
+            return np.stack(
+                [(k % cols) * self.grid_spacing_m, (k // cols) * self.grid_spacing_m, 0.0 * k], -1
+            )
+        return None
+
+    def update(self) -> float:
+        """Draw one frame from the hub; return its cost in seconds."""
+        if self.server is None:
+            raise RuntimeError("viewer not open")
+        t0 = time.perf_counter()
+        groups = [
+            (spec, *self.hub.latest_all(spec.name, primary_only=True))
+            for spec in self.hub.specs()
+            if spec.position is not None
+        ]
+        ids = [v for g in groups for v in g[1]]
+        if not ids:
+            return 0.0
+        offsets = self._offsets_of(ids)
+        frames, start = [], 0
+        for spec, gids, rows, arrivals in groups:
+            part = None if offsets is None else offsets[start : start + len(gids)]
+            frames.append(self._frame_of(spec, gids, rows, arrivals, part))
+            start += len(gids)
+        frame = concat_frames(frames)
+        shape = (len(ids), frame.wheel_owner.shape[0])
+        with self._lock, self.server.atomic():
+            if shape != self._n or self._bodies is None:
+                self._rebuild_fleet(frame)
+                self._n = shape
+            else:
+                f32 = np.float32
+                self._bodies.batched_positions = frame.body_position_m.astype(f32)
+                self._bodies.batched_wxyzs = frame.body_wxyz.astype(f32)
+                self._bodies.batched_colors = frame.body_rgb
+                if self._wheels is not None:
+                    self._wheels.batched_positions = frame.wheel_position_m.astype(f32)
+                    self._wheels.batched_wxyzs = frame.wheel_wxyz.astype(f32)
+                    self._wheels.batched_colors = frame.wheel_rgb
+            if ids != self._ids:
+                self._ids = list(ids)
+                assert self._follow is not None and self._count is not None
+                current = self._follow.value
+                self._follow.options = (NO_FOLLOW, *sorted(ids))
+                self._follow.value = current if current in ids else NO_FOLLOW  # type: ignore[misc]
+                self._count.value = str(len(ids))  # type: ignore[misc]
+            self._draw_followed(frame, offsets)
+        self.frame = frame
+        self.frames += 1
+        self.last_frame_s = time.perf_counter() - t0
+        return self.last_frame_s
+
+    def _frame_of(
+        self,
+        spec: EstimatorSpec,
+        ids: list[str],
+        rows: np.ndarray,
+        arrivals: np.ndarray,
+        offsets: np.ndarray | None,
+    ) -> FleetFrame:
+        """The newest ``rows`` of ``spec`` of vehicles ``ids``, shifted by ``offsets`` (n, 3)."""
+        p = spec.position
+        if offsets is not None and p is not None:
+            rows = rows.copy()
+            for k, name in enumerate((p.east_field, p.north_field, p.up_field)):
+                if name is not None:
+                    rows[name] += offsets[:, k]
+        status = self.hub.status_of_rows(rows["stamp_ns"], arrivals)
+        return fleet_frame(ids, rows, spec, self.geometry, status)
+
+    def _draw_followed(self, frame: FleetFrame, offsets: np.ndarray | None) -> None:
+        assert self.server is not None
+        vid = self.followed
+        if vid is None or vid not in frame.ids:
+            return
+        i = frame.ids.index(vid)
+        scene = self.server.scene
+        start = frame.body_position_m[i] + np.array([0.0, 0.0, BODY_SIZE_M[2] / 2 + 0.3])
+        tip = start + ARROW_SECONDS * frame.velocity_mps[i]
+        arrow_pts = np.stack([start, tip])[None, :, :]
+        if self._arrow is None:
+            self._arrow = scene.add_arrows(
+                "/follow/velocity",
+                points=arrow_pts,
+                colors=(20, 20, 20),
+                shaft_radius=0.08,
+                head_radius=0.25,
+                head_length=0.4,
+            )
+        else:
+            self._arrow.points = arrow_pts
+            self._arrow.visible = True
+        label_pos = frame.antenna_m[i] + np.array([0.0, 0.0, 1.0])
+        if self._label is None:
+            self._label = scene.add_label("/follow/label", text=vid, position=label_pos)
+        else:
+            self._label.text = vid
+            self._label.position = label_pos
+            self._label.visible = True
+        spec = self.hub.spec(frame.estimators[i])
+        win = self.hub.window(vid, _TRACK_WINDOW_S, estimator=frame.estimators[i])
+        if spec is not None and spec.position is not None and win is not None:
+            p = spec.position
+            n_pts = len(win["stamp_ns"])
+            e, n, u = (_col(win, name, n_pts) for name in (p.east_field, p.north_field, p.up_field))
+            drop = frame.antenna_m[i, 2] - frame.ground_m[i, 2]  # antenna height above ground
+            if p.up_field is None:
+                u = np.zeros(n_pts)
+            pts = np.stack([e, n, u - drop + 0.05], -1)
+            if offsets is not None:  # into the scene frame: the same shift as the vehicle's pose
+                pts += offsets[i]
+            ok = np.isfinite(pts).all(axis=1)
+            pts = pts[ok]
+            mags = [np.abs(_col(win, s.field, n_pts)) for s in spec.slips]
+            metric = np.fmax.reduce(mags) if mags else np.full(n_pts, np.nan)
+            metric = metric[ok]
+            if pts.shape[0] >= 2:
+                segs = np.stack([pts[:-1], pts[1:]], axis=1)
+                rgb = slip_rgb(metric[1:])
+                cols = np.repeat(rgb[:, None, :], 2, axis=1)
+                if self._track is not None:
+                    self._track.remove()
+                self._track = scene.add_line_segments(
+                    "/follow/track",
+                    points=segs,
+                    colors=cols,
+                    thickness=4.0,
+                    thickness_units="screen",
+                )
+        if self._camera_follows is not None and self._camera_follows.value:
+            self._move_cameras(vid, frame.body_position_m[i])
+
+    def _move_cameras(self, vid: str, target: np.ndarray) -> None:
+        """Carry every client's camera along with the followed vehicle.
+
+        A client new to this vehicle gets a view from behind-left and above; after that the
+        camera is translated by the vehicle's displacement, so the user can still orbit and zoom.
+        (viser moves ``look_at`` along when ``position`` is assigned, so position goes first.)
+        A ``look_at`` still off the vehicle afterwards (the browser's own camera message crossed
+        ours, and the first aim was lost) is set again.
+        """
+        assert self.server is not None
+        for client_id, client in self.server.get_clients().items():
+            cam = client.camera
+            try:
+                if self._cam_follow.get(client_id) != vid:
+                    cam.position = target + np.array(_CAMERA_OFFSET_M)
+                    cam.look_at = target
+                    self._cam_follow[client_id] = vid
+                elif self._cam_last is not None:
+                    delta = target - self._cam_last
+                    if float(np.linalg.norm(delta)) > 1e-6:
+                        cam.position = np.asarray(cam.position) + delta
+                    if float(np.linalg.norm(np.asarray(cam.look_at) - target)) > _AIM_TOLERANCE_M:
+                        cam.look_at = target
+            except AssertionError:  # the client has not reported its camera yet
+                continue
+        self._cam_last = np.array(target, dtype=np.float64)
+
+
+def _col(win: dict[str, list[float | None]], name: str | None, n: int) -> np.ndarray:
+    """A window column as floats (None → NaN); NaN throughout for no field."""
+    if name is None:
+        return np.full(n, np.nan)
+    return np.array([np.nan if v is None else v for v in win[name]], dtype=np.float64)

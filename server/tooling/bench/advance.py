@@ -1,0 +1,226 @@
+"""Cost of one batched fleet step: CPU per ``MdsfFleet.advance`` call and per vehicle-tick.
+
+``slipfleet bench advance [--sizes 100,300,1000] [--baseline REV] [--repeats 3] [--seconds 6]
+[--json PATH]`` or ``python -m server.tooling.bench.advance``.
+
+The server's pipeline calls ``advance`` every ``ingest.estimate_interval_ms`` (50) for every
+vehicle, each vehicle's ticks on its own phase (its first IMU batch), so a call steps about
+half the fleet. This bench does the same: ``N`` simulated ``field_work`` vehicles (``N mod
+SOURCE_RUNS`` replays of a few runs, as :mod:`server.tooling.bench.frontend`) with tick phases
+spread evenly over the tick, measurements pushed in arrival order, ``advance`` every ``INTERVAL_MS``
+of sensor time with a horizon ``LAG_MS`` behind. Only ``advance`` is timed (process CPU time),
+after ``WARMUP_S`` seconds of sensor time.
+
+Per fleet size the table gives the CPU per call [ms] and per vehicle-tick (emitted row) [µs],
+and a straight line ``fixed + per_tick × ticks`` through the per-call costs of all sizes.
+
+``--baseline REV`` measures the estimator package of git revision ``REV`` side by side: its
+``estimator/`` is extracted to a temporary directory and each version runs in a child process
+(the same modules cannot be imported twice in one interpreter, and measurements are checked
+with ``isinstance`` against their own package's types); the two alternate, ``--repeats`` times,
+and each case keeps its fastest repeat, so a machine shared with other work slows both alike.
+``after/before`` is the ratio of the costs. Each child also hashes every row it emitted: the
+table says whether both versions gave the same bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from server.tooling.bench import (
+    SOURCE_START_NS,
+    extract_revision,
+    field_work_sources,
+    int_list,
+    json_from_child,
+    push_until,
+    write_json,
+)
+
+__all__ = ["main", "measure", "run"]
+
+SOURCE_RUNS = 8
+"""Distinct simulated runs the fleet replays."""
+INTERVAL_MS = 50
+"""Sensor time between ``advance`` calls (the pipeline's ``estimate_interval_ms``)."""
+LAG_MS = 150
+"""Horizon of each ``advance`` behind the newest arrival (the pipeline's reorder buffer)."""
+WARMUP_S = 2.0
+"""Sensor seconds at the start that are not measured."""
+_REPO = Path(__file__).resolve().parents[3]
+
+
+def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS) -> dict[str, Any]:
+    """Run one fleet per size with the ``estimator`` package this interpreter imports.
+
+    Returns ``{"cases": [{vehicles, calls, ticks, advance_s}], "digest": sha256 of the rows}``.
+    """
+    from estimator.engine import MdsfFleet
+
+    sources = field_work_sources(seconds, source_runs)
+    digest = hashlib.sha256()
+    cases = []
+    for n in sizes:
+        fleet = MdsfFleet()
+        tick_ns = fleet.config.tick_ns
+        ids = [f"v{k:05d}" for k in range(n)]
+        for k, vid in enumerate(ids):
+            fleet.add_vehicle(vid, sources[k % source_runs][0])
+            fleet.align_ticks(vid, SOURCE_START_NS + k * tick_ns // n)
+        streams = [sources[k % source_runs][1] for k in range(n)]
+        pos = [0] * n
+        step_ns = INTERVAL_MS * 1_000_000
+        warm = round(WARMUP_S * 1000 / INTERVAL_MS)
+        spent = 0.0
+        calls = ticks = 0
+        for s in range(round(seconds * 1000 / INTERVAL_MS)):
+            now = SOURCE_START_NS + (s + 1) * step_ns
+            push_until(fleet, ids, streams, pos, now)
+            horizon = dict.fromkeys(ids, now - LAG_MS * 1_000_000)
+            t0 = time.process_time()
+            out = fleet.advance(horizon)
+            t1 = time.process_time()
+            for vid, rows in out:
+                digest.update(vid.encode())
+                digest.update(rows.tobytes())
+            if s >= warm:
+                spent += t1 - t0
+                calls += 1
+                ticks += sum(r.shape[0] for _, r in out)
+        cases.append({"vehicles": n, "calls": calls, "ticks": ticks, "advance_s": spent})
+    return {"cases": cases, "digest": digest.hexdigest()}
+
+
+def _child(path: str, sizes: Sequence[int], seconds: float, source_runs: int) -> dict[str, Any]:
+    """:func:`measure` in a fresh interpreter whose ``estimator`` comes from ``path``."""
+    args = ["-m", "server.tooling.bench.advance", "--child"]
+    args += ["--sizes", ",".join(map(str, sizes)), "--seconds", str(seconds)]
+    args += ["--source-runs", str(source_runs)]
+    return json_from_child(path, args)
+
+
+def _line(points: list[tuple[float, float]]) -> tuple[float, float]:
+    """Least-squares ``y = a + b·x`` through ``(x, y)`` points; ``(a, b)``."""
+    n = len(points)
+    mx = sum(x for x, _ in points) / n
+    my = sum(y for _, y in points) / n
+    sxx = sum((x - mx) ** 2 for x, _ in points)
+    b = sum((x - mx) * (y - my) for x, y in points) / sxx if sxx > 0 else 0.0
+    return my - b * mx, b
+
+
+def _best(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per size, the repeat with the least CPU; per-call ms, per-tick µs and the line."""
+    cases = []
+    for i, first in enumerate(runs[0]["cases"]):
+        c = min((r["cases"][i] for r in runs), key=lambda c: c["advance_s"])
+        cases.append(
+            {
+                "vehicles": first["vehicles"],
+                "ticks_per_call": c["ticks"] / c["calls"],
+                "call_ms": c["advance_s"] / c["calls"] * 1e3,
+                "tick_us": c["advance_s"] / max(c["ticks"], 1) * 1e6,
+            }
+        )
+    if len(cases) > 1:
+        fixed, per = _line([(c["ticks_per_call"], c["call_ms"]) for c in cases])
+    else:
+        fixed, per = float("nan"), float("nan")
+    return {"cases": cases, "fixed_ms": fixed, "per_tick_us": per * 1e3}
+
+
+def run(
+    json_path: Path | str | None = None,
+    *,
+    sizes: Sequence[int] = (100, 300, 1000),
+    baseline: str | None = None,
+    repeats: int = 3,
+    seconds: float = 6.0,
+    source_runs: int = SOURCE_RUNS,
+) -> dict[str, Any]:
+    """Measure, print the table; returns and optionally writes the numbers as JSON."""
+    versions = {"after": str(_REPO)}
+    with tempfile.TemporaryDirectory() as tmp:
+        if baseline is not None:
+            extract_revision(baseline, Path(tmp), ("estimator",))
+            versions = {"before": tmp, "after": str(_REPO)}
+        runs: dict[str, list[dict[str, Any]]] = {v: [] for v in versions}
+        for rep in range(repeats):
+            order = list(versions) if rep % 2 == 0 else list(reversed(versions))
+            for v in order:
+                runs[v].append(_child(versions[v], sizes, seconds, source_runs))
+    best = {v: _best(r) for v, r in runs.items()}
+    digests = {v: {r["digest"] for r in rs} for v, rs in runs.items()}
+    same = len(set().union(*digests.values())) == 1
+    title = f"MdsfFleet.advance every {INTERVAL_MS} ms, tick phases spread, {seconds:g} s of "
+    title += f"field_work, fastest of {repeats}"
+    print(title)
+    head = f"{'vehicles':>8} {'ticks/call':>10}"
+    for v in versions:
+        head += f" {v + ' ms/call':>16} {v + ' µs/tick':>16}"
+    if baseline is not None:
+        head += f" {'after/before':>12}"
+    print(head)
+    for i, n in enumerate(sizes):
+        a = best["after"]["cases"][i]
+        line = f"{n:>8} {a['ticks_per_call']:>10.1f}"
+        for v in versions:
+            c = best[v]["cases"][i]
+            line += f" {c['call_ms']:>16.3f} {c['tick_us']:>16.2f}"
+        if baseline is not None:
+            line += f" {a['call_ms'] / best['before']['cases'][i]['call_ms']:>12.2f}"
+        print(line)
+    for v in versions:
+        b = best[v]
+        print(
+            f"{v}: fixed {b['fixed_ms']:.3f} ms per call + {b['per_tick_us']:.2f} µs per "
+            "vehicle-tick (line through the sizes)"
+        )
+    if baseline is not None:
+        print(f"before = {baseline}; rows identical: {'yes' if same else 'NO'}")
+    result = {
+        "seconds": seconds,
+        "repeats": repeats,
+        "baseline": baseline,
+        "rows_identical": same,
+        **best,
+    }
+    write_json(result, json_path)
+    return result
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m server.tooling.bench.advance [--sizes …] [--baseline REV] [--repeats R]
+    [--seconds S] [--json PATH]``."""
+    p = argparse.ArgumentParser(prog="python -m server.tooling.bench.advance", description=__doc__)
+    p.add_argument("--sizes", type=int_list, default=[100, 300, 1000], help="fleet sizes")
+    p.add_argument("--baseline", default=None, help="git revision measured side by side")
+    p.add_argument("--repeats", type=int, default=3, help="alternating repeats per version")
+    p.add_argument("--seconds", type=float, default=6.0, help="sensor seconds per case")
+    p.add_argument("--source-runs", type=int, default=SOURCE_RUNS, help=argparse.SUPPRESS)
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--json", type=Path, default=None, help="write the result here")
+    args = p.parse_args(argv)
+    if args.child:
+        print(json.dumps(measure(args.sizes, args.seconds, args.source_runs)))
+        return 0
+    run(
+        args.json,
+        sizes=args.sizes,
+        baseline=args.baseline,
+        repeats=args.repeats,
+        seconds=args.seconds,
+        source_runs=args.source_runs,
+    )
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,147 @@
+"""Frame update cost of the 3D fleet view: batched meshes vs one handle per vehicle part.
+
+Run ``python -m server.tooling.bench.viewer [--vehicles 1000] [--frames 30]``.
+
+Both modes start a real viser server on a free 127.0.0.1 port and draw the same fleet (the
+synthetic fleet of :mod:`server.tooling.bench.live`, fed into a :class:`~server.live.hub.LiveHub`),
+advancing sensor time by 0.2 s per frame (5 Hz):
+
+* ``batched`` — :meth:`server.live.viewer.fleet_view.FleetViewer.update`: read the hub, map rows to
+  poses and colours (:func:`server.live.viewer.scene.fleet_frame`), assign six arrays to the two
+  batched meshes inside one ``server.atomic()``.
+* ``per-vehicle`` — the same frame mapping, then for each vehicle a body box and two wheel meshes
+  (``/fleet/<id>/body``, ``/fleet/<id>/wheel_left``, ``/fleet/<id>/wheel_right``) whose
+  ``position``, ``wxyz`` and ``color`` are assigned one by one (also inside ``atomic()``).
+
+The table gives per-frame wall time (p50, p99) and the ratio per-vehicle / batched. A frame must
+fit well inside the 200 ms of a 5 Hz update.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Sequence
+
+import viser
+
+from estimator.config import VehicleGeometry
+from server.live.hub import LiveHub
+from server.live.viewer.fleet_view import FleetViewer
+from server.live.viewer.scene import BODY_SIZE_M, cylinder_mesh_x, fleet_frame
+from server.settings import ViewerSettings
+from server.tooling.bench import percentile
+from server.tooling.bench.live import SyntheticFleet
+from server.tooling.ports import free_port as _free_port
+
+__all__ = ["main"]
+
+_T0 = 1_700_000_000 * 1_000_000_000
+_STEP_NS = 200_000_000
+
+
+def bench_batched(n: int, frames: int) -> list[float]:
+    fleet = SyntheticFleet(n, seed=2)
+    hub = LiveHub(initial_slots=n)
+    viewer = FleetViewer(hub, ViewerSettings(host="127.0.0.1", port=_free_port()))
+    viewer.open()
+    times = []
+    try:
+        for k in range(frames + 1):
+            hub.on_estimates(fleet.rows_at(_T0 + k * _STEP_NS))
+            t0 = time.perf_counter()
+            viewer.update()
+            if k:  # the first frame builds the meshes
+                times.append(time.perf_counter() - t0)
+    finally:
+        viewer.stop()
+    return times
+
+
+def bench_per_vehicle(n: int, frames: int) -> list[float]:
+    fleet = SyntheticFleet(n, seed=2)
+    hub = LiveHub(initial_slots=n)
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    g = VehicleGeometry()
+    wv, wf = cylinder_mesh_x(g.wheel_radius_left_m, 0.45)
+    bodies: list[viser.BoxHandle] = []
+    wheels: list[viser.MeshHandle] = []
+    times = []
+    try:
+        for k in range(frames + 1):
+            hub.on_estimates(fleet.rows_at(_T0 + k * _STEP_NS))
+            t0 = time.perf_counter()
+            spec = hub.specs()[0]
+            ids, rows, arrivals = hub.latest_all(spec.name)
+            f = fleet_frame(ids, rows, spec, g, hub.status_of_rows(rows["stamp_ns"], arrivals))
+            with server.atomic():
+                if not bodies:
+                    for i, vid in enumerate(ids):
+                        bodies.append(
+                            server.scene.add_box(
+                                f"/fleet/{vid}/body",
+                                dimensions=BODY_SIZE_M,
+                                color=f.body_rgb[i],
+                                position=f.body_position_m[i],
+                                wxyz=f.body_wxyz[i],
+                            )
+                        )
+                        for side, j in (("left", 2 * i), ("right", 2 * i + 1)):
+                            wheels.append(
+                                server.scene.add_mesh_simple(
+                                    f"/fleet/{vid}/wheel_{side}",
+                                    vertices=wv,
+                                    faces=wf,
+                                    color=f.wheel_rgb[j],
+                                    position=f.wheel_position_m[j],
+                                    wxyz=f.wheel_wxyz[j],
+                                )
+                            )
+                else:
+                    for i, h in enumerate(bodies):
+                        h.position = f.body_position_m[i]
+                        h.wxyz = f.body_wxyz[i]
+                        h.color = (
+                            int(f.body_rgb[i, 0]),
+                            int(f.body_rgb[i, 1]),
+                            int(f.body_rgb[i, 2]),
+                        )
+                    for j, w in enumerate(wheels):
+                        w.position = f.wheel_position_m[j]
+                        w.wxyz = f.wheel_wxyz[j]
+                        w.color = (
+                            int(f.wheel_rgb[j, 0]),
+                            int(f.wheel_rgb[j, 1]),
+                            int(f.wheel_rgb[j, 2]),
+                        )
+            if k:
+                times.append(time.perf_counter() - t0)
+    finally:
+        server.stop()
+    return times
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--vehicles", type=int, default=1000)
+    p.add_argument("--frames", type=int, default=30)
+    args = p.parse_args(argv)
+    batched = bench_batched(args.vehicles, args.frames)
+    per_vehicle = bench_per_vehicle(args.vehicles, args.frames)
+    print(f"\n3D fleet view, frame update cost, {args.vehicles} vehicles, {args.frames} frames\n")
+    print(f"{'mode':<14}{'handles':>9}{'p50 ms':>9}{'p99 ms':>9}{'mean ms':>9}")
+    for name, vals, handles in (
+        ("batched", batched, 2),
+        ("per-vehicle", per_vehicle, 3 * args.vehicles),
+    ):
+        print(
+            f"{name:<14}{handles:>9}{statistics.median(vals) * 1e3:>9.2f}"
+            f"{percentile(vals, 99) * 1e3:>9.2f}{statistics.mean(vals) * 1e3:>9.2f}"
+        )
+    ratio = statistics.median(per_vehicle) / statistics.median(batched)
+    print(f"\nper-vehicle / batched (p50): {ratio:.1f}x")
+
+
+if __name__ == "__main__":
+    main()

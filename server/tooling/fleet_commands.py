@@ -1,0 +1,126 @@
+"""What the simulated-fleet subcommands run: the demo, ``simulate``, ``replay`` and ``record``.
+
+The demo is the server (:mod:`server.app_main`) with simulated tractors publishing to its
+embedded router; the others publish simulated or recorded vehicles to a router, or write them
+to a recording file.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from estimator.sim import SCENARIOS
+from estimator.sim import simulate as run_scenario
+from server.app_main import ServerThread, build_app
+from server.ingest.zenoh_session import make_config
+from server.protocol.keys import sensor_key
+from server.protocol.recording import Record, write_recording
+from server.settings import Settings, ZenohSettings
+from server.tooling.fleet_sim import VEHICLE_ID_FORMAT, FleetSim, encode_packets, packetize
+from server.tooling.fleet_sim import replay as replay_recording
+
+__all__ = ["demo", "record", "replay", "simulate", "vehicle_session"]
+
+log = logging.getLogger("slipfleet")
+
+
+def vehicle_session(endpoints: list[str]) -> zenoh.Session:
+    """A client session for a (simulated) vehicle connecting to ``endpoints``."""
+    return zenoh.open(make_config(ZenohSettings(connect=endpoints)))
+
+
+def demo(
+    settings: Settings, *, vehicles: int = 4, scenario: str = "field_work", duration_s: float = 0.0
+) -> None:
+    """Embedded router + server + SQLite + ``vehicles`` simulated tractors, until Ctrl-C."""
+    settings.api.require_auth = False
+    # one simulator session publishes for every vehicle: it cannot log in as each of them
+    settings.zenoh.credentials_file = None
+    if settings.storage.url is not None:
+        log.info("demo uses the configured PostgreSQL store")
+    if settings.api.host not in ("127.0.0.1", "localhost", "::1"):
+        raise SystemExit("the demo runs without access tokens and binds loopback only")
+    server = ServerThread(build_app(settings), settings.api.host, settings.api.port)
+    server.start()
+    listen = settings.zenoh.connect or settings.zenoh.listen
+    session = vehicle_session(list(listen))
+    sim = FleetSim(
+        session, vehicles, scenario=scenario, prefix=settings.zenoh.key_prefix, loop=True
+    )
+    sim.start()
+    base = f"http://{settings.api.host}:{server.port}"
+    print(
+        "\nSlipfleet demo — no access tokens, no vehicle credentials, loopback only\n"
+        f"  dashboard  {base}/\n"
+        f"  API docs   {base}/docs\n"
+        f"  vehicles   {base}/api/v1/vehicles\n"
+        f"  3D view    http://{settings.viewer.host}:{settings.viewer.port}/\n"
+        f"  zenoh      {', '.join(listen)}  ({vehicles} simulated vehicles, scenario {scenario})\n"
+        "Ctrl-C stops.\n",
+        flush=True,
+    )
+    try:
+        if duration_s > 0:
+            time.sleep(duration_s)
+        else:
+            while server.thread.is_alive():
+                time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.stop()
+        session.close()
+        server.stop()
+
+
+def simulate(
+    settings: Settings, *, vehicles: int, scenario: str, duration_s: float, rate_scale: float = 1.0
+) -> None:
+    """Publish simulated vehicles to the configured router(s) for ``duration_s`` seconds."""
+    endpoints = list(settings.zenoh.connect or settings.zenoh.listen)
+    with vehicle_session(endpoints) as session:
+        sim = FleetSim(
+            session,
+            vehicles,
+            scenario=scenario,
+            prefix=settings.zenoh.key_prefix,
+            rate=rate_scale,
+            loop=True,
+        )
+        stats = sim.run(duration_s)
+    print(
+        f"published {stats.total_packets} packets from {vehicles} vehicles in {stats.wall_s:.1f} s"
+    )
+
+
+def replay(settings: Settings, path: Path, *, rate_scale: float = 1.0) -> None:
+    """Publish a recording file to the configured router(s)."""
+    endpoints = list(settings.zenoh.connect or settings.zenoh.listen)
+    with vehicle_session(endpoints) as session:
+        stats = replay_recording(path, session, rate=rate_scale)
+    print(f"replayed {stats.total_packets} packets in {stats.wall_s:.1f} s")
+
+
+def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> None:
+    """Simulate ``vehicles`` and write their packets to a recording file (no network)."""
+
+    overrides: dict[str, Any] = (
+        {"duration_s": duration_s} if "duration_s" in SCENARIOS[scenario].defaults else {}
+    )
+    start_ns = time.time_ns()
+    records: list[Record] = []
+    for i in range(vehicles):
+        vehicle_id = VEHICLE_ID_FORMAT.format(i + 1)
+        run = run_scenario(scenario, seed=i, start_ns=start_ns, **overrides)
+        packets = packetize(run.sent_in_arrival_order(), run.start_ns)
+        for pkt, (_, payload) in zip(packets, encode_packets(packets), strict=True):
+            key = sensor_key("fleet", vehicle_id, pkt.stream)
+            records.append(Record(key, start_ns + pkt.arrival_offset_ns, payload))
+    records.sort(key=lambda r: r.stamp_ns)
+    n_written = write_recording(path, records)
+    print(f"wrote {n_written} records from {vehicles} vehicles to {path}")

@@ -1,0 +1,40 @@
+"""Batched fleet step bench: runs small, side by side with a git revision, same rows."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from server.tooling.bench.advance import measure, run
+
+_REPO = Path(__file__).resolve().parents[4]
+
+
+def test_measure_counts_calls_and_ticks() -> None:
+    result = measure((2, 4), seconds=3.0, source_runs=2)
+    cases = result["cases"]
+    assert [c["vehicles"] for c in cases] == [2, 4]
+    for c in cases:
+        assert c["calls"] == 20  # (3 s − 2 s warm-up) / 50 ms
+        # phases spread over the tick: about half the fleet is due at each call
+        assert c["ticks"] == c["vehicles"] * 10 and c["advance_s"] > 0
+    assert len(result["digest"]) == 64
+
+
+def test_side_by_side_with_a_revision_prints_and_writes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    git = subprocess.run(["git", "-C", str(_REPO), "rev-parse", "HEAD"], capture_output=True)
+    if git.returncode != 0:
+        pytest.skip("not a git checkout")
+    path = tmp_path / "advance.json"
+    result = run(path, sizes=(2, 3), baseline="HEAD", repeats=1, seconds=3.0, source_runs=2)
+    assert [c["vehicles"] for c in result["after"]["cases"]] == [2, 3]
+    assert [c["vehicles"] for c in result["before"]["cases"]] == [2, 3]
+    assert isinstance(result["rows_identical"], bool)  # the working tree's rows against HEAD's
+    assert json.loads(path.read_text()) == result
+    out = capsys.readouterr().out
+    assert "after/before" in out and "rows identical:" in out
