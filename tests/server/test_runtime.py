@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from estimator.types import EstimateFlag, empty_estimates
-from server.analytics.alerts import AlertKind
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.types import EstimateBatch
+from server.analytics.alerts import AlertKind, slip_kind
 from server.runtime import SERVER_ALERTS_CHUNK, Runtime
 from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
@@ -26,12 +27,14 @@ VEHICLES = [f"v{i:02d}" for i in range(30)]
 
 
 def _slipping(seconds: int) -> np.ndarray:
-    """Rows of a vehicle whose left wheel slips 40 % for ``seconds`` (past any alert hold)."""
-    r = empty_estimates(seconds * 10)
+    """MDSF rows of a vehicle whose left wheel slips 40 % for ``seconds`` (past any alert
+    hold), its right wheel not at all."""
+    left, right = MDSF_SPEC.slips
+    r = MDSF_SPEC.empty_rows(seconds * 10)
     r["stamp_ns"] = time.time_ns() - seconds * S + np.arange(seconds * 10) * (S // 10)
-    r["slip_left_pct"] = 40.0
-    r["slip_right_pct"] = 0.0
-    r["flags"] = int(EstimateFlag.GNSS_OK)
+    r[left.field] = 40.0
+    r[right.field] = 0.0
+    r["flags"] = MDSF_SPEC.flag_mask(left.valid_flag) | MDSF_SPEC.flag_mask(right.valid_flag)
     return r
 
 
@@ -70,7 +73,7 @@ def test_vehicle_and_server_alerts_are_published_under_their_keys(
         sub = session.declare_subscriber("fleet/*/alerts", zenoh.handlers.FifoChannel(1000))
         time.sleep(0.5)  # the subscription reaches the router
         for vid in VEHICLES:
-            rt.alert_engine.on_estimates([(vid, _slipping(12))])
+            rt.alert_engine.on_estimates(EstimateBatch.of([(vid, _slipping(12))], MDSF_SPEC))
         rt.alert_engine.set_system_condition(AlertKind.STORAGE_DOWN, True)
         got: dict[str, list[dict[str, object]]] = {}
         deadline = time.monotonic() + 10
@@ -84,7 +87,7 @@ def test_vehicle_and_server_alerts_are_published_under_their_keys(
     assert sorted(got) == sorted([*VEHICLES, SERVER_ALERTS_CHUNK])
     for vid in VEHICLES:
         assert [e["event"] for e in got[vid]] == ["open"], got[vid]
-        assert got[vid][0]["kind"] == AlertKind.SLIP_LEFT.value
+        assert got[vid][0]["kind"] == slip_kind("mdsf", MDSF_SPEC.slips[0].key)
     assert got[SERVER_ALERTS_CHUNK][0]["kind"] == AlertKind.STORAGE_DOWN.value
 
 
