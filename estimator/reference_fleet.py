@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator.base import Pushed
-from estimator.config import ConfigError, VehicleConfig
+from estimator.config import ConfigError, VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC, ReferenceFlag
 from estimator.types import ImuBatch, WheelEdges, WheelGap, WheelSpeeds
@@ -71,7 +71,9 @@ class ReferenceFleetConfig:
 class _Vehicle:
     """One vehicle's inputs and filter state."""
 
-    def __init__(self, config: VehicleConfig, wheel: WheelSpeedConfig, tick_ns: int) -> None:
+    def __init__(
+        self, config: WheeledRearDriveConfig, wheel: WheelSpeedConfig, tick_ns: int
+    ) -> None:
         wcfg = dataclasses.replace(wheel, teeth_per_rev=config.encoder.teeth_per_rev)
         self.wheel_cfg = wcfg
         self.radius_m = np.array(
@@ -173,7 +175,8 @@ class ReferenceSpeedFleet:
         self._vehicles: dict[str, _Vehicle] = {}
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
-        self._vehicles[vehicle_id] = _Vehicle(config, self.wheel, self._tick_ns)
+        wheeled = expect_kind(config, WheeledRearDriveConfig, self.name)
+        self._vehicles[vehicle_id] = _Vehicle(wheeled, self.wheel, self._tick_ns)
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         self._vehicles.pop(vehicle_id, None)

@@ -45,7 +45,13 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, EstimateFlag, empty_estimates
+from estimator.types import (
+    ESTIMATE_DTYPE,
+    ESTIMATE_FIELDS,
+    EstimateBatch,
+    EstimateFlag,
+    empty_estimates,
+)
 from server.settings import StorageSettings
 from server.storage import Store, StoreWriter, migrations
 from server.storage._columns import FIELD_NAMES, FLOAT_FIELDS, check_rows
@@ -96,20 +102,25 @@ class ColumnLayoutStore(SqliteStore):
             version, _ = migrations.apply_pending(
                 lambda sql, params: conn.execute(sql, params).fetchall(), self.dialect, target=5
             )
-            # the (empty) tables of versions 7 (staging) and 9 (anchors), which the inherited
-            # deletes also clear
-            for later in (7, 9):
-                (create,) = next(m for m in migrations.MIGRATIONS if m.version == later).sqlite
-                assert isinstance(create, str)
-                conn.execute(create)
+            # the later versions' (empty) tables, which the inherited deletes also clear:
+            # staging (7), anchors (9), the estimator tables (10); and the configs' shape (11)
+            def execute(sql: str, params: Sequence[Any]) -> list[Any]:
+                return conn.execute(sql, params).fetchall()
+
+            for later in (7, 9, 10, 11):
+                for step in next(m for m in migrations.MIGRATIONS if m.version == later).sqlite:
+                    if isinstance(step, str):
+                        conn.execute(step)
+                    else:
+                        step(execute)
         return version
 
     def maintain(self, *, everything: bool = False) -> bool:
         """Version 5 writes straight into ``estimates``: nothing to move."""
         return False
 
-    def write_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> int:
-        checked = [(vid, check_rows(rows)) for vid, rows in batch if len(rows)]
+    def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
+        checked = [(vid, check_rows(rows)) for b in batches for vid, rows in b if len(rows)]
         with self._write() as conn:
             before = conn.total_changes
             for vid, rows in checked:
