@@ -44,6 +44,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from estimator.base import STREAMS, FleetEstimator, Pushed, stream_of
+from estimator.catalog import SPECS
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.spec import EstimatorSpec
 from estimator.types import EstimateBatch
@@ -107,6 +108,11 @@ def estimator_names_for(
         raise UnknownEstimatorError(f"unknown estimator(s) {unknown}; known: {sorted(known)}")
     if len(set(names)) != len(names):
         raise UnknownEstimatorError(f"estimator listed twice in {list(names)}")
+    kind = str(config.kind)
+    wrong = [n for n in names if n in SPECS and kind not in SPECS[n].kinds]
+    if wrong:
+        served = {n: list(SPECS[n].kinds) for n in wrong}
+        raise UnknownEstimatorError(f"estimator(s) {wrong} do not run on {kind} vehicles: {served}")
     return names
 
 
