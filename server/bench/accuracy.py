@@ -150,8 +150,7 @@ _TRAD_WINDOW_NS = 500_000_000
 
 def default_estimators() -> dict[str, EstimatorFactory]:
     """Factories of the MDSF fleet estimator in product and paper mode."""
-    from estimator.engine import MdsfFleet
-    from estimator.mdsf import MdsfConfig, MdsfMode
+    from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
 
     return {
         "product": lambda: MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT)),

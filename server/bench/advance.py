@@ -62,7 +62,7 @@ def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS
 
     Returns ``{"cases": [{vehicles, calls, ticks, advance_s}], "digest": sha256 of the rows}``.
     """
-    from estimator.engine import MdsfFleet
+    from estimator.mdsf import MdsfFleet
 
     sources = field_work_sources(seconds, source_runs)
     digest = hashlib.sha256()

@@ -31,7 +31,7 @@ from typing import Any
 
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
-from estimator.engine import MdsfFleet
+from estimator.mdsf import MdsfFleet
 from server.bench import SOURCE_START_NS, field_work_sources, int_list, push_until, write_json
 
 __all__ = ["main", "run"]

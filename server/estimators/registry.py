@@ -45,7 +45,7 @@ EstimatorFactory = Callable[[], FleetEstimator]
 
 
 def _mdsf() -> FleetEstimator:
-    from estimator.engine import MdsfFleet  # lazy: heavy numerics only when a vehicle runs it
+    from estimator.mdsf import MdsfFleet  # lazy: heavy numerics only when a vehicle runs it
 
     fleet: FleetEstimator = MdsfFleet()
     return fleet

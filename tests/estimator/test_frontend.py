@@ -15,15 +15,14 @@ from hypothesis import strategies as st
 
 from estimator.base import Measurement
 from estimator.config import NoiseConfig, VehicleConfig
-from estimator.engine import MdsfFleet
-from estimator.frontend import (
+from estimator.geo import EnuFrame
+from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
+from estimator.mdsf.frontend import (
     FleetFrontEnd,
     _asof,
     pitch_fix_update,
     pitch_kf_update,
 )
-from estimator.geo import EnuFrame
-from estimator.mdsf import MdsfConfig, MdsfMode
 from estimator.sim import SimRun, simulate, truth_at
 from estimator.types import ESTIMATE_DTYPE, GnssSample, ImuBatch, WheelEdges, WheelSpeeds
 from estimator.wheel_speed import WheelSpeedConfig

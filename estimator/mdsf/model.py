@@ -63,7 +63,7 @@ Two modes (:class:`MdsfMode`):
       overall; 0.2 s lags in figure-eight transients, 0.05 s fuses wheel-speed fits whose
       windows overlap more (correlated errors).
 
-The batched engine (:mod:`estimator.engine`) steps many vehicles with these matrices;
+The batched engine (:mod:`estimator.mdsf.engine`) steps many vehicles with these matrices;
 :class:`MdsfFilter` is the per-vehicle reference built on ``filterpy.kalman.KalmanFilter``.
 """
 
@@ -284,10 +284,10 @@ class MdsfConfig:
         Speed std right after a (re)initialisation.
     attitude_tau_s : float
         Product mode: time constant of the heading track's pull to the GNSS heading
-        (:func:`estimator.frontend.yaw_fix_update`), and the correlation time taken for the
+        (:func:`estimator.mdsf.frontend.yaw_fix_update`), and the correlation time taken for the
         roll's error where the yaw rate carries it into the pitch rate, and the pitch's into
         the roll rate [s]. Pitch and roll have no time constant: each is a Kalman filter with
-        its gyro's bias (:func:`estimator.frontend.pitch_kf_update`).
+        its gyro's bias (:func:`estimator.mdsf.frontend.pitch_kf_update`).
     pitch_leak_corr_s : float
         Product mode: correlation time taken for the pitch filter's error where its gravity
         leak (``g·δθ``) is added to the accelerometer noise as white noise,
@@ -302,7 +302,7 @@ class MdsfConfig:
         how much gravity leaks into the forward acceleration through the pitch error [rad].
     gyro_bias_std_radps : float
         Product mode: prior std of the pitch gyro's bias (MEMS turn-on bias, a few mrad/s)
-        in the pitch filter (:func:`estimator.frontend.pitch_kf_update`) [rad/s].
+        in the pitch filter (:func:`estimator.mdsf.frontend.pitch_kf_update`) [rad/s].
     gyro_bias_walk_radps_per_sqrt_s : float
         Product mode: random walk of that bias (in-run drift) [rad/s/√s].
     standstill_speed_mps : float

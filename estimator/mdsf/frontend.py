@@ -1,8 +1,8 @@
 """Fleet front end of the MDSF estimator: buffered measurements of many vehicles → tick inputs.
 
 :class:`FleetFrontEnd` holds every vehicle's front-end state in arrays indexed by the
-:class:`~estimator.engine.MdsfEngine` slot and turns the buffered measurements of all vehicles
-due in one :meth:`~estimator.engine.MdsfFleet.advance` into :class:`TickInputs` with a number
+:class:`~estimator.mdsf.engine.MdsfEngine` slot and turns the buffered measurements of all vehicles
+due in one :meth:`~estimator.mdsf.MdsfFleet.advance` into :class:`TickInputs` with a number
 of numpy calls that does not grow with the fleet (ticks are ``MdsfConfig.tick_ns`` of sensor
 time on a fleet-wide grid):
 
@@ -58,7 +58,7 @@ from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import VehicleConfig
 from estimator.geo import enu_from_geodetic
-from estimator.mdsf import (
+from estimator.mdsf.model import (
     GRAVITY_MPS2,
     N_OBS_PAPER,
     MdsfConfig,

@@ -13,7 +13,7 @@ Two layers:
 
 :class:`MdsfFleet`
     Implements :class:`estimator.base.FleetEstimator`. One fleet front end
-    (:class:`estimator.frontend.FleetFrontEnd`, state in arrays by engine slot) buffers every
+    (:class:`estimator.mdsf.frontend.FleetFrontEnd`, state in arrays by engine slot) buffers every
     vehicle's measurements and, on :meth:`MdsfFleet.advance`, turns those of all due vehicles
     into per-tick filter inputs with a number of numpy calls that does not grow with the fleet:
     IMU averaged over each tick window (gravity removed with the pitch, gyro biases learnt
@@ -52,8 +52,8 @@ from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import VehicleConfig
 from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
-from estimator.frontend import FleetFrontEnd, FleetTicks, TickInputs
-from estimator.mdsf import (
+from estimator.mdsf.frontend import FleetFrontEnd, FleetTicks, TickInputs
+from estimator.mdsf.model import (
     GRAVITY_MPS2,
     N_OBS_PAPER,
     MdsfConfig,
@@ -1052,7 +1052,7 @@ class MdsfFleet:
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         """Ticks of ``vehicle_id`` fall on ``stamp_ns + k·tick`` (call before its first push;
-        see :meth:`estimator.frontend.FleetFrontEnd.align_ticks`); ``KeyError`` if unknown."""
+        see :meth:`estimator.mdsf.frontend.FleetFrontEnd.align_ticks`); ``KeyError`` if unknown."""
         self.front.align_ticks(self._slot[vehicle_id], stamp_ns)
 
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
