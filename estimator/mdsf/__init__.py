@@ -13,7 +13,8 @@ Modules, from the equations outwards:
     :class:`MdsfFleet`: the :class:`~estimator.base.FleetEstimator` the server runs.
 """
 
-from estimator.mdsf.engine import Counter, MdsfEngine, MdsfFleet, StepOutput, TickModel
+from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput, TickModel
+from estimator.mdsf.fleet import MdsfFleet
 from estimator.mdsf.frontend import COUNT_NAMES, FleetFrontEnd, FleetTicks, TickInputs
 from estimator.mdsf.model import (
     GRAVITY_MPS2,

@@ -1,44 +1,19 @@
-"""Batched MDSF engine and the fleet estimator the server drives (``name = "mdsf"``).
+"""Batched MDSF engine: every vehicle's filter in slot arrays, stepped in batches.
 
-Two layers:
-
-:class:`MdsfEngine`
-    Holds every vehicle's filter state in slot arrays (``x (cap, n)``, ``P (cap, n, n)`` with
-    ``n`` = 4 in paper mode, 8 in product mode; per-vehicle ``F``, ``H``, ``H1``, ``Q``) and
-    steps any subset of vehicles with a few calls to the pure functions of
-    :mod:`estimator.kalman`: predict (accelerometer-driven in product mode), update of the IMU
-    rows, chi-square gate of the GNSS speed and distance, update of GNSS speed, rim speeds and
-    RTK distance, divergence reset, reference-speed filter (§3). Each step also returns what it
-    used (:class:`TickModel`: matrices, masks, NIS) for diagnostics and tests.
-
-:class:`MdsfFleet`
-    Implements :class:`estimator.base.FleetEstimator`. One fleet front end
-    (:class:`estimator.mdsf.frontend.FleetFrontEnd`, state in arrays by engine slot) buffers every
-    vehicle's measurements and, on :meth:`MdsfFleet.advance`, turns those of all due vehicles
-    into per-tick filter inputs with a number of numpy calls that does not grow with the fleet:
-    IMU averaged over each tick window (gravity removed with the pitch, gyro biases learnt
-    against the GNSS attitude), GNSS speed by eq. (1) moved to the tick by its time stamp,
-    along-track distance from the RTK positions, wheel speeds of all vehicles that share the
-    ticks fitted in one call (:meth:`estimator.wheel_speed.WheelBank.query`). The engine steps
-    round by round: round ``r`` is the ``r``-th due tick of every vehicle that has one, all in
-    one batched call.
-    Slip, positions and attitude are computed for all rows at once afterwards.
-
-Ticks sit on a grid of ``tick_ns``: multiples of it since the epoch by default, or moved by
-:meth:`MdsfFleet.align_ticks` (the server puts a vehicle's ticks on the end of its first IMU
-batch, so a tick is computed as soon as the batch holding it arrives). A row at ``t`` uses only
-measurements stamped at or before ``t`` (rows do not depend on how data was batched, nor on the
-other vehicles of a call; tested). A vehicle's first row is the first
-tick with a usable GNSS speed (or, after ``gnss_timeout_s`` without GNSS, with wheel speeds,
-flagged DEGRADED). Nothing here raises on NaN/inf: bad parts are skipped and counted
-(:meth:`MdsfFleet.counters`); a filter whose state goes non-finite or whose speed variance
-explodes is re-initialised and the row flagged RESET.
+:class:`MdsfEngine` holds the filter state of many vehicles (``x (cap, n)``, ``P (cap, n, n)``,
+``n`` = 4 in paper mode, 8 in product mode; per-vehicle ``F``, ``H``, ``H1``, ``Q``) and steps any
+subset of them with a few calls to the pure functions of :mod:`estimator.kalman`. A step runs
+named stages (:meth:`MdsfEngine.step`): measurement noise, predict (accelerometer-driven in
+product mode), update of the IMU rows, chi-square gates of GNSS speed and distance, update of
+GNSS speed, rim speeds and RTK distance, (re)initialisation and divergence reset, the
+reference-speed filter (``method.md`` §3). Each step also returns what it used
+(:class:`TickModel`: matrices, masks, NIS) for diagnostics and tests. A state that goes
+non-finite or whose speed variance explodes is re-initialised and its row flagged RESET.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -49,10 +24,8 @@ import numpy.typing as npt
 from estimator import kalman
 from estimator._arrays import nan_to_num
 from estimator._slots import grow_slot_array
-from estimator.base import Pushed
 from estimator.config import VehicleConfig
-from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
-from estimator.mdsf.frontend import FleetFrontEnd, FleetTicks, TickInputs
+from estimator.mdsf.frontend import TickInputs
 from estimator.mdsf.model import (
     GRAVITY_MPS2,
     N_OBS_PAPER,
@@ -64,11 +37,9 @@ from estimator.mdsf.model import (
     mdsf_matrices,
 )
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
-from estimator.slip import fit_span_s, slip_pct, unsettled
-from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
-from estimator.wheel_speed import WheelSpeedConfig
+from estimator.types import EstimateFlag
 
-__all__ = ["Counter", "MdsfEngine", "MdsfFleet", "StepOutput", "TickInputs", "TickModel"]
+__all__ = ["Counter", "MdsfEngine", "StepOutput", "TickModel"]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -121,10 +92,6 @@ class Counter(IntEnum):
     WAITING_TICKS = 11
 
 
-# counters(): each counter's key and column, in declaration order
-_COUNTER_KEYS = tuple(c.name.lower() for c in Counter)
-_COUNTER_COLUMNS = np.array(list(Counter), dtype=np.intp)
-
 _STEP_COUNTERS = np.array(
     [
         Counter.TICKS,
@@ -137,21 +104,6 @@ _STEP_COUNTERS = np.array(
     ]
 )
 """Counters :meth:`MdsfEngine.step` adds to every tick (ticks, then its events)."""
-_TICK_FIELDS = TickInputs.__slots__
-_STEP_COLS = (
-    "vg",
-    "v1",
-    "v0",
-    "vl",
-    "vr",
-    "vg_std",
-    "vl_std",
-    "vr_std",
-    "accel",
-    "pitch_rate",
-    "yaw_rate",
-)
-"""Per-row outputs of :class:`StepOutput` that go into the estimate rows."""
 
 
 @dataclass(slots=True)
@@ -225,6 +177,46 @@ class TickModel:
     def nis(self) -> FloatArray:
         first, second = self.stages
         return first.nis + second.nis
+
+
+@dataclass(slots=True)
+class _Updated:
+    """What the update stages of a step leave: posterior ``x`` (k, n), ``P`` (k, n, n), the
+    rows' ``H`` (k, m, n), stage-1 innovations ``y`` and their variances ``s`` (k, m), and
+    which rows were used, gated or opened."""
+
+    x: FloatArray
+    P: FloatArray
+    H: FloatArray
+    y: FloatArray
+    s: FloatArray
+    use_vg: BoolArray
+    gated: BoolArray
+    reacq: BoolArray
+    inflated: BoolArray
+    zupt: BoolArray
+    mask1: BoolArray
+    mask2: BoolArray
+    stages: tuple[kalman.IndependentUpdateResult, kalman.IndependentUpdateResult]
+
+
+@dataclass(slots=True)
+class _Started:
+    """Rows (re)initialised at a step (first speed, or after divergence), shapes (k,), the
+    mean measured rim speed (NaN: none) and the RESET flags they set."""
+
+    started: BoolArray
+    diverged: BoolArray
+    rim_mean: FloatArray
+    flags: npt.NDArray[np.int32]
+
+
+def _diagonal(d: FloatArray) -> FloatArray:
+    """Stack of diagonal matrices (k, m, m) with diagonals ``d`` (k, m)."""
+    k, m = d.shape
+    out = np.zeros((k, m, m))
+    out.reshape(k, m * m)[:, :: m + 1] = d
+    return out
 
 
 class MdsfEngine:
@@ -407,6 +399,11 @@ class MdsfEngine:
     ) -> StepOutput:
         """Advance the vehicles in ``slots`` by one tick each (batched).
 
+        Stages, in order: observation and its noise, predict, update (IMU rows, then the
+        gated GNSS speed, rim speeds and distance, then a zero-velocity update), the online
+        fits (GNSS noise, tyre gain), start and divergence reset, the reference-speed filter,
+        store, outputs. Equal to one joint Kalman update: the rows' noises are independent.
+
         Parameters
         ----------
         slots : ndarray, shape (k,), int
@@ -420,39 +417,99 @@ class MdsfEngine:
         -------
         StepOutput
         """
-        cfg = self.config
-        k = slots.shape[0]
-        n, m = self.n, self.m
-        dt = self.dt_s
-        stamp = t.stamp_ns
         rim_ok = np.isfinite(rim_mps) & np.isfinite(rim_std_mps)
-        z = np.zeros((k, m))
+        z = self._observation(t, rim_mps, rim_ok)
+        rd = self._noise(slots, t, rim_mps, rim_std_mps, rim_ok)
+        x, P, init, broken = self._working_state(slots)
+        F, Q, u = self._process(slots, t, z, x, init, rd[:, MdsfObs.A1])
+        x_pr, P_pr = kalman.predict(x, P, F, Q, u)
+        up = self._update(slots, t, z, rd, x_pr, P_pr, init, rim_mps, rim_ok)
+        if self.product and self.config.gnss_noise_adapt > 0:
+            fused = up.use_vg & init
+            self._adapt_gnss_noise(slots, fused, up.y[:, MdsfObs.VG], up.s[:, MdsfObs.VG], rd)
+        if self.product and self.config.slip_per_demand > 0 and self.config.tyre_gain_tau_s > 0:
+            self._learn_tyre_gain(slots, t, up.x, rim_mps, rim_ok, up.use_vg & init)
+        st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
+        now_init = init | st.started
+        fused = up.use_vg & now_init
+        last_fused = np.where(fused, t.stamp_ns, self.last_fused_ns[slots])
+        degraded = now_init & ((t.stamp_ns - last_fused) > round(self.config.gnss_timeout_s * 1e9))
+        v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
+        # -- store
+        self.x[slots] = np.where(now_init[:, None], up.x, x)
+        self.P[slots] = np.where(now_init[:, None, None], up.P, P)
+        self.initialized[slots] = now_init
+        self.last_fused_ns[slots] = last_fused
+        self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
+        # one indexed add of the tick's events (columns _STEP_COUNTERS)
+        k = slots.shape[0]
+        self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
+            [
+                np.ones(k, dtype=bool),
+                fused,
+                up.gated,
+                up.reacq,
+                st.diverged | up.reacq,
+                degraded,
+                ~now_init,
+            ],
+            axis=1,
+        )
+        flags = st.flags | (
+            np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
+            | np.where(degraded, int(_F.DEGRADED), 0)
+            | np.where(up.gated, int(_F.GATED), 0)
+            | np.where(up.reacq, int(_F.RESET), 0)
+        ).astype(np.int32)
+        special = st.started | st.diverged | up.zupt
+        if not self.product:
+            special = special | degraded
+        model = TickModel(
+            F=np.asarray(np.broadcast_to(F, (k, self.n, self.n))),
+            Q=Q,
+            u=u,
+            z=z,
+            R=_diagonal(rd),
+            mask1=up.mask1,
+            mask2=up.mask2,
+            inflated=up.inflated,
+            dof=up.stages[0].dof + up.stages[1].dof,
+            special=special,
+            stages=up.stages,
+        )
+        return self._outputs(slots, up.x, up.P, v0, now_init, flags, model)
+
+    # -- stages of a step --------------------------------------------------------------------
+    def _observation(self, t: TickInputs, rim_mps: FloatArray, rim_ok: BoolArray) -> FloatArray:
+        """Observation ``z`` (k, m) of :class:`MdsfObs`; rows without a value hold 0."""
+        k = t.stamp_ns.shape[0]
+        z = np.zeros((k, self.m))
         z[:, :N_OBS_PAPER] = np.where(np.isfinite(t.z), t.z, 0.0)
         if self.product:
             z[:, _RIM] = np.where(rim_ok, rim_mps, 0.0)
             z[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_m, 0.0)
-        # rows gathered by an index array are copies: the working state of this step
-        H = self.H[slots]
-        x = self.x[slots]
-        P = self.P[slots]
-        init = self.initialized[slots]
-        flags = np.zeros(k, dtype=np.int32)
-        # A state that is already broken (non-finite) cannot be predicted: start it afresh.
-        broken = init & ~(np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
-        if broken.any():
-            x = np.where(broken[:, None], 0.0, x)
-            P = np.where(broken[:, None, None], np.eye(n), P)
-            init &= ~broken
-            self.counts[slots, Counter.RESETS] += broken
-        gnss_ok = t.gnss_ok.copy()
+        return z
 
-        # Adaptive GNSS noise: receiver/config value is the floor, innovations can raise it.
-        r_gnss = np.maximum(t.gnss_var, self.gnss_noise_var[slots])
-        accel_var = np.where(t.imu_ok, t.accel_var, 1.0)
+    def _noise(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        rim_mps: FloatArray,
+        rim_std_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> FloatArray:
+        """Measurement noise variances, the diagonal of ``R`` (k, m); unused rows hold 1.
+
+        The GNSS speed's is the receiver's (or configured) variance, raised by the running
+        estimate from its innovations (:meth:`_adapt_gnss_noise`). A rim speed's is the wheel
+        fit's std scaled by ``wheel_noise_scale``, plus soil texture ``rim_texture_rel·r·W``.
+        """
+        cfg = self.config
+        k = slots.shape[0]
         gyro_var = np.where(t.imu_ok, t.gyro_var, 1.0)
-        rd = np.zeros((k, m))
-        rd[:, MdsfObs.VG] = r_gnss
-        rd[:, MdsfObs.A1] = accel_var
+        rd = np.zeros((k, self.m))
+        rd[:, MdsfObs.VG] = np.maximum(t.gnss_var, self.gnss_noise_var[slots])
+        rd[:, MdsfObs.A1] = np.where(t.imu_ok, t.accel_var, 1.0)
         rd[:, MdsfObs.OMEGA_X] = gyro_var
         rd[:, MdsfObs.OMEGA_Z] = gyro_var
         if self.product:
@@ -464,294 +521,424 @@ class MdsfEngine:
                 1.0,
             )
             rd[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_var, 1.0)
-        R = np.zeros((k, m, m))
-        R.reshape(k, m * m)[:, :: m + 1] = rd  # the diagonals
+        return rd
 
-        # -- predict ------------------------------------------------------------------------
+    def _working_state(
+        self, slots: IntArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray]:
+        """Copies of ``x``, ``P`` and ``initialized`` for ``slots`` (rows gathered by an index
+        array are copies), with a state that is already non-finite started afresh (it cannot
+        be predicted; counted as a reset). Returns ``(x, P, init, broken)``."""
+        x = self.x[slots]
+        P = self.P[slots]
+        init = self.initialized[slots]
+        broken = init & ~(np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
+        if broken.any():
+            x = np.where(broken[:, None], 0.0, x)
+            P = np.where(broken[:, None, None], np.eye(self.n), P)
+            init &= ~broken
+            self.counts[slots, Counter.RESETS] += broken
+        return x, P, init, broken
+
+    def _process(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        x: FloatArray,
+        init: BoolArray,
+        accel_var: FloatArray,
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Transition ``F`` (k, n, n), process noise ``Q`` (k, n, n) and control ``u`` (k, n)
+        of the predict; paper mode: eq. (6), no control."""
+        F = self.F[slots]
         Q = self.Q_base[slots]
-        u: FloatArray | None = None
-        if self.product:
-            a_in = np.where(
-                t.imu_ok, z[:, MdsfObs.A1], x[:, MdsfState.A1] + x[:, MdsfState.ACCEL_BIAS]
-            )
-            u = np.zeros((k, n))
-            u[:, MdsfState.V1] = dt * a_in
-            u[:, MdsfState.A1] = a_in
-            # The acceleration noise drives V1 and a1; the distance integrates the speed:
-            # D' = D + dt·V1 + dt²·(ā − b)/2, so the tick's acceleration noise reaches it
-            # through dt²/2 (correlated with V1 and a1). One indexed add: (row, column, factor).
-            half = 0.5 * dt * dt
-            D, V1 = MdsfState.DIST, MdsfState.V1
-            u[:, D] = half * a_in
-            Q[:, self._q_accel_rows, self._q_accel_cols] += accel_var[:, None] * self._q_accel
-            # A new chain of RTK positions (or one after a gated distance) has its own origin:
-            # the predicted distance is moved onto the measured one and opened, so the chain's
-            # offset carries no information on the speed.
-            new_chain = t.dist_ok & (t.dist_restart | self.dist_gated[slots])
-            d_pred = x[:, D] + dt * x[:, V1] - half * x[:, MdsfState.ACCEL_BIAS] + half * a_in
-            u[:, D] += np.where(new_chain, z[:, MdsfObs.DIST] - d_pred, 0.0)
-            Q[:, D, D] += np.where(new_chain, _DIST_OPEN_VAR_M2, 0.0)
-            # Rim excess e = r·W − V: at constant slip ratio it scales with the speed,
-            # e' = e·(1 + dt·ā/V); on top, slip wanders with soil and load and moves when the
-            # traction demand (forward specific force) changes, while it changes: a change D of
-            # demand adds (gain·V·D/g)² in all (:meth:`_demand_change`).
-            speed = np.abs(x[:, MdsfState.V1])
-            d2 = self._demand_change(slots, t, accel_var)
-            # Without GNSS only ``outage_demand_share`` of it (the tyre model carries the rest).
-            lost = init & ((stamp - self.last_fused_ns[slots]) * _NS > cfg.gnss_timeout_s)
-            d2 = d2 * np.where(lost, cfg.outage_demand_share, 1.0)
-            q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
-                cfg.slip_demand_gain * speed / GRAVITY_MPS2
-            ) ** 2 * d2
-            F = self.F[slots]
-            grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
-                speed, _SLIP_MIN_SPEED_MPS
-            )
-            # Slip changes the accelerometer cannot see (a drawbar load set down or lifted,
-            # soil, tyre pressure) show as rim innovations that keep one sign: their running
-            # mean beyond what white innovations explain opens that wheel's rim excess.
-            q_drift = None
-            if cfg.rim_drift_tau_s > 0:
-                q_drift = self._rim_drift_noise(slots, lost)
-            Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
-            if q_drift is not None:
-                Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
-            F[:, _RIM_EXCESS, _RIM_EXCESS] = np.clip(grow, 0.5, 1.5)[:, None]
-            if cfg.slip_per_demand > 0:
-                # Tyre model: slip follows the traction demand, ds ≈ k·d(f/g); the expected
-                # change of the rim excess enters as a control term (the filter corrects k's
-                # error through the rim, GNSS and accelerometer rows). k is the local slope of
-                # the traction curve, learnt online (:meth:`tyre_gain`); the model stays on in
-                # a GNSS outage, where it carries the slip's response to speed changes (a
-                # demand that rises and falls back leaves no net change).
-                d_dem = self._model_demand_change(slots, t)
-                gain = self.tyre_gain(slots)
-                u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
-        else:
-            F = self.F[slots]
-        x_pr, P_pr = kalman.predict(x, P, F, Q, u)
+        if not self.product:
+            return F, Q, None
+        u, a_in = self._accel_control(slots, t, z, x, accel_var, Q)
+        self._rim_excess_process(slots, t, x, init, a_in, accel_var, F, Q, u)
+        return F, Q, u
 
-        # -- update in two stages (equal to one joint update: the rows' noises are independent,
-        #    so each stage also applies its rows one at a time, kalman.update_independent)
-        # 1) the IMU rows, 2) GNSS speed and rim speeds, gated against the stage-1 posterior so
-        #    the tests see this tick's measured rates.
+    def _accel_control(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        x: FloatArray,
+        accel_var: FloatArray,
+        Q: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Product mode: the accelerometer drives the speed and the distance (``Q`` in place).
+
+        ``V1' = V1 + dt·(ā − b)``, ``a1' = ā``, ``D' = D + dt·V1 + dt²·(ā − b)/2`` (``ā`` the
+        tick's mean acceleration, or the state's where the tick has none), so the tick's
+        acceleration noise reaches ``V1``, ``a1`` and ``D`` (one indexed add). A new chain of
+        RTK positions, or one after a gated distance, has its own origin: the predicted
+        distance is moved onto the measured one and opened, so the chain's offset carries no
+        information on the speed. Returns ``(u (k, n), ā (k,))``.
+        """
+        dt = self.dt_s
+        k = slots.shape[0]
+        a_in = np.where(t.imu_ok, z[:, MdsfObs.A1], x[:, MdsfState.A1] + x[:, MdsfState.ACCEL_BIAS])
+        u = np.zeros((k, self.n))
+        u[:, MdsfState.V1] = dt * a_in
+        u[:, MdsfState.A1] = a_in
+        half = 0.5 * dt * dt
+        D, V1 = MdsfState.DIST, MdsfState.V1
+        u[:, D] = half * a_in
+        Q[:, self._q_accel_rows, self._q_accel_cols] += accel_var[:, None] * self._q_accel
+        new_chain = t.dist_ok & (t.dist_restart | self.dist_gated[slots])
+        d_pred = x[:, D] + dt * x[:, V1] - half * x[:, MdsfState.ACCEL_BIAS] + half * a_in
+        u[:, D] += np.where(new_chain, z[:, MdsfObs.DIST] - d_pred, 0.0)
+        Q[:, D, D] += np.where(new_chain, _DIST_OPEN_VAR_M2, 0.0)
+        return u, a_in
+
+    def _rim_excess_process(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        x: FloatArray,
+        init: BoolArray,
+        a_in: FloatArray,
+        accel_var: FloatArray,
+        F: FloatArray,
+        Q: FloatArray,
+        u: FloatArray,
+    ) -> None:
+        """Product mode: how each rim excess ``e = r·W − V`` moves (``F``, ``Q``, ``u`` in place).
+
+        At constant slip ratio it scales with the speed, ``e' = e·(1 + dt·ā/V)``. It wanders
+        with soil and load, opens while the traction demand changes
+        (:meth:`_demand_change`; without GNSS only ``outage_demand_share`` of it) and where
+        rim innovations keep one sign (:meth:`_rim_drift_noise`: a drawbar load, soil, tyre
+        pressure the accelerometer cannot see). The tyre model ``Δe ≈ k·V·Δ(f/g)`` enters as
+        a control term, ``k`` the traction curve's slope learnt online (:meth:`tyre_gain`); it
+        stays on through a GNSS outage.
+        """
+        cfg = self.config
+        dt = self.dt_s
+        speed = np.abs(x[:, MdsfState.V1])
+        d2 = self._demand_change(slots, t, accel_var)
+        lost = init & ((t.stamp_ns - self.last_fused_ns[slots]) * _NS > cfg.gnss_timeout_s)
+        d2 = d2 * np.where(lost, cfg.outage_demand_share, 1.0)
+        q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
+            cfg.slip_demand_gain * speed / GRAVITY_MPS2
+        ) ** 2 * d2
+        grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
+            speed, _SLIP_MIN_SPEED_MPS
+        )
+        q_drift = None
+        if cfg.rim_drift_tau_s > 0:
+            q_drift = self._rim_drift_noise(slots, lost)
+        Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
+        if q_drift is not None:
+            Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
+        F[:, _RIM_EXCESS, _RIM_EXCESS] = np.clip(grow, 0.5, 1.5)[:, None]
+        if cfg.slip_per_demand > 0:
+            d_dem = self._model_demand_change(slots, t)
+            gain = self.tyre_gain(slots)
+            u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
+
+    def _update(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        rd: FloatArray,
+        x_pr: FloatArray,
+        P_pr: FloatArray,
+        init: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> _Updated:
+        """The update: 1) the IMU rows; 2) GNSS speed, rim speeds and distance, gated against
+        the stage-1 posterior so the tests see this tick's measured rates; 3) product mode, a
+        zero-velocity update where both wheels stand. Each stage applies its rows one at a
+        time (:func:`estimator.kalman.update_independent`)."""
+        k, m = slots.shape[0], self.m
+        H = self.H[slots]
         mask1 = np.zeros((k, m), dtype=bool)
         mask1[:, MdsfObs.A1] = t.imu_ok & (not self.product)
         mask1[:, MdsfObs.OMEGA_X] = t.imu_ok
         mask1[:, MdsfObs.OMEGA_Z] = t.imu_ok
         res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS)
         x_1, P_1 = res1.x, res1.P
-        y_all = z - np.einsum("kmi,ki->km", H, x_1)
-        s_all = kalman.row_variances(H, P_1) + rd
-        y_vg = y_all[:, MdsfObs.VG]
+        y = z - np.einsum("kmi,ki->km", H, x_1)
+        s = kalman.row_variances(H, P_1) + rd
         gated = np.zeros(k, dtype=bool)
         reacq = np.zeros(k, dtype=bool)
-        rim_use = rim_ok
         inflated = np.zeros(k, dtype=bool)
         if self.product:
-            # The gate has a floor: a speed that wandered by a few cm/s while the receiver
-            # reports mm/s (standing, creeping) must not lock the GNSS out.
-            s_gate = s_all[:, MdsfObs.VG] + cfg.gate_floor_mps**2
-            gated = gnss_ok & init & ~(y_vg * y_vg <= cfg.gate_chi2 * s_gate)
-            since = self.gated_since_ns[slots]
-            since = np.where(gated & (since < 0), stamp, since)
-            reacq = gated & (stamp - since >= round(cfg.reacquire_s * 1e9))
-            gated &= ~reacq
-            since = np.where(gated, since, -1)
-            self.gated_since_ns[slots] = since
-            # Re-acquire: open the speed variance to the disagreement so the update follows GNSS.
-            P_1[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
-            inflated |= reacq
-            # A rim speed far off its prediction while the accelerometer saw no matching
-            # acceleration means the slip itself changed (soil, wet patch): open the rim
-            # excess by the unexplained part of the innovation before the update.
-            y_rim = y_all[:, _RIM]
-            s_rim = s_all[:, _RIM]
-            if cfg.rim_drift_tau_s > 0:
-                self._track_rim_innovation(slots, y_rim, s_rim, rim_use & init[:, None])
-            big = rim_use & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
-            extra = np.where(big, y_rim * y_rim - s_rim, 0.0)
-            P_1[:, _RIM_EXCESS, _RIM_EXCESS] += extra
-            inflated |= big.any(axis=1)
-        use_vg = gnss_ok & ~gated
+            gated, reacq = self._gate_gnss(slots, t, init, y, s, P_1)
+            inflated = reacq | self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
+        use_vg = t.gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
         if self.product:
-            mask2[:, _RIM] = rim_use
-            # The distance row is gated like the speed (a position jump: wrong fix); the next
-            # fix then starts a new chain.
-            y_d = y_all[:, MdsfObs.DIST]
-            s_d = s_all[:, MdsfObs.DIST] + cfg.gnss_distance_gate_floor_m**2
-            d_gated = t.dist_ok & init & ~(y_d * y_d <= cfg.gate_chi2 * s_d)
-            self.dist_gated[slots] = np.where(t.dist_ok, d_gated, self.dist_gated[slots])
-            mask2[:, MdsfObs.DIST] = t.dist_ok & ~d_gated
+            mask2[:, _RIM] = rim_ok
+            mask2[:, MdsfObs.DIST] = t.dist_ok & ~self._gate_distance(slots, t, init, y, s)
         stage2 = _STAGE2_ROWS_PRODUCT if self.product else _STAGE2_ROWS_PAPER
         res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2)
-        x_new, P_new = res.x, res.P
         zupt = np.zeros(k, dtype=bool)
-        if self.product and cfg.zupt_speed_mps > 0:
-            # Zero-velocity update: both wheels stand and GNSS (if any) agrees.
-            zs = cfg.zupt_speed_mps
-            zupt = (
-                init
-                & rim_ok.all(axis=1)
-                & (np.abs(np.where(rim_ok, rim_mps, np.inf)) <= zs).all(axis=1)
-                & (~gnss_ok | (np.abs(z[:, MdsfObs.VG]) <= 2.0 * zs))
+        x_new, P_new = res.x, res.P
+        if self.product and self.config.zupt_speed_mps > 0:
+            zupt, x_new, P_new = self._zero_velocity(
+                slots, t, z, init, rim_mps, rim_ok, x_new, P_new
             )
-            if zupt.any():
-                resz = kalman.update_independent(
-                    x_new,
-                    P_new,
-                    np.zeros((k, 1)),
-                    self.v0_row[slots][:, None, :],
-                    np.full((k, 1), (0.5 * zs) ** 2),
-                    zupt[:, None],
-                )
-                x_new, P_new = resz.x, resz.P
-
-        # Running estimate of the GNSS speed noise from accepted innovations.
-        if self.product and cfg.gnss_noise_adapt > 0:
-            hph = s_all[:, MdsfObs.VG] - r_gnss
-            est = self.gnss_noise_var[slots]
-            b = cfg.gnss_noise_adapt
-            est = np.where(use_vg & init, (1 - b) * est + b * (y_vg * y_vg - hph), est)
-            self.gnss_noise_var[slots] = est
-
-        if self.product and cfg.slip_per_demand > 0 and cfg.tyre_gain_tau_s > 0:
-            self._learn_tyre_gain(slots, t, x_new, rim_mps, rim_ok, use_vg & init)
-
-        # -- initialise vehicles that get their first GNSS speed --------------------------
-        v1_from_gnss = z[:, MdsfObs.VG] - (
-            H[:, MdsfObs.VG, MdsfState.OMEGA_X] * np.where(t.imu_ok, z[:, MdsfObs.OMEGA_X], 0.0)
-            + H[:, MdsfObs.VG, MdsfState.OMEGA_Z] * np.where(t.imu_ok, z[:, MdsfObs.OMEGA_Z], 0.0)
+        return _Updated(
+            x_new, P_new, H, y, s, use_vg, gated, reacq, inflated, zupt, mask1, mask2, (res1, res)
         )
-        start = ~init & gnss_ok
-        # Without GNSS a vehicle can start from its wheels (reference speed, degraded).
+
+    def _gate_gnss(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        init: BoolArray,
+        y: FloatArray,
+        s: FloatArray,
+        P_1: FloatArray,
+    ) -> tuple[BoolArray, BoolArray]:
+        """Product mode: chi-square gate of the GNSS speed; after ``reacquire_s`` of
+        rejections the speed variance opens to the disagreement (``P_1`` in place) so the
+        update follows GNSS. The gate has a floor ``gate_floor_mps``: a speed that wandered by
+        a few cm/s while the receiver reports mm/s (standing, creeping) must not lock GNSS
+        out. Returns ``(gated, reacquired)``, shape (k,)."""
+        cfg = self.config
+        stamp = t.stamp_ns
+        y_vg = y[:, MdsfObs.VG]
+        s_gate = s[:, MdsfObs.VG] + cfg.gate_floor_mps**2
+        gated = t.gnss_ok & init & ~(y_vg * y_vg <= cfg.gate_chi2 * s_gate)
+        since = self.gated_since_ns[slots]
+        since = np.where(gated & (since < 0), stamp, since)
+        reacq = gated & (stamp - since >= round(cfg.reacquire_s * 1e9))
+        gated &= ~reacq
+        self.gated_since_ns[slots] = np.where(gated, since, -1)
+        P_1[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
+        return gated, reacq
+
+    def _open_rim_jumps(
+        self,
+        slots: IntArray,
+        init: BoolArray,
+        y: FloatArray,
+        s: FloatArray,
+        rim_ok: BoolArray,
+        P_1: FloatArray,
+    ) -> BoolArray:
+        """Product mode: a rim speed more than ``slip_jump_sigma`` off its prediction while the
+        accelerometer saw no matching acceleration means the slip itself changed (soil, wet
+        patch): that rim excess opens by the unexplained part of the innovation (``P_1`` in
+        place). Also feeds the running rim innovations. Returns the rows opened, (k,)."""
+        cfg = self.config
+        y_rim = y[:, _RIM]
+        s_rim = s[:, _RIM]
+        if cfg.rim_drift_tau_s > 0:
+            self._track_rim_innovation(slots, y_rim, s_rim, rim_ok & init[:, None])
+        big = rim_ok & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
+        P_1[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(big, y_rim * y_rim - s_rim, 0.0)
+        return np.asarray(big.any(axis=1))
+
+    def _gate_distance(
+        self, slots: IntArray, t: TickInputs, init: BoolArray, y: FloatArray, s: FloatArray
+    ) -> BoolArray:
+        """Product mode: the distance row gated as the speed (a position jump: wrong fix); the
+        next fix then starts a new chain. Returns the rows gated, (k,)."""
+        cfg = self.config
+        y_d = y[:, MdsfObs.DIST]
+        s_d = s[:, MdsfObs.DIST] + cfg.gnss_distance_gate_floor_m**2
+        d_gated = t.dist_ok & init & ~(y_d * y_d <= cfg.gate_chi2 * s_d)
+        self.dist_gated[slots] = np.where(t.dist_ok, d_gated, self.dist_gated[slots])
+        return d_gated
+
+    def _zero_velocity(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        init: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+        x: FloatArray,
+        P: FloatArray,
+    ) -> tuple[BoolArray, FloatArray, FloatArray]:
+        """Product mode: ``V0 = 0`` fused where both rim speeds are at most ``zupt_speed_mps``
+        and GNSS, if any, agrees. Returns ``(zupt (k,), x, P)``."""
+        k = slots.shape[0]
+        zs = self.config.zupt_speed_mps
+        zupt = (
+            init
+            & rim_ok.all(axis=1)
+            & (np.abs(np.where(rim_ok, rim_mps, np.inf)) <= zs).all(axis=1)
+            & (~t.gnss_ok | (np.abs(z[:, MdsfObs.VG]) <= 2.0 * zs))
+        )
+        if not zupt.any():
+            return zupt, x, P
+        resz = kalman.update_independent(
+            x,
+            P,
+            np.zeros((k, 1)),
+            self.v0_row[slots][:, None, :],
+            np.full((k, 1), (0.5 * zs) ** 2),
+            zupt[:, None],
+        )
+        return zupt, resz.x, resz.P
+
+    def _adapt_gnss_noise(
+        self, slots: IntArray, fused: BoolArray, y_vg: FloatArray, s_vg: FloatArray, rd: FloatArray
+    ) -> None:
+        """Running estimate of the GNSS speed noise from accepted innovations: ``y² − H·P·Hᵀ``
+        weighted by ``gnss_noise_adapt`` (in place)."""
+        hph = s_vg - rd[:, MdsfObs.VG]
+        est = self.gnss_noise_var[slots]
+        b = self.config.gnss_noise_adapt
+        self.gnss_noise_var[slots] = np.where(fused, (1 - b) * est + b * (y_vg * y_vg - hph), est)
+
+    def _start(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        init: BoolArray,
+        broken: BoolArray,
+        up: _Updated,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> _Started:
+        """(Re)initialise rows (``up.x``, ``up.P`` replaced where so).
+
+        A vehicle starts at its first GNSS speed (``V1`` by eq. (1) less the lever-arm terms);
+        without GNSS, after waiting ``gnss_timeout_s`` for it, from the mean rim speed
+        (degraded). A state gone non-finite, with a negative variance or a speed variance over
+        ``max_speed_var_mps2`` has diverged and restarts at the GNSS speed or the reference
+        speed. Both flag RESET.
+        """
+        cfg = self.config
+        H = up.H
+        imu = t.imu_ok
+        v1_from_gnss = z[:, MdsfObs.VG] - (
+            H[:, MdsfObs.VG, MdsfState.OMEGA_X] * np.where(imu, z[:, MdsfObs.OMEGA_X], 0.0)
+            + H[:, MdsfObs.VG, MdsfState.OMEGA_Z] * np.where(imu, z[:, MdsfObs.OMEGA_Z], 0.0)
+        )
+        start = ~init & t.gnss_ok
         n_rim = rim_ok.sum(axis=1)
         rim_mean = np.where(
             n_rim > 0, np.where(rim_ok, rim_mps, 0.0).sum(axis=1) / np.maximum(n_rim, 1), np.nan
         )
-        start_wheels = ~init & ~gnss_ok & (n_rim > 0) & (self._wheel_start_allowed(slots) | broken)
+        from_wheels = ~init & ~t.gnss_ok & (n_rim > 0)
+        start_wheels = from_wheels & (self._wheel_start_allowed(slots) | broken)
         sel = start | start_wheels
+        flags = np.zeros(slots.shape[0], dtype=np.int32)
         if sel.any():
             v_start = np.where(start, v1_from_gnss, nan_to_num(rim_mean))
-            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_start, rim_ok)
-            x_new = np.where(sel[:, None], x0, x_new)
-            P_new = np.where(sel[:, None, None], p0, P_new)
+            self._restart_rows(slots, z, imu, v_start, rim_ok, sel, up)
             flags |= np.where(sel, int(_F.RESET), 0).astype(np.int32)
-
-        # -- divergence check -----------------------------------------------------------------
-        diag = np.diagonal(P_new, axis1=1, axis2=2)
+        diag = np.diagonal(up.P, axis1=1, axis2=2)
         diverged = init & (
-            ~np.isfinite(x_new).all(axis=1)
-            | ~np.isfinite(P_new).all(axis=(1, 2))
+            ~np.isfinite(up.x).all(axis=1)
+            | ~np.isfinite(up.P).all(axis=(1, 2))
             | (diag < 0).any(axis=1)
             | (diag[:, MdsfState.V1] > cfg.max_speed_var_mps2)
         )
         if diverged.any():
             ref_v = self.ref_x[slots, RefState.V]
-            v_re = np.where(gnss_ok, v1_from_gnss, np.where(np.isfinite(ref_v), ref_v, 0.0))
-            x0, p0 = self._initial_state(slots, z, t.imu_ok, v_re, rim_ok)
-            x_new = np.where(diverged[:, None], x0, x_new)
-            P_new = np.where(diverged[:, None, None], p0, P_new)
+            v_re = np.where(t.gnss_ok, v1_from_gnss, np.where(np.isfinite(ref_v), ref_v, 0.0))
+            self._restart_rows(slots, z, imu, v_re, rim_ok, diverged, up)
             flags |= np.where(diverged, int(_F.RESET), 0).astype(np.int32)
+        return _Started(sel, diverged, rim_mean, flags)
 
-        now_init = init | sel
-        fused = use_vg & now_init
-        last_fused = np.where(fused, stamp, self.last_fused_ns[slots])
-        degraded = now_init & ((stamp - last_fused) > round(cfg.gnss_timeout_s * 1e9))
+    def _restart_rows(
+        self,
+        slots: IntArray,
+        z: FloatArray,
+        imu_ok: BoolArray,
+        v1: FloatArray,
+        rim_ok: BoolArray,
+        rows: BoolArray,
+        up: _Updated,
+    ) -> None:
+        """Replace ``up.x``, ``up.P`` of ``rows`` by the initial state at ``v1``."""
+        x0, p0 = self._initial_state(slots, z, imu_ok, v1, rim_ok)
+        up.x = np.where(rows[:, None], x0, up.x)
+        up.P = np.where(rows[:, None, None], p0, up.P)
 
-        # -- reference-speed filter (method.md §3): tracks V0 while GNSS is good, carries the
-        # speed from accelerometer + slip-corrected wheel speed while it is lost.
+    def _reference(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        up: _Updated,
+        st: _Started,
+        rim_ok: BoolArray,
+        degraded: BoolArray,
+    ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray]]:
+        """The reference-speed filter (``method.md`` §3): tracks ``V0`` while GNSS is good,
+        carries the speed from the accelerometer and the slip-corrected wheel speed while it
+        is lost. Paper mode has no wheel states: while degraded its speed is handed to the
+        MDSF state (``up.x``, ``up.P`` in place), so GNSS resumes without a jump. Returns
+        ``(V0 (k,), (ref_x, ref_P, ref_aux))``."""
+        k = slots.shape[0]
         v0_row = self.v0_row[slots]
-        v0 = np.einsum("ki,ki->k", v0_row, x_new)
-        v0_var = kalman.row_variances(v0_row[:, None, :], P_new)[:, 0]
-        a_ref = z[:, MdsfObs.A1] - (x_new[:, MdsfState.ACCEL_BIAS] if self.product else 0.0)
+        v0 = np.einsum("ki,ki->k", v0_row, up.x)
+        v0_var = kalman.row_variances(v0_row[:, None, :], up.P)[:, 0]
+        a_ref = z[:, MdsfObs.A1] - (up.x[:, MdsfState.ACCEL_BIAS] if self.product else 0.0)
         rx, rP, raux, _ = reference_step(
             self.ref_x[slots],
             self.ref_P[slots],
             self.ref_aux[slots],
             accel_mps2=np.where(t.imu_ok, a_ref, np.nan),
-            dt_s=dt,
+            dt_s=self.dt_s,
             speed_ref_mps=np.where(degraded, np.nan, v0),
             speed_ref_var=v0_var,
-            rim_speed_mps=rim_mean,
+            rim_speed_mps=st.rim_mean,
             config=self.reference,
         )
-        restart = sel | diverged
+        restart = st.started | st.diverged
         if restart.any():
             rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
         if not self.product and degraded.any():
-            # Paper mode has no wheel states: hand the reference speed to the MDSF state, so
-            # GNSS resumes from it without a jump.
-            self._hand_over(x_new, P_new, rx, rP, v0, degraded)
-            v0 = np.einsum("ki,ki->k", v0_row, x_new)  # V1 moved, V0 with it (output)
+            self._hand_over(up.x, up.P, rx, rP, v0, degraded)
+            v0 = np.einsum("ki,ki->k", v0_row, up.x)  # V1 moved, V0 with it (output)
+        return v0, (rx, rP, raux)
 
-        # -- store --------------------------------------------------------------------------------
-        self.x[slots] = np.where(now_init[:, None], x_new, x)
-        self.P[slots] = np.where(now_init[:, None, None], P_new, P)
-        self.initialized[slots] = now_init
-        self.last_fused_ns[slots] = last_fused
-        self.ref_x[slots] = rx
-        self.ref_P[slots] = rP
-        self.ref_aux[slots] = raux
-        # one indexed add of the tick's events (columns _STEP_COUNTERS)
-        self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
-            [np.ones(k, dtype=bool), fused, gated, reacq, diverged | reacq, degraded, ~now_init],
-            axis=1,
-        )
-
-        # -- outputs -------------------------------------------------------------------------
+    def _outputs(
+        self,
+        slots: IntArray,
+        x: FloatArray,
+        P: FloatArray,
+        v0: FloatArray,
+        emit: BoolArray,
+        flags: npt.NDArray[np.int32],
+        model: TickModel,
+    ) -> StepOutput:
+        """Outputs ``H1·x`` (eq. (6)) with their std, and in product mode the rim rows of the
+        posterior: the wheel fit fused with the accelerometer-driven prediction of ``V`` and
+        the rim excess (what the slip is computed from)."""
         H1 = self.H1[slots]
-        z1 = np.einsum("koi,ki->ko", H1, x_new)
-        z1_var = kalman.row_variances(H1, P_new)
-        z1_std = np.sqrt(np.maximum(z1_var, 0.0))
-        flags |= (
-            np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
-            | np.where(degraded, int(_F.DEGRADED), 0)
-            | np.where(gated, int(_F.GATED), 0)
-            | np.where(reacq, int(_F.RESET), 0)
-        ).astype(np.int32)
+        z1 = np.einsum("koi,ki->ko", H1, x)
+        z1_std = np.sqrt(np.maximum(kalman.row_variances(H1, P), 0.0))
         rim_post = rim_std_post = rim_cov = None
         if self.product:
-            # The rim rows of the posterior: the wheel fit fused with the accelerometer-driven
-            # prediction of V and the rim excess (what the slip is computed from).
-            h_rim = H[:, _RIM]
+            h_rim = self.H[slots][:, _RIM]
             h_v = H1[:, (MdsfOut.VL, MdsfOut.VR)]
-            rim_post = np.einsum("kmi,ki->km", h_rim, x_new)
-            ph = np.einsum("kij,kmj->kmi", P_new, h_rim)
+            rim_post = np.einsum("kmi,ki->km", h_rim, x)
+            ph = np.einsum("kij,kmj->kmi", P, h_rim)
             rim_std_post = np.sqrt(np.maximum(np.einsum("kmi,kmi->km", h_rim, ph), 0.0))
             rim_cov = np.einsum("kmi,kmi->km", h_v, ph)
         return StepOutput(
-            emit=now_init,
+            emit=emit,
             vg=z1[:, MdsfOut.VG],
-            v1=x_new[:, MdsfState.V1],
+            v1=x[:, MdsfState.V1],
             v0=v0,
             vl=z1[:, MdsfOut.VL],
             vr=z1[:, MdsfOut.VR],
             vg_std=z1_std[:, MdsfOut.VG],
             vl_std=z1_std[:, MdsfOut.VL],
             vr_std=z1_std[:, MdsfOut.VR],
-            accel=x_new[:, MdsfState.A1],
-            pitch_rate=x_new[:, MdsfState.OMEGA_X],
-            yaw_rate=x_new[:, MdsfState.OMEGA_Z],
+            accel=x[:, MdsfState.A1],
+            pitch_rate=x[:, MdsfState.OMEGA_X],
+            yaw_rate=x[:, MdsfState.OMEGA_Z],
             flags=flags,
-            model=TickModel(
-                F=np.asarray(np.broadcast_to(F, (k, n, n))),
-                Q=Q,
-                u=u,
-                z=z,
-                R=R,
-                mask1=mask1,
-                mask2=mask2,
-                inflated=inflated,
-                dof=res1.dof + res.dof,
-                special=sel
-                | diverged
-                | zupt
-                | (degraded if not self.product else np.zeros(k, bool)),
-                stages=(res1, res),
-            ),
+            model=model,
             rim=rim_post,
             rim_std=rim_std_post,
             rim_ground_cov=rim_cov,
@@ -888,9 +1075,8 @@ class MdsfEngine:
         relaxation length, a fraction of a second), so the tyre model's error grows while the
         demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with ``ΔF`` the fast
         low-pass's move over the tick, and a whole change ``D`` adds ``D²`` (the rim excess
-        then opens by ``slip_demand_gain·|V|·D/g`` in std). Using ``D²`` itself per tick, as
-        before, kept the rim excess opening for the slow low-pass's memory (≈1.5 s) after the
-        demand had settled, while the wheels could have held the speed.
+        then opens by ``slip_demand_gain·|V|·D/g`` in std), so it stops opening once the demand
+        has settled, where the wheels can hold the speed again.
         """
         dt = self.dt_s
         tau = self.config.force_filter_tau_s
@@ -939,280 +1125,3 @@ class MdsfEngine:
         """A vehicle may start from wheel speeds once it waited ``gnss_timeout_s`` for GNSS."""
         waited = self.counts[slots, Counter.WAITING_TICKS] * self.dt_s
         return np.asarray(waited >= self.config.gnss_timeout_s)
-
-
-# ---------------------------------------------------------------------------------------------
-# Fleet estimator
-# ---------------------------------------------------------------------------------------------
-
-
-def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArray]]:
-    """Round ``r`` of a call's ticks: the ``r``-th tick of every vehicle that has one, as
-    ``(c, rows)`` (the first ``c`` vehicles: ``lengths`` decrease), for steps that must see a
-    vehicle's ticks in order."""
-    for r in range(int(lengths[0]) if lengths.shape[0] else 0):
-        c = int(np.count_nonzero(lengths > r))
-        yield c, offsets[:c] + r
-
-
-def _filtered_rims(
-    so: StepOutput, rim: FloatArray, rim_std: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Rim speeds (k, 2), their std and covariance with the wheel's ground speed for the slip:
-    the filtered ones where the step has them (product mode, emitted rows, measured rim
-    speed), else the measured ones with no covariance."""
-    if so.rim is None or so.rim_std is None or so.rim_ground_cov is None:
-        return rim, rim_std, np.zeros(rim.shape)
-    use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim)
-    return (
-        np.where(use, so.rim, rim),
-        np.where(use, so.rim_std, rim_std),
-        np.where(use, so.rim_ground_cov, 0.0),
-    )
-
-
-class MdsfFleet:
-    """MDSF for a fleet of wheeled vehicles; implements :class:`estimator.base.FleetEstimator`.
-
-    Parameters
-    ----------
-    config : MdsfConfig, optional
-        Filter settings (default: product mode).
-    wheel : WheelSpeedConfig, optional
-        Wheel-speed front-end settings (``teeth_per_rev`` comes from each vehicle's encoder).
-    reference : ReferenceSpeedConfig, optional
-        Settings of the speed filter used while GNSS is lost.
-    dead_reckoning : DeadReckoningConfig, optional
-        How the position is carried while GNSS gives none (:mod:`estimator.dead_reckoning`).
-
-    Examples
-    --------
-    >>> fleet = MdsfFleet()
-    >>> fleet.add_vehicle("t1", VehicleConfig())          # doctest: +SKIP
-    >>> fleet.push("t1", imu_batch); fleet.push("t1", gnss_sample)   # doctest: +SKIP
-    >>> for vid, rows in fleet.advance({"t1": now_ns}): ...          # doctest: +SKIP
-    """
-
-    name = "mdsf"
-    output_dtype = ESTIMATE_DTYPE
-
-    def __init__(
-        self,
-        config: MdsfConfig | None = None,
-        wheel: WheelSpeedConfig | None = None,
-        reference: ReferenceSpeedConfig | None = None,
-        dead_reckoning: DeadReckoningConfig | None = None,
-    ) -> None:
-        self.config = config or MdsfConfig()
-        self.wheel = wheel or WheelSpeedConfig()
-        self.engine = MdsfEngine(self.config, reference)
-        self.front = FleetFrontEnd(self.config, self.wheel)
-        self.carry = DeadReckoning(dead_reckoning or DeadReckoningConfig(), self.config.dt_s)
-        self._slot: dict[str, int] = {}
-        # per slot: wheel radii and rim travel per encoder tooth (left, right) [m], the slip's
-        # minimum ground speed [m/s] and settling limit (SlipConfig)
-        self._radius_m = np.zeros((0, 2))
-        self._tooth_arc_m = np.zeros((0, 2))
-        self._min_speed_mps = np.zeros(0)
-        self._settle_max_change = np.zeros(0)
-
-    def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
-        """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
-        self.remove_vehicle(vehicle_id)
-        slot = self.engine.add(config)
-        self._slot[vehicle_id] = slot
-        self.front.add(slot, config)
-        self.carry.add(slot, config.geometry.antenna_offset_m)
-        if slot >= self._min_speed_mps.shape[0]:
-            cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
-            grow_slot_array(self, "_radius_m", cap, (2,), 0.0)
-            grow_slot_array(self, "_tooth_arc_m", cap, (2,), 0.0)
-            grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
-            grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
-        geo = config.geometry
-        self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
-        teeth = config.encoder.teeth_per_rev
-        self._tooth_arc_m[slot] = self._radius_m[slot] * (2.0 * np.pi / teeth)
-        self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
-        self._settle_max_change[slot] = config.slip.settle_max_change
-
-    def remove_vehicle(self, vehicle_id: str) -> None:
-        """Forget ``vehicle_id`` (no error if unknown)."""
-        slot = self._slot.pop(vehicle_id, None)
-        if slot is not None:
-            self.engine.release(slot)
-            self.front.release(slot)
-
-    def vehicle_ids(self) -> list[str]:
-        return list(self._slot)
-
-    def push(self, vehicle_id: str, measurement: Pushed) -> None:
-        """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
-        self.front.push(self._slot[vehicle_id], measurement)
-
-    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
-        """Ticks of ``vehicle_id`` fall on ``stamp_ns + k·tick`` (call before its first push;
-        see :meth:`estimator.mdsf.frontend.FleetFrontEnd.align_ticks`); ``KeyError`` if unknown."""
-        self.front.align_ticks(self._slot[vehicle_id], stamp_ns)
-
-    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
-        """``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame (its first GNSS
-        fix), to which ``east_m``/``north_m``/``up_m`` of its rows refer; None before that fix."""
-        slot = self._slot.get(vehicle_id)
-        return None if slot is None else self.front.anchor(slot)
-
-    def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
-        """Give the vehicle's ENU frame this origin (e.g. the anchor its stored estimates were
-        given in before a restart) instead of its next first fix; ``KeyError`` if unknown,
-        ``ValueError`` if not a geodetic position. Later fixes do not move it."""
-        self.front.set_anchor(self._slot[vehicle_id], lat_deg, lon_deg, height_m)
-
-    def counters(self, vehicle_id: str) -> dict[str, int]:
-        """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
-        degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""
-        slot = self._slot[vehicle_id]
-        out = dict(
-            zip(_COUNTER_KEYS, self.engine.counts[slot, _COUNTER_COLUMNS].tolist(), strict=True)
-        )
-        for k, v in self.front.counts(slot).items():
-            out[k] = out.get(k, 0) + v
-        return out
-
-    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
-        """Emit every due tick (``stamp_ns <= until_ns[id]``), vehicles stepped together."""
-        ids = [vid for vid in until_ns if vid in self._slot]
-        if not ids:
-            return []
-        slots = np.fromiter(map(self._slot.__getitem__, ids), dtype=np.int64, count=len(ids))
-        until = np.fromiter(map(until_ns.__getitem__, ids), dtype=np.int64, count=len(ids))
-        due = self.front.assemble(slots, until)
-        if due is None:
-            return []
-        lengths, offsets, flat = due.lengths, due.offsets, due.inputs
-        total = flat.m
-        row_slot = np.repeat(due.slots, lengths)
-        radius = self._radius_m[row_slot]
-        min_speed = self._min_speed_mps[row_slot]
-        rim = flat.omega * radius
-        rim_std = flat.omega_std * radius
-        # Slip from the filtered rim speeds where the filter has them (product mode), so the
-        # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
-        rounds = int(lengths[0])
-        if rounds == 1:
-            # one tick per vehicle (the usual call): the step's rows are the call's rows, its
-            # outputs are used as they are
-            so = self.engine.step(due.slots, flat, rim, rim_std)
-            emit, flags = so.emit, so.flags
-            res = {name: getattr(so, name) for name in _STEP_COLS}
-            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
-        else:
-            emit = np.zeros(total, dtype=bool)
-            flags = np.zeros(total, dtype=np.int32)
-            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
-            rim_cov = np.zeros((total, 2))
-        for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
-            tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
-            emit[fi] = so.emit
-            for name in _STEP_COLS:
-                res[name][fi] = getattr(so, name)
-            flags[fi] = so.flags
-            rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
-        # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
-        ground = np.stack([res["vl"], res["vr"]], axis=1)
-        sp = slip_pct(
-            rim,
-            ground,
-            min_speed[:, None],
-            rim_std,
-            np.stack([res["vl_std"], res["vr_std"]], axis=1),
-            rim_cov,
-        )
-        # starting / stopping faster than the wheel fit follows: no slip value (SETTLING)
-        fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
-        span = np.where(
-            fitted[:, None],
-            fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
-            0.0,
-        )
-        settling = sp.valid & unsettled(
-            ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
-        )
-        valid = sp.valid & ~settling
-        enu, heading, carried = self._carry(due, res)
-        slip_out = np.where(valid, sp.slip_pct, np.nan)
-        slip_std_out = np.where(valid, sp.std_pct, np.nan)
-        flags = (
-            flags
-            | (
-                np.where(valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
-                | np.where(valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
-                | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
-                | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
-                | np.where(carried, int(_F.DEAD_RECKONED), 0)
-            ).astype(np.int32)
-            | flat.wheel_flags
-        )
-        out = empty_estimates(total)
-        out["stamp_ns"] = flat.stamp_ns
-        out["vg_mps"] = res["vg"]
-        out["v1_mps"] = res["v1"]
-        out["v0_mps"] = res["v0"]
-        out["vl_mps"] = res["vl"]
-        out["vr_mps"] = res["vr"]
-        out["rim_left_mps"] = rim[:, 0]
-        out["rim_right_mps"] = rim[:, 1]
-        out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
-        out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
-        out["slip_left_pct"] = slip_out[:, 0]
-        out["slip_right_pct"] = slip_out[:, 1]
-        out["vg_std_mps"] = res["vg_std"]
-        out["vl_std_mps"] = res["vl_std"]
-        out["vr_std_mps"] = res["vr_std"]
-        out["slip_left_std_pct"] = slip_std_out[:, 0]
-        out["slip_right_std_pct"] = slip_std_out[:, 1]
-        out["accel_mps2"] = res["accel"]
-        out["pitch_rate_radps"] = res["pitch_rate"]
-        out["yaw_rate_radps"] = res["yaw_rate"]
-        out["east_m"] = enu[:, 0]
-        out["north_m"] = enu[:, 1]
-        out["up_m"] = enu[:, 2]
-        out["heading_rad"] = heading
-        out["pitch_rad"] = flat.attitude[:, 1]
-        out["roll_rad"] = flat.attitude[:, 2]
-        out["flags"] = flags
-        # Emitted rows, split by vehicle (in the order of ``due``).
-        kept = out if emit.all() else out[emit]
-        ends = np.cumsum(np.add.reduceat(emit, offsets))
-        return [
-            (ids[i], kept[a:b])
-            for i, a, b in zip(
-                due.index.tolist(), [0, *ends[:-1].tolist()], ends.tolist(), strict=True
-            )
-            if b > a
-        ]
-
-    def _carry(
-        self, due: FleetTicks, res: dict[str, FloatArray]
-    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
-        """Positions and headings of the call's ticks with GNSS outages dead-reckoned, and which
-        ticks were (a vehicle's ticks in order: one round per tick, as the filter's steps)."""
-        flat, lengths, offsets = due.inputs, due.lengths, due.offsets
-        enu, heading = flat.enu, flat.attitude[:, 0]
-        carried = np.zeros(flat.m, dtype=bool)
-        copied = False
-        for c, fi in _rounds(lengths, offsets):
-            e, h, k = self.carry.step(
-                due.slots[:c],
-                flat.enu[fi],
-                flat.fix_age_s[fi],
-                flat.attitude[fi, 0],
-                res["v0"][fi],
-                res["yaw_rate"][fi],
-                flat.attitude[fi, 1],
-            )
-            if k.any():  # outputs copied only when some tick is carried (rare)
-                if not copied:
-                    enu, heading, copied = enu.copy(), heading.copy(), True
-                enu[fi], heading[fi], carried[fi] = e, h, k
-        return enu, heading, carried
