@@ -435,25 +435,11 @@ class MdsfEngine:
         last_fused = np.where(fused, t.stamp_ns, self.last_fused_ns[slots])
         degraded = now_init & ((t.stamp_ns - last_fused) > round(self.config.gnss_timeout_s * 1e9))
         v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
-        # -- store
-        self.x[slots] = np.where(now_init[:, None], up.x, x)
-        self.P[slots] = np.where(now_init[:, None, None], up.P, P)
-        self.initialized[slots] = now_init
-        self.last_fused_ns[slots] = last_fused
-        self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
-        # one indexed add of the tick's events (columns _STEP_COUNTERS)
+        self._store(slots, x, P, up, now_init, last_fused, ref)
         k = slots.shape[0]
+        events = [np.ones(k, dtype=bool), fused, up.gated, up.reacq, st.diverged | up.reacq]
         self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
-            [
-                np.ones(k, dtype=bool),
-                fused,
-                up.gated,
-                up.reacq,
-                st.diverged | up.reacq,
-                degraded,
-                ~now_init,
-            ],
-            axis=1,
+            [*events, degraded, ~now_init], axis=1
         )
         flags = st.flags | (
             np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
@@ -899,6 +885,24 @@ class MdsfEngine:
             self._hand_over(up.x, up.P, rx, rP, v0, degraded)
             v0 = np.einsum("ki,ki->k", v0_row, up.x)  # V1 moved, V0 with it (output)
         return v0, (rx, rP, raux)
+
+    def _store(
+        self,
+        slots: IntArray,
+        x: FloatArray,
+        P: FloatArray,
+        up: _Updated,
+        now_init: BoolArray,
+        last_fused_ns: IntArray,
+        ref: tuple[FloatArray, FloatArray, FloatArray],
+    ) -> None:
+        """Write the step's state back to the slots: the posterior where the filter runs, the
+        prior state ``x``, ``P`` where it still waits for its start."""
+        self.x[slots] = np.where(now_init[:, None], up.x, x)
+        self.P[slots] = np.where(now_init[:, None, None], up.P, P)
+        self.initialized[slots] = now_init
+        self.last_fused_ns[slots] = last_fused_ns
+        self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
 
     def _outputs(
         self,

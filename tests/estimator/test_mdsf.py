@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from estimator.config import ConfigError, VehicleConfig, VehicleGeometry
-from estimator.mdsf import (
+from estimator.mdsf.model import (
     MdsfConfig,
     MdsfFilter,
     MdsfMode,
