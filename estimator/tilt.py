@@ -32,6 +32,9 @@ import numpy.typing as npt
 from estimator._arrays import seg_cumsum
 
 __all__ = [
+    "N_INTEGRALS_UNCOUPLED",
+    "PITCH_SUM_OF",
+    "ROLL_SUM_OF",
     "AngleCov",
     "Integral",
     "PitchSum",
