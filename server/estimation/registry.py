@@ -4,7 +4,7 @@ Names map to factories of :class:`estimator.base.FleetEstimator`, one for every 
 catalog (:data:`estimator.catalog.SPECS`), imported lazily so the server starts without loading
 an estimator nobody runs::
 
-    "mdsf"             -> estimator.engine.MdsfFleet                (ESTIMATE_DTYPE rows)
+    "mdsf"             -> estimator.mdsf.MdsfFleet                  (ESTIMATE_DTYPE rows)
     "reference_speed"  -> estimator.reference_fleet.ReferenceSpeedFleet
 
 An estimator's name is its spec's name (checked when it is built): storage, REST and live
@@ -65,7 +65,7 @@ EstimatorFactory = Callable[[], FleetEstimator]
 
 
 def _mdsf() -> FleetEstimator:
-    from estimator.engine import MdsfFleet  # lazy: heavy numerics only when a vehicle runs it
+    from estimator.mdsf import MdsfFleet  # lazy: heavy numerics only when a vehicle runs it
 
     fleet: FleetEstimator = MdsfFleet()
     return fleet
