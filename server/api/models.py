@@ -388,6 +388,8 @@ class SeriesPublic(BaseModel):
     start_ns: int
     end_ns: int
     fields: list[str]
+    units: dict[str, str] = Field(description="unit of each field (spec; '' for counts, bits)")
+    flag_bits: dict[str, int] = Field(description="bit of each flag of `flags`, by name")
     max_points: int = Field(description="0 means full rate")
     decimation: Literal["minmax", "first"] = Field(
         description="minmax: per bucket the min and max of each field (rows mix estimates); "

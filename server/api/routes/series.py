@@ -28,7 +28,7 @@ from fastapi import APIRouter, Query, Response
 from fastapi.responses import StreamingResponse
 
 from estimator.geo import EnuFrame
-from estimator.spec import EstimatorSpec, PositionChannel
+from estimator.spec import EstimatorSpec, FieldSpec, PositionChannel
 from server.analytics.downsample import bucket_width_ns, downsample_minmax, thin_first
 from server.api.deps import (
     ApiLimits,
@@ -48,6 +48,9 @@ __all__ = [
     "PARQUET_MEDIA_TYPE",
     "encode_columns_json",
     "export_filename",
+    "export_names",
+    "flag_names_column",
+    "iso_times",
     "router",
 ]
 
@@ -249,22 +252,62 @@ def encode_columns_json(rows: np.ndarray) -> str:
     return "{" + ",".join(f"{json.dumps(n)}:{_json_array(rows[n])}" for n in names) + "}"
 
 
+def iso_times(stamps_ns: np.ndarray) -> np.ndarray:
+    """ISO 8601 UTC text with nanoseconds per stamp (as ``/latest``'s ``time``), vectorised."""
+    text = np.datetime_as_string(stamps_ns.astype(np.int64).view("datetime64[ns]"), unit="ns")
+    return np.char.add(text, "Z")
+
+
+def flag_names_column(spec: EstimatorSpec, flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``flags`` decoded by ``spec`` as ``(codes, names)``: ``names[codes[i]]`` is row ``i``'s
+    flags set, lowest bit first, joined by ``|`` (``"GNSS_OK|SLIP_LEFT_VALID"``; ``""`` for
+    none). Decoded once per distinct value, so a long series costs one ``np.unique``."""
+    values, codes = np.unique(flags, return_inverse=True)
+    names = np.array(["|".join(spec.flag_names(int(v))) for v in values.tolist()], dtype=object)
+    return codes.reshape(-1), names
+
+
+def export_names(fields: Sequence[str]) -> list[str]:
+    """Columns of a CSV or Parquet export of ``fields``: ``time`` after ``stamp_ns`` and
+    ``flag_names`` after ``flags``."""
+    out: list[str] = []
+    for name in fields:
+        out.append(name)
+        if name in _DERIVED:
+            out.append(_DERIVED[name])
+    return out
+
+
+_DERIVED = {"stamp_ns": "time", "flags": "flag_names"}
+
+
+def _csv_columns(rows: np.ndarray, fields: Sequence[str], spec: EstimatorSpec) -> list[list]:
+    """Per export column (:func:`export_names`) its values as Python objects, NaN as None."""
+    cols: list[list] = []
+    for name in fields:
+        col = rows[name]
+        values = col.tolist()
+        if col.dtype.kind == "f":
+            bad = ~np.isfinite(col)
+            if bad.any():
+                for i in np.flatnonzero(bad).tolist():
+                    values[i] = None
+        cols.append(values)
+        if name == "stamp_ns":
+            cols.append(iso_times(col).tolist())
+        elif name == "flags":
+            codes, names = flag_names_column(spec, col)
+            cols.append(names[codes].tolist())
+    return cols
+
+
 def _csv_lines(reader: _Reader) -> Iterator[str]:
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(reader.fields)
+    writer.writerow(export_names(reader.fields))
     yield buf.getvalue()
     for rows in reader.chunks():
-        cols = []
-        for name in reader.fields:
-            col = rows[name]
-            values = col.tolist()
-            if col.dtype.kind == "f":
-                bad = ~np.isfinite(col)
-                if bad.any():
-                    for i in np.flatnonzero(bad).tolist():
-                        values[i] = None
-            cols.append(values)
+        cols = _csv_columns(rows, reader.fields, reader.spec)
         for i in range(0, rows.shape[0], _CSV_ROWS_PER_WRITE):
             buf.seek(0)
             buf.truncate()
@@ -272,9 +315,52 @@ def _csv_lines(reader: _Reader) -> Iterator[str]:
             yield buf.getvalue()
 
 
-def _parquet_bytes(rows: np.ndarray) -> bytes:
-    names = rows.dtype.names or ()
-    table = pa.table({n: pa.array(rows[n], from_pandas=True) for n in names})
+_TIME_META = {
+    "unit": "",
+    "label": "Time (UTC)",
+    "description": "stamp_ns as a UTC timestamp (nanoseconds)",
+}
+_FLAG_NAMES_META = {
+    "unit": "",
+    "label": "Flag names",
+    "description": "names of the flags set, lowest bit first, joined by '|'",
+}
+
+
+def _meta(field: FieldSpec) -> dict[str, str]:
+    return {"unit": field.unit, "label": field.label, "description": field.description}
+
+
+def _parquet_columns(rows: np.ndarray, spec: EstimatorSpec) -> Iterator[tuple[pa.Field, pa.Array]]:
+    """Per export column its Arrow field (the spec's unit, label and description as field
+    metadata) and values; NaN becomes null, ``time`` a UTC timestamp, ``flag_names`` a
+    dictionary of the distinct flag sets."""
+    for name in rows.dtype.names or ():
+        values = pa.array(rows[name], from_pandas=True)
+        yield pa.field(name, values.type, metadata=_meta(spec.field(name))), values
+        if name == "stamp_ns":
+            t = pa.array(rows[name].view("datetime64[ns]"), type=pa.timestamp("ns", tz="UTC"))
+            yield pa.field("time", t.type, metadata=_TIME_META), t
+        elif name == "flags":
+            codes, names = flag_names_column(spec, rows[name])
+            d = pa.DictionaryArray.from_arrays(
+                pa.array(codes, type=pa.int32()), pa.array(names, type=pa.string())
+            )
+            yield pa.field("flag_names", d.type, metadata=_FLAG_NAMES_META), d
+
+
+def _parquet_bytes(rows: np.ndarray, spec: EstimatorSpec, vehicle_id: str, tr: TimeRange) -> bytes:
+    """The rows as one Parquet file; its schema metadata names the vehicle, the estimator,
+    the range and the flag bits (JSON ``{name: bit}``)."""
+    fields, arrays = zip(*_parquet_columns(rows, spec), strict=True)
+    meta = {
+        "vehicle_id": vehicle_id,
+        "estimator": spec.name,
+        "start_ns": str(tr.start_ns),
+        "end_ns": str(tr.end_ns),
+        "flag_bits": json.dumps({f.name: f.bit for f in spec.flags}),
+    }
+    table = pa.Table.from_arrays(list(arrays), schema=pa.schema(list(fields), metadata=meta))
     sink = io.BytesIO()
     pq.write_table(table, sink)
     return sink.getvalue()
@@ -390,6 +476,15 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
         "features before the vehicle's first fix. The collection's `anchor` is that origin by "
         "name (`lat_deg`, `lon_deg`, `height_m`, as in the vehicle's answer), null before it."
         "\n\n"
+        "**Exports** (`format=csv` and `parquet`): beside `stamp_ns` a `time` column, UTC "
+        "(CSV: ISO 8601 text with nanoseconds, `2024-05-01T12:00:00.000000000Z`, as `/latest`; "
+        "Parquet: a UTC timestamp in ns), and beside `flags` a `flag_names` column, the names "
+        "of the flags set by the estimator's spec, lowest bit first, joined by `|` "
+        "(`GNSS_OK|SLIP_LEFT_VALID`; empty for none). The Parquet schema metadata holds "
+        "`vehicle_id`, `estimator`, `start_ns`, `end_ns` and `flag_bits` (JSON `{name: bit}`), "
+        "and each column's field metadata its `unit`, `label` and `description` from the "
+        "spec. JSON carries `units` (per field) and `flag_bits` in its head instead of extra "
+        "columns.\n\n"
         "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
         "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
         "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
@@ -463,7 +558,7 @@ def get_series(
     rows = reader.collect(limits.series_max_rows)
     if format == "parquet":
         return Response(
-            _parquet_bytes(rows),
+            _parquet_bytes(rows, spec, vehicle.vehicle_id, tr),
             media_type=PARQUET_MEDIA_TYPE,
             headers={
                 "Content-Disposition": f'attachment; filename="'
@@ -476,6 +571,8 @@ def get_series(
         "start_ns": tr.start_ns,
         "end_ns": tr.end_ns,
         "fields": names,
+        "units": {n: spec.field(n).unit for n in names},
+        "flag_bits": {f.name: f.bit for f in spec.flags},
         "max_points": points,
         "decimation": how,
         "downsampled": reader.downsampled,

@@ -14,7 +14,7 @@ import pytest
 from estimator.geo import EnuFrame
 from estimator.types import ESTIMATE_DTYPE
 from server.api import ApiLimits, create_app
-from server.api.routes.series import encode_columns_json
+from server.api.routes.series import encode_columns_json, export_names
 from server.storage.base import Store
 
 from ._data import T0, T0_ISO, S, hand_series, ramp_series
@@ -83,7 +83,7 @@ def test_parquet_parses_back(client: ApiClient, filled: np.ndarray) -> None:
     assert r.status_code == 200
     assert r.headers["content-type"] == "application/vnd.apache.parquet"
     table = pq.read_table(io.BytesIO(r.content))
-    assert table.column_names == list(ESTIMATE_DTYPE.names or ())
+    assert table.column_names == export_names(ESTIMATE_DTYPE.names or ())
     assert table.num_rows == 10
     assert table["stamp_ns"].to_pylist() == filled["stamp_ns"].tolist()
     assert table["vg_mps"].to_pylist() == filled["vg_mps"].tolist()
@@ -165,7 +165,7 @@ def test_empty_range(client: ApiClient, filled: np.ndarray) -> None:
     body = client.get(f"{U}?{q}&fields=vg_mps").json()
     assert body["rows"] == 0
     assert body["columns"] == {"stamp_ns": [], "vg_mps": []}
-    assert client.get(f"{U}?{q}&format=csv&fields=vg_mps").text == "stamp_ns,vg_mps\n"
+    assert client.get(f"{U}?{q}&format=csv&fields=vg_mps").text == "stamp_ns,time,vg_mps\n"
     table = pq.read_table(io.BytesIO(client.get(f"{U}?{q}&format=parquet").content))
     assert table.num_rows == 0
 
