@@ -13,7 +13,9 @@ kind                            condition on one row of estimator ``e``      hol
                                 ``e``'s slip channels
 ``flag:<e>:<FLAG>``             one of ``e``'s ``degraded_flags`` is set      ``flag_hold_s``
 ``stale``                       no row of any estimator for                  ``check_stale``
-                                ``stale_after_s`` of wall time
+                                ``stale_after_s`` of wall time, once the
+                                vehicle has sent a row (a vehicle that has
+                                sent none is not stale: it has no last stamp)
 ``storage_down``                the server's database is unreachable/full    set by the runtime
 ``zenoh_down``                  the server has no Zenoh router               set by the runtime
 ==============================  ===========================================  =================
@@ -235,6 +237,7 @@ class AlertEngine:
         self._slip_hold_ns = np.zeros(n, dtype=np.int64)
         self._last_stamp = np.zeros(n, dtype=np.int64)
         self._last_arrival = np.zeros(n, dtype=np.int64)
+        self._has_row = np.zeros(n, dtype=bool)  # a row arrived since the slot was taken
         self._specs: dict[str, _SpecState] = {}
         self._stale_open: dict[str, int] = {}
         self._system_open: dict[AlertKind, int] = {}
@@ -272,6 +275,7 @@ class AlertEngine:
                 self._slip_hold_ns = np.r_[self._slip_hold_ns, np.zeros(s, np.int64)]
                 self._last_stamp = np.r_[self._last_stamp, np.zeros(s, np.int64)]
                 self._last_arrival = np.r_[self._last_arrival, np.zeros(s, np.int64)]
+                self._has_row = np.r_[self._has_row, np.zeros(s, bool)]
             self._ids.append(vehicle_id)
         self._slot[vehicle_id] = s
         self._apply_config(s, self._config_for(vehicle_id))
@@ -307,6 +311,7 @@ class AlertEngine:
             s_last, t_last = slot[last], stamp[last]
             self._last_stamp[s_last] = np.maximum(self._last_stamp[s_last], t_last)
             self._last_arrival[s_last] = now
+            self._has_row[s_last] = True
             if self._stale_open:
                 for s_ in s_last.tolist():
                     vid = self._ids[s_]
@@ -452,6 +457,7 @@ class AlertEngine:
                 )
             self._last_stamp[s] = 0
             self._last_arrival[s] = 0
+            self._has_row[s] = False
             self._ids[s] = ""
             self._free.append(s)
         self._emit(events)
@@ -486,13 +492,14 @@ class AlertEngine:
         return events[0][2] if events else None
 
     def check_stale(self, now_ns: int | None = None) -> list[Alert]:
-        """Open a ``stale`` alert for every vehicle silent for ``stale_after_s``; return them."""
+        """Open a ``stale`` alert for every vehicle silent for ``stale_after_s`` since its last
+        row; return them. A vehicle known only by its config (no row yet) is never stale."""
         now = self._clock_ns() if now_ns is None else now_ns
         events: list[tuple[str, str, Alert]] = []
         limit = round(self.stale_after_s * 1e9)
         with self._lock:
             n = len(self._ids)
-            quiet = np.flatnonzero(now - self._last_arrival[:n] > limit)
+            quiet = np.flatnonzero(self._has_row[:n] & (now - self._last_arrival[:n] > limit))
             for s in quiet.tolist():
                 vid = self._ids[s]
                 if vid not in self._slot or vid in self._stale_open:

@@ -153,6 +153,24 @@ def test_stale_opens_on_silence_and_closes_on_new_data() -> None:
     ]
 
 
+def test_a_vehicle_without_rows_is_not_stale_from_the_epoch() -> None:
+    eng, pub, clock = engine(stale_after_s=10.0)
+    eng.set_slip_config("new", SlipConfig())  # what the runtime does when a vehicle joins
+    clock.t_ns += 60 * S
+    assert eng.check_stale() == []
+    assert pub == []
+    eng.on_estimates(mdsf([("new", rows([60.0], [0.0]))]))
+    clock.t_ns += 11 * S
+    [opened] = eng.check_stale()
+    assert (opened.vehicle_id, opened.start_ns) == ("new", T0 + 60 * S)
+    assert [(v, e["event"], e["start_ns"]) for v, e in pub] == [("new", "open", T0 + 60 * S)]
+    # a slot freed by a forgotten vehicle and taken by a new one starts without rows again
+    assert eng.forget("new")
+    eng.set_slip_config("newer", SlipConfig())
+    clock.t_ns += 60 * S
+    assert eng.check_stale() == []
+
+
 def test_publish_errors_are_counted_not_raised() -> None:
     def boom(_v: str, _e: dict[str, Any]) -> None:
         raise RuntimeError("bus down")
