@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 
 import pytest
 
@@ -96,6 +97,15 @@ def test_metrics_by_vehicle_flag_reaches_the_runtime(
     assert client.get("/api/v1/metrics?by_vehicle=false").status_code == 200
     assert client.get("/api/v1/metrics?by_vehicle=maybe").status_code == 422
     assert runtime.metrics_by_vehicle == [True, False]
+
+
+def test_the_readme_names_metrics_paths_that_answer(client: ApiClient) -> None:
+    readme = (Path(__file__).parents[3] / "README.md").read_text(encoding="utf-8")
+    named = set(re.findall(r"(?<![\w/])(/[\w/]*metrics)(?:\?by_vehicle=(\w+))?", readme))
+    assert ("/api/v1/metrics", "false") in named
+    for path, by_vehicle in sorted(named):
+        query = f"?by_vehicle={by_vehicle}" if by_vehicle else ""
+        assert client.get(path + query).status_code == 200, f"README names {path}{query}"
 
 
 def test_fleet_totals_sum_the_vehicles_and_drop_their_label() -> None:
