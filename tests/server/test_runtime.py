@@ -91,6 +91,42 @@ def test_vehicle_and_server_alerts_are_published_under_their_keys(
     assert got[SERVER_ALERTS_CHUNK][0]["kind"] == AlertKind.STORAGE_DOWN.value
 
 
+def _alert_events(sub: zenoh.Subscriber, wait_s: float) -> list[dict[str, object]]:
+    """Alert events received on ``sub`` within ``wait_s``."""
+    got = []
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        sample = sub.handler.try_recv()
+        if sample is None:
+            time.sleep(0.01)
+            continue
+        got.append(json.loads(sample.payload.to_bytes()))
+    return got
+
+
+def test_a_joining_vehicle_is_not_stale_until_it_has_sent_a_row(
+    runtime: tuple[Runtime, str],
+) -> None:
+    from estimator.config import WheeledRearDriveConfig
+
+    rt, endpoint = runtime
+    engine = rt.alert_engine
+    assert engine is not None
+    with vehicle_session([endpoint]) as session:
+        sub = session.declare_subscriber("fleet/joiner/alerts", zenoh.handlers.FifoChannel(100))
+        time.sleep(0.5)  # the subscription reaches the router
+        rt.on_vehicle_config("joiner", WheeledRearDriveConfig())
+        assert engine.check_stale(time.time_ns() + 60 * S) == []
+        assert _alert_events(sub, 1.0) == []
+        rows = _slipping(1)
+        engine.on_estimates(EstimateBatch.of([("joiner", rows)], MDSF_SPEC))
+        [stale] = engine.check_stale(time.time_ns() + 60 * S)
+        events = [e for e in _alert_events(sub, 2.0) if e["kind"] == AlertKind.STALE.value]
+    last_ns = int(rows["stamp_ns"][-1])
+    assert stale.start_ns == last_ns
+    assert [(e["event"], e["start_ns"]) for e in events] == [("open", last_ns)]
+
+
 def test_estimator_failures_and_refused_configs_are_metrics_per_vehicle() -> None:
     from server.runtime import _ingest_families
 
