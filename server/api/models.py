@@ -343,6 +343,8 @@ class PositionChannelSpecPublic(BaseModel):
     up_field: str | None
     heading_field: str | None
     carried_flag: str | None = Field(description="flag of a dead-reckoned position")
+    pitch_field: str | None = Field(description="body pitch, rad (nose up positive)")
+    roll_field: str | None = Field(description="body roll, rad (right side down positive)")
 
 
 class ChartSpecPublic(BaseModel):
