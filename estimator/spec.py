@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from enum import IntFlag, StrEnum
 from typing import Any
 
@@ -206,10 +206,11 @@ class EstimatorSpec:
     ok_flag: str | None = None
     degraded_flags: tuple[str, ...] = ()
     description: str = ""
-    row_dtype: np.dtype | None = field(default=None, repr=False, compare=False)
+    row_dtype: InitVar[np.dtype | None] = None
     _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
+    _dtype: np.dtype = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, row_dtype: np.dtype | None) -> None:
         names = [f.name for f in self.fields]
         if not names or names[0] != "stamp_ns" or self.fields[0].kind != "i8":
             raise SpecError(f"{self.name}: the first field must be stamp_ns (i8)")
@@ -220,11 +221,9 @@ class EstimatorSpec:
                 raise SpecError(f"{self.name}.{f.name}: kind {f.kind!r} not in {FIELD_KINDS}")
         object.__setattr__(self, "_by_name", {f.name: f for f in self.fields})
         built = np.dtype([(f.name, f.kind) for f in self.fields])
-        if self.row_dtype is not None and self.row_dtype != built:
+        if row_dtype is not None and row_dtype != built:
             raise SpecError(f"{self.name}: row_dtype differs from the fields")
-        object.__setattr__(
-            self, "row_dtype", self.row_dtype if self.row_dtype is not None else built
-        )
+        object.__setattr__(self, "_dtype", row_dtype if row_dtype is not None else built)
         self._check_flags()
         self._check_channels()
 
@@ -283,8 +282,7 @@ class EstimatorSpec:
     @property
     def dtype(self) -> np.dtype:
         """Structured dtype of one output row (native byte order, in field order)."""
-        assert self.row_dtype is not None  # set in __post_init__
-        return self.row_dtype
+        return self._dtype
 
     @property
     def field_names(self) -> tuple[str, ...]:
@@ -339,7 +337,7 @@ class EstimatorSpec:
     def check_rows(self, rows: object) -> np.ndarray:
         """``rows`` as a 1-d array of :attr:`dtype`, or ``TypeError`` naming what is wrong."""
         if not isinstance(rows, np.ndarray) or (
-            rows.dtype is not self.row_dtype and rows.dtype != self.row_dtype
+            rows.dtype is not self._dtype and rows.dtype != self._dtype
         ):
             got = getattr(rows, "dtype", type(rows).__name__)
             raise TypeError(f"rows of {self.name!r} must have its dtype, got {got}")

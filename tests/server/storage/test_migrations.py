@@ -278,6 +278,8 @@ def test_stored_configs_move_to_the_shape_of_their_kind(
     store = backend.open(migrate=False)
     with monkeypatch.context() as m:
         m.setattr(mig, "MIGRATIONS", mig.MIGRATIONS[:9])
+        # a version-9 database has no estimator tables to check yet
+        m.setattr(type(store), "_load_tables", lambda self: {})
         assert store.migrate() == 9
     old = {
         "rear": _V9_REAR,
