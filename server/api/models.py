@@ -343,6 +343,8 @@ class PositionChannelSpecPublic(BaseModel):
     up_field: str | None
     heading_field: str | None
     carried_flag: str | None = Field(description="flag of a dead-reckoned position")
+    pitch_field: str | None = Field(default=None, description="body pitch (rad), if given")
+    roll_field: str | None = Field(default=None, description="body roll (rad), if given")
 
 
 class ChartSpecPublic(BaseModel):
