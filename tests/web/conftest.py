@@ -1,7 +1,7 @@
 """A real app with live data for the browser tests, and a headless Debian Chromium.
 
-The app is the product's ``create_app`` with the live and alerts routers and the dashboard
-mounted, over a runtime holding a real SQLite store (``tmp_path``), a :class:`LiveHub` and an
+The app is the product's ``create_app`` (every API router) with the dashboard mounted, over a
+runtime holding a real SQLite store (``tmp_path``), a :class:`LiveHub` and an
 :class:`AlertEngine`. A :class:`FeedThread` pushes synthetic estimate rows (12 vehicles, 20 Hz,
 stamped with the wall clock) into the hub, the alert engine and the store, after back-filling the
 last two minutes, as the pipeline thread would.
@@ -24,15 +24,10 @@ from typing import Any
 import numpy as np
 import pytest
 import uvicorn
-from fastapi import APIRouter
 
-from estimator.catalog import SPECS
 from estimator.config import SlipConfig, WheeledRearDriveConfig
 from server.analytics.alerts import AlertEngine
 from server.api import create_app
-from server.api.app import API_ROUTERS
-from server.api.routes import alerts as alerts_routes
-from server.api.routes import live as live_routes
 from server.live.hub import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
@@ -45,19 +40,6 @@ SCREENSHOTS = REPO / "artifacts" / "screenshots"
 CHROMIUM = os.environ.get("SLIPFLEET_CHROMIUM", "/usr/bin/chromium")
 N_VEHICLES = 12
 SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
-
-
-def _estimators_router() -> APIRouter:
-    """``GET /api/v1/estimators`` from the catalog, for an app whose API does not serve it yet
-    (the app's own route, registered first, wins where it exists)."""
-    router = APIRouter()
-
-    @router.get("/estimators")
-    def estimators() -> dict[str, Any]:
-        data = [SPECS[name].to_dict() for name in sorted(SPECS)]
-        return {"data": data, "count": len(data)}
-
-    return router
 
 
 class _StoreSink:
@@ -127,11 +109,7 @@ def serve_live_stack(data_dir: Path, *, require_auth: bool) -> Iterator[LiveStac
         api=ApiSettings.model_validate({"require_auth": require_auth}),
     )
     runtime = LiveRuntime(settings)
-    app = create_app(
-        settings,
-        runtime,
-        routers=[*API_ROUTERS, live_routes.router, alerts_routes.router, _estimators_router()],
-    )
+    app = create_app(settings, runtime)
     mount_web(app)
     port = free_port()
     server = uvicorn.Server(
