@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["as_rows", "as_stamps", "nan_to_num"]
+__all__ = ["as_rows", "as_stamps", "nan_to_num", "seg_cumsum"]
 
 _F64_MAX = float(np.finfo(np.float64).max)
 _I8 = np.dtype(np.int64)
@@ -34,3 +34,12 @@ def nan_to_num(x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """``np.nan_to_num(x)`` of a float array (NaN → 0, ±inf → ± the largest float) in three
     array calls instead of its dozen."""
     return np.where(np.isfinite(x), x, np.where(np.isnan(x), 0.0, np.copysign(_F64_MAX, x)))
+
+
+def seg_cumsum(
+    x: npt.NDArray[np.float64], start_of: npt.NDArray[np.int64]
+) -> npt.NDArray[np.float64]:
+    """Cumulative sum of ``x`` along its first axis restarting at each segment; ``start_of[i]``
+    is the index where element ``i``'s segment starts."""
+    c = np.cumsum(x, axis=0)
+    return c - (c[start_of] - x[start_of])

@@ -280,8 +280,8 @@ def update_independent(
         s = h·P·hᵀ + r_j           k = P·hᵀ / s           x⁺ = x + k·(z_j − h·x)
         P⁺ = (I − k·h)·P·(I − k·h)ᵀ + r_j·k·kᵀ = P − k·(P·hᵀ)ᵀ − (P·hᵀ)·kᵀ + s·k·kᵀ
 
-    (Joseph form). No ``m × m`` solve: about a third of :func:`update`'s cost for the MDSF
-    filter's stages (3-4 active rows of 7, 8 states, a few hundred vehicles a call).
+    (Joseph form). No ``m × m`` solve, so it is cheaper than :func:`update` when few rows are
+    active (``docs/perf/estimator.md``).
 
     Parameters
     ----------

@@ -227,7 +227,7 @@ class VehiclePublic(BaseModel):
     updated_ns: int = Field(description="last config change, ns since the epoch, UTC")
     anchor: AnchorPublic | None = Field(
         default=None,
-        description="origin of the frame of the estimates' east_m, north_m and up_m (the "
+        description="origin of the local east/north/up frame of the estimates' positions (the "
         "vehicle's first GNSS fix with a position, kept for good); null until it is stored, "
         "a second or so after that fix",
     )

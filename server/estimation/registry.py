@@ -4,7 +4,7 @@ Names map to factories of :class:`estimator.base.FleetEstimator`, one for every 
 catalog (:data:`estimator.catalog.SPECS`), imported lazily so the server starts without loading
 an estimator nobody runs::
 
-    "mdsf"             -> estimator.engine.MdsfFleet                (ESTIMATE_DTYPE rows)
+    "mdsf"             -> estimator.mdsf.MdsfFleet                  (ESTIMATE_DTYPE rows)
     "reference_speed"  -> estimator.reference_fleet.ReferenceSpeedFleet
 
 An estimator's name is its spec's name (checked when it is built): storage, REST and live
@@ -44,6 +44,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from estimator.base import STREAMS, FleetEstimator, Pushed, stream_of
+from estimator.catalog import SPECS
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.spec import EstimatorSpec
 from estimator.types import EstimateBatch
@@ -64,7 +65,7 @@ EstimatorFactory = Callable[[], FleetEstimator]
 
 
 def _mdsf() -> FleetEstimator:
-    from estimator.engine import MdsfFleet  # lazy: heavy numerics only when a vehicle runs it
+    from estimator.mdsf import MdsfFleet  # lazy: heavy numerics only when a vehicle runs it
 
     fleet: FleetEstimator = MdsfFleet()
     return fleet
@@ -107,6 +108,11 @@ def estimator_names_for(
         raise UnknownEstimatorError(f"unknown estimator(s) {unknown}; known: {sorted(known)}")
     if len(set(names)) != len(names):
         raise UnknownEstimatorError(f"estimator listed twice in {list(names)}")
+    kind = str(config.kind)
+    wrong = [n for n in names if n in SPECS and kind not in SPECS[n].kinds]
+    if wrong:
+        served = {n: list(SPECS[n].kinds) for n in wrong}
+        raise UnknownEstimatorError(f"estimator(s) {wrong} do not run on {kind} vehicles: {served}")
     return names
 
 

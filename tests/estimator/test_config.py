@@ -29,7 +29,7 @@ from estimator.config import (
     upgrade_legacy_config,
     vehicle_config_from_dict,
 )
-from estimator.engine import MdsfFleet
+from estimator.mdsf import MdsfFleet
 
 KINDS: tuple[type[VehicleConfig], ...] = (
     WheeledRearDriveConfig,

@@ -9,8 +9,7 @@ import pytest
 
 from estimator.config import ConfigError
 from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
-from estimator.engine import MdsfFleet
-from estimator.mdsf import MdsfConfig, MdsfMode
+from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
 from estimator.sim import SimRun, replay_arrivals, simulate, truth_at
 from estimator.types import EstimateFlag
 

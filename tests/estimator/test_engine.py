@@ -16,8 +16,18 @@ from scipy.stats import chi2
 
 from estimator.base import FleetEstimator
 from estimator.config import VehicleConfig, WheeledRearDriveConfig
-from estimator.engine import MdsfEngine, MdsfFleet, StepOutput, TickInputs
-from estimator.mdsf import MdsfConfig, MdsfFilter, MdsfMode, MdsfObs, MdsfState, mdsf_matrices
+from estimator.mdsf import (
+    MdsfConfig,
+    MdsfEngine,
+    MdsfFilter,
+    MdsfFleet,
+    MdsfMode,
+    MdsfObs,
+    MdsfState,
+    StepOutput,
+    TickInputs,
+    mdsf_matrices,
+)
 from estimator.sim import SimRun, replay, simulate, truth_at
 from estimator.types import (
     ESTIMATE_DTYPE,

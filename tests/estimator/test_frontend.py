@@ -1,6 +1,5 @@
-"""Fleet front end: batch invariance across vehicles, joins and call intervals; the per-fix
-pitch and yaw updates by hand; the tilt track (pitch and roll) through turns and outages; the
-"latest at or before" join; slot reuse."""
+"""Fleet front end: batch invariance across vehicles, joins and call intervals; the tilt track
+(pitch and roll) through turns and outages; the "latest at or before" join; slot reuse."""
 
 from __future__ import annotations
 
@@ -15,15 +14,9 @@ from hypothesis import strategies as st
 
 from estimator.base import Measurement
 from estimator.config import NoiseConfig, VehicleConfig, WheeledRearDriveConfig
-from estimator.engine import MdsfFleet
-from estimator.frontend import (
-    FleetFrontEnd,
-    _asof,
-    pitch_fix_update,
-    pitch_kf_update,
-)
 from estimator.geo import EnuFrame
-from estimator.mdsf import MdsfConfig, MdsfMode
+from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
+from estimator.mdsf.frontend import FleetFrontEnd, _asof
 from estimator.sim import SimRun, simulate, truth_at
 from estimator.types import ESTIMATE_DTYPE, GnssSample, ImuBatch, WheelEdges, WheelSpeeds
 from estimator.wheel_speed import WheelSpeedConfig
@@ -174,120 +167,6 @@ def test_a_reused_slot_starts_clean() -> None:
     alone, _ = _drive({"v": v}, 100_000_000)
     n = alone["v"].shape[0]
     _assert_same_rows(rows[:n], alone["v"])
-
-
-# -- per-fix updates by hand -------------------------------------------------------------------
-
-
-def _pitch(cfg: MdsfConfig, **kw: Any) -> tuple[np.ndarray, ...]:
-    a = {
-        "theta_rad": np.array([0.01]),
-        "var_rad2": np.array([4e-6]),
-        "bias_radps": np.array([0.005]),
-        "fix_ns": np.array([START]),
-        "known": np.array([True]),
-        "pitch_gnss_rad": np.array([0.03]),
-        "stamp_ns": np.array([START + S // 2]),
-    }
-    a.update({k: np.asarray(v) for k, v in kw.items()})
-    return pitch_fix_update(config=cfg, **a)
-
-
-def test_pitch_fix_update_by_hand() -> None:
-    cfg = MdsfConfig(mode=MdsfMode.PAPER)  # pitch_std_rad 0.005
-    sp2 = cfg.pitch_std_rad**2
-    # the first fix takes the measured pitch as it is
-    theta, var, bias, _, known = _pitch(cfg, known=np.array([False]))
-    assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005 and known[0]
-    # no GNSS pitch: nothing changes
-    out = _pitch(cfg, pitch_gnss_rad=np.array([np.nan]))
-    assert out[0][0] == 0.01 and out[1][0] == 4e-6 and out[2][0] == 0.005 and out[3][0] == START
-    # paper mode: always the GNSS pitch, no bias
-    theta, var, bias, fix_ns, known = _pitch(cfg)
-    assert theta[0] == 0.03 and var[0] == sp2 and bias[0] == 0.005
-    assert fix_ns[0] == START + S // 2 and known[0]
-
-
-def test_pitch_fix_update_treats_each_vehicle_on_its_own() -> None:
-    cfg = MdsfConfig(mode=MdsfMode.PAPER)
-    both = _pitch(
-        cfg,
-        theta_rad=np.array([0.01, 0.2]),
-        var_rad2=np.array([4e-6, 1e-3]),
-        bias_radps=np.array([0.005, -0.01]),
-        fix_ns=np.array([START, START - S]),
-        known=np.array([True, False]),
-        pitch_gnss_rad=np.array([0.03, np.nan]),
-        stamp_ns=np.array([START + S // 2, START]),
-    )
-    first = _pitch(cfg)
-    assert all(b[0] == f[0] for b, f in zip(both, first, strict=True))
-    assert both[0][1] == 0.2 and both[2][1] == -0.01 and not both[4][1]
-    assert both[1][1] == 1e-3 and both[3][1] == START - S
-
-
-def _kf(cfg: MdsfConfig, **kw: Any) -> tuple[np.ndarray, ...]:
-    a: dict[str, Any] = {
-        "theta_rad": np.array([0.01]),
-        "cov": np.array([[4e-6, -1e-7, 1e-6]]),
-        "bias_radps": np.array([0.002]),
-        "fix_ns": np.array([START]),
-        "known": np.array([True]),
-        "pitch_gnss_rad": np.array([0.03]),
-        "stamp_ns": np.array([START + S // 2]),
-    }
-    a.update(kw)
-    return pitch_kf_update(config=cfg, **a)
-
-
-def test_pitch_kf_update_by_hand() -> None:
-    cfg = MdsfConfig()  # pitch_std_rad 0.005, gyro_bias_walk 1e-4, gyro_bias_std 0.005
-    r2, qb, t = cfg.pitch_std_rad**2, cfg.gyro_bias_walk_radps_per_sqrt_s**2, 0.5
-    # propagate over 0.5 s with F = [[1, −T], [0, 1]], the bias walk and 1e-6 of angle noise
-    ptt = 4e-6 + 2 * t * 1e-7 + t * t * 1e-6 + 1e-6 + qb * t**3 / 3
-    ptb = -1e-7 - t * 1e-6 - qb * t * t / 2
-    pbb = 1e-6 + qb * t
-    theta, cov, bias, fix_ns, known = _kf(cfg, angle_walk_rad2=np.array([1e-6]))
-    s = ptt + r2
-    assert math.isclose(theta[0], 0.01 + ptt / s * 0.02)
-    assert math.isclose(bias[0], 0.002 + ptb / s * 0.02)  # ptb < 0: the bias falls
-    assert bias[0] < 0.002
-    assert math.isclose(cov[0, 0], ptt - ptt * ptt / s)
-    assert math.isclose(cov[0, 1], ptb - ptt * ptb / s)
-    assert math.isclose(cov[0, 2], pbb - ptb * ptb / s)
-    assert fix_ns[0] == START + S // 2 and known[0]
-    # standing since the previous fix: the mean rate 0.0025 is the bias, then the pitch
-    zb, rb = 0.0025, 1e-6
-    theta, cov, bias, *_ = _kf(
-        cfg,
-        angle_walk_rad2=np.array([1e-6]),
-        still_rate_radps=np.array([zb]),
-        still_rate_var=np.array([rb]),
-    )
-    sb = pbb + rb
-    kt, kb = ptb / sb, pbb / sb
-    th1, b1 = 0.01 + kt * (zb - 0.002), 0.002 + kb * (zb - 0.002)
-    tt1, tb1, bb1 = ptt - kt * ptb, ptb - kt * pbb, pbb - kb * pbb
-    s = tt1 + r2
-    assert math.isclose(theta[0], th1 + tt1 / s * (0.03 - th1))
-    assert math.isclose(bias[0], b1 + tb1 / s * (0.03 - th1))
-    assert math.isclose(cov[0, 2], bb1 - tb1 * tb1 / s)
-    # a standstill rate far beyond its chi-square bound is not used
-    far = _kf(cfg, still_rate_radps=np.array([0.05]), still_rate_var=np.array([rb]))
-    base = _kf(cfg)
-    assert all(np.array_equal(f, b) for f, b in zip(far, base, strict=True))
-    # no GNSS pitch: only the propagation (the time of the fix moves on)
-    theta, cov, bias, fix_ns, _ = _kf(cfg, pitch_gnss_rad=np.array([np.nan]))
-    assert theta[0] == 0.01 and bias[0] == 0.002 and fix_ns[0] == START + S // 2
-    assert math.isclose(cov[0, 0], ptt - 1e-6) and math.isclose(cov[0, 2], pbb)
-    # the first pitch is taken as it is, with the bias prior
-    theta, cov, bias, _, known = _kf(cfg, known=np.array([False]))
-    assert theta[0] == 0.03 and known[0] and bias[0] == 0.002
-    assert list(cov[0]) == [r2, 0.0, cfg.gyro_bias_std_radps**2]
-    # the measurement's own variance (velocity pitch of a one-antenna receiver)
-    theta, *_ = _kf(cfg, pitch_var_rad2=np.array([9 * r2]))
-    p0 = 4e-6 + 2 * t * 1e-7 + t * t * 1e-6 + qb * t**3 / 3
-    assert math.isclose(theta[0], 0.01 + p0 / (p0 + 9 * r2) * 0.02)
 
 
 def _still_on(alpha_rad: float, psi: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from estimator.config import ConfigError, VehicleGeometry, WheeledRearDriveConfig
-from estimator.mdsf import (
+from estimator.mdsf.model import (
     MdsfConfig,
     MdsfFilter,
     MdsfMode,

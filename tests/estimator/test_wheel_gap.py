@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from estimator.engine import MdsfFleet
+from estimator.mdsf import MdsfFleet
 from estimator.sim import SimRun, replay_arrivals, simulate, truth_at
 from estimator.types import EstimateFlag, WheelEdges, WheelGap
 

@@ -102,3 +102,14 @@ def test_estimator_failures_and_refused_configs_are_metrics_per_vehicle() -> Non
         family = families[f"slipfleet_packets_{name}"]
         assert family.type == "counter"
         assert {s.labels["vehicle"]: s.value for s in family.samples} == {"v1": v1, "v2": 0.0}
+
+
+def test_a_config_naming_an_estimator_of_another_kind_is_refused_before_it_is_stored() -> None:
+    from estimator.config import ConfigError, TrackedConfig
+    from server.runtime import Runtime
+    from server.settings import Settings
+
+    runtime = Runtime(Settings())
+    with pytest.raises(ConfigError, match="do not run on tracked vehicles"):
+        runtime.check_vehicle_config("c", TrackedConfig(estimators=("mdsf",)))
+    runtime.check_vehicle_config("c", TrackedConfig())  # its kind's defaults: none yet

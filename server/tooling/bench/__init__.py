@@ -28,6 +28,7 @@ __all__ = [
     "json_from_child",
     "percentile",
     "push_until",
+    "script_of",
     "side_by_side",
     "versions",
     "write_json",
@@ -77,6 +78,17 @@ def json_from_child(path: str, args: Sequence[str]) -> dict[str, Any]:
         )
     result: dict[str, Any] = json.loads(done.stdout)
     return result
+
+
+def script_of(path: str, name: str) -> str:
+    """The benchmark module ``name`` (``"pipeline"``) of the version whose packages are under
+    ``path``: each version measures itself with its own code, so a baseline from before the
+    tooling had its room (``server/bench/``) runs the loop written for its own modules."""
+    for room in ("server/tooling/bench", "server/bench"):
+        script = Path(path) / room / f"{name}.py"
+        if script.is_file():
+            return str(script)
+    raise FileNotFoundError(f"no benchmark {name!r} in the version at {path}")
 
 
 @contextlib.contextmanager

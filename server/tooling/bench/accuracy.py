@@ -10,7 +10,7 @@ fact, so latency and lag count as error.
 Methods
 -------
 product, paper
-    :class:`estimator.engine.MdsfFleet` in its two modes.
+    :class:`estimator.mdsf.MdsfFleet` in its two modes.
 traditional
     What the source compares against: the vehicle speed taken as each driven wheel's ground
     speed. Here the vehicle speed is the GNSS speed of eq. (1) at every valid epoch, through a
@@ -150,8 +150,7 @@ _TRAD_WINDOW_NS = 500_000_000
 
 def default_estimators() -> dict[str, EstimatorFactory]:
     """Factories of the MDSF fleet estimator in product and paper mode."""
-    from estimator.engine import MdsfFleet
-    from estimator.mdsf import MdsfConfig, MdsfMode
+    from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
 
     return {
         "product": lambda: MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT)),

@@ -62,7 +62,10 @@ def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS
 
     Returns ``{"cases": [{vehicles, calls, ticks, advance_s}], "digest": sha256 of the rows}``.
     """
-    from estimator.engine import MdsfFleet
+    try:
+        from estimator.mdsf import MdsfFleet
+    except ImportError:  # a --baseline revision from before the estimator.mdsf package
+        from estimator.engine import MdsfFleet  # type: ignore[no-redef]
 
     sources = field_work_sources(seconds, source_runs)
     digest = hashlib.sha256()

@@ -3,7 +3,7 @@
 ``slipfleet bench frontend [--sizes 50,200,1000] [--intervals 50,100,200] [--seconds 20]
 [--json PATH]`` or ``python -m server.tooling.bench.frontend``.
 
-Feeds :class:`estimator.engine.MdsfFleet` (product mode) the way the server's pipeline does:
+Feeds :class:`estimator.mdsf.MdsfFleet` (product mode) the way the server's pipeline does:
 ``N`` simulated ``field_work`` vehicles, measurements pushed in arrival order, ``advance`` called
 every ``interval`` ms of sensor time with a horizon 150 ms behind (the reorder buffer). Only
 ``SOURCE_RUNS`` distinct runs are simulated; vehicle ``k`` replays run ``k mod SOURCE_RUNS``
@@ -31,7 +31,7 @@ from typing import Any
 
 from estimator.base import Measurement
 from estimator.config import WheeledRearDriveConfig
-from estimator.engine import MdsfFleet
+from estimator.mdsf import MdsfFleet
 from server.tooling.bench import (
     SOURCE_START_NS,
     field_work_sources,

@@ -190,9 +190,9 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
 
 def _child(path: str, vehicles: int, seconds: float) -> dict[str, Any]:
     """:func:`measure` in a fresh interpreter whose packages come from ``path``."""
-    from server.tooling.bench import json_from_child  # not at the top: the child runs this file
+    from server.tooling.bench import json_from_child, script_of  # the child runs this file
 
-    args = [str(Path(__file__).resolve()), "--child"]
+    args = [script_of(path, "pipeline"), "--child"]
     args += ["--vehicles", str(vehicles), "--seconds", str(seconds)]
     return json_from_child(path, args)
 

@@ -5,7 +5,7 @@
 
 Every vehicle replays the wheel edges of one of a few simulated runs (``field_work``,
 ``hard_braking``, ``slow_creep``, ``figure_eight``; their own packets, 100 ms per wheel, in
-arrival order), the way :class:`estimator.engine.MdsfFleet` uses the front end: each packet is
+arrival order), the way :class:`estimator.mdsf.MdsfFleet` uses the front end: each packet is
 pushed into its wheel's tracker as it arrives, and every call interval (50 or 100 ms of sensor
 time) all wheels of all vehicles are asked for their speed at the due ticks (a 50 ms grid, so
 one or two ticks per call) in one :func:`~estimator.wheel_speed.query_many`.

@@ -90,9 +90,9 @@ def measure(vehicles: int, rows_per_commit: int, seconds: float) -> dict[str, An
 
 def _child(path: str, vehicles: int, rows_per_commit: int, seconds: float) -> dict[str, Any]:
     """:func:`measure` in a fresh interpreter whose packages come from ``path``."""
-    from server.tooling.bench import json_from_child  # not at the top: the child runs this file
+    from server.tooling.bench import json_from_child, script_of  # the child runs this file
 
-    args = [str(Path(__file__).resolve()), "--child", "--vehicles", str(vehicles)]
+    args = [script_of(path, "writes"), "--child", "--vehicles", str(vehicles)]
     args += ["--rows-per-commit", str(rows_per_commit), "--seconds", str(seconds)]
     return json_from_child(path, args)
 

@@ -90,8 +90,15 @@ def test_every_stream_declared_by_the_server_names_its_measurements_as_stream_of
 
 def test_config_overrides_kind_defaults() -> None:
     reg, _, _ = _registry()
-    cfg = TrackedConfig(estimators=BOTH)
+    cfg = WheeledRearDriveConfig(estimators=BOTH)
     assert reg.names_for(cfg) == BOTH
+
+
+def test_an_estimator_runs_only_on_the_kinds_its_spec_serves() -> None:
+    reg, built, _ = _registry()
+    with pytest.raises(UnknownEstimatorError, match=r"do not run on tracked vehicles.*mdsf"):
+        reg.add_vehicle("c", TrackedConfig(estimators=("mdsf",)))
+    assert not reg.has_vehicle("c") and not built
 
 
 def test_unknown_estimator_is_a_clear_error() -> None:

@@ -32,7 +32,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from estimator.engine import MdsfFleet
+from estimator.mdsf import MdsfFleet
 from estimator.sim import simulate
 from estimator.types import GnssSample
 from server.estimation import EstimatorRegistry

@@ -58,12 +58,11 @@ Two modes (:class:`MdsfMode`):
       ``(x_a, y_a, h0 + h1)`` the observation and output rows become
       ``Vg = V1 − h1·ωx + (x_a − x_i)·ωz`` and ``VL,R = V1 + h0·ωx − (x_i ± b/2)·ωz``; zero
       offsets give the source's ``H`` and ``H1``;
-    * **default tick 0.1 s** (10 Hz), faster than the source's 0.2 s: measured on every
-      simulator scenario (two seeds) against 0.05 s and 0.2 s, it gave the lowest slip error
-      overall; 0.2 s lags in figure-eight transients, 0.05 s fuses wheel-speed fits whose
-      windows overlap more (correlated errors).
+    * **default tick 0.1 s** (10 Hz), faster than the source's 0.2 s: a longer tick lags in
+      transients, a shorter one fuses wheel-speed fits whose windows overlap more (correlated
+      errors); the measurements are in ``docs/perf/estimator.md``.
 
-The batched engine (:mod:`estimator.engine`) steps many vehicles with these matrices;
+The batched engine (:mod:`estimator.mdsf.engine`) steps many vehicles with these matrices;
 :class:`MdsfFilter` is the per-vehicle reference built on ``filterpy.kalman.KalmanFilter``.
 """
 
@@ -222,11 +221,8 @@ class MdsfConfig:
     slip_jump_sigma : float
         Product mode: a rim speed more than this many sigma off its prediction opens the rim
         excess by the unexplained innovation (the slip jumped: wet patch, soil change) [-].
-        Default 3.5: with honest wheel-fit stds the innovations are close to white; at 3
-        sigma a wheel opens on noise alone about every 18 s (0.27 % of its 10 Hz rows), each
-        time loosening the speed, at 3.5 about every 100 s. Higher misses jumps that are only
-        a few sigma: entering a wet patch at 1 m/s, where a slow wheel's fit is noisier (worst
-        slip p95 over five seeds 1.99 pp at 3, 2.10 at 3.5, 2.63 at 4).
+        Lower opens on white noise alone (each time loosening the speed), higher misses jumps
+        of a few sigma (a slow wheel in a wet patch); see ``docs/perf/estimator.md``.
     rim_drift_tau_s : float
         Product mode: time constant of the running mean of each rim row's innovation; a mean
         beyond ``rim_drift_sigma`` of its white-noise spread opens that wheel's rim excess
@@ -243,12 +239,10 @@ class MdsfConfig:
         lost. The tyre model's control term already moves the rim excess by the slip change it
         expects; the opened variance lets the rows put the rest there. With GNSS that is
         cheap (the speed stays pinned); without it, an opened rim excess soaks up the
-        accelerometer-driven speed's drift instead (a 20 s outage starting in an acceleration:
-        slip 2.9 pp off after 15 s with all of it). None at all leaves the tyre model's own
-        error uncorrected, which adds up over a long outage with many changes of demand (40 s:
-        worst slip RMS 2.2 pp against 1.6 with 0.03). Default 0.03 (in std, about a sixth):
-        the tyre model carries nearly all of the slip's response to demand; the jump and
-        drift tests still open the rim excess [-].
+        accelerometer-driven speed's drift instead, while none at all leaves the tyre model's
+        own error uncorrected over a long outage. The default (0.03, about a sixth in std)
+        lets the tyre model carry nearly all of the slip's response to demand; the jump and
+        drift tests still open the rim excess (``docs/perf/estimator.md``) [-].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -284,16 +278,15 @@ class MdsfConfig:
         Speed std right after a (re)initialisation.
     attitude_tau_s : float
         Product mode: time constant of the heading track's pull to the GNSS heading
-        (:func:`estimator.frontend.yaw_fix_update`), and the correlation time taken for the
+        (:func:`estimator.tilt.yaw_fix_update`), and the correlation time taken for the
         roll's error where the yaw rate carries it into the pitch rate, and the pitch's into
         the roll rate [s]. Pitch and roll have no time constant: each is a Kalman filter with
-        its gyro's bias (:func:`estimator.frontend.pitch_kf_update`).
+        its gyro's bias (:func:`estimator.tilt.pitch_kf_update`).
     pitch_leak_corr_s : float
         Product mode: correlation time taken for the pitch filter's error where its gravity
         leak (``g·δθ``) is added to the accelerometer noise as white noise,
         ``g²·P_θθ·pitch_leak_corr_s/dt`` per tick [s]. An assumption, not derived from the
-        filter: 1 s is the time constant of the complementary pull the pitch had before its
-        Kalman filter, kept because it passed the floors with it.
+        filter (``docs/perf/estimator.md``).
     gyro_bias_tau_s : float
         Product mode: time constant with which the yaw-gyro bias is learnt against the GNSS
         heading [s].
@@ -302,7 +295,7 @@ class MdsfConfig:
         how much gravity leaks into the forward acceleration through the pitch error [rad].
     gyro_bias_std_radps : float
         Product mode: prior std of the pitch gyro's bias (MEMS turn-on bias, a few mrad/s)
-        in the pitch filter (:func:`estimator.frontend.pitch_kf_update`) [rad/s].
+        in the pitch filter (:func:`estimator.tilt.pitch_kf_update`) [rad/s].
     gyro_bias_walk_radps_per_sqrt_s : float
         Product mode: random walk of that bias (in-run drift) [rad/s/√s].
     standstill_speed_mps : float

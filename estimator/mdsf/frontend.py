@@ -1,8 +1,8 @@
 """Fleet front end of the MDSF estimator: buffered measurements of many vehicles → tick inputs.
 
 :class:`FleetFrontEnd` holds every vehicle's front-end state in arrays indexed by the
-:class:`~estimator.engine.MdsfEngine` slot and turns the buffered measurements of all vehicles
-due in one :meth:`~estimator.engine.MdsfFleet.advance` into :class:`TickInputs` with a number
+:class:`~estimator.mdsf.engine.MdsfEngine` slot and turns the buffered measurements of all vehicles
+due in one :meth:`~estimator.mdsf.MdsfFleet.advance` into :class:`TickInputs` with a number
 of numpy calls that does not grow with the fleet (ticks are ``MdsfConfig.tick_ns`` of sensor
 time on a fleet-wide grid):
 
@@ -10,16 +10,17 @@ time on a fleet-wide grid):
   due vehicles, sorted stably by vehicle. Per tick: the mean forward acceleration (gravity
   removed with the tracked pitch, product mode), ``ωx`` and ``ωz`` (gyro biases removed),
   binned with ``np.bincount`` over (vehicle row, tick) ids.
-* A tilt track (pitch and roll as ``θ + iφ``, the body rates integrated with the yaw rate
-  turning the tilt, :meth:`_Batch._pitch_track`; at each fix a Kalman update of pitch and
-  pitch-gyro bias with the GNSS pitch or, from a receiver without attitude, the GNSS
-  velocity's elevation, the same update of roll and roll-gyro bias with the GNSS roll, and
-  zero-rate updates of the biases when the vehicle stood since the previous fix,
-  :func:`pitch_kf_update`) and a yaw-gyro-bias track (heading integrated from ``ωz``, pulled
-  to the GNSS heading, :func:`yaw_fix_update`), product mode. Paper mode takes each GNSS pitch
-  as it is (:func:`pitch_fix_update`). The integrals are segmented
-  cumulative sums; the sequential updates at the fixes run for all vehicles at once, one loop
-  pass per "k-th fix of this batch" (a handful of passes).
+* A tilt track (pitch and roll as ``θ + iφ``, :mod:`estimator.tilt`, run for the batch by
+  :meth:`_Batch._pitch_track`): the body rates integrated with the yaw rate turning the tilt;
+  at each fix a Kalman update of pitch and pitch-gyro bias with the GNSS pitch or, from a
+  receiver without attitude, the GNSS velocity's elevation, the same update of roll and
+  roll-gyro bias with the GNSS roll, and zero-rate updates of the biases when the vehicle
+  stood since the previous fix (:func:`~estimator.tilt.pitch_kf_update`); and a yaw-gyro-bias
+  track (heading integrated from ``ωz``, pulled to the GNSS heading,
+  :func:`~estimator.tilt.yaw_fix_update`), product mode. Paper mode takes each GNSS pitch as
+  it is (:func:`~estimator.tilt.pitch_fix_update`). The integrals are segmented cumulative
+  sums; the sequential updates at the fixes run for all vehicles at once, one loop pass per
+  "k-th fix of this batch" (a handful of passes).
 * GNSS speed per tick: eq. (1) (``method.md`` §1) with the pitch in force, moved to the tick
   with the tick-mean acceleration and averaged (product), or the latest (paper).
 * Position (ENU of each vehicle's first fix, :func:`estimator.geo.enu_from_geodetic`, moved to
@@ -53,18 +54,32 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import as_rows, as_stamps, nan_to_num
+from estimator._arrays import as_rows, as_stamps, nan_to_num, seg_cumsum
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import WheeledRearDriveConfig
 from estimator.geo import enu_from_geodetic
-from estimator.mdsf import (
+from estimator.mdsf.model import (
     GRAVITY_MPS2,
     N_OBS_PAPER,
     MdsfConfig,
     MdsfMode,
     MdsfObs,
     gnss_vehicle_speed,
+)
+from estimator.tilt import (
+    PITCH_SUM_OF,
+    ROLL_SUM_OF,
+    AngleCov,
+    Integral,
+    PitchSum,
+    RollSum,
+    pitch_fix_update,
+    pitch_kf_update,
+    shrunk_roll,
+    tilt_at,
+    tilt_integrals,
+    yaw_fix_update,
 )
 from estimator.types import (
     EstimateFlag,
@@ -91,9 +106,6 @@ __all__ = [
     "FleetFrontEnd",
     "FleetTicks",
     "TickInputs",
-    "pitch_fix_update",
-    "pitch_kf_update",
-    "yaw_fix_update",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -101,22 +113,10 @@ IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 CArray = npt.NDArray[np.complexfloating[Any, Any]]
 
-# columns of the tilt track's integrals (_Batch._pitch_track): ∫dt, ∫ωx·dt, samples, then
-# (product mode) ∫e^{iΨ}·(ωx + iωy)·dt (real, imaginary), ∫e^{iΨ}·dt (real, imaginary),
-# ∫ωy·dt, Σσ²·dt², ∫ωz²·dt, ∫f_x·dt and ∫dt over the samples with a lateral force, ∫f_y·dt
-# (∫ωz·dt is Ψ, kept beside them)
-_C_T, _C_WX, _C_N, _C_U, _C_E, _C_WY, _C_GYRO_VAR, _C_WZ2 = 0, 1, 2, 3, 5, 7, 8, 9
-_C_FX, _C_FX_T, _C_FY = 10, 11, 12
-# what the roll track sums since its last fix (FleetFrontEnd.roll_acc): angle noise variance,
-# the differences of the columns _C_WY, _C_FX, _C_FX_T, and ∫ωz·dt
-_RACC_VAR, _RACC_WY, _RACC_FX, _RACC_FX_T, _RACC_WZ = range(5)
-_RACC_COLS = [_C_WY, _C_FX, _C_FX_T]
-
 _NS = 1e-9
 _NONE_NS = np.iinfo(np.int64).min
 _PENDING_NS = np.iinfo(np.int64).max
 """Time stamp meaning "not yet" in the slot arrays."""
-_TWO_PI = 2 * np.pi
 _F = EstimateFlag
 
 COUNT_NAMES = (
@@ -227,173 +227,6 @@ class FleetTicks:
 
 
 # ---------------------------------------------------------------------------------------------
-# Per-fix updates (arrays of vehicles: one entry per vehicle that has this fix)
-# ---------------------------------------------------------------------------------------------
-
-
-def _fix_gap_s(stamp_ns: IntArray, fix_ns: IntArray) -> FloatArray:
-    """Time since a track's previous fix, clipped to [0, 1] s (the per-fix updates' ``gap``)."""
-    return np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
-
-
-def pitch_fix_update(
-    theta_rad: FloatArray,
-    var_rad2: FloatArray,
-    bias_radps: FloatArray,
-    fix_ns: IntArray,
-    known: BoolArray,
-    pitch_gnss_rad: FloatArray,
-    stamp_ns: IntArray,
-    config: MdsfConfig,
-) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
-    """Paper-mode pitch at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
-
-    ``method.md`` §1, eq. (1): the source takes the pitch ``θ`` of eq. (1) as measured, so each
-    GNSS pitch ``p`` sets ``θ = p`` with variance ``pitch_std_rad²``, whatever the track held;
-    the pitch-gyro bias is left as it is (the source has none). A NaN pitch changes nothing.
-    Product mode runs :func:`pitch_kf_update` instead.
-
-    Returns the new ``(theta_rad, var_rad2, bias_radps, fix_ns, known)``.
-    """
-    has = np.isfinite(pitch_gnss_rad)
-    theta = np.where(has, pitch_gnss_rad, theta_rad)
-    var = np.where(has, config.pitch_std_rad**2, var_rad2)
-    return theta, var, bias_radps.copy(), np.where(has, stamp_ns, fix_ns), known | has
-
-
-def pitch_kf_update(
-    theta_rad: FloatArray,
-    cov: FloatArray,
-    bias_radps: FloatArray,
-    fix_ns: IntArray,
-    known: BoolArray,
-    pitch_gnss_rad: FloatArray,
-    stamp_ns: IntArray,
-    config: MdsfConfig,
-    pitch_var_rad2: FloatArray | None = None,
-    angle_walk_rad2: FloatArray | None = None,
-    still_rate_radps: FloatArray | None = None,
-    still_rate_var: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
-    """Pitch and pitch-gyro bias ``[θ, b_x]`` as a Kalman filter, at one fix per vehicle.
-
-    Product mode (``method.md`` §1, gravity removal): between fixes the pitch is the pitch rate
-    integrated with the bias in force, so its error grows as ``δθ' = δθ − T·δb`` plus the
-    gyro's angle noise over the interval (``angle_walk_rad2``, summed over the samples by the
-    caller); the bias is a random walk (``gyro_bias_walk_radps_per_sqrt_s``). At the fix, in
-    this order:
-
-    * a *standstill* update of the bias: when the vehicle stood through the interval (the
-      caller passes the interval's mean pitch rate ``still_rate_radps`` and its variance, NaN
-      otherwise) the body did not rotate, so the gyro read its bias; chi-square gated;
-    * the GNSS pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``).
-
-    The gains follow from the variances, so the pitch averages the receiver's pitch over as
-    long as the gyro holds it (seconds with a known bias) instead of a fixed time constant:
-    the gravity that leaks through the pitch error (``g·δθ``) then varies slowly, where the
-    speed filter's accelerometer-bias state and the RTK distance take it up. The first fix sets
-    ``θ = p`` (variance ``R``, bias variance ``gyro_bias_std_radps²``).
-
-    Parameters
-    ----------
-    theta_rad, bias_radps : ndarray, shape (k,)
-        Pitch integrated up to the fix, and the bias in force.
-    cov : ndarray, shape (k, 3)
-        Covariance ``[P_θθ, P_θb, P_bb]``.
-    fix_ns : ndarray, shape (k,), int
-        Time of the previous fix of each track.
-    known : ndarray, shape (k,), bool
-        The track has had a pitch.
-    pitch_gnss_rad : ndarray, shape (k,)
-        Measured pitch; NaN: no pitch update (the standstill update still applies).
-    stamp_ns : ndarray, shape (k,), int
-    angle_walk_rad2 : ndarray, shape (k,), optional
-        Variance the integrated rate's noise added since the previous fix.
-    still_rate_radps, still_rate_var : ndarray, shape (k,), optional
-        Standstill rate measurement of the bias and its variance (NaN: not standing).
-
-    Returns
-    -------
-    (theta_rad, cov, bias_radps, fix_ns, known)
-    """
-    k = theta_rad.shape[0]
-    r2 = np.full(k, config.pitch_std_rad**2) if pitch_var_rad2 is None else pitch_var_rad2
-    q_ang = np.zeros(k) if angle_walk_rad2 is None else angle_walk_rad2
-    gap = np.where(known, np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 0.0)
-    qb = config.gyro_bias_walk_radps_per_sqrt_s**2
-    ptt, ptb, pbb = cov[:, 0], cov[:, 1], cov[:, 2]
-    # propagate: F = [[1, −T], [0, 1]], Q of the bias walk integrated over T
-    ptt = ptt - 2 * gap * ptb + gap * gap * pbb + q_ang + qb * gap**3 / 3
-    ptb = ptb - gap * pbb - qb * gap * gap / 2
-    pbb = pbb + qb * gap
-    theta, bias = theta_rad.copy(), bias_radps.copy()
-    # standstill: the gyro reads its bias, z = b + noise (H = [0, 1])
-    if still_rate_radps is not None and still_rate_var is not None:
-        zb = still_rate_radps
-        with np.errstate(invalid="ignore"):
-            s = pbb + still_rate_var
-            yb = zb - bias
-            use = known & np.isfinite(zb) & (yb * yb <= config.gate_chi2 * s)
-        s = np.where(use, s, 1.0)
-        yb = np.where(use, yb, 0.0)
-        kt, kb = ptb / s, pbb / s
-        theta = theta + np.where(use, kt * yb, 0.0)
-        bias = bias + np.where(use, kb * yb, 0.0)
-        ptt, ptb, pbb = (
-            np.where(use, ptt - kt * ptb, ptt),
-            np.where(use, ptb - kt * pbb, ptb),
-            np.where(use, pbb - kb * pbb, pbb),
-        )
-    # the pitch: z = θ + noise (H = [1, 0])
-    has = np.isfinite(pitch_gnss_rad)
-    first = has & ~known
-    follow = has & known
-    s = np.where(follow, ptt + r2, 1.0)
-    y = np.where(follow, pitch_gnss_rad - theta, 0.0)
-    kt, kb = ptt / s, ptb / s
-    theta = np.where(first, pitch_gnss_rad, theta + np.where(follow, kt * y, 0.0))
-    bias = bias + np.where(follow, kb * y, 0.0)
-    new_tt = np.where(follow, ptt - kt * ptt, ptt)
-    new_tb = np.where(follow, ptb - kt * ptb, ptb)
-    new_bb = np.where(follow, pbb - kb * ptb, pbb)
-    out = np.stack(
-        [
-            np.where(first, r2, new_tt),
-            np.where(first, 0.0, new_tb),
-            np.where(first, config.gyro_bias_std_radps**2, new_bb),
-        ],
-        axis=1,
-    )
-    return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
-
-
-def yaw_fix_update(
-    psi_rad: FloatArray,
-    bias_radps: FloatArray,
-    fix_ns: IntArray,
-    heading_gnss_rad: FloatArray,
-    stamp_ns: IntArray,
-    config: MdsfConfig,
-) -> tuple[FloatArray, FloatArray, IntArray]:
-    """Heading track and yaw-gyro bias at one GNSS heading per vehicle (arrays ``(k,)``).
-
-    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/attitude_tau_s))·err`` toward the
-    GNSS heading (``err`` wrapped to ±π) and the bias by
-    ``b_z += gap/(attitude_tau_s·gyro_bias_tau_s)·err`` (``ψ̇ = −(ωz − b_z)/cos θ``: a heading
-    that falls behind means ``b_z`` is too small); an unknown ``ψ`` (NaN) is set to the GNSS
-    heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
-    """
-    tau = config.attitude_tau_s
-    known = np.isfinite(psi_rad)
-    gap = _fix_gap_s(stamp_ns, fix_ns)
-    d = heading_gnss_rad - psi_rad
-    err = d - _TWO_PI * np.rint(d / _TWO_PI)  # IEEE remainder, as math.remainder
-    psi = np.where(known, psi_rad + (1.0 - np.exp(-gap / tau)) * err, heading_gnss_rad)
-    bias = np.where(known, bias_radps + gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
-    return psi, bias, stamp_ns.copy()
-
-
-# ---------------------------------------------------------------------------------------------
 # Array helpers
 # ---------------------------------------------------------------------------------------------
 
@@ -435,20 +268,6 @@ def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
     if values.shape[0] == 0:
         return otherwise
     return np.where(i >= 0, values[np.maximum(i, 0)], otherwise)
-
-
-def _shrunk_roll(roll_rad: FloatArray, var_rad2: FloatArray) -> FloatArray:
-    """``φ·φ²/(φ² + var)``: a roll estimate shrunk toward 0 by its noise; NaN (unknown) → 0."""
-    p2 = np.where(np.isfinite(roll_rad), roll_rad * roll_rad, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(p2 > 0, roll_rad * p2 / (p2 + var_rad2), 0.0)
-
-
-def _seg_cumsum(x: FloatArray, start_of: IntArray) -> FloatArray:
-    """Cumulative sum of ``x`` along its first axis restarting at each segment; ``start_of[i]``
-    is the index where element ``i``'s segment starts."""
-    c = np.cumsum(x, axis=0)
-    return c - (c[start_of] - x[start_of])
 
 
 def _ranks(group: IntArray) -> IntArray:
@@ -558,14 +377,14 @@ class FleetFrontEnd:
         grow("pitch_cov_tb", (), 0.0)  # covariance of pitch and pitch-gyro bias
         grow("pitch_var_b", (), 0.0)  # variance of the pitch-gyro bias
         # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
-        grow("pitch_acc", (5,), 0.0)
+        grow("pitch_acc", (len(PitchSum),), 0.0)
         grow("pitch_still", (), False)  # the last fix was standing
         grow("roll_rad", (), 0.0)  # roll track (pitch_kf_update with the roll measured)
         grow("roll_known", (), False)  # the track has had a roll (GNSS or accelerometer)
         grow("roll_gyro_bias", (), 0.0)
         grow("roll_fix_ns", (), np.int64(0))
         grow("roll_cov", (3,), 0.0)  # covariance of roll and roll-gyro bias
-        grow("roll_acc", (5,), 0.0)  # since the last fix: _RACC_*
+        grow("roll_acc", (len(RollSum),), 0.0)  # since the last fix
         grow("yaw_rad", (), np.nan)
         grow("yaw_gyro_bias", (), 0.0)
         grow("yaw_fix_ns", (), np.int64(0))
@@ -1246,28 +1065,19 @@ class _Batch:
         """Pitch at each IMU sample: the body rates integrated, corrected at each GNSS fix.
 
         Paper mode: the pitch rate ``ωx − b_x`` integrated, each GNSS pitch taken as it is
-        (:func:`pitch_fix_update`).
+        (:func:`~estimator.tilt.pitch_fix_update`).
 
-        Product mode: pitch and roll as one tilt ``z = θ + iφ``. The Euler kinematics
-        ``θ̇ = ωx·cos φ + ωz·sin φ`` and ``φ̇ = ωy − tan θ·(ωz·cos φ − ωx·sin φ)`` (from
-        ``ωx = θ̇·cos φ − ψ̇·cos θ·sin φ``, ``ωy = φ̇ + ψ̇·sin θ``, ``ωz = θ̇·sin φ +
-        ψ̇·cos θ·cos φ``, ``ψ̇`` counter-clockwise) are, to first order in the angles,
-
-            ż = (ωx − b_x) + i·(ωy − b_y) − i·ωz·z,
-
-        solved between fixes in closed form with ``Ψ(t) = ∫ωz dt`` (segmented cumulative sums):
-        ``z(t) = e^{−iΨ(t)}·[e^{iΨ(t₀)}·z(t₀) + ∫e^{iΨ}·(ωx + iωy) dt − (b_x + i·b_y)·∫e^{iΨ} dt]``.
-        A turn on a side slope turns the tilt with the heading: the bank's roll is pitch halfway
-        through a U-turn and roll of the other sign at its end, which a roll held from the last
-        fix cannot follow (GNSS lost through a headland turn on ``field_work``: the pitch went 8°
-        off and the speed ran away). At each fix a Kalman filter of pitch and pitch-gyro bias
-        takes the GNSS pitch (:func:`pitch_kf_update`; a receiver without attitude: the
-        velocity's elevation, or standing, where that is too noisy, gravity's share of the
-        forward specific force ``sin θ = f̄_y/g`` with variance ``σ_a²/(n·g²) +
-        pitch_std_rad²``), and the same update of roll and roll-gyro bias the GNSS roll, so
-        the roll gyro's bias learnt while the receiver gives roll holds the roll through an
-        outage. The angle noise either adds between fixes is the gyro's white noise summed over
-        the samples (``Σ σ²·dt²``) and the other angle's error carried by the yaw rate
+        Product mode: pitch and roll as one tilt ``z = θ + iφ`` (:mod:`estimator.tilt`: the
+        linearised Euler kinematics solved between fixes in closed form over the samples'
+        integrals), so a turn on a side slope turns the bank's roll into pitch. At each fix a
+        Kalman filter of pitch and pitch-gyro bias takes the GNSS pitch
+        (:func:`~estimator.tilt.pitch_kf_update`; a receiver without attitude: the velocity's
+        elevation, or standing, where that is too noisy, gravity's share of the forward
+        specific force ``sin θ = f̄_y/g`` with variance ``σ_a²/(n·g²) + pitch_std_rad²``), and
+        the same update of roll and roll-gyro bias the GNSS roll, so the roll gyro's bias
+        learnt while the receiver gives roll holds the roll through an outage. The angle noise
+        either adds between fixes is the gyro's white noise summed over the samples
+        (``Σ σ²·dt²``) and the other angle's error carried by the yaw rate
         (``Σ ωz²·var·2·attitude_tau_s·dt``); a standing fix after a standing one gives both
         biases the interval's mean rate. A receiver without attitude gives no roll: the
         lateral accelerometer's stands in (:meth:`_accel_roll`), as the velocity's elevation
@@ -1277,26 +1087,17 @@ class _Batch:
         Also sets ``g_vg`` (eq. (1) with the GNSS pitch, or the tracked pitch if the receiver
         gives none), the pitch variance, bias and pitch after each fix (``g_var_after``,
         ``g_bias_after``, ``g_theta_after``), the roll after each fix shrunk by its noise
-        (``g_roll_after``, :func:`_shrunk_roll`) and the roll at each sample (``phi``, NaN
-        where unknown). Returns the pitch, shape ``(n,)``.
+        (``g_roll_after``, :func:`~estimator.tilt.shrunk_roll`) and the roll at each sample
+        (``phi``, NaN where unknown). Returns the pitch, shape ``(n,)``.
         """
         fe, cfg, g = self.fe, self.config, self.g
         s = self.slots
         n = self.T.shape[0]
-        begin, dts, product = self.begin_of, self.dts, self.product
-        # the integrals since each row's first sample, one column each (_C_*)
-        cols = [dts, self.wx * dts, np.ones(n)]
-        psi = np.zeros(n)  # Ψ = ∫ωz·dt, turned since the row's first sample (product mode)
-        rot = np.ones(n, dtype=np.complex128)  # e^{iΨ}
-        if product:
-            psi = _seg_cumsum(self.wz * dts, begin)
-            rot = np.exp(1j * psi)
-            u = rot * (self.wx + 1j * self.wy) * dts
-            cols += [u.real, u.imag, rot.real * dts, rot.imag * dts, self.wy * dts]
-            cols += [fe.gyro_var_cfg[s][self.s_row] * dts * dts, self.wz * self.wz * dts]
-            has_fx = np.isfinite(self.fx)
-            cols += [np.where(has_fx, self.fx, 0.0) * dts, has_fx * dts, self.fy * dts]
-        cum = _seg_cumsum(np.column_stack(cols), begin)
+        begin, product = self.begin_of, self.product
+        gyro_var = fe.gyro_var_cfg[s][self.s_row] if product else np.zeros(n)
+        cum, psi, rot = tilt_integrals(
+            self.dts, self.wx, self.wy, self.wz, self.fx, self.fy, gyro_var, begin, product
+        )
         # the tracks' state of the batch's vehicles (copies: s is an index array)
         th = fe.pitch_rad[s]
         var = fe.pitch_var[s]
@@ -1308,31 +1109,14 @@ class _Batch:
         fix_ns = fe.pitch_fix_ns[s]
         known = fe.pitch_known[s]
         still = fe.pitch_still[s]
-        # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
-        acc = fe.pitch_acc[s]
+        acc = fe.pitch_acc[s]  # since the last fix: PitchSum
         ph = fe.roll_rad[s]
         by = fe.roll_gyro_bias[s]
-        rcov = fe.roll_cov[s]
+        rcov = fe.roll_cov[s]  # AngleCov
         rfix_ns = fe.roll_fix_ns[s]
         rknown = fe.roll_known[s]
-        racc = fe.roll_acc[s]  # since the last fix: _RACC_*
+        racc = fe.roll_acc[s]  # since the last fix: RollSum
         last = np.full(self.n_rows, -1, dtype=np.int64)  # last sample integrated, per row
-
-        def tilt(m: IntArray | slice, a: CArray, beta: CArray, coupled: BoolArray) -> CArray:
-            """``θ + iφ`` at samples ``m`` of segments with parameters ``a``, ``beta``: uncoupled
-            ``θ = Re a + ∫ωx·dt − Re β·∫dt``, ``φ = Im a``; coupled
-            ``e^{−iΨ}·(a + ∫e^{iΨ}·(ωx + iωy)·dt − β·∫e^{iΨ}·dt)``."""
-            c = cum[m]
-            flat = None
-            if not (product and coupled.all()):
-                flat = (a.real + c[:, _C_WX] - beta.real * c[:, _C_T]) + 1j * a.imag
-            if not (product and coupled.any()):
-                assert flat is not None
-                return flat
-            cz = c[:, _C_U] + 1j * c[:, _C_U + 1]
-            ez = c[:, _C_E] + 1j * c[:, _C_E + 1]
-            z = rot[m].conj() * (a + cz - beta * ez)
-            return z if flat is None else np.where(coupled, z, flat)
 
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
@@ -1348,8 +1132,8 @@ class _Batch:
             begun = lk >= 0
             c0 = np.where(begun[:, None], cum[np.maximum(lk, 0)], 0.0)  # at the segment's start
             d = cum[k] - c0
-            acc[r, 1:4] += d[:, [_C_WX, _C_T, _C_N]]
-            a = (th[r] - c0[:, _C_WX] + bx[r] * c0[:, _C_T]) + 1j * ph[r]
+            acc[r, PitchSum.RATE : PitchSum.SAMPLES + 1] += d[:, PITCH_SUM_OF]
+            a = (th[r] - c0[:, Integral.RATE_X] + bx[r] * c0[:, Integral.TIME]) + 1j * ph[r]
             beta = bx[r] + 0j
             coupled = np.zeros(r.shape[0], dtype=bool)
             if product:
@@ -1357,17 +1141,18 @@ class _Batch:
                 beta = bx[r] + 1j * np.where(coupled, by[r], 0.0)
                 at0 = np.maximum(lk, 0)
                 turn0 = np.where(begun, rot[at0], 1.0)
-                cz0 = c0[:, _C_U] + 1j * c0[:, _C_U + 1]
-                ez0 = c0[:, _C_E] + 1j * c0[:, _C_E + 1]
+                cz0 = c0[:, Integral.TURNED_RATE_RE] + 1j * c0[:, Integral.TURNED_RATE_IM]
+                ez0 = c0[:, Integral.TURN_RE] + 1j * c0[:, Integral.TURN_IM]
                 a = np.where(coupled, turn0 * (th[r] + 1j * ph[r]) - cz0 + beta * ez0, a)
                 tau2 = 2.0 * cfg.attitude_tau_s
-                d_g, d_z2 = d[:, _C_GYRO_VAR], d[:, _C_WZ2]
-                acc[r, 0] += d_g + tau2 * np.where(coupled, rcov[r, 0], 0.0) * d_z2
-                racc[r, _RACC_VAR] += d_g + tau2 * var[r] * d_z2
-                racc[r, _RACC_WY : _RACC_FX_T + 1] += d[:, _RACC_COLS]
-                racc[r, _RACC_WZ] += psi[k] - np.where(begun, psi[at0], 0.0)
-                acc[r, 4] += d[:, _C_FY]
-            z = tilt(k, a, beta, coupled)
+                d_g, d_z2 = d[:, Integral.GYRO_VAR], d[:, Integral.YAW_RATE_SQ]
+                roll_var = np.where(coupled, rcov[r, AngleCov.ANGLE], 0.0)
+                acc[r, PitchSum.ANGLE_VAR] += d_g + tau2 * roll_var * d_z2
+                racc[r, RollSum.ANGLE_VAR] += d_g + tau2 * var[r] * d_z2
+                racc[r, RollSum.RATE : RollSum.FORCE_LAT_TIME + 1] += d[:, ROLL_SUM_OF]
+                racc[r, RollSum.YAW] += psi[k] - np.where(begun, psi[at0], 0.0)
+                acc[r, PitchSum.FORCE_FWD] += d[:, Integral.FORCE_FWD]
+            z = tilt_at(cum, rot, k, a, beta, coupled, product)
             th[r], ph[r] = z.real, z.imag
             last[r] = k
             return np.stack([a.real, a.imag, beta.real, beta.imag, coupled], axis=1)
@@ -1376,8 +1161,9 @@ class _Batch:
             p = g[fi, _G_PITCH]
             pm, pm_var = p, None
             # stood through the interval since the previous fix: the mean rates are the biases
-            stood = still[r] & g_still[fi] & (acc[r, 2] > 0) & (cfg.standstill_speed_mps > 0)
-            span = np.where(stood, acc[r, 2], 1.0)
+            t_since = acc[r, PitchSum.TIME]
+            stood = still[r] & g_still[fi] & (t_since > 0) & (cfg.standstill_speed_mps > 0)
+            span = np.where(stood, t_since, 1.0)
             need = np.flatnonzero(~np.isfinite(p)) if product else ()
             if len(need):
                 # no receiver attitude: the velocity's elevation or, standing, the forward
@@ -1387,7 +1173,10 @@ class _Batch:
                 rn = r[need]
                 pv, pv_var = self._velocity_pitch(fi[need], rn)
                 st_pitch, st_var = self._gravity_angle(
-                    rn, acc[rn, 4] / span[need], acc[rn, 3], cfg.pitch_std_rad
+                    rn,
+                    acc[rn, PitchSum.FORCE_FWD] / span[need],
+                    acc[rn, PitchSum.SAMPLES],
+                    cfg.pitch_std_rad,
                 )
                 standing = stood[need] & ~np.isfinite(pv)
                 pv = np.where(standing, st_pitch, pv)
@@ -1398,7 +1187,7 @@ class _Batch:
                 pm_var[need] = pv_var
             if product:
                 r_still = (
-                    fe.gyro_var_cfg[s[r]] / np.maximum(acc[r, 3], 1.0)
+                    fe.gyro_var_cfg[s[r]] / np.maximum(acc[r, PitchSum.SAMPLES], 1.0)
                     + cfg.standstill_rate_floor_radps**2
                 )
                 # no receiver roll: the lateral accelerometer's, chi-square gated
@@ -1408,7 +1197,7 @@ class _Batch:
                 if need.size:
                     rn = r[need]
                     pa, pa_var = self._accel_roll(fi[need], rn, th[rn], acc[rn], racc[rn])
-                    gate = cfg.gate_chi2 * (rcov[rn, 0] + pa_var)
+                    gate = cfg.gate_chi2 * (rcov[rn, AngleCov.ANGLE] + pa_var)
                     wild = rknown[rn] & ((pa - ph[rn]) ** 2 > gate)
                     roll_m, roll_var = roll_m.copy(), r2.copy()
                     roll_m[need] = np.where(wild, np.nan, pa)
@@ -1425,17 +1214,20 @@ class _Batch:
                     np.concatenate([self.g_t[fi], self.g_t[fi]]),
                     cfg,
                     np.concatenate([r2 if pm_var is None else pm_var, roll_var]),
-                    np.concatenate([acc[r, 0], racc[r, _RACC_VAR]]),
+                    np.concatenate([acc[r, PitchSum.ANGLE_VAR], racc[r, RollSum.ANGLE_VAR]]),
                     np.where(
                         np.tile(stood, 2),
-                        np.concatenate([acc[r, 1], racc[r, _RACC_WY]]) / np.tile(span, 2),
+                        np.concatenate([acc[r, PitchSum.RATE], racc[r, RollSum.RATE]])
+                        / np.tile(span, 2),
                         np.nan,
                     ),
                     np.concatenate([r_still, r_still]),
                 )
                 kr = r.shape[0]
                 th[r], ph[r] = angle[:kr], angle[kr:]
-                var[r], cov_tb[r], var_b[r] = cov2[:kr, 0], cov2[:kr, 1], cov2[:kr, 2]
+                var[r] = cov2[:kr, AngleCov.ANGLE]
+                cov_tb[r] = cov2[:kr, AngleCov.CROSS]
+                var_b[r] = cov2[:kr, AngleCov.BIAS]
                 rcov[r] = cov2[kr:]
                 bx[r], by[r] = bias2[:kr], bias2[kr:]
                 fix_ns[r], rfix_ns[r] = fix2[:kr], fix2[kr:]
@@ -1443,7 +1235,8 @@ class _Batch:
                 acc[r] = 0.0
                 racc[r] = 0.0
                 still[r] = g_still[fi]
-                self.g_roll_after[fi] = np.where(rknown[r], _shrunk_roll(ph[r], rcov[r, 0]), 0.0)
+                roll_after = shrunk_roll(ph[r], rcov[r, AngleCov.ANGLE])
+                self.g_roll_after[fi] = np.where(rknown[r], roll_after, 0.0)
             else:
                 th[r], var[r], bx[r], fix_ns[r], known[r] = pitch_fix_update(
                     th[r], var[r], bx[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg
@@ -1481,7 +1274,9 @@ class _Batch:
             self.phi = np.zeros(0)
             return np.zeros(0)
         coupled = q[:, 4] > 0.5
-        z = tilt(slice(None), q[:, 0] + 1j * q[:, 1], q[:, 2] + 1j * q[:, 3], coupled)
+        z = tilt_at(
+            cum, rot, slice(None), q[:, 0] + 1j * q[:, 1], q[:, 2] + 1j * q[:, 3], coupled, product
+        )
         self.phi = np.where(coupled, z.imag, np.nan)
         return np.asarray(z.real)
 
@@ -1534,20 +1329,20 @@ class _Batch:
         GNSS velocity along the heading ``v``. Variance ``σ_a²/(n·g²) + floor²`` (``n`` samples,
         the floor ``accel_roll_floor_rad``: body sway, side slip, the sensor's bias). NaN
         without a GNSS velocity or a lateral force. It stands in for the roll of a receiver
-        that gives none, where the roll would otherwise stay 0: the yaw rate of a turn on a side
-        slope then drives the pitch off (single antenna, 6° bank on ``field_work``: slip 5.4 pp
-        RMS; 57 pp with an outage through a headland turn).
+        that gives none, where the roll would otherwise stay 0 and the yaw rate of a turn on a
+        side slope would drive the pitch off.
         """
         g = self.g
-        t_fx = racc[:, _RACC_FX_T]
-        ok = self.g_vel_ok[fi] & (t_fx > 0) & (acc[:, 2] > 0)
+        t_fx = racc[:, RollSum.FORCE_LAT_TIME]
+        ok = self.g_vel_ok[fi] & (t_fx > 0) & (acc[:, PitchSum.TIME] > 0)
         psi = np.where(np.isfinite(self.g_heading[fi]), self.g_heading[fi], 0.0)
         v = np.where(ok, g[fi, _G_VE] * np.sin(psi) + g[fi, _G_VN] * np.cos(psi), 0.0)
-        f_x = racc[:, _RACC_FX] / np.where(ok, t_fx, 1.0)
-        w_z = racc[:, _RACC_WZ] / np.where(ok, acc[:, 2], 1.0)
+        f_x = racc[:, RollSum.FORCE_LAT] / np.where(ok, t_fx, 1.0)
+        w_z = racc[:, RollSum.YAW] / np.where(ok, acc[:, PitchSum.TIME], 1.0)
         force = -(f_x + v * w_z) / np.cos(theta)
         ok &= np.abs(force) < GRAVITY_MPS2
-        roll, var = self._gravity_angle(r, force, acc[:, 3], self.config.accel_roll_floor_rad)
+        n = acc[:, PitchSum.SAMPLES]
+        roll, var = self._gravity_angle(r, force, n, self.config.accel_roll_floor_rad)
         return np.where(ok, roll, np.nan), var
 
     def _gravity_angle(
@@ -1573,13 +1368,13 @@ class _Batch:
         """Yaw-gyro bias in force at each IMU sample, learnt against the GNSS heading.
 
         Heading is integrated from the yaw rate (``ψ̇ = −(ωz − b_z)/cos θ``) and pulled to each
-        GNSS heading (:func:`yaw_fix_update`). Returns shape ``(n,)``.
+        GNSS heading (:func:`~estimator.tilt.yaw_fix_update`). Returns shape ``(n,)``.
         """
         fe, cfg = self.fe, self.config
         s = self.slots
         cosf = np.maximum(np.cos(theta), 0.5)
-        cr = _seg_cumsum(-self.wz / cosf * self.dts, self.begin_of)
-        ct = _seg_cumsum(self.dts / cosf, self.begin_of)
+        cr = seg_cumsum(-self.wz / cosf * self.dts, self.begin_of)
+        ct = seg_cumsum(self.dts / cosf, self.begin_of)
         psi = fe.yaw_rad[s]  # copies (s is an index array)
         bias = fe.yaw_gyro_bias[s]
         fix_ns = fe.yaw_fix_ns[s]
@@ -1705,11 +1500,11 @@ class _Batch:
         u = np.stack([np.sin(psi) * np.cos(th), np.cos(psi) * np.cos(th), np.sin(th)], axis=1)
         inc = np.where(chained, np.einsum("ni,ni->n", p - p_prev, u), 0.0)
         seg_start = np.maximum.accumulate(np.where(first, np.arange(idx.size), 0))
-        d_ant = fe.chain_m[s] + _seg_cumsum(inc, seg_start)
+        d_ant = fe.chain_m[s] + seg_cumsum(inc, seg_start)
         step_yaw = np.where(chained, d_head, 0.0)
-        yaw = fe.chain_yaw_rad[s] + _seg_cumsum(step_yaw, seg_start)
+        yaw = fe.chain_yaw_rad[s] + seg_cumsum(step_yaw, seg_start)
         roll = self.g_roll_after[idx]
-        turn = fe.chain_turn_rad[s] + _seg_cumsum(step_yaw * np.cos(th) * np.sin(roll), seg_start)
+        turn = fe.chain_turn_rad[s] + seg_cumsum(step_yaw * np.cos(th) * np.sin(roll), seg_start)
         # the chain's state after this batch: its last fix per vehicle
         last = np.ones(idx.size, dtype=bool)
         last[:-1] = r[1:] != r[:-1]

@@ -1,0 +1,1131 @@
+"""Batched MDSF engine: every vehicle's filter in slot arrays, stepped in batches.
+
+:class:`MdsfEngine` holds the filter state of many vehicles (``x (cap, n)``, ``P (cap, n, n)``,
+``n`` = 4 in paper mode, 8 in product mode; per-vehicle ``F``, ``H``, ``H1``, ``Q``) and steps any
+subset of them with a few calls to the pure functions of :mod:`estimator.kalman`. A step runs
+named stages (:meth:`MdsfEngine.step`): measurement noise, predict (accelerometer-driven in
+product mode), update of the IMU rows, chi-square gates of GNSS speed and distance, update of
+GNSS speed, rim speeds and RTK distance, (re)initialisation and divergence reset, the
+reference-speed filter (``method.md`` §3). Each step also returns what it used
+(:class:`TickModel`: matrices, masks, NIS) for diagnostics and tests. A state that goes
+non-finite or whose speed variance explodes is re-initialised and its row flagged RESET.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator import kalman
+from estimator._arrays import nan_to_num
+from estimator._slots import grow_slot_array
+from estimator.config import WheeledRearDriveConfig
+from estimator.mdsf.frontend import TickInputs
+from estimator.mdsf.model import (
+    GRAVITY_MPS2,
+    N_OBS_PAPER,
+    MdsfConfig,
+    MdsfMode,
+    MdsfObs,
+    MdsfOut,
+    MdsfState,
+    mdsf_matrices,
+)
+from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
+from estimator.types import EstimateFlag
+
+__all__ = ["Counter", "MdsfEngine", "StepOutput", "TickModel"]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+_NS = 1e-9
+_SLIP_MIN_SPEED_MPS = 0.5
+"""Speed floor of the constant-slip-ratio growth of the rim excess."""
+_F = EstimateFlag
+_RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
+_RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
+"""The rim-excess states (left, right), for indexing both diagonals at once."""
+#: Observation rows of the two update stages (the rows a stage's mask can switch on).
+_STAGE1_ROWS = (int(MdsfObs.A1), int(MdsfObs.OMEGA_X), int(MdsfObs.OMEGA_Z))
+_STAGE2_ROWS_PAPER = (int(MdsfObs.VG),)
+_STAGE2_ROWS_PRODUCT = (
+    int(MdsfObs.VG),
+    int(MdsfObs.RIM_LEFT),
+    int(MdsfObs.RIM_RIGHT),
+    int(MdsfObs.DIST),
+)
+_DIST_OPEN_VAR_M2 = 1.0e4
+"""Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
+
+
+class _TyreStat(IntEnum):
+    """Exponentially weighted sums of the online tyre-gain regression (per slot)."""
+
+    W = 0  # weight
+    X = 1  # Σw·x, x = low-passed forward specific force / g (traction demand)
+    Y = 2  # Σw·y, y = measured rim excess over the filtered wheel speed, per speed (slip ratio)
+    XX = 3
+    XY = 4
+
+
+class Counter(IntEnum):
+    """Per-vehicle event counters (see :meth:`MdsfFleet.counters`)."""
+
+    TICKS = 0
+    GNSS_FUSED = 1
+    GNSS_GATED = 2
+    GNSS_REACQUIRED = 3
+    RESETS = 4
+    DEGRADED_TICKS = 5
+    SKIPPED_GNSS = 6
+    SKIPPED_IMU = 7
+    SKIPPED_EDGES = 8
+    SKIPPED_WHEEL_SPEEDS = 9
+    SKIPPED_LATE = 10
+    WAITING_TICKS = 11
+
+
+_STEP_COUNTERS = np.array(
+    [
+        Counter.TICKS,
+        Counter.GNSS_FUSED,
+        Counter.GNSS_GATED,
+        Counter.GNSS_REACQUIRED,
+        Counter.RESETS,
+        Counter.DEGRADED_TICKS,
+        Counter.WAITING_TICKS,
+    ]
+)
+"""Counters :meth:`MdsfEngine.step` adds to every tick (ticks, then its events)."""
+
+
+@dataclass(slots=True)
+class StepOutput:
+    """Filter outputs of one batched step, shapes ``(k,)``; ``emit`` false before initialisation."""
+
+    emit: BoolArray
+    vg: FloatArray
+    v1: FloatArray
+    v0: FloatArray
+    vl: FloatArray
+    vr: FloatArray
+    vg_std: FloatArray
+    vl_std: FloatArray
+    vr_std: FloatArray
+    accel: FloatArray
+    pitch_rate: FloatArray
+    yaw_rate: FloatArray
+    flags: npt.NDArray[np.int32]
+    model: TickModel
+    rim: FloatArray | None = None
+    """Product mode: filtered rim speeds ``r·W = V_wheel + e`` (left, right), shape (k, 2)."""
+    rim_std: FloatArray | None = None
+    """Their 1-sigma, shape (k, 2)."""
+    rim_ground_cov: FloatArray | None = None
+    """Covariance of each filtered rim speed with its wheel's ground speed, shape (k, 2)."""
+
+
+@dataclass(slots=True)
+class TickModel:
+    """What one batched step used, for diagnostics and the reference-filter tests.
+
+    Attributes
+    ----------
+    F, Q : ndarray, shape (k, n, n)
+        Transition and process noise of the predict.
+    u : ndarray, shape (k, n) or None
+        Control term of the predict (product mode).
+    z : ndarray, shape (k, m)
+        Observation (masked rows hold zeros).
+    R : ndarray, shape (k, m, m)
+        Measurement noise.
+    mask1, mask2 : ndarray, shape (k, m), bool
+        Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
+    inflated : ndarray, shape (k,), bool
+        The covariance was changed between the stages (GNSS re-acquired or a slip jump).
+    nis : ndarray, shape (k,)
+        Normalised innovation squared of both stages (their sum is the joint update's), with
+        its degrees of freedom ``dof``; computed when read, from the two ``stages``.
+    dof : ndarray, shape (k,), int
+    special : ndarray, shape (k,), bool
+        The row was (re)initialised, reset after divergence or handed over: not a plain
+        Kalman step.
+    stages : tuple of kalman.IndependentUpdateResult
+        The two update stages.
+    """
+
+    F: FloatArray
+    Q: FloatArray
+    u: FloatArray | None
+    z: FloatArray
+    R: FloatArray
+    mask1: BoolArray
+    mask2: BoolArray
+    inflated: BoolArray
+    dof: IntArray
+    special: BoolArray
+    stages: tuple[kalman.IndependentUpdateResult, kalman.IndependentUpdateResult]
+
+    @property
+    def nis(self) -> FloatArray:
+        first, second = self.stages
+        return first.nis + second.nis
+
+
+@dataclass(slots=True)
+class _Updated:
+    """What the update stages of a step leave: posterior ``x`` (k, n), ``P`` (k, n, n), the
+    rows' ``H`` (k, m, n), stage-1 innovations ``y`` and their variances ``s`` (k, m), and
+    which rows were used, gated or opened."""
+
+    x: FloatArray
+    P: FloatArray
+    H: FloatArray
+    y: FloatArray
+    s: FloatArray
+    use_vg: BoolArray
+    gated: BoolArray
+    reacq: BoolArray
+    inflated: BoolArray
+    zupt: BoolArray
+    mask1: BoolArray
+    mask2: BoolArray
+    stages: tuple[kalman.IndependentUpdateResult, kalman.IndependentUpdateResult]
+
+
+@dataclass(slots=True)
+class _Started:
+    """Rows (re)initialised at a step (first speed, or after divergence), shapes (k,), the
+    mean measured rim speed (NaN: none) and the RESET flags they set."""
+
+    started: BoolArray
+    diverged: BoolArray
+    rim_mean: FloatArray
+    flags: npt.NDArray[np.int32]
+
+
+def _diagonal(d: FloatArray) -> FloatArray:
+    """Stack of diagonal matrices (k, m, m) with diagonals ``d`` (k, m)."""
+    k, m = d.shape
+    out = np.zeros((k, m, m))
+    out.reshape(k, m * m)[:, :: m + 1] = d
+    return out
+
+
+class MdsfEngine:
+    """Slot arrays of many vehicles' MDSF filters, stepped in batches.
+
+    State ``x (cap, n)``, covariance ``P (cap, n, n)`` and per-vehicle ``F``, ``H``, ``H1``,
+    ``Q`` (``n`` = 4 in paper mode, 8 in product mode; see :class:`~estimator.mdsf.MdsfState`).
+
+    Parameters
+    ----------
+    config : MdsfConfig
+    reference : ReferenceSpeedConfig
+        Settings of the reference-speed filter that carries the speed while GNSS is lost.
+    capacity : int
+        Initial number of slots (grows as needed).
+    """
+
+    def __init__(
+        self, config: MdsfConfig, reference: ReferenceSpeedConfig | None = None, capacity: int = 16
+    ) -> None:
+        self.config = config
+        self.reference = reference or ReferenceSpeedConfig()
+        self.product = config.mode is MdsfMode.PRODUCT
+        self.dt_s = config.dt_s
+        self.n = config.n_state
+        self.m = config.n_obs
+        self._free: list[int] = []
+        self._cap = 0
+        self._alloc(max(capacity, 1))
+        # Product mode: the entries of Q the tick's accelerometer variance enters, as (row,
+        # column, factor) for one indexed add a step: V1 and a1 through dt, the distance
+        # through dt²/2 (method.md §1).
+        dt, half = self.dt_s, 0.5 * self.dt_s * self.dt_s
+        D, V1, A1 = MdsfState.DIST, MdsfState.V1, MdsfState.A1
+        q_accel = (
+            (V1, V1, dt * dt),
+            (A1, A1, 1.0),
+            (V1, A1, dt),
+            (A1, V1, dt),
+            (D, D, half * half),
+            (D, V1, half * dt),
+            (V1, D, half * dt),
+            (D, A1, half),
+            (A1, D, half),
+        )
+        self._q_accel_rows = np.array([int(r) for r, _, _ in q_accel])
+        self._q_accel_cols = np.array([int(c) for _, c, _ in q_accel])
+        self._q_accel = np.array([f for _, _, f in q_accel])
+
+    # -- slots -------------------------------------------------------------------------------
+    def _alloc(self, cap: int) -> None:
+        old = self._cap
+
+        def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
+            grow_slot_array(self, name, cap, shape, fill)
+
+        n, m = self.n, self.m
+        grow("x", (n,), 0.0)
+        grow("P", (n, n), 0.0)
+        grow("F", (n, n), 0.0)
+        grow("H", (m, n), 0.0)
+        grow("H1", (len(MdsfOut), n), 0.0)
+        grow("v0_row", (n,), 0.0)
+        grow("Q_base", (n, n), 0.0)
+        grow("initialized", (), False)
+        grow("last_fused_ns", (), np.int64(-(2**62)))
+        grow("gated_since_ns", (), np.int64(-1))
+        grow("gnss_noise_var", (), 0.0)
+        grow("force_fast", (), np.nan)
+        grow("force_slow", (), np.nan)
+        grow("force_model", (), np.nan)
+        grow("tyre_stats", (len(_TyreStat),), 0.0)
+        grow("rim_innov", (2, 2), 0.0)
+        grow("dist_gated", (), False)
+        grow("ref_x", (len(RefState),), 0.0)
+        grow("ref_P", (len(RefState), len(RefState)), 0.0)
+        grow("ref_aux", (len(RefAux),), 0.0)
+        grow("counts", (len(Counter),), np.int64(0))
+        self._free.extend(range(cap - 1, old - 1, -1))
+        self._cap = cap
+
+    x: FloatArray
+    P: FloatArray
+    F: FloatArray
+    H: FloatArray
+    H1: FloatArray
+    v0_row: FloatArray
+    Q_base: FloatArray
+    initialized: BoolArray
+    last_fused_ns: IntArray
+    gated_since_ns: IntArray
+    gnss_noise_var: FloatArray
+    force_fast: FloatArray
+    force_slow: FloatArray
+    force_model: FloatArray
+    tyre_stats: FloatArray
+    rim_innov: FloatArray
+    dist_gated: BoolArray
+    ref_x: FloatArray
+    ref_P: FloatArray  # noqa: N815 (covariance, as P)
+    ref_aux: FloatArray
+    counts: IntArray
+
+    def add(self, vehicle: WheeledRearDriveConfig) -> int:
+        """Allocate and initialise a slot for a vehicle; returns the slot index."""
+        if not self._free:
+            self._alloc(2 * self._cap)
+        s = self._free.pop()
+        mats = mdsf_matrices(self.config, vehicle)
+        self.F[s] = mats.F
+        self.H[s] = mats.H
+        self.H1[s] = mats.H1
+        self.v0_row[s] = mats.v0_row
+        self.Q_base[s] = mats.Q_base
+        self.initialized[s] = False
+        self.last_fused_ns[s] = -(2**62)
+        self.gated_since_ns[s] = -1
+        self.gnss_noise_var[s] = 0.0
+        self.force_fast[s] = np.nan
+        self.force_slow[s] = np.nan
+        self.force_model[s] = np.nan
+        self.tyre_stats[s] = 0.0
+        self.rim_innov[s] = 0.0
+        self.dist_gated[s] = False
+        self.x[s] = 0.0
+        self.P[s] = np.eye(self.n)
+        self.ref_x[s] = 0.0
+        self.ref_P[s] = np.eye(len(RefState))
+        self.ref_aux[s] = (0.0, 1.0, 0.0)
+        self.counts[s] = 0
+        return s
+
+    def release(self, slot: int) -> None:
+        """Return a slot to the free list."""
+        self.initialized[slot] = False
+        self._free.append(slot)
+
+    # -- stepping ----------------------------------------------------------------------------
+    def _initial_state(
+        self,
+        slots: IntArray,
+        z: FloatArray,
+        imu_ok: BoolArray,
+        v1: FloatArray,
+        rim_ok: BoolArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """State (k, n) and covariance (k, n, n) right after a (re)initialisation at ``v1``."""
+        cfg = self.config
+        k = slots.shape[0]
+        x = np.zeros((k, self.n))
+        x[:, MdsfState.V1] = v1
+        x[:, MdsfState.A1] = np.where(imu_ok, z[:, MdsfObs.A1], 0.0)
+        x[:, MdsfState.OMEGA_X] = np.where(imu_ok, z[:, MdsfObs.OMEGA_X], 0.0)
+        x[:, MdsfState.OMEGA_Z] = np.where(imu_ok, z[:, MdsfObs.OMEGA_Z], 0.0)
+        p = np.zeros((k, self.n, self.n))
+        idx = np.arange(self.n)
+        diag = np.zeros((k, self.n))
+        diag[:, MdsfState.V1] = cfg.initial_speed_std_mps**2
+        diag[:, MdsfState.A1] = 1.0
+        diag[:, MdsfState.OMEGA_X] = 0.01
+        diag[:, MdsfState.OMEGA_Z] = 0.01
+        if self.product:
+            diag[:, MdsfState.ACCEL_BIAS] = cfg.accel_bias_std_mps2**2
+            h = self.H[slots]
+            for obs, st in (
+                (MdsfObs.RIM_LEFT, MdsfState.RIM_EXCESS_LEFT),
+                (MdsfObs.RIM_RIGHT, MdsfState.RIM_EXCESS_RIGHT),
+            ):
+                ok = rim_ok[:, obs - MdsfObs.RIM_LEFT]
+                v_wheel = np.einsum("ki,ki->k", h[:, obs, : MdsfState.ACCEL_BIAS], x[:, :4])
+                x[:, st] = np.where(ok, z[:, obs] - v_wheel, 0.0)
+                diag[:, st] = cfg.initial_speed_std_mps**2 + 0.01
+            x[:, MdsfState.DIST] = z[:, MdsfObs.DIST]  # origin arbitrary: opened wide
+            diag[:, MdsfState.DIST] = _DIST_OPEN_VAR_M2
+        p[:, idx, idx] = diag
+        return x, p
+
+    def step(
+        self, slots: IntArray, t: TickInputs, rim_mps: FloatArray, rim_std_mps: FloatArray
+    ) -> StepOutput:
+        """Advance the vehicles in ``slots`` by one tick each (batched).
+
+        Stages, in order: observation and its noise, predict, update (IMU rows, then the
+        gated GNSS speed, rim speeds and distance, then a zero-velocity update), the online
+        fits (GNSS noise, tyre gain), start and divergence reset, the reference-speed filter,
+        store, outputs. Equal to one joint Kalman update: the rows' noises are independent.
+
+        Parameters
+        ----------
+        slots : ndarray, shape (k,), int
+            Distinct slot indices.
+        t : TickInputs
+            One row per slot (``m == k``).
+        rim_mps, rim_std_mps : ndarray, shape (k, 2)
+            Rim speeds ``r·W`` (left, right) and their std; NaN when unknown.
+
+        Returns
+        -------
+        StepOutput
+        """
+        rim_ok = np.isfinite(rim_mps) & np.isfinite(rim_std_mps)
+        z = self._observation(t, rim_mps, rim_ok)
+        rd = self._noise(slots, t, rim_mps, rim_std_mps, rim_ok)
+        x, P, init, broken = self._working_state(slots)
+        F, Q, u = self._process(slots, t, z, x, init, rd[:, MdsfObs.A1])
+        x_pr, P_pr = kalman.predict(x, P, F, Q, u)
+        up = self._update(slots, t, z, rd, x_pr, P_pr, init, rim_mps, rim_ok)
+        if self.product and self.config.gnss_noise_adapt > 0:
+            fused = up.use_vg & init
+            self._adapt_gnss_noise(slots, fused, up.y[:, MdsfObs.VG], up.s[:, MdsfObs.VG], rd)
+        if self.product and self.config.slip_per_demand > 0 and self.config.tyre_gain_tau_s > 0:
+            self._learn_tyre_gain(slots, t, up.x, rim_mps, rim_ok, up.use_vg & init)
+        st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
+        now_init = init | st.started
+        fused = up.use_vg & now_init
+        last_fused = np.where(fused, t.stamp_ns, self.last_fused_ns[slots])
+        degraded = now_init & ((t.stamp_ns - last_fused) > round(self.config.gnss_timeout_s * 1e9))
+        v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
+        self._store(slots, x, P, up, now_init, last_fused, ref)
+        k = slots.shape[0]
+        events = [np.ones(k, dtype=bool), fused, up.gated, up.reacq, st.diverged | up.reacq]
+        self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
+            [*events, degraded, ~now_init], axis=1
+        )
+        flags = st.flags | (
+            np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
+            | np.where(degraded, int(_F.DEGRADED), 0)
+            | np.where(up.gated, int(_F.GATED), 0)
+            | np.where(up.reacq, int(_F.RESET), 0)
+        ).astype(np.int32)
+        special = st.started | st.diverged | up.zupt
+        if not self.product:
+            special = special | degraded
+        model = TickModel(
+            F=np.asarray(np.broadcast_to(F, (k, self.n, self.n))),
+            Q=Q,
+            u=u,
+            z=z,
+            R=_diagonal(rd),
+            mask1=up.mask1,
+            mask2=up.mask2,
+            inflated=up.inflated,
+            dof=up.stages[0].dof + up.stages[1].dof,
+            special=special,
+            stages=up.stages,
+        )
+        return self._outputs(slots, up.x, up.P, v0, now_init, flags, model)
+
+    # -- stages of a step --------------------------------------------------------------------
+    def _observation(self, t: TickInputs, rim_mps: FloatArray, rim_ok: BoolArray) -> FloatArray:
+        """Observation ``z`` (k, m) of :class:`MdsfObs`; rows without a value hold 0."""
+        k = t.stamp_ns.shape[0]
+        z = np.zeros((k, self.m))
+        z[:, :N_OBS_PAPER] = np.where(np.isfinite(t.z), t.z, 0.0)
+        if self.product:
+            z[:, _RIM] = np.where(rim_ok, rim_mps, 0.0)
+            z[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_m, 0.0)
+        return z
+
+    def _noise(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        rim_mps: FloatArray,
+        rim_std_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> FloatArray:
+        """Measurement noise variances, the diagonal of ``R`` (k, m); unused rows hold 1.
+
+        The GNSS speed's is the receiver's (or configured) variance, raised by the running
+        estimate from its innovations (:meth:`_adapt_gnss_noise`). A rim speed's is the wheel
+        fit's std scaled by ``wheel_noise_scale``, plus soil texture ``rim_texture_rel·r·W``.
+        """
+        cfg = self.config
+        k = slots.shape[0]
+        gyro_var = np.where(t.imu_ok, t.gyro_var, 1.0)
+        rd = np.zeros((k, self.m))
+        rd[:, MdsfObs.VG] = np.maximum(t.gnss_var, self.gnss_noise_var[slots])
+        rd[:, MdsfObs.A1] = np.where(t.imu_ok, t.accel_var, 1.0)
+        rd[:, MdsfObs.OMEGA_X] = gyro_var
+        rd[:, MdsfObs.OMEGA_Z] = gyro_var
+        if self.product:
+            rd[:, _RIM] = np.where(
+                rim_ok,
+                (cfg.wheel_noise_scale * rim_std_mps) ** 2
+                + (cfg.rim_texture_rel * np.where(rim_ok, rim_mps, 0.0)) ** 2
+                + 1e-6,
+                1.0,
+            )
+            rd[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_var, 1.0)
+        return rd
+
+    def _working_state(
+        self, slots: IntArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray]:
+        """Copies of ``x``, ``P`` and ``initialized`` for ``slots`` (rows gathered by an index
+        array are copies), with a state that is already non-finite started afresh (it cannot
+        be predicted; counted as a reset). Returns ``(x, P, init, broken)``."""
+        x = self.x[slots]
+        P = self.P[slots]
+        init = self.initialized[slots]
+        broken = init & ~(np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
+        if broken.any():
+            x = np.where(broken[:, None], 0.0, x)
+            P = np.where(broken[:, None, None], np.eye(self.n), P)
+            init &= ~broken
+            self.counts[slots, Counter.RESETS] += broken
+        return x, P, init, broken
+
+    def _process(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        x: FloatArray,
+        init: BoolArray,
+        accel_var: FloatArray,
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Transition ``F`` (k, n, n), process noise ``Q`` (k, n, n) and control ``u`` (k, n)
+        of the predict; paper mode: eq. (6), no control."""
+        F = self.F[slots]
+        Q = self.Q_base[slots]
+        if not self.product:
+            return F, Q, None
+        u, a_in = self._accel_control(slots, t, z, x, accel_var, Q)
+        self._rim_excess_process(slots, t, x, init, a_in, accel_var, F, Q, u)
+        return F, Q, u
+
+    def _accel_control(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        x: FloatArray,
+        accel_var: FloatArray,
+        Q: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Product mode: the accelerometer drives the speed and the distance (``Q`` in place).
+
+        ``V1' = V1 + dt·(ā − b)``, ``a1' = ā``, ``D' = D + dt·V1 + dt²·(ā − b)/2`` (``ā`` the
+        tick's mean acceleration, or the state's where the tick has none), so the tick's
+        acceleration noise reaches ``V1``, ``a1`` and ``D`` (one indexed add). A new chain of
+        RTK positions, or one after a gated distance, has its own origin: the predicted
+        distance is moved onto the measured one and opened, so the chain's offset carries no
+        information on the speed. Returns ``(u (k, n), ā (k,))``.
+        """
+        dt = self.dt_s
+        k = slots.shape[0]
+        a_in = np.where(t.imu_ok, z[:, MdsfObs.A1], x[:, MdsfState.A1] + x[:, MdsfState.ACCEL_BIAS])
+        u = np.zeros((k, self.n))
+        u[:, MdsfState.V1] = dt * a_in
+        u[:, MdsfState.A1] = a_in
+        half = 0.5 * dt * dt
+        D, V1 = MdsfState.DIST, MdsfState.V1
+        u[:, D] = half * a_in
+        Q[:, self._q_accel_rows, self._q_accel_cols] += accel_var[:, None] * self._q_accel
+        new_chain = t.dist_ok & (t.dist_restart | self.dist_gated[slots])
+        d_pred = x[:, D] + dt * x[:, V1] - half * x[:, MdsfState.ACCEL_BIAS] + half * a_in
+        u[:, D] += np.where(new_chain, z[:, MdsfObs.DIST] - d_pred, 0.0)
+        Q[:, D, D] += np.where(new_chain, _DIST_OPEN_VAR_M2, 0.0)
+        return u, a_in
+
+    def _rim_excess_process(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        x: FloatArray,
+        init: BoolArray,
+        a_in: FloatArray,
+        accel_var: FloatArray,
+        F: FloatArray,
+        Q: FloatArray,
+        u: FloatArray,
+    ) -> None:
+        """Product mode: how each rim excess ``e = r·W − V`` moves (``F``, ``Q``, ``u`` in place).
+
+        At constant slip ratio it scales with the speed, ``e' = e·(1 + dt·ā/V)``. It wanders
+        with soil and load, opens while the traction demand changes
+        (:meth:`_demand_change`; without GNSS only ``outage_demand_share`` of it) and where
+        rim innovations keep one sign (:meth:`_rim_drift_noise`: a drawbar load, soil, tyre
+        pressure the accelerometer cannot see). The tyre model ``Δe ≈ k·V·Δ(f/g)`` enters as
+        a control term, ``k`` the traction curve's slope learnt online (:meth:`tyre_gain`); it
+        stays on through a GNSS outage.
+        """
+        cfg = self.config
+        dt = self.dt_s
+        speed = np.abs(x[:, MdsfState.V1])
+        d2 = self._demand_change(slots, t, accel_var)
+        lost = init & ((t.stamp_ns - self.last_fused_ns[slots]) * _NS > cfg.gnss_timeout_s)
+        d2 = d2 * np.where(lost, cfg.outage_demand_share, 1.0)
+        q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
+            cfg.slip_demand_gain * speed / GRAVITY_MPS2
+        ) ** 2 * d2
+        grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
+            speed, _SLIP_MIN_SPEED_MPS
+        )
+        q_drift = None
+        if cfg.rim_drift_tau_s > 0:
+            q_drift = self._rim_drift_noise(slots, lost)
+        Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
+        if q_drift is not None:
+            Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
+        F[:, _RIM_EXCESS, _RIM_EXCESS] = np.clip(grow, 0.5, 1.5)[:, None]
+        if cfg.slip_per_demand > 0:
+            d_dem = self._model_demand_change(slots, t)
+            gain = self.tyre_gain(slots)
+            u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
+
+    def _update(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        rd: FloatArray,
+        x_pr: FloatArray,
+        P_pr: FloatArray,
+        init: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> _Updated:
+        """The update: 1) the IMU rows; 2) GNSS speed, rim speeds and distance, gated against
+        the stage-1 posterior so the tests see this tick's measured rates; 3) product mode, a
+        zero-velocity update where both wheels stand. Each stage applies its rows one at a
+        time (:func:`estimator.kalman.update_independent`)."""
+        k, m = slots.shape[0], self.m
+        H = self.H[slots]
+        mask1 = np.zeros((k, m), dtype=bool)
+        mask1[:, MdsfObs.A1] = t.imu_ok & (not self.product)
+        mask1[:, MdsfObs.OMEGA_X] = t.imu_ok
+        mask1[:, MdsfObs.OMEGA_Z] = t.imu_ok
+        res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS)
+        x_1, P_1 = res1.x, res1.P
+        y = z - np.einsum("kmi,ki->km", H, x_1)
+        s = kalman.row_variances(H, P_1) + rd
+        gated = np.zeros(k, dtype=bool)
+        reacq = np.zeros(k, dtype=bool)
+        inflated = np.zeros(k, dtype=bool)
+        if self.product:
+            gated, reacq = self._gate_gnss(slots, t, init, y, s, P_1)
+            inflated = reacq | self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
+        use_vg = t.gnss_ok & ~gated
+        mask2 = np.zeros((k, m), dtype=bool)
+        mask2[:, MdsfObs.VG] = use_vg
+        if self.product:
+            mask2[:, _RIM] = rim_ok
+            mask2[:, MdsfObs.DIST] = t.dist_ok & ~self._gate_distance(slots, t, init, y, s)
+        stage2 = _STAGE2_ROWS_PRODUCT if self.product else _STAGE2_ROWS_PAPER
+        res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2)
+        zupt = np.zeros(k, dtype=bool)
+        x_new, P_new = res.x, res.P
+        if self.product and self.config.zupt_speed_mps > 0:
+            zupt, x_new, P_new = self._zero_velocity(
+                slots, t, z, init, rim_mps, rim_ok, x_new, P_new
+            )
+        return _Updated(
+            x_new, P_new, H, y, s, use_vg, gated, reacq, inflated, zupt, mask1, mask2, (res1, res)
+        )
+
+    def _gate_gnss(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        init: BoolArray,
+        y: FloatArray,
+        s: FloatArray,
+        P_1: FloatArray,
+    ) -> tuple[BoolArray, BoolArray]:
+        """Product mode: chi-square gate of the GNSS speed; after ``reacquire_s`` of
+        rejections the speed variance opens to the disagreement (``P_1`` in place) so the
+        update follows GNSS. The gate has a floor ``gate_floor_mps``: a speed that wandered by
+        a few cm/s while the receiver reports mm/s (standing, creeping) must not lock GNSS
+        out. Returns ``(gated, reacquired)``, shape (k,)."""
+        cfg = self.config
+        stamp = t.stamp_ns
+        y_vg = y[:, MdsfObs.VG]
+        s_gate = s[:, MdsfObs.VG] + cfg.gate_floor_mps**2
+        gated = t.gnss_ok & init & ~(y_vg * y_vg <= cfg.gate_chi2 * s_gate)
+        since = self.gated_since_ns[slots]
+        since = np.where(gated & (since < 0), stamp, since)
+        reacq = gated & (stamp - since >= round(cfg.reacquire_s * 1e9))
+        gated &= ~reacq
+        self.gated_since_ns[slots] = np.where(gated, since, -1)
+        P_1[:, MdsfState.V1, MdsfState.V1] += np.where(reacq, y_vg * y_vg, 0.0)
+        return gated, reacq
+
+    def _open_rim_jumps(
+        self,
+        slots: IntArray,
+        init: BoolArray,
+        y: FloatArray,
+        s: FloatArray,
+        rim_ok: BoolArray,
+        P_1: FloatArray,
+    ) -> BoolArray:
+        """Product mode: a rim speed more than ``slip_jump_sigma`` off its prediction while the
+        accelerometer saw no matching acceleration means the slip itself changed (soil, wet
+        patch): that rim excess opens by the unexplained part of the innovation (``P_1`` in
+        place). Also feeds the running rim innovations. Returns the rows opened, (k,)."""
+        cfg = self.config
+        y_rim = y[:, _RIM]
+        s_rim = s[:, _RIM]
+        if cfg.rim_drift_tau_s > 0:
+            self._track_rim_innovation(slots, y_rim, s_rim, rim_ok & init[:, None])
+        big = rim_ok & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
+        P_1[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(big, y_rim * y_rim - s_rim, 0.0)
+        return np.asarray(big.any(axis=1))
+
+    def _gate_distance(
+        self, slots: IntArray, t: TickInputs, init: BoolArray, y: FloatArray, s: FloatArray
+    ) -> BoolArray:
+        """Product mode: the distance row gated as the speed (a position jump: wrong fix); the
+        next fix then starts a new chain. Returns the rows gated, (k,)."""
+        cfg = self.config
+        y_d = y[:, MdsfObs.DIST]
+        s_d = s[:, MdsfObs.DIST] + cfg.gnss_distance_gate_floor_m**2
+        d_gated = t.dist_ok & init & ~(y_d * y_d <= cfg.gate_chi2 * s_d)
+        self.dist_gated[slots] = np.where(t.dist_ok, d_gated, self.dist_gated[slots])
+        return d_gated
+
+    def _zero_velocity(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        init: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+        x: FloatArray,
+        P: FloatArray,
+    ) -> tuple[BoolArray, FloatArray, FloatArray]:
+        """Product mode: ``V0 = 0`` fused where both rim speeds are at most ``zupt_speed_mps``
+        and GNSS, if any, agrees. Returns ``(zupt (k,), x, P)``."""
+        k = slots.shape[0]
+        zs = self.config.zupt_speed_mps
+        zupt = (
+            init
+            & rim_ok.all(axis=1)
+            & (np.abs(np.where(rim_ok, rim_mps, np.inf)) <= zs).all(axis=1)
+            & (~t.gnss_ok | (np.abs(z[:, MdsfObs.VG]) <= 2.0 * zs))
+        )
+        if not zupt.any():
+            return zupt, x, P
+        resz = kalman.update_independent(
+            x,
+            P,
+            np.zeros((k, 1)),
+            self.v0_row[slots][:, None, :],
+            np.full((k, 1), (0.5 * zs) ** 2),
+            zupt[:, None],
+        )
+        return zupt, resz.x, resz.P
+
+    def _adapt_gnss_noise(
+        self, slots: IntArray, fused: BoolArray, y_vg: FloatArray, s_vg: FloatArray, rd: FloatArray
+    ) -> None:
+        """Running estimate of the GNSS speed noise from accepted innovations: ``y² − H·P·Hᵀ``
+        weighted by ``gnss_noise_adapt`` (in place)."""
+        hph = s_vg - rd[:, MdsfObs.VG]
+        est = self.gnss_noise_var[slots]
+        b = self.config.gnss_noise_adapt
+        self.gnss_noise_var[slots] = np.where(fused, (1 - b) * est + b * (y_vg * y_vg - hph), est)
+
+    def _start(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        init: BoolArray,
+        broken: BoolArray,
+        up: _Updated,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> _Started:
+        """(Re)initialise rows (``up.x``, ``up.P`` replaced where so).
+
+        A vehicle starts at its first GNSS speed (``V1`` by eq. (1) less the lever-arm terms);
+        without GNSS, after waiting ``gnss_timeout_s`` for it, from the mean rim speed
+        (degraded). A state gone non-finite, with a negative variance or a speed variance over
+        ``max_speed_var_mps2`` has diverged and restarts at the GNSS speed or the reference
+        speed. Both flag RESET.
+        """
+        cfg = self.config
+        H = up.H
+        imu = t.imu_ok
+        v1_from_gnss = z[:, MdsfObs.VG] - (
+            H[:, MdsfObs.VG, MdsfState.OMEGA_X] * np.where(imu, z[:, MdsfObs.OMEGA_X], 0.0)
+            + H[:, MdsfObs.VG, MdsfState.OMEGA_Z] * np.where(imu, z[:, MdsfObs.OMEGA_Z], 0.0)
+        )
+        start = ~init & t.gnss_ok
+        n_rim = rim_ok.sum(axis=1)
+        rim_mean = np.where(
+            n_rim > 0, np.where(rim_ok, rim_mps, 0.0).sum(axis=1) / np.maximum(n_rim, 1), np.nan
+        )
+        from_wheels = ~init & ~t.gnss_ok & (n_rim > 0)
+        start_wheels = from_wheels & (self._wheel_start_allowed(slots) | broken)
+        sel = start | start_wheels
+        flags = np.zeros(slots.shape[0], dtype=np.int32)
+        if sel.any():
+            v_start = np.where(start, v1_from_gnss, nan_to_num(rim_mean))
+            self._restart_rows(slots, z, imu, v_start, rim_ok, sel, up)
+            flags |= np.where(sel, int(_F.RESET), 0).astype(np.int32)
+        diag = np.diagonal(up.P, axis1=1, axis2=2)
+        diverged = init & (
+            ~np.isfinite(up.x).all(axis=1)
+            | ~np.isfinite(up.P).all(axis=(1, 2))
+            | (diag < 0).any(axis=1)
+            | (diag[:, MdsfState.V1] > cfg.max_speed_var_mps2)
+        )
+        if diverged.any():
+            ref_v = self.ref_x[slots, RefState.V]
+            v_re = np.where(t.gnss_ok, v1_from_gnss, np.where(np.isfinite(ref_v), ref_v, 0.0))
+            self._restart_rows(slots, z, imu, v_re, rim_ok, diverged, up)
+            flags |= np.where(diverged, int(_F.RESET), 0).astype(np.int32)
+        return _Started(sel, diverged, rim_mean, flags)
+
+    def _restart_rows(
+        self,
+        slots: IntArray,
+        z: FloatArray,
+        imu_ok: BoolArray,
+        v1: FloatArray,
+        rim_ok: BoolArray,
+        rows: BoolArray,
+        up: _Updated,
+    ) -> None:
+        """Replace ``up.x``, ``up.P`` of ``rows`` by the initial state at ``v1``."""
+        x0, p0 = self._initial_state(slots, z, imu_ok, v1, rim_ok)
+        up.x = np.where(rows[:, None], x0, up.x)
+        up.P = np.where(rows[:, None, None], p0, up.P)
+
+    def _reference(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        up: _Updated,
+        st: _Started,
+        rim_ok: BoolArray,
+        degraded: BoolArray,
+    ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray]]:
+        """The reference-speed filter (``method.md`` §3): tracks ``V0`` while GNSS is good,
+        carries the speed from the accelerometer and the slip-corrected wheel speed while it
+        is lost. Paper mode has no wheel states: while degraded its speed is handed to the
+        MDSF state (``up.x``, ``up.P`` in place), so GNSS resumes without a jump. Returns
+        ``(V0 (k,), (ref_x, ref_P, ref_aux))``."""
+        k = slots.shape[0]
+        v0_row = self.v0_row[slots]
+        v0 = np.einsum("ki,ki->k", v0_row, up.x)
+        v0_var = kalman.row_variances(v0_row[:, None, :], up.P)[:, 0]
+        a_ref = z[:, MdsfObs.A1] - (up.x[:, MdsfState.ACCEL_BIAS] if self.product else 0.0)
+        rx, rP, raux, _ = reference_step(
+            self.ref_x[slots],
+            self.ref_P[slots],
+            self.ref_aux[slots],
+            accel_mps2=np.where(t.imu_ok, a_ref, np.nan),
+            dt_s=self.dt_s,
+            speed_ref_mps=np.where(degraded, np.nan, v0),
+            speed_ref_var=v0_var,
+            rim_speed_mps=st.rim_mean,
+            config=self.reference,
+        )
+        restart = st.started | st.diverged
+        if restart.any():
+            rx = np.where(restart[:, None], np.stack([v0, np.zeros(k)], axis=1), rx)
+        if not self.product and degraded.any():
+            self._hand_over(up.x, up.P, rx, rP, v0, degraded)
+            v0 = np.einsum("ki,ki->k", v0_row, up.x)  # V1 moved, V0 with it (output)
+        return v0, (rx, rP, raux)
+
+    def _store(
+        self,
+        slots: IntArray,
+        x: FloatArray,
+        P: FloatArray,
+        up: _Updated,
+        now_init: BoolArray,
+        last_fused_ns: IntArray,
+        ref: tuple[FloatArray, FloatArray, FloatArray],
+    ) -> None:
+        """Write the step's state back to the slots: the posterior where the filter runs, the
+        prior state ``x``, ``P`` where it still waits for its start."""
+        self.x[slots] = np.where(now_init[:, None], up.x, x)
+        self.P[slots] = np.where(now_init[:, None, None], up.P, P)
+        self.initialized[slots] = now_init
+        self.last_fused_ns[slots] = last_fused_ns
+        self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
+
+    def _outputs(
+        self,
+        slots: IntArray,
+        x: FloatArray,
+        P: FloatArray,
+        v0: FloatArray,
+        emit: BoolArray,
+        flags: npt.NDArray[np.int32],
+        model: TickModel,
+    ) -> StepOutput:
+        """Outputs ``H1·x`` (eq. (6)) with their std, and in product mode the rim rows of the
+        posterior: the wheel fit fused with the accelerometer-driven prediction of ``V`` and
+        the rim excess (what the slip is computed from)."""
+        H1 = self.H1[slots]
+        z1 = np.einsum("koi,ki->ko", H1, x)
+        z1_std = np.sqrt(np.maximum(kalman.row_variances(H1, P), 0.0))
+        rim_post = rim_std_post = rim_cov = None
+        if self.product:
+            h_rim = self.H[slots][:, _RIM]
+            h_v = H1[:, (MdsfOut.VL, MdsfOut.VR)]
+            rim_post = np.einsum("kmi,ki->km", h_rim, x)
+            ph = np.einsum("kij,kmj->kmi", P, h_rim)
+            rim_std_post = np.sqrt(np.maximum(np.einsum("kmi,kmi->km", h_rim, ph), 0.0))
+            rim_cov = np.einsum("kmi,kmi->km", h_v, ph)
+        return StepOutput(
+            emit=emit,
+            vg=z1[:, MdsfOut.VG],
+            v1=x[:, MdsfState.V1],
+            v0=v0,
+            vl=z1[:, MdsfOut.VL],
+            vr=z1[:, MdsfOut.VR],
+            vg_std=z1_std[:, MdsfOut.VG],
+            vl_std=z1_std[:, MdsfOut.VL],
+            vr_std=z1_std[:, MdsfOut.VR],
+            accel=x[:, MdsfState.A1],
+            pitch_rate=x[:, MdsfState.OMEGA_X],
+            yaw_rate=x[:, MdsfState.OMEGA_Z],
+            flags=flags,
+            model=model,
+            rim=rim_post,
+            rim_std=rim_std_post,
+            rim_ground_cov=rim_cov,
+        )
+
+    def _track_rim_innovation(
+        self, slots: IntArray, y_rim: FloatArray, s_rim: FloatArray, ok: BoolArray
+    ) -> None:
+        """Running mean of each rim row's innovation and of its variance (in place).
+
+        ``rim_innov[slot, wheel] = [mean, var_of_mean]``: exponential mean with time constant
+        ``rim_drift_tau_s`` of the innovation ``y`` (against the stage-1 posterior), and the
+        variance that mean would have if the innovations were white with variance ``S``.
+        Wheels without a rim speed this tick keep theirs.
+        """
+        dt = self.dt_s
+        b = dt / (self.config.rim_drift_tau_s + dt)
+        st = self.rim_innov[slots]
+        mean = np.where(ok, (1 - b) * st[:, :, 0] + b * y_rim, st[:, :, 0])
+        var = np.where(ok, (1 - b) ** 2 * st[:, :, 1] + b * b * s_rim, st[:, :, 1])
+        st[:, :, 0] = mean
+        st[:, :, 1] = var
+        self.rim_innov[slots] = st
+
+    def _rim_drift_noise(self, slots: IntArray, gnss_lost: BoolArray | None = None) -> FloatArray:
+        """Extra rim-excess process noise per wheel from persistent rim innovations, (k, 2).
+
+        The running mean ``m`` of a rim row's innovation (:meth:`_track_rim_innovation`)
+        beyond ``rim_drift_sigma`` of its white-noise spread means the slip moves faster than
+        the model lets it; the excess ``m² − σ²·var`` is let into the rim excess over
+        ``rim_drift_tau_s`` [(m/s)² per tick].
+
+        That reading needs the speed anchored to the ground. While GNSS is lost
+        (``gnss_lost``, shape (k,)) a persistent rim innovation is as much the integrated
+        accelerometer error (gravity leaking through the drifting pitch, bias) as a slip
+        change, and the rows cannot tell them apart; only the share
+        ``outage_rim_drift_share`` of the excess goes to the rim excess, so the slip state
+        does not soak up the speed's drift.
+        """
+        cfg = self.config
+        st = self.rim_innov[slots]
+        excess = st[:, :, 0] ** 2 - cfg.rim_drift_sigma**2 * st[:, :, 1]
+        q = np.maximum(excess, 0.0) * (self.dt_s / cfg.rim_drift_tau_s)
+        if gnss_lost is not None:
+            q = q * np.where(gnss_lost, cfg.outage_rim_drift_share, 1.0)[:, None]
+        return q
+
+    def tyre_gain(self, slots: IntArray) -> FloatArray:
+        """Slope of the traction curve ``k = dε/d(f/g)`` in force for each slot, shape (k,).
+
+        ``ε = (r·W − V)/V`` is the slip ratio of the rim excess, ``f`` the low-passed forward
+        specific force (acceleration plus slope: what the tyres transmit beyond rolling
+        resistance and drawbar, which only shift ``ε``). A weighted least-squares line of ``ε``
+        on ``f/g`` over the recent drive (:meth:`_learn_tyre_gain`), shrunk toward the
+        configured ``slip_per_demand`` with the weight ``tyre_gain_prior`` (so a drive without
+        changes of demand keeps the prior), clipped to ``tyre_gain_range``. Without learning
+        (``tyre_gain_tau_s = 0``) the configured value.
+        """
+        cfg = self.config
+        k0 = cfg.slip_per_demand
+        if cfg.tyre_gain_tau_s <= 0:
+            return np.full(slots.shape[0], k0)
+        st = self.tyre_stats[slots]
+        w = np.maximum(st[:, _TyreStat.W], 1e-12)
+        sxx = st[:, _TyreStat.XX] - st[:, _TyreStat.X] ** 2 / w
+        sxy = st[:, _TyreStat.XY] - st[:, _TyreStat.X] * st[:, _TyreStat.Y] / w
+        lam = cfg.tyre_gain_prior
+        k = (np.maximum(sxy, -1e9) + lam * k0) / (np.maximum(sxx, 0.0) + lam)
+        lo, hi = cfg.tyre_gain_range
+        return np.asarray(np.clip(k, lo * k0, hi * k0))
+
+    def _learn_tyre_gain(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        x_post: FloatArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+        fused: BoolArray,
+    ) -> None:
+        """Add this tick's ``(f/g, ε)`` pair to the tyre-gain regression (in place).
+
+        Only ticks with a fused GNSS speed (the speed, hence ``ε``, is referenced to the ground)
+        and both rim speeds, while moving faster than ``2·_SLIP_MIN_SPEED_MPS``; ``ε`` is the
+        mean of both wheels' measured rim speed over the filtered contact-point speed. Old
+        pairs fade with ``tyre_gain_tau_s``.
+        """
+        cfg = self.config
+        h = self.H[slots]
+        v_wheel = np.einsum("kmi,ki->km", h[:, _RIM, : MdsfState.ACCEL_BIAS], x_post[:, :4])
+        speed = 0.5 * (v_wheel[:, 0] + v_wheel[:, 1])
+        f = self.force_model[slots]
+        ok = (
+            fused
+            & rim_ok.all(axis=1)
+            & (speed > 2.0 * _SLIP_MIN_SPEED_MPS)
+            & np.isfinite(f)
+            & t.imu_ok
+        )
+        with np.errstate(invalid="ignore", divide="ignore"):
+            eps = np.where(
+                ok, (np.where(rim_ok, rim_mps, 0.0) - v_wheel).sum(axis=1) / (2.0 * speed), 0.0
+            )
+        x = np.where(ok, f / GRAVITY_MPS2, 0.0)
+        decay = math.exp(-self.dt_s / cfg.tyre_gain_tau_s)
+        st = self.tyre_stats[slots]
+        w = ok.astype(np.float64)
+        st *= np.where(ok, decay, 1.0)[:, None]
+        st[:, _TyreStat.W] += w
+        st[:, _TyreStat.X] += w * x
+        st[:, _TyreStat.Y] += w * eps
+        st[:, _TyreStat.XX] += w * x * x
+        st[:, _TyreStat.XY] += w * x * eps
+        self.tyre_stats[slots] = st
+
+    def _model_demand_change(self, slots: IntArray, t: TickInputs) -> FloatArray:
+        """Change of the low-passed forward specific force over this tick, (k,) [m/s²]."""
+        dt = self.dt_s
+        a = dt / (self.config.slip_model_tau_s + dt)
+        f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
+        old = self.force_model[slots]
+        fresh = ~np.isfinite(old)
+        new = np.where(fresh, f_new, np.where(np.isfinite(f_new), old + a * (f_new - old), old))
+        self.force_model[slots] = new
+        return np.where(fresh, 0.0, nan_to_num(new - old))
+
+    def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
+        """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
+
+        The forward specific force (acceleration plus slope) is low-passed fast
+        (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change of
+        demand. Its variance under white accelerometer noise is known, so only the excess over
+        two sigma counts. The slip follows the demand as it changes (the tyre settles within a
+        relaxation length, a fraction of a second), so the tyre model's error grows while the
+        demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with ``ΔF`` the fast
+        low-pass's move over the tick, and a whole change ``D`` adds ``D²`` (the rim excess
+        then opens by ``slip_demand_gain·|V|·D/g`` in std), so it stops opening once the demand
+        has settled, where the wheels can hold the speed again.
+        """
+        dt = self.dt_s
+        tau = self.config.force_filter_tau_s
+        a1 = dt / (tau + dt)
+        a2 = dt / (5.0 * tau + dt)
+        f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
+        fast_old = self.force_fast[slots]
+        slow = self.force_slow[slots]
+        fresh = ~np.isfinite(fast_old)
+        fast = np.where(
+            fresh,
+            f_new,
+            np.where(np.isfinite(f_new), fast_old + a1 * (f_new - fast_old), fast_old),
+        )
+        slow = np.where(
+            fresh, f_new, np.where(np.isfinite(f_new), slow + a2 * (f_new - slow), slow)
+        )
+        self.force_fast[slots] = fast
+        self.force_slow[slots] = slow
+        var_d = accel_var * (a1 / (2 - a1) + a2 / (2 - a2) - 2 * a1 * a2 / (a1 + a2 - a1 * a2))
+        d = nan_to_num(fast - slow)
+        excess = np.sqrt(np.maximum(d * d - 4.0 * var_d, 0.0))
+        moved = np.where(fresh, 0.0, np.abs(nan_to_num(fast - fast_old)))
+        return 2.0 * excess * moved
+
+    @staticmethod
+    def _hand_over(
+        x: FloatArray, P: FloatArray, rx: FloatArray, rP: FloatArray, v0: FloatArray, sel: BoolArray
+    ) -> None:
+        """Put the reference speed into ``V1`` (in place) for the rows in ``sel``.
+
+        ``V1`` moves by the difference between the reference speed and ``V0``; its variance
+        becomes the reference's and its covariances are scaled down with its std.
+        """
+        v1_ref = rx[:, RefState.V] - (v0 - x[:, MdsfState.V1])
+        x[:, MdsfState.V1] = np.where(sel, v1_ref, x[:, MdsfState.V1])
+        pv = rP[:, RefState.V, RefState.V]
+        old = np.maximum(P[:, MdsfState.V1, MdsfState.V1], 1e-30)
+        scale = np.minimum(np.sqrt(np.maximum(pv, 0.0) / old), 1.0)
+        row = P[:, MdsfState.V1, :] * scale[:, None]
+        row[:, MdsfState.V1] = pv
+        P[:, MdsfState.V1, :] = np.where(sel[:, None], row, P[:, MdsfState.V1, :])
+        P[:, :, MdsfState.V1] = np.where(sel[:, None], row, P[:, :, MdsfState.V1])
+
+    def _wheel_start_allowed(self, slots: IntArray) -> BoolArray:
+        """A vehicle may start from wheel speeds once it waited ``gnss_timeout_s`` for GNSS."""
+        waited = self.counts[slots, Counter.WAITING_TICKS] * self.dt_s
+        return np.asarray(waited >= self.config.gnss_timeout_s)

@@ -1,0 +1,338 @@
+"""The MDSF fleet estimator the server drives (``name = "mdsf"``).
+
+:class:`MdsfFleet` implements :class:`estimator.base.FleetEstimator`. Its front end
+(:class:`~estimator.mdsf.frontend.FleetFrontEnd`) buffers every vehicle's measurements and, on
+:meth:`MdsfFleet.advance`, turns those of all due vehicles into per-tick filter inputs; the
+engine (:class:`~estimator.mdsf.engine.MdsfEngine`) steps them round by round (round ``r`` is
+the ``r``-th due tick of every vehicle that has one, all in one batched call). Slip (eq. (8)(9)),
+positions (dead-reckoned through GNSS outages) and attitude follow for all rows at once.
+
+Ticks sit on a grid of ``tick_ns``: multiples of it since the epoch by default, or moved by
+:meth:`MdsfFleet.align_ticks` (the server puts a vehicle's ticks on the end of its first IMU
+batch, so a tick is computed as soon as the batch holding it arrives). A row at ``t`` uses only
+measurements stamped at or before ``t``: rows depend neither on how data was batched nor on the
+other vehicles of a call. A vehicle's first row is the first tick with a usable GNSS speed (or,
+after ``gnss_timeout_s`` without GNSS, with wheel speeds, flagged DEGRADED). Bad input is
+skipped and counted (:meth:`MdsfFleet.counters`), never raised on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator._slots import grow_slot_array
+from estimator.base import Pushed
+from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
+from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
+from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput
+from estimator.mdsf.frontend import FleetFrontEnd, FleetTicks, TickInputs
+from estimator.mdsf.model import MdsfConfig
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.reference_speed import ReferenceSpeedConfig
+from estimator.slip import fit_span_s, slip_pct, unsettled
+from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
+from estimator.wheel_speed import WheelSpeedConfig
+
+__all__ = ["MdsfFleet"]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+_F = EstimateFlag
+
+# counters(): each counter's key and column, in declaration order
+_COUNTER_KEYS = tuple(c.name.lower() for c in Counter)
+_COUNTER_COLUMNS = np.array(list(Counter), dtype=np.intp)
+
+_TICK_FIELDS = TickInputs.__slots__
+_STEP_COLS = (
+    "vg",
+    "v1",
+    "v0",
+    "vl",
+    "vr",
+    "vg_std",
+    "vl_std",
+    "vr_std",
+    "accel",
+    "pitch_rate",
+    "yaw_rate",
+)
+"""Per-row outputs of :class:`StepOutput` that go into the estimate rows."""
+
+
+def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArray]]:
+    """Round ``r`` of a call's ticks: the ``r``-th tick of every vehicle that has one, as
+    ``(c, rows)`` (the first ``c`` vehicles: ``lengths`` decrease), for steps that must see a
+    vehicle's ticks in order."""
+    for r in range(int(lengths[0]) if lengths.shape[0] else 0):
+        c = int(np.count_nonzero(lengths > r))
+        yield c, offsets[:c] + r
+
+
+def _filtered_rims(
+    so: StepOutput, rim: FloatArray, rim_std: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rim speeds (k, 2), their std and covariance with the wheel's ground speed for the slip:
+    the filtered ones where the step has them (product mode, emitted rows, measured rim
+    speed), else the measured ones with no covariance."""
+    if so.rim is None or so.rim_std is None or so.rim_ground_cov is None:
+        return rim, rim_std, np.zeros(rim.shape)
+    use = (so.emit & np.isfinite(so.rim).all(axis=1))[:, None] & np.isfinite(rim)
+    return (
+        np.where(use, so.rim, rim),
+        np.where(use, so.rim_std, rim_std),
+        np.where(use, so.rim_ground_cov, 0.0),
+    )
+
+
+class MdsfFleet:
+    """MDSF for a fleet of wheeled vehicles; implements :class:`estimator.base.FleetEstimator`.
+
+    Parameters
+    ----------
+    config : MdsfConfig, optional
+        Filter settings (default: product mode).
+    wheel : WheelSpeedConfig, optional
+        Wheel-speed front-end settings (``teeth_per_rev`` comes from each vehicle's encoder).
+    reference : ReferenceSpeedConfig, optional
+        Settings of the speed filter used while GNSS is lost.
+    dead_reckoning : DeadReckoningConfig, optional
+        How the position is carried while GNSS gives none (:mod:`estimator.dead_reckoning`).
+
+    Examples
+    --------
+    >>> fleet = MdsfFleet()
+    >>> fleet.add_vehicle("t1", WheeledRearDriveConfig())  # doctest: +SKIP
+    >>> fleet.push("t1", imu_batch); fleet.push("t1", gnss_sample)   # doctest: +SKIP
+    >>> for vid, rows in fleet.advance({"t1": now_ns}): ...          # doctest: +SKIP
+    """
+
+    name = "mdsf"
+    spec = MDSF_SPEC
+    output_dtype = ESTIMATE_DTYPE
+
+    def __init__(
+        self,
+        config: MdsfConfig | None = None,
+        wheel: WheelSpeedConfig | None = None,
+        reference: ReferenceSpeedConfig | None = None,
+        dead_reckoning: DeadReckoningConfig | None = None,
+    ) -> None:
+        self.config = config or MdsfConfig()
+        self.wheel = wheel or WheelSpeedConfig()
+        self.engine = MdsfEngine(self.config, reference)
+        self.front = FleetFrontEnd(self.config, self.wheel)
+        self.carry = DeadReckoning(dead_reckoning or DeadReckoningConfig(), self.config.dt_s)
+        self._slot: dict[str, int] = {}
+        # per slot: wheel radii and rim travel per encoder tooth (left, right) [m], the slip's
+        # minimum ground speed [m/s] and settling limit (SlipConfig)
+        self._radius_m = np.zeros((0, 2))
+        self._tooth_arc_m = np.zeros((0, 2))
+        self._min_speed_mps = np.zeros(0)
+        self._settle_max_change = np.zeros(0)
+
+    def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
+        config = expect_kind(config, WheeledRearDriveConfig, "mdsf")
+        self.remove_vehicle(vehicle_id)
+        slot = self.engine.add(config)
+        self._slot[vehicle_id] = slot
+        self.front.add(slot, config)
+        self.carry.add(slot, config.geometry.antenna_offset_m)
+        if slot >= self._min_speed_mps.shape[0]:
+            cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
+            grow_slot_array(self, "_radius_m", cap, (2,), 0.0)
+            grow_slot_array(self, "_tooth_arc_m", cap, (2,), 0.0)
+            grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
+            grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
+        geo = config.geometry
+        self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
+        teeth = config.encoder.teeth_per_rev
+        self._tooth_arc_m[slot] = self._radius_m[slot] * (2.0 * np.pi / teeth)
+        self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
+        self._settle_max_change[slot] = config.slip.settle_max_change
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        """Forget ``vehicle_id`` (no error if unknown)."""
+        slot = self._slot.pop(vehicle_id, None)
+        if slot is not None:
+            self.engine.release(slot)
+            self.front.release(slot)
+
+    def vehicle_ids(self) -> list[str]:
+        return list(self._slot)
+
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
+        """Buffer one measurement (sensor-time order per vehicle); ``KeyError`` if unknown."""
+        self.front.push(self._slot[vehicle_id], measurement)
+
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        """Ticks of ``vehicle_id`` fall on ``stamp_ns + k·tick`` (call before its first push;
+        see :meth:`estimator.mdsf.frontend.FleetFrontEnd.align_ticks`); ``KeyError`` if unknown."""
+        self.front.align_ticks(self._slot[vehicle_id], stamp_ns)
+
+    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame (its first GNSS
+        fix), to which ``east_m``/``north_m``/``up_m`` of its rows refer; None before that fix."""
+        slot = self._slot.get(vehicle_id)
+        return None if slot is None else self.front.anchor(slot)
+
+    def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Give the vehicle's ENU frame this origin (e.g. the anchor its stored estimates were
+        given in before a restart) instead of its next first fix; ``KeyError`` if unknown,
+        ``ValueError`` if not a geodetic position. Later fixes do not move it."""
+        self.front.set_anchor(self._slot[vehicle_id], lat_deg, lon_deg, height_m)
+
+    def counters(self, vehicle_id: str) -> dict[str, int]:
+        """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
+        degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""
+        slot = self._slot[vehicle_id]
+        out = dict(
+            zip(_COUNTER_KEYS, self.engine.counts[slot, _COUNTER_COLUMNS].tolist(), strict=True)
+        )
+        for k, v in self.front.counts(slot).items():
+            out[k] = out.get(k, 0) + v
+        return out
+
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        """Emit every due tick (``stamp_ns <= until_ns[id]``), vehicles stepped together."""
+        ids = [vid for vid in until_ns if vid in self._slot]
+        if not ids:
+            return []
+        slots = np.fromiter(map(self._slot.__getitem__, ids), dtype=np.int64, count=len(ids))
+        until = np.fromiter(map(until_ns.__getitem__, ids), dtype=np.int64, count=len(ids))
+        due = self.front.assemble(slots, until)
+        if due is None:
+            return []
+        lengths, offsets, flat = due.lengths, due.offsets, due.inputs
+        total = flat.m
+        row_slot = np.repeat(due.slots, lengths)
+        radius = self._radius_m[row_slot]
+        min_speed = self._min_speed_mps[row_slot]
+        rim = flat.omega * radius
+        rim_std = flat.omega_std * radius
+        # Slip from the filtered rim speeds where the filter has them (product mode), so the
+        # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
+        rounds = int(lengths[0])
+        if rounds == 1:
+            # one tick per vehicle (the usual call): the step's rows are the call's rows, its
+            # outputs are used as they are
+            so = self.engine.step(due.slots, flat, rim, rim_std)
+            emit, flags = so.emit, so.flags
+            res = {name: getattr(so, name) for name in _STEP_COLS}
+            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
+        else:
+            emit = np.zeros(total, dtype=bool)
+            flags = np.zeros(total, dtype=np.int32)
+            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+            rim_cov = np.zeros((total, 2))
+        for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
+            tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
+            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
+            emit[fi] = so.emit
+            for name in _STEP_COLS:
+                res[name][fi] = getattr(so, name)
+            flags[fi] = so.flags
+            rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
+        # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
+        ground = np.stack([res["vl"], res["vr"]], axis=1)
+        sp = slip_pct(
+            rim,
+            ground,
+            min_speed[:, None],
+            rim_std,
+            np.stack([res["vl_std"], res["vr_std"]], axis=1),
+            rim_cov,
+        )
+        # starting / stopping faster than the wheel fit follows: no slip value (SETTLING)
+        fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
+        span = np.where(
+            fitted[:, None],
+            fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
+            0.0,
+        )
+        settling = sp.valid & unsettled(
+            ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
+        )
+        valid = sp.valid & ~settling
+        enu, heading, carried = self._carry(due, res)
+        slip_out = np.where(valid, sp.slip_pct, np.nan)
+        slip_std_out = np.where(valid, sp.std_pct, np.nan)
+        flags = (
+            flags
+            | (
+                np.where(valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
+                | np.where(valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
+                | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
+                | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
+                | np.where(carried, int(_F.DEAD_RECKONED), 0)
+            ).astype(np.int32)
+            | flat.wheel_flags
+        )
+        out = empty_estimates(total)
+        out["stamp_ns"] = flat.stamp_ns
+        out["vg_mps"] = res["vg"]
+        out["v1_mps"] = res["v1"]
+        out["v0_mps"] = res["v0"]
+        out["vl_mps"] = res["vl"]
+        out["vr_mps"] = res["vr"]
+        out["rim_left_mps"] = rim[:, 0]
+        out["rim_right_mps"] = rim[:, 1]
+        out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
+        out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
+        out["slip_left_pct"] = slip_out[:, 0]
+        out["slip_right_pct"] = slip_out[:, 1]
+        out["vg_std_mps"] = res["vg_std"]
+        out["vl_std_mps"] = res["vl_std"]
+        out["vr_std_mps"] = res["vr_std"]
+        out["slip_left_std_pct"] = slip_std_out[:, 0]
+        out["slip_right_std_pct"] = slip_std_out[:, 1]
+        out["accel_mps2"] = res["accel"]
+        out["pitch_rate_radps"] = res["pitch_rate"]
+        out["yaw_rate_radps"] = res["yaw_rate"]
+        out["east_m"] = enu[:, 0]
+        out["north_m"] = enu[:, 1]
+        out["up_m"] = enu[:, 2]
+        out["heading_rad"] = heading
+        out["pitch_rad"] = flat.attitude[:, 1]
+        out["roll_rad"] = flat.attitude[:, 2]
+        out["flags"] = flags
+        # Emitted rows, split by vehicle (in the order of ``due``).
+        kept = out if emit.all() else out[emit]
+        ends = np.cumsum(np.add.reduceat(emit, offsets))
+        return [
+            (ids[i], kept[a:b])
+            for i, a, b in zip(
+                due.index.tolist(), [0, *ends[:-1].tolist()], ends.tolist(), strict=True
+            )
+            if b > a
+        ]
+
+    def _carry(
+        self, due: FleetTicks, res: dict[str, FloatArray]
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """Positions and headings of the call's ticks with GNSS outages dead-reckoned, and which
+        ticks were (a vehicle's ticks in order: one round per tick, as the filter's steps)."""
+        flat, lengths, offsets = due.inputs, due.lengths, due.offsets
+        enu, heading = flat.enu, flat.attitude[:, 0]
+        carried = np.zeros(flat.m, dtype=bool)
+        copied = False
+        for c, fi in _rounds(lengths, offsets):
+            e, h, k = self.carry.step(
+                due.slots[:c],
+                flat.enu[fi],
+                flat.fix_age_s[fi],
+                flat.attitude[fi, 0],
+                res["v0"][fi],
+                res["yaw_rate"][fi],
+                flat.attitude[fi, 1],
+            )
+            if k.any():  # outputs copied only when some tick is carried (rare)
+                if not copied:
+                    enu, heading, copied = enu.copy(), heading.copy(), True
+                enu[fi], heading[fi], carried[fi] = e, h, k
+        return enu, heading, carried

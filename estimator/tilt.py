@@ -1,0 +1,392 @@
+"""Tilt (pitch and roll) and heading tracks: body rates integrated, corrected at GNSS fixes.
+
+Gravity is taken out of the forward acceleration with the pitch (``method.md`` §1, gravity
+removal), so the pitch must hold between fixes and through outages. Pitch ``θ`` and roll ``φ``
+are one tilt ``z = θ + iφ``. The Euler kinematics ``θ̇ = ωx·cos φ + ωz·sin φ``,
+``φ̇ = ωy − tan θ·(ωz·cos φ − ωx·sin φ)`` are, to first order in the angles,
+
+    ż = (ωx − b_x) + i·(ωy − b_y) − i·ωz·z,
+
+solved between fixes in closed form with ``Ψ(t) = ∫ωz dt`` over segmented cumulative sums of the
+samples (:func:`tilt_integrals`, :func:`tilt_at`):
+``z(t) = e^{−iΨ(t)}·[e^{iΨ(t₀)}·z(t₀) + ∫e^{iΨ}·(ωx + iωy) dt − (b_x + i·b_y)·∫e^{iΨ} dt]``.
+A turn on a side slope thus turns the bank's roll into pitch and back. At each fix angle and
+gyro bias are a two-state Kalman filter (:func:`pitch_kf_update`, for the pitch and, the same,
+for the roll); the source's mode takes each GNSS pitch as it is (:func:`pitch_fix_update`). The
+heading track learns the yaw-gyro bias (:func:`yaw_fix_update`).
+
+Every function takes arrays of vehicles (one entry per vehicle with this fix), so a fleet's
+tracks update together. Columns are named by :class:`Integral`, :class:`PitchSum`,
+:class:`RollSum` and :class:`AngleCov`. Settings come from any object with the attributes of
+:class:`TiltSettings` (e.g. :class:`estimator.mdsf.MdsfConfig`).
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from estimator._arrays import seg_cumsum
+
+__all__ = [
+    "N_INTEGRALS_UNCOUPLED",
+    "PITCH_SUM_OF",
+    "ROLL_SUM_OF",
+    "AngleCov",
+    "Integral",
+    "PitchSum",
+    "RollSum",
+    "TiltSettings",
+    "pitch_fix_update",
+    "pitch_kf_update",
+    "shrunk_roll",
+    "tilt_at",
+    "tilt_integrals",
+    "yaw_fix_update",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+CArray = npt.NDArray[np.complexfloating[Any, Any]]
+
+_NS = 1e-9
+_TWO_PI = 2 * np.pi
+
+
+class TiltSettings(Protocol):
+    """Settings the tracks read (1-sigma noises; :class:`estimator.mdsf.MdsfConfig` has them)."""
+
+    @property
+    def pitch_std_rad(self) -> float: ...  # noise of a measured angle [rad]
+    @property
+    def gyro_bias_std_radps(self) -> float: ...  # prior std of a gyro bias [rad/s]
+    @property
+    def gyro_bias_walk_radps_per_sqrt_s(self) -> float: ...  # bias random walk [rad/s/√s]
+    @property
+    def gate_chi2(self) -> float: ...  # chi-square gate of the standstill update [-]
+    @property
+    def attitude_tau_s(self) -> float: ...  # heading's pull to the GNSS heading [s]
+    @property
+    def gyro_bias_tau_s(self) -> float: ...  # yaw-gyro bias learning [s]
+
+
+class Integral(IntEnum):
+    """Columns of :func:`tilt_integrals`, each summed from a row's first sample.
+
+    The first three are all the source's mode needs; the rest feed the coupled tilt, the angle
+    noise and the accelerometer's pitch and roll."""
+
+    TIME = 0  # ∫dt
+    RATE_X = 1  # ∫ωx·dt
+    SAMPLES = 2  # number of samples
+    TURNED_RATE_RE = 3  # ∫e^{iΨ}·(ωx + iωy)·dt, real part
+    TURNED_RATE_IM = 4  # its imaginary part
+    TURN_RE = 5  # ∫e^{iΨ}·dt, real part
+    TURN_IM = 6  # its imaginary part
+    RATE_Y = 7  # ∫ωy·dt
+    GYRO_VAR = 8  # Σσ²·dt², the gyro's white noise as angle variance
+    YAW_RATE_SQ = 9  # ∫ωz²·dt
+    FORCE_LAT = 10  # ∫f_x·dt over the samples with a lateral force
+    FORCE_LAT_TIME = 11  # ∫dt over those samples
+    FORCE_FWD = 12  # ∫f_y·dt
+
+
+N_INTEGRALS_UNCOUPLED = 3
+"""Columns :func:`tilt_integrals` gives without the coupled tilt (``TIME``..``SAMPLES``)."""
+
+
+class PitchSum(IntEnum):
+    """What a pitch track sums over the interval since its last fix."""
+
+    ANGLE_VAR = 0  # angle noise variance added [rad²]
+    RATE = 1  # ∫ωx·dt [rad]
+    TIME = 2  # ∫dt [s]
+    SAMPLES = 3  # number of samples
+    FORCE_FWD = 4  # ∫f_y·dt [m/s]
+
+
+class RollSum(IntEnum):
+    """What a roll track sums over the interval since its last fix."""
+
+    ANGLE_VAR = 0  # angle noise variance added [rad²]
+    RATE = 1  # ∫ωy·dt [rad]
+    FORCE_LAT = 2  # ∫f_x·dt [m/s]
+    FORCE_LAT_TIME = 3  # ∫dt over the samples with a lateral force [s]
+    YAW = 4  # ∫ωz·dt [rad]
+
+
+PITCH_SUM_OF = np.array([Integral.RATE_X, Integral.TIME, Integral.SAMPLES], dtype=np.intp)
+"""Integral columns of :attr:`PitchSum.RATE`, ``TIME``, ``SAMPLES`` (in that order)."""
+ROLL_SUM_OF = np.array(
+    [Integral.RATE_Y, Integral.FORCE_LAT, Integral.FORCE_LAT_TIME], dtype=np.intp
+)
+"""Integral columns of :attr:`RollSum.RATE`, ``FORCE_LAT``, ``FORCE_LAT_TIME``."""
+
+
+class AngleCov(IntEnum):
+    """Covariance of an angle and its gyro's bias, ``[P_aa, P_ab, P_bb]``."""
+
+    ANGLE = 0
+    CROSS = 1
+    BIAS = 2
+
+
+# ---------------------------------------------------------------------------------------------
+# Between fixes
+# ---------------------------------------------------------------------------------------------
+
+
+def tilt_integrals(
+    dts: FloatArray,
+    wx: FloatArray,
+    wy: FloatArray,
+    wz: FloatArray,
+    fx: FloatArray,
+    fy: FloatArray,
+    gyro_var: FloatArray,
+    begin_of: IntArray,
+    coupled: bool,
+) -> tuple[FloatArray, FloatArray, CArray]:
+    """The integrals of every sample since its row's first, :class:`Integral` columns.
+
+    Parameters
+    ----------
+    dts : ndarray, shape (n,)
+        Time step ending at each sample [s].
+    wx, wy, wz : ndarray, shape (n,)
+        Body rates (pitch, roll, yaw axes) [rad/s].
+    fx, fy : ndarray, shape (n,)
+        Lateral (NaN: none) and forward specific force [m/s²].
+    gyro_var : ndarray, shape (n,)
+        Gyro noise variance of each sample's vehicle [(rad/s)²].
+    begin_of : ndarray, shape (n,), int
+        Index of each sample's row's first sample.
+    coupled : bool
+        Compute the coupled tilt's columns; otherwise only the first
+        :data:`N_INTEGRALS_UNCOUPLED` and ``Ψ = 0``.
+
+    Returns
+    -------
+    (cum (n, c), psi (n,), rot (n,))
+        The integrals, ``Ψ = ∫ωz·dt`` and ``e^{iΨ}``.
+    """
+    n = dts.shape[0]
+    cols = [dts, wx * dts, np.ones(n)]
+    psi = np.zeros(n)
+    rot = np.ones(n, dtype=np.complex128)
+    if coupled:
+        psi = seg_cumsum(wz * dts, begin_of)
+        rot = np.exp(1j * psi)
+        u = rot * (wx + 1j * wy) * dts
+        cols += [u.real, u.imag, rot.real * dts, rot.imag * dts, wy * dts]
+        cols += [gyro_var * dts * dts, wz * wz * dts]
+        has_fx = np.isfinite(fx)
+        cols += [np.where(has_fx, fx, 0.0) * dts, has_fx * dts, fy * dts]
+    return seg_cumsum(np.column_stack(cols), begin_of), psi, rot
+
+
+def tilt_at(
+    cum: FloatArray,
+    rot: CArray,
+    m: IntArray | slice,
+    a: CArray,
+    beta: CArray,
+    coupled: BoolArray,
+    coupled_model: bool,
+) -> CArray:
+    """``θ + iφ`` at samples ``m`` of segments with parameters ``a``, ``beta``.
+
+    Uncoupled: ``θ = Re a + ∫ωx·dt − Re β·∫dt``, ``φ = Im a``. Coupled (where ``coupled`` and
+    ``coupled_model``): ``e^{−iΨ}·(a + ∫e^{iΨ}·(ωx + iωy)·dt − β·∫e^{iΨ}·dt)``. ``cum`` and
+    ``rot`` are :func:`tilt_integrals`' ``(n, c)`` and ``(n,)``; ``a``, ``beta``, ``coupled`` have
+    the shape of ``cum[m]``'s rows.
+    """
+    c = cum[m]
+    flat = None
+    if not (coupled_model and coupled.all()):
+        flat = (a.real + c[:, Integral.RATE_X] - beta.real * c[:, Integral.TIME]) + 1j * a.imag
+    if not (coupled_model and coupled.any()):
+        assert flat is not None
+        return flat
+    cz = c[:, Integral.TURNED_RATE_RE] + 1j * c[:, Integral.TURNED_RATE_IM]
+    ez = c[:, Integral.TURN_RE] + 1j * c[:, Integral.TURN_IM]
+    z = rot[m].conj() * (a + cz - beta * ez)
+    return z if flat is None else np.where(coupled, z, flat)
+
+
+def shrunk_roll(roll_rad: FloatArray, var_rad2: FloatArray) -> FloatArray:
+    """``φ·φ²/(φ² + var)``: a roll estimate shrunk toward 0 by its noise; NaN (unknown) → 0."""
+    p2 = np.where(np.isfinite(roll_rad), roll_rad * roll_rad, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(p2 > 0, roll_rad * p2 / (p2 + var_rad2), 0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# At a fix (arrays of vehicles: one entry per vehicle that has this fix)
+# ---------------------------------------------------------------------------------------------
+
+
+def _fix_gap_s(stamp_ns: IntArray, fix_ns: IntArray) -> FloatArray:
+    """Time since a track's previous fix, clipped to [0, 1] s (the per-fix updates' ``gap``)."""
+    return np.minimum(np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 1.0)
+
+
+def pitch_fix_update(
+    theta_rad: FloatArray,
+    var_rad2: FloatArray,
+    bias_radps: FloatArray,
+    fix_ns: IntArray,
+    known: BoolArray,
+    pitch_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: TiltSettings,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
+    """Paper-mode pitch at one GNSS pitch per vehicle (all arrays shape ``(k,)``).
+
+    ``method.md`` §1, eq. (1): the source takes the pitch ``θ`` of eq. (1) as measured, so each
+    GNSS pitch ``p`` sets ``θ = p`` with variance ``pitch_std_rad²``, whatever the track held;
+    the pitch-gyro bias is left as it is (the source has none). A NaN pitch changes nothing.
+    Product mode runs :func:`pitch_kf_update` instead.
+
+    Returns the new ``(theta_rad, var_rad2, bias_radps, fix_ns, known)``.
+    """
+    has = np.isfinite(pitch_gnss_rad)
+    theta = np.where(has, pitch_gnss_rad, theta_rad)
+    var = np.where(has, config.pitch_std_rad**2, var_rad2)
+    return theta, var, bias_radps.copy(), np.where(has, stamp_ns, fix_ns), known | has
+
+
+def pitch_kf_update(
+    theta_rad: FloatArray,
+    cov: FloatArray,
+    bias_radps: FloatArray,
+    fix_ns: IntArray,
+    known: BoolArray,
+    pitch_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: TiltSettings,
+    pitch_var_rad2: FloatArray | None = None,
+    angle_walk_rad2: FloatArray | None = None,
+    still_rate_radps: FloatArray | None = None,
+    still_rate_var: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
+    """Pitch and pitch-gyro bias ``[θ, b_x]`` as a Kalman filter, at one fix per vehicle.
+
+    Product mode (``method.md`` §1, gravity removal): between fixes the pitch is the pitch rate
+    integrated with the bias in force, so its error grows as ``δθ' = δθ − T·δb`` plus the
+    gyro's angle noise over the interval (``angle_walk_rad2``, summed over the samples by the
+    caller); the bias is a random walk (``gyro_bias_walk_radps_per_sqrt_s``). At the fix, in
+    this order:
+
+    * a *standstill* update of the bias: when the vehicle stood through the interval (the
+      caller passes the interval's mean pitch rate ``still_rate_radps`` and its variance, NaN
+      otherwise) the body did not rotate, so the gyro read its bias; chi-square gated;
+    * the GNSS pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``).
+
+    The gains follow from the variances, so the pitch averages the receiver's pitch over as
+    long as the gyro holds it (seconds with a known bias) instead of a fixed time constant:
+    the gravity that leaks through the pitch error (``g·δθ``) then varies slowly, where the
+    speed filter's accelerometer-bias state and the RTK distance take it up. The first fix sets
+    ``θ = p`` (variance ``R``, bias variance ``gyro_bias_std_radps²``).
+
+    Parameters
+    ----------
+    theta_rad, bias_radps : ndarray, shape (k,)
+        Pitch integrated up to the fix, and the bias in force.
+    cov : ndarray, shape (k, 3)
+        Covariance ``[P_θθ, P_θb, P_bb]``.
+    fix_ns : ndarray, shape (k,), int
+        Time of the previous fix of each track.
+    known : ndarray, shape (k,), bool
+        The track has had a pitch.
+    pitch_gnss_rad : ndarray, shape (k,)
+        Measured pitch; NaN: no pitch update (the standstill update still applies).
+    stamp_ns : ndarray, shape (k,), int
+    angle_walk_rad2 : ndarray, shape (k,), optional
+        Variance the integrated rate's noise added since the previous fix.
+    still_rate_radps, still_rate_var : ndarray, shape (k,), optional
+        Standstill rate measurement of the bias and its variance (NaN: not standing).
+
+    Returns
+    -------
+    (theta_rad, cov, bias_radps, fix_ns, known)
+    """
+    k = theta_rad.shape[0]
+    r2 = np.full(k, config.pitch_std_rad**2) if pitch_var_rad2 is None else pitch_var_rad2
+    q_ang = np.zeros(k) if angle_walk_rad2 is None else angle_walk_rad2
+    gap = np.where(known, np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 0.0)
+    qb = config.gyro_bias_walk_radps_per_sqrt_s**2
+    ptt, ptb, pbb = cov[:, AngleCov.ANGLE], cov[:, AngleCov.CROSS], cov[:, AngleCov.BIAS]
+    # propagate: F = [[1, −T], [0, 1]], Q of the bias walk integrated over T
+    ptt = ptt - 2 * gap * ptb + gap * gap * pbb + q_ang + qb * gap**3 / 3
+    ptb = ptb - gap * pbb - qb * gap * gap / 2
+    pbb = pbb + qb * gap
+    theta, bias = theta_rad.copy(), bias_radps.copy()
+    # standstill: the gyro reads its bias, z = b + noise (H = [0, 1])
+    if still_rate_radps is not None and still_rate_var is not None:
+        zb = still_rate_radps
+        with np.errstate(invalid="ignore"):
+            s = pbb + still_rate_var
+            yb = zb - bias
+            use = known & np.isfinite(zb) & (yb * yb <= config.gate_chi2 * s)
+        s = np.where(use, s, 1.0)
+        yb = np.where(use, yb, 0.0)
+        kt, kb = ptb / s, pbb / s
+        theta = theta + np.where(use, kt * yb, 0.0)
+        bias = bias + np.where(use, kb * yb, 0.0)
+        ptt, ptb, pbb = (
+            np.where(use, ptt - kt * ptb, ptt),
+            np.where(use, ptb - kt * pbb, ptb),
+            np.where(use, pbb - kb * pbb, pbb),
+        )
+    # the pitch: z = θ + noise (H = [1, 0])
+    has = np.isfinite(pitch_gnss_rad)
+    first = has & ~known
+    follow = has & known
+    s = np.where(follow, ptt + r2, 1.0)
+    y = np.where(follow, pitch_gnss_rad - theta, 0.0)
+    kt, kb = ptt / s, ptb / s
+    theta = np.where(first, pitch_gnss_rad, theta + np.where(follow, kt * y, 0.0))
+    bias = bias + np.where(follow, kb * y, 0.0)
+    new_tt = np.where(follow, ptt - kt * ptt, ptt)
+    new_tb = np.where(follow, ptb - kt * ptb, ptb)
+    new_bb = np.where(follow, pbb - kb * ptb, pbb)
+    out = np.stack(
+        [
+            np.where(first, r2, new_tt),
+            np.where(first, 0.0, new_tb),
+            np.where(first, config.gyro_bias_std_radps**2, new_bb),
+        ],
+        axis=1,
+    )
+    return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
+
+
+def yaw_fix_update(
+    psi_rad: FloatArray,
+    bias_radps: FloatArray,
+    fix_ns: IntArray,
+    heading_gnss_rad: FloatArray,
+    stamp_ns: IntArray,
+    config: TiltSettings,
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Heading track and yaw-gyro bias at one GNSS heading per vehicle (arrays ``(k,)``).
+
+    The integrated heading ``ψ`` moves by ``(1 − exp(−gap/attitude_tau_s))·err`` toward the
+    GNSS heading (``err`` wrapped to ±π) and the bias by
+    ``b_z += gap/(attitude_tau_s·gyro_bias_tau_s)·err`` (``ψ̇ = −(ωz − b_z)/cos θ``: a heading
+    that falls behind means ``b_z`` is too small); an unknown ``ψ`` (NaN) is set to the GNSS
+    heading. Returns ``(psi_rad, bias_radps, fix_ns)``.
+    """
+    tau = config.attitude_tau_s
+    known = np.isfinite(psi_rad)
+    gap = _fix_gap_s(stamp_ns, fix_ns)
+    d = heading_gnss_rad - psi_rad
+    err = d - _TWO_PI * np.rint(d / _TWO_PI)  # IEEE remainder, as math.remainder
+    psi = np.where(known, psi_rad + (1.0 - np.exp(-gap / tau)) * err, heading_gnss_rad)
+    bias = np.where(known, bias_radps + gap / (tau * config.gyro_bias_tau_s) * err, bias_radps)
+    return psi, bias, stamp_ns.copy()
