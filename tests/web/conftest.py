@@ -15,13 +15,12 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 import uvicorn
 
@@ -31,6 +30,7 @@ from server.api import create_app
 from server.live.hub import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
+from server.storage.writer import StoreWriter
 from server.tooling.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.web import mount_web
 from tests.support import free_port
@@ -42,18 +42,9 @@ N_VEHICLES = 12
 SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
 
 
-class _StoreSink:
-    """Writes each batch to the store (the feed thread is the store's only writer)."""
-
-    def __init__(self, store: Store) -> None:
-        self.store = store
-
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        self.store.write_estimates(batch)
-
-
 class LiveRuntime:
-    """Store + live hub + alert engine + synthetic feed, opened and closed by the app's lifespan."""
+    """Store and its writer thread + live hub + alert engine + synthetic feed, opened and closed
+    by the app's lifespan; REST writes go through the writer as in the server."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
@@ -61,6 +52,7 @@ class LiveRuntime:
         self.live_hub = LiveHub()
         self.alert_engine = AlertEngine()
         self._store: Store | None = None
+        self.writer: StoreWriter | None = None
         self.feed: FeedThread | None = None
 
     @property
@@ -79,15 +71,19 @@ class LiveRuntime:
             )
             self._store.upsert_vehicle(vid, config.to_dict(), now)
             self.alert_engine.set_slip_config(vid, config.slip)
+        self.writer = StoreWriter(self._store, self.settings.storage).start()
         self.feed = FeedThread(
-            self.fleet, [self.live_hub, self.alert_engine, _StoreSink(self._store)], rate_hz=20.0
+            self.fleet, [self.live_hub, self.alert_engine, self.writer], rate_hz=20.0
         )
         self.feed.backfill(120.0, rate_hz=10.0)
+        assert self.writer.flush(timeout=30.0), "the back-filled rows were not stored"
         self.feed.start()
 
     def close(self) -> None:
         if self.feed is not None:
             self.feed.stop()
+        if self.writer is not None:
+            self.writer.close()
         if self._store is not None:
             self._store.close()
 
