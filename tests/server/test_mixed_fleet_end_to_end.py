@@ -76,6 +76,19 @@ def _metric(text: str, name: str) -> float:
     return float(line.rsplit(" ", 1)[1])
 
 
+def _ticks_counted(text: str) -> dict[tuple[str, str], int]:
+    """``(vehicle, estimator) -> ticks`` of the estimators' own counters in ``/metrics``."""
+    out = {}
+    for ln in text.splitlines():
+        if ln.startswith("slipfleet_estimator_events_total{") and 'event="ticks"' in ln:
+            labels = dict(
+                kv.split("=", 1) for kv in ln[ln.index("{") + 1 : ln.index("}")].split(",")
+            )
+            key = (labels["vehicle"].strip('"'), labels["estimator"].strip('"'))
+            out[key] = int(float(ln.rsplit(" ", 1)[1]))
+    return out
+
+
 def _wait_stored(client: httpx.Client) -> float:
     """Wait until the writer inserted every row the pipeline produced and nothing more comes;
     that count."""
@@ -191,6 +204,10 @@ def test_mixed_fleet_every_estimators_rows_stored_once_and_served(
                     _check_report_and_latest(client, vid, estimator, window, rows)
             assert sum(len(r["stamp_ns"]) for r in stored.values()) == produced
             text = client.get("/api/v1/metrics").text
+            ticks = _ticks_counted(text)  # estimators that count their ticks per vehicle
+            assert ticks.keys() >= {(vid, "mdsf") for vid in ESTIMATORS}, sorted(ticks)
+            for key, n in ticks.items():
+                assert n == len(stored[key]["stamp_ns"]), key
             for dropped in ("ignored", "dropped_backlog_full", "dropped_error"):
                 assert _metric(text, f"slipfleet_writer_rows_{dropped}_total") == 0, dropped
 
