@@ -79,7 +79,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         settings.api.port = args.port
     if args.data_dir is not None:
         settings.storage.data_dir = args.data_dir
-    demo(settings, vehicles=args.vehicles, scenario=args.scenario, duration_s=args.duration)
+    demo(
+        settings,
+        vehicles=args.vehicles,
+        scenario=args.scenario,
+        duration_s=args.duration,
+        estimator_mix=args.estimator_mix,
+    )
     return 0
 
 
@@ -95,6 +101,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         scenario=args.scenario,
         duration_s=args.duration,
         rate_scale=args.rate_scale,
+        estimator_mix=args.estimator_mix,
     )
     return 0
 
@@ -199,6 +206,8 @@ def _token_id(text: str) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from server.tooling.estimator_mix import add_estimator_mix_argument
+
     p = argparse.ArgumentParser(prog="slipfleet", description="Per-wheel slip telemetry server.")
     p.add_argument("--config", type=Path, default=None, help="TOML settings file")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -215,6 +224,7 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C")
     d.add_argument("--port", type=int, default=None)
     d.add_argument("--data-dir", type=Path, default=None)
+    add_estimator_mix_argument(d, "default: the last vehicle runs mdsf,reference_speed")
     d.set_defaults(func=_cmd_demo)
 
     m = sub.add_parser("simulate", help="publish simulated vehicles over Zenoh")
@@ -223,6 +233,7 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--duration", type=float, default=60.0, help="seconds")
     m.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
     m.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    add_estimator_mix_argument(m, "default: every vehicle its kind's defaults")
     m.set_defaults(func=_cmd_simulate)
 
     r = sub.add_parser("replay", help="publish a recorded drive over Zenoh")

@@ -21,12 +21,29 @@ from server.ingest.zenoh_session import make_config
 from server.protocol.keys import sensor_key
 from server.protocol.recording import Record, write_recording
 from server.settings import Settings, ZenohSettings
-from server.tooling.fleet_sim import VEHICLE_ID_FORMAT, FleetSim, encode_packets, packetize
+from server.tooling.fleet_sim import (
+    VEHICLE_ID_FORMAT,
+    EstimatorMix,
+    FleetSim,
+    encode_packets,
+    packetize,
+)
 from server.tooling.fleet_sim import replay as replay_recording
 
-__all__ = ["demo", "record", "replay", "simulate", "vehicle_session"]
+__all__ = [
+    "DEMO_MIX_ESTIMATORS",
+    "demo",
+    "mix_summary",
+    "record",
+    "replay",
+    "simulate",
+    "vehicle_session",
+]
 
 log = logging.getLogger("slipfleet")
+
+#: What the demo's last vehicle runs unless told otherwise: MDSF and the GNSS-free speed beside it.
+DEMO_MIX_ESTIMATORS = ("mdsf", "reference_speed")
 
 
 def vehicle_session(endpoints: list[str]) -> zenoh.Session:
@@ -35,9 +52,18 @@ def vehicle_session(endpoints: list[str]) -> zenoh.Session:
 
 
 def demo(
-    settings: Settings, *, vehicles: int = 4, scenario: str = "field_work", duration_s: float = 0.0
+    settings: Settings,
+    *,
+    vehicles: int = 4,
+    scenario: str = "field_work",
+    duration_s: float = 0.0,
+    estimator_mix: EstimatorMix | None = None,
 ) -> None:
-    """Embedded router + server + SQLite + ``vehicles`` simulated tractors, until Ctrl-C."""
+    """Embedded router + server + SQLite + ``vehicles`` simulated tractors, until Ctrl-C.
+
+    ``estimator_mix`` defaults to the last vehicle running :data:`DEMO_MIX_ESTIMATORS` (a mixed
+    fleet: one vehicle's reference speed beside its MDSF estimate)."""
+    mix = estimator_mix or EstimatorMix(vehicles, DEMO_MIX_ESTIMATORS)
     settings.api.require_auth = False
     # one simulator session publishes for every vehicle: it cannot log in as each of them
     settings.zenoh.credentials_file = None
@@ -50,7 +76,12 @@ def demo(
     listen = settings.zenoh.connect or settings.zenoh.listen
     session = vehicle_session(list(listen))
     sim = FleetSim(
-        session, vehicles, scenario=scenario, prefix=settings.zenoh.key_prefix, loop=True
+        session,
+        vehicles,
+        scenario=scenario,
+        prefix=settings.zenoh.key_prefix,
+        loop=True,
+        estimator_mix=mix,
     )
     sim.start()
     base = f"http://{settings.api.host}:{server.port}"
@@ -61,6 +92,7 @@ def demo(
         f"  vehicles   {base}/api/v1/vehicles\n"
         f"  3D view    http://{settings.viewer.host}:{settings.viewer.port}/\n"
         f"  zenoh      {', '.join(listen)}  ({vehicles} simulated vehicles, scenario {scenario})\n"
+        f"  estimators {mix_summary(sim)}\n"
         "Ctrl-C stops.\n",
         flush=True,
     )
@@ -78,8 +110,27 @@ def demo(
         server.stop()
 
 
+def mix_summary(sim: FleetSim) -> str:
+    """Which vehicles run which estimators, e.g. ``"sim-0004: mdsf + reference_speed; the
+    others: their kind's defaults"`` (the first three named, then ``...``)."""
+    ids = sim.vehicle_ids
+    named = [(vid, names) for i, vid in enumerate(ids) if (names := sim.estimators_of(i))]
+    if not named:
+        return "every vehicle: its kind's defaults"
+    shown = "; ".join(f"{vid}: {' + '.join(names)}" for vid, names in named[:3])
+    if len(named) > 3:
+        shown += f"; ... ({len(named)} vehicles)"
+    return shown if len(named) == len(ids) else f"{shown}; the others: their kind's defaults"
+
+
 def simulate(
-    settings: Settings, *, vehicles: int, scenario: str, duration_s: float, rate_scale: float = 1.0
+    settings: Settings,
+    *,
+    vehicles: int,
+    scenario: str,
+    duration_s: float,
+    rate_scale: float = 1.0,
+    estimator_mix: EstimatorMix | None = None,
 ) -> None:
     """Publish simulated vehicles to the configured router(s) for ``duration_s`` seconds."""
     endpoints = list(settings.zenoh.connect or settings.zenoh.listen)
@@ -91,6 +142,7 @@ def simulate(
             prefix=settings.zenoh.key_prefix,
             rate=rate_scale,
             loop=True,
+            estimator_mix=estimator_mix,
         )
         stats = sim.run(duration_s)
     print(

@@ -16,6 +16,10 @@ one thread sends every vehicle's packets from one merged schedule (a few µs of 
 :func:`publish_fleets` for several fleets at once). The payloads are byte for byte what
 :func:`encode_packet` makes of the shifted measurements.
 
+A vehicle's published config names the estimators it runs: empty (its kind's defaults) unless
+an :class:`EstimatorMix` gives every k-th vehicle others (a mixed fleet: ``sim-0004`` runs
+``mdsf`` and ``reference_speed``, the others ``mdsf`` only).
+
 :func:`record` writes what a session receives to a recording file and :func:`replay` publishes
 one (format: :mod:`server.protocol.recording`).
 
@@ -51,6 +55,7 @@ from server.protocol.codec import (
 )
 from server.protocol.keys import Stream, config_key, parse_key, sensor_key
 from server.protocol.recording import RecordingWriter, read_recording
+from server.tooling.estimator_mix import EstimatorMix
 from server.tooling.fleet_schedule import (
     STREAMS,
     EncodedDrive,
@@ -61,6 +66,7 @@ from server.tooling.fleet_schedule import (
 
 __all__ = [
     "VEHICLE_ID_FORMAT",
+    "EstimatorMix",
     "FleetSim",
     "SimPacket",
     "SimStats",
@@ -261,6 +267,8 @@ class FleetSim:
         Publish each vehicle's config on ``<prefix>/<id>/config`` before its data.
     clock_ns : callable
         UTC clock for the stamp shift (injectable for tests).
+    estimator_mix : EstimatorMix, optional
+        Which vehicles' configs name other estimators than their kind's defaults.
     """
 
     def __init__(
@@ -277,6 +285,7 @@ class FleetSim:
         first_index: int = 1,
         publish_config: bool = True,
         clock_ns: Callable[[], int] = time.time_ns,
+        estimator_mix: EstimatorMix | None = None,
         **sim_overrides: object,
     ) -> None:
         if n_vehicles < 1 or rate <= 0 or distinct_runs < 1:
@@ -294,6 +303,7 @@ class FleetSim:
         self._first = first_index
         self._publish_config = publish_config
         self._clock = clock_ns
+        self._mix = estimator_mix
         self._overrides = sim_overrides
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -302,6 +312,10 @@ class FleetSim:
     @property
     def vehicle_ids(self) -> list[str]:
         return [VEHICLE_ID_FORMAT.format(self._first + i) for i in range(self._n)]
+
+    def estimators_of(self, index: int) -> tuple[str, ...]:
+        """The ``estimators`` vehicle ``index`` (0-based in this fleet) publishes in its config."""
+        return () if self._mix is None else self._mix.names_for(self._first + index)
 
     @staticmethod
     def spread_origin(k: int) -> dict[str, float]:
@@ -340,7 +354,9 @@ class FleetSim:
             period = loop_period_ns(run.start_ns, run.end_ns)
             phase = (i * TICK_NS) // self._n
             # the vehicle registers its simulated sensors' noise figures, as an integrator would
-            config = dataclasses.replace(run.config, noise=run.sensor_noise)
+            config = dataclasses.replace(
+                run.config, noise=run.sensor_noise, estimators=self.estimators_of(i)
+            )
             vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, config))
         return vehicles
 

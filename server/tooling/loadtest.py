@@ -20,7 +20,9 @@ pre-encoded packets (:func:`server.tooling.fleet_sim.publish_fleets`,
 :mod:`server.tooling.fleet_schedule`): ≈6–10 µs of CPU per packet at 1,000–3,000 vehicles on
 the 2-core reference machine (``slipfleet bench publisher``),
 so 3,000 vehicles (90,000 packets/s) cost the load generator about half a core.
-``--scenario mix`` spreads vehicles over :data:`MIX`. ``--replay`` publishes
+``--scenario mix`` spreads vehicles over :data:`MIX`; ``--estimator-mix`` gives every k-th
+simulated vehicle of each shard other estimators (:class:`~server.tooling.estimator_mix.
+EstimatorMix`). ``--replay`` publishes
 recordings (:mod:`server.protocol.recording`) instead: vehicle ``i`` replays the drives of
 recording ``i mod len(paths)``, renamed and shifted in time (stamps moved to *now*, phases spread
 over the tick), looping.
@@ -75,6 +77,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from server.tooling.estimator_mix import EstimatorMix, add_estimator_mix_argument
 from server.tooling.server_process import ServerProcess
 from server.tooling.speed_probe import probe_s
 
@@ -335,6 +338,8 @@ class LoadSpec:
     distinct_runs: int = 2
     replay: tuple[str, ...] = ()
     seed: int = 0
+    estimator_mix: EstimatorMix | None = None
+    """Which simulated vehicles run other estimators than their kind's defaults."""
 
 
 def publisher_count(spec: LoadSpec) -> int:
@@ -545,6 +550,7 @@ def _publish_child(job_json: str) -> int:
     ]
     NamedSim = _named_fleet_sim_class()
     ReplaySim = _replay_fleet_sim_class() if job["replay"] else None
+    mix = None if job["estimator_mix"] is None else EstimatorMix.parse(job["estimator_mix"])
     sims = []
     for g in job["groups"]:
         common = {
@@ -564,6 +570,7 @@ def _publish_child(job_json: str) -> int:
                     loop=True,
                     seed=job["seed"],
                     distinct_runs=job["distinct_runs"],
+                    estimator_mix=mix,
                     **common,
                 )
             )
@@ -703,6 +710,7 @@ def run_loadtest(
             "replay": list(spec.replay),
             "seed": spec.seed,
             "distinct_runs": spec.distinct_runs,
+            "estimator_mix": None if spec.estimator_mix is None else str(spec.estimator_mix),
         }
         for groups in assignments(spec, target.shards)
     ]
@@ -995,6 +1003,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sessions", type=int, default=8, help="Zenoh sessions per publisher")
     p.add_argument("--warmup", type=float, default=5.0, help="seconds before the window")
     p.add_argument("--replay", nargs="+", default=None, metavar="PATH", help="recordings")
+    add_estimator_mix_argument(p, "default: every vehicle its kind's defaults; not with --replay")
     p.add_argument("--json", type=Path, default=None, help="also write the result as JSON")
     p.add_argument("--connect", default=None, help="router endpoint of a running server")
     p.add_argument("--api", default=None, help="REST base URL of that server (with --connect)")
@@ -1025,6 +1034,7 @@ def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
         sessions_per_publisher=args.sessions,
         warmup_s=args.warmup,
         replay=tuple(str(p) for p in args.replay or ()),
+        estimator_mix=args.estimator_mix,
     )
     if args.connect:
         if not args.api:

@@ -16,10 +16,9 @@ import pytest
 from estimator.sim import simulate, truth_at
 from server.app_main import ServerThread, build_app
 from server.ingest.pipeline import PHASES
-from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import TICK_NS, FleetSim
-from tests.support import free_port
+from tests.server.fleet_stack import BACKENDS, backend_of, stack_settings, wait_counted
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -38,30 +37,10 @@ SEED = 11
 SLIP_RMS_BOUND_PP = 1.25
 
 
-def _settings(tmp_path: Path, storage_url: str | None, workers: int) -> Settings:
-    zenoh_port = free_port()
-    return Settings(
-        zenoh={"listen": [f"tcp/127.0.0.1:{zenoh_port}"]},
-        storage={"url": storage_url, "data_dir": tmp_path / "data", "commit_interval_s": 0.2},
-        ingest={"workers": workers},
-        api={"port": 0, "require_auth": False},
-        viewer={"enabled": False},
-    )
-
-
-@pytest.fixture(
-    params=[
-        "sqlite",
-        "sqlite, 2 worker processes",
-        pytest.param("postgresql", marks=pytest.mark.postgres),
-    ]
-)
+@pytest.fixture(params=BACKENDS)
 def backend(request: pytest.FixtureRequest) -> Iterator[tuple[str | None, int]]:
     """``(storage URL or None for SQLite, ingest.workers)``."""
-    if request.param.startswith("sqlite"):
-        yield None, 2 if "worker" in request.param else 0
-    else:
-        yield request.getfixturevalue("pg_database_url"), 0
+    yield from backend_of(request)
 
 
 def _series(client: httpx.Client, vehicle_id: str, window: dict[str, int]) -> dict[str, np.ndarray]:
@@ -82,7 +61,7 @@ def _series(client: httpx.Client, vehicle_id: str, window: dict[str, int]) -> di
 def test_simulated_fleet_reaches_rest_and_matches_truth(
     tmp_path: Path, backend: tuple[str | None, int]
 ) -> None:
-    settings = _settings(tmp_path, *backend)
+    settings = stack_settings(tmp_path, *backend)
     server = ServerThread(build_app(settings), "127.0.0.1", 0)
     server.start()
     try:
@@ -102,22 +81,9 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
         base = t0  # the simulator anchors run start at its clock reading
         window = {"start": base - 10**9, "end": base + int((DURATION_S + 60) * 1e9)}
         with httpx.Client(base_url=f"http://127.0.0.1:{server.port}", timeout=30) as client:
-            # wait until the lateness window has released everything and the writer committed
-            deadline = time.monotonic() + 30
-            while True:
-                vehicles = client.get("/api/v1/vehicles").json()["data"]
-                ids = sorted(v["vehicle_id"] for v in vehicles)
-                reports = {
-                    vid: client.get(f"/api/v1/vehicles/{vid}/report", params=window).json()
-                    for vid in ids
-                }
-                received = sum(rep["ingest"]["received"] for rep in reports.values())
-                if received >= stats.total_packets and len(ids) == N_VEHICLES:
-                    break
-                assert time.monotonic() < deadline, (
-                    f"only {received}/{stats.total_packets} packets counted"
-                )
-                time.sleep(0.5)
+            reports = wait_counted(client, N_VEHICLES, stats.total_packets, window)
+            ids = sorted(reports)
+            received = sum(rep["ingest"]["received"] for rep in reports.values())
             assert ids == sim.vehicle_ids
             assert received == stats.total_packets, "every published packet is counted once"
             for vid, rep in reports.items():

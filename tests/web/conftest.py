@@ -1,7 +1,7 @@
 """A real app with live data for the browser tests, and a headless Debian Chromium.
 
-The app is the product's ``create_app`` with the live and alerts routers and the dashboard
-mounted, over a runtime holding a real SQLite store (``tmp_path``), a :class:`LiveHub` and an
+The app is the product's ``create_app`` (every API router) with the dashboard mounted, over a
+runtime holding a real SQLite store (``tmp_path``), a :class:`LiveHub` and an
 :class:`AlertEngine`. A :class:`FeedThread` pushes synthetic estimate rows (12 vehicles, 20 Hz,
 stamped with the wall clock) into the hub, the alert engine and the store, after back-filling the
 last two minutes, as the pipeline thread would.
@@ -15,27 +15,22 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 import uvicorn
-from fastapi import APIRouter
 
-from estimator.catalog import SPECS
 from estimator.config import SlipConfig, WheeledRearDriveConfig
 from server.analytics.alerts import AlertEngine
 from server.api import create_app
-from server.api.app import API_ROUTERS
-from server.api.routes import alerts as alerts_routes
-from server.api.routes import live as live_routes
 from server.live.hub import LiveHub
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
+from server.storage.writer import StoreWriter
 from server.tooling.bench.live import CHROMIUM_ARGS, FeedThread, SyntheticFleet
 from server.web import mount_web
 from tests.support import free_port
@@ -47,31 +42,9 @@ N_VEHICLES = 12
 SENSITIVE = "veh-003"  # configured with a 12 % slip alert threshold
 
 
-def _estimators_router() -> APIRouter:
-    """``GET /api/v1/estimators`` from the catalog, for an app whose API does not serve it yet
-    (the app's own route, registered first, wins where it exists)."""
-    router = APIRouter()
-
-    @router.get("/estimators")
-    def estimators() -> dict[str, Any]:
-        data = [SPECS[name].to_dict() for name in sorted(SPECS)]
-        return {"data": data, "count": len(data)}
-
-    return router
-
-
-class _StoreSink:
-    """Writes each batch to the store (the feed thread is the store's only writer)."""
-
-    def __init__(self, store: Store) -> None:
-        self.store = store
-
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None:
-        self.store.write_estimates(batch)
-
-
 class LiveRuntime:
-    """Store + live hub + alert engine + synthetic feed, opened and closed by the app's lifespan."""
+    """Store and its writer thread + live hub + alert engine + synthetic feed, opened and closed
+    by the app's lifespan; REST writes go through the writer as in the server."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
@@ -79,6 +52,7 @@ class LiveRuntime:
         self.live_hub = LiveHub()
         self.alert_engine = AlertEngine()
         self._store: Store | None = None
+        self.writer: StoreWriter | None = None
         self.feed: FeedThread | None = None
 
     @property
@@ -97,15 +71,19 @@ class LiveRuntime:
             )
             self._store.upsert_vehicle(vid, config.to_dict(), now)
             self.alert_engine.set_slip_config(vid, config.slip)
+        self.writer = StoreWriter(self._store, self.settings.storage).start()
         self.feed = FeedThread(
-            self.fleet, [self.live_hub, self.alert_engine, _StoreSink(self._store)], rate_hz=20.0
+            self.fleet, [self.live_hub, self.alert_engine, self.writer], rate_hz=20.0
         )
         self.feed.backfill(120.0, rate_hz=10.0)
+        assert self.writer.flush(timeout=30.0), "the back-filled rows were not stored"
         self.feed.start()
 
     def close(self) -> None:
         if self.feed is not None:
             self.feed.stop()
+        if self.writer is not None:
+            self.writer.close()
         if self._store is not None:
             self._store.close()
 
@@ -127,11 +105,7 @@ def serve_live_stack(data_dir: Path, *, require_auth: bool) -> Iterator[LiveStac
         api=ApiSettings.model_validate({"require_auth": require_auth}),
     )
     runtime = LiveRuntime(settings)
-    app = create_app(
-        settings,
-        runtime,
-        routers=[*API_ROUTERS, live_routes.router, alerts_routes.router, _estimators_router()],
-    )
+    app = create_app(settings, runtime)
     mount_web(app)
     port = free_port()
     server = uvicorn.Server(

@@ -11,8 +11,9 @@ from typing import Any
 
 import pytest
 
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.types import EstimateBatch, empty_estimates
 from estimator.types import EstimateFlag as F
-from estimator.types import empty_estimates
 from tests.web.conftest import N_VEHICLES, SENSITIVE, LiveStack, history_loaded
 
 pytestmark = pytest.mark.browser
@@ -216,7 +217,7 @@ def test_vehicle_page_says_why_slip_is_missing(live_stack: LiveStack, page: Any)
         row["vg_mps"] = 0.0 if flags & F.STANDSTILL else 0.3
         row["slip_left_pct"] = row["slip_right_pct"] = slip_pct
         row["flags"] = flags
-        hub.on_estimates([(vid, row)])
+        hub.on_estimates(EstimateBatch.of([(vid, row)], MDSF_SPEC))
 
     def call(method: str, body: bytes | None = None) -> int:
         url = f"{live_stack.base_url}/api/v1/vehicles/{vid}"

@@ -19,8 +19,8 @@ from typing import Any
 import pytest
 
 from estimator.mdsf_spec import MDSF_SPEC
+from estimator.types import EstimateBatch, empty_estimates
 from estimator.types import EstimateFlag as F
-from estimator.types import empty_estimates
 from tests.web.conftest import SENSITIVE, LiveStack, checked_page, history_loaded
 
 pytestmark = pytest.mark.browser
@@ -73,7 +73,7 @@ def _own_vehicle(stack: LiveStack, vid: str) -> Iterator[Callable[[int], None]]:
         row["rim_left_mps"] = row["rim_right_mps"] = 2.2
         row["slip_left_pct"] = row["slip_right_pct"] = 9.0
         row["flags"] = flags
-        hub.on_estimates([(vid, row)])
+        hub.on_estimates(EstimateBatch.of([(vid, row)], MDSF_SPEC))
 
     assert _call(stack, "PUT", f"/api/v1/vehicles/{vid}", b"{}") in (200, 201)
     try:

@@ -44,7 +44,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from estimator.types import EstimateFlag, empty_estimates
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.types import EstimateBatch, EstimateFlag, empty_estimates
 from server.tooling.bench import percentile
 from server.tooling.ports import free_port as _free_port
 
@@ -58,7 +59,7 @@ _DEGRADED_FLAGS = int(
 
 
 class Sink(Protocol):
-    def on_estimates(self, batch: Sequence[tuple[str, np.ndarray]]) -> None: ...
+    def on_estimates(self, batch: EstimateBatch) -> None: ...
 
 
 class SyntheticFleet:
@@ -153,9 +154,13 @@ class FeedThread:
         now = self._clock_ns()
         step = round(1e9 / rate_hz)
         for t in range(now - round(seconds * 1e9), now, step):
-            batch = self.fleet.rows_at(t)
+            batch = self._batch_at(t)
             for s in self.sinks:
                 s.on_estimates(batch)
+
+    def _batch_at(self, stamp_ns: int) -> EstimateBatch:
+        """The fleet's rows at ``stamp_ns`` as the pipeline hands them to sinks: one MDSF batch."""
+        return EstimateBatch.of(self.fleet.rows_at(stamp_ns), MDSF_SPEC)
 
     def start(self) -> None:
         self._thread.start()
@@ -167,7 +172,7 @@ class FeedThread:
     def _run(self) -> None:
         next_t = time.monotonic()
         while not self._stop.is_set():
-            batch = self.fleet.rows_at(self._clock_ns())
+            batch = self._batch_at(self._clock_ns())
             for s in self.sinks:
                 s.on_estimates(batch)
             self.batches += 1

@@ -27,6 +27,8 @@ from collections.abc import Sequence
 import viser
 
 from estimator.config import VehicleGeometry
+from estimator.mdsf_spec import MDSF_SPEC
+from estimator.types import EstimateBatch
 from server.live.hub import LiveHub
 from server.live.viewer.fleet_view import FleetViewer
 from server.live.viewer.scene import BODY_SIZE_M, cylinder_mesh_x, fleet_frame
@@ -49,7 +51,7 @@ def bench_batched(n: int, frames: int) -> list[float]:
     times = []
     try:
         for k in range(frames + 1):
-            hub.on_estimates(fleet.rows_at(_T0 + k * _STEP_NS))
+            hub.on_estimates(EstimateBatch.of(fleet.rows_at(_T0 + k * _STEP_NS), MDSF_SPEC))
             t0 = time.perf_counter()
             viewer.update()
             if k:  # the first frame builds the meshes
@@ -70,7 +72,7 @@ def bench_per_vehicle(n: int, frames: int) -> list[float]:
     times = []
     try:
         for k in range(frames + 1):
-            hub.on_estimates(fleet.rows_at(_T0 + k * _STEP_NS))
+            hub.on_estimates(EstimateBatch.of(fleet.rows_at(_T0 + k * _STEP_NS), MDSF_SPEC))
             t0 = time.perf_counter()
             spec = hub.specs()[0]
             ids, rows, arrivals = hub.latest_all(spec.name)

@@ -1,0 +1,62 @@
+"""The whole server for end-to-end tests: its settings per storage backend, and waiting until
+every packet a simulated fleet published has been counted."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from server.settings import Settings
+from tests.support import free_port
+
+__all__ = ["BACKENDS", "backend_of", "stack_settings", "wait_counted"]
+
+#: Storage backends and ingest layouts the end-to-end tests run on (``backend_of`` reads them).
+BACKENDS = [
+    "sqlite",
+    "sqlite, 2 worker processes",
+    pytest.param("postgresql", marks=pytest.mark.postgres),
+]
+
+
+def backend_of(request: pytest.FixtureRequest) -> Iterator[tuple[str | None, int]]:
+    """``(storage URL or None for SQLite, ingest.workers)`` of a ``BACKENDS`` parameter."""
+    if request.param.startswith("sqlite"):
+        yield None, 2 if "worker" in request.param else 0
+    else:
+        yield request.getfixturevalue("pg_database_url"), 0
+
+
+def stack_settings(tmp_path: Path, storage_url: str | None, workers: int) -> Settings:
+    """A server on loopback: embedded router on a free port, no auth, no 3D view."""
+    return Settings(
+        zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"]},
+        storage={"url": storage_url, "data_dir": tmp_path / "data", "commit_interval_s": 0.2},
+        ingest={"workers": workers},
+        api={"port": 0, "require_auth": False},
+        viewer={"enabled": False},
+    )
+
+
+def wait_counted(
+    client: httpx.Client, n_vehicles: int, packets: int, window: dict[str, int]
+) -> dict[str, Any]:
+    """Each vehicle's report once ``n_vehicles`` are registered and their ``received`` counters
+    add up to ``packets`` (at most 30 s: the lateness window releases, the writer commits)."""
+    deadline = time.monotonic() + 30
+    while True:
+        vehicles = client.get("/api/v1/vehicles").json()["data"]
+        ids = sorted(v["vehicle_id"] for v in vehicles)
+        reports = {
+            vid: client.get(f"/api/v1/vehicles/{vid}/report", params=window).json() for vid in ids
+        }
+        received = sum(rep["ingest"]["received"] for rep in reports.values())
+        if received >= packets and len(ids) == n_vehicles:
+            return reports
+        assert time.monotonic() < deadline, f"only {received}/{packets} packets counted"
+        time.sleep(0.5)
