@@ -1,13 +1,29 @@
-"""Array helpers shared by the fleet front end and engine: the same results as their numpy
+"""Array helpers shared by the fleet front ends and engines: the same results as their numpy
 counterparts in fewer array calls (each numpy call costs microseconds on the small arrays of
-one assembly, whatever their size)."""
+one assembly, whatever their size), and the array type names they annotate with."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["as_rows", "as_stamps", "nan_to_num", "seg_cumsum"]
+__all__ = [
+    "BoolArray",
+    "CArray",
+    "FloatArray",
+    "IntArray",
+    "as_rows",
+    "as_stamps",
+    "nan_to_num",
+    "seg_cumsum",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+CArray = npt.NDArray[np.complexfloating[Any, Any]]
 
 _F64_MAX = float(np.finfo(np.float64).max)
 _I8 = np.dtype(np.int64)

@@ -4,7 +4,7 @@
 rear-axle geometry, wheel encoders), :class:`TrackedConfig` (a crawler, ``method.md`` §4) and
 :class:`Wheeled4wdSteeredConfig` (a steered four-wheel vehicle, ``method.md`` §5). Every kind
 has ``noise``, ``slip`` and ``estimators``; its class attribute ``kind`` names it in JSON and
-``positions`` names its wheels or tracks (:class:`WheelPosition`).
+``positions`` names its wheels or tracks (:class:`~estimator.spec.WheelPosition`).
 
 Every numeric field carries its plausible physical range and unit once, as field metadata
 (:class:`Bound`, read with :func:`bound_of`); ``__post_init__`` refuses a value outside it with
@@ -30,6 +30,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
 from typing import Any, ClassVar, TypeVar
+
+from estimator.spec import WheelPosition
 
 __all__ = [
     "Bound",
@@ -69,17 +71,6 @@ class VehicleKind(StrEnum):
     WHEELED_REAR_DRIVE = "wheeled_rear_drive"
     TRACKED = "tracked"
     WHEELED_4WD_STEERED = "wheeled_4wd_steered"
-
-
-class WheelPosition(StrEnum):
-    """A named wheel or track (instead of a column of an ``(n, 2)`` array)."""
-
-    REAR_LEFT = "rear_left"
-    REAR_RIGHT = "rear_right"
-    FRONT_LEFT = "front_left"
-    FRONT_RIGHT = "front_right"
-    TRACK_LEFT = "track_left"
-    TRACK_RIGHT = "track_right"
 
 
 class DrivenAxle(StrEnum):

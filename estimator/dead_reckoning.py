@@ -38,15 +38,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
+from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.config import ConfigError
 
 __all__ = ["DeadReckoning", "DeadReckoningConfig"]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,6 +23,8 @@ from typing import cast
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import BoolArray, FloatArray
+
 __all__ = [
     "IndependentUpdateResult",
     "UpdateResult",
@@ -33,9 +35,6 @@ __all__ = [
     "update",
     "update_independent",
 ]
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 
 
 def symmetrize(P: FloatArray) -> FloatArray:

@@ -20,8 +20,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-import numpy.typing as npt
 
+from estimator._arrays import FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import ConfigError, VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
@@ -30,9 +30,6 @@ from estimator.types import ImuBatch, WheelEdges, WheelGap, WheelSpeeds
 from estimator.wheel_speed import DirectWheelSpeed, WheelSpeedConfig, WheelTracker
 
 __all__ = ["ReferenceFleetConfig", "ReferenceSpeedFleet"]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 _FORWARD = 1  # body Y: forward axis of accel_mps2
 

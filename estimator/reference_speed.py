@@ -32,11 +32,10 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator import kalman
+from estimator._arrays import FloatArray
 from estimator.config import ConfigError
 
 __all__ = ["RefAux", "RefState", "ReferenceSpeedConfig", "reference_step", "transition"]
-
-FloatArray = npt.NDArray[np.float64]
 
 
 class RefState(IntEnum):

@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["SlipResult", "fit_span_s", "slip_pct", "unsettled"]
+from estimator._arrays import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
+__all__ = ["SlipResult", "fit_span_s", "slip_pct", "unsettled"]
 
 
 @dataclass(frozen=True, slots=True)

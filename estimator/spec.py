@@ -53,7 +53,7 @@ class SpecError(ValueError):
 
 
 class WheelPosition(StrEnum):
-    """Named place of a wheel or track on a vehicle (what a slip channel belongs to)."""
+    """Named place of a wheel or track on a vehicle (a kind's ``positions``, a slip channel's)."""
 
     REAR_LEFT = "rear_left"
     REAR_RIGHT = "rear_right"

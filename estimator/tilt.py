@@ -24,12 +24,11 @@ tracks update together. Columns are named by :class:`Integral`, :class:`PitchSum
 from __future__ import annotations
 
 from enum import IntEnum
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
-import numpy.typing as npt
 
-from estimator._arrays import seg_cumsum
+from estimator._arrays import BoolArray, CArray, FloatArray, IntArray, seg_cumsum
 
 __all__ = [
     "N_INTEGRALS_UNCOUPLED",
@@ -47,11 +46,6 @@ __all__ = [
     "tilt_integrals",
     "yaw_fix_update",
 ]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
-CArray = npt.NDArray[np.complexfloating[Any, Any]]
 
 _NS = 1e-9
 _TWO_PI = 2 * np.pi

@@ -28,6 +28,7 @@ from typing import overload
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import FloatArray, IntArray
 from estimator.spec import EstimatorSpec
 
 __all__ = [
@@ -51,9 +52,6 @@ __all__ = [
     "concat_estimates",
     "empty_estimates",
 ]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 
 class Wheel(IntEnum):

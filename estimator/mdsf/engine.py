@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimator import kalman
-from estimator._arrays import nan_to_num
+from estimator._arrays import BoolArray, FloatArray, IntArray, nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.config import WheeledRearDriveConfig
 from estimator.mdsf.frontend import TickInputs
@@ -40,10 +40,6 @@ from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, re
 from estimator.types import EstimateFlag
 
 __all__ = ["Counter", "MdsfEngine", "StepOutput", "TickModel"]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
 
 _NS = 1e-9
 _SLIP_MIN_SPEED_MPS = 0.5

@@ -23,6 +23,7 @@ from collections.abc import Iterator, Mapping
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import FloatArray, IntArray
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
@@ -37,9 +38,6 @@ from estimator.types import ESTIMATE_DTYPE, EstimateFlag, empty_estimates
 from estimator.wheel_speed import WheelSpeedConfig
 
 __all__ = ["MdsfFleet"]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 _F = EstimateFlag
 

@@ -54,7 +54,15 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import as_rows, as_stamps, nan_to_num, seg_cumsum
+from estimator._arrays import (
+    BoolArray,
+    FloatArray,
+    IntArray,
+    as_rows,
+    as_stamps,
+    nan_to_num,
+    seg_cumsum,
+)
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import WheeledRearDriveConfig
@@ -107,11 +115,6 @@ __all__ = [
     "FleetTicks",
     "TickInputs",
 ]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-BoolArray = npt.NDArray[np.bool_]
-CArray = npt.NDArray[np.complexfloating[Any, Any]]
 
 _NS = 1e-9
 _NONE_NS = np.iinfo(np.int64).min

@@ -77,6 +77,7 @@ import numpy as np
 import numpy.typing as npt
 from filterpy.kalman import KalmanFilter
 
+from estimator._arrays import FloatArray
 from estimator.config import ConfigError, VehicleGeometry, WheeledRearDriveConfig
 
 __all__ = [
@@ -95,8 +96,6 @@ __all__ = [
     "structural_speeds",
     "transition_matrix",
 ]
-
-FloatArray = npt.NDArray[np.float64]
 
 GRAVITY_MPS2 = 9.80665
 """Standard gravity [m/s²]."""

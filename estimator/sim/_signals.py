@@ -11,9 +11,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from estimator._arrays import FloatArray
+
 Profile = Callable[[FloatArray], FloatArray]
 
 __all__ = [

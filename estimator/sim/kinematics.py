@@ -34,11 +34,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import numpy.typing as npt
 
+from estimator._arrays import FloatArray
 from estimator.sim._signals import Profile, cumtrapz, ou_process
-
-FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
     "GRAVITY_MPS2",

@@ -30,12 +30,11 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
+from estimator._arrays import FloatArray
 from estimator.sim._signals import BoundedSines, EasedKnots, smooth_window
 from estimator.sim.kinematics import MotionPlan, TractionModel
 
-FloatArray = npt.NDArray[np.float64]
 Params = Mapping[str, Any]
 Builder = Callable[[Params, np.random.Generator], MotionPlan]
 

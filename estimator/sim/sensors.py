@@ -40,13 +40,12 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import FloatArray
 from estimator.base import Measurement
 from estimator.config import WheeledRearDriveConfig
 from estimator.geo import EnuFrame
 from estimator.sim.kinematics import FineTruth
 from estimator.types import GnssFix, GnssSample, ImuBatch, Wheel, WheelEdges
-
-FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
     "Emission",

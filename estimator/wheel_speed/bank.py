@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 
-from estimator._arrays import as_stamps
+from estimator._arrays import FloatArray, IntArray, as_stamps
 from estimator._slots import grow_slot_array
 from estimator.wheel_speed.methods import (
     _SPLIT_MIN_ROWS,
@@ -32,9 +32,6 @@ from estimator.wheel_speed.methods import (
 )
 
 __all__ = ["WheelBank"]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 _NS = 1e-9
 

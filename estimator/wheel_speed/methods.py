@@ -37,6 +37,7 @@ from enum import IntEnum
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import FloatArray, IntArray
 from estimator.config import ConfigError
 
 __all__ = [
@@ -49,9 +50,6 @@ __all__ = [
     "omega_k_tooth",
     "stop_bound",
 ]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 _NS = 1e-9
 _GAP_FACTOR = 3.0

@@ -12,14 +12,12 @@ import weakref
 import numpy as np
 import numpy.typing as npt
 
+from estimator._arrays import FloatArray, IntArray
 from estimator.config import ConfigError
 from estimator.wheel_speed.bank import WheelBank
 from estimator.wheel_speed.methods import WheelSpeedConfig, WheelSpeedResult, _tooth
 
 __all__ = ["DirectWheelSpeed", "WheelTracker", "gather_bank", "query_many"]
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 
 class WheelTracker:

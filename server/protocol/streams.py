@@ -90,6 +90,27 @@ def _wheels_layout(p: wire.WheelsPacket) -> Layout:
     return sensors.WHEEL_MODES[p.mode]
 
 
+def _fixed(
+    stream: Stream,
+    wire_type: type[msgspec.Struct],
+    measurement: type,
+    layout: Layout,
+    priority: int,
+    *,
+    cumulative: bool = False,
+) -> StreamSpec:
+    """A stream whose every packet has the one ``layout``: it decodes and batches by it."""
+    return StreamSpec(
+        stream=stream,
+        wire=wire_type,
+        measurements=(measurement,),
+        decode=layout.decode,
+        batch=lambda p: layout,
+        priority=priority,
+        cumulative=cumulative,
+    )
+
+
 _SPECS = (
     StreamSpec(
         stream=Stream.GNSS,
@@ -99,14 +120,7 @@ _SPECS = (
         single=sensors.gnss_struct,
         priority=0,
     ),
-    StreamSpec(
-        stream=Stream.IMU,
-        wire=wire.ImuPacket,
-        measurements=(ImuBatch,),
-        decode=sensors.IMU.decode,
-        batch=lambda p: sensors.IMU,
-        priority=1,
-    ),
+    _fixed(Stream.IMU, wire.ImuPacket, ImuBatch, sensors.IMU, priority=1),
     StreamSpec(
         stream=Stream.WHEELS,
         wire=wire.WheelsPacket,
@@ -124,29 +138,20 @@ _SPECS = (
         priority=3,
         cumulative=True,
     ),
-    StreamSpec(
-        stream=Stream.SPROCKETS,
-        wire=wire.SprocketsPacket,
-        measurements=(SprocketEdges,),
-        decode=drivetrain.SPROCKETS.decode,
-        batch=lambda p: drivetrain.SPROCKETS,
+    _fixed(
+        Stream.SPROCKETS,
+        wire.SprocketsPacket,
+        SprocketEdges,
+        drivetrain.SPROCKETS,
         priority=4,
         cumulative=True,
     ),
-    StreamSpec(
-        stream=Stream.STEERING,
-        wire=wire.SteeringPacket,
-        measurements=(SteeringAngles,),
-        decode=drivetrain.STEERING.decode,
-        batch=lambda p: drivetrain.STEERING,
-        priority=5,
-    ),
-    StreamSpec(
-        stream=Stream.WHEEL_SPEEDS4,
-        wire=wire.WheelSpeeds4Packet,
-        measurements=(WheelSpeeds4,),
-        decode=drivetrain.WHEEL_SPEEDS4.decode,
-        batch=lambda p: drivetrain.WHEEL_SPEEDS4,
+    _fixed(Stream.STEERING, wire.SteeringPacket, SteeringAngles, drivetrain.STEERING, priority=5),
+    _fixed(
+        Stream.WHEEL_SPEEDS4,
+        wire.WheelSpeeds4Packet,
+        WheelSpeeds4,
+        drivetrain.WHEEL_SPEEDS4,
         priority=6,
     ),
 )

@@ -8,15 +8,15 @@ the database records, refusing a spec whose fields no longer match its table.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 
 from estimator.catalog import SPECS, spec_of
 from estimator.spec import EstimatorSpec
 from estimator.types import EstimateBatch, concat_estimates
-from server.storage.base import StorageError
+from server.storage.base import StorageDataError, StorageError
 
 #: The estimator of rows handed over as plain ``[(vehicle_id, rows), …]`` and the default of
 #: the read methods (what callers meant before there was more than one estimator).
@@ -55,6 +55,73 @@ def resolve_tables(
             )
         tables[spec.name] = table
     return tables, sorted(t for t, _ in recorded.values())
+
+
+class _Table(Protocol):
+    spec: EstimatorSpec
+
+
+_T = TypeVar("_T", bound=_Table)
+
+
+class SpecTables(Generic[_T]):
+    """The tables of the specs one store serves, read from ``estimator_tables`` on first use
+    (again at :meth:`reload`) and checked by :func:`resolve_tables`; ``every`` names every
+    estimator table the database records (deletes reach them all).
+
+    ``make(spec, table)`` builds the store's own per-estimator table object; ``read(sql)``
+    runs a query in the store's dialect.
+    """
+
+    def __init__(
+        self,
+        dialect: str,
+        specs: Iterable[EstimatorSpec] | None,
+        make: Callable[[EstimatorSpec, str], _T],
+        read: Callable[[str], Iterable[Sequence[Any]]],
+    ) -> None:
+        self.specs = tuple(catalog_specs() if specs is None else specs)
+        self.every: list[str] = []
+        self._dialect = dialect
+        self._make = make
+        self._read = read
+        self._tables: dict[str, _T] | None = None
+
+    def reload(self) -> dict[str, _T]:
+        """Read the tables again (the schema changed), refusing a spec its table no longer
+        fits."""
+        self._tables = None
+        return self.load()
+
+    def load(self) -> dict[str, _T]:
+        """The served specs' tables by estimator name."""
+        if self._tables is None:
+            try:
+                records = self._read("SELECT estimator, table_name, fields FROM estimator_tables")
+            except StorageError as exc:
+                raise StorageError(f"{exc} (is the database migrated?)") from exc
+            tables, self.every = resolve_tables(records, self.specs)
+            self._tables = {s.name: self._make(s, tables[s.name]) for s in self.specs}
+        return self._tables
+
+    def served(self, estimator: str) -> _T:
+        """The table of ``estimator`` (``ValueError`` when this store does not serve it)."""
+        t = self.load().get(estimator)
+        if t is None:
+            raise ValueError(
+                f"unknown estimator {estimator!r}; known: {sorted(self._tables or ())}"
+            )
+        return t
+
+    def of(self, batch: EstimateBatch) -> _T:
+        """The table ``batch`` goes to (``StorageDataError`` when its rows fit none)."""
+        t = self.load().get(batch.estimator)
+        if t is None or t.spec.dtype != batch.spec.dtype:
+            raise StorageDataError(
+                f"{self._dialect}: rows of estimator {batch.estimator!r} do not fit a table of "
+                "this store"
+            )
+        return t
 
 
 def as_batches(batches: Sequence[Any]) -> list[EstimateBatch]:

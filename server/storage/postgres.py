@@ -30,10 +30,9 @@ from estimator.types import EstimateBatch
 from server.storage import migrations
 from server.storage._columns import (
     DEFAULT_ESTIMATOR,
+    SpecTables,
     as_batches,
-    catalog_specs,
     fields_dtype,
-    resolve_tables,
     select_fields,
     spec_fields,
 )
@@ -164,11 +163,10 @@ class PostgresStore:
         self._pool = _Pool(url, max_idle, connect_timeout_s)
         # connections holding the staging tables of every served estimator
         self._staged: weakref.WeakSet[psycopg.Connection[Any]] = weakref.WeakSet()
-        self._specs = tuple(catalog_specs() if specs is None else specs)
         # the served specs' tables (read from the database on first use, again after migrate)
-        # and every estimator table the database records (deletes reach them all)
-        self._tables: dict[str, _PgTable] | None = None
-        self._all_tables: list[str] = []
+        self._tables = SpecTables(
+            self.dialect, specs, _PgTable, lambda sql: self._one_row_query(sql, ())
+        )
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -184,8 +182,7 @@ class PostgresStore:
                 version, _ = migrations.apply_pending(execute, self.dialect)
             except RuntimeError as exc:
                 raise StorageError(str(exc)) from exc
-        self._tables = None
-        self._load_tables()  # refuses a spec its table no longer fits, at start
+        self._tables.reload()  # refuses a spec its table no longer fits, at start
         return version
 
     def close(self) -> None:
@@ -272,38 +269,6 @@ class PostgresStore:
 
     # ------------------------------------------------------------------ estimates
 
-    def _load_tables(self) -> dict[str, _PgTable]:
-        """The served specs' tables (read once from ``estimator_tables``, checked)."""
-        if self._tables is None:
-            try:
-                records = self._one_row_query(
-                    "SELECT estimator, table_name, fields FROM estimator_tables", ()
-                )
-            except StorageError as exc:
-                raise StorageError(f"{exc} (is the database migrated?)") from exc
-            tables, every = resolve_tables(records, self._specs)
-            self._all_tables = every
-            self._tables = {s.name: _PgTable(s, tables[s.name]) for s in self._specs}
-        return self._tables
-
-    def _served(self, estimator: str) -> _PgTable:
-        """The table of ``estimator`` (``ValueError`` when this store does not serve it)."""
-        t = self._load_tables().get(estimator)
-        if t is None:
-            raise ValueError(
-                f"unknown estimator {estimator!r}; known: {sorted(self._tables or ())}"
-            )
-        return t
-
-    def _tables_of(self, batch: EstimateBatch) -> _PgTable:
-        t = self._load_tables().get(batch.estimator)
-        if t is None or t.spec.dtype != batch.spec.dtype:
-            raise StorageDataError(
-                f"postgresql: rows of estimator {batch.estimator!r} do not fit a table of this "
-                "store"
-            )
-        return t
-
     @staticmethod
     def _vkeys(conn: psycopg.Connection[Any], vehicle_ids: Sequence[str]) -> dict[str, int]:
         rows = conn.execute(
@@ -318,13 +283,13 @@ class PostgresStore:
         """Insert the rows of one or more estimators in one transaction; rows of unregistered
         vehicles are not written. Returns the rows inserted (duplicates and unknown vehicles
         excluded)."""
-        parts = [(self._tables_of(b), b) for b in as_batches(batches)]
+        parts = [(self._tables.of(b), b) for b in as_batches(batches)]
         if not parts:
             return 0
         with self._pool.connection() as conn:
             if conn not in self._staged:
                 # Outside the write transaction, so a rolled-back write cannot undo it.
-                for t in self._load_tables().values():
+                for t in self._tables.load().values():
                     conn.execute(
                         f"CREATE TEMPORARY TABLE IF NOT EXISTS {t.stage} "
                         f"(LIKE {t.table}) ON COMMIT DELETE ROWS"
@@ -355,7 +320,7 @@ class PostgresStore:
         fields: Sequence[str] | None = None,
         estimator: str = DEFAULT_ESTIMATOR,
     ) -> np.ndarray:
-        t = self._served(estimator)
+        t = self._tables.served(estimator)
         names = select_fields(t.spec, fields)
         wire = _copy_dtype([(n, t.spec.field(n).kind) for n in names])
         chunks = bytearray()
@@ -379,7 +344,7 @@ class PostgresStore:
             return conn.execute(sql, params).fetchall()
 
     def latest(self, vehicle_id: str, estimator: str = DEFAULT_ESTIMATOR) -> np.ndarray | None:
-        t = self._served(estimator)
+        t = self._tables.served(estimator)
         rows = self._one_row_query(
             f"SELECT {', '.join(t.spec.field_names)} FROM {t.table} "
             "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
@@ -391,7 +356,7 @@ class PostgresStore:
         return np.array(rows, dtype=t.spec.dtype).reshape(())
 
     def latest_all(self, estimator: str = DEFAULT_ESTIMATOR) -> dict[str, np.ndarray]:
-        t = self._served(estimator)
+        t = self._tables.served(estimator)
         rows = self._one_row_query(
             f"SELECT v.vehicle_id, {', '.join('e.' + n for n in t.spec.field_names)} "
             f"FROM vehicles v JOIN {t.table} e ON e.vkey = v.vkey "
@@ -401,7 +366,7 @@ class PostgresStore:
         return {r[0]: np.array([tuple(r[1:])], dtype=t.spec.dtype).reshape(()) for r in rows}
 
     def estimators_with_rows(self, vehicle_id: str) -> list[str]:
-        tables = self._load_tables()
+        tables = self._tables.load()
         if not tables:
             return []
         exists = " UNION ALL ".join(
@@ -416,11 +381,11 @@ class PostgresStore:
     def delete_older_than(self, stamp_ns: int) -> int:
         """Delete the estimates of every estimator (and raw packets) older than ``stamp_ns``;
         return estimates deleted."""
-        self._load_tables()
+        self._tables.load()
         deleted = 0
         with self._pool.connection() as conn, conn.transaction():
             vkeys = conn.execute("SELECT vkey FROM vehicles").fetchall()
-            for table in self._all_tables:
+            for table in self._tables.every:
                 for (vkey,) in vkeys:
                     # Per vehicle, so each delete is a primary-key range scan.
                     cur = conn.execute(

@@ -73,10 +73,9 @@ from estimator.types import EstimateBatch, concat_estimates
 from server.storage import migrations
 from server.storage._columns import (
     DEFAULT_ESTIMATOR,
+    SpecTables,
     as_batches,
-    catalog_specs,
     fields_dtype,
-    resolve_tables,
     select_fields,
 )
 from server.storage.base import (
@@ -199,11 +198,8 @@ class SqliteStore:
         self._conns_lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._closed = False
-        self._specs = tuple(catalog_specs() if specs is None else specs)
         # the served specs' tables (read from the database on first use, again after migrate)
-        # and every estimator table the database records (deletes reach them all)
-        self._tables: dict[str, _Tables] | None = None
-        self._all_tables: list[str] = []
+        self._tables = SpecTables(self.dialect, specs, _Tables, self._read)
         # vehicle_id -> vkey of registered vehicles (a vkey never changes; delete_vehicle
         # drops its entry in the same write transaction that deletes the vehicle)
         self._vkey_of: dict[str, int] = {}
@@ -288,8 +284,7 @@ class SqliteStore:
                 version, _ = migrations.apply_pending(execute, self.dialect)
             except RuntimeError as exc:
                 raise StorageError(str(exc)) from exc
-        self._tables = None
-        self._load_tables()  # refuses a spec its table no longer fits, at start
+        self._tables.reload()  # refuses a spec its table no longer fits, at start
         return version
 
     def close(self) -> None:
@@ -354,7 +349,7 @@ class SqliteStore:
         return [self._record(r) for r in rows]
 
     def delete_vehicle(self, vehicle_id: str) -> bool:
-        self._load_tables()
+        self._tables.load()
         with self._write() as conn:
             row = conn.execute(
                 "SELECT vkey FROM vehicles WHERE vehicle_id = ?", (vehicle_id,)
@@ -366,42 +361,13 @@ class SqliteStore:
                 return False
             # Explicit deletes, so correctness never depends on the foreign_keys pragma.
             self._vkey_of.pop(vehicle_id, None)
-            for table in self._all_tables:
+            for table in self._tables.every:
                 conn.execute(f"DELETE FROM {table} WHERE vkey = ?", (row[0],))
                 conn.execute(f"DELETE FROM {table}_recent WHERE vkey = ?", (row[0],))
             conn.execute("DELETE FROM vehicles WHERE vkey = ?", (row[0],))
         return True
 
     # ------------------------------------------------------------------ estimates
-
-    def _load_tables(self) -> dict[str, _Tables]:
-        """The served specs' tables (read once from ``estimator_tables``, checked)."""
-        if self._tables is None:
-            try:
-                records = self._read("SELECT estimator, table_name, fields FROM estimator_tables")
-            except StorageError as exc:
-                raise StorageError(f"{exc} (is the database migrated?)") from exc
-            tables, every = resolve_tables(records, self._specs)
-            self._all_tables = every
-            self._tables = {s.name: _Tables(s, tables[s.name]) for s in self._specs}
-        return self._tables
-
-    def _served(self, estimator: str) -> _Tables:
-        """The tables of ``estimator`` (``ValueError`` when this store does not serve it)."""
-        t = self._load_tables().get(estimator)
-        if t is None:
-            raise ValueError(
-                f"unknown estimator {estimator!r}; known: {sorted(self._tables or ())}"
-            )
-        return t
-
-    def _tables_of(self, batch: EstimateBatch) -> _Tables:
-        t = self._load_tables().get(batch.estimator)
-        if t is None or t.spec.dtype != batch.spec.dtype:
-            raise StorageDataError(
-                f"sqlite: rows of estimator {batch.estimator!r} do not fit a table of this store"
-            )
-        return t
 
     def write_estimates(self, *batches: EstimateBatch | Sequence[tuple[str, np.ndarray]]) -> int:
         """Insert the rows of one or more estimators in one transaction; rows of unregistered
@@ -415,7 +381,7 @@ class SqliteStore:
             missing = {vid for b in parts for vid in b.ids if vid not in keys}
             if missing:
                 keys.update(self._vkeys(conn, missing))
-            return sum(self._stage(conn, self._tables_of(b), b, keys) for b in parts)
+            return sum(self._stage(conn, self._tables.of(b), b, keys) for b in parts)
 
     @staticmethod
     def _stage(
@@ -470,7 +436,7 @@ class SqliteStore:
         :meth:`_stage`). Between the copy and the delete a row is in both tables; reads keep
         one.
         """
-        tables = sorted(self._load_tables().values(), key=lambda t: t.move is None)
+        tables = sorted(self._tables.load().values(), key=lambda t: t.move is None)
         with self._write() as conn:
             for t in tables:
                 worked, move = self._move_step(conn, t, everything)
@@ -548,7 +514,7 @@ class SqliteStore:
         fields: Sequence[str] | None = None,
         estimator: str = DEFAULT_ESTIMATOR,
     ) -> np.ndarray:
-        t = self._served(estimator)
+        t = self._tables.served(estimator)
         names = select_fields(t.spec, fields)
         rows = self._query_packed(t, vehicle_id, int(start_ns), int(end_ns))
         if names != t.spec.field_names:
@@ -637,7 +603,7 @@ class SqliteStore:
         return data
 
     def latest(self, vehicle_id: str, estimator: str = DEFAULT_ESTIMATOR) -> np.ndarray | None:
-        t = self._served(estimator)
+        t = self._tables.served(estimator)
         rows = self._read(
             "SELECT stamp_ns, packed FROM ("
             f" SELECT stamp_ns, packed FROM {t.final} WHERE vkey = (SELECT vkey FROM vehicles"
@@ -651,7 +617,7 @@ class SqliteStore:
         return _unpack_one(rows[0][1], t.spec.dtype) if rows else None
 
     def latest_all(self, estimator: str = DEFAULT_ESTIMATOR) -> dict[str, np.ndarray]:
-        t = self._served(estimator)
+        t = self._tables.served(estimator)
         rows = self._read(
             f"SELECT v.vehicle_id, e.stamp_ns, e.packed FROM vehicles v JOIN {t.final} e "
             "ON e.vkey = v.vkey "
@@ -673,7 +639,7 @@ class SqliteStore:
             return []
         return [
             name
-            for name, t in self._load_tables().items()
+            for name, t in self._tables.load().items()
             if self._read(
                 f"SELECT EXISTS (SELECT 1 FROM {t.final} WHERE vkey = ?1) "
                 f"OR EXISTS (SELECT 1 FROM {t.recent} WHERE vkey = ?1)",
@@ -684,11 +650,11 @@ class SqliteStore:
     def delete_older_than(self, stamp_ns: int) -> int:
         """Delete the estimates of every estimator (and raw packets) older than ``stamp_ns``;
         return estimates deleted."""
-        self._load_tables()
+        self._tables.load()
         deleted = 0
         with self._write() as conn:
             vkeys = conn.execute("SELECT vkey FROM vehicles").fetchall()
-            for table in self._all_tables:
+            for table in self._tables.every:
                 # Per vehicle, so each delete is a primary-key range scan.
                 for (vkey,) in vkeys:
                     deleted += conn.execute(

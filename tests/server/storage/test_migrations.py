@@ -274,12 +274,13 @@ def test_stored_configs_move_to_the_shape_of_their_kind(
     """Configs stored by version 9 (every kind in the rear-drive shape, or no kind at all) read
     as their kind after version 11, values kept; an invalid one is kept as it was."""
     import server.storage.migrations as mig
+    from server.storage._columns import SpecTables
 
     store = backend.open(migrate=False)
     with monkeypatch.context() as m:
         m.setattr(mig, "MIGRATIONS", mig.MIGRATIONS[:9])
         # a version-9 database has no estimator tables to check yet
-        m.setattr(type(store), "_load_tables", lambda self: {})
+        m.setattr(SpecTables, "reload", lambda self: {})
         assert store.migrate() == 9
     old = {
         "rear": _V9_REAR,
