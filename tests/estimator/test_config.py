@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.config import (
@@ -232,6 +232,7 @@ def test_mdsf_refuses_another_kind() -> None:
     assert expect_kind(TrackedConfig(), TrackedConfig, "tracked") == TrackedConfig()
 
 
+@settings(deadline=None)  # a config per kind per example: slow on a loaded machine
 @given(st.data())
 def test_values_within_the_ranges_are_accepted(data: st.DataObject) -> None:
     for cls in KINDS:
