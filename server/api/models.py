@@ -15,7 +15,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import typing
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, cast
 
 from pydantic import (
     BaseModel,
@@ -152,7 +152,8 @@ def _config_models() -> tuple[type[BaseModel], ...]:
 
 
 VehicleConfigAdapter: TypeAdapter[Any] = TypeAdapter(
-    Annotated[Union[_config_models()], Field(discriminator="kind")]  # noqa: UP007
+    # built at run time from the kinds' models, so typed as Any
+    cast(Any, Annotated[Union[_config_models()], Field(discriminator="kind")])  # noqa: UP007
 )
 """Checks the JSON types and ranges of a config of any kind (``kind`` present)."""
 
