@@ -117,7 +117,7 @@ def test_a_vehicle_running_two_estimators_shows_a_panel_of_each(
         ]
         # the reference panel: its motion speed with its label and unit, its quality; no slips
         page.wait_for_function(
-            "document.getElementById('v-reference_speed-speed').textContent === '1.50'",
+            "document.getElementById('v-reference_speed-speed')?.textContent === '1.50'",
             timeout=10000,
         )
         tile = page.evaluate(
@@ -132,7 +132,7 @@ def test_a_vehicle_running_two_estimators_shows_a_panel_of_each(
         assert page.locator("[data-estimator=reference_speed] [id*='-slip-']").count() == 0
         # its charts: one per ChartSpec, titles, units and series labels from the spec
         page.wait_for_function(
-            "document.getElementById('chart-reference_speed-bias')._uplot.data[0].length > 5",
+            "document.getElementById('chart-reference_speed-bias')?._uplot?.data[0].length > 5",
             timeout=10000,
         )
         speed = page.evaluate(_CHART_JS, "chart-reference_speed-speed")
@@ -144,7 +144,7 @@ def test_a_vehicle_running_two_estimators_shows_a_panel_of_each(
         # and MDSF's beside it, slip tiles by channel label
         assert page.inner_text("#v-mdsf-slip-right") == "9.0"
         label = page.evaluate(
-            "() => document.getElementById('v-mdsf-slip-left').closest('.stat')"
+            "() => document.getElementById('v-mdsf-slip-left')?.closest('.stat')"
             ".querySelector('.stat-label').textContent"
         )
         assert label == "Slip rear left wheel"
@@ -152,7 +152,7 @@ def test_a_vehicle_running_two_estimators_shows_a_panel_of_each(
         # and the stretch shaded in its charts
         feed.no_wheel = True
         page.wait_for_function(
-            "document.getElementById('v-reference_speed-quality').textContent === 'degraded'",
+            "document.getElementById('v-reference_speed-quality')?.textContent === 'degraded'",
             timeout=10000,
         )
         note = page.inner_text("#v-reference_speed-quality-note")
@@ -160,7 +160,7 @@ def test_a_vehicle_running_two_estimators_shows_a_panel_of_each(
             f.description for f in REFERENCE_SPEED_SPEC.flags if f.name == "NO_WHEEL"
         )
         page.wait_for_function(
-            "document.getElementById('chart-reference_speed-speed')._uplot._shade.length > 0",
+            "document.getElementById('chart-reference_speed-speed')?._uplot?._shade?.length > 0",
             timeout=10000,
         )
         assert page.inner_text("#v-mdsf-quality") == "ok"  # the other estimator is unaffected

@@ -114,7 +114,7 @@ def test_dashboard_on_the_real_stack(
     page.wait_for_selector("#v-mdsf-slip-left[data-stamp-ns]", timeout=20000)
     # let the vehicle get moving (slip needs ground speed) and the window fill
     page.wait_for_function(
-        "() => document.getElementById('chart-mdsf-slip')._uplot.data[0].length > 100",
+        "() => document.getElementById('chart-mdsf-slip')?._uplot?.data[0].length > 100",
         timeout=30000,
     )
     stamps: list[int] = []
@@ -176,7 +176,7 @@ def _check_panel(page: Any, spec: EstimatorSpec) -> None:
     for chart in spec.charts:
         chart_id = f"chart-{spec.name}-{chart.key}"
         page.wait_for_function(
-            f"document.getElementById('{chart_id}')._uplot.data[0].length > 20", timeout=30000
+            f"document.getElementById('{chart_id}')?._uplot?.data[0].length > 20", timeout=30000
         )
         shown = page.evaluate(_CHART_JS, chart_id)
         y_label = f"{chart.title.lower()} ({chart.unit})" if chart.unit else chart.title.lower()

@@ -88,7 +88,7 @@ def _wait_updates(page: Any, n: int, check: Callable[[], None]) -> None:
     last = None
     for _ in range(n):
         last = page.wait_for_function(
-            "(prev) => { const s = document.getElementById('v-mdsf-slip-left').dataset.stampNs;"
+            "(prev) => { const s = document.getElementById('v-mdsf-slip-left')?.dataset.stampNs;"
             " return s && s !== prev ? s : false; }",
             arg=last,
             timeout=10000,
@@ -270,7 +270,7 @@ def test_silent_vehicle_is_shown_stale_with_its_age_not_as_latency(
                        ageVisible: !document.getElementById('v-age').hidden,
                        stats: document.querySelector('.stats').className,
                        opacity: getComputedStyle(document.querySelector('.stat-value')).opacity,
-                       slip: document.getElementById('v-mdsf-slip-left').textContent})"""
+                       slip: document.getElementById('v-mdsf-slip-left')?.textContent})"""
         )
         # the data's age is not latency: no new sample, none of the samples as old as the data
         assert len(got["lat"]) == n_lat, got["lat"][n_lat:]
@@ -302,7 +302,7 @@ def test_degraded_quality_is_marked_with_the_specs_words(live_stack: LiveStack, 
         send(_OK)
         page.goto(live_stack.base_url + f"/#/vehicle/{vid}")
         page.wait_for_function(
-            "document.getElementById('v-mdsf-quality').textContent === 'ok'", timeout=15000
+            "document.getElementById('v-mdsf-quality')?.textContent === 'ok'", timeout=15000
         )
         plain = page.evaluate(
             "() => { const s = getComputedStyle(document.getElementById('v-mdsf-quality'));"
@@ -314,7 +314,7 @@ def test_degraded_quality_is_marked_with_the_specs_words(live_stack: LiveStack, 
         ):
             send(flags)
             page.wait_for_function(
-                "(l) => document.getElementById('v-mdsf-quality').textContent === l",
+                "(l) => document.getElementById('v-mdsf-quality')?.textContent === l",
                 arg=label,
                 timeout=10000,
             )
@@ -322,7 +322,7 @@ def test_degraded_quality_is_marked_with_the_specs_words(live_stack: LiveStack, 
                 """() => { const e = document.getElementById('v-mdsf-quality');
                     const s = getComputedStyle(e);
                     return {cls: e.className, color: s.color, weight: s.fontWeight,
-                            note: document.getElementById('v-mdsf-quality-note').textContent}; }"""
+                            note: document.getElementById('v-mdsf-quality-note')?.textContent}; }"""
             )
             # the fleet table's rule: the same class, so the same colour and weight
             assert marked["cls"] == f"quality-{label}", marked
@@ -333,8 +333,8 @@ def test_degraded_quality_is_marked_with_the_specs_words(live_stack: LiveStack, 
                 assert marked["note"] == _DEGRADED_TEXT, marked
         send(_OK)
         page.wait_for_function(
-            "document.getElementById('v-mdsf-quality').textContent === 'ok'", timeout=10000
+            "document.getElementById('v-mdsf-quality')?.textContent === 'ok'", timeout=10000
         )
         assert (
-            page.evaluate("() => document.getElementById('v-mdsf-quality-note').textContent") == ""
+            page.evaluate("() => document.getElementById('v-mdsf-quality-note')?.textContent") == ""
         )
