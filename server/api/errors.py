@@ -17,15 +17,19 @@
     └── ServiceUnavailable        (503 "unavailable")
 
 Every error response has the body ``{"error": <code>, "reason": <text>}`` (:class:`ErrorBody`),
-including FastAPI's request-validation errors (422 ``"invalid_request"``), unknown paths and
-methods (Starlette's HTTP errors), the store's :class:`~server.storage.base.StorageError`
+including FastAPI's request-validation errors (422 ``"invalid_request"``; 415
+``"unsupported_media_type"`` when a body was refused because it was not sent as JSON), unknown
+paths and methods (Starlette's HTTP errors), the store's :class:`~server.storage.base.StorageError`
 (503 ``"storage_unavailable"``) and anything unexpected (500 ``"internal"``, details only in the
-log). Handlers raise; :func:`install_error_handlers` maps.
+log). Handlers raise; :func:`install_error_handlers` maps. An ``invalid_time`` whose query holds
+an ISO time with a space where its offset's ``+`` was (a ``+`` unencoded in a URL query reads
+as a space) says so.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from typing import Any, ClassVar
 
 from fastapi import FastAPI, Request
@@ -154,6 +158,36 @@ def error_responses(*status_codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorBody, "description": "error"} for code in status_codes}
 
 
+# "…T10:00:00 01:00": a "+01:00" offset whose "+" the URL query decoding read as a space
+_SPACE_FOR_PLUS = re.compile(
+    r"[0-9]{2}:?[0-9]{2}(?::?[0-9]{2}(?:[.,][0-9]+)?)? [0-9]{2}(?::?[0-9]{2})?$"
+)
+_PLUS_HINT = (
+    "; a '+' in a URL query stands for a space: write the offset's '+' as %2B "
+    "(e.g. 2024-05-01T12:00:00%2B02:00), or give the time in UTC with 'Z'"
+)
+_JSON_TYPES = ("application/json", "+json")
+
+
+def _time_hint(request: Request) -> str:
+    """The hint for an ISO time whose offset's ``+`` arrived as a space, else ``""``."""
+    values = request.query_params.values()
+    return _PLUS_HINT if any(_SPACE_FOR_PLUS.search(v) for v in values) else ""
+
+
+def _not_json_body(request: Request, exc: RequestValidationError) -> str | None:
+    """The reason to give when a body was refused because it was not sent as JSON, else None."""
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type.endswith(_JSON_TYPES):
+        return None
+    if not any(tuple(err.get("loc", ()))[:1] == ("body",) for err in exc.errors()):
+        return None
+    got = f"Content-Type {content_type!r}" if content_type else "no Content-Type"
+    return (
+        f"the body must be JSON sent with Content-Type: application/json (this request had {got})"
+    )
+
+
 def _validation_reason(exc: RequestValidationError) -> str:
     parts = []
     for err in exc.errors()[:10]:
@@ -190,16 +224,20 @@ def _allowed_methods(request: Request) -> list[str]:
 def install_error_handlers(app: FastAPI) -> None:
     """Map the exception tree (and the framework's own errors) to JSON responses."""
 
-    async def on_api_error(_: Request, exc: Exception) -> JSONResponse:
+    async def on_api_error(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ApiError)
         if exc.status_code >= 500:
             _log.warning("%s: %s", exc.code, exc.reason)
-        response = error_response(exc.status_code, exc.code, exc.reason, exc.extra)
+        reason = exc.reason + (_time_hint(request) if isinstance(exc, InvalidTime) else "")
+        response = error_response(exc.status_code, exc.code, reason, exc.extra)
         response.headers.update(exc.headers)
         return response
 
-    async def on_validation(_: Request, exc: Exception) -> JSONResponse:
+    async def on_validation(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
+        not_json = _not_json_body(request, exc)
+        if not_json is not None:
+            return error_response(415, "unsupported_media_type", not_json)
         return error_response(422, "invalid_request", _validation_reason(exc))
 
     async def on_http(request: Request, exc: Exception) -> JSONResponse:
