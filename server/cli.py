@@ -5,8 +5,9 @@ Subcommands::
     slipfleet serve    [--config FILE]                   server: REST, dashboard, ingest, 3D view
     slipfleet demo     [--vehicles N] [--scenario NAME]  router + server + SQLite + simulated fleet
     slipfleet simulate --vehicles N --scenario NAME --duration S [--connect ENDPOINT]
-    slipfleet replay   PATH [--rate X] [--connect ENDPOINT]
+    slipfleet replay   PATH [--rate X] [--connect ENDPOINT] [--as ID] [--shift auto|S] [--api URL]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
+    slipfleet record   PATH --live [--connect ENDPOINT] [--duration S]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
                                           wheels frontend advance publisher ingest pipeline
@@ -15,13 +16,16 @@ Subcommands::
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
 Settings come from the environment (``SLIPFLEET_…``) and an optional TOML file; flags override
-both. Heavy modules are imported inside each subcommand so ``--help`` stays instant.
+both. Heavy modules are imported inside each subcommand so ``--help`` stays instant. A mistake
+on the command line, or one the command finds (a port taken, no router, no such recording), is
+one line on stderr, never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import socket
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -54,6 +58,62 @@ def _settings(args: argparse.Namespace, **overrides: Any) -> Any:
     return load_settings(getattr(args, "config", None), **overrides)
 
 
+def _listen_addresses(settings: Any) -> list[tuple[str, str, int]]:
+    """``(what, host, port)`` of every TCP port a server of ``settings`` listens on (port 0,
+    any free one, left out)."""
+    out = [("REST API and dashboard", settings.api.host, settings.api.port)]
+    if settings.viewer.enabled:
+        out.append(("3D view", settings.viewer.host, settings.viewer.port))
+    if not settings.zenoh.connect:
+        for endpoint in settings.zenoh.listen:
+            proto, _, address = endpoint.partition("/")
+            host, _, port = address.rpartition(":")
+            if proto == "tcp" and port.isdigit():
+                out.append(("Zenoh router", host.strip("[]"), int(port)))
+    return [a for a in out if a[2] != 0]
+
+
+def _refuse_busy_ports(settings: Any, command: str) -> None:
+    """SystemExit with one line when a port ``command`` needs is taken (a server already up)."""
+    for what, host, port in _listen_addresses(settings):
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind((host, port))
+            except OSError as exc:
+                raise SystemExit(
+                    f"slipfleet {command}: port {port} on {host} ({what}) is taken "
+                    f"({exc.strerror}): is a Slipfleet server or demo already running? Stop "
+                    "it, or choose other ports (--port, SLIPFLEET_VIEWER__PORT, "
+                    "SLIPFLEET_ZENOH__LISTEN)"
+                ) from None
+
+
+def _token_advice(settings: Any) -> str:
+    """What ``serve`` says about access tokens: how to make the first, or how many there are."""
+    from server.storage import open_store
+    from server.storage.base import StorageError
+
+    try:
+        store = open_store(settings.storage)
+    except StorageError:
+        return "the REST API and live views need access tokens (slipfleet token --help)"
+    try:
+        valid = sum(1 for t in store.list_tokens() if not t.revoked)
+    finally:
+        store.close()
+    if valid == 0:
+        return (
+            "the REST API and live views need access tokens and none exists yet; create the "
+            "first one with: slipfleet token create --name <who> --role admin"
+        )
+    return (
+        f"the REST API and live views need access tokens ({valid} valid: slipfleet token list; "
+        "more with slipfleet token create)"
+    )
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from server.app_main import serve
 
@@ -62,11 +122,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         settings.api.host = args.host
     if args.port is not None:
         settings.api.port = args.port
+    _refuse_busy_ports(settings, "serve")
     if settings.api.require_auth:
-        log.info(
-            "the REST API and live views need access tokens; create the first one with: "
-            "slipfleet token create --name <who> --role admin"
-        )
+        log.info(_token_advice(settings))
     serve(settings)
     return 0
 
@@ -79,6 +137,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         settings.api.port = args.port
     if args.data_dir is not None:
         settings.storage.data_dir = args.data_dir
+    _refuse_busy_ports(settings, "demo")
     demo(
         settings,
         vehicles=args.vehicles,
@@ -107,19 +166,40 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from server.tooling.fleet_commands import replay
+    from server.tooling.cli_args import read_token
+    from server.tooling.recording_commands import ReplayTarget, replay
 
     settings = _settings(args)
     if args.connect:
         settings.zenoh.connect = [args.connect]
-    replay(settings, args.path, rate_scale=args.rate)
-    return 0
+    api = args.api or f"http://{settings.api.host}:{settings.api.port}"
+    target = ReplayTarget(
+        endpoints=list(settings.zenoh.connect or settings.zenoh.listen),
+        api=api.rstrip("/"),
+        api_given=args.api is not None,
+        token=read_token(args.token_file),
+        vehicle_as=args.vehicle_as,
+        shift_ns=args.shift,
+        rate=args.rate,
+    )
+    return replay(args.path, target)
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
+    if args.live:
+        from server.tooling.recording_commands import record_live
+
+        settings = _settings(args)
+        if args.connect:
+            settings.zenoh.connect = [args.connect]
+        record_live(settings, args.path, args.duration)
+        return 0
     from server.tooling.fleet_commands import record
 
-    record(args.path, vehicles=args.vehicles, scenario=args.scenario, duration_s=args.duration)
+    if args.connect:
+        raise SystemExit("slipfleet record: --connect is for --live (a simulated drive needs none)")
+    duration_s = 60.0 if args.duration is None else args.duration
+    record(args.path, vehicles=args.vehicles, scenario=args.scenario, duration_s=duration_s)
     return 0
 
 
@@ -205,58 +285,186 @@ def _token_id(text: str) -> int:
     return value
 
 
-def _parser() -> argparse.ArgumentParser:
-    from server.tooling.estimator_mix import add_estimator_mix_argument
+def _vehicle_id(text: str) -> str:
+    from server.protocol.keys import is_valid_vehicle_id
 
-    p = argparse.ArgumentParser(prog="slipfleet", description="Per-wheel slip telemetry server.")
-    p.add_argument("--config", type=Path, default=None, help="TOML settings file")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = p.add_subparsers(dest="command", required=True)
+    if not is_valid_vehicle_id(text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a vehicle id (letters, digits, '_', '.', '-'; at most 64)"
+        )
+    return text
 
+
+def _shift(text: str) -> int | None:
+    """``auto`` → None (the recording starts now); seconds → nanoseconds."""
+    if text == "auto":
+        return None
+    try:
+        seconds = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("'auto' or a number of seconds, e.g. -3600") from None
+    if not abs(seconds) < 100 * 365 * 86_400:
+        raise argparse.ArgumentTypeError("a shift within a hundred years")
+    return round(seconds * 1e9)
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError("must be > 0")
+    return value
+
+
+def _recording(text: str) -> Path:
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"no recording file {text!r}")
+    return path
+
+
+def _add_serve(sub: Any) -> None:
     s = sub.add_parser("serve", help="run the server")
     s.add_argument("--host", default=None, help="REST/dashboard bind address (default 127.0.0.1)")
-    s.add_argument("--port", type=int, default=None)
+    s.add_argument("--port", type=int, default=None, help="REST/dashboard port (default 8000)")
     s.set_defaults(func=_cmd_serve)
 
+
+def _add_demo(sub: Any) -> None:
+    from server.tooling.cli_args import add_scenario_argument
+    from server.tooling.estimator_mix import add_estimator_mix_argument
+
     d = sub.add_parser("demo", help="embedded router + server + SQLite + simulated vehicles")
-    d.add_argument("--vehicles", type=int, default=4)
-    d.add_argument("--scenario", default="field_work")
+    d.add_argument("--vehicles", type=int, default=4, help="simulated tractors (default 4)")
+    add_scenario_argument(d, "field_work")
     d.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C")
-    d.add_argument("--port", type=int, default=None)
-    d.add_argument("--data-dir", type=Path, default=None)
+    d.add_argument("--port", type=int, default=None, help="REST/dashboard port (default 8000)")
+    d.add_argument(
+        "--data-dir", type=Path, default=None, help="where the SQLite file goes (default ./data)"
+    )
     add_estimator_mix_argument(d, "default: the last vehicle runs mdsf,reference_speed")
     d.set_defaults(func=_cmd_demo)
 
+
+def _add_simulate(sub: Any) -> None:
+    from server.tooling.cli_args import add_scenario_argument
+    from server.tooling.estimator_mix import add_estimator_mix_argument
+
     m = sub.add_parser("simulate", help="publish simulated vehicles over Zenoh")
-    m.add_argument("--vehicles", type=int, default=1)
-    m.add_argument("--scenario", default="field_work")
-    m.add_argument("--duration", type=float, default=60.0, help="seconds")
-    m.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
+    m.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
+    add_scenario_argument(m, "field_work")
+    m.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    m.add_argument("--rate-scale", type=_positive, default=1.0, help="2 = twice real time")
     m.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     add_estimator_mix_argument(m, "default: every vehicle its kind's defaults")
     m.set_defaults(func=_cmd_simulate)
 
-    r = sub.add_parser("replay", help="publish a recorded drive over Zenoh")
-    r.add_argument("path", type=Path)
-    r.add_argument("--rate", type=float, default=1.0)
-    r.add_argument("--connect", default=None)
+
+def _add_replay(sub: Any) -> None:
+    from server.tooling.cli_args import add_token_argument
+
+    r = sub.add_parser(
+        "replay",
+        help="publish a recorded drive over Zenoh and say what the server made of it",
+    )
+    r.add_argument("path", type=_recording, help="recording file (slipfleet record)")
+    r.add_argument("--rate", type=_positive, default=1.0, help="2 = twice real time (default 1)")
+    r.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    r.add_argument(
+        "--as",
+        dest="vehicle_as",
+        type=_vehicle_id,
+        default=None,
+        metavar="VEHICLE_ID",
+        help="publish the recording's one vehicle under this id, e.g. beside the vehicle it "
+        "came from (whose packets the server would count as duplicates)",
+    )
+    r.add_argument(
+        "--shift",
+        type=_shift,
+        default=None,
+        metavar="auto|SECONDS",
+        help="move the sensor stamps: auto (default) so the recording starts now; SECONDS by "
+        "that much (0: as recorded)",
+    )
+    r.add_argument(
+        "--api",
+        default=None,
+        metavar="URL",
+        help="REST API of the server, to read what it accepted (default: from the settings, "
+        "http://127.0.0.1:8000; skipped if none answers there)",
+    )
+    add_token_argument(r)
     r.set_defaults(func=_cmd_replay)
 
-    rec = sub.add_parser("record", help="write a simulated drive as a recording file")
-    rec.add_argument("path", type=Path)
-    rec.add_argument("--vehicles", type=int, default=1)
-    rec.add_argument("--scenario", default="field_work")
-    rec.add_argument("--duration", type=float, default=60.0)
+
+def _add_record(sub: Any) -> None:
+    from server.tooling.cli_args import add_scenario_argument
+
+    rec = sub.add_parser(
+        "record",
+        help="write a simulated drive, or the fleet's live traffic (--live), as a recording",
+    )
+    rec.add_argument("path", type=Path, help="recording file to write")
+    rec.add_argument(
+        "--live",
+        action="store_true",
+        help="record the sensor packets and configs a router delivers, as the server receives "
+        "them (docs/protocol.md §8), instead of simulating",
+    )
+    rec.add_argument(
+        "--connect", default=None, help="with --live: router endpoint, e.g. tcp/127.0.0.1:7447"
+    )
+    rec.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
+    add_scenario_argument(rec, "field_work")
+    rec.add_argument(
+        "--duration",
+        type=_positive,
+        default=None,
+        help="seconds (default: 60 simulated; with --live until Ctrl-C)",
+    )
     rec.set_defaults(func=_cmd_record)
 
-    lt = sub.add_parser("loadtest", help="simulated fleet against a server process, measured")
+
+def _add_token(sub: Any) -> None:
+    t = sub.add_parser("token", help="REST access tokens in the configured store")
+    tsub = t.add_subparsers(dest="token_command", required=True)
+    tc = tsub.add_parser("create", help="create a token and print it (once)")
+    tc.add_argument("--name", required=True, type=_token_name, help="whom or what it is for")
+    tc.add_argument(
+        "--role",
+        required=True,
+        choices=("viewer", "operator", "admin"),
+        help="viewer: read; operator: also register and configure vehicles; admin: everything",
+    )
+    tsub.add_parser("list", help="list tokens (never the tokens themselves)")
+    tr = tsub.add_parser("revoke", help="revoke a token by id")
+    tr.add_argument("id", type=_token_id, help="the token's id (slipfleet token list)")
+    t.set_defaults(func=_cmd_token)
+
+
+def _parser() -> argparse.ArgumentParser:
+    from server.tooling.cli_args import OneLineParser
     from server.tooling.loadtest import add_arguments as _loadtest_arguments
 
+    p = OneLineParser(prog="slipfleet", description="Per-wheel slip telemetry server.")
+    p.add_argument("--config", type=Path, default=None, help="TOML settings file")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+    _add_serve(sub)
+    _add_demo(sub)
+    _add_simulate(sub)
+    _add_replay(sub)
+    _add_record(sub)
+
+    lt = sub.add_parser("loadtest", help="simulated fleet against a server process, measured")
     _loadtest_arguments(lt)
     lt.set_defaults(func=_cmd_loadtest)
 
     b = sub.add_parser("bench", help="benchmarks that print tables")
-    b.add_argument("which", choices=BENCHES)
+    b.add_argument("which", choices=BENCHES, help="which benchmark")
     b.add_argument(
         "options",
         nargs=argparse.REMAINDER,
@@ -264,16 +472,7 @@ def _parser() -> argparse.ArgumentParser:
         "(slipfleet bench NAME --help lists them)",
     )
     b.set_defaults(func=_cmd_bench)
-
-    t = sub.add_parser("token", help="REST access tokens in the configured store")
-    tsub = t.add_subparsers(dest="token_command", required=True)
-    tc = tsub.add_parser("create", help="create a token and print it (once)")
-    tc.add_argument("--name", required=True, type=_token_name, help="whom or what it is for")
-    tc.add_argument("--role", required=True, choices=("viewer", "operator", "admin"))
-    tsub.add_parser("list", help="list tokens (never the tokens themselves)")
-    tr = tsub.add_parser("revoke", help="revoke a token by id")
-    tr.add_argument("id", type=_token_id)
-    t.set_defaults(func=_cmd_token)
+    _add_token(sub)
 
     z = sub.add_parser(
         "zenoh-router-config",
@@ -291,6 +490,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # not a line per request of a tool
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -1,8 +1,9 @@
-"""What the simulated-fleet subcommands run: the demo, ``simulate``, ``replay`` and ``record``.
+"""What the simulated-fleet subcommands run: the demo, ``simulate`` and ``record``.
 
 The demo is the server (:mod:`server.app_main`) with simulated tractors publishing to its
-embedded router; the others publish simulated or recorded vehicles to a router, or write them
-to a recording file.
+embedded router; ``simulate`` publishes simulated vehicles to a router, ``record`` writes them
+to a recording file (replaying one and recording live traffic:
+:mod:`server.tooling.recording_commands`).
 """
 
 from __future__ import annotations
@@ -28,14 +29,12 @@ from server.tooling.fleet_sim import (
     encode_packets,
     packetize,
 )
-from server.tooling.fleet_sim import replay as replay_recording
 
 __all__ = [
     "DEMO_MIX_ESTIMATORS",
     "demo",
     "mix_summary",
     "record",
-    "replay",
     "simulate",
     "vehicle_session",
 ]
@@ -47,8 +46,12 @@ DEMO_MIX_ESTIMATORS = ("mdsf", "reference_speed")
 
 
 def vehicle_session(endpoints: list[str]) -> zenoh.Session:
-    """A client session for a (simulated) vehicle connecting to ``endpoints``."""
-    return zenoh.open(make_config(ZenohSettings(connect=endpoints)))
+    """A client session for a (simulated) vehicle connecting to ``endpoints``; SystemExit with
+    one line when no router answers there."""
+    try:
+        return zenoh.open(make_config(ZenohSettings(connect=endpoints)))
+    except zenoh.ZError as exc:
+        raise SystemExit(f"no Zenoh router answers at {', '.join(endpoints)}") from exc
 
 
 def demo(
@@ -148,14 +151,6 @@ def simulate(
     print(
         f"published {stats.total_packets} packets from {vehicles} vehicles in {stats.wall_s:.1f} s"
     )
-
-
-def replay(settings: Settings, path: Path, *, rate_scale: float = 1.0) -> None:
-    """Publish a recording file to the configured router(s)."""
-    endpoints = list(settings.zenoh.connect or settings.zenoh.listen)
-    with vehicle_session(endpoints) as session:
-        stats = replay_recording(path, session, rate=rate_scale)
-    print(f"replayed {stats.total_packets} packets in {stats.wall_s:.1f} s")
 
 
 def record(path: Path, *, vehicles: int, scenario: str, duration_s: float) -> None:

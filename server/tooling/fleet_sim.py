@@ -75,8 +75,10 @@ __all__ = [
     "packetize",
     "publish_fleets",
     "record",
+    "renamed_key",
     "replay",
     "shift_measurement",
+    "vehicle_of_key",
 ]
 
 log = logging.getLogger(__name__)
@@ -491,21 +493,47 @@ def _prefix_of(key: str) -> str:
     return "/".join(parts[:-3]) if parts[-2] == "sensors" else "/".join(parts[:-2])
 
 
+def _is_vehicle_traffic(key: str) -> bool:
+    parts = key.split("/")
+    return len(parts) >= 3 and (parts[-2] == "sensors" or parts[-1] == "config")
+
+
+def _vehicle_index(parts: Sequence[str]) -> int:
+    return -3 if parts[-2] == "sensors" else -2
+
+
+def vehicle_of_key(key: str) -> str:
+    """The vehicle id of ``key`` (a sensor or config key of the protocol)."""
+    parts = key.split("/")
+    return parts[_vehicle_index(parts)]
+
+
+def renamed_key(key: str, vehicle_id: str) -> str:
+    """``key`` (a sensor or config key of the protocol) with its vehicle id replaced."""
+    parts = key.split("/")
+    parts[_vehicle_index(parts)] = vehicle_id
+    return "/".join(parts)
+
+
 def replay(
     path: str | Path,
     session: zenoh.Session,
     rate: float = 1.0,
     *,
     shift_to_now: bool = True,
+    shift_ns: int | None = None,
+    vehicle_as: str | None = None,
     stop: threading.Event | None = None,
     clock_ns: Callable[[], int] = time.time_ns,
 ) -> SimStats:
     """Publish a recording with its original pacing (``rate`` times faster).
 
     With ``shift_to_now`` (default) sensor packets are decoded, their stamps moved so the first
-    record lands *now*, and re-encoded: the server treats them as fresh data. Without it the
-    payloads go out byte for byte (the server's store ignores rows it already has). Packets that
-    do not decode are published unchanged.
+    record lands *now*, and re-encoded: the server treats them as fresh data; ``shift_ns`` moves
+    them by that much instead. Without a shift the payloads go out byte for byte (the server's
+    store ignores rows it already has). Packets that do not decode are published unchanged.
+    ``vehicle_as`` publishes every record under that vehicle id (a recording of one vehicle
+    replayed beside the vehicle itself).
     """
     if rate <= 0:
         raise ValueError("rate must be > 0")
@@ -520,7 +548,8 @@ def replay(
                 break
             if first_stamp is None:
                 first_stamp = rec.stamp_ns
-                shift = clock_ns() - first_stamp
+                to_now = clock_ns() - first_stamp if shift_to_now else 0
+                shift = to_now if shift_ns is None else shift_ns
             due = int((rec.stamp_ns - first_stamp) / rate)
             while (ahead := due - (time.perf_counter_ns() - wall0)) > 0:
                 if stop is not None and stop.wait(ahead / 1e9):
@@ -528,23 +557,22 @@ def replay(
                 if stop is None:
                     time.sleep(ahead / 1e9)
             payload = rec.payload
+            key = rec.key if vehicle_as is None else renamed_key(rec.key, vehicle_as)
             stream: Stream | None = None
             try:
-                _, stream = parse_key(rec.key, _prefix_of(rec.key))
+                _, stream = parse_key(key, _prefix_of(key))
             except (ValueError, IndexError):
                 stream = None
-            if shift_to_now and stream is not None:
+            if shift != 0 and stream is not None:
                 try:
-                    pkt = decode(
-                        rec.key, payload, prefix=_prefix_of(rec.key), max_payload_bytes=1 << 30
-                    )
+                    pkt = decode(key, payload, prefix=_prefix_of(key), max_payload_bytes=1 << 30)
                     again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
                     payload = again.encode(pkt.seq, shift)
                 except DecodeError:
                     pass  # replay what was recorded: the server will count the refusal
-            pub = pubs.get(rec.key)
+            pub = pubs.get(key)
             if pub is None:
-                pub = pubs[rec.key] = _publisher(session, rec.key)
+                pub = pubs[key] = _publisher(session, key)
             pub.put(payload)
             if stream is None:
                 stats.configs += 1
@@ -570,8 +598,10 @@ def record(
 ) -> int:
     """Write every sample ``session`` receives on ``key_expr`` to ``path``; return the count.
 
-    Stops after ``duration_s`` or when ``stop`` is set (keeping what had already arrived), or
-    after ``max_records``.
+    Only what a server takes in is kept: sensor packets and configs (``<prefix>/<id>/sensors/…``,
+    ``<prefix>/<id>/config``), not what servers publish back (alerts, status). Stops after
+    ``duration_s`` or when ``stop`` is set (keeping what had already arrived), or after
+    ``max_records``.
     """
     end = None if duration_s is None else time.monotonic() + duration_s
     sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(65_536))
@@ -591,7 +621,9 @@ def record(
                         break  # stopped and drained what had already arrived
                     time.sleep(0.002)
                     continue
-                writer.write(str(sample.key_expr), clock_ns(), sample.payload.to_bytes())
+                key = str(sample.key_expr)
+                if _is_vehicle_traffic(key):
+                    writer.write(key, clock_ns(), sample.payload.to_bytes())
             return writer.records
     finally:
         sub.undeclare()

@@ -4,8 +4,13 @@
 
     slipfleet loadtest --vehicles 1000 --duration 60 [--scenario mix] [--rate-scale 1]
                        [--publishers N] [--warmup 5] [--json PATH]
-                       [--connect tcp/HOST:7447 --api http://HOST:8000 [--server-pid PID]]
+                       [--connect tcp/HOST:7447 --api http://HOST:8000 [--server-pid PID]
+                        [--token-file FILE]]
                        [--replay REC [REC ...]]
+
+With ``--connect`` the server's API is read once before anything is published: a server that
+requires tokens needs a viewer token (``--token-file``, or ``$SLIPFLEET_TOKEN``), and without
+one the load test stops there with one line saying so.
 
 Without ``--connect`` a server is started in a child process (embedded router on a free loopback
 port, SQLite in a temporary directory unless ``--storage-url``; viewer off, no access tokens;
@@ -77,6 +82,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from server.tooling.api_client import check_metrics_access, open_client, parse_metric_line
+from server.tooling.cli_args import (
+    OneLineParser,
+    add_scenario_argument,
+    add_token_argument,
+    read_token,
+)
 from server.tooling.estimator_mix import EstimatorMix, add_estimator_mix_argument
 from server.tooling.server_process import ServerProcess
 from server.tooling.speed_probe import probe_s
@@ -132,23 +144,6 @@ class Target:
 # ---------------------------------------------------------------------------------- metrics
 
 
-def _parse_line(line: str) -> tuple[str, dict[str, str], float] | None:
-    if not line or line[0] == "#":
-        return None
-    head, _, value = line.rpartition(" ")
-    labels: dict[str, str] = {}
-    name = head
-    if head.endswith("}") and "{" in head:
-        name, _, inner = head[:-1].partition("{")
-        for part in inner.split('",'):
-            k, _, v = part.partition("=")
-            labels[k] = v.strip('"')
-    try:
-        return name, labels, float(value)
-    except ValueError:
-        return None
-
-
 _PACKET_COUNTERS = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap", "wheel_gaps")
 
 
@@ -188,7 +183,7 @@ def scrape(
     vehicles: set[str] = set()
     wanted = {f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS}
     for line in text.splitlines():
-        parsed = _parse_line(line)
+        parsed = parse_metric_line(line)
         if parsed is None:
             continue
         name, labels, value = parsed
@@ -694,10 +689,17 @@ class _ProcWatch:
 
 
 def run_loadtest(
-    spec: LoadSpec, target: Target, *, prefix: str = "fleet", progress: bool = True
+    spec: LoadSpec,
+    target: Target,
+    *,
+    prefix: str = "fleet",
+    progress: bool = True,
+    token: str | None = None,
 ) -> dict[str, Any]:
-    """Publish ``spec`` to ``target`` and measure (see the module docstring); a result dict."""
-    import httpx
+    """Publish ``spec`` to ``target`` and measure (see the module docstring); a result dict.
+
+    ``token`` is sent to the servers' APIs; each API is read once before anything is published
+    (SystemExit with one line if that fails: nothing listening, a token missing or refused)."""
     from tqdm import tqdm
 
     jobs = [
@@ -714,8 +716,10 @@ def run_loadtest(
         }
         for groups in assignments(spec, target.shards)
     ]
+    http = open_client(token)
+    for api in target.apis:
+        check_metrics_access(http, api)
     probe_before_s = probe_s()  # before any load: the machine's speed at the start
-    http = httpx.Client(timeout=30.0)
     server_watch = _ProcWatch(target.pids).start()
     pubs = [_Publisher(i, job) for i, job in enumerate(jobs)]
     pub_watch = _ProcWatch([p.proc.pid for p in pubs]).start()
@@ -984,9 +988,9 @@ def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``loadtest`` flags (shared by ``slipfleet loadtest`` and ``python -m``)."""
-    p.add_argument("--vehicles", type=int, required=True)
+    p.add_argument("--vehicles", type=int, required=True, help="simulated vehicles to publish")
     p.add_argument("--duration", type=float, required=True, help="measured seconds")
-    p.add_argument("--scenario", default="mix", help="a scenario name or 'mix'")
+    add_scenario_argument(p, "mix", mix=True)
     p.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
     p.add_argument(
         "--publishers",
@@ -1007,6 +1011,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, default=None, help="also write the result as JSON")
     p.add_argument("--connect", default=None, help="router endpoint of a running server")
     p.add_argument("--api", default=None, help="REST base URL of that server (with --connect)")
+    add_token_argument(p)
     p.add_argument("--server-pid", type=int, default=None, help="pid for CPU/RSS (--connect)")
     p.add_argument("--storage-url", default=None, help="PostgreSQL URL for the started server")
     p.add_argument(
@@ -1016,10 +1021,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="start a router and this many server processes, each owning a share of the "
         "fleet (needs --storage-url: they share one PostgreSQL database)",
     )
-    p.add_argument("--lateness-ms", type=int, default=None)
-    p.add_argument("--advance-step-ms", type=int, default=None)
-    p.add_argument("--estimate-interval-ms", type=int, default=None)
-    p.add_argument("--commit-interval-s", type=float, default=None)
+    p.add_argument(
+        "--lateness-ms", type=int, default=None, help="started server: ingest.lateness_ms"
+    )
+    p.add_argument(
+        "--advance-step-ms", type=int, default=None, help="started server: ingest.advance_step_ms"
+    )
+    p.add_argument(
+        "--estimate-interval-ms",
+        type=int,
+        default=None,
+        help="started server: ingest.estimate_interval_ms",
+    )
+    p.add_argument(
+        "--commit-interval-s",
+        type=float,
+        default=None,
+        help="started server: storage.commit_interval_s",
+    )
 
 
 def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
@@ -1041,7 +1060,7 @@ def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
             raise SystemExit("--connect needs --api")
         pid = args.server_pid or _pid_listening_on(args.api)
         target = Target((args.connect,), (args.api.rstrip("/"),), (pid,) if pid else ())
-        result = run_loadtest(spec, target)
+        result = run_loadtest(spec, target, token=read_token(args.token_file))
         result["server_settings"] = "external"
     elif args.shards > 1:
         from server.tooling.shards import shard_layout, sharded_servers
@@ -1071,7 +1090,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["_publish"]:
         return _publish_child(argv[1])
-    p = argparse.ArgumentParser(prog="python -m server.tooling.loadtest", description=__doc__)
+    p = OneLineParser(prog="python -m server.tooling.loadtest", description=__doc__)
     add_arguments(p)
     logging.basicConfig(level=logging.INFO)
     run_from_args(p.parse_args(argv))
