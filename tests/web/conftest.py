@@ -98,13 +98,16 @@ class LiveStack:
 
 
 @contextmanager
-def serve_live_stack(data_dir: Path, *, require_auth: bool) -> Iterator[LiveStack]:
-    """The dashboard app over a :class:`LiveRuntime` on a free port, until the block ends."""
+def serve_live_stack(
+    data_dir: Path, *, require_auth: bool, runtime_class: type[LiveRuntime] = LiveRuntime
+) -> Iterator[LiveStack]:
+    """The dashboard app over a :class:`LiveRuntime` (or ``runtime_class``) on a free port,
+    until the block ends."""
     settings = Settings(
         storage=StorageSettings.model_validate({"data_dir": data_dir}),
         api=ApiSettings.model_validate({"require_auth": require_auth}),
     )
-    runtime = LiveRuntime(settings)
+    runtime = runtime_class(settings)
     app = create_app(settings, runtime)
     mount_web(app)
     port = free_port()

@@ -8,14 +8,20 @@
 // Each vehicle is shown by its primary estimator (the feed's `estimator`): its motion speed, a
 // column per slip channel key of any primary (labelled from the specs, GET /api/v1/estimators;
 // band edges from the vehicle's config, else the channel's) and its quality.
+//
+// Stored vehicles the live feed does not hold (GET /api/v1/vehicles; parked since the server
+// started) are listed too, with status "stored" (shown "not live") and their newest stored
+// estimate (GET /vehicles/{id}/latest) greyed like an offline vehicle's, so they can be opened.
 
-import { fetchVehicles, liveSocket } from "./api.js";
+import { ApiError, fetchVehicles, getJSON, liveSocket } from "./api.js";
 import { slipBand, slipCss } from "./colors.js";
-import { loadSpecs } from "./specs.js";
-import { el, fmt, vehicleHref } from "./util.js";
+import { loadSpecs, motionChannel } from "./specs.js";
+import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
-const STATUS_ORDER = { live: 0, stale: 1, offline: 2 };
+const STATUS_ORDER = { live: 0, stale: 1, offline: 2, stored: 3 };
+const STATUS_TEXT = { stored: "not live" };
+const LATEST_PER_REFRESH = 50; // newest stored estimates fetched per refresh of the stored list
 
 // Cost of applying one fleet message (sort + render), ms; read by the live benchmark.
 window.slipfleetStats = window.slipfleetStats || {};
@@ -55,25 +61,94 @@ function cellValue(d, i, c) {
   return c.slip ? d.slip_pct[c.slip][i] : d[c.key][i];
 }
 
+// The fleet message `msg` (null before the first) with a row appended for every stored vehicle
+// it does not hold: status "stored", its newest stored estimate's speed and slips (null until
+// fetched or when it has none), age from that estimate's stamp.
+function withStored(msg, stored, specs) {
+  const d = msg || { ids: [], estimator: [], status: [], stamp_ns: [], age_s: [], speed_mps: [], quality: [], flags: [], slip_pct: {} };
+  const live = new Set(d.ids);
+  const extra = [...stored.keys()].filter((id) => !live.has(id)).sort();
+  if (!extra.length) return d;
+  const out = { ...d, slip_pct: {} };
+  for (const k of ["ids", "estimator", "status", "stamp_ns", "age_s", "speed_mps", "quality", "flags"]) out[k] = [...(d[k] || [])];
+  for (const [k, col] of Object.entries(d.slip_pct)) out.slip_pct[k] = [...col];
+  const nowNs = msg ? msg.t_ns : Date.now() * 1e6;
+  for (const id of extra) {
+    const s = stored.get(id);
+    const spec = specs.get(s.estimator);
+    const row = s.latest;
+    const motion = spec && motionChannel(spec);
+    const i = out.ids.length;
+    out.ids.push(id);
+    out.estimator.push(s.estimator);
+    out.status.push("stored");
+    out.stamp_ns.push(row ? row.stamp_ns : null);
+    out.age_s.push(row ? Math.max(0, (nowNs - row.stamp_ns) / 1e9) : null);
+    out.speed_mps.push(row && motion ? row[motion.field] : null);
+    out.quality.push("–");
+    out.flags.push(row ? row.flags : 0);
+    for (const col of Object.values(out.slip_pct)) col.push(null);
+    for (const ch of spec ? spec.slips : []) {
+      const col = out.slip_pct[ch.key] || (out.slip_pct[ch.key] = new Array(i + 1).fill(null));
+      col[i] = row ? row[ch.field] : null;
+    }
+  }
+  return out;
+}
+
 export function fleetView(root) {
   // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (the channel's edges until loaded)
-  const state = { data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map() };
+  // msg: the newest fleet message; stored: vehicle id -> {estimator, latest} of every stored
+  // vehicle (latest: its newest stored estimate, null if none, undefined until fetched)
+  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map() };
+  let stopped = false;
   loadSpecs()
     .then((specs) => {
       state.specs = specs;
       columns = [];
-      resort();
+      update();
     })
     .catch(() => {});
   let columns = [];
-  const loadBands = () =>
-    fetchVehicles()
+  // Newest stored estimates of stored vehicles the feed does not hold, a few per refresh.
+  async function fetchLatest() {
+    const live = new Set(state.msg ? state.msg.ids : []);
+    const wanted = [...state.stored.entries()].filter(([id, s]) => s.latest === undefined && !live.has(id));
+    for (const [id, s] of wanted.slice(0, LATEST_PER_REFRESH)) {
+      if (stopped) return;
+      try {
+        s.latest = await getJSON(`/api/v1/vehicles/${encodeURIComponent(id)}/latest`);
+      } catch (err) {
+        if (err instanceof ApiError && err.status === 404) s.latest = null; // none stored
+      }
+    }
+    if (wanted.length) update();
+  }
+  let storedAtMs = -Infinity;
+  const loadStored = () => {
+    storedAtMs = performance.now();
+    return fetchVehicles()
       .then((body) => {
-        for (const v of body.data) state.bandEdges.set(v.vehicle_id, v.config.slip.band_edges_pct);
+        const ids = new Set();
+        for (const v of body.data) {
+          ids.add(v.vehicle_id);
+          state.bandEdges.set(v.vehicle_id, v.config.slip.band_edges_pct);
+          const prev = state.stored.get(v.vehicle_id);
+          state.stored.set(v.vehicle_id, { estimator: v.estimators[0] || "", latest: prev ? prev.latest : undefined });
+        }
+        for (const id of [...state.stored.keys()]) if (!ids.has(id)) state.stored.delete(id);
+        update();
+        return fetchLatest();
       })
       .catch(() => {});
-  loadBands();
-  const bandTimer = setInterval(loadBands, 60000);
+  };
+  loadStored();
+  const bandTimer = setInterval(loadStored, 60000);
+  // The table's data: the newest fleet message plus the stored vehicles it does not hold.
+  function update() {
+    state.data = withStored(state.msg, state.stored, state.specs);
+    resort();
+  }
   const summary = el("p", { class: "summary", "aria-live": "polite", id: "fleet-summary" }, "Connecting…");
   const filter = el("input", {
     type: "search",
@@ -198,14 +273,16 @@ export function fleetView(root) {
     render();
   }
 
-  // "12 vehicles — 11 live, 1 stale, 0 offline"; with a filter, the counts are of the matching
-  // vehicles: "3 of 12 vehicles shown — …", or that none matches.
+  // "12 vehicles — 11 live, 1 stale, 0 offline" (", 3 stored, not live" when there are such);
+  // with a filter, the counts are of the matching vehicles: "3 of 12 vehicles shown — …", or
+  // that none matches.
   function showSummary() {
     const d = state.data;
     const total = d.ids.length;
-    const counts = { live: 0, stale: 0, offline: 0 };
+    const counts = { live: 0, stale: 0, offline: 0, stored: 0 };
     for (const i of state.order) counts[d.status[i]] = (counts[d.status[i]] || 0) + 1;
-    const states = `${counts.live} live, ${counts.stale} stale, ${counts.offline} offline`;
+    const parked = counts.stored ? `, ${counts.stored} stored, not live` : "";
+    const states = `${counts.live} live, ${counts.stale} stale, ${counts.offline} offline${parked}`;
     const noun = total === 1 ? "vehicle" : "vehicles";
     if (!state.filter) {
       summary.textContent = `${total} ${noun} — ${states}`;
@@ -249,9 +326,9 @@ export function fleetView(root) {
       const live = st === "live";
       const age = fmt(d.age_s[i], 1);
       row.className = live ? "vrow" : `vrow row-old row-${st}`;
-      row.title = live ? "" : `${st}: last data ${age} s ago; the values shown are not live`;
+      row.title = live ? "" : oldTitle(st, age, d.stamp_ns[i]);
       const pill = c.status.firstChild;
-      pill.textContent = st;
+      pill.textContent = STATUS_TEXT[st] || st;
       pill.className = `pill st-${st}`;
       c.speed_mps.textContent = fmt(d.speed_mps[i], 2);
       const spec = state.specs.get(d.estimator[i]);
@@ -278,6 +355,13 @@ export function fleetView(root) {
     }
   }
 
+  // The tooltip of a row that is not live.
+  function oldTitle(st, age, stampNs) {
+    if (st !== "stored") return `${st}: last data ${age} s ago; the values shown are not live`;
+    const last = stampNs == null ? "no estimate stored" : `last stored estimate ${fmtTimeNs(stampNs, false)}`;
+    return `not live: nothing received since the server started; ${last}`;
+  }
+
   scroller.addEventListener("scroll", () => requestAnimationFrame(render), { passive: true });
   filter.addEventListener("input", () => {
     state.filter = filter.value;
@@ -290,8 +374,10 @@ export function fleetView(root) {
     onMessage(msg) {
       if (msg.type !== "fleet") return;
       const t0 = performance.now();
-      state.data = msg;
-      resort();
+      const news = msg.ids.some((id) => !state.stored.has(id));
+      state.msg = msg;
+      update();
+      if (news && performance.now() - storedAtMs > 5000) loadStored(); // registered since
       const ms = window.slipfleetStats.fleetUpdateMs;
       ms.push(performance.now() - t0);
       if (ms.length > 1000) ms.splice(0, ms.length - 1000);
@@ -301,6 +387,7 @@ export function fleetView(root) {
     },
   });
   return () => {
+    stopped = true;
     sock.close();
     clearInterval(bandTimer);
     window.removeEventListener("resize", onResize);

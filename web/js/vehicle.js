@@ -8,9 +8,10 @@
 // A vehicle that is not live (the feed's status "stale" or "offline", or the connection lost) keeps
 // its last values on the page, dimmed, with the age of its data ("last data 52 s ago"); that age is
 // not latency. A vehicle the server does not know (404, and no live data) gets a message and the
-// page stops asking for it.
+// page stops asking for it. A stored vehicle with no live data (parked since the server started)
+// is marked "not live", with the time of its newest stored estimate and a way to its history.
 
-import { ApiError, fetchReport, fetchVehicle, liveSocket } from "./api.js";
+import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket } from "./api.js";
 import { alignedData, chartOptions, degradedSpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
@@ -173,6 +174,8 @@ export function vehicleView(root, vehicleId) {
   let latestRecvMs = 0;
   let latencyStamp = null; // stamp of the estimate last measured for latency
   let notStored = null; // the 404 of GET /vehicles/{id}
+  let stored = false; // GET /vehicles/{id} found it
+  let parked = null; // the "not live" note, once shown
   let liveEmpty = false; // the live feed has nothing for the vehicle ("waiting", or no socket)
   const panels = new Map(); // estimator -> panel
   const sockets = new Map(); // estimator ("" for the primary's until it is known) -> socket
@@ -252,6 +255,8 @@ export function vehicleView(root, vehicleId) {
       threshold = v.config.slip.alert_threshold_pct;
       bandEdges = v.config.slip.band_edges_pct;
       for (const p of panels.values()) p.setThreshold(threshold);
+      stored = true;
+      showParked();
       startIngest();
     })
     .catch((err) => {
@@ -277,6 +282,29 @@ export function vehicleView(root, vehicleId) {
         el("p", {}, el("a", { href: "#/fleet", text: "Back to the fleet" })),
       ),
     );
+  }
+
+  // A stored vehicle without live data: say so, with its newest stored estimate's time.
+  function showParked() {
+    if (!stored || !liveEmpty || panels.size || parked || stopped) return;
+    const when = el("span", { id: "v-parked-last", text: "…" });
+    parked = el(
+      "div",
+      { class: "panel-msg", id: "v-parked", role: "status" },
+      el("p", {}, "Not live: the server has received nothing from this vehicle since it started."),
+      el("p", {}, "Newest stored estimate: ", when, ". ", el("a", { href: vehicleHref(vehicleId, "history"), text: "Its history and slip map" }), "."),
+    );
+    stats.after(parked);
+    statusPill.textContent = "not live";
+    statusPill.className = "pill st-stored";
+    getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/latest`)
+      .then((row) => {
+        when.textContent = fmtTimeNs(row.stamp_ns, false);
+        when.dataset.stampNs = String(row.stamp_ns);
+      })
+      .catch(() => {
+        when.textContent = "none";
+      });
   }
 
   // Old or current: dim the values of a vehicle that is not live and show their age (the feed's
@@ -337,6 +365,7 @@ export function vehicleView(root, vehicleId) {
   function addPanel(name) {
     const spec = specs.get(name);
     if (!spec || panels.has(name)) return;
+    if (parked) parked.remove(); // live again
     const panel = estimatorPanel(spec, page, name === primary);
     panels.set(name, panel);
     panelBox.append(panel.root);
@@ -358,9 +387,10 @@ export function vehicleView(root, vehicleId) {
           const key = name ?? primary;
           if (msg.type === "waiting") {
             if (key === primary && !panels.size) {
-              statusPill.textContent = "no data yet";
+              if (!parked) statusPill.textContent = "no data yet";
               liveEmpty = true;
               checkUnknown();
+              showParked();
             }
             return;
           }
