@@ -54,3 +54,54 @@ def test_viewer_client_follows_a_vehicle(browser: Any, screenshots: Path) -> Non
         ctx.close()
         viewer.stop()
         feed.stop()
+
+
+def _saturated_pixels(png: bytes, right_margin_px: int) -> int:
+    """Pixels of a screenshot, the sidebar cut off, with a clear colour: the grid and the sky are
+    grey or white, the vehicles' bodies and wheels are not."""
+    import imageio.v3 as iio
+
+    rgb = np.asarray(iio.imread(png))[:, :-right_margin_px, :3].astype(np.int16)
+    return int(((rgb.max(axis=2) - rgb.min(axis=2)) > 60).sum())
+
+
+def test_viewer_opens_on_the_whole_fleet_with_a_legend(browser: Any, screenshots: Path) -> None:
+    """Nobody followed: a browser that connects sees every vehicle (the fleet's frame lies far
+    from the origin, as with the server's anchors), a colour legend, and a vehicle without a
+    position is left out instead of drawn at the origin."""
+    fleet = SyntheticFleet(6, seed=5)
+    offsets = {vid: (350.0 + 40.0 * k, 420.0 - 25.0 * k, 0.0) for k, vid in enumerate(fleet.ids)}
+    offsets["no-fix"] = (0.0, 0.0, 0.0)
+    hub = LiveHub()
+    feed = FeedThread(fleet, [hub], rate_hz=10.0)
+    feed.backfill(20.0)
+    feed.start()
+    nofix = fleet.rows_at(time.time_ns())[0][1].copy()
+    nofix["east_m"] = nofix["north_m"] = np.nan
+    hub.on_estimates([("no-fix", nofix)])
+    viewer = FleetViewer(
+        hub,
+        ViewerSettings(host="127.0.0.1", port=free_port(), update_hz=5.0),
+        origin_offset_m=offsets.get,
+    )
+    viewer.start()
+    ctx = browser.new_context(viewport={"width": 1400, "height": 900})
+    try:
+        page = ctx.new_page()
+        page.goto(f"http://127.0.0.1:{viewer.port}/")
+        deadline = time.monotonic() + 30
+        while not viewer._cam_fitted and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert viewer._cam_fitted, "no client camera was aimed at the fleet"
+        assert viewer.frame is not None and sorted(viewer.frame.ids) == fleet.ids
+        assert viewer._count is not None and viewer._count.value == "6 (1 without a position)"
+        page.wait_for_function("() => document.body.innerText.includes('no value')", timeout=20000)
+        text = page.inner_text("body")
+        assert "Wheels" in text and "Bodies" in text and "offline" in text
+        page.wait_for_timeout(2000)
+        png = page.screenshot(path=str(screenshots / "viewer-fleet.png"))
+        assert _saturated_pixels(png, right_margin_px=420) > 400
+    finally:
+        ctx.close()
+        viewer.stop()
+        feed.stop()

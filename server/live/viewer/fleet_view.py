@@ -9,9 +9,17 @@ Scene (world = local ENU metres, see :mod:`server.live.viewer.scene`):
 ``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
 ``/fleet/wheels``   one batched mesh, a wheel or track per slip channel of the vehicle's spec,
                     coloured by that channel's slip
+``/fleet/pins``     a pin above each vehicle in its body's colour, a few pixels wide at any
+                    distance, so a fleet spread over kilometres can be found at a glance
 ``/follow/track``   the followed vehicle's recent track, coloured by max |slip| of its channels
 ``/follow/velocity`` its velocity arrow (2 s of travel), above the body
 ``/follow/label``   its id
+``/ground``         a grid under the fleet
+
+A vehicle without a position (no fix yet, or its anchor in the fleet's frame not known yet) is
+not drawn; the sidebar counts it. A browser that connects while nobody is followed gets its
+camera aimed at the whole fleet (so the view never opens on an empty grid), and the sidebar
+holds a legend of the colours (:func:`legend_html`).
 
 The whole fleet is two batched meshes, so a frame for 1,000 vehicles is a handful of array
 assignments inside one ``server.atomic()`` block (``server/tooling/bench/viewer.py`` compares it
@@ -38,18 +46,20 @@ import viser
 from estimator.config import VehicleGeometry
 from estimator.spec import EstimatorSpec
 from server.live.hub import LiveHub
-from server.live.viewer.colors import slip_rgb
+from server.live.viewer.colors import SLIP_COLOR_NONE, SLIP_COLOR_STOPS, slip_rgb
 from server.live.viewer.scene import (
     BODY_SIZE_M,
+    STATUS_RGB,
     FleetFrame,
     box_mesh,
     concat_frames,
     cylinder_mesh_x,
     fleet_frame,
+    positioned,
 )
 from server.settings import ViewerSettings
 
-__all__ = ["ARROW_SECONDS", "NO_FOLLOW", "FleetViewer"]
+__all__ = ["ARROW_SECONDS", "NO_FOLLOW", "FleetViewer", "fleet_view_point", "legend_html"]
 
 _log = logging.getLogger(__name__)
 
@@ -61,6 +71,46 @@ _CAMERA_OFFSET_M = (-14.0, -14.0, 10.0)
 _AIM_TOLERANCE_M = 0.5
 #: The velocity arrow of the followed vehicle shows this many seconds of travel.
 ARROW_SECONDS = 2.0
+#: Direction from the fleet's centre to a camera that shows all of it (from the south-west,
+#: above), and the smallest span framed [m].
+_FLEET_VIEW_DIR = np.array([-0.45, -0.75, 0.5]) / np.linalg.norm([-0.45, -0.75, 0.5])
+_MIN_SPAN_M = 30.0
+_GRID_MIN_M = 400.0
+#: Pins rise this share of the framed span above the bodies (at least _PIN_MIN_M) [m].
+_PIN_SHARE = 0.08
+_PIN_MIN_M = 4.0
+
+
+def _swatch(rgb: tuple[int, int, int], text: str) -> str:
+    r, g, b = rgb
+    box = f"display:inline-block;width:12px;height:12px;background:rgb({r},{g},{b});"
+    return f'<span style="white-space:nowrap"><span style="{box}"></span> {text}</span>'
+
+
+def legend_html() -> str:
+    """The colour legend of the sidebar: wheels by |slip| (the shared scale), bodies by status."""
+    stops = [_swatch(c, f"{x:g} %") for x, c in SLIP_COLOR_STOPS]
+    stops[-1] = _swatch(SLIP_COLOR_STOPS[-1][1], f"≥ {SLIP_COLOR_STOPS[-1][0]:g} %")
+    wheels = " ".join([*stops, _swatch(SLIP_COLOR_NONE, "no value")])
+    bodies = " ".join(_swatch(c, status) for status, c in STATUS_RGB.items())
+    return (
+        '<div style="font-size:12px;line-height:1.7">'
+        f"<b>Wheels</b>: |slip|, shaded between {wheels}<br>"
+        f"<b>Bodies</b>: {bodies}</div>"
+    )
+
+
+def fleet_view_point(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(camera position, look-at point, span)`` framing every point of ``(n, 3)``, n ≥ 1.
+
+    The camera looks at the centre of the points' bounding box from :data:`_FLEET_VIEW_DIR`, at a
+    distance that keeps the box's diagonal span (at least :data:`_MIN_SPAN_M`) well inside the
+    browser's view (viser's 75° vertical field of view)."""
+    lo, hi = positions_m.min(axis=0), positions_m.max(axis=0)
+    centre = (lo + hi) / 2
+    span = max(float(np.linalg.norm((hi - lo)[:2])), _MIN_SPAN_M)
+    distance = 0.8 * span / (2 * math.tan(math.radians(25))) + 10.0
+    return centre + distance * _FLEET_VIEW_DIR, centre, span
 
 
 class FleetViewer:
@@ -102,6 +152,10 @@ class FleetViewer:
         self._follow: viser.GuiDropdownHandle[str] | None = None
         self._camera_follows: viser.GuiCheckboxHandle | None = None
         self._count: viser.GuiTextHandle | None = None
+        self._grid: viser.GridHandle | None = None
+        self._pins: viser.LineSegmentsHandle | None = None
+        self._pin_height_m = _PIN_MIN_M
+        self._cam_fitted: set[int] = set()  # clients whose camera was aimed at the fleet
         self._n: tuple[int, int] = (-1, -1)  # vehicles and wheels of the batched meshes
         self._ids: list[str] = []
         self._lock = threading.Lock()
@@ -129,13 +183,34 @@ class FleetViewer:
         )
         self.server = server
         server.scene.set_up_direction("+z")
-        server.scene.add_grid("/ground", width=400.0, height=400.0, cell_size=10.0, plane="xy")
+        self._place_grid(np.zeros(3), _GRID_MIN_M)
         self._follow = server.gui.add_dropdown(
             "Follow", options=(NO_FOLLOW,), initial_value=NO_FOLLOW
         )
         self._camera_follows = server.gui.add_checkbox("Camera follows", initial_value=True)
         self._count = server.gui.add_text("Vehicles", initial_value="0", disabled=True)
+        server.gui.add_html(legend_html())
         self._follow.on_update(lambda _event: self._on_follow_changed())
+        server.on_client_disconnect(lambda client: self._cam_fitted.discard(client.client_id))
+
+    def _place_grid(self, centre_m: np.ndarray, span_m: float) -> None:
+        """The ground grid under ``centre_m``, wide enough for ``span_m`` (100 m steps), about
+        40 cells across (10 m at least), a heavier line every 5 cells."""
+        assert self.server is not None
+        if self._grid is not None:
+            self._grid.remove()
+        width = max(_GRID_MIN_M, math.ceil(1.5 * span_m / 100.0) * 100.0)
+        cell = max(10.0, 10.0 * round(width / 400.0))
+        self._grid = self.server.scene.add_grid(
+            "/ground",
+            width=width,
+            height=width,
+            cell_size=cell,
+            section_size=5.0 * cell,
+            plane="xy",
+            position=(float(centre_m[0]), float(centre_m[1]), 0.0),
+            fade_distance=3.0 * width,
+        )
 
     def start(self) -> None:
         """:meth:`open`, then redraw at ``settings.update_hz`` on a thread until :meth:`stop`."""
@@ -191,9 +266,29 @@ class FleetViewer:
         self._cam_follow.clear()
         self._cam_last = None
         if self.followed is None:
+            self._cam_fitted.clear()  # back to the whole fleet
             for h in (self._track, self._arrow, self._label):
                 if h is not None:
                     h.visible = False
+
+    def _fit_cameras(self, frame: FleetFrame) -> None:
+        """Aim every client not aimed yet at the whole fleet (while nobody is followed)."""
+        assert self.server is not None
+        clients = self.server.get_clients()
+        todo = [c for cid, c in clients.items() if cid not in self._cam_fitted]
+        if not todo or self.followed is not None:
+            return
+        position, look_at, span = fleet_view_point(frame.body_position_m)
+        if not self._cam_fitted:
+            self._place_grid(look_at, span)
+            self._pin_height_m = max(_PIN_MIN_M, _PIN_SHARE * span)
+        for client in todo:
+            try:
+                client.camera.position = position
+                client.camera.look_at = look_at
+            except AssertionError:  # the client has not reported its camera yet
+                continue
+            self._cam_fitted.add(client.client_id)
 
     # ------------------------------------------------------------------ frames
     def _rebuild_fleet(self, frame: FleetFrame) -> None:
@@ -249,13 +344,14 @@ class FleetViewer:
 
         Each vehicle's estimates are in its own local ENU frame (anchored at its first fix).
         With ``origin_offset_m`` (vehicle id → that anchor's ENU position in the fleet's frame)
-        vehicles are drawn where they are relative to each other; the tangent planes' tilt
+        vehicles are drawn where they are relative to each other (NaN, not drawn, while a
+        vehicle's anchor is unknown); the tangent planes' tilt
         between anchors (< 0.01° per km) is neglected. Otherwise ``layout="shared"`` draws every
         frame on one origin (right when the vehicles share an anchor) and ``"grid"`` puts each
         vehicle's origin on a grid ``grid_spacing_m`` apart, in id order, so none overlap.
         """
         if self.origin_offset_m is not None:
-            out = np.zeros((len(ids), 3))
+            out = np.full((len(ids), 3), np.nan)  # anchor unknown: not drawn (NaN position)
             for i, vid in enumerate(ids):
                 off = self._offsets.get(vid)
                 if off is None:
@@ -284,19 +380,24 @@ class FleetViewer:
             for spec in self.hub.specs()
             if spec.position is not None
         ]
-        ids = [v for g in groups for v in g[1]]
-        if not ids:
+        all_ids = [v for g in groups for v in g[1]]
+        if not all_ids:
             return 0.0
-        offsets = self._offsets_of(ids)
+        offsets = self._offsets_of(all_ids)
+        offset_of = {} if offsets is None else dict(zip(all_ids, offsets, strict=True))
         frames, start = [], 0
         for spec, gids, rows, arrivals in groups:
             part = None if offsets is None else offsets[start : start + len(gids)]
             frames.append(self._frame_of(spec, gids, rows, arrivals, part))
             start += len(gids)
         frame = concat_frames(frames)
+        ids = frame.ids
         shape = (len(ids), frame.wheel_owner.shape[0])
         with self._lock, self.server.atomic():
-            if shape != self._n or self._bodies is None:
+            self._show_count(len(ids), len(all_ids))
+            if not ids:
+                self._clear_fleet()
+            elif shape != self._n or self._bodies is None:
                 self._rebuild_fleet(frame)
                 self._n = shape
             else:
@@ -310,16 +411,50 @@ class FleetViewer:
                     self._wheels.batched_colors = frame.wheel_rgb
             if ids != self._ids:
                 self._ids = list(ids)
-                assert self._follow is not None and self._count is not None
+                assert self._follow is not None
                 current = self._follow.value
                 self._follow.options = (NO_FOLLOW, *sorted(ids))
                 self._follow.value = current if current in ids else NO_FOLLOW  # type: ignore[misc]
-                self._count.value = str(len(ids))  # type: ignore[misc]
-            self._draw_followed(frame, offsets)
+            if ids:
+                self._draw_pins(frame)
+                self._fit_cameras(frame)
+                self._draw_followed(frame, offset_of.get(self.followed or ""))
         self.frame = frame
         self.frames += 1
         self.last_frame_s = time.perf_counter() - t0
         return self.last_frame_s
+
+    def _show_count(self, drawn: int, total: int) -> None:
+        assert self._count is not None
+        text = str(drawn) if drawn == total else f"{drawn} ({total - drawn} without a position)"
+        if self._count.value != text:
+            self._count.value = text  # type: ignore[misc]
+
+    def _clear_fleet(self) -> None:
+        """No vehicle to draw: remove the batched meshes and the pins."""
+        for h in (self._bodies, self._wheels, self._pins):
+            if h is not None:
+                h.remove()
+        self._bodies = self._wheels = None
+        self._pins = None
+        self._n = (0, 0)
+
+    def _draw_pins(self, frame: FleetFrame) -> None:
+        """A vertical segment ``(n, 2, 3)`` above each body, in the body's colour."""
+        assert self.server is not None
+        foot = frame.body_position_m + np.array([0.0, 0.0, BODY_SIZE_M[2] / 2])
+        head = foot + np.array([0.0, 0.0, self._pin_height_m])
+        points = np.stack([foot, head], axis=1).astype(np.float32)
+        colors = np.repeat(frame.body_rgb[:, None, :], 2, axis=1)
+        if self._pins is None or np.asarray(self._pins.points).shape != points.shape:
+            if self._pins is not None:
+                self._pins.remove()
+            self._pins = self.server.scene.add_line_segments(
+                "/fleet/pins", points=points, colors=colors, thickness=5.0, thickness_units="screen"
+            )
+        else:
+            self._pins.points = points
+            self._pins.colors = colors
 
     def _frame_of(
         self,
@@ -329,17 +464,23 @@ class FleetViewer:
         arrivals: np.ndarray,
         offsets: np.ndarray | None,
     ) -> FleetFrame:
-        """The newest ``rows`` of ``spec`` of vehicles ``ids``, shifted by ``offsets`` (n, 3)."""
+        """The newest ``rows`` of ``spec`` of vehicles ``ids``, shifted by ``offsets`` (n, 3),
+        of the vehicles that have a position (:func:`positioned`) only."""
         p = spec.position
         if offsets is not None and p is not None:
             rows = rows.copy()
             for k, name in enumerate((p.east_field, p.north_field, p.up_field)):
                 if name is not None:
                     rows[name] += offsets[:, k]
+        keep = positioned(rows, spec)
+        ids = [vid for vid, k in zip(ids, keep, strict=True) if k]
+        rows, arrivals = rows[keep], arrivals[keep]
         status = self.hub.status_of_rows(rows["stamp_ns"], arrivals)
         return fleet_frame(ids, rows, spec, self.geometry, status)
 
-    def _draw_followed(self, frame: FleetFrame, offsets: np.ndarray | None) -> None:
+    def _draw_followed(self, frame: FleetFrame, offset: np.ndarray | None) -> None:
+        """The followed vehicle's arrow, label and track (``offset``: its frame's shift into
+        the scene, None for none)."""
         assert self.server is not None
         vid = self.followed
         if vid is None or vid not in frame.ids:
@@ -378,8 +519,8 @@ class FleetViewer:
             if p.up_field is None:
                 u = np.zeros(n_pts)
             pts = np.stack([e, n, u - drop + 0.05], -1)
-            if offsets is not None:  # into the scene frame: the same shift as the vehicle's pose
-                pts += offsets[i]
+            if offset is not None:  # into the scene frame: the same shift as the vehicle's pose
+                pts += offset
             ok = np.isfinite(pts).all(axis=1)
             pts = pts[ok]
             mags = [np.abs(_col(win, s.field, n_pts)) for s in spec.slips]

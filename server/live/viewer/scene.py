@@ -39,6 +39,7 @@ __all__ = [
     "BODY_CENTRE_M",
     "BODY_SIZE_M",
     "FRONT_AXLE_M",
+    "STATUS_RGB",
     "FleetFrame",
     "attitude_fields",
     "attitude_from_wxyz",
@@ -46,6 +47,7 @@ __all__ = [
     "concat_frames",
     "cylinder_mesh_x",
     "fleet_frame",
+    "positioned",
     "quat_mul",
     "rotate",
     "rotation_matrix_from_wxyz",
@@ -61,7 +63,8 @@ BODY_CENTRE_M = (0.0, 1.1, 1.35)
 #: Drawn front axle, ahead of ``O`` (the geometry has no wheelbase: for drawing only).
 FRONT_AXLE_M = 2.3
 
-_STATUS_RGB = {
+#: Body colour by the vehicle's status (the live hub's).
+STATUS_RGB = {
     "live": (70, 110, 170),
     "stale": (200, 150, 40),
     "offline": (110, 110, 110),
@@ -196,6 +199,15 @@ def _column(rows: np.ndarray, name: str | None, default: float) -> FloatArray:
     return _nan_to(rows[name], default)
 
 
+def positioned(rows: np.ndarray, spec: EstimatorSpec) -> npt.NDArray[np.bool_]:
+    """Which rows ``(n,)`` have a position (finite east and north) to be drawn at; a row without
+    one (no fix yet, dead reckoning given up) is not drawn rather than drawn at the origin."""
+    if spec.position is None:
+        return np.zeros(rows.shape[0], dtype=bool)
+    p = spec.position
+    return np.isfinite(rows[p.east_field]) & np.isfinite(rows[p.north_field])
+
+
 def fleet_frame(
     ids: Sequence[str],
     rows: np.ndarray,
@@ -206,8 +218,8 @@ def fleet_frame(
     """Map the newest row of ``spec`` of each vehicle (``rows``, shape ``(n,)``) to the scene.
 
     ``spec`` must have a position. Missing attitude (NaN, or no such field) is taken as level;
-    missing heading as north; missing position as the origin; a missing slip colours the wheel
-    grey.
+    missing heading as north; missing position as the origin (callers draw only the rows
+    :func:`positioned` keeps); a missing slip colours the wheel grey.
     """
     if spec.position is None:
         raise ValueError(f"estimator {spec.name!r} has no position to draw")
@@ -234,7 +246,7 @@ def fleet_frame(
         slip[j::k] = rows[channel.field]
     vel = R[:, :, 1] * _column(rows, spec.motion_field, 0.0)[:, None]
     body_rgb = np.array(
-        [_STATUS_RGB.get(s, _STATUS_RGB["live"]) for s in (status or ["live"] * n)], dtype=np.uint8
+        [STATUS_RGB.get(s, STATUS_RGB["live"]) for s in (status or ["live"] * n)], dtype=np.uint8
     ).reshape(n, 3)
     return FleetFrame(
         ids=list(ids),
