@@ -163,8 +163,9 @@ def checked_page(
 ) -> Iterator[Any]:
     """A page in a new browser context (``context``: Playwright's ``new_context`` options)
     that fails the test on any page error, or console error other than the ``allowed`` ones
-    (a predicate on Playwright's console message)."""
-    ctx = browser.new_context(**context)
+    (a predicate on Playwright's console message). The browser's time zone is UTC unless
+    ``context`` names another (``timezone_id``): the dashboard shows times in it."""
+    ctx = browser.new_context(**{"timezone_id": "UTC", **context})
     pg = ctx.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda exc: errors.append(str(exc)))

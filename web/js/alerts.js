@@ -1,8 +1,9 @@
 // Alerts panel: open and recent alerts from GET /api/v1/alerts, refreshed every 2 s.
 
 import { fetchAlerts } from "./api.js";
+import { fmtClock, zoneName } from "./clock.js";
 import { loadSpecs } from "./specs.js";
-import { el, fmt, fmtDuration, fmtTimeNs, vehicleHref } from "./util.js";
+import { el, fmt, fmtDuration, timeTitle, vehicleHref } from "./util.js";
 
 // Alert kinds of no estimator; slip and flag alerts ("slip:<estimator>:<channel key>",
 // "flag:<estimator>:<FLAG>") are said from the estimator's spec (kindLabel).
@@ -24,11 +25,12 @@ function kindLabel(a, specs) {
   return `${flag ? flag.description : a.channel} (${spec.title})`;
 }
 
-// "2026-05-01 12:00:03" (the column header says UTC); date and time each kept on one line, so a
-// narrow column breaks between them and nowhere else
+// "2026-05-01 12:00:03" in the chosen zone (the column header names it; the other reading on
+// hover); date and time each kept on one line, so a narrow column breaks between them only
 function timeCell(ns) {
-  const [day, time] = fmtTimeNs(ns, false).replace(/ UTC$/, "").split(" ");
-  return el("td", { class: "when" }, el("span", { text: day }), " ", el("span", { text: time }));
+  if (ns === null || ns === undefined) return el("td", { class: "when" }, "–");
+  const [day, time] = fmtClock(ns / 1e6).split(" ");
+  return el("td", { class: "when", title: timeTitle(ns) }, el("span", { text: day }), " ", el("span", { text: time }));
 }
 
 export function alertsView(root) {
@@ -54,7 +56,7 @@ export function alertsView(root) {
           el(
             "tr",
             {},
-            ...["State", "Vehicle", "Kind", "Start (UTC)", "End (UTC)", "Duration", "Peak |slip| (%)", "Threshold (%)"].map((h) =>
+            ...["State", "Vehicle", "Kind", `Start (${zoneName()})`, `End (${zoneName()})`, "Duration", "Peak |slip| (%)", "Threshold (%)"].map((h) =>
               el("th", { scope: "col", text: h }),
             ),
           ),

@@ -1,8 +1,10 @@
 // uPlot charts of an estimator's fields (a spec's ChartSpec: title, unit, fields, labels from
 // the spec), with units on the axes and a colour-blind-safe palette (Okabe–Ito). Time runs on the
-// x axis in UTC; x values are seconds since the epoch. Stretches of degraded rows (the spec's
+// x axis in the zone the reader chose (the browser's or UTC, js/clock.js), named in the axis
+// label; x values are seconds since the epoch. Stretches of degraded rows (the spec's
 // degraded_flags) can be shaded.
 
+import { fmtClock, timeMode, zoneName } from "./clock.js";
 import { degradedMask, fieldOf } from "./specs.js";
 
 // Series colours in chart order; the first series is drawn thicker.
@@ -46,8 +48,9 @@ export function degradedSpans(spec, cols) {
   return out;
 }
 
-function utc(ts) {
-  return uPlot.tzDate(new Date(ts * 1e3), "Etc/UTC");
+// uPlot's dates in the chosen zone (its own default is the browser's)
+function zoned(ts) {
+  return timeMode() === "utc" ? uPlot.tzDate(new Date(ts * 1e3), "Etc/UTC") : new Date(ts * 1e3);
 }
 
 // columns {stamp_ns: [...], field: [...]} -> uPlot aligned data
@@ -90,9 +93,9 @@ function timeSpace(_u, _axisIdx, min, max, plotWidth) {
   return labelRoom(86400);
 }
 function timeLabel(v, incr) {
-  const iso = new Date(v * 1e3).toISOString();
-  if (incr >= 86400) return iso.slice(5, 10); // MM-DD
-  return iso.slice(11, incr < 60 ? 19 : 16); // 24-hour UTC clock, seconds when steps are shorter
+  const text = fmtClock(v * 1e3); // "YYYY-MM-DD HH:MM:SS" in the chosen zone
+  if (incr >= 86400) return text.slice(5, 10); // MM-DD
+  return text.slice(11, incr < 60 ? 19 : 16); // 24-hour clock, seconds when steps are shorter
 }
 
 // opts: title, yLabel, fields, labels (one per field; default the field names), height,
@@ -109,11 +112,11 @@ export function makeChart(target, opts) {
       title: opts.title,
       width,
       height: opts.height || 240,
-      tzDate: utc,
+      tzDate: zoned,
       scales: { x: { time: true }, y: { auto: true, range: opts.yRange } },
       axes: [
         {
-          label: "time (UTC)",
+          label: `time (${zoneName()})`,
           labelSize: 24,
           incrs: TIME_INCRS,
           space: timeSpace,
@@ -132,7 +135,7 @@ export function makeChart(target, opts) {
         },
       ],
       series: [
-        { label: "time (UTC)", value: (u, v) => (v == null ? "–" : utc(v).toISOString().slice(11, 23)) },
+        { label: `time (${zoneName()})`, value: (u, v) => (v == null ? "–" : fmtClock(v * 1e3, true).slice(11)) },
         ...opts.fields.map((f, i) => ({
           ...seriesStyle(i, (opts.labels || opts.fields)[i]),
           value: (u, v) => (v == null ? "–" : v.toFixed(digits)),

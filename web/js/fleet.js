@@ -16,7 +16,7 @@
 import { ApiError, fetchVehicles, getJSON, liveSocket } from "./api.js";
 import { slipBand, slipCss } from "./colors.js";
 import { loadSpecs, motionChannel } from "./specs.js";
-import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
+import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2, stored: 3 };
@@ -358,7 +358,8 @@ export function fleetView(root) {
   // The tooltip of a row that is not live.
   function oldTitle(st, age, stampNs) {
     if (st !== "stored") return `${st}: last data ${age} s ago; the values shown are not live`;
-    const last = stampNs == null ? "no estimate stored" : `last stored estimate ${fmtTimeNs(stampNs, false)}`;
+    const last =
+      stampNs == null ? "no estimate stored" : `last stored estimate ${fmtTimeNs(stampNs, false)} (${timeTitle(stampNs)})`;
     return `not live: nothing received since the server started; ${last}`;
   }
 

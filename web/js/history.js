@@ -1,4 +1,4 @@
-// History of one vehicle: pick an estimator (default its primary) and a time range (UTC), load
+// History of one vehicle: pick an estimator (default its primary) and a time range (in the zone the reader chose), load
 // it from the REST series endpoint, then scrub or replay it at 1×–60× with the charts' cursor and
 // the slip map's position in sync. The map can also show a heat grid of mean |slip| per cell over
 // the range. Charts, cursor values and the track come from the estimator's spec (its charts, slip
@@ -17,6 +17,7 @@
 // many stored rows, and how wide the buckets are.
 
 import { fetchVehicle, getJSON } from "./api.js";
+import { clockToMs, fmtClock, timeMode, zoneName } from "./clock.js";
 import {
   alignedData,
   chartOptions,
@@ -28,7 +29,7 @@ import {
 } from "./charts.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtDuration, fmtTimeNs, vehicleHref } from "./util.js";
+import { el, fmt, fmtDuration, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 // Fields of a spec the charts need: every chart's, and flags (degraded stretches).
 function chartFields(spec) {
@@ -62,34 +63,31 @@ const AUTO_CELLS_ACROSS = 60; // auto: the smallest cell giving at most this man
 const SLIPMAP_MAX_RANGE_S = 24 * 3600; // the slip map endpoint's limit
 const NS = 1000000000n;
 
-// Times in the inputs: 24-hour ISO UTC, "2026-11-26 22:48:43" (a "T" instead of the space, a
-// fraction of a second and a trailing "Z" or "UTC" are accepted). Values are BigInt nanoseconds:
-// a Number holds an epoch nanosecond only to 256 ns.
+// Times in the inputs: 24-hour ISO in the zone the reader chose (js/clock.js: the browser's or
+// UTC), "2026-11-26 22:48:43" (a "T" instead of the space and a fraction of a second are
+// accepted; a trailing "Z" or "UTC" reads the time as UTC whatever the choice). Values are BigInt
+// nanoseconds: a Number holds an epoch nanosecond only to 256 ns.
 const TIME_RE =
-  /^\s*(\d{4})-(\d{2})-(\d{2})(?:T|\s+)(\d{2}):(\d{2})(?::(\d{2})(?:\.(\d{1,9}))?)?\s*(?:Z|UTC)?\s*$/i;
+  /^\s*(\d{4})-(\d{2})-(\d{2})(?:T|\s+)(\d{2}):(\d{2})(?::(\d{2})(?:\.(\d{1,9}))?)?\s*(Z|UTC)?\s*$/i;
 
-export function formatUtc(ns) {
-  return new Date(Number(BigInt(ns) / 1000000n)).toISOString().slice(0, 19).replace("T", " ");
+export function formatClockNs(ns) {
+  return fmtClock(Number(BigInt(ns) / 1000000n));
 }
 
-export function parseUtc(text) {
+export function parseClock(text) {
   const m = TIME_RE.exec(text || "");
   if (!m) return null;
   const [y, mo, d, h, mi, s] = m.slice(1, 7).map((v) => Number(v || 0));
-  const ms = Date.UTC(y, mo - 1, d, h, mi, s);
-  const t = new Date(ms);
-  const same =
-    t.getUTCFullYear() === y && t.getUTCMonth() === mo - 1 && t.getUTCDate() === d &&
-    t.getUTCHours() === h && t.getUTCMinutes() === mi && t.getUTCSeconds() === s;
-  if (!same) return null; // 2026-02-30, 24:00, …
+  const ms = clockToMs(y, mo, d, h, mi, s, m[8] ? "utc" : timeMode());
+  if (ms === null) return null; // 2026-02-30, 24:00, …
   return BigInt(ms / 1000) * NS + BigInt((m[7] || "").padEnd(9, "0"));
 }
 
-// "2026-11-26 22:36:10–22:50:12 UTC" (the date again when the day changes)
+// "2026-11-26 22:36:10–22:50:12 CET" (the date again when the day changes)
 function fmtSpanNs(first, last) {
-  const a = formatUtc(BigInt(Math.round(first / 1e6)) * 1000000n);
-  const b = formatUtc(BigInt(Math.round(last / 1e6)) * 1000000n);
-  return `${a}–${a.slice(0, 10) === b.slice(0, 10) ? b.slice(11) : b} UTC`;
+  const a = formatClockNs(BigInt(Math.round(first / 1e6)) * 1000000n);
+  const b = formatClockNs(BigInt(Math.round(last / 1e6)) * 1000000n);
+  return `${a}–${a.slice(0, 10) === b.slice(0, 10) ? b.slice(11) : b} ${zoneName(last / 1e6)}`;
 }
 
 function setInvalid(input, bad) {
@@ -124,11 +122,11 @@ export function historyView(root, vehicleId) {
       spellcheck: "false",
       autocomplete: "off",
       placeholder: "YYYY-MM-DD HH:MM:SS",
-      title: "UTC, 24-hour clock: YYYY-MM-DD HH:MM:SS",
+      title: `${zoneName()}, 24-hour clock: YYYY-MM-DD HH:MM:SS`,
       "aria-label": label,
     });
-  const start = timeInput("h-start", "Start (UTC)");
-  const end = timeInput("h-end", "End (UTC)");
+  const start = timeInput("h-start", `Start (${zoneName()})`);
+  const end = timeInput("h-end", `End (${zoneName()})`);
   const load = el("button", { type: "button", id: "h-load", class: "primary", text: "Load" });
   const msg = el("span", { id: "h-msg" });
   const detail = el("span", { id: "h-detail" });
@@ -161,8 +159,8 @@ export function historyView(root, vehicleId) {
       "div",
       { class: "toolbar" },
       el("label", {}, "Range ", preset),
-      el("label", {}, "Start (UTC) ", start),
-      el("label", {}, "End (UTC) ", end),
+      el("label", {}, `Start (${zoneName()}) `, start),
+      el("label", {}, `End (${zoneName()}) `, end),
       load,
     ),
     el("div", { class: "toolbar" }, el("p", { class: "summary", id: "h-summary", "aria-live": "polite" }, msg, " ", detail)),
@@ -258,8 +256,8 @@ export function historyView(root, vehicleId) {
   function setPresetRange(endNs) {
     // whole seconds, the end rounded up so the newest row stays inside
     const e = ((BigInt(endNs) + NS - 1n) / NS) * NS;
-    end.value = formatUtc(e);
-    start.value = formatUtc(e - BigInt(preset.value) * NS);
+    end.value = formatClockNs(e);
+    start.value = formatClockNs(e - BigInt(preset.value) * NS);
     setInvalid(start, false);
     setInvalid(end, false);
   }
@@ -348,6 +346,7 @@ export function historyView(root, vehicleId) {
     idx = Math.max(0, Math.min(xs.length - 1, i));
     scrub.value = String(idx);
     at.textContent = fmtTimeNs(track.stamp_ns[idx]);
+    at.title = timeTitle(track.stamp_ns[idx]);
     for (const ch of spec.slips) document.getElementById(`h-slip-${ch.key}`).textContent = fmt(track[ch.field][idx], 1);
     const motion = motionChannel(spec);
     if (motion) document.getElementById("h-motion").textContent = fmt(track[motion.field][idx], 2);
@@ -377,12 +376,12 @@ export function historyView(root, vehicleId) {
 
   async function doLoad() {
     if (!spec) return; // the estimators are not loaded yet
-    const s = parseUtc(start.value);
-    const e = parseUtc(end.value);
+    const s = parseClock(start.value);
+    const e = parseClock(end.value);
     setInvalid(start, s == null);
     setInvalid(end, e == null);
     if (s == null || e == null) {
-      msg.textContent = "Enter the times as YYYY-MM-DD HH:MM:SS (UTC).";
+      msg.textContent = `Enter the times as YYYY-MM-DD HH:MM:SS (${zoneName()}).`;
       detail.textContent = "";
       return;
     }
@@ -476,7 +475,7 @@ export function historyView(root, vehicleId) {
   cell.addEventListener("change", applyHeat);
   preset.addEventListener("change", () => {
     if (preset.value === CUSTOM) return;
-    const e = parseUtc(end.value);
+    const e = parseClock(end.value);
     setPresetRange(e != null ? e : BigInt(Date.now()) * 1000000n);
   });
   // a time typed by hand is a custom range

@@ -2,6 +2,7 @@
 
 import { alertsView, startAlertBadge } from "./alerts.js";
 import { setToken } from "./api.js";
+import { localZoneName, setTimeMode, timeMode } from "./clock.js";
 import { fleetView } from "./fleet.js";
 import { historyView } from "./history.js";
 import { vehicleView } from "./vehicle.js";
@@ -50,6 +51,15 @@ window.addEventListener("slipfleet:auth-required", (ev) =>
   askToken(`The server refused the request: ${ev.detail.reason}`),
 );
 document.getElementById("token-button").addEventListener("click", () => askToken());
+
+// Times in the browser's zone (default) or UTC: every view is drawn again in the chosen one.
+const tzSelect = document.getElementById("tz-select");
+document.getElementById("tz-local").textContent = `Local (${localZoneName()})`;
+tzSelect.value = timeMode();
+tzSelect.addEventListener("change", () => {
+  setTimeMode(tzSelect.value);
+  route();
+});
 
 window.addEventListener("hashchange", route);
 startAlertBadge(document.getElementById("alert-badge"));

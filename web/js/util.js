@@ -1,5 +1,7 @@
 // Small helpers shared by the views.
 
+import { fmtClock, otherReading, zoneName } from "./clock.js";
+
 export function el(tag, attrs = {}, ...children) {
   const e = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs)) {
@@ -21,12 +23,17 @@ export function fmt(v, digits) {
   return s.startsWith("-") && Number(s) === 0 ? s.slice(1) : s;
 }
 
-// "2024-05-01 12:00:03.250 UTC" from integer nanoseconds (number precision is enough for display)
+// "2024-05-01 14:00:03.250 CEST" from integer nanoseconds, in the zone the reader chose (the
+// browser's, or UTC: js/clock.js); number precision is enough for display
 export function fmtTimeNs(ns, withMs = true) {
   if (ns === null || ns === undefined) return "–";
-  const d = new Date(ns / 1e6);
-  const iso = d.toISOString().replace("T", " ");
-  return (withMs ? iso.slice(0, 23) : iso.slice(0, 19)) + " UTC";
+  const ms = ns / 1e6;
+  return `${fmtClock(ms, withMs)} ${zoneName(ms)}`;
+}
+
+// The same time in the other zone, for a title (hover): UTC when local times are shown.
+export function timeTitle(ns) {
+  return ns === null || ns === undefined ? "" : otherReading(ns / 1e6);
 }
 
 // A duration in seconds: "0.300 s", "4.25 s", "21.6 s", "14 min 2 s", "30 min", "1 h 30 min",

@@ -16,7 +16,7 @@ import { alignedData, chartOptions, degradedSpans, makeChart, setShading, setThr
 import { slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtTimeNs, vehicleHref } from "./util.js";
+import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const WINDOWS = [
   [30, "30 s"],
@@ -300,6 +300,7 @@ export function vehicleView(root, vehicleId) {
     getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/latest`)
       .then((row) => {
         when.textContent = fmtTimeNs(row.stamp_ns, false);
+        when.title = timeTitle(row.stamp_ns);
         when.dataset.stampNs = String(row.stamp_ns);
       })
       .catch(() => {
@@ -329,6 +330,7 @@ export function vehicleView(root, vehicleId) {
     latest = lt;
     latestRecvMs = recvMs;
     document.getElementById("v-stamp").textContent = fmtTimeNs(lt.stamp_ns);
+    document.getElementById("v-stamp").title = timeTitle(lt.stamp_ns);
     document.getElementById("v-stamp").dataset.stampNs = String(lt.stamp_ns);
     // latency: only a new estimate of a live vehicle (a heartbeat repeats the newest estimate, and
     // a stale vehicle's is as old as its silence)
