@@ -5,10 +5,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["REPO", "cli_env", "run_cli", "start_cli"]
+from server.app_main import ServerThread, build_app
+from server.settings import Settings
+from tests.support import free_port
+
+__all__ = ["REPO", "cli_env", "run_cli", "serving", "start_cli"]
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -51,3 +56,16 @@ def start_cli(
         env=cli_env(env),
         cwd=cwd,
     )
+
+
+@contextmanager
+def serving(settings: Settings) -> Iterator[Settings]:
+    """The whole server of ``settings`` in this process, its REST API on a free port (written
+    into ``settings.api.port``), until the block ends."""
+    settings.api.port = free_port()
+    server = ServerThread(build_app(settings), "127.0.0.1", settings.api.port)
+    server.start()
+    try:
+        yield settings
+    finally:
+        server.stop()

@@ -15,12 +15,11 @@ from pathlib import Path
 import pytest
 
 from estimator.sim.scenarios import scenario_names
-from server.app_main import ServerThread, build_app
 from server.cli import _parser
 from server.settings import Settings
 from server.storage import open_store
 from server.tokens import issue_token
-from tests.server.cli_support import run_cli, start_cli
+from tests.server.cli_support import run_cli, serving, start_cli
 from tests.server.fleet_stack import stack_settings
 from tests.support import free_port
 
@@ -94,22 +93,14 @@ def test_replay_without_a_router_is_one_line(tmp_path: Path) -> None:
 
 
 @pytest.fixture
-def running_server(tmp_path: Path) -> Iterator[tuple[Settings, ServerThread]]:
-    settings = stack_settings(tmp_path / "running", None, 0)
-    settings.api.port = free_port()
-    server = ServerThread(build_app(settings), "127.0.0.1", settings.api.port)
-    server.start()
-    try:
-        yield settings, server
-    finally:
-        server.stop()
+def running_server(tmp_path: Path) -> Iterator[Settings]:
+    with serving(stack_settings(tmp_path / "running", None, 0)) as settings:
+        yield settings
 
 
 @pytest.mark.zenoh
-def test_demo_beside_a_running_server_is_one_line(
-    tmp_path: Path, running_server: tuple[Settings, ServerThread]
-) -> None:
-    settings, _ = running_server
+def test_demo_beside_a_running_server_is_one_line(tmp_path: Path, running_server: Settings) -> None:
+    settings = running_server
     env = {
         "SLIPFLEET_STORAGE__DATA_DIR": str(tmp_path / "demo"),
         "SLIPFLEET_ZENOH__LISTEN": json.dumps(settings.zenoh.listen),
@@ -130,6 +121,7 @@ def _stderr_until(proc: subprocess.Popen[str], text: str, timeout_s: float) -> s
     lines: queue.Queue[str] = queue.Queue()
     assert proc.stderr is not None and proc.stdout is not None
     stream = proc.stderr
+
     def read() -> None:
         for line in stream:
             lines.put(line)

@@ -4,6 +4,7 @@ Europe/Berlin (CET in November, CEST in summer)."""
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 from datetime import UTC, datetime
 from typing import Any
 from zoneinfo import ZoneInfo
@@ -15,6 +16,15 @@ from tests.web.conftest import LiveStack, checked_page
 pytestmark = pytest.mark.browser
 
 BERLIN = ZoneInfo("Europe/Berlin")
+
+
+def _berlin_page(browser: Any) -> AbstractContextManager[Any]:
+    return checked_page(
+        browser,
+        viewport={"width": 1400, "height": 900},
+        timezone_id="Europe/Berlin",
+        locale="en-GB",
+    )
 
 
 def _stamp(page: Any) -> tuple[int, str, str]:
@@ -41,12 +51,7 @@ def _settled_stamp(page: Any) -> tuple[int, str, str]:
 def test_times_are_local_with_utc_on_hover_or_utc_by_choice(
     live_stack: LiveStack, browser: Any
 ) -> None:
-    with checked_page(
-        browser,
-        viewport={"width": 1400, "height": 900},
-        timezone_id="Europe/Berlin",
-        locale="en-GB",
-    ) as page:
+    with _berlin_page(browser) as page:
         page.goto(f"{live_stack.base_url}/#/vehicle/veh-000")
         name = datetime.now(BERLIN).tzname()
         assert name in ("CET", "CEST")
@@ -73,12 +78,7 @@ def test_times_are_local_with_utc_on_hover_or_utc_by_choice(
 
 
 def test_history_inputs_are_read_in_the_chosen_zone(live_stack: LiveStack, browser: Any) -> None:
-    with checked_page(
-        browser,
-        viewport={"width": 1400, "height": 900},
-        timezone_id="Europe/Berlin",
-        locale="en-GB",
-    ) as page:
+    with _berlin_page(browser) as page:
         page.goto(f"{live_stack.base_url}/#/vehicle/veh-000/history")
         page.wait_for_function("() => document.getElementById('h-end').value")
         end_text = page.input_value("#h-end")

@@ -11,13 +11,11 @@ from pathlib import Path
 import httpx
 import pytest
 
-from server.app_main import ServerThread, build_app
 from server.settings import Settings
 from server.storage import open_store
 from server.tokens import issue_token
-from tests.server.cli_support import run_cli
+from tests.server.cli_support import run_cli, serving
 from tests.server.fleet_stack import stack_settings
-from tests.support import free_port
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -26,19 +24,14 @@ pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 def secured(tmp_path: Path) -> Iterator[tuple[Settings, str]]:
     """A running server that requires tokens, and a viewer token for it."""
     settings = stack_settings(tmp_path, None, 0)
-    settings.api.port = free_port()
     settings.api.require_auth = True
     store = open_store(settings.storage)
     try:
         token, _ = issue_token(store, "load", "viewer", time.time_ns())
     finally:
         store.close()
-    server = ServerThread(build_app(settings), "127.0.0.1", settings.api.port)
-    server.start()
-    try:
+    with serving(settings):
         yield settings, token
-    finally:
-        server.stop()
 
 
 def _loadtest(

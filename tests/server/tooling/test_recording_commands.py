@@ -13,29 +13,21 @@ from pathlib import Path
 import httpx
 import pytest
 
-from server.app_main import ServerThread, build_app
 from server.protocol import decode
 from server.protocol.recording import read_recording
 from server.settings import Settings
 from server.tooling.fleet_commands import record, vehicle_session
 from server.tooling.fleet_sim import replay as publish_recording
-from tests.server.cli_support import run_cli, start_cli
+from tests.server.cli_support import run_cli, serving, start_cli
 from tests.server.fleet_stack import stack_settings
-from tests.support import free_port
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Settings]:
-    settings = stack_settings(tmp_path_factory.mktemp("server"), None, 0)
-    settings.api.port = free_port()
-    thread = ServerThread(build_app(settings), "127.0.0.1", settings.api.port)
-    thread.start()
-    try:
+    with serving(stack_settings(tmp_path_factory.mktemp("server"), None, 0)) as settings:
         yield settings
-    finally:
-        thread.stop()
 
 
 @pytest.fixture(scope="module")
