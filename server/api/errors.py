@@ -17,9 +17,9 @@
     └── ServiceUnavailable        (503 "unavailable")
 
 Every error response has the body ``{"error": <code>, "reason": <text>}`` (:class:`ErrorBody`),
-including FastAPI's request-validation errors (422 ``"invalid_request"``; 415
-``"unsupported_media_type"`` when a body was refused because it was not sent as JSON), unknown
-paths and methods (Starlette's HTTP errors), the store's :class:`~server.storage.base.StorageError`
+including FastAPI's request-validation errors (422 ``"invalid_request"``; a body refused because
+it was not sent as JSON says so, not what its form-decoded shape lacked), unknown paths and
+methods (Starlette's HTTP errors), the store's :class:`~server.storage.base.StorageError`
 (503 ``"storage_unavailable"``) and anything unexpected (500 ``"internal"``, details only in the
 log). Handlers raise; :func:`install_error_handlers` maps. An ``invalid_time`` whose query holds
 an ISO time with a space where its offset's ``+`` was (a ``+`` unencoded in a URL query reads
@@ -235,10 +235,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def on_validation(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
-        not_json = _not_json_body(request, exc)
-        if not_json is not None:
-            return error_response(415, "unsupported_media_type", not_json)
-        return error_response(422, "invalid_request", _validation_reason(exc))
+        reason = _not_json_body(request, exc) or _validation_reason(exc)
+        return error_response(422, "invalid_request", reason)
 
     async def on_http(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, StarletteHTTPException)

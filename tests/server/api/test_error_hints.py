@@ -41,8 +41,8 @@ def test_a_body_not_sent_as_json_says_so(
     client: ApiClient, headers: dict[str, str], said: str
 ) -> None:
     r = client.put("/api/v1/vehicles/t1", content=b"{}", headers=headers)
-    error, reason = error_of(r, 415)
-    assert error == "unsupported_media_type"
+    error, reason = error_of(r, 422)  # the status every route documents for a refused body
+    assert error == "invalid_request"
     assert "Content-Type: application/json" in reason and said in reason
     assert client.get("/api/v1/vehicles/t1").status_code == 404  # nothing registered
 
