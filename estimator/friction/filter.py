@@ -1,0 +1,317 @@
+"""The μ filters, batched over vehicles: the source's SCKF-MEE and its variants, and the product's.
+
+All share the measurement model ``z = [a_x, a_y, ṙ]`` of :mod:`.model` over brush forces
+(:mod:`.brush`) of per-wheel inputs ``u = [Fz, α, δ, κ]`` (source eq. 19-27). They differ in
+state and covariance handling:
+
+* :attr:`FrictionMode.FIXED_CKF`: state ``[μ, c_x×4, c_y×4]`` (:class:`PaperState`), stiffness
+  a random walk from its value at the static load; standard SCKF.
+* :attr:`FrictionMode.ADAPTIVE_CKF`: the same, stiffness carried with the load,
+  ``c_k = c_{k−1} · c(Fz_k)/c(Fz_{k−1})`` with ``c(Fz) = 2a²c_p`` (eq. 16-19) so what the
+  update learnt about a tyre stays; standard SCKF.
+* :attr:`FrictionMode.PAPER`: the source's filter, ADAPTIVE_CKF with the MEE measurement
+  covariance each step (standard step where it is not positive definite).
+* :attr:`FrictionMode.PRODUCT`: state ``[μ, g_x,front, g_x,rear, g_y,front, g_y,rear]``
+  (:class:`ProductState`): per-axle factors on the load-adaptive stiffness instead of four
+  free stiffnesses each way (three measurements cannot tell eight stiffnesses apart; an axle's
+  factor can follow a worn or soft tyre); the measurement covariance adds the inputs'
+  uncertainty through the model (``R + Σ_j d_j d_jᵀ``, ``d_j`` the change of ``h`` for a
+  1-σ change of wheel ``j``'s κ or α), so a tick whose inputs are poorly known weighs less;
+  μ's process noise grows while the normalised innovations stay large (a change of ground).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum, StrEnum
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray
+from estimator.friction.brush import brush_forces, load_adaptive_stiffness_n
+from estimator.friction.model import Chassis, body_accelerations
+from estimator.friction.sckf import (
+    cubature_points,
+    mee_measurement_sqrt,
+    sckf_predict,
+    sckf_update,
+)
+
+__all__ = [
+    "FilterConfig",
+    "FilterState",
+    "FrictionMode",
+    "PaperState",
+    "ProductState",
+    "TickInputs",
+    "TyreArrays",
+    "filter_step",
+    "initial_state",
+]
+
+MU_MIN, MU_MAX = 0.05, 1.6
+
+
+class FrictionMode(StrEnum):
+    """Which filter runs (see the module docstring)."""
+
+    FIXED_CKF = "fixed_ckf"
+    ADAPTIVE_CKF = "adaptive_ckf"
+    PAPER = "paper"
+    PRODUCT = "product"
+
+
+class PaperState(IntEnum):
+    """The source's state (eq. 18): μ and each tyre's longitudinal and lateral stiffness [N]."""
+
+    MU = 0
+    CX_FL = 1
+    CX_FR = 2
+    CX_RL = 3
+    CX_RR = 4
+    CY_FL = 5
+    CY_FR = 6
+    CY_RL = 7
+    CY_RR = 8
+
+
+class ProductState(IntEnum):
+    """The product filter's state: μ and per-axle factors on the load-adaptive stiffness."""
+
+    MU = 0
+    GX_FRONT = 1
+    GX_REAR = 2
+    GY_FRONT = 3
+    GY_REAR = 4
+
+
+@dataclass(frozen=True, slots=True)
+class FilterConfig:
+    """Noise and start of the μ filters (per tick of ``tick_s``).
+
+    ``mu_walk_per_sqrt_s``: μ's random walk; ``stiffness_walk_per_sqrt_s``: relative walk of
+    stiffness (or factor) states; ``accel_std_mps2``, ``yaw_accel_std_radps2``: the
+    measurement noise ``R``; ``mee_kernel_sigma``: the MEE kernel width (whitened units);
+    ``nis_gate``: mean normalised innovation (per measurement) above which the product
+    filter's μ walk is multiplied by ``mu_walk_boost``.
+    """
+
+    mode: FrictionMode = FrictionMode.PRODUCT
+    tick_s: float = 0.02
+    mu0: float = 0.6
+    mu0_std: float = 0.35
+    stiffness0_rel_std: float = 0.1
+    mu_walk_per_sqrt_s: float = 0.03
+    stiffness_walk_per_sqrt_s: float = 0.01
+    accel_std_mps2: float = 0.12
+    yaw_accel_std_radps2: float = 0.5
+    mee_kernel_sigma: float = 2.0
+    nis_gate: float = 4.0
+    mu_walk_boost: float = 15.0
+    nis_smoothing_s: float = 0.3
+
+    @property
+    def n_states(self) -> int:
+        return len(ProductState) if self.mode is FrictionMode.PRODUCT else len(PaperState)
+
+
+@dataclass(frozen=True, slots=True)
+class TyreArrays:
+    """Tyre numbers per vehicle, ``(B, 1)`` (broadcast over wheels)."""
+
+    kz_npm: FloatArray
+    radius_m: FloatArray
+    c_px_npm2: FloatArray
+    c_py_npm2: FloatArray
+
+    def stiffness(self, fz_n: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Load-adaptive ``(c_x, c_y)`` [N] at loads ``fz_n`` ``(B, 4)``."""
+        return (
+            load_adaptive_stiffness_n(fz_n, self.kz_npm, self.radius_m, self.c_px_npm2),
+            load_adaptive_stiffness_n(fz_n, self.kz_npm, self.radius_m, self.c_py_npm2),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class TickInputs:
+    """One tick's inputs per vehicle: per wheel ``(B, 4)`` load, slip angle, steer angle and
+    slip with the 1-σ of the last two; ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
+    ``valid`` ``(B,)`` where an update may run (moving, every input known)."""
+
+    fz_n: FloatArray
+    alpha_rad: FloatArray
+    delta_rad: FloatArray
+    kappa: FloatArray
+    kappa_std: FloatArray
+    alpha_std_rad: FloatArray
+    z: FloatArray
+    valid: BoolArray
+
+
+@dataclass(slots=True)
+class FilterState:
+    """Filter state per vehicle: mean ``x`` ``(B, n)``, root ``s`` ``(B, n, n)``, the last
+    loads ``(B, 4)``, the smoothed NIS ``(B,)``, and what the last step did."""
+
+    x: FloatArray
+    s: FloatArray
+    fz_prev_n: FloatArray
+    nis: FloatArray
+    mee_ok: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    updated: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def take(self, rows: np.ndarray) -> FilterState:
+        return FilterState(
+            self.x[rows], self.s[rows], self.fz_prev_n[rows], self.nis[rows],
+            self.mee_ok[rows] if self.mee_ok.size else self.mee_ok,
+            self.updated[rows] if self.updated.size else self.updated,
+        )
+
+
+def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> FilterState:
+    """The prior: ``μ0 ± mu0_std``; stiffness at ``fz_n`` (or factors 1) ± ``stiffness0_rel_std``."""
+    b = fz_n.shape[0]
+    if cfg.mode is FrictionMode.PRODUCT:
+        x = np.ones((b, len(ProductState)))
+        std = np.full((b, len(ProductState)), cfg.stiffness0_rel_std)
+    else:
+        cx, cy = tyres.stiffness(fz_n)
+        x = np.concatenate([np.ones((b, 1)), cx, cy], axis=1)
+        std = x * cfg.stiffness0_rel_std
+    x[:, 0] = cfg.mu0
+    std[:, 0] = cfg.mu0_std
+    s = np.zeros((b, x.shape[1], x.shape[1]))
+    idx = np.arange(x.shape[1])
+    s[:, idx, idx] = std
+    return FilterState(x, s, fz_n.copy(), np.zeros(b))
+
+
+def _stiffness_of(
+    points: FloatArray, cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Per-point tyre stiffness ``(B, P, 4)`` each way."""
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return points[..., PaperState.CX_FL : PaperState.CX_RR + 1], points[..., PaperState.CY_FL :]
+    cx, cy = tyres.stiffness(fz_n)
+    gx = points[..., [ProductState.GX_FRONT] * 2 + [ProductState.GX_REAR] * 2]
+    gy = points[..., [ProductState.GY_FRONT] * 2 + [ProductState.GY_REAR] * 2]
+    return gx * cx[:, None, :], gy * cy[:, None, :]
+
+
+def _measure(
+    points: FloatArray,
+    cfg: FilterConfig,
+    tyres: TyreArrays,
+    chassis: Chassis,
+    u: TickInputs,
+    kappa: FloatArray,
+    alpha: FloatArray,
+) -> FloatArray:
+    """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)``; slips ``(B, P|1, 4)``."""
+    mu = np.clip(points[..., :1], MU_MIN, MU_MAX)
+    cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
+    fx, fy = brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
+    return body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
+
+
+def _sq_r(cfg: FilterConfig, b: int) -> FloatArray:
+    sigma = np.array([cfg.accel_std_mps2, cfg.accel_std_mps2, cfg.yaw_accel_std_radps2])
+    return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
+
+
+def _input_spread(
+    x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
+) -> FloatArray:
+    """``D`` ``(B, 3, 8)``: the change of ``h`` at the mean for a 1-σ change of each wheel's κ
+    (columns 0-3) and α (columns 4-7)."""
+    eye = np.eye(4)[None]
+    kappa = u.kappa[:, None, :] + eye * u.kappa_std[:, :, None]
+    alpha = u.alpha_rad[:, None, :] + eye * u.alpha_std_rad[:, :, None]
+    mean = x[:, None, :]
+    base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], u.alpha_rad[:, None, :])
+    dk = _measure(mean, cfg, tyres, chassis, u, kappa, u.alpha_rad[:, None, :]) - base
+    da = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha) - base
+    return np.swapaxes(np.concatenate([dk, da], axis=1), -1, -2)
+
+
+def _predict(
+    st: FilterState, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs
+) -> tuple[FloatArray, FloatArray]:
+    """Time update (eq. 22, 28-31): μ and the stiffness states walk; ADAPTIVE/PAPER carry the
+    stiffness with the load ratio."""
+    b, n = st.x.shape
+    sqrt_dt = math.sqrt(cfg.tick_s)
+    walk = np.full((b, n), cfg.stiffness_walk_per_sqrt_s * sqrt_dt)
+    mu_walk = cfg.mu_walk_per_sqrt_s * sqrt_dt
+    if cfg.mode is FrictionMode.PRODUCT:
+        boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
+        walk[:, 0] = mu_walk * boost
+        scale = np.ones((b, n))
+    else:
+        walk[:, 0] = mu_walk
+        walk[:, 1:] *= np.abs(st.x[:, 1:])
+        scale = np.ones((b, n))
+        if cfg.mode is not FrictionMode.FIXED_CKF:
+            cx_new, cy_new = tyres.stiffness(u.fz_n)
+            cx_old, cy_old = tyres.stiffness(st.fz_prev_n)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.concatenate([cx_new / cx_old, cy_new / cy_old], axis=1)
+            scale[:, 1:] = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+    sq_q = np.zeros((b, n, n))
+    idx = np.arange(n)
+    sq_q[:, idx, idx] = walk
+    return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :], sq_q)
+
+
+def filter_step(
+    st: FilterState, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
+) -> FilterState:
+    """One tick for every vehicle: predict, then (where ``u.valid``) update with ``u.z``."""
+    x, s = _predict(st, cfg, tyres, u)
+    b = x.shape[0]
+    valid = u.valid.copy()
+    mee_ok = np.zeros(b, dtype=bool)
+    nis = st.nis.copy()
+    if valid.any():
+        rows = np.flatnonzero(valid)
+        sub = _subset(u, rows)
+        sub_t = _tyres_subset(tyres, rows)
+        sub_c = _chassis_subset(chassis, rows)
+
+        def h(points: FloatArray) -> FloatArray:
+            return _measure(
+                points, cfg, sub_t, sub_c, sub, sub.kappa[:, None, :], sub.alpha_rad[:, None, :]
+            )
+
+        sq_r = _sq_r(cfg, rows.size)
+        if cfg.mode is FrictionMode.PRODUCT:
+            d = _input_spread(x[rows], cfg, sub_t, sub_c, sub)
+            sq_r = np.linalg.cholesky(sq_r @ np.swapaxes(sq_r, -1, -2) + d @ np.swapaxes(d, -1, -2))
+        elif cfg.mode is FrictionMode.PAPER:
+            z_mean = h(cubature_points(x[rows], s[rows])).mean(axis=1)
+            mee = mee_measurement_sqrt(sub.z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
+            sq_r = mee.sq_r
+            mee_ok[rows] = mee.ok
+        up = sckf_update(x[rows], s[rows], sub.z, h, sq_r)
+        x[rows], s[rows] = up.x, up.s
+        white = np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0]
+        step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
+        nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
+    x[:, 0] = np.clip(x[:, 0], MU_MIN, MU_MAX)
+    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, valid)
+
+
+def _subset(u: TickInputs, rows: np.ndarray) -> TickInputs:
+    return TickInputs(
+        u.fz_n[rows], u.alpha_rad[rows], u.delta_rad[rows], u.kappa[rows], u.kappa_std[rows],
+        u.alpha_std_rad[rows], u.z[rows], u.valid[rows],
+    )
+
+
+def _tyres_subset(t: TyreArrays, rows: np.ndarray) -> TyreArrays:
+    return TyreArrays(t.kz_npm[rows], t.radius_m[rows], t.c_px_npm2[rows], t.c_py_npm2[rows])
+
+
+def _chassis_subset(c: Chassis, rows: np.ndarray) -> Chassis:
+    return Chassis(c.mass_kg[rows], c.yaw_inertia_kgm2[rows], c.wheel_x_m[rows], c.wheel_y_m[rows])

@@ -1,0 +1,230 @@
+"""The friction estimator as a ``FleetEstimator``: every vehicle's μ filter stepped together.
+
+Each vehicle has its :class:`~.frontend.FrontEnd` (sensors → per-wheel inputs, per tick) and
+one row of the batched filter (:func:`~.filter.filter_step`, vehicles × cubature points in one
+numpy call per round). Ticks lie on ``first IMU sample + k·tick_s`` (or ``align_ticks``); a
+tick is computed once the IMU covers it.
+
+Informed or not (``method.md`` §5's warning): μ is told apart from stiffness only where the
+tyres work in their non-linear range, and not at all without excitation. A tick is
+``INFORMED`` when it was updated, μ's relative 1-σ is below ``informed_rel_std`` and the most
+used tyre uses at least ``informed_min_util`` of its grip; otherwise the row holds the last
+informed μ (``HELD``) and no σ. Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator._arrays import FloatArray
+from estimator.base import Pushed
+from estimator.config import ConfigError, VehicleConfig, Wheeled4wdSteeredConfig, expect_kind
+from estimator.friction.brush import brush_forces, utilisation
+from estimator.friction.filter import (
+    FilterConfig,
+    FilterState,
+    FrictionMode,
+    TickInputs,
+    TyreArrays,
+    _stiffness_of,
+    filter_step,
+    initial_state,
+)
+from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick
+from estimator.friction.model import Chassis
+from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
+from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
+
+__all__ = ["FrictionFleet", "FrictionFleetConfig"]
+
+
+@dataclass(frozen=True, slots=True)
+class FrictionFleetConfig:
+    """Settings of the friction estimator: the filter (and its mode), the front end, and
+    when μ counts as informed (relative 1-σ below ``informed_rel_std`` and the most used tyre
+    at ``informed_min_util`` of its grip or more)."""
+
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    frontend: FrontEndConfig | None = None
+    informed_rel_std: float = 0.04
+    informed_min_util: float = 0.35
+
+    def __post_init__(self) -> None:
+        if not 0.005 <= self.filter.tick_s <= 0.2:
+            raise ConfigError(f"tick_s must be within 0.005..0.2 s, got {self.filter.tick_s!r}")
+        if not (0 < self.informed_rel_std < 1 and 0 <= self.informed_min_util <= 1):
+            raise ConfigError("informed_rel_std must be in (0, 1), informed_min_util in [0, 1]")
+
+    @property
+    def front(self) -> FrontEndConfig:
+        """The front end: the paper's reading for every mode but the product's."""
+        if self.frontend is not None:
+            return self.frontend
+        return FrontEndConfig(paper=self.filter.mode is not FrictionMode.PRODUCT)
+
+
+class _Vehicle:
+    def __init__(self, config: Wheeled4wdSteeredConfig, cfg: FrictionFleetConfig) -> None:
+        self.config = config
+        self.front = FrontEnd(config, cfg.front, cfg.filter.tick_s)
+        self.tick_ns = round(cfg.filter.tick_s * 1e9)
+        self.next_ns: int | None = None
+        self.state: FilterState | None = None
+        self.held_mu = math.nan
+        ty = config.tyre
+        self.tyres = TyreArrays(*(np.array([[v]]) for v in (
+            ty.kz_npm, ty.unloaded_radius_m, ty.c_px_npm2, ty.c_py_npm2)))
+        self.chassis = Chassis.of([config])
+
+    def due(self, until_ns: int) -> list[int]:
+        last = self.front.imu_until_ns()
+        if last is None:
+            return []
+        if self.next_ns is None:
+            self.next_ns = int(self.front.imu[0][0][0]) + self.tick_ns
+        end = min(until_ns, last)
+        if end < self.next_ns:
+            return []
+        n = (end - self.next_ns) // self.tick_ns + 1
+        ticks = [self.next_ns + k * self.tick_ns for k in range(n)]
+        self.next_ns = ticks[-1] + self.tick_ns
+        return ticks
+
+
+def _cat(parts: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts, axis=0)
+
+
+class FrictionFleet:
+    """Many vehicles' friction estimators behind one batched step (a ``FleetEstimator``)."""
+
+    name = "friction"
+    spec = FRICTION_SPEC
+    output_dtype = FRICTION_SPEC.dtype
+
+    def __init__(self, config: FrictionFleetConfig | None = None) -> None:
+        self.config = config or FrictionFleetConfig()
+        self._vehicles: dict[str, _Vehicle] = {}
+
+    def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        steered = expect_kind(config, Wheeled4wdSteeredConfig, self.name)
+        self._vehicles[vehicle_id] = _Vehicle(steered, self.config)
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        self._vehicles.pop(vehicle_id, None)
+
+    def vehicle_ids(self) -> list[str]:
+        return list(self._vehicles)
+
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
+        front = self._vehicles[vehicle_id].front
+        if isinstance(measurement, ImuBatch):
+            front.push_imu(measurement)
+        elif isinstance(measurement, WheelSpeeds4):
+            front.push_wheels(measurement)
+        elif isinstance(measurement, SteeringAngles):
+            front.push_steering(measurement)
+        elif isinstance(measurement, GnssSample):
+            front.push_gnss(measurement)
+
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        v = self._vehicles[vehicle_id]
+        if v.next_ns is None:
+            v.next_ns = int(stamp_ns)
+
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]`` the IMU covers."""
+        work: list[tuple[str, _Vehicle, list[tuple[int, FrontEndTick]]]] = []
+        for vid, until in until_ns.items():
+            v = self._vehicles.get(vid)
+            if v is None:
+                continue
+            ticks = [(t, v.front.tick(t)) for t in v.due(int(until))]
+            ready = [(t, fe) for t, fe in ticks if fe is not None]
+            if ready:
+                work.append((vid, v, ready))
+        if not work:
+            return []
+        out = [FRICTION_SPEC.empty_rows(len(w[2])) for w in work]
+        for r in range(max(len(w[2]) for w in work)):
+            part = [k for k, w in enumerate(work) if len(w[2]) > r]
+            self._round([work[k][1] for k in part], [work[k][2][r] for k in part],
+                        [out[k][r : r + 1] for k in part])
+        return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
+
+    def _round(
+        self, vs: list[_Vehicle], ticks: list[tuple[int, FrontEndTick]], rows: list[np.ndarray]
+    ) -> None:
+        """Step one tick of every vehicle in ``vs`` together."""
+        fes = [fe for _, fe in ticks]
+        u = TickInputs(*(np.stack([getattr(fe, f) for fe in fes]) for f in (
+            "fz_n", "alpha_rad", "delta_rad", "kappa", "kappa_std", "alpha_std_rad", "z")),
+            np.array([fe.valid for fe in fes]))
+        tyres = TyreArrays(*(_cat([getattr(v.tyres, f) for v in vs]) for f in (
+            "kz_npm", "radius_m", "c_px_npm2", "c_py_npm2")))
+        chassis = Chassis(*(_cat([getattr(v.chassis, f) for v in vs]) for f in (
+            "mass_kg", "yaw_inertia_kgm2", "wheel_x_m", "wheel_y_m")))
+        fresh = np.array([v.state is None for v in vs])
+        cfg = self.config.filter
+        prior = initial_state(cfg, tyres, u.fz_n)
+        st = FilterState(
+            np.stack([prior.x[i] if v.state is None else v.state.x[0] for i, v in enumerate(vs)]),
+            np.stack([prior.s[i] if v.state is None else v.state.s[0] for i, v in enumerate(vs)]),
+            np.stack([u.fz_n[i] if v.state is None else v.state.fz_prev_n[0]
+                      for i, v in enumerate(vs)]),
+            np.array([0.0 if v.state is None else v.state.nis[0] for v in vs]),
+        )
+        st = filter_step(st, cfg, tyres, chassis, u)
+        util = self._utilisation(st, tyres, u)
+        for i, v in enumerate(vs):
+            v.state = st.take(np.array([i]))
+            self._row(rows[i], v, ticks[i], st, i, util[i], bool(fresh[i]))
+
+    def _utilisation(self, st: FilterState, tyres: TyreArrays, u: TickInputs) -> FloatArray:
+        """Grip used per wheel ``(B, 4)`` at the filter's mean state."""
+        mean = st.x[:, None, :]
+        cx, cy = _stiffness_of(mean, self.config.filter, tyres, u.fz_n)
+        mu = st.x[:, :1]
+        fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
+        return utilisation(fx, fy, u.fz_n, mu)
+
+    def _row(
+        self, row: np.ndarray, v: _Vehicle, tick: tuple[int, FrontEndTick], st: FilterState,
+        i: int, util: FloatArray, fresh: bool,
+    ) -> None:
+        t_ns, fe = tick
+        mu = float(st.x[i, 0])
+        std = float(np.linalg.norm(st.s[i, 0]))
+        informed = bool(st.updated[i]) and std / mu < self.config.informed_rel_std and (
+            float(np.nanmax(util)) >= self.config.informed_min_util
+        )
+        flags = FrictionFlag.NONE
+        if informed:
+            v.held_mu = mu
+            flags |= FrictionFlag.INFORMED
+        else:
+            flags |= FrictionFlag.HELD
+        if not st.updated[i]:
+            flags |= FrictionFlag.NO_UPDATE
+        if fe.gnss:
+            flags |= FrictionFlag.GNSS_SPEED
+        if self.config.filter.mode is FrictionMode.PAPER and st.updated[i] and not st.mee_ok[i]:
+            flags |= FrictionFlag.MEE_FALLBACK
+        if fresh:
+            flags |= FrictionFlag.RESET
+        row["stamp_ns"] = t_ns
+        row["mu"] = mu if informed else v.held_mu
+        row["mu_std"] = std if informed else math.nan
+        row["mu_filter"] = mu
+        row["vx_mps"] = fe.vx_mps
+        row["vy_mps"] = fe.vy_mps
+        for j, key in enumerate(WHEEL_KEYS):
+            row[f"fz_{key}_n"] = fe.fz_n[j]
+            row[f"slip_{key}_pct"] = 100.0 * fe.kappa[j]
+            row[f"alpha_{key}_rad"] = fe.alpha_rad[j]
+            row[f"util_{key}_pct"] = 100.0 * util[j]
+        row["flags"] = int(flags)
