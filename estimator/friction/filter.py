@@ -30,7 +30,7 @@ import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray
 from estimator.friction.brush import brush_forces, load_adaptive_stiffness_n
-from estimator.friction.model import Chassis, body_accelerations
+from estimator.friction.model import GRAVITY_MPS2, Chassis, body_accelerations
 from estimator.friction.sckf import (
     cubature_points,
     mee_measurement_sqrt,
@@ -51,6 +51,9 @@ __all__ = [
 ]
 
 MU_MIN, MU_MAX = 0.05, 1.6
+_GRIP_FLOOR = 0.95
+"""The product filter keeps μ at or above this share of the measured ``hypot(a_x, a_y)/g``:
+the tyres cannot have delivered more grip than the ground has (a projection of the mean)."""
 
 
 class FrictionMode(StrEnum):
@@ -104,11 +107,13 @@ class FilterConfig:
     stiffness0_rel_std: float = 0.1
     mu_walk_per_sqrt_s: float = 0.03
     stiffness_walk_per_sqrt_s: float = 0.01
+    factor0_rel_std: float = 0.3
+    factor_walk_per_sqrt_s: float = 0.05
     accel_std_mps2: float = 0.12
     yaw_accel_std_radps2: float = 0.5
     mee_kernel_sigma: float = 2.0
     nis_gate: float = 4.0
-    mu_walk_boost: float = 15.0
+    mu_walk_boost: float = 5.0
     nis_smoothing_s: float = 0.3
 
     @property
@@ -174,7 +179,7 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     b = fz_n.shape[0]
     if cfg.mode is FrictionMode.PRODUCT:
         x = np.ones((b, len(ProductState)))
-        std = np.full((b, len(ProductState)), cfg.stiffness0_rel_std)
+        std = np.full((b, len(ProductState)), cfg.factor0_rel_std)
     else:
         cx, cy = tyres.stiffness(fz_n)
         x = np.concatenate([np.ones((b, 1)), cx, cy], axis=1)
@@ -245,6 +250,7 @@ def _predict(
     walk = np.full((b, n), cfg.stiffness_walk_per_sqrt_s * sqrt_dt)
     mu_walk = cfg.mu_walk_per_sqrt_s * sqrt_dt
     if cfg.mode is FrictionMode.PRODUCT:
+        walk[:, 1:] = cfg.factor_walk_per_sqrt_s * sqrt_dt
         boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
         walk[:, 0] = mu_walk * boost
         scale = np.ones((b, n))
@@ -298,7 +304,11 @@ def filter_step(
         white = np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0]
         step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
         nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
-    x[:, 0] = np.clip(x[:, 0], MU_MIN, MU_MAX)
+    floor = MU_MIN
+    if cfg.mode is FrictionMode.PRODUCT:  # the ground gave at least the grip measured
+        floor = np.where(valid, _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2, 0.0)
+        floor = np.maximum(floor, MU_MIN)
+    x[:, 0] = np.clip(x[:, 0], floor, MU_MAX)
     return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, valid)
 
 

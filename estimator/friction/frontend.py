@@ -54,13 +54,15 @@ class FrontEndConfig:
     """Front-end settings: ``paper`` the source's reading (see the module docstring).
 
     ``min_speed_mps``: no μ update below it; ``gnss_timeout_s``: GNSS older than this is
-    not used; ``calib_time_s``: time constant of the radius calibration.
+    not used; ``calib_time_s``: time constant of the radius calibration, which must hold
+    ``calib_samples`` GNSS epochs before the μ filter updates.
     """
 
     paper: bool = False
     min_speed_mps: float = 3.0
     gnss_timeout_s: float = 0.5
-    calib_time_s: float = 1.0
+    calib_time_s: float = 3.0
+    calib_samples: int = 15
     speed_walk_mps2: float = 0.3
     bias_walk_mps2_per_sqrt_s: float = 0.005
     side_slip_leak_s: float = 5.0
@@ -83,6 +85,42 @@ class FrontEndTick:
     valid: bool
 
 
+class _AxisFilter:
+    """Speed along one body axis and its accelerometer's bias: ``v̇ = a − b + c``, ``ḃ = w``.
+
+    ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds.
+    """
+
+    def __init__(self, speed_walk_mps2: float, bias_walk: float, bias0_std: float) -> None:
+        self.x = np.array([math.nan, 0.0])
+        self.p = np.diag([1.0, bias0_std**2])
+        self.speed_walk, self.bias_walk = speed_walk_mps2, bias_walk
+
+    @property
+    def speed(self) -> float:
+        return float(self.x[0])
+
+    @property
+    def bias(self) -> float:
+        return float(self.x[1])
+
+    @property
+    def speed_var(self) -> float:
+        return float(self.p[0, 0])
+
+    def predict(self, accel: float, coupling: float, dt: float) -> None:
+        f = np.array([[1.0, -dt], [0.0, 1.0]])
+        self.x = np.array([self.x[0] + (accel - self.x[1] + coupling) * dt, self.x[1]])
+        q = np.diag([(self.speed_walk * dt) ** 2, self.bias_walk**2 * dt])
+        self.p = f @ self.p @ f.T + q
+
+    def update(self, z: float, var: float) -> None:
+        s = self.p[0, 0] + var
+        k = self.p[:, 0] / s
+        self.x = self.x + k * (z - self.x[0])
+        self.p = self.p - np.outer(k, self.p[0])
+
+
 class FrontEnd:
     """One vehicle's sensor buffers and the small filters between them and the μ filter."""
 
@@ -101,7 +139,10 @@ class FrontEnd:
         )
         self.undriven = _UNDRIVEN[ch.driven_axle]
         self.drive_share = _DRIVE_SHARE[ch.driven_axle]
-        self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm
+        # the paper's statically loaded radius; the product starts from a third of the
+        # deflection (a rolling tyre's effective radius) and calibrates from there
+        self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (1.0 if fe.paper else 1 / 3)
+        self.calib_n = 0
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -109,12 +150,13 @@ class FrontEnd:
         self.steer_rad = math.nan
         self.gnss: GnssSample | None = None
         self.gnss_fresh = False
-        self.v = np.array([math.nan, 0.0])  # [v_x, accelerometer bias]
-        self.pv = np.diag([1.0, 0.1**2])
-        self.vy, self.vy_var = 0.0, 0.5**2
+        self.vx = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
+        self.vy = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
+        self.vy.x[0] = 0.0
         self.transfer = np.zeros(3)  # lagged [long, lat front, lat rear] [N]
         self.yaw_prev = math.nan
         self.slip_lag = np.zeros((2, 4))
+        self.last_tick_ns = 0
 
     # --- input ------------------------------------------------------------------------------
     def push_imu(self, m: ImuBatch) -> None:
@@ -179,31 +221,34 @@ class FrontEnd:
         """The inputs at tick ``t_ns`` (None until the IMU covers it and wheels are known)."""
         window = self._imu_window(t_ns)
         self._latest(t_ns)
+        self.last_tick_ns = t_ns
         if window is None or not np.all(np.isfinite(self.omega)):
             return None
         accel, gyro = window
         ax_raw, ay_raw, yaw_rate = float(accel[1]), float(-accel[0]), float(gyro[2])
         gnss = self._gnss_velocity(t_ns)
-        self._speed_step(ax_raw, yaw_rate, gnss)
-        ax, ay = self._detilt(ax_raw - self.v[1], ay_raw)
-        self._side_slip_step(ay, yaw_rate, gnss)
+        ax, ay = self._detilt(ax_raw - self.vx.bias, ay_raw)
         fz = self._loads(ax, ay)
         delta = np.zeros(4)
         steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
         delta[:2] = steer / self.ch.steering_ratio
+        self._calibrate(gnss, fz, delta, yaw_rate, ax)
+        self._speed_step(ax_raw, yaw_rate, gnss, fz, delta)
+        self._side_slip_step(ay, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
-        kappa, alpha, k_std, a_std = self._slips(fz, delta, yaw_rate, ax)
+        kappa, alpha, k_std, a_std = self._slips(fz, delta, yaw_rate)
         resist = 0.0
-        vx = float(self.v[0])
+        vx = self.vx.speed
         if not self.fe.paper:
             resist = (0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
                       + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)) / self.ch.mass_kg
         z = np.array([ax + resist, ay, yaw_accel])
-        valid = vx >= self.fe.min_speed_mps and math.isfinite(steer) and not math.isnan(
-            self.yaw_prev
-        )
-        return FrontEndTick(fz, alpha, delta, kappa, k_std, a_std, z, vx, self.vy, gnss is not None,
+        calibrated = self.fe.paper or self.calibrated
+        valid = (vx >= self.fe.min_speed_mps and math.isfinite(steer) and calibrated
+                 and not math.isnan(self.yaw_prev))
+        return FrontEndTick(fz, alpha, delta, kappa, k_std, a_std, z, vx, self.vy.speed,
+                            gnss is not None,
                             bool(valid))
 
     # --- the small filters --------------------------------------------------------------------
@@ -219,27 +264,31 @@ class FrontEnd:
         h = g.heading_rad
         return ve * math.sin(h) + vn * math.cos(h), -ve * math.cos(h) + vn * math.sin(h)
 
-    def _speed_step(self, ax_raw: float, yaw_rate: float, gnss: tuple[float, float] | None) -> None:
-        """``[v_x, b]``: ``v̇ = a_x − b + r v_y``; GNSS forward speed, else undriven rims."""
-        dt = self.dt
-        if math.isnan(self.v[0]):
-            rims = self.omega * self.radius
-            self.v[0] = gnss[0] if gnss else float(np.mean(rims))
-        f = np.array([[1.0, -dt], [0.0, 1.0]])
-        self.v = np.array([self.v[0] + (ax_raw - self.v[1] + yaw_rate * self.vy) * dt, self.v[1]])
-        q = np.diag([(self.fe.speed_walk_mps2 * dt) ** 2, self.fe.bias_walk_mps2_per_sqrt_s**2 * dt])
-        self.pv = f @ self.pv @ f.T + q
+    def _speed_step(
+        self, ax_raw: float, yaw_rate: float, gnss: tuple[float, float] | None,
+        fz: FloatArray, delta: FloatArray,
+    ) -> None:
+        """Forward speed: accelerometer, corrected by GNSS and, once their radius is
+        calibrated, by the undriven wheels' rims (free rolling: no slip)."""
+        if math.isnan(self.vx.speed):
+            self.vx.x[0] = gnss[0] if gnss else float(np.mean(self.omega * self.radius))
+        self.vx.predict(ax_raw, yaw_rate * self.vy.speed, self.dt)
         if gnss is not None:
-            self._speed_update(gnss[0], 0.03**2)
-        elif self.undriven.any():
-            rim = float(np.mean((self.omega * self.radius)[self.undriven]))
-            self._speed_update(rim, 0.05**2 + (0.003 * rim) ** 2)
+            self.vx.update(gnss[0], 0.03**2)
+        free = self.undriven
+        if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
+            return
+        rim = self.omega * self._radius_now(fz)
+        w = self.vy.speed + self.wheel_x * yaw_rate
+        vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
+        v = float(np.mean(vx_rim[free]))
+        rel = float(np.mean(self.radius_std[free] / self.radius[free]))
+        self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
-    def _speed_update(self, z: float, var: float) -> None:
-        s = self.pv[0, 0] + var
-        k = self.pv[:, 0] / s
-        self.v = self.v + k * (z - self.v[0])
-        self.pv = self.pv - np.outer(k, self.pv[0])
+    def _gnss_recent(self) -> bool:
+        return self.gnss is not None and self.last_tick_ns - self.gnss.stamp_ns <= (
+            self.fe.gnss_timeout_s * 1e9
+        )
 
     def _detilt(self, ax: float, ay: float) -> tuple[float, float]:
         if self.fe.paper:
@@ -249,16 +298,15 @@ class FrontEnd:
         return ax / (1.0 + k_pitch), ay / (1.0 + k_roll)
 
     def _side_slip_step(self, ay: float, yaw_rate: float, gnss: tuple[float, float] | None) -> None:
-        dt = self.dt
-        self.vy += (ay - yaw_rate * float(self.v[0])) * dt
-        self.vy_var += (0.05**2) * dt
+        """Lateral speed: ``v̇_y = a_y − b − r v_x`` corrected by GNSS (the paper reading: no
+        bias, no GNSS, a slow leak to zero)."""
         if self.fe.paper:
-            self.vy *= math.exp(-dt / self.fe.side_slip_leak_s)
+            self.vy.x[0] += (ay - yaw_rate * self.vx.speed) * self.dt
+            self.vy.x[0] *= math.exp(-self.dt / self.fe.side_slip_leak_s)
             return
+        self.vy.predict(ay, -yaw_rate * self.vx.speed, self.dt)
         if gnss is not None:
-            k = self.vy_var / (self.vy_var + 0.04**2)
-            self.vy += k * (gnss[1] - self.vy)
-            self.vy_var *= 1.0 - k
+            self.vy.update(gnss[1], 0.04**2)
 
     def _loads(self, ax: float, ay: float) -> FloatArray:
         ch = self.ch
@@ -274,46 +322,63 @@ class FrontEnd:
         fz = self.fz_static + np.array([-lx / 2 - lf, -lx / 2 + lf, lx / 2 - lr, lx / 2 + lr])
         return np.maximum(fz, 0.0)
 
-    def _slips(
-        self, fz: FloatArray, delta: FloatArray, yaw_rate: float, ax: float
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """κ, α and their 1-σ per wheel (source eq. 8-14)."""
-        vx, vy = float(self.v[0]), self.vy
+    def _wheel_velocity(
+        self, vx: float, vy: float, yaw_rate: float, delta: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Each wheel centre's velocity along and across its heading (source eq. 11-13)."""
         u = vx - self.wheel_y * yaw_rate
         w = vy + self.wheel_x * yaw_rate
-        v_long = u * np.cos(delta) + w * np.sin(delta)
-        v_lat = -u * np.sin(delta) + w * np.cos(delta)
-        radius = self._radius(fz, v_long, delta, yaw_rate, ax)
+        return u * np.cos(delta) + w * np.sin(delta), -u * np.sin(delta) + w * np.cos(delta)
+
+    def _slips(
+        self, fz: FloatArray, delta: FloatArray, yaw_rate: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """κ, α and their 1-σ per wheel (source eq. 8-14), relaxed (not paper)."""
+        v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
         denom = np.maximum(np.abs(v_long), 1.0)
-        kappa = (self.omega * radius - v_long) / denom
+        kappa = (self.omega * self._radius_now(fz) - v_long) / denom
         alpha = -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
-        v_std = math.sqrt(max(self.pv[0, 0], 0.0))
+        v_std = math.sqrt(max(self.vx.speed_var, 0.0))
         k_std = np.hypot(v_std, self.omega * self.radius_std) / denom + 2e-4
-        a_std = np.full(4, math.sqrt(self.vy_var)) / denom + 1e-3
+        a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
         if not self.fe.paper:
-            gain = 1.0 - np.exp(-self.dt * (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3))
-            self.slip_lag += gain * (np.stack([kappa, alpha]) - self.slip_lag)
+            rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
+            self.slip_lag += (1.0 - np.exp(-self.dt * rate)) * (
+                np.stack([kappa, alpha]) - self.slip_lag
+            )
             kappa, alpha = self.slip_lag
         return kappa.copy(), alpha.copy(), k_std, a_std
 
-    def _radius(
-        self, fz: FloatArray, v_long: FloatArray, delta: FloatArray, yaw_rate: float, ax: float
-    ) -> FloatArray:
-        """Effective radius per wheel; calibrated while straight and steady (not paper)."""
+    def _radius_now(self, fz: FloatArray) -> FloatArray:
+        """Effective radius per wheel: the calibrated one, falling by a third of the change of
+        deflection since (paper: the statically loaded radius)."""
         if self.fe.paper:
             return self.radius
-        steady = (abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
-                  and float(self.v[0]) > 5.0 and self.pv[0, 0] < 0.05**2)
-        drop = (fz - self.fz_cal) / (3.0 * self.ty.kz_npm)
-        if steady:
-            resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
-                self.ch.drag_area_m2 * float(self.v[0]) ** 2)
-            c_x = 2.0 * self.ty.c_px_npm2 * (2 * self.ty.unloaded_radius_m * fz / self.ty.kz_npm)
-            expect = resist * self.drive_share / np.maximum(c_x, 1.0)
-            measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
-            gain = self.dt / self.fe.calib_time_s
-            self.radius += gain * (measured - self.radius)
-            self.fz_cal += gain * (fz - self.fz_cal)
-            self.radius_std = np.maximum(self.radius_std * (1 - gain), 2e-4 * self.radius)
-            drop = np.zeros(4)
-        return self.radius - drop
+        return self.radius - (fz - self.fz_cal) / (3.0 * self.ty.kz_npm)
+
+    def _calibrate(
+        self, gnss: tuple[float, float] | None, fz: FloatArray, delta: FloatArray,
+        yaw_rate: float, ax: float,
+    ) -> None:
+        """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
+        ``calib_time_s`` average), allowing for the slip the resistances need."""
+        steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
+        if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
+            return
+        v_long, _ = self._wheel_velocity(gnss[0], gnss[1], yaw_rate, delta)
+        resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
+            self.ch.drag_area_m2 * gnss[0] ** 2
+        )
+        c_x = 2.0 * self.ty.c_px_npm2 * (2 * self.ty.unloaded_radius_m * fz / self.ty.kz_npm)
+        expect = resist * self.drive_share / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
+        self.calib_n += 1
+        gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
+        self.radius += gain * (measured - self.radius)
+        self.fz_cal += gain * (fz - self.fz_cal)
+        self.radius_std = np.maximum(0.003 * self.radius / math.sqrt(self.calib_n),
+                                     2e-4 * self.radius)
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calib_n >= self.fe.calib_samples

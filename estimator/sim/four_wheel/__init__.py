@@ -2,7 +2,7 @@
 
 Pure: numpy only, every draw from the seeded generator, no I/O, no clock.
 
->>> runs = simulate_four_wheel([named_manoeuvre("steer_mu08")], seed=1)
+>>> runs = simulate_four_wheel([named_manoeuvre("steer_mu08")], seeds=[1])
 >>> runs[0].measurements[0]        # ImuBatch / WheelSpeeds4 / SteeringAngles / GnssSample
 >>> runs[0].truth.mu               # 100 Hz truth (:class:`~.dynamics.Truth`)
 
@@ -111,18 +111,21 @@ def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
 
 def simulate_four_wheel(
     manoeuvres: Sequence[Manoeuvre],
-    seed: int,
+    seeds: Sequence[int],
     configs: Sequence[Wheeled4wdSteeredConfig] | None = None,
     start_ns: int = START_NS,
 ) -> list[FourWheelRun]:
-    """Simulate ``manoeuvres`` side by side (one batched integration), all from ``seed``."""
-    rng = np.random.default_rng(seed)
+    """Simulate ``manoeuvres`` side by side (one batched integration), run ``i`` drawing its
+    truth and sensors from ``seeds[i]`` alone (the same run whatever it is batched with)."""
+    if len(seeds) != len(manoeuvres):
+        raise ValueError("one seed per manoeuvre")
+    rngs = [np.random.default_rng(s) for s in seeds]
     cfgs = list(configs) if configs is not None else [FOUR_WHEEL_CONFIG] * len(manoeuvres)
     kz = np.array([[c.tyre.kz_npm] * 4 for c in cfgs])
     for i, m in enumerate(manoeuvres):
         if m.damaged_wheel >= 0:
             kz[i, m.damaged_wheel] = m.damaged_kz_npm
-    params = TruthParams.draw(cfgs, rng, kz)
+    params = TruthParams.draw(cfgs, rngs, kz)
     steps = round(max(m.duration_s for m in manoeuvres) / DT_S) + 1
     t_s = np.arange(steps) * DT_S
     speed, steer, mu = (np.stack(p) for p in zip(*(m.sample(t_s) for m in manoeuvres), strict=True))
@@ -132,7 +135,7 @@ def simulate_four_wheel(
         rows = round(m.duration_s / _ROW_S) + 1
         one = truth.take(i)
         one = Truth(*(getattr(one, f)[:rows] for f in one.__dataclass_fields__))
-        runs.append(FourWheelRun(m, cfgs[i], one, _sensors(one, rng, start_ns), start_ns))
+        runs.append(FourWheelRun(m, cfgs[i], one, _sensors(one, rngs[i], start_ns), start_ns))
     return runs
 
 

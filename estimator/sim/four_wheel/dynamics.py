@@ -70,7 +70,7 @@ class TruthParams:
 
     @staticmethod
     def draw(
-        configs: list[Wheeled4wdSteeredConfig], rng: np.random.Generator, kz_npm: FloatArray
+        configs: list[Wheeled4wdSteeredConfig], rngs: list[np.random.Generator], kz_npm: FloatArray
     ) -> TruthParams:
         """The runs' truths: the configs' numbers (``kz_npm`` ``(R, 4)`` per wheel, to damage
         one) and per-run draws (uniform) of what the config does not say: c_p ×0.97-1.03,
@@ -85,7 +85,8 @@ class TruthParams:
             return np.array(xs, dtype=np.float64)
 
         def u(lo: float, hi: float, shape: tuple[int, ...] = (r,)) -> FloatArray:
-            return rng.uniform(lo, hi, shape)
+            """One draw per run, each from its run's generator."""
+            return np.stack([g.uniform(lo, hi, shape[1:]) for g in rngs])
 
         share = np.zeros((r, 4))
         for i, c in enumerate(ch):
