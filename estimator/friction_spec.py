@@ -69,12 +69,27 @@ def _wheel_fields() -> list[FieldSpec]:
     for key, name in zip(WHEEL_KEYS, _WHEEL_NAMES, strict=True):
         out += [
             FieldSpec(f"fz_{key}_n", "f8", "N", f"load {name}", f"vertical load, {name} wheel"),
-            FieldSpec(f"slip_{key}_pct", "f8", "%", f"slip {name}",
-                      f"longitudinal slip κ, {name} wheel (+ driving)"),
-            FieldSpec(f"alpha_{key}_rad", "f8", "rad", f"slip angle {name}",
-                      f"slip angle α, {name} wheel (+ pushes left)"),
-            FieldSpec(f"util_{key}_pct", "f8", "%", f"grip used {name}",
-                      f"hypot(Fx, Fy) / (μ Fz) at the filter's μ, {name} wheel"),
+            FieldSpec(
+                f"slip_{key}_pct",
+                "f8",
+                "%",
+                f"slip {name}",
+                f"longitudinal slip κ, {name} wheel (+ driving)",
+            ),
+            FieldSpec(
+                f"alpha_{key}_rad",
+                "f8",
+                "rad",
+                f"slip angle {name}",
+                f"slip angle α, {name} wheel (+ pushes left)",
+            ),
+            FieldSpec(
+                f"util_{key}_pct",
+                "f8",
+                "%",
+                f"grip used {name}",
+                f"hypot(Fx, Fy) / (μ Fz) at the filter's μ, {name} wheel",
+            ),
         ]
     return out
 

@@ -21,19 +21,22 @@ import numpy as np
 
 from estimator._arrays import FloatArray
 
+Values = FloatArray | float
+"""An array or a plain number (every function broadcasts)."""
+
 __all__ = ["brush_forces", "contact_half_length_m", "load_adaptive_stiffness_n", "utilisation"]
 
 _TINY_N = 1e-9
 
 
-def contact_half_length_m(fz_n: FloatArray, kz_npm: FloatArray, radius_m: FloatArray) -> FloatArray:
+def contact_half_length_m(fz_n: Values, kz_npm: Values, radius_m: Values) -> FloatArray:
     """Half-length ``a`` of the contact patch [m] from the deflection ``Fz/kz`` (eq. 18-19)."""
     d_m = np.clip(np.asarray(fz_n) / kz_npm, 0.0, radius_m)
     return np.sqrt(np.maximum(2.0 * radius_m * d_m - d_m * d_m, 0.0))
 
 
 def load_adaptive_stiffness_n(
-    fz_n: FloatArray, kz_npm: FloatArray, radius_m: FloatArray, c_p_npm2: FloatArray
+    fz_n: Values, kz_npm: Values, radius_m: Values, c_p_npm2: Values
 ) -> FloatArray:
     """Slip stiffness ``c = 2 a² c_p`` [N per unit slip] at load ``fz_n`` (eq. 16-17)."""
     a_m = contact_half_length_m(fz_n, kz_npm, radius_m)
@@ -41,12 +44,12 @@ def load_adaptive_stiffness_n(
 
 
 def brush_forces(
-    kappa: FloatArray,
-    alpha_rad: FloatArray,
-    fz_n: FloatArray,
-    mu: FloatArray,
-    cx_n: FloatArray,
-    cy_n: FloatArray,
+    kappa: Values,
+    alpha_rad: Values,
+    fz_n: Values,
+    mu: Values,
+    cx_n: Values,
+    cy_n: Values,
 ) -> tuple[FloatArray, FloatArray]:
     """Longitudinal and lateral tyre force ``(Fx, Fy)`` [N] of the combined-slip brush model.
 
@@ -64,7 +67,7 @@ def brush_forces(
     return sx * scale, sy * scale
 
 
-def utilisation(fx_n: FloatArray, fy_n: FloatArray, fz_n: FloatArray, mu: FloatArray) -> FloatArray:
+def utilisation(fx_n: Values, fy_n: Values, fz_n: Values, mu: Values) -> FloatArray:
     """Share of the available grip in use, ``hypot(Fx, Fy) / (μ Fz)`` (0..1; NaN without load)."""
     cap_n = mu * np.asarray(fz_n)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -36,6 +36,7 @@ from estimator.friction.sckf import (
     mee_measurement_sqrt,
     sckf_predict,
     sckf_update,
+    tria,
 )
 
 __all__ = [
@@ -168,14 +169,18 @@ class FilterState:
 
     def take(self, rows: np.ndarray) -> FilterState:
         return FilterState(
-            self.x[rows], self.s[rows], self.fz_prev_n[rows], self.nis[rows],
+            self.x[rows],
+            self.s[rows],
+            self.fz_prev_n[rows],
+            self.nis[rows],
             self.mee_ok[rows] if self.mee_ok.size else self.mee_ok,
             self.updated[rows] if self.updated.size else self.updated,
         )
 
 
 def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> FilterState:
-    """The prior: ``μ0 ± mu0_std``; stiffness at ``fz_n`` (or factors 1) ± ``stiffness0_rel_std``."""
+    """The prior: ``μ0 ± mu0_std``; stiffness at ``fz_n`` ± ``stiffness0_rel_std`` (product:
+    factors 1 ± ``factor0_rel_std``)."""
     b = fz_n.shape[0]
     if cfg.mode is FrictionMode.PRODUCT:
         x = np.ones((b, len(ProductState)))
@@ -213,7 +218,8 @@ def _measure(
     kappa: FloatArray,
     alpha: FloatArray,
 ) -> FloatArray:
-    """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)``; slips ``(B, P|1, 4)``."""
+    """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)``; slips are
+    ``(B, P, 4)`` or ``(B, 1, 4)``."""
     mu = np.clip(points[..., :1], MU_MIN, MU_MAX)
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
     fx, fy = brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
@@ -293,7 +299,7 @@ def filter_step(
         sq_r = _sq_r(cfg, rows.size)
         if cfg.mode is FrictionMode.PRODUCT:
             d = _input_spread(x[rows], cfg, sub_t, sub_c, sub)
-            sq_r = np.linalg.cholesky(sq_r @ np.swapaxes(sq_r, -1, -2) + d @ np.swapaxes(d, -1, -2))
+            sq_r = _with_inputs(sq_r, d)
         elif cfg.mode is FrictionMode.PAPER:
             z_mean = h(cubature_points(x[rows], s[rows])).mean(axis=1)
             mee = mee_measurement_sqrt(sub.z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
@@ -304,18 +310,30 @@ def filter_step(
         white = np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0]
         step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
         nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
-    floor = MU_MIN
+    floor = np.full(b, MU_MIN)
     if cfg.mode is FrictionMode.PRODUCT:  # the ground gave at least the grip measured
-        floor = np.where(valid, _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2, 0.0)
-        floor = np.maximum(floor, MU_MIN)
+        grip = _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2
+        floor = np.maximum(np.where(valid, grip, 0.0), MU_MIN)
     x[:, 0] = np.clip(x[:, 0], floor, MU_MAX)
     return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, valid)
 
 
+def _with_inputs(sq_r: FloatArray, d: FloatArray) -> FloatArray:
+    """Root of ``R + D Dᵀ`` (``D`` ``(B, m, k)``: the inputs' spread through the model)."""
+    root: FloatArray = tria(np.concatenate([sq_r, d], axis=-1))
+    return root
+
+
 def _subset(u: TickInputs, rows: np.ndarray) -> TickInputs:
     return TickInputs(
-        u.fz_n[rows], u.alpha_rad[rows], u.delta_rad[rows], u.kappa[rows], u.kappa_std[rows],
-        u.alpha_std_rad[rows], u.z[rows], u.valid[rows],
+        u.fz_n[rows],
+        u.alpha_rad[rows],
+        u.delta_rad[rows],
+        u.kappa[rows],
+        u.kappa_std[rows],
+        u.alpha_std_rad[rows],
+        u.z[rows],
+        u.valid[rows],
     )
 
 

@@ -76,8 +76,12 @@ class _Vehicle:
         self.state: FilterState | None = None
         self.held_mu = math.nan
         ty = config.tyre
-        self.tyres = TyreArrays(*(np.array([[v]]) for v in (
-            ty.kz_npm, ty.unloaded_radius_m, ty.c_px_npm2, ty.c_py_npm2)))
+        self.tyres = TyreArrays(
+            *(
+                np.array([[v]])
+                for v in (ty.kz_npm, ty.unloaded_radius_m, ty.c_px_npm2, ty.c_py_npm2)
+            )
+        )
         self.chassis = Chassis.of([config])
 
     def due(self, until_ns: int) -> list[int]:
@@ -97,6 +101,20 @@ class _Vehicle:
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts, axis=0)
+
+
+def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
+    """One :class:`TickInputs` of the vehicles' front-end ticks, one row each."""
+    return TickInputs(
+        fz_n=np.stack([fe.fz_n for fe in fes]),
+        alpha_rad=np.stack([fe.alpha_rad for fe in fes]),
+        delta_rad=np.stack([fe.delta_rad for fe in fes]),
+        kappa=np.stack([fe.kappa for fe in fes]),
+        kappa_std=np.stack([fe.kappa_std for fe in fes]),
+        alpha_std_rad=np.stack([fe.alpha_std_rad for fe in fes]),
+        z=np.stack([fe.z for fe in fes]),
+        valid=np.array([fe.valid for fe in fes]),
+    )
 
 
 class FrictionFleet:
@@ -152,37 +170,47 @@ class FrictionFleet:
         out = [FRICTION_SPEC.empty_rows(len(w[2])) for w in work]
         for r in range(max(len(w[2]) for w in work)):
             part = [k for k, w in enumerate(work) if len(w[2]) > r]
-            self._round([work[k][1] for k in part], [work[k][2][r] for k in part],
-                        [out[k][r : r + 1] for k in part])
+            self._round(
+                [work[k][1] for k in part],
+                [work[k][2][r] for k in part],
+                [out[k][r : r + 1] for k in part],
+            )
         return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
 
     def _round(
         self, vs: list[_Vehicle], ticks: list[tuple[int, FrontEndTick]], rows: list[np.ndarray]
     ) -> None:
         """Step one tick of every vehicle in ``vs`` together."""
-        fes = [fe for _, fe in ticks]
-        u = TickInputs(*(np.stack([getattr(fe, f) for fe in fes]) for f in (
-            "fz_n", "alpha_rad", "delta_rad", "kappa", "kappa_std", "alpha_std_rad", "z")),
-            np.array([fe.valid for fe in fes]))
-        tyres = TyreArrays(*(_cat([getattr(v.tyres, f) for v in vs]) for f in (
-            "kz_npm", "radius_m", "c_px_npm2", "c_py_npm2")))
-        chassis = Chassis(*(_cat([getattr(v.chassis, f) for v in vs]) for f in (
-            "mass_kg", "yaw_inertia_kgm2", "wheel_x_m", "wheel_y_m")))
-        fresh = np.array([v.state is None for v in vs])
-        cfg = self.config.filter
-        prior = initial_state(cfg, tyres, u.fz_n)
-        st = FilterState(
-            np.stack([prior.x[i] if v.state is None else v.state.x[0] for i, v in enumerate(vs)]),
-            np.stack([prior.s[i] if v.state is None else v.state.s[0] for i, v in enumerate(vs)]),
-            np.stack([u.fz_n[i] if v.state is None else v.state.fz_prev_n[0]
-                      for i, v in enumerate(vs)]),
-            np.array([0.0 if v.state is None else v.state.nis[0] for v in vs]),
+        u = _stack_inputs([fe for _, fe in ticks])
+        tyres = TyreArrays(
+            kz_npm=_cat([v.tyres.kz_npm for v in vs]),
+            radius_m=_cat([v.tyres.radius_m for v in vs]),
+            c_px_npm2=_cat([v.tyres.c_px_npm2 for v in vs]),
+            c_py_npm2=_cat([v.tyres.c_py_npm2 for v in vs]),
         )
-        st = filter_step(st, cfg, tyres, chassis, u)
+        chassis = Chassis(
+            mass_kg=_cat([v.chassis.mass_kg for v in vs]),
+            yaw_inertia_kgm2=_cat([v.chassis.yaw_inertia_kgm2 for v in vs]),
+            wheel_x_m=_cat([v.chassis.wheel_x_m for v in vs]),
+            wheel_y_m=_cat([v.chassis.wheel_y_m for v in vs]),
+        )
+        fresh = [v.state is None for v in vs]
+        st = filter_step(self._states(vs, tyres, u), self.config.filter, tyres, chassis, u)
         util = self._utilisation(st, tyres, u)
         for i, v in enumerate(vs):
             v.state = st.take(np.array([i]))
-            self._row(rows[i], v, ticks[i], st, i, util[i], bool(fresh[i]))
+            self._row(rows[i], v, ticks[i], st, i, util[i], fresh[i])
+
+    def _states(self, vs: list[_Vehicle], tyres: TyreArrays, u: TickInputs) -> FilterState:
+        """The vehicles' filter states stacked; a vehicle's first tick starts from the prior."""
+        prior = initial_state(self.config.filter, tyres, u.fz_n)
+        own = [prior.take(np.array([i])) if v.state is None else v.state for i, v in enumerate(vs)]
+        return FilterState(
+            x=_cat([s.x for s in own]),
+            s=_cat([s.s for s in own]),
+            fz_prev_n=_cat([s.fz_prev_n for s in own]),
+            nis=_cat([s.nis for s in own]),
+        )
 
     def _utilisation(self, st: FilterState, tyres: TyreArrays, u: TickInputs) -> FloatArray:
         """Grip used per wheel ``(B, 4)`` at the filter's mean state."""
@@ -193,14 +221,22 @@ class FrictionFleet:
         return utilisation(fx, fy, u.fz_n, mu)
 
     def _row(
-        self, row: np.ndarray, v: _Vehicle, tick: tuple[int, FrontEndTick], st: FilterState,
-        i: int, util: FloatArray, fresh: bool,
+        self,
+        row: np.ndarray,
+        v: _Vehicle,
+        tick: tuple[int, FrontEndTick],
+        st: FilterState,
+        i: int,
+        util: FloatArray,
+        fresh: bool,
     ) -> None:
         t_ns, fe = tick
         mu = float(st.x[i, 0])
         std = float(np.linalg.norm(st.s[i, 0]))
-        informed = bool(st.updated[i]) and std / mu < self.config.informed_rel_std and (
-            float(np.nanmax(util)) >= self.config.informed_min_util
+        informed = (
+            bool(st.updated[i])
+            and std / mu < self.config.informed_rel_std
+            and (float(np.nanmax(util)) >= self.config.informed_min_util)
         )
         flags = FrictionFlag.NONE
         if informed:

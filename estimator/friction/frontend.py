@@ -70,7 +70,7 @@ class FrontEndConfig:
 
 @dataclass(frozen=True, slots=True)
 class FrontEndTick:
-    """One tick's inputs (per wheel ``(4,)``) and measurements, with 1-σ where the filter uses it."""
+    """One tick's inputs (per wheel ``(4,)``) and measurements, with the 1-σ the filter uses."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -130,18 +130,23 @@ class FrontEnd:
         self.wheel_x = np.array([1, 1, -1, -1]) * np.array(
             [ch.cg_to_front_axle_m] * 2 + [ch.cg_to_rear_axle_m] * 2
         )
-        self.wheel_y = np.array([ch.front_track_m, -ch.front_track_m, ch.rear_track_m,
-                                 -ch.rear_track_m]) / 2
+        self.wheel_y = (
+            np.array([ch.front_track_m, -ch.front_track_m, ch.rear_track_m, -ch.rear_track_m]) / 2
+        )
         wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
         mg = ch.mass_kg * GRAVITY_MPS2
-        self.fz_static = mg * np.array([ch.cg_to_rear_axle_m] * 2 + [ch.cg_to_front_axle_m] * 2) / (
-            2 * wheelbase
+        self.fz_static = (
+            mg
+            * np.array([ch.cg_to_rear_axle_m] * 2 + [ch.cg_to_front_axle_m] * 2)
+            / (2 * wheelbase)
         )
         self.undriven = _UNDRIVEN[ch.driven_axle]
         self.drive_share = _DRIVE_SHARE[ch.driven_axle]
         # the paper's statically loaded radius; the product starts from a third of the
         # deflection (a rolling tyre's effective radius) and calibrates from there
-        self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (1.0 if fe.paper else 1 / 3)
+        self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (
+            1.0 if fe.paper else 1 / 3
+        )
         self.calib_n = 0
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)
         self.fz_cal = self.fz_static.copy()
@@ -160,7 +165,9 @@ class FrontEnd:
 
     # --- input ------------------------------------------------------------------------------
     def push_imu(self, m: ImuBatch) -> None:
-        self.imu.append((np.asarray(m.stamp_ns), np.asarray(m.accel_mps2), np.asarray(m.gyro_radps)))
+        self.imu.append(
+            (np.asarray(m.stamp_ns), np.asarray(m.accel_mps2), np.asarray(m.gyro_radps))
+        )
 
     def push_wheels(self, m: WheelSpeeds4, until_ns: int | None = None) -> None:
         self._wheels = getattr(self, "_wheels", [])
@@ -241,15 +248,31 @@ class FrontEnd:
         resist = 0.0
         vx = self.vx.speed
         if not self.fe.paper:
-            resist = (0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
-                      + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)) / self.ch.mass_kg
+            resist = (
+                0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
+                + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
+            ) / self.ch.mass_kg
         z = np.array([ax + resist, ay, yaw_accel])
         calibrated = self.fe.paper or self.calibrated
-        valid = (vx >= self.fe.min_speed_mps and math.isfinite(steer) and calibrated
-                 and not math.isnan(self.yaw_prev))
-        return FrontEndTick(fz, alpha, delta, kappa, k_std, a_std, z, vx, self.vy.speed,
-                            gnss is not None,
-                            bool(valid))
+        valid = (
+            vx >= self.fe.min_speed_mps
+            and math.isfinite(steer)
+            and calibrated
+            and not math.isnan(self.yaw_prev)
+        )
+        return FrontEndTick(
+            fz,
+            alpha,
+            delta,
+            kappa,
+            k_std,
+            a_std,
+            z,
+            vx,
+            self.vy.speed,
+            gnss is not None,
+            bool(valid),
+        )
 
     # --- the small filters --------------------------------------------------------------------
     def _gnss_velocity(self, t_ns: int) -> tuple[float, float] | None:
@@ -265,8 +288,12 @@ class FrontEnd:
         return ve * math.sin(h) + vn * math.cos(h), -ve * math.cos(h) + vn * math.sin(h)
 
     def _speed_step(
-        self, ax_raw: float, yaw_rate: float, gnss: tuple[float, float] | None,
-        fz: FloatArray, delta: FloatArray,
+        self,
+        ax_raw: float,
+        yaw_rate: float,
+        gnss: tuple[float, float] | None,
+        fz: FloatArray,
+        delta: FloatArray,
     ) -> None:
         """Forward speed: accelerometer, corrected by GNSS and, once their radius is
         calibrated, by the undriven wheels' rims (free rolling: no slip)."""
@@ -312,10 +339,14 @@ class FrontEnd:
         ch = self.ch
         wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
         m_h = ch.mass_kg * ch.cg_height_m
-        share = (ch.cg_to_rear_axle_m / wheelbase if self.fe.paper
-                 else ch.roll_stiffness_front_share)
-        target = np.array([m_h * ax / wheelbase, share * m_h * ay / ch.front_track_m,
-                           (1 - share) * m_h * ay / ch.rear_track_m])
+        share = ch.cg_to_rear_axle_m / wheelbase if self.fe.paper else ch.roll_stiffness_front_share
+        target = np.array(
+            [
+                m_h * ax / wheelbase,
+                share * m_h * ay / ch.front_track_m,
+                (1 - share) * m_h * ay / ch.rear_track_m,
+            ]
+        )
         lag = 0.0 if self.fe.paper else ch.load_transfer_lag_s
         self.transfer += (target - self.transfer) * (1.0 - math.exp(-self.dt / max(lag, 1e-9)))
         lx, lf, lr = self.transfer
@@ -357,8 +388,12 @@ class FrontEnd:
         return self.radius - (fz - self.fz_cal) / (3.0 * self.ty.kz_npm)
 
     def _calibrate(
-        self, gnss: tuple[float, float] | None, fz: FloatArray, delta: FloatArray,
-        yaw_rate: float, ax: float,
+        self,
+        gnss: tuple[float, float] | None,
+        fz: FloatArray,
+        delta: FloatArray,
+        yaw_rate: float,
+        ax: float,
     ) -> None:
         """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
         ``calib_time_s`` average), allowing for the slip the resistances need."""
@@ -376,8 +411,9 @@ class FrontEnd:
         gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
         self.radius += gain * (measured - self.radius)
         self.fz_cal += gain * (fz - self.fz_cal)
-        self.radius_std = np.maximum(0.003 * self.radius / math.sqrt(self.calib_n),
-                                     2e-4 * self.radius)
+        self.radius_std = np.maximum(
+            0.003 * self.radius / math.sqrt(self.calib_n), 2e-4 * self.radius
+        )
 
     @property
     def calibrated(self) -> bool:

@@ -36,7 +36,7 @@ PointMap = Callable[[FloatArray], FloatArray]
 
 
 def tria(a: FloatArray) -> FloatArray:
-    """Lower triangular ``T`` ``(B, r, r)`` with ``T Tᵀ = A Aᵀ`` for ``A`` ``(B, r, k)``, ``k ≥ r``."""
+    """Lower triangular ``T`` ``(B, r, r)``, ``T Tᵀ = A Aᵀ``, of ``A`` ``(B, r, k)``, ``k ≥ r``."""
     r = np.linalg.qr(np.swapaxes(a, -1, -2), mode="r")
     t = np.swapaxes(r, -1, -2)
     sign = np.where(np.diagonal(t, axis1=-2, axis2=-1) < 0.0, -1.0, 1.0)
@@ -44,7 +44,7 @@ def tria(a: FloatArray) -> FloatArray:
 
 
 def cubature_points(x: FloatArray, s: FloatArray) -> FloatArray:
-    """The ``2n`` points ``x + S ξ_i`` ``(B, 2n, n)`` of means ``(B, n)`` and roots ``(B, n, n)``."""
+    """The ``2n`` points ``x + S ξ_i`` ``(B, 2n, n)`` of means ``(B, n)``, roots ``(B, n, n)``."""
     n = x.shape[-1]
     spread = np.sqrt(n) * np.swapaxes(s, -1, -2)  # row j: √n · column j of S
     return x[..., None, :] + np.concatenate([spread, -spread], axis=-2)
@@ -135,11 +135,15 @@ def mee_measurement_sqrt(
     return MeeResult(np.where(ok[..., None, None], sq_bar, sq_r), ok, weight)
 
 
+def _root(p: FloatArray) -> FloatArray:
+    return np.asarray(np.linalg.cholesky(p), dtype=np.float64)
+
+
 def ckf_predict(
     x: FloatArray, p: FloatArray, f: PointMap, q: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Cubature time update on full covariances ``P`` ``(B, n, n)`` (the SCKF's oracle)."""
-    mean, dev = _centred(f(cubature_points(x, np.linalg.cholesky(p))))
+    mean, dev = _centred(f(cubature_points(x, _root(p))))
     return mean, dev @ np.swapaxes(dev, -1, -2) + q
 
 
@@ -147,7 +151,7 @@ def ckf_update(
     x: FloatArray, p: FloatArray, z: FloatArray, h: PointMap, r: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Cubature measurement update on full covariances (the SCKF's oracle)."""
-    points = cubature_points(x, np.linalg.cholesky(p))
+    points = cubature_points(x, _root(p))
     z_mean, z_dev = _centred(h(points))
     _, x_dev = _centred(points)
     p_zz = z_dev @ np.swapaxes(z_dev, -1, -2) + r

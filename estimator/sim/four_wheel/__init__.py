@@ -155,7 +155,10 @@ def _imu(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[tuple[in
     gyro += rng.uniform(-0.003, 0.003, 3) + rng.normal(0.0, 0.003, (n, 3))
     stamps = _stamps(truth, start_ns, 1)
     return [
-        (int(stamps[min(k + 9, n - 1)]), ImuBatch(stamps[k : k + 10], accel[k : k + 10], gyro[k : k + 10]))
+        (
+            int(stamps[min(k + 9, n - 1)]),
+            ImuBatch(stamps[k : k + 10], accel[k : k + 10], gyro[k : k + 10]),
+        )
         for k in range(0, n, 10)
     ]
 
@@ -206,5 +209,3 @@ def _sensors(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[Meas
     packets = _imu(truth, rng, start_ns) + _can(truth, rng, start_ns) + _gnss(truth, rng, start_ns)
     packets.sort(key=lambda p: p[0])
     return [m for _, m in packets]
-
-

@@ -116,8 +116,7 @@ class TruthParams:
             roll_front_share=u(0.5, 0.7),
             load_lag_s=u(0.05, 0.2),
             roll_rad_per_g=np.radians(col([c.roll_gradient_deg_per_g for c in ch])) * u(0.7, 1.3),
-            pitch_rad_per_g=np.radians(col([c.pitch_gradient_deg_per_g for c in ch]))
-            * u(0.7, 1.3),
+            pitch_rad_per_g=np.radians(col([c.pitch_gradient_deg_per_g for c in ch])) * u(0.7, 1.3),
             tilt_lag_s=u(0.1, 0.3),
             wheel_inertia_kgm2=u(0.8, 2.0),
             drive_share=share,
@@ -207,8 +206,15 @@ def _deriv(
     r_max = (np.abs(acc[:, 1]) + 0.5) / np.maximum(np.abs(vx), 1.0)
     delta_f = delta_f - 1.0 * (r - np.clip(r_ref, -r_max, r_max))
     toe = p.ackermann * np.abs(delta_f)
-    delta = np.stack([delta_f * (1 + toe * np.sign(delta_f)), delta_f * (1 - toe * np.sign(delta_f)),
-                      0 * delta_f, 0 * delta_f], axis=-1)
+    delta = np.stack(
+        [
+            delta_f * (1 + toe * np.sign(delta_f)),
+            delta_f * (1 - toe * np.sign(delta_f)),
+            0 * delta_f,
+            0 * delta_f,
+        ],
+        axis=-1,
+    )
     u = vx[:, None] - wy * r[:, None]
     w = vy[:, None] + wx * r[:, None]
     cos_d, sin_d = np.cos(delta), np.sin(delta)
@@ -253,15 +259,28 @@ def _deriv(
     dx[:, S.ALPHA] = speed / p.relax_y_m[:, None] * (alpha - ar)
     m_h = p.mass_kg * p.cg_height_m
     z = p.roll_front_share
-    targets = (m_h * acc[:, 0] / wheelbase, z * m_h * acc[:, 1] / (2 * p.half_track_f_m),
-               (1 - z) * m_h * acc[:, 1] / (2 * p.half_track_r_m))
+    targets = (
+        m_h * acc[:, 0] / wheelbase,
+        z * m_h * acc[:, 1] / (2 * p.half_track_f_m),
+        (1 - z) * m_h * acc[:, 1] / (2 * p.half_track_r_m),
+    )
     for col, target in zip((S.LOAD_X, S.LOAD_YF, S.LOAD_YR), targets, strict=True):
         dx[:, col] = (target - x[:, col]) / p.load_lag_s
     dx[:, S.ROLL] = (p.roll_rad_per_g * acc[:, 1] / GRAVITY_MPS2 - x[:, S.ROLL]) / p.tilt_lag_s
     dx[:, S.PITCH] = (p.pitch_rad_per_g * acc[:, 0] / GRAVITY_MPS2 - x[:, S.PITCH]) / p.tilt_lag_s
     dx[:, S.SPEED_INT] = d.speed_mps[:, k] - vx
-    out = {"ax": ax, "ay": ay, "r_dot": r_dot, "fx": fx, "fy": fy, "fz": fz, "delta": delta, "steer": delta_f * p.steering_ratio,
-           "kappa": kr, "alpha": ar}
+    out = {
+        "ax": ax,
+        "ay": ay,
+        "r_dot": r_dot,
+        "fx": fx,
+        "fy": fy,
+        "fz": fz,
+        "delta": delta,
+        "steer": delta_f * p.steering_ratio,
+        "kappa": kr,
+        "alpha": ar,
+    }
     return dx, out
 
 
@@ -283,7 +302,9 @@ def _torques(
     return torque * cut
 
 
-def _rk4(x: FloatArray, k: int, p: TruthParams, d: _Drive, acc: FloatArray) -> tuple[FloatArray, dict]:
+def _rk4(
+    x: FloatArray, k: int, p: TruthParams, d: _Drive, acc: FloatArray
+) -> tuple[FloatArray, dict]:
     k1, out = _deriv(x, k, p, d, acc)
     k2, _ = _deriv(x + 0.5 * DT_S * k1, k, p, d, acc)
     k3, _ = _deriv(x + 0.5 * DT_S * k2, k, p, d, acc)

@@ -47,10 +47,11 @@ class Manoeuvre:
 
     def sample(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Target speed [m/s], steering-wheel angle [rad] and μ at times ``t_s``."""
-        return tuple(  # type: ignore[return-value]
+        speed, steer, mu = (
             np.interp(t_s, [k[0] for k in knots], [k[1] for k in knots])
             for knots in (self.speed_knots, self.steer_knots, self.mu_knots)
         )
+        return speed, steer, mu
 
 
 def _mu(mu: float | tuple[float, float], step_s: float) -> tuple[tuple[float, float], ...]:
@@ -63,8 +64,14 @@ def _accelerate(name: str, mu: float | tuple[float, float], damaged: int = -1) -
     t0 = LEAD_S
     speed = ((0.0, 30 * _KMH), (t0, 30 * _KMH), (t0 + 6.0, 80 * _KMH), (t0 + 10.0, 80 * _KMH))
     return Manoeuvre(
-        name, t0 + 10.0, speed, ((0.0, 0.0), (1e4, 0.0)), _mu(mu, t0 + 3.0), t0,
-        t0 + 3.0 if isinstance(mu, tuple) else math.nan, damaged,
+        name,
+        t0 + 10.0,
+        speed,
+        ((0.0, 0.0), (1e4, 0.0)),
+        _mu(mu, t0 + 3.0),
+        t0,
+        t0 + 3.0 if isinstance(mu, tuple) else math.nan,
+        damaged,
     )
 
 
@@ -72,15 +79,23 @@ def _steer(name: str, mu: float | tuple[float, float]) -> Manoeuvre:
     t0 = LEAD_S
     steer = ((0.0, 0.0), (t0, 0.0), (t0 + 0.3, math.radians(60.0)), (1e4, math.radians(60.0)))
     return Manoeuvre(
-        name, t0 + 6.0, ((0.0, 60 * _KMH), (1e4, 60 * _KMH)), steer, _mu(mu, t0 + 3.0), t0,
+        name,
+        t0 + 6.0,
+        ((0.0, 60 * _KMH), (1e4, 60 * _KMH)),
+        steer,
+        _mu(mu, t0 + 3.0),
+        t0,
         t0 + 3.0 if isinstance(mu, tuple) else math.nan,
     )
 
 
 def _constant() -> Manoeuvre:
     return Manoeuvre(
-        "constant_speed", LEAD_S + 16.0, ((0.0, 50 * _KMH), (1e4, 50 * _KMH)),
-        ((0.0, 0.0), (1e4, 0.0)), _mu(0.8, 0.0),
+        "constant_speed",
+        LEAD_S + 16.0,
+        ((0.0, 50 * _KMH), (1e4, 50 * _KMH)),
+        ((0.0, 0.0), (1e4, 0.0)),
+        _mu(0.8, 0.0),
     )
 
 
@@ -89,8 +104,11 @@ def _farm_track() -> Manoeuvre:
     steer = np.where(t < LEAD_S, 0.0, math.radians(30.0) * np.sin(2 * math.pi * 0.2 * (t - LEAD_S)))
     speed = 25 * _KMH + np.where(t < LEAD_S, 0.0, 1.5 * np.sin(2 * math.pi * 0.07 * (t - LEAD_S)))
     return Manoeuvre(
-        "farm_track", LEAD_S + 20.0, tuple(zip(t, speed, strict=True)),
-        tuple(zip(t, steer, strict=True)), _mu(0.5, 0.0),
+        "farm_track",
+        LEAD_S + 20.0,
+        tuple(zip(t, speed, strict=True)),
+        tuple(zip(t, steer, strict=True)),
+        _mu(0.5, 0.0),
     )
 
 
@@ -139,6 +157,11 @@ def random_manoeuvre(rng: np.random.Generator, index: int = 0) -> Manoeuvre:
     step_s = LEAD_S + 4.0 * float(rng.integers(1, 4))
     mu: float | tuple[float, float] = (mu0, float(rng.uniform(0.2, 1.1))) if step else mu0
     return Manoeuvre(
-        f"random_{index}", LEAD_S + 16.0, tuple(speed), tuple(steer), _mu(mu, step_s),
-        LEAD_S, step_s if step else math.nan,
+        f"random_{index}",
+        LEAD_S + 16.0,
+        tuple(speed),
+        tuple(steer),
+        _mu(mu, step_s),
+        LEAD_S,
+        step_s if step else math.nan,
     )

@@ -105,8 +105,14 @@ def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
     series = []
     for r, parts in zip(runs, rows, strict=True):
         a = np.concatenate(parts)
-        series.append(Series((a["stamp_ns"] - r.start_ns) / 1e9, a["mu_filter"], a["mu"],
-                             (a["flags"] & FrictionFlag.INFORMED) > 0))
+        series.append(
+            Series(
+                (a["stamp_ns"] - r.start_ns) / 1e9,
+                a["mu_filter"],
+                a["mu"],
+                (a["flags"] & FrictionFlag.INFORMED) > 0,
+            )
+        )
     return series
 
 
@@ -115,14 +121,18 @@ def true_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
     cfg = FilterConfig(mode=mode, tick_s=TICK_S)
     configs = [r.config for r in runs]
     chassis = Chassis.of(configs)
-    tyres = TyreArrays(*(np.array([[getattr(c.tyre, f)] for c in configs]) for f in (
-        "kz_npm", "unloaded_radius_m", "c_px_npm2", "c_py_npm2")))
+    tyres = TyreArrays(
+        *(
+            np.array([[getattr(c.tyre, f)] for c in configs])
+            for f in ("kz_npm", "unloaded_radius_m", "c_px_npm2", "c_py_npm2")
+        )
+    )
     n = min(r.truth.t_s.size for r in runs)
     idx = np.arange(0, n, round(TICK_S / 0.01))
     st = None
     mus = []
     for k in idx:
-        u = _truth_inputs(runs, k)
+        u = _truth_inputs(runs, int(k))
         st = initial_state(cfg, tyres, u.fz_n) if st is None else st
         st = filter_step(st, cfg, tyres, chassis, u)
         mus.append(st.x[:, 0].copy())
@@ -138,13 +148,13 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
     fz = col("fz_n")
     ch = [r.config.chassis for r in runs]
     vx = col("vx_mps")
-    resist = np.array([0.5 * AIR_DENSITY_KGPM3 * c.drag_area_m2 * v * v for c, v in zip(ch, vx,
-                       strict=True)]) + np.array([c.rolling_resistance for c in ch]) * fz.sum(1)
+    resist = np.array(
+        [0.5 * AIR_DENSITY_KGPM3 * c.drag_area_m2 * v * v for c, v in zip(ch, vx, strict=True)]
+    ) + np.array([c.rolling_resistance for c in ch]) * fz.sum(1)
     mass = np.array([c.mass_kg for c in ch])
     z = np.stack([col("ax_mps2") + resist / mass, col("ay_mps2"), col("yaw_accel_radps2")], 1)
     tiny = np.full(fz.shape, 1e-4)
-    return TickInputs(fz, col("alpha_rad"), col("delta_rad"), col("kappa"), tiny, tiny, z,
-                      vx > 3.0)
+    return TickInputs(fz, col("alpha_rad"), col("delta_rad"), col("kappa"), tiny, tiny, z, vx > 3.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -181,8 +191,12 @@ def score(r: FourWheelRun, s: Series) -> Score:
     inf = s.informed & seg
     rep_err = np.abs(s.mu_reported - mu_true) / mu_true
     return Score(
-        conv, conv_step, 100 * float(err[last].mean()), 100 * float(np.sqrt((err[seg] ** 2).mean())),
-        100 * float(inf[seg].mean()), 100 * float(rep_err[inf].max()) if inf.any() else math.nan,
+        conv,
+        conv_step,
+        100 * float(err[last].mean()),
+        100 * float(np.sqrt((err[seg] ** 2).mean())),
+        100 * float(inf[seg].mean()),
+        100 * float(rep_err[inf].max()) if inf.any() else math.nan,
     )
 
 
@@ -193,7 +207,10 @@ def _fmt(values: list[float], unit: str = "") -> str:
     fin = v[np.isfinite(v)]
     med = float(np.nanmedian(np.where(np.isinf(v), np.nan, v))) if fin.size else math.inf
     worst = float(np.nanmax(v))
-    f = (lambda x: ">" if math.isinf(x) else f"{x:.2f}{unit}")
+
+    def f(x: float) -> str:
+        return ">" if math.isinf(x) else f"{x:.2f}{unit}"
+
     if np.isinf(v).sum() * 2 > np.isfinite(v).sum() + np.isinf(v).sum():
         med = math.inf
     return f"{f(med)} [{f(worst)}]"
@@ -204,15 +221,25 @@ FIGURES = ("conv_s", "conv_step_s", "steady_pct", "rms_pct", "informed_pct", "wo
 
 def _table(title: str, runs: list[FourWheelRun], scores: dict[str, list[Score]]) -> dict[str, Any]:
     print(f"\n{title}")
-    names = list(dict.fromkeys(r.manoeuvre.name.split("_")[0] if r.manoeuvre.name.startswith(
-        "random") else r.manoeuvre.name for r in runs))
+    names = list(
+        dict.fromkeys(
+            r.manoeuvre.name.split("_")[0]
+            if r.manoeuvre.name.startswith("random")
+            else r.manoeuvre.name
+            for r in runs
+        )
+    )
     out: dict[str, Any] = {}
     for fig in FIGURES:
         print(f"  {fig}: median [worst] over runs")
         print("  " + f"{'manoeuvre':18s}" + "".join(f"{m.value:>22s}" for m in MODES))
         for name in names:
-            pick = [i for i, r in enumerate(runs) if r.manoeuvre.name == name
-                    or (name == "random" and r.manoeuvre.name.startswith("random"))]
+            pick = [
+                i
+                for i, r in enumerate(runs)
+                if r.manoeuvre.name == name
+                or (name == "random" and r.manoeuvre.name.startswith("random"))
+            ]
             cells = []
             for mode in MODES:
                 vals = [getattr(scores[mode.value][i], fig) for i in pick]
@@ -234,12 +261,18 @@ def _floors(runs: list[FourWheelRun], sc: list[Score]) -> dict[str, bool]:
     checks = {
         "accelerate μ 0.8 within 5 % ≤ 1.52 s": worst("accelerate_mu08", "conv_s") <= 1.52,
         "steering step μ 0.8 ≤ 0.88 s": worst("steer_mu08", "conv_s") <= 0.88,
-        "steady error < 1 % high μ": max(worst("accelerate_mu08", "steady_pct"),
-                                         worst("steer_mu08", "steady_pct")) < 1.0,
-        "steady error < 4 % low μ": max(worst("accelerate_mu03", "steady_pct"),
-                                        worst("steer_mu03", "steady_pct")) < 4.0,
-        "μ step re-converged ≤ 1.5 s": max(worst("accelerate_step", "conv_step_s"),
-                                           worst("steer_step", "conv_step_s")) <= 1.5,
+        "steady error < 1 % high μ": max(
+            worst("accelerate_mu08", "steady_pct"), worst("steer_mu08", "steady_pct")
+        )
+        < 1.0,
+        "steady error < 4 % low μ": max(
+            worst("accelerate_mu03", "steady_pct"), worst("steer_mu03", "steady_pct")
+        )
+        < 4.0,
+        "μ step re-converged ≤ 1.5 s": max(
+            worst("accelerate_step", "conv_step_s"), worst("steer_step", "conv_step_s")
+        )
+        <= 1.5,
         "damaged tyre within 5 %": worst("damaged_tyre", "steady_pct") < 5.0,
         "never > 10 % while informed": (max(informed) if informed else 0.0) <= 10.0,
         "constant speed uninformed ≥ 95 %": worst("constant_speed", "informed_pct") <= 5.0,
@@ -254,8 +287,9 @@ def _one_set(label: str, seeds: Sequence[int], random_n: int, base: int) -> dict
     result: dict[str, Any] = {"seeds": list(seeds), "random": random_n, "sim_cpu_s": sim_s}
     for inputs, fn in (("sensor", sensor_series), ("true", true_series)):
         t1 = time.process_time()
-        scores = {m.value: [score(r, s) for r, s in zip(runs, fn(runs, m), strict=True)]
-                  for m in MODES}
+        scores = {
+            m.value: [score(r, s) for r, s in zip(runs, fn(runs, m), strict=True)] for m in MODES
+        }
         title = f"{label} seeds {list(seeds)} (+{random_n} random): {inputs} inputs"
         result[inputs] = _table(title, runs, scores)
         result[f"{inputs}_cpu_s"] = time.process_time() - t1
@@ -265,8 +299,10 @@ def _one_set(label: str, seeds: Sequence[int], random_n: int, base: int) -> dict
     print(f"\n{label}: floors (product mode, sensor inputs)")
     for name, ok in result["floors"].items():
         print(f"  {'pass' if ok else 'FAIL'}  {name}")
-    print(f"  cpu: simulation {result['sim_cpu_s']:.0f} s, sensor {result['sensor_cpu_s']:.0f} s, "
-          f"true {result['true_cpu_s']:.0f} s")
+    print(
+        f"  cpu: simulation {result['sim_cpu_s']:.0f} s, sensor {result['sensor_cpu_s']:.0f} s, "
+        f"true {result['true_cpu_s']:.0f} s"
+    )
     return result
 
 
@@ -289,8 +325,12 @@ def run(
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="slipfleet bench friction", description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int_list, default=[1, 2], help="tuning seed set")
-    p.add_argument("--holdout-seeds", type=int_list, default=[101, 102],
-                   help="seed set never tuned on (disjoint from --seeds)")
+    p.add_argument(
+        "--holdout-seeds",
+        type=int_list,
+        default=[101, 102],
+        help="seed set never tuned on (disjoint from --seeds)",
+    )
     p.add_argument("--random", type=int, default=2, help="random manoeuvres per seed set")
     p.add_argument("--json", default=None, help="write the figures as JSON here")
     a = p.parse_args(argv)

@@ -8,33 +8,44 @@ import math
 import numpy as np
 import pytest
 
-from estimator.base import FleetEstimator
+from estimator.base import FleetEstimator, Measurement
 from estimator.config import ConfigError, WheeledRearDriveConfig
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
 from estimator.friction.brush import brush_forces
 from estimator.friction.filter import TickInputs, TyreArrays, filter_step, initial_state
 from estimator.friction.model import Chassis, body_accelerations
 from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
-from estimator.sim.four_wheel import FOUR_WHEEL_CONFIG, LEAD_S, Manoeuvre, simulate_four_wheel
+from estimator.sim.four_wheel import (
+    FOUR_WHEEL_CONFIG,
+    LEAD_S,
+    FourWheelRun,
+    Manoeuvre,
+    simulate_four_wheel,
+)
 
 KMH = 1 / 3.6
 TURN = Manoeuvre(
-    "turn", LEAD_S + 3.0, ((0.0, 50 * KMH), (1e4, 50 * KMH)),
+    "turn",
+    LEAD_S + 3.0,
+    ((0.0, 50 * KMH), (1e4, 50 * KMH)),
     ((0.0, 0.0), (LEAD_S, 0.0), (LEAD_S + 0.3, math.radians(90)), (1e4, math.radians(90))),
     ((0.0, 0.4), (1e4, 0.4)),
 )
 STRAIGHT = Manoeuvre(
-    "straight", LEAD_S + 3.0, ((0.0, 40 * KMH), (1e4, 40 * KMH)), ((0.0, 0.0), (1e4, 0.0)),
+    "straight",
+    LEAD_S + 3.0,
+    ((0.0, 40 * KMH), (1e4, 40 * KMH)),
+    ((0.0, 0.0), (1e4, 0.0)),
     ((0.0, 0.8), (1e4, 0.8)),
 )
 
 
 @pytest.fixture(scope="module")
-def runs():  # type: ignore[no-untyped-def]
+def runs() -> list[FourWheelRun]:
     return simulate_four_wheel([TURN, STRAIGHT], seeds=[11, 12])
 
 
-def _drive(fleet: FrictionFleet, runs, ids: list[str]) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def]
+def _drive(fleet: FrictionFleet, runs: list[FourWheelRun], ids: list[str]) -> dict[str, np.ndarray]:
     """Feed each run's packets 100 ms at a time and advance the fleet's vehicles together."""
     out: dict[str, list[np.ndarray]] = {i: [] for i in ids}
     cursor = dict.fromkeys(ids, 0)
@@ -51,13 +62,13 @@ def _drive(fleet: FrictionFleet, runs, ids: list[str]) -> dict[str, np.ndarray]:
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
-def _last(m) -> int:  # type: ignore[no-untyped-def]
+def _last(m: Measurement) -> int:
     st = m.stamp_ns
     return int(st[-1]) if hasattr(st, "__len__") else int(st)
 
 
 @pytest.mark.parametrize("mode", [FrictionMode.PRODUCT, FrictionMode.PAPER])
-def test_batched_equals_per_vehicle(runs, mode: FrictionMode) -> None:  # type: ignore[no-untyped-def]
+def test_batched_equals_per_vehicle(runs: list[FourWheelRun], mode: FrictionMode) -> None:
     cfg = FrictionFleetConfig(filter=FilterConfig(mode=mode))
     both = FrictionFleet(cfg)
     for vid, r in zip(("a", "b"), runs, strict=True):
@@ -74,22 +85,22 @@ def test_batched_equals_per_vehicle(runs, mode: FrictionMode) -> None:  # type: 
             assert np.allclose(a, b, rtol=0, atol=1e-9, equal_nan=True), name
 
 
-def test_informed_logic_holds_the_last_informed_mu(runs) -> None:  # type: ignore[no-untyped-def]
+def test_informed_logic_holds_the_last_informed_mu(runs: list[FourWheelRun]) -> None:
     fleet = FrictionFleet()
     assert isinstance(fleet, FleetEstimator)
     for vid, r in zip(("turn", "straight"), runs, strict=True):
         fleet.add_vehicle(vid, r.config)
     rows = _drive(fleet, runs, ["turn", "straight"])
     for vid in ("turn", "straight"):
-        r = rows[vid]
-        informed = (r["flags"] & FrictionFlag.INFORMED) > 0
-        held = (r["flags"] & FrictionFlag.HELD) > 0
+        got = rows[vid]
+        informed = (got["flags"] & FrictionFlag.INFORMED) > 0
+        held = (got["flags"] & FrictionFlag.HELD) > 0
         assert np.all(informed ^ held)
-        assert np.all(np.isfinite(r["mu_std"][informed]))
-        assert np.all(r["mu_std"][informed] / r["mu"][informed] < 0.04)
-        assert np.all(np.isnan(r["mu_std"][held]))
+        assert np.all(np.isfinite(got["mu_std"][informed]))
+        assert np.all(got["mu_std"][informed] / got["mu"][informed] < 0.04)
+        assert np.all(np.isnan(got["mu_std"][held]))
         last = math.nan
-        for mu, inf in zip(r["mu"], informed, strict=True):  # a held row repeats the last
+        for mu, inf in zip(got["mu"], informed, strict=True):  # a held row repeats the last
             if not inf:
                 assert (math.isnan(mu) and math.isnan(last)) or mu == last
             last = mu
@@ -109,8 +120,9 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
     cfg = FOUR_WHEEL_CONFIG
     chassis = Chassis.of([cfg])
     t = cfg.tyre
-    tyres = TyreArrays(*(np.array([[v]]) for v in (t.kz_npm, t.unloaded_radius_m, t.c_px_npm2,
-                                                    t.c_py_npm2)))
+    tyres = TyreArrays(
+        *(np.array([[v]]) for v in (t.kz_npm, t.unloaded_radius_m, t.c_px_npm2, t.c_py_npm2))
+    )
     ticks = []
     for _ in range(n):
         fz = np.full((1, 4), 6000.0) + rng.normal(0, 300, (1, 4))
@@ -146,7 +158,15 @@ def test_paper_mode_mee_both_ways() -> None:
     good = filter_step(st, cfg, tyres, chassis, ticks[0])
     assert good.mee_ok[0] and good.updated[0]
     u = ticks[1]
-    wild = TickInputs(u.fz_n, u.alpha_rad, u.delta_rad, u.kappa, u.kappa_std, u.alpha_std_rad,
-                      u.z + np.array([[400.0, -900.0, 2500.0]]), u.valid)
+    wild = TickInputs(
+        u.fz_n,
+        u.alpha_rad,
+        u.delta_rad,
+        u.kappa,
+        u.kappa_std,
+        u.alpha_std_rad,
+        u.z + np.array([[400.0, -900.0, 2500.0]]),
+        u.valid,
+    )
     bad = filter_step(good, cfg, tyres, chassis, wild)
     assert bad.updated[0] and not bad.mee_ok[0]

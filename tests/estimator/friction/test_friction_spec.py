@@ -13,11 +13,17 @@ def test_spec_is_consistent() -> None:
     assert set(FRICTION_SPEC.inputs) <= set(STREAMS)
     assert FRICTION_SPEC.kinds == ("wheeled_4wd_steered",)
     assert [s.position.value for s in FRICTION_SPEC.slips] == [
-        "front_left", "front_right", "rear_left", "rear_right"]
+        "front_left",
+        "front_right",
+        "rear_left",
+        "rear_right",
+    ]
     assert FRICTION_SPEC.motion_field == "vx_mps"
     assert FRICTION_SPEC.flag_mask("INFORMED") == FrictionFlag.INFORMED
     assert FRICTION_SPEC.flag_names(int(FrictionFlag.HELD | FrictionFlag.GNSS_SPEED)) == [
-        "HELD", "GNSS_SPEED"]
+        "HELD",
+        "GNSS_SPEED",
+    ]
     json.dumps(FRICTION_SPEC.to_dict())
 
 
