@@ -11,19 +11,22 @@ state and covariance handling:
   update learnt about a tyre stays; standard SCKF.
 * :attr:`FrictionMode.PAPER`: the source's filter, ADAPTIVE_CKF with the MEE measurement
   covariance each step (standard step where it is not positive definite).
-* :attr:`FrictionMode.PRODUCT`: state ``[μ, g_x,front, g_x,rear, g_y,front, g_y,rear]``
-  (:class:`ProductState`): per-axle factors on the load-adaptive stiffness instead of four
-  free stiffnesses each way (three measurements cannot tell eight stiffnesses apart; an axle's
-  factor can follow a worn or soft tyre); the measurement covariance adds the inputs'
-  uncertainty through the model (``R + Σ_j d_j d_jᵀ``, ``d_j`` the change of ``h`` for a
-  1-σ change of wheel ``j``'s κ or α), so a tick whose inputs are poorly known weighs less;
-  μ's process noise grows while the normalised innovations stay large (a change of ground).
+* :attr:`FrictionMode.PRODUCT`: state ``[ln μ, g_x,front, g_x,rear, g_y,front, g_y,rear,
+  v_y]`` (:class:`ProductState`): per-axle factors on the load-adaptive stiffness instead of
+  four free stiffnesses each way (three measurements cannot tell eight stiffnesses apart; an
+  axle's factor can follow a worn or soft tyre), and the lateral speed as a state: in the
+  tyres' linear range a slip-angle error of 10⁻³ rad already moves the lateral force by a
+  tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
+  found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
+  The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
+  ``D`` the change of ``h`` for a 1-σ change of each wheel's κ); μ's process noise grows
+  while the normalised innovations stay large (a change of ground).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import IntEnum, StrEnum
 
 import numpy as np
@@ -49,6 +52,8 @@ __all__ = [
     "TyreArrays",
     "filter_step",
     "initial_state",
+    "mu_of",
+    "mu_std_of",
 ]
 
 MU_MIN, MU_MAX = 0.05, 1.6
@@ -81,24 +86,36 @@ class PaperState(IntEnum):
 
 
 class ProductState(IntEnum):
-    """The product filter's state: μ and per-axle factors on the load-adaptive stiffness."""
+    """The product filter's state: ``ln μ`` and per-axle factors on the load-adaptive stiffness.
 
-    MU = 0
+    μ is carried as its logarithm: cubature points spread ``√n σ`` around the mean, and in
+    ``ln μ`` they stay positive and spread in proportion (a point at a negative μ, clipped,
+    would read as a saturated tyre and pull the mean with it).
+    """
+
+    LN_MU = 0
     GX_FRONT = 1
     GX_REAR = 2
     GY_FRONT = 3
     GY_REAR = 4
+    VY = 5
+    """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
 
 
 @dataclass(frozen=True, slots=True)
 class FilterConfig:
     """Noise and start of the μ filters (per tick of ``tick_s``).
 
-    ``mu_walk_per_sqrt_s``: μ's random walk; ``stiffness_walk_per_sqrt_s``: relative walk of
-    stiffness (or factor) states; ``accel_std_mps2``, ``yaw_accel_std_radps2``: the
-    measurement noise ``R``; ``mee_kernel_sigma``: the MEE kernel width (whitened units);
-    ``nis_gate``: mean normalised innovation (per measurement) above which the product
-    filter's μ walk is multiplied by ``mu_walk_boost``.
+    ``mu_walk_per_sqrt_s``: μ's random walk (``ln_mu_walk_per_sqrt_s`` in the product mode);
+    ``stiffness_walk_per_sqrt_s``: relative walk of the paper modes' stiffness states;
+    ``factor0_rel_std``, ``factor_walk_per_sqrt_s``: the product's stiffness factors;
+    ``ln_mu0_std``, ``vy0_std_mps``, ``vy_walk_mps_per_sqrt_s``: the product's ``ln μ`` and
+    ``v_y`` (a narrow start: cubature points spread ``√n σ``, and a wide ``v_y`` would put
+    them deep in the tyres' saturation where the point mean no longer follows the model);
+    ``accel_std_mps2``, ``yaw_accel_std_radps2``: the measurement noise ``R``;
+    ``mee_kernel_sigma``: the MEE kernel width (whitened units); ``nis_gate``: mean
+    normalised innovation (per measurement) above which the product filter's μ walk is
+    multiplied by ``mu_walk_boost``.
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -108,12 +125,16 @@ class FilterConfig:
     stiffness0_rel_std: float = 0.1
     mu_walk_per_sqrt_s: float = 0.03
     stiffness_walk_per_sqrt_s: float = 0.01
-    factor0_rel_std: float = 0.3
-    factor_walk_per_sqrt_s: float = 0.05
-    accel_std_mps2: float = 0.12
+    factor0_rel_std: float = 0.05
+    factor_walk_per_sqrt_s: float = 0.01
+    ln_mu_walk_per_sqrt_s: float = 0.05
+    vy0_std_mps: float = 0.05
+    ln_mu0_std: float = 0.35
+    vy_walk_mps_per_sqrt_s: float = 0.05
+    accel_std_mps2: float = 0.2
     yaw_accel_std_radps2: float = 0.5
     mee_kernel_sigma: float = 2.0
-    nis_gate: float = 4.0
+    nis_gate: float = 9.0
     mu_walk_boost: float = 5.0
     nis_smoothing_s: float = 0.3
 
@@ -143,7 +164,9 @@ class TyreArrays:
 class TickInputs:
     """One tick's inputs per vehicle: per wheel ``(B, 4)`` load, slip angle, steer angle and
     slip with the 1-σ of the last two; ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
-    ``valid`` ``(B,)`` where an update may run (moving, every input known)."""
+    ``valid`` ``(B,)`` where an update may run (moving, every input known); ``vx_mps``,
+    ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
+    ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -153,6 +176,10 @@ class TickInputs:
     alpha_std_rad: FloatArray
     z: FloatArray
     valid: BoolArray
+    vx_mps: FloatArray
+    yaw_rate_radps: FloatArray
+    vy_meas_mps: FloatArray
+    vy_meas_std_mps: FloatArray
 
 
 @dataclass(slots=True)
@@ -189,12 +216,26 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
         cx, cy = tyres.stiffness(fz_n)
         x = np.concatenate([np.ones((b, 1)), cx, cy], axis=1)
         std = x * cfg.stiffness0_rel_std
-    x[:, 0] = cfg.mu0
-    std[:, 0] = cfg.mu0_std
+    if cfg.mode is FrictionMode.PRODUCT:
+        x[:, ProductState.VY] = 0.0
+        std[:, ProductState.VY] = cfg.vy0_std_mps
+    x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
+    std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
     idx = np.arange(x.shape[1])
     s[:, idx, idx] = std
     return FilterState(x, s, fz_n.copy(), np.zeros(b))
+
+
+def mu_of(state_mu: FloatArray, mode: FrictionMode) -> FloatArray:
+    """μ from the state's first component (``ln μ`` in the product mode), within bounds."""
+    mu = np.exp(state_mu) if mode is FrictionMode.PRODUCT else state_mu
+    return np.clip(mu, MU_MIN, MU_MAX)
+
+
+def mu_std_of(state_mu: FloatArray, std: FloatArray, mode: FrictionMode) -> FloatArray:
+    """μ's 1-σ from the state's (first order through ``exp`` in the product mode)."""
+    return mu_of(state_mu, mode) * std if mode is FrictionMode.PRODUCT else std
 
 
 def _stiffness_of(
@@ -220,30 +261,59 @@ def _measure(
 ) -> FloatArray:
     """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)``; slips are
     ``(B, P, 4)`` or ``(B, 1, 4)``."""
-    mu = np.clip(points[..., :1], MU_MIN, MU_MAX)
+    mu = mu_of(points[..., :1], cfg.mode)
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
+    if cfg.mode is FrictionMode.PRODUCT:
+        alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
     fx, fy = brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
-    return body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
+    acc = body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return acc
+    vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
+    return np.concatenate([acc, vy], axis=-1)
 
 
-def _sq_r(cfg: FilterConfig, b: int) -> FloatArray:
-    sigma = np.array([cfg.accel_std_mps2, cfg.accel_std_mps2, cfg.yaw_accel_std_radps2])
-    return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
+def _slip_angles(vy_mps: FloatArray, u: TickInputs, chassis: Chassis) -> FloatArray:
+    """α ``(B, P, 4)`` of lateral speeds ``(B, P)`` (source eq. 9-13, rigid body)."""
+    r = u.yaw_rate_radps[:, None, None]
+    along = u.vx_mps[:, None, None] - chassis.wheel_y_m[:, None, :] * r
+    across = vy_mps[..., None] + chassis.wheel_x_m[:, None, :] * r
+    d = u.delta_rad[:, None, :]
+    v_long = along * np.cos(d) + across * np.sin(d)
+    v_lat = -along * np.sin(d) + across * np.cos(d)
+    return -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
+
+
+def _sq_r(cfg: FilterConfig, u: TickInputs) -> FloatArray:
+    """Measurement root: accelerations and (product) the GNSS ``v_y``, weightless when none."""
+    sigma = [cfg.accel_std_mps2, cfg.accel_std_mps2, cfg.yaw_accel_std_radps2]
+    b = u.z.shape[0]
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
+    vy_std = np.where(np.isfinite(u.vy_meas_mps), u.vy_meas_std_mps, 1e3)
+    diag = np.concatenate([np.broadcast_to(sigma, (b, 3)), vy_std[:, None]], axis=1)
+    out = np.zeros((b, 4, 4))
+    out[:, np.arange(4), np.arange(4)] = diag
+    return out
+
+
+def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
+    """``z``: the accelerations, and (product) the GNSS ``v_y`` (0 where none: no weight)."""
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return u.z
+    return np.concatenate([u.z, np.nan_to_num(u.vy_meas_mps)[:, None]], axis=1)
 
 
 def _input_spread(
     x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FloatArray:
-    """``D`` ``(B, 3, 8)``: the change of ``h`` at the mean for a 1-σ change of each wheel's κ
-    (columns 0-3) and α (columns 4-7)."""
-    eye = np.eye(4)[None]
-    kappa = u.kappa[:, None, :] + eye * u.kappa_std[:, :, None]
-    alpha = u.alpha_rad[:, None, :] + eye * u.alpha_std_rad[:, :, None]
+    """``D`` ``(B, m, 4)``: the change of ``h`` at the mean for a 1-σ change of each wheel's κ
+    (the slip angles follow from the state)."""
+    kappa = u.kappa[:, None, :] + np.eye(4)[None] * u.kappa_std[:, :, None]
     mean = x[:, None, :]
-    base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], u.alpha_rad[:, None, :])
-    dk = _measure(mean, cfg, tyres, chassis, u, kappa, u.alpha_rad[:, None, :]) - base
-    da = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha) - base
-    return np.swapaxes(np.concatenate([dk, da], axis=1), -1, -2)
+    alpha = u.alpha_rad[:, None, :]
+    base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
+    return np.swapaxes(_measure(mean, cfg, tyres, chassis, u, kappa, alpha) - base, -1, -2)
 
 
 def _predict(
@@ -258,8 +328,11 @@ def _predict(
     if cfg.mode is FrictionMode.PRODUCT:
         walk[:, 1:] = cfg.factor_walk_per_sqrt_s * sqrt_dt
         boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
-        walk[:, 0] = mu_walk * boost
+        walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
+        walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
+        shift = np.zeros((b, n))
+        shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
     else:
         walk[:, 0] = mu_walk
         walk[:, 1:] *= np.abs(st.x[:, 1:])
@@ -270,10 +343,11 @@ def _predict(
             with np.errstate(invalid="ignore", divide="ignore"):
                 ratio = np.concatenate([cx_new / cx_old, cy_new / cy_old], axis=1)
             scale[:, 1:] = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+        shift = np.zeros((b, n))
     sq_q = np.zeros((b, n, n))
     idx = np.arange(n)
     sq_q[:, idx, idx] = walk
-    return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :], sq_q)
+    return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :] + shift[:, None, :], sq_q)
 
 
 def filter_step(
@@ -296,16 +370,17 @@ def filter_step(
                 points, cfg, sub_t, sub_c, sub, sub.kappa[:, None, :], sub.alpha_rad[:, None, :]
             )
 
-        sq_r = _sq_r(cfg, rows.size)
+        sq_r = _sq_r(cfg, sub)
+        z = _measured(cfg, sub)
         if cfg.mode is FrictionMode.PRODUCT:
             d = _input_spread(x[rows], cfg, sub_t, sub_c, sub)
             sq_r = _with_inputs(sq_r, d)
         elif cfg.mode is FrictionMode.PAPER:
             z_mean = h(cubature_points(x[rows], s[rows])).mean(axis=1)
-            mee = mee_measurement_sqrt(sub.z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
+            mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
             sq_r = mee.sq_r
             mee_ok[rows] = mee.ok
-        up = sckf_update(x[rows], s[rows], sub.z, h, sq_r)
+        up = sckf_update(x[rows], s[rows], z, h, sq_r)
         x[rows], s[rows] = up.x, up.s
         white = np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0]
         step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
@@ -314,7 +389,10 @@ def filter_step(
     if cfg.mode is FrictionMode.PRODUCT:  # the ground gave at least the grip measured
         grip = _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2
         floor = np.maximum(np.where(valid, grip, 0.0), MU_MIN)
-    x[:, 0] = np.clip(x[:, 0], floor, MU_MAX)
+    if cfg.mode is FrictionMode.PRODUCT:
+        x[:, 0] = np.log(np.clip(np.exp(x[:, 0]), floor, MU_MAX))
+    else:
+        x[:, 0] = np.clip(x[:, 0], floor, MU_MAX)
     return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, valid)
 
 
@@ -325,16 +403,7 @@ def _with_inputs(sq_r: FloatArray, d: FloatArray) -> FloatArray:
 
 
 def _subset(u: TickInputs, rows: np.ndarray) -> TickInputs:
-    return TickInputs(
-        u.fz_n[rows],
-        u.alpha_rad[rows],
-        u.delta_rad[rows],
-        u.kappa[rows],
-        u.kappa_std[rows],
-        u.alpha_std_rad[rows],
-        u.z[rows],
-        u.valid[rows],
-    )
+    return TickInputs(**{f.name: getattr(u, f.name)[rows] for f in fields(u)})
 
 
 def _tyres_subset(t: TyreArrays, rows: np.ndarray) -> TyreArrays:

@@ -7,14 +7,18 @@ tick is computed once the IMU covers it.
 
 Informed or not (``method.md`` §5's warning): μ is told apart from stiffness only where the
 tyres work in their non-linear range, and not at all without excitation. A tick is
-``INFORMED`` when it was updated, μ's relative 1-σ is below ``informed_rel_std`` and the most
-used tyre uses at least ``informed_min_util`` of its grip; otherwise the row holds the last
-informed μ (``HELD``) and no σ. Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
+``INFORMED`` when, over the last ``informed_hold_s``, every tick was updated with μ's relative
+1-σ below ``informed_rel_std`` and the most used tyre at ``informed_min_util`` of its grip or
+more, and μ moved less than ``informed_spread`` of itself (a filter still travelling is not
+informed, however small its σ: its σ does not know the front end's correlated errors);
+otherwise the row holds the last informed μ (``HELD``) and no σ.
+Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -28,11 +32,14 @@ from estimator.friction.filter import (
     FilterConfig,
     FilterState,
     FrictionMode,
+    ProductState,
     TickInputs,
     TyreArrays,
     _stiffness_of,
     filter_step,
     initial_state,
+    mu_of,
+    mu_std_of,
 )
 from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick
 from estimator.friction.model import Chassis
@@ -51,7 +58,9 @@ class FrictionFleetConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     frontend: FrontEndConfig | None = None
     informed_rel_std: float = 0.04
-    informed_min_util: float = 0.35
+    informed_min_util: float = 0.5
+    informed_hold_s: float = 0.5
+    informed_spread: float = 0.03
 
     def __post_init__(self) -> None:
         if not 0.005 <= self.filter.tick_s <= 0.2:
@@ -75,6 +84,8 @@ class _Vehicle:
         self.next_ns: int | None = None
         self.state: FilterState | None = None
         self.held_mu = math.nan
+        window = max(1, round(cfg.informed_hold_s / cfg.filter.tick_s))
+        self.recent: deque[tuple[bool, float]] = deque(maxlen=window)
         ty = config.tyre
         self.tyres = TyreArrays(
             *(
@@ -99,6 +110,10 @@ class _Vehicle:
         return ticks
 
 
+_GNSS_VY_STD_MPS = 0.1
+"""1-σ of GNSS lateral speed (velocity noise and the heading's across a 20 m/s velocity)."""
+
+
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts, axis=0)
 
@@ -114,6 +129,10 @@ def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
         alpha_std_rad=np.stack([fe.alpha_std_rad for fe in fes]),
         z=np.stack([fe.z for fe in fes]),
         valid=np.array([fe.valid for fe in fes]),
+        vx_mps=np.array([fe.vx_mps for fe in fes]),
+        yaw_rate_radps=np.array([fe.yaw_rate_radps for fe in fes]),
+        vy_meas_mps=np.array([fe.vy_gnss_mps for fe in fes]),
+        vy_meas_std_mps=np.full(len(fes), _GNSS_VY_STD_MPS),
     )
 
 
@@ -216,9 +235,25 @@ class FrictionFleet:
         """Grip used per wheel ``(B, 4)`` at the filter's mean state."""
         mean = st.x[:, None, :]
         cx, cy = _stiffness_of(mean, self.config.filter, tyres, u.fz_n)
-        mu = st.x[:, :1]
+        mu = mu_of(st.x[:, :1], self.config.filter.mode)
         fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
         return utilisation(fx, fy, u.fz_n, mu)
+
+    def _informed(
+        self, v: _Vehicle, updated: bool, mu: float, std: float, util: FloatArray
+    ) -> bool:
+        """This tick and the last ``informed_hold_s`` met the informed conditions."""
+        cfg = self.config
+        ok = (
+            updated
+            and std / mu < cfg.informed_rel_std
+            and (float(np.nanmax(util)) >= cfg.informed_min_util)
+        )
+        v.recent.append((ok, mu))
+        if len(v.recent) < (v.recent.maxlen or 1) or not all(o for o, _ in v.recent):
+            return False
+        mus = [m for _, m in v.recent]
+        return (max(mus) - min(mus)) / mu < cfg.informed_spread
 
     def _row(
         self,
@@ -231,13 +266,10 @@ class FrictionFleet:
         fresh: bool,
     ) -> None:
         t_ns, fe = tick
-        mu = float(st.x[i, 0])
-        std = float(np.linalg.norm(st.s[i, 0]))
-        informed = (
-            bool(st.updated[i])
-            and std / mu < self.config.informed_rel_std
-            and (float(np.nanmax(util)) >= self.config.informed_min_util)
-        )
+        mode = self.config.filter.mode
+        mu = float(mu_of(st.x[i, 0], mode))
+        std = float(mu_std_of(st.x[i, 0], np.linalg.norm(st.s[i, 0]), mode))
+        informed = self._informed(v, bool(st.updated[i]), mu, std, util)
         flags = FrictionFlag.NONE
         if informed:
             v.held_mu = mu
@@ -257,7 +289,7 @@ class FrictionFleet:
         row["mu_std"] = std if informed else math.nan
         row["mu_filter"] = mu
         row["vx_mps"] = fe.vx_mps
-        row["vy_mps"] = fe.vy_mps
+        row["vy_mps"] = st.x[i, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps
         for j, key in enumerate(WHEEL_KEYS):
             row[f"fz_{key}_n"] = fe.fz_n[j]
             row[f"slip_{key}_pct"] = 100.0 * fe.kappa[j]

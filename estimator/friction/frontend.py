@@ -81,6 +81,8 @@ class FrontEndTick:
     z: FloatArray  # [a_x + resistances/m, a_y, ṙ]
     vx_mps: float
     vy_mps: float
+    yaw_rate_radps: float
+    vy_gnss_mps: float  # NaN without a fresh GNSS velocity
     gnss: bool
     valid: bool
 
@@ -260,18 +262,21 @@ class FrontEnd:
             and calibrated
             and not math.isnan(self.yaw_prev)
         )
+        vy_gnss = gnss[1] if gnss is not None else math.nan
         return FrontEndTick(
-            fz,
-            alpha,
-            delta,
-            kappa,
-            k_std,
-            a_std,
-            z,
-            vx,
-            self.vy.speed,
-            gnss is not None,
-            bool(valid),
+            fz_n=fz,
+            alpha_rad=alpha,
+            delta_rad=delta,
+            kappa=kappa,
+            kappa_std=k_std,
+            alpha_std_rad=a_std,
+            z=z,
+            vx_mps=vx,
+            vy_mps=self.vy.speed,
+            yaw_rate_radps=yaw_rate,
+            vy_gnss_mps=vy_gnss,
+            gnss=gnss is not None,
+            valid=bool(valid),
         )
 
     # --- the small filters --------------------------------------------------------------------

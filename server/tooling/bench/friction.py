@@ -36,7 +36,13 @@ from typing import Any
 import numpy as np
 
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
-from estimator.friction.filter import TickInputs, TyreArrays, filter_step, initial_state
+from estimator.friction.filter import (
+    TickInputs,
+    TyreArrays,
+    filter_step,
+    initial_state,
+    mu_of,
+)
 from estimator.friction.model import Chassis
 from estimator.friction_spec import FrictionFlag
 from estimator.sim.four_wheel import (
@@ -135,7 +141,7 @@ def true_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
         u = _truth_inputs(runs, int(k))
         st = initial_state(cfg, tyres, u.fz_n) if st is None else st
         st = filter_step(st, cfg, tyres, chassis, u)
-        mus.append(st.x[:, 0].copy())
+        mus.append(mu_of(st.x[:, 0], mode))
     mu = np.array(mus).T
     t = runs[0].truth.t_s[idx]
     return [Series(t, mu[i], mu[i], np.zeros(t.size, dtype=bool)) for i in range(len(runs))]
@@ -154,7 +160,20 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
     mass = np.array([c.mass_kg for c in ch])
     z = np.stack([col("ax_mps2") + resist / mass, col("ay_mps2"), col("yaw_accel_radps2")], 1)
     tiny = np.full(fz.shape, 1e-4)
-    return TickInputs(fz, col("alpha_rad"), col("delta_rad"), col("kappa"), tiny, tiny, z, vx > 3.0)
+    return TickInputs(
+        fz_n=fz,
+        alpha_rad=col("alpha_rad"),
+        delta_rad=col("delta_rad"),
+        kappa=col("kappa"),
+        kappa_std=tiny,
+        alpha_std_rad=tiny,
+        z=z,
+        valid=vx > 3.0,
+        vx_mps=vx,
+        yaw_rate_radps=col("yaw_rate_radps"),
+        vy_meas_mps=col("vy_mps"),
+        vy_meas_std_mps=np.full(vx.shape, 0.01),
+    )
 
 
 @dataclass(frozen=True, slots=True)
