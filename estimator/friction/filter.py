@@ -125,7 +125,7 @@ class FilterConfig:
     stiffness0_rel_std: float = 0.1
     mu_walk_per_sqrt_s: float = 0.03
     stiffness_walk_per_sqrt_s: float = 0.01
-    factor0_rel_std: float = 0.05
+    factor0_rel_std: float = 0.1
     factor_walk_per_sqrt_s: float = 0.01
     ln_mu_walk_per_sqrt_s: float = 0.05
     vy0_std_mps: float = 0.05

@@ -57,8 +57,8 @@ class FrictionFleetConfig:
 
     filter: FilterConfig = field(default_factory=FilterConfig)
     frontend: FrontEndConfig | None = None
-    informed_rel_std: float = 0.04
-    informed_min_util: float = 0.5
+    informed_rel_std: float = 0.03
+    informed_min_util: float = 0.6
     informed_hold_s: float = 0.5
     informed_spread: float = 0.03
 

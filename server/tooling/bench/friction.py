@@ -238,7 +238,12 @@ def _fmt(values: list[float], unit: str = "") -> str:
 FIGURES = ("conv_s", "conv_step_s", "steady_pct", "rms_pct", "informed_pct", "worst_informed_pct")
 
 
-def _table(title: str, runs: list[FourWheelRun], scores: dict[str, list[Score]]) -> dict[str, Any]:
+def _table(
+    title: str,
+    runs: list[FourWheelRun],
+    scores: dict[str, list[Score]],
+    modes: Sequence[FrictionMode],
+) -> dict[str, Any]:
     print(f"\n{title}")
     names = list(
         dict.fromkeys(
@@ -251,7 +256,7 @@ def _table(title: str, runs: list[FourWheelRun], scores: dict[str, list[Score]])
     out: dict[str, Any] = {}
     for fig in FIGURES:
         print(f"  {fig}: median [worst] over runs")
-        print("  " + f"{'manoeuvre':18s}" + "".join(f"{m.value:>22s}" for m in MODES))
+        print("  " + f"{'manoeuvre':18s}" + "".join(f"{m.value:>22s}" for m in modes))
         for name in names:
             pick = [
                 i
@@ -260,7 +265,7 @@ def _table(title: str, runs: list[FourWheelRun], scores: dict[str, list[Score]])
                 or (name == "random" and r.manoeuvre.name.startswith("random"))
             ]
             cells = []
-            for mode in MODES:
+            for mode in modes:
                 vals = [getattr(scores[mode.value][i], fig) for i in pick]
                 out.setdefault(name, {}).setdefault(mode.value, {})[fig] = vals
                 cells.append(_fmt(vals))
@@ -299,7 +304,9 @@ def _floors(runs: list[FourWheelRun], sc: list[Score]) -> dict[str, bool]:
     return checks
 
 
-def _one_set(label: str, seeds: Sequence[int], random_n: int, base: int) -> dict[str, Any]:
+def _one_set(
+    label: str, seeds: Sequence[int], random_n: int, base: int, modes: Sequence[FrictionMode]
+) -> dict[str, Any]:
     t0 = time.process_time()
     runs = _runs(seeds, random_n, base)
     sim_s = time.process_time() - t0
@@ -307,16 +314,16 @@ def _one_set(label: str, seeds: Sequence[int], random_n: int, base: int) -> dict
     for inputs, fn in (("sensor", sensor_series), ("true", true_series)):
         t1 = time.process_time()
         scores = {
-            m.value: [score(r, s) for r, s in zip(runs, fn(runs, m), strict=True)] for m in MODES
+            m.value: [score(r, s) for r, s in zip(runs, fn(runs, m), strict=True)] for m in modes
         }
         title = f"{label} seeds {list(seeds)} (+{random_n} random): {inputs} inputs"
-        result[inputs] = _table(title, runs, scores)
+        result[inputs] = _table(title, runs, scores, modes)
         result[f"{inputs}_cpu_s"] = time.process_time() - t1
-        if inputs == "sensor":
+        if inputs == "sensor" and FrictionMode.PRODUCT in modes:
             floors = _floors(runs, scores[FrictionMode.PRODUCT.value])
             result["floors"] = floors
     print(f"\n{label}: floors (product mode, sensor inputs)")
-    for name, ok in result["floors"].items():
+    for name, ok in result.get("floors", {}).items():
         print(f"  {'pass' if ok else 'FAIL'}  {name}")
     print(
         f"  cpu: simulation {result['sim_cpu_s']:.0f} s, sensor {result['sensor_cpu_s']:.0f} s, "
@@ -330,13 +337,14 @@ def run(
     holdout: Sequence[int] = (101, 102),
     random_n: int = 2,
     json_path: str | None = None,
+    modes: Sequence[FrictionMode] = MODES,
 ) -> dict[str, Any]:
+    """Both seed sets (an empty ``holdout`` skips the second), figures as in the docstring."""
     if set(seeds) & set(holdout):
         raise ValueError("the tuning and hold-out seed sets must be disjoint")
-    result = {
-        "tuning": _one_set("tuning set", seeds, random_n, 1000),
-        "holdout": _one_set("hold-out set", holdout, random_n, 2000),
-    }
+    result = {"tuning": _one_set("tuning set", seeds, random_n, 1000, modes)}
+    if holdout:
+        result["holdout"] = _one_set("hold-out set", holdout, random_n, 2000, modes)
     write_json(result, json_path)
     return result
 
@@ -352,8 +360,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("--random", type=int, default=2, help="random manoeuvres per seed set")
     p.add_argument("--json", default=None, help="write the figures as JSON here")
+    p.add_argument(
+        "--modes",
+        type=lambda t: [FrictionMode(m) for m in t.split(",")],
+        default=list(MODES),
+        help="filters to compare (default: all: " + ",".join(m.value for m in MODES) + ")",
+    )
+    p.add_argument("--no-holdout", action="store_true", help="the tuning set only")
     a = p.parse_args(argv)
-    run(a.seeds, a.holdout_seeds, a.random, a.json)
+    run(a.seeds, [] if a.no_holdout else a.holdout_seeds, a.random, a.json, a.modes)
     return 0
 
 
