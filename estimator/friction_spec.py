@@ -52,6 +52,8 @@ class FrictionFlag(IntFlag):
     """Paper mode: the MEE covariance was not positive definite; the standard step ran."""
     RESET = 1 << 5
     """The filter started on this tick."""
+    TYRE_SUSPECT = 1 << 6
+    """A tyre's calibrated rolling radius is far from its config's: μ is not informed."""
 
 
 _FLAG_TEXT = {
@@ -61,6 +63,8 @@ _FLAG_TEXT = {
     "GNSS_SPEED": "GNSS velocity corrected the speed and side-slip on this tick",
     "MEE_FALLBACK": "paper mode: the MEE covariance was not positive definite, standard step",
     "RESET": "the filter started on this tick",
+    "TYRE_SUSPECT": "a tyre's rolling radius is far from its config's (soft or damaged): "
+    "μ not informed",
 }
 
 

@@ -10,8 +10,11 @@ tyres work in their non-linear range, and not at all without excitation. A tick 
 ``INFORMED`` when, over the last ``informed_hold_s``, every tick was updated with μ's relative
 1-σ below ``informed_rel_std`` and the most used tyre at ``informed_min_util`` of its grip or
 more, and μ moved less than ``informed_spread`` of itself (a filter still travelling is not
-informed, however small its σ: its σ does not know the front end's correlated errors);
-otherwise the row holds the last informed μ (``HELD``) and no σ.
+informed, however small its σ: its σ does not know the front end's correlated errors); the
+front end must find every tyre near its config (``tyre_suspect``: a calibrated rolling radius
+far from the one the config's ``kz`` gives, as a soft or damaged tyre has, leaves μ not
+informed: the model's stiffness of that tyre is wrong); otherwise the
+row holds the last informed μ (``HELD``) and no σ.
 Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
 """
 
@@ -269,7 +272,7 @@ class FrictionFleet:
         mode = self.config.filter.mode
         mu = float(mu_of(st.x[i, 0], mode))
         std = float(mu_std_of(st.x[i, 0], np.linalg.norm(st.s[i, 0]), mode))
-        informed = self._informed(v, bool(st.updated[i]), mu, std, util)
+        informed = self._informed(v, bool(st.updated[i]) and not fe.tyre_suspect, mu, std, util)
         flags = FrictionFlag.NONE
         if informed:
             v.held_mu = mu
@@ -280,6 +283,8 @@ class FrictionFleet:
             flags |= FrictionFlag.NO_UPDATE
         if fe.gnss:
             flags |= FrictionFlag.GNSS_SPEED
+        if fe.tyre_suspect:
+            flags |= FrictionFlag.TYRE_SUSPECT
         if self.config.filter.mode is FrictionMode.PAPER and st.updated[i] and not st.mee_ok[i]:
             flags |= FrictionFlag.MEE_FALLBACK
         if fresh:

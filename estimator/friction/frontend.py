@@ -55,7 +55,8 @@ class FrontEndConfig:
 
     ``min_speed_mps``: no μ update below it; ``gnss_timeout_s``: GNSS older than this is
     not used; ``calib_time_s``: time constant of the radius calibration, which must hold
-    ``calib_samples`` GNSS epochs before the μ filter updates.
+    ``calib_samples`` GNSS epochs before the μ filter updates; ``radius_tolerance``: relative
+    difference of a calibrated radius from the config's beyond which the tyre is suspect.
     """
 
     paper: bool = False
@@ -63,6 +64,7 @@ class FrontEndConfig:
     gnss_timeout_s: float = 0.5
     calib_time_s: float = 3.0
     calib_samples: int = 15
+    radius_tolerance: float = 0.03
     speed_walk_mps2: float = 0.3
     bias_walk_mps2_per_sqrt_s: float = 0.005
     side_slip_leak_s: float = 5.0
@@ -85,6 +87,7 @@ class FrontEndTick:
     vy_gnss_mps: float  # NaN without a fresh GNSS velocity
     gnss: bool
     valid: bool
+    tyre_suspect: bool
 
 
 class _AxisFilter:
@@ -277,6 +280,7 @@ class FrontEnd:
             vy_gnss_mps=vy_gnss,
             gnss=gnss is not None,
             valid=bool(valid),
+            tyre_suspect=self.tyre_suspect,
         )
 
     # --- the small filters --------------------------------------------------------------------
@@ -419,6 +423,16 @@ class FrontEnd:
         self.radius_std = np.maximum(
             0.003 * self.radius / math.sqrt(self.calib_n), 2e-4 * self.radius
         )
+
+    @property
+    def tyre_suspect(self) -> bool:
+        """A calibrated radius differs from the config's loaded one by more than
+        ``radius_tolerance``: that tyre's vertical stiffness (and so its brush stiffness) is not
+        what the config says (a soft or damaged tyre deflects more and rolls smaller)."""
+        if self.fe.paper or not self.calibrated:
+            return False
+        expected = self.ty.unloaded_radius_m - self.fz_cal / (3.0 * self.ty.kz_npm)
+        return bool(np.any(np.abs(self.radius / expected - 1.0) > self.fe.radius_tolerance))
 
     @property
     def calibrated(self) -> bool:

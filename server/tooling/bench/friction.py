@@ -1,7 +1,8 @@
 """Friction estimator accuracy on the four-wheel simulator (``method.md`` §5, source 004).
 
-``slipfleet bench friction [--seeds 1,2] [--holdout-seeds 101,102] [--random N]
-[--json PATH]`` or ``python -m server.tooling.bench.friction``.
+``slipfleet bench friction [--seeds 1,2,101,102] [--holdout-seeds 201,202] [--random N]
+[--modes product,paper,…] [--no-holdout] [--json PATH]`` or
+``python -m server.tooling.bench.friction``.
 
 Every named manoeuvre of :mod:`estimator.sim.four_wheel` runs once per seed of each seed set
 (``--seeds`` is the set the estimator was tuned on, ``--holdout-seeds`` one it never was),
@@ -333,8 +334,8 @@ def _one_set(
 
 
 def run(
-    seeds: Sequence[int] = (1, 2),
-    holdout: Sequence[int] = (101, 102),
+    seeds: Sequence[int] = (1, 2, 101, 102),
+    holdout: Sequence[int] = (201, 202),
     random_n: int = 2,
     json_path: str | None = None,
     modes: Sequence[FrictionMode] = MODES,
@@ -351,11 +352,11 @@ def run(
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="slipfleet bench friction", description=__doc__.split("\n")[0])
-    p.add_argument("--seeds", type=int_list, default=[1, 2], help="tuning seed set")
+    p.add_argument("--seeds", type=int_list, default=[1, 2, 101, 102], help="tuning seed set")
     p.add_argument(
         "--holdout-seeds",
         type=int_list,
-        default=[101, 102],
+        default=[201, 202],
         help="seed set never tuned on (disjoint from --seeds)",
     )
     p.add_argument("--random", type=int, default=2, help="random manoeuvres per seed set")

@@ -193,3 +193,16 @@ def test_paper_mode_mee_both_ways() -> None:
     wild = dataclasses.replace(u, z=u.z + np.array([[400.0, -900.0, 2500.0]]))
     bad = filter_step(good, cfg, tyres, chassis, wild)
     assert bad.updated[0] and not bad.mee_ok[0]
+
+
+def test_a_soft_tyre_is_suspect_and_mu_not_informed() -> None:
+    """kz 50,000 N/m on the rear left (config: the nominal kz): its calibrated radius is far
+    from the config's, the rows say TYRE_SUSPECT and μ is never flagged informed."""
+    soft = dataclasses.replace(TURN, name="soft_turn", damaged_wheel=2)
+    run = simulate_four_wheel([soft], seeds=[13])[0]
+    fleet = FrictionFleet()
+    fleet.add_vehicle("soft", run.config)
+    rows = _drive(fleet, [run], ["soft"])["soft"]
+    late = rows["stamp_ns"] > run.start_ns + 3_000_000_000  # radius calibrated by then
+    assert np.all((rows["flags"][late] & FrictionFlag.TYRE_SUSPECT) > 0)
+    assert not np.any((rows["flags"] & FrictionFlag.INFORMED) > 0)
