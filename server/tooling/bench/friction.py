@@ -76,6 +76,12 @@ class Series:
     informed: np.ndarray
 
 
+def _random_base(seeds: Sequence[int]) -> int:
+    """Seeds of a set's random runs: ``10,000 + 100·(its first seed) + k``, so each seed set
+    has random runs of its own (disjoint sets, disjoint random runs)."""
+    return 10_000 + 100 * seeds[0]
+
+
 def _runs(seeds: Sequence[int], random_n: int, random_base: int) -> list[FourWheelRun]:
     named = [(m, s, None) for s in seeds for m in NAMED.values()]
     extra = []
@@ -343,9 +349,11 @@ def run(
     """Both seed sets (an empty ``holdout`` skips the second), figures as in the docstring."""
     if set(seeds) & set(holdout):
         raise ValueError("the tuning and hold-out seed sets must be disjoint")
-    result = {"tuning": _one_set("tuning set", seeds, random_n, 1000, modes)}
+    result = {"tuning": _one_set("tuning set", seeds, random_n, _random_base(seeds), modes)}
     if holdout:
-        result["holdout"] = _one_set("hold-out set", holdout, random_n, 2000, modes)
+        result["holdout"] = _one_set(
+            "hold-out set", holdout, random_n, _random_base(holdout), modes
+        )
     write_json(result, json_path)
     return result
 
