@@ -32,7 +32,7 @@ from enum import IntEnum, StrEnum
 import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray
-from estimator.friction.brush import brush_forces, load_adaptive_stiffness_n
+from estimator.friction.brush import Values, brush_forces, load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2, Chassis, body_accelerations
 from estimator.friction.sckf import (
     cubature_points,
@@ -227,15 +227,16 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     return FilterState(x, s, fz_n.copy(), np.zeros(b))
 
 
-def mu_of(state_mu: FloatArray, mode: FrictionMode) -> FloatArray:
+def mu_of(state_mu: Values, mode: FrictionMode) -> FloatArray:
     """μ from the state's first component (``ln μ`` in the product mode), within bounds."""
     mu = np.exp(state_mu) if mode is FrictionMode.PRODUCT else state_mu
     return np.clip(mu, MU_MIN, MU_MAX)
 
 
-def mu_std_of(state_mu: FloatArray, std: FloatArray, mode: FrictionMode) -> FloatArray:
+def mu_std_of(state_mu: Values, std: Values, mode: FrictionMode) -> FloatArray:
     """μ's 1-σ from the state's (first order through ``exp`` in the product mode)."""
-    return mu_of(state_mu, mode) * std if mode is FrictionMode.PRODUCT else std
+    scale = mu_of(state_mu, mode) if mode is FrictionMode.PRODUCT else 1.0
+    return np.asarray(scale * np.asarray(std), dtype=np.float64)
 
 
 def _stiffness_of(

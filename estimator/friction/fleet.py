@@ -271,7 +271,7 @@ class FrictionFleet:
         t_ns, fe = tick
         mode = self.config.filter.mode
         mu = float(mu_of(st.x[i, 0], mode))
-        std = float(mu_std_of(st.x[i, 0], np.linalg.norm(st.s[i, 0]), mode))
+        std = float(mu_std_of(st.x[i, 0], float(np.linalg.norm(st.s[i, 0])), mode))
         informed = self._informed(v, bool(st.updated[i]) and not fe.tyre_suspect, mu, std, util)
         flags = FrictionFlag.NONE
         if informed:
