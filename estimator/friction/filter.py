@@ -356,45 +356,63 @@ def filter_step(
 ) -> FilterState:
     """One tick for every vehicle: predict, then (where ``u.valid``) update with ``u.z``."""
     x, s = _predict(st, cfg, tyres, u)
-    b = x.shape[0]
-    valid = u.valid.copy()
-    mee_ok = np.zeros(b, dtype=bool)
+    mee_ok = np.zeros(x.shape[0], dtype=bool)
     nis = st.nis.copy()
-    if valid.any():
-        rows = np.flatnonzero(valid)
-        sub = _subset(u, rows)
-        sub_t = _tyres_subset(tyres, rows)
-        sub_c = _chassis_subset(chassis, rows)
-
-        def h(points: FloatArray) -> FloatArray:
-            return _measure(
-                points, cfg, sub_t, sub_c, sub, sub.kappa[:, None, :], sub.alpha_rad[:, None, :]
-            )
-
-        sq_r = _sq_r(cfg, sub)
-        z = _measured(cfg, sub)
-        if cfg.mode is FrictionMode.PRODUCT:
-            d = _input_spread(x[rows], cfg, sub_t, sub_c, sub)
-            sq_r = _with_inputs(sq_r, d)
-        elif cfg.mode is FrictionMode.PAPER:
-            z_mean = h(cubature_points(x[rows], s[rows])).mean(axis=1)
-            mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
-            sq_r = mee.sq_r
-            mee_ok[rows] = mee.ok
-        up = sckf_update(x[rows], s[rows], z, h, sq_r)
-        x[rows], s[rows] = up.x, up.s
-        white = np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0]
+    rows = np.flatnonzero(u.valid)
+    if rows.size:
+        x[rows], s[rows], mee_ok[rows], white = _update(
+            x[rows],
+            s[rows],
+            cfg,
+            _tyres_subset(tyres, rows),
+            _chassis_subset(chassis, rows),
+            _subset(u, rows),
+        )
         step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
         nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
-    floor = np.full(b, MU_MIN)
-    if cfg.mode is FrictionMode.PRODUCT:  # the ground gave at least the grip measured
-        grip = _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2
-        floor = np.maximum(np.where(valid, grip, 0.0), MU_MIN)
+    _bound_mu(x, cfg, u)
+    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, u.valid.copy())
+
+
+def _update(
+    x: FloatArray,
+    s: FloatArray,
+    cfg: FilterConfig,
+    tyres: TyreArrays,
+    chassis: Chassis,
+    u: TickInputs,
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+    """Measurement update of the vehicles in ``u`` (all valid): the new ``(x, S)``, where the
+    MEE covariance was used (paper mode) and the whitened innovation ``(B, m)``."""
+
+    def h(points: FloatArray) -> FloatArray:
+        return _measure(
+            points, cfg, tyres, chassis, u, u.kappa[:, None, :], u.alpha_rad[:, None, :]
+        )
+
+    sq_r = _sq_r(cfg, u)
+    z = _measured(cfg, u)
+    mee_ok = np.zeros(x.shape[0], dtype=bool)
     if cfg.mode is FrictionMode.PRODUCT:
-        x[:, 0] = np.log(np.clip(np.exp(x[:, 0]), floor, MU_MAX))
-    else:
-        x[:, 0] = np.clip(x[:, 0], floor, MU_MAX)
-    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, valid)
+        sq_r = _with_inputs(sq_r, _input_spread(x, cfg, tyres, chassis, u))
+    elif cfg.mode is FrictionMode.PAPER:
+        z_mean = h(cubature_points(x, s)).mean(axis=1)
+        mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
+        sq_r, mee_ok = mee.sq_r, mee.ok
+    up = sckf_update(x, s, z, h, sq_r)
+    white = np.asarray(np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0], np.float64)
+    return up.x, up.s, np.asarray(mee_ok, dtype=bool), white
+
+
+def _bound_mu(x: FloatArray, cfg: FilterConfig, u: TickInputs) -> None:
+    """Keep μ within ``MU_MIN..MU_MAX``; the product's also at or above the grip measured
+    (``_GRIP_FLOOR`` of ``hypot(a_x, a_y)/g``: the ground gave at least that)."""
+    if cfg.mode is not FrictionMode.PRODUCT:
+        x[:, 0] = np.clip(x[:, 0], MU_MIN, MU_MAX)
+        return
+    grip = _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2
+    floor = np.maximum(np.where(u.valid, grip, 0.0), MU_MIN)
+    x[:, 0] = np.log(np.clip(np.exp(x[:, 0]), floor, MU_MAX))
 
 
 def _with_inputs(sq_r: FloatArray, d: FloatArray) -> FloatArray:
