@@ -25,6 +25,7 @@ Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,6 +89,22 @@ class FrontEndTick:
     gnss: bool
     valid: bool
     tyre_suspect: bool
+
+
+def _latest_sample(
+    packets: list[tuple[np.ndarray, np.ndarray]], t_ns: int
+) -> tuple[np.ndarray | None, list[tuple[np.ndarray, np.ndarray]]]:
+    """The last sample at or before ``t_ns`` of ``(stamps, values)`` packets (None if none),
+    and the packets still holding later samples."""
+    latest = None
+    rest = []
+    for stamps, values in packets:
+        sel = np.flatnonzero(stamps <= t_ns)
+        if sel.size:
+            latest = values[sel[-1]]
+        if stamps.size and stamps[-1] > t_ns:
+            rest.append((stamps, values))
+    return latest, rest
 
 
 class _AxisFilter:
@@ -156,6 +173,9 @@ class FrontEnd:
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
+        self.steer_packets: list[tuple[np.ndarray, np.ndarray]] = []
+        self.gnss_queue: deque[GnssSample] = deque()
         self.omega = np.full(4, np.nan)
         self.steer_rad = math.nan
         self.gnss: GnssSample | None = None
@@ -174,17 +194,14 @@ class FrontEnd:
             (np.asarray(m.stamp_ns), np.asarray(m.accel_mps2), np.asarray(m.gyro_radps))
         )
 
-    def push_wheels(self, m: WheelSpeeds4, until_ns: int | None = None) -> None:
-        self._wheels = getattr(self, "_wheels", [])
-        self._wheels.append((np.asarray(m.stamp_ns), np.asarray(m.omega_radps)))
+    def push_wheels(self, m: WheelSpeeds4) -> None:
+        self.wheel_packets.append((np.asarray(m.stamp_ns), np.asarray(m.omega_radps)))
 
     def push_steering(self, m: SteeringAngles) -> None:
-        self._steer = getattr(self, "_steer", [])
-        self._steer.append((np.asarray(m.stamp_ns), np.asarray(m.angle_rad)))
+        self.steer_packets.append((np.asarray(m.stamp_ns), np.asarray(m.angle_rad)))
 
     def push_gnss(self, m: GnssSample) -> None:
-        self._gnss = getattr(self, "_gnss", [])
-        self._gnss.append(m)
+        self.gnss_queue.append(m)
 
     def imu_until_ns(self) -> int | None:
         """The last IMU sample time held (ticks up to it can be computed)."""
@@ -211,22 +228,14 @@ class FrontEnd:
 
     def _latest(self, t_ns: int) -> None:
         """Latest wheel speeds, steering angle and GNSS sample at or before ``t_ns``."""
-        for name in ("_wheels", "_steer"):
-            buf = getattr(self, name, [])
-            rest = []
-            for stamps, vals in buf:
-                sel = np.flatnonzero(stamps <= t_ns)
-                if sel.size:
-                    if name == "_wheels":
-                        self.omega = vals[sel[-1]]
-                    else:
-                        self.steer_rad = float(vals[sel[-1]])
-                if stamps.size and stamps[-1] > t_ns:
-                    rest.append((stamps, vals))
-            setattr(self, name, rest)
-        gbuf = getattr(self, "_gnss", [])
-        while gbuf and gbuf[0].stamp_ns <= t_ns:
-            self.gnss = gbuf.pop(0)
+        omega, self.wheel_packets = _latest_sample(self.wheel_packets, t_ns)
+        if omega is not None:
+            self.omega = omega
+        steer, self.steer_packets = _latest_sample(self.steer_packets, t_ns)
+        if steer is not None:
+            self.steer_rad = float(steer)
+        while self.gnss_queue and self.gnss_queue[0].stamp_ns <= t_ns:
+            self.gnss = self.gnss_queue.popleft()
             self.gnss_fresh = True
 
     def tick(self, t_ns: int) -> FrontEndTick | None:
