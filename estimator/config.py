@@ -340,6 +340,12 @@ class ChassisConfig(_Checked):
     rolling_resistance: float = _bounded(0.015, 0.0, 0.5, "", "rolling resistance coefficient")
     roll_gradient_deg_per_g: float = _bounded(4.0, 0.0, 30.0, "deg/g", "body roll per lateral g")
     pitch_gradient_deg_per_g: float = _bounded(2.0, 0.0, 30.0, "deg/g", "body pitch per long. g")
+    roll_stiffness_front_share: float = _bounded(
+        0.55, 0.0, 1.0, "", "front axle's share of the roll stiffness (lateral load transfer)"
+    )
+    load_transfer_lag_s: float = _bounded(
+        0.1, 0.0, 2.0, "s", "time constant of load transfer behind the accelerations"
+    )
     driven_axle: DrivenAxle = DrivenAxle.ALL
     imu_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 0.7), "IMU")
     antenna_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 1.8), "antenna")
@@ -353,6 +359,9 @@ class TyreConfig(_Checked):
     c_py_npm2: float = _bounded(6e6, 1e5, 1e9, "N/m²", "c_py, lateral stiffness per area")
     kz_npm: float = _bounded(2.5e5, 1e4, 5e6, "N/m", "kz, vertical stiffness")
     unloaded_radius_m: float = _bounded(0.33, 0.15, 1.5, "m", "r_u, unloaded radius")
+    relaxation_length_m: float = _bounded(
+        0.4, 0.0, 3.0, "m", "distance rolled for the tyre force to follow a slip change"
+    )
 
 
 # ---------------------------------------------------------------------------------------------

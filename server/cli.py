@@ -49,6 +49,7 @@ BENCHES = (
     "ingest",
     "pipeline",
     "writes",
+    "friction",
 )
 
 

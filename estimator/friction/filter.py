@@ -1,0 +1,433 @@
+"""The μ filters, batched over vehicles: the source's SCKF-MEE and its variants, and the product's.
+
+All share the measurement model ``z = [a_x, a_y, ṙ]`` of :mod:`.model` over brush forces
+(:mod:`.brush`) of per-wheel inputs ``u = [Fz, α, δ, κ]`` (source eq. 19-27). They differ in
+state and covariance handling:
+
+* :attr:`FrictionMode.FIXED_CKF`: state ``[μ, c_x×4, c_y×4]`` (:class:`PaperState`), stiffness
+  a random walk from its value at the static load; standard SCKF.
+* :attr:`FrictionMode.ADAPTIVE_CKF`: the same, stiffness carried with the load,
+  ``c_k = c_{k−1} · c(Fz_k)/c(Fz_{k−1})`` with ``c(Fz) = 2a²c_p`` (eq. 16-19) so what the
+  update learnt about a tyre stays; standard SCKF.
+* :attr:`FrictionMode.PAPER`: the source's filter, ADAPTIVE_CKF with the MEE measurement
+  covariance each step (standard step where it is not positive definite).
+* :attr:`FrictionMode.PRODUCT`: state ``[ln μ, g_x,front, g_x,rear, g_y,front, g_y,rear,
+  v_y]`` (:class:`ProductState`): per-axle factors on the load-adaptive stiffness instead of
+  four free stiffnesses each way (three measurements cannot tell eight stiffnesses apart; an
+  axle's factor can follow a worn or soft tyre), and the lateral speed as a state: in the
+  tyres' linear range a slip-angle error of 10⁻³ rad already moves the lateral force by a
+  tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
+  found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
+  The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
+  ``D`` the change of ``h`` for a 1-σ change of each wheel's κ); μ's process noise grows
+  while the normalised innovations stay large (a change of ground).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from enum import IntEnum, StrEnum
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray
+from estimator.friction.brush import Values, brush_forces, load_adaptive_stiffness_n
+from estimator.friction.model import GRAVITY_MPS2, Chassis, body_accelerations
+from estimator.friction.sckf import (
+    cubature_points,
+    mee_measurement_sqrt,
+    sckf_predict,
+    sckf_update,
+    tria,
+)
+
+__all__ = [
+    "FilterConfig",
+    "FilterState",
+    "FrictionMode",
+    "PaperState",
+    "ProductState",
+    "TickInputs",
+    "TyreArrays",
+    "filter_step",
+    "initial_state",
+    "mu_of",
+    "mu_std_of",
+]
+
+MU_MIN, MU_MAX = 0.05, 1.6
+_GRIP_FLOOR = 0.95
+"""The product filter keeps μ at or above this share of the measured ``hypot(a_x, a_y)/g``:
+the tyres cannot have delivered more grip than the ground has (a projection of the mean)."""
+
+
+class FrictionMode(StrEnum):
+    """Which filter runs (see the module docstring)."""
+
+    FIXED_CKF = "fixed_ckf"
+    ADAPTIVE_CKF = "adaptive_ckf"
+    PAPER = "paper"
+    PRODUCT = "product"
+
+
+class PaperState(IntEnum):
+    """The source's state (eq. 18): μ and each tyre's longitudinal and lateral stiffness [N]."""
+
+    MU = 0
+    CX_FL = 1
+    CX_FR = 2
+    CX_RL = 3
+    CX_RR = 4
+    CY_FL = 5
+    CY_FR = 6
+    CY_RL = 7
+    CY_RR = 8
+
+
+class ProductState(IntEnum):
+    """The product filter's state: ``ln μ`` and per-axle factors on the load-adaptive stiffness.
+
+    μ is carried as its logarithm: cubature points spread ``√n σ`` around the mean, and in
+    ``ln μ`` they stay positive and spread in proportion (a point at a negative μ, clipped,
+    would read as a saturated tyre and pull the mean with it).
+    """
+
+    LN_MU = 0
+    GX_FRONT = 1
+    GX_REAR = 2
+    GY_FRONT = 3
+    GY_REAR = 4
+    VY = 5
+    """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
+
+
+@dataclass(frozen=True, slots=True)
+class FilterConfig:
+    """Noise and start of the μ filters (per tick of ``tick_s``).
+
+    ``mu_walk_per_sqrt_s``: μ's random walk (``ln_mu_walk_per_sqrt_s`` in the product mode);
+    ``stiffness_walk_per_sqrt_s``: relative walk of the paper modes' stiffness states;
+    ``factor0_rel_std``, ``factor_walk_per_sqrt_s``: the product's stiffness factors;
+    ``ln_mu0_std``, ``vy0_std_mps``, ``vy_walk_mps_per_sqrt_s``: the product's ``ln μ`` and
+    ``v_y`` (a narrow start: cubature points spread ``√n σ``, and a wide ``v_y`` would put
+    them deep in the tyres' saturation where the point mean no longer follows the model);
+    ``accel_std_mps2``, ``yaw_accel_std_radps2``: the measurement noise ``R``;
+    ``mee_kernel_sigma``: the MEE kernel width (whitened units); ``nis_gate``: mean
+    normalised innovation (per measurement) above which the product filter's μ walk is
+    multiplied by ``mu_walk_boost``.
+    """
+
+    mode: FrictionMode = FrictionMode.PRODUCT
+    tick_s: float = 0.02
+    mu0: float = 0.6
+    mu0_std: float = 0.35
+    stiffness0_rel_std: float = 0.1
+    mu_walk_per_sqrt_s: float = 0.03
+    stiffness_walk_per_sqrt_s: float = 0.01
+    factor0_rel_std: float = 0.1
+    factor_walk_per_sqrt_s: float = 0.01
+    ln_mu_walk_per_sqrt_s: float = 0.05
+    vy0_std_mps: float = 0.05
+    ln_mu0_std: float = 0.35
+    vy_walk_mps_per_sqrt_s: float = 0.05
+    accel_std_mps2: float = 0.2
+    yaw_accel_std_radps2: float = 0.5
+    mee_kernel_sigma: float = 2.0
+    nis_gate: float = 9.0
+    mu_walk_boost: float = 5.0
+    nis_smoothing_s: float = 0.3
+
+    @property
+    def n_states(self) -> int:
+        return len(ProductState) if self.mode is FrictionMode.PRODUCT else len(PaperState)
+
+
+@dataclass(frozen=True, slots=True)
+class TyreArrays:
+    """Tyre numbers per vehicle, ``(B, 1)`` (broadcast over wheels)."""
+
+    kz_npm: FloatArray
+    radius_m: FloatArray
+    c_px_npm2: FloatArray
+    c_py_npm2: FloatArray
+
+    def stiffness(self, fz_n: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Load-adaptive ``(c_x, c_y)`` [N] at loads ``fz_n`` ``(B, 4)``."""
+        return (
+            load_adaptive_stiffness_n(fz_n, self.kz_npm, self.radius_m, self.c_px_npm2),
+            load_adaptive_stiffness_n(fz_n, self.kz_npm, self.radius_m, self.c_py_npm2),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class TickInputs:
+    """One tick's inputs per vehicle: per wheel ``(B, 4)`` load, slip angle, steer angle and
+    slip with the 1-σ of the last two; ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
+    ``valid`` ``(B,)`` where an update may run (moving, every input known); ``vx_mps``,
+    ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
+    ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it."""
+
+    fz_n: FloatArray
+    alpha_rad: FloatArray
+    delta_rad: FloatArray
+    kappa: FloatArray
+    kappa_std: FloatArray
+    alpha_std_rad: FloatArray
+    z: FloatArray
+    valid: BoolArray
+    vx_mps: FloatArray
+    yaw_rate_radps: FloatArray
+    vy_meas_mps: FloatArray
+    vy_meas_std_mps: FloatArray
+
+
+@dataclass(slots=True)
+class FilterState:
+    """Filter state per vehicle: mean ``x`` ``(B, n)``, root ``s`` ``(B, n, n)``, the last
+    loads ``(B, 4)``, the smoothed NIS ``(B,)``, and what the last step did."""
+
+    x: FloatArray
+    s: FloatArray
+    fz_prev_n: FloatArray
+    nis: FloatArray
+    mee_ok: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    updated: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def take(self, rows: np.ndarray) -> FilterState:
+        return FilterState(
+            self.x[rows],
+            self.s[rows],
+            self.fz_prev_n[rows],
+            self.nis[rows],
+            self.mee_ok[rows] if self.mee_ok.size else self.mee_ok,
+            self.updated[rows] if self.updated.size else self.updated,
+        )
+
+
+def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> FilterState:
+    """The prior: ``μ0 ± mu0_std``; stiffness at ``fz_n`` ± ``stiffness0_rel_std`` (product:
+    factors 1 ± ``factor0_rel_std``)."""
+    b = fz_n.shape[0]
+    if cfg.mode is FrictionMode.PRODUCT:
+        x = np.ones((b, len(ProductState)))
+        std = np.full((b, len(ProductState)), cfg.factor0_rel_std)
+    else:
+        cx, cy = tyres.stiffness(fz_n)
+        x = np.concatenate([np.ones((b, 1)), cx, cy], axis=1)
+        std = x * cfg.stiffness0_rel_std
+    if cfg.mode is FrictionMode.PRODUCT:
+        x[:, ProductState.VY] = 0.0
+        std[:, ProductState.VY] = cfg.vy0_std_mps
+    x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
+    std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
+    s = np.zeros((b, x.shape[1], x.shape[1]))
+    idx = np.arange(x.shape[1])
+    s[:, idx, idx] = std
+    return FilterState(x, s, fz_n.copy(), np.zeros(b))
+
+
+def mu_of(state_mu: Values, mode: FrictionMode) -> FloatArray:
+    """μ from the state's first component (``ln μ`` in the product mode), within bounds."""
+    mu = np.exp(state_mu) if mode is FrictionMode.PRODUCT else state_mu
+    return np.clip(mu, MU_MIN, MU_MAX)
+
+
+def mu_std_of(state_mu: Values, std: Values, mode: FrictionMode) -> FloatArray:
+    """μ's 1-σ from the state's (first order through ``exp`` in the product mode)."""
+    scale = mu_of(state_mu, mode) if mode is FrictionMode.PRODUCT else 1.0
+    return np.asarray(scale * np.asarray(std), dtype=np.float64)
+
+
+def _stiffness_of(
+    points: FloatArray, cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Per-point tyre stiffness ``(B, P, 4)`` each way."""
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return points[..., PaperState.CX_FL : PaperState.CX_RR + 1], points[..., PaperState.CY_FL :]
+    cx, cy = tyres.stiffness(fz_n)
+    gx = points[..., [ProductState.GX_FRONT] * 2 + [ProductState.GX_REAR] * 2]
+    gy = points[..., [ProductState.GY_FRONT] * 2 + [ProductState.GY_REAR] * 2]
+    return gx * cx[:, None, :], gy * cy[:, None, :]
+
+
+def _measure(
+    points: FloatArray,
+    cfg: FilterConfig,
+    tyres: TyreArrays,
+    chassis: Chassis,
+    u: TickInputs,
+    kappa: FloatArray,
+    alpha: FloatArray,
+) -> FloatArray:
+    """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)``; slips are
+    ``(B, P, 4)`` or ``(B, 1, 4)``."""
+    mu = mu_of(points[..., :1], cfg.mode)
+    cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
+    if cfg.mode is FrictionMode.PRODUCT:
+        alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
+    fx, fy = brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
+    acc = body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return acc
+    vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
+    return np.concatenate([acc, vy], axis=-1)
+
+
+def _slip_angles(vy_mps: FloatArray, u: TickInputs, chassis: Chassis) -> FloatArray:
+    """α ``(B, P, 4)`` of lateral speeds ``(B, P)`` (source eq. 9-13, rigid body)."""
+    r = u.yaw_rate_radps[:, None, None]
+    along = u.vx_mps[:, None, None] - chassis.wheel_y_m[:, None, :] * r
+    across = vy_mps[..., None] + chassis.wheel_x_m[:, None, :] * r
+    d = u.delta_rad[:, None, :]
+    v_long = along * np.cos(d) + across * np.sin(d)
+    v_lat = -along * np.sin(d) + across * np.cos(d)
+    return -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
+
+
+def _sq_r(cfg: FilterConfig, u: TickInputs) -> FloatArray:
+    """Measurement root: accelerations and (product) the GNSS ``v_y``, weightless when none."""
+    sigma = [cfg.accel_std_mps2, cfg.accel_std_mps2, cfg.yaw_accel_std_radps2]
+    b = u.z.shape[0]
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
+    vy_std = np.where(np.isfinite(u.vy_meas_mps), u.vy_meas_std_mps, 1e3)
+    diag = np.concatenate([np.broadcast_to(sigma, (b, 3)), vy_std[:, None]], axis=1)
+    out = np.zeros((b, 4, 4))
+    out[:, np.arange(4), np.arange(4)] = diag
+    return out
+
+
+def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
+    """``z``: the accelerations, and (product) the GNSS ``v_y`` (0 where none: no weight)."""
+    if cfg.mode is not FrictionMode.PRODUCT:
+        return u.z
+    return np.concatenate([u.z, np.nan_to_num(u.vy_meas_mps)[:, None]], axis=1)
+
+
+def _input_spread(
+    x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
+) -> FloatArray:
+    """``D`` ``(B, m, 4)``: the change of ``h`` at the mean for a 1-σ change of each wheel's κ
+    (the slip angles follow from the state)."""
+    kappa = u.kappa[:, None, :] + np.eye(4)[None] * u.kappa_std[:, :, None]
+    mean = x[:, None, :]
+    alpha = u.alpha_rad[:, None, :]
+    base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
+    return np.swapaxes(_measure(mean, cfg, tyres, chassis, u, kappa, alpha) - base, -1, -2)
+
+
+def _predict(
+    st: FilterState, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs
+) -> tuple[FloatArray, FloatArray]:
+    """Time update (eq. 22, 28-31): μ and the stiffness states walk; ADAPTIVE/PAPER carry the
+    stiffness with the load ratio."""
+    b, n = st.x.shape
+    sqrt_dt = math.sqrt(cfg.tick_s)
+    walk = np.full((b, n), cfg.stiffness_walk_per_sqrt_s * sqrt_dt)
+    mu_walk = cfg.mu_walk_per_sqrt_s * sqrt_dt
+    if cfg.mode is FrictionMode.PRODUCT:
+        walk[:, 1:] = cfg.factor_walk_per_sqrt_s * sqrt_dt
+        boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
+        walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
+        walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
+        scale = np.ones((b, n))
+        shift = np.zeros((b, n))
+        shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
+    else:
+        walk[:, 0] = mu_walk
+        walk[:, 1:] *= np.abs(st.x[:, 1:])
+        scale = np.ones((b, n))
+        if cfg.mode is not FrictionMode.FIXED_CKF:
+            cx_new, cy_new = tyres.stiffness(u.fz_n)
+            cx_old, cy_old = tyres.stiffness(st.fz_prev_n)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.concatenate([cx_new / cx_old, cy_new / cy_old], axis=1)
+            scale[:, 1:] = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+        shift = np.zeros((b, n))
+    sq_q = np.zeros((b, n, n))
+    idx = np.arange(n)
+    sq_q[:, idx, idx] = walk
+    return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :] + shift[:, None, :], sq_q)
+
+
+def filter_step(
+    st: FilterState, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
+) -> FilterState:
+    """One tick for every vehicle: predict, then (where ``u.valid``) update with ``u.z``."""
+    x, s = _predict(st, cfg, tyres, u)
+    mee_ok = np.zeros(x.shape[0], dtype=bool)
+    nis = st.nis.copy()
+    rows = np.flatnonzero(u.valid)
+    if rows.size:
+        x[rows], s[rows], mee_ok[rows], white = _update(
+            x[rows],
+            s[rows],
+            cfg,
+            _tyres_subset(tyres, rows),
+            _chassis_subset(chassis, rows),
+            _subset(u, rows),
+        )
+        step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
+        nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
+    _bound_mu(x, cfg, u)
+    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, u.valid.copy())
+
+
+def _update(
+    x: FloatArray,
+    s: FloatArray,
+    cfg: FilterConfig,
+    tyres: TyreArrays,
+    chassis: Chassis,
+    u: TickInputs,
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+    """Measurement update of the vehicles in ``u`` (all valid): the new ``(x, S)``, where the
+    MEE covariance was used (paper mode) and the whitened innovation ``(B, m)``."""
+
+    def h(points: FloatArray) -> FloatArray:
+        return _measure(
+            points, cfg, tyres, chassis, u, u.kappa[:, None, :], u.alpha_rad[:, None, :]
+        )
+
+    sq_r = _sq_r(cfg, u)
+    z = _measured(cfg, u)
+    mee_ok = np.zeros(x.shape[0], dtype=bool)
+    if cfg.mode is FrictionMode.PRODUCT:
+        sq_r = _with_inputs(sq_r, _input_spread(x, cfg, tyres, chassis, u))
+    elif cfg.mode is FrictionMode.PAPER:
+        z_mean = h(cubature_points(x, s)).mean(axis=1)
+        mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
+        sq_r, mee_ok = mee.sq_r, mee.ok
+    up = sckf_update(x, s, z, h, sq_r)
+    white = np.asarray(np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0], np.float64)
+    return up.x, up.s, np.asarray(mee_ok, dtype=bool), white
+
+
+def _bound_mu(x: FloatArray, cfg: FilterConfig, u: TickInputs) -> None:
+    """Keep μ within ``MU_MIN..MU_MAX``; the product's also at or above the grip measured
+    (``_GRIP_FLOOR`` of ``hypot(a_x, a_y)/g``: the ground gave at least that)."""
+    if cfg.mode is not FrictionMode.PRODUCT:
+        x[:, 0] = np.clip(x[:, 0], MU_MIN, MU_MAX)
+        return
+    grip = _GRIP_FLOOR * np.hypot(u.z[:, 0], u.z[:, 1]) / GRAVITY_MPS2
+    floor = np.maximum(np.where(u.valid, grip, 0.0), MU_MIN)
+    x[:, 0] = np.log(np.clip(np.exp(x[:, 0]), floor, MU_MAX))
+
+
+def _with_inputs(sq_r: FloatArray, d: FloatArray) -> FloatArray:
+    """Root of ``R + D Dᵀ`` (``D`` ``(B, m, k)``: the inputs' spread through the model)."""
+    root: FloatArray = tria(np.concatenate([sq_r, d], axis=-1))
+    return root
+
+
+def _subset(u: TickInputs, rows: np.ndarray) -> TickInputs:
+    return TickInputs(**{f.name: getattr(u, f.name)[rows] for f in fields(u)})
+
+
+def _tyres_subset(t: TyreArrays, rows: np.ndarray) -> TyreArrays:
+    return TyreArrays(t.kz_npm[rows], t.radius_m[rows], t.c_px_npm2[rows], t.c_py_npm2[rows])
+
+
+def _chassis_subset(c: Chassis, rows: np.ndarray) -> Chassis:
+    return Chassis(c.mass_kg[rows], c.yaw_inertia_kgm2[rows], c.wheel_x_m[rows], c.wheel_y_m[rows])

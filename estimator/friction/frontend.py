@@ -1,0 +1,448 @@
+"""Per-wheel slip, slip angle, steer angle and load from the sensors, with their uncertainty.
+
+One :class:`FrontEnd` per vehicle turns IMU, CAN wheel speeds, steering-wheel angle and
+(optional) GNSS into the μ filter's inputs each tick (``method.md`` §5, source eq. 7-15):
+
+* speed ``v_x`` and the forward accelerometer's bias from a two-state Kalman filter driven by
+  the accelerometer and corrected by GNSS forward speed (or, without GNSS, the undriven
+  wheels' mean rim speed);
+* side-slip ``v_y``: ``v̇_y = a_y − r v_x`` corrected by GNSS (velocity across the heading);
+  the source's reading (``FrontEndConfig.paper``) integrates it with a slow leak to zero;
+* tilt: body roll and pitch follow the accelerations (``φ = k_φ a_y/g``, ``θ = k_θ a_x/g``,
+  the config's gradients), so the accelerometers read ``a(1 + k)``: divided out (not in the
+  paper reading);
+* loads: static + longitudinal ``m a_x h/L`` + lateral ``m a_y h/b`` split between the axles
+  by the roll-stiffness share, through a first-order lag (paper: the static formula, lateral
+  split ``lr/L``, no lag);
+* radius: calibrated per wheel while driving straight and steady (the slip there is what the
+  resistances need), then falling by a third of the deflection change with load (paper: the
+  statically loaded radius ``r_u − Fz/kz``);
+* relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper).
+
+Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator._arrays import FloatArray
+from estimator.config import DrivenAxle, Wheeled4wdSteeredConfig
+from estimator.friction.model import GRAVITY_MPS2
+from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
+
+__all__ = ["FrontEnd", "FrontEndConfig", "FrontEndTick"]
+
+AIR_DENSITY_KGPM3 = 1.2
+_UNDRIVEN = {
+    DrivenAxle.FRONT: np.array([False, False, True, True]),
+    DrivenAxle.REAR: np.array([True, True, False, False]),
+    DrivenAxle.ALL: np.zeros(4, dtype=bool),
+}
+_DRIVE_SHARE = {
+    DrivenAxle.FRONT: np.array([0.5, 0.5, 0.0, 0.0]),
+    DrivenAxle.REAR: np.array([0.0, 0.0, 0.5, 0.5]),
+    DrivenAxle.ALL: np.full(4, 0.25),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class FrontEndConfig:
+    """Front-end settings: ``paper`` the source's reading (see the module docstring).
+
+    ``min_speed_mps``: no μ update below it; ``gnss_timeout_s``: GNSS older than this is
+    not used; ``calib_time_s``: time constant of the radius calibration, which must hold
+    ``calib_samples`` GNSS epochs before the μ filter updates; ``radius_tolerance``: relative
+    difference of a calibrated radius from the config's beyond which the tyre is suspect.
+    """
+
+    paper: bool = False
+    min_speed_mps: float = 3.0
+    gnss_timeout_s: float = 0.5
+    calib_time_s: float = 3.0
+    calib_samples: int = 15
+    radius_tolerance: float = 0.03
+    speed_walk_mps2: float = 0.3
+    bias_walk_mps2_per_sqrt_s: float = 0.005
+    side_slip_leak_s: float = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class FrontEndTick:
+    """One tick's inputs (per wheel ``(4,)``) and measurements, with the 1-σ the filter uses."""
+
+    fz_n: FloatArray
+    alpha_rad: FloatArray
+    delta_rad: FloatArray
+    kappa: FloatArray
+    kappa_std: FloatArray
+    alpha_std_rad: FloatArray
+    z: FloatArray  # [a_x + resistances/m, a_y, ṙ]
+    vx_mps: float
+    vy_mps: float
+    yaw_rate_radps: float
+    vy_gnss_mps: float  # NaN without a fresh GNSS velocity
+    gnss: bool
+    valid: bool
+    tyre_suspect: bool
+
+
+def _latest_sample(
+    packets: list[tuple[np.ndarray, np.ndarray]], t_ns: int
+) -> tuple[np.ndarray | None, list[tuple[np.ndarray, np.ndarray]]]:
+    """The last sample at or before ``t_ns`` of ``(stamps, values)`` packets (None if none),
+    and the packets still holding later samples."""
+    latest = None
+    rest = []
+    for stamps, values in packets:
+        sel = np.flatnonzero(stamps <= t_ns)
+        if sel.size:
+            latest = values[sel[-1]]
+        if stamps.size and stamps[-1] > t_ns:
+            rest.append((stamps, values))
+    return latest, rest
+
+
+class _AxisFilter:
+    """Speed along one body axis and its accelerometer's bias: ``v̇ = a − b + c``, ``ḃ = w``.
+
+    ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds.
+    """
+
+    def __init__(self, speed_walk_mps2: float, bias_walk: float, bias0_std: float) -> None:
+        self.x = np.array([math.nan, 0.0])
+        self.p = np.diag([1.0, bias0_std**2])
+        self.speed_walk, self.bias_walk = speed_walk_mps2, bias_walk
+
+    @property
+    def speed(self) -> float:
+        return float(self.x[0])
+
+    @property
+    def bias(self) -> float:
+        return float(self.x[1])
+
+    @property
+    def speed_var(self) -> float:
+        return float(self.p[0, 0])
+
+    def predict(self, accel: float, coupling: float, dt: float) -> None:
+        f = np.array([[1.0, -dt], [0.0, 1.0]])
+        self.x = np.array([self.x[0] + (accel - self.x[1] + coupling) * dt, self.x[1]])
+        q = np.diag([(self.speed_walk * dt) ** 2, self.bias_walk**2 * dt])
+        self.p = f @ self.p @ f.T + q
+
+    def update(self, z: float, var: float) -> None:
+        s = self.p[0, 0] + var
+        k = self.p[:, 0] / s
+        self.x = self.x + k * (z - self.x[0])
+        self.p = self.p - np.outer(k, self.p[0])
+
+
+class FrontEnd:
+    """One vehicle's sensor buffers and the small filters between them and the μ filter."""
+
+    def __init__(self, config: Wheeled4wdSteeredConfig, fe: FrontEndConfig, tick_s: float) -> None:
+        ch, ty = config.chassis, config.tyre
+        self.ch, self.ty, self.fe, self.dt = ch, ty, fe, tick_s
+        self.wheel_x = np.array([1, 1, -1, -1]) * np.array(
+            [ch.cg_to_front_axle_m] * 2 + [ch.cg_to_rear_axle_m] * 2
+        )
+        self.wheel_y = (
+            np.array([ch.front_track_m, -ch.front_track_m, ch.rear_track_m, -ch.rear_track_m]) / 2
+        )
+        wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
+        mg = ch.mass_kg * GRAVITY_MPS2
+        self.fz_static = (
+            mg
+            * np.array([ch.cg_to_rear_axle_m] * 2 + [ch.cg_to_front_axle_m] * 2)
+            / (2 * wheelbase)
+        )
+        self.undriven = _UNDRIVEN[ch.driven_axle]
+        self.drive_share = _DRIVE_SHARE[ch.driven_axle]
+        # the paper's statically loaded radius; the product starts from a third of the
+        # deflection (a rolling tyre's effective radius) and calibrates from there
+        self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (
+            1.0 if fe.paper else 1 / 3
+        )
+        self.calib_n = 0
+        self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)
+        self.fz_cal = self.fz_static.copy()
+        self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
+        self.steer_packets: list[tuple[np.ndarray, np.ndarray]] = []
+        self.gnss_queue: deque[GnssSample] = deque()
+        self.omega = np.full(4, np.nan)
+        self.steer_rad = math.nan
+        self.gnss: GnssSample | None = None
+        self.gnss_fresh = False
+        self.vx = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
+        self.vy = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
+        self.vy.x[0] = 0.0
+        self.transfer = np.zeros(3)  # lagged [long, lat front, lat rear] [N]
+        self.yaw_prev = math.nan
+        self.slip_lag = np.zeros((2, 4))
+        self.last_tick_ns = 0
+
+    # --- input ------------------------------------------------------------------------------
+    def push_imu(self, m: ImuBatch) -> None:
+        self.imu.append(
+            (np.asarray(m.stamp_ns), np.asarray(m.accel_mps2), np.asarray(m.gyro_radps))
+        )
+
+    def push_wheels(self, m: WheelSpeeds4) -> None:
+        self.wheel_packets.append((np.asarray(m.stamp_ns), np.asarray(m.omega_radps)))
+
+    def push_steering(self, m: SteeringAngles) -> None:
+        self.steer_packets.append((np.asarray(m.stamp_ns), np.asarray(m.angle_rad)))
+
+    def push_gnss(self, m: GnssSample) -> None:
+        self.gnss_queue.append(m)
+
+    def imu_until_ns(self) -> int | None:
+        """The last IMU sample time held (ticks up to it can be computed)."""
+        return int(self.imu[-1][0][-1]) if self.imu and self.imu[-1][0].size else None
+
+    # --- one tick ----------------------------------------------------------------------------
+    def _imu_window(self, t_ns: int) -> tuple[FloatArray, FloatArray] | None:
+        """Mean specific force and rate over ``(t − tick, t]``; drops samples before it."""
+        lo = t_ns - round(self.dt * 1e9)
+        acc, gyr = [], []
+        keep = []
+        for stamps, a, g in self.imu:
+            sel = (stamps > lo) & (stamps <= t_ns)
+            acc.append(a[sel])
+            gyr.append(g[sel])
+            if stamps.size and stamps[-1] > t_ns:
+                keep.append((stamps, a, g))
+        self.imu = keep
+        a = np.concatenate(acc) if acc else np.zeros((0, 3))
+        g = np.concatenate(gyr) if gyr else np.zeros((0, 3))
+        if not a.size:
+            return None
+        return a.mean(axis=0), g.mean(axis=0)
+
+    def _latest(self, t_ns: int) -> None:
+        """Latest wheel speeds, steering angle and GNSS sample at or before ``t_ns``."""
+        omega, self.wheel_packets = _latest_sample(self.wheel_packets, t_ns)
+        if omega is not None:
+            self.omega = omega
+        steer, self.steer_packets = _latest_sample(self.steer_packets, t_ns)
+        if steer is not None:
+            self.steer_rad = float(steer)
+        while self.gnss_queue and self.gnss_queue[0].stamp_ns <= t_ns:
+            self.gnss = self.gnss_queue.popleft()
+            self.gnss_fresh = True
+
+    def tick(self, t_ns: int) -> FrontEndTick | None:
+        """The inputs at tick ``t_ns`` (None until the IMU covers it and wheels are known)."""
+        window = self._imu_window(t_ns)
+        self._latest(t_ns)
+        self.last_tick_ns = t_ns
+        if window is None or not np.all(np.isfinite(self.omega)):
+            return None
+        accel, gyro = window
+        ax_raw, ay_raw, yaw_rate = float(accel[1]), float(-accel[0]), float(gyro[2])
+        gnss = self._gnss_velocity(t_ns)
+        ax, ay = self._detilt(ax_raw - self.vx.bias, ay_raw)
+        fz = self._loads(ax, ay)
+        delta = np.zeros(4)
+        steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
+        delta[:2] = steer / self.ch.steering_ratio
+        self._calibrate(gnss, fz, delta, yaw_rate, ax)
+        self._speed_step(ax_raw, yaw_rate, gnss, fz, delta)
+        self._side_slip_step(ay, yaw_rate, gnss)
+        yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
+        self.yaw_prev = yaw_rate
+        kappa, alpha, k_std, a_std = self._slips(fz, delta, yaw_rate)
+        resist = 0.0
+        vx = self.vx.speed
+        if not self.fe.paper:
+            resist = (
+                0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
+                + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
+            ) / self.ch.mass_kg
+        z = np.array([ax + resist, ay, yaw_accel])
+        calibrated = self.fe.paper or self.calibrated
+        valid = (
+            vx >= self.fe.min_speed_mps
+            and math.isfinite(steer)
+            and calibrated
+            and not math.isnan(self.yaw_prev)
+        )
+        vy_gnss = gnss[1] if gnss is not None else math.nan
+        return FrontEndTick(
+            fz_n=fz,
+            alpha_rad=alpha,
+            delta_rad=delta,
+            kappa=kappa,
+            kappa_std=k_std,
+            alpha_std_rad=a_std,
+            z=z,
+            vx_mps=vx,
+            vy_mps=self.vy.speed,
+            yaw_rate_radps=yaw_rate,
+            vy_gnss_mps=vy_gnss,
+            gnss=gnss is not None,
+            valid=bool(valid),
+            tyre_suspect=self.tyre_suspect,
+        )
+
+    # --- the small filters --------------------------------------------------------------------
+    def _gnss_velocity(self, t_ns: int) -> tuple[float, float] | None:
+        """GNSS ``(v_x, v_y)`` in the body frame when a fresh sample arrived, else None."""
+        g = self.gnss
+        if not self.gnss_fresh or g is None:
+            return None
+        self.gnss_fresh = False
+        if t_ns - g.stamp_ns > self.fe.gnss_timeout_s * 1e9 or not math.isfinite(g.heading_rad):
+            return None
+        ve, vn, _ = g.vel_enu_mps
+        h = g.heading_rad
+        return ve * math.sin(h) + vn * math.cos(h), -ve * math.cos(h) + vn * math.sin(h)
+
+    def _speed_step(
+        self,
+        ax_raw: float,
+        yaw_rate: float,
+        gnss: tuple[float, float] | None,
+        fz: FloatArray,
+        delta: FloatArray,
+    ) -> None:
+        """Forward speed: accelerometer, corrected by GNSS and, once their radius is
+        calibrated, by the undriven wheels' rims (free rolling: no slip)."""
+        if math.isnan(self.vx.speed):
+            self.vx.x[0] = gnss[0] if gnss else float(np.mean(self.omega * self.radius))
+        self.vx.predict(ax_raw, yaw_rate * self.vy.speed, self.dt)
+        if gnss is not None:
+            self.vx.update(gnss[0], 0.03**2)
+        free = self.undriven
+        if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
+            return
+        rim = self.omega * self._radius_now(fz)
+        w = self.vy.speed + self.wheel_x * yaw_rate
+        vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
+        v = float(np.mean(vx_rim[free]))
+        rel = float(np.mean(self.radius_std[free] / self.radius[free]))
+        self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
+
+    def _gnss_recent(self) -> bool:
+        return self.gnss is not None and self.last_tick_ns - self.gnss.stamp_ns <= (
+            self.fe.gnss_timeout_s * 1e9
+        )
+
+    def _detilt(self, ax: float, ay: float) -> tuple[float, float]:
+        if self.fe.paper:
+            return ax, ay
+        k_pitch = math.radians(self.ch.pitch_gradient_deg_per_g)
+        k_roll = math.radians(self.ch.roll_gradient_deg_per_g)
+        return ax / (1.0 + k_pitch), ay / (1.0 + k_roll)
+
+    def _side_slip_step(self, ay: float, yaw_rate: float, gnss: tuple[float, float] | None) -> None:
+        """Lateral speed: ``v̇_y = a_y − b − r v_x`` corrected by GNSS (the paper reading: no
+        bias, no GNSS, a slow leak to zero)."""
+        if self.fe.paper:
+            self.vy.x[0] += (ay - yaw_rate * self.vx.speed) * self.dt
+            self.vy.x[0] *= math.exp(-self.dt / self.fe.side_slip_leak_s)
+            return
+        self.vy.predict(ay, -yaw_rate * self.vx.speed, self.dt)
+        if gnss is not None:
+            self.vy.update(gnss[1], 0.04**2)
+
+    def _loads(self, ax: float, ay: float) -> FloatArray:
+        ch = self.ch
+        wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
+        m_h = ch.mass_kg * ch.cg_height_m
+        share = ch.cg_to_rear_axle_m / wheelbase if self.fe.paper else ch.roll_stiffness_front_share
+        target = np.array(
+            [
+                m_h * ax / wheelbase,
+                share * m_h * ay / ch.front_track_m,
+                (1 - share) * m_h * ay / ch.rear_track_m,
+            ]
+        )
+        lag = 0.0 if self.fe.paper else ch.load_transfer_lag_s
+        self.transfer += (target - self.transfer) * (1.0 - math.exp(-self.dt / max(lag, 1e-9)))
+        lx, lf, lr = self.transfer
+        fz = self.fz_static + np.array([-lx / 2 - lf, -lx / 2 + lf, lx / 2 - lr, lx / 2 + lr])
+        return np.maximum(fz, 0.0)
+
+    def _wheel_velocity(
+        self, vx: float, vy: float, yaw_rate: float, delta: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Each wheel centre's velocity along and across its heading (source eq. 11-13)."""
+        u = vx - self.wheel_y * yaw_rate
+        w = vy + self.wheel_x * yaw_rate
+        return u * np.cos(delta) + w * np.sin(delta), -u * np.sin(delta) + w * np.cos(delta)
+
+    def _slips(
+        self, fz: FloatArray, delta: FloatArray, yaw_rate: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """κ, α and their 1-σ per wheel (source eq. 8-14), relaxed (not paper)."""
+        v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
+        denom = np.maximum(np.abs(v_long), 1.0)
+        kappa = (self.omega * self._radius_now(fz) - v_long) / denom
+        alpha = -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
+        v_std = math.sqrt(max(self.vx.speed_var, 0.0))
+        k_std = np.hypot(v_std, self.omega * self.radius_std) / denom + 2e-4
+        a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
+        if not self.fe.paper:
+            rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
+            self.slip_lag += (1.0 - np.exp(-self.dt * rate)) * (
+                np.stack([kappa, alpha]) - self.slip_lag
+            )
+            kappa, alpha = self.slip_lag
+        return kappa.copy(), alpha.copy(), k_std, a_std
+
+    def _radius_now(self, fz: FloatArray) -> FloatArray:
+        """Effective radius per wheel: the calibrated one, falling by a third of the change of
+        deflection since (paper: the statically loaded radius)."""
+        if self.fe.paper:
+            return self.radius
+        return self.radius - (fz - self.fz_cal) / (3.0 * self.ty.kz_npm)
+
+    def _calibrate(
+        self,
+        gnss: tuple[float, float] | None,
+        fz: FloatArray,
+        delta: FloatArray,
+        yaw_rate: float,
+        ax: float,
+    ) -> None:
+        """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
+        ``calib_time_s`` average), allowing for the slip the resistances need."""
+        steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
+        if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
+            return
+        v_long, _ = self._wheel_velocity(gnss[0], gnss[1], yaw_rate, delta)
+        resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
+            self.ch.drag_area_m2 * gnss[0] ** 2
+        )
+        c_x = 2.0 * self.ty.c_px_npm2 * (2 * self.ty.unloaded_radius_m * fz / self.ty.kz_npm)
+        expect = resist * self.drive_share / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
+        self.calib_n += 1
+        gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
+        self.radius += gain * (measured - self.radius)
+        self.fz_cal += gain * (fz - self.fz_cal)
+        self.radius_std = np.maximum(
+            0.003 * self.radius / math.sqrt(self.calib_n), 2e-4 * self.radius
+        )
+
+    @property
+    def tyre_suspect(self) -> bool:
+        """A calibrated radius differs from the config's loaded one by more than
+        ``radius_tolerance``: that tyre's vertical stiffness (and so its brush stiffness) is not
+        what the config says (a soft or damaged tyre deflects more and rolls smaller)."""
+        if self.fe.paper or not self.calibrated:
+            return False
+        expected = self.ty.unloaded_radius_m - self.fz_cal / (3.0 * self.ty.kz_npm)
+        return bool(np.any(np.abs(self.radius / expected - 1.0) > self.fe.radius_tolerance))
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calib_n >= self.fe.calib_samples

@@ -1,0 +1,208 @@
+"""The friction fleet: batched equals per-vehicle, rows of its spec, the informed logic, the
+source's MEE step both ways, convergence on a model-generated case."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from estimator.base import FleetEstimator, Measurement
+from estimator.config import ConfigError, WheeledRearDriveConfig
+from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
+from estimator.friction.brush import brush_forces
+from estimator.friction.filter import (
+    TickInputs,
+    TyreArrays,
+    filter_step,
+    initial_state,
+    mu_of,
+)
+from estimator.friction.model import Chassis, body_accelerations
+from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
+from estimator.sim.four_wheel import (
+    FOUR_WHEEL_CONFIG,
+    LEAD_S,
+    FourWheelRun,
+    Manoeuvre,
+    simulate_four_wheel,
+)
+
+KMH = 1 / 3.6
+TURN = Manoeuvre(
+    "turn",
+    LEAD_S + 3.0,
+    ((0.0, 50 * KMH), (1e4, 50 * KMH)),
+    ((0.0, 0.0), (LEAD_S, 0.0), (LEAD_S + 0.3, math.radians(90)), (1e4, math.radians(90))),
+    ((0.0, 0.4), (1e4, 0.4)),
+)
+STRAIGHT = Manoeuvre(
+    "straight",
+    LEAD_S + 3.0,
+    ((0.0, 40 * KMH), (1e4, 40 * KMH)),
+    ((0.0, 0.0), (1e4, 0.0)),
+    ((0.0, 0.8), (1e4, 0.8)),
+)
+
+
+@pytest.fixture(scope="module")
+def runs() -> list[FourWheelRun]:
+    return simulate_four_wheel([TURN, STRAIGHT], seeds=[11, 12])
+
+
+def _drive(fleet: FrictionFleet, runs: list[FourWheelRun], ids: list[str]) -> dict[str, np.ndarray]:
+    """Feed each run's packets 100 ms at a time and advance the fleet's vehicles together."""
+    out: dict[str, list[np.ndarray]] = {i: [] for i in ids}
+    cursor = dict.fromkeys(ids, 0)
+    start = runs[0].start_ns
+    for now in range(start, start + 8_000_000_000, 100_000_000):
+        for vid, r in zip(ids, runs, strict=True):
+            ms = r.measurements
+            while cursor[vid] < len(ms) and _last(ms[cursor[vid]]) <= now:
+                fleet.push(vid, ms[cursor[vid]])
+                cursor[vid] += 1
+        for vid, rows in fleet.advance(dict.fromkeys(ids, now)):
+            assert rows.dtype is FRICTION_SPEC.dtype
+            out[vid].append(rows)
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def _last(m: Measurement) -> int:
+    st = m.stamp_ns
+    return int(st[-1]) if hasattr(st, "__len__") else int(st)
+
+
+@pytest.mark.parametrize("mode", [FrictionMode.PRODUCT, FrictionMode.PAPER])
+def test_batched_equals_per_vehicle(runs: list[FourWheelRun], mode: FrictionMode) -> None:
+    cfg = FrictionFleetConfig(filter=FilterConfig(mode=mode))
+    both = FrictionFleet(cfg)
+    for vid, r in zip(("a", "b"), runs, strict=True):
+        both.add_vehicle(vid, r.config)
+    batched = _drive(both, runs, ["a", "b"])
+    for vid, r in zip(("a", "b"), runs, strict=True):
+        alone = FrictionFleet(cfg)
+        alone.add_vehicle(vid, r.config)
+        single = _drive(alone, [r], [vid])[vid]
+        got = batched[vid]
+        assert got.shape == single.shape and got.size > 300
+        for name in FRICTION_SPEC.field_names:
+            a, b = got[name].astype(float), single[name].astype(float)
+            assert np.allclose(a, b, rtol=0, atol=1e-9, equal_nan=True), name
+
+
+def test_informed_logic_holds_the_last_informed_mu(runs: list[FourWheelRun]) -> None:
+    fleet = FrictionFleet()
+    assert isinstance(fleet, FleetEstimator)
+    for vid, r in zip(("turn", "straight"), runs, strict=True):
+        fleet.add_vehicle(vid, r.config)
+    rows = _drive(fleet, runs, ["turn", "straight"])
+    for vid in ("turn", "straight"):
+        got = rows[vid]
+        informed = (got["flags"] & FrictionFlag.INFORMED) > 0
+        held = (got["flags"] & FrictionFlag.HELD) > 0
+        assert np.all(informed ^ held)
+        assert np.all(np.isfinite(got["mu_std"][informed]))
+        assert np.all(got["mu_std"][informed] / got["mu"][informed] < 0.04)
+        assert np.all(np.isnan(got["mu_std"][held]))
+        last = math.nan
+        for mu, inf in zip(got["mu"], informed, strict=True):  # a held row repeats the last
+            if not inf:
+                assert (math.isnan(mu) and math.isnan(last)) or mu == last
+            last = mu
+    # straight constant speed: the tyres use little grip; μ is not informed
+    straight = rows["straight"]
+    assert np.mean((straight["flags"] & FrictionFlag.INFORMED) > 0) < 0.05
+
+
+def test_refuses_other_kinds() -> None:
+    with pytest.raises(ConfigError, match="wheeled_4wd_steered"):
+        FrictionFleet().add_vehicle("t", WheeledRearDriveConfig())
+
+
+def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chassis, TyreArrays]:
+    """Ticks whose measurements the filter's own model makes from random heavy slips: a rigid
+    body at 15 m/s turning at a random yaw rate, its lateral speed following
+    ``v̇_y = a_y − r v_x`` from the forces, gives each wheel its slip angle."""
+    rng = np.random.default_rng(seed)
+    cfg = FOUR_WHEEL_CONFIG
+    chassis = Chassis.of([cfg])
+    t = cfg.tyre
+    tyres = TyreArrays(
+        *(np.array([[v]]) for v in (t.kz_npm, t.unloaded_radius_m, t.c_px_npm2, t.c_py_npm2))
+    )
+    ticks = []
+    vy = 0.0
+    for _ in range(n):
+        fz = np.full((1, 4), 6000.0) + rng.normal(0, 300, (1, 4))
+        kappa = rng.uniform(0.0, 0.03, (1, 4))
+        vx, r = 15.0, 0.25 + rng.uniform(-0.05, 0.05)
+        delta = np.array([[0.05, 0.05, 0.0, 0.0]])
+        along = vx - chassis.wheel_y_m * r
+        across = vy + chassis.wheel_x_m * r
+        v_long = along * np.cos(delta) + across * np.sin(delta)
+        v_lat = -along * np.sin(delta) + across * np.cos(delta)
+        alpha = -np.arctan2(v_lat, v_long)
+        cx, cy = tyres.stiffness(fz)
+        fx, fy = brush_forces(kappa, alpha, fz, mu, cx, cy)
+        z = body_accelerations(fx[:, None], fy[:, None], delta[:, None], chassis)[:, 0]
+        tiny = np.full((1, 4), 1e-5)
+        vy_now = vy
+        vy += (float(z[0, 1]) - r * vx) * 0.02
+        ticks.append(
+            TickInputs(
+                fz_n=fz,
+                alpha_rad=alpha,
+                delta_rad=delta,
+                kappa=kappa,
+                kappa_std=tiny,
+                alpha_std_rad=tiny,
+                z=z,
+                valid=np.array([True]),
+                vx_mps=np.array([vx]),
+                yaw_rate_radps=np.array([r]),
+                vy_meas_mps=np.array([vy_now]),
+                vy_meas_std_mps=np.array([0.05]),
+            )
+        )
+    return ticks, chassis, tyres
+
+
+@pytest.mark.parametrize("mode", list(FrictionMode))
+def test_every_filter_finds_mu_from_its_own_model(mode: FrictionMode) -> None:
+    ticks, chassis, tyres = _model_inputs(0.45, 150, seed=3)
+    cfg = FilterConfig(mode=mode)
+    st = initial_state(cfg, tyres, ticks[0].fz_n)
+    for u in ticks:
+        st = filter_step(st, cfg, tyres, chassis, u)
+    assert mu_of(st.x[0, 0], mode) == pytest.approx(0.45, rel=0.02)
+    p = st.s[0] @ st.s[0].T
+    assert np.all(np.linalg.eigvalsh(p) > 0)
+
+
+def test_paper_mode_mee_both_ways() -> None:
+    """Consistent measurements: the MEE covariance is positive definite and used; an absurd
+    one leaves an entry without kernel weight: the standard SCKF step runs instead."""
+    ticks, chassis, tyres = _model_inputs(0.6, 2, seed=4)
+    cfg = FilterConfig(mode=FrictionMode.PAPER, mee_kernel_sigma=1.0)
+    st = initial_state(cfg, tyres, ticks[0].fz_n)
+    good = filter_step(st, cfg, tyres, chassis, ticks[0])
+    assert good.mee_ok[0] and good.updated[0]
+    u = ticks[1]
+    wild = dataclasses.replace(u, z=u.z + np.array([[400.0, -900.0, 2500.0]]))
+    bad = filter_step(good, cfg, tyres, chassis, wild)
+    assert bad.updated[0] and not bad.mee_ok[0]
+
+
+def test_a_soft_tyre_is_suspect_and_mu_not_informed() -> None:
+    """kz 50,000 N/m on the rear left (config: the nominal kz): its calibrated radius is far
+    from the config's, the rows say TYRE_SUSPECT and μ is never flagged informed."""
+    soft = dataclasses.replace(TURN, name="soft_turn", damaged_wheel=2)
+    run = simulate_four_wheel([soft], seeds=[13])[0]
+    fleet = FrictionFleet()
+    fleet.add_vehicle("soft", run.config)
+    rows = _drive(fleet, [run], ["soft"])["soft"]
+    late = rows["stamp_ns"] > run.start_ns + 3_000_000_000  # radius calibrated by then
+    assert np.all((rows["flags"][late] & FrictionFlag.TYRE_SUSPECT) > 0)
+    assert not np.any((rows["flags"] & FrictionFlag.INFORMED) > 0)

@@ -1,0 +1,36 @@
+"""The friction spec reads as every spec does: inputs the server knows, channels on fields."""
+
+from __future__ import annotations
+
+import json
+
+from estimator.base import STREAMS
+from estimator.friction_spec import FRICTION_DTYPE, FRICTION_SPEC, FrictionFlag
+
+
+def test_spec_is_consistent() -> None:
+    assert FRICTION_SPEC.dtype is FRICTION_DTYPE
+    assert set(FRICTION_SPEC.inputs) <= set(STREAMS)
+    assert FRICTION_SPEC.kinds == ("wheeled_4wd_steered",)
+    assert [s.position.value for s in FRICTION_SPEC.slips] == [
+        "front_left",
+        "front_right",
+        "rear_left",
+        "rear_right",
+    ]
+    assert FRICTION_SPEC.motion_field == "vx_mps"
+    assert FRICTION_SPEC.flag_mask("INFORMED") == FrictionFlag.INFORMED
+    assert FRICTION_SPEC.flag_names(int(FrictionFlag.HELD | FrictionFlag.GNSS_SPEED)) == [
+        "HELD",
+        "GNSS_SPEED",
+    ]
+    json.dumps(FRICTION_SPEC.to_dict())
+
+
+def test_every_field_has_a_unit_in_its_name() -> None:
+    suffix = {"_ns": "ns", "_n": "N", "_pct": "%", "_rad": "rad", "_mps": "m/s"}
+    for f in FRICTION_SPEC.fields:
+        for end, unit in suffix.items():
+            if f.name.endswith(end):
+                assert f.unit == unit, f.name
+    assert FRICTION_SPEC.field("mu").unit == ""
