@@ -51,6 +51,7 @@ class _Column:
     """One stream's samples as they are read: stamps, values (rows) and where each came from."""
 
     label: str
+    width: int
     stamp_ns: list[int] = field(default_factory=list)
     values: list[tuple[float, ...]] = field(default_factory=list)
     where: list[str] = field(default_factory=list)
@@ -66,8 +67,7 @@ class _Column:
         stamps = np.asarray(self.stamp_ns, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         stamps = stamps[order]
-        width = len(self.values[0]) if self.values else 0
-        values = np.asarray(self.values, dtype=np.float64).reshape(-1, width)[order]
+        values = np.asarray(self.values, dtype=np.float64).reshape(-1, self.width)[order]
         where = [self.where[int(i)] for i in order]
         repeat = np.flatnonzero(np.diff(stamps) == 0)
         if repeat.size:
@@ -80,8 +80,8 @@ class LogBuilder:
     """Collects samples of every stream in any order (see the module docstring)."""
 
     def __init__(self) -> None:
-        self._imu = _Column("IMU")
-        self._wheels = _Column("wheel-speed")
+        self._imu = _Column("IMU", 6)
+        self._wheels = _Column("wheel-speed", 2)
         self._gnss: list[tuple[GnssSample, str]] = []
 
     def add_imu(
@@ -215,11 +215,11 @@ def _gnss_packets(log: ImportedLog, key: str, seq0: int) -> list[_Made]:
     out = []
     for k, (g, where) in enumerate(zip(log.gnss, log.gnss_where, strict=True)):
         payload = encode_gnss(g, seq0 + k)
-        out.append(
-            _Made(
-                WirePacket(key, payload, g.stamp_ns, Stream.GNSS), [where], lambda i, p=payload: p
-            )
-        )
+
+        def alone(i: int, p: bytes = payload) -> bytes:
+            return p
+
+        out.append(_Made(WirePacket(key, payload, g.stamp_ns, Stream.GNSS), [where], alone))
     return out
 
 
@@ -235,11 +235,10 @@ def _refusal(made: _Made, prefix: str) -> str | None:
     for i, where in enumerate(made.where):
         try:
             decode(key, made.alone(i), prefix=prefix, max_payload_bytes=1 << 30)
-        except DecodeError as exc:
-            first = (where, exc)
+        except DecodeError as alone:
+            first = (where, alone)
             break
-    where, exc = first
-    return f"{where}: {made.packet.stream.value} sample refused ({exc})"
+    return f"{first[0]}: {made.packet.stream.value} sample refused ({first[1]})"
 
 
 def packets_of(
