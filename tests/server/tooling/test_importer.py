@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -142,3 +143,52 @@ def test_an_mcap_with_two_imu_topics_asks_which(tmp_path: Path) -> None:
     with pytest.raises(LogError, match=r"2 imu topics \(/imu/a, /imu/b\): choose one with"):
         read_log(path, "mcap", None, TopicChoice())
     assert read_log(path, "mcap", None, TopicChoice(imu="/imu/b")).counts() == {}
+
+
+def test_a_ros1_bag_reads_imu_in_the_product_frame_and_wheel_joints_by_name(
+    tmp_path: Path,
+) -> None:
+    import numpy as np
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    vec = T["geometry_msgs/msg/Vector3"]
+
+    def header(k: int) -> Any:
+        stamp = T0 + k * 10_000_000
+        time = T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9)
+        return T["std_msgs/msg/Header"](seq=k, stamp=time, frame_id="base_link")
+
+    path = tmp_path / "old.bag"
+    with Writer(path) as w:
+        imu = w.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=ts)
+        joints = w.add_connection("/joint_states", "sensor_msgs/msg/JointState", typestore=ts)
+        for k in range(3):
+            msg = T["sensor_msgs/msg/Imu"](
+                header=header(k),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.zeros(9),
+                angular_velocity=vec(x=0.01, y=0.02, z=0.3),  # ROS: x forward, y left
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=vec(x=1.0, y=-0.5, z=9.8),
+                linear_acceleration_covariance=np.zeros(9),
+            )
+            w.write(imu, T0 + k, ts.serialize_ros1(msg, "sensor_msgs/msg/Imu"))
+            js = T["sensor_msgs/msg/JointState"](
+                header=header(k),
+                name=["steer", "wheel_r", "wheel_l"],
+                position=np.zeros(3),
+                velocity=np.array([9.0, 2.0 + k, 1.0 + k]),
+                effort=np.zeros(0),
+            )
+            w.write(joints, T0 + k, ts.serialize_ros1(js, "sensor_msgs/msg/JointState"))
+    choice = TopicChoice(wheel_joints=("wheel_l", "wheel_r"))
+    log = read_log(path, "rosbag", None, choice)
+    assert log.imu.stamp_ns.tolist() == [T0, T0 + 10_000_000, T0 + 20_000_000]
+    assert log.imu.accel_mps2[0].tolist() == [0.5, 1.0, 9.8]  # X right, Y forward, Z up
+    assert log.imu.gyro_radps[0].tolist() == [-0.02, 0.01, 0.3]
+    assert log.wheels.omega_radps.tolist() == [[1.0, 2.0], [2.0, 3.0], [3.0, 4.0]]
+    with pytest.raises(LogError, match=r"message \d on /joint_states: no left and right wheel"):
+        read_log(path, "rosbag", None, TopicChoice())
