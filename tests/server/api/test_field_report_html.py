@@ -52,7 +52,9 @@ def test_colours_run_green_yellow_red() -> None:
     assert slip_colour(float("nan"), (5.0, 15.0)) == "#cccccc"
 
 
-def test_a_vehicle_without_position_gets_a_page_without_map(client: ApiClient, store: Store) -> None:
+def test_a_vehicle_without_position_gets_a_page_without_map(
+    client: ApiClient, store: Store
+) -> None:
     assert client.put("/api/v1/vehicles/t2", json={}).status_code == 201
     rows = placed_series()
     rows["east_m"] = float("nan")

@@ -192,3 +192,45 @@ def test_a_ros1_bag_reads_imu_in_the_product_frame_and_wheel_joints_by_name(
     assert log.wheels.omega_radps.tolist() == [[1.0, 2.0], [2.0, 3.0], [3.0, 4.0]]
     with pytest.raises(LogError, match=r"message \d on /joint_states: no left and right wheel"):
         read_log(path, "rosbag", None, TopicChoice())
+
+
+def _import_csv(path: Path, monkeypatch: pytest.MonkeyPatch, **env: str) -> int:
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    return main(["import", str(path), "--vehicle", "csv-drive"])
+
+
+def _stored_rows(**storage: Any) -> Any:
+    from server.settings import Settings
+    from server.storage import open_store
+
+    store = open_store(Settings(storage=storage).storage)
+    try:
+        return store.query_series("csv-drive", 0, 2**62)
+    finally:
+        store.close()
+
+
+@pytest.mark.postgres
+def test_import_into_postgresql_matches_sqlite_and_a_second_import_adds_nothing(
+    tmp_path: Path, pg_database_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import time
+
+    import numpy as np
+
+    from tests.server.tooling.import_drive import make_drive, write_csv
+
+    path = tmp_path / "drive.csv"
+    write_csv(make_drive(time.time_ns() - 600 * 10**9), path)
+    sqlite_dir = str(tmp_path / "sqlite")
+    assert _import_csv(path, monkeypatch, SLIPFLEET_STORAGE__DATA_DIR=sqlite_dir) == 0
+    assert _import_csv(path, monkeypatch, SLIPFLEET_STORAGE__URL=pg_database_url) == 0
+    on_sqlite = _stored_rows(data_dir=sqlite_dir)
+    on_pg = _stored_rows(url=pg_database_url)
+    assert len(on_pg) == len(on_sqlite) > 300
+    for name in on_sqlite.dtype.names:
+        np.testing.assert_allclose(on_pg[name], on_sqlite[name], rtol=1e-9, err_msg=name)
+    # the same log again: its estimates are those already stored, which the store keeps once
+    assert _import_csv(path, monkeypatch, SLIPFLEET_STORAGE__URL=pg_database_url) == 0
+    assert len(_stored_rows(url=pg_database_url)) == len(on_pg)
