@@ -27,6 +27,10 @@ CELL_M = (10.0, 50.0, 250.0)
 MAX_POINTS = 1500
 
 
+def _band(lower_pct: float, upper_pct: float | None) -> str:
+    return f"≥ {lower_pct:g} %" if upper_pct is None else f"{lower_pct:g}–{upper_pct:g} %"
+
+
 def _facts(vehicle_id: str, spec: EstimatorSpec, r: VehicleReport) -> list[tuple[str, str]]:
     def num(value: float | None, unit: str, digits: int = 1) -> str:
         return "–" if value is None else f"{value:.{digits}f} {unit}"
@@ -43,7 +47,7 @@ def _facts(vehicle_id: str, spec: EstimatorSpec, r: VehicleReport) -> list[tuple
     ]
     for s in r.slips.values():
         bands = ", ".join(
-            f"{b.lower_pct:g}–{'' if b.upper_pct is None else f'{b.upper_pct:g}'} %: "
+            f"{_band(b.lower_pct, b.upper_pct)}: "
             f"{'–' if b.share is None else f'{100 * b.share:.0f} %'}"
             for b in s.bands
         )

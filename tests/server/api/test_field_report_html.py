@@ -42,6 +42,8 @@ def test_the_page_stands_alone_with_map_and_charts(client: ApiClient, store: Sto
     json_report = client.get(f"/api/v1/vehicles/t1/report?start={T0}&end={T0 + 10 * S}").json()
     left = json_report["report"]["slips"]["left"]
     assert f"mean {left['mean_pct']:.1f} %" in page
+    top = left["bands"][-1]
+    assert f"≥ 15 %: {100 * top['share']:.0f} %" in page
     assert f"{json_report['report']['distance_m']:.0f} m" in page
 
 
