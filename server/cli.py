@@ -8,6 +8,7 @@ Subcommands::
     slipfleet replay   PATH [--rate X] [--connect ENDPOINT] [--as ID] [--shift auto|S] [--api URL]
     slipfleet record   PATH --scenario NAME --duration S [--vehicles N]
     slipfleet record   PATH --live [--connect ENDPOINT] [--duration S]
+    slipfleet import   PATH --vehicle ID [--format csv|parquet|mcap|rosbag] [--dry-run] [--map FILE]
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
                                           wheels frontend advance publisher ingest pipeline
@@ -202,6 +203,29 @@ def _cmd_record(args: argparse.Namespace) -> int:
     duration_s = 60.0 if args.duration is None else args.duration
     record(args.path, vehicles=args.vehicles, scenario=args.scenario, duration_s=duration_s)
     return 0
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from server.tooling.importer import ImportRequest, import_command
+    from server.tooling.importer_bags import TopicChoice
+
+    request = ImportRequest(
+        path=args.path,
+        vehicle_id=args.vehicle,
+        fmt=args.format,
+        dry_run=args.dry_run,
+        column_map=args.map,
+        topics=TopicChoice(
+            imu=args.imu_topic,
+            fix=args.fix_topic,
+            vel=args.vel_topic,
+            wheels=args.wheels_topic,
+            wheel_joints=args.wheel_joints,
+        ),
+        vehicle_config=args.vehicle_config,
+        batch=args.batch,
+    )
+    return import_command(_settings(args), request)
 
 
 def _cmd_loadtest(args: argparse.Namespace) -> int:
@@ -429,6 +453,78 @@ def _add_record(sub: Any) -> None:
     rec.set_defaults(func=_cmd_record)
 
 
+def _log_path(text: str) -> Path:
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"no log file or bag directory {text!r}")
+    return path
+
+
+def _joints(text: str) -> tuple[str, str]:
+    left, sep, right = text.partition(",")
+    if not sep or not left or not right or "," in right:
+        raise argparse.ArgumentTypeError("LEFT,RIGHT: the two wheel joints' names")
+    return left, right
+
+
+def _batch(text: str) -> int:
+    value = int(_positive(text))
+    if value != float(text) or value > 10_000:
+        raise argparse.ArgumentTypeError("a whole number of samples, 1-10000")
+    return value
+
+
+def _add_import(sub: Any) -> None:
+    i = sub.add_parser(
+        "import",
+        help="read a log of another system (CSV, Parquet, MCAP, ROS bag) into the store, "
+        "through the estimators, with its original timestamps (docs/import.md)",
+    )
+    i.add_argument("path", type=_log_path, help="log file, or a ROS 2 bag's directory")
+    i.add_argument("--vehicle", required=True, type=_vehicle_id, help="vehicle id to store under")
+    i.add_argument(
+        "--format",
+        choices=("csv", "parquet", "mcap", "rosbag"),
+        default=None,
+        help="default: by the name (.csv, .parquet, .mcap, .bag or a directory)",
+    )
+    i.add_argument("--dry-run", action="store_true", help="read and check, print what it holds")
+    i.add_argument(
+        "--map", type=Path, default=None, metavar="FILE", help="CSV/Parquet column map (TOML/JSON)"
+    )
+    i.add_argument(
+        "--vehicle-config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the vehicle's config (JSON, as REST takes it); default: its stored one, else "
+        "the rear-drive defaults",
+    )
+    i.add_argument(
+        "--batch", type=_batch, default=10, help="IMU and wheel samples per packet (default 10)"
+    )
+    for role, what in (
+        ("imu", "sensor_msgs/Imu"),
+        ("fix", "sensor_msgs/NavSatFix"),
+        ("vel", "GNSS velocity (TwistWithCovarianceStamped or TwistStamped, ENU)"),
+        ("wheels", "sensor_msgs/JointState of the wheels"),
+    ):
+        i.add_argument(
+            f"--{role}-topic",
+            default=None,
+            metavar="TOPIC",
+            help=f"MCAP/bag topic of {what} (default: the only one)",
+        )
+    i.add_argument(
+        "--wheel-joints",
+        type=_joints,
+        default=None,
+        metavar="LEFT,RIGHT",
+        help="JointState names of the driven wheels (default: the joints named left and right)",
+    )
+    i.set_defaults(func=_cmd_import)
+
+
 def _add_token(sub: Any) -> None:
     t = sub.add_parser("token", help="REST access tokens in the configured store")
     tsub = t.add_subparsers(dest="token_command", required=True)
@@ -459,6 +555,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_replay(sub)
     _add_record(sub)
+    _add_import(sub)
 
     lt = sub.add_parser("loadtest", help="simulated fleet against a server process, measured")
     _loadtest_arguments(lt)

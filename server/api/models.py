@@ -69,7 +69,7 @@ __all__ = [
 ]
 
 SeriesFormat = Literal["json", "csv", "parquet", "geojson"]
-SlipMapFormat = Literal["json", "geojson", "csv"]
+SlipMapFormat = Literal["json", "geojson", "csv", "isoxml"]
 
 
 def _inline_refs(schema: dict[str, Any], *, closed: bool) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from server.api.deps import (
     vehicle_estimators,
 )
 from server.api.errors import error_responses
+from server.api.field_report import html_report, html_response
 from server.api.models import FleetReportPublic, VehicleReportPublic
 from server.api.routes.series import export_filename
 from server.api.tables import csv_table
@@ -92,6 +93,10 @@ def _primary(record: VehicleRecord) -> EstimatorSpec | None:
 _NO_SLIP = min(SPECS.values(), key=lambda spec: len(spec.slips))
 
 ReportFormat = Annotated[Literal["json", "csv"], Query(description="Answer format")]
+VehicleReportFormat = Annotated[
+    Literal["json", "csv", "html"],
+    Query(description="Answer format; html: one self-contained page with the map and charts"),
+]
 
 
 @router.get(
@@ -101,7 +106,10 @@ ReportFormat = Annotated[Literal["json", "csv"], Query(description="Answer forma
         200: {
             "description": "The vehicle's report; CSV: one row, the columns of the fleet "
             "report's CSV.",
-            "content": {"text/csv": {"schema": {"type": "string"}}},
+            "content": {
+                "text/csv": {"schema": {"type": "string"}},
+                "text/html": {"schema": {"type": "string"}},
+            },
         },
         **error_responses(400, 404, 422),
     },
@@ -114,10 +122,13 @@ def get_vehicle_report(
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
-    format: ReportFormat = "json",
+    format: VehicleReportFormat = "json",
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     report = _report(store, vehicle, spec, tr, limits.report_max_gap_s)
+    if format == "html":
+        page = html_report(store, vehicle, spec, tr, limits, report.report)
+        return html_response(page, export_filename(f"{vehicle.vehicle_id}_report", tr, "html"))
     if format == "csv":
         name = export_filename(f"{vehicle.vehicle_id}_report", tr, "csv")
         return _csv_response([report], name)

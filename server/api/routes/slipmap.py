@@ -24,6 +24,7 @@ from estimator.catalog import SPECS
 from estimator.config import SlipConfig
 from estimator.geo import EnuFrame
 from estimator.spec import EstimatorSpec
+from server.analytics.isoxml_grid import slipmap_taskdata
 from server.analytics.reports import check_band_edges
 from server.analytics.slipmap import (
     CellSums,
@@ -104,7 +105,10 @@ of the cell on the frame's horizontal plane, counter-clockwise from the south-we
 statistics as flat properties (`slip_<k>_valid_s`, `slip_<k>_mean_pct` per slip channel, band
 shares as `slip_share_<label>`), no features while there is no
 {origin_short}; `csv`: one row per cell, the same columns plus the cell centre's
-`center_lat_deg`, `center_lon_deg` (empty without {origin_short_a}).
+`center_lat_deg`, `center_lon_deg` (empty without {origin_short_a}); `isoxml`: an ISO 11783-10
+TASKDATA zip with one type-2 grid over the cells' bounding box, each value the cell's mean
+`|slip|` in ppm (1 % = 10,000; 0 where none) under the proprietary DDI 0xE000 (400 without
+{origin_short_a} or without a cell).
 """
 
 SLIPMAP_DESCRIPTION = (
@@ -168,10 +172,12 @@ samples in it:
 
 _RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
-        "description": "The map: JSON, GeoJSON (one Polygon per cell) or CSV (one row per cell).",
+        "description": "The map: JSON, GeoJSON (one Polygon per cell), CSV (one row per "
+        "cell) or an ISOXML TASKDATA zip (one grid).",
         "content": {
             GEOJSON_MEDIA_TYPE: {"schema": {"type": "object"}},
             "text/csv": {"schema": {"type": "string"}},
+            "application/zip": {"schema": {"type": "string", "format": "binary"}},
         },
     },
     **error_responses(400, 404, 422),
@@ -301,6 +307,19 @@ def _csv(
     return csv_table(columns, rows)
 
 
+def _isoxml(smap: SlipMap, frame: EnuFrame | None, name: str) -> Response:
+    """The map as an ISOXML grid in a TASKDATA zip (:mod:`server.analytics.isoxml_grid`)."""
+    if frame is None:
+        raise BadRequest("an ISOXML grid needs the map placed: no anchor (GNSS fix) stored yet")
+    if smap.cells == 0:
+        raise BadRequest("no cell in the range: nothing to put in an ISOXML grid")
+    return Response(
+        slipmap_taskdata(smap, frame, designator=name),
+        media_type="application/zip",
+        headers={"Content-Disposition": f'attachment; filename="{name}_taskdata.zip"'},
+    )
+
+
 def _answer(
     body: SlipMapPublic | FleetSlipMapPublic,
     smap: SlipMap,
@@ -313,6 +332,8 @@ def _answer(
     file's name; its columns are the fields of ``body``'s cell model."""
     if format == "json":
         return Response(body.model_dump_json(), media_type="application/json")
+    if format == "isoxml":
+        return _isoxml(smap, frame, download.rsplit(".", 1)[0])
     if format == "geojson":
         head = body.model_dump(mode="json", exclude={"cells"})
         return Response(_geojson(head, smap, cells, frame), media_type=GEOJSON_MEDIA_TYPE)

@@ -249,6 +249,7 @@ def test_openapi_states_the_rules(client: ApiClient) -> None:
         "application/json",
         "application/geo+json",
         "text/csv",
+        "application/zip",
     }
     assert {"400", "404", "422"} <= set(op["responses"])
     for text in ("time_s = Σ w", "shared", "no_anchor", "band_edges_source", "id order"):

@@ -191,6 +191,7 @@ def test_openapi_states_the_formats_and_formulas(client: ApiClient) -> None:
         "application/json",
         "application/geo+json",
         "text/csv",
+        "application/zip",
     }
     assert "time_s = Σ w" in op["description"]
     assert "mean_abs_slip_pct = Σ w · |slip| / Σ w" in op["description"]
