@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from types import MappingProxyType
 
+from estimator.friction_spec import FRICTION_SPEC
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.spec import EstimatorSpec
@@ -16,7 +17,7 @@ from estimator.spec import EstimatorSpec
 __all__ = ["SPECS", "spec_of"]
 
 SPECS: Mapping[str, EstimatorSpec] = MappingProxyType(
-    {s.name: s for s in (MDSF_SPEC, REFERENCE_SPEED_SPEC)}
+    {s.name: s for s in (MDSF_SPEC, REFERENCE_SPEED_SPEC, FRICTION_SPEC)}
 )
 
 

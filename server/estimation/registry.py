@@ -6,6 +6,7 @@ an estimator nobody runs::
 
     "mdsf"             -> estimator.mdsf.MdsfFleet                  (ESTIMATE_DTYPE rows)
     "reference_speed"  -> estimator.reference_fleet.ReferenceSpeedFleet
+    "friction"         -> estimator.friction.fleet.FrictionFleet
 
 An estimator's name is its spec's name (checked when it is built): storage, REST and live
 views key its rows by it.
@@ -17,7 +18,7 @@ A vehicle runs ``config.estimators`` when that is non-empty, otherwise its kind'
     ============================  ===================================================
     ``wheeled_rear_drive``        ``("mdsf",)``
     ``tracked``                   none yet (a track-slip estimator is planned)
-    ``wheeled_4wd_steered``       none yet (a steered-4WD estimator is planned)
+    ``wheeled_4wd_steered``       ``("friction",)``
     ============================  ===================================================
 
 The first one is the vehicle's *primary* (REST's default). :meth:`EstimatorRegistry.advance`
@@ -78,15 +79,23 @@ def _reference_speed() -> FleetEstimator:
     return fleet
 
 
+def _friction() -> FleetEstimator:
+    from estimator.friction.fleet import FrictionFleet  # lazy, as MDSF
+
+    fleet: FleetEstimator = FrictionFleet()
+    return fleet
+
+
 DEFAULT_FACTORIES: Mapping[str, EstimatorFactory] = {
     "mdsf": _mdsf,
     "reference_speed": _reference_speed,
+    "friction": _friction,
 }
 
 KIND_DEFAULTS: Mapping[VehicleKind, tuple[str, ...]] = {
     VehicleKind.WHEELED_REAR_DRIVE: ("mdsf",),
     VehicleKind.TRACKED: (),
-    VehicleKind.WHEELED_4WD_STEERED: (),
+    VehicleKind.WHEELED_4WD_STEERED: ("friction",),
 }
 
 

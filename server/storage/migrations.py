@@ -5,7 +5,8 @@ PostgreSQL: SQL statements, or a Python function given the same ``execute`` (for
 statement cannot convert, such as packing SQLite rows in version 6). Applied versions are
 recorded in ``schema_version``. A migration is frozen once released: later schema changes are
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
-(:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`); tests compare them with
+(:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
+:data:`FRICTION_FIELDS_V12`); tests compare them with
 today's specs, and the stores refuse a spec that no longer matches its recorded table, so a
 spec change forces a new migration.
 
@@ -16,7 +17,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 11):
+Schema (version 12):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -27,7 +28,8 @@ Schema (version 11):
     tables of each estimator's rows and the field list they were made from; a store refuses a
     spec whose fields differ. MDSF's are ``estimates`` below; every other estimator's are made
     by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
-    ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``).
+    ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
+    ``reference_speed`` since version 10, ``friction`` since version 12.
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -76,6 +78,7 @@ from estimator.config import VehicleKind, upgrade_legacy_config
 
 __all__ = [
     "ADVISORY_LOCK_KEY",
+    "FRICTION_FIELDS_V12",
     "MIGRATIONS",
     "REFERENCE_SPEED_FIELDS_V10",
     "SQLITE_PACKED_FIELDS",
@@ -549,6 +552,22 @@ def _v10(dialect: str) -> tuple[Step, ...]:
     )
 
 
+#: The friction row as version 12 made its table (``FRICTION_SPEC``'s fields).
+FRICTION_FIELDS_V12: tuple[tuple[str, str], ...] = (
+    ("stamp_ns", "i8"),
+    ("mu", "f8"),
+    ("mu_std", "f8"),
+    ("mu_filter", "f8"),
+    ("vx_mps", "f8"),
+    ("vy_mps", "f8"),
+    *(
+        (f"{quantity}_{wheel}_{unit}", "f8")
+        for wheel in ("fl", "fr", "rl", "rr")
+        for quantity, unit in (("fz", "n"), ("slip", "pct"), ("alpha", "rad"), ("util", "pct"))
+    ),
+    ("flags", "i4"),
+)
+
 
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
@@ -599,6 +618,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         _v10("postgresql"),
     ),
     Migration(11, "vehicle configs by kind", _V11_SQLITE, _V11_POSTGRESQL),
+    Migration(
+        12,
+        "the friction estimator's tables",
+        estimator_table_steps("friction", "estimates_friction", FRICTION_FIELDS_V12, "sqlite"),
+        estimator_table_steps("friction", "estimates_friction", FRICTION_FIELDS_V12, "postgresql"),
+    ),
 )
 
 _VERSION_TABLE = {

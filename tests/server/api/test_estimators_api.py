@@ -130,7 +130,9 @@ def test_openapi_describes_each_estimator(client: ApiClient) -> None:
     latest = spec["paths"]["/api/v1/vehicles/{vehicle_id}/latest"]["get"]
     one_of = latest["responses"]["200"]["content"]["application/json"]["schema"]["oneOf"]
     names = {ref["$ref"].rsplit("/", 1)[1] for ref in one_of}
-    assert names == {"EstimateMdsfPublic", "EstimateReferenceSpeedPublic"}
+    camel = {name: "".join(w.title() for w in name.split("_")) for name in SPECS}
+    assert names == {f"Estimate{c}Public" for c in camel.values()}
+    assert {"EstimateMdsfPublic", "EstimateReferenceSpeedPublic", "EstimateFrictionPublic"} <= names
     ref_model = spec["components"]["schemas"]["EstimateReferenceSpeedPublic"]["properties"]
     assert "m/s" in ref_model["speed_mps"]["description"]
     for path in ("report", "slipmap", "latest", "series"):

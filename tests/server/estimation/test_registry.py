@@ -67,7 +67,7 @@ def _registry(
 def test_defaults_per_kind_and_a_factory_per_spec() -> None:
     assert estimator_names_for(WheeledRearDriveConfig()) == ("mdsf",)
     assert estimator_names_for(TrackedConfig()) == ()
-    assert estimator_names_for(Wheeled4wdSteeredConfig()) == ()
+    assert estimator_names_for(Wheeled4wdSteeredConfig()) == ("friction",)
     assert set(KIND_DEFAULTS) == set(VehicleKind)
     assert set(DEFAULT_FACTORIES) == set(SPECS)
 

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from estimator.catalog import SPECS
+from estimator.friction_spec import FRICTION_SPEC
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.spec import EstimatorSpec, FieldSpec
 from server.storage import StorageDataError, StorageError, Store
 from server.storage._columns import spec_fields
 from server.storage.migrations import (
+    FRICTION_FIELDS_V12,
     REFERENCE_SPEED_FIELDS_V10,
     SQLITE_PACKED_FIELDS,
     estimator_table_steps,
@@ -51,13 +53,17 @@ def test_frozen_field_lists_match_the_specs() -> None:
     """A spec change must come with a migration that converts its table."""
     assert spec_fields(MDSF_SPEC) == SQLITE_PACKED_FIELDS
     assert spec_fields(REF) == REFERENCE_SPEED_FIELDS_V10
+    assert spec_fields(FRICTION_SPEC) == FRICTION_FIELDS_V12
 
 
 def test_every_catalog_spec_has_its_tables(store: Store) -> None:
-    assert set(SPECS) == {"mdsf", "reference_speed"}
+    assert set(SPECS) == {"mdsf", "reference_speed", "friction"}
     _register(store, "v1")
     for spec in SPECS.values():
         assert store.query_series("v1", 0, 2**62, estimator=spec.name).dtype == spec.dtype
+        rows = make_spec_rows(spec, 30, T0_NS, seed=3)
+        assert store.write_estimates(batch_of(spec, {"v1": rows})) == 30
+        assert_rows_equal(store.query_series("v1", 0, 2**62, estimator=spec.name), rows)
 
 
 def test_two_estimators_of_one_vehicle_round_trip(store: Store) -> None:

@@ -291,7 +291,7 @@ def test_stored_configs_move_to_the_shape_of_their_kind(
     }
     for vid, config in old.items():
         store.upsert_vehicle(vid, config, now_ns=1)
-    assert store.migrate() == 11 == latest_version()
+    assert store.migrate() == latest_version() >= 11
     new = {vid: store.get_vehicle(vid).config for vid in old}  # type: ignore[union-attr]
 
     assert new["rear"] == _V9_REAR  # the rear-drive shape did not change
@@ -308,5 +308,5 @@ def test_stored_configs_move_to_the_shape_of_their_kind(
     assert utility.chassis.front_track_m == utility.chassis.rear_track_m == 1.9
     assert utility.tyre.unloaded_radius_m == pytest.approx(0.85)
     assert utility.estimators == ("mdsf",)
-    assert store.migrate() == 11  # a second run changes nothing
+    assert store.migrate() == latest_version()  # a second run changes nothing
     assert store.get_vehicle("crawler").config == new["crawler"]  # type: ignore[union-attr]
