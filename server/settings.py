@@ -140,7 +140,55 @@ class IngestSettings(BaseModel):
             "together (fewer, larger bursts cost less CPU per packet); 0 = decode what is there"
         ),
     )
-    max_payload_bytes: int = Field(256 * 1024, ge=1024)
+    max_payload_bytes: int = Field(
+        256 * 1024,
+        ge=1024,
+        description=(
+            "larger sensor payloads are refused (rejected_oversize) from their length, before "
+            "they are copied out of Zenoh, and never stored raw"
+        ),
+    )
+    queue_max_bytes: int = Field(
+        64 * 1024 * 1024,
+        ge=1024 * 1024,
+        description=(
+            "undecoded payload bytes waiting for the pipeline, all vehicles together; beyond "
+            "it the ingest thread waits (backpressure to Zenoh), as for the packet bound"
+        ),
+    )
+    vehicle_max_bytes_per_s: int = Field(
+        1024 * 1024,
+        ge=0,
+        description=(
+            "payload bytes per second one vehicle may send (a token bucket of "
+            "vehicle_burst_bytes); packets beyond it are refused as rejected_over_rate and "
+            "not stored raw; 0 = no limit. A vehicle sends some kB/s"
+        ),
+    )
+    vehicle_burst_bytes: int = Field(
+        16 * 1024 * 1024,
+        ge=0,
+        description=(
+            "the byte-rate bucket's size: what a vehicle may send at once above its rate "
+            "(a backlog forwarded after a connectivity outage)"
+        ),
+    )
+    max_vehicles: int = Field(
+        20_000,
+        ge=1,
+        description=(
+            "unknown_vehicle = auto registers no more vehicles once this many are running; "
+            "their packets are refused as rejected_registration_cap"
+        ),
+    )
+    max_registrations_per_min: int = Field(
+        600,
+        ge=1,
+        description=(
+            "unknown_vehicle = auto registers at most this many vehicles a minute (a storm of "
+            "new ids is refused as rejected_registration_cap, the ids are not kept)"
+        ),
+    )
     max_future_s: float = Field(
         600.0,
         gt=0,

@@ -67,8 +67,15 @@ from server.estimation.registry import (
 )
 from server.ingest.adapter import fed, wheel_gaps
 from server.ingest.counters import IngestCounters
+from server.ingest.limits import ByteBudget, refusal_errors
 from server.ingest.reorder import ReorderBuffer, StreamGap, Verdict
-from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
+from server.ingest.subscriber import (
+    ConfigUpdate,
+    IngestItem,
+    IngestSubscriber,
+    RawPacket,
+    Refusal,
+)
 from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet
 from server.protocol.keys import Stream
@@ -125,16 +132,19 @@ PIPELINE_REASONS: tuple[str, ...] = (
     "clock_skew",  # stamps outside [wall clock - max_past_s, wall clock + max_future_s]
     "clock_jump",  # sensor time jumped within the stream (not confirmed yet) or within a packet
     "unknown_vehicle",  # no config and unknown_vehicle = "reject"
+    "over_rate",  # the vehicle's payload bytes per second (ingest.vehicle_max_bytes_per_s)
+    "registration_cap",  # auto-registration's cap (ingest.max_vehicles, per-minute rate)
 )
 
 
 class _Raw:
     """An undecoded burst in the pipeline's queue: ``[(key, payload), ...]``."""
 
-    __slots__ = ("received",)
+    __slots__ = ("nbytes", "received")
 
-    def __init__(self, received: list[tuple[str, bytes]]) -> None:
+    def __init__(self, received: list[tuple[str, bytes]], nbytes: int | None = None) -> None:
         self.received = received
+        self.nbytes = sum(len(p) for _, p in received) if nbytes is None else nbytes
 
     def __len__(self) -> int:
         return len(self.received)
@@ -209,6 +219,7 @@ class Pipeline:
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
         self._queue: queue.Queue[_QueueItem] = queue.Queue(maxsize=QUEUE_BURSTS)
+        self._queued_bytes = ByteBudget(settings.ingest.queue_max_bytes)  # undecoded _Raw
         self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
         # (op, vehicle_id, config | anchor | None, notify), op "add", "anchor" or "remove"
         self._control: deque[tuple[str, str, VehicleConfig | Anchor | None, bool]] = deque()
@@ -236,7 +247,9 @@ class Pipeline:
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
         self._subscriber = (
-            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink)
+            IngestSubscriber(
+                session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink, self.refuse
+            )
             if session is not None
             else None
         )
@@ -310,29 +323,55 @@ class Pipeline:
         the thread that receives them, keeps the two from taking turns on the interpreter lock
         for every burst.
         """
-        self._put(_Raw(received))
+        raw = _Raw(received)
+        if raw and self._wait_for_bytes(raw.nbytes):
+            self._put(raw)
+        elif raw:
+            self._dropped_not_running(len(raw))
+
+    def refuse(self, refused: list[Refusal]) -> None:
+        """Count packets the subscriber refused before copying them (``(key, reason)``)."""
+        items: list[IngestItem] = [*refusal_errors(refused, self._settings.zenoh.key_prefix)]
+        self._put(items)
+
+    def _running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive() and not self._stopping.is_set()
+
+    def _wait_for_bytes(self, nbytes: int) -> bool:
+        """Hold ``nbytes`` of the undecoded-bytes budget, waiting while it is spent (False:
+        the pipeline stopped meanwhile)."""
+        while self._running():
+            if self._queued_bytes.acquire(nbytes, timeout_s=0.5):
+                return True
+        return False
 
     def _put(self, items: list[IngestItem] | _Raw) -> None:
         if not items:
             return
         received_ns = self._clock()
-        while self._thread is not None and self._thread.is_alive() and not self._stopping.is_set():
+        while self._running():
             try:
                 self._queue.put((received_ns, items), timeout=0.5)
                 return
             except queue.Full:
                 continue
-        self._stats["dropped_not_running"] += len(items)
-        log.error("pipeline not running: dropped %d ingest items", len(items))
+        self._dropped_not_running(len(items))
+
+    def _dropped_not_running(self, n: int) -> None:
+        self._stats["dropped_not_running"] += n
+        log.error("pipeline not running: dropped %d ingest items", n)
 
     def _decoded(self, items: list[IngestItem] | _Raw) -> list[IngestItem]:
         if not isinstance(items, _Raw):
             return items
-        return decode_burst(
-            items.received,
-            prefix=self._settings.zenoh.key_prefix,
-            max_payload_bytes=self._ingest.max_payload_bytes,
-        )
+        try:
+            return decode_burst(
+                items.received,
+                prefix=self._settings.zenoh.key_prefix,
+                max_payload_bytes=self._ingest.max_payload_bytes,
+            )
+        finally:
+            self._queued_bytes.release(items.nbytes)
 
     def register_vehicle(
         self, vehicle_id: str, config: VehicleConfig, *, notify: bool = False
@@ -390,6 +429,8 @@ class Pipeline:
             **self._stats,
             "queue_bursts": self._queue.qsize(),
             "queue_capacity": QUEUE_BURSTS,
+            "queue_bytes": self._queued_bytes.held,
+            "queue_bytes_peak": self._queued_bytes.peak,
             "last_tick_ms": round(self._last_tick_s * 1000, 3),
             "running": self._thread is not None and self._thread.is_alive(),
             **{f"cpu_{phase}_s": seconds for phase, seconds in self._cpu_s.items()},
@@ -478,6 +519,7 @@ class Pipeline:
         joined burst. An item that cannot be joined is held for the next turn."""
         parts = [raw.received]
         n = len(raw)
+        nbytes = raw.nbytes
         while n < COALESCE_PACKETS and not self._held:
             try:
                 nxt = self._queue.get_nowait()
@@ -489,9 +531,10 @@ class Pipeline:
             received_ns = nxt[0]
             parts.append(nxt[1].received)
             n += len(nxt[1])
+            nbytes += nxt[1].nbytes
         if len(parts) == 1:
             return received_ns, raw
-        return received_ns, _Raw([p for part in parts for p in part])
+        return received_ns, _Raw([p for part in parts for p in part], nbytes)
 
     def _next_tick_ns(self, scheduled_ns: int, now: int, spent_ns: int) -> int:
         """When the tick after the one ``scheduled_ns`` (started at ``now``, ``spent_ns`` long)
