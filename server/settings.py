@@ -273,6 +273,25 @@ class ApiSettings(BaseModel):
             "(viewer < operator < admin); off only for the loopback demo and tests"
         ),
     )
+    heavy_per_token: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description=(
+            "reports, slip maps and series exports one caller (token) may run at once; "
+            "more are answered 429 with Retry-After"
+        ),
+    )
+    heavy_per_route: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description=(
+            "requests of one such route running at once, all callers together (each holds a "
+            "worker thread of the 40 the API shares); more are answered 429 with Retry-After"
+        ),
+    )
+    retry_after_s: int = Field(1, ge=1, le=3600, description="Retry-After of a 429 answer")
 
 
 class ViewerSettings(BaseModel):
