@@ -177,16 +177,17 @@ class IngestSettings(BaseModel):
         20_000,
         ge=1,
         description=(
-            "unknown_vehicle = auto registers no more vehicles once this many are running; "
-            "their packets are refused as rejected_registration_cap"
+            "no vehicle registers itself (by its first packet, or by publishing its config) "
+            "once this many are running; packets are refused as rejected_registration_cap"
         ),
     )
     max_registrations_per_min: int = Field(
         600,
         ge=1,
         description=(
-            "unknown_vehicle = auto registers at most this many vehicles a minute (a storm of "
-            "new ids is refused as rejected_registration_cap, the ids are not kept)"
+            "unknown_vehicle = auto registers at most this many vehicles a minute by their "
+            "first packet (a storm of new ids is refused as rejected_registration_cap, the "
+            "ids are not kept); vehicles publishing their config are not held to it"
         ),
     )
     max_future_s: float = Field(

@@ -124,6 +124,8 @@ IDLE_SWEEP_NS = 100_000_000
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
 MAX_UNREGISTERED_COUNTED = 1000
+#: The span ``ingest.max_registrations_per_min`` counts self-registrations over.
+REGISTRATION_WINDOW_NS = 60_000_000_000
 
 _NONE_ACCEPTED = (0, 0)  # (packets, lost_delta) of a vehicle before its first accepted one
 
@@ -246,6 +248,7 @@ class Pipeline:
         self._estimate_interval_ns = settings.ingest.estimate_interval_ms * 1_000_000
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
+        self._registered_ns: deque[int] = deque()  # self-registrations of the last minute
         self._subscriber = (
             IngestSubscriber(
                 session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink, self.refuse
@@ -586,7 +589,11 @@ class Pipeline:
             return
         update: ConfigUpdate
         for update in self._subscriber.poll_configs():
-            self._add(update.vehicle_id, update.config, notify=True)
+            vid = update.vehicle_id
+            if vid in self._configs or len(self._configs) < self._ingest.max_vehicles:
+                self._add(vid, update.config, notify=True)
+            else:
+                log.warning("refused the config of new vehicle %s: ingest.max_vehicles", vid)
 
     def _frame_of(self, vehicle_id: str) -> Anchor | None:
         """The vehicle's ENU frame origin to keep: restored, or learnt (also within the last
@@ -772,11 +779,33 @@ class Pipeline:
         vid = packet.vehicle_id
         if self._registry.has_vehicle(vid):
             return True
-        auto = self._ingest.unknown_vehicle is UnknownVehiclePolicy.AUTO_REGISTER
-        if auto and self._add(vid, WheeledRearDriveConfig(), notify=True):
+        if self._ingest.unknown_vehicle is not UnknownVehiclePolicy.AUTO_REGISTER:
+            self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
+            return False
+        if not self._may_register(vid):
+            self._counters.rejected(self._counter_id(vid), "registration_cap")
+            return False
+        if self._add(vid, WheeledRearDriveConfig(), notify=True):
             return True
         self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
         return False
+
+    def _may_register(self, vehicle_id: str) -> bool:
+        """Whether a vehicle the server does not know may register itself by its first
+        packet: fewer than ``ingest.max_vehicles`` run and fewer than
+        ``ingest.max_registrations_per_min`` did so in the last minute (the registration is
+        then counted). A vehicle publishing its config registers as REST does, within
+        ``ingest.max_vehicles`` only."""
+        now = self._clock()
+        window = self._registered_ns
+        while window and now - window[0] >= REGISTRATION_WINDOW_NS:
+            window.popleft()
+        if len(window) >= self._ingest.max_registrations_per_min:
+            return False
+        if len(self._configs) >= self._ingest.max_vehicles:
+            return False
+        window.append(now)
+        return True
 
     def _counter_id(self, vehicle_id: str | None) -> str | None:
         """Counter bucket of a refused packet: its vehicle, unless that vehicle is unregistered
