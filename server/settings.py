@@ -8,12 +8,13 @@ app factory or CLI, never at import.
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field, SecretStr, field_validator
+from pydantic import BaseModel, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -296,12 +297,46 @@ class ApiSettings(BaseModel):
 
 
 class ViewerSettings(BaseModel):
-    """viser 3D fleet view."""
+    """viser 3D fleet view.
+
+    viser has no authentication: anyone reaching its port sees every vehicle's id and pose.
+    So it binds loopback only (reach it through an SSH tunnel or an authenticating reverse
+    proxy), and a non-loopback ``host`` is refused unless ``allow_remote`` says so.
+    """
 
     enabled: bool = True
-    host: str = "127.0.0.1"
+    host: str = Field(
+        "127.0.0.1", description="bind address; loopback unless allow_remote (no tokens here)"
+    )
     port: int = Field(8080, ge=0, le=65535)
     update_hz: float = Field(5.0, gt=0, le=60)
+    allow_remote: bool = Field(
+        False,
+        description=(
+            "let the 3D view bind a non-loopback host: it has no authentication, so everyone "
+            "reaching the port sees every vehicle's id and position"
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _loopback_unless_allowed(self) -> ViewerSettings:
+        if self.enabled and not self.allow_remote and not _is_loopback_host(self.host):
+            raise ValueError(
+                f"viewer.host {self.host!r} is not a loopback address and the 3D view has no "
+                "authentication (anyone reaching it sees every vehicle): keep 127.0.0.1 and "
+                "tunnel or proxy to it, or set viewer.allow_remote = true to accept that"
+            )
+        return self
+
+
+def _is_loopback_host(host: str) -> bool:
+    """True for ``localhost`` and loopback IP addresses (127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 class Settings(BaseSettings):
