@@ -65,6 +65,10 @@ class ZenohSettings(BaseModel):
     password: SecretStr | None = Field(
         None, description="client mode: the password going with zenoh.username"
     )
+    password_file: Path | None = Field(
+        None,
+        description="a file holding zenoh.password (a container secret), read when it is unset",
+    )
     credentials_file: Path | None = Field(
         None,
         description=(
@@ -77,6 +81,14 @@ class ZenohSettings(BaseModel):
         description=(
             "embedded router with credentials_file: each vehicle may publish only under "
             "<key_prefix>/<its id>/**, everything else is denied"
+        ),
+    )
+    trusted_users: list[str] = Field(
+        default_factory=list,
+        description=(
+            "router with credentials_file and acl: entries of the file that are not vehicles "
+            "but server replicas or linked routers, allowed to subscribe to and publish under "
+            "<key_prefix>/**"
         ),
     )
     allow_anonymous: bool = Field(
