@@ -232,6 +232,7 @@ class Pipeline:
         self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
         self._anchors: dict[str, tuple[float, float, float]] = {}
         self._seq_high: dict[str, dict[str, int]] = {}  # copied by the pipeline thread
+        self._counted: dict[str, dict[str, int]] = {}  # the counters, copied with _seq_high
         self._resume_seq: dict[str, dict[str, int]] = {}  # from a previous run, until first packet
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
@@ -417,10 +418,22 @@ class Pipeline:
         return self._anchors
 
     def counters_snapshot(self) -> dict[str, dict[str, int]]:
-        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`), plus each stream's
-        highest sequence number as of the last second (``seq_high_<stream>``), which
-        :meth:`restore_counters` uses to count what was sent while the server was down."""
+        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`), as they are now,
+        plus each stream's highest sequence number as of the last second
+        (``seq_high_<stream>``). To store for a restart use :meth:`restorable_counters`."""
         snap = self._counters.snapshot()
+        for vid, highest in self._seq_high.items():
+            if vid in snap:
+                snap[vid].update({f"{SEQ_HIGH}{stream}": n for stream, n in highest.items()})
+        return snap
+
+    def restorable_counters(self) -> dict[str, dict[str, int]]:
+        """The counters and each stream's highest sequence number (``seq_high_<stream>``) as of
+        the last second, taken together on the pipeline thread, for :meth:`restore_counters`
+        after a restart: it counts the packets sent after those sequence numbers as lost, so
+        counters newer than them would count the packets in between twice (received and lost;
+        after a SIGKILL, received + lost exceeded sent by the last second's packets)."""
+        snap = {vid: dict(counts) for vid, counts in self._counted.items()}
         for vid, highest in self._seq_high.items():
             if vid in snap:
                 snap[vid].update({f"{SEQ_HIGH}{stream}": n for stream, n in highest.items()})
@@ -506,6 +519,7 @@ class Pipeline:
         self._anchors = self._registry.anchors()
         self._frames.update(self._anchors)
         self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
+        self._counted = self._counters.snapshot()
 
     def _next_item(self, timeout_s: float | None) -> _QueueItem:
         """The next queue item (one taken early by :meth:`_coalesce` first); waits up to

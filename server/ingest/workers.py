@@ -451,6 +451,11 @@ class WorkerPool:
         """Per-vehicle ingest counters (as of each worker's last report)."""
         return self._merged("counters")
 
+    def restorable_counters(self) -> dict[str, dict[str, int]]:
+        """Counters with their sequence numbers, taken together by each worker's pipeline
+        (:meth:`Pipeline.restorable_counters`), as of its last report."""
+        return self._merged("restorable")
+
     def estimator_counters_snapshot(self) -> dict[str, dict[str, dict[str, int]]]:
         """``{estimator: {vehicle_id: {event: n}}}`` over every worker."""
         out: dict[str, dict[str, dict[str, int]]] = {}
@@ -519,6 +524,7 @@ class _Results:
 def _snapshot(pipeline: Any) -> dict[str, Any]:
     return {
         "counters": pipeline.counters_snapshot(),
+        "restorable": pipeline.restorable_counters(),
         "estimator_counters": pipeline.estimator_counters_snapshot(),
         "anchors": pipeline.anchors_snapshot(),
         "stats": pipeline.stats(),
