@@ -20,10 +20,10 @@ import pytest
 import yaml
 import zenoh
 
-from estimator.types import GnssFix, GnssSample
-from server.protocol import encode_gnss, sensor_key
+from server.protocol import sensor_key
 from server.protocol.keys import Stream
 from tests.server.faults._harness import REPO, ServerProcess, wait_until
+from tests.server.redteam._stack import gnss_payload
 from tests.support import free_port
 
 COMPOSE = REPO / "deploy" / "compose.yaml"
@@ -92,13 +92,6 @@ def _client(endpoint: str, user: str, password: str) -> zenoh.Session:
     return zenoh.open(config)
 
 
-def _gnss(stamp_ns: int, seq: int) -> bytes:
-    sample = GnssSample(
-        stamp_ns, (1.0, 0.0, 0.0), 0.0, 0.0, 0.0, 48.0, 11.0, 500.0, GnssFix.RTK_FIXED, 0.02
-    )
-    return encode_gnss(sample, seq)
-
-
 def _received(server: ServerProcess) -> dict[str, int]:
     with server.client() as c:
         text = c.get("/api/v1/metrics").text
@@ -146,7 +139,7 @@ def test_the_compose_layout_starts_as_written(tmp_path: Path) -> None:
                 )
                 time.sleep(1.0)
                 for seq in range(5):
-                    pub.put(_gnss(now + seq * 100_000_000, seq))
+                    pub.put(gnss_payload(now + seq * 100_000_000, seq))
                 time.sleep(0.5)
         wait_until(lambda: _received(servers["server-a"]).get("a-1") == 5, 30, "a-1 at server-a")
         wait_until(lambda: _received(servers["server-b"]).get("b-1") == 5, 30, "b-1 at server-b")

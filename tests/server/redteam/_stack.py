@@ -10,7 +10,10 @@ from pathlib import Path
 import httpx
 import zenoh
 
-__all__ = ["client_session", "rejected", "rss_bytes"]
+from estimator.types import GnssFix, GnssSample
+from server.protocol import encode_gnss
+
+__all__ = ["client_session", "gnss_payload", "rejected", "rss_bytes"]
 
 _REJECTED = re.compile(
     r'^slipfleet_packets_rejected_total\{vehicle="(?P<v>[^"]*)",reason="(?P<r>[^"]+)"\} (?P<n>\S+)$'
@@ -45,3 +48,20 @@ def client_session(endpoint: str) -> zenoh.Session:
     config.insert_json5("connect/endpoints", json.dumps([endpoint]))
     config.insert_json5("scouting/multicast/enabled", "false")
     return zenoh.open(config)
+
+
+def gnss_payload(stamp_ns: int, seq: int) -> bytes:
+    """One valid GNSS packet (RTK fix, 1 m/s east) stamped ``stamp_ns``."""
+    sample = GnssSample(
+        stamp_ns=stamp_ns,
+        vel_enu_mps=(1.0, 0.0, 0.0),
+        heading_rad=0.0,
+        pitch_rad=0.0,
+        roll_rad=0.0,
+        lat_deg=48.0,
+        lon_deg=11.0,
+        height_m=500.0,
+        fix=GnssFix.RTK_FIXED,
+        vel_std_mps=0.02,
+    )
+    return encode_gnss(sample, seq)

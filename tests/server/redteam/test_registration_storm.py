@@ -12,12 +12,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from estimator.types import GnssFix, GnssSample
-from server.protocol import encode_gnss, sensor_key
+from server.protocol import sensor_key
 from server.protocol.keys import Stream
 from server.settings import IngestSettings
 from tests.server.faults._harness import ServerProcess, wait_until
-from tests.server.redteam._stack import client_session, rss_bytes
+from tests.server.redteam._stack import client_session, gnss_payload, rss_bytes
 
 IDS = 5000
 MB = 1024 * 1024
@@ -29,22 +28,6 @@ def _total(metrics: str, name: str, reason: str | None = None) -> int:
     label = "" if reason is None else f'{{reason="{reason}"}}'
     m = re.search(rf"^{re.escape(name + label)} (\S+)$", metrics, re.MULTILINE)
     return int(float(m.group(1))) if m else 0
-
-
-def _gnss(stamp_ns: int, seq: int) -> bytes:
-    sample = GnssSample(
-        stamp_ns=stamp_ns,
-        vel_enu_mps=(1.0, 0.0, 0.0),
-        heading_rad=0.0,
-        pitch_rad=0.0,
-        roll_rad=0.0,
-        lat_deg=48.0,
-        lon_deg=11.0,
-        height_m=500.0,
-        fix=GnssFix.RTK_FIXED,
-        vel_std_mps=0.02,
-    )
-    return encode_gnss(sample, seq)
 
 
 @pytest.mark.zenoh
@@ -65,7 +48,7 @@ def test_registration_storm_is_capped_and_counted(tmp_path: Path) -> None:
                 for seq in range(2):
                     session.put(
                         key,
-                        _gnss(now + seq * 100_000_000, seq),
+                        gnss_payload(now + seq * 100_000_000, seq),
                         congestion_control=zenoh.CongestionControl.BLOCK,
                     )
             sent_s = time.monotonic() - t0
