@@ -162,7 +162,7 @@ class Runtime:
         if self.pipeline is not None:
             self.pipeline.stop()
             if self.writer is not None:
-                self.writer.submit_counters(self.pipeline.counters_snapshot())
+                self.writer.submit_counters(self.pipeline.restorable_counters())
                 self.writer.submit_anchors(self.pipeline.anchors_snapshot())
         if self.writer is not None:
             self.writer.close()
@@ -235,7 +235,7 @@ class Runtime:
         or clear the server-wide alerts (database down or full, no Zenoh router)."""
         while not self._stop.wait(COUNTER_FLUSH_S):
             if self.pipeline is not None and self.writer is not None:
-                self.writer.submit_counters(self.pipeline.counters_snapshot())
+                self.writer.submit_counters(self.pipeline.restorable_counters())
                 self.writer.submit_anchors(self.pipeline.anchors_snapshot())
             if self.alert_engine is not None:
                 health = self.health()

@@ -8,12 +8,13 @@ app factory or CLI, never at import.
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field, SecretStr, field_validator
+from pydantic import BaseModel, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -64,6 +65,10 @@ class ZenohSettings(BaseModel):
     password: SecretStr | None = Field(
         None, description="client mode: the password going with zenoh.username"
     )
+    password_file: Path | None = Field(
+        None,
+        description="a file holding zenoh.password (a container secret), read when it is unset",
+    )
     credentials_file: Path | None = Field(
         None,
         description=(
@@ -76,6 +81,14 @@ class ZenohSettings(BaseModel):
         description=(
             "embedded router with credentials_file: each vehicle may publish only under "
             "<key_prefix>/<its id>/**, everything else is denied"
+        ),
+    )
+    trusted_users: list[str] = Field(
+        default_factory=list,
+        description=(
+            "router with credentials_file and acl: entries of the file that are not vehicles "
+            "but server replicas or linked routers, allowed to subscribe to and publish under "
+            "<key_prefix>/**"
         ),
     )
     allow_anonymous: bool = Field(
@@ -140,7 +153,56 @@ class IngestSettings(BaseModel):
             "together (fewer, larger bursts cost less CPU per packet); 0 = decode what is there"
         ),
     )
-    max_payload_bytes: int = Field(256 * 1024, ge=1024)
+    max_payload_bytes: int = Field(
+        256 * 1024,
+        ge=1024,
+        description=(
+            "larger sensor payloads are refused (rejected_oversize) from their length, before "
+            "they are copied out of Zenoh, and never stored raw"
+        ),
+    )
+    queue_max_bytes: int = Field(
+        64 * 1024 * 1024,
+        ge=1024 * 1024,
+        description=(
+            "undecoded payload bytes waiting for the pipeline, all vehicles together; beyond "
+            "it the ingest thread waits (backpressure to Zenoh), as for the packet bound"
+        ),
+    )
+    vehicle_max_bytes_per_s: int = Field(
+        1024 * 1024,
+        ge=0,
+        description=(
+            "payload bytes per second one vehicle may send (a token bucket of "
+            "vehicle_burst_bytes); packets beyond it are refused as rejected_over_rate and "
+            "not stored raw; 0 = no limit. A vehicle sends some kB/s"
+        ),
+    )
+    vehicle_burst_bytes: int = Field(
+        16 * 1024 * 1024,
+        ge=0,
+        description=(
+            "the byte-rate bucket's size: what a vehicle may send at once above its rate "
+            "(a backlog forwarded after a connectivity outage)"
+        ),
+    )
+    max_vehicles: int = Field(
+        20_000,
+        ge=1,
+        description=(
+            "no vehicle registers itself (by its first packet, or by publishing its config) "
+            "once this many are running; packets are refused as rejected_registration_cap"
+        ),
+    )
+    max_registrations_per_min: int = Field(
+        600,
+        ge=1,
+        description=(
+            "unknown_vehicle = auto registers at most this many vehicles a minute by their "
+            "first packet (a storm of new ids is refused as rejected_registration_cap, the "
+            "ids are not kept); vehicles publishing their config are not held to it"
+        ),
+    )
     max_future_s: float = Field(
         600.0,
         gt=0,
@@ -225,15 +287,68 @@ class ApiSettings(BaseModel):
             "(viewer < operator < admin); off only for the loopback demo and tests"
         ),
     )
+    heavy_per_token: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description=(
+            "reports, slip maps and series exports one caller (token) may run at once; "
+            "more are answered 429 with Retry-After"
+        ),
+    )
+    heavy_per_route: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description=(
+            "requests of one such route running at once, all callers together (each holds a "
+            "worker thread of the 40 the API shares); more are answered 429 with Retry-After"
+        ),
+    )
+    retry_after_s: int = Field(1, ge=1, le=3600, description="Retry-After of a 429 answer")
 
 
 class ViewerSettings(BaseModel):
-    """viser 3D fleet view."""
+    """viser 3D fleet view.
+
+    viser has no authentication: anyone reaching its port sees every vehicle's id and pose.
+    So it binds loopback only (reach it through an SSH tunnel or an authenticating reverse
+    proxy), and a non-loopback ``host`` is refused unless ``allow_remote`` says so.
+    """
 
     enabled: bool = True
-    host: str = "127.0.0.1"
+    host: str = Field(
+        "127.0.0.1", description="bind address; loopback unless allow_remote (no tokens here)"
+    )
     port: int = Field(8080, ge=0, le=65535)
     update_hz: float = Field(5.0, gt=0, le=60)
+    allow_remote: bool = Field(
+        False,
+        description=(
+            "let the 3D view bind a non-loopback host: it has no authentication, so everyone "
+            "reaching the port sees every vehicle's id and position"
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _loopback_unless_allowed(self) -> ViewerSettings:
+        if self.enabled and not self.allow_remote and not _is_loopback_host(self.host):
+            raise ValueError(
+                f"viewer.host {self.host!r} is not a loopback address and the 3D view has no "
+                "authentication (anyone reaching it sees every vehicle): keep 127.0.0.1 and "
+                "tunnel or proxy to it, or set viewer.allow_remote = true to accept that"
+            )
+        return self
+
+
+def _is_loopback_host(host: str) -> bool:
+    """True for ``localhost`` and loopback IP addresses (127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 class Settings(BaseSettings):

@@ -31,6 +31,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_role
 from server.api.errors import ErrorBody, error_response, install_error_handlers
+from server.api.limits import HEAVY_ROUTES, HeavyLimitState, HeavyRequestLimit
 from server.api.routes import (
     alerts,
     estimators,
@@ -180,6 +181,9 @@ def _openapi_with_bearer(app: FastAPI) -> dict[str, Any]:
     for path, ops in schema.get("paths", {}).items():
         if path in public:
             continue
+        if any(p.match(path.replace("{vehicle_id}", "v")) for p in HEAVY_ROUTES.values()):
+            for op in ops.values():
+                op.setdefault("responses", {})["429"] = _TOO_MANY
         for op in ops.values():
             op["security"] = [{"bearer": []}]
             for code, why in refused.items():
@@ -196,6 +200,15 @@ def _openapi_with_bearer(app: FastAPI) -> dict[str, Any]:
                 )
     app.openapi_schema = schema
     return schema
+
+
+#: OpenAPI answer of a route under :mod:`server.api.limits`.
+_TOO_MANY: dict[str, Any] = {
+    "description": "too many such requests running (of this token, or of all): retry after "
+    "the Retry-After header's seconds",
+    "headers": {"Retry-After": {"schema": {"type": "integer"}}},
+    "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}},
+}
 
 
 def _operation_id(route: APIRoute) -> str:
@@ -279,6 +292,10 @@ def create_app(
     app.openapi = lambda: _openapi_with_bearer(app)  # type: ignore[method-assign]
     _mount_docs(app)
     app.add_middleware(BodySizeLimit, max_bytes=app.state.limits.max_body_bytes)
+    app.state.heavy_limits = HeavyLimitState(
+        settings.api.heavy_per_token, settings.api.heavy_per_route, settings.api.retry_after_s
+    )
+    app.add_middleware(HeavyRequestLimit, state=app.state.heavy_limits)
     app.add_middleware(WebSocketBearerProtocol)
     if settings.api.cors_origins:  # outermost, so refusals (413) carry CORS headers too
         app.add_middleware(

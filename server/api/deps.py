@@ -68,6 +68,7 @@ __all__ = [
     "WriterDep",
     "call_hook",
     "estimator_spec",
+    "principal_of",
     "require_role",
     "slip_config",
     "vehicle_estimators",
@@ -365,6 +366,7 @@ class Principal:
     name: str
     role: Role
     token_id: int | None
+    token_sha256: str | None = None  # the token's digest (never the token): to look it up again
 
 
 #: Who every caller is while ``api.require_auth`` is off (the loopback demo, some tests).
@@ -423,7 +425,8 @@ def _principal(conn: HTTPConnection) -> Principal:
     if runtime is None:
         raise RuntimeError("the app's runtime is not open")
     store = runtime.store
-    record = store.get_token(hash_token(token))
+    digest = hash_token(token)
+    record = store.get_token(digest)
     if record is None or record.revoked:
         raise _refuse(conn, 401, "invalid or revoked access token")
     now_ns = time.time_ns()
@@ -432,7 +435,13 @@ def _principal(conn: HTTPConnection) -> Principal:
             store.touch_token(record.id, now_ns)
         except StorageError as exc:  # bookkeeping only: never refuse a valid token for it
             _log.warning("could not record the use of token %d: %s", record.id, exc)
-    return Principal(record.name, Role(record.role), record.id)
+    return Principal(record.name, Role(record.role), record.id, digest)
+
+
+def principal_of(conn: HTTPConnection) -> Principal:
+    """The caller of ``conn`` (401/403 or WebSocket 1008 when refused): what
+    :data:`PrincipalDep` gives, for a dependency of its own."""
+    return _principal(conn)
 
 
 PrincipalDep = Annotated[Principal, Depends(_principal)]

@@ -67,8 +67,15 @@ from server.estimation.registry import (
 )
 from server.ingest.adapter import fed, wheel_gaps
 from server.ingest.counters import IngestCounters
+from server.ingest.limits import ByteBudget, refusal_errors
 from server.ingest.reorder import ReorderBuffer, StreamGap, Verdict
-from server.ingest.subscriber import ConfigUpdate, IngestItem, IngestSubscriber, RawPacket
+from server.ingest.subscriber import (
+    ConfigUpdate,
+    IngestItem,
+    IngestSubscriber,
+    RawPacket,
+    Refusal,
+)
 from server.protocol.burst import decode_burst
 from server.protocol.codec import DecodeError, Packet
 from server.protocol.keys import Stream
@@ -117,6 +124,8 @@ IDLE_SWEEP_NS = 100_000_000
 #: Unregistered vehicle ids that get counters of their own; refusals of further unregistered
 #: ids are counted under ``counters.NO_VEHICLE`` ("").
 MAX_UNREGISTERED_COUNTED = 1000
+#: The span ``ingest.max_registrations_per_min`` counts self-registrations over.
+REGISTRATION_WINDOW_NS = 60_000_000_000
 
 _NONE_ACCEPTED = (0, 0)  # (packets, lost_delta) of a vehicle before its first accepted one
 
@@ -125,16 +134,19 @@ PIPELINE_REASONS: tuple[str, ...] = (
     "clock_skew",  # stamps outside [wall clock - max_past_s, wall clock + max_future_s]
     "clock_jump",  # sensor time jumped within the stream (not confirmed yet) or within a packet
     "unknown_vehicle",  # no config and unknown_vehicle = "reject"
+    "over_rate",  # the vehicle's payload bytes per second (ingest.vehicle_max_bytes_per_s)
+    "registration_cap",  # auto-registration's cap (ingest.max_vehicles, per-minute rate)
 )
 
 
 class _Raw:
     """An undecoded burst in the pipeline's queue: ``[(key, payload), ...]``."""
 
-    __slots__ = ("received",)
+    __slots__ = ("nbytes", "received")
 
-    def __init__(self, received: list[tuple[str, bytes]]) -> None:
+    def __init__(self, received: list[tuple[str, bytes]], nbytes: int | None = None) -> None:
         self.received = received
+        self.nbytes = sum(len(p) for _, p in received) if nbytes is None else nbytes
 
     def __len__(self) -> int:
         return len(self.received)
@@ -209,6 +221,7 @@ class Pipeline:
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
         self._queue: queue.Queue[_QueueItem] = queue.Queue(maxsize=QUEUE_BURSTS)
+        self._queued_bytes = ByteBudget(settings.ingest.queue_max_bytes)  # undecoded _Raw
         self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
         # (op, vehicle_id, config | anchor | None, notify), op "add", "anchor" or "remove"
         self._control: deque[tuple[str, str, VehicleConfig | Anchor | None, bool]] = deque()
@@ -219,6 +232,7 @@ class Pipeline:
         self._estimator_counters: dict[str, dict[str, dict[str, int]]] = {}
         self._anchors: dict[str, tuple[float, float, float]] = {}
         self._seq_high: dict[str, dict[str, int]] = {}  # copied by the pipeline thread
+        self._counted: dict[str, dict[str, int]] = {}  # the counters, copied with _seq_high
         self._resume_seq: dict[str, dict[str, int]] = {}  # from a previous run, until first packet
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
@@ -235,8 +249,11 @@ class Pipeline:
         self._estimate_interval_ns = settings.ingest.estimate_interval_ms * 1_000_000
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
+        self._registered_ns: deque[int] = deque()  # self-registrations of the last minute
         self._subscriber = (
-            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink)
+            IngestSubscriber(
+                session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink, self.refuse
+            )
             if session is not None
             else None
         )
@@ -310,29 +327,55 @@ class Pipeline:
         the thread that receives them, keeps the two from taking turns on the interpreter lock
         for every burst.
         """
-        self._put(_Raw(received))
+        raw = _Raw(received)
+        if raw and self._wait_for_bytes(raw.nbytes):
+            self._put(raw)
+        elif raw:
+            self._dropped_not_running(len(raw))
+
+    def refuse(self, refused: list[Refusal]) -> None:
+        """Count packets the subscriber refused before copying them (``(key, reason)``)."""
+        items: list[IngestItem] = [*refusal_errors(refused, self._settings.zenoh.key_prefix)]
+        self._put(items)
+
+    def _running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive() and not self._stopping.is_set()
+
+    def _wait_for_bytes(self, nbytes: int) -> bool:
+        """Hold ``nbytes`` of the undecoded-bytes budget, waiting while it is spent (False:
+        the pipeline stopped meanwhile)."""
+        while self._running():
+            if self._queued_bytes.acquire(nbytes, timeout_s=0.5):
+                return True
+        return False
 
     def _put(self, items: list[IngestItem] | _Raw) -> None:
         if not items:
             return
         received_ns = self._clock()
-        while self._thread is not None and self._thread.is_alive() and not self._stopping.is_set():
+        while self._running():
             try:
                 self._queue.put((received_ns, items), timeout=0.5)
                 return
             except queue.Full:
                 continue
-        self._stats["dropped_not_running"] += len(items)
-        log.error("pipeline not running: dropped %d ingest items", len(items))
+        self._dropped_not_running(len(items))
+
+    def _dropped_not_running(self, n: int) -> None:
+        self._stats["dropped_not_running"] += n
+        log.error("pipeline not running: dropped %d ingest items", n)
 
     def _decoded(self, items: list[IngestItem] | _Raw) -> list[IngestItem]:
         if not isinstance(items, _Raw):
             return items
-        return decode_burst(
-            items.received,
-            prefix=self._settings.zenoh.key_prefix,
-            max_payload_bytes=self._ingest.max_payload_bytes,
-        )
+        try:
+            return decode_burst(
+                items.received,
+                prefix=self._settings.zenoh.key_prefix,
+                max_payload_bytes=self._ingest.max_payload_bytes,
+            )
+        finally:
+            self._queued_bytes.release(items.nbytes)
 
     def register_vehicle(
         self, vehicle_id: str, config: VehicleConfig, *, notify: bool = False
@@ -375,10 +418,22 @@ class Pipeline:
         return self._anchors
 
     def counters_snapshot(self) -> dict[str, dict[str, int]]:
-        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`), plus each stream's
-        highest sequence number as of the last second (``seq_high_<stream>``), which
-        :meth:`restore_counters` uses to count what was sent while the server was down."""
+        """Per-vehicle ingest counters (see :mod:`server.ingest.counters`), as they are now,
+        plus each stream's highest sequence number as of the last second
+        (``seq_high_<stream>``). To store for a restart use :meth:`restorable_counters`."""
         snap = self._counters.snapshot()
+        for vid, highest in self._seq_high.items():
+            if vid in snap:
+                snap[vid].update({f"{SEQ_HIGH}{stream}": n for stream, n in highest.items()})
+        return snap
+
+    def restorable_counters(self) -> dict[str, dict[str, int]]:
+        """The counters and each stream's highest sequence number (``seq_high_<stream>``) as of
+        the last second, taken together on the pipeline thread, for :meth:`restore_counters`
+        after a restart: it counts the packets sent after those sequence numbers as lost, so
+        counters newer than them would count the packets in between twice (received and lost;
+        after a SIGKILL, received + lost exceeded sent by the last second's packets)."""
+        snap = {vid: dict(counts) for vid, counts in self._counted.items()}
         for vid, highest in self._seq_high.items():
             if vid in snap:
                 snap[vid].update({f"{SEQ_HIGH}{stream}": n for stream, n in highest.items()})
@@ -390,6 +445,8 @@ class Pipeline:
             **self._stats,
             "queue_bursts": self._queue.qsize(),
             "queue_capacity": QUEUE_BURSTS,
+            "queue_bytes": self._queued_bytes.held,
+            "queue_bytes_peak": self._queued_bytes.peak,
             "last_tick_ms": round(self._last_tick_s * 1000, 3),
             "running": self._thread is not None and self._thread.is_alive(),
             **{f"cpu_{phase}_s": seconds for phase, seconds in self._cpu_s.items()},
@@ -462,6 +519,7 @@ class Pipeline:
         self._anchors = self._registry.anchors()
         self._frames.update(self._anchors)
         self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
+        self._counted = self._counters.snapshot()
 
     def _next_item(self, timeout_s: float | None) -> _QueueItem:
         """The next queue item (one taken early by :meth:`_coalesce` first); waits up to
@@ -478,6 +536,7 @@ class Pipeline:
         joined burst. An item that cannot be joined is held for the next turn."""
         parts = [raw.received]
         n = len(raw)
+        nbytes = raw.nbytes
         while n < COALESCE_PACKETS and not self._held:
             try:
                 nxt = self._queue.get_nowait()
@@ -489,9 +548,10 @@ class Pipeline:
             received_ns = nxt[0]
             parts.append(nxt[1].received)
             n += len(nxt[1])
+            nbytes += nxt[1].nbytes
         if len(parts) == 1:
             return received_ns, raw
-        return received_ns, _Raw([p for part in parts for p in part])
+        return received_ns, _Raw([p for part in parts for p in part], nbytes)
 
     def _next_tick_ns(self, scheduled_ns: int, now: int, spent_ns: int) -> int:
         """When the tick after the one ``scheduled_ns`` (started at ``now``, ``spent_ns`` long)
@@ -543,7 +603,11 @@ class Pipeline:
             return
         update: ConfigUpdate
         for update in self._subscriber.poll_configs():
-            self._add(update.vehicle_id, update.config, notify=True)
+            vid = update.vehicle_id
+            if vid in self._configs or len(self._configs) < self._ingest.max_vehicles:
+                self._add(vid, update.config, notify=True)
+            else:
+                log.warning("refused the config of new vehicle %s: ingest.max_vehicles", vid)
 
     def _frame_of(self, vehicle_id: str) -> Anchor | None:
         """The vehicle's ENU frame origin to keep: restored, or learnt (also within the last
@@ -729,11 +793,33 @@ class Pipeline:
         vid = packet.vehicle_id
         if self._registry.has_vehicle(vid):
             return True
-        auto = self._ingest.unknown_vehicle is UnknownVehiclePolicy.AUTO_REGISTER
-        if auto and self._add(vid, WheeledRearDriveConfig(), notify=True):
+        if self._ingest.unknown_vehicle is not UnknownVehiclePolicy.AUTO_REGISTER:
+            self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
+            return False
+        if not self._may_register(vid):
+            self._counters.rejected(self._counter_id(vid), "registration_cap")
+            return False
+        if self._add(vid, WheeledRearDriveConfig(), notify=True):
             return True
         self._counters.rejected(self._counter_id(vid), "unknown_vehicle")
         return False
+
+    def _may_register(self, vehicle_id: str) -> bool:
+        """Whether a vehicle the server does not know may register itself by its first
+        packet: fewer than ``ingest.max_vehicles`` run and fewer than
+        ``ingest.max_registrations_per_min`` did so in the last minute (the registration is
+        then counted). A vehicle publishing its config registers as REST does, within
+        ``ingest.max_vehicles`` only."""
+        now = self._clock()
+        window = self._registered_ns
+        while window and now - window[0] >= REGISTRATION_WINDOW_NS:
+            window.popleft()
+        if len(window) >= self._ingest.max_registrations_per_min:
+            return False
+        if len(self._configs) >= self._ingest.max_vehicles:
+            return False
+        window.append(now)
+        return True
 
     def _counter_id(self, vehicle_id: str | None) -> str | None:
         """Counter bucket of a refused packet: its vehicle, unless that vehicle is unregistered

@@ -12,6 +12,11 @@ Two subscriptions under ``<prefix>/<vehicle_filter>/``:
   the worker pool sends each vehicle's packets to its worker, which does the same. When they
   fall behind, ``take`` blocks, the channel fills, and Zenoh's BLOCK
   congestion control slows the publishers: nothing is dropped silently.
+* Before a sample's payload is copied out of Zenoh its length is read (``len`` of the
+  ``ZBytes``, no copy): one over ``IngestSettings.max_payload_bytes`` is refused as
+  ``oversize``, one its vehicle has no byte rate left for (:class:`~server.ingest.limits.ByteRate`)
+  as ``over_rate``. Refused packets go to ``refuse`` as ``(key, reason)`` to be counted, and
+  never to the raw sink: only packets taken on are stored raw.
 * ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
   (configs are rare; polling is one non-blocking ``try_recv``).
 """
@@ -28,11 +33,12 @@ from dataclasses import dataclass
 import zenoh
 
 from estimator.config import VehicleConfig
+from server.ingest.limits import ByteRate
 from server.protocol.codec import DecodeError, Packet, decode_config
 from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK, parse_key
 from server.settings import IngestSettings, ZenohSettings
 
-__all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber", "RawPacket"]
+__all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber", "RawPacket", "Refusal"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +61,10 @@ IngestItem = Packet | DecodeError
 #: ``(vehicle_id, received_ns, key, payload)`` of one packet as it arrived.
 RawPacket = tuple[str, int, str, bytes]
 
+#: ``(key, reason)`` of a packet refused before its payload was copied: ``oversize`` or
+#: ``over_rate``.
+Refusal = tuple[str, str]
+
 
 class IngestSubscriber:
     """Declares the subscribers and runs the ingest thread.
@@ -71,6 +81,9 @@ class IngestSubscriber:
         Receives each burst's raw packets as ``(vehicle_id, received_ns, key, payload)``
         (wall-clock receive time; packets whose key names no vehicle are left out), for
         ``StorageSettings.store_raw_packets``.
+    refuse : callable, optional
+        Receives the packets refused from their length, as :data:`Refusal` pairs, to count
+        them (without it they are dropped uncounted).
     """
 
     def __init__(
@@ -80,10 +93,15 @@ class IngestSubscriber:
         ingest_settings: IngestSettings,
         take: Callable[[list[tuple[str, bytes]]], None],
         raw_sink: Callable[[list[RawPacket]], object] | None = None,
+        refuse: Callable[[list[Refusal]], object] | None = None,
     ) -> None:
         self._session = session
         self._take = take
+        self._refuse = refuse
         self._max_payload = ingest_settings.max_payload_bytes
+        self._rate = ByteRate(
+            ingest_settings.vehicle_max_bytes_per_s, ingest_settings.vehicle_burst_bytes
+        )
         self._zs = zenoh_settings
         self._gather_s = ingest_settings.gather_ms / 1000
         self._raw_sink = raw_sink
@@ -165,16 +183,43 @@ class IngestSubscriber:
                 # let a burst gather: the decoder's cost per packet falls with the burst size,
                 # and the pipeline releases packets only at its ticks anyway
                 time.sleep(self._gather_s)
-            received = [(str(first.key_expr), first.payload.to_bytes())]
+            received: list[tuple[str, bytes]] = []
+            refused: list[Refusal] = []
+            self._admit(first, received, refused)
+            taken = 1
             try:
-                while len(received) < BURST and (sample := sensors.try_recv()) is not None:
-                    received.append((str(sample.key_expr), sample.payload.to_bytes()))
+                while taken < BURST and (sample := sensors.try_recv()) is not None:
+                    self._admit(sample, received, refused)
+                    taken += 1
             except zenoh.ZError:
                 closed = True  # undeclared while the burst gathered: deliver it, then stop
-            full = len(received) == BURST  # a backlog: no gathering until it is worked off
+            full = taken == BURST  # a backlog: no gathering until it is worked off
+            if refused and self._refuse is not None:
+                self._refuse(refused)
+            if not received:
+                continue
             if self._raw_sink is not None:
                 self._sink_raw(received)
             self._take(received)
+
+    def _admit(
+        self, sample: zenoh.Sample, received: list[tuple[str, bytes]], refused: list[Refusal]
+    ) -> None:
+        """Copy ``sample`` into ``received``, or refuse it from its length alone."""
+        key = str(sample.key_expr)
+        payload = sample.payload
+        size = len(payload)  # ZBytes' length: nothing copied yet
+        if size > self._max_payload:
+            refused.append((key, "oversize"))
+        elif self._rate.enabled and not self._rate.allow(self._rate_key(key), size):
+            refused.append((key, "over_rate"))
+        else:
+            received.append((key, payload.to_bytes()))
+
+    def _rate_key(self, key: str) -> str:
+        """The byte-rate bucket of a key: its vehicle chunk (the whole key if it has none)."""
+        rest = key[len(self._zs.key_prefix) + 1 :]
+        return rest.split("/", 1)[0] or key
 
     def _sink_raw(self, received: list[tuple[str, bytes]]) -> None:
         """Hand the burst's packets whose key names a vehicle to the raw sink."""

@@ -62,7 +62,7 @@ from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
 from server.estimation.registry import EstimatorRegistry
 from server.ingest.pipeline import EstimateSink
-from server.ingest.subscriber import IngestSubscriber, RawPacket
+from server.ingest.subscriber import IngestSubscriber, RawPacket, Refusal
 from server.metrics.thread_cpu import thread_cpu_seconds
 from server.protocol.keys import parse_key
 from server.settings import IngestSettings, Settings, ZenohSettings
@@ -196,7 +196,9 @@ class WorkerPool:
             "worker_restarts": 0,
         }
         self._subscriber = (
-            IngestSubscriber(session, settings.zenoh, settings.ingest, self.route, raw_sink)
+            IngestSubscriber(
+                session, settings.zenoh, settings.ingest, self.route, raw_sink, self.refuse
+            )
             if session is not None
             else None
         )
@@ -278,16 +280,27 @@ class WorkerPool:
                 owner = self._owner_of_key(key)
             shares[owner].append((key, payload))
         for w, share in zip(self._workers, shares, strict=True):
-            if not share:
-                continue
-            try:
-                if w.done.is_set():
-                    raise BrokenPipeError
-                with w.feed_lock:
-                    w.feed.send(share)
-            except (OSError, ValueError):
-                self._stats["dropped_worker_down"] += len(share)
-                log.error("worker %d is down: dropped %d packets", w.index, len(share))
+            if share:
+                self._send(w, share, len(share))
+
+    def refuse(self, refused: list[Refusal]) -> None:
+        """Send packets the subscriber refused from their length to their owners to count."""
+        shares: list[list[Refusal]] = [[] for _ in self._workers]
+        for key, reason in refused:
+            shares[self._owner_by_key.get(key, self._owner_of_key(key))].append((key, reason))
+        for w, share in zip(self._workers, shares, strict=True):
+            if share:
+                self._send(w, ("refused", share), len(share))
+
+    def _send(self, w: _Worker, message: object, packets: int) -> None:
+        try:
+            if w.done.is_set():
+                raise BrokenPipeError
+            with w.feed_lock:
+                w.feed.send(message)
+        except (OSError, ValueError):
+            self._stats["dropped_worker_down"] += packets
+            log.error("worker %d is down: dropped %d packets", w.index, packets)
 
     def _owner_of_key(self, key: str) -> int:
         """The worker for a sensor key (0 for a key that names no vehicle: it is refused
@@ -438,6 +451,11 @@ class WorkerPool:
         """Per-vehicle ingest counters (as of each worker's last report)."""
         return self._merged("counters")
 
+    def restorable_counters(self) -> dict[str, dict[str, int]]:
+        """Counters with their sequence numbers, taken together by each worker's pipeline
+        (:meth:`Pipeline.restorable_counters`), as of its last report."""
+        return self._merged("restorable")
+
     def estimator_counters_snapshot(self) -> dict[str, dict[str, dict[str, int]]]:
         """``{estimator: {vehicle_id: {event: n}}}`` over every worker."""
         out: dict[str, dict[str, dict[str, int]]] = {}
@@ -506,6 +524,7 @@ class _Results:
 def _snapshot(pipeline: Any) -> dict[str, Any]:
     return {
         "counters": pipeline.counters_snapshot(),
+        "restorable": pipeline.restorable_counters(),
         "estimator_counters": pipeline.estimator_counters_snapshot(),
         "anchors": pipeline.anchors_snapshot(),
         "stats": pipeline.stats(),
@@ -585,7 +604,10 @@ def _worker_main(
                 break
             if share is None:
                 break
-            pipeline.submit_raw(share)
+            if isinstance(share, tuple):  # ("refused", [(key, reason), ...])
+                pipeline.refuse(share[1])
+            else:
+                pipeline.submit_raw(share)
     finally:
         stop.set()
         pipeline.stop()

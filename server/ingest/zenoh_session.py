@@ -35,6 +35,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -117,11 +118,16 @@ def read_credential_users(path: Path, *, server_user: str | None = None) -> list
     return users
 
 
-def acl_config(prefix: str, vehicle_ids: list[str], server_user: str | None) -> dict[str, Any]:
+def acl_config(
+    prefix: str,
+    vehicle_ids: list[str],
+    server_user: str | None,
+    trusted: Sequence[str] = (),
+) -> dict[str, Any]:
     """Zenoh ``access_control``: deny by default; each vehicle (matched by its user name) may
     put under ``<prefix>/<id>/**`` and subscribe to its own ``<prefix>/<id>/alerts``;
-    ``server_user`` (a server connecting to a standalone router) may subscribe to and publish
-    under ``<prefix>/**``."""
+    ``server_user`` (a server connecting to a standalone router) and the ``trusted`` users
+    (server replicas, linked routers) may subscribe to and publish under ``<prefix>/**``."""
     # The router must tell a vehicle about the server's subscriptions: a client publisher sends
     # only while it knows a matching subscriber (Zenoh interests), so without this rule puts
     # were dropped on the vehicle side.
@@ -172,7 +178,8 @@ def acl_config(prefix: str, vehicle_ids: list[str], server_user: str | None) -> 
                 "subjects": [f"vehicle/{vid}"],
             }
         )
-    if server_user is not None:
+    servers = [u for u in dict.fromkeys([server_user, *trusted]) if u is not None]
+    if servers:
         rules += [
             {
                 "id": "server/ingress",
@@ -189,7 +196,7 @@ def acl_config(prefix: str, vehicle_ids: list[str], server_user: str | None) -> 
                 "key_exprs": [f"{prefix}/**"],
             },
         ]
-        subjects.append({"id": "server", "usernames": [server_user]})
+        subjects.append({"id": "server", "usernames": servers})
         policies.append({"rules": ["server/ingress", "server/egress"], "subjects": ["server"]})
     return {
         "enabled": True,
@@ -238,9 +245,10 @@ def _router_entries(settings: ZenohSettings, listen: list[str]) -> dict[str, Any
     users = read_credential_users(path, server_user=settings.username)
     entries["transport/auth/usrpwd/dictionary_file"] = str(path.resolve())
     if settings.acl:
-        vehicles = [u for u in users if u != settings.username]
+        trusted = [u for u in settings.trusted_users if u in users]
+        vehicles = [u for u in users if u != settings.username and u not in trusted]
         server_user = settings.username if settings.username in users else None
-        entries["access_control"] = acl_config(settings.key_prefix, vehicles, server_user)
+        entries["access_control"] = acl_config(settings.key_prefix, vehicles, server_user, trusted)
     return entries
 
 
@@ -269,12 +277,28 @@ def make_config(settings: ZenohSettings) -> zenoh.Config:
     else:
         for key, value in _router_entries(settings, list(settings.listen)).items():
             _insert(config, key, value)
-    if settings.username is not None and settings.password is not None:
+    password = _password(settings)
+    if settings.username is not None and password is not None:
         _insert(config, "transport/auth/usrpwd/user", settings.username)
-        _insert(config, "transport/auth/usrpwd/password", settings.password.get_secret_value())
-    elif settings.username is not None or settings.password is not None:
-        raise ValueError("zenoh.username and zenoh.password go together")
+        _insert(config, "transport/auth/usrpwd/password", password)
+    elif settings.username is not None or password is not None:
+        raise ValueError("zenoh.username and zenoh.password (or password_file) go together")
     return config
+
+
+def _password(settings: ZenohSettings) -> str | None:
+    """``zenoh.password``, else the first line of ``zenoh.password_file``, else None."""
+    if settings.password is not None:
+        return settings.password.get_secret_value()
+    if settings.password_file is None:
+        return None
+    try:
+        lines = settings.password_file.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CredentialsError(f"zenoh.password_file {settings.password_file}: {exc}") from exc
+    if not lines or not lines[0].strip():
+        raise CredentialsError(f"zenoh.password_file {settings.password_file} is empty")
+    return lines[0].strip()
 
 
 def open_session(settings: ZenohSettings) -> zenoh.Session:

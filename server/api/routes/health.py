@@ -1,10 +1,15 @@
-"""``/health``: ready only when every part of the runtime (Zenoh, storage, …) is up."""
+"""``/health``: ready only when every part of the runtime (Zenoh, storage, …) is up.
+
+The checks run in a thread of their own limiter (:data:`HEALTH_THREADS`), not in the pool the
+other sync routes share: a pool full of slow reports never starves a load balancer's probe.
+"""
 
 from __future__ import annotations
 
 import logging
 
-from fastapi import APIRouter
+import anyio
+from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from server.api.deps import ApiRuntime, RuntimeDep
@@ -14,6 +19,17 @@ __all__ = ["checks", "router"]
 
 router = APIRouter(prefix="/health", tags=["health"])
 _log = logging.getLogger(__name__)
+
+#: Health checks running at once, at most (each may wait on the store's ping).
+HEALTH_THREADS = 4
+
+
+def _limiter(request: Request) -> anyio.CapacityLimiter:
+    """The app's own thread limiter for health checks (built on first use, in its loop)."""
+    limiter = getattr(request.app.state, "health_limiter", None)
+    if limiter is None:
+        limiter = request.app.state.health_limiter = anyio.CapacityLimiter(HEALTH_THREADS)
+    return limiter
 
 
 def checks(runtime: ApiRuntime) -> dict[str, bool]:
@@ -31,8 +47,8 @@ def checks(runtime: ApiRuntime) -> dict[str, bool]:
     responses={503: {"model": HealthUnavailable, "description": "a part is down"}},
     summary="Readiness: 200 when every part is up, 503 naming the parts that are down",
 )
-def get_health(runtime: RuntimeDep) -> JSONResponse:
-    result = checks(runtime)
+async def get_health(request: Request, runtime: RuntimeDep) -> JSONResponse:
+    result = await anyio.to_thread.run_sync(checks, runtime, limiter=_limiter(request))
     down = sorted(k for k, ok in result.items() if not ok)
     if down or not result:
         reason = f"down: {', '.join(down)}" if down else "no health checks reported"

@@ -52,6 +52,11 @@ vehicle's rows of one estimator (default: its primary)
     "vehicle_id": …, "estimator": … | null, "estimators": […]}`` every second. The client may
     send ``{"window_s": 300}`` at any time; the server answers with a new ``snapshot`` for that
     window.
+
+Revocation: a socket opened with a token is closed (code 1008, "access token revoked") within
+:data:`REVOCATION_POLL_S` of the token being revoked or deleted, over REST or with
+``slipfleet token revoke`` in another process: each socket looks its token up again that
+often, in a worker thread.
 """
 
 from __future__ import annotations
@@ -61,14 +66,24 @@ import contextlib
 import json
 import math
 import time
+from collections.abc import Coroutine
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
+import anyio
+from fastapi import APIRouter, Depends, Query, WebSocket, WebSocketDisconnect, status
 from starlette.datastructures import State
 
+from server.api.deps import Principal, principal_of
 from server.live.hub import LiveHub, quality
+from server.storage.base import StorageError
 
-__all__ = ["FLEET_MIN_INTERVAL_S", "VEHICLE_MIN_INTERVAL_S", "find_live_hub", "router"]
+__all__ = [
+    "FLEET_MIN_INTERVAL_S",
+    "REVOCATION_POLL_S",
+    "VEHICLE_MIN_INTERVAL_S",
+    "find_live_hub",
+    "router",
+]
 
 router = APIRouter(prefix="/live", tags=["live"])
 
@@ -77,6 +92,8 @@ FLEET_MIN_INTERVAL_S = 0.25
 #: ``ingest.advance_step_ms`` chunks, so a slower cadence would add up to this much latency.
 VEHICLE_MIN_INTERVAL_S = 0.1
 _HEARTBEAT_S = 1.0
+#: An open socket looks its token up again this often (revocation closes it within this).
+REVOCATION_POLL_S = 0.5
 _WINDOW_MIN_S, _WINDOW_MAX_S = 5.0, 1800.0
 
 
@@ -124,9 +141,55 @@ async def _close_unavailable(websocket: WebSocket) -> None:
     await websocket.close(code=1011, reason="live data is not available")
 
 
+def _caller(websocket: WebSocket) -> Principal | None:
+    """Who opened the socket; None in an app built without settings (these routes mounted on
+    their own, as the live benchmark does: no tokens there)."""
+    if getattr(websocket.app.state, "settings", None) is None:
+        return None
+    return principal_of(websocket)
+
+
+CallerDep = Annotated[Principal | None, Depends(_caller)]
+
+
+async def _token_revoked(websocket: WebSocket, token_sha256: str) -> None:
+    """Return once the token is revoked or gone (looked up every :data:`REVOCATION_POLL_S`;
+    a store that does not answer keeps the socket open)."""
+    store = websocket.app.state.runtime.store
+    while True:
+        await asyncio.sleep(REVOCATION_POLL_S)
+        try:
+            record = await anyio.to_thread.run_sync(store.get_token, token_sha256)
+        except StorageError:
+            continue
+        if record is None or record.revoked:
+            return
+
+
+async def _while_authorised(
+    websocket: WebSocket, principal: Principal | None, body: Coroutine[Any, Any, None]
+) -> None:
+    """Run the coroutine ``body`` (the socket's sender) until it ends or the caller's token is
+    revoked; then close the socket with 1008."""
+    task = asyncio.ensure_future(body)
+    if principal is None or principal.token_sha256 is None:  # tokens off
+        await task
+        return
+    watch = asyncio.create_task(_token_revoked(websocket, principal.token_sha256))
+    await asyncio.wait({task, watch}, return_when=asyncio.FIRST_COMPLETED)
+    for running in (task, watch):
+        running.cancel()
+        with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
+            await running
+    if watch.done() and not watch.cancelled():
+        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
+            await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="token revoked")
+
+
 @router.websocket("/fleet")
 async def live_fleet(
     websocket: WebSocket,
+    principal: CallerDep,
     interval_ms: Annotated[int, Query(ge=250, le=5000)] = 500,
 ) -> None:
     """Every vehicle's status, speed, slip, GNSS quality and age (see the module docstring)."""
@@ -135,6 +198,10 @@ async def live_fleet(
         await _close_unavailable(websocket)
         return
     await websocket.accept()
+    await _while_authorised(websocket, principal, _send_fleet(websocket, hub, interval_ms))
+
+
+async def _send_fleet(websocket: WebSocket, hub: LiveHub, interval_ms: int) -> None:
     interval = interval_ms / 1000.0
     loop = asyncio.get_running_loop()
     receiver = asyncio.create_task(_drain(websocket))
@@ -173,6 +240,7 @@ def _clamp_window(value: Any, default: float) -> float:
 async def live_vehicle(
     websocket: WebSocket,
     vehicle_id: str,
+    principal: CallerDep,
     estimator: Annotated[str | None, Query(max_length=64)] = None,
     window_s: Annotated[float, Query(ge=_WINDOW_MIN_S, le=_WINDOW_MAX_S)] = 60.0,
     max_points: Annotated[int, Query(ge=100, le=5000)] = 1500,
@@ -184,6 +252,18 @@ async def live_vehicle(
         await _close_unavailable(websocket)
         return
     await websocket.accept()
+    sender = _send_vehicle(websocket, hub, vehicle_id, estimator, window_s, max_points)
+    await _while_authorised(websocket, principal, sender)
+
+
+async def _send_vehicle(
+    websocket: WebSocket,
+    hub: LiveHub,
+    vehicle_id: str,
+    estimator: str | None,
+    window_s: float,
+    max_points: int,
+) -> None:
     requests: asyncio.Queue[float] = asyncio.Queue(maxsize=8)
 
     async def receive() -> None:

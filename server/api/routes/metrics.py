@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 
 from server.api.deps import RuntimeDep, call_hook
+from server.api.limits import HeavyLimitState
 from server.api.routes.health import checks
 from server.metrics.prometheus import CONTENT_TYPE, MetricFamily, Sample, render
 
@@ -33,6 +34,7 @@ router = APIRouter(prefix="/metrics", tags=["metrics"])
     ),
 )
 def get_metrics(
+    request: Request,
     runtime: RuntimeDep,
     by_vehicle: Annotated[
         bool,
@@ -52,4 +54,27 @@ def get_metrics(
         ),
     )
     provided: Iterable[MetricFamily] = call_hook(runtime, "metrics", by_vehicle) or ()
-    return Response(render([up, *provided]), media_type=CONTENT_TYPE)
+    limits = _limit_families(getattr(request.app.state, "heavy_limits", None))
+    return Response(render([up, *provided, *limits]), media_type=CONTENT_TYPE)
+
+
+def _limit_families(state: HeavyLimitState | None) -> list[MetricFamily]:
+    """Requests of the expensive routes running now and refused with 429, by route."""
+    if state is None:
+        return []
+    running = MetricFamily(
+        "slipfleet_api_heavy_requests_running",
+        "gauge",
+        "Reports, slip maps and series exports running now, by route.",
+        tuple(Sample(float(n), {"route": r}) for r, n in sorted(state.in_flight.items())),
+    )
+    refused = MetricFamily(
+        "slipfleet_api_requests_refused",
+        "counter",
+        "Requests answered 429, by route and the limit they passed (token or route).",
+        tuple(
+            Sample(float(n), {"route": r, "limit": lim}, "_total")
+            for (r, lim), n in sorted(state.refused.items())
+        ),
+    )
+    return [running, refused]
