@@ -758,7 +758,7 @@ class Pipeline:
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
         push = self._registry.push
-        notices = wheel_gaps(gaps)
+        notices = wheel_gaps(gaps) if gaps else ()
         before: dict[int, list[WheelGap]] = {}  # id(packet) -> notices before it
         for gap, p in notices:
             if p is not None:

@@ -43,8 +43,9 @@ lowest watermark (a batch window, the streams' last ``until_ns`` permitting) unt
 again.
 
 Between packets the horizon moves only when the vehicle falls idle (and no watermarks gate). A
-packet moves it only when it comes on the stream whose watermark held it at the last release
-(the lowest one), or when its samples push the fixed window past what was released;
+packet moves it only when it moves the last of the watermarks that held it at the last release
+(the lowest one, or several that tie: streams whose batches end together), or when its samples
+push the fixed window past what was released;
 :attr:`ReorderBuffer.may_release` says so, and the pipeline visits a buffer only then (or when
 it fell idle): the packets of the streams ahead of a lagging one wait without a release each.
 
@@ -357,7 +358,7 @@ class ReorderBuffer:
         self._last_arrival_ns = 0
         self._watermarks: dict[Stream, _StreamMark] | None = {} if watermarks else None
         self._first_ns: int | None = None
-        self._expected = tuple(frozenset(streams))
+        self._expected = tuple(sorted(frozenset(streams), key=_PRIORITY.__getitem__))
         if not self._expected:
             raise ValueError("streams must not be empty")
         # the expected cumulative streams, whose missing data is told (take_gaps)
@@ -369,8 +370,10 @@ class ReorderBuffer:
         # last take_gaps()
         self._missing: dict[Stream, _Missing] = {}
         self._gaps: list[StreamGap] = []
-        # the stream whose watermark held the horizon at the last release (gating only)
-        self._low_stream: Stream | None = None
+        # the streams whose watermarks held the horizon at the last release (gating only; at
+        # the lowest watermark, _low_ns): those whose marks moved past it since are taken out
+        self._low_streams: list[Stream] | None = None
+        self._low_ns = 0
         self._may_release = False
 
     @property
@@ -477,7 +480,7 @@ class ReorderBuffer:
         self._jumps_in_row = 0
         self._first_ns = None
         self._gating = False
-        self._low_stream = None
+        self._low_streams = None
         self._missing.clear()  # the estimators restart
         if self._watermarks is not None:
             self._watermarks.clear()
@@ -512,15 +515,18 @@ class ReorderBuffer:
 
     def _note_arrival(self, stream: Stream) -> None:
         """Whether a packet of ``stream`` just taken may move the horizon (:attr:`may_release`):
-        the released horizon is at least the lowest watermark, so while that stream's mark
-        and the fixed window stay where they were, the horizon does too."""
+        the released horizon is at least the lowest watermark, so while one of the streams at
+        that watermark stays there and the fixed window does not pass it, the horizon does not
+        move."""
         if self._may_release:
             return
         released = self._released_ns
-        low = self._low_stream
+        lows, marks = self._low_streams, self._watermarks
+        if lows and stream in lows and marks and marks[stream].stamp_ns > self._low_ns:
+            lows.remove(stream)
         self._may_release = (
-            low is None  # no watermark gating, or released at an idle time or a flush
-            or stream is low
+            not lows  # no watermark gating (or released at an idle time or a flush), or every
+            # stream at the lowest watermark moved past it
             or released is None
             or self._newest_ns is None
             or self._newest_ns - self._lateness_ns > released
@@ -569,7 +575,7 @@ class ReorderBuffer:
         newest = self._newest_ns
         if newest is None:
             return None
-        self._low_stream = None  # unless the watermarks gate below
+        self._low_streams = None  # unless the watermarks gate below
         horizon = newest - self._lateness_ns
         marks = self._watermarks
         if marks and self._first_ns is not None:
@@ -584,24 +590,34 @@ class ReorderBuffer:
                 if mark.ahead:
                     mark.skip_gaps(horizon)
             if self._gating or self._starts_gating(newest, marks):
-                low, lowest = None, None
-                for s in self._expected:
-                    stamp = marks[s].stamp_ns
-                    if lowest is None or stamp < lowest:
-                        low, lowest = s, stamp
-                self._low_stream = low
-                if lowest is not None and lowest > horizon:
+                lowest = self._lowest(marks)
+                if lowest > horizon:
                     horizon = lowest
                 for s, mark_ns, run_seq in before:
                     if horizon > mark_ns:
                         self._behind(s, mark_ns, run_seq, marks[s].stamp_ns, horizon)
-        if self._low_stream is None and now_ns - self._last_arrival_ns >= self._idle_ns:
+        if self._low_streams is None and now_ns - self._last_arrival_ns >= self._idle_ns:
             # idle, and no watermarks tell how far each stream is complete: release everything
             horizon = newest
         released = self._released_ns
         if released is not None and horizon < released:
             return released
         return horizon
+
+    def _lowest(self, marks: dict[Stream, _StreamMark]) -> int:
+        """The lowest watermark of the expected streams; the streams at it are kept
+        (:meth:`_note_arrival`)."""
+        expected = self._expected
+        lowest = marks[expected[0]].stamp_ns
+        lows = [expected[0]]
+        for s in expected[1:]:
+            stamp = marks[s].stamp_ns
+            if stamp < lowest:
+                lows, lowest = [s], stamp
+            elif stamp == lowest:
+                lows.append(s)
+        self._low_streams, self._low_ns = lows, lowest
+        return lowest
 
     def _behind(
         self, stream: Stream, mark_ns: int, run_seq: int | None, skipped_ns: int, horizon_ns: int
@@ -632,7 +648,7 @@ class ReorderBuffer:
         everything (shutdown).
         """
         if flush:
-            horizon, self._low_stream = self._newest_ns, None
+            horizon, self._low_streams = self._newest_ns, None
         else:
             horizon = self.horizon_ns(now_ns)
         if horizon is None:

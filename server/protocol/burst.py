@@ -24,6 +24,7 @@ one numpy call per check). The other packets of the burst are unaffected, so
 from __future__ import annotations
 
 import itertools
+import operator
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -44,7 +45,7 @@ from server.protocol.base import (
 from server.protocol.codec import decode
 from server.protocol.keys import Stream, parse_key
 from server.protocol.layouts import Edges, Sampled
-from server.protocol.streams import STREAMS, WIRE_STREAM, Layout
+from server.protocol.streams import STREAMS, Layout
 from server.protocol.wire import DECODER as _DECODER
 
 __all__ = ["MIN_BATCHED", "BurstItem", "decode_burst"]
@@ -57,8 +58,22 @@ _F8_BYTES = 8  # a packed float64 value
 _NO_FIRST_NS = 2**63 - 1  # start of the min() over a packet's first sample times
 _NO_LAST_NS = -(2**63)  # start of the max() over its last ones
 _SEQ_END = 2**63  # sequence numbers lie in [0, 2**63)
-_SPECS = dict(STREAMS)  # a dict looks up faster than the read-only mapping
-_WIRE_STREAM = dict(WIRE_STREAM)
+
+
+class _Route(NamedTuple):
+    """What the burst decoder does with a decoded struct of one stream: its declaration's
+    parts, looked up once per packet by the struct's type."""
+
+    stream: Stream
+    single: Callable[[Any, Limits], Body | None] | None  #: ``StreamSpec.single``
+    layout: Layout | None  #: ``StreamSpec.layout`` (None: ``batch`` decides per packet)
+    batch: Callable[[Any], Layout | None]  #: ``StreamSpec.batch``
+
+
+#: Each wire struct's route, derived from the stream declarations at import.
+_ROUTES: dict[type, _Route] = {
+    s.wire: _Route(s.stream, s.single, s.layout, s.batch) for s in STREAMS.values()
+}
 
 
 class _Opened:
@@ -84,27 +99,41 @@ class _Opened:
         self, ms: tuple[Measurement, ...], first_ns: int, last_ns: int, opts: _Options
     ) -> BurstItem:
         """The packet of checked measurements; per-packet rules if ``until_ns`` is refused."""
-        until_ns = _until(self.p)
-        if (
-            until_ns is not None
-            and not last_ns <= until_ns <= last_ns + opts.limits.max_until_ahead_ns
-        ):
-            return self.alone(opts)
-        return new_packet(
-            vehicle_id=self.vehicle_id,
-            stream=self.stream,
-            seq=self.p.seq,
-            schema_version=SCHEMA_VERSION,
-            measurements=ms,
-            first_stamp_ns=first_ns,
-            last_stamp_ns=last_ns,
-            until_ns=until_ns,
-        )
+        packet = _packet(self.vehicle_id, self.stream, self.p, ms, first_ns, last_ns, opts.limits)
+        return self.alone(opts) if packet is None else packet
 
 
 def _until(p: Any) -> int | None:
     """The packet's ``until_ns``; None when it has none."""
     return p.until_ns if isinstance(p.until_ns, int) else None  # or UNSET
+
+
+def _packet(
+    vehicle_id: str,
+    stream: Stream,
+    p: Any,
+    ms: tuple[Measurement, ...],
+    first_ns: int,
+    last_ns: int,
+    lim: Limits,
+) -> Packet | None:
+    """The packet of the struct ``p`` and its checked measurements; None when its
+    ``until_ns`` is out of range (the per-packet rules then decide)."""
+    until_ns = p.until_ns
+    if type(until_ns) is not int:  # UNSET
+        until_ns = None
+    elif not last_ns <= until_ns <= last_ns + lim.max_until_ahead_ns:
+        return None
+    return new_packet(
+        vehicle_id=vehicle_id,
+        stream=stream,
+        seq=p.seq,
+        schema_version=SCHEMA_VERSION,
+        measurements=ms,
+        first_stamp_ns=first_ns,
+        last_stamp_ns=last_ns,
+        until_ns=until_ns,
+    )
 
 
 class _Options:
@@ -238,33 +267,70 @@ class _Runs:
         return _Checked(t, starts, ends, first_ns, last_ns, good)
 
 
+def _compiled(source: str, build: Callable[..., Measurement]) -> Callable[..., Measurement]:
+    """The function ``source`` defines, calling ``build``."""
+    scope: dict[str, Any] = {"build": build}
+    exec(source, scope)
+    made: Callable[..., Measurement] = scope["made"]
+    return made
+
+
+#: Each layout's measurement maker (:func:`_maker`), compiled the first time it is met.
+_MAKERS: dict[Layout, Callable[..., Measurement]] = {}
+
+
+def _maker(layout: Layout) -> Callable[..., Measurement]:
+    """The layout's ``build`` called with its fields named in the code, not by ``**``: a
+    :class:`Sampled` layout's ``(t, arrays, a, b)`` (samples ``a:b`` of the joined arrays, in
+    the order of ``rows``), an :class:`Edges` layout's ``(member, stamp_ns, direction)``.
+
+    Generated from the declaration (its names are identifiers), because a call that unpacks a
+    dict of keywords costs about 1 µs more a measurement than one naming them."""
+    made = _MAKERS.get(layout)
+    if made is not None:
+        return made
+    if isinstance(layout, Sampled):
+        names = [r.name for r in layout.rows]
+        rows = "".join(f", {n}=arrays[{k}][a:b]" for k, n in enumerate(names))
+        source = f"def made(t, arrays, a, b):\n    return build(stamp_ns=t[a:b]{rows})\n"
+    else:
+        names = [layout.key]
+        source = (
+            "def made(member, stamp_ns, direction):\n"
+            f"    return build({layout.key}=member, stamp_ns=stamp_ns, direction=direction)\n"
+        )
+    if not all(n.isidentifier() for n in names):
+        raise ValueError(f"layout field names must be identifiers: {names}")
+    made = _MAKERS[layout] = _compiled(source, layout.build)
+    return made
+
+
 class _SampledGroup:
     """Packets of one :class:`~server.protocol.layouts.Sampled` layout (a single stamp run and
     row arrays of the same length), checked together."""
 
-    __slots__ = ("layout", "names", "opened", "row_bytes", "rows", "runs")
+    __slots__ = ("fields", "layout", "make", "opened", "row_bytes", "rows", "runs")
+    heartbeats = False  #: its packets always carry samples
 
     def __init__(self, layout: Sampled) -> None:
         self.layout = layout
-        self.names = tuple(r.name for r in layout.rows)
-        self.row_bytes = tuple((r.name, r.width * _F8_BYTES) for r in layout.rows)
+        self.make = _maker(layout)
+        #: a struct's ``(stamp_ns, <row arrays>...)`` in one call
+        self.fields = operator.attrgetter("stamp_ns", *(r.name for r in layout.rows))
+        self.row_bytes = tuple(r.width * _F8_BYTES for r in layout.rows)
         self.opened: list[_Opened] = []
         self.runs = _Runs(strict=True)
         self.rows: list[list[bytes]] = [[] for _ in layout.rows]
 
     def add(self, op: _Opened, lim: Limits) -> bool:
         """Take ``op`` when its arrays have a valid packet's lengths."""
-        p = op.p
-        stamps = p.stamp_ns
+        stamps, *raws = self.fields(op.p)
         n = _sample_count(stamps, lim)
         if not n:
             return False
-        raws: list[bytes] = []
-        for name, row_bytes in self.row_bytes:
-            raw = getattr(p, name)
+        for raw, row_bytes in zip(raws, self.row_bytes, strict=True):
             if type(raw) is not bytes or len(raw) != n * row_bytes:
                 return False
-            raws.append(raw)
         self.opened.append(op)
         self.runs.add(stamps, n)
         for joined, raw in zip(self.rows, raws, strict=True):
@@ -291,16 +357,12 @@ class _SampledGroup:
             for raws, r in zip(self.rows, self.layout.rows, strict=True)
         ]
         c = self.runs.check(lim, self._rows_ok(arrays, lim))
-        build, t = self.layout.build, c.t
-        named = list(zip(self.names, arrays, strict=True))
+        make, t = self.make, c.t
         for op, a, b, first, last, ok in zip(
             self.opened, c.starts, c.ends, c.first_ns, c.last_ns, c.good, strict=True
         ):
             if ok:
-                values = {"stamp_ns": t[a:b]}
-                for name, x in named:  # a loop: a comprehension costs a call per packet
-                    values[name] = x[a:b]
-                out[op.index] = op.packet((build(**values),), first, last, opts)
+                out[op.index] = op.packet((make(t, arrays, a, b),), first, last, opts)
             else:
                 out[op.index] = op.alone(opts)
 
@@ -313,20 +375,24 @@ class _EdgesGroup:
         "by_number",
         "directions",
         "entries",
+        "entry",
         "key",
         "layout",
+        "make",
         "most",
-        "named",
         "opened",
         "runs",
     )
+    heartbeats = True  #: a packet without entries is a heartbeat (``until_ns`` alone)
 
     def __init__(self, layout: Edges) -> None:
         self.layout = layout
         self.key = layout.key
         self.by_number = layout.by_number  # the struct's number is an int already
         self.most = len(layout.by_number)  # entries in a packet
-        self.named = {m: {layout.key: m} for m in layout.by_number.values()}  # build's keyword
+        self.make = _maker(layout)
+        #: an entry's ``(member number, stamp_ns, direction)`` in one call
+        self.entry = operator.attrgetter(layout.key, "stamp_ns", "direction")
         self.opened: list[_Opened] = []
         self.entries: list[list[tuple[Any, int]]] = []  # per packet: (member, run index)
         self.runs = _Runs(strict=False)
@@ -352,14 +418,16 @@ class _EdgesGroup:
 
     def _add_entry(self, item: Any, lim: Limits) -> tuple[Any, int] | None:
         """Add one entry's run; None (nothing added) when the entry is not valid."""
-        member = self.by_number.get(getattr(item, self.key))
-        n = _sample_count(item.stamp_ns, lim)
+        number, stamps, direction = self.entry(item)
+        member = self.by_number.get(number)
+        n = _sample_count(stamps, lim)
         if member is None or not n:
             return None
-        direction = item.direction if isinstance(item.direction, bytes) else None  # or UNSET
-        if direction is not None and len(direction) != n:
+        if type(direction) is not bytes:  # UNSET
+            direction = None
+        elif len(direction) != n:
             return None
-        run = self.runs.add(item.stamp_ns, n)
+        run = self.runs.add(stamps, n)
         if direction is not None:
             self.directions[run] = direction
         return member, run
@@ -393,7 +461,7 @@ class _EdgesGroup:
             return
         t, starts, ends, first_ns, last_ns, good = self.runs.check(opts.limits)
         directions = self._direction_views()
-        build, named = self.layout.build, self.named
+        make = self.make
         for op, entries in zip(self.opened, self.entries, strict=True):
             ms: list[Measurement] = []
             first, last = _NO_FIRST_NS, _NO_LAST_NS
@@ -401,9 +469,7 @@ class _EdgesGroup:
                 if not good[r] or r not in directions:
                     out[op.index] = op.alone(opts)
                     break
-                ms.append(
-                    build(**named[member], stamp_ns=t[starts[r] : ends[r]], direction=directions[r])
-                )
+                ms.append(make(member, t[starts[r] : ends[r]], directions[r]))
                 if first_ns[r] < first:
                     first = first_ns[r]
                 if last_ns[r] > last:
@@ -418,14 +484,13 @@ class _Groups:
     __slots__ = ("by_layout",)
 
     def __init__(self) -> None:
-        self.by_layout: dict[int, _SampledGroup | _EdgesGroup] = {}
+        #: by layout object (layouts hash by identity): a dict look-up, no call, per packet
+        self.by_layout: dict[Layout, _SampledGroup | _EdgesGroup] = {}
 
-    def of(self, layout: Layout) -> _SampledGroup | _EdgesGroup:
-        """The group checking ``layout``'s packets."""
-        group = self.by_layout.get(id(layout))
-        if group is None:
-            group = _SampledGroup(layout) if isinstance(layout, Sampled) else _EdgesGroup(layout)
-            self.by_layout[id(layout)] = group
+    def new(self, layout: Layout) -> _SampledGroup | _EdgesGroup:
+        """The group checking ``layout``'s packets, the first of them in this burst."""
+        group = _SampledGroup(layout) if isinstance(layout, Sampled) else _EdgesGroup(layout)
+        self.by_layout[layout] = group
         return group
 
     def finish(self, out: list[BurstItem | None], opts: _Options) -> None:
@@ -467,10 +532,23 @@ def _stream_of(key: str, prefix: str) -> tuple[str, Stream] | None:
     return None if stream is None else (vehicle_id, stream)
 
 
-def _single(op: _Opened, check: Callable[[Any, Limits], Body | None], opts: _Options) -> BurstItem:
-    """The packet of a stream checked one struct at a time (``StreamSpec.single``)."""
-    body = check(op.p, opts.limits)
-    return op.alone(opts) if body is None else op.packet(*body, opts)
+#: Keys seen, per prefix: ``key -> _stream_of(key, prefix)``, so that a packet's key costs a
+#: dict look-up (a fleet repeats its vehicles' few keys); emptied when it holds more than
+#: :data:`_KEYS_HELD` (random keys must not grow memory).
+_KEYS: dict[str, dict[str, tuple[str, Stream] | None]] = {}
+_KEYS_HELD = 65_536
+
+
+def _keys_of(prefix: str) -> dict[str, tuple[str, Stream] | None]:
+    """The keys seen under ``prefix`` (emptied first when too many)."""
+    keys = _KEYS.get(prefix)
+    if keys is None:
+        if len(_KEYS) >= 16:  # prefixes: one or a few a server
+            _KEYS.clear()
+        keys = _KEYS[prefix] = {}
+    elif len(keys) > _KEYS_HELD:
+        keys.clear()
+    return keys
 
 
 def decode_burst(
@@ -499,13 +577,13 @@ def decode_burst(
         return [opts.alone(key, payload) for key, payload in received]
     out: list[BurstItem | None] = [None] * len(received)
     groups = _Groups()
-    streams: dict[str, tuple[str, Stream] | None] = {}
-    typed, specs = _DECODER.decode, _SPECS
+    streams = _keys_of(prefix)
+    typed, routes, by_layout = _DECODER.decode, _ROUTES, groups.by_layout
     for i, item in enumerate(received):
         key, payload = item
         try:
             vs = streams[key]
-        except KeyError:  # the first packet of this key in the burst
+        except KeyError:  # the first packet of this key
             vs = streams[key] = _stream_of(key, prefix)
         if vs is None or len(payload) > max_payload_bytes:
             out[i] = opts.alone(key, payload)
@@ -516,20 +594,23 @@ def decode_burst(
             out[i] = opts.alone(key, payload)  # its reason, or valid beyond the usual shape
             continue
         vehicle_id, stream = vs
-        if p.seq >= _SEQ_END or _WIRE_STREAM[type(p)] is not stream:
+        wired, single, layout, batch = routes[type(p)]
+        if p.seq >= _SEQ_END or wired is not stream:
             out[i] = opts.alone(key, payload)
             continue
-        spec = specs[stream]
-        op = _Opened(i, item, vehicle_id, stream, p)
-        if spec.single is not None:  # nothing to batch: checked on its own
-            out[i] = _single(op, spec.single, opts)
+        if single is not None:  # nothing to batch: checked on its own
+            body = single(p, limits)
+            packet = None if body is None else _packet(vehicle_id, stream, p, *body, limits)
+            out[i] = opts.alone(key, payload) if packet is None else packet
             continue
-        layout = spec.batch(p)
-        if layout is None:
-            out[i] = op.alone(opts)
-        elif isinstance(layout, Edges) and p.edges == []:
+        if layout is None and (layout := batch(p)) is None:
+            out[i] = opts.alone(key, payload)
+            continue
+        group = by_layout.get(layout) or groups.new(layout)
+        op = _Opened(i, item, vehicle_id, stream, p)
+        if group.heartbeats and p.edges == []:
             out[i] = _heartbeat(op, limits) or op.alone(opts)
-        elif not groups.of(layout).add(op, limits):
+        elif not group.add(op, limits):
             out[i] = op.alone(opts)
     groups.finish(out, opts)
     items = [item for item in out if item is not None]

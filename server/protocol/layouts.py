@@ -64,10 +64,11 @@ class Rows:
         return a if LITTLE_ENDIAN else a.astype(np.float64)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class Sampled:
     """Samples at strictly increasing ``stamp_ns`` with :attr:`rows` beside them; one
-    measurement a packet, ``build(stamp_ns=..., <rows name>=...)``."""
+    measurement a packet, ``build(stamp_ns=..., <rows name>=...)``. Hashed by identity (the
+    burst decoder keys its groups by the layout)."""
 
     rows: tuple[Rows, ...]
     build: Callable[..., Measurement]
@@ -105,12 +106,12 @@ def heartbeat_until(ctx: Ctx, m: dict[str, Any], lim: Limits) -> Body:
     return (), until_ns, until_ns
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class Edges:
     """``edges``: one entry per member that had edges, ``{key: member, stamp_ns, direction?}``
     (:func:`edge_run`), each member at most once; no entry at all only with ``until_ns`` (a
     heartbeat). Each entry is one measurement, ``build(<key>=member, stamp_ns=...,
-    direction=...)``."""
+    direction=...)``. Hashed by identity, as :class:`Sampled`."""
 
     key: str
     members: type[IntEnum]

@@ -65,6 +65,9 @@ class StreamSpec:
     batch : callable ``(struct) -> Layout or None``
         The layout whose arrays the burst decoder checks for a decoded struct; None: the
         packet is decoded alone (or by ``single``).
+    layout : Layout or None
+        The one layout of every packet of the stream (``batch`` returns it), so the burst
+        decoder needs no call per packet to find it; None: ``batch`` decides per packet.
     single : callable ``(struct, limits) -> (measurements, first_ns, last_ns) or None``
         The burst decoder's check of one decoded struct of a stream without arrays to batch;
         None from it: the per-packet rules decide.
@@ -82,6 +85,7 @@ class StreamSpec:
     decode: Callable[[Ctx, dict[str, Any], Limits], Body]
     batch: Callable[[Any], Layout | None] = _no_batch
     single: Callable[[Any, Limits], Body | None] | None = None
+    layout: Layout | None = None
     priority: int = 0
     cumulative: bool = False
 
@@ -106,6 +110,7 @@ def _fixed(
         measurements=(measurement,),
         decode=layout.decode,
         batch=lambda p: layout,
+        layout=layout,
         priority=priority,
         cumulative=cumulative,
     )

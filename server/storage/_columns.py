@@ -116,7 +116,8 @@ class SpecTables(Generic[_T]):
     def of(self, batch: EstimateBatch) -> _T:
         """The table ``batch`` goes to (``StorageDataError`` when its rows fit none)."""
         t = self.load().get(batch.estimator)
-        if t is None or t.spec.dtype != batch.spec.dtype:
+        # the same dtype object in the common case: no comparison field by field (~3 µs)
+        if t is None or (t.spec.dtype is not batch.spec.dtype and t.spec.dtype != batch.spec.dtype):
             raise StorageDataError(
                 f"{self._dialect}: rows of estimator {batch.estimator!r} do not fit a table of "
                 "this store"

@@ -69,7 +69,14 @@ class _PgTable:
         self.spec = spec
         self.table = table
         self.stage = f"{table}_stage"
-        self.copy_dtype = _copy_dtype((("vkey", "i4"), *spec_fields(spec)))
+        columns = (("vkey", "i4"), *spec_fields(spec))
+        self.copy_dtype = _copy_dtype(columns)
+        # a COPY tuple with its field count and every field's length set (the values are
+        # filled per batch): one fill per batch instead of an assignment per field
+        self.copy_template = np.zeros((), dtype=self.copy_dtype)
+        self.copy_template["_nfields"] = len(columns)
+        for name, kind in columns:
+            self.copy_template[f"_len_{name}"] = _WIDTH[kind]
 
 
 def _wrap(exc: psycopg.Error) -> StorageError:
@@ -545,12 +552,9 @@ def _copy_in_payload(t: _PgTable, batch: EstimateBatch, keys: Mapping[str, int])
         rows, vkeys = rows[vkeys >= 0], vkeys[vkeys >= 0]
     if not len(rows):
         return None
-    buf = np.empty(len(rows), dtype=t.copy_dtype)
-    buf["_nfields"] = len(t.spec.fields) + 1
-    buf["_len_vkey"] = 4
+    buf = np.full(len(rows), t.copy_template)
     buf["vkey"] = vkeys
     for f in t.spec.fields:
-        buf[f"_len_{f.name}"] = _WIDTH[f.kind]
         buf[f.name] = rows[f.name]  # byte-swapped to big-endian by the assignment
     return _COPY_HEADER + buf.tobytes() + _COPY_TRAILER
 

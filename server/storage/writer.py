@@ -527,20 +527,27 @@ class StoreWriter:
     def _take_locked(self) -> list[EstimateBatch]:
         """Pop up to ``batch_max_rows`` rows off the backlog: a batch per estimator, its rows
         merged per vehicle in order."""
-        specs: dict[str, EstimatorSpec] = {}
-        per_vehicle: dict[str, dict[str, list[np.ndarray]]] = {}
-        n = 0
-        while self._queue and n < self._batch_max:
-            spec, vid, rows = self._queue[0]
+        # per estimator: its spec and each vehicle's parts (a vehicle has one part unless it
+        # had rows in two submits)
+        taken: dict[str, tuple[EstimatorSpec, dict[str, list[np.ndarray]]]] = {}
+        queue, n = self._queue, 0
+        while queue and n < self._batch_max:
+            spec, vid, rows = queue[0]
             room = self._batch_max - n
             if len(rows) <= room:
-                self._queue.popleft()
+                queue.popleft()
                 part = rows
             else:
                 part = rows[:room]
-                self._queue[0] = (spec, vid, rows[room:])
-            specs.setdefault(spec.name, spec)
-            per_vehicle.setdefault(spec.name, {}).setdefault(vid, []).append(part)
+                queue[0] = (spec, vid, rows[room:])
+            of_spec = taken.get(spec.name)
+            if of_spec is None:
+                of_spec = taken[spec.name] = (spec, {})
+            parts = of_spec[1].get(vid)
+            if parts is None:
+                of_spec[1][vid] = [part]
+            else:
+                parts.append(part)
             n += len(part)
         self._queued_rows -= n
         self._inflight_rows = n
@@ -548,11 +555,11 @@ class StoreWriter:
         return [
             EstimateBatch(
                 list(parts),
-                [sum(len(p) for p in ps) for ps in parts.values()],
+                [sum(map(len, ps)) for ps in parts.values()],
                 concat_estimates([p for ps in parts.values() for p in ps]),
-                specs[name],
+                spec,
             )
-            for name, parts in per_vehicle.items()
+            for spec, parts in taken.values()
         ]
 
     def _take_counters_locked(self) -> dict[str, dict[str, int]]:

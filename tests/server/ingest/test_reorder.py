@@ -516,6 +516,25 @@ def test_packets_behind_a_lagging_stream_do_not_ask_for_a_release() -> None:
     assert asked[Stream.IMU] and not any(asked[Stream.IMU] + asked[Stream.GNSS])
 
 
+def test_streams_tied_at_the_lowest_watermark_ask_for_one_release() -> None:
+    """Each stream's packets cover up to the same batch end (``until_ns``): the three
+    watermarks tie, and only the packet that moves the last of them asks for a release, in
+    whichever order the streams arrive."""
+    buf = ReorderBuffer(lateness_ns=400 * MS, idle_ns=10**18, watermarks=True)
+    orders = [(0, 1, 2), (2, 1, 0), (1, 0, 2), (2, 0, 1)]
+    for k in range(40):
+        end_ns = T0 + (100 * k + 99) * MS + 1  # past every sample of the batch
+        batch = [dataclasses.replace(p, until_ns=end_ns) for p in three_streams(k)]
+        asked = []
+        for i in orders[k % len(orders)]:
+            assert buf.offer(batch[i], 0).verdict is Verdict.ACCEPTED
+            asked.append(buf.may_release)
+            buf.release(0)
+        if k > 2 * WATERMARK_START_NS // (100 * MS):
+            assert asked == [False, False, True]
+            assert buf.released_ns == end_ns
+
+
 def sprockets_packet(seq: int, first_ms: int) -> Packet:
     t = T0 + (first_ms + np.arange(0, 97, 8)) * MS
     m = SprocketEdges(TrackSide.TRACK_LEFT, t)

@@ -23,6 +23,7 @@ from server.protocol import (
     sensor_key,
 )
 from server.protocol.burst import decode_burst
+from server.protocol.streams import STREAMS
 from server.tooling.fleet_sim import encode_packets, packetize
 from tests.server.faults.test_fuzz import MAX_PAYLOAD, PREFIX, Feeder
 
@@ -274,3 +275,33 @@ def test_short_bursts_are_decoded_packet_by_packet(monkeypatch: pytest.MonkeyPat
     assert joined == []
     assert_burst_matches(received[:8])
     assert joined == [1]
+
+
+def test_routes_are_the_stream_declarations() -> None:
+    """The burst decoder's per-struct routes are taken from the declarations, one per stream,
+    and a stream's one layout is what its ``batch`` and ``decode`` go by."""
+    assert {route.stream for route in burst._ROUTES.values()} == set(Stream)
+    for stream, spec in STREAMS.items():
+        assert burst._ROUTES[spec.wire] == (stream, spec.single, spec.layout, spec.batch)
+        if spec.layout is not None:
+            assert spec.batch(None) is spec.layout
+            assert spec.decode == spec.layout.decode
+
+
+def test_keys_seen_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The keys a burst met are kept for the next ones, up to a bound: past it they are
+    forgotten at the next burst, and packets decode the same either way."""
+    monkeypatch.setattr(burst, "_KEYS_HELD", 4)
+    monkeypatch.setattr(burst, "_KEYS", {})
+
+    def burst_of(vehicles: range) -> list[tuple[str, bytes]]:
+        return [(sensor_key("fleet", f"veh-{i}", Stream.IMU), _imu_payload(i)) for i in vehicles]
+
+    assert_burst_matches(burst_of(range(3)))
+    assert len(burst._KEYS["fleet"]) == 3
+    assert_burst_matches(burst_of(range(3, 10)))  # a burst is decoded whole...
+    assert len(burst._KEYS["fleet"]) == 10
+    assert_burst_matches(burst_of(range(10, 12)))  # ...and the next starts afresh
+    assert len(burst._KEYS["fleet"]) == 2
+    assert_burst_matches(burst_of(range(2)), prefix="other")
+    assert isinstance(decode_burst(burst_of(range(2)), prefix="other")[0], DecodeError)
