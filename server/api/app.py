@@ -33,6 +33,7 @@ from server.api.deps import WS_BEARER_PROTOCOL, ApiLimits, ApiRuntime, require_r
 from server.api.errors import ErrorBody, error_response, install_error_handlers
 from server.api.routes import (
     alerts,
+    dashboard,
     estimators,
     health,
     live,
@@ -69,6 +70,7 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     health.router,
     metrics.router,
     tokens.router,
+    dashboard.router,
 )
 
 #: Routers anyone may call without a token.
