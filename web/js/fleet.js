@@ -15,6 +15,7 @@
 
 import { ApiError, fetchVehicles, getJSON, liveSocket } from "./api.js";
 import { slipBand, slipCss } from "./colors.js";
+import { fleetMapPanel } from "./fleetmap.js";
 import { loadSpecs, motionChannel } from "./specs.js";
 import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
@@ -22,6 +23,7 @@ const ROW_H = 32; // px, keep in sync with .vrow in app.css
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2, stored: 3 };
 const STATUS_TEXT = { stored: "not live" };
 const LATEST_PER_REFRESH = 50; // newest stored estimates fetched per refresh of the stored list
+const STORED_REFRESH_MS = 15000; // the stored list (band edges, anchors of new vehicles)
 
 // Cost of applying one fleet message (sort + render), ms; read by the live benchmark.
 window.slipfleetStats = window.slipfleetStats || {};
@@ -100,7 +102,7 @@ export function fleetView(root) {
   // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (the channel's edges until loaded)
   // msg: the newest fleet message; stored: vehicle id -> {estimator, latest} of every stored
   // vehicle (latest: its newest stored estimate, null if none, undefined until fetched)
-  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map() };
+  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map(), anchors: new Map() };
   let stopped = false;
   loadSpecs()
     .then((specs) => {
@@ -133,6 +135,7 @@ export function fleetView(root) {
         for (const v of body.data) {
           ids.add(v.vehicle_id);
           state.bandEdges.set(v.vehicle_id, v.config.slip.band_edges_pct);
+          state.anchors.set(v.vehicle_id, v.anchor);
           const prev = state.stored.get(v.vehicle_id);
           state.stored.set(v.vehicle_id, { estimator: v.estimators[0] || "", latest: prev ? prev.latest : undefined });
         }
@@ -143,7 +146,7 @@ export function fleetView(root) {
       .catch(() => {});
   };
   loadStored();
-  const bandTimer = setInterval(loadStored, 60000);
+  const bandTimer = setInterval(loadStored, STORED_REFRESH_MS);
   // The table's data: the newest fleet message plus the stored vehicles it does not hold.
   function update() {
     state.data = withStored(state.msg, state.stored, state.specs);
@@ -205,9 +208,20 @@ export function fleetView(root) {
     { class: "vtable", role: "table", "aria-label": "Fleet overview", "aria-rowcount": "0" },
     scroller,
   );
+  // every vehicle of the table (stored ones too) for the map, by its primary estimator
+  const fleetMap = fleetMapPanel({
+    vehicles: () => {
+      const d = state.data;
+      if (!d) return [];
+      return d.ids.map((id, i) => ({ id, estimator: d.estimator[i], live: d.status[i] === "live", stampNs: d.stamp_ns[i] }));
+    },
+    anchor: (id) => state.anchors.get(id) || null,
+    specs: () => state.specs,
+  });
   root.append(
     el("div", { class: "toolbar" }, el("h1", { text: "Fleet" }), filter, summary),
     table,
+    fleetMap.root,
   );
 
   const pool = [];
@@ -389,6 +403,7 @@ export function fleetView(root) {
   });
   return () => {
     stopped = true;
+    fleetMap.stop();
     sock.close();
     clearInterval(bandTimer);
     window.removeEventListener("resize", onResize);
