@@ -100,7 +100,8 @@ function timeLabel(v, incr) {
 
 // opts: title, yLabel, fields, labels (one per field; default the field names), height,
 // threshold (draw ±threshold lines), decimals, syncKey (share the cursor with the page's other
-// charts), onCursor(index) (hover callback)
+// charts), onCursor(index, tS) (hover callback: the data index and its time in seconds, both
+// null when the cursor leaves the chart)
 //
 // The chart is as wide as target's content box and follows it (ResizeObserver); target must get
 // its width from the layout, not from the chart (e.g. a grid column minmax(0, 1fr)).
@@ -149,7 +150,9 @@ export function makeChart(target, opts) {
       hooks: {
         setCursor: [
           (u) => {
-            if (opts.onCursor && u.cursor.idx != null) opts.onCursor(u.cursor.idx);
+            if (!opts.onCursor) return;
+            const i = u.cursor.idx;
+            opts.onCursor(i ?? null, i == null ? null : u.data[0][i]);
           },
         ],
         draw: [

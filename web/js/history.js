@@ -199,12 +199,11 @@ export function historyView(root, vehicleId) {
   let loadGen = 0;
   let heatGen = 0;
   const heatCache = new Map();
-  // hovering a chart moves the map's marker to that moment (the replay position stays)
-  const onCursor = (i) => {
+  // hovering a chart moves the map's marker to that moment; leaving it, back to the replay
+  // position
+  const onCursor = (i, tS) => {
     if (!env || !track || playing || !xs.length) return;
-    const t = env.stamp_ns[i];
-    if (t == null) return;
-    map.cursor = bisect(t / 1e9);
+    map.cursor = tS == null ? idx : bisect(tS);
     map.draw();
   };
   const sync = `history-${vehicleId}`;
@@ -421,7 +420,7 @@ export function historyView(root, vehicleId) {
       c.chart.setData(alignedData(env, c.fields));
     }
     const pos = spec.position;
-    if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric);
+    if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric, xs);
     else map.setTrack([], [], []);
     scrub.max = String(Math.max(0, xs.length - 1));
     scrub.disabled = xs.length === 0;

@@ -44,10 +44,27 @@ export class SlipMap {
     this.upTo = null; // draw the track only up to this index (replay), null = all
   }
 
-  setTrack(east, north, slip) {
+  // stampsS: each point's time (seconds), for cursorAt
+  setTrack(east, north, slip, stampsS = null) {
     this.east = east;
     this.north = north;
     this.slip = slip;
+    this.stampsS = stampsS;
+  }
+
+  // The index of the last point at or before tS (the first point before them all), or null
+  // without times or points.
+  indexAt(tS) {
+    const xs = this.stampsS;
+    if (!xs || !xs.length || tS == null) return null;
+    let lo = 0;
+    let hi = xs.length - 1;
+    while (lo < hi) {
+      const mid = (lo + hi + 1) >> 1;
+      if (xs[mid] <= tS) lo = mid;
+      else hi = mid - 1;
+    }
+    return lo;
   }
 
   // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey)

@@ -1,7 +1,8 @@
 // Vehicle page, live: one panel per estimator the vehicle runs (its primary first), each drawn
 // from the estimator's spec (GET /api/v1/estimators): a tile per slip channel (band colour from
 // the band edges), its motion speed, quality and flags, and a chart per ChartSpec with its
-// degraded stretches shaded; the primary's track on the slip map. Each panel has its own
+// degraded stretches shaded; the primary's track on the slip map, its marker at the charts'
+// cursor while one is hovered (else at the newest point). Each panel has its own
 // /live/vehicles/{id}?estimator= WebSocket (snapshot, then appends at 2–10 Hz); the primary's
 // messages list the vehicle's other estimators, whose panels are added as they appear.
 //
@@ -95,7 +96,7 @@ function estimatorPanel(spec, page, primary) {
   );
   const charts = spec.charts.map((c, i) => {
     const o = chartOptions(spec, c);
-    return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}` });
+    return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}`, onCursor: (_i, tS) => page.onCursor(tS) });
   });
   let cols = null;
   let pending = false;
@@ -177,6 +178,7 @@ export function vehicleView(root, vehicleId) {
   let stored = false; // GET /vehicles/{id} found it
   let parked = null; // the "not live" note, once shown
   let liveEmpty = false; // the live feed has nothing for the vehicle ("waiting", or no socket)
+  let cursorS = null; // time under the charts' cursor (seconds), null when none is hovered
   const panels = new Map(); // estimator -> panel
   const sockets = new Map(); // estimator ("" for the primary's until it is known) -> socket
   const title = el("h1", {}, "Vehicle ", el("span", { class: "mono", text: vehicleId }));
@@ -359,7 +361,15 @@ export function vehicleView(root, vehicleId) {
     onColumns(name, cols) {
       const spec = specs.get(name);
       if (name !== primary || !spec.position) return;
-      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols));
+      const stampsS = cols.stamp_ns.map((t) => t / 1e9);
+      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols), stampsS);
+      map.cursor = map.indexAt(cursorS);
+      map.draw();
+    },
+    // a chart's cursor at tS (seconds; null: it left the chart) puts the map's marker there
+    onCursor(tS) {
+      cursorS = tS;
+      map.cursor = map.indexAt(tS);
       map.draw();
     },
   };
