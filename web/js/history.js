@@ -21,11 +21,13 @@ import { clockToMs, fmtClock, timeMode, zoneName } from "./clock.js";
 import {
   alignedData,
   chartOptions,
-  degradedSpans,
+  qualitySpans,
   fitWidth,
   makeChart,
   setCursorTime,
   setShading,
+  SHADE_FILL,
+  shadeLegend,
 } from "./charts.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
@@ -145,6 +147,7 @@ export function historyView(root, vehicleId) {
   const heatMsg = el("span", { id: "h-heat-msg", class: "summary" });
   const estimatorSel = el("select", { id: "h-estimator", "aria-label": "Estimator" });
   const chartsBox = el("div", { id: "h-charts" });
+  const shadeKey = el("p", { id: "h-shade-legend", class: "shade-legend" });
   const canvas = el("canvas", { class: "map", id: "h-map", role: "img", "aria-label": "Slip map of the range" });
   const cursorStats = el("div", { class: "stats", id: "h-cursor" });
   root.append(
@@ -181,7 +184,7 @@ export function historyView(root, vehicleId) {
       heatMsg,
     ),
     cursorStats,
-    el("div", { class: "grid2" }, chartsBox, el("div", {}, canvas)),
+    el("div", { class: "grid2" }, el("div", {}, shadeKey, chartsBox), el("div", {}, canvas)),
   );
   let spec = null; // the chosen estimator's spec
   let specs = null;
@@ -229,6 +232,12 @@ export function historyView(root, vehicleId) {
       ...spec.slips.map((ch) => tile(`Slip ${ch.label}`, `h-slip-${ch.key}`, "%")),
       ...(motion ? [tile(motion.label, "h-motion", fieldOf(spec, motion.field).unit)] : []),
     );
+    shadeKey.replaceChildren(
+      ...shadeLegend(spec).map((s) =>
+        el("span", { class: "shade-key", "data-kind": s.kind, title: s.title }, el("span", { class: "swatch", style: `background: ${SHADE_FILL[s.kind]}` }), ` ${s.label}`),
+      ),
+    );
+    if (shadeKey.childElementCount) shadeKey.prepend("Shaded: ");
     canvas.hidden = !spec.position;
     heatOn.disabled = !spec.position || !spec.slips.length;
   }
@@ -413,7 +422,7 @@ export function historyView(root, vehicleId) {
     metric = slipMetric(spec, track);
     msg.textContent = `${envBody.rows} points`;
     detail.textContent = describe(envBody, trackBody, s, e);
-    const shade = degradedSpans(spec, env);
+    const shade = qualitySpans(spec, env);
     for (const c of charts) {
       fitWidth(c.chart, c.box);
       setShading(c.chart, shade);

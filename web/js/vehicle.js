@@ -13,7 +13,7 @@
 // is marked "not live", with the time of its newest stored estimate and a way to its history.
 
 import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket } from "./api.js";
-import { alignedData, chartOptions, degradedSpans, makeChart, setShading, setThreshold } from "./charts.js";
+import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
@@ -126,7 +126,7 @@ function estimatorPanel(spec, page, primary) {
   function redraw() {
     pending = false;
     if (!cols) return;
-    const shade = degradedSpans(spec, cols);
+    const shade = qualitySpans(spec, cols);
     spec.charts.forEach((c, i) => {
       setShading(charts[i], shade);
       charts[i].setData(alignedData(cols, c.fields));
