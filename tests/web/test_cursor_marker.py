@@ -57,9 +57,7 @@ def test_the_live_map_marker_follows_the_chart_cursor(live_stack: LiveStack, pag
     assert page.evaluate(_STATE_JS, [chart, canvas])["cursor"] is None
 
 
-def test_the_history_map_marker_follows_the_chart_cursor(
-    live_stack: LiveStack, page: Any
-) -> None:
+def test_the_history_map_marker_follows_the_chart_cursor(live_stack: LiveStack, page: Any) -> None:
     chart, canvas = "h-chart-slip", "h-map"
     page.goto(f"{live_stack.base_url}/#/vehicle/{VEHICLE}/history")
     history_loaded(page)

@@ -17,7 +17,7 @@ import { ApiError, fetchVehicles, getJSON, liveSocket } from "./api.js";
 import { slipBand, slipCss } from "./colors.js";
 import { fleetMapPanel } from "./fleetmap.js";
 import { loadSpecs, motionChannel } from "./specs.js";
-import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2, stored: 3 };
@@ -102,7 +102,7 @@ export function fleetView(root) {
   // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (the channel's edges until loaded)
   // msg: the newest fleet message; stored: vehicle id -> {estimator, latest} of every stored
   // vehicle (latest: its newest stored estimate, null if none, undefined until fetched)
-  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map(), anchors: new Map() };
+  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map(), anchors: new Map(), standstill: new Map() };
   let stopped = false;
   loadSpecs()
     .then((specs) => {
@@ -136,6 +136,7 @@ export function fleetView(root) {
           ids.add(v.vehicle_id);
           state.bandEdges.set(v.vehicle_id, v.config.slip.band_edges_pct);
           state.anchors.set(v.vehicle_id, v.anchor);
+          state.standstill.set(v.vehicle_id, v.config.slip.min_ground_speed_mps);
           const prev = state.stored.get(v.vehicle_id);
           state.stored.set(v.vehicle_id, { estimator: v.estimators[0] || "", latest: prev ? prev.latest : undefined });
         }
@@ -344,7 +345,7 @@ export function fleetView(root) {
       const pill = c.status.firstChild;
       pill.textContent = STATUS_TEXT[st] || st;
       pill.className = `pill st-${st}`;
-      c.speed_mps.textContent = fmt(d.speed_mps[i], 2);
+      c.speed_mps.textContent = fmtSpeed(d.speed_mps[i], state.standstill.get(id));
       const spec = state.specs.get(d.estimator[i]);
       for (const col of columns) {
         if (!col.slip) continue;

@@ -31,7 +31,7 @@ import {
 } from "./charts.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtDuration, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 // Fields of a spec the charts need: every chart's, and flags (degraded stretches).
 function chartFields(spec) {
@@ -189,6 +189,7 @@ export function historyView(root, vehicleId) {
   let spec = null; // the chosen estimator's spec
   let specs = null;
   let threshold = 15; // SlipConfig default until the vehicle's config is loaded
+  let standstillMps = null; // the vehicle's SlipConfig.min_ground_speed_mps, once loaded
   let charts = []; // [{box, chart, fields}] of the spec's charts
   let env = null; // chart columns: min/max envelope
   let track = null; // whole stored rows
@@ -248,6 +249,7 @@ export function historyView(root, vehicleId) {
     .then(([all, v]) => {
       specs = all;
       if (v) threshold = v.config.slip.alert_threshold_pct;
+      if (v) standstillMps = v.config.slip.min_ground_speed_mps;
       const names = v && v.estimators && v.estimators.length ? v.estimators : [...all.values()].filter((s) => s.position).map((s) => s.name);
       for (const n of names) estimatorSel.append(el("option", { value: n, text: all.get(n)?.title || n }));
       useSpec(names[0]);
@@ -357,7 +359,7 @@ export function historyView(root, vehicleId) {
     at.title = timeTitle(track.stamp_ns[idx]);
     for (const ch of spec.slips) document.getElementById(`h-slip-${ch.key}`).textContent = fmt(track[ch.field][idx], 1);
     const motion = motionChannel(spec);
-    if (motion) document.getElementById("h-motion").textContent = fmt(track[motion.field][idx], 2);
+    if (motion) document.getElementById("h-motion").textContent = fmtSpeed(track[motion.field][idx], standstillMps);
     for (const c of charts) setCursorTime(c.chart, xs[idx]);
     map.cursor = idx;
     map.upTo = idx;

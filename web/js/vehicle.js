@@ -17,7 +17,7 @@ import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThre
 import { slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const WINDOWS = [
   [30, "30 s"],
@@ -73,7 +73,7 @@ function mergeColumns(cols, fromNs, add, windowS) {
 }
 
 // One estimator's panel: tiles and charts from its spec; the page hands it its socket's messages.
-// page: {vehicleId, windowS(), bandEdges(channel), threshold(), onLatest(name, latest, recvMs),
+// page: {vehicleId, windowS(), bandEdges(channel), threshold(), standstill(), onLatest(name, latest, recvMs),
 // onColumns(name, cols)}
 function estimatorPanel(spec, page, primary) {
   const id = (part) => `v-${spec.name}-${part}`;
@@ -113,7 +113,7 @@ function estimatorPanel(spec, page, primary) {
       const why = lt.flag_names.filter((f) => f !== spec.ok_flag && !spec.slips.some((c) => c.valid_flag === f));
       document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase().replace(/_/g, " ") || "unknown"}` : "";
     }
-    if (motion) document.getElementById(id("speed")).textContent = fmt(lt[motion.field], 2);
+    if (motion) document.getElementById(id("speed")).textContent = fmtSpeed(lt[motion.field], page.standstill());
     const q = document.getElementById(id("quality"));
     q.textContent = lt.quality;
     q.className = `quality-${lt.quality}`;
@@ -169,6 +169,7 @@ export function vehicleView(root, vehicleId) {
   let connected = false;
   let threshold = ALERT_THRESHOLD_PCT;
   let bandEdges = null; // the vehicle's SlipConfig.band_edges_pct, once loaded
+  let standstillMps = null; // its SlipConfig.min_ground_speed_mps, once loaded
   let specs = null; // name -> spec
   let primary = null; // name of the primary estimator, from its socket's first message
   let latest = null; // newest "latest" of the primary, and its receive time (ms since the epoch)
@@ -256,6 +257,7 @@ export function vehicleView(root, vehicleId) {
       if (stopped) return;
       threshold = v.config.slip.alert_threshold_pct;
       bandEdges = v.config.slip.band_edges_pct;
+      standstillMps = v.config.slip.min_ground_speed_mps;
       for (const p of panels.values()) p.setThreshold(threshold);
       stored = true;
       showParked();
@@ -354,6 +356,7 @@ export function vehicleView(root, vehicleId) {
     vehicleId,
     windowS: () => windowS,
     threshold: () => threshold,
+    standstill: () => standstillMps,
     bandEdges: (ch) => bandEdges || ch.band_edges_pct,
     onLatest(name, lt, recvMs) {
       if (name === primary) showLatest(lt, recvMs);
