@@ -149,6 +149,7 @@ export function historyView(root, vehicleId) {
   const chartsBox = el("div", { id: "h-charts" });
   const shadeKey = el("p", { id: "h-shade-legend", class: "shade-legend" });
   const canvas = el("canvas", { class: "map", id: "h-map", role: "img", "aria-label": "Slip map of the range" });
+  const mapTitle = el("h2", { class: "map-title", id: "h-map-title" });
   const cursorStats = el("div", { class: "stats", id: "h-cursor" });
   root.append(
     el(
@@ -184,7 +185,7 @@ export function historyView(root, vehicleId) {
       heatMsg,
     ),
     cursorStats,
-    el("div", { class: "grid2" }, el("div", {}, shadeKey, chartsBox), el("div", {}, canvas)),
+    el("div", { class: "grid2" }, el("div", {}, shadeKey, chartsBox), el("div", {}, mapTitle, canvas)),
   );
   let spec = null; // the chosen estimator's spec
   let specs = null;
@@ -212,7 +213,7 @@ export function historyView(root, vehicleId) {
   };
   const sync = `history-${vehicleId}`;
   const TRACK_TITLE = "Track coloured by max |slip| of the wheels";
-  const map = new SlipMap(canvas, { title: TRACK_TITLE });
+  const map = new SlipMap(canvas, { title: TRACK_TITLE, titleEl: mapTitle });
 
   // Charts and cursor tiles of the chosen spec (its chart keys name the boxes: h-chart-<key>).
   function useSpec(name) {
@@ -240,6 +241,7 @@ export function historyView(root, vehicleId) {
     );
     if (shadeKey.childElementCount) shadeKey.prepend("Shaded: ");
     canvas.hidden = !spec.position;
+    mapTitle.hidden = !spec.position;
     heatOn.disabled = !spec.position || !spec.slips.length;
   }
 

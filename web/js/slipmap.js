@@ -31,9 +31,12 @@ function niceStep(span) {
 }
 
 export class SlipMap {
-  constructor(canvas, { title = "Track coloured by |slip|" } = {}) {
+  // titleEl: an element above the canvas that shows the title (it wraps on a narrow screen);
+  // without one the title is drawn on the canvas, cut to its width
+  constructor(canvas, { title = "Track coloured by |slip|", titleEl = null } = {}) {
     this.canvas = canvas;
     canvas._slipmap = this; // lets tests and tools inspect the map
+    this.titleEl = titleEl;
     this.title = title;
     this.east = [];
     this.north = [];
@@ -45,6 +48,15 @@ export class SlipMap {
   }
 
   // stampsS: each point's time (seconds), for cursorAt
+  get title() {
+    return this._title;
+  }
+
+  set title(text) {
+    this._title = text;
+    if (this.titleEl) this.titleEl.textContent = text;
+  }
+
   setTrack(east, north, slip, stampsS = null) {
     this.east = east;
     this.north = north;
@@ -86,14 +98,14 @@ export class SlipMap {
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     ctx.fillStyle = "#ffffff";
     ctx.fillRect(0, 0, cssW, cssH);
-    const pad = { l: 64, r: 16, t: 30, b: 90 };
+    const pad = { l: 64, r: 16, t: this.titleEl ? 12 : 30, b: 90 };
     const W = cssW - pad.l - pad.r;
     const H = cssH - pad.t - pad.b;
     ctx.fillStyle = "#222";
     ctx.font = "bold 14px system-ui, sans-serif";
     ctx.textAlign = "left";
     ctx.textBaseline = "top";
-    ctx.fillText(fitText(ctx, this.title, cssW - 24), 12, 8); // a phone's canvas is narrow
+    if (!this.titleEl) ctx.fillText(fitText(ctx, this.title, cssW - 24), 12, 8); // a phone's canvas is narrow
 
     // bounds over the track and the heat cells
     let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;

@@ -238,6 +238,7 @@ export function vehicleView(root, vehicleId) {
     ingestTimer = setInterval(refreshIngest, 5000);
   }
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
+  const mapTitle = el("h2", { class: "map-title", id: "live-map-title" });
   root.append(
     el(
       "div",
@@ -249,9 +250,9 @@ export function vehicleView(root, vehicleId) {
       winButtons,
     ),
     stats,
-    el("div", { class: "grid2" }, panelBox, el("div", {}, canvas, ingest)),
+    el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, canvas, ingest)),
   );
-  const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels" });
+  const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels", titleEl: mapTitle });
   fetchVehicle(vehicleId)
     .then((v) => {
       if (stopped) return;
