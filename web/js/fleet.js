@@ -112,8 +112,10 @@ export function fleetView(root) {
     })
     .catch(() => {});
   let columns = [];
-  // Newest stored estimates of stored vehicles the feed does not hold, a few per refresh.
+  // Newest stored estimates of stored vehicles the feed does not hold, a few per refresh (only
+  // once the feed has said which vehicles it holds).
   async function fetchLatest() {
+    if (!state.msg) return;
     const live = new Set(state.msg ? state.msg.ids : []);
     const wanted = [...state.stored.entries()].filter(([id, s]) => s.latest === undefined && !live.has(id));
     for (const [id, s] of wanted.slice(0, LATEST_PER_REFRESH)) {
@@ -391,7 +393,9 @@ export function fleetView(root) {
       if (msg.type !== "fleet") return;
       const t0 = performance.now();
       const news = msg.ids.some((id) => !state.stored.has(id));
+      const first = state.msg === null;
       state.msg = msg;
+      if (first) fetchLatest();
       update();
       if (news && performance.now() - storedAtMs > 5000) loadStored(); // registered since
       const ms = window.slipfleetStats.fleetUpdateMs;

@@ -6,6 +6,7 @@
 
 import { drawSlipLegend, slipCss } from "./colors.js";
 import { TILE_PX, degreeStep, fmtDegrees, mercator, tileUrl, unmercator } from "./geo.js";
+import { paper } from "./slipmap.js";
 
 const MIN_SPAN_M = 150; // the view shows at least this much, so one parked vehicle is not a dot
 const MAX_TILE_ZOOM = 19;
@@ -75,18 +76,7 @@ export class GeoMap {
   }
 
   draw() {
-    const c = this.canvas;
-    const dpr = window.devicePixelRatio || 1;
-    const cssW = c.clientWidth || 600;
-    const cssH = c.clientHeight || 420;
-    if (c.width !== Math.round(cssW * dpr) || c.height !== Math.round(cssH * dpr)) {
-      c.width = Math.round(cssW * dpr);
-      c.height = Math.round(cssH * dpr);
-    }
-    const ctx = c.getContext("2d");
-    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
-    ctx.fillStyle = "#ffffff";
-    ctx.fillRect(0, 0, cssW, cssH);
+    const { ctx, cssW, cssH } = paper(this.canvas);
     const W = cssW - PAD.l - PAD.r;
     const H = cssH - PAD.t - PAD.b;
     drawSlipLegend(ctx, PAD.l, cssH - 40, Math.min(300, W - 110), 14);

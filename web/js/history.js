@@ -31,7 +31,7 @@ import {
 } from "./charts.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, lastAtOrBefore, timeTitle, vehicleHref } from "./util.js";
 
 // Fields of a spec the charts need: every chart's, and flags (degraded stretches).
 function chartFields(spec) {
@@ -442,16 +442,7 @@ export function historyView(root, vehicleId) {
     showAt(xs.length - 1);
   }
 
-  function bisect(t) {
-    let lo = 0;
-    let hi = xs.length - 1;
-    while (lo < hi) {
-      const mid = (lo + hi + 1) >> 1;
-      if (xs[mid] <= t) lo = mid;
-      else hi = mid - 1;
-    }
-    return lo;
-  }
+  const bisect = (t) => lastAtOrBefore(xs, t);
 
   function frame(now) {
     if (!playing) return;

@@ -9,6 +9,7 @@
 // GIS export show the same cells and numbers.
 
 import { drawSlipLegend, slipCss } from "./colors.js";
+import { lastAtOrBefore } from "./util.js";
 
 // `text` cut to fit `maxW` pixels in the context's font, ending in "…" when cut.
 export function fitText(ctx, text, maxW) {
@@ -21,6 +22,23 @@ export function fitText(ctx, text, maxW) {
     else hi = mid - 1;
   }
   return text.slice(0, lo).trimEnd() + "…";
+}
+
+// The canvas sized to its box at the screen's pixel ratio, cleared to white paper; its context
+// draws in CSS px. Returns {ctx, cssW, cssH}.
+export function paper(canvas) {
+  const dpr = window.devicePixelRatio || 1;
+  const cssW = canvas.clientWidth || 600;
+  const cssH = canvas.clientHeight || 420;
+  if (canvas.width !== Math.round(cssW * dpr) || canvas.height !== Math.round(cssH * dpr)) {
+    canvas.width = Math.round(cssW * dpr);
+    canvas.height = Math.round(cssH * dpr);
+  }
+  const ctx = canvas.getContext("2d");
+  ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+  ctx.fillStyle = "#ffffff";
+  ctx.fillRect(0, 0, cssW, cssH);
+  return { ctx, cssW, cssH };
 }
 
 function niceStep(span) {
@@ -68,15 +86,7 @@ export class SlipMap {
   // without times or points.
   indexAt(tS) {
     const xs = this.stampsS;
-    if (!xs || !xs.length || tS == null) return null;
-    let lo = 0;
-    let hi = xs.length - 1;
-    while (lo < hi) {
-      const mid = (lo + hi + 1) >> 1;
-      if (xs[mid] <= tS) lo = mid;
-      else hi = mid - 1;
-    }
-    return lo;
+    return !xs || !xs.length || tS == null ? null : lastAtOrBefore(xs, tS);
   }
 
   // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey)
@@ -86,18 +96,7 @@ export class SlipMap {
   }
 
   draw() {
-    const c = this.canvas;
-    const dpr = window.devicePixelRatio || 1;
-    const cssW = c.clientWidth || 600;
-    const cssH = c.clientHeight || 420;
-    if (c.width !== Math.round(cssW * dpr) || c.height !== Math.round(cssH * dpr)) {
-      c.width = Math.round(cssW * dpr);
-      c.height = Math.round(cssH * dpr);
-    }
-    const ctx = c.getContext("2d");
-    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
-    ctx.fillStyle = "#ffffff";
-    ctx.fillRect(0, 0, cssW, cssH);
+    const { ctx, cssW, cssH } = paper(this.canvas);
     const pad = { l: 64, r: 16, t: this.titleEl ? 12 : 30, b: 90 };
     const W = cssW - pad.l - pad.r;
     const H = cssH - pad.t - pad.b;

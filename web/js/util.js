@@ -61,3 +61,15 @@ export function fmtDuration(s) {
 export function vehicleHref(id, sub) {
   return `#/vehicle/${encodeURIComponent(id)}${sub ? "/" + sub : ""}`;
 }
+
+// Index of the last of the ascending `xs` at or before x (0 when x precedes them all).
+export function lastAtOrBefore(xs, x) {
+  let lo = 0;
+  let hi = xs.length - 1;
+  while (lo < hi) {
+    const mid = (lo + hi + 1) >> 1;
+    if (xs[mid] <= x) lo = mid;
+    else hi = mid - 1;
+  }
+  return lo;
+}
