@@ -133,6 +133,30 @@ def test_a_click_on_a_vehicle_opens_its_page(anchored: LiveStack, browser: Any) 
         assert page.evaluate("location.hash") == "#/fleet"
 
 
+def test_vehicle_and_history_maps_have_latitude_longitude_axes(
+    anchored: LiveStack, browser: Any
+) -> None:
+    """The track maps of the vehicle and history pages label their grid in degrees through the
+    vehicle's anchor (metres east/north of the first fix before)."""
+    k = 4
+    vid = f"veh-{k:03d}"
+    lat0 = LAT0_DEG + k * SPACING_DEG
+    ticks_js = "(id) => document.getElementById(id)._slipmap.ticks"
+    with checked_page(browser, viewport={"width": 1400, "height": 900}) as page:
+        for route, canvas in (("", "live-map"), ("/history", "h-map")):
+            page.goto(f"{anchored.base_url}/#/vehicle/{vid}{route}")
+            page.wait_for_function(
+                "(id) => document.getElementById(id)?._slipmap?.ticks.lat.length >= 2",
+                arg=canvas,
+                timeout=20000,
+            )
+            ticks = page.evaluate(ticks_js, canvas)
+            # the figure of eight spans tens of metres: ticks within ~200 m of the anchor
+            assert all(abs(v - lat0) < 0.002 for v in ticks["lat"]), (route, ticks)
+            assert all(abs(v - LON0_DEG) < 0.004 for v in ticks["lon"]), (route, ticks)
+            assert len(ticks["lon"]) >= 2, (route, ticks)
+
+
 class _Tiles(http.server.BaseHTTPRequestHandler):
     """Every path is one 256 px PNG tile of a single colour; the paths asked are kept."""
 
@@ -200,3 +224,9 @@ def test_a_configured_basemap_is_fetched_and_drawn(
         assert x0 in xs or x0 - 1 in xs or x0 + 1 in xs, (x0, sorted(xs))
         page.locator("#fleet-map").scroll_into_view_if_needed()
         page.locator("#fleet-map").screenshot(path=str(screenshots / "fleet-map-basemap.png"))
+        # the history page's map draws the same basemap under the track
+        page.goto(stack.base_url + "/#/vehicle/veh-002/history")
+        page.wait_for_function(
+            "document.getElementById('h-map')?._slipmap?.tilesDrawn > 0", timeout=20000
+        )
+        page.locator("#h-map").screenshot(path=str(screenshots / "history-map-basemap.png"))

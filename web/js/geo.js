@@ -21,6 +21,14 @@ export function enuToLatLon(anchor) {
     east == null || north == null ? null : [anchor.lat_deg + north / mPerRadLat / DEG, anchor.lon_deg + east / mPerRadLon / DEG];
 }
 
+// The inverse: anchor -> (lat_deg, lon_deg) => [east_m, north_m].
+export function latLonToEnu(anchor) {
+  const toLL = enuToLatLon(anchor);
+  const [lat1, lon1] = toLL(1, 1); // degrees per metre, both axes
+  const dLat = lat1 - anchor.lat_deg, dLon = lon1 - anchor.lon_deg;
+  return (latDeg, lonDeg) => [(lonDeg - anchor.lon_deg) / dLon, (latDeg - anchor.lat_deg) / dLat];
+}
+
 // Web Mercator at zoom 0, in tile pixels (the world is TILE_PX wide): [x, y], y down.
 export function mercator(latDeg, lonDeg) {
   const lat = Math.max(-85.05112878, Math.min(85.05112878, latDeg)) * DEG;
@@ -34,11 +42,13 @@ export function unmercator(x, y) {
   return [lat, lon];
 }
 
-// A step of degrees giving about `count` ticks over `spanDeg`, and the decimals its labels need.
-export function degreeStep(spanDeg, count = 5) {
+// The largest round step of degrees (1, 2 or 5 × 10^k) that cuts `spanDeg` into at least
+// `count` parts (so at least `count` ticks, at most 2.5 × count + 1), and the decimals its labels
+// need.
+export function degreeStep(spanDeg, count = 2) {
   const raw = spanDeg / count;
   const p = 10 ** Math.floor(Math.log10(raw));
-  const step = [1, 2, 5, 10].map((m) => m * p).find((s) => raw <= s) || 10 * p;
+  const step = [5, 2, 1].map((m) => m * p).find((s) => s <= raw) || p;
   return { step, decimals: Math.max(0, -Math.floor(Math.log10(step) + 1e-9)) };
 }
 

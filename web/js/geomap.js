@@ -5,8 +5,8 @@
 // to every point with equal scale on both axes.
 
 import { drawSlipLegend, slipCss } from "./colors.js";
-import { TILE_PX, degreeStep, fmtDegrees, mercator, tileUrl, unmercator } from "./geo.js";
-import { paper } from "./slipmap.js";
+import { TILE_PX, degreeStep, fmtDegrees, mercator, unmercator } from "./geo.js";
+import { LATLON_NAMES, TileCache, drawAttribution, drawGrid, paper } from "./slipmap.js";
 
 const MIN_SPAN_M = 150; // the view shows at least this much, so one parked vehicle is not a dot
 const MAX_TILE_ZOOM = 19;
@@ -19,8 +19,7 @@ export class GeoMap {
     canvas._geomap = this; // lets tests and tools inspect the map
     this.label = label;
     this.vehicles = []; // [{id, points, live}]
-    this.tileTemplate = null;
-    this.tiles = new Map(); // "z/x/y" -> Image
+    this.tiles = new TileCache(() => requestAnimationFrame(() => this.draw()));
     this.markers = []; // [{id, x, y}] in CSS px, after draw()
     this.tilesDrawn = 0;
     this.ticks = { lat: [], lon: [] }; // degrees of the labelled lines, after draw()
@@ -41,8 +40,7 @@ export class GeoMap {
   }
 
   setTiles(template) {
-    this.tileTemplate = template || null;
-    this.tiles.clear();
+    this.tiles.setTemplate(template);
   }
 
   // The vehicle whose marker is nearest to (x, y) CSS px, within 2 marker radii; else null.
@@ -102,7 +100,7 @@ export class GeoMap {
     ctx.beginPath();
     ctx.rect(PAD.l, PAD.t, W, H);
     ctx.clip();
-    this.tilesDrawn = this.tileTemplate ? this.drawTiles(ctx, view, W, H) : 0;
+    this.tilesDrawn = this.tiles.template ? this.drawTiles(ctx, view, W, H) : 0;
     ctx.restore();
     this.drawAxes(ctx, view, W, H);
     ctx.save();
@@ -112,23 +110,11 @@ export class GeoMap {
     this.drawTracks(ctx, view);
     this.drawMarkers(ctx, view);
     ctx.restore();
-    if (this.tileTemplate) {
-      ctx.fillStyle = "#333";
-      ctx.font = "11px system-ui, sans-serif";
-      ctx.textAlign = "right";
-      ctx.textBaseline = "bottom";
-      let host = "";
-      try {
-        host = new URL(this.tileTemplate.replace(/[{}]/g, "")).host;
-      } catch (_) {
-        /* shown without a host */
-      }
-      ctx.fillText(`basemap: ${host}`, cssW - PAD.r, cssH - 4);
-    }
+    drawAttribution(ctx, this.tiles.template, cssW - PAD.r, cssH - 4);
   }
 
-  // The tiles covering the view at the zoom nearest the view's scale; each loads once and
-  // redraws the map when it arrives. Returns how many were drawn.
+  // The tiles covering the view at the zoom nearest the view's scale (each loads once and
+  // redraws the map when it arrives). Returns how many were drawn.
   drawTiles(ctx, view, W, H) {
     const z = Math.max(0, Math.min(MAX_TILE_ZOOM, Math.round(Math.log2(view.sc))));
     const n = 2 ** z;
@@ -139,18 +125,10 @@ export class GeoMap {
     let drawn = 0;
     for (let tx = tx0; tx <= tx1; tx++) {
       for (let ty = ty0; ty <= ty1; ty++) {
-        const url = tileUrl(this.tileTemplate, z, tx, ty);
-        let img = this.tiles.get(url);
-        if (!img) {
-          img = new Image();
-          img.onload = () => requestAnimationFrame(() => this.draw());
-          img.src = url;
-          this.tiles.set(url, img);
-        }
-        if (img.complete && img.naturalWidth) {
-          ctx.drawImage(img, view.px((tx * TILE_PX) / n), view.py((ty * TILE_PX) / n), size + 0.5, size + 0.5);
-          drawn++;
-        }
+        const img = this.tiles.get(z, tx, ty);
+        if (!img) continue;
+        ctx.drawImage(img, view.px((tx * TILE_PX) / n), view.py((ty * TILE_PX) / n), size + 0.5, size + 0.5);
+        drawn++;
       }
     }
     return drawn;
@@ -160,41 +138,19 @@ export class GeoMap {
   drawAxes(ctx, view, W, H) {
     const [latTop, lonLeft] = unmercator(view.mx(PAD.l), view.my(PAD.t));
     const [latBottom, lonRight] = unmercator(view.mx(PAD.l + W), view.my(PAD.t + H));
-    const lon = degreeStep(lonRight - lonLeft, Math.max(2, Math.floor(W / 110)));
-    const lat = degreeStep(latTop - latBottom, Math.max(2, Math.floor(H / 60)));
-    ctx.strokeStyle = this.tileTemplate ? "rgba(40,40,40,0.35)" : "#e3e3e3";
-    ctx.lineWidth = 1;
-    ctx.fillStyle = "#444";
-    ctx.font = "11px system-ui, sans-serif";
-    ctx.textAlign = "center";
-    ctx.textBaseline = "top";
+    const lon = degreeStep(lonRight - lonLeft, Math.max(2, Math.floor(W / 250)));
+    const lat = degreeStep(latTop - latBottom, Math.max(2, Math.floor(H / 150)));
     this.ticks = { lat: [], lon: [] };
+    const xs = [], ys = [];
     for (let v = Math.ceil(lonLeft / lon.step) * lon.step; v <= lonRight; v += lon.step) {
       this.ticks.lon.push(v);
-      const x = view.px(mercator(latTop, v)[0]);
-      ctx.beginPath(); ctx.moveTo(x, PAD.t); ctx.lineTo(x, PAD.t + H); ctx.stroke();
-      ctx.fillText(fmtDegrees(v, lon.decimals, "lon"), x, PAD.t + H + 3);
+      xs.push([view.px(mercator(latTop, v)[0]), fmtDegrees(v, lon.decimals, "lon")]);
     }
-    ctx.textAlign = "right";
-    ctx.textBaseline = "middle";
     for (let v = Math.ceil(latBottom / lat.step) * lat.step; v <= latTop; v += lat.step) {
       this.ticks.lat.push(v);
-      const y = view.py(mercator(v, lonLeft)[1]);
-      ctx.beginPath(); ctx.moveTo(PAD.l, y); ctx.lineTo(PAD.l + W, y); ctx.stroke();
-      ctx.fillText(fmtDegrees(v, lat.decimals, "lat"), PAD.l - 4, y);
+      ys.push([view.py(mercator(v, lonLeft)[1]), fmtDegrees(v, lat.decimals, "lat")]);
     }
-    ctx.strokeStyle = "#999";
-    ctx.strokeRect(PAD.l + 0.5, PAD.t + 0.5, W, H);
-    ctx.fillStyle = "#222";
-    ctx.font = "12px system-ui, sans-serif";
-    ctx.textAlign = "center";
-    ctx.textBaseline = "top";
-    ctx.fillText("longitude (WGS 84)", PAD.l + W / 2, PAD.t + H + 17);
-    ctx.save();
-    ctx.translate(14, PAD.t + H / 2);
-    ctx.rotate(-Math.PI / 2);
-    ctx.fillText("latitude (WGS 84)", 0, 0);
-    ctx.restore();
+    drawGrid(ctx, { l: PAD.l, t: PAD.t, W, H }, xs, ys, LATLON_NAMES, Boolean(this.tiles.template));
   }
 
   drawTracks(ctx, view) {

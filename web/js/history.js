@@ -16,7 +16,7 @@
 // a short drive in a long range keeps its detail; the page says how many points it shows of how
 // many stored rows, and how wide the buckets are.
 
-import { fetchVehicle, getJSON } from "./api.js";
+import { fetchVehicle, getJSON, loadDashboardConfig } from "./api.js";
 import { clockToMs, fmtClock, timeMode, zoneName } from "./clock.js";
 import {
   alignedData,
@@ -214,6 +214,7 @@ export function historyView(root, vehicleId) {
   const sync = `history-${vehicleId}`;
   const TRACK_TITLE = "Track coloured by max |slip| of the wheels";
   const map = new SlipMap(canvas, { title: TRACK_TITLE, titleEl: mapTitle });
+  loadDashboardConfig().then((cfg) => map.setTiles(cfg.map_tile_url));
 
   // Charts and cursor tiles of the chosen spec (its chart keys name the boxes: h-chart-<key>).
   function useSpec(name) {
@@ -252,6 +253,7 @@ export function historyView(root, vehicleId) {
       specs = all;
       if (v) threshold = v.config.slip.alert_threshold_pct;
       if (v) standstillMps = v.config.slip.min_ground_speed_mps;
+      if (v) map.setAnchor(v.anchor); // latitude/longitude axes through the vehicle's anchor
       const names = v && v.estimators && v.estimators.length ? v.estimators : [...all.values()].filter((s) => s.position).map((s) => s.name);
       for (const n of names) estimatorSel.append(el("option", { value: n, text: all.get(n)?.title || n }));
       useSpec(names[0]);

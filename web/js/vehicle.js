@@ -12,7 +12,7 @@
 // page stops asking for it. A stored vehicle with no live data (parked since the server started)
 // is marked "not live", with the time of its newest stored estimate and a way to its history.
 
-import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket } from "./api.js";
+import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboardConfig } from "./api.js";
 import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
@@ -253,12 +253,15 @@ export function vehicleView(root, vehicleId) {
     el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, canvas, ingest)),
   );
   const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels", titleEl: mapTitle });
+  loadDashboardConfig().then((cfg) => map.setTiles(cfg.map_tile_url));
   fetchVehicle(vehicleId)
     .then((v) => {
       if (stopped) return;
       threshold = v.config.slip.alert_threshold_pct;
       bandEdges = v.config.slip.band_edges_pct;
       standstillMps = v.config.slip.min_ground_speed_mps;
+      map.setAnchor(v.anchor); // latitude/longitude axes once the vehicle has a stored anchor
+      map.draw();
       for (const p of panels.values()) p.setThreshold(threshold);
       stored = true;
       showParked();
