@@ -363,7 +363,7 @@ def _add_demo(sub: Any) -> None:
 
     d = sub.add_parser("demo", help="embedded router + server + SQLite + simulated vehicles")
     d.add_argument("--vehicles", type=int, default=4, help="simulated tractors (default 4)")
-    add_scenario_argument(d, "field_work")
+    add_scenario_argument(d, "mix", mix=True)
     d.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C")
     d.add_argument("--port", type=int, default=None, help="REST/dashboard port (default 8000)")
     d.add_argument(

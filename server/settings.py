@@ -306,6 +306,23 @@ class ApiSettings(BaseModel):
         ),
     )
     retry_after_s: int = Field(1, ge=1, le=3600, description="Retry-After of a 429 answer")
+    map_tile_url: str | None = Field(
+        None,
+        description=(
+            "dashboard basemap: an XYZ tile template such as "
+            "https://tile.example.org/{z}/{x}/{y}.png (Web Mercator, 256 px tiles); none (the "
+            "default) draws the maps on latitude/longitude axes and fetches nothing external"
+        ),
+    )
+
+    @field_validator("map_tile_url")
+    @classmethod
+    def _tile_template(cls, v: str | None) -> str | None:
+        if v is not None and not all(k in v for k in ("{z}", "{x}", "{y}")):
+            raise ValueError("map_tile_url must hold {z}, {x} and {y}")
+        if v is not None and not v.startswith(("https://", "http://")):
+            raise ValueError("map_tile_url must be an http(s) URL")
+        return v
 
 
 class ViewerSettings(BaseModel):

@@ -34,6 +34,7 @@ from server.api.errors import ErrorBody, error_response, install_error_handlers
 from server.api.limits import HEAVY_ROUTES, HeavyLimitState, HeavyRequestLimit
 from server.api.routes import (
     alerts,
+    dashboard,
     estimators,
     health,
     live,
@@ -70,6 +71,7 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     health.router,
     metrics.router,
     tokens.router,
+    dashboard.router,
 )
 
 #: Routers anyone may call without a token.

@@ -26,13 +26,16 @@ from server.tooling.fleet_sim import (
     VEHICLE_ID_FORMAT,
     EstimatorMix,
     FleetSim,
+    RunPlan,
     encode_packets,
     packetize,
 )
 
 __all__ = [
     "DEMO_MIX_ESTIMATORS",
+    "DEMO_PLANS",
     "demo",
+    "demo_plans",
     "mix_summary",
     "record",
     "simulate",
@@ -43,6 +46,42 @@ log = logging.getLogger("slipfleet")
 
 #: What the demo's last vehicle runs unless told otherwise: MDSF and the GNSS-free speed beside it.
 DEMO_MIX_ESTIMATORS = ("mdsf", "reference_speed")
+
+#: The demo's fleet (``--scenario mix``, the default): each tractor its own work, pace and soil,
+#: loops of different lengths (300, 420, 180, 64 s), so stops, wet patches and GNSS outages fall
+#: at different times and the vehicles drift further out of step with every loop.
+DEMO_PLANS: tuple[RunPlan, ...] = (
+    RunPlan("field_work"),
+    RunPlan(
+        "field_work",
+        {
+            "work_speed_mps": 3.2,
+            "pass_length_m": 130.0,
+            "drawbar": 0.12,
+            "stop_every_passes": 2,
+            "duration_s": 420.0,
+            "heading0_deg": 40.0,
+            "wet_every_m": 110.0,
+            "mu_wet": 0.36,
+        },
+    ),
+    RunPlan(
+        "gnss_outage",
+        {"duration_s": 180.0, "outage_s": 25.0, "speed_mps": 2.6, "turn_rate_radps": 0.08},
+    ),
+    RunPlan("slope_wet_patch", {"slope_deg": 10.0, "mu_wet": 0.33}),
+)
+#: Vehicles beyond this many share the runs of the first ones (each run costs ≈ 0.4 s to simulate).
+DEMO_MAX_RUNS = 8
+
+
+def demo_plans(vehicles: int, scenario: str) -> list[RunPlan]:
+    """The distinct runs of a demo of ``vehicles``: :data:`DEMO_PLANS` in turn for ``"mix"``
+    (each vehicle its own seed up to :data:`DEMO_MAX_RUNS`), else ``scenario`` for every one."""
+    n = min(vehicles, DEMO_MAX_RUNS)
+    if scenario != "mix":
+        return [RunPlan(scenario)] * n
+    return [DEMO_PLANS[k % len(DEMO_PLANS)] for k in range(n)]
 
 
 def vehicle_session(endpoints: list[str]) -> zenoh.Session:
@@ -58,7 +97,7 @@ def demo(
     settings: Settings,
     *,
     vehicles: int = 4,
-    scenario: str = "field_work",
+    scenario: str = "mix",
     duration_s: float = 0.0,
     estimator_mix: EstimatorMix | None = None,
 ) -> None:
@@ -81,20 +120,21 @@ def demo(
     sim = FleetSim(
         session,
         vehicles,
-        scenario=scenario,
         prefix=settings.zenoh.key_prefix,
         loop=True,
         estimator_mix=mix,
+        plans=demo_plans(vehicles, scenario),
     )
     sim.start()
     base = f"http://{settings.api.host}:{server.port}"
+    drives = "each its own drive" if scenario == "mix" else f"scenario {scenario}"
     print(
         "\nSlipfleet demo — no access tokens, no vehicle credentials, loopback only\n"
         f"  dashboard  {base}/\n"
         f"  API docs   {base}/docs\n"
         f"  vehicles   {base}/api/v1/vehicles\n"
         f"  3D view    http://{settings.viewer.host}:{settings.viewer.port}/\n"
-        f"  zenoh      {', '.join(listen)}  ({vehicles} simulated vehicles, scenario {scenario})\n"
+        f"  zenoh      {', '.join(listen)}  ({vehicles} simulated vehicles, {drives})\n"
         f"  estimators {mix_summary(sim)}\n"
         "Ctrl-C stops.\n",
         flush=True,

@@ -35,9 +35,10 @@ import math
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zenoh
 
@@ -56,6 +57,9 @@ from server.protocol.codec import (
 from server.protocol.keys import Stream, config_key, parse_key, sensor_key
 from server.protocol.recording import RecordingWriter, read_recording
 from server.tooling.estimator_mix import EstimatorMix
+
+if TYPE_CHECKING:
+    from estimator.sim import SimRun
 from server.tooling.fleet_schedule import (
     STREAMS,
     EncodedDrive,
@@ -68,6 +72,7 @@ __all__ = [
     "VEHICLE_ID_FORMAT",
     "EstimatorMix",
     "FleetSim",
+    "RunPlan",
     "SimPacket",
     "SimStats",
     "encode_packet",
@@ -242,6 +247,15 @@ class _Vehicle:
     seq: dict[Stream, int] = field(default_factory=lambda: dict.fromkeys(Stream, 0))
 
 
+@dataclass(frozen=True, slots=True)
+class RunPlan:
+    """One distinct simulated run of a fleet: its scenario and the scenario parameters that
+    differ from the defaults (``estimator.sim.SCENARIOS[scenario].defaults`` names them)."""
+
+    scenario: str
+    overrides: Mapping[str, float] = field(default_factory=dict)
+
+
 class FleetSim:
     """Publishes ``n_vehicles`` simulated vehicles on ``session``.
 
@@ -271,6 +285,9 @@ class FleetSim:
         UTC clock for the stamp shift (injectable for tests).
     estimator_mix : EstimatorMix, optional
         Which vehicles' configs name other estimators than their kind's defaults.
+    plans : sequence of RunPlan, optional
+        The distinct runs, each its own scenario and parameters (vehicle ``i`` drives run
+        ``i % len(plans)``); given, they replace ``scenario`` and ``distinct_runs``.
     """
 
     def __init__(
@@ -288,6 +305,7 @@ class FleetSim:
         publish_config: bool = True,
         clock_ns: Callable[[], int] = time.time_ns,
         estimator_mix: EstimatorMix | None = None,
+        plans: Sequence[RunPlan] = (),
         **sim_overrides: object,
     ) -> None:
         if n_vehicles < 1 or rate <= 0 or distinct_runs < 1:
@@ -296,12 +314,12 @@ class FleetSim:
         if not self._sessions:
             raise ValueError("at least one session is needed")
         self._n = n_vehicles
-        self._scenario = scenario
         self._prefix = prefix
         self._seed = seed
         self._rate = rate
         self._loop = loop
-        self._distinct = min(distinct_runs, n_vehicles)
+        self._plans = list(plans) or [RunPlan(scenario)] * distinct_runs
+        self._distinct = min(len(self._plans), n_vehicles)
         self._first = first_index
         self._publish_config = publish_config
         self._clock = clock_ns
@@ -330,24 +348,28 @@ class FleetSim:
             + k * SIM_ORIGIN_SPACING_M / (111_320.0 * math.cos(math.radians(lat0))),
         }
 
+    def simulate_runs(self, start_ns: int) -> list[SimRun]:
+        """The fleet's distinct runs, simulated from ``start_ns`` (vehicle ``i`` drives run
+        ``i % len(runs)``), each at its own origin (:meth:`spread_origin`)."""
+        from estimator.sim import simulate  # the simulator loads only when simulating
+
+        return [
+            simulate(
+                plan.scenario,
+                seed=self._seed + k,
+                start_ns=start_ns,
+                **{**self.spread_origin(k), **self._overrides, **plan.overrides},  # type: ignore[arg-type]
+            )
+            for k, plan in enumerate(self._plans[: self._distinct])
+        ]
+
     def _build(self) -> list[_Vehicle]:
         """Simulate the distinct runs and lay the vehicles out; stamps are anchored later.
 
         ``shift_ns`` is left relative (run stamps -> phase); :meth:`run` adds the clock reading
         taken just before publishing starts, so simulating (≈0.4 s a run) adds no latency.
         """
-        from estimator.sim import simulate  # the simulator loads only when simulating
-
-        start = self._clock()
-        runs = [
-            simulate(
-                self._scenario,
-                seed=self._seed + k,
-                start_ns=start,
-                **{**self.spread_origin(k), **self._overrides},  # type: ignore[arg-type]
-            )
-            for k in range(self._distinct)
-        ]
+        runs = self.simulate_runs(self._clock())
         packetized = [packetize(run.sent_in_arrival_order(), run.start_ns) for run in runs]
         vehicles = []
         for i, vid in enumerate(self.vehicle_ids):

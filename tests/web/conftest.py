@@ -99,13 +99,17 @@ class LiveStack:
 
 @contextmanager
 def serve_live_stack(
-    data_dir: Path, *, require_auth: bool, runtime_class: type[LiveRuntime] = LiveRuntime
+    data_dir: Path,
+    *,
+    require_auth: bool,
+    runtime_class: type[LiveRuntime] = LiveRuntime,
+    **api: Any,
 ) -> Iterator[LiveStack]:
     """The dashboard app over a :class:`LiveRuntime` (or ``runtime_class``) on a free port,
-    until the block ends."""
+    until the block ends; ``api``: further :class:`ApiSettings` (``map_tile_url``)."""
     settings = Settings(
         storage=StorageSettings.model_validate({"data_dir": data_dir}),
-        api=ApiSettings.model_validate({"require_auth": require_auth}),
+        api=ApiSettings.model_validate({"require_auth": require_auth, **api}),
     )
     runtime = runtime_class(settings)
     app = create_app(settings, runtime)

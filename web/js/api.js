@@ -146,3 +146,16 @@ export function liveSocket(path, params, { onMessage, onState }) {
     },
   };
 }
+
+// The dashboard's settings (GET /api/v1/dashboard: the basemap's tile URL or null), fetched once;
+// {map_tile_url: null} when the server does not say (no basemap: nothing fetched elsewhere).
+let dashboardConfig = null;
+export function loadDashboardConfig() {
+  if (!dashboardConfig) {
+    dashboardConfig = getJSON("/api/v1/dashboard").catch(() => {
+      dashboardConfig = null;
+      return { map_tile_url: null };
+    });
+  }
+  return dashboardConfig;
+}

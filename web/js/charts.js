@@ -2,10 +2,10 @@
 // the spec), with units on the axes and a colour-blind-safe palette (Okabe–Ito). Time runs on the
 // x axis in the zone the reader chose (the browser's or UTC, js/clock.js), named in the axis
 // label; x values are seconds since the epoch. Stretches of degraded rows (the spec's
-// degraded_flags) can be shaded.
+// degraded_flags) and of rows without its ok_flag can be shaded (qualitySpans).
 
 import { fmtClock, timeMode, zoneName } from "./clock.js";
-import { degradedMask, fieldOf } from "./specs.js";
+import { degradedMask, fieldOf, flagMask } from "./specs.js";
 
 // Series colours in chart order; the first series is drawn thicker.
 const PALETTE = ["#0072B2", "#D55E00", "#111111", "#56B4E9", "#E69F00", "#009E73", "#CC79A7", "#F0E442"];
@@ -28,23 +28,50 @@ export function chartOptions(spec, chart) {
   };
 }
 
-// [[x0, x1], ...] (seconds) of the runs of rows whose flags have a bit of the spec's degraded
-// flags; a run ends at the next row's time.
-export function degradedSpans(spec, cols) {
-  const mask = degradedMask(spec);
+// How each kind of shaded stretch is filled: rows with a degraded flag of the spec, and rows
+// without its ok_flag (for MDSF: no GNSS velocity fused) that are not degraded.
+export const SHADE_FILL = { degraded: "rgba(120, 120, 120, 0.22)", no_reference: "rgba(204, 121, 167, 0.20)" };
+
+// The shade kind of a row's flags, or null.
+function shadeKind(bits, degraded, ok) {
+  if (bits & degraded) return "degraded";
+  if (ok && !(bits & ok)) return "no_reference";
+  return null;
+}
+
+// [[x0, x1, kind], ...] (seconds) of the runs of rows of one shade kind (shadeKind); a run
+// ends at the next row's time. Over min/max rows, whose flags are the OR of a bucket's, a bucket
+// with any degraded row is shaded degraded, and one with any ok row is not shaded no_reference.
+export function qualitySpans(spec, cols) {
+  const degraded = degradedMask(spec);
+  const ok = spec.ok_flag ? flagMask(spec, spec.ok_flag) : 0;
   const out = [];
   const flags = cols.flags;
-  if (!mask || !flags) return out;
+  if ((!degraded && !ok) || !flags) return out;
   let start = null;
-  for (let i = 0; i < flags.length; i++) {
-    const on = ((flags[i] ?? 0) & mask) !== 0;
-    if (on && start === null) start = cols.stamp_ns[i] / 1e9;
-    if (!on && start !== null) {
-      out.push([start, cols.stamp_ns[i] / 1e9]);
-      start = null;
-    }
+  let kind = null;
+  for (let i = 0; i <= flags.length; i++) {
+    const k = i < flags.length ? shadeKind(flags[i] ?? 0, degraded, ok) : null;
+    if (k === kind) continue;
+    const t = cols.stamp_ns[Math.min(i, flags.length - 1)] / 1e9;
+    if (kind !== null) out.push([start, t, kind]);
+    kind = k;
+    start = t;
   }
-  if (start !== null) out.push([start, cols.stamp_ns[flags.length - 1] / 1e9]);
+  return out;
+}
+
+// The legend of the shades a spec can give: [{kind, label, title}].
+export function shadeLegend(spec) {
+  const out = [];
+  if (spec.degraded_flags.length) {
+    const text = spec.degraded_flags.map((n) => spec.flags.find((f) => f.name === n)?.description || n);
+    out.push({ kind: "degraded", label: `degraded (${spec.degraded_flags.join(", ")})`, title: text.join("; ") });
+  }
+  if (spec.ok_flag) {
+    const f = spec.flags.find((x) => x.name === spec.ok_flag);
+    out.push({ kind: "no_reference", label: `without ${spec.ok_flag}`, title: `not: ${f ? f.description : spec.ok_flag}` });
+  }
   return out;
 }
 
@@ -100,7 +127,8 @@ function timeLabel(v, incr) {
 
 // opts: title, yLabel, fields, labels (one per field; default the field names), height,
 // threshold (draw ±threshold lines), decimals, syncKey (share the cursor with the page's other
-// charts), onCursor(index) (hover callback)
+// charts), onCursor(index, tS) (hover callback: the data index and its time in seconds, both
+// null when the cursor leaves the chart)
 //
 // The chart is as wide as target's content box and follows it (ResizeObserver); target must get
 // its width from the layout, not from the chart (e.g. a grid column minmax(0, 1fr)).
@@ -149,7 +177,9 @@ export function makeChart(target, opts) {
       hooks: {
         setCursor: [
           (u) => {
-            if (opts.onCursor && u.cursor.idx != null) opts.onCursor(u.cursor.idx);
+            if (!opts.onCursor) return;
+            const i = u.cursor.idx;
+            opts.onCursor(i ?? null, i == null ? null : u.data[0][i]);
           },
         ],
         draw: [
@@ -158,8 +188,8 @@ export function makeChart(target, opts) {
             const { left, top, width: w, height: h } = u.bbox;
             if (chart && chart._shade.length) {
               ctx.save();
-              ctx.fillStyle = "rgba(120, 120, 120, 0.18)";
-              for (const [x0, x1] of chart._shade) {
+              for (const [x0, x1, kind] of chart._shade) {
+                ctx.fillStyle = SHADE_FILL[kind] || SHADE_FILL.degraded;
                 const p0 = Math.max(left, u.valToPos(x0, "x", true));
                 const p1 = Math.min(left + w, u.valToPos(x1, "x", true));
                 if (p1 > p0) ctx.fillRect(p0, top, Math.max(1, p1 - p0), h);
@@ -236,7 +266,7 @@ export function setCursorTime(chart, tS) {
   chart.redraw(false, false);
 }
 
-// Shade these [[x0, x1], ...] stretches (seconds) on the next draw (degraded rows).
+// Shade these [[x0, x1, kind], ...] stretches (seconds; qualitySpans) on the next draw.
 export function setShading(chart, spans) {
   chart._shade = spans;
 }

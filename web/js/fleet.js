@@ -15,13 +15,15 @@
 
 import { ApiError, fetchVehicles, getJSON, liveSocket } from "./api.js";
 import { slipBand, slipCss } from "./colors.js";
+import { fleetMapPanel } from "./fleetmap.js";
 import { loadSpecs, motionChannel } from "./specs.js";
-import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const ROW_H = 32; // px, keep in sync with .vrow in app.css
 const STATUS_ORDER = { live: 0, stale: 1, offline: 2, stored: 3 };
 const STATUS_TEXT = { stored: "not live" };
 const LATEST_PER_REFRESH = 50; // newest stored estimates fetched per refresh of the stored list
+const STORED_REFRESH_MS = 15000; // the stored list (band edges, anchors of new vehicles)
 
 // Cost of applying one fleet message (sort + render), ms; read by the live benchmark.
 window.slipfleetStats = window.slipfleetStats || {};
@@ -100,7 +102,7 @@ export function fleetView(root) {
   // bandEdges: vehicle id -> its SlipConfig.band_edges_pct (the channel's edges until loaded)
   // msg: the newest fleet message; stored: vehicle id -> {estimator, latest} of every stored
   // vehicle (latest: its newest stored estimate, null if none, undefined until fetched)
-  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map() };
+  const state = { msg: null, data: null, order: [], sortKey: "id", sortDir: 1, filter: "", bandEdges: new Map(), specs: new Map(), stored: new Map(), anchors: new Map(), standstill: new Map() };
   let stopped = false;
   loadSpecs()
     .then((specs) => {
@@ -110,8 +112,10 @@ export function fleetView(root) {
     })
     .catch(() => {});
   let columns = [];
-  // Newest stored estimates of stored vehicles the feed does not hold, a few per refresh.
+  // Newest stored estimates of stored vehicles the feed does not hold, a few per refresh (only
+  // once the feed has said which vehicles it holds).
   async function fetchLatest() {
+    if (!state.msg) return;
     const live = new Set(state.msg ? state.msg.ids : []);
     const wanted = [...state.stored.entries()].filter(([id, s]) => s.latest === undefined && !live.has(id));
     for (const [id, s] of wanted.slice(0, LATEST_PER_REFRESH)) {
@@ -133,6 +137,8 @@ export function fleetView(root) {
         for (const v of body.data) {
           ids.add(v.vehicle_id);
           state.bandEdges.set(v.vehicle_id, v.config.slip.band_edges_pct);
+          state.anchors.set(v.vehicle_id, v.anchor);
+          state.standstill.set(v.vehicle_id, v.config.slip.min_ground_speed_mps);
           const prev = state.stored.get(v.vehicle_id);
           state.stored.set(v.vehicle_id, { estimator: v.estimators[0] || "", latest: prev ? prev.latest : undefined });
         }
@@ -143,7 +149,7 @@ export function fleetView(root) {
       .catch(() => {});
   };
   loadStored();
-  const bandTimer = setInterval(loadStored, 60000);
+  const bandTimer = setInterval(loadStored, STORED_REFRESH_MS);
   // The table's data: the newest fleet message plus the stored vehicles it does not hold.
   function update() {
     state.data = withStored(state.msg, state.stored, state.specs);
@@ -205,9 +211,20 @@ export function fleetView(root) {
     { class: "vtable", role: "table", "aria-label": "Fleet overview", "aria-rowcount": "0" },
     scroller,
   );
+  // every vehicle of the table (stored ones too) for the map, by its primary estimator
+  const fleetMap = fleetMapPanel({
+    vehicles: () => {
+      const d = state.data;
+      if (!d) return [];
+      return d.ids.map((id, i) => ({ id, estimator: d.estimator[i], live: d.status[i] === "live", stampNs: d.stamp_ns[i] }));
+    },
+    anchor: (id) => state.anchors.get(id) || null,
+    specs: () => state.specs,
+  });
   root.append(
     el("div", { class: "toolbar" }, el("h1", { text: "Fleet" }), filter, summary),
     table,
+    fleetMap.root,
   );
 
   const pool = [];
@@ -330,7 +347,7 @@ export function fleetView(root) {
       const pill = c.status.firstChild;
       pill.textContent = STATUS_TEXT[st] || st;
       pill.className = `pill st-${st}`;
-      c.speed_mps.textContent = fmt(d.speed_mps[i], 2);
+      c.speed_mps.textContent = fmtSpeed(d.speed_mps[i], state.standstill.get(id));
       const spec = state.specs.get(d.estimator[i]);
       for (const col of columns) {
         if (!col.slip) continue;
@@ -376,7 +393,9 @@ export function fleetView(root) {
       if (msg.type !== "fleet") return;
       const t0 = performance.now();
       const news = msg.ids.some((id) => !state.stored.has(id));
+      const first = state.msg === null;
       state.msg = msg;
+      if (first) fetchLatest();
       update();
       if (news && performance.now() - storedAtMs > 5000) loadStored(); // registered since
       const ms = window.slipfleetStats.fleetUpdateMs;
@@ -389,6 +408,7 @@ export function fleetView(root) {
   });
   return () => {
     stopped = true;
+    fleetMap.stop();
     sock.close();
     clearInterval(bandTimer);
     window.removeEventListener("resize", onResize);

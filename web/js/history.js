@@ -16,20 +16,22 @@
 // a short drive in a long range keeps its detail; the page says how many points it shows of how
 // many stored rows, and how wide the buckets are.
 
-import { fetchVehicle, getJSON } from "./api.js";
+import { fetchVehicle, getJSON, loadDashboardConfig } from "./api.js";
 import { clockToMs, fmtClock, timeMode, zoneName } from "./clock.js";
 import {
   alignedData,
   chartOptions,
-  degradedSpans,
+  qualitySpans,
   fitWidth,
   makeChart,
   setCursorTime,
   setShading,
+  SHADE_FILL,
+  shadeLegend,
 } from "./charts.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtDuration, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, lastAtOrBefore, timeTitle, vehicleHref } from "./util.js";
 
 // Fields of a spec the charts need: every chart's, and flags (degraded stretches).
 function chartFields(spec) {
@@ -145,7 +147,9 @@ export function historyView(root, vehicleId) {
   const heatMsg = el("span", { id: "h-heat-msg", class: "summary" });
   const estimatorSel = el("select", { id: "h-estimator", "aria-label": "Estimator" });
   const chartsBox = el("div", { id: "h-charts" });
+  const shadeKey = el("p", { id: "h-shade-legend", class: "shade-legend" });
   const canvas = el("canvas", { class: "map", id: "h-map", role: "img", "aria-label": "Slip map of the range" });
+  const mapTitle = el("h2", { class: "map-title", id: "h-map-title" });
   const cursorStats = el("div", { class: "stats", id: "h-cursor" });
   root.append(
     el(
@@ -181,11 +185,12 @@ export function historyView(root, vehicleId) {
       heatMsg,
     ),
     cursorStats,
-    el("div", { class: "grid2" }, chartsBox, el("div", {}, canvas)),
+    el("div", { class: "grid2" }, el("div", {}, shadeKey, chartsBox), el("div", {}, mapTitle, canvas)),
   );
   let spec = null; // the chosen estimator's spec
   let specs = null;
   let threshold = 15; // SlipConfig default until the vehicle's config is loaded
+  let standstillMps = null; // the vehicle's SlipConfig.min_ground_speed_mps, once loaded
   let charts = []; // [{box, chart, fields}] of the spec's charts
   let env = null; // chart columns: min/max envelope
   let track = null; // whole stored rows
@@ -199,17 +204,17 @@ export function historyView(root, vehicleId) {
   let loadGen = 0;
   let heatGen = 0;
   const heatCache = new Map();
-  // hovering a chart moves the map's marker to that moment (the replay position stays)
-  const onCursor = (i) => {
+  // hovering a chart moves the map's marker to that moment; leaving it, back to the replay
+  // position
+  const onCursor = (i, tS) => {
     if (!env || !track || playing || !xs.length) return;
-    const t = env.stamp_ns[i];
-    if (t == null) return;
-    map.cursor = bisect(t / 1e9);
+    map.cursor = tS == null ? idx : bisect(tS);
     map.draw();
   };
   const sync = `history-${vehicleId}`;
   const TRACK_TITLE = "Track coloured by max |slip| of the wheels";
-  const map = new SlipMap(canvas, { title: TRACK_TITLE });
+  const map = new SlipMap(canvas, { title: TRACK_TITLE, titleEl: mapTitle });
+  loadDashboardConfig().then((cfg) => map.setTiles(cfg.map_tile_url));
 
   // Charts and cursor tiles of the chosen spec (its chart keys name the boxes: h-chart-<key>).
   function useSpec(name) {
@@ -230,7 +235,14 @@ export function historyView(root, vehicleId) {
       ...spec.slips.map((ch) => tile(`Slip ${ch.label}`, `h-slip-${ch.key}`, "%")),
       ...(motion ? [tile(motion.label, "h-motion", fieldOf(spec, motion.field).unit)] : []),
     );
+    shadeKey.replaceChildren(
+      ...shadeLegend(spec).map((s) =>
+        el("span", { class: "shade-key", "data-kind": s.kind, title: s.title }, el("span", { class: "swatch", style: `background: ${SHADE_FILL[s.kind]}` }), ` ${s.label}`),
+      ),
+    );
+    if (shadeKey.childElementCount) shadeKey.prepend("Shaded: ");
     canvas.hidden = !spec.position;
+    mapTitle.hidden = !spec.position;
     heatOn.disabled = !spec.position || !spec.slips.length;
   }
 
@@ -240,6 +252,8 @@ export function historyView(root, vehicleId) {
     .then(([all, v]) => {
       specs = all;
       if (v) threshold = v.config.slip.alert_threshold_pct;
+      if (v) standstillMps = v.config.slip.min_ground_speed_mps;
+      if (v) map.setAnchor(v.anchor); // latitude/longitude axes through the vehicle's anchor
       const names = v && v.estimators && v.estimators.length ? v.estimators : [...all.values()].filter((s) => s.position).map((s) => s.name);
       for (const n of names) estimatorSel.append(el("option", { value: n, text: all.get(n)?.title || n }));
       useSpec(names[0]);
@@ -349,7 +363,7 @@ export function historyView(root, vehicleId) {
     at.title = timeTitle(track.stamp_ns[idx]);
     for (const ch of spec.slips) document.getElementById(`h-slip-${ch.key}`).textContent = fmt(track[ch.field][idx], 1);
     const motion = motionChannel(spec);
-    if (motion) document.getElementById("h-motion").textContent = fmt(track[motion.field][idx], 2);
+    if (motion) document.getElementById("h-motion").textContent = fmtSpeed(track[motion.field][idx], standstillMps);
     for (const c of charts) setCursorTime(c.chart, xs[idx]);
     map.cursor = idx;
     map.upTo = idx;
@@ -414,14 +428,14 @@ export function historyView(root, vehicleId) {
     metric = slipMetric(spec, track);
     msg.textContent = `${envBody.rows} points`;
     detail.textContent = describe(envBody, trackBody, s, e);
-    const shade = degradedSpans(spec, env);
+    const shade = qualitySpans(spec, env);
     for (const c of charts) {
       fitWidth(c.chart, c.box);
       setShading(c.chart, shade);
       c.chart.setData(alignedData(env, c.fields));
     }
     const pos = spec.position;
-    if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric);
+    if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric, xs);
     else map.setTrack([], [], []);
     scrub.max = String(Math.max(0, xs.length - 1));
     scrub.disabled = xs.length === 0;
@@ -430,16 +444,7 @@ export function historyView(root, vehicleId) {
     showAt(xs.length - 1);
   }
 
-  function bisect(t) {
-    let lo = 0;
-    let hi = xs.length - 1;
-    while (lo < hi) {
-      const mid = (lo + hi + 1) >> 1;
-      if (xs[mid] <= t) lo = mid;
-      else hi = mid - 1;
-    }
-    return lo;
-  }
+  const bisect = (t) => lastAtOrBefore(xs, t);
 
   function frame(now) {
     if (!playing) return;

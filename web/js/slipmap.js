@@ -9,6 +9,114 @@
 // GIS export show the same cells and numbers.
 
 import { drawSlipLegend, slipCss } from "./colors.js";
+import { TILE_PX, degreeStep, enuToLatLon, fmtDegrees, latLonToEnu, mercator, tileUrl, unmercator } from "./geo.js";
+import { lastAtOrBefore } from "./util.js";
+
+export const LATLON_NAMES = ["longitude (WGS 84)", "latitude (WGS 84)"];
+
+// Grid lines and their labels in a plot box {l, t, W, H} (CSS px): xs / ys [[pixel, label]...],
+// names [x axis, y axis]; on a basemap the lines are darker.
+export function drawGrid(ctx, box, xs, ys, names, onBasemap) {
+  ctx.strokeStyle = onBasemap ? "rgba(40,40,40,0.35)" : "#e6e6e6";
+  ctx.lineWidth = 1;
+  ctx.font = "11px system-ui, sans-serif";
+  ctx.fillStyle = "#444";
+  ctx.textAlign = "center";
+  ctx.textBaseline = "top";
+  for (const [x, label] of xs) {
+    ctx.beginPath(); ctx.moveTo(x, box.t); ctx.lineTo(x, box.t + box.H); ctx.stroke();
+    ctx.fillText(label, x, box.t + box.H + 3);
+  }
+  ctx.textAlign = "right";
+  ctx.textBaseline = "middle";
+  for (const [y, label] of ys) {
+    ctx.beginPath(); ctx.moveTo(box.l, y); ctx.lineTo(box.l + box.W, y); ctx.stroke();
+    ctx.fillText(label, box.l - 4, y);
+  }
+  ctx.strokeStyle = "#999";
+  ctx.strokeRect(box.l + 0.5, box.t + 0.5, box.W, box.H);
+  ctx.fillStyle = "#222";
+  ctx.font = "12px system-ui, sans-serif";
+  ctx.textAlign = "center";
+  ctx.textBaseline = "top";
+  ctx.fillText(names[0], box.l + box.W / 2, box.t + box.H + 17);
+  ctx.save();
+  ctx.translate(14, box.t + box.H / 2);
+  ctx.rotate(-Math.PI / 2);
+  ctx.fillText(names[1], 0, 0);
+  ctx.restore();
+}
+
+// "basemap: <host>" at (right, bottom) when a tile template is in use.
+export function drawAttribution(ctx, template, right, bottom) {
+  if (!template) return;
+  let host = "";
+  try {
+    host = new URL(template.replace(/[{}]/g, "")).host;
+  } catch (_) {
+    /* shown without a host */
+  }
+  ctx.fillStyle = "#333";
+  ctx.font = "11px system-ui, sans-serif";
+  ctx.textAlign = "right";
+  ctx.textBaseline = "bottom";
+  ctx.fillText(`basemap: ${host}`, right, bottom);
+}
+
+// Round-degree lines over the ENU box [e0, e1] × [n0, n1] of a vehicle's frame: x [[east_m,
+// label]...], y [[north_m, label]...], and the degrees (lat, lon).
+function degreeGrid(anchor, e0, e1, n0, n1, W, H) {
+  const toLL = enuToLatLon(anchor);
+  const toEnu = latLonToEnu(anchor);
+  const [latS, lonW] = toLL(e0, n0);
+  const [latN, lonE] = toLL(e1, n1);
+  const lon = degreeStep(lonE - lonW, Math.max(2, Math.floor(W / 250)));
+  const lat = degreeStep(latN - latS, Math.max(2, Math.floor(H / 150)));
+  const out = { x: [], y: [], lat: [], lon: [] };
+  for (let v = Math.ceil(lonW / lon.step) * lon.step; v <= lonE; v += lon.step) {
+    out.lon.push(v);
+    out.x.push([toEnu(anchor.lat_deg, v)[0], fmtDegrees(v, lon.decimals, "lon")]);
+  }
+  for (let v = Math.ceil(latS / lat.step) * lat.step; v <= latN; v += lat.step) {
+    out.lat.push(v);
+    out.y.push([toEnu(v, anchor.lon_deg)[1], fmtDegrees(v, lat.decimals, "lat")]);
+  }
+  return out;
+}
+
+// Basemap tiles, each loaded once; onLoad() is called when one arrives.
+export class TileCache {
+  constructor(onLoad) {
+    this.template = null;
+    this.images = new Map();
+    this.onLoad = onLoad;
+  }
+
+  setTemplate(template) {
+    this.template = template || null;
+    this.images.clear();
+  }
+
+  // The loaded image of tile (z, x, y), or null while it loads (or failed).
+  get(z, x, y) {
+    const url = tileUrl(this.template, z, x, y);
+    let img = this.images.get(url);
+    if (!img) {
+      img = new Image();
+      img.onload = () => this.onLoad();
+      img.src = url;
+      this.images.set(url, img);
+    }
+    return img.complete && img.naturalWidth ? img : null;
+  }
+}
+
+// The Web Mercator zoom whose tiles show at about their own size at `pxPerM` screen px per metre
+// at latitude latDeg (0..19).
+export function tileZoom(pxPerM, latDeg) {
+  const mPerWorldPx = (40075016.686 * Math.cos((latDeg * Math.PI) / 180)) / TILE_PX;
+  return Math.max(0, Math.min(19, Math.round(Math.log2(pxPerM * mPerWorldPx))));
+}
 
 // `text` cut to fit `maxW` pixels in the context's font, ending in "…" when cut.
 export function fitText(ctx, text, maxW) {
@@ -23,6 +131,23 @@ export function fitText(ctx, text, maxW) {
   return text.slice(0, lo).trimEnd() + "…";
 }
 
+// The canvas sized to its box at the screen's pixel ratio, cleared to white paper; its context
+// draws in CSS px. Returns {ctx, cssW, cssH}.
+export function paper(canvas) {
+  const dpr = window.devicePixelRatio || 1;
+  const cssW = canvas.clientWidth || 600;
+  const cssH = canvas.clientHeight || 420;
+  if (canvas.width !== Math.round(cssW * dpr) || canvas.height !== Math.round(cssH * dpr)) {
+    canvas.width = Math.round(cssW * dpr);
+    canvas.height = Math.round(cssH * dpr);
+  }
+  const ctx = canvas.getContext("2d");
+  ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+  ctx.fillStyle = "#ffffff";
+  ctx.fillRect(0, 0, cssW, cssH);
+  return { ctx, cssW, cssH };
+}
+
 function niceStep(span) {
   const raw = span / 5;
   const p = 10 ** Math.floor(Math.log10(raw));
@@ -31,23 +156,81 @@ function niceStep(span) {
 }
 
 export class SlipMap {
-  constructor(canvas, { title = "Track coloured by |slip|" } = {}) {
+  // titleEl: an element above the canvas that shows the title (it wraps on a narrow screen);
+  // without one the title is drawn on the canvas, cut to its width
+  constructor(canvas, { title = "Track coloured by |slip|", titleEl = null } = {}) {
     this.canvas = canvas;
     canvas._slipmap = this; // lets tests and tools inspect the map
+    this.titleEl = titleEl;
     this.title = title;
     this.east = [];
     this.north = [];
     this.slip = [];
     this.heat = null;
     this.heatCell = 0;
+    this.anchor = null; // {lat_deg, lon_deg, height_m} of the vehicle's frame: degree axes
+    this.tiles = new TileCache(() => requestAnimationFrame(() => this.draw()));
+    this.tilesDrawn = 0;
+    this.ticks = { lat: [], lon: [] }; // degrees of the labelled lines (with an anchor)
     this.cursor = null; // index of the replay position
     this.upTo = null; // draw the track only up to this index (replay), null = all
   }
 
-  setTrack(east, north, slip) {
+  // stampsS: each point's time (seconds), for cursorAt
+  get title() {
+    return this._title;
+  }
+
+  set title(text) {
+    this._title = text;
+    if (this.titleEl) this.titleEl.textContent = text;
+  }
+
+  setTrack(east, north, slip, stampsS = null) {
     this.east = east;
     this.north = north;
     this.slip = slip;
+    this.stampsS = stampsS;
+  }
+
+  // The index of the last point at or before tS (the first point before them all), or null
+  // without times or points.
+  indexAt(tS) {
+    const xs = this.stampsS;
+    return !xs || !xs.length || tS == null ? null : lastAtOrBefore(xs, tS);
+  }
+
+  // The vehicle's anchor (latitude/longitude axes, and the basemap when configured), or null.
+  setAnchor(anchor) {
+    this.anchor = anchor || null;
+  }
+
+  setTiles(template) {
+    this.tiles.setTemplate(template);
+  }
+
+  // The basemap tiles under the ENU box [e0, e1] × [n0, n1] (a tile's corners placed through
+  // the anchor: at field scale Mercator and the local frame differ by far less than a pixel).
+  drawTiles(ctx, px, py, sc, e0, e1, n0, n1) {
+    const toLL = enuToLatLon(this.anchor);
+    const toEnu = latLonToEnu(this.anchor);
+    const z = tileZoom(sc, this.anchor.lat_deg);
+    const n = 2 ** z;
+    const tile = (ll) => mercator(ll[0], ll[1]).map((v) => Math.floor((v / TILE_PX) * n));
+    const [tx0, ty0] = tile(toLL(e0, n1));
+    const [tx1, ty1] = tile(toLL(e1, n0));
+    let drawn = 0;
+    for (let tx = tx0; tx <= tx1; tx++) {
+      for (let ty = ty0; ty <= ty1; ty++) {
+        const img = this.tiles.get(z, tx, ty);
+        if (!img) continue;
+        const [ea, na] = toEnu(...unmercator((tx * TILE_PX) / n, (ty * TILE_PX) / n));
+        const [eb, nb] = toEnu(...unmercator(((tx + 1) * TILE_PX) / n, ((ty + 1) * TILE_PX) / n));
+        ctx.drawImage(img, px(ea), py(na), px(eb) - px(ea) + 0.5, py(nb) - py(na) + 0.5);
+        drawn++;
+      }
+    }
+    return drawn;
   }
 
   // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey)
@@ -57,26 +240,15 @@ export class SlipMap {
   }
 
   draw() {
-    const c = this.canvas;
-    const dpr = window.devicePixelRatio || 1;
-    const cssW = c.clientWidth || 600;
-    const cssH = c.clientHeight || 420;
-    if (c.width !== Math.round(cssW * dpr) || c.height !== Math.round(cssH * dpr)) {
-      c.width = Math.round(cssW * dpr);
-      c.height = Math.round(cssH * dpr);
-    }
-    const ctx = c.getContext("2d");
-    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
-    ctx.fillStyle = "#ffffff";
-    ctx.fillRect(0, 0, cssW, cssH);
-    const pad = { l: 64, r: 16, t: 30, b: 90 };
+    const { ctx, cssW, cssH } = paper(this.canvas);
+    const pad = { l: this.anchor ? 88 : 64, r: 16, t: this.titleEl ? 12 : 30, b: 90 }; // degrees are wider
     const W = cssW - pad.l - pad.r;
     const H = cssH - pad.t - pad.b;
     ctx.fillStyle = "#222";
     ctx.font = "bold 14px system-ui, sans-serif";
     ctx.textAlign = "left";
     ctx.textBaseline = "top";
-    ctx.fillText(fitText(ctx, this.title, cssW - 24), 12, 8); // a phone's canvas is narrow
+    if (!this.titleEl) ctx.fillText(fitText(ctx, this.title, cssW - 24), 12, 8); // a phone's canvas is narrow
 
     // bounds over the track and the heat cells
     let e0 = Infinity, e1 = -Infinity, n0 = Infinity, n1 = -Infinity;
@@ -107,39 +279,29 @@ export class SlipMap {
     const py = (n) => oy - (n - cn) * sc;
     this.toPx = { px, py };
 
-    // grid and axis labels
+    // grid and axis labels: degrees through the vehicle's anchor, else metres of its frame
     const spanE = W / sc, spanN = H / sc;
-    const step = niceStep(Math.max(spanE, spanN));
-    ctx.strokeStyle = "#e6e6e6";
-    ctx.lineWidth = 1;
-    ctx.font = "11px system-ui, sans-serif";
-    ctx.fillStyle = "#444";
-    ctx.textAlign = "center";
-    ctx.textBaseline = "top";
-    for (let e = Math.ceil((ce - spanE / 2) / step) * step; e <= ce + spanE / 2; e += step) {
-      const x = px(e);
-      ctx.beginPath(); ctx.moveTo(x, pad.t); ctx.lineTo(x, pad.t + H); ctx.stroke();
-      ctx.fillText(String(Math.round(e * 10) / 10), x, pad.t + H + 3);
+    const e0v = ce - spanE / 2, e1v = ce + spanE / 2, n0v = cn - spanN / 2, n1v = cn + spanN / 2;
+    const box = { l: pad.l, t: pad.t, W, H };
+    if (this.anchor) {
+      const g = degreeGrid(this.anchor, e0v, e1v, n0v, n1v, W, H);
+      this.ticks = { lat: g.lat, lon: g.lon };
+      ctx.save();
+      ctx.beginPath();
+      ctx.rect(pad.l, pad.t, W, H);
+      ctx.clip();
+      this.tilesDrawn = this.tiles.template ? this.drawTiles(ctx, px, py, sc, e0v, e1v, n0v, n1v) : 0;
+      ctx.restore();
+      drawGrid(ctx, box, g.x.map(([e, t]) => [px(e), t]), g.y.map(([n, t]) => [py(n), t]), LATLON_NAMES, Boolean(this.tiles.template));
+    } else {
+      const step = niceStep(Math.max(spanE, spanN));
+      const lines = (a, b, at) => {
+        const out = [];
+        for (let v = Math.ceil(a / step) * step; v <= b; v += step) out.push([at(v), String(Math.round(v * 10) / 10)]);
+        return out;
+      };
+      drawGrid(ctx, box, lines(e0v, e1v, px), lines(n0v, n1v, py), ["east (m)", "north (m)"], false);
     }
-    ctx.textAlign = "right";
-    ctx.textBaseline = "middle";
-    for (let n = Math.ceil((cn - spanN / 2) / step) * step; n <= cn + spanN / 2; n += step) {
-      const y = py(n);
-      ctx.beginPath(); ctx.moveTo(pad.l, y); ctx.lineTo(pad.l + W, y); ctx.stroke();
-      ctx.fillText(String(Math.round(n * 10) / 10), pad.l - 4, y);
-    }
-    ctx.strokeStyle = "#999";
-    ctx.strokeRect(pad.l + 0.5, pad.t + 0.5, W, H);
-    ctx.fillStyle = "#222";
-    ctx.font = "12px system-ui, sans-serif";
-    ctx.textAlign = "center";
-    ctx.textBaseline = "top";
-    ctx.fillText("east (m)", pad.l + W / 2, pad.t + H + 17);
-    ctx.save();
-    ctx.translate(16, pad.t + H / 2);
-    ctx.rotate(-Math.PI / 2);
-    ctx.fillText("north (m)", 0, 0);
-    ctx.restore();
 
     ctx.save();
     ctx.beginPath();
@@ -206,6 +368,7 @@ export class SlipMap {
     ctx.textBaseline = "bottom";
     ctx.font = "11px system-ui, sans-serif";
     ctx.fillText(`${barM} m`, bx + (barM * sc) / 2, by - 2);
+    if (this.anchor) drawAttribution(ctx, this.tiles.template, cssW - pad.r, cssH - 4);
     this.drawn = drawn;
   }
 }

@@ -23,6 +23,14 @@ export function fmt(v, digits) {
   return s.startsWith("-") && Number(s) === 0 ? s.slice(1) : s;
 }
 
+// A speed (m/s) with 2 decimals; below the vehicle's standstill speed (its
+// SlipConfig.min_ground_speed_mps, where the product counts it as standing) "0.00", so a standing
+// vehicle's estimate noise never reads as driving backwards ("-0.01").
+export function fmtSpeed(v, standstillMps) {
+  if (v !== null && v !== undefined && standstillMps != null && Math.abs(v) < standstillMps) return "0.00";
+  return fmt(v, 2);
+}
+
 // "2024-05-01 14:00:03.250 CEST" from integer nanoseconds, in the zone the reader chose (the
 // browser's, or UTC: js/clock.js); number precision is enough for display
 export function fmtTimeNs(ns, withMs = true) {
@@ -52,4 +60,16 @@ export function fmtDuration(s) {
 
 export function vehicleHref(id, sub) {
   return `#/vehicle/${encodeURIComponent(id)}${sub ? "/" + sub : ""}`;
+}
+
+// Index of the last of the ascending `xs` at or before x (0 when x precedes them all).
+export function lastAtOrBefore(xs, x) {
+  let lo = 0;
+  let hi = xs.length - 1;
+  while (lo < hi) {
+    const mid = (lo + hi + 1) >> 1;
+    if (xs[mid] <= x) lo = mid;
+    else hi = mid - 1;
+  }
+  return lo;
 }

@@ -1,7 +1,8 @@
 // Vehicle page, live: one panel per estimator the vehicle runs (its primary first), each drawn
 // from the estimator's spec (GET /api/v1/estimators): a tile per slip channel (band colour from
 // the band edges), its motion speed, quality and flags, and a chart per ChartSpec with its
-// degraded stretches shaded; the primary's track on the slip map. Each panel has its own
+// degraded stretches shaded; the primary's track on the slip map, its marker at the charts'
+// cursor while one is hovered (else at the newest point). Each panel has its own
 // /live/vehicles/{id}?estimator= WebSocket (snapshot, then appends at 2–10 Hz); the primary's
 // messages list the vehicle's other estimators, whose panels are added as they appear.
 //
@@ -11,12 +12,12 @@
 // page stops asking for it. A stored vehicle with no live data (parked since the server started)
 // is marked "not live", with the time of its newest stored estimate and a way to its history.
 
-import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket } from "./api.js";
-import { alignedData, chartOptions, degradedSpans, makeChart, setShading, setThreshold } from "./charts.js";
+import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboardConfig } from "./api.js";
+import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
-import { el, fmt, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
+import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const WINDOWS = [
   [30, "30 s"],
@@ -72,7 +73,7 @@ function mergeColumns(cols, fromNs, add, windowS) {
 }
 
 // One estimator's panel: tiles and charts from its spec; the page hands it its socket's messages.
-// page: {vehicleId, windowS(), bandEdges(channel), threshold(), onLatest(name, latest, recvMs),
+// page: {vehicleId, windowS(), bandEdges(channel), threshold(), standstill(), onLatest(name, latest, recvMs),
 // onColumns(name, cols)}
 function estimatorPanel(spec, page, primary) {
   const id = (part) => `v-${spec.name}-${part}`;
@@ -95,7 +96,7 @@ function estimatorPanel(spec, page, primary) {
   );
   const charts = spec.charts.map((c, i) => {
     const o = chartOptions(spec, c);
-    return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}` });
+    return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}`, onCursor: (_i, tS) => page.onCursor(tS) });
   });
   let cols = null;
   let pending = false;
@@ -112,7 +113,7 @@ function estimatorPanel(spec, page, primary) {
       const why = lt.flag_names.filter((f) => f !== spec.ok_flag && !spec.slips.some((c) => c.valid_flag === f));
       document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase().replace(/_/g, " ") || "unknown"}` : "";
     }
-    if (motion) document.getElementById(id("speed")).textContent = fmt(lt[motion.field], 2);
+    if (motion) document.getElementById(id("speed")).textContent = fmtSpeed(lt[motion.field], page.standstill());
     const q = document.getElementById(id("quality"));
     q.textContent = lt.quality;
     q.className = `quality-${lt.quality}`;
@@ -125,7 +126,7 @@ function estimatorPanel(spec, page, primary) {
   function redraw() {
     pending = false;
     if (!cols) return;
-    const shade = degradedSpans(spec, cols);
+    const shade = qualitySpans(spec, cols);
     spec.charts.forEach((c, i) => {
       setShading(charts[i], shade);
       charts[i].setData(alignedData(cols, c.fields));
@@ -168,6 +169,7 @@ export function vehicleView(root, vehicleId) {
   let connected = false;
   let threshold = ALERT_THRESHOLD_PCT;
   let bandEdges = null; // the vehicle's SlipConfig.band_edges_pct, once loaded
+  let standstillMps = null; // its SlipConfig.min_ground_speed_mps, once loaded
   let specs = null; // name -> spec
   let primary = null; // name of the primary estimator, from its socket's first message
   let latest = null; // newest "latest" of the primary, and its receive time (ms since the epoch)
@@ -177,6 +179,7 @@ export function vehicleView(root, vehicleId) {
   let stored = false; // GET /vehicles/{id} found it
   let parked = null; // the "not live" note, once shown
   let liveEmpty = false; // the live feed has nothing for the vehicle ("waiting", or no socket)
+  let cursorS = null; // time under the charts' cursor (seconds), null when none is hovered
   const panels = new Map(); // estimator -> panel
   const sockets = new Map(); // estimator ("" for the primary's until it is known) -> socket
   const title = el("h1", {}, "Vehicle ", el("span", { class: "mono", text: vehicleId }));
@@ -235,6 +238,7 @@ export function vehicleView(root, vehicleId) {
     ingestTimer = setInterval(refreshIngest, 5000);
   }
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
+  const mapTitle = el("h2", { class: "map-title", id: "live-map-title" });
   root.append(
     el(
       "div",
@@ -246,14 +250,18 @@ export function vehicleView(root, vehicleId) {
       winButtons,
     ),
     stats,
-    el("div", { class: "grid2" }, panelBox, el("div", {}, canvas, ingest)),
+    el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, canvas, ingest)),
   );
-  const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels" });
+  const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels", titleEl: mapTitle });
+  loadDashboardConfig().then((cfg) => map.setTiles(cfg.map_tile_url));
   fetchVehicle(vehicleId)
     .then((v) => {
       if (stopped) return;
       threshold = v.config.slip.alert_threshold_pct;
       bandEdges = v.config.slip.band_edges_pct;
+      standstillMps = v.config.slip.min_ground_speed_mps;
+      map.setAnchor(v.anchor); // latitude/longitude axes once the vehicle has a stored anchor
+      map.draw();
       for (const p of panels.values()) p.setThreshold(threshold);
       stored = true;
       showParked();
@@ -352,6 +360,7 @@ export function vehicleView(root, vehicleId) {
     vehicleId,
     windowS: () => windowS,
     threshold: () => threshold,
+    standstill: () => standstillMps,
     bandEdges: (ch) => bandEdges || ch.band_edges_pct,
     onLatest(name, lt, recvMs) {
       if (name === primary) showLatest(lt, recvMs);
@@ -359,7 +368,15 @@ export function vehicleView(root, vehicleId) {
     onColumns(name, cols) {
       const spec = specs.get(name);
       if (name !== primary || !spec.position) return;
-      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols));
+      const stampsS = cols.stamp_ns.map((t) => t / 1e9);
+      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols), stampsS);
+      map.cursor = map.indexAt(cursorS);
+      map.draw();
+    },
+    // a chart's cursor at tS (seconds; null: it left the chart) puts the map's marker there
+    onCursor(tS) {
+      cursorS = tS;
+      map.cursor = map.indexAt(tS);
       map.draw();
     },
   };

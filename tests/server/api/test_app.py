@@ -91,6 +91,7 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
         "/api/v1/metrics",
         "/api/v1/tokens",
         "/api/v1/tokens/{token_id}",
+        "/api/v1/dashboard",
     }
     assert spec["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
     for path, path_ops in spec["paths"].items():
