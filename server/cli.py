@@ -45,6 +45,7 @@ BENCHES = (
     "ingest",
     "pipeline",
     "writes",
+    "tracked",
 )
 
 
