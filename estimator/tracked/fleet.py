@@ -33,7 +33,7 @@ _GNSS_OK_S = 1.0
 class _Slot:
     """One vehicle: its inputs, its filter (arrays of one) and its counters."""
 
-    __slots__ = ("counts", "filter", "inputs")
+    __slots__ = ("counts", "filter", "inputs", "nis")
 
     def __init__(self, config: TrackedConfig, cfg: TrackedEstimatorConfig) -> None:
         self.inputs = VehicleInputs(config, cfg)
@@ -43,8 +43,8 @@ class _Slot:
             "gnss_fused": 0,
             "gnss_gated": 0,
             "odometer_fused": 0,
-            "starts": 0,
         }
+        self.nis: list[float] = []
 
     def push(self, m: Pushed) -> None:
         if isinstance(m, ImuBatch):
@@ -161,6 +161,8 @@ def _count(slot: _Slot, out: TickOut, i: int) -> None:
     c["gnss_fused"] += int(out.gnss_used[i])
     c["gnss_gated"] += int(out.gnss_gated[i])
     c["odometer_fused"] += int(out.odometer_used[i])
+    if out.gnss_used[i] and np.isfinite(out.gnss_nis[i]):
+        slot.nis.append(float(out.gnss_nis[i]))
 
 
 class _Base:
@@ -207,7 +209,7 @@ class _Base:
         self._slots[vehicle_id].inputs.frame = EnuFrame(lat_deg, lon_deg, height_m)
 
     def counters(self, vehicle_id: str) -> dict[str, int]:
-        """Ticks, fixes fused and gated, odometer updates, starts, and the bad input counted
+        """Ticks, fixes fused and gated, odometer updates, and the bad input counted
         and dropped (IMU samples, fixes, edges going backwards, ticks without a sprocket)."""
         slot = self._slots[vehicle_id]
         inputs = slot.inputs
@@ -217,6 +219,10 @@ class _Base:
             "odometer_backwards": inputs.odometer.backwards,
             "sprocket_backwards": sum(b.backwards for b in inputs.sprockets),
         }
+
+    def gnss_nis(self, vehicle_id: str) -> FloatArray:
+        """NIS of every GNSS position fused so far (2 degrees of freedom; consistency checks)."""
+        return np.asarray(self._slots[vehicle_id].nis, dtype=np.float64)
 
     def filter_state(self, vehicle_id: str) -> tuple[FloatArray, FloatArray]:
         """``(x (n,), P (n, n))`` of the vehicle's filter (diagnostics and tests)."""

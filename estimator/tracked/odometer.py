@@ -76,7 +76,8 @@ def paper_ratio(state: IntArray, rho_m: FloatArray, p: VehicleParams) -> FloatAr
     arc = state == int(M.ARC)
     ratio[arc] = p.arc_ratio[arc]
     sep = state == int(M.SEPARATED)
-    ratio[sep] = (rho_m / (rho_m + 0.5 * p.gauge_m))[sep]
+    with np.errstate(invalid="ignore"):
+        ratio[sep] = (rho_m / (rho_m + 0.5 * p.gauge_m))[sep]
     return ratio
 
 

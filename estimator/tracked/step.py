@@ -235,11 +235,12 @@ def _track_slip(
     top = np.maximum(vs, track)
     moving = top >= p.min_slip_speed_mps[:, None]
     other = vs[:, ::-1]
-    braked = (vs < cfg.braked_ratio_max * other) & (other >= p.stop_speed_mps[:, None])
+    read = ~inp.sprocket_missing[:, None]
+    braked = read & (vs < cfg.braked_ratio_max * other) & (other >= p.stop_speed_mps[:, None])
     with np.errstate(divide="ignore", invalid="ignore"):
         slip = 100.0 * (vs - track) / top
         std = 100.0 * np.sqrt(track_std[:, None] ** 2 + (0.005 * vs) ** 2) / top
-    valid = moving & ~braked & np.isfinite(slip) & f.started[:, None]
+    valid = read & moving & ~braked & np.isfinite(slip) & f.started[:, None]
     slip = np.where(braked, -100.0, np.where(valid, slip, np.nan))
     std = np.where(valid, std, np.nan)
     return track, track_std, slip, std, valid, braked

@@ -110,7 +110,7 @@ def _base_route() -> list[Segment]:
     out += _leg(11.0, Segment(M.SEPARATED, 10.0, 6.0, left=True, ratio=0.94), 45.0)
     out += _leg(12.0, Segment(M.ARC, 7.0, 3.0, left=False), 35.0)
     out += _leg(11.0, Segment(M.LOW_STRAIGHT, 15.0, 4.0), 40.0)
-    out += [Segment(M.STRAIGHT, 3.0, 3.5), Segment(M.PIVOT, 2.0, 3.5, left=False)]
+    out += [Segment(M.STRAIGHT, 3.0, 4.0), Segment(M.PIVOT, 2.0, 4.0, left=False)]
     out += _leg(12.0, Segment(M.SEPARATED, 15.0, 5.0, left=False, ratio=0.82), 50.0)
     out += _leg(10.0, Segment(M.PIVOT, 4.0, 1.5, left=False), 30.0)
     out += [Segment(M.STRAIGHT, 3.0, 0.5), Segment(M.STOP, 5.0, 0.0)]
