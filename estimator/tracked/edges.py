@@ -3,9 +3,10 @@
 Over the last ``max_edges`` edges within ``window`` before a tick ``t``, ``n`` edges spanning
 ``Δ`` give ``v = (n − 1)·pitch/Δ``, the mean over ``[first, last]`` (its centre is returned, so
 a caller compares it with its own speed *there*, not at ``t``: the lag Eq. 6 of the source
-leaves out). When the time since the last edge exceeds the mean period the speed is at most
-``pitch/(t − last)``. Fewer than two edges in the window: the last two edges if younger than
-``hold``, else 0. Edges are forward only (a quadrature direction is not used).
+leaves out). The next edge not having come by ``t`` bounds the mean speed over ``[first, t]``
+by ``n·pitch/(t − first)``; the smaller of the two is taken. Fewer than two edges in the
+window: the last two edges if younger than ``hold``, else 0. Edges are forward only (a
+quadrature direction is not used).
 """
 
 from __future__ import annotations
@@ -39,15 +40,14 @@ def edge_speed(
     span = last - first
     n = (hi - lo - 1).astype(np.float64)
     tick = ticks_ns.astype(np.float64)
-    since = tick - last
-    period = np.where(ok & (span > 0), span / np.maximum(n, 1.0), np.inf)
     ok &= ~(short & (tick - first > hold_ns))
     with np.errstate(divide="ignore", invalid="ignore"):
         speed = np.where(ok & (span > 0), n * pitch_m * 1e9 / span, 0.0)
-        bound = np.where(since > period, pitch_m * 1e9 / np.maximum(since, 1.0), np.inf)
-    speed = np.minimum(speed, bound)
+        bound = (n + 1.0) * pitch_m * 1e9 / np.maximum(tick - first, 1.0)
+    slowed = ok & (bound < speed)
+    speed = np.where(slowed, bound, speed)
     centre = np.where(ok & (span > 0), 0.5 * (first + last), tick)
-    centre = np.where(since > period, 0.5 * (last + tick), centre)
+    centre = np.where(slowed, 0.5 * (first + tick), centre)
     return speed, centre
 
 

@@ -82,12 +82,13 @@ def kalman_update(
     H: FloatArray,
     R: FloatArray,
     mask: BoolArray,
-    gate_nis: float = np.inf,
+    gate_nis: float | FloatArray = np.inf,
 ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
     """Masked EKF update of ``m``-dimensional measurements.
 
     ``innovation (k, m)`` is ``z − h(x)``, ``H (k, m, n)``, ``R (k, m, m)``. Vehicles where
-    ``mask`` is False, or whose NIS ``yᵀS⁻¹y`` exceeds ``gate_nis``, keep ``x`` and ``P``.
+    ``mask`` is False, or whose NIS ``yᵀS⁻¹y`` exceeds ``gate_nis`` (a number, or one per
+    vehicle), keep ``x`` and ``P``.
     Returns ``(x, P, nis (k,), used (k,))``; NIS is NaN where masked.
     """
     y = np.where(mask[:, None], innovation, 0.0)

@@ -71,6 +71,7 @@ def _stack_filters(filters: list[Filter]) -> Filter:
         np.concatenate([f.P for f in filters]),
         np.concatenate([f.started for f in filters]),
         np.concatenate([f.since_gnss_s for f in filters]),
+        np.concatenate([f.gated_s for f in filters]),
     )
 
 
@@ -265,7 +266,11 @@ class TrackedFleet(_Base):
         rows = _rows(f, got, inp, self.config)
         for i, slot in enumerate(slots):
             slot.filter = Filter(
-                f.x[i : i + 1], f.P[i : i + 1], f.started[i : i + 1], f.since_gnss_s[i : i + 1]
+                f.x[i : i + 1],
+                f.P[i : i + 1],
+                f.started[i : i + 1],
+                f.since_gnss_s[i : i + 1],
+                f.gated_s[i : i + 1],
             )
             _count(slot, got, i)
             out[i][r] = rows[i]

@@ -39,8 +39,10 @@ class TrackedState(IntEnum):
 
     Position of the hull centre (ground point midway between the track contact centres) in
     the vehicle's ENU frame, heading from north clockwise, forward speed, gyro z bias and
-    scale error, and the odometer factor per motion state ``F_s``: the fast track's ground
-    speed over the odometer speed (``K_D`` scale and that state's traction slip together).
+    scale error, the odometer factor per motion state ``F_s`` (the fast track's ground speed
+    over the odometer speed: ``K_D`` scale and that state's traction slip together), and the
+    hull's lag behind its tracks ``τ`` (s): while it accelerates at ``a`` the hull runs
+    ``τ·a`` slower than ``F_s`` times the odometer says.
     """
 
     EAST = 0
@@ -54,6 +56,7 @@ class TrackedState(IntEnum):
     F_ARC = 8
     F_SEPARATED = 9
     F_PIVOT = 10
+    ACCEL_LAG = 11
 
 
 N_STATES = len(TrackedState)

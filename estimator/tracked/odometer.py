@@ -11,7 +11,8 @@ times the true side-slip: the turning pole moves ahead of the centre and the hul
 
 Product: the fast track's ground speed is ``V + |ω|·B/2`` in every turn (the kinematic identity
 Eq. 23 rests on, slip included), and it is ``F_s·v_o`` with a factor ``F_s`` per state learned
-while GNSS is good (``K_D`` scale and that state's traction slip together); in a low-gear
+while GNSS is good (``K_D`` scale and that state's traction slip together), less the hull's
+lag ``τ·a`` behind its tracks while it accelerates (``τ`` learned too); in a low-gear
 straight ``V = F_low·v_o/1.42``. The odometer's windowed speed is compared with the filter's
 speed at the window's centre ``V − a·lag``, not at the tick (Eq. 6's mismatch).
 """
@@ -100,19 +101,24 @@ def odometer_measurement(
     H = np.zeros((k, 1, N_STATES))
     v = x[:, S.SPEED]
     std = cfg.odometer_std_mps + cfg.odometer_std_per_mps * np.abs(odometer_mps)
+    std = std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2)  # slip while the hull catches up
     if cfg.mode == TrackedMode.PRODUCT:
         f_idx = _FACTOR_INDEX[state]
         factor = x[np.arange(k), f_idx]
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
-        ground = v - accel_mps2 * lag_s + turn
+        lag = x[:, S.ACCEL_LAG] * accel_mps2
+        ground = v - accel_mps2 * lag_s + lag + turn
         h = gear * ground / factor
         H[:, 0, S.SPEED] = gear / factor
+        H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / factor
         H[np.arange(k), 0, f_idx] = -h / factor
-        corrected = odometer_mps * factor / gear - turn
+        corrected = odometer_mps * factor / gear - turn - lag
         mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))
         pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)
-        std = np.where(state == int(M.PIVOT), pivot_std, std)
+        std = np.where(
+            state == int(M.PIVOT), pivot_std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2), std
+        )
         innovation = odometer_mps - h
     else:
         if cfg.mode == TrackedMode.RAW_ODOMETER:

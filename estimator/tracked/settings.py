@@ -37,13 +37,17 @@ class TrackedEstimatorConfig:
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0
     gnss_gate_nis: float = 16.0
+    gnss_regain_s: float = 2.0
     odometer_std_mps: float = 0.02
     odometer_std_per_mps: float = 0.01
     pivot_odometer_std_per_mps: float = 0.05
+    odometer_std_per_mps2: float = 0.3
+    learn_accel_max_mps2: float = 0.2
+    standstill_odometer_mps: float = 0.02
     zero_speed_std_mps: float = 0.01
     zero_rate_std_radps: float = 0.001
-    speed_walk_mps2: float = 0.05
-    position_walk_mps: float = 0.01
+    speed_walk_mps2: float = 0.1
+    position_walk_mps: float = 0.015
     lateral_model_error: float = 0.3
     gyro_noise_radps: float = 3e-4
     gyro_bias_walk_radps: float = 2e-6
@@ -55,6 +59,8 @@ class TrackedEstimatorConfig:
     initial_gyro_bias_std_radps: float = 1e-3
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03
+    initial_accel_lag_std_s: float = 0.5
+    accel_lag_walk_s: float = 1e-3
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", TrackedMode(self.mode))

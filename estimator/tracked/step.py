@@ -31,12 +31,14 @@ _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.F_ARC, S.F_SEPARATED, S.F_PIVOT]
 @dataclass(slots=True)
 class Filter:
     """Filter state of ``k`` vehicles: ``x (k, n)``, ``P (k, n, n)``, ``started (k,)``,
-    ``since_gnss_s (k,)`` (time since the last fused fix)."""
+    ``since_gnss_s (k,)`` (time since the last fused fix), ``gated_s (k,)`` (how long every
+    fix has been refused by the gate)."""
 
     x: FloatArray
     P: FloatArray
     started: BoolArray
     since_gnss_s: FloatArray
+    gated_s: FloatArray
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,6 +72,7 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.GYRO_BIAS] = learn * cfg.initial_gyro_bias_std_radps**2
     diag[S.GYRO_SCALE] = learn * cfg.initial_gyro_scale_std**2
     diag[_FACTORS] = learn * cfg.initial_factor_std**2
+    diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
     return np.diag(diag)
 
 
@@ -80,7 +83,7 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
     P[0, [S.EAST, S.NORTH], [S.EAST, S.NORTH]] = 1e6
-    return Filter(x, P, np.zeros(1, dtype=bool), np.full(1, np.inf))
+    return Filter(x, P, np.zeros(1, dtype=bool), np.full(1, np.inf), np.zeros(1))
 
 
 def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> FloatArray:
@@ -94,6 +97,7 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     q[:, S.GYRO_BIAS] = learn * cfg.gyro_bias_walk_radps**2 * dt
     q[:, S.GYRO_SCALE] = learn * cfg.gyro_scale_walk**2 * dt
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
+    q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
     return q
 
 
@@ -160,15 +164,25 @@ def _fuse_gnss(
     s, c = np.sin(psi), np.cos(psi)
     xa, ya = p.antenna_xy_m[:, 0], p.antenna_xy_m[:, 1]
     have = f.started & ~skip & np.isfinite(inp.gnss_pos_pair_m).all(axis=1)
+    regain = have & (f.gated_s >= cfg.gnss_regain_s)
+    if regain.any():  # refused too long: the filter, not the fixes, is wrong; open up
+        core = [S.EAST, S.NORTH, S.HEADING, S.SPEED]
+        bump = np.zeros(N_STATES)
+        bump[core] = np.diag(_initial_p(cfg))[core] * 100.0
+        f.P = f.P + regain[:, None, None] * np.diag(bump)[None]
+    gate = np.where(regain, np.inf, cfg.gnss_gate_nis)
     H = np.zeros((k, 2, N_STATES))
     H[:, 0, S.EAST] = H[:, 1, S.NORTH] = 1.0
     H[:, 0, S.HEADING] = -xa * s + ya * c
     H[:, 1, S.HEADING] = -xa * c - ya * s
-    h = np.stack([f.x[:, S.EAST] + xa * c + ya * s, f.x[:, S.NORTH] - xa * s + ya * c], axis=1)
-    R = np.eye(2)[None] * (p.gnss_pos_std_m**2)[:, None, None]
-    f.x, f.P, nis, used = kalman_update(
-        f.x, f.P, inp.gnss_pos_pair_m - h, H, R, have, cfg.gnss_gate_nis
+    back = inp.gnss_age_s * f.x[:, S.SPEED]  # where the hull was when the fix was taken
+    h = np.stack(
+        [f.x[:, S.EAST] + xa * c + ya * s - back * s, f.x[:, S.NORTH] - xa * s + ya * c - back * c],
+        axis=1,
     )
+    R = np.eye(2)[None] * (p.gnss_pos_std_m**2)[:, None, None]
+    f.x, f.P, nis, used = kalman_update(f.x, f.P, inp.gnss_pos_pair_m - h, H, R, have, gate)
+    f.gated_s = np.where(have & ~used, f.gated_s + cfg.tick_s, np.where(used, 0.0, f.gated_s))
     v_have = used & np.isfinite(inp.gnss_vel_pair_mps).all(axis=1)
     psi = f.x[:, S.HEADING]
     s, c = np.sin(psi), np.cos(psi)
@@ -179,9 +193,8 @@ def _fuse_gnss(
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
     std = np.where(np.isfinite(inp.gnss_vel_std_mps), inp.gnss_vel_std_mps, p.gnss_vel_std_mps)
     Rv = np.eye(2)[None] * (std**2)[:, None, None]
-    f.x, f.P, _, _ = kalman_update(
-        f.x, f.P, inp.gnss_vel_pair_mps - hv, Hv, Rv, v_have, cfg.gnss_gate_nis
-    )
+    # a fix whose position passed the gate is sound: its velocity is fused ungated
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, inp.gnss_vel_pair_mps - hv, Hv, Rv, v_have)
     return used, have & ~used, nis
 
 
@@ -198,8 +211,11 @@ def _fuse_odometer(
     y, H, R, mask, corrected = odometer_measurement(
         cfg, p, f.x, state, inp.odometer_mps, inp.odometer_lag_s, inp.accel_mps2, w, valid
     )
-    learning = f.started & (f.since_gnss_s <= 1.0)  # the factors learn only beside GNSS
-    H[:, :, _FACTORS] *= learning[:, None, None]
+    # the factors learn only beside GNSS, at a steady speed
+    steady = np.abs(inp.accel_mps2) < cfg.learn_accel_max_mps2
+    beside = f.started & (f.since_gnss_s <= 1.0)
+    H[:, :, _FACTORS] *= (beside & steady)[:, None, None]
+    H[:, :, S.ACCEL_LAG] *= beside[:, None]
     f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
     return used, corrected
 
@@ -224,11 +240,10 @@ def _fuse_standstill(
 def _track_slip(
     f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, BoolArray]:
-    """Track ground speeds ``V ∓ ω·B/2`` at the sprocket windows' centres, slip
+    """Track ground speeds ``V ∓ ω·B/2`` at the tick, slip
     ``S = (Vs − v)/max(Vs, v)`` in percent with its 1-sigma, validity and braked tracks."""
     half = 0.5 * p.gauge_m[:, None]
-    v_c = f.x[:, S.SPEED, None] - inp.accel_mps2[:, None] * inp.sprocket_lag_pair_s
-    track = v_c + np.stack([-w, w], axis=1) * half
+    track = f.x[:, S.SPEED, None] + np.stack([-w, w], axis=1) * half
     var_v = f.P[:, S.SPEED, S.SPEED] + (0.5 * p.gauge_m * cfg.zero_rate_std_radps) ** 2
     track_std = np.sqrt(np.maximum(var_v, 0.0))
     vs = inp.sprocket_pair_mps
@@ -260,7 +275,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)
     odo_used, corrected = _fuse_odometer(f, inp, p, cfg, state, w)
-    still = state == int(M.STOP)
+    still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     if cfg.learns:
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)

@@ -29,7 +29,10 @@ _FORWARD, _YAW = 1, 2
 class TickInputs:
     """Inputs of ``m`` ticks: shapes ``(m,)``; ``*_pair`` ``(m, 2)`` (left/right or E/N).
 
-    ``gear_ratio`` is the faster sprocket's speed over the odometer's over the same span of
+    ``sprocket_pair_mps`` are the sprocket speeds carried from their windows' centres to the
+    tick with the gearbox's acceleration (each sprocket turns at a fixed ratio of the gearbox
+    between lever moves), so both tracks are read at one instant. ``gear_ratio`` is the
+    faster sprocket's speed over the odometer's over the same span of
     time (1 in direct drive, 1/1.42 in the low gear; NaN when unknown).
     """
 
@@ -39,12 +42,12 @@ class TickInputs:
     odometer_mps: FloatArray
     odometer_lag_s: FloatArray
     sprocket_pair_mps: FloatArray
-    sprocket_lag_pair_s: FloatArray
     sprocket_missing: BoolArray
     gear_ratio: FloatArray
     gnss_pos_pair_m: FloatArray
     gnss_vel_pair_mps: FloatArray
     gnss_vel_std_mps: FloatArray
+    gnss_age_s: FloatArray
 
 
 class VehicleInputs:
@@ -113,14 +116,10 @@ class VehicleInputs:
         """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs."""
         accel, gyro = self._imu_means(ticks)
         p, cfg = self.params, self.cfg
-        odo, odo_c = edge_speed(
-            self.odometer.stamps,
-            ticks,
-            float(p.odometer_pitch_m[0]),
-            round(cfg.odometer_window_s * 1e9),
-            1 << 30,
-            500_000_000,
-        )
+        odo, odo_c = self._odometer_speed(ticks)
+        prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            odo_accel = np.where(odo_c > prev_c, (odo - prev) / ((odo_c - prev_c) * 1e-9), 0.0)
         spr, spr_c = [], []
         for buf in self.sprockets:
             v, c = edge_speed(
@@ -134,27 +133,30 @@ class VehicleInputs:
             spr.append(v)
             spr_c.append(c)
         gear = self._gear_ratio(np.stack(spr, axis=1), np.stack(spr_c, axis=1), ticks)
+        tick_f = ticks.astype(np.float64)
+        sprocket = self._at_tick(
+            np.stack(spr, axis=1), np.stack(spr_c, axis=1), tick_f, odo, odo_accel
+        )
         missing = self._sprocket_missing(ticks, odo)
         self.counts["sprocket_missing_ticks"] += int(missing.sum())
-        pos, vel, vstd = self._gnss_at(ticks)
+        pos, vel, vstd, age = self._gnss_at(ticks)
         self.next_ns = int(ticks[-1]) + self.tick_ns
         keep_from = int(ticks[-1]) - 3_000_000_000
         for buf in (self.odometer, *self.sprockets):
             buf.prune(keep_from)
-        tick_f = ticks.astype(np.float64)
         return TickInputs(
             ticks_ns=ticks,
             accel_mps2=accel,
             gyro_radps=gyro,
             odometer_mps=odo,
             odometer_lag_s=(tick_f - odo_c) * 1e-9,
-            sprocket_pair_mps=np.stack(spr, axis=1),
-            sprocket_lag_pair_s=(tick_f[:, None] - np.stack(spr_c, axis=1)) * 1e-9,
+            sprocket_pair_mps=sprocket,
             sprocket_missing=missing,
             gear_ratio=gear,
             gnss_pos_pair_m=pos,
             gnss_vel_pair_mps=vel,
             gnss_vel_std_mps=vstd,
+            gnss_age_s=age,
         )
 
     def _imu_means(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -172,6 +174,30 @@ class VehicleInputs:
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
         return out[0], out[1]
+
+    def _odometer_speed(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
+        return edge_speed(
+            self.odometer.stamps,
+            ticks,
+            float(self.params.odometer_pitch_m[0]),
+            round(self.cfg.odometer_window_s * 1e9),
+            1 << 30,
+            500_000_000,
+        )
+
+    @staticmethod
+    def _at_tick(
+        speed: FloatArray,
+        centre: FloatArray,
+        tick: FloatArray,
+        odo: FloatArray,
+        odo_accel: FloatArray,
+    ) -> FloatArray:
+        """Sprocket speeds ``(m, 2)`` at the tick: ``v + a_g·(v/v_g)·(tick − centre)``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(odo[:, None] > 0.3, speed / odo[:, None], 0.0)
+        lag_s = (tick[:, None] - centre) * 1e-9
+        return np.maximum(speed + odo_accel[:, None] * ratio * lag_s, 0.0)
 
     def _gear_ratio(self, speed: FloatArray, centre: FloatArray, ticks: IntArray) -> FloatArray:
         """Faster sprocket over the odometer, both over the faster sprocket's window (``(m,)``):
@@ -196,16 +222,19 @@ class VehicleInputs:
             out |= moving & (last is None or (ticks - (last or 0)) > span)
         return out
 
-    def _gnss_at(self, ticks: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """The last fix in each tick ``(t − tick, t]`` (NaN where none); fixes consumed."""
+    def _gnss_at(self, ticks: IntArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The last fix in each tick ``(t − tick, t]`` (NaN where none) and its age at the tick
+        (s); fixes consumed."""
         pos = np.full((ticks.size, 2), np.nan)
         vel = np.full((ticks.size, 2), np.nan)
         vstd = np.full(ticks.size, np.nan)
+        age = np.zeros(ticks.size)
         if self.gnss:
             stamps = np.array([g[0] for g in self.gnss], dtype=np.int64)
             k = np.searchsorted(ticks, stamps, side="left")
             for j, g in zip(k.tolist(), self.gnss, strict=True):
                 if j < ticks.size and g[0] > ticks[j] - self.tick_ns:
                     pos[j], vel[j], vstd[j] = g[1:3], g[3:5], g[5]
+                    age[j] = (int(ticks[j]) - g[0]) * 1e-9
             self.gnss = [g for g, j in zip(self.gnss, k.tolist(), strict=True) if j >= ticks.size]
-        return pos, vel, vstd
+        return pos, vel, vstd, age

@@ -5,9 +5,10 @@ steering unit per side: direct (ratio 1), I (1/1.42), II (brake, 0), or slipping
 and direct in a separated turn. Each sprocket turns at ``Vs = v_g·ratio``; each track's ground
 speed follows from its slip ``s = (Vs − v)/max(Vs, v)`` (traction slip on the fast side, skid
 on the slow one, growing with turn tightness ``B/ρ_t`` and acceleration); a braked track is
-dragged. The hull moves at ``V = (v_l + v_r)/2``, turns at ``ω = (v_r − v_l)/B`` and slides
-outward at ``v_x = ω·D``: the turning pole lies ``D = L·|V·ω|/(2·μ_t·g)`` ahead of the centre.
-Grid 100 Hz; arrays of shape ``(n,)`` unless said.
+dragged; the ground speeds follow with a 0.4 s lag (the hull's inertia: a lever thrown makes
+the track slip until the hull has caught up). The hull moves at ``V = (v_l + v_r)/2``, turns
+at ``ω = (v_r − v_l)/B`` and slides outward at ``v_x = ω·D``: the turning pole lies
+``D = L·|V·ω|/(2·μ_t·g)`` ahead of the centre. Grid 100 Hz; arrays of shape ``(n,)`` unless said.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 from estimator._arrays import FloatArray, IntArray
 from estimator.config import TrackedConfig
@@ -29,6 +31,7 @@ RATE_HZ = 100
 _RAMP_S = 0.3  # a steering lever moves within this
 _ACCEL_UP_MPS2, _ACCEL_DOWN_MPS2 = 0.8, 1.5
 _BRAKE_MPS2 = 3.0  # a braked track's ground speed falls at most this fast
+_SLIP_TAU_S = 0.4  # the hull's inertia: a track's ground speed follows its sprocket this fast
 M = MotionState
 
 
@@ -104,6 +107,13 @@ def _slip_of(
     return np.clip((base[:, None] + turn) * patch[:, None] + texture, -0.5, 0.6)
 
 
+def _lag(x: FloatArray, tau_s: float) -> FloatArray:
+    """First-order lag of each column of ``x`` (shape ``(n, 2)``), starting at its first row."""
+    alpha = 1.0 / (1.0 + tau_s * RATE_HZ)
+    out, _ = lfilter([alpha], [1.0, alpha - 1.0], x, axis=0, zi=(1 - alpha) * x[:1])
+    return np.asarray(out, dtype=np.float64)
+
+
 def _ground_speeds(sprocket: FloatArray, slip: FloatArray, drag: float) -> FloatArray:
     """Track ground speeds, shape ``(n, 2)``: from slip where driven; a braked track
     (sprocket below 2 % of the other's and 0.05 m/s) dragged at ``drag`` of the other track,
@@ -141,7 +151,7 @@ def integrate_route(route: Route, config: TrackedConfig, rng: np.random.Generato
     )
     patch = patches[(dist // route.ground.patch_m).astype(np.int64)]
     slip = _slip_of(sprocket, accel, route.ground, texture, patch)
-    track = _ground_speeds(sprocket, slip, route.ground.brake_drag)
+    track = _lag(_ground_speeds(sprocket, slip, route.ground.brake_drag), _SLIP_TAU_S)
     b = config.geometry.track_gauge_m
     speed = track.mean(axis=1)
     yaw = (track[:, 1] - track[:, 0]) / b

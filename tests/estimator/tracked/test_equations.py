@@ -129,6 +129,7 @@ def test_product_odometer_measurement_by_hand() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.SPEED] = 2.0
     x[0, S.F_ARC] = 0.95
+    x[0, S.ACCEL_LAG] = 0.2
     cfg = TrackedEstimatorConfig()
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
@@ -141,12 +142,14 @@ def test_product_odometer_measurement_by_hand() -> None:
         np.array([0.3]),
         np.ones(1, dtype=bool),
     )
-    ground = 2.0 - 1.0 * 0.05 + 0.3 * 1.0  # V − a·lag + |ω|·B/2: the fast track's ground speed
+    # V − a·lag + τ·a + |ω|·B/2: the fast track's ground speed, a = 1 m/s², τ = 0.2 s
+    ground = 2.0 - 1.0 * 0.05 + 0.2 * 1.0 + 0.3 * 1.0
     assert y[0, 0] == pytest.approx(2.5 - ground / 0.95)
     assert H[0, 0, S.SPEED] == pytest.approx(1 / 0.95)
+    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(1.0 / 0.95)
     assert H[0, 0, S.F_ARC] == pytest.approx(-ground / 0.95**2)
-    assert R[0, 0, 0] == pytest.approx((0.02 + 0.01 * 2.5) ** 2)
-    assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3)
+    assert R[0, 0, 0] == pytest.approx((0.02 + 0.01 * 2.5 + 0.3 * 1.0) ** 2)
+    assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3 - 0.2)
 
 
 def test_odometer_dropped_in_heading_jumps() -> None:
@@ -176,7 +179,7 @@ def test_edge_speed_period_method() -> None:
     stale, _ = edge_speed(stamps, np.array([3_000_000_000]), 0.01, 100_000_000, 1000, 10**9)
     assert stale[0] == 0.0  # nothing for two seconds
     bound, _ = edge_speed(stamps, np.array([1_040_000_000]), 0.01, 100_000_000, 1000, 10**9)
-    assert bound[0] == pytest.approx(0.01 / 0.05)  # 50 ms since the last edge: at most that
+    assert bound[0] == pytest.approx(5 * 0.01 / 0.09)  # no 6th edge 90 ms after the first
     mean = span_speed(stamps, np.array([0.0]), np.array([2e8]), 0.01)
     assert mean[0] == pytest.approx(1.0)
 
