@@ -35,6 +35,7 @@ class TrackedFlag(IntFlag):
     GNSS_GATED = 1 << 9
     SPROCKET_MISSING = 1 << 10
     NOT_STARTED = 1 << 11
+    SLIP_SETTLING = 1 << 12
 
 
 def _f(name: str, unit: str, label: str, description: str, kind: str = "f8") -> FieldSpec:
@@ -112,6 +113,8 @@ TRACKED_SPEC = EstimatorSpec(
             "GNSS_GATED": "a GNSS fix was rejected by the innovation gate on this tick",
             "SPROCKET_MISSING": "a sprocket stream is missing: state from the turning radius",
             "NOT_STARTED": "no GNSS fix at speed yet: position and heading unknown",
+            "SLIP_SETTLING": "a lever moves: a sprocket's speed changes faster than it is read, "
+            "no slip value for it",
         },
     ),
     slips=(

@@ -91,6 +91,7 @@ def _flags(f: Filter, out: TickOut, conf_min: float, inp: TickInputs) -> IntArra
         (out.gnss_gated, _F.GNSS_GATED),
         (inp.sprocket_missing, _F.SPROCKET_MISSING),
         (~f.started, _F.NOT_STARTED),
+        (inp.sprocket_settling_pair.any(axis=1), _F.SLIP_SETTLING),
     ):
         bits |= np.where(mask, int(flag), 0)
     return bits

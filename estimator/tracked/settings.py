@@ -34,6 +34,7 @@ class TrackedEstimatorConfig:
     arc_ratio_max: float = 0.74
     straight_ratio_min: float = 0.985
     ratio_std: float = 0.01
+    lever_accel_mps2: float = 0.5
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0
     gnss_gate_nis: float = 16.0

@@ -256,6 +256,7 @@ def _track_slip(
         slip = 100.0 * (vs - track) / top
         std = 100.0 * np.sqrt(track_std[:, None] ** 2 + (0.005 * vs) ** 2) / top
     valid = read & moving & ~braked & np.isfinite(slip) & f.started[:, None]
+    valid &= ~inp.sprocket_settling_pair
     slip = np.where(braked, -100.0, np.where(valid, slip, np.nan))
     std = np.where(valid, std, np.nan)
     return track, track_std, slip, std, valid, braked

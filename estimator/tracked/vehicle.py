@@ -43,6 +43,7 @@ class TickInputs:
     odometer_lag_s: FloatArray
     sprocket_pair_mps: FloatArray
     sprocket_missing: BoolArray
+    sprocket_settling_pair: BoolArray
     gear_ratio: FloatArray
     gnss_pos_pair_m: FloatArray
     gnss_vel_pair_mps: FloatArray
@@ -115,28 +116,21 @@ class VehicleInputs:
     def take(self, ticks: IntArray) -> TickInputs:
         """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs."""
         accel, gyro = self._imu_means(ticks)
-        p, cfg = self.params, self.cfg
+        cfg = self.cfg
         odo, odo_c = self._odometer_speed(ticks)
         prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
         with np.errstate(divide="ignore", invalid="ignore"):
             odo_accel = np.where(odo_c > prev_c, (odo - prev) / ((odo_c - prev_c) * 1e-9), 0.0)
-        spr, spr_c = [], []
-        for buf in self.sprockets:
-            v, c = edge_speed(
-                buf.stamps,
-                ticks,
-                float(p.sprocket_pitch_m[0]),
-                round(cfg.sprocket_window_s * 1e9),
-                cfg.sprocket_max_edges,
-                2_000_000_000,
-            )
-            spr.append(v)
-            spr_c.append(c)
-        gear = self._gear_ratio(np.stack(spr, axis=1), np.stack(spr_c, axis=1), ticks)
+        spr, spr_c = self._sprocket_speeds(ticks)
+        before, before_c = self._sprocket_speeds(ticks - self.tick_ns)
+        gear = self._gear_ratio(spr, spr_c, ticks)
         tick_f = ticks.astype(np.float64)
-        sprocket = self._at_tick(
-            np.stack(spr, axis=1), np.stack(spr_c, axis=1), tick_f, odo, odo_accel
-        )
+        sprocket = self._at_tick(spr, spr_c, tick_f, odo, odo_accel)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            own = (spr - before) / ((spr_c - before_c) * 1e-9)
+            geared = odo_accel[:, None] * np.where(odo[:, None] > 0.3, spr / odo[:, None], 0.0)
+        settling = ~(np.abs(np.nan_to_num(own - geared)) <= cfg.lever_accel_mps2)
+        settling |= self._starting(ticks)
         missing = self._sprocket_missing(ticks, odo)
         self.counts["sprocket_missing_ticks"] += int(missing.sum())
         pos, vel, vstd, age = self._gnss_at(ticks)
@@ -152,6 +146,7 @@ class VehicleInputs:
             odometer_lag_s=(tick_f - odo_c) * 1e-9,
             sprocket_pair_mps=sprocket,
             sprocket_missing=missing,
+            sprocket_settling_pair=settling,
             gear_ratio=gear,
             gnss_pos_pair_m=pos,
             gnss_vel_pair_mps=vel,
@@ -174,6 +169,37 @@ class VehicleInputs:
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
         return out[0], out[1]
+
+    def _sprocket_speeds(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Each sprocket's window speed and window centre, shapes ``(m, 2)``."""
+        out = [
+            edge_speed(
+                buf.stamps,
+                ticks,
+                float(self.params.sprocket_pitch_m[0]),
+                round(self.cfg.sprocket_window_s * 1e9),
+                self.cfg.sprocket_max_edges,
+                2_000_000_000,
+            )
+            for buf in self.sprockets
+        ]
+        return np.stack([o[0] for o in out], axis=1), np.stack([o[1] for o in out], axis=1)
+
+    def _starting(self, ticks: IntArray) -> BoolArray:
+        """Sprockets, ``(m, 2)``, whose first edges after a second's silence came within the
+        last 0.6 s: the track starts (a released brake or lever), faster than a window reads."""
+        out = np.zeros((ticks.size, 2), dtype=bool)
+        for side, buf in enumerate(self.sprockets):
+            s = buf.stamps
+            if s.size == 0:
+                continue
+            hi = np.searchsorted(s, ticks, side="right")
+            stamps = np.concatenate([[np.iinfo(np.int64).min // 2], s])
+            recent = ticks - stamps[hi] < 600_000_000
+            for back in (1, 2):  # the last edge or the one before it ended a silence
+                gap = stamps[np.maximum(hi - back + 1, 0)] - stamps[np.maximum(hi - back, 0)]
+                out[:, side] |= recent & (hi >= back) & (gap > 1_000_000_000)
+        return out
 
     def _odometer_speed(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
         return edge_speed(
