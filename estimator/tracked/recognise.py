@@ -81,9 +81,11 @@ def product_states(
     heading_step_rad: FloatArray,
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
+    yaw_rate_radps: FloatArray,
 ) -> tuple[IntArray, FloatArray]:
     """State and confidence per vehicle from the sprocket speeds ``(k, 2)``, the faster
-    sprocket over the odometer (``gear_ratio``, same span) and the tick's heading change."""
+    sprocket over the odometer (``gear_ratio``, same span), the tick's heading change and the
+    yaw rate (a ratio in the separated band without the turn it makes is a straight)."""
     fast = sprocket_mps.max(axis=1)
     slow = sprocket_mps.min(axis=1)
     moving = fast > p.stop_speed_mps
@@ -96,6 +98,10 @@ def product_states(
     table = np.array([M.PIVOT, M.ARC, M.SEPARATED, M.STRAIGHT], dtype=np.int64)
     out = table[band]
     out[(band == 3) & (gear < low_cut)] = int(M.LOW_STRAIGHT)
+    # a separated turn turns: at least a share of the kinematic ω = Vs_fast·(1 − q)/B
+    kinematic = fast * (1.0 - q) / p.gauge_m
+    still_straight = (band == 2) & (np.abs(yaw_rate_radps) < cfg.separated_yaw_share * kinematic)
+    out[still_straight] = int(M.STRAIGHT)
     margin = np.min(np.abs(q[:, None] - cuts[None, :]), axis=1)
     margin = np.where(band == 3, np.minimum(margin, np.abs(gear - low_cut)), margin)
     conf = ndtr(margin / cfg.ratio_std)

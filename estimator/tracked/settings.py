@@ -29,11 +29,13 @@ class TrackedEstimatorConfig:
     odometer_window_s: float = 0.1
     sprocket_window_s: float = 0.3
     sprocket_max_edges: int = 6
+    sprocket_hold_s: float = 0.6
     sprocket_missing_s: float = 8.0
     braked_ratio_max: float = 0.1
     arc_ratio_max: float = 0.74
     straight_ratio_min: float = 0.985
     ratio_std: float = 0.01
+    separated_yaw_share: float = 0.5
     lever_accel_mps2: float = 0.5
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0

@@ -110,7 +110,7 @@ def recognise(
     if cfg.mode != TrackedMode.PRODUCT:
         ones = np.ones(v.shape)
         return paper_states(v, w, inp.odometer_mps, step, p), ones
-    state, conf = product_states(inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg)
+    state, conf = product_states(inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, w)
     missing = inp.sprocket_missing
     if missing.any():
         v_lag = v - inp.accel_mps2 * inp.odometer_lag_s

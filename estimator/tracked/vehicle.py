@@ -179,7 +179,7 @@ class VehicleInputs:
                 float(self.params.sprocket_pitch_m[0]),
                 round(self.cfg.sprocket_window_s * 1e9),
                 self.cfg.sprocket_max_edges,
-                2_000_000_000,
+                round(self.cfg.sprocket_hold_s * 1e9),
             )
             for buf in self.sprockets
         ]

@@ -1,8 +1,9 @@
 """Tracked-vehicle bench: the ``tracked`` estimator's modes against the crawler simulator.
 
-``slipfleet bench tracked [--seeds 1,2] [--random N] [--scenarios route_firm,route_soft]
-[--json PATH]`` simulates every scenario once per seed (:mod:`estimator.sim.tracked`), and
-``--random N`` adds N random routes (seeds 1000 + i), then feeds every run to each mode side by
+``slipfleet bench tracked [--seeds 1,2] [--random N] [--random-from S]
+[--scenarios route_firm,route_soft] [--json PATH]`` simulates every scenario once per seed
+(:mod:`estimator.sim.tracked`), and ``--random N`` adds N random routes (seeds S, S + 1, …;
+S = 1000 by default), then feeds every run to each mode side by
 side: ``product``, ``paper`` (the source as printed, lateral term ``−φ̇·L`` included),
 ``paper_no_lateral`` and ``raw_odometer`` (the odometer speed as the hull's). Each mode is one
 :class:`~estimator.tracked.TrackedFleet` holding every run as a vehicle, fed in sensor order
@@ -162,11 +163,15 @@ def _confusion(title: str, cm: np.ndarray) -> None:
 
 
 def run(
-    seeds: list[int], random_routes: int, scenarios: list[str], json_path: str | None = None
+    seeds: list[int],
+    random_routes: int,
+    scenarios: list[str],
+    json_path: str | None = None,
+    random_from: int = 1000,
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
     runs = [simulate_tracked(s, seed) for s in scenarios for seed in seeds]
-    runs += [simulate_tracked("random", 1000 + i) for i in range(random_routes)]
+    runs += [simulate_tracked("random", random_from + i) for i in range(random_routes)]
     sim_s = time.perf_counter() - t0
     results: dict[str, Any] = {"runs": [], "seconds": {"simulate": sim_s}}
     per_mode: dict[str, list[dict[str, Any]]] = {}
@@ -220,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ap.add_argument("--seeds", type=int_list, default=[1, 2], help="seeds of the named runs")
-    ap.add_argument("--random", type=int, default=0, help="random routes to add (seeds 1000+)")
+    ap.add_argument("--random", type=int, default=0, help="random routes to add")
+    ap.add_argument("--random-from", type=int, default=1000, help="seed of the first one")
     ap.add_argument(
         "--scenarios",
         default="route_firm,route_soft",
@@ -229,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, help="write the numbers to this file")
     args = ap.parse_args(argv)
     scenarios = [s for s in args.scenarios.split(",") if s]
-    run(args.seeds, args.random, scenarios, args.json)
+    run(args.seeds, args.random, scenarios, args.json, args.random_from)
     return 0
 
 

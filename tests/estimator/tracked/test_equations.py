@@ -76,8 +76,15 @@ def test_paper_large_heading_change_and_standstill() -> None:
 def test_product_states_from_sprocket_ratios(
     left: float, right: float, gear: float, state: MotionState
 ) -> None:
+    fast, slow = max(left, right), min(left, right)
+    yaw = fast * (1 - slow / fast) / 2.0 if fast > 0 else 0.0  # the turn the ratio makes
     got, conf = product_states(
-        np.array([[left, right]]), np.array([gear]), np.zeros(1), P1, TrackedEstimatorConfig()
+        np.array([[left, right]]),
+        np.array([gear]),
+        np.zeros(1),
+        P1,
+        TrackedEstimatorConfig(),
+        np.array([yaw]),
     )
     assert int(got[0]) == state
     assert conf[0] > 0.9  # not near a threshold (a straight's q = 1 is 1.5 σ from 0.985)
@@ -86,8 +93,18 @@ def test_product_states_from_sprocket_ratios(
 def test_product_confidence_falls_at_a_threshold() -> None:
     cfg = TrackedEstimatorConfig()
     q = cfg.straight_ratio_min
-    _, conf = product_states(np.array([[3.0 * q, 3.0]]), np.ones(1), np.zeros(1), P1, cfg)
+    _, conf = product_states(
+        np.array([[3.0 * q, 3.0]]), np.ones(1), np.zeros(1), P1, cfg, np.array([0.1])
+    )
     assert conf[0] == pytest.approx(0.5)
+
+
+def test_a_separated_ratio_without_its_turn_is_a_straight() -> None:
+    cfg = TrackedEstimatorConfig()
+    args = (np.array([[3.0, 2.85]]), np.ones(1), np.zeros(1), P1, cfg)
+    kinematic = 3.0 * (1 - 0.95) / 2.0
+    assert product_states(*args, np.array([0.6 * kinematic]))[0][0] == M.SEPARATED
+    assert product_states(*args, np.array([0.4 * kinematic]))[0][0] == M.STRAIGHT
 
 
 def test_fallback_rules_have_no_overlap() -> None:
