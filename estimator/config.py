@@ -315,13 +315,26 @@ class TrackedMotionConfig(_Checked):
     """Transmission and motion-state constants of ``method.md`` §4 (the source's values).
 
     Pivot turns below ``r = pivot_radius_per_half_gauge · B/2``; separated turns above
-    ``2·R_II`` with ``R_II = separated_radius_per_gauge · B``; arcs between.
+    ``2·R_II`` with ``R_II = separated_radius_per_gauge · B``; arcs between. A tick turning
+    the heading by more than ``heading_jump_rad`` is a large heading change. The side-slip
+    of a turn follows from the turning pole's shift ``L·|a_y|/(2·μ_t·g)`` ahead of the
+    centre, ``μ_t`` the ground's lateral resistance coefficient.
     """
 
     low_gear_ratio: float = _bounded(1.42, 1.0, 4.0, "", "low-gear transmission ratio")
     arc_odometer_ratio: float = _bounded(0.8688, 0.3, 1.0, "", "v_y / v_o in arc turns")
     pivot_radius_per_half_gauge: float = _bounded(1.531, 0.5, 5.0, "", "pivot radius over B/2")
     separated_radius_per_gauge: float = _bounded(2.88, 0.5, 20.0, "", "R_II over B")
+    straight_radius_m: float = _bounded(
+        200.0, 10.0, 1e5, "m", "R_max: straight when |ρ| is above it (Eq. 6)"
+    )
+    heading_jump_rad: float = _bounded(
+        0.1, 1e-3, 3.0, "rad", "δφ_max: heading change per tick that drops the odometer (Eq. 16)"
+    )
+    stop_speed_mps: float = _bounded(0.2, 0.01, 2.0, "m/s", "standstill below this speed")
+    lateral_resistance: float = _bounded(
+        0.6, 0.05, 2.0, "", "μ_t, lateral resistance coefficient of the ground (side-slip model)"
+    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -51,6 +51,7 @@ BENCHES = (
     "pipeline",
     "writes",
     "friction",
+    "tracked",
 )
 
 

@@ -1,0 +1,225 @@
+"""The crawler's sensors: IMU (100 Hz, batches of 10), GNSS (10 Hz, outages), odometer and
+sprocket edges (100 ms packets), each with the imperfections :class:`CrawlerSensors` states.
+
+Every packet's key is the end of its 100 ms window (a GNSS epoch: its stamp), so once every
+packet keyed at or before ``T`` is delivered, each stream is complete up to ``T``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator._arrays import FloatArray, IntArray
+from estimator.base import Measurement
+from estimator.config import TrackedConfig
+from estimator.geo import EnuFrame
+from estimator.sim._signals import cumtrapz
+from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ, CrawlerTruth
+from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges, TrackSide
+
+__all__ = ["CrawlerSensors", "SensorErrors", "draw_errors", "emissions"]
+
+_WINDOW = RATE_HZ // 10  # grid points per 100 ms packet
+
+
+@dataclass(frozen=True, slots=True)
+class CrawlerSensors:
+    """Sensor imperfections (1-sigma unless said).
+
+    The gyro z bias, scale error and the odometer's true ``K_D`` error are drawn per run;
+    ``*_tooth_error`` is each tooth's position error as a fraction of the pitch (fixed per
+    tooth, so it repeats every revolution of the shaft or sprocket).
+    """
+
+    gyro_bias_std_radps: float = 5e-4
+    gyro_bias_walk_radps: float = 2e-6  # per √s
+    gyro_scale_std: float = 0.003
+    gyro_noise_radps: float = 0.003
+    accel_bias_std_mps2: float = 0.03
+    accel_noise_mps2: float = 0.05
+    gnss_pos_std_m: float = 0.02
+    gnss_vel_std_mps: float = 0.03
+    kd_error_std: float = 0.005
+    odometer_teeth: int = 60
+    odometer_tooth_error: float = 0.015
+    sprocket_tooth_error: float = 0.005
+    sprocket_radius_error_std: float = 0.002
+    edge_jitter_s: float = 2e-5
+
+
+@dataclass(frozen=True, slots=True)
+class SensorErrors:
+    """The run's drawn errors: true ``K_D`` and sprocket radius over the configured ones,
+    gyro z bias (rad/s, its walk), gyro scale error, accelerometer biases (x, y)."""
+
+    kd_scale: float
+    sprocket_scale: float
+    gyro_bias_radps: FloatArray
+    gyro_scale: float
+    accel_bias_mps2: tuple[float, float]
+
+
+def draw_errors(rng: np.random.Generator, n: int, spec: CrawlerSensors) -> SensorErrors:
+    walk = np.cumsum(rng.standard_normal(n)) * spec.gyro_bias_walk_radps / np.sqrt(RATE_HZ)
+    return SensorErrors(
+        kd_scale=1.0 + float(np.clip(rng.normal(0, spec.kd_error_std), -0.015, 0.015)),
+        sprocket_scale=1.0 + float(rng.normal(0, spec.sprocket_radius_error_std)),
+        gyro_bias_radps=rng.normal(0, spec.gyro_bias_std_radps) + walk,
+        gyro_scale=float(rng.normal(0, spec.gyro_scale_std)),
+        accel_bias_mps2=(
+            float(rng.normal(0, spec.accel_bias_std_mps2)),
+            float(rng.normal(0, spec.accel_bias_std_mps2)),
+        ),
+    )
+
+
+def _stamps(start_ns: int, t_s: FloatArray) -> IntArray:
+    return start_ns + np.round(t_s * 1e9).astype(np.int64)
+
+
+def _edge_times(
+    t_s: FloatArray,
+    dist_m: FloatArray,
+    pitch_m: float,
+    tooth_err: FloatArray,
+    rng: np.random.Generator,
+    jitter_s: float,
+) -> FloatArray:
+    """Times at which ``dist_m`` (non-decreasing) passes each tooth ``(k + err[k mod T])·pitch``."""
+    count = int(dist_m[-1] // pitch_m)
+    if count < 2:
+        return np.zeros(0)
+    k = np.arange(1, count)
+    pos = (k + tooth_err[k % tooth_err.size]) * pitch_m
+    idx = np.clip(np.searchsorted(dist_m, pos, side="left"), 1, dist_m.size - 1)
+    d0, d1 = dist_m[idx - 1], dist_m[idx]
+    frac = np.clip((pos - d0) / np.maximum(d1 - d0, 1e-12), 0.0, 1.0)
+    t = t_s[idx - 1] + frac * (t_s[idx] - t_s[idx - 1])
+    return np.sort(t + jitter_s * rng.standard_normal(t.size))
+
+
+def _packets(edge_t: FloatArray, window_ends_s: FloatArray) -> list[FloatArray]:
+    """Edges split by window ``(end − 0.1, end]``."""
+    cuts = np.searchsorted(edge_t, window_ends_s, side="right")
+    starts = np.concatenate([[0], cuts[:-1]])
+    return [edge_t[a:b] for a, b in zip(starts, cuts, strict=True)]
+
+
+def _imu(
+    truth: CrawlerTruth,
+    cfg: TrackedConfig,
+    err: SensorErrors,
+    spec: CrawlerSensors,
+    rng: np.random.Generator,
+) -> tuple[FloatArray, FloatArray]:
+    """Specific force and angular rate at the IMU's lever arm, shapes ``(n, 3)``."""
+    dt = 1.0 / RATE_HZ
+    w, v, vx = truth.yaw_rate_radps, truth.speed_mps, truth.lateral_mps
+    alpha = np.gradient(w, dt)
+    x, y, _ = cfg.geometry.imu_lever_arm_m
+    ax = np.gradient(vx, dt) - w * v - alpha * y - w * w * x
+    ay = np.gradient(v, dt) + w * vx + alpha * x - w * w * y
+    n = w.size
+    accel = np.stack(
+        [ax + err.accel_bias_mps2[0], ay + err.accel_bias_mps2[1], np.full(n, GRAVITY_MPS2)], axis=1
+    )
+    accel += spec.accel_noise_mps2 * rng.standard_normal((n, 3))
+    gyro = spec.gyro_noise_radps * rng.standard_normal((n, 3))
+    gyro[:, 2] += (1.0 + err.gyro_scale) * w + err.gyro_bias_radps
+    return accel, gyro
+
+
+def _gnss(
+    truth: CrawlerTruth,
+    cfg: TrackedConfig,
+    spec: CrawlerSensors,
+    frame: EnuFrame,
+    outages_s: tuple[tuple[float, float], ...],
+    start_ns: int,
+    rng: np.random.Generator,
+) -> list[tuple[int, Measurement]]:
+    idx = np.arange(_WINDOW, truth.t_s.size, _WINDOW)
+    psi, w = truth.heading_rad[idx], truth.yaw_rate_radps[idx]
+    x, y, z = cfg.geometry.antenna_lever_arm_m
+    east = truth.east_m[idx] + x * np.cos(psi) + y * np.sin(psi)
+    north = truth.north_m[idx] - x * np.sin(psi) + y * np.cos(psi)
+    vr, vf = truth.lateral_mps[idx] - w * y, truth.speed_mps[idx] + w * x
+    ve = vf * np.sin(psi) + vr * np.cos(psi)
+    vn = vf * np.cos(psi) - vr * np.sin(psi)
+    east = east + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
+    north = north + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
+    ve = ve + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
+    vn = vn + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
+    lat, lon, h = frame.to_geodetic(east, north, np.full(idx.size, z))
+    t = truth.t_s[idx]
+    lost = np.zeros(idx.size, dtype=bool)
+    for a, d in outages_s:
+        lost |= (t >= a) & (t < a + d)
+    out: list[tuple[int, Measurement]] = []
+    nan = float("nan")
+    for k, stamp in enumerate(_stamps(start_ns, t).tolist()):
+        if lost[k]:
+            sample = GnssSample(stamp, (nan, nan, nan), nan, nan, nan, nan, nan, nan, GnssFix.NONE)
+        else:
+            sample = GnssSample(
+                stamp,
+                (float(ve[k]), float(vn[k]), 0.0),
+                nan,
+                nan,
+                nan,
+                float(lat[k]),
+                float(lon[k]),
+                float(h[k]),
+                GnssFix.RTK_FIXED,
+                spec.gnss_vel_std_mps,
+            )
+        out.append((stamp, sample))
+    return out
+
+
+def emissions(
+    truth: CrawlerTruth,
+    cfg: TrackedConfig,
+    spec: CrawlerSensors,
+    err: SensorErrors,
+    frame: EnuFrame,
+    outages_s: tuple[tuple[float, float], ...],
+    start_ns: int,
+    rng: np.random.Generator,
+) -> list[tuple[int, Measurement]]:
+    """Every packet as ``(key_ns, measurement)``, sorted by key (GNSS, edges, IMU within one)."""
+    dt = 1.0 / RATE_HZ
+    t = truth.t_s
+    ends = t[_WINDOW::_WINDOW]
+    ends_ns = _stamps(start_ns, ends).tolist()
+    accel, gyro = _imu(truth, cfg, err, spec, rng)
+    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng)
+    odo_err = spec.odometer_tooth_error * rng.standard_normal(spec.odometer_teeth)
+    odo_t = _edge_times(
+        t,
+        cumtrapz(truth.gearbox_mps, dt),
+        cfg.odometer.distance_per_edge_m * err.kd_scale,
+        odo_err,
+        rng,
+        spec.edge_jitter_s,
+    )
+    for key, part in zip(ends_ns, _packets(odo_t, ends), strict=True):
+        out.append((key, OdometerEdges(_stamps(start_ns, part))))
+    pitch = 2.0 * np.pi * cfg.sprocket.pitch_radius_m * err.sprocket_scale
+    pitch /= cfg.sprocket.teeth_per_rev
+    for side in TrackSide:
+        tooth = spec.sprocket_tooth_error * rng.standard_normal(cfg.sprocket.teeth_per_rev)
+        edge_t = _edge_times(
+            t, cumtrapz(truth.sprocket_mps[:, int(side)], dt), pitch, tooth, rng, spec.edge_jitter_s
+        )
+        for key, part in zip(ends_ns, _packets(edge_t, ends), strict=True):
+            out.append((key, SprocketEdges(side, _stamps(start_ns, part))))
+    stamps = _stamps(start_ns, t)
+    for j, key in enumerate(ends_ns):
+        sl = slice(j * _WINDOW + 1, (j + 1) * _WINDOW + 1)
+        out.append((key, ImuBatch(stamps[sl], accel[sl], gyro[sl])))
+    order = {GnssSample: 0, OdometerEdges: 1, SprocketEdges: 2, ImuBatch: 3}
+    out.sort(key=lambda km: (km[0], order[type(km[1])]))
+    return out

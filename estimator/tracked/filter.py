@@ -1,0 +1,107 @@
+"""The INS/odometer/GNSS extended Kalman filter of the tracked estimator, batched over vehicles.
+
+State :class:`~estimator.tracked.model.TrackedState` (``n = 11``), arrays ``x (k, n)``,
+``P (k, n, n)``. Heading ``ψ`` is from north, clockwise; the gyro's yaw rate ``ω`` is
+counter-clockwise, so ``ψ̇ = −ω`` with ``ω = (g_z − b_g)·(1 − s_g)``. Over a tick ``Δ``, with
+the mid-tick heading ``ψ_m = ψ − ω·Δ/2`` and the hull's lateral speed ``v_x`` (right +):
+
+    E' = E + Δ·(V·sin ψ_m + v_x·cos ψ_m)      N' = N + Δ·(V·cos ψ_m − v_x·sin ψ_m)
+    ψ' = ψ − ω·Δ                               V' = V + Δ·(a_y − ω·v_x)
+
+``a_y`` the forward specific force (flat ground). Updates are masked per vehicle; the Joseph
+form keeps ``P`` symmetric positive definite.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray
+from estimator.tracked.model import N_STATES
+from estimator.tracked.model import TrackedState as S
+
+__all__ = ["kalman_update", "predict", "yaw_rate"]
+
+
+def yaw_rate(x: FloatArray, gyro_z_radps: FloatArray) -> FloatArray:
+    """``ω = (g_z − b_g)·(1 − s_g)``, shape ``(k,)``."""
+    return (gyro_z_radps - x[:, S.GYRO_BIAS]) * (1.0 - x[:, S.GYRO_SCALE])
+
+
+def predict(
+    x: FloatArray,
+    P: FloatArray,
+    gyro_z_radps: FloatArray,
+    accel_fwd_mps2: FloatArray,
+    lateral_mps: FloatArray,
+    dt_s: float,
+    q_diag: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """One tick of the model above; ``q_diag (k, n)`` is the process noise added to ``P``."""
+    k = x.shape[0]
+    w = yaw_rate(x, gyro_z_radps)
+    psi_m = x[:, S.HEADING] - 0.5 * w * dt_s
+    s, c = np.sin(psi_m), np.cos(psi_m)
+    v, vx = x[:, S.SPEED], lateral_mps
+    out = x.copy()
+    out[:, S.EAST] += dt_s * (v * s + vx * c)
+    out[:, S.NORTH] += dt_s * (v * c - vx * s)
+    out[:, S.HEADING] -= w * dt_s
+    out[:, S.SPEED] += dt_s * (accel_fwd_mps2 - w * vx)
+    F = np.broadcast_to(np.eye(N_STATES), (k, N_STATES, N_STATES)).copy()
+    F[:, S.EAST, S.HEADING] = dt_s * (v * c - vx * s)
+    F[:, S.NORTH, S.HEADING] = dt_s * (-v * s - vx * c)
+    F[:, S.EAST, S.SPEED] = dt_s * s
+    F[:, S.NORTH, S.SPEED] = dt_s * c
+    F[:, S.HEADING, S.GYRO_BIAS] = dt_s * (1.0 - x[:, S.GYRO_SCALE])
+    F[:, S.HEADING, S.GYRO_SCALE] = dt_s * (gyro_z_radps - x[:, S.GYRO_BIAS])
+    P = F @ P @ np.swapaxes(F, 1, 2)
+    idx = np.arange(N_STATES)
+    P[:, idx, idx] += q_diag
+    return out, 0.5 * (P + np.swapaxes(P, 1, 2))
+
+
+def _inverse(Sm: FloatArray) -> FloatArray:
+    """Inverse of each ``(m, m)`` innovation covariance; closed form for ``m`` = 1 and 2."""
+    m = Sm.shape[-1]
+    if m == 1:
+        return 1.0 / Sm
+    if m == 2:
+        a, b, c, d = Sm[:, 0, 0], Sm[:, 0, 1], Sm[:, 1, 0], Sm[:, 1, 1]
+        det = a * d - b * c
+        adj = np.stack([np.stack([d, -b], axis=1), np.stack([-c, a], axis=1)], axis=1)
+        out: FloatArray = adj / det[:, None, None]
+        return out
+    return np.asarray(np.linalg.inv(Sm), dtype=np.float64)
+
+
+def kalman_update(
+    x: FloatArray,
+    P: FloatArray,
+    innovation: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+    mask: BoolArray,
+    gate_nis: float | FloatArray = np.inf,
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
+    """Masked EKF update of ``m``-dimensional measurements.
+
+    ``innovation (k, m)`` is ``z − h(x)``, ``H (k, m, n)``, ``R (k, m, m)``. Vehicles where
+    ``mask`` is False, or whose NIS ``yᵀS⁻¹y`` exceeds ``gate_nis`` (a number, or one per
+    vehicle), keep ``x`` and ``P``.
+    Returns ``(x, P, nis (k,), used (k,))``; NIS is NaN where masked.
+    """
+    y = np.where(mask[:, None], innovation, 0.0)
+    Ht = np.swapaxes(H, 1, 2)
+    Sm = H @ P @ Ht + R
+    Sinv = _inverse(Sm)
+    nis = np.einsum("ki,kij,kj->k", y, Sinv, y)
+    used = mask & np.isfinite(nis) & (nis <= gate_nis)
+    K = P @ Ht @ Sinv
+    x_new = x + np.einsum("kij,kj->ki", K, y)
+    IKH = np.eye(N_STATES)[None] - K @ H
+    P_new = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)
+    P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+    x_out = np.where(used[:, None], x_new, x)
+    P_out = np.where(used[:, None, None], P_new, P)
+    return x_out, P_out, np.where(mask, nis, np.nan), used

@@ -1,0 +1,301 @@
+"""The tracked estimator as the server drives it: :class:`TrackedFleet`, every vehicle's tick
+stepped together (a ``FleetEstimator``), and :class:`TrackedEstimator`, one vehicle alone (the
+per-vehicle reference the fleet equals to 1e-9).
+
+Ticks every ``tick_s`` on the vehicle's IMU grid; a tick is due once the IMU covers it (the
+server releases every stream in sensor order, so the edges and fixes up to it are in).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+import numpy as np
+
+from estimator._arrays import FloatArray, IntArray
+from estimator.base import Pushed
+from estimator.config import TrackedConfig, VehicleConfig, expect_kind
+from estimator.tracked.model import TrackedState as S
+from estimator.tracked.params import VehicleParams
+from estimator.tracked.settings import TrackedEstimatorConfig
+from estimator.tracked.step import Filter, TickOut, initial_filter, tick_step
+from estimator.tracked.vehicle import TickInputs, VehicleInputs
+from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
+from estimator.types import GnssSample, ImuBatch, OdometerEdges, SprocketEdges
+
+__all__ = ["TrackedEstimator", "TrackedFleet"]
+
+_F = TrackedFlag
+_GNSS_OK_S = 1.0
+
+
+class _Slot:
+    """One vehicle: its inputs, its filter (arrays of one) and its counters."""
+
+    __slots__ = ("counts", "filter", "inputs", "nis")
+
+    def __init__(self, config: TrackedConfig, cfg: TrackedEstimatorConfig) -> None:
+        self.inputs = VehicleInputs(config, cfg)
+        self.filter = initial_filter(cfg)
+        self.counts = {
+            "ticks": 0,
+            "gnss_fused": 0,
+            "gnss_gated": 0,
+            "odometer_fused": 0,
+        }
+        self.nis: list[float] = []
+
+    def push(self, m: Pushed) -> None:
+        if isinstance(m, ImuBatch):
+            self.inputs.push_imu(m)
+        elif isinstance(m, GnssSample):
+            self.inputs.push_gnss(m)
+        elif isinstance(m, OdometerEdges | SprocketEdges):
+            self.inputs.push_edges(m)
+
+
+def _stack_inputs(parts: list[tuple[TickInputs, int]]) -> TickInputs:
+    """Tick ``r`` of each vehicle's inputs side by side."""
+    return TickInputs(
+        **{
+            f.name: np.stack([getattr(inp, f.name)[r] for inp, r in parts])
+            for f in dataclasses.fields(TickInputs)
+        }
+    )
+
+
+def _stack_filters(filters: list[Filter]) -> Filter:
+    return Filter(
+        np.concatenate([f.x for f in filters]),
+        np.concatenate([f.P for f in filters]),
+        np.concatenate([f.started for f in filters]),
+        np.concatenate([f.since_gnss_s for f in filters]),
+        np.concatenate([f.gated_s for f in filters]),
+    )
+
+
+def _flags(f: Filter, out: TickOut, conf_min: float, inp: TickInputs) -> IntArray:
+    bits = np.zeros(f.x.shape[0], dtype=np.int64)
+    ok = f.since_gnss_s <= _GNSS_OK_S
+    for mask, flag in (
+        (ok, _F.GNSS_OK),
+        (f.started & ~ok, _F.DEAD_RECKONING),
+        (out.confidence < conf_min, _F.STATE_UNCERTAIN),
+        (out.standstill, _F.STANDSTILL),
+        (out.slip_valid_pair[:, 0], _F.SLIP_LEFT_VALID),
+        (out.slip_valid_pair[:, 1], _F.SLIP_RIGHT_VALID),
+        (out.braked_pair[:, 0], _F.BRAKED_LEFT),
+        (out.braked_pair[:, 1], _F.BRAKED_RIGHT),
+        (out.odometer_used, _F.ODOMETER_USED),
+        (out.gnss_gated, _F.GNSS_GATED),
+        (inp.sprocket_missing, _F.SPROCKET_MISSING),
+        (~f.started, _F.NOT_STARTED),
+        (inp.sprocket_settling_pair.any(axis=1), _F.SLIP_SETTLING),
+    ):
+        bits |= np.where(mask, int(flag), 0)
+    return bits
+
+
+def _rows(f: Filter, out: TickOut, inp: TickInputs, cfg: TrackedEstimatorConfig) -> np.ndarray:
+    """Rows of one tick for the ``k`` vehicles of ``f`` (``lat_deg``/``lon_deg`` left NaN)."""
+    x, P = f.x, f.P
+    rows = TRACKED_SPEC.empty_rows(x.shape[0])
+    started = f.started
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(
+            np.abs(out.yaw_rate_radps) > 1e-3, x[:, S.SPEED] / out.yaw_rate_radps, np.nan
+        )
+    cols: dict[str, object] = {
+        "stamp_ns": inp.ticks_ns,
+        "motion_state": out.state,
+        "state_confidence": out.confidence,
+        "speed_mps": x[:, S.SPEED],
+        "speed_std_mps": np.sqrt(np.maximum(P[:, S.SPEED, S.SPEED], 0.0)),
+        "lateral_mps": out.lateral_mps,
+        "yaw_rate_radps": out.yaw_rate_radps,
+        "turn_radius_m": rho,
+        "track_left_mps": out.track_pair_mps[:, 0],
+        "track_right_mps": out.track_pair_mps[:, 1],
+        "track_std_mps": out.track_std_mps,
+        "sprocket_left_mps": inp.sprocket_pair_mps[:, 0],
+        "sprocket_right_mps": inp.sprocket_pair_mps[:, 1],
+        "slip_left_pct": out.slip_pair_pct[:, 0],
+        "slip_right_pct": out.slip_pair_pct[:, 1],
+        "slip_left_std_pct": out.slip_std_pair_pct[:, 0],
+        "slip_right_std_pct": out.slip_std_pair_pct[:, 1],
+        "odometer_raw_mps": inp.odometer_mps,
+        "odometer_mps": out.odometer_mps,
+        "odometer_scale": x[:, S.F_STRAIGHT],
+        "gyro_bias_radps": x[:, S.GYRO_BIAS],
+        "east_m": np.where(started, x[:, S.EAST], np.nan),
+        "north_m": np.where(started, x[:, S.NORTH], np.nan),
+        "heading_rad": np.where(started, x[:, S.HEADING], np.nan),
+        "east_std_m": np.where(started, np.sqrt(np.maximum(P[:, S.EAST, S.EAST], 0.0)), np.nan),
+        "north_std_m": np.where(started, np.sqrt(np.maximum(P[:, S.NORTH, S.NORTH], 0.0)), np.nan),
+        "east_north_cov_m2": np.where(started, P[:, S.EAST, S.NORTH], np.nan),
+        "flags": _flags(f, out, cfg.uncertain_below, inp),
+    }
+    for name, value in cols.items():
+        rows[name] = value
+    return rows
+
+
+def _geodetic(slot: _Slot, rows: np.ndarray) -> None:
+    """Fill ``up_m``, ``lat_deg``, ``lon_deg`` of a vehicle's rows from its anchor."""
+    frame = slot.inputs.frame
+    if frame is None or rows.size == 0:
+        return
+    up = -slot.inputs.config.geometry.antenna_lever_arm_m[2]
+    known = np.isfinite(rows["east_m"])
+    rows["up_m"] = np.where(known, up, np.nan)
+    if known.any():
+        lat, lon, _ = frame.to_geodetic(
+            rows["east_m"][known], rows["north_m"][known], np.full(int(known.sum()), up)
+        )
+        rows["lat_deg"][known] = lat
+        rows["lon_deg"][known] = lon
+
+
+def _count(slot: _Slot, out: TickOut, i: int) -> None:
+    c = slot.counts
+    c["ticks"] += 1
+    c["gnss_fused"] += int(out.gnss_used[i])
+    c["gnss_gated"] += int(out.gnss_gated[i])
+    c["odometer_fused"] += int(out.odometer_used[i])
+    if out.gnss_used[i] and np.isfinite(out.gnss_nis[i]):
+        slot.nis.append(float(out.gnss_nis[i]))
+
+
+class _Base:
+    """What the fleet and the single-vehicle reference share: slots, pushing, anchors."""
+
+    name = "tracked"
+    spec = TRACKED_SPEC
+    output_dtype = TRACKED_SPEC.dtype
+
+    def __init__(self, config: TrackedEstimatorConfig | None = None) -> None:
+        self.config = config or TrackedEstimatorConfig()
+        self._slots: dict[str, _Slot] = {}
+
+    def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
+        tracked = expect_kind(config, TrackedConfig, self.name)
+        self._slots[vehicle_id] = _Slot(tracked, self.config)
+
+    def remove_vehicle(self, vehicle_id: str) -> None:
+        self._slots.pop(vehicle_id, None)
+
+    def vehicle_ids(self) -> list[str]:
+        return list(self._slots)
+
+    def push(self, vehicle_id: str, measurement: Pushed) -> None:
+        self._slots[vehicle_id].push(measurement)
+
+    def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
+        inputs = self._slots[vehicle_id].inputs
+        if inputs.next_ns is None:
+            inputs.next_ns = int(stamp_ns)
+
+    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame (its first fix's
+        antenna), None before it."""
+        frame = self._slots[vehicle_id].inputs.frame
+        return None if frame is None else (frame.lat0_deg, frame.lon0_deg, frame.h0_m)
+
+    def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Give the vehicle's ENU frame this origin instead of its first fix."""
+        from estimator.geo import EnuFrame
+
+        if not all(np.isfinite([lat_deg, lon_deg, height_m])) or abs(lat_deg) > 90:
+            raise ValueError("not a geodetic position")
+        self._slots[vehicle_id].inputs.frame = EnuFrame(lat_deg, lon_deg, height_m)
+
+    def counters(self, vehicle_id: str) -> dict[str, int]:
+        """Ticks, fixes fused and gated, odometer updates, and the bad input counted
+        and dropped (IMU samples, fixes, edges going backwards, ticks without a sprocket)."""
+        slot = self._slots[vehicle_id]
+        inputs = slot.inputs
+        return {
+            **slot.counts,
+            **inputs.counts,
+            "odometer_backwards": inputs.odometer.backwards,
+            "sprocket_backwards": sum(b.backwards for b in inputs.sprockets),
+        }
+
+    def gnss_nis(self, vehicle_id: str) -> FloatArray:
+        """NIS of every GNSS position fused so far (2 degrees of freedom; consistency checks)."""
+        return np.asarray(self._slots[vehicle_id].nis, dtype=np.float64)
+
+    def filter_state(self, vehicle_id: str) -> tuple[FloatArray, FloatArray]:
+        """``(x (n,), P (n, n))`` of the vehicle's filter (diagnostics and tests)."""
+        f = self._slots[vehicle_id].filter
+        return f.x[0].copy(), f.P[0].copy()
+
+
+class TrackedFleet(_Base):
+    """Every vehicle's tracked estimator behind one batched step (a ``FleetEstimator``)."""
+
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        """Emit every due tick ``<= until_ns[vehicle_id]``; the r-th due tick of every vehicle
+        is stepped in one batched call."""
+        work: list[tuple[str, _Slot, TickInputs]] = []
+        for vid, until in until_ns.items():
+            slot = self._slots.get(vid)
+            if slot is None:
+                continue
+            ticks = slot.inputs.due(int(until))
+            if ticks.size:
+                work.append((vid, slot, slot.inputs.take(ticks)))
+        if not work:
+            return []
+        out = [TRACKED_SPEC.empty_rows(w[2].ticks_ns.size) for w in work]
+        for r in range(max(w[2].ticks_ns.size for w in work)):
+            part = [k for k, w in enumerate(work) if w[2].ticks_ns.size > r]
+            self._round([work[k] for k in part], r, [out[k] for k in part])
+        for (_, slot, _), rows in zip(work, out, strict=True):
+            _geodetic(slot, rows)
+        return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
+
+    def _round(
+        self, part: list[tuple[str, _Slot, TickInputs]], r: int, out: list[np.ndarray]
+    ) -> None:
+        slots = [w[1] for w in part]
+        f = _stack_filters([s.filter for s in slots])
+        inp = _stack_inputs([(w[2], r) for w in part])
+        p = VehicleParams.stack([s.inputs.params for s in slots])
+        got = tick_step(f, inp, p, self.config)
+        rows = _rows(f, got, inp, self.config)
+        for i, slot in enumerate(slots):
+            slot.filter = Filter(
+                f.x[i : i + 1],
+                f.P[i : i + 1],
+                f.started[i : i + 1],
+                f.since_gnss_s[i : i + 1],
+                f.gated_s[i : i + 1],
+            )
+            _count(slot, got, i)
+            out[i][r] = rows[i]
+
+
+class TrackedEstimator(_Base):
+    """The same estimator stepping each vehicle on its own, tick by tick (the reference)."""
+
+    def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
+        result = []
+        for vid, until in until_ns.items():
+            slot = self._slots.get(vid)
+            if slot is None:
+                continue
+            ticks = slot.inputs.due(int(until))
+            if not ticks.size:
+                continue
+            inputs = slot.inputs.take(ticks)
+            rows = TRACKED_SPEC.empty_rows(ticks.size)
+            for r in range(ticks.size):
+                one = _stack_inputs([(inputs, r)])
+                got = tick_step(slot.filter, one, slot.inputs.params, self.config)
+                rows[r] = _rows(slot.filter, got, one, self.config)[0]
+                _count(slot, got, 0)
+            _geodetic(slot, rows)
+            result.append((vid, rows))
+        return result

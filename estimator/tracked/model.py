@@ -1,0 +1,77 @@
+"""Named indices and enums of the tracked-vehicle estimator (``method.md`` §4, source 002).
+
+:class:`MotionState` is what the recogniser returns and the simulator labels its truth with;
+:class:`TrackedState` indexes the filter's state vector; :class:`TrackedMode` picks between
+the source as printed and the product's corrections.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum, StrEnum
+
+__all__ = ["N_STATES", "TURNING", "MotionState", "TrackedMode", "TrackedState"]
+
+
+class MotionState(IntEnum):
+    """Motion state of a single-flow-transmission crawler (source 002, Table 1 and §2).
+
+    Steering units (fast side, slow side): straight = direct/direct, low_straight = I/I,
+    arc = direct/I, separated = direct/slipping between I and direct, pivot = direct/II
+    (brake), stop = II/II; heading_jump is a heading change above ``δφ_max`` in one tick
+    (Eq. 16), whatever the levers.
+    """
+
+    STOP = 0
+    STRAIGHT = 1
+    LOW_STRAIGHT = 2
+    ARC = 3
+    SEPARATED = 4
+    PIVOT = 5
+    HEADING_JUMP = 6
+
+
+#: States in which the hull turns on purpose (fast track ahead of the slow one).
+TURNING = (MotionState.ARC, MotionState.SEPARATED, MotionState.PIVOT)
+
+
+class TrackedState(IntEnum):
+    """Index of the filter's state vector.
+
+    Position of the hull centre (ground point midway between the track contact centres) in
+    the vehicle's ENU frame, heading from north clockwise, forward speed, gyro z bias and
+    scale error, the odometer factor per motion state ``F_s`` (the fast track's ground speed
+    over the odometer speed: ``K_D`` scale and that state's traction slip together), and the
+    hull's lag behind its tracks ``τ`` (s): while it accelerates at ``a`` the hull runs
+    ``τ·a`` slower than ``F_s`` times the odometer says.
+    """
+
+    EAST = 0
+    NORTH = 1
+    HEADING = 2
+    SPEED = 3
+    GYRO_BIAS = 4
+    GYRO_SCALE = 5
+    F_STRAIGHT = 6
+    F_LOW = 7
+    F_ARC = 8
+    F_SEPARATED = 9
+    F_PIVOT = 10
+    ACCEL_LAG = 11
+
+
+N_STATES = len(TrackedState)
+
+
+class TrackedMode(StrEnum):
+    """Which method the estimator runs.
+
+    ``paper``: the source as printed (Eqs. 1, 6, 7, 11, 14-17, 20, 23), lateral term ``−φ̇·L``
+    included; ``paper_no_lateral``: the same without the lateral term; ``raw_odometer``: the
+    odometer speed taken as the hull's forward speed in every state; ``product``: motion state
+    from the sprocket ratios, learned odometer factor per state, modelled side-slip.
+    """
+
+    PRODUCT = "product"
+    PAPER = "paper"
+    PAPER_NO_LATERAL = "paper_no_lateral"
+    RAW_ODOMETER = "raw_odometer"

@@ -1,0 +1,134 @@
+"""Odometer correction and side-slip per motion state (``method.md`` §4, source 002 §2-3).
+
+The transmission odometer reads the gearbox output, the fast track's sprocket speed ``v_o``.
+
+Paper (as printed): low straight ``v_y = v_o/1.42`` (Eq. 7, with the issue's reading of the
+ratio), arc ``v_y = 0.8688·v_o`` (Eq. 20), separated ``v_y = ρ/(ρ + B/2)·v_o`` (Eq. 23),
+straight ``v_y = v_o``; none in pivots and large heading changes; lateral ``v_x = −φ̇·L``
+(Eq. 17) in arcs and separated turns. Eq. 17 points toward the turn centre and is several
+times the true side-slip: the turning pole moves ahead of the centre and the hull slides
+*outward*, ``v_x = φ̇·D`` with ``D = L·|a_y|/(2·μ_t·g)`` (at most ``L/2``).
+
+Product: the fast track's ground speed is ``V + |ω|·B/2`` in every turn (the kinematic identity
+Eq. 23 rests on, slip included), and it is ``F_s·v_o`` with a factor ``F_s`` per state learned
+while GNSS is good (``K_D`` scale and that state's traction slip together), less the hull's
+lag ``τ·a`` behind its tracks while it accelerates (``τ`` learned too); in a low-gear
+straight ``V = F_low·v_o/1.42``. The odometer's windowed speed is compared with the filter's
+speed at the window's centre ``V − a·lag``, not at the tick (Eq. 6's mismatch).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray, IntArray
+from estimator.tracked.model import N_STATES, MotionState, TrackedMode
+from estimator.tracked.model import TrackedState as S
+from estimator.tracked.params import VehicleParams
+from estimator.tracked.recognise import turn_radius_m
+from estimator.tracked.settings import TrackedEstimatorConfig
+
+__all__ = ["FACTOR_OF", "lateral_speed", "odometer_measurement", "paper_ratio"]
+
+GRAVITY_MPS2 = 9.80665
+M = MotionState
+
+#: Filter state holding each motion state's odometer factor (product mode).
+FACTOR_OF = {
+    M.STRAIGHT: S.F_STRAIGHT,
+    M.LOW_STRAIGHT: S.F_LOW,
+    M.ARC: S.F_ARC,
+    M.SEPARATED: S.F_SEPARATED,
+    M.PIVOT: S.F_PIVOT,
+}
+_FACTOR_INDEX = np.full(len(M), int(S.F_STRAIGHT), dtype=np.int64)
+for _state, _index in FACTOR_OF.items():
+    _FACTOR_INDEX[int(_state)] = int(_index)
+_TURNING = np.zeros(len(M), dtype=bool)
+_TURNING[[int(M.ARC), int(M.SEPARATED), int(M.PIVOT)]] = True
+
+
+def lateral_speed(
+    mode: TrackedMode,
+    state: IntArray,
+    speed_mps: FloatArray,
+    yaw_rate_radps: FloatArray,
+    contact_length_m: FloatArray,
+    lateral_resistance: FloatArray,
+) -> FloatArray:
+    """The hull centre's lateral speed (right +), shape ``(k,)``, as ``mode`` models it."""
+    if mode == TrackedMode.PAPER:
+        turning = (state == int(M.ARC)) | (state == int(M.SEPARATED))
+        return np.where(turning, -yaw_rate_radps * contact_length_m, 0.0)
+    if mode != TrackedMode.PRODUCT:
+        return np.zeros_like(speed_mps)
+    pole = contact_length_m * np.abs(speed_mps * yaw_rate_radps)
+    pole = np.minimum(pole / (2.0 * lateral_resistance * GRAVITY_MPS2), 0.5 * contact_length_m)
+    return yaw_rate_radps * pole
+
+
+def paper_ratio(state: IntArray, rho_m: FloatArray, p: VehicleParams) -> FloatArray:
+    """``v_y / v_o`` of the paper per state (NaN where it gives none): Eq. 7, 20, 23."""
+    ratio = np.full(state.shape, np.nan)
+    ratio[state == int(M.STRAIGHT)] = 1.0
+    ratio[state == int(M.STOP)] = 1.0
+    low = state == int(M.LOW_STRAIGHT)
+    ratio[low] = 1.0 / p.low_gear_ratio[low]
+    arc = state == int(M.ARC)
+    ratio[arc] = p.arc_ratio[arc]
+    sep = state == int(M.SEPARATED)
+    with np.errstate(invalid="ignore"):
+        ratio[sep] = (rho_m / (rho_m + 0.5 * p.gauge_m))[sep]
+    return ratio
+
+
+def odometer_measurement(
+    cfg: TrackedEstimatorConfig,
+    p: VehicleParams,
+    x: FloatArray,
+    state: IntArray,
+    odometer_mps: FloatArray,
+    lag_s: FloatArray,
+    accel_mps2: FloatArray,
+    yaw_rate_radps: FloatArray,
+    valid: BoolArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray, FloatArray]:
+    """``(innovation (k, 1), H (k, 1, n), R (k, 1, 1), mask (k,), corrected V (k,))``.
+
+    ``corrected V`` is the forward speed the odometer gives in this state (NaN where none).
+    """
+    k = x.shape[0]
+    H = np.zeros((k, 1, N_STATES))
+    v = x[:, S.SPEED]
+    std = cfg.odometer_std_mps + cfg.odometer_std_per_mps * np.abs(odometer_mps)
+    std = std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2)  # slip while the hull catches up
+    if cfg.mode == TrackedMode.PRODUCT:
+        f_idx = _FACTOR_INDEX[state]
+        factor = x[np.arange(k), f_idx]
+        gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
+        turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
+        lag = x[:, S.ACCEL_LAG] * accel_mps2
+        ground = v - accel_mps2 * lag_s + lag + turn
+        h = gear * ground / factor
+        H[:, 0, S.SPEED] = gear / factor
+        H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / factor
+        H[np.arange(k), 0, f_idx] = -h / factor
+        corrected = odometer_mps * factor / gear - turn - lag
+        mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))
+        pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)
+        std = np.where(
+            state == int(M.PIVOT), pivot_std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2), std
+        )
+        innovation = odometer_mps - h
+    else:
+        if cfg.mode == TrackedMode.RAW_ODOMETER:
+            ratio = np.ones(k)
+        else:
+            ratio = paper_ratio(state, turn_radius_m(v, yaw_rate_radps), p)
+        corrected = ratio * odometer_mps
+        H[:, 0, S.SPEED] = 1.0
+        mask = valid & np.isfinite(corrected)
+        innovation = corrected - v
+    R = (std**2)[:, None, None]
+    innovation = np.where(mask, innovation, 0.0)[:, None]
+    return innovation, H, R, mask, np.where(mask, corrected, np.nan)

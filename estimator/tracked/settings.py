@@ -1,0 +1,86 @@
+"""The tracked estimator's own frozen configuration (tick, windows, thresholds, noises).
+
+The vehicle's geometry and the source's constants come from
+:class:`estimator.config.TrackedConfig`; this is how the estimator runs on any vehicle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from estimator.tracked.model import TrackedMode
+
+__all__ = ["TrackedEstimatorConfig"]
+
+
+@dataclass(frozen=True, slots=True)
+class TrackedEstimatorConfig:
+    """How the tracked estimator runs (units in the names; ratios dimensionless).
+
+    Sprocket-ratio thresholds (product recogniser): the slow over the fast sprocket speed
+    ``q`` is 1 in straights, ``1/1.42`` in arcs, between them in separated turns and 0 with a
+    braked track; ``arc_ratio_max`` and ``straight_ratio_min`` cut between them,
+    ``ratio_std`` is the 1-sigma of a measured ``q`` that turns a margin into a confidence.
+    """
+
+    mode: TrackedMode = TrackedMode.PRODUCT
+    tick_s: float = 0.1
+    odometer_window_s: float = 0.1
+    sprocket_window_s: float = 0.3
+    sprocket_max_edges: int = 6
+    sprocket_hold_s: float = 0.6
+    sprocket_missing_s: float = 8.0
+    braked_ratio_max: float = 0.1
+    arc_ratio_max: float = 0.74
+    straight_ratio_min: float = 0.985
+    ratio_std: float = 0.01
+    separated_yaw_share: float = 0.5
+    lever_accel_mps2: float = 0.5
+    uncertain_below: float = 0.9
+    init_speed_mps: float = 1.0
+    gnss_gate_nis: float = 16.0
+    gnss_regain_s: float = 2.0
+    odometer_std_mps: float = 0.02
+    odometer_std_per_mps: float = 0.01
+    pivot_odometer_std_per_mps: float = 0.05
+    odometer_std_per_mps2: float = 0.3
+    learn_accel_max_mps2: float = 0.2
+    standstill_odometer_mps: float = 0.02
+    zero_speed_std_mps: float = 0.01
+    zero_rate_std_radps: float = 0.001
+    speed_walk_mps2: float = 0.1
+    position_walk_mps: float = 0.015
+    lateral_model_error: float = 0.3
+    gyro_noise_radps: float = 3e-4
+    gyro_bias_walk_radps: float = 2e-6
+    gyro_scale_walk: float = 1e-6
+    factor_walk: float = 5e-4
+    initial_position_std_m: float = 0.1
+    initial_heading_std_rad: float = 0.1
+    initial_speed_std_mps: float = 0.2
+    initial_gyro_bias_std_radps: float = 1e-3
+    initial_gyro_scale_std: float = 0.005
+    initial_factor_std: float = 0.03
+    initial_accel_lag_std_s: float = 0.5
+    accel_lag_walk_s: float = 1e-3
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", TrackedMode(self.mode))
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if isinstance(value, float) and not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.tick_s <= 0.0 or self.sprocket_max_edges < 2:
+            raise ValueError("tick_s must be > 0 and sprocket_max_edges >= 2")
+        if not 0.0 < self.braked_ratio_max < self.arc_ratio_max < self.straight_ratio_min < 1.0:
+            raise ValueError("need 0 < braked_ratio_max < arc_ratio_max < straight_ratio_min < 1")
+
+    @property
+    def tick_ns(self) -> int:
+        return round(self.tick_s * 1e9)
+
+    @property
+    def learns(self) -> bool:
+        """Whether gyro bias and scale, odometer factors and standstill are learned/used."""
+        return self.mode == TrackedMode.PRODUCT

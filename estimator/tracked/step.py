@@ -1,0 +1,301 @@
+"""One tick of the tracked estimator for ``k`` vehicles at once: recognise the motion state,
+predict, fuse GNSS, the corrected odometer and (product) standstill, and derive track slip.
+
+Stages, each its own function: :func:`recognise`, :func:`_start` (first GNSS fix at speed),
+:func:`_fuse_gnss`, :func:`_fuse_odometer`, :func:`_fuse_standstill`, :func:`_track_slip`.
+Arrays are batched over the leading axis ``k``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray, IntArray
+from estimator.tracked.filter import kalman_update, predict, yaw_rate
+from estimator.tracked.model import N_STATES, MotionState, TrackedMode
+from estimator.tracked.model import TrackedState as S
+from estimator.tracked.odometer import lateral_speed, odometer_measurement
+from estimator.tracked.params import VehicleParams
+from estimator.tracked.recognise import fallback_states, paper_states, product_states
+from estimator.tracked.settings import TrackedEstimatorConfig
+from estimator.tracked.vehicle import TickInputs
+
+__all__ = ["Filter", "TickOut", "initial_filter", "tick_step"]
+
+M = MotionState
+_FACTORS = [S.F_STRAIGHT, S.F_LOW, S.F_ARC, S.F_SEPARATED, S.F_PIVOT]
+
+
+@dataclass(slots=True)
+class Filter:
+    """Filter state of ``k`` vehicles: ``x (k, n)``, ``P (k, n, n)``, ``started (k,)``,
+    ``since_gnss_s (k,)`` (time since the last fused fix), ``gated_s (k,)`` (how long every
+    fix has been refused by the gate)."""
+
+    x: FloatArray
+    P: FloatArray
+    started: BoolArray
+    since_gnss_s: FloatArray
+    gated_s: FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class TickOut:
+    """What one tick gives per vehicle, shapes ``(k,)`` (``*_pair``: ``(k, 2)``)."""
+
+    state: IntArray
+    confidence: FloatArray
+    yaw_rate_radps: FloatArray
+    lateral_mps: FloatArray
+    odometer_mps: FloatArray
+    odometer_used: BoolArray
+    gnss_used: BoolArray
+    gnss_gated: BoolArray
+    gnss_nis: FloatArray
+    track_pair_mps: FloatArray
+    track_std_mps: FloatArray
+    slip_pair_pct: FloatArray
+    slip_std_pair_pct: FloatArray
+    slip_valid_pair: BoolArray
+    braked_pair: BoolArray
+    standstill: BoolArray
+
+
+def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
+    learn = 1.0 if cfg.learns else 0.0
+    diag = np.zeros(N_STATES)
+    diag[[S.EAST, S.NORTH]] = cfg.initial_position_std_m**2
+    diag[S.HEADING] = cfg.initial_heading_std_rad**2
+    diag[S.SPEED] = cfg.initial_speed_std_mps**2
+    diag[S.GYRO_BIAS] = learn * cfg.initial_gyro_bias_std_radps**2
+    diag[S.GYRO_SCALE] = learn * cfg.initial_gyro_scale_std**2
+    diag[_FACTORS] = learn * cfg.initial_factor_std**2
+    diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
+    return np.diag(diag)
+
+
+def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
+    """A vehicle's filter before its first fix: factors 1, position and heading unknown."""
+    x = np.zeros((1, N_STATES))
+    x[0, _FACTORS] = 1.0
+    P = _initial_p(cfg)[None].copy()
+    P[0, S.HEADING, S.HEADING] = 10.0
+    P[0, [S.EAST, S.NORTH], [S.EAST, S.NORTH]] = 1e6
+    return Filter(x, P, np.zeros(1, dtype=bool), np.full(1, np.inf), np.zeros(1))
+
+
+def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> FloatArray:
+    dt = cfg.tick_s
+    learn = 1.0 if cfg.learns else 0.0
+    q = np.zeros((k, N_STATES))
+    pos = cfg.position_walk_mps**2 + (cfg.lateral_model_error * lateral_mps) ** 2
+    q[:, S.EAST] = q[:, S.NORTH] = pos * dt
+    q[:, S.HEADING] = cfg.gyro_noise_radps**2 * dt
+    q[:, S.SPEED] = cfg.speed_walk_mps2**2 * dt
+    q[:, S.GYRO_BIAS] = learn * cfg.gyro_bias_walk_radps**2 * dt
+    q[:, S.GYRO_SCALE] = learn * cfg.gyro_scale_walk**2 * dt
+    q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
+    q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
+    return q
+
+
+def recognise(
+    f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
+) -> tuple[IntArray, FloatArray]:
+    """Motion state and confidence (:mod:`estimator.tracked.recognise`) by mode."""
+    v = f.x[:, S.SPEED]
+    step = w * cfg.tick_s
+    if cfg.mode != TrackedMode.PRODUCT:
+        ones = np.ones(v.shape)
+        return paper_states(v, w, inp.odometer_mps, step, p), ones
+    state, conf = product_states(inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, w)
+    missing = inp.sprocket_missing
+    if missing.any():
+        v_lag = v - inp.accel_mps2 * inp.odometer_lag_s
+        low = inp.odometer_mps > 0.5 * (1.0 + p.low_gear_ratio) * np.abs(v_lag)
+        fb = fallback_states(v, w, inp.odometer_mps, step, p, low)
+        state = np.where(missing, fb, state)
+        conf = np.where(missing, 0.5, conf)
+    return state, conf
+
+
+def _start(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> BoolArray:
+    """Vehicles whose first fix at speed arrives now: position, heading (course) and speed
+    taken from it, their uncertainty reset; returns the mask."""
+    vel = inp.gnss_vel_pair_mps
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    fresh = ~f.started & np.isfinite(speed) & (speed >= cfg.init_speed_mps)
+    if not fresh.any():
+        return fresh
+    psi = np.arctan2(vel[:, 0], vel[:, 1])
+    x_ant, y_ant = p.antenna_xy_m[:, 0], p.antenna_xy_m[:, 1]
+    east = inp.gnss_pos_pair_m[:, 0] - x_ant * np.cos(psi) - y_ant * np.sin(psi)
+    north = inp.gnss_pos_pair_m[:, 1] + x_ant * np.sin(psi) - y_ant * np.cos(psi)
+    x = f.x.copy()
+    for idx, value in ((S.EAST, east), (S.NORTH, north), (S.HEADING, psi), (S.SPEED, speed)):
+        x[:, idx] = np.where(fresh, value, x[:, idx])
+    P0 = _initial_p(cfg)
+    keep = f.P.copy()
+    core = [S.EAST, S.NORTH, S.HEADING, S.SPEED]
+    reset = keep.copy()
+    reset[:, core, :] = 0.0
+    reset[:, :, core] = 0.0
+    reset[:, core, core] = P0[core, core]
+    f.x = x
+    f.P = np.where(fresh[:, None, None], reset, keep)
+    f.started = f.started | fresh
+    return fresh
+
+
+def _fuse_gnss(
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    lateral: FloatArray,
+    w: FloatArray,
+    skip: BoolArray,
+) -> tuple[BoolArray, BoolArray, FloatArray]:
+    """Antenna position, then velocity; returns (used, gated, position NIS)."""
+    k = f.x.shape[0]
+    psi = f.x[:, S.HEADING]
+    s, c = np.sin(psi), np.cos(psi)
+    xa, ya = p.antenna_xy_m[:, 0], p.antenna_xy_m[:, 1]
+    have = f.started & ~skip & np.isfinite(inp.gnss_pos_pair_m).all(axis=1)
+    regain = have & (f.gated_s >= cfg.gnss_regain_s)
+    if regain.any():  # refused too long: the filter, not the fixes, is wrong; open up
+        core = [S.EAST, S.NORTH, S.HEADING, S.SPEED]
+        bump = np.zeros(N_STATES)
+        bump[core] = np.diag(_initial_p(cfg))[core] * 100.0
+        f.P = f.P + regain[:, None, None] * np.diag(bump)[None]
+    gate = np.where(regain, np.inf, cfg.gnss_gate_nis)
+    H = np.zeros((k, 2, N_STATES))
+    H[:, 0, S.EAST] = H[:, 1, S.NORTH] = 1.0
+    H[:, 0, S.HEADING] = -xa * s + ya * c
+    H[:, 1, S.HEADING] = -xa * c - ya * s
+    back = inp.gnss_age_s * f.x[:, S.SPEED]  # where the hull was when the fix was taken
+    h = np.stack(
+        [f.x[:, S.EAST] + xa * c + ya * s - back * s, f.x[:, S.NORTH] - xa * s + ya * c - back * c],
+        axis=1,
+    )
+    R = np.eye(2)[None] * (p.gnss_pos_std_m**2)[:, None, None]
+    f.x, f.P, nis, used = kalman_update(f.x, f.P, inp.gnss_pos_pair_m - h, H, R, have, gate)
+    f.gated_s = np.where(have & ~used, f.gated_s + cfg.tick_s, np.where(used, 0.0, f.gated_s))
+    v_have = used & np.isfinite(inp.gnss_vel_pair_mps).all(axis=1)
+    psi = f.x[:, S.HEADING]
+    s, c = np.sin(psi), np.cos(psi)
+    vf, vr = f.x[:, S.SPEED] + w * xa, lateral - w * ya
+    hv = np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
+    Hv = np.zeros((k, 2, N_STATES))
+    Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = s, c
+    Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
+    std = np.where(np.isfinite(inp.gnss_vel_std_mps), inp.gnss_vel_std_mps, p.gnss_vel_std_mps)
+    Rv = np.eye(2)[None] * (std**2)[:, None, None]
+    # a fix whose position passed the gate is sound: its velocity is fused ungated
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, inp.gnss_vel_pair_mps - hv, Hv, Rv, v_have)
+    return used, have & ~used, nis
+
+
+def _fuse_odometer(
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    state: IntArray,
+    w: FloatArray,
+) -> tuple[BoolArray, FloatArray]:
+    """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`)."""
+    valid = np.isfinite(inp.odometer_mps)
+    y, H, R, mask, corrected = odometer_measurement(
+        cfg, p, f.x, state, inp.odometer_mps, inp.odometer_lag_s, inp.accel_mps2, w, valid
+    )
+    # the factors learn only beside GNSS, at a steady speed
+    steady = np.abs(inp.accel_mps2) < cfg.learn_accel_max_mps2
+    beside = f.started & (f.since_gnss_s <= 1.0)
+    H[:, :, _FACTORS] *= (beside & steady)[:, None, None]
+    H[:, :, S.ACCEL_LAG] *= beside[:, None]
+    f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
+    return used, corrected
+
+
+def _fuse_standstill(
+    f: Filter, inp: TickInputs, cfg: TrackedEstimatorConfig, still: BoolArray
+) -> None:
+    """Zero speed and zero yaw rate (the gyro's mean is its bias) while standing (product)."""
+    k = f.x.shape[0]
+    H = np.zeros((k, 1, N_STATES))
+    H[:, 0, S.SPEED] = 1.0
+    R = np.full((k, 1, 1), cfg.zero_speed_std_mps**2)
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, -f.x[:, S.SPEED, None], H, R, still)
+    Hg = np.zeros((k, 1, N_STATES))
+    Hg[:, 0, S.GYRO_BIAS] = 1.0
+    Rg = np.full((k, 1, 1), cfg.zero_rate_std_radps**2)
+    gyro = np.nan_to_num(inp.gyro_radps)
+    y = (gyro - f.x[:, S.GYRO_BIAS])[:, None]
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, y, Hg, Rg, still & np.isfinite(inp.gyro_radps))
+
+
+def _track_slip(
+    f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, BoolArray]:
+    """Track ground speeds ``V ∓ ω·B/2`` at the tick, slip
+    ``S = (Vs − v)/max(Vs, v)`` in percent with its 1-sigma, validity and braked tracks."""
+    half = 0.5 * p.gauge_m[:, None]
+    track = f.x[:, S.SPEED, None] + np.stack([-w, w], axis=1) * half
+    var_v = f.P[:, S.SPEED, S.SPEED] + (0.5 * p.gauge_m * cfg.zero_rate_std_radps) ** 2
+    track_std = np.sqrt(np.maximum(var_v, 0.0))
+    vs = inp.sprocket_pair_mps
+    top = np.maximum(vs, track)
+    moving = top >= p.min_slip_speed_mps[:, None]
+    other = vs[:, ::-1]
+    read = ~inp.sprocket_missing[:, None]
+    braked = read & (vs < cfg.braked_ratio_max * other) & (other >= p.stop_speed_mps[:, None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slip = 100.0 * (vs - track) / top
+        std = 100.0 * np.sqrt(track_std[:, None] ** 2 + (0.005 * vs) ** 2) / top
+    valid = read & moving & ~braked & np.isfinite(slip) & f.started[:, None]
+    valid &= ~inp.sprocket_settling_pair
+    slip = np.where(braked, -100.0, np.where(valid, slip, np.nan))
+    std = np.where(valid, std, np.nan)
+    return track, track_std, slip, std, valid, braked
+
+
+def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> TickOut:
+    """One tick for every vehicle of ``f`` (updated in place); see the module docstring."""
+    gyro = np.nan_to_num(inp.gyro_radps)
+    accel = np.nan_to_num(inp.accel_mps2)
+    w = yaw_rate(f.x, gyro)
+    state, conf = recognise(f, inp, p, cfg, w)
+    lateral = lateral_speed(cfg.mode, state, f.x[:, S.SPEED], w, p.length_m, p.lateral_resistance)
+    f.x, f.P = predict(
+        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral)
+    )
+    fresh = _start(f, inp, p, cfg)
+    w = yaw_rate(f.x, gyro)
+    used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)
+    odo_used, corrected = _fuse_odometer(f, inp, p, cfg, state, w)
+    still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
+    if cfg.learns:
+        _fuse_standstill(f, inp, cfg, still)
+    f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)
+    track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w)
+    return TickOut(
+        state=state,
+        confidence=conf,
+        yaw_rate_radps=w,
+        lateral_mps=lateral,
+        odometer_mps=corrected,
+        odometer_used=odo_used,
+        gnss_used=used | fresh,
+        gnss_gated=gated,
+        gnss_nis=nis,
+        track_pair_mps=track,
+        track_std_mps=track_std,
+        slip_pair_pct=slip,
+        slip_std_pair_pct=slip_std,
+        slip_valid_pair=valid,
+        braked_pair=braked,
+        standstill=still,
+    )

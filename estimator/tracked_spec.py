@@ -1,0 +1,161 @@
+"""The tracked estimator's spec (``method.md`` §4, source 002): crawler state, track slip and
+odometer-corrected dead reckoning through GNSS outages."""
+
+from __future__ import annotations
+
+from enum import IntFlag
+
+from estimator.spec import (
+    ChartSpec,
+    EstimatorSpec,
+    FieldSpec,
+    PositionChannel,
+    SlipChannel,
+    SpeedChannel,
+    WheelPosition,
+    flags_from,
+)
+
+__all__ = ["TRACKED_SPEC", "TrackedFlag"]
+
+
+class TrackedFlag(IntFlag):
+    """Bits of a tracked row's ``flags``."""
+
+    NONE = 0
+    GNSS_OK = 1 << 0
+    DEAD_RECKONING = 1 << 1
+    STATE_UNCERTAIN = 1 << 2
+    STANDSTILL = 1 << 3
+    SLIP_LEFT_VALID = 1 << 4
+    SLIP_RIGHT_VALID = 1 << 5
+    BRAKED_LEFT = 1 << 6
+    BRAKED_RIGHT = 1 << 7
+    ODOMETER_USED = 1 << 8
+    GNSS_GATED = 1 << 9
+    SPROCKET_MISSING = 1 << 10
+    NOT_STARTED = 1 << 11
+    SLIP_SETTLING = 1 << 12
+
+
+def _f(name: str, unit: str, label: str, description: str, kind: str = "f8") -> FieldSpec:
+    return FieldSpec(name, kind, unit, label, description)
+
+
+_FIELDS = (
+    _f("stamp_ns", "ns", "time", "tick time, ns since the Unix epoch (UTC)", "i8"),
+    _f(
+        "motion_state",
+        "",
+        "motion state",
+        "0 stop, 1 straight, 2 low-gear straight, 3 arc, 4 separated, 5 pivot, 6 heading jump",
+        "i4",
+    ),
+    _f("state_confidence", "", "state confidence", "probability the motion state is right"),
+    _f("speed_mps", "m/s", "forward speed", "hull centre's forward speed (filter)"),
+    _f("speed_std_mps", "m/s", "forward speed σ", "1-sigma of speed_mps"),
+    _f("lateral_mps", "m/s", "lateral speed", "hull centre's side-slip speed, right +"),
+    _f("yaw_rate_radps", "rad/s", "yaw rate", "gyro yaw rate, bias and scale removed, CCW +"),
+    _f("turn_radius_m", "m", "turning radius", "ρ = V/ω, signed (+ left); NaN when straight"),
+    _f("track_left_mps", "m/s", "left track ground speed", "V − ω·B/2 at the track centre"),
+    _f("track_right_mps", "m/s", "right track ground speed", "V + ω·B/2 at the track centre"),
+    _f("track_std_mps", "m/s", "track ground speed σ", "1-sigma of each track's ground speed"),
+    _f("sprocket_left_mps", "m/s", "left sprocket speed", "left sprocket's pitch speed"),
+    _f("sprocket_right_mps", "m/s", "right sprocket speed", "right sprocket's pitch speed"),
+    _f("slip_left_pct", "%", "left track slip", "(Vs − v)/max(Vs, v): + slip, − skid"),
+    _f("slip_right_pct", "%", "right track slip", "(Vs − v)/max(Vs, v): + slip, − skid"),
+    _f("slip_left_std_pct", "%", "left track slip σ", "1-sigma of slip_left_pct"),
+    _f("slip_right_std_pct", "%", "right track slip σ", "1-sigma of slip_right_pct"),
+    _f("odometer_raw_mps", "m/s", "odometer speed", "gearbox output speed, nominal K_D"),
+    _f(
+        "odometer_mps",
+        "m/s",
+        "corrected odometer speed",
+        "forward speed the odometer gives in this motion state (NaN where it gives none)",
+    ),
+    _f("odometer_scale", "", "odometer factor", "learned straight-state factor (K_D · (1 − s))"),
+    _f("gyro_bias_radps", "rad/s", "gyro bias", "estimated yaw gyro bias"),
+    _f("east_m", "m", "east", "hull centre, east of the vehicle's anchor"),
+    _f("north_m", "m", "north", "hull centre, north of the vehicle's anchor"),
+    _f("up_m", "m", "up", "hull centre, up from the anchor (flat ground: 0)"),
+    _f("heading_rad", "rad", "heading", "from north, clockwise"),
+    _f("lat_deg", "deg", "latitude", "WGS-84 latitude of the hull centre"),
+    _f("lon_deg", "deg", "longitude", "WGS-84 longitude of the hull centre"),
+    _f("east_std_m", "m", "east σ", "1-sigma of east_m"),
+    _f("north_std_m", "m", "north σ", "1-sigma of north_m"),
+    _f("east_north_cov_m2", "m²", "east-north covariance", "covariance of east_m and north_m"),
+    _f("flags", "", "flags", "TrackedFlag bits", "i4"),
+)
+
+TRACKED_SPEC = EstimatorSpec(
+    name="tracked",
+    title="Crawler state, track slip and dead reckoning",
+    description=(
+        "Motion state, per-track slip and skid, and INS/odometer/GNSS position of a "
+        "single-flow-transmission crawler (method.md §4, source 002); dead-reckoned through "
+        "GNSS outages with the odometer corrected per motion state."
+    ),
+    kinds=("tracked",),
+    inputs=("gnss", "imu", "odometer", "sprockets"),
+    fields=_FIELDS,
+    flags=flags_from(
+        TrackedFlag,
+        {
+            "GNSS_OK": "a GNSS fix was fused within the last second",
+            "DEAD_RECKONING": "no GNSS fix for more than a second: position dead-reckoned",
+            "STATE_UNCERTAIN": "the motion state's confidence is below its threshold",
+            "STANDSTILL": "both tracks and the hull stand still",
+            "SLIP_LEFT_VALID": "slip_left_pct holds a value",
+            "SLIP_RIGHT_VALID": "slip_right_pct holds a value",
+            "BRAKED_LEFT": "the left track is braked (pivot): its slip is −100 % by definition",
+            "BRAKED_RIGHT": "the right track is braked (pivot): its slip is −100 % by definition",
+            "ODOMETER_USED": "the odometer was fused on this tick",
+            "GNSS_GATED": "a GNSS fix was rejected by the innovation gate on this tick",
+            "SPROCKET_MISSING": "a sprocket stream is missing: state from the turning radius",
+            "NOT_STARTED": "no GNSS fix at speed yet: position and heading unknown",
+            "SLIP_SETTLING": "a lever moves: a sprocket's speed changes faster than it is read, "
+            "no slip value for it",
+        },
+    ),
+    slips=(
+        SlipChannel(
+            "left",
+            "left track",
+            "slip_left_pct",
+            WheelPosition.TRACK_LEFT,
+            "SLIP_LEFT_VALID",
+            "slip_left_std_pct",
+        ),
+        SlipChannel(
+            "right",
+            "right track",
+            "slip_right_pct",
+            WheelPosition.TRACK_RIGHT,
+            "SLIP_RIGHT_VALID",
+            "slip_right_std_pct",
+        ),
+    ),
+    speeds=(
+        SpeedChannel("forward", "forward speed", "speed_mps", std_field="speed_std_mps"),
+        SpeedChannel("track_left", "left track", "track_left_mps", std_field="track_std_mps"),
+        SpeedChannel("track_right", "right track", "track_right_mps", std_field="track_std_mps"),
+        SpeedChannel("odometer", "corrected odometer", "odometer_mps"),
+    ),
+    motion="forward",
+    position=PositionChannel("east_m", "north_m", "up_m", "heading_rad", "DEAD_RECKONING"),
+    charts=(
+        ChartSpec("slip", "Track slip", "%", ("slip_left_pct", "slip_right_pct")),
+        ChartSpec(
+            "speed",
+            "Speeds",
+            "m/s",
+            ("speed_mps", "track_left_mps", "track_right_mps", "odometer_mps"),
+        ),
+        ChartSpec(
+            "sprockets", "Sprocket speeds", "m/s", ("sprocket_left_mps", "sprocket_right_mps")
+        ),
+        ChartSpec("yaw", "Yaw rate", "rad/s", ("yaw_rate_radps",)),
+    ),
+    ok_flag="GNSS_OK",
+    degraded_flags=("DEAD_RECKONING",),
+)

@@ -1,0 +1,243 @@
+"""Tracked-vehicle bench: the ``tracked`` estimator's modes against the crawler simulator.
+
+``slipfleet bench tracked [--seeds 1,2] [--random N] [--random-from S]
+[--scenarios route_firm,route_soft] [--json PATH]`` simulates every scenario once per seed
+(:mod:`estimator.sim.tracked`), and ``--random N`` adds N random routes (seeds S, S + 1, …;
+S = 1000 by default), then feeds every run to each mode side by
+side: ``product``, ``paper`` (the source as printed, lateral term ``−φ̇·L`` included),
+``paper_no_lateral`` and ``raw_odometer`` (the odometer speed as the hull's). Each mode is one
+:class:`~estimator.tracked.TrackedFleet` holding every run as a vehicle, fed in sensor order
+and advanced every second of sensor time; each row is compared with the truth at its stamp.
+
+Metrics per run and mode
+------------------------
+``state_pct`` / ``settled_pct``
+    Share of rows whose motion state is the true one: all rows, and rows more than 1.5 s after
+    a true state change (the confusion matrix sums the product's and the paper's).
+``slip_rms_pp`` / ``slip_p95_pp`` (per track)
+    Slip error in percentage points where the track is driven and moves (true sprocket speed
+    ≥ 0.5 m/s) and the row gives a slip.
+``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
+    Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
+    driven in it; the worst outage of the run), and the largest error within it.
+
+Floors (product mode, every run): settled ≥ 99.5 %, all ≥ 98.5 %, slip RMS ≤ 1.5 pp per
+track, DR at the end of a > 1 km outage ≤ 0.3 % (firm) / ≤ 0.5 % (soft, random) of distance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from estimator.sim.tracked import TrackedRun, simulate_tracked
+from estimator.tracked import MotionState, TrackedEstimatorConfig, TrackedFleet, TrackedMode
+from server.tooling.bench import int_list, write_json
+
+__all__ = ["main", "run"]
+
+MODES = tuple(TrackedMode)
+SETTLE_S = 1.5
+MOVING_MPS = 0.5
+FLOORS = {"settled_pct": 99.5, "state_pct": 98.5, "slip_rms_pp": 1.5}
+
+
+def _feed(mode: TrackedMode, runs: list[TrackedRun]) -> list[np.ndarray]:
+    """Every run through one fleet of ``mode``; rows per run."""
+    fleet = TrackedFleet(TrackedEstimatorConfig(mode=mode))
+    ids = [f"run{k}" for k in range(len(runs))]
+    for vid, r in zip(ids, runs, strict=True):
+        fleet.add_vehicle(vid, r.config)
+        fleet.set_anchor(vid, r.frame.lat0_deg, r.frame.lon0_deg, r.frame.h0_m)
+    pos = [0] * len(runs)
+    out: list[list[np.ndarray]] = [[] for _ in runs]
+    t = min(r.start_ns for r in runs)
+    end = max(r.measurements[-1][0] for r in runs)
+    while t <= end + 1_000_000_000:
+        t += 1_000_000_000
+        for k, r in enumerate(runs):
+            ms, i = r.measurements, pos[k]
+            while i < len(ms) and ms[i][0] <= t:
+                fleet.push(ids[k], ms[i][1])
+                i += 1
+            pos[k] = i
+        for vid, rows in fleet.advance(dict.fromkeys(ids, t)):
+            out[ids.index(vid)].append(rows)
+    return [np.concatenate(parts) for parts in out]
+
+
+def _settled(run: TrackedRun, idx: np.ndarray) -> np.ndarray:
+    """Rows more than ``SETTLE_S`` after the last true state change."""
+    state = run.truth.state
+    change = np.concatenate([[0], np.nonzero(np.diff(state))[0] + 1])
+    last = change[np.searchsorted(change, idx, side="right") - 1]
+    return (idx - last) > SETTLE_S * 100
+
+
+def _state_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
+    truth = run.truth.state[idx]
+    got = rows["motion_state"]
+    settled = _settled(run, idx)
+    cm = np.zeros((len(MotionState), len(MotionState)), dtype=np.int64)
+    np.add.at(cm, (truth, got), 1)
+    return {
+        "state_pct": 100.0 * float(np.mean(got == truth)),
+        "settled_pct": 100.0 * float(np.mean(got[settled] == truth[settled])),
+        "confusion": cm.tolist(),
+    }
+
+
+def _slip_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for side, name in ((0, "left"), (1, "right")):
+        est = rows[f"slip_{name}_pct"]
+        true = 100.0 * run.truth.slip[idx, side]
+        moving = run.truth.sprocket_mps[idx, side] >= MOVING_MPS
+        err = np.abs(est - true)[moving & np.isfinite(est) & np.isfinite(true)]
+        out[f"slip_{name}_rms_pp"] = float(np.sqrt(np.mean(err**2))) if err.size else float("nan")
+        out[f"slip_{name}_p95_pp"] = float(np.percentile(err, 95)) if err.size else float("nan")
+        out[f"slip_{name}_coverage_pct"] = 100.0 * err.size / max(int(moving.sum()), 1)
+    return out
+
+
+def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
+    tr = run.truth
+    err = np.hypot(rows["east_m"] - tr.east_m[idx], rows["north_m"] - tr.north_m[idx])
+    dist = run.distance_m()
+    worst: dict[str, Any] = {"dr_end_m": 0.0, "dr_end_pct": 0.0, "dr_max_m": 0.0, "outage_km": 0.0}
+    for a_ns, b_ns in run.outages_ns:
+        inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= b_ns)
+        if not inside.any():
+            continue
+        end = int(np.nonzero(inside)[0][-1])
+        driven = dist[idx[end]] - dist[run.index_at(np.array([a_ns]))[0]]
+        pct = 100.0 * err[end] / max(driven, 1.0)
+        if pct >= worst["dr_end_pct"]:
+            worst = {
+                "dr_end_m": float(err[end]),
+                "dr_end_pct": float(pct),
+                "dr_max_m": float(np.nanmax(err[inside])),
+                "outage_km": driven / 1e3,
+            }
+    return worst
+
+
+def _metrics(run: TrackedRun, rows: np.ndarray) -> dict[str, Any]:
+    idx = run.index_at(rows["stamp_ns"])
+    return {
+        **_state_metrics(run, rows, idx),
+        **_slip_metrics(run, rows, idx),
+        **_dr_metrics(run, rows, idx),
+    }
+
+
+def _floors(m: dict[str, Any], run: TrackedRun) -> list[str]:
+    """The product floors this run misses (names)."""
+    bad = [k for k in ("settled_pct", "state_pct") if m[k] < FLOORS[k]]
+    bad += [k for k in ("slip_left_rms_pp", "slip_right_rms_pp") if m[k] > FLOORS["slip_rms_pp"]]
+    limit = 0.3 if run.route.ground.name == "firm" else 0.5
+    if m["outage_km"] > 1.0 and m["dr_end_pct"] > limit:
+        bad.append(f"dr_end_pct>{limit}")
+    return bad
+
+
+def _line(label: str, mode: str, m: dict[str, Any]) -> str:
+    return (
+        f"{label:<22} {mode:<17} {m['state_pct']:7.2f} {m['settled_pct']:7.2f} "
+        f"{m['slip_left_rms_pp']:6.2f}/{m['slip_left_p95_pp']:<6.2f} "
+        f"{m['slip_right_rms_pp']:6.2f}/{m['slip_right_p95_pp']:<6.2f} "
+        f"{m['dr_end_m']:7.2f} {m['dr_end_pct']:6.3f} {m['dr_max_m']:7.2f} {m['outage_km']:5.2f}"
+    )
+
+
+def _confusion(title: str, cm: np.ndarray) -> None:
+    names = [s.name.lower()[:8] for s in MotionState]
+    print(f"\n{title} (rows: truth, columns: recognised)")
+    print(" " * 10 + "".join(f"{n:>9}" for n in names))
+    for name, row in zip(names, cm, strict=True):
+        print(f"{name:<10}" + "".join(f"{v:9d}" for v in row))
+
+
+def run(
+    seeds: list[int],
+    random_routes: int,
+    scenarios: list[str],
+    json_path: str | None = None,
+    random_from: int = 1000,
+) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    runs = [simulate_tracked(s, seed) for s in scenarios for seed in seeds]
+    runs += [simulate_tracked("random", random_from + i) for i in range(random_routes)]
+    sim_s = time.perf_counter() - t0
+    results: dict[str, Any] = {"runs": [], "seconds": {"simulate": sim_s}}
+    per_mode: dict[str, list[dict[str, Any]]] = {}
+    for mode in MODES:
+        t1 = time.perf_counter()
+        per_mode[mode.value] = [
+            _metrics(r, rows) for r, rows in zip(runs, _feed(mode, runs), strict=True)
+        ]
+        results["seconds"][mode.value] = time.perf_counter() - t1
+    print(
+        f"{'run':<22} {'mode':<17} {'state%':>7} {'settl%':>7} {'slipL rms/p95':>13} "
+        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5}"
+    )
+    failures = []
+    for k, r in enumerate(runs):
+        label = f"{r.name}[{r.seed}]"
+        entry: dict[str, Any] = {"run": label, "ground": r.route.ground.name, "modes": {}}
+        for mode in MODES:
+            m = per_mode[mode.value][k]
+            entry["modes"][mode.value] = m
+            print(_line(label, mode.value, m))
+        missed = _floors(per_mode["product"][k], r)
+        entry["product_misses"] = missed
+        if missed:
+            failures.append((label, missed))
+        results["runs"].append(entry)
+    for mode in (TrackedMode.PRODUCT, TrackedMode.PAPER):
+        cm = sum(np.array(m["confusion"]) for m in per_mode[mode.value])
+        _confusion(f"confusion, {mode.value}", np.asarray(cm))
+    random_ok = [not e["product_misses"] for e in results["runs"] if e["ground"] == "random"]
+    results["random_pass_pct"] = 100.0 * float(np.mean(random_ok)) if random_ok else None
+    print(
+        "\nproduct floors: "
+        + (
+            "all met"
+            if not failures
+            else "; ".join(f"{lab}: {', '.join(b)}" for lab, b in failures)
+        )
+    )
+    if random_ok:
+        print(f"random routes meeting every floor: {results['random_pass_pct']:.0f} %")
+    print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in results["seconds"].items()))
+    write_json(results, json_path)
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="slipfleet bench tracked",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument("--seeds", type=int_list, default=[1, 2], help="seeds of the named runs")
+    ap.add_argument("--random", type=int, default=0, help="random routes to add")
+    ap.add_argument("--random-from", type=int, default=1000, help="seed of the first one")
+    ap.add_argument(
+        "--scenarios",
+        default="route_firm,route_soft",
+        help="named scenarios, comma-separated ('' for none)",
+    )
+    ap.add_argument("--json", default=None, help="write the numbers to this file")
+    args = ap.parse_args(argv)
+    scenarios = [s for s in args.scenarios.split(",") if s]
+    run(args.seeds, args.random, scenarios, args.json, args.random_from)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

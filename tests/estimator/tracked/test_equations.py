@@ -1,0 +1,268 @@
+"""Each equation and threshold of the tracked estimator, computed by hand (``method.md`` §4)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from estimator.config import TrackedConfig
+from estimator.tracked.edges import EdgeBuffer, edge_speed, span_speed
+from estimator.tracked.filter import kalman_update, predict
+from estimator.tracked.model import N_STATES, MotionState, TrackedMode
+from estimator.tracked.model import TrackedState as S
+from estimator.tracked.odometer import lateral_speed, odometer_measurement, paper_ratio
+from estimator.tracked.params import VehicleParams
+from estimator.tracked.recognise import fallback_states, paper_states, product_states
+from estimator.tracked.settings import TrackedEstimatorConfig
+
+M = MotionState
+P1 = VehicleParams.of(TrackedConfig())  # B = 2 m, L = 2.5 m: r = 1.531 m, R_II = 5.76 m
+
+
+def _paper(speed: float, yaw: float, odo: float, step: float = 0.0) -> int:
+    got = paper_states(np.array([speed]), np.array([yaw]), np.array([odo]), np.array([step]), P1)
+    return int(got[0])
+
+
+def test_thresholds_of_the_source() -> None:
+    assert P1.pivot_radius_m[0] == pytest.approx(1.531)  # Eq. 10: r = 1.531 · B/2
+    assert P1.separated_radius_m[0] == pytest.approx(5.76)  # R_II = 2.88 · B
+
+
+@pytest.mark.parametrize(
+    ("rho_m", "state"),
+    [
+        (1.0, M.STRAIGHT),  # |ρ| < r matches no printed rule: the odometer is used as it is
+        (2.0, M.PIVOT),  # Eq. 11: r ≤ |ρ| < R_II
+        (8.0, M.ARC),  # Eq. 14: r ≤ |ρ| ≤ 2·R_II^max = 4·R_II = 23.04 m
+        (15.0, M.ARC),  # Eq. 14 and 15 overlap on (11.52, 23.04]: the arc comes first
+        (30.0, M.SEPARATED),  # Eq. 15: |ρ| > 2·R_II
+        (300.0, M.STRAIGHT),  # |ρ| > R_max = 200 m
+    ],
+)
+def test_paper_radius_rules(rho_m: float, state: MotionState) -> None:
+    speed = 3.0
+    assert _paper(speed, speed / rho_m, speed) == state
+    assert _paper(speed, -speed / rho_m, speed) == state  # either way round
+
+
+def test_paper_low_gear_rule_eq6_compares_with_the_instantaneous_speed() -> None:
+    assert _paper(2.0, 0.0, 1.42 * 2.0) == M.LOW_STRAIGHT  # v_o ≥ 1.42 · v_y
+    assert _paper(2.0, 0.0, 1.42 * 2.0 - 0.01) == M.STRAIGHT
+
+
+def test_paper_large_heading_change_and_standstill() -> None:
+    assert _paper(3.0, 0.0, 3.0, step=0.11) == M.HEADING_JUMP  # Eq. 16, δφ_max = 0.1 rad
+    assert _paper(3.0, 0.0, 3.0, step=0.09) == M.STRAIGHT
+    assert _paper(0.1, 0.0, 0.1, step=0.5) == M.STOP
+
+
+@pytest.mark.parametrize(
+    ("left", "right", "gear", "state"),
+    [
+        (3.0, 3.0, 1.0, M.STRAIGHT),
+        (3.0 / 1.42, 3.0 / 1.42, 1 / 1.42, M.LOW_STRAIGHT),
+        (3.0 / 1.42, 3.0, 1.0, M.ARC),  # left slow: a left arc
+        (3.0, 2.7, 1.0, M.SEPARATED),
+        (3.0, 0.0, 1.0, M.PIVOT),
+        (0.0, 0.0, 1.0, M.STOP),
+    ],
+)
+def test_product_states_from_sprocket_ratios(
+    left: float, right: float, gear: float, state: MotionState
+) -> None:
+    fast, slow = max(left, right), min(left, right)
+    yaw = fast * (1 - slow / fast) / 2.0 if fast > 0 else 0.0  # the turn the ratio makes
+    got, conf = product_states(
+        np.array([[left, right]]),
+        np.array([gear]),
+        np.zeros(1),
+        P1,
+        TrackedEstimatorConfig(),
+        np.array([yaw]),
+    )
+    assert int(got[0]) == state
+    assert conf[0] > 0.9  # not near a threshold (a straight's q = 1 is 1.5 σ from 0.985)
+
+
+def test_product_confidence_falls_at_a_threshold() -> None:
+    cfg = TrackedEstimatorConfig()
+    q = cfg.straight_ratio_min
+    _, conf = product_states(
+        np.array([[3.0 * q, 3.0]]), np.ones(1), np.zeros(1), P1, cfg, np.array([0.1])
+    )
+    assert conf[0] == pytest.approx(0.5)
+
+
+def test_a_separated_ratio_without_its_turn_is_a_straight() -> None:
+    cfg = TrackedEstimatorConfig()
+    args = (np.array([[3.0, 2.85]]), np.ones(1), np.zeros(1), P1, cfg)
+    kinematic = 3.0 * (1 - 0.95) / 2.0
+    assert product_states(*args, np.array([0.6 * kinematic]))[0][0] == M.SEPARATED
+    assert product_states(*args, np.array([0.4 * kinematic]))[0][0] == M.STRAIGHT
+
+
+def test_fallback_rules_have_no_overlap() -> None:
+    rho = np.array([2.0, 8.0, 15.0, 30.0, 300.0])
+    got = fallback_states(
+        np.full(5, 3.0),
+        3.0 / rho,
+        np.full(5, 3.0),
+        np.zeros(5),
+        VehicleParams.stack([P1] * 5),
+        np.zeros(5, dtype=bool),
+    )
+    assert got.tolist() == [M.PIVOT, M.ARC, M.SEPARATED, M.SEPARATED, M.STRAIGHT]
+
+
+def test_paper_odometer_ratios() -> None:
+    state = np.array([M.STRAIGHT, M.LOW_STRAIGHT, M.ARC, M.SEPARATED, M.PIVOT, M.HEADING_JUMP])
+    got = paper_ratio(state, np.full(6, 20.0), VehicleParams.stack([P1] * 6))
+    assert got[:4] == pytest.approx([1.0, 1 / 1.42, 0.8688, 20.0 / 21.0])  # Eq. 7, 20, 23
+    assert np.isnan(got[4:]).all()  # pivot and large heading change: no odometer
+
+
+def test_lateral_speed_printed_and_physical() -> None:
+    v, w, length, mu = 3.0, 0.3, np.array([2.5]), np.array([0.6])
+    arc = np.array([M.ARC])
+    paper = lateral_speed(TrackedMode.PAPER, arc, np.array([v]), np.array([w]), length, mu)
+    assert paper[0] == pytest.approx(-0.75)  # Eq. 17: −φ̇·L, toward the centre of a left turn
+    product = lateral_speed(TrackedMode.PRODUCT, arc, np.array([v]), np.array([w]), length, mu)
+    pole = 2.5 * v * w / (2 * 0.6 * 9.80665)  # L·|a_y|/(2·μ_t·g)
+    assert product[0] == pytest.approx(w * pole)  # outward (+ right) in a left turn
+    assert 0 < product[0] < abs(paper[0]) / 5  # the printed term is several times larger
+    none = lateral_speed(
+        TrackedMode.PAPER_NO_LATERAL, arc, np.array([v]), np.array([w]), length, mu
+    )
+    assert none[0] == 0.0
+
+
+def test_product_odometer_measurement_by_hand() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED] = 2.0
+    x[0, S.F_ARC] = 0.95
+    x[0, S.ACCEL_LAG] = 0.2
+    cfg = TrackedEstimatorConfig()
+    y, H, R, mask, corrected = odometer_measurement(
+        cfg,
+        P1,
+        x,
+        np.array([M.ARC]),
+        np.array([2.5]),
+        np.array([0.05]),
+        np.array([1.0]),
+        np.array([0.3]),
+        np.ones(1, dtype=bool),
+    )
+    # V − a·lag + τ·a + |ω|·B/2: the fast track's ground speed, a = 1 m/s², τ = 0.2 s
+    ground = 2.0 - 1.0 * 0.05 + 0.2 * 1.0 + 0.3 * 1.0
+    assert y[0, 0] == pytest.approx(2.5 - ground / 0.95)
+    assert H[0, 0, S.SPEED] == pytest.approx(1 / 0.95)
+    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(1.0 / 0.95)
+    assert H[0, 0, S.F_ARC] == pytest.approx(-ground / 0.95**2)
+    assert R[0, 0, 0] == pytest.approx((0.02 + 0.01 * 2.5 + 0.3 * 1.0) ** 2)
+    assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3 - 0.2)
+
+
+def test_odometer_dropped_in_heading_jumps() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.F_STRAIGHT] = 1.0
+    for mode in TrackedMode:
+        cfg = TrackedEstimatorConfig(mode=mode)
+        *_, mask, _ = odometer_measurement(
+            cfg,
+            P1,
+            x,
+            np.array([M.HEADING_JUMP]),
+            np.ones(1),
+            np.zeros(1),
+            np.zeros(1),
+            np.zeros(1),
+            np.ones(1, dtype=bool),
+        )
+        assert mask[0] == (mode == TrackedMode.RAW_ODOMETER)
+
+
+def test_edge_speed_period_method() -> None:
+    stamps = np.arange(0, 1_000_000_000, 10_000_000, dtype=np.int64)  # every 10 ms
+    speed, centre = edge_speed(stamps, np.array([500_000_000]), 0.01, 100_000_000, 1000, 10**9)
+    assert speed[0] == pytest.approx(1.0)  # 0.01 m per 10 ms
+    assert centre[0] == pytest.approx(455_000_000)  # edges 410…500 ms (400 is outside)
+    stale, _ = edge_speed(stamps, np.array([3_000_000_000]), 0.01, 100_000_000, 1000, 10**9)
+    assert stale[0] == 0.0  # nothing for two seconds
+    bound, _ = edge_speed(stamps, np.array([1_040_000_000]), 0.01, 100_000_000, 1000, 10**9)
+    assert bound[0] == pytest.approx(5 * 0.01 / 0.09)  # no 6th edge 90 ms after the first
+    mean = span_speed(stamps, np.array([0.0]), np.array([2e8]), 0.01)
+    assert mean[0] == pytest.approx(1.0)
+
+
+def test_edges_going_backwards_are_counted_and_dropped() -> None:
+    buf = EdgeBuffer()
+    buf.push(np.array([10, 20, 30], dtype=np.int64))
+    buf.push(np.array([25, 40, 35, 50], dtype=np.int64))
+    assert buf.stamps.tolist() == [10, 20, 30, 40, 50]
+    assert buf.backwards == 2
+
+
+def test_predict_moves_along_the_heading_and_turns_clockwise_for_a_right_turn() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED] = 10.0
+    x[0, S.HEADING] = math.pi / 2  # east
+    P = np.eye(N_STATES)[None] * 1e-4
+    q = np.zeros((1, N_STATES))
+    out, P2 = predict(x, P, np.array([-0.1]), np.array([1.0]), np.zeros(1), 0.1, q)
+    assert out[0, S.HEADING] == pytest.approx(math.pi / 2 + 0.01)  # ψ̇ = −ω, ω = −0.1 (right)
+    psi_m = math.pi / 2 + 0.005
+    assert out[0, S.EAST] == pytest.approx(1.0 * math.sin(psi_m))
+    assert out[0, S.NORTH] == pytest.approx(1.0 * math.cos(psi_m))
+    assert out[0, S.SPEED] == pytest.approx(10.1)
+    assert np.allclose(P2[0], P2[0].T) and np.linalg.eigvalsh(P2[0]).min() > 0
+
+
+def test_update_equals_filterpy() -> None:
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(N_STATES, N_STATES))
+    P = A @ A.T + np.eye(N_STATES)
+    x = rng.normal(size=N_STATES)
+    H = rng.normal(size=(2, N_STATES))
+    R = np.diag([0.3, 0.5])
+    z = rng.normal(size=2)
+    kf = KalmanFilter(dim_x=N_STATES, dim_z=2)
+    kf.x, kf.P, kf.H, kf.R = x.copy(), P.copy(), H, R
+    kf.update(z)
+    x2, P2, nis, used = kalman_update(
+        x[None], P[None], (z - H @ x)[None], H[None], R[None], np.ones(1, dtype=bool)
+    )
+    assert used[0]
+    assert np.allclose(x2[0], kf.x, atol=1e-12, rtol=0)
+    assert np.allclose(P2[0], kf.P, atol=1e-10, rtol=0)
+    y = z - H @ x
+    assert nis[0] == pytest.approx(y @ np.linalg.solve(H @ P @ H.T + R, y))
+
+
+def test_update_is_gated_and_masked() -> None:
+    x = np.zeros((2, N_STATES))
+    P = np.broadcast_to(np.eye(N_STATES), (2, N_STATES, N_STATES)).copy()
+    H = np.zeros((2, 1, N_STATES))
+    H[:, 0, S.SPEED] = 1.0
+    R = np.full((2, 1, 1), 1.0)
+    y = np.array([[100.0], [1.0]])
+    x2, P2, nis, used = kalman_update(x, P, y, H, R, np.array([True, False]), gate_nis=16.0)
+    assert not used.any() and nis[0] == pytest.approx(5000.0) and np.isnan(nis[1])
+    assert np.array_equal(x2, x) and np.array_equal(P2, P)
+
+
+def test_tracked_package_is_pure() -> None:
+    code = (
+        "import sys\nimport estimator.tracked, estimator.sim.tracked, estimator.tracked_spec\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('zenoh', 'fastapi', 'sqlite3', 'psycopg', 'server', 'viser', 'msgpack'))\n"
+        "print(','.join(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
