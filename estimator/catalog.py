@@ -13,11 +13,12 @@ from estimator.friction_spec import FRICTION_SPEC
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.spec import EstimatorSpec
+from estimator.tracked_spec import TRACKED_SPEC
 
 __all__ = ["SPECS", "spec_of"]
 
 SPECS: Mapping[str, EstimatorSpec] = MappingProxyType(
-    {s.name: s for s in (MDSF_SPEC, REFERENCE_SPEED_SPEC, FRICTION_SPEC)}
+    {s.name: s for s in (MDSF_SPEC, REFERENCE_SPEED_SPEC, FRICTION_SPEC, TRACKED_SPEC)}
 )
 
 

@@ -7,6 +7,7 @@ an estimator nobody runs::
     "mdsf"             -> estimator.mdsf.MdsfFleet                  (ESTIMATE_DTYPE rows)
     "reference_speed"  -> estimator.reference_fleet.ReferenceSpeedFleet
     "friction"         -> estimator.friction.fleet.FrictionFleet
+    "tracked"          -> estimator.tracked.TrackedFleet
 
 An estimator's name is its spec's name (checked when it is built): storage, REST and live
 views key its rows by it.
@@ -17,7 +18,7 @@ A vehicle runs ``config.estimators`` when that is non-empty, otherwise its kind'
     VehicleKind                   default estimators
     ============================  ===================================================
     ``wheeled_rear_drive``        ``("mdsf",)``
-    ``tracked``                   none yet (a track-slip estimator is planned)
+    ``tracked``                   ``("tracked",)``
     ``wheeled_4wd_steered``       ``("friction",)``
     ============================  ===================================================
 
@@ -86,15 +87,23 @@ def _friction() -> FleetEstimator:
     return fleet
 
 
+def _tracked() -> FleetEstimator:
+    from estimator.tracked import TrackedFleet  # lazy, as MDSF
+
+    fleet: FleetEstimator = TrackedFleet()
+    return fleet
+
+
 DEFAULT_FACTORIES: Mapping[str, EstimatorFactory] = {
     "mdsf": _mdsf,
     "reference_speed": _reference_speed,
     "friction": _friction,
+    "tracked": _tracked,
 }
 
 KIND_DEFAULTS: Mapping[VehicleKind, tuple[str, ...]] = {
     VehicleKind.WHEELED_REAR_DRIVE: ("mdsf",),
-    VehicleKind.TRACKED: (),
+    VehicleKind.TRACKED: ("tracked",),
     VehicleKind.WHEELED_4WD_STEERED: ("friction",),
 }
 

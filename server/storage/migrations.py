@@ -6,7 +6,7 @@ statement cannot convert, such as packing SQLite rows in version 6). Applied ver
 recorded in ``schema_version``. A migration is frozen once released: later schema changes are
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
-:data:`FRICTION_FIELDS_V12`); tests compare them with
+:data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`); tests compare them with
 today's specs, and the stores refuse a spec that no longer matches its recorded table, so a
 spec change forces a new migration.
 
@@ -17,7 +17,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 12):
+Schema (version 13):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -29,7 +29,7 @@ Schema (version 12):
     spec whose fields differ. MDSF's are ``estimates`` below; every other estimator's are made
     by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
     ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
-    ``reference_speed`` since version 10, ``friction`` since version 12.
+    ``reference_speed`` since version 10, ``friction`` since version 12, ``tracked`` since 13.
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -82,6 +82,7 @@ __all__ = [
     "MIGRATIONS",
     "REFERENCE_SPEED_FIELDS_V10",
     "SQLITE_PACKED_FIELDS",
+    "TRACKED_FIELDS_V13",
     "Execute",
     "Migration",
     "Step",
@@ -569,6 +570,42 @@ FRICTION_FIELDS_V12: tuple[tuple[str, str], ...] = (
 )
 
 
+#: The tracked estimator's row as version 13 made its table (``TRACKED_SPEC``'s fields).
+TRACKED_FIELDS_V13: tuple[tuple[str, str], ...] = (
+    ("stamp_ns", "i8"),
+    ("motion_state", "i4"),
+    ("state_confidence", "f8"),
+    ("speed_mps", "f8"),
+    ("speed_std_mps", "f8"),
+    ("lateral_mps", "f8"),
+    ("yaw_rate_radps", "f8"),
+    ("turn_radius_m", "f8"),
+    ("track_left_mps", "f8"),
+    ("track_right_mps", "f8"),
+    ("track_std_mps", "f8"),
+    ("sprocket_left_mps", "f8"),
+    ("sprocket_right_mps", "f8"),
+    ("slip_left_pct", "f8"),
+    ("slip_right_pct", "f8"),
+    ("slip_left_std_pct", "f8"),
+    ("slip_right_std_pct", "f8"),
+    ("odometer_raw_mps", "f8"),
+    ("odometer_mps", "f8"),
+    ("odometer_scale", "f8"),
+    ("gyro_bias_radps", "f8"),
+    ("east_m", "f8"),
+    ("north_m", "f8"),
+    ("up_m", "f8"),
+    ("heading_rad", "f8"),
+    ("lat_deg", "f8"),
+    ("lon_deg", "f8"),
+    ("east_std_m", "f8"),
+    ("north_std_m", "f8"),
+    ("east_north_cov_m2", "f8"),
+    ("flags", "i4"),
+)
+
+
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
 
@@ -623,6 +660,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "the friction estimator's tables",
         estimator_table_steps("friction", "estimates_friction", FRICTION_FIELDS_V12, "sqlite"),
         estimator_table_steps("friction", "estimates_friction", FRICTION_FIELDS_V12, "postgresql"),
+    ),
+    Migration(
+        13,
+        "the tracked estimator's tables",
+        estimator_table_steps("tracked", "estimates_tracked", TRACKED_FIELDS_V13, "sqlite"),
+        estimator_table_steps("tracked", "estimates_tracked", TRACKED_FIELDS_V13, "postgresql"),
     ),
 )
 

@@ -41,10 +41,10 @@ def test_estimators_lists_every_spec(client: ApiClient) -> None:
 def test_vehicle_names_its_estimators_primary_first(client: ApiClient, both: None) -> None:
     assert client.get(f"{V}/t1").json()["estimators"] == ["mdsf"]
     assert client.get(V).json()["data"][0]["estimators"] == ["mdsf"]
-    client.put(f"{V}/tracked", json={"kind": "tracked"})  # no default estimator for its kind
-    assert client.get(f"{V}/tracked").json()["estimators"] == []
+    client.put(f"{V}/tracked", json={"kind": "tracked"})  # its kind's default estimator
+    assert client.get(f"{V}/tracked").json()["estimators"] == ["tracked"]
     r = client.get(f"{V}/tracked/report?{Q}")
-    assert "runs no estimator" in error_of(r, 404)[1]
+    assert r.json()["estimator"] == "tracked" and r.json()["report"]["rows"] == 0
     assert client.get(f"{V}/tracked/report?{Q}&estimator=mdsf").json()["report"]["rows"] == 0
 
 
@@ -132,7 +132,7 @@ def test_openapi_describes_each_estimator(client: ApiClient) -> None:
     names = {ref["$ref"].rsplit("/", 1)[1] for ref in one_of}
     camel = {name: "".join(w.title() for w in name.split("_")) for name in SPECS}
     assert names == {f"Estimate{c}Public" for c in camel.values()}
-    assert {"EstimateMdsfPublic", "EstimateReferenceSpeedPublic", "EstimateFrictionPublic"} <= names
+    assert {"EstimateMdsfPublic", "EstimateReferenceSpeedPublic", "EstimateTrackedPublic"} <= names
     ref_model = spec["components"]["schemas"]["EstimateReferenceSpeedPublic"]["properties"]
     assert "m/s" in ref_model["speed_mps"]["description"]
     for path in ("report", "slipmap", "latest", "series"):

@@ -59,6 +59,7 @@ def _registry(
                 lambda: RecordingFleet(REFERENCE_SPEED_SPEC, fail_for, refuse_threshold_pct)
             ),
         },
+        kind_defaults={**KIND_DEFAULTS, VehicleKind.TRACKED: ()},  # a kind that runs none
         on_error=lambda vid, name, op, _exc: failures.append((vid, name, op)),
     )
     return reg, built, failures
@@ -66,7 +67,7 @@ def _registry(
 
 def test_defaults_per_kind_and_a_factory_per_spec() -> None:
     assert estimator_names_for(WheeledRearDriveConfig()) == ("mdsf",)
-    assert estimator_names_for(TrackedConfig()) == ()
+    assert estimator_names_for(TrackedConfig()) == ("tracked",)
     assert estimator_names_for(Wheeled4wdSteeredConfig()) == ("friction",)
     assert set(KIND_DEFAULTS) == set(VehicleKind)
     assert set(DEFAULT_FACTORIES) == set(SPECS)

@@ -61,7 +61,7 @@ def make_spec_rows(
         else:
             rows[f.name] = rng.integers(0, 1 << 9, n)
     if n > 1:
-        second = spec.fields[1].name
+        second = next(f.name for f in spec.fields[1:] if f.kind == "f8")
         rows[second][0], rows[second][1] = np.nan, -np.inf
     return rows
 

@@ -14,12 +14,14 @@ from estimator.friction_spec import FRICTION_SPEC
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.spec import EstimatorSpec, FieldSpec
+from estimator.tracked_spec import TRACKED_SPEC
 from server.storage import StorageDataError, StorageError, Store
 from server.storage._columns import spec_fields
 from server.storage.migrations import (
     FRICTION_FIELDS_V12,
     REFERENCE_SPEED_FIELDS_V10,
     SQLITE_PACKED_FIELDS,
+    TRACKED_FIELDS_V13,
     estimator_table_steps,
 )
 from server.storage.postgres import PostgresStore
@@ -54,10 +56,11 @@ def test_frozen_field_lists_match_the_specs() -> None:
     assert spec_fields(MDSF_SPEC) == SQLITE_PACKED_FIELDS
     assert spec_fields(REF) == REFERENCE_SPEED_FIELDS_V10
     assert spec_fields(FRICTION_SPEC) == FRICTION_FIELDS_V12
+    assert spec_fields(TRACKED_SPEC) == TRACKED_FIELDS_V13
 
 
 def test_every_catalog_spec_has_its_tables(store: Store) -> None:
-    assert set(SPECS) == {"mdsf", "reference_speed", "friction"}
+    assert set(SPECS) == {"mdsf", "reference_speed", "friction", "tracked"}
     _register(store, "v1")
     for spec in SPECS.values():
         assert store.query_series("v1", 0, 2**62, estimator=spec.name).dtype == spec.dtype
