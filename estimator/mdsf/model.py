@@ -264,8 +264,13 @@ class MdsfConfig:
         Innovation chi-square (1 degree of freedom) above which a GNSS speed is rejected
         (product mode; 10.83 is the 99.9 % point).
     gate_floor_mps : float
-        Floor added to the innovation std of the GNSS gate: innovations below
+        Floor added to the innovation std of the GNSS gate at standstill: innovations below
         ``gate_floor·√gate_chi2`` are never rejected [m/s].
+    gate_floor_rel : float
+        Its part proportional to the speed, ``floor = hypot(gate_floor_mps, rel·|V1|)``: a
+        speed wandering by a share of itself must not lock GNSS out at speed, and a 0.2 m/s
+        outlier must not pass at a creep (the receiver's reported std enters the gate through
+        ``R``) [-].
     reacquire_s : float
         After GNSS speeds were rejected this long without a break, the next one resets the
         speed (product mode) [s].
@@ -356,7 +361,8 @@ class MdsfConfig:
     paper_speed_walk_mps_per_sqrt_s: float = 0.05
     rate_walk_radps_per_sqrt_s: float = 0.3
     gate_chi2: float = 10.83
-    gate_floor_mps: float = 0.1
+    gate_floor_mps: float = 0.02
+    gate_floor_rel: float = 0.03
     reacquire_s: float = 3.0
     gnss_timeout_s: float = 1.0
     max_speed_var_mps2: float = 100.0

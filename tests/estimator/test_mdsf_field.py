@@ -9,10 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from estimator.config import VehicleGeometry, WheeledRearDriveConfig
+from estimator.config import EncoderConfig, VehicleGeometry, WheeledRearDriveConfig
 from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
 from estimator.mdsf.frontend import _rates_at_tick
-from estimator.sim import SimRun, simulate
+from estimator.sim import SimRun, simulate, truth_at
+from estimator.types import EstimateFlag, WheelEdges
 from server.tooling.bench.accuracy import evaluate, run_estimator
 
 START = 1_767_225_600_000_000_000
@@ -62,3 +63,72 @@ def test_body_sway_on_a_tall_mast_keeps_wheel_speed_and_slip() -> None:
     m = evaluate(_product(sim), sim.truth)
     assert m["vw_max_pct"] < 6.0
     assert m["slip_rms_pp"] < 2.5
+
+
+def test_a_small_gnss_outlier_is_gated_at_a_creep() -> None:
+    """The gate's floor scales with the speed: at 0.3 m/s a 0.2 m/s one-epoch outlier was
+    inside the fixed 0.1 m/s floor (0.33 m/s never rejected) and moved the speed."""
+    sim = simulate(
+        "slow_creep",
+        seed=2,
+        start_ns=START,
+        duration_s=60.0,
+        speed_min_mps=0.25,
+        speed_max_mps=0.35,
+        gnss_outlier_prob=0.0,
+        gnss_speed_steps=((40.0, 0.2, 0.1), (50.0, -0.2, 0.1)),
+    )
+    rows = _product(sim)
+    t = (rows["stamp_ns"] - START) * 1e-9
+    gated = (rows["flags"] & int(EstimateFlag.GATED)) > 0
+    for t0 in (40.0, 50.0):
+        assert gated[(t > t0 - 0.05) & (t < t0 + 0.25)].any()
+    assert gated.sum() <= 4
+
+
+def _creep_start(teeth: int) -> SimRun:
+    cfg = WheeledRearDriveConfig(encoder=EncoderConfig(teeth_per_rev=teeth))
+    return simulate(
+        "slow_creep",
+        seed=3,
+        start_ns=START,
+        config=cfg,
+        duration_s=40.0,
+        speed_min_mps=0.3,
+        speed_max_mps=0.5,
+    )
+
+
+def test_no_slip_from_a_zero_edge_start() -> None:
+    """A 20-tooth wheel pulling away at a creep: its first fits span the standstill (the first
+    valid row read −48 % against 4 % true); slip now waits until the wheel has run its fit
+    span since the start."""
+    sim = _creep_start(20)
+    rows = _product(sim)
+    t = (rows["stamp_ns"] - START) * 1e-9
+    early = (t < 12.0) & np.isfinite(rows["slip_left_pct"])
+    err = rows["slip_left_pct"][early] - truth_at(
+        sim.truth, rows["stamp_ns"][early], "slip_left_pct"
+    )
+    assert early.any()
+    assert np.max(np.abs(err)) < 5.0
+    assert np.isfinite(rows["slip_left_pct"][(t > 12.0) & (t < 30.0)]).mean() > 0.95
+
+
+def test_no_slip_before_a_wheel_speed() -> None:
+    """Wheel edges missing for the first 8 s of a drive: the wheel speed is unknown, not 0, and
+    no row says slip −100 %."""
+    sim = _creep_start(120)
+    cut = START + 8 * 10**9
+    keep = [not (isinstance(m, WheelEdges) and m.stamp_ns[-1] < cut) for m in sim.measurements]
+    late = dataclasses.replace(
+        sim,
+        measurements=[m for m, k in zip(sim.measurements, keep, strict=True) if k],
+        arrival_ns=sim.arrival_ns[np.array(keep)],
+    )
+    rows = _product(late)
+    t = (rows["stamp_ns"] - START) * 1e-9
+    before = t < 8.0
+    assert not np.isfinite(rows["slip_left_pct"][before]).any()
+    assert not (rows["flags"][before] & int(EstimateFlag.SLIP_LEFT_VALID)).any()
+    assert np.isfinite(rows["slip_left_pct"][(t > 14.0) & (t < 30.0)]).mean() > 0.95
