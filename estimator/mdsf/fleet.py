@@ -42,7 +42,9 @@ __all__ = ["MdsfFleet"]
 _F = EstimateFlag
 _NEVER = np.iinfo(np.int64).min
 """``_still_ns`` of a vehicle before its first tick."""
-_START_SPANS = 1.5
+_START_SPANS = 1.0
+_SETTLE_OFF = 1e9
+"""``SlipConfig.settle_max_change`` at which the settling rule, this start wait included, is off."""
 """Fit spans a wheel must run after a standstill before its slip counts (the fit's window then
 lies in the motion, past the first edge, whose phase is unknown)."""
 
@@ -268,7 +270,10 @@ class MdsfFleet:
             unsettled(
                 ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
             )
-            | ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span)
+            | (
+                ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span)
+                & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
+            )
         )
         valid = sp.valid & ~settling
         enu, heading, carried = self._carry(due, res)
@@ -332,7 +337,8 @@ class MdsfFleet:
         A wheel starting from rest has its first fits over edges from before the start (a fit
         of 30 % low read as valid slip): slip waits until the wheel has run ``_START_SPANS``
         fit spans since (:func:`estimator.slip.fit_span_s`), so no value comes before the
-        wheel's first fit or from a zero-edge start."""
+        wheel's first fit or from a zero-edge start. Part of the settling rule (flag SETTLING;
+        off with it at ``settle_max_change`` 1e9)."""
         flat = due.inputs
         stamps = flat.stamp_ns
         n = stamps.shape[0]
