@@ -51,8 +51,9 @@ Two modes (:class:`MdsfMode`):
       and counted; a persistent disagreement re-acquires the GNSS speed after ``reacquire_s``
       (flag RESET);
     * **time alignment**: every source is put on the filter tick by its own time stamp (GNSS
-      speed moved to the tick with the IMU acceleration, IMU averaged over the tick window,
-      wheel speed fitted and evaluated at the tick, see :mod:`estimator.wheel_speed`);
+      speed moved to the tick with the IMU acceleration and the lever-arm rates, acceleration
+      averaged over the tick window, body rates fitted over it and taken at the tick, wheel
+      speed fitted and evaluated at the tick, see :mod:`estimator.wheel_speed`);
     * **lever arms**: the forward speed of a body point ``(x, y, z)`` from ``O`` is
       ``V0 + ωz·x − ωx·z``, so with the IMU at ``(x_i, y_i, h0)`` and the antenna at
       ``(x_a, y_a, h0 + h1)`` the observation and output rows become
