@@ -682,13 +682,15 @@ class MdsfEngine:
     ) -> tuple[BoolArray, BoolArray]:
         """Product mode: chi-square gate of the GNSS speed; after ``reacquire_s`` of
         rejections the speed variance opens to the disagreement (``P_1`` in place) so the
-        update follows GNSS. The gate has a floor ``gate_floor_mps``: a speed that wandered by
-        a few cm/s while the receiver reports mm/s (standing, creeping) must not lock GNSS
-        out. Returns ``(gated, reacquired)``, shape (k,)."""
+        update follows GNSS. The gate's std has a floor ``hypot(gate_floor_mps,
+        gate_floor_rel·|Vg|)`` (``Vg`` predicted): a speed that wandered by a share of itself
+        must not lock GNSS out, and a 0.2 m/s outlier must not pass at a creep. The receiver's
+        reported accuracy is in ``s`` through ``R``. Returns ``(gated, reacquired)``, (k,)."""
         cfg = self.config
         stamp = t.stamp_ns
         y_vg = y[:, MdsfObs.VG]
-        s_gate = s[:, MdsfObs.VG] + cfg.gate_floor_mps**2
+        speed = np.abs(nan_to_num(t.z[:, MdsfObs.VG] - y_vg))
+        s_gate = s[:, MdsfObs.VG] + cfg.gate_floor_mps**2 + (cfg.gate_floor_rel * speed) ** 2
         gated = t.gnss_ok & init & ~(y_vg * y_vg <= cfg.gate_chi2 * s_gate)
         since = self.gated_since_ns[slots]
         since = np.where(gated & (since < 0), stamp, since)

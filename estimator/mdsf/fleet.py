@@ -40,6 +40,13 @@ from estimator.wheel_speed import WheelSpeedConfig
 __all__ = ["MdsfFleet"]
 
 _F = EstimateFlag
+_NEVER = np.iinfo(np.int64).min
+"""``_still_ns`` of a vehicle before its first tick."""
+_START_SPANS = 1.0
+_SETTLE_OFF = 1e9
+"""``SlipConfig.settle_max_change`` at which the settling rule, this start wait included, is off."""
+"""Fit spans a wheel must run after a standstill before its slip counts (the fit's window then
+lies in the motion, past the first edge, whose phase is unknown)."""
 
 # counters(): each counter's key and column, in declaration order
 _COUNTER_KEYS = tuple(c.name.lower() for c in Counter)
@@ -132,6 +139,9 @@ class MdsfFleet:
         self._tooth_arc_m = np.zeros((0, 2))
         self._min_speed_mps = np.zeros(0)
         self._settle_max_change = np.zeros(0)
+        # per slot and wheel: stamp of the last tick whose measured rim speed was a standstill
+        # (or unknown); _NEVER until the vehicle's first tick
+        self._still_ns = np.zeros((0, 2), dtype=np.int64)
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
@@ -147,12 +157,14 @@ class MdsfFleet:
             grow_slot_array(self, "_tooth_arc_m", cap, (2,), 0.0)
             grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
             grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
+            grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
         teeth = config.encoder.teeth_per_rev
         self._tooth_arc_m[slot] = self._radius_m[slot] * (2.0 * np.pi / teeth)
         self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
         self._settle_max_change[slot] = config.slip.settle_max_change
+        self._still_ns[slot] = _NEVER
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
@@ -212,6 +224,7 @@ class MdsfFleet:
         radius = self._radius_m[row_slot]
         min_speed = self._min_speed_mps[row_slot]
         rim = flat.omega * radius
+        still_ns = self._last_still(due, rim, min_speed)
         rim_std = flat.omega_std * radius
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
@@ -253,8 +266,14 @@ class MdsfFleet:
             fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
             0.0,
         )
-        settling = sp.valid & unsettled(
-            ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
+        settling = sp.valid & (
+            unsettled(
+                ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
+            )
+            | (
+                ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span)
+                & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
+            )
         )
         valid = sp.valid & ~settling
         enu, heading, carried = self._carry(due, res)
@@ -309,6 +328,32 @@ class MdsfFleet:
             )
             if b > a
         ]
+
+    def _last_still(self, due: FleetTicks, rim: FloatArray, min_speed: FloatArray) -> IntArray:
+        """Per row and wheel, the stamp of the latest tick at or before it whose measured rim
+        speed was unknown or below the standstill speed (this call's rows, else the stored one;
+        a vehicle's first tick counts as one), shape (rows, 2); stores each vehicle's last.
+
+        A wheel starting from rest has its first fits over edges from before the start (a fit
+        of 30 % low read as valid slip): slip waits until the wheel has run ``_START_SPANS``
+        fit spans since (:func:`estimator.slip.fit_span_s`), so no value comes before the
+        wheel's first fit or from a zero-edge start. Part of the settling rule (flag SETTLING;
+        off with it at ``settle_max_change`` 1e9)."""
+        flat = due.inputs
+        stamps = flat.stamp_ns
+        n = stamps.shape[0]
+        still = ~np.isfinite(rim) | (np.abs(np.nan_to_num(rim)) < min_speed[:, None])
+        idx = np.where(still, np.arange(n)[:, None], -1)
+        last = np.maximum.accumulate(idx, axis=0)
+        seg_start = np.repeat(due.offsets, due.lengths)
+        stored = self._still_ns[np.repeat(due.slots, due.lengths)]
+        stored = np.where(
+            stored == _NEVER, np.repeat(stamps[due.offsets], due.lengths)[:, None], stored
+        )
+        out = np.where(last >= seg_start[:, None], stamps[np.maximum(last, 0)], stored)
+        ends = due.offsets + due.lengths - 1
+        self._still_ns[due.slots] = out[ends]
+        return out
 
     def _carry(
         self, due: FleetTicks, res: dict[str, FloatArray]

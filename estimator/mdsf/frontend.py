@@ -310,6 +310,52 @@ def _fill_segments(
 # ---------------------------------------------------------------------------------------------
 
 
+def _rates_at_tick(
+    tick_id: IntArray,
+    tau_s: FloatArray,
+    rates: tuple[FloatArray, ...],
+    means: list[FloatArray],
+    n: IntArray,
+) -> tuple[tuple[FloatArray, ...], FloatArray]:
+    """Body rates at each tick's instant: a least-squares quadratic in ``τ`` (sample time −
+    tick time) through the tick window's samples, evaluated at ``τ = 0``.
+
+    The lever-arm terms (``h1·ωx``, ``h0·ωx``, ``x·ωz``) correct the speeds *at the tick*; the
+    window's mean rate is half a window older, which under a body sway of a few hertz on a tall
+    mast is off by about ``ω̇·dt/2`` (metres per second at the antenna). With the moment matrix
+    ``M = [Στ^(i+j)]`` (3, 3) and ``r = [Στ^i·ω]`` the value at ``τ = 0`` is ``(M⁻¹·r)[0]``,
+    its white-noise variance factor ``(M⁻¹)[0, 0]`` (``1/n`` for the mean, about 0.6 for ten
+    samples). A window of fewer than three samples keeps its mean.
+
+    Parameters
+    ----------
+    tick_id : (s,) int — tick of each sample; tau_s : (s,) — sample time − tick time [s]
+    rates : arrays (s,) — per-sample rates; means : arrays (m,) — their tick means
+    n : (m,) int — samples per tick
+
+    Returns
+    -------
+    (rates at the ticks, each (m,)), variance factor (m,) on one sample's noise variance
+    """
+    m = n.shape[0]
+    mom = [np.bincount(tick_id, weights=tau_s**k, minlength=m) for k in range(5)]
+    M = np.stack([np.stack(mom[i : i + 3], axis=1) for i in range(3)], axis=1)
+    fit = n >= 3
+    M[~fit] = np.eye(3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.linalg.inv(M)
+    fit &= np.isfinite(inv).all(axis=(1, 2)) & (inv[:, 0, 0] > 0)
+    out = []
+    for w, mean in zip(rates, means, strict=True):
+        r = np.stack(
+            [np.bincount(tick_id, weights=tau_s**k * w, minlength=m) for k in range(3)], axis=1
+        )
+        at0 = np.einsum("kj,kj->k", nan_to_num(inv[:, 0, :]), r)
+        out.append(np.where(fit, at0, mean))
+    factor = np.where(fit, inv[:, 0, 0], 1.0 / np.maximum(n, 1))
+    return tuple(out), factor
+
+
 class FleetFrontEnd:
     """Buffers the measurements of many vehicles (by slot) and builds their tick inputs.
 
@@ -980,6 +1026,10 @@ class _Batch:
                 np.bincount(tick_id, weights=x[inb], minlength=n_ticks) / n_imu
                 for x in (a_fwd, wx, wz, self.fy)
             ]
+        tau = (self.T[inb] - self.ticks[tick_id]) * _NS
+        (wx_tick, wz_tick), rate_var_factor = _rates_at_tick(
+            tick_id, tau, (wx[inb], wz[inb]), means[1:3], n_imu
+        )
         # last sample of each tick window
         before = np.bincount(self.s_row[~inb], minlength=self.n_rows)
         cum = np.cumsum(n_imu)
@@ -995,13 +1045,14 @@ class _Batch:
             # assumed correlation time (pitch_leak_corr_s)
             pv = self._pitch_var_at_ticks()
             accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_leak_corr_s / cfg.dt_s)
-        gyro_var = fe.gyro_var_cfg[slot_t] / nf
+        gyro_var = fe.gyro_var_cfg[slot_t] * rate_var_factor
         z = np.full((n_ticks, N_OBS_PAPER), np.nan)
         z[:, MdsfObs.A1] = means[0]
-        z[:, MdsfObs.OMEGA_X] = means[1]
-        z[:, MdsfObs.OMEGA_Z] = means[2]
+        z[:, MdsfObs.OMEGA_X] = wx_tick
+        z[:, MdsfObs.OMEGA_Z] = wz_tick
+        self.rates_bc = (wx, wz)
         gnss_ok, gnss_var = self._gnss_speed(z)
-        enu, att, fix_age_s = self._hold_outputs(z[:, MdsfObs.OMEGA_Z], theta_tick, phi_tick)
+        enu, att, fix_age_s = self._hold_outputs(means[2], theta_tick, phi_tick)
         dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
         omega, omega_std, wflags = self._wheels()
         return TickInputs(
@@ -1423,6 +1474,7 @@ class _Batch:
         if self.product:
             a_t = nan_to_num(z[tid, MdsfObs.A1])
             vg_al = self.g_vg + a_t * (self.ticks[tid] - self.g_t) * _NS
+            vg_al = vg_al + self._lever_change(tid, z)
             ti = tid[inside]
             cnt = np.bincount(ti, minlength=n_ticks)
             s_vg = np.bincount(ti, weights=vg_al[inside], minlength=n_ticks)
@@ -1437,6 +1489,23 @@ class _Batch:
             gnss_var[ti] = self.g_var[inside]
             gnss_ok[ti] = True
         return gnss_ok, gnss_var
+
+    def _lever_change(self, tid: IntArray, z: FloatArray) -> FloatArray:
+        """Change of the antenna's lever-arm terms from each fix's instant to its tick,
+        ``−h1·(ωx(tick) − ωx(t_g)) + (x_a − x_i)·(ωz(tick) − ωz(t_g))``, shape (fixes,), with
+        the rates at the fix from the last IMU sample at or before it (0 where there is none,
+        or the tick has no rate): eq. (2) at the tick, not at the fix."""
+        wx, wz = self.rates_bc
+        j = self.g_j - 1
+        has = (j >= self.s_begin[self.g_row]) & (j >= 0)
+        jj = np.where(has, j, 0)
+        if wx.shape[0] == 0:
+            return np.zeros(tid.shape[0])
+        d_wx = nan_to_num(z[tid, MdsfObs.OMEGA_X] - wx[jj])
+        d_wz = nan_to_num(z[tid, MdsfObs.OMEGA_Z] - wz[jj])
+        s = self.slots[self.g_row]
+        change = -self.fe.h1_m[s] * d_wx + self.fe.ant_x_m[s] * d_wz
+        return np.where(has, change, 0.0)
 
     def _gnss_distance(self) -> tuple[BoolArray, FloatArray, FloatArray, BoolArray]:
         """Along-track distance of the IMU point from RTK-fixed positions, per tick.

@@ -51,8 +51,9 @@ Two modes (:class:`MdsfMode`):
       and counted; a persistent disagreement re-acquires the GNSS speed after ``reacquire_s``
       (flag RESET);
     * **time alignment**: every source is put on the filter tick by its own time stamp (GNSS
-      speed moved to the tick with the IMU acceleration, IMU averaged over the tick window,
-      wheel speed fitted and evaluated at the tick, see :mod:`estimator.wheel_speed`);
+      speed moved to the tick with the IMU acceleration and the lever-arm rates, acceleration
+      averaged over the tick window, body rates fitted over it and taken at the tick, wheel
+      speed fitted and evaluated at the tick, see :mod:`estimator.wheel_speed`);
     * **lever arms**: the forward speed of a body point ``(x, y, z)`` from ``O`` is
       ``V0 + ωz·x − ωx·z``, so with the IMU at ``(x_i, y_i, h0)`` and the antenna at
       ``(x_a, y_a, h0 + h1)`` the observation and output rows become
@@ -264,8 +265,13 @@ class MdsfConfig:
         Innovation chi-square (1 degree of freedom) above which a GNSS speed is rejected
         (product mode; 10.83 is the 99.9 % point).
     gate_floor_mps : float
-        Floor added to the innovation std of the GNSS gate: innovations below
+        Floor added to the innovation std of the GNSS gate at standstill: innovations below
         ``gate_floor·√gate_chi2`` are never rejected [m/s].
+    gate_floor_rel : float
+        Its part proportional to the speed, ``floor = hypot(gate_floor_mps, rel·|V1|)``: a
+        speed wandering by a share of itself must not lock GNSS out at speed, and a 0.2 m/s
+        outlier must not pass at a creep (the receiver's reported std enters the gate through
+        ``R``) [-].
     reacquire_s : float
         After GNSS speeds were rejected this long without a break, the next one resets the
         speed (product mode) [s].
@@ -356,7 +362,8 @@ class MdsfConfig:
     paper_speed_walk_mps_per_sqrt_s: float = 0.05
     rate_walk_radps_per_sqrt_s: float = 0.3
     gate_chi2: float = 10.83
-    gate_floor_mps: float = 0.1
+    gate_floor_mps: float = 0.02
+    gate_floor_rel: float = 0.03
     reacquire_s: float = 3.0
     gnss_timeout_s: float = 1.0
     max_speed_var_mps2: float = 100.0

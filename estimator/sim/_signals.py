@@ -22,6 +22,7 @@ __all__ = [
     "Profile",
     "cumtrapz",
     "ou_process",
+    "ramp_steps",
     "smooth_window",
 ]
 
@@ -148,6 +149,19 @@ def smooth_window(x: FloatArray, lo: float, hi: float, edge: float) -> FloatArra
     rise = _ease((xa - (lo - edge / 2)) / edge)
     fall = 1.0 - _ease((xa - (hi - edge / 2)) / edge)
     return rise * fall
+
+
+def ramp_steps(x: FloatArray, steps: tuple[tuple[float, float, float], ...]) -> FloatArray:
+    """Sum of eased steps: each ``(x0, delta, width)`` rises by ``delta`` from ``x0`` to
+    ``x0 + width`` (cosine ease; a width of 0 is a jump at ``x0``)."""
+    xa = np.asarray(x, dtype=np.float64)
+    out = np.zeros_like(xa)
+    for x0, delta, width in steps:
+        if width > 0:
+            out += delta * _ease((xa - x0) / width)
+        else:
+            out += delta * (xa >= x0)
+    return out
 
 
 def cumtrapz(y: FloatArray, dx: float) -> FloatArray:

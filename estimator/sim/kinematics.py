@@ -146,6 +146,9 @@ class MotionPlan:
     heading0_rad : float
         Initial heading (from north, clockwise).
     traction : TractionModel
+    slip_offset : Profile
+        Slip (fraction) added to both driven wheels as a function of time, on top of the
+        traction model's (steps and ramps: a wet patch, an implement lowered or lifted).
     """
 
     duration_s: float
@@ -159,6 +162,7 @@ class MotionPlan:
     drawbar: Profile = _zero
     heading0_rad: float = 0.0
     traction: TractionModel = field(default_factory=TractionModel)
+    slip_offset: Profile = _zero
 
 
 def rotation_body_to_enu(psi: FloatArray, theta: FloatArray, phi: FloatArray) -> FloatArray:
@@ -320,6 +324,7 @@ def integrate_plan(
         ],
         axis=1,
     )
+    base = base + np.asarray(plan.slip_offset(t), dtype=np.float64) * moving
     slip = np.stack([base - turn, base + turn], axis=1) + tex
     slip = np.clip(slip, -0.9, 0.9)
     rim = rim_speed_from_slip(ground, slip)

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from estimator._arrays import FloatArray
-from estimator.sim._signals import BoundedSines, EasedKnots, smooth_window
+from estimator.sim._signals import BoundedSines, EasedKnots, ramp_steps, smooth_window
 from estimator.sim.kinematics import MotionPlan, TractionModel
 
 Params = Mapping[str, Any]
@@ -130,7 +130,15 @@ _COMMON: dict[str, Any] = {
     "turn_slip_gain": 0.1,
     "slip_texture": 0.003,
     "slip_texture_tau_s": 1.5,
+    "sway_hz": 1.0,
+    "sway_pitch_deg": 0.0,
+    "sway_roll_deg": 0.0,
+    "slip_steps": (),
 }
+"""Parameters every scenario takes. Body sway: pitch ``A_θ·sin(2π·f·t)`` and roll
+``A_φ·cos(2π·f·t)`` about the rear axle (``sway_*``), in full from 1 m/s and faded to none at
+standstill; ``slip_steps``: ``((t_s, delta_pct, ramp_s), ...)`` added to both driven wheels' slip
+(:func:`estimator.sim._signals.ramp_steps`; a wet patch, an implement lowered or lifted)."""
 
 
 def _traction(p: Params) -> TractionModel:
@@ -175,11 +183,27 @@ def _plan(
         # bumps come faster the faster the vehicle goes: body pitch/roll motion grows with speed
         return np.clip(np.asarray(v0) / full, 0.0, 1.0)
 
+    sway_w = 2.0 * math.pi * float(p["sway_hz"])
+    sway_pitch, sway_roll = math.radians(p["sway_pitch_deg"]), math.radians(p["sway_roll_deg"])
+    steps = tuple((float(t0), 0.01 * float(d), float(w)) for t0, d, w in p["slip_steps"])
+
+    def sway_gate(v0: FloatArray) -> FloatArray:
+        return np.clip(np.asarray(v0), 0.0, 1.0)
+
     def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        return w_pitch(t) * body_gate(v0)
+        out = w_pitch(t) * body_gate(v0)
+        if sway_pitch:
+            out = out + sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
+        return out
 
     def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        return w_roll(t) * body_gate(v0)
+        out = w_roll(t) * body_gate(v0)
+        if sway_roll:
+            out = out + sway_roll * np.cos(sway_w * t) * sway_gate(v0)
+        return out
+
+    def slip_offset(t: FloatArray) -> FloatArray:
+        return ramp_steps(t, steps)
 
     def zero(x: FloatArray) -> FloatArray:
         return np.zeros_like(np.asarray(x, dtype=np.float64))
@@ -199,6 +223,7 @@ def _plan(
         drawbar=drawbar or zero,
         heading0_rad=math.radians(p["heading0_deg"]),
         traction=_traction(p),
+        slip_offset=slip_offset,
     )
 
 
@@ -464,6 +489,43 @@ def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
     )
 
 
+def _random_drive(p: Params, rng: np.random.Generator) -> MotionPlan:
+    """From rest, legs of random speed and yaw rate (``leg_s`` apart, each eased over 2-5 s),
+    now and then a stop (``stop_prob``), to rest again. A leg's yaw rate is at most
+    ``turn_rate_max_radps`` and at most ``0.55·V`` rad/s (so the inner wheel of a 1.8 m track
+    keeps rolling forward), zero on half of the legs."""
+    dur = float(p["duration_s"])
+    v_lo, v_hi = float(p["speed_min_mps"]), float(p["speed_max_mps"])
+    leg_lo, leg_hi = p["leg_s"]
+    if not (0.0 < v_lo <= v_hi and dur >= 20.0 and 0.0 < leg_lo <= leg_hi):
+        raise ValueError(
+            "random_drive needs 0 < speed_min <= speed_max, duration_s >= 20, legs > 0"
+        )
+    tl = _Timeline()
+    tl.go(float(p["stand_s"]))
+    while tl.t < dur - 12.0:
+        if tl.v > 0 and rng.random() < float(p["stop_prob"]):
+            tl.go(rng.uniform(2.0, 4.0), speed=0.0, yaw=0.0)
+            tl.go(rng.uniform(1.0, 4.0))
+            continue
+        v = rng.uniform(v_lo, v_hi)
+        w_max = min(float(p["turn_rate_max_radps"]), 0.55 * v, 0.55 * max(tl.v, v))
+        w = rng.uniform(-w_max, w_max) if rng.random() < 0.5 else 0.0
+        if tl.v > 0 and abs(tl.yaw) > 0.55 * v:
+            w = 0.0
+        tl.go(rng.uniform(2.0, 5.0), speed=v, yaw=w)
+        tl.go(rng.uniform(leg_lo, leg_hi))
+    tl.go(4.0, speed=0.0, yaw=0.0)
+    tl.go(max(dur - tl.t, 2.0))
+    speed, yaw, _ = tl.profiles()
+    drawbar = float(p["drawbar"])
+
+    def draw(t: FloatArray) -> FloatArray:
+        return np.full_like(t, drawbar)
+
+    return _plan(p, rng, tl.t, speed, yaw, drawbar=draw)
+
+
 _FIELD_SENSORS: dict[str, Any] = {"gnss_outlier_prob": 0.002}
 
 
@@ -648,6 +710,25 @@ SCENARIOS: Mapping[str, Scenario] = MappingProxyType(
                         "gnss_outages": _short_outage,
                     }
                 ),
+            ),
+            Scenario(
+                "random_drive",
+                "from rest, legs of random speed and turn rate with stops; the random-drive "
+                "bench's drive (its knobs drawn over stated ranges)",
+                _random_drive,
+                _with_common(
+                    {
+                        "duration_s": 150.0,
+                        "stand_s": 2.0,
+                        "speed_min_mps": 1.0,
+                        "speed_max_mps": 4.0,
+                        "turn_rate_max_radps": 0.3,
+                        "leg_s": (4.0, 15.0),
+                        "stop_prob": 0.15,
+                        "drawbar": 0.05,
+                    }
+                ),
+                MappingProxyType(dict(_FIELD_SENSORS)),
             ),
         )
     }

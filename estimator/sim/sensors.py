@@ -54,6 +54,7 @@ __all__ = [
     "edge_times_s",
     "gnss_emissions",
     "imu_emissions",
+    "imu_mounting",
     "imu_point_m",
     "wheel_emissions",
 ]
@@ -82,6 +83,10 @@ class SensorSpec:
     gnss_float_windows : ((t0_s, t1_s), ...) — RTK float: noise × ``gnss_float_noise_scale``.
     gnss_latency_ms : delivery delay after the epoch stamp.
     gnss_data_lag_ms : the solution describes the instant this long before its stamp.
+    gnss_epoch_phase_ms : 0.0 — epochs at ``phase + k/rate`` from the start (0: on whole
+    periods of the start, e.g. whole tenths of a second at 10 Hz).
+    gnss_epoch_jitter_ms : 0.0 — each epoch stamped up to ± this off its grid instant (uniform;
+    the solution describes the stamped instant), so two epochs can share a filter tick.
 
     IMU
     ---
@@ -103,6 +108,13 @@ class SensorSpec:
     wheel_heartbeats : True — a window without an edge on either wheel sends an empty packet
     saying so (the wheels stream is complete to the window's end).
     wheel_radius_error_rel : (left, right) — true radius = configured × (1 + error).
+
+    Clocks and mounting
+    -------------------
+    clock_offset_ms : (gnss, imu, wheels) — each stream's clock runs ahead of the true time by
+    this much (signed): its sample stamped ``t`` describes the instant ``t − offset``.
+    imu_misalign_deg : (yaw, pitch) — the IMU's axes turned against the body's (yaw about Z,
+    then pitch about X): it reads ``Rᵀ·v`` of every body vector ``v``.
 
     Truth grid
     ----------
@@ -145,6 +157,10 @@ class SensorSpec:
     wheel_latency_ms: float = 5.0
     wheel_heartbeats: bool = True
     wheel_radius_error_rel: tuple[float, float] = (0.0, 0.0)
+    gnss_epoch_phase_ms: float = 0.0
+    gnss_epoch_jitter_ms: float = 0.0
+    clock_offset_ms: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    imu_misalign_deg: tuple[float, float] = (0.0, 0.0)
     fine_rate_hz: float = 500.0
     truth_rate_hz: float = 100.0
 
@@ -184,6 +200,8 @@ class SensorSpec:
             "gnss_data_lag_ms",
             "imu_latency_ms",
             "wheel_latency_ms",
+            "gnss_epoch_phase_ms",
+            "gnss_epoch_jitter_ms",
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0")
@@ -231,6 +249,23 @@ def _stamps(start_ns: int, t_s: FloatArray) -> npt.NDArray[np.int64]:
     return start_ns + np.round(t_s * 1e9).astype(np.int64)
 
 
+def _gnss_instants(
+    t_s: FloatArray, idx: npt.NDArray[np.int64], spec: SensorSpec, unit_jitter: FloatArray
+) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+    """Stamped time of each epoch (its grid instant ``t_s[idx]`` plus the jitter, ``unit_jitter``
+    in ±1 scaled by ``gnss_epoch_jitter_ms``) and the fine-grid sample its solution describes:
+    ``gnss_data_lag_ms`` and the GNSS clock offset before the stamp, within the run."""
+    t = t_s[idx]
+    if spec.gnss_epoch_jitter_ms > 0:
+        t = np.clip(t + unit_jitter * spec.gnss_epoch_jitter_ms * 1e-3, 0.0, t_s[-1])
+    back_s = (spec.gnss_data_lag_ms + spec.clock_offset_ms[0]) * 1e-3
+    if spec.gnss_epoch_jitter_ms > 0 or spec.clock_offset_ms[0] != 0:
+        src = np.round((t - back_s) * spec.fine_rate_hz).astype(np.int64)
+    else:  # the grid's own index (bit-identical runs without jitter or offset)
+        src = idx - round(spec.gnss_data_lag_ms * 1e-3 * spec.fine_rate_hz)
+    return t, np.clip(src, 0, t_s.size - 1)
+
+
 def gnss_emissions(
     truth: FineTruth,
     spec: SensorSpec,
@@ -241,17 +276,9 @@ def gnss_emissions(
 ) -> list[Emission]:
     """GNSS epochs (see the module docstring for the error model)."""
     step = round(spec.fine_rate_hz / spec.gnss_rate_hz)
-    idx = np.arange(0, truth.t_s.size, step)
-    t = truth.t_s[idx]
+    phase = round(spec.gnss_epoch_phase_ms * 1e-3 * spec.fine_rate_hz)
+    idx = np.arange(phase, truth.t_s.size, step)
     n = idx.size
-    lag = round(spec.gnss_data_lag_ms * 1e-3 * spec.fine_rate_hz)
-    src = np.maximum(idx - lag, 0)
-
-    p_ant = antenna_point_m(config)
-    rot = truth.rot[src]
-    v_body = truth.point_velocity_body(p_ant)[src]
-    vel = np.einsum("nij,nj->ni", rot, v_body)
-    pos = truth.pos_enu_m[src] + rot @ p_ant
 
     # draw everything every time, so switching one imperfection off keeps the others' values
     rel = rng.uniform(-1.0, 1.0, n) * spec.gnss_speed_noise_rel
@@ -260,6 +287,13 @@ def gnss_emissions(
     att_noise = rng.standard_normal((n, 3))
     outlier = rng.random(n) < spec.gnss_outlier_prob
     outlier_v = rng.standard_normal((n, 3)) * np.array([1.0, 1.0, 0.5]) * spec.gnss_outlier_mps
+    t, src = _gnss_instants(truth.t_s, idx, spec, rng.uniform(-1.0, 1.0, n))
+
+    p_ant = antenna_point_m(config)
+    rot = truth.rot[src]
+    v_body = truth.point_velocity_body(p_ant)[src]
+    vel = np.einsum("nij,nj->ni", rot, v_body)
+    pos = truth.pos_enu_m[src] + rot @ p_ant
 
     scale = np.where(_in_windows(t, spec.gnss_float_windows), spec.gnss_float_noise_scale, 1.0)
     forward = rot[:, :, 1]
@@ -326,6 +360,16 @@ def _random_walk(rng: np.random.Generator, n: int, dt: float, walk: float) -> Fl
     return np.cumsum(steps, axis=0) - steps[0]
 
 
+def imu_mounting(misalign_deg: tuple[float, float]) -> FloatArray:
+    """Rotation ``R = Rz(yaw)·Rx(pitch)`` (shape (3, 3)) of the IMU's axes in the body frame;
+    row vectors ``v`` of the body read ``v @ R`` (``Rᵀ·v``) in the IMU's axes."""
+    yaw, pitch = (math.radians(a) for a in misalign_deg)
+    cz, sz, cx, sx = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    return rz @ rx
+
+
 def imu_emissions(
     truth: FineTruth,
     spec: SensorSpec,
@@ -339,9 +383,11 @@ def imu_emissions(
     n = idx.size
     dt = 1.0 / spec.imu_rate_hz
     p_imu = imu_point_m(config)
-    inertial = truth.point_accel_body(p_imu)[idx]
-    force = truth.specific_force_body(p_imu)[idx]
-    rate = truth.omega_radps[idx]
+    src = np.clip(idx - round(spec.clock_offset_ms[1] * 1e-3 * spec.fine_rate_hz), 0, idx[-1])
+    turn = imu_mounting(spec.imu_misalign_deg)
+    inertial = truth.point_accel_body(p_imu)[src] @ turn
+    force = truth.specific_force_body(p_imu)[src] @ turn
+    rate = truth.omega_radps[src] @ turn
 
     accel_bias = rng.standard_normal(3) * spec.accel_bias_std_mps2
     gyro_bias = rng.standard_normal(3) * spec.gyro_bias_std_radps
@@ -424,6 +470,8 @@ def wheel_emissions(
         teeth = np.sort(np.mod(teeth, 2 * math.pi))
         angle0 = float(rng.uniform(0.0, 2 * math.pi))
         t_edges = edge_times_s(truth.t_s, truth.wheel_angle_rad[:, int(wheel)], teeth, angle0)
+        t_edges = t_edges + spec.clock_offset_ms[2] * 1e-3
+        t_edges = t_edges[(t_edges >= 0.0) & (t_edges <= truth.t_s[-1])]
         rel_ns = np.floor(t_edges * 1e9 / tick_ns).astype(np.int64) * tick_ns
         stamps = start_ns + rel_ns
         win = rel_ns // window_ns

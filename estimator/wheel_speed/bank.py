@@ -34,6 +34,8 @@ from estimator.wheel_speed.methods import (
 __all__ = ["WheelBank"]
 
 _NS = 1e-9
+_NO_ORIGIN = np.iinfo(np.int64).min
+"""``_cal_origin`` of a slot that has had no edge."""
 
 _ARENA = (
     ("_stamp", np.int64),
@@ -80,6 +82,7 @@ class WheelBank:
     _signed: npt.NDArray[np.bool_]
     _cal_from: IntArray
     _cal_upto: IntArray
+    _cal_origin: IntArray
     _calibrated: IntArray
     _angle_var: FloatArray
     _delta: FloatArray
@@ -123,6 +126,7 @@ class WheelBank:
         grow_slot_array(self, "_signed", n, (), False)
         grow_slot_array(self, "_cal_from", n, (), i64(0))  # next edge number to calibrate on
         grow_slot_array(self, "_cal_upto", n, (), i64(np.iinfo(np.int64).min))  # last instant
+        grow_slot_array(self, "_cal_origin", n, (), i64(_NO_ORIGIN))  # first edge: grid origin
         grow_slot_array(self, "_calibrated", n, (), i64(0))
         grow_slot_array(self, "_angle_var", n, (), self._prior_var)  # edge angle noise [rad²]
         grow_slot_array(self, "_delta", n, (self.config.teeth_per_rev,), 0.0)
@@ -152,6 +156,7 @@ class WheelBank:
             (self._signed, False),
             (self._cal_from, 0),
             (self._cal_upto, np.iinfo(np.int64).min),
+            (self._cal_origin, _NO_ORIGIN),
             (self._calibrated, 0),
             (self._angle_var, self._prior_var),
             (self._delta, 0.0),
@@ -209,6 +214,8 @@ class WheelBank:
             n = kept
             tl = t.tolist()
         self._floor_ns[slot] = tl[-1]
+        if self._cal_origin[slot] == _NO_ORIGIN:
+            self._cal_origin[slot] = tl[0]
         if direction is not None:
             d = np.asarray(direction).reshape(-1)
             if d.shape[0] != n:
@@ -446,8 +453,9 @@ class WheelBank:
             if cfg.tooth_calibration:
                 # each row calibrates on its own grid boundaries; a chunk of columns ends where
                 # any row reaches its next boundary (other rows are not due there)
-                boundary = (q2[first, i] // period) * period
-                due = boundary > self._cal_upto[uniq]
+                origin = self._cal_origin[uniq]
+                boundary = self._boundary(q2[first, i], origin)
+                due = (boundary > self._cal_upto[uniq]) & (origin != _NO_ORIGIN)
                 if not due.any():
                     due = None
                 j = int((q2[first] < (boundary + period)[:, None]).sum(axis=1).min())
@@ -462,7 +470,7 @@ class WheelBank:
             q = q2[:, i:j].reshape(-1)
             times = [q, q - self._w_ns]
             if due is not None:
-                times.append(np.repeat((q2[:, i] // period) * period, nq))
+                times.append(np.repeat(self._boundary(q2[:, i], self._cal_origin[s]), nq))
             after = self._search(rs, self._head[rs], self._count[rs], np.stack(times))
             if due is not None:
                 self._calibrate(uniq[due], after[2][first[due] * nq] - 1)
@@ -569,6 +577,14 @@ class WheelBank:
             self._signed[rs],
             self._angle_var[rs],
         )
+
+    def _boundary(self, q: IntArray, origin: IntArray) -> IntArray:
+        """The calibration instant in force at ``q``: the last ``origin + k·period`` at or
+        before it, ``origin`` the slot's first edge (the grid moves with the data, so rows do
+        not depend on the absolute clock); ``q`` itself where the slot has had no edge."""
+        period = self._period_ns
+        rel = q - np.where(origin == _NO_ORIGIN, 0, origin)
+        return np.where(origin == _NO_ORIGIN, q, q - rel + (rel // period) * period)
 
     def _trim(self, s: IntArray, last: IntArray, first_in: IntArray) -> None:
         """Drop edges no later query can use."""

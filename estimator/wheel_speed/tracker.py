@@ -96,8 +96,9 @@ class WheelTracker:
         """Speed at each time in ``query_ns`` (shape ``(m,)``, non-decreasing); trims history.
 
         The tooth corrections in force at time ``t`` are those learnt from the edges up to the
-        last multiple of ``calibration_period_s`` at or before ``t``, so results do not depend
-        on how queries are batched.
+        last instant ``t0 + k·calibration_period_s`` at or before ``t`` (``t0`` the wheel's
+        first edge), so results depend neither on how queries are batched nor on the absolute
+        clock.
         """
         r = self._bank.query(np.array([self._slot]), query_ns)
         return WheelSpeedResult(r.omega_radps[0], r.std_radps[0], r.method[0])
@@ -131,6 +132,7 @@ class WheelTracker:
             "_angle_before",
             "_signed",
             "_cal_upto",
+            "_cal_origin",
             "_calibrated",
             "_angle_var",
             "_delta",

@@ -55,6 +55,18 @@ outliers, a wet patch at 1 m/s, GNSS at 10 Hz, field work on a 6° side slope, a
 without attitude, GNSS lost through a headland turn), so a change tuned to the named runs shows
 what it does elsewhere. Their rows are labelled ``scenario[setting=value]`` and judged on the
 floors of their scenario.
+
+Random drives
+-------------
+``--random N --seed S`` runs, instead of the named scenarios, ``N`` drives drawn by
+:func:`estimator.sim.drives.draw_drives` (seed ``S``; its docstring states the distribution:
+creeping, body sway on a tall mast, lever arms, slip steps and ramps, outages of 10-120 s,
+outliers, jittered epochs, clock offsets, tyre radii off, a misaligned IMU, coarse rings) in
+product and paper mode, and prints per method the median, p90, p95 and worst of slip RMS and
+p95, wheel-speed max error and coverage, the random floors (product: slip RMS ≤ 1 pp and p95
+≤ 2 pp on ≥ 95 % of the drives, RMS never above 2 pp, wheel-speed max error ≤ 3 % and coverage
+≥ 98 % on every drive) and the worst drives with their knobs. Seeds 1 and 2 are for
+development; 1001 and 1002 are kept for judging and never tuned on.
 """
 
 from __future__ import annotations
@@ -74,6 +86,7 @@ import numpy.typing as npt
 from estimator.base import FleetEstimator
 from estimator.config import WheeledRearDriveConfig
 from estimator.sim import SCENARIOS, SimRun, replay_arrivals, simulate, truth_at
+from estimator.sim.drives import DrawnDrive, draw_drives
 from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estimates
 from server.tooling.bench import int_list
 
@@ -87,10 +100,12 @@ __all__ = [
     "default_estimators",
     "evaluate",
     "main",
+    "print_random_table",
     "print_seeds_table",
     "print_table",
     "run",
     "run_estimator",
+    "run_random",
     "run_seeds",
     "summarize_seeds",
     "traditional_estimates",
@@ -106,6 +121,17 @@ MOVING_MPS = 0.5
 """Rows count when the true ``V0`` exceeds this (the source's relative errors are on motion)."""
 
 METHODS = ("product", "paper", "traditional")
+
+NAMED = tuple(n for n in SCENARIOS if n != "random_drive")
+"""The named scenarios the bench runs by default (``random_drive`` is run by ``--random``)."""
+HELD_OUT_SEEDS = (1001, 1002)
+"""Random-drive seeds kept for judging: never tuned on."""
+RANDOM_SHARE_PCT = 95.0
+"""Share of random drives that must meet the slip floors (product mode)."""
+RANDOM_NEVER_RMS_PP = 2.0
+"""No random drive's slip RMS above this (product mode)."""
+RANDOM_VW_MAX_PCT = 3.0
+"""Wheel ground-speed max error of every random drive at most this (product mode)."""
 
 #: Scenario variants for ``--variants``: (scenario, overrides of :func:`estimator.sim.simulate`).
 VARIANTS: tuple[tuple[str, Mapping[str, Any]], ...] = (
@@ -402,7 +428,7 @@ def run(
     json_path : Path, optional
         Where to write the result (same numbers as the table).
     scenarios : sequence of str, optional
-        Scenario names (default: all of :data:`estimator.sim.SCENARIOS`).
+        Scenario names (default: :data:`NAMED`).
     seed : int
         Simulation seed (one run per scenario).
     estimators : mapping, optional
@@ -421,7 +447,7 @@ def run(
         (its metrics are then NaN) and, for the product mode, ``floors_pass`` and
         ``floors_failed``.
     """
-    names = list(scenarios) if scenarios is not None else list(SCENARIOS)
+    names = list(scenarios) if scenarios is not None else list(NAMED)
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise KeyError(f"unknown scenario(s) {unknown}; known: {list(SCENARIOS)}")
@@ -605,6 +631,166 @@ def run_seeds(
     return _finish(result, summary, json_path, None if quiet else print_seeds_table, out)
 
 
+_RANDOM_METRICS = ("slip_rms_pp", "slip_p95_pp", "vw_max_pct", "coverage_pct")
+_QUANTILES = (("median", 50.0), ("p90", 90.0), ("p95", 95.0))
+
+
+def _random_drive_rows(
+    drive: DrawnDrive, factories: Mapping[str, EstimatorFactory]
+) -> list[dict[str, Any]]:
+    """One drawn drive through every method: a result row per method (metrics, ``seconds``,
+    ``error`` if it raised)."""
+    sim = simulate(
+        "random_drive",
+        seed=drive.sim_seed,
+        start_ns=START_NS,
+        config=drive.config(),
+        **dict(drive.overrides),
+    )
+    config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
+    out = []
+    for method, factory in factories.items():
+        row: dict[str, Any] = {"drive": drive.index, "method": method}
+        t0 = time.perf_counter()
+        try:
+            rows = run_estimator(factory(), sim, config)
+        except Exception as exc:  # a crashing method is reported in its row, not hidden
+            row["error"] = f"{type(exc).__name__}: {exc}"
+            rows = empty_estimates(0)
+        row["seconds"] = time.perf_counter() - t0
+        row.update(evaluate(rows, sim.truth))
+        out.append(row)
+    return out
+
+
+def _random_floor_failures(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The random floors (module docstring) the product rows miss, named."""
+
+    def val(r: Mapping[str, Any], key: str, bad: float) -> float:
+        v = float(r.get(key, math.nan))
+        return v if math.isfinite(v) else bad
+
+    n = len(rows)
+    good = sum(
+        val(r, "slip_rms_pp", math.inf) <= 1.0 and val(r, "slip_p95_pp", math.inf) <= 2.0
+        for r in rows
+    )
+    failed = []
+    if n == 0 or 100.0 * good / n < RANDOM_SHARE_PCT:
+        failed.append(f"{good}/{n} drives within slip RMS 1 pp and p95 2 pp (need ≥ 95 %)")
+    checks = (
+        ("slip_rms_pp", RANDOM_NEVER_RMS_PP, f"RMS > {RANDOM_NEVER_RMS_PP:g} pp"),
+        ("vw_max_pct", RANDOM_VW_MAX_PCT, f"Vw max > {RANDOM_VW_MAX_PCT:g} %"),
+        ("coverage_pct", -98.0, "coverage < 98 %"),
+    )
+    for key, bound, what in checks:
+        sign = -1.0 if bound < 0 else 1.0  # a negative bound is a lower one
+        miss = sum(sign * val(r, key, sign * math.inf) > bound for r in rows)
+        if miss:
+            failed.append(f"{miss} drives with {what}")
+    return failed
+
+
+def summarize_random(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
+    """Per method and metric of :data:`_RANDOM_METRICS`: median, p90, p95 and worst over the
+    drives (worst: largest error, smallest coverage; a NaN counts as worst)."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for method in dict.fromkeys(r["method"] for r in rows):
+        mine = [r for r in rows if r["method"] == method]
+        per: dict[str, dict[str, float]] = {}
+        for key in _RANDOM_METRICS:
+            higher = key in _HIGHER_IS_BETTER
+            v = np.array([float(r.get(key, math.nan)) for r in mine])
+            v = np.where(np.isfinite(v), v, -np.inf if higher else np.inf)
+            q = {
+                name: float(np.percentile(v, 100.0 - pct if higher else pct))
+                for name, pct in _QUANTILES
+            }
+            q["worst"] = float(v.min() if higher else v.max())
+            per[key] = q
+        out[method] = per
+    return out
+
+
+def run_random(
+    n: int,
+    seed: int,
+    json_path: Path | None = None,
+    *,
+    estimators: Mapping[str, EstimatorFactory] | None = None,
+    quiet: bool = False,
+    out: TextIO | None = None,
+    worst: int = 5,
+) -> dict[str, Any]:
+    """Run ``n`` random drives of the draw ``seed`` (module docstring) through every method.
+
+    Returns
+    -------
+    dict
+        ``{"seed", "n", "drives": [{index, sim_seed, knobs}...], "results": [row...],
+        "summary": {method: {metric: {median, p90, p95, worst}}}, "worst": [drive index...],
+        "floors_failed", "all_pass"}`` (floors judged on the product rows).
+    """
+    factories = dict(estimators) if estimators is not None else default_estimators()
+    drives = draw_drives(n, seed)
+    results = [row for d in drives for row in _random_drive_rows(d, factories)]
+    product = [r for r in results if r["method"] == "product"]
+    failed = _random_floor_failures(product)
+    order = sorted(
+        product,
+        key=lambda r: -(float(r["slip_rms_pp"]) if math.isfinite(r["slip_rms_pp"]) else math.inf),
+    )
+    result: dict[str, Any] = {
+        "seed": seed,
+        "n": n,
+        "start_ns": START_NS,
+        "moving_mps": MOVING_MPS,
+        "drives": [{"index": d.index, "sim_seed": d.sim_seed, "knobs": d.knobs()} for d in drives],
+        "results": results,
+        "summary": summarize_random(results),
+        "worst": [int(r["drive"]) for r in order[:worst]],
+        "floors_failed": failed,
+        "all_pass": bool(product) and not failed,
+    }
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(_jsonable(result), indent=2, allow_nan=False) + "\n")
+    if not quiet:
+        print_random_table(result, file=out)
+    return result
+
+
+def print_random_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
+    """Plain-text table of :func:`run_random`: the distribution per method, the floors, the
+    worst drives and their knobs."""
+    f = file if file is not None else sys.stdout
+    head = f"{'method':<10} {'metric':<14}" + "".join(f" {q:>8}" for q, _ in _QUANTILES)
+    head += "    worst"
+    print(head, file=f)
+    print("-" * len(head), file=f)
+    for method, per in result["summary"].items():
+        for key, q in per.items():
+            line = f"{method:<10} {key:<14}" + "".join(
+                " " + _fmt(q[name], 8) for name, _ in _QUANTILES
+            )
+            print(line + " " + _fmt(q["worst"], 8), file=f)
+    print("", file=f)
+    by_drive = {int(r["drive"]): r for r in result["results"] if r["method"] == "product"}
+    knobs = {int(d["index"]): d["knobs"] for d in result["drives"]}
+    print("worst drives (product slip RMS pp, p95 pp, Vw max %, coverage %; knobs):", file=f)
+    for i in result["worst"]:
+        r = by_drive[i]
+        nums = " ".join(_fmt(r.get(k), 6) for k in _RANDOM_METRICS)
+        print(f"  drive {i:>4}: {nums}", file=f)
+        print(f"      {knobs[i]}", file=f)
+    print("", file=f)
+    status = "PASS" if result["all_pass"] else "FAIL: " + "; ".join(result["floors_failed"])
+    print(
+        f"{result['n']} random drives, seed {result['seed']}; rows with true V0 > "
+        f"{result['moving_mps']} m/s; random floors (product): {status}",
+        file=f,
+    )
+
+
 def _estimator_runner(
     factory: EstimatorFactory, sim: SimRun, config: WheeledRearDriveConfig
 ) -> Callable[[], np.ndarray]:
@@ -753,8 +939,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="run the scenario variants (VARIANTS) instead of the named scenarios",
     )
+    p.add_argument(
+        "--random",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run N random drives of the draw --seed instead of the named scenarios",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)
+    if args.random is not None:
+        if args.seeds is not None or args.variants or args.scenarios or args.scenario_list:
+            p.error("--random takes only --seed (and --json)")
+        return 0 if run_random(args.random, args.seed, args.json)["all_pass"] else 1
     names = list(args.scenarios)
     if args.scenario_list:
         names += [n.strip() for n in args.scenario_list.split(",") if n.strip()]

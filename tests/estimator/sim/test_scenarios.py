@@ -29,6 +29,7 @@ def test_registry_lists_every_named_scenario() -> None:
         "gnss_outage",
         "slow_creep",
         "field_work",
+        "random_drive",
     }
     assert set(scenario_names()) == want
     for s in SCENARIOS.values():

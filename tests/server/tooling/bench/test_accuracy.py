@@ -14,6 +14,7 @@ import pytest
 from estimator.base import FleetEstimator, Pushed
 from estimator.config import VehicleConfig
 from estimator.sim import TRUTH_DTYPE, simulate, truth_at
+from estimator.sim.drives import draw_drives
 from estimator.types import ESTIMATE_DTYPE, GnssSample, empty_estimates
 from server.tooling.bench import accuracy
 from server.tooling.bench.accuracy import (
@@ -22,6 +23,7 @@ from server.tooling.bench.accuracy import (
     evaluate,
     print_table,
     run,
+    run_random,
     traditional_estimates,
 )
 
@@ -378,3 +380,53 @@ def test_slow_rows_report_their_largest_slip_error_apart() -> None:
     rows["slip_left_pct"][slow] = np.nan
     rows["slip_right_pct"][slow] = np.nan
     assert evaluate(rows, tr)["slip_low_max_pp"] == 0.0  # none shown: no error shown
+
+
+def test_random_drives_report_distribution_floors_and_worst(tmp_path: Path) -> None:
+    drives = draw_drives(3, 7)
+    sims = iter(
+        [
+            simulate(
+                "random_drive",
+                seed=d.sim_seed,
+                start_ns=START_NS,
+                config=d.config(),
+                **dict(d.overrides),
+            )
+            for d in drives
+        ]
+    )
+    offsets = iter([0.0, 2.5, 0.5])
+
+    def make() -> FleetEstimator:
+        return _TruthEstimator(next(sims).truth, next(offsets))
+
+    out = io.StringIO()
+    path = tmp_path / "random.json"
+    res = run_random(3, 7, path, estimators={"product": make}, out=out)
+    rms = [r["slip_rms_pp"] for r in res["results"]]
+    assert rms == pytest.approx([0.0, 2.5, 0.5], abs=1e-9)
+    q = res["summary"]["product"]["slip_rms_pp"]
+    assert q["median"] == pytest.approx(0.5) and q["worst"] == pytest.approx(2.5)
+    assert res["worst"][:2] == [1, 2]
+    assert not res["all_pass"]
+    assert "2/3 drives within" in res["floors_failed"][0]
+    assert "1 drives with RMS > 2 pp" in res["floors_failed"]
+    data = json.loads(path.read_text())
+    assert data["drives"][1]["knobs"]["teeth_per_rev"] == drives[1].teeth_per_rev
+    text = out.getvalue()
+    assert "drive    1" in text and "FAIL" in text and "slip_rms_pp" in text
+
+
+def test_main_runs_random_drives(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: dict[str, object] = {}
+
+    def fake(n: int, seed: int, json_path: Path | None) -> dict[str, object]:
+        seen.update(n=n, seed=seed)
+        return {"all_pass": True}
+
+    monkeypatch.setattr(accuracy, "run_random", fake)
+    assert accuracy.main(["--random", "12", "--seed", "1001"]) == 0
+    assert seen == {"n": 12, "seed": 1001}
+    with pytest.raises(SystemExit):
+        accuracy.main(["--random", "3", "--variants"])
