@@ -30,6 +30,7 @@ from server.tooling.fleet_sim import (
     encode_packets,
     packetize,
 )
+from server.tooling.steered_fleet import SteeredFleetSim
 
 __all__ = [
     "DEMO_MIX_ESTIMATORS",
@@ -101,7 +102,8 @@ def demo(
     duration_s: float = 0.0,
     estimator_mix: EstimatorMix | None = None,
 ) -> None:
-    """Embedded router + server + SQLite + ``vehicles`` simulated tractors, until Ctrl-C.
+    """Embedded router + server + SQLite + ``vehicles`` simulated tractors and one steered
+    four-wheel vehicle after them (friction μ, :mod:`server.tooling.steered_fleet`), until Ctrl-C.
 
     ``estimator_mix`` defaults to the last vehicle running :data:`DEMO_MIX_ESTIMATORS` (a mixed
     fleet: one vehicle's reference speed beside its MDSF estimate)."""
@@ -126,6 +128,10 @@ def demo(
         plans=demo_plans(vehicles, scenario),
     )
     sim.start()
+    # one steered four-wheel vehicle beside the tractors (friction μ); it joins once simulated
+    prefix = settings.zenoh.key_prefix
+    steered = SteeredFleetSim(session, 1, first_index=vehicles + 1, prefix=prefix, loop=True)
+    steered.start()
     base = f"http://{settings.api.host}:{server.port}"
     drives = "each its own drive" if scenario == "mix" else f"scenario {scenario}"
     print(
@@ -136,6 +142,8 @@ def demo(
         f"  3D view    http://{settings.viewer.host}:{settings.viewer.port}/\n"
         f"  zenoh      {', '.join(listen)}  ({vehicles} simulated vehicles, {drives})\n"
         f"  estimators {mix_summary(sim)}\n"
+        f"  steered    {steered.vehicle_ids[0]}: a steered four-wheel vehicle, friction μ "
+        "(joins once its drive is simulated)\n"
         "Ctrl-C stops.\n",
         flush=True,
     )
@@ -148,6 +156,7 @@ def demo(
     except KeyboardInterrupt:
         pass
     finally:
+        steered.stop()
         sim.stop()
         session.close()
         server.stop()

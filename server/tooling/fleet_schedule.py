@@ -73,7 +73,14 @@ MIN_WAKE_NS = 4_000_000
 #: Wall time rendered at once (packets selected, copied, stamp-patched, sorted), ns.
 WINDOW_NS = 100_000_000
 
-STREAMS: tuple[Stream, ...] = (Stream.GNSS, Stream.IMU, Stream.WHEELS)  # a simulated vehicle
+#: a simulated vehicle's streams (a tractor's three, a steered four-wheel vehicle's last two)
+STREAMS: tuple[Stream, ...] = (
+    Stream.GNSS,
+    Stream.IMU,
+    Stream.WHEELS,
+    Stream.STEERING,
+    Stream.WHEEL_SPEEDS4,
+)
 _STREAM_CODE = {s: i for i, s in enumerate(STREAMS)}
 _STAMP_KEY = msgpack.packb("stamp_ns")
 _SEQ_KEY = msgpack.packb("seq")
@@ -170,7 +177,7 @@ class EncodedDrive:
     arrival_ns : (P,) int64, non-decreasing — arrival after the drive start.
     stream : (P,) int8 — index into :data:`STREAMS`.
     stream_pos : (P,) int64 — number of earlier packets of the same stream (``seq`` in loop 0).
-    stream_count : (3,) int64 — packets per stream in one loop.
+    stream_count : (len(STREAMS),) int64 — packets per stream in one loop.
     buf : (B,) uint8 — the packets back to back; ``off`` (P + 1,) their bounds.
     seq_at : (P,) int64 — offset of the ``seq`` byte within the packet.
     le_pos, be_pos : int64 — stamp offsets within ``buf``; ``le_off``, ``be_off`` (P + 1,)
@@ -249,7 +256,7 @@ class _Fleet:
         self.phase = np.array([v.phase_ns for v in vehicles], np.int64)
         self.shift = np.array([v.shift_ns for v in vehicles], np.int64)
         self.period = np.array([drives[d].period_ns for d in self.drive], np.int64)
-        self.puts = [pub for v in vehicles for pub in v.publishers]  # vehicle * 3 + stream
+        self.puts = [pub for v in vehicles for pub in v.publishers]  # vehicle * n_streams + s
         # drives back to back: packet g of the fleet's packet table
         self.pkt_base = np.cumsum([0] + [len(d) for d in drives])[:-1].astype(np.int64)
         byte_base = np.cumsum([0] + [d.buf.size for d in drives])[:-1]
@@ -269,7 +276,7 @@ class _Fleet:
         self.le_n = cat([np.diff(d.le_off) for d in drives])
         self.be_first = cat([d.be_off[:-1] + b for d, b in zip(drives, be_base, strict=True)])
         self.be_n = cat([np.diff(d.be_off) for d in drives])
-        self.stream_count = np.stack([d.stream_count for d in drives])  # (drives, 3)
+        self.stream_count = np.stack([d.stream_count for d in drives])  # (drives, len(STREAMS))
         self.last_arrival = np.array(
             [int(d.arrival_ns[-1]) if len(d) else -1 for d in drives], np.int64
         )

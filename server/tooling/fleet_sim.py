@@ -44,15 +44,24 @@ import zenoh
 
 from estimator.base import Measurement
 from estimator.config import VehicleConfig
-from estimator.types import GnssSample, ImuBatch, WheelEdges, WheelSpeeds
+from estimator.types import (
+    GnssSample,
+    ImuBatch,
+    SteeringAngles,
+    WheelEdges,
+    WheelSpeeds,
+    WheelSpeeds4,
+)
 from server.protocol.codec import (
     DecodeError,
     decode,
     encode_config,
     encode_gnss,
     encode_imu,
+    encode_steering,
     encode_wheel_edges,
     encode_wheel_speeds,
+    encode_wheel_speeds4,
 )
 from server.protocol.keys import Stream, config_key, parse_key, sensor_key
 from server.protocol.recording import RecordingWriter, read_recording
@@ -209,6 +218,10 @@ def encode_packet(
         return encode_imu(first, seq, until_ns)
     if isinstance(first, WheelSpeeds):
         return encode_wheel_speeds(first, seq, until_ns)
+    if isinstance(first, SteeringAngles):
+        return encode_steering(first, seq, until_ns)
+    if isinstance(first, WheelSpeeds4):
+        return encode_wheel_speeds4(first, seq, until_ns)
     edges = [m for m in measurements if isinstance(m, WheelEdges)]
     if len(edges) != len(measurements):
         raise ValueError(f"cannot encode {[type(m).__name__ for m in measurements]} on {stream}")
@@ -224,6 +237,11 @@ def encode_packets(packets: Sequence[SimPacket]) -> list[tuple[str, bytes]]:
         out.append((name, p.encode(seq[name])))
         seq[name] += 1
     return out
+
+
+def _never_sent(payload: bytes) -> None:
+    """The publisher slot of a stream the vehicle's drive has no packet of."""
+    raise AssertionError("a packet on a stream its drive does not hold")
 
 
 def _publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
@@ -405,11 +423,11 @@ class FleetSim:
                 d = drive_of[id(v.packets)] = len(drives)
                 drives.append(EncodedDrive(v.packets, v.period_ns))
             session = self._sessions[i % len(self._sessions)]
-            pubs = [_publisher(session, sensor_key(self._prefix, v.vehicle_id, s)) for s in STREAMS]
-            declared.extend(pubs)
-            scheduled.append(
-                ScheduledVehicle(d, v.phase_ns, v.shift_ns, tuple(p.put for p in pubs))
-            )
+            used = {p.stream for p in v.packets}  # a tractor sends no steering, ...
+            pubs = {s: _publisher(session, sensor_key(self._prefix, v.vehicle_id, s)) for s in used}
+            declared.extend(pubs.values())
+            puts = tuple(pubs[s].put if s in pubs else _never_sent for s in STREAMS)
+            scheduled.append(ScheduledVehicle(d, v.phase_ns, v.shift_ns, puts))
             if self._publish_config:
                 session.put(
                     config_key(self._prefix, v.vehicle_id),

@@ -48,7 +48,9 @@ class _Sink:
 
 def _vehicles(sink: _Sink, phases: list[int]) -> list[ScheduledVehicle]:
     return [
-        ScheduledVehicle(0, ph, 1_000_000_007 * (i + 1), tuple(sink.put(i, s) for s in range(3)))
+        ScheduledVehicle(
+            0, ph, 1_000_000_007 * (i + 1), tuple(sink.put(i, s) for s in range(len(STREAMS)))
+        )
         for i, ph in enumerate(phases)
     ]
 
@@ -233,7 +235,7 @@ def test_packets_leave_when_their_stamps_say_they_were_sent(
     # test's several scenarios and runs do
     copies = 60
     vehicles = [
-        ScheduledVehicle(i % copies, ph, ph - T0, tuple(put(i, s) for s in range(3)))
+        ScheduledVehicle(i % copies, ph, ph - T0, tuple(put(i, s) for s in range(len(STREAMS))))
         for i, ph in enumerate(phases)  # stamps: T0 -> ph
     ]
     clock = _StampClock()
