@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Collection, Iterable
 
 from estimator.base import Measurement
+from estimator.catalog import SPECS
 from estimator.types import WheelGap
 from server.ingest.reorder import StreamGap
 from server.protocol.base import Packet
@@ -19,9 +20,12 @@ from server.protocol.keys import Stream
 
 __all__ = ["ESTIMATOR_STREAMS", "fed", "wheel_gaps"]
 
-#: The streams every estimator reads until each names its own: GNSS, IMU and wheels. Packets of
-#: other streams are accepted, counted and ordered, and reach no estimator.
-ESTIMATOR_STREAMS: frozenset[Stream] = frozenset({Stream.GNSS, Stream.IMU, Stream.WHEELS})
+#: The streams some estimator of the catalog reads (its spec's ``inputs``); the registry hands
+#: each measurement on only to the estimators whose spec names its stream. Packets of other
+#: streams are accepted, counted and ordered, and reach no estimator.
+ESTIMATOR_STREAMS: frozenset[Stream] = frozenset(
+    Stream(name) for spec in SPECS.values() for name in spec.inputs
+)
 
 
 def fed(packet: Packet, streams: Collection[Stream] = ESTIMATOR_STREAMS) -> tuple[Measurement, ...]:

@@ -8,12 +8,6 @@ speeds, the steering-wheel angle and GNSS. The friction rows are stored for the 
 served by series and latest with ``estimator=friction``, μ finite (and within the issue's 10 %
 of the road's) wherever flagged informed, held without σ elsewhere; the tractor's MDSF rows
 cover its drive tick by tick, untouched by the other vehicle's estimator.
-
-Expected to fail (strictly) until the ingest feeds the estimators every stream their specs
-name: ``server.ingest.adapter.fed`` passes only GNSS, IMU and wheels
-(``ESTIMATOR_STREAMS``), so the friction estimator never sees the four wheel speeds or the
-steering angle and gives no row. The registry already routes each stream by the specs'
-``inputs``; with ``fed`` passing every stream this test passes as it stands.
 """
 
 from __future__ import annotations
@@ -117,11 +111,6 @@ def _check_tractor(client: httpx.Client, window: dict[str, int], t0: int) -> int
     return len(stamps)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="server.ingest.adapter.fed drops the steering and wheel_speeds4 streams",
-)
 def test_tractor_and_steered_vehicle_each_estimated_stored_and_served(tmp_path: Path) -> None:
     settings = stack_settings(tmp_path, None, 0)
     server = ServerThread(build_app(settings), "127.0.0.1", 0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimator.catalog import SPECS
 from estimator.types import ImuBatch, SteeringAngles, WheelGap
 from server.ingest.adapter import ESTIMATOR_STREAMS, fed, wheel_gaps
 from server.ingest.reorder import StreamGap
@@ -20,9 +21,13 @@ def test_estimators_are_fed_only_the_streams_they_read() -> None:
     t = T0 + np.arange(10, dtype=np.int64)
     imu = _packet(Stream.IMU, ImuBatch(t, np.zeros((10, 3)), np.zeros((10, 3))))
     steering = _packet(Stream.STEERING, SteeringAngles(t, np.zeros(10)))
-    assert fed(imu) == imu.measurements and fed(steering) == ()
-    assert fed(steering, {Stream.STEERING}) == steering.measurements
-    assert {Stream.GNSS, Stream.IMU, Stream.WHEELS} == ESTIMATOR_STREAMS
+    assert fed(imu) == imu.measurements and fed(steering) == steering.measurements
+    assert fed(steering, {Stream.IMU}) == ()
+    # every stream an estimator of the catalog names, and only those
+    assert {Stream(n) for s in SPECS.values() for n in s.inputs} == ESTIMATOR_STREAMS
+    assert {Stream.STEERING, Stream.WHEEL_SPEEDS4, Stream.ODOMETER, Stream.SPROCKETS} <= (
+        ESTIMATOR_STREAMS
+    )
 
 
 def test_wheel_gaps_become_wheel_gap_notices_before_their_packet() -> None:
