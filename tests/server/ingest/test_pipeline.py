@@ -13,6 +13,7 @@ from estimator.config import (
     SlipConfig,
     TrackedConfig,
     VehicleConfig,
+    VehicleKind,
     WheeledRearDriveConfig,
 )
 from estimator.geo import enu_from_geodetic
@@ -30,6 +31,7 @@ from estimator.types import (
     WheelSpeeds4,
 )
 from server.estimation import EstimatorRegistry
+from server.estimation.registry import KIND_DEFAULTS
 from server.ingest import Pipeline
 from server.protocol import (
     DecodeError,
@@ -178,7 +180,12 @@ def test_remove_vehicle_forgets_everything() -> None:
 
 
 def test_tracked_vehicle_accepted_without_estimators() -> None:
-    pipe, fleet, sink = make(policy=UnknownVehiclePolicy.REJECT)
+    fleet = RecordingFleet()
+    registry = EstimatorRegistry(  # a server whose tracked vehicles run no estimator
+        factories={"mdsf": lambda: fleet},
+        kind_defaults={**KIND_DEFAULTS, VehicleKind.TRACKED: ()},
+    )
+    pipe, _, sink = make(policy=UnknownVehiclePolicy.REJECT, registry=registry)
     pipe.register_vehicle("t1", TrackedConfig())
     pipe.start()
     pipe.submit([imu("t1", 0, 0)])
