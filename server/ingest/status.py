@@ -1,4 +1,4 @@
-"""Tell each vehicle what the server refuses of it (``docs/protocol.md`` §7, vehicle status).
+"""Tell each vehicle what the server refuses of it (``docs/protocol.md`` §6.2).
 
 The ingest counters (:mod:`server.ingest.counters`) count refused packets by reason, totals over
 the vehicle's life. Once a second :class:`StatusPublisher` takes a snapshot of them;
