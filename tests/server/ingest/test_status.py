@@ -21,7 +21,7 @@ from server.ingest.status import (
 S = 10**9
 
 
-def _refuse(counters: IngestCounters, vid: str, reason: str, n: int) -> None:
+def _refuse(counters: IngestCounters, vid: str | None, reason: str, n: int) -> None:
     for _ in range(n):
         counters.rejected(vid, reason)
 

@@ -11,6 +11,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
 import msgpack
@@ -170,10 +171,23 @@ def _vehicle(endpoint: str, user: str | None, password: str | None) -> zenoh.Ses
 
 @pytest.fixture
 def secured_runtime(tmp_path: Path) -> Iterator[tuple[Runtime, Settings, str]]:
+    yield from _secured_runtime(tmp_path)
+
+
+@pytest.fixture(params=[0, 2], ids=["pipeline", "workers"])
+def secured_runtimes(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> Iterator[tuple[Runtime, Settings, str]]:
+    """The secured runtime with one pipeline thread, and with worker processes."""
+    yield from _secured_runtime(tmp_path, workers=request.param)
+
+
+def _secured_runtime(tmp_path: Path, workers: int = 0) -> Iterator[tuple[Runtime, Settings, str]]:
     creds = _write_credentials(tmp_path / "vehicles.credentials", PW)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = Settings.model_validate(
         {
+            "ingest": {"workers": workers},
             "zenoh": {"listen": [endpoint], "credentials_file": str(creds)},
             "storage": {"data_dir": str(tmp_path / "data"), "commit_interval_s": 0.1},
             "api": {"require_auth": True},
@@ -267,30 +281,38 @@ def _refused_gnss(k: int, t0_ns: int) -> bytes:
     return bytes(msgpack.packb(m, use_bin_type=True))
 
 
+def _json_into(messages: list[dict[str, object]]) -> Callable[[zenoh.Sample], None]:
+    def on_sample(sample: zenoh.Sample) -> None:
+        messages.append(json.loads(sample.payload.to_bytes()))
+
+    return on_sample
+
+
+def _matching(pub: zenoh.Publisher) -> bool:
+    return bool(getattr(pub.matching_status, "matching", False))
+
+
 @pytest.mark.zenoh
 def test_a_refused_vehicle_hears_its_status_and_the_server_logs_it(
-    secured_runtime: tuple[Runtime, Settings, str], caplog: pytest.LogCaptureFixture
+    secured_runtimes: tuple[Runtime, Settings, str], caplog: pytest.LogCaptureFixture
 ) -> None:
     """v1 subscribes to its own status (the ACL lets it) and to v2's (the ACL drops that);
     both send refused packets; v1 hears its own counts by reason, and the server logs each
     vehicle's first refusal once."""
-    _, settings, endpoint = secured_runtime
+    _, settings, endpoint = secured_runtimes
     prefix = settings.zenoh.key_prefix
     caplog.set_level(logging.WARNING, logger="server.ingest.status")
     heard: dict[str, list[dict[str, object]]] = {"v1": [], "v2": []}
     with _vehicle(endpoint, "v1", PW["v1"]) as v1, _vehicle(endpoint, "v2", PW["v2"]) as v2:
-        for vid in heard:
-            v1.declare_subscriber(
-                f"{prefix}/{vid}/status",
-                lambda s, vid=vid: heard[vid].append(json.loads(s.payload.to_bytes())),
-            )
+        for vid, messages in heard.items():
+            v1.declare_subscriber(f"{prefix}/{vid}/status", _json_into(messages))
         for session, vid, n in ((v1, "v1", 7), (v2, "v2", 3)):
             pub = session.declare_publisher(
                 sensor_key(prefix, vid, Stream.GNSS),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
             )
-            _wait_for(lambda p=pub: getattr(p.matching_status, "matching", False), "matching")
+            _wait_for(partial(_matching, pub), "matching")
             t0_ns = time.time_ns()
             for k in range(n):
                 pub.put(_refused_gnss(k, t0_ns))
