@@ -69,6 +69,7 @@ from server.ingest.adapter import fed, wheel_gaps
 from server.ingest.counters import IngestCounters
 from server.ingest.limits import ByteBudget, refusal_errors
 from server.ingest.reorder import ReorderBuffer, StreamGap, Verdict
+from server.ingest.status import StatusPublisher
 from server.ingest.subscriber import (
     ConfigUpdate,
     IngestItem,
@@ -257,6 +258,12 @@ class Pipeline:
             if session is not None
             else None
         )
+        # each refused vehicle is told on <prefix>/<id>/status (server.ingest.status)
+        self._status = (
+            StatusPublisher(session, settings.zenoh.key_prefix, self._counters.snapshot)
+            if session is not None
+            else None
+        )
         self._thread: threading.Thread | None = None
         self._stats = dict.fromkeys(
             (
@@ -294,9 +301,13 @@ class Pipeline:
                 self._subscriber = None
                 self.stop()
                 raise
+        if self._status is not None:
+            self._status.start()
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Stop the subscriber, process what was received, flush every buffer, join."""
+        if self._status is not None:
+            self._status.stop()
         if self._subscriber is not None:
             self._subscriber.stop(timeout_s)
         if self._thread is None:

@@ -62,6 +62,7 @@ from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
 from server.estimation.registry import EstimatorRegistry
 from server.ingest.pipeline import EstimateSink
+from server.ingest.status import StatusPublisher
 from server.ingest.subscriber import IngestSubscriber, RawPacket, Refusal
 from server.metrics.thread_cpu import thread_cpu_seconds
 from server.protocol.keys import parse_key
@@ -202,6 +203,12 @@ class WorkerPool:
             if session is not None
             else None
         )
+        # each refused vehicle is told on <prefix>/<id>/status (server.ingest.status)
+        self._status = (
+            StatusPublisher(session, settings.zenoh.key_prefix, self.counters_snapshot)
+            if session is not None
+            else None
+        )
         self._config_thread: threading.Thread | None = None
         self._stopping = threading.Event()
 
@@ -243,10 +250,14 @@ class WorkerPool:
                 target=self._poll_configs, name="slipfleet-configs", daemon=True
             )
             self._config_thread.start()
+        if self._status is not None:
+            self._status.start()
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Stop the subscriber, let every worker work off what it has, collect, join."""
         self._stopping.set()
+        if self._status is not None:
+            self._status.stop()
         if self._subscriber is not None:
             self._subscriber.stop(timeout_s)
         if self._config_thread is not None:

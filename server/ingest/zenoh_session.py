@@ -19,9 +19,9 @@ Vehicle authentication and ACL (embedded router, or a standalone ``zenohd`` conf
   connection. Zenoh reads the passwords in clear, so keep the file ``0600``.
 * ``acl`` (on by default) adds ``access_control`` with ``default_permission: deny`` and, per
   vehicle, one rule allowing it to publish (``put``) only under ``<key_prefix>/<id>/**`` and to
-  subscribe to (and receive) its own ``<key_prefix>/<id>/alerts``; every vehicle is also told
-  of the server's sensor and config subscriptions (a client publisher sends nothing until it
-  knows of a matching subscriber). Anything else a vehicle sends —
+  subscribe to (and receive) its own ``<key_prefix>/<id>/alerts`` and ``.../status``; every
+  vehicle is also told of the server's sensor and config subscriptions (a client publisher
+  sends nothing until it knows of a matching subscriber). Anything else a vehicle sends —
   another vehicle's key, a subscription to the fleet — is dropped by the router. The embedded
   router's own session (this server) is not a remote peer, so the ACL does not apply to it; a
   server connecting to a standalone router as ``zenoh.username`` gets a rule to subscribe to
@@ -125,7 +125,8 @@ def acl_config(
     trusted: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Zenoh ``access_control``: deny by default; each vehicle (matched by its user name) may
-    put under ``<prefix>/<id>/**`` and subscribe to its own ``<prefix>/<id>/alerts``;
+    put under ``<prefix>/<id>/**`` and subscribe to its own ``<prefix>/<id>/alerts`` and
+    ``<prefix>/<id>/status``;
     ``server_user`` (a server connecting to a standalone router) and the ``trusted`` users
     (server replicas, linked routers) may subscribe to and publish under ``<prefix>/**``."""
     # The router must tell a vehicle about the server's subscriptions: a client publisher sends
@@ -142,7 +143,8 @@ def acl_config(
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for vid in vehicle_ids:
-        own, alerts = f"{prefix}/{vid}/**", f"{prefix}/{vid}/alerts"
+        own = f"{prefix}/{vid}/**"
+        told = [f"{prefix}/{vid}/alerts", f"{prefix}/{vid}/status"]  # what the server tells it
         rules += [
             {
                 "id": f"{vid}/publish",
@@ -156,14 +158,14 @@ def acl_config(
                 "permission": "allow",
                 "flows": ["ingress"],
                 "messages": ["declare_subscriber"],
-                "key_exprs": [alerts],
+                "key_exprs": told,
             },
             {
                 "id": f"{vid}/alerts-receive",
                 "permission": "allow",
                 "flows": ["egress"],
                 "messages": ["put"],
-                "key_exprs": [alerts],
+                "key_exprs": told,
             },
         ]
         subjects.append({"id": f"vehicle/{vid}", "usernames": [vid]})

@@ -279,15 +279,26 @@ def gnss_within(s: GnssSample, lim: Limits) -> bool:
     )
 
 
+def vector3(ctx: Ctx, m: dict[str, Any], name: str) -> tuple[float, float, float]:
+    """A small fixed vector of three numbers: a msgpack array of 3 numbers, or a ``bin`` of 24
+    bytes (3 packed little-endian float64), as every other array of the protocol travels."""
+    raw = field(ctx, m, name)
+    if type(raw) is bytes:
+        if len(raw) != 24:
+            raise ctx.fail("wrong_shape", f"{name}: {len(raw)} bytes, expected 24 (3 float64)")
+        a, b, c = np.frombuffer(raw, dtype="<f8").tolist()
+        return a, b, c
+    if type(raw) is not list or len(raw) != 3:
+        raise ctx.fail("wrong_type", f"{name} must be 3 numbers (array or bin of float64)")
+    for x in raw:
+        if type(x) is not float and type(x) is not int:
+            raise ctx.fail("wrong_type", f"{name} must be 3 numbers (array or bin of float64)")
+    return float(raw[0]), float(raw[1]), float(raw[2])
+
+
 def _velocity(ctx: Ctx, m: dict[str, Any], lim: Limits) -> tuple[float, float, float]:
     """``vel_enu_mps``: three numbers, no ``±inf``, speed within the limit (NaN passes)."""
-    vel = field(ctx, m, "vel_enu_mps")
-    if type(vel) is not list or len(vel) != 3:
-        raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
-    for x in vel:
-        if type(x) is not float and type(x) is not int:
-            raise ctx.fail("wrong_type", "vel_enu_mps must be an array of 3 numbers")
-    ve, vn, vu = float(vel[0]), float(vel[1]), float(vel[2])
+    ve, vn, vu = vector3(ctx, m, "vel_enu_mps")
     if math.isinf(ve) or math.isinf(vn) or math.isinf(vu):
         raise ctx.fail("non_finite", "vel_enu_mps")
     # NaN (no velocity, e.g. fix NONE) passes: NaN comparisons are False

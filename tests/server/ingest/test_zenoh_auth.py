@@ -8,10 +8,13 @@ vehicle client sessions built by :func:`server.ingest.make_config`.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
+import msgpack
 import pytest
 import zenoh
 
@@ -72,7 +75,9 @@ def test_acl_allows_each_vehicle_its_own_key_space_only() -> None:
         "messages": ["put"],
         "key_exprs": ["fleet/v1/**"],
     }
-    assert rules["v2/alerts-receive"]["key_exprs"] == ["fleet/v2/alerts"]
+    # a vehicle may hear its own alerts and status (refusal counts), nobody else's
+    assert rules["v2/alerts-receive"]["key_exprs"] == ["fleet/v2/alerts", "fleet/v2/status"]
+    assert rules["v2/alerts-subscribe"]["key_exprs"] == ["fleet/v2/alerts", "fleet/v2/status"]
     assert all(r["permission"] == "allow" for r in acl["rules"])
     subjects = {s["id"]: s["usernames"] for s in acl["subjects"]}
     assert subjects == {"vehicle/v1": ["v1"], "vehicle/v2": ["v2"], "server": ["srv"]}
@@ -166,10 +171,23 @@ def _vehicle(endpoint: str, user: str | None, password: str | None) -> zenoh.Ses
 
 @pytest.fixture
 def secured_runtime(tmp_path: Path) -> Iterator[tuple[Runtime, Settings, str]]:
+    yield from _secured_runtime(tmp_path)
+
+
+@pytest.fixture(params=[0, 2], ids=["pipeline", "workers"])
+def secured_runtimes(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> Iterator[tuple[Runtime, Settings, str]]:
+    """The secured runtime with one pipeline thread, and with worker processes."""
+    yield from _secured_runtime(tmp_path, workers=request.param)
+
+
+def _secured_runtime(tmp_path: Path, workers: int = 0) -> Iterator[tuple[Runtime, Settings, str]]:
     creds = _write_credentials(tmp_path / "vehicles.credentials", PW)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = Settings.model_validate(
         {
+            "ingest": {"workers": workers},
             "zenoh": {"listen": [endpoint], "credentials_file": str(creds)},
             "storage": {"data_dir": str(tmp_path / "data"), "commit_interval_s": 0.1},
             "api": {"require_auth": True},
@@ -254,3 +272,56 @@ def test_a_vehicle_cannot_publish_as_another(
     assert store.get_counters("v1")["received"] == 20
     time.sleep(1.5)  # another counter flush
     assert store.get_counters("v2")["received"] == 5
+
+
+def _refused_gnss(k: int, t0_ns: int) -> bytes:
+    """A GNSS packet refused ``wrong_type``: a velocity of two numbers."""
+    m = msgpack.unpackb(_gnss(k, t0_ns))
+    m["vel_enu_mps"] = [1.0, 2.0]
+    return bytes(msgpack.packb(m, use_bin_type=True))
+
+
+def _json_into(messages: list[dict[str, object]]) -> Callable[[zenoh.Sample], None]:
+    def on_sample(sample: zenoh.Sample) -> None:
+        messages.append(json.loads(sample.payload.to_bytes()))
+
+    return on_sample
+
+
+def _matching(pub: zenoh.Publisher) -> bool:
+    return bool(getattr(pub.matching_status, "matching", False))
+
+
+@pytest.mark.zenoh
+def test_a_refused_vehicle_hears_its_status_and_the_server_logs_it(
+    secured_runtimes: tuple[Runtime, Settings, str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """v1 subscribes to its own status (the ACL lets it) and to v2's (the ACL drops that);
+    both send refused packets; v1 hears its own counts by reason, and the server logs each
+    vehicle's first refusal once."""
+    _, settings, endpoint = secured_runtimes
+    prefix = settings.zenoh.key_prefix
+    caplog.set_level(logging.WARNING, logger="server.ingest.status")
+    heard: dict[str, list[dict[str, object]]] = {"v1": [], "v2": []}
+    with _vehicle(endpoint, "v1", PW["v1"]) as v1, _vehicle(endpoint, "v2", PW["v2"]) as v2:
+        for vid, messages in heard.items():
+            v1.declare_subscriber(f"{prefix}/{vid}/status", _json_into(messages))
+        for session, vid, n in ((v1, "v1", 7), (v2, "v2", 3)):
+            pub = session.declare_publisher(
+                sensor_key(prefix, vid, Stream.GNSS),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+            _wait_for(partial(_matching, pub), "matching")
+            t0_ns = time.time_ns()
+            for k in range(n):
+                pub.put(_refused_gnss(k, t0_ns))
+        _wait_for(lambda: any(m["refused"] == {"wrong_type": 7} for m in heard["v1"]), "status")
+        time.sleep(1.5)  # another status round: v2's would have come by now
+    status = next(m for m in heard["v1"] if m["refused"] == {"wrong_type": 7})
+    assert status["vehicle_id"] == "v1" and status["window_s"] == 60
+    assert status["refused_total"] == 7
+    assert heard["v2"] == []
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines.count("vehicle v1: packets refused (wrong_type): 7") == 1
+    assert lines.count("vehicle v2: packets refused (wrong_type): 3") == 1

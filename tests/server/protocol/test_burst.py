@@ -277,6 +277,19 @@ def test_short_bursts_are_decoded_packet_by_packet(monkeypatch: pytest.MonkeyPat
     assert joined == [1]
 
 
+def test_gnss_velocity_as_bin_in_a_burst_is_decoded_as_alone() -> None:
+    """A GNSS packet whose ``vel_enu_mps`` is a ``bin`` of 3 float64 is decoded, in a burst as
+    alone, to the sample of the same packet with an array."""
+    vel = np.array([1.0, 0.5, 0.0], dtype="<f8").tobytes()
+    received = [
+        (KEY[Stream.GNSS], _gnss_payload(i, T0 + i * 10**8, vel_enu_mps=vel)) for i in range(12)
+    ]
+    got = assert_burst_matches(received)
+    assert all(isinstance(item, Packet) for item in got)
+    sample = got[0].measurements[0]  # type: ignore[union-attr]
+    assert isinstance(sample, GnssSample) and sample.vel_enu_mps == (1.0, 0.5, 0.0)
+
+
 def test_routes_are_the_stream_declarations() -> None:
     """The burst decoder's per-struct routes are taken from the declarations, one per stream,
     and a stream's one layout is what its ``batch`` and ``decode`` go by."""

@@ -633,3 +633,31 @@ def test_header_values_the_one_expression_check_must_not_take(
     """The usual header is checked in one expression; values next to valid ones still get
     the field rules' reason."""
     assert _reason(KEY[Stream.IMU], _raw(Stream.IMU, **fields)) == reason
+
+
+@pytest.mark.parametrize("vel", [(1.0, 2.0, 0.0), (-3.5, 0.25, 0.125), (math.nan,) * 3])
+def test_gnss_velocity_as_bin_equals_velocity_as_array(vel: tuple[float, float, float]) -> None:
+    """``vel_enu_mps`` may travel as a msgpack array of 3 numbers or, like every other array,
+    as a ``bin`` of 3 little-endian float64: both decode to the same sample."""
+    as_bin = _raw(Stream.GNSS, vel_enu_mps=np.asarray(vel, dtype="<f8").tobytes())
+    as_array = _raw(Stream.GNSS, vel_enu_mps=list(vel))
+    got_bin = decode(KEY[Stream.GNSS], as_bin).measurements[0]
+    got_array = decode(KEY[Stream.GNSS], as_array).measurements[0]
+    assert isinstance(got_bin, GnssSample) and isinstance(got_array, GnssSample)
+    np.testing.assert_array_equal(got_bin.vel_enu_mps, vel)
+    assert all(type(x) is float for x in got_bin.vel_enu_mps)
+    assert repr(got_bin) == repr(got_array)  # NaN fields compare unequal; their text does not
+
+
+@pytest.mark.parametrize(
+    ("raw", "reason"),
+    [
+        (np.zeros(2, dtype="<f8").tobytes(), "wrong_shape"),
+        (np.zeros(4, dtype="<f8").tobytes(), "wrong_shape"),
+        (b"\x00" * 23, "wrong_shape"),
+        (np.array([np.inf, 0.0, 0.0], dtype="<f8").tobytes(), "non_finite"),
+        (np.array([200.0, 0.0, 0.0], dtype="<f8").tobytes(), "out_of_range"),
+    ],
+)
+def test_gnss_velocity_as_bin_is_checked(raw: bytes, reason: str) -> None:
+    assert _reason(KEY[Stream.GNSS], _raw(Stream.GNSS, vel_enu_mps=raw)) == reason
