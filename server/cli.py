@@ -13,7 +13,8 @@ Subcommands::
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
                                           wheels frontend advance publisher ingest pipeline
                                           writes
-    slipfleet token    create --name N --role {viewer,operator,admin} | list | revoke ID
+    slipfleet token    create --name N --role {viewer,operator,admin} [--expires-in DURATION]
+                       | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
 
 Settings come from the environment (``SLIPFLEET_…``) and an optional TOML file; flags override
@@ -95,6 +96,8 @@ def _refuse_busy_ports(settings: Any, command: str) -> None:
 
 def _token_advice(settings: Any) -> str:
     """What ``serve`` says about access tokens: how to make the first, or how many there are."""
+    import time
+
     from server.storage import open_store
     from server.storage.base import StorageError
 
@@ -103,7 +106,8 @@ def _token_advice(settings: Any) -> str:
     except StorageError:
         return "the REST API and live views need access tokens (slipfleet token --help)"
     try:
-        valid = sum(1 for t in store.list_tokens() if not t.revoked)
+        now_ns = time.time_ns()
+        valid = sum(1 for t in store.list_tokens() if t.valid_at(now_ns))
     finally:
         store.close()
     if valid == 0:
@@ -254,19 +258,23 @@ def _cmd_token(args: argparse.Namespace) -> int:
     store = open_store(settings.storage)
     try:
         if args.token_command == "create":
-            token, record = issue_token(store, args.name, args.role, time.time_ns())
+            token, record = issue_token(
+                store, args.name, args.role, time.time_ns(), args.expires_in
+            )
+            expires = "never" if record.expires_ns is None else format_ns(record.expires_ns)
             print(
-                f"created token {record.id} ({record.name}, {record.role}). It is shown only "
-                "this once; keep it secret:",
+                f"created token {record.id} ({record.name}, {record.role}, expires {expires}). "
+                "It is shown only this once; keep it secret:",
                 file=sys.stderr,
             )
             print(token)
             return 0
         if args.token_command == "list":
+            now_ns = time.time_ns()
             print(f"{'id':>5}  {'role':<8}  {'created':<20}  {'last used':<20}  status    name")
             for r in store.list_tokens():
                 used = format_ns(r.last_used_ns)[:19] + "Z" if r.last_used_ns else "never"
-                status = "revoked" if r.revoked else "valid"
+                status = "revoked" if r.revoked else "expired" if r.expired(now_ns) else "valid"
                 print(
                     f"{r.id:>5}  {r.role:<8}  {format_ns(r.created_ns)[:19] + 'Z':<20}  "
                     f"{used:<20}  {status:<8}  {r.name}"
@@ -302,6 +310,15 @@ def _token_name(text: str) -> str:
     if not name or len(name) > 100 or any(ord(c) < 32 or ord(c) == 127 for c in name):
         raise argparse.ArgumentTypeError("1-100 printable characters")
     return name
+
+
+def _token_lifetime(text: str) -> int:
+    from server.tokens import parse_lifetime_ns
+
+    try:
+        return parse_lifetime_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _token_id(text: str) -> int:
@@ -536,6 +553,13 @@ def _add_token(sub: Any) -> None:
         required=True,
         choices=("viewer", "operator", "admin"),
         help="viewer: read; operator: also register and configure vehicles; admin: everything",
+    )
+    tc.add_argument(
+        "--expires-in",
+        type=_token_lifetime,
+        default=None,
+        metavar="DURATION",
+        help="lifetime from now: 90s, 30m, 12h, 7d or 2w (at most ten years); default: never",
     )
     tsub.add_parser("list", help="list tokens (never the tokens themselves)")
     tr = tsub.add_parser("revoke", help="revoke a token by id")

@@ -121,6 +121,15 @@ class StorageSettings(BaseModel):
     backlog_max_rows: int = Field(2_000_000, ge=1000, description="in-memory backlog bound")
     retention_days: float = Field(0, ge=0, description="delete estimates older than this; 0 = keep")
     store_raw_packets: bool = False
+    raw_packets_queue_max_bytes: int = Field(
+        64 * 2**20,
+        ge=2**20,
+        le=2**34,
+        description=(
+            "payload bytes of raw packets waiting for the writer (store_raw_packets); packets "
+            "beyond are dropped and counted, never held in memory"
+        ),
+    )
 
 
 class IngestSettings(BaseModel):

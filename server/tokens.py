@@ -27,17 +27,25 @@ if TYPE_CHECKING:
     from server.storage.base import Store, TokenRecord
 
 __all__ = [
+    "MAX_LIFETIME_S",
     "TOKEN_PREFIX",
     "Role",
     "generate_token",
     "hash_token",
     "is_well_formed",
     "issue_token",
+    "parse_lifetime_ns",
 ]
 
 TOKEN_PREFIX = "sft_"
 _TOKEN_BYTES = 32
 _TOKEN_RE = re.compile(r"sft_[A-Za-z0-9_\-]{43}")
+_LIFETIME_RE = re.compile(r"([1-9][0-9]{0,9})([smhdw])")
+_UNIT_S = {"s": 1, "m": 60, "h": 3_600, "d": 86_400, "w": 604_800}
+_NS_PER_S = 1_000_000_000
+
+#: Longest lifetime a token may be given: ten years of 366 days, in seconds.
+MAX_LIFETIME_S = 10 * 366 * 86_400
 
 
 class Role(StrEnum):
@@ -75,9 +83,29 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode("utf-8")).hexdigest()
 
 
-def issue_token(store: Store, name: str, role: Role | str, now_ns: int) -> tuple[str, TokenRecord]:
+def parse_lifetime_ns(text: str) -> int:
+    """A token lifetime such as ``90s``, ``30m``, ``12h``, ``7d`` or ``2w`` in integer ns.
+
+    Raises ValueError for any other shape and for more than :data:`MAX_LIFETIME_S`.
+    """
+    match = _LIFETIME_RE.fullmatch(text.strip())
+    if match is None:
+        raise ValueError(f"{text!r} is not a lifetime like 90s, 30m, 12h, 7d or 2w")
+    seconds = int(match.group(1)) * _UNIT_S[match.group(2)]
+    if seconds > MAX_LIFETIME_S:
+        raise ValueError(f"{text!r} is longer than ten years")
+    return seconds * _NS_PER_S
+
+
+def issue_token(
+    store: Store, name: str, role: Role | str, now_ns: int, expires_in_ns: int | None = None
+) -> tuple[str, TokenRecord]:
     """Create a token in ``store``: returns the token (show it once, it is not kept) and its
-    record. ``name`` says whom or what it is for; ``role`` is checked here."""
+    record. ``name`` says whom or what it is for; ``role`` is checked here; ``expires_in_ns``
+    (> 0, or None: never) sets the expiry to ``now_ns + expires_in_ns``."""
+    if expires_in_ns is not None and not 0 < expires_in_ns <= MAX_LIFETIME_S * _NS_PER_S:
+        raise ValueError(f"a token's lifetime must be in (0, 10 years], not {expires_in_ns} ns")
+    expires_ns = None if expires_in_ns is None else now_ns + expires_in_ns
     token = generate_token()
-    record = store.create_token(name, Role(role).value, hash_token(token), now_ns)
+    record = store.create_token(name, Role(role).value, hash_token(token), now_ns, expires_ns)
     return token, record

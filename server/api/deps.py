@@ -420,16 +420,16 @@ def _principal(conn: HTTPConnection) -> Principal:
     if token is None:
         raise _refuse(conn, 401, "an access token is required: Authorization: Bearer <token>")
     if not is_well_formed(token):
-        raise _refuse(conn, 401, "invalid or revoked access token")
+        raise _refuse(conn, 401, "invalid, revoked or expired access token")
     runtime: ApiRuntime | None = getattr(conn.app.state, "runtime", None)
     if runtime is None:
         raise RuntimeError("the app's runtime is not open")
     store = runtime.store
     digest = hash_token(token)
     record = store.get_token(digest)
-    if record is None or record.revoked:
-        raise _refuse(conn, 401, "invalid or revoked access token")
     now_ns = time.time_ns()
+    if record is None or not record.valid_at(now_ns):
+        raise _refuse(conn, 401, "invalid, revoked or expired access token")
     if record.last_used_ns is None or now_ns - record.last_used_ns >= TOKEN_TOUCH_INTERVAL_NS:
         try:
             store.touch_token(record.id, now_ns)
@@ -473,8 +473,8 @@ def require_role(role: Role | str) -> RoleRequirement:
 
     With ``settings.api.require_auth`` on (the default) the caller must present a token
     (``Authorization: Bearer …``; WebSockets: see :func:`_credential`) that the store knows and
-    that is not revoked, else 401; a token whose role is below ``role`` gets 403. Roles:
-    ``viewer`` < ``operator`` < ``admin``. With ``require_auth`` off every caller is admitted.
-    Works for HTTP routes and WebSocket routes alike.
+    that is neither revoked nor expired, else 401; a token whose role is below ``role`` gets
+    403. Roles: ``viewer`` < ``operator`` < ``admin``. With ``require_auth`` off every caller
+    is admitted. Works for HTTP routes and WebSocket routes alike.
     """
     return RoleRequirement(role)

@@ -49,7 +49,8 @@ class TokenRecord:
     """A REST access token as stored: never the token itself, only its hash (not shown here).
 
     ``role`` is ``"viewer"``, ``"operator"`` or ``"admin"`` (:class:`server.tokens.Role`);
-    ``last_used_ns`` and ``revoked_ns`` are None while the token was never used / not revoked.
+    ``last_used_ns`` and ``revoked_ns`` are None while the token was never used / not revoked;
+    ``expires_ns`` is None for a token that does not expire.
     """
 
     id: int
@@ -58,10 +59,19 @@ class TokenRecord:
     created_ns: int
     last_used_ns: int | None
     revoked_ns: int | None
+    expires_ns: int | None = None
 
     @property
     def revoked(self) -> bool:
         return self.revoked_ns is not None
+
+    def expired(self, now_ns: int) -> bool:
+        """True once ``now_ns`` reached the expiry (never for a token without one)."""
+        return self.expires_ns is not None and now_ns >= self.expires_ns
+
+    def valid_at(self, now_ns: int) -> bool:
+        """True while the token is neither revoked nor expired at ``now_ns``."""
+        return not self.revoked and not self.expired(now_ns)
 
 
 class Store(Protocol):
@@ -140,8 +150,11 @@ class Store(Protocol):
         """Stored anchors by vehicle id: every one, or only ``vehicle_id``'s."""
 
     # access tokens (see server.tokens; the store keeps the token's SHA-256 only)
-    def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:
-        """Store a new token by its hash; raises :class:`StorageDataError` on a duplicate hash."""
+    def create_token(
+        self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None
+    ) -> TokenRecord:
+        """Store a new token by its hash (``expires_ns`` None: it never expires); raises
+        :class:`StorageDataError` on a duplicate hash."""
 
     def get_token(self, token_sha256: str) -> TokenRecord | None:
         """The token with this hash (revoked ones too), or None."""

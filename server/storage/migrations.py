@@ -17,7 +17,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 13):
+Schema (version 14):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -57,10 +57,11 @@ Schema (version 13):
     origin of the vehicle's local ENU frame (``east_m``, ``north_m``, ``up_m`` of its estimates),
     its first GNSS fix with a position; kept so that a restarted server goes on in the same
     frame. Written once; deleted with the vehicle.
-``api_tokens`` (version 4)
+``api_tokens`` (version 4; ``expires_ns`` version 14)
     REST bearer tokens: ``id``, ``name``, ``role`` (``viewer`` / ``operator`` / ``admin``),
     ``token_sha256`` (hex SHA-256 of the token, unique; the token itself is never stored),
-    ``created_ns``, ``last_used_ns`` and ``revoked_ns`` (NULL while never used / not revoked).
+    ``created_ns``, ``last_used_ns`` and ``revoked_ns`` (NULL while never used / not revoked),
+    ``expires_ns`` (NULL: never expires; from then on the token is refused like a revoked one).
 """
 
 from __future__ import annotations
@@ -666,6 +667,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "the tracked estimator's tables",
         estimator_table_steps("tracked", "estimates_tracked", TRACKED_FIELDS_V13, "sqlite"),
         estimator_table_steps("tracked", "estimates_tracked", TRACKED_FIELDS_V13, "postgresql"),
+    ),
+    Migration(
+        14,
+        "expiry of API access tokens",
+        ("ALTER TABLE api_tokens ADD COLUMN expires_ns INTEGER",),
+        ("ALTER TABLE api_tokens ADD COLUMN expires_ns bigint",),
     ),
 )
 

@@ -50,7 +50,7 @@ _COPY_SIGNATURE = b"PGCOPY\n\xff\r\n\x00"
 _COPY_HEADER = _COPY_SIGNATURE + b"\x00\x00\x00\x00" + b"\x00\x00\x00\x00"  # flags, ext length
 _COPY_TRAILER = b"\xff\xff"
 _WIDTH = {"f8": 8, "i8": 8, "i4": 4}
-_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
+_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns, expires_ns"
 
 
 def _copy_dtype(columns: Sequence[tuple[str, str]]) -> np.dtype:
@@ -471,14 +471,23 @@ class PostgresStore:
             created_ns=int(row[3]),
             last_used_ns=None if row[4] is None else int(row[4]),
             revoked_ns=None if row[5] is None else int(row[5]),
+            expires_ns=None if row[6] is None else int(row[6]),
         )
 
-    def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:
+    def create_token(
+        self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None
+    ) -> TokenRecord:
         with self._pool.connection() as conn, conn.transaction():
             row = conn.execute(
-                "INSERT INTO api_tokens (name, role, token_sha256, created_ns) "
-                f"VALUES (%s, %s, %s, %s) RETURNING {_TOKEN_COLUMNS}",
-                (name, role, token_sha256, int(now_ns)),
+                "INSERT INTO api_tokens (name, role, token_sha256, created_ns, expires_ns) "
+                f"VALUES (%s, %s, %s, %s, %s) RETURNING {_TOKEN_COLUMNS}",
+                (
+                    name,
+                    role,
+                    token_sha256,
+                    int(now_ns),
+                    None if expires_ns is None else int(expires_ns),
+                ),
             ).fetchone()
         assert row is not None
         return self._token(row)

@@ -90,7 +90,7 @@ __all__ = ["SqliteStore"]
 
 _PAGE_SIZE_BYTES = 8192  # only takes effect when the file is created
 _CACHE_KIB = 32 * 1024
-_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns"
+_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns, expires_ns"
 
 #: Rows newer than this behind the newest staged row stay in the staging table; older ones
 #: are moved once the staged rows span :data:`_MOVE_SPAN_NS` (so a vehicle moves ~20-30 rows
@@ -726,14 +726,23 @@ class SqliteStore:
             created_ns=int(row[3]),
             last_used_ns=None if row[4] is None else int(row[4]),
             revoked_ns=None if row[5] is None else int(row[5]),
+            expires_ns=None if row[6] is None else int(row[6]),
         )
 
-    def create_token(self, name: str, role: str, token_sha256: str, now_ns: int) -> TokenRecord:
+    def create_token(
+        self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None
+    ) -> TokenRecord:
         with self._write() as conn:
             row = conn.execute(
-                "INSERT INTO api_tokens (name, role, token_sha256, created_ns) "
-                f"VALUES (?, ?, ?, ?) RETURNING {_TOKEN_COLUMNS}",
-                (name, role, token_sha256, int(now_ns)),
+                "INSERT INTO api_tokens (name, role, token_sha256, created_ns, expires_ns) "
+                f"VALUES (?, ?, ?, ?, ?) RETURNING {_TOKEN_COLUMNS}",
+                (
+                    name,
+                    role,
+                    token_sha256,
+                    int(now_ns),
+                    None if expires_ns is None else int(expires_ns),
+                ),
             ).fetchone()
         return self._token(row)
 

@@ -183,6 +183,7 @@ class StoreWriter:
         self._backlog_max = int(settings.backlog_max_rows)
         self._retention_ns = int(settings.retention_days * _NS_PER_DAY)
         self._store_raw = bool(settings.store_raw_packets)
+        self._raw_max_bytes = int(settings.raw_packets_queue_max_bytes)
         self._submit_block_s = float(submit_block_s)
         self._retry_initial_s = float(retry_initial_s)
         self._retry_max_s = float(retry_max_s)
@@ -203,6 +204,7 @@ class StoreWriter:
         # totals already queued (or written): a counter that did not change is not written again
         self._counters_sent: dict[str, dict[str, int]] = {}
         self._raw: list[tuple[str, int, str, bytes]] = []
+        self._raw_bytes = 0  # payload bytes in self._raw
         # ENU anchors to store, and the vehicles whose anchor was queued (each is stored once)
         self._anchors: dict[str, Anchor] = {}
         self._anchors_sent: set[str] = set()
@@ -419,20 +421,35 @@ class StoreWriter:
     def submit_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
         """Queue ``(vehicle_id, received_ns, key, payload)`` when ``store_raw_packets`` is on.
 
-        Returns the packets accepted (0 when raw packets are not stored).
+        The queue holds at most ``_RAW_PACKETS_MAX`` packets and ``raw_packets_queue_max_bytes``
+        payload bytes; packets beyond either are dropped (``raw_packets_dropped``). Returns the
+        packets accepted (0 when raw packets are not stored).
         """
         if not self._store_raw or not packets:
             return 0
         with self._cond:
             if self._closing:
                 raise RuntimeError("StoreWriter is closed")
-            room = max(_RAW_PACKETS_MAX - len(self._raw), 0)
-            take = list(packets[:room])
+            take = self._raw_room_locked(packets)
             self._raw_dropped += len(packets) - len(take)
             self._raw.extend(take)
             if take:
                 self._aux_touched_locked()
             return len(take)
+
+    def _raw_room_locked(
+        self, packets: Sequence[tuple[str, int, str, bytes]]
+    ) -> list[tuple[str, int, str, bytes]]:
+        """The leading ``packets`` that fit the raw queue's packet and byte bounds (counted in)."""
+        room = max(_RAW_PACKETS_MAX - len(self._raw), 0)
+        take: list[tuple[str, int, str, bytes]] = []
+        for packet in packets[:room]:
+            size = len(packet[3])
+            if self._raw_bytes + size > self._raw_max_bytes:
+                break
+            self._raw_bytes += size
+            take.append(packet)
+        return take
 
     def call(self, fn: Callable[[Store], T], timeout_s: float = CALL_TIMEOUT_S) -> T:
         """Run ``fn(store)`` on the writer thread and return its result or raise its error.
@@ -603,7 +620,7 @@ class StoreWriter:
                 return "estimates", self._inflight
             if self._aux_done < self._aux_seq and (urgent or now >= self._aux_due_at):
                 counters = self._take_counters_locked()
-                raw, self._raw = self._raw, []
+                raw, self._raw, self._raw_bytes = self._raw, [], 0
                 anchors, self._anchors = self._anchors, {}
                 # the aux data counts as written once the last slice of counters is
                 seq = None if self._counters else self._aux_seq
@@ -804,6 +821,7 @@ class StoreWriter:
                     merged.update(self._counters.get(vid, {}))
                     self._counters[vid] = merged
                 self._raw[:0] = raw
+                self._raw_bytes += sum(len(p[3]) for p in raw)
                 self._anchors = {**anchors, **self._anchors}
                 self._failed_locked(exc)
             return

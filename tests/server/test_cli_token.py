@@ -75,3 +75,39 @@ def test_token_create_refuses_unknown_roles_and_empty_names(data_dir: Path) -> N
         assert store.list_tokens() == []
     finally:
         store.close()
+
+
+def test_token_create_expires_in(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import time
+
+    before_ns = time.time_ns()
+    assert (
+        main(["token", "create", "--name", "shift", "--role", "viewer", "--expires-in", "8h"]) == 0
+    )
+    out, err = capsys.readouterr()
+    assert "expires 20" in err
+    assert (
+        main(["token", "create", "--name", "gone", "--role", "viewer", "--expires-in", "1s"]) == 0
+    )
+    capsys.readouterr()
+    store = open_store(StorageSettings.model_validate({"data_dir": data_dir}))
+    try:
+        record = store.get_token(hash_token(out.strip()))
+    finally:
+        store.close()
+    assert record is not None and record.expires_ns is not None
+    lifetime_ns = record.expires_ns - before_ns
+    assert 8 * 3600 * 10**9 <= lifetime_ns < 8 * 3600 * 10**9 + 60 * 10**9
+    time.sleep(1.05)
+    assert main(["token", "list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "valid" in next(x for x in lines if x.endswith("shift"))
+    assert "expired" in next(x for x in lines if x.endswith("gone"))
+
+
+@pytest.mark.parametrize("lifetime", ["0s", "8", "-1h", "1y", "1.5h", "600w", "h"])
+def test_token_create_refuses_bad_lifetimes(data_dir: Path, lifetime: str) -> None:
+    argv = ["token", "create", "--name", "x", "--role", "viewer", "--expires-in", lifetime]
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2

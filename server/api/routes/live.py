@@ -53,10 +53,10 @@ vehicle's rows of one estimator (default: its primary)
     send ``{"window_s": 300}`` at any time; the server answers with a new ``snapshot`` for that
     window.
 
-Revocation: a socket opened with a token is closed (code 1008, "access token revoked") within
-:data:`REVOCATION_POLL_S` of the token being revoked or deleted, over REST or with
-``slipfleet token revoke`` in another process: each socket looks its token up again that
-often, in a worker thread.
+Revocation and expiry: a socket opened with a token is closed (code 1008, "token revoked or
+expired") within :data:`REVOCATION_POLL_S` of the token being revoked or deleted (over REST or
+with ``slipfleet token revoke`` in another process) or of its expiry passing: each socket looks
+its token up again that often, in a worker thread.
 """
 
 from __future__ import annotations
@@ -153,17 +153,22 @@ CallerDep = Annotated[Principal | None, Depends(_caller)]
 
 
 async def _token_revoked(websocket: WebSocket, token_sha256: str) -> None:
-    """Return once the token is revoked or gone (looked up every :data:`REVOCATION_POLL_S`;
-    a store that does not answer keeps the socket open)."""
+    """Return once the token is revoked, expired or gone (looked up every
+    :data:`REVOCATION_POLL_S`; a store that does not answer keeps the socket open until the
+    expiry last read)."""
     store = websocket.app.state.runtime.store
+    expires_ns: int | None = None
     while True:
         await asyncio.sleep(REVOCATION_POLL_S)
         try:
             record = await anyio.to_thread.run_sync(store.get_token, token_sha256)
         except StorageError:
+            if expires_ns is not None and time.time_ns() >= expires_ns:
+                return
             continue
-        if record is None or record.revoked:
+        if record is None or not record.valid_at(time.time_ns()):
             return
+        expires_ns = record.expires_ns
 
 
 async def _while_authorised(
@@ -183,7 +188,9 @@ async def _while_authorised(
             await running
     if watch.done() and not watch.cancelled():
         with contextlib.suppress(WebSocketDisconnect, RuntimeError):
-            await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="token revoked")
+            await websocket.close(
+                code=status.WS_1008_POLICY_VIOLATION, reason="token revoked or expired"
+            )
 
 
 @router.websocket("/fleet")

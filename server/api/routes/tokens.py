@@ -2,7 +2,8 @@
 
 A new token is in the answer to its ``POST`` only; the server keeps its SHA-256
 (:mod:`server.tokens`). Revoking is immediate (every request looks its token up) and final; the
-record stays listed with ``revoked_ns`` so its use can still be traced. Creating and revoking go
+record stays listed with ``revoked_ns`` so its use can still be traced. A token created with
+``expires_in_s`` is refused from ``expires_ns`` on, like a revoked one. Creating and revoking go
 through the runtime's single store writer.
 """
 
@@ -17,7 +18,7 @@ from pydantic import BaseModel, Field
 from server.api.deps import StoreDep, WriterDep, require_role
 from server.api.errors import NotFound, error_responses
 from server.storage.base import TokenRecord
-from server.tokens import Role, issue_token
+from server.tokens import MAX_LIFETIME_S, Role, issue_token
 
 __all__ = ["TokenCreate", "TokenCreated", "TokenPublic", "TokensPublic", "router"]
 
@@ -36,6 +37,12 @@ class TokenCreate(BaseModel):
         description="whom or what the token is for, e.g. `grafana` or `alice`",
     )
     role: Role = Field(description="viewer (read) < operator (vehicle configs) < admin (all)")
+    expires_in_s: int | None = Field(
+        default=None,
+        ge=1,
+        le=MAX_LIFETIME_S,
+        description="lifetime in seconds from now (at most ten years); null: never expires",
+    )
 
 
 class TokenPublic(BaseModel):
@@ -46,7 +53,8 @@ class TokenPublic(BaseModel):
     role: Role
     created_ns: int
     last_used_ns: int | None = Field(description="last use, to within a minute; null: never")
-    revoked_ns: int | None = Field(description="when it was revoked; null: valid")
+    revoked_ns: int | None = Field(description="when it was revoked; null: not revoked")
+    expires_ns: int | None = Field(default=None, description="when it expires; null: never")
 
 
 class TokenCreated(TokenPublic):
@@ -70,6 +78,7 @@ def _public(record: TokenRecord) -> TokenPublic:
         created_ns=record.created_ns,
         last_used_ns=record.last_used_ns,
         revoked_ns=record.revoked_ns,
+        expires_ns=record.expires_ns,
     )
 
 
@@ -92,7 +101,10 @@ def list_tokens(store: StoreDep) -> TokensPublic:
     summary="Create an access token (admin); the answer is the only place it appears",
 )
 def create_token(body: Annotated[TokenCreate, Body()], writer: WriterDep) -> TokenCreated:
-    token, record = writer.call(lambda s: issue_token(s, body.name, body.role, time.time_ns()))
+    lifetime_ns = None if body.expires_in_s is None else body.expires_in_s * 1_000_000_000
+    token, record = writer.call(
+        lambda s: issue_token(s, body.name, body.role, time.time_ns(), lifetime_ns)
+    )
     return TokenCreated(**_public(record).model_dump(), token=token)
 
 

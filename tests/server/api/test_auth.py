@@ -140,6 +140,24 @@ def test_revoked_token_is_401_at_once(
 # ----------------------------------------------------------------------------- token routes
 
 
+def test_expired_token_is_401(client: ApiClient, tokens: dict[Role, str]) -> None:
+    admin = _bearer(tokens[Role.ADMIN])
+    before_ns = time.time_ns()
+    body = {"name": "brief", "role": "viewer", "expires_in_s": 1}
+    created = client.post("/api/v1/tokens", json=body, headers=admin).json()
+    assert 0 < created["expires_ns"] - before_ns - 10**9 < 5 * 10**9
+    assert client.get(V, headers=_bearer(created["token"])).status_code == 200
+    time.sleep(max(0.0, (created["expires_ns"] - time.time_ns()) / 1e9) + 0.01)
+    r = client.get(V, headers=_bearer(created["token"]))
+    assert r.status_code == 401
+    assert "expired" in r.json()["reason"]
+    listed = client.get("/api/v1/tokens", headers=admin).json()["data"]
+    assert (
+        next(t for t in listed if t["id"] == created["id"])["expires_ns"] == created["expires_ns"]
+    )
+    assert all(t["expires_ns"] is None for t in listed if t["id"] != created["id"])
+
+
 def test_token_routes_create_list_revoke(client: ApiClient, tokens: dict[Role, str]) -> None:
     admin = _bearer(tokens[Role.ADMIN])
     r = client.post("/api/v1/tokens", json={"name": "grafana", "role": "viewer"}, headers=admin)
@@ -172,6 +190,10 @@ def test_token_routes_create_list_revoke(client: ApiClient, tokens: dict[Role, s
         {"name": "a\nb", "role": "viewer"},
         {"name": "x" * 101, "role": "viewer"},
         {"role": "viewer"},
+        {"name": "x", "role": "viewer", "expires_in_s": 0},
+        {"name": "x", "role": "viewer", "expires_in_s": -5},
+        {"name": "x", "role": "viewer", "expires_in_s": 1.5},
+        {"name": "x", "role": "viewer", "expires_in_s": 10 * 366 * 86_400 + 1},
     ],
 )
 def test_token_create_validates(
@@ -322,3 +344,32 @@ def test_body_limit_holds_with_and_without_a_token(
         r = client.post("/api/v1/tokens", json=big, headers=headers)
         assert r.status_code == 413
         assert r.json()["error"] == "payload_too_large"
+
+
+def test_websocket_is_closed_when_its_token_expires(
+    served: tuple[ServerThread, FakeRuntime],
+) -> None:
+    from websockets.exceptions import ConnectionClosed
+
+    from server.api.routes.live import REVOCATION_POLL_S
+
+    server, runtime = served
+    lifetime_ns = 1_500_000_000
+    brief, record = issue_token(runtime.store, "brief", Role.VIEWER, time.time_ns(), lifetime_ns)
+    lasting, _ = issue_token(runtime.store, "lasting", Role.VIEWER, time.time_ns())
+    assert record.expires_ns is not None
+    with (
+        _ws(
+            server, "/api/v1/live/fleet?interval_ms=250", subprotocols=[WS_BEARER_PROTOCOL, brief]
+        ) as ws,
+        _ws(
+            server, "/api/v1/live/fleet?interval_ms=250", subprotocols=[WS_BEARER_PROTOCOL, lasting]
+        ) as other,
+    ):
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:
+                ws.recv(timeout=10)
+        late_s = (time.time_ns() - record.expires_ns) / 1e9
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+        assert -0.05 < late_s < REVOCATION_POLL_S + 0.5
+        assert '"type":"fleet"' in other.recv(timeout=5)  # the lasting token streams on

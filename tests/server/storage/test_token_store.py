@@ -72,3 +72,26 @@ def test_tokens_survive_reopening(backend: Backend) -> None:
     token, record = issue_token(first, "keep", Role.ADMIN, 7)
     first.close()
     assert backend.open().get_token(hash_token(token)) == record
+
+
+def test_expiry_is_stored_and_read_back(store: Store) -> None:
+    never = store.create_token("forever", "viewer", "1" * 64, 100)
+    soon = store.create_token("shift", "operator", "2" * 64, 100, expires_ns=100 + 8 * 3600 * 10**9)
+    assert never.expires_ns is None and soon.expires_ns == 100 + 8 * 3600 * 10**9
+    got = store.get_token("2" * 64)
+    assert got == soon
+    assert got.valid_at(soon.expires_ns - 1) and not got.valid_at(soon.expires_ns)
+    assert never.valid_at(2**62) and not never.expired(2**62)
+    assert [t.expires_ns for t in store.list_tokens()] == [None, soon.expires_ns]
+    revoked = store.revoke_token(soon.id, 200)
+    assert revoked is not None and revoked.expires_ns == soon.expires_ns
+    assert not revoked.valid_at(300)  # revoked before it expired
+
+
+def test_issue_token_sets_the_expiry_from_a_lifetime(store: Store) -> None:
+    _, record = issue_token(store, "temp", Role.VIEWER, 1_000, expires_in_ns=5_000)
+    assert record.expires_ns == 6_000
+    for bad in (0, -1, 11 * 366 * 86_400 * 10**9):
+        with pytest.raises(ValueError):
+            issue_token(store, "bad", Role.VIEWER, 1_000, expires_in_ns=bad)
+    assert [t.name for t in store.list_tokens()] == ["temp"]

@@ -444,6 +444,23 @@ def test_raw_packets_only_when_enabled(backend: Backend) -> None:
     assert store.query_raw_packets("v1", 0, 2**62) == [packet[1:]]  # type: ignore[attr-defined]
 
 
+def test_raw_packets_are_bounded_in_bytes(backend: Backend) -> None:
+    store = backend.open()
+    budget = 2**20
+    packets = [("v1", T0_NS + k, "fleet/v1/sensors/imu", bytes([k]) * 2**14) for k in range(100)]
+    settings = _settings(store_raw_packets=True, raw_packets_queue_max_bytes=budget)
+    with StoreWriter(store, settings) as writer:
+        assert writer.submit_raw_packets(packets) == budget // 2**14  # 64 of 16 KiB fit
+        assert writer.flush(timeout=30)
+        stats = writer.stats()
+        assert (stats.raw_packets_written, stats.raw_packets_dropped) == (64, 36)
+        assert writer.submit_raw_packets(packets[64:]) == 36  # written: the room is back
+        assert writer.flush(timeout=30)
+        assert writer.stats().raw_packets_written == 100
+    stored = store.query_raw_packets("v1", 0, 2**62)  # type: ignore[attr-defined]
+    assert [p[1:] for p in packets] == stored
+
+
 def test_producers_on_several_threads(backend: Backend) -> None:
     store = backend.open()
     vehicles = [f"v{i}" for i in range(4)]
