@@ -103,11 +103,13 @@ class ColumnLayoutStore(SqliteStore):
                 lambda sql, params: conn.execute(sql, params).fetchall(), self.dialect, target=5
             )
             # the later versions' (empty) tables, which the inherited deletes also clear:
-            # staging (7), anchors (9), the estimator tables (10); and the configs' shape (11)
+            # staging (7), anchors (9), and every version from 10 on (the estimator tables,
+            # the configs' shape, token expiry); not 6 and 8, the packed layout it stands for
             def execute(sql: str, params: Sequence[Any]) -> list[Any]:
                 return conn.execute(sql, params).fetchall()
 
-            for later in (7, 9, 10, 11):
+            later_versions = (7, 9, *(m.version for m in migrations.MIGRATIONS if m.version >= 10))
+            for later in later_versions:
                 for step in next(m for m in migrations.MIGRATIONS if m.version == later).sqlite:
                     if isinstance(step, str):
                         conn.execute(step)
