@@ -16,6 +16,7 @@ __all__ = [
     "IntArray",
     "as_rows",
     "as_stamps",
+    "due_ticks",
     "nan_to_num",
     "seg_cumsum",
 ]
@@ -59,3 +60,16 @@ def seg_cumsum(
     is the index where element ``i``'s segment starts."""
     c = np.cumsum(x, axis=0)
     return c - (c[start_of] - x[start_of])
+
+
+def due_ticks(next_ns: int | None, covered_ns: IntArray, tick_ns: int, until_ns: int) -> IntArray:
+    """The ticks ``next_ns, next_ns + tick_ns, …`` at or before both ``until_ns`` and the last
+    stamp of ``covered_ns`` (the input that must cover a tick, e.g. the IMU), oldest first;
+    shape ``(m,)``, empty before the grid is set (``next_ns`` None) or without input."""
+    if next_ns is None or not covered_ns.size:
+        return np.zeros(0, dtype=np.int64)
+    last = min(until_ns, int(covered_ns[-1]))
+    if last < next_ns:
+        return np.zeros(0, dtype=np.int64)
+    n = (last - next_ns) // tick_ns + 1
+    return next_ns + tick_ns * np.arange(n, dtype=np.int64)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator._arrays import FloatArray, IntArray
+from estimator._arrays import FloatArray, IntArray, due_ticks
 from estimator.base import Pushed
 from estimator.config import ConfigError, VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
@@ -122,13 +122,7 @@ class _Vehicle:
 
     def due(self, until_ns: int) -> IntArray:
         """Ticks ``<= until_ns`` the IMU already covers, oldest first."""
-        if self.next_ns is None or not self.imu_ns.size:
-            return np.zeros(0, dtype=np.int64)
-        last = min(until_ns, int(self.imu_ns[-1]))
-        if last < self.next_ns:
-            return np.zeros(0, dtype=np.int64)
-        n = (last - self.next_ns) // self.tick_ns + 1
-        return self.next_ns + self.tick_ns * np.arange(n, dtype=np.int64)
+        return due_ticks(self.next_ns, self.imu_ns, self.tick_ns, until_ns)
 
     def inputs(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
         """Mean forward specific force over each tick ``(t − tick, t]`` and the mean rim speed

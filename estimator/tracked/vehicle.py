@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator._arrays import BoolArray, FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray, due_ticks
 from estimator.config import TrackedConfig
 from estimator.geo import EnuFrame
 from estimator.tracked.edges import EdgeBuffer, edge_speed, span_speed
@@ -105,13 +105,7 @@ class VehicleInputs:
     # --- ticks -------------------------------------------------------------------------------
     def due(self, until_ns: int) -> IntArray:
         """Ticks ``<= until_ns`` the IMU already covers, oldest first."""
-        if self.next_ns is None or not self.imu_ns.size:
-            return np.zeros(0, dtype=np.int64)
-        last = min(until_ns, int(self.imu_ns[-1]))
-        if last < self.next_ns:
-            return np.zeros(0, dtype=np.int64)
-        n = (last - self.next_ns) // self.tick_ns + 1
-        return self.next_ns + self.tick_ns * np.arange(n, dtype=np.int64)
+        return due_ticks(self.next_ns, self.imu_ns, self.tick_ns, until_ns)
 
     def take(self, ticks: IntArray) -> TickInputs:
         """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs."""
