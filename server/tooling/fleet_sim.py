@@ -414,6 +414,21 @@ class FleetSim:
             vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, config))
         return vehicles
 
+    def _lay_out(
+        self, drives: Sequence[tuple[int, list[SimPacket], VehicleConfig]]
+    ) -> list[_Vehicle]:
+        """The vehicles over distinct drives ``(start_ns, packets, config)`` (vehicle ``i``
+        drives ``i % len(drives)``, looping after its last packet), spread over the tick, each
+        with its config naming the estimators :meth:`estimators_of` gives it."""
+        vehicles = []
+        for i, vid in enumerate(self.vehicle_ids):
+            start_ns, packets, config = drives[i % len(drives)]
+            period = loop_period_ns(start_ns, start_ns + packets[-1].arrival_offset_ns)
+            phase = (i * TICK_NS) // self._n
+            config = dataclasses.replace(config, estimators=self.estimators_of(i))
+            vehicles.append(_Vehicle(vid, packets, period, phase, phase - start_ns, config))
+        return vehicles
+
     def run(self, duration_s: float | None = None) -> SimStats:
         """Publish until the runs end (no loop), ``duration_s`` passes, or :meth:`stop`."""
         return publish_fleets([self], duration_s, stop=self._stop, stats=self.stats)

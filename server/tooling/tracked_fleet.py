@@ -16,7 +16,6 @@ motion state with a GNSS outage, so a demo shows states, track slip and dead rec
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -24,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from estimator.base import Measurement
 from estimator.types import GnssSample, ImuBatch, OdometerEdges, SprocketEdges
 from server.protocol.keys import Stream
-from server.tooling.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, loop_period_ns
+from server.tooling.fleet_sim import FleetSim, SimPacket, _Vehicle
 
 if TYPE_CHECKING:
     from estimator.sim.tracked import Route, TrackedRun
@@ -145,14 +144,9 @@ class TrackedFleetSim(FleetSim):
     def _build(self) -> list[_Vehicle]:
         """Simulate the distinct runs and lay the vehicles out over the tick as
         :class:`FleetSim` does; stamps are anchored as publishing starts."""
-        runs = self._runs()
-        drives = [tracked_packets(r.measurements, r.start_ns) for r in runs]
-        vehicles = []
-        for i, vid in enumerate(self.vehicle_ids):
-            run, packets = runs[i % self._distinct], drives[i % self._distinct]
-            end_ns = run.start_ns + packets[-1].arrival_offset_ns
-            phase = (i * TICK_NS) // self._n
-            config = dataclasses.replace(run.config, estimators=self.estimators_of(i))
-            period = loop_period_ns(run.start_ns, end_ns)
-            vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, config))
-        return vehicles
+        return self._lay_out(
+            [
+                (r.start_ns, tracked_packets(r.measurements, r.start_ns), r.config)
+                for r in self._runs()
+            ]
+        )

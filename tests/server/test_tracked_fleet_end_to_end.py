@@ -13,14 +13,12 @@ a sprocket, no slip): nothing of it reaches the filter as data.
 
 from __future__ import annotations
 
-import io
 import time
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
 
 from estimator.config import TrackedConfig
@@ -41,6 +39,7 @@ from server.tooling.tracked_fleet import (
 )
 from tests.server.fleet_stack import stack_settings, wait_counted
 from tests.server.test_mixed_fleet_end_to_end import _wait_stored
+from tests.server.test_steered_fleet_end_to_end import _rows
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -85,17 +84,6 @@ def _publish_bad(endpoints: list[str], prefix: str, t0: int) -> int:
         backwards = encode_odometer(OdometerEdges(t), seq[Stream.ODOMETER], int(t.max()))
         session.put(sensor_key(prefix, BAD, Stream.ODOMETER), backwards)
     return len(packets) + 1
-
-
-def _rows(client: httpx.Client, vid: str, estimator: str, window: dict[str, int]) -> dict:
-    """Every stored row of ``estimator`` for ``vid`` (Parquet: exact; null back to NaN)."""
-    r = client.get(
-        f"/api/v1/vehicles/{vid}/series",
-        params={**window, "estimator": estimator, "format": "parquet"},
-    )
-    assert r.status_code == 200, r.text
-    table = pq.read_table(io.BytesIO(r.content))
-    return {n: table[n].to_numpy(zero_copy_only=False) for n in table.column_names}
 
 
 def _check_crawler_rows(client: httpx.Client, window: dict[str, int], t0: int) -> int:

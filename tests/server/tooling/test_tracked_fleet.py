@@ -8,7 +8,6 @@ from __future__ import annotations
 import threading
 import time
 from collections import defaultdict
-from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -19,10 +18,10 @@ from estimator.sim.tracked import TrackedRun
 from estimator.types import OdometerEdges, SprocketEdges
 from server.protocol import Stream, decode, sensor_key
 from server.tooling.fleet_commands import demo
-from server.tooling.fleet_schedule import STREAMS, EncodedDrive, ScheduledVehicle, _Fleet, render
-from server.tooling.fleet_sim import TICK_NS, SimPacket, loop_period_ns
+from server.tooling.fleet_sim import SimPacket
 from server.tooling.tracked_fleet import demo_route, simulate_route, tracked_packets
 from tests.server.fleet_stack import stack_settings
+from tests.server.tooling.schedule_check import assert_schedule_patches_like_encoding
 from tests.support import free_port
 
 T0 = 1_763_700_000 * 10**9
@@ -80,31 +79,7 @@ def test_packets_hold_every_edge_once_and_decode_as_sent(run: TrackedRun) -> Non
 
 def test_schedule_patches_crawler_packets_like_the_per_packet_encoding(run: TrackedRun) -> None:
     packets = tracked_packets(run.measurements, run.start_ns)[:400]  # 10 s of the route
-    period = loop_period_ns(T0, T0 + packets[-1].arrival_offset_ns)
-    calls: dict[tuple[int, int], list[bytes]] = defaultdict(list)
-
-    def put(v: int, s: int) -> Callable[[bytes], None]:
-        return lambda payload: calls[(v, s)].append(payload)
-
-    vehicles = [
-        ScheduledVehicle(
-            0, ph, 5_000_000_007 * (i + 1), tuple(put(i, s) for s in range(len(STREAMS)))
-        )
-        for i, ph in enumerate([0, 41_000_000])
-    ]
-    fleet = _Fleet([EncodedDrive(packets, period)], vehicles)
-    for t in range(0, 2 * period, TICK_NS):  # two loops
-        w = render(fleet, t, t + TICK_NS, loop=True)
-        for call, payload in zip(w.calls, w.payloads, strict=True):
-            call(payload)
-    used = {STREAMS.index(s) for s in CRAWLER_STREAMS}
-    assert calls.keys() == {(v, s) for v in (0, 1) for s in used}
-    for (v, s), payloads in calls.items():
-        mine = [p for p in packets if p.stream is STREAMS[s]]
-        assert len(payloads) == 2 * len(mine)
-        for seq, payload in enumerate(payloads):
-            loop, i = divmod(seq, len(mine))
-            assert payload == mine[i].encode(seq, vehicles[v].shift_ns + loop * period)
+    assert_schedule_patches_like_encoding(packets, T0, CRAWLER_STREAMS)
 
 
 def test_demo_route_stops_at_both_ends_and_loses_gnss_in_its_turns() -> None:
