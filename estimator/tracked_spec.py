@@ -167,27 +167,19 @@ TRACKED_SPEC = EstimatorSpec(
     alerts=(
         # a track's slip out of its band (in place of the wheel slip threshold): a braked
         # track's −100 % in a pivot is its definition, not an alert
-        AlertRule(
-            "track_slip_left",
-            "left track slip out of band",
-            "slip_left_pct",
-            above=25.0,
-            absolute=True,
-            when=("SLIP_LEFT_VALID",),
-            unless=("BRAKED_LEFT",),
-            hold_s=3.0,
-            slip="left",
-        ),
-        AlertRule(
-            "track_slip_right",
-            "right track slip out of band",
-            "slip_right_pct",
-            above=25.0,
-            absolute=True,
-            when=("SLIP_RIGHT_VALID",),
-            unless=("BRAKED_RIGHT",),
-            hold_s=3.0,
-            slip="right",
+        *(
+            AlertRule(
+                f"track_slip_{side}",
+                f"{side} track slip out of band",
+                f"slip_{side}_pct",
+                above=25.0,
+                absolute=True,
+                when=(f"SLIP_{side.upper()}_VALID",),
+                unless=(f"BRAKED_{side.upper()}",),
+                hold_s=3.0,
+                slip=side,
+            )
+            for side in ("left", "right")
         ),
         AlertRule(
             "long_dead_reckoning",
