@@ -15,6 +15,7 @@ from enum import IntFlag
 import numpy as np
 
 from estimator.spec import (
+    AlertRule,
     ChartSpec,
     EstimatorSpec,
     FieldSpec,
@@ -138,4 +139,7 @@ FRICTION_SPEC = EstimatorSpec(
     ok_flag="INFORMED",
     degraded_flags=("HELD",),
     row_dtype=FRICTION_DTYPE,
+    # mu is the informed value or the last one held (NaN before the first): low grip stays
+    # low while the data say nothing new
+    alerts=(AlertRule("low_mu", "low friction μ", "mu", below=0.3, hold_s=1.0),),
 )

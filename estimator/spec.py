@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "AlertRule",
     "ChartSpec",
     "EstimatorSpec",
     "FieldSpec",
@@ -40,6 +41,7 @@ __all__ = [
     "SlipChannel",
     "SpecError",
     "SpeedChannel",
+    "StateChannel",
     "WheelPosition",
     "flags_from",
 ]
@@ -150,6 +152,38 @@ class PositionChannel:
 
 
 @dataclass(frozen=True, slots=True)
+class StateChannel:
+    """A discrete state of each row: the ``i4`` field ``field`` holds an index into ``labels``
+    (e.g. a crawler's motion state); reports give time, distance and slip per state."""
+
+    field: str
+    labels: tuple[str, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class AlertRule:
+    """An alert an estimator's rows raise: a condition on one row, held ``hold_s`` (sensor time).
+
+    The condition holds where ``field`` (``|field|`` with ``absolute``) is above ``above`` or
+    below ``below`` (one of the two), every flag of ``when`` is set and none of ``unless``; a
+    rule without a field holds on its flags alone. NaN never holds. A rule naming a slip
+    channel (``slip``) alerts on it in place of the vehicle's slip threshold. ``above``,
+    ``below`` and ``hold_s`` are defaults a server may set otherwise per rule.
+    """
+
+    key: str
+    label: str
+    field: str | None = None
+    above: float | None = None
+    below: float | None = None
+    absolute: bool = False
+    when: tuple[str, ...] = ()
+    unless: tuple[str, ...] = ()
+    hold_s: float = 2.0
+    slip: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class ChartSpec:
     """Fields one chart draws together, all in ``unit``."""
 
@@ -186,6 +220,10 @@ class EstimatorSpec:
         Flag of a row whose main reference is sound (for MDSF: GNSS fused).
     degraded_flags : tuple of str
         Flags of a row computed without its main reference (shaded in charts).
+    state : StateChannel or None
+        A discrete state of each row (reports per state).
+    alerts : tuple of AlertRule
+        Alerts of the estimator's own beyond the slip threshold and degraded flags.
     row_dtype : numpy.dtype, optional
         The estimator's own dtype object for its rows, when it has one: it must equal the
         fields' dtype, and :attr:`dtype` is then that very object, so checking a row array's
@@ -206,6 +244,8 @@ class EstimatorSpec:
     ok_flag: str | None = None
     degraded_flags: tuple[str, ...] = ()
     description: str = ""
+    state: StateChannel | None = None
+    alerts: tuple[AlertRule, ...] = ()
     row_dtype: InitVar[np.dtype | None] = None
     _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
     _dtype: np.dtype = field(init=False, repr=False, compare=False)
@@ -277,6 +317,26 @@ class EstimatorSpec:
         self._need_flag(self.ok_flag, "ok_flag")
         for name in self.degraded_flags:
             self._need_flag(name, "degraded_flags")
+        if self.state is not None:
+            self._need_field(self.state.field, "state", "i4")
+        self._check_alerts()
+
+    def _check_alerts(self) -> None:
+        if len({a.key for a in self.alerts}) != len(self.alerts):
+            raise SpecError(f"{self.name}: duplicate alert keys")
+        for a in self.alerts:
+            what = f"alert {a.key}"
+            self._need_field(a.field, what)
+            for flag in (*a.when, *a.unless):
+                self._need_flag(flag, what)
+            if a.field is not None and (a.above is None) == (a.below is None):
+                raise SpecError(f"{self.name}: {what} needs one of above and below")
+            if a.field is None and not a.when:
+                raise SpecError(f"{self.name}: {what} needs a field or a flag")
+            if a.slip is not None and a.slip not in {s.key for s in self.slips}:
+                raise SpecError(f"{self.name}: {what} names unknown slip channel {a.slip!r}")
+            if not a.hold_s >= 0:
+                raise SpecError(f"{self.name}: {what} hold_s must be >= 0")
 
     # --- reading -----------------------------------------------------------------------------
     @property

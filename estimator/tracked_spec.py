@@ -6,17 +6,22 @@ from __future__ import annotations
 from enum import IntFlag
 
 from estimator.spec import (
+    AlertRule,
     ChartSpec,
     EstimatorSpec,
     FieldSpec,
     PositionChannel,
     SlipChannel,
     SpeedChannel,
+    StateChannel,
     WheelPosition,
     flags_from,
 )
 
-__all__ = ["TRACKED_SPEC", "TrackedFlag"]
+__all__ = ["MOTION_STATES", "TRACKED_SPEC", "TrackedFlag"]
+
+#: Labels of ``motion_state`` by value (``estimator.tracked.model.MotionState``).
+MOTION_STATES = ("stop", "straight", "low_straight", "arc", "separated", "pivot", "heading_jump")
 
 
 class TrackedFlag(IntFlag):
@@ -158,4 +163,29 @@ TRACKED_SPEC = EstimatorSpec(
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEAD_RECKONING",),
+    state=StateChannel("motion_state", MOTION_STATES),
+    alerts=(
+        # a track's slip out of its band (in place of the wheel slip threshold): a braked
+        # track's −100 % in a pivot is its definition, not an alert
+        *(
+            AlertRule(
+                f"track_slip_{side}",
+                f"{side} track slip out of band",
+                f"slip_{side}_pct",
+                above=25.0,
+                absolute=True,
+                when=(f"SLIP_{side.upper()}_VALID",),
+                unless=(f"BRAKED_{side.upper()}",),
+                hold_s=3.0,
+                slip=side,
+            )
+            for side in ("left", "right")
+        ),
+        AlertRule(
+            "long_dead_reckoning",
+            "dead reckoning for long",
+            when=("DEAD_RECKONING",),
+            hold_s=30.0,
+        ),
+    ),
 )

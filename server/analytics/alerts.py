@@ -12,6 +12,9 @@ kind                            condition on one row of estimator ``e``      hol
 ``slip:<e>:<channel key>``      ``|slip| > alert_threshold_pct`` of one of    ``alert_hold_s``
                                 ``e``'s slip channels
 ``flag:<e>:<FLAG>``             one of ``e``'s ``degraded_flags`` is set      ``flag_hold_s``
+``rule:<e>:<key>``              one of ``e``'s ``alerts`` (an                 the rule's
+                                :class:`~estimator.spec.AlertRule`: a field   ``hold_s``
+                                above or below its limit, flags set or not)
 ``stale``                       no row of any estimator for                  ``check_stale``
                                 ``stale_after_s`` of wall time, once the
                                 vehicle has sent a row (a vehicle that has
@@ -23,11 +26,17 @@ kind                            condition on one row of estimator ``e``      hol
 The last two are about the server itself: their ``vehicle_id`` is ``""`` (:data:`SYSTEM`) and their
 stamps are wall-clock times (:meth:`AlertEngine.set_system_condition`).
 
-(``alert_threshold_pct`` and ``alert_hold_s`` from the vehicle's ``SlipConfig``.)
+(``alert_threshold_pct`` and ``alert_hold_s`` from the vehicle's ``SlipConfig``.) A spec's rule
+that names a slip channel takes the place of that channel's ``slip`` rule (a crawler's track
+slip band: a braked track's −100 % in a pivot is no alert). A rule's limit and hold time are
+the spec's unless ``rule_limits`` sets them (``{"tracked:long_dead_reckoning": {"hold_s":
+60}}``). Examples: a crawler's track slip out of its band, dead reckoning held too long, a low
+friction μ.
 
 A NaN slip (standstill, invalid) does not hold. ``start_ns`` is the sensor stamp where the
 condition began (for ``stale``: the vehicle's last stamp), ``end_ns`` where it stopped (for
-``stale``: the first new stamp). ``peak`` is the largest ``|slip|`` (percent) seen in a slip alert.
+``stale``: the first new stamp). ``peak`` is the largest ``|slip|`` (percent) seen in a slip alert,
+and a rule's most extreme value past its limit (the lowest μ of a low-μ alert).
 An alert names its ``estimator`` and ``channel`` (slip channel key or flag name; None for the
 others).
 
@@ -45,7 +54,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Any
@@ -53,10 +62,19 @@ from typing import Any
 import numpy as np
 
 from estimator.config import SlipConfig
-from estimator.spec import EstimatorSpec
+from estimator.spec import AlertRule, EstimatorSpec
 from estimator.types import EstimateBatch
 
-__all__ = ["SYSTEM", "Alert", "AlertEngine", "AlertKind", "PublishHook", "flag_kind", "slip_kind"]
+__all__ = [
+    "SYSTEM",
+    "Alert",
+    "AlertEngine",
+    "AlertKind",
+    "PublishHook",
+    "flag_kind",
+    "rule_kind",
+    "slip_kind",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -79,6 +97,11 @@ def slip_kind(estimator: str, channel: str) -> str:
 def flag_kind(estimator: str, flag: str) -> str:
     """Kind of an alert on ``estimator``'s degraded flag ``flag``: ``flag:<e>:<FLAG>``."""
     return f"flag:{estimator}:{flag}"
+
+
+def rule_kind(estimator: str, key: str) -> str:
+    """Kind of an alert on ``estimator``'s spec rule ``key``: ``rule:<e>:<key>``."""
+    return f"rule:{estimator}:{key}"
 
 
 #: ``vehicle_id`` of alerts about the server itself rather than a vehicle.
@@ -122,32 +145,93 @@ class Alert:
 
 @dataclass(frozen=True, slots=True)
 class _Rule:
-    """One condition on a row of a spec: a slip channel's ``|field| > threshold`` (``field``
-    set) or a flag set (``mask``)."""
+    """One condition on a row of a spec: the vehicle's slip threshold on a slip channel's
+    ``|field|`` (``slip``), or ``field`` (``|field|`` with ``absolute``) times ``sign``
+    above ``limit`` (``sign`` -1: the field below ``-limit``), with the ``when`` bits set and
+    the ``unless`` bits clear. ``hold_ns`` None: the vehicle's slip hold (slip rules) or the
+    engine's flag hold."""
 
     kind: str
     channel: str
     field: str | None = None
-    mask: int = 0
+    slip: bool = False
+    absolute: bool = False
+    sign: float = 1.0
+    limit: float = 0.0
+    when: int = 0
+    unless: int = 0
+    hold_ns: int | None = None
+
+    @property
+    def threshold(self) -> float | None:
+        """The limit an alert of this rule reports (slip rules: the vehicle's)."""
+        return None if self.field is None or self.slip else self.sign * self.limit
 
 
-def _rules(spec: EstimatorSpec) -> tuple[_Rule, ...]:
-    slips = [_Rule(slip_kind(spec.name, c.key), c.key, field=c.field) for c in spec.slips]
-    flags = [_Rule(flag_kind(spec.name, f), f, mask=spec.flag_mask(f)) for f in spec.degraded_flags]
-    return (*slips, *flags)
+def _spec_rule(spec: EstimatorSpec, rule: AlertRule) -> _Rule:
+    mask = 0
+    for name in rule.when:
+        mask |= spec.flag_mask(name)
+    unless = 0
+    for name in rule.unless:
+        unless |= spec.flag_mask(name)
+    sign, limit = (1.0, rule.above) if rule.above is not None else (-1.0, rule.below)
+    return _Rule(
+        rule_kind(spec.name, rule.key),
+        rule.key,
+        field=rule.field,
+        absolute=rule.absolute,
+        sign=sign,
+        limit=0.0 if limit is None else sign * limit,
+        when=mask,
+        unless=unless,
+        hold_ns=round(rule.hold_s * 1e9),
+    )
+
+
+def _limited(rule: AlertRule, values: Mapping[str, float]) -> AlertRule:
+    """``rule`` with the limit and hold time of ``values`` (one of ``rule_limits``)."""
+    side = "above" if rule.above is not None else "below"
+    if rule.field is None and ("above" in values or "below" in values):
+        raise ValueError(f"alert rule {rule.key} has no field to limit")
+    if rule.field is not None and ({"above", "below"} - {side}) & set(values):
+        raise ValueError(f"alert rule {rule.key} alerts {side} its limit")
+    return replace(
+        rule,
+        hold_s=values.get("hold_s", rule.hold_s),
+        above=values.get("above", rule.above),
+        below=values.get("below", rule.below),
+    )
+
+
+def _rules(
+    spec: EstimatorSpec, limits: Mapping[str, Mapping[str, float]] = {}
+) -> tuple[_Rule, ...]:
+    """The spec's rules: its slip channels' (but those a spec rule takes the place of), its
+    degraded flags', its own (``limits`` keyed ``<estimator>:<key>`` overriding theirs)."""
+    own = [_limited(a, limits.get(f"{spec.name}:{a.key}", {})) for a in spec.alerts]
+    taken = {a.slip for a in own}
+    slips = [
+        _Rule(slip_kind(spec.name, c.key), c.key, field=c.field, slip=True, absolute=True)
+        for c in spec.slips
+        if c.key not in taken
+    ]
+    flags = [_Rule(flag_kind(spec.name, f), f, when=spec.flag_mask(f)) for f in spec.degraded_flags]
+    return (*slips, *flags, *(_spec_rule(spec, a) for a in own))
 
 
 class _SpecState:
     """Per-vehicle state of one estimator's rules: arrays of shape (slots, rules)."""
 
-    def __init__(self, spec: EstimatorSpec) -> None:
+    def __init__(self, spec: EstimatorSpec, limits: Mapping[str, Mapping[str, float]]) -> None:
         self.spec = spec
-        self.rules = _rules(spec)
+        self.rules = _rules(spec, limits)
         k = len(self.rules)
-        self.is_slip = np.array([r.field is not None for r in self.rules], dtype=bool)
+        self.is_slip = np.array([r.slip for r in self.rules], dtype=bool)
+        self.has_peak = np.array([r.field is not None for r in self.rules], dtype=bool)
         self.active = np.zeros((0, k), dtype=bool)  # condition held on the newest row
         self.since = np.zeros((0, k), dtype=np.int64)
-        self.run_peak = np.zeros((0, k))  # largest |slip| of the current run, percent
+        self.run_peak = np.zeros((0, k))  # largest excursion of the current run (sign applied)
         self.open = np.full((0, k), -1, dtype=np.int64)  # id of the open alert or -1
 
     def ensure(self, n: int) -> None:
@@ -163,31 +247,55 @@ class _SpecState:
 
         self.active = grow(self.active, False)
         self.since = grow(self.since, 0)
-        self.run_peak = grow(self.run_peak, 0.0)
+        self.run_peak = grow(self.run_peak, -np.inf)
         self.open = grow(self.open, -1)
 
     def reset(self, s: int) -> None:
         if s < self.active.shape[0]:
             self.active[s] = False
             self.since[s] = 0
-            self.run_peak[s] = 0.0
+            self.run_peak[s] = -np.inf
             self.open[s] = -1
 
     def conditions(self, rows: np.ndarray, thr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cond, mag)``, shape (n, rules) each: whether each rule holds on each row, and
-        ``|slip|`` of slip rules (0 for flag rules). ``thr``: each row's threshold, shape (n,)."""
+        its field's value times the rule's sign (``|slip|`` of slip rules; 0 for flag-only
+        rules). ``thr``: each row's slip threshold, shape (n,)."""
         n = rows.shape[0]
-        cond = np.zeros((n, len(self.rules)), dtype=bool)
+        cond = np.ones((n, len(self.rules)), dtype=bool)
         mag = np.zeros((n, len(self.rules)))
         flags = rows["flags"].astype(np.int64) if self.spec.has_field("flags") else None
         for k, rule in enumerate(self.rules):
             if rule.field is not None:
-                mag[:, k] = np.abs(rows[rule.field])
+                v = rows[rule.field]
+                mag[:, k] = rule.sign * (np.abs(v) if rule.absolute else v)
                 with np.errstate(invalid="ignore"):
-                    cond[:, k] = mag[:, k] > thr
-            elif flags is not None:
-                cond[:, k] = (flags & rule.mask) != 0
+                    cond[:, k] = mag[:, k] > (thr if rule.slip else rule.limit)
+            if rule.when or rule.unless:
+                if flags is None:
+                    cond[:, k] = False
+                    continue
+                cond[:, k] &= (flags & rule.when) == rule.when
+                cond[:, k] &= (flags & rule.unless) == 0
         return cond, mag
+
+
+_LIMIT_KEYS = frozenset({"above", "below", "hold_s"})
+
+
+def _checked_limits(
+    limits: Mapping[str, Mapping[str, float]],
+) -> dict[str, dict[str, float]]:
+    """``rule_limits`` checked: keys ``<estimator>:<rule key>``, values of ``above``,
+    ``below`` and ``hold_s`` only (a rule keeps its direction: one limit of the two)."""
+    out: dict[str, dict[str, float]] = {}
+    for key, values in limits.items():
+        if key.count(":") != 1 or not set(values) <= _LIMIT_KEYS:
+            raise ValueError(f"rule_limits[{key!r}]: '<estimator>:<rule>' to {sorted(_LIMIT_KEYS)}")
+        if values.get("hold_s", 0.0) < 0:
+            raise ValueError(f"rule_limits[{key!r}]: hold_s must be >= 0")
+        out[key] = {k: float(v) for k, v in values.items()}
+    return out
 
 
 class AlertEngine:
@@ -209,6 +317,9 @@ class AlertEngine:
         Wall clock (injected in tests).
     max_closed : int
         How many closed alerts are kept.
+    rule_limits : mapping, optional
+        ``{"<estimator>:<rule key>": {"above" | "below" | "hold_s": value}}``: the specs' own
+        rules (:attr:`estimator.spec.EstimatorSpec.alerts`) with other limits or hold times.
     """
 
     def __init__(
@@ -220,9 +331,11 @@ class AlertEngine:
         publish: PublishHook | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
         max_closed: int = 10_000,
+        rule_limits: Mapping[str, Mapping[str, float]] | None = None,
     ) -> None:
         if flag_hold_s < 0 or stale_after_s <= 0 or max_closed < 1:
             raise ValueError("need flag_hold_s >= 0, stale_after_s > 0, max_closed >= 1")
+        self._rule_limits = _checked_limits(rule_limits or {})
         self._config_for = slip_config_for or (lambda _vid: SlipConfig())
         self.flag_hold_ns = round(flag_hold_s * 1e9)
         self.stale_after_s = float(stale_after_s)
@@ -284,7 +397,7 @@ class AlertEngine:
     def _state(self, spec: EstimatorSpec) -> _SpecState:
         state = self._specs.get(spec.name)
         if state is None or state.spec is not spec:
-            state = self._specs[spec.name] = _SpecState(spec)
+            state = self._specs[spec.name] = _SpecState(spec, self._rule_limits)
         state.ensure(len(self._ids))
         return state
 
@@ -351,7 +464,7 @@ class AlertEngine:
         busy = np.unique(np.r_[slot[changed], s_last[due]])
         quiet = ~np.isin(slot, busy) if busy.size else np.ones(slot.shape[0], dtype=bool)
         if quiet.any():  # steady vehicles: only the peaks of running slip episodes move
-            m = cond[quiet] & st.is_slip
+            m = cond[quiet] & st.has_peak
             rr, kk = np.nonzero(m)
             np.maximum.at(st.run_peak, (slot[quiet][rr], kk), mag[quiet][rr, kk])
         events: list[tuple[str, str, Alert]] = []
@@ -367,7 +480,8 @@ class AlertEngine:
 
     def _hold_ns(self, st: _SpecState, slots: np.ndarray) -> np.ndarray:
         """Hold time of each rule for each slot, shape (len(slots), rules)."""
-        return np.where(st.is_slip, self._slip_hold_ns[slots][:, None], self.flag_hold_ns)
+        fixed = np.array([self.flag_hold_ns if r.hold_ns is None else r.hold_ns for r in st.rules])
+        return np.where(st.is_slip, self._slip_hold_ns[slots][:, None], fixed)
 
     def _walk(
         self,
@@ -384,7 +498,8 @@ class AlertEngine:
         stamps = stamp.tolist()
         holds = self._hold_ns(st, np.array([s]))[0].tolist()
         for k, rule in enumerate(st.rules):
-            slip = rule.field is not None
+            peaks = rule.field is not None
+            threshold = float(self._thr[s]) if rule.slip else rule.threshold
             mags = mag[:, k].tolist()
             for i, c in enumerate(cond[:, k].tolist()):
                 t = stamps[i]
@@ -392,8 +507,8 @@ class AlertEngine:
                     if not st.active[s, k]:
                         st.active[s, k] = True
                         st.since[s, k] = t
-                        st.run_peak[s, k] = 0.0
-                    if slip:
+                        st.run_peak[s, k] = -np.inf
+                    if peaks:
                         st.run_peak[s, k] = max(st.run_peak[s, k], mags[i])
                     if st.open[s, k] < 0 and t - int(st.since[s, k]) >= holds[k]:
                         alert = Alert(
@@ -403,8 +518,8 @@ class AlertEngine:
                             start_ns=int(st.since[s, k]),
                             end_ns=None,
                             opened_wall_ns=now,
-                            threshold=float(self._thr[s]) if slip else None,
-                            peak=round(float(st.run_peak[s, k]), 3) if slip else None,
+                            threshold=threshold,
+                            peak=round(rule.sign * float(st.run_peak[s, k]), 3) if peaks else None,
                             estimator=st.spec.name,
                             channel=rule.channel,
                         )
@@ -428,7 +543,8 @@ class AlertEngine:
         if pos is None or alert.peak is None:
             return alert
         name, s, k = pos
-        return replace(alert, peak=round(float(self._specs[name].run_peak[s, k]), 3))
+        st = self._specs[name]
+        return replace(alert, peak=round(st.rules[k].sign * float(st.run_peak[s, k]), 3))
 
     def _close(self, aid: int, end_ns: int) -> Alert:
         alert = self._with_peak(self._open_alerts.pop(aid))

@@ -35,6 +35,10 @@ Slip bands, per slip channel
     band; ``share = seconds / Σ w_i`` of valid rows.
 Degraded time
     ``degraded_s = Σ w_i`` over rows with any of the spec's ``degraded_flags`` set.
+Per state (a spec with a ``state`` channel: a crawler's motion state)
+    For each label of the channel, ``seconds = Σ w_i`` and ``distance_m = Σ |v|_i · w_i`` over
+    the moving rows in that state, and per slip channel the signed ``mean_pct`` and ``p95_pct``
+    of its valid samples in that state (None: none). States never seen are left out.
 Ingest counters
     Totals since the vehicle was registered (the store keeps totals, not a history), split into
     the named counts and the ``rejected_<reason>`` counters; ``lost`` is the ingest's
@@ -50,13 +54,14 @@ from typing import Any
 
 import numpy as np
 
-from estimator.spec import EstimatorSpec, SlipChannel
+from estimator.spec import EstimatorSpec, SlipChannel, StateChannel
 
 __all__ = [
     "ChannelSlipStats",
     "IngestCounts",
     "SlipBand",
     "SpeedStats",
+    "StateStats",
     "VehicleReport",
     "band_bounds",
     "band_index",
@@ -79,7 +84,8 @@ _NS = 1_000_000_000
 def report_fields(spec: EstimatorSpec) -> list[str]:
     """The fields of ``spec`` a report reads (ask the store for these only): ``stamp_ns``, the
     motion field, each slip channel's field and ``flags`` when the spec has one."""
-    wanted = ["stamp_ns", spec.motion_field, *(s.field for s in spec.slips)]
+    state = None if spec.state is None else spec.state.field
+    wanted = ["stamp_ns", spec.motion_field, state, *(s.field for s in spec.slips)]
     if spec.has_field("flags"):
         wanted.append("flags")
     return list(dict.fromkeys(f for f in wanted if f is not None))
@@ -127,6 +133,18 @@ class SpeedStats:
 
 
 @dataclass(frozen=True, slots=True)
+class StateStats:
+    """Time, distance and slip in one state of the spec's state channel (module docstring):
+    ``slip_mean_pct`` / ``slip_p95_pct`` per slip channel key (None: no valid sample)."""
+
+    label: str
+    seconds: float
+    distance_m: float | None
+    slip_mean_pct: dict[str, float | None]
+    slip_p95_pct: dict[str, float | None]
+
+
+@dataclass(frozen=True, slots=True)
 class IngestCounts:
     """Packet counters of one vehicle (totals, see the module docstring)."""
 
@@ -146,7 +164,8 @@ class VehicleReport:
 
     ``motion`` / ``motion_field``: the speed channel (key and field) that decides "moving", None
     when the spec has none (then ``moving_s``, ``distance_m`` and the speeds are None).
-    ``slips``: per slip channel key, in the spec's order.
+    ``slips``: per slip channel key, in the spec's order; ``states``: per state label of the
+    spec's state channel, in its order (empty without one).
     """
 
     start_ns: int
@@ -162,6 +181,7 @@ class VehicleReport:
     degraded_s: float
     speed: SpeedStats
     slips: dict[str, ChannelSlipStats]
+    states: dict[str, StateStats] = field(default_factory=dict)
 
 
 _NAMED_COUNTERS = ("received", "accepted", "late", "duplicate", "lost")
@@ -371,6 +391,36 @@ def _motion_stats(
 _NO_SPEED = SpeedStats(None, None, None, None)
 
 
+def _state_stats(
+    rows: np.ndarray,
+    spec: EstimatorSpec,
+    channel: StateChannel,
+    w_ns: np.ndarray,
+    motion: tuple[np.ndarray, np.ndarray] | None,
+) -> dict[str, StateStats]:
+    """Time, distance and slip per state label (module docstring)."""
+    state = rows[channel.field].astype(np.int64)
+    slips = list(zip(spec.slips, channel_slips(rows, spec), strict=True))
+    out = {}
+    for value, label in enumerate(channel.labels):
+        here = state == value
+        if not here.any():
+            continue
+        distance = None
+        if motion is not None:
+            speed, moving = motion
+            sel = here & moving
+            distance = float(np.dot(speed[sel], w_ns[sel].astype(np.float64)) / _NS)
+        out[label] = StateStats(
+            label=label,
+            seconds=int(w_ns[here].sum()) / _NS,
+            distance_m=distance,
+            slip_mean_pct={c.key: _stat(slip[here & ok], "mean") for c, (slip, ok) in slips},
+            slip_p95_pct={c.key: _stat(slip[here & ok], "p95") for c, (slip, ok) in slips},
+        )
+    return out
+
+
 def vehicle_report(
     rows: np.ndarray,
     spec: EstimatorSpec,
@@ -406,6 +456,7 @@ def vehicle_report(
         for channel, (slip, valid) in zip(spec.slips, channel_slips(rows, spec), strict=True)
     }
     n = int(stamps.shape[0])
+    states = {} if spec.state is None else _state_stats(rows, spec, spec.state, w_ns, motion)
     return VehicleReport(
         start_ns=int(start_ns),
         end_ns=int(end_ns),
@@ -420,6 +471,7 @@ def vehicle_report(
         degraded_s=int(w_ns[degraded_rows(rows, spec)].sum()) / _NS,
         speed=speed,
         slips=slips,
+        states=states,
     )
 
 
@@ -456,6 +508,11 @@ def flatten_report(
         row[f"slip_{key}_max_pct"] = stats.max_pct
         for band in stats.bands:
             row[f"slip_{key}_share_{band_label(band.lower_pct, band.upper_pct)}"] = band.share
+    for label, st in report.states.items():
+        row[f"state_{label}_s"] = st.seconds
+        row[f"state_{label}_distance_m"] = st.distance_m
+        for key, mean in st.slip_mean_pct.items():
+            row[f"state_{label}_slip_{key}_mean_pct"] = mean
     row["packets_received"] = counts.received
     row["packets_accepted"] = counts.accepted
     row["packets_rejected"] = counts.rejected

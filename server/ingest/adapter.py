@@ -9,16 +9,16 @@ an :class:`estimator.types.WheelGap`, told before the first data fed after the g
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Sequence
 
 from estimator.base import Measurement
 from estimator.catalog import SPECS
 from estimator.types import WheelGap
-from server.ingest.reorder import StreamGap
+from server.ingest.reorder import DEFAULT_STREAMS, StreamGap
 from server.protocol.base import Packet
 from server.protocol.keys import Stream
 
-__all__ = ["ESTIMATOR_STREAMS", "fed", "wheel_gaps"]
+__all__ = ["ESTIMATOR_STREAMS", "fed", "spec_streams", "wheel_gaps"]
 
 #: The streams some estimator of the catalog reads (its spec's ``inputs``); the registry hands
 #: each measurement on only to the estimators whose spec names its stream. Packets of other
@@ -26,6 +26,15 @@ __all__ = ["ESTIMATOR_STREAMS", "fed", "wheel_gaps"]
 ESTIMATOR_STREAMS: frozenset[Stream] = frozenset(
     Stream(name) for spec in SPECS.values() for name in spec.inputs
 )
+
+
+def spec_streams(estimators: Sequence[str]) -> tuple[Stream, ...]:
+    """The streams a vehicle running ``estimators`` is expected to send, for its reorder
+    buffer to wait for: every stream their specs' ``inputs`` name (a tractor's GNSS, IMU and
+    wheel edges; a crawler's GNSS, IMU, odometer and sprockets), :data:`DEFAULT_STREAMS` for
+    a vehicle that runs none."""
+    names = {name for e in estimators for name in SPECS[e].inputs}
+    return tuple(Stream(n) for n in sorted(names)) if names else DEFAULT_STREAMS
 
 
 def fed(packet: Packet, streams: Collection[Stream] = ESTIMATOR_STREAMS) -> tuple[Measurement, ...]:

@@ -13,9 +13,11 @@ whose sequence jumped far (a vehicle reboot), and ``clock_reanchors`` the times 
 base was started afresh (a confirmed clock jump, or data resuming after a long silence; see
 :mod:`server.ingest.reorder`), and ``wheel_gaps`` the times wheel data was lost before
 a released wheel packet (the wheels' speed fits started afresh: ``estimator.types.WheelGap``),
-all informational. ``estimator_errors`` counts the estimator calls that raised for the vehicle
-(its rows of that call lost) and ``configs_refused`` the configs an estimator refused (the
-vehicle kept its old one).
+and ``stalled_<stream>`` the times a stream the vehicle's estimators read stopped arriving
+(the reorder window passed it: :meth:`server.ingest.reorder.ReorderBuffer.take_stalls`;
+kept only once counted), all informational. ``estimator_errors`` counts the estimator calls
+that raised for the vehicle (its rows of that call lost) and ``configs_refused`` the configs
+an estimator refused (the vehicle kept its old one).
 
 Only the pipeline thread writes; snapshots may be taken from any thread.
 """
@@ -58,6 +60,7 @@ class _VehicleCounts:
         "received",
         "rejected",
         "seq_restarts",
+        "stalled",
         "wheel_gaps",
     )
 
@@ -73,6 +76,7 @@ class _VehicleCounts:
         self.estimator_errors = 0
         self.configs_refused = 0
         self.rejected: dict[str, int] = defaultdict(int)
+        self.stalled: dict[str, int] = defaultdict(int)
 
     def as_dict(self) -> dict[str, int]:
         out = {
@@ -90,6 +94,8 @@ class _VehicleCounts:
         }
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected_{reason}"] = n
+        for stream, n in sorted(self.stalled.items()):
+            out[f"stalled_{stream}"] = n
         return out
 
 
@@ -162,6 +168,11 @@ class IngestCounters:
         with self._lock:
             self._get(vehicle_id).wheel_gaps += 1
 
+    def stream_stalled(self, vehicle_id: str, stream: str) -> None:
+        """A stream the vehicle's estimators read stopped arriving (informational)."""
+        with self._lock:
+            self._get(vehicle_id).stalled[stream] += 1
+
     def estimator_error(self, vehicle_id: str | None) -> None:
         """An estimator call raised for the vehicle (informational)."""
         with self._lock:
@@ -184,6 +195,8 @@ class IngestCounters:
             for key, value in totals.items():
                 if key.startswith("rejected_"):
                     c.rejected[key.removeprefix("rejected_")] += int(value)
+                elif key.startswith("stalled_"):
+                    c.stalled[key.removeprefix("stalled_")] += int(value)
 
     def forget(self, vehicle_id: str) -> None:
         """Drop a vehicle's counters (after it is deleted)."""

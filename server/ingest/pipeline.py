@@ -65,7 +65,7 @@ from server.estimation.registry import (
     EstimatorRegistry,
     UnknownEstimatorError,
 )
-from server.ingest.adapter import fed, wheel_gaps
+from server.ingest.adapter import fed, spec_streams, wheel_gaps
 from server.ingest.counters import IngestCounters
 from server.ingest.limits import ByteBudget, refusal_errors
 from server.ingest.reorder import ReorderBuffer, StreamGap, Verdict
@@ -654,6 +654,9 @@ class Pipeline:
         if not self._start_estimators(vehicle_id, config):
             return False
         self._configs[vehicle_id] = config
+        buf = self._buffers.get(vehicle_id)
+        if buf is not None:  # its estimators may read other streams now
+            buf.expect(spec_streams(self._registry.estimators_of(vehicle_id)))
         if notify and self._on_new_vehicle is not None:
             try:
                 self._on_new_vehicle(vehicle_id, config)
@@ -702,7 +705,7 @@ class Pipeline:
             if buf is None:
                 if not self._admit(item):
                     continue
-                buf = self._buffers[vid] = self._new_buffer()
+                buf = self._buffers[vid] = self._new_buffer(vid)
                 buf.resume_seq(self._resume_seq.pop(vid, {}))
             offer = buf.offer(item, now)
             if offer.seq_restart:
@@ -728,12 +731,13 @@ class Pipeline:
                 self._active.add(vid)
                 self._arrived.add(vid)
 
-    def _new_buffer(self) -> ReorderBuffer:
+    def _new_buffer(self, vid: str) -> ReorderBuffer:
         return ReorderBuffer(
             self._lateness_ns,
             clock_jump_ns=self._clock_jump_ns,
             reanchor_after=self._ingest.reanchor_after_packets,
             watermarks=self._ingest.stream_watermarks,
+            streams=spec_streams(self._registry.estimators_of(vid)),
         )
 
     def _reanchor(self, vid: str, buf: ReorderBuffer, packet: Packet, now: int) -> None:
@@ -876,6 +880,8 @@ class Pipeline:
             buf = buffers[vid]
             packets, released = buf.release(now, flush=flush)
             gaps = buf.take_gaps()
+            for stream in buf.take_stalls():
+                self._counters.stream_stalled(vid, stream.value)
             if (packets or gaps) and registry.has_vehicle(vid):
                 self._push(vid, packets, gaps)
             if released is None:

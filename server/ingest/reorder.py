@@ -59,6 +59,17 @@ watermark), or when one of its packets is refused late. Each :class:`StreamGap` 
 released packet after the watermark; what an estimator is told is the pipeline's adapter's
 business (:mod:`server.ingest.adapter`).
 
+A stream that *stops* is told, not left silent: once the start-up window has passed, an
+expected stream whose watermark the fixed window has passed (``newest - lateness``; sent
+nothing, or nothing since) is *stalled*. :meth:`ReorderBuffer.take_stalls` names each
+stall once when it begins (the pipeline counts it, ``stalled_<stream>``);
+:attr:`ReorderBuffer.stalled` holds the streams stalled now. A stream is stalled no more once
+its watermark is within the window again.
+
+The expected streams are the ones the vehicle's estimators read (their specs' ``inputs``: a
+crawler's odometer and sprockets, a steered vehicle's CAN wheel speeds and steering, no wheel
+edges); :meth:`ReorderBuffer.expect` changes them when the vehicle's estimators change.
+
 A *heartbeat* (a packet without data, only ``until_ns``: nothing happened up to it) moves the
 stream's watermark and its sequence tracking and is never late; it is not queued.
 
@@ -358,14 +369,15 @@ class ReorderBuffer:
         self._last_arrival_ns = 0
         self._watermarks: dict[Stream, _StreamMark] | None = {} if watermarks else None
         self._first_ns: int | None = None
-        self._expected = tuple(sorted(frozenset(streams), key=_PRIORITY.__getitem__))
-        if not self._expected:
-            raise ValueError("streams must not be empty")
-        # the expected cumulative streams, whose missing data is told (take_gaps)
-        self._watched = tuple(s for s in _CUMULATIVE if s in self._expected)
+        self._expected: tuple[Stream, ...] = ()
+        self._watched: tuple[Stream, ...] = ()
         # the watermarks gate the release (every expected stream has one and the start-up
-        # window has passed): once true it stays true until reanchor(), so it is kept
+        # window has passed): once true it stays true until reanchor() or expect(), so it is kept
         self._gating = False
+        self.expect(streams)
+        # expected streams stalled now, and the stalls begun since the last take_stalls()
+        self._stalled: set[Stream] = set()
+        self._new_stalls: list[Stream] = []
         # cumulative streams' missing data not yet released, and the gaps released since the
         # last take_gaps()
         self._missing: dict[Stream, _Missing] = {}
@@ -375,6 +387,52 @@ class ReorderBuffer:
         self._low_streams: list[Stream] | None = None
         self._low_ns = 0
         self._may_release = False
+
+    def expect(self, streams: Collection[Stream]) -> None:
+        """Expect ``streams`` from now on (the vehicle's estimators read them): the watermarks
+        gate once each of them has one."""
+        expected = tuple(sorted(frozenset(streams), key=_PRIORITY.__getitem__))
+        if not expected:
+            raise ValueError("streams must not be empty")
+        if expected != self._expected:
+            self._expected = expected
+            # the expected cumulative streams, whose missing data is told (take_gaps)
+            self._watched = tuple(s for s in _CUMULATIVE if s in expected)
+            self._gating = False
+            self._low_streams = None
+
+    @property
+    def expected(self) -> tuple[Stream, ...]:
+        """The streams the vehicle is expected to send, in priority order."""
+        return self._expected
+
+    @property
+    def stalled(self) -> frozenset[Stream]:
+        """Expected streams the fixed window has passed (nothing of them, or nothing since)."""
+        return frozenset(self._stalled)
+
+    def take_stalls(self) -> tuple[Stream, ...]:
+        """The streams that stalled since the last call (each stall told once)."""
+        if not self._new_stalls:
+            return ()
+        out, self._new_stalls = tuple(self._new_stalls), []
+        return out
+
+    def _check_stalls(self, newest_ns: int, marks: Mapping[Stream, _StreamMark]) -> None:
+        """Note the expected streams the fixed window passed (once the start-up window is
+        over), and the ones back within it."""
+        assert self._first_ns is not None
+        window_ns = newest_ns - self._lateness_ns
+        if newest_ns - self._first_ns < max(self._lateness_ns, WATERMARK_START_NS):
+            return
+        for s in self._expected:
+            mark = marks.get(s)
+            behind = mark is None or mark.stamp_ns < window_ns
+            if behind and s not in self._stalled:
+                self._stalled.add(s)
+                self._new_stalls.append(s)
+            elif not behind and s in self._stalled:
+                self._stalled.discard(s)
 
     @property
     def pending(self) -> int:
@@ -482,6 +540,7 @@ class ReorderBuffer:
         self._gating = False
         self._low_streams = None
         self._missing.clear()  # the estimators restart
+        self._stalled.clear()
         if self._watermarks is not None:
             self._watermarks.clear()
         self._take(packet, now_ns)
@@ -578,6 +637,8 @@ class ReorderBuffer:
         self._low_streams = None  # unless the watermarks gate below
         horizon = newest - self._lateness_ns
         marks = self._watermarks
+        if marks is not None and self._first_ns is not None:
+            self._check_stalls(newest, marks)
         if marks and self._first_ns is not None:
             # each cumulative stream's watermark before a gap is skipped, and its run's last
             # number when a packet is missing and later ones are here

@@ -31,6 +31,7 @@ from server.tooling.fleet_sim import (
     packetize,
 )
 from server.tooling.steered_fleet import SteeredFleetSim
+from server.tooling.tracked_fleet import TrackedFleetSim
 
 __all__ = [
     "DEMO_MIX_ESTIMATORS",
@@ -102,8 +103,9 @@ def demo(
     duration_s: float = 0.0,
     estimator_mix: EstimatorMix | None = None,
 ) -> None:
-    """Embedded router + server + SQLite + ``vehicles`` simulated tractors and one steered
-    four-wheel vehicle after them (friction μ, :mod:`server.tooling.steered_fleet`), until Ctrl-C.
+    """Embedded router + server + SQLite + ``vehicles`` simulated tractors, one steered
+    four-wheel vehicle after them (friction μ, :mod:`server.tooling.steered_fleet`) and one
+    crawler after that (tracked, :mod:`server.tooling.tracked_fleet`), until Ctrl-C.
 
     ``estimator_mix`` defaults to the last vehicle running :data:`DEMO_MIX_ESTIMATORS` (a mixed
     fleet: one vehicle's reference speed beside its MDSF estimate)."""
@@ -132,6 +134,8 @@ def demo(
     prefix = settings.zenoh.key_prefix
     steered = SteeredFleetSim(session, 1, first_index=vehicles + 1, prefix=prefix, loop=True)
     steered.start()
+    crawler = TrackedFleetSim(session, 1, first_index=vehicles + 2, prefix=prefix, loop=True)
+    crawler.start()
     base = f"http://{settings.api.host}:{server.port}"
     drives = "each its own drive" if scenario == "mix" else f"scenario {scenario}"
     print(
@@ -144,6 +148,8 @@ def demo(
         f"  estimators {mix_summary(sim)}\n"
         f"  steered    {steered.vehicle_ids[0]}: a steered four-wheel vehicle, friction μ "
         "(joins once its drive is simulated)\n"
+        f"  crawler    {crawler.vehicle_ids[0]}: a crawler, motion state, track slip and dead "
+        "reckoning (joins once its route is simulated)\n"
         "Ctrl-C stops.\n",
         flush=True,
     )
@@ -156,6 +162,7 @@ def demo(
     except KeyboardInterrupt:
         pass
     finally:
+        crawler.stop()
         steered.stop()
         sim.stop()
         session.close()

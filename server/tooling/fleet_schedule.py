@@ -73,13 +73,16 @@ MIN_WAKE_NS = 4_000_000
 #: Wall time rendered at once (packets selected, copied, stamp-patched, sorted), ns.
 WINDOW_NS = 100_000_000
 
-#: a simulated vehicle's streams (a tractor's three, a steered four-wheel vehicle's last two)
+#: a simulated vehicle's streams (a tractor's first three; a steered four-wheel vehicle's
+#: GNSS, IMU, steering and wheel speeds; a crawler's GNSS, IMU, odometer and sprockets)
 STREAMS: tuple[Stream, ...] = (
     Stream.GNSS,
     Stream.IMU,
     Stream.WHEELS,
     Stream.STEERING,
     Stream.WHEEL_SPEEDS4,
+    Stream.ODOMETER,
+    Stream.SPROCKETS,
 )
 _STREAM_CODE = {s: i for i, s in enumerate(STREAMS)}
 _STAMP_KEY = msgpack.packb("stamp_ns")

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import zenoh
 
 from estimator.base import Measurement
@@ -47,6 +48,8 @@ from estimator.config import VehicleConfig
 from estimator.types import (
     GnssSample,
     ImuBatch,
+    OdometerEdges,
+    SprocketEdges,
     SteeringAngles,
     WheelEdges,
     WheelSpeeds,
@@ -58,6 +61,8 @@ from server.protocol.codec import (
     encode_config,
     encode_gnss,
     encode_imu,
+    encode_odometer,
+    encode_sprockets,
     encode_steering,
     encode_wheel_edges,
     encode_wheel_speeds,
@@ -207,10 +212,15 @@ def encode_packet(
     seq: int,
     until_ns: int | None = None,
 ) -> bytes:
-    """Encode one packet's measurements (as :func:`packetize` grouped them); a wheels packet
-    without edges is a heartbeat (needs ``until_ns``)."""
+    """Encode one packet's measurements (as :func:`packetize` grouped them); a wheels,
+    odometer or sprockets packet without edges is a heartbeat (needs ``until_ns``)."""
     if not measurements and stream is Stream.WHEELS:
         return encode_wheel_edges([], seq, until_ns)
+    if not measurements and stream is Stream.ODOMETER:
+        return encode_odometer(OdometerEdges(np.zeros(0, np.int64)), seq, until_ns)
+    if stream is Stream.SPROCKETS:
+        sides = [m for m in measurements if isinstance(m, SprocketEdges)]
+        return encode_sprockets(sides, seq, until_ns)
     first = measurements[0]
     if stream is Stream.GNSS and isinstance(first, GnssSample):
         return encode_gnss(first, seq, until_ns)
@@ -222,6 +232,8 @@ def encode_packet(
         return encode_steering(first, seq, until_ns)
     if isinstance(first, WheelSpeeds4):
         return encode_wheel_speeds4(first, seq, until_ns)
+    if isinstance(first, OdometerEdges):
+        return encode_odometer(first, seq, until_ns)
     edges = [m for m in measurements if isinstance(m, WheelEdges)]
     if len(edges) != len(measurements):
         raise ValueError(f"cannot encode {[type(m).__name__ for m in measurements]} on {stream}")
@@ -400,6 +412,21 @@ class FleetSim:
                 run.config, noise=run.sensor_noise, estimators=self.estimators_of(i)
             )
             vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, config))
+        return vehicles
+
+    def _lay_out(
+        self, drives: Sequence[tuple[int, list[SimPacket], VehicleConfig]]
+    ) -> list[_Vehicle]:
+        """The vehicles over distinct drives ``(start_ns, packets, config)`` (vehicle ``i``
+        drives ``i % len(drives)``, looping after its last packet), spread over the tick, each
+        with its config naming the estimators :meth:`estimators_of` gives it."""
+        vehicles = []
+        for i, vid in enumerate(self.vehicle_ids):
+            start_ns, packets, config = drives[i % len(drives)]
+            period = loop_period_ns(start_ns, start_ns + packets[-1].arrival_offset_ns)
+            phase = (i * TICK_NS) // self._n
+            config = dataclasses.replace(config, estimators=self.estimators_of(i))
+            vehicles.append(_Vehicle(vid, packets, period, phase, phase - start_ns, config))
         return vehicles
 
     def run(self, duration_s: float | None = None) -> SimStats:

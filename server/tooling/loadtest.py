@@ -3,6 +3,7 @@
 ::
 
     slipfleet loadtest --vehicles 1000 --duration 60 [--scenario mix] [--rate-scale 1]
+                       [--mix tractor=0.5,tracked=0.3,steered=0.2 [--beside-tractors]]
                        [--publishers N] [--warmup 5] [--json PATH]
                        [--connect tcp/HOST:7447 --api http://HOST:8000 [--server-pid PID]
                         [--token-file FILE]]
@@ -27,7 +28,12 @@ the 2-core reference machine (``slipfleet bench publisher``),
 so 3,000 vehicles (90,000 packets/s) cost the load generator about half a core.
 ``--scenario mix`` spreads vehicles over :data:`MIX`; ``--estimator-mix`` gives every k-th
 simulated vehicle of each shard other estimators (:class:`~server.tooling.estimator_mix.
-EstimatorMix`). ``--replay`` publishes
+EstimatorMix`). ``--mix`` shares the fleet by vehicle kind (:data:`KINDS`): tractors drive
+the scenario(s), crawlers the crawler demo route (:mod:`server.tooling.tracked_fleet`: GNSS,
+IMU, odometer and sprocket edges), steered four-wheel vehicles the friction demo drive
+(:mod:`server.tooling.steered_fleet`; slow to simulate: one drive per publisher);
+``--beside-tractors`` runs a tractor-only fleet of the same size first and prints the two
+side by side (:func:`format_side_by_side`). ``--replay`` publishes
 recordings (:mod:`server.protocol.recording`) instead: vehicle ``i`` replays the drives of
 recording ``i mod len(paths)``, renamed and shifted in time (stamps moved to *now*, phases spread
 over the tick), looping.
@@ -98,13 +104,16 @@ if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
     import psutil
 
 __all__ = [
+    "KINDS",
     "MIX",
     "VEHICLES_PER_PUBLISHER",
     "LoadSpec",
     "Target",
     "assignments",
     "format_report",
+    "format_side_by_side",
     "main",
+    "parse_kind_mix",
     "publisher_count",
     "run_loadtest",
     "scrape",
@@ -114,6 +123,9 @@ log = logging.getLogger(__name__)
 
 #: Scenarios of ``--scenario mix`` (vehicles assigned round-robin).
 MIX = ("field_work", "figure_eight", "slope_wet_patch", "slow_creep", "hard_braking")
+#: Vehicle kinds of ``--mix``: tractors (kind ``wheeled_rear_drive``, the scenarios), crawlers
+#: (kind ``tracked``) and steered four-wheel vehicles (kind ``wheeled_4wd_steered``).
+KINDS = ("tractor", "tracked", "steered")
 #: Longest wait for the server to count every packet sent and empty its writer backlog.
 DRAIN_S = 30.0
 #: Scrape period of ``/metrics`` during the run (progress, RSS), seconds. These scrapes ask for
@@ -335,6 +347,39 @@ class LoadSpec:
     seed: int = 0
     estimator_mix: EstimatorMix | None = None
     """Which simulated vehicles run other estimators than their kind's defaults."""
+    kind_mix: tuple[tuple[str, float], ...] = (("tractor", 1.0),)
+    """Share of the fleet per vehicle kind (:data:`KINDS`), :func:`parse_kind_mix`."""
+
+
+def parse_kind_mix(text: str) -> tuple[tuple[str, float], ...]:
+    """``"tractor=0.5,tracked=0.5"`` → ``(("tractor", 0.5), ("tracked", 0.5))``, shares
+    normalised to sum to 1; ValueError naming what is wrong."""
+    shares: dict[str, float] = {}
+    for part in text.split(","):
+        kind, _, value = part.partition("=")
+        kind = kind.strip()
+        if kind not in KINDS or kind in shares:
+            raise ValueError(f"--mix: {kind!r} is not one of {', '.join(KINDS)} (once each)")
+        try:
+            shares[kind] = float(value)
+        except ValueError:
+            raise ValueError(f"--mix: {kind}={value!r} is not a number") from None
+        if not math.isfinite(shares[kind]) or shares[kind] < 0:
+            raise ValueError(f"--mix: {kind}'s share must be >= 0")
+    total = sum(shares.values())
+    if total <= 0:
+        raise ValueError("--mix: the shares must not all be 0")
+    return tuple((k, v / total) for k, v in shares.items() if v > 0)
+
+
+def _kind_counts(n: int, mix: Sequence[tuple[str, float]]) -> list[tuple[str, int]]:
+    """``n`` vehicles split by the shares of ``mix`` (largest remainders; the mix's order)."""
+    exact = [share * n for _, share in mix]
+    counts = [math.floor(x) for x in exact]
+    by_remainder = sorted(range(len(mix)), key=lambda i: counts[i] - exact[i])
+    for i in by_remainder[: n - sum(counts)]:
+        counts[i] += 1
+    return [(kind, c) for (kind, _), c in zip(mix, counts, strict=True)]
 
 
 def publisher_count(spec: LoadSpec) -> int:
@@ -344,25 +389,37 @@ def publisher_count(spec: LoadSpec) -> int:
     return max(1, math.ceil(spec.vehicles / VEHICLES_PER_PUBLISHER))
 
 
-def assignments(spec: LoadSpec, shards: Sequence[str]) -> list[list[dict[str, Any]]]:
-    """Per publisher process, its groups: ``{id_format, first, count, scenario}``.
-
-    Vehicles are numbered per shard; shard ``k`` gets vehicles ``k, k + S, …`` of the fleet, and
-    each scenario's vehicles of a shard are one contiguous id range.
-    """
+def _shard_groups(spec: LoadSpec, fmt: str, n_shard: int) -> list[dict[str, Any]]:
+    """One shard's groups ``{id_format, first, count, scenario, kind}``: per kind of the mix
+    (tractors: per scenario) one contiguous id range."""
     scenarios = list(MIX) if spec.scenario == "mix" else [spec.scenario]
     if spec.replay:
         scenarios = ["replay"]
     groups: list[dict[str, Any]] = []
+    first = 1
+    for kind, n_kind in _kind_counts(n_shard, spec.kind_mix):
+        drives = scenarios if kind == "tractor" else [kind]
+        for j, scen in enumerate(drives):
+            n = n_kind // len(drives) + (1 if j < n_kind % len(drives) else 0)
+            if n:
+                groups.append(
+                    {"id_format": fmt, "first": first, "count": n, "scenario": scen, "kind": kind}
+                )
+                first += n
+    return groups
+
+
+def assignments(spec: LoadSpec, shards: Sequence[str]) -> list[list[dict[str, Any]]]:
+    """Per publisher process, its groups: ``{id_format, first, count, scenario, kind}``.
+
+    Vehicles are numbered per shard; shard ``k`` gets vehicles ``k, k + S, …`` of the fleet, and
+    each kind's (tractors: each scenario's) vehicles of a shard are one contiguous id range.
+    """
+    groups: list[dict[str, Any]] = []
     n_shards = len(shards)
     for k, fmt in enumerate(shards):
         n_shard = spec.vehicles // n_shards + (1 if k < spec.vehicles % n_shards else 0)
-        first = 1
-        for j, scen in enumerate(scenarios):
-            n = n_shard // len(scenarios) + (1 if j < n_shard % len(scenarios) else 0)
-            if n:
-                groups.append({"id_format": fmt, "first": first, "count": n, "scenario": scen})
-                first += n
+        groups += _shard_groups(spec, fmt, n_shard)
     # split groups across publishers so each gets about the same number of vehicles
     n_pub = max(1, min(publisher_count(spec), spec.vehicles))
     per_pub: list[list[dict[str, Any]]] = [[] for _ in range(n_pub)]
@@ -515,11 +572,16 @@ def _replay_fleet_sim_class() -> type:
     return ReplaySim
 
 
-def _named_fleet_sim_class() -> type:
-    """A :class:`FleetSim` with a configurable vehicle id format (shard prefixes)."""
+def _named_fleet_sim_class(kind: str = "tractor") -> type:
+    """The fleet simulator of ``kind`` (:data:`KINDS`) with a configurable vehicle id format
+    (shard prefixes)."""
     from server.tooling.fleet_sim import FleetSim
+    from server.tooling.steered_fleet import SteeredFleetSim
+    from server.tooling.tracked_fleet import TrackedFleetSim
 
-    class NamedSim(FleetSim):
+    base = {"tractor": FleetSim, "tracked": TrackedFleetSim, "steered": SteeredFleetSim}[kind]
+
+    class NamedSim(base):  # type: ignore[valid-type,misc]
         def __init__(self, *args: Any, id_format: str, **kw: Any) -> None:
             super().__init__(*args, **kw)
             self._id_format = id_format
@@ -529,6 +591,25 @@ def _named_fleet_sim_class() -> type:
             return [self._id_format.format(self._first + i) for i in range(self._n)]
 
     return NamedSim
+
+
+def _group_sim(sessions: Sequence[Any], job: dict[str, Any], g: dict[str, Any], mix: Any) -> Any:
+    """The simulator of one group of a publisher's job (its kind's; replay aside)."""
+    kind = g.get("kind", "tractor")
+    kw: dict[str, Any] = {
+        "prefix": job["prefix"],
+        "rate": job["rate"],
+        "first_index": g["first"],
+        "id_format": g["id_format"],
+        "loop": True,
+        "seed": job["seed"],
+    }
+    if kind == "tractor":  # other estimators than a kind's defaults: the tractors' choice
+        kw.update(scenario=g["scenario"], distinct_runs=job["distinct_runs"], estimator_mix=mix)
+    elif kind == "tracked":
+        kw.update(distinct_runs=job["distinct_runs"])
+    # steered: its one drive (simulating one costs a minute of CPU)
+    return _named_fleet_sim_class(kind)(sessions, g["count"], **kw)
 
 
 def _publish_child(job_json: str) -> int:
@@ -543,32 +624,25 @@ def _publish_child(job_json: str) -> int:
         zenoh.open(make_config(ZenohSettings(connect=job["endpoints"])))
         for _ in range(job["sessions"])
     ]
-    NamedSim = _named_fleet_sim_class()
     ReplaySim = _replay_fleet_sim_class() if job["replay"] else None
     mix = None if job["estimator_mix"] is None else EstimatorMix.parse(job["estimator_mix"])
     sims = []
     for g in job["groups"]:
-        common = {
-            "prefix": job["prefix"],
-            "rate": job["rate"],
-            "first_index": g["first"],
-            "id_format": g["id_format"],
-        }
         if ReplaySim is not None:
-            sims.append(ReplaySim(sessions, g["count"], paths=job["replay"], **common))
-        else:
+            common = {k: job[k] for k in ("prefix", "rate")}
+            first, fmt = g["first"], g["id_format"]
             sims.append(
-                NamedSim(
+                ReplaySim(
                     sessions,
                     g["count"],
-                    scenario=g["scenario"],
-                    loop=True,
-                    seed=job["seed"],
-                    distinct_runs=job["distinct_runs"],
-                    estimator_mix=mix,
+                    paths=job["replay"],
+                    first_index=first,
+                    id_format=fmt,
                     **common,
                 )
             )
+        else:
+            sims.append(_group_sim(sessions, job, g, mix))
     from server.tooling.fleet_sim import SimStats, publish_fleets
 
     stop = threading.Event()
@@ -688,21 +762,9 @@ class _ProcWatch:
             self._thread.join(2.0)
 
 
-def run_loadtest(
-    spec: LoadSpec,
-    target: Target,
-    *,
-    prefix: str = "fleet",
-    progress: bool = True,
-    token: str | None = None,
-) -> dict[str, Any]:
-    """Publish ``spec`` to ``target`` and measure (see the module docstring); a result dict.
-
-    ``token`` is sent to the servers' APIs; each API is read once before anything is published
-    (SystemExit with one line if that fails: nothing listening, a token missing or refused)."""
-    from tqdm import tqdm
-
-    jobs = [
+def _jobs(spec: LoadSpec, target: Target, prefix: str) -> list[dict[str, Any]]:
+    """One job (JSON-ready) per publisher process: its groups and what they share."""
+    return [
         {
             "endpoints": list(target.endpoints),
             "sessions": max(1, min(spec.sessions_per_publisher, sum(g["count"] for g in groups))),
@@ -716,6 +778,197 @@ def run_loadtest(
         }
         for groups in assignments(spec, target.shards)
     ]
+
+
+def _wait_sending(pubs: Sequence[_Publisher]) -> float:
+    """Wait until every publisher sends (they simulate first); the seconds it took."""
+    t_start = time.monotonic()
+    while not all(p.sent > 0 for p in pubs):
+        if any(p.proc.poll() is not None for p in pubs):
+            raise RuntimeError("a publisher exited before sending")
+        if time.monotonic() - t_start > 300:
+            raise TimeoutError("publishers did not start sending within 300 s")
+        time.sleep(0.1)
+    return round(time.monotonic() - t_start, 2)
+
+
+@dataclass
+class _Cost:
+    """CPU and RSS readings at the window's ends (server and publishers)."""
+
+    server_cpu_s: tuple[float, float]
+    publisher_cpu_s: tuple[float, float]
+    server_rss: tuple[int, int]
+
+
+@dataclass
+class _Window:
+    """What the measured window saw: the scrapes at its ends, packets sent, its length, what
+    it cost."""
+
+    before: dict[str, Any]
+    last: dict[str, Any]
+    sent0: int
+    sent1: int
+    wall_s: float
+    cost: _Cost
+
+
+def _watch_window(
+    spec: LoadSpec,
+    target: Target,
+    http: httpx.Client,
+    pubs: Sequence[_Publisher],
+    watches: tuple[_ProcWatch, _ProcWatch],
+    progress: bool,
+) -> _Window:
+    """Scrape at the start, then every :data:`POLL_S` (fleet totals, a progress bar) until
+    ``spec.duration_s`` has passed; ``watches``: the server's and the publishers' processes."""
+    from tqdm import tqdm
+
+    server, publishers = watches
+    before = _merge([scrape(a, http) for a in target.apis])
+    sent0 = sum(p.sent for p in pubs)
+    for p in pubs:
+        p.mark()
+    cpu0, pcpu0, t0 = server.cpu_s(), publishers.cpu_s(), time.monotonic()
+    rss0 = server.rss()
+    bar = tqdm(
+        total=round(spec.duration_s),
+        unit="s",
+        desc=f"{spec.vehicles} vehicles",
+        disable=not progress,
+        leave=False,
+    )
+    last = before
+    with bar:
+        while (elapsed := time.monotonic() - t0) < spec.duration_s:
+            time.sleep(min(POLL_S, spec.duration_s - elapsed))
+            last = _merge([scrape(a, http, by_vehicle=False) for a in target.apis])
+            dt = max(time.monotonic() - t0, 1e-9)
+            bar.n = min(round(dt), bar.total)
+            bar.set_postfix(
+                sent_per_s=round((sum(p.sent for p in pubs) - sent0) / dt),
+                recv_per_s=round((last["received"] - before["received"]) / dt),
+                lost=int(last["lost_by_seq_gap"]),
+                backlog=int(last["backlog"]),
+                refresh=False,
+            )
+            bar.refresh()
+    sent1, wall = sum(p.sent for p in pubs), time.monotonic() - t0
+    cost = _Cost((cpu0, server.cpu_s()), (pcpu0, publishers.cpu_s()), (rss0, server.rss()))
+    return _Window(before, last, sent0, sent1, wall, cost)
+
+
+def _drain(target: Target, http: httpx.Client, sent_total: int) -> tuple[dict[str, Any], float]:
+    """Wait (at most :data:`DRAIN_S`) until every packet sent is counted, the writer backlog
+    is empty and, after a pause in which the vehicles' idle release emits their last rows,
+    every row produced was taken by the writer (inserted, not inserted or dropped); the final
+    per-vehicle scrape and the seconds it took."""
+    t_drain = time.monotonic()
+    settled_at: float | None = None
+    while time.monotonic() - t_drain <= DRAIN_S:
+        last = _merge([scrape(a, http, by_vehicle=False) for a in target.apis])
+        taken = last["rows_written"] + last["rows_not_inserted"] + last["rows_dropped"]
+        if last["received"] >= sent_total and last["backlog"] == 0:
+            settled_at = settled_at or time.monotonic()
+            if time.monotonic() - settled_at >= 1.5 and taken >= last["estimate_rows"]:
+                break
+        time.sleep(0.25)
+    return _merge([scrape(a, http) for a in target.apis]), time.monotonic() - t_drain
+
+
+def _packet_result(
+    w: _Window, after: Mapping[str, Any], sent_total: int, drain_s: float
+) -> dict[str, Any]:
+    """Packets and estimate rows of a run (module docstring)."""
+    before, wall = w.before, w.wall_s
+    return {
+        "window_s": round(wall, 2),
+        "drain_s": round(drain_s, 2),
+        "vehicles_seen": len(after["vehicles"]),
+        "packets_sent": int(sent_total),
+        "packets_sent_window": int(w.sent1 - w.sent0),
+        "packets_per_s": round((w.sent1 - w.sent0) / wall, 1),
+        "packets_received": int(after["received"]),
+        "packets_received_window": int(w.last["received"] - before["received"]),
+        "packets_accepted": int(after["accepted"]),
+        "packets_rejected": int(after["rejected"]),
+        "packets_rejected_by_reason": {
+            k: int(v) for k, v in sorted(after["rejected_by_reason"].items())
+        },
+        "packets_late": int(after["late"]),
+        "packets_duplicate": int(after["duplicate"]),
+        "packets_lost_by_seq_gap": int(after["lost_by_seq_gap"]),
+        "wheel_gaps": int(after["wheel_gaps"] - before["wheel_gaps"]),
+        "ticks_without_wheel_data": int(
+            after["ticks_without_wheel_data"] - before["ticks_without_wheel_data"]
+        ),
+        "packets_missing": int(max(0, sent_total - after["received"])),
+        "estimates_produced": int(after["estimate_rows"]),
+        "estimates_stored": int(after["rows_written"]),
+        "estimates_not_inserted": int(after["rows_not_inserted"]),
+        "rows_dropped_backlog_full": int(after["rows_dropped"]),
+        "storage_rows_per_s": round(
+            (after["rows_written"] - before["rows_written"]) / (wall + drain_s), 1
+        ),
+        "latency": _latency_window(before["latency"], w.last["latency"]),
+        "server_thread_cores": window_cores(before, w.last),
+        "pipeline_phase_cores": window_cores(before, w.last, "pipeline_cpu"),
+    }
+
+
+def _cost_result(
+    target: Target, w: _Window, server_watch: _ProcWatch, pubs: Sequence[_Publisher]
+) -> dict[str, Any]:
+    """CPU, memory and send lateness of a run (module docstring)."""
+    watched, wall, cost = bool(target.pids), w.wall_s, w.cost
+    (cpu0, cpu1), (pcpu0, pcpu1) = cost.server_cpu_s, cost.publisher_cpu_s
+    rss0, rss1 = cost.server_rss
+    out: dict[str, Any] = {
+        "server_cpu_cores": round((cpu1 - cpu0) / wall, 3) if watched else None,
+        "server_rss_mb_start": round(rss0 / 2**20, 1) if watched else None,
+        "server_rss_mb_end": round(rss1 / 2**20, 1) if watched else None,
+        "server_rss_mb_peak": round(sum(server_watch.peak_rss.values()) / 2**20, 1)
+        if watched
+        else None,
+        "publisher_cpu_cores": round((pcpu1 - pcpu0) / wall, 3),
+        "publisher_max_behind_ms": round(
+            max((p.final or {}).get("max_behind_ms", p.behind_ms) for p in pubs), 1
+        ),
+        "publisher_late_ms": _send_lateness(pubs),
+        "machine_cpus": os.cpu_count(),
+    }
+    series = server_watch.rss_series
+    if watched and series:
+        out["server_rss_growth_pct"] = round(100.0 * (rss1 - rss0) / max(rss0, 1), 2)
+        step = max(1, len(series) // 120)
+        out["server_rss_mb_series"] = [
+            (round(t, 1), round(rss / 2**20, 1)) for t, rss in series[::step]
+        ]
+    return out
+
+
+def _stop_all(pubs: Sequence[_Publisher], timeout_s: float = 60.0) -> None:
+    for p in pubs:
+        p.stop()
+    for p in pubs:
+        p.join(timeout_s)
+
+
+def run_loadtest(
+    spec: LoadSpec,
+    target: Target,
+    *,
+    prefix: str = "fleet",
+    progress: bool = True,
+    token: str | None = None,
+) -> dict[str, Any]:
+    """Publish ``spec`` to ``target`` and measure (see the module docstring); a result dict.
+
+    ``token`` is sent to the servers' APIs; each API is read once before anything is published
+    (SystemExit with one line if that fails: nothing listening, a token missing or refused)."""
+    jobs = _jobs(spec, target, prefix)
     http = open_client(token)
     for api in target.apis:
         check_metrics_access(http, api)
@@ -725,137 +978,22 @@ def run_loadtest(
     pub_watch = _ProcWatch([p.proc.pid for p in pubs]).start()
     result: dict[str, Any] = {"spec": dataclasses.asdict(spec), "publishers": len(pubs)}
     try:
-        # warm-up: every publisher is sending, then spec.warmup_s more seconds
-        t_start = time.monotonic()
-        while not all(p.sent > 0 for p in pubs):
-            if any(p.proc.poll() is not None for p in pubs):
-                raise RuntimeError("a publisher exited before sending")
-            if time.monotonic() - t_start > 300:
-                raise TimeoutError("publishers did not start sending within 300 s")
-            time.sleep(0.1)
-        result["publisher_start_s"] = round(time.monotonic() - t_start, 2)
+        result["publisher_start_s"] = _wait_sending(pubs)  # then spec.warmup_s more seconds
         time.sleep(spec.warmup_s)
-        before = _merge([scrape(a, http) for a in target.apis])
-        sent0 = sum(p.sent for p in pubs)
-        for p in pubs:
-            p.mark()
-        cpu0, pcpu0, t0 = server_watch.cpu_s(), pub_watch.cpu_s(), time.monotonic()
-        rss0 = server_watch.rss()
-        bar = tqdm(
-            total=round(spec.duration_s),
-            unit="s",
-            desc=f"{spec.vehicles} vehicles",
-            disable=not progress,
-            leave=False,
-        )
-        last = before
-        with bar:
-            while (elapsed := time.monotonic() - t0) < spec.duration_s:
-                time.sleep(min(POLL_S, spec.duration_s - elapsed))
-                now = _merge([scrape(a, http, by_vehicle=False) for a in target.apis])
-                dt = max(time.monotonic() - t0, 1e-9)
-                bar.n = min(round(dt), bar.total)
-                bar.set_postfix(
-                    sent_per_s=round((sum(p.sent for p in pubs) - sent0) / dt),
-                    recv_per_s=round((now["received"] - before["received"]) / dt),
-                    lost=int(now["lost_by_seq_gap"]),
-                    backlog=int(now["backlog"]),
-                    refresh=False,
-                )
-                bar.refresh()
-                last = now
         # latency is taken over the window only: when the publishers stop, every vehicle's
         # last data is released by the reorder buffers' idle timeout, late by design
-        window_end = last
-        sent1 = sum(p.sent for p in pubs)
-        wall = time.monotonic() - t0
-        cpu1, pcpu1 = server_watch.cpu_s(), pub_watch.cpu_s()
-        rss1 = server_watch.rss()
-        for p in pubs:
-            p.stop()
-        for p in pubs:
-            p.join()
+        window = _watch_window(spec, target, http, pubs, (server_watch, pub_watch), progress)
+        _stop_all(pubs)
         sent_total = sum((p.final or {}).get("sent", p.sent) for p in pubs)
-        # drain: every packet counted, writer backlog empty, and (after a pause in which the
-        # vehicles' idle release emits their last rows) every row produced taken by the writer:
-        # inserted, not inserted (stored already, unknown vehicle) or dropped
-        t_drain = time.monotonic()
-        settled_at: float | None = None
-        while time.monotonic() - t_drain <= DRAIN_S:
-            last = _merge([scrape(a, http, by_vehicle=False) for a in target.apis])
-            taken = last["rows_written"] + last["rows_not_inserted"] + last["rows_dropped"]
-            if last["received"] >= sent_total and last["backlog"] == 0:
-                settled_at = settled_at or time.monotonic()
-                if time.monotonic() - settled_at >= 1.5 and taken >= last["estimate_rows"]:
-                    break
-            time.sleep(0.25)
-        after = _merge([scrape(a, http) for a in target.apis])
-        drain_s = time.monotonic() - t_drain
+        after, drain_s = _drain(target, http, sent_total)
     finally:
-        for p in pubs:
-            p.stop()
-        for p in pubs:
-            p.join(10)
+        _stop_all(pubs, 10.0)
         server_watch.stop()
         pub_watch.stop()
         http.close()
-
-    received_total = after["received"]
-    result.update(
-        {
-            "window_s": round(wall, 2),
-            "drain_s": round(drain_s, 2),
-            "vehicles_seen": len(after["vehicles"]),
-            "packets_sent": int(sent_total),
-            "packets_sent_window": int(sent1 - sent0),
-            "packets_per_s": round((sent1 - sent0) / wall, 1),
-            "packets_received": int(received_total),
-            "packets_received_window": int(last["received"] - before["received"]),
-            "packets_accepted": int(after["accepted"]),
-            "packets_rejected": int(after["rejected"]),
-            "packets_rejected_by_reason": {
-                k: int(v) for k, v in sorted(after["rejected_by_reason"].items())
-            },
-            "packets_late": int(after["late"]),
-            "packets_duplicate": int(after["duplicate"]),
-            "packets_lost_by_seq_gap": int(after["lost_by_seq_gap"]),
-            "wheel_gaps": int(after["wheel_gaps"] - before["wheel_gaps"]),
-            "ticks_without_wheel_data": int(
-                after["ticks_without_wheel_data"] - before["ticks_without_wheel_data"]
-            ),
-            "packets_missing": int(max(0, sent_total - received_total)),
-            "estimates_produced": int(after["estimate_rows"]),
-            "estimates_stored": int(after["rows_written"]),
-            "estimates_not_inserted": int(after["rows_not_inserted"]),
-            "rows_dropped_backlog_full": int(after["rows_dropped"]),
-            "storage_rows_per_s": round(
-                (after["rows_written"] - before["rows_written"]) / (wall + drain_s), 1
-            ),
-            "latency": _latency_window(before["latency"], window_end["latency"]),
-            "server_thread_cores": window_cores(before, window_end),
-            "pipeline_phase_cores": window_cores(before, window_end, "pipeline_cpu"),
-            "server_cpu_cores": round((cpu1 - cpu0) / wall, 3) if target.pids else None,
-            "server_rss_mb_start": round(rss0 / 2**20, 1) if target.pids else None,
-            "server_rss_mb_end": round(rss1 / 2**20, 1) if target.pids else None,
-            "server_rss_mb_peak": round(sum(server_watch.peak_rss.values()) / 2**20, 1)
-            if target.pids
-            else None,
-            "publisher_cpu_cores": round((pcpu1 - pcpu0) / wall, 3),
-            "publisher_max_behind_ms": round(
-                max((p.final or {}).get("max_behind_ms", p.behind_ms) for p in pubs), 1
-            ),
-            "publisher_late_ms": _send_lateness(pubs),
-            "machine_cpus": os.cpu_count(),
-            "machine_probe_s": [round(probe_before_s, 3), round(probe_s(), 3)],
-        }
-    )
-    series = server_watch.rss_series
-    if target.pids and series:
-        result["server_rss_growth_pct"] = round(100.0 * (rss1 - rss0) / max(rss0, 1), 2)
-        step = max(1, len(series) // 120)
-        result["server_rss_mb_series"] = [
-            (round(t, 1), round(rss / 2**20, 1)) for t, rss in series[::step]
-        ]
+    result.update(_packet_result(window, after, sent_total, drain_s))
+    result.update(_cost_result(target, window, server_watch, pubs))
+    result["machine_probe_s"] = [round(probe_before_s, 3), round(probe_s(), 3)]
     total_lost = result["packets_lost_by_seq_gap"] + result["packets_missing"]
     result["loss_free"] = total_lost == 0 and result["packets_late"] == 0
     return result
@@ -880,7 +1018,8 @@ def format_report(r: Mapping[str, Any]) -> str:
     lat = r["latency"]
     late = r.get("publisher_late_ms") or {}
     lines = [
-        f"vehicles {r['spec']['vehicles']} (seen {r['vehicles_seen']}), scenario "
+        f"vehicles {r['spec']['vehicles']} (seen {r['vehicles_seen']}; "
+        f"{mix_label(r['spec']['kind_mix'])}), scenario "
         f"{r['spec']['scenario'] if not r['spec']['replay'] else 'replay'}, rate x"
         f"{r['spec']['rate_scale']}, {r['publishers']} publisher processes, window "
         f"{r['window_s']} s (+{r['drain_s']} s drain)",
@@ -938,6 +1077,48 @@ def format_report(r: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def mix_label(kind_mix: Sequence[Sequence[Any]]) -> str:
+    """``tractor=0.5,tracked=0.5`` of a spec's ``kind_mix``."""
+    return ",".join(f"{kind}={share:g}" for kind, share in kind_mix)
+
+
+def _lat(r: Mapping[str, Any], stage: str, q: str) -> str:
+    s = (r.get("latency") or {}).get(stage)
+    return "-" if s is None else f"{s[q]:.0f}"
+
+
+#: The rows of :func:`format_side_by_side`: label and how to read it off a result.
+_SIDE_BY_SIDE: tuple[tuple[str, Any], ...] = (
+    ("fleet (--mix)", lambda r: mix_label(r["spec"]["kind_mix"])),
+    ("vehicles seen", lambda r: r["vehicles_seen"]),
+    ("packets/s sent", lambda r: f"{r['packets_per_s']:.0f}"),
+    ("packets sent", lambda r: r["packets_sent"]),
+    ("lost (seq gap + missing)", lambda r: r["packets_lost_by_seq_gap"] + r["packets_missing"]),
+    ("late", lambda r: r["packets_late"]),
+    ("rejected", lambda r: r["packets_rejected"]),
+    ("estimate rows stored", lambda r: r["estimates_stored"]),
+    ("sensor→live p50 / p99 ms", lambda r: f"{_lat(r, 'live', 'p50_ms')} / "
+     f"{_lat(r, 'live', 'p99_ms')}"),
+    ("sensor→stored p50 / p99 ms", lambda r: f"{_lat(r, 'stored', 'p50_ms')} / "
+     f"{_lat(r, 'stored', 'p99_ms')}"),
+    ("sensor→stored max ms", lambda r: _lat(r, "stored", "max_ms")),
+    ("server CPU cores", lambda r: r.get("server_cpu_cores")),
+    ("server RSS peak MB", lambda r: r.get("server_rss_mb_peak")),
+    ("publisher CPU cores", lambda r: r.get("publisher_cpu_cores")),
+    ("machine probe s (before)", lambda r: (r.get("machine_probe_s") or [None])[0]),
+)  # fmt: skip
+
+
+def format_side_by_side(results: Sequence[Mapping[str, Any]]) -> str:
+    """Load test results side by side, a Markdown table (one column per run): what was
+    lost, the p99s and the cost."""
+    head = ["", *(f"run {i + 1}" for i in range(len(results)))]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for label, read in _SIDE_BY_SIDE:
+        lines.append("| " + " | ".join([label, *(str(read(r)) for r in results)]) + " |")
+    return "\n".join(lines)
+
+
 def _pid_listening_on(api: str) -> int | None:
     import httpx
     import psutil
@@ -991,6 +1172,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicles", type=int, required=True, help="simulated vehicles to publish")
     p.add_argument("--duration", type=float, required=True, help="measured seconds")
     add_scenario_argument(p, "mix", mix=True)
+    p.add_argument(
+        "--mix",
+        type=parse_kind_mix,
+        default=(("tractor", 1.0),),
+        metavar="KIND=SHARE,...",
+        help=f"the fleet's shares by kind ({', '.join(KINDS)}), e.g. tractor=0.5,tracked=0.5 "
+        "(default: tractors only; --scenario is the tractors')",
+    )
+    p.add_argument(
+        "--beside-tractors",
+        action="store_true",
+        help="first run a tractor-only fleet of the same size, then print both side by side",
+    )
     p.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
     p.add_argument(
         "--publishers",
@@ -1042,8 +1236,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    """Run a load test as the command line asks; print the report; return the result."""
+    """Run a load test as the command line asks (``--beside-tractors``: a tractor-only run
+    first, then the two side by side); print the report; return the (last) result."""
     logging.getLogger("httpx").setLevel(logging.WARNING)
+    if not args.beside_tractors:
+        return _run_one(args)
+    if args.replay:
+        raise SystemExit("--beside-tractors compares simulated fleets: not with --replay")
+    tractors = _run_one(argparse.Namespace(**{**vars(args), "mix": (("tractor", 1.0),)}))
+    mixed = _run_one(args)
+    print(format_side_by_side([tractors, mixed]))
+    if args.json is not None:
+        args.json.write_text(json.dumps([tractors, mixed], indent=2, default=str))
+    return mixed
+
+
+def _run_one(args: argparse.Namespace) -> dict[str, Any]:
+    """One load test as the command line asks; prints its report."""
     spec = LoadSpec(
         vehicles=args.vehicles,
         duration_s=args.duration,
@@ -1054,6 +1263,7 @@ def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
         warmup_s=args.warmup,
         replay=tuple(str(p) for p in args.replay or ()),
         estimator_mix=args.estimator_mix,
+        kind_mix=args.mix,
     )
     if args.connect:
         if not args.api:
@@ -1080,8 +1290,8 @@ def run_from_args(args: argparse.Namespace) -> dict[str, Any]:
             target = Target((server.endpoint,), (server.api,), (server.pid,))
             result = run_loadtest(spec, target)
         result["server_settings"] = tuning or "defaults"
-    print(format_report(result))
-    if args.json is not None:
+    print(format_report(result), flush=True)
+    if args.json is not None and not args.beside_tractors:
         args.json.write_text(json.dumps(result, indent=2, default=str))
     return result
 

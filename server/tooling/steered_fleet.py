@@ -14,7 +14,6 @@ second), so a fleet simulates ``distinct_runs`` runs at most and shares them.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -22,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 from estimator.base import Measurement
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 from server.protocol.keys import Stream
-from server.tooling.fleet_sim import TICK_NS, FleetSim, SimPacket, _Vehicle, loop_period_ns
+from server.tooling.fleet_sim import FleetSim, SimPacket, _Vehicle
 
 if TYPE_CHECKING:
     from estimator.sim.four_wheel import Manoeuvre
@@ -104,13 +103,6 @@ class SteeredFleetSim(FleetSim):
             seeds=[self._seed + k for k in k_runs],
             start_ns=self._clock(),
         )
-        drives = [steered_packets(r.measurements, r.start_ns) for r in runs]
-        vehicles = []
-        for i, vid in enumerate(self.vehicle_ids):
-            run, packets = runs[i % self._distinct], drives[i % self._distinct]
-            end_ns = run.start_ns + packets[-1].arrival_offset_ns
-            phase = (i * TICK_NS) // self._n
-            config = dataclasses.replace(run.config, estimators=self.estimators_of(i))
-            period = loop_period_ns(run.start_ns, end_ns)
-            vehicles.append(_Vehicle(vid, packets, period, phase, phase - run.start_ns, config))
-        return vehicles
+        return self._lay_out(
+            [(r.start_ns, steered_packets(r.measurements, r.start_ns), r.config) for r in runs]
+        )

@@ -27,17 +27,24 @@ class AlertPublic(BaseModel):
     id: int
     vehicle_id: str = Field(description='the vehicle, or "" for an alert about the server')
     kind: str = Field(
-        description="`slip:<estimator>:<slip channel key>`, `flag:<estimator>:<FLAG>`, `stale`, "
-        "`storage_down` or `zenoh_down`"
+        description="`slip:<estimator>:<slip channel key>`, `flag:<estimator>:<FLAG>`, "
+        "`rule:<estimator>:<rule key>`, `stale`, `storage_down` or `zenoh_down`"
     )
     estimator: str | None = Field(description="estimator whose rows raised it (slip and flag)")
-    channel: str | None = Field(description="its slip channel key or flag name (slip and flag)")
+    channel: str | None = Field(
+        description="its slip channel key, flag name or rule key (slip, flag and rule)"
+    )
     start_ns: int = Field(description="where the condition began (stale: the last estimate)")
     end_ns: int | None = Field(description="where it ended; null while open")
     open: bool
     opened_wall_ns: int = Field(description="server wall time the alert opened")
-    threshold: float | None = Field(description="slip threshold, percent (slip alerts)")
-    peak: float | None = Field(description="largest |slip| seen, percent (slip alerts)")
+    threshold: float | None = Field(
+        description="slip threshold, percent (slip alerts); the rule's limit (rule alerts)"
+    )
+    peak: float | None = Field(
+        description="largest |slip| seen, percent (slip alerts); the rule's field at its most "
+        "extreme (rule alerts)"
+    )
 
 
 class AlertListPublic(BaseModel):
@@ -71,7 +78,9 @@ def _engine(request: Request) -> AlertEngine:
         "Rules name a channel of an estimator's spec (`GET /api/v1/estimators`): "
         "`slip:<estimator>:<channel>` (|slip| of one of its slip channels above the vehicle's "
         "`alert_threshold_pct` for longer than its `alert_hold_s`), `flag:<estimator>:<FLAG>` "
-        "(one of its `degraded_flags` held, e.g. `flag:mdsf:DEGRADED`: GNSS lost), `stale` (no "
+        "(one of its `degraded_flags` held, e.g. `flag:mdsf:DEGRADED`: GNSS lost), "
+        "`rule:<estimator>:<key>` (one of its spec's own rules held, e.g. "
+        "`rule:tracked:long_dead_reckoning`, `rule:friction:low_mu`), `stale` (no "
         "estimate for a while); `storage_down` and `zenoh_down` are about the server. Newest "
         "first."
     ),

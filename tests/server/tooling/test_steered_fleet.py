@@ -5,16 +5,13 @@ numbers byte for byte as the per-packet encoding does, over loops."""
 from __future__ import annotations
 
 import math
-from collections import defaultdict
-from collections.abc import Callable
 
 import numpy as np
 
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 from server.protocol import Stream, decode, sensor_key
-from server.tooling.fleet_schedule import STREAMS, EncodedDrive, ScheduledVehicle, _Fleet, render
-from server.tooling.fleet_sim import TICK_NS, SimPacket, loop_period_ns
 from server.tooling.steered_fleet import demo_drive, steered_packets
+from tests.server.tooling.schedule_check import assert_schedule_patches_like_encoding
 
 T0 = 1_763_700_000 * 10**9
 MS = 1_000_000
@@ -73,30 +70,8 @@ def test_packets_arrive_with_their_last_sample_and_decode_as_sent() -> None:
 
 def test_schedule_patches_steered_packets_like_the_per_packet_encoding() -> None:
     packets = steered_packets(_measurements(3), T0)
-    period = loop_period_ns(T0, T0 + packets[-1].arrival_offset_ns)
-    calls: dict[tuple[int, int], list[bytes]] = defaultdict(list)
-
-    def put(v: int, s: int) -> Callable[[bytes], None]:
-        return lambda payload: calls[(v, s)].append(payload)
-
-    vehicles = [
-        ScheduledVehicle(
-            0, ph, 7_000_000_011 * (i + 1), tuple(put(i, s) for s in range(len(STREAMS)))
-        )
-        for i, ph in enumerate([0, 37 * MS])
-    ]
-    fleet = _Fleet([EncodedDrive(packets, period)], vehicles)
-    for t in range(0, 2 * period, TICK_NS):  # two loops
-        w = render(fleet, t, t + TICK_NS, loop=True)
-        for call, payload in zip(w.calls, w.payloads, strict=True):
-            call(payload)
-    assert calls.keys() == {(v, s) for v in (0, 1) for s in (0, 1, 3, 4)}  # no tractor wheels
-    for (v, s), payloads in calls.items():
-        mine: list[SimPacket] = [p for p in packets if p.stream is STREAMS[s]]
-        assert len(payloads) == 2 * len(mine)
-        for seq, payload in enumerate(payloads):
-            loop, i = divmod(seq, len(mine))
-            assert payload == mine[i].encode(seq, vehicles[v].shift_ns + loop * period)
+    streams = {Stream.GNSS, Stream.IMU, Stream.STEERING, Stream.WHEEL_SPEEDS4}  # no wheels
+    assert_schedule_patches_like_encoding(packets, T0, streams)
 
 
 def test_demo_drive_ends_as_it_starts_and_holds_a_wet_patch() -> None:
