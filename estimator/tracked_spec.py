@@ -12,6 +12,9 @@ from estimator.spec import (
     PositionChannel,
     SlipChannel,
     SpeedChannel,
+    StateChannel,
+    StateValue,
+    ValueChannel,
     WheelPosition,
     flags_from,
 )
@@ -142,7 +145,47 @@ TRACKED_SPEC = EstimatorSpec(
         SpeedChannel("odometer", "corrected odometer", "odometer_mps"),
     ),
     motion="forward",
-    position=PositionChannel("east_m", "north_m", "up_m", "heading_rad", "DEAD_RECKONING"),
+    position=PositionChannel(
+        "east_m",
+        "north_m",
+        "up_m",
+        "heading_rad",
+        "DEAD_RECKONING",
+        east_std_field="east_std_m",
+        north_std_field="north_std_m",
+    ),
+    states=(
+        StateChannel(
+            "motion",
+            "motion state",
+            "motion_state",
+            tuple(
+                StateValue(value, name, label)
+                for value, (name, label) in enumerate(
+                    (
+                        ("stop", "stop"),
+                        ("straight", "straight"),
+                        ("low_straight", "low-gear straight"),
+                        ("arc", "arc turn"),
+                        ("separated", "separated turn"),
+                        ("pivot", "pivot"),
+                        ("heading_jump", "heading jump"),
+                    )
+                )
+            ),
+            confidence_field="state_confidence",
+            uncertain_flag="STATE_UNCERTAIN",
+        ),
+    ),
+    values=(
+        ValueChannel(
+            "odometer_factor",
+            "odometer factor",
+            "odometer_scale",
+            valid_flag="GNSS_OK",
+            mapped=True,
+        ),
+    ),
     charts=(
         ChartSpec("slip", "Track slip", "%", ("slip_left_pct", "slip_right_pct")),
         ChartSpec(

@@ -346,6 +346,8 @@ class PositionChannelSpecPublic(BaseModel):
     carried_flag: str | None = Field(description="flag of a dead-reckoned position")
     pitch_field: str | None = Field(description="body pitch, rad (nose up positive)")
     roll_field: str | None = Field(description="body roll, rad (right side down positive)")
+    east_std_field: str | None = Field(default=None, description="1-sigma of east, m")
+    north_std_field: str | None = Field(default=None, description="1-sigma of north, m")
 
 
 class ChartSpecPublic(BaseModel):
@@ -355,6 +357,46 @@ class ChartSpecPublic(BaseModel):
     title: str
     unit: str
     fields: list[str]
+
+
+class StateValuePublic(BaseModel):
+    """One value of an enumerated field."""
+
+    value: int
+    name: str
+    label: str
+
+
+class StateChannelSpecPublic(BaseModel):
+    """An enumerated (i4) field whose values name states; drawn as a band of stretches."""
+
+    key: str
+    label: str
+    field: str
+    states: list[StateValuePublic]
+    confidence_field: str | None = Field(description="0..1 confidence of the state")
+    uncertain_flag: str | None = Field(description="flag of a row whose state is uncertain")
+
+
+class ValueChannelSpecPublic(BaseModel):
+    """A headline value that is neither slip nor speed (friction μ)."""
+
+    key: str
+    label: str
+    field: str
+    unit: str
+    std_field: str | None
+    valid_flag: str | None = Field(description="flag of the rows that inform it; others hold")
+    mapped: bool = Field(description="a layer of the slip map (`layer=<key>`)")
+
+
+class WheelValueChannelSpecPublic(BaseModel):
+    """A per-wheel share in percent other than slip (grip used)."""
+
+    key: str
+    label: str
+    field: str
+    position: str
 
 
 class EstimatorSpecPublic(BaseModel):
@@ -374,6 +416,9 @@ class EstimatorSpecPublic(BaseModel):
     charts: list[ChartSpecPublic]
     ok_flag: str | None
     degraded_flags: list[str]
+    states: list[StateChannelSpecPublic] = []
+    values: list[ValueChannelSpecPublic] = []
+    wheel_values: list[WheelValueChannelSpecPublic] = []
 
 
 class EstimatorsPublic(BaseModel):
