@@ -1,6 +1,7 @@
 // Slip map: the track in local metres (east right, north up, equal scale) on a canvas, coloured by
 // |slip| with the fixed scale of colors.js, an optional heat grid of cells, a scale bar, axis
-// labels and the colour legend.
+// labels and the colour legend. Stretches whose position was dead-reckoned are dashed, and the
+// position's 1-σ (radial, sqrt(σe² + σn²)) is drawn as circles along the track (setCarried).
 //
 // The track's points are drawn as given: give it whole rows (full rate, or the series endpoint's
 // `decimation=first`), never min/max-decimated rows, whose east and north may come from
@@ -13,6 +14,7 @@ import { TILE_PX, degreeStep, enuToLatLon, fmtDegrees, latLonToEnu, mercator, ti
 import { lastAtOrBefore } from "./util.js";
 
 export const LATLON_NAMES = ["longitude (WGS 84)", "latitude (WGS 84)"];
+const SIGMA_CIRCLES = 40; // circles of the position's 1-σ along a track, at most
 
 // Grid lines and their labels in a plot box {l, t, W, H} (CSS px): xs / ys [[pixel, label]...],
 // names [x axis, y axis]; on a basemap the lines are darker.
@@ -174,6 +176,16 @@ export class SlipMap {
     this.ticks = { lat: [], lon: [] }; // degrees of the labelled lines (with an anchor)
     this.cursor = null; // index of the replay position
     this.upTo = null; // draw the track only up to this index (replay), null = all
+    this.carried = null; // per point: dead-reckoned (dashed), or null
+    this.sigma = null; // per point: radial 1-σ of the position in metres, or null
+    this.carriedDrawn = 0; // dashed segments, after draw()
+    this.sigmaDrawn = []; // [[east, north, radius_m], ...] circles, after draw()
+  }
+
+  // Per point: whether its position was dead-reckoned, and its radial 1-σ (m); null: none.
+  setCarried(carried, sigmaM) {
+    this.carried = carried;
+    this.sigma = sigmaM;
   }
 
   // stampsS: each point's time (seconds), for cursorAt
@@ -332,18 +344,24 @@ export class SlipMap {
       }
       ctx.stroke();
     }
+    this.drawSigma(ctx, px, py, sc, last);
     ctx.lineWidth = this.heat ? 2 : 4;
     let drawn = 0;
+    this.carriedDrawn = 0;
     for (let i = 1; i <= last; i++) {
       const ea = this.east[i - 1], na = this.north[i - 1], eb = this.east[i], nb = this.north[i];
       if (ea == null || na == null || eb == null || nb == null) continue;
+      const carried = Boolean(this.carried && this.carried[i]);
+      ctx.setLineDash(carried ? [7, 6] : []);
       ctx.strokeStyle = slipCss(this.slip[i]);
       ctx.beginPath();
       ctx.moveTo(px(ea), py(na));
       ctx.lineTo(px(eb), py(nb));
       ctx.stroke();
       drawn++;
+      if (carried) this.carriedDrawn++;
     }
+    ctx.setLineDash([]);
     const mi = this.cursor != null ? this.cursor : last;
     if (mi >= 0 && this.east[mi] != null) {
       ctx.fillStyle = slipCss(this.slip[mi]);
@@ -369,6 +387,47 @@ export class SlipMap {
     ctx.font = "11px system-ui, sans-serif";
     ctx.fillText(`${barM} m`, bx + (barM * sc) / 2, by - 2);
     if (this.anchor) drawAttribution(ctx, this.tiles.template, cssW - pad.r, cssH - 4);
+    if (this.carried || this.sigma) this.drawCarriedLegend(ctx, pad.l, cssH - 8);
     this.drawn = drawn;
+  }
+
+  // Circles of the position's 1-σ at up to SIGMA_CIRCLES points up to index `last` (evenly
+  // spaced, always the last), faint blue.
+  drawSigma(ctx, px, py, sc, last) {
+    this.sigmaDrawn = [];
+    if (!this.sigma || last < 0) return;
+    const step = Math.max(1, Math.ceil((last + 1) / SIGMA_CIRCLES));
+    ctx.fillStyle = "rgba(0,114,178,0.10)";
+    ctx.strokeStyle = "rgba(0,114,178,0.55)";
+    ctx.lineWidth = 1;
+    for (let i = last; i >= 0; i -= step) {
+      const e = this.east[i], n = this.north[i], r = this.sigma[i];
+      if (e == null || n == null || r == null || !(r > 0)) continue;
+      ctx.beginPath();
+      ctx.arc(px(e), py(n), Math.max(1, r * sc), 0, 2 * Math.PI);
+      ctx.fill();
+      ctx.stroke();
+      this.sigmaDrawn.push([e, n, r]);
+    }
+  }
+
+  // "dashed: dead-reckoned · circles: position 1σ" at (x, y).
+  drawCarriedLegend(ctx, x, y) {
+    ctx.strokeStyle = "#222";
+    ctx.lineWidth = 2;
+    ctx.setLineDash([7, 6]);
+    ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + 30, y); ctx.stroke();
+    ctx.setLineDash([]);
+    ctx.fillStyle = "#222";
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.textAlign = "left";
+    ctx.textBaseline = "middle";
+    ctx.fillText("dead-reckoned", x + 36, y);
+    ctx.fillStyle = "rgba(0,114,178,0.10)";
+    ctx.strokeStyle = "rgba(0,114,178,0.55)";
+    ctx.lineWidth = 1;
+    ctx.beginPath(); ctx.arc(x + 130, y, 6, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+    ctx.fillStyle = "#222";
+    ctx.fillText("position 1σ", x + 140, y);
   }
 }

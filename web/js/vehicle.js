@@ -14,9 +14,10 @@
 
 import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboardConfig } from "./api.js";
 import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
-import { slipBand, slipCss } from "./colors.js";
+import { gripCss, slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
-import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
+import { fieldOf, flagMask, loadSpecs, motionChannel, slipMetric } from "./specs.js";
+import { StateBand, stateColor, stateOf } from "./states.js";
 import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const WINDOWS = [
@@ -82,18 +83,23 @@ function estimatorPanel(spec, page, primary) {
     "div",
     { class: "stats" },
     ...spec.slips.map((ch) => stat(`Slip ${ch.label}`, id(`slip-${ch.key}`), "%")),
+    ...spec.states.map((ch) => stat(ch.label, id(`state-${ch.key}`))),
+    ...spec.values.map((ch) => stat(ch.label, id(`value-${ch.key}`), ch.unit)),
+    ...spec.wheel_values.map((ch) => stat(ch.label, id(`wheel-${ch.key}`), "%")),
     motion ? stat(motion.label, id("speed"), fieldOf(spec, motion.field).unit) : null,
     stat("Quality", id("quality")),
     spec.flags.length ? stat("Flags", id("flags")) : null,
   );
   const boxes = spec.charts.map((c) => el("div", { class: "chart", id: `chart-${spec.name}-${c.key}` }));
+  const bandBoxes = spec.states.map((ch) => el("div", { class: "state-band", id: `band-${spec.name}-${ch.key}`, "data-channel": ch.key }, el("div", { class: "state-band-title", text: ch.label })));
   const root = el(
     "section",
     { class: "est-panel", "data-estimator": spec.name, "aria-label": spec.title },
     el("h2", {}, spec.title, primary ? el("span", { class: "pill", text: "primary" }) : null),
     tiles,
-    el("div", { class: "est-charts" }, ...boxes),
+    el("div", { class: "est-charts" }, ...boxes, ...bandBoxes),
   );
+  const bands = spec.states.map((ch, i) => new StateBand(spec, ch, bandBoxes[i]));
   const charts = spec.charts.map((c, i) => {
     const o = chartOptions(spec, c);
     return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}`, onCursor: (_i, tS) => page.onCursor(tS) });
@@ -113,6 +119,7 @@ function estimatorPanel(spec, page, primary) {
       const why = lt.flag_names.filter((f) => f !== spec.ok_flag && !spec.slips.some((c) => c.valid_flag === f));
       document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase().replace(/_/g, " ") || "unknown"}` : "";
     }
+    showChannels(lt);
     if (motion) document.getElementById(id("speed")).textContent = fmtSpeed(lt[motion.field], page.standstill());
     const q = document.getElementById(id("quality"));
     q.textContent = lt.quality;
@@ -123,6 +130,37 @@ function estimatorPanel(spec, page, primary) {
     if (spec.flags.length) document.getElementById(id("flags")).textContent = lt.flag_names.join(" ") || "none";
   }
 
+  // State, value and wheel value tiles of the newest row: a state in its band colour (marked
+  // when uncertain), a value said "held" where its row does not inform it, a wheel's share in
+  // its grip colour.
+  function showChannels(lt) {
+    for (const ch of spec.states) {
+      const e = document.getElementById(id(`state-${ch.key}`));
+      const st = stateOf(ch, lt[ch.field]);
+      e.textContent = st ? st.label : "–";
+      e.dataset.state = st ? st.name : "";
+      e.style.borderColor = stateColor(ch, lt[ch.field]);
+      const unsure = ch.uncertain_flag && lt.flag_names.includes(ch.uncertain_flag);
+      const conf = ch.confidence_field ? lt[ch.confidence_field] : null;
+      document.getElementById(`${id(`state-${ch.key}`)}-note`).textContent = [unsure ? "uncertain" : "", conf == null ? "" : `confidence ${fmt(conf * 100, 0)} %`].filter(Boolean).join(", ");
+    }
+    for (const ch of spec.values) {
+      const e = document.getElementById(id(`value-${ch.key}`));
+      const informed = !ch.valid_flag || lt.flag_names.includes(ch.valid_flag);
+      const std = ch.std_field ? lt[ch.std_field] : null;
+      e.textContent = fmt(lt[ch.field], 3);
+      e.dataset.informed = String(informed);
+      e.classList.toggle("value-held", !informed);
+      const note = informed ? (std == null ? "" : `± ${fmt(std, 3)} (1σ)`) : lt[ch.field] == null ? "not informed yet" : "held: not informed now";
+      document.getElementById(`${id(`value-${ch.key}`)}-note`).textContent = note;
+    }
+    for (const ch of spec.wheel_values) {
+      const e = document.getElementById(id(`wheel-${ch.key}`));
+      e.textContent = fmt(lt[ch.field], 0);
+      e.style.borderColor = gripCss(lt[ch.field]);
+    }
+  }
+
   function redraw() {
     pending = false;
     if (!cols) return;
@@ -131,6 +169,7 @@ function estimatorPanel(spec, page, primary) {
       setShading(charts[i], shade);
       charts[i].setData(alignedData(cols, c.fields));
     });
+    bands.forEach((b) => b.draw(cols, charts[0]));
     page.onColumns(spec.name, cols);
   }
 
@@ -161,6 +200,20 @@ function estimatorPanel(spec, page, primary) {
       for (const c of charts) c.destroy();
     },
   };
+}
+
+// Per row: whether its position was dead-reckoned (the position channel's carried_flag).
+function carriedRows(spec, cols) {
+  const mask = spec.position.carried_flag ? flagMask(spec, spec.position.carried_flag) : 0;
+  return cols.stamp_ns.map((_, i) => Boolean(mask && cols.flags && (cols.flags[i] ?? 0) & mask));
+}
+
+// Per row: the position's radial 1-σ, sqrt(σe² + σn²) in metres (null where unknown).
+function positionSigma(p, cols) {
+  if (!p.east_std_field || !p.north_std_field) return null;
+  const se = cols[p.east_std_field] || [];
+  const sn = cols[p.north_std_field] || [];
+  return cols.stamp_ns.map((_, i) => (se[i] == null || sn[i] == null ? null : Math.hypot(se[i], sn[i])));
 }
 
 export function vehicleView(root, vehicleId) {
@@ -369,7 +422,9 @@ export function vehicleView(root, vehicleId) {
       const spec = specs.get(name);
       if (name !== primary || !spec.position) return;
       const stampsS = cols.stamp_ns.map((t) => t / 1e9);
-      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols), stampsS);
+      const p = spec.position;
+      map.setTrack(cols[p.east_field], cols[p.north_field], slipMetric(spec, cols), stampsS);
+      map.setCarried(carriedRows(spec, cols), positionSigma(p, cols));
       map.cursor = map.indexAt(cursorS);
       map.draw();
     },
