@@ -487,6 +487,24 @@ class SlipChannelRefPublic(BaseModel):
     field: str
 
 
+class LayerCellPublic(BaseModel):
+    """A map layer (a value channel, e.g. friction μ) in one cell."""
+
+    valid_s: float = Field(description="time of the samples that inform the layer")
+    mean: float | None = Field(description="time-weighted mean over those samples")
+    samples: int = Field(description="how many samples inform the layer")
+
+
+class LayerRefPublic(BaseModel):
+    """The map layer (`layer=`): a value channel of the map's estimator."""
+
+    key: str
+    label: str
+    field: str
+    unit: str
+    valid_flag: str | None = Field(description="flag of the samples that inform it")
+
+
 class SlipMapCellPublic(BaseModel):
     """One cell of a slip map (definitions in the API description of the route)."""
 
@@ -508,6 +526,9 @@ class SlipMapCellPublic(BaseModel):
         description="time share of |slip| in each band, by band label (`0_5`, `5_15`, "
         "`15_up`); null without valid slip time"
     )
+    layer: LayerCellPublic | None = Field(
+        default=None, description="the map layer's statistics (null without `layer=`)"
+    )
 
 
 class SlipMapPublic(BaseModel):
@@ -516,6 +537,7 @@ class SlipMapPublic(BaseModel):
     vehicle_id: str
     estimator: str
     slip_channels: list[SlipChannelRefPublic]
+    layer: LayerRefPublic | None = Field(default=None, description="the map layer, if asked")
     start_ns: int
     end_ns: int
     cell_m: float
@@ -559,6 +581,7 @@ class FleetSlipMapPublic(BaseModel):
         description="the estimator mapped (null: none given and no vehicle placed)"
     )
     slip_channels: list[SlipChannelRefPublic]
+    layer: LayerRefPublic | None = Field(default=None, description="the map layer, if asked")
     start_ns: int
     end_ns: int
     cell_m: float
