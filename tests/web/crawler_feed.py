@@ -1,13 +1,14 @@
 """A second synthetic source for the browser tests: a crawler (``tracked`` rows) and a steered
-four-wheel vehicle (``friction`` rows), pushed into the live hub at 20 Hz, stamped with the wall
-clock, as the pipeline would (one batch per estimator per tick).
+four-wheel vehicle (``friction`` rows), pushed into sinks (the live hub, the store's writer) at
+20 Hz, stamped with the wall clock, as the pipeline would (one batch per estimator per tick).
 
 The rows follow the wall clock so a test can say what the page must show at any moment:
 
 * crawler: drives east at 5 m/s; its motion state steps through the spec's states every
   :data:`STATE_S` seconds; every other :data:`CARRIED_S`-second stretch is dead-reckoned
   (``DEAD_RECKONING``, position 1-σ growing 0.5 m a second), the others fused with GNSS
-  (``GNSS_OK``, 1-σ :data:`FIX_STD_M`); every third state is flagged ``STATE_UNCERTAIN``.
+  (``GNSS_OK``, 1-σ :data:`FIX_STD_M`); every third state is flagged ``STATE_UNCERTAIN``;
+  its odometer factor is 0.95 + 0.04·sin(east / 50 m) (a map layer informed while GNSS is).
 * steered vehicle: μ is informed (``INFORMED``, 0.8 ± 0.02) in every other :data:`MU_S`-second
   stretch and held at 0.8 (``HELD``, no σ) in the others; grip used per wheel is
   :data:`GRIP_PCT`.
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -71,8 +73,8 @@ def tracked_rows(stamps_ns: np.ndarray) -> np.ndarray:
     r["speed_mps"] = r["odometer_mps"] = 5.0
     r["track_left_mps"], r["track_right_mps"] = 4.6, 5.4
     r["slip_left_pct"], r["slip_right_pct"] = -6.0, 8.0
-    r["odometer_scale"] = 0.97
     r["east_m"] = 5.0 * (t_s % 120.0)
+    r["odometer_scale"] = 0.95 + 0.04 * np.sin(r["east_m"] / 50.0)
     r["north_m"] = 20.0 * np.sin(t_s / 10.0)
     r["up_m"] = 0.0
     r["heading_rad"] = np.pi / 2
@@ -105,19 +107,21 @@ def friction_rows(stamps_ns: np.ndarray) -> np.ndarray:
 
 
 class CrawlerFeed:
-    """Both vehicles' rows every 50 ms on a thread until :meth:`stop`; :meth:`backfill` first
-    pushes the last ``seconds`` at 20 Hz, as the pipeline would after a start."""
+    """Both vehicles' rows into ``sinks`` (each with ``on_estimates``) every 50 ms on a thread
+    until :meth:`stop`; :meth:`backfill` first pushes the last ``seconds`` at 20 Hz, as the
+    pipeline would after a start."""
 
-    def __init__(self, hub: Any) -> None:
-        self.hub = hub
+    def __init__(self, sinks: Sequence[Any]) -> None:
+        self.sinks = list(sinks)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="crawler-feed", daemon=True)
 
     def push(self, stamps_ns: np.ndarray) -> None:
-        self.hub.on_estimates(EstimateBatch.of([(CRAWLER, tracked_rows(stamps_ns))], TRACKED_SPEC))
-        self.hub.on_estimates(
-            EstimateBatch.of([(STEERED, friction_rows(stamps_ns))], FRICTION_SPEC)
-        )
+        crawler = EstimateBatch.of([(CRAWLER, tracked_rows(stamps_ns))], TRACKED_SPEC)
+        steered = EstimateBatch.of([(STEERED, friction_rows(stamps_ns))], FRICTION_SPEC)
+        for sink in self.sinks:
+            sink.on_estimates(crawler)
+            sink.on_estimates(steered)
 
     def backfill(self, seconds: float) -> None:
         now = time.time_ns()

@@ -21,7 +21,7 @@ import pytest
 
 from estimator.friction_spec import FRICTION_SPEC
 from estimator.tracked_spec import TRACKED_SPEC
-from tests.web.conftest import LiveStack
+from tests.web.conftest import LiveStack, history_loaded
 from tests.web.crawler_feed import (
     CRAWLER,
     FIX_STD_M,
@@ -50,8 +50,9 @@ def feed(live_stack: LiveStack) -> Iterator[CrawlerFeed]:
     hub = live_stack.runtime.live_hub
     _put(live_stack, CRAWLER, {"kind": "tracked"})
     _put(live_stack, STEERED, {"kind": "wheeled_4wd_steered"})
-    f = CrawlerFeed(hub)
+    f = CrawlerFeed([hub, live_stack.runtime.writer])
     f.backfill(30.0)
+    assert live_stack.runtime.writer is not None and live_stack.runtime.writer.flush(timeout=30)
     f.start()
     try:
         yield f
@@ -159,3 +160,32 @@ def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
     assert {k: v[0] for k, v in grip.items()} == {k: f"{v:.0f}" for k, v in GRIP_PCT.items()}
     assert grip["fl"][1] == "rgb(112, 171, 64)"  # 20 %: 2/5 of the way green → yellow
     assert grip["rr"][1] == "rgb(163, 36, 30)"  # 95 %: 3/4 of the way orange → dark red
+
+
+def test_the_crawler_history_map_draws_its_odometer_factor_layer(
+    live_stack: LiveStack, feed: CrawlerFeed, page: Any
+) -> None:
+    page.goto(live_stack.base_url + f"/#/vehicle/{CRAWLER}/history")
+    history_loaded(page)
+    layers = page.eval_on_selector_all("#h-layer option", "os => os.map(o => [o.value, o.text])")
+    assert layers == [["", "mean |slip|"], ["odometer_factor", "mean odometer factor (gnss_ok)"]]
+    page.select_option("#h-layer", "odometer_factor")
+    page.check("#h-heat")
+    page.wait_for_function(
+        "document.getElementById('h-heat-msg').textContent.includes('informed samples')",
+        timeout=20000,
+    )
+    heat = page.evaluate(
+        """() => { const m = document.getElementById('h-map')._slipmap;
+            return {title: m.title,
+                    cells: m.heat.map(h => [h.mean, h.samples, m.heatColor(h.mean)])}; }"""
+    )
+    assert heat["title"].endswith("cells by time-weighted mean odometer factor")
+    means = [mean for mean, samples, _ in heat["cells"] if samples]
+    # the feed's factor, 0.95 ± 0.04, informed only while GNSS is (no mean without a sample)
+    assert len(means) >= 3 and all(0.909 < v < 0.991 for v in means)
+    assert all(mean is None for mean, samples, _ in heat["cells"] if not samples)
+    lo, hi = min(means), max(means)
+    colours = {mean: colour for mean, _, colour in heat["cells"]}
+    assert colours[lo] == "rgb(140,20,30)" and colours[hi] == "rgb(26,152,80)"
+    assert f"{lo:.3f} (red) … {hi:.3f} (green)" in page.inner_text("#h-heat-msg")

@@ -111,3 +111,18 @@ export function gripCss(pct) {
   const [r, g, b] = rampRgb(GRIP_COLOR_STOPS, pct);
   return `rgb(${r},${g},${b})`;
 }
+
+// A map layer's value (a spec's mapped value channel, e.g. μ) on the range [lo, hi] of the cells
+// shown: dark red at the low end (little grip), green at the high end; grey where none.
+const LAYER_COLOR_STOPS = [
+  [0, [140, 20, 30]],
+  [33, [230, 85, 30]],
+  [67, [240, 200, 40]],
+  [100, [26, 152, 80]],
+];
+
+export function layerCss(value, lo, hi) {
+  const t = value == null || Number.isNaN(value) ? null : hi > lo ? ((value - lo) / (hi - lo)) * 100 : 100;
+  const [r, g, b] = rampRgb(LAYER_COLOR_STOPS, t);
+  return `rgb(${r},${g},${b})`;
+}

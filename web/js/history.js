@@ -29,6 +29,7 @@ import {
   SHADE_FILL,
   shadeLegend,
 } from "./charts.js";
+import { layerCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
 import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
 import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, lastAtOrBefore, timeTitle, vehicleHref } from "./util.js";
@@ -145,6 +146,8 @@ export function historyView(root, vehicleId) {
   for (const m of CELL_CHOICES) cell.append(el("option", { value: String(m), text: `${m} m` }));
   cell.value = "auto";
   const heatMsg = el("span", { id: "h-heat-msg", class: "summary" });
+  // what the heat grid's cells show: mean |slip|, or a layer (a mapped value channel of the spec)
+  const layerSel = el("select", { id: "h-layer", "aria-label": "Heat grid layer" });
   const estimatorSel = el("select", { id: "h-estimator", "aria-label": "Estimator" });
   const chartsBox = el("div", { id: "h-charts" });
   const shadeKey = el("p", { id: "h-shade-legend", class: "shade-legend" });
@@ -179,8 +182,10 @@ export function historyView(root, vehicleId) {
         "label",
         { title: "Per cell: the time-weighted mean |slip| over every slip channel's valid slips while moving, at full rate (GET /api/v1/vehicles/{id}/slipmap)" },
         heatOn,
-        " Heat grid of mean |slip|, cell ",
+        " Heat grid of ",
       ),
+      layerSel,
+      el("span", { text: " cell " }),
       cell,
       heatMsg,
     ),
@@ -243,7 +248,13 @@ export function historyView(root, vehicleId) {
     if (shadeKey.childElementCount) shadeKey.prepend("Shaded: ");
     canvas.hidden = !spec.position;
     mapTitle.hidden = !spec.position;
-    heatOn.disabled = !spec.position || !spec.slips.length;
+    const layers = spec.values.filter((v) => v.mapped);
+    layerSel.replaceChildren(
+      ...(spec.slips.length ? [el("option", { value: "", text: "mean |slip|" })] : []),
+      ...layers.map((v) => el("option", { value: v.key, text: `mean ${v.label}${v.valid_flag ? ` (${v.valid_flag.toLowerCase()})` : ""}` })),
+    );
+    layerSel.disabled = layerSel.options.length < 2;
+    heatOn.disabled = !spec.position || !layerSel.options.length;
   }
 
   // The estimators the vehicle runs (primary first; every spec with a position when the server
@@ -293,7 +304,8 @@ export function historyView(root, vehicleId) {
   }
 
   async function fetchHeat(s, e, cellM) {
-    const key = `${spec.name}/${s}/${e}/${cellM}`;
+    const layer = layerSel.value;
+    const key = `${spec.name}/${s}/${e}/${cellM}/${layer}`;
     if (!heatCache.has(key)) {
       const p = getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/slipmap`, {
         estimator: spec.name,
@@ -301,6 +313,7 @@ export function historyView(root, vehicleId) {
         end: e.toString(),
         cell_m: cellM,
         format: "json",
+        ...(layer ? { layer } : {}),
       });
       heatCache.set(key, p);
       p.catch(() => heatCache.delete(key));
@@ -348,11 +361,28 @@ export function historyView(root, vehicleId) {
       }
     }
     if (my !== heatGen) return;
-    const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.mean_abs_slip_pct }));
-    map.setHeat(cells, body.cell_m);
-    map.title = "Track by max |slip|; cells by time-weighted mean |slip|";
-    heatMsg.textContent = `${cells.length} cells`;
+    if (body.layer) showLayer(body);
+    else {
+      const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.mean_abs_slip_pct }));
+      map.setHeat(cells, body.cell_m);
+      map.title = "Track by max |slip|; cells by time-weighted mean |slip|";
+      heatMsg.textContent = `${cells.length} cells`;
+    }
     map.draw();
+  }
+
+  // A layer's cells: its mean over the samples that inform it, coloured on the range of the
+  // cells shown (low dark red, high green; grey where no sample informs it).
+  function showLayer(body) {
+    const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.layer.mean, samples: c.layer.samples }));
+    const means = cells.map((c) => c.mean).filter((v) => v != null);
+    const lo = Math.min(...means);
+    const hi = Math.max(...means);
+    map.setHeat(cells, body.cell_m, (v) => layerCss(v, lo, hi));
+    map.title = `Track by max |slip|; cells by time-weighted mean ${body.layer.label}`;
+    const samples = cells.reduce((n, c) => n + c.samples, 0);
+    const scale = means.length ? `${fmt(lo, 3)} (red) … ${fmt(hi, 3)} (green)` : "none informed";
+    heatMsg.textContent = `${cells.length} cells, ${samples} informed samples; ${body.layer.label} ${scale}`;
   }
 
   function showAt(i) {
@@ -477,6 +507,7 @@ export function historyView(root, vehicleId) {
     tPlay = xs[idx];
   });
   heatOn.addEventListener("change", applyHeat);
+  layerSel.addEventListener("change", applyHeat);
   cell.addEventListener("change", applyHeat);
   preset.addEventListener("change", () => {
     if (preset.value === CUSTOM) return;

@@ -170,6 +170,7 @@ export class SlipMap {
     this.slip = [];
     this.heat = null;
     this.heatCell = 0;
+    this.heatColor = slipCss;
     this.anchor = null; // {lat_deg, lon_deg, height_m} of the vehicle's frame: degree axes
     this.tiles = new TileCache(() => requestAnimationFrame(() => this.draw()));
     this.tilesDrawn = 0;
@@ -245,10 +246,12 @@ export class SlipMap {
     return drawn;
   }
 
-  // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey)
-  setHeat(cells, cellM) {
+  // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey);
+  // colorOf(mean) gives a cell's colour (default: the slip scale)
+  setHeat(cells, cellM, colorOf = slipCss) {
     this.heat = cells;
     this.heatCell = cellM;
+    this.heatColor = colorOf;
   }
 
   draw() {
@@ -322,7 +325,7 @@ export class SlipMap {
     if (this.heat) {
       const s = this.heatCell * sc;
       for (const h of this.heat) {
-        ctx.fillStyle = slipCss(h.mean);
+        ctx.fillStyle = this.heatColor(h.mean);
         ctx.globalAlpha = 0.85;
         ctx.fillRect(px(h.e0), py(h.n0 + this.heatCell), s + 0.5, s + 0.5);
       }
