@@ -31,7 +31,8 @@ import {
 } from "./charts.js";
 import { layerCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
-import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
+import { carriedRows, fieldOf, loadSpecs, motionChannel, positionSigma, slipMetric } from "./specs.js";
+import { StateBand } from "./states.js";
 import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, lastAtOrBefore, timeTitle, vehicleHref } from "./util.js";
 
 // Fields of a spec the charts need: every chart's, and flags (degraded stretches).
@@ -41,10 +42,13 @@ function chartFields(spec) {
   return [...new Set(f)];
 }
 
-// Fields of a spec the track and the cursor values need: position, slips, motion speed, flags.
+// Fields of a spec the track and the cursor values need: position (and its σ), slips, state
+// channels, motion speed, flags.
 function trackFields(spec) {
-  const f = spec.position ? [spec.position.east_field, spec.position.north_field] : [];
+  const p = spec.position;
+  const f = p ? [p.east_field, p.north_field, p.east_std_field, p.north_std_field].filter(Boolean) : [];
   f.push(...spec.slips.map((c) => c.field));
+  f.push(...spec.states.map((c) => c.field));
   const motion = motionChannel(spec);
   if (motion) f.push(motion.field);
   if (spec.flags.length) f.push("flags");
@@ -197,6 +201,7 @@ export function historyView(root, vehicleId) {
   let threshold = 15; // SlipConfig default until the vehicle's config is loaded
   let standstillMps = null; // the vehicle's SlipConfig.min_ground_speed_mps, once loaded
   let charts = []; // [{box, chart, fields}] of the spec's charts
+  let bands = []; // a StateBand per state channel of the spec, under the charts
   let env = null; // chart columns: min/max envelope
   let track = null; // whole stored rows
   let range = null; // {s, e} BigInt ns of the loaded range
@@ -232,6 +237,11 @@ export function historyView(root, vehicleId) {
       const o = chartOptions(spec, c);
       const chart = makeChart(box, { ...o, threshold: o.isSlip ? threshold : null, syncKey: sync, onCursor });
       return { box, chart, fields: c.fields };
+    });
+    bands = spec.states.map((ch) => {
+      const box = el("div", { class: "state-band", id: `h-band-${ch.key}`, "data-channel": ch.key }, el("div", { class: "state-band-title", text: ch.label }));
+      chartsBox.append(box);
+      return new StateBand(spec, ch, box);
     });
     const tile = (label, id, unit) =>
       el("div", { class: "stat" }, el("div", { class: "stat-label", text: label }), el("div", { class: "stat-value" }, el("span", { id, text: "–" }), el("span", { class: "unit", text: ` ${unit}` })));
@@ -464,9 +474,13 @@ export function historyView(root, vehicleId) {
       setShading(c.chart, shade);
       c.chart.setData(alignedData(env, c.fields));
     }
+    // state bands from whole rows (a min/max bucket mixes states), on the first chart's axis
+    const rows = track;
+    requestAnimationFrame(() => bands.forEach((b) => b.draw(rows, charts[0]?.chart))); // after uPlot's rescale
     const pos = spec.position;
     if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric, xs);
     else map.setTrack([], [], []);
+    map.setCarried(pos ? carriedRows(spec, track) : null, pos ? positionSigma(pos, track) : null);
     scrub.max = String(Math.max(0, xs.length - 1));
     scrub.disabled = xs.length === 0;
     play.disabled = xs.length === 0;

@@ -1,7 +1,8 @@
 // Slip map: the track in local metres (east right, north up, equal scale) on a canvas, coloured by
 // |slip| with the fixed scale of colors.js, an optional heat grid of cells, a scale bar, axis
-// labels and the colour legend. Stretches whose position was dead-reckoned are dashed, and the
-// position's 1-σ (radial, sqrt(σe² + σn²)) is drawn as circles along the track (setCarried).
+// labels and the colour legend. Stretches whose position was dead-reckoned carry white dashes,
+// and the position's 1-σ (radial, sqrt(σe² + σn²)) is drawn as circles along the track
+// (setCarried).
 //
 // The track's points are drawn as given: give it whole rows (full rate, or the series endpoint's
 // `decimation=first`), never min/max-decimated rows, whose east and north may come from
@@ -354,17 +355,14 @@ export class SlipMap {
     for (let i = 1; i <= last; i++) {
       const ea = this.east[i - 1], na = this.north[i - 1], eb = this.east[i], nb = this.north[i];
       if (ea == null || na == null || eb == null || nb == null) continue;
-      const carried = Boolean(this.carried && this.carried[i]);
-      ctx.setLineDash(carried ? [7, 6] : []);
       ctx.strokeStyle = slipCss(this.slip[i]);
       ctx.beginPath();
       ctx.moveTo(px(ea), py(na));
       ctx.lineTo(px(eb), py(nb));
       ctx.stroke();
       drawn++;
-      if (carried) this.carriedDrawn++;
     }
-    ctx.setLineDash([]);
+    this.drawCarried(ctx, px, py, last);
     const mi = this.cursor != null ? this.cursor : last;
     if (mi >= 0 && this.east[mi] != null) {
       ctx.fillStyle = slipCss(this.slip[mi]);
@@ -394,6 +392,37 @@ export class SlipMap {
     this.drawn = drawn;
   }
 
+  // White dashes over the dead-reckoned runs of the track (one path per run, so the dashes run
+  // on across its short segments).
+  drawCarried(ctx, px, py, last) {
+    this.carriedDrawn = 0;
+    if (!this.carried) return;
+    ctx.save();
+    ctx.strokeStyle = "rgba(255,255,255,0.95)";
+    ctx.lineWidth = 2;
+    ctx.lineCap = "butt";
+    ctx.setLineDash([6, 6]);
+    let open = false;
+    for (let i = 1; i <= last; i++) {
+      const ea = this.east[i - 1], na = this.north[i - 1], eb = this.east[i], nb = this.north[i];
+      const on = Boolean(this.carried[i]) && ea != null && na != null && eb != null && nb != null;
+      if (on && !open) {
+        ctx.beginPath();
+        ctx.moveTo(px(ea), py(na));
+        open = true;
+      }
+      if (on) {
+        ctx.lineTo(px(eb), py(nb));
+        this.carriedDrawn++;
+      } else if (open) {
+        ctx.stroke();
+        open = false;
+      }
+    }
+    if (open) ctx.stroke();
+    ctx.restore();
+  }
+
   // Circles of the position's 1-σ at up to SIGMA_CIRCLES points up to index `last` (evenly
   // spaced, always the last), faint blue.
   drawSigma(ctx, px, py, sc, last) {
@@ -416,9 +445,12 @@ export class SlipMap {
 
   // "dashed: dead-reckoned · circles: position 1σ" at (x, y).
   drawCarriedLegend(ctx, x, y) {
-    ctx.strokeStyle = "#222";
+    ctx.strokeStyle = "#555";
+    ctx.lineWidth = 4;
+    ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + 30, y); ctx.stroke();
+    ctx.strokeStyle = "#fff";
     ctx.lineWidth = 2;
-    ctx.setLineDash([7, 6]);
+    ctx.setLineDash([6, 6]);
     ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + 30, y); ctx.stroke();
     ctx.setLineDash([]);
     ctx.fillStyle = "#222";

@@ -20,9 +20,13 @@ export function stateOf(channel, value) {
   return channel.states.find((s) => s.value === value) || null;
 }
 
+// A step between rows longer than this (s) is a gap in the data: no state is drawn across it.
+export const STATE_GAP_S = 1.0;
+
 // [[t0, t1, value, uncertain], ...] (seconds) of the runs of equal state (and equal
-// uncertainty, from the channel's uncertain_flag); a run ends at the next row's time, the last at
-// its own. cols: {stamp_ns: [...], <field>: [...], flags: [...]}.
+// uncertainty, from the channel's uncertain_flag); a run ends at the next row's time, or at its
+// last row's before a gap (STATE_GAP_S) and at the end. cols: {stamp_ns: [...], <field>: [...],
+// flags: [...]}.
 export function stateSpans(spec, channel, cols) {
   const vals = cols[channel.field] || [];
   const flags = cols.flags || [];
@@ -34,9 +38,10 @@ export function stateSpans(spec, channel, cols) {
     const unsure = Boolean(mask && (flags[i] ?? 0) & mask);
     const t = cols.stamp_ns[i] / 1e9;
     const last = out[out.length - 1];
-    if (last && last[2] === v && last[3] === unsure) last[1] = t;
+    const gap = !last || t - last[1] > STATE_GAP_S;
+    if (!gap && last[2] === v && last[3] === unsure) last[1] = t;
     else {
-      if (last) last[1] = t;
+      if (!gap) last[1] = t;
       out.push([t, t, v, unsure]);
     }
   }

@@ -16,7 +16,7 @@ import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboard
 import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { gripCss, slipBand, slipCss } from "./colors.js";
 import { SlipMap } from "./slipmap.js";
-import { fieldOf, flagMask, loadSpecs, motionChannel, slipMetric } from "./specs.js";
+import { carriedRows, fieldOf, loadSpecs, motionChannel, positionSigma, slipMetric } from "./specs.js";
 import { StateBand, stateColor, stateOf } from "./states.js";
 import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
@@ -169,7 +169,8 @@ function estimatorPanel(spec, page, primary) {
       setShading(charts[i], shade);
       charts[i].setData(alignedData(cols, c.fields));
     });
-    bands.forEach((b) => b.draw(cols, charts[0]));
+    const rows = cols;
+    requestAnimationFrame(() => bands.forEach((b) => b.draw(rows, charts[0]))); // after uPlot's rescale
     page.onColumns(spec.name, cols);
   }
 
@@ -200,20 +201,6 @@ function estimatorPanel(spec, page, primary) {
       for (const c of charts) c.destroy();
     },
   };
-}
-
-// Per row: whether its position was dead-reckoned (the position channel's carried_flag).
-function carriedRows(spec, cols) {
-  const mask = spec.position.carried_flag ? flagMask(spec, spec.position.carried_flag) : 0;
-  return cols.stamp_ns.map((_, i) => Boolean(mask && cols.flags && (cols.flags[i] ?? 0) & mask));
-}
-
-// Per row: the position's radial 1-σ, sqrt(σe² + σn²) in metres (null where unknown).
-function positionSigma(p, cols) {
-  if (!p.east_std_field || !p.north_std_field) return null;
-  const se = cols[p.east_std_field] || [];
-  const sn = cols[p.north_std_field] || [];
-  return cols.stamp_ns.map((_, i) => (se[i] == null || sn[i] == null ? null : Math.hypot(se[i], sn[i])));
 }
 
 export function vehicleView(root, vehicleId) {
