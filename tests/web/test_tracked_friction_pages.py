@@ -165,6 +165,16 @@ def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
     assert {k: v[0] for k, v in grip.items()} == {k: f"{v:.0f}" for k, v in GRIP_PCT.items()}
     assert grip["fl"][1] == "rgb(112, 171, 64)"  # 20 %: 2/5 of the way green → yellow
     assert grip["rr"][1] == "rgb(163, 36, 30)"  # 95 %: 3/4 of the way orange → dark red
+    # its slip tiles say "slip" once; no map: the spec gives no position
+    assert (
+        page.evaluate(
+            "() => document.getElementById('v-friction-slip-fl').closest('.stat')"
+            ".querySelector('.stat-label').textContent"
+        )
+        == "slip front left"
+    )
+    assert page.inner_text("#live-map-title") == f"No map: {FRICTION_SPEC.title} gives no position"
+    assert page.locator("#live-map").is_hidden()
     page.screenshot(path=str(screenshots / "steered-live.png"), full_page=True)
 
 

@@ -82,7 +82,7 @@ function estimatorPanel(spec, page, primary) {
   const tiles = el(
     "div",
     { class: "stats" },
-    ...spec.slips.map((ch) => stat(`Slip ${ch.label}`, id(`slip-${ch.key}`), "%")),
+    ...spec.slips.map((ch) => stat(/^slip\b/i.test(ch.label) ? ch.label : `Slip ${ch.label}`, id(`slip-${ch.key}`), "%")),
     ...spec.states.map((ch) => stat(ch.label, id(`state-${ch.key}`))),
     ...spec.values.map((ch) => stat(ch.label, id(`value-${ch.key}`), ch.unit)),
     ...spec.wheel_values.map((ch) => stat(ch.label, id(`wheel-${ch.key}`), "%")),
@@ -407,6 +407,11 @@ export function vehicleView(root, vehicleId) {
     },
     onColumns(name, cols) {
       const spec = specs.get(name);
+      if (name === primary && !spec.position && !canvas.hidden) {
+        // nothing to map: say so once instead of waiting for a position forever
+        canvas.hidden = true;
+        mapTitle.textContent = `No map: ${spec.title} gives no position`;
+      }
       if (name !== primary || !spec.position) return;
       const stampsS = cols.stamp_ns.map((t) => t / 1e9);
       const p = spec.position;
