@@ -206,6 +206,18 @@ class ValueChannel:
     valid_flag: str | None = None
     mapped: bool = False
 
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (in the spec's ``values``, and a slip map's ``layer``)."""
+        return {
+            "key": self.key,
+            "label": self.label,
+            "field": self.field,
+            "unit": self.unit,
+            "std_field": self.std_field,
+            "valid_flag": self.valid_flag,
+            "mapped": self.mapped,
+        }
+
 
 @dataclass(frozen=True, slots=True)
 class WheelValueChannel:
@@ -523,18 +535,7 @@ class EstimatorSpec:
                 }
                 for s in self.states
             ],
-            "values": [
-                {
-                    "key": v.key,
-                    "label": v.label,
-                    "field": v.field,
-                    "unit": v.unit,
-                    "std_field": v.std_field,
-                    "valid_flag": v.valid_flag,
-                    "mapped": v.mapped,
-                }
-                for v in self.values
-            ],
+            "values": [v.to_dict() for v in self.values],
             "wheel_values": [
                 {"key": w.key, "label": w.label, "field": w.field, "position": str(w.position)}
                 for w in self.wheel_values

@@ -495,16 +495,6 @@ class LayerCellPublic(BaseModel):
     samples: int = Field(description="how many samples inform the layer")
 
 
-class LayerRefPublic(BaseModel):
-    """The map layer (`layer=`): a value channel of the map's estimator."""
-
-    key: str
-    label: str
-    field: str
-    unit: str
-    valid_flag: str | None = Field(description="flag of the samples that inform it")
-
-
 class SlipMapCellPublic(BaseModel):
     """One cell of a slip map (definitions in the API description of the route)."""
 
@@ -537,7 +527,9 @@ class SlipMapPublic(BaseModel):
     vehicle_id: str
     estimator: str
     slip_channels: list[SlipChannelRefPublic]
-    layer: LayerRefPublic | None = Field(default=None, description="the map layer, if asked")
+    layer: ValueChannelSpecPublic | None = Field(
+        default=None, description="the map layer (a value channel of the estimator), if asked"
+    )
     start_ns: int
     end_ns: int
     cell_m: float
@@ -581,7 +573,9 @@ class FleetSlipMapPublic(BaseModel):
         description="the estimator mapped (null: none given and no vehicle placed)"
     )
     slip_channels: list[SlipChannelRefPublic]
-    layer: LayerRefPublic | None = Field(default=None, description="the map layer, if asked")
+    layer: ValueChannelSpecPublic | None = Field(
+        default=None, description="the map layer (a value channel of the estimator), if asked"
+    )
     start_ns: int
     end_ns: int
     cell_m: float

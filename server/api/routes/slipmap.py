@@ -403,16 +403,8 @@ def _layer(spec: EstimatorSpec | None, key: str | None) -> ValueChannel | None:
 
 
 def _layer_ref(layer: ValueChannel | None) -> dict[str, Any] | None:
-    """The map's layer as named in its answer (:class:`LayerRefPublic`)."""
-    if layer is None:
-        return None
-    return {
-        "key": layer.key,
-        "label": layer.label,
-        "field": layer.field,
-        "unit": layer.unit,
-        "valid_flag": layer.valid_flag,
-    }
+    """The map's layer as named in its answer: the value channel as the spec serves it."""
+    return None if layer is None else layer.to_dict()
 
 
 def _channel_refs(spec: EstimatorSpec | None) -> list[dict[str, str]]:

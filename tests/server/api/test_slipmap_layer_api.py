@@ -65,7 +65,9 @@ def test_json_cells_hold_the_layers_mean_over_informing_samples(
         "label": "odometer factor",
         "field": "odometer_scale",
         "unit": "",
+        "std_field": None,
         "valid_flag": "GNSS_OK",
+        "mapped": True,
     }
     cells = body["cells"]
     assert [c["index_east"] for c in cells] == [0, 1, 2]
