@@ -130,7 +130,22 @@ def test_the_crawler_map_dashes_dead_reckoning_and_draws_its_uncertainty(
     fix = math.sqrt(2) * FIX_STD_M
     assert min(radii) == pytest.approx(fix, rel=1e-3)
     assert fix * 2 < max(radii) <= math.sqrt(2) * crawler_sigma_m(8 * 10**9 - 1) * 1.001
+    # the odometer factor's cells over the window, from the stored rows
+    assert page.eval_on_selector_all("#live-layer option", "os => os.map(o => o.value)") == [
+        "",
+        "odometer_factor",
+    ]
+    page.select_option("#live-layer", "odometer_factor")
+    page.wait_for_function(
+        "document.getElementById('live-layer-msg').textContent.includes('informed samples')",
+        timeout=15000,
+    )
+    cells = page.evaluate("() => document.getElementById('live-map')._slipmap.heat")
+    means = [c["mean"] for c in cells if c["samples"]]
+    assert means and all(0.909 < v < 0.991 for v in means)
     page.screenshot(path=str(screenshots / "crawler-live.png"), full_page=True)
+    page.select_option("#live-layer", "")
+    page.wait_for_function("document.getElementById('live-map')._slipmap.heat === null")
 
 
 def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
@@ -175,6 +190,7 @@ def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
     )
     assert page.inner_text("#live-map-title") == f"No map: {FRICTION_SPEC.title} gives no position"
     assert page.locator("#live-map").is_hidden()
+    assert page.locator("#live-layer").is_hidden()  # no position: no layer
     page.screenshot(path=str(screenshots / "steered-live.png"), full_page=True)
 
 

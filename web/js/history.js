@@ -29,8 +29,7 @@ import {
   SHADE_FILL,
   shadeLegend,
 } from "./charts.js";
-import { layerCss } from "./colors.js";
-import { SlipMap } from "./slipmap.js";
+import { SlipMap, showLayerHeat } from "./slipmap.js";
 import { carriedRows, fieldOf, loadSpecs, motionChannel, positionSigma, slipMetric } from "./specs.js";
 import { StateBand } from "./states.js";
 import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, lastAtOrBefore, timeTitle, vehicleHref } from "./util.js";
@@ -381,18 +380,10 @@ export function historyView(root, vehicleId) {
     map.draw();
   }
 
-  // A layer's cells: its mean over the samples that inform it, coloured on the range of the
-  // cells shown (low dark red, high green; grey where no sample informs it).
+  // A layer's cells: its mean over the samples that inform it (showLayerHeat).
   function showLayer(body) {
-    const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.layer.mean, samples: c.layer.samples }));
-    const means = cells.map((c) => c.mean).filter((v) => v != null);
-    const lo = Math.min(...means);
-    const hi = Math.max(...means);
-    map.setHeat(cells, body.cell_m, (v) => layerCss(v, lo, hi));
+    heatMsg.textContent = showLayerHeat(map, body);
     map.title = `Track by max |slip|; cells by time-weighted mean ${body.layer.label}`;
-    const samples = cells.reduce((n, c) => n + c.samples, 0);
-    const scale = means.length ? `${fmt(lo, 3)} (red) … ${fmt(hi, 3)} (green)` : "none informed";
-    heatMsg.textContent = `${cells.length} cells, ${samples} informed samples; ${body.layer.label} ${scale}`;
   }
 
   function showAt(i) {

@@ -10,7 +10,7 @@
 // takes them from the REST slip map (`GET /api/v1/vehicles/{id}/slipmap`), so the page and a
 // GIS export show the same cells and numbers.
 
-import { drawSlipLegend, slipCss } from "./colors.js";
+import { drawSlipLegend, layerCss, slipCss } from "./colors.js";
 import { TILE_PX, degreeStep, enuToLatLon, fmtDegrees, latLonToEnu, mercator, tileUrl, unmercator } from "./geo.js";
 import { lastAtOrBefore } from "./util.js";
 
@@ -156,6 +156,20 @@ function niceStep(span) {
   const p = 10 ** Math.floor(Math.log10(raw));
   for (const m of [1, 2, 5, 10]) if (raw <= m * p) return m * p;
   return 10 * p;
+}
+
+// A REST slip map with a layer (GET …/slipmap?layer=) as heat cells on `map`: each cell's layer
+// mean coloured over the range of the cells shown (dark red low, green high; grey where no sample
+// informs it). Returns the words that say so: "<n> cells, <k> informed samples; <label> lo … hi".
+export function showLayerHeat(map, body) {
+  const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.layer.mean, samples: c.layer.samples }));
+  const means = cells.map((c) => c.mean).filter((v) => v != null);
+  const lo = Math.min(...means);
+  const hi = Math.max(...means);
+  map.setHeat(cells, body.cell_m, (v) => layerCss(v, lo, hi));
+  const samples = cells.reduce((n, c) => n + c.samples, 0);
+  const scale = means.length ? `${lo.toFixed(3)} (red) … ${hi.toFixed(3)} (green)` : "none informed";
+  return `${cells.length} cells, ${samples} informed samples; ${body.layer.label} ${scale}`;
 }
 
 export class SlipMap {

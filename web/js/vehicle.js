@@ -15,7 +15,7 @@
 import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboardConfig } from "./api.js";
 import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { gripCss, slipBand, slipCss } from "./colors.js";
-import { SlipMap } from "./slipmap.js";
+import { SlipMap, showLayerHeat } from "./slipmap.js";
 import { carriedRows, fieldOf, loadSpecs, motionChannel, positionSigma, slipMetric } from "./specs.js";
 import { StateBand, stateColor, stateOf } from "./states.js";
 import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
@@ -279,6 +279,10 @@ export function vehicleView(root, vehicleId) {
   }
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
   const mapTitle = el("h2", { class: "map-title", id: "live-map-title" });
+  // heat cells of a map layer of the primary (a mapped value channel) over the window, if any
+  const layerSel = el("select", { id: "live-layer", "aria-label": "Map layer" });
+  const layerMsg = el("span", { id: "live-layer-msg", class: "summary" });
+  const layerBox = el("div", { class: "toolbar", hidden: true }, el("label", {}, "Cells ", layerSel), layerMsg);
   root.append(
     el(
       "div",
@@ -290,7 +294,7 @@ export function vehicleView(root, vehicleId) {
       winButtons,
     ),
     stats,
-    el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, canvas, ingest)),
+    el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, layerBox, canvas, ingest)),
   );
   const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels", titleEl: mapTitle });
   loadDashboardConfig().then((cfg) => map.setTiles(cfg.map_tile_url));
@@ -428,9 +432,50 @@ export function vehicleView(root, vehicleId) {
     },
   };
 
+  // The primary's map layers in the "Cells" menu (hidden without any).
+  function offerLayers(spec) {
+    const layers = spec.position ? spec.values.filter((v) => v.mapped) : [];
+    layerSel.replaceChildren(el("option", { value: "", text: "none" }), ...layers.map((v) => el("option", { value: v.key, text: `mean ${v.label}` })));
+    layerBox.hidden = !layers.length;
+  }
+
+  // The layer's cells over the chart window, from the stored rows (every 5 s while chosen).
+  let layerTimer = null;
+  async function refreshLayer() {
+    const key = layerSel.value;
+    if (!key || stopped) {
+      map.setHeat(null, 0);
+      layerMsg.textContent = "";
+      map.draw();
+      return;
+    }
+    const end = BigInt(Date.now()) * 1000000n;
+    try {
+      const body = await getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/slipmap`, {
+        estimator: primary,
+        start: (end - BigInt(windowS) * 1000000000n).toString(),
+        end: end.toString(),
+        cell_m: 10,
+        layer: key,
+      });
+      if (stopped || layerSel.value !== key) return;
+      layerMsg.textContent = showLayerHeat(map, body);
+    } catch (err) {
+      map.setHeat(null, 0);
+      layerMsg.textContent = `no cells: ${err.reason || err.message}`;
+    }
+    map.draw();
+  }
+  layerSel.addEventListener("change", () => {
+    clearInterval(layerTimer);
+    refreshLayer();
+    if (layerSel.value) layerTimer = setInterval(refreshLayer, 5000);
+  });
+
   function addPanel(name) {
     const spec = specs.get(name);
     if (!spec || panels.has(name)) return;
+    if (name === primary) offerLayers(spec);
     if (parked) parked.remove(); // live again
     const panel = estimatorPanel(spec, page, name === primary);
     panels.set(name, panel);
@@ -498,6 +543,7 @@ export function vehicleView(root, vehicleId) {
     stopped = true;
     clearInterval(ingestTimer);
     clearInterval(ageTimer);
+    clearInterval(layerTimer);
     for (const sock of new Set(sockets.values())) sock.close();
     window.removeEventListener("resize", onResize);
     for (const p of panels.values()) p.stop();
