@@ -21,7 +21,9 @@ from estimator.spec import (
     FieldSpec,
     SlipChannel,
     SpeedChannel,
+    ValueChannel,
     WheelPosition,
+    WheelValueChannel,
     flags_from,
 )
 
@@ -138,6 +140,11 @@ FRICTION_SPEC = EstimatorSpec(
     ),
     ok_flag="INFORMED",
     degraded_flags=("HELD",),
+    values=(ValueChannel("mu", "μ", "mu", std_field="mu_std", valid_flag="INFORMED", mapped=True),),
+    wheel_values=tuple(
+        WheelValueChannel(key, f"grip used {name}", f"util_{key}_pct", pos)
+        for key, name, pos in zip(WHEEL_KEYS, _WHEEL_NAMES, _POSITIONS, strict=True)
+    ),
     row_dtype=FRICTION_DTYPE,
     # mu is the informed value or the last one held (NaN before the first): low grip stays
     # low while the data say nothing new

@@ -15,6 +15,12 @@ estimator's field names. A spec says:
   - :class:`PositionChannel`: east/north/up in the vehicle's local ENU frame (its anchor) and a
     heading, with the flag that marks a dead-reckoned position;
   - :class:`ChartSpec`: which fields a live or history chart draws together;
+  - :class:`StateChannel`: an enumerated field (a crawler's motion state), drawn as a band of
+    coloured stretches under the charts;
+  - :class:`ValueChannel`: a headline value that is neither slip nor speed (friction μ), with
+    the flag of the rows that inform it; ``mapped`` makes it a layer of the slip map;
+  - :class:`WheelValueChannel`: a per-wheel share in percent other than slip (grip used), what
+    the 3D view colours a tyre by when the spec has one;
   - ``ok_flag`` / ``degraded_flags``: the row's quality at a glance.
 
 A spec is pure data (no numerics, no I/O) so the server can read every spec without building an
@@ -42,7 +48,10 @@ __all__ = [
     "SpecError",
     "SpeedChannel",
     "StateChannel",
+    "StateValue",
+    "ValueChannel",
     "WheelPosition",
+    "WheelValueChannel",
     "flags_from",
 ]
 
@@ -139,7 +148,8 @@ class PositionChannel:
     """Where the vehicle is: metres in its local ENU frame (origin: the vehicle's anchor).
 
     ``carried_flag`` marks rows whose position was dead-reckoned rather than measured;
-    ``pitch_field`` / ``roll_field`` (rad) give the body's attitude where the estimator has it.
+    ``pitch_field`` / ``roll_field`` (rad) give the body's attitude where the estimator has it;
+    ``east_std_field`` / ``north_std_field`` (m) the position's 1-sigma where it has one.
     """
 
     east_field: str
@@ -149,15 +159,76 @@ class PositionChannel:
     carried_flag: str | None = None
     pitch_field: str | None = None
     roll_field: str | None = None
+    east_std_field: str | None = None
+    north_std_field: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class StateValue:
+    """One value of an enumerated field: its integer, a name (``"pivot"``) and a label."""
+
+    value: int
+    name: str
+    label: str
 
 
 @dataclass(frozen=True, slots=True)
 class StateChannel:
-    """A discrete state of each row: the ``i4`` field ``field`` holds an index into ``labels``
-    (e.g. a crawler's motion state); reports give time, distance and slip per state."""
+    """An enumerated ``i4`` field whose values name states (a crawler's motion state).
 
+    Views draw it as a band of stretches, one colour per state in ``states`` order; a value
+    not in ``states`` is drawn as unknown. ``confidence_field`` (0..1) and ``uncertain_flag``
+    say how sure the estimator is of the state.
+    """
+
+    key: str
+    label: str
     field: str
-    labels: tuple[str, ...]
+    states: tuple[StateValue, ...]
+    confidence_field: str | None = None
+    uncertain_flag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ValueChannel:
+    """A headline value that is neither a slip nor a speed (friction μ), in ``unit``.
+
+    Rows with ``valid_flag`` inform it (their value is this tick's estimate, with
+    ``std_field``); rows without it hold an older value, shown as held, never as current.
+    ``mapped`` makes it a layer of the slip map: per cell the time-weighted mean over the
+    informing samples and their count.
+    """
+
+    key: str
+    label: str
+    field: str
+    unit: str = ""
+    std_field: str | None = None
+    valid_flag: str | None = None
+    mapped: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (in the spec's ``values``, and a slip map's ``layer``)."""
+        return {
+            "key": self.key,
+            "label": self.label,
+            "field": self.field,
+            "unit": self.unit,
+            "std_field": self.std_field,
+            "valid_flag": self.valid_flag,
+            "mapped": self.mapped,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class WheelValueChannel:
+    """A per-wheel share in percent other than slip (the share of the available grip used):
+    a tile per wheel, and what the 3D view colours a tyre by (0 % green to 100 % red)."""
+
+    key: str
+    label: str
+    field: str
+    position: WheelPosition
 
 
 @dataclass(frozen=True, slots=True)
@@ -220,8 +291,9 @@ class EstimatorSpec:
         Flag of a row whose main reference is sound (for MDSF: GNSS fused).
     degraded_flags : tuple of str
         Flags of a row computed without its main reference (shaded in charts).
-    state : StateChannel or None
-        A discrete state of each row (reports per state).
+    states, values, wheel_values : tuple of StateChannel / ValueChannel / WheelValueChannel
+        Enumerated fields (bands under the charts, reports per state), headline values (tiles,
+        map layers) and per-wheel shares (tiles, tyre colours).
     alerts : tuple of AlertRule
         Alerts of the estimator's own beyond the slip threshold and degraded flags.
     row_dtype : numpy.dtype, optional
@@ -244,7 +316,9 @@ class EstimatorSpec:
     ok_flag: str | None = None
     degraded_flags: tuple[str, ...] = ()
     description: str = ""
-    state: StateChannel | None = None
+    states: tuple[StateChannel, ...] = ()
+    values: tuple[ValueChannel, ...] = ()
+    wheel_values: tuple[WheelValueChannel, ...] = ()
     alerts: tuple[AlertRule, ...] = ()
     row_dtype: InitVar[np.dtype | None] = None
     _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
@@ -308,17 +382,17 @@ class EstimatorSpec:
         if self.position is not None:
             p = self.position
             fields = (p.east_field, p.north_field, p.up_field, p.heading_field)
-            for name in (*fields, p.pitch_field, p.roll_field):
+            stds = (p.east_std_field, p.north_std_field)
+            for name in (*fields, p.pitch_field, p.roll_field, *stds):
                 self._need_field(name, "position")
             self._need_flag(p.carried_flag, "position")
+        self._check_extra_channels()
         for c in self.charts:
             for name in c.fields:
                 self._need_field(name, f"chart {c.key}")
         self._need_flag(self.ok_flag, "ok_flag")
         for name in self.degraded_flags:
             self._need_flag(name, "degraded_flags")
-        if self.state is not None:
-            self._need_field(self.state.field, "state", "i4")
         self._check_alerts()
 
     def _check_alerts(self) -> None:
@@ -338,7 +412,32 @@ class EstimatorSpec:
             if not a.hold_s >= 0:
                 raise SpecError(f"{self.name}: {what} hold_s must be >= 0")
 
+    def _check_extra_channels(self) -> None:
+        for st in self.states:
+            self._need_field(st.field, f"state channel {st.key}", "i4")
+            self._need_field(st.confidence_field, f"state channel {st.key}")
+            self._need_flag(st.uncertain_flag, f"state channel {st.key}")
+            values = [v.value for v in st.states]
+            if not values or len(set(values)) != len(values):
+                raise SpecError(f"{self.name}: state channel {st.key} needs distinct values")
+        for v in self.values:
+            self._need_field(v.field, f"value channel {v.key}")
+            self._need_field(v.std_field, f"value channel {v.key}")
+            self._need_flag(v.valid_flag, f"value channel {v.key}")
+        for w in self.wheel_values:
+            self._need_field(w.field, f"wheel value channel {w.key}")
+        for keys in ([s.key for s in self.states], [v.key for v in self.values]):
+            if len(set(keys)) != len(keys):
+                raise SpecError(f"{self.name}: duplicate channel keys {keys}")
+
     # --- reading -----------------------------------------------------------------------------
+    def value(self, key: str) -> ValueChannel:
+        """The value channel ``key`` (``KeyError`` naming the estimator if it has none)."""
+        for v in self.values:
+            if v.key == key:
+                return v
+        raise KeyError(f"estimator {self.name!r} has no value channel {key!r}")
+
     @property
     def dtype(self) -> np.dtype:
         """Structured dtype of one output row (native byte order, in field order)."""
@@ -453,6 +552,8 @@ class EstimatorSpec:
                 "carried_flag": self.position.carried_flag,
                 "pitch_field": self.position.pitch_field,
                 "roll_field": self.position.roll_field,
+                "east_std_field": self.position.east_std_field,
+                "north_std_field": self.position.north_std_field,
             },
             "charts": [
                 {"key": c.key, "title": c.title, "unit": c.unit, "fields": list(c.fields)}
@@ -460,4 +561,28 @@ class EstimatorSpec:
             ],
             "ok_flag": self.ok_flag,
             "degraded_flags": list(self.degraded_flags),
+            **self._extra_channels_dict(),
+        }
+
+    def _extra_channels_dict(self) -> dict[str, Any]:
+        """``states``, ``values`` and ``wheel_values`` of :meth:`to_dict`."""
+        return {
+            "states": [
+                {
+                    "key": s.key,
+                    "label": s.label,
+                    "field": s.field,
+                    "states": [
+                        {"value": v.value, "name": v.name, "label": v.label} for v in s.states
+                    ],
+                    "confidence_field": s.confidence_field,
+                    "uncertain_flag": s.uncertain_flag,
+                }
+                for s in self.states
+            ],
+            "values": [v.to_dict() for v in self.values],
+            "wheel_values": [
+                {"key": w.key, "label": w.label, "field": w.field, "position": str(w.position)}
+                for w in self.wheel_values
+            ],
         }

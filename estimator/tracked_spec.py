@@ -14,6 +14,8 @@ from estimator.spec import (
     SlipChannel,
     SpeedChannel,
     StateChannel,
+    StateValue,
+    ValueChannel,
     WheelPosition,
     flags_from,
 )
@@ -22,6 +24,15 @@ __all__ = ["MOTION_STATES", "TRACKED_SPEC", "TrackedFlag"]
 
 #: Labels of ``motion_state`` by value (``estimator.tracked.model.MotionState``).
 MOTION_STATES = ("stop", "straight", "low_straight", "arc", "separated", "pivot", "heading_jump")
+_STATE_LABELS = (
+    "stop",
+    "straight",
+    "low-gear straight",
+    "arc turn",
+    "separated turn",
+    "pivot",
+    "heading jump",
+)
 
 
 class TrackedFlag(IntFlag):
@@ -147,7 +158,39 @@ TRACKED_SPEC = EstimatorSpec(
         SpeedChannel("odometer", "corrected odometer", "odometer_mps"),
     ),
     motion="forward",
-    position=PositionChannel("east_m", "north_m", "up_m", "heading_rad", "DEAD_RECKONING"),
+    position=PositionChannel(
+        "east_m",
+        "north_m",
+        "up_m",
+        "heading_rad",
+        "DEAD_RECKONING",
+        east_std_field="east_std_m",
+        north_std_field="north_std_m",
+    ),
+    states=(
+        StateChannel(
+            "motion",
+            "motion state",
+            "motion_state",
+            tuple(
+                StateValue(value, name, label)
+                for value, (name, label) in enumerate(
+                    zip(MOTION_STATES, _STATE_LABELS, strict=True)
+                )
+            ),
+            confidence_field="state_confidence",
+            uncertain_flag="STATE_UNCERTAIN",
+        ),
+    ),
+    values=(
+        ValueChannel(
+            "odometer_factor",
+            "odometer factor",
+            "odometer_scale",
+            valid_flag="GNSS_OK",
+            mapped=True,
+        ),
+    ),
     charts=(
         ChartSpec("slip", "Track slip", "%", ("slip_left_pct", "slip_right_pct")),
         ChartSpec(
@@ -163,7 +206,6 @@ TRACKED_SPEC = EstimatorSpec(
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEAD_RECKONING",),
-    state=StateChannel("motion_state", MOTION_STATES),
     alerts=(
         # a track's slip out of its band (in place of the wheel slip threshold): a braked
         # track's −100 % in a pivot is its definition, not an alert

@@ -9,7 +9,9 @@ int32 little-endian, rows from south to north, each row west to east (ISO 11783-
 Each cell value is the cell's time-weighted mean ``|slip|`` (``mean_abs_slip_pct``) in ppm of
 slip (1 % = 10,000), rounded; cells without a valid slip and cells not worked are 0. ISO
 11783-11 defines no data dictionary entry for wheel slip, so :data:`SLIP_DDI` is the first
-proprietary one (0xE000, unit ppm).
+proprietary one (0xE000, unit ppm). A map with a layer (friction μ) gives that layer's mean
+instead, in millionths of its value (μ 0.8 = 800,000), under :data:`LAYER_DDI` (0xE001): ISO
+11783-11 has no entry for a friction coefficient either.
 
 The slip map's cells are squares of its ENU frame; the grid's are in degrees. The grid starts at
 the south-west corner of the map's south-west cell and its cell sizes are those of that cell in
@@ -26,24 +28,42 @@ import numpy as np
 from estimator.geo import EnuFrame
 from server.analytics.slipmap import SlipMap
 
-__all__ = ["GRID_FILE", "SLIP_DDI", "slip_grid_ppm", "slipmap_taskdata"]
+__all__ = [
+    "GRID_FILE",
+    "LAYER_DDI",
+    "SLIP_DDI",
+    "layer_grid_ppm",
+    "slip_grid_ppm",
+    "slipmap_taskdata",
+]
 
 #: Proprietary data dictionary entry of the grid's value: mean |slip| in ppm.
 SLIP_DDI = 0xE000
+#: Proprietary data dictionary entry of a layer's grid: the layer's mean in millionths.
+LAYER_DDI = 0xE001
 #: The grid's binary file (without ``.bin``).
 GRID_FILE = "GRD00001"
 _PPM_PER_PCT = 10_000
 
 
-def slip_grid_ppm(smap: SlipMap) -> np.ndarray:
-    """The grid's values, int32 of shape ``(rows north, columns east)``: each cell's mean
-    ``|slip|`` in ppm at ``[index_north - min, index_east - min]``, 0 where none."""
+def _grid(smap: SlipMap, values: np.ndarray) -> np.ndarray:
+    """``values`` (shape (m,), one per cell) rounded into an int32 grid of shape ``(rows north,
+    columns east)`` at ``[index_north - min, index_east - min]``, 0 where NaN or no cell."""
     i = smap.index_east - smap.index_east.min()
     j = smap.index_north - smap.index_north.min()
     grid = np.zeros((int(j.max()) + 1, int(i.max()) + 1), dtype=np.int32)
-    ppm = np.nan_to_num(smap.mean_abs_slip_pct * _PPM_PER_PCT, nan=0.0)
-    grid[j, i] = np.round(ppm).astype(np.int32)
+    grid[j, i] = np.round(np.nan_to_num(values, nan=0.0)).astype(np.int32)
     return grid
+
+
+def slip_grid_ppm(smap: SlipMap) -> np.ndarray:
+    """The grid's values: each cell's mean ``|slip|`` in ppm (:func:`_grid`)."""
+    return _grid(smap, smap.mean_abs_slip_pct * _PPM_PER_PCT)
+
+
+def layer_grid_ppm(smap: SlipMap) -> np.ndarray:
+    """The grid's values of a map with a layer: each cell's layer mean in millionths."""
+    return _grid(smap, smap.layer_mean * 1e6)
 
 
 def _corner_deg(smap: SlipMap, frame: EnuFrame) -> tuple[float, float, float, float]:
@@ -57,11 +77,15 @@ def _corner_deg(smap: SlipMap, frame: EnuFrame) -> tuple[float, float, float, fl
 
 
 def slipmap_taskdata(smap: SlipMap, frame: EnuFrame, designator: str) -> bytes:
-    """The TASKDATA zip of ``smap`` (at least one cell), placed through ``frame``."""
+    """The TASKDATA zip of ``smap`` (at least one cell), placed through ``frame``: its mean
+    ``|slip|``, or its layer's mean when it has a layer."""
     import isoxml.models.base.v4 as iso
     from isoxml.util.isoxml_io import isoxml_to_zip
 
-    values = slip_grid_ppm(smap)
+    if smap.layer is None:
+        values, ddi, zone_name = slip_grid_ppm(smap), SLIP_DDI, "mean |slip| ppm"
+    else:
+        values, ddi, zone_name = layer_grid_ppm(smap), LAYER_DDI, f"mean {smap.layer} x1e6"
     payload = values.astype("<i4").tobytes(order="C")
     lat, lon, dlat, dlon = _corner_deg(smap, frame)
     grid = iso.Grid(
@@ -78,11 +102,9 @@ def slipmap_taskdata(smap: SlipMap, frame: EnuFrame, designator: str) -> bytes:
     )
     zone = iso.TreatmentZone(
         code=1,
-        designator="mean |slip| ppm",
+        designator=zone_name[:32],
         process_data_variables=[
-            iso.ProcessDataVariable(
-                process_data_ddi=SLIP_DDI.to_bytes(2, "big"), process_data_value=0
-            )
+            iso.ProcessDataVariable(process_data_ddi=ddi.to_bytes(2, "big"), process_data_value=0)
         ],
     )
     task = iso.Task(

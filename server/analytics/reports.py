@@ -84,7 +84,7 @@ _NS = 1_000_000_000
 def report_fields(spec: EstimatorSpec) -> list[str]:
     """The fields of ``spec`` a report reads (ask the store for these only): ``stamp_ns``, the
     motion field, each slip channel's field and ``flags`` when the spec has one."""
-    state = None if spec.state is None else spec.state.field
+    state = spec.states[0].field if spec.states else None
     wanted = ["stamp_ns", spec.motion_field, state, *(s.field for s in spec.slips)]
     if spec.has_field("flags"):
         wanted.append("flags")
@@ -402,7 +402,7 @@ def _state_stats(
     state = rows[channel.field].astype(np.int64)
     slips = list(zip(spec.slips, channel_slips(rows, spec), strict=True))
     out = {}
-    for value, label in enumerate(channel.labels):
+    for value, label in ((sv.value, sv.name) for sv in channel.states):
         here = state == value
         if not here.any():
             continue
@@ -456,7 +456,7 @@ def vehicle_report(
         for channel, (slip, valid) in zip(spec.slips, channel_slips(rows, spec), strict=True)
     }
     n = int(stamps.shape[0])
-    states = {} if spec.state is None else _state_stats(rows, spec, spec.state, w_ns, motion)
+    states = {} if not spec.states else _state_stats(rows, spec, spec.states[0], w_ns, motion)
     return VehicleReport(
         start_ns=int(start_ns),
         end_ns=int(end_ns),

@@ -31,6 +31,10 @@ Per cell, over its samples ``i`` (and slip channels ``k`` of the spec)
       distance are still given); the shares then sum to 1.
     * ``vehicles``: how many reductions (:func:`cell_sums` calls, one per vehicle) put samples
       into the cell; 1 in a single vehicle's map.
+    * With a **layer** (a mapped :class:`estimator.spec.ValueChannel` of the spec, e.g. friction
+      μ), over the samples that inform it (its ``valid_flag`` set and a finite value ``x_i``):
+      ``layer_valid_s = Σ w_i``, ``layer_mean = Σ w_i x_i / layer_valid_s`` (NaN when 0) and
+      ``layer_samples``, how many such samples.
 
 Reduce, merge, finish
 ---------------------
@@ -60,7 +64,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from estimator.geo import EnuFrame
-from estimator.spec import EstimatorSpec, PositionChannel
+from estimator.spec import EstimatorSpec, PositionChannel, ValueChannel
 from server.analytics.reports import (
     band_bounds,
     band_index,
@@ -79,6 +83,7 @@ __all__ = [
     "TooManyCells",
     "bin_cells",
     "cell_sums",
+    "check_layer",
     "check_mappable",
     "finish_cells",
     "map_samples",
@@ -104,12 +109,29 @@ def check_mappable(spec: EstimatorSpec) -> tuple[PositionChannel, str]:
     return spec.position, spec.motion_field
 
 
-def slipmap_fields(spec: EstimatorSpec, *, fleet: bool = False) -> list[str]:
+def check_layer(spec: EstimatorSpec, key: str | None) -> ValueChannel | None:
+    """The mapped value channel ``key`` of ``spec`` (None for None), or :class:`NotMappable`
+    naming the layers it has."""
+    if key is None:
+        return None
+    for v in spec.values:
+        if v.key == key and v.mapped:
+            return v
+    have = [v.key for v in spec.values if v.mapped]
+    raise NotMappable(f"estimator {spec.name!r} has no map layer {key!r} (its layers: {have})")
+
+
+def slipmap_fields(
+    spec: EstimatorSpec, *, fleet: bool = False, layer: ValueChannel | None = None
+) -> list[str]:
     """The fields of ``spec`` a map reads (ask the store for these only): ``stamp_ns``, the
-    motion field, the slip channels' fields, ``flags``, east and north, and with ``fleet`` the
-    up field too (the change of frame needs it). :class:`NotMappable` if it cannot be mapped."""
+    motion field, the slip channels' fields, the ``layer``'s field, ``flags``, east and north,
+    and with ``fleet`` the up field too (the change of frame needs it). :class:`NotMappable` if
+    it cannot be mapped."""
     position, motion = check_mappable(spec)
     wanted: list[str | None] = ["stamp_ns", motion, *(s.field for s in spec.slips)]
+    if layer is not None:
+        wanted.append(layer.field)
     if spec.has_field("flags"):
         wanted.append("flags")
     wanted += [position.east_field, position.north_field]
@@ -147,6 +169,10 @@ class MapSamples:
         Signed slip of each channel.
     slip_valid : bool, shape (n, K)
         Whether each channel's slip is valid.
+    layer_value : float64, shape (n,)
+        The map layer's value (NaN without a layer).
+    layer_valid : bool, shape (n,)
+        Whether the sample informs the layer (all False without one).
     """
 
     channels: tuple[str, ...]
@@ -157,10 +183,27 @@ class MapSamples:
     speed_mps: np.ndarray
     slip_pct: np.ndarray
     slip_valid: np.ndarray
+    layer_value: np.ndarray
+    layer_valid: np.ndarray
 
     @property
     def size(self) -> int:
         return int(self.east_m.shape[0])
+
+
+def _layer_values(
+    rows: np.ndarray, spec: EstimatorSpec, layer: ValueChannel | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(value, informs)`` of every row (shape (n,)): the layer's field, and whether the row
+    has its ``valid_flag`` and a finite value; NaN and False without a layer."""
+    n = rows.shape[0]
+    if layer is None:
+        return np.full(n, np.nan), np.zeros(n, dtype=bool)
+    value = rows[layer.field].astype(np.float64)
+    informs = np.isfinite(value)
+    if layer.valid_flag is not None:
+        informs &= (rows["flags"].astype(np.int64) & spec.flag_mask(layer.valid_flag)) != 0
+    return value, informs
 
 
 def map_samples(
@@ -170,6 +213,7 @@ def map_samples(
     end_ns: int,
     min_ground_speed_mps: float = 0.2,
     max_gap_s: float = 1.0,
+    layer: ValueChannel | None = None,
 ) -> MapSamples:
     """The samples of one vehicle's series: moving rows with a position, with their weights.
 
@@ -182,6 +226,7 @@ def map_samples(
     end_ns : end of the range (clips the last row's weight, as in the report).
     min_ground_speed_mps : speed from which a row counts as moving.
     max_gap_s : a step between rows longer than this is a data gap.
+    layer : a mapped value channel of ``spec`` (:func:`check_layer`) whose value to carry.
     """
     position, _ = check_mappable(spec)
     w_ns = time_weights_ns(rows["stamp_ns"].astype(np.int64), end_ns, round(max_gap_s * _NS))
@@ -197,6 +242,7 @@ def map_samples(
         up = np.where(np.isfinite(up_kept), up_kept, 0.0)
     slips = channel_slips(rows, spec)
     k = len(slips)
+    layer_value, layer_valid = _layer_values(rows, spec, layer)
     return MapSamples(
         channels=tuple(c.key for c in spec.slips),
         east_m=east[keep],
@@ -212,6 +258,8 @@ def map_samples(
             if k
             else np.zeros((up.size, 0), dtype=bool)
         ),
+        layer_value=layer_value[keep],
+        layer_valid=layer_valid[keep],
     )
 
 
@@ -257,6 +305,12 @@ class CellSums:
         ``max |s|``; NaN where the cell has no valid slip.
     vehicles : int64, shape (m,)
         Reductions that put samples into the cell.
+    layer : str or None
+        Key of the map layer (a value channel), None without one.
+    layer_ns, layer_sum_ns : float64, shape (m,)
+        Over the samples that inform the layer: ``Σ w`` and ``Σ w · x``.
+    layer_rows : int64, shape (m,)
+        How many samples inform the layer.
     """
 
     cell_m: float
@@ -273,6 +327,10 @@ class CellSums:
     band_ns: np.ndarray
     max_abs_pct: np.ndarray
     vehicles: np.ndarray
+    layer: str | None
+    layer_ns: np.ndarray
+    layer_sum_ns: np.ndarray
+    layer_rows: np.ndarray
 
     @property
     def cells(self) -> int:
@@ -323,6 +381,7 @@ def cell_sums(
     cell_m: float,
     band_edges_pct: Sequence[float] = (5.0, 15.0),
     max_cells: int | None = None,
+    layer: str | None = None,
 ) -> CellSums:
     """Reduce samples to the partial sums of the cells of ``cell_m`` they fall into.
 
@@ -336,6 +395,7 @@ def cell_sums(
     cell_m : side of a cell, metres.
     band_edges_pct : increasing edges of the slip bands, percent of ``|slip|``.
     max_cells : refuse more cells than this (None: no limit).
+    layer : key of the map layer the samples carry (None: none).
 
     Raises
     ------
@@ -364,6 +424,8 @@ def cell_sums(
     pair_abs = np.abs(pair_slip)
     max_abs = np.full(m, np.nan)
     np.fmax.at(max_abs, pair_cell, pair_abs)
+    informs = samples.layer_valid
+    layer_w = np.where(informs, w, 0.0)
     return CellSums(
         cell_m=float(cell_m),
         band_edges_pct=edges,
@@ -379,6 +441,10 @@ def cell_sums(
         band_ns=_sum_at(pair_cell, band_index(pair_abs, edges), n_bands, pair_w, m),
         max_abs_pct=max_abs,
         vehicles=np.ones(m, dtype=np.int64),
+        layer=layer,
+        layer_ns=_sum_by(cell, layer_w, m),
+        layer_sum_ns=_sum_by(cell, layer_w * np.where(informs, samples.layer_value, 0.0), m),
+        layer_rows=np.bincount(cell, weights=informs, minlength=m).astype(np.int64),
     )
 
 
@@ -389,6 +455,7 @@ def merge_cell_sums(
     channels: tuple[str, ...],
     band_edges_pct: Sequence[float] = (5.0, 15.0),
     max_cells: int | None = None,
+    layer: str | None = None,
 ) -> CellSums:
     """Merge partial sums cell by cell: sums add, maxima take the larger, ``vehicles`` add.
 
@@ -399,31 +466,35 @@ def merge_cell_sums(
     Parameters
     ----------
     parts : CellSums, each of ``cell_m``, ``channels`` and ``band_edges_pct``.
-    cell_m, channels, band_edges_pct : those of every part (checked).
+    cell_m, channels, band_edges_pct, layer : those of every part (checked).
     max_cells : refuse a total of more cells than this (None: no limit); checked after each
         merge, so :class:`TooManyCells` names the count at the first merge that passed it.
 
     Raises
     ------
     ValueError
-        A part of another ``cell_m``, other slip channels or other band edges.
+        A part of another ``cell_m``, other slip channels, band edges or layer.
     TooManyCells
         The merged cells exceed ``max_cells``.
     """
     edges = check_band_edges(band_edges_pct)
-    total = _no_cells(float(cell_m), edges, tuple(channels))
+    total = _no_cells(float(cell_m), edges, tuple(channels), layer)
+    want = (total.cell_m, edges, total.channels, layer)
     for part in parts:
-        if (part.cell_m, part.band_edges_pct, part.channels) != (cell_m, edges, total.channels):
+        if (part.cell_m, part.band_edges_pct, part.channels, part.layer) != want:
             raise ValueError(
-                f"cannot merge cells of {part.cell_m:g} m with bands {part.band_edges_pct} "
-                f"and slip channels {part.channels} into cells of {total.cell_m:g} m with "
-                f"bands {edges} and slip channels {total.channels}"
+                f"cannot merge cells of {part.cell_m:g} m with bands {part.band_edges_pct}, "
+                f"slip channels {part.channels} and layer {part.layer} into cells of "
+                f"{total.cell_m:g} m with bands {edges}, slip channels {total.channels} and "
+                f"layer {layer}"
             )
         total = _merge_two(total, part, max_cells)
     return total
 
 
-def _no_cells(cell_m: float, edges: tuple[float, ...], channels: tuple[str, ...]) -> CellSums:
+def _no_cells(
+    cell_m: float, edges: tuple[float, ...], channels: tuple[str, ...], layer: str | None
+) -> CellSums:
     none = np.zeros(0)
     ids = np.zeros(0, dtype=np.int64)
     return CellSums(
@@ -441,6 +512,10 @@ def _no_cells(cell_m: float, edges: tuple[float, ...], channels: tuple[str, ...]
         band_ns=np.zeros((0, len(edges) + 1)),
         max_abs_pct=none,
         vehicles=ids,
+        layer=layer,
+        layer_ns=none,
+        layer_sum_ns=none,
+        layer_rows=ids,
     )
 
 
@@ -472,6 +547,10 @@ def _merge_two(a: CellSums, b: CellSums, max_cells: int | None) -> CellSums:
         band_ns=add("band_ns"),
         max_abs_pct=max_abs,
         vehicles=add("vehicles").astype(np.int64),
+        layer=a.layer,
+        layer_ns=add("layer_ns"),
+        layer_sum_ns=add("layer_sum_ns"),
+        layer_rows=add("layer_rows").astype(np.int64),
     )
 
 
@@ -498,6 +577,13 @@ class SlipMap:
         Time share of ``|slip|`` in each band, lowest band first.
     vehicles : int64, shape (m,)
         Vehicles (reductions) that contributed to each cell.
+    layer : str or None
+        Key of the map layer, None without one.
+    layer_valid_s, layer_mean : float64, shape (m,)
+        Time of the samples that inform the layer, and the layer's time-weighted mean over them
+        (NaN where none does).
+    layer_samples : int64, shape (m,)
+        How many samples inform the layer.
     """
 
     cell_m: float
@@ -514,6 +600,10 @@ class SlipMap:
     max_abs_slip_pct: np.ndarray
     band_share: np.ndarray
     vehicles: np.ndarray
+    layer: str | None
+    layer_valid_s: np.ndarray
+    layer_mean: np.ndarray
+    layer_samples: np.ndarray
     band_labels: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -560,6 +650,10 @@ def finish_cells(sums: CellSums) -> SlipMap:
         max_abs_slip_pct=sums.max_abs_pct,
         band_share=_ratio(sums.band_ns, slip_ns[:, None]),
         vehicles=sums.vehicles,
+        layer=sums.layer,
+        layer_valid_s=sums.layer_ns / _NS,
+        layer_mean=_ratio(sums.layer_sum_ns, sums.layer_ns),
+        layer_samples=sums.layer_rows,
     )
 
 
@@ -569,11 +663,18 @@ def bin_cells(
     cell_m: float,
     band_edges_pct: Sequence[float] = (5.0, 15.0),
     max_cells: int | None = None,
+    layer: str | None = None,
 ) -> SlipMap:
     """Bin samples into cells of ``cell_m`` and compute each cell's statistics:
     :func:`cell_sums` then :func:`finish_cells` (parameters and errors as there)."""
     return finish_cells(
-        cell_sums(samples, cell_m=cell_m, band_edges_pct=band_edges_pct, max_cells=max_cells)
+        cell_sums(
+            samples,
+            cell_m=cell_m,
+            band_edges_pct=band_edges_pct,
+            max_cells=max_cells,
+            layer=layer,
+        )
     )
 
 
@@ -587,10 +688,22 @@ def slip_map(
     min_ground_speed_mps: float = 0.2,
     max_gap_s: float = 1.0,
     max_cells: int | None = None,
+    layer: ValueChannel | None = None,
 ) -> SlipMap:
     """The slip map of one vehicle's series in its own frame: :func:`map_samples` then
     :func:`bin_cells` (parameters as there)."""
     samples = map_samples(
-        rows, spec, end_ns=end_ns, min_ground_speed_mps=min_ground_speed_mps, max_gap_s=max_gap_s
+        rows,
+        spec,
+        end_ns=end_ns,
+        min_ground_speed_mps=min_ground_speed_mps,
+        max_gap_s=max_gap_s,
+        layer=layer,
     )
-    return bin_cells(samples, cell_m=cell_m, band_edges_pct=band_edges_pct, max_cells=max_cells)
+    return bin_cells(
+        samples,
+        cell_m=cell_m,
+        band_edges_pct=band_edges_pct,
+        max_cells=max_cells,
+        layer=None if layer is None else layer.key,
+    )

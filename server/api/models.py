@@ -346,6 +346,8 @@ class PositionChannelSpecPublic(BaseModel):
     carried_flag: str | None = Field(description="flag of a dead-reckoned position")
     pitch_field: str | None = Field(description="body pitch, rad (nose up positive)")
     roll_field: str | None = Field(description="body roll, rad (right side down positive)")
+    east_std_field: str | None = Field(default=None, description="1-sigma of east, m")
+    north_std_field: str | None = Field(default=None, description="1-sigma of north, m")
 
 
 class ChartSpecPublic(BaseModel):
@@ -355,6 +357,46 @@ class ChartSpecPublic(BaseModel):
     title: str
     unit: str
     fields: list[str]
+
+
+class StateValuePublic(BaseModel):
+    """One value of an enumerated field."""
+
+    value: int
+    name: str
+    label: str
+
+
+class StateChannelSpecPublic(BaseModel):
+    """An enumerated (i4) field whose values name states; drawn as a band of stretches."""
+
+    key: str
+    label: str
+    field: str
+    states: list[StateValuePublic]
+    confidence_field: str | None = Field(description="0..1 confidence of the state")
+    uncertain_flag: str | None = Field(description="flag of a row whose state is uncertain")
+
+
+class ValueChannelSpecPublic(BaseModel):
+    """A headline value that is neither slip nor speed (friction μ)."""
+
+    key: str
+    label: str
+    field: str
+    unit: str
+    std_field: str | None
+    valid_flag: str | None = Field(description="flag of the rows that inform it; others hold")
+    mapped: bool = Field(description="a layer of the slip map (`layer=<key>`)")
+
+
+class WheelValueChannelSpecPublic(BaseModel):
+    """A per-wheel share in percent other than slip (grip used)."""
+
+    key: str
+    label: str
+    field: str
+    position: str
 
 
 class EstimatorSpecPublic(BaseModel):
@@ -374,6 +416,9 @@ class EstimatorSpecPublic(BaseModel):
     charts: list[ChartSpecPublic]
     ok_flag: str | None
     degraded_flags: list[str]
+    states: list[StateChannelSpecPublic] = []
+    values: list[ValueChannelSpecPublic] = []
+    wheel_values: list[WheelValueChannelSpecPublic] = []
 
 
 class EstimatorsPublic(BaseModel):
@@ -442,6 +487,14 @@ class SlipChannelRefPublic(BaseModel):
     field: str
 
 
+class LayerCellPublic(BaseModel):
+    """A map layer (a value channel, e.g. friction μ) in one cell."""
+
+    valid_s: float = Field(description="time of the samples that inform the layer")
+    mean: float | None = Field(description="time-weighted mean over those samples")
+    samples: int = Field(description="how many samples inform the layer")
+
+
 class SlipMapCellPublic(BaseModel):
     """One cell of a slip map (definitions in the API description of the route)."""
 
@@ -463,6 +516,9 @@ class SlipMapCellPublic(BaseModel):
         description="time share of |slip| in each band, by band label (`0_5`, `5_15`, "
         "`15_up`); null without valid slip time"
     )
+    layer: LayerCellPublic | None = Field(
+        default=None, description="the map layer's statistics (null without `layer=`)"
+    )
 
 
 class SlipMapPublic(BaseModel):
@@ -471,6 +527,9 @@ class SlipMapPublic(BaseModel):
     vehicle_id: str
     estimator: str
     slip_channels: list[SlipChannelRefPublic]
+    layer: ValueChannelSpecPublic | None = Field(
+        default=None, description="the map layer (a value channel of the estimator), if asked"
+    )
     start_ns: int
     end_ns: int
     cell_m: float
@@ -514,6 +573,9 @@ class FleetSlipMapPublic(BaseModel):
         description="the estimator mapped (null: none given and no vehicle placed)"
     )
     slip_channels: list[SlipChannelRefPublic]
+    layer: ValueChannelSpecPublic | None = Field(
+        default=None, description="the map layer (a value channel of the estimator), if asked"
+    )
     start_ns: int
     end_ns: int
     cell_m: float

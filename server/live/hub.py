@@ -85,16 +85,20 @@ class VehicleStatus:
 def live_fields(spec: EstimatorSpec) -> tuple[str, ...]:
     """Fields of ``spec`` kept in the sliding windows, in this order, each once.
 
-    The fields of its charts, slip channels and motion speed, its position's east/north/up and
-    ``flags`` (``stamp_ns`` is stored apart as int64).
+    The fields of its charts, slip channels, state, value and wheel value channels and motion
+    speed, its position's east/north/up and their standard deviations, and ``flags``
+    (``stamp_ns`` is stored apart as int64).
     """
     names: list[str] = [f for c in spec.charts for f in c.fields]
     names += [s.field for s in spec.slips]
+    names += [s.field for s in spec.states] + [v.field for v in spec.values]
+    names += [w.field for w in spec.wheel_values]
     if spec.motion_field is not None:
         names.append(spec.motion_field)
     p = spec.position
     if p is not None:
-        names += [f for f in (p.east_field, p.north_field, p.up_field) if f is not None]
+        fields = (p.east_field, p.north_field, p.up_field, p.east_std_field, p.north_std_field)
+        names += [f for f in fields if f is not None]
     if spec.has_field("flags"):
         names.append("flags")
     return tuple(dict.fromkeys(names))

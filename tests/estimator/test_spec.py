@@ -8,7 +8,19 @@ import numpy as np
 import pytest
 
 from estimator.catalog import SPECS, spec_of
-from estimator.spec import EstimatorSpec, FieldSpec, FlagSpec, SlipChannel, SpecError, WheelPosition
+from estimator.spec import (
+    EstimatorSpec,
+    FieldSpec,
+    FlagSpec,
+    SlipChannel,
+    SpecError,
+    StateChannel,
+    StateValue,
+    ValueChannel,
+    WheelPosition,
+    WheelValueChannel,
+)
+from estimator.tracked.model import MotionState
 from estimator.types import ESTIMATE_DTYPE, EstimateFlag
 
 
@@ -32,9 +44,7 @@ def _spec(**kw: object) -> EstimatorSpec:
 def test_mdsf_spec_describes_the_rows_mdsf_emits() -> None:
     spec = spec_of("mdsf")
     assert spec.dtype == ESTIMATE_DTYPE
-    assert {f.name: f.mask for f in spec.flags} == {
-        f.name: int(f) for f in EstimateFlag if f.value
-    }
+    assert {f.name: f.mask for f in spec.flags} == {f.name: int(f) for f in EstimateFlag if f.value}
     assert [s.field for s in spec.slips] == ["slip_left_pct", "slip_right_pct"]
     assert spec.motion_field == "vg_mps"
 
@@ -109,3 +119,43 @@ def test_a_row_dtype_is_the_specs_dtype_object_and_must_match_the_fields() -> No
     with pytest.raises(SpecError, match="row_dtype differs"):
         _spec(row_dtype=np.dtype([("stamp_ns", "i8")]))
     assert spec_of("mdsf").dtype is ESTIMATE_DTYPE
+
+
+def _state(field: str = "flags", values: tuple[int, ...] = (0, 1)) -> StateChannel:
+    return StateChannel(
+        "st", "state", field, tuple(StateValue(v, f"s{v}", f"s{v}") for v in values)
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"states": (_state("s_pct"),)}, "not a i4 field"),
+        ({"states": (_state(values=(1, 1)),)}, "distinct values"),
+        ({"states": (_state(values=()),)}, "distinct values"),
+    ],
+)
+def test_state_channels_are_checked(change: dict[str, object], message: str) -> None:
+    with pytest.raises(SpecError, match=message):
+        _spec(**change)
+
+
+def test_value_and_wheel_value_channels_are_checked() -> None:
+    with pytest.raises(SpecError, match="unknown flag 'NOPE'"):
+        _spec(values=(ValueChannel("v", "v", "s_pct", valid_flag="NOPE"),))
+    with pytest.raises(SpecError, match="not a f8 field"):
+        _spec(values=(ValueChannel("v", "v", "missing"),))
+    with pytest.raises(SpecError, match="wheel value channel w"):
+        _spec(wheel_values=(WheelValueChannel("w", "w", "flags", WheelPosition.REAR_LEFT),))
+    spec = _spec(values=(ValueChannel("v", "v", "s_pct", valid_flag="OK", mapped=True),))
+    assert spec.value("v").mapped
+    assert spec.to_dict()["values"][0]["valid_flag"] == "OK"
+    with pytest.raises(KeyError, match="no value channel 'w'"):
+        spec.value("w")
+
+
+def test_the_crawler_state_channel_names_the_estimators_motion_states() -> None:
+    channel = spec_of("tracked").states[0]
+    assert [(s.value, s.name) for s in channel.states] == [
+        (int(m), m.name.lower()) for m in MotionState
+    ]

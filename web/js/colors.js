@@ -23,10 +23,11 @@ export const SLIP_COLOR_NONE = [160, 160, 160];
 export const SLIP_BAND_EDGES = [5, 15];
 export const SLIP_BAND_NAMES = ["low", "moderate", "high"];
 
-export function slipRgb(slipPct) {
-  if (slipPct === null || slipPct === undefined || Number.isNaN(slipPct)) return SLIP_COLOR_NONE;
-  const s = Math.abs(slipPct);
-  const stops = SLIP_COLOR_STOPS;
+// RGB of |value| on a ramp of [value, [r, g, b]] stops: linear between stops, clamped beyond
+// them; a missing value is SLIP_COLOR_NONE.
+function rampRgb(stops, value) {
+  if (value === null || value === undefined || Number.isNaN(value)) return SLIP_COLOR_NONE;
+  const s = Math.abs(value);
   if (s <= stops[0][0]) return stops[0][1];
   for (let i = 1; i < stops.length; i++) {
     const [x1, c1] = stops[i];
@@ -37,6 +38,10 @@ export function slipRgb(slipPct) {
     }
   }
   return stops[stops.length - 1][1];
+}
+
+export function slipRgb(slipPct) {
+  return rampRgb(SLIP_COLOR_STOPS, slipPct);
 }
 
 export function slipCss(slipPct) {
@@ -83,4 +88,41 @@ export function drawSlipLegend(ctx, x, y, w, h, { font = "12px system-ui, sans-s
   ctx.fillStyle = ink;
   ctx.textBaseline = "middle";
   ctx.fillText("no value", gx + h + 5, y + h / 2);
+}
+
+// Share of the available grip in use (a spec's wheel value channels), the same in the 3D viewer
+// (server/live/viewer/scene.py GRIP_COLOR_STOPS): green while the tyre uses little of it, dark red
+// at the limit.
+//
+//   grip used %   colour
+//   0             green      #1a9850
+//   50            yellow     #f0c828
+//   80            orange     #e6551e
+//   100 and up    dark red   #8c141e
+export const GRIP_COLOR_STOPS = [
+  [0, [26, 152, 80]],
+  [50, [240, 200, 40]],
+  [80, [230, 85, 30]],
+  [100, [140, 20, 30]],
+];
+
+// rgb(...) of a grip share in percent (grey when there is none).
+export function gripCss(pct) {
+  const [r, g, b] = rampRgb(GRIP_COLOR_STOPS, pct);
+  return `rgb(${r},${g},${b})`;
+}
+
+// A map layer's value (a spec's mapped value channel, e.g. μ) on the range [lo, hi] of the cells
+// shown: dark red at the low end (little grip), green at the high end; grey where none.
+const LAYER_COLOR_STOPS = [
+  [0, [140, 20, 30]],
+  [33, [230, 85, 30]],
+  [67, [240, 200, 40]],
+  [100, [26, 152, 80]],
+];
+
+export function layerCss(value, lo, hi) {
+  const t = value == null || Number.isNaN(value) ? null : hi > lo ? ((value - lo) / (hi - lo)) * 100 : 100;
+  const [r, g, b] = rampRgb(LAYER_COLOR_STOPS, t);
+  return `rgb(${r},${g},${b})`;
 }

@@ -29,8 +29,9 @@ import {
   SHADE_FILL,
   shadeLegend,
 } from "./charts.js";
-import { SlipMap } from "./slipmap.js";
-import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
+import { SlipMap, showLayerHeat } from "./slipmap.js";
+import { carriedRows, fieldOf, loadSpecs, motionChannel, positionSigma, slipMetric } from "./specs.js";
+import { StateBand } from "./states.js";
 import { el, fmt, fmtDuration, fmtSpeed, fmtTimeNs, lastAtOrBefore, timeTitle, vehicleHref } from "./util.js";
 
 // Fields of a spec the charts need: every chart's, and flags (degraded stretches).
@@ -40,10 +41,13 @@ function chartFields(spec) {
   return [...new Set(f)];
 }
 
-// Fields of a spec the track and the cursor values need: position, slips, motion speed, flags.
+// Fields of a spec the track and the cursor values need: position (and its σ), slips, state
+// channels, motion speed, flags.
 function trackFields(spec) {
-  const f = spec.position ? [spec.position.east_field, spec.position.north_field] : [];
+  const p = spec.position;
+  const f = p ? [p.east_field, p.north_field, p.east_std_field, p.north_std_field].filter(Boolean) : [];
   f.push(...spec.slips.map((c) => c.field));
+  f.push(...spec.states.map((c) => c.field));
   const motion = motionChannel(spec);
   if (motion) f.push(motion.field);
   if (spec.flags.length) f.push("flags");
@@ -145,6 +149,8 @@ export function historyView(root, vehicleId) {
   for (const m of CELL_CHOICES) cell.append(el("option", { value: String(m), text: `${m} m` }));
   cell.value = "auto";
   const heatMsg = el("span", { id: "h-heat-msg", class: "summary" });
+  // what the heat grid's cells show: mean |slip|, or a layer (a mapped value channel of the spec)
+  const layerSel = el("select", { id: "h-layer", "aria-label": "Heat grid layer" });
   const estimatorSel = el("select", { id: "h-estimator", "aria-label": "Estimator" });
   const chartsBox = el("div", { id: "h-charts" });
   const shadeKey = el("p", { id: "h-shade-legend", class: "shade-legend" });
@@ -179,8 +185,10 @@ export function historyView(root, vehicleId) {
         "label",
         { title: "Per cell: the time-weighted mean |slip| over every slip channel's valid slips while moving, at full rate (GET /api/v1/vehicles/{id}/slipmap)" },
         heatOn,
-        " Heat grid of mean |slip|, cell ",
+        " Heat grid of ",
       ),
+      layerSel,
+      el("span", { text: " cell " }),
       cell,
       heatMsg,
     ),
@@ -192,6 +200,7 @@ export function historyView(root, vehicleId) {
   let threshold = 15; // SlipConfig default until the vehicle's config is loaded
   let standstillMps = null; // the vehicle's SlipConfig.min_ground_speed_mps, once loaded
   let charts = []; // [{box, chart, fields}] of the spec's charts
+  let bands = []; // a StateBand per state channel of the spec, under the charts
   let env = null; // chart columns: min/max envelope
   let track = null; // whole stored rows
   let range = null; // {s, e} BigInt ns of the loaded range
@@ -228,6 +237,11 @@ export function historyView(root, vehicleId) {
       const chart = makeChart(box, { ...o, threshold: o.isSlip ? threshold : null, syncKey: sync, onCursor });
       return { box, chart, fields: c.fields };
     });
+    bands = spec.states.map((ch) => {
+      const box = el("div", { class: "state-band", id: `h-band-${ch.key}`, "data-channel": ch.key }, el("div", { class: "state-band-title", text: ch.label }));
+      chartsBox.append(box);
+      return new StateBand(spec, ch, box);
+    });
     const tile = (label, id, unit) =>
       el("div", { class: "stat" }, el("div", { class: "stat-label", text: label }), el("div", { class: "stat-value" }, el("span", { id, text: "–" }), el("span", { class: "unit", text: ` ${unit}` })));
     const motion = motionChannel(spec);
@@ -243,7 +257,13 @@ export function historyView(root, vehicleId) {
     if (shadeKey.childElementCount) shadeKey.prepend("Shaded: ");
     canvas.hidden = !spec.position;
     mapTitle.hidden = !spec.position;
-    heatOn.disabled = !spec.position || !spec.slips.length;
+    const layers = spec.values.filter((v) => v.mapped);
+    layerSel.replaceChildren(
+      ...(spec.slips.length ? [el("option", { value: "", text: "mean |slip|" })] : []),
+      ...layers.map((v) => el("option", { value: v.key, text: `mean ${v.label}${v.valid_flag ? ` (${v.valid_flag.toLowerCase()})` : ""}` })),
+    );
+    layerSel.disabled = layerSel.options.length < 2;
+    heatOn.disabled = !spec.position || !layerSel.options.length;
   }
 
   // The estimators the vehicle runs (primary first; every spec with a position when the server
@@ -293,7 +313,8 @@ export function historyView(root, vehicleId) {
   }
 
   async function fetchHeat(s, e, cellM) {
-    const key = `${spec.name}/${s}/${e}/${cellM}`;
+    const layer = layerSel.value;
+    const key = `${spec.name}/${s}/${e}/${cellM}/${layer}`;
     if (!heatCache.has(key)) {
       const p = getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/slipmap`, {
         estimator: spec.name,
@@ -301,6 +322,7 @@ export function historyView(root, vehicleId) {
         end: e.toString(),
         cell_m: cellM,
         format: "json",
+        ...(layer ? { layer } : {}),
       });
       heatCache.set(key, p);
       p.catch(() => heatCache.delete(key));
@@ -348,11 +370,20 @@ export function historyView(root, vehicleId) {
       }
     }
     if (my !== heatGen) return;
-    const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.mean_abs_slip_pct }));
-    map.setHeat(cells, body.cell_m);
-    map.title = "Track by max |slip|; cells by time-weighted mean |slip|";
-    heatMsg.textContent = `${cells.length} cells`;
+    if (body.layer) showLayer(body);
+    else {
+      const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.mean_abs_slip_pct }));
+      map.setHeat(cells, body.cell_m);
+      map.title = "Track by max |slip|; cells by time-weighted mean |slip|";
+      heatMsg.textContent = `${cells.length} cells`;
+    }
     map.draw();
+  }
+
+  // A layer's cells: its mean over the samples that inform it (showLayerHeat).
+  function showLayer(body) {
+    heatMsg.textContent = showLayerHeat(map, body);
+    map.title = `Track by max |slip|; cells by time-weighted mean ${body.layer.label}`;
   }
 
   function showAt(i) {
@@ -434,9 +465,13 @@ export function historyView(root, vehicleId) {
       setShading(c.chart, shade);
       c.chart.setData(alignedData(env, c.fields));
     }
+    // state bands from whole rows (a min/max bucket mixes states), on the first chart's axis
+    const rows = track;
+    requestAnimationFrame(() => bands.forEach((b) => b.draw(rows, charts[0]?.chart))); // after uPlot's rescale
     const pos = spec.position;
     if (pos) map.setTrack(track[pos.east_field], track[pos.north_field], metric, xs);
     else map.setTrack([], [], []);
+    map.setCarried(pos ? carriedRows(spec, track) : null, pos ? positionSigma(pos, track) : null);
     scrub.max = String(Math.max(0, xs.length - 1));
     scrub.disabled = xs.length === 0;
     play.disabled = xs.length === 0;
@@ -477,6 +512,7 @@ export function historyView(root, vehicleId) {
     tPlay = xs[idx];
   });
   heatOn.addEventListener("change", applyHeat);
+  layerSel.addEventListener("change", applyHeat);
   cell.addEventListener("change", applyHeat);
   preset.addEventListener("change", () => {
     if (preset.value === CUSTOM) return;

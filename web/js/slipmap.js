@@ -1,6 +1,8 @@
 // Slip map: the track in local metres (east right, north up, equal scale) on a canvas, coloured by
 // |slip| with the fixed scale of colors.js, an optional heat grid of cells, a scale bar, axis
-// labels and the colour legend.
+// labels and the colour legend. Stretches whose position was dead-reckoned carry white dashes,
+// and the position's 1-σ (radial, sqrt(σe² + σn²)) is drawn as circles along the track
+// (setCarried).
 //
 // The track's points are drawn as given: give it whole rows (full rate, or the series endpoint's
 // `decimation=first`), never min/max-decimated rows, whose east and north may come from
@@ -8,11 +10,12 @@
 // takes them from the REST slip map (`GET /api/v1/vehicles/{id}/slipmap`), so the page and a
 // GIS export show the same cells and numbers.
 
-import { drawSlipLegend, slipCss } from "./colors.js";
+import { drawSlipLegend, layerCss, slipCss } from "./colors.js";
 import { TILE_PX, degreeStep, enuToLatLon, fmtDegrees, latLonToEnu, mercator, tileUrl, unmercator } from "./geo.js";
 import { lastAtOrBefore } from "./util.js";
 
 export const LATLON_NAMES = ["longitude (WGS 84)", "latitude (WGS 84)"];
+const SIGMA_CIRCLES = 40; // circles of the position's 1-σ along a track, at most
 
 // Grid lines and their labels in a plot box {l, t, W, H} (CSS px): xs / ys [[pixel, label]...],
 // names [x axis, y axis]; on a basemap the lines are darker.
@@ -155,6 +158,20 @@ function niceStep(span) {
   return 10 * p;
 }
 
+// A REST slip map with a layer (GET …/slipmap?layer=) as heat cells on `map`: each cell's layer
+// mean coloured over the range of the cells shown (dark red low, green high; grey where no sample
+// informs it). Returns the words that say so: "<n> cells, <k> informed samples; <label> lo … hi".
+export function showLayerHeat(map, body) {
+  const cells = body.cells.map((c) => ({ e0: c.east_m, n0: c.north_m, mean: c.layer.mean, samples: c.layer.samples }));
+  const means = cells.map((c) => c.mean).filter((v) => v != null);
+  const lo = Math.min(...means);
+  const hi = Math.max(...means);
+  map.setHeat(cells, body.cell_m, (v) => layerCss(v, lo, hi));
+  const samples = cells.reduce((n, c) => n + c.samples, 0);
+  const scale = means.length ? `${lo.toFixed(3)} (red) … ${hi.toFixed(3)} (green)` : "none informed";
+  return `${cells.length} cells, ${samples} informed samples; ${body.layer.label} ${scale}`;
+}
+
 export class SlipMap {
   // titleEl: an element above the canvas that shows the title (it wraps on a narrow screen);
   // without one the title is drawn on the canvas, cut to its width
@@ -168,12 +185,23 @@ export class SlipMap {
     this.slip = [];
     this.heat = null;
     this.heatCell = 0;
+    this.heatColor = slipCss;
     this.anchor = null; // {lat_deg, lon_deg, height_m} of the vehicle's frame: degree axes
     this.tiles = new TileCache(() => requestAnimationFrame(() => this.draw()));
     this.tilesDrawn = 0;
     this.ticks = { lat: [], lon: [] }; // degrees of the labelled lines (with an anchor)
     this.cursor = null; // index of the replay position
     this.upTo = null; // draw the track only up to this index (replay), null = all
+    this.carried = null; // per point: dead-reckoned (dashed), or null
+    this.sigma = null; // per point: radial 1-σ of the position in metres, or null
+    this.carriedDrawn = 0; // dashed segments, after draw()
+    this.sigmaDrawn = []; // [[east, north, radius_m], ...] circles, after draw()
+  }
+
+  // Per point: whether its position was dead-reckoned, and its radial 1-σ (m); null: none.
+  setCarried(carried, sigmaM) {
+    this.carried = carried;
+    this.sigma = sigmaM;
   }
 
   // stampsS: each point's time (seconds), for cursorAt
@@ -233,10 +261,12 @@ export class SlipMap {
     return drawn;
   }
 
-  // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey)
-  setHeat(cells, cellM) {
+  // cells: [{e0, n0, mean}] (south-west corner in metres, the value coloured; null is grey);
+  // colorOf(mean) gives a cell's colour (default: the slip scale)
+  setHeat(cells, cellM, colorOf = slipCss) {
     this.heat = cells;
     this.heatCell = cellM;
+    this.heatColor = colorOf;
   }
 
   draw() {
@@ -310,7 +340,7 @@ export class SlipMap {
     if (this.heat) {
       const s = this.heatCell * sc;
       for (const h of this.heat) {
-        ctx.fillStyle = slipCss(h.mean);
+        ctx.fillStyle = this.heatColor(h.mean);
         ctx.globalAlpha = 0.85;
         ctx.fillRect(px(h.e0), py(h.n0 + this.heatCell), s + 0.5, s + 0.5);
       }
@@ -332,8 +362,10 @@ export class SlipMap {
       }
       ctx.stroke();
     }
+    this.drawSigma(ctx, px, py, sc, last);
     ctx.lineWidth = this.heat ? 2 : 4;
     let drawn = 0;
+    this.carriedDrawn = 0;
     for (let i = 1; i <= last; i++) {
       const ea = this.east[i - 1], na = this.north[i - 1], eb = this.east[i], nb = this.north[i];
       if (ea == null || na == null || eb == null || nb == null) continue;
@@ -344,6 +376,7 @@ export class SlipMap {
       ctx.stroke();
       drawn++;
     }
+    this.drawCarried(ctx, px, py, last);
     const mi = this.cursor != null ? this.cursor : last;
     if (mi >= 0 && this.east[mi] != null) {
       ctx.fillStyle = slipCss(this.slip[mi]);
@@ -369,6 +402,81 @@ export class SlipMap {
     ctx.font = "11px system-ui, sans-serif";
     ctx.fillText(`${barM} m`, bx + (barM * sc) / 2, by - 2);
     if (this.anchor) drawAttribution(ctx, this.tiles.template, cssW - pad.r, cssH - 4);
+    if (this.carried || this.sigma) this.drawCarriedLegend(ctx, pad.l, cssH - 8);
     this.drawn = drawn;
+  }
+
+  // White dashes over the dead-reckoned runs of the track (one path per run, so the dashes run
+  // on across its short segments).
+  drawCarried(ctx, px, py, last) {
+    this.carriedDrawn = 0;
+    if (!this.carried) return;
+    ctx.save();
+    ctx.strokeStyle = "rgba(255,255,255,0.95)";
+    ctx.lineWidth = 2;
+    ctx.lineCap = "butt";
+    ctx.setLineDash([6, 6]);
+    let open = false;
+    for (let i = 1; i <= last; i++) {
+      const ea = this.east[i - 1], na = this.north[i - 1], eb = this.east[i], nb = this.north[i];
+      const on = Boolean(this.carried[i]) && ea != null && na != null && eb != null && nb != null;
+      if (on && !open) {
+        ctx.beginPath();
+        ctx.moveTo(px(ea), py(na));
+        open = true;
+      }
+      if (on) {
+        ctx.lineTo(px(eb), py(nb));
+        this.carriedDrawn++;
+      } else if (open) {
+        ctx.stroke();
+        open = false;
+      }
+    }
+    if (open) ctx.stroke();
+    ctx.restore();
+  }
+
+  // Circles of the position's 1-σ at up to SIGMA_CIRCLES points up to index `last` (evenly
+  // spaced, always the last), faint blue.
+  drawSigma(ctx, px, py, sc, last) {
+    this.sigmaDrawn = [];
+    if (!this.sigma || last < 0) return;
+    const step = Math.max(1, Math.ceil((last + 1) / SIGMA_CIRCLES));
+    ctx.fillStyle = "rgba(0,114,178,0.10)";
+    ctx.strokeStyle = "rgba(0,114,178,0.55)";
+    ctx.lineWidth = 1;
+    for (let i = last; i >= 0; i -= step) {
+      const e = this.east[i], n = this.north[i], r = this.sigma[i];
+      if (e == null || n == null || r == null || !(r > 0)) continue;
+      ctx.beginPath();
+      ctx.arc(px(e), py(n), Math.max(1, r * sc), 0, 2 * Math.PI);
+      ctx.fill();
+      ctx.stroke();
+      this.sigmaDrawn.push([e, n, r]);
+    }
+  }
+
+  // "dashed: dead-reckoned · circles: position 1σ" at (x, y).
+  drawCarriedLegend(ctx, x, y) {
+    ctx.strokeStyle = "#555";
+    ctx.lineWidth = 4;
+    ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + 30, y); ctx.stroke();
+    ctx.strokeStyle = "#fff";
+    ctx.lineWidth = 2;
+    ctx.setLineDash([6, 6]);
+    ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + 30, y); ctx.stroke();
+    ctx.setLineDash([]);
+    ctx.fillStyle = "#222";
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.textAlign = "left";
+    ctx.textBaseline = "middle";
+    ctx.fillText("dead-reckoned", x + 36, y);
+    ctx.fillStyle = "rgba(0,114,178,0.10)";
+    ctx.strokeStyle = "rgba(0,114,178,0.55)";
+    ctx.lineWidth = 1;
+    ctx.beginPath(); ctx.arc(x + 130, y, 6, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+    ctx.fillStyle = "#222";
+    ctx.fillText("position 1σ", x + 140, y);
   }
 }

@@ -62,3 +62,17 @@ export function slipMetric(spec, cols) {
   }
   return out;
 }
+
+// Per row: whether its position was dead-reckoned (the position channel's carried_flag).
+export function carriedRows(spec, cols) {
+  const mask = spec.position.carried_flag ? flagMask(spec, spec.position.carried_flag) : 0;
+  return cols.stamp_ns.map((_, i) => Boolean(mask && cols.flags && (cols.flags[i] ?? 0) & mask));
+}
+
+// Per row: the position's radial 1-σ, sqrt(σe² + σn²) in metres (null where unknown).
+export function positionSigma(p, cols) {
+  if (!p.east_std_field || !p.north_std_field) return null;
+  const se = cols[p.east_std_field] || [];
+  const sn = cols[p.north_std_field] || [];
+  return cols.stamp_ns.map((_, i) => (se[i] == null || sn[i] == null ? null : Math.hypot(se[i], sn[i])));
+}

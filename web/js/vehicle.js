@@ -14,9 +14,10 @@
 
 import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboardConfig } from "./api.js";
 import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
-import { slipBand, slipCss } from "./colors.js";
-import { SlipMap } from "./slipmap.js";
-import { fieldOf, loadSpecs, motionChannel, slipMetric } from "./specs.js";
+import { gripCss, slipBand, slipCss } from "./colors.js";
+import { SlipMap, showLayerHeat } from "./slipmap.js";
+import { carriedRows, fieldOf, loadSpecs, motionChannel, positionSigma, slipMetric } from "./specs.js";
+import { StateBand, stateColor, stateOf } from "./states.js";
 import { el, fmt, fmtSpeed, fmtTimeNs, timeTitle, vehicleHref } from "./util.js";
 
 const WINDOWS = [
@@ -81,19 +82,24 @@ function estimatorPanel(spec, page, primary) {
   const tiles = el(
     "div",
     { class: "stats" },
-    ...spec.slips.map((ch) => stat(`Slip ${ch.label}`, id(`slip-${ch.key}`), "%")),
+    ...spec.slips.map((ch) => stat(/^slip\b/i.test(ch.label) ? ch.label : `Slip ${ch.label}`, id(`slip-${ch.key}`), "%")),
+    ...spec.states.map((ch) => stat(ch.label, id(`state-${ch.key}`))),
+    ...spec.values.map((ch) => stat(ch.label, id(`value-${ch.key}`), ch.unit)),
+    ...spec.wheel_values.map((ch) => stat(ch.label, id(`wheel-${ch.key}`), "%")),
     motion ? stat(motion.label, id("speed"), fieldOf(spec, motion.field).unit) : null,
     stat("Quality", id("quality")),
     spec.flags.length ? stat("Flags", id("flags")) : null,
   );
   const boxes = spec.charts.map((c) => el("div", { class: "chart", id: `chart-${spec.name}-${c.key}` }));
+  const bandBoxes = spec.states.map((ch) => el("div", { class: "state-band", id: `band-${spec.name}-${ch.key}`, "data-channel": ch.key }, el("div", { class: "state-band-title", text: ch.label })));
   const root = el(
     "section",
     { class: "est-panel", "data-estimator": spec.name, "aria-label": spec.title },
     el("h2", {}, spec.title, primary ? el("span", { class: "pill", text: "primary" }) : null),
     tiles,
-    el("div", { class: "est-charts" }, ...boxes),
+    el("div", { class: "est-charts" }, ...boxes, ...bandBoxes),
   );
+  const bands = spec.states.map((ch, i) => new StateBand(spec, ch, bandBoxes[i]));
   const charts = spec.charts.map((c, i) => {
     const o = chartOptions(spec, c);
     return makeChart(boxes[i], { ...o, threshold: o.isSlip ? page.threshold() : null, syncKey: `live-${page.vehicleId}`, onCursor: (_i, tS) => page.onCursor(tS) });
@@ -113,6 +119,7 @@ function estimatorPanel(spec, page, primary) {
       const why = lt.flag_names.filter((f) => f !== spec.ok_flag && !spec.slips.some((c) => c.valid_flag === f));
       document.getElementById(`${id(`slip-${ch.key}`)}-note`).textContent = v == null ? `no value: ${why.join(", ").toLowerCase().replace(/_/g, " ") || "unknown"}` : "";
     }
+    showChannels(lt);
     if (motion) document.getElementById(id("speed")).textContent = fmtSpeed(lt[motion.field], page.standstill());
     const q = document.getElementById(id("quality"));
     q.textContent = lt.quality;
@@ -123,6 +130,37 @@ function estimatorPanel(spec, page, primary) {
     if (spec.flags.length) document.getElementById(id("flags")).textContent = lt.flag_names.join(" ") || "none";
   }
 
+  // State, value and wheel value tiles of the newest row: a state in its band colour (marked
+  // when uncertain), a value said "held" where its row does not inform it, a wheel's share in
+  // its grip colour.
+  function showChannels(lt) {
+    for (const ch of spec.states) {
+      const e = document.getElementById(id(`state-${ch.key}`));
+      const st = stateOf(ch, lt[ch.field]);
+      e.textContent = st ? st.label : "–";
+      e.dataset.state = st ? st.name : "";
+      e.style.borderColor = stateColor(ch, lt[ch.field]);
+      const unsure = ch.uncertain_flag && lt.flag_names.includes(ch.uncertain_flag);
+      const conf = ch.confidence_field ? lt[ch.confidence_field] : null;
+      document.getElementById(`${id(`state-${ch.key}`)}-note`).textContent = [unsure ? "uncertain" : "", conf == null ? "" : `confidence ${fmt(conf * 100, 0)} %`].filter(Boolean).join(", ");
+    }
+    for (const ch of spec.values) {
+      const e = document.getElementById(id(`value-${ch.key}`));
+      const informed = !ch.valid_flag || lt.flag_names.includes(ch.valid_flag);
+      const std = ch.std_field ? lt[ch.std_field] : null;
+      e.textContent = fmt(lt[ch.field], 3);
+      e.dataset.informed = String(informed);
+      e.classList.toggle("value-held", !informed);
+      const note = informed ? (std == null ? "" : `± ${fmt(std, 3)} (1σ)`) : lt[ch.field] == null ? "not informed yet" : "held: not informed now";
+      document.getElementById(`${id(`value-${ch.key}`)}-note`).textContent = note;
+    }
+    for (const ch of spec.wheel_values) {
+      const e = document.getElementById(id(`wheel-${ch.key}`));
+      e.textContent = fmt(lt[ch.field], 0);
+      e.style.borderColor = gripCss(lt[ch.field]);
+    }
+  }
+
   function redraw() {
     pending = false;
     if (!cols) return;
@@ -131,6 +169,8 @@ function estimatorPanel(spec, page, primary) {
       setShading(charts[i], shade);
       charts[i].setData(alignedData(cols, c.fields));
     });
+    const rows = cols;
+    requestAnimationFrame(() => bands.forEach((b) => b.draw(rows, charts[0]))); // after uPlot's rescale
     page.onColumns(spec.name, cols);
   }
 
@@ -239,6 +279,10 @@ export function vehicleView(root, vehicleId) {
   }
   const canvas = el("canvas", { class: "map", id: "live-map", role: "img", "aria-label": "Track of the window coloured by slip" });
   const mapTitle = el("h2", { class: "map-title", id: "live-map-title" });
+  // heat cells of a map layer of the primary (a mapped value channel) over the window, if any
+  const layerSel = el("select", { id: "live-layer", "aria-label": "Map layer" });
+  const layerMsg = el("span", { id: "live-layer-msg", class: "summary" });
+  const layerBox = el("div", { class: "toolbar", hidden: true }, el("label", {}, "Cells ", layerSel), layerMsg);
   root.append(
     el(
       "div",
@@ -250,7 +294,7 @@ export function vehicleView(root, vehicleId) {
       winButtons,
     ),
     stats,
-    el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, canvas, ingest)),
+    el("div", { class: "grid2" }, panelBox, el("div", {}, mapTitle, layerBox, canvas, ingest)),
   );
   const map = new SlipMap(canvas, { title: "Track (window) coloured by max |slip| of the wheels", titleEl: mapTitle });
   loadDashboardConfig().then((cfg) => map.setTiles(cfg.map_tile_url));
@@ -367,9 +411,16 @@ export function vehicleView(root, vehicleId) {
     },
     onColumns(name, cols) {
       const spec = specs.get(name);
+      if (name === primary && !spec.position && !canvas.hidden) {
+        // nothing to map: say so once instead of waiting for a position forever
+        canvas.hidden = true;
+        mapTitle.textContent = `No map: ${spec.title} gives no position`;
+      }
       if (name !== primary || !spec.position) return;
       const stampsS = cols.stamp_ns.map((t) => t / 1e9);
-      map.setTrack(cols[spec.position.east_field], cols[spec.position.north_field], slipMetric(spec, cols), stampsS);
+      const p = spec.position;
+      map.setTrack(cols[p.east_field], cols[p.north_field], slipMetric(spec, cols), stampsS);
+      map.setCarried(carriedRows(spec, cols), positionSigma(p, cols));
       map.cursor = map.indexAt(cursorS);
       map.draw();
     },
@@ -381,9 +432,50 @@ export function vehicleView(root, vehicleId) {
     },
   };
 
+  // The primary's map layers in the "Cells" menu (hidden without any).
+  function offerLayers(spec) {
+    const layers = spec.position ? spec.values.filter((v) => v.mapped) : [];
+    layerSel.replaceChildren(el("option", { value: "", text: "none" }), ...layers.map((v) => el("option", { value: v.key, text: `mean ${v.label}` })));
+    layerBox.hidden = !layers.length;
+  }
+
+  // The layer's cells over the chart window, from the stored rows (every 5 s while chosen).
+  let layerTimer = null;
+  async function refreshLayer() {
+    const key = layerSel.value;
+    if (!key || stopped) {
+      map.setHeat(null, 0);
+      layerMsg.textContent = "";
+      map.draw();
+      return;
+    }
+    const end = BigInt(Date.now()) * 1000000n;
+    try {
+      const body = await getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/slipmap`, {
+        estimator: primary,
+        start: (end - BigInt(windowS) * 1000000000n).toString(),
+        end: end.toString(),
+        cell_m: 10,
+        layer: key,
+      });
+      if (stopped || layerSel.value !== key) return;
+      layerMsg.textContent = showLayerHeat(map, body);
+    } catch (err) {
+      map.setHeat(null, 0);
+      layerMsg.textContent = `no cells: ${err.reason || err.message}`;
+    }
+    map.draw();
+  }
+  layerSel.addEventListener("change", () => {
+    clearInterval(layerTimer);
+    refreshLayer();
+    if (layerSel.value) layerTimer = setInterval(refreshLayer, 5000);
+  });
+
   function addPanel(name) {
     const spec = specs.get(name);
     if (!spec || panels.has(name)) return;
+    if (name === primary) offerLayers(spec);
     if (parked) parked.remove(); // live again
     const panel = estimatorPanel(spec, page, name === primary);
     panels.set(name, panel);
@@ -451,6 +543,7 @@ export function vehicleView(root, vehicleId) {
     stopped = true;
     clearInterval(ingestTimer);
     clearInterval(ageTimer);
+    clearInterval(layerTimer);
     for (const sock of new Set(sockets.values())) sock.close();
     window.removeEventListener("resize", onResize);
     for (const p of panels.values()) p.stop();

@@ -23,7 +23,7 @@ from fastapi import APIRouter, Query, Response
 from estimator.catalog import SPECS
 from estimator.config import SlipConfig
 from estimator.geo import EnuFrame
-from estimator.spec import EstimatorSpec
+from estimator.spec import EstimatorSpec, ValueChannel
 from server.analytics.isoxml_grid import slipmap_taskdata
 from server.analytics.reports import check_band_edges
 from server.analytics.slipmap import (
@@ -32,6 +32,7 @@ from server.analytics.slipmap import (
     SlipMap,
     TooManyCells,
     cell_sums,
+    check_layer,
     finish_cells,
     map_samples,
     merge_cell_sums,
@@ -96,6 +97,12 @@ _DEFINITIONS = """\
   (`[0, e0)`, `[e0, e1)`, …, `[e_last, ∞)` with the map's `band_edges_pct`, labels `0_5`,
   `5_15`, `15_up` for the default 5 and 15 %) the time share `Σ_band w / Σ w`. Null when the
   cell has no valid slip time (time and distance still given); otherwise the shares sum to 1.
+* **layer** (`layer=<key>`, a value channel of the estimator's spec that is `mapped`, e.g.
+  friction's `mu`; 400 naming its layers otherwise): per cell over the samples that inform it
+  (the channel's `valid_flag` set and a finite value `x`): `layer.valid_s = Σ w`,
+  `layer.mean = Σ w · x / valid_s` (null when 0) and `layer.samples`, how many such samples
+  (flat columns `layer_valid_s`, `layer_mean`, `layer_samples`). A spec
+  without a position cannot be mapped, layer or not.
 """
 
 _FORMATS = """\
@@ -107,7 +114,8 @@ shares as `slip_share_<label>`), no features while there is no
 {origin_short}; `csv`: one row per cell, the same columns plus the cell centre's
 `center_lat_deg`, `center_lon_deg` (empty without {origin_short_a}); `isoxml`: an ISO 11783-10
 TASKDATA zip with one type-2 grid over the cells' bounding box, each value the cell's mean
-`|slip|` in ppm (1 % = 10,000; 0 where none) under the proprietary DDI 0xE000 (400 without
+`|slip|` in ppm (1 % = 10,000; 0 where none) under the proprietary DDI 0xE000, or with `layer=`
+the layer's mean in millionths (μ 0.8 = 800,000; 0 where none) under DDI 0xE001 (400 without
 {origin_short_a} or without a cell).
 """
 
@@ -193,6 +201,15 @@ CellM = Annotated[
     ),
 ]
 FormatQuery = Annotated[SlipMapFormat, Query(description="Answer format")]
+LayerQuery = Annotated[
+    str | None,
+    Query(
+        max_length=64,
+        description="Key of a mapped value channel of the estimator (friction: `mu`) whose "
+        "time-weighted mean and informing samples each cell also holds (`layer`).",
+        examples=["mu"],
+    ),
+]
 
 _DEFAULT_BAND_EDGES_PCT = SlipConfig().band_edges_pct
 
@@ -239,10 +256,25 @@ def _cells(smap: SlipMap, *, vehicles: bool = False) -> list[dict[str, Any]]:
     if vehicles:
         for cell, count in zip(cells, smap.vehicles.tolist(), strict=True):
             cell["vehicles"] = count
+    if smap.layer is not None:
+        _add_layer(cells, smap)
     return cells
 
 
-_NESTED = ("slips", "slip_band_shares")
+def _add_layer(cells: list[dict[str, Any]], smap: SlipMap) -> None:
+    """Each cell's ``layer`` statistics (:class:`LayerCellPublic`), NaN as None."""
+    stats = zip(
+        smap.layer_valid_s.tolist(),
+        smap.layer_mean.tolist(),
+        smap.layer_samples.tolist(),
+        strict=True,
+    )
+    for cell, (valid_s, mean, samples) in zip(cells, stats, strict=True):
+        cell["layer"] = {"valid_s": valid_s, "mean": _opt(mean), "samples": samples}
+
+
+_NESTED = ("slips", "slip_band_shares", "layer")
+_LAYER_STATS = ("valid_s", "mean", "samples")
 
 
 def _flat(cell: dict[str, Any]) -> dict[str, Any]:
@@ -253,6 +285,8 @@ def _flat(cell: dict[str, Any]) -> dict[str, Any]:
         out[f"slip_{key}_valid_s"] = stats["valid_s"]
         out[f"slip_{key}_mean_pct"] = stats["mean_pct"]
     out.update({f"slip_share_{k}": v for k, v in cell["slip_band_shares"].items()})
+    if cell.get("layer") is not None:
+        out.update({f"layer_{stat}": cell["layer"][stat] for stat in _LAYER_STATS})
     return out
 
 
@@ -294,6 +328,8 @@ def _csv(
     for key in smap.channels:
         columns += [f"slip_{key}_valid_s", f"slip_{key}_mean_pct"]
     columns += [f"slip_share_{k}" for k in smap.band_labels]
+    if smap.layer is not None:
+        columns += [f"layer_{stat}" for stat in _LAYER_STATS]
     columns += ["center_lat_deg", "center_lon_deg"]
     rows = [_flat(cell) for cell in cells]
     if frame is not None:
@@ -346,12 +382,29 @@ def _answer(
     )
 
 
-def _map_fields(spec: EstimatorSpec, *, fleet: bool = False) -> list[str]:
-    """The fields a map of ``spec`` reads; 400 when it cannot be mapped."""
+def _map_fields(
+    spec: EstimatorSpec, *, fleet: bool = False, layer: ValueChannel | None = None
+) -> list[str]:
+    """The fields a map of ``spec`` (and ``layer``) reads; 400 when it cannot be mapped."""
     try:
-        return slipmap_fields(spec, fleet=fleet)
+        return slipmap_fields(spec, fleet=fleet, layer=layer)
     except NotMappable as exc:
         raise BadRequest(str(exc)) from exc
+
+
+def _layer(spec: EstimatorSpec | None, key: str | None) -> ValueChannel | None:
+    """The mapped value channel ``key`` of ``spec`` (None for None); 400 naming its layers."""
+    if key is None or spec is None:
+        return None
+    try:
+        return check_layer(spec, key)
+    except NotMappable as exc:
+        raise BadRequest(str(exc)) from exc
+
+
+def _layer_ref(layer: ValueChannel | None) -> dict[str, Any] | None:
+    """The map's layer as named in its answer: the value channel as the spec serves it."""
+    return None if layer is None else layer.to_dict()
 
 
 def _channel_refs(spec: EstimatorSpec | None) -> list[dict[str, str]]:
@@ -387,11 +440,14 @@ def get_vehicle_slipmap(
     limits: LimitsDep,
     cell_m: CellM = 10.0,
     format: FormatQuery = "json",
+    layer: LayerQuery = None,
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     slip = slip_config(vehicle)
+    value = _layer(spec, layer)
+    fields = _map_fields(spec, layer=value)
     rows = store.query_series(
-        vehicle.vehicle_id, tr.start_ns, tr.end_ns, _map_fields(spec), estimator=spec.name
+        vehicle.vehicle_id, tr.start_ns, tr.end_ns, fields, estimator=spec.name
     )
     try:
         smap = slip_map(
@@ -403,6 +459,7 @@ def get_vehicle_slipmap(
             min_ground_speed_mps=slip.min_ground_speed_mps,
             max_gap_s=limits.report_max_gap_s,
             max_cells=limits.slipmap_max_cells,
+            layer=value,
         )
     except TooManyCells as exc:
         raise _too_many_cells(exc, cell_m) from exc
@@ -413,6 +470,7 @@ def get_vehicle_slipmap(
             "vehicle_id": vehicle.vehicle_id,
             "estimator": spec.name,
             "slip_channels": _channel_refs(spec),
+            "layer": _layer_ref(value),
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,
@@ -504,9 +562,10 @@ def _vehicle_cells(
     limits: ApiLimits,
     cell_m: float,
     band_edges_pct: tuple[float, ...],
+    layer: ValueChannel | None = None,
 ) -> CellSums:
     """One vehicle's partial sums in the shared ``frame`` (its rows are dropped on return)."""
-    fields = _map_fields(spec, fleet=True)
+    fields = _map_fields(spec, fleet=True, layer=layer)
     rows = store.query_series(vehicle_id, tr.start_ns, tr.end_ns, fields, estimator=spec.name)
     samples = map_samples(
         rows,
@@ -514,12 +573,14 @@ def _vehicle_cells(
         end_ns=tr.end_ns,
         min_ground_speed_mps=slip.min_ground_speed_mps,
         max_gap_s=limits.report_max_gap_s,
+        layer=layer,
     )
     return cell_sums(
         reframe(samples, EnuFrame(*anchor), frame),
         cell_m=cell_m,
         band_edges_pct=band_edges_pct,
         max_cells=limits.slipmap_max_cells,
+        layer=None if layer is None else layer.key,
     )
 
 
@@ -575,6 +636,7 @@ def get_fleet_slipmap(
         ),
     ] = None,
     estimator: EstimatorQuery = None,
+    layer: LayerQuery = None,
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     origin = _origin(origin_lat_deg, origin_lon_deg)
@@ -583,6 +645,7 @@ def get_fleet_slipmap(
     records = _fleet_vehicles(store, vehicles)
     asked = None if estimator is None else estimator_spec(estimator)
     spec, placed, skipped = _fleet_estimator(asked, records, anchors)
+    value = _layer(spec, layer)
     channels = () if spec is None else tuple(c.key for c in spec.slips)
     slips = {r.vehicle_id: slip_config(r) for r in placed}
     origin_vehicle_id = None
@@ -605,7 +668,7 @@ def get_fleet_slipmap(
         for record in placed:
             vid = record.vehicle_id
             part = _vehicle_cells(
-                store, vid, spec, slips[vid], anchors[vid], shared, tr, limits, cell_m, edges
+                store, vid, spec, slips[vid], anchors[vid], shared, tr, limits, cell_m, edges, value
             )
             summary.append({"vehicle_id": vid, "rows": int(part.rows.sum()), "cells": part.cells})
             yield part
@@ -618,6 +681,7 @@ def get_fleet_slipmap(
             channels=channels,
             band_edges_pct=edges,
             max_cells=limits.slipmap_max_cells,
+            layer=None if value is None else value.key,
         )
     except TooManyCells as exc:
         raise _too_many_cells(exc, cell_m, fleet=True) from exc
@@ -627,6 +691,7 @@ def get_fleet_slipmap(
         {
             "estimator": None if spec is None else spec.name,
             "slip_channels": _channel_refs(spec),
+            "layer": _layer_ref(value),
             "start_ns": tr.start_ns,
             "end_ns": tr.end_ns,
             "cell_m": smap.cell_m,

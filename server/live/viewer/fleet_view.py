@@ -1,14 +1,19 @@
 """viser 3D fleet view: every vehicle at its pose, wheels coloured by slip, one followed.
 
-Each vehicle is drawn from its primary estimator's rows when that estimator's spec has a position
-(vehicles whose primary has none are not drawn), read through the spec
-(:mod:`server.live.viewer.scene`).
+Each vehicle is drawn from its primary estimator's rows, read through the spec
+(:mod:`server.live.viewer.scene`), where that spec has a position. A vehicle whose primary has no
+position but has wheels to colour (friction's four tyres by grip used) is drawn *parked*: level,
+facing north, in a row 15 m south of the fleet, 8 m apart, so its tyres can be watched; one whose
+primary has neither is not drawn.
 
 Scene (world = local ENU metres, see :mod:`server.live.viewer.scene`):
 
-``/fleet/bodies``   one batched mesh, a box per vehicle, coloured by status (live/stale/offline)
-``/fleet/wheels``   one batched mesh, a wheel or track per slip channel of the vehicle's spec,
-                    coloured by that channel's slip
+``/fleet/bodies``   one batched mesh, a box per wheeled vehicle, coloured by status
+                    (live/stale/offline)
+``/fleet/crawlers`` one batched mesh, a low hull per crawler (a spec whose wheels are tracks)
+``/fleet/wheels``   one batched mesh, a wheel per slip channel of the vehicle's spec, coloured
+                    by that channel's slip, or by the grip used where the spec has it
+``/fleet/tracks``   one batched mesh, a track box per track slip channel, coloured by its slip
 ``/fleet/pins``     a pin above each vehicle in its body's colour, a few pixels wide at any
                     distance, so a fleet spread over kilometres can be found at a glance
 ``/follow/track``   the followed vehicle's recent track, coloured by max |slip| of its channels
@@ -46,10 +51,17 @@ import viser
 from estimator.config import VehicleGeometry
 from estimator.spec import EstimatorSpec
 from server.live.hub import LiveHub
-from server.live.viewer.colors import SLIP_COLOR_NONE, SLIP_COLOR_STOPS, slip_rgb
+from server.live.viewer.colors import (
+    GRIP_COLOR_STOPS,
+    SLIP_COLOR_NONE,
+    SLIP_COLOR_STOPS,
+    slip_rgb,
+)
 from server.live.viewer.scene import (
     BODY_SIZE_M,
+    CRAWLER_BODY_SIZE_M,
     STATUS_RGB,
+    TRACK_SIZE_M,
     FleetFrame,
     box_mesh,
     concat_frames,
@@ -79,6 +91,9 @@ _GRID_MIN_M = 400.0
 #: Pins rise this share of the framed span above the bodies (at least _PIN_MIN_M) [m].
 _PIN_SHARE = 0.08
 _PIN_MIN_M = 4.0
+#: Vehicles without a position are parked in a row this far south of the fleet, this far apart.
+_PARK_SOUTH_M = 15.0
+_PARK_STEP_M = 8.0
 
 
 def _swatch(rgb: tuple[int, int, int], text: str) -> str:
@@ -92,10 +107,12 @@ def legend_html() -> str:
     stops = [_swatch(c, f"{x:g} %") for x, c in SLIP_COLOR_STOPS]
     stops[-1] = _swatch(SLIP_COLOR_STOPS[-1][1], f"≥ {SLIP_COLOR_STOPS[-1][0]:g} %")
     wheels = " ".join([*stops, _swatch(SLIP_COLOR_NONE, "no value")])
+    grip = " ".join(_swatch(c, f"{x:g} %") for x, c in GRIP_COLOR_STOPS)
     bodies = " ".join(_swatch(c, status) for status, c in STATUS_RGB.items())
     return (
         '<div style="font-size:12px;line-height:1.7">'
-        f"<b>Wheels</b>: |slip|, shaded between {wheels}<br>"
+        f"<b>Wheels and tracks</b>: |slip|, shaded between {wheels}<br>"
+        f"<b>Tyres with grip used</b>: shaded between {grip}<br>"
         f"<b>Bodies</b>: {bodies}</div>"
     )
 
@@ -144,6 +161,8 @@ class FleetViewer:
         self.grid_spacing_m = float(grid_spacing_m)
         self._offsets: dict[str, np.ndarray] = {}
         self.server: viser.ViserServer | None = None
+        self._meshes: dict[str, viser.BatchedMeshHandle] = {}
+        # the first body and wheel meshes (of self._meshes), None while there are none
         self._bodies: viser.BatchedMeshHandle | None = None
         self._wheels: viser.BatchedMeshHandle | None = None
         self._track: viser.LineSegmentsHandle | None = None
@@ -156,7 +175,7 @@ class FleetViewer:
         self._pins: viser.LineSegmentsHandle | None = None
         self._pin_height_m = _PIN_MIN_M
         self._cam_fitted: set[int] = set()  # clients whose camera was aimed at the fleet
-        self._n: tuple[int, int] = (-1, -1)  # vehicles and wheels of the batched meshes
+        self._n: tuple[int, ...] = ()  # instances of each part of the batched meshes
         self._ids: list[str] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -291,29 +310,29 @@ class FleetViewer:
             self._cam_fitted.add(client.client_id)
 
     # ------------------------------------------------------------------ frames
-    def _rebuild_fleet(self, frame: FleetFrame) -> None:
-        """(Re)create the batched meshes when the number of vehicles changes."""
-        for h in (self._bodies, self._wheels):
-            if h is not None:
-                h.remove()
-        self._wheels = None
+    def _part_meshes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         g = self.geometry
         r = (g.wheel_radius_left_m + g.wheel_radius_right_m) / 2
-        self._bodies = self._batched(
-            "/fleet/bodies",
-            box_mesh(BODY_SIZE_M),
-            frame.body_wxyz,
-            frame.body_position_m,
-            frame.body_rgb,
-        )
-        if frame.wheel_owner.shape[0]:
-            self._wheels = self._batched(
-                "/fleet/wheels",
-                cylinder_mesh_x(r, _WHEEL_WIDTH_M),
-                frame.wheel_wxyz,
-                frame.wheel_position_m,
-                frame.wheel_rgb,
-            )
+        return {
+            "bodies": box_mesh(BODY_SIZE_M),
+            "crawlers": box_mesh(CRAWLER_BODY_SIZE_M),
+            "wheels": cylinder_mesh_x(r, _WHEEL_WIDTH_M),
+            "tracks": box_mesh(TRACK_SIZE_M),
+        }
+
+    def _rebuild_fleet(self, parts: dict[str, _Part]) -> None:
+        """(Re)create the batched meshes of every part that has instances."""
+        for h in self._meshes.values():
+            h.remove()
+        self._meshes = {}
+        meshes = self._part_meshes()
+        for name, (wxyz, position_m, rgb) in parts.items():
+            if wxyz.shape[0]:
+                self._meshes[name] = self._batched(
+                    f"/fleet/{name}", meshes[name], wxyz, position_m, rgb
+                )
+        self._bodies = self._meshes.get("bodies") or self._meshes.get("crawlers")
+        self._wheels = self._meshes.get("wheels") or self._meshes.get("tracks")
 
     def _batched(
         self,
@@ -380,8 +399,14 @@ class FleetViewer:
             for spec in self.hub.specs()
             if spec.position is not None
         ]
+        parked = [
+            (spec, *self.hub.latest_all(spec.name, primary_only=True))
+            for spec in self.hub.specs()
+            if spec.position is None and spec.slips
+        ]
         all_ids = [v for g in groups for v in g[1]]
-        if not all_ids:
+        n_parked = sum(len(g[1]) for g in parked)
+        if not all_ids and not n_parked:
             return 0.0
         offsets = self._offsets_of(all_ids)
         offset_of = {} if offsets is None else dict(zip(all_ids, offsets, strict=True))
@@ -390,25 +415,25 @@ class FleetViewer:
             part = None if offsets is None else offsets[start : start + len(gids)]
             frames.append(self._frame_of(spec, gids, rows, arrivals, part))
             start += len(gids)
+        frames += self._parked_frames(parked, frames)
         frame = concat_frames(frames)
         ids = frame.ids
-        shape = (len(ids), frame.wheel_owner.shape[0])
+        parts = _part_arrays(frame)
+        shape = tuple(p[0].shape[0] for p in parts.values())
         with self._lock, self.server.atomic():
-            self._show_count(len(ids), len(all_ids))
+            self._show_count(len(ids), len(all_ids) + n_parked, n_parked)
             if not ids:
                 self._clear_fleet()
-            elif shape != self._n or self._bodies is None:
-                self._rebuild_fleet(frame)
+            elif shape != self._n or not self._meshes:
+                self._rebuild_fleet(parts)
                 self._n = shape
             else:
-                f32 = np.float32
-                self._bodies.batched_positions = frame.body_position_m.astype(f32)
-                self._bodies.batched_wxyzs = frame.body_wxyz.astype(f32)
-                self._bodies.batched_colors = frame.body_rgb
-                if self._wheels is not None:
-                    self._wheels.batched_positions = frame.wheel_position_m.astype(f32)
-                    self._wheels.batched_wxyzs = frame.wheel_wxyz.astype(f32)
-                    self._wheels.batched_colors = frame.wheel_rgb
+                for name, (wxyz, position_m, rgb) in parts.items():
+                    handle = self._meshes.get(name)
+                    if handle is not None:
+                        handle.batched_positions = position_m.astype(np.float32)
+                        handle.batched_wxyzs = wxyz.astype(np.float32)
+                        handle.batched_colors = rgb
             if ids != self._ids:
                 self._ids = list(ids)
                 assert self._follow is not None
@@ -424,20 +449,23 @@ class FleetViewer:
         self.last_frame_s = time.perf_counter() - t0
         return self.last_frame_s
 
-    def _show_count(self, drawn: int, total: int) -> None:
+    def _show_count(self, drawn: int, total: int, parked: int = 0) -> None:
         assert self._count is not None
         text = str(drawn) if drawn == total else f"{drawn} ({total - drawn} without a position)"
+        if parked:
+            text += f", {parked} parked (no position)"
         if self._count.value != text:
             self._count.value = text  # type: ignore[misc]
 
     def _clear_fleet(self) -> None:
         """No vehicle to draw: remove the batched meshes and the pins."""
-        for h in (self._bodies, self._wheels, self._pins):
+        for h in (*self._meshes.values(), self._pins):
             if h is not None:
                 h.remove()
+        self._meshes = {}
         self._bodies = self._wheels = None
         self._pins = None
-        self._n = (0, 0)
+        self._n = ()
 
     def _draw_pins(self, frame: FleetFrame) -> None:
         """A vertical segment ``(n, 2, 3)`` above each body, in the body's colour."""
@@ -477,6 +505,28 @@ class FleetViewer:
         rows, arrivals = rows[keep], arrivals[keep]
         status = self.hub.status_of_rows(rows["stamp_ns"], arrivals)
         return fleet_frame(ids, rows, spec, self.geometry, status)
+
+    def _parked_frames(
+        self,
+        groups: list[tuple[EstimatorSpec, list[str], np.ndarray, np.ndarray]],
+        placed: list[FleetFrame],
+    ) -> list[FleetFrame]:
+        """Frames of the vehicles whose primary gives no position, parked in a row
+        :data:`_PARK_SOUTH_M` south of the placed vehicles' ground points (of the origin when
+        none is placed), :data:`_PARK_STEP_M` apart from the westmost, in spec then id order."""
+        grounds = [f.ground_m for f in placed if f.ids]
+        ground = np.concatenate(grounds) if grounds else np.zeros((1, 3))
+        east0, north0 = float(ground[:, 0].min()), float(ground[:, 1].min()) - _PARK_SOUTH_M
+        out, k = [], 0
+        for spec, ids, rows, arrivals in groups:
+            n = len(ids)
+            row_m = np.zeros((n, 3))
+            row_m[:, 0] = east0 + _PARK_STEP_M * (k + np.arange(n))
+            row_m[:, 1] = north0
+            k += n
+            status = self.hub.status_of_rows(rows["stamp_ns"], arrivals)
+            out.append(fleet_frame(ids, rows, spec, self.geometry, status, ground_m=row_m))
+        return out
 
     def _draw_followed(self, frame: FleetFrame, offset: np.ndarray | None) -> None:
         """The followed vehicle's arrow, label and track (``offset``: its frame's shift into
@@ -568,6 +618,27 @@ class FleetViewer:
             except AssertionError:  # the client has not reported its camera yet
                 continue
         self._cam_last = np.array(target, dtype=np.float64)
+
+
+_Part = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _part_arrays(frame: FleetFrame) -> dict[str, _Part]:
+    """``(wxyz, position, rgb)`` of each batched part's instances: wheeled bodies, crawler
+    hulls, wheels, tracks."""
+    body, wheel = ~frame.crawler, ~frame.wheel_is_track
+    b = (frame.body_wxyz, frame.body_position_m, frame.body_rgb)
+    w = (frame.wheel_wxyz, frame.wheel_position_m, frame.wheel_rgb)
+
+    def pick(mask: np.ndarray, arrays: _Part) -> _Part:
+        return arrays[0][mask], arrays[1][mask], arrays[2][mask]
+
+    return {
+        "bodies": pick(body, b),
+        "crawlers": pick(~body, b),
+        "wheels": pick(wheel, w),
+        "tracks": pick(~wheel, w),
+    }
 
 
 def _col(win: dict[str, list[float | None]], name: str | None, n: int) -> np.ndarray:

@@ -2,9 +2,16 @@
 
 Rows are read through their estimator's spec: position and heading from its
 :class:`estimator.spec.PositionChannel`, one wheel (or track) per slip channel placed by
-:class:`estimator.spec.WheelPosition` and coloured by that channel's value, the velocity arrow
-from its motion speed. World frame of the scene = the vehicles' local ENU frame: ``x`` east,
-``y`` north, ``z`` up, metres. Body frame (``estimator.types``): X right, Y forward, Z up.
+:class:`estimator.spec.WheelPosition` and coloured by that channel's value (or, where the spec
+has a :class:`estimator.spec.WheelValueChannel` at that position, by the share of the grip it
+uses, :func:`server.live.viewer.colors.grip_rgb`), the velocity arrow from its motion speed.
+A spec whose slip channels are tracks (``track_left``, ``track_right``) is drawn as a crawler:
+a low hull (:data:`CRAWLER_BODY_SIZE_M`) between two track boxes (:data:`TRACK_SIZE_M`). A spec
+without a position is drawn only where the caller gives each vehicle a ground point
+(``ground_m``: a parking row), level and facing north.
+
+World frame of the scene = the vehicles' local ENU frame: ``x`` east, ``y`` north, ``z`` up,
+metres. Body frame (``estimator.types``): X right, Y forward, Z up.
 
 Attitude → rotation body → ENU. With heading ``ψ`` from north clockwise, pitch ``θ`` nose up
 positive and roll ``φ`` right side down positive::
@@ -33,13 +40,16 @@ import numpy.typing as npt
 
 from estimator.config import VehicleGeometry
 from estimator.spec import EstimatorSpec, WheelPosition
-from server.live.viewer.colors import slip_rgb
+from server.live.viewer.colors import grip_rgb, slip_rgb
 
 __all__ = [
     "BODY_CENTRE_M",
     "BODY_SIZE_M",
+    "CRAWLER_BODY_CENTRE_M",
+    "CRAWLER_BODY_SIZE_M",
     "FRONT_AXLE_M",
     "STATUS_RGB",
+    "TRACK_SIZE_M",
     "FleetFrame",
     "attitude_fields",
     "attitude_from_wxyz",
@@ -47,10 +57,13 @@ __all__ = [
     "concat_frames",
     "cylinder_mesh_x",
     "fleet_frame",
+    "is_crawler",
+    "is_track",
     "positioned",
     "quat_mul",
     "rotate",
     "rotation_matrix_from_wxyz",
+    "wheel_colours",
     "wheel_offset_m",
     "wxyz_from_attitude",
 ]
@@ -62,6 +75,11 @@ BODY_SIZE_M = (1.3, 3.2, 1.1)
 BODY_CENTRE_M = (0.0, 1.1, 1.35)
 #: Drawn front axle, ahead of ``O`` (the geometry has no wheelbase: for drawing only).
 FRONT_AXLE_M = 2.3
+#: A crawler's track (width X, length Y, height Z), its centre under the body's centre, and its
+#: hull between the tracks (size and centre relative to ``O``): for drawing only.
+TRACK_SIZE_M = (0.5, 3.6, 0.8)
+CRAWLER_BODY_SIZE_M = (1.3, 4.0, 0.9)
+CRAWLER_BODY_CENTRE_M = (0.0, BODY_CENTRE_M[1], 1.1)
 
 #: Body colour by the vehicle's status (the live hub's).
 STATUS_RGB = {
@@ -151,10 +169,13 @@ class FleetFrame:
         vehicle 1's, …
     wheel_owner : (w,) int, the vehicle (index into ``ids``) of each wheel
     wheel_wxyz : (w, 4) the body's rotation, repeated per wheel
-    wheel_rgb : (w, 3) uint8, slip colour (``server.live.viewer.colors``) of that wheel's channel
+    wheel_rgb : (w, 3) uint8, slip colour (``server.live.viewer.colors``) of that wheel's
+        channel, or grip colour where the spec has a wheel value channel at its position
     velocity_mps : (n, 3) the motion speed along the forward axis
     antenna_m : (n, 3) the estimate's position
     ground_m : (n, 3) ``O``, the ground point under the rear-axle midpoint
+    crawler : (n,) bool, drawn as a crawler (its spec's wheels are tracks)
+    wheel_is_track : (w,) bool, a track rather than a wheel
     """
 
     ids: list[str]
@@ -169,6 +190,8 @@ class FleetFrame:
     velocity_mps: FloatArray
     antenna_m: FloatArray
     ground_m: FloatArray
+    crawler: npt.NDArray[np.bool_]
+    wheel_is_track: npt.NDArray[np.bool_]
 
 
 def _nan_to(a: npt.ArrayLike, value: float) -> FloatArray:
@@ -181,8 +204,26 @@ def wheel_offset_m(position: WheelPosition, geometry: VehicleGeometry) -> FloatA
     left = position.value.endswith("left")
     half = geometry.track_width_m / 2
     radius = geometry.wheel_radius_left_m if left else geometry.wheel_radius_right_m
+    if is_track(position):
+        radius = TRACK_SIZE_M[2] / 2
     ahead = {"rear": 0.0, "front": FRONT_AXLE_M, "track": BODY_CENTRE_M[1]}
     return np.array([-half if left else half, ahead[position.value.split("_")[0]], radius])
+
+
+def is_track(position: WheelPosition) -> bool:
+    """Whether ``position`` is a crawler's track rather than a wheel."""
+    return position in (WheelPosition.TRACK_LEFT, WheelPosition.TRACK_RIGHT)
+
+
+def wheel_colours(rows: np.ndarray, spec: EstimatorSpec) -> npt.NDArray[np.uint8]:
+    """RGB ``(n, k)`` uint8 of the ``k`` wheels (slip channels) of ``rows`` ``(n,)``: the grip
+    colour of the spec's wheel value channel at the wheel's position, else its slip colour."""
+    grip = {w.position: w.field for w in spec.wheel_values}
+    out = np.empty((rows.shape[0], len(spec.slips), 3), dtype=np.uint8)
+    for j, channel in enumerate(spec.slips):
+        field = grip.get(channel.position)
+        out[:, j] = slip_rgb(rows[channel.field]) if field is None else grip_rgb(rows[field])
+    return out
 
 
 def attitude_fields(spec: EstimatorSpec) -> tuple[str | None, str | None]:
@@ -208,24 +249,24 @@ def positioned(rows: np.ndarray, spec: EstimatorSpec) -> npt.NDArray[np.bool_]:
     return np.isfinite(rows[p.east_field]) & np.isfinite(rows[p.north_field])
 
 
-def fleet_frame(
-    ids: Sequence[str],
+def _pose(
     rows: np.ndarray,
     spec: EstimatorSpec,
-    geometry: VehicleGeometry | None = None,
-    status: Sequence[str] | None = None,
-) -> FleetFrame:
-    """Map the newest row of ``spec`` of each vehicle (``rows``, shape ``(n,)``) to the scene.
-
-    ``spec`` must have a position. Missing attitude (NaN, or no such field) is taken as level;
-    missing heading as north; missing position as the origin (callers draw only the rows
-    :func:`positioned` keeps); a missing slip colours the wheel grey.
-    """
+    g: VehicleGeometry,
+    ground_m: FloatArray | None,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``(q, R, antenna, ground)`` of each row: from the spec's position channel, or level and
+    facing north on the given ``ground_m`` (n, 3) (antenna above it by the geometry)."""
+    ax, ay = g.antenna_offset_m
+    lever = (ax, ay, g.h0_m + g.h1_m)
+    if ground_m is not None:
+        q = wxyz_from_attitude(*np.zeros((3, rows.shape[0])))
+        R = rotation_matrix_from_wxyz(q)
+        ground = np.asarray(ground_m, dtype=np.float64)
+        return q, R, ground + rotate(R, lever), ground
     if spec.position is None:
         raise ValueError(f"estimator {spec.name!r} has no position to draw")
     pos = spec.position
-    g = geometry or VehicleGeometry()
-    n = rows.shape[0]
     pitch, roll = attitude_fields(spec)
     q = wxyz_from_attitude(
         _column(rows, pos.heading_field, 0.0),
@@ -236,31 +277,57 @@ def fleet_frame(
     antenna = np.stack(
         [_column(rows, f, 0.0) for f in (pos.east_field, pos.north_field, pos.up_field)], -1
     )
-    ax, ay = g.antenna_offset_m
-    ground = antenna - rotate(R, (ax, ay, g.h0_m + g.h1_m))
+    return q, R, antenna, antenna - rotate(R, lever)
+
+
+def is_crawler(spec: EstimatorSpec) -> bool:
+    """Whether the spec's wheels are tracks (drawn as a crawler)."""
+    return bool(spec.slips) and all(is_track(s.position) for s in spec.slips)
+
+
+def fleet_frame(
+    ids: Sequence[str],
+    rows: np.ndarray,
+    spec: EstimatorSpec,
+    geometry: VehicleGeometry | None = None,
+    status: Sequence[str] | None = None,
+    ground_m: FloatArray | None = None,
+) -> FleetFrame:
+    """Map the newest row of ``spec`` of each vehicle (``rows``, shape ``(n,)``) to the scene.
+
+    ``spec`` must have a position unless ``ground_m`` (n, 3) places each vehicle (level,
+    facing north). Missing attitude (NaN, or no such field) is taken as level; missing heading
+    as north; missing position as the origin (callers draw only the rows :func:`positioned`
+    keeps); a missing slip or grip colours the wheel grey.
+    """
+    g = geometry or VehicleGeometry()
+    n = rows.shape[0]
+    q, R, antenna, ground = _pose(rows, spec, g, ground_m)
     k = len(spec.slips)
     wheels = np.empty((k * n, 3))
-    slip = np.empty(k * n)
     for j, channel in enumerate(spec.slips):
         wheels[j::k] = ground + rotate(R, wheel_offset_m(channel.position, g))
-        slip[j::k] = rows[channel.field]
     vel = R[:, :, 1] * _column(rows, spec.motion_field, 0.0)[:, None]
+    crawler = is_crawler(spec)
+    centre = CRAWLER_BODY_CENTRE_M if crawler else BODY_CENTRE_M
     body_rgb = np.array(
         [STATUS_RGB.get(s, STATUS_RGB["live"]) for s in (status or ["live"] * n)], dtype=np.uint8
     ).reshape(n, 3)
     return FleetFrame(
         ids=list(ids),
         estimators=[spec.name] * n,
-        body_position_m=ground + rotate(R, BODY_CENTRE_M),
+        body_position_m=ground + rotate(R, centre),
         body_wxyz=q,
         body_rgb=body_rgb,
         wheel_position_m=wheels,
         wheel_owner=np.repeat(np.arange(n, dtype=np.int64), k),
         wheel_wxyz=np.repeat(q, k, axis=0),
-        wheel_rgb=slip_rgb(slip),
+        wheel_rgb=wheel_colours(rows, spec).reshape(k * n, 3),
         velocity_mps=vel,
         antenna_m=antenna,
         ground_m=ground,
+        crawler=np.full(n, crawler),
+        wheel_is_track=np.tile([is_track(s.position) for s in spec.slips], n).astype(bool),
     )
 
 
@@ -286,6 +353,8 @@ def concat_frames(frames: Sequence[FleetFrame]) -> FleetFrame:
         velocity_mps=cat("velocity_mps"),
         antenna_m=cat("antenna_m"),
         ground_m=cat("ground_m"),
+        crawler=cat("crawler"),
+        wheel_is_track=cat("wheel_is_track"),
     )
 
 

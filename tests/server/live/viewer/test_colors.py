@@ -6,7 +6,7 @@ import json
 import re
 from pathlib import Path
 
-from server.live.viewer.colors import SLIP_COLOR_NONE, SLIP_COLOR_STOPS
+from server.live.viewer.colors import GRIP_COLOR_STOPS, SLIP_COLOR_NONE, SLIP_COLOR_STOPS
 
 COLORS_JS = Path(__file__).resolve().parents[4] / "web" / "js" / "colors.js"
 
@@ -25,3 +25,8 @@ def test_stops_match_the_dashboard() -> None:
 
 def test_no_value_colour_matches_the_dashboard() -> None:
     assert _js_constant("SLIP_COLOR_NONE") == list(SLIP_COLOR_NONE)
+
+
+def test_grip_stops_match_the_dashboard() -> None:
+    js = _js_constant("GRIP_COLOR_STOPS")
+    assert js == [[s, list(c)] for s, c in GRIP_COLOR_STOPS]
