@@ -33,6 +33,7 @@ from server.estimation.registry import (
     UnknownEstimatorError,
     estimator_names_for,
 )
+from server.ingest.counters import PLAIN_COUNTERS
 from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
@@ -436,18 +437,7 @@ def _ingest_families(
 ) -> list[MetricFamily]:
     """Per-vehicle ingest counters (or their fleet totals) as Prometheus families (rejections
     labelled by reason)."""
-    plain = (
-        "received",
-        "accepted",
-        "late",
-        "duplicate",
-        "lost_by_seq_gap",
-        "seq_restarts",
-        "clock_reanchors",
-        "wheel_gaps",
-        "estimator_errors",
-        "configs_refused",
-    )
+    plain = PLAIN_COUNTERS
     samples: dict[str, list[Sample]] = {name: [] for name in plain}
     rejected: list[Sample] = []
     for vehicle_id, counts in sorted((counters if by_vehicle else _fleet_totals(counters)).items()):

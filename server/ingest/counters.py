@@ -28,13 +28,14 @@ import threading
 from collections import defaultdict
 from collections.abc import Mapping
 
-__all__ = ["NO_VEHICLE", "IngestCounters"]
+__all__ = ["NO_VEHICLE", "PLAIN_COUNTERS", "IngestCounters"]
 
 #: Bucket for packets whose key names no valid vehicle.
 NO_VEHICLE = ""
 
 
-_PLAIN = (
+#: The counters every vehicle has (beside ``rejected_<reason>`` and ``stalled_<stream>``).
+PLAIN_COUNTERS = (
     "received",
     "accepted",
     "late",
@@ -190,7 +191,7 @@ class IngestCounters:
         """
         with self._lock:
             c = self._get(vehicle_id)
-            for name in _PLAIN:
+            for name in PLAIN_COUNTERS:
                 setattr(c, name, getattr(c, name) + int(totals.get(name, 0)))
             for key, value in totals.items():
                 if key.startswith("rejected_"):
