@@ -93,7 +93,9 @@ class Runtime:
         self.writer = StoreWriter(self.latency.wrap_store(self._store), s.storage).start()
         self.live_hub = LiveHub(primary_of=self._primary_estimator)
         self.alert_engine = AlertEngine(
-            slip_config_for=lambda vid: self._config_of(vid).slip, publish=self._publish_alert
+            slip_config_for=lambda vid: self._config_of(vid).slip,
+            publish=self._publish_alert,
+            rule_limits=s.alerts.engine_limits(),
         )
         self.session = open_session(s.zenoh)
         self.registry = EstimatorRegistry()

@@ -14,7 +14,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field, SecretStr, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -23,6 +23,7 @@ from pydantic_settings import (
 )
 
 __all__ = [
+    "AlertSettings",
     "ApiSettings",
     "IngestSettings",
     "Settings",
@@ -377,6 +378,42 @@ def _is_loopback_host(host: str) -> bool:
         return False
 
 
+class AlertRuleLimit(BaseModel):
+    """A server's own limit or hold time for one of a spec's alert rules."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    above: float | None = Field(None, allow_inf_nan=False, description="alert above this")
+    below: float | None = Field(None, allow_inf_nan=False, description="alert below this")
+    hold_s: float | None = Field(None, ge=0, le=86_400, description="held this long (s)")
+
+
+class AlertSettings(BaseModel):
+    """Alert rules declared by the estimators' specs, set otherwise for this server."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rule_limits: dict[str, AlertRuleLimit] = Field(
+        default_factory=dict,
+        description=(
+            "per '<estimator>:<rule>' (e.g. 'friction:low_mu'): above, below and hold_s in place "
+            "of the spec's defaults"
+        ),
+    )
+
+    @field_validator("rule_limits")
+    @classmethod
+    def _rule_keys(cls, v: dict[str, AlertRuleLimit]) -> dict[str, AlertRuleLimit]:
+        for key in v:
+            if key.count(":") != 1 or not all(key.split(":")):
+                raise ValueError(f"rule_limits key {key!r}: write it '<estimator>:<rule>'")
+        return v
+
+    def engine_limits(self) -> dict[str, dict[str, float]]:
+        """The limits as :class:`server.analytics.alerts.AlertEngine` takes them."""
+        return {k: v.model_dump(exclude_none=True) for k, v in self.rule_limits.items()}
+
+
 class Settings(BaseSettings):
     """All of the server's settings."""
 
@@ -391,6 +428,7 @@ class Settings(BaseSettings):
     ingest: IngestSettings = Field(default_factory=IngestSettings)
     api: ApiSettings = Field(default_factory=ApiSettings)
     viewer: ViewerSettings = Field(default_factory=ViewerSettings)
+    alerts: AlertSettings = Field(default_factory=AlertSettings)
 
     @field_validator("api")
     @classmethod

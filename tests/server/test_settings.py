@@ -60,3 +60,29 @@ def test_loading_a_file_leaves_the_environment_alone(
     assert load_settings().api.port == 8000
     monkeypatch.setenv("SLIPFLEET_CONFIG", str(toml))  # the variable works on its own too
     assert load_settings().api.port == 9005
+
+
+def test_alert_rule_limits_from_the_file_in_the_alert_engines_form(tmp_path: Path) -> None:
+    from server.analytics.alerts import AlertEngine
+
+    toml = tmp_path / "slipfleet.toml"
+    toml.write_text('[alerts.rule_limits."friction:low_mu"]\nbelow = 0.2\nhold_s = 5\n')
+    s = load_settings(toml)
+    limits = s.alerts.engine_limits()
+    assert limits == {"friction:low_mu": {"below": 0.2, "hold_s": 5.0}}
+    AlertEngine(rule_limits=limits)  # accepted as the engine takes them
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        '[alerts.rule_limits."low_mu"]\nbelow = 0.2\n',  # no estimator
+        '[alerts.rule_limits."friction:low_mu"]\nhold = 5\n',  # not a limit
+        '[alerts.rule_limits."friction:low_mu"]\nhold_s = -1\n',
+    ],
+)
+def test_a_mistaken_alert_rule_limit_is_refused(tmp_path: Path, body: str) -> None:
+    toml = tmp_path / "slipfleet.toml"
+    toml.write_text(body)
+    with pytest.raises(ValidationError, match="rule_limits"):
+        load_settings(toml)
