@@ -565,7 +565,7 @@ class EstimatorSpec:
         }
 
     def _extra_channels_dict(self) -> dict[str, Any]:
-        """``states``, ``values`` and ``wheel_values`` of :meth:`to_dict`."""
+        """``states``, ``values``, ``wheel_values`` and ``alerts`` of :meth:`to_dict`."""
         return {
             "states": [
                 {
@@ -584,5 +584,17 @@ class EstimatorSpec:
             "wheel_values": [
                 {"key": w.key, "label": w.label, "field": w.field, "position": str(w.position)}
                 for w in self.wheel_values
+            ],
+            "alerts": [
+                {
+                    "key": a.key,
+                    "label": a.label,
+                    "field": a.field,
+                    "above": a.above,
+                    "below": a.below,
+                    "hold_s": a.hold_s,
+                    "slip": a.slip,
+                }
+                for a in self.alerts
             ],
         }

@@ -399,6 +399,18 @@ class WheelValueChannelSpecPublic(BaseModel):
     position: str
 
 
+class AlertRuleSpecPublic(BaseModel):
+    """An alert the estimator's rows raise (kind ``rule:<estimator>:<key>``), its defaults."""
+
+    key: str
+    label: str
+    field: str | None
+    above: float | None
+    below: float | None
+    hold_s: float = Field(description="held this long in sensor time before it opens")
+    slip: str | None = Field(description="the slip channel it watches in place of the threshold")
+
+
 class EstimatorSpecPublic(BaseModel):
     """What an estimator takes and gives (``estimator.spec.EstimatorSpec.to_dict()``)."""
 
@@ -419,6 +431,7 @@ class EstimatorSpecPublic(BaseModel):
     states: list[StateChannelSpecPublic] = []
     values: list[ValueChannelSpecPublic] = []
     wheel_values: list[WheelValueChannelSpecPublic] = []
+    alerts: list[AlertRuleSpecPublic] = []
 
 
 class EstimatorsPublic(BaseModel):

@@ -5,8 +5,9 @@ import { fmtClock, zoneName } from "./clock.js";
 import { loadSpecs } from "./specs.js";
 import { el, fmt, fmtDuration, timeTitle, vehicleHref } from "./util.js";
 
-// Alert kinds of no estimator; slip and flag alerts ("slip:<estimator>:<channel key>",
-// "flag:<estimator>:<FLAG>") are said from the estimator's spec (kindLabel).
+// Alert kinds of no estimator; slip, flag and rule alerts ("slip:<estimator>:<channel key>",
+// "flag:<estimator>:<FLAG>", "rule:<estimator>:<rule key>") are said from the estimator's spec
+// (kindLabel).
 const KIND_LABEL = {
   stale: "No data (stale)",
   storage_down: "Server: database unavailable or full",
@@ -20,6 +21,10 @@ function kindLabel(a, specs) {
   if (a.kind.startsWith("slip:")) {
     const ch = spec.slips.find((c) => c.key === a.channel);
     return `Slip ${ch ? ch.label : a.channel} above threshold (${spec.title})`;
+  }
+  if (a.kind.startsWith("rule:")) {
+    const rule = (spec.alerts || []).find((r) => r.key === a.channel);
+    return `${rule ? rule.label : a.channel} (${spec.title})`;
   }
   const flag = spec.flags.find((f) => f.name === a.channel);
   return `${flag ? flag.description : a.channel} (${spec.title})`;

@@ -36,6 +36,8 @@ def test_estimators_lists_every_spec(client: ApiClient) -> None:
     body = client.get("/api/v1/estimators").json()
     assert body["count"] == len(SPECS)
     assert body["data"] == [SPECS[name].to_dict() for name in sorted(SPECS)]
+    rules = {s["name"]: {a["key"] for a in s["alerts"]} for s in body["data"]}
+    assert "long_dead_reckoning" in rules["tracked"] and "low_mu" in rules["friction"]
 
 
 def test_vehicle_names_its_estimators_primary_first(client: ApiClient, both: None) -> None:
