@@ -22,6 +22,15 @@ class TrackedEstimatorConfig:
     ``q`` is 1 in straights, ``1/1.42`` in arcs, between them in separated turns and 0 with a
     braked track; ``arc_ratio_max`` and ``straight_ratio_min`` cut between them,
     ``ratio_std`` is the 1-sigma of a measured ``q`` that turns a margin into a confidence.
+    ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
+    from standstill (a straight). ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to
+    lead the yaw rate (``ω + τ·ω̇``, less ``yaw_lead_noise_radps``, about 3 sigma of what the
+    gyro's noise makes of ``τ·ω̇`` over a tick) in the separated-turn check. A steering lever
+    crosses its travel in about ``lever_travel_s``; a sprocket or gear ratio changing faster
+    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick) is
+    a lever moving, and the state is read where it goes. The odometer factors learn only once
+    the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
+    settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
     """
 
     mode: TrackedMode = TrackedMode.PRODUCT
@@ -36,6 +45,11 @@ class TrackedEstimatorConfig:
     straight_ratio_min: float = 0.985
     ratio_std: float = 0.01
     separated_yaw_share: float = 0.5
+    start_odometer_mps: float = 0.1
+    max_yaw_lag_s: float = 1.0
+    yaw_lead_noise_radps: float = 0.02
+    lever_travel_s: float = 0.3
+    lever_rate_min_per_s: float = 0.3
     lever_accel_mps2: float = 0.5
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0
@@ -46,6 +60,7 @@ class TrackedEstimatorConfig:
     pivot_odometer_std_per_mps: float = 0.05
     odometer_std_per_mps2: float = 0.3
     learn_accel_max_mps2: float = 0.2
+    learn_steady_s: float = 1.5
     standstill_odometer_mps: float = 0.02
     zero_speed_std_mps: float = 0.01
     zero_rate_std_radps: float = 0.001

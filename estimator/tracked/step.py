@@ -110,7 +110,13 @@ def recognise(
     if cfg.mode != TrackedMode.PRODUCT:
         ones = np.ones(v.shape)
         return paper_states(v, w, inp.odometer_mps, step, p), ones
-    state, conf = product_states(inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, w)
+    tau = np.clip(f.x[:, S.ACCEL_LAG], 0.0, cfg.max_yaw_lag_s)
+    lead = np.abs(w + tau * inp.yaw_accel_radps2) - cfg.yaw_lead_noise_radps
+    lead = np.maximum(np.abs(w), lead)
+    before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
+    state, conf = product_states(
+        inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, lead, inp.odometer_mps, before
+    )
     missing = inp.sprocket_missing
     if missing.any():
         v_lag = v - inp.accel_mps2 * inp.odometer_lag_s
@@ -211,8 +217,11 @@ def _fuse_odometer(
     y, H, R, mask, corrected = odometer_measurement(
         cfg, p, f.x, state, inp.odometer_mps, inp.odometer_lag_s, inp.accel_mps2, w, valid
     )
-    # the factors learn only beside GNSS, at a steady speed
-    steady = np.abs(inp.accel_mps2) < cfg.learn_accel_max_mps2
+    # the factors learn only beside GNSS, at a speed steady long enough for the hull's lag
+    # behind its tracks and the slip of acceleration to have died out
+    steady = (np.abs(inp.accel_mps2) < cfg.learn_accel_max_mps2) & (
+        inp.steady_s >= cfg.learn_steady_s
+    )
     beside = f.started & (f.since_gnss_s <= 1.0)
     H[:, :, _FACTORS] *= (beside & steady)[:, None, None]
     H[:, :, S.ACCEL_LAG] *= beside[:, None]
