@@ -31,6 +31,12 @@ class TrackedEstimatorConfig:
     a lever moving, and the state is read where it goes. The odometer factors learn only once
     the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
     settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
+    A pivot's driven track slips 10-40 % (it drags the hull round the braked one), so its
+    factor starts wider (``initial_pivot_factor_std``) than the others, the low gear's offset
+    from the straight's narrower (``initial_low_offset_std``); a slip whose 1-sigma
+    exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
+    m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
+    2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
     """
 
     mode: TrackedMode = TrackedMode.PRODUCT
@@ -77,8 +83,14 @@ class TrackedEstimatorConfig:
     initial_gyro_bias_std_radps: float = 1e-3
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03
+    initial_pivot_factor_std: float = 0.15
+    initial_low_offset_std: float = 0.02
+    slip_std_max_pct: float = 3.0
     initial_accel_lag_std_s: float = 0.5
     accel_lag_walk_s: float = 1e-3
+    initial_accel_slip_s2pm: float = 0.05
+    initial_accel_slip_std_s2pm: float = 0.03
+    accel_slip_walk_s2pm: float = 1e-4
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", TrackedMode(self.mode))

@@ -214,6 +214,33 @@ def test_product_odometer_measurement_by_hand() -> None:
     assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3 - 0.2)
 
 
+def test_low_gear_factor_is_an_offset_and_traction_slips_with_acceleration() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED] = 2.0
+    x[0, S.F_STRAIGHT] = 0.95
+    x[0, S.F_LOW] = 0.01  # F_low = 0.95 + 0.01
+    x[0, S.ACCEL_SLIP] = 0.05  # κ: 5 % more slip per m/s²
+    y, H, _, mask, corrected = odometer_measurement(
+        TrackedEstimatorConfig(),
+        P1,
+        x,
+        np.array([M.LOW_STRAIGHT]),
+        np.array([2.5]),
+        np.zeros(1),
+        np.array([0.4]),
+        np.zeros(1),
+        np.ones(1, dtype=bool),
+    )
+    effective = 0.96 * (1 - 0.05 * 0.4)  # F_low·(1 − κ·a)
+    h = 1.42 * 2.0 / effective
+    assert y[0, 0] == pytest.approx(2.5 - h)
+    assert H[0, 0, S.SPEED] == pytest.approx(1.42 / effective)
+    assert H[0, 0, S.F_LOW] == pytest.approx(-h / 0.96)
+    assert H[0, 0, S.F_STRAIGHT] == pytest.approx(-h / 0.96)  # the offset rides on F_straight
+    assert H[0, 0, S.ACCEL_SLIP] == pytest.approx(h * 0.4 / (1 - 0.05 * 0.4))
+    assert mask[0] and corrected[0] == pytest.approx(2.5 * effective / 1.42)
+
+
 def test_odometer_dropped_in_heading_jumps() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.F_STRAIGHT] = 1.0
