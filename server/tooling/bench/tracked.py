@@ -16,7 +16,10 @@ Metrics per run and mode
     a true state change (the confusion matrix sums the product's and the paper's).
 ``slip_rms_pp`` / ``slip_p95_pp`` (per track)
     Slip error in percentage points where the track is driven and moves (true sprocket speed
-    ≥ 0.5 m/s) and the row gives a slip.
+    ≥ 0.5 m/s) and the row gives a slip (a braked track's −100 % included). A row without
+    one (its ``SLIP_*_VALID`` flag unset: not observable, e.g. a lever moving, a sprocket
+    settling, a 1-sigma above ``slip_std_max_pct``) is not scored: ``slip_coverage_pct`` is
+    the share of moving rows that give one (printed as ``cov%``, the smaller track's).
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
     driven in it; the worst outage of the run), and the largest error within it.
@@ -150,7 +153,8 @@ def _line(label: str, mode: str, m: dict[str, Any]) -> str:
         f"{label:<22} {mode:<17} {m['state_pct']:7.2f} {m['settled_pct']:7.2f} "
         f"{m['slip_left_rms_pp']:6.2f}/{m['slip_left_p95_pp']:<6.2f} "
         f"{m['slip_right_rms_pp']:6.2f}/{m['slip_right_p95_pp']:<6.2f} "
-        f"{m['dr_end_m']:7.2f} {m['dr_end_pct']:6.3f} {m['dr_max_m']:7.2f} {m['outage_km']:5.2f}"
+        f"{m['dr_end_m']:7.2f} {m['dr_end_pct']:6.3f} {m['dr_max_m']:7.2f} {m['outage_km']:5.2f} "
+        f"{min(m['slip_left_coverage_pct'], m['slip_right_coverage_pct']):5.1f}"
     )
 
 
@@ -183,7 +187,7 @@ def run(
         results["seconds"][mode.value] = time.perf_counter() - t1
     print(
         f"{'run':<22} {'mode':<17} {'state%':>7} {'settl%':>7} {'slipL rms/p95':>13} "
-        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5}"
+        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5} {'cov%':>5}"
     )
     failures = []
     for k, r in enumerate(runs):
