@@ -4,7 +4,10 @@ Over the last ``max_edges`` edges within ``window`` before a tick ``t``, ``n`` e
 ``Δ`` give ``v = (n − 1)·pitch/Δ``, the mean over ``[first, last]`` (its centre is returned, so
 a caller compares it with its own speed *there*, not at ``t``: the lag Eq. 6 of the source
 leaves out). The next edge not having come by ``t`` bounds the mean speed over ``[first, t]``
-by ``n·pitch/(t − first)``; the smaller of the two is taken. Fewer than two edges in the
+by ``n·pitch/(t − first)`` and over ``[last, t]`` by ``pitch/(t − last)`` (the one a track
+being braked meets first: its edges stop coming; taken once an edge is a quarter of a
+period overdue, :data:`OVERDUE`, so a tooth's position error never trips it); the smallest
+is taken. Fewer than two edges in the
 window: the last two edges if younger than ``hold``, else 0. Edges are forward only (a
 quadrature direction is not used).
 """
@@ -15,7 +18,10 @@ import numpy as np
 
 from estimator._arrays import FloatArray, IntArray
 
-__all__ = ["EdgeBuffer", "edge_speed", "span_speed"]
+__all__ = ["OVERDUE", "EdgeBuffer", "edge_speed", "span_speed"]
+
+OVERDUE = 1.25
+"""An edge this many periods late bounds the speed by ``OVERDUE·pitch/(t − last)``."""
 
 
 def edge_speed(
@@ -44,10 +50,14 @@ def edge_speed(
     with np.errstate(divide="ignore", invalid="ignore"):
         speed = np.where(ok & (span > 0), n * pitch_m * 1e9 / span, 0.0)
         bound = (n + 1.0) * pitch_m * 1e9 / np.maximum(tick - first, 1.0)
+        gap_bound = OVERDUE * pitch_m * 1e9 / np.maximum(tick - last, 1.0)
     slowed = ok & (bound < speed)
     speed = np.where(slowed, bound, speed)
     centre = np.where(ok & (span > 0), 0.5 * (first + last), tick)
     centre = np.where(slowed, 0.5 * (first + tick), centre)
+    stopping = ok & (gap_bound < speed)
+    speed = np.where(stopping, gap_bound, speed)
+    centre = np.where(stopping, 0.5 * (last + tick), centre)
     return speed, centre
 
 

@@ -1,6 +1,6 @@
 """The INS/odometer/GNSS extended Kalman filter of the tracked estimator, batched over vehicles.
 
-State :class:`~estimator.tracked.model.TrackedState` (``n = 11``), arrays ``x (k, n)``,
+State :class:`~estimator.tracked.model.TrackedState` (``n = 13``), arrays ``x (k, n)``,
 ``P (k, n, n)``. Heading ``ψ`` is from north, clockwise; the gyro's yaw rate ``ω`` is
 counter-clockwise, so ``ψ̇ = −ω`` with ``ω = (g_z − b_g)·(1 − s_g)``. Over a tick ``Δ``, with
 the mid-tick heading ``ψ_m = ψ − ω·Δ/2`` and the hull's lateral speed ``v_x`` (right +):

@@ -12,8 +12,13 @@ times the true side-slip: the turning pole moves ahead of the centre and the hul
 Product: the fast track's ground speed is ``V + |ω|·B/2`` in every turn (the kinematic identity
 Eq. 23 rests on, slip included), and it is ``F_s·v_o`` with a factor ``F_s`` per state learned
 while GNSS is good (``K_D`` scale and that state's traction slip together), less the hull's
-lag ``τ·a`` behind its tracks while it accelerates (``τ`` learned too); in a low-gear
-straight ``V = F_low·v_o/1.42``. The odometer's windowed speed is compared with the filter's
+lag ``τ·a`` behind its tracks while it accelerates, and times ``1 − κ·a``: the traction
+force that accelerates the hull adds slip in proportion (``τ`` and ``κ`` learned too, from
+the accelerations beside GNSS; ``κ·a`` costs ``κ·a·V``, which grows with speed where the
+lag ``τ·a`` does not); in a low-gear
+straight ``V = F_low·v_o/1.42`` with ``F_low = F_straight + δ_low`` (same ``K_D``, same
+ground: only the traction differs, so a low gear first met in an outage starts from what the
+straights taught, not from 1). The odometer's windowed speed is compared with the filter's
 speed at the window's centre ``V − a·lag``, not at the tick (Eq. 6's mismatch).
 """
 
@@ -104,16 +109,21 @@ def odometer_measurement(
     std = std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2)  # slip while the hull catches up
     if cfg.mode == TrackedMode.PRODUCT:
         f_idx = _FACTOR_INDEX[state]
-        factor = x[np.arange(k), f_idx]
+        rows = np.arange(k)
+        low_gear = state == int(M.LOW_STRAIGHT)
+        factor = x[rows, f_idx] + np.where(low_gear, x[:, S.F_STRAIGHT], 0.0)
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
         lag = x[:, S.ACCEL_LAG] * accel_mps2
+        traction = 1.0 - x[:, S.ACCEL_SLIP] * accel_mps2
         ground = v - accel_mps2 * lag_s + lag + turn
-        h = gear * ground / factor
-        H[:, 0, S.SPEED] = gear / factor
-        H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / factor
-        H[np.arange(k), 0, f_idx] = -h / factor
-        corrected = odometer_mps * factor / gear - turn - lag
+        h = gear * ground / (factor * traction)
+        H[:, 0, S.SPEED] = gear / (factor * traction)
+        H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
+        H[:, 0, S.ACCEL_SLIP] = h * accel_mps2 / traction
+        H[rows, 0, f_idx] = -h / factor
+        H[:, 0, S.F_STRAIGHT] += np.where(low_gear, -h / factor, 0.0)
+        corrected = odometer_mps * factor * traction / gear - turn - lag
         mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))
         pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)
         std = np.where(

@@ -75,23 +75,62 @@ def paper_states(
     return _common(out, speed_mps, odometer_mps, heading_step_rad, p)
 
 
+def _ratios(
+    sprocket_mps: FloatArray, gear_ratio: FloatArray, p: VehicleParams
+) -> tuple[BoolArray, FloatArray, FloatArray]:
+    """``(read, q, g)``: sprockets read (fast one above the stop speed), slow over fast
+    sprocket ``q`` and fast sprocket over odometer ``g`` (1 where unread or unknown)."""
+    fast = sprocket_mps.max(axis=1)
+    read = fast > p.stop_speed_mps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.where(read, sprocket_mps.min(axis=1) / fast, 1.0)
+        g = np.where(read & np.isfinite(gear_ratio), gear_ratio, 1.0)
+    return read, q, g
+
+
+def _lever_target(
+    now: FloatArray, before: FloatArray, both: BoolArray, cfg: TrackedEstimatorConfig
+) -> tuple[FloatArray, BoolArray]:
+    """Where a moving lever takes a ratio: a lever crosses its travel in ``lever_travel_s`` at
+    a steady rate ``r = Δ/travel``, so a ratio changing faster than ``lever_rate_min_per_s``
+    over the tick ends near ``before + r·travel`` (clipped to [0, 1]); ``(target, moving)``."""
+    rate = (now - before) / cfg.tick_s
+    moving = both & (np.abs(rate) > cfg.lever_rate_min_per_s)
+    target = np.clip(before + rate * cfg.lever_travel_s, 0.0, 1.0)
+    return np.where(moving, target, now), moving
+
+
 def product_states(
     sprocket_mps: FloatArray,
     gear_ratio: FloatArray,
     heading_step_rad: FloatArray,
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
-    yaw_rate_radps: FloatArray,
+    yaw_lead_radps: FloatArray,
+    odometer_mps: FloatArray,
+    before: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """State and confidence per vehicle from the sprocket speeds ``(k, 2)``, the faster
-    sprocket over the odometer (``gear_ratio``, same span), the tick's heading change and the
-    yaw rate (a ratio in the separated band without the turn it makes is a straight)."""
+    sprocket over the odometer (``gear_ratio``, same span), the tick's heading change, the
+    larger of the yaw rate and the rate the hull is heading for, ``ω + τ·ω̇`` (a ratio in the
+    separated band without the turn it makes is a straight; the hull follows its tracks with
+    the lag ``τ``, so a turn being entered shows in ``ω̇`` before ``ω``), the odometer speed
+    (its edges come ~17 times as often as a sprocket's: a start from standstill is a
+    straight as soon as it turns, before the sprockets have two edges) and ``before``, the
+    sprocket speeds and gear ratio of the tick before: while a lever moves, the ratios are
+    read where it takes them (:func:`_lever_target`), so the state changes with the lever,
+    not when the windows have crossed a threshold."""
+    read, q, gear = _ratios(sprocket_mps, gear_ratio, p)
+    lever = np.zeros(q.shape, dtype=bool)
+    if before is not None:
+        read_b, q_b, gear_b = _ratios(before[0], before[1], p)
+        q, lever_q = _lever_target(q, q_b, read & read_b, cfg)
+        gear, lever_g = _lever_target(
+            gear, gear_b, read & read_b & (q >= cfg.straight_ratio_min), cfg
+        )
+        lever = lever_q | lever_g
+    moving = read | (np.nan_to_num(odometer_mps) > cfg.start_odometer_mps)
     fast = sprocket_mps.max(axis=1)
-    slow = sprocket_mps.min(axis=1)
-    moving = fast > p.stop_speed_mps
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = np.where(moving, slow / fast, 1.0)
-        gear = np.where(moving & np.isfinite(gear_ratio), gear_ratio, 1.0)
     low_cut = 0.5 * (1.0 + 1.0 / p.low_gear_ratio)
     cuts = np.array([cfg.braked_ratio_max, cfg.arc_ratio_max, cfg.straight_ratio_min])
     band = np.searchsorted(cuts, q)  # 0 pivot, 1 arc, 2 separated, 3 straight
@@ -100,8 +139,8 @@ def product_states(
     out[(band == 3) & (gear < low_cut)] = int(M.LOW_STRAIGHT)
     # a separated turn turns: at least a share of the kinematic ω = Vs_fast·(1 − q)/B
     kinematic = fast * (1.0 - q) / p.gauge_m
-    still_straight = (band == 2) & (np.abs(yaw_rate_radps) < cfg.separated_yaw_share * kinematic)
-    out[still_straight] = int(M.STRAIGHT)
+    weak = (band == 2) & ~lever & (yaw_lead_radps < cfg.separated_yaw_share * kinematic)
+    out[weak] = np.where(gear[weak] < low_cut[weak], int(M.LOW_STRAIGHT), int(M.STRAIGHT))
     margin = np.min(np.abs(q[:, None] - cuts[None, :]), axis=1)
     margin = np.where(band == 3, np.minimum(margin, np.abs(gear - low_cut)), margin)
     conf = ndtr(margin / cfg.ratio_std)

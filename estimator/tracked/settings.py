@@ -22,6 +22,21 @@ class TrackedEstimatorConfig:
     ``q`` is 1 in straights, ``1/1.42`` in arcs, between them in separated turns and 0 with a
     braked track; ``arc_ratio_max`` and ``straight_ratio_min`` cut between them,
     ``ratio_std`` is the 1-sigma of a measured ``q`` that turns a margin into a confidence.
+    ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
+    from standstill (a straight). ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to
+    lead the yaw rate (``ω + τ·ω̇``, less ``yaw_lead_noise_radps``, about 3 sigma of what the
+    gyro's noise makes of ``τ·ω̇`` over a tick) in the separated-turn check. A steering lever
+    crosses its travel in about ``lever_travel_s``; a sprocket or gear ratio changing faster
+    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick) is
+    a lever moving, and the state is read where it goes. The odometer factors learn only once
+    the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
+    settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
+    A pivot's driven track slips 10-40 % (it drags the hull round the braked one), so its
+    factor starts wider (``initial_pivot_factor_std``) than the others, the low gear's offset
+    from the straight's narrower (``initial_low_offset_std``); a slip whose 1-sigma
+    exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
+    m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
+    2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
     """
 
     mode: TrackedMode = TrackedMode.PRODUCT
@@ -36,6 +51,11 @@ class TrackedEstimatorConfig:
     straight_ratio_min: float = 0.985
     ratio_std: float = 0.01
     separated_yaw_share: float = 0.5
+    start_odometer_mps: float = 0.1
+    max_yaw_lag_s: float = 1.0
+    yaw_lead_noise_radps: float = 0.02
+    lever_travel_s: float = 0.3
+    lever_rate_min_per_s: float = 0.3
     lever_accel_mps2: float = 0.5
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0
@@ -46,6 +66,7 @@ class TrackedEstimatorConfig:
     pivot_odometer_std_per_mps: float = 0.05
     odometer_std_per_mps2: float = 0.3
     learn_accel_max_mps2: float = 0.2
+    learn_steady_s: float = 1.5
     standstill_odometer_mps: float = 0.02
     zero_speed_std_mps: float = 0.01
     zero_rate_std_radps: float = 0.001
@@ -62,8 +83,14 @@ class TrackedEstimatorConfig:
     initial_gyro_bias_std_radps: float = 1e-3
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03
+    initial_pivot_factor_std: float = 0.15
+    initial_low_offset_std: float = 0.02
+    slip_std_max_pct: float = 3.0
     initial_accel_lag_std_s: float = 0.5
     accel_lag_walk_s: float = 1e-3
+    initial_accel_slip_s2pm: float = 0.05
+    initial_accel_slip_std_s2pm: float = 0.03
+    accel_slip_walk_s2pm: float = 1e-4
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", TrackedMode(self.mode))

@@ -72,14 +72,20 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.GYRO_BIAS] = learn * cfg.initial_gyro_bias_std_radps**2
     diag[S.GYRO_SCALE] = learn * cfg.initial_gyro_scale_std**2
     diag[_FACTORS] = learn * cfg.initial_factor_std**2
+    diag[S.F_PIVOT] = learn * cfg.initial_pivot_factor_std**2
+    diag[S.F_LOW] = learn * cfg.initial_low_offset_std**2
     diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
+    diag[S.ACCEL_SLIP] = learn * cfg.initial_accel_slip_std_s2pm**2
     return np.diag(diag)
 
 
 def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
-    """A vehicle's filter before its first fix: factors 1, position and heading unknown."""
+    """A vehicle's filter before its first fix: factors 1 (the low gear's offset 0), position
+    and heading unknown."""
     x = np.zeros((1, N_STATES))
     x[0, _FACTORS] = 1.0
+    x[0, S.F_LOW] = 0.0  # an offset from F_straight
+    x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
     P[0, [S.EAST, S.NORTH], [S.EAST, S.NORTH]] = 1e6
@@ -98,6 +104,7 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     q[:, S.GYRO_SCALE] = learn * cfg.gyro_scale_walk**2 * dt
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
     q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
+    q[:, S.ACCEL_SLIP] = learn * cfg.accel_slip_walk_s2pm**2 * dt
     return q
 
 
@@ -110,7 +117,13 @@ def recognise(
     if cfg.mode != TrackedMode.PRODUCT:
         ones = np.ones(v.shape)
         return paper_states(v, w, inp.odometer_mps, step, p), ones
-    state, conf = product_states(inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, w)
+    tau = np.clip(f.x[:, S.ACCEL_LAG], 0.0, cfg.max_yaw_lag_s)
+    lead = np.abs(w + tau * inp.yaw_accel_radps2) - cfg.yaw_lead_noise_radps
+    lead = np.maximum(np.abs(w), lead)
+    before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
+    state, conf = product_states(
+        inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, lead, inp.odometer_mps, before
+    )
     missing = inp.sprocket_missing
     if missing.any():
         v_lag = v - inp.accel_mps2 * inp.odometer_lag_s
@@ -211,11 +224,15 @@ def _fuse_odometer(
     y, H, R, mask, corrected = odometer_measurement(
         cfg, p, f.x, state, inp.odometer_mps, inp.odometer_lag_s, inp.accel_mps2, w, valid
     )
-    # the factors learn only beside GNSS, at a steady speed
-    steady = np.abs(inp.accel_mps2) < cfg.learn_accel_max_mps2
+    # the factors learn only beside GNSS, at a speed steady long enough for the hull's lag
+    # behind its tracks and the slip of acceleration to have died out
+    steady = (np.abs(inp.accel_mps2) < cfg.learn_accel_max_mps2) & (
+        inp.steady_s >= cfg.learn_steady_s
+    )
     beside = f.started & (f.since_gnss_s <= 1.0)
     H[:, :, _FACTORS] *= (beside & steady)[:, None, None]
     H[:, :, S.ACCEL_LAG] *= beside[:, None]
+    H[:, :, S.ACCEL_SLIP] *= beside[:, None]
     f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
     return used, corrected
 
@@ -241,7 +258,12 @@ def _track_slip(
     f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, BoolArray]:
     """Track ground speeds ``V ∓ ω·B/2`` at the tick, slip
-    ``S = (Vs − v)/max(Vs, v)`` in percent with its 1-sigma, validity and braked tracks."""
+    ``S = (Vs − v)/max(Vs, v)`` in percent with its 1-sigma, validity and braked tracks.
+
+    A slip is given only where it is observable: its 1-sigma (from the speed's variance,
+    which carries the odometer factor's while dead reckoning) at most ``slip_std_max_pct``,
+    and the track's sprocket not settling; a sprocket starting after a standstill is not
+    braked (its brake is being released), so it gets no −100 % either."""
     half = 0.5 * p.gauge_m[:, None]
     track = f.x[:, S.SPEED, None] + np.stack([-w, w], axis=1) * half
     var_v = f.P[:, S.SPEED, S.SPEED] + (0.5 * p.gauge_m * cfg.zero_rate_std_radps) ** 2
@@ -251,12 +273,14 @@ def _track_slip(
     moving = top >= p.min_slip_speed_mps[:, None]
     other = vs[:, ::-1]
     read = ~inp.sprocket_missing[:, None]
+    settling = inp.sprocket_settling_pair
     braked = read & (vs < cfg.braked_ratio_max * other) & (other >= p.stop_speed_mps[:, None])
+    braked &= ~settling
     with np.errstate(divide="ignore", invalid="ignore"):
         slip = 100.0 * (vs - track) / top
         std = 100.0 * np.sqrt(track_std[:, None] ** 2 + (0.005 * vs) ** 2) / top
     valid = read & moving & ~braked & np.isfinite(slip) & f.started[:, None]
-    valid &= ~inp.sprocket_settling_pair
+    valid &= ~settling & (std <= cfg.slip_std_max_pct)
     slip = np.where(braked, -100.0, np.where(valid, slip, np.nan))
     std = np.where(valid, std, np.nan)
     return track, track_std, slip, std, valid, braked

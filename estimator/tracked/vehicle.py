@@ -33,18 +33,27 @@ class TickInputs:
     tick with the gearbox's acceleration (each sprocket turns at a fixed ratio of the gearbox
     between lever moves), so both tracks are read at one instant. ``gear_ratio`` is the
     faster sprocket's speed over the odometer's over the same span of
-    time (1 in direct drive, 1/1.42 in the low gear; NaN when unknown).
+    time (1 in direct drive, 1/1.42 in the low gear; NaN when unknown). ``yaw_accel_radps2``
+    is the change of the tick's mean gyro rate from the tick before over one tick (0 on a
+    vehicle's first tick). ``*_before`` are the sprocket speeds and gear ratio of the tick
+    before, read the same way (their change over the tick shows a lever moving).
+    ``steady_s`` is how long the gearbox has run at a steady speed with no sprocket settling
+    (the hull's lag behind its tracks, and the slip that acceleration adds, have died out).
     """
 
     ticks_ns: IntArray
     accel_mps2: FloatArray
     gyro_radps: FloatArray
+    yaw_accel_radps2: FloatArray
     odometer_mps: FloatArray
     odometer_lag_s: FloatArray
     sprocket_pair_mps: FloatArray
     sprocket_missing: BoolArray
     sprocket_settling_pair: BoolArray
     gear_ratio: FloatArray
+    sprocket_before_pair_mps: FloatArray
+    gear_ratio_before: FloatArray
+    steady_s: FloatArray
     gnss_pos_pair_m: FloatArray
     gnss_vel_pair_mps: FloatArray
     gnss_vel_std_mps: FloatArray
@@ -67,6 +76,8 @@ class VehicleInputs:
         self.gnss: list[tuple[int, float, float, float, float, float]] = []
         self.frame: EnuFrame | None = None
         self.counts = {"imu_skipped": 0, "gnss_skipped": 0, "sprocket_missing_ticks": 0}
+        self.last_gyro_radps = math.nan
+        self.steady_s = 0.0
 
     # --- pushing -----------------------------------------------------------------------------
     def push_imu(self, m: ImuBatch) -> None:
@@ -110,6 +121,7 @@ class VehicleInputs:
     def take(self, ticks: IntArray) -> TickInputs:
         """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs."""
         accel, gyro = self._imu_means(ticks)
+        yaw_accel = self._yaw_accel(gyro)
         cfg = self.cfg
         odo, odo_c = self._odometer_speed(ticks)
         prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
@@ -120,11 +132,16 @@ class VehicleInputs:
         gear = self._gear_ratio(spr, spr_c, ticks)
         tick_f = ticks.astype(np.float64)
         sprocket = self._at_tick(spr, spr_c, tick_f, odo, odo_accel)
+        gear_before = self._gear_ratio(before, before_c, ticks - self.tick_ns)
+        sprocket_before = self._at_tick(before, before_c, tick_f - self.tick_ns, prev, odo_accel)
         with np.errstate(divide="ignore", invalid="ignore"):
             own = (spr - before) / ((spr_c - before_c) * 1e-9)
             geared = odo_accel[:, None] * np.where(odo[:, None] > 0.3, spr / odo[:, None], 0.0)
         settling = ~(np.abs(np.nan_to_num(own - geared)) <= cfg.lever_accel_mps2)
         settling |= self._starting(ticks)
+        unsteady = settling.any(axis=1) | ~(np.abs(accel) <= cfg.learn_accel_max_mps2)
+        unsteady |= ~(np.abs(odo_accel) <= cfg.learn_accel_max_mps2)
+        steady_s = self._steady_for(unsteady)
         missing = self._sprocket_missing(ticks, odo)
         self.counts["sprocket_missing_ticks"] += int(missing.sum())
         pos, vel, vstd, age = self._gnss_at(ticks)
@@ -136,12 +153,16 @@ class VehicleInputs:
             ticks_ns=ticks,
             accel_mps2=accel,
             gyro_radps=gyro,
+            yaw_accel_radps2=yaw_accel,
             odometer_mps=odo,
             odometer_lag_s=(tick_f - odo_c) * 1e-9,
             sprocket_pair_mps=sprocket,
             sprocket_missing=missing,
             sprocket_settling_pair=settling,
             gear_ratio=gear,
+            sprocket_before_pair_mps=sprocket_before,
+            gear_ratio_before=gear_before,
+            steady_s=steady_s,
             gnss_pos_pair_m=pos,
             gnss_vel_pair_mps=vel,
             gnss_vel_std_mps=vstd,
@@ -163,6 +184,21 @@ class VehicleInputs:
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
         return out[0], out[1]
+
+    def _steady_for(self, unsteady: BoolArray) -> FloatArray:
+        """Time (s) since the last unsteady tick, carried from one call to the next."""
+        out = np.empty(unsteady.size)
+        tick_s = self.tick_ns * 1e-9
+        for i, bad in enumerate(unsteady.tolist()):
+            self.steady_s = 0.0 if bad else self.steady_s + tick_s
+            out[i] = self.steady_s
+        return out
+
+    def _yaw_accel(self, gyro: FloatArray) -> FloatArray:
+        """``(ω_t − ω_{t−1})/tick`` per tick from the ticks' mean rates (0 where unknown)."""
+        before = np.concatenate([[self.last_gyro_radps], gyro[:-1]])
+        self.last_gyro_radps = float(gyro[-1])
+        return np.nan_to_num((gyro - before) / (self.tick_ns * 1e-9))
 
     def _sprocket_speeds(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
         """Each sprocket's window speed and window centre, shapes ``(m, 2)``."""

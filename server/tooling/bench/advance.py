@@ -1,24 +1,31 @@
-"""Cost of one batched fleet step: CPU per ``MdsfFleet.advance`` call and per vehicle-tick.
+"""Cost of one batched fleet step: CPU per ``advance`` call and per vehicle-tick, for the
+MDSF, tracked and friction estimators side by side.
 
-``slipfleet bench advance [--sizes 100,300,1000] [--baseline REV] [--repeats 3] [--seconds 6]
-[--json PATH]`` or ``python -m server.tooling.bench.advance``.
+``slipfleet bench advance [--sizes 100,300,1000] [--estimators mdsf,tracked,friction]
+[--baseline REV] [--repeats 3] [--seconds 6] [--json PATH]`` or
+``python -m server.tooling.bench.advance``.
 
 The server's pipeline calls ``advance`` every ``ingest.estimate_interval_ms`` (50) for every
 vehicle, each vehicle's ticks on its own phase (its first IMU batch), so a call steps about
-half the fleet. This bench does the same: ``N`` simulated ``field_work`` vehicles (``N mod
-SOURCE_RUNS`` replays of a few runs, as :mod:`server.tooling.bench.frontend`) with tick phases
+half the fleet. This bench does the same for each estimator (:data:`ESTIMATORS`): ``N``
+simulated vehicles of its kind (``N mod SOURCE_RUNS`` replays of a few runs, as
+:mod:`server.tooling.bench.frontend`: MDSF ``field_work`` drives, tracked random crawler
+routes, friction ``steer_mu08`` runs of the steered four-wheel simulator) with tick phases
 spread evenly over the tick, measurements pushed in arrival order, ``advance`` every ``INTERVAL_MS``
 of sensor time with a horizon ``LAG_MS`` behind. Only ``advance`` is timed (process CPU time),
 after ``WARMUP_S`` seconds of sensor time.
 
-Per fleet size the table gives the CPU per call [ms] and per vehicle-tick (emitted row) [µs],
+Each estimator keeps its own tick (MDSF and tracked 0.1 s, friction 0.02 s), so its
+ticks per call differ; the same fleet sizes are measured for each. Per estimator and size the
+table gives the CPU per call [ms] and per vehicle-tick (emitted row) [µs],
 and a straight line ``fixed + per_tick × ticks`` through the per-call costs of all sizes.
 
 ``--baseline REV`` measures the estimator package of git revision ``REV`` side by side: its
 ``estimator/`` is extracted to a temporary directory and each version runs in a child process
 (the same modules cannot be imported twice in one interpreter, and measurements are checked
-with ``isinstance`` against their own package's types); the two alternate, ``--repeats`` times,
-and each case keeps its fastest repeat, so a machine shared with other work slows both alike.
+with ``isinstance`` against their own package's types); the two alternate, ``--repeats``
+times (a revision without one of the estimators cannot be measured for it), and each case
+keeps its fastest repeat, so a machine shared with other work slows both alike.
 ``after/before`` is the ratio of the costs. Each child also hashes every row it emitted: the
 table says whether both versions gave the same bytes.
 """
@@ -34,6 +41,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from server.tooling.bench import (
     SOURCE_START_NS,
     extract_revision,
@@ -47,7 +56,11 @@ from server.tooling.bench import (
 __all__ = ["main", "measure", "run"]
 
 SOURCE_RUNS = 8
-"""Distinct simulated runs the fleet replays."""
+"""Distinct simulated runs the fleet replays (MDSF)."""
+SIMULATED_RUNS = 2
+"""At most this many distinct runs for the tracked and friction fleets: their simulators take
+seconds per run (a whole crawler route; the four-wheel dynamics), and cost per tick does not
+depend on which run a vehicle replays."""
 INTERVAL_MS = 50
 """Sensor time between ``advance`` calls (the pipeline's ``estimate_interval_ms``)."""
 LAG_MS = 150
@@ -57,53 +70,131 @@ WARMUP_S = 2.0
 _REPO = Path(__file__).resolve().parents[3]
 
 
-def measure(sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS) -> dict[str, Any]:
-    """Run one fleet per size with the ``estimator`` package this interpreter imports.
+ESTIMATORS = ("mdsf", "tracked", "friction")
+"""Estimators the bench knows, in the order it prints them."""
 
-    Returns ``{"cases": [{vehicles, calls, ticks, advance_s}], "digest": sha256 of the rows}``.
-    """
+
+def _mdsf_fleet() -> Any:
     try:
         from estimator.mdsf import MdsfFleet
     except ImportError:  # a --baseline revision from before the estimator.mdsf package
         from estimator.engine import MdsfFleet  # type: ignore[no-redef]
+    return MdsfFleet()
 
-    sources = field_work_sources(seconds, source_runs)
+
+def _tracked_sources(seconds: float, runs: int) -> list[tuple[Any, list[Any]]]:
+    """Random crawler routes (seeds 1…, at most :data:`SIMULATED_RUNS`), each
+    ``(config, (key_ns, m) in order)``."""
+    from estimator.sim.tracked import simulate_tracked
+
+    out = []
+    for k in range(min(runs, SIMULATED_RUNS)):
+        sim = simulate_tracked("random", k + 1, start_ns=SOURCE_START_NS)
+        if sim.truth.t_s[-1] < seconds + 1.0:
+            raise ValueError(f"random crawler route {k + 1} shorter than {seconds} s")
+        out.append((sim.config, sim.measurements))
+    return out
+
+
+def _friction_sources(seconds: float, runs: int) -> list[tuple[Any, list[Any]]]:
+    """``steer_mu08`` runs (seeds 1…, at most :data:`SIMULATED_RUNS`), keyed by each packet's
+    last stamp."""
+    from estimator.sim.four_wheel import NAMED, simulate_four_wheel
+
+    manoeuvre = NAMED["steer_mu08"]
+    if manoeuvre.duration_s < seconds + 1.0:
+        raise ValueError(f"steer_mu08 runs {manoeuvre.duration_s:.0f} s, less than {seconds} s")
+    n = min(runs, SIMULATED_RUNS)
+    sims = simulate_four_wheel([manoeuvre] * n, list(range(1, n + 1)), None, SOURCE_START_NS)
+    out = []
+    for sim in sims:
+        keys = [int(np.atleast_1d(m.stamp_ns)[-1]) for m in sim.measurements]
+        keyed = sorted(zip(keys, sim.measurements, strict=True), key=lambda km: km[0])
+        out.append((sim.config, keyed))
+    return out
+
+
+def _fleet(name: str) -> tuple[Any, int]:
+    """A new fleet of estimator ``name`` and its tick in ns (imported here, so a child
+    measuring another revision gets that revision's)."""
+    if name == "mdsf":
+        mdsf = _mdsf_fleet()
+        return mdsf, mdsf.config.tick_ns
+    if name == "tracked":
+        from estimator.tracked import TrackedFleet
+
+        tracked = TrackedFleet()
+        return tracked, tracked.config.tick_ns
+    if name == "friction":
+        from estimator.friction import FrictionFleet
+
+        friction = FrictionFleet()
+        return friction, round(friction.config.filter.tick_s * 1e9)
+    raise ValueError(f"unknown estimator {name!r}; known: {', '.join(ESTIMATORS)}")
+
+
+_SOURCES = {
+    "mdsf": field_work_sources,
+    "tracked": _tracked_sources,
+    "friction": _friction_sources,
+}
+
+
+def measure(
+    sizes: Sequence[int], seconds: float, source_runs: int = SOURCE_RUNS, estimator: str = "mdsf"
+) -> dict[str, Any]:
+    """Run one fleet of ``estimator`` (:data:`ESTIMATORS`) per size with the ``estimator``
+    package this interpreter imports.
+
+    Returns ``{"cases": [{vehicles, calls, ticks, advance_s}], "digest": sha256 of the rows}``.
+    """
+    _fleet(estimator)  # an unknown name fails before any simulation
+    sources = _SOURCES[estimator](seconds, source_runs)
     digest = hashlib.sha256()
     cases = []
     for n in sizes:
-        fleet = MdsfFleet()
-        tick_ns = fleet.config.tick_ns
-        ids = [f"v{k:05d}" for k in range(n)]
-        for k, vid in enumerate(ids):
-            fleet.add_vehicle(vid, sources[k % source_runs][0])
-            fleet.align_ticks(vid, SOURCE_START_NS + k * tick_ns // n)
-        streams = [sources[k % source_runs][1] for k in range(n)]
-        pos = [0] * n
-        step_ns = INTERVAL_MS * 1_000_000
-        warm = round(WARMUP_S * 1000 / INTERVAL_MS)
-        spent = 0.0
-        calls = ticks = 0
-        for s in range(round(seconds * 1000 / INTERVAL_MS)):
-            now = SOURCE_START_NS + (s + 1) * step_ns
-            push_until(fleet, ids, streams, pos, now)
-            horizon = dict.fromkeys(ids, now - LAG_MS * 1_000_000)
-            t0 = time.process_time()
-            out = fleet.advance(horizon)
-            t1 = time.process_time()
-            for vid, rows in out:
-                digest.update(vid.encode())
-                digest.update(rows.tobytes())
-            if s >= warm:
-                spent += t1 - t0
-                calls += 1
-                ticks += sum(r.shape[0] for _, r in out)
-        cases.append({"vehicles": n, "calls": calls, "ticks": ticks, "advance_s": spent})
+        fleet, tick_ns = _fleet(estimator)
+        cases.append(_one_size(fleet, tick_ns, sources, n, seconds, digest))
     return {"cases": cases, "digest": digest.hexdigest()}
 
 
-def _child(path: str, sizes: Sequence[int], seconds: float, source_runs: int) -> dict[str, Any]:
+def _one_size(
+    fleet: Any, tick_ns: int, sources: list[Any], n: int, seconds: float, digest: Any
+) -> dict[str, Any]:
+    """``n`` vehicles replaying ``sources`` through ``fleet``; the CPU of its ``advance``."""
+    source_runs = len(sources)
+    ids = [f"v{k:05d}" for k in range(n)]
+    for k, vid in enumerate(ids):
+        fleet.add_vehicle(vid, sources[k % source_runs][0])
+        fleet.align_ticks(vid, SOURCE_START_NS + k * tick_ns // n)
+    streams = [sources[k % source_runs][1] for k in range(n)]
+    pos = [0] * n
+    step_ns = INTERVAL_MS * 1_000_000
+    warm = round(WARMUP_S * 1000 / INTERVAL_MS)
+    spent = 0.0
+    calls = ticks = 0
+    for s in range(round(seconds * 1000 / INTERVAL_MS)):
+        now = SOURCE_START_NS + (s + 1) * step_ns
+        push_until(fleet, ids, streams, pos, now)
+        horizon = dict.fromkeys(ids, now - LAG_MS * 1_000_000)
+        t0 = time.process_time()
+        out = fleet.advance(horizon)
+        t1 = time.process_time()
+        for vid, rows in out:
+            digest.update(vid.encode())
+            digest.update(rows.tobytes())
+        if s >= warm:
+            spent += t1 - t0
+            calls += 1
+            ticks += sum(r.shape[0] for _, r in out)
+    return {"vehicles": n, "calls": calls, "ticks": ticks, "advance_s": spent}
+
+
+def _child(
+    path: str, sizes: Sequence[int], seconds: float, source_runs: int, estimator: str
+) -> dict[str, Any]:
     """:func:`measure` in a fresh interpreter whose ``estimator`` comes from ``path``."""
-    args = ["-m", "server.tooling.bench.advance", "--child"]
+    args = ["-m", "server.tooling.bench.advance", "--child", "--estimators", estimator]
     args += ["--sizes", ",".join(map(str, sizes)), "--seconds", str(seconds)]
     args += ["--source-runs", str(source_runs)]
     return json_from_child(path, args)
@@ -139,71 +230,98 @@ def _best(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {"cases": cases, "fixed_ms": fixed, "per_tick_us": per * 1e3}
 
 
+def _versions_of(
+    estimator: str,
+    versions: dict[str, str],
+    sizes: Sequence[int],
+    seconds: float,
+    repeats: int,
+    source_runs: int,
+) -> dict[str, Any]:
+    """One estimator measured in every version (alternating); the best per version and
+    whether every version and repeat gave the same rows."""
+    runs: dict[str, list[dict[str, Any]]] = {v: [] for v in versions}
+    for rep in range(repeats):
+        order = list(versions) if rep % 2 == 0 else list(reversed(versions))
+        for v in order:
+            runs[v].append(_child(versions[v], sizes, seconds, source_runs, estimator))
+    digests = {v: {r["digest"] for r in rs} for v, rs in runs.items()}
+    best: dict[str, Any] = {v: _best(r) for v, r in runs.items()}
+    return {"rows_identical": len(set().union(*digests.values())) == 1, **best}
+
+
+def _print_table(estimator: str, result: dict[str, Any], sizes: Sequence[int]) -> None:
+    versions = [v for v in ("before", "after") if v in result]
+    head = f"{'vehicles':>8} {'ticks/call':>10}"
+    for v in versions:
+        head += f" {v + ' ms/call':>16} {v + ' µs/tick':>16}"
+    if "before" in result:
+        head += f" {'after/before':>12}"
+    print(f"\n{estimator}\n{head}")
+    for i, n in enumerate(sizes):
+        a = result["after"]["cases"][i]
+        line = f"{n:>8} {a['ticks_per_call']:>10.1f}"
+        for v in versions:
+            c = result[v]["cases"][i]
+            line += f" {c['call_ms']:>16.3f} {c['tick_us']:>16.2f}"
+        if "before" in result:
+            line += f" {a['call_ms'] / result['before']['cases'][i]['call_ms']:>12.2f}"
+        print(line)
+    for v in versions:
+        b = result[v]
+        print(
+            f"{v}: fixed {b['fixed_ms']:.3f} ms per call + {b['per_tick_us']:.2f} µs per "
+            "vehicle-tick (line through the sizes)"
+        )
+    if "before" in result:
+        print(f"rows identical: {'yes' if result['rows_identical'] else 'NO'}")
+
+
 def run(
     json_path: Path | str | None = None,
     *,
     sizes: Sequence[int] = (100, 300, 1000),
+    estimators: Sequence[str] = ESTIMATORS,
     baseline: str | None = None,
     repeats: int = 3,
     seconds: float = 6.0,
     source_runs: int = SOURCE_RUNS,
 ) -> dict[str, Any]:
-    """Measure, print the table; returns and optionally writes the numbers as JSON."""
+    """Measure every estimator, print a table each; returns and optionally writes the numbers
+    as JSON (``{"estimators": {name: {"after", ["before"], "rows_identical"}}, …}``)."""
+    unknown = sorted(set(estimators) - set(ESTIMATORS))
+    if unknown:
+        raise ValueError(f"unknown estimators {unknown}; known: {', '.join(ESTIMATORS)}")
     versions = {"after": str(_REPO)}
+    per: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         if baseline is not None:
             extract_revision(baseline, Path(tmp), ("estimator",))
             versions = {"before": tmp, "after": str(_REPO)}
-        runs: dict[str, list[dict[str, Any]]] = {v: [] for v in versions}
-        for rep in range(repeats):
-            order = list(versions) if rep % 2 == 0 else list(reversed(versions))
-            for v in order:
-                runs[v].append(_child(versions[v], sizes, seconds, source_runs))
-    best = {v: _best(r) for v, r in runs.items()}
-    digests = {v: {r["digest"] for r in rs} for v, rs in runs.items()}
-    same = len(set().union(*digests.values())) == 1
-    title = f"MdsfFleet.advance every {INTERVAL_MS} ms, tick phases spread, {seconds:g} s of "
-    title += f"field_work, fastest of {repeats}"
-    print(title)
-    head = f"{'vehicles':>8} {'ticks/call':>10}"
-    for v in versions:
-        head += f" {v + ' ms/call':>16} {v + ' µs/tick':>16}"
-    if baseline is not None:
-        head += f" {'after/before':>12}"
-    print(head)
-    for i, n in enumerate(sizes):
-        a = best["after"]["cases"][i]
-        line = f"{n:>8} {a['ticks_per_call']:>10.1f}"
-        for v in versions:
-            c = best[v]["cases"][i]
-            line += f" {c['call_ms']:>16.3f} {c['tick_us']:>16.2f}"
-        if baseline is not None:
-            line += f" {a['call_ms'] / best['before']['cases'][i]['call_ms']:>12.2f}"
-        print(line)
-    for v in versions:
-        b = best[v]
-        print(
-            f"{v}: fixed {b['fixed_ms']:.3f} ms per call + {b['per_tick_us']:.2f} µs per "
-            "vehicle-tick (line through the sizes)"
-        )
-    if baseline is not None:
-        print(f"before = {baseline}; rows identical: {'yes' if same else 'NO'}")
-    result = {
-        "seconds": seconds,
-        "repeats": repeats,
-        "baseline": baseline,
-        "rows_identical": same,
-        **best,
-    }
+        for name in estimators:
+            per[name] = _versions_of(name, versions, sizes, seconds, repeats, source_runs)
+    print(
+        f"Fleet.advance every {INTERVAL_MS} ms, tick phases spread, {seconds:g} s of sensor "
+        f"time per case, fastest of {repeats}"
+        + (f"; before = {baseline}" if baseline is not None else "")
+    )
+    for name in estimators:
+        _print_table(name, per[name], sizes)
+    result = {"seconds": seconds, "repeats": repeats, "baseline": baseline, "estimators": per}
     write_json(result, json_path)
     return result
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m server.tooling.bench.advance [--sizes …] [--baseline REV] [--repeats R]
-    [--seconds S] [--json PATH]``."""
+    """``python -m server.tooling.bench.advance [--sizes …] [--estimators …] [--baseline REV]
+    [--repeats R] [--seconds S] [--json PATH]``."""
     p = argparse.ArgumentParser(prog="python -m server.tooling.bench.advance", description=__doc__)
     p.add_argument("--sizes", type=int_list, default=[100, 300, 1000], help="fleet sizes")
+    p.add_argument(
+        "--estimators",
+        default=",".join(ESTIMATORS),
+        help="comma-separated, of " + "/".join(ESTIMATORS),
+    )
     p.add_argument("--baseline", default=None, help="git revision measured side by side")
     p.add_argument("--repeats", type=int, default=3, help="alternating repeats per version")
     p.add_argument("--seconds", type=float, default=6.0, help="sensor seconds per case")
@@ -211,12 +329,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)
+    estimators = [e for e in args.estimators.split(",") if e]
     if args.child:
-        print(json.dumps(measure(args.sizes, args.seconds, args.source_runs)))
+        print(json.dumps(measure(args.sizes, args.seconds, args.source_runs, estimators[0])))
         return 0
     run(
         args.json,
         sizes=args.sizes,
+        estimators=estimators,
         baseline=args.baseline,
         repeats=args.repeats,
         seconds=args.seconds,

@@ -1,11 +1,12 @@
 """Tracked-vehicle bench: the ``tracked`` estimator's modes against the crawler simulator.
 
 ``slipfleet bench tracked [--seeds 1,2] [--random N] [--random-from S]
-[--scenarios route_firm,route_soft] [--json PATH]`` simulates every scenario once per seed
-(:mod:`estimator.sim.tracked`), and ``--random N`` adds N random routes (seeds S, S + 1, …;
-S = 1000 by default), then feeds every run to each mode side by
-side: ``product``, ``paper`` (the source as printed, lateral term ``−φ̇·L`` included),
-``paper_no_lateral`` and ``raw_odometer`` (the odometer speed as the hull's). Each mode is one
+[--scenarios route_firm,route_soft] [--modes product,paper,…] [--json PATH]`` simulates
+every scenario once per seed (:mod:`estimator.sim.tracked`), and ``--random N`` adds N
+random routes (seeds S, S + 1, …; S = 1000 by default), then feeds every run to each mode
+side by side (``--modes`` picks some, ``product`` always among them): ``product``,
+``paper`` (the source as printed, lateral term ``−φ̇·L`` included), ``paper_no_lateral``
+and ``raw_odometer`` (the odometer speed as the hull's). Each mode is one
 :class:`~estimator.tracked.TrackedFleet` holding every run as a vehicle, fed in sensor order
 and advanced every second of sensor time; each row is compared with the truth at its stamp.
 
@@ -16,7 +17,10 @@ Metrics per run and mode
     a true state change (the confusion matrix sums the product's and the paper's).
 ``slip_rms_pp`` / ``slip_p95_pp`` (per track)
     Slip error in percentage points where the track is driven and moves (true sprocket speed
-    ≥ 0.5 m/s) and the row gives a slip.
+    ≥ 0.5 m/s) and the row gives a slip (a braked track's −100 % included). A row without
+    one (its ``SLIP_*_VALID`` flag unset: not observable, e.g. a lever moving, a sprocket
+    settling, a 1-sigma above ``slip_std_max_pct``) is not scored: ``slip_coverage_pct`` is
+    the share of moving rows that give one (printed as ``cov%``, the smaller track's).
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
     driven in it; the worst outage of the run), and the largest error within it.
@@ -150,7 +154,8 @@ def _line(label: str, mode: str, m: dict[str, Any]) -> str:
         f"{label:<22} {mode:<17} {m['state_pct']:7.2f} {m['settled_pct']:7.2f} "
         f"{m['slip_left_rms_pp']:6.2f}/{m['slip_left_p95_pp']:<6.2f} "
         f"{m['slip_right_rms_pp']:6.2f}/{m['slip_right_p95_pp']:<6.2f} "
-        f"{m['dr_end_m']:7.2f} {m['dr_end_pct']:6.3f} {m['dr_max_m']:7.2f} {m['outage_km']:5.2f}"
+        f"{m['dr_end_m']:7.2f} {m['dr_end_pct']:6.3f} {m['dr_max_m']:7.2f} {m['outage_km']:5.2f} "
+        f"{min(m['slip_left_coverage_pct'], m['slip_right_coverage_pct']):5.1f}"
     )
 
 
@@ -168,6 +173,7 @@ def run(
     scenarios: list[str],
     json_path: str | None = None,
     random_from: int = 1000,
+    modes: tuple[TrackedMode, ...] = MODES,
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
     runs = [simulate_tracked(s, seed) for s in scenarios for seed in seeds]
@@ -175,7 +181,8 @@ def run(
     sim_s = time.perf_counter() - t0
     results: dict[str, Any] = {"runs": [], "seconds": {"simulate": sim_s}}
     per_mode: dict[str, list[dict[str, Any]]] = {}
-    for mode in MODES:
+    modes = (TrackedMode.PRODUCT, *(m for m in modes if m != TrackedMode.PRODUCT))
+    for mode in modes:
         t1 = time.perf_counter()
         per_mode[mode.value] = [
             _metrics(r, rows) for r, rows in zip(runs, _feed(mode, runs), strict=True)
@@ -183,13 +190,13 @@ def run(
         results["seconds"][mode.value] = time.perf_counter() - t1
     print(
         f"{'run':<22} {'mode':<17} {'state%':>7} {'settl%':>7} {'slipL rms/p95':>13} "
-        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5}"
+        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5} {'cov%':>5}"
     )
     failures = []
     for k, r in enumerate(runs):
         label = f"{r.name}[{r.seed}]"
         entry: dict[str, Any] = {"run": label, "ground": r.route.ground.name, "modes": {}}
-        for mode in MODES:
+        for mode in modes:
             m = per_mode[mode.value][k]
             entry["modes"][mode.value] = m
             print(_line(label, mode.value, m))
@@ -198,7 +205,7 @@ def run(
         if missed:
             failures.append((label, missed))
         results["runs"].append(entry)
-    for mode in (TrackedMode.PRODUCT, TrackedMode.PAPER):
+    for mode in (m for m in (TrackedMode.PRODUCT, TrackedMode.PAPER) if m in modes):
         cm = sum(np.array(m["confusion"]) for m in per_mode[mode.value])
         _confusion(f"confusion, {mode.value}", np.asarray(cm))
     random_ok = [not e["product_misses"] for e in results["runs"] if e["ground"] == "random"]
@@ -232,10 +239,16 @@ def main(argv: list[str] | None = None) -> int:
         default="route_firm,route_soft",
         help="named scenarios, comma-separated ('' for none)",
     )
+    ap.add_argument(
+        "--modes",
+        default=",".join(m.value for m in MODES),
+        help="modes to run, comma-separated (product always runs)",
+    )
     ap.add_argument("--json", default=None, help="write the numbers to this file")
     args = ap.parse_args(argv)
     scenarios = [s for s in args.scenarios.split(",") if s]
-    run(args.seeds, args.random, scenarios, args.json, args.random_from)
+    modes = tuple(TrackedMode(m) for m in args.modes.split(",") if m)
+    run(args.seeds, args.random, scenarios, args.json, args.random_from, modes)
     return 0
 
 

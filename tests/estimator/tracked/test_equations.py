@@ -11,7 +11,7 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from estimator.config import TrackedConfig
-from estimator.tracked.edges import EdgeBuffer, edge_speed, span_speed
+from estimator.tracked.edges import OVERDUE, EdgeBuffer, edge_speed, span_speed
 from estimator.tracked.filter import kalman_update, predict
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
@@ -85,6 +85,7 @@ def test_product_states_from_sprocket_ratios(
         P1,
         TrackedEstimatorConfig(),
         np.array([yaw]),
+        np.array([fast / gear]),
     )
     assert int(got[0]) == state
     assert conf[0] > 0.9  # not near a threshold (a straight's q = 1 is 1.5 σ from 0.985)
@@ -94,7 +95,7 @@ def test_product_confidence_falls_at_a_threshold() -> None:
     cfg = TrackedEstimatorConfig()
     q = cfg.straight_ratio_min
     _, conf = product_states(
-        np.array([[3.0 * q, 3.0]]), np.ones(1), np.zeros(1), P1, cfg, np.array([0.1])
+        np.array([[3.0 * q, 3.0]]), np.ones(1), np.zeros(1), P1, cfg, np.array([0.1]), np.ones(1)
     )
     assert conf[0] == pytest.approx(0.5)
 
@@ -103,8 +104,52 @@ def test_a_separated_ratio_without_its_turn_is_a_straight() -> None:
     cfg = TrackedEstimatorConfig()
     args = (np.array([[3.0, 2.85]]), np.ones(1), np.zeros(1), P1, cfg)
     kinematic = 3.0 * (1 - 0.95) / 2.0
-    assert product_states(*args, np.array([0.6 * kinematic]))[0][0] == M.SEPARATED
-    assert product_states(*args, np.array([0.4 * kinematic]))[0][0] == M.STRAIGHT
+    odo = np.array([3.0])
+    assert product_states(*args, np.array([0.6 * kinematic]), odo)[0][0] == M.SEPARATED
+    assert product_states(*args, np.array([0.4 * kinematic]), odo)[0][0] == M.STRAIGHT
+    # the same ratio in the low gear (fast sprocket at 1/1.42 of the odometer) is a low straight
+    low = (np.array([[3.0, 2.85]]), np.array([1 / 1.42]), np.zeros(1), P1, cfg)
+    assert product_states(*low, np.array([0.4 * kinematic]), odo * 1.42)[0][0] == M.LOW_STRAIGHT
+
+
+def test_a_start_from_standstill_is_a_straight_before_the_sprockets_read() -> None:
+    cfg = TrackedEstimatorConfig()
+    args = (np.zeros((2, 2)), np.full(2, np.nan), np.zeros(2), VehicleParams.stack([P1, P1]), cfg)
+    odo = np.array([0.5 * cfg.start_odometer_mps, 2.0 * cfg.start_odometer_mps])
+    got, _ = product_states(*args, np.zeros(2), odo)
+    assert got.tolist() == [M.STOP, M.STRAIGHT]
+
+
+@pytest.mark.parametrize(
+    ("slow_before", "slow_now", "state"),
+    [
+        (3.0, 1.8, M.PIVOT),  # q 1 → 0.6 in a tick: −4/s over a 0.3 s travel ends below 0
+        (3.0, 2.7, M.ARC),  # −1/s: ends at 0.7, the arc's 1/1.42
+        (2.1, 2.4, M.STRAIGHT),  # an arc being left: +1/s ends at 1
+        (0.3, 1.2, M.STRAIGHT),  # a pivot being left
+    ],
+)
+def test_a_moving_lever_is_read_where_it_goes(
+    slow_before: float, slow_now: float, state: MotionState
+) -> None:
+    cfg = TrackedEstimatorConfig()
+    before = (np.array([[3.0, slow_before]]), np.ones(1))
+    got, _ = product_states(
+        np.array([[3.0, slow_now]]),
+        np.ones(1),
+        np.zeros(1),
+        P1,
+        cfg,
+        np.zeros(1),
+        np.array([3.0]),
+        before,
+    )
+    assert int(got[0]) == state
+    # without the tick before, the ratio is read where it is, in a band on the way
+    alone, _ = product_states(
+        np.array([[3.0, slow_now]]), np.ones(1), np.zeros(1), P1, cfg, np.ones(1), np.array([3.0])
+    )
+    assert int(alone[0]) != state
 
 
 def test_fallback_rules_have_no_overlap() -> None:
@@ -169,6 +214,33 @@ def test_product_odometer_measurement_by_hand() -> None:
     assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3 - 0.2)
 
 
+def test_low_gear_factor_is_an_offset_and_traction_slips_with_acceleration() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED] = 2.0
+    x[0, S.F_STRAIGHT] = 0.95
+    x[0, S.F_LOW] = 0.01  # F_low = 0.95 + 0.01
+    x[0, S.ACCEL_SLIP] = 0.05  # κ: 5 % more slip per m/s²
+    y, H, _, mask, corrected = odometer_measurement(
+        TrackedEstimatorConfig(),
+        P1,
+        x,
+        np.array([M.LOW_STRAIGHT]),
+        np.array([2.5]),
+        np.zeros(1),
+        np.array([0.4]),
+        np.zeros(1),
+        np.ones(1, dtype=bool),
+    )
+    effective = 0.96 * (1 - 0.05 * 0.4)  # F_low·(1 − κ·a)
+    h = 1.42 * 2.0 / effective
+    assert y[0, 0] == pytest.approx(2.5 - h)
+    assert H[0, 0, S.SPEED] == pytest.approx(1.42 / effective)
+    assert H[0, 0, S.F_LOW] == pytest.approx(-h / 0.96)
+    assert H[0, 0, S.F_STRAIGHT] == pytest.approx(-h / 0.96)  # the offset rides on F_straight
+    assert H[0, 0, S.ACCEL_SLIP] == pytest.approx(h * 0.4 / (1 - 0.05 * 0.4))
+    assert mask[0] and corrected[0] == pytest.approx(2.5 * effective / 1.42)
+
+
 def test_odometer_dropped_in_heading_jumps() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.F_STRAIGHT] = 1.0
@@ -196,7 +268,12 @@ def test_edge_speed_period_method() -> None:
     stale, _ = edge_speed(stamps, np.array([3_000_000_000]), 0.01, 100_000_000, 1000, 10**9)
     assert stale[0] == 0.0  # nothing for two seconds
     bound, _ = edge_speed(stamps, np.array([1_040_000_000]), 0.01, 100_000_000, 1000, 10**9)
-    assert bound[0] == pytest.approx(5 * 0.01 / 0.09)  # no 6th edge 90 ms after the first
+    # no edge for 50 ms after the last (5 periods): at most OVERDUE·pitch/50 ms, below the
+    # window's own bound (no 6th edge 90 ms after the first: 5·pitch/90 ms)
+    assert bound[0] == pytest.approx(OVERDUE * 0.01 / 0.05)
+    assert OVERDUE * 0.01 / 0.05 < 5 * 0.01 / 0.09
+    late, _ = edge_speed(stamps, np.array([995_000_000]), 0.01, 100_000_000, 1000, 10**9)
+    assert late[0] == pytest.approx(1.0)  # half a period after the last edge: not overdue
     mean = span_speed(stamps, np.array([0.0]), np.array([2e8]), 0.01)
     assert mean[0] == pytest.approx(1.0)
 

@@ -190,3 +190,21 @@ def test_vehicles_of_different_geometry_batch_together() -> None:
     rows = _feed(fleet, {"a": ms, "b": ms}, until)
     diff = rows["a"]["track_left_mps"] - rows["b"]["track_left_mps"]
     assert np.nanmax(np.abs(diff)) > 0  # the gauge enters V ∓ ω·B/2
+
+
+def test_slip_given_only_where_observable_and_close_to_the_truth() -> None:
+    _, rows = _product_rows("route_firm", 5)
+    run = _run("route_firm", 5)
+    idx = run.index_at(rows["stamp_ns"])
+    limit = TrackedEstimatorConfig().slip_std_max_pct
+    for side, name, flag in (
+        (0, "left", TrackedFlag.SLIP_LEFT_VALID),
+        (1, "right", TrackedFlag.SLIP_RIGHT_VALID),
+    ):
+        valid = (rows["flags"] & int(flag)) > 0
+        assert np.isfinite(rows[f"slip_{name}_pct"][valid]).all()
+        assert (rows[f"slip_{name}_std_pct"][valid] <= limit).all()
+        braked = (rows["flags"] & int(TrackedFlag.BRAKED_LEFT << side)) > 0
+        assert np.isnan(rows[f"slip_{name}_pct"][~valid & ~braked]).all()
+        err = np.abs(rows[f"slip_{name}_pct"] - 100 * run.truth.slip[idx, side])[valid]
+        assert valid.mean() > 0.8 and np.percentile(err, 95) < 3.0

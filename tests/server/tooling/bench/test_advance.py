@@ -31,10 +31,40 @@ def test_side_by_side_with_a_revision_prints_and_writes(
     if git.returncode != 0:
         pytest.skip("not a git checkout")
     path = tmp_path / "advance.json"
-    result = run(path, sizes=(2, 3), baseline="HEAD", repeats=1, seconds=3.0, source_runs=2)
-    assert [c["vehicles"] for c in result["after"]["cases"]] == [2, 3]
-    assert [c["vehicles"] for c in result["before"]["cases"]] == [2, 3]
-    assert isinstance(result["rows_identical"], bool)  # the working tree's rows against HEAD's
+    result = run(
+        path,
+        sizes=(2, 3),
+        estimators=("mdsf",),
+        baseline="HEAD",
+        repeats=1,
+        seconds=3.0,
+        source_runs=2,
+    )
+    mdsf = result["estimators"]["mdsf"]
+    assert [c["vehicles"] for c in mdsf["after"]["cases"]] == [2, 3]
+    assert [c["vehicles"] for c in mdsf["before"]["cases"]] == [2, 3]
+    assert isinstance(mdsf["rows_identical"], bool)  # the working tree's rows against HEAD's
     assert json.loads(path.read_text()) == result
     out = capsys.readouterr().out
     assert "after/before" in out and "rows identical:" in out
+
+
+@pytest.mark.parametrize(("estimator", "ticks_per_vehicle"), [("tracked", 10), ("friction", 50)])
+def test_measure_knows_the_tracked_and_friction_fleets(
+    estimator: str, ticks_per_vehicle: int
+) -> None:
+    result = measure((2, 3), seconds=3.0, source_runs=2, estimator=estimator)
+    for c in result["cases"]:
+        assert c["calls"] == 20
+        # 1 s measured: 10 ticks of 0.1 s (tracked), 50 of 0.02 s (friction) per vehicle
+        assert c["ticks"] == c["vehicles"] * ticks_per_vehicle and c["advance_s"] > 0
+
+
+def test_every_estimator_printed_side_by_side(capsys: pytest.CaptureFixture[str]) -> None:
+    result = run(sizes=(2,), repeats=1, seconds=3.0, source_runs=1)
+    assert list(result["estimators"]) == ["mdsf", "tracked", "friction"]
+    out = capsys.readouterr().out
+    for name in ("mdsf", "tracked", "friction"):
+        assert f"\n{name}\n" in out
+    with pytest.raises(ValueError, match="unknown estimators"):
+        run(sizes=(2,), estimators=("nope",), repeats=1, seconds=3.0)
