@@ -324,6 +324,24 @@ class ApiSettings(BaseModel):
         ),
     )
 
+    report_max_vehicles: int = Field(
+        20_000,
+        ge=1,
+        description=(
+            "a fleet report over more vehicles answers 413 at once (before reading anything); "
+            "ask /vehicles/{id}/report for each instead"
+        ),
+    )
+    report_time_budget_s: float = Field(
+        30.0,
+        gt=0,
+        le=3600,
+        description=(
+            "time a fleet report may work, s: past it the report stops between two vehicles "
+            "and answers 413 (narrow start..end); one vehicle's report is never cut"
+        ),
+    )
+
     @field_validator("map_tile_url")
     @classmethod
     def _tile_template(cls, v: str | None) -> str | None:
