@@ -14,6 +14,7 @@ import pytest
 
 from server.settings import ApiSettings, StorageSettings
 from server.storage import open_store
+from server.storage.sqlite import SqliteStore
 from tests.server.api._data import T0, ramp_series
 from tests.server.faults._harness import ServerProcess
 
@@ -36,6 +37,7 @@ def _seed(data_dir: Path) -> None:
             store.write_estimates(batch)
         # to the final tables, as a running server's writer does within seconds (staged rows
         # are time-ordered, so a per-vehicle read of them scans every vehicle's)
+        assert isinstance(store, SqliteStore)
         while store.maintain(everything=True):
             pass
     finally:
