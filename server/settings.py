@@ -130,6 +130,16 @@ class StorageSettings(BaseModel):
             "beyond are dropped and counted, never held in memory"
         ),
     )
+    raw_packets_max_bytes: int = Field(
+        2**30,
+        ge=2**20,
+        le=2**44,
+        description=(
+            "payload bytes of raw packets kept in the database (store_raw_packets); beyond, no "
+            "more are stored and each is counted (raw_packets_over_budget) until retention "
+            "deletes old ones"
+        ),
+    )
 
 
 class IngestSettings(BaseModel):
