@@ -36,11 +36,11 @@ from server.storage._columns import (
     select_fields,
     spec_fields,
 )
+from server.storage._queries import SharedQueries
 from server.storage.base import (
     Anchor,
     StorageDataError,
     StorageError,
-    TokenRecord,
     VehicleRecord,
 )
 
@@ -50,7 +50,6 @@ _COPY_SIGNATURE = b"PGCOPY\n\xff\r\n\x00"
 _COPY_HEADER = _COPY_SIGNATURE + b"\x00\x00\x00\x00" + b"\x00\x00\x00\x00"  # flags, ext length
 _COPY_TRAILER = b"\xff\xff"
 _WIDTH = {"f8": 8, "i8": 8, "i4": 4}
-_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns, expires_ns"
 
 
 def _copy_dtype(columns: Sequence[tuple[str, str]]) -> np.dtype:
@@ -144,7 +143,7 @@ class _Pool:
             conn.close()
 
 
-class PostgresStore:
+class PostgresStore(SharedQueries):
     """:class:`server.storage.base.Store` on PostgreSQL.
 
     Parameters
@@ -171,9 +170,7 @@ class PostgresStore:
         # connections holding the staging tables of every served estimator
         self._staged: weakref.WeakSet[psycopg.Connection[Any]] = weakref.WeakSet()
         # the served specs' tables (read from the database on first use, again after migrate)
-        self._tables = SpecTables(
-            self.dialect, specs, _PgTable, lambda sql: self._one_row_query(sql, ())
-        )
+        self._tables = SpecTables(self.dialect, specs, _PgTable, lambda sql: self._read(sql, ()))
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -214,7 +211,7 @@ class PostgresStore:
 
     def table_columns(self, table: str) -> list[str]:
         """Column names of ``table`` in order (empty when it does not exist)."""
-        rows = self._one_row_query(
+        rows = self._read(
             "SELECT column_name FROM information_schema.columns "
             "WHERE table_schema = current_schema() AND table_name = %s ORDER BY ordinal_position",
             (table,),
@@ -223,11 +220,11 @@ class PostgresStore:
 
     # ------------------------------------------------------------------ vehicles
 
+    param_marker = "%s"
+
     @staticmethod
-    def _record(row: Sequence[Any]) -> VehicleRecord:
-        return VehicleRecord(
-            vehicle_id=row[0], config=dict(row[1]), created_ns=int(row[2]), updated_ns=int(row[3])
-        )
+    def _config_of(raw: Any) -> dict[str, Any]:
+        return dict(raw)
 
     def upsert_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> VehicleRecord:
         cols = "vehicle_id, config, created_ns, updated_ns"
@@ -247,23 +244,6 @@ class PostgresStore:
                 ).fetchone()
         assert row is not None
         return self._record(row)
-
-    def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None:
-        with self._pool.connection() as conn:
-            row = conn.execute(
-                "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles "
-                "WHERE vehicle_id = %s",
-                (vehicle_id,),
-            ).fetchone()
-        return self._record(row) if row else None
-
-    def list_vehicles(self) -> list[VehicleRecord]:
-        with self._pool.connection() as conn:
-            rows = conn.execute(
-                "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles "
-                "ORDER BY vehicle_id"
-            ).fetchall()
-        return [self._record(r) for r in rows]
 
     def delete_vehicle(self, vehicle_id: str) -> bool:
         with self._pool.connection() as conn, conn.transaction():
@@ -346,13 +326,18 @@ class PostgresStore:
                 chunks += data
         return _decode_copy(bytes(chunks), wire, fields_dtype(t.spec, names))
 
-    def _one_row_query(self, sql: str, params: Sequence[Any]) -> list[tuple[Any, ...]]:
+    def _read(self, sql: str, params: Sequence[Any] = ()) -> list[Any]:
         with self._pool.connection() as conn:
             return conn.execute(sql, params).fetchall()
 
+    @contextlib.contextmanager
+    def _write(self) -> Iterator[psycopg.Connection[Any]]:
+        with self._pool.connection() as conn, conn.transaction():
+            yield conn
+
     def latest(self, vehicle_id: str, estimator: str = DEFAULT_ESTIMATOR) -> np.ndarray | None:
         t = self._tables.served(estimator)
-        rows = self._one_row_query(
+        rows = self._read(
             f"SELECT {', '.join(t.spec.field_names)} FROM {t.table} "
             "WHERE vkey = (SELECT vkey FROM vehicles WHERE vehicle_id = %s) "
             "ORDER BY stamp_ns DESC LIMIT 1",
@@ -364,7 +349,7 @@ class PostgresStore:
 
     def latest_all(self, estimator: str = DEFAULT_ESTIMATOR) -> dict[str, np.ndarray]:
         t = self._tables.served(estimator)
-        rows = self._one_row_query(
+        rows = self._read(
             f"SELECT v.vehicle_id, {', '.join('e.' + n for n in t.spec.field_names)} "
             f"FROM vehicles v JOIN {t.table} e ON e.vkey = v.vkey "
             f"AND e.stamp_ns = (SELECT max(stamp_ns) FROM {t.table} WHERE vkey = v.vkey)",
@@ -382,7 +367,7 @@ class PostgresStore:
             for t in tables.values()
         )
         params = [p for name in tables for p in (name, vehicle_id)]
-        found = {str(r[0]) for r in self._one_row_query(exists, params)}
+        found = {str(r[0]) for r in self._read(exists, params)}
         return [name for name in tables if name in found]
 
     def delete_older_than(self, stamp_ns: int) -> int:
@@ -426,13 +411,6 @@ class PostgresStore:
                 (int(now_ns), vids, names, totals),
             )
 
-    def get_counters(self, vehicle_id: str) -> dict[str, int]:
-        rows = self._one_row_query(
-            "SELECT name, total FROM ingest_counters WHERE vehicle_id = %s ORDER BY name",
-            (vehicle_id,),
-        )
-        return {str(name): int(total) for name, total in rows}
-
     # ------------------------------------------------------------------ ENU anchors
 
     def put_anchors(self, anchors: Mapping[str, Anchor], now_ns: int) -> int:
@@ -450,73 +428,6 @@ class PostgresStore:
                 (int(now_ns), vids, lat, lon, h),
             )
             return int(cur.rowcount)
-
-    def get_anchors(self, vehicle_id: str | None = None) -> dict[str, Anchor]:
-        sql = "SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors"
-        rows = (
-            self._one_row_query(sql, ())
-            if vehicle_id is None
-            else self._one_row_query(f"{sql} WHERE vehicle_id = %s", (vehicle_id,))
-        )
-        return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
-
-    # ------------------------------------------------------------------ access tokens
-
-    @staticmethod
-    def _token(row: Sequence[Any]) -> TokenRecord:
-        return TokenRecord(
-            id=int(row[0]),
-            name=str(row[1]),
-            role=str(row[2]),
-            created_ns=int(row[3]),
-            last_used_ns=None if row[4] is None else int(row[4]),
-            revoked_ns=None if row[5] is None else int(row[5]),
-            expires_ns=None if row[6] is None else int(row[6]),
-        )
-
-    def create_token(
-        self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None
-    ) -> TokenRecord:
-        with self._pool.connection() as conn, conn.transaction():
-            row = conn.execute(
-                "INSERT INTO api_tokens (name, role, token_sha256, created_ns, expires_ns) "
-                f"VALUES (%s, %s, %s, %s, %s) RETURNING {_TOKEN_COLUMNS}",
-                (
-                    name,
-                    role,
-                    token_sha256,
-                    int(now_ns),
-                    None if expires_ns is None else int(expires_ns),
-                ),
-            ).fetchone()
-        assert row is not None
-        return self._token(row)
-
-    def get_token(self, token_sha256: str) -> TokenRecord | None:
-        rows = self._one_row_query(
-            f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE token_sha256 = %s", (token_sha256,)
-        )
-        return self._token(rows[0]) if rows else None
-
-    def list_tokens(self) -> list[TokenRecord]:
-        rows = self._one_row_query(f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY id", ())
-        return [self._token(r) for r in rows]
-
-    def touch_token(self, token_id: int, now_ns: int) -> None:
-        with self._pool.connection() as conn, conn.transaction():
-            conn.execute(
-                "UPDATE api_tokens SET last_used_ns = %s WHERE id = %s",
-                (int(now_ns), int(token_id)),
-            )
-
-    def revoke_token(self, token_id: int, now_ns: int) -> TokenRecord | None:
-        with self._pool.connection() as conn, conn.transaction():
-            row = conn.execute(
-                "UPDATE api_tokens SET revoked_ns = coalesce(revoked_ns, %s) WHERE id = %s "
-                f"RETURNING {_TOKEN_COLUMNS}",
-                (int(now_ns), int(token_id)),
-            ).fetchone()
-        return self._token(row) if row else None
 
     # ------------------------------------------------------------------ raw packets
 
@@ -544,7 +455,7 @@ class PostgresStore:
         self, vehicle_id: str, start_ns: int, end_ns: int
     ) -> list[tuple[int, str, bytes]]:
         """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
-        rows = self._one_row_query(
+        rows = self._read(
             "SELECT received_ns, key, payload FROM raw_packets "
             "WHERE vehicle_id = %s AND received_ns >= %s AND received_ns < %s "
             "ORDER BY received_ns, id",

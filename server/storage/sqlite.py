@@ -78,11 +78,11 @@ from server.storage._columns import (
     fields_dtype,
     select_fields,
 )
+from server.storage._queries import SharedQueries
 from server.storage.base import (
     Anchor,
     StorageDataError,
     StorageError,
-    TokenRecord,
     VehicleRecord,
 )
 
@@ -90,8 +90,6 @@ __all__ = ["SqliteStore"]
 
 _PAGE_SIZE_BYTES = 8192  # only takes effect when the file is created
 _CACHE_KIB = 32 * 1024
-_TOKEN_COLUMNS = "id, name, role, created_ns, last_used_ns, revoked_ns, expires_ns"
-
 #: Rows newer than this behind the newest staged row stay in the staging table; older ones
 #: are moved once the staged rows span :data:`_MOVE_SPAN_NS` (so a vehicle moves ~20-30 rows
 #: at a time: ~5-6 µs a row, against ~33 µs for one row per vehicle and commit written
@@ -171,7 +169,7 @@ def _wrap(exc: sqlite3.Error) -> StorageError:
     return StorageError(f"sqlite: {exc}")
 
 
-class SqliteStore:
+class SqliteStore(SharedQueries):
     """:class:`server.storage.base.Store` on a SQLite file.
 
     Parameters
@@ -318,10 +316,8 @@ class SqliteStore:
     # ------------------------------------------------------------------ vehicles
 
     @staticmethod
-    def _record(row: Sequence[Any]) -> VehicleRecord:
-        return VehicleRecord(
-            vehicle_id=row[0], config=json.loads(row[1]), created_ns=row[2], updated_ns=row[3]
-        )
+    def _config_of(raw: Any) -> dict[str, Any]:
+        return dict(json.loads(raw))
 
     def upsert_vehicle(self, vehicle_id: str, config: dict[str, Any], now_ns: int) -> VehicleRecord:
         with self._write() as conn:
@@ -334,19 +330,6 @@ class SqliteStore:
                 (vehicle_id, json.dumps(config), int(now_ns), int(now_ns)),
             ).fetchone()
         return self._record(row)
-
-    def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None:
-        rows = self._read(
-            "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles WHERE vehicle_id = ?",
-            (vehicle_id,),
-        )
-        return self._record(rows[0]) if rows else None
-
-    def list_vehicles(self) -> list[VehicleRecord]:
-        rows = self._read(
-            "SELECT vehicle_id, config, created_ns, updated_ns FROM vehicles ORDER BY vehicle_id"
-        )
-        return [self._record(r) for r in rows]
 
     def delete_vehicle(self, vehicle_id: str) -> bool:
         self._tables.load()
@@ -685,13 +668,6 @@ class SqliteStore:
                 params,
             )
 
-    def get_counters(self, vehicle_id: str) -> dict[str, int]:
-        rows = self._read(
-            "SELECT name, total FROM ingest_counters WHERE vehicle_id = ? ORDER BY name",
-            (vehicle_id,),
-        )
-        return {name: int(total) for name, total in rows}
-
     # ------------------------------------------------------------------ ENU anchors
 
     def put_anchors(self, anchors: Mapping[str, Anchor], now_ns: int) -> int:
@@ -706,70 +682,6 @@ class SqliteStore:
                 params,
             )
             return int(conn.total_changes - before)
-
-    def get_anchors(self, vehicle_id: str | None = None) -> dict[str, Anchor]:
-        sql = "SELECT vehicle_id, lat_deg, lon_deg, height_m FROM vehicle_anchors"
-        if vehicle_id is None:
-            rows = self._read(sql)
-        else:
-            rows = self._read(f"{sql} WHERE vehicle_id = ?", (vehicle_id,))
-        return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
-
-    # ------------------------------------------------------------------ access tokens
-
-    @staticmethod
-    def _token(row: Sequence[Any]) -> TokenRecord:
-        return TokenRecord(
-            id=int(row[0]),
-            name=str(row[1]),
-            role=str(row[2]),
-            created_ns=int(row[3]),
-            last_used_ns=None if row[4] is None else int(row[4]),
-            revoked_ns=None if row[5] is None else int(row[5]),
-            expires_ns=None if row[6] is None else int(row[6]),
-        )
-
-    def create_token(
-        self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None
-    ) -> TokenRecord:
-        with self._write() as conn:
-            row = conn.execute(
-                "INSERT INTO api_tokens (name, role, token_sha256, created_ns, expires_ns) "
-                f"VALUES (?, ?, ?, ?, ?) RETURNING {_TOKEN_COLUMNS}",
-                (
-                    name,
-                    role,
-                    token_sha256,
-                    int(now_ns),
-                    None if expires_ns is None else int(expires_ns),
-                ),
-            ).fetchone()
-        return self._token(row)
-
-    def get_token(self, token_sha256: str) -> TokenRecord | None:
-        rows = self._read(
-            f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE token_sha256 = ?", (token_sha256,)
-        )
-        return self._token(rows[0]) if rows else None
-
-    def list_tokens(self) -> list[TokenRecord]:
-        rows = self._read(f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY id")
-        return [self._token(r) for r in rows]
-
-    def touch_token(self, token_id: int, now_ns: int) -> None:
-        with self._write() as conn:
-            conn.execute(
-                "UPDATE api_tokens SET last_used_ns = ? WHERE id = ?", (int(now_ns), int(token_id))
-            )
-
-    def revoke_token(self, token_id: int, now_ns: int) -> TokenRecord | None:
-        with self._write() as conn:
-            row = conn.execute(
-                "UPDATE api_tokens SET revoked_ns = coalesce(revoked_ns, ?) WHERE id = ? "
-                f"RETURNING {_TOKEN_COLUMNS}",
-                (int(now_ns), int(token_id)),
-            ).fetchone()
-        return self._token(row) if row else None
 
     # ------------------------------------------------------------------ raw packets
 
