@@ -444,13 +444,6 @@ class PostgresStore(SharedQueries):
             )
         return len(params)
 
-    def raw_packets_bytes(self) -> int:
-        """Payload bytes of every stored raw packet (the writer's ``raw_packets_max_bytes``)."""
-        rows = self._one_row_query(
-            "SELECT coalesce(sum(octet_length(payload)), 0) FROM raw_packets", ()
-        )
-        return int(rows[0][0])
-
     def query_raw_packets(
         self, vehicle_id: str, start_ns: int, end_ns: int
     ) -> list[tuple[int, str, bytes]]:

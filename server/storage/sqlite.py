@@ -698,11 +698,6 @@ class SqliteStore(SharedQueries):
             )
         return len(params)
 
-    def raw_packets_bytes(self) -> int:
-        """Payload bytes of every stored raw packet (the writer's ``raw_packets_max_bytes``)."""
-        rows = self._read("SELECT coalesce(sum(length(payload)), 0) FROM raw_packets")
-        return int(rows[0][0])
-
     def query_raw_packets(
         self, vehicle_id: str, start_ns: int, end_ns: int
     ) -> list[tuple[int, str, bytes]]:
