@@ -6,6 +6,7 @@ tokens as REST."""
 from __future__ import annotations
 
 import ipaddress
+import os
 import socket
 import time
 from pathlib import Path
@@ -18,9 +19,11 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
+from server.api.routes.viewer import VIEWER_COOKIE
 from server.settings import StorageSettings, ViewerSettings
 from server.storage import open_store
 from server.tokens import Role, issue_token
+from server.tooling.bench.live import CHROMIUM_ARGS
 from tests.server.faults._harness import Publisher, ServerProcess, wait_until
 from tests.support import free_port
 
@@ -84,6 +87,7 @@ def test_serve_refuses_a_remote_viewer_and_binds_loopback_by_default(tmp_path: P
 # ----------------------------------------------------------------------------- through the API
 
 VIEWER_CLOSE_WITHIN_S = 1.5
+CHROMIUM = os.environ.get("SLIPFLEET_CHROMIUM", "/usr/bin/chromium")
 
 
 def _viewer_tokens(data_dir: Path) -> dict[str, tuple[str, int]]:
@@ -195,3 +199,51 @@ def test_the_3d_view_through_the_api_needs_a_token(tmp_path: Path) -> None:
     print(f"viewer socket closed {closed_after_s:.2f} s after revocation")
     assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
     assert closed_after_s < VIEWER_CLOSE_WITHIN_S
+
+
+@pytest.mark.zenoh
+@pytest.mark.browser
+def test_a_real_browser_gets_the_3d_view_only_with_a_token(tmp_path: Path) -> None:
+    """Headless Chromium against a real server: without a token, or with a forged cookie, the
+    3D view answers 401; with a viewer token in the link the page is served (viser's client)
+    and its own WebSocket, opened from the page with the cookie, is accepted."""
+    from playwright.sync_api import sync_playwright
+
+    token, _ = _viewer_tokens(tmp_path / "data")["watcher"]
+    server = ServerProcess(
+        tmp_path,
+        extra_env={
+            "SLIPFLEET_API__REQUIRE_AUTH": "true",
+            "SLIPFLEET_VIEWER__ENABLED": "true",
+            "SLIPFLEET_VIEWER__PORT": str(free_port()),
+        },
+    )
+    server.start()
+    view = f"{server.base_url}/api/v1/viewer/"
+    try:
+        server.wait_ready()
+        with sync_playwright() as p:
+            browser = p.chromium.launch(
+                executable_path=CHROMIUM, args=list(CHROMIUM_ARGS), headless=True
+            )
+            try:
+                refused = browser.new_context().new_page().goto(view)
+                assert refused is not None and refused.status == 401
+                forged = browser.new_context()
+                forged.add_cookies([{"name": VIEWER_COOKIE, "value": "sft_x", "url": view}])
+                refused = forged.new_page().goto(view)
+                assert refused is not None and refused.status == 401
+                watcher = browser.new_context().new_page()
+                answer = watcher.goto(f"{view}?token={token}")
+                assert answer is not None and answer.status == 200 and watcher.url == view
+                assert watcher.title() == "Viser"
+                wait_until(lambda: _socket_accepted(server), 30, "the page's viewer socket")
+            finally:
+                browser.close()
+    finally:
+        server.stop()
+
+
+def _socket_accepted(server: ServerProcess) -> bool:
+    """True once the server's access log shows the 3D view's WebSocket accepted."""
+    return '"WebSocket /api/v1/viewer" [accepted]' in server.log_path.read_text()
