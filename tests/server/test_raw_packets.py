@@ -59,11 +59,14 @@ def test_raw_packets_are_stored_when_asked(tmp_path: Path, store_raw: bool) -> N
 
 
 @pytest.mark.zenoh
-def test_only_packets_the_decoder_accepted_are_stored_raw(tmp_path: Path) -> None:
+@pytest.mark.parametrize("workers", [0, 1], ids=["pipeline", "worker"])
+def test_only_packets_the_decoder_accepted_are_stored_raw(tmp_path: Path, workers: int) -> None:
     """Malformed payloads on a vehicle's sensor key (sent first) are refused by the decoder and
-    never stored; the valid packets sent after them on the same link are, byte for byte."""
+    never stored; the valid packets sent after them on the same link are, byte for byte (the
+    decoder in the server's pipeline thread, or in a worker process)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = Settings(
+        ingest={"workers": workers},
         zenoh={"listen": [endpoint]},
         storage={"data_dir": tmp_path, "commit_interval_s": 0.2, "store_raw_packets": True},
         api={"port": 0, "require_auth": False},
