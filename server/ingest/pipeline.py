@@ -255,9 +255,7 @@ class Pipeline:
         # raw packets are stored once decoded, and only those the decoder accepted
         self._raw_sink = raw_sink
         self._subscriber = (
-            IngestSubscriber(
-                session, settings.zenoh, settings.ingest, self.submit_raw, None, self.refuse
-            )
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit_raw, self.refuse)
             if session is not None
             else None
         )

@@ -202,9 +202,7 @@ class WorkerPool:
         # raw packets come back from the workers once decoded: only the accepted ones
         self._raw_sink = raw_sink
         self._subscriber = (
-            IngestSubscriber(
-                session, settings.zenoh, settings.ingest, self.route, None, self.refuse
-            )
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.route, self.refuse)
             if session is not None
             else None
         )
