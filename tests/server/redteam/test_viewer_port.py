@@ -102,6 +102,20 @@ def _viewer_tokens(data_dir: Path) -> dict[str, tuple[str, int]]:
         store.close()
 
 
+def _viewer_server(tmp_path: Path) -> ServerProcess:
+    """A ``slipfleet serve`` started with tokens on and its 3D view on a free loopback port."""
+    server = ServerProcess(
+        tmp_path,
+        extra_env={
+            "SLIPFLEET_API__REQUIRE_AUTH": "true",
+            "SLIPFLEET_VIEWER__ENABLED": "true",
+            "SLIPFLEET_VIEWER__PORT": str(free_port()),
+        },
+    )
+    server.start()
+    return server
+
+
 def _viser_socket(server: ServerProcess, headers: dict[str, str]) -> ClientConnection:
     return connect(
         f"ws://127.0.0.1:{server.api_port}/api/v1/viewer",
@@ -150,15 +164,7 @@ def test_the_3d_view_through_the_api_needs_a_token(tmp_path: Path) -> None:
     valid token or from another origin; with a viewer token the page is served and the socket
     relays the scene (the vehicle's id in it); revoking the token closes that socket."""
     tokens = _viewer_tokens(tmp_path / "data")
-    server = ServerProcess(
-        tmp_path,
-        extra_env={
-            "SLIPFLEET_API__REQUIRE_AUTH": "true",
-            "SLIPFLEET_VIEWER__ENABLED": "true",
-            "SLIPFLEET_VIEWER__PORT": str(free_port()),
-        },
-    )
-    server.start()
+    server = _viewer_server(tmp_path)
     publisher = Publisher(server.zenoh_listen, n_vehicles=1, duration_s=30.0, id_prefix="view")
     token, token_id = tokens["watcher"]
     try:
@@ -210,15 +216,7 @@ def test_a_real_browser_gets_the_3d_view_only_with_a_token(tmp_path: Path) -> No
     from playwright.sync_api import sync_playwright
 
     token, _ = _viewer_tokens(tmp_path / "data")["watcher"]
-    server = ServerProcess(
-        tmp_path,
-        extra_env={
-            "SLIPFLEET_API__REQUIRE_AUTH": "true",
-            "SLIPFLEET_VIEWER__ENABLED": "true",
-            "SLIPFLEET_VIEWER__PORT": str(free_port()),
-        },
-    )
-    server.start()
+    server = _viewer_server(tmp_path)
     view = f"{server.base_url}/api/v1/viewer/"
     try:
         server.wait_ready()
