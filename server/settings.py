@@ -131,6 +131,16 @@ class StorageSettings(BaseModel):
             "beyond are dropped and counted, never held in memory"
         ),
     )
+    raw_packets_max_bytes: int = Field(
+        2**30,
+        ge=2**20,
+        le=2**44,
+        description=(
+            "payload bytes of raw packets kept in the database (store_raw_packets); beyond, no "
+            "more are stored and each is counted (raw_packets_over_budget) until retention "
+            "deletes old ones"
+        ),
+    )
 
 
 class IngestSettings(BaseModel):
@@ -322,6 +332,24 @@ class ApiSettings(BaseModel):
             "dashboard basemap: an XYZ tile template such as "
             "https://tile.example.org/{z}/{x}/{y}.png (Web Mercator, 256 px tiles); none (the "
             "default) draws the maps on latitude/longitude axes and fetches nothing external"
+        ),
+    )
+
+    report_max_vehicles: int = Field(
+        20_000,
+        ge=1,
+        description=(
+            "a fleet report over more vehicles answers 413 at once (before reading anything); "
+            "ask /vehicles/{id}/report for each instead"
+        ),
+    )
+    report_time_budget_s: float = Field(
+        30.0,
+        gt=0,
+        le=3600,
+        description=(
+            "time a fleet report may work, s: past it the report stops between two vehicles "
+            "and answers 413 (narrow start..end); one vehicle's report is never cut"
         ),
     )
 

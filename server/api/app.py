@@ -7,7 +7,8 @@ listed once in :data:`API_ROUTERS`; all are mounted under ``/api/v1``; OpenAPI i
 ``/openapi.json`` and ``/docs``.
 
 Access: every router except those in :data:`PUBLIC_ROUTERS` (``/health``, for load balancers)
-is mounted behind ``require_role("viewer")``, so a new router is closed until it says otherwise;
+is mounted behind ``require_role("viewer")``, so a new router is closed until it says otherwise
+(those in :data:`SELF_AUTHENTICATED_ROUTERS` check the token themselves, the 3D view's cookie);
 routes that change things ask for more themselves (vehicle config PUT: operator, DELETE and
 ``/tokens``: admin). ``/metrics`` is not public: it names every vehicle and its traffic
 (Prometheus sends a viewer token, ``authorization: {credentials_file: …}``).
@@ -44,6 +45,7 @@ from server.api.routes import (
     slipmap,
     tokens,
     vehicles,
+    viewer,
 )
 from server.settings import Settings
 from server.tokens import Role
@@ -52,6 +54,7 @@ __all__ = [
     "API_PREFIX",
     "API_ROUTERS",
     "PUBLIC_ROUTERS",
+    "SELF_AUTHENTICATED_ROUTERS",
     "BodySizeLimit",
     "WebSocketBearerProtocol",
     "create_app",
@@ -72,10 +75,14 @@ API_ROUTERS: tuple[APIRouter, ...] = (
     metrics.router,
     tokens.router,
     dashboard.router,
+    viewer.router,
 )
 
 #: Routers anyone may call without a token.
 PUBLIC_ROUTERS: tuple[APIRouter, ...] = (health.router,)
+#: Routers that check the caller's token themselves: the 3D view, whose browser socket can only
+#: carry a cookie (:mod:`server.api.routes.viewer`).
+SELF_AUTHENTICATED_ROUTERS: tuple[APIRouter, ...] = (viewer.router,)
 
 
 class BodySizeLimit:
@@ -285,7 +292,7 @@ def create_app(
     app.state.runtime = None
     install_error_handlers(app)
     included: set[int] = set()
-    public = {id(r) for r in PUBLIC_ROUTERS}
+    public = {id(r) for r in (*PUBLIC_ROUTERS, *SELF_AUTHENTICATED_ROUTERS)}
     for router in routers:
         if id(router) not in included:  # each router once, even if listed twice
             included.add(id(router))

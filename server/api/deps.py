@@ -69,6 +69,7 @@ __all__ = [
     "call_hook",
     "estimator_spec",
     "principal_of",
+    "principal_of_token",
     "require_role",
     "slip_config",
     "vehicle_estimators",
@@ -419,6 +420,12 @@ def _principal(conn: HTTPConnection) -> Principal:
     token = _credential(conn)
     if token is None:
         raise _refuse(conn, 401, "an access token is required: Authorization: Bearer <token>")
+    return principal_of_token(conn, token)
+
+
+def principal_of_token(conn: HTTPConnection, token: str) -> Principal:
+    """The holder of ``token`` (401 or WebSocket 1008 when the store does not know it, or it is
+    revoked or expired), for a route that finds its token elsewhere (the 3D view's cookie)."""
     if not is_well_formed(token):
         raise _refuse(conn, 401, "invalid, revoked or expired access token")
     runtime: ApiRuntime | None = getattr(conn.app.state, "runtime", None)

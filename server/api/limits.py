@@ -1,4 +1,5 @@
-"""Concurrency limits of the expensive routes: 429 with ``Retry-After`` beyond them.
+"""Concurrency limits of the expensive routes (429 with ``Retry-After`` beyond them) and the
+size and time budgets of one request (:class:`WorkBudget`, 413 beyond them).
 
 Reports, slip maps and series exports read and reduce up to a day of a whole fleet's rows in a
 worker thread each; fifty of them at once took every thread of the server's pool and starved
@@ -10,19 +11,25 @@ a request beyond either is answered at once, on the event loop, with 429 and
 ``/metrics`` as ``slipfleet_api_requests_refused_total{route,limit}``). ``/health`` and the
 cheap routes are never limited. A request counts until its answer is sent whole (streamed CSV
 included).
+
+A fleet report works vehicle by vehicle in its worker thread; :class:`WorkBudget` refuses one
+over too many vehicles before it reads anything (``api.report_max_vehicles``) and stops one that
+has worked longer than ``api.report_time_budget_s`` between two vehicles, each with 413 and one
+line naming the setting: the caller narrows the request instead of holding a thread for minutes.
 """
 
 from __future__ import annotations
 
 import hashlib
 import re
+import time
 from collections import Counter
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from server.api.errors import error_response
+from server.api.errors import PayloadTooLarge, error_response
 
-__all__ = ["HEAVY_ROUTES", "HeavyLimitState", "HeavyRequestLimit"]
+__all__ = ["HEAVY_ROUTES", "HeavyLimitState", "HeavyRequestLimit", "WorkBudget"]
 
 #: Route name -> path pattern of the expensive routes (under the API prefix).
 HEAVY_ROUTES: dict[str, re.Pattern[str]] = {
@@ -119,3 +126,40 @@ class HeavyRequestLimit:
         )
         response.headers["Retry-After"] = str(st.retry_after_s)
         await response(scope, receive, send)
+
+
+class WorkBudget:
+    """The size and time budgets of one request working through ``total`` items (``unit``:
+    what they are, for the message; see the module docstring). Built before the work: 413 when
+    ``total`` is over ``max_items``; :meth:`check` between items: 413 once the time is spent.
+    ``max_items`` and ``time_budget_s`` are ``(value, setting name)``."""
+
+    def __init__(
+        self,
+        what: str,
+        total: int,
+        unit: str,
+        *,
+        max_items: tuple[int, str],
+        time_budget_s: tuple[float, str],
+    ) -> None:
+        self.what = what
+        self.total = total
+        self.unit = unit
+        self.max_items, self._items_setting = max_items
+        self.time_budget_s, self._time_setting = time_budget_s
+        self._deadline = time.monotonic() + self.time_budget_s
+        if total > self.max_items:
+            raise PayloadTooLarge(
+                f"{what} would cover {total} {unit}, over {self._items_setting} "
+                f"({self.max_items}): ask for fewer, or raise the setting"
+            )
+
+    def check(self, done: int) -> None:
+        """Raise 413 when the time budget is spent (``done`` items of :attr:`total` made)."""
+        if time.monotonic() > self._deadline:
+            raise PayloadTooLarge(
+                f"{self.what} passed its time budget {self._time_setting} "
+                f"({self.time_budget_s:g} s) after {done} of {self.total} {self.unit}: narrow "
+                "start..end, or raise the setting"
+            )

@@ -185,8 +185,9 @@ class Pipeline:
     on_new_vehicle : callable(vehicle_id, config), optional
         Called for vehicles registered by the pipeline itself (auto or Zenoh config).
     raw_sink : callable, optional
-        Receives the raw packets as they arrived (``StorageSettings.store_raw_packets``), on the
-        ingest thread: see :class:`IngestSubscriber`.
+        Receives the raw packets the decoder accepted, byte for byte as they arrived
+        (``StorageSettings.store_raw_packets``), on the pipeline thread as each burst is
+        decoded.
     clock_ns : callable, optional
         Monotonic clock in ns (for the reorder buffers' idle release); injectable for tests.
     wall_clock_ns : callable, optional
@@ -251,10 +252,10 @@ class Pipeline:
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
         self._registered_ns: deque[int] = deque()  # self-registrations of the last minute
+        # raw packets are stored once decoded, and only those the decoder accepted
+        self._raw_sink = raw_sink
         self._subscriber = (
-            IngestSubscriber(
-                session, settings.zenoh, settings.ingest, self.submit_raw, raw_sink, self.refuse
-            )
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit_raw, self.refuse)
             if session is not None
             else None
         )
@@ -380,13 +381,29 @@ class Pipeline:
         if not isinstance(items, _Raw):
             return items
         try:
-            return decode_burst(
+            decoded = decode_burst(
                 items.received,
                 prefix=self._settings.zenoh.key_prefix,
                 max_payload_bytes=self._ingest.max_payload_bytes,
             )
         finally:
             self._queued_bytes.release(items.nbytes)
+        if self._raw_sink is not None:
+            self._sink_accepted(items.received, decoded)
+        return decoded
+
+    def _sink_accepted(self, received: list[tuple[str, bytes]], decoded: list[IngestItem]) -> None:
+        """Hand the packets of a burst that the decoder accepted to the raw sink, stamped now
+        (UTC ns): a malformed or refused payload is never stored raw."""
+        assert self._raw_sink is not None
+        now_ns = time.time_ns()
+        raw: list[RawPacket] = [
+            (item.vehicle_id, now_ns, key, payload)
+            for (key, payload), item in zip(received, decoded, strict=True)
+            if isinstance(item, Packet)
+        ]
+        if raw:
+            self._raw_sink(raw)
 
     def register_vehicle(
         self, vehicle_id: str, config: VehicleConfig, *, notify: bool = False

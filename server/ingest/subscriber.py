@@ -15,8 +15,8 @@ Two subscriptions under ``<prefix>/<vehicle_filter>/``:
 * Before a sample's payload is copied out of Zenoh its length is read (``len`` of the
   ``ZBytes``, no copy): one over ``IngestSettings.max_payload_bytes`` is refused as
   ``oversize``, one its vehicle has no byte rate left for (:class:`~server.ingest.limits.ByteRate`)
-  as ``over_rate``. Refused packets go to ``refuse`` as ``(key, reason)`` to be counted, and
-  never to the raw sink: only packets taken on are stored raw.
+  as ``over_rate``. Refused packets go to ``refuse`` as ``(key, reason)`` to be counted; raw
+  packets are stored later, once the decoder accepted them (the pipeline's ``raw_sink``).
 * ``config`` into a small FIFO that the pipeline thread polls with :meth:`poll_configs`
   (configs are rare; polling is one non-blocking ``try_recv``).
 """
@@ -35,7 +35,7 @@ import zenoh
 from estimator.config import VehicleConfig
 from server.ingest.limits import ByteRate
 from server.protocol.codec import DecodeError, Packet, decode_config
-from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK, parse_key
+from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK
 from server.settings import IngestSettings, ZenohSettings
 
 __all__ = ["BURST", "ConfigUpdate", "IngestItem", "IngestSubscriber", "RawPacket", "Refusal"]
@@ -77,10 +77,6 @@ class IngestSubscriber:
     take : callable
         Receives each burst's ``(key, payload)`` packets as they arrived; may block
         (backpressure).
-    raw_sink : callable, optional
-        Receives each burst's raw packets as ``(vehicle_id, received_ns, key, payload)``
-        (wall-clock receive time; packets whose key names no vehicle are left out), for
-        ``StorageSettings.store_raw_packets``.
     refuse : callable, optional
         Receives the packets refused from their length, as :data:`Refusal` pairs, to count
         them (without it they are dropped uncounted).
@@ -92,7 +88,6 @@ class IngestSubscriber:
         zenoh_settings: ZenohSettings,
         ingest_settings: IngestSettings,
         take: Callable[[list[tuple[str, bytes]]], None],
-        raw_sink: Callable[[list[RawPacket]], object] | None = None,
         refuse: Callable[[list[Refusal]], object] | None = None,
     ) -> None:
         self._session = session
@@ -104,7 +99,6 @@ class IngestSubscriber:
         )
         self._zs = zenoh_settings
         self._gather_s = ingest_settings.gather_ms / 1000
-        self._raw_sink = raw_sink
         self._thread: threading.Thread | None = None
         self._sensors: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
         self._config: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = None
@@ -198,8 +192,6 @@ class IngestSubscriber:
                 self._refuse(refused)
             if not received:
                 continue
-            if self._raw_sink is not None:
-                self._sink_raw(received)
             self._take(received)
 
     def _admit(
@@ -220,25 +212,3 @@ class IngestSubscriber:
         """The byte-rate bucket of a key: its vehicle chunk (the whole key if it has none)."""
         rest = key[len(self._zs.key_prefix) + 1 :]
         return rest.split("/", 1)[0] or key
-
-    def _sink_raw(self, received: list[tuple[str, bytes]]) -> None:
-        """Hand the burst's packets whose key names a vehicle to the raw sink."""
-        assert self._raw_sink is not None
-        prefix = self._zs.key_prefix
-        now_ns = time.time_ns()
-        raw: list[RawPacket] = [
-            (vid, now_ns, key, payload)
-            for key, payload in received
-            if (vid := _vehicle_of(key, prefix)) is not None
-        ]
-        if raw:
-            self._raw_sink(raw)
-
-
-def _vehicle_of(key: str, prefix: str) -> str | None:
-    """The vehicle a sensor key names (None: not a valid sensor key)."""
-    try:
-        vid, stream = parse_key(key, prefix)
-    except ValueError:
-        return None
-    return vid if stream is not None else None

@@ -25,7 +25,8 @@ reorder buffers, estimator registry) for the vehicles it owns::
   sends every estimator call's rows back as one array with the estimator's name and the
   vehicles' ids and row counts; the server rebuilds the batch with that name's spec
   (:func:`estimator.catalog.spec_of`). Once a second (and when they stop) they send a
-  snapshot of their ingest counters, estimator counters, ENU anchors and pipeline stats.
+  snapshot of their ingest counters, estimator counters, ENU anchors and pipeline stats. With
+  ``store_raw_packets`` they also send back the packets their decoder accepted, to be stored raw.
   Vehicles they register themselves (``unknown_vehicle = "auto"``) are reported to the server,
   which stores them.
 * **Collect thread**: waits on every worker's result pipe and hands rows to the sinks (one
@@ -121,6 +122,7 @@ class _Worker:
         ctx: Any,
         initial: list[tuple[Any, ...]],
         registry_factory: Callable[[], EstimatorRegistry],
+        store_raw: bool = False,
     ) -> None:
         self.index = index
         feed_recv, self.feed = ctx.Pipe(duplex=False)
@@ -141,6 +143,7 @@ class _Worker:
                 feed_recv,
                 results_send,
                 control_recv,
+                store_raw,
             ),
             name=f"slipfleet-worker-{index}",
             daemon=True,
@@ -196,10 +199,10 @@ class WorkerPool:
             "dropped_worker_down": 0,
             "worker_restarts": 0,
         }
+        # raw packets come back from the workers once decoded: only the accepted ones
+        self._raw_sink = raw_sink
         self._subscriber = (
-            IngestSubscriber(
-                session, settings.zenoh, settings.ingest, self.route, raw_sink, self.refuse
-            )
+            IngestSubscriber(session, settings.zenoh, settings.ingest, self.route, self.refuse)
             if session is not None
             else None
         )
@@ -231,6 +234,7 @@ class WorkerPool:
                 self._ctx,
                 self._initial(k, self._stored_counters, self._stored_anchors),
                 self._registry_factory,
+                self._raw_sink is not None,
             )
             for k in range(self._n)
         ]
@@ -417,7 +421,8 @@ class WorkerPool:
         initial = self._initial(
             k, dead.snapshot.get("counters", {}), dict(dead.snapshot.get("anchors", {}))
         )
-        new = _Worker(k, self._settings, self._ctx, initial, self._registry_factory)
+        store_raw = self._raw_sink is not None
+        new = _Worker(k, self._settings, self._ctx, initial, self._registry_factory, store_raw)
         if not _ready(new):
             log.error("worker %d did not start again", k)
             new.process.kill()
@@ -446,6 +451,8 @@ class WorkerPool:
                     self._on_new_vehicle(message[1], message[2])
                 except Exception:
                     log.exception("on_new_vehicle failed for %s", message[1])
+        elif kind == "raw" and self._raw_sink is not None:
+            self._raw_sink(message[1])
         elif kind in ("snapshot", "done"):
             w.snapshot = message[1]
         return kind == "done"
@@ -564,8 +571,10 @@ def _worker_main(
     feed: Connection,
     results_conn: Connection,
     control: Connection,
+    store_raw: bool = False,
 ) -> None:
-    """A worker process: decode what the server routes here and run a pipeline on it."""
+    """A worker process: decode what the server routes here and run a pipeline on it
+    (``store_raw``: send the packets it accepted back, to be stored raw)."""
     from server.gc_policy import settle
     from server.ingest.pipeline import Pipeline
 
@@ -582,6 +591,7 @@ def _worker_main(
         registry_factory(),
         sinks=[results],
         on_new_vehicle=lambda vid, config: results.send(("new", vid, config)),
+        raw_sink=(lambda raw: results.send(("raw", raw))) if store_raw else None,
     )
     stop = threading.Event()
 

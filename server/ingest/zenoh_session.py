@@ -18,8 +18,10 @@ Vehicle authentication and ACL (embedded router, or a standalone ``zenohd`` conf
   session must present one of these pairs (``transport/auth/usrpwd``), else Zenoh refuses the
   connection. Zenoh reads the passwords in clear, so keep the file ``0600``.
 * ``acl`` (on by default) adds ``access_control`` with ``default_permission: deny`` and, per
-  vehicle, one rule allowing it to publish (``put``) only under ``<key_prefix>/<id>/**`` and to
-  subscribe to (and receive) its own ``<key_prefix>/<id>/alerts`` and ``.../status``; every
+  vehicle, rules allowing it to publish (``put``) only on its own sensor streams
+  (``<key_prefix>/<id>/sensors/<stream>``) and config key, and to subscribe to (and receive) its
+  own ``<key_prefix>/<id>/alerts`` and ``.../status``; a deny rule refuses any vehicle's put or
+  delete on an alerts or status key, so it cannot forge what the server tells it; every
   vehicle is also told of the server's sensor and config subscriptions (a client publisher
   sends nothing until it knows of a matching subscriber). Anything else a vehicle sends —
   another vehicle's key, a subscription to the fleet — is dropped by the router. The embedded
@@ -41,7 +43,7 @@ from typing import Any
 
 import zenoh
 
-from server.protocol.keys import is_valid_vehicle_id
+from server.protocol.keys import CONFIG_SUFFIX, SENSORS_CHUNK, is_valid_vehicle_id
 from server.settings import ZenohSettings
 
 __all__ = [
@@ -118,6 +120,58 @@ def read_credential_users(path: Path, *, server_user: str | None = None) -> list
     return users
 
 
+def _vehicle_rules(prefix: str, vid: str) -> list[dict[str, Any]]:
+    """One vehicle's allow rules: put on its own sensor streams and config, subscribe to and
+    receive its own alerts and status."""
+    told = [f"{prefix}/{vid}/alerts", f"{prefix}/{vid}/status"]  # what the server tells it
+    return [
+        {
+            "id": f"{vid}/publish",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["put"],
+            "key_exprs": [f"{prefix}/{vid}/{SENSORS_CHUNK}/*", f"{prefix}/{vid}/{CONFIG_SUFFIX}"],
+        },
+        {
+            "id": f"{vid}/alerts-subscribe",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["declare_subscriber"],
+            "key_exprs": told,
+        },
+        {
+            "id": f"{vid}/alerts-receive",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put"],
+            "key_exprs": told,
+        },
+    ]
+
+
+def _shared_vehicle_rules(prefix: str) -> list[dict[str, Any]]:
+    """Rules every vehicle shares: it is told of the server's subscriptions (a client publisher
+    sends only while it knows a matching subscriber, so without this its puts were dropped on
+    the vehicle side), and it may never put or delete on any alerts or status key (what the
+    server tells vehicles and operators), whatever an allow rule says: a deny wins."""
+    return [
+        {
+            "id": "vehicles/see-server-subscriptions",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["declare_subscriber"],
+            "key_exprs": [f"{prefix}/*/{SENSORS_CHUNK}/**", f"{prefix}/*/{CONFIG_SUFFIX}"],
+        },
+        {
+            "id": "vehicles/never-forge-server-keys",
+            "permission": "deny",
+            "flows": ["ingress"],
+            "messages": ["put", "delete"],
+            "key_exprs": [f"{prefix}/*/alerts/**", f"{prefix}/*/status/**"],
+        },
+    ]
+
+
 def acl_config(
     prefix: str,
     vehicle_ids: list[str],
@@ -125,58 +179,22 @@ def acl_config(
     trusted: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Zenoh ``access_control``: deny by default; each vehicle (matched by its user name) may
-    put under ``<prefix>/<id>/**`` and subscribe to its own ``<prefix>/<id>/alerts`` and
-    ``<prefix>/<id>/status``;
+    put on its own ``<prefix>/<id>/sensors/<stream>`` and ``<prefix>/<id>/config`` only,
+    subscribe to its own ``<prefix>/<id>/alerts`` and ``<prefix>/<id>/status``, and is denied
+    any put on an alerts or status key (its own included: those are the server's word);
     ``server_user`` (a server connecting to a standalone router) and the ``trusted`` users
     (server replicas, linked routers) may subscribe to and publish under ``<prefix>/**``."""
-    # The router must tell a vehicle about the server's subscriptions: a client publisher sends
-    # only while it knows a matching subscriber (Zenoh interests), so without this rule puts
-    # were dropped on the vehicle side.
-    shared = {
-        "id": "vehicles/see-server-subscriptions",
-        "permission": "allow",
-        "flows": ["egress"],
-        "messages": ["declare_subscriber"],
-        "key_exprs": [f"{prefix}/*/sensors/**", f"{prefix}/*/config"],
-    }
-    rules: list[dict[str, Any]] = [shared] if vehicle_ids else []
+    shared = _shared_vehicle_rules(prefix) if vehicle_ids else []
+    rules: list[dict[str, Any]] = list(shared)
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for vid in vehicle_ids:
-        own = f"{prefix}/{vid}/**"
-        told = [f"{prefix}/{vid}/alerts", f"{prefix}/{vid}/status"]  # what the server tells it
-        rules += [
-            {
-                "id": f"{vid}/publish",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["put"],
-                "key_exprs": [own],
-            },
-            {
-                "id": f"{vid}/alerts-subscribe",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["declare_subscriber"],
-                "key_exprs": told,
-            },
-            {
-                "id": f"{vid}/alerts-receive",
-                "permission": "allow",
-                "flows": ["egress"],
-                "messages": ["put"],
-                "key_exprs": told,
-            },
-        ]
+        own = _vehicle_rules(prefix, vid)
+        rules += own
         subjects.append({"id": f"vehicle/{vid}", "usernames": [vid]})
         policies.append(
             {
-                "rules": [
-                    f"{vid}/publish",
-                    f"{vid}/alerts-subscribe",
-                    f"{vid}/alerts-receive",
-                    shared["id"],
-                ],
+                "rules": [r["id"] for r in own] + [r["id"] for r in shared],
                 "subjects": [f"vehicle/{vid}"],
             }
         )

@@ -104,6 +104,12 @@ class SharedQueries:
 
     # ------------------------------------------------------------------ access tokens
 
+    def raw_packets_bytes(self) -> int:
+        """Payload bytes of every stored raw packet (the writer's ``raw_packets_max_bytes``;
+        ``length`` of a blob or ``bytea`` is its bytes on both backends)."""
+        rows = self._select("SELECT coalesce(sum(length(payload)), 0) FROM raw_packets")
+        return int(rows[0][0])
+
     def create_token(
         self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None
     ) -> TokenRecord:

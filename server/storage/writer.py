@@ -40,7 +40,8 @@ for the database lock, and a REST upsert never races a queued registration.
 
 Ingest counters (:meth:`StoreWriter.submit_counters`, latest totals win), the vehicles' ENU
 anchors (:meth:`StoreWriter.submit_anchors`, each stored once) and, when ``store_raw_packets``
-is on, raw packets (:meth:`StoreWriter.submit_raw_packets`) ride the same thread; counters go
+is on, raw packets (:meth:`StoreWriter.submit_raw_packets`, at most ``raw_packets_max_bytes`` of
+payload in the database: :class:`_RawBudget`) ride the same thread; counters go
 in slices of :data:`COUNTER_VEHICLES_PER_WRITE` vehicles, with the estimate transactions that
 fall due in between. With ``retention_days > 0`` the writer also deletes old
 estimates every ``retention_interval_s``. A store with a ``maintain()`` method (SQLite: moving
@@ -56,6 +57,7 @@ from __future__ import annotations
 import concurrent.futures
 import itertools
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -83,6 +85,9 @@ CALL_TIMEOUT_S = 10.0
 _NS_PER_DAY = 86_400 * 1_000_000_000
 _LOG_EVERY_S = 30.0
 _RAW_PACKETS_MAX = 100_000
+#: Once the stored raw packets fill ``raw_packets_max_bytes``, the database's total is read
+#: again at most this often (retention may have made room).
+RAW_BUDGET_RECHECK_S = 60.0
 #: Vehicles whose counters one write carries at most: a fleet's counters (1,000 vehicles x 11
 #: a second) written in one statement held the estimate commits back for tens of ms; in
 #: slices, estimates that fall due in between go first.
@@ -133,6 +138,8 @@ class WriterStats:
     """Vehicle registrations written (:meth:`StoreWriter.submit_vehicle`)."""
     vehicles_dropped_error: int = 0
     """Vehicle registrations the database rejected as data (not retried)."""
+    raw_packets_over_budget: int = 0
+    """Raw packets not stored because the stored ones hold ``raw_packets_max_bytes``."""
 
 
 def _copied(batch: EstimateBatch) -> list[np.ndarray]:
@@ -184,6 +191,7 @@ class StoreWriter:
         self._retention_ns = int(settings.retention_days * _NS_PER_DAY)
         self._store_raw = bool(settings.store_raw_packets)
         self._raw_max_bytes = int(settings.raw_packets_queue_max_bytes)
+        self._raw_budget = _RawBudget(int(settings.raw_packets_max_bytes))
         self._submit_block_s = float(submit_block_s)
         self._retry_initial_s = float(retry_initial_s)
         self._retry_max_s = float(retry_max_s)
@@ -517,6 +525,7 @@ class StoreWriter:
                 consecutive_failures=self._failures,
                 raw_packets_written=self._raw_written,
                 raw_packets_dropped=self._raw_dropped,
+                raw_packets_over_budget=self._raw_budget.refused,
                 retention_rows_deleted=self._retention_deleted,
                 vehicles_stored=self._vehicles_stored,
                 vehicles_dropped_error=self._vehicles_dropped,
@@ -797,7 +806,9 @@ class StoreWriter:
                 writer: Callable[[Sequence[tuple[str, int, str, bytes]]], int] | None = getattr(
                     self._store, "write_raw_packets", None
                 )
-                written = writer(raw) if writer is not None else 0
+                raw = self._raw_budget.within(self._store, raw)  # what is put back on failure
+                written = writer(raw) if writer is not None and raw else 0
+                self._raw_budget.stored(raw[:written])
                 with self._cond:
                     self._raw_written += written
                     self._raw_dropped += len(raw) - written
@@ -876,3 +887,43 @@ class StoreWriter:
             self._next_retention_at = time.monotonic() + self._retention_interval_s
         if deleted:
             log.info("retention deleted %d estimate rows older than %d ns", deleted, cutoff_ns)
+
+
+class _RawBudget:
+    """The bound on the raw packets' payload bytes in the database (writer thread only).
+
+    The stored total is read from the store (``raw_packets_bytes``) before the first write,
+    then kept up to date; once full it is read again at most every
+    :data:`RAW_BUDGET_RECHECK_S` (retention deletes old packets). Packets that do not fit are
+    not stored and are counted in :attr:`refused`: storage stops, the oldest stay.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self.refused = 0
+        self._stored_bytes: int | None = None
+        self._read_at = -math.inf
+
+    def within(
+        self, store: Store, raw: list[tuple[str, int, str, bytes]]
+    ) -> list[tuple[str, int, str, bytes]]:
+        """The leading packets of ``raw`` that fit the budget (the rest counted refused)."""
+        now = time.monotonic()
+        full = self._stored_bytes is not None and self._stored_bytes >= self.max_bytes
+        if self._stored_bytes is None or (full and now - self._read_at >= RAW_BUDGET_RECHECK_S):
+            total: Callable[[], int] | None = getattr(store, "raw_packets_bytes", None)
+            self._stored_bytes = total() if total is not None else 0
+            self._read_at = now
+        room = self.max_bytes - self._stored_bytes
+        kept: list[tuple[str, int, str, bytes]] = []
+        for packet in raw:
+            room -= len(packet[3])
+            if room < 0:
+                break
+            kept.append(packet)
+        self.refused += len(raw) - len(kept)
+        return kept
+
+    def stored(self, packets: Sequence[tuple[str, int, str, bytes]]) -> None:
+        """Count ``packets`` as written."""
+        self._stored_bytes = (self._stored_bytes or 0) + sum(len(p[3]) for p in packets)

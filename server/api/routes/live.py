@@ -83,6 +83,7 @@ __all__ = [
     "VEHICLE_MIN_INTERVAL_S",
     "find_live_hub",
     "router",
+    "while_authorised",
 ]
 
 router = APIRouter(prefix="/live", tags=["live"])
@@ -171,7 +172,7 @@ async def _token_revoked(websocket: WebSocket, token_sha256: str) -> None:
         expires_ns = record.expires_ns
 
 
-async def _while_authorised(
+async def while_authorised(
     websocket: WebSocket, principal: Principal | None, body: Coroutine[Any, Any, None]
 ) -> None:
     """Run the coroutine ``body`` (the socket's sender) until it ends or the caller's token is
@@ -205,7 +206,7 @@ async def live_fleet(
         await _close_unavailable(websocket)
         return
     await websocket.accept()
-    await _while_authorised(websocket, principal, _send_fleet(websocket, hub, interval_ms))
+    await while_authorised(websocket, principal, _send_fleet(websocket, hub, interval_ms))
 
 
 async def _send_fleet(websocket: WebSocket, hub: LiveHub, interval_ms: int) -> None:
@@ -260,7 +261,7 @@ async def live_vehicle(
         return
     await websocket.accept()
     sender = _send_vehicle(websocket, hub, vehicle_id, estimator, window_s, max_points)
-    await _while_authorised(websocket, principal, sender)
+    await while_authorised(websocket, principal, sender)
 
 
 async def _send_vehicle(

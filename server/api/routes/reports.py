@@ -14,6 +14,7 @@ from server.api.deps import (
     EstimatorDep,
     EstimatorQuery,
     LimitsDep,
+    SettingsDep,
     StoreDep,
     TimeRange,
     TimeRangeDep,
@@ -24,6 +25,7 @@ from server.api.deps import (
 )
 from server.api.errors import error_responses
 from server.api.field_report import html_report, html_response
+from server.api.limits import WorkBudget
 from server.api.models import FleetReportPublic, VehicleReportPublic
 from server.api.routes.series import export_filename
 from server.api.tables import csv_table
@@ -88,6 +90,12 @@ def _primary(record: VehicleRecord) -> EstimatorSpec | None:
     names = vehicle_estimators(record)
     return SPECS.get(names[0]) if names else None
 
+
+_FLEET_BUDGETS = """
+**Budgets** (413 with one line naming the setting): a fleet of more than
+`api.report_max_vehicles` vehicles is refused before anything is read; a report still working
+after `api.report_time_budget_s` stops between two vehicles (narrow `start..end`).
+"""
 
 #: The spec with the fewest columns (no slip channel): the header of an empty fleet's table.
 _NO_SLIP = min(SPECS.values(), key=lambda spec: len(spec.slips))
@@ -163,22 +171,32 @@ def _csv_response(reports: list[VehicleReportPublic], filename: str) -> Response
             "fleet, empty where not used).",
             "content": {"text/csv": {"schema": {"type": "string"}}},
         },
-        **error_responses(400, 422),
+        **error_responses(400, 413, 422),
     },
     summary="Field report of every vehicle",
-    description=REPORT_DESCRIPTION,
+    description=REPORT_DESCRIPTION + _FLEET_BUDGETS,
 )
 def get_fleet_report(
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
+    settings: SettingsDep,
     format: ReportFormat = "json",
     estimator: EstimatorQuery = None,
 ) -> Response:
     tr.check_span(limits.report_max_range_ns)
     asked = None if estimator is None else estimator_spec(estimator)
+    records = store.list_vehicles()
+    budget = WorkBudget(
+        "the fleet report",
+        len(records),
+        "vehicles",
+        max_items=(settings.api.report_max_vehicles, "api.report_max_vehicles"),
+        time_budget_s=(settings.api.report_time_budget_s, "api.report_time_budget_s"),
+    )
     reports = []
-    for record in store.list_vehicles():
+    for done, record in enumerate(records):
+        budget.check(done)
         spec = asked or _primary(record)
         if spec is not None:
             reports.append(_report(store, record, spec, tr, limits.report_max_gap_s))

@@ -73,12 +73,16 @@ def test_acl_allows_each_vehicle_its_own_key_space_only() -> None:
         "permission": "allow",
         "flows": ["ingress"],
         "messages": ["put"],
-        "key_exprs": ["fleet/v1/**"],
+        "key_exprs": ["fleet/v1/sensors/*", "fleet/v1/config"],
     }
     # a vehicle may hear its own alerts and status (refusal counts), nobody else's
     assert rules["v2/alerts-receive"]["key_exprs"] == ["fleet/v2/alerts", "fleet/v2/status"]
     assert rules["v2/alerts-subscribe"]["key_exprs"] == ["fleet/v2/alerts", "fleet/v2/status"]
-    assert all(r["permission"] == "allow" for r in acl["rules"])
+    # the one deny: no vehicle puts or deletes on an alerts or status key, its own included
+    denied = [r for r in acl["rules"] if r["permission"] == "deny"]
+    assert denied == [rules["vehicles/never-forge-server-keys"]]
+    assert denied[0]["flows"] == ["ingress"] and denied[0]["messages"] == ["put", "delete"]
+    assert denied[0]["key_exprs"] == ["fleet/*/alerts/**", "fleet/*/status/**"]
     subjects = {s["id"]: s["usernames"] for s in acl["subjects"]}
     assert subjects == {"vehicle/v1": ["v1"], "vehicle/v2": ["v2"], "server": ["srv"]}
     policy_of = {p["subjects"][0]: p["rules"] for p in acl["policies"]}
@@ -87,6 +91,7 @@ def test_acl_allows_each_vehicle_its_own_key_space_only() -> None:
         "v1/alerts-subscribe",
         "v1/alerts-receive",
         "vehicles/see-server-subscriptions",
+        "vehicles/never-forge-server-keys",
     ]
     assert rules["vehicles/see-server-subscriptions"]["flows"] == ["egress"]
     assert rules["vehicles/see-server-subscriptions"]["messages"] == ["declare_subscriber"]

@@ -139,3 +139,41 @@ def test_fake_alerts_from_a_vehicle_are_dropped_or_ignored(
     assert "v2" not in pipeline.counters_snapshot()
     for sub in subs:
         sub.undeclare()
+
+
+@pytest.mark.zenoh
+def test_a_vehicle_cannot_forge_its_own_alerts_or_status(
+    stack: tuple[Runtime, str, zenoh.Session, zenoh.Session],
+) -> None:
+    """``v1`` puts alert- and status-shaped JSON on its *own* alerts and status keys (and on
+    keys of its own space that are no sensor stream). A second ``v1`` session (the vehicle's
+    own display) and the server's session listen there: neither gets a forged sample."""
+    runtime, prefix, v1, _ = stack
+    assert runtime.session is not None
+    owner, server_side = _Inbox(), _Inbox()
+    told = [f"{prefix}/v1/alerts", f"{prefix}/v1/status"]
+    elsewhere = [f"{prefix}/v1/alerts/extra", f"{prefix}/v1/sensors/gnss/extra", f"{prefix}/v1/x"]
+    endpoint = runtime.settings.zenoh.listen[0]
+    with _vehicle(endpoint, "v1", PW["v1"]) as display:
+        subs = [owner.listen(display, k) for k in told]
+        subs += [server_side.listen(runtime.session, k) for k in [*told, *elsewhere]]
+        time.sleep(0.5)
+        forged = {"event": "open", "marker": "forged-by-v1", "vehicle_id": "v1"}
+        for key in [*told, *elsewhere]:
+            for _ in range(20):
+                v1.put(key, json.dumps(forged))
+            v1.delete(key)
+        _publish(v1, sensor_key(prefix, "v1", Stream.GNSS), 10)  # the barrier: same link, after
+        assert runtime.pipeline is not None
+        pipeline = runtime.pipeline
+        _wait_for(lambda: pipeline.counters_snapshot().get("v1", {}).get("received") == 10, "v1")
+        runtime._publish_alert("v1", {"event": "open", "marker": "from-the-server"})  # control
+        _wait_for(lambda: f"{prefix}/v1/alerts" in owner.sample_keys(), "the server's alert")
+        time.sleep(0.5)
+        for sub in subs:
+            sub.undeclare()
+
+    heard = [(key, payload) for _, key, payload in owner.samples + server_side.samples]
+    forged_heard = [key for key, payload in heard if b"forged-by-v1" in payload or not payload]
+    assert forged_heard == [], f"forged samples got through on {sorted(set(forged_heard))}"
+    assert any(b"from-the-server" in payload for _, _, payload in owner.samples)

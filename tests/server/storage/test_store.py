@@ -227,6 +227,7 @@ def test_raw_packets(store: Store) -> None:
     packets = [("v1", T0_NS + i, f"fleet/v1/sensors/imu/{i}", bytes([i, 0, 255])) for i in range(5)]
     # packets of a vehicle not (yet) registered are kept too: they arrive before registration
     assert store.write_raw_packets([*packets, ("ghost", T0_NS, "k", b"x")]) == 6  # type: ignore[attr-defined]
+    assert store.raw_packets_bytes() == 5 * 3 + 1  # type: ignore[attr-defined]
     got = store.query_raw_packets("v1", T0_NS + 1, T0_NS + 4)  # type: ignore[attr-defined]
     assert got == [(t, k, p) for _, t, k, p in packets[1:4]]
     assert store.query_raw_packets("ghost", 0, 2**62) == [(T0_NS, "k", b"x")]  # type: ignore[attr-defined]

@@ -461,6 +461,36 @@ def test_raw_packets_are_bounded_in_bytes(backend: Backend) -> None:
     assert [p[1:] for p in packets] == stored
 
 
+def test_stored_raw_packets_are_bounded_in_bytes(backend: Backend) -> None:
+    """``raw_packets_max_bytes`` bounds the payload bytes in the database: past it packets are
+    not stored but counted (the oldest stay), also after a restart (the total is read back)."""
+    store = backend.open()
+    budget = 2**20
+    settings = _settings(store_raw_packets=True, raw_packets_max_bytes=budget)
+    packets = [("v1", T0_NS + k, "fleet/v1/sensors/imu", bytes([k]) * 100_000) for k in range(15)]
+    with StoreWriter(store, settings) as writer:
+        assert writer.submit_raw_packets(packets) == 15  # the queue takes them all
+        assert writer.flush(timeout=30)
+        stats = writer.stats()
+        assert (stats.raw_packets_written, stats.raw_packets_over_budget) == (10, 5)
+    assert store.raw_packets_bytes() == 1_000_000  # type: ignore[attr-defined]
+    stored = store.query_raw_packets("v1", 0, 2**62)  # type: ignore[attr-defined]
+    assert stored == [p[1:] for p in packets[:10]]
+    late = [
+        ("v1", T0_NS + 20, "fleet/v1/sensors/imu", b"\x01" * 100_000),  # over what is left
+        ("v1", T0_NS + 21, "fleet/v1/sensors/imu", b"\x02" * 40_000),  # ignored: after it
+    ]
+    with StoreWriter(store, settings) as restarted:
+        restarted.submit_raw_packets(late)
+        assert restarted.flush(timeout=30)
+        stats = restarted.stats()
+        assert (stats.raw_packets_written, stats.raw_packets_over_budget) == (0, 2)
+        restarted.submit_raw_packets(late[1:])  # 40,000 of the 48,576 bytes left fit
+        assert restarted.flush(timeout=30)
+        assert restarted.stats().raw_packets_written == 1
+    assert store.raw_packets_bytes() == 1_040_000  # type: ignore[attr-defined]
+
+
 def test_producers_on_several_threads(backend: Backend) -> None:
     store = backend.open()
     vehicles = [f"v{i}" for i in range(4)]
