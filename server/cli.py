@@ -361,6 +361,34 @@ def _positive(text: str) -> float:
     return value
 
 
+def _count(text: str) -> int:
+    """A whole number ≥ 1 (vehicles)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError("must be 1 or more")
+    return value
+
+
+def _seconds_or_zero(text: str) -> float:
+    """Seconds > 0, or 0: until Ctrl-C."""
+    try:
+        return _positive(text)
+    except argparse.ArgumentTypeError:
+        if _is_zero(text):
+            return 0.0
+        raise argparse.ArgumentTypeError("0 (until Ctrl-C) or a number of seconds > 0") from None
+
+
+def _is_zero(text: str) -> bool:
+    try:
+        return float(text) == 0.0
+    except ValueError:
+        return False
+
+
 def _recording(text: str) -> Path:
     path = Path(text)
     if not path.is_file():
@@ -380,9 +408,11 @@ def _add_demo(sub: Any) -> None:
     from server.tooling.estimator_mix import add_estimator_mix_argument
 
     d = sub.add_parser("demo", help="embedded router + server + SQLite + simulated vehicles")
-    d.add_argument("--vehicles", type=int, default=4, help="simulated tractors (default 4)")
+    d.add_argument("--vehicles", type=_count, default=4, help="simulated tractors (default 4)")
     add_scenario_argument(d, "mix", mix=True)
-    d.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C")
+    d.add_argument(
+        "--duration", type=_seconds_or_zero, default=0.0, help="seconds; 0 = until Ctrl-C"
+    )
     d.add_argument("--port", type=int, default=None, help="REST/dashboard port (default 8000)")
     d.add_argument(
         "--data-dir", type=Path, default=None, help="where the SQLite file goes (default ./data)"
@@ -396,9 +426,9 @@ def _add_simulate(sub: Any) -> None:
     from server.tooling.estimator_mix import add_estimator_mix_argument
 
     m = sub.add_parser("simulate", help="publish simulated vehicles over Zenoh")
-    m.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
+    m.add_argument("--vehicles", type=_count, default=1, help="simulated vehicles (default 1)")
     add_scenario_argument(m, "field_work")
-    m.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    m.add_argument("--duration", type=_positive, default=60.0, help="seconds (default 60)")
     m.add_argument("--rate-scale", type=_positive, default=1.0, help="2 = twice real time")
     m.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     add_estimator_mix_argument(m, "default: every vehicle its kind's defaults")
@@ -460,7 +490,7 @@ def _add_record(sub: Any) -> None:
     rec.add_argument(
         "--connect", default=None, help="with --live: router endpoint, e.g. tcp/127.0.0.1:7447"
     )
-    rec.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
+    rec.add_argument("--vehicles", type=_count, default=1, help="simulated vehicles (default 1)")
     add_scenario_argument(rec, "field_work")
     rec.add_argument(
         "--duration",
