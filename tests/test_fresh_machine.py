@@ -124,6 +124,13 @@ def _wait_until_streaming(
                 streaming |= _streaming(client, seen)
 
 
+def _ctrl_c_as_at_a_terminal() -> None:
+    """SIGINT handled by default in the demo, as in a terminal: a test run started as a
+    background job of a non-interactive shell inherits SIGINT ignored, and Python then never
+    raises KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _stop_with_ctrl_c(proc: subprocess.Popen[bytes]) -> int:
     os.killpg(proc.pid, signal.SIGINT)
     try:
@@ -156,6 +163,7 @@ def test_readme_demo_runs_from_a_clean_clone(clean_clone: Path, tmp_path: Path) 
             stdout=out,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            preexec_fn=_ctrl_c_as_at_a_terminal,
         )
     try:
         api = f"http://127.0.0.1:{api_port}"
