@@ -16,9 +16,10 @@ import pytest
 
 from server.app_main import ServerThread, build_app
 from server.live.viewer.fleet_view import FleetViewer
-from server.settings import Settings
+from server.settings import ViewerSettings
 from server.tooling.fleet_commands import demo_plans, vehicle_session
 from server.tooling.fleet_sim import FleetSim
+from tests.server.fleet_stack import stack_settings
 from tests.support import free_port
 from tests.web.viewer_pixels import screenshot_until_shown
 
@@ -33,12 +34,8 @@ def streaming_viewer(
 ) -> Iterator[tuple[FleetViewer, list[str]]]:
     """A server with its 3D view on a free port and the demo's drives streaming, once every
     vehicle is drawn (its anchor known)."""
-    settings = Settings(
-        zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"]},
-        storage={"data_dir": tmp_path_factory.mktemp("data"), "commit_interval_s": 0.2},
-        api={"port": 0, "require_auth": False},
-        viewer={"enabled": True, "port": free_port(), "update_hz": 5.0},
-    )
+    settings = stack_settings(tmp_path_factory.mktemp("viewer"), None, 0)
+    settings.viewer = ViewerSettings(enabled=True, port=free_port(), update_hz=5.0)
     app = build_app(settings)
     server = ServerThread(app, "127.0.0.1", 0)
     server.start()
