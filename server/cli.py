@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import socket
 import sys
 from collections.abc import Sequence
@@ -57,9 +58,47 @@ BENCHES = (
 
 
 def _settings(args: argparse.Namespace, **overrides: Any) -> Any:
+    """The settings of file, environment and ``overrides``; SystemExit with one line naming
+    what is wrong (a TOML syntax error, a value of the wrong type, an unreadable variable)."""
     from server.settings import load_settings
 
-    return load_settings(getattr(args, "config", None), **overrides)
+    config = getattr(args, "config", None)
+    from_env = os.environ.get("SLIPFLEET_CONFIG")
+    if config is None and from_env and not Path(from_env).is_file():
+        raise SystemExit(
+            f"slipfleet {args.command}: SLIPFLEET_CONFIG: no settings file {from_env!r}"
+        )
+    try:
+        return load_settings(config, **overrides)
+    except ValueError as exc:  # pydantic's ValidationError, SettingsError, TOMLDecodeError
+        what = _settings_error(exc, config or os.environ.get("SLIPFLEET_CONFIG"))
+        raise SystemExit(f"slipfleet {args.command}: settings: {what}") from None
+
+
+def _settings_error(exc: ValueError, config: Path | str | None) -> str:
+    """One line for a settings error: each invalid field with its value; a TOML error with its
+    file; an environment variable that could not be read with the reason."""
+    import tomllib
+
+    from pydantic import ValidationError
+    from pydantic_settings import SettingsError
+
+    if isinstance(exc, ValidationError):
+        return "; ".join(
+            f"{'.'.join(map(str, e['loc']))}: {e['msg']} (got {e['input']!r})" for e in exc.errors()
+        )
+    if isinstance(exc, tomllib.TOMLDecodeError):
+        return f"{config}: not TOML: {exc}"
+    if isinstance(exc, SettingsError):
+        return f"{exc} ({exc.__cause__}; lists and sections from the environment are JSON)"
+    return str(exc)
+
+
+def _config_file(text: str) -> Path:
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"no settings file {text!r}")
+    return path
 
 
 def _listen_addresses(settings: Any) -> list[tuple[str, str, int]]:
@@ -602,7 +641,7 @@ def _parser() -> argparse.ArgumentParser:
     from server.tooling.loadtest import add_arguments as _loadtest_arguments
 
     p = OneLineParser(prog="slipfleet", description="Per-wheel slip telemetry server.")
-    p.add_argument("--config", type=Path, default=None, help="TOML settings file")
+    p.add_argument("--config", type=_config_file, default=None, help="TOML settings file")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
     _add_serve(sub)
