@@ -133,6 +133,18 @@ def _refuse_busy_ports(settings: Any, command: str) -> None:
                 ) from None
 
 
+def _refuse_unusable_store(settings: Any, command: str) -> None:
+    """SystemExit with one line when the configured store cannot be opened (a data directory
+    that cannot be created, PostgreSQL not answering), before any server part starts."""
+    from server.storage import open_store
+    from server.storage.base import StorageError
+
+    try:
+        open_store(settings.storage).close()
+    except StorageError as exc:
+        raise SystemExit(f"slipfleet {command}: {exc}") from None
+
+
 def _token_advice(settings: Any) -> str:
     """What ``serve`` says about access tokens: how to make the first, or how many there are."""
     import time
@@ -169,6 +181,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if args.port is not None:
         settings.api.port = args.port
     _refuse_busy_ports(settings, "serve")
+    _refuse_unusable_store(settings, "serve")
     if settings.api.require_auth:
         log.info(_token_advice(settings))
     serve(settings)
@@ -184,6 +197,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if args.data_dir is not None:
         settings.storage.data_dir = args.data_dir
     _refuse_busy_ports(settings, "demo")
+    _refuse_unusable_store(settings, "demo")
     demo(
         settings,
         vehicles=args.vehicles,
