@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import socket
 import sys
 from collections.abc import Sequence
@@ -57,9 +58,47 @@ BENCHES = (
 
 
 def _settings(args: argparse.Namespace, **overrides: Any) -> Any:
+    """The settings of file, environment and ``overrides``; SystemExit with one line naming
+    what is wrong (a TOML syntax error, a value of the wrong type, an unreadable variable)."""
     from server.settings import load_settings
 
-    return load_settings(getattr(args, "config", None), **overrides)
+    config = getattr(args, "config", None)
+    from_env = os.environ.get("SLIPFLEET_CONFIG")
+    if config is None and from_env and not Path(from_env).is_file():
+        raise SystemExit(
+            f"slipfleet {args.command}: SLIPFLEET_CONFIG: no settings file {from_env!r}"
+        )
+    try:
+        return load_settings(config, **overrides)
+    except ValueError as exc:  # pydantic's ValidationError, SettingsError, TOMLDecodeError
+        what = _settings_error(exc, config or os.environ.get("SLIPFLEET_CONFIG"))
+        raise SystemExit(f"slipfleet {args.command}: settings: {what}") from None
+
+
+def _settings_error(exc: ValueError, config: Path | str | None) -> str:
+    """One line for a settings error: each invalid field with its value; a TOML error with its
+    file; an environment variable that could not be read with the reason."""
+    import tomllib
+
+    from pydantic import ValidationError
+    from pydantic_settings import SettingsError
+
+    if isinstance(exc, ValidationError):
+        return "; ".join(
+            f"{'.'.join(map(str, e['loc']))}: {e['msg']} (got {e['input']!r})" for e in exc.errors()
+        )
+    if isinstance(exc, tomllib.TOMLDecodeError):
+        return f"{config}: not TOML: {exc}"
+    if isinstance(exc, SettingsError):
+        return f"{exc} ({exc.__cause__}; lists and sections from the environment are JSON)"
+    return str(exc)
+
+
+def _config_file(text: str) -> Path:
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"no settings file {text!r}")
+    return path
 
 
 def _listen_addresses(settings: Any) -> list[tuple[str, str, int]]:
@@ -92,6 +131,18 @@ def _refuse_busy_ports(settings: Any, command: str) -> None:
                     "it, or choose other ports (--port, SLIPFLEET_VIEWER__PORT, "
                     "SLIPFLEET_ZENOH__LISTEN)"
                 ) from None
+
+
+def _refuse_unusable_store(settings: Any, command: str) -> None:
+    """SystemExit with one line when the configured store cannot be opened (a data directory
+    that cannot be created, PostgreSQL not answering), before any server part starts."""
+    from server.storage import open_store
+    from server.storage.base import StorageError
+
+    try:
+        open_store(settings.storage).close()
+    except StorageError as exc:
+        raise SystemExit(f"slipfleet {command}: {exc}") from None
 
 
 def _token_advice(settings: Any) -> str:
@@ -130,6 +181,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if args.port is not None:
         settings.api.port = args.port
     _refuse_busy_ports(settings, "serve")
+    _refuse_unusable_store(settings, "serve")
     if settings.api.require_auth:
         log.info(_token_advice(settings))
     serve(settings)
@@ -145,6 +197,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if args.data_dir is not None:
         settings.storage.data_dir = args.data_dir
     _refuse_busy_ports(settings, "demo")
+    _refuse_unusable_store(settings, "demo")
     demo(
         settings,
         vehicles=args.vehicles,
@@ -361,6 +414,34 @@ def _positive(text: str) -> float:
     return value
 
 
+def _count(text: str) -> int:
+    """A whole number ≥ 1 (vehicles)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError("must be 1 or more")
+    return value
+
+
+def _seconds_or_zero(text: str) -> float:
+    """Seconds > 0, or 0: until Ctrl-C."""
+    try:
+        return _positive(text)
+    except argparse.ArgumentTypeError:
+        if _is_zero(text):
+            return 0.0
+        raise argparse.ArgumentTypeError("0 (until Ctrl-C) or a number of seconds > 0") from None
+
+
+def _is_zero(text: str) -> bool:
+    try:
+        return float(text) == 0.0
+    except ValueError:
+        return False
+
+
 def _recording(text: str) -> Path:
     path = Path(text)
     if not path.is_file():
@@ -380,9 +461,11 @@ def _add_demo(sub: Any) -> None:
     from server.tooling.estimator_mix import add_estimator_mix_argument
 
     d = sub.add_parser("demo", help="embedded router + server + SQLite + simulated vehicles")
-    d.add_argument("--vehicles", type=int, default=4, help="simulated tractors (default 4)")
+    d.add_argument("--vehicles", type=_count, default=4, help="simulated tractors (default 4)")
     add_scenario_argument(d, "mix", mix=True)
-    d.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C")
+    d.add_argument(
+        "--duration", type=_seconds_or_zero, default=0.0, help="seconds; 0 = until Ctrl-C"
+    )
     d.add_argument("--port", type=int, default=None, help="REST/dashboard port (default 8000)")
     d.add_argument(
         "--data-dir", type=Path, default=None, help="where the SQLite file goes (default ./data)"
@@ -396,9 +479,9 @@ def _add_simulate(sub: Any) -> None:
     from server.tooling.estimator_mix import add_estimator_mix_argument
 
     m = sub.add_parser("simulate", help="publish simulated vehicles over Zenoh")
-    m.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
+    m.add_argument("--vehicles", type=_count, default=1, help="simulated vehicles (default 1)")
     add_scenario_argument(m, "field_work")
-    m.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    m.add_argument("--duration", type=_positive, default=60.0, help="seconds (default 60)")
     m.add_argument("--rate-scale", type=_positive, default=1.0, help="2 = twice real time")
     m.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     add_estimator_mix_argument(m, "default: every vehicle its kind's defaults")
@@ -460,7 +543,7 @@ def _add_record(sub: Any) -> None:
     rec.add_argument(
         "--connect", default=None, help="with --live: router endpoint, e.g. tcp/127.0.0.1:7447"
     )
-    rec.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
+    rec.add_argument("--vehicles", type=_count, default=1, help="simulated vehicles (default 1)")
     add_scenario_argument(rec, "field_work")
     rec.add_argument(
         "--duration",
@@ -572,7 +655,7 @@ def _parser() -> argparse.ArgumentParser:
     from server.tooling.loadtest import add_arguments as _loadtest_arguments
 
     p = OneLineParser(prog="slipfleet", description="Per-wheel slip telemetry server.")
-    p.add_argument("--config", type=Path, default=None, help="TOML settings file")
+    p.add_argument("--config", type=_config_file, default=None, help="TOML settings file")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
     _add_serve(sub)

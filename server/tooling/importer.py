@@ -18,6 +18,7 @@ is widened to the log's span, since a historical log lies wholly in the past.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -57,11 +58,13 @@ CLOCK_MARGIN_S = 60.0
 
 @dataclass(frozen=True, slots=True)
 class ImportResult:
-    """What an import did: packets fed, the server's counts of them, rows stored."""
+    """What an import did: packets fed, the server's counts of them, estimate rows made and
+    how many of those the store did not hold yet (a log imported again adds none)."""
 
     packets: int
     counters: dict[str, int]
     rows: int
+    new_rows: int = 0
 
 
 def summary_lines(log: ImportedLog, packets: Sequence[WirePacket], vehicle_id: str) -> list[str]:
@@ -97,6 +100,15 @@ def _vehicle_config(store: Store, vehicle_id: str, given: VehicleConfig | None) 
     if record is not None:
         return vehicle_config_from_dict(record.config)
     return WheeledRearDriveConfig()
+
+
+def _stored_rows(store: Store, vehicle_id: str, span: tuple[int, int]) -> int:
+    """Estimate rows of every estimator the vehicle has rows of, stamped within ``span``."""
+    start_ns, end_ns = span
+    return sum(
+        len(store.query_series(vehicle_id, start_ns, end_ns + 1, ["stamp_ns"], name))
+        for name in store.estimators_with_rows(vehicle_id)
+    )
 
 
 def _first_seq(totals: dict[str, int]) -> dict[Stream, int]:
@@ -151,7 +163,8 @@ def import_log(
             batch=batch,
             first_seq=_first_seq(totals),
         )
-        return _run(
+        before = _stored_rows(store, vehicle_id, span)
+        result = _run(
             _import_settings(settings, span),
             store,
             vehicle_id,
@@ -162,6 +175,8 @@ def import_log(
             span[1],
             progress,
         )
+        new_rows = _stored_rows(store, vehicle_id, span) - before
+        return dataclasses.replace(result, new_rows=new_rows)
     finally:
         store.close()
 
@@ -269,6 +284,14 @@ def _config_file(path: Path | None) -> VehicleConfig | None:
         raise LogError(f"cannot use the vehicle config {path}: {exc}") from None
 
 
+def _novelty(result: ImportResult) -> str:
+    """``""`` when every estimate row is new to the store, else how many were already there."""
+    if result.new_rows >= result.rows:
+        return ""
+    held = result.rows - result.new_rows
+    return f", {result.new_rows} new: the store held {held} already (was this log imported before?)"
+
+
 def import_command(settings: Settings, req: ImportRequest) -> int:
     """Read, check, summarise and (unless a dry run) import; errors are one line (SystemExit)."""
     try:
@@ -293,6 +316,6 @@ def import_command(settings: Settings, req: ImportRequest) -> int:
     print(
         f"imported {result.packets} packets of {req.vehicle_id}: {c.get('accepted', 0)} accepted, "
         f"{c.get('duplicate', 0)} duplicate, {c.get('late', 0)} late, "
-        f"{c.get('rejected', 0)} rejected; {result.rows} estimate rows"
+        f"{c.get('rejected', 0)} rejected; {result.rows} estimate rows{_novelty(result)}"
     )
     return 0 if c.get("accepted", 0) == result.packets else 1

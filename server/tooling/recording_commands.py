@@ -108,8 +108,15 @@ def _open_counts(target: ReplayTarget, vehicle_ids: Sequence[str]) -> _ServerCou
 def _verdict(published: int, delta: Counter[str], vehicle_ids: Sequence[str]) -> list[str]:
     """Lines saying what the server made of ``published`` packets, with what to do about it."""
     counted = ", ".join(f"{delta[k]} {k}" for k in OUTCOMES[1:])
-    lines = [f"the server received {delta['received']} of them: {counted}"]
     ids = ", ".join(vehicle_ids)
+    head = f"the server received {delta['received']} of them"
+    if delta["received"] > published:  # the counters are per vehicle: its own traffic is in
+        head = (
+            f"the server received {delta['received']} packets of {ids} meanwhile, "
+            f"{delta['received'] - published} more than were replayed (the vehicle is sending "
+            "too, so these counts mix both)"
+        )
+    lines = [f"{head}: {counted}"]
     if delta["duplicate"]:
         lines.append(
             f"duplicate: the server had already seen these sequence numbers from {ids} (that "

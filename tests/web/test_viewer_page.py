@@ -14,6 +14,7 @@ from server.live.viewer.fleet_view import FleetViewer
 from server.settings import ViewerSettings
 from server.tooling.bench.live import FeedThread, SyntheticFleet
 from tests.support import free_port
+from tests.web.viewer_pixels import screenshot_until_shown
 
 pytestmark = pytest.mark.browser
 
@@ -56,15 +57,6 @@ def test_viewer_client_follows_a_vehicle(browser: Any, screenshots: Path) -> Non
         feed.stop()
 
 
-def _saturated_pixels(png: bytes, right_margin_px: int) -> int:
-    """Pixels of a screenshot, the sidebar cut off, with a clear colour: the grid and the sky are
-    grey or white, the vehicles' bodies and wheels are not."""
-    import imageio.v3 as iio
-
-    rgb = np.asarray(iio.imread(png))[:, :-right_margin_px, :3].astype(np.int16)
-    return int(((rgb.max(axis=2) - rgb.min(axis=2)) > 60).sum())
-
-
 def test_viewer_opens_on_the_whole_fleet_with_a_legend(browser: Any, screenshots: Path) -> None:
     """Nobody followed: a browser that connects sees every vehicle (the fleet's frame lies far
     from the origin, as with the server's anchors), a colour legend, and a vehicle without a
@@ -98,9 +90,8 @@ def test_viewer_opens_on_the_whole_fleet_with_a_legend(browser: Any, screenshots
         page.wait_for_function("() => document.body.innerText.includes('no value')", timeout=20000)
         text = page.inner_text("body")
         assert "Wheels" in text and "Bodies" in text and "offline" in text
-        page.wait_for_timeout(2000)
-        png = page.screenshot(path=str(screenshots / "viewer-fleet.png"))
-        assert _saturated_pixels(png, right_margin_px=420) > 400
+        missing = screenshot_until_shown(page, viewer, screenshots / "viewer-fleet.png")
+        assert not missing, f"the 3D view does not show: {missing}"
     finally:
         ctx.close()
         viewer.stop()
