@@ -119,10 +119,11 @@ class FilterConfig:
     the most used tyre (at the prior mean) works at this share of its grip or more, and an
     axle's stiffness factors only while its tyres work below it (their linear range) with
     their largest slip (κ for ``g_x``, α for ``g_y``) ``learn_excite_sigmas`` of its 1-σ or
-    more (see :func:`_gain_mask`); ``outlier_sigmas``: a product update whose whitened
-    innovation exceeds it in any measurement is skipped (gated: a tick where the wheel
-    speeds and the IMU disagree, as when the torque is cut and a wheel spins down within one
-    CAN sample).
+    more, and ``ln μ`` only while the body's measured ``hypot(a_x, a_y)`` is
+    ``learn_mu_min_accel_mps2`` or more (see :func:`_gain_mask`); ``outlier_sigmas``: a
+    product update whose whitened innovation exceeds it in any measurement is skipped
+    (gated: a tick where the wheel speeds and the IMU disagree, as when the torque is cut
+    and a wheel spins down within one CAN sample).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -145,6 +146,7 @@ class FilterConfig:
     mu_walk_boost: float = 5.0
     nis_smoothing_s: float = 0.3
     linear_util: float = 0.3
+    learn_mu_min_accel_mps2: float = 0.5
     outlier_sigmas: float = 6.0
     learn_excite_sigmas: float = 4.0
 
@@ -438,7 +440,10 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
     ``F/s`` is the stiffness whatever μ is) while its largest slip is ``learn_excite_sigmas``
     of its 1-σ (at the noise, ``F ∝ g·s`` with ``s ≈ 0`` would shrink ``g`` towards 0);
     ``ln μ`` above ``linear_util``, from the curvature against the stiffness learnt (below,
-    the curvature is smaller than what the inputs' biases fake: μ is held, not pulled)."""
+    the curvature is smaller than what the inputs' biases fake: μ is held, not pulled), and
+    only while the body accelerates by ``learn_mu_min_accel_mps2`` or more: the utilisation
+    is judged at the filter's own μ, and a μ pulled low by a slip bias would otherwise find
+    every tyre near its limit and keep learning from the bias."""
     mu = mu_of(x[:, :1], cfg.mode)
     cx, cy = _stiffness_of(x[:, None, :], cfg, tyres, u.fz_n)
     fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
@@ -453,7 +458,8 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
         linear = used[:, axle].max(axis=1) < cfg.linear_util
         mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
-    mask[:, ProductState.LN_MU] = used.max(axis=1) >= cfg.linear_util
+    pushed = np.hypot(u.z[:, 0], u.z[:, 1]) >= cfg.learn_mu_min_accel_mps2
+    mask[:, ProductState.LN_MU] = (used.max(axis=1) >= cfg.linear_util) & pushed
     return mask
 
 
