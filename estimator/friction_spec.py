@@ -56,7 +56,8 @@ class FrictionFlag(IntFlag):
     RESET = 1 << 5
     """The filter started on this tick."""
     TYRE_SUSPECT = 1 << 6
-    """A tyre's calibrated rolling radius is far from its config's: μ is not informed."""
+    """A tyre's calibrated rolling radius sinks more (or less) under load than its config's
+    ``kz`` gives: its own vertical stiffness is learnt from it (and its brush stiffness)."""
 
 
 _FLAG_TEXT = {
@@ -67,7 +68,7 @@ _FLAG_TEXT = {
     "MEE_FALLBACK": "paper mode: the MEE covariance was not positive definite, standard step",
     "RESET": "the filter started on this tick",
     "TYRE_SUSPECT": "a tyre's rolling radius is far from its config's (soft or damaged): "
-    "μ not informed",
+    "its vertical stiffness is learnt from it",
 }
 
 

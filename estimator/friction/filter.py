@@ -115,7 +115,15 @@ class FilterConfig:
     ``accel_std_mps2``, ``yaw_accel_std_radps2``: the measurement noise ``R``;
     ``mee_kernel_sigma``: the MEE kernel width (whitened units); ``nis_gate``: mean
     normalised innovation (per measurement) above which the product filter's μ walk is
-    multiplied by ``mu_walk_boost``.
+    multiplied by ``mu_walk_boost``; ``linear_util``: the product updates ``ln μ`` only while
+    the most used tyre (at the prior mean) works at this share of its grip or more, and an
+    axle's stiffness factors only while its tyres work below it (their linear range) with
+    their largest slip (κ for ``g_x``, α for ``g_y``) ``learn_excite_sigmas`` of its 1-σ or
+    more, and ``ln μ`` only while the body's measured ``hypot(a_x, a_y)`` is
+    ``learn_mu_min_accel_mps2`` or more (see :func:`_gain_mask`); ``outlier_sigmas``: a
+    product update whose whitened innovation exceeds it in any measurement is skipped
+    (gated: a tick where the wheel speeds and the IMU disagree, as when the torque is cut
+    and a wheel spins down within one CAN sample).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -137,6 +145,10 @@ class FilterConfig:
     nis_gate: float = 9.0
     mu_walk_boost: float = 5.0
     nis_smoothing_s: float = 0.3
+    linear_util: float = 0.3
+    learn_mu_min_accel_mps2: float = 0.5
+    outlier_sigmas: float = 6.0
+    learn_excite_sigmas: float = 4.0
 
     @property
     def n_states(self) -> int:
@@ -166,7 +178,9 @@ class TickInputs:
     slip with the 1-σ of the last two; ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
     ``valid`` ``(B,)`` where an update may run (moving, every input known); ``vx_mps``,
     ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
-    ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it."""
+    ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it; ``alpha_lag_rad``
+    ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
+    changing slip), added to the product's slip angles from ``v_y``."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -180,6 +194,7 @@ class TickInputs:
     yaw_rate_radps: FloatArray
     vy_meas_mps: FloatArray
     vy_meas_std_mps: FloatArray
+    alpha_lag_rad: FloatArray
 
 
 @dataclass(slots=True)
@@ -275,14 +290,15 @@ def _measure(
 
 
 def _slip_angles(vy_mps: FloatArray, u: TickInputs, chassis: Chassis) -> FloatArray:
-    """α ``(B, P, 4)`` of lateral speeds ``(B, P)`` (source eq. 9-13, rigid body)."""
+    """α ``(B, P, 4)`` of lateral speeds ``(B, P)`` (source eq. 9-13, rigid body), lagged as
+    the front end's relaxation says (``u.alpha_lag_rad``)."""
     r = u.yaw_rate_radps[:, None, None]
     along = u.vx_mps[:, None, None] - chassis.wheel_y_m[:, None, :] * r
     across = vy_mps[..., None] + chassis.wheel_x_m[:, None, :] * r
     d = u.delta_rad[:, None, :]
     v_long = along * np.cos(d) + across * np.sin(d)
     v_lat = -along * np.sin(d) + across * np.cos(d)
-    return -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
+    return -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5)) + u.alpha_lag_rad[:, None, :]
 
 
 def _sq_r(cfg: FilterConfig, u: TickInputs) -> FloatArray:
@@ -354,13 +370,15 @@ def _predict(
 def filter_step(
     st: FilterState, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FilterState:
-    """One tick for every vehicle: predict, then (where ``u.valid``) update with ``u.z``."""
+    """One tick for every vehicle: predict, then (where ``u.valid``) update with ``u.z``
+    (product: not where the innovation is an outlier, ``updated`` False there)."""
     x, s = _predict(st, cfg, tyres, u)
     mee_ok = np.zeros(x.shape[0], dtype=bool)
     nis = st.nis.copy()
+    updated = u.valid.copy()
     rows = np.flatnonzero(u.valid)
     if rows.size:
-        x[rows], s[rows], mee_ok[rows], white = _update(
+        x_up, s_up, mee_ok[rows], white = _update(
             x[rows],
             s[rows],
             cfg,
@@ -368,10 +386,15 @@ def filter_step(
             _chassis_subset(chassis, rows),
             _subset(u, rows),
         )
+        keep = np.ones(rows.size, dtype=bool)
+        if cfg.mode is FrictionMode.PRODUCT:
+            keep = np.abs(white).max(axis=-1) <= cfg.outlier_sigmas
+        x[rows[keep]], s[rows[keep]] = x_up[keep], s_up[keep]
+        updated[rows[~keep]] = False
         step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
         nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
     _bound_mu(x, cfg, u)
-    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, u.valid.copy())
+    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, updated)
 
 
 def _update(
@@ -393,15 +416,51 @@ def _update(
     sq_r = _sq_r(cfg, u)
     z = _measured(cfg, u)
     mee_ok = np.zeros(x.shape[0], dtype=bool)
+    mask = None
     if cfg.mode is FrictionMode.PRODUCT:
         sq_r = _with_inputs(sq_r, _input_spread(x, cfg, tyres, chassis, u))
+        mask = _gain_mask(x, cfg, tyres, u)
     elif cfg.mode is FrictionMode.PAPER:
         z_mean = h(cubature_points(x, s)).mean(axis=1)
         mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
         sq_r, mee_ok = mee.sq_r, mee.ok
-    up = sckf_update(x, s, z, h, sq_r)
+    up = sckf_update(x, s, z, h, sq_r, mask)
     white = np.asarray(np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0], np.float64)
     return up.x, up.s, np.asarray(mee_ok, dtype=bool), white
+
+
+def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs) -> FloatArray:
+    """Which product states this update may move ``(B, n)`` (1 or 0; the rest are *considered*:
+    their uncertainty enters the update, their values stay).
+
+    At one operating point ``F = g·c·s·(1 − λ + λ²/3)`` (``λ ∝ g c s/μ``) ties ``g`` and ``μ``
+    along a ridge (at 60 % of the grip 1 % of ``g`` is 5 % of μ), and the inputs' small biases
+    walk a joint update along it. The two are learnt where each is told apart: an axle's
+    factors in its tyres' linear range (below ``linear_util`` of the grip, where the slope
+    ``F/s`` is the stiffness whatever μ is) while its largest slip is ``learn_excite_sigmas``
+    of its 1-σ (at the noise, ``F ∝ g·s`` with ``s ≈ 0`` would shrink ``g`` towards 0);
+    ``ln μ`` above ``linear_util``, from the curvature against the stiffness learnt (below,
+    the curvature is smaller than what the inputs' biases fake: μ is held, not pulled), and
+    only while the body accelerates by ``learn_mu_min_accel_mps2`` or more: the utilisation
+    is judged at the filter's own μ, and a μ pulled low by a slip bias would otherwise find
+    every tyre near its limit and keep learning from the bias."""
+    mu = mu_of(x[:, :1], cfg.mode)
+    cx, cy = _stiffness_of(x[:, None, :], cfg, tyres, u.fz_n)
+    fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
+    used = np.hypot(fx, fy) / np.maximum(mu * u.fz_n, 1.0)
+    kappa = np.abs(u.kappa) / np.maximum(u.kappa_std, 1e-9)
+    alpha = np.abs(u.alpha_rad) / np.maximum(u.alpha_std_rad, 1e-9)
+    mask = np.ones_like(x)
+    for axle, (gx, gy) in (
+        (slice(0, 2), (ProductState.GX_FRONT, ProductState.GY_FRONT)),
+        (slice(2, 4), (ProductState.GX_REAR, ProductState.GY_REAR)),
+    ):
+        linear = used[:, axle].max(axis=1) < cfg.linear_util
+        mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
+        mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
+    pushed = np.hypot(u.z[:, 0], u.z[:, 1]) >= cfg.learn_mu_min_accel_mps2
+    mask[:, ProductState.LN_MU] = (used.max(axis=1) >= cfg.linear_util) & pushed
+    return mask
 
 
 def _bound_mu(x: FloatArray, cfg: FilterConfig, u: TickInputs) -> None:

@@ -10,11 +10,10 @@ tyres work in their non-linear range, and not at all without excitation. A tick 
 ``INFORMED`` when, over the last ``informed_hold_s``, every tick was updated with μ's relative
 1-σ below ``informed_rel_std`` and the most used tyre at ``informed_min_util`` of its grip or
 more, and μ moved less than ``informed_spread`` of itself (a filter still travelling is not
-informed, however small its σ: its σ does not know the front end's correlated errors); the
-front end must find every tyre near its config (``tyre_suspect``: a calibrated rolling radius
-far from the one the config's ``kz`` gives, as a soft or damaged tyre has, leaves μ not
-informed: the model's stiffness of that tyre is wrong); otherwise the
-row holds the last informed μ (``HELD``) and no σ.
+informed, however small its σ: its σ does not know the front end's correlated errors);
+otherwise the row holds the last informed μ (``HELD``) and no σ. A tyre whose rolling radius
+says it is softer or harder than the config's (``TYRE_SUSPECT``) has its own vertical
+stiffness learnt by the front end, and so its own contact length and brush stiffness.
 Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
 """
 
@@ -136,6 +135,7 @@ def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
         yaw_rate_radps=np.array([fe.yaw_rate_radps for fe in fes]),
         vy_meas_mps=np.array([fe.vy_gnss_mps for fe in fes]),
         vy_meas_std_mps=np.full(len(fes), _GNSS_VY_STD_MPS),
+        alpha_lag_rad=np.stack([fe.alpha_lag_rad for fe in fes]),
     )
 
 
@@ -205,7 +205,7 @@ class FrictionFleet:
         """Step one tick of every vehicle in ``vs`` together."""
         u = _stack_inputs([fe for _, fe in ticks])
         tyres = TyreArrays(
-            kz_npm=_cat([v.tyres.kz_npm for v in vs]),
+            kz_npm=np.stack([fe.kz_npm for _, fe in ticks]),
             radius_m=_cat([v.tyres.radius_m for v in vs]),
             c_px_npm2=_cat([v.tyres.c_px_npm2 for v in vs]),
             c_py_npm2=_cat([v.tyres.c_py_npm2 for v in vs]),
@@ -272,7 +272,7 @@ class FrictionFleet:
         mode = self.config.filter.mode
         mu = float(mu_of(st.x[i, 0], mode))
         std = float(mu_std_of(st.x[i, 0], float(np.linalg.norm(st.s[i, 0])), mode))
-        informed = self._informed(v, bool(st.updated[i]) and not fe.tyre_suspect, mu, std, util)
+        informed = self._informed(v, bool(st.updated[i]), mu, std, util)
         flags = FrictionFlag.NONE
         if informed:
             v.held_mu = mu

@@ -15,8 +15,13 @@ One :class:`FrontEnd` per vehicle turns IMU, CAN wheel speeds, steering-wheel an
   by the roll-stiffness share, through a first-order lag (paper: the static formula, lateral
   split ``lr/L``, no lag);
 * radius: calibrated per wheel while driving straight and steady (the slip there is what the
-  resistances need), then falling by a third of the deflection change with load (paper: the
-  statically loaded radius ``r_u − Fz/kz``);
+  resistances need), then falling with load, ``r_e = r_u − ρ Fz/kz`` (paper: the statically
+  loaded radius ``r_u − Fz/kz``). ``ρ`` (0.25-0.4 for real tyres) is learnt from the calibrated
+  radii of the tyres the config describes, ``ρ = (r_u − r_e) kz/Fz`` (median over wheels); a
+  tyre whose radius says it deflects far more or less (soft, damaged) gets its own vertical
+  stiffness ``kz_i = ρ Fz/(r_u − r_e,i)``, and with it its contact length and brush stiffness;
+* accelerometer biases: the forward and lateral speed filters' bias states are taken off
+  ``a_x`` and ``a_y`` (a lateral bias of 0.05 m/s² reads as a lateral tyre force);
 * relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper).
 
 Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
@@ -32,6 +37,7 @@ import numpy as np
 
 from estimator._arrays import FloatArray
 from estimator.config import DrivenAxle, Wheeled4wdSteeredConfig
+from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
@@ -56,8 +62,11 @@ class FrontEndConfig:
 
     ``min_speed_mps``: no μ update below it; ``gnss_timeout_s``: GNSS older than this is
     not used; ``calib_time_s``: time constant of the radius calibration, which must hold
-    ``calib_samples`` GNSS epochs before the μ filter updates; ``radius_tolerance``: relative
-    difference of a calibrated radius from the config's beyond which the tyre is suspect.
+    ``calib_samples`` GNSS epochs before the μ filter updates; ``kz_tolerance``: relative
+    difference of a wheel's radius sink ``r_u − r_e`` from the one the learnt ``ρ`` and the
+    config's ``kz`` give (so of its ``kz``), beyond which the tyre is suspect and its own
+    ``kz`` is learnt (a sink of ~8 mm is read to ~0.2 mm: 0.1 is many σ); ``radius_drop0``,
+    ``radius_drop_range``: the prior ``ρ`` and the range the learnt one is held within.
     """
 
     paper: bool = False
@@ -65,7 +74,9 @@ class FrontEndConfig:
     gnss_timeout_s: float = 0.5
     calib_time_s: float = 3.0
     calib_samples: int = 15
-    radius_tolerance: float = 0.03
+    kz_tolerance: float = 0.1
+    radius_drop0: float = 1.0 / 3.0
+    radius_drop_range: tuple[float, float] = (0.15, 0.6)
     speed_walk_mps2: float = 0.3
     bias_walk_mps2_per_sqrt_s: float = 0.005
     side_slip_leak_s: float = 5.0
@@ -76,11 +87,13 @@ class FrontEndTick:
     """One tick's inputs (per wheel ``(4,)``) and measurements, with the 1-σ the filter uses."""
 
     fz_n: FloatArray
+    kz_npm: FloatArray  # per wheel: the config's, or learnt for a suspect tyre
     alpha_rad: FloatArray
     delta_rad: FloatArray
     kappa: FloatArray
     kappa_std: FloatArray
     alpha_std_rad: FloatArray
+    alpha_lag_rad: FloatArray  # relaxed minus kinematic α (0 in the paper reading)
     z: FloatArray  # [a_x + resistances/m, a_y, ṙ]
     vx_mps: float
     vy_mps: float
@@ -170,6 +183,9 @@ class FrontEnd:
             1.0 if fe.paper else 1 / 3
         )
         self.calib_n = 0
+        self.radius_drop = fe.radius_drop0
+        self.kz_wheel = np.full(4, ty.kz_npm)
+        self.suspect = np.zeros(4, dtype=bool)
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -258,7 +274,7 @@ class FrontEnd:
         self._side_slip_step(ay, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
-        kappa, alpha, k_std, a_std = self._slips(fz, delta, yaw_rate)
+        kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
         resist = 0.0
         vx = self.vx.speed
         if not self.fe.paper:
@@ -266,7 +282,7 @@ class FrontEnd:
                 0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
                 + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
             ) / self.ch.mass_kg
-        z = np.array([ax + resist, ay, yaw_accel])
+        z = np.array([ax + resist, ay - self.vy.bias, yaw_accel])
         calibrated = self.fe.paper or self.calibrated
         valid = (
             vx >= self.fe.min_speed_mps
@@ -277,11 +293,13 @@ class FrontEnd:
         vy_gnss = gnss[1] if gnss is not None else math.nan
         return FrontEndTick(
             fz_n=fz,
+            kz_npm=self.kz_wheel,
             alpha_rad=alpha,
             delta_rad=delta,
             kappa=kappa,
             kappa_std=k_std,
             alpha_std_rad=a_std,
+            alpha_lag_rad=alpha_lag,
             z=z,
             vx_mps=vx,
             vy_mps=self.vy.speed,
@@ -381,8 +399,11 @@ class FrontEnd:
 
     def _slips(
         self, fz: FloatArray, delta: FloatArray, yaw_rate: float
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """κ, α and their 1-σ per wheel (source eq. 8-14), relaxed (not paper)."""
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """κ, α, their 1-σ and α's lag (relaxed − kinematic) per wheel (source eq. 8-14),
+        relaxed (not paper). The relaxation length is the config's, the tyre's may be half or
+        twice it: while the slip moves, half the distance between the kinematic and the
+        relaxed slip is added to its 1-σ."""
         v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
         denom = np.maximum(np.abs(v_long), 1.0)
         kappa = (self.omega * self._radius_now(fz) - v_long) / denom
@@ -390,20 +411,41 @@ class FrontEnd:
         v_std = math.sqrt(max(self.vx.speed_var, 0.0))
         k_std = np.hypot(v_std, self.omega * self.radius_std) / denom + 2e-4
         a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
+        lag = np.zeros(4)
         if not self.fe.paper:
             rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
             self.slip_lag += (1.0 - np.exp(-self.dt * rate)) * (
                 np.stack([kappa, alpha]) - self.slip_lag
             )
+            k_std = k_std + 0.5 * np.abs(kappa - self.slip_lag[0])
+            a_std = a_std + 0.5 * np.abs(alpha - self.slip_lag[1])
+            lag = self.slip_lag[1] - alpha
             kappa, alpha = self.slip_lag
-        return kappa.copy(), alpha.copy(), k_std, a_std
+        return kappa.copy(), alpha.copy(), k_std, a_std, lag
 
     def _radius_now(self, fz: FloatArray) -> FloatArray:
-        """Effective radius per wheel: the calibrated one, falling by a third of the change of
+        """Effective radius per wheel: the calibrated one, falling by ``ρ`` of the change of
         deflection since (paper: the statically loaded radius)."""
         if self.fe.paper:
             return self.radius
-        return self.radius - (fz - self.fz_cal) / (3.0 * self.ty.kz_npm)
+        return self.radius - self.radius_drop * (fz - self.fz_cal) / self.kz_wheel
+
+    def _learn_tyres(self) -> None:
+        """``ρ`` and each wheel's ``kz`` from the calibrated radii (``method.md`` §5, eq. 18):
+        ``ρ_i = (r_u − r_e,i)·kz/Fz_i``, ``ρ`` their median (one soft tyre does not move it)
+        within ``radius_drop_range``; a wheel whose ``ρ_i`` is off ``ρ`` by more than
+        ``kz_tolerance`` is suspect and gets its own ``kz_i = ρ Fz_i/(r_u − r_e,i)``."""
+        if not self.calibrated:
+            return
+        fz_n = np.maximum(self.fz_cal, 1.0)
+        sink_m = self.ty.unloaded_radius_m - self.radius
+        lo, hi = self.fe.radius_drop_range
+        implied = sink_m * self.ty.kz_npm / fz_n
+        self.radius_drop = float(np.clip(np.median(implied), lo, hi))
+        self.suspect = np.abs(implied / self.radius_drop - 1.0) > self.fe.kz_tolerance
+        own = self.radius_drop * fz_n / np.maximum(sink_m, 1e-4)
+        kz = np.clip(own, 0.05 * self.ty.kz_npm, 20.0 * self.ty.kz_npm)
+        self.kz_wheel = np.where(self.suspect, kz, self.ty.kz_npm)
 
     def _calibrate(
         self,
@@ -422,7 +464,9 @@ class FrontEnd:
         resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
             self.ch.drag_area_m2 * gnss[0] ** 2
         )
-        c_x = 2.0 * self.ty.c_px_npm2 * (2 * self.ty.unloaded_radius_m * fz / self.ty.kz_npm)
+        c_x = load_adaptive_stiffness_n(
+            fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
+        )
         expect = resist * self.drive_share / np.maximum(c_x, 1.0)
         measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
         self.calib_n += 1
@@ -432,16 +476,14 @@ class FrontEnd:
         self.radius_std = np.maximum(
             0.003 * self.radius / math.sqrt(self.calib_n), 2e-4 * self.radius
         )
+        self._learn_tyres()
 
     @property
     def tyre_suspect(self) -> bool:
-        """A calibrated radius differs from the config's loaded one by more than
-        ``radius_tolerance``: that tyre's vertical stiffness (and so its brush stiffness) is not
-        what the config says (a soft or damaged tyre deflects more and rolls smaller)."""
-        if self.fe.paper or not self.calibrated:
-            return False
-        expected = self.ty.unloaded_radius_m - self.fz_cal / (3.0 * self.ty.kz_npm)
-        return bool(np.any(np.abs(self.radius / expected - 1.0) > self.fe.radius_tolerance))
+        """A calibrated radius sinks more (or less) under its load than the config's ``kz``
+        and the learnt ``ρ`` give: that tyre's vertical stiffness is not the config's (a soft or
+        damaged tyre deflects more and rolls smaller); ``kz_wheel`` holds the learnt one."""
+        return bool(self.suspect.any())
 
     @property
     def calibrated(self) -> bool:

@@ -82,9 +82,19 @@ class Update:
 
 
 def sckf_update(
-    x: FloatArray, s: FloatArray, z: FloatArray, h: PointMap, sq_r: FloatArray
+    x: FloatArray,
+    s: FloatArray,
+    z: FloatArray,
+    h: PointMap,
+    sq_r: FloatArray,
+    gain_mask: FloatArray | None = None,
 ) -> Update:
-    """Measurement update (steps 5.11-5.16) with the measurement root ``sq_r`` ``(B, m, m)``."""
+    """Measurement update (steps 5.11-5.16) with the measurement root ``sq_r`` ``(B, m, m)``.
+
+    ``gain_mask`` ``(B, n)`` (optional, 0 or 1) zeroes the gain rows of states the update must
+    leave alone (Schmidt's *consider* states: their uncertainty still enters ``P_zz``); the
+    root ``S⁺ = tria([X − K Z, K √R])`` holds for any gain, so the covariance stays exact.
+    """
     points = cubature_points(x, s)
     z_mean, z_dev = _centred(h(points))
     _, x_dev = _centred(points)
@@ -92,6 +102,8 @@ def sckf_update(
     p_xz = x_dev @ np.swapaxes(z_dev, -1, -2)
     p_zz = s_zz @ np.swapaxes(s_zz, -1, -2)
     gain = np.swapaxes(np.linalg.solve(p_zz, np.swapaxes(p_xz, -1, -2)), -1, -2)
+    if gain_mask is not None:
+        gain = gain * gain_mask[..., None]
     innovation = z - z_mean
     x_new = x + (gain @ innovation[..., None])[..., 0]
     s_new = tria(np.concatenate([x_dev - gain @ z_dev, gain @ sq_r], axis=-1))

@@ -180,6 +180,7 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
         yaw_rate_radps=col("yaw_rate_radps"),
         vy_meas_mps=col("vy_mps"),
         vy_meas_std_mps=np.full(vx.shape, 0.01),
+        alpha_lag_rad=np.zeros(fz.shape),
     )
 
 

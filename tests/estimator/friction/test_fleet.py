@@ -14,8 +14,10 @@ from estimator.config import ConfigError, WheeledRearDriveConfig
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
 from estimator.friction.brush import brush_forces
 from estimator.friction.filter import (
+    ProductState,
     TickInputs,
     TyreArrays,
+    _gain_mask,
     filter_step,
     initial_state,
     mu_of,
@@ -29,6 +31,7 @@ from estimator.sim.four_wheel import (
     Manoeuvre,
     simulate_four_wheel,
 )
+from estimator.sim.four_wheel.dynamics import TruthParams
 
 KMH = 1 / 3.6
 TURN = Manoeuvre(
@@ -164,6 +167,7 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 yaw_rate_radps=np.array([r]),
                 vy_meas_mps=np.array([vy_now]),
                 vy_meas_std_mps=np.array([0.05]),
+                alpha_lag_rad=np.zeros((1, 4)),
             )
         )
     return ticks, chassis, tyres
@@ -195,14 +199,47 @@ def test_paper_mode_mee_both_ways() -> None:
     assert bad.updated[0] and not bad.mee_ok[0]
 
 
-def test_a_soft_tyre_is_suspect_and_mu_not_informed() -> None:
-    """kz 50,000 N/m on the rear left (config: the nominal kz): its calibrated radius is far
-    from the config's, the rows say TYRE_SUSPECT and μ is never flagged informed."""
+def test_a_soft_tyre_has_its_vertical_stiffness_learnt() -> None:
+    """kz 50,000 N/m on the rear left (config: the nominal 250,000): its rolling radius sinks
+    five times as far, the rows say TYRE_SUSPECT, the front end learns ρ from the other three
+    (within 0.03 of the truth's) and that tyre's kz (within 10 %), the others keep the
+    config's; μ flagged informed is within 10 % of the truth's."""
     soft = dataclasses.replace(TURN, name="soft_turn", damaged_wheel=2)
     run = simulate_four_wheel([soft], seeds=[13])[0]
+    kz = np.full((1, 4), run.config.tyre.kz_npm)
+    kz[0, 2] = soft.damaged_kz_npm
+    truth = TruthParams.draw([run.config], [np.random.default_rng(13)], kz)
     fleet = FrictionFleet()
     fleet.add_vehicle("soft", run.config)
     rows = _drive(fleet, [run], ["soft"])["soft"]
     late = rows["stamp_ns"] > run.start_ns + 3_000_000_000  # radius calibrated by then
     assert np.all((rows["flags"][late] & FrictionFlag.TYRE_SUSPECT) > 0)
-    assert not np.any((rows["flags"] & FrictionFlag.INFORMED) > 0)
+    front = fleet._vehicles["soft"].front
+    assert abs(front.radius_drop - float(truth.radius_drop[0])) < 0.03
+    assert abs(front.kz_wheel[2] / soft.damaged_kz_npm - 1.0) < 0.1
+    assert np.all(front.kz_wheel[[0, 1, 3]] == run.config.tyre.kz_npm)
+    informed = (rows["flags"] & FrictionFlag.INFORMED) > 0
+    assert np.all(np.abs(rows["mu"][informed] / 0.4 - 1.0) < 0.1)
+
+
+def test_gain_mask_learns_each_state_where_it_is_told_apart() -> None:
+    """Straight ahead at small slip: μ and the lateral factors are held, the rear (driving)
+    factor learns; deep in a turn at 0.4 of the grip: μ learns, the factors are held."""
+    ticks, _, tyres = _model_inputs(0.4, 1, seed=6)
+    cfg = FilterConfig()
+    st = initial_state(cfg, tyres, ticks[0].fz_n)
+    quiet = dataclasses.replace(
+        ticks[0],
+        kappa=np.array([[0.0, 0.0, 0.003, 0.003]]),
+        kappa_std=np.full((1, 4), 2e-4),
+        alpha_rad=np.zeros((1, 4)),
+        alpha_std_rad=np.full((1, 4), 1e-3),
+    )
+    held = _gain_mask(st.x, cfg, tyres, quiet)[0]
+    assert held[ProductState.GX_REAR] == 1 and held[ProductState.GX_FRONT] == 0
+    assert held[ProductState.LN_MU] == 0 and held[ProductState.VY] == 1
+    assert held[ProductState.GY_FRONT] == 0 and held[ProductState.GY_REAR] == 0
+    turning = dataclasses.replace(ticks[0], alpha_rad=np.full((1, 4), 0.05))
+    learns = _gain_mask(st.x, cfg, tyres, turning)[0]
+    assert learns[ProductState.LN_MU] == 1
+    assert learns[ProductState.GY_FRONT] == 0 and learns[ProductState.GY_REAR] == 0

@@ -119,3 +119,30 @@ def test_mee_root_is_a_root_of_the_reweighted_covariance(sigma: float) -> None:
     expected = 0.04 / mee.weight  # diagonal R = 0.2² I reweighted per component
     assert np.allclose(np.diagonal(r_bar, axis1=-2, axis2=-1)[ok], expected[ok])
     assert np.allclose(r_bar[~ok], sq_r[~ok] @ np.swapaxes(sq_r[~ok], -1, -2))
+
+
+def test_masked_gain_leaves_considered_states_and_keeps_the_covariance_exact() -> None:
+    """Schmidt update on a linear case: masked states keep their mean, and ``S⁺`` is the root of
+    the general-gain covariance ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` with the masked gain."""
+    rng = np.random.default_rng(5)
+    b, n, m = 3, 4, 2
+    h_mat = rng.normal(size=(m, n))
+    a = rng.normal(size=(b, n, n))
+    p = a @ np.swapaxes(a, -1, -2) + np.eye(n)
+    s = np.linalg.cholesky(p)
+    r = np.diag([0.1, 0.3])
+    sq_r = np.broadcast_to(np.linalg.cholesky(r), (b, m, m))
+    x = rng.normal(size=(b, n))
+    z = rng.normal(size=(b, m))
+    mask = np.ones((b, n))
+    mask[:, 1] = 0.0
+    mask[0, 3] = 0.0
+    up = sckf_update(x, s, z, lambda pts: pts @ h_mat.T, sq_r, mask)
+    assert np.array_equal(up.x[:, 1], x[:, 1]) and up.x[0, 3] == x[0, 3]
+    assert np.all(up.x[:, 0] != x[:, 0])
+    pzz = h_mat @ p @ h_mat.T + r
+    k = np.swapaxes(np.linalg.solve(pzz, h_mat @ p), -1, -2) * mask[..., None]
+    i_kh = np.eye(n) - k @ h_mat
+    want = i_kh @ p @ np.swapaxes(i_kh, -1, -2) + k @ r @ np.swapaxes(k, -1, -2)
+    assert np.max(np.abs(up.s @ np.swapaxes(up.s, -1, -2) - want)) < 1e-9
+    assert np.allclose(up.gain, k, atol=1e-12)
