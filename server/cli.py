@@ -34,6 +34,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from server.tooling.cli_args import count_arg, positive_arg, seconds_or_zero_arg
+
 __all__ = ["main"]
 
 log = logging.getLogger("slipfleet")
@@ -404,44 +406,6 @@ def _shift(text: str) -> int | None:
     return round(seconds * 1e9)
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError("must be > 0")
-    return value
-
-
-def _count(text: str) -> int:
-    """A whole number ≥ 1 (vehicles)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError("must be 1 or more")
-    return value
-
-
-def _seconds_or_zero(text: str) -> float:
-    """Seconds > 0, or 0: until Ctrl-C."""
-    try:
-        return _positive(text)
-    except argparse.ArgumentTypeError:
-        if _is_zero(text):
-            return 0.0
-        raise argparse.ArgumentTypeError("0 (until Ctrl-C) or a number of seconds > 0") from None
-
-
-def _is_zero(text: str) -> bool:
-    try:
-        return float(text) == 0.0
-    except ValueError:
-        return False
-
-
 def _recording(text: str) -> Path:
     path = Path(text)
     if not path.is_file():
@@ -461,10 +425,10 @@ def _add_demo(sub: Any) -> None:
     from server.tooling.estimator_mix import add_estimator_mix_argument
 
     d = sub.add_parser("demo", help="embedded router + server + SQLite + simulated vehicles")
-    d.add_argument("--vehicles", type=_count, default=4, help="simulated tractors (default 4)")
+    d.add_argument("--vehicles", type=count_arg, default=4, help="simulated tractors (default 4)")
     add_scenario_argument(d, "mix", mix=True)
     d.add_argument(
-        "--duration", type=_seconds_or_zero, default=0.0, help="seconds; 0 = until Ctrl-C"
+        "--duration", type=seconds_or_zero_arg, default=0.0, help="seconds; 0 = until Ctrl-C"
     )
     d.add_argument("--port", type=int, default=None, help="REST/dashboard port (default 8000)")
     d.add_argument(
@@ -479,10 +443,10 @@ def _add_simulate(sub: Any) -> None:
     from server.tooling.estimator_mix import add_estimator_mix_argument
 
     m = sub.add_parser("simulate", help="publish simulated vehicles over Zenoh")
-    m.add_argument("--vehicles", type=_count, default=1, help="simulated vehicles (default 1)")
+    m.add_argument("--vehicles", type=count_arg, default=1, help="simulated vehicles (default 1)")
     add_scenario_argument(m, "field_work")
-    m.add_argument("--duration", type=_positive, default=60.0, help="seconds (default 60)")
-    m.add_argument("--rate-scale", type=_positive, default=1.0, help="2 = twice real time")
+    m.add_argument("--duration", type=positive_arg, default=60.0, help="seconds (default 60)")
+    m.add_argument("--rate-scale", type=positive_arg, default=1.0, help="2 = twice real time")
     m.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     add_estimator_mix_argument(m, "default: every vehicle its kind's defaults")
     m.set_defaults(func=_cmd_simulate)
@@ -496,7 +460,7 @@ def _add_replay(sub: Any) -> None:
         help="publish a recorded drive over Zenoh and say what the server made of it",
     )
     r.add_argument("path", type=_recording, help="recording file (slipfleet record)")
-    r.add_argument("--rate", type=_positive, default=1.0, help="2 = twice real time (default 1)")
+    r.add_argument("--rate", type=positive_arg, default=1.0, help="2 = twice real time (default 1)")
     r.add_argument("--connect", default=None, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     r.add_argument(
         "--as",
@@ -543,11 +507,11 @@ def _add_record(sub: Any) -> None:
     rec.add_argument(
         "--connect", default=None, help="with --live: router endpoint, e.g. tcp/127.0.0.1:7447"
     )
-    rec.add_argument("--vehicles", type=_count, default=1, help="simulated vehicles (default 1)")
+    rec.add_argument("--vehicles", type=count_arg, default=1, help="simulated vehicles (default 1)")
     add_scenario_argument(rec, "field_work")
     rec.add_argument(
         "--duration",
-        type=_positive,
+        type=positive_arg,
         default=None,
         help="seconds (default: 60 simulated; with --live until Ctrl-C)",
     )
@@ -569,7 +533,7 @@ def _joints(text: str) -> tuple[str, str]:
 
 
 def _batch(text: str) -> int:
-    value = int(_positive(text))
+    value = int(positive_arg(text))
     if value != float(text) or value > 10_000:
         raise argparse.ArgumentTypeError("a whole number of samples, 1-10000")
     return value

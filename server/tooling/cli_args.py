@@ -5,6 +5,7 @@
 * ``--scenario``: the simulator's scenario names are listed in ``--help`` and checked when
   parsed, without importing the simulator (numpy) for ``--help`` of other commands.
 * ``--token-file``: a REST access token for tools that read a server's API.
+* argument types for counts and durations whose mistakes are one line.
 """
 
 from __future__ import annotations
@@ -22,8 +23,11 @@ __all__ = [
     "OneLineParser",
     "add_scenario_argument",
     "add_token_argument",
+    "count_arg",
+    "positive_arg",
     "read_token",
     "scenario_names",
+    "seconds_or_zero_arg",
 ]
 
 #: Placeholder in a help text that ``--help`` replaces by the scenario names.
@@ -111,3 +115,42 @@ def read_token(token_file: Path | None) -> str | None:
     if not lines:
         raise SystemExit(f"the token file {token_file} is empty")
     return lines[0].strip()
+
+
+def positive_arg(text: str) -> float:
+    """A number > 0 (seconds, rates)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError("must be > 0")
+    return value
+
+
+def count_arg(text: str) -> int:
+    """A whole number ≥ 1 (vehicles)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError("must be 1 or more")
+    return value
+
+
+def seconds_or_zero_arg(text: str) -> float:
+    """Seconds > 0, or 0: until Ctrl-C."""
+    try:
+        return positive_arg(text)
+    except argparse.ArgumentTypeError:
+        if _is_zero(text):
+            return 0.0
+        raise argparse.ArgumentTypeError("0 (until Ctrl-C) or a number of seconds > 0") from None
+
+
+def _is_zero(text: str) -> bool:
+    try:
+        return float(text) == 0.0
+    except ValueError:
+        return False

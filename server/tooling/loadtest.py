@@ -93,6 +93,8 @@ from server.tooling.cli_args import (
     OneLineParser,
     add_scenario_argument,
     add_token_argument,
+    count_arg,
+    positive_arg,
     read_token,
 )
 from server.tooling.estimator_mix import EstimatorMix, add_estimator_mix_argument
@@ -1169,8 +1171,10 @@ def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``loadtest`` flags (shared by ``slipfleet loadtest`` and ``python -m``)."""
-    p.add_argument("--vehicles", type=int, required=True, help="simulated vehicles to publish")
-    p.add_argument("--duration", type=float, required=True, help="measured seconds")
+    p.add_argument(
+        "--vehicles", type=count_arg, required=True, help="simulated vehicles to publish"
+    )
+    p.add_argument("--duration", type=positive_arg, required=True, help="measured seconds")
     add_scenario_argument(p, "mix", mix=True)
     p.add_argument(
         "--mix",
@@ -1185,10 +1189,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="first run a tractor-only fleet of the same size, then print both side by side",
     )
-    p.add_argument("--rate-scale", type=float, default=1.0, help="2 = twice real time")
+    p.add_argument("--rate-scale", type=positive_arg, default=1.0, help="2 = twice real time")
     p.add_argument(
         "--publishers",
-        type=int,
+        type=count_arg,
         default=None,
         help=f"publisher processes (default: one per {VEHICLES_PER_PUBLISHER:,} vehicles)",
     )

@@ -18,6 +18,13 @@ CASES = [
     (["simulate", "--vehicles", "0"], "--vehicles", "1 or more"),
     (["simulate", "--duration", "-1"], "--duration", "> 0"),
     (["record", "RECORDING", "--vehicles", "0"], "--vehicles", "1 or more"),
+    (["loadtest", "--vehicles", "0", "--duration", "5"], "--vehicles", "1 or more"),
+    (["loadtest", "--vehicles", "3", "--duration", "-1"], "--duration", "> 0"),
+    (
+        ["loadtest", "--vehicles", "3", "--duration", "5", "--publishers", "0"],
+        "--publishers",
+        "1 or more",
+    ),
 ]
 
 
