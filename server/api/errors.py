@@ -188,6 +188,17 @@ def _not_json_body(request: Request, exc: RequestValidationError) -> str | None:
     )
 
 
+def _bad_json(exc: RequestValidationError) -> str | None:
+    """The reason for a body that is not valid JSON (what the parser said, and where), else None."""
+    for err in exc.errors():
+        if err.get("type") == "json_invalid":
+            loc = tuple(err.get("loc", ()))
+            where = f" at character {loc[1]}" if len(loc) > 1 else ""
+            said = (err.get("ctx") or {}).get("error", "not JSON")
+            return f"the body is not valid JSON: {said}{where}"
+    return None
+
+
 def _validation_reason(exc: RequestValidationError) -> str:
     parts = []
     for err in exc.errors()[:10]:
@@ -235,7 +246,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def on_validation(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
-        reason = _not_json_body(request, exc) or _validation_reason(exc)
+        reason = _not_json_body(request, exc) or _bad_json(exc) or _validation_reason(exc)
         return error_response(422, "invalid_request", reason)
 
     async def on_http(request: Request, exc: Exception) -> JSONResponse:

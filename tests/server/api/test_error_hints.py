@@ -54,3 +54,16 @@ def test_a_json_body_is_still_validated_as_before(client: ApiClient) -> None:
     )
     error, _ = error_of(r, 422)
     assert error == "invalid_request"
+
+
+def test_a_body_that_is_not_valid_json_says_what_and_where(client: ApiClient) -> None:
+    r = client.put(
+        "/api/v1/vehicles/t1",
+        content=b'{"kind": "tracked",, }',
+        headers={"content-type": "application/json"},
+    )
+    error, reason = error_of(r, 422)
+    assert error == "invalid_request"
+    assert reason.startswith("the body is not valid JSON: ") and "at character 19" in reason
+    assert "body.0" not in reason and "JSON decode error" not in reason
+    assert client.get("/api/v1/vehicles/t1").status_code == 404  # nothing registered
