@@ -71,7 +71,14 @@ from server.live.viewer.scene import (
 )
 from server.settings import ViewerSettings
 
-__all__ = ["ARROW_SECONDS", "NO_FOLLOW", "FleetViewer", "fleet_view_point", "legend_html"]
+__all__ = [
+    "ARROW_SECONDS",
+    "NO_FOLLOW",
+    "FleetViewer",
+    "fleet_view_point",
+    "legend_html",
+    "outgrown",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -130,6 +137,20 @@ def fleet_view_point(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, f
     return centre + distance * _FLEET_VIEW_DIR, centre, span
 
 
+def outgrown(box_m: tuple[np.ndarray, np.ndarray] | None, positions_m: np.ndarray) -> bool:
+    """Whether ``positions_m`` ``(n, 3)`` reach past the box ``(lo, hi)`` the cameras were aimed
+    at by more than a quarter of its span (at least :data:`_MIN_SPAN_M`), or there is no box yet.
+
+    A vehicle joining far off, or the fleet driving out of view, re-aims the cameras; a vehicle
+    moving inside the view does not (that would take the camera from a user every frame)."""
+    if box_m is None:
+        return True
+    lo, hi = box_m
+    margin = 0.25 * max(float(np.linalg.norm((hi - lo)[:2])), _MIN_SPAN_M)
+    xy = positions_m[:, :2]
+    return bool(np.any(xy < lo[:2] - margin) or np.any(xy > hi[:2] + margin))
+
+
 class FleetViewer:
     """The 3D fleet scene on its own port.
 
@@ -175,6 +196,7 @@ class FleetViewer:
         self._pins: viser.LineSegmentsHandle | None = None
         self._pin_height_m = _PIN_MIN_M
         self._cam_fitted: set[int] = set()  # clients whose camera was aimed at the fleet
+        self._fitted_box_m: tuple[np.ndarray, np.ndarray] | None = None  # the fleet they saw
         self._n: tuple[int, ...] = ()  # instances of each part of the batched meshes
         self._ids: list[str] = []
         self._lock = threading.Lock()
@@ -291,14 +313,21 @@ class FleetViewer:
                     h.visible = False
 
     def _fit_cameras(self, frame: FleetFrame) -> None:
-        """Aim every client not aimed yet at the whole fleet (while nobody is followed)."""
+        """Aim every client not aimed yet at the whole fleet (while nobody is followed); aim
+        them all again when the fleet has outgrown what they were aimed at (:func:`outgrown`)."""
         assert self.server is not None
+        if self.followed is not None:
+            return
+        positions = frame.body_position_m
+        if self._cam_fitted and outgrown(self._fitted_box_m, positions):
+            self._cam_fitted.clear()
         clients = self.server.get_clients()
         todo = [c for cid, c in clients.items() if cid not in self._cam_fitted]
-        if not todo or self.followed is not None:
+        if not todo:
             return
-        position, look_at, span = fleet_view_point(frame.body_position_m)
+        position, look_at, span = fleet_view_point(positions)
         if not self._cam_fitted:
+            self._fitted_box_m = (positions.min(axis=0), positions.max(axis=0))
             self._place_grid(look_at, span)
             self._pin_height_m = max(_PIN_MIN_M, _PIN_SHARE * span)
         for client in todo:

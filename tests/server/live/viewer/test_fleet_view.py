@@ -21,6 +21,7 @@ from server.live.viewer.fleet_view import (
     FleetViewer,
     fleet_view_point,
     legend_html,
+    outgrown,
 )
 from server.live.viewer.scene import STATUS_RGB, rotation_matrix_from_wxyz
 from server.settings import ViewerSettings
@@ -216,6 +217,19 @@ def test_the_fleet_view_point_sees_every_vehicle() -> None:
         # inside viser's 75° (vertical) view, with room to spare, on any landscape window
         assert angles.max() < 35.0
         assert cam[2] > pts[:, 2].max()  # from above
+
+
+def test_the_cameras_are_aimed_again_only_when_the_fleet_outgrows_their_view() -> None:
+    first = np.array([[0.0, 0.0, 0.0], [400.0, 300.0, 0.0]])  # span 500 m: margin 125 m
+    box = (first.min(axis=0), first.max(axis=0))
+    assert outgrown(None, first)  # never aimed
+    assert not outgrown(box, first)
+    assert not outgrown(box, first + np.array([100.0, -100.0, 0.0]))  # driving about inside the view
+    joined = np.vstack([first, [[2000.0, 0.0, 0.0]]])  # a vehicle joins 1.6 km off
+    assert outgrown(box, joined)
+    assert outgrown(box, first + np.array([0.0, 500.0, 0.0]))  # the fleet drove out of view
+    lone = np.zeros((1, 3))  # one vehicle: the box's span is the minimum, not zero
+    assert not outgrown((lone[0], lone[0]), lone + np.array([5.0, 5.0, 0.0]))
 
 
 def test_legend_names_every_colour() -> None:
