@@ -224,7 +224,7 @@ def test_the_cameras_are_aimed_again_only_when_the_fleet_outgrows_their_view() -
     box = (first.min(axis=0), first.max(axis=0))
     assert outgrown(None, first)  # never aimed
     assert not outgrown(box, first)
-    assert not outgrown(box, first + np.array([100.0, -100.0, 0.0]))  # driving about inside the view
+    assert not outgrown(box, first + np.array([100.0, -100.0, 0.0]))  # moving inside the view
     joined = np.vstack([first, [[2000.0, 0.0, 0.0]]])  # a vehicle joins 1.6 km off
     assert outgrown(box, joined)
     assert outgrown(box, first + np.array([0.0, 500.0, 0.0]))  # the fleet drove out of view
