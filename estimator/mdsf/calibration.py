@@ -7,8 +7,8 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   the instant ``t − δ_g`` of the IMU's clock (the simulator's ``clock_offset_ms`` sign), so its
   speed moved to the tick reads ``Vg ≈ V − δ_g·a``. States ``[V, b, δ_g]``: the speed carried
   by the tick-mean forward acceleration ``a`` less a bias ``b`` (``V' = V + dt·(a − b)``),
-  observed as ``Vg = V − δ_g·a``. Observable whenever ``a`` changes; applied as
-  ``Vg + δ_g·a`` (and the RTK distance as ``D + δ_g·Vg``).
+  observed as ``Vg = V − δ_g·a``. Observable whenever ``a`` changes; applied to the GNSS
+  speed as ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
   drive) the measured rim speed is ``r·W = V/s − δ_w·a`` with ``s`` the true over the
@@ -255,6 +255,10 @@ class CalibrationBank:
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
         """GNSS clock offset in force per vehicle, 0 where off (k,)."""
         return np.where(self.on[slots, 0], self.gx[slots, GnssClock.OFFSET], 0.0)
+
+    def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
+        """The GNSS clock offset is on and its std below the converged threshold (k,)."""
+        return self.on[slots, 0] & (self.gp[slots, 2, 2] <= self.limit[slots, 0] ** 2)
 
     def wheel_correction(self, slots: IntArray) -> tuple[FloatArray, FloatArray]:
         """Radius ratios ``s`` (k, 2) and the wheel clock offset (k,) in force (1, 0 where off)."""

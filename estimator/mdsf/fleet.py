@@ -173,6 +173,8 @@ class MdsfFleet:
         self._tooth_arc_m = np.zeros((0, 2))
         self._min_speed_mps = np.zeros(0)
         self._settle_max_change = np.zeros(0)
+        # per slot: the GNSS clock offset's share of the RTK distance since its chain began [m]
+        self._dist_shift_m = np.zeros(0)
         # per slot and wheel: stamp of the last tick whose measured rim speed was a standstill
         # (or unknown); _NEVER until the vehicle's first tick
         self._still_ns = np.zeros((0, 2), dtype=np.int64)
@@ -193,6 +195,7 @@ class MdsfFleet:
             grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
             grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
             grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
+            grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
         teeth = config.encoder.teeth_per_rev
@@ -200,6 +203,7 @@ class MdsfFleet:
         self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
         self._settle_max_change[slot] = config.slip.settle_max_change
         self._still_ns[slot] = _NEVER
+        self._dist_shift_m[slot] = 0.0
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
@@ -420,7 +424,8 @@ class MdsfFleet:
     def _apply_calibration(self, slots: IntArray, tin: TickInputs) -> TickInputs:
         """Tick inputs with the calibrations applied: the mounting pitch's gravity share
         ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force, the GNSS speed
-        moved by its clock offset ``+δ_g·a`` and the RTK distance by ``+δ_g·Vg``."""
+        moved by its clock offset ``+δ_g·a`` and, once the offset has converged, the RTK
+        distance by ``∫δ_g·a·dt`` since its chain began (``docs/perf/estimator.md``)."""
         bank = self.calibration_bank
         z = tin.z.copy()
         theta = np.nan_to_num(tin.attitude[:, 1])
@@ -428,7 +433,14 @@ class MdsfFleet:
         z[:, MdsfObs.A1] -= tilt
         offset_s = bank.gnss_offset_s(slots)
         z[:, MdsfObs.VG] += offset_s * np.nan_to_num(z[:, MdsfObs.A1])
-        dist_m = tin.dist_m + offset_s * np.nan_to_num(z[:, MdsfObs.VG])
+        # the distance's error δ·V as its growth since the chain began, ∫δ·a·dt, once δ has
+        # converged: the chain's origin is arbitrary, an estimate still moving would leave its
+        # error in the distance, and a step of it must not make the distance jump
+        restart = tin.dist_ok & tin.dist_restart
+        rate = np.where(bank.gnss_offset_converged(slots), offset_s, 0.0)
+        moved = rate * np.nan_to_num(z[:, MdsfObs.A1]) * self.config.dt_s
+        self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
+        dist_m = tin.dist_m + self._dist_shift_m[slots]
         return dataclasses.replace(tin, z=z, force_fwd=tin.force_fwd - tilt, dist_m=dist_m)
 
     def _learn_calibration(
