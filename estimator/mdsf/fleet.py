@@ -453,13 +453,19 @@ class MdsfFleet:
         rim_std: FloatArray,
         min_speed: FloatArray,
     ) -> None:
-        """The calibration filters learn from one round: raw GNSS speed against the corrected
-        acceleration, raw rim speeds against the filter's wheel ground speeds (emitted,
-        GNSS-anchored rows), the raw forward force at standstill."""
+        """The calibration filters learn from one round: raw GNSS speed (at the IMU: the
+        antenna's lever-arm terms taken off) against the corrected acceleration, raw rim
+        speeds against the filter's wheel ground speeds (emitted, GNSS-anchored rows), the
+        raw forward force at standstill."""
         bank = self.calibration_bank
         accel = fixed.z[:, MdsfObs.A1]
         vg_raw = np.where(tin.gnss_ok, tin.z[:, MdsfObs.VG], np.nan)
-        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw, tin.gnss_var)
+        # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
+        lever = (
+            -self.front.h1_m[slots] * np.nan_to_num(tin.z[:, MdsfObs.OMEGA_X])
+            + self.front.ant_x_m[slots] * np.nan_to_num(tin.z[:, MdsfObs.OMEGA_Z])
+        )
+        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var)
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
         ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2
