@@ -461,10 +461,8 @@ class MdsfFleet:
         accel = fixed.z[:, MdsfObs.A1]
         vg_raw = np.where(tin.gnss_ok, tin.z[:, MdsfObs.VG], np.nan)
         # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
-        lever = (
-            -self.front.h1_m[slots] * np.nan_to_num(tin.z[:, MdsfObs.OMEGA_X])
-            + self.front.ant_x_m[slots] * np.nan_to_num(tin.z[:, MdsfObs.OMEGA_Z])
-        )
+        wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
+        lever = self.front.ant_x_m[slots] * wz - self.front.h1_m[slots] * wx
         bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var)
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
