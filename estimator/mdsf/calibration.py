@@ -253,8 +253,10 @@ class CalibrationBank:
 
     # -- per round ---------------------------------------------------------------------------
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
-        """GNSS clock offset in force per vehicle, 0 where off (k,)."""
-        return np.where(self.on[slots, 0], self.gx[slots, GnssClock.OFFSET], 0.0)
+        """GNSS clock offset in force per vehicle (k,): 0 where off or not converged (an
+        estimate still moving costs more than it corrects: ``docs/perf/estimator.md``)."""
+        use = self.gnss_offset_converged(slots)
+        return np.where(use, self.gx[slots, GnssClock.OFFSET], 0.0)
 
     def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
         """The GNSS clock offset is on and its std below the converged threshold (k,)."""
@@ -266,8 +268,12 @@ class CalibrationBank:
         return scale, np.where(self.on[slots, 0], self.wx[slots, WheelCal.OFFSET], 0.0)
 
     def mount_pitch_rad(self, slots: IntArray) -> FloatArray:
-        """Mounting pitch in force per vehicle, 0 where off (k,)."""
-        return np.where(self.on[slots, 2], self.pitch[slots], 0.0)
+        """Mounting pitch in force per vehicle (k,): 0 where off, or where its gravity share
+        ``g·β`` is within 3σ of the accelerometer bias's prior, which the filter's bias state
+        takes up anyway (applying both cost up to 0.1 pp on drives without a tilted IMU)."""
+        beta = self.pitch[slots]
+        big = np.abs(beta) * GRAVITY_MPS2 > 3.0 * self.bias_prior
+        return np.where(self.on[slots, 2] & big, beta, 0.0)
 
     def observe_gnss(
         self,
