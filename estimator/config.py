@@ -35,6 +35,7 @@ from estimator.spec import WheelPosition
 
 __all__ = [
     "Bound",
+    "CalibrationConfig",
     "ChassisConfig",
     "ConfigError",
     "DrivenAxle",
@@ -204,8 +205,9 @@ class VehicleGeometry(_Checked):
 
     ``h0_m`` is the source's ``h0`` (IMU height above ground), ``h1_m`` its ``h1`` (antenna
     above the IMU), ``track_width_m`` the rear track ``b``, the wheel radii the effective rolling
-    radius ``r`` of each driven wheel; offsets are (x right, y forward) from the vertical
-    through ``O``.
+    radius ``r`` of each measured wheel; offsets are (x right, y forward) from the vertical
+    through ``O``. ``wheel_driven_*`` false declares a wheel free-rolling (a front-drive car's
+    rear wheels): its slip is ~0, so its rolling radius can be learnt online.
     """
 
     h0_m: float = _bounded(1.0, 0.05, 6.0, "m", "IMU height above the ground (h0)")
@@ -215,6 +217,8 @@ class VehicleGeometry(_Checked):
     wheel_radius_right_m: float = _bounded(0.85, 0.1, 2.0, "m", "rolling radius, rear right wheel")
     antenna_offset_m: tuple[float, float] = _vector((0.0, 0.0), "antenna (x right, y forward)")
     imu_offset_m: tuple[float, float] = _vector((0.0, 0.0), "IMU (x right, y forward)")
+    wheel_driven_left: bool = True
+    wheel_driven_right: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -276,6 +280,34 @@ class SlipConfig(_Checked):
             raise ConfigError(
                 f"band_edges_pct must be increasing, got {reprlib.repr(self.band_edges_pct)}"
             )
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationConfig(_Checked):
+    """Online calibration of a rear-drive vehicle's sensors (:mod:`estimator.mdsf.calibration`).
+
+    Each switch turns one calibration on: per-stream clock offsets (GNSS and wheels against
+    the IMU), the rolling radius per wheel (learnt where slip is ~0: free-rolling wheels and
+    operator calibration drives) and the IMU's mounting pitch. A calibration has converged
+    once its std is below its threshold; until then slip rows are flagged UNCALIBRATED. The
+    priors are the std of each quantity before any data.
+    """
+
+    clock_offsets: bool = True
+    wheel_radius: bool = True
+    imu_mounting: bool = True
+    clock_offset_prior_ms: float = _bounded(100.0, 0.1, 1000.0, "ms", "prior std of an offset")
+    clock_offset_converged_ms: float = _bounded(
+        10.0, 0.01, 1000.0, "ms", "a clock offset has converged below this std"
+    )
+    radius_prior_pct: float = _bounded(3.0, 0.01, 20.0, "%", "prior std of a rolling radius")
+    radius_converged_pct: float = _bounded(
+        0.15, 0.001, 20.0, "%", "a rolling radius has converged below this std"
+    )
+    imu_pitch_prior_deg: float = _bounded(3.0, 0.01, 30.0, "deg", "prior std of mounting pitch")
+    imu_pitch_converged_deg: float = _bounded(
+        0.3, 0.001, 30.0, "deg", "the mounting pitch has converged below this std"
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -435,6 +467,7 @@ class WheeledRearDriveConfig(_Kind):
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     slip: SlipConfig = field(default_factory=SlipConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     estimators: tuple[str, ...] = ()
 
 

@@ -49,6 +49,28 @@ _FIELD_TEXT: dict[str, tuple[str, str, str]] = {
     "pitch_rad": ("rad", "pitch", "pitch, nose up positive"),
     "roll_rad": ("rad", "roll", "roll, right side down positive"),
     "flags": ("", "flags", "EstimateFlag bits"),
+    "gnss_clock_offset_s": (
+        "s",
+        "GNSS clock offset",
+        "a GNSS sample stamped t describes the IMU clock's t − offset (online calibration)",
+    ),
+    "gnss_clock_offset_std_s": ("s", "GNSS clock offset σ", "1-sigma of gnss_clock_offset_s"),
+    "wheel_clock_offset_s": (
+        "s",
+        "wheel clock offset",
+        "a wheel sample stamped t describes the IMU clock's t − offset (online calibration)",
+    ),
+    "wheel_clock_offset_std_s": ("s", "wheel clock offset σ", "1-sigma of wheel_clock_offset_s"),
+    "radius_left_m": ("m", "left rolling radius", "left wheel's rolling radius, calibrated"),
+    "radius_left_std_m": ("m", "left rolling radius σ", "1-sigma of radius_left_m"),
+    "radius_right_m": ("m", "right rolling radius", "right wheel's rolling radius, calibrated"),
+    "radius_right_std_m": ("m", "right rolling radius σ", "1-sigma of radius_right_m"),
+    "imu_pitch_mount_rad": (
+        "rad",
+        "IMU mounting pitch",
+        "the IMU's forward axis pitched up against the body's (online calibration)",
+    ),
+    "imu_pitch_mount_std_rad": ("rad", "IMU mounting pitch σ", "1-sigma of imu_pitch_mount_rad"),
 }
 
 
@@ -69,6 +91,8 @@ _FLAG_TEXT: dict[str, str] = {
     "SETTLING": "starting or stopping too fast for the wheel-speed fit: no slip value",
     "WHEEL_GAP": "wheel data was lost: no wheel speed until the fits hold enough new edges",
     "DEAD_RECKONED": "no GNSS position: position and heading carried by speed and gyro",
+    "UNCALIBRATED": "a calibration the slip depends on (clocks, radius, IMU mounting) has not "
+    "converged yet",
 }
 
 

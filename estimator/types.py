@@ -297,6 +297,9 @@ class EstimateFlag(IntFlag):
     DEAD_RECKONED = 1 << 11
     """No GNSS position for longer than ``DeadReckoningConfig.after_s``: position and heading
     are carried from the last fix by the speed and the gyro (:mod:`estimator.dead_reckoning`)."""
+    UNCALIBRATED = 1 << 12
+    """A calibration a valid slip depends on (clock offsets, the wheel's rolling radius, the
+    IMU's mounting) has not converged yet (:mod:`estimator.mdsf.calibration`)."""
 
 
 #: Fields of one estimate row, in storage order. Units are in the names; slip is in percent.
@@ -328,6 +331,17 @@ ESTIMATE_FIELDS: tuple[tuple[str, str], ...] = (
     ("pitch_rad", "f8"),
     ("roll_rad", "f8"),
     ("flags", "i4"),  # EstimateFlag bits
+    # online calibration in force at the row (estimator.mdsf.calibration), each with its std
+    ("gnss_clock_offset_s", "f8"),
+    ("gnss_clock_offset_std_s", "f8"),
+    ("wheel_clock_offset_s", "f8"),
+    ("wheel_clock_offset_std_s", "f8"),
+    ("radius_left_m", "f8"),
+    ("radius_left_std_m", "f8"),
+    ("radius_right_m", "f8"),
+    ("radius_right_std_m", "f8"),
+    ("imu_pitch_mount_rad", "f8"),
+    ("imu_pitch_mount_std_rad", "f8"),
 )
 
 ESTIMATE_DTYPE = np.dtype(list(ESTIMATE_FIELDS))

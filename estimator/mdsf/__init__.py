@@ -7,12 +7,16 @@ Modules, from the equations outwards:
     :class:`MdsfFilter`, the per-vehicle reference on filterpy.
 :mod:`~estimator.mdsf.frontend`
     Buffered measurements of many vehicles turned into per-tick filter inputs.
+:mod:`~estimator.mdsf.calibration`
+    Online calibration per vehicle (clock offsets, rolling radii, IMU mounting pitch), each
+    with its std; :class:`MdsfCalibration` its state out and in.
 :mod:`~estimator.mdsf.engine`
     :class:`MdsfEngine`: every vehicle's filter in slot arrays, stepped in batches.
 :mod:`~estimator.mdsf.fleet`
     :class:`MdsfFleet`: the :class:`~estimator.base.FleetEstimator` the server runs.
 """
 
+from estimator.mdsf.calibration import MdsfCalibration
 from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput, TickModel
 from estimator.mdsf.fleet import MdsfFleet
 from estimator.mdsf.frontend import COUNT_NAMES, FleetFrontEnd, FleetTicks, TickInputs
@@ -39,6 +43,7 @@ __all__ = [
     "Counter",
     "FleetFrontEnd",
     "FleetTicks",
+    "MdsfCalibration",
     "MdsfConfig",
     "MdsfEngine",
     "MdsfFilter",

@@ -18,19 +18,22 @@ skipped and counted (:meth:`MdsfFleet.counters`), never raised on.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
+from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
 from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput
 from estimator.mdsf.frontend import FleetFrontEnd, FleetTicks, TickInputs
-from estimator.mdsf.model import MdsfConfig
+from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig, MdsfMode, MdsfObs
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed import ReferenceSpeedConfig
 from estimator.slip import fit_span_s, slip_pct, unsettled
@@ -67,6 +70,19 @@ _STEP_COLS = (
     "yaw_rate",
 )
 """Per-row outputs of :class:`StepOutput` that go into the estimate rows."""
+_CAL_FIELDS = (
+    "gnss_clock_offset_s",
+    "gnss_clock_offset_std_s",
+    "wheel_clock_offset_s",
+    "wheel_clock_offset_std_s",
+    "radius_left_m",
+    "radius_left_std_m",
+    "radius_right_m",
+    "radius_right_std_m",
+    "imu_pitch_mount_rad",
+    "imu_pitch_mount_std_rad",
+)
+"""Row fields of the online calibration (:meth:`CalibrationBank.row_fields`)."""
 
 
 def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArray]]:
@@ -92,6 +108,21 @@ def _filtered_rims(
         np.where(use, so.rim_std, rim_std),
         np.where(use, so.rim_ground_cov, 0.0),
     )
+
+
+@dataclass(slots=True)
+class _Calibrated:
+    """A round's wheel inputs as the filter took them, shapes (k, 2): rim speeds with the
+    calibrated radius and clock, their std, the radius ratios and which wheels are not
+    calibrated yet."""
+
+    rim: FloatArray
+    rim_std: FloatArray
+    scale: FloatArray
+    uncalibrated: BoolArray
+    fields: dict[str, FloatArray]
+    """The calibration's row fields (``CALIBRATION_FIELDS``), shape (k,) each; NaN in paper
+    mode."""
 
 
 class MdsfFleet:
@@ -132,6 +163,9 @@ class MdsfFleet:
         self.engine = MdsfEngine(self.config, reference)
         self.front = FleetFrontEnd(self.config, self.wheel)
         self.carry = DeadReckoning(dead_reckoning or DeadReckoningConfig(), self.config.dt_s)
+        self.calibration_bank = CalibrationBank(self.config)
+        """Online calibration of every vehicle (product mode; :mod:`estimator.mdsf.calibration`)."""
+        self._product = self.config.mode is MdsfMode.PRODUCT
         self._slot: dict[str, int] = {}
         # per slot: wheel radii and rim travel per encoder tooth (left, right) [m], the slip's
         # minimum ground speed [m/s] and settling limit (SlipConfig)
@@ -139,6 +173,8 @@ class MdsfFleet:
         self._tooth_arc_m = np.zeros((0, 2))
         self._min_speed_mps = np.zeros(0)
         self._settle_max_change = np.zeros(0)
+        # per slot: the GNSS clock offset's share of the RTK distance since its chain began [m]
+        self._dist_shift_m = np.zeros(0)
         # per slot and wheel: stamp of the last tick whose measured rim speed was a standstill
         # (or unknown); _NEVER until the vehicle's first tick
         self._still_ns = np.zeros((0, 2), dtype=np.int64)
@@ -151,6 +187,7 @@ class MdsfFleet:
         self._slot[vehicle_id] = slot
         self.front.add(slot, config)
         self.carry.add(slot, config.geometry.antenna_offset_m)
+        self.calibration_bank.add(slot, config)
         if slot >= self._min_speed_mps.shape[0]:
             cap = max(2 * self._min_speed_mps.shape[0], slot + 1)
             grow_slot_array(self, "_radius_m", cap, (2,), 0.0)
@@ -158,6 +195,7 @@ class MdsfFleet:
             grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
             grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
             grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
+            grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
         teeth = config.encoder.teeth_per_rev
@@ -165,6 +203,7 @@ class MdsfFleet:
         self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
         self._settle_max_change[slot] = config.slip.settle_max_change
         self._still_ns[slot] = _NEVER
+        self._dist_shift_m[slot] = 0.0
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
@@ -196,6 +235,21 @@ class MdsfFleet:
         given in before a restart) instead of its next first fix; ``KeyError`` if unknown,
         ``ValueError`` if not a geodetic position. Later fixes do not move it."""
         self.front.set_anchor(self._slot[vehicle_id], lat_deg, lon_deg, height_m)
+
+    def calibration(self, vehicle_id: str) -> MdsfCalibration:
+        """The vehicle's online calibration, each value with its std (state out: the server
+        stores it); ``KeyError`` if unknown."""
+        return self.calibration_bank.state(self._slot[vehicle_id])
+
+    def restore_calibration(self, vehicle_id: str, calibration: MdsfCalibration) -> None:
+        """Start the vehicle from a stored calibration (state in: call after
+        :meth:`add_vehicle`, before its data); ``KeyError`` if unknown."""
+        self.calibration_bank.restore(self._slot[vehicle_id], calibration)
+
+    def calibration_drive(self, vehicle_id: str, on: bool) -> None:
+        """The operator starts (``on``) or stops a calibration drive: while on, every wheel's
+        slip is taken as ~0 and its rolling radius is learnt; ``KeyError`` if unknown."""
+        self.calibration_bank.set_drive(self._slot[vehicle_id], on)
 
     def counters(self, vehicle_id: str) -> dict[str, int]:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
@@ -232,23 +286,31 @@ class MdsfFleet:
         if rounds == 1:
             # one tick per vehicle (the usual call): the step's rows are the call's rows, its
             # outputs are used as they are
-            so = self.engine.step(due.slots, flat, rim, rim_std)
+            so, cal = self._calibrated_step(due.slots, flat, rim, rim_std, min_speed)
             emit, flags = so.emit, so.flags
             res = {name: getattr(so, name) for name in _STEP_COLS}
-            rim, rim_std, rim_cov = _filtered_rims(so, rim, rim_std)
+            rim, rim_std, rim_cov = _filtered_rims(so, cal.rim, cal.rim_std)
+            scale, uncal, cal_out = cal.scale, cal.uncalibrated, cal.fields
         else:
             emit = np.zeros(total, dtype=bool)
             flags = np.zeros(total, dtype=np.int32)
             res = {c: np.full(total, np.nan) for c in _STEP_COLS}
             rim_cov = np.zeros((total, 2))
+            scale = np.ones((total, 2))
+            uncal = np.zeros((total, 2), dtype=bool)
+            cal_out = {c: np.full(total, np.nan) for c in _CAL_FIELDS}
         for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
-            so = self.engine.step(due.slots[:c], tin, rim[fi], rim_std[fi])
+            so, cal = self._calibrated_step(due.slots[:c], tin, rim[fi], rim_std[fi], min_speed[fi])
             emit[fi] = so.emit
             for name in _STEP_COLS:
                 res[name][fi] = getattr(so, name)
             flags[fi] = so.flags
-            rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, rim[fi], rim_std[fi])
+            rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, cal.rim, cal.rim_std)
+            scale[fi], uncal[fi] = cal.scale, cal.uncalibrated
+            for name in _CAL_FIELDS:
+                cal_out[name][fi] = cal.fields[name]
+        radius = radius * scale
         # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
         ground = np.stack([res["vl"], res["vr"]], axis=1)
         sp = slip_pct(
@@ -287,6 +349,7 @@ class MdsfFleet:
                 | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
                 | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
                 | np.where(carried, int(_F.DEAD_RECKONED), 0)
+                | np.where((valid & uncal).any(axis=1), int(_F.UNCALIBRATED), 0)
             ).astype(np.int32)
             | flat.wheel_flags
         )
@@ -318,6 +381,8 @@ class MdsfFleet:
         out["pitch_rad"] = flat.attitude[:, 1]
         out["roll_rad"] = flat.attitude[:, 2]
         out["flags"] = flags
+        for name in _CAL_FIELDS:
+            out[name] = cal_out[name]
         # Emitted rows, split by vehicle (in the order of ``due``).
         kept = out if emit.all() else out[emit]
         ends = np.cumsum(np.add.reduceat(emit, offsets))
@@ -328,6 +393,83 @@ class MdsfFleet:
             )
             if b > a
         ]
+
+    def _calibrated_step(
+        self,
+        slots: IntArray,
+        tin: TickInputs,
+        rim: FloatArray,
+        rim_std: FloatArray,
+        min_speed: FloatArray,
+    ) -> tuple[StepOutput, _Calibrated]:
+        """One round: the tick inputs and rim speeds corrected by the calibration so far, the
+        filter stepped, then the calibration learns from the round (product mode; paper mode
+        steps the inputs as they are)."""
+        bank = self.calibration_bank
+        if not self._product:
+            so = self.engine.step(slots, tin, rim, rim_std)
+            nan = {name: np.full(slots.shape[0], np.nan) for name in _CAL_FIELDS}
+            ones, no = np.ones(rim.shape), np.zeros(rim.shape, bool)
+            return so, _Calibrated(rim, rim_std, ones, no, nan)
+        fixed = self._apply_calibration(slots, tin)
+        scale, wheel_offset_s = bank.wheel_correction(slots)
+        accel = np.nan_to_num(fixed.z[:, MdsfObs.A1])
+        rim_c = scale * (rim + (wheel_offset_s * accel)[:, None])
+        rim_std_c = scale * rim_std
+        so = self.engine.step(slots, fixed, rim_c, rim_std_c)
+        self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
+        fields = bank.row_fields(slots, self._radius_m[slots])
+        return so, _Calibrated(rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields)
+
+    def _apply_calibration(self, slots: IntArray, tin: TickInputs) -> TickInputs:
+        """Tick inputs with the calibrations applied: the mounting pitch's gravity share
+        ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force, the GNSS speed
+        moved by its clock offset ``+δ_g·a`` and, once the offset has converged, the RTK
+        distance by ``∫δ_g·a·dt`` since its chain began (``docs/perf/estimator.md``)."""
+        bank = self.calibration_bank
+        z = tin.z.copy()
+        theta = np.nan_to_num(tin.attitude[:, 1])
+        tilt = GRAVITY_MPS2 * (np.sin(theta + bank.mount_pitch_rad(slots)) - np.sin(theta))
+        z[:, MdsfObs.A1] -= tilt
+        offset_s = bank.gnss_offset_s(slots)
+        z[:, MdsfObs.VG] += offset_s * np.nan_to_num(z[:, MdsfObs.A1])
+        # the distance's error δ·V as its growth since the chain began, ∫δ·a·dt, once δ has
+        # converged: the chain's origin is arbitrary, an estimate still moving would leave its
+        # error in the distance, and a step of it must not make the distance jump
+        restart = tin.dist_ok & tin.dist_restart
+        rate = np.where(bank.gnss_offset_converged(slots), offset_s, 0.0)
+        moved = rate * np.nan_to_num(z[:, MdsfObs.A1]) * self.config.dt_s
+        self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
+        dist_m = tin.dist_m + self._dist_shift_m[slots]
+        return dataclasses.replace(tin, z=z, force_fwd=tin.force_fwd - tilt, dist_m=dist_m)
+
+    def _learn_calibration(
+        self,
+        slots: IntArray,
+        tin: TickInputs,
+        fixed: TickInputs,
+        so: StepOutput,
+        rim: FloatArray,
+        rim_std: FloatArray,
+        min_speed: FloatArray,
+    ) -> None:
+        """The calibration filters learn from one round: raw GNSS speed (at the IMU: the
+        antenna's lever-arm terms taken off) against the corrected acceleration, raw rim
+        speeds against the filter's wheel ground speeds (emitted, GNSS-anchored rows), the
+        raw forward force at standstill."""
+        bank = self.calibration_bank
+        accel = fixed.z[:, MdsfObs.A1]
+        vg_raw = np.where(tin.gnss_ok, tin.z[:, MdsfObs.VG], np.nan)
+        # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
+        wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
+        lever = self.front.ant_x_m[slots] * wz - self.front.h1_m[slots] * wx
+        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var)
+        usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
+        ground = np.stack([so.vl, so.vr], axis=1)
+        ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2
+        bank.observe_wheels(slots, rim, rim_std**2, ground, ground_var, accel, usable)
+        still = bank.still_pitch_rows(slots, vg_raw, rim, min_speed)
+        bank.observe_still(slots, tin.force_fwd, tin.accel_var, tin.attitude[:, 1], still)
 
     def _last_still(self, due: FleetTicks, rim: FloatArray, min_speed: FloatArray) -> IntArray:
         """Per row and wheel, the stamp of the latest tick at or before it whose measured rim

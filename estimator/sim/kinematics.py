@@ -149,6 +149,9 @@ class MotionPlan:
     slip_offset : Profile
         Slip (fraction) added to both driven wheels as a function of time, on top of the
         traction model's (steps and ramps: a wet patch, an implement lowered or lifted).
+    free_rolling : (bool, bool)
+        Wheels (left, right) that are not driven: they roll without slip (a front-drive car's
+        rear wheels).
     """
 
     duration_s: float
@@ -163,6 +166,7 @@ class MotionPlan:
     heading0_rad: float = 0.0
     traction: TractionModel = field(default_factory=TractionModel)
     slip_offset: Profile = _zero
+    free_rolling: tuple[bool, bool] = (False, False)
 
 
 def rotation_body_to_enu(psi: FloatArray, theta: FloatArray, phi: FloatArray) -> FloatArray:
@@ -327,6 +331,8 @@ def integrate_plan(
     base = base + np.asarray(plan.slip_offset(t), dtype=np.float64) * moving
     slip = np.stack([base - turn, base + turn], axis=1) + tex
     slip = np.clip(slip, -0.9, 0.9)
+    if any(plan.free_rolling):
+        slip = np.where(np.asarray(plan.free_rolling)[None, :], 0.0, slip)
     rim = rim_speed_from_slip(ground, slip)
     radius = np.asarray(wheel_radius_m, dtype=np.float64)[None, :]
     wheel = rim / radius

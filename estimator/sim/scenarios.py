@@ -134,11 +134,13 @@ _COMMON: dict[str, Any] = {
     "sway_pitch_deg": 0.0,
     "sway_roll_deg": 0.0,
     "slip_steps": (),
+    "free_rolling": (False, False),
 }
 """Parameters every scenario takes. Body sway: pitch ``A_θ·sin(2π·f·t)`` and roll
 ``A_φ·cos(2π·f·t)`` about the rear axle (``sway_*``), in full from 1 m/s and faded to none at
 standstill; ``slip_steps``: ``((t_s, delta_pct, ramp_s), ...)`` added to both driven wheels' slip
-(:func:`estimator.sim._signals.ramp_steps`; a wet patch, an implement lowered or lifted)."""
+(:func:`estimator.sim._signals.ramp_steps`; a wet patch, an implement lowered or lifted);
+``free_rolling``: (left, right) wheels that are not driven and roll without slip."""
 
 
 def _traction(p: Params) -> TractionModel:
@@ -224,6 +226,7 @@ def _plan(
         heading0_rad=math.radians(p["heading0_deg"]),
         traction=_traction(p),
         slip_offset=slip_offset,
+        free_rolling=(bool(p["free_rolling"][0]), bool(p["free_rolling"][1])),
     )
 
 

@@ -6,9 +6,9 @@ statement cannot convert, such as packing SQLite rows in version 6). Applied ver
 recorded in ``schema_version``. A migration is frozen once released: later schema changes are
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
-:data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`); tests compare them with
-today's specs, and the stores refuse a spec that no longer matches its recorded table, so a
-spec change forces a new migration.
+:data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`); tests
+compare them with today's specs, and the stores refuse a spec that no longer matches its
+recorded table, so a spec change forces a new migration.
 
 Applying is idempotent and safe when several processes start at once:
 
@@ -17,7 +17,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 14):
+Schema (version 15):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -35,7 +35,8 @@ Schema (version 14):
     read.
     PostgreSQL: ``vkey`` + a column per field of MDSF's spec, all ``NOT NULL`` (NaN is stored
     natively). SQLite (since version 6): ``vkey``, ``stamp_ns`` and ``packed``, the whole row as
-    its bytes (layout :data:`SQLITE_PACKED_FIELDS`, little-endian), in a
+    its bytes (layout :data:`MDSF_FIELDS_V15`, little-endian; :data:`SQLITE_PACKED_FIELDS`
+    before version 15, which appended the online calibration's fields), in a
     clustered ``WITHOUT ROWID`` table; versions 1-5 had every field as a column (NaN as NULL)
     and, from version 3, ``packed`` beside them.
 ``estimates_recent`` (SQLite, version 7)
@@ -80,6 +81,7 @@ from estimator.config import VehicleKind, upgrade_legacy_config
 __all__ = [
     "ADVISORY_LOCK_KEY",
     "FRICTION_FIELDS_V12",
+    "MDSF_FIELDS_V15",
     "MIGRATIONS",
     "REFERENCE_SPEED_FIELDS_V10",
     "SQLITE_PACKED_FIELDS",
@@ -639,6 +641,55 @@ _V11_POSTGRESQL: tuple[Step, ...] = (
     ),
 )
 
+#: MDSF's row as version 15 made it: the version-6 layout with the online calibration's values
+#: and stds appended (after ``flags``, so a stored row converts by appending bytes).
+MDSF_CALIBRATION_FIELDS_V15: tuple[tuple[str, str], ...] = tuple(
+    (name, "f8")
+    for name in (
+        "gnss_clock_offset_s",
+        "gnss_clock_offset_std_s",
+        "wheel_clock_offset_s",
+        "wheel_clock_offset_std_s",
+        "radius_left_m",
+        "radius_left_std_m",
+        "radius_right_m",
+        "radius_right_std_m",
+        "imu_pitch_mount_rad",
+        "imu_pitch_mount_std_rad",
+    )
+)
+MDSF_FIELDS_V15: tuple[tuple[str, str], ...] = (*SQLITE_PACKED_FIELDS, *MDSF_CALIBRATION_FIELDS_V15)
+
+_NAN_F8_LE = "000000000000F87F"
+"""A float64 NaN as little-endian bytes (hex): what rows stored before version 15 get for
+each calibration field."""
+
+
+def _v15(dialect: str) -> tuple[Step, ...]:
+    """MDSF's rows gain the calibration fields (NaN in the rows stored before): SQLite appends
+    their bytes to every packed row (``estimates`` and the staged ``estimates_recent``);
+    PostgreSQL adds a ``NOT NULL`` column each (filled with NaN, no default kept)."""
+    record = (
+        f"UPDATE estimator_tables SET fields = '{fields_json(MDSF_FIELDS_V15)}' "
+        "WHERE estimator = 'mdsf'"
+    )
+    if dialect == "sqlite":
+        nan = "X'" + _NAN_F8_LE * len(MDSF_CALIBRATION_FIELDS_V15) + "'"
+        return (
+            # ``||`` yields text; the cast gives its bytes back unchanged as a blob
+            f"UPDATE estimates SET packed = CAST(packed || {nan} AS BLOB)",
+            f"UPDATE estimates_recent SET packed = CAST(packed || {nan} AS BLOB)",
+            record,
+        )
+    steps: list[Step] = []
+    for name, _ in MDSF_CALIBRATION_FIELDS_V15:
+        steps.append(
+            f"ALTER TABLE estimates ADD COLUMN {name} double precision NOT NULL DEFAULT 'NaN'"
+        )
+        steps.append(f"ALTER TABLE estimates ALTER COLUMN {name} DROP DEFAULT")
+    return (*steps, record)
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "vehicles, estimates, ingest counters", _V1_SQLITE, _V1_POSTGRESQL),
     Migration(2, "raw packets", _V2_SQLITE, _V2_POSTGRESQL),
@@ -674,6 +725,7 @@ MIGRATIONS: tuple[Migration, ...] = (
         ("ALTER TABLE api_tokens ADD COLUMN expires_ns INTEGER",),
         ("ALTER TABLE api_tokens ADD COLUMN expires_ns bigint",),
     ),
+    Migration(15, "MDSF rows carry the online calibration", _v15("sqlite"), _v15("postgresql")),
 )
 
 _VERSION_TABLE = {

@@ -67,6 +67,16 @@ p95, wheel-speed max error and coverage, the random floors (product: slip RMS �
 ≤ 2 pp on ≥ 95 % of the drives, RMS never above 2 pp, wheel-speed max error ≤ 3 % and coverage
 ≥ 98 % on every drive) and the worst drives with their knobs. Seeds 1 and 2 are for
 development; 1001 and 1002 are kept for judging and never tuned on.
+
+Calibration
+-----------
+``--calibration [--seeds …]`` drives :data:`CALIBRATION_CASE` (a random drive whose rear wheels
+roll free and are declared so, tyre radius 2 % off, IMU pitched 3°, GNSS 80 ms early: its
+samples lead the IMU) through product mode with the online calibration on and off, and prints
+per seed the free-rolling wheels' slip error once every calibration has converged (mean, RMS,
+p95; the floor ``|mean| ≤ 0.3 pp`` judges the bias the calibration removes, the RMS holds the
+wheel fit's noise too), the same without calibration, and each calibration's convergence time
+(from the drive's start until its std stays below the config's threshold) and final value.
 """
 
 from __future__ import annotations
@@ -91,6 +101,7 @@ from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estima
 from server.tooling.bench import int_list
 
 __all__ = [
+    "CALIBRATION_CASE",
     "DEFAULT_SEED",
     "FLOORS",
     "METHODS",
@@ -100,10 +111,12 @@ __all__ = [
     "default_estimators",
     "evaluate",
     "main",
+    "print_calibration_table",
     "print_random_table",
     "print_seeds_table",
     "print_table",
     "run",
+    "run_calibration",
     "run_estimator",
     "run_random",
     "run_seeds",
@@ -791,6 +804,145 @@ def print_random_table(result: Mapping[str, Any], file: TextIO | None = None) ->
     )
 
 
+#: ``--calibration``: overrides of :func:`estimator.sim.simulate` for ``random_drive``.
+CALIBRATION_CASE: dict[str, Any] = {
+    "clock_offset_ms": (-80.0, 0.0, 0.0),
+    "wheel_radius_error_rel": (0.02, 0.02),
+    "imu_misalign_deg": (0.0, 3.0),
+    "free_rolling": (True, True),
+}
+CALIBRATION_FLOOR_PP = 0.3
+"""Largest |mean| slip error of the free-rolling wheels after calibration [pp]."""
+
+#: Each calibration's value and std in :class:`~estimator.mdsf.calibration.MdsfCalibration`
+#: and its threshold in :class:`~estimator.config.CalibrationConfig` (field, to the std's unit).
+_CALIBRATIONS = (
+    ("gnss_clock_offset_s", "gnss_clock_offset_std_s", "clock_offset_converged_ms", 1e-3),
+    ("wheel_clock_offset_s", "wheel_clock_offset_std_s", "clock_offset_converged_ms", 1e-3),
+    ("radius_scale_left", "radius_scale_left_std", "radius_converged_pct", 1e-2),
+    ("radius_scale_right", "radius_scale_right_std", "radius_converged_pct", 1e-2),
+    ("imu_pitch_rad", "imu_pitch_std_rad", "imu_pitch_converged_deg", math.pi / 180.0),
+)
+
+
+def _calibration_trace(
+    sim: SimRun, config: WheeledRearDriveConfig
+) -> tuple[np.ndarray, list[tuple[int, Any]]]:
+    """Rows of product mode on ``sim`` and the calibration after each advance."""
+    from estimator.mdsf import MdsfFleet
+
+    fleet = MdsfFleet()
+    fleet.add_vehicle(_VEHICLE, config)
+    parts: list[np.ndarray] = []
+    trace: list[tuple[int, Any]] = []
+    for chunk, until in replay_arrivals(
+        sim.measurements,
+        sim.arrival_ns,
+        lateness_ns=LATENESS_NS,
+        step_ns=_STEP_NS,
+        end_ns=sim.end_ns,
+    ):
+        for m in chunk:
+            fleet.push(_VEHICLE, m)
+        parts += [np.asarray(rows) for _, rows in fleet.advance({_VEHICLE: until})]
+        trace.append((until, fleet.calibration(_VEHICLE)))
+    return np.concatenate(parts), trace
+
+
+def _converged_ns(trace: Sequence[tuple[int, Any]], std: str, limit: float) -> int | None:
+    """First stamp after which ``std`` stays below ``limit`` to the end (None: never)."""
+    above = [t for t, cal in trace if getattr(cal, std) > limit]
+    if not above:
+        return trace[0][0] if trace else None
+    later = [t for t, _ in trace if t > above[-1]]
+    return later[0] if later else None
+
+
+def _free_slip_error(rows: np.ndarray, truth: np.ndarray, after_ns: int) -> dict[str, float]:
+    """Slip error of both wheels on moving rows stamped after ``after_ns`` [pp]."""
+    late = rows[rows["stamp_ns"] > after_ns]
+    late = late[truth_at(truth, late["stamp_ns"], "v0_mps") > MOVING_MPS]
+    err = np.concatenate(
+        [
+            late[f"slip_{w}_pct"] - truth_at(truth, late["stamp_ns"], f"slip_{w}_pct")
+            for w in ("left", "right")
+        ]
+    )
+    err = err[np.isfinite(err)]
+    if err.size == 0:
+        return {"mean_pp": math.nan, "rms_pp": math.nan, "p95_pp": math.nan}
+    return {
+        "mean_pp": float(np.mean(err)),
+        "rms_pp": _rms(err),
+        "p95_pp": float(np.percentile(np.abs(err), 95)),
+    }
+
+
+def _calibration_row(seed: int) -> dict[str, Any]:
+    """One seed of the calibration case: errors with and without calibration, convergence."""
+    from estimator.config import CalibrationConfig, VehicleGeometry
+
+    geo = VehicleGeometry(wheel_driven_left=False, wheel_driven_right=False)
+    base = WheeledRearDriveConfig(geometry=geo)
+    sim = simulate("random_drive", seed=seed, start_ns=START_NS, config=base, **CALIBRATION_CASE)
+    config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
+    rows, trace = _calibration_trace(sim, config)
+    row: dict[str, Any] = {"seed": seed}
+    done: list[int] = []
+    for value, std, limit, unit in _CALIBRATIONS:
+        at = _converged_ns(trace, std, getattr(config.calibration, limit) * unit)
+        row[f"{value}_converged_s"] = math.nan if at is None else (at - START_NS) * 1e-9
+        row[value] = getattr(trace[-1][1], value)
+        done.append(sim.end_ns if at is None else at)
+    row["after_s"] = (max(done) - START_NS) * 1e-9
+    row["calibrated"] = _free_slip_error(rows, sim.truth, max(done))
+    off = CalibrationConfig(clock_offsets=False, wheel_radius=False, imu_mounting=False)
+    rows_off, _ = _calibration_trace(sim, dataclasses.replace(config, calibration=off))
+    row["uncalibrated"] = _free_slip_error(rows_off, sim.truth, max(done))
+    row["pass"] = abs(row["calibrated"]["mean_pp"]) <= CALIBRATION_FLOOR_PP
+    return row
+
+
+def run_calibration(
+    seeds: Sequence[int], path: Path | None = None, out: TextIO | None = None
+) -> dict[str, Any]:
+    """Run the calibration case (module docstring) on ``seeds``; print and return the rows."""
+    rows = [_calibration_row(seed) for seed in seeds]
+    result = {
+        "case": CALIBRATION_CASE,
+        "rows": rows,
+        "all_pass": all(r["pass"] for r in rows),
+    }
+    if path is not None:
+        path.write_text(json.dumps(_jsonable(result), indent=2))
+    print_calibration_table(result, file=out)
+    return result
+
+
+def print_calibration_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
+    """Plain-text table of :func:`run_calibration`."""
+    out = file or sys.stdout
+    print(f"calibration case {result['case']}", file=out)
+    print(
+        "seed  after_s  slip err mean/rms/p95 pp (calibrated)  (calibration off)  "
+        "converged at s: gnss_clock wheel_clock radius_l radius_r imu_pitch",
+        file=out,
+    )
+    for r in result["rows"]:
+        on, off = r["calibrated"], r["uncalibrated"]
+        conv = " ".join(f"{r[f'{c[0]}_converged_s']:.1f}" for c in _CALIBRATIONS)
+        print(
+            f"{r['seed']:>4}  {r['after_s']:7.1f}  "
+            f"{on['mean_pp']:+.3f}/{on['rms_pp']:.3f}/{on['p95_pp']:.3f}  "
+            f"{off['mean_pp']:+.3f}/{off['rms_pp']:.3f}/{off['p95_pp']:.3f}  {conv}  "
+            f"{'PASS' if r['pass'] else 'FAIL'}",
+            file=out,
+        )
+        values = ", ".join(f"{c[0]}={r[c[0]]:.5g}" for c in _CALIBRATIONS)
+        print(f"      final: {values}", file=out)
+    print(f"overall: {'PASS' if result['all_pass'] else 'FAIL'}", file=out)
+
+
 def _estimator_runner(
     factory: EstimatorFactory, sim: SimRun, config: WheeledRearDriveConfig
 ) -> Callable[[], np.ndarray]:
@@ -946,8 +1098,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="N",
         help="run N random drives of the draw --seed instead of the named scenarios",
     )
+    p.add_argument(
+        "--calibration",
+        action="store_true",
+        help="run the calibration case (radius, IMU pitch, GNSS clock off) on --seed/--seeds",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)
+    if args.calibration:
+        if args.random is not None or args.variants or args.scenarios or args.scenario_list:
+            p.error("--calibration takes only --seed or --seeds (and --json)")
+        seeds = args.seeds if args.seeds is not None else [args.seed]
+        return 0 if run_calibration(seeds, args.json)["all_pass"] else 1
     if args.random is not None:
         if args.seeds is not None or args.variants or args.scenarios or args.scenario_list:
             p.error("--random takes only --seed (and --json)")

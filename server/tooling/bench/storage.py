@@ -108,6 +108,9 @@ class ColumnLayoutStore(SqliteStore):
             def execute(sql: str, params: Sequence[Any]) -> list[Any]:
                 return conn.execute(sql, params).fetchall()
 
+            # the fields MDSF's rows gained since (15: the calibration) as columns too
+            for name, _ in migrations.MDSF_CALIBRATION_FIELDS_V15:
+                conn.execute(f"ALTER TABLE estimates ADD COLUMN {name} REAL")
             later_versions = (7, 9, *(m.version for m in migrations.MIGRATIONS if m.version >= 10))
             for later in later_versions:
                 for step in next(m for m in migrations.MIGRATIONS if m.version == later).sqlite:

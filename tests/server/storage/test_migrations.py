@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from estimator.config import TrackedConfig, Wheeled4wdSteeredConfig, vehicle_config_from_dict
-from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
 from server.storage import StorageError, open_store
 from server.storage.migrations import (
     _VERSION_TABLE,
+    MDSF_CALIBRATION_FIELDS_V15,
     MIGRATIONS,
+    SQLITE_PACKED_FIELDS,
     apply_pending,
     latest_version,
 )
@@ -135,22 +136,39 @@ def _version_5_database(path: Path, vehicles: dict[int, np.ndarray]) -> None:
         5,
         [1, 2, 3, 4, 5],
     )
-    names = [name for name, _ in ESTIMATE_FIELDS]
+    names = [name for name, _ in SQLITE_PACKED_FIELDS]
     for vkey, rows in vehicles.items():
         conn.execute(
             "INSERT INTO vehicles (vkey, vehicle_id, config, created_ns, updated_ns) "
             "VALUES (?, ?, '{}', 1, 1)",
             (vkey, f"veh-{vkey}"),
         )
-        size = ESTIMATE_DTYPE.itemsize
-        buf = rows.tobytes()
+        old = _before_v15(rows)
+        size = old.dtype.itemsize
+        buf = old.tobytes()
         conn.executemany(
             f"INSERT INTO estimates (vkey, {', '.join(names)}, packed) "
             f"VALUES ({vkey}, {', '.join('?' * (len(names) + 1))})",
-            [(*v, buf[i * size : (i + 1) * size]) for i, v in enumerate(rows.tolist())],
+            [(*v, buf[i * size : (i + 1) * size]) for i, v in enumerate(old.tolist())],
         )
     conn.execute("COMMIT")
     conn.close()
+
+
+def _before_v15(rows: np.ndarray) -> np.ndarray:
+    """``rows`` in MDSF's layout of versions 6-14 (without the calibration fields)."""
+    old = np.zeros(rows.shape[0], dtype=[(n, "<" + k) for n, k in SQLITE_PACKED_FIELDS])
+    for name, _ in SQLITE_PACKED_FIELDS:
+        old[name] = rows[name]
+    return old
+
+
+def _uncalibrated(rows: np.ndarray) -> np.ndarray:
+    """``rows`` as stored before version 15 read back after it: calibration fields NaN."""
+    out = rows.copy()
+    for name, _ in MDSF_CALIBRATION_FIELDS_V15:
+        out[name] = np.nan
+    return out
 
 
 def test_sqlite_estimates_are_packed_by_migration_6(
@@ -162,7 +180,9 @@ def test_sqlite_estimates_are_packed_by_migration_6(
 
     monkeypatch.setattr(mig, "_V6_REPACK_PAGE_ROWS", 7)  # several pages of rows to pack
     path = tmp_path / "v5.sqlite"
-    packed, mixed, unpacked = make_rows(40, seed=1), make_rows(30, seed=2), make_rows(25, seed=3)
+    packed, mixed, unpacked = (
+        _uncalibrated(make_rows(n, seed=seed)) for n, seed in ((40, 1), (30, 2), (25, 3))
+    )
     mixed["vl_mps"][::3] = np.nan  # NULL in the columns of rows that lose their bytes
     _version_5_database(path, {3: packed, 7: mixed, 12: unpacked})
     conn = sqlite3.connect(path, isolation_level=None)
@@ -184,7 +204,8 @@ def test_sqlite_estimates_are_packed_by_migration_6(
         assert_rows_equal(latest.reshape(1), rows[-1:])
     assert set(store.latest_all()) == {"veh-3", "veh-7", "veh-12"}
     # the primary key came along: the same rows again are not duplicated
-    assert store.write_estimates([("veh-7", mixed), ("veh-12", make_rows(26, seed=3))]) == 1
+    again = _uncalibrated(make_rows(26, seed=3))
+    assert store.write_estimates([("veh-7", mixed), ("veh-12", again)]) == 1
     assert store.delete_older_than(T0_NS + 10 * DT_NS) == 30
     assert store.delete_vehicle("veh-3")
     assert len(store.query_series("veh-3", 0, 2**62)) == 0
@@ -197,7 +218,7 @@ def test_sqlite_migration_8_bounds_the_rows_already_final(tmp_path: Path) -> Non
     final row: replays of those rows are still refused (keeping the stored values), newer rows
     are staged."""
     path = tmp_path / "v7.sqlite"
-    rows = {1: make_rows(40), 2: make_rows(40, seed=1)}
+    rows = {1: _uncalibrated(make_rows(40)), 2: _uncalibrated(make_rows(40, seed=1))}
     conn = sqlite3.connect(path, isolation_level=None)
     conn.execute("BEGIN")
     assert apply_pending(lambda sql, p: conn.execute(sql, p).fetchall(), "sqlite", target=7)[0] == 7
@@ -210,7 +231,7 @@ def test_sqlite_migration_8_bounds_the_rows_already_final(tmp_path: Path) -> Non
         for table, part in (("estimates", r[:30]), ("estimates_recent", r[30:])):
             conn.executemany(
                 f"INSERT INTO {table} (vkey, stamp_ns, packed) VALUES (?, ?, ?)",
-                [(vkey, int(one["stamp_ns"]), one.tobytes()) for one in part],
+                [(vkey, int(one["stamp_ns"]), one.tobytes()) for one in _before_v15(part)],
             )
     conn.execute("COMMIT")
     conn.close()
@@ -310,3 +331,44 @@ def test_stored_configs_move_to_the_shape_of_their_kind(
     assert utility.estimators == ("mdsf",)
     assert store.migrate() == latest_version()  # a second run changes nothing
     assert store.get_vehicle("crawler").config == new["crawler"]  # type: ignore[union-attr]
+
+
+def test_mdsf_rows_gain_the_calibration_fields_in_migration_15(
+    backend: Backend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """MDSF rows written by version 14 (final and, on SQLite, staged) read back after version
+    15 with every earlier field as it was and the calibration fields NaN; new rows keep them."""
+    import dataclasses as dc
+
+    import server.storage.migrations as mig
+    from estimator.mdsf_spec import MDSF_SPEC
+    from server.storage.postgres import PostgresStore
+    from tests.server.storage.conftest import batch_of
+
+    def store_of(specs: list[Any]) -> Any:
+        s = backend.settings
+        if backend.name == "sqlite":
+            return SqliteStore(s.data_dir / s.sqlite_file, specs=specs)
+        assert s.url is not None
+        return PostgresStore(s.url.get_secret_value(), specs=specs)
+
+    n_old = len(SQLITE_PACKED_FIELDS)
+    old_spec = dc.replace(MDSF_SPEC, fields=MDSF_SPEC.fields[:n_old])
+    rows = _uncalibrated(make_rows(30, seed=4))
+    old = store_of([old_spec])
+    with monkeypatch.context() as m:
+        m.setattr(mig, "MIGRATIONS", mig.MIGRATIONS[:14])
+        assert old.migrate() == 14
+    old.upsert_vehicle("v1", {}, now_ns=1)
+    assert old.write_estimates(batch_of(old_spec, {"v1": _before_v15(rows[:20])})) == 20
+    if backend.name == "sqlite":
+        old.maintain(everything=True)  # some rows final, the next staged
+    assert old.write_estimates(batch_of(old_spec, {"v1": _before_v15(rows[20:])})) == 10
+    old.close()
+
+    store = backend.open(migrate=False)
+    assert store.migrate() == latest_version() >= 15
+    assert_rows_equal(store.query_series("v1", 0, 2**62), rows)
+    new = make_rows(5, T0_NS + 100 * DT_NS, seed=5)
+    assert store.write_estimates([("v1", new)]) == 5
+    assert_rows_equal(store.query_series("v1", T0_NS + 100 * DT_NS, 2**62), new)

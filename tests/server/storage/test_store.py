@@ -10,7 +10,7 @@ import pytest
 
 from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS
 from server.storage import StorageDataError, Store, VehicleRecord
-from server.storage.migrations import SQLITE_PACKED_FIELDS
+from server.storage.migrations import MDSF_FIELDS_V15
 from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, assert_rows_equal, make_rows
 
@@ -270,9 +270,9 @@ def test_reads_from_other_threads_while_writing(store: Store) -> None:
 def test_estimate_columns_match_estimate_fields(store: Store) -> None:
     """A change to ESTIMATE_FIELDS must come with a new migration."""
     columns = store.table_columns("estimates")  # type: ignore[attr-defined]
-    if store.dialect == "sqlite":  # rows only packed, in the layout frozen with migration 6
+    if store.dialect == "sqlite":  # rows only packed, in the layout frozen with migration 15
         assert columns == ["vkey", "stamp_ns", "packed"]
-        packed = np.dtype([(name, "<" + kind) for name, kind in SQLITE_PACKED_FIELDS])
+        packed = np.dtype([(name, "<" + kind) for name, kind in MDSF_FIELDS_V15])
         assert packed == ESTIMATE_DTYPE and packed.itemsize == ESTIMATE_DTYPE.itemsize
     else:
         assert columns == ["vkey", *(name for name, _ in ESTIMATE_FIELDS)]
@@ -324,7 +324,7 @@ def test_sqlite_refuses_rows_of_another_layout(tmp_path: Path, table: str) -> No
     assert _count(store, table) == 5
     with store._write() as conn:
         conn.execute(f"UPDATE {table} SET packed = x'0102' WHERE stamp_ns = ?", (T0_NS,))
-    with pytest.raises(StorageDataError, match="not 212-byte"):
+    with pytest.raises(StorageDataError, match=f"not {ESTIMATE_DTYPE.itemsize}-byte"):
         store.query_series("v1", 0, 2**62)
     assert len(store.query_series("v1", T0_NS + 1, 2**62)) == 4  # the other rows still read
     with store._write() as conn:

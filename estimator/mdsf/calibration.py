@@ -1,0 +1,405 @@
+"""Online calibration of MDSF's sensors: clock offsets, rolling radii, IMU mounting pitch.
+
+Every vehicle of a fleet has three small Kalman filters here, stepped once per tick for all
+vehicles at once (arrays indexed by the engine's slot), each with its uncertainty:
+
+* **GNSS clock offset** ``δ_g`` (:class:`GnssClock`): a GNSS sample stamped ``t`` describes
+  the instant ``t − δ_g`` of the IMU's clock (the simulator's ``clock_offset_ms`` sign), so its
+  speed moved to the tick reads ``Vg ≈ V − δ_g·a``. States ``[V, b, δ_g]``: the speed carried
+  by the tick-mean forward acceleration ``a`` less a bias ``b`` (``V' = V + dt·(a − b)``),
+  observed as ``Vg = V − δ_g·a``. Observable whenever ``a`` changes; applied to the GNSS
+  speed as ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
+* **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
+  ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
+  drive) the measured rim speed is ``r·W = V/s − δ_w·a`` with ``s`` the true over the
+  configured radius; states ``[κ_L, κ_R, δ_w]`` with ``κ = 1 − 1/s``, observed as
+  ``r·W − V = −κ·V − δ_w·a`` (``V`` the filter's ground speed of that wheel). Applied as
+  ``s·(r·W + δ_w·a)``.
+* **IMU mounting pitch** ``β``: a pitched IMU reads the forward specific force
+  ``g·sin(θ + β)`` at standstill (``θ`` the body pitch of the tilt track, anchored by the GNSS
+  attitude or velocity); a scalar filter of ``asin(f/g) − θ`` over standstill ticks. Applied
+  as ``a − g·(sin(θ + β) − sin θ)``. An accelerometer bias reads the same at standstill: the
+  two are one correction here.
+
+:class:`MdsfCalibration` is one vehicle's calibration as plain values (state out and in: the
+server stores it and gives it back after a restart).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray, IntArray
+from estimator._slots import grow_slot_array
+from estimator.config import CalibrationConfig, WheeledRearDriveConfig
+from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
+
+__all__ = ["CalibrationBank", "GnssClock", "MdsfCalibration", "WheelCal"]
+
+_GATE_SIGMAS = 4.0
+"""Innovations beyond this many sigmas are outliers (GNSS outlier, a calibration wheel that
+slips), not used."""
+_OFFSET_WALK_S_PER_SQRT_S = 1e-4
+"""Random walk of a clock offset [s/√s] (clocks drift slowly)."""
+_RADIUS_WALK_PER_SQRT_S = 2e-5
+"""Random walk of a radius ratio [1/√s] (load, pressure, wear)."""
+_PITCH_WALK_RAD_PER_SQRT_S = 2e-5
+"""Random walk of the mounting pitch [rad/√s]."""
+_FREE_SLIP_STD = 0.002
+"""Slip of a free-rolling wheel (rolling resistance, texture) as noise [-]."""
+_REF_CORR_S = 1.0
+"""Correlation time of the filter's ground-speed error (its variance counts this many seconds
+of ticks, so correlated errors do not read as independent evidence) [s]."""
+_STILL_PITCH_FLOOR_RAD = math.radians(0.3)
+"""Floor of a standstill pitch reading's std: body pitch error of the tilt track [rad]."""
+_STILL_SPEED_MPS = 0.05
+_MIN_CAL_SPEED_MPS = 1.0
+"""Wheel calibration uses ticks above this ground speed (the radius term ``κ·V`` then
+stands out of the rim-speed noise)."""
+
+
+class GnssClock(IntEnum):
+    """States of the GNSS clock filter."""
+
+    SPEED = 0
+    BIAS = 1
+    OFFSET = 2
+
+
+class WheelCal(IntEnum):
+    """States of the wheel calibration filter: ``κ = 1 − configured/true radius``, offset."""
+
+    KAPPA_LEFT = 0
+    KAPPA_RIGHT = 1
+    OFFSET = 2
+
+
+@dataclass(slots=True)
+class MdsfCalibration:
+    """One vehicle's calibration, each value with its 1-sigma (state out and in).
+
+    Attributes
+    ----------
+    gnss_clock_offset_s, wheel_clock_offset_s : float
+        A sample stamped ``t`` describes the instant ``t − offset`` of the IMU clock [s].
+    radius_scale_left, radius_scale_right : float
+        True over configured rolling radius [-].
+    imu_pitch_rad : float
+        The IMU's forward axis pitched up against the body's [rad].
+    """
+
+    gnss_clock_offset_s: float
+    gnss_clock_offset_std_s: float
+    wheel_clock_offset_s: float
+    wheel_clock_offset_std_s: float
+    radius_scale_left: float
+    radius_scale_left_std: float
+    radius_scale_right: float
+    radius_scale_right_std: float
+    imu_pitch_rad: float
+    imu_pitch_std_rad: float
+
+
+def _kf_update(
+    x: FloatArray, p: FloatArray, h: FloatArray, y: FloatArray, r: FloatArray
+) -> BoolArray:
+    """Scalar-observation Kalman update in place, rows gated at ``_GATE_SIGMAS``.
+
+    ``x`` (k, n), ``p`` (k, n, n), ``h`` (k, n), ``y``, ``r`` (k,); Joseph form. Returns which
+    rows were used."""
+    ph = np.einsum("kij,kj->ki", p, h)
+    s = np.einsum("ki,ki->k", h, ph) + r
+    nu = y - np.einsum("ki,ki->k", h, x)
+    use = nu * nu <= _GATE_SIGMAS**2 * s
+    if not use.any():
+        return use
+    gain = ph / s[:, None]
+    k = np.where(use[:, None], gain, 0.0)
+    x += k * nu[:, None]
+    eye = np.eye(x.shape[1])[None]
+    a = eye - k[:, :, None] * h[:, None, :]
+    p[:] = np.einsum("kij,kjl,kml->kim", a, p, a) + k[:, :, None] * k[:, None, :] * r[:, None, None]
+    return use
+
+
+class CalibrationBank:
+    """The calibration filters of every vehicle of a fleet, by slot.
+
+    :meth:`apply` corrects a round's tick inputs with the estimates so far; :meth:`observe_gnss`,
+    :meth:`observe_wheels` and :meth:`observe_still` then learn from that round.
+    """
+
+    def __init__(self, config: MdsfConfig) -> None:
+        self.dt_s = config.dt_s
+        self.speed_walk = config.speed_walk_mps_per_sqrt_s
+        self.bias_prior = config.accel_bias_std_mps2
+        self.bias_walk = config.accel_bias_extra_walk_mps2_per_sqrt_s
+        cap = 0
+        self.gx = np.zeros((cap, 3))
+        self.gp = np.zeros((cap, 3, 3))
+        self.g_started = np.zeros(cap, dtype=bool)
+        self.wx = np.zeros((cap, 3))
+        self.wp = np.zeros((cap, 3, 3))
+        self.pitch = np.zeros(cap)
+        self.pitch_var = np.zeros(cap)
+        self.free = np.zeros((cap, 2), dtype=bool)  # wheels declared free-rolling
+        self.drive = np.zeros(cap, dtype=bool)  # a calibration drive is on
+        self.on = np.zeros((cap, 3), dtype=bool)  # clocks, radius, mounting enabled
+        self.limit = np.zeros((cap, 3))  # converged below these stds (s, ratio, rad)
+
+    def _grow(self, slot: int) -> None:
+        if slot < self.gx.shape[0]:
+            return
+        cap = max(2 * self.gx.shape[0], slot + 1)
+        for name, shape, fill in (
+            ("gx", (3,), 0.0),
+            ("gp", (3, 3), 0.0),
+            ("g_started", (), False),
+            ("wx", (3,), 0.0),
+            ("wp", (3, 3), 0.0),
+            ("pitch", (), 0.0),
+            ("pitch_var", (), 0.0),
+            ("free", (2,), False),
+            ("drive", (), False),
+            ("on", (3,), False),
+            ("limit", (3,), 0.0),
+        ):
+            grow_slot_array(self, name, cap, shape, fill)
+
+    def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
+        """Start ``slot``'s calibration from the config's priors."""
+        self._grow(slot)
+        c: CalibrationConfig = vehicle.calibration
+        geo = vehicle.geometry
+        self.free[slot] = (not geo.wheel_driven_left, not geo.wheel_driven_right)
+        self.drive[slot] = False
+        self.on[slot] = (c.clock_offsets, c.wheel_radius, c.imu_mounting)
+        self.limit[slot] = (
+            c.clock_offset_converged_ms * 1e-3,
+            c.radius_converged_pct * 1e-2,
+            math.radians(c.imu_pitch_converged_deg),
+        )
+        off_var = (c.clock_offset_prior_ms * 1e-3) ** 2
+        rad_var = (c.radius_prior_pct * 1e-2) ** 2
+        self.gx[slot] = 0.0
+        self.gp[slot] = np.diag([1.0, self.bias_prior**2, off_var])
+        self.g_started[slot] = False
+        self.wx[slot] = 0.0
+        self.wp[slot] = np.diag([rad_var, rad_var, off_var])
+        self.pitch[slot] = 0.0
+        self.pitch_var[slot] = math.radians(c.imu_pitch_prior_deg) ** 2
+
+    def set_drive(self, slot: int, on: bool) -> None:
+        """An operator's calibration drive: while on, every wheel's slip is taken as ~0."""
+        self.drive[slot] = on
+
+    # -- state out and in --------------------------------------------------------------------
+    def state(self, slot: int) -> MdsfCalibration:
+        """``slot``'s calibration as plain values."""
+        kappa = self.wx[slot, :2]
+        scale = 1.0 / (1.0 - kappa)
+        scale_std = np.sqrt(np.diag(self.wp[slot])[:2]) * scale**2
+        return MdsfCalibration(
+            gnss_clock_offset_s=float(self.gx[slot, GnssClock.OFFSET]),
+            gnss_clock_offset_std_s=float(np.sqrt(self.gp[slot, 2, 2])),
+            wheel_clock_offset_s=float(self.wx[slot, WheelCal.OFFSET]),
+            wheel_clock_offset_std_s=float(np.sqrt(self.wp[slot, 2, 2])),
+            radius_scale_left=float(scale[0]),
+            radius_scale_left_std=float(scale_std[0]),
+            radius_scale_right=float(scale[1]),
+            radius_scale_right_std=float(scale_std[1]),
+            imu_pitch_rad=float(self.pitch[slot]),
+            imu_pitch_std_rad=float(np.sqrt(self.pitch_var[slot])),
+        )
+
+    def restore(self, slot: int, cal: MdsfCalibration) -> None:
+        """Start ``slot`` from a stored calibration (values and stds; no cross-covariances)."""
+        scale = np.array([cal.radius_scale_left, cal.radius_scale_right])
+        scale_std = np.array([cal.radius_scale_left_std, cal.radius_scale_right_std])
+        self.gx[slot, GnssClock.OFFSET] = cal.gnss_clock_offset_s
+        g = self.gp[slot]
+        g[2, :] = g[:, 2] = 0.0
+        g[2, 2] = cal.gnss_clock_offset_std_s**2
+        self.wx[slot] = (*(1.0 - 1.0 / scale), cal.wheel_clock_offset_s)
+        kappa_std = scale_std / scale**2
+        self.wp[slot] = np.diag([*(kappa_std**2), cal.wheel_clock_offset_std_s**2])
+        self.pitch[slot] = cal.imu_pitch_rad
+        self.pitch_var[slot] = cal.imu_pitch_std_rad**2
+
+    def row_fields(self, slots: IntArray, radius_m: FloatArray) -> dict[str, FloatArray]:
+        """The calibration's output fields of rows of vehicles ``slots`` (k,), the configured
+        radii ``radius_m`` (k, 2) turned into calibrated ones (``ESTIMATE_FIELDS`` names)."""
+        kappa = self.wx[slots, :2]
+        scale = 1.0 / (1.0 - kappa)
+        kappa_std = np.sqrt(np.stack([self.wp[slots, 0, 0], self.wp[slots, 1, 1]], axis=1))
+        radius = radius_m * scale
+        radius_std = radius_m * kappa_std * scale**2
+        return {
+            "gnss_clock_offset_s": self.gx[slots, GnssClock.OFFSET],
+            "gnss_clock_offset_std_s": np.sqrt(self.gp[slots, 2, 2]),
+            "wheel_clock_offset_s": self.wx[slots, WheelCal.OFFSET],
+            "wheel_clock_offset_std_s": np.sqrt(self.wp[slots, 2, 2]),
+            "radius_left_m": radius[:, 0],
+            "radius_left_std_m": radius_std[:, 0],
+            "radius_right_m": radius[:, 1],
+            "radius_right_std_m": radius_std[:, 1],
+            "imu_pitch_mount_rad": self.pitch[slots],
+            "imu_pitch_mount_std_rad": np.sqrt(self.pitch_var[slots]),
+        }
+
+    # -- per round ---------------------------------------------------------------------------
+    def gnss_offset_s(self, slots: IntArray) -> FloatArray:
+        """GNSS clock offset in force per vehicle (k,): 0 where off or not converged (an
+        estimate still moving costs more than it corrects: ``docs/perf/estimator.md``)."""
+        use = self.gnss_offset_converged(slots)
+        return np.where(use, self.gx[slots, GnssClock.OFFSET], 0.0)
+
+    def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
+        """The GNSS clock offset is on and its std below the converged threshold (k,)."""
+        return self.on[slots, 0] & (self.gp[slots, 2, 2] <= self.limit[slots, 0] ** 2)
+
+    def wheel_correction(self, slots: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Radius ratios ``s`` (k, 2) and the wheel clock offset (k,) in force (1, 0 where off)."""
+        scale = np.where(self.on[slots, 1:2], 1.0 / (1.0 - self.wx[slots, :2]), 1.0)
+        return scale, np.where(self.on[slots, 0], self.wx[slots, WheelCal.OFFSET], 0.0)
+
+    def mount_pitch_rad(self, slots: IntArray) -> FloatArray:
+        """Mounting pitch in force per vehicle (k,): 0 where off, or where its gravity share
+        ``g·β`` is within 3σ of the accelerometer bias's prior, which the filter's bias state
+        takes up anyway (applying both cost up to 0.1 pp on drives without a tilted IMU)."""
+        beta = self.pitch[slots]
+        big = np.abs(beta) * GRAVITY_MPS2 > 3.0 * self.bias_prior
+        return np.where(self.on[slots, 2] & big, beta, 0.0)
+
+    def observe_gnss(
+        self,
+        slots: IntArray,
+        accel_mps2: FloatArray,
+        accel_var: FloatArray,
+        vg_mps: FloatArray,
+        vg_var: FloatArray,
+    ) -> None:
+        """One tick of the GNSS clock filter: predict with the tick-mean acceleration (NaN: no
+        IMU, predicted with a wide walk), update with the tick's GNSS speed as the frontend
+        moved it (uncorrected; NaN: none). All shapes (k,)."""
+        dt = self.dt_s
+        imu = np.isfinite(accel_mps2)
+        a = np.where(imu, accel_mps2, 0.0)
+        x, p = self.gx[slots], self.gp[slots]
+        x[:, GnssClock.SPEED] += dt * (a - x[:, GnssClock.BIAS])
+        f = np.eye(3)
+        f[GnssClock.SPEED, GnssClock.BIAS] = -dt
+        p = f @ p @ f.T
+        q_v = np.where(imu, accel_var, 1.0) * dt * dt + self.speed_walk**2 * dt
+        p[:, 0, 0] += q_v
+        p[:, 1, 1] += self.bias_walk**2 * dt
+        p[:, 2, 2] += _OFFSET_WALK_S_PER_SQRT_S**2 * dt
+        has = np.isfinite(vg_mps) & imu
+        first = has & ~self.g_started[slots]
+        x[first, GnssClock.SPEED] = vg_mps[first]
+        p[first, 0, :] = p[first, :, 0] = 0.0
+        p[first, 0, 0] = vg_var[first]
+        upd = has & ~first
+        if upd.any():
+            h = np.zeros((int(upd.sum()), 3))
+            h[:, GnssClock.SPEED] = 1.0
+            h[:, GnssClock.OFFSET] = -a[upd]
+            xu, pu = x[upd], p[upd]
+            _kf_update(xu, pu, h, vg_mps[upd], vg_var[upd])
+            x[upd], p[upd] = xu, pu
+        self.g_started[slots] |= has
+        self.gx[slots], self.gp[slots] = x, p
+
+    def observe_wheels(
+        self,
+        slots: IntArray,
+        rim_mps: FloatArray,
+        rim_var: FloatArray,
+        ground_mps: FloatArray,
+        ground_var: FloatArray,
+        accel_mps2: FloatArray,
+        usable: BoolArray,
+    ) -> None:
+        """One tick of the wheel filter: measured rim speeds ``r·W`` with the configured radius
+        and uncorrected clock (k, 2), the filter's ground speeds of the wheels (k, 2), their
+        variances, the tick-mean acceleration (k,) and which rows may be used (k,: emitted,
+        GNSS-anchored, not settling). Only zero-slip wheels above ``_MIN_CAL_SPEED_MPS``
+        update."""
+        x, p = self.wx[slots], self.wp[slots]
+        p[:, 0, 0] += _RADIUS_WALK_PER_SQRT_S**2 * self.dt_s
+        p[:, 1, 1] += _RADIUS_WALK_PER_SQRT_S**2 * self.dt_s
+        p[:, 2, 2] += _OFFSET_WALK_S_PER_SQRT_S**2 * self.dt_s
+        zero_slip = self.free[slots] | self.drive[slots][:, None]
+        a = np.nan_to_num(accel_mps2)
+        for w in (0, 1):
+            v = ground_mps[:, w]
+            ok = (
+                usable
+                & zero_slip[:, w]
+                & np.isfinite(rim_mps[:, w])
+                & np.isfinite(v)
+                & (np.nan_to_num(v) > _MIN_CAL_SPEED_MPS)
+            )
+            if not ok.any():
+                continue
+            h = np.zeros((int(ok.sum()), 3))
+            h[:, w] = -v[ok]
+            h[:, WheelCal.OFFSET] = -a[ok]
+            r = (
+                rim_var[ok, w]
+                + ground_var[ok, w] * (_REF_CORR_S / self.dt_s)
+                + (_FREE_SLIP_STD * v[ok]) ** 2
+            )
+            xu, pu = x[ok], p[ok]
+            _kf_update(xu, pu, h, rim_mps[ok, w] - v[ok], r)
+            x[ok], p[ok] = xu, pu
+        self.wx[slots], self.wp[slots] = x, p
+
+    def observe_still(
+        self,
+        slots: IntArray,
+        force_fwd_mps2: FloatArray,
+        force_var: FloatArray,
+        pitch_rad: FloatArray,
+        still: BoolArray,
+    ) -> None:
+        """One tick of the mounting-pitch filter: at standstill (``still``, (k,)) the
+        tick-mean forward specific force reads ``g·sin(θ + β)``."""
+        self.pitch_var[slots] += _PITCH_WALK_RAD_PER_SQRT_S**2 * self.dt_s
+        ok = still & np.isfinite(force_fwd_mps2) & np.isfinite(pitch_rad)
+        if not ok.any():
+            return
+        s = slots[ok]
+        ratio = np.clip(force_fwd_mps2[ok] / GRAVITY_MPS2, -1.0, 1.0)
+        y = np.arcsin(ratio) - pitch_rad[ok]
+        r = force_var[ok] / GRAVITY_MPS2**2 + _STILL_PITCH_FLOOR_RAD**2
+        h = np.ones((s.shape[0], 1))
+        x = self.pitch[s][:, None]
+        p = self.pitch_var[s][:, None, None]
+        _kf_update(x, p, h, y, r)
+        self.pitch[s], self.pitch_var[s] = x[:, 0], p[:, 0, 0]
+
+    def uncalibrated(self, slots: IntArray) -> BoolArray:
+        """Per vehicle and wheel (k, 2): an enabled calibration the wheel's slip depends on
+        (GNSS and wheel clock offsets, its radius, the mounting pitch) is above its limit."""
+        on, lim = self.on[slots], self.limit[slots]
+        clocks = np.maximum(self.gp[slots, 2, 2], self.wp[slots, 2, 2])
+        bad_clock = on[:, 0] & (clocks > lim[:, 0] ** 2)
+        bad_pitch = on[:, 2] & (self.pitch_var[slots] > lim[:, 2] ** 2)
+        kappa_var = np.stack([self.wp[slots, 0, 0], self.wp[slots, 1, 1]], axis=1)
+        bad_radius = on[:, 1:2] & (kappa_var > (lim[:, 1:2]) ** 2)
+        return bad_radius | (bad_clock | bad_pitch)[:, None]
+
+    def still_pitch_rows(
+        self, slots: IntArray, vg_mps: FloatArray, rim_mps: FloatArray, min_speed: FloatArray
+    ) -> BoolArray:
+        """Which rows stand still enough for the mounting pitch: GNSS speed below
+        ``_STILL_SPEED_MPS`` and both rims below the standstill speed (k,)."""
+        del slots
+        return (np.abs(np.nan_to_num(vg_mps, nan=np.inf)) < _STILL_SPEED_MPS) & (
+            np.abs(np.nan_to_num(rim_mps, nan=np.inf)) < min_speed[:, None]
+        ).all(axis=1)
