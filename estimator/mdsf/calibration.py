@@ -148,6 +148,7 @@ class CalibrationBank:
         self.pitch_var = np.zeros(cap)
         self.free = np.zeros((cap, 2), dtype=bool)  # wheels declared free-rolling
         self.drive = np.zeros(cap, dtype=bool)  # a calibration drive is on
+        self.drove = np.zeros(cap, dtype=bool)  # a calibration drive was started
         self.on = np.zeros((cap, 3), dtype=bool)  # clocks, radius, mounting enabled
         self.limit = np.zeros((cap, 3))  # converged below these stds (s, ratio, rad)
 
@@ -165,6 +166,7 @@ class CalibrationBank:
             ("pitch_var", (), 0.0),
             ("free", (2,), False),
             ("drive", (), False),
+            ("drove", (), False),
             ("on", (3,), False),
             ("limit", (3,), 0.0),
         ):
@@ -177,6 +179,7 @@ class CalibrationBank:
         geo = vehicle.geometry
         self.free[slot] = (not geo.wheel_driven_left, not geo.wheel_driven_right)
         self.drive[slot] = False
+        self.drove[slot] = False
         self.on[slot] = (c.clock_offsets, c.wheel_radius, c.imu_mounting)
         self.limit[slot] = (
             c.clock_offset_converged_ms * 1e-3,
@@ -196,6 +199,7 @@ class CalibrationBank:
     def set_drive(self, slot: int, on: bool) -> None:
         """An operator's calibration drive: while on, every wheel's slip is taken as ~0."""
         self.drive[slot] = on
+        self.drove[slot] |= on
 
     # -- state out and in --------------------------------------------------------------------
     def state(self, slot: int) -> MdsfCalibration:
@@ -385,13 +389,19 @@ class CalibrationBank:
 
     def uncalibrated(self, slots: IntArray) -> BoolArray:
         """Per vehicle and wheel (k, 2): an enabled calibration the wheel's slip depends on
-        (GNSS and wheel clock offsets, its radius, the mounting pitch) is above its limit."""
+        (GNSS and wheel clock offsets, its radius, the mounting pitch) is above its limit.
+
+        A driven wheel's radius and the wheels' clock are learnt only where slip is ~0 (a
+        free-rolling wheel, a calibration drive): on a vehicle that has neither they stay at
+        the configured values and do not hold the flag (nothing would ever clear it)."""
         on, lim = self.on[slots], self.limit[slots]
-        clocks = np.maximum(self.gp[slots, 2, 2], self.wp[slots, 2, 2])
-        bad_clock = on[:, 0] & (clocks > lim[:, 0] ** 2)
+        learns = self.free[slots] | (self.drive[slots] | self.drove[slots])[:, None]
+        gnss_clock = self.gp[slots, 2, 2] > lim[:, 0] ** 2
+        wheel_clock = learns.any(axis=1) & (self.wp[slots, 2, 2] > lim[:, 0] ** 2)
+        bad_clock = on[:, 0] & (gnss_clock | wheel_clock)
         bad_pitch = on[:, 2] & (self.pitch_var[slots] > lim[:, 2] ** 2)
         kappa_var = np.stack([self.wp[slots, 0, 0], self.wp[slots, 1, 1]], axis=1)
-        bad_radius = on[:, 1:2] & (kappa_var > (lim[:, 1:2]) ** 2)
+        bad_radius = on[:, 1:2] & learns & (kappa_var > (lim[:, 1:2]) ** 2)
         return bad_radius | (bad_clock | bad_pitch)[:, None]
 
     def still_pitch_rows(

@@ -104,7 +104,12 @@ def test_driven_wheels_learn_the_radius_only_in_a_calibration_drive() -> None:
     _run_wheels(bank, (1.02, 1.02), 0.0)
     assert bank.state(0).radius_scale_left == 1.0  # slip may be anything: nothing learnt
     assert bank.state(0).radius_scale_left_std == pytest.approx(0.03, rel=0.01)
+    # what it cannot learn does not hold the flag: only the GNSS clock and pitch are left
+    off = dataclasses.replace(bank.state(0), gnss_clock_offset_std_s=1e-3, imu_pitch_std_rad=1e-3)
+    bank.restore(0, off)
+    assert not bank.uncalibrated(_SLOT).any()
     bank.set_drive(0, True)
+    assert bank.uncalibrated(_SLOT).all()  # a calibration drive: the radii are learnt now
     _run_wheels(bank, (1.02, 1.02), 0.0)
     cal = bank.state(0)
     assert abs(cal.radius_scale_left - 1.02) < 3 * cal.radius_scale_left_std < 0.005
