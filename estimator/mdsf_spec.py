@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from estimator.spec import (
     ChartSpec,
+    CommandSpec,
     EstimatorSpec,
     FieldSpec,
     PositionChannel,
@@ -153,5 +154,13 @@ MDSF_SPEC = EstimatorSpec(
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEGRADED",),
+    commands=(
+        CommandSpec(
+            "calibration_drive",
+            "calibration drive",
+            "while on, the wheels are taken to roll without slip (drive on firm ground, nothing "
+            "in tow, gently) and every wheel's rolling radius and clock are learnt",
+        ),
+    ),
     row_dtype=ESTIMATE_DTYPE,
 )

@@ -21,6 +21,8 @@ estimator's field names. A spec says:
     the flag of the rows that inform it; ``mapped`` makes it a layer of the slip map;
   - :class:`WheelValueChannel`: a per-wheel share in percent other than slip (grip used), what
     the 3D view colours a tyre by when the spec has one;
+  - :class:`CommandSpec`: a switch an operator turns on or off for one vehicle (MDSF's
+    calibration drive), sent to the running estimator;
   - ``ok_flag`` / ``degraded_flags``: the row's quality at a glance.
 
 A spec is pure data (no numerics, no I/O) so the server can read every spec without building an
@@ -40,6 +42,7 @@ import numpy as np
 __all__ = [
     "AlertRule",
     "ChartSpec",
+    "CommandSpec",
     "EstimatorSpec",
     "FieldSpec",
     "FlagSpec",
@@ -232,6 +235,17 @@ class WheelValueChannel:
 
 
 @dataclass(frozen=True, slots=True)
+class CommandSpec:
+    """A switch an operator turns on or off for one vehicle while it runs (``PUT
+    /vehicles/{id}/commands/{estimator}/{key}``): the fleet estimator's ``command(vehicle_id,
+    key, on)`` takes it on its own thread, between two steps."""
+
+    key: str
+    label: str
+    description: str
+
+
+@dataclass(frozen=True, slots=True)
 class AlertRule:
     """An alert an estimator's rows raise: a condition on one row, held ``hold_s`` (sensor time).
 
@@ -296,6 +310,8 @@ class EstimatorSpec:
         map layers) and per-wheel shares (tiles, tyre colours).
     alerts : tuple of AlertRule
         Alerts of the estimator's own beyond the slip threshold and degraded flags.
+    commands : tuple of CommandSpec
+        Switches an operator may send the running estimator for one vehicle.
     row_dtype : numpy.dtype, optional
         The estimator's own dtype object for its rows, when it has one: it must equal the
         fields' dtype, and :attr:`dtype` is then that very object, so checking a row array's
@@ -320,6 +336,7 @@ class EstimatorSpec:
     values: tuple[ValueChannel, ...] = ()
     wheel_values: tuple[WheelValueChannel, ...] = ()
     alerts: tuple[AlertRule, ...] = ()
+    commands: tuple[CommandSpec, ...] = ()
     row_dtype: InitVar[np.dtype | None] = None
     _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
     _dtype: np.dtype = field(init=False, repr=False, compare=False)
@@ -426,11 +443,22 @@ class EstimatorSpec:
             self._need_flag(v.valid_flag, f"value channel {v.key}")
         for w in self.wheel_values:
             self._need_field(w.field, f"wheel value channel {w.key}")
-        for keys in ([s.key for s in self.states], [v.key for v in self.values]):
+        for keys in (
+            [s.key for s in self.states],
+            [v.key for v in self.values],
+            [c.key for c in self.commands],
+        ):
             if len(set(keys)) != len(keys):
                 raise SpecError(f"{self.name}: duplicate channel keys {keys}")
 
     # --- reading -----------------------------------------------------------------------------
+    def command(self, key: str) -> CommandSpec:
+        """The command ``key`` (``KeyError`` naming the estimator if it has none)."""
+        for c in self.commands:
+            if c.key == key:
+                return c
+        raise KeyError(f"estimator {self.name!r} has no command {key!r}")
+
     def value(self, key: str) -> ValueChannel:
         """The value channel ``key`` (``KeyError`` naming the estimator if it has none)."""
         for v in self.values:
@@ -565,7 +593,8 @@ class EstimatorSpec:
         }
 
     def _extra_channels_dict(self) -> dict[str, Any]:
-        """``states``, ``values``, ``wheel_values`` and ``alerts`` of :meth:`to_dict`."""
+        """``states``, ``values``, ``wheel_values``, ``alerts`` and ``commands`` of
+        :meth:`to_dict`."""
         return {
             "states": [
                 {
@@ -596,5 +625,9 @@ class EstimatorSpec:
                     "slip": a.slip,
                 }
                 for a in self.alerts
+            ],
+            "commands": [
+                {"key": c.key, "label": c.label, "description": c.description}
+                for c in self.commands
             ],
         }

@@ -209,6 +209,11 @@ class Runtime:
         if self.alert_engine is not None:
             self.alert_engine.set_slip_config(vehicle_id, config.slip)
 
+    def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
+        """API hook: an operator turned an estimator's command on or off for a vehicle."""
+        if self.pipeline is not None:
+            self.pipeline.send_command(vehicle_id, estimator, key, on)
+
     def on_vehicle_deleted(self, vehicle_id: str) -> None:
         """API hook: the store deleted the vehicle; forget it everywhere."""
         self._configs.pop(vehicle_id, None)

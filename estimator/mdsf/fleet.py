@@ -251,6 +251,17 @@ class MdsfFleet:
         slip is taken as ~0 and its rolling radius is learnt; ``KeyError`` if unknown."""
         self.calibration_bank.set_drive(self._slot[vehicle_id], on)
 
+    def calibration_drive_on(self, vehicle_id: str) -> bool:
+        """Whether the vehicle's calibration drive is on; ``KeyError`` if unknown."""
+        return bool(self.calibration_bank.drive[self._slot[vehicle_id]])
+
+    def command(self, vehicle_id: str, key: str, on: bool) -> None:
+        """An operator's switch of :data:`MDSF_SPEC` ``commands`` (``calibration_drive``);
+        ``KeyError`` for an unknown vehicle or command."""
+        if key != "calibration_drive":
+            raise KeyError(f"mdsf has no command {key!r}")
+        self.calibration_drive(vehicle_id, on)
+
     def counters(self, vehicle_id: str) -> dict[str, int]:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,
         degraded ticks, skipped (non-finite or out-of-order) GNSS/IMU/edges/wheel speeds."""

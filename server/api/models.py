@@ -42,6 +42,8 @@ from server.storage.base import Anchor
 
 __all__ = [
     "ESTIMATE_MODELS",
+    "CommandIn",
+    "CommandPublic",
     "EstimatePublic",
     "EstimatorSpecPublic",
     "EstimatorsPublic",
@@ -217,6 +219,23 @@ class AnchorPublic(BaseModel):
     def as_json(cls, anchor: Anchor | None) -> dict[str, float] | None:
         """:meth:`of` as a plain object for a hand-built JSON body; None while there is none."""
         return None if anchor is None else cls.of(anchor).model_dump()
+
+
+class CommandIn(BaseModel):
+    """Turn an estimator's command on or off."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    on: bool = Field(description="true: on; false: off")
+
+
+class CommandPublic(BaseModel):
+    """A command sent to the running estimator of one vehicle."""
+
+    vehicle_id: str
+    estimator: str
+    command: str
+    on: bool
 
 
 class VehiclePublic(BaseModel):
@@ -411,6 +430,14 @@ class AlertRuleSpecPublic(BaseModel):
     slip: str | None = Field(description="the slip channel it watches in place of the threshold")
 
 
+class CommandSpecPublic(BaseModel):
+    """A switch an operator sends the running estimator for one vehicle."""
+
+    key: str
+    label: str
+    description: str
+
+
 class EstimatorSpecPublic(BaseModel):
     """What an estimator takes and gives (``estimator.spec.EstimatorSpec.to_dict()``)."""
 
@@ -432,6 +459,7 @@ class EstimatorSpecPublic(BaseModel):
     values: list[ValueChannelSpecPublic] = []
     wheel_values: list[WheelValueChannelSpecPublic] = []
     alerts: list[AlertRuleSpecPublic] = []
+    commands: list[CommandSpecPublic] = []
 
 
 class EstimatorsPublic(BaseModel):

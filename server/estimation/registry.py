@@ -342,6 +342,21 @@ class EstimatorRegistry:
         """Names ``vehicle_id`` runs, primary first (empty if unknown)."""
         return self._routes.get(vehicle_id, ())
 
+    def command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> bool:
+        """Turn ``estimator``'s command ``key`` (one of its spec's ``commands``) on or off for
+        ``vehicle_id``. False, and the error told like any other estimator error, if the
+        vehicle does not run that estimator or the estimator refused it."""
+        try:
+            if estimator not in self.estimators_of(vehicle_id):
+                raise KeyError(f"{vehicle_id!r} does not run {estimator!r}")
+            take = getattr(self.estimator(estimator), "command", None)
+            if take is None:
+                raise KeyError(f"{estimator!r} takes no commands")
+        except KeyError as exc:
+            self.on_error(vehicle_id, estimator, "command", exc)
+            return False
+        return self._guard(vehicle_id, estimator, "command", take, key, on)
+
     def push(self, vehicle_id: str, measurement: Pushed) -> None:
         """Hand ``measurement`` to every estimator ``vehicle_id`` runs whose spec takes its
         stream (``KeyError`` if the vehicle is unknown)."""

@@ -54,6 +54,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import zenoh
@@ -84,6 +85,19 @@ from server.settings import Settings, UnknownVehiclePolicy
 from server.storage.base import Anchor
 
 __all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
+
+
+@dataclass(frozen=True, slots=True)
+class _Command:
+    """An operator's switch of an estimator's command for one vehicle."""
+
+    estimator: str
+    key: str
+    on: bool
+
+
+#: What a control step carries: a config, an ENU frame, a command or nothing.
+_ControlArg = VehicleConfig | Anchor | _Command | None
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +240,7 @@ class Pipeline:
         self._queued_bytes = ByteBudget(settings.ingest.queue_max_bytes)  # undecoded _Raw
         self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
         # (op, vehicle_id, config | anchor | None, notify), op "add", "anchor" or "remove"
-        self._control: deque[tuple[str, str, VehicleConfig | Anchor | None, bool]] = deque()
+        self._control: deque[tuple[str, str, _ControlArg, bool]] = deque()
         # each vehicle's ENU frame origin, kept across re-registrations (a new config starts a
         # fresh estimator, which would otherwise anchor anew): restored ones and learnt ones
         self._frames: dict[str, Anchor] = {}
@@ -420,6 +434,11 @@ class Pipeline:
         """Forget a vehicle: estimators, reorder buffer, counters and its ENU frame."""
         self._control.append(("remove", vehicle_id, None, False))
 
+    def send_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
+        """Turn an estimator's command on or off for a vehicle (applied on the pipeline
+        thread, between two steps; a failure is counted as an estimator error)."""
+        self._control.append(("command", vehicle_id, _Command(estimator, key, on), False))
+
     def restore_anchor(self, vehicle_id: str, anchor: Anchor) -> None:
         """Go on in the ENU frame the vehicle's stored estimates were given in (its stored
         anchor), from now on and after any re-registration (applied on the pipeline thread,
@@ -601,11 +620,11 @@ class Pipeline:
                 self._stats["pipeline_errors"] += 1
                 log.exception("control step %s failed for %s", op, vid)
 
-    def _control_step(
-        self, op: str, vid: str, arg: VehicleConfig | Anchor | None, notify: bool
-    ) -> None:
+    def _control_step(self, op: str, vid: str, arg: _ControlArg, notify: bool) -> None:
         if op == "add" and isinstance(arg, VehicleConfig):
             self._add(vid, arg, notify=notify)
+        elif op == "command" and isinstance(arg, _Command):
+            self._registry.command(vid, arg.estimator, arg.key, arg.on)
         elif op == "anchor" and isinstance(arg, tuple):
             self._frames[vid] = arg
             if vid in self._configs:

@@ -369,6 +369,10 @@ class WorkerPool:
         self._configs.pop(vehicle_id, None)
         self._control(vehicle_id, ("remove", vehicle_id))
 
+    def send_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
+        """Turn an estimator's command on or off for a vehicle (in the worker that owns it)."""
+        self._control(vehicle_id, ("command", vehicle_id, estimator, key, on))
+
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
         """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`)."""
         if self._workers:
@@ -560,6 +564,8 @@ def _apply(pipeline: Any, message: tuple[Any, ...]) -> None:
         pipeline.restore_counters(message[1], message[2])
     elif message[0] == "anchor":
         pipeline.restore_anchor(message[1], message[2])
+    elif message[0] == "command":
+        pipeline.send_command(*message[1:])
 
 
 def _worker_main(

@@ -16,6 +16,7 @@ import numpy as np
 from fastapi import APIRouter, Body, Depends, Path, Response, status
 from pydantic import ValidationError
 
+from estimator.catalog import SPECS
 from estimator.config import (
     ConfigError,
     VehicleConfig,
@@ -34,9 +35,11 @@ from server.api.deps import (
     require_role,
     vehicle_estimators,
 )
-from server.api.errors import InvalidConfig, NotFound, error_responses
+from server.api.errors import Conflict, InvalidConfig, NotFound, error_responses
 from server.api.models import (
     AnchorPublic,
+    CommandIn,
+    CommandPublic,
     EstimatePublic,
     VehicleConfigAdapter,
     VehicleConfigIn,
@@ -185,6 +188,46 @@ def delete_vehicle(vehicle_id: str, writer: WriterDep, runtime: RuntimeDep) -> R
         raise NotFound(f"unknown vehicle {vehicle_id!r}")
     call_hook(runtime, "on_vehicle_deleted", vehicle_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.put(
+    "/{vehicle_id}/commands/{estimator}/{command}",
+    response_model=CommandPublic,
+    responses=error_responses(400, 401, 403, 404, 409, 413, 422),
+    dependencies=[Depends(require_role("operator"))],
+    summary="Turn an estimator's command on or off for a vehicle (operator)",
+    description=(
+        "The commands an estimator takes are in its spec (`GET /estimators`, `commands`), e.g. "
+        "MDSF's `calibration_drive`: while on, the wheels are taken to roll without slip and "
+        "their rolling radii are learnt. The running estimator takes it between two steps; "
+        "404 for an estimator or command that does not exist, 409 when the vehicle does not "
+        "run that estimator."
+    ),
+)
+def put_command(
+    vehicle: VehicleDep,
+    estimator: str,
+    command: str,
+    body: Annotated[CommandIn, Body()],
+    runtime: RuntimeDep,
+) -> CommandPublic:
+    spec = SPECS.get(estimator)
+    if spec is None:
+        raise NotFound(f"unknown estimator {estimator!r}; known: {', '.join(sorted(SPECS))}")
+    try:
+        spec.command(command)
+    except KeyError:
+        known = ", ".join(c.key for c in spec.commands) or "none"
+        raise NotFound(
+            f"estimator {estimator!r} has no command {command!r} (its: {known})"
+        ) from None
+    runs = vehicle_estimators(vehicle)
+    if estimator not in runs:
+        raise Conflict(f"vehicle {vehicle.vehicle_id!r} runs {', '.join(runs)}, not {estimator!r}")
+    call_hook(runtime, "on_estimator_command", vehicle.vehicle_id, estimator, command, body.on)
+    return CommandPublic(
+        vehicle_id=vehicle.vehicle_id, estimator=estimator, command=command, on=body.on
+    )
 
 
 @router.get(

@@ -49,6 +49,7 @@ class FakeRuntime:
         self.zenoh_up = True
         self.config_calls: list[tuple[str, VehicleConfig]] = []
         self.deleted: list[str] = []
+        self.commands: list[tuple[str, str, str, bool]] = []
         self.opened = 0
         self.closed = 0
         self.metrics_by_vehicle: list[bool] = []  # what each /metrics call asked for
@@ -74,6 +75,9 @@ class FakeRuntime:
 
     def health(self) -> Mapping[str, bool]:
         return {"zenoh": self.zenoh_up, "storage": self.store.ping()}
+
+    def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
+        self.commands.append((vehicle_id, estimator, key, on))
 
     def metrics(self, by_vehicle: bool = True) -> list[MetricFamily]:
         self.metrics_by_vehicle.append(by_vehicle)

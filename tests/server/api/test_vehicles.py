@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
@@ -26,7 +27,7 @@ from server.protocol.keys import is_valid_vehicle_id
 from server.storage.base import Store
 
 from ._data import T0, hand_series
-from .conftest import ApiClient, FakeRuntime, make_settings, running
+from .conftest import ApiClient, FakeRuntime, error_of, make_settings, running
 
 V = "/api/v1/vehicles"
 
@@ -138,6 +139,35 @@ def test_runtime_may_refuse_config(client: ApiClient, runtime: FakeRuntime) -> N
     assert r.status_code == 422
     assert "nope" in r.json()["reason"]
     assert client.get(f"{V}/t1").status_code == 404
+
+
+def test_an_estimator_command_goes_to_the_runtime_or_is_refused_saying_why(
+    client: ApiClient, runtime: FakeRuntime
+) -> None:
+    assert client.put(f"{V}/t1", json={}).status_code == 201  # runs mdsf
+    assert client.put(f"{V}/c1", json={"kind": "tracked"}).status_code == 201
+    r = client.put(f"{V}/t1/commands/mdsf/calibration_drive", json={"on": True})
+    assert r.status_code == 200, r.text
+    assert r.json() == {
+        "vehicle_id": "t1",
+        "estimator": "mdsf",
+        "command": "calibration_drive",
+        "on": True,
+    }
+    assert runtime.commands == [("t1", "mdsf", "calibration_drive", True)]
+
+    def put(path: str, body: object) -> httpx.Response:
+        return client.put(f"{V}/{path}", json=body)
+
+    _, reason = error_of(put("c1/commands/mdsf/calibration_drive", {"on": True}), 409)
+    assert "runs tracked, not 'mdsf'" in reason
+    _, reason = error_of(put("t1/commands/mdsf/nope", {"on": True}), 404)
+    assert "calibration_drive" in reason  # what it has
+    error_of(put("t1/commands/nope/x", {"on": True}), 404)
+    error_of(put("nobody/commands/mdsf/calibration_drive", {"on": True}), 404)
+    error_of(put("t1/commands/mdsf/calibration_drive", {"on": "x"}), 422)
+    error_of(put("t1/commands/mdsf/calibration_drive", {}), 422)
+    assert len(runtime.commands) == 1  # none of the refused ones reached the estimator
 
 
 def test_delete(client: ApiClient, runtime: FakeRuntime, store: Store) -> None:

@@ -17,6 +17,7 @@ from estimator.config import (
     WheeledRearDriveConfig,
 )
 from estimator.geo import enu_from_geodetic
+from estimator.mdsf import MdsfFleet
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.reference_speed_spec import REFERENCE_SPEED_SPEC
 from estimator.sim import simulate
@@ -339,6 +340,33 @@ def test_final_snapshots_include_vehicles_seen_since_the_last_refresh(
 def _drive(pipe: Pipeline, vid: str, seconds: range) -> None:
     """GNSS and IMU packets of ``vid`` in time order, one of each per 100 ms."""
     pipe.submit([p for i in seconds for p in (gnss(vid, i, 100 * i), imu(vid, i, 100 * i, 100))])
+
+
+def test_an_estimator_command_reaches_the_running_estimator_between_steps() -> None:
+    """An operator's calibration drive turns on in the vehicle's MDSF fleet on the pipeline
+    thread; a command for an estimator the vehicle does not run is an estimator error of that
+    vehicle, and the pipeline goes on."""
+    settings = Settings(ingest=IngestSettings.model_validate({"process_interval_ms": 5}))
+    registry = EstimatorRegistry()
+    pipe = Pipeline(settings, None, registry, [CapturingSink()], wall_clock_ns=lambda: T0)
+    pipe.register_vehicle("a", WheeledRearDriveConfig())
+    pipe.register_vehicle("b", WheeledRearDriveConfig(estimators=("reference_speed",)))
+    pipe.start()
+    try:
+        wait_for(lambda: registry.has_vehicle("a") and registry.has_vehicle("b"))
+        mdsf = registry.estimator("mdsf")  # built by the pipeline thread's registration
+        assert isinstance(mdsf, MdsfFleet) and "a" in mdsf.vehicle_ids()
+        assert not mdsf.calibration_drive_on("a")
+        pipe.send_command("a", "mdsf", "calibration_drive", True)
+        wait_for(lambda: mdsf.calibration_drive_on("a"))
+        pipe.send_command("b", "mdsf", "calibration_drive", True)
+        wait_for(lambda: pipe.counters_snapshot().get("b", {}).get("estimator_errors") == 1)
+        pipe.send_command("a", "mdsf", "calibration_drive", False)
+        wait_for(lambda: not mdsf.calibration_drive_on("a"))
+        _drive(pipe, "a", range(12))
+        wait_for(lambda: pipe.counters_snapshot().get("a", {}).get("accepted") == 24)
+    finally:
+        pipe.stop()
 
 
 def test_a_restored_anchor_keeps_the_frame_across_runs_and_reconfigurations() -> None:
