@@ -61,6 +61,13 @@ def _select(inp: TickInputs, rows: IntArray) -> TickInputs:
     return TickInputs(**{f.name: getattr(inp, f.name)[rows] for f in dataclasses.fields(inp)})
 
 
+def _params_of(p: VehicleParams, vehicles: IntArray) -> VehicleParams:
+    """The constants of ``vehicles`` (indices into ``p``'s, in that order)."""
+    if vehicles.size == p.gauge_m.size:
+        return p
+    return VehicleParams(**{f.name: getattr(p, f.name)[vehicles] for f in dataclasses.fields(p)})
+
+
 def _stack_filters(filters: list[Filter]) -> Filter:
     return Filter(
         np.concatenate([f.x for f in filters]),
@@ -246,23 +253,25 @@ class TrackedFleet(_Base):
         if not work:
             return []
         inp, starts = take_fleet([w[1].inputs for w in work], [w[2] for w in work])
+        params = VehicleParams.stack([w[1].inputs.params for w in work])
         sizes = np.diff(starts)
-        out = [TRACKED_SPEC.empty_rows(int(m)) for m in sizes]
+        out = TRACKED_SPEC.empty_rows(int(starts[-1]))
         for r in range(int(sizes.max())):
             part = np.flatnonzero(sizes > r)
-            self._round(
-                [work[k][1] for k in part],
-                _select(inp, starts[part] + r),
-                r,
-                [out[k] for k in part],
-            )
-        for (_, slot, _), rows in zip(work, out, strict=True):
-            _geodetic(slot, rows)
-        return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
+            rows = starts[part] + r
+            slots = [work[k][1] for k in part]
+            out[rows] = self._round(slots, _select(inp, rows), _params_of(params, part))
+        result = []
+        for (vid, slot, _), a, b in zip(
+            work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
+        ):
+            _geodetic(slot, out[a:b])
+            result.append((vid, out[a:b]))
+        return result
 
-    def _round(self, slots: list[_Slot], inp: TickInputs, r: int, out: list[np.ndarray]) -> None:
+    def _round(self, slots: list[_Slot], inp: TickInputs, p: VehicleParams) -> np.ndarray:
+        """One tick of each of ``slots`` (their filters stepped); its rows."""
         f = _stack_filters([s.filter for s in slots])
-        p = VehicleParams.stack([s.inputs.params for s in slots])
         got = tick_step(f, inp, p, self.config)
         rows = _rows(f, got, inp, self.config)
         for i, slot in enumerate(slots):
@@ -274,7 +283,7 @@ class TrackedFleet(_Base):
                 f.gated_s[i : i + 1],
             )
             _count(slot, got, i)
-            out[i][r] = rows[i]
+        return rows
 
 
 class TrackedEstimator(_Base):
