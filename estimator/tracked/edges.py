@@ -18,7 +18,14 @@ import numpy as np
 
 from estimator._arrays import FloatArray, IntArray
 
-__all__ = ["OVERDUE", "EdgeBuffer", "edge_speed", "span_speed"]
+__all__ = [
+    "OVERDUE",
+    "EdgeBuffer",
+    "edge_speed",
+    "edge_speed_at",
+    "span_speed",
+    "span_speed_at",
+]
 
 OVERDUE = 1.25
 """An edge this many periods late bounds the speed by ``OVERDUE·pitch/(t − last)``."""
@@ -35,14 +42,35 @@ def edge_speed(
     """Speed (m/s) and the centre of its span (ns, as float) at each tick; shapes ``(m,)``."""
     s = stamps_ns
     hi = np.searchsorted(s, ticks_ns, side="right")
-    lo = np.maximum(np.searchsorted(s, ticks_ns - window_ns, side="right"), hi - max_edges)
+    lo = np.searchsorted(s, ticks_ns - window_ns, side="right")
+    return edge_speed_at(
+        s, np.zeros(1, dtype=np.int64), hi, lo, ticks_ns, pitch_m, max_edges, hold_ns
+    )
+
+
+def edge_speed_at(
+    s: IntArray,
+    base: IntArray,
+    hi: IntArray,
+    lo_window: IntArray,
+    ticks_ns: IntArray,
+    pitch_m: float | FloatArray,
+    max_edges: int,
+    hold_ns: int,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`edge_speed` from its searches: ``hi`` and ``lo_window`` index the ticks' own
+    stamps (``s[base:]``, ``base`` one per tick or one for all; many vehicles' stamps end to
+    end); ``pitch_m`` a float or one per tick."""
+    if s.size == 0:
+        return np.zeros(ticks_ns.size), ticks_ns.astype(np.float64)
+    lo = np.maximum(lo_window, hi - max_edges)
     short = (hi - lo) < 2
     lo = np.where(short, hi - 2, lo)
     ok = lo >= 0
     lo_c, hi_c = np.maximum(lo, 0), np.maximum(hi - 1, 0)
-    if s.size == 0:
-        return np.zeros(ticks_ns.size), ticks_ns.astype(np.float64)
-    first, last = s[lo_c].astype(np.float64), s[hi_c].astype(np.float64)
+    top = s.size - 1  # an empty vehicle's reads land elsewhere and are not used (ok False)
+    first = s[np.minimum(base + lo_c, top)].astype(np.float64)
+    last = s[np.minimum(base + hi_c, top)].astype(np.float64)
     span = last - first
     n = (hi - lo - 1).astype(np.float64)
     tick = ticks_ns.astype(np.float64)
@@ -68,11 +96,20 @@ def span_speed(
     NaN where fewer than two edges fall in it; shapes ``(m,)``."""
     lo = np.searchsorted(stamps_ns, start_ns, side="left")
     hi = np.searchsorted(stamps_ns, end_ns, side="right")
+    return span_speed_at(stamps_ns, np.zeros(1, dtype=np.int64), lo, hi, pitch_m)
+
+
+def span_speed_at(
+    s: IntArray, base: IntArray, lo: IntArray, hi: IntArray, pitch_m: float | FloatArray
+) -> FloatArray:
+    """:func:`span_speed` from its searches (``lo``, ``hi`` index ``s[base:]``, as in
+    :func:`edge_speed_at`)."""
     ok = hi - lo >= 2
-    if stamps_ns.size == 0:
-        return np.full(start_ns.shape, np.nan)
-    first = stamps_ns[np.minimum(lo, stamps_ns.size - 1)].astype(np.float64)
-    last = stamps_ns[np.maximum(hi - 1, 0)].astype(np.float64)
+    if s.size == 0:
+        return np.full(lo.shape, np.nan)
+    top = s.size - 1
+    first = s[np.minimum(base + lo, top)].astype(np.float64)
+    last = s[np.maximum(base + hi - 1, 0)].astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         speed = (hi - lo - 1) * pitch_m * 1e9 / (last - first)
     return np.where(ok & (last > first), speed, np.nan)
@@ -103,6 +140,10 @@ class EdgeBuffer:
 
     def prune(self, before_ns: int) -> None:
         """Forget edges older than ``before_ns`` (two at least are kept)."""
-        cut = min(int(np.searchsorted(self.stamps, before_ns)), max(self.stamps.size - 2, 0))
+        self.prune_at(int(np.searchsorted(self.stamps, before_ns)))
+
+    def prune_at(self, older: int) -> None:
+        """Forget the ``older`` first edges (two at least are kept)."""
+        cut = min(older, max(self.stamps.size - 2, 0))
         if cut:
             self.stamps = self.stamps[cut:]

@@ -16,6 +16,7 @@ import numpy as np
 from estimator._arrays import FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import TrackedConfig, VehicleConfig, expect_kind
+from estimator.tracked.fleet_inputs import take_fleet
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.settings import TrackedEstimatorConfig
@@ -55,14 +56,16 @@ class _Slot:
             self.inputs.push_edges(m)
 
 
-def _stack_inputs(parts: list[tuple[TickInputs, int]]) -> TickInputs:
-    """Tick ``r`` of each vehicle's inputs side by side."""
-    return TickInputs(
-        **{
-            f.name: np.stack([getattr(inp, f.name)[r] for inp, r in parts])
-            for f in dataclasses.fields(TickInputs)
-        }
-    )
+def _select(inp: TickInputs, rows: IntArray) -> TickInputs:
+    """The ``rows`` of ``inp``, in that order."""
+    return TickInputs(**{f.name: getattr(inp, f.name)[rows] for f in dataclasses.fields(inp)})
+
+
+def _params_of(p: VehicleParams, vehicles: IntArray) -> VehicleParams:
+    """The constants of ``vehicles`` (indices into ``p``'s, in that order)."""
+    if vehicles.size == p.gauge_m.size:
+        return p
+    return VehicleParams(**{f.name: getattr(p, f.name)[vehicles] for f in dataclasses.fields(p)})
 
 
 def _stack_filters(filters: list[Filter]) -> Filter:
@@ -236,33 +239,39 @@ class TrackedFleet(_Base):
     """Every vehicle's tracked estimator behind one batched step (a ``FleetEstimator``)."""
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
-        """Emit every due tick ``<= until_ns[vehicle_id]``; the r-th due tick of every vehicle
-        is stepped in one batched call."""
-        work: list[tuple[str, _Slot, TickInputs]] = []
+        """Emit every due tick ``<= until_ns[vehicle_id]``; the inputs of all are taken at
+        once (:func:`take_fleet`) and the r-th due tick of every vehicle is stepped in one
+        batched call."""
+        work: list[tuple[str, _Slot, IntArray]] = []
         for vid, until in until_ns.items():
             slot = self._slots.get(vid)
             if slot is None:
                 continue
             ticks = slot.inputs.due(int(until))
             if ticks.size:
-                work.append((vid, slot, slot.inputs.take(ticks)))
+                work.append((vid, slot, ticks))
         if not work:
             return []
-        out = [TRACKED_SPEC.empty_rows(w[2].ticks_ns.size) for w in work]
-        for r in range(max(w[2].ticks_ns.size for w in work)):
-            part = [k for k, w in enumerate(work) if w[2].ticks_ns.size > r]
-            self._round([work[k] for k in part], r, [out[k] for k in part])
-        for (_, slot, _), rows in zip(work, out, strict=True):
-            _geodetic(slot, rows)
-        return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
+        inp, starts = take_fleet([w[1].inputs for w in work], [w[2] for w in work])
+        params = VehicleParams.stack([w[1].inputs.params for w in work])
+        sizes = np.diff(starts)
+        out = TRACKED_SPEC.empty_rows(int(starts[-1]))
+        for r in range(int(sizes.max())):
+            part = np.flatnonzero(sizes > r)
+            rows = starts[part] + r
+            slots = [work[k][1] for k in part]
+            out[rows] = self._round(slots, _select(inp, rows), _params_of(params, part))
+        result = []
+        for (vid, slot, _), a, b in zip(
+            work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
+        ):
+            _geodetic(slot, out[a:b])
+            result.append((vid, out[a:b]))
+        return result
 
-    def _round(
-        self, part: list[tuple[str, _Slot, TickInputs]], r: int, out: list[np.ndarray]
-    ) -> None:
-        slots = [w[1] for w in part]
+    def _round(self, slots: list[_Slot], inp: TickInputs, p: VehicleParams) -> np.ndarray:
+        """One tick of each of ``slots`` (their filters stepped); its rows."""
         f = _stack_filters([s.filter for s in slots])
-        inp = _stack_inputs([(w[2], r) for w in part])
-        p = VehicleParams.stack([s.inputs.params for s in slots])
         got = tick_step(f, inp, p, self.config)
         rows = _rows(f, got, inp, self.config)
         for i, slot in enumerate(slots):
@@ -274,7 +283,7 @@ class TrackedFleet(_Base):
                 f.gated_s[i : i + 1],
             )
             _count(slot, got, i)
-            out[i][r] = rows[i]
+        return rows
 
 
 class TrackedEstimator(_Base):
@@ -292,7 +301,7 @@ class TrackedEstimator(_Base):
             inputs = slot.inputs.take(ticks)
             rows = TRACKED_SPEC.empty_rows(ticks.size)
             for r in range(ticks.size):
-                one = _stack_inputs([(inputs, r)])
+                one = _select(inputs, np.array([r]))
                 got = tick_step(slot.filter, one, slot.inputs.params, self.config)
                 rows[r] = _rows(slot.filter, got, one, self.config)[0]
                 _count(slot, got, 0)

@@ -20,7 +20,19 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges
 
-__all__ = ["TickInputs", "VehicleInputs"]
+__all__ = [
+    "KEEP_NS",
+    "Reads",
+    "TickInputs",
+    "VehicleInputs",
+    "at_tick",
+    "derive",
+    "gear_span",
+    "sprocket_missing",
+    "starting_at",
+    "steady_run",
+    "tick_inputs",
+]
 
 _FORWARD, _YAW = 1, 2
 
@@ -120,53 +132,38 @@ class VehicleInputs:
 
     def take(self, ticks: IntArray) -> TickInputs:
         """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs."""
-        accel, gyro = self._imu_means(ticks)
-        yaw_accel = self._yaw_accel(gyro)
-        cfg = self.cfg
-        odo, odo_c = self._odometer_speed(ticks)
-        prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            odo_accel = np.where(odo_c > prev_c, (odo - prev) / ((odo_c - prev_c) * 1e-9), 0.0)
-        spr, spr_c = self._sprocket_speeds(ticks)
-        before, before_c = self._sprocket_speeds(ticks - self.tick_ns)
-        gear = self._gear_ratio(spr, spr_c, ticks)
-        tick_f = ticks.astype(np.float64)
-        sprocket = self._at_tick(spr, spr_c, tick_f, odo, odo_accel)
-        gear_before = self._gear_ratio(before, before_c, ticks - self.tick_ns)
-        sprocket_before = self._at_tick(before, before_c, tick_f - self.tick_ns, prev, odo_accel)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            own = (spr - before) / ((spr_c - before_c) * 1e-9)
-            geared = odo_accel[:, None] * np.where(odo[:, None] > 0.3, spr / odo[:, None], 0.0)
-        settling = ~(np.abs(np.nan_to_num(own - geared)) <= cfg.lever_accel_mps2)
-        settling |= self._starting(ticks)
-        unsteady = settling.any(axis=1) | ~(np.abs(accel) <= cfg.learn_accel_max_mps2)
-        unsteady |= ~(np.abs(odo_accel) <= cfg.learn_accel_max_mps2)
-        steady_s = self._steady_for(unsteady)
-        missing = self._sprocket_missing(ticks, odo)
-        self.counts["sprocket_missing_ticks"] += int(missing.sum())
-        pos, vel, vstd, age = self._gnss_at(ticks)
+        reads = self._reads(ticks)
+        odo_accel, settling, unsteady = derive(reads, self.cfg)
+        steady_s = steady_run(self.steady_s, unsteady, self.tick_ns)
+        self.steady_s = float(steady_s[-1])
+        self.counts["sprocket_missing_ticks"] += int(reads.missing.sum())
         self.next_ns = int(ticks[-1]) + self.tick_ns
-        keep_from = int(ticks[-1]) - 3_000_000_000
+        keep_from = int(ticks[-1]) - KEEP_NS
         for buf in (self.odometer, *self.sprockets):
             buf.prune(keep_from)
-        return TickInputs(
+        return tick_inputs(reads, odo_accel, settling, steady_s, self.tick_ns)
+
+    def _reads(self, ticks: IntArray) -> Reads:
+        """What the buffers give for ``ticks`` (IMU and fixes consumed)."""
+        accel, gyro = self._imu_means(ticks)
+        odo, odo_c = self._odometer_speed(ticks)
+        prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
+        spr, spr_c = self._sprocket_speeds(ticks)
+        before, before_c = self._sprocket_speeds(ticks - self.tick_ns)
+        return Reads(
             ticks_ns=ticks,
-            accel_mps2=accel,
-            gyro_radps=gyro,
-            yaw_accel_radps2=yaw_accel,
-            odometer_mps=odo,
-            odometer_lag_s=(tick_f - odo_c) * 1e-9,
-            sprocket_pair_mps=sprocket,
-            sprocket_missing=missing,
-            sprocket_settling_pair=settling,
-            gear_ratio=gear,
-            sprocket_before_pair_mps=sprocket_before,
-            gear_ratio_before=gear_before,
-            steady_s=steady_s,
-            gnss_pos_pair_m=pos,
-            gnss_vel_pair_mps=vel,
-            gnss_vel_std_mps=vstd,
-            gnss_age_s=age,
+            accel=accel,
+            gyro=gyro,
+            yaw_accel=self._yaw_accel(gyro),
+            odo=(odo, odo_c),
+            prev=(prev, prev_c),
+            spr=(spr, spr_c),
+            before=(before, before_c),
+            gear=self._gear_ratio(spr, spr_c, ticks),
+            gear_before=self._gear_ratio(before, before_c, ticks - self.tick_ns),
+            starting=self._starting(ticks),
+            missing=self._sprocket_missing(ticks, odo),
+            gnss=self._gnss_at(ticks),
         )
 
     def _imu_means(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -184,15 +181,6 @@ class VehicleInputs:
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
         return out[0], out[1]
-
-    def _steady_for(self, unsteady: BoolArray) -> FloatArray:
-        """Time (s) since the last unsteady tick, carried from one call to the next."""
-        out = np.empty(unsteady.size)
-        tick_s = self.tick_ns * 1e-9
-        for i, bad in enumerate(unsteady.tolist()):
-            self.steady_s = 0.0 if bad else self.steady_s + tick_s
-            out[i] = self.steady_s
-        return out
 
     def _yaw_accel(self, gyro: FloatArray) -> FloatArray:
         """``(ω_t − ω_{t−1})/tick`` per tick from the ticks' mean rates (0 where unknown)."""
@@ -217,18 +205,11 @@ class VehicleInputs:
 
     def _starting(self, ticks: IntArray) -> BoolArray:
         """Sprockets, ``(m, 2)``, whose first edges after a second's silence came within the
-        last 0.6 s: the track starts (a released brake or lever), faster than a window reads."""
+        last 0.6 s (:func:`starting_at`)."""
         out = np.zeros((ticks.size, 2), dtype=bool)
         for side, buf in enumerate(self.sprockets):
-            s = buf.stamps
-            if s.size == 0:
-                continue
-            hi = np.searchsorted(s, ticks, side="right")
-            stamps = np.concatenate([[np.iinfo(np.int64).min // 2], s])
-            recent = ticks - stamps[hi] < 600_000_000
-            for back in (1, 2):  # the last edge or the one before it ended a silence
-                gap = stamps[np.maximum(hi - back + 1, 0)] - stamps[np.maximum(hi - back, 0)]
-                out[:, side] |= recent & (hi >= back) & (gap > 1_000_000_000)
+            hi = np.searchsorted(buf.stamps, ticks, side="right")
+            out[:, side] = starting_at(buf.stamps, np.zeros(1, dtype=np.int64), hi, ticks)
         return out
 
     def _odometer_speed(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -241,42 +222,19 @@ class VehicleInputs:
             500_000_000,
         )
 
-    @staticmethod
-    def _at_tick(
-        speed: FloatArray,
-        centre: FloatArray,
-        tick: FloatArray,
-        odo: FloatArray,
-        odo_accel: FloatArray,
-    ) -> FloatArray:
-        """Sprocket speeds ``(m, 2)`` at the tick: ``v + a_g·(v/v_g)·(tick − centre)``."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(odo[:, None] > 0.3, speed / odo[:, None], 0.0)
-        lag_s = (tick[:, None] - centre) * 1e-9
-        return np.maximum(speed + odo_accel[:, None] * ratio * lag_s, 0.0)
-
     def _gear_ratio(self, speed: FloatArray, centre: FloatArray, ticks: IntArray) -> FloatArray:
-        """Faster sprocket over the odometer, both over the faster sprocket's window (``(m,)``):
-        the odometer's speed taken over ``centre ± (tick − centre)``."""
-        fast = np.argmax(speed, axis=1)
-        rows = np.arange(ticks.size)
-        c = centre[rows, fast]
-        half = np.maximum(ticks.astype(np.float64) - c, 0.5 * self.tick_ns)
-        odo = span_speed(
-            self.odometer.stamps, c - half, c + half, float(self.params.odometer_pitch_m[0])
-        )
+        """Faster sprocket over the odometer (:func:`gear_span`)."""
+        fast, start, end = gear_span(speed, centre, ticks, self.tick_ns)
+        odo = span_speed(self.odometer.stamps, start, end, float(self.params.odometer_pitch_m[0]))
         with np.errstate(divide="ignore", invalid="ignore"):
-            return speed[rows, fast] / odo
+            return fast / odo
 
     def _sprocket_missing(self, ticks: IntArray, odometer_mps: FloatArray) -> BoolArray:
         """A sprocket with no edge for ``sprocket_missing_s`` while the gearbox turns."""
-        span = round(self.cfg.sprocket_missing_s * 1e9)
-        moving = odometer_mps > 0.5
-        out = np.zeros(ticks.size, dtype=bool)
-        for buf in self.sprockets:
-            last = buf.last_edge_ns
-            out |= moving & (last is None or (ticks - (last or 0)) > span)
-        return out
+        lasts = [buf.last_edge_ns for buf in self.sprockets]
+        last_ns = np.array([[x or 0 for x in lasts]], dtype=np.int64)
+        known = np.array([[x is not None for x in lasts]])
+        return sprocket_missing(ticks, odometer_mps, last_ns, known, self.cfg)
 
     def _gnss_at(self, ticks: IntArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The last fix in each tick ``(t − tick, t]`` (NaN where none) and its age at the tick
@@ -294,3 +252,143 @@ class VehicleInputs:
                     age[j] = (int(ticks[j]) - g[0]) * 1e-9
             self.gnss = [g for g, j in zip(self.gnss, k.tolist(), strict=True) if j >= ticks.size]
         return pos, vel, vstd, age
+
+
+KEEP_NS = 3_000_000_000
+"""Edges older than this before a vehicle's last tick are dropped (no later window reaches)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Reads:
+    """What the buffers give for ``m`` ticks, before the inputs are derived from it: IMU
+    means ``(m,)``; ``odo``/``prev`` the odometer's speed and window centre at the tick and
+    the tick before ``(m,)``; ``spr``/``before`` the sprockets' ``(m, 2)``; gear ratios at
+    both; sprockets starting ``(m, 2)``; a sprocket missing ``(m,)``; the tick's fix
+    (:meth:`VehicleInputs._gnss_at`)."""
+
+    ticks_ns: IntArray
+    accel: FloatArray
+    gyro: FloatArray
+    yaw_accel: FloatArray
+    odo: tuple[FloatArray, FloatArray]
+    prev: tuple[FloatArray, FloatArray]
+    spr: tuple[FloatArray, FloatArray]
+    before: tuple[FloatArray, FloatArray]
+    gear: FloatArray
+    gear_before: FloatArray
+    starting: BoolArray
+    missing: BoolArray
+    gnss: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+
+
+def derive(r: Reads, cfg: TrackedEstimatorConfig) -> tuple[FloatArray, BoolArray, BoolArray]:
+    """``(odometer acceleration (m,), sprockets settling (m, 2), unsteady (m,))``: a sprocket
+    settles while its own acceleration differs from the gearbox's (scaled by its ratio) by
+    more than ``lever_accel_mps2``, or while it starts; a tick is unsteady while a sprocket
+    settles or the IMU or the odometer accelerates."""
+    (odo, odo_c), (prev, prev_c) = r.odo, r.prev
+    (spr, spr_c), (before, before_c) = r.spr, r.before
+    with np.errstate(divide="ignore", invalid="ignore"):
+        odo_accel = np.where(odo_c > prev_c, (odo - prev) / ((odo_c - prev_c) * 1e-9), 0.0)
+        own = (spr - before) / ((spr_c - before_c) * 1e-9)
+        geared = odo_accel[:, None] * np.where(odo[:, None] > 0.3, spr / odo[:, None], 0.0)
+    settling = ~(np.abs(np.nan_to_num(own - geared)) <= cfg.lever_accel_mps2)
+    settling |= r.starting
+    unsteady = settling.any(axis=1) | ~(np.abs(r.accel) <= cfg.learn_accel_max_mps2)
+    unsteady |= ~(np.abs(odo_accel) <= cfg.learn_accel_max_mps2)
+    return odo_accel, settling, unsteady
+
+
+def tick_inputs(
+    r: Reads, odo_accel: FloatArray, settling: BoolArray, steady_s: FloatArray, tick_ns: int
+) -> TickInputs:
+    """The filter's inputs from the reads and what :func:`derive` gave."""
+    tick_f = r.ticks_ns.astype(np.float64)
+    (odo, odo_c), (prev, _) = r.odo, r.prev
+    pos, vel, vstd, age = r.gnss
+    return TickInputs(
+        ticks_ns=r.ticks_ns,
+        accel_mps2=r.accel,
+        gyro_radps=r.gyro,
+        yaw_accel_radps2=r.yaw_accel,
+        odometer_mps=odo,
+        odometer_lag_s=(tick_f - odo_c) * 1e-9,
+        sprocket_pair_mps=at_tick(*r.spr, tick_f, odo, odo_accel),
+        sprocket_missing=r.missing,
+        sprocket_settling_pair=settling,
+        gear_ratio=r.gear,
+        sprocket_before_pair_mps=at_tick(*r.before, tick_f - tick_ns, prev, odo_accel),
+        gear_ratio_before=r.gear_before,
+        steady_s=steady_s,
+        gnss_pos_pair_m=pos,
+        gnss_vel_pair_mps=vel,
+        gnss_vel_std_mps=vstd,
+        gnss_age_s=age,
+    )
+
+
+def steady_run(start_s: float, unsteady: BoolArray, tick_ns: int) -> FloatArray:
+    """Time (s) since the last unsteady tick, from ``start_s`` before the first."""
+    out = np.empty(unsteady.size)
+    tick_s = tick_ns * 1e-9
+    steady = start_s
+    for i, bad in enumerate(unsteady.tolist()):
+        steady = 0.0 if bad else steady + tick_s
+        out[i] = steady
+    return out
+
+
+def at_tick(
+    speed: FloatArray, centre: FloatArray, tick: FloatArray, odo: FloatArray, odo_accel: FloatArray
+) -> FloatArray:
+    """Sprocket speeds ``(m, 2)`` at the tick: ``v + a_g·(v/v_g)·(tick − centre)``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(odo[:, None] > 0.3, speed / odo[:, None], 0.0)
+    lag_s = (tick[:, None] - centre) * 1e-9
+    return np.maximum(speed + odo_accel[:, None] * ratio * lag_s, 0.0)
+
+
+def gear_span(
+    speed: FloatArray, centre: FloatArray, ticks: IntArray, tick_ns: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The faster sprocket's speed ``(m,)`` and the span ``centre ± (tick − centre)`` (at
+    least ± half a tick) of its window, over which the odometer's speed is to be taken."""
+    fast = np.argmax(speed, axis=1)
+    rows = np.arange(ticks.size)
+    c = centre[rows, fast]
+    half = np.maximum(ticks.astype(np.float64) - c, 0.5 * tick_ns)
+    return speed[rows, fast], c - half, c + half
+
+
+def starting_at(s: IntArray, base: IntArray, hi: IntArray, ticks: IntArray) -> BoolArray:
+    """One sprocket's first edges after a second's silence within the last 0.6 s, per tick:
+    ``hi`` (from a search of ``ticks`` in ``s[base:]``, side right) counts the tick's edges
+    (as :func:`~estimator.tracked.edges.edge_speed_at`)."""
+    if s.size == 0:
+        return np.zeros(ticks.size, dtype=bool)
+    never = np.iinfo(np.int64).min // 2
+    top = s.size - 1
+
+    def stamp(k: IntArray) -> IntArray:  # the k-th edge (1-based), ``never`` for the 0th
+        return np.where(k >= 1, s[np.clip(base + k - 1, 0, top)], never)
+
+    recent = ticks - stamp(hi) < 600_000_000
+    out = np.zeros(ticks.size, dtype=bool)
+    for back in (1, 2):  # the last edge or the one before it ended a silence
+        gap = stamp(np.maximum(hi - back + 1, 0)) - stamp(np.maximum(hi - back, 0))
+        out |= recent & (hi >= back) & (gap > 1_000_000_000)
+    return out
+
+
+def sprocket_missing(
+    ticks: IntArray,
+    odometer_mps: FloatArray,
+    last_ns: IntArray,
+    known: BoolArray,
+    cfg: TrackedEstimatorConfig,
+) -> BoolArray:
+    """A sprocket with no edge for ``sprocket_missing_s`` while the gearbox turns, ``(m,)``;
+    ``last_ns``/``known`` the sprockets' last edge, ``(m, 2)`` or ``(1, 2)``."""
+    span = round(cfg.sprocket_missing_s * 1e9)
+    late = ~known | ((ticks[:, None] - last_ns) > span)
+    return (odometer_mps > 0.5) & late.any(axis=1)

@@ -1,0 +1,227 @@
+"""The input stage of many vehicles at once: :func:`take_fleet` gives what
+:meth:`VehicleInputs.take <estimator.tracked.vehicle.VehicleInputs.take>` gives each vehicle,
+every vehicle's ticks end to end, in a fixed number of array calls.
+
+Each stream's buffers are laid end to end (:class:`~estimator.tracked.segments.Segments`)
+and searched at once; the edge windows, IMU means and fix matching then work on the whole
+fleet's ticks with each tick's own offset. Only the bookkeeping (cutting each buffer, the
+steady-time recursion) stays per vehicle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray, IntArray, nan_to_num
+from estimator.tracked.edges import edge_speed_at, span_speed_at
+from estimator.tracked.segments import Segments
+from estimator.tracked.vehicle import (
+    KEEP_NS,
+    Reads,
+    TickInputs,
+    VehicleInputs,
+    derive,
+    gear_span,
+    sprocket_missing,
+    starting_at,
+    steady_run,
+    tick_inputs,
+)
+
+__all__ = ["take_fleet"]
+
+
+class _Fleet:
+    """The vehicles of one call and their ticks: ``ticks (M,)`` end to end, ``seg (M,)``
+    (each tick's vehicle), ``starts (n + 1,)`` (vehicle ``j``'s ticks
+    ``ticks[starts[j]:starts[j + 1]]``)."""
+
+    def __init__(self, vehicles: Sequence[VehicleInputs], ticks: Sequence[IntArray]) -> None:
+        self.vehicles = vehicles
+        self.cfg = vehicles[0].cfg
+        self.tick_ns = vehicles[0].tick_ns
+        self.grid = Segments(ticks)
+        self.ticks = self.grid.values
+        self.starts = self.grid.starts
+        n = len(vehicles)
+        self.seg = np.repeat(np.arange(n, dtype=np.int64), np.diff(self.starts))
+        self.odometer = Segments([v.odometer.stamps for v in vehicles])
+        self.sprockets = [Segments([v.sprockets[s].stamps for v in vehicles]) for s in (0, 1)]
+        params = [v.params for v in vehicles]
+        self.odo_pitch = np.array([float(p.odometer_pitch_m[0]) for p in params])[self.seg]
+        self.spr_pitch = np.array([float(p.sprocket_pitch_m[0]) for p in params])[self.seg]
+
+    def edges(
+        self,
+        segs: Segments,
+        ticks: IntArray,
+        pitch: FloatArray,
+        window_s: float,
+        max_edges: int,
+        hold_ns: int,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Each tick's edge speed and window centre (:func:`edge_speed_at`) in ``segs``."""
+        hi = segs.search(self.seg, ticks, "right")
+        lo = segs.search(self.seg, ticks - round(window_s * 1e9), "right")
+        base = segs.starts[self.seg]
+        return edge_speed_at(segs.values, base, hi, lo, ticks, pitch, max_edges, hold_ns)
+
+    def odometer_speed(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
+        cfg = self.cfg
+        return self.edges(
+            self.odometer, ticks, self.odo_pitch, cfg.odometer_window_s, 1 << 30, 500_000_000
+        )
+
+    def sprocket_speeds(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
+        cfg = self.cfg
+        hold_ns = round(cfg.sprocket_hold_s * 1e9)
+        out = [
+            self.edges(
+                segs, ticks, self.spr_pitch, cfg.sprocket_window_s, cfg.sprocket_max_edges, hold_ns
+            )
+            for segs in self.sprockets
+        ]
+        return np.stack([o[0] for o in out], axis=1), np.stack([o[1] for o in out], axis=1)
+
+    def gear_ratio(self, speed: FloatArray, centre: FloatArray, ticks: IntArray) -> FloatArray:
+        fast, start, end = gear_span(speed, centre, ticks, self.tick_ns)
+        segs = self.odometer
+        lo = segs.search_float(self.seg, start, "left")
+        hi = segs.search_float(self.seg, end, "right")
+        odo = span_speed_at(segs.values, segs.starts[self.seg], lo, hi, self.odo_pitch)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return fast / odo
+
+    def starting(self) -> BoolArray:
+        out = np.zeros((self.ticks.size, 2), dtype=bool)
+        for side, segs in enumerate(self.sprockets):
+            hi = segs.search(self.seg, self.ticks, "right")
+            out[:, side] = starting_at(segs.values, segs.starts[self.seg], hi, self.ticks)
+        return out
+
+    def missing(self, odo: FloatArray) -> BoolArray:
+        lasts = [[b.last_edge_ns for b in v.sprockets] for v in self.vehicles]
+        last_ns = np.array([[x or 0 for x in pair] for pair in lasts], dtype=np.int64)
+        known = np.array([[x is not None for x in pair] for pair in lasts], dtype=bool)
+        return sprocket_missing(self.ticks, odo, last_ns[self.seg], known[self.seg], self.cfg)
+
+    def imu_means(self) -> tuple[FloatArray, FloatArray]:
+        """Mean forward specific force and yaw rate over each tick ``(t − tick, t]`` (the
+        per-vehicle sums, element by element in the same order); the IMU consumed."""
+        imu = Segments([v.imu_ns for v in self.vehicles])
+        values = np.concatenate([v.imu for v in self.vehicles])
+        lo = imu.search(self.seg, self.ticks - self.tick_ns, "right")
+        hi = imu.search(self.seg, self.ticks, "right")
+        count = hi - lo
+        m = self.ticks.size
+        tick_of = np.repeat(np.arange(m), count)
+        first = np.cumsum(count) - count
+        elem = np.arange(tick_of.size) - first[tick_of] + (imu.starts[self.seg] + lo)[tick_of]
+        out = []
+        for col in (0, 1):
+            sums = np.bincount(tick_of, values[elem, col], minlength=m)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out.append(np.where(count > 0, sums / count, np.nan))
+        for v, cut in zip(self.vehicles, hi[self.starts[1:] - 1].tolist(), strict=True):
+            v.imu_ns, v.imu = v.imu_ns[cut:], v.imu[cut:]
+        return out[0], out[1]
+
+    def yaw_accel(self, gyro: FloatArray) -> FloatArray:
+        before = np.empty_like(gyro)
+        before[1:] = gyro[:-1]
+        before[self.starts[:-1]] = [v.last_gyro_radps for v in self.vehicles]
+        for v, last in zip(self.vehicles, gyro[self.starts[1:] - 1].tolist(), strict=True):
+            v.last_gyro_radps = last
+        return nan_to_num((gyro - before) / (self.tick_ns * 1e-9))
+
+    def gnss_at(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The last fix in each tick ``(t − tick, t]`` and its age; fixes consumed."""
+        m = self.ticks.size
+        pos, vel = np.full((m, 2), np.nan), np.full((m, 2), np.nan)
+        vstd, age = np.full(m, np.nan), np.zeros(m)
+        fixes = [g for v in self.vehicles for g in v.gnss]
+        if not fixes:
+            return pos, vel, vstd, age
+        n_fixes = np.array([len(v.gnss) for v in self.vehicles])
+        fseg = np.repeat(np.arange(n_fixes.size), n_fixes)
+        stamps = np.array([g[0] for g in fixes], dtype=np.int64)
+        values = np.array([g[1:] for g in fixes], dtype=np.float64)
+        k = self.grid.search(fseg, stamps, "left")
+        inside = k < np.diff(self.starts)[fseg]
+        at = self.starts[fseg] + np.where(inside, k, 0)
+        valid = inside & (stamps > self.ticks[np.minimum(at, m - 1)] - self.tick_ns)
+        # fixes of one tick: the last one (the valid ones are the latest)
+        later = np.zeros(stamps.size, dtype=bool)
+        later[:-1] = (fseg[1:] == fseg[:-1]) & (k[1:] == k[:-1])
+        take = valid & ~later
+        j = at[take]
+        pos[j], vel[j], vstd[j] = values[take, 0:2], values[take, 2:4], values[take, 4]
+        age[j] = (self.ticks[j] - stamps[take]) * 1e-9
+        used = np.bincount(fseg[inside], minlength=n_fixes.size).tolist()
+        for v, u in zip(self.vehicles, used, strict=True):
+            if u:
+                v.gnss = v.gnss[u:]
+        return pos, vel, vstd, age
+
+    def reads(self) -> Reads:
+        accel, gyro = self.imu_means()
+        ticks, before_ticks = self.ticks, self.ticks - self.tick_ns
+        odo = self.odometer_speed(ticks)
+        spr, before = self.sprocket_speeds(ticks), self.sprocket_speeds(before_ticks)
+        return Reads(
+            ticks_ns=ticks,
+            accel=accel,
+            gyro=gyro,
+            yaw_accel=self.yaw_accel(gyro),
+            odo=odo,
+            prev=self.odometer_speed(before_ticks),
+            spr=spr,
+            before=before,
+            gear=self.gear_ratio(*spr, ticks),
+            gear_before=self.gear_ratio(*before, before_ticks),
+            starting=self.starting(),
+            missing=self.missing(odo[0]),
+            gnss=self.gnss_at(),
+        )
+
+    def steady(self, unsteady: BoolArray) -> FloatArray:
+        out = np.empty(unsteady.size)
+        for j, v in enumerate(self.vehicles):
+            a, b = int(self.starts[j]), int(self.starts[j + 1])
+            out[a:b] = steady_run(v.steady_s, unsteady[a:b], self.tick_ns)
+            v.steady_s = float(out[b - 1])
+        return out
+
+    def close(self, missing: BoolArray) -> None:
+        """Counters, the next tick and the edges no later window reaches, per vehicle."""
+        n = len(self.vehicles)
+        last = self.ticks[self.starts[1:] - 1]
+        counts = np.bincount(self.seg, missing, minlength=n).astype(np.int64).tolist()
+        for v, c, t in zip(self.vehicles, counts, last.tolist(), strict=True):
+            v.counts["sprocket_missing_ticks"] += c
+            v.next_ns = t + self.tick_ns
+        own = np.arange(n, dtype=np.int64)
+        for segs, bufs in (
+            (self.odometer, [v.odometer for v in self.vehicles]),
+            *((self.sprockets[s], [v.sprockets[s] for v in self.vehicles]) for s in (0, 1)),
+        ):
+            older = segs.search(own, last - KEEP_NS, "left").tolist()
+            for buf, cut in zip(bufs, older, strict=True):
+                buf.prune_at(cut)
+
+
+def take_fleet(
+    vehicles: Sequence[VehicleInputs], ticks: Sequence[IntArray]
+) -> tuple[TickInputs, IntArray]:
+    """Inputs of every vehicle's ``ticks`` (each non-empty, from its :meth:`due`), end to end:
+    ``(TickInputs (M,), starts (n + 1,))``, vehicle ``j``'s rows
+    ``starts[j]:starts[j + 1]``, each equal to ``vehicles[j].take(ticks[j])``. The vehicles
+    share one estimator configuration."""
+    fleet = _Fleet(vehicles, ticks)
+    reads = fleet.reads()
+    odo_accel, settling, unsteady = derive(reads, fleet.cfg)
+    steady_s = fleet.steady(unsteady)
+    fleet.close(reads.missing)
+    return tick_inputs(reads, odo_accel, settling, steady_s, fleet.tick_ns), fleet.starts
