@@ -175,7 +175,8 @@ class TyreArrays:
 @dataclass(frozen=True, slots=True)
 class TickInputs:
     """One tick's inputs per vehicle: per wheel ``(B, 4)`` load, slip angle, steer angle and
-    slip with the 1-σ of the last two; ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
+    slip with the 1-σ of the last two (κ's each wheel's own; ``kappa_common_std`` ``(B,)`` the
+    speed's error, shared by the four κ); ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
     ``valid`` ``(B,)`` where an update may run (moving, every input known); ``vx_mps``,
     ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
     ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it; ``alpha_lag_rad``
@@ -187,6 +188,7 @@ class TickInputs:
     delta_rad: FloatArray
     kappa: FloatArray
     kappa_std: FloatArray
+    kappa_common_std: FloatArray
     alpha_std_rad: FloatArray
     z: FloatArray
     valid: BoolArray
@@ -324,9 +326,18 @@ def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
 def _input_spread(
     x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FloatArray:
-    """``D`` ``(B, m, 4)``: the change of ``h`` at the mean for a 1-σ change of each wheel's κ
-    (the slip angles follow from the state)."""
-    kappa = u.kappa[:, None, :] + np.eye(4)[None] * u.kappa_std[:, :, None]
+    """``D`` ``(B, m, 5)``: the change of ``h`` at the mean for a 1-σ change of each wheel's own
+    κ error and of the shared one (the speed's: all four κ at once; the slip angles follow from
+    the state). A shared error shifts the driven and the free-rolling wheels alike, so it is
+    not read as a driven tyre's slip."""
+    shifts = np.concatenate(
+        [
+            np.eye(4)[None] * u.kappa_std[:, :, None],
+            np.ones((1, 1, 4)) * u.kappa_common_std[:, None, None],
+        ],
+        axis=1,
+    )
+    kappa = u.kappa[:, None, :] + shifts
     mean = x[:, None, :]
     alpha = u.alpha_rad[:, None, :]
     base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
