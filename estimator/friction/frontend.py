@@ -277,10 +277,9 @@ class FrontEnd:
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
         kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
-        k_common = math.hypot(
-            math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0),
-            self.radius_common_rel,
-        )
+        # the radii's shared scale error is in the speed's (the rims correct it) and cancels
+        # in κ with it: the speed's 1-σ alone is the shared part
+        k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
         resist = 0.0
         vx = self.vx.speed
         if not self.fe.paper:
