@@ -113,6 +113,11 @@ class FilterConfig:
     ``v_y`` (a narrow start: cubature points spread ``√n σ``, and a wide ``v_y`` would put
     them deep in the tyres' saturation where the point mean no longer follows the model);
     ``accel_std_mps2``, ``yaw_accel_std_radps2``: the measurement noise ``R``;
+    ``yaw_model_std_radps2``: the product adds it to ``ṙ``'s (in quadrature): the
+    differentiated gyro is good to ~0.15 rad/s² a tick, but the yaw moment the model gives is
+    off by more (each tyre's lateral force from a slip angle whose relaxation lag is known to
+    ×0.5-2, the tyres' ±3 % stiffness spread left and right, toe): weighed as exact it pulled
+    ``v_y`` and with it μ;
     ``mee_kernel_sigma``: the MEE kernel width (whitened units); ``nis_gate``: mean
     normalised innovation (per measurement) above which the product filter's μ walk is
     multiplied by ``mu_walk_boost``; ``linear_util``: the product updates ``ln μ`` only while
@@ -141,6 +146,7 @@ class FilterConfig:
     vy_walk_mps_per_sqrt_s: float = 0.05
     accel_std_mps2: float = 0.2
     yaw_accel_std_radps2: float = 0.5
+    yaw_model_std_radps2: float = 0.866
     mee_kernel_sigma: float = 2.0
     nis_gate: float = 9.0
     mu_walk_boost: float = 5.0
@@ -175,7 +181,8 @@ class TyreArrays:
 @dataclass(frozen=True, slots=True)
 class TickInputs:
     """One tick's inputs per vehicle: per wheel ``(B, 4)`` load, slip angle, steer angle and
-    slip with the 1-σ of the last two; ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
+    slip with the 1-σ of the last two (κ's each wheel's own; ``kappa_common_std`` ``(B,)`` the
+    speed's error, shared by the four κ); ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
     ``valid`` ``(B,)`` where an update may run (moving, every input known); ``vx_mps``,
     ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
     ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it; ``alpha_lag_rad``
@@ -187,6 +194,7 @@ class TickInputs:
     delta_rad: FloatArray
     kappa: FloatArray
     kappa_std: FloatArray
+    kappa_common_std: FloatArray
     alpha_std_rad: FloatArray
     z: FloatArray
     valid: BoolArray
@@ -302,11 +310,13 @@ def _slip_angles(vy_mps: FloatArray, u: TickInputs, chassis: Chassis) -> FloatAr
 
 
 def _sq_r(cfg: FilterConfig, u: TickInputs) -> FloatArray:
-    """Measurement root: accelerations and (product) the GNSS ``v_y``, weightless when none."""
+    """Measurement root: accelerations (product: ``ṙ`` with the yaw model's error) and
+    (product) the GNSS ``v_y``, weightless when none."""
     sigma = [cfg.accel_std_mps2, cfg.accel_std_mps2, cfg.yaw_accel_std_radps2]
     b = u.z.shape[0]
     if cfg.mode is not FrictionMode.PRODUCT:
         return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
+    sigma[2] = math.hypot(sigma[2], cfg.yaw_model_std_radps2)
     vy_std = np.where(np.isfinite(u.vy_meas_mps), u.vy_meas_std_mps, 1e3)
     diag = np.concatenate([np.broadcast_to(sigma, (b, 3)), vy_std[:, None]], axis=1)
     out = np.zeros((b, 4, 4))
@@ -324,9 +334,18 @@ def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
 def _input_spread(
     x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FloatArray:
-    """``D`` ``(B, m, 4)``: the change of ``h`` at the mean for a 1-σ change of each wheel's κ
-    (the slip angles follow from the state)."""
-    kappa = u.kappa[:, None, :] + np.eye(4)[None] * u.kappa_std[:, :, None]
+    """``D`` ``(B, m, 5)``: the change of ``h`` at the mean for a 1-σ change of each wheel's own
+    κ error and of the shared one (the speed's: all four κ at once; the slip angles follow from
+    the state). A shared error shifts the driven and the free-rolling wheels alike, so it is
+    not read as a driven tyre's slip."""
+    shifts = np.concatenate(
+        [
+            np.eye(4)[None] * u.kappa_std[:, :, None],
+            np.ones((1, 1, 4)) * u.kappa_common_std[:, None, None],
+        ],
+        axis=1,
+    )
+    kappa = u.kappa[:, None, :] + shifts
     mean = x[:, None, :]
     alpha = u.alpha_rad[:, None, :]
     base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)

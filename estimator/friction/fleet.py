@@ -128,6 +128,7 @@ def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
         delta_rad=np.stack([fe.delta_rad for fe in fes]),
         kappa=np.stack([fe.kappa for fe in fes]),
         kappa_std=np.stack([fe.kappa_std for fe in fes]),
+        kappa_common_std=np.array([fe.kappa_common_std for fe in fes]),
         alpha_std_rad=np.stack([fe.alpha_std_rad for fe in fes]),
         z=np.stack([fe.z for fe in fes]),
         valid=np.array([fe.valid for fe in fes]),

@@ -91,7 +91,8 @@ class FrontEndTick:
     alpha_rad: FloatArray
     delta_rad: FloatArray
     kappa: FloatArray
-    kappa_std: FloatArray
+    kappa_std: FloatArray  # per wheel, apart from the shared part below
+    kappa_common_std: float  # the speed's 1-σ over it: one error shared by the four κ
     alpha_std_rad: FloatArray
     alpha_lag_rad: FloatArray  # relaxed minus kinematic α (0 in the paper reading)
     z: FloatArray  # [a_x + resistances/m, a_y, ṙ]
@@ -186,7 +187,8 @@ class FrontEnd:
         self.radius_drop = fe.radius_drop0
         self.kz_wheel = np.full(4, ty.kz_npm)
         self.suspect = np.zeros(4, dtype=bool)
-        self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)
+        self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)  # each wheel's own
+        self.radius_common_rel = 0.0  # the calibration's GNSS error, shared by the four
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
@@ -275,6 +277,9 @@ class FrontEnd:
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
         kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
+        # the radii's shared scale error is in the speed's (the rims correct it) and cancels
+        # in κ with it: the speed's 1-σ alone is the shared part
+        k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
         resist = 0.0
         vx = self.vx.speed
         if not self.fe.paper:
@@ -298,6 +303,7 @@ class FrontEnd:
             delta_rad=delta,
             kappa=kappa,
             kappa_std=k_std,
+            kappa_common_std=k_common,
             alpha_std_rad=a_std,
             alpha_lag_rad=alpha_lag,
             z=z,
@@ -345,7 +351,9 @@ class FrontEnd:
         w = self.vy.speed + self.wheel_x * yaw_rate
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
         v = float(np.mean(vx_rim[free]))
-        rel = float(np.mean(self.radius_std[free] / self.radius[free]))
+        rel = math.hypot(
+            float(np.mean(self.radius_std[free] / self.radius[free])), self.radius_common_rel
+        )
         self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
     def _gnss_recent(self) -> bool:
@@ -401,15 +409,16 @@ class FrontEnd:
         self, fz: FloatArray, delta: FloatArray, yaw_rate: float
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         """κ, α, their 1-σ and α's lag (relaxed − kinematic) per wheel (source eq. 8-14),
-        relaxed (not paper). The relaxation length is the config's, the tyre's may be half or
-        twice it: while the slip moves, half the distance between the kinematic and the
-        relaxed slip is added to its 1-σ."""
+        relaxed (not paper). κ's 1-σ here is each wheel's own (its radius, the rim speed's
+        resolution); the speed's error moves all four κ together and is given apart
+        (``FrontEndTick.kappa_common_std``). The relaxation length is the config's, the tyre's
+        may be half or twice it: while the slip moves, half the distance between the
+        kinematic and the relaxed slip is added to its 1-σ."""
         v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
         denom = np.maximum(np.abs(v_long), 1.0)
         kappa = (self.omega * self._radius_now(fz) - v_long) / denom
         alpha = -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
-        v_std = math.sqrt(max(self.vx.speed_var, 0.0))
-        k_std = np.hypot(v_std, self.omega * self.radius_std) / denom + 2e-4
+        k_std = self.omega * self.radius_std / denom + 2e-4
         a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
         lag = np.zeros(4)
         if not self.fe.paper:
@@ -456,7 +465,11 @@ class FrontEnd:
         ax: float,
     ) -> None:
         """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
-        ``calib_time_s`` average), allowing for the slip the resistances need."""
+        ``calib_time_s`` average), allowing for the slip the resistances need. The GNSS
+        speed's error (~0.03 m/s an epoch, 0.3 % at 10 m/s) enters the four radii alike: it is
+        kept apart from each wheel's own error (``radius_std``: rim-speed resolution and the
+        load model, 2e-4 of the radius), since a shared scale error of the radii cancels in κ
+        where the speed comes from the same rims."""
         steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
         if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
             return
@@ -473,9 +486,8 @@ class FrontEnd:
         gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
         self.radius += gain * (measured - self.radius)
         self.fz_cal += gain * (fz - self.fz_cal)
-        self.radius_std = np.maximum(
-            0.003 * self.radius / math.sqrt(self.calib_n), 2e-4 * self.radius
-        )
+        self.radius_common_rel = 0.003 / math.sqrt(self.calib_n)
+        self.radius_std = 2e-4 * self.radius
         self._learn_tyres()
 
     @property

@@ -173,6 +173,7 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
         delta_rad=col("delta_rad"),
         kappa=col("kappa"),
         kappa_std=tiny,
+        kappa_common_std=np.zeros(vx.shape),
         alpha_std_rad=tiny,
         z=z,
         valid=vx > 3.0,

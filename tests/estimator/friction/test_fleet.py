@@ -18,6 +18,7 @@ from estimator.friction.filter import (
     TickInputs,
     TyreArrays,
     _gain_mask,
+    _input_spread,
     filter_step,
     initial_state,
     mu_of,
@@ -160,6 +161,7 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 delta_rad=delta,
                 kappa=kappa,
                 kappa_std=tiny,
+                kappa_common_std=np.zeros(1),
                 alpha_std_rad=tiny,
                 z=z,
                 valid=np.array([True]),
@@ -243,3 +245,20 @@ def test_gain_mask_learns_each_state_where_it_is_told_apart() -> None:
     learns = _gain_mask(st.x, cfg, tyres, turning)[0]
     assert learns[ProductState.LN_MU] == 1
     assert learns[ProductState.GY_FRONT] == 0 and learns[ProductState.GY_REAR] == 0
+
+
+def test_the_speed_error_moves_the_four_slips_together() -> None:
+    """``D``'s last column (the shared κ error, one speed error over all four wheels) is the
+    per-wheel columns' sum scaled to its 1-σ (the model is near linear at small slip), and it
+    adds no spread where it is zero."""
+    ticks, chassis, tyres = _model_inputs(0.6, 1, seed=3)
+    cfg = FilterConfig()
+    st = initial_state(cfg, tyres, ticks[0].fz_n)
+    own = np.full((1, 4), 1e-6)
+    u = dataclasses.replace(ticks[0], kappa_std=own, kappa_common_std=np.array([2e-6]))
+    d = _input_spread(st.x, cfg, tyres, chassis, u)
+    assert d.shape == (1, 4, 5)
+    np.testing.assert_allclose(d[..., 4], 2.0 * d[..., :4].sum(axis=-1), rtol=1e-3, atol=1e-12)
+    assert np.abs(d[0, 0, 4]) > 0
+    quiet = dataclasses.replace(u, kappa_common_std=np.zeros(1))
+    assert np.all(_input_spread(st.x, cfg, tyres, chassis, quiet)[..., 4] == 0)
