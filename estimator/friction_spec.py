@@ -5,7 +5,9 @@ four-wheel vehicle, with whether the data inform it.
 estimator's bound and the tyres using enough of the grip); otherwise it holds the last
 informed value (``HELD``) and ``mu_std`` is NaN, never a drifting value. Per wheel: load,
 slip (a slip channel, so reports, maps and colours read it), slip angle and the share of
-the grip in use.
+the grip in use. The position (GNSS antenna in the vehicle's ENU frame, dead-reckoned
+briefly between fixes and through short outages, ``DEAD_RECKONED``) makes μ a slip-map
+layer and places the vehicle in the 3D view.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from estimator.spec import (
     ChartSpec,
     EstimatorSpec,
     FieldSpec,
+    PositionChannel,
     SlipChannel,
     SpeedChannel,
     ValueChannel,
@@ -58,6 +61,9 @@ class FrictionFlag(IntFlag):
     TYRE_SUSPECT = 1 << 6
     """A tyre's calibrated rolling radius sinks more (or less) under load than its config's
     ``kz`` gives: its own vertical stiffness is learnt from it (and its brush stiffness)."""
+    DEAD_RECKONED = 1 << 7
+    """No GNSS fix for more than ``PositionConfig.after_s``: the position and heading are
+    carried from the last one by the speed and the gyro (:mod:`estimator.friction.position`)."""
 
 
 _FLAG_TEXT = {
@@ -69,6 +75,8 @@ _FLAG_TEXT = {
     "RESET": "the filter started on this tick",
     "TYRE_SUSPECT": "a tyre's rolling radius is far from its config's (soft or damaged): "
     "its vertical stiffness is learnt from it",
+    "DEAD_RECKONED": "no GNSS fix for more than 0.25 s: position and heading carried by the "
+    "speed and the gyro (none after 10 s)",
 }
 
 
@@ -111,6 +119,11 @@ _FIELDS = (
     FieldSpec("vy_mps", "f8", "m/s", "lateral speed", "lateral speed at the CG (left +)"),
     *_wheel_fields(),
     FieldSpec("flags", "i4", "", "flags", "FrictionFlag bits"),
+    # the position came after the first release: appended, so stored rows convert in place
+    FieldSpec("east_m", "f8", "m", "east", "GNSS antenna, east of the vehicle's anchor"),
+    FieldSpec("north_m", "f8", "m", "north", "GNSS antenna, north of the vehicle's anchor"),
+    FieldSpec("up_m", "f8", "m", "up", "GNSS antenna height above the vehicle's anchor"),
+    FieldSpec("heading_rad", "f8", "rad", "heading", "from north, clockwise"),
 )
 
 FRICTION_DTYPE = np.dtype([(f.name, f.kind) for f in _FIELDS])
@@ -133,6 +146,9 @@ FRICTION_SPEC = EstimatorSpec(
     ),
     speeds=(SpeedChannel("speed", "speed", "vx_mps"),),
     motion="speed",
+    position=PositionChannel(
+        "east_m", "north_m", "up_m", "heading_rad", carried_flag="DEAD_RECKONED"
+    ),
     charts=(
         ChartSpec("mu", "Friction μ", "", ("mu", "mu_filter")),
         ChartSpec("grip", "Grip used", "%", tuple(f"util_{k}_pct" for k in WHEEL_KEYS)),
@@ -140,7 +156,7 @@ FRICTION_SPEC = EstimatorSpec(
         ChartSpec("load", "Wheel load", "N", tuple(f"fz_{k}_n" for k in WHEEL_KEYS)),
     ),
     ok_flag="INFORMED",
-    degraded_flags=("HELD",),
+    degraded_flags=("HELD", "DEAD_RECKONED"),
     values=(ValueChannel("mu", "μ", "mu", std_field="mu_std", valid_flag="INFORMED", mapped=True),),
     wheel_values=tuple(
         WheelValueChannel(key, f"grip used {name}", f"util_{key}_pct", pos)

@@ -5,12 +5,15 @@
 * :mod:`.model`: the planar four-wheel measurement model ``[a_x, a_y, ṙ]``;
 * :mod:`.filter`: the μ filters (fixed / load-adaptive CKF, the source's SCKF-MEE, product);
 * :mod:`.frontend`: per-wheel κ, α, δ, Fz with their uncertainty from the sensors;
+* :mod:`.position`: the vehicle's position from GNSS, dead-reckoned between fixes and through
+  short outages;
 * :mod:`.fleet`: :class:`FrictionFleet`, the batched ``FleetEstimator`` with the informed logic.
 """
 
 from estimator.friction.filter import FilterConfig, FrictionMode
 from estimator.friction.fleet import FrictionFleet, FrictionFleetConfig
 from estimator.friction.frontend import FrontEndConfig
+from estimator.friction.position import PositionConfig
 
 __all__ = [
     "FilterConfig",
@@ -18,4 +21,5 @@ __all__ = [
     "FrictionFleetConfig",
     "FrictionMode",
     "FrontEndConfig",
+    "PositionConfig",
 ]

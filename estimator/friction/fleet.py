@@ -14,7 +14,9 @@ informed, however small its σ: its σ does not know the front end's correlated 
 otherwise the row holds the last informed μ (``HELD``) and no σ. A tyre whose rolling radius
 says it is softer or harder than the config's (``TYRE_SUSPECT``) has its own vertical
 stiffness learnt by the front end, and so its own contact length and brush stiffness.
-Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
+Each vehicle's position (:mod:`.position`) is placed by its GNSS fixes and dead-reckoned
+between them from the row's speeds and the gyro; ``anchor``/``set_anchor`` give and take the
+origin of its ENU frame. Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from estimator.friction.filter import (
 )
 from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick
 from estimator.friction.model import Chassis
+from estimator.friction.position import PositionConfig, PositionTrack
 from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
@@ -53,12 +56,13 @@ __all__ = ["FrictionFleet", "FrictionFleetConfig"]
 
 @dataclass(frozen=True, slots=True)
 class FrictionFleetConfig:
-    """Settings of the friction estimator: the filter (and its mode), the front end, and
-    when μ counts as informed (relative 1-σ below ``informed_rel_std`` and the most used tyre
-    at ``informed_min_util`` of its grip or more)."""
+    """Settings of the friction estimator: the filter (and its mode), the front end, the
+    position track, and when μ counts as informed (relative 1-σ below ``informed_rel_std``
+    and the most used tyre at ``informed_min_util`` of its grip or more)."""
 
     filter: FilterConfig = field(default_factory=FilterConfig)
     frontend: FrontEndConfig | None = None
+    position: PositionConfig = field(default_factory=PositionConfig)
     informed_rel_std: float = 0.03
     informed_min_util: float = 0.6
     informed_hold_s: float = 0.5
@@ -82,6 +86,7 @@ class _Vehicle:
     def __init__(self, config: Wheeled4wdSteeredConfig, cfg: FrictionFleetConfig) -> None:
         self.config = config
         self.front = FrontEnd(config, cfg.front, cfg.filter.tick_s)
+        self.position = PositionTrack(cfg.position)
         self.tick_ns = round(cfg.filter.tick_s * 1e9)
         self.next_ns: int | None = None
         self.state: FilterState | None = None
@@ -118,6 +123,17 @@ _GNSS_VY_STD_MPS = 0.1
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts, axis=0)
+
+
+def _place(row: np.ndarray, track: PositionTrack, t_ns: int, fe: FrontEndTick) -> FrictionFlag:
+    """Fill the row's position from the vehicle's track (stepped with the row's speeds and the
+    gyro's yaw rate); its ``DEAD_RECKONED`` bit."""
+    here = track.step(t_ns, fe.vx_mps, float(row["vy_mps"].item()), fe.yaw_rate_radps)
+    row["east_m"] = here.east_m
+    row["north_m"] = here.north_m
+    row["up_m"] = here.up_m
+    row["heading_rad"] = here.heading_rad
+    return FrictionFlag.DEAD_RECKONED if here.dead_reckoned else FrictionFlag.NONE
 
 
 def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
@@ -171,11 +187,22 @@ class FrictionFleet:
             front.push_steering(measurement)
         elif isinstance(measurement, GnssSample):
             front.push_gnss(measurement)
+            self._vehicles[vehicle_id].position.push(measurement)
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         v = self._vehicles[vehicle_id]
         if v.next_ns is None:
             v.next_ns = int(stamp_ns)
+
+    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame (its first fix's
+        antenna), None before it."""
+        return self._vehicles[vehicle_id].position.anchor()
+
+    def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Give the vehicle's ENU frame this origin (the one its stored rows are in) instead
+        of its first fix; ``ValueError`` for what is no geodetic position."""
+        self._vehicles[vehicle_id].position.set_anchor(lat_deg, lon_deg, height_m)
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]`` the IMU covers."""
@@ -301,4 +328,4 @@ class FrictionFleet:
             row[f"slip_{key}_pct"] = 100.0 * fe.kappa[j]
             row[f"alpha_{key}_rad"] = fe.alpha_rad[j]
             row[f"util_{key}_pct"] = 100.0 * util[j]
-        row["flags"] = int(flags)
+        row["flags"] = int(flags | _place(row, v.position, t_ns, fe))

@@ -6,7 +6,8 @@ statement cannot convert, such as packing SQLite rows in version 6). Applied ver
 recorded in ``schema_version``. A migration is frozen once released: later schema changes are
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
-:data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`); tests
+:data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`,
+:data:`FRICTION_FIELDS_V16`); tests
 compare them with today's specs, and the stores refuse a spec that no longer matches its
 recorded table, so a spec change forces a new migration.
 
@@ -17,7 +18,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 15):
+Schema (version 16):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -29,7 +30,8 @@ Schema (version 15):
     spec whose fields differ. MDSF's are ``estimates`` below; every other estimator's are made
     by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
     ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
-    ``reference_speed`` since version 10, ``friction`` since version 12, ``tracked`` since 13.
+    ``reference_speed`` since version 10, ``friction`` since version 12 (its position
+    appended by version 16), ``tracked`` since 13.
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -81,6 +83,7 @@ from estimator.config import VehicleKind, upgrade_legacy_config
 __all__ = [
     "ADVISORY_LOCK_KEY",
     "FRICTION_FIELDS_V12",
+    "FRICTION_FIELDS_V16",
     "MDSF_FIELDS_V15",
     "MIGRATIONS",
     "REFERENCE_SPEED_FIELDS_V10",
@@ -609,6 +612,48 @@ TRACKED_FIELDS_V13: tuple[tuple[str, str], ...] = (
 )
 
 
+#: The friction row as version 16 made its table: version 12's with the position appended.
+FRICTION_FIELDS_V16: tuple[tuple[str, str], ...] = (
+    *FRICTION_FIELDS_V12,
+    ("east_m", "f8"),
+    ("north_m", "f8"),
+    ("up_m", "f8"),
+    ("heading_rad", "f8"),
+)
+
+
+def _v16_friction_position(dialect: str) -> tuple[Step, ...]:
+    """Append the friction row's position fields to its tables, NaN in the rows stored before
+    (the estimator gave no position then). SQLite: NaN's little-endian bytes appended to each
+    packed row, staged or final; PostgreSQL: ``NOT NULL`` columns filled with NaN."""
+    added = FRICTION_FIELDS_V16[len(FRICTION_FIELDS_V12) :]
+    record = (
+        f"UPDATE estimator_tables SET fields = '{fields_json(FRICTION_FIELDS_V16)}' "
+        "WHERE estimator = 'friction'"
+    )
+    if dialect == "postgresql":
+        return (
+            *(
+                f"ALTER TABLE estimates_friction ADD COLUMN {name} double precision "
+                "NOT NULL DEFAULT 'NaN'"
+                for name, _ in added
+            ),
+            *(
+                f"ALTER TABLE estimates_friction ALTER COLUMN {name} DROP DEFAULT"
+                for name, _ in added
+            ),
+            record,
+        )
+    nan_bytes = np.full(len(added), np.nan, dtype="<f8").tobytes().hex().upper()
+    return (
+        *(
+            f"UPDATE {table} SET packed = packed || X'{nan_bytes}'"
+            for table in ("estimates_friction", "estimates_friction_recent")
+        ),
+        record,
+    )
+
+
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
 
@@ -726,6 +771,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         ("ALTER TABLE api_tokens ADD COLUMN expires_ns bigint",),
     ),
     Migration(15, "MDSF rows carry the online calibration", _v15("sqlite"), _v15("postgresql")),
+    Migration(
+        16,
+        "the friction estimator's position",
+        _v16_friction_position("sqlite"),
+        _v16_friction_position("postgresql"),
+    ),
 )
 
 _VERSION_TABLE = {

@@ -6,7 +6,8 @@ four-wheel vehicle (kind ``wheeled_4wd_steered``: friction by default) driving t
 loop (:func:`server.tooling.steered_fleet.demo_drive`), which sends IMU, the four CAN wheel
 speeds, the steering-wheel angle and GNSS. The friction rows are stored for the second only,
 served by series and latest with ``estimator=friction``, μ finite (and within the issue's 10 %
-of the road's) wherever flagged informed, held without σ elsewhere; the tractor's MDSF rows
+of the road's) wherever flagged informed, held without σ elsewhere, with a position (GeoJSON,
+a μ layer on the slip map); the tractor's MDSF rows
 cover its drive tick by tick, untouched by the other vehicle's estimator.
 """
 
@@ -25,6 +26,7 @@ import pytest
 from estimator.friction_spec import FrictionFlag
 from estimator.mdsf_spec import MDSF_SPEC as MDSF
 from estimator.sim import simulate
+from estimator.sim.four_wheel import _FRAME as FOUR_WHEEL_FRAME
 from server.app_main import ServerThread, build_app
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import TICK_NS, FleetSim, publish_fleets
@@ -91,6 +93,40 @@ def _check_friction(client: httpx.Client, window: dict[str, int], t0: int) -> No
     assert latest["estimator"] == "friction" and latest["stamp_ns"] == int(stamps[-1])
 
 
+def _check_position(client: httpx.Client, window: dict[str, int]) -> None:
+    """sim-0002's rows carry its position from GNSS (none dead-reckoned: GNSS all along): its
+    track's length is the distance its speed covers (within 2 %), its GeoJSON lies in the
+    simulator's frame (the stored anchor is the first fix), and its slip map's μ layer holds
+    the informed μ of the cells it drove through."""
+    rows = _rows(client, "sim-0002", "friction", window)
+    east, north = rows["east_m"], rows["north_m"]
+    assert np.isfinite(east).all() and np.isfinite(north).all()
+    assert np.isfinite(rows["heading_rad"]).all()
+    assert not (rows["flags"] & FrictionFlag.DEAD_RECKONED).any()
+    track_m = np.hypot(np.diff(east), np.diff(north)).sum()
+    speed_m = (rows["vx_mps"][:-1] * np.diff(rows["stamp_ns"]) * 1e-9).sum()
+    assert abs(track_m / speed_m - 1) < 0.02, (track_m, speed_m)
+    geo = client.get(
+        "/api/v1/vehicles/sim-0002/series",
+        params={**window, "estimator": "friction", "format": "geojson", "max_points": 100},
+    )
+    assert geo.status_code == 200, geo.text
+    lon, lat, _ = geo.json()["features"][0]["geometry"]["coordinates"]
+    # the anchor is the first fix, where the simulator's truth starts: its frame's origin
+    first = FOUR_WHEEL_FRAME.to_geodetic(east[0], north[0], rows["up_m"][0])
+    assert (lat, lon) == pytest.approx((first[0], first[1]), abs=1e-7)  # ~1 cm
+    layer = client.get(
+        "/api/v1/vehicles/sim-0002/slipmap",
+        params={**window, "estimator": "friction", "layer": "mu", "cell_m": 50},
+    )
+    assert layer.status_code == 200, layer.text
+    cells = [c["layer"] for c in layer.json()["cells"] if c["layer"]["samples"]]
+    informed = (rows["flags"] & FrictionFlag.INFORMED) != 0
+    assert sum(c["samples"] for c in cells) == informed.sum() > 0
+    mus = [c["mean"] for c in cells]
+    assert min(mus) > 0.3 and max(mus) < 0.9, mus  # the road's 0.35 and 0.8, within 10 %
+
+
 def _check_tractor(client: httpx.Client, window: dict[str, int], t0: int) -> int:
     """sim-0001's MDSF rows: one per tick from its drive's start to its end, slip where
     flagged valid; no friction rows. Returns its row count."""
@@ -133,6 +169,7 @@ def test_tractor_and_steered_vehicle_each_estimated_stored_and_served(tmp_path: 
                 other = rep["ingest"]["other"]  # counters stored when not zero
                 assert other.get("estimator_errors", 0) == other.get("configs_refused", 0) == 0
             _check_friction(client, window, t0)
+            _check_position(client, window)
             mdsf_rows = _check_tractor(client, window, t0)
             friction_rows = len(_rows(client, "sim-0002", "friction", window)["stamp_ns"])
             assert mdsf_rows + friction_rows == produced

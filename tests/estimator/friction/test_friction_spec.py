@@ -34,3 +34,18 @@ def test_every_field_has_a_unit_in_its_name() -> None:
             if f.name.endswith(end):
                 assert f.unit == unit, f.name
     assert FRICTION_SPEC.field("mu").unit == ""
+
+
+def test_the_position_is_a_channel_with_its_dead_reckoned_flag() -> None:
+    p = FRICTION_SPEC.position
+    assert p is not None
+    assert (p.east_field, p.north_field, p.up_field, p.heading_field) == (
+        "east_m",
+        "north_m",
+        "up_m",
+        "heading_rad",
+    )
+    assert p.carried_flag == "DEAD_RECKONED"
+    assert FRICTION_SPEC.flag_mask("DEAD_RECKONED") == FrictionFlag.DEAD_RECKONED
+    assert "DEAD_RECKONED" in FRICTION_SPEC.degraded_flags
+    assert all(FRICTION_SPEC.field(n).unit == "m" for n in ("east_m", "north_m", "up_m"))

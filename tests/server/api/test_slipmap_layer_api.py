@@ -1,6 +1,6 @@
 """``/slipmap?layer=``: a mapped value channel of the estimator's spec (friction μ, a crawler's
 odometer factor) in each cell, through the app on a real SQLite file: JSON, CSV and ISOXML, a
-vehicle's map and the fleet's; refused for a spec without a position or a layer it lacks."""
+vehicle's map and the fleet's, a steered vehicle's μ; refused for a layer the spec lacks."""
 
 from __future__ import annotations
 
@@ -128,16 +128,39 @@ def test_a_layer_the_spec_lacks_is_refused_naming_its_layers(
     assert "no map layer 'mu'" in reason and "['odometer_factor']" in reason
 
 
-def test_friction_mu_cannot_be_mapped_without_a_position(client: ApiClient, store: Store) -> None:
+def friction_series() -> np.ndarray:
+    """10 rows of a steered vehicle, as :func:`crawler_series` drives: μ 0.50 + 0.01·i, informed
+    on rows 1, 2, 4, 5, 6, 9 (held elsewhere, the last informed value); rows 7-9 carried
+    through a GNSS outage (``DEAD_RECKONED``: still placed)."""
+    rows = FRICTION_SPEC.empty_rows(10)
+    rows["stamp_ns"] = T0 + np.arange(10) * S
+    rows["vx_mps"] = [0, 2, 2, 2, 2, 2, 2, 2, 2, 2]
+    rows["east_m"] = np.arange(10) * 3.0 + 0.5
+    rows["north_m"] = 0.5
+    rows["up_m"] = 0.0
+    rows["heading_rad"] = np.pi / 2
+    informed = np.zeros(10, dtype=bool)
+    informed[[1, 2, 4, 5, 6, 9]] = True
+    rows["mu"] = np.where(informed, 0.50 + 0.01 * np.arange(10), 0.4)
+    flags = np.where(informed, int(FrictionFlag.INFORMED), int(FrictionFlag.HELD))
+    flags[7:] |= int(FrictionFlag.DEAD_RECKONED)
+    rows["flags"] = flags
+    return rows
+
+
+def test_friction_mu_is_mapped_from_the_informed_samples(client: ApiClient, store: Store) -> None:
     assert FRICTION_SPEC.value("mu").mapped
     assert (
         client.put("/api/v1/vehicles/f1", json={"kind": "wheeled_4wd_steered"}).status_code == 201
     )
-    rows = FRICTION_SPEC.empty_rows(3)
-    rows["stamp_ns"] = T0 + np.arange(3) * S
-    rows["mu"] = 0.8
-    rows["vx_mps"] = 10.0
-    rows["flags"] = int(FrictionFlag.INFORMED)
-    store.write_estimates(EstimateBatch.of([("f1", rows)], FRICTION_SPEC))
-    _, reason = error_of(client.get(f"/api/v1/vehicles/f1/slipmap?{Q}&layer=mu"), 400)
-    assert "gives no position" in reason
+    store.write_estimates(EstimateBatch.of([("f1", friction_series())], FRICTION_SPEC))
+    r = client.get(f"/api/v1/vehicles/f1/slipmap?{Q}&layer=mu")
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["estimator"] == "friction" and body["layer"]["valid_flag"] == "INFORMED"
+    cells = body["cells"]
+    assert [c["index_east"] for c in cells] == [0, 1, 2]
+    assert [c["rows"] for c in cells] == [3, 3, 3]
+    layer = [c["layer"] for c in cells]
+    assert [cell["samples"] for cell in layer] == [2, 3, 1]
+    assert [cell["mean"] for cell in layer] == pytest.approx([0.515, 0.55, 0.59], abs=1e-12)

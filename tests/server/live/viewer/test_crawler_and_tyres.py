@@ -1,10 +1,11 @@
 """The 3D view of a crawler and a steered four-wheel vehicle, from their specs: the crawler's hull
 between two track boxes coloured by each track's slip, the steered vehicle's four tyres coloured
-by the share of the grip each uses (parked in a row: its spec gives no position), beside a
-tractor; the pure scene maps and a real viser server."""
+by the share of the grip each uses (drawn where its position puts it; parked in a row where its
+spec gives none), beside a tractor; the pure scene maps and a real viser server."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -23,11 +24,14 @@ from server.live.viewer.scene import (
     TRACK_SIZE_M,
     fleet_frame,
     is_crawler,
+    positioned,
 )
 from server.settings import ViewerSettings
 from tests.support import free_port
 
 GRIP_PCT = (20.0, 55.0, 85.0, 120.0)  # fl, fr, rl, rr
+# the friction spec as a steered vehicle without GNSS position would have it: nothing to place
+UNPLACED = dataclasses.replace(FRICTION_SPEC, position=None)
 
 
 def _crawler(east_m: float, north_m: float) -> np.ndarray:
@@ -88,9 +92,13 @@ def test_a_crawler_is_a_hull_between_two_tracks_coloured_by_their_slip() -> None
 def test_tyres_of_a_spec_with_grip_are_coloured_by_it_where_placed() -> None:
     assert not is_crawler(FRICTION_SPEC)
     with pytest.raises(ValueError, match="no position"):
-        fleet_frame(["s"], _steered(), FRICTION_SPEC)
+        fleet_frame(["s"], _steered(), UNPLACED)
+    placed = _steered()
+    placed["east_m"], placed["north_m"], placed["up_m"], placed["heading_rad"] = 3.0, 4.0, 0, 0
+    assert positioned(placed, FRICTION_SPEC).tolist() == [True]
+    assert np.isfinite(fleet_frame(["s"], placed, FRICTION_SPEC).ground_m).all()
     ground = np.array([[5.0, -7.0, 0.0]])
-    f = fleet_frame(["s"], _steered(), FRICTION_SPEC, ground_m=ground)
+    f = fleet_frame(["s"], _steered(), UNPLACED, ground_m=ground)
     assert f.wheel_rgb.tolist() == grip_rgb(GRIP_PCT).tolist()
     # the grip scale: green, yellow at 50 %, orange at 80 %, dark red from 100 %
     assert grip_rgb([0.0, 50.0, 80.0, 100.0, 150.0]).tolist() == [
@@ -109,7 +117,7 @@ def test_the_viewer_draws_crawler_tracks_and_parked_tyres() -> None:
     primaries = {"c": "tracked", "s": "friction", "t": "mdsf"}
     hub = LiveHub(primary_of=primaries.get)
     hub.on_estimates(EstimateBatch.of([("c", _crawler(40.0, 10.0))], TRACKED_SPEC))
-    hub.on_estimates(EstimateBatch.of([("s", _steered())], FRICTION_SPEC))
+    hub.on_estimates(EstimateBatch.of([("s", _steered())], UNPLACED))
     hub.on_estimates([("t", _tractor(0.0, 0.0))])
     v = FleetViewer(hub, ViewerSettings(host="127.0.0.1", port=free_port()))
     v.open()
@@ -141,7 +149,7 @@ def test_the_viewer_draws_crawler_tracks_and_parked_tyres() -> None:
         # the grip changes: the same meshes, new colours
         row = _steered()
         row["util_rr_pct"] = 10.0
-        hub.on_estimates(EstimateBatch.of([("s", row)], FRICTION_SPEC))
+        hub.on_estimates(EstimateBatch.of([("s", row)], UNPLACED))
         before = dict(v._meshes)
         v.update()
         assert v._meshes == before
