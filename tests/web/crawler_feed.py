@@ -98,6 +98,11 @@ def friction_rows(stamps_ns: np.ndarray) -> np.ndarray:
     r["mu_filter"] = np.where(informed, 0.8, 0.65)
     r["vx_mps"] = 12.0
     r["vy_mps"] = 0.1
+    t_s = (stamps_ns % (3600 * _NS)) / _NS
+    r["east_m"] = -300.0 + 12.0 * (t_s % 50.0)  # a farm track, south of the crawler's field
+    r["north_m"] = -200.0
+    r["up_m"] = 0.0
+    r["heading_rad"] = 0.0
     for key in WHEEL_KEYS:
         r[f"util_{key}_pct"] = GRIP_PCT[key]
         r[f"slip_{key}_pct"] = 2.0

@@ -180,7 +180,7 @@ def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
     assert {k: v[0] for k, v in grip.items()} == {k: f"{v:.0f}" for k, v in GRIP_PCT.items()}
     assert grip["fl"][1] == "rgb(112, 171, 64)"  # 20 %: 2/5 of the way green → yellow
     assert grip["rr"][1] == "rgb(163, 36, 30)"  # 95 %: 3/4 of the way orange → dark red
-    # its slip tiles say "slip" once; no map: the spec gives no position
+    # its slip tiles say "slip" once; its map offers the μ layer (the spec maps it)
     assert (
         page.evaluate(
             "() => document.getElementById('v-friction-slip-fl').closest('.stat')"
@@ -188,9 +188,13 @@ def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
         )
         == "slip front left"
     )
-    assert page.inner_text("#live-map-title") == f"No map: {FRICTION_SPEC.title} gives no position"
-    assert page.locator("#live-map").is_hidden()
-    assert page.locator("#live-layer").is_hidden()  # no position: no layer
+    assert "No map" not in page.inner_text("#live-map-title")
+    assert page.locator("#live-map").is_visible()
+    mu = next(v.key for v in FRICTION_SPEC.values if v.mapped)
+    assert page.eval_on_selector_all("#live-layer option", "os => os.map(o => o.value)") == [
+        "",
+        mu,
+    ]
     page.screenshot(path=str(screenshots / "steered-live.png"), full_page=True)
 
 
