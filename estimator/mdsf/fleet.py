@@ -94,6 +94,50 @@ def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArra
         yield c, offsets[:c] + r
 
 
+
+def _estimate_rows(
+    flat: TickInputs,
+    res: dict[str, np.ndarray],
+    rim: np.ndarray,
+    radius: np.ndarray,
+    slip: np.ndarray,
+    slip_std: np.ndarray,
+    enu: np.ndarray,
+    heading: np.ndarray,
+) -> np.ndarray:
+    """The rows of a call (``ESTIMATE_DTYPE``, one per tick of ``flat``) from the step's outputs
+    ``res``, the rims and radii ``(m, 2)``, slip and its std ``(m, 2)`` (NaN where not valid),
+    position ``(m, 3)`` and heading; ``flags`` and the calibration fields are the caller's."""
+    out = empty_estimates(flat.m)
+    out["stamp_ns"] = flat.stamp_ns
+    out["vg_mps"] = res["vg"]
+    out["v1_mps"] = res["v1"]
+    out["v0_mps"] = res["v0"]
+    out["vl_mps"] = res["vl"]
+    out["vr_mps"] = res["vr"]
+    out["rim_left_mps"] = rim[:, 0]
+    out["rim_right_mps"] = rim[:, 1]
+    out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
+    out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
+    out["slip_left_pct"] = slip[:, 0]
+    out["slip_right_pct"] = slip[:, 1]
+    out["vg_std_mps"] = res["vg_std"]
+    out["vl_std_mps"] = res["vl_std"]
+    out["vr_std_mps"] = res["vr_std"]
+    out["slip_left_std_pct"] = slip_std[:, 0]
+    out["slip_right_std_pct"] = slip_std[:, 1]
+    out["accel_mps2"] = res["accel"]
+    out["pitch_rate_radps"] = res["pitch_rate"]
+    out["yaw_rate_radps"] = res["yaw_rate"]
+    out["east_m"] = enu[:, 0]
+    out["north_m"] = enu[:, 1]
+    out["up_m"] = enu[:, 2]
+    out["heading_rad"] = heading
+    out["pitch_rad"] = flat.attitude[:, 1]
+    out["roll_rad"] = flat.attitude[:, 2]
+    return out
+
+
 def _filtered_rims(
     so: StepOutput, rim: FloatArray, rim_std: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -364,33 +408,7 @@ class MdsfFleet:
             ).astype(np.int32)
             | flat.wheel_flags
         )
-        out = empty_estimates(total)
-        out["stamp_ns"] = flat.stamp_ns
-        out["vg_mps"] = res["vg"]
-        out["v1_mps"] = res["v1"]
-        out["v0_mps"] = res["v0"]
-        out["vl_mps"] = res["vl"]
-        out["vr_mps"] = res["vr"]
-        out["rim_left_mps"] = rim[:, 0]
-        out["rim_right_mps"] = rim[:, 1]
-        out["omega_left_radps"] = rim[:, 0] / radius[:, 0]
-        out["omega_right_radps"] = rim[:, 1] / radius[:, 1]
-        out["slip_left_pct"] = slip_out[:, 0]
-        out["slip_right_pct"] = slip_out[:, 1]
-        out["vg_std_mps"] = res["vg_std"]
-        out["vl_std_mps"] = res["vl_std"]
-        out["vr_std_mps"] = res["vr_std"]
-        out["slip_left_std_pct"] = slip_std_out[:, 0]
-        out["slip_right_std_pct"] = slip_std_out[:, 1]
-        out["accel_mps2"] = res["accel"]
-        out["pitch_rate_radps"] = res["pitch_rate"]
-        out["yaw_rate_radps"] = res["yaw_rate"]
-        out["east_m"] = enu[:, 0]
-        out["north_m"] = enu[:, 1]
-        out["up_m"] = enu[:, 2]
-        out["heading_rad"] = heading
-        out["pitch_rad"] = flat.attitude[:, 1]
-        out["roll_rad"] = flat.attitude[:, 2]
+        out = _estimate_rows(flat, res, rim, radius, slip_out, slip_std_out, enu, heading)
         out["flags"] = flags
         for name in _CAL_FIELDS:
             out[name] = cal_out[name]
