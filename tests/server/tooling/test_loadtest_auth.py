@@ -95,7 +95,7 @@ def test_with_a_token_file_or_variable_it_runs(
     path.write_text(token + "\n")
     code, out, err = _loadtest(settings, "--token-file", str(path))
     assert code == 0, err
-    assert "vehicles 2 (seen 2)" in out
+    assert "vehicles 2 (seen 2;" in out
     assert sorted(_vehicles(settings, token)) == ["sim-00001", "sim-00002"]
     code, out, err = _loadtest(settings, env={"SLIPFLEET_TOKEN": token})
     assert code == 0, err
