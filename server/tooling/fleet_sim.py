@@ -29,6 +29,7 @@ simulator down instead of dropping packets.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -430,21 +431,34 @@ class FleetSim:
         return vehicles
 
     def run(self, duration_s: float | None = None) -> SimStats:
-        """Publish until the runs end (no loop), ``duration_s`` passes, or :meth:`stop`."""
-        return publish_fleets([self], duration_s, stop=self._stop, stats=self.stats)
+        """Publish until the runs end (no loop), ``duration_s`` passes, or :meth:`stop`.
+
+        A session closed after :meth:`stop` (its caller's wait for this thread ran out while
+        simulating) ends the run like the stop itself.
+        """
+        try:
+            return publish_fleets([self], duration_s, stop=self._stop, stats=self.stats)
+        except zenoh.ZError:
+            if self._stop.is_set():
+                return self.stats
+            raise
 
     def _declare(
-        self, drive_of: dict[int, int], drives: list[EncodedDrive]
+        self, drive_of: dict[int, int], drives: list[EncodedDrive], stop: threading.Event
     ) -> tuple[list[_Vehicle], list[ScheduledVehicle], list[zenoh.Publisher]]:
         """Simulate, encode each distinct drive once, declare publishers, publish configs.
 
         The vehicles' stamp shifts are still relative (the clock reading is added by
         :func:`~server.tooling.fleet_schedule.publish_schedule` as publishing starts).
+        Declaring ends early once ``stop`` is set: a caller stops the fleet before it closes
+        the sessions, and simulating may outlast its wait for this thread.
         """
         vehicles = self._build()
         scheduled: list[ScheduledVehicle] = []
         declared: list[zenoh.Publisher] = []
         for i, v in enumerate(vehicles):
+            if stop.is_set():
+                break
             d = drive_of.get(id(v.packets))
             if d is None:
                 d = drive_of[id(v.packets)] = len(drives)
@@ -509,16 +523,20 @@ def publish_fleets(
     stats = stats if stats is not None else SimStats()
     for s in STREAMS:  # every key present before another thread starts summing the counts
         stats.packets.setdefault(s.value, 0)
+    stop = stop if stop is not None else sims[0]._stop
     drives: list[EncodedDrive] = []
     drive_of: dict[int, int] = {}
     prepared = []
     for sim in sims:
         sim.stats = stats
-        prepared.append(sim._declare(drive_of, drives))
+        prepared.append(sim._declare(drive_of, drives, stop))
     if ready is not None:
         ready.set()
     if go is not None:
         go.wait()
+    if stop.is_set():  # stopped while simulating: the sessions may be closed already
+        _undeclare(prepared)
+        return stats
     # the stamps' time base ("now") is read by publish_schedule once its set-up is done
     scheduled = [v for _, vehicles, _ in prepared for v in vehicles]
     names = [s.value for s in STREAMS]
@@ -538,7 +556,7 @@ def publish_fleets(
             rate=rate,
             loop=loop,
             duration_s=duration_s,
-            stop=stop if stop is not None else sims[0]._stop,
+            stop=stop,
             on_round=_progress,
             keep_lateness=keep_lateness,
             stamp_clock_ns=clock,
@@ -548,11 +566,17 @@ def publish_fleets(
         if done.rounds is not None:
             stats.send_rounds = done.rounds
     finally:
-        for _, _, declared in prepared:
-            for pub in declared:
-                pub.undeclare()
+        _undeclare(prepared)
         stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
     return stats
+
+
+def _undeclare(prepared: Sequence[tuple[object, object, list[zenoh.Publisher]]]) -> None:
+    """Undeclare every publisher; one whose session is closed already went with it."""
+    for _, _, declared in prepared:
+        for pub in declared:
+            with contextlib.suppress(zenoh.ZError):
+                pub.undeclare()
 
 
 def _prefix_of(key: str) -> str:

@@ -157,3 +157,23 @@ def test_fleet_over_several_sessions() -> None:
     snap = pipe.counters_snapshot()
     assert sorted(snap) == sim.vehicle_ids == ["sim-0001", "sim-0002", "sim-0003", "sim-0004"]
     assert sum(c["accepted"] for c in snap.values()) == stats.total_packets > 0
+
+
+@pytest.mark.zenoh
+def test_a_fleet_stopped_while_simulating_ends_quietly_when_its_session_closes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The demo stops its fleets, waits a few seconds for each thread, then closes the session;
+    a fleet still simulating then must end without touching the closed session."""
+    raised: list[BaseException | None] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: raised.append(args.exc_value))
+    with embedded_router() as (_, _, endpoint), client_session(endpoint) as session:
+        sim = FleetSim(session, 3, seed=5)
+        sim.start()
+        sim.stop(timeout_s=0.0)  # simulating the runs takes far longer than this
+        session.close()
+        assert sim._thread is not None
+        sim._thread.join(120)
+        assert not sim._thread.is_alive()
+    assert raised == []
+    assert sim.stats.total_packets == 0
