@@ -1,7 +1,8 @@
 """``/vehicles/{id}/calibration``: each calibration of the newest stored row with its std,
 converged against the vehicle config's threshold and since when; the reset goes to the runtime.
 
-Real parts: the app over a real SQLite store (the test runtime), rows written into it."""
+Real parts: the app over a real store (the test runtime: SQLite, and PostgreSQL), rows written
+into it."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import EstimateFlag, empty_estimates
 from server.estimation.calibration import stored_calibrations
+from server.settings import Settings
 from server.storage.base import Store
 
 from ._data import T0
@@ -22,6 +24,13 @@ from .conftest import ApiClient, FakeRuntime, error_of, make_settings, running_o
 V = "/api/v1/vehicles"
 STEP_NS = 100_000_000
 RADIUS_M = 0.8
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def settings(tmp_path: Path, request: pytest.FixtureRequest) -> Settings:
+    """The test runtime's store: SQLite in ``tmp_path``, or a fresh PostgreSQL database."""
+    url = request.getfixturevalue("pg_database_url") if request.param == "postgresql" else None
+    return make_settings(tmp_path, url=url)
 
 
 def _learning(n: int = 50) -> np.ndarray:
@@ -139,10 +148,10 @@ def test_the_spec_lists_the_calibrations_for_clients(client: ApiClient) -> None:
     )
 
 
-def test_the_newest_stored_calibration_is_what_a_restart_restores(tmp_path: Path) -> None:
+def test_the_newest_stored_calibration_is_what_a_restart_restores(settings: Settings) -> None:
     """:func:`stored_calibrations` reads every vehicle's newest row (values and stds), and
     leaves out rows without a calibration (NaN)."""
-    with running_on(make_settings(tmp_path)) as (client, runtime):
+    with running_on(settings) as (client, runtime):
         client.put(f"{V}/t1", json={})
         client.put(f"{V}/t2", json={})
         runtime.store.write_estimates([("t1", _learning())])
