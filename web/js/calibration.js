@@ -10,6 +10,9 @@ import { ApiError, getJSON, sendJSON } from "./api.js";
 import { el, fmtTimeNs, timeTitle } from "./util.js";
 
 const REFRESH_MS = 5000;
+// stored rows read for "since when" (the REST default, an hour, costs ~0.2 s a call; a stretch
+// older than this is said "≤ <window start>")
+const LOOKBACK_S = 900;
 
 // A value with its σ in a readable unit: seconds as ms, radians as degrees, metres as mm for σ.
 const SHOWN = {
@@ -103,7 +106,7 @@ export function calibrationPanel(vehicleId, specs) {
   };
   async function refresh() {
     try {
-      const cal = await getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/calibration`);
+      const cal = await getJSON(`/api/v1/vehicles/${encodeURIComponent(vehicleId)}/calibration`, { lookback_s: LOOKBACK_S });
       if (stopped) return;
       root.hidden = !cal.estimators.length;
       body.replaceChildren(...cal.estimators.map((p) => estimatorPart(vehicleId, p, specs.get(p.estimator), say)));

@@ -14,6 +14,7 @@ import pytest
 
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import EstimateFlag, empty_estimates
+from server.api.limits import HEAVY_ROUTES
 from server.estimation.calibration import stored_calibrations
 from server.settings import Settings
 from server.storage.base import Store
@@ -160,3 +161,10 @@ def test_the_newest_stored_calibration_is_what_a_restart_restores(settings: Sett
     assert set(got) == {("t1", "mdsf")}
     assert got[("t1", "mdsf")]["radius_left_std_m"] == pytest.approx(0.0005 * 0.816)
     assert got[("t1", "mdsf")]["gnss_clock_offset_s"] == pytest.approx(-0.08)
+
+
+def test_the_calibration_read_is_an_expensive_route_and_the_reset_is_not() -> None:
+    """Reading ``since`` over up to a day of rows is held to the heavy routes' limits."""
+    limited = [n for n, p in HEAVY_ROUTES.items() if p.match(f"{V}/t1/calibration")]
+    assert limited == ["calibration"]
+    assert not any(p.match(f"{V}/t1/calibration/mdsf") for p in HEAVY_ROUTES.values())
