@@ -1,6 +1,7 @@
 // Vehicle page, online calibration: for every estimator of the vehicle whose spec declares
 // calibrations (GET /api/v1/vehicles/{id}/calibration, every 5 s), a table of each calibration's
-// value ± 1σ in its unit, converged / uncalibrated / off, and since when; whether the newest row
+// value ± 1σ in its unit, converged / uncalibrated / configured (not learnt, not waited for) /
+// off, and since when; whether the newest row
 // is flagged uncalibrated. Operators get the estimator's commands (MDSF: the calibration drive,
 // PUT …/commands/{estimator}/{key}) and a reset (DELETE …/calibration/{estimator}); a token
 // below operator is refused by the server (403), which the panel says. Nothing here names an
@@ -27,10 +28,14 @@ function fmtValue(v, unit) {
   return `${(v * k).toFixed(d)} ${u}`.trim();
 }
 
-function stateOf(c) {
+// A calibration's state; one not converged while the newest row is not flagged uncalibrated is
+// one the estimator does not wait for (it cannot learn it now): the configured value, in use.
+function stateOf(c, part) {
   if (!c.enabled) return ["off", "turned off in the vehicle's config"];
   if (c.value == null) return ["none", "no value yet"];
-  return c.converged ? ["converged", ""] : ["uncalibrated", c.limit == null ? "" : `converges below σ ${fmtValue(c.limit, c.unit)}`];
+  if (c.converged) return ["converged", ""];
+  if (part.uncalibrated === false) return ["configured", "not learnt: the configured value is used"];
+  return ["uncalibrated", c.limit == null ? "" : `converges below σ ${fmtValue(c.limit, c.unit)}`];
 }
 
 function sinceCell(c) {
@@ -39,8 +44,8 @@ function sinceCell(c) {
   return el("td", { class: "cal-since", title: timeTitle(c.since_ns), "data-since-ns": String(c.since_ns), text: c.since_window_start ? `≤ ${when}` : when });
 }
 
-function row(c) {
-  const [state, note] = stateOf(c);
+function row(c, part) {
+  const [state, note] = stateOf(c, part);
   return el(
     "tr",
     { "data-calibration": c.key, "data-state": state },
@@ -84,7 +89,7 @@ function estimatorPart(vehicleId, part, spec, say) {
     { class: "cal-part", "data-estimator": part.estimator },
     el("h3", { text: spec?.title || part.estimator }),
     state,
-    el("table", { class: "ingest-table cal-table" }, el("tbody", {}, ...part.calibrations.map(row))),
+    el("table", { class: "ingest-table cal-table" }, el("tbody", {}, ...part.calibrations.map((c) => row(c, part)))),
     controls,
   );
 }
