@@ -258,8 +258,9 @@ class CalibrationChannel:
     path, e.g. ``"calibration.radius_converged_pct"``) times ``limit_scale`` (into the std's
     unit), times ``|value|`` too when ``relative``. ``enabled_config`` names the config switch
     that turns it on (off: the estimator keeps the configured value). An estimator whose spec
-    has calibrations takes them back with ``restore_calibration_fields(vehicle_id, values)``
-    (``{field: value}`` as in its rows) and forgets them with ``reset_calibration(vehicle_id)``.
+    has calibrations gives a vehicle's with ``calibration_fields(vehicle_id)`` (``{field:
+    value}`` as in its rows), takes them back with ``restore_calibration_fields(vehicle_id,
+    values)`` and forgets them with ``reset_calibration(vehicle_id)``.
     """
 
     key: str

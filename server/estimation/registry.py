@@ -343,12 +343,12 @@ class EstimatorRegistry:
             stored = self._stored_calibrations.pop((vehicle_id, name), None)
             values = kept.get(name, stored)
             est = self._estimators[name]
-            if values is None or not isinstance(est, Calibrating):
+            if values is None or not (est.spec.calibrations and isinstance(est, Calibrating)):
                 continue
             finite = all(math.isfinite(v) for v in values.values())
             restore = est.restore_calibration_fields
             if finite and self._guard(vehicle_id, name, "restore_calibration", restore, values):
-                log.info("estimator %s: calibration of %s restored", name, vehicle_id)
+                log.debug("estimator %s: calibration of %s restored", name, vehicle_id)
 
     def _take_back(self, vehicle_id: str, touched: list[str]) -> None:
         """Undo a refused config in the estimators ``touched`` (see :meth:`add_vehicle`): the
