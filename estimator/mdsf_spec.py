@@ -6,7 +6,10 @@ This module only describes them for the rest of the product (units, labels, chan
 
 from __future__ import annotations
 
+import math
+
 from estimator.spec import (
+    CalibrationChannel,
     ChartSpec,
     CommandSpec,
     EstimatorSpec,
@@ -97,6 +100,63 @@ _FLAG_TEXT: dict[str, str] = {
 }
 
 
+_MS = 1e-3
+_PCT = 1e-2
+_DEG = math.pi / 180.0
+
+_CALIBRATIONS = (
+    CalibrationChannel(
+        "gnss_clock_offset",
+        "GNSS clock offset",
+        "gnss_clock_offset_s",
+        "gnss_clock_offset_std_s",
+        "calibration.clock_offset_converged_ms",
+        _MS,
+        enabled_config="calibration.clock_offsets",
+    ),
+    CalibrationChannel(
+        "wheel_clock_offset",
+        "wheel clock offset",
+        "wheel_clock_offset_s",
+        "wheel_clock_offset_std_s",
+        "calibration.clock_offset_converged_ms",
+        _MS,
+        enabled_config="calibration.clock_offsets",
+    ),
+    CalibrationChannel(
+        "radius_left",
+        "left rolling radius",
+        "radius_left_m",
+        "radius_left_std_m",
+        "calibration.radius_converged_pct",
+        _PCT,
+        relative=True,
+        enabled_config="calibration.wheel_radius",
+    ),
+    CalibrationChannel(
+        "radius_right",
+        "right rolling radius",
+        "radius_right_m",
+        "radius_right_std_m",
+        "calibration.radius_converged_pct",
+        _PCT,
+        relative=True,
+        enabled_config="calibration.wheel_radius",
+    ),
+    CalibrationChannel(
+        "imu_pitch_mount",
+        "IMU mounting pitch",
+        "imu_pitch_mount_rad",
+        "imu_pitch_mount_std_rad",
+        "calibration.imu_pitch_converged_deg",
+        _DEG,
+        enabled_config="calibration.imu_mounting",
+    ),
+)
+"""The online calibration (:mod:`estimator.mdsf.calibration`) as the rows carry it, each
+converged below its ``CalibrationConfig`` threshold."""
+
+
 MDSF_SPEC = EstimatorSpec(
     name="mdsf",
     title="MDSF wheel slip",
@@ -162,5 +222,7 @@ MDSF_SPEC = EstimatorSpec(
             "in tow, gently) and every wheel's rolling radius and clock are learnt",
         ),
     ),
+    calibrations=_CALIBRATIONS,
+    uncalibrated_flag="UNCALIBRATED",
     row_dtype=ESTIMATE_DTYPE,
 )

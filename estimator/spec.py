@@ -23,6 +23,9 @@ estimator's field names. A spec says:
     the 3D view colours a tyre by when the spec has one;
   - :class:`CommandSpec`: a switch an operator turns on or off for one vehicle (MDSF's
     calibration drive), sent to the running estimator;
+  - :class:`CalibrationChannel`: a quantity the estimator calibrates online per vehicle (a
+    rolling radius, a clock offset), its value and 1-sigma carried in the rows, and where the
+    vehicle's config sets the std below which it has converged;
   - ``ok_flag`` / ``degraded_flags``: the row's quality at a glance.
 
 A spec is pure data (no numerics, no I/O) so the server can read every spec without building an
@@ -41,6 +44,7 @@ import numpy as np
 
 __all__ = [
     "AlertRule",
+    "CalibrationChannel",
     "ChartSpec",
     "CommandSpec",
     "EstimatorSpec",
@@ -246,6 +250,43 @@ class CommandSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class CalibrationChannel:
+    """A quantity the estimator learns online for each vehicle, read from its rows.
+
+    ``field`` holds the value and ``std_field`` its 1-sigma (same unit). It has converged while
+    ``std <= limit``, the limit being the vehicle config's number at ``limit_config`` (a dotted
+    path, e.g. ``"calibration.radius_converged_pct"``) times ``limit_scale`` (into the std's
+    unit), times ``|value|`` too when ``relative``. ``enabled_config`` names the config switch
+    that turns it on (off: the estimator keeps the configured value). An estimator whose spec
+    has calibrations gives a vehicle's with ``calibration_fields(vehicle_id)`` (``{field:
+    value}`` as in its rows), takes them back with ``restore_calibration_fields(vehicle_id,
+    values)`` and forgets them with ``reset_calibration(vehicle_id)``.
+    """
+
+    key: str
+    label: str
+    field: str
+    std_field: str
+    limit_config: str
+    limit_scale: float = 1.0
+    relative: bool = False
+    enabled_config: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (in the spec's ``calibrations``)."""
+        return {
+            "key": self.key,
+            "label": self.label,
+            "field": self.field,
+            "std_field": self.std_field,
+            "limit_config": self.limit_config,
+            "limit_scale": self.limit_scale,
+            "relative": self.relative,
+            "enabled_config": self.enabled_config,
+        }
+
+
+@dataclass(frozen=True, slots=True)
 class AlertRule:
     """An alert an estimator's rows raise: a condition on one row, held ``hold_s`` (sensor time).
 
@@ -312,6 +353,10 @@ class EstimatorSpec:
         Alerts of the estimator's own beyond the slip threshold and degraded flags.
     commands : tuple of CommandSpec
         Switches an operator may send the running estimator for one vehicle.
+    calibrations : tuple of CalibrationChannel
+        What it calibrates online per vehicle (value and std fields of its rows).
+    uncalibrated_flag : str or None
+        Flag of rows whose values rest on a calibration that has not converged.
     row_dtype : numpy.dtype, optional
         The estimator's own dtype object for its rows, when it has one: it must equal the
         fields' dtype, and :attr:`dtype` is then that very object, so checking a row array's
@@ -337,6 +382,8 @@ class EstimatorSpec:
     wheel_values: tuple[WheelValueChannel, ...] = ()
     alerts: tuple[AlertRule, ...] = ()
     commands: tuple[CommandSpec, ...] = ()
+    calibrations: tuple[CalibrationChannel, ...] = ()
+    uncalibrated_flag: str | None = None
     row_dtype: InitVar[np.dtype | None] = None
     _by_name: Mapping[str, FieldSpec] = field(init=False, repr=False, compare=False)
     _dtype: np.dtype = field(init=False, repr=False, compare=False)
@@ -443,10 +490,15 @@ class EstimatorSpec:
             self._need_flag(v.valid_flag, f"value channel {v.key}")
         for w in self.wheel_values:
             self._need_field(w.field, f"wheel value channel {w.key}")
+        for c in self.calibrations:
+            self._need_field(c.field, f"calibration {c.key}")
+            self._need_field(c.std_field, f"calibration {c.key}")
+        self._need_flag(self.uncalibrated_flag, "uncalibrated_flag")
         for keys in (
             [s.key for s in self.states],
             [v.key for v in self.values],
             [c.key for c in self.commands],
+            [c.key for c in self.calibrations],
         ):
             if len(set(keys)) != len(keys):
                 raise SpecError(f"{self.name}: duplicate channel keys {keys}")
@@ -458,6 +510,13 @@ class EstimatorSpec:
             if c.key == key:
                 return c
         raise KeyError(f"estimator {self.name!r} has no command {key!r}")
+
+    def calibration(self, key: str) -> CalibrationChannel:
+        """The calibration ``key`` (``KeyError`` naming the estimator if it has none)."""
+        for c in self.calibrations:
+            if c.key == key:
+                return c
+        raise KeyError(f"estimator {self.name!r} has no calibration {key!r}")
 
     def value(self, key: str) -> ValueChannel:
         """The value channel ``key`` (``KeyError`` naming the estimator if it has none)."""
@@ -593,8 +652,8 @@ class EstimatorSpec:
         }
 
     def _extra_channels_dict(self) -> dict[str, Any]:
-        """``states``, ``values``, ``wheel_values``, ``alerts`` and ``commands`` of
-        :meth:`to_dict`."""
+        """``states``, ``values``, ``wheel_values``, ``alerts``, ``commands``,
+        ``calibrations`` and ``uncalibrated_flag`` of :meth:`to_dict`."""
         return {
             "states": [
                 {
@@ -630,4 +689,6 @@ class EstimatorSpec:
                 {"key": c.key, "label": c.label, "description": c.description}
                 for c in self.commands
             ],
+            "calibrations": [c.to_dict() for c in self.calibrations],
+            "uncalibrated_flag": self.uncalibrated_flag,
         }

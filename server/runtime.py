@@ -11,6 +11,7 @@ the API reads ``store``, ``live_hub``, ``alert_engine`` and the hooks below.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import threading
@@ -28,7 +29,9 @@ from estimator.config import (
 )
 from estimator.geo import EnuFrame
 from server.analytics.alerts import AlertEngine, AlertKind
+from server.estimation.calibration import stored_calibrations
 from server.estimation.registry import (
+    RESET_CALIBRATION,
     EstimatorRegistry,
     UnknownEstimatorError,
     estimator_names_for,
@@ -98,11 +101,22 @@ class Runtime:
             rule_limits=s.alerts.engine_limits(),
         )
         self.session = open_session(s.zenoh)
-        self.registry = EstimatorRegistry()
+        # each vehicle starts from its newest stored calibration (restored, not relearnt)
+        registry_factory = functools.partial(
+            EstimatorRegistry, calibrations=stored_calibrations(self._store)
+        )
+        self.registry = registry_factory()
         sinks: list[EstimateSink] = [self.writer, self.live_hub, self.alert_engine, self.latency]
         raw_sink = self.writer.submit_raw_packets if s.storage.store_raw_packets else None
         self.pipeline = (
-            WorkerPool(s, self.session, sinks, self._on_new_vehicle, raw_sink=raw_sink)
+            WorkerPool(
+                s,
+                self.session,
+                sinks,
+                self._on_new_vehicle,
+                raw_sink=raw_sink,
+                registry_factory=registry_factory,
+            )
             if s.ingest.workers
             else Pipeline(
                 s,
@@ -213,6 +227,11 @@ class Runtime:
         """API hook: an operator turned an estimator's command on or off for a vehicle."""
         if self.pipeline is not None:
             self.pipeline.send_command(vehicle_id, estimator, key, on)
+
+    def on_calibration_reset(self, vehicle_id: str, estimator: str) -> None:
+        """API hook: an operator reset a vehicle's calibration in one of its estimators."""
+        if self.pipeline is not None:
+            self.pipeline.send_command(vehicle_id, estimator, RESET_CALIBRATION, True)
 
     def on_vehicle_deleted(self, vehicle_id: str) -> None:
         """API hook: the store deleted the vehicle; forget it everywhere."""

@@ -211,6 +211,7 @@ class MdsfFleet:
         """Online calibration of every vehicle (product mode; :mod:`estimator.mdsf.calibration`)."""
         self._product = self.config.mode is MdsfMode.PRODUCT
         self._slot: dict[str, int] = {}
+        self._configs: dict[str, WheeledRearDriveConfig] = {}  # reset_calibration's priors
         # per slot: wheel radii and rim travel per encoder tooth (left, right) [m], the slip's
         # minimum ground speed [m/s] and settling limit (SlipConfig)
         self._radius_m = np.zeros((0, 2))
@@ -229,6 +230,7 @@ class MdsfFleet:
         self.remove_vehicle(vehicle_id)
         slot = self.engine.add(config)
         self._slot[vehicle_id] = slot
+        self._configs[vehicle_id] = config
         self.front.add(slot, config)
         self.carry.add(slot, config.geometry.antenna_offset_m)
         self.calibration_bank.add(slot, config)
@@ -252,6 +254,7 @@ class MdsfFleet:
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
         slot = self._slot.pop(vehicle_id, None)
+        self._configs.pop(vehicle_id, None)
         if slot is not None:
             self.engine.release(slot)
             self.front.release(slot)
@@ -305,6 +308,41 @@ class MdsfFleet:
         if key != "calibration_drive":
             raise KeyError(f"mdsf has no command {key!r}")
         self.calibration_drive(vehicle_id, on)
+
+    def calibration_fields(self, vehicle_id: str) -> dict[str, float]:
+        """The calibration as its row fields (``MDSF_SPEC.calibrations``: values and stds, the
+        radii in metres); ``KeyError`` if unknown."""
+        slots = np.array([self._slot[vehicle_id]])
+        fields = self.calibration_bank.row_fields(slots, self._radius_m[slots])
+        return {name: float(v[0]) for name, v in fields.items()}
+
+    def restore_calibration_fields(self, vehicle_id: str, values: Mapping[str, float]) -> None:
+        """Start the vehicle from its calibration's row fields (:meth:`calibration_fields`, a
+        stored row's); ``KeyError`` if unknown or a field is missing."""
+        radius = self._radius_m[self._slot[vehicle_id]]
+        self.restore_calibration(
+            vehicle_id,
+            MdsfCalibration(
+                gnss_clock_offset_s=values["gnss_clock_offset_s"],
+                gnss_clock_offset_std_s=values["gnss_clock_offset_std_s"],
+                wheel_clock_offset_s=values["wheel_clock_offset_s"],
+                wheel_clock_offset_std_s=values["wheel_clock_offset_std_s"],
+                radius_scale_left=values["radius_left_m"] / radius[0],
+                radius_scale_left_std=values["radius_left_std_m"] / radius[0],
+                radius_scale_right=values["radius_right_m"] / radius[1],
+                radius_scale_right_std=values["radius_right_std_m"] / radius[1],
+                imu_pitch_rad=values["imu_pitch_mount_rad"],
+                imu_pitch_std_rad=values["imu_pitch_mount_std_rad"],
+            ),
+        )
+
+    def reset_calibration(self, vehicle_id: str) -> None:
+        """Forget the vehicle's calibration: back to its config's priors, learnt anew (a
+        calibration drive that is on stays on); ``KeyError`` if unknown."""
+        slot = self._slot[vehicle_id]
+        drive = bool(self.calibration_bank.drive[slot])
+        self.calibration_bank.add(slot, self._configs[vehicle_id])
+        self.calibration_bank.set_drive(slot, drive)
 
     def counters(self, vehicle_id: str) -> dict[str, int]:
         """Event counters of one vehicle: ticks, GNSS fused/gated/re-acquired, resets,

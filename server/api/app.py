@@ -35,6 +35,7 @@ from server.api.errors import ErrorBody, error_response, install_error_handlers
 from server.api.limits import HEAVY_ROUTES, HeavyLimitState, HeavyRequestLimit
 from server.api.routes import (
     alerts,
+    calibration,
     dashboard,
     estimators,
     health,
@@ -65,6 +66,7 @@ API_PREFIX = "/api/v1"
 #: Every router of the REST API, in the order they appear in the docs. Add new routers here.
 API_ROUTERS: tuple[APIRouter, ...] = (
     vehicles.router,
+    calibration.router,
     estimators.router,
     series.router,
     reports.router,

@@ -38,6 +38,7 @@ HEAVY_ROUTES: dict[str, re.Pattern[str]] = {
     "vehicle_report": re.compile(r"^/api/v1/vehicles/[^/]+/report/?$"),
     "vehicle_slipmap": re.compile(r"^/api/v1/vehicles/[^/]+/slipmap/?$"),
     "series": re.compile(r"^/api/v1/vehicles/[^/]+/series/?$"),
+    "calibration": re.compile(r"^/api/v1/vehicles/[^/]+/calibration/?$"),
 }
 
 

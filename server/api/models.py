@@ -438,6 +438,19 @@ class CommandSpecPublic(BaseModel):
     description: str
 
 
+class CalibrationChannelSpecPublic(BaseModel):
+    """A quantity the estimator calibrates online per vehicle (its rows carry it)."""
+
+    key: str
+    label: str
+    field: str = Field(description="row field of the value")
+    std_field: str = Field(description="row field of its 1-sigma")
+    limit_config: str = Field(description="vehicle config number the std converges below")
+    limit_scale: float = Field(description="turns that number into the std's unit")
+    relative: bool = Field(description="the limit is relative to |value|")
+    enabled_config: str | None = Field(description="vehicle config switch that turns it on")
+
+
 class EstimatorSpecPublic(BaseModel):
     """What an estimator takes and gives (``estimator.spec.EstimatorSpec.to_dict()``)."""
 
@@ -460,6 +473,8 @@ class EstimatorSpecPublic(BaseModel):
     wheel_values: list[WheelValueChannelSpecPublic] = []
     alerts: list[AlertRuleSpecPublic] = []
     commands: list[CommandSpecPublic] = []
+    calibrations: list[CalibrationChannelSpecPublic] = []
+    uncalibrated_flag: str | None = None
 
 
 class EstimatorsPublic(BaseModel):

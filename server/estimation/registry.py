@@ -35,13 +35,22 @@ fails, so the other vehicles' rows and the other estimators' are all delivered. 
 an estimator refuses is taken back (:class:`ConfigRefusedError`; the vehicle keeps its old
 config). Unknown names raise :class:`UnknownEstimatorError`.
 
+Online calibration: an estimator whose spec declares ``calibrations`` (and implements
+:class:`Calibrating`) keeps a vehicle's calibration when the vehicle is registered again (a new
+config, a clock re-anchor: taken before, given back after, as the rows carry it), starts a
+vehicle it did not hold from the stored calibration the registry was given (``calibrations``,
+the newest stored row's, once) and forgets it on :data:`RESET_CALIBRATION` (counted
+``calibration_resets`` in its counters, logged).
+
 The registry holds one ``FleetEstimator`` per name and is used from one thread (the pipeline).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Mapping
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -54,6 +63,9 @@ from estimator.types import EstimateBatch
 __all__ = [
     "DEFAULT_FACTORIES",
     "KIND_DEFAULTS",
+    "RESET_CALIBRATION",
+    "Calibrating",
+    "CalibrationValues",
     "ConfigRefusedError",
     "ErrorHandler",
     "EstimatorRegistry",
@@ -106,6 +118,26 @@ KIND_DEFAULTS: Mapping[VehicleKind, tuple[str, ...]] = {
     VehicleKind.TRACKED: ("tracked",),
     VehicleKind.WHEELED_4WD_STEERED: ("friction",),
 }
+
+
+#: A vehicle's calibration as its estimator's rows carry it: ``{field: value}`` of the spec's
+#: ``calibrations`` (values and stds).
+CalibrationValues = Mapping[str, float]
+
+#: The command key (never one of a spec's ``commands``) that makes an estimator forget a
+#: vehicle's calibration and learn it anew.
+RESET_CALIBRATION = "reset_calibration"
+
+
+@runtime_checkable
+class Calibrating(Protocol):
+    """What an estimator whose spec declares ``calibrations`` implements (state out and in)."""
+
+    def calibration_fields(self, vehicle_id: str) -> dict[str, float]: ...
+
+    def restore_calibration_fields(self, vehicle_id: str, values: CalibrationValues) -> None: ...
+
+    def reset_calibration(self, vehicle_id: str) -> None: ...
 
 
 class UnknownEstimatorError(ValueError):
@@ -165,6 +197,9 @@ class EstimatorRegistry:
     on_error : ErrorHandler, optional
         Told of every estimator call that raised (default: a log line); may be set later
         through the attribute of that name (the pipeline counts them per vehicle).
+    calibrations : mapping of (vehicle_id, estimator) -> CalibrationValues, optional
+        Stored calibrations (the newest stored rows'), each given to its estimator when it
+        first starts that vehicle.
     """
 
     def __init__(
@@ -172,6 +207,7 @@ class EstimatorRegistry:
         factories: Mapping[str, EstimatorFactory] | None = None,
         kind_defaults: Mapping[VehicleKind, tuple[str, ...]] | None = None,
         on_error: ErrorHandler | None = None,
+        calibrations: Mapping[tuple[str, str], CalibrationValues] | None = None,
     ) -> None:
         self._factories = dict(DEFAULT_FACTORIES if factories is None else factories)
         self._kind_defaults = dict(KIND_DEFAULTS if kind_defaults is None else kind_defaults)
@@ -182,6 +218,8 @@ class EstimatorRegistry:
         self._members: dict[str, set[str]] = {}  # estimator -> its vehicles
         # vehicle -> stream -> ((name, estimator), ...) whose spec takes that stream
         self._by_stream: dict[str, dict[str, tuple[tuple[str, FleetEstimator], ...]]] = {}
+        self._stored_calibrations = dict(calibrations or {})  # each used once
+        self._calibration_resets: dict[tuple[str, str], int] = {}  # (vehicle, estimator) -> n
 
     def counters(self) -> dict[str, dict[str, dict[str, int]]]:
         """Event counters of every estimator that keeps them (an optional ``counters(vehicle_id)``
@@ -199,6 +237,9 @@ class EstimatorRegistry:
                 out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
             except Exception:
                 log.exception("estimator %s: counters failed", name)
+        for (vid, name), n in self._calibration_resets.items():
+            if vid in out.get(name, {}):
+                out[name][vid]["calibration_resets"] = n
         return out
 
     def set_anchor(self, vehicle_id: str, anchor: tuple[float, float, float]) -> None:
@@ -264,6 +305,7 @@ class EstimatorRegistry:
         config and estimators (a new vehicle stays unknown).
         """
         names = self.names_for(config)
+        kept = self._calibrations_of(vehicle_id)
         done: list[str] = []
         for name in names:
             try:
@@ -276,7 +318,37 @@ class EstimatorRegistry:
             if old not in names:
                 self._guard(vehicle_id, old, "remove_vehicle", self._estimators[old].remove_vehicle)
         self._route(vehicle_id, names, config)
+        self._restore_calibrations(vehicle_id, names, kept)
         return names
+
+    def _calibrations_of(self, vehicle_id: str) -> dict[str, dict[str, float]]:
+        """The calibrations the vehicle's running estimators hold, by estimator name."""
+        out: dict[str, dict[str, float]] = {}
+        for name in self._routes.get(vehicle_id, ()):
+            est = self._estimators[name]
+            if est.spec.calibrations and isinstance(est, Calibrating):
+                try:
+                    out[name] = est.calibration_fields(vehicle_id)
+                except Exception as exc:
+                    self.on_error(vehicle_id, name, "calibration_fields", exc)
+        return out
+
+    def _restore_calibrations(
+        self, vehicle_id: str, names: tuple[str, ...], kept: Mapping[str, CalibrationValues]
+    ) -> None:
+        """Give the estimators ``names`` of the vehicle the calibration it had (``kept``), else
+        the stored one; one with a non-finite value (rows of a mode that does not calibrate)
+        is not given."""
+        for name in names:
+            stored = self._stored_calibrations.pop((vehicle_id, name), None)
+            values = kept.get(name, stored)
+            est = self._estimators[name]
+            if values is None or not (est.spec.calibrations and isinstance(est, Calibrating)):
+                continue
+            finite = all(math.isfinite(v) for v in values.values())
+            restore = est.restore_calibration_fields
+            if finite and self._guard(vehicle_id, name, "restore_calibration", restore, values):
+                log.debug("estimator %s: calibration of %s restored", name, vehicle_id)
 
     def _take_back(self, vehicle_id: str, touched: list[str]) -> None:
         """Undo a refused config in the estimators ``touched`` (see :meth:`add_vehicle`): the
@@ -329,6 +401,8 @@ class EstimatorRegistry:
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Stop estimating ``vehicle_id`` (no error if unknown)."""
+        for key in [k for k in self._calibration_resets if k[0] == vehicle_id]:
+            del self._calibration_resets[key]
         for name in self._unroute(vehicle_id):
             self._guard(vehicle_id, name, "remove_vehicle", self._estimators[name].remove_vehicle)
 
@@ -349,6 +423,8 @@ class EstimatorRegistry:
         try:
             if estimator not in self.estimators_of(vehicle_id):
                 raise KeyError(f"{vehicle_id!r} does not run {estimator!r}")
+            if key == RESET_CALIBRATION:
+                return self._reset_calibration(vehicle_id, estimator)
             take = getattr(self.estimator(estimator), "command", None)
             if take is None:
                 raise KeyError(f"{estimator!r} takes no commands")
@@ -356,6 +432,20 @@ class EstimatorRegistry:
             self.on_error(vehicle_id, estimator, "command", exc)
             return False
         return self._guard(vehicle_id, estimator, "command", take, key, on)
+
+    def _reset_calibration(self, vehicle_id: str, estimator: str) -> bool:
+        """The estimator forgets the vehicle's calibration and learns it anew (counted in its
+        counters as ``calibration_resets``, logged); ``KeyError`` if it does not calibrate."""
+        est = self.estimator(estimator)
+        if not isinstance(est, Calibrating):
+            raise KeyError(f"{estimator!r} keeps no calibration")
+        self._stored_calibrations.pop((vehicle_id, estimator), None)
+        if not self._guard(vehicle_id, estimator, "reset_calibration", est.reset_calibration):
+            return False
+        key = (vehicle_id, estimator)
+        self._calibration_resets[key] = self._calibration_resets.get(key, 0) + 1
+        log.info("estimator %s: calibration of %s reset", estimator, vehicle_id)
+        return True
 
     def push(self, vehicle_id: str, measurement: Pushed) -> None:
         """Hand ``measurement`` to every estimator ``vehicle_id`` runs whose spec takes its

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from estimator.catalog import SPECS, spec_of
+from estimator.config import WheeledRearDriveConfig
 from estimator.spec import (
+    CalibrationChannel,
     EstimatorSpec,
     FieldSpec,
     FlagSpec,
@@ -159,3 +161,33 @@ def test_the_crawler_state_channel_names_the_estimators_motion_states() -> None:
     assert [(s.value, s.name) for s in channel.states] == [
         (int(m), m.name.lower()) for m in MotionState
     ]
+
+
+def test_calibration_channels_are_checked() -> None:
+    """A calibration names an f8 value and std field of the rows, keys are unique, and the
+    uncalibrated flag is one of the spec's."""
+    cal = CalibrationChannel("r", "radius", "s_pct", "s_pct", "calibration.radius_converged_pct")
+    with pytest.raises(SpecError, match="calibration r"):
+        _spec(calibrations=(CalibrationChannel("r", "r", "s_pct", "nope", "x"),))
+    with pytest.raises(SpecError, match="duplicate channel keys"):
+        _spec(calibrations=(cal, cal))
+    with pytest.raises(SpecError, match="unknown flag 'NOPE'"):
+        _spec(calibrations=(cal,), uncalibrated_flag="NOPE")
+    spec = _spec(calibrations=(cal,), uncalibrated_flag="OK")
+    assert spec.calibration("r") is cal
+    assert spec.to_dict()["calibrations"][0]["limit_config"] == "calibration.radius_converged_pct"
+    with pytest.raises(KeyError, match="no calibration 'q'"):
+        spec.calibration("q")
+
+
+def test_mdsf_calibrations_name_its_config_thresholds_and_switches() -> None:
+    """Every MDSF calibration's limit and switch are numbers and booleans of the config (the
+    server reads them by these paths)."""
+    config = WheeledRearDriveConfig()
+    for c in spec_of("mdsf").calibrations:
+        for path, kind in ((c.limit_config, float), (c.enabled_config, bool)):
+            assert path is not None
+            value: object = config
+            for part in path.split("."):
+                value = getattr(value, part)
+            assert isinstance(value, kind), (c.key, path)

@@ -50,6 +50,18 @@ export class ApiError extends Error {
 
 export async function getJSON(path, params) {
   const resp = await fetch(`${config.base}${path}${query(params)}`, { headers: headers() });
+  return answerOf(resp);
+}
+
+// REST write (PUT, POST, DELETE) with an optional JSON body; the answer's JSON, or ApiError.
+export async function sendJSON(method, path, body) {
+  const h = headers();
+  if (body !== undefined) h["Content-Type"] = "application/json";
+  const resp = await fetch(`${config.base}${path}`, { method, headers: h, body: body === undefined ? undefined : JSON.stringify(body) });
+  return answerOf(resp);
+}
+
+async function answerOf(resp) {
   if (!resp.ok) {
     let code = "error";
     let reason = resp.statusText;

@@ -12,6 +12,7 @@
 // page stops asking for it. A stored vehicle with no live data (parked since the server started)
 // is marked "not live", with the time of its newest stored estimate and a way to its history.
 
+import { calibrationPanel } from "./calibration.js";
 import { ApiError, fetchReport, fetchVehicle, getJSON, liveSocket, loadDashboardConfig } from "./api.js";
 import { alignedData, chartOptions, qualitySpans, makeChart, setShading, setThreshold } from "./charts.js";
 import { gripCss, slipBand, slipCss } from "./colors.js";
@@ -221,6 +222,7 @@ export function vehicleView(root, vehicleId) {
   let liveEmpty = false; // the live feed has nothing for the vehicle ("waiting", or no socket)
   let cursorS = null; // time under the charts' cursor (seconds), null when none is hovered
   const panels = new Map(); // estimator -> panel
+  let calibration = null; // the online calibration's panel, once the specs are loaded
   const sockets = new Map(); // estimator ("" for the primary's until it is known) -> socket
   const title = el("h1", {}, "Vehicle ", el("span", { class: "mono", text: vehicleId }));
   const statusPill = el("span", { class: "pill", id: "v-status", text: "connecting" });
@@ -529,6 +531,8 @@ export function vehicleView(root, vehicleId) {
     .then((all) => {
       if (stopped) return;
       specs = all;
+      calibration = calibrationPanel(vehicleId, all);
+      ingest.before(calibration.root);
       openSocket(null);
     })
     .catch(() => {
@@ -544,6 +548,7 @@ export function vehicleView(root, vehicleId) {
     clearInterval(ingestTimer);
     clearInterval(ageTimer);
     clearInterval(layerTimer);
+    calibration?.stop();
     for (const sock of new Set(sockets.values())) sock.close();
     window.removeEventListener("resize", onResize);
     for (const p of panels.values()) p.stop();

@@ -50,6 +50,7 @@ class FakeRuntime:
         self.config_calls: list[tuple[str, VehicleConfig]] = []
         self.deleted: list[str] = []
         self.commands: list[tuple[str, str, str, bool]] = []
+        self.calibration_resets: list[tuple[str, str]] = []
         self.opened = 0
         self.closed = 0
         self.metrics_by_vehicle: list[bool] = []  # what each /metrics call asked for
@@ -78,6 +79,9 @@ class FakeRuntime:
 
     def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
         self.commands.append((vehicle_id, estimator, key, on))
+
+    def on_calibration_reset(self, vehicle_id: str, estimator: str) -> None:
+        self.calibration_resets.append((vehicle_id, estimator))
 
     def metrics(self, by_vehicle: bool = True) -> list[MetricFamily]:
         self.metrics_by_vehicle.append(by_vehicle)

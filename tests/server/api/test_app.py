@@ -84,6 +84,8 @@ def test_openapi_is_generator_ready(client: ApiClient) -> None:
         "/api/v1/vehicles/{vehicle_id}/report",
         "/api/v1/vehicles/{vehicle_id}/slipmap",
         "/api/v1/vehicles/{vehicle_id}/commands/{estimator}/{command}",
+        "/api/v1/vehicles/{vehicle_id}/calibration",
+        "/api/v1/vehicles/{vehicle_id}/calibration/{estimator}",
         "/api/v1/fleet/report",
         "/api/v1/fleet/slipmap",
         "/api/v1/estimators",
