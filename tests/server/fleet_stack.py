@@ -1,20 +1,26 @@
-"""The whole server for end-to-end tests: its settings per storage backend, and waiting until
-every packet a simulated fleet published has been counted."""
+"""The whole server for end-to-end tests: its settings per storage backend, the server with a
+simulated fleet streaming into it, and waiting until every packet a simulated fleet published
+has been counted."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
+from fastapi import FastAPI
 
+from server.app_main import ServerThread, build_app
 from server.settings import Settings
+from server.tooling.fleet_commands import vehicle_session
+from server.tooling.fleet_sim import FleetSim
 from tests.support import free_port
 
-__all__ = ["BACKENDS", "backend_of", "stack_settings", "wait_counted"]
+__all__ = ["BACKENDS", "backend_of", "stack_settings", "streaming_fleet", "wait_counted"]
 
 #: Storage backends and ingest layouts the end-to-end tests run on (``backend_of`` reads them).
 BACKENDS = [
@@ -41,6 +47,28 @@ def stack_settings(tmp_path: Path, storage_url: str | None, workers: int) -> Set
         api={"port": 0, "require_auth": False},
         viewer={"enabled": False},
     )
+
+
+@contextmanager
+def streaming_fleet(
+    settings: Settings, n_vehicles: int, **fleet: Any
+) -> Iterator[tuple[FastAPI, ServerThread, FleetSim]]:
+    """The whole server of ``settings`` on loopback and a :class:`FleetSim` of ``n_vehicles``
+    (``fleet``: its further arguments) publishing into it on a session of its own, until the
+    block ends; the fleet stops before the server."""
+    app = build_app(settings)
+    server = ServerThread(app, "127.0.0.1", 0)
+    server.start()
+    try:
+        with vehicle_session(list(settings.zenoh.listen)) as session:
+            sim = FleetSim(session, n_vehicles, prefix=settings.zenoh.key_prefix, **fleet)
+            sim.start()
+            try:
+                yield app, server, sim
+            finally:
+                sim.stop()
+    finally:
+        server.stop()
 
 
 def wait_counted(

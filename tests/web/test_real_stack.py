@@ -16,13 +16,11 @@ import pytest
 
 from estimator.catalog import spec_of
 from estimator.spec import EstimatorSpec
-from server.app_main import ServerThread, build_app
 from server.live.hub import LiveHub
-from server.settings import Settings
 from server.tooling.estimator_mix import EstimatorMix
-from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import FleetSim
-from tests.support import free_port
+from tests.server.fleet_stack import stack_settings, streaming_fleet
+from tests.support import poll_until
 from tests.web.test_dashboard import _COLOURED_PIXELS_JS, JS_NS_RESOLUTION, _page_latest
 from tests.web.test_estimator_panels import _CHART_JS
 
@@ -35,40 +33,20 @@ MIXED_ESTIMATORS = ("mdsf", "reference_speed")
 
 @pytest.fixture(scope="module")
 def real_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, LiveHub, FleetSim]]:
-    settings = Settings(
-        zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"]},
-        storage={"data_dir": tmp_path_factory.mktemp("data"), "commit_interval_s": 0.2},
-        api={"port": 0, "require_auth": False},
-        viewer={"enabled": False},
-    )
-    app = build_app(settings)
-    server = ServerThread(app, "127.0.0.1", 0)
-    server.start()
-    try:
-        with vehicle_session(list(settings.zenoh.listen)) as session:
-            sim = FleetSim(
-                session,
-                N_VEHICLES,
-                scenario="figure_eight",
-                prefix=settings.zenoh.key_prefix,
-                seed=5,
-                loop=True,
-                distinct_runs=N_VEHICLES,
-                estimator_mix=EstimatorMix(N_VEHICLES, MIXED_ESTIMATORS),
-            )
-            sim.start()
-            try:
-                hub = app.state.runtime.live_hub
-                assert isinstance(hub, LiveHub)
-                deadline = time.monotonic() + 60
-                while len(hub.vehicle_ids()) < N_VEHICLES:
-                    assert time.monotonic() < deadline, "no estimates from the pipeline"
-                    time.sleep(0.2)
-                yield f"http://127.0.0.1:{server.port}", hub, sim
-            finally:
-                sim.stop()
-    finally:
-        server.stop()
+    settings = stack_settings(tmp_path_factory.mktemp("data"), None, 0)
+    with streaming_fleet(
+        settings,
+        N_VEHICLES,
+        scenario="figure_eight",
+        seed=5,
+        loop=True,
+        distinct_runs=N_VEHICLES,
+        estimator_mix=EstimatorMix(N_VEHICLES, MIXED_ESTIMATORS),
+    ) as (app, server, sim):
+        hub = app.state.runtime.live_hub
+        assert isinstance(hub, LiveHub)
+        poll_until(lambda: len(hub.vehicle_ids()) >= N_VEHICLES, "estimates from the pipeline")
+        yield f"http://127.0.0.1:{server.port}", hub, sim
 
 
 def _stored_slip_left(client: httpx.Client, vid: str, stamp: int) -> float | None:
