@@ -80,7 +80,7 @@ class LiveRuntime:
             self.fleet, [self.live_hub, self.alert_engine, self.writer], rate_hz=20.0
         )
         self.feed.backfill(120.0, rate_hz=10.0)
-        assert self.writer.flush(timeout=30.0), "the back-filled rows were not stored"
+        assert self.writer.flush(timeout=120.0), "the back-filled rows were not stored"
         self.feed.start()
 
     def close(self) -> None:
@@ -126,7 +126,7 @@ def serve_live_stack(
     )
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
     thread.start()
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + 120  # s: generous, a loaded host starts it slowly
     while not server.started:
         assert time.monotonic() < deadline, "uvicorn did not start"
         assert thread.is_alive(), "uvicorn exited"

@@ -45,8 +45,11 @@ def _wait_until_the_camera_follows(viewer: FleetViewer, vid: str, moved_m: float
     recent: deque[tuple[float, np.ndarray]] = deque()
     aims: list[np.ndarray] = []
     deadline = time.monotonic() + 120
-    while not aims or float(np.linalg.norm(aims[-1] - aims[0])) < moved_m:
-        assert time.monotonic() < deadline, f"the camera does not follow the vehicle: {aims}"
+    while (moved := float(np.linalg.norm(aims[-1] - aims[0])) if aims else 0.0) < moved_m:
+        assert time.monotonic() < deadline, (
+            f"the camera does not follow the vehicle: aimed at it {len(aims)} times, the first"
+            f" and the last {moved:.2f} m apart"
+        )
         time.sleep(0.05)
         now, frame = time.monotonic(), viewer.frame
         if frame is not None and vid in frame.ids:
