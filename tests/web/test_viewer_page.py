@@ -105,7 +105,7 @@ def test_viewer_opens_on_the_whole_fleet_with_a_legend(browser: Any, screenshots
     try:
         with browser_page(browser, viewport={"width": 1400, "height": 900}) as page:
             page.goto(f"http://127.0.0.1:{viewer.port}/")
-            frame = poll_until(lambda: viewer._cam_fitted and viewer.frame, "camera aimed")
+            frame = poll_until(lambda: viewer.frame if viewer._cam_fitted else None, "camera aimed")
             assert sorted(frame.ids) == fleet.ids
             assert viewer._count is not None and viewer._count.value == "6 (1 without a position)"
             page.wait_for_function("() => document.body.innerText.includes('no value')")

@@ -52,7 +52,7 @@ def test_viewer_shows_every_streaming_vehicle_on_open(
     with browser_page(browser, viewport={"width": 1400, "height": 900}) as page:
         page.goto(f"http://127.0.0.1:{viewer.port}/")
         page.wait_for_selector("canvas")
-        frame = poll_until(lambda: viewer._cam_fitted and viewer.frame, "camera aimed")
+        frame = poll_until(lambda: viewer.frame if viewer._cam_fitted else None, "camera aimed")
         assert sorted(frame.ids) == ids
         missing = screenshot_until_shown(page, viewer, screenshots / "viewer-real-fleet.png")
     assert not missing, f"the 3D view does not show: {missing}"
