@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from server.tooling.ports import free_port
 
-__all__ = ["VEHICLE_CLIENT", "free_port", "run_vehicle_client"]
+__all__ = ["VEHICLE_CLIENT", "free_port", "poll_until", "run_vehicle_client"]
+
+_T = TypeVar("_T")
 
 #: The runnable vehicle client of ``docs/examples``.
 VEHICLE_CLIENT = Path(__file__).resolve().parents[1] / "docs" / "examples" / "vehicle_client.py"
@@ -34,3 +39,16 @@ def run_vehicle_client(
         timeout=60,
         check=False,
     )
+
+
+def poll_until(
+    cond: Callable[[], _T | None], what: str, timeout_s: float = 120.0, poll_s: float = 0.1
+) -> _T:
+    """``cond()``'s first true value, polled every ``poll_s``; fails the test saying ``what``
+    was awaited after ``timeout_s`` (a deadline for what never comes: generous, since a loaded
+    host is slow, and no cost when the condition holds early)."""
+    deadline = time.monotonic() + timeout_s
+    while not (value := cond()):
+        assert time.monotonic() < deadline, f"no {what} in {timeout_s:.0f} s"
+        time.sleep(poll_s)
+    return value

@@ -14,11 +14,16 @@ import numpy as np
 import pytest
 
 from estimator.sim import simulate, truth_at
-from server.app_main import ServerThread, build_app
 from server.ingest.pipeline import PHASES
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import TICK_NS, FleetSim
-from tests.server.fleet_stack import BACKENDS, backend_of, stack_settings, wait_counted
+from tests.server.fleet_stack import (
+    BACKENDS,
+    backend_of,
+    running_server,
+    stack_settings,
+    wait_counted,
+)
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -62,9 +67,7 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
     tmp_path: Path, backend: tuple[str | None, int]
 ) -> None:
     settings = stack_settings(tmp_path, *backend)
-    server = ServerThread(build_app(settings), "127.0.0.1", 0)
-    server.start()
-    try:
+    with running_server(settings) as (_, server):
         t0 = time.time_ns()
         with vehicle_session(list(settings.zenoh.listen)) as session:
             sim = FleetSim(
@@ -153,5 +156,3 @@ def test_simulated_fleet_reaches_rest_and_matches_truth(
                     assert have.mean() >= 0.98, f"slip coverage {have.mean():.3f}"
                     rms = float(np.sqrt(np.mean((s_est[have] - s_true[have]) ** 2)))
                     assert rms <= SLIP_RMS_BOUND_PP, f"{vid} {side} slip RMS error {rms:.2f} pp"
-    finally:
-        server.stop()

@@ -81,7 +81,7 @@ def drive(live_stack: LiveStack) -> np.ndarray:
 
 def _get(base: str, path: str, **params: Any) -> Any:
     url = f"{base}{path}?{urllib.parse.urlencode(params)}"
-    with urllib.request.urlopen(url, timeout=20) as resp:
+    with urllib.request.urlopen(url, timeout=60) as resp:
         return json.loads(resp.read())
 
 
@@ -183,7 +183,6 @@ def test_the_heat_grid_is_the_rest_slip_map(
     page.wait_for_function(
         "() => { const m = document.getElementById('h-map')._slipmap;"
         " return m && m.heat && m.heat.length > 0; }",
-        timeout=20000,
     )
     cell_m, heat = page.evaluate(
         "() => { const m = document.getElementById('h-map')._slipmap;"
@@ -200,11 +199,9 @@ def test_the_heat_grid_is_the_rest_slip_map(
     assert page.inner_text("#h-cell option[value='auto']") == f"auto ({cell_m:g} m)"
     # a chosen cell size gives the REST map of that size
     page.select_option("#h-cell", "10")
+    page.wait_for_function("() => document.getElementById('h-map')._slipmap.heatCell === 10")
     page.wait_for_function(
-        "() => document.getElementById('h-map')._slipmap.heatCell === 10", timeout=20000
-    )
-    page.wait_for_function(
-        "() => document.getElementById('h-heat-msg').textContent.endsWith('cells')", timeout=20000
+        "() => document.getElementById('h-heat-msg').textContent.endsWith('cells')"
     )
     rest10 = _get(base, f"/api/v1/vehicles/{VID}/slipmap", start=s, end=e, cell_m=10)
     heat10 = page.evaluate(
@@ -215,9 +212,7 @@ def test_the_heat_grid_is_the_rest_slip_map(
     }
     assert any(m is not None and not math.isnan(m) for _, _, m in heat10)
     page.select_option("#h-cell", "auto")
-    page.wait_for_function(
-        f"() => document.getElementById('h-map')._slipmap.heatCell === {cell_m}", timeout=20000
-    )
+    page.wait_for_function(f"() => document.getElementById('h-map')._slipmap.heatCell === {cell_m}")
     page.screenshot(path=str(screenshots / "history-heat-grid.png"))
 
 

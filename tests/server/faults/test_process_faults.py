@@ -12,6 +12,7 @@ import sqlite3
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
@@ -39,6 +40,15 @@ PIPELINE_SLACK_S = 0.5
 
 def _window(pub: Publisher) -> tuple[int, int]:
     return pub.start_ns - 10**9, pub.start_ns + int((pub.duration_s + 60) * 1e9)
+
+
+def _ingest_counters(client: httpx.Client, pub: Publisher) -> dict[str, dict[str, int]]:
+    """Each published vehicle's ingest counters over the drive (its report's)."""
+    window = dict(zip(("start", "end"), _window(pub), strict=True))
+    return {
+        vid: client.get(f"/api/v1/vehicles/{vid}/report", params=window).json()["ingest"]
+        for vid in pub.vehicle_ids
+    }
 
 
 def _stored(server: ServerProcess, pub: Publisher) -> dict[str, np.ndarray]:
@@ -98,13 +108,7 @@ def test_sigkill_then_restart_keeps_committed_estimates_once(tmp_path: Path) -> 
         start, end = _window(pub)
         with server.client() as client:
             positions = {vid: series_positions(client, vid, start, end) for vid in pub.vehicle_ids}
-            reports = {
-                vid: client.get(
-                    f"/api/v1/vehicles/{vid}/report",
-                    params=dict(zip(("start", "end"), _window(pub), strict=True)),
-                ).json()["ingest"]
-                for vid in pub.vehicle_ids
-            }
+            reports = _ingest_counters(client, pub)
     finally:
         server.stop()
 
@@ -175,13 +179,7 @@ def test_sigterm_flushes_every_estimate(tmp_path: Path) -> None:
         server.wait_ready()
         stored = _stored(server, pub)
         with server.client() as client:
-            counters = {
-                vid: client.get(
-                    f"/api/v1/vehicles/{vid}/report",
-                    params=dict(zip(("start", "end"), _window(pub), strict=True)),
-                ).json()["ingest"]
-                for vid in pub.vehicle_ids
-            }
+            counters = _ingest_counters(client, pub)
     finally:
         server.stop()
     published = len(pub.sent_order)

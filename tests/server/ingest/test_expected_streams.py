@@ -15,7 +15,6 @@ from estimator.config import TrackedConfig, Wheeled4wdSteeredConfig
 from estimator.friction_spec import FRICTION_SPEC
 from estimator.tracked_spec import TRACKED_SPEC
 from estimator.types import (
-    GnssSample,
     ImuBatch,
     OdometerEdges,
     SprocketEdges,
@@ -28,11 +27,9 @@ from server.ingest import Pipeline
 from server.ingest.adapter import spec_streams
 from server.ingest.reorder import DEFAULT_STREAMS, ReorderBuffer
 from server.protocol import Packet, Stream
-from server.settings import IngestSettings, Settings
 from tests.server.ingest.fakes import RecordingFleet
+from tests.server.ingest.test_pipeline import MS, T0, gnss, make
 
-MS = 1_000_000
-T0 = 1_763_700_000 * 10**9
 LATENESS_MS = 2_000
 
 
@@ -48,13 +45,8 @@ def _packet(vid: str, stream: Stream, seq: int, m: object, t: np.ndarray, edges:
     return Packet(vid, stream, seq, 1, ms, first, last, until)  # type: ignore[arg-type]
 
 
-def _gnss(vid: str, k: int) -> Packet:
-    t = _window(k, 1)
-    g = GnssSample(int(t[0]), (0.0, 3.0, 0.0), 0.0, 0.0, 0.0, 48.0, 11.0, 500.0)
-    return _packet(vid, Stream.GNSS, k, g, t, False)
-
-
 def _imu(vid: str, k: int) -> Packet:
+    """Window ``k``'s IMU batch: ten samples 10 ms apart."""
     t = _window(k, 10)
     return _packet(vid, Stream.IMU, k, ImuBatch(t, np.zeros((10, 3)), np.zeros((10, 3))), t, False)
 
@@ -63,7 +55,7 @@ def steered(vid: str, k: int) -> list[Packet]:
     """Window ``k`` of a steered vehicle: GNSS, IMU, four wheel speeds, steering."""
     t = _window(k, 5)
     return [
-        _gnss(vid, k),
+        gnss(vid, k, k * 100 + 100),
         _imu(vid, k),
         _packet(vid, Stream.WHEEL_SPEEDS4, k, WheelSpeeds4(t, np.full((5, 4), 10.0)), t, False),
         _packet(vid, Stream.STEERING, k, SteeringAngles(t, np.zeros(5)), t, False),
@@ -74,7 +66,7 @@ def crawler(vid: str, k: int, sprockets: bool = True) -> list[Packet]:
     """Window ``k`` of a crawler: GNSS, IMU, odometer and (unless not) sprocket edges."""
     t = _window(k, 4)
     out = [
-        _gnss(vid, k),
+        gnss(vid, k, k * 100 + 100),
         _imu(vid, k),
         _packet(vid, Stream.ODOMETER, k, OdometerEdges(t), t, True),
     ]
@@ -89,24 +81,13 @@ def _pipeline(clock: list[int]) -> tuple[Pipeline, dict[str, RecordingFleet]]:
     """A pipeline (2 s lateness, a hand-moved monotonic clock: never idle) on recording
     friction and tracked estimators."""
     friction, tracked = RecordingFleet(FRICTION_SPEC), RecordingFleet(TRACKED_SPEC)
-    fleets = {"friction": friction, "tracked": tracked}
     registry = EstimatorRegistry(
         factories={"friction": lambda: friction, "tracked": lambda: tracked}
     )
-    settings = Settings(
-        ingest=IngestSettings.model_validate(
-            {
-                "lateness_ms": LATENESS_MS,
-                "process_interval_ms": 5,
-                "estimate_interval_ms": 5,
-                "advance_step_ms": 100,
-            }
-        )
+    pipe, _, _ = make(
+        lateness_ms=LATENESS_MS, advance_step_ms=100, clock_ns=lambda: clock[0], registry=registry
     )
-    pipe = Pipeline(
-        settings, None, registry, [], clock_ns=lambda: clock[0], wall_clock_ns=lambda: T0
-    )
-    return pipe, fleets
+    return pipe, {"friction": friction, "tracked": tracked}
 
 
 def _feed(pipe: Pipeline, clock: list[int], packets: list[Packet]) -> None:
