@@ -16,7 +16,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import zenoh
@@ -90,6 +90,11 @@ class Runtime:
             raise RuntimeError("runtime is not open")
         return self._store
 
+    def _registry_factory(self) -> Callable[[], EstimatorRegistry]:
+        """A registry factory whose vehicles start from their newest stored calibrations
+        (restored, not relearnt); picklable, for worker processes."""
+        return functools.partial(EstimatorRegistry, calibrations=stored_calibrations(self.store))
+
     def open(self) -> None:
         s = self.settings
         self._store = open_store(s.storage)
@@ -101,10 +106,7 @@ class Runtime:
             rule_limits=s.alerts.engine_limits(),
         )
         self.session = open_session(s.zenoh)
-        # each vehicle starts from its newest stored calibration (restored, not relearnt)
-        registry_factory = functools.partial(
-            EstimatorRegistry, calibrations=stored_calibrations(self._store)
-        )
+        registry_factory = self._registry_factory()
         self.registry = registry_factory()
         sinks: list[EstimateSink] = [self.writer, self.live_hub, self.alert_engine, self.latency]
         raw_sink = self.writer.submit_raw_packets if s.storage.store_raw_packets else None
@@ -116,6 +118,7 @@ class Runtime:
                 self._on_new_vehicle,
                 raw_sink=raw_sink,
                 registry_factory=registry_factory,
+                restart_registry_factory=self._registry_factory,
             )
             if s.ingest.workers
             else Pipeline(

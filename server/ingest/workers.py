@@ -164,7 +164,10 @@ class WorkerPool:
 
     Parameters are those of :class:`~server.ingest.pipeline.Pipeline` but the registry: each
     worker builds its own with ``registry_factory`` (a module-level callable: it is pickled to
-    the spawned workers). ``session`` None runs without Zenoh (feed with :meth:`route`).
+    the spawned workers); ``restart_registry_factory``, when given, is asked for a fresh one
+    each time a dead worker is started again (the vehicles' state stored since start, e.g. their
+    calibrations, instead of the state at start). ``session`` None runs without Zenoh (feed
+    with :meth:`route`).
     """
 
     def __init__(
@@ -176,6 +179,7 @@ class WorkerPool:
         *,
         raw_sink: Callable[[list[RawPacket]], object] | None = None,
         registry_factory: Callable[[], EstimatorRegistry] = EstimatorRegistry,
+        restart_registry_factory: Callable[[], Callable[[], EstimatorRegistry]] | None = None,
     ) -> None:
         if settings.ingest.workers < 1:
             raise ValueError("WorkerPool needs ingest.workers >= 1")
@@ -185,6 +189,7 @@ class WorkerPool:
         self._sinks = list(sinks)
         self._on_new_vehicle = on_new_vehicle
         self._registry_factory = registry_factory
+        self._restart_registry_factory = restart_registry_factory
         self._workers: list[_Worker] = []
         self._ctx = mp.get_context("spawn")
         # every registered vehicle's config: what a worker is started (or restarted) with
@@ -426,7 +431,13 @@ class WorkerPool:
             k, dead.snapshot.get("counters", {}), dict(dead.snapshot.get("anchors", {}))
         )
         store_raw = self._raw_sink is not None
-        new = _Worker(k, self._settings, self._ctx, initial, self._registry_factory, store_raw)
+        factory = self._registry_factory
+        if self._restart_registry_factory is not None:
+            try:
+                factory = self._restart_registry_factory()
+            except Exception:  # the store may be the trouble: start with the state at start
+                log.exception("worker %d: fresh registry state unavailable", k)
+        new = _Worker(k, self._settings, self._ctx, initial, factory, store_raw)
         if not _ready(new):
             log.error("worker %d did not start again", k)
             new.process.kill()

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import fcntl
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 from estimator.config import WheeledRearDriveConfig
 from estimator.sim import simulate
+from server.estimation import EstimatorRegistry
 from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
 from server.protocol import sensor_key
 from server.settings import Settings
@@ -36,9 +38,14 @@ def _feed(pool: WorkerPool, packets: list[tuple[str, bytes]], burst: int = 64) -
         pool.route(packets[i : i + burst])
 
 
-def _pool(sink: CapturingSink, workers: int = 2, **ingest: object) -> WorkerPool:
+def _pool(
+    sink: CapturingSink,
+    workers: int = 2,
+    restart_registry_factory: Callable[[], Callable[[], EstimatorRegistry]] | None = None,
+    **ingest: object,
+) -> WorkerPool:
     settings = Settings(ingest={"workers": workers, **ingest}, viewer={"enabled": False})
-    return WorkerPool(settings, None, [sink])
+    return WorkerPool(settings, None, [sink], restart_registry_factory=restart_registry_factory)
 
 
 def test_owner_is_stable_and_spreads_the_fleet() -> None:
@@ -141,7 +148,13 @@ def test_new_vehicles_are_reported_to_the_server() -> None:
 
 def test_a_dead_worker_is_started_again_with_its_vehicles_counters_and_frames() -> None:
     sink = CapturingSink()
-    pool = _pool(sink)
+    fresh: list[int] = []
+
+    def restart_factory() -> Callable[[], EstimatorRegistry]:
+        fresh.append(1)  # the runtime reads the store's newest calibrations here
+        return EstimatorRegistry
+
+    pool = _pool(sink, restart_registry_factory=restart_factory)
     mine = [v for v in VEHICLES if owner_of(v, 2) == owner_of("w000", 2)]
     packets = _packets(mine)
     half = len(packets) // 2
@@ -171,6 +184,7 @@ def test_a_dead_worker_is_started_again_with_its_vehicles_counters_and_frames() 
         pool.stop()
     stats = pool.stats()
     assert stats["worker_restarts"] == 1
+    assert fresh == [1]  # the restarted worker's registry was built afresh, not the start's
     counters = pool.counters_snapshot()
     received = sum(counters[v]["received"] for v in mine)
     # counted on from the dead worker's last snapshot (which had all of the first half): what
