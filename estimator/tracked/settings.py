@@ -32,8 +32,10 @@ class TrackedEstimatorConfig:
     the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
     settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
     A pivot's driven track slips 10-40 % (it drags the hull round the braked one), so its
-    factor starts wider (``initial_pivot_factor_std``) than the others, the low gear's offset
-    from the straight's narrower (``initial_low_offset_std``); a slip whose 1-sigma
+    factor is held as an offset from the straight's (same ``K_D``, same ground) that starts
+    at ``−initial_pivot_slip`` (the middle of that range), wider
+    (``initial_pivot_factor_std``) than the others, the low gear's offset from the straight's
+    narrower (``initial_low_offset_std``); a slip whose 1-sigma
     exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
@@ -93,6 +95,7 @@ class TrackedEstimatorConfig:
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03
     initial_pivot_factor_std: float = 0.15
+    initial_pivot_slip: float = 0.25
     initial_low_offset_std: float = 0.02
     slip_std_max_pct: float = 3.0
     initial_accel_lag_std_s: float = 0.5

@@ -90,7 +90,8 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     and heading unknown."""
     x = np.zeros((1, N_STATES))
     x[0, _FACTORS] = 1.0
-    x[0, S.F_LOW] = 0.0  # an offset from F_straight
+    x[0, S.F_LOW] = 0.0  # offsets from F_straight
+    x[0, S.F_PIVOT] = -cfg.initial_pivot_slip if cfg.learns else 0.0
     x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0

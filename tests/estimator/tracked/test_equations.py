@@ -241,6 +241,33 @@ def test_low_gear_factor_is_an_offset_and_traction_slips_with_acceleration() -> 
     assert mask[0] and corrected[0] == pytest.approx(2.5 * effective / 1.42)
 
 
+def test_pivot_factor_is_an_offset_from_the_straight_and_starts_at_the_pivot_slip() -> None:
+    from estimator.tracked.step import initial_filter
+
+    cfg = TrackedEstimatorConfig()
+    x0 = initial_filter(cfg).x[0]
+    assert x0[S.F_PIVOT] == -cfg.initial_pivot_slip and x0[S.F_STRAIGHT] == 1.0
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED] = 1.0
+    x[0, S.F_STRAIGHT] = 0.95
+    x[0, S.F_PIVOT] = -0.2  # F_pivot = 0.75
+    y, H, _, mask, corrected = odometer_measurement(
+        cfg,
+        P1,
+        x,
+        np.array([M.PIVOT]),
+        np.array([2.0]),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([0.5]),
+        np.ones(1, dtype=bool),
+    )
+    ground = 1.0 + 0.5 * float(P1.gauge_m[0]) / 2  # V + |ω|·B/2, the driven track
+    assert y[0, 0] == pytest.approx(2.0 - ground / 0.75)
+    assert H[0, 0, S.F_PIVOT] == H[0, 0, S.F_STRAIGHT] == pytest.approx(-ground / 0.75**2)
+    assert mask[0] and corrected[0] == pytest.approx(2.0 * 0.75 - (ground - 1.0))
+
+
 def test_odometer_dropped_in_heading_jumps() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.F_STRAIGHT] = 1.0
