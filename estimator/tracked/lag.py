@@ -68,22 +68,31 @@ def _still_open(onset: BoolArray, lag: int) -> int:
 
 
 class HeldRows:
-    """One vehicle's rows not yet given (at most ``lag`` ticks) and their onsets."""
+    """One vehicle's rows not yet given (at most ``lag`` ticks): their bytes, states and
+    onsets (kept apart so that the common case, nothing to backdate, touches no record
+    array field by field: per vehicle and call this runs on the server's hot path)."""
 
-    __slots__ = ("onset", "rows")
+    __slots__ = ("data", "onset", "state")
 
     def __init__(self) -> None:
-        self.rows = TRACKED_SPEC.empty_rows(0)
+        self.data = b""
+        self.state = np.zeros(0, dtype=TRACKED_SPEC.dtype["motion_state"])
         self.onset = np.zeros(0, dtype=bool)
 
     def give(self, rows: np.ndarray, onset: BoolArray, lag: int, conf_min: float) -> np.ndarray:
         """Add the rows of new ticks (``onset`` ``(m,)``), backdate their changes over the held
         ones, and return (oldest first) every row a later change can no longer reach."""
-        if lag <= 0 and self.rows.size == 0:
+        if lag <= 0 and not self.data:
             return rows
-        buf = np.concatenate([self.rows, rows])
+        first = self.state.size
+        state = np.concatenate([self.state, rows["motion_state"]])
         on = np.concatenate([self.onset, onset])
-        backdate(buf, on, self.rows.size, lag, conf_min)
+        buf = np.frombuffer(bytearray(self.data + rows.tobytes()), dtype=TRACKED_SPEC.dtype)
+        lo = max(first, 1)
+        if ((state[lo:] != state[lo - 1 : -1]) & on[lo:]).any():  # a change that can go back
+            backdate(buf, on, first, lag, conf_min)
+            state = buf["motion_state"]
         cut = buf.size - _still_open(on, lag)
-        self.rows, self.onset = buf[cut:].copy(), on[cut:].copy()
+        self.data = buf[cut:].tobytes()
+        self.state, self.onset = state[cut:].copy(), on[cut:].copy()
         return buf[:cut]

@@ -63,7 +63,7 @@ def test_rows_are_held_only_while_a_change_can_still_reach_them() -> None:
     assert [g.size for g in given] == [2, 2, 4, 1]
     assert np.array_equal(got["stamp_ns"], rows["stamp_ns"][:9])  # each row its own stamp
     assert got["motion_state"].tolist() == [1, 1, 1, 1, 3, 3, 3, 3, 3]  # 4, 5 backdated
-    assert held.rows.size == 1
+    assert held.state.size == 1 and len(held.data) == TRACKED_SPEC.dtype.itemsize
 
 
 def test_no_lag_gives_every_row_at_once() -> None:
