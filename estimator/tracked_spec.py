@@ -52,6 +52,7 @@ class TrackedFlag(IntFlag):
     SPROCKET_MISSING = 1 << 10
     NOT_STARTED = 1 << 11
     SLIP_SETTLING = 1 << 12
+    STATE_BACKDATED = 1 << 13
 
 
 def _f(name: str, unit: str, label: str, description: str, kind: str = "f8") -> FieldSpec:
@@ -102,6 +103,9 @@ _FIELDS = (
     _f("east_north_cov_m2", "m²", "east-north covariance", "covariance of east_m and north_m"),
     _f("flags", "", "flags", "TrackedFlag bits", "i4"),
 )
+# Rows are given one tick late, up to ``report_lag_ticks`` (4 ticks, 0.4 s) while a state change
+# is under way: the change is dated where the ratios or the yaw acceleration left their band
+# (estimator.tracked.lag).
 
 TRACKED_SPEC = EstimatorSpec(
     name="tracked",
@@ -109,7 +113,8 @@ TRACKED_SPEC = EstimatorSpec(
     description=(
         "Motion state, per-track slip and skid, and INS/odometer/GNSS position of a "
         "single-flow-transmission crawler (method.md §4, source 002); dead-reckoned through "
-        "GNSS outages with the odometer corrected per motion state."
+        "GNSS outages with the odometer corrected per motion state. Rows are given one tick "
+        "late, up to 4 ticks (0.4 s) through a state change, so that it is dated when it began."
     ),
     kinds=("tracked",),
     inputs=("gnss", "imu", "odometer", "sprockets"),
@@ -131,6 +136,9 @@ TRACKED_SPEC = EstimatorSpec(
             "NOT_STARTED": "no GNSS fix at speed yet: position and heading unknown",
             "SLIP_SETTLING": "a lever moves: a sprocket's speed changes faster than it is read, "
             "no slip value for it",
+            "STATE_BACKDATED": "the state change was backdated to when the sprocket ratios or "
+            "the yaw acceleration left their band (rows are given one tick late, up to 4 "
+            "ticks, 0.4 s, while a change is under way; each keeps its own stamp): no slip value",
         },
     ),
     slips=(

@@ -13,10 +13,11 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from estimator._arrays import FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import TrackedConfig, VehicleConfig, expect_kind
 from estimator.tracked.fleet_inputs import take_fleet
+from estimator.tracked.lag import HeldRows
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.settings import TrackedEstimatorConfig
@@ -34,7 +35,7 @@ _GNSS_OK_S = 1.0
 class _Slot:
     """One vehicle: its inputs, its filter (arrays of one) and its counters."""
 
-    __slots__ = ("counts", "filter", "inputs", "nis")
+    __slots__ = ("counts", "filter", "held", "inputs", "nis")
 
     def __init__(self, config: TrackedConfig, cfg: TrackedEstimatorConfig) -> None:
         self.inputs = VehicleInputs(config, cfg)
@@ -46,6 +47,7 @@ class _Slot:
             "odometer_fused": 0,
         }
         self.nis: list[float] = []
+        self.held = HeldRows()
 
     def push(self, m: Pushed) -> None:
         if isinstance(m, ImuBatch):
@@ -181,6 +183,10 @@ class _Base:
         self.config = config or TrackedEstimatorConfig()
         self._slots: dict[str, _Slot] = {}
 
+    @property
+    def _conf_min(self) -> float:
+        return self.config.uncertain_below
+
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         tracked = expect_kind(config, TrackedConfig, self.name)
         self._slots[vehicle_id] = _Slot(tracked, self.config)
@@ -256,21 +262,28 @@ class TrackedFleet(_Base):
         params = VehicleParams.stack([w[1].inputs.params for w in work])
         sizes = np.diff(starts)
         out = TRACKED_SPEC.empty_rows(int(starts[-1]))
+        onset = np.zeros(out.size, dtype=bool)
         for r in range(int(sizes.max())):
             part = np.flatnonzero(sizes > r)
             rows = starts[part] + r
             slots = [work[k][1] for k in part]
-            out[rows] = self._round(slots, _select(inp, rows), _params_of(params, part))
+            out[rows], onset[rows] = self._round(
+                slots, _select(inp, rows), _params_of(params, part)
+            )
         result = []
         for (vid, slot, _), a, b in zip(
             work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
         ):
             _geodetic(slot, out[a:b])
-            result.append((vid, out[a:b]))
+            given = slot.held.give(out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min)
+            if given.size:
+                result.append((vid, given))
         return result
 
-    def _round(self, slots: list[_Slot], inp: TickInputs, p: VehicleParams) -> np.ndarray:
-        """One tick of each of ``slots`` (their filters stepped); its rows."""
+    def _round(
+        self, slots: list[_Slot], inp: TickInputs, p: VehicleParams
+    ) -> tuple[np.ndarray, BoolArray]:
+        """One tick of each of ``slots`` (their filters stepped); its rows and onsets."""
         f = _stack_filters([s.filter for s in slots])
         got = tick_step(f, inp, p, self.config)
         rows = _rows(f, got, inp, self.config)
@@ -283,7 +296,7 @@ class TrackedFleet(_Base):
                 f.gated_s[i : i + 1],
             )
             _count(slot, got, i)
-        return rows
+        return rows, got.onset
 
 
 class TrackedEstimator(_Base):
@@ -300,11 +313,15 @@ class TrackedEstimator(_Base):
                 continue
             inputs = slot.inputs.take(ticks)
             rows = TRACKED_SPEC.empty_rows(ticks.size)
+            onset = np.zeros(ticks.size, dtype=bool)
             for r in range(ticks.size):
                 one = _select(inputs, np.array([r]))
                 got = tick_step(slot.filter, one, slot.inputs.params, self.config)
                 rows[r] = _rows(slot.filter, got, one, self.config)[0]
+                onset[r] = got.onset[0]
                 _count(slot, got, 0)
             _geodetic(slot, rows)
-            result.append((vid, rows))
+            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min)
+            if given.size:
+                result.append((vid, given))
         return result

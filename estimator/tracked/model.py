@@ -42,10 +42,10 @@ class TrackedState(IntEnum):
     scale error, the odometer factor per motion state ``F_s`` (the fast track's ground speed
     over the odometer speed: ``K_D`` scale and that state's traction slip together), and the
     hull's lag behind its tracks ``τ`` (s): while it accelerates at ``a`` the hull runs
-    ``τ·a`` slower than ``F_s`` times the odometer says. ``F_LOW`` holds the low gear's
-    offset from the straight's factor (``F_low = F_STRAIGHT + F_LOW``). ``ACCEL_SLIP`` is
-    ``κ`` (s²/m), the traction slip per m/s² of acceleration: the odometer's ground speed is
-    ``F_s·(1 − κ·a)·v_o``.
+    ``τ·a`` slower than ``F_s`` times the odometer says. ``F_LOW`` and ``F_PIVOT`` hold the
+    low gear's and the pivot's offsets from the straight's factor (``F_low = F_STRAIGHT +
+    F_LOW``). ``ACCEL_SLIP`` is ``κ`` (s²/m), the traction slip per m/s² of acceleration:
+    the odometer's ground speed is ``F_s·(1 − κ·a)·v_o``.
     """
 
     EAST = 0

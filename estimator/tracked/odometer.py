@@ -18,8 +18,10 @@ the accelerations beside GNSS; ``κ·a`` costs ``κ·a·V``, which grows with sp
 lag ``τ·a`` does not); in a low-gear
 straight ``V = F_low·v_o/1.42`` with ``F_low = F_straight + δ_low`` (same ``K_D``, same
 ground: only the traction differs, so a low gear first met in an outage starts from what the
-straights taught, not from 1). The odometer's windowed speed is compared with the filter's
-speed at the window's centre ``V − a·lag``, not at the tick (Eq. 6's mismatch).
+straights taught, not from 1), and in a pivot likewise ``F_pivot = F_straight + δ_pivot``
+(``δ_pivot`` starting at minus the driven track's typical pivot slip). The odometer's
+windowed speed is compared with the filter's speed at the window's centre ``V − a·lag``,
+not at the tick (Eq. 6's mismatch).
 """
 
 from __future__ import annotations
@@ -49,6 +51,9 @@ FACTOR_OF = {
 _FACTOR_INDEX = np.full(len(M), int(S.F_STRAIGHT), dtype=np.int64)
 for _state, _index in FACTOR_OF.items():
     _FACTOR_INDEX[int(_state)] = int(_index)
+#: States whose factor is held as an offset from ``F_STRAIGHT`` (same ``K_D``, same ground).
+_OFFSET = np.zeros(len(M), dtype=bool)
+_OFFSET[[int(M.LOW_STRAIGHT), int(M.PIVOT)]] = True
 _TURNING = np.zeros(len(M), dtype=bool)
 _TURNING[[int(M.ARC), int(M.SEPARATED), int(M.PIVOT)]] = True
 
@@ -110,8 +115,8 @@ def odometer_measurement(
     if cfg.mode == TrackedMode.PRODUCT:
         f_idx = _FACTOR_INDEX[state]
         rows = np.arange(k)
-        low_gear = state == int(M.LOW_STRAIGHT)
-        factor = x[rows, f_idx] + np.where(low_gear, x[:, S.F_STRAIGHT], 0.0)
+        offset = _OFFSET[state]
+        factor = x[rows, f_idx] + np.where(offset, x[:, S.F_STRAIGHT], 0.0)
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
         lag = x[:, S.ACCEL_LAG] * accel_mps2
@@ -122,7 +127,7 @@ def odometer_measurement(
         H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
         H[:, 0, S.ACCEL_SLIP] = h * accel_mps2 / traction
         H[rows, 0, f_idx] = -h / factor
-        H[:, 0, S.F_STRAIGHT] += np.where(low_gear, -h / factor, 0.0)
+        H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)
         corrected = odometer_mps * factor * traction / gear - turn - lag
         mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))
         pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)

@@ -25,7 +25,13 @@ from estimator.tracked.model import MotionState
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.settings import TrackedEstimatorConfig
 
-__all__ = ["fallback_states", "paper_states", "product_states", "turn_radius_m"]
+__all__ = [
+    "change_onset",
+    "fallback_states",
+    "paper_states",
+    "product_states",
+    "turn_radius_m",
+]
 
 M = MotionState
 
@@ -151,6 +157,28 @@ def product_states(
     out[~moving] = int(M.STOP)
     conf = np.where(moving, conf, 1.0)
     return out, conf
+
+
+def change_onset(
+    sprocket_mps: FloatArray,
+    gear_ratio: FloatArray,
+    before: tuple[FloatArray, FloatArray],
+    settling: BoolArray,
+    yaw_accel_radps2: FloatArray,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+) -> BoolArray:
+    """Ticks ``(k,)`` on which a state change shows: a ratio moving faster than
+    ``lever_rate_min_per_s`` (a lever, :func:`_lever_target`), a sprocket settling
+    (``settling`` ``(k, 2)``) or the yaw acceleration out of its band
+    ``|ω̇| > onset_yaw_accel_radps2`` (the hull entering or leaving a turn)."""
+    read, q, gear = _ratios(sprocket_mps, gear_ratio, p)
+    read_b, q_b, gear_b = _ratios(before[0], before[1], p)
+    both = read & read_b
+    _, lever_q = _lever_target(q, q_b, both, cfg)
+    _, lever_g = _lever_target(gear, gear_b, both, cfg)
+    yawing = np.abs(yaw_accel_radps2) > cfg.onset_yaw_accel_radps2
+    return lever_q | lever_g | settling.any(axis=1) | yawing
 
 
 def fallback_states(

@@ -32,11 +32,22 @@ class TrackedEstimatorConfig:
     the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
     settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
     A pivot's driven track slips 10-40 % (it drags the hull round the braked one), so its
-    factor starts wider (``initial_pivot_factor_std``) than the others, the low gear's offset
-    from the straight's narrower (``initial_low_offset_std``); a slip whose 1-sigma
+    factor is held as an offset from the straight's (same ``K_D``, same ground) that starts
+    at ``−initial_pivot_slip`` (the middle of that range), wider
+    (``initial_pivot_factor_std``) than the others, the low gear's offset from the straight's
+    narrower (``initial_low_offset_std``); a slip whose 1-sigma
     exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
+
+    Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
+    (0.4 s at the default) while a change is under way, each keeping its own stamp
+    (:mod:`estimator.tracked.lag`); a state change seen on a
+    tick is backdated over the held ticks that still show the old state while the change
+    was already under way (a ratio moving, a sprocket settling, or the yaw acceleration above
+    ``onset_yaw_accel_radps2``), and one tick before that run (the sprocket windows read a
+    lever about half a window late). Those rows give no slip (the filter ran them with the
+    old state's odometer model) and carry ``STATE_BACKDATED``.
     """
 
     mode: TrackedMode = TrackedMode.PRODUCT
@@ -84,6 +95,7 @@ class TrackedEstimatorConfig:
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03
     initial_pivot_factor_std: float = 0.15
+    initial_pivot_slip: float = 0.25
     initial_low_offset_std: float = 0.02
     slip_std_max_pct: float = 3.0
     initial_accel_lag_std_s: float = 0.5
@@ -91,6 +103,8 @@ class TrackedEstimatorConfig:
     initial_accel_slip_s2pm: float = 0.05
     initial_accel_slip_std_s2pm: float = 0.03
     accel_slip_walk_s2pm: float = 1e-4
+    report_lag_ticks: int = 4
+    onset_yaw_accel_radps2: float = 0.1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", TrackedMode(self.mode))
@@ -98,6 +112,8 @@ class TrackedEstimatorConfig:
             value = getattr(self, name)
             if isinstance(value, float) and not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.report_lag_ticks < 0:
+            raise ValueError("report_lag_ticks must be >= 0")
         if self.tick_s <= 0.0 or self.sprocket_max_edges < 2:
             raise ValueError("tick_s must be > 0 and sprocket_max_edges >= 2")
         if not 0.0 < self.braked_ratio_max < self.arc_ratio_max < self.straight_ratio_min < 1.0:
@@ -106,6 +122,11 @@ class TrackedEstimatorConfig:
     @property
     def tick_ns(self) -> int:
         return round(self.tick_s * 1e9)
+
+    @property
+    def lag_ticks(self) -> int:
+        """Ticks a row is held before it is given (0 outside the product mode)."""
+        return self.report_lag_ticks if self.mode == TrackedMode.PRODUCT else 0
 
     @property
     def learns(self) -> bool:

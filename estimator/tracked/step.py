@@ -18,7 +18,12 @@ from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.odometer import lateral_speed, odometer_measurement
 from estimator.tracked.params import VehicleParams
-from estimator.tracked.recognise import fallback_states, paper_states, product_states
+from estimator.tracked.recognise import (
+    change_onset,
+    fallback_states,
+    paper_states,
+    product_states,
+)
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.vehicle import TickInputs
 
@@ -61,6 +66,7 @@ class TickOut:
     slip_valid_pair: BoolArray
     braked_pair: BoolArray
     standstill: BoolArray
+    onset: BoolArray
 
 
 def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
@@ -84,7 +90,8 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     and heading unknown."""
     x = np.zeros((1, N_STATES))
     x[0, _FACTORS] = 1.0
-    x[0, S.F_LOW] = 0.0  # an offset from F_straight
+    x[0, S.F_LOW] = 0.0  # offsets from F_straight
+    x[0, S.F_PIVOT] = -cfg.initial_pivot_slip if cfg.learns else 0.0
     x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
@@ -124,6 +131,7 @@ def recognise(
     state, conf = product_states(
         inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, lead, inp.odometer_mps, before
     )
+    state = _released(state, inp, p)
     missing = inp.sprocket_missing
     if missing.any():
         v_lag = v - inp.accel_mps2 * inp.odometer_lag_s
@@ -132,6 +140,22 @@ def recognise(
         state = np.where(missing, fb, state)
         conf = np.where(missing, 0.5, conf)
     return state, conf
+
+
+def _released(state: IntArray, inp: TickInputs, p: VehicleParams) -> IntArray:
+    """The slower sprocket giving its first edges after a silence (a pivot's brake released,
+    or a start) while the hull moves: the lever goes back to drive, so the state is the straight
+    of the gear the odometer says; the windows read that sprocket only from its second edge,
+    and while it spins up its ratio passes through the turn bands."""
+    slow = np.argmin(inp.sprocket_pair_mps, axis=1)  # a pivot started from rest: not slow
+    starting = np.take_along_axis(inp.sprocket_starting_pair, slow[:, None], axis=1)[:, 0]
+    released = (state != int(M.STOP)) & starting
+    if not released.any():
+        return state
+    low_cut = 0.5 * (1.0 + 1.0 / p.low_gear_ratio)
+    low = np.nan_to_num(inp.gear_ratio, nan=1.0) < low_cut
+    straight = np.where(low, int(M.LOW_STRAIGHT), int(M.STRAIGHT))
+    return np.where(released, straight, state)
 
 
 def _start(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> BoolArray:
@@ -301,7 +325,13 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)
     odo_used, corrected = _fuse_odometer(f, inp, p, cfg, state, w)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
+    onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:
+        before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
+        settling = inp.sprocket_settling_pair
+        onset = change_onset(
+            inp.sprocket_pair_mps, inp.gear_ratio, before, settling, inp.yaw_accel_radps2, p, cfg
+        )
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)
     track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w)
@@ -322,4 +352,5 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         slip_valid_pair=valid,
         braked_pair=braked,
         standstill=still,
+        onset=onset,
     )

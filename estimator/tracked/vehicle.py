@@ -49,6 +49,8 @@ class TickInputs:
     is the change of the tick's mean gyro rate from the tick before over one tick (0 on a
     vehicle's first tick). ``*_before`` are the sprocket speeds and gear ratio of the tick
     before, read the same way (their change over the tick shows a lever moving).
+    ``sprocket_starting_pair`` marks a sprocket's first edges after a silence (a brake being
+    released, or a start from standstill), ``(m, 2)``.
     ``steady_s`` is how long the gearbox has run at a steady speed with no sprocket settling
     (the hull's lag behind its tracks, and the slip that acceleration adds, have died out).
     """
@@ -62,6 +64,7 @@ class TickInputs:
     sprocket_pair_mps: FloatArray
     sprocket_missing: BoolArray
     sprocket_settling_pair: BoolArray
+    sprocket_starting_pair: BoolArray
     gear_ratio: FloatArray
     sprocket_before_pair_mps: FloatArray
     gear_ratio_before: FloatArray
@@ -316,6 +319,7 @@ def tick_inputs(
         sprocket_pair_mps=at_tick(*r.spr, tick_f, odo, odo_accel),
         sprocket_missing=r.missing,
         sprocket_settling_pair=settling,
+        sprocket_starting_pair=r.starting,
         gear_ratio=r.gear,
         sprocket_before_pair_mps=at_tick(*r.before, tick_f - tick_ns, prev, odo_accel),
         gear_ratio_before=r.gear_before,

@@ -9,6 +9,9 @@ side by side (``--modes`` picks some, ``product`` always among them): ``product`
 and ``raw_odometer`` (the odometer speed as the hull's). Each mode is one
 :class:`~estimator.tracked.TrackedFleet` holding every run as a vehicle, fed in sensor order
 and advanced every second of sensor time; each row is compared with the truth at its stamp.
+The product gives its rows at a fixed lag (one tick, up to ``report_lag_ticks`` = 4 ticks,
+0.4 s, while a state change is under way; :mod:`estimator.tracked.lag`): a row keeps its own
+stamp and is scored against the truth there; the last held rows of a run are not scored.
 
 Metrics per run and mode
 ------------------------
@@ -19,8 +22,10 @@ Metrics per run and mode
     Slip error in percentage points where the track is driven and moves (true sprocket speed
     ≥ 0.5 m/s) and the row gives a slip (a braked track's −100 % included). A row without
     one (its ``SLIP_*_VALID`` flag unset: not observable, e.g. a lever moving, a sprocket
-    settling, a 1-sigma above ``slip_std_max_pct``) is not scored: ``slip_coverage_pct`` is
-    the share of moving rows that give one (printed as ``cov%``, the smaller track's).
+    settling, a 1-sigma above ``slip_std_max_pct``, a state change backdated over it,
+    ``STATE_BACKDATED``) is not scored: ``slip_coverage_pct`` is the share of moving rows that
+    give one (printed as ``cov%``, the smaller track's). A braked track (sprocket still) is
+    never scored: its true sprocket speed is below the moving threshold.
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
     driven in it; the worst outage of the run), and the largest error within it.

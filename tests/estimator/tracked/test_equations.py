@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -19,6 +20,8 @@ from estimator.tracked.odometer import lateral_speed, odometer_measurement, pape
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import fallback_states, paper_states, product_states
 from estimator.tracked.settings import TrackedEstimatorConfig
+from estimator.tracked.step import _released
+from estimator.tracked.vehicle import TickInputs
 
 M = MotionState
 P1 = VehicleParams.of(TrackedConfig())  # B = 2 m, L = 2.5 m: r = 1.531 m, R_II = 5.76 m
@@ -241,6 +244,33 @@ def test_low_gear_factor_is_an_offset_and_traction_slips_with_acceleration() -> 
     assert mask[0] and corrected[0] == pytest.approx(2.5 * effective / 1.42)
 
 
+def test_pivot_factor_is_an_offset_from_the_straight_and_starts_at_the_pivot_slip() -> None:
+    from estimator.tracked.step import initial_filter
+
+    cfg = TrackedEstimatorConfig()
+    x0 = initial_filter(cfg).x[0]
+    assert x0[S.F_PIVOT] == -cfg.initial_pivot_slip and x0[S.F_STRAIGHT] == 1.0
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED] = 1.0
+    x[0, S.F_STRAIGHT] = 0.95
+    x[0, S.F_PIVOT] = -0.2  # F_pivot = 0.75
+    y, H, _, mask, corrected = odometer_measurement(
+        cfg,
+        P1,
+        x,
+        np.array([M.PIVOT]),
+        np.array([2.0]),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([0.5]),
+        np.ones(1, dtype=bool),
+    )
+    ground = 1.0 + 0.5 * float(P1.gauge_m[0]) / 2  # V + |ω|·B/2, the driven track
+    assert y[0, 0] == pytest.approx(2.0 - ground / 0.75)
+    assert H[0, 0, S.F_PIVOT] == H[0, 0, S.F_STRAIGHT] == pytest.approx(-ground / 0.75**2)
+    assert mask[0] and corrected[0] == pytest.approx(2.0 * 0.75 - (ground - 1.0))
+
+
 def test_odometer_dropped_in_heading_jumps() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.F_STRAIGHT] = 1.0
@@ -343,3 +373,32 @@ def test_tracked_package_is_pure() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def _tick_inputs(**fields: np.ndarray) -> TickInputs:
+    """Three ticks of zeros (``*_pair*`` fields ``(3, 2)``), ``fields`` replacing some."""
+    flags = ("sprocket_missing", "sprocket_settling_pair", "sprocket_starting_pair")
+    base = {
+        f.name: np.zeros(
+            (3, 2) if "pair" in f.name else 3, dtype=bool if f.name in flags else float
+        )
+        for f in dataclasses.fields(TickInputs)
+    }
+    return TickInputs(**{**base, **fields})
+
+
+def test_a_released_brake_is_read_from_the_slow_sprockets_first_edge() -> None:
+    p3 = VehicleParams.stack([P1, P1, P1])
+    # 0: pivot, braked (left, slow) sprocket's first edge: released, direct gear -> straight
+    # 1: the same in the low gear -> low straight
+    # 2: a pivot started from rest: the driven (fast) sprocket starts, the braked one is silent
+    inp = _tick_inputs(
+        sprocket_pair_mps=np.array([[0.0, 1.5], [0.0, 1.5], [0.0, 0.4]]),
+        sprocket_starting_pair=np.array([[True, False], [True, False], [False, True]]),
+        gear_ratio=np.array([1.0, 1 / 1.42, 1.0]),
+    )
+    state = np.full(3, int(M.PIVOT))
+    got = _released(state, inp, p3)
+    assert got.tolist() == [int(M.STRAIGHT), int(M.LOW_STRAIGHT), int(M.PIVOT)]
+    still = _released(np.full(3, int(M.STOP)), inp, p3)  # standing: nothing released
+    assert (still == int(M.STOP)).all()

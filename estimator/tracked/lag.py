@@ -1,0 +1,98 @@
+"""Fixed-lag output of the tracked estimator: a state change reported at its estimated instant.
+
+A lever thrown at ``t0`` shows in the sprocket windows a few ticks later (the windows read a
+ratio about half a window late, and the recogniser waits for the ratio to cross its band), so
+the state the filter gives on the tick changes late. Each vehicle's last rows are held
+(:class:`HeldRows`); when a held row's successor changes state, :func:`backdate` moves the
+change back over the ticks that still show the old state while the change was already under
+way (``onset`` of the tick after: a ratio moving, a sprocket settling, the yaw acceleration
+out of its band), at most ``lag`` ticks. Only rows a later change can still reach are held:
+the last one, and while a change is under way up to ``lag`` (a fixed lag of one tick in
+steady driving, of at most ``lag`` ticks through a change). Every row keeps its own stamp.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator._arrays import BoolArray
+from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
+
+__all__ = ["HeldRows", "backdate"]
+
+_F = TrackedFlag
+_SLIP_BITS = int(_F.SLIP_LEFT_VALID | _F.SLIP_RIGHT_VALID | _F.BRAKED_LEFT | _F.BRAKED_RIGHT)
+_SLIP_FIELDS = ("slip_left_pct", "slip_right_pct", "slip_left_std_pct", "slip_right_std_pct")
+
+
+def backdate(
+    rows: np.ndarray, onset: BoolArray, first: int, max_back: int, conf_min: float
+) -> BoolArray:
+    """Backdate the state changes of ``rows[first:]`` (rows of ``TRACKED_SPEC``, ``(m,)``; in
+    place) and return which rows were relabelled ``(m,)``.
+
+    For a change ``A → B`` at row ``t``: rows ``j = t−1, t−2, …`` (no further back than
+    ``t − max_back``) take ``B`` and the confidence of ``t`` while row ``j`` shows ``A`` and
+    row ``j + 1`` shows the change under way (``onset[j + 1]``). A relabelled row gives no
+    slip (its filter step used ``A``'s odometer model) and carries ``STATE_BACKDATED``;
+    ``STATE_UNCERTAIN`` follows its new confidence against ``conf_min``."""
+    state = rows["motion_state"]
+    conf = rows["state_confidence"]
+    moved = np.zeros(state.size, dtype=bool)
+    if max_back <= 0 or state.size < 2:
+        return moved
+    lo = max(first, 1)
+    for t in (np.flatnonzero(state[lo:] != state[lo - 1 : -1]) + lo).tolist():
+        old, j = state[t - 1], t - 1
+        while j >= max(t - max_back, 0) and state[j] == old and onset[j + 1]:
+            state[j], conf[j] = state[t], conf[t]
+            moved[j] = True
+            j -= 1
+    if moved.any():
+        unsure = int(_F.STATE_UNCERTAIN)
+        flags = rows["flags"][moved] & ~(_SLIP_BITS | unsure) | int(_F.STATE_BACKDATED)
+        rows["flags"][moved] = np.where(conf[moved] < conf_min, flags | unsure, flags)
+        for name in _SLIP_FIELDS:
+            rows[name][moved] = np.nan
+    return moved
+
+
+def _still_open(onset: BoolArray, lag: int) -> int:
+    """How many of the last rows a later change may still relabel: the last one (the tick
+    before a change), and before it every row followed by an unbroken run of onsets to the
+    end, at most ``lag`` rows (0 for no lag)."""
+    held = min(1, lag, onset.size)
+    while held < min(lag, onset.size) and onset[onset.size - held]:
+        held += 1
+    return held
+
+
+class HeldRows:
+    """One vehicle's rows not yet given (at most ``lag`` ticks): their bytes, states and
+    onsets (kept apart so that the common case, nothing to backdate, touches no record
+    array field by field: per vehicle and call this runs on the server's hot path)."""
+
+    __slots__ = ("data", "onset", "state")
+
+    def __init__(self) -> None:
+        self.data = b""
+        self.state = np.zeros(0, dtype=TRACKED_SPEC.dtype["motion_state"])
+        self.onset = np.zeros(0, dtype=bool)
+
+    def give(self, rows: np.ndarray, onset: BoolArray, lag: int, conf_min: float) -> np.ndarray:
+        """Add the rows of new ticks (``onset`` ``(m,)``), backdate their changes over the held
+        ones, and return (oldest first) every row a later change can no longer reach."""
+        if lag <= 0 and not self.data:
+            return rows
+        first = self.state.size
+        state = np.concatenate([self.state, rows["motion_state"]])
+        on = np.concatenate([self.onset, onset])
+        buf = np.frombuffer(bytearray(self.data + rows.tobytes()), dtype=TRACKED_SPEC.dtype)
+        lo = max(first, 1)
+        if ((state[lo:] != state[lo - 1 : -1]) & on[lo:]).any():  # a change that can go back
+            backdate(buf, on, first, lag, conf_min)
+            state = buf["motion_state"]
+        cut = buf.size - _still_open(on, lag)
+        self.data = buf[cut:].tobytes()
+        self.state, self.onset = state[cut:].copy(), on[cut:].copy()
+        return buf[:cut]
