@@ -13,7 +13,10 @@ import pytest
 from server.metrics.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
 from server.protocol import Stream, decode, sensor_key
 from server.tooling.loadtest import (
+    DRAIN_MAX_S,
+    DRAIN_S,
     VEHICLES_PER_PUBLISHER,
+    DrainWatch,
     LoadSpec,
     Target,
     assignments,
@@ -96,6 +99,41 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
     assert phases.get("estimate", 0.0) > 0.0 and phases.get("decode", 0.0) > 0.0, phases
     assert sum(phases.values()) <= threads["server/slipfleet-pipeline"] + 0.05, (phases, threads)
     assert "pipeline estimate" in format_report(r) or "pipeline decode" in format_report(r)
+
+
+def _server(received: int, written: int, produced: int, backlog: int = 0) -> dict[str, int]:
+    return {
+        "received": received,
+        "rows_written": written,
+        "rows_not_inserted": 0,
+        "rows_dropped": 0,
+        "estimate_rows": produced,
+        "backlog": backlog,
+    }
+
+
+def test_the_drain_waits_while_a_server_that_fell_behind_catches_up() -> None:
+    watch = DrainWatch(sent_total=1000, started_s=0.0)
+    # far behind, but counting packets every second: no end short of the overall bound
+    t_s = 0.0
+    while t_s < DRAIN_MAX_S - 1:
+        assert not watch.done(_server(int(t_s), 0, 10), t_s), t_s
+        t_s += 1.0
+    assert watch.done(_server(int(t_s) + 1, 0, 10), DRAIN_MAX_S + 0.5)
+
+
+def test_the_drain_ends_when_settled_or_when_nothing_moves() -> None:
+    settled = DrainWatch(sent_total=1000, started_s=0.0)
+    assert not settled.done(_server(1000, 8, 10), 1.0)  # rows still on their way
+    assert not settled.done(_server(1000, 10, 10), 2.0)  # settled; 1.5 s to go
+    assert settled.done(_server(1000, 10, 10), 2.6)
+    stuck = DrainWatch(sent_total=1000, started_s=0.0)
+    assert not stuck.done(_server(990, 10, 10), 1.0)
+    assert not stuck.done(_server(990, 10, 10), 1.0 + DRAIN_S)
+    assert stuck.done(_server(990, 10, 10), 1.5 + DRAIN_S)  # 10 packets never came
+    backlog = DrainWatch(sent_total=1000, started_s=0.0)
+    assert not backlog.done(_server(1000, 10, 10, backlog=5), 1.0)
+    assert not backlog.done(_server(1000, 10, 10, backlog=5), 3.0)
 
 
 def test_window_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
