@@ -41,8 +41,9 @@ over the tick), looping.
 Measured over the window after the warm-up (every publisher has sent, then ``--warmup`` seconds)
 until the publishers stop, plus a drain (the server has counted every packet sent, the writer
 backlog is empty and, 1.5 s on, the writer has taken every estimate row produced; at most
-``DRAIN_S`` without progress, ``DRAIN_MAX_S`` in all, so *missing* is what never arrived, not
-what a server that fell behind still had queued):
+``DRAIN_S`` without progress, ``DRAIN_MAX_S`` in all; the publishers keep their sessions open
+until it ends, so *missing* is what never arrived, not what a server that fell behind still
+had queued):
 
 * packets sent (publishers) / received / accepted / rejected / late / duplicate / lost by
   sequence gap (server ``/metrics``), and *missing* = sent − received over the whole run;
@@ -484,10 +485,24 @@ class _Publisher:
                 self.proc.stdin.flush()
 
     def stop(self) -> None:
+        """Stop publishing; the child reports its final counts and keeps its sessions open
+        (what they still queue reaches the server) until :meth:`close`."""
         if self.proc.stdin is not None and not self.proc.stdin.closed:
             with contextlib.suppress(BrokenPipeError, OSError, ValueError):
                 self.proc.stdin.write("stop\n")
+                self.proc.stdin.flush()
+
+    def close(self) -> None:
+        """Let the child close its sessions and exit (end of its input)."""
+        if self.proc.stdin is not None and not self.proc.stdin.closed:
+            with contextlib.suppress(BrokenPipeError, OSError, ValueError):
                 self.proc.stdin.close()
+
+    def wait_final(self, timeout_s: float = 60.0) -> None:
+        """Wait (at most ``timeout_s``) for the child's final counts after :meth:`stop`."""
+        deadline = time.monotonic() + timeout_s
+        while self.final is None and self.proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
 
     def join(self, timeout_s: float = 60.0) -> None:
         try:
@@ -698,10 +713,13 @@ def _publish_child(job_json: str) -> int:
         "cpu_s": time.process_time() - cpu0,
         "wall_s": time.monotonic() - t0,
     }
+    print(json.dumps({"final": final}), flush=True)
+    # the sessions stay open until the parent has drained the server: closing them drops what
+    # their queues still hold for a server that fell behind (BLOCK held the puts back)
+    sys.stdin.read()  # until the end of input
     time.sleep(0.5)  # let the sessions flush before closing
     for session in sessions:
         session.close()
-    print(json.dumps({"final": final}), flush=True)
     return 1 if failed else 0
 
 
@@ -978,6 +996,7 @@ def _cost_result(
 def _stop_all(pubs: Sequence[_Publisher], timeout_s: float = 60.0) -> None:
     for p in pubs:
         p.stop()
+        p.close()
     for p in pubs:
         p.join(timeout_s)
 
@@ -1011,9 +1030,13 @@ def run_loadtest(
         load_before = os.getloadavg()[0]
         window = _watch_window(spec, target, http, pubs, (server_watch, pub_watch), progress)
         result["machine_load_avg"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
-        _stop_all(pubs)
+        for p in pubs:
+            p.stop()
+        for p in pubs:
+            p.wait_final()
         sent_total = sum((p.final or {}).get("sent", p.sent) for p in pubs)
-        after, drain_s = _drain(target, http, sent_total)
+        after, drain_s = _drain(target, http, sent_total)  # the publishers' sessions still open
+        _stop_all(pubs)
     finally:
         _stop_all(pubs, 10.0)
         server_watch.stop()

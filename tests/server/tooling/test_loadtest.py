@@ -4,6 +4,7 @@ shards that each see only their own vehicles while both APIs list the whole flee
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import httpx
@@ -19,6 +20,9 @@ from server.tooling.loadtest import (
     DrainWatch,
     LoadSpec,
     Target,
+    _jobs,
+    _Publisher,
+    _wait_sending,
     assignments,
     format_report,
     local_server,
@@ -134,6 +138,26 @@ def test_the_drain_ends_when_settled_or_when_nothing_moves() -> None:
     backlog = DrainWatch(sent_total=1000, started_s=0.0)
     assert not backlog.done(_server(1000, 10, 10, backlog=5), 1.0)
     assert not backlog.done(_server(1000, 10, 10, backlog=5), 3.0)
+
+
+def test_a_stopped_publisher_keeps_its_sessions_open_until_closed() -> None:
+    # what its sessions still queue for a server that fell behind must reach it during the
+    # drain: the child stops sending, reports its counts and exits only when told to
+    spec = LoadSpec(vehicles=2, duration_s=1.0, publishers=1, scenario="figure_eight")
+    with local_server() as server:
+        (job,) = _jobs(spec, Target((server.endpoint,), (server.api,)), "fleet")
+        pub = _Publisher(0, job)
+        try:
+            _wait_sending([pub])
+            pub.stop()
+            pub.wait_final()
+            assert pub.final is not None and pub.final["sent"] > 0
+            time.sleep(1.0)
+            assert pub.proc.poll() is None
+        finally:
+            pub.close()
+            pub.join(30.0)
+    assert pub.proc.returncode == 0
 
 
 def test_window_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:
