@@ -1150,7 +1150,10 @@ _SIDE_BY_SIDE: tuple[tuple[str, Any], ...] = (
     ("vehicles seen", lambda r: r["vehicles_seen"]),
     ("packets/s sent", lambda r: f"{r['packets_per_s']:.0f}"),
     ("packets sent", lambda r: r["packets_sent"]),
-    ("lost (seq gap + missing)", lambda r: r["packets_lost_by_seq_gap"] + r["packets_missing"]),
+    # never received, and how many sequence gaps the server saw: a packet lost mid-stream is
+    # both, so the two are not added
+    ("missing (seq gaps)", lambda r: f"{r['packets_missing']} "
+     f"({r['packets_lost_by_seq_gap']})"),
     ("late", lambda r: r["packets_late"]),
     ("rejected", lambda r: r["packets_rejected"]),
     ("estimate rows stored", lambda r: r["estimates_stored"]),
