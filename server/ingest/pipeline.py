@@ -84,7 +84,17 @@ from server.protocol.keys import Stream
 from server.settings import Settings, UnknownVehiclePolicy
 from server.storage.base import Anchor
 
-__all__ = ["PIPELINE_REASONS", "EstimateSink", "Pipeline"]
+__all__ = ["PIPELINE_REASONS", "STAT_COUNTERS", "EstimateSink", "Pipeline"]
+
+#: The counters of :meth:`Pipeline.stats` (besides its gauges: queue, last tick, CPU by phase).
+STAT_COUNTERS = (
+    "ticks",
+    "rows",
+    "sink_errors",
+    "estimator_errors",
+    "pipeline_errors",
+    "dropped_not_running",
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,17 +290,7 @@ class Pipeline:
             else None
         )
         self._thread: threading.Thread | None = None
-        self._stats = dict.fromkeys(
-            (
-                "ticks",
-                "rows",
-                "sink_errors",
-                "estimator_errors",
-                "pipeline_errors",
-                "dropped_not_running",
-            ),
-            0,
-        )
+        self._stats = dict.fromkeys(STAT_COUNTERS, 0)
         self._stopping = threading.Event()
         self._last_tick_s = 0.0
         self._cpu_s = dict.fromkeys(PHASES, 0.0)  # thread CPU by phase (PHASES)

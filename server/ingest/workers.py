@@ -62,7 +62,7 @@ from estimator.catalog import spec_of
 from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
 from server.estimation.registry import EstimatorRegistry
-from server.ingest.pipeline import EstimateSink
+from server.ingest.pipeline import PHASES, STAT_COUNTERS, EstimateSink
 from server.ingest.status import StatusPublisher
 from server.ingest.subscriber import IngestSubscriber, RawPacket, Refusal
 from server.metrics.thread_cpu import thread_cpu_seconds
@@ -93,6 +93,14 @@ START_TIMEOUT_S = 60.0
 # pipeline stats that are not summed over workers
 _STATS_MAX = ("last_tick_ms",)
 _STATS_ALL = ("running",)
+# the workers' pipeline stats before their first report (a second after start at most), so
+# that /metrics right after start reads zeros rather than missing keys
+_STATS_UNREPORTED: dict[str, int | float] = {
+    **dict.fromkeys(STAT_COUNTERS, 0),
+    **dict.fromkeys(("queue_bursts", "queue_bytes", "queue_bytes_peak"), 0),
+    "last_tick_ms": 0.0,
+    **{f"cpu_{phase}_s": 0.0 for phase in PHASES},
+}
 
 
 def _widen(conn: Connection) -> None:
@@ -509,7 +517,7 @@ class WorkerPool:
     def stats(self) -> dict[str, Any]:
         """The workers' pipeline stats summed (``last_tick_ms`` the largest), plus the pool's;
         ``running`` only while every worker and the collector run."""
-        merged: dict[str, Any] = dict(self._stats)
+        merged: dict[str, Any] = {**_STATS_UNREPORTED, **self._stats}
         for w in self._workers:
             for key, value in w.snapshot.get("stats", {}).items():
                 if key in _STATS_MAX:

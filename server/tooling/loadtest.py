@@ -41,7 +41,9 @@ over the tick), looping.
 Measured over the window after the warm-up (every publisher has sent, then ``--warmup`` seconds)
 until the publishers stop, plus a drain (the server has counted every packet sent, the writer
 backlog is empty and, 1.5 s on, the writer has taken every estimate row produced; at most
-``DRAIN_S``):
+``DRAIN_S`` without progress, ``DRAIN_MAX_S`` in all; the publishers keep their sessions open
+until it ends, so *missing* is what never arrived, not what a server that fell behind still
+had queued):
 
 * packets sent (publishers) / received / accepted / rejected / late / duplicate / lost by
   sequence gap (server ``/metrics``), and *missing* = sent − received over the whole run;
@@ -63,8 +65,9 @@ backlog is empty and, 1.5 s on, the writer has taken every estimate row produced
   cores by phase (decode, reorder, release, estimate, deliver:
   ``slipfleet_pipeline_cpu_seconds_total``);
 * the machine's speed before the load and after it (:mod:`server.tooling.speed_probe`: a fixed
-  Python loop, best of three): near the machine's limit a shared machine's drift decides the
-  tail, so runs are compared at a like speed.
+  Python loop, best of three), and its one-minute load average as the window starts and as it
+  ends: near the machine's limit a shared machine's drift decides the tail, so runs are
+  compared at a like speed and load.
 
 Everything runs on loopback and stops by itself (bounded duration and drain).
 """
@@ -109,6 +112,7 @@ __all__ = [
     "KINDS",
     "MIX",
     "VEHICLES_PER_PUBLISHER",
+    "DrainWatch",
     "LoadSpec",
     "Target",
     "assignments",
@@ -128,8 +132,12 @@ MIX = ("field_work", "figure_eight", "slope_wet_patch", "slow_creep", "hard_brak
 #: Vehicle kinds of ``--mix``: tractors (kind ``wheeled_rear_drive``, the scenarios), crawlers
 #: (kind ``tracked``) and steered four-wheel vehicles (kind ``wheeled_4wd_steered``).
 KINDS = ("tractor", "tracked", "steered")
-#: Longest wait for the server to count every packet sent and empty its writer backlog.
+#: Longest the drain waits for the server to count every packet sent and empty its writer
+#: backlog while nothing moves (no packet counted, no row taken), seconds.
 DRAIN_S = 30.0
+#: Longest drain in all, seconds: a server that fell minutes behind but still works through its
+#: queues is given this long, so packets still queued are not counted as missing too early.
+DRAIN_MAX_S = 300.0
 #: Scrape period of ``/metrics`` during the run (progress, RSS), seconds. These scrapes ask for
 #: fleet totals (``by_vehicle=false``); only the scrapes before and after the window render every
 #: vehicle's counters (~25 series each, ~0.1 s of the server's CPU at 1,000 vehicles).
@@ -477,10 +485,24 @@ class _Publisher:
                 self.proc.stdin.flush()
 
     def stop(self) -> None:
+        """Stop publishing; the child reports its final counts and keeps its sessions open
+        (what they still queue reaches the server) until :meth:`close`."""
         if self.proc.stdin is not None and not self.proc.stdin.closed:
             with contextlib.suppress(BrokenPipeError, OSError, ValueError):
                 self.proc.stdin.write("stop\n")
+                self.proc.stdin.flush()
+
+    def close(self) -> None:
+        """Let the child close its sessions and exit (end of its input)."""
+        if self.proc.stdin is not None and not self.proc.stdin.closed:
+            with contextlib.suppress(BrokenPipeError, OSError, ValueError):
                 self.proc.stdin.close()
+
+    def wait_final(self, timeout_s: float = 60.0) -> None:
+        """Wait (at most ``timeout_s``) for the child's final counts after :meth:`stop`."""
+        deadline = time.monotonic() + timeout_s
+        while self.final is None and self.proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
 
     def join(self, timeout_s: float = 60.0) -> None:
         try:
@@ -691,10 +713,13 @@ def _publish_child(job_json: str) -> int:
         "cpu_s": time.process_time() - cpu0,
         "wall_s": time.monotonic() - t0,
     }
+    print(json.dumps({"final": final}), flush=True)
+    # the sessions stay open until the parent has drained the server: closing them drops what
+    # their queues still hold for a server that fell behind (BLOCK held the puts back)
+    sys.stdin.read()  # until the end of input
     time.sleep(0.5)  # let the sessions flush before closing
     for session in sessions:
         session.close()
-    print(json.dumps({"final": final}), flush=True)
     return 1 if failed else 0
 
 
@@ -862,20 +887,37 @@ def _watch_window(
     return _Window(before, last, sent0, sent1, wall, cost)
 
 
-def _drain(target: Target, http: httpx.Client, sent_total: int) -> tuple[dict[str, Any], float]:
-    """Wait (at most :data:`DRAIN_S`) until every packet sent is counted, the writer backlog
-    is empty and, after a pause in which the vehicles' idle release emits their last rows,
-    every row produced was taken by the writer (inserted, not inserted or dropped); the final
-    per-vehicle scrape and the seconds it took."""
-    t_drain = time.monotonic()
-    settled_at: float | None = None
-    while time.monotonic() - t_drain <= DRAIN_S:
-        last = _merge([scrape(a, http, by_vehicle=False) for a in target.apis])
+@dataclass
+class DrainWatch:
+    """When the drain ends: settled (every packet sent counted, the writer backlog empty and,
+    1.5 s on, every row produced taken by the writer), or :data:`DRAIN_S` without progress,
+    or :data:`DRAIN_MAX_S` in all. Times in seconds of one monotonic clock."""
+
+    sent_total: int
+    started_s: float
+    progress_s: float = -math.inf
+    seen: tuple[float, float] = (-1.0, -1.0)
+    settled_s: float | None = None
+
+    def done(self, last: Mapping[str, Any], now_s: float) -> bool:
         taken = last["rows_written"] + last["rows_not_inserted"] + last["rows_dropped"]
-        if last["received"] >= sent_total and last["backlog"] == 0:
-            settled_at = settled_at or time.monotonic()
-            if time.monotonic() - settled_at >= 1.5 and taken >= last["estimate_rows"]:
-                break
+        if (last["received"], taken) != self.seen:
+            self.seen, self.progress_s = (last["received"], taken), now_s
+        if last["received"] >= self.sent_total and last["backlog"] == 0:
+            self.settled_s = self.settled_s or now_s
+            if now_s - self.settled_s >= 1.5 and taken >= last["estimate_rows"]:
+                return True
+        return now_s - self.progress_s > DRAIN_S or now_s - self.started_s > DRAIN_MAX_S
+
+
+def _drain(target: Target, http: httpx.Client, sent_total: int) -> tuple[dict[str, Any], float]:
+    """Scrape until the drain is done (:class:`DrainWatch`); the final per-vehicle scrape and
+    the seconds it took."""
+    t_drain = time.monotonic()
+    watch = DrainWatch(sent_total, t_drain)
+    while not watch.done(
+        _merge([scrape(a, http, by_vehicle=False) for a in target.apis]), time.monotonic()
+    ):
         time.sleep(0.25)
     return _merge([scrape(a, http) for a in target.apis]), time.monotonic() - t_drain
 
@@ -954,6 +996,7 @@ def _cost_result(
 def _stop_all(pubs: Sequence[_Publisher], timeout_s: float = 60.0) -> None:
     for p in pubs:
         p.stop()
+        p.close()
     for p in pubs:
         p.join(timeout_s)
 
@@ -984,10 +1027,16 @@ def run_loadtest(
         time.sleep(spec.warmup_s)
         # latency is taken over the window only: when the publishers stop, every vehicle's
         # last data is released by the reorder buffers' idle timeout, late by design
+        load_before = os.getloadavg()[0]
         window = _watch_window(spec, target, http, pubs, (server_watch, pub_watch), progress)
-        _stop_all(pubs)
+        result["machine_load_avg"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
+        for p in pubs:
+            p.stop()
+        for p in pubs:
+            p.wait_final()
         sent_total = sum((p.final or {}).get("sent", p.sent) for p in pubs)
-        after, drain_s = _drain(target, http, sent_total)
+        after, drain_s = _drain(target, http, sent_total)  # the publishers' sessions still open
+        _stop_all(pubs)
     finally:
         _stop_all(pubs, 10.0)
         server_watch.stop()
@@ -1076,6 +1125,12 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"machine  Python probe {before:.3f} s before, {after:.3f} s after (a fixed loop, "
             "best of 3: runs are comparable at a like speed)"
         )
+    if r.get("machine_load_avg"):
+        start, end = r["machine_load_avg"]
+        lines.append(
+            f"machine  load average (1 min) {start:.2f} as the window starts, {end:.2f} as it "
+            f"ends, on {r['machine_cpus']} CPUs"
+        )
     return "\n".join(lines)
 
 
@@ -1095,7 +1150,10 @@ _SIDE_BY_SIDE: tuple[tuple[str, Any], ...] = (
     ("vehicles seen", lambda r: r["vehicles_seen"]),
     ("packets/s sent", lambda r: f"{r['packets_per_s']:.0f}"),
     ("packets sent", lambda r: r["packets_sent"]),
-    ("lost (seq gap + missing)", lambda r: r["packets_lost_by_seq_gap"] + r["packets_missing"]),
+    # never received, and how many sequence gaps the server saw: a packet lost mid-stream is
+    # both, so the two are not added
+    ("missing (seq gaps)", lambda r: f"{r['packets_missing']} "
+     f"({r['packets_lost_by_seq_gap']})"),
     ("late", lambda r: r["packets_late"]),
     ("rejected", lambda r: r["packets_rejected"]),
     ("estimate rows stored", lambda r: r["estimates_stored"]),
@@ -1108,6 +1166,7 @@ _SIDE_BY_SIDE: tuple[tuple[str, Any], ...] = (
     ("server RSS peak MB", lambda r: r.get("server_rss_mb_peak")),
     ("publisher CPU cores", lambda r: r.get("publisher_cpu_cores")),
     ("machine probe s (before)", lambda r: (r.get("machine_probe_s") or [None])[0]),
+    ("load average at window end", lambda r: (r.get("machine_load_avg") or [None, None])[1]),
 )  # fmt: skip
 
 

@@ -11,7 +11,8 @@ import pytest
 
 from estimator.config import WheeledRearDriveConfig
 from estimator.sim import simulate
-from server.estimation import EstimatorRegistry
+from server.estimation.registry import EstimatorRegistry
+from server.ingest.pipeline import Pipeline
 from server.ingest.workers import PIPE_BYTES, WorkerPool, owner_of
 from server.protocol import sensor_key
 from server.settings import Settings
@@ -109,6 +110,23 @@ def test_every_vehicle_is_estimated_once_and_counted() -> None:
     ticks = pool.estimator_counters_snapshot()["mdsf"]
     assert sorted(ticks) == VEHICLES
     assert sorted(pool.anchors_snapshot()) == VEHICLES
+
+
+def test_stats_before_the_first_report_hold_every_pipeline_stat_at_zero() -> None:
+    # /metrics may be read the moment the server is up, a second before any worker reports
+    reference = Pipeline(Settings(viewer={"enabled": False}), None, EstimatorRegistry()).stats()
+    pool = _pool(CapturingSink())
+    pool.start()
+    try:
+        stats = pool.stats()
+        assert all(not w.snapshot.get("stats") for w in pool._workers), "reported already"
+    finally:
+        pool.stop()
+    numeric = {k for k, v in reference.items() if isinstance(v, int | float) and k != "running"}
+    missing = numeric - {"queue_capacity"} - stats.keys()
+    assert not missing, missing
+    assert stats["rows"] == stats["ticks"] == stats["queue_bursts"] == 0
+    assert stats["last_tick_ms"] == 0.0 and stats["workers"] == 2
 
 
 def test_registrations_and_stored_counters_reach_the_owner() -> None:

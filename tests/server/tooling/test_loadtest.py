@@ -4,6 +4,7 @@ shards that each see only their own vehicles while both APIs list the whole flee
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import httpx
@@ -13,9 +14,15 @@ import pytest
 from server.metrics.latency import BOUNDS_S, LatencyHistogram, quantiles_from_buckets
 from server.protocol import Stream, decode, sensor_key
 from server.tooling.loadtest import (
+    DRAIN_MAX_S,
+    DRAIN_S,
     VEHICLES_PER_PUBLISHER,
+    DrainWatch,
     LoadSpec,
     Target,
+    _jobs,
+    _Publisher,
+    _wait_sending,
     assignments,
     format_report,
     local_server,
@@ -96,6 +103,61 @@ def test_small_fleet_against_a_server_process_loses_nothing() -> None:
     assert phases.get("estimate", 0.0) > 0.0 and phases.get("decode", 0.0) > 0.0, phases
     assert sum(phases.values()) <= threads["server/slipfleet-pipeline"] + 0.05, (phases, threads)
     assert "pipeline estimate" in format_report(r) or "pipeline decode" in format_report(r)
+
+
+def _server(received: int, written: int, produced: int, backlog: int = 0) -> dict[str, int]:
+    return {
+        "received": received,
+        "rows_written": written,
+        "rows_not_inserted": 0,
+        "rows_dropped": 0,
+        "estimate_rows": produced,
+        "backlog": backlog,
+    }
+
+
+def test_the_drain_waits_while_a_server_that_fell_behind_catches_up() -> None:
+    watch = DrainWatch(sent_total=1000, started_s=0.0)
+    # far behind, but counting packets every second: no end short of the overall bound
+    t_s = 0.0
+    while t_s < DRAIN_MAX_S - 1:
+        assert not watch.done(_server(int(t_s), 0, 10), t_s), t_s
+        t_s += 1.0
+    assert watch.done(_server(int(t_s) + 1, 0, 10), DRAIN_MAX_S + 0.5)
+
+
+def test_the_drain_ends_when_settled_or_when_nothing_moves() -> None:
+    settled = DrainWatch(sent_total=1000, started_s=0.0)
+    assert not settled.done(_server(1000, 8, 10), 1.0)  # rows still on their way
+    assert not settled.done(_server(1000, 10, 10), 2.0)  # settled; 1.5 s to go
+    assert settled.done(_server(1000, 10, 10), 2.6)
+    stuck = DrainWatch(sent_total=1000, started_s=0.0)
+    assert not stuck.done(_server(990, 10, 10), 1.0)
+    assert not stuck.done(_server(990, 10, 10), 1.0 + DRAIN_S)
+    assert stuck.done(_server(990, 10, 10), 1.5 + DRAIN_S)  # 10 packets never came
+    backlog = DrainWatch(sent_total=1000, started_s=0.0)
+    assert not backlog.done(_server(1000, 10, 10, backlog=5), 1.0)
+    assert not backlog.done(_server(1000, 10, 10, backlog=5), 3.0)
+
+
+def test_a_stopped_publisher_keeps_its_sessions_open_until_closed() -> None:
+    # what its sessions still queue for a server that fell behind must reach it during the
+    # drain: the child stops sending, reports its counts and exits only when told to
+    spec = LoadSpec(vehicles=2, duration_s=1.0, publishers=1, scenario="figure_eight")
+    with local_server() as server:
+        (job,) = _jobs(spec, Target((server.endpoint,), (server.api,)), "fleet")
+        pub = _Publisher(0, job)
+        try:
+            _wait_sending([pub])
+            pub.stop()
+            pub.wait_final()
+            assert pub.final is not None and pub.final["sent"] > 0
+            time.sleep(1.0)
+            assert pub.proc.poll() is None
+        finally:
+            pub.close()
+            pub.join(30.0)
+    assert pub.proc.returncode == 0
 
 
 def test_window_cores_are_cpu_seconds_over_the_window_busiest_first() -> None:

@@ -91,6 +91,7 @@ def test_crawlers_beside_tractors_load_a_server_process_and_lose_nothing() -> No
         lat = r["latency"][stage]
         assert lat["rows"] > 0 and 0 < lat["p50_ms"] <= lat["p99_ms"] < 2_000
     table = format_side_by_side([r, r]).splitlines()
-    assert table[0] == "|  | run 1 | run 2 |" and len(table) == 2 + 15
+    assert table[0] == "|  | run 1 | run 2 |" and len(table) == 2 + 16
+    assert all(0.0 <= load < 1000.0 for load in r["machine_load_avg"])
     assert "| fleet (--mix) | tractor=0.5,tracked=0.5 | tractor=0.5,tracked=0.5 |" in table
-    assert any(line.startswith("| lost (seq gap + missing) | 0 | 0 |") for line in table)
+    assert "| missing (seq gaps) | 0 (0) | 0 (0) |" in table
