@@ -9,13 +9,14 @@ server releases every stream in sensor order, so the edges and fixes up to it ar
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import TrackedConfig, VehicleConfig, expect_kind
+from estimator.geo import geodetic_from_enu
 from estimator.tracked.fleet_inputs import take_fleet
 from estimator.tracked.lag import HeldRows
 from estimator.tracked.model import TrackedState as S
@@ -146,17 +147,26 @@ def _rows(f: Filter, out: TickOut, inp: TickInputs, cfg: TrackedEstimatorConfig)
     return rows
 
 
-def _geodetic(slot: _Slot, rows: np.ndarray) -> None:
-    """Fill ``up_m``, ``lat_deg``, ``lon_deg`` of a vehicle's rows from its anchor."""
-    frame = slot.inputs.frame
-    if frame is None or rows.size == 0:
+def _geodetic(slots: Sequence[_Slot], sizes: Sequence[int], rows: np.ndarray) -> None:
+    """Fill ``up_m``, ``lat_deg``, ``lon_deg`` of rows laid out vehicle after vehicle
+    (``sizes[k]`` rows of ``slots[k]``), each from its vehicle's anchor, in one conversion;
+    a vehicle without an anchor yet keeps its rows as they are."""
+    frames = [s.inputs.frame for s in slots]
+    has = np.repeat([f is not None for f in frames], sizes)
+    if not has.any():
         return
-    up = -slot.inputs.config.geometry.antenna_lever_arm_m[2]
-    known = np.isfinite(rows["east_m"])
-    rows["up_m"] = np.where(known, up, np.nan)
+    anchor = np.repeat(
+        [(f.lat0_deg, f.lon0_deg, f.h0_m) if f is not None else (0.0, 0.0, 0.0) for f in frames],
+        sizes,
+        axis=0,
+    )
+    up = np.repeat([-s.inputs.config.geometry.antenna_lever_arm_m[2] for s in slots], sizes)
+    known = has & np.isfinite(rows["east_m"])
+    rows["up_m"] = np.where(has, np.where(known, up, np.nan), rows["up_m"])
     if known.any():
-        lat, lon, _ = frame.to_geodetic(
-            rows["east_m"][known], rows["north_m"][known], np.full(int(known.sum()), up)
+        a = anchor[known]
+        lat, lon, _ = geodetic_from_enu(
+            rows["east_m"][known], rows["north_m"][known], up[known], a[:, 0], a[:, 1], a[:, 2]
         )
         rows["lat_deg"][known] = lat
         rows["lon_deg"][known] = lon
@@ -270,11 +280,11 @@ class TrackedFleet(_Base):
             out[rows], onset[rows] = self._round(
                 slots, _select(inp, rows), _params_of(params, part)
             )
+        _geodetic([slot for _, slot, _ in work], np.diff(starts).tolist(), out)
         result = []
         for (vid, slot, _), a, b in zip(
             work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
         ):
-            _geodetic(slot, out[a:b])
             given = slot.held.give(out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min)
             if given.size:
                 result.append((vid, given))
@@ -320,7 +330,7 @@ class TrackedEstimator(_Base):
                 rows[r] = _rows(slot.filter, got, one, self.config)[0]
                 onset[r] = got.onset[0]
                 _count(slot, got, 0)
-            _geodetic(slot, rows)
+            _geodetic([slot], [ticks.size], rows)
             given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min)
             if given.size:
                 result.append((vid, given))

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from estimator.geo import WGS84_A_M, EnuFrame, enu_from_geodetic
+from estimator.geo import WGS84_A_M, EnuFrame, enu_from_geodetic, geodetic_from_enu
 
 
 def test_anchor_is_the_origin_and_axes_point_east_north_up() -> None:
@@ -53,3 +53,22 @@ def test_points_of_many_frames_in_one_call() -> None:
     for i, f in enumerate(frames):
         one = f.to_enu(lat[i], lon[i], h[i])
         assert np.allclose([e[i], n[i], u[i]], one, rtol=0, atol=1e-9)
+
+
+def test_geodetic_from_enu_converts_rows_of_many_frames_in_one_call() -> None:
+    """Rows of three frames (different anchors) in one call give what each frame gives alone,
+    and invert enu_from_geodetic."""
+    anchors = [(52.1, 5.2, 10.0), (-33.9, 151.2, 40.0), (64.0, -21.9, 0.0)]
+    rng = np.random.default_rng(3)
+    e, n, u = rng.uniform(-3000, 3000, 9), rng.uniform(-3000, 3000, 9), rng.uniform(-5, 5, 9)
+    lat0, lon0, h0 = (np.repeat([a[k] for a in anchors], 3) for k in range(3))
+    lat, lon, h = geodetic_from_enu(e, n, u, lat0, lon0, h0)
+    for k, anchor in enumerate(anchors):
+        rows = slice(3 * k, 3 * k + 3)
+        one = EnuFrame(*anchor).to_geodetic(e[rows], n[rows], u[rows])
+        np.testing.assert_array_equal(lat[rows], one[0])
+        np.testing.assert_array_equal(lon[rows], one[1])
+        np.testing.assert_array_equal(h[rows], one[2])
+    back = enu_from_geodetic(lat, lon, h, lat0, lon0, h0)
+    for got, want in zip(back, (e, n, u), strict=True):
+        np.testing.assert_allclose(got, want, atol=1e-6)
