@@ -189,7 +189,10 @@ class _TiltGradient:
 
     @property
     def slope(self) -> float:
-        return self.sxy / self.sxx
+        """The fitted ``s``, held within a quarter and four times the config's: the body leans
+        out of the turn and back on acceleration whatever the receiver's noise or sign
+        (and to 0.1, about 6°/g, where the config says none)."""
+        return float(np.clip(self.sxy / self.sxx, 0.25 * self.s0, max(4.0 * self.s0, 0.1)))
 
     def fix(self, angle_rad: float, reading_g: float, t_ns: int) -> None:
         """One receiver angle with the lagged accelerometer reading (in g) at its time."""
