@@ -135,39 +135,42 @@ def _latest_sample(
 
 
 class _AxisFilter:
-    """Speed along one body axis and its accelerometer's bias: ``v̇ = a − b + c``, ``ḃ = w``.
+    """Speed along one body axis and its accelerometer's bias: ``v̇ = a − b + c``, ``ḃ = w``
+    (or a yaw angle and its gyro's bias, the same way).
 
-    ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds.
+    ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds. In
+    plain floats (a 2×2 covariance ``[[p_vv, p_vb], [p_vb, p_bb]]``): three of these run every
+    tick of every vehicle, where numpy's per-call cost would be most of the work.
     """
 
     def __init__(self, speed_walk_mps2: float, bias_walk: float, bias0_std: float) -> None:
-        self.x = np.array([math.nan, 0.0])
-        self.p = np.diag([1.0, bias0_std**2])
+        self.speed, self.bias = math.nan, 0.0
+        self.speed_var, self.p_vb, self.p_bb = 1.0, 0.0, bias0_std**2
         self.speed_walk, self.bias_walk = speed_walk_mps2, bias_walk
 
-    @property
-    def speed(self) -> float:
-        return float(self.x[0])
-
-    @property
-    def bias(self) -> float:
-        return float(self.x[1])
-
-    @property
-    def speed_var(self) -> float:
-        return float(self.p[0, 0])
+    def set_speed(self, value: float, var: float | None = None) -> None:
+        """Put the speed (and its variance) at a value, as a start or an external reading."""
+        self.speed = value
+        if var is not None:
+            self.speed_var = var
 
     def predict(self, accel: float, coupling: float, dt: float) -> None:
-        f = np.array([[1.0, -dt], [0.0, 1.0]])
-        self.x = np.array([self.x[0] + (accel - self.x[1] + coupling) * dt, self.x[1]])
-        q = np.diag([(self.speed_walk * dt) ** 2, self.bias_walk**2 * dt])
-        self.p = f @ self.p @ f.T + q
+        """``x ← F x + [a + c, 0] dt``, ``P ← F P Fᵀ + Q`` with ``F = [[1, −dt], [0, 1]]``."""
+        self.speed += (accel - self.bias + coupling) * dt
+        self.speed_var += -2.0 * dt * self.p_vb + dt * dt * self.p_bb + (self.speed_walk * dt) ** 2
+        self.p_vb -= dt * self.p_bb
+        self.p_bb += self.bias_walk**2 * dt
 
     def update(self, z: float, var: float) -> None:
-        s = self.p[0, 0] + var
-        k = self.p[:, 0] / s
-        self.x = self.x + k * (z - self.x[0])
-        self.p = self.p - np.outer(k, self.p[0])
+        """A reading ``z`` of the speed with variance ``var``."""
+        s = self.speed_var + var
+        k_v, k_b = self.speed_var / s, self.p_vb / s
+        innovation = z - self.speed
+        self.speed += k_v * innovation
+        self.bias += k_b * innovation
+        self.p_bb -= k_b * self.p_vb
+        self.p_vb -= k_v * self.p_vb
+        self.speed_var -= k_v * self.speed_var
 
 
 class _TiltGradient:
@@ -253,7 +256,7 @@ class FrontEnd:
         self.gnss_fresh = False
         self.vx = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
         self.vy = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
-        self.vy.x[0] = 0.0
+        self.vy.set_speed(0.0)
         # yaw angle (from east, counter-clockwise) and the yaw gyro's bias, corrected by the
         # receiver's heading: the bias times v_x would read as a lateral acceleration
         self.yaw = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
@@ -410,7 +413,7 @@ class FrontEnd:
         """Forward speed: accelerometer, corrected by GNSS and, once their radius is
         calibrated, by the undriven wheels' rims (free rolling: no slip)."""
         if math.isnan(self.vx.speed):
-            self.vx.x[0] = gnss[0] if gnss else float(np.mean(self.omega * self.radius))
+            self.vx.set_speed(gnss[0] if gnss else float(np.mean(self.omega * self.radius)))
         self.vx.predict(ax_tilt, yaw_rate * self.vy.speed, self.dt)
         if gnss is not None:
             self.vx.update(gnss[0], 0.03**2)
@@ -431,7 +434,7 @@ class FrontEnd:
         if self.fe.paper:
             return gyro_z_radps
         if math.isnan(self.yaw.speed):
-            self.yaw.x[0] = 0.0
+            self.yaw.set_speed(0.0)
         self.yaw.predict(gyro_z_radps, 0.0, self.dt)
         return gyro_z_radps - self.yaw.bias
 
@@ -442,8 +445,8 @@ class FrontEnd:
         if self.fe.paper or g is None or not math.isfinite(g.heading_rad):
             return
         yaw = math.pi / 2 - g.heading_rad
-        if self.yaw.p[0, 0] > 0.5:  # the first heading: the angle starts there
-            self.yaw.x[0], self.yaw.p[0, 0] = yaw, self.fe.heading_std_rad**2
+        if self.yaw.speed_var > 0.5:  # the first heading: the angle starts there
+            self.yaw.set_speed(yaw, self.fe.heading_std_rad**2)
             return
         wrapped = (yaw - self.yaw.speed + math.pi) % (2 * math.pi) - math.pi
         self.yaw.update(self.yaw.speed + wrapped, self.fe.heading_std_rad**2)
@@ -478,8 +481,8 @@ class FrontEnd:
         """Lateral speed: ``v̇_y = a_y − b − r v_x`` corrected by GNSS (the paper reading: no
         bias, no GNSS, a slow leak to zero)."""
         if self.fe.paper:
-            self.vy.x[0] += (ay - yaw_rate * self.vx.speed) * self.dt
-            self.vy.x[0] *= math.exp(-self.dt / self.fe.side_slip_leak_s)
+            vy = self.vy.speed + (ay - yaw_rate * self.vx.speed) * self.dt
+            self.vy.set_speed(vy * math.exp(-self.dt / self.fe.side_slip_leak_s))
             return
         self.vy.predict(ay, -yaw_rate * self.vx.speed, self.dt)
         if gnss is not None:
