@@ -8,9 +8,10 @@ One :class:`FrontEnd` per vehicle turns IMU, CAN wheel speeds, steering-wheel an
   wheels' mean rim speed);
 * side-slip ``v_y``: ``v̇_y = a_y − r v_x`` corrected by GNSS (velocity across the heading);
   the source's reading (``FrontEndConfig.paper``) integrates it with a slow leak to zero;
-* tilt: body roll and pitch follow the accelerations (``φ = k_φ a_y/g``, ``θ = k_θ a_x/g``,
-  the config's gradients), so the accelerometers read ``a(1 + k)``: divided out (not in the
-  paper reading);
+* tilt: body roll and pitch follow the accelerations (``φ = k_φ a_y/g``, ``θ = k_θ a_x/g``),
+  so the accelerometers read ``a(1 + k)``: taken out (not in the paper reading), with the
+  gradients learnt from the receiver's roll and pitch where it gives them (their changes
+  against the accelerations' changes; the config's gradients are the prior);
 * loads: static + longitudinal ``m a_x h/L`` + lateral ``m a_y h/b`` split between the axles
   by the roll-stiffness share, through a first-order lag (paper: the static formula, lateral
   split ``lr/L``, no lag);
@@ -21,7 +22,9 @@ One :class:`FrontEnd` per vehicle turns IMU, CAN wheel speeds, steering-wheel an
   tyre whose radius says it deflects far more or less (soft, damaged) gets its own vertical
   stiffness ``kz_i = ρ Fz/(r_u − r_e,i)``, and with it its contact length and brush stiffness;
 * accelerometer biases: the forward and lateral speed filters' bias states are taken off
-  ``a_x`` and ``a_y`` (a lateral bias of 0.05 m/s² reads as a lateral tyre force);
+  ``a_x`` and ``a_y`` before the loads and the measurements (a lateral bias of 0.05 m/s² reads
+  as a lateral tyre force and as ~45 N of load moved across, which a soft tyre's radius turns
+  into a slip of ~5e-4);
 * relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper).
 
 Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
@@ -66,7 +69,12 @@ class FrontEndConfig:
     difference of a wheel's radius sink ``r_u − r_e`` from the one the learnt ``ρ`` and the
     config's ``kz`` give (so of its ``kz``), beyond which the tyre is suspect and its own
     ``kz`` is learnt (a sink of ~8 mm is read to ~0.2 mm: 0.1 is many σ); ``radius_drop0``,
-    ``radius_drop_range``: the prior ``ρ`` and the range the learnt one is held within.
+    ``radius_drop_range``: the prior ``ρ`` and the range the learnt one is held within;
+    ``tilt_prior_weight``, ``tilt_highpass_s``: the roll and pitch gradients learnt from the
+    receiver's attitude (:class:`_TiltGradient`): the config's worth this many ``(a/g)²`` of
+    changes (0.2: a 0.1 g change held for 2 s of fixes), changes taken against this running mean;
+    ``yaw_walk_radps``, ``gyro_bias_walk_radps_per_sqrt_s``, ``heading_std_rad``: the yaw
+    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ).
     """
 
     paper: bool = False
@@ -80,6 +88,11 @@ class FrontEndConfig:
     speed_walk_mps2: float = 0.3
     bias_walk_mps2_per_sqrt_s: float = 0.005
     side_slip_leak_s: float = 5.0
+    tilt_prior_weight: float = 0.2
+    yaw_walk_radps: float = 0.01
+    gyro_bias_walk_radps_per_sqrt_s: float = 1e-4
+    heading_std_rad: float = 0.005
+    tilt_highpass_s: float = 3.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,39 +135,82 @@ def _latest_sample(
 
 
 class _AxisFilter:
-    """Speed along one body axis and its accelerometer's bias: ``v̇ = a − b + c``, ``ḃ = w``.
+    """Speed along one body axis and its accelerometer's bias: ``v̇ = a − b + c``, ``ḃ = w``
+    (or a yaw angle and its gyro's bias, the same way).
 
-    ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds.
+    ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds. In
+    plain floats (a 2×2 covariance ``[[p_vv, p_vb], [p_vb, p_bb]]``): three of these run every
+    tick of every vehicle, where numpy's per-call cost would be most of the work.
     """
 
     def __init__(self, speed_walk_mps2: float, bias_walk: float, bias0_std: float) -> None:
-        self.x = np.array([math.nan, 0.0])
-        self.p = np.diag([1.0, bias0_std**2])
+        self.speed, self.bias = math.nan, 0.0
+        self.speed_var, self.p_vb, self.p_bb = 1.0, 0.0, bias0_std**2
         self.speed_walk, self.bias_walk = speed_walk_mps2, bias_walk
 
-    @property
-    def speed(self) -> float:
-        return float(self.x[0])
-
-    @property
-    def bias(self) -> float:
-        return float(self.x[1])
-
-    @property
-    def speed_var(self) -> float:
-        return float(self.p[0, 0])
+    def set_speed(self, value: float, var: float | None = None) -> None:
+        """Put the speed (and its variance) at a value, as a start or an external reading."""
+        self.speed = value
+        if var is not None:
+            self.speed_var = var
 
     def predict(self, accel: float, coupling: float, dt: float) -> None:
-        f = np.array([[1.0, -dt], [0.0, 1.0]])
-        self.x = np.array([self.x[0] + (accel - self.x[1] + coupling) * dt, self.x[1]])
-        q = np.diag([(self.speed_walk * dt) ** 2, self.bias_walk**2 * dt])
-        self.p = f @ self.p @ f.T + q
+        """``x ← F x + [a + c, 0] dt``, ``P ← F P Fᵀ + Q`` with ``F = [[1, −dt], [0, 1]]``."""
+        self.speed += (accel - self.bias + coupling) * dt
+        self.speed_var += -2.0 * dt * self.p_vb + dt * dt * self.p_bb + (self.speed_walk * dt) ** 2
+        self.p_vb -= dt * self.p_bb
+        self.p_bb += self.bias_walk**2 * dt
 
     def update(self, z: float, var: float) -> None:
-        s = self.p[0, 0] + var
-        k = self.p[:, 0] / s
-        self.x = self.x + k * (z - self.x[0])
-        self.p = self.p - np.outer(k, self.p[0])
+        """A reading ``z`` of the speed with variance ``var``."""
+        s = self.speed_var + var
+        k_v, k_b = self.speed_var / s, self.p_vb / s
+        innovation = z - self.speed
+        self.speed += k_v * innovation
+        self.bias += k_b * innovation
+        self.p_bb -= k_b * self.p_vb
+        self.p_vb -= k_v * self.p_vb
+        self.speed_var -= k_v * self.speed_var
+
+
+class _TiltGradient:
+    """The accelerometer's gravity leak per unit of its own reading, ``s = dθ/d(a/g)``, learnt
+    from the receiver's attitude: the body tilts with the acceleration (``θ = k a/g``, ``k`` the
+    roll or pitch gradient), so the sensor reads ``a_m = a (1 + k)`` and ``a = a_m (1 − s)`` with
+    ``s = k/(1 + k)``. Fitted on changes only (angle and lagged reading each less its
+    ``highpass_s`` running mean), so a bank or slope under the vehicle (which tilts the
+    antennas but is no body roll) and the accelerometer's bias stay out; the config's gradient
+    is the prior, worth ``prior_weight`` of ``(a/g)²`` changes.
+    """
+
+    def __init__(self, gradient_rad_per_g: float, prior_weight: float, highpass_s: float) -> None:
+        self.s0 = gradient_rad_per_g / (1.0 + gradient_rad_per_g)
+        self.sxy, self.sxx = prior_weight * self.s0, prior_weight
+        self.highpass_s = highpass_s
+        self.mean_x = self.mean_angle = math.nan
+        self.last_ns = 0
+
+    @property
+    def slope(self) -> float:
+        """The fitted ``s``, held within a quarter and four times the config's: the body leans
+        out of the turn and back on acceleration whatever the receiver's noise or sign
+        (and to 0.1, about 6°/g, where the config says none)."""
+        return float(np.clip(self.sxy / self.sxx, 0.25 * self.s0, max(4.0 * self.s0, 0.1)))
+
+    def fix(self, angle_rad: float, reading_g: float, t_ns: int) -> None:
+        """One receiver angle with the lagged accelerometer reading (in g) at its time."""
+        if not (math.isfinite(angle_rad) and math.isfinite(reading_g)):
+            return
+        if math.isnan(self.mean_x):
+            self.mean_x, self.mean_angle, self.last_ns = reading_g, angle_rad, t_ns
+            return
+        gain = 1.0 - math.exp(-max(t_ns - self.last_ns, 0) * 1e-9 / self.highpass_s)
+        self.last_ns = t_ns
+        self.mean_x += gain * (reading_g - self.mean_x)
+        self.mean_angle += gain * (angle_rad - self.mean_angle)
+        dx, dy = reading_g - self.mean_x, angle_rad - self.mean_angle
+        self.sxy += dx * dy
+        self.sxx += dx * dx
 
 
 class FrontEnd:
@@ -200,8 +256,18 @@ class FrontEnd:
         self.gnss_fresh = False
         self.vx = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
         self.vy = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
-        self.vy.x[0] = 0.0
+        self.vy.set_speed(0.0)
+        # yaw angle (from east, counter-clockwise) and the yaw gyro's bias, corrected by the
+        # receiver's heading: the bias times v_x would read as a lateral acceleration
+        self.yaw = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
         self.transfer = np.zeros(3)  # lagged [long, lat front, lat rear] [N]
+        self.tilt_reading = np.zeros(2)  # lagged raw [a_x, a_y] [m/s²] the body tilts with
+        self.pitch = _TiltGradient(
+            math.radians(ch.pitch_gradient_deg_per_g), fe.tilt_prior_weight, fe.tilt_highpass_s
+        )
+        self.roll = _TiltGradient(
+            math.radians(ch.roll_gradient_deg_per_g), fe.tilt_prior_weight, fe.tilt_highpass_s
+        )
         self.yaw_prev = math.nan
         self.slip_lag = np.zeros((2, 4))
         self.last_tick_ns = 0
@@ -264,16 +330,23 @@ class FrontEnd:
         if window is None or not np.all(np.isfinite(self.omega)):
             return None
         accel, gyro = window
-        ax_raw, ay_raw, yaw_rate = float(accel[1]), float(-accel[0]), float(gyro[2])
+        ax_raw, ay_raw = float(accel[1]), float(-accel[0])
+        yaw_rate = self._yaw_step(float(gyro[2]))
         gnss = self._gnss_velocity(t_ns)
-        ax, ay = self._detilt(ax_raw - self.vx.bias, ay_raw)
+        if gnss is not None:
+            self._heading_update()
+        self._learn_tilt(ax_raw, ay_raw, gnss is not None)
+        # the speed filters integrate the tilt-free readings, so their bias states hold the
+        # sensors' biases alone (not the leak of the body's pitch or roll), taken off here
+        ax_tilt, ay_tilt = self._detilt(ax_raw, ay_raw)
+        ax, ay = ax_tilt - self.vx.bias, ay_tilt - self.vy.bias
         fz = self._loads(ax, ay)
         delta = np.zeros(4)
         steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
         delta[:2] = steer / self.ch.steering_ratio
         self._calibrate(gnss, fz, delta, yaw_rate, ax)
-        self._speed_step(ax_raw, yaw_rate, gnss, fz, delta)
-        self._side_slip_step(ay, yaw_rate, gnss)
+        self._speed_step(ax_tilt, yaw_rate, gnss, fz, delta)
+        self._side_slip_step(ay_tilt, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
         kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
@@ -287,7 +360,7 @@ class FrontEnd:
                 0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
                 + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
             ) / self.ch.mass_kg
-        z = np.array([ax + resist, ay - self.vy.bias, yaw_accel])
+        z = np.array([ax + resist, ay, yaw_accel])
         calibrated = self.fe.paper or self.calibrated
         valid = (
             vx >= self.fe.min_speed_mps
@@ -331,7 +404,7 @@ class FrontEnd:
 
     def _speed_step(
         self,
-        ax_raw: float,
+        ax_tilt: float,
         yaw_rate: float,
         gnss: tuple[float, float] | None,
         fz: FloatArray,
@@ -340,8 +413,8 @@ class FrontEnd:
         """Forward speed: accelerometer, corrected by GNSS and, once their radius is
         calibrated, by the undriven wheels' rims (free rolling: no slip)."""
         if math.isnan(self.vx.speed):
-            self.vx.x[0] = gnss[0] if gnss else float(np.mean(self.omega * self.radius))
-        self.vx.predict(ax_raw, yaw_rate * self.vy.speed, self.dt)
+            self.vx.set_speed(gnss[0] if gnss else float(np.mean(self.omega * self.radius)))
+        self.vx.predict(ax_tilt, yaw_rate * self.vy.speed, self.dt)
         if gnss is not None:
             self.vx.update(gnss[0], 0.03**2)
         free = self.undriven
@@ -356,24 +429,60 @@ class FrontEnd:
         )
         self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
+    def _yaw_step(self, gyro_z_radps: float) -> float:
+        """The yaw rate less the gyro's bias (paper: as read); the yaw angle predicted."""
+        if self.fe.paper:
+            return gyro_z_radps
+        if math.isnan(self.yaw.speed):
+            self.yaw.set_speed(0.0)
+        self.yaw.predict(gyro_z_radps, 0.0, self.dt)
+        return gyro_z_radps - self.yaw.bias
+
+    def _heading_update(self) -> None:
+        """A fresh receiver heading (compass, clockwise from north) corrects the yaw angle
+        and so the gyro's bias: ``ψ̇ = r_gyro − b`` (not paper)."""
+        g = self.gnss
+        if self.fe.paper or g is None or not math.isfinite(g.heading_rad):
+            return
+        yaw = math.pi / 2 - g.heading_rad
+        if self.yaw.speed_var > 0.5:  # the first heading: the angle starts there
+            self.yaw.set_speed(yaw, self.fe.heading_std_rad**2)
+            return
+        wrapped = (yaw - self.yaw.speed + math.pi) % (2 * math.pi) - math.pi
+        self.yaw.update(self.yaw.speed + wrapped, self.fe.heading_std_rad**2)
+
     def _gnss_recent(self) -> bool:
         return self.gnss is not None and self.last_tick_ns - self.gnss.stamp_ns <= (
             self.fe.gnss_timeout_s * 1e9
         )
 
     def _detilt(self, ax: float, ay: float) -> tuple[float, float]:
+        """The accelerations without the body's tilt, ``a (1 − s)`` (paper: as read)."""
         if self.fe.paper:
             return ax, ay
-        k_pitch = math.radians(self.ch.pitch_gradient_deg_per_g)
-        k_roll = math.radians(self.ch.roll_gradient_deg_per_g)
-        return ax / (1.0 + k_pitch), ay / (1.0 + k_roll)
+        return ax * (1.0 - self.pitch.slope), ay * (1.0 - self.roll.slope)
+
+    def _learn_tilt(self, ax_raw: float, ay_raw: float, fresh: bool) -> None:
+        """Lag the raw accelerations as the body follows them (the load transfer's lag) and,
+        at a fresh GNSS epoch with attitude, fit the gradients (not paper)."""
+        if self.fe.paper:
+            return
+        lag = max(self.ch.load_transfer_lag_s, 1e-9)
+        self.tilt_reading += (np.array([ax_raw, ay_raw]) - self.tilt_reading) * (
+            1.0 - math.exp(-self.dt / lag)
+        )
+        g = self.gnss
+        if not fresh or g is None:
+            return
+        self.pitch.fix(g.pitch_rad, float(self.tilt_reading[0]) / GRAVITY_MPS2, g.stamp_ns)
+        self.roll.fix(g.roll_rad, float(self.tilt_reading[1]) / GRAVITY_MPS2, g.stamp_ns)
 
     def _side_slip_step(self, ay: float, yaw_rate: float, gnss: tuple[float, float] | None) -> None:
         """Lateral speed: ``v̇_y = a_y − b − r v_x`` corrected by GNSS (the paper reading: no
         bias, no GNSS, a slow leak to zero)."""
         if self.fe.paper:
-            self.vy.x[0] += (ay - yaw_rate * self.vx.speed) * self.dt
-            self.vy.x[0] *= math.exp(-self.dt / self.fe.side_slip_leak_s)
+            vy = self.vy.speed + (ay - yaw_rate * self.vx.speed) * self.dt
+            self.vy.set_speed(vy * math.exp(-self.dt / self.fe.side_slip_leak_s))
             return
         self.vy.predict(ay, -yaw_rate * self.vx.speed, self.dt)
         if gnss is not None:

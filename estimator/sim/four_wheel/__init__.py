@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator._arrays import FloatArray
 from estimator.base import Measurement
 from estimator.config import (
     ChassisConfig,
@@ -73,13 +74,17 @@ _FRAME = EnuFrame(48.0, 11.0, 500.0)
 @dataclass(frozen=True, slots=True)
 class FourWheelRun:
     """One simulated run: the manoeuvre, the config the estimator is told, the truth
-    (100 Hz rows), and the sensor measurements in time order."""
+    (100 Hz rows), the sensor measurements in time order, and the truth's tyres per wheel
+    ``(4,)`` (``c_px``, ``c_py`` [N/m²], ``kz`` [N/m]: what the config only approximates)."""
 
     manoeuvre: Manoeuvre
     config: Wheeled4wdSteeredConfig
     truth: Truth
     measurements: list[Measurement]
     start_ns: int
+    tyre_c_px_npm2: FloatArray
+    tyre_c_py_npm2: FloatArray
+    tyre_kz_npm: FloatArray
 
 
 def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
@@ -135,7 +140,9 @@ def simulate_four_wheel(
         rows = round(m.duration_s / _ROW_S) + 1
         one = truth.take(i)
         one = Truth(*(getattr(one, f)[:rows] for f in one.__dataclass_fields__))
-        runs.append(FourWheelRun(m, cfgs[i], one, _sensors(one, rngs[i], start_ns), start_ns))
+        sensors = _sensors(one, rngs[i], start_ns)
+        tyres = (params.c_px_npm2[i], params.c_py_npm2[i], params.kz_npm[i])
+        runs.append(FourWheelRun(m, cfgs[i], one, sensors, start_ns, *tyres))
     return runs
 
 

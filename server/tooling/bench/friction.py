@@ -10,7 +10,10 @@ plus ``--random N`` random manoeuvres on random vehicles per set. Each run feeds
 side by side: fixed-stiffness CKF, load-adaptive CKF, the source's SCKF-MEE (paper mode, the
 paper's front end) and the product mode; first with sensor-derived inputs (the whole
 :class:`~estimator.friction.FrictionFleet`, all runs of a set as one batched fleet), then with
-the true inputs (truth κ, α, δ, Fz and accelerations straight into the filter).
+the true inputs (truth κ, α, δ, Fz and accelerations straight into the filter), and last the
+true inputs with the truth's own tyres (each wheel's brush stiffness and ``kz``, which the
+config knows to ±3 % and, for a damaged tyre, not at all): the gap between the last two tables
+is what the tyres' stiffness costs μ.
 
 Per manoeuvre and filter (median over runs, worst in brackets):
 
@@ -129,8 +132,12 @@ def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
     return series
 
 
-def true_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
-    """The filter alone, fed the truth's relaxed slips, loads, steer angles and accelerations."""
+def true_series(
+    runs: list[FourWheelRun], mode: FrictionMode, true_tyres: bool = False
+) -> list[Series]:
+    """The filter alone, fed the truth's relaxed slips, loads, steer angles and accelerations;
+    with ``true_tyres`` also the truth's own tyres (per wheel ``c_px``, ``c_py``, ``kz``) instead
+    of the config's: what μ is worth where the stiffness is known."""
     cfg = FilterConfig(mode=mode, tick_s=TICK_S)
     configs = [r.config for r in runs]
     chassis = Chassis.of(configs)
@@ -140,6 +147,13 @@ def true_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
             for f in ("kz_npm", "unloaded_radius_m", "c_px_npm2", "c_py_npm2")
         )
     )
+    if true_tyres:
+        tyres = TyreArrays(
+            np.stack([r.tyre_kz_npm for r in runs]),
+            tyres.radius_m,
+            np.stack([r.tyre_c_px_npm2 for r in runs]),
+            np.stack([r.tyre_c_py_npm2 for r in runs]),
+        )
     n = min(r.truth.t_s.size for r in runs)
     idx = np.arange(0, n, round(TICK_S / 0.01))
     st = None
@@ -320,7 +334,12 @@ def _one_set(
     runs = _runs(seeds, random_n, base)
     sim_s = time.process_time() - t0
     result: dict[str, Any] = {"seeds": list(seeds), "random": random_n, "sim_cpu_s": sim_s}
-    for inputs, fn in (("sensor", sensor_series), ("true", true_series)):
+    inputs_of = (
+        ("sensor", sensor_series),
+        ("true", true_series),
+        ("true_tyres", lambda r, m: true_series(r, m, true_tyres=True)),
+    )
+    for inputs, fn in inputs_of:
         t1 = time.process_time()
         scores = {
             m.value: [score(r, s) for r, s in zip(runs, fn(runs, m), strict=True)] for m in modes
@@ -336,7 +355,7 @@ def _one_set(
         print(f"  {'pass' if ok else 'FAIL'}  {name}")
     print(
         f"  cpu: simulation {result['sim_cpu_s']:.0f} s, sensor {result['sensor_cpu_s']:.0f} s, "
-        f"true {result['true_cpu_s']:.0f} s"
+        f"true {result['true_cpu_s'] + result['true_tyres_cpu_s']:.0f} s"
     )
     return result
 
