@@ -182,6 +182,13 @@ class TickInputs:
     fix_age_s : ndarray, shape (m,)
         Age of the fix ``enu`` and ``attitude`` were moved to the tick from (``inf``: none yet)
         [s]; :mod:`estimator.dead_reckoning` carries the position past a stale one.
+    force_lat : ndarray, shape (m,), or None
+        Tick-mean lateral specific force as measured (IMU x axis) [m/s²]: with ``force_fwd``
+        the mounting yaw's observation and correction (:mod:`estimator.mdsf.calibration`);
+        None from a caller without one.
+    lever_force_lat : ndarray, shape (m,), or None
+        What the IMU's lever arm adds to the lateral force by the angular acceleration
+        (:func:`_lever_force_lat`) [m/s²]: the lateral force at ``O`` is ``force_lat`` less it.
     """
 
     stamp_ns: IntArray
@@ -202,6 +209,8 @@ class TickInputs:
     dist_var: FloatArray
     dist_restart: BoolArray
     fix_age_s: FloatArray
+    force_lat: FloatArray | None = None
+    lever_force_lat: FloatArray | None = None
 
     @property
     def m(self) -> int:
@@ -304,6 +313,38 @@ def _fill_segments(
     order = np.argsort(starts, kind="stable")
     seg = np.searchsorted(starts[order], np.arange(n), side="right") - 1
     return order[seg], vals
+
+
+def _lever_force_lat(
+    tick_id: IntArray,
+    tau_s: FloatArray,
+    rates: tuple[FloatArray, FloatArray],
+    n: IntArray,
+    lever_m: tuple[FloatArray, FloatArray],
+) -> FloatArray:
+    """Tick-mean lateral specific force the IMU's lever arm adds to ``O``'s by the body's
+    angular acceleration, ``(ω̇ × p)_x = ω̇y·h0 − ω̇z·y`` (``p = (x, y, h0)`` the IMU's point).
+
+    A body swaying in roll on its axle shakes a raised IMU sideways by metres per second
+    squared; the mounting yaw's observation (lateral force at ``O``,
+    :mod:`estimator.mdsf.calibration`) must not see it. The tick-mean angular accelerations
+    are the slopes of a least-squares line through the window's gyro samples (0 with fewer
+    than two). ``rates`` are ``(ω_y, ω_z)`` per sample, ``lever_m`` ``(h0, y)`` per tick;
+    returns shape ``(m,)``.
+    """
+    m = n.shape[0]
+    s_t, s_tt = (np.bincount(tick_id, weights=tau_s**k, minlength=m) for k in (1, 2))
+    det = n * s_tt - s_t * s_t
+    ok = (n >= 2) & (det > 0)
+    det = np.where(ok, det, 1.0)
+
+    def slope(w: FloatArray) -> FloatArray:
+        s_w = np.bincount(tick_id, weights=w, minlength=m)
+        s_tw = np.bincount(tick_id, weights=tau_s * w, minlength=m)
+        return np.where(ok, (n * s_tw - s_t * s_w) / det, 0.0)
+
+    up_m, fwd_m = lever_m
+    return np.asarray(slope(rates[0]) * up_m - slope(rates[1]) * fwd_m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -448,6 +489,7 @@ class FleetFrontEnd:
         grow("accel_var_cfg", (), 0.0)
         grow("gyro_var_cfg", (), 0.0)
         grow("imu_fwd_m", (), 0.0)
+        grow("imu_up_m", (), 0.0)  # IMU height above O (h0)
         grow("ant_fwd_m", (), 0.0)
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
@@ -510,6 +552,7 @@ class FleetFrontEnd:
     accel_var_cfg: FloatArray
     gyro_var_cfg: FloatArray
     imu_fwd_m: FloatArray
+    imu_up_m: FloatArray
     ant_fwd_m: FloatArray
     lone_std: FloatArray
     wheel_cfg: IntArray
@@ -577,6 +620,7 @@ class FleetFrontEnd:
         self.accel_var_cfg[slot] = n.accel_std_mps2**2
         self.gyro_var_cfg[slot] = n.gyro_std_radps**2
         self.imu_fwd_m[slot] = vehicle.geometry.imu_offset_m[1]
+        self.imu_up_m[slot] = vehicle.geometry.h0_m
         self.ant_fwd_m[slot] = vehicle.geometry.antenna_offset_m[1]
         self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
         self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
@@ -1025,9 +1069,17 @@ class _Batch:
         with np.errstate(invalid="ignore", divide="ignore"):
             means = [
                 np.bincount(tick_id, weights=x[inb], minlength=n_ticks) / n_imu
-                for x in (a_fwd, wx, wz, self.fy)
+                for x in (a_fwd, wx, wz, self.fy, self.fx)
             ]
         tau = (self.T[inb] - self.ticks[tick_id]) * _NS
+        slot_t = self.slots[rows]
+        lever_lat = _lever_force_lat(
+            tick_id,
+            tau,
+            (self.wy[inb], self.wz[inb]),
+            n_imu,
+            (fe.imu_up_m[slot_t], fe.imu_fwd_m[slot_t]),
+        )
         (wx_tick, wz_tick), rate_var_factor = _rates_at_tick(
             tick_id, tau, (wx[inb], wz[inb]), means[1:3], n_imu
         )
@@ -1039,7 +1091,6 @@ class _Batch:
         theta_tick = np.where(imu_ok, theta[at_tick] if n else np.nan, np.nan)
         phi_tick = np.where(imu_ok, self.phi[at_tick] if n else np.nan, np.nan)
         nf = np.maximum(n_imu, 1).astype(np.float64)
-        slot_t = self.slots[rows]
         accel_var = fe.accel_var_cfg[slot_t] / nf
         if self.product:
             # the gravity leak g·δθ as white accelerometer noise over the pitch error's
@@ -1075,6 +1126,8 @@ class _Batch:
             dist_var=dist_var,
             dist_restart=dist_restart,
             fix_age_s=fix_age_s,
+            force_lat=means[4],
+            lever_force_lat=lever_lat,
         )
 
     def _between_fixes(
