@@ -477,8 +477,9 @@ class CalibrationBank:
 
     def uncalibrated(self, slots: IntArray) -> BoolArray:
         """Per vehicle and wheel (k, 2): an enabled calibration the wheel's slip depends on
-        (GNSS and wheel clock offsets, its radius, the mounting pitch and yaw) is above its
-        limit.
+        (GNSS and wheel clock offsets, its radius, the mounting pitch) is above its limit.
+        Not the mounting yaw: it reaches the slip only through a turn's forward acceleration
+        and is not stored in the rows, so a restarted vehicle learns it again.
 
         A driven wheel's radius and the wheels' clock are learnt only where slip is ~0 (a
         free-rolling wheel, a calibration drive): on a vehicle that has neither they stay at
@@ -488,10 +489,7 @@ class CalibrationBank:
         gnss_clock = self.gp[slots, 2, 2] > lim[:, 0] ** 2
         wheel_clock = learns.any(axis=1) & (self.wp[slots, 2, 2] > lim[:, 0] ** 2)
         bad_clock = on[:, 0] & (gnss_clock | wheel_clock)
-        bad_pitch = on[:, 2] & (
-            (self.pitch_var[slots] > lim[:, 2] ** 2)
-            | (self.yp[slots, 0, 0] > self.yaw_limit[slots] ** 2)
-        )
+        bad_pitch = on[:, 2] & (self.pitch_var[slots] > lim[:, 2] ** 2)
         kappa_var = np.stack([self.wp[slots, 0, 0], self.wp[slots, 1, 1]], axis=1)
         bad_radius = on[:, 1:2] & learns & (kappa_var > (lim[:, 1:2]) ** 2)
         return bad_radius | (bad_clock | bad_pitch)[:, None]
