@@ -288,7 +288,7 @@ class CalibrationConfig(_Checked):
 
     Each switch turns one calibration on: per-stream clock offsets (GNSS and wheels against
     the IMU), the rolling radius per wheel (learnt where slip is ~0: free-rolling wheels and
-    operator calibration drives) and the IMU's mounting pitch. A calibration has converged
+    operator calibration drives) and the IMU's mounting pitch and yaw. A calibration has converged
     once its std is below its threshold; until then slip rows are flagged UNCALIBRATED. The
     priors are the std of each quantity before any data.
     """
@@ -307,6 +307,10 @@ class CalibrationConfig(_Checked):
     imu_pitch_prior_deg: float = _bounded(3.0, 0.01, 30.0, "deg", "prior std of mounting pitch")
     imu_pitch_converged_deg: float = _bounded(
         0.3, 0.001, 30.0, "deg", "the mounting pitch has converged below this std"
+    )
+    imu_yaw_prior_deg: float = _bounded(3.0, 0.01, 30.0, "deg", "prior std of mounting yaw")
+    imu_yaw_converged_deg: float = _bounded(
+        1.0, 0.001, 30.0, "deg", "the mounting yaw has converged below this std"
     )
 
 

@@ -1,6 +1,6 @@
-"""Online calibration of MDSF's sensors: clock offsets, rolling radii, IMU mounting pitch.
+"""Online calibration of MDSF's sensors: clock offsets, rolling radii, IMU mounting pitch and yaw.
 
-Every vehicle of a fleet has three small Kalman filters here, stepped once per tick for all
+Every vehicle of a fleet has four small Kalman filters here, stepped once per tick for all
 vehicles at once (arrays indexed by the engine's slot), each with its uncertainty:
 
 * **GNSS clock offset** ``δ_g`` (:class:`GnssClock`): a GNSS sample stamped ``t`` describes
@@ -20,6 +20,15 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   attitude or velocity); a scalar filter of ``asin(f/g) − θ`` over standstill ticks. Applied
   as ``a − g·(sin(θ + β) − sin θ)``. An accelerometer bias reads the same at standstill: the
   two are one correction here.
+* **IMU mounting yaw** ``γ`` (:class:`MountYaw`): an IMU turned by ``γ`` about the vertical
+  reads the lateral specific force ``f_x' = f_x + γ·f_y`` (first order; ``f_y`` forward).
+  The body's lateral force is known without the IMU's lateral axis, ``f_x = −V·ωz −
+  g·sin φ·cos θ`` (centripetal and gravity, :mod:`estimator.sim.kinematics`), so
+  ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y + b_lat``: states ``[γ, b_lat]``, ``b_lat`` a slow
+  walk that takes the lateral accelerometer's bias and the roll's slow error. Observable
+  whenever the forward force changes (speed changes, slopes). Applied to the forward
+  acceleration as ``f_y = f_y' + γ·f_x'`` once converged and significant: a turn's
+  centripetal force leaks ``γ·V·ωz`` into it otherwise.
 
 :class:`MdsfCalibration` is one vehicle's calibration as plain values (state out and in: the
 server stores it and gives it back after a restart).
@@ -38,7 +47,7 @@ from estimator._slots import grow_slot_array
 from estimator.config import CalibrationConfig, WheeledRearDriveConfig
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 
-__all__ = ["CalibrationBank", "GnssClock", "MdsfCalibration", "WheelCal"]
+__all__ = ["CalibrationBank", "GnssClock", "MdsfCalibration", "MountYaw", "WheelCal"]
 
 _GATE_SIGMAS = 4.0
 """Innovations beyond this many sigmas are outliers (GNSS outlier, a calibration wheel that
@@ -56,6 +65,17 @@ _REF_CORR_S = 1.0
 of ticks, so correlated errors do not read as independent evidence) [s]."""
 _STILL_PITCH_FLOOR_RAD = math.radians(0.3)
 """Floor of a standstill pitch reading's std: body pitch error of the tilt track [rad]."""
+_YAW_WALK_RAD_PER_SQRT_S = 2e-5
+"""Random walk of the mounting yaw [rad/√s]."""
+_YAW_APPLY_SIGMAS = 2.0
+"""The mounting yaw is applied once it is this many stds from 0."""
+_LAT_BIAS_PRIOR_MPS2 = 0.3
+"""Prior std of the lateral force's bias (accelerometer bias, roll error ``g·δφ``) [m/s²]."""
+_LAT_BIAS_WALK_MPS2_PER_SQRT_S = 0.01
+"""Random walk of the lateral bias: the roll's error moves with the ground [m/s²/√s]."""
+_LAT_FLOOR_MPS2 = 0.05
+"""Floor of a tick's lateral-force model error (body sway, side slip, the IMU's lever arm in
+a changing turn) [m/s²]."""
 _STILL_SPEED_MPS = 0.05
 _MIN_CAL_SPEED_MPS = 1.0
 """Wheel calibration uses ticks above this ground speed (the radius term ``κ·V`` then
@@ -68,6 +88,13 @@ class GnssClock(IntEnum):
     SPEED = 0
     BIAS = 1
     OFFSET = 2
+
+
+class MountYaw(IntEnum):
+    """States of the mounting-yaw filter: yaw [rad], lateral force bias [m/s²]."""
+
+    YAW = 0
+    LAT_BIAS = 1
 
 
 class WheelCal(IntEnum):
@@ -90,6 +117,10 @@ class MdsfCalibration:
         True over configured rolling radius [-].
     imu_pitch_rad : float
         The IMU's forward axis pitched up against the body's [rad].
+    imu_yaw_rad : float
+        The IMU's axes turned about the vertical against the body's (``Rz(γ)``, the
+        simulator's ``imu_misalign_deg[0]``) [rad]; 0 ± the prior for a calibration stored
+        before it existed.
     """
 
     gnss_clock_offset_s: float
@@ -102,6 +133,8 @@ class MdsfCalibration:
     radius_scale_right_std: float
     imu_pitch_rad: float
     imu_pitch_std_rad: float
+    imu_yaw_rad: float = 0.0
+    imu_yaw_std_rad: float = math.radians(3.0)
 
 
 def _kf_update(
@@ -146,6 +179,9 @@ class CalibrationBank:
         self.wp = np.zeros((cap, 3, 3))
         self.pitch = np.zeros(cap)
         self.pitch_var = np.zeros(cap)
+        self.yx = np.zeros((cap, 2))
+        self.yp = np.zeros((cap, 2, 2))
+        self.yaw_limit = np.zeros(cap)  # the mounting yaw converged below this std [rad]
         self.free = np.zeros((cap, 2), dtype=bool)  # wheels declared free-rolling
         self.drive = np.zeros(cap, dtype=bool)  # a calibration drive is on
         self.drove = np.zeros(cap, dtype=bool)  # a calibration drive was started
@@ -164,6 +200,9 @@ class CalibrationBank:
             ("wp", (3, 3), 0.0),
             ("pitch", (), 0.0),
             ("pitch_var", (), 0.0),
+            ("yx", (2,), 0.0),
+            ("yp", (2, 2), 0.0),
+            ("yaw_limit", (), 0.0),
             ("free", (2,), False),
             ("drive", (), False),
             ("drove", (), False),
@@ -195,6 +234,9 @@ class CalibrationBank:
         self.wp[slot] = np.diag([rad_var, rad_var, off_var])
         self.pitch[slot] = 0.0
         self.pitch_var[slot] = math.radians(c.imu_pitch_prior_deg) ** 2
+        self.yaw_limit[slot] = math.radians(c.imu_yaw_converged_deg)
+        self.yx[slot] = 0.0
+        self.yp[slot] = np.diag([math.radians(c.imu_yaw_prior_deg) ** 2, _LAT_BIAS_PRIOR_MPS2**2])
 
     def set_drive(self, slot: int, on: bool) -> None:
         """An operator's calibration drive: while on, every wheel's slip is taken as ~0."""
@@ -218,6 +260,8 @@ class CalibrationBank:
             radius_scale_right_std=float(scale_std[1]),
             imu_pitch_rad=float(self.pitch[slot]),
             imu_pitch_std_rad=float(np.sqrt(self.pitch_var[slot])),
+            imu_yaw_rad=float(self.yx[slot, MountYaw.YAW]),
+            imu_yaw_std_rad=float(np.sqrt(self.yp[slot, 0, 0])),
         )
 
     def restore(self, slot: int, cal: MdsfCalibration) -> None:
@@ -233,6 +277,8 @@ class CalibrationBank:
         self.wp[slot] = np.diag([*(kappa_std**2), cal.wheel_clock_offset_std_s**2])
         self.pitch[slot] = cal.imu_pitch_rad
         self.pitch_var[slot] = cal.imu_pitch_std_rad**2
+        self.yx[slot] = (cal.imu_yaw_rad, 0.0)
+        self.yp[slot] = np.diag([cal.imu_yaw_std_rad**2, _LAT_BIAS_PRIOR_MPS2**2])
 
     def row_fields(self, slots: IntArray, radius_m: FloatArray) -> dict[str, FloatArray]:
         """The calibration's output fields of rows of vehicles ``slots`` (k,), the configured
@@ -278,6 +324,18 @@ class CalibrationBank:
         beta = self.pitch[slots]
         big = np.abs(beta) * GRAVITY_MPS2 > 3.0 * self.bias_prior
         return np.where(self.on[slots, 2] & big, beta, 0.0)
+
+    def mount_yaw_rad(self, slots: IntArray) -> FloatArray:
+        """Mounting yaw in force per vehicle (k,): 0 where off, not converged (an estimate
+        still moving would put its error into every turn) or within ``_YAW_APPLY_SIGMAS`` of
+        0 (an aligned IMU's estimate is its error: applied, it leaks into every turn)."""
+        gamma = self.yx[slots, MountYaw.YAW]
+        big = np.abs(gamma) > _YAW_APPLY_SIGMAS * np.sqrt(self.yp[slots, 0, 0])
+        return np.where(self.mount_yaw_converged(slots) & big, gamma, 0.0)
+
+    def mount_yaw_converged(self, slots: IntArray) -> BoolArray:
+        """The mounting yaw is on and its std below the converged threshold (k,)."""
+        return self.on[slots, 2] & (self.yp[slots, 0, 0] <= self.yaw_limit[slots] ** 2)
 
     def observe_gnss(
         self,
@@ -387,9 +445,41 @@ class CalibrationBank:
         _kf_update(x, p, h, y, r)
         self.pitch[s], self.pitch_var[s] = x[:, 0], p[:, 0, 0]
 
+    def observe_yaw(
+        self,
+        slots: IntArray,
+        force_mps2: tuple[FloatArray, FloatArray],
+        force_var: FloatArray,
+        speed_mps: FloatArray,
+        yaw_rate_radps: FloatArray,
+        tilt_rad: tuple[FloatArray, FloatArray],
+    ) -> None:
+        """One tick of the mounting-yaw filter: the tick-mean IMU forces ``(f_y', f_x')``
+        (forward at the IMU; lateral at ``O``, the lever arm's angular-acceleration term off,
+        as the model is ``O``'s) and their variance, the ground speed ``V``, the yaw rate
+        ``ωz`` and the body's ``(θ, φ)``, all (k,):
+        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y' + b_lat`` (NaN anywhere: predicted only)."""
+        dt = self.dt_s
+        x, p = self.yx[slots], self.yp[slots]
+        p[:, 0, 0] += _YAW_WALK_RAD_PER_SQRT_S**2 * dt
+        p[:, 1, 1] += _LAT_BIAS_WALK_MPS2_PER_SQRT_S**2 * dt
+        f_fwd, f_lat = force_mps2
+        theta, phi = tilt_rad
+        y = f_lat + speed_mps * yaw_rate_radps + GRAVITY_MPS2 * np.sin(phi) * np.cos(theta)
+        ok = np.isfinite(y) & np.isfinite(f_fwd) & np.isfinite(force_var)
+        if ok.any():
+            h = np.stack([f_fwd[ok], np.ones(int(ok.sum()))], axis=1)
+            r = 2.0 * force_var[ok] + _LAT_FLOOR_MPS2**2
+            xu, pu = x[ok], p[ok]
+            _kf_update(xu, pu, h, y[ok], r)
+            x[ok], p[ok] = xu, pu
+        self.yx[slots], self.yp[slots] = x, p
+
     def uncalibrated(self, slots: IntArray) -> BoolArray:
         """Per vehicle and wheel (k, 2): an enabled calibration the wheel's slip depends on
         (GNSS and wheel clock offsets, its radius, the mounting pitch) is above its limit.
+        Not the mounting yaw: it reaches the slip only through a turn's forward acceleration
+        and is not stored in the rows, so a restarted vehicle learns it again.
 
         A driven wheel's radius and the wheels' clock are learnt only where slip is ~0 (a
         free-rolling wheel, a calibration drive): on a vehicle that has neither they stay at

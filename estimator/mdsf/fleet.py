@@ -490,13 +490,16 @@ class MdsfFleet:
 
     def _apply_calibration(self, slots: IntArray, tin: TickInputs) -> TickInputs:
         """Tick inputs with the calibrations applied: the mounting pitch's gravity share
-        ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force, the GNSS speed
+        ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force and the
+        mounting yaw's lateral share ``γ·f_x`` put back, the GNSS speed
         moved by its clock offset ``+δ_g·a`` and, once the offset has converged, the RTK
         distance by ``∫δ_g·a·dt`` since its chain began (``docs/perf/estimator.md``)."""
         bank = self.calibration_bank
         z = tin.z.copy()
         theta = np.nan_to_num(tin.attitude[:, 1])
         tilt = GRAVITY_MPS2 * (np.sin(theta + bank.mount_pitch_rad(slots)) - np.sin(theta))
+        if tin.force_lat is not None:
+            tilt = tilt - bank.mount_yaw_rad(slots) * np.nan_to_num(tin.force_lat)
         z[:, MdsfObs.A1] -= tilt
         offset_s = bank.gnss_offset_s(slots)
         z[:, MdsfObs.VG] += offset_s * np.nan_to_num(z[:, MdsfObs.A1])
@@ -523,7 +526,8 @@ class MdsfFleet:
         """The calibration filters learn from one round: raw GNSS speed (at the IMU: the
         antenna's lever-arm terms taken off) against the corrected acceleration, raw rim
         speeds against the filter's wheel ground speeds (emitted, GNSS-anchored rows), the
-        raw forward force at standstill."""
+        raw forward force at standstill, the raw lateral force at ``O`` (lever-arm term off)
+        against the centripetal and gravity's share and the raw forward force."""
         bank = self.calibration_bank
         accel = fixed.z[:, MdsfObs.A1]
         vg_raw = np.where(tin.gnss_ok, tin.z[:, MdsfObs.VG], np.nan)
@@ -537,6 +541,15 @@ class MdsfFleet:
         bank.observe_wheels(slots, rim, rim_std**2, ground, ground_var, accel, usable)
         still = bank.still_pitch_rows(slots, vg_raw, rim, min_speed)
         bank.observe_still(slots, tin.force_fwd, tin.accel_var, tin.attitude[:, 1], still)
+        if tin.force_lat is not None and tin.lever_force_lat is not None:
+            bank.observe_yaw(
+                slots,
+                (tin.force_fwd, tin.force_lat - tin.lever_force_lat),
+                tin.accel_var,
+                so.v0,
+                tin.z[:, MdsfObs.OMEGA_Z],
+                (tin.attitude[:, 1], tin.attitude[:, 2]),
+            )
 
     def _last_still(self, due: FleetTicks, rim: FloatArray, min_speed: FloatArray) -> IntArray:
         """Per row and wheel, the stamp of the latest tick at or before it whose measured rim

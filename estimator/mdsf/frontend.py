@@ -56,6 +56,7 @@ import numpy.typing as npt
 
 from estimator._arrays import (
     BoolArray,
+    CArray,
     FloatArray,
     IntArray,
     as_rows,
@@ -181,6 +182,13 @@ class TickInputs:
     fix_age_s : ndarray, shape (m,)
         Age of the fix ``enu`` and ``attitude`` were moved to the tick from (``inf``: none yet)
         [s]; :mod:`estimator.dead_reckoning` carries the position past a stale one.
+    force_lat : ndarray, shape (m,), or None
+        Tick-mean lateral specific force as measured (IMU x axis) [m/s²]: with ``force_fwd``
+        the mounting yaw's observation and correction (:mod:`estimator.mdsf.calibration`);
+        None from a caller without one.
+    lever_force_lat : ndarray, shape (m,), or None
+        What the IMU's lever arm adds to the lateral force by the angular acceleration
+        (:func:`_lever_force_lat`) [m/s²]: the lateral force at ``O`` is ``force_lat`` less it.
     """
 
     stamp_ns: IntArray
@@ -201,6 +209,8 @@ class TickInputs:
     dist_var: FloatArray
     dist_restart: BoolArray
     fix_age_s: FloatArray
+    force_lat: FloatArray | None = None
+    lever_force_lat: FloatArray | None = None
 
     @property
     def m(self) -> int:
@@ -303,6 +313,38 @@ def _fill_segments(
     order = np.argsort(starts, kind="stable")
     seg = np.searchsorted(starts[order], np.arange(n), side="right") - 1
     return order[seg], vals
+
+
+def _lever_force_lat(
+    tick_id: IntArray,
+    tau_s: FloatArray,
+    rates: tuple[FloatArray, FloatArray],
+    n: IntArray,
+    lever_m: tuple[FloatArray, FloatArray],
+) -> FloatArray:
+    """Tick-mean lateral specific force the IMU's lever arm adds to ``O``'s by the body's
+    angular acceleration, ``(ω̇ × p)_x = ω̇y·h0 − ω̇z·y`` (``p = (x, y, h0)`` the IMU's point).
+
+    A body swaying in roll on its axle shakes a raised IMU sideways by metres per second
+    squared; the mounting yaw's observation (lateral force at ``O``,
+    :mod:`estimator.mdsf.calibration`) must not see it. The tick-mean angular accelerations
+    are the slopes of a least-squares line through the window's gyro samples (0 with fewer
+    than two). ``rates`` are ``(ω_y, ω_z)`` per sample, ``lever_m`` ``(h0, y)`` per tick;
+    returns shape ``(m,)``.
+    """
+    m = n.shape[0]
+    s_t, s_tt = (np.bincount(tick_id, weights=tau_s**k, minlength=m) for k in (1, 2))
+    det = n * s_tt - s_t * s_t
+    ok = (n >= 2) & (det > 0)
+    det = np.where(ok, det, 1.0)
+
+    def slope(w: FloatArray) -> FloatArray:
+        s_w = np.bincount(tick_id, weights=w, minlength=m)
+        s_tw = np.bincount(tick_id, weights=tau_s * w, minlength=m)
+        return np.where(ok, (n * s_tw - s_t * s_w) / det, 0.0)
+
+    up_m, fwd_m = lever_m
+    return np.asarray(slope(rates[0]) * up_m - slope(rates[1]) * fwd_m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -447,6 +489,7 @@ class FleetFrontEnd:
         grow("accel_var_cfg", (), 0.0)
         grow("gyro_var_cfg", (), 0.0)
         grow("imu_fwd_m", (), 0.0)
+        grow("imu_up_m", (), 0.0)  # IMU height above O (h0)
         grow("ant_fwd_m", (), 0.0)
         grow("lone_std", (), 0.0)
         grow("wheel_cfg", (), np.int64(0))
@@ -509,6 +552,7 @@ class FleetFrontEnd:
     accel_var_cfg: FloatArray
     gyro_var_cfg: FloatArray
     imu_fwd_m: FloatArray
+    imu_up_m: FloatArray
     ant_fwd_m: FloatArray
     lone_std: FloatArray
     wheel_cfg: IntArray
@@ -576,6 +620,7 @@ class FleetFrontEnd:
         self.accel_var_cfg[slot] = n.accel_std_mps2**2
         self.gyro_var_cfg[slot] = n.gyro_std_radps**2
         self.imu_fwd_m[slot] = vehicle.geometry.imu_offset_m[1]
+        self.imu_up_m[slot] = vehicle.geometry.h0_m
         self.ant_fwd_m[slot] = vehicle.geometry.antenna_offset_m[1]
         self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
         self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
@@ -1024,9 +1069,17 @@ class _Batch:
         with np.errstate(invalid="ignore", divide="ignore"):
             means = [
                 np.bincount(tick_id, weights=x[inb], minlength=n_ticks) / n_imu
-                for x in (a_fwd, wx, wz, self.fy)
+                for x in (a_fwd, wx, wz, self.fy, self.fx)
             ]
         tau = (self.T[inb] - self.ticks[tick_id]) * _NS
+        slot_t = self.slots[rows]
+        lever_lat = _lever_force_lat(
+            tick_id,
+            tau,
+            (self.wy[inb], self.wz[inb]),
+            n_imu,
+            (fe.imu_up_m[slot_t], fe.imu_fwd_m[slot_t]),
+        )
         (wx_tick, wz_tick), rate_var_factor = _rates_at_tick(
             tick_id, tau, (wx[inb], wz[inb]), means[1:3], n_imu
         )
@@ -1038,7 +1091,6 @@ class _Batch:
         theta_tick = np.where(imu_ok, theta[at_tick] if n else np.nan, np.nan)
         phi_tick = np.where(imu_ok, self.phi[at_tick] if n else np.nan, np.nan)
         nf = np.maximum(n_imu, 1).astype(np.float64)
-        slot_t = self.slots[rows]
         accel_var = fe.accel_var_cfg[slot_t] / nf
         if self.product:
             # the gravity leak g·δθ as white accelerometer noise over the pitch error's
@@ -1074,6 +1126,8 @@ class _Batch:
             dist_var=dist_var,
             dist_restart=dist_restart,
             fix_age_s=fix_age_s,
+            force_lat=means[4],
+            lever_force_lat=lever_lat,
         )
 
     def _between_fixes(
@@ -1142,197 +1196,22 @@ class _Batch:
         gives none), the pitch variance, bias and pitch after each fix (``g_var_after``,
         ``g_bias_after``, ``g_theta_after``), the roll after each fix shrunk by its noise
         (``g_roll_after``, :func:`~estimator.tilt.shrunk_roll`) and the roll at each sample
-        (``phi``, NaN where unknown). Returns the pitch, shape ``(n,)``.
+        (``phi``, NaN where unknown). Returns the pitch, shape ``(n,)``. The steps are
+        :class:`_TiltTrack`'s.
         """
-        fe, cfg, g = self.fe, self.config, self.g
-        s = self.slots
-        n = self.T.shape[0]
-        begin, product = self.begin_of, self.product
-        gyro_var = fe.gyro_var_cfg[s][self.s_row] if product else np.zeros(n)
-        cum, psi, rot = tilt_integrals(
-            self.dts, self.wx, self.wy, self.wz, self.fx, self.fy, gyro_var, begin, product
-        )
-        # the tracks' state of the batch's vehicles (copies: s is an index array)
-        th = fe.pitch_rad[s]
-        var = fe.pitch_var[s]
-        cov_tb = fe.pitch_cov_tb[s]
-        var_b = fe.pitch_var_b[s]
-        self.var_before = var.copy()
-        bx = fe.pitch_gyro_bias[s]
-        self.bias_before = bx.copy()
-        fix_ns = fe.pitch_fix_ns[s]
-        known = fe.pitch_known[s]
-        still = fe.pitch_still[s]
-        acc = fe.pitch_acc[s]  # since the last fix: PitchSum
-        ph = fe.roll_rad[s]
-        by = fe.roll_gyro_bias[s]
-        rcov = fe.roll_cov[s]  # AngleCov
-        rfix_ns = fe.roll_fix_ns[s]
-        rknown = fe.roll_known[s]
-        racc = fe.roll_acc[s]  # since the last fix: RollSum
-        last = np.full(self.n_rows, -1, dtype=np.int64)  # last sample integrated, per row
-
+        track = _TiltTrack(self)
+        self.var_before = track.st.var.copy()
+        self.bias_before = track.st.bx.copy()
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
         self.g_theta_after = np.empty(nf)
         self.g_roll_after = np.zeros(nf)
-        g_still = self.g_vel_ok & (np.hypot(g[:, _G_VE], g[:, _G_VN]) < cfg.standstill_speed_mps)
-
-        def end_segment(r: IntArray, j: IntArray) -> FloatArray:
-            # samples up to j-1 of rows r integrated with the biases in force; θ, φ at j-1
-            k, lk = j - 1, last[r]
-            begun = lk >= 0
-            c0 = np.where(begun[:, None], cum[np.maximum(lk, 0)], 0.0)  # at the segment's start
-            d = cum[k] - c0
-            acc[r, PitchSum.RATE : PitchSum.SAMPLES + 1] += d[:, PITCH_SUM_OF]
-            a = (th[r] - c0[:, Integral.RATE_X] + bx[r] * c0[:, Integral.TIME]) + 1j * ph[r]
-            beta = bx[r] + 0j
-            coupled = np.zeros(r.shape[0], dtype=bool)
-            if product:
-                coupled = rknown[r]
-                beta = bx[r] + 1j * np.where(coupled, by[r], 0.0)
-                at0 = np.maximum(lk, 0)
-                turn0 = np.where(begun, rot[at0], 1.0)
-                cz0 = c0[:, Integral.TURNED_RATE_RE] + 1j * c0[:, Integral.TURNED_RATE_IM]
-                ez0 = c0[:, Integral.TURN_RE] + 1j * c0[:, Integral.TURN_IM]
-                a = np.where(coupled, turn0 * (th[r] + 1j * ph[r]) - cz0 + beta * ez0, a)
-                tau2 = 2.0 * cfg.attitude_tau_s
-                d_g, d_z2 = d[:, Integral.GYRO_VAR], d[:, Integral.YAW_RATE_SQ]
-                roll_var = np.where(coupled, rcov[r, AngleCov.ANGLE], 0.0)
-                acc[r, PitchSum.ANGLE_VAR] += d_g + tau2 * roll_var * d_z2
-                racc[r, RollSum.ANGLE_VAR] += d_g + tau2 * var[r] * d_z2
-                racc[r, RollSum.RATE : RollSum.FORCE_LAT_TIME + 1] += d[:, ROLL_SUM_OF]
-                racc[r, RollSum.YAW] += psi[k] - np.where(begun, psi[at0], 0.0)
-                acc[r, PitchSum.FORCE_FWD] += d[:, Integral.FORCE_FWD]
-            z = tilt_at(cum, rot, k, a, beta, coupled, product)
-            th[r], ph[r] = z.real, z.imag
-            last[r] = k
-            return np.stack([a.real, a.imag, beta.real, beta.imag, coupled], axis=1)
-
-        def at_fix(fi: IntArray, r: IntArray) -> None:
-            p = g[fi, _G_PITCH]
-            pm, pm_var = p, None
-            # stood through the interval since the previous fix: the mean rates are the biases
-            t_since = acc[r, PitchSum.TIME]
-            stood = still[r] & g_still[fi] & (t_since > 0) & (cfg.standstill_speed_mps > 0)
-            span = np.where(stood, t_since, 1.0)
-            need = np.flatnonzero(~np.isfinite(p)) if product else ()
-            if len(need):
-                # no receiver attitude: the velocity's elevation or, standing, the forward
-                # accelerometer's gravity, chi-square gated (an outlying velocity is a wild
-                # pitch; before the first pitch against the prior, ±_PITCH_PRIOR_STD_RAD about
-                # level)
-                rn = r[need]
-                pv, pv_var = self._velocity_pitch(fi[need], rn)
-                st_pitch, st_var = self._gravity_angle(
-                    rn,
-                    acc[rn, PitchSum.FORCE_FWD] / span[need],
-                    acc[rn, PitchSum.SAMPLES],
-                    cfg.pitch_std_rad,
-                )
-                standing = stood[need] & ~np.isfinite(pv)
-                pv = np.where(standing, st_pitch, pv)
-                pv_var = np.where(standing, st_var, pv_var)
-                wild = (pv - th[rn]) ** 2 > cfg.gate_chi2 * (var[rn] + pv_var)
-                pm, pm_var = p.copy(), np.full(p.shape[0], cfg.pitch_std_rad**2)
-                pm[need] = np.where(wild, np.nan, pv)
-                pm_var[need] = pv_var
-            if product:
-                r_still = (
-                    fe.gyro_var_cfg[s[r]] / np.maximum(acc[r, PitchSum.SAMPLES], 1.0)
-                    + cfg.standstill_rate_floor_radps**2
-                )
-                # no receiver roll: the lateral accelerometer's, chi-square gated
-                r2 = np.full(r.shape[0], cfg.pitch_std_rad**2)
-                roll_m, roll_var = g[fi, _G_ROLL], r2
-                need = np.flatnonzero(~np.isfinite(roll_m))
-                if need.size:
-                    rn = r[need]
-                    pa, pa_var = self._accel_roll(fi[need], rn, th[rn], acc[rn], racc[rn])
-                    gate = cfg.gate_chi2 * (rcov[rn, AngleCov.ANGLE] + pa_var)
-                    wild = rknown[rn] & ((pa - ph[rn]) ** 2 > gate)
-                    roll_m, roll_var = roll_m.copy(), r2.copy()
-                    roll_m[need] = np.where(wild, np.nan, pa)
-                    roll_var[need] = pa_var
-                # pitch (first k) and roll (last k) in one call
-                cov = np.stack([var[r], cov_tb[r], var_b[r]], axis=1)
-                angle, cov2, bias2, fix2, known2 = pitch_kf_update(
-                    np.concatenate([th[r], ph[r]]),
-                    np.concatenate([cov, rcov[r]]),
-                    np.concatenate([bx[r], by[r]]),
-                    np.concatenate([fix_ns[r], rfix_ns[r]]),
-                    np.concatenate([known[r], rknown[r]]),
-                    np.concatenate([pm, roll_m]),
-                    np.concatenate([self.g_t[fi], self.g_t[fi]]),
-                    cfg,
-                    np.concatenate([r2 if pm_var is None else pm_var, roll_var]),
-                    np.concatenate([acc[r, PitchSum.ANGLE_VAR], racc[r, RollSum.ANGLE_VAR]]),
-                    np.where(
-                        np.tile(stood, 2),
-                        np.concatenate([acc[r, PitchSum.RATE], racc[r, RollSum.RATE]])
-                        / np.tile(span, 2),
-                        np.nan,
-                    ),
-                    np.concatenate([r_still, r_still]),
-                )
-                kr = r.shape[0]
-                th[r], ph[r] = angle[:kr], angle[kr:]
-                var[r] = cov2[:kr, AngleCov.ANGLE]
-                cov_tb[r] = cov2[:kr, AngleCov.CROSS]
-                var_b[r] = cov2[:kr, AngleCov.BIAS]
-                rcov[r] = cov2[kr:]
-                bx[r], by[r] = bias2[:kr], bias2[kr:]
-                fix_ns[r], rfix_ns[r] = fix2[:kr], fix2[kr:]
-                known[r], rknown[r] = known2[:kr], known2[kr:]
-                acc[r] = 0.0
-                racc[r] = 0.0
-                still[r] = g_still[fi]
-                roll_after = shrunk_roll(ph[r], rcov[r, AngleCov.ANGLE])
-                self.g_roll_after[fi] = np.where(rknown[r], roll_after, 0.0)
-            else:
-                th[r], var[r], bx[r], fix_ns[r], known[r] = pitch_fix_update(
-                    th[r], var[r], bx[r], fix_ns[r], known[r], pm, self.g_t[fi], cfg
-                )
-            self.g_var_after[fi] = var[r]
-            self.g_bias_after[fi] = bx[r]
-            self.g_theta_after[fi] = th[r]
-            ok = self.g_vel_ok[fi]
-            used = np.where(np.isfinite(p), p, th[r])
-            self.g_vg[fi[ok]] = gnss_vehicle_speed(
-                g[fi[ok], _G_VE],
-                g[fi[ok], _G_VN],
-                g[fi[ok], _G_VU],
-                self.g_heading[fi[ok]],
-                used[ok],
-            )
-
-        q = self._between_fixes(_rank_passes(self.g_rank), end_segment, at_fix)
-        fe.pitch_rad[s] = th
-        fe.pitch_var[s] = var
-        fe.pitch_cov_tb[s] = cov_tb
-        fe.pitch_var_b[s] = var_b
-        fe.pitch_acc[s] = acc
-        fe.pitch_still[s] = still
-        fe.pitch_gyro_bias[s] = bx
-        fe.pitch_fix_ns[s] = fix_ns
-        fe.pitch_known[s] = known
-        fe.roll_rad[s] = ph
-        fe.roll_gyro_bias[s] = by
-        fe.roll_cov[s] = rcov
-        fe.roll_fix_ns[s] = rfix_ns
-        fe.roll_known[s] = rknown
-        fe.roll_acc[s] = racc
-        if n == 0:
-            self.phi = np.zeros(0)
-            return np.zeros(0)
-        coupled = q[:, 4] > 0.5
-        z = tilt_at(
-            cum, rot, slice(None), q[:, 0] + 1j * q[:, 1], q[:, 2] + 1j * q[:, 3], coupled, product
-        )
-        self.phi = np.where(coupled, z.imag, np.nan)
-        return np.asarray(z.real)
+        q = self._between_fixes(_rank_passes(self.g_rank), track.end_segment, track.at_fix)
+        track.st.put(self.fe, self.slots)
+        theta, self.phi = track.at_samples(q)
+        return theta
 
     def _fix_of_sample(self) -> IntArray:
         """Index of the latest fix at or before each IMU sample of the same row (−1: none)."""
@@ -1777,3 +1656,283 @@ class _Batch:
             period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)
             wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
         return omega, omega_std, wflags
+
+
+@dataclass
+class _TiltState:
+    """The tilt tracks' state of one batch's vehicles (rows in batch order), copied from the
+    front end's slot arrays and put back after the batch: pitch ``th``, its Kalman
+    covariance (``var``, ``cov_tb``, ``var_b``), pitch-gyro bias ``bx``, last fix, whether it
+    stood, the sums since it (``acc``, :class:`~estimator.tilt.PitchSum`); the same for roll
+    (``ph``, ``by``, ``rcov`` as :class:`~estimator.tilt.AngleCov`, ``racc`` as
+    :class:`~estimator.tilt.RollSum`)."""
+
+    th: FloatArray
+    var: FloatArray
+    cov_tb: FloatArray
+    var_b: FloatArray
+    bx: FloatArray
+    fix_ns: IntArray
+    known: BoolArray
+    still: BoolArray
+    acc: FloatArray
+    ph: FloatArray
+    by: FloatArray
+    rcov: FloatArray
+    rfix_ns: IntArray
+    rknown: BoolArray
+    racc: FloatArray
+
+    @classmethod
+    def take(cls, fe: FleetFrontEnd, s: IntArray) -> _TiltState:
+        """Copies of slots ``s`` (an index array, so every field is a copy)."""
+        return cls(
+            th=fe.pitch_rad[s],
+            var=fe.pitch_var[s],
+            cov_tb=fe.pitch_cov_tb[s],
+            var_b=fe.pitch_var_b[s],
+            bx=fe.pitch_gyro_bias[s],
+            fix_ns=fe.pitch_fix_ns[s],
+            known=fe.pitch_known[s],
+            still=fe.pitch_still[s],
+            acc=fe.pitch_acc[s],
+            ph=fe.roll_rad[s],
+            by=fe.roll_gyro_bias[s],
+            rcov=fe.roll_cov[s],
+            rfix_ns=fe.roll_fix_ns[s],
+            rknown=fe.roll_known[s],
+            racc=fe.roll_acc[s],
+        )
+
+    def put(self, fe: FleetFrontEnd, s: IntArray) -> None:
+        """Write the state back to slots ``s``."""
+        fe.pitch_rad[s] = self.th
+        fe.pitch_var[s] = self.var
+        fe.pitch_cov_tb[s] = self.cov_tb
+        fe.pitch_var_b[s] = self.var_b
+        fe.pitch_acc[s] = self.acc
+        fe.pitch_still[s] = self.still
+        fe.pitch_gyro_bias[s] = self.bx
+        fe.pitch_fix_ns[s] = self.fix_ns
+        fe.pitch_known[s] = self.known
+        fe.roll_rad[s] = self.ph
+        fe.roll_gyro_bias[s] = self.by
+        fe.roll_cov[s] = self.rcov
+        fe.roll_fix_ns[s] = self.rfix_ns
+        fe.roll_known[s] = self.rknown
+        fe.roll_acc[s] = self.racc
+
+
+class _TiltTrack:
+    """One batch's tilt track (:meth:`_Batch._pitch_track`): the samples' integrals
+    (:func:`~estimator.tilt.tilt_integrals`), the state, and the two steps
+    :meth:`_Batch._between_fixes` runs: :meth:`end_segment` (integrate up to a fix) and
+    :meth:`at_fix` (the fix's update). Writes the per-fix outputs (``g_vg``, ``g_*_after``)
+    into the batch."""
+
+    def __init__(self, b: _Batch) -> None:
+        self.b = b
+        self.cfg = b.config
+        self.product = b.product
+        n = b.T.shape[0]
+        gyro_var = b.fe.gyro_var_cfg[b.slots][b.s_row] if self.product else np.zeros(n)
+        self.cum, self.psi, self.rot = tilt_integrals(
+            b.dts, b.wx, b.wy, b.wz, b.fx, b.fy, gyro_var, b.begin_of, self.product
+        )
+        self.st = _TiltState.take(b.fe, b.slots)
+        self.last = np.full(b.n_rows, -1, dtype=np.int64)  # last sample integrated, per row
+        speed_mps = np.hypot(b.g[:, _G_VE], b.g[:, _G_VN])
+        self.g_still = b.g_vel_ok & (speed_mps < self.cfg.standstill_speed_mps)
+
+    # -- between fixes ---------------------------------------------------------------------
+    def end_segment(self, r: IntArray, j: IntArray) -> FloatArray:
+        """Integrate samples up to ``j − 1`` of rows ``r`` with the biases in force and move
+        θ, φ there. Returns the segment's parameters ``[Re a, Im a, Re β, Im β, coupled]``
+        (:func:`~estimator.tilt.tilt_at`), shape ``(len(r), 5)``."""
+        st = self.st
+        k, lk = j - 1, self.last[r]
+        begun = lk >= 0
+        c0 = np.where(begun[:, None], self.cum[np.maximum(lk, 0)], 0.0)  # at the segment's start
+        d = self.cum[k] - c0
+        st.acc[r, PitchSum.RATE : PitchSum.SAMPLES + 1] += d[:, PITCH_SUM_OF]
+        a, beta, coupled = self._segment_start(r, lk, begun, c0)
+        if self.product:
+            self._add_product_sums(r, k, lk, begun, d)
+        z = tilt_at(self.cum, self.rot, k, a, beta, coupled, self.product)
+        st.th[r], st.ph[r] = z.real, z.imag
+        self.last[r] = k
+        return np.stack([a.real, a.imag, beta.real, beta.imag, coupled], axis=1)
+
+    def _segment_start(
+        self, r: IntArray, lk: IntArray, begun: BoolArray, c0: FloatArray
+    ) -> tuple[CArray, CArray, BoolArray]:
+        """The segment's integration constant ``a``, biases ``β = b_x + i·b_y`` and whether
+        pitch and roll are coupled (product mode, once the row has a roll); ``c0`` the
+        integrals at the segment's start, ``lk`` its last sample (−1: none)."""
+        st = self.st
+        a = (st.th[r] - c0[:, Integral.RATE_X] + st.bx[r] * c0[:, Integral.TIME]) + 1j * st.ph[r]
+        if not self.product:
+            return a, st.bx[r] + 0j, np.zeros(r.shape[0], dtype=bool)
+        coupled = st.rknown[r]
+        beta = st.bx[r] + 1j * np.where(coupled, st.by[r], 0.0)
+        turn0 = np.where(begun, self.rot[np.maximum(lk, 0)], 1.0)
+        cz0 = c0[:, Integral.TURNED_RATE_RE] + 1j * c0[:, Integral.TURNED_RATE_IM]
+        ez0 = c0[:, Integral.TURN_RE] + 1j * c0[:, Integral.TURN_IM]
+        a = np.where(coupled, turn0 * (st.th[r] + 1j * st.ph[r]) - cz0 + beta * ez0, a)
+        return a, beta, coupled
+
+    def _add_product_sums(
+        self, r: IntArray, k: IntArray, lk: IntArray, begun: BoolArray, d: FloatArray
+    ) -> None:
+        """Product mode's sums since the last fix: each angle's added variance (gyro noise and
+        the other angle's error carried by the yaw rate), the roll's rates, lateral force and
+        yaw, the forward force; ``d`` the segment's integrals, shape ``(len(r), len(Integral))``."""
+        st = self.st
+        tau2 = 2.0 * self.cfg.attitude_tau_s
+        d_g, d_z2 = d[:, Integral.GYRO_VAR], d[:, Integral.YAW_RATE_SQ]
+        roll_var = np.where(st.rknown[r], st.rcov[r, AngleCov.ANGLE], 0.0)
+        st.acc[r, PitchSum.ANGLE_VAR] += d_g + tau2 * roll_var * d_z2
+        st.racc[r, RollSum.ANGLE_VAR] += d_g + tau2 * st.var[r] * d_z2
+        st.racc[r, RollSum.RATE : RollSum.FORCE_LAT_TIME + 1] += d[:, ROLL_SUM_OF]
+        st.racc[r, RollSum.YAW] += self.psi[k] - np.where(begun, self.psi[np.maximum(lk, 0)], 0.0)
+        st.acc[r, PitchSum.FORCE_FWD] += d[:, Integral.FORCE_FWD]
+
+    # -- at a fix ----------------------------------------------------------------------------
+    def at_fix(self, fi: IntArray, r: IntArray) -> None:
+        """Update rows ``r`` with their fixes ``fi``: pitch (and roll, product mode) measured,
+        the Kalman update, the fix's outputs."""
+        st, b = self.st, self.b
+        p = b.g[fi, _G_PITCH]
+        # stood through the interval since the previous fix: the mean rates are the biases
+        t_since = st.acc[r, PitchSum.TIME]
+        stood = st.still[r] & self.g_still[fi] & (t_since > 0) & (self.cfg.standstill_speed_mps > 0)
+        span = np.where(stood, t_since, 1.0)
+        if self.product:
+            pm, pm_var = self._pitch_measured(fi, r, p, stood, span)
+            roll_m, roll_var = self._roll_measured(fi, r)
+            self._kalman_update(fi, r, (pm, pm_var), (roll_m, roll_var), stood, span)
+        else:
+            st.th[r], st.var[r], st.bx[r], st.fix_ns[r], st.known[r] = pitch_fix_update(
+                st.th[r], st.var[r], st.bx[r], st.fix_ns[r], st.known[r], p, b.g_t[fi], self.cfg
+            )
+        self._fix_outputs(fi, r, p)
+
+    def _pitch_measured(
+        self, fi: IntArray, r: IntArray, p: FloatArray, stood: BoolArray, span: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Pitch measured at fixes ``fi`` and its variance: the receiver's or, without one, the
+        velocity's elevation or, standing, the forward accelerometer's gravity, chi-square
+        gated (an outlying velocity is a wild pitch; before the first pitch against the prior,
+        ±_PITCH_PRIOR_STD_RAD about level)."""
+        st, cfg, b = self.st, self.cfg, self.b
+        pm_var = np.full(p.shape[0], cfg.pitch_std_rad**2)
+        need = np.flatnonzero(~np.isfinite(p))
+        if not need.size:
+            return p, pm_var
+        rn = r[need]
+        pv, pv_var = b._velocity_pitch(fi[need], rn)
+        st_pitch, st_var = b._gravity_angle(
+            rn,
+            st.acc[rn, PitchSum.FORCE_FWD] / span[need],
+            st.acc[rn, PitchSum.SAMPLES],
+            cfg.pitch_std_rad,
+        )
+        standing = stood[need] & ~np.isfinite(pv)
+        pv = np.where(standing, st_pitch, pv)
+        pv_var = np.where(standing, st_var, pv_var)
+        wild = (pv - st.th[rn]) ** 2 > cfg.gate_chi2 * (st.var[rn] + pv_var)
+        pm = p.copy()
+        pm[need] = np.where(wild, np.nan, pv)
+        pm_var[need] = pv_var
+        return pm, pm_var
+
+    def _roll_measured(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Roll measured at fixes ``fi`` and its variance: the receiver's or, without one, the
+        lateral accelerometer's (:meth:`_Batch._accel_roll`), chi-square gated."""
+        st, cfg = self.st, self.cfg
+        roll_var = np.full(r.shape[0], cfg.pitch_std_rad**2)
+        roll_m = self.b.g[fi, _G_ROLL]
+        need = np.flatnonzero(~np.isfinite(roll_m))
+        if not need.size:
+            return roll_m, roll_var
+        rn = r[need]
+        pa, pa_var = self.b._accel_roll(fi[need], rn, st.th[rn], st.acc[rn], st.racc[rn])
+        gate = cfg.gate_chi2 * (st.rcov[rn, AngleCov.ANGLE] + pa_var)
+        wild = st.rknown[rn] & ((pa - st.ph[rn]) ** 2 > gate)
+        roll_m = roll_m.copy()
+        roll_m[need] = np.where(wild, np.nan, pa)
+        roll_var[need] = pa_var
+        return roll_m, roll_var
+
+    def _kalman_update(
+        self,
+        fi: IntArray,
+        r: IntArray,
+        pitch: tuple[FloatArray, FloatArray],
+        roll: tuple[FloatArray, FloatArray],
+        stood: BoolArray,
+        span: FloatArray,
+    ) -> None:
+        """Product mode: pitch and roll (each ``(measured, variance)``) through one
+        :func:`~estimator.tilt.pitch_kf_update` call (pitch the first ``len(r)``, roll the
+        last), with the zero-rate update where the row stood; the sums restart."""
+        st, b = self.st, self.b
+        r_still = (
+            b.fe.gyro_var_cfg[b.slots[r]] / np.maximum(st.acc[r, PitchSum.SAMPLES], 1.0)
+            + self.cfg.standstill_rate_floor_radps**2
+        )
+        rates = np.concatenate([st.acc[r, PitchSum.RATE], st.racc[r, RollSum.RATE]])
+        cov = np.stack([st.var[r], st.cov_tb[r], st.var_b[r]], axis=1)
+        angle, cov2, bias2, fix2, known2 = pitch_kf_update(
+            np.concatenate([st.th[r], st.ph[r]]),
+            np.concatenate([cov, st.rcov[r]]),
+            np.concatenate([st.bx[r], st.by[r]]),
+            np.concatenate([st.fix_ns[r], st.rfix_ns[r]]),
+            np.concatenate([st.known[r], st.rknown[r]]),
+            np.concatenate([pitch[0], roll[0]]),
+            np.concatenate([b.g_t[fi], b.g_t[fi]]),
+            self.cfg,
+            np.concatenate([pitch[1], roll[1]]),
+            np.concatenate([st.acc[r, PitchSum.ANGLE_VAR], st.racc[r, RollSum.ANGLE_VAR]]),
+            np.where(np.tile(stood, 2), rates / np.tile(span, 2), np.nan),
+            np.concatenate([r_still, r_still]),
+        )
+        kr = r.shape[0]
+        st.th[r], st.ph[r] = angle[:kr], angle[kr:]
+        st.var[r] = cov2[:kr, AngleCov.ANGLE]
+        st.cov_tb[r] = cov2[:kr, AngleCov.CROSS]
+        st.var_b[r] = cov2[:kr, AngleCov.BIAS]
+        st.rcov[r] = cov2[kr:]
+        st.bx[r], st.by[r] = bias2[:kr], bias2[kr:]
+        st.fix_ns[r], st.rfix_ns[r] = fix2[:kr], fix2[kr:]
+        st.known[r], st.rknown[r] = known2[:kr], known2[kr:]
+        st.acc[r] = 0.0
+        st.racc[r] = 0.0
+        st.still[r] = self.g_still[fi]
+        roll_after = shrunk_roll(st.ph[r], st.rcov[r, AngleCov.ANGLE])
+        b.g_roll_after[fi] = np.where(st.rknown[r], roll_after, 0.0)
+
+    def _fix_outputs(self, fi: IntArray, r: IntArray, p: FloatArray) -> None:
+        """The batch's per-fix outputs: pitch variance, bias and pitch after the fix, and the
+        GNSS speed of eq. (1) with the receiver's pitch, or the tracked one without it."""
+        st, b = self.st, self.b
+        b.g_var_after[fi] = st.var[r]
+        b.g_bias_after[fi] = st.bx[r]
+        b.g_theta_after[fi] = st.th[r]
+        ok = b.g_vel_ok[fi]
+        used = np.where(np.isfinite(p), p, st.th[r])
+        fo = fi[ok]
+        b.g_vg[fo] = gnss_vehicle_speed(
+            b.g[fo, _G_VE], b.g[fo, _G_VN], b.g[fo, _G_VU], b.g_heading[fo], used[ok]
+        )
+
+    # -- at the samples ----------------------------------------------------------------------
+    def at_samples(self, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Pitch and roll (NaN where unknown) at every sample from each sample's segment
+        parameters ``q`` (:meth:`_Batch._between_fixes`), each shape ``(n,)``."""
+        if self.b.T.shape[0] == 0:
+            return np.zeros(0), np.zeros(0)
+        coupled = q[:, 4] > 0.5
+        a, beta = q[:, 0] + 1j * q[:, 1], q[:, 2] + 1j * q[:, 3]
+        z = tilt_at(self.cum, self.rot, slice(None), a, beta, coupled, self.product)
+        return np.asarray(z.real), np.where(coupled, z.imag, np.nan)

@@ -822,6 +822,7 @@ _CALIBRATIONS = (
     ("radius_scale_left", "radius_scale_left_std", "radius_converged_pct", 1e-2),
     ("radius_scale_right", "radius_scale_right_std", "radius_converged_pct", 1e-2),
     ("imu_pitch_rad", "imu_pitch_std_rad", "imu_pitch_converged_deg", math.pi / 180.0),
+    ("imu_yaw_rad", "imu_yaw_std_rad", "imu_yaw_converged_deg", math.pi / 180.0),
 )
 
 
@@ -925,7 +926,7 @@ def print_calibration_table(result: Mapping[str, Any], file: TextIO | None = Non
     print(f"calibration case {result['case']}", file=out)
     print(
         "seed  after_s  slip err mean/rms/p95 pp (calibrated)  (calibration off)  "
-        "converged at s: gnss_clock wheel_clock radius_l radius_r imu_pitch",
+        "converged at s: gnss_clock wheel_clock radius_l radius_r imu_pitch imu_yaw",
         file=out,
     )
     for r in result["rows"]:
