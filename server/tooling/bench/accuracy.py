@@ -66,7 +66,9 @@ product and paper mode, and prints per method the median, p90, p95 and worst of 
 p95, wheel-speed max error and coverage, the random floors (product: slip RMS ≤ 1 pp and p95
 ≤ 2 pp on ≥ 95 % of the drives, RMS never above 2 pp, wheel-speed max error ≤ 3 % and coverage
 ≥ 98 % on every drive) and the worst drives with their knobs. Seeds 1 and 2 are for
-development; 1001 and 1002 are kept for judging and never tuned on.
+development; 1001 and 1002 are kept for judging and never tuned on. ``--start-calibration
+stored`` (default) starts each vehicle from what earlier drives and a calibration drive leave
+(:data:`CALIBRATION_START`), ``none`` from the configured values (a vehicle's first drive).
 
 Calibration
 -----------
@@ -206,14 +208,18 @@ def run_estimator(
     sim: SimRun,
     config: WheeledRearDriveConfig,
     lateness_ns: int = LATENESS_NS,
+    prepare: Callable[[FleetEstimator, str], None] | None = None,
 ) -> np.ndarray:
     """Feed ``sim`` to ``estimator`` as the server's pipeline would; return all rows in order.
 
     Measurements arrive with the run's latencies, wait in a reorder buffer of ``lateness_ns``
     and are pushed in first-sample order; every 100 ms of arrival time the estimator is advanced
-    to the buffer's horizon (:func:`estimator.sim.replay_arrivals`).
+    to the buffer's horizon (:func:`estimator.sim.replay_arrivals`). ``prepare(estimator,
+    vehicle_id)`` runs after the vehicle is added, before its data (e.g. a stored calibration).
     """
     estimator.add_vehicle(_VEHICLE, config)
+    if prepare is not None:
+        prepare(estimator, _VEHICLE)
     parts: list[np.ndarray] = []
     for chunk, until in replay_arrivals(
         sim.measurements,
@@ -648,10 +654,66 @@ _RANDOM_METRICS = ("slip_rms_pp", "slip_p95_pp", "vw_max_pct", "coverage_pct")
 _QUANTILES = (("median", 50.0), ("p90", 90.0), ("p95", 95.0))
 
 
+CALIBRATION_START = ("stored", "none")
+"""What a random drive's vehicle has learnt before it (``--start-calibration``): ``stored``
+starts it from a stored calibration as earlier drives and one calibration drive leave it (every
+value at the drive's truth plus ``N(0, σ)``, σ the config's converged threshold), the state of a
+fleet vehicle after its first hours; ``none`` starts it from the configured values, a vehicle's
+first drive: radii up to 3 % off, clocks up to ±100 ms, the IMU turned up to 3°. A driven
+wheel's radius error is not observable from the drive (``r·W/V − 1 = κ + s``, ``s`` never 0
+while pulling), so without a calibration drive it stays in the slip error."""
+
+
+def _stored_calibration(
+    drive: DrawnDrive, config: WheeledRearDriveConfig
+) -> Callable[[FleetEstimator, str], None]:
+    """Restore, into an estimator that keeps calibrations, what earlier drives left: each value
+    the drive's truth plus ``N(0, σ)`` with std σ, the config's converged threshold."""
+    knobs = drive.overrides
+    c = config.calibration
+    gnss_ms, imu_ms, wheel_ms = knobs.get("clock_offset_ms", (0.0, 0.0, 0.0))
+    yaw_deg, pitch_deg = knobs.get("imu_misalign_deg", (0.0, 0.0))
+    radius = [1.0 + e for e in knobs.get("wheel_radius_error_rel", (0.0, 0.0))]
+    clock_s = c.clock_offset_converged_ms / 1e3
+    radius_rel = c.radius_converged_pct / 100.0
+    truths = (  # (value field, std field, truth, sigma)
+        ("gnss_clock_offset_s", "gnss_clock_offset_std_s", (gnss_ms - imu_ms) / 1e3, clock_s),
+        ("wheel_clock_offset_s", "wheel_clock_offset_std_s", (wheel_ms - imu_ms) / 1e3, clock_s),
+        ("radius_scale_left", "radius_scale_left_std", radius[0], radius_rel * radius[0]),
+        ("radius_scale_right", "radius_scale_right_std", radius[1], radius_rel * radius[1]),
+        (
+            "imu_pitch_rad",
+            "imu_pitch_std_rad",
+            math.radians(pitch_deg),
+            math.radians(c.imu_pitch_converged_deg),
+        ),
+        (
+            "imu_yaw_rad",
+            "imu_yaw_std_rad",
+            math.radians(yaw_deg),
+            math.radians(c.imu_yaw_converged_deg),
+        ),
+    )
+    rng = np.random.default_rng([drive.sim_seed, 7])
+    values: dict[str, float] = {}
+    for name, std_name, truth, sigma in truths:
+        values[name] = truth + float(rng.normal(0.0, sigma))
+        values[std_name] = sigma
+
+    def prepare(estimator: FleetEstimator, vehicle_id: str) -> None:
+        given = getattr(estimator, "calibration", None)
+        restore = getattr(estimator, "restore_calibration", None)
+        if given is not None and restore is not None:
+            restore(vehicle_id, dataclasses.replace(given(vehicle_id), **values))
+
+    return prepare
+
+
 def _random_drive_rows(
-    drive: DrawnDrive, factories: Mapping[str, EstimatorFactory]
+    drive: DrawnDrive, factories: Mapping[str, EstimatorFactory], start: str = "stored"
 ) -> list[dict[str, Any]]:
-    """One drawn drive through every method: a result row per method (metrics, ``seconds``,
+    """One drawn drive through every method, its vehicle's calibration at the start as ``start``
+    says (:data:`CALIBRATION_START`): a result row per method (metrics, ``seconds``,
     ``error`` if it raised)."""
     sim = simulate(
         "random_drive",
@@ -665,8 +727,9 @@ def _random_drive_rows(
     for method, factory in factories.items():
         row: dict[str, Any] = {"drive": drive.index, "method": method}
         t0 = time.perf_counter()
+        prepare = _stored_calibration(drive, config) if start == "stored" else None
         try:
-            rows = run_estimator(factory(), sim, config)
+            rows = run_estimator(factory(), sim, config, prepare=prepare)
         except Exception as exc:  # a crashing method is reported in its row, not hidden
             row["error"] = f"{type(exc).__name__}: {exc}"
             rows = empty_estimates(0)
@@ -734,8 +797,11 @@ def run_random(
     quiet: bool = False,
     out: TextIO | None = None,
     worst: int = 5,
+    start_calibration: str = "stored",
 ) -> dict[str, Any]:
-    """Run ``n`` random drives of the draw ``seed`` (module docstring) through every method.
+    """Run ``n`` random drives of the draw ``seed`` (module docstring) through every method,
+    each vehicle's calibration at the start as ``start_calibration`` says
+    (:data:`CALIBRATION_START`).
 
     Returns
     -------
@@ -746,7 +812,12 @@ def run_random(
     """
     factories = dict(estimators) if estimators is not None else default_estimators()
     drives = draw_drives(n, seed)
-    results = [row for d in drives for row in _random_drive_rows(d, factories)]
+    if start_calibration not in CALIBRATION_START:
+        raise ValueError(
+            f"start_calibration must be one of {', '.join(CALIBRATION_START)}, "
+            f"not {start_calibration!r}"
+        )
+    results = [row for d in drives for row in _random_drive_rows(d, factories, start_calibration)]
     product = [r for r in results if r["method"] == "product"]
     failed = _random_floor_failures(product)
     order = sorted(
@@ -756,6 +827,7 @@ def run_random(
     result: dict[str, Any] = {
         "seed": seed,
         "n": n,
+        "start_calibration": start_calibration,
         "start_ns": START_NS,
         "moving_mps": MOVING_MPS,
         "drives": [{"index": d.index, "sim_seed": d.sim_seed, "knobs": d.knobs()} for d in drives],
@@ -798,7 +870,8 @@ def print_random_table(result: Mapping[str, Any], file: TextIO | None = None) ->
     print("", file=f)
     status = "PASS" if result["all_pass"] else "FAIL: " + "; ".join(result["floors_failed"])
     print(
-        f"{result['n']} random drives, seed {result['seed']}; rows with true V0 > "
+        f"{result['n']} random drives, seed {result['seed']}, calibration at the start: "
+        f"{result.get('start_calibration', 'stored')}; rows with true V0 > "
         f"{result['moving_mps']} m/s; random floors (product): {status}",
         file=f,
     )
@@ -1104,6 +1177,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="run the calibration case (radius, IMU pitch, GNSS clock off) on --seed/--seeds",
     )
+    p.add_argument(
+        "--start-calibration",
+        choices=CALIBRATION_START,
+        default="stored",
+        help="--random: start each vehicle from the calibration earlier drives and a "
+        "calibration drive leave (default) or from the configured values (a first drive)",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)
     if args.calibration:
@@ -1114,7 +1194,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.random is not None:
         if args.seeds is not None or args.variants or args.scenarios or args.scenario_list:
             p.error("--random takes only --seed (and --json)")
-        return 0 if run_random(args.random, args.seed, args.json)["all_pass"] else 1
+        result = run_random(
+            args.random, args.seed, args.json, start_calibration=args.start_calibration
+        )
+        return 0 if result["all_pass"] else 1
     names = list(args.scenarios)
     if args.scenario_list:
         names += [n.strip() for n in args.scenario_list.split(",") if n.strip()]
