@@ -14,6 +14,7 @@ import pytest
 from estimator.config import WheeledRearDriveConfig
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import EstimateBatch, EstimateFlag, empty_estimates
+from tests.support import poll_until
 from tests.web.conftest import LiveStack, history_loaded
 
 pytestmark = pytest.mark.browser
@@ -77,8 +78,12 @@ def test_degraded_and_gnss_free_stretches_are_shaded(
 ) -> None:
     page.goto(f"{live_stack.base_url}/#/vehicle/{VEHICLE}/history")
     assert history_loaded(page) == int(END_S * RATE_HZ)
-    page.wait_for_timeout(200)
-    got = page.evaluate(_SHADE_JS, stored / 1e9)
+
+    def drawn() -> dict[str, Any] | None:  # a loaded host draws the chart later
+        got = page.evaluate(_SHADE_JS, stored / 1e9)
+        return got if len(got["spans"]) >= 2 and got["spans"][0]["rgb"][3] > 0 else None
+
+    got = poll_until(drawn, "shaded chart", timeout_s=60.0, poll_s=0.2)
     spans = got["spans"]
     assert [s["kind"] for s in spans] == ["degraded", "no_reference"], spans
     for s, (a, b) in zip(spans, (DEGRADED_S, NO_GNSS_S), strict=True):
