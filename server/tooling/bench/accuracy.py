@@ -67,8 +67,8 @@ p95, wheel-speed max error and coverage, the random floors (product: slip RMS �
 ≤ 2 pp on ≥ 95 % of the drives, RMS never above 2 pp, wheel-speed max error ≤ 3 % and coverage
 ≥ 98 % on every drive) and the worst drives with their knobs. Seeds 1 and 2 are for
 development; 1001 and 1002 are kept for judging and never tuned on. ``--start-calibration
-stored`` (default) starts each vehicle from what earlier drives and a calibration drive leave
-(:data:`CALIBRATION_START`), ``none`` from the configured values (a vehicle's first drive).
+calibration-drive`` (default) starts each vehicle from the rolling radii an earlier calibration
+drive left, ``none`` from the configured radii (:data:`CALIBRATION_START`).
 
 Calibration
 -----------
@@ -654,51 +654,33 @@ _RANDOM_METRICS = ("slip_rms_pp", "slip_p95_pp", "vw_max_pct", "coverage_pct")
 _QUANTILES = (("median", 50.0), ("p90", 90.0), ("p95", 95.0))
 
 
-CALIBRATION_START = ("stored", "none")
-"""What a random drive's vehicle has learnt before it (``--start-calibration``): ``stored``
-starts it from a stored calibration as earlier drives and one calibration drive leave it (every
-value at the drive's truth plus ``N(0, σ)``, σ the config's converged threshold), the state of a
-fleet vehicle after its first hours; ``none`` starts it from the configured values, a vehicle's
-first drive: radii up to 3 % off, clocks up to ±100 ms, the IMU turned up to 3°. A driven
-wheel's radius error is not observable from the drive (``r·W/V − 1 = κ + s``, ``s`` never 0
-while pulling), so without a calibration drive it stays in the slip error."""
+CALIBRATION_START = ("calibration-drive", "none")
+"""What a random drive's vehicle knows of its rolling radii at the start
+(``--start-calibration``): ``calibration-drive`` starts it from the radii an earlier calibration
+drive left (each wheel's true radius times ``1 + N(0, σ)``, σ the config's converged threshold),
+``none`` from the configured radii, up to 3 % off. A driven wheel's radius is not observable
+from the drive itself (``r·W/V − 1 = κ + s``, the slip ``s`` never 0 while pulling), so without
+a calibration drive its error stays in the slip error. Everything else the calibration learns
+(clock offsets, IMU mounting) is learnt online from the drive in both."""
 
 
-def _stored_calibration(
+def _radii_from_a_calibration_drive(
     drive: DrawnDrive, config: WheeledRearDriveConfig
 ) -> Callable[[FleetEstimator, str], None]:
-    """Restore, into an estimator that keeps calibrations, what earlier drives left: each value
-    the drive's truth plus ``N(0, σ)`` with std σ, the config's converged threshold."""
-    knobs = drive.overrides
-    c = config.calibration
-    gnss_ms, imu_ms, wheel_ms = knobs.get("clock_offset_ms", (0.0, 0.0, 0.0))
-    yaw_deg, pitch_deg = knobs.get("imu_misalign_deg", (0.0, 0.0))
-    radius = [1.0 + e for e in knobs.get("wheel_radius_error_rel", (0.0, 0.0))]
-    clock_s = c.clock_offset_converged_ms / 1e3
-    radius_rel = c.radius_converged_pct / 100.0
-    truths = (  # (value field, std field, truth, sigma)
-        ("gnss_clock_offset_s", "gnss_clock_offset_std_s", (gnss_ms - imu_ms) / 1e3, clock_s),
-        ("wheel_clock_offset_s", "wheel_clock_offset_std_s", (wheel_ms - imu_ms) / 1e3, clock_s),
-        ("radius_scale_left", "radius_scale_left_std", radius[0], radius_rel * radius[0]),
-        ("radius_scale_right", "radius_scale_right_std", radius[1], radius_rel * radius[1]),
-        (
-            "imu_pitch_rad",
-            "imu_pitch_std_rad",
-            math.radians(pitch_deg),
-            math.radians(c.imu_pitch_converged_deg),
-        ),
-        (
-            "imu_yaw_rad",
-            "imu_yaw_std_rad",
-            math.radians(yaw_deg),
-            math.radians(c.imu_yaw_converged_deg),
-        ),
-    )
+    """Restore, into an estimator that keeps calibrations, the radii a calibration drive left:
+    the drive's true scale ``1 + error`` times ``1 + N(0, σ)``, std σ (the converged threshold)."""
     rng = np.random.default_rng([drive.sim_seed, 7])
-    values: dict[str, float] = {}
-    for name, std_name, truth, sigma in truths:
-        values[name] = truth + float(rng.normal(0.0, sigma))
-        values[std_name] = sigma
+    sigma = config.calibration.radius_converged_pct / 100.0
+    left, right = (
+        (1.0 + e) * (1.0 + float(rng.normal(0.0, sigma)))
+        for e in drive.overrides.get("wheel_radius_error_rel", (0.0, 0.0))
+    )
+    values = {
+        "radius_scale_left": left,
+        "radius_scale_left_std": sigma * left,
+        "radius_scale_right": right,
+        "radius_scale_right_std": sigma * right,
+    }
 
     def prepare(estimator: FleetEstimator, vehicle_id: str) -> None:
         given = getattr(estimator, "calibration", None)
@@ -710,7 +692,9 @@ def _stored_calibration(
 
 
 def _random_drive_rows(
-    drive: DrawnDrive, factories: Mapping[str, EstimatorFactory], start: str = "stored"
+    drive: DrawnDrive,
+    factories: Mapping[str, EstimatorFactory],
+    start: str = "calibration-drive",
 ) -> list[dict[str, Any]]:
     """One drawn drive through every method, its vehicle's calibration at the start as ``start``
     says (:data:`CALIBRATION_START`): a result row per method (metrics, ``seconds``,
@@ -727,7 +711,9 @@ def _random_drive_rows(
     for method, factory in factories.items():
         row: dict[str, Any] = {"drive": drive.index, "method": method}
         t0 = time.perf_counter()
-        prepare = _stored_calibration(drive, config) if start == "stored" else None
+        prepare = (
+            _radii_from_a_calibration_drive(drive, config) if start == "calibration-drive" else None
+        )
         try:
             rows = run_estimator(factory(), sim, config, prepare=prepare)
         except Exception as exc:  # a crashing method is reported in its row, not hidden
@@ -797,7 +783,7 @@ def run_random(
     quiet: bool = False,
     out: TextIO | None = None,
     worst: int = 5,
-    start_calibration: str = "stored",
+    start_calibration: str = "calibration-drive",
 ) -> dict[str, Any]:
     """Run ``n`` random drives of the draw ``seed`` (module docstring) through every method,
     each vehicle's calibration at the start as ``start_calibration`` says
@@ -871,7 +857,7 @@ def print_random_table(result: Mapping[str, Any], file: TextIO | None = None) ->
     status = "PASS" if result["all_pass"] else "FAIL: " + "; ".join(result["floors_failed"])
     print(
         f"{result['n']} random drives, seed {result['seed']}, calibration at the start: "
-        f"{result.get('start_calibration', 'stored')}; rows with true V0 > "
+        f"{result.get('start_calibration', 'calibration-drive')}; rows with true V0 > "
         f"{result['moving_mps']} m/s; random floors (product): {status}",
         file=f,
     )
@@ -1180,9 +1166,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument(
         "--start-calibration",
         choices=CALIBRATION_START,
-        default="stored",
-        help="--random: start each vehicle from the calibration earlier drives and a "
-        "calibration drive leave (default) or from the configured values (a first drive)",
+        default="calibration-drive",
+        help="--random: start each vehicle from the radii an earlier calibration drive left "
+        "(default) or from the configured radii, up to 3 %% off",
     )
     p.add_argument("--json", type=Path, default=None, help="write the result here")
     args = p.parse_args(argv)

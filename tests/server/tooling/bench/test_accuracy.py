@@ -429,41 +429,33 @@ def test_main_runs_random_drives(monkeypatch: pytest.MonkeyPatch) -> None:
 
     monkeypatch.setattr(accuracy, "run_random", fake)
     assert accuracy.main(["--random", "12", "--seed", "1001"]) == 0
-    assert seen == {"n": 12, "seed": 1001, "start": "stored"}
+    assert seen == {"n": 12, "seed": 1001, "start": "calibration-drive"}
     assert accuracy.main(["--random", "2", "--seed", "1", "--start-calibration", "none"]) == 0
     assert seen == {"n": 2, "seed": 1, "start": "none"}
     with pytest.raises(SystemExit):
         accuracy.main(["--random", "3", "--variants"])
 
 
-def test_a_stored_start_gives_mdsf_each_calibration_at_the_drives_truth_within_its_std() -> None:
-    """``--start-calibration stored``: the vehicle starts from what earlier drives left (each
-    value at the drive's truth within the converged std); ``none`` leaves the priors."""
+def test_a_calibration_drive_start_gives_mdsf_each_wheels_true_radius_within_its_std() -> None:
+    """``--start-calibration calibration-drive``: the vehicle starts from the radii a calibration
+    drive left (the drive's truth within the converged std); the rest stays at its priors."""
     from estimator.mdsf import MdsfFleet
 
     drive = draw_drives(1, 3)[0]
     config = drive.config()
-    knobs = drive.overrides
     fleet = MdsfFleet()
     fleet.add_vehicle("v", config)
     prior = fleet.calibration("v")
-    accuracy._stored_calibration(drive, config)(fleet, "v")
+    accuracy._radii_from_a_calibration_drive(drive, config)(fleet, "v")
     got = fleet.calibration("v")
-    c = config.calibration
-    gnss_ms, imu_ms, wheel_ms = knobs["clock_offset_ms"]
-    yaw_deg, pitch_deg = knobs["imu_misalign_deg"]
-    left, right = (1.0 + e for e in knobs["wheel_radius_error_rel"])
-    for value, truth, std in (
-        (got.gnss_clock_offset_s, (gnss_ms - imu_ms) / 1e3, got.gnss_clock_offset_std_s),
-        (got.wheel_clock_offset_s, (wheel_ms - imu_ms) / 1e3, got.wheel_clock_offset_std_s),
-        (got.radius_scale_left, left, got.radius_scale_left_std),
-        (got.radius_scale_right, right, got.radius_scale_right_std),
-        (got.imu_pitch_rad, math.radians(pitch_deg), got.imu_pitch_std_rad),
-        (got.imu_yaw_rad, math.radians(yaw_deg), got.imu_yaw_std_rad),
-    ):
-        assert abs(value - truth) <= 4.0 * std
-    assert got.radius_scale_left_std == pytest.approx(c.radius_converged_pct / 100 * left)
-    assert got.gnss_clock_offset_std_s == pytest.approx(c.clock_offset_converged_ms / 1e3)
+    sigma = config.calibration.radius_converged_pct / 100
+    left, right = (1.0 + e for e in drive.overrides["wheel_radius_error_rel"])
+    assert max(abs(left - 1.0), abs(right - 1.0)) > 4 * sigma  # the draw's radii are off
+    assert abs(got.radius_scale_left - left) <= 4 * sigma * left
+    assert abs(got.radius_scale_right - right) <= 4 * sigma * right
+    assert got.radius_scale_left_std == pytest.approx(sigma, rel=0.05)
     assert prior.radius_scale_left == 1.0 and prior.radius_scale_left_std > 0.01
+    assert got.gnss_clock_offset_std_s == prior.gnss_clock_offset_std_s  # learnt online
+    assert got.imu_pitch_std_rad == prior.imu_pitch_std_rad
     with pytest.raises(ValueError, match="start_calibration"):
-        run_random(1, 3, start_calibration="earlier")
+        run_random(1, 3, start_calibration="stored")
