@@ -287,6 +287,7 @@ class MdsfEngine:
         grow("tyre_stats", (len(_TyreStat),), 0.0)
         grow("rim_innov", (2, 2), 0.0)
         grow("slip_anchor", (2,), 0.0)
+        grow("anchor_stats", (3,), 0.0)
         grow("dist_gated", (), False)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
@@ -312,6 +313,7 @@ class MdsfEngine:
     tyre_stats: FloatArray
     rim_innov: FloatArray
     slip_anchor: FloatArray
+    anchor_stats: FloatArray
     dist_gated: BoolArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
@@ -339,6 +341,7 @@ class MdsfEngine:
         self.tyre_stats[s] = 0.0
         self.rim_innov[s] = 0.0
         self.slip_anchor[s] = 0.0
+        self.anchor_stats[s] = 0.0
         self.dist_gated[s] = False
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
@@ -963,14 +966,19 @@ class MdsfEngine:
         self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
 
     def _set_slip_anchor(self, slots: IntArray, x: FloatArray, fused: BoolArray) -> None:
-        """Where GNSS speed was fused while moving (``|V1|`` over 0.5 m/s: at a standstill the
-        ratio means nothing), the rim excesses' slip ratios at zero demand, ``ε_0 = e/|V1| −
-        k·f/g`` (k, 2), about which an outage's slip reverts (:meth:`_anchor_slip`)."""
-        speed = np.abs(x[:, MdsfState.V1])
-        ratio = x[:, _RIM_EXCESS] / np.maximum(speed, _SLIP_MIN_SPEED_MPS)[:, None]
-        ratio = ratio - self._demand_slip(slots)[:, None]
-        moving = (fused & (speed > _SLIP_MIN_SPEED_MPS))[:, None]
-        self.slip_anchor[slots] = np.where(moving, ratio, self.slip_anchor[slots])
+        """Where GNSS speed was fused, the least-squares slip ratio at zero demand of
+        ``e − k·(f/g)·V1 = ε_0·V1`` over the recent drive (forgetting with
+        ``outage_anchor_tau_s``), (k, 2): weighted by ``V1²``, so creeping and standing add
+        little. An outage's slip reverts to it (:meth:`_anchor_slip`)."""
+        lam = math.exp(-self.dt_s / self.config.outage_anchor_tau_s)
+        v1 = x[:, MdsfState.V1]
+        e0 = x[:, _RIM_EXCESS] - (self._demand_slip(slots) * v1)[:, None]
+        stats = self.anchor_stats[slots]
+        fresh = np.concatenate([e0 * v1[:, None], (v1 * v1)[:, None]], axis=1)
+        stats = np.where(fused[:, None], lam * stats + (1.0 - lam) * fresh, stats)
+        self.anchor_stats[slots] = stats
+        vv = stats[:, 2:]
+        self.slip_anchor[slots] = np.where(vv > 1e-6, stats[:, :2] / np.maximum(vv, 1e-6), 0.0)
 
     def _demand_slip(self, slots: IntArray) -> FloatArray:
         """The tyre model's slip ratio at the low-passed demand, ``k·f/g`` (k,); 0 without the

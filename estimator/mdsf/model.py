@@ -253,6 +253,9 @@ class MdsfConfig:
         Product mode, GNSS lost: time constant with which each rim excess reverts to its
         last GNSS-anchored slip ratio times the speed, ``e' = φ·e + (1 − φ)·ε_a·V1``,
         ``φ = exp(−dt/τ)``, with the stationary std ``outage_slip_std·|V1|`` [s].
+    outage_anchor_tau_s : float
+        Memory of the slip an outage reverts to: a least-squares slip ratio over the drive
+        with GNSS, forgotten with this time constant [s].
     outage_bias_walk_mps2_per_sqrt_s : float
         Product mode, GNSS lost: extra random walk of the accelerometer-bias state, which then
         also carries the gravity leaking through the drifting pitch error; the rims, their
@@ -370,6 +373,7 @@ class MdsfConfig:
     outage_demand_share: float = 0.03
     outage_slip_std: float = 0.04
     outage_slip_tau_s: float = 1.0
+    outage_anchor_tau_s: float = 5.0
     outage_bias_walk_mps2_per_sqrt_s: float = 0.02
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3

@@ -833,6 +833,34 @@ def test_outage_slip_reverts_to_its_anchor_with_bounded_variance() -> None:
     assert Q[0, el, el] / (1 - phi * phi) == pytest.approx(var_max)
 
 
+def test_slip_anchor_is_the_speed_weighted_slip_ratio() -> None:
+    # e = ε·V1 fused at 2 m/s, then at 4 m/s with another slip: the anchor is the V1²-weighted
+    # least-squares ratio; ticks without GNSS and fused standstill ticks leave it unchanged.
+    cfg = MdsfConfig(slip_per_demand=0.0)
+    eng = MdsfEngine(cfg)
+    slots = np.array([eng.add(WheeledRearDriveConfig())])
+    x = np.zeros((1, eng.n))
+
+    def feed(v1: float, ratios: tuple[float, float], fused: bool, ticks: int) -> None:
+        x[0, MdsfState.V1] = v1
+        x[0, [MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT]] = np.multiply(ratios, v1)
+        for _ in range(ticks):
+            eng._set_slip_anchor(slots, x, np.array([fused]))
+
+    feed(2.0, (0.05, 0.08), True, 30)
+    assert np.allclose(eng.slip_anchor[slots], [[0.05, 0.08]])
+    feed(3.0, (0.5, 0.5), False, 30)
+    feed(0.0, (0.0, 0.0), True, 30)
+    assert np.allclose(eng.slip_anchor[slots], [[0.05, 0.08]])
+    eng.anchor_stats[slots] = 0.0
+    lam = math.exp(-cfg.dt_s / cfg.outage_anchor_tau_s)
+    feed(2.0, (0.05, 0.05), True, 1)
+    feed(4.0, (0.10, 0.10), True, 1)
+    w_old, w_new = lam * 4.0, 16.0
+    expect = (w_old * 0.05 + w_new * 0.10) / (w_old + w_new)
+    assert eng.slip_anchor[slots][0, 0] == pytest.approx(expect)
+
+
 def test_outage_bound_keeps_the_covariance_and_caps_the_slip_std() -> None:
     # P ← D·P·D: the rim excess's variance brought to (outage_slip_std·|r·W|)², correlations
     # kept, P stays symmetric positive definite; rows with GNSS untouched.
