@@ -373,7 +373,7 @@ class MdsfConfig:
     outage_demand_share: float = 0.03
     outage_slip_std: float = 0.04
     outage_slip_tau_s: float = 1.0
-    outage_anchor_tau_s: float = 5.0
+    outage_anchor_tau_s: float = 20.0
     outage_bias_walk_mps2_per_sqrt_s: float = 0.02
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
