@@ -286,6 +286,8 @@ class MdsfEngine:
         grow("force_model", (), np.nan)
         grow("tyre_stats", (len(_TyreStat),), 0.0)
         grow("rim_innov", (2, 2), 0.0)
+        grow("slip_anchor", (2,), 0.0)
+        grow("anchor_stats", (3,), 0.0)
         grow("dist_gated", (), False)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
@@ -310,6 +312,8 @@ class MdsfEngine:
     force_model: FloatArray
     tyre_stats: FloatArray
     rim_innov: FloatArray
+    slip_anchor: FloatArray
+    anchor_stats: FloatArray
     dist_gated: BoolArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
@@ -336,6 +340,8 @@ class MdsfEngine:
         self.force_model[s] = np.nan
         self.tyre_stats[s] = 0.0
         self.rim_innov[s] = 0.0
+        self.slip_anchor[s] = 0.0
+        self.anchor_stats[s] = 0.0
         self.dist_gated[s] = False
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
@@ -432,6 +438,8 @@ class MdsfEngine:
         degraded = now_init & ((t.stamp_ns - last_fused) > round(self.config.gnss_timeout_s * 1e9))
         v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
         self._store(slots, x, P, up, now_init, last_fused, ref)
+        if self.product:
+            self._set_slip_anchor(slots, up.x, fused)
         k = slots.shape[0]
         events = [np.ones(k, dtype=bool), fused, up.gated, up.reacq, st.diverged | up.reacq]
         self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
@@ -601,7 +609,7 @@ class MdsfEngine:
         dt = self.dt_s
         speed = np.abs(x[:, MdsfState.V1])
         d2 = self._demand_change(slots, t, accel_var)
-        lost = init & ((t.stamp_ns - self.last_fused_ns[slots]) * _NS > cfg.gnss_timeout_s)
+        lost = self._gnss_lost(slots, t, init)
         d2 = d2 * np.where(lost, cfg.outage_demand_share, 1.0)
         q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
             cfg.slip_demand_gain * speed / GRAVITY_MPS2
@@ -620,6 +628,33 @@ class MdsfEngine:
             d_dem = self._model_demand_change(slots, t)
             gain = self.tyre_gain(slots)
             u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
+        if cfg.outage_slip_std > 0 and lost.any():
+            self._anchor_slip(slots, lost, speed, F, Q)
+
+    def _anchor_slip(
+        self, slots: IntArray, lost: BoolArray, speed: FloatArray, F: FloatArray, Q: FloatArray
+    ) -> None:
+        """Product mode, GNSS lost: each rim excess as a mean-reverting process about its last
+        GNSS-anchored slip ratio (``F``, ``Q`` (k, n, n) in place).
+
+        ``e' = φ·g·e + (1 − φ)·ε_a·V1``: ``ε_a = ε_0 + k·f/g`` the anchored slip at zero
+        demand (:meth:`_set_slip_anchor`) plus the tyre model's slip at this tick's demand,
+        ``φ = exp(−dt/outage_slip_tau_s)``, ``g`` the constant-slip growth; the added variance
+        ``(1 − φ²)·(outage_slip_std·|V1|)²`` has the tyre's slip range as its stationary
+        value. The bias state walks faster (``outage_bias_walk_mps2_per_sqrt_s``: it also
+        carries the pitch error's gravity leak). The inertial speed's error grows without
+        bound in an outage, the slip's does not: the rims then hold the speed.
+        """
+        cfg = self.config
+        phi = math.exp(-self.dt_s / cfg.outage_slip_tau_s)
+        keep = np.where(lost, phi, 1.0)[:, None]
+        F[:, _RIM_EXCESS, _RIM_EXCESS] *= keep
+        target = self.slip_anchor[slots] + self._demand_slip(slots)[:, None]
+        F[:, _RIM_EXCESS, MdsfState.V1] += (1.0 - keep) * target
+        var_max = (cfg.outage_slip_std * np.maximum(speed, _SLIP_MIN_SPEED_MPS)) ** 2
+        Q[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(lost, (1.0 - phi * phi) * var_max, 0.0)[:, None]
+        q_b = cfg.outage_bias_walk_mps2_per_sqrt_s**2 * self.dt_s
+        Q[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += np.where(lost, q_b, 0.0)
 
     def _update(
         self,
@@ -653,6 +688,7 @@ class MdsfEngine:
         if self.product:
             gated, reacq = self._gate_gnss(slots, t, init, y, s, P_1)
             inflated = reacq | self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
+            self._bound_rim_excess(self._gnss_lost(slots, t, init), rim_mps, rim_ok, P_1)
         use_vg = t.gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
@@ -721,6 +757,33 @@ class MdsfEngine:
         big = rim_ok & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
         P_1[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(big, y_rim * y_rim - s_rim, 0.0)
         return np.asarray(big.any(axis=1))
+
+    def _gnss_lost(self, slots: IntArray, t: TickInputs, init: BoolArray) -> BoolArray:
+        """Rows whose last fused GNSS speed is older than ``gnss_timeout_s``, (k,)."""
+        since_s = (t.stamp_ns - self.last_fused_ns[slots]) * _NS
+        return init & (since_s > self.config.gnss_timeout_s)
+
+    def _bound_rim_excess(
+        self, lost: BoolArray, rim_mps: FloatArray, rim_ok: BoolArray, P_1: FloatArray
+    ) -> None:
+        """Product mode, GNSS lost: each rim excess's std held within the slip range
+        ``σ_max = outage_slip_std·|r·W|`` (``P_1`` (k, n, n) in place).
+
+        ``P ← D·P·D`` with ``D = diag(1, …, c_e, …)``, ``c_e = min(1, σ_max/σ_e)``: the
+        variance of ``e`` is brought to the bound and its covariances scaled with it, so ``P``
+        stays positive semi-definite and the correlations are kept. A slip's error is bounded
+        by its tyre's range while the inertial speed's grows without bound, so a lasting rim
+        disagreement then moves ``V1`` (and the bias), not the slip.
+        """
+        share = self.config.outage_slip_std
+        rows = lost[:, None] & rim_ok
+        if share <= 0 or not rows.any():
+            return
+        var_max = (share * np.where(rim_ok, rim_mps, 0.0)) ** 2 + 1e-6
+        var_e = P_1[:, _RIM_EXCESS, _RIM_EXCESS]
+        c = np.where(rows & (var_e > var_max), np.sqrt(var_max / np.maximum(var_e, 1e-30)), 1.0)
+        P_1[:, _RIM_EXCESS, :] *= c[:, :, None]
+        P_1[:, :, _RIM_EXCESS] *= c[:, None, :]
 
     def _gate_distance(
         self, slots: IntArray, t: TickInputs, init: BoolArray, y: FloatArray, s: FloatArray
@@ -901,6 +964,29 @@ class MdsfEngine:
         self.initialized[slots] = now_init
         self.last_fused_ns[slots] = last_fused_ns
         self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
+
+    def _set_slip_anchor(self, slots: IntArray, x: FloatArray, fused: BoolArray) -> None:
+        """Where GNSS speed was fused, the least-squares slip ratio at zero demand of
+        ``e − k·(f/g)·V1 = ε_0·V1`` over the recent drive (forgetting with
+        ``outage_anchor_tau_s``), (k, 2): weighted by ``V1²``, so creeping and standing add
+        little. An outage's slip reverts to it (:meth:`_anchor_slip`)."""
+        lam = math.exp(-self.dt_s / self.config.outage_anchor_tau_s)
+        v1 = x[:, MdsfState.V1]
+        e0 = x[:, _RIM_EXCESS] - (self._demand_slip(slots) * v1)[:, None]
+        stats = self.anchor_stats[slots]
+        fresh = np.concatenate([e0 * v1[:, None], (v1 * v1)[:, None]], axis=1)
+        stats = np.where(fused[:, None], lam * stats + (1.0 - lam) * fresh, stats)
+        self.anchor_stats[slots] = stats
+        vv = stats[:, 2:]
+        self.slip_anchor[slots] = np.where(vv > 1e-6, stats[:, :2] / np.maximum(vv, 1e-6), 0.0)
+
+    def _demand_slip(self, slots: IntArray) -> FloatArray:
+        """The tyre model's slip ratio at the low-passed demand, ``k·f/g`` (k,); 0 without the
+        model (``slip_per_demand = 0``) or before any force."""
+        if self.config.slip_per_demand <= 0:
+            return np.zeros(slots.shape[0])
+        f = nan_to_num(self.force_model[slots])
+        return np.asarray(self.tyre_gain(slots) * f / GRAVITY_MPS2)
 
     def _outputs(
         self,

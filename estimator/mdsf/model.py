@@ -243,6 +243,23 @@ class MdsfConfig:
         own error uncorrected over a long outage. The default (0.03, about a sixth in std)
         lets the tyre model carry nearly all of the slip's response to demand; the jump and
         drift tests still open the rim excess (``docs/perf/estimator.md``) [-].
+    outage_slip_std : float
+        Product mode, GNSS lost: bound on each rim excess's prior std as a share of its rim
+        speed, ``σ_e ≤ outage_slip_std·|r·W|`` (the tyre model's slip range about the last
+        anchored slip). The inertial speed's error grows without bound through an outage
+        while a pulling tyre's slip stays within a few pp, so a rim disagreement beyond this
+        moves the speed and the accelerometer bias, not the slip; 0 turns it off [-].
+    outage_slip_tau_s : float
+        Product mode, GNSS lost: time constant with which each rim excess reverts to its
+        last GNSS-anchored slip ratio times the speed, ``e' = φ·e + (1 − φ)·ε_a·V1``,
+        ``φ = exp(−dt/τ)``, with the stationary std ``outage_slip_std·|V1|`` [s].
+    outage_anchor_tau_s : float
+        Memory of the slip an outage reverts to: a least-squares slip ratio over the drive
+        with GNSS, forgotten with this time constant [s].
+    outage_bias_walk_mps2_per_sqrt_s : float
+        Product mode, GNSS lost: extra random walk of the accelerometer-bias state, which then
+        also carries the gravity leaking through the drifting pitch error; the rims, their
+        slip held by ``outage_slip_std``, observe it [m/s²/√s].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -354,6 +371,10 @@ class MdsfConfig:
     rim_drift_sigma: float = 2.0
     outage_rim_drift_share: float = 0.3
     outage_demand_share: float = 0.03
+    outage_slip_std: float = 0.04
+    outage_slip_tau_s: float = 1.0
+    outage_anchor_tau_s: float = 20.0
+    outage_bias_walk_mps2_per_sqrt_s: float = 0.02
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
     rim_texture_rel: float = 0.003
@@ -401,6 +422,7 @@ class MdsfConfig:
                 "rim_drift_tau_s",
                 "outage_rim_drift_share",
                 "outage_demand_share",
+                "outage_slip_std",
                 "gnss_distance_gap_s",
                 "standstill_speed_mps",
             ):
@@ -415,6 +437,7 @@ class MdsfConfig:
             "slip_per_demand",
             "tyre_gain_tau_s",
             "rim_drift_tau_s",
+            "outage_slip_std",
             "gnss_distance_gap_s",
             "standstill_speed_mps",
         ):
