@@ -54,7 +54,8 @@ def _slip_errors(notice: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 def test_without_word_of_the_gap_a_fit_reads_it_as_a_slow_wheel() -> None:
     t, err, _, _ = _slip_errors(notice=False)
     near = (t > LOST_FROM_S - 0.5) & (t < LOST_TO_S + 1.0)
-    assert np.nanmax(np.abs(err[near])) > 30.0  # the failure the notice is for
+    # the failure the notice is for: twice the worst error with it (8 pp) and more
+    assert np.nanmax(np.abs(err[near])) > 12.0
 
 
 def test_a_gap_gives_no_slip_across_it_and_resumes_within_a_few_ticks() -> None:
