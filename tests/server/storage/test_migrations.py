@@ -353,7 +353,7 @@ def test_mdsf_rows_gain_the_calibration_fields_in_migration_15(
         return PostgresStore(s.url.get_secret_value(), specs=specs)
 
     n_old = len(SQLITE_PACKED_FIELDS)
-    old_spec = dc.replace(MDSF_SPEC, fields=MDSF_SPEC.fields[:n_old])
+    old_spec = dc.replace(MDSF_SPEC, fields=MDSF_SPEC.fields[:n_old], calibrations=())
     rows = _uncalibrated(make_rows(30, seed=4))
     old = store_of([old_spec])
     with monkeypatch.context() as m:
