@@ -9,9 +9,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
+import numpy as np
+
+from estimator.base import Measurement
+from estimator.sim import SimRun, replay_arrivals
 from server.tooling.ports import free_port
 
-__all__ = ["VEHICLE_CLIENT", "free_port", "poll_until", "run_vehicle_client"]
+__all__ = ["VEHICLE_CLIENT", "free_port", "poll_until", "replay_drive", "run_vehicle_client"]
 
 _T = TypeVar("_T")
 
@@ -52,3 +56,25 @@ def poll_until(
         assert time.monotonic() < deadline, f"no {what} in {timeout_s:.0f} s"
         time.sleep(poll_s)
     return value
+
+
+def replay_drive(
+    sim: SimRun,
+    push: Callable[[Measurement], None],
+    advance: Callable[[int], list[np.ndarray]],
+) -> np.ndarray:
+    """Play a simulated drive into one vehicle as the server's pipeline would (150 ms reorder
+    window, advanced every 100 ms): ``push(m)`` takes a measurement, ``advance(until_ns)``
+    returns that vehicle's new rows. All rows, concatenated in order."""
+    parts: list[np.ndarray] = []
+    for chunk, until in replay_arrivals(
+        sim.measurements,
+        sim.arrival_ns,
+        lateness_ns=150_000_000,
+        step_ns=100_000_000,
+        end_ns=sim.end_ns,
+    ):
+        for m in chunk:
+            push(m)
+        parts += advance(until)
+    return np.concatenate(parts)

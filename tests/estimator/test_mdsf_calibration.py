@@ -20,8 +20,9 @@ from estimator.config import (
 from estimator.mdsf import MdsfFleet
 from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
-from estimator.sim import replay_arrivals, simulate, truth_at
+from estimator.sim import simulate, truth_at
 from estimator.types import EstimateFlag
+from tests.support import replay_drive
 
 _DT = 0.1
 _SLOT = np.array([0])
@@ -244,18 +245,12 @@ def _drive(
     config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
     fleet = MdsfFleet()
     fleet.add_vehicle("v", config)
-    parts = []
-    for chunk, until in replay_arrivals(
-        sim.measurements,
-        sim.arrival_ns,
-        lateness_ns=150_000_000,
-        step_ns=100_000_000,
-        end_ns=sim.end_ns,
-    ):
-        for m in chunk:
-            fleet.push("v", m)
-        parts += [rows for _, rows in fleet.advance({"v": until})]
-    return np.concatenate(parts), fleet, sim
+    rows = replay_drive(
+        sim,
+        lambda m: fleet.push("v", m),
+        lambda until: [rows for _, rows in fleet.advance({"v": until})],
+    )
+    return rows, fleet, sim
 
 
 def _late_slip_bias_pp(rows: np.ndarray, sim: object) -> float:

@@ -12,8 +12,9 @@ import pytest
 from estimator.config import VehicleGeometry, WheeledRearDriveConfig
 from estimator.mdsf import MdsfFleet
 from estimator.mdsf_spec import MDSF_SPEC
-from estimator.sim import replay_arrivals, simulate
+from estimator.sim import simulate
 from server.estimation.registry import RESET_CALIBRATION, Calibrating, EstimatorRegistry
+from tests.support import replay_drive
 
 _START_NS = 1_700_000_000_000_000_000
 _FIELDS = [f for c in MDSF_SPEC.calibrations for f in (c.field, c.std_field)]
@@ -38,18 +39,12 @@ def learnt() -> tuple[EstimatorRegistry, WheeledRearDriveConfig, np.ndarray]:
     config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
     registry = EstimatorRegistry()
     registry.add_vehicle("v", config)
-    parts = []
-    for chunk, until in replay_arrivals(
-        sim.measurements,
-        sim.arrival_ns,
-        lateness_ns=150_000_000,
-        step_ns=100_000_000,
-        end_ns=sim.end_ns,
-    ):
-        for m in chunk:
-            registry.push("v", m)
-        parts += [b.rows for b in registry.advance({"v": until})]
-    return registry, config, np.concatenate(parts)
+    rows = replay_drive(
+        sim,
+        lambda m: registry.push("v", m),
+        lambda until: [b.rows for b in registry.advance({"v": until})],
+    )
+    return registry, config, rows
 
 
 def _fields(registry: EstimatorRegistry) -> dict[str, float]:
