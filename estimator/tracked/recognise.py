@@ -30,6 +30,7 @@ __all__ = [
     "fallback_states",
     "paper_states",
     "product_states",
+    "ratio_noise",
     "turn_radius_m",
 ]
 
@@ -106,6 +107,29 @@ def _lever_target(
     return np.where(moving, target, now), moving
 
 
+def ratio_noise(
+    sprocket_mps: FloatArray, accel_mps2: FloatArray, p: VehicleParams, cfg: TrackedEstimatorConfig
+) -> FloatArray:
+    """1-sigma ``(k,)`` of the slow-over-fast sprocket ratio ``q`` read through the windows.
+
+    Per sprocket, a relative error of: the teeth's position error ``e``
+    (``sprocket_tooth_std_pitch``, a share of the pitch) over a window of ``n`` periods,
+    ``√2·e/n`` (first and last edge each off by ``e``; ``n`` the fewest periods a window
+    ``W`` holds at speed ``v``, ``clip(⌊v·W/pitch⌋ − 1, 1, max_edges − 1)``, two held edges
+    at least); and the speed's change over one period ``|a|·pitch/v²`` (the sprockets' edges
+    fall at different phases, so while the gearbox speeds up or slows down the two windows
+    read it up to a period apart). ``q``'s relative error adds both sprockets'; ``accel_mps2``
+    ``(k,)``, ``sprocket_mps`` ``(k, 2)``.
+    """
+    pitch = p.sprocket_pitch_m[:, None]
+    v = np.maximum(sprocket_mps, cfg.start_odometer_mps)
+    periods = np.floor(v * cfg.sprocket_window_s / pitch) - 1.0
+    periods = np.clip(periods, 1.0, cfg.sprocket_max_edges - 1.0)
+    teeth = np.sqrt(2.0) * cfg.sprocket_tooth_std_pitch / periods
+    change = np.abs(np.nan_to_num(accel_mps2))[:, None] * pitch / v**2
+    return np.sqrt((teeth**2 + change**2).sum(axis=1))
+
+
 def product_states(
     sprocket_mps: FloatArray,
     gear_ratio: FloatArray,
@@ -115,6 +139,7 @@ def product_states(
     yaw_lead_radps: FloatArray,
     odometer_mps: FloatArray,
     before: tuple[FloatArray, FloatArray] | None = None,
+    accel_mps2: FloatArray | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """State and confidence per vehicle from the sprocket speeds ``(k, 2)``, the faster
     sprocket over the odometer (``gear_ratio``, same span), the tick's heading change, the
@@ -125,7 +150,9 @@ def product_states(
     straight as soon as it turns, before the sprockets have two edges) and ``before``, the
     sprocket speeds and gear ratio of the tick before: while a lever moves, the ratios are
     read where it takes them (:func:`_lever_target`), so the state changes with the lever,
-    not when the windows have crossed a threshold."""
+    not when the windows have crossed a threshold. ``accel_mps2`` (the hull's, 0 if None)
+    enters the ratio's window noise (:func:`ratio_noise`), which decides where the
+    separated band needs its turn's yaw rate."""
     read, q, gear = _ratios(sprocket_mps, gear_ratio, p)
     lever = np.zeros(q.shape, dtype=bool)
     if before is not None:
@@ -143,9 +170,12 @@ def product_states(
     table = np.array([M.PIVOT, M.ARC, M.SEPARATED, M.STRAIGHT], dtype=np.int64)
     out = table[band]
     out[(band == 3) & (gear < low_cut)] = int(M.LOW_STRAIGHT)
-    # a separated turn turns: at least a share of the kinematic ω = Vs_fast·(1 − q)/B
+    # a separated ratio within the windows' noise of 1 must show its turn: at least a share
+    # of the kinematic ω = Vs_fast·(1 − q)/B; farther from 1 the ratio alone is the lever
     kinematic = fast * (1.0 - q) / p.gauge_m
-    weak = (band == 2) & ~lever & (yaw_lead_radps < cfg.separated_yaw_share * kinematic)
+    accel = np.zeros(q.shape) if accel_mps2 is None else accel_mps2
+    doubtful = (1.0 - q) < cfg.separated_check_sigmas * ratio_noise(sprocket_mps, accel, p, cfg)
+    weak = (band == 2) & ~lever & doubtful & (yaw_lead_radps < cfg.separated_yaw_share * kinematic)
     out[weak] = np.where(gear[weak] < low_cut[weak], int(M.LOW_STRAIGHT), int(M.STRAIGHT))
     margin = np.min(np.abs(q[:, None] - cuts[None, :]), axis=1)
     margin = np.where(band == 3, np.minimum(margin, np.abs(gear - low_cut)), margin)

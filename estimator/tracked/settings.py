@@ -22,6 +22,11 @@ class TrackedEstimatorConfig:
     ``q`` is 1 in straights, ``1/1.42`` in arcs, between them in separated turns and 0 with a
     braked track; ``arc_ratio_max`` and ``straight_ratio_min`` cut between them,
     ``ratio_std`` is the 1-sigma of a measured ``q`` that turns a margin into a confidence.
+    A separated-band ``q`` closer to 1 than ``separated_check_sigmas`` times its window noise
+    (:func:`~estimator.tracked.recognise.ratio_noise`, from the teeth's position error
+    ``sprocket_tooth_std_pitch`` of the pitch and the periods a window holds) may be a
+    straight read through few edges: it must show at least ``separated_yaw_share`` of its
+    kinematic yaw rate to be a turn; farther from 1 the ratio alone is the lever.
     ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
     from standstill (a straight). ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to
     lead the yaw rate (``ω + τ·ω̇``, less ``yaw_lead_noise_radps``, about 3 sigma of what the
@@ -62,6 +67,8 @@ class TrackedEstimatorConfig:
     straight_ratio_min: float = 0.985
     ratio_std: float = 0.01
     separated_yaw_share: float = 0.5
+    separated_check_sigmas: float = 3.5
+    sprocket_tooth_std_pitch: float = 0.005
     start_odometer_mps: float = 0.1
     max_yaw_lag_s: float = 1.0
     yaw_lead_noise_radps: float = 0.02

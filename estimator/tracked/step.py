@@ -129,7 +129,15 @@ def recognise(
     lead = np.maximum(np.abs(w), lead)
     before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
     state, conf = product_states(
-        inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, lead, inp.odometer_mps, before
+        inp.sprocket_pair_mps,
+        inp.gear_ratio,
+        step,
+        p,
+        cfg,
+        lead,
+        inp.odometer_mps,
+        before,
+        inp.accel_mps2,
     )
     state = _released(state, inp, p)
     missing = inp.sprocket_missing

@@ -18,7 +18,12 @@ from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.odometer import lateral_speed, odometer_measurement, paper_ratio
 from estimator.tracked.params import VehicleParams
-from estimator.tracked.recognise import fallback_states, paper_states, product_states
+from estimator.tracked.recognise import (
+    fallback_states,
+    paper_states,
+    product_states,
+    ratio_noise,
+)
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.step import _released
 from estimator.tracked.vehicle import TickInputs
@@ -103,16 +108,53 @@ def test_product_confidence_falls_at_a_threshold() -> None:
     assert conf[0] == pytest.approx(0.5)
 
 
-def test_a_separated_ratio_without_its_turn_is_a_straight() -> None:
+def test_ratio_noise_from_the_teeth_and_the_acceleration() -> None:
     cfg = TrackedEstimatorConfig()
-    args = (np.array([[3.0, 2.85]]), np.ones(1), np.zeros(1), P1, cfg)
-    kinematic = 3.0 * (1 - 0.95) / 2.0
-    odo = np.array([3.0])
-    assert product_states(*args, np.array([0.6 * kinematic]), odo)[0][0] == M.SEPARATED
-    assert product_states(*args, np.array([0.4 * kinematic]), odo)[0][0] == M.STRAIGHT
+    pitch = float(P1.sprocket_pitch_m[0])  # 2π·0.35/13 = 0.169 m
+    e = cfg.sprocket_tooth_std_pitch
+    # 1 m/s: a 0.3 s window holds 1.77 pitches, taken as one period; 4 m/s: 7.1, capped at 5
+    slow = ratio_noise(np.array([[1.0, 1.0]]), np.zeros(1), P1, cfg)[0]
+    assert slow == pytest.approx(math.sqrt(2) * math.sqrt(2) * e)
+    fast = ratio_noise(np.array([[4.0, 4.0]]), np.zeros(1), P1, cfg)[0]
+    assert fast == pytest.approx(math.sqrt(2) * math.sqrt(2) * e / 5)
+    # 2 m/s (3.5 pitches: 2 periods) slowing at 1.5 m/s²: the speed moves 1.5·pitch/v² a period
+    braking = ratio_noise(np.array([[2.0, 2.0]]), np.array([-1.5]), P1, cfg)[0]
+    per_side = math.hypot(math.sqrt(2) * e / 2, 1.5 * pitch / 4.0)
+    assert braking == pytest.approx(math.sqrt(2) * per_side)
+
+
+def _separated(pair: list[float], yaw_share: float, gear: float = 1.0, accel: float = 0.0) -> int:
+    cfg = TrackedEstimatorConfig()
+    fast, slow = max(pair), min(pair)
+    kinematic = fast * (1 - slow / fast) / 2.0
+    got, _ = product_states(
+        np.array([pair]),
+        np.array([gear]),
+        np.zeros(1),
+        P1,
+        cfg,
+        np.array([yaw_share * kinematic]),
+        np.array([fast / gear]),
+        None,
+        np.array([accel]),
+    )
+    return int(got[0])
+
+
+def test_a_separated_ratio_within_its_noise_of_one_must_show_its_turn() -> None:
+    # 1 m/s, q = 0.975: 2.5 % below 1 against a 1-sigma of 1 % (one period per window)
+    assert _separated([1.0, 0.975], 0.6) == M.SEPARATED
+    assert _separated([1.0, 0.975], 0.4) == M.STRAIGHT
     # the same ratio in the low gear (fast sprocket at 1/1.42 of the odometer) is a low straight
-    low = (np.array([[3.0, 2.85]]), np.array([1 / 1.42]), np.zeros(1), P1, cfg)
-    assert product_states(*low, np.array([0.4 * kinematic]), odo * 1.42)[0][0] == M.LOW_STRAIGHT
+    assert _separated([1.0, 0.975], 0.4, gear=1 / 1.42) == M.LOW_STRAIGHT
+
+
+def test_a_separated_ratio_well_below_one_is_a_turn_without_its_yaw() -> None:
+    # 3 m/s, q = 0.95: 1-sigma 0.25 % (four periods), 20 sigma below 1: the lever, whatever
+    # the yaw rate (a gentle turn on soft ground loses most of it to turn slip and skid)
+    assert _separated([3.0, 2.85], 0.2) == M.SEPARATED
+    # slowing down hard, the two windows read the gearbox up to a period apart: checked again
+    assert _separated([3.0, 2.85], 0.2, accel=-1.5) == M.STRAIGHT
 
 
 def test_a_start_from_standstill_is_a_straight_before_the_sprockets_read() -> None:
