@@ -40,7 +40,10 @@ class TrackedEstimatorConfig:
     factor is held as an offset from the straight's (same ``K_D``, same ground) that starts
     at ``−initial_pivot_slip`` (the middle of that range), wider
     (``initial_pivot_factor_std``) than the others, the low gear's offset from the straight's
-    narrower (``initial_low_offset_std``); a slip whose 1-sigma
+    narrower (``initial_low_offset_std``). An arc's or separated turn's factor is the
+    straight's less ``c·θ``, ``θ = B/ρ_t`` its tightness from the sprocket ratio and ``c`` the
+    fast track's turn slip per unit tightness, starting at ``initial_turn_slip`` ±
+    ``initial_turn_slip_std`` (0.04-0.2 spans firm to soft ground); a slip whose 1-sigma
     exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
@@ -104,6 +107,8 @@ class TrackedEstimatorConfig:
     initial_pivot_factor_std: float = 0.15
     initial_pivot_slip: float = 0.25
     initial_low_offset_std: float = 0.02
+    initial_turn_slip: float = 0.1
+    initial_turn_slip_std: float = 0.06
     slip_std_max_pct: float = 3.0
     initial_accel_lag_std_s: float = 0.5
     accel_lag_walk_s: float = 1e-3

@@ -16,7 +16,12 @@ from estimator.tracked.edges import OVERDUE, EdgeBuffer, edge_speed, span_speed
 from estimator.tracked.filter import kalman_update, predict
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
-from estimator.tracked.odometer import lateral_speed, odometer_measurement, paper_ratio
+from estimator.tracked.odometer import (
+    lateral_speed,
+    odometer_measurement,
+    paper_ratio,
+    turn_tightness,
+)
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     fallback_states,
@@ -235,9 +240,13 @@ def test_lateral_speed_printed_and_physical() -> None:
 def test_product_odometer_measurement_by_hand() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.SPEED] = 2.0
-    x[0, S.F_ARC] = 0.95
+    x[0, S.F_STRAIGHT] = 0.98
+    x[0, S.TURN_SLIP] = 0.1  # an arc (θ = 2·(1 − 1/1.42)/(1 + 1/1.42) = 0.3471): F = 0.9453
     x[0, S.ACCEL_LAG] = 0.2
     cfg = TrackedEstimatorConfig()
+    theta = turn_tightness(np.array([[3.0 / 1.42, 3.0]]))
+    assert theta[0] == pytest.approx(2 * 0.42 / 2.42)
+    f = 0.98 - 0.1 * theta[0]
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
         P1,
@@ -248,15 +257,42 @@ def test_product_odometer_measurement_by_hand() -> None:
         np.array([1.0]),
         np.array([0.3]),
         np.ones(1, dtype=bool),
+        theta,
     )
     # V − a·lag + τ·a + |ω|·B/2: the fast track's ground speed, a = 1 m/s², τ = 0.2 s
     ground = 2.0 - 1.0 * 0.05 + 0.2 * 1.0 + 0.3 * 1.0
-    assert y[0, 0] == pytest.approx(2.5 - ground / 0.95)
-    assert H[0, 0, S.SPEED] == pytest.approx(1 / 0.95)
-    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(1.0 / 0.95)
-    assert H[0, 0, S.F_ARC] == pytest.approx(-ground / 0.95**2)
+    assert y[0, 0] == pytest.approx(2.5 - ground / f)
+    assert H[0, 0, S.SPEED] == pytest.approx(1 / f)
+    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(1.0 / f)
+    assert H[0, 0, S.F_STRAIGHT] == pytest.approx(-ground / f**2)
+    assert H[0, 0, S.TURN_SLIP] == pytest.approx(ground / f**2 * theta[0])  # ∂h/∂c = h·θ/F
     assert R[0, 0, 0] == pytest.approx((0.02 + 0.01 * 2.5 + 0.3 * 1.0) ** 2)
-    assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3 - 0.2)
+    assert mask[0] and corrected[0] == pytest.approx(2.5 * f - 0.3 - 0.2)
+
+
+def test_a_separated_turn_slips_by_its_tightness_from_the_prior() -> None:
+    from estimator.tracked.step import initial_filter
+
+    cfg = TrackedEstimatorConfig()
+    x = initial_filter(cfg).x.copy()
+    assert x[0, S.TURN_SLIP] == cfg.initial_turn_slip
+    x[0, S.SPEED] = 4.0
+    pair = np.array([[4.0, 3.6]])  # q = 0.9: θ = 0.2/1.9
+    theta = turn_tightness(pair)
+    _, _, _, _, corrected = odometer_measurement(
+        cfg,
+        P1,
+        x,
+        np.array([M.SEPARATED]),
+        np.array([4.0]),
+        np.zeros(1),
+        np.zeros(1),
+        np.zeros(1),
+        np.ones(1, dtype=bool),
+        theta,
+    )
+    assert corrected[0] == pytest.approx(4.0 * (1.0 - cfg.initial_turn_slip * 0.2 / 1.9))
+    assert turn_tightness(np.array([[4.0, 4.0], [0.0, 0.0]])).tolist() == [0.0, 0.0]
 
 
 def test_low_gear_factor_is_an_offset_and_traction_slips_with_acceleration() -> None:
