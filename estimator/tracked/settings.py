@@ -24,7 +24,9 @@ class TrackedEstimatorConfig:
     ``ratio_std`` is the 1-sigma of a measured ``q`` that turns a margin into a confidence.
     A separated-band ``q`` closer to 1 than ``separated_check_sigmas`` times its window noise
     (:func:`~estimator.tracked.recognise.ratio_noise`, from the teeth's position error
-    ``sprocket_tooth_std_pitch`` of the pitch and the periods a window holds) may be a
+    ``sprocket_tooth_std_pitch`` of the pitch and the periods a window holds, the
+    acceleration, and ``carry_accel_std_mps2``, the 1-sigma of the odometer acceleration
+    that carries each window's speed to the tick) may be a
     straight read through few edges: it must show at least ``separated_yaw_share`` of its
     kinematic yaw rate to be a turn; farther from 1 the ratio alone is the lever.
     ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
@@ -72,6 +74,7 @@ class TrackedEstimatorConfig:
     separated_yaw_share: float = 0.5
     separated_check_sigmas: float = 3.5
     sprocket_tooth_std_pitch: float = 0.005
+    carry_accel_std_mps2: float = 0.05
     start_odometer_mps: float = 0.1
     max_yaw_lag_s: float = 1.0
     yaw_lead_noise_radps: float = 0.02

@@ -139,7 +139,7 @@ def recognise(
         lead,
         inp.odometer_mps,
         before,
-        inp.accel_mps2,
+        inp.gearbox_accel_mps2,
     )
     state = _released(state, inp, p)
     missing = inp.sprocket_missing
@@ -349,7 +349,14 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
         settling = inp.sprocket_settling_pair
         onset = change_onset(
-            inp.sprocket_pair_mps, inp.gear_ratio, before, settling, inp.yaw_accel_radps2, p, cfg
+            inp.sprocket_pair_mps,
+            inp.gear_ratio,
+            before,
+            settling,
+            inp.yaw_accel_radps2,
+            p,
+            cfg,
+            inp.gearbox_accel_mps2,
         )
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)

@@ -113,19 +113,25 @@ def test_product_confidence_falls_at_a_threshold() -> None:
     assert conf[0] == pytest.approx(0.5)
 
 
-def test_ratio_noise_from_the_teeth_and_the_acceleration() -> None:
+def test_ratio_noise_from_the_teeth_the_acceleration_and_the_carry() -> None:
     cfg = TrackedEstimatorConfig()
     pitch = float(P1.sprocket_pitch_m[0])  # 2π·0.35/13 = 0.169 m
-    e = cfg.sprocket_tooth_std_pitch
+    e, sa = cfg.sprocket_tooth_std_pitch, cfg.carry_accel_std_mps2
+
+    def by_hand(v: float, a: float, periods: int) -> float:
+        lag = max(0.15, 1.5 * pitch / v)  # half the window, or 1.5 periods at a crawl
+        side = math.sqrt((math.sqrt(2) * e / periods) ** 2 + (a * pitch / v**2) ** 2)
+        return math.sqrt(2) * math.hypot(side, sa * lag / v)
+
     # 1 m/s: a 0.3 s window holds 1.77 pitches, taken as one period; 4 m/s: 7.1, capped at 5
     slow = ratio_noise(np.array([[1.0, 1.0]]), np.zeros(1), P1, cfg)[0]
-    assert slow == pytest.approx(math.sqrt(2) * math.sqrt(2) * e)
+    assert slow == pytest.approx(by_hand(1.0, 0.0, 1))
     fast = ratio_noise(np.array([[4.0, 4.0]]), np.zeros(1), P1, cfg)[0]
-    assert fast == pytest.approx(math.sqrt(2) * math.sqrt(2) * e / 5)
+    assert fast == pytest.approx(by_hand(4.0, 0.0, 5))
     # 2 m/s (3.5 pitches: 2 periods) slowing at 1.5 m/s²: the speed moves 1.5·pitch/v² a period
     braking = ratio_noise(np.array([[2.0, 2.0]]), np.array([-1.5]), P1, cfg)[0]
-    per_side = math.hypot(math.sqrt(2) * e / 2, 1.5 * pitch / 4.0)
-    assert braking == pytest.approx(math.sqrt(2) * per_side)
+    assert braking == pytest.approx(by_hand(2.0, 1.5, 2))
+    assert fast < 0.005 < slow < braking
 
 
 def _separated(pair: list[float], yaw_share: float, gear: float = 1.0, accel: float = 0.0) -> int:
@@ -147,19 +153,48 @@ def _separated(pair: list[float], yaw_share: float, gear: float = 1.0, accel: fl
 
 
 def test_a_separated_ratio_within_its_noise_of_one_must_show_its_turn() -> None:
-    # 1 m/s, q = 0.975: 2.5 % below 1 against a 1-sigma of 1 % (one period per window)
-    assert _separated([1.0, 0.975], 0.6) == M.SEPARATED
-    assert _separated([1.0, 0.975], 0.4) == M.STRAIGHT
+    # 1.5 m/s, q = 0.96: 4 % below 1 against a 1-sigma of 1.3 % (one period per window);
+    # the kinematic ω is 0.03 rad/s: all of it shown is a turn, 40 % of it is not
+    assert _separated([1.5, 1.44], 1.0) == M.SEPARATED
+    assert _separated([1.5, 1.44], 0.4) == M.STRAIGHT
     # the same ratio in the low gear (fast sprocket at 1/1.42 of the odometer) is a low straight
-    assert _separated([1.0, 0.975], 0.4, gear=1 / 1.42) == M.LOW_STRAIGHT
+    assert _separated([1.5, 1.44], 0.4, gear=1 / 1.42) == M.LOW_STRAIGHT
 
 
 def test_a_separated_ratio_well_below_one_is_a_turn_without_its_yaw() -> None:
-    # 3 m/s, q = 0.95: 1-sigma 0.25 % (four periods), 20 sigma below 1: the lever, whatever
+    # 3 m/s, q = 0.95: 1-sigma 0.5 % (four periods), 10 sigma below 1: the lever, whatever
     # the yaw rate (a gentle turn on soft ground loses most of it to turn slip and skid)
     assert _separated([3.0, 2.85], 0.2) == M.SEPARATED
     # slowing down hard, the two windows read the gearbox up to a period apart: checked again
     assert _separated([3.0, 2.85], 0.2, accel=-1.5) == M.STRAIGHT
+
+
+def test_a_crawl_must_turn_more_than_a_straights_yaw_noise() -> None:
+    # 0.5 m/s, q = 0.9: the kinematic ω (0.025 rad/s) half shown is below the yaw noise
+    cfg = TrackedEstimatorConfig()
+    assert cfg.yaw_lead_noise_radps > 0.6 * 0.5 * 0.1 / 2.0
+    assert _separated([0.5, 0.45], 0.6) == M.STRAIGHT
+    assert _separated([0.5, 0.45], 2.0) == M.SEPARATED  # 0.05 rad/s: a turn
+
+
+def test_a_crawls_jumping_ratio_is_not_a_lever() -> None:
+    cfg = TrackedEstimatorConfig()
+    # q 1 -> 0.9 in a tick: at 3 m/s a lever (read where it goes, past the arc's 0.704 ...)
+    # at 0.5 m/s within what the windows' noise makes of a tick (1-sigma ~7 %): read as is
+    for speed, lever in ((3.0, True), (0.5, False)):
+        before = (np.array([[speed, speed]]), np.ones(1))
+        got, _ = product_states(
+            np.array([[speed, 0.9 * speed]]),
+            np.ones(1),
+            np.zeros(1),
+            P1,
+            cfg,
+            np.array([0.5 * speed * 0.1 / 2.0]),
+            np.array([speed]),
+            before,
+            np.zeros(1),
+        )
+        assert (int(got[0]) == M.ARC) == lever
 
 
 def test_a_start_from_standstill_is_a_straight_before_the_sprockets_read() -> None:
@@ -384,6 +419,18 @@ def test_edge_speed_period_method() -> None:
     assert late[0] == pytest.approx(1.0)  # half a period after the last edge: not overdue
     mean = span_speed(stamps, np.array([0.0]), np.array([2e8]), 0.01)
     assert mean[0] == pytest.approx(1.0)
+
+
+def test_a_crawl_reads_on_until_its_next_edge_is_late() -> None:
+    # 0.5 m/s on a 0.2 m pitch: an edge every 400 ms, more than the 300 ms window holds
+    stamps = np.arange(0, 1_200_000_001, 400_000_000, dtype=np.int64)  # 0, 0.4, 0.8, 1.2 s
+    window, hold = 300_000_000, 600_000_000
+    tick = np.array([1_500_000_000])  # the pair (0.8, 1.2) began 0.7 s ago, > hold
+    due, _ = edge_speed(stamps, tick, 0.2, window, 6, hold)
+    assert due[0] == pytest.approx(0.5)  # the next edge is due at 1.6 s: not late
+    late_tick = np.array([1_200_000_000 + int(OVERDUE * 400_000_000) + 1])
+    late, _ = edge_speed(stamps, late_tick, 0.2, window, 6, hold)
+    assert late[0] == 0.0  # overdue and past hold: standing
 
 
 def test_edges_going_backwards_are_counted_and_dropped() -> None:
