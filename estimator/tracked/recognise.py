@@ -104,14 +104,14 @@ def _lever_target(
 ) -> tuple[FloatArray, BoolArray]:
     """Where a moving lever takes a ratio: a lever crosses its travel in ``lever_travel_s`` at
     a steady rate ``r = Δ/travel``, so a ratio changing faster than ``lever_rate_min_per_s``
-    over the tick, and faster than ``separated_check_sigmas`` times what its window noise
+    over the tick, and faster than ``lever_noise_sigmas`` times what its window noise
     ``noise`` ``(k,)`` makes of a change over a tick (``√2·σ/tick``: at a crawl the reads
     jump by more than a lever moves), ends near ``before + r·travel`` (clipped to [0, 1]);
     ``(target, moving)``."""
     rate = (now - before) / cfg.tick_s
     rate_min = cfg.lever_rate_min_per_s
     if noise is not None:
-        noisy = 2.0 * np.sqrt(2.0) * noise / cfg.tick_s
+        noisy = cfg.lever_noise_sigmas * np.sqrt(2.0) * noise / cfg.tick_s
         rate_min = np.maximum(rate_min, noisy)
     moving = both & (np.abs(rate) > rate_min)
     target = np.clip(before + rate * cfg.lever_travel_s, 0.0, 1.0)
@@ -219,12 +219,16 @@ def change_onset(
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
     accel_mps2: FloatArray | None = None,
+    odometer_mps: FloatArray | None = None,
 ) -> BoolArray:
     """Ticks ``(k,)`` on which a state change shows: a ratio moving faster than
     ``lever_rate_min_per_s`` (a lever, :func:`_lever_target`), a sprocket settling
     (``settling`` ``(k, 2)``) or the yaw acceleration out of its band
-    ``|ω̇| > onset_yaw_accel_radps2`` (the hull entering or leaving a turn); ``accel_mps2``
-    (0 if None) as in :func:`product_states`."""
+    ``|ω̇| > onset_yaw_accel_radps2`` (the hull entering or leaving a turn), or a start or
+    stop under way: the gearbox (``accel_mps2``, 0 if None) speeding up or braking harder than
+    ``lever_accel_mps2`` within reach of standstill, its odometer speed (``odometer_mps``)
+    below ``|a|`` times the fixed lag (a stop is read once the windows fall silent, a start
+    once the odometer has edges: the ticks before are backdated)."""
     read, q, gear = _ratios(sprocket_mps, gear_ratio, p)
     read_b, q_b, gear_b = _ratios(before[0], before[1], p)
     both = read & read_b
@@ -233,7 +237,12 @@ def change_onset(
     _, lever_q = _lever_target(q, q_b, both, cfg, noise)
     _, lever_g = _lever_target(gear, gear_b, both, cfg, noise)
     yawing = np.abs(yaw_accel_radps2) > cfg.onset_yaw_accel_radps2
-    return lever_q | lever_g | settling.any(axis=1) | yawing
+    onset = lever_q | lever_g | settling.any(axis=1) | yawing
+    if odometer_mps is None:
+        return onset
+    reach_mps = np.abs(accel) * cfg.report_lag_ticks * cfg.tick_s
+    speed = np.nan_to_num(odometer_mps)
+    return onset | ((np.abs(accel) > cfg.lever_accel_mps2) & (speed < reach_mps))
 
 
 def fallback_states(

@@ -34,10 +34,12 @@ class TrackedEstimatorConfig:
     lead the yaw rate (``ω + τ·ω̇``, less ``yaw_lead_noise_radps``, about 3 sigma of what the
     gyro's noise makes of ``τ·ω̇`` over a tick) in the separated-turn check. A steering lever
     crosses its travel in about ``lever_travel_s``; a sprocket or gear ratio changing faster
-    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick) is
-    a lever moving, and the state is read where it goes. The odometer factors learn only once
-    the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
-    settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
+    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick at
+    speed) and than ``lever_noise_sigmas`` times the ratio noise's change over a tick (at a
+    crawl the reads jump by more) is a lever moving, and the state is read where it goes.
+    The odometer factors learn only once the gearbox has been steady (acceleration below
+    ``learn_accel_max_mps2``, no sprocket settling) for ``learn_steady_s``, several times
+    the hull's lag behind its tracks.
     A pivot's driven track slips 10-40 % (it drags the hull round the braked one), so its
     factor is held as an offset from the straight's (same ``K_D``, same ground) that starts
     at ``−initial_pivot_slip`` (the middle of that range), wider
@@ -80,6 +82,7 @@ class TrackedEstimatorConfig:
     yaw_lead_noise_radps: float = 0.02
     lever_travel_s: float = 0.3
     lever_rate_min_per_s: float = 0.3
+    lever_noise_sigmas: float = 2.0
     lever_accel_mps2: float = 0.5
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0

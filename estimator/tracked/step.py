@@ -357,6 +357,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
             p,
             cfg,
             inp.gearbox_accel_mps2,
+            inp.odometer_mps,
         )
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)

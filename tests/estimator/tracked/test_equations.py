@@ -24,6 +24,7 @@ from estimator.tracked.odometer import (
 )
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
+    change_onset,
     fallback_states,
     paper_states,
     product_states,
@@ -235,6 +236,25 @@ def test_a_moving_lever_is_read_where_it_goes(
         np.array([[3.0, slow_now]]), np.ones(1), np.zeros(1), P1, cfg, np.ones(1), np.array([3.0])
     )
     assert int(alone[0]) != state
+
+
+def test_a_stop_or_start_under_way_is_an_onset() -> None:
+    cfg = TrackedEstimatorConfig()
+    p3 = VehicleParams.stack([P1, P1, P1])
+    pair = np.array([[0.4, 0.4], [3.0, 3.0], [0.4, 0.4]])
+    # braking at 1.5 m/s² reaches standstill within the 0.4 s lag from below 0.6 m/s only
+    got = change_onset(
+        pair,
+        np.ones(3),
+        (pair, np.ones(3)),
+        np.zeros((3, 2), dtype=bool),
+        np.zeros(3),
+        p3,
+        cfg,
+        np.array([-1.5, -1.5, 0.0]),
+        np.array([0.4, 3.0, 0.4]),
+    )
+    assert got.tolist() == [True, False, False]
 
 
 def test_fallback_rules_have_no_overlap() -> None:
