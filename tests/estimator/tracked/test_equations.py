@@ -325,6 +325,29 @@ def test_product_odometer_measurement_by_hand() -> None:
     assert mask[0] and corrected[0] == pytest.approx(2.5 * f - 0.3 - 0.2)
 
 
+def _steady_odometer(
+    cfg: TrackedEstimatorConfig,
+    x: np.ndarray,
+    state: MotionState,
+    odometer_mps: float,
+    yaw_radps: float,
+    theta: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`odometer_measurement` of one vehicle at a steady speed (no lag, no acceleration)."""
+    return odometer_measurement(
+        cfg,
+        P1,
+        x,
+        np.array([state]),
+        np.array([odometer_mps]),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([yaw_radps]),
+        np.ones(1, dtype=bool),
+        theta,
+    )
+
+
 def test_a_separated_turn_slips_by_its_tightness_from_the_prior() -> None:
     from estimator.tracked.step import initial_filter
 
@@ -334,18 +357,7 @@ def test_a_separated_turn_slips_by_its_tightness_from_the_prior() -> None:
     x[0, S.SPEED] = 4.0
     pair = np.array([[4.0, 3.6]])  # q = 0.9: θ = 0.2/1.9
     theta = turn_tightness(pair)
-    _, _, _, _, corrected = odometer_measurement(
-        cfg,
-        P1,
-        x,
-        np.array([M.SEPARATED]),
-        np.array([4.0]),
-        np.zeros(1),
-        np.zeros(1),
-        np.zeros(1),
-        np.ones(1, dtype=bool),
-        theta,
-    )
+    _, _, _, _, corrected = _steady_odometer(cfg, x, M.SEPARATED, 4.0, 0.0, theta)
     assert corrected[0] == pytest.approx(4.0 * (1.0 - cfg.initial_turn_slip * 0.2 / 1.9))
     assert turn_tightness(np.array([[4.0, 4.0], [0.0, 0.0]])).tolist() == [0.0, 0.0]
 
@@ -387,17 +399,7 @@ def test_pivot_factor_is_an_offset_from_the_straight_and_starts_at_the_pivot_sli
     x[0, S.SPEED] = 1.0
     x[0, S.F_STRAIGHT] = 0.95
     x[0, S.F_PIVOT] = -0.2  # F_pivot = 0.75
-    y, H, _, mask, corrected = odometer_measurement(
-        cfg,
-        P1,
-        x,
-        np.array([M.PIVOT]),
-        np.array([2.0]),
-        np.zeros(1),
-        np.zeros(1),
-        np.array([0.5]),
-        np.ones(1, dtype=bool),
-    )
+    y, H, _, mask, corrected = _steady_odometer(cfg, x, M.PIVOT, 2.0, 0.5)
     ground = 1.0 + 0.5 * float(P1.gauge_m[0]) / 2  # V + |ω|·B/2, the driven track
     assert y[0, 0] == pytest.approx(2.0 - ground / 0.75)
     assert H[0, 0, S.F_PIVOT] == H[0, 0, S.F_STRAIGHT] == pytest.approx(-ground / 0.75**2)
