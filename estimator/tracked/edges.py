@@ -8,8 +8,11 @@ by ``n·pitch/(t − first)`` and over ``[last, t]`` by ``pitch/(t − last)`` (
 being braked meets first: its edges stop coming; taken once an edge is a quarter of a
 period overdue, :data:`OVERDUE`, so a tooth's position error never trips it); the smallest
 is taken. Fewer than two edges in the
-window: the last two edges if younger than ``hold``, else 0. Edges are forward only (a
-quadrature direction is not used).
+window: the last two edges, until the first of them is older than ``hold`` *and* the next
+edge is overdue against their own period (a crawl whose period exceeds the window reads on
+until its next edge is late, not 0 while that edge is still due: one sprocket read at 0
+beside the other is a pivot), then 0. Edges are forward only (a quadrature direction is
+not used).
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def edge_speed_at(
     span = last - first
     n = (hi - lo - 1).astype(np.float64)
     tick = ticks_ns.astype(np.float64)
-    ok &= ~(short & (tick - first > hold_ns))
+    ok &= ~(short & (tick - first > hold_ns) & (tick - last > OVERDUE * span))
     with np.errstate(divide="ignore", invalid="ignore"):
         speed = np.where(ok & (span > 0), n * pitch_m * 1e9 / span, 0.0)
         bound = (n + 1.0) * pitch_m * 1e9 / np.maximum(tick - first, 1.0)

@@ -39,13 +39,16 @@ class TrackedState(IntEnum):
 
     Position of the hull centre (ground point midway between the track contact centres) in
     the vehicle's ENU frame, heading from north clockwise, forward speed, gyro z bias and
-    scale error, the odometer factor per motion state ``F_s`` (the fast track's ground speed
+    scale error, the odometer factor ``F_s`` of each motion state (the fast track's ground speed
     over the odometer speed: ``K_D`` scale and that state's traction slip together), and the
     hull's lag behind its tracks ``τ`` (s): while it accelerates at ``a`` the hull runs
     ``τ·a`` slower than ``F_s`` times the odometer says. ``F_LOW`` and ``F_PIVOT`` hold the
     low gear's and the pivot's offsets from the straight's factor (``F_low = F_STRAIGHT +
-    F_LOW``). ``ACCEL_SLIP`` is ``κ`` (s²/m), the traction slip per m/s² of acceleration:
-    the odometer's ground speed is ``F_s·(1 − κ·a)·v_o``.
+    F_LOW``). ``TURN_SLIP`` is the fast track's turn slip per unit tightness ``c``, shared by
+    arcs and separated turns: ``F_turn = F_STRAIGHT − c·θ``, ``θ = B/ρ_t`` from the sprocket
+    ratio. ``ACCEL_SLIP`` is
+    ``κ`` (s²/m), the traction slip per m/s² of acceleration: the odometer's ground speed is
+    ``F_s·(1 − κ·a)·v_o``.
     """
 
     EAST = 0
@@ -56,11 +59,10 @@ class TrackedState(IntEnum):
     GYRO_SCALE = 5
     F_STRAIGHT = 6
     F_LOW = 7
-    F_ARC = 8
-    F_SEPARATED = 9
-    F_PIVOT = 10
-    ACCEL_LAG = 11
-    ACCEL_SLIP = 12
+    TURN_SLIP = 8
+    F_PIVOT = 9
+    ACCEL_LAG = 10
+    ACCEL_SLIP = 11
 
 
 N_STATES = len(TrackedState)

@@ -19,7 +19,13 @@ lag ``τ·a`` does not); in a low-gear
 straight ``V = F_low·v_o/1.42`` with ``F_low = F_straight + δ_low`` (same ``K_D``, same
 ground: only the traction differs, so a low gear first met in an outage starts from what the
 straights taught, not from 1), and in a pivot likewise ``F_pivot = F_straight + δ_pivot``
-(``δ_pivot`` starting at minus the driven track's typical pivot slip). The odometer's
+(``δ_pivot`` starting at minus the driven track's typical pivot slip). In an arc or a
+separated turn the fast track slips more the tighter the turn (its thrust makes the
+steering moment, whichever lever slows the other track): ``F_turn = F_straight − c·θ`` with
+the tightness ``θ = B/ρ_t = 2(1 − q)/(1 + q)`` from the sprocket ratio ``q`` and the turn
+slip per unit tightness ``c`` learned from a prior; every arc and separated turn beside
+GNSS teaches ``c`` whatever its ``q``, and a turn first met in an outage starts from what
+the straights taught. The odometer's
 windowed speed is compared with the filter's speed at the window's centre ``V − a·lag``,
 not at the tick (Eq. 6's mismatch).
 """
@@ -35,17 +41,18 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import turn_radius_m
 from estimator.tracked.settings import TrackedEstimatorConfig
 
-__all__ = ["FACTOR_OF", "lateral_speed", "odometer_measurement", "paper_ratio"]
+__all__ = ["FACTOR_OF", "lateral_speed", "odometer_measurement", "paper_ratio", "turn_tightness"]
 
 GRAVITY_MPS2 = 9.80665
 M = MotionState
 
-#: Filter state holding each motion state's odometer factor (product mode).
+#: Filter state holding each motion state's odometer factor, or its offset or turn slip
+#: from the straight's (product mode).
 FACTOR_OF = {
     M.STRAIGHT: S.F_STRAIGHT,
     M.LOW_STRAIGHT: S.F_LOW,
-    M.ARC: S.F_ARC,
-    M.SEPARATED: S.F_SEPARATED,
+    M.ARC: S.TURN_SLIP,
+    M.SEPARATED: S.TURN_SLIP,
     M.PIVOT: S.F_PIVOT,
 }
 _FACTOR_INDEX = np.full(len(M), int(S.F_STRAIGHT), dtype=np.int64)
@@ -53,7 +60,10 @@ for _state, _index in FACTOR_OF.items():
     _FACTOR_INDEX[int(_state)] = int(_index)
 #: States whose factor is held as an offset from ``F_STRAIGHT`` (same ``K_D``, same ground).
 _OFFSET = np.zeros(len(M), dtype=bool)
-_OFFSET[[int(M.LOW_STRAIGHT), int(M.PIVOT)]] = True
+_OFFSET[[int(M.LOW_STRAIGHT), int(M.PIVOT), int(M.ARC), int(M.SEPARATED)]] = True
+#: States whose factor is ``F_STRAIGHT − c·θ`` (``c`` the turn slip, ``θ`` the tightness).
+_BY_TIGHTNESS = np.zeros(len(M), dtype=bool)
+_BY_TIGHTNESS[[int(M.ARC), int(M.SEPARATED)]] = True
 _TURNING = np.zeros(len(M), dtype=bool)
 _TURNING[[int(M.ARC), int(M.SEPARATED), int(M.PIVOT)]] = True
 
@@ -75,6 +85,17 @@ def lateral_speed(
     pole = contact_length_m * np.abs(speed_mps * yaw_rate_radps)
     pole = np.minimum(pole / (2.0 * lateral_resistance * GRAVITY_MPS2), 0.5 * contact_length_m)
     return yaw_rate_radps * pole
+
+
+def turn_tightness(sprocket_mps: FloatArray) -> FloatArray:
+    """``θ = B/ρ_t = 2(1 − q)/(1 + q)`` ``(k,)`` from the sprocket speeds ``(k, 2)``, ``q`` the
+    slow over the fast one (the kinematic turning radius ``ρ_t`` of the sprockets; 0 where
+    neither turns)."""
+    fast = sprocket_mps.max(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.where(fast > 0.0, sprocket_mps.min(axis=1) / fast, 1.0)
+    q = np.clip(np.nan_to_num(q, nan=1.0), 0.0, 1.0)
+    return 2.0 * (1.0 - q) / (1.0 + q)
 
 
 def paper_ratio(state: IntArray, rho_m: FloatArray, p: VehicleParams) -> FloatArray:
@@ -102,10 +123,12 @@ def odometer_measurement(
     accel_mps2: FloatArray,
     yaw_rate_radps: FloatArray,
     valid: BoolArray,
+    tightness: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray, FloatArray]:
     """``(innovation (k, 1), H (k, 1, n), R (k, 1, 1), mask (k,), corrected V (k,))``.
 
-    ``corrected V`` is the forward speed the odometer gives in this state (NaN where none).
+    ``corrected V`` is the forward speed the odometer gives in this state (NaN where none);
+    ``tightness`` ``(k,)`` is a turn's ``θ`` (:func:`turn_tightness`, 0 if None).
     """
     k = x.shape[0]
     H = np.zeros((k, 1, N_STATES))
@@ -116,7 +139,9 @@ def odometer_measurement(
         f_idx = _FACTOR_INDEX[state]
         rows = np.arange(k)
         offset = _OFFSET[state]
-        factor = x[rows, f_idx] + np.where(offset, x[:, S.F_STRAIGHT], 0.0)
+        theta = np.zeros(k) if tightness is None else tightness
+        scale = np.where(_BY_TIGHTNESS[state], -theta, 1.0)  # F_turn = F_straight − c·θ
+        factor = x[rows, f_idx] * scale + np.where(offset, x[:, S.F_STRAIGHT], 0.0)
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
         lag = x[:, S.ACCEL_LAG] * accel_mps2
@@ -126,7 +151,7 @@ def odometer_measurement(
         H[:, 0, S.SPEED] = gear / (factor * traction)
         H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
         H[:, 0, S.ACCEL_SLIP] = h * accel_mps2 / traction
-        H[rows, 0, f_idx] = -h / factor
+        H[rows, 0, f_idx] = -h / factor * scale
         H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)
         corrected = odometer_mps * factor * traction / gear - turn - lag
         mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))

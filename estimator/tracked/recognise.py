@@ -30,6 +30,7 @@ __all__ = [
     "fallback_states",
     "paper_states",
     "product_states",
+    "ratio_noise",
     "turn_radius_m",
 ]
 
@@ -95,15 +96,55 @@ def _ratios(
 
 
 def _lever_target(
-    now: FloatArray, before: FloatArray, both: BoolArray, cfg: TrackedEstimatorConfig
+    now: FloatArray,
+    before: FloatArray,
+    both: BoolArray,
+    cfg: TrackedEstimatorConfig,
+    noise: FloatArray | None = None,
 ) -> tuple[FloatArray, BoolArray]:
     """Where a moving lever takes a ratio: a lever crosses its travel in ``lever_travel_s`` at
     a steady rate ``r = Δ/travel``, so a ratio changing faster than ``lever_rate_min_per_s``
-    over the tick ends near ``before + r·travel`` (clipped to [0, 1]); ``(target, moving)``."""
+    over the tick, and faster than ``lever_noise_sigmas`` times what its window noise
+    ``noise`` ``(k,)`` makes of a change over a tick (``√2·σ/tick``: at a crawl the reads
+    jump by more than a lever moves), ends near ``before + r·travel`` (clipped to [0, 1]);
+    ``(target, moving)``."""
     rate = (now - before) / cfg.tick_s
-    moving = both & (np.abs(rate) > cfg.lever_rate_min_per_s)
+    rate_min = cfg.lever_rate_min_per_s
+    if noise is not None:
+        noisy = cfg.lever_noise_sigmas * np.sqrt(2.0) * noise / cfg.tick_s
+        rate_min = np.maximum(rate_min, noisy)
+    moving = both & (np.abs(rate) > rate_min)
     target = np.clip(before + rate * cfg.lever_travel_s, 0.0, 1.0)
     return np.where(moving, target, now), moving
+
+
+def ratio_noise(
+    sprocket_mps: FloatArray, accel_mps2: FloatArray, p: VehicleParams, cfg: TrackedEstimatorConfig
+) -> FloatArray:
+    """1-sigma ``(k,)`` of the slow-over-fast sprocket ratio ``q`` read through the windows.
+
+    Per sprocket, a relative error of: the teeth's position error ``e``
+    (``sprocket_tooth_std_pitch``, a share of the pitch) over a window of ``n`` periods,
+    ``√2·e/n`` (first and last edge each off by ``e``; ``n`` the fewest periods a window
+    ``W`` holds at speed ``v``, ``clip(⌊v·W/pitch⌋ − 1, 1, max_edges − 1)``, two held edges
+    at least); the speed's change over one period ``|a|·pitch/v²`` (``a`` the gearbox's
+    acceleration, not the hull's, which also slows in a lever move; the sprockets' edges
+    fall at different phases, so while the gearbox speeds up or slows down the two windows
+    read it up to a period apart); and the carry of each window's speed from its centre to
+    the tick, ``σ_a·lag/v`` with the odometer acceleration's 1-sigma ``σ_a``
+    (``carry_accel_std_mps2``) and ``lag = max(W/2, 1.5·pitch/v)`` (at a crawl the held
+    pair's centre is one to two periods back). ``q``'s relative error adds both sprockets';
+    ``accel_mps2`` ``(k,)``, ``sprocket_mps`` ``(k, 2)``.
+    """
+    pitch = p.sprocket_pitch_m[:, None]
+    v = np.maximum(sprocket_mps, cfg.start_odometer_mps)
+    periods = np.floor(v * cfg.sprocket_window_s / pitch) - 1.0
+    periods = np.clip(periods, 1.0, cfg.sprocket_max_edges - 1.0)
+    teeth = np.sqrt(2.0) * cfg.sprocket_tooth_std_pitch / periods
+    change = np.abs(np.nan_to_num(accel_mps2))[:, None] * pitch / v**2
+    lag_s = np.maximum(0.5 * cfg.sprocket_window_s, 1.5 * pitch / v)
+    carry = cfg.carry_accel_std_mps2 * lag_s / v
+    return np.sqrt((teeth**2 + change**2 + carry**2).sum(axis=1))
 
 
 def product_states(
@@ -115,6 +156,7 @@ def product_states(
     yaw_lead_radps: FloatArray,
     odometer_mps: FloatArray,
     before: tuple[FloatArray, FloatArray] | None = None,
+    accel_mps2: FloatArray | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """State and confidence per vehicle from the sprocket speeds ``(k, 2)``, the faster
     sprocket over the odometer (``gear_ratio``, same span), the tick's heading change, the
@@ -125,14 +167,19 @@ def product_states(
     straight as soon as it turns, before the sprockets have two edges) and ``before``, the
     sprocket speeds and gear ratio of the tick before: while a lever moves, the ratios are
     read where it takes them (:func:`_lever_target`), so the state changes with the lever,
-    not when the windows have crossed a threshold."""
+    not when the windows have crossed a threshold. ``accel_mps2`` (the gearbox's, 0 if None)
+    enters the ratio's window noise (:func:`ratio_noise`), which decides where the
+    separated band needs its turn's yaw rate and how fast a ratio must change to be a
+    lever."""
     read, q, gear = _ratios(sprocket_mps, gear_ratio, p)
+    accel = np.zeros(q.shape) if accel_mps2 is None else accel_mps2
+    noise = ratio_noise(sprocket_mps, accel, p, cfg)
     lever = np.zeros(q.shape, dtype=bool)
     if before is not None:
         read_b, q_b, gear_b = _ratios(before[0], before[1], p)
-        q, lever_q = _lever_target(q, q_b, read & read_b, cfg)
+        q, lever_q = _lever_target(q, q_b, read & read_b, cfg, noise)
         gear, lever_g = _lever_target(
-            gear, gear_b, read & read_b & (q >= cfg.straight_ratio_min), cfg
+            gear, gear_b, read & read_b & (q >= cfg.straight_ratio_min), cfg, noise
         )
         lever = lever_q | lever_g
     moving = read | (np.nan_to_num(odometer_mps) > cfg.start_odometer_mps)
@@ -143,9 +190,13 @@ def product_states(
     table = np.array([M.PIVOT, M.ARC, M.SEPARATED, M.STRAIGHT], dtype=np.int64)
     out = table[band]
     out[(band == 3) & (gear < low_cut)] = int(M.LOW_STRAIGHT)
-    # a separated turn turns: at least a share of the kinematic ω = Vs_fast·(1 − q)/B
+    # a separated ratio within the windows' noise of 1 must show its turn: at least a share
+    # of the kinematic ω = Vs_fast·(1 − q)/B, and more than a straight's yaw noise (a crawl's
+    # kinematic ω is within it); farther from 1 the ratio alone is the lever
     kinematic = fast * (1.0 - q) / p.gauge_m
-    weak = (band == 2) & ~lever & (yaw_lead_radps < cfg.separated_yaw_share * kinematic)
+    doubtful = (1.0 - q) < cfg.separated_check_sigmas * noise
+    shown = np.maximum(cfg.separated_yaw_share * kinematic, cfg.yaw_lead_noise_radps)
+    weak = (band == 2) & ~lever & doubtful & (yaw_lead_radps < shown)
     out[weak] = np.where(gear[weak] < low_cut[weak], int(M.LOW_STRAIGHT), int(M.STRAIGHT))
     margin = np.min(np.abs(q[:, None] - cuts[None, :]), axis=1)
     margin = np.where(band == 3, np.minimum(margin, np.abs(gear - low_cut)), margin)
@@ -167,18 +218,31 @@ def change_onset(
     yaw_accel_radps2: FloatArray,
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
+    accel_mps2: FloatArray | None = None,
+    odometer_mps: FloatArray | None = None,
 ) -> BoolArray:
     """Ticks ``(k,)`` on which a state change shows: a ratio moving faster than
     ``lever_rate_min_per_s`` (a lever, :func:`_lever_target`), a sprocket settling
     (``settling`` ``(k, 2)``) or the yaw acceleration out of its band
-    ``|ω̇| > onset_yaw_accel_radps2`` (the hull entering or leaving a turn)."""
+    ``|ω̇| > onset_yaw_accel_radps2`` (the hull entering or leaving a turn), or a start or
+    stop under way: the gearbox (``accel_mps2``, 0 if None) speeding up or braking harder than
+    ``lever_accel_mps2`` within reach of standstill, its odometer speed (``odometer_mps``)
+    below ``|a|`` times the fixed lag (a stop is read once the windows fall silent, a start
+    once the odometer has edges: the ticks before are backdated)."""
     read, q, gear = _ratios(sprocket_mps, gear_ratio, p)
     read_b, q_b, gear_b = _ratios(before[0], before[1], p)
     both = read & read_b
-    _, lever_q = _lever_target(q, q_b, both, cfg)
-    _, lever_g = _lever_target(gear, gear_b, both, cfg)
+    accel = np.zeros(q.shape) if accel_mps2 is None else accel_mps2
+    noise = ratio_noise(sprocket_mps, accel, p, cfg)
+    _, lever_q = _lever_target(q, q_b, both, cfg, noise)
+    _, lever_g = _lever_target(gear, gear_b, both, cfg, noise)
     yawing = np.abs(yaw_accel_radps2) > cfg.onset_yaw_accel_radps2
-    return lever_q | lever_g | settling.any(axis=1) | yawing
+    onset = lever_q | lever_g | settling.any(axis=1) | yawing
+    if odometer_mps is None:
+        return onset
+    reach_mps = np.abs(accel) * cfg.report_lag_ticks * cfg.tick_s
+    speed = np.nan_to_num(odometer_mps)
+    return onset | ((np.abs(accel) > cfg.lever_accel_mps2) & (speed < reach_mps))
 
 
 def fallback_states(

@@ -22,20 +22,32 @@ class TrackedEstimatorConfig:
     ``q`` is 1 in straights, ``1/1.42`` in arcs, between them in separated turns and 0 with a
     braked track; ``arc_ratio_max`` and ``straight_ratio_min`` cut between them,
     ``ratio_std`` is the 1-sigma of a measured ``q`` that turns a margin into a confidence.
+    A separated-band ``q`` closer to 1 than ``separated_check_sigmas`` times its window noise
+    (:func:`~estimator.tracked.recognise.ratio_noise`, from the teeth's position error
+    ``sprocket_tooth_std_pitch`` of the pitch and the periods a window holds, the
+    acceleration, and ``carry_accel_std_mps2``, the 1-sigma of the odometer acceleration
+    that carries each window's speed to the tick) may be a
+    straight read through few edges: it must show at least ``separated_yaw_share`` of its
+    kinematic yaw rate to be a turn; farther from 1 the ratio alone is the lever.
     ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
     from standstill (a straight). ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to
     lead the yaw rate (``ω + τ·ω̇``, less ``yaw_lead_noise_radps``, about 3 sigma of what the
     gyro's noise makes of ``τ·ω̇`` over a tick) in the separated-turn check. A steering lever
     crosses its travel in about ``lever_travel_s``; a sprocket or gear ratio changing faster
-    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick) is
-    a lever moving, and the state is read where it goes. The odometer factors learn only once
-    the gearbox has been steady (acceleration below ``learn_accel_max_mps2``, no sprocket
-    settling) for ``learn_steady_s``, several times the hull's lag behind its tracks.
+    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick at
+    speed) and than ``lever_noise_sigmas`` times the ratio noise's change over a tick (at a
+    crawl the reads jump by more) is a lever moving, and the state is read where it goes.
+    The odometer factors learn only once the gearbox has been steady (acceleration below
+    ``learn_accel_max_mps2``, no sprocket settling) for ``learn_steady_s``, several times
+    the hull's lag behind its tracks.
     A pivot's driven track slips 10-40 % (it drags the hull round the braked one), so its
     factor is held as an offset from the straight's (same ``K_D``, same ground) that starts
     at ``−initial_pivot_slip`` (the middle of that range), wider
     (``initial_pivot_factor_std``) than the others, the low gear's offset from the straight's
-    narrower (``initial_low_offset_std``); a slip whose 1-sigma
+    narrower (``initial_low_offset_std``). An arc's or separated turn's factor is the
+    straight's less ``c·θ``, ``θ = B/ρ_t`` its tightness from the sprocket ratio and ``c`` the
+    fast track's turn slip per unit tightness, starting at ``initial_turn_slip`` ±
+    ``initial_turn_slip_std`` (0.04-0.2 spans firm to soft ground); a slip whose 1-sigma
     exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
@@ -62,11 +74,15 @@ class TrackedEstimatorConfig:
     straight_ratio_min: float = 0.985
     ratio_std: float = 0.01
     separated_yaw_share: float = 0.5
+    separated_check_sigmas: float = 3.5
+    sprocket_tooth_std_pitch: float = 0.005
+    carry_accel_std_mps2: float = 0.05
     start_odometer_mps: float = 0.1
     max_yaw_lag_s: float = 1.0
     yaw_lead_noise_radps: float = 0.02
     lever_travel_s: float = 0.3
     lever_rate_min_per_s: float = 0.3
+    lever_noise_sigmas: float = 2.0
     lever_accel_mps2: float = 0.5
     uncertain_below: float = 0.9
     init_speed_mps: float = 1.0
@@ -97,6 +113,8 @@ class TrackedEstimatorConfig:
     initial_pivot_factor_std: float = 0.15
     initial_pivot_slip: float = 0.25
     initial_low_offset_std: float = 0.02
+    initial_turn_slip: float = 0.1
+    initial_turn_slip_std: float = 0.06
     slip_std_max_pct: float = 3.0
     initial_accel_lag_std_s: float = 0.5
     accel_lag_walk_s: float = 1e-3

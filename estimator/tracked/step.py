@@ -16,7 +16,7 @@ from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.tracked.filter import kalman_update, predict, yaw_rate
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
-from estimator.tracked.odometer import lateral_speed, odometer_measurement
+from estimator.tracked.odometer import lateral_speed, odometer_measurement, turn_tightness
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
@@ -30,7 +30,7 @@ from estimator.tracked.vehicle import TickInputs
 __all__ = ["Filter", "TickOut", "initial_filter", "tick_step"]
 
 M = MotionState
-_FACTORS = [S.F_STRAIGHT, S.F_LOW, S.F_ARC, S.F_SEPARATED, S.F_PIVOT]
+_FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
 
 
 @dataclass(slots=True)
@@ -80,18 +80,20 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[_FACTORS] = learn * cfg.initial_factor_std**2
     diag[S.F_PIVOT] = learn * cfg.initial_pivot_factor_std**2
     diag[S.F_LOW] = learn * cfg.initial_low_offset_std**2
+    diag[S.TURN_SLIP] = learn * cfg.initial_turn_slip_std**2
     diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
     diag[S.ACCEL_SLIP] = learn * cfg.initial_accel_slip_std_s2pm**2
     return np.diag(diag)
 
 
 def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
-    """A vehicle's filter before its first fix: factors 1 (the low gear's offset 0), position
-    and heading unknown."""
+    """A vehicle's filter before its first fix: factors 1 (the low gear's offset 0, the pivot's
+    offset and the turn slip from their priors), position and heading unknown."""
     x = np.zeros((1, N_STATES))
     x[0, _FACTORS] = 1.0
     x[0, S.F_LOW] = 0.0  # offsets from F_straight
     x[0, S.F_PIVOT] = -cfg.initial_pivot_slip if cfg.learns else 0.0
+    x[0, S.TURN_SLIP] = cfg.initial_turn_slip if cfg.learns else 0.0
     x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
@@ -129,7 +131,15 @@ def recognise(
     lead = np.maximum(np.abs(w), lead)
     before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
     state, conf = product_states(
-        inp.sprocket_pair_mps, inp.gear_ratio, step, p, cfg, lead, inp.odometer_mps, before
+        inp.sprocket_pair_mps,
+        inp.gear_ratio,
+        step,
+        p,
+        cfg,
+        lead,
+        inp.odometer_mps,
+        before,
+        inp.gearbox_accel_mps2,
     )
     state = _released(state, inp, p)
     missing = inp.sprocket_missing
@@ -246,7 +256,16 @@ def _fuse_odometer(
     """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`)."""
     valid = np.isfinite(inp.odometer_mps)
     y, H, R, mask, corrected = odometer_measurement(
-        cfg, p, f.x, state, inp.odometer_mps, inp.odometer_lag_s, inp.accel_mps2, w, valid
+        cfg,
+        p,
+        f.x,
+        state,
+        inp.odometer_mps,
+        inp.odometer_lag_s,
+        inp.accel_mps2,
+        w,
+        valid,
+        turn_tightness(inp.sprocket_pair_mps),
     )
     # the factors learn only beside GNSS, at a speed steady long enough for the hull's lag
     # behind its tracks and the slip of acceleration to have died out
@@ -330,7 +349,15 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
         settling = inp.sprocket_settling_pair
         onset = change_onset(
-            inp.sprocket_pair_mps, inp.gear_ratio, before, settling, inp.yaw_accel_radps2, p, cfg
+            inp.sprocket_pair_mps,
+            inp.gear_ratio,
+            before,
+            settling,
+            inp.yaw_accel_radps2,
+            p,
+            cfg,
+            inp.gearbox_accel_mps2,
+            inp.odometer_mps,
         )
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)

@@ -51,6 +51,8 @@ class TickInputs:
     before, read the same way (their change over the tick shows a lever moving).
     ``sprocket_starting_pair`` marks a sprocket's first edges after a silence (a brake being
     released, or a start from standstill), ``(m, 2)``.
+    ``gearbox_accel_mps2`` is the odometer's acceleration (two consecutive windows), the
+    gearbox's: the hull's lags it, and slows in every lever move.
     ``steady_s`` is how long the gearbox has run at a steady speed with no sprocket settling
     (the hull's lag behind its tracks, and the slip that acceleration adds, have died out).
     """
@@ -68,6 +70,7 @@ class TickInputs:
     gear_ratio: FloatArray
     sprocket_before_pair_mps: FloatArray
     gear_ratio_before: FloatArray
+    gearbox_accel_mps2: FloatArray
     steady_s: FloatArray
     gnss_pos_pair_m: FloatArray
     gnss_vel_pair_mps: FloatArray
@@ -323,6 +326,7 @@ def tick_inputs(
         gear_ratio=r.gear,
         sprocket_before_pair_mps=at_tick(*r.before, tick_f - tick_ns, prev, odo_accel),
         gear_ratio_before=r.gear_before,
+        gearbox_accel_mps2=odo_accel,
         steady_s=steady_s,
         gnss_pos_pair_m=pos,
         gnss_vel_pair_mps=vel,

@@ -16,9 +16,20 @@ from estimator.tracked.edges import OVERDUE, EdgeBuffer, edge_speed, span_speed
 from estimator.tracked.filter import kalman_update, predict
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
-from estimator.tracked.odometer import lateral_speed, odometer_measurement, paper_ratio
+from estimator.tracked.odometer import (
+    lateral_speed,
+    odometer_measurement,
+    paper_ratio,
+    turn_tightness,
+)
 from estimator.tracked.params import VehicleParams
-from estimator.tracked.recognise import fallback_states, paper_states, product_states
+from estimator.tracked.recognise import (
+    change_onset,
+    fallback_states,
+    paper_states,
+    product_states,
+    ratio_noise,
+)
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.step import _released
 from estimator.tracked.vehicle import TickInputs
@@ -103,16 +114,88 @@ def test_product_confidence_falls_at_a_threshold() -> None:
     assert conf[0] == pytest.approx(0.5)
 
 
-def test_a_separated_ratio_without_its_turn_is_a_straight() -> None:
+def test_ratio_noise_from_the_teeth_the_acceleration_and_the_carry() -> None:
     cfg = TrackedEstimatorConfig()
-    args = (np.array([[3.0, 2.85]]), np.ones(1), np.zeros(1), P1, cfg)
-    kinematic = 3.0 * (1 - 0.95) / 2.0
-    odo = np.array([3.0])
-    assert product_states(*args, np.array([0.6 * kinematic]), odo)[0][0] == M.SEPARATED
-    assert product_states(*args, np.array([0.4 * kinematic]), odo)[0][0] == M.STRAIGHT
+    pitch = float(P1.sprocket_pitch_m[0])  # 2π·0.35/13 = 0.169 m
+    e, sa = cfg.sprocket_tooth_std_pitch, cfg.carry_accel_std_mps2
+
+    def by_hand(v: float, a: float, periods: int) -> float:
+        lag = max(0.15, 1.5 * pitch / v)  # half the window, or 1.5 periods at a crawl
+        side = math.sqrt((math.sqrt(2) * e / periods) ** 2 + (a * pitch / v**2) ** 2)
+        return math.sqrt(2) * math.hypot(side, sa * lag / v)
+
+    # 1 m/s: a 0.3 s window holds 1.77 pitches, taken as one period; 4 m/s: 7.1, capped at 5
+    slow = ratio_noise(np.array([[1.0, 1.0]]), np.zeros(1), P1, cfg)[0]
+    assert slow == pytest.approx(by_hand(1.0, 0.0, 1))
+    fast = ratio_noise(np.array([[4.0, 4.0]]), np.zeros(1), P1, cfg)[0]
+    assert fast == pytest.approx(by_hand(4.0, 0.0, 5))
+    # 2 m/s (3.5 pitches: 2 periods) slowing at 1.5 m/s²: the speed moves 1.5·pitch/v² a period
+    braking = ratio_noise(np.array([[2.0, 2.0]]), np.array([-1.5]), P1, cfg)[0]
+    assert braking == pytest.approx(by_hand(2.0, 1.5, 2))
+    assert fast < 0.005 < slow < braking
+
+
+def _separated(pair: list[float], yaw_share: float, gear: float = 1.0, accel: float = 0.0) -> int:
+    cfg = TrackedEstimatorConfig()
+    fast, slow = max(pair), min(pair)
+    kinematic = fast * (1 - slow / fast) / 2.0
+    got, _ = product_states(
+        np.array([pair]),
+        np.array([gear]),
+        np.zeros(1),
+        P1,
+        cfg,
+        np.array([yaw_share * kinematic]),
+        np.array([fast / gear]),
+        None,
+        np.array([accel]),
+    )
+    return int(got[0])
+
+
+def test_a_separated_ratio_within_its_noise_of_one_must_show_its_turn() -> None:
+    # 1.5 m/s, q = 0.96: 4 % below 1 against a 1-sigma of 1.3 % (one period per window);
+    # the kinematic ω is 0.03 rad/s: all of it shown is a turn, 40 % of it is not
+    assert _separated([1.5, 1.44], 1.0) == M.SEPARATED
+    assert _separated([1.5, 1.44], 0.4) == M.STRAIGHT
     # the same ratio in the low gear (fast sprocket at 1/1.42 of the odometer) is a low straight
-    low = (np.array([[3.0, 2.85]]), np.array([1 / 1.42]), np.zeros(1), P1, cfg)
-    assert product_states(*low, np.array([0.4 * kinematic]), odo * 1.42)[0][0] == M.LOW_STRAIGHT
+    assert _separated([1.5, 1.44], 0.4, gear=1 / 1.42) == M.LOW_STRAIGHT
+
+
+def test_a_separated_ratio_well_below_one_is_a_turn_without_its_yaw() -> None:
+    # 3 m/s, q = 0.95: 1-sigma 0.5 % (four periods), 10 sigma below 1: the lever, whatever
+    # the yaw rate (a gentle turn on soft ground loses most of it to turn slip and skid)
+    assert _separated([3.0, 2.85], 0.2) == M.SEPARATED
+    # slowing down hard, the two windows read the gearbox up to a period apart: checked again
+    assert _separated([3.0, 2.85], 0.2, accel=-1.5) == M.STRAIGHT
+
+
+def test_a_crawl_must_turn_more_than_a_straights_yaw_noise() -> None:
+    # 0.5 m/s, q = 0.9: the kinematic ω (0.025 rad/s) half shown is below the yaw noise
+    cfg = TrackedEstimatorConfig()
+    assert cfg.yaw_lead_noise_radps > 0.6 * 0.5 * 0.1 / 2.0
+    assert _separated([0.5, 0.45], 0.6) == M.STRAIGHT
+    assert _separated([0.5, 0.45], 2.0) == M.SEPARATED  # 0.05 rad/s: a turn
+
+
+def test_a_crawls_jumping_ratio_is_not_a_lever() -> None:
+    cfg = TrackedEstimatorConfig()
+    # q 1 -> 0.9 in a tick: at 3 m/s a lever (read where it goes, past the arc's 0.704 ...)
+    # at 0.5 m/s within what the windows' noise makes of a tick (1-sigma ~7 %): read as is
+    for speed, lever in ((3.0, True), (0.5, False)):
+        before = (np.array([[speed, speed]]), np.ones(1))
+        got, _ = product_states(
+            np.array([[speed, 0.9 * speed]]),
+            np.ones(1),
+            np.zeros(1),
+            P1,
+            cfg,
+            np.array([0.5 * speed * 0.1 / 2.0]),
+            np.array([speed]),
+            before,
+            np.zeros(1),
+        )
+        assert (int(got[0]) == M.ARC) == lever
 
 
 def test_a_start_from_standstill_is_a_straight_before_the_sprockets_read() -> None:
@@ -155,6 +238,25 @@ def test_a_moving_lever_is_read_where_it_goes(
     assert int(alone[0]) != state
 
 
+def test_a_stop_or_start_under_way_is_an_onset() -> None:
+    cfg = TrackedEstimatorConfig()
+    p3 = VehicleParams.stack([P1, P1, P1])
+    pair = np.array([[0.4, 0.4], [3.0, 3.0], [0.4, 0.4]])
+    # braking at 1.5 m/s² reaches standstill within the 0.4 s lag from below 0.6 m/s only
+    got = change_onset(
+        pair,
+        np.ones(3),
+        (pair, np.ones(3)),
+        np.zeros((3, 2), dtype=bool),
+        np.zeros(3),
+        p3,
+        cfg,
+        np.array([-1.5, -1.5, 0.0]),
+        np.array([0.4, 3.0, 0.4]),
+    )
+    assert got.tolist() == [True, False, False]
+
+
 def test_fallback_rules_have_no_overlap() -> None:
     rho = np.array([2.0, 8.0, 15.0, 30.0, 300.0])
     got = fallback_states(
@@ -193,9 +295,13 @@ def test_lateral_speed_printed_and_physical() -> None:
 def test_product_odometer_measurement_by_hand() -> None:
     x = np.zeros((1, N_STATES))
     x[0, S.SPEED] = 2.0
-    x[0, S.F_ARC] = 0.95
+    x[0, S.F_STRAIGHT] = 0.98
+    x[0, S.TURN_SLIP] = 0.1  # an arc (θ = 2·(1 − 1/1.42)/(1 + 1/1.42) = 0.3471): F = 0.9453
     x[0, S.ACCEL_LAG] = 0.2
     cfg = TrackedEstimatorConfig()
+    theta = turn_tightness(np.array([[3.0 / 1.42, 3.0]]))
+    assert theta[0] == pytest.approx(2 * 0.42 / 2.42)
+    f = 0.98 - 0.1 * theta[0]
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
         P1,
@@ -206,15 +312,54 @@ def test_product_odometer_measurement_by_hand() -> None:
         np.array([1.0]),
         np.array([0.3]),
         np.ones(1, dtype=bool),
+        theta,
     )
     # V − a·lag + τ·a + |ω|·B/2: the fast track's ground speed, a = 1 m/s², τ = 0.2 s
     ground = 2.0 - 1.0 * 0.05 + 0.2 * 1.0 + 0.3 * 1.0
-    assert y[0, 0] == pytest.approx(2.5 - ground / 0.95)
-    assert H[0, 0, S.SPEED] == pytest.approx(1 / 0.95)
-    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(1.0 / 0.95)
-    assert H[0, 0, S.F_ARC] == pytest.approx(-ground / 0.95**2)
+    assert y[0, 0] == pytest.approx(2.5 - ground / f)
+    assert H[0, 0, S.SPEED] == pytest.approx(1 / f)
+    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(1.0 / f)
+    assert H[0, 0, S.F_STRAIGHT] == pytest.approx(-ground / f**2)
+    assert H[0, 0, S.TURN_SLIP] == pytest.approx(ground / f**2 * theta[0])  # ∂h/∂c = h·θ/F
     assert R[0, 0, 0] == pytest.approx((0.02 + 0.01 * 2.5 + 0.3 * 1.0) ** 2)
-    assert mask[0] and corrected[0] == pytest.approx(2.5 * 0.95 - 0.3 - 0.2)
+    assert mask[0] and corrected[0] == pytest.approx(2.5 * f - 0.3 - 0.2)
+
+
+def _steady_odometer(
+    cfg: TrackedEstimatorConfig,
+    x: np.ndarray,
+    state: MotionState,
+    odometer_mps: float,
+    yaw_radps: float,
+    theta: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`odometer_measurement` of one vehicle at a steady speed (no lag, no acceleration)."""
+    return odometer_measurement(
+        cfg,
+        P1,
+        x,
+        np.array([state]),
+        np.array([odometer_mps]),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([yaw_radps]),
+        np.ones(1, dtype=bool),
+        theta,
+    )
+
+
+def test_a_separated_turn_slips_by_its_tightness_from_the_prior() -> None:
+    from estimator.tracked.step import initial_filter
+
+    cfg = TrackedEstimatorConfig()
+    x = initial_filter(cfg).x.copy()
+    assert x[0, S.TURN_SLIP] == cfg.initial_turn_slip
+    x[0, S.SPEED] = 4.0
+    pair = np.array([[4.0, 3.6]])  # q = 0.9: θ = 0.2/1.9
+    theta = turn_tightness(pair)
+    _, _, _, _, corrected = _steady_odometer(cfg, x, M.SEPARATED, 4.0, 0.0, theta)
+    assert corrected[0] == pytest.approx(4.0 * (1.0 - cfg.initial_turn_slip * 0.2 / 1.9))
+    assert turn_tightness(np.array([[4.0, 4.0], [0.0, 0.0]])).tolist() == [0.0, 0.0]
 
 
 def test_low_gear_factor_is_an_offset_and_traction_slips_with_acceleration() -> None:
@@ -254,17 +399,7 @@ def test_pivot_factor_is_an_offset_from_the_straight_and_starts_at_the_pivot_sli
     x[0, S.SPEED] = 1.0
     x[0, S.F_STRAIGHT] = 0.95
     x[0, S.F_PIVOT] = -0.2  # F_pivot = 0.75
-    y, H, _, mask, corrected = odometer_measurement(
-        cfg,
-        P1,
-        x,
-        np.array([M.PIVOT]),
-        np.array([2.0]),
-        np.zeros(1),
-        np.zeros(1),
-        np.array([0.5]),
-        np.ones(1, dtype=bool),
-    )
+    y, H, _, mask, corrected = _steady_odometer(cfg, x, M.PIVOT, 2.0, 0.5)
     ground = 1.0 + 0.5 * float(P1.gauge_m[0]) / 2  # V + |ω|·B/2, the driven track
     assert y[0, 0] == pytest.approx(2.0 - ground / 0.75)
     assert H[0, 0, S.F_PIVOT] == H[0, 0, S.F_STRAIGHT] == pytest.approx(-ground / 0.75**2)
@@ -306,6 +441,18 @@ def test_edge_speed_period_method() -> None:
     assert late[0] == pytest.approx(1.0)  # half a period after the last edge: not overdue
     mean = span_speed(stamps, np.array([0.0]), np.array([2e8]), 0.01)
     assert mean[0] == pytest.approx(1.0)
+
+
+def test_a_crawl_reads_on_until_its_next_edge_is_late() -> None:
+    # 0.5 m/s on a 0.2 m pitch: an edge every 400 ms, more than the 300 ms window holds
+    stamps = np.arange(0, 1_200_000_001, 400_000_000, dtype=np.int64)  # 0, 0.4, 0.8, 1.2 s
+    window, hold = 300_000_000, 600_000_000
+    tick = np.array([1_500_000_000])  # the pair (0.8, 1.2) began 0.7 s ago, > hold
+    due, _ = edge_speed(stamps, tick, 0.2, window, 6, hold)
+    assert due[0] == pytest.approx(0.5)  # the next edge is due at 1.6 s: not late
+    late_tick = np.array([1_200_000_000 + int(OVERDUE * 400_000_000) + 1])
+    late, _ = edge_speed(stamps, late_tick, 0.2, window, 6, hold)
+    assert late[0] == 0.0  # overdue and past hold: standing
 
 
 def test_edges_going_backwards_are_counted_and_dropped() -> None:
