@@ -111,10 +111,12 @@ class _Vehicle:
 
     def due(self, until_ns: int) -> IntArray | None:
         """The ticks up to ``until_ns`` the IMU covers, not yet computed (None if none)."""
-        last, first = self.sensors.imu_until_ns(), self.sensors.first_imu_ns()
-        if last is None or first is None:
+        last = self.sensors.imu_until_ns()
+        if last is None:
             return None
         if self.next_ns is None:
+            first = self.sensors.first_imu_ns()
+            assert first is not None  # some IMU sample is held
             self.next_ns = first + self.tick_ns
         end = min(until_ns, last)
         if end < self.next_ns:
@@ -164,6 +166,17 @@ def _tick_inputs(fe: FrontEndTicks) -> TickInputs:
         vy_meas_std_mps=np.full(fe.vx_mps.size, _GNSS_VY_STD_MPS),
         alpha_lag_rad=fe.alpha_lag_rad,
     )
+
+
+def _front_columns(out: np.ndarray, at: IntArray, fe: FrontEndTicks, util: FloatArray) -> None:
+    """The rows ``out[at]``'s front-end columns (speed, per-wheel load, slip, slip angle) and
+    the grip used ``util`` ``(B, 4)``, for the whole round at once."""
+    out["vx_mps"][at] = fe.vx_mps
+    for j, key in enumerate(WHEEL_KEYS):
+        out[f"fz_{key}_n"][at] = fe.fz_n[:, j]
+        out[f"slip_{key}_pct"][at] = 100.0 * fe.kappa[:, j]
+        out[f"alpha_{key}_rad"][at] = fe.alpha_rad[:, j]
+        out[f"util_{key}_pct"][at] = 100.0 * util[:, j]
 
 
 class FrictionFleet:
@@ -245,22 +258,25 @@ class FrictionFleet:
         starts = np.cumsum(counts) - counts
         every = SensedTicks.concat([w[2] for w in work])
         slots = np.array([w[1].slot for w in work])
-        out = [FRICTION_SPEC.empty_rows(int(n)) for n in counts]
+        out = FRICTION_SPEC.empty_rows(int(counts.sum()))  # each vehicle's rows in a run
         for r in range(int(counts.max())):
             part = np.flatnonzero(counts > r)
-            sensed = every.take(starts[part] + r)
-            self._round(
-                [work[k][1] for k in part],
-                sensed.t_ns.tolist(),
-                self._front.step(slots[part], sensed),
-                [out[k][r : r + 1] for k in part],
-            )
-        return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
+            at = starts[part] + r
+            sensed = every.take(at)
+            fe = self._front.step(slots[part], sensed)
+            self._round([work[k][1] for k in part], sensed.t_ns.tolist(), fe, out, at)
+        return [(w[0], out[a : a + n]) for w, a, n in zip(work, starts, counts, strict=True)]
 
     def _round(
-        self, vs: list[_Vehicle], t_ns: list[int], fe: FrontEndTicks, rows: list[np.ndarray]
+        self,
+        vs: list[_Vehicle],
+        t_ns: list[int],
+        fe: FrontEndTicks,
+        out: np.ndarray,
+        at: IntArray,
     ) -> None:
-        """Step one tick of every vehicle in ``vs`` together (``fe``: their front ends')."""
+        """Step one tick of every vehicle in ``vs`` together (``fe``: their front ends'), into
+        the rows ``out[at]``."""
         u = _tick_inputs(fe)
         tyres = TyreArrays(
             kz_npm=fe.kz_npm,
@@ -277,9 +293,11 @@ class FrictionFleet:
         fresh = [v.state is None for v in vs]
         st = filter_step(self._states(vs, tyres, u), self.config.filter, tyres, chassis, u)
         util = self._utilisation(st, tyres, u)
+        _front_columns(out, at, fe, util)
         for i, v in enumerate(vs):
             v.state = st.take(np.array([i]))
-            self._row(rows[i], v, (t_ns[i], fe), st, i, util[i], fresh[i])
+            row = out[at[i] : at[i] + 1]
+            self._row(row, v, (t_ns[i], fe), st, i, util[i], fresh[i])
 
     def _states(self, vs: list[_Vehicle], tyres: TyreArrays, u: TickInputs) -> FilterState:
         """The vehicles' filter states stacked; a vehicle's first tick starts from the prior."""
@@ -351,12 +369,6 @@ class FrictionFleet:
         row["mu"] = mu if informed else v.held_mu
         row["mu_std"] = std if informed else math.nan
         row["mu_filter"] = mu
-        row["vx_mps"] = fe.vx_mps[i]
         row["vy_mps"] = st.x[i, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps[i]
-        for j, key in enumerate(WHEEL_KEYS):
-            row[f"fz_{key}_n"] = fe.fz_n[i, j]
-            row[f"slip_{key}_pct"] = 100.0 * fe.kappa[i, j]
-            row[f"alpha_{key}_rad"] = fe.alpha_rad[i, j]
-            row[f"util_{key}_pct"] = 100.0 * util[j]
         here = _place(row, v.position, t_ns, float(fe.vx_mps[i]), float(fe.yaw_rate_radps[i]))
         row["flags"] = int(flags | here)

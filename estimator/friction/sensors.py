@@ -95,31 +95,41 @@ class _Stream:
             self.joined()
         return int(self.stamps[-1]) if self.stamps.size else None
 
-    def drop_until(self, t_ns: int) -> None:
-        """Forget the samples at or before ``t_ns``."""
-        keep = int(np.searchsorted(self.stamps, t_ns, side="right"))
+    def drop(self, keep: int) -> None:
+        """Forget the first ``keep`` samples (those at or before the last tick read)."""
         if keep:
             self.stamps, self.values = self.stamps[keep:], self.values[keep:]
 
     def latest(self, ticks_ns: IntArray, held: FloatArray) -> FloatArray:
-        """The last sample at or before each tick ``(K, width)``; ``held`` before the first."""
+        """The last sample at or before each tick ``(K, width)``, ``held`` before the first;
+        the samples up to the last tick are dropped."""
         self.joined()
-        idx = np.searchsorted(self.stamps, ticks_ns, side="right") - 1
-        out = np.empty((ticks_ns.size, self.values.shape[1]))
-        out[:] = held
-        have = idx >= 0
-        out[have] = self.values[idx[have]]
+        end = np.searchsorted(self.stamps, ticks_ns, side="right")
+        if end[0] > 0:  # the usual case: a sample at or before every tick
+            out = self.values[end - 1]
+        else:
+            out = np.empty((ticks_ns.size, self.values.shape[1]))
+            out[:] = held
+            have = end > 0
+            out[have] = self.values[end[have] - 1]
+        self.drop(int(end[-1]))
         return out
 
     def window_means(self, ticks_ns: IntArray, span_ns: int) -> tuple[FloatArray, IntArray]:
-        """Mean of the samples in ``(t − span, t]`` per tick ``(K, width)`` and their count."""
+        """Mean of the samples in ``(t − span, t]`` per tick ``(K, width)`` and their count;
+        the samples up to the last tick are dropped."""
         self.joined()
-        lo = np.searchsorted(self.stamps, ticks_ns - span_ns, side="right")
-        hi = np.searchsorted(self.stamps, ticks_ns, side="right")
+        k = ticks_ns.size
+        edges = np.searchsorted(
+            self.stamps, np.concatenate([ticks_ns - span_ns, ticks_ns]), "right"
+        )
+        lo, hi = edges[:k], edges[k:]
         sums = np.zeros((self.stamps.size + 1, self.values.shape[1]))
         np.cumsum(self.values, axis=0, out=sums[1:])
         count = hi - lo
-        return (sums[hi] - sums[lo]) / np.maximum(count, 1)[:, None], count
+        means = (sums[hi] - sums[lo]) / np.maximum(count, 1)[:, None]
+        self.drop(int(hi[-1]))
+        return means, count
 
 
 class SensorBuffers:
@@ -167,20 +177,16 @@ class SensorBuffers:
 
     def first_imu_ns(self) -> int | None:
         """The first IMU sample time held."""
-        self.imu.joined()
-        return int(self.imu.stamps[0]) if self.imu.stamps.size else None
+        return int(self.imu.stamps[0]) if self.imu.last_ns() is not None else None
 
     def read(self, ticks_ns: IntArray) -> SensedTicks:
         """The ready ones of the ticks ``ticks_ns`` ``(K,)`` (increasing, ``tick_ns`` apart)."""
         imu, count = self.imu.window_means(ticks_ns, self.tick_ns)
         omega = self.wheels.latest(ticks_ns, self.omega)
         steer = self.steering.latest(ticks_ns, self.steer)[:, 0]
-        last = int(ticks_ns[-1])
         self.omega, self.steer = omega[-1].copy(), steer[-1:].copy()
-        for stream in (self.imu, self.wheels, self.steering):
-            stream.drop_until(last)
         ready = (count > 0) & np.isfinite(omega).all(axis=1)
-        keep = np.flatnonzero(ready)
+        keep: slice | IntArray = slice(None) if ready.all() else np.flatnonzero(ready)
         gnss = self._gnss(ticks_ns, ready)
         return SensedTicks(
             t_ns=ticks_ns[keep],
