@@ -50,7 +50,7 @@ from estimator.friction.filter import (
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.frontend import FrontEndConfig
 from estimator.friction.model import Chassis
-from estimator.friction.position import PositionConfig, PositionTrack
+from estimator.friction.position import FleetPositions, PositionConfig
 from estimator.friction.sensors import SensedTicks, SensorBuffers
 from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
@@ -94,7 +94,6 @@ class _Vehicle:
         self.slot = slot
         self.tick_ns = round(cfg.filter.tick_s * 1e9)
         self.sensors = SensorBuffers(self.tick_ns, cfg.front.gnss_timeout_s)
-        self.position = PositionTrack(cfg.position)
         self.next_ns: int | None = None
         self.state: FilterState | None = None
         self.held_mu = math.nan
@@ -133,19 +132,6 @@ _GNSS_VY_STD_MPS = 0.1
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts, axis=0)
-
-
-def _place(
-    row: np.ndarray, track: PositionTrack, t_ns: int, vx_mps: float, yaw_rate_radps: float
-) -> FrictionFlag:
-    """Fill the row's position from the vehicle's track (stepped with the row's speeds and the
-    gyro's yaw rate); its ``DEAD_RECKONED`` bit."""
-    here = track.step(t_ns, vx_mps, float(row["vy_mps"].item()), yaw_rate_radps)
-    row["east_m"] = here.east_m
-    row["north_m"] = here.north_m
-    row["up_m"] = here.up_m
-    row["heading_rad"] = here.heading_rad
-    return FrictionFlag.DEAD_RECKONED if here.dead_reckoned else FrictionFlag.NONE
 
 
 def _tick_inputs(fe: FrontEndTicks) -> TickInputs:
@@ -190,6 +176,7 @@ class FrictionFleet:
         self.config = config or FrictionFleetConfig()
         self._vehicles: dict[str, _Vehicle] = {}
         self._front = FleetFrontEnd(self.config.front, self.config.filter.tick_s)
+        self._positions = FleetPositions(self.config.position)
         self._free_slots: list[int] = []
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
@@ -202,6 +189,7 @@ class FrictionFleet:
         else:
             slot = len(self._vehicles)
         self._front.add(slot, steered)
+        self._positions.add(slot)
         self._vehicles[vehicle_id] = _Vehicle(steered, self.config, slot)
 
     def remove_vehicle(self, vehicle_id: str) -> None:
@@ -222,7 +210,7 @@ class FrictionFleet:
             front.push_steering(measurement)
         elif isinstance(measurement, GnssSample):
             front.push_gnss(measurement)
-            self._vehicles[vehicle_id].position.push(measurement)
+            self._positions.push(self._vehicles[vehicle_id].slot, measurement)
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         v = self._vehicles[vehicle_id]
@@ -232,12 +220,12 @@ class FrictionFleet:
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame (its first fix's
         antenna), None before it."""
-        return self._vehicles[vehicle_id].position.anchor()
+        return self._positions.anchor(self._vehicles[vehicle_id].slot)
 
     def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
         """Give the vehicle's ENU frame this origin (the one its stored rows are in) instead
         of its first fix; ``ValueError`` for what is no geodetic position."""
-        self._vehicles[vehicle_id].position.set_anchor(lat_deg, lon_deg, height_m)
+        self._positions.set_anchor(self._vehicles[vehicle_id].slot, lat_deg, lon_deg, height_m)
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]`` the IMU covers."""
@@ -265,7 +253,21 @@ class FrictionFleet:
             sensed = every.take(at)
             fe = self._front.step(slots[part], sensed)
             self._round([work[k][1] for k in part], sensed.t_ns.tolist(), fe, out, at)
+            self._place(out, at, slots[part], sensed.t_ns, fe)
         return [(w[0], out[a : a + n]) for w, a, n in zip(work, starts, counts, strict=True)]
+
+    def _place(
+        self, out: np.ndarray, at: IntArray, s: IntArray, t_ns: IntArray, fe: FrontEndTicks
+    ) -> None:
+        """The rows ``out[at]``'s position from the vehicles' tracks, stepped with the rows'
+        speeds and the gyro's yaw rate; their ``DEAD_RECKONED`` bit."""
+        vy = out["vy_mps"][at]
+        enu, heading, late = self._positions.step(s, t_ns, fe.vx_mps, vy, fe.yaw_rate_radps)
+        out["east_m"][at], out["north_m"][at], out["up_m"][at] = enu.T
+        out["heading_rad"][at] = heading
+        out["flags"][at] |= np.where(late, int(FrictionFlag.DEAD_RECKONED), 0).astype(
+            out["flags"].dtype
+        )
 
     def _round(
         self,
@@ -370,5 +372,4 @@ class FrictionFleet:
         row["mu_std"] = std if informed else math.nan
         row["mu_filter"] = mu
         row["vy_mps"] = st.x[i, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps[i]
-        here = _place(row, v.position, t_ns, float(fe.vx_mps[i]), float(fe.yaw_rate_radps[i]))
-        row["flags"] = int(flags | here)
+        row["flags"] = int(flags)
