@@ -1,9 +1,11 @@
 """The friction estimator as a ``FleetEstimator``: every vehicle's μ filter stepped together.
 
-Each vehicle has its :class:`~.frontend.FrontEnd` (sensors → per-wheel inputs, per tick) and
-one row of the batched filter (:func:`~.filter.filter_step`, vehicles × cubature points in one
-numpy call per round). Ticks lie on ``first IMU sample + k·tick_s`` (or ``align_ticks``); a
-tick is computed once the IMU covers it.
+Each vehicle has its sensor buffers (:class:`~.sensors.SensorBuffers`, read once per call for
+its due ticks), a slot of the batched front end (:class:`~.fleetfront.FleetFrontEnd`: sensors →
+per-wheel inputs, every vehicle of a round in one numpy pass) and one row of the batched filter
+(:func:`~.filter.filter_step`, vehicles × cubature points in one numpy call per round). Ticks
+lie on ``first IMU sample + k·tick_s`` (or ``align_ticks``); a tick is computed once the IMU
+covers it.
 
 Informed or not (``method.md`` §5's warning): μ is told apart from stiffness only where the
 tyres work in their non-linear range, and not at all without excitation. A tick is
@@ -28,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator._arrays import FloatArray
+from estimator._arrays import FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import ConfigError, VehicleConfig, Wheeled4wdSteeredConfig, expect_kind
 from estimator.friction.brush import brush_forces, utilisation
@@ -45,9 +47,11 @@ from estimator.friction.filter import (
     mu_of,
     mu_std_of,
 )
-from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick
+from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
+from estimator.friction.frontend import FrontEndConfig
 from estimator.friction.model import Chassis
-from estimator.friction.position import PositionConfig, PositionTrack
+from estimator.friction.position import FleetPositions, PositionConfig
+from estimator.friction.sensors import SensedTicks, SensorBuffers
 from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
@@ -83,11 +87,13 @@ class FrictionFleetConfig:
 
 
 class _Vehicle:
-    def __init__(self, config: Wheeled4wdSteeredConfig, cfg: FrictionFleetConfig) -> None:
+    def __init__(
+        self, config: Wheeled4wdSteeredConfig, cfg: FrictionFleetConfig, slot: int
+    ) -> None:
         self.config = config
-        self.front = FrontEnd(config, cfg.front, cfg.filter.tick_s)
-        self.position = PositionTrack(cfg.position)
+        self.slot = slot
         self.tick_ns = round(cfg.filter.tick_s * 1e9)
+        self.sensors = SensorBuffers(self.tick_ns, cfg.front.gnss_timeout_s)
         self.next_ns: int | None = None
         self.state: FilterState | None = None
         self.held_mu = math.nan
@@ -102,18 +108,21 @@ class _Vehicle:
         )
         self.chassis = Chassis.of([config])
 
-    def due(self, until_ns: int) -> list[int]:
-        last = self.front.imu_until_ns()
+    def due(self, until_ns: int) -> IntArray | None:
+        """The ticks up to ``until_ns`` the IMU covers, not yet computed (None if none)."""
+        last = self.sensors.imu_until_ns()
         if last is None:
-            return []
+            return None
         if self.next_ns is None:
-            self.next_ns = int(self.front.imu[0][0][0]) + self.tick_ns
+            first = self.sensors.first_imu_ns()
+            assert first is not None  # some IMU sample is held
+            self.next_ns = first + self.tick_ns
         end = min(until_ns, last)
         if end < self.next_ns:
-            return []
+            return None
         n = (end - self.next_ns) // self.tick_ns + 1
-        ticks = [self.next_ns + k * self.tick_ns for k in range(n)]
-        self.next_ns = ticks[-1] + self.tick_ns
+        ticks = self.next_ns + self.tick_ns * np.arange(n, dtype=np.int64)
+        self.next_ns = int(ticks[-1]) + self.tick_ns
         return ticks
 
 
@@ -125,35 +134,35 @@ def _cat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts, axis=0)
 
 
-def _place(row: np.ndarray, track: PositionTrack, t_ns: int, fe: FrontEndTick) -> FrictionFlag:
-    """Fill the row's position from the vehicle's track (stepped with the row's speeds and the
-    gyro's yaw rate); its ``DEAD_RECKONED`` bit."""
-    here = track.step(t_ns, fe.vx_mps, float(row["vy_mps"].item()), fe.yaw_rate_radps)
-    row["east_m"] = here.east_m
-    row["north_m"] = here.north_m
-    row["up_m"] = here.up_m
-    row["heading_rad"] = here.heading_rad
-    return FrictionFlag.DEAD_RECKONED if here.dead_reckoned else FrictionFlag.NONE
-
-
-def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
-    """One :class:`TickInputs` of the vehicles' front-end ticks, one row each."""
+def _tick_inputs(fe: FrontEndTicks) -> TickInputs:
+    """The filter's :class:`TickInputs` of a round's front-end output."""
     return TickInputs(
-        fz_n=np.stack([fe.fz_n for fe in fes]),
-        alpha_rad=np.stack([fe.alpha_rad for fe in fes]),
-        delta_rad=np.stack([fe.delta_rad for fe in fes]),
-        kappa=np.stack([fe.kappa for fe in fes]),
-        kappa_std=np.stack([fe.kappa_std for fe in fes]),
-        kappa_common_std=np.array([fe.kappa_common_std for fe in fes]),
-        alpha_std_rad=np.stack([fe.alpha_std_rad for fe in fes]),
-        z=np.stack([fe.z for fe in fes]),
-        valid=np.array([fe.valid for fe in fes]),
-        vx_mps=np.array([fe.vx_mps for fe in fes]),
-        yaw_rate_radps=np.array([fe.yaw_rate_radps for fe in fes]),
-        vy_meas_mps=np.array([fe.vy_gnss_mps for fe in fes]),
-        vy_meas_std_mps=np.full(len(fes), _GNSS_VY_STD_MPS),
-        alpha_lag_rad=np.stack([fe.alpha_lag_rad for fe in fes]),
+        fz_n=fe.fz_n,
+        alpha_rad=fe.alpha_rad,
+        delta_rad=fe.delta_rad,
+        kappa=fe.kappa,
+        kappa_std=fe.kappa_std,
+        kappa_common_std=fe.kappa_common_std,
+        alpha_std_rad=fe.alpha_std_rad,
+        z=fe.z,
+        valid=fe.valid,
+        vx_mps=fe.vx_mps,
+        yaw_rate_radps=fe.yaw_rate_radps,
+        vy_meas_mps=fe.vy_gnss_mps,
+        vy_meas_std_mps=np.full(fe.vx_mps.size, _GNSS_VY_STD_MPS),
+        alpha_lag_rad=fe.alpha_lag_rad,
     )
+
+
+def _front_columns(out: np.ndarray, at: IntArray, fe: FrontEndTicks, util: FloatArray) -> None:
+    """The rows ``out[at]``'s front-end columns (speed, per-wheel load, slip, slip angle) and
+    the grip used ``util`` ``(B, 4)``, for the whole round at once."""
+    out["vx_mps"][at] = fe.vx_mps
+    for j, key in enumerate(WHEEL_KEYS):
+        out[f"fz_{key}_n"][at] = fe.fz_n[:, j]
+        out[f"slip_{key}_pct"][at] = 100.0 * fe.kappa[:, j]
+        out[f"alpha_{key}_rad"][at] = fe.alpha_rad[:, j]
+        out[f"util_{key}_pct"][at] = 100.0 * util[:, j]
 
 
 class FrictionFleet:
@@ -166,19 +175,33 @@ class FrictionFleet:
     def __init__(self, config: FrictionFleetConfig | None = None) -> None:
         self.config = config or FrictionFleetConfig()
         self._vehicles: dict[str, _Vehicle] = {}
+        self._front = FleetFrontEnd(self.config.front, self.config.filter.tick_s)
+        self._positions = FleetPositions(self.config.position)
+        self._free_slots: list[int] = []
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         steered = expect_kind(config, Wheeled4wdSteeredConfig, self.name)
-        self._vehicles[vehicle_id] = _Vehicle(steered, self.config)
+        old = self._vehicles.get(vehicle_id)
+        if old is not None:
+            slot = old.slot
+        elif self._free_slots:
+            slot = self._free_slots.pop()
+        else:
+            slot = len(self._vehicles)
+        self._front.add(slot, steered)
+        self._positions.add(slot)
+        self._vehicles[vehicle_id] = _Vehicle(steered, self.config, slot)
 
     def remove_vehicle(self, vehicle_id: str) -> None:
-        self._vehicles.pop(vehicle_id, None)
+        v = self._vehicles.pop(vehicle_id, None)
+        if v is not None:
+            self._free_slots.append(v.slot)
 
     def vehicle_ids(self) -> list[str]:
         return list(self._vehicles)
 
     def push(self, vehicle_id: str, measurement: Pushed) -> None:
-        front = self._vehicles[vehicle_id].front
+        front = self._vehicles[vehicle_id].sensors
         if isinstance(measurement, ImuBatch):
             front.push_imu(measurement)
         elif isinstance(measurement, WheelSpeeds4):
@@ -187,7 +210,7 @@ class FrictionFleet:
             front.push_steering(measurement)
         elif isinstance(measurement, GnssSample):
             front.push_gnss(measurement)
-            self._vehicles[vehicle_id].position.push(measurement)
+            self._positions.push(self._vehicles[vehicle_id].slot, measurement)
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         v = self._vehicles[vehicle_id]
@@ -197,43 +220,68 @@ class FrictionFleet:
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame (its first fix's
         antenna), None before it."""
-        return self._vehicles[vehicle_id].position.anchor()
+        return self._positions.anchor(self._vehicles[vehicle_id].slot)
 
     def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
         """Give the vehicle's ENU frame this origin (the one its stored rows are in) instead
         of its first fix; ``ValueError`` for what is no geodetic position."""
-        self._vehicles[vehicle_id].position.set_anchor(lat_deg, lon_deg, height_m)
+        self._positions.set_anchor(self._vehicles[vehicle_id].slot, lat_deg, lon_deg, height_m)
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]`` the IMU covers."""
-        work: list[tuple[str, _Vehicle, list[tuple[int, FrontEndTick]]]] = []
+        work: list[tuple[str, _Vehicle, SensedTicks]] = []
         for vid, until in until_ns.items():
             v = self._vehicles.get(vid)
             if v is None:
                 continue
-            ticks = [(t, v.front.tick(t)) for t in v.due(int(until))]
-            ready = [(t, fe) for t, fe in ticks if fe is not None]
-            if ready:
-                work.append((vid, v, ready))
+            ticks = v.due(int(until))
+            if ticks is None:
+                continue
+            sensed = v.sensors.read(ticks)
+            if sensed.t_ns.size:
+                work.append((vid, v, sensed))
         if not work:
             return []
-        out = [FRICTION_SPEC.empty_rows(len(w[2])) for w in work]
-        for r in range(max(len(w[2]) for w in work)):
-            part = [k for k, w in enumerate(work) if len(w[2]) > r]
-            self._round(
-                [work[k][1] for k in part],
-                [work[k][2][r] for k in part],
-                [out[k][r : r + 1] for k in part],
-            )
-        return [(w[0], rows) for w, rows in zip(work, out, strict=True)]
+        counts = np.array([w[2].t_ns.size for w in work])
+        starts = np.cumsum(counts) - counts
+        every = SensedTicks.concat([w[2] for w in work])
+        slots = np.array([w[1].slot for w in work])
+        out = FRICTION_SPEC.empty_rows(int(counts.sum()))  # each vehicle's rows in a run
+        for r in range(int(counts.max())):
+            part = np.flatnonzero(counts > r)
+            at = starts[part] + r
+            sensed = every.take(at)
+            fe = self._front.step(slots[part], sensed)
+            self._round([work[k][1] for k in part], sensed.t_ns.tolist(), fe, out, at)
+            self._place(out, at, slots[part], sensed.t_ns, fe)
+        return [(w[0], out[a : a + n]) for w, a, n in zip(work, starts, counts, strict=True)]
+
+    def _place(
+        self, out: np.ndarray, at: IntArray, s: IntArray, t_ns: IntArray, fe: FrontEndTicks
+    ) -> None:
+        """The rows ``out[at]``'s position from the vehicles' tracks, stepped with the rows'
+        speeds and the gyro's yaw rate; their ``DEAD_RECKONED`` bit."""
+        vy = out["vy_mps"][at]
+        enu, heading, late = self._positions.step(s, t_ns, fe.vx_mps, vy, fe.yaw_rate_radps)
+        out["east_m"][at], out["north_m"][at], out["up_m"][at] = enu.T
+        out["heading_rad"][at] = heading
+        out["flags"][at] |= np.where(late, int(FrictionFlag.DEAD_RECKONED), 0).astype(
+            out["flags"].dtype
+        )
 
     def _round(
-        self, vs: list[_Vehicle], ticks: list[tuple[int, FrontEndTick]], rows: list[np.ndarray]
+        self,
+        vs: list[_Vehicle],
+        t_ns: list[int],
+        fe: FrontEndTicks,
+        out: np.ndarray,
+        at: IntArray,
     ) -> None:
-        """Step one tick of every vehicle in ``vs`` together."""
-        u = _stack_inputs([fe for _, fe in ticks])
+        """Step one tick of every vehicle in ``vs`` together (``fe``: their front ends'), into
+        the rows ``out[at]``."""
+        u = _tick_inputs(fe)
         tyres = TyreArrays(
-            kz_npm=np.stack([fe.kz_npm for _, fe in ticks]),
+            kz_npm=fe.kz_npm,
             radius_m=_cat([v.tyres.radius_m for v in vs]),
             c_px_npm2=_cat([v.tyres.c_px_npm2 for v in vs]),
             c_py_npm2=_cat([v.tyres.c_py_npm2 for v in vs]),
@@ -247,9 +295,11 @@ class FrictionFleet:
         fresh = [v.state is None for v in vs]
         st = filter_step(self._states(vs, tyres, u), self.config.filter, tyres, chassis, u)
         util = self._utilisation(st, tyres, u)
+        _front_columns(out, at, fe, util)
         for i, v in enumerate(vs):
             v.state = st.take(np.array([i]))
-            self._row(rows[i], v, ticks[i], st, i, util[i], fresh[i])
+            row = out[at[i] : at[i] + 1]
+            self._row(row, v, (t_ns[i], fe), st, i, util[i], fresh[i])
 
     def _states(self, vs: list[_Vehicle], tyres: TyreArrays, u: TickInputs) -> FilterState:
         """The vehicles' filter states stacked; a vehicle's first tick starts from the prior."""
@@ -290,7 +340,7 @@ class FrictionFleet:
         self,
         row: np.ndarray,
         v: _Vehicle,
-        tick: tuple[int, FrontEndTick],
+        tick: tuple[int, FrontEndTicks],
         st: FilterState,
         i: int,
         util: FloatArray,
@@ -309,9 +359,9 @@ class FrictionFleet:
             flags |= FrictionFlag.HELD
         if not st.updated[i]:
             flags |= FrictionFlag.NO_UPDATE
-        if fe.gnss:
+        if fe.gnss[i]:
             flags |= FrictionFlag.GNSS_SPEED
-        if fe.tyre_suspect:
+        if fe.tyre_suspect[i]:
             flags |= FrictionFlag.TYRE_SUSPECT
         if self.config.filter.mode is FrictionMode.PAPER and st.updated[i] and not st.mee_ok[i]:
             flags |= FrictionFlag.MEE_FALLBACK
@@ -321,11 +371,5 @@ class FrictionFleet:
         row["mu"] = mu if informed else v.held_mu
         row["mu_std"] = std if informed else math.nan
         row["mu_filter"] = mu
-        row["vx_mps"] = fe.vx_mps
-        row["vy_mps"] = st.x[i, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps
-        for j, key in enumerate(WHEEL_KEYS):
-            row[f"fz_{key}_n"] = fe.fz_n[j]
-            row[f"slip_{key}_pct"] = 100.0 * fe.kappa[j]
-            row[f"alpha_{key}_rad"] = fe.alpha_rad[j]
-            row[f"util_{key}_pct"] = 100.0 * util[j]
-        row["flags"] = int(flags | _place(row, v.position, t_ns, fe))
+        row["vy_mps"] = st.x[i, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps[i]
+        row["flags"] = int(flags)

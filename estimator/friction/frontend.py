@@ -1,7 +1,10 @@
 """Per-wheel slip, slip angle, steer angle and load from the sensors, with their uncertainty.
 
 One :class:`FrontEnd` per vehicle turns IMU, CAN wheel speeds, steering-wheel angle and
-(optional) GNSS into the μ filter's inputs each tick (``method.md`` §5, source eq. 7-15):
+(optional) GNSS into the μ filter's inputs each tick (``method.md`` §5, source eq. 7-15). The
+fleet runs the same stages batched over vehicles (:class:`~.fleetfront.FleetFrontEnd`); this
+class is where they are written out one vehicle at a time, and the reference the batched one
+is tested against:
 
 * speed ``v_x`` and the forward accelerometer's bias from a two-state Kalman filter driven by
   the accelerometer and corrected by GNSS forward speed (or, without GNSS, the undriven

@@ -22,7 +22,9 @@ the antenna's (on the four-wheel simulator it sits at the CG).
   friction front end has no gyro-bias estimate, and a 0.003 rad/s bias turns the heading
   0.03 rad in 10 s (about 2 m across the track at 15 m/s).
 
-Pure: no clock, no I/O; one vehicle per object (the fleet steps each vehicle's own).
+Pure: no clock, no I/O. :class:`PositionTrack` is one vehicle's; :class:`FleetPositions` holds
+every vehicle's by slot and dead-reckons all vehicles of a round in one numpy pass (a fresh fix
+places its vehicle the same way as the single track does).
 """
 
 from __future__ import annotations
@@ -31,11 +33,14 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
+from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.config import ConfigError
 from estimator.geo import EnuFrame
 from estimator.types import GnssFix, GnssSample
 
-__all__ = ["PositionConfig", "PositionTick", "PositionTrack"]
+__all__ = ["FleetPositions", "PositionConfig", "PositionTick", "PositionTrack"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,17 +141,14 @@ class PositionTrack:
         """Put the vehicle at the fix ``g`` moved to ``t_ns``, heading as the module says."""
         if self.frame is None:
             self.frame = EnuFrame(g.lat_deg, g.lon_deg, g.height_m)
-        east, north, up = (float(c) for c in self.frame.to_enu(g.lat_deg, g.lon_deg, g.height_m))
-        ve, vn, vu = (v if math.isfinite(v) else 0.0 for v in g.vel_enu_mps)
-        age_s = (t_ns - g.stamp_ns) * 1e-9
-        self._enu = [east + ve * age_s, north + vn * age_s, up + vu * age_s]
-        if math.isfinite(g.heading_rad):
-            heading = g.heading_rad
-        elif math.hypot(ve, vn) >= self.config.min_course_speed_mps and math.isfinite(vx):
-            heading = math.atan2(ve, vn) + math.atan2(vy if math.isfinite(vy) else 0.0, vx)
-        else:  # standing, no receiver heading: the gyro's from the last one (NaN if none)
-            heading = self._heading_rad - (turn_rad if math.isfinite(turn_rad) else 0.0)
-        self._heading_rad = heading % (2 * math.pi)
+        self._enu, self._heading_rad = _placed(
+            self.frame,
+            g,
+            t_ns,
+            (vx, vy),
+            self._heading_rad - (turn_rad if math.isfinite(turn_rad) else 0.0),
+            self.config,
+        )
         self._fix_ns = g.stamp_ns
 
     def _carry(self, t_ns: int, dt_s: float, vx: float, vy: float, r: float) -> bool:
@@ -170,3 +172,144 @@ class PositionTrack:
         self._enu[1] += dt_s * (vx * c + vy * s)
         self._heading_rad = (self._heading_rad - r * dt_s) % (2 * math.pi)
         return True
+
+
+def _placed(
+    frame: EnuFrame,
+    g: GnssSample,
+    t_ns: int,
+    body_mps: tuple[float, float],
+    gyro_heading_rad: float,
+    config: PositionConfig,
+) -> tuple[list[float], float]:
+    """ENU position at ``t_ns`` of the fix ``g`` and the heading (module docstring): the
+    receiver's, else the course turned back by the side-slip of ``body_mps`` ``(v_x, v_y)``,
+    else (standing) ``gyro_heading_rad``, the last heading turned by the gyro (NaN if none)."""
+    east, north, up = (float(c) for c in frame.to_enu(g.lat_deg, g.lon_deg, g.height_m))
+    ve, vn, vu = (v if math.isfinite(v) else 0.0 for v in g.vel_enu_mps)
+    vx, vy = body_mps
+    age_s = (t_ns - g.stamp_ns) * 1e-9
+    enu = [east + ve * age_s, north + vn * age_s, up + vu * age_s]
+    if math.isfinite(g.heading_rad):
+        heading = g.heading_rad
+    elif math.hypot(ve, vn) >= config.min_course_speed_mps and math.isfinite(vx):
+        heading = math.atan2(ve, vn) + math.atan2(vy if math.isfinite(vy) else 0.0, vx)
+    else:
+        heading = gyro_heading_rad
+    return enu, heading % (2 * math.pi)
+
+
+class FleetPositions:
+    """:class:`PositionTrack` for every vehicle by slot; :meth:`step` a round at once."""
+
+    def __init__(self, config: PositionConfig) -> None:
+        self.config = config
+        self.frames: list[EnuFrame | None] = []
+        self._fixes: list[deque[GnssSample]] = []
+        self._enu = np.zeros((0, 3))
+        self._heading_rad = np.zeros(0)
+        self._fix_ns = np.zeros(0, dtype=np.int64)
+        self._placed = np.zeros(0, dtype=bool)  # a fix has placed the vehicle
+        self._tick_ns = np.zeros(0, dtype=np.int64)
+        self._ticked = np.zeros(0, dtype=bool)
+
+    def add(self, slot: int) -> None:
+        """Start slot ``slot``'s track afresh."""
+        if slot >= len(self.frames):
+            more = slot + 1 - len(self.frames)
+            self.frames += [None] * more
+            self._fixes += [deque() for _ in range(more)]
+            self._enu = np.concatenate([self._enu, np.zeros((more, 3))])
+            self._heading_rad = np.concatenate([self._heading_rad, np.zeros(more)])
+            self._fix_ns = np.concatenate([self._fix_ns, np.zeros(more, dtype=np.int64)])
+            self._placed = np.concatenate([self._placed, np.zeros(more, dtype=bool)])
+            self._tick_ns = np.concatenate([self._tick_ns, np.zeros(more, dtype=np.int64)])
+            self._ticked = np.concatenate([self._ticked, np.zeros(more, dtype=bool)])
+        self.frames[slot] = None
+        self._fixes[slot].clear()
+        self._enu[slot] = math.nan
+        self._heading_rad[slot] = math.nan
+        self._placed[slot] = self._ticked[slot] = False
+
+    def push(self, slot: int, g: GnssSample) -> None:
+        """Queue a GNSS epoch of slot ``slot`` (those without a position are skipped)."""
+        if _has_position(g):
+            self._fixes[slot].append(g)
+
+    def anchor(self, slot: int) -> tuple[float, float, float] | None:
+        """Slot ``slot``'s ENU origin (:meth:`PositionTrack.anchor`)."""
+        f = self.frames[slot]
+        return None if f is None else (f.lat0_deg, f.lon0_deg, f.h0_m)
+
+    def set_anchor(self, slot: int, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Slot ``slot``'s ENU origin put here (:meth:`PositionTrack.set_anchor`)."""
+        if not all(math.isfinite(v) for v in (lat_deg, lon_deg, height_m)) or abs(lat_deg) > 90:
+            raise ValueError(f"not a geodetic anchor: {(lat_deg, lon_deg, height_m)}")
+        self.frames[slot] = EnuFrame(lat_deg, lon_deg, height_m)
+
+    def step(
+        self, s: IntArray, t_ns: IntArray, vx_mps: FloatArray, vy_mps: FloatArray, r: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """Positions of slots ``s`` ``(B,)`` at their ticks: ENU ``(B, 3)`` and heading ``(B,)``
+        (NaN where none) and whether dead-reckoned past ``after_s`` (:meth:`PositionTrack.step`)."""
+        dt_s = np.where(self._ticked[s], (t_ns - self._tick_ns[s]) * 1e-9, 0.0)
+        self._tick_ns[s], self._ticked[s] = t_ns, True
+        fixed = np.zeros(s.size, dtype=bool)
+        for i, slot in enumerate(s.tolist()):
+            fix = None
+            queue, t = self._fixes[slot], int(t_ns[i])
+            while queue and queue[0].stamp_ns <= t:
+                fix = queue.popleft()
+            if fix is not None:
+                self._place(slot, fix, t, (float(vx_mps[i]), float(vy_mps[i])), r[i] * dt_s[i])
+                fixed[i] = True
+        ok = fixed | self._carry(s, ~fixed, t_ns, dt_s, vx_mps, vy_mps, r)
+        enu, heading = self._enu[s], self._heading_rad[s]
+        enu[~ok], heading[~ok] = math.nan, math.nan
+        late = ok & (t_ns - self._fix_ns[s] > round(self.config.after_s * 1e9))
+        return enu, heading, late
+
+    def _place(
+        self, slot: int, g: GnssSample, t_ns: int, body_mps: tuple[float, float], turn: float
+    ) -> None:
+        frame = self.frames[slot]
+        if frame is None:
+            frame = self.frames[slot] = EnuFrame(g.lat_deg, g.lon_deg, g.height_m)
+        gyro = float(self._heading_rad[slot]) - (turn if math.isfinite(turn) else 0.0)
+        self._enu[slot], self._heading_rad[slot] = _placed(
+            frame, g, t_ns, body_mps, gyro, self.config
+        )
+        self._fix_ns[slot], self._placed[slot] = g.stamp_ns, True
+
+    def _carry(
+        self,
+        s: IntArray,
+        rows: BoolArray,
+        t_ns: IntArray,
+        dt_s: FloatArray,
+        vx: FloatArray,
+        vy: FloatArray,
+        r: FloatArray,
+    ) -> BoolArray:
+        """Dead-reckon the ``rows`` of ``s`` one tick; where there is nothing to carry, or the
+        last fix is ``max_s`` old, the track ends (NaN). True where carried."""
+        enu, heading = self._enu[s], self._heading_rad[s]
+        ok = (
+            rows
+            & self._placed[s]
+            & (t_ns - self._fix_ns[s] <= round(self.config.max_s * 1e9))
+            & np.isfinite(enu[:, 0])
+            & np.isfinite(heading)
+            & np.isfinite(vx)
+            & np.isfinite(r)
+        )
+        self._enu[s[rows & ~ok]] = math.nan
+        c, dt, vx, r = s[ok], dt_s[ok], vx[ok], r[ok]
+        vy = np.where(np.isfinite(vy[ok]), vy[ok], 0.0)
+        heading, enu = heading[ok], enu[ok]
+        mid = heading - 0.5 * r * dt
+        sin, cos = np.sin(mid), np.cos(mid)
+        enu[:, 0] += dt * (vx * sin - vy * cos)
+        enu[:, 1] += dt * (vx * cos + vy * sin)
+        self._enu[c], self._heading_rad[c] = enu, (heading - r * dt) % (2 * math.pi)
+        return ok

@@ -216,10 +216,11 @@ def test_a_soft_tyre_has_its_vertical_stiffness_learnt() -> None:
     rows = _drive(fleet, [run], ["soft"])["soft"]
     late = rows["stamp_ns"] > run.start_ns + 3_000_000_000  # radius calibrated by then
     assert np.all((rows["flags"][late] & FrictionFlag.TYRE_SUSPECT) > 0)
-    front = fleet._vehicles["soft"].front
-    assert abs(front.radius_drop - float(truth.radius_drop[0])) < 0.03
-    assert abs(front.kz_wheel[2] / soft.damaged_kz_npm - 1.0) < 0.1
-    assert np.all(front.kz_wheel[[0, 1, 3]] == run.config.tyre.kz_npm)
+    slot = fleet._vehicles["soft"].slot
+    assert abs(fleet._front.radius_drop(slot) - float(truth.radius_drop[0])) < 0.03
+    kz = fleet._front.kz_wheel(slot)
+    assert abs(kz[2] / soft.damaged_kz_npm - 1.0) < 0.1
+    assert np.all(kz[[0, 1, 3]] == run.config.tyre.kz_npm)
     informed = (rows["flags"] & FrictionFlag.INFORMED) > 0
     assert np.all(np.abs(rows["mu"][informed] / 0.4 - 1.0) < 0.1)
 

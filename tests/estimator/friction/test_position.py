@@ -12,7 +12,7 @@ import pytest
 
 from estimator.config import ConfigError
 from estimator.friction import FrictionFleet
-from estimator.friction.position import PositionConfig, PositionTrack
+from estimator.friction.position import FleetPositions, PositionConfig, PositionTrack
 from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
 from estimator.geo import EnuFrame
 from estimator.sim.four_wheel import (
@@ -123,6 +123,46 @@ def test_the_frame_is_the_first_fix_or_the_anchor_given() -> None:
         track.set_anchor(91.0, 0.0, 0.0)
     with pytest.raises(ConfigError, match="max_s"):
         PositionConfig(max_s=math.nan)
+
+
+def test_fleet_positions_equal_one_track_per_vehicle() -> None:
+    """Three vehicles in one :class:`FleetPositions` (one joining late, one without receiver
+    heading, one standing, fixes dropping out past ``max_s``, a NaN speed) against a
+    :class:`PositionTrack` each, tick by tick: the same positions, headings and flags."""
+    cfg = PositionConfig(after_s=0.25, max_s=1.0)
+    rng = np.random.default_rng(5)
+    fleet = FleetPositions(cfg)
+    tracks = [PositionTrack(cfg) for _ in range(3)]
+    for k in range(3):
+        fleet.add(k)
+    fleet.set_anchor(0, FRAME.lat0_deg, FRAME.lon0_deg, FRAME.h0_m)
+    tracks[0].set_anchor(FRAME.lat0_deg, FRAME.lon0_deg, FRAME.h0_m)
+    for step in range(200):
+        t = T0 + step * 20 * MS
+        if step % 5 == 0 and not 60 <= step < 130:  # 10 Hz fixes, an outage of 1.4 s
+            heading = (math.nan, rng.uniform(0, 2 * math.pi), math.nan)
+            speed = (rng.uniform(0.0, 0.5), 3.0, 2.0)
+            for k in range(3):
+                g = _fix(
+                    t - 3 * MS,
+                    *rng.uniform(-50, 50, 2),
+                    vel=(speed[k], 0.3),
+                    heading_rad=heading[k],
+                )
+                fleet.push(k, g)
+                tracks[k].push(g)
+        due = [k for k in range(3) if step >= 20 * k and (k != 2 or step % 2 == 0)]
+        vx = np.array([math.nan if step == 77 else 4.0, 3.0, 0.0])[due]
+        vy, r = rng.normal(0, 0.2, len(due)), rng.normal(0, 0.1, len(due))
+        ticks = np.full(len(due), t, dtype=np.int64)
+        enu, heading_rad, late = fleet.step(np.array(due), ticks, vx, vy, r)
+        for i, k in enumerate(due):
+            want = tracks[k].step(t, float(vx[i]), float(vy[i]), float(r[i]))
+            got = (*enu[i], heading_rad[i])
+            wanted = (want.east_m, want.north_m, want.up_m, want.heading_rad)
+            np.testing.assert_allclose(got, wanted, rtol=0, atol=1e-9)
+            assert late[i] == want.dead_reckoned
+    assert fleet.anchor(1) == tracks[1].anchor() and fleet.anchor(0) == tracks[0].anchor()
 
 
 # --- the fleet against the simulator ------------------------------------------------------

@@ -1,0 +1,193 @@
+"""The batched front end (sensor buffers read per call, every vehicle of a round in one numpy
+pass) against the per-vehicle :class:`FrontEnd`, its reference: the same inputs to 1e-9 on
+simulated manoeuvres of vehicles of every driven axle, with a soft tyre, tick phases spread,
+vehicles joining late, advanced at different intervals and some calls left out; and the
+fleet's rows carry them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from estimator.base import Measurement
+from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
+from estimator.friction.fleetfront import FrontEndTicks
+from estimator.friction.frontend import FrontEnd, FrontEndTick
+from estimator.friction.sensors import SensedTicks
+from estimator.friction_spec import WHEEL_KEYS, FrictionFlag
+from estimator.sim.four_wheel import NAMED, FourWheelRun, random_config, simulate_four_wheel
+from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
+
+TICK_NS = 20_000_000
+SECONDS = 9.0
+MANOEUVRES = ("steer_mu08", "accelerate_step", "damaged_tyre", "steer_step", "constant_speed")
+
+
+@pytest.fixture(scope="module")
+def runs() -> list[FourWheelRun]:
+    """One run per manoeuvre, each on its own random vehicle (driven axles differ)."""
+    names = [n for n in MANOEUVRES if n in NAMED]
+    assert len(names) >= 4
+    configs = [random_config(np.random.default_rng(40 + k)) for k in range(len(names))]
+    axles = {c.chassis.driven_axle for c in configs}
+    assert len(axles) >= 2, axles
+    return simulate_four_wheel([NAMED[n] for n in names], list(range(21, 21 + len(names))), configs)
+
+
+@dataclasses.dataclass
+class _Reference:
+    """A vehicle through the per-vehicle FrontEnd, ticked on the fleet's grid."""
+
+    front: FrontEnd
+    next_ns: int | None
+    ticks: dict[int, FrontEndTick] = dataclasses.field(default_factory=dict)
+
+    def push(self, m: Measurement) -> None:
+        if isinstance(m, ImuBatch):
+            self.front.push_imu(m)
+        elif isinstance(m, WheelSpeeds4):
+            self.front.push_wheels(m)
+        elif isinstance(m, SteeringAngles):
+            self.front.push_steering(m)
+        elif isinstance(m, GnssSample):
+            self.front.push_gnss(m)
+
+    def advance(self, until_ns: int) -> None:
+        last = self.front.imu_until_ns()
+        if last is None:
+            return
+        if self.next_ns is None:
+            self.next_ns = int(self.front.imu[0][0][0]) + TICK_NS
+        while self.next_ns <= min(until_ns, last):
+            tick = self.front.tick(self.next_ns)
+            if tick is not None:
+                self.ticks[self.next_ns] = tick
+            self.next_ns += TICK_NS
+
+
+def _last_ns(m: Measurement) -> int:
+    return int(np.atleast_1d(m.stamp_ns)[-1])
+
+
+def _drive(
+    runs: list[FourWheelRun], mode: FrictionMode
+) -> tuple[FrictionFleet, dict[str, _Reference], dict[str, list[tuple[int, dict[str, object]]]]]:
+    """Each run twice (as ``a…`` and ``b…``): ``b`` joins 2.5 s late (its packets from then on)
+    and is advanced every 100 ms, ``a`` every 40 ms, ``a2`` only every third call; phases
+    spread by ``align_ticks`` on half the vehicles. Returns the fleet, the references, and
+    the batched front end's outputs per vehicle ``(t_ns, fields)``."""
+    cfg = FrictionFleetConfig(filter=FilterConfig(mode=mode))
+    fleet = FrictionFleet(cfg)
+    start = runs[0].start_ns
+    plan = {}
+    for k, r in enumerate(runs):
+        plan[f"a{k}"] = (r, start, 40)
+        plan[f"b{k}"] = (r, start + 2_500_000_000, 100)
+    refs: dict[str, _Reference] = {}
+    cursor = dict.fromkeys(plan, 0)
+    seen: dict[str, list[tuple[int, dict[str, object]]]] = {vid: [] for vid in plan}
+    _spy(fleet, seen)
+    for step, now in enumerate(range(start, start + round(SECONDS * 1e9), 20_000_000)):
+        for n, (vid, (r, join_ns, _)) in enumerate(plan.items()):
+            if now < join_ns:
+                continue
+            if vid not in refs:
+                fleet.add_vehicle(vid, r.config)
+                aligned = join_ns + n * TICK_NS // len(plan) if n % 2 else None
+                if aligned is not None:
+                    fleet.align_ticks(vid, aligned)
+                refs[vid] = _Reference(FrontEnd(r.config, cfg.front, 0.02), aligned)
+            ms = r.measurements
+            while cursor[vid] < len(ms) and _last_ns(ms[cursor[vid]]) <= now:
+                m = ms[cursor[vid]]
+                cursor[vid] += 1
+                if _last_ns(m) >= join_ns:
+                    fleet.push(vid, m)
+                    refs[vid].push(m)
+        calls = {
+            vid: now - 60_000_000
+            for vid, (_, _, every_ms) in plan.items()
+            if vid in refs and (step * 20) % every_ms == 0 and not (vid == "a2" and step % 3)
+        }
+        fleet.advance(calls)
+        for vid, until in calls.items():
+            refs[vid].advance(until)
+    return fleet, refs, seen
+
+
+def _spy(fleet: FrictionFleet, seen: dict[str, list[tuple[int, dict[str, object]]]]) -> None:
+    """Record what the fleet's batched front end gives each vehicle (the real step runs)."""
+    step = fleet._front.step
+
+    def recording(s: np.ndarray, sensed: SensedTicks) -> FrontEndTicks:
+        out = step(s, sensed)
+        by_slot = {v.slot: vid for vid, v in fleet._vehicles.items()}
+        for i, slot in enumerate(s.tolist()):
+            fields = {f: getattr(out, f)[i] for f in FrontEndTicks.__dataclass_fields__}
+            seen.setdefault(by_slot[slot], []).append((int(sensed.t_ns[i]), fields))
+        return out
+
+    fleet._front.step = recording  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize("mode", [FrictionMode.PRODUCT, FrictionMode.PAPER])
+def test_batched_front_end_equals_the_per_vehicle_one(
+    runs: list[FourWheelRun], mode: FrictionMode
+) -> None:
+    _, refs, seen = _drive(runs, mode)
+    valid = calibrated = 0
+    for vid, ref in refs.items():
+        got = seen[vid]
+        assert [t for t, _ in got] == list(ref.ticks), vid
+        assert len(got) > 150, vid
+        for t_ns, fields in got:
+            want = ref.ticks[t_ns]
+            for name, value in fields.items():
+                np.testing.assert_allclose(
+                    np.asarray(value, float),
+                    np.asarray(getattr(want, name), float),
+                    rtol=0,
+                    atol=1e-9,
+                    err_msg=f"{vid} {name} at {t_ns}",
+                )
+            valid += bool(fields["valid"])
+        calibrated += ref.front.calibrated
+    assert valid > 1000  # the comparison covers μ updates, not only the lead-in
+    if mode is FrictionMode.PRODUCT:
+        assert calibrated >= len(refs) // 2
+
+
+def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> None:
+    """The rows' per-wheel load, slip and slip angle, speed and flags are the reference's
+    (through a soft tyre's learnt stiffness), also after a vehicle is removed and its slot
+    reused."""
+    fleet, refs, _ = _drive(runs[:3], FrictionMode.PRODUCT)
+    assert any(ref.front.tyre_suspect for ref in refs.values())
+    freed = fleet._vehicles["a0"].slot
+    fleet.remove_vehicle("a0")
+    fleet.add_vehicle("c", runs[1].config)
+    assert fleet._vehicles["c"].slot == freed
+    ref = _Reference(FrontEnd(runs[1].config, fleet.config.front, 0.02), None)
+    rows: list[np.ndarray] = []
+    for m in runs[1].measurements:
+        if _last_ns(m) > runs[1].start_ns + 5_000_000_000:
+            break
+        fleet.push("c", m)
+        ref.push(m)
+        until = _last_ns(m) - 60_000_000
+        rows.extend(r for _, r in fleet.advance({"c": until}))
+        ref.advance(until)
+    got = np.concatenate(rows)
+    assert got.size > 200
+    assert list(got["stamp_ns"]) == list(ref.ticks)
+    for row in got:
+        want = ref.ticks[int(row["stamp_ns"])]
+        assert abs(row["vx_mps"] - want.vx_mps) < 1e-9
+        for j, key in enumerate(WHEEL_KEYS):
+            assert abs(row[f"fz_{key}_n"] - want.fz_n[j]) < 1e-9
+            assert abs(row[f"slip_{key}_pct"] - 100.0 * want.kappa[j]) < 1e-9
+            assert abs(row[f"alpha_{key}_rad"] - want.alpha_rad[j]) < 1e-9
+        assert bool(row["flags"] & FrictionFlag.GNSS_SPEED) == want.gnss
+        assert bool(row["flags"] & FrictionFlag.TYRE_SUSPECT) == want.tyre_suspect
