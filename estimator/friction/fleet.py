@@ -31,6 +31,13 @@ import numpy as np
 from estimator._arrays import FloatArray
 from estimator.base import Pushed
 from estimator.config import ConfigError, VehicleConfig, Wheeled4wdSteeredConfig, expect_kind
+from estimator.friction.axle import (
+    AxleArrays,
+    AxleConfig,
+    balance_std_n,
+    effective_radii_m,
+    load_slip_std,
+)
 from estimator.friction.brush import brush_forces, utilisation
 from estimator.friction.filter import (
     FilterConfig,
@@ -57,12 +64,14 @@ __all__ = ["FrictionFleet", "FrictionFleetConfig"]
 @dataclass(frozen=True, slots=True)
 class FrictionFleetConfig:
     """Settings of the friction estimator: the filter (and its mode), the front end, the
-    position track, and when μ counts as informed (relative 1-σ below ``informed_rel_std``
-    and the most used tyre at ``informed_min_util`` of its grip or more)."""
+    position track, the driven axles' torque balance and the slips' load sensitivity (product
+    mode), and when μ counts as informed (relative 1-σ below ``informed_rel_std`` and the most
+    used tyre at ``informed_min_util`` of its grip or more)."""
 
     filter: FilterConfig = field(default_factory=FilterConfig)
     frontend: FrontEndConfig | None = None
     position: PositionConfig = field(default_factory=PositionConfig)
+    axle: AxleConfig = field(default_factory=AxleConfig)
     informed_rel_std: float = 0.03
     informed_min_util: float = 0.6
     informed_hold_s: float = 0.5
@@ -101,6 +110,7 @@ class _Vehicle:
             )
         )
         self.chassis = Chassis.of([config])
+        self.axles = AxleArrays.of([config])
 
     def due(self, until_ns: int) -> list[int]:
         last = self.front.imu_until_ns()
@@ -136,23 +146,32 @@ def _place(row: np.ndarray, track: PositionTrack, t_ns: int, fe: FrontEndTick) -
     return FrictionFlag.DEAD_RECKONED if here.dead_reckoned else FrictionFlag.NONE
 
 
-def _stack_inputs(fes: list[FrontEndTick]) -> TickInputs:
-    """One :class:`TickInputs` of the vehicles' front-end ticks, one row each."""
+def _stack_inputs(fes: list[FrontEndTick], axles: AxleArrays, cfg: AxleConfig) -> TickInputs:
+    """One :class:`TickInputs` of the vehicles' front-end ticks, one row each, with the driven
+    axles' torque balance and κ's 1-σ widened by the load model's error (:mod:`.axle`)."""
+    fz = np.stack([fe.fz_n for fe in fes])
+    kz = np.stack([fe.kz_npm for fe in fes])
+    kappa = np.stack([fe.kappa for fe in fes])
+    z = np.stack([fe.z for fe in fes])
     return TickInputs(
-        fz_n=np.stack([fe.fz_n for fe in fes]),
+        fz_n=fz,
         alpha_rad=np.stack([fe.alpha_rad for fe in fes]),
         delta_rad=np.stack([fe.delta_rad for fe in fes]),
-        kappa=np.stack([fe.kappa for fe in fes]),
-        kappa_std=np.stack([fe.kappa_std for fe in fes]),
+        kappa=kappa,
+        kappa_std=np.hypot(
+            np.stack([fe.kappa_std for fe in fes]), load_slip_std(fz, kz, axles, cfg)
+        ),
         kappa_common_std=np.array([fe.kappa_common_std for fe in fes]),
         alpha_std_rad=np.stack([fe.alpha_std_rad for fe in fes]),
-        z=np.stack([fe.z for fe in fes]),
+        z=z,
         valid=np.array([fe.valid for fe in fes]),
         vx_mps=np.array([fe.vx_mps for fe in fes]),
         yaw_rate_radps=np.array([fe.yaw_rate_radps for fe in fes]),
         vy_meas_mps=np.array([fe.vy_gnss_mps for fe in fes]),
         vy_meas_std_mps=np.full(len(fes), _GNSS_VY_STD_MPS),
         alpha_lag_rad=np.stack([fe.alpha_lag_rad for fe in fes]),
+        radius_m=effective_radii_m(fz, kz, axles, cfg),
+        balance_std_n=balance_std_n(fz, kz, kappa, z, axles, cfg),
     )
 
 
@@ -231,7 +250,8 @@ class FrictionFleet:
         self, vs: list[_Vehicle], ticks: list[tuple[int, FrontEndTick]], rows: list[np.ndarray]
     ) -> None:
         """Step one tick of every vehicle in ``vs`` together."""
-        u = _stack_inputs([fe for _, fe in ticks])
+        axles = AxleArrays.concat([v.axles for v in vs])
+        u = _stack_inputs([fe for _, fe in ticks], axles, self.config.axle)
         tyres = TyreArrays(
             kz_npm=np.stack([fe.kz_npm for _, fe in ticks]),
             radius_m=_cat([v.tyres.radius_m for v in vs]),
