@@ -38,6 +38,7 @@ __all__ = [
     "CalibrationConfig",
     "ChassisConfig",
     "ConfigError",
+    "Differential",
     "DrivenAxle",
     "EncoderConfig",
     "NoiseConfig",
@@ -80,6 +81,17 @@ class DrivenAxle(StrEnum):
     FRONT = "front"
     REAR = "rear"
     ALL = "all"
+
+
+class Differential(StrEnum):
+    """How a four-wheel vehicle's driven axles share torque between their left and right wheels.
+
+    ``open``: the same torque to both (``F_L r_L = F_R r_R`` while the wheels spin steadily);
+    ``locked``: no torque balance assumed (a locked or limited-slip differential).
+    """
+
+    OPEN = "open"
+    LOCKED = "locked"
 
 
 @dataclass(frozen=True, slots=True)
@@ -398,6 +410,7 @@ class ChassisConfig(_Checked):
     driven_axle: DrivenAxle = DrivenAxle.ALL
     imu_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 0.7), "IMU")
     antenna_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 1.8), "antenna")
+    differential: Differential = Differential.OPEN
 
 
 @dataclass(frozen=True, slots=True)

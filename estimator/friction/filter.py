@@ -18,6 +18,8 @@ state and covariance handling:
   tyres' linear range a slip-angle error of 10⁻³ rad already moves the lateral force by a
   tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
+  Two more rows, one per axle, are the open differential's torque balance
+  ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
   ``D`` the change of ``h`` for a 1-σ change of each wheel's κ); μ's process noise grows
   while the normalised innovations stay large (a change of ground).
@@ -26,6 +28,7 @@ state and covariance handling:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from enum import IntEnum, StrEnum
 
@@ -125,10 +128,15 @@ class FilterConfig:
     axle's stiffness factors only while its tyres work below it (their linear range) with
     their largest slip (κ for ``g_x``, α for ``g_y``) ``learn_excite_sigmas`` of its 1-σ or
     more, and ``ln μ`` only while the body's measured ``hypot(a_x, a_y)`` is
-    ``learn_mu_min_accel_mps2`` or more (see :func:`_gain_mask`); ``outlier_sigmas``: a
+    ``learn_mu_min_accel_mps2`` or more and every wheel's κ is known to
+    ``learn_mu_max_kappa_std`` (a torque step's one-sample slip, 1e-2 off, would otherwise be
+    judged near the limit and learnt from) (see :func:`_gain_mask`); ``outlier_sigmas``: a
     product update whose whitened innovation exceeds it in any measurement is skipped
     (gated: a tick where the wheel speeds and the IMU disagree, as when the torque is cut
-    and a wheel spins down within one CAN sample).
+    and a wheel spins down within one CAN sample); ``central_prediction``: the product's
+    innovation taken from ``h`` with the considered states at their mean
+    (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
+    ``docs/perf/friction.md``).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -155,6 +163,8 @@ class FilterConfig:
     learn_mu_min_accel_mps2: float = 0.5
     outlier_sigmas: float = 6.0
     learn_excite_sigmas: float = 4.0
+    learn_mu_max_kappa_std: float = 3e-3
+    central_prediction: bool = False
 
     @property
     def n_states(self) -> int:
@@ -187,7 +197,9 @@ class TickInputs:
     ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
     ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it; ``alpha_lag_rad``
     ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
-    changing slip), added to the product's slip angles from ``v_y``."""
+    changing slip), added to the product's slip angles from ``v_y``; ``radius_m`` ``(B, 4)``
+    the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
+    balance (product only, :mod:`.axle`)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -203,6 +215,12 @@ class TickInputs:
     vy_meas_mps: FloatArray
     vy_meas_std_mps: FloatArray
     alpha_lag_rad: FloatArray
+    radius_m: FloatArray
+    balance_std_n: FloatArray
+
+
+_N_MEASURED = 4
+"""The product's measured rows ``[a_x, a_y, ṙ, v_y]``; the axles' torque balances follow."""
 
 
 @dataclass(slots=True)
@@ -283,18 +301,52 @@ def _measure(
     kappa: FloatArray,
     alpha: FloatArray,
 ) -> FloatArray:
-    """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)``; slips are
-    ``(B, P, 4)`` or ``(B, 1, 4)``."""
-    mu = mu_of(points[..., :1], cfg.mode)
-    cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
-    if cfg.mode is FrictionMode.PRODUCT:
-        alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
-    fx, fy = brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
+    """``h``: ``[a_x, a_y, ṙ]`` ``(B, P, 3)`` at state points ``(B, P, n)`` (product: with
+    ``v_y`` and the two axles' torque balances, ``(B, P, 6)``); slips are ``(B, P, 4)`` or
+    ``(B, 1, 4)``.
+
+    The balances are taken at the points' mean, the same for every point: they carry no
+    information on the state (μ and the factors scale both wheels of an axle alike, and the
+    tyres' ±3 % spread would otherwise make a steady imbalance that the state absorbs), only
+    on the slips' errors, through their correlation with the accelerations in ``R + D Dᵀ``:
+    the update reads the accelerations less what the balance says the slips got wrong."""
+    fx, fy = _forces(points, cfg, tyres, chassis, u, kappa, alpha)
     acc = body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
     if cfg.mode is not FrictionMode.PRODUCT:
         return acc
     vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
-    return np.concatenate([acc, vy], axis=-1)
+    centre = points.mean(axis=1, keepdims=True)
+    fx_centre, _ = _forces(centre, cfg, tyres, chassis, u, kappa, alpha)
+    balance = np.broadcast_to(_torque_balance(fx_centre, u.radius_m), (*acc.shape[:-1], 2))
+    return np.concatenate([acc, vy, balance], axis=-1)
+
+
+def _forces(
+    points: FloatArray,
+    cfg: FilterConfig,
+    tyres: TyreArrays,
+    chassis: Chassis,
+    u: TickInputs,
+    kappa: FloatArray,
+    alpha: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Brush forces ``(Fx, Fy)`` ``(B, P, 4)`` at state points ``(B, P, n)`` (source eq. 19-27;
+    the product's slip angles from its ``v_y``)."""
+    mu = mu_of(points[..., :1], cfg.mode)
+    cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
+    if cfg.mode is FrictionMode.PRODUCT:
+        alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
+    return brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
+
+
+def _torque_balance(fx_n: FloatArray, radius_m: FloatArray) -> FloatArray:
+    """``(F_L r_L − F_R r_R) / r̄`` per axle ``(B, P, 2)`` of forces ``(B, P, 4)``, radii
+    ``(B, 4)``: zero where an open differential gives both wheels one torque."""
+    r = radius_m[:, None, :]
+    moment = fx_n * r
+    mean = (r[..., 0::2] + r[..., 1::2]) / 2
+    balance: FloatArray = (moment[..., 0::2] - moment[..., 1::2]) / mean
+    return balance
 
 
 def _slip_angles(vy_mps: FloatArray, u: TickInputs, chassis: Chassis) -> FloatArray:
@@ -311,24 +363,29 @@ def _slip_angles(vy_mps: FloatArray, u: TickInputs, chassis: Chassis) -> FloatAr
 
 def _sq_r(cfg: FilterConfig, u: TickInputs) -> FloatArray:
     """Measurement root: accelerations (product: ``ṙ`` with the yaw model's error) and
-    (product) the GNSS ``v_y``, weightless when none."""
+    (product) the GNSS ``v_y``, weightless when none, and the axles' torque balances."""
     sigma = [cfg.accel_std_mps2, cfg.accel_std_mps2, cfg.yaw_accel_std_radps2]
     b = u.z.shape[0]
     if cfg.mode is not FrictionMode.PRODUCT:
         return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
     sigma[2] = math.hypot(sigma[2], cfg.yaw_model_std_radps2)
     vy_std = np.where(np.isfinite(u.vy_meas_mps), u.vy_meas_std_mps, 1e3)
-    diag = np.concatenate([np.broadcast_to(sigma, (b, 3)), vy_std[:, None]], axis=1)
-    out = np.zeros((b, 4, 4))
-    out[:, np.arange(4), np.arange(4)] = diag
+    diag = np.concatenate(
+        [np.broadcast_to(sigma, (b, 3)), vy_std[:, None], u.balance_std_n], axis=1
+    )
+    m = diag.shape[1]
+    out = np.zeros((b, m, m))
+    out[:, np.arange(m), np.arange(m)] = diag
     return out
 
 
 def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
-    """``z``: the accelerations, and (product) the GNSS ``v_y`` (0 where none: no weight)."""
+    """``z``: the accelerations, and (product) the GNSS ``v_y`` (0 where none: no weight) and
+    the torque balances' 0."""
     if cfg.mode is not FrictionMode.PRODUCT:
         return u.z
-    return np.concatenate([u.z, np.nan_to_num(u.vy_meas_mps)[:, None]], axis=1)
+    vy = np.nan_to_num(u.vy_meas_mps)[:, None]
+    return np.concatenate([u.z, vy, np.zeros_like(u.balance_std_n)], axis=1)
 
 
 def _input_spread(
@@ -407,6 +464,7 @@ def filter_step(
         )
         keep = np.ones(rows.size, dtype=bool)
         if cfg.mode is FrictionMode.PRODUCT:
+            white = white[:, :_N_MEASURED]
             keep = np.abs(white).max(axis=-1) <= cfg.outlier_sigmas
         x[rows[keep]], s[rows[keep]] = x_up[keep], s_up[keep]
         updated[rows[~keep]] = False
@@ -443,7 +501,10 @@ def _update(
         z_mean = h(cubature_points(x, s)).mean(axis=1)
         mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
         sq_r, mee_ok = mee.sq_r, mee.ok
-    up = sckf_update(x, s, z, h, sq_r, mask)
+    centre = None
+    if mask is not None and cfg.central_prediction:
+        centre = _considered_centre(x, s, mask, h)
+    up = sckf_update(x, s, z, h, sq_r, mask, centre)
     white = np.asarray(np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0], np.float64)
     return up.x, up.s, np.asarray(mee_ok, dtype=bool), white
 
@@ -478,8 +539,25 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
         mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
     pushed = np.hypot(u.z[:, 0], u.z[:, 1]) >= cfg.learn_mu_min_accel_mps2
-    mask[:, ProductState.LN_MU] = (used.max(axis=1) >= cfg.linear_util) & pushed
+    known = u.kappa_std.max(axis=1) <= cfg.learn_mu_max_kappa_std
+    mask[:, ProductState.LN_MU] = (used.max(axis=1) >= cfg.linear_util) & pushed & known
     return mask
+
+
+def _considered_centre(
+    x: FloatArray, s: FloatArray, mask: FloatArray, h: Callable[[FloatArray], FloatArray]
+) -> FloatArray:
+    """The prediction ``(B, m)`` the product's innovation is taken from: the points' mean of
+    ``h`` with the *considered* states (``mask`` 0) held at their mean.
+
+    μ is monotone in each stiffness factor, so at the factors' centre the μ that fits is the
+    median of those that fit over their spread; the points' mean of ``h`` spread over the
+    factors (±24 % at ``√n σ``) instead shifts μ by the curvature of ``h`` (1.2-1.8 % on μ 0.8
+    with the tyres known). The factors' spread still enters ``P_zz`` (the points' own)."""
+    points = cubature_points(x, s)
+    points = np.where(mask[:, None, :] == 0, x[:, None, :], points)
+    centre: FloatArray = h(points).mean(axis=1)
+    return centre
 
 
 def _bound_mu(x: FloatArray, cfg: FilterConfig, u: TickInputs) -> None:

@@ -33,6 +33,13 @@ import numpy as np
 from estimator._arrays import FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import ConfigError, VehicleConfig, Wheeled4wdSteeredConfig, expect_kind
+from estimator.friction.axle import (
+    AxleArrays,
+    AxleConfig,
+    balance_std_n,
+    effective_radii_m,
+    load_slip_std,
+)
 from estimator.friction.brush import brush_forces, utilisation
 from estimator.friction.filter import (
     FilterConfig,
@@ -61,12 +68,14 @@ __all__ = ["FrictionFleet", "FrictionFleetConfig"]
 @dataclass(frozen=True, slots=True)
 class FrictionFleetConfig:
     """Settings of the friction estimator: the filter (and its mode), the front end, the
-    position track, and when μ counts as informed (relative 1-σ below ``informed_rel_std``
-    and the most used tyre at ``informed_min_util`` of its grip or more)."""
+    position track, the driven axles' torque balance and the slips' load sensitivity (product
+    mode), and when μ counts as informed (relative 1-σ below ``informed_rel_std`` and the most
+    used tyre at ``informed_min_util`` of its grip or more)."""
 
     filter: FilterConfig = field(default_factory=FilterConfig)
     frontend: FrontEndConfig | None = None
     position: PositionConfig = field(default_factory=PositionConfig)
+    axle: AxleConfig = field(default_factory=AxleConfig)
     informed_rel_std: float = 0.03
     informed_min_util: float = 0.6
     informed_hold_s: float = 0.5
@@ -107,6 +116,7 @@ class _Vehicle:
             )
         )
         self.chassis = Chassis.of([config])
+        self.axles = AxleArrays.of([config])
 
     def due(self, until_ns: int) -> IntArray | None:
         """The ticks up to ``until_ns`` the IMU covers, not yet computed (None if none)."""
@@ -134,14 +144,15 @@ def _cat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts, axis=0)
 
 
-def _tick_inputs(fe: FrontEndTicks) -> TickInputs:
-    """The filter's :class:`TickInputs` of a round's front-end output."""
+def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickInputs:
+    """The filter's :class:`TickInputs` of a round's front-end output, with the driven axles'
+    torque balance and κ's 1-σ widened by the load model's error (:mod:`.axle`)."""
     return TickInputs(
         fz_n=fe.fz_n,
         alpha_rad=fe.alpha_rad,
         delta_rad=fe.delta_rad,
         kappa=fe.kappa,
-        kappa_std=fe.kappa_std,
+        kappa_std=np.hypot(fe.kappa_std, load_slip_std(fe.fz_n, fe.kz_npm, axles, cfg)),
         kappa_common_std=fe.kappa_common_std,
         alpha_std_rad=fe.alpha_std_rad,
         z=fe.z,
@@ -151,6 +162,8 @@ def _tick_inputs(fe: FrontEndTicks) -> TickInputs:
         vy_meas_mps=fe.vy_gnss_mps,
         vy_meas_std_mps=np.full(fe.vx_mps.size, _GNSS_VY_STD_MPS),
         alpha_lag_rad=fe.alpha_lag_rad,
+        radius_m=effective_radii_m(fe.fz_n, fe.kz_npm, axles, cfg),
+        balance_std_n=balance_std_n(fe.fz_n, fe.kz_npm, fe.kappa, fe.z, axles, cfg),
     )
 
 
@@ -279,7 +292,8 @@ class FrictionFleet:
     ) -> None:
         """Step one tick of every vehicle in ``vs`` together (``fe``: their front ends'), into
         the rows ``out[at]``."""
-        u = _tick_inputs(fe)
+        axles = AxleArrays.concat([v.axles for v in vs])
+        u = _tick_inputs(fe, axles, self.config.axle)
         tyres = TyreArrays(
             kz_npm=fe.kz_npm,
             radius_m=_cat([v.tyres.radius_m for v in vs]),

@@ -88,15 +88,20 @@ def sckf_update(
     h: PointMap,
     sq_r: FloatArray,
     gain_mask: FloatArray | None = None,
+    z_centre: FloatArray | None = None,
 ) -> Update:
     """Measurement update (steps 5.11-5.16) with the measurement root ``sq_r`` ``(B, m, m)``.
 
     ``gain_mask`` ``(B, n)`` (optional, 0 or 1) zeroes the gain rows of states the update must
     leave alone (Schmidt's *consider* states: their uncertainty still enters ``P_zz``); the
     root ``S⁺ = tria([X − K Z, K √R])`` holds for any gain, so the covariance stays exact.
+    ``z_centre`` ``(B, m)`` (optional) replaces the points' mean of ``h`` as the prediction the
+    innovation is taken from (the spreads stay the points').
     """
     points = cubature_points(x, s)
     z_mean, z_dev = _centred(h(points))
+    if z_centre is not None:
+        z_mean = z_centre
     _, x_dev = _centred(points)
     s_zz = tria(np.concatenate([z_dev, sq_r], axis=-1))
     p_xz = x_dev @ np.swapaxes(z_dev, -1, -2)

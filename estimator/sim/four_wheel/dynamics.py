@@ -5,9 +5,10 @@ RR). What it has that the estimator's model has not:
 
 * brush tyres (the same law, :func:`estimator.friction.brush.brush_forces`) acting on
   *relaxed* slips: ``dκ'/dt = (|v|+1)/σx · (κ − κ')`` and the same for ``α'`` with ``σy``;
-* wheel spin ``I_w ω̇ = T − Fx r_e`` with open differentials (equal torque left and right;
-  ``all``: a centre split), brakes front-biased, traction control cutting a wheel's torque
-  above a combined slip ``hypot(κ, tan α)`` of ``tc_slip``;
+* wheel spin ``I_w ω̇ = T − Fx r_e`` with open differentials (the same torque left and right
+  whatever their radii, split ``0.5 (1 ± b)`` by the differential's friction; ``all``: a centre
+  split), brakes front-biased with the same torque left and right, traction control cutting a
+  wheel's torque above a combined slip ``hypot(κ, tan α)`` of ``tc_slip``;
 * effective radius falling with load, ``r_e = r_u − ρ Fz/kz`` (ρ per run);
 * load transfer through first-order lags, its lateral part split between the axles by the
   roll-stiffness share ``ζ`` (not the geometric ``lr/L`` of the static formula);
@@ -65,6 +66,7 @@ class TruthParams:
     tilt_lag_s: FloatArray
     wheel_inertia_kgm2: FloatArray
     drive_share: FloatArray  # (R, 4) share of drive torque per wheel
+    diff_bias: FloatArray  # b: the left wheel of each axle gets 1 + b of the even split
     ackermann: FloatArray
     tc_slip: FloatArray
 
@@ -76,7 +78,7 @@ class TruthParams:
         one) and per-run draws (uniform) of what the config does not say: c_p ×0.97-1.03,
         ρ 0.25-0.4, σx 0.2-0.5 m, σy 0.3-0.7 m, ζ 0.5-0.7, load lag 0.05-0.2 s, roll and
         pitch gradients ×0.7-1.3 of the config's, tilt lag 0.1-0.3 s, I_w 0.8-2 kg·m²,
-        Ackermann 0-0.08, traction control above κ 0.03-0.08."""
+        Ackermann 0-0.08, traction control above κ 0.03-0.08, differential bias b −0.02..0.02."""
         r = len(configs)
         ch = [c.chassis for c in configs]
         ty = [c.tyre for c in configs]
@@ -122,6 +124,7 @@ class TruthParams:
             drive_share=share,
             ackermann=u(0.0, 0.08),
             tc_slip=u(0.03, 0.08),
+            diff_bias=u(-0.02, 0.02),
         )
 
     def wheel_xy(self) -> tuple[FloatArray, FloatArray]:
@@ -289,7 +292,12 @@ def _torques(
 ) -> FloatArray:
     """Wheel torques ``(R, 4)``: the driver's feed-forward + PI force through the differentials
     (drive) or the brakes (60 % front), cut per wheel by traction control above a combined slip
-    ``hypot(κ, tan α)`` of ``tc_slip``."""
+    ``hypot(κ, tan α)`` of ``tc_slip``.
+
+    An open differential (and a brake at one pressure) gives both wheels of an axle the same
+    torque, not the same force: ``T_i = F · share_i · r̄ · (1 ± b)`` with ``r̄`` the mean
+    effective radius of the wheels it drives, so a wheel on a smaller radius pushes harder
+    (``F_L r_L = F_R r_R`` at steady spin)."""
     vx = x[:, S.VX]
     err = d.speed_mps[:, k] - vx
     force = p.mass_kg * (d.accel_mps2[:, k] + 1.5 * err + 0.3 * x[:, S.SPEED_INT])
@@ -297,7 +305,10 @@ def _torques(
     force += p.rolling_resistance * p.mass_kg * GRAVITY_MPS2
     brake_share = np.array([0.3, 0.3, 0.2, 0.2])
     share = np.where(force[:, None] >= 0.0, p.drive_share, brake_share)
-    torque = force[:, None] * share * r_eff
+    weight = (share > 0.0).astype(np.float64)
+    r_mean = (r_eff * weight).sum(axis=-1) / np.maximum(weight.sum(axis=-1), 1.0)
+    split = 1.0 + p.diff_bias[:, None] * np.array([1.0, -1.0, 1.0, -1.0])
+    torque = force[:, None] * share * split * r_mean[:, None]
     cut = np.clip(1.0 - (slip - p.tc_slip[:, None]) / 0.05, 0.0, 1.0)
     return torque * cut
 

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
+from estimator.friction.axle import AxleConfig
 from estimator.friction.filter import (
     TickInputs,
     TyreArrays,
@@ -196,6 +197,8 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
         vy_meas_mps=col("vy_mps"),
         vy_meas_std_mps=np.full(vx.shape, 0.01),
         alpha_lag_rad=np.zeros(fz.shape),
+        radius_m=np.stack([r.config.tyre.unloaded_radius_m * np.ones(4) for r in runs]),
+        balance_std_n=np.full((len(runs), 2), AxleConfig().weightless_std_n),
     )
 
 

@@ -170,6 +170,8 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 vy_meas_mps=np.array([vy_now]),
                 vy_meas_std_mps=np.array([0.05]),
                 alpha_lag_rad=np.zeros((1, 4)),
+                radius_m=np.full((1, 4), t.unloaded_radius_m),
+                balance_std_n=np.full((1, 2), 1e6),  # random slips: no differential
             )
         )
     return ticks, chassis, tyres
@@ -258,7 +260,7 @@ def test_the_speed_error_moves_the_four_slips_together() -> None:
     own = np.full((1, 4), 1e-6)
     u = dataclasses.replace(ticks[0], kappa_std=own, kappa_common_std=np.array([2e-6]))
     d = _input_spread(st.x, cfg, tyres, chassis, u)
-    assert d.shape == (1, 4, 5)
+    assert d.shape == (1, 6, 5)  # a_x, a_y, ṙ, v_y and the two axles' torque balances
     np.testing.assert_allclose(d[..., 4], 2.0 * d[..., :4].sum(axis=-1), rtol=1e-3, atol=1e-12)
     assert np.abs(d[0, 0, 4]) > 0
     quiet = dataclasses.replace(u, kappa_common_std=np.zeros(1))

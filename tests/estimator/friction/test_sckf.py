@@ -146,3 +146,27 @@ def test_masked_gain_leaves_considered_states_and_keeps_the_covariance_exact() -
     want = i_kh @ p @ np.swapaxes(i_kh, -1, -2) + k @ r @ np.swapaxes(k, -1, -2)
     assert np.max(np.abs(up.s @ np.swapaxes(up.s, -1, -2) - want)) < 1e-9
     assert np.allclose(up.gain, k, atol=1e-12)
+
+
+def test_central_prediction_moves_only_the_innovation() -> None:
+    """``z_centre`` at the points' mean changes nothing; shifted by ``d`` it moves the mean by
+    ``−K d`` and leaves gain and root alone (a linear case: the points' mean is ``H x``)."""
+    rng = np.random.default_rng(6)
+    b, n, m = 2, 3, 2
+    h_mat = rng.normal(size=(m, n))
+    a = rng.normal(size=(b, n, n))
+    s = np.linalg.cholesky(a @ np.swapaxes(a, -1, -2) + np.eye(n))
+    sq_r = np.broadcast_to(np.diag([0.2, 0.4]), (b, m, m))
+    x = rng.normal(size=(b, n))
+    z = rng.normal(size=(b, m))
+
+    def h(pts: np.ndarray) -> np.ndarray:
+        return np.asarray(pts @ h_mat.T)
+
+    plain = sckf_update(x, s, z, h, sq_r)
+    same = sckf_update(x, s, z, h, sq_r, None, x @ h_mat.T)
+    assert np.allclose(same.x, plain.x, atol=1e-12)
+    d = np.array([[0.3, -0.1], [0.0, 0.5]])
+    moved = sckf_update(x, s, z, h, sq_r, None, x @ h_mat.T + d)
+    assert np.allclose(moved.x, plain.x - (plain.gain @ d[..., None])[..., 0], atol=1e-12)
+    assert np.allclose(moved.s, plain.s, atol=1e-12)

@@ -86,6 +86,17 @@ def test_a_soft_tyre_spins_faster(runs: list[FourWheelRun]) -> None:
     assert np.all(t.omega_radps[lead, 2] > 1.01 * t.omega_radps[lead, 3])
 
 
+def test_an_open_differential_balances_torque_not_force(runs: list[FourWheelRun]) -> None:
+    """The soft rear-left tyre rolls on a smaller radius: the same axle torque pushes it harder
+    (``F_L r_L = F_R r_R`` within the differential's ±2 % friction and the wheels' inertia)."""
+    t = runs[1].truth
+    accel = t.t_s > LEAD_S + 1.0
+    radius = t.vx_mps[accel, None] * (1 + t.kappa[accel][:, 2:]) / t.omega_radps[accel][:, 2:]
+    moment = t.fx_n[accel][:, 2:] * radius
+    assert np.allclose(moment[:, 0], moment[:, 1], rtol=0.05)
+    assert np.all(t.fx_n[accel, 2] > 1.05 * t.fx_n[accel, 3])
+
+
 def test_accelerometers_read_the_tilt(runs: list[FourWheelRun]) -> None:
     r = runs[0]
     acc = np.concatenate([m.accel_mps2 for m in r.measurements if isinstance(m, ImuBatch)])
