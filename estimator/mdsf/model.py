@@ -351,6 +351,11 @@ class MdsfConfig:
         Floor added to the innovation std of the distance gate (as ``gate_floor_mps`` for the
         speed): a distance more than ``√gate_chi2`` times off its prediction (a wrong fix, a
         position jump) is not fused and the next fix starts a new chain [m].
+    wheel_clock_accel_tau_s : float
+        Product mode: time constant of the low-pass on the rate of each wheel's filtered ground
+        speed, the acceleration ``a_w`` by which the wheel clock offset moves the rims
+        (``r·W + δ_w·a_w``) and against which it is learnt. Not the accelerometer's force:
+        vibration, body sway and leftover gravity are in that force, not in the rims [s].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -403,6 +408,7 @@ class MdsfConfig:
     gnss_noise_adapt: float = 0.02
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1
+    wheel_clock_accel_tau_s: float = 0.3
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):
