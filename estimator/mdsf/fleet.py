@@ -437,7 +437,9 @@ class MdsfFleet:
                 & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
             )
         )
-        valid = sp.valid & ~settling
+        # a slip whose std is beyond the bound (or unknown) is no reading: not valid
+        certain = sp.std_pct <= self.config.valid_slip_std_max_pct
+        valid = sp.valid & ~settling & certain
         enu, heading, carried = self._carry(due, res)
         slip_out = np.where(valid, sp.slip_pct, np.nan)
         slip_std_out = np.where(valid, sp.std_pct, np.nan)

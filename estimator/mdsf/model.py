@@ -356,6 +356,12 @@ class MdsfConfig:
         speed, the acceleration ``a_w`` by which the wheel clock offset moves the rims
         (``r·W + δ_w·a_w``) and against which it is learnt. Not the accelerometer's force:
         vibration, body sway and leftover gravity are in that force, not in the rims [s].
+    valid_slip_std_max_pct : float
+        A slip whose 1-sigma exceeds this (or is unknown) is not valid: no value, no valid
+        flag. Beyond 3 pp its 2-sigma band (±6 pp) spans most of a working tyre's slip range
+        (5-15 %), so the number tells a user nothing to act on; below it, a wheel fit on a
+        hard stop or a GNSS outage's first seconds still give a reading (a very large value
+        turns the rule off) [percentage points].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -409,6 +415,7 @@ class MdsfConfig:
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1
     wheel_clock_accel_tau_s: float = 0.3
+    valid_slip_std_max_pct: float = 3.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):

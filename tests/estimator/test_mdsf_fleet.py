@@ -1,0 +1,81 @@
+"""MdsfFleet's rules on slip rows (:mod:`estimator.mdsf.fleet`): a slip is valid only when its
+std says it is known (``MdsfConfig.valid_slip_std_max_pct``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from estimator.config import ConfigError, EncoderConfig, WheeledRearDriveConfig
+from estimator.mdsf import MdsfConfig, MdsfFleet
+from estimator.sim import replay_arrivals, simulate
+from estimator.types import EstimateFlag
+
+_START_NS = 1_700_000_000_000_000_000
+_BOUND_PCT = MdsfConfig().valid_slip_std_max_pct
+_OFF = 1e9
+"""A bound no std reaches: the rule off."""
+
+
+def _creeping_outage_rows(bound_pct: float) -> np.ndarray:
+    """A creeping drive (0.3-0.8 m/s, 30-tooth ring, slip ramps) with a 20 s GNSS outage:
+    slow speeds and the outage make the slip's std large in places."""
+    cfg = WheeledRearDriveConfig(encoder=EncoderConfig(teeth_per_rev=30))
+    sim = simulate(
+        "random_drive",
+        seed=5,
+        start_ns=_START_NS,
+        config=cfg,
+        duration_s=60.0,
+        speed_min_mps=0.3,
+        speed_max_mps=0.8,
+        gnss_outages=((20.0, 40.0),),
+        slip_steps=((15.0, 6.0, 3.0), (30.0, 6.0, 2.0)),
+    )
+    fleet = MdsfFleet(MdsfConfig(valid_slip_std_max_pct=bound_pct))
+    fleet.add_vehicle("v", dataclasses.replace(sim.config, noise=sim.sensor_noise))
+    parts = []
+    for chunk, until in replay_arrivals(
+        sim.measurements,
+        sim.arrival_ns,
+        lateness_ns=150_000_000,
+        step_ns=100_000_000,
+        end_ns=sim.end_ns,
+    ):
+        for m in chunk:
+            fleet.push("v", m)
+        parts += [rows for _, rows in fleet.advance({"v": until})]
+    return np.concatenate(parts)
+
+
+def test_slip_beyond_its_std_bound_is_not_valid() -> None:
+    """With the bound, no valid slip has a std above it; the same drive without the bound has
+    such rows (the rule is exercised), and the bound changes nothing else: the filter, the
+    speeds and every slip within the bound are the same."""
+    free = _creeping_outage_rows(_OFF)
+    bounded = _creeping_outage_rows(_BOUND_PCT)
+    assert np.array_equal(free["stamp_ns"], bounded["stamp_ns"])
+    for side, flag in (
+        ("left", EstimateFlag.SLIP_LEFT_VALID),
+        ("right", EstimateFlag.SLIP_RIGHT_VALID),
+    ):
+        std_free = free[f"slip_{side}_std_pct"]
+        wide = np.isfinite(std_free) & (std_free > _BOUND_PCT)
+        assert wide.sum() >= 10, "the drive should give some slips a wide std"
+        valid = (bounded["flags"] & int(flag)) != 0
+        assert not valid[wide].any()
+        assert np.isnan(bounded[f"slip_{side}_pct"][wide]).all()
+        assert (bounded[f"slip_{side}_std_pct"][valid] <= _BOUND_PCT).all()
+        kept = np.isfinite(std_free) & ~wide
+        assert np.array_equal(bounded[f"slip_{side}_pct"][kept], free[f"slip_{side}_pct"][kept])
+        assert np.array_equal(valid[kept], ((free["flags"] & int(flag)) != 0)[kept])
+    for name in ("vl_mps", "vr_mps", "vg_mps", "rim_left_mps"):
+        assert np.array_equal(bounded[name], free[name], equal_nan=True)
+
+
+@pytest.mark.parametrize("bound", [0.0, -1.0, float("nan"), float("inf")])
+def test_std_bound_is_checked(bound: float) -> None:
+    with pytest.raises(ConfigError, match="valid_slip_std_max_pct"):
+        MdsfConfig(valid_slip_std_max_pct=bound)
