@@ -13,7 +13,9 @@ batch, so a tick is computed as soon as the batch holding it arrives). A row at 
 measurements stamped at or before ``t``: rows depend neither on how data was batched nor on the
 other vehicles of a call. A vehicle's first row is the first tick with a usable GNSS speed (or,
 after ``gnss_timeout_s`` without GNSS, with wheel speeds, flagged DEGRADED). Bad input is
-skipped and counted (:meth:`MdsfFleet.counters`), never raised on.
+skipped and counted (:meth:`MdsfFleet.counters`), never raised on. A wheel's slip has a value
+and its valid flag only above the standstill speed, once its fit has settled (SETTLING) and
+in product mode, while its std is within ``MdsfConfig.valid_slip_std_max_pct``.
 """
 
 from __future__ import annotations
@@ -437,8 +439,9 @@ class MdsfFleet:
                 & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
             )
         )
-        # a slip whose std is beyond the bound (or unknown) is no reading: not valid
-        certain = sp.std_pct <= self.config.valid_slip_std_max_pct
+        # product mode: a slip whose std is beyond the bound (or unknown) is no reading, not
+        # valid (paper mode keeps the source's rule: any slip above the standstill speed)
+        certain = (sp.std_pct <= self.config.valid_slip_std_max_pct) | (not self._product)
         valid = sp.valid & ~settling & certain
         enu, heading, carried = self._carry(due, res)
         slip_out = np.where(valid, sp.slip_pct, np.nan)

@@ -357,11 +357,12 @@ class MdsfConfig:
         (``r·W + δ_w·a_w``) and against which it is learnt. Not the accelerometer's force:
         vibration, body sway and leftover gravity are in that force, not in the rims [s].
     valid_slip_std_max_pct : float
-        A slip whose 1-sigma exceeds this (or is unknown) is not valid: no value, no valid
-        flag. Beyond 3 pp its 2-sigma band (±6 pp) spans most of a working tyre's slip range
-        (5-15 %), so the number tells a user nothing to act on; below it, a wheel fit on a
-        hard stop or a GNSS outage's first seconds still give a reading (a very large value
-        turns the rule off) [percentage points].
+        Product mode: a slip whose 1-sigma exceeds this (or is unknown) is not valid: no
+        value, no valid flag (paper mode keeps the source's rule). Beyond 3 pp its 2-sigma
+        band (±6 pp) spans most of a working tyre's slip range (5-15 %), so the number tells
+        a user nothing to act on; below it, a wheel fit on a hard stop or a GNSS outage's
+        first seconds still give a reading (a very large value turns the rule off)
+        [percentage points].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT

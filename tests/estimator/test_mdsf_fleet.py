@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimator.config import ConfigError, EncoderConfig, WheeledRearDriveConfig
-from estimator.mdsf import MdsfConfig, MdsfFleet
+from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
 from estimator.sim import replay_arrivals, simulate
 from estimator.types import EstimateFlag
 
@@ -19,7 +19,7 @@ _OFF = 1e9
 """A bound no std reaches: the rule off."""
 
 
-def _creeping_outage_rows(bound_pct: float) -> np.ndarray:
+def _creeping_outage_rows(bound_pct: float, mode: MdsfMode = MdsfMode.PRODUCT) -> np.ndarray:
     """A creeping drive (0.3-0.8 m/s, 30-tooth ring, slip ramps) with a 20 s GNSS outage:
     slow speeds and the outage make the slip's std large in places."""
     cfg = WheeledRearDriveConfig(encoder=EncoderConfig(teeth_per_rev=30))
@@ -34,7 +34,7 @@ def _creeping_outage_rows(bound_pct: float) -> np.ndarray:
         gnss_outages=((20.0, 40.0),),
         slip_steps=((15.0, 6.0, 3.0), (30.0, 6.0, 2.0)),
     )
-    fleet = MdsfFleet(MdsfConfig(valid_slip_std_max_pct=bound_pct))
+    fleet = MdsfFleet(MdsfConfig(mode=mode, valid_slip_std_max_pct=bound_pct))
     fleet.add_vehicle("v", dataclasses.replace(sim.config, noise=sim.sensor_noise))
     parts = []
     for chunk, until in replay_arrivals(
@@ -73,6 +73,17 @@ def test_slip_beyond_its_std_bound_is_not_valid() -> None:
         assert np.array_equal(valid[kept], ((free["flags"] & int(flag)) != 0)[kept])
     for name in ("vl_mps", "vr_mps", "vg_mps", "rim_left_mps"):
         assert np.array_equal(bounded[name], free[name], equal_nan=True)
+
+
+def test_paper_mode_keeps_the_source_validity() -> None:
+    """Paper mode reproduces the source: its slip is valid above the standstill speed, wide
+    std or not, so the bound changes none of its rows."""
+    free = _creeping_outage_rows(_OFF, MdsfMode.PAPER)
+    bounded = _creeping_outage_rows(_BOUND_PCT, MdsfMode.PAPER)
+    std = free["slip_left_std_pct"]
+    assert (np.isfinite(std) & (std > _BOUND_PCT)).any()
+    for name in free.dtype.names or ():
+        assert np.array_equal(bounded[name], free[name], equal_nan=True), name
 
 
 @pytest.mark.parametrize("bound", [0.0, -1.0, float("nan"), float("inf")])
