@@ -358,11 +358,11 @@ class MdsfConfig:
         vibration, body sway and leftover gravity are in that force, not in the rims [s].
     valid_slip_std_max_pct : float
         Product mode: a slip whose 1-sigma exceeds this (or is unknown) is not valid: no
-        value, no valid flag (paper mode keeps the source's rule). Beyond 3 pp its 2-sigma
-        band (±6 pp) spans most of a working tyre's slip range (5-15 %), so the number tells
-        a user nothing to act on; below it, a wheel fit on a hard stop or a GNSS outage's
-        first seconds still give a reading (a very large value turns the rule off)
-        [percentage points].
+        value, no valid flag (paper mode keeps the source's rule). The default is the tyre
+        model's own slip range, ``outage_slip_std`` (4 %): a slip known worse than the tyre
+        alone would say (its 2-sigma band ±8 pp spans a working tyre's 5-15 %) tells a user
+        nothing to act on, while an outage's slip, held near its anchor within that range,
+        stays a reading (a very large value turns the rule off) [percentage points].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -416,7 +416,7 @@ class MdsfConfig:
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1
     wheel_clock_accel_tau_s: float = 0.3
-    valid_slip_std_max_pct: float = 3.0
+    valid_slip_std_max_pct: float = 4.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):
