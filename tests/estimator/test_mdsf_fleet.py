@@ -10,8 +10,9 @@ import pytest
 
 from estimator.config import ConfigError, EncoderConfig, WheeledRearDriveConfig
 from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
-from estimator.sim import replay_arrivals, simulate
+from estimator.sim import simulate
 from estimator.types import EstimateFlag
+from server.tooling.bench.accuracy import run_estimator
 
 _START_NS = 1_700_000_000_000_000_000
 _BOUND_PCT = 2.0
@@ -37,19 +38,7 @@ def _creeping_outage_rows(bound_pct: float, mode: MdsfMode = MdsfMode.PRODUCT) -
         slip_steps=((15.0, 6.0, 3.0), (30.0, 6.0, 2.0)),
     )
     fleet = MdsfFleet(MdsfConfig(mode=mode, valid_slip_std_max_pct=bound_pct))
-    fleet.add_vehicle("v", dataclasses.replace(sim.config, noise=sim.sensor_noise))
-    parts = []
-    for chunk, until in replay_arrivals(
-        sim.measurements,
-        sim.arrival_ns,
-        lateness_ns=150_000_000,
-        step_ns=100_000_000,
-        end_ns=sim.end_ns,
-    ):
-        for m in chunk:
-            fleet.push("v", m)
-        parts += [rows for _, rows in fleet.advance({"v": until})]
-    return np.concatenate(parts)
+    return run_estimator(fleet, sim, dataclasses.replace(sim.config, noise=sim.sensor_noise))
 
 
 def test_slip_beyond_its_std_bound_is_not_valid() -> None:
