@@ -11,10 +11,11 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   speed as ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
-  drive) the measured rim speed is ``r·W = V/s − δ_w·a`` with ``s`` the true over the
+  drive) the measured rim speed is ``r·W = V/s − δ_w·a_w`` with ``s`` the true over the
   configured radius; states ``[κ_L, κ_R, δ_w]`` with ``κ = 1 − 1/s``, observed as
-  ``r·W − V = −κ·V − δ_w·a`` (``V`` the filter's ground speed of that wheel). Applied as
-  ``s·(r·W + δ_w·a)``.
+  ``r·W − V = −κ·V − δ_w·a_w`` (``V`` the filter's ground speed of that wheel, ``a_w`` its
+  low-passed rate: what the rims feel, :meth:`MdsfFleet._wheel_accel`). Applied as
+  ``s·(r·W + δ_w·a_w)``.
 * **IMU mounting pitch** ``β``: a pitched IMU reads the forward specific force
   ``g·sin(θ + β)`` at standstill (``θ`` the body pitch of the tilt track, anchored by the GNSS
   attitude or velocity); a scalar filter of ``asin(f/g) − θ`` over standstill ticks. Applied
@@ -388,7 +389,9 @@ class CalibrationBank:
     ) -> None:
         """One tick of the wheel filter: measured rim speeds ``r·W`` with the configured radius
         and uncorrected clock (k, 2), the filter's ground speeds of the wheels (k, 2), their
-        variances, the tick-mean acceleration (k,) and which rows may be used (k,: emitted,
+        variances, each wheel's ground acceleration ``a_w`` (k, 2: the low-passed rate of its
+        filtered speed, not the accelerometer's force, whose vibration would blur the
+        regressor and shrink ``δ_w`` towards 0) and which rows may be used (k,: emitted,
         GNSS-anchored, not settling). Only zero-slip wheels above ``_MIN_CAL_SPEED_MPS``
         update."""
         x, p = self.wx[slots], self.wp[slots]
@@ -410,7 +413,7 @@ class CalibrationBank:
                 continue
             h = np.zeros((int(ok.sum()), 3))
             h[:, w] = -v[ok]
-            h[:, WheelCal.OFFSET] = -a[ok]
+            h[:, WheelCal.OFFSET] = -a[ok, w]
             r = (
                 rim_var[ok, w]
                 + ground_var[ok, w] * (_REF_CORR_S / self.dt_s)

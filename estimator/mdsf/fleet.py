@@ -13,7 +13,9 @@ batch, so a tick is computed as soon as the batch holding it arrives). A row at 
 measurements stamped at or before ``t``: rows depend neither on how data was batched nor on the
 other vehicles of a call. A vehicle's first row is the first tick with a usable GNSS speed (or,
 after ``gnss_timeout_s`` without GNSS, with wheel speeds, flagged DEGRADED). Bad input is
-skipped and counted (:meth:`MdsfFleet.counters`), never raised on.
+skipped and counted (:meth:`MdsfFleet.counters`), never raised on. A wheel's slip has a value
+and its valid flag only above the standstill speed, once its fit has settled (SETTLING) and
+in product mode, while its std is within ``MdsfConfig.valid_slip_std_max_pct``.
 """
 
 from __future__ import annotations
@@ -92,7 +94,6 @@ def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArra
     for r in range(int(lengths[0]) if lengths.shape[0] else 0):
         c = int(np.count_nonzero(lengths > r))
         yield c, offsets[:c] + r
-
 
 
 def _estimate_rows(
@@ -223,6 +224,10 @@ class MdsfFleet:
         # per slot and wheel: stamp of the last tick whose measured rim speed was a standstill
         # (or unknown); _NEVER until the vehicle's first tick
         self._still_ns = np.zeros((0, 2), dtype=np.int64)
+        # per slot and wheel: the last emitted tick's filtered ground speed [m/s] (NaN: none)
+        # and its low-passed rate [m/s²] (_wheel_accel)
+        self._wheel_prev_mps = np.zeros((0, 2))
+        self._wheel_accel_mps2 = np.zeros((0, 2))
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
@@ -242,6 +247,8 @@ class MdsfFleet:
             grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
             grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
             grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
+            grow_slot_array(self, "_wheel_prev_mps", cap, (2,), np.nan)
+            grow_slot_array(self, "_wheel_accel_mps2", cap, (2,), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
         teeth = config.encoder.teeth_per_rev
@@ -250,6 +257,8 @@ class MdsfFleet:
         self._settle_max_change[slot] = config.slip.settle_max_change
         self._still_ns[slot] = _NEVER
         self._dist_shift_m[slot] = 0.0
+        self._wheel_prev_mps[slot] = np.nan
+        self._wheel_accel_mps2[slot] = 0.0
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
@@ -430,7 +439,10 @@ class MdsfFleet:
                 & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
             )
         )
-        valid = sp.valid & ~settling
+        # product mode: a slip whose std is beyond the bound (or unknown) is no reading, not
+        # valid (paper mode keeps the source's rule: any slip above the standstill speed)
+        certain = (sp.std_pct <= self.config.valid_slip_std_max_pct) | (not self._product)
+        valid = sp.valid & ~settling & certain
         enu, heading, carried = self._carry(due, res)
         slip_out = np.where(valid, sp.slip_pct, np.nan)
         slip_std_out = np.where(valid, sp.std_pct, np.nan)
@@ -480,13 +492,31 @@ class MdsfFleet:
             return so, _Calibrated(rim, rim_std, ones, no, nan)
         fixed = self._apply_calibration(slots, tin)
         scale, wheel_offset_s = bank.wheel_correction(slots)
-        accel = np.nan_to_num(fixed.z[:, MdsfObs.A1])
-        rim_c = scale * (rim + (wheel_offset_s * accel)[:, None])
+        rim_c = scale * (rim + wheel_offset_s[:, None] * self._wheel_accel_mps2[slots])
         rim_std_c = scale * rim_std
         so = self.engine.step(slots, fixed, rim_c, rim_std_c)
+        self._wheel_accel(slots, so)
         self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
         fields = bank.row_fields(slots, self._radius_m[slots])
         return so, _Calibrated(rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields)
+
+    def _wheel_accel(self, slots: IntArray, so: StepOutput) -> None:
+        """Each wheel's ground acceleration ``a_w`` (slots, 2) after a round: the rate of its
+        filtered ground speed (``vl``, ``vr``: GNSS-anchored, at the axle, so without the
+        IMU's sway) over the tick, low-passed, ``a ← a + α·((V − V_prev)/dt − a)`` with
+        ``α = dt/(τ + dt)``, ``τ`` = ``wheel_clock_accel_tau_s``. A wheel clock offset
+        ``δ_w`` moves a rim by ``δ_w·a_w`` (rims read ``δ_w`` late); ``a_w`` is what the rims
+        feel, not the accelerometer's vibration and leftover gravity. Kept through ticks
+        without a row; the rate restarts after them."""
+        dt = self.config.dt_s
+        ground = np.stack([so.vl, so.vr], axis=1)
+        ok = so.emit[:, None] & np.isfinite(ground)
+        rate = (ground - self._wheel_prev_mps[slots]) / dt
+        acc = self._wheel_accel_mps2[slots]
+        alpha = dt / (self.config.wheel_clock_accel_tau_s + dt)
+        step = ok & np.isfinite(rate)
+        self._wheel_accel_mps2[slots] = np.where(step, acc + alpha * (rate - acc), acc)
+        self._wheel_prev_mps[slots] = np.where(ok, ground, np.nan)
 
     def _apply_calibration(self, slots: IntArray, tin: TickInputs) -> TickInputs:
         """Tick inputs with the calibrations applied: the mounting pitch's gravity share
@@ -538,7 +568,8 @@ class MdsfFleet:
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
         ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2
-        bank.observe_wheels(slots, rim, rim_std**2, ground, ground_var, accel, usable)
+        wheel_accel = self._wheel_accel_mps2[slots]
+        bank.observe_wheels(slots, rim, rim_std**2, ground, ground_var, wheel_accel, usable)
         still = bank.still_pitch_rows(slots, vg_raw, rim, min_speed)
         bank.observe_still(slots, tin.force_fwd, tin.accel_var, tin.attitude[:, 1], still)
         if tin.force_lat is not None and tin.lever_force_lat is not None:

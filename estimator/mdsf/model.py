@@ -351,6 +351,18 @@ class MdsfConfig:
         Floor added to the innovation std of the distance gate (as ``gate_floor_mps`` for the
         speed): a distance more than ``√gate_chi2`` times off its prediction (a wrong fix, a
         position jump) is not fused and the next fix starts a new chain [m].
+    wheel_clock_accel_tau_s : float
+        Product mode: time constant of the low-pass on the rate of each wheel's filtered ground
+        speed, the acceleration ``a_w`` by which the wheel clock offset moves the rims
+        (``r·W + δ_w·a_w``) and against which it is learnt. Not the accelerometer's force:
+        vibration, body sway and leftover gravity are in that force, not in the rims [s].
+    valid_slip_std_max_pct : float
+        Product mode: a slip whose 1-sigma exceeds this (or is unknown) is not valid: no
+        value, no valid flag (paper mode keeps the source's rule). The default is the tyre
+        model's own slip range, ``outage_slip_std`` (4 %): a slip known worse than the tyre
+        alone would say (its 2-sigma band ±8 pp spans a working tyre's 5-15 %) tells a user
+        nothing to act on, while an outage's slip, held near its anchor within that range,
+        stays a reading (a very large value turns the rule off) [percentage points].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -403,6 +415,8 @@ class MdsfConfig:
     gnss_noise_adapt: float = 0.02
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1
+    wheel_clock_accel_tau_s: float = 0.3
+    valid_slip_std_max_pct: float = 4.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):

@@ -83,7 +83,7 @@ def _run_wheels(bank: CalibrationBank, scale: tuple[float, float], offset_s: flo
             np.full((1, 2), 0.01**2),
             ground,
             np.full((1, 2), 0.005**2),
-            np.array([a[k]]),
+            np.full((1, 2), a[k]),
             np.array([True]),
         )
 
@@ -229,8 +229,14 @@ _START_NS = 1_700_000_000_000_000_000
 
 
 def _drive(
-    free: bool, *, calibration: CalibrationConfig | None = None, **overrides: object
+    free: bool,
+    *,
+    calibration: CalibrationConfig | None = None,
+    wheel_clock_s: float | None = None,
+    **overrides: object,
 ) -> tuple[np.ndarray, MdsfFleet, object]:
+    """A 60 s random drive (seed 11) through the fleet; ``wheel_clock_s``: the vehicle starts
+    from that wheel clock offset, known to 3 ms (as a calibration drive leaves it)."""
     geo = VehicleGeometry(wheel_driven_left=not free, wheel_driven_right=not free)
     cfg = WheeledRearDriveConfig(geometry=geo, calibration=calibration or CalibrationConfig())
     sim = simulate(
@@ -245,6 +251,13 @@ def _drive(
     config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
     fleet = MdsfFleet()
     fleet.add_vehicle("v", config)
+    if wheel_clock_s is not None:
+        start = dataclasses.replace(
+            fleet.calibration("v"),
+            wheel_clock_offset_s=wheel_clock_s,
+            wheel_clock_offset_std_s=0.003,
+        )
+        fleet.restore_calibration("v", start)
     rows = replay_drive(
         sim,
         lambda m: fleet.push("v", m),
@@ -304,3 +317,41 @@ def test_mounting_yaw_learnt_on_a_swaying_drive() -> None:
     cal = fleet.calibration("v")
     assert abs(cal.imu_yaw_rad - math.radians(-2.0)) < math.radians(0.5)
     assert cal.imu_yaw_std_rad < math.radians(1.0)
+
+
+_SWAY: dict[str, Any] = {"sway_hz": 1.5, "sway_pitch_deg": 3.0, "sway_roll_deg": 2.0}
+
+
+def _slip_rms_pp(rows: np.ndarray, sim: object) -> float:
+    errs = [
+        rows[f"slip_{w}_pct"] - truth_at(sim.truth, rows["stamp_ns"], f"slip_{w}_pct")  # type: ignore[attr-defined]
+        for w in ("left", "right")
+    ]
+    e = np.concatenate(errs)
+    return float(np.sqrt(np.mean(e[np.isfinite(e)] ** 2)))
+
+
+@pytest.mark.parametrize("offset_ms", [-80.0, 0.0, 70.0])
+def test_wheel_clock_learnt_on_a_swaying_drive(offset_ms: float) -> None:
+    """Free-rolling wheels whose clock runs ``offset_ms`` ahead of the IMU's, on a cab swaying
+    1.5 Hz ±3° pitch, ±2° roll (the accelerometer shaken by metres per second squared the
+    rims never feel): ``δ_w`` is found within 10 ms against the wheels' own acceleration, and
+    the late slip is unbiased within 0.3 pp."""
+    rows, fleet, sim = _drive(True, clock_offset_ms=(0.0, 0.0, offset_ms), **_SWAY)
+    cal = fleet.calibration("v")
+    assert abs(cal.wheel_clock_offset_s - offset_ms * 1e-3) < 0.010
+    assert cal.wheel_clock_offset_std_s < 0.005
+    assert abs(_late_slip_bias_pp(rows, sim)) < 0.3
+
+
+@pytest.mark.parametrize("offset_ms", [80.0, -80.0])
+def test_an_applied_wheel_clock_offset_does_not_cost_slip(offset_ms: float) -> None:
+    """Driven wheels whose clock runs ``offset_ms`` ahead, on the swaying cab: starting from the
+    true offset (a calibration drive's) reads slip better than starting from 0. The rims are
+    moved by ``δ_w`` times the wheels' acceleration; moved by the accelerometer's force, sway
+    and all, the same start read slip 2.5-4× worse than leaving the offset out."""
+    known, _, sim = _drive(
+        False, wheel_clock_s=offset_ms * 1e-3, clock_offset_ms=(0.0, 0.0, offset_ms), **_SWAY
+    )
+    unknown, _, _ = _drive(False, wheel_clock_s=0.0, clock_offset_ms=(0.0, 0.0, offset_ms), **_SWAY)
+    assert _slip_rms_pp(known, sim) < _slip_rms_pp(unknown, sim) - 0.2
