@@ -351,6 +351,12 @@ class MdsfConfig:
         Floor added to the innovation std of the distance gate (as ``gate_floor_mps`` for the
         speed): a distance more than ``√gate_chi2`` times off its prediction (a wrong fix, a
         position jump) is not fused and the next fix starts a new chain [m].
+    course_tau_s : float
+        Product mode, a receiver without heading (one antenna): time constant of the course's
+        pull to the GNSS velocity's direction less the antenna's lever-arm velocity; between
+        fixes the course is the yaw rate integrated (``frontend._TiltTrack._course_update``).
+        The antenna's own course swings with a swaying mast and reverses when the mast's
+        ``h1·ωx`` outruns the speed [s].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -403,6 +409,7 @@ class MdsfConfig:
     gnss_noise_adapt: float = 0.02
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1
+    course_tau_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):
