@@ -278,6 +278,8 @@ _COURSE_MIN_SPEED_MPS = 0.2
 """Horizontal speed of ``O`` from which the GNSS velocity's direction pulls the course."""
 _FIRST_COURSE_LEVER_SHARE = 0.3
 """Largest lever-arm speed, over the antenna's, at which a course starts (``_course_update``)."""
+_COURSE_LEVER_SHARE = 0.1
+"""Lever-arm speed, over the antenna's, from which ``O``'s course stands for the heading."""
 
 
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
@@ -486,7 +488,7 @@ class FleetFrontEnd:
         # course of O for a receiver without heading: yaw rate integrated, pulled to the GNSS
         # velocity less the antenna's lever-arm velocity (_TiltTrack._course_update)
         grow("course_rad", (), np.nan)
-        grow("course_fix_ns", (), np.int64(0))
+        grow("course_fix_ns", (), np.int64(0))  # last fix whose velocity pulled it
         grow("course_gyro_bias", (), 0.0)  # yaw-gyro bias learnt against that course
         grow("hold", (10,), np.nan)  # latest GNSS row: stamp, e, n, u, ve, vn, vu, ψ, θ, φ
         grow("has_frame", (), False)
@@ -1714,7 +1716,8 @@ class _TiltState:
     covariance (``var``, ``cov_tb``, ``var_b``), pitch-gyro bias ``bx``, last fix, whether it
     stood, the sums since it (``acc``, :class:`~estimator.tilt.PitchSum`); the same for roll
     (``ph``, ``by``, ``rcov`` as :class:`~estimator.tilt.AngleCov`, ``racc`` as
-    :class:`~estimator.tilt.RollSum`)."""
+    :class:`~estimator.tilt.RollSum`); a receiver without heading's course and its yaw-gyro
+    bias (``course``, ``cbias``, :meth:`_TiltTrack._course_update`)."""
 
     th: FloatArray
     var: FloatArray
@@ -1889,8 +1892,13 @@ class _TiltTrack:
         ``course_tau_s`` (:func:`~estimator.tilt.yaw_fix_update`), to the direction of the
         velocity less the lever arm's (turned into ENU with the course predicted), where that
         speed is at least ``_COURSE_MIN_SPEED_MPS``; the bias is learnt from
-        ``_VEL_PITCH_MIN_SPEED_MPS`` on, fix to fix (a gap without a course would wind it up).
-        Replaces ``g_heading`` of those fixes.
+        ``_VEL_PITCH_MIN_SPEED_MPS`` on, fix to fix (a gap without a course would wind it up),
+        and the pull is ``(v/_VEL_PITCH_MIN_SPEED_MPS)²`` of it below that (the direction's
+        noise grows as ``1/v``). A course not pulled for ``reacquire_s`` (an outage, a stop)
+        starts anew. Replaces ``g_heading`` of those fixes where ``O``'s speed is
+        at least ``_VEL_PITCH_MIN_SPEED_MPS`` and the lever arm's horizontal speed at least
+        ``_COURSE_LEVER_SHARE`` of the antenna's; elsewhere the antenna's own course is
+        ``O``'s to within that share and carries no integrated yaw-rate error.
         """
         st, b = self.st, self.b
         own = ~np.isfinite(b.g[fi, _G_HEAD])
@@ -1900,24 +1908,43 @@ class _TiltTrack:
         bz = st.cbias[r]
         turn = st.racc[r, RollSum.YAW] - bz * st.acc[r, PitchSum.TIME]
         pred = st.course[r] - turn / np.maximum(np.cos(st.th[r]), 0.5)
+        stale = (b.g_t[fi] - st.cfix_ns[r]) * _NS > self.cfg.reacquire_s
+        pred = np.where(stale, np.nan, pred)
+        course, speed, seen, share = self._course_measured(fi, r, pred)
+        tau_cfg = dataclasses.replace(self.cfg, attitude_tau_s=self.cfg.course_tau_s)
+        # the interval since the previous fix: the time its IMU samples span
+        prev_ns = b.g_t[fi] - np.rint(st.acc[r, PitchSum.TIME] / _NS).astype(np.int64)
+        new, bias, _ = yaw_fix_update(pred, bz, prev_ns, course, b.g_t[fi], tau_cfg)
+        # the direction's noise grows as 1/speed: below _VEL_PITCH_MIN_SPEED_MPS a smaller pull
+        w = np.where(np.isfinite(pred), np.minimum(speed / _VEL_PITCH_MIN_SPEED_MPS, 1.0) ** 2, 1.0)
+        st.course[r] = np.where(
+            seen, np.where(np.isfinite(pred), pred + w * (new - pred), new), pred
+        )
+        st.cbias[r] = np.where(seen & (speed >= _VEL_PITCH_MIN_SPEED_MPS), bias, bz)
+        st.cfix_ns[r] = np.where(seen, b.g_t[fi], st.cfix_ns[r])
+        used = np.isfinite(st.course[r]) & (speed >= _VEL_PITCH_MIN_SPEED_MPS)
+        used &= share >= _COURSE_LEVER_SHARE
+        b.g_heading[fi] = np.where(used, st.course[r], b.g_heading[fi])
+
+    def _course_measured(
+        self, fi: IntArray, r: IntArray, pred: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+        """Course of ``O`` at fixes ``fi`` (rows ``r``, course predicted ``pred``, NaN: none
+        yet), its horizontal speed, whether it is used, and the lever arm's horizontal speed
+        over the antenna's. Used: from ``_COURSE_MIN_SPEED_MPS`` on,
+        a first course only while the lever arm's velocity is under
+        ``_FIRST_COURSE_LEVER_SHARE`` of the antenna's (it is taken off in the antenna's own
+        course)."""
+        st, b = self.st, self.b
         frame = np.where(np.isfinite(pred), pred, b.g_heading[fi])
         lever_e, lever_n, _ = b._antenna_lever(fi, r, frame, st.th[r])
         ve, vn = b.g[fi, _G_VE] - lever_e, b.g[fi, _G_VN] - lever_n
         speed = np.hypot(ve, vn)
         seen = b.g_vel_ok[fi] & np.isfinite(speed) & (speed >= _COURSE_MIN_SPEED_MPS)
-        # the first course from the antenna's own: only while the lever arm's velocity turns
-        # it by at most ~17° (the frame it is taken off in is that course)
-        small = np.hypot(lever_e, lever_n) < _FIRST_COURSE_LEVER_SHARE * np.hypot(
-            b.g[fi, _G_VE], b.g[fi, _G_VN]
-        )
-        seen &= np.isfinite(pred) | small
-        course = np.where(seen, np.arctan2(ve, vn), pred)
-        tau_cfg = dataclasses.replace(self.cfg, attitude_tau_s=self.cfg.course_tau_s)
-        new, bias, _ = yaw_fix_update(pred, bz, st.cfix_ns[r], course, b.g_t[fi], tau_cfg)
-        st.course[r] = np.where(seen, new, pred)
-        st.cbias[r] = np.where(seen & (speed >= _VEL_PITCH_MIN_SPEED_MPS), bias, bz)
-        st.cfix_ns[r] = b.g_t[fi]
-        b.g_heading[fi] = np.where(np.isfinite(st.course[r]), st.course[r], b.g_heading[fi])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.hypot(lever_e, lever_n) / np.hypot(b.g[fi, _G_VE], b.g[fi, _G_VN])
+        seen &= np.isfinite(pred) | (share < _FIRST_COURSE_LEVER_SHARE)
+        return np.where(seen, np.arctan2(ve, vn), pred), speed, seen, share
 
     def _pitch_measured(
         self, fi: IntArray, r: IntArray, p: FloatArray, stood: BoolArray, span: FloatArray
