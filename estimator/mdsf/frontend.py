@@ -274,6 +274,12 @@ _PITCH_PRIOR_STD_RAD = 0.1
 """Pitch before any measurement: level ± 0.1 rad (6°; field slopes rarely pass 15°)."""
 _VEL_PITCH_MIN_SPEED_MPS = 0.5
 """Horizontal speed from which the GNSS velocity's elevation is a pitch measurement."""
+_COURSE_MIN_SPEED_MPS = 0.2
+"""Horizontal speed of ``O`` from which the GNSS velocity's direction pulls the course."""
+_FIRST_COURSE_LEVER_SHARE = 0.3
+"""Largest lever-arm speed, over the antenna's, at which a course starts (``_course_update``)."""
+_COURSE_LEVER_SHARE = 0.1
+"""Lever-arm speed, over the antenna's, from which ``O``'s course stands for the heading."""
 
 
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
@@ -479,6 +485,11 @@ class FleetFrontEnd:
         grow("yaw_rad", (), np.nan)
         grow("yaw_gyro_bias", (), 0.0)
         grow("yaw_fix_ns", (), np.int64(0))
+        # course of O for a receiver without heading: yaw rate integrated, pulled to the GNSS
+        # velocity less the antenna's lever-arm velocity (_TiltTrack._course_update)
+        grow("course_rad", (), np.nan)
+        grow("course_fix_ns", (), np.int64(0))  # last fix whose velocity pulled it
+        grow("course_gyro_bias", (), 0.0)  # yaw-gyro bias learnt against that course
         grow("hold", (10,), np.nan)  # latest GNSS row: stamp, e, n, u, ve, vn, vu, ψ, θ, φ
         grow("has_frame", (), False)
         grow("origin", (3,), np.nan)  # lat_deg, lon_deg, height_m of the ENU frame
@@ -514,6 +525,7 @@ class FleetFrontEnd:
         grow("chain_turn_rad", (), 0.0)  # Σ Δψ·cos θ·sin φ along the chain (∫ωx beyond θ)
         grow("h1_m", (), 0.0)
         grow("ant_x_m", (), 0.0)  # antenna's lateral offset from the IMU, x_a − x_i
+        grow("ant_lat_m", (), 0.0)  # antenna's lateral offset from O, x_a
         grow("pos_var_cfg", (), 0.0)
         self.trackers.extend([()] * (cap - old))
         self.direct.extend([None] * (cap - old))
@@ -542,6 +554,9 @@ class FleetFrontEnd:
     yaw_rad: FloatArray
     yaw_gyro_bias: FloatArray
     yaw_fix_ns: IntArray
+    course_rad: FloatArray
+    course_fix_ns: IntArray
+    course_gyro_bias: FloatArray
     hold: FloatArray
     has_frame: BoolArray
     origin: FloatArray
@@ -571,6 +586,7 @@ class FleetFrontEnd:
     chain_turn_rad: FloatArray
     h1_m: FloatArray
     ant_x_m: FloatArray
+    ant_lat_m: FloatArray
     pos_var_cfg: FloatArray
 
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
@@ -610,6 +626,9 @@ class FleetFrontEnd:
         self.yaw_rad[slot] = np.nan
         self.yaw_gyro_bias[slot] = 0.0
         self.yaw_fix_ns[slot] = 0
+        self.course_rad[slot] = np.nan
+        self.course_fix_ns[slot] = 0
+        self.course_gyro_bias[slot] = 0.0
         self.hold[slot] = np.nan
         self.has_frame[slot] = False
         self.origin[slot] = np.nan
@@ -634,6 +653,7 @@ class FleetFrontEnd:
         geo = vehicle.geometry
         self.h1_m[slot] = geo.h1_m
         self.ant_x_m[slot] = geo.antenna_offset_m[0] - geo.imu_offset_m[0]
+        self.ant_lat_m[slot] = geo.antenna_offset_m[0]
         self.pos_var_cfg[slot] = n.gnss_pos_std_m**2
 
     def align_ticks(self, slot: int, stamp_ns: int) -> None:
@@ -1250,6 +1270,37 @@ class _Batch:
         )
         return pitch, var
 
+    def _rates_at_fix(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Body rates ``(ωx, ωy, ωz)`` of the latest IMU sample at or before fixes ``fi`` (rows
+        ``r``), 0 where the row has none; each shape ``(len(fi),)``."""
+        j = self.g_j[fi] - 1
+        has = (j >= self.s_begin[r]) & (j >= 0)
+        if not self.wx.shape[0]:
+            return np.zeros(fi.shape[0]), np.zeros(fi.shape[0]), np.zeros(fi.shape[0])
+        jj = np.where(has, j, 0)
+        wx, wy, wz = (np.where(has, w[jj], 0.0) for w in (self.wx, self.wy, self.wz))
+        return wx, wy, wz
+
+    def _antenna_lever(
+        self, fi: IntArray, r: IntArray, heading_rad: FloatArray, pitch_rad: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """ENU velocity ``(e, n, u)`` of the antenna about ``O`` at fixes ``fi`` (rows ``r``).
+
+        ``ω × p_a`` in the body frame (X right, Y forward, Z up; ``p_a = (x_a, y_a, h1)``):
+        across ``ωy·h1 − ωz·y_a``, along ``ωz·x_a − ωx·h1``, up ``ωx·y_a − ωy·x_a``
+        (:mod:`estimator.sim.kinematics`), turned into ENU with ``heading_rad`` and
+        ``pitch_rad`` (roll neglected), rates from :meth:`_rates_at_fix`. Each shape ``(k,)``.
+        """
+        fe = self.fe
+        slot = self.slots[r]
+        wx, wy, wz = self._rates_at_fix(fi, r)
+        xa, ya, h1 = fe.ant_lat_m[slot], fe.ant_fwd_m[slot], fe.h1_m[slot]
+        across, along, up = wy * h1 - wz * ya, wz * xa - wx * h1, wx * ya - wy * xa
+        ct, stt = np.cos(pitch_rad), np.sin(pitch_rad)
+        flat = along * ct - up * stt
+        sp, cp = np.sin(heading_rad), np.cos(heading_rad)
+        return flat * sp + across * cp, flat * cp - across * sp, along * stt + up * ct
+
     def _accel_roll(
         self, fi: IntArray, r: IntArray, theta: FloatArray, acc: FloatArray, racc: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
@@ -1665,7 +1716,8 @@ class _TiltState:
     covariance (``var``, ``cov_tb``, ``var_b``), pitch-gyro bias ``bx``, last fix, whether it
     stood, the sums since it (``acc``, :class:`~estimator.tilt.PitchSum`); the same for roll
     (``ph``, ``by``, ``rcov`` as :class:`~estimator.tilt.AngleCov`, ``racc`` as
-    :class:`~estimator.tilt.RollSum`)."""
+    :class:`~estimator.tilt.RollSum`); a receiver without heading's course and its yaw-gyro
+    bias (``course``, ``cbias``, :meth:`_TiltTrack._course_update`)."""
 
     th: FloatArray
     var: FloatArray
@@ -1682,6 +1734,9 @@ class _TiltState:
     rfix_ns: IntArray
     rknown: BoolArray
     racc: FloatArray
+    course: FloatArray
+    cfix_ns: IntArray
+    cbias: FloatArray
 
     @classmethod
     def take(cls, fe: FleetFrontEnd, s: IntArray) -> _TiltState:
@@ -1702,6 +1757,9 @@ class _TiltState:
             rfix_ns=fe.roll_fix_ns[s],
             rknown=fe.roll_known[s],
             racc=fe.roll_acc[s],
+            course=fe.course_rad[s],
+            cfix_ns=fe.course_fix_ns[s],
+            cbias=fe.course_gyro_bias[s],
         )
 
     def put(self, fe: FleetFrontEnd, s: IntArray) -> None:
@@ -1721,6 +1779,9 @@ class _TiltState:
         fe.roll_fix_ns[s] = self.rfix_ns
         fe.roll_known[s] = self.rknown
         fe.roll_acc[s] = self.racc
+        fe.course_rad[s] = self.course
+        fe.course_fix_ns[s] = self.cfix_ns
+        fe.course_gyro_bias[s] = self.cbias
 
 
 class _TiltTrack:
@@ -1808,6 +1869,7 @@ class _TiltTrack:
         stood = st.still[r] & self.g_still[fi] & (t_since > 0) & (self.cfg.standstill_speed_mps > 0)
         span = np.where(stood, t_since, 1.0)
         if self.product:
+            self._course_update(fi, r)
             pm, pm_var = self._pitch_measured(fi, r, p, stood, span)
             roll_m, roll_var = self._roll_measured(fi, r)
             self._kalman_update(fi, r, (pm, pm_var), (roll_m, roll_var), stood, span)
@@ -1816,6 +1878,73 @@ class _TiltTrack:
                 st.th[r], st.var[r], st.bx[r], st.fix_ns[r], st.known[r], p, b.g_t[fi], self.cfg
             )
         self._fix_outputs(fi, r, p)
+
+    def _course_update(self, fi: IntArray, r: IntArray) -> None:
+        """Heading at fixes ``fi`` (rows ``r``) of a receiver without one: ``O``'s course.
+
+        The antenna's velocity is ``O``'s plus the lever arm's ``ω × p_a``
+        (:meth:`_Batch._antenna_lever`), whose horizontal part on a swaying mast is metres per
+        second (``h1·ωy`` across, ``h1·ωx`` along): the antenna's own course swings by tens of
+        degrees and turns round when ``h1·ωx`` outruns the speed, and eq. (1) projected on it
+        reads ``|v|`` instead of the body's forward speed. So the course is integrated from the
+        yaw rate between fixes (``ψ̇ = −(ωz − b_z)/cos θ``, ``b_z`` learnt against the course as
+        the heading track learns it) and pulled, with time constant
+        ``course_tau_s`` (:func:`~estimator.tilt.yaw_fix_update`), to the direction of the
+        velocity less the lever arm's (turned into ENU with the course predicted), where that
+        speed is at least ``_COURSE_MIN_SPEED_MPS``; the bias is learnt from
+        ``_VEL_PITCH_MIN_SPEED_MPS`` on, fix to fix (a gap without a course would wind it up),
+        and the pull is ``(v/_VEL_PITCH_MIN_SPEED_MPS)²`` of it below that (the direction's
+        noise grows as ``1/v``). A course not pulled for ``reacquire_s`` (an outage, a stop)
+        starts anew. Replaces ``g_heading`` of those fixes where ``O``'s speed is
+        at least ``_VEL_PITCH_MIN_SPEED_MPS`` and the lever arm's horizontal speed at least
+        ``_COURSE_LEVER_SHARE`` of the antenna's; elsewhere the antenna's own course is
+        ``O``'s to within that share and carries no integrated yaw-rate error.
+        """
+        st, b = self.st, self.b
+        own = ~np.isfinite(b.g[fi, _G_HEAD])
+        if not own.any():
+            return
+        fi, r = fi[own], r[own]
+        bz = st.cbias[r]
+        turn = st.racc[r, RollSum.YAW] - bz * st.acc[r, PitchSum.TIME]
+        pred = st.course[r] - turn / np.maximum(np.cos(st.th[r]), 0.5)
+        stale = (b.g_t[fi] - st.cfix_ns[r]) * _NS > self.cfg.reacquire_s
+        pred = np.where(stale, np.nan, pred)
+        course, speed, seen, share = self._course_measured(fi, r, pred)
+        tau_cfg = dataclasses.replace(self.cfg, attitude_tau_s=self.cfg.course_tau_s)
+        # the interval since the previous fix: the time its IMU samples span
+        prev_ns = b.g_t[fi] - np.rint(st.acc[r, PitchSum.TIME] / _NS).astype(np.int64)
+        new, bias, _ = yaw_fix_update(pred, bz, prev_ns, course, b.g_t[fi], tau_cfg)
+        # the direction's noise grows as 1/speed: below _VEL_PITCH_MIN_SPEED_MPS a smaller pull
+        w = np.where(np.isfinite(pred), np.minimum(speed / _VEL_PITCH_MIN_SPEED_MPS, 1.0) ** 2, 1.0)
+        st.course[r] = np.where(
+            seen, np.where(np.isfinite(pred), pred + w * (new - pred), new), pred
+        )
+        st.cbias[r] = np.where(seen & (speed >= _VEL_PITCH_MIN_SPEED_MPS), bias, bz)
+        st.cfix_ns[r] = np.where(seen, b.g_t[fi], st.cfix_ns[r])
+        used = np.isfinite(st.course[r]) & (speed >= _VEL_PITCH_MIN_SPEED_MPS)
+        used &= share >= _COURSE_LEVER_SHARE
+        b.g_heading[fi] = np.where(used, st.course[r], b.g_heading[fi])
+
+    def _course_measured(
+        self, fi: IntArray, r: IntArray, pred: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+        """Course of ``O`` at fixes ``fi`` (rows ``r``, course predicted ``pred``, NaN: none
+        yet), its horizontal speed, whether it is used, and the lever arm's horizontal speed
+        over the antenna's. Used: from ``_COURSE_MIN_SPEED_MPS`` on,
+        a first course only while the lever arm's velocity is under
+        ``_FIRST_COURSE_LEVER_SHARE`` of the antenna's (it is taken off in the antenna's own
+        course)."""
+        st, b = self.st, self.b
+        frame = np.where(np.isfinite(pred), pred, b.g_heading[fi])
+        lever_e, lever_n, _ = b._antenna_lever(fi, r, frame, st.th[r])
+        ve, vn = b.g[fi, _G_VE] - lever_e, b.g[fi, _G_VN] - lever_n
+        speed = np.hypot(ve, vn)
+        seen = b.g_vel_ok[fi] & np.isfinite(speed) & (speed >= _COURSE_MIN_SPEED_MPS)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.hypot(lever_e, lever_n) / np.hypot(b.g[fi, _G_VE], b.g[fi, _G_VN])
+        seen &= np.isfinite(pred) | (share < _FIRST_COURSE_LEVER_SHARE)
+        return np.where(seen, np.arctan2(ve, vn), pred), speed, seen, share
 
     def _pitch_measured(
         self, fi: IntArray, r: IntArray, p: FloatArray, stood: BoolArray, span: FloatArray

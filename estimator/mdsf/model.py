@@ -363,6 +363,12 @@ class MdsfConfig:
         alone would say (its 2-sigma band ±8 pp spans a working tyre's 5-15 %) tells a user
         nothing to act on, while an outage's slip, held near its anchor within that range,
         stays a reading (a very large value turns the rule off) [percentage points].
+    course_tau_s : float
+        Product mode, a receiver without heading (one antenna): time constant of the course's
+        pull to the GNSS velocity's direction less the antenna's lever-arm velocity; between
+        fixes the course is the yaw rate integrated (``frontend._TiltTrack._course_update``).
+        The antenna's own course swings with a swaying mast and reverses when the mast's
+        ``h1·ωx`` outruns the speed [s].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -417,6 +423,7 @@ class MdsfConfig:
     gnss_distance_gate_floor_m: float = 0.1
     wheel_clock_accel_tau_s: float = 0.3
     valid_slip_std_max_pct: float = 4.0
+    course_tau_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):
