@@ -3,7 +3,8 @@
 Each vehicle has its sensor buffers (:class:`~.sensors.SensorBuffers`, read once per call for
 its due ticks), a slot of the batched front end (:class:`~.fleetfront.FleetFrontEnd`: sensors →
 per-wheel inputs, every vehicle of a round in one numpy pass) and one row of the batched filter
-(:func:`~.filter.filter_step`, vehicles × cubature points in one numpy call per round). Ticks
+(:func:`~.filter.filter_step`, vehicles × cubature points in one numpy call per round); its
+constants, filter state and informed window live in :class:`~.slots.FleetSlots`. Ticks
 lie on ``first IMU sample + k·tick_s`` (or ``align_ticks``); a tick is computed once the IMU
 covers it.
 
