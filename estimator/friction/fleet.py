@@ -3,7 +3,8 @@
 Each vehicle has its sensor buffers (:class:`~.sensors.SensorBuffers`, read once per call for
 its due ticks), a slot of the batched front end (:class:`~.fleetfront.FleetFrontEnd`: sensors →
 per-wheel inputs, every vehicle of a round in one numpy pass) and one row of the batched filter
-(:func:`~.filter.filter_step`, vehicles × cubature points in one numpy call per round). Ticks
+(:func:`~.filter.filter_step`, vehicles × cubature points in one numpy call per round); its
+constants, filter state and informed window live in :class:`~.slots.FleetSlots`. Ticks
 lie on ``first IMU sample + k·tick_s`` (or ``align_ticks``); a tick is computed once the IMU
 covers it.
 
@@ -24,13 +25,12 @@ origin of its ENU frame. Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator._arrays import FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import ConfigError, VehicleConfig, Wheeled4wdSteeredConfig, expect_kind
 from estimator.friction.axle import (
@@ -45,10 +45,12 @@ from estimator.friction.filter import (
     FilterConfig,
     FilterState,
     FrictionMode,
+    PaperState,
     ProductState,
     TickInputs,
     TyreArrays,
     _stiffness_of,
+    _tyres_subset,
     filter_step,
     initial_state,
     mu_of,
@@ -56,9 +58,9 @@ from estimator.friction.filter import (
 )
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.frontend import FrontEndConfig
-from estimator.friction.model import Chassis
 from estimator.friction.position import FleetPositions, PositionConfig
 from estimator.friction.sensors import SensedTicks, SensorBuffers
+from estimator.friction.slots import FleetSlots
 from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
@@ -104,19 +106,6 @@ class _Vehicle:
         self.tick_ns = round(cfg.filter.tick_s * 1e9)
         self.sensors = SensorBuffers(self.tick_ns, cfg.front.gnss_timeout_s)
         self.next_ns: int | None = None
-        self.state: FilterState | None = None
-        self.held_mu = math.nan
-        window = max(1, round(cfg.informed_hold_s / cfg.filter.tick_s))
-        self.recent: deque[tuple[bool, float]] = deque(maxlen=window)
-        ty = config.tyre
-        self.tyres = TyreArrays(
-            *(
-                np.array([[v]])
-                for v in (ty.kz_npm, ty.unloaded_radius_m, ty.c_px_npm2, ty.c_py_npm2)
-            )
-        )
-        self.chassis = Chassis.of([config])
-        self.axles = AxleArrays.of([config])
 
     def due(self, until_ns: int) -> IntArray | None:
         """The ticks up to ``until_ns`` the IMU covers, not yet computed (None if none)."""
@@ -138,10 +127,6 @@ class _Vehicle:
 
 _GNSS_VY_STD_MPS = 0.1
 """1-σ of GNSS lateral speed (velocity noise and the heading's across a 20 m/s velocity)."""
-
-
-def _cat(parts: list[np.ndarray]) -> np.ndarray:
-    return np.concatenate(parts, axis=0)
 
 
 def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickInputs:
@@ -191,6 +176,8 @@ class FrictionFleet:
         self._front = FleetFrontEnd(self.config.front, self.config.filter.tick_s)
         self._positions = FleetPositions(self.config.position)
         self._free_slots: list[int] = []
+        window = max(1, round(self.config.informed_hold_s / self.config.filter.tick_s))
+        self._slots = FleetSlots(_n_state(self.config.filter.mode), window)
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         steered = expect_kind(config, Wheeled4wdSteeredConfig, self.name)
@@ -203,6 +190,7 @@ class FrictionFleet:
             slot = len(self._vehicles)
         self._front.add(slot, steered)
         self._positions.add(slot)
+        self._slots.reset(slot, steered)
         self._vehicles[vehicle_id] = _Vehicle(steered, self.config, slot)
 
     def remove_vehicle(self, vehicle_id: str) -> None:
@@ -265,7 +253,7 @@ class FrictionFleet:
             at = starts[part] + r
             sensed = every.take(at)
             fe = self._front.step(slots[part], sensed)
-            self._round([work[k][1] for k in part], sensed.t_ns.tolist(), fe, out, at)
+            self._round(slots[part], sensed.t_ns, fe, out, at)
             self._place(out, at, slots[part], sensed.t_ns, fe)
         return [(w[0], out[a : a + n]) for w, a, n in zip(work, starts, counts, strict=True)]
 
@@ -283,48 +271,19 @@ class FrictionFleet:
         )
 
     def _round(
-        self,
-        vs: list[_Vehicle],
-        t_ns: list[int],
-        fe: FrontEndTicks,
-        out: np.ndarray,
-        at: IntArray,
+        self, s: IntArray, t_ns: IntArray, fe: FrontEndTicks, out: np.ndarray, at: IntArray
     ) -> None:
-        """Step one tick of every vehicle in ``vs`` together (``fe``: their front ends'), into
-        the rows ``out[at]``."""
-        axles = AxleArrays.concat([v.axles for v in vs])
-        u = _tick_inputs(fe, axles, self.config.axle)
-        tyres = TyreArrays(
-            kz_npm=fe.kz_npm,
-            radius_m=_cat([v.tyres.radius_m for v in vs]),
-            c_px_npm2=_cat([v.tyres.c_px_npm2 for v in vs]),
-            c_py_npm2=_cat([v.tyres.c_py_npm2 for v in vs]),
-        )
-        chassis = Chassis(
-            mass_kg=_cat([v.chassis.mass_kg for v in vs]),
-            yaw_inertia_kgm2=_cat([v.chassis.yaw_inertia_kgm2 for v in vs]),
-            wheel_x_m=_cat([v.chassis.wheel_x_m for v in vs]),
-            wheel_y_m=_cat([v.chassis.wheel_y_m for v in vs]),
-        )
-        fresh = [v.state is None for v in vs]
-        st = filter_step(self._states(vs, tyres, u), self.config.filter, tyres, chassis, u)
+        """Step one tick of the vehicles in slots ``s`` together (``fe``: their front ends'),
+        into the rows ``out[at]``."""
+        u = _tick_inputs(fe, self._slots.axles_of(s), self.config.axle)
+        tyres, chassis = self._slots.constants(s, fe.kz_npm)
+        fresh = ~self._slots.has_state[s]
+        prior = initial_state(self.config.filter, _tyres_subset(tyres, fresh), u.fz_n[fresh])
+        st = filter_step(self._slots.states(s, prior, fresh), self.config.filter, tyres, chassis, u)
+        self._slots.keep(s, st)
         util = self._utilisation(st, tyres, u)
         _front_columns(out, at, fe, util)
-        for i, v in enumerate(vs):
-            v.state = st.take(np.array([i]))
-            row = out[at[i] : at[i] + 1]
-            self._row(row, v, (t_ns[i], fe), st, i, util[i], fresh[i])
-
-    def _states(self, vs: list[_Vehicle], tyres: TyreArrays, u: TickInputs) -> FilterState:
-        """The vehicles' filter states stacked; a vehicle's first tick starts from the prior."""
-        prior = initial_state(self.config.filter, tyres, u.fz_n)
-        own = [prior.take(np.array([i])) if v.state is None else v.state for i, v in enumerate(vs)]
-        return FilterState(
-            x=_cat([s.x for s in own]),
-            s=_cat([s.s for s in own]),
-            fz_prev_n=_cat([s.fz_prev_n for s in own]),
-            nis=_cat([s.nis for s in own]),
-        )
+        self._rows(out, at, s, (t_ns, fe), st, util, fresh)
 
     def _utilisation(self, st: FilterState, tyres: TyreArrays, u: TickInputs) -> FloatArray:
         """Grip used per wheel ``(B, 4)`` at the filter's mean state."""
@@ -334,56 +293,56 @@ class FrictionFleet:
         fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
         return utilisation(fx, fy, u.fz_n, mu)
 
-    def _informed(
-        self, v: _Vehicle, updated: bool, mu: float, std: float, util: FloatArray
-    ) -> bool:
-        """This tick and the last ``informed_hold_s`` met the informed conditions."""
-        cfg = self.config
-        ok = (
-            updated
-            and std / mu < cfg.informed_rel_std
-            and (float(np.nanmax(util)) >= cfg.informed_min_util)
-        )
-        v.recent.append((ok, mu))
-        if len(v.recent) < (v.recent.maxlen or 1) or not all(o for o, _ in v.recent):
-            return False
-        mus = [m for _, m in v.recent]
-        return (max(mus) - min(mus)) / mu < cfg.informed_spread
-
-    def _row(
+    def _rows(
         self,
-        row: np.ndarray,
-        v: _Vehicle,
-        tick: tuple[int, FrontEndTicks],
+        out: np.ndarray,
+        at: IntArray,
+        s: IntArray,
+        tick: tuple[IntArray, FrontEndTicks],
         st: FilterState,
-        i: int,
         util: FloatArray,
-        fresh: bool,
+        fresh: BoolArray,
     ) -> None:
+        """The rows ``out[at]``'s μ, its 1-σ (informed only), the held μ and the flags, for
+        the round's vehicles in slots ``s`` at once."""
         t_ns, fe = tick
-        mode = self.config.filter.mode
-        mu = float(mu_of(st.x[i, 0], mode))
-        std = float(mu_std_of(st.x[i, 0], float(np.linalg.norm(st.s[i, 0])), mode))
-        informed = self._informed(v, bool(st.updated[i]), mu, std, util)
-        flags = FrictionFlag.NONE
-        if informed:
-            v.held_mu = mu
-            flags |= FrictionFlag.INFORMED
-        else:
-            flags |= FrictionFlag.HELD
-        if not st.updated[i]:
-            flags |= FrictionFlag.NO_UPDATE
-        if fe.gnss[i]:
-            flags |= FrictionFlag.GNSS_SPEED
-        if fe.tyre_suspect[i]:
-            flags |= FrictionFlag.TYRE_SUSPECT
-        if self.config.filter.mode is FrictionMode.PAPER and st.updated[i] and not st.mee_ok[i]:
-            flags |= FrictionFlag.MEE_FALLBACK
-        if fresh:
-            flags |= FrictionFlag.RESET
-        row["stamp_ns"] = t_ns
-        row["mu"] = mu if informed else v.held_mu
-        row["mu_std"] = std if informed else math.nan
-        row["mu_filter"] = mu
-        row["vy_mps"] = st.x[i, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps[i]
-        row["flags"] = int(flags)
+        cfg = self.config
+        mode = cfg.filter.mode
+        mu = mu_of(st.x[:, 0], mode)
+        root_row = st.s[:, 0]
+        std = mu_std_of(st.x[:, 0], np.sqrt(np.einsum("ij,ij->i", root_row, root_row)), mode)
+        ok = st.updated & (std / mu < cfg.informed_rel_std)
+        ok &= np.fmax.reduce(util, axis=1) >= cfg.informed_min_util
+        informed = self._slots.informed(s, ok, mu, cfg.informed_spread)
+        self._slots.held_mu[s[informed]] = mu[informed]
+        out["stamp_ns"][at] = t_ns
+        out["mu"][at] = np.where(informed, mu, self._slots.held_mu[s])
+        out["mu_std"][at] = np.where(informed, std, math.nan)
+        out["mu_filter"][at] = mu
+        out["vy_mps"][at] = st.x[:, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps
+        out["flags"][at] = _flags(informed, st, fe, fresh, mode)
+
+
+def _n_state(mode: FrictionMode) -> int:
+    """Length of the filter's state in ``mode``."""
+    return len(ProductState) if mode is FrictionMode.PRODUCT else len(PaperState)
+
+
+def _flags(
+    informed: BoolArray, st: FilterState, fe: FrontEndTicks, fresh: BoolArray, mode: FrictionMode
+) -> IntArray:
+    """Each row's :class:`FrictionFlag` bits ``(B,)``."""
+    bits = [
+        (informed, FrictionFlag.INFORMED),
+        (~informed, FrictionFlag.HELD),
+        (~st.updated, FrictionFlag.NO_UPDATE),
+        (fe.gnss, FrictionFlag.GNSS_SPEED),
+        (fe.tyre_suspect, FrictionFlag.TYRE_SUSPECT),
+        (fresh, FrictionFlag.RESET),
+    ]
+    if mode is FrictionMode.PAPER:
+        bits.append((st.updated & ~st.mee_ok, FrictionFlag.MEE_FALLBACK))
+    flags = np.zeros(informed.size, dtype=np.int64)
+    for where, flag in bits:
+        flags |= np.where(where, int(flag), 0)
+    return flags
