@@ -21,6 +21,7 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
     fallback_states,
+    gearbox_bound,
     paper_states,
     product_states,
 )
@@ -130,8 +131,11 @@ def recognise(
     lead = np.abs(w + tau * inp.yaw_accel_radps2) - cfg.yaw_lead_noise_radps
     lead = np.maximum(np.abs(w), lead)
     before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
+    sprockets = gearbox_bound(
+        inp.sprocket_pair_mps, inp.odometer_mps, inp.odometer_lag_s, inp.gearbox_accel_mps2, cfg
+    )
     state, conf = product_states(
-        inp.sprocket_pair_mps,
+        sprockets,
         inp.gear_ratio,
         step,
         p,

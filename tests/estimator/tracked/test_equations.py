@@ -26,6 +26,7 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
     fallback_states,
+    gearbox_bound,
     paper_states,
     product_states,
     ratio_noise,
@@ -204,6 +205,32 @@ def test_a_start_from_standstill_is_a_straight_before_the_sprockets_read() -> No
     odo = np.array([0.5 * cfg.start_odometer_mps, 2.0 * cfg.start_odometer_mps])
     got, _ = product_states(*args, np.zeros(2), odo)
     assert got.tolist() == [M.STOP, M.STRAIGHT]
+
+
+def test_no_sprocket_is_read_faster_than_the_slowing_gearbox() -> None:
+    cfg = TrackedEstimatorConfig()
+    # 0: braking at −1.5 m/s², odometer 0.2 m/s at its centre 0.05 s back: the gearbox turns
+    #    at 0.125 m/s, so a window holding 0.48 is read at 1.2 · 0.125 = 0.15 m/s
+    # 1: the same odometer at a steady speed: a window never leads, nothing is bounded
+    # 2: no odometer: nothing is bounded
+    pair = np.array([[0.48, 0.0], [0.48, 0.0], [0.48, 0.0]])
+    got = gearbox_bound(
+        pair,
+        np.array([0.2, 0.2, np.nan]),
+        np.full(3, 0.05),
+        np.array([-1.5, 0.0, -1.5]),
+        cfg,
+    )
+    assert got[:, 1].tolist() == [0.0, 0.0, 0.0]
+    assert got[0, 0] == pytest.approx(1.2 * (0.2 - 1.5 * 0.05))
+    assert got[1:, 0].tolist() == [0.48, 0.48]
+    # read at the bound, the stale window is no longer a pivot beside the silent one
+    p2 = VehicleParams.stack([P1, P1])
+    odo = np.array([0.2, 0.2])
+    stale, _ = product_states(pair[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), odo)
+    bounded, _ = product_states(got[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), odo)
+    assert stale.tolist() == [M.PIVOT, M.PIVOT]
+    assert bounded.tolist() == [M.STRAIGHT, M.PIVOT]
 
 
 @pytest.mark.parametrize(
