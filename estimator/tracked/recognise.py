@@ -29,6 +29,7 @@ __all__ = [
     "change_onset",
     "fallback_states",
     "gearbox_bound",
+    "gearbox_speed",
     "paper_states",
     "product_states",
     "ratio_noise",
@@ -148,6 +149,15 @@ def ratio_noise(
     return np.sqrt((teeth**2 + change**2 + carry**2).sum(axis=1))
 
 
+def gearbox_speed(
+    odometer_mps: FloatArray, odometer_lag_s: FloatArray, gearbox_accel_mps2: FloatArray
+) -> FloatArray:
+    """The gearbox's speed at the tick ``(k,)``: the odometer's window speed carried from its
+    centre, ``max(v_o + a·lag, 0)`` (NaN where the odometer is unknown)."""
+    accel = np.nan_to_num(gearbox_accel_mps2)
+    return np.maximum(odometer_mps + accel * odometer_lag_s, 0.0)
+
+
 def gearbox_bound(
     sprocket_mps: FloatArray,
     odometer_mps: FloatArray,
@@ -164,7 +174,7 @@ def gearbox_bound(
     window silent, the other's still holding). Where the odometer is unknown, or the gearbox
     does not slow, nothing is bounded."""
     accel = np.nan_to_num(gearbox_accel_mps2)
-    gearbox = np.maximum(odometer_mps + accel * odometer_lag_s, 0.0)
+    gearbox = gearbox_speed(odometer_mps, odometer_lag_s, gearbox_accel_mps2)
     slowing = np.isfinite(gearbox) & (accel < 0.0)
     limit = np.where(slowing, cfg.sprocket_over_gearbox_max * gearbox, np.inf)
     return np.minimum(sprocket_mps, limit[:, None])

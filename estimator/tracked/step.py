@@ -22,6 +22,7 @@ from estimator.tracked.recognise import (
     change_onset,
     fallback_states,
     gearbox_bound,
+    gearbox_speed,
     paper_states,
     product_states,
 )
@@ -141,7 +142,7 @@ def recognise(
         p,
         cfg,
         lead,
-        inp.odometer_mps,
+        gearbox_speed(inp.odometer_mps, inp.odometer_lag_s, inp.gearbox_accel_mps2),
         before,
         inp.gearbox_accel_mps2,
     )

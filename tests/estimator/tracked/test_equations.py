@@ -27,6 +27,7 @@ from estimator.tracked.recognise import (
     change_onset,
     fallback_states,
     gearbox_bound,
+    gearbox_speed,
     paper_states,
     product_states,
     ratio_noise,
@@ -231,6 +232,12 @@ def test_no_sprocket_is_read_faster_than_the_slowing_gearbox() -> None:
     bounded, _ = product_states(got[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), odo)
     assert stale.tolist() == [M.PIVOT, M.PIVOT]
     assert bounded.tolist() == [M.STRAIGHT, M.PIVOT]
+    # the gearbox's speed at the tick decides "moving": braking at −1.5 m/s², an odometer
+    # window of 0.12 m/s centred 0.05 s back has stopped turning (0.045 m/s) -> stop
+    at_tick = gearbox_speed(np.array([0.12, 0.12]), np.full(2, 0.05), np.array([-1.5, 0.0]))
+    assert at_tick == pytest.approx([0.045, 0.12])
+    moving, _ = product_states(got[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), at_tick)
+    assert moving[0] == M.STOP
 
 
 @pytest.mark.parametrize(
