@@ -56,6 +56,12 @@ class TrackedEstimatorConfig:
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
 
+    While dead reckoning, the along-track position variance grows by what an error of the
+    straight's factor makes over the distance driven, the factor's variance plus
+    ``ground_patch_slip_std`` squared (the ground's rolling slip changes by about that from
+    one patch of ``ground_patch_m`` metres to the next: ±15 % of 1.5-4.5 % on firm to soft
+    ground), which nothing observes without GNSS.
+
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
     (:mod:`estimator.tracked.lag`); a state change seen on a
@@ -126,6 +132,8 @@ class TrackedEstimatorConfig:
     initial_accel_slip_s2pm: float = 0.05
     initial_accel_slip_std_s2pm: float = 0.03
     accel_slip_walk_s2pm: float = 1e-4
+    ground_patch_slip_std: float = 0.007
+    ground_patch_m: float = 150.0
     report_lag_ticks: int = 4
     onset_yaw_accel_radps2: float = 0.1
 

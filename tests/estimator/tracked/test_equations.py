@@ -33,7 +33,7 @@ from estimator.tracked.recognise import (
     ratio_noise,
 )
 from estimator.tracked.settings import TrackedEstimatorConfig
-from estimator.tracked.step import _released
+from estimator.tracked.step import _dead_reckoning_noise, _released, initial_filter
 from estimator.tracked.vehicle import TickInputs
 
 M = MotionState
@@ -583,3 +583,22 @@ def test_a_released_brake_is_read_from_the_slow_sprockets_first_edge() -> None:
     assert got.tolist() == [int(M.STRAIGHT), int(M.LOW_STRAIGHT), int(M.PIVOT)]
     still = _released(np.full(3, int(M.STOP)), inp, p3)  # standing: nothing released
     assert (still == int(M.STOP)).all()
+
+
+def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() -> None:
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    f.started[:] = True
+    f.x[0, S.SPEED], f.x[0, S.HEADING] = 5.0, 0.0  # north
+    f.P[0] = np.eye(N_STATES) * 1e-4
+    f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 1e-5
+    f.since_gnss_s[:] = 0.5  # beside GNSS: nothing added
+    _dead_reckoning_noise(f, cfg)
+    assert f.P[0, S.NORTH, S.NORTH] == 1e-4
+    f.since_gnss_s[:] = 10.0
+    _dead_reckoning_noise(f, cfg)
+    var_f = 1e-5 + 0.007**2
+    q = (2.0 * var_f * 25.0 * 10.0 + 0.007**2 * 150.0 * 5.0) * 0.1
+    assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
+    assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
+    assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
