@@ -28,6 +28,8 @@ from estimator.tracked.settings import TrackedEstimatorConfig
 __all__ = [
     "change_onset",
     "fallback_states",
+    "gearbox_bound",
+    "gearbox_speed",
     "paper_states",
     "product_states",
     "ratio_noise",
@@ -145,6 +147,37 @@ def ratio_noise(
     lag_s = np.maximum(0.5 * cfg.sprocket_window_s, 1.5 * pitch / v)
     carry = cfg.carry_accel_std_mps2 * lag_s / v
     return np.sqrt((teeth**2 + change**2 + carry**2).sum(axis=1))
+
+
+def gearbox_speed(
+    odometer_mps: FloatArray, odometer_lag_s: FloatArray, gearbox_accel_mps2: FloatArray
+) -> FloatArray:
+    """The gearbox's speed at the tick ``(k,)``: the odometer's window speed carried from its
+    centre, ``max(v_o + a·lag, 0)`` (NaN where the odometer is unknown)."""
+    accel = np.nan_to_num(gearbox_accel_mps2)
+    return np.maximum(odometer_mps + accel * odometer_lag_s, 0.0)
+
+
+def gearbox_bound(
+    sprocket_mps: FloatArray,
+    odometer_mps: FloatArray,
+    odometer_lag_s: FloatArray,
+    gearbox_accel_mps2: FloatArray,
+    cfg: TrackedEstimatorConfig,
+) -> FloatArray:
+    """Sprocket speeds ``(k, 2)`` no faster than ``sprocket_over_gearbox_max`` times the
+    gearbox's speed at the tick, ``v_o + a·lag`` (the odometer's window speed carried from its
+    centre, at least 0; ``(k,)`` each) while the gearbox slows. A sprocket turns at the
+    gearbox's speed times 1, ``1/1.42`` or 0, so a read above that bound is a window holding
+    the speed of before a stop (a window only lags: above the present speed only while the
+    gearbox slows); read at the bound, the stop is not taken for a pivot (one sprocket's
+    window silent, the other's still holding). Where the odometer is unknown, or the gearbox
+    does not slow, nothing is bounded."""
+    accel = np.nan_to_num(gearbox_accel_mps2)
+    gearbox = gearbox_speed(odometer_mps, odometer_lag_s, gearbox_accel_mps2)
+    slowing = np.isfinite(gearbox) & (accel < 0.0)
+    limit = np.where(slowing, cfg.sprocket_over_gearbox_max * gearbox, np.inf)
+    return np.minimum(sprocket_mps, limit[:, None])
 
 
 def product_states(

@@ -30,13 +30,17 @@ class TrackedEstimatorConfig:
     straight read through few edges: it must show at least ``separated_yaw_share`` of its
     kinematic yaw rate to be a turn; farther from 1 the ratio alone is the lever.
     ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
-    from standstill (a straight). ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to
-    lead the yaw rate (``ω + τ·ω̇``, less ``yaw_lead_noise_radps``, about 3 sigma of what the
-    gyro's noise makes of ``τ·ω̇`` over a tick) in the separated-turn check. A steering lever
-    crosses its travel in about ``lever_travel_s``; a sprocket or gear ratio changing faster
-    than ``lever_rate_min_per_s`` (well above what the ratios' noise makes over one tick at
-    speed) and than ``lever_noise_sigmas`` times the ratio noise's change over a tick (at a
-    crawl the reads jump by more) is a lever moving, and the state is read where it goes.
+    from standstill (a straight). No sprocket turns faster than the gearbox (its steering
+    ratios are 1, ``1/1.42`` and 0): a sprocket read above ``sprocket_over_gearbox_max``
+    times the odometer's speed at the tick is a stale window (at a crawl a sprocket's next
+    edge is not yet overdue while the gearbox brakes to a stop) and is read at that bound.
+    ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to lead the yaw rate (``ω + τ·ω̇``, less
+    ``yaw_lead_noise_radps``, about 3 sigma of what the gyro's noise makes of ``τ·ω̇`` over a
+    tick) in the separated-turn check. A steering lever crosses its travel in about
+    ``lever_travel_s``; a sprocket or gear ratio changing faster than ``lever_rate_min_per_s``
+    (well above what the ratios' noise makes over one tick at speed) and than
+    ``lever_noise_sigmas`` times the ratio noise's change over a tick (at a crawl the reads jump
+    by more) is a lever moving, and the state is read where it goes.
     The odometer factors learn only once the gearbox has been steady (acceleration below
     ``learn_accel_max_mps2``, no sprocket settling) for ``learn_steady_s``, several times
     the hull's lag behind its tracks.
@@ -51,6 +55,12 @@ class TrackedEstimatorConfig:
     exceeds ``slip_std_max_pct`` is not observable and is not given. The traction slip per
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
+
+    While dead reckoning, the along-track position variance grows by what an error of the
+    straight's factor makes over the distance driven, the factor's variance plus
+    ``ground_patch_slip_std`` squared (the ground's rolling slip changes by about that from
+    one patch of ``ground_patch_m`` metres to the next: ±15 % of 1.5-4.5 % on firm to soft
+    ground), which nothing observes without GNSS.
 
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
@@ -78,6 +88,7 @@ class TrackedEstimatorConfig:
     sprocket_tooth_std_pitch: float = 0.005
     carry_accel_std_mps2: float = 0.05
     start_odometer_mps: float = 0.1
+    sprocket_over_gearbox_max: float = 1.2
     max_yaw_lag_s: float = 1.0
     yaw_lead_noise_radps: float = 0.02
     lever_travel_s: float = 0.3
@@ -121,6 +132,8 @@ class TrackedEstimatorConfig:
     initial_accel_slip_s2pm: float = 0.05
     initial_accel_slip_std_s2pm: float = 0.03
     accel_slip_walk_s2pm: float = 1e-4
+    ground_patch_slip_std: float = 0.007
+    ground_patch_m: float = 150.0
     report_lag_ticks: int = 4
     onset_yaw_accel_radps2: float = 0.1
 

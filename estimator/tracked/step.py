@@ -21,6 +21,8 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
     fallback_states,
+    gearbox_bound,
+    gearbox_speed,
     paper_states,
     product_states,
 )
@@ -117,6 +119,30 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     return q
 
 
+def _dead_reckoning_noise(f: Filter, cfg: TrackedEstimatorConfig) -> None:
+    """While dead reckoning (no fix fused for over a second; product mode), the along-track
+    position variance a factor error makes: an error ``σ_F`` of the straight's factor costs
+    ``σ_F·d`` over the distance ``d`` driven since the loss, i.e. a white noise of intensity
+    ``2·σ_F²·|V|·d`` along the heading (``d ≈ |V|·t``, ``t`` the time since the last fix),
+    with ``σ_F² = P[F_straight] + σ_p²`` (``σ_p`` = ``ground_patch_slip_std``: the learned
+    factor is the last patches' of ground), and ``σ_p²·ℓ·|V|`` for the patches of length
+    ``ℓ`` (``ground_patch_m``) driven over. The factors' own ``H`` is zeroed without GNSS,
+    so without this their variance never reaches the position. ``P`` in place."""
+    dr = f.started & (f.since_gnss_s > 1.0)
+    if not cfg.learns or not dr.any():
+        return
+    v = np.abs(f.x[:, S.SPEED])
+    var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] + cfg.ground_patch_slip_std**2
+    q = 2.0 * var_f * v * v * f.since_gnss_s + cfg.ground_patch_slip_std**2 * cfg.ground_patch_m * v
+    q = np.where(dr, q * cfg.tick_s, 0.0)
+    s, c = np.sin(f.x[:, S.HEADING]), np.cos(f.x[:, S.HEADING])
+    e, n = S.EAST, S.NORTH
+    f.P[:, e, e] += q * s * s
+    f.P[:, n, n] += q * c * c
+    f.P[:, e, n] += q * s * c
+    f.P[:, n, e] += q * s * c
+
+
 def recognise(
     f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
 ) -> tuple[IntArray, FloatArray]:
@@ -130,14 +156,17 @@ def recognise(
     lead = np.abs(w + tau * inp.yaw_accel_radps2) - cfg.yaw_lead_noise_radps
     lead = np.maximum(np.abs(w), lead)
     before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
+    sprockets = gearbox_bound(
+        inp.sprocket_pair_mps, inp.odometer_mps, inp.odometer_lag_s, inp.gearbox_accel_mps2, cfg
+    )
     state, conf = product_states(
-        inp.sprocket_pair_mps,
+        sprockets,
         inp.gear_ratio,
         step,
         p,
         cfg,
         lead,
-        inp.odometer_mps,
+        gearbox_speed(inp.odometer_mps, inp.odometer_lag_s, inp.gearbox_accel_mps2),
         before,
         inp.gearbox_accel_mps2,
     )
@@ -339,6 +368,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     f.x, f.P = predict(
         f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral)
     )
+    _dead_reckoning_noise(f, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)

@@ -26,12 +26,14 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
     fallback_states,
+    gearbox_bound,
+    gearbox_speed,
     paper_states,
     product_states,
     ratio_noise,
 )
 from estimator.tracked.settings import TrackedEstimatorConfig
-from estimator.tracked.step import _released
+from estimator.tracked.step import _dead_reckoning_noise, _released, initial_filter
 from estimator.tracked.vehicle import TickInputs
 
 M = MotionState
@@ -204,6 +206,38 @@ def test_a_start_from_standstill_is_a_straight_before_the_sprockets_read() -> No
     odo = np.array([0.5 * cfg.start_odometer_mps, 2.0 * cfg.start_odometer_mps])
     got, _ = product_states(*args, np.zeros(2), odo)
     assert got.tolist() == [M.STOP, M.STRAIGHT]
+
+
+def test_no_sprocket_is_read_faster_than_the_slowing_gearbox() -> None:
+    cfg = TrackedEstimatorConfig()
+    # 0: braking at −1.5 m/s², odometer 0.2 m/s at its centre 0.05 s back: the gearbox turns
+    #    at 0.125 m/s, so a window holding 0.48 is read at 1.2 · 0.125 = 0.15 m/s
+    # 1: the same odometer at a steady speed: a window never leads, nothing is bounded
+    # 2: no odometer: nothing is bounded
+    pair = np.array([[0.48, 0.0], [0.48, 0.0], [0.48, 0.0]])
+    got = gearbox_bound(
+        pair,
+        np.array([0.2, 0.2, np.nan]),
+        np.full(3, 0.05),
+        np.array([-1.5, 0.0, -1.5]),
+        cfg,
+    )
+    assert got[:, 1].tolist() == [0.0, 0.0, 0.0]
+    assert got[0, 0] == pytest.approx(1.2 * (0.2 - 1.5 * 0.05))
+    assert got[1:, 0].tolist() == [0.48, 0.48]
+    # read at the bound, the stale window is no longer a pivot beside the silent one
+    p2 = VehicleParams.stack([P1, P1])
+    odo = np.array([0.2, 0.2])
+    stale, _ = product_states(pair[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), odo)
+    bounded, _ = product_states(got[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), odo)
+    assert stale.tolist() == [M.PIVOT, M.PIVOT]
+    assert bounded.tolist() == [M.STRAIGHT, M.PIVOT]
+    # the gearbox's speed at the tick decides "moving": braking at −1.5 m/s², an odometer
+    # window of 0.12 m/s centred 0.05 s back has stopped turning (0.045 m/s) -> stop
+    at_tick = gearbox_speed(np.array([0.12, 0.12]), np.full(2, 0.05), np.array([-1.5, 0.0]))
+    assert at_tick == pytest.approx([0.045, 0.12])
+    moving, _ = product_states(got[:2], np.ones(2), np.zeros(2), p2, cfg, np.zeros(2), at_tick)
+    assert moving[0] == M.STOP
 
 
 @pytest.mark.parametrize(
@@ -549,3 +583,22 @@ def test_a_released_brake_is_read_from_the_slow_sprockets_first_edge() -> None:
     assert got.tolist() == [int(M.STRAIGHT), int(M.LOW_STRAIGHT), int(M.PIVOT)]
     still = _released(np.full(3, int(M.STOP)), inp, p3)  # standing: nothing released
     assert (still == int(M.STOP)).all()
+
+
+def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() -> None:
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    f.started[:] = True
+    f.x[0, S.SPEED], f.x[0, S.HEADING] = 5.0, 0.0  # north
+    f.P[0] = np.eye(N_STATES) * 1e-4
+    f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 1e-5
+    f.since_gnss_s[:] = 0.5  # beside GNSS: nothing added
+    _dead_reckoning_noise(f, cfg)
+    assert f.P[0, S.NORTH, S.NORTH] == 1e-4
+    f.since_gnss_s[:] = 10.0
+    _dead_reckoning_noise(f, cfg)
+    var_f = 1e-5 + 0.007**2
+    q = (2.0 * var_f * 25.0 * 10.0 + 0.007**2 * 150.0 * 5.0) * 0.1
+    assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
+    assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
+    assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
