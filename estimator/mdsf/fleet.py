@@ -47,9 +47,6 @@ __all__ = ["MdsfFleet"]
 _F = EstimateFlag
 _NEVER = np.iinfo(np.int64).min
 """``_still_ns`` of a vehicle before its first tick."""
-_NO_CHANGE = np.iinfo(np.int64).min // 2
-"""``_changed_ns`` of a wheel whose speed has not changed too fast yet (far enough in the past
-that a stamp minus it does not overflow)."""
 _START_SPANS = 1.0
 _SETTLE_OFF = 1e9
 """``SlipConfig.settle_max_change`` at which the settling rule, this start wait included, is off."""
@@ -97,19 +94,6 @@ def _rounds(lengths: IntArray, offsets: IntArray) -> Iterator[tuple[int, IntArra
     for r in range(int(lengths[0]) if lengths.shape[0] else 0):
         c = int(np.count_nonzero(lengths > r))
         yield c, offsets[:c] + r
-
-
-def _latest(due: FleetTicks, mark: BoolArray, stored: IntArray, keep: IntArray) -> IntArray:
-    """Per row and wheel of ``due`` (vehicles' ticks in order), the stamp of the latest row at
-    or before it within its vehicle where ``mark`` (rows, 2) holds, else ``stored`` (rows, 2:
-    the vehicle's from earlier calls); each vehicle's last goes to ``keep[slot]``."""
-    stamps = due.inputs.stamp_ns
-    idx = np.where(mark, np.arange(stamps.shape[0])[:, None], -1)
-    last = np.maximum.accumulate(idx, axis=0)
-    seg_start = np.repeat(due.offsets, due.lengths)
-    out = np.where(last >= seg_start[:, None], stamps[np.maximum(last, 0)], stored)
-    keep[due.slots] = out[due.offsets + due.lengths - 1]
-    return out
 
 
 def _estimate_rows(
@@ -184,9 +168,6 @@ class _Calibrated:
     fields: dict[str, FloatArray]
     """The calibration's row fields (``CALIBRATION_FIELDS``), shape (k,) each; NaN in paper
     mode."""
-    wheel_accel: FloatArray
-    """Each wheel's ground acceleration after the round (``MdsfFleet._wheel_accel``); 0 in
-    paper mode."""
 
 
 class MdsfFleet:
@@ -243,9 +224,6 @@ class MdsfFleet:
         # per slot and wheel: stamp of the last tick whose measured rim speed was a standstill
         # (or unknown); _NEVER until the vehicle's first tick
         self._still_ns = np.zeros((0, 2), dtype=np.int64)
-        # per slot and wheel: stamp of the last tick whose ground speed changed faster than the
-        # wheel fit follows (_last_change); _NO_CHANGE if none
-        self._changed_ns = np.zeros((0, 2), dtype=np.int64)
         # per slot and wheel: the last emitted tick's filtered ground speed [m/s] (NaN: none)
         # and its low-passed rate [m/s²] (_wheel_accel)
         self._wheel_prev_mps = np.zeros((0, 2))
@@ -268,7 +246,6 @@ class MdsfFleet:
             grow_slot_array(self, "_min_speed_mps", cap, (), 0.0)
             grow_slot_array(self, "_settle_max_change", cap, (), 0.0)
             grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
-            grow_slot_array(self, "_changed_ns", cap, (2,), _NO_CHANGE)
             grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
             grow_slot_array(self, "_wheel_prev_mps", cap, (2,), np.nan)
             grow_slot_array(self, "_wheel_accel_mps2", cap, (2,), 0.0)
@@ -279,7 +256,6 @@ class MdsfFleet:
         self._min_speed_mps[slot] = config.slip.min_ground_speed_mps
         self._settle_max_change[slot] = config.slip.settle_max_change
         self._still_ns[slot] = _NEVER
-        self._changed_ns[slot] = _NO_CHANGE
         self._dist_shift_m[slot] = 0.0
         self._wheel_prev_mps[slot] = np.nan
         self._wheel_accel_mps2[slot] = 0.0
@@ -417,7 +393,6 @@ class MdsfFleet:
             res = {name: getattr(so, name) for name in _STEP_COLS}
             rim, rim_std, rim_cov = _filtered_rims(so, cal.rim, cal.rim_std)
             scale, uncal, cal_out = cal.scale, cal.uncalibrated, cal.fields
-            wheel_accel = cal.wheel_accel
         else:
             emit = np.zeros(total, dtype=bool)
             flags = np.zeros(total, dtype=np.int32)
@@ -426,7 +401,6 @@ class MdsfFleet:
             scale = np.ones((total, 2))
             uncal = np.zeros((total, 2), dtype=bool)
             cal_out = {c: np.full(total, np.nan) for c in _CAL_FIELDS}
-            wheel_accel = np.zeros((total, 2))
         for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so, cal = self._calibrated_step(due.slots[:c], tin, rim[fi], rim_std[fi], min_speed[fi])
@@ -435,7 +409,7 @@ class MdsfFleet:
                 res[name][fi] = getattr(so, name)
             flags[fi] = so.flags
             rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, cal.rim, cal.rim_std)
-            scale[fi], uncal[fi], wheel_accel[fi] = cal.scale, cal.uncalibrated, cal.wheel_accel
+            scale[fi], uncal[fi] = cal.scale, cal.uncalibrated
             for name in _CAL_FIELDS:
                 cal_out[name][fi] = cal.fields[name]
         radius = radius * scale
@@ -456,18 +430,10 @@ class MdsfFleet:
             fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
             0.0,
         )
-        # product mode: a fit is settled only once its window lies wholly after the last
-        # change too fast for it, judged on the wheel's own ground acceleration (the rims do
-        # not feel the IMU's sway)
-        changing = self._product & unsettled(
-            ground, wheel_accel, span, self._settle_max_change[row_slot][:, None]
-        )
-        changed_ns = self._last_change(due, changing)
         settling = sp.valid & (
             unsettled(
                 ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
             )
-            | ((flat.stamp_ns[:, None] - changed_ns) * 1e-9 < span)
             | (
                 ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span)
                 & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
@@ -523,7 +489,7 @@ class MdsfFleet:
             so = self.engine.step(slots, tin, rim, rim_std)
             nan = {name: np.full(slots.shape[0], np.nan) for name in _CAL_FIELDS}
             ones, no = np.ones(rim.shape), np.zeros(rim.shape, bool)
-            return so, _Calibrated(rim, rim_std, ones, no, nan, np.zeros(rim.shape))
+            return so, _Calibrated(rim, rim_std, ones, no, nan)
         fixed = self._apply_calibration(slots, tin)
         scale, wheel_offset_s = bank.wheel_correction(slots)
         rim_c = scale * (rim + wheel_offset_s[:, None] * self._wheel_accel_mps2[slots])
@@ -532,9 +498,7 @@ class MdsfFleet:
         self._wheel_accel(slots, so)
         self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
         fields = bank.row_fields(slots, self._radius_m[slots])
-        return so, _Calibrated(
-            rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields, self._wheel_accel_mps2[slots]
-        )
+        return so, _Calibrated(rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields)
 
     def _wheel_accel(self, slots: IntArray, so: StepOutput) -> None:
         """Each wheel's ground acceleration ``a_w`` (slots, 2) after a round: the rate of its
@@ -628,22 +592,21 @@ class MdsfFleet:
         fit spans since (:func:`estimator.slip.fit_span_s`), so no value comes before the
         wheel's first fit or from a zero-edge start. Part of the settling rule (flag SETTLING;
         off with it at ``settle_max_change`` 1e9)."""
+        flat = due.inputs
+        stamps = flat.stamp_ns
+        n = stamps.shape[0]
         still = ~np.isfinite(rim) | (np.abs(np.nan_to_num(rim)) < min_speed[:, None])
+        idx = np.where(still, np.arange(n)[:, None], -1)
+        last = np.maximum.accumulate(idx, axis=0)
+        seg_start = np.repeat(due.offsets, due.lengths)
         stored = self._still_ns[np.repeat(due.slots, due.lengths)]
-        first = np.repeat(due.inputs.stamp_ns[due.offsets], due.lengths)[:, None]
-        return _latest(due, still, np.where(stored == _NEVER, first, stored), self._still_ns)
-
-    def _last_change(self, due: FleetTicks, changing: BoolArray) -> IntArray:
-        """Per row and wheel, the stamp of the latest tick at or before it whose ground speed
-        changed faster than the wheel fit follows (:func:`estimator.slip.unsettled`), shape
-        (rows, 2); stores each vehicle's last.
-
-        A fit over the span ``τ`` holds edges from the whole span: a change within it (the end
-        of a start's acceleration, a speed change at a crawl, where ``τ`` is a second or more)
-        biases the fit until its window lies wholly after the change, ``τ`` later, though the
-        acceleration has fallen back by then. Slip waits that long (SETTLING)."""
-        stored = self._changed_ns[np.repeat(due.slots, due.lengths)]
-        return _latest(due, changing, stored, self._changed_ns)
+        stored = np.where(
+            stored == _NEVER, np.repeat(stamps[due.offsets], due.lengths)[:, None], stored
+        )
+        out = np.where(last >= seg_start[:, None], stamps[np.maximum(last, 0)], stored)
+        ends = due.offsets + due.lengths - 1
+        self._still_ns[due.slots] = out[ends]
+        return out
 
     def _carry(
         self, due: FleetTicks, res: dict[str, FloatArray]

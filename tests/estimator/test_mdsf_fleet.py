@@ -11,9 +11,7 @@ import pytest
 from estimator.config import ConfigError, EncoderConfig, WheeledRearDriveConfig
 from estimator.mdsf import MdsfConfig, MdsfFleet, MdsfMode
 from estimator.sim import simulate
-from estimator.slip import fit_span_s, unsettled
 from estimator.types import EstimateFlag
-from estimator.wheel_speed import WheelSpeedConfig
 from server.tooling.bench.accuracy import run_estimator
 
 _START_NS = 1_700_000_000_000_000_000
@@ -83,61 +81,3 @@ def test_paper_mode_keeps_the_source_validity() -> None:
 def test_std_bound_is_checked(bound: float) -> None:
     with pytest.raises(ConfigError, match="valid_slip_std_max_pct"):
         MdsfConfig(valid_slip_std_max_pct=bound)
-
-
-def _creeping_rows(seed: int) -> tuple[np.ndarray, WheeledRearDriveConfig]:
-    """A 60 s creeping drive from rest (0.2-0.8 m/s, 30-tooth ring): fit spans of a second or
-    more, speed changes within them."""
-    cfg = WheeledRearDriveConfig(encoder=EncoderConfig(teeth_per_rev=30))
-    sim = simulate(
-        "random_drive",
-        seed=seed,
-        start_ns=_START_NS,
-        config=cfg,
-        duration_s=60.0,
-        speed_min_mps=0.2,
-        speed_max_mps=0.8,
-    )
-    config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
-    return run_estimator(MdsfFleet(), sim, config), config
-
-
-def _ground_accel(ground_mps: np.ndarray, config: MdsfConfig) -> np.ndarray:
-    """The wheel's ground acceleration as the fleet keeps it: the rate of the row's ground
-    speed over the tick, low-passed over ``wheel_clock_accel_tau_s`` (rows every tick)."""
-    alpha = config.dt_s / (config.wheel_clock_accel_tau_s + config.dt_s)
-    out = np.zeros(ground_mps.shape[0])
-    for i in range(1, ground_mps.shape[0]):
-        rate = (ground_mps[i] - ground_mps[i - 1]) / config.dt_s
-        out[i] = out[i - 1] + alpha * (np.nan_to_num(rate) - out[i - 1])
-    return out
-
-
-@pytest.mark.parametrize("seed", [5, 8])
-def test_slip_waits_until_the_fit_window_lies_after_a_fast_change(seed: int) -> None:
-    """A wheel fit spans ``τ = min_edges·arc/|V|``; a row whose ground speed changed faster than
-    the fit follows (``unsettled`` on the wheel's ground acceleration) biases every fit whose
-    window holds it, so no slip is valid within ``τ`` after such a row, though the
-    acceleration has fallen back by then."""
-    rows, config = _creeping_rows(seed)
-    stamps_ns = rows["stamp_ns"]
-    assert (np.diff(stamps_ns) == MdsfConfig().dt_s * 1e9).all(), "a row every tick"
-    t_s = (rows["stamp_ns"] - rows["stamp_ns"][0]) * 1e-9
-    geo = config.geometry
-    held = 0
-    for side, radius_m, flag in (
-        ("left", geo.wheel_radius_left_m, EstimateFlag.SLIP_LEFT_VALID),
-        ("right", geo.wheel_radius_right_m, EstimateFlag.SLIP_RIGHT_VALID),
-    ):
-        ground = rows["vl_mps" if side == "left" else "vr_mps"]
-        arc_m = radius_m * 2.0 * np.pi / config.encoder.teeth_per_rev
-        span_s = fit_span_s(ground, arc_m, WheelSpeedConfig().min_edges)
-        accel = _ground_accel(ground, MdsfConfig())
-        change_s = t_s[unsettled(ground, accel, span_s, config.slip.settle_max_change)]
-        valid = (rows["flags"] & int(flag)) != 0
-        assert change_s.size >= 3, "the drive should change speed faster than the fit follows"
-        last = np.searchsorted(change_s, t_s, side="right") - 1
-        since_s = np.where(last >= 0, t_s - change_s[np.maximum(last, 0)], np.inf)
-        assert not (valid & (since_s < span_s)).any()
-        held += int(np.count_nonzero(valid & (since_s >= span_s) & (since_s < 2.0 * span_s)))
-    assert held > 0, "slip should come back once the window is past the change"
