@@ -490,7 +490,6 @@ class MdsfFleet:
             nan = {name: np.full(slots.shape[0], np.nan) for name in _CAL_FIELDS}
             ones, no = np.ones(rim.shape), np.zeros(rim.shape, bool)
             return so, _Calibrated(rim, rim_std, ones, no, nan)
-        rim_std = self._fit_lag_std(slots, tin, rim, rim_std)
         fixed = self._apply_calibration(slots, tin)
         scale, wheel_offset_s = bank.wheel_correction(slots)
         rim_c = scale * (rim + wheel_offset_s[:, None] * self._wheel_accel_mps2[slots])
@@ -500,24 +499,6 @@ class MdsfFleet:
         self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
         fields = bank.row_fields(slots, self._radius_m[slots])
         return so, _Calibrated(rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields)
-
-    def _fit_lag_std(
-        self, slots: IntArray, tin: TickInputs, rim: FloatArray, rim_std: FloatArray
-    ) -> FloatArray:
-        """Rim speed std (k, 2) widened by what the wheel fit cannot follow: the fit spans
-        ``τ = min_edges·arc/|r·W|`` (at most the front end's stop timeout, beyond which it
-        reads a standstill) of the wheel's past, over which a wheel accelerating at ``a_w``
-        (:meth:`_wheel_accel`: at the axle, without the cab's sway) changes speed by
-        ``a_w·τ``. The quadratic fit follows a steady ``a_w`` but not its onset (a start from
-        rest, whose first fits span edges from before the start and read tens of percent
-        low with a steady wheel's std), so ``σ = hypot(σ_fit, |a_w|·τ/2)``."""
-        fitted = ((tin.wheel_flags & int(_F.WHEEL_DIRECT)) == 0)[:, None]
-        span = np.minimum(
-            fit_span_s(np.nan_to_num(rim), self._tooth_arc_m[slots], self.wheel.min_edges),
-            self.wheel.stop_timeout_s,
-        )
-        lag = 0.5 * np.abs(self._wheel_accel_mps2[slots]) * span
-        return np.where(fitted, np.hypot(rim_std, lag), rim_std)
 
     def _wheel_accel(self, slots: IntArray, so: StepOutput) -> None:
         """Each wheel's ground acceleration ``a_w`` (slots, 2) after a round: the rate of its
