@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 
 from estimator.base import held_rows
-from estimator.sim.tracked import simulate_tracked
+from estimator.sim.tracked import TrackedRun, simulate_tracked
 from estimator.tracked import TrackedFleet
 from estimator.types import EstimateBatch
 from server.estimation import EstimatorRegistry
@@ -20,15 +20,20 @@ def _stamps(batches: list[EstimateBatch], name: str = "tracked") -> list[int]:
     return [int(t) for b in batches if b.estimator == name for t in b.rows["stamp_ns"]]
 
 
-def test_a_new_config_gives_the_rows_held_by_the_lag_with_the_next_advance() -> None:
+def _fed(seconds: int) -> tuple[TrackedRun, EstimatorRegistry, int]:
+    """A real registry running a simulated crawler ``c``, fed its first ``seconds``."""
     run = simulate_tracked("route_firm", 3)
     reg = EstimatorRegistry()
     reg.add_vehicle("c", run.config)
-    until = run.start_ns + 20 * SECOND
+    until = run.start_ns + seconds * SECOND
     for stamp, m in run.measurements:
-        if stamp > until:
-            break
-        reg.push("c", m)
+        if stamp <= until:
+            reg.push("c", m)
+    return run, reg, until
+
+
+def test_a_new_config_gives_the_rows_held_by_the_lag_with_the_next_advance() -> None:
+    run, reg, until = _fed(20)
     before = _stamps(reg.advance({"c": until}))
     fleet = reg.estimator("tracked")
     assert isinstance(fleet, TrackedFleet)
@@ -45,13 +50,7 @@ def test_a_new_config_gives_the_rows_held_by_the_lag_with_the_next_advance() -> 
 
 
 def test_a_removed_vehicle_takes_its_held_rows_with_it() -> None:
-    run = simulate_tracked("route_firm", 3)
-    reg = EstimatorRegistry()
-    reg.add_vehicle("c", run.config)
-    until = run.start_ns + 5 * SECOND
-    for stamp, m in run.measurements:
-        if stamp <= until:
-            reg.push("c", m)
+    run, reg, until = _fed(5)
     reg.advance({"c": until})
     reg.add_vehicle("c", run.config)  # flushed, waiting for the next advance ...
     reg.remove_vehicle("c")  # ... and dropped with the vehicle
