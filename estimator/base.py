@@ -29,7 +29,15 @@ from estimator.types import (
     WheelSpeeds4,
 )
 
-__all__ = ["STREAMS", "FleetEstimator", "Measurement", "Pushed", "stream_of"]
+__all__ = [
+    "STREAMS",
+    "FleetEstimator",
+    "HoldsRows",
+    "Measurement",
+    "Pushed",
+    "held_rows",
+    "stream_of",
+]
 
 #: A measurement of any sensor stream; an estimator is handed those of the streams it takes.
 Measurement = (
@@ -120,3 +128,23 @@ class FleetEstimator(Protocol):
         Returns a list of ``(vehicle_id, rows)`` with ``rows`` of ``spec.dtype``, only for
         vehicles that produced at least one row.
         """
+
+
+@runtime_checkable
+class HoldsRows(Protocol):
+    """An estimator that gives some of a vehicle's rows late (a fixed lag: a later tick may
+    still change them) and can give them at once, as they stand, when the vehicle's state is
+    about to be dropped (a new config starts it afresh)."""
+
+    def flush(self, vehicle_id: str) -> np.ndarray:
+        """The vehicle's rows not yet given (of ``spec.dtype``, oldest first; empty if none or
+        the vehicle is unknown), given now and forgotten."""
+        ...
+
+
+def held_rows(estimator: FleetEstimator, vehicle_id: str) -> np.ndarray | None:
+    """:meth:`HoldsRows.flush` of ``estimator`` for the vehicle; None for an estimator that
+    holds no rows back (the default: every row is given by the ``advance`` that made it)."""
+    if isinstance(estimator, HoldsRows):
+        return estimator.flush(vehicle_id)
+    return None

@@ -207,6 +207,13 @@ class _Base:
     def vehicle_ids(self) -> list[str]:
         return list(self._slots)
 
+    def flush(self, vehicle_id: str) -> np.ndarray:
+        """The vehicle's rows still held by the fixed lag (:mod:`estimator.tracked.lag`), given
+        now as they stand (``HoldsRows``): the registry takes them before a new config starts
+        the vehicle afresh. Empty for an unknown vehicle."""
+        slot = self._slots.get(vehicle_id)
+        return TRACKED_SPEC.empty_rows(0) if slot is None else slot.held.flush()
+
     def push(self, vehicle_id: str, measurement: Pushed) -> None:
         self._slots[vehicle_id].push(measurement)
 

@@ -93,6 +93,15 @@ class HeldRows:
             backdate(buf, on, first, lag, conf_min)
             state = buf["motion_state"]
         cut = buf.size - _still_open(on, lag)
+        return self._keep(buf, state, on, cut)
+
+    def flush(self) -> np.ndarray:
+        """Every held row, as it stands (no later change will backdate it), oldest first."""
+        buf = np.frombuffer(bytearray(self.data), dtype=TRACKED_SPEC.dtype)
+        return self._keep(buf, self.state, self.onset, buf.size)
+
+    def _keep(self, buf: np.ndarray, state: np.ndarray, on: BoolArray, cut: int) -> np.ndarray:
+        """Hold ``buf[cut:]`` and return ``buf[:cut]``."""
         self.data = buf[cut:].tobytes()
         self.state, self.onset = state[cut:].copy(), on[cut:].copy()
         return buf[:cut]

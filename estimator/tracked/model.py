@@ -48,7 +48,11 @@ class TrackedState(IntEnum):
     arcs and separated turns: ``F_turn = F_STRAIGHT − c·θ``, ``θ = B/ρ_t`` from the sprocket
     ratio. ``ACCEL_SLIP`` is
     ``κ`` (s²/m), the traction slip per m/s² of acceleration: the odometer's ground speed is
-    ``F_s·(1 − κ·a)·v_o``.
+    ``F_s·(1 − κ·a)·v_o``. ``GROUND_PATCH`` ``p`` is the patch of ground under the tracks: how
+    far its slip moves every factor from the ground's mean (``F_s + p``), a Gauss-Markov
+    process over the distance driven (correlation length ``ℓ``): the factors hold the
+    ground's mean, which the next kilometre of an outage drives on, and ``p`` the last
+    patches' departure from it, which dies out over ``ℓ``.
     """
 
     EAST = 0
@@ -63,6 +67,7 @@ class TrackedState(IntEnum):
     F_PIVOT = 9
     ACCEL_LAG = 10
     ACCEL_SLIP = 11
+    GROUND_PATCH = 12
 
 
 N_STATES = len(TrackedState)

@@ -27,7 +27,8 @@ slip per unit tightness ``c`` learned from a prior; every arc and separated turn
 GNSS teaches ``c`` whatever its ``q``, and a turn first met in an outage starts from what
 the straights taught. The odometer's
 windowed speed is compared with the filter's speed at the window's centre ``V − a·lag``,
-not at the tick (Eq. 6's mismatch).
+not at the tick (Eq. 6's mismatch). Every factor is the ground's mean plus the patch of
+ground under the tracks, ``p`` (:class:`~estimator.tracked.model.TrackedState`).
 """
 
 from __future__ import annotations
@@ -141,7 +142,8 @@ def odometer_measurement(
         offset = _OFFSET[state]
         theta = np.zeros(k) if tightness is None else tightness
         scale = np.where(_BY_TIGHTNESS[state], -theta, 1.0)  # F_turn = F_straight − c·θ
-        factor = x[rows, f_idx] * scale + np.where(offset, x[:, S.F_STRAIGHT], 0.0)
+        patch = x[:, S.GROUND_PATCH]
+        factor = x[rows, f_idx] * scale + np.where(offset, x[:, S.F_STRAIGHT], 0.0) + patch
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
         lag = x[:, S.ACCEL_LAG] * accel_mps2
@@ -153,6 +155,7 @@ def odometer_measurement(
         H[:, 0, S.ACCEL_SLIP] = h * accel_mps2 / traction
         H[rows, 0, f_idx] = -h / factor * scale
         H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)
+        H[:, 0, S.GROUND_PATCH] = -h / factor
         corrected = odometer_mps * factor * traction / gear - turn - lag
         mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))
         pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)

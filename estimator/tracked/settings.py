@@ -56,11 +56,14 @@ class TrackedEstimatorConfig:
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
 
-    While dead reckoning, the along-track position variance grows by what an error of the
-    straight's factor makes over the distance driven, the factor's variance plus
-    ``ground_patch_slip_std`` squared (the ground's rolling slip changes by about that from
-    one patch of ``ground_patch_m`` metres to the next: ±15 % of 1.5-4.5 % on firm to soft
-    ground), which nothing observes without GNSS.
+    The ground under the tracks departs from its mean slip by ``ground_patch_slip_std`` (1-σ
+    of the factor) over patches about ``ground_patch_m`` long (the filter's ``GROUND_PATCH``
+    state, a Gauss-Markov process over the distance driven): beside GNSS the patch takes the
+    last metres' departure, the factors (walking by ``factor_walk``, slowly: ``K_D`` and the
+    ground's mean) what the next kilometre of an outage will drive on. While dead
+    reckoning, the along-track position variance grows by what the mean factor's error makes
+    over the distance driven and by the patches driven over, which nothing observes
+    without GNSS.
 
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
@@ -114,7 +117,7 @@ class TrackedEstimatorConfig:
     gyro_noise_radps: float = 3e-4
     gyro_bias_walk_radps: float = 2e-6
     gyro_scale_walk: float = 1e-6
-    factor_walk: float = 5e-4
+    factor_walk: float = 1e-4
     initial_position_std_m: float = 0.1
     initial_heading_std_rad: float = 0.1
     initial_speed_std_mps: float = 0.2

@@ -1,7 +1,8 @@
 """One tick of the tracked estimator for ``k`` vehicles at once: recognise the motion state,
 predict, fuse GNSS, the corrected odometer and (product) standstill, and derive track slip.
 
-Stages, each its own function: :func:`recognise`, :func:`_start` (first GNSS fix at speed),
+Stages, each its own function: :func:`recognise`, :func:`_ground_patch` (the patch of ground
+dying out over the distance driven), :func:`_start` (first GNSS fix at speed),
 :func:`_fuse_gnss`, :func:`_fuse_odometer`, :func:`_fuse_standstill`, :func:`_track_slip`.
 Arrays are batched over the leading axis ``k``.
 """
@@ -33,6 +34,8 @@ __all__ = ["Filter", "TickOut", "initial_filter", "tick_step"]
 
 M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
+#: What the odometer teaches beside GNSS only: the factors and the ground's patch.
+_LEARNED = [*_FACTORS, S.GROUND_PATCH]
 
 
 @dataclass(slots=True)
@@ -85,6 +88,7 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.TURN_SLIP] = learn * cfg.initial_turn_slip_std**2
     diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
     diag[S.ACCEL_SLIP] = learn * cfg.initial_accel_slip_std_s2pm**2
+    diag[S.GROUND_PATCH] = learn * cfg.ground_patch_slip_std**2
     return np.diag(diag)
 
 
@@ -119,21 +123,39 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     return q
 
 
+def _ground_patch(f: Filter, cfg: TrackedEstimatorConfig) -> None:
+    """The patch state ``p`` over a tick (product): a Gauss-Markov process over the distance
+    ``Δd = |V|·Δt``, ``p' = e·p`` with ``e = exp(−Δd/ℓ)`` and ``Var p' = e²·Var p +
+    σ_p²·(1 − e²)`` (``ℓ`` = ``ground_patch_m``, ``σ_p`` = ``ground_patch_slip_std``): a
+    patch learned beside GNSS is forgotten as the tracks leave it. ``x``, ``P`` in place."""
+    if not cfg.learns:
+        return
+    g = S.GROUND_PATCH
+    e = np.exp(-np.abs(f.x[:, S.SPEED]) * cfg.tick_s / cfg.ground_patch_m)
+    f.x[:, g] *= e
+    f.P[:, g, :] *= e[:, None]
+    f.P[:, :, g] *= e[:, None]
+    f.P[:, g, g] += cfg.ground_patch_slip_std**2 * (1.0 - e * e)
+
+
 def _dead_reckoning_noise(f: Filter, cfg: TrackedEstimatorConfig) -> None:
     """While dead reckoning (no fix fused for over a second; product mode), the along-track
-    position variance a factor error makes: an error ``σ_F`` of the straight's factor costs
-    ``σ_F·d`` over the distance ``d`` driven since the loss, i.e. a white noise of intensity
-    ``2·σ_F²·|V|·d`` along the heading (``d ≈ |V|·t``, ``t`` the time since the last fix),
-    with ``σ_F² = P[F_straight] + σ_p²`` (``σ_p`` = ``ground_patch_slip_std``: the learned
-    factor is the last patches' of ground), and ``σ_p²·ℓ·|V|`` for the patches of length
-    ``ℓ`` (``ground_patch_m``) driven over. The factors' own ``H`` is zeroed without GNSS,
-    so without this their variance never reaches the position. ``P`` in place."""
+    position variance the odometer's factor makes: an error ``σ_F`` of the ground's mean
+    factor (``P[F_straight]``) costs ``σ_F·d`` over the distance ``d`` driven since the loss,
+    i.e. a white noise of intensity ``2·σ_F²·|V|·d`` along the heading (``d ≈ |V|·t``, ``t``
+    the time since the last fix), and the patches of ground driven over, each departing from
+    the mean by ``σ_p`` over ``ℓ``, add ``2·σ_p²·ℓ·|V|`` (the integral of the Gauss-Markov
+    patch for ``d ≫ ℓ``). The factors' own ``H`` is zeroed without GNSS, so without this
+    their variance never reaches the position. ``P`` in place."""
     dr = f.started & (f.since_gnss_s > 1.0)
     if not cfg.learns or not dr.any():
         return
     v = np.abs(f.x[:, S.SPEED])
-    var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] + cfg.ground_patch_slip_std**2
-    q = 2.0 * var_f * v * v * f.since_gnss_s + cfg.ground_patch_slip_std**2 * cfg.ground_patch_m * v
+    var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT]
+    q = (
+        2.0 * var_f * v * v * f.since_gnss_s
+        + 2.0 * cfg.ground_patch_slip_std**2 * cfg.ground_patch_m * v
+    )
     q = np.where(dr, q * cfg.tick_s, 0.0)
     s, c = np.sin(f.x[:, S.HEADING]), np.cos(f.x[:, S.HEADING])
     e, n = S.EAST, S.NORTH
@@ -302,7 +324,7 @@ def _fuse_odometer(
         inp.steady_s >= cfg.learn_steady_s
     )
     beside = f.started & (f.since_gnss_s <= 1.0)
-    H[:, :, _FACTORS] *= (beside & steady)[:, None, None]
+    H[:, :, _LEARNED] *= (beside & steady)[:, None, None]
     H[:, :, S.ACCEL_LAG] *= beside[:, None]
     H[:, :, S.ACCEL_SLIP] *= beside[:, None]
     f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
@@ -368,6 +390,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     f.x, f.P = predict(
         f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral)
     )
+    _ground_patch(f, cfg)
     _dead_reckoning_noise(f, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)

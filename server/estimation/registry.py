@@ -42,6 +42,11 @@ vehicle it did not hold from the stored calibration the registry was given (``ca
 the newest stored row's, once) and forgets it on :data:`RESET_CALIBRATION` (counted
 ``calibration_resets`` in its counters, logged).
 
+Rows held back: an estimator that gives rows late (:class:`estimator.base.HoldsRows`, the
+tracked estimator's fixed lag) is asked for the vehicle's held rows before a new config starts
+it afresh; they come out with the next :meth:`EstimatorRegistry.advance`. A removed (deleted)
+vehicle's held rows go with it.
+
 The registry holds one ``FleetEstimator`` per name and is used from one thread (the pipeline).
 """
 
@@ -54,7 +59,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from estimator.base import STREAMS, FleetEstimator, Pushed, stream_of
+from estimator.base import STREAMS, FleetEstimator, Pushed, held_rows, stream_of
 from estimator.catalog import SPECS
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.spec import EstimatorSpec
@@ -220,6 +225,7 @@ class EstimatorRegistry:
         self._by_stream: dict[str, dict[str, tuple[tuple[str, FleetEstimator], ...]]] = {}
         self._stored_calibrations = dict(calibrations or {})  # each used once
         self._calibration_resets: dict[tuple[str, str], int] = {}  # (vehicle, estimator) -> n
+        self._flushed: dict[str, list[tuple[str, np.ndarray]]] = {}  # estimator -> held rows
 
     def counters(self) -> dict[str, dict[str, dict[str, int]]]:
         """Event counters of every estimator that keeps them (an optional ``counters(vehicle_id)``
@@ -306,6 +312,7 @@ class EstimatorRegistry:
         """
         names = self.names_for(config)
         kept = self._calibrations_of(vehicle_id)
+        self._flush(vehicle_id)
         done: list[str] = []
         for name in names:
             try:
@@ -332,6 +339,18 @@ class EstimatorRegistry:
                 except Exception as exc:
                     self.on_error(vehicle_id, name, "calibration_fields", exc)
         return out
+
+    def _flush(self, vehicle_id: str) -> None:
+        """Keep the rows the vehicle's running estimators still hold back, for the next
+        :meth:`advance`."""
+        for name in self._routes.get(vehicle_id, ()):
+            try:
+                rows = held_rows(self._estimators[name], vehicle_id)
+            except Exception as exc:
+                self.on_error(vehicle_id, name, "flush", exc)
+                continue
+            if rows is not None and rows.size:
+                self._flushed.setdefault(name, []).append((vehicle_id, rows))
 
     def _restore_calibrations(
         self, vehicle_id: str, names: tuple[str, ...], kept: Mapping[str, CalibrationValues]
@@ -403,6 +422,8 @@ class EstimatorRegistry:
         """Stop estimating ``vehicle_id`` (no error if unknown)."""
         for key in [k for k in self._calibration_resets if k[0] == vehicle_id]:
             del self._calibration_resets[key]
+        for name, parts in self._flushed.items():
+            self._flushed[name] = [p for p in parts if p[0] != vehicle_id]
         for name in self._unroute(vehicle_id):
             self._guard(vehicle_id, name, "remove_vehicle", self._estimators[name].remove_vehicle)
 
@@ -465,16 +486,18 @@ class EstimatorRegistry:
 
     def advance(self, until_ns: Mapping[str, int]) -> list[EstimateBatch]:
         """Advance every estimator for the vehicles it holds: one batch per estimator that
-        gave rows (of its spec), in the order the estimators were built."""
+        gave rows (of its spec; rows flushed at a re-registration first), in the order the
+        estimators were built."""
         out: list[EstimateBatch] = []
         for name, est in self._estimators.items():
-            members = self._members.get(name)
-            if not members:
-                continue
+            parts = self._flushed.pop(name, [])
+            members = self._members.get(name, set())
             mine = {vid: t for vid, t in until_ns.items() if vid in members}
-            if not mine:
+            if mine:
+                parts += self._advance(name, est, mine)
+            if not parts:
                 continue
-            batch = self._batch(name, est.spec, self._advance(name, est, mine))
+            batch = self._batch(name, est.spec, parts)
             if batch:
                 out.append(batch)
         return out

@@ -33,7 +33,12 @@ from estimator.tracked.recognise import (
     ratio_noise,
 )
 from estimator.tracked.settings import TrackedEstimatorConfig
-from estimator.tracked.step import _dead_reckoning_noise, _released, initial_filter
+from estimator.tracked.step import (
+    _dead_reckoning_noise,
+    _ground_patch,
+    _released,
+    initial_filter,
+)
 from estimator.tracked.vehicle import TickInputs
 
 M = MotionState
@@ -597,8 +602,48 @@ def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() ->
     assert f.P[0, S.NORTH, S.NORTH] == 1e-4
     f.since_gnss_s[:] = 10.0
     _dead_reckoning_noise(f, cfg)
-    var_f = 1e-5 + 0.007**2
-    q = (2.0 * var_f * 25.0 * 10.0 + 0.007**2 * 150.0 * 5.0) * 0.1
+    var_f = 1e-5  # the ground's mean factor's error; the patches add 2·σ_p²·ℓ·|V|
+    q = (2.0 * var_f * 25.0 * 10.0 + 2.0 * 0.007**2 * 150.0 * 5.0) * 0.1
     assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
     assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
     assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    assert f.x[0, S.GROUND_PATCH] == 0.0
+    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(0.007**2)
+    f.x[0, S.SPEED], f.x[0, S.GROUND_PATCH] = 10.0, 0.01
+    f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] = 1e-6
+    f.P[0, S.GROUND_PATCH, S.F_STRAIGHT] = f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] = -5e-7
+    _ground_patch(f, cfg)  # 1 m driven of a 150 m patch
+    e = math.exp(-1.0 / 150.0)
+    assert f.x[0, S.GROUND_PATCH] == pytest.approx(0.01 * e)
+    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(
+        e * e * 1e-6 + 0.007**2 * (1 - e * e)
+    )
+    assert f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] == pytest.approx(-5e-7 * e)
+    for _ in range(3000):  # 3 km: forgotten, its variance back to the ground's
+        _ground_patch(f, cfg)
+    assert abs(f.x[0, S.GROUND_PATCH]) < 1e-10
+    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(0.007**2, rel=1e-6)
+    f.x[0, S.SPEED] = 0.0  # standing: the patch stays
+    f.x[0, S.GROUND_PATCH] = 0.01
+    _ground_patch(f, cfg)
+    assert f.x[0, S.GROUND_PATCH] == 0.01
+
+
+def test_every_odometer_factor_is_the_grounds_mean_plus_its_patch() -> None:
+    cfg = TrackedEstimatorConfig()
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED], x[0, S.F_STRAIGHT], x[0, S.F_LOW] = 4.0, 0.97, 0.01
+    x[0, S.GROUND_PATCH] = -0.02
+    y, H, _, _, corrected = _steady_odometer(cfg, x, M.STRAIGHT, 4.2, 0.0)
+    assert corrected[0] == pytest.approx(4.2 * 0.95)
+    assert y[0, 0] == pytest.approx(4.2 - 4.0 / 0.95)
+    assert H[0, 0, S.GROUND_PATCH] == pytest.approx(-4.0 / 0.95**2) == H[0, 0, S.F_STRAIGHT]
+    _, H, _, _, corrected = _steady_odometer(cfg, x, M.LOW_STRAIGHT, 4.2, 0.0)
+    low = 0.97 + 0.01 - 0.02
+    assert corrected[0] == pytest.approx(4.2 * low / 1.42)
+    assert H[0, 0, S.GROUND_PATCH] == pytest.approx(-1.42 * 4.0 / low**2)

@@ -70,3 +70,15 @@ def test_no_lag_gives_every_row_at_once() -> None:
     rows = _rows([1, 1, 3])
     got = HeldRows().give(rows, np.ones(3, dtype=bool), 0, 0.9)
     assert got.size == 3 and got["motion_state"].tolist() == [1, 1, 3]
+
+
+def test_flush_gives_the_held_rows_as_they_stand_and_holds_none() -> None:
+    held = HeldRows()
+    rows = _rows([1, 1, 1, 3, 3])
+    onset = np.array([0, 0, 0, 1, 1], dtype=bool)  # a change under way on the last rows
+    given = held.give(rows, onset, 4, 0.9)
+    flushed = held.flush()
+    assert given.size + flushed.size == 5 and flushed.size >= 1
+    assert np.array_equal(np.concatenate([given, flushed])["stamp_ns"], rows["stamp_ns"])
+    assert held.flush().size == 0 and held.state.size == 0 and held.data == b""
+    assert held.give(_rows([3]), np.zeros(1, dtype=bool), 4, 0.9).size == 0  # holds anew
