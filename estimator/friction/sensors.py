@@ -74,7 +74,8 @@ class SensedTicks:
 class _Rows:
     """One stream of every slot: slot ``s`` holds ``count[s]`` samples at columns
     ``head[s] …`` of ``stamps`` ``(S, C)`` and ``values`` ``(S, C, width)``, in push order
-    (sorted by :meth:`window` where ``sort``). ``C`` doubles when a row is full."""
+    (sorted by :meth:`window` where ``sort``). ``C`` doubles when a row is full and halves
+    back (:meth:`shrink`) once every row fits a quarter of it."""
 
     def __init__(self, width: int, sort: bool) -> None:
         self.sort = sort
@@ -121,7 +122,7 @@ class _Rows:
         self.dropped += k
 
     def shrink(self) -> None:
-        """Halve the capacity while every row would fit a quarter of it."""
+        """Halve the capacity if every row fits a quarter of it."""
         longest = int(self.count.max(initial=0))
         if self.capacity > _FIRST_CAPACITY and 4 * longest <= self.capacity:
             self._resize(max(self.capacity // 2, _FIRST_CAPACITY))
