@@ -1,12 +1,12 @@
 """The friction estimator as a ``FleetEstimator``: every vehicle's μ filter stepped together.
 
-Each vehicle has its sensor buffers (:class:`~.sensors.SensorBuffers`, read once per call for
-its due ticks), a slot of the batched front end (:class:`~.fleetfront.FleetFrontEnd`: sensors →
-per-wheel inputs, every vehicle of a round in one numpy pass) and one row of the batched filter
-(:func:`~.filter.filter_step`, vehicles × cubature points in one numpy call per round); its
-constants, filter state and informed window live in :class:`~.slots.FleetSlots`. Ticks
-lie on ``first IMU sample + k·tick_s`` (or ``align_ticks``); a tick is computed once the IMU
-covers it.
+Each vehicle has a slot of the sensor rows (:class:`~.sensors.FleetSensors`: every vehicle's
+due ticks of a call read in one vectorised pass), of the batched front end
+(:class:`~.fleetfront.FleetFrontEnd`: sensors → per-wheel inputs, every vehicle of a round in
+one numpy pass) and one row of the batched filter (:func:`~.filter.filter_step`, vehicles ×
+cubature points in one numpy call per round); its constants, filter state and informed window
+live in :class:`~.slots.FleetSlots`. Ticks lie on ``first IMU sample + k·tick_s`` (or
+``align_ticks``); a tick is computed once the IMU covers it.
 
 Informed or not (``method.md`` §5's warning): μ is told apart from stiffness only where the
 tyres work in their non-linear range, and not at all without excitation. A tick is
@@ -59,7 +59,7 @@ from estimator.friction.filter import (
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.frontend import FrontEndConfig
 from estimator.friction.position import FleetPositions, PositionConfig
-from estimator.friction.sensors import SensedTicks, SensorBuffers
+from estimator.friction.sensors import FleetSensors
 from estimator.friction.slots import FleetSlots
 from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
@@ -97,32 +97,10 @@ class FrictionFleetConfig:
         return FrontEndConfig(paper=self.filter.mode is not FrictionMode.PRODUCT)
 
 
+@dataclass(frozen=True, slots=True)
 class _Vehicle:
-    def __init__(
-        self, config: Wheeled4wdSteeredConfig, cfg: FrictionFleetConfig, slot: int
-    ) -> None:
-        self.config = config
-        self.slot = slot
-        self.tick_ns = round(cfg.filter.tick_s * 1e9)
-        self.sensors = SensorBuffers(self.tick_ns, cfg.front.gnss_timeout_s)
-        self.next_ns: int | None = None
-
-    def due(self, until_ns: int) -> IntArray | None:
-        """The ticks up to ``until_ns`` the IMU covers, not yet computed (None if none)."""
-        last = self.sensors.imu_until_ns()
-        if last is None:
-            return None
-        if self.next_ns is None:
-            first = self.sensors.first_imu_ns()
-            assert first is not None  # some IMU sample is held
-            self.next_ns = first + self.tick_ns
-        end = min(until_ns, last)
-        if end < self.next_ns:
-            return None
-        n = (end - self.next_ns) // self.tick_ns + 1
-        ticks = self.next_ns + self.tick_ns * np.arange(n, dtype=np.int64)
-        self.next_ns = int(ticks[-1]) + self.tick_ns
-        return ticks
+    config: Wheeled4wdSteeredConfig
+    slot: int
 
 
 _GNSS_VY_STD_MPS = 0.1
@@ -175,6 +153,9 @@ class FrictionFleet:
         self._vehicles: dict[str, _Vehicle] = {}
         self._front = FleetFrontEnd(self.config.front, self.config.filter.tick_s)
         self._positions = FleetPositions(self.config.position)
+        self._sensors = FleetSensors(
+            round(self.config.filter.tick_s * 1e9), self.config.front.gnss_timeout_s
+        )
         self._free_slots: list[int] = []
         window = max(1, round(self.config.informed_hold_s / self.config.filter.tick_s))
         self._slots = FleetSlots(_n_state(self.config.filter.mode), window)
@@ -191,7 +172,8 @@ class FrictionFleet:
         self._front.add(slot, steered)
         self._positions.add(slot)
         self._slots.reset(slot, steered)
-        self._vehicles[vehicle_id] = _Vehicle(steered, self.config, slot)
+        self._sensors.add(slot)
+        self._vehicles[vehicle_id] = _Vehicle(steered, slot)
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         v = self._vehicles.pop(vehicle_id, None)
@@ -202,21 +184,19 @@ class FrictionFleet:
         return list(self._vehicles)
 
     def push(self, vehicle_id: str, measurement: Pushed) -> None:
-        front = self._vehicles[vehicle_id].sensors
+        slot = self._vehicles[vehicle_id].slot
         if isinstance(measurement, ImuBatch):
-            front.push_imu(measurement)
+            self._sensors.push_imu(slot, measurement)
         elif isinstance(measurement, WheelSpeeds4):
-            front.push_wheels(measurement)
+            self._sensors.push_wheels(slot, measurement)
         elif isinstance(measurement, SteeringAngles):
-            front.push_steering(measurement)
+            self._sensors.push_steering(slot, measurement)
         elif isinstance(measurement, GnssSample):
-            front.push_gnss(measurement)
-            self._positions.push(self._vehicles[vehicle_id].slot, measurement)
+            self._sensors.push_gnss(slot, measurement)
+            self._positions.push(slot, measurement)
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
-        v = self._vehicles[vehicle_id]
-        if v.next_ns is None:
-            v.next_ns = int(stamp_ns)
+        self._sensors.align(self._vehicles[vehicle_id].slot, int(stamp_ns))
 
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """``(lat_deg, lon_deg, height_m)`` of the vehicle's ENU frame (its first fix's
@@ -230,23 +210,18 @@ class FrictionFleet:
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every tick with ``stamp_ns <= until_ns[vehicle_id]`` the IMU covers."""
-        work: list[tuple[str, _Vehicle, SensedTicks]] = []
-        for vid, until in until_ns.items():
-            v = self._vehicles.get(vid)
-            if v is None:
-                continue
-            ticks = v.due(int(until))
-            if ticks is None:
-                continue
-            sensed = v.sensors.read(ticks)
-            if sensed.t_ns.size:
-                work.append((vid, v, sensed))
-        if not work:
+        ids = [vid for vid in until_ns if vid in self._vehicles]
+        if not ids:
             return []
-        counts = np.array([w[2].t_ns.size for w in work])
+        slots = np.array([self._vehicles[vid].slot for vid in ids])
+        until = np.array([until_ns[vid] for vid in ids], dtype=np.int64)
+        every, counts = self._sensors.read(slots, until)
+        have = np.flatnonzero(counts)
+        if not have.size:
+            return []
+        ids = [ids[i] for i in have.tolist()]
+        slots, counts = slots[have], counts[have]
         starts = np.cumsum(counts) - counts
-        every = SensedTicks.concat([w[2] for w in work])
-        slots = np.array([w[1].slot for w in work])
         out = FRICTION_SPEC.empty_rows(int(counts.sum()))  # each vehicle's rows in a run
         for r in range(int(counts.max())):
             part = np.flatnonzero(counts > r)
@@ -255,7 +230,10 @@ class FrictionFleet:
             fe = self._front.step(slots[part], sensed)
             self._round(slots[part], sensed.t_ns, fe, out, at)
             self._place(out, at, slots[part], sensed.t_ns, fe)
-        return [(w[0], out[a : a + n]) for w, a, n in zip(work, starts, counts, strict=True)]
+        return [
+            (vid, out[a : a + n])
+            for vid, a, n in zip(ids, starts.tolist(), counts.tolist(), strict=True)
+        ]
 
     def _place(
         self, out: np.ndarray, at: IntArray, s: IntArray, t_ns: IntArray, fe: FrontEndTicks

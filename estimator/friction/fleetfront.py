@@ -21,9 +21,9 @@ from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.config import Wheeled4wdSteeredConfig
 from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.frontend import (
-    _DRIVE_SHARE,
-    _UNDRIVEN,
     AIR_DENSITY_KGPM3,
+    DRIVE_SHARE,
+    UNDRIVEN,
     FrontEndConfig,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -191,9 +191,9 @@ class _Vehicles(_Arrays):
         )
         mg = ch.mass_kg * GRAVITY_MPS2
         self.fz_static[slot] = mg * np.array([lr, lr, lf, lf]) / (2 * wheelbase)
-        self.free[slot] = _UNDRIVEN[ch.driven_axle]
+        self.free[slot] = UNDRIVEN[ch.driven_axle]
         self.n_free[slot] = float(self.free[slot].sum())
-        self.drive_share[slot] = _DRIVE_SHARE[ch.driven_axle]
+        self.drive_share[slot] = DRIVE_SHARE[ch.driven_axle]
         self.mass[slot] = ch.mass_kg
         self.m_h[slot] = ch.mass_kg * ch.cg_height_m
         self.wheelbase[slot] = wheelbase

@@ -47,19 +47,23 @@ from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
-__all__ = ["FrontEnd", "FrontEndConfig", "FrontEndTick"]
+__all__ = ["DRIVE_SHARE", "UNDRIVEN", "FrontEnd", "FrontEndConfig", "FrontEndTick"]
 
 AIR_DENSITY_KGPM3 = 1.2
-_UNDRIVEN = {
+UNDRIVEN = {
     DrivenAxle.FRONT: np.array([False, False, True, True]),
     DrivenAxle.REAR: np.array([True, True, False, False]),
     DrivenAxle.ALL: np.zeros(4, dtype=bool),
 }
-_DRIVE_SHARE = {
+"""Per driven axle, which wheels roll free ``(4,)`` (front left, front right, rear left, rear
+right): their rim speed is the speed reference without GNSS."""
+DRIVE_SHARE = {
     DrivenAxle.FRONT: np.array([0.5, 0.5, 0.0, 0.0]),
     DrivenAxle.REAR: np.array([0.0, 0.0, 0.5, 0.5]),
     DrivenAxle.ALL: np.full(4, 0.25),
 }
+"""Per driven axle, each wheel's share of the drive force ``(4,)`` (an open differential
+splits an axle's torque evenly)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,8 +239,8 @@ class FrontEnd:
             * np.array([ch.cg_to_rear_axle_m] * 2 + [ch.cg_to_front_axle_m] * 2)
             / (2 * wheelbase)
         )
-        self.undriven = _UNDRIVEN[ch.driven_axle]
-        self.drive_share = _DRIVE_SHARE[ch.driven_axle]
+        self.undriven = UNDRIVEN[ch.driven_axle]
+        self.drive_share = DRIVE_SHARE[ch.driven_axle]
         # the paper's statically loaded radius; the product starts from a third of the
         # deflection (a rolling tyre's effective radius) and calibrates from there
         self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (

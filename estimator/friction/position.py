@@ -23,8 +23,8 @@ the antenna's (on the four-wheel simulator it sits at the CG).
   0.03 rad in 10 s (about 2 m across the track at 15 m/s).
 
 Pure: no clock, no I/O. :class:`PositionTrack` is one vehicle's; :class:`FleetPositions` holds
-every vehicle's by slot and dead-reckons all vehicles of a round in one numpy pass (a fresh fix
-places its vehicle the same way as the single track does).
+every vehicle's by slot and places (the round's fresh fixes through the single track's
+function, one call) and dead-reckons all vehicles of a round in one numpy pass.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.config import ConfigError
-from estimator.geo import EnuFrame
+from estimator.geo import EnuFrame, enu_from_geodetic
 from estimator.types import GnssFix, GnssSample
 
 __all__ = ["FleetPositions", "PositionConfig", "PositionTick", "PositionTrack"]
@@ -141,14 +141,17 @@ class PositionTrack:
         """Put the vehicle at the fix ``g`` moved to ``t_ns``, heading as the module says."""
         if self.frame is None:
             self.frame = EnuFrame(g.lat_deg, g.lon_deg, g.height_m)
-        self._enu, self._heading_rad = _placed(
-            self.frame,
-            g,
-            t_ns,
-            (vx, vy),
-            self._heading_rad - (turn_rad if math.isfinite(turn_rad) else 0.0),
+        f = self.frame
+        gyro = self._heading_rad - (turn_rad if math.isfinite(turn_rad) else 0.0)
+        enu, heading = _placed(
+            np.array([[f.lat0_deg, f.lon0_deg, f.h0_m]]),
+            [g],
+            np.array([t_ns], dtype=np.int64),
+            np.array([[vx, vy]]),
+            np.array([gyro]),
             self.config,
         )
+        self._enu, self._heading_rad = enu[0].tolist(), float(heading[0])
         self._fix_ns = g.stamp_ns
 
     def _carry(self, t_ns: int, dt_s: float, vx: float, vy: float, r: float) -> bool:
@@ -175,27 +178,30 @@ class PositionTrack:
 
 
 def _placed(
-    frame: EnuFrame,
-    g: GnssSample,
-    t_ns: int,
-    body_mps: tuple[float, float],
-    gyro_heading_rad: float,
+    anchors: FloatArray,
+    fixes: list[GnssSample],
+    t_ns: IntArray,
+    body_mps: FloatArray,
+    gyro_heading_rad: FloatArray,
     config: PositionConfig,
-) -> tuple[list[float], float]:
-    """ENU position at ``t_ns`` of the fix ``g`` and the heading (module docstring): the
-    receiver's, else the course turned back by the side-slip of ``body_mps`` ``(v_x, v_y)``,
-    else (standing) ``gyro_heading_rad``, the last heading turned by the gyro (NaN if none)."""
-    east, north, up = (float(c) for c in frame.to_enu(g.lat_deg, g.lon_deg, g.height_m))
-    ve, vn, vu = (v if math.isfinite(v) else 0.0 for v in g.vel_enu_mps)
-    vx, vy = body_mps
-    age_s = (t_ns - g.stamp_ns) * 1e-9
-    enu = [east + ve * age_s, north + vn * age_s, up + vu * age_s]
-    if math.isfinite(g.heading_rad):
-        heading = g.heading_rad
-    elif math.hypot(ve, vn) >= config.min_course_speed_mps and math.isfinite(vx):
-        heading = math.atan2(ve, vn) + math.atan2(vy if math.isfinite(vy) else 0.0, vx)
-    else:
-        heading = gyro_heading_rad
+) -> tuple[FloatArray, FloatArray]:
+    """ENU positions ``(F, 3)`` at ``t_ns`` ``(F,)`` of the ``F`` fixes, each in the frame
+    anchored at its row of ``anchors`` ``(F, 3)`` (lat, lon [deg], height [m]), and headings
+    ``(F,)`` (module docstring): the receiver's, else the course turned back by the side-slip
+    of ``body_mps`` ``(F, 2)`` ``(v_x, v_y)``, else (standing) ``gyro_heading_rad`` ``(F,)``,
+    the last heading turned by the gyro (NaN if none)."""
+    fix = np.array([(g.lat_deg, g.lon_deg, g.height_m, g.heading_rad) for g in fixes])
+    vel = np.array([g.vel_enu_mps for g in fixes], dtype=float)
+    vel[~np.isfinite(vel)] = 0.0
+    stamp_ns = np.array([g.stamp_ns for g in fixes], dtype=np.int64)
+    at_fix = enu_from_geodetic(fix[:, 0], fix[:, 1], fix[:, 2], *anchors.T)
+    enu = np.stack(at_fix, axis=1) + vel * ((t_ns - stamp_ns) * 1e-9)[:, None]
+    vx, vy = body_mps.T
+    ve, vn = vel[:, 0], vel[:, 1]
+    course = np.arctan2(ve, vn) + np.arctan2(np.where(np.isfinite(vy), vy, 0.0), vx)
+    moving = (np.hypot(ve, vn) >= config.min_course_speed_mps) & np.isfinite(vx)
+    own = np.isfinite(fix[:, 3])
+    heading = np.where(own, fix[:, 3], np.where(moving, course, gyro_heading_rad))
     return enu, heading % (2 * math.pi)
 
 
@@ -254,15 +260,21 @@ class FleetPositions:
         (NaN where none) and whether dead-reckoned past ``after_s`` (:meth:`PositionTrack.step`)."""
         dt_s = np.where(self._ticked[s], (t_ns - self._tick_ns[s]) * 1e-9, 0.0)
         self._tick_ns[s], self._ticked[s] = t_ns, True
-        fixed = np.zeros(s.size, dtype=bool)
-        for i, slot in enumerate(s.tolist()):
-            fix = None
-            queue, t = self._fixes[slot], int(t_ns[i])
+        rows, fixes = [], []
+        for i, (slot, t) in enumerate(zip(s.tolist(), t_ns.tolist(), strict=True)):
+            queue = self._fixes[slot]
+            if not queue or queue[0].stamp_ns > t:
+                continue
             while queue and queue[0].stamp_ns <= t:
                 fix = queue.popleft()
-            if fix is not None:
-                self._place(slot, fix, t, (float(vx_mps[i]), float(vy_mps[i])), r[i] * dt_s[i])
-                fixed[i] = True
+            rows.append(i)
+            fixes.append(fix)
+        fixed = np.zeros(s.size, dtype=bool)
+        if fixes:
+            at = np.array(rows)
+            fixed[at] = True
+            body = np.stack([vx_mps[at], vy_mps[at]], axis=1)
+            self._place(s[at], fixes, t_ns[at], body, r[at] * dt_s[at])
         ok = fixed | self._carry(s, ~fixed, t_ns, dt_s, vx_mps, vy_mps, r)
         enu, heading = self._enu[s], self._heading_rad[s]
         enu[~ok], heading[~ok] = math.nan, math.nan
@@ -270,16 +282,25 @@ class FleetPositions:
         return enu, heading, late
 
     def _place(
-        self, slot: int, g: GnssSample, t_ns: int, body_mps: tuple[float, float], turn: float
+        self,
+        s: IntArray,
+        fixes: list[GnssSample],
+        t_ns: IntArray,
+        body_mps: FloatArray,
+        turn_rad: FloatArray,
     ) -> None:
-        frame = self.frames[slot]
-        if frame is None:
-            frame = self.frames[slot] = EnuFrame(g.lat_deg, g.lon_deg, g.height_m)
-        gyro = float(self._heading_rad[slot]) - (turn if math.isfinite(turn) else 0.0)
-        self._enu[slot], self._heading_rad[slot] = _placed(
-            frame, g, t_ns, body_mps, gyro, self.config
-        )
-        self._fix_ns[slot], self._placed[slot] = g.stamp_ns, True
+        """Put the vehicles in slots ``s`` ``(F,)`` at their ``fixes`` moved to ``t_ns``
+        (:func:`_placed`); a vehicle's first fix anchors its frame."""
+        for slot, g in zip(s.tolist(), fixes, strict=True):
+            if self.frames[slot] is None:
+                self.frames[slot] = EnuFrame(g.lat_deg, g.lon_deg, g.height_m)
+        frames = [self.frames[slot] for slot in s.tolist()]
+        anchors = np.array([(f.lat0_deg, f.lon0_deg, f.h0_m) for f in frames if f is not None])
+        gyro = self._heading_rad[s] - np.where(np.isfinite(turn_rad), turn_rad, 0.0)
+        enu, heading = _placed(anchors, fixes, t_ns, body_mps, gyro, self.config)
+        self._enu[s], self._heading_rad[s] = enu, heading
+        self._fix_ns[s] = [g.stamp_ns for g in fixes]
+        self._placed[s] = True
 
     def _carry(
         self,

@@ -1,27 +1,32 @@
-"""One steered four-wheel vehicle's sensor buffers, read for a run of ticks at once.
+"""Every steered four-wheel vehicle's sensor buffers in shared per-slot rows, read for all the
+vehicles of an ``advance`` call in one vectorised pass.
 
-:class:`SensorBuffers` holds a vehicle's IMU, CAN wheel-speed, steering and GNSS packets
-(each stream in sensor-time order, as the server's reorder buffer hands them over) and turns
-them into what the batched front end (:mod:`.fleetfront`) needs at each due tick ``t``:
+:class:`FleetSensors` holds each vehicle's (slot's) IMU, CAN wheel-speed, steering and GNSS
+samples in rows of 2-D arrays (:class:`_Rows`: ``(S, C)`` stamps, ``(S, C, w)`` values; a push
+appends to its slot's row) and its tick clock, and turns them into what the batched front end
+(:mod:`.fleetfront`) needs at each due tick ``t`` of every vehicle of a call:
 
+* the due ticks: ``first IMU sample + k·tick`` (or the grid ``align`` set), up to the call's
+  horizon and the last IMU sample held;
 * the mean specific force and rate over the IMU samples in ``(t − tick, t]`` (a tick without
-  one is not ready);
+  one is not ready): differences of a running sum along each row;
 * the latest wheel speeds and steering-wheel angle at or before ``t`` (held from earlier
   ticks; a tick before the first wheel speeds is not ready);
-* the GNSS epoch: the latest one at or before ``t``; a new epoch is *fresh* until the first
-  ready tick, which uses its body-frame velocity if it is at most ``gnss_timeout_s`` old and has
-  a heading.
+* the GNSS epoch: the latest one popped from the slot's queue (epochs in arrival order, popped
+  while their stamp is at or before ``t``); a new epoch is *fresh* until the first ready tick,
+  which uses its body-frame velocity if it is at most ``gnss_timeout_s`` old and has a heading.
 
 The rules are :class:`~.frontend.FrontEnd`'s (its ``_imu_window``, ``_latest`` and
-``_gnss_velocity``), vectorised over one vehicle's ticks with ``searchsorted``: one read per
-vehicle per ``advance`` call instead of a Python pass per tick. Samples at or before the last
-tick read are dropped.
+``_gnss_velocity``); a stream pushed out of time order is sorted (stably) before it is read.
+Samples at or before a vehicle's last tick read are dropped. A row grows (the capacity of
+every slot's row doubles) as long as its vehicle's ticks are not read, and the capacity halves
+again once every row fits a quarter of it; a vehicle without an IMU sample and tick grid keeps
+the newest :data:`MAX_SAMPLES` of each other stream (the oldest counted in ``dropped``).
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +34,14 @@ import numpy as np
 from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
-__all__ = ["SensedTicks", "SensorBuffers"]
+__all__ = ["MAX_SAMPLES", "FleetSensors", "SensedTicks"]
+
+MAX_SAMPLES = 1024
+"""Samples of a stream a vehicle without an IMU holds (10 s of 100 Hz wheel speeds): they
+would be read only if its IMU came that far behind."""
+_FIRST_CAPACITY = 32
+_NEVER_NS = np.iinfo(np.int64).max
+"""Stamp of an empty place in a row's window (after every tick)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,181 +66,365 @@ class SensedTicks:
     gnss_stamp_ns: IntArray
     gnss_recent: BoolArray
 
-    @classmethod
-    def concat(cls, parts: list[SensedTicks]) -> SensedTicks:
-        """The rows of ``parts`` one after the other."""
-        return cls(
-            *(np.concatenate([getattr(p, f) for p in parts]) for f in cls.__dataclass_fields__)
-        )
-
     def take(self, rows: IntArray) -> SensedTicks:
         """The rows ``rows``."""
         return SensedTicks(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
 
 
-class _Stream:
-    """Stamped samples of one stream ``(n,)`` stamps, ``(n, …)`` values, in time order; packets
-    pushed since the last read are joined on the next one."""
+class _Rows:
+    """One stream of every slot: slot ``s`` holds ``count[s]`` samples at columns
+    ``head[s] …`` of ``stamps`` ``(S, C)`` and ``values`` ``(S, C, width)``, in push order
+    (sorted by :meth:`window` where ``sort``). ``C`` doubles when a row is full and halves
+    back (:meth:`shrink`) once every row fits a quarter of it."""
 
-    def __init__(self, width: int) -> None:
-        self.stamps: IntArray = np.zeros(0, dtype=np.int64)
-        self.values: FloatArray = np.zeros((0, width))
-        self._pending: list[tuple[IntArray, FloatArray]] = []
+    def __init__(self, width: int, sort: bool) -> None:
+        self.sort = sort
+        self.stamps: IntArray = np.zeros((0, _FIRST_CAPACITY), dtype=np.int64)
+        self.values: FloatArray = np.zeros((0, _FIRST_CAPACITY, width))
+        self.head: IntArray = np.zeros(0, dtype=np.int64)
+        self.count: IntArray = np.zeros(0, dtype=np.int64)
+        self.dropped = 0
 
-    def push(self, stamps_ns: IntArray, values: FloatArray) -> None:
-        self._pending.append((stamps_ns, values.reshape(stamps_ns.size, -1)))
+    def add_slots(self, rows: int) -> None:
+        """Room for ``rows`` slots (the new ones empty)."""
+        old = self.head.size
+        self.stamps = np.concatenate([self.stamps, np.zeros((rows - old, self.capacity), np.int64)])
+        self.values = np.concatenate([self.values, np.zeros((rows - old, *self.values.shape[1:]))])
+        self.head = np.concatenate([self.head, np.zeros(rows - old, np.int64)])
+        self.count = np.concatenate([self.count, np.zeros(rows - old, np.int64)])
 
-    def joined(self) -> None:
-        """Join the pending packets (a stable sort if one came out of time order)."""
-        if not self._pending:
-            return
-        stamps = np.concatenate([self.stamps, *(s for s, _ in self._pending)])
-        values = np.concatenate([self.values, *(v for _, v in self._pending)])
-        self._pending.clear()
-        if stamps.size > 1 and np.any(stamps[1:] < stamps[:-1]):
-            order = np.argsort(stamps, kind="stable")
-            stamps, values = stamps[order], values[order]
-        self.stamps, self.values = stamps, values
+    @property
+    def capacity(self) -> int:
+        return self.stamps.shape[1]
 
-    def last_ns(self) -> int | None:
-        if self._pending:
-            self.joined()
-        return int(self.stamps[-1]) if self.stamps.size else None
+    def clear(self, slot: int) -> None:
+        self.head[slot] = self.count[slot] = 0
 
-    def drop(self, keep: int) -> None:
-        """Forget the first ``keep`` samples (those at or before the last tick read)."""
-        if keep:
-            self.stamps, self.values = self.stamps[keep:], self.values[keep:]
+    def reserve(self, slot: int, k: int) -> int:
+        """Room for ``k`` more samples at the end of ``slot``'s row; the column they go to."""
+        head, n = int(self.head[slot]), int(self.count[slot])
+        if head + n + k <= self.capacity:
+            self.count[slot] = n + k
+            return head + n
+        if n + k > self.capacity:
+            self._resize(max(2 * self.capacity, n + k))
+            head = int(self.head[slot])
+        self.stamps[slot, :n] = self.stamps[slot, head : head + n]
+        self.values[slot, :n] = self.values[slot, head : head + n]
+        self.head[slot], self.count[slot] = 0, n + k
+        return n
 
-    def latest(self, ticks_ns: IntArray, held: FloatArray) -> FloatArray:
-        """The last sample at or before each tick ``(K, width)``, ``held`` before the first;
-        the samples up to the last tick are dropped."""
-        self.joined()
-        end = np.searchsorted(self.stamps, ticks_ns, side="right")
-        if end[0] > 0:  # the usual case: a sample at or before every tick
-            out = self.values[end - 1]
-        else:
-            out = np.empty((ticks_ns.size, self.values.shape[1]))
-            out[:] = held
-            have = end > 0
-            out[have] = self.values[end[have] - 1]
-        self.drop(int(end[-1]))
-        return out
+    def forget_oldest(self, slot: int, k: int) -> None:
+        """Drop up to ``k`` of ``slot``'s oldest samples, counted in ``dropped``."""
+        k = min(k, int(self.count[slot]))
+        self.head[slot] += k
+        self.count[slot] -= k
+        self.dropped += k
 
-    def window_means(self, ticks_ns: IntArray, span_ns: int) -> tuple[FloatArray, IntArray]:
-        """Mean of the samples in ``(t − span, t]`` per tick ``(K, width)`` and their count;
-        the samples up to the last tick are dropped."""
-        self.joined()
-        k = ticks_ns.size
-        edges = np.searchsorted(
-            self.stamps, np.concatenate([ticks_ns - span_ns, ticks_ns]), "right"
-        )
-        lo, hi = edges[:k], edges[k:]
-        sums = np.zeros((self.stamps.size + 1, self.values.shape[1]))
-        np.cumsum(self.values, axis=0, out=sums[1:])
-        count = hi - lo
-        means = (sums[hi] - sums[lo]) / np.maximum(count, 1)[:, None]
-        self.drop(int(hi[-1]))
-        return means, count
+    def shrink(self) -> None:
+        """Halve the capacity if every row fits a quarter of it."""
+        longest = int(self.count.max(initial=0))
+        if self.capacity > _FIRST_CAPACITY and 4 * longest <= self.capacity:
+            self._resize(max(self.capacity // 2, _FIRST_CAPACITY))
+
+    def _resize(self, capacity: int) -> None:
+        """``capacity`` columns, every row moved to start at column 0."""
+        cols = np.minimum(self.head[:, None] + np.arange(capacity), self.capacity - 1)
+        rows = np.arange(self.head.size)[:, None]
+        self.stamps = self.stamps[rows, cols]
+        self.values = self.values[rows, cols]
+        self.head[:] = 0
+
+    def window(self, s: IntArray) -> tuple[IntArray, FloatArray]:
+        """Slots ``s``'s samples ``(V, W)`` stamps (``_NEVER_NS`` past each row's count) and
+        ``(V, W, width)`` values, ``W`` the longest row; sorted by stamp (stably) where
+        ``sort``, the sorted order written back."""
+        n = self.count[s]
+        w = max(int(n.max(initial=0)), 1)
+        cols = np.minimum(self.head[s, None] + np.arange(w), self.capacity - 1)
+        stamps = self.stamps[s[:, None], cols]
+        empty = np.arange(w) >= n[:, None]
+        stamps[empty] = _NEVER_NS
+        values = self.values[s[:, None], cols]
+        if self.sort and w > 1:
+            late = np.flatnonzero((stamps[:, 1:] < stamps[:, :-1]).any(axis=1))
+            if late.size:
+                self._sort(s[late], cols[late], ~empty[late], stamps, values, late)
+        return stamps, values
+
+    def _sort(
+        self,
+        slots: IntArray,
+        cols: IntArray,
+        held: BoolArray,
+        stamps: IntArray,
+        values: FloatArray,
+        late: IntArray,
+    ) -> None:
+        """Sort the window's rows ``late`` (slots ``slots``, columns ``cols``, ``held`` the
+        places with a sample) in place and in the rows."""
+        order = np.argsort(stamps[late], axis=1, kind="stable")
+        stamps[late] = np.take_along_axis(stamps[late], order, axis=1)
+        values[late] = np.take_along_axis(values[late], order[:, :, None], axis=1)
+        r, c = np.nonzero(held)
+        self.stamps[slots[r], cols[r, c]] = stamps[late][r, c]
+        self.values[slots[r], cols[r, c]] = values[late][r, c]
+
+    def drop(self, s: IntArray, k: IntArray) -> None:
+        """Forget the first ``k`` samples of slots ``s``."""
+        self.head[s] += k
+        self.count[s] -= k
 
 
-class SensorBuffers:
-    """One vehicle's packets since the last tick read (see the module docstring)."""
+@dataclass(frozen=True, slots=True)
+class _Due:
+    """A call's due ticks: ``t_ns`` ``(R,)``, each vehicle's a run; ``vehicle`` ``(R,)`` the
+    index into ``slots`` ``(V,)`` (the vehicles with a tick due), ``last`` ``(V,)`` the
+    index of each one's last tick."""
+
+    t_ns: IntArray
+    vehicle: IntArray
+    slots: IntArray
+    last: IntArray
+
+
+def _runs(n: IntArray) -> tuple[IntArray, IntArray]:
+    """For runs of lengths ``n`` ``(V,)`` (each ≥ 1): each element's run ``(R,)`` and its
+    place in the run ``(R,)``."""
+    run = np.repeat(np.arange(n.size), n)
+    return run, np.arange(run.size) - np.repeat(np.cumsum(n) - n, n)
+
+
+class FleetSensors:
+    """Every slot's sensor rows and tick clock (see the module docstring)."""
 
     def __init__(self, tick_ns: int, gnss_timeout_s: float) -> None:
         self.tick_ns = tick_ns
         self.gnss_timeout_ns = gnss_timeout_s * 1e9
-        self.imu = _Stream(6)  # [accel xyz, gyro xyz]
-        self.wheels = _Stream(4)
-        self.steering = _Stream(1)
-        self.gnss_queue: deque[GnssSample] = deque()
-        self.omega = np.full(4, np.nan)
-        self.steer = np.full(1, np.nan)
-        self.gnss: GnssSample | None = None
-        self.gnss_fresh = False
+        self.imu = _Rows(6, sort=True)  # [accel xyz, gyro xyz]
+        self.wheels = _Rows(4, sort=True)
+        self.steering = _Rows(1, sort=True)
+        self.gnss = _Rows(5, sort=False)  # [v_x, v_y body, heading, pitch, roll], a queue
+        self.omega = np.zeros((0, 4))
+        self.steer = np.zeros(0)
+        self.epoch = np.zeros((0, 5))  # the latest GNSS epoch popped
+        self.epoch_ns = np.zeros(0, dtype=np.int64)
+        self.has_epoch = np.zeros(0, dtype=bool)
+        self.fresh = np.zeros(0, dtype=bool)
+        self.next_ns = np.zeros(0, dtype=np.int64)
+        self.has_next = np.zeros(0, dtype=bool)
 
-    def push_imu(self, m: ImuBatch) -> None:
-        stamps = np.atleast_1d(np.asarray(m.stamp_ns, dtype=np.int64))
-        both = np.concatenate(
-            [
-                np.asarray(m.accel_mps2, float).reshape(-1, 3),
-                np.asarray(m.gyro_radps, float).reshape(-1, 3),
-            ],
-            axis=1,
+    @property
+    def dropped(self) -> int:
+        """Samples dropped by vehicles without an IMU (:data:`MAX_SAMPLES`), every stream."""
+        return sum(r.dropped for r in (self.imu, self.wheels, self.steering, self.gnss))
+
+    def add(self, slot: int) -> None:
+        """Empty ``slot``'s rows and clock (growing the arrays to hold it)."""
+        if slot >= self.next_ns.size:
+            rows = max(slot + 1, 2 * self.next_ns.size, 8)
+            for r in (self.imu, self.wheels, self.steering, self.gnss):
+                r.add_slots(rows)
+            for name in ("omega", "steer", "epoch", "epoch_ns", "has_epoch", "fresh"):
+                self._grow(name, rows)
+            self._grow("next_ns", rows)
+            self._grow("has_next", rows)
+        for r in (self.imu, self.wheels, self.steering, self.gnss):
+            r.clear(slot)
+        self.omega[slot] = self.steer[slot] = math.nan
+        self.has_epoch[slot] = self.fresh[slot] = self.has_next[slot] = False
+
+    def _grow(self, name: str, rows: int) -> None:
+        a = getattr(self, name)
+        setattr(
+            self, name, np.concatenate([a, np.zeros((rows - a.shape[0], *a.shape[1:]), a.dtype)])
         )
-        self.imu.push(stamps, both)
 
-    def push_wheels(self, m: WheelSpeeds4) -> None:
-        self.wheels.push(
-            np.atleast_1d(np.asarray(m.stamp_ns, dtype=np.int64)), np.asarray(m.omega_radps, float)
+    def align(self, slot: int, stamp_ns: int) -> None:
+        """Ticks of ``slot`` on ``stamp_ns + k·tick`` (unless its grid is already set)."""
+        if not self.has_next[slot]:
+            self.next_ns[slot], self.has_next[slot] = stamp_ns, True
+
+    def push_imu(self, slot: int, m: ImuBatch) -> None:
+        stamps = np.atleast_1d(m.stamp_ns)
+        k = stamps.size
+        at = self.imu.reserve(slot, k)
+        self.imu.stamps[slot, at : at + k] = stamps
+        self.imu.values[slot, at : at + k, :3] = m.accel_mps2
+        self.imu.values[slot, at : at + k, 3:] = m.gyro_radps
+
+    def push_wheels(self, slot: int, m: WheelSpeeds4) -> None:
+        stamps = np.atleast_1d(m.stamp_ns)
+        k = stamps.size
+        at = self._reserve(self.wheels, slot, k)
+        self.wheels.stamps[slot, at : at + k] = stamps
+        self.wheels.values[slot, at : at + k] = m.omega_radps
+
+    def push_steering(self, slot: int, m: SteeringAngles) -> None:
+        stamps = np.atleast_1d(m.stamp_ns)
+        k = stamps.size
+        at = self._reserve(self.steering, slot, k)
+        self.steering.stamps[slot, at : at + k] = stamps
+        self.steering.values[slot, at : at + k, 0] = m.angle_rad
+
+    def push_gnss(self, slot: int, m: GnssSample) -> None:
+        """Queue an epoch with its velocity across and along its heading (NaN without one)."""
+        at = self._reserve(self.gnss, slot, 1)
+        h = m.heading_rad
+        ve, vn, _ = m.vel_enu_mps
+        self.gnss.stamps[slot, at] = m.stamp_ns
+        self.gnss.values[slot, at] = (
+            ve * math.sin(h) + vn * math.cos(h) if math.isfinite(h) else math.nan,
+            -ve * math.cos(h) + vn * math.sin(h) if math.isfinite(h) else math.nan,
+            h,
+            m.pitch_rad,
+            m.roll_rad,
         )
 
-    def push_steering(self, m: SteeringAngles) -> None:
-        self.steering.push(
-            np.atleast_1d(np.asarray(m.stamp_ns, dtype=np.int64)), np.asarray(m.angle_rad, float)
+    def _reserve(self, rows: _Rows, slot: int, k: int) -> int:
+        """:meth:`_Rows.reserve`, the oldest forgotten beyond :data:`MAX_SAMPLES` while the
+        slot has no tick grid and no IMU sample (nothing would ever read them)."""
+        excess = int(rows.count[slot]) + k - MAX_SAMPLES
+        if excess > 0 and not self.has_next[slot] and not self.imu.count[slot]:
+            rows.forget_oldest(slot, excess)
+        return rows.reserve(slot, k)
+
+    def read(self, slots: IntArray, until_ns: IntArray) -> tuple[SensedTicks, IntArray]:
+        """The ready ticks at or before ``until_ns`` ``(V,)`` of the vehicles in ``slots``
+        ``(V,)``, each vehicle's a run in ``slots``' order, and how many each has ``(V,)``."""
+        imu = self.imu.window(slots)
+        due, covered = self._due(slots, until_ns, imu[0])
+        counts = np.zeros(slots.size, dtype=np.int64)
+        if due is None:
+            return _no_ticks(), counts
+        v = due.vehicle
+        window = (imu[0][covered], imu[1][covered])
+        means, n_imu = self._imu_means(due, window)
+        omega = self._latest(self.wheels, self.omega, due)
+        steer = self._latest(self.steering, self.steer[:, None], due)[:, 0]
+        ready = (n_imu > 0) & np.isfinite(omega).all(axis=1)
+        gnss = self._gnss(due, ready)
+        keep = np.flatnonzero(ready)
+        counts[np.flatnonzero(covered)] = np.bincount(v[keep], minlength=due.slots.size)
+        sensed = SensedTicks(
+            due.t_ns[keep], means[keep, :3], means[keep, 3:], omega[keep], steer[keep], *gnss
         )
+        for rows in (self.imu, self.wheels, self.steering, self.gnss):
+            rows.shrink()
+        return sensed, counts
 
-    def push_gnss(self, m: GnssSample) -> None:
-        self.gnss_queue.append(m)
+    def _due(
+        self, slots: IntArray, until_ns: IntArray, imu_ns: IntArray
+    ) -> tuple[_Due | None, BoolArray]:
+        """The ticks of ``slots`` up to ``until_ns`` the IMU (window stamps ``imu_ns``)
+        covers, not yet computed, and which vehicles have one; the grids advanced past them."""
+        n_imu = self.imu.count[slots]
+        held = n_imu > 0
+        start = held & ~self.has_next[slots]
+        self.next_ns[slots[start]] = imu_ns[start, 0] + self.tick_ns
+        self.has_next[slots[start]] = True
+        first = self.next_ns[slots]
+        end = np.minimum(until_ns, imu_ns[np.arange(slots.size), np.maximum(n_imu - 1, 0)])
+        covered = held & (end >= first)
+        if not covered.any():
+            return None, covered
+        s = slots[covered]
+        n = (end[covered] - first[covered]) // self.tick_ns + 1
+        self.next_ns[s] = first[covered] + n * self.tick_ns
+        vehicle, k = _runs(n)
+        t_ns = first[covered][vehicle] + self.tick_ns * k
+        return _Due(t_ns, vehicle, s, np.cumsum(n) - 1), covered
 
-    def imu_until_ns(self) -> int | None:
-        """The last IMU sample time held (ticks up to it can be computed)."""
-        return self.imu.last_ns()
+    def _imu_means(
+        self, due: _Due, window: tuple[IntArray, FloatArray]
+    ) -> tuple[FloatArray, IntArray]:
+        """Mean of the IMU samples in ``(t − tick, t]`` per tick ``(R, 6)`` and their count
+        ``(R,)``, from the running sum along each row; the samples up to each vehicle's last
+        tick dropped."""
+        stamps, values = window
+        mine = stamps[due.vehicle]
+        hi = (mine <= due.t_ns[:, None]).sum(axis=1)
+        lo = (mine <= (due.t_ns - self.tick_ns)[:, None]).sum(axis=1)
+        sums = np.zeros((values.shape[0], values.shape[1] + 1, values.shape[2]))
+        np.cumsum(values, axis=1, out=sums[:, 1:])
+        count = hi - lo
+        means = (sums[due.vehicle, hi] - sums[due.vehicle, lo]) / np.maximum(count, 1)[:, None]
+        self.imu.drop(due.slots, hi[due.last])
+        return means, count
 
-    def first_imu_ns(self) -> int | None:
-        """The first IMU sample time held."""
-        return int(self.imu.stamps[0]) if self.imu.last_ns() is not None else None
-
-    def read(self, ticks_ns: IntArray) -> SensedTicks:
-        """The ready ones of the ticks ``ticks_ns`` ``(K,)`` (increasing, ``tick_ns`` apart)."""
-        imu, count = self.imu.window_means(ticks_ns, self.tick_ns)
-        omega = self.wheels.latest(ticks_ns, self.omega)
-        steer = self.steering.latest(ticks_ns, self.steer)[:, 0]
-        self.omega, self.steer = omega[-1].copy(), steer[-1:].copy()
-        ready = (count > 0) & np.isfinite(omega).all(axis=1)
-        keep: slice | IntArray = slice(None) if ready.all() else np.flatnonzero(ready)
-        gnss = self._gnss(ticks_ns, ready)
-        return SensedTicks(
-            t_ns=ticks_ns[keep],
-            accel_mps2=imu[keep, :3],
-            gyro_radps=imu[keep, 3:],
-            omega_radps=omega[keep],
-            steer_rad=steer[keep],
-            gnss_vel_mps=gnss[0],
-            gnss_attitude=gnss[1],
-            gnss_stamp_ns=gnss[2],
-            gnss_recent=gnss[3],
-        )
+    def _latest(self, rows: _Rows, held: FloatArray, due: _Due) -> FloatArray:
+        """The last sample of ``rows`` at or before each tick ``(R, width)``, the slot's
+        ``held`` value ``(S, width)`` (updated to each vehicle's last tick) before the first;
+        the samples up to each vehicle's last tick dropped."""
+        stamps, values = rows.window(due.slots)
+        end = (stamps[due.vehicle] <= due.t_ns[:, None]).sum(axis=1)
+        out = values[due.vehicle, np.maximum(end - 1, 0)]
+        before = end == 0
+        if before.any():
+            out[before] = held[due.slots[due.vehicle[before]]]
+        held[due.slots] = out[due.last]
+        rows.drop(due.slots, end[due.last])
+        return out
 
     def _gnss(
-        self, ticks_ns: IntArray, ready: BoolArray
+        self, due: _Due, ready: BoolArray
     ) -> tuple[FloatArray, FloatArray, IntArray, BoolArray]:
-        """The GNSS columns of :class:`SensedTicks` for the ready ticks."""
-        n = int(ready.sum())
-        vel = np.full((n, 2), np.nan)
-        att = np.full((n, 3), np.nan)
-        stamp = np.zeros(n, dtype=np.int64)
-        recent = np.zeros(n, dtype=bool)
-        k = 0
-        for t, ok in zip(ticks_ns.tolist(), ready.tolist(), strict=True):
-            while self.gnss_queue and self.gnss_queue[0].stamp_ns <= t:
-                self.gnss = self.gnss_queue.popleft()
-                self.gnss_fresh = True
-            g = self.gnss
-            if not ok or g is None:
-                k += ok
-                continue
-            recent[k] = t - g.stamp_ns <= self.gnss_timeout_ns
-            if self.gnss_fresh:
-                self.gnss_fresh = False
-                h = g.heading_rad
-                if t - g.stamp_ns <= self.gnss_timeout_ns and math.isfinite(h):
-                    ve, vn, _ = g.vel_enu_mps
-                    vel[k] = (
-                        ve * math.sin(h) + vn * math.cos(h),
-                        -ve * math.cos(h) + vn * math.sin(h),
-                    )
-                    att[k] = h, g.pitch_rad, g.roll_rad
-                    stamp[k] = g.stamp_ns
-            k += 1
-        return vel, att, stamp, recent
+        """The GNSS columns of :class:`SensedTicks` for the ready ticks; each slot's latest
+        epoch and freshness carried to the next call, the epochs popped dropped."""
+        stamps, values = self.gnss.window(due.slots)
+        v, s = due.vehicle, due.slots
+        popped = (np.maximum.accumulate(stamps, axis=1)[v] <= due.t_ns[:, None]).sum(axis=1)
+        new = popped > 0
+        at = np.maximum(popped - 1, 0)
+        epoch = np.where(new[:, None], values[v, at], self.epoch[s[v]])
+        epoch_ns = np.where(new, stamps[v, at], self.epoch_ns[s[v]])
+        used = ready & (new | self.has_epoch[s[v]])
+        fresh = self._fresh(due, used, popped)
+        recent = used & (due.t_ns - epoch_ns <= self.gnss_timeout_ns)
+        take = fresh & recent & np.isfinite(epoch[:, 2])
+        vel = np.where(take[:, None], epoch[:, :2], math.nan)
+        att = np.where(take[:, None], epoch[:, 2:], math.nan)
+        last = popped[due.last]
+        got = last > 0
+        self.epoch[s[got]] = values[got, last[got] - 1]
+        self.epoch_ns[s[got]] = stamps[got, last[got] - 1]
+        self.has_epoch[s[got]] = True
+        self.gnss.drop(s, last)
+        return vel[ready], att[ready], np.where(take, epoch_ns, 0)[ready], recent[ready]
+
+    def _fresh(self, due: _Due, used: BoolArray, popped: IntArray) -> BoolArray:
+        """Per tick ``(R,)``: a ready tick with an epoch (``used``) whose epoch is fresh, i.e.
+        one was popped since the vehicle's previous such tick (before the first one of the
+        call: since its last such tick, carried in ``fresh``); ``fresh`` updated."""
+        v, s = due.vehicle, due.slots
+        at = np.flatnonzero(used)
+        first = np.ones(at.size, dtype=bool)
+        first[1:] = v[at[1:]] != v[at[:-1]]
+        before = np.zeros(at.size, dtype=np.int64)
+        before[1:] = popped[at[:-1]]
+        was = np.where(first, 0, before)
+        out = np.zeros(v.size, dtype=bool)
+        out[at] = (popped[at] > was) | (first & self.fresh[s[v[at]]])
+        final = np.ones(at.size, dtype=bool)  # the last such tick of its vehicle
+        final[:-1] = first[1:]
+        last_used = np.full(s.size, -1)
+        last_used[v[at[final]]] = at[final]
+        had = last_used >= 0
+        after = popped[due.last] > np.where(had, popped[last_used], 0)
+        self.fresh[s] = np.where(had, after, self.fresh[s] | after)
+        return out
+
+
+def _no_ticks() -> SensedTicks:
+    f = np.zeros
+    return SensedTicks(
+        f(0, np.int64),
+        f((0, 3)),
+        f((0, 3)),
+        f((0, 4)),
+        f(0),
+        f((0, 2)),
+        f((0, 3)),
+        f(0, np.int64),
+        f(0, bool),
+    )

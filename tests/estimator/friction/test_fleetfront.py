@@ -6,21 +6,18 @@ fleet's rows carry them."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
 from estimator.base import Measurement
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
 from estimator.friction.fleetfront import FrontEndTicks
-from estimator.friction.frontend import FrontEnd, FrontEndTick
+from estimator.friction.frontend import FrontEnd
 from estimator.friction.sensors import SensedTicks
 from estimator.friction_spec import WHEEL_KEYS, FrictionFlag
 from estimator.sim.four_wheel import NAMED, FourWheelRun, random_config, simulate_four_wheel
-from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
+from tests.estimator.friction._reference import TICK_NS, Reference
 
-TICK_NS = 20_000_000
 SECONDS = 9.0
 MANOEUVRES = ("steer_mu08", "accelerate_step", "damaged_tyre", "steer_step", "constant_speed")
 
@@ -36,44 +33,13 @@ def runs() -> list[FourWheelRun]:
     return simulate_four_wheel([NAMED[n] for n in names], list(range(21, 21 + len(names))), configs)
 
 
-@dataclasses.dataclass
-class _Reference:
-    """A vehicle through the per-vehicle FrontEnd, ticked on the fleet's grid."""
-
-    front: FrontEnd
-    next_ns: int | None
-    ticks: dict[int, FrontEndTick] = dataclasses.field(default_factory=dict)
-
-    def push(self, m: Measurement) -> None:
-        if isinstance(m, ImuBatch):
-            self.front.push_imu(m)
-        elif isinstance(m, WheelSpeeds4):
-            self.front.push_wheels(m)
-        elif isinstance(m, SteeringAngles):
-            self.front.push_steering(m)
-        elif isinstance(m, GnssSample):
-            self.front.push_gnss(m)
-
-    def advance(self, until_ns: int) -> None:
-        last = self.front.imu_until_ns()
-        if last is None:
-            return
-        if self.next_ns is None:
-            self.next_ns = int(self.front.imu[0][0][0]) + TICK_NS
-        while self.next_ns <= min(until_ns, last):
-            tick = self.front.tick(self.next_ns)
-            if tick is not None:
-                self.ticks[self.next_ns] = tick
-            self.next_ns += TICK_NS
-
-
 def _last_ns(m: Measurement) -> int:
     return int(np.atleast_1d(m.stamp_ns)[-1])
 
 
 def _drive(
     runs: list[FourWheelRun], mode: FrictionMode
-) -> tuple[FrictionFleet, dict[str, _Reference], dict[str, list[tuple[int, dict[str, object]]]]]:
+) -> tuple[FrictionFleet, dict[str, Reference], dict[str, list[tuple[int, dict[str, object]]]]]:
     """Each run twice (as ``a…`` and ``b…``): ``b`` joins 2.5 s late (its packets from then on)
     and is advanced every 100 ms, ``a`` every 40 ms, ``a2`` only every third call; phases
     spread by ``align_ticks`` on half the vehicles. Returns the fleet, the references, and
@@ -85,7 +51,7 @@ def _drive(
     for k, r in enumerate(runs):
         plan[f"a{k}"] = (r, start, 40)
         plan[f"b{k}"] = (r, start + 2_500_000_000, 100)
-    refs: dict[str, _Reference] = {}
+    refs: dict[str, Reference] = {}
     cursor = dict.fromkeys(plan, 0)
     seen: dict[str, list[tuple[int, dict[str, object]]]] = {vid: [] for vid in plan}
     _spy(fleet, seen)
@@ -98,7 +64,7 @@ def _drive(
                 aligned = join_ns + n * TICK_NS // len(plan) if n % 2 else None
                 if aligned is not None:
                     fleet.align_ticks(vid, aligned)
-                refs[vid] = _Reference(FrontEnd(r.config, cfg.front, 0.02), aligned)
+                refs[vid] = Reference(FrontEnd(r.config, cfg.front, 0.02), aligned)
             ms = r.measurements
             while cursor[vid] < len(ms) and _last_ns(ms[cursor[vid]]) <= now:
                 m = ms[cursor[vid]]
@@ -169,7 +135,7 @@ def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> N
     fleet.remove_vehicle("a0")
     fleet.add_vehicle("c", runs[1].config)
     assert fleet._vehicles["c"].slot == freed
-    ref = _Reference(FrontEnd(runs[1].config, fleet.config.front, 0.02), None)
+    ref = Reference(FrontEnd(runs[1].config, fleet.config.front, 0.02), None)
     rows: list[np.ndarray] = []
     for m in runs[1].measurements:
         if _last_ns(m) > runs[1].start_ns + 5_000_000_000:
