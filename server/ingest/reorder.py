@@ -127,6 +127,7 @@ IDLE_MIN_NS = 1_000_000_000
 DEFAULT_STREAMS: tuple[Stream, ...] = (Stream.GNSS, Stream.IMU, Stream.WHEELS)
 
 _PRIORITY = {stream: spec.priority for stream, spec in STREAMS.items()}
+_STREAM_NAMES: dict[Stream, str] = {stream: stream.value for stream in Stream}
 # streams whose missing data is told (StreamGap), in priority order
 _CUMULATIVE = tuple(
     sorted((s for s, spec in STREAMS.items() if spec.cumulative), key=_PRIORITY.__getitem__)
@@ -611,8 +612,10 @@ class ReorderBuffer:
         return now_ns - self._last_arrival_ns >= self._idle_ns
 
     def seq_highest(self) -> dict[str, int]:
-        """Highest sequence number seen per stream, ``{stream name: seq}``."""
-        return {stream.value: t.highest for stream, t in self._seq.items() if t.highest >= 0}
+        """Highest sequence number seen per stream, ``{stream name: seq}`` (every vehicle's,
+        once a second: the names are looked up, not read off the enum members)."""
+        names = _STREAM_NAMES
+        return {names[stream]: t.highest for stream, t in self._seq.items() if t.highest >= 0}
 
     def resume_seq(self, highest: Mapping[str, int]) -> None:
         """Continue each stream's sequence tracking after ``highest[stream name]``."""
