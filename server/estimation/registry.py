@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -476,6 +476,17 @@ class EstimatorRegistry:
                 est.push(vehicle_id, measurement)
             except Exception as exc:
                 self.on_error(vehicle_id, name, "push", exc)
+
+    def push_all(self, vehicle_id: str, stream: str, measurements: Sequence[Pushed]) -> None:
+        """:meth:`push` of each of ``measurements``, all of ``stream`` (one packet's): the
+        estimators taking the stream are looked up once, not per measurement (each estimator
+        still gets them in order, and one that raises is told per measurement)."""
+        for name, est in self._by_stream[vehicle_id][stream]:
+            for measurement in measurements:
+                try:
+                    est.push(vehicle_id, measurement)
+                except Exception as exc:
+                    self.on_error(vehicle_id, name, "push", exc)
 
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         """Put ``vehicle_id``'s ticks on ``stamp_ns + k·tick`` in every estimator it runs."""

@@ -80,12 +80,15 @@ class _VehicleCounts:
         self.stalled: dict[str, int] = defaultdict(int)
 
     def as_dict(self) -> dict[str, int]:
+        # every vehicle's, once a second: the refusals and stalls most have none of are
+        # summed and listed only when there are some
+        rejected, stalled = self.rejected, self.stalled
         out = {
             "received": self.received,
             "accepted": self.accepted,
             "late": self.late,
             "duplicate": self.duplicate,
-            "rejected": sum(self.rejected.values()),
+            "rejected": sum(rejected.values()) if rejected else 0,
             "lost_by_seq_gap": self.lost_by_seq_gap,
             "seq_restarts": self.seq_restarts,
             "clock_reanchors": self.clock_reanchors,
@@ -93,10 +96,12 @@ class _VehicleCounts:
             "estimator_errors": self.estimator_errors,
             "configs_refused": self.configs_refused,
         }
-        for reason, n in sorted(self.rejected.items()):
-            out[f"rejected_{reason}"] = n
-        for stream, n in sorted(self.stalled.items()):
-            out[f"stalled_{stream}"] = n
+        if rejected:
+            for reason, n in sorted(rejected.items()):
+                out[f"rejected_{reason}"] = n
+        if stalled:
+            for stream, n in sorted(stalled.items()):
+                out[f"stalled_{stream}"] = n
         return out
 
 

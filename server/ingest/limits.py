@@ -47,7 +47,8 @@ class ByteRate:
         self._rate_per_ns = rate_bps / 1e9
         self._burst = float(max(burst_bytes, rate_bps))
         self._clock = clock_ns
-        self._buckets: dict[str, tuple[float, int]] = {}  # vehicle -> (tokens, stamp ns)
+        # vehicle -> [tokens, stamp ns], updated in place (no tuple made per packet)
+        self._buckets: dict[str, list[float]] = {}
 
     @property
     def enabled(self) -> bool:
@@ -59,15 +60,18 @@ class ByteRate:
         if self._rate_per_ns <= 0:
             return True
         now = self._clock()
-        tokens, stamp = self._buckets.get(vehicle_id, (self._burst, now))
-        tokens = min(self._burst, tokens + (now - stamp) * self._rate_per_ns)
+        bucket = self._buckets.get(vehicle_id)
+        if bucket is None:
+            if len(self._buckets) >= MAX_RATE_VEHICLES:
+                for old in list(self._buckets)[: MAX_RATE_VEHICLES // 2]:
+                    del self._buckets[old]
+            bucket = self._buckets[vehicle_id] = [self._burst, now]
+        tokens = bucket[0] + (now - bucket[1]) * self._rate_per_ns
+        if tokens > self._burst:
+            tokens = self._burst
         allowed = tokens >= n_bytes
-        if allowed:
-            tokens -= n_bytes
-        if vehicle_id not in self._buckets and len(self._buckets) >= MAX_RATE_VEHICLES:
-            for old in list(self._buckets)[: MAX_RATE_VEHICLES // 2]:
-                del self._buckets[old]
-        self._buckets[vehicle_id] = (tokens, now)
+        bucket[0] = tokens - n_bytes if allowed else tokens
+        bucket[1] = now
         return allowed
 
 

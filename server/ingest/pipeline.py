@@ -808,7 +808,7 @@ class Pipeline:
         (:meth:`ReorderBuffer.take_gaps`) says where data is missing (:mod:`.adapter`)."""
         if vid not in self._tick_phase_ns:
             self._tick_phase_ns[vid] = self._align(vid)
-        push = self._registry.push
+        push_all = self._registry.push_all
         notices = wheel_gaps(gaps) if gaps else ()
         before: dict[int, list[WheelGap]] = {}  # id(packet) -> notices before it
         for gap, p in notices:
@@ -818,8 +818,9 @@ class Pipeline:
             if before and id(packet) in before:
                 for gap in before[id(packet)]:
                     self._wheel_gap(vid, gap)
-            for m in fed(packet):
-                push(vid, m)  # guarded per estimator by the registry
+            measurements = fed(packet)
+            if measurements:  # guarded per estimator by the registry
+                push_all(vid, packet.stream, measurements)
         for gap, p in notices:
             if p is None:  # no packet after the gap in this release
                 self._wheel_gap(vid, gap)

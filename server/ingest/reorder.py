@@ -127,6 +127,7 @@ IDLE_MIN_NS = 1_000_000_000
 DEFAULT_STREAMS: tuple[Stream, ...] = (Stream.GNSS, Stream.IMU, Stream.WHEELS)
 
 _PRIORITY = {stream: spec.priority for stream, spec in STREAMS.items()}
+_STREAM_NAMES: dict[Stream, str] = {stream: stream.value for stream in Stream}
 # streams whose missing data is told (StreamGap), in priority order
 _CUMULATIVE = tuple(
     sorted((s for s, spec in STREAMS.items() if spec.cumulative), key=_PRIORITY.__getitem__)
@@ -546,39 +547,40 @@ class ReorderBuffer:
         self._take(packet, now_ns)
 
     def _take(self, packet: Packet, now_ns: int, *, seq_restart: bool = False) -> Verdict:
+        # once per packet: the stream's watermark is moved here, not in a call of its own, and
+        # _note_arrival is called only while the horizon is not known to move already
         self._last_arrival_ns = now_ns
-        marks = self._watermarks
+        marks, stream = self._watermarks, packet.stream
+        if marks is not None:
+            mark = marks.get(stream)
+            covers_ns = packet.covers_ns
+            if mark is None or seq_restart:
+                marks[stream] = _StreamMark(packet.seq, covers_ns)
+            else:
+                mark.arrived(packet.seq, covers_ns)
         if not packet.measurements:  # a heartbeat moves its stream's watermark, nothing else
-            if marks is not None:
-                self._mark(marks, packet, seq_restart)
-                self._note_arrival(packet.stream)
+            if marks is not None and not self._may_release:
+                self._note_arrival(stream)
             return _ACCEPTED_VERDICT
-        if self._newest_ns is None or packet.last_stamp_ns > self._newest_ns:
-            self._newest_ns = packet.last_stamp_ns
+        last_ns = packet.last_stamp_ns
+        if self._newest_ns is None or last_ns > self._newest_ns:
+            self._newest_ns = last_ns
         if self._first_ns is None:
             self._first_ns = packet.first_stamp_ns
-        if marks is not None:
-            self._mark(marks, packet, seq_restart)
         heapq.heappush(
             self._heap,
-            (
-                packet.first_stamp_ns,
-                _PRIORITY[packet.stream],
-                packet.seq,
-                next(self._tie),
-                packet,
-            ),
+            (packet.first_stamp_ns, _PRIORITY[stream], packet.seq, next(self._tie), packet),
         )
-        self._note_arrival(packet.stream)
+        if not self._may_release:
+            self._note_arrival(stream)
         return _ACCEPTED_VERDICT
 
     def _note_arrival(self, stream: Stream) -> None:
         """Whether a packet of ``stream`` just taken may move the horizon (:attr:`may_release`):
         the released horizon is at least the lowest watermark, so while one of the streams at
         that watermark stays there and the fixed window does not pass it, the horizon does not
-        move."""
-        if self._may_release:
-            return
+        move. Called only while :attr:`may_release` is False (once True it stays so until the
+        next release)."""
         released = self._released_ns
         lows, marks = self._low_streams, self._watermarks
         if lows and stream in lows and marks and marks[stream].stamp_ns > self._low_ns:
@@ -590,15 +592,6 @@ class ReorderBuffer:
             or self._newest_ns is None
             or self._newest_ns - self._lateness_ns > released
         )
-
-    @staticmethod
-    def _mark(marks: dict[Stream, _StreamMark], packet: Packet, seq_restart: bool) -> None:
-        """Move ``packet``'s stream watermark to what the packet covers."""
-        mark = marks.get(packet.stream)
-        if mark is None or seq_restart:
-            marks[packet.stream] = _StreamMark(packet.seq, packet.covers_ns)
-        else:
-            mark.arrived(packet.seq, packet.covers_ns)
 
     def _missing_of(self, stream: Stream) -> _Missing:
         missing = self._missing.get(stream)
@@ -619,8 +612,10 @@ class ReorderBuffer:
         return now_ns - self._last_arrival_ns >= self._idle_ns
 
     def seq_highest(self) -> dict[str, int]:
-        """Highest sequence number seen per stream, ``{stream name: seq}``."""
-        return {stream.value: t.highest for stream, t in self._seq.items() if t.highest >= 0}
+        """Highest sequence number seen per stream, ``{stream name: seq}`` (every vehicle's,
+        once a second: the names are looked up, not read off the enum members)."""
+        names = _STREAM_NAMES
+        return {names[stream]: t.highest for stream, t in self._seq.items() if t.highest >= 0}
 
     def resume_seq(self, highest: Mapping[str, int]) -> None:
         """Continue each stream's sequence tracking after ``highest[stream name]``."""

@@ -47,6 +47,9 @@ BURST = 512
 
 CONFIG_CHANNEL_CAPACITY = 256
 
+#: Keys whose byte-rate bucket the ingest thread keeps (:meth:`IngestSubscriber._rate_key`).
+RATE_KEYS_HELD = 65_536
+
 
 @dataclass(frozen=True, slots=True)
 class ConfigUpdate:
@@ -97,6 +100,8 @@ class IngestSubscriber:
         self._rate = ByteRate(
             ingest_settings.vehicle_max_bytes_per_s, ingest_settings.vehicle_burst_bytes
         )
+        self._rate_on = self._rate.enabled
+        self._rate_keys: dict[str, str] = {}  # key -> its byte-rate bucket (_rate_key)
         self._zs = zenoh_settings
         self._gather_s = ingest_settings.gather_ms / 1000
         self._thread: threading.Thread | None = None
@@ -203,12 +208,19 @@ class IngestSubscriber:
         size = len(payload)  # ZBytes' length: nothing copied yet
         if size > self._max_payload:
             refused.append((key, "oversize"))
-        elif self._rate.enabled and not self._rate.allow(self._rate_key(key), size):
+        elif self._rate_on and not self._rate.allow(self._rate_key(key), size):
             refused.append((key, "over_rate"))
         else:
             received.append((key, payload.to_bytes()))
 
     def _rate_key(self, key: str) -> str:
-        """The byte-rate bucket of a key: its vehicle chunk (the whole key if it has none)."""
-        rest = key[len(self._zs.key_prefix) + 1 :]
-        return rest.split("/", 1)[0] or key
+        """The byte-rate bucket of a key: its vehicle chunk (the whole key if it has none).
+        Kept per key (a fleet repeats its vehicles' few keys; emptied past
+        :data:`RATE_KEYS_HELD`, so random keys cannot grow memory)."""
+        bucket = self._rate_keys.get(key)
+        if bucket is None:
+            if len(self._rate_keys) >= RATE_KEYS_HELD:
+                self._rate_keys.clear()
+            rest = key[len(self._zs.key_prefix) + 1 :]
+            bucket = self._rate_keys[key] = rest.split("/", 1)[0] or key
+        return bucket

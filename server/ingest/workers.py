@@ -302,11 +302,11 @@ class WorkerPool:
         """Send each packet of a burst, undecoded, to the worker that owns its vehicle."""
         shares: list[list[tuple[str, bytes]]] = [[] for _ in self._workers]
         owners = self._owner_by_key
-        for key, payload in received:
-            owner = owners.get(key)
+        for item in received:  # each (key, payload) pair passed on as it is
+            owner = owners.get(item[0])
             if owner is None:
-                owner = self._owner_of_key(key)
-            shares[owner].append((key, payload))
+                owner = self._owner_of_key(item[0])
+            shares[owner].append(item)
         for w, share in zip(self._workers, shares, strict=True):
             if share:
                 self._send(w, share, len(share))

@@ -142,12 +142,55 @@ class WriterStats:
     """Raw packets not stored because the stored ones hold ``raw_packets_max_bytes``."""
 
 
-def _copied(batch: EstimateBatch) -> list[np.ndarray]:
-    """A copy of the batch's rows, as a view per vehicle of one copy (a copy per vehicle of its
-    one or two rows costs ~4 µs, structured dtype: ten times the whole batch's)."""
-    joined = batch.rows.copy()
-    bounds = [0, *itertools.accumulate(batch.counts)]
-    return [joined[a:b] for a, b in itertools.pairwise(bounds)]
+#: One submit's rows in the backlog: ``(spec, ids, counts, rows)`` as an :class:`EstimateBatch`
+#: holds them (a copy), so a tick's rows of a thousand vehicles are one entry, not a thousand.
+_Queued = tuple[EstimatorSpec, list[str], list[int], np.ndarray]
+
+
+def _per_vehicle(
+    spec: EstimatorSpec, ids: list[str], counts: list[int], rows: np.ndarray
+) -> list[_Queued]:
+    """The entry ``(spec, ids, counts, rows)`` as one entry per vehicle (views of ``rows``)."""
+    bounds = [0, *itertools.accumulate(counts)]
+    return [
+        (spec, [vid], [n], rows[a:b])
+        for vid, n, (a, b) in zip(ids, counts, itertools.pairwise(bounds), strict=True)
+    ]
+
+
+def _split(entry: _Queued, n_rows: int) -> tuple[_Queued, _Queued]:
+    """``entry`` cut after its first ``n_rows`` rows (0 < n_rows < its rows): a vehicle the
+    cut falls within has its first rows in the head and the rest in the tail."""
+    spec, ids, counts, rows = entry
+    k, before = 0, 0
+    while before + counts[k] <= n_rows:
+        before += counts[k]
+        k += 1
+    head_ids, head_counts = ids[:k], counts[:k]
+    tail_ids, tail_counts = ids[k:], counts[k:]
+    if before < n_rows:  # the cut falls within vehicle k
+        head_ids, head_counts = [*head_ids, ids[k]], [*head_counts, n_rows - before]
+        tail_counts = [counts[k] - (n_rows - before), *tail_counts[1:]]
+    return (spec, head_ids, head_counts, rows[:n_rows]), (
+        spec,
+        tail_ids,
+        tail_counts,
+        rows[n_rows:],
+    )
+
+
+def _joined(spec: EstimatorSpec, entries: list[_Queued]) -> EstimateBatch:
+    """One estimator's entries as one batch (a vehicle of two entries is named twice, each
+    part in the order submitted: the stores key every row by its vehicle and stamp)."""
+    if len(entries) == 1:
+        _, ids, counts, rows = entries[0]
+        return EstimateBatch(ids, counts, rows, spec)
+    return EstimateBatch(
+        [vid for e in entries for vid in e[1]],
+        [n for e in entries for n in e[2]],
+        concat_estimates([e[3] for e in entries]),
+        spec,
+    )
 
 
 class StoreWriter:
@@ -201,8 +244,8 @@ class StoreWriter:
 
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
-        # backlog: (estimator spec, vehicle_id, rows)
-        self._queue: deque[tuple[EstimatorSpec, str, np.ndarray]] = deque()
+        # backlog: a submit's rows as one entry (or one per vehicle when the backlog was near full)
+        self._queue: deque[_Queued] = deque()
         self._queued_rows = 0
         self._inflight: list[EstimateBatch] | None = None
         self._inflight_rows = 0
@@ -340,16 +383,35 @@ class StoreWriter:
                 if self._closing:
                     raise RuntimeError("StoreWriter is closed")
             return 0
-        spec, ids, copied = parts[0].spec, parts[0].ids, _copied(parts[0])
+        part = parts[0]
+        spec, rows, total = part.spec, part.rows.copy(), len(part.rows)
+        ids, counts = list(part.ids), list(part.counts)
+        if 0 in counts:
+            ids = [vid for vid, n in zip(ids, counts, strict=True) if n]
+            counts = [n for n in counts if n]
+        with self._cond:
+            if self._closing:
+                raise RuntimeError("StoreWriter is closed")
+            if total and self._pending_rows_locked() + total <= self._backlog_max:
+                # the common case: room for every row, queued as one entry
+                self._queue.append((spec, ids, counts, rows))
+                self._queued_rows += total
+                self._seq_submitted += total
+                self._rows_submitted += total
+                self._cond.notify_all()
+                return total
+        return self._submit_per_vehicle(_per_vehicle(spec, ids, counts, rows))
+
+    def _submit_per_vehicle(self, entries: list[_Queued]) -> int:
+        """Queue each vehicle's entry that fits the backlog, waiting up to ``submit_block_s``
+        for room; count the others dropped. Returns the rows accepted."""
         accepted = 0
         deadline = time.monotonic() + self._submit_block_s
         with self._cond:
             if self._closing:
                 raise RuntimeError("StoreWriter is closed")
-            for vid, rows in zip(ids, copied, strict=True):
-                n = len(rows)
-                if n == 0:
-                    continue
+            for entry in entries:
+                n = len(entry[3])
                 while n <= self._backlog_max < self._pending_rows_locked() + n:
                     remaining = deadline - time.monotonic()
                     if remaining <= 0 or not self._healthy:
@@ -366,7 +428,7 @@ class StoreWriter:
                             self._rows_dropped_full,
                         )
                     continue
-                self._queue.append((spec, vid, rows))
+                self._queue.append(entry)
                 self._queued_rows += n
                 self._seq_submitted += n
                 self._rows_submitted += n
@@ -551,42 +613,27 @@ class StoreWriter:
         self._cond.notify_all()
 
     def _take_locked(self) -> list[EstimateBatch]:
-        """Pop up to ``batch_max_rows`` rows off the backlog: a batch per estimator, its rows
-        merged per vehicle in order."""
-        # per estimator: its spec and each vehicle's parts (a vehicle has one part unless it
-        # had rows in two submits)
-        taken: dict[str, tuple[EstimatorSpec, dict[str, list[np.ndarray]]]] = {}
+        """Pop up to ``batch_max_rows`` rows off the backlog: a batch per estimator, its
+        entries joined in the order submitted."""
+        taken: dict[str, tuple[EstimatorSpec, list[_Queued]]] = {}
         queue, n = self._queue, 0
         while queue and n < self._batch_max:
-            spec, vid, rows = queue[0]
+            entry = queue[0]
             room = self._batch_max - n
-            if len(rows) <= room:
+            if len(entry[3]) <= room:
                 queue.popleft()
-                part = rows
             else:
-                part = rows[:room]
-                queue[0] = (spec, vid, rows[room:])
-            of_spec = taken.get(spec.name)
+                entry, queue[0] = _split(entry, room)
+            of_spec = taken.get(entry[0].name)
             if of_spec is None:
-                of_spec = taken[spec.name] = (spec, {})
-            parts = of_spec[1].get(vid)
-            if parts is None:
-                of_spec[1][vid] = [part]
+                taken[entry[0].name] = (entry[0], [entry])
             else:
-                parts.append(part)
-            n += len(part)
+                of_spec[1].append(entry)
+            n += len(entry[3])
         self._queued_rows -= n
         self._inflight_rows = n
         # the rows were checked against their spec when submitted: joined as they are
-        return [
-            EstimateBatch(
-                list(parts),
-                [sum(map(len, ps)) for ps in parts.values()],
-                concat_estimates([p for ps in parts.values() for p in ps]),
-                spec,
-            )
-            for spec, parts in taken.values()
-        ]
+        return [_joined(spec, entries) for spec, entries in taken.values()]
 
     def _take_counters_locked(self) -> dict[str, dict[str, int]]:
         """Pop the counters of up to :data:`COUNTER_VEHICLES_PER_WRITE` vehicles."""

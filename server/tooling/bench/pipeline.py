@@ -47,6 +47,9 @@ WARMUP_S = 3.0
 START_NS = 1_800_000_000_000_000_000
 """Simulated UTC time of the start (stamps and the pipeline's clocks follow it)."""
 STAGES = ("decode", "offer", "tick", "writer")
+TICK_PHASES = ("release", "estimate", "deliver")
+"""The tick's parts as the pipeline counts them (``Pipeline.PHASES``): reorder releases and
+pushes to the estimators' buffers, the estimator calls, the sinks."""
 _REPO = Path(__file__).resolve().parents[3]
 
 
@@ -138,7 +141,7 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
         tick_every = settings.ingest.process_interval_ms // GATHER_MS
         spent = dict.fromkeys(STAGES, 0.0)
         proc0 = thread0 = generate = 0.0
-        rows0 = 0
+        stats0 = pipeline.stats()
         gather_ns = GATHER_MS * 1_000_000
         warm = round(WARMUP_S * 1000 / GATHER_MS)
         wall0 = time.perf_counter()
@@ -148,7 +151,7 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
                     proc0, thread0 = time.process_time(), time.thread_time()
                     spent = dict.fromkeys(STAGES, 0.0)
                     generate = 0.0
-                    rows0 = pipeline.stats()["rows"]
+                    stats0 = pipeline.stats()
                 r0 = time.thread_time()
                 received.clear()
                 window = render(fleet, step * gather_ns, (step + 1) * gather_ns, loop=True)
@@ -179,11 +182,13 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
             writer.close()
             store.close()
     measured_s = seconds - WARMUP_S
+    stats = pipeline.stats()
     return {
         "vehicles": vehicles,
         "seconds": measured_s,
-        "rows": pipeline.stats()["rows"] - rows0,
+        "rows": stats["rows"] - stats0["rows"],
         **{f"{k}_s": v for k, v in spent.items()},
+        **{f"{k}_s": stats[f"cpu_{k}_s"] - stats0[f"cpu_{k}_s"] for k in TICK_PHASES},
         "total_s": total,
     }
 
@@ -198,8 +203,11 @@ def _child(path: str, vehicles: int, seconds: float) -> dict[str, Any]:
 
 
 def _per_vehicle_second_us(case: dict[str, Any]) -> dict[str, float]:
+    """Each stage's and tick phase's CPU in µs a vehicle-second (a baseline whose bench
+    did not count the tick's phases has none)."""
     scale = 1e6 / (case["vehicles"] * case["seconds"])
-    return {k: case[f"{k}_s"] * scale for k in (*STAGES, "total")}
+    names = (*STAGES, *TICK_PHASES, "total")
+    return {k: case[f"{k}_s"] * scale for k in names if f"{k}_s" in case}
 
 
 def run(
@@ -229,11 +237,12 @@ def run(
 def format_table(result: dict[str, Any]) -> str:
     """The CPU table: µs per vehicle-second by stage, and cores at real time."""
     head = "| vehicles | version | " + " | ".join(STAGES) + " | total | cores at real time |"
+    head += " tick: " + " / ".join(TICK_PHASES) + " |"
     lines = [
         f"Server CPU per vehicle-second, µs "
         f"({result['seconds'] - WARMUP_S:g} s of sensor time measured)",
         head,
-        "|" + " --- |" * (len(STAGES) + 4),
+        "|" + " --- |" * (len(STAGES) + 5),
     ]
     for case in result["cases"]:
         for name in ("before", "after"):
@@ -243,13 +252,15 @@ def format_table(result: dict[str, Any]) -> str:
             label = f"{name} ({result['baseline']})" if name == "before" else "working tree"
             cells = " | ".join(f"{c[k]:.0f}" for k in STAGES)
             cores = c["total"] * case["vehicles"] / 1e6
+            phases = " / ".join(f"{c[k]:.0f}" for k in TICK_PHASES if k in c)
             lines.append(
-                f"| {case['vehicles']:,} | {label} | {cells} | {c['total']:.0f} | {cores:.2f} |"
+                f"| {case['vehicles']:,} | {label} | {cells} | {c['total']:.0f} | {cores:.2f} "
+                f"| {phases} |"
             )
         if "after_over_before" in case:
             lines.append(
                 f"| {case['vehicles']:,} | after/before | | | | | "
-                f"{case['after_over_before']:.2f} | |"
+                f"{case['after_over_before']:.2f} | | |"
             )
     return "\n".join(lines)
 

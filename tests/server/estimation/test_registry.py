@@ -131,6 +131,28 @@ def test_measurements_reach_the_estimators_whose_spec_takes_their_stream() -> No
     assert failures == []
 
 
+def test_push_all_hands_a_packets_measurements_on_as_push_does_each() -> None:
+    """One packet's measurements pushed together reach the same estimators, in order, as
+    each pushed alone; an estimator that raises is told per measurement, the others go on."""
+    imu2 = ImuBatch(np.array([3], np.int64), np.ones((1, 3)), np.ones((1, 3)))
+    one, one_built, one_failures = _registry(fail_for=frozenset({"b"}))
+    each, each_built, each_failures = _registry(fail_for=frozenset({"b"}))
+    for reg in (one, each):
+        reg.add_vehicle("a", WheeledRearDriveConfig())
+        reg.add_vehicle("b", WheeledRearDriveConfig(estimators=BOTH))
+    for vid in ("a", "b"):
+        one.push_all(vid, "imu", (IMU, imu2))
+        one.push_all(vid, "gnss", (GNSS,))
+        for m in (IMU, imu2, GNSS):
+            each.push(vid, m)
+    assert one_built["mdsf"].pushed == each_built["mdsf"].pushed
+    assert one_built["mdsf"].pushed["b"] == [IMU, imu2, GNSS]
+    assert one_built["reference_speed"].pushed == each_built["reference_speed"].pushed
+    assert one_failures == each_failures == [("b", "reference_speed", "push")] * 2
+    with pytest.raises(KeyError):
+        one.push_all("zzz", "imu", (IMU,))
+
+
 def test_advance_gives_one_batch_per_estimator_of_its_spec() -> None:
     reg, _, _ = _registry()
     reg.add_vehicle("a", WheeledRearDriveConfig())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
-from server.ingest.limits import ByteBudget, ByteRate, refusal_errors
+from server.ingest.limits import MAX_RATE_VEHICLES, ByteBudget, ByteRate, refusal_errors
 from server.protocol.keys import Stream
 
 
@@ -27,6 +27,21 @@ def test_byte_rate_allows_the_burst_then_the_rate() -> None:
     assert rate.allow("a", 500)
     clock.ns = 100_000_000_000  # a long pause refills to the bucket, never beyond
     assert rate.allow("a", 5000) and not rate.allow("a", 1)
+
+
+def test_byte_rate_forgets_the_oldest_half_of_its_buckets_when_full() -> None:
+    """Random ids cannot grow memory: past MAX_RATE_VEHICLES buckets the oldest half goes,
+    and a forgotten vehicle starts with a full bucket again."""
+    clock = _Clock()
+    rate = ByteRate(1000, 5000, clock_ns=clock)
+    assert rate.allow("first", 5000) and not rate.allow("first", 1)  # emptied
+    for i in range(MAX_RATE_VEHICLES - 1):
+        rate.allow(f"v{i}", 1)
+    assert not rate.allow("first", 1)  # still held: MAX_RATE_VEHICLES buckets in all
+    assert rate.allow("one-more", 1)  # the oldest half, "first" among them, is forgotten
+    assert rate.allow("first", 5000)
+    last = f"v{MAX_RATE_VEHICLES - 2}"  # kept, with 4,999 bytes left
+    assert rate.allow(last, 4999) and not rate.allow(last, 1)
 
 
 def test_byte_rate_zero_is_no_limit() -> None:

@@ -219,6 +219,49 @@ def test_batch_max_rows_splits_a_burst(backend: Backend) -> None:
     assert_rows_equal(inner.query_series("v1", 0, 2**62), rows)
 
 
+def test_a_fleets_submits_are_cut_at_batch_max_rows_within_a_vehicle(backend: Backend) -> None:
+    """Three submits of four vehicles (3, 5, 2 and 4 rows each, 14 a submit) go out in
+    transactions of at most 10 rows, cut within a vehicle's rows where the limit falls; every
+    row is stored once, in its vehicle's series."""
+    inner = backend.open()
+    counts = {"a": 3, "b": 5, "c": 2, "d": 4}
+    for vid in counts:
+        inner.upsert_vehicle(vid, {}, now_ns=1)
+    store = CountingStore(inner)
+    ticks = 3
+    rows = {vid: make_rows(n * ticks, T0_NS, seed=k) for k, (vid, n) in enumerate(counts.items())}
+    with StoreWriter(store, _settings(batch_max_rows=10, commit_interval_s=1.0)) as writer:
+        for tick in range(ticks):
+            batch = [(vid, rows[vid][tick * n : (tick + 1) * n]) for vid, n in counts.items()]
+            assert writer.submit(batch) == 14
+        assert writer.flush(timeout=60)
+    assert sum(store.batches) == 42 and max(store.batches) <= 10, store.batches
+    for vid, expected in rows.items():
+        assert_rows_equal(inner.query_series(vid, 0, 2**62), expected)
+
+
+def test_a_submit_near_a_full_backlog_keeps_the_vehicles_that_fit(backend: Backend) -> None:
+    """With 4 rows of room (996 of 1,000 held through an outage), a submit of vehicles with
+    3, 2 and 1 rows queues the first and the last (each vehicle's rows whole or not at all,
+    in order), and counts 2 dropped."""
+    store = backend.open(fast_fail=True)
+    for vid in ("a", "b", "c", "d"):
+        store.upsert_vehicle(vid, {}, now_ns=1)
+    settings = _settings(commit_interval_s=0.05, backlog_max_rows=1000)
+    writer = StoreWriter(store, settings, retry_initial_s=0.05, submit_block_s=0.01).start()
+    try:
+        with backend.outage():
+            assert writer.submit([("d", make_rows(996))]) == 996
+            _wait_for(lambda: not writer.stats().healthy)
+            got = writer.submit([("a", make_rows(3)), ("b", make_rows(2)), ("c", make_rows(1))])
+            assert got == 4 and writer.stats().rows_dropped_backlog_full == 2
+        assert writer.flush(timeout=60)
+    finally:
+        writer.close(timeout=30)
+    stored = {vid: len(store.query_series(vid, 0, 2**62)) for vid in ("a", "b", "c", "d")}
+    assert stored == {"a": 3, "b": 0, "c": 1, "d": 996}
+
+
 def test_commit_within_interval_at_low_rate(backend: Backend) -> None:
     store = backend.open()
     store.upsert_vehicle("v1", {}, now_ns=1)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from server.tooling.bench.pipeline import STAGES, WARMUP_S, measure, run
+from server.tooling.bench.pipeline import STAGES, TICK_PHASES, WARMUP_S, measure, run
 
 
 def test_measure_times_every_stage_and_emits_a_row_per_tick() -> None:
@@ -18,6 +18,10 @@ def test_measure_times_every_stage_and_emits_a_row_per_tick() -> None:
     for stage in STAGES:
         assert got[f"{stage}_s"] > 0, stage
     assert got["total_s"] >= sum(got[f"{s}_s"] for s in STAGES) - 1e-6
+    # the tick's phases, as the pipeline counts them, are parts of the tick
+    for phase in TICK_PHASES:
+        assert got[f"{phase}_s"] > 0, phase
+    assert sum(got[f"{p}_s"] for p in TICK_PHASES) <= got["tick_s"] + 1e-3
 
 
 def test_side_by_side_with_a_revision_prints_and_writes(
