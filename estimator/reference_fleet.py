@@ -127,8 +127,9 @@ class _Vehicle:
     def inputs(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
         """Mean forward specific force over each tick ``(t − tick, t]`` and the mean rim speed
         at each tick (NaN where unknown), shapes ``(m,)``; drops IMU samples no longer needed."""
-        edges = np.searchsorted(self.imu_ns, np.concatenate([ticks[:1] - self.tick_ns, ticks]),
-                                side="right")
+        edges = np.searchsorted(
+            self.imu_ns, np.concatenate([ticks[:1] - self.tick_ns, ticks]), side="right"
+        )
         count = np.diff(edges)
         # each tick's own samples summed in order: the same sum however calls were batched
         tick_of = np.repeat(np.arange(ticks.size), count)

@@ -19,6 +19,7 @@ from server.web import mount_web
 
 __all__ = ["ServerThread", "build_app", "serve"]
 
+
 def build_app(settings: Settings) -> FastAPI:
     """The whole server app: REST API, live feeds, dashboard at ``/``; the runtime (opened in the
     app's lifespan) serves them."""

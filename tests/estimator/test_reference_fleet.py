@@ -88,8 +88,15 @@ def test_lost_wheel_data_gives_accelerometer_only_rows_then_recovers() -> None:
     cut = next(i for i, m in enumerate(measurements) if first_ns(m) > gap_at)
     # each wheel's third edge after the loss: the fits' min_edges
     resume = max(
-        np.sort(np.concatenate([m.stamp_ns for m in measurements[cut:]
-                                if isinstance(m, WheelEdges) and m.wheel == w]))[2]
+        np.sort(
+            np.concatenate(
+                [
+                    m.stamp_ns
+                    for m in measurements[cut:]
+                    if isinstance(m, WheelEdges) and m.wheel == w
+                ]
+            )
+        )[2]
         for w in (Wheel.LEFT, Wheel.RIGHT)
     )
     fleet = ReferenceSpeedFleet()

@@ -102,6 +102,7 @@ class ColumnLayoutStore(SqliteStore):
             version, _ = migrations.apply_pending(
                 lambda sql, params: conn.execute(sql, params).fetchall(), self.dialect, target=5
             )
+
             # the later versions' (empty) tables, which the inherited deletes also clear:
             # staging (7), anchors (9), and every version from 10 on (the estimator tables,
             # the configs' shape, token expiry); not 6 and 8, the packed layout it stands for
