@@ -50,6 +50,18 @@ class Segments:
             return _each(self.values, self.starts, seg, keys, side)
         return _search(self.values, self.starts, self.value_seg, seg, keys, side)
 
+    def search_all(self, seg: IntArray, keys: Sequence[IntArray], side: Side) -> list[IntArray]:
+        """:meth:`search` of each array of ``keys`` (all with ``seg``), in one search."""
+        found = self.search(np.tile(seg, len(keys)), np.concatenate(keys), side)
+        return np.split(found, len(keys))
+
+    def search_float_all(
+        self, seg: IntArray, keys: Sequence[FloatArray], side: Side
+    ) -> list[IntArray]:
+        """:meth:`search_float` of each array of ``keys`` (all with ``seg``), in one search."""
+        found = self.search_float(np.tile(seg, len(keys)), np.concatenate(keys), side)
+        return np.split(found, len(keys))
+
     def search_float(self, seg: IntArray, keys: FloatArray, side: Side) -> IntArray:
         """As :meth:`search` with float keys, the values compared as float64 (what
         ``np.searchsorted`` of an int64 array with float keys does)."""
