@@ -184,9 +184,7 @@ def _may_be_due(inputs: VehicleInputs, until_ns: int) -> bool:
 def _count(slots: Sequence[_Slot], out: TickOut) -> None:
     """Each slot's counters and NIS after its tick (``slots[i]`` is row ``i`` of ``out``)."""
     columns = (out.gnss_used, out.gnss_gated, out.odometer_used, out.gnss_nis)
-    for slot, gnss, gated, odometer, nis in zip(
-        slots, *(c.tolist() for c in columns), strict=True
-    ):
+    for slot, gnss, gated, odometer, nis in zip(slots, *(c.tolist() for c in columns), strict=True):
         c = slot.counts
         c["ticks"] += 1
         c["gnss_fused"] += gnss

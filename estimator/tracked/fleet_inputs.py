@@ -26,7 +26,6 @@ from estimator.tracked.vehicle import (
     gear_span,
     sprocket_missing,
     starting_at,
-    steady_run,
     tick_inputs,
 )
 
@@ -205,11 +204,19 @@ class _Fleet:
         )
 
     def steady(self, unsteady: BoolArray) -> FloatArray:
+        """:func:`~estimator.tracked.vehicle.steady_run` of every vehicle, the r-th tick of
+        all vehicles at once (the same additions in the same order)."""
         out = np.empty(unsteady.size)
-        for j, v in enumerate(self.vehicles):
-            a, b = int(self.starts[j]), int(self.starts[j + 1])
-            out[a:b] = steady_run(v.steady_s, unsteady[a:b], self.tick_ns)
-            v.steady_s = float(out[b - 1])
+        sizes = np.diff(self.starts)
+        tick_s = self.tick_ns * 1e-9
+        run = np.array([v.steady_s for v in self.vehicles], dtype=np.float64)
+        for r in range(int(sizes.max(initial=0))):
+            part = np.flatnonzero(sizes > r)
+            at = self.starts[part] + r
+            run[part] = np.where(unsteady[at], 0.0, run[part] + tick_s)
+            out[at] = run[part]
+        for v, last in zip(self.vehicles, run.tolist(), strict=True):
+            v.steady_s = last
         return out
 
     def close(self, missing: BoolArray) -> None:
