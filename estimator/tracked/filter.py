@@ -123,6 +123,8 @@ def _update_rows(
     IKH = np.eye(N_STATES)[None] - K @ H
     P_new = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)
     P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+    if used.all():
+        return x_new, P_new, nis, used
     x_out = np.where(used[:, None], x_new, x)
     P_out = np.where(used[:, None, None], P_new, P)
     return x_out, P_out, nis, used
