@@ -91,17 +91,40 @@ def kalman_update(
     vehicle), keep ``x`` and ``P``.
     Returns ``(x, P, nis (k,), used (k,))``; NIS is NaN where masked.
     """
-    y = np.where(mask[:, None], innovation, 0.0)
+    k = x.shape[0]
+    rows = np.flatnonzero(mask)
+    nis = np.full(k, np.nan)
+    used = np.zeros(k, dtype=bool)
+    if rows.size == 0:  # nobody measured: no (k, n, n) work at all
+        return x, P, nis, used
+    gate = np.broadcast_to(np.asarray(gate_nis, dtype=np.float64), (k,))
+    if rows.size == k:
+        return _update_rows(x, P, innovation, H, R, gate)
+    x_r, P_r, nis[rows], used[rows] = _update_rows(
+        x[rows], P[rows], innovation[rows], H[rows], R[rows], gate[rows]
+    )
+    x_out, P_out = x.copy(), P.copy()
+    x_out[rows], P_out[rows] = x_r, P_r
+    return x_out, P_out, nis, used
+
+
+def _update_rows(
+    x: FloatArray, P: FloatArray, y: FloatArray, H: FloatArray, R: FloatArray, gate: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
+    """The update of :func:`kalman_update` for vehicles that all measured (each vehicle's
+    products are its own, so a subset of rows gives the same numbers as the whole)."""
     Ht = np.swapaxes(H, 1, 2)
     Sm = H @ P @ Ht + R
     Sinv = _inverse(Sm)
     nis = np.einsum("ki,kij,kj->k", y, Sinv, y)
-    used = mask & np.isfinite(nis) & (nis <= gate_nis)
+    used = np.isfinite(nis) & (nis <= gate)
     K = P @ Ht @ Sinv
     x_new = x + np.einsum("kij,kj->ki", K, y)
     IKH = np.eye(N_STATES)[None] - K @ H
     P_new = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)
     P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+    if used.all():
+        return x_new, P_new, nis, used
     x_out = np.where(used[:, None], x_new, x)
     P_out = np.where(used[:, None, None], P_new, P)
-    return x_out, P_out, np.where(mask, nis, np.nan), used
+    return x_out, P_out, nis, used

@@ -9,6 +9,7 @@ server releases every stream in sensor order, so the edges and fixes up to it ar
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -31,6 +32,8 @@ __all__ = ["TrackedEstimator", "TrackedFleet"]
 
 _F = TrackedFlag
 _GNSS_OK_S = 1.0
+_STACKED_SETS = 8
+"""Sets of vehicles whose stacked constants :class:`TrackedFleet` keeps."""
 
 
 class _Slot:
@@ -172,14 +175,23 @@ def _geodetic(slots: Sequence[_Slot], sizes: Sequence[int], rows: np.ndarray) ->
         rows["lon_deg"][known] = lon
 
 
-def _count(slot: _Slot, out: TickOut, i: int) -> None:
-    c = slot.counts
-    c["ticks"] += 1
-    c["gnss_fused"] += int(out.gnss_used[i])
-    c["gnss_gated"] += int(out.gnss_gated[i])
-    c["odometer_fused"] += int(out.odometer_used[i])
-    if out.gnss_used[i] and np.isfinite(out.gnss_nis[i]):
-        slot.nis.append(float(out.gnss_nis[i]))
+def _may_be_due(inputs: VehicleInputs, until_ns: int) -> bool:
+    """False when the vehicle's next tick is after ``until_ns`` (about half the fleet at every
+    call): nothing is due and :meth:`VehicleInputs.due` need not build an empty array."""
+    return inputs.next_ns is None or inputs.next_ns <= until_ns
+
+
+def _count(slots: Sequence[_Slot], out: TickOut) -> None:
+    """Each slot's counters and NIS after its tick (``slots[i]`` is row ``i`` of ``out``)."""
+    columns = (out.gnss_used, out.gnss_gated, out.odometer_used, out.gnss_nis)
+    for slot, gnss, gated, odometer, nis in zip(slots, *(c.tolist() for c in columns), strict=True):
+        c = slot.counts
+        c["ticks"] += 1
+        c["gnss_fused"] += gnss
+        c["gnss_gated"] += gated
+        c["odometer_fused"] += odometer
+        if gnss and math.isfinite(nis):
+            slot.nis.append(nis)
 
 
 class _Base:
@@ -261,6 +273,23 @@ class _Base:
 class TrackedFleet(_Base):
     """Every vehicle's tracked estimator behind one batched step (a ``FleetEstimator``)."""
 
+    def __init__(self, config: TrackedEstimatorConfig | None = None) -> None:
+        super().__init__(config)
+        self._stacked: dict[tuple[int, ...], tuple[list[VehicleParams], VehicleParams]] = {}
+
+    def _params(self, work: list[tuple[str, _Slot, IntArray]]) -> VehicleParams:
+        """The constants of the vehicles in ``work``, stacked once per set of vehicles (the
+        same few sets come back call after call, each vehicle on its tick's phase). An entry
+        holds its parts, so no other object can take their ids while it stands."""
+        parts = [w[1].inputs.params for w in work]
+        key = tuple(map(id, parts))
+        hit = self._stacked.get(key)
+        if hit is None:
+            if len(self._stacked) >= _STACKED_SETS:
+                self._stacked.clear()
+            hit = self._stacked[key] = (parts, VehicleParams.stack(parts))
+        return hit[1]
+
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
         """Emit every due tick ``<= until_ns[vehicle_id]``; the inputs of all are taken at
         once (:func:`take_fleet`) and the r-th due tick of every vehicle is stepped in one
@@ -268,7 +297,7 @@ class TrackedFleet(_Base):
         work: list[tuple[str, _Slot, IntArray]] = []
         for vid, until in until_ns.items():
             slot = self._slots.get(vid)
-            if slot is None:
+            if slot is None or not _may_be_due(slot.inputs, until):
                 continue
             ticks = slot.inputs.due(int(until))
             if ticks.size:
@@ -276,7 +305,7 @@ class TrackedFleet(_Base):
         if not work:
             return []
         inp, starts = take_fleet([w[1].inputs for w in work], [w[2] for w in work])
-        params = VehicleParams.stack([w[1].inputs.params for w in work])
+        params = self._params(work)
         sizes = np.diff(starts)
         out = TRACKED_SPEC.empty_rows(int(starts[-1]))
         onset = np.zeros(out.size, dtype=bool)
@@ -312,7 +341,7 @@ class TrackedFleet(_Base):
                 f.since_gnss_s[i : i + 1],
                 f.gated_s[i : i + 1],
             )
-            _count(slot, got, i)
+        _count(slots, got)
         return rows, got.onset
 
 
@@ -336,7 +365,7 @@ class TrackedEstimator(_Base):
                 got = tick_step(slot.filter, one, slot.inputs.params, self.config)
                 rows[r] = _rows(slot.filter, got, one, self.config)[0]
                 onset[r] = got.onset[0]
-                _count(slot, got, 0)
+                _count([slot], got)
             _geodetic([slot], [ticks.size], rows)
             given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min)
             if given.size:

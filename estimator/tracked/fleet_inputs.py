@@ -26,7 +26,6 @@ from estimator.tracked.vehicle import (
     gear_span,
     sprocket_missing,
     starting_at,
-    steady_run,
     tick_inputs,
 )
 
@@ -56,49 +55,67 @@ class _Fleet:
     def edges(
         self,
         segs: Segments,
-        ticks: IntArray,
+        tick_sets: Sequence[IntArray],
         pitch: FloatArray,
         window_s: float,
         max_edges: int,
         hold_ns: int,
-    ) -> tuple[FloatArray, FloatArray]:
-        """Each tick's edge speed and window centre (:func:`edge_speed_at`) in ``segs``."""
-        hi = segs.search(self.seg, ticks, "right")
-        lo = segs.search(self.seg, ticks - round(window_s * 1e9), "right")
+    ) -> tuple[list[tuple[FloatArray, FloatArray]], IntArray]:
+        """Each tick's edge speed and window centre (:func:`edge_speed_at`) in ``segs``, for
+        every array of ``tick_sets`` (one search of the buffer for all); and the first set's
+        ``hi`` (its ticks' edge counts, for :func:`starting_at`)."""
+        window_ns = round(window_s * 1e9)
+        keys = [k for t in tick_sets for k in (t, t - window_ns)]
+        found = segs.search_all(self.seg, keys, "right")
         base = segs.starts[self.seg]
-        return edge_speed_at(segs.values, base, hi, lo, ticks, pitch, max_edges, hold_ns)
+        out = [
+            edge_speed_at(segs.values, base, hi, lo, t, pitch, max_edges, hold_ns)
+            for t, hi, lo in zip(tick_sets, found[0::2], found[1::2], strict=True)
+        ]
+        return out, found[0]
 
-    def odometer_speed(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
+    def odometer_speeds(self, tick_sets: Sequence[IntArray]) -> list[tuple[FloatArray, FloatArray]]:
         cfg = self.cfg
-        return self.edges(
-            self.odometer, ticks, self.odo_pitch, cfg.odometer_window_s, 1 << 30, 500_000_000
-        )
+        window_s, hold_ns = cfg.odometer_window_s, 500_000_000
+        return self.edges(self.odometer, tick_sets, self.odo_pitch, window_s, 1 << 30, hold_ns)[0]
 
-    def sprocket_speeds(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
+    def sprocket_speeds(
+        self, tick_sets: Sequence[IntArray]
+    ) -> tuple[list[tuple[FloatArray, FloatArray]], BoolArray]:
+        """Both sprockets' ``(speed (m, 2), centre (m, 2))`` for every array of ``tick_sets``,
+        and whether each starts at the first set's ticks ``(m, 2)``."""
         cfg = self.cfg
         hold_ns = round(cfg.sprocket_hold_s * 1e9)
-        out = [
-            self.edges(
-                segs, ticks, self.spr_pitch, cfg.sprocket_window_s, cfg.sprocket_max_edges, hold_ns
-            )
+        window_s, most = cfg.sprocket_window_s, cfg.sprocket_max_edges
+        sides = [
+            self.edges(segs, tick_sets, self.spr_pitch, window_s, most, hold_ns)
             for segs in self.sprockets
         ]
-        return np.stack([o[0] for o in out], axis=1), np.stack([o[1] for o in out], axis=1)
+        starting = np.zeros((self.ticks.size, 2), dtype=bool)
+        for side, (segs, (_, hi)) in enumerate(zip(self.sprockets, sides, strict=True)):
+            starting[:, side] = starting_at(segs.values, segs.starts[self.seg], hi, tick_sets[0])
+        pairs = [
+            (np.stack([a[0], b[0]], axis=1), np.stack([a[1], b[1]], axis=1))
+            for a, b in zip(sides[0][0], sides[1][0], strict=True)
+        ]
+        return pairs, starting
 
-    def gear_ratio(self, speed: FloatArray, centre: FloatArray, ticks: IntArray) -> FloatArray:
-        fast, start, end = gear_span(speed, centre, ticks, self.tick_ns)
+    def gear_ratios(
+        self, sprockets: Sequence[tuple[FloatArray, FloatArray]], tick_sets: Sequence[IntArray]
+    ) -> list[FloatArray]:
+        """The gear ratio (fast sprocket over odometer) at every array of ``tick_sets``."""
+        spans = [
+            gear_span(speed, c, t, self.tick_ns)
+            for (speed, c), t in zip(sprockets, tick_sets, strict=True)
+        ]
         segs = self.odometer
-        lo = segs.search_float(self.seg, start, "left")
-        hi = segs.search_float(self.seg, end, "right")
-        odo = span_speed_at(segs.values, segs.starts[self.seg], lo, hi, self.odo_pitch)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return fast / odo
-
-    def starting(self) -> BoolArray:
-        out = np.zeros((self.ticks.size, 2), dtype=bool)
-        for side, segs in enumerate(self.sprockets):
-            hi = segs.search(self.seg, self.ticks, "right")
-            out[:, side] = starting_at(segs.values, segs.starts[self.seg], hi, self.ticks)
+        los = segs.search_float_all(self.seg, [sp[1] for sp in spans], "left")
+        his = segs.search_float_all(self.seg, [sp[2] for sp in spans], "right")
+        out = []
+        for (fast, _, _), lo, hi in zip(spans, los, his, strict=True):
+            odo = span_speed_at(segs.values, segs.starts[self.seg], lo, hi, self.odo_pitch)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out.append(fast / odo)
         return out
 
     def missing(self, odo: FloatArray) -> BoolArray:
@@ -112,8 +129,7 @@ class _Fleet:
         per-vehicle sums, element by element in the same order); the IMU consumed."""
         imu = Segments([v.imu_ns for v in self.vehicles])
         values = np.concatenate([v.imu for v in self.vehicles])
-        lo = imu.search(self.seg, self.ticks - self.tick_ns, "right")
-        hi = imu.search(self.seg, self.ticks, "right")
+        lo, hi = imu.search_all(self.seg, [self.ticks - self.tick_ns, self.ticks], "right")
         count = hi - lo
         m = self.ticks.size
         tick_of = np.repeat(np.arange(m), count)
@@ -167,31 +183,40 @@ class _Fleet:
 
     def reads(self) -> Reads:
         accel, gyro = self.imu_means()
-        ticks, before_ticks = self.ticks, self.ticks - self.tick_ns
-        odo = self.odometer_speed(ticks)
-        spr, before = self.sprocket_speeds(ticks), self.sprocket_speeds(before_ticks)
+        tick_sets = (self.ticks, self.ticks - self.tick_ns)
+        odo, prev = self.odometer_speeds(tick_sets)
+        sprockets, starting = self.sprocket_speeds(tick_sets)
+        gear, gear_before = self.gear_ratios(sprockets, tick_sets)
         return Reads(
-            ticks_ns=ticks,
+            ticks_ns=self.ticks,
             accel=accel,
             gyro=gyro,
             yaw_accel=self.yaw_accel(gyro),
             odo=odo,
-            prev=self.odometer_speed(before_ticks),
-            spr=spr,
-            before=before,
-            gear=self.gear_ratio(*spr, ticks),
-            gear_before=self.gear_ratio(*before, before_ticks),
-            starting=self.starting(),
+            prev=prev,
+            spr=sprockets[0],
+            before=sprockets[1],
+            gear=gear,
+            gear_before=gear_before,
+            starting=starting,
             missing=self.missing(odo[0]),
             gnss=self.gnss_at(),
         )
 
     def steady(self, unsteady: BoolArray) -> FloatArray:
+        """:func:`~estimator.tracked.vehicle.steady_run` of every vehicle, the r-th tick of
+        all vehicles at once (the same additions in the same order)."""
         out = np.empty(unsteady.size)
-        for j, v in enumerate(self.vehicles):
-            a, b = int(self.starts[j]), int(self.starts[j + 1])
-            out[a:b] = steady_run(v.steady_s, unsteady[a:b], self.tick_ns)
-            v.steady_s = float(out[b - 1])
+        sizes = np.diff(self.starts)
+        tick_s = self.tick_ns * 1e-9
+        run = np.array([v.steady_s for v in self.vehicles], dtype=np.float64)
+        for r in range(int(sizes.max(initial=0))):
+            part = np.flatnonzero(sizes > r)
+            at = self.starts[part] + r
+            run[part] = np.where(unsteady[at], 0.0, run[part] + tick_s)
+            out[at] = run[part]
+        for v, last in zip(self.vehicles, run.tolist(), strict=True):
+            v.steady_s = last
         return out
 
     def close(self, missing: BoolArray) -> None:

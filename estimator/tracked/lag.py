@@ -84,6 +84,8 @@ class HeldRows:
         ones, and return (oldest first) every row a later change can no longer reach."""
         if lag <= 0 and not self.data:
             return rows
+        if lag > 0 and rows.size and not onset.any():
+            return self._give_steady(rows, onset)
         first = self.state.size
         state = np.concatenate([self.state, rows["motion_state"]])
         on = np.concatenate([self.onset, onset])
@@ -94,6 +96,16 @@ class HeldRows:
             state = buf["motion_state"]
         cut = buf.size - _still_open(on, lag)
         return self._keep(buf, state, on, cut)
+
+    def _give_steady(self, rows: np.ndarray, onset: BoolArray) -> np.ndarray:
+        """:meth:`give` when no new row has a change under way (most ticks): nothing can be
+        backdated and only the newest row stays open, so the held rows and all new rows but
+        the last are given as they are, without joining the states and onsets."""
+        given = np.frombuffer(bytearray(self.data + rows[:-1].tobytes()), dtype=rows.dtype)
+        self.data = rows[-1:].tobytes()
+        self.state = rows["motion_state"][-1:].copy()
+        self.onset = onset[-1:].copy()
+        return given
 
     def flush(self) -> np.ndarray:
         """Every held row, as it stands (no later change will backdate it), oldest first."""

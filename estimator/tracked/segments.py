@@ -28,12 +28,15 @@ class Segments:
     """``n`` non-decreasing int64 arrays end to end: ``values (N,)``, ``starts (n + 1,)``
     (segment ``j`` is ``values[starts[j]:starts[j + 1]]``)."""
 
-    __slots__ = ("starts", "values")
+    __slots__ = ("negative", "starts", "value_seg", "values")
 
     def __init__(self, parts: Sequence[IntArray]) -> None:
         self.values: IntArray = np.concatenate([np.zeros(0, dtype=np.int64), *parts])
         sizes = np.array([p.size for p in parts], dtype=np.int64)
         self.starts: IntArray = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        #: each value's segment ``(N,)`` and whether any value is negative, shared by searches
+        self.value_seg: IntArray = np.repeat(np.arange(len(parts), dtype=np.int64), sizes)
+        self.negative = bool(self.values.size and self.values.min() < 0)
 
     @property
     def last(self) -> IntArray:
@@ -43,7 +46,21 @@ class Segments:
     def search(self, seg: IntArray, keys: IntArray, side: Side) -> IntArray:
         """``np.searchsorted(segment(seg[i]), keys[i], side)`` for every key, shape ``(m,)``
         (an index inside the key's segment)."""
-        return _search(self.values, self.starts, seg, keys, side)
+        if self.negative:
+            return _each(self.values, self.starts, seg, keys, side)
+        return _search(self.values, self.starts, self.value_seg, seg, keys, side)
+
+    def search_all(self, seg: IntArray, keys: Sequence[IntArray], side: Side) -> list[IntArray]:
+        """:meth:`search` of each array of ``keys`` (all with ``seg``), in one search."""
+        found = self.search(np.tile(seg, len(keys)), np.concatenate(keys), side)
+        return np.split(found, len(keys))
+
+    def search_float_all(
+        self, seg: IntArray, keys: Sequence[FloatArray], side: Side
+    ) -> list[IntArray]:
+        """:meth:`search_float` of each array of ``keys`` (all with ``seg``), in one search."""
+        found = self.search_float(np.tile(seg, len(keys)), np.concatenate(keys), side)
+        return np.split(found, len(keys))
 
     def search_float(self, seg: IntArray, keys: FloatArray, side: Side) -> IntArray:
         """As :meth:`search` with float keys, the values compared as float64 (what
@@ -52,26 +69,32 @@ class Segments:
         if np.signbit(as_float).any() or np.signbit(keys).any() or not np.isfinite(keys).all():
             return _each(as_float, self.starts, seg, keys, side)
         # a non-negative float64's bits, read as int64, are in the float's order
-        return _search(as_float.view(np.int64), self.starts, seg, keys.view(np.int64), side)
+        as_int = as_float.view(np.int64)
+        return _search(as_int, self.starts, self.value_seg, seg, keys.view(np.int64), side)
 
 
 def _search(
-    values: IntArray, starts: IntArray, seg: IntArray, keys: IntArray, side: Side
+    values: IntArray,
+    starts: IntArray,
+    value_seg: IntArray,
+    seg: IntArray,
+    keys: IntArray,
+    side: Side,
 ) -> IntArray:
+    """The segmented search of non-negative ``values`` (``value_seg`` each one's segment)."""
     n = starts.size - 1
     if keys.size == 0:
         return np.zeros(0, dtype=np.int64)
     base = np.zeros(n, dtype=np.int64)
     base[seg] = keys  # any key of a segment will do as its base
-    if (values.size and values.min() < 0) or keys.min() < 0:
+    if keys.min() < 0:
         return _each(values, starts, seg, keys, side)
     rel = keys - base[seg]
     half = int(np.abs(rel).max()) + 1
     width = 2 * half + 2
     if half >= _LIMIT or n * width >= _LIMIT:
         return _each(values, starts, seg, keys, side)
-    value_seg = np.repeat(np.arange(n, dtype=np.int64), np.diff(starts))
-    shifted = np.clip(values - base[value_seg], -half, half) + value_seg * width
+    shifted = np.minimum(np.maximum(values - base[value_seg], -half), half) + value_seg * width
     found = np.searchsorted(shifted, rel + seg * width, side=side)
     return found - starts[seg]
 

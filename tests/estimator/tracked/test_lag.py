@@ -82,3 +82,20 @@ def test_flush_gives_the_held_rows_as_they_stand_and_holds_none() -> None:
     assert np.array_equal(np.concatenate([given, flushed])["stamp_ns"], rows["stamp_ns"])
     assert held.flush().size == 0 and held.state.size == 0 and held.data == b""
     assert held.give(_rows([3]), np.zeros(1, dtype=bool), 4, 0.9).size == 0  # holds anew
+
+
+def test_rows_given_tick_by_tick_equal_rows_given_at_once() -> None:
+    # steady runs (no onset: the short path) broken by changes under way, as the fleet gives them
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        states = np.repeat(rng.choice([1, 2, 3, 4], size=8), rng.integers(1, 7, size=8))
+        rows = _rows(states.tolist())
+        onset = rng.random(states.size) < 0.2
+        one, each = HeldRows(), HeldRows()
+        whole = np.concatenate([one.give(rows.copy(), onset, 4, 0.9), one.flush()])
+        parts = [
+            each.give(rows[i : i + 1].copy(), onset[i : i + 1], 4, 0.9) for i in range(states.size)
+        ]
+        ticked = np.concatenate([*parts, each.flush()])
+        assert whole.tobytes() == ticked.tobytes()
+        assert max(p.size for p in parts) <= 5  # at most the lag and the newest row at once
