@@ -250,11 +250,20 @@ def _asof(
     """For each ``b``: index of the last ``a`` of the same row with ``key_a <= key_b``, else -1.
 
     "Last" in (row, key) order, ties in index order: what ``searchsorted(..., side="right") - 1``
-    gives on each row's sorted keys. One stable sort of both sets; shape ``(len(row_b),)``.
+    gives on each row's sorted keys. Integer keys with ``a`` already in (row, key) order (the
+    front end's queues) take one ``searchsorted`` over combined ``row·span + key`` keys;
+    otherwise one stable sort of both sets. Shape ``(len(row_b),)``.
     """
     na, nb = row_a.shape[0], row_b.shape[0]
     if nb == 0 or na == 0:
         return np.full(nb, -1, dtype=np.int64)
+    combined = _combined_keys(row_a, key_a, row_b, key_b)
+    if combined is not None:
+        comp_a, comp_b = combined
+        if na == 1 or bool((comp_a[1:] >= comp_a[:-1]).all()):
+            i = np.searchsorted(comp_a, comp_b, side="right") - 1
+            ok = i >= 0
+            return np.where(ok & (row_a[np.maximum(i, 0)] == row_b), i, -1)
     rows = np.concatenate([row_a, row_b])
     keys = np.concatenate([key_a, key_b])
     kind = np.concatenate([np.zeros(na, dtype=np.int8), np.ones(nb, dtype=np.int8)])
@@ -268,6 +277,21 @@ def _asof(
     ok = out >= 0
     ok[ok] = row_a[out[ok]] == row_b[ok]
     return np.where(ok, out, -1)
+
+
+def _combined_keys(
+    row_a: IntArray, key_a: npt.NDArray[np.generic], row_b: IntArray, key_b: npt.NDArray[np.generic]
+) -> tuple[IntArray, IntArray] | None:
+    """``row·span + (key − lo)`` of both sets (int64), ordered as ``(row, key)``; None for
+    non-integer keys, negative rows or where it could overflow."""
+    if key_a.dtype != np.int64 or key_b.dtype != np.int64:
+        return None
+    lo = min(int(key_a.min()), int(key_b.min()))
+    span = max(int(key_a.max()), int(key_b.max())) - lo + 1
+    n_rows = max(int(row_a.max()), int(row_b.max())) + 1
+    if min(int(row_a.min()), int(row_b.min())) < 0 or n_rows * span >= 2**62:
+        return None
+    return row_a * span + (key_a - lo), row_b * span + (key_b - lo)
 
 
 _PITCH_PRIOR_STD_RAD = 0.1
@@ -1581,9 +1605,10 @@ class _Batch:
         else:
             table = np.zeros((0, 10))
             self.g_enu = np.zeros((0, 3))
-        # each tick: the latest fix at or before it (compared as float, as the stored stamps),
-        # else the row held from earlier batches
-        i = _asof(rows, table[:, _H_STAMP], self.tick_row, self.ticks.astype(np.float64))
+        # each tick: the latest fix at or before it (compared as float, as the stored stamps:
+        # whole numbers, so as integers exactly), else the row held from earlier batches
+        t_tick = self.ticks.astype(np.float64).astype(np.int64)
+        i = _asof(rows, table[:, _H_STAMP].astype(np.int64), self.tick_row, t_tick)
         sel = fe.hold[s[self.tick_row]]
         if nf:
             sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
