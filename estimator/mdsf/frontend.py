@@ -291,7 +291,8 @@ def _combined_keys(
     n_rows = max(int(row_a.max()), int(row_b.max())) + 1
     if min(int(row_a.min()), int(row_b.min())) < 0 or n_rows * span >= 2**62:
         return None
-    return row_a * span + (key_a - lo), row_b * span + (key_b - lo)
+    ka, kb = key_a.astype(np.int64, copy=False), key_b.astype(np.int64, copy=False)
+    return row_a * span + (ka - lo), row_b * span + (kb - lo)
 
 
 _PITCH_PRIOR_STD_RAD = 0.1
