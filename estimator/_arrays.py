@@ -57,9 +57,10 @@ def seg_cumsum(
     x: npt.NDArray[np.float64], start_of: npt.NDArray[np.int64]
 ) -> npt.NDArray[np.float64]:
     """Cumulative sum of ``x`` along its first axis restarting at each segment; ``start_of[i]``
-    is the index where element ``i``'s segment starts."""
+    is the index where element ``i``'s segment starts (``c − (c − x)[start_of]``, the gather
+    by ``np.take``: half the work of indexing with an array)."""
     c = np.cumsum(x, axis=0)
-    return c - (c[start_of] - x[start_of])
+    return c - np.take(c - x, start_of, axis=0)
 
 
 def due_ticks(next_ns: int | None, covered_ns: IntArray, tick_ns: int, until_ns: int) -> IntArray:

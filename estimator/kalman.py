@@ -311,18 +311,25 @@ def update_independent(
     dof = np.zeros(n_batch, dtype=np.int64)
     for j in range(Hb.shape[1]) if rows is None else rows:
         active = mask[:, j]
-        if not active.any():
+        every = bool(active.all())
+        if not every and not active.any():
             continue
         h = Hb[:, j, :]
         Ph = (P @ h[:, :, None])[:, :, 0]  # P·hᵀ, (N, n)
         s = (h * Ph).sum(axis=1) + r[:, j]
-        inv = np.where(active, 1.0 / np.where(active, s, 1.0), 0.0)  # 0: the row is inert
-        y = np.where(active, z[:, j] - (h * x).sum(axis=1), 0.0)
+        y = z[:, j] - (h * x).sum(axis=1)
+        if every:  # the usual case: the same values without the masking
+            inv = 1.0 / s
+        else:
+            inv = np.where(active, 1.0 / np.where(active, s, 1.0), 0.0)  # 0: the row is inert
+            y = np.where(active, y, 0.0)
         k = Ph * inv[:, None]
         x += k * y[:, None]
         # P − k·Phᵀ − Ph·kᵀ + s·k·kᵀ, symmetric by construction: k·(s·k − 2·Ph)ᵀ symmetrised
         half = k[:, :, None] * (s[:, None] * k - 2.0 * Ph)[:, None, :]
-        P += 0.5 * (half + half.swapaxes(-1, -2))
+        sym = half + half.swapaxes(-1, -2)
+        sym *= 0.5
+        P += sym
         nis += y * y * inv
         dof += active
     return IndependentUpdateResult(x=x, P=P, nis=nis, dof=dof)

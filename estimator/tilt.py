@@ -199,7 +199,7 @@ def tilt_at(
     ``rot`` are :func:`tilt_integrals`' ``(n, c)`` and ``(n,)``; ``a``, ``beta``, ``coupled`` have
     the shape of ``cum[m]``'s rows.
     """
-    c = cum[m]
+    c = cum[m] if isinstance(m, slice) else np.take(cum, m, axis=0)
     flat = None
     if not (coupled_model and coupled.all()):
         flat = (a.real + c[:, Integral.RATE_X] - beta.real * c[:, Integral.TIME]) + 1j * a.imag

@@ -250,11 +250,20 @@ def _asof(
     """For each ``b``: index of the last ``a`` of the same row with ``key_a <= key_b``, else -1.
 
     "Last" in (row, key) order, ties in index order: what ``searchsorted(..., side="right") - 1``
-    gives on each row's sorted keys. One stable sort of both sets; shape ``(len(row_b),)``.
+    gives on each row's sorted keys. Integer keys with ``a`` already in (row, key) order (the
+    front end's queues) take one ``searchsorted`` over combined ``row·span + key`` keys;
+    otherwise one stable sort of both sets. Shape ``(len(row_b),)``.
     """
     na, nb = row_a.shape[0], row_b.shape[0]
     if nb == 0 or na == 0:
         return np.full(nb, -1, dtype=np.int64)
+    combined = _combined_keys(row_a, key_a, row_b, key_b)
+    if combined is not None:
+        comp_a, comp_b = combined
+        if na == 1 or bool((comp_a[1:] >= comp_a[:-1]).all()):
+            i = np.searchsorted(comp_a, comp_b, side="right") - 1
+            ok = i >= 0
+            return np.where(ok & (row_a[np.maximum(i, 0)] == row_b), i, -1)
     rows = np.concatenate([row_a, row_b])
     keys = np.concatenate([key_a, key_b])
     kind = np.concatenate([np.zeros(na, dtype=np.int8), np.ones(nb, dtype=np.int8)])
@@ -268,6 +277,22 @@ def _asof(
     ok = out >= 0
     ok[ok] = row_a[out[ok]] == row_b[ok]
     return np.where(ok, out, -1)
+
+
+def _combined_keys(
+    row_a: IntArray, key_a: npt.NDArray[np.generic], row_b: IntArray, key_b: npt.NDArray[np.generic]
+) -> tuple[IntArray, IntArray] | None:
+    """``row·span + (key − lo)`` of both sets (int64), ordered as ``(row, key)``; None for
+    non-integer keys, negative rows or where it could overflow."""
+    if key_a.dtype != np.int64 or key_b.dtype != np.int64:
+        return None
+    lo = min(int(key_a.min()), int(key_b.min()))
+    span = max(int(key_a.max()), int(key_b.max())) - lo + 1
+    n_rows = max(int(row_a.max()), int(row_b.max())) + 1
+    if min(int(row_a.min()), int(row_b.min())) < 0 or n_rows * span >= 2**62:
+        return None
+    ka, kb = key_a.astype(np.int64, copy=False), key_b.astype(np.int64, copy=False)
+    return row_a * span + (ka - lo), row_b * span + (kb - lo)
 
 
 _PITCH_PRIOR_STD_RAD = 0.1
@@ -373,7 +398,8 @@ def _rates_at_tick(
     mast is off by about ``ω̇·dt/2`` (metres per second at the antenna). With the moment matrix
     ``M = [Στ^(i+j)]`` (3, 3) and ``r = [Στ^i·ω]`` the value at ``τ = 0`` is ``(M⁻¹·r)[0]``,
     its white-noise variance factor ``(M⁻¹)[0, 0]`` (``1/n`` for the mean, about 0.6 for ten
-    samples). A window of fewer than three samples keeps its mean.
+    samples); the first row of ``M⁻¹`` is taken from its cofactors (a batched LAPACK inverse
+    costs ~0.5 µs a tick). A window of fewer than three samples keeps its mean.
 
     Parameters
     ----------
@@ -386,21 +412,25 @@ def _rates_at_tick(
     (rates at the ticks, each (m,)), variance factor (m,) on one sample's noise variance
     """
     m = n.shape[0]
-    mom = [np.bincount(tick_id, weights=tau_s**k, minlength=m) for k in range(5)]
-    M = np.stack([np.stack(mom[i : i + 3], axis=1) for i in range(3)], axis=1)
-    fit = n >= 3
-    M[~fit] = np.eye(3)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inv = np.linalg.inv(M)
-    fit &= np.isfinite(inv).all(axis=(1, 2)) & (inv[:, 0, 0] > 0)
+    tau2 = tau_s * tau_s
+    powers = (tau_s, tau2, tau2 * tau_s, tau2 * tau2)  # τ¹…τ⁴ by products: pow() is ~100× dearer
+    m0 = n.astype(np.float64)
+    m1, m2, m3, m4 = (np.bincount(tick_id, weights=p, minlength=m) for p in powers)
+    # first row of M⁻¹ (M symmetric): cofactors over the determinant
+    c0, c1, c2 = m2 * m4 - m3 * m3, m2 * m3 - m1 * m4, m1 * m3 - m2 * m2
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        det = m0 * c0 + m1 * c1 + m2 * c2
+        row = (c0 / det, c1 / det, c2 / det)
+    fit = (n >= 3) & np.isfinite(row[0]) & np.isfinite(row[1]) & np.isfinite(row[2])
+    fit &= row[0] > 0
+    i0, i1, i2 = (np.where(fit, c, 0.0) for c in row)
     out = []
     for w, mean in zip(rates, means, strict=True):
-        r = np.stack(
-            [np.bincount(tick_id, weights=tau_s**k * w, minlength=m) for k in range(3)], axis=1
+        r0, r1, r2 = (
+            np.bincount(tick_id, weights=x, minlength=m) for x in (w, tau_s * w, tau2 * w)
         )
-        at0 = np.einsum("kj,kj->k", nan_to_num(inv[:, 0, :]), r)
-        out.append(np.where(fit, at0, mean))
-    factor = np.where(fit, inv[:, 0, 0], 1.0 / np.maximum(n, 1))
+        out.append(np.where(fit, i0 * r0 + i1 * r1 + i2 * r2, mean))
+    factor = np.where(fit, i0, 1.0 / np.maximum(n, 1))
     return tuple(out), factor
 
 
@@ -898,19 +928,12 @@ class FleetFrontEnd:
             self.count[:, _IMU] += np.bincount(c_slot[chunk[bad]], minlength=self._cap)[: self._cap]
         keep = np.flatnonzero(ok)
         # a NaN lateral force alone keeps the sample too (no accelerometer roll from it)
-        vals = np.stack(
-            [
-                f[keep, 1],
-                w[keep, 0],
-                w[keep, 2],
-                np.where(np.isfinite(w[keep, 1]), w[keep, 1], 0.0),
-                f[keep, 0],
-            ],
-            axis=1,
-        )
+        fk, wk = np.take(f, keep, axis=0), np.take(w, keep, axis=0)
+        roll_rate = np.where(np.isfinite(wk[:, 1]), wk[:, 1], 0.0)
+        vals = np.stack([fk[:, 1], wk[:, 0], wk[:, 2], roll_rate, fk[:, 0]], axis=1)
         slots = c_slot[chunk[keep]]
         self._imu_slot = np.concatenate([self._imu_slot, slots])
-        self._imu_t = np.concatenate([self._imu_t, t[keep]])
+        self._imu_t = np.concatenate([self._imu_t, np.take(t, keep)])
         self._imu_v = np.concatenate([self._imu_v, vals])
         # first kept sample of each batch
         first = np.full(n_chunks, t.shape[0], dtype=np.int64)
@@ -995,12 +1018,14 @@ class _Batch:
         use[use] = fe._imu_t[use] <= self.t_end[row[use]]
         idx = np.flatnonzero(use)
         idx = idx[np.argsort(row[idx], kind="stable")]
-        self.T = fe._imu_t[idx]
-        vals = fe._imu_v[idx]
+        # np.take / np.compress: the same gathers at a third of the cost of indexing
+        self.T = np.take(fe._imu_t, idx)
+        vals = np.take(fe._imu_v, idx, axis=0)
         self.fy, self.wx, self.wz, self.wy, self.fx = (vals[:, c] for c in range(5))
-        self.s_row = row[idx]
+        self.s_row = np.take(row, idx)
         keep = ~use
-        fe._imu_slot, fe._imu_t, fe._imu_v = fe._imu_slot[keep], fe._imu_t[keep], fe._imu_v[keep]
+        fe._imu_slot, fe._imu_t = np.compress(keep, fe._imu_slot), np.compress(keep, fe._imu_t)
+        fe._imu_v = np.compress(keep, fe._imu_v, axis=0)
         self.n_s = np.bincount(self.s_row, minlength=self.n_rows)
         self.s_begin = np.cumsum(self.n_s) - self.n_s  # first sample of each row
         self.s_end = self.s_begin + self.n_s
@@ -1021,13 +1046,10 @@ class _Batch:
         idx = idx[np.argsort(row[idx], kind="stable")]
         self.g_row = row[idx]
         self.g_t = fe._gnss_t[idx]
-        g = fe._gnss_v[idx]
+        g = np.take(fe._gnss_v, idx, axis=0)
         keep = ~take
-        fe._gnss_slot, fe._gnss_t, fe._gnss_v = (
-            fe._gnss_slot[keep],
-            fe._gnss_t[keep],
-            fe._gnss_v[keep],
-        )
+        fe._gnss_slot, fe._gnss_t = np.compress(keep, fe._gnss_slot), np.compress(keep, fe._gnss_t)
+        fe._gnss_v = np.compress(keep, fe._gnss_v, axis=0)
         self.g_rank = _ranks(self.g_row)
         ve, vn = g[:, _G_VE], g[:, _G_VN]
         fix_ok = g[:, _G_FIX] != float(GnssFix.NONE)
@@ -1187,7 +1209,7 @@ class _Batch:
         if not params:
             return np.zeros((n, 1))
         which, values = _fill_segments(n, lo, params)
-        return values[which]
+        return np.take(values, which, axis=0)
 
     def _pitch_track(self) -> FloatArray:
         """Pitch at each IMU sample: the body rates integrated, corrected at each GNSS fix.
@@ -1576,12 +1598,13 @@ class _Batch:
         else:
             table = np.zeros((0, 10))
             self.g_enu = np.zeros((0, 3))
-        # each tick: the latest fix at or before it (compared as float, as the stored stamps),
-        # else the row held from earlier batches
-        i = _asof(rows, table[:, _H_STAMP], self.tick_row, self.ticks.astype(np.float64))
-        sel = fe.hold[s[self.tick_row]]
+        # each tick: the latest fix at or before it (compared as float, as the stored stamps:
+        # whole numbers, so as integers exactly), else the row held from earlier batches
+        t_tick = self.ticks.astype(np.float64).astype(np.int64)
+        i = _asof(rows, table[:, _H_STAMP].astype(np.int64), self.tick_row, t_tick)
+        sel = np.take(fe.hold, s[self.tick_row], axis=0)
         if nf:
-            sel = np.where((i >= 0)[:, None], table[np.maximum(i, 0)], sel)
+            sel = np.where((i >= 0)[:, None], np.take(table, np.maximum(i, 0), axis=0), sel)
         age = (self.ticks - nan_to_num(sel[:, _H_STAMP])) * _NS
         fix_age_s = np.where(np.isfinite(sel[:, _H_STAMP]), age, np.inf)
         age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
@@ -1813,8 +1836,8 @@ class _TiltTrack:
         st = self.st
         k, lk = j - 1, self.last[r]
         begun = lk >= 0
-        c0 = np.where(begun[:, None], self.cum[np.maximum(lk, 0)], 0.0)  # at the segment's start
-        d = self.cum[k] - c0
+        c0 = np.where(begun[:, None], np.take(self.cum, np.maximum(lk, 0), axis=0), 0.0)  # at start
+        d = np.take(self.cum, k, axis=0) - c0
         st.acc[r, PitchSum.RATE : PitchSum.SAMPLES + 1] += d[:, PITCH_SUM_OF]
         a, beta, coupled = self._segment_start(r, lk, begun, c0)
         if self.product:

@@ -392,6 +392,26 @@ def test_asof_is_searchsorted_per_row(a: list[tuple[int, int]], b: list[tuple[in
         assert got[i] == (mine[j] if j >= 0 else -1)
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(0, 3), st.integers(-5, 5)), max_size=30),
+    st.lists(st.tuples(st.integers(0, 3), st.integers(-6, 6)), max_size=30),
+    st.sampled_from([0, 1_767_225_600_000_000_000]),
+)
+def test_asof_in_push_order_is_the_last_in_key_then_index_order(
+    a: list[tuple[int, int]], b: list[tuple[int, int]], base_ns: int
+) -> None:
+    a.sort(key=lambda rk: rk[0])  # rows grouped, keys in push order (fixes may go back in time)
+    row_a = np.array([r for r, _ in a], dtype=np.int64)
+    key_a = np.array([k + base_ns for _, k in a], dtype=np.int64)
+    row_b = np.array([r for r, _ in b], dtype=np.int64)
+    key_b = np.array([k + base_ns for _, k in b], dtype=np.int64)
+    got = _asof(row_a, key_a, row_b, key_b)
+    for i, (r, k) in enumerate(b):
+        cands = [(ka, j) for j, (ra, ka) in enumerate(a) if ra == r and ka <= k]
+        assert got[i] == (max(cands)[1] if cands else -1)
+
+
 def test_malformed_gnss_is_counted_not_raised_and_counts_are_current_before_advance() -> None:
     v = _vehicle("hard_braking", 10, 0.0, cycles=1)
     fleet = MdsfFleet()
