@@ -66,31 +66,12 @@ class _Collect:
         self.out.append((self.key, payload))
 
 
-def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]:
-    """Run one fleet of ``vehicles`` for ``seconds`` of sensor time; CPU seconds per stage.
-
-    Uses whichever ``server`` and ``estimator`` packages this interpreter imports (the baseline's
-    in a child process). Returns ``{"vehicles", "seconds", "rows", <stage>_s…, "total_s"}``.
-    """
+def _replayed_fleet(ids: list[str], received: list[tuple[str, bytes]]) -> tuple[list[Any], Any]:
+    """The load test's simulated runs and a schedule replaying them for ``ids`` (phases spread
+    over a tick), its packets collected into ``received`` as ``(key, payload)``."""
     from estimator.sim import simulate
-    from server.analytics.alerts import AlertEngine
-    from server.estimation.registry import EstimatorRegistry
-    from server.gc_policy import settle
-    from server.ingest.pipeline import Pipeline
-    from server.live.hub import LiveHub
-    from server.metrics.latency import LatencyProbe
-    from server.protocol.burst import decode_burst
     from server.protocol.keys import sensor_key
-    from server.settings import Settings
-    from server.storage import open_store
-    from server.storage.writer import StoreWriter
-    from server.tooling.fleet_schedule import (
-        STREAMS,
-        EncodedDrive,
-        ScheduledVehicle,
-        _Fleet,
-        render,
-    )
+    from server.tooling.fleet_schedule import STREAMS, EncodedDrive, ScheduledVehicle, _Fleet
     from server.tooling.fleet_sim import TICK_NS, packetize
     from server.tooling.loadtest import MIX
 
@@ -99,20 +80,40 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
         EncodedDrive(packetize(r.sent_in_arrival_order(), r.start_ns), r.end_ns - r.start_ns)
         for r in runs
     ]
+    n = len(ids)
+    schedule = [
+        ScheduledVehicle(
+            drive=i % len(runs),
+            phase_ns=(i * TICK_NS) // n,
+            shift_ns=(i * TICK_NS) // n,
+            publishers=tuple(_Collect(sensor_key("fleet", vid, s), received) for s in STREAMS),
+        )
+        for i, vid in enumerate(ids)
+    ]
+    return runs, _Fleet(drives, schedule)
+
+
+def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]:
+    """Run one fleet of ``vehicles`` for ``seconds`` of sensor time; CPU seconds per stage.
+
+    Uses whichever ``server`` and ``estimator`` packages this interpreter imports (the baseline's
+    in a child process). Returns ``{"vehicles", "seconds", "rows", <stage>_s…, "total_s"}``.
+    """
+    from server.analytics.alerts import AlertEngine
+    from server.estimation.registry import EstimatorRegistry
+    from server.gc_policy import settle
+    from server.ingest.pipeline import Pipeline
+    from server.live.hub import LiveHub
+    from server.metrics.latency import LatencyProbe
+    from server.protocol.burst import decode_burst
+    from server.settings import Settings
+    from server.storage import open_store
+    from server.storage.writer import StoreWriter
+    from server.tooling.fleet_schedule import render
+
     received: list[tuple[str, bytes]] = []
     ids = [f"b{i:05d}" for i in range(vehicles)]
-    fleet = _Fleet(
-        drives,
-        [
-            ScheduledVehicle(
-                drive=i % len(runs),
-                phase_ns=(i * TICK_NS) // vehicles,
-                shift_ns=(i * TICK_NS) // vehicles,
-                publishers=tuple(_Collect(sensor_key("fleet", vid, s), received) for s in STREAMS),
-            )
-            for i, vid in enumerate(ids)
-        ],
-    )
+    runs, fleet = _replayed_fleet(ids, received)
     sim_ns = [START_NS]
 
     def clock() -> int:
