@@ -25,6 +25,7 @@ from estimator.friction.frontend import (
     DRIVE_SHARE,
     UNDRIVEN,
     FrontEndConfig,
+    spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.friction.sensors import SensedTicks
@@ -498,20 +499,34 @@ class FleetFrontEnd:
         use = (self.car.n_free[s] > 0) & (self.calibrated(s) | ~sensed.gnss_recent)
         rows = np.flatnonzero(use)
         if rows.size:
-            self._rim_update(s[rows], omega[rows], fz[rows], delta[rows], yaw_rate[rows])
+            ax = ax_tilt[rows] - self.vx.bias[s[rows]]
+            self._rim_update(s[rows], omega[rows], fz[rows], delta[rows], (yaw_rate[rows], ax))
 
     def _rim_update(
-        self, c: IntArray, omega: FloatArray, fz: FloatArray, delta: FloatArray, r: FloatArray
+        self,
+        c: IntArray,
+        omega: FloatArray,
+        fz: FloatArray,
+        delta: FloatArray,
+        rates: tuple[FloatArray, FloatArray],
     ) -> None:
-        """The undriven wheels' mean rim speed as a reading of ``v_x`` (free rolling)."""
-        car, st = self.car, self.state
-        rim = omega * self._radius_now(c, fz)
+        """The undriven wheels' mean rim speed, less their spin-up slip, as a reading of
+        ``v_x`` (``rates``: yaw rate and the bias-free ``a_x``; ``FrontEnd._speed_step``)."""
+        car, st, fe = self.car, self.state, self.fe
+        r, ax = rates
+        radius = self._radius_now(c, fz)
+        c_x = load_adaptive_stiffness_n(
+            fz, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
+        )
+        spin = spin_up_slip(ax[:, None], radius, c_x, fe.wheel_inertia_kgm2)
+        rim = omega * radius / (1.0 + spin)
         w = self.vy.speed[c][:, None] + car.wheel_x[c] * r[:, None]
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + car.wheel_y[c] * r[:, None]
         free, n_free = car.free[c], car.n_free[c]
         v = np.where(free, vx_rim, 0.0).sum(axis=1) / n_free
         own = np.where(free, st.radius_std[c] / st.radius[c], 0.0).sum(axis=1) / n_free
-        rel = np.hypot(own, st.radius_common_rel[c])
+        spin_mean = np.where(free, spin, 0.0).sum(axis=1) / n_free
+        rel = np.hypot(np.hypot(own, st.radius_common_rel[c]), fe.wheel_inertia_rel_std * spin_mean)
         self.vx.update(c, v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
     def _side_slip_step(

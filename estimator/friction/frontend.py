@@ -28,7 +28,10 @@ is tested against:
   ``a_x`` and ``a_y`` before the loads and the measurements (a lateral bias of 0.05 m/s² reads
   as a lateral tyre force and as ~45 N of load moved across, which a soft tyre's radius turns
   into a slip of ~5e-4);
-* relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper).
+* relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper);
+* the undriven wheels' spin-up slip: a wheel without torque is spun up by its contact force
+  alone (``I ω̇ = −F r``, ``ω̇ = a_x/r``), so it rolls with ``κ = −I a_x/(r² c_x)`` (about
+  −1e-4 at 2.3 m/s²), taken out of their rim speed before it reads ``v_x`` (not paper).
 
 Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
 """
@@ -47,7 +50,14 @@ from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
-__all__ = ["DRIVE_SHARE", "UNDRIVEN", "FrontEnd", "FrontEndConfig", "FrontEndTick"]
+__all__ = [
+    "DRIVE_SHARE",
+    "UNDRIVEN",
+    "FrontEnd",
+    "FrontEndConfig",
+    "FrontEndTick",
+    "spin_up_slip",
+]
 
 AIR_DENSITY_KGPM3 = 1.2
 UNDRIVEN = {
@@ -81,7 +91,10 @@ class FrontEndConfig:
     receiver's attitude (:class:`_TiltGradient`): the config's worth this many ``(a/g)²`` of
     changes (0.2: a 0.1 g change held for 2 s of fixes), changes taken against this running mean;
     ``yaw_walk_radps``, ``gyro_bias_walk_radps_per_sqrt_s``, ``heading_std_rad``: the yaw
-    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ).
+    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ);
+    ``wheel_inertia_kgm2``, ``wheel_inertia_rel_std``: a wheel's (rim and tyre) spin inertia
+    and its relative 1-σ, for the undriven wheels' spin-up slip (:func:`spin_up_slip`; a
+    road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²).
     """
 
     paper: bool = False
@@ -100,6 +113,24 @@ class FrontEndConfig:
     gyro_bias_walk_radps_per_sqrt_s: float = 1e-4
     heading_std_rad: float = 0.005
     tilt_highpass_s: float = 3.0
+    wheel_inertia_kgm2: float = 1.4
+    wheel_inertia_rel_std: float = 0.4
+
+
+def spin_up_slip(
+    ax_mps2: FloatArray | float,
+    radius_m: FloatArray,
+    c_x_n: FloatArray,
+    inertia_kgm2: float,
+) -> FloatArray:
+    """Slip of a wheel that no torque drives while the vehicle accelerates by ``a_x`` [m/s²].
+
+    The contact force alone spins it up: ``I ω̇ = −F r`` with ``ω̇ = a_x/r``, so
+    ``F = −I a_x/r²`` and, in the tyre's linear range, ``κ = F/c_x``. Shapes broadcast
+    (``(4,)`` radii and stiffness with a scalar ``a_x``, or ``(B, 4)`` with ``(B, 1)``)."""
+    force_n = -inertia_kgm2 * np.asarray(ax_mps2) / (radius_m * radius_m)
+    slip: FloatArray = force_n / np.maximum(c_x_n, 1.0)
+    return slip
 
 
 @dataclass(frozen=True, slots=True)
@@ -427,12 +458,19 @@ class FrontEnd:
         free = self.undriven
         if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
             return
-        rim = self.omega * self._radius_now(fz)
+        radius = self._radius_now(fz)
+        c_x = load_adaptive_stiffness_n(
+            fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
+        )
+        spin = spin_up_slip(ax_tilt - self.vx.bias, radius, c_x, self.fe.wheel_inertia_kgm2)
+        rim = self.omega * radius / (1.0 + spin)
         w = self.vy.speed + self.wheel_x * yaw_rate
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
         v = float(np.mean(vx_rim[free]))
         rel = math.hypot(
-            float(np.mean(self.radius_std[free] / self.radius[free])), self.radius_common_rel
+            float(np.mean(self.radius_std[free] / self.radius[free])),
+            self.radius_common_rel,
+            self.fe.wheel_inertia_rel_std * float(np.mean(spin[free])),
         )
         self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
