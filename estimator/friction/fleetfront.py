@@ -365,7 +365,7 @@ class FleetFrontEnd:
         self, s: IntArray, ax_raw: FloatArray, ay_raw: FloatArray, g: IntArray, sensed: SensedTicks
     ) -> tuple[FloatArray, FloatArray]:
         """Lag the raw readings, fit the gradients at fresh epochs, and the accelerations
-        without the body's tilt ``a (1 − s)`` (``FrontEnd._learn_tilt``, ``_detilt``)."""
+        without the body's tilt ``a_m − s ā_m`` (``FrontEnd._learn_tilt``, ``_detilt``)."""
         if self.fe.paper:
             return ax_raw, ay_raw
         st = self.state
@@ -378,7 +378,8 @@ class FleetFrontEnd:
             att = sensed.gnss_attitude[g]
             self.pitch.fix(s[g], att[:, 1], reading[g, 0] / GRAVITY_MPS2, stamp)
             self.roll.fix(s[g], att[:, 2], reading[g, 1] / GRAVITY_MPS2, stamp)
-        return ax_raw * (1.0 - self.pitch.slope(s)), ay_raw * (1.0 - self.roll.slope(s))
+        ax = ax_raw - self.pitch.slope(s) * reading[:, 0]
+        return ax, ay_raw - self.roll.slope(s) * reading[:, 1]
 
     def _loads(self, s: IntArray, ax: FloatArray, ay: FloatArray) -> FloatArray:
         """Static loads plus the lagged transfer ``(B, 4)`` (``FrontEnd._loads``)."""

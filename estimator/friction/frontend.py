@@ -11,8 +11,11 @@ is tested against:
   wheels' mean rim speed);
 * side-slip ``v_y``: ``v̇_y = a_y − r v_x`` corrected by GNSS (velocity across the heading);
   the source's reading (``FrontEndConfig.paper``) integrates it with a slow leak to zero;
-* tilt: body roll and pitch follow the accelerations (``φ = k_φ a_y/g``, ``θ = k_θ a_x/g``),
-  so the accelerometers read ``a(1 + k)``: taken out (not in the paper reading), with the
+* tilt: body roll and pitch follow the accelerations behind the body's lag (``φ = k_φ ā_y/g``,
+  ``θ = k_θ ā_x/g``, ``ā`` lagged), so the accelerometers read ``a + k ā``: the leak of the
+  lagged reading taken out (not in the paper reading; in a steady turn ``a(1 + k)``, but in
+  a 0.3 s steering ramp the body rolls only later, and the leak of the instantaneous
+  reading, integrated into ``v_y``, would stay there as a side-slip error), with the
   gradients learnt from the receiver's roll and pitch where it gives them (their changes
   against the accelerations' changes; the config's gradients are the prior);
 * loads: static + longitudinal ``m a_x h/L`` + lateral ``m a_y h/b`` split between the axles
@@ -502,10 +505,12 @@ class FrontEnd:
         )
 
     def _detilt(self, ax: float, ay: float) -> tuple[float, float]:
-        """The accelerations without the body's tilt, ``a (1 − s)`` (paper: as read)."""
+        """The accelerations without the body's tilt, ``a_m − s ā_m`` with ``ā_m`` the reading
+        lagged as the body follows it (``a_m (1 − s)`` when steady; paper: as read)."""
         if self.fe.paper:
             return ax, ay
-        return ax * (1.0 - self.pitch.slope), ay * (1.0 - self.roll.slope)
+        lag_x, lag_y = self.tilt_reading
+        return ax - self.pitch.slope * float(lag_x), ay - self.roll.slope * float(lag_y)
 
     def _learn_tilt(self, ax_raw: float, ay_raw: float, fresh: bool) -> None:
         """Lag the raw accelerations as the body follows them (the load transfer's lag) and,
