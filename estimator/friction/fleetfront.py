@@ -227,6 +227,7 @@ class _State(_Arrays):
         self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros((0, 2))  # lagged raw [a_x, a_y] [m/s²]
         self.yaw_prev = np.zeros(0)
+        self.accel_prev = np.zeros((0, 2))  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((0, 2, 4))
 
     def reset(self, slot: int, car: _Vehicles, fe: FrontEndConfig) -> None:
@@ -242,6 +243,7 @@ class _State(_Arrays):
         self.transfer[slot] = 0.0
         self.tilt_reading[slot] = 0.0
         self.yaw_prev[slot] = math.nan
+        self.accel_prev[slot] = math.nan
         self.slip_lag[slot] = 0.0
 
 
@@ -318,7 +320,8 @@ class FleetFrontEnd:
         st.yaw_prev[s] = yaw_rate
         slips = self._slips(s, fz, delta, yaw_rate, sensed.omega_radps)
         vx, vx_var = self.vx.speed[s], self.vx.var[s]
-        z = np.stack([ax + self._resistance(s, vx, fz), ay, yaw_accel], axis=1)
+        ax_now, ay_now = self._at_tick(s, ax, ay, sensed.imu_lag_s)
+        z = np.stack([ax_now + self._resistance(s, vx, fz), ay_now, yaw_accel], axis=1)
         valid = (vx >= self.fe.min_speed_mps) & ~np.isnan(yaw_rate)
         if not paper:
             valid &= self.calibrated(s)
@@ -360,6 +363,19 @@ class FleetFrontEnd:
             wrapped = (angle[~first] - yaw.speed[rest] + math.pi) % (2 * math.pi) - math.pi
             yaw.update(rest, yaw.speed[rest] + wrapped, h_var)
         return rate
+
+    def _at_tick(
+        self, s: IntArray, ax: FloatArray, ay: FloatArray, lag_s: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """The accelerations carried to the tick (``FrontEnd._at_tick``)."""
+        st = self.state
+        prev = st.accel_prev[s]
+        st.accel_prev[s] = np.stack([ax, ay], axis=1)
+        if self.fe.paper:
+            return ax, ay
+        step = np.where(np.isnan(prev[:, 0]), 0.0, lag_s / self.dt)
+        ax_prev, ay_prev = np.where(np.isnan(prev), 0.0, prev).T
+        return ax + (ax - ax_prev) * step, ay + (ay - ay_prev) * step
 
     def _tilt_step(
         self, s: IntArray, ax_raw: FloatArray, ay_raw: FloatArray, g: IntArray, sensed: SensedTicks

@@ -116,3 +116,20 @@ def test_the_leak_of_the_lagged_reading_is_taken_out() -> None:
         instantaneous.append(reading * (1.0 - fe.roll.slope) - a)
     assert max(abs(e) for e in errors) < 0.01
     assert min(instantaneous) < -0.06
+
+
+def test_the_accelerations_are_carried_to_the_tick() -> None:
+    """100 Hz IMU samples in 20 ms ticks: their mean lies 5 ms before the tick. On a ramp of
+    14 m/s³ (a 0.3 s steering ramp to 4.2 m/s²) that mean is 0.07 m/s² behind; carried along
+    its change since the last tick it is the value at the tick (the first tick: as read)."""
+    fe = FrontEnd(CONFIG, FrontEndConfig(), 0.02)
+    t_ns = np.arange(1, 11) * 10_000_000
+    fe.push_imu(ImuBatch(t_ns, np.zeros((10, 3)), np.zeros((10, 3))))
+    window = fe._imu_window(20_000_000)
+    assert window is not None and abs(window[2] - 0.005) < 1e-15
+    for n in range(6):
+        t_s = 0.02 * n
+        mean = 14.0 * (t_s - 0.005)
+        ax, ay = fe._at_tick(0.5 * mean, mean, 0.005)
+        want = mean if n == 0 else 14.0 * t_s
+        assert abs(ay - want) < 1e-12 and abs(ax - 0.5 * want) < 1e-12
