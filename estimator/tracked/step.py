@@ -30,7 +30,7 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.vehicle import TickInputs
 
-__all__ = ["Filter", "TickOut", "initial_filter", "tick_step"]
+__all__ = ["Filter", "TickOut", "initial_filter", "patch_std", "tick_step"]
 
 M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
@@ -123,10 +123,21 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     return q
 
 
-def _ground_patch(f: Filter, cfg: TrackedEstimatorConfig) -> None:
+def patch_std(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> FloatArray:
+    """1-sigma ``σ_p`` of the ground's patch per vehicle, shape ``(k,)``: ``r·(max(1 − F, 0)
+    + √(σ_KD² + σ_F²))``, ``r`` = ``ground_patch_rel_std``. ``1 − F`` (``F`` the straight's
+    learnt factor) is the ground's traction slip less ``K_D``'s error, so the slip level is
+    known to ``K_D``'s 1-sigma ``σ_KD`` and the factor's own ``σ_F``; the upper 1-sigma of it
+    is taken."""
+    var_f = np.maximum(f.P[:, S.F_STRAIGHT, S.F_STRAIGHT], 0.0)
+    level = np.maximum(1.0 - f.x[:, S.F_STRAIGHT], 0.0)
+    return cfg.ground_patch_rel_std * (level + np.sqrt(p.odometer_scale_std**2 + var_f))
+
+
+def _ground_patch(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
     """The patch state ``p`` over a tick (product): a Gauss-Markov process over the distance
     ``Δd = |V|·Δt``, ``p' = e·p`` with ``e = exp(−Δd/ℓ)`` and ``Var p' = e²·Var p +
-    σ_p²·(1 − e²)`` (``ℓ`` = ``ground_patch_m``, ``σ_p`` = ``ground_patch_slip_std``): a
+    σ_p²·(1 − e²)`` (``ℓ`` = ``ground_patch_m``, ``σ_p`` from :func:`patch_std`): a
     patch learned beside GNSS is forgotten as the tracks leave it. ``x``, ``P`` in place."""
     if not cfg.learns:
         return
@@ -135,10 +146,10 @@ def _ground_patch(f: Filter, cfg: TrackedEstimatorConfig) -> None:
     f.x[:, g] *= e
     f.P[:, g, :] *= e[:, None]
     f.P[:, :, g] *= e[:, None]
-    f.P[:, g, g] += cfg.ground_patch_slip_std**2 * (1.0 - e * e)
+    f.P[:, g, g] += patch_std(f, p, cfg) ** 2 * (1.0 - e * e)
 
 
-def _dead_reckoning_noise(f: Filter, cfg: TrackedEstimatorConfig) -> None:
+def _dead_reckoning_noise(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
     """While dead reckoning (no fix fused for over a second; product mode), the along-track
     position variance the odometer's factor makes: an error ``σ_F`` of the ground's mean
     factor (``P[F_straight]``) costs ``σ_F·d`` over the distance ``d`` driven since the loss,
@@ -154,7 +165,7 @@ def _dead_reckoning_noise(f: Filter, cfg: TrackedEstimatorConfig) -> None:
     var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT]
     q = (
         2.0 * var_f * v * v * f.since_gnss_s
-        + 2.0 * cfg.ground_patch_slip_std**2 * cfg.ground_patch_m * v
+        + 2.0 * patch_std(f, p, cfg) ** 2 * cfg.ground_patch_m * v
     )
     q = np.where(dr, q * cfg.tick_s, 0.0)
     s, c = np.sin(f.x[:, S.HEADING]), np.cos(f.x[:, S.HEADING])
@@ -390,8 +401,8 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     f.x, f.P = predict(
         f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral)
     )
-    _ground_patch(f, cfg)
-    _dead_reckoning_noise(f, cfg)
+    _ground_patch(f, p, cfg)
+    _dead_reckoning_noise(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)

@@ -38,6 +38,7 @@ from estimator.tracked.step import (
     _ground_patch,
     _released,
     initial_filter,
+    patch_std,
 )
 from estimator.tracked.vehicle import TickInputs
 
@@ -595,18 +596,38 @@ def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() ->
     f = initial_filter(cfg)
     f.started[:] = True
     f.x[0, S.SPEED], f.x[0, S.HEADING] = 5.0, 0.0  # north
+    f.x[0, S.F_STRAIGHT] = 0.96  # a ground slipping by 4 %
     f.P[0] = np.eye(N_STATES) * 1e-4
     f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 1e-5
     f.since_gnss_s[:] = 0.5  # beside GNSS: nothing added
-    _dead_reckoning_noise(f, cfg)
+    _dead_reckoning_noise(f, P1, cfg)
     assert f.P[0, S.NORTH, S.NORTH] == 1e-4
     f.since_gnss_s[:] = 10.0
-    _dead_reckoning_noise(f, cfg)
+    _dead_reckoning_noise(f, P1, cfg)
     var_f = 1e-5  # the ground's mean factor's error; the patches add 2·σ_p²·ℓ·|V|
-    q = (2.0 * var_f * 25.0 * 10.0 + 2.0 * 0.007**2 * 150.0 * 5.0) * 0.1
+    sigma_p = 0.15 * (0.04 + math.sqrt(0.005**2 + var_f))
+    q = (2.0 * var_f * 25.0 * 10.0 + 2.0 * sigma_p**2 * 150.0 * 5.0) * 0.1
     assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
     assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
     assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_a_firm_grounds_patches_differ_by_less_than_a_soft_ones() -> None:
+    """σ_p = r·(max(1 − F, 0) + √(σ_KD² + σ_F²)): the patch's share of the ground's slip."""
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    f.x = np.repeat(f.x, 3, axis=0)
+    f.P = np.repeat(f.P, 3, axis=0)
+    f.x[:, S.F_STRAIGHT] = [0.985, 0.955, 1.004]  # firm, soft, K_D reading short
+    f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] = 0.002**2
+    sigma_kd = TrackedConfig().odometer.scale_std_pct / 100.0
+    got = patch_std(f, VehicleParams.stack([P1, P1, P1]), cfg)
+    margin = math.hypot(sigma_kd, 0.002)
+    assert got == pytest.approx(0.15 * np.array([0.015 + margin, 0.045 + margin, margin]))
+    assert got[0] < 0.5 * got[1]
+    f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] = 0.03**2  # not learnt yet: the prior's width
+    wide = patch_std(f, VehicleParams.stack([P1, P1, P1]), cfg)
+    assert wide[0] == pytest.approx(0.15 * (0.015 + math.hypot(sigma_kd, 0.03)))
 
 
 def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
@@ -615,22 +636,25 @@ def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
     assert f.x[0, S.GROUND_PATCH] == 0.0
     assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(0.007**2)
     f.x[0, S.SPEED], f.x[0, S.GROUND_PATCH] = 10.0, 0.01
+    f.x[0, S.F_STRAIGHT] = 0.96
+    f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 0.003**2
+    sigma_p = 0.15 * (0.04 + math.hypot(0.005, 0.003))  # slip level at its upper 1-sigma
     f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] = 1e-6
     f.P[0, S.GROUND_PATCH, S.F_STRAIGHT] = f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] = -5e-7
-    _ground_patch(f, cfg)  # 1 m driven of a 150 m patch
+    _ground_patch(f, P1, cfg)  # 1 m driven of a 150 m patch
     e = math.exp(-1.0 / 150.0)
     assert f.x[0, S.GROUND_PATCH] == pytest.approx(0.01 * e)
     assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(
-        e * e * 1e-6 + 0.007**2 * (1 - e * e)
+        e * e * 1e-6 + sigma_p**2 * (1 - e * e)
     )
     assert f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] == pytest.approx(-5e-7 * e)
     for _ in range(3000):  # 3 km: forgotten, its variance back to the ground's
-        _ground_patch(f, cfg)
+        _ground_patch(f, P1, cfg)
     assert abs(f.x[0, S.GROUND_PATCH]) < 1e-10
-    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(0.007**2, rel=1e-6)
+    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(sigma_p**2, rel=1e-6)
     f.x[0, S.SPEED] = 0.0  # standing: the patch stays
     f.x[0, S.GROUND_PATCH] = 0.01
-    _ground_patch(f, cfg)
+    _ground_patch(f, P1, cfg)
     assert f.x[0, S.GROUND_PATCH] == 0.01
 
 
