@@ -151,10 +151,12 @@ def _ground_patch(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> N
 
 def _dead_reckoning_noise(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
     """While dead reckoning (no fix fused for over a second; product mode), the along-track
-    position variance the odometer's factor makes: an error ``σ_F`` of the ground's mean
-    factor (``P[F_straight]``) costs ``σ_F·d`` over the distance ``d`` driven since the loss,
-    i.e. a white noise of intensity ``2·σ_F²·|V|·d`` along the heading (``d ≈ |V|·t``, ``t``
-    the time since the last fix), and the patches of ground driven over, each departing from
+    position variance the odometer's factor makes: the ground's mean factor, off by ``ε₀``
+    (variance ``σ₀²``) at the loss and walking by ``q_F`` = ``factor_walk²`` since, costs
+    ``∫ε·|V| dt`` over the ``t`` since the last fix, whose variance grows at
+    ``(2·σ₀²·t + q_F·t²)·V²`` (constant ``V``); with the filter's ``σ_F² = P[F_straight] =
+    σ₀² + q_F·t`` that is ``(2·σ_F²·t − q_F·t²)·V²`` along the heading. The patches of
+    ground driven over, each departing from
     the mean by ``σ_p`` over ``ℓ``, add ``2·σ_p²·ℓ·|V|`` (the integral of the Gauss-Markov
     patch for ``d ≫ ℓ``). The factors' own ``H`` is zeroed without GNSS, so without this
     their variance never reaches the position. ``P`` in place."""
@@ -163,10 +165,9 @@ def _dead_reckoning_noise(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConf
         return
     v = np.abs(f.x[:, S.SPEED])
     var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT]
-    q = (
-        2.0 * var_f * v * v * f.since_gnss_s
-        + 2.0 * patch_std(f, p, cfg) ** 2 * cfg.ground_patch_m * v
-    )
+    t = f.since_gnss_s
+    mean_rate = np.maximum(2.0 * var_f * t - cfg.factor_walk**2 * t * t, 0.0) * v * v
+    q = mean_rate + 2.0 * patch_std(f, p, cfg) ** 2 * cfg.ground_patch_m * v
     q = np.where(dr, q * cfg.tick_s, 0.0)
     s, c = np.sin(f.x[:, S.HEADING]), np.cos(f.x[:, S.HEADING])
     e, n = S.EAST, S.NORTH

@@ -606,7 +606,8 @@ def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() ->
     _dead_reckoning_noise(f, P1, cfg)
     var_f = 1e-5  # the ground's mean factor's error; the patches add 2·σ_p²·ℓ·|V|
     sigma_p = 0.15 * (0.04 + math.sqrt(0.005**2 + var_f))
-    q = (2.0 * var_f * 25.0 * 10.0 + 2.0 * sigma_p**2 * 150.0 * 5.0) * 0.1
+    walk = 1e-4**2  # the factor's walk since the loss is in var_f, counted once
+    q = ((2.0 * var_f * 10.0 - walk * 100.0) * 25.0 + 2.0 * sigma_p**2 * 150.0 * 5.0) * 0.1
     assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
     assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
     assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
