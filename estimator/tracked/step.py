@@ -36,6 +36,8 @@ M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
 #: What the odometer teaches beside GNSS only: the factors and the ground's patch.
 _LEARNED = [*_FACTORS, S.GROUND_PATCH]
+#: Every state the odometer's model reads but fuses only beside GNSS.
+_BESIDE_ONLY = [*_LEARNED, S.ACCEL_LAG, S.ACCEL_SLIP]
 
 
 @dataclass(slots=True)
@@ -315,8 +317,9 @@ def _fuse_odometer(
     cfg: TrackedEstimatorConfig,
     state: IntArray,
     w: FloatArray,
-) -> tuple[BoolArray, FloatArray]:
-    """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`)."""
+) -> tuple[BoolArray, FloatArray, FloatArray]:
+    """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`);
+    returns (used, corrected speed, :func:`_factor_speed_var`)."""
     valid = np.isfinite(inp.odometer_mps)
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
@@ -336,11 +339,24 @@ def _fuse_odometer(
         inp.steady_s >= cfg.learn_steady_s
     )
     beside = f.started & (f.since_gnss_s <= 1.0)
+    factor_var = _factor_speed_var(f.P, H, ~beside & mask)
     H[:, :, _LEARNED] *= (beside & steady)[:, None, None]
     H[:, :, S.ACCEL_LAG] *= beside[:, None]
     H[:, :, S.ACCEL_SLIP] *= beside[:, None]
     f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
-    return used, corrected
+    return used, corrected, factor_var
+
+
+def _factor_speed_var(P: FloatArray, H: FloatArray, dead_reckoning: BoolArray) -> FloatArray:
+    """Variance ``(k,)`` of the forward speed the odometer gives through its model's learnt
+    states while dead reckoning (they are not fused then, so ``P[V]`` does not hold them):
+    ``h_L P_LL h_Lᵀ / h_V²``, ``h`` the odometer's row of ``H (k, 1, n)`` (0 elsewhere)."""
+    h = H[:, 0, _BESIDE_ONLY]
+    p_ll = P[:, _BESIDE_ONLY][:, :, _BESIDE_ONLY]
+    var = np.einsum("ki,kij,kj->k", h, p_ll, h)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = var / H[:, 0, S.SPEED] ** 2
+    return np.where(dead_reckoning & np.isfinite(var), var, 0.0)
 
 
 def _fuse_standstill(
@@ -361,18 +377,25 @@ def _fuse_standstill(
 
 
 def _track_slip(
-    f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    w: FloatArray,
+    factor_var: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, BoolArray]:
     """Track ground speeds ``V ∓ ω·B/2`` at the tick, slip
     ``S = (Vs − v)/max(Vs, v)`` in percent with its 1-sigma, validity and braked tracks.
 
-    A slip is given only where it is observable: its 1-sigma (from the speed's variance,
-    which carries the odometer factor's while dead reckoning) at most ``slip_std_max_pct``,
+    A slip is given only where it is observable: its 1-sigma (from the speed's variance and,
+    while dead reckoning, ``factor_var`` ``(k,)``, what the odometer's learnt factor of the
+    state makes of it: a pivot's factor never learnt is ±15 %) at most ``slip_std_max_pct``,
     and the track's sprocket not settling; a sprocket starting after a standstill is not
     braked (its brake is being released), so it gets no −100 % either."""
     half = 0.5 * p.gauge_m[:, None]
     track = f.x[:, S.SPEED, None] + np.stack([-w, w], axis=1) * half
     var_v = f.P[:, S.SPEED, S.SPEED] + (0.5 * p.gauge_m * cfg.zero_rate_std_radps) ** 2
+    var_v = var_v + factor_var
     track_std = np.sqrt(np.maximum(var_v, 0.0))
     vs = inp.sprocket_pair_mps
     top = np.maximum(vs, track)
@@ -407,7 +430,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)
-    odo_used, corrected = _fuse_odometer(f, inp, p, cfg, state, w)
+    odo_used, corrected, factor_var = _fuse_odometer(f, inp, p, cfg, state, w)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:
@@ -426,7 +449,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         )
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)
-    track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w)
+    track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w, factor_var)
     return TickOut(
         state=state,
         confidence=conf,

@@ -35,8 +35,10 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.step import (
     _dead_reckoning_noise,
+    _fuse_odometer,
     _ground_patch,
     _released,
+    _track_slip,
     initial_filter,
     patch_std,
 )
@@ -562,12 +564,12 @@ def test_tracked_package_is_pure() -> None:
     assert out.stdout.strip() == ""
 
 
-def _tick_inputs(**fields: np.ndarray) -> TickInputs:
-    """Three ticks of zeros (``*_pair*`` fields ``(3, 2)``), ``fields`` replacing some."""
+def _tick_inputs(n: int = 3, **fields: np.ndarray) -> TickInputs:
+    """``n`` ticks of zeros (``*_pair*`` fields ``(n, 2)``), ``fields`` replacing some."""
     flags = ("sprocket_missing", "sprocket_settling_pair", "sprocket_starting_pair")
     base = {
         f.name: np.zeros(
-            (3, 2) if "pair" in f.name else 3, dtype=bool if f.name in flags else float
+            (n, 2) if "pair" in f.name else n, dtype=bool if f.name in flags else float
         )
         for f in dataclasses.fields(TickInputs)
     }
@@ -672,3 +674,30 @@ def test_every_odometer_factor_is_the_grounds_mean_plus_its_patch() -> None:
     low = 0.97 + 0.01 - 0.02
     assert corrected[0] == pytest.approx(4.2 * low / 1.42)
     assert H[0, 0, S.GROUND_PATCH] == pytest.approx(-1.42 * 4.0 / low**2)
+
+
+def test_a_dead_reckoned_slip_carries_its_factors_error() -> None:
+    """While dead reckoning the odometer's learnt factors are not fused, so the speed's
+    variance lacks theirs: ``h_L P_LL h_Lᵀ / h_V²`` is added to the slip's. A pivot whose
+    factor was never learnt (±15 %) gives no slip then; beside GNSS it does."""
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    f.x, f.P = np.repeat(f.x, 2, axis=0), np.repeat(f.P, 2, axis=0)
+    f.started = np.ones(2, dtype=bool)
+    f.since_gnss_s = np.array([0.5, 60.0])  # beside GNSS, dead reckoning
+    f.x[:, S.SPEED], f.x[:, S.F_STRAIGHT] = 1.0, 0.96  # pivot factor 0.96 - 0.25 = 0.71
+    f.P[:, S.SPEED, S.SPEED] = 1e-4
+    p2 = VehicleParams.stack([P1, P1])
+    w = np.full(2, 0.8)  # fast track at 1 + 0.8·B/2 = 1.8 m/s
+    inp = _tick_inputs(
+        2,
+        odometer_mps=np.full(2, 1.8 / 0.71),
+        sprocket_pair_mps=np.array([[0.0, 1.8 / 0.71], [0.0, 1.8 / 0.71]]),
+    )
+    state = np.full(2, int(M.PIVOT))
+    _, _, factor_var = _fuse_odometer(f, inp, p2, cfg, state, w)
+    assert factor_var[0] == 0.0
+    assert factor_var[1] == pytest.approx((1.8 / 0.71) ** 2 * (0.15**2 + 0.03**2 + 0.007**2))
+    *_, valid, braked = _track_slip(f, inp, p2, cfg, w, factor_var)
+    assert braked[:, 0].all()
+    assert valid[:, 1].tolist() == [True, False]
