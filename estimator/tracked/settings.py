@@ -70,6 +70,10 @@ class TrackedEstimatorConfig:
     over the distance driven and by the patches driven over, which nothing observes
     without GNSS.
 
+    The hull's side-slip in turns is the configured ``μ_t``'s times a gain learnt beside
+    GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
+    sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.
+
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
     (:mod:`estimator.tracked.lag`); a state change seen on a
@@ -143,6 +147,8 @@ class TrackedEstimatorConfig:
     ground_patch_slip_std: float = 0.007
     ground_patch_rel_std: float = 0.15
     ground_patch_m: float = 150.0
+    initial_side_slip_std: float = 0.5
+    side_slip_walk: float = 1e-3
     report_lag_ticks: int = 4
     onset_yaw_accel_radps2: float = 0.1
 

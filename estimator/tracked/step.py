@@ -17,7 +17,12 @@ from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.tracked.filter import kalman_update, predict, yaw_rate
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
-from estimator.tracked.odometer import lateral_speed, odometer_measurement, turn_tightness
+from estimator.tracked.odometer import (
+    lateral_speed,
+    odometer_measurement,
+    side_slip,
+    turn_tightness,
+)
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
@@ -91,6 +96,7 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
     diag[S.ACCEL_SLIP] = learn * cfg.initial_accel_slip_std_s2pm**2
     diag[S.GROUND_PATCH] = learn * cfg.ground_patch_slip_std**2
+    diag[S.SIDE_SLIP] = learn * cfg.initial_side_slip_std**2
     return np.diag(diag)
 
 
@@ -103,6 +109,7 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     x[0, S.F_PIVOT] = -cfg.initial_pivot_slip if cfg.learns else 0.0
     x[0, S.TURN_SLIP] = cfg.initial_turn_slip if cfg.learns else 0.0
     x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
+    x[0, S.SIDE_SLIP] = 1.0
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
     P[0, [S.EAST, S.NORTH], [S.EAST, S.NORTH]] = 1e6
@@ -122,6 +129,7 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
     q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
     q[:, S.ACCEL_SLIP] = learn * cfg.accel_slip_walk_s2pm**2 * dt
+    q[:, S.SIDE_SLIP] = learn * cfg.side_slip_walk**2 * dt
     return q
 
 
@@ -266,11 +274,13 @@ def _fuse_gnss(
     inp: TickInputs,
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
-    lateral: FloatArray,
+    lateral_pair: tuple[FloatArray, FloatArray | None],
     w: FloatArray,
     skip: BoolArray,
 ) -> tuple[BoolArray, BoolArray, FloatArray]:
-    """Antenna position, then velocity; returns (used, gated, position NIS)."""
+    """Antenna position, then velocity; returns (used, gated, position NIS).
+    ``lateral_pair``: the lateral speed and its derivative by the side-slip gain (or None)."""
+    lateral, by_gain = lateral_pair
     k = f.x.shape[0]
     psi = f.x[:, S.HEADING]
     s, c = np.sin(psi), np.cos(psi)
@@ -303,6 +313,8 @@ def _fuse_gnss(
     Hv = np.zeros((k, 2, N_STATES))
     Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = s, c
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
+    if by_gain is not None:
+        Hv[:, 0, S.SIDE_SLIP], Hv[:, 1, S.SIDE_SLIP] = c * by_gain, -s * by_gain
     std = np.where(np.isfinite(inp.gnss_vel_std_mps), inp.gnss_vel_std_mps, p.gnss_vel_std_mps)
     Rv = np.eye(2)[None] * (std**2)[:, None, None]
     # a fix whose position passed the gate is sound: its velocity is fused ungated
@@ -415,21 +427,32 @@ def _track_slip(
     return track, track_std, slip, std, valid, braked
 
 
+def _lateral(
+    f: Filter, state: IntArray, w: FloatArray, p: VehicleParams, cfg: TrackedEstimatorConfig
+) -> tuple[FloatArray, FloatArray | None]:
+    """The hull's lateral speed ``(k,)`` by mode and (product) its derivative by the
+    side-slip gain (:func:`~estimator.tracked.odometer.side_slip`)."""
+    v = f.x[:, S.SPEED]
+    if not cfg.learns:
+        return lateral_speed(cfg.mode, state, v, w, p.length_m, p.lateral_resistance), None
+    return side_slip(v, w, p.length_m, p.lateral_resistance, f.x[:, S.SIDE_SLIP])
+
+
 def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> TickOut:
     """One tick for every vehicle of ``f`` (updated in place); see the module docstring."""
     gyro = np.nan_to_num(inp.gyro_radps)
     accel = np.nan_to_num(inp.accel_mps2)
     w = yaw_rate(f.x, gyro)
     state, conf = recognise(f, inp, p, cfg, w)
-    lateral = lateral_speed(cfg.mode, state, f.x[:, S.SPEED], w, p.length_m, p.lateral_resistance)
+    lateral, by_gain = _lateral(f, state, w, p, cfg)
     f.x, f.P = predict(
-        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral)
+        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral), by_gain
     )
     _ground_patch(f, p, cfg)
     _dead_reckoning_noise(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
-    used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)
+    used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain), w, fresh)
     odo_used, corrected, factor_var = _fuse_odometer(f, inp, p, cfg, state, w)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)

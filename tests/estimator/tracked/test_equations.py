@@ -20,6 +20,7 @@ from estimator.tracked.odometer import (
     lateral_speed,
     odometer_measurement,
     paper_ratio,
+    side_slip,
     turn_tightness,
 )
 from estimator.tracked.params import VehicleParams
@@ -701,3 +702,35 @@ def test_a_dead_reckoned_slip_carries_its_factors_error() -> None:
     *_, valid, braked = _track_slip(f, inp, p2, cfg, w, factor_var)
     assert braked[:, 0].all()
     assert valid[:, 1].tolist() == [True, False]
+
+
+def test_side_slip_gain_scales_the_turning_pole_up_to_its_cap() -> None:
+    """``v_x = ω·min(g_s·L·|V·ω|/(2·μ_t·g), L/2)`` and its derivative by ``g_s``."""
+    v, w, length, mu = np.array([3.0, 3.0]), np.array([0.3, 0.3]), np.array([2.5, 2.5]), 0.6
+    free = 2.5 * 0.9 / (2.0 * mu * 9.80665)  # 0.191 m ahead of the centre at g_s = 1
+    lateral, by_gain = side_slip(v, w, length, np.full(2, mu), np.array([1.5, 8.0]))
+    assert lateral == pytest.approx([0.3 * 1.5 * free, 0.3 * 1.25])  # second: capped at L/2
+    assert by_gain == pytest.approx([0.3 * free, 0.0])
+    arc = np.full(2, int(M.ARC))
+    assert lateral_speed(TrackedMode.PRODUCT, arc, v, w, length, np.full(2, mu)) == (
+        pytest.approx(0.3 * free)
+    )
+
+
+def test_predict_moves_the_position_by_the_side_slip_gain() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED], x[0, S.HEADING] = 3.0, 0.0  # north; lateral is east
+    P = np.zeros((1, N_STATES, N_STATES))
+    P[0, S.SIDE_SLIP, S.SIDE_SLIP] = 0.25
+    _, p_next = predict(
+        x,
+        P,
+        np.zeros(1),
+        np.zeros(1),
+        np.full(1, 0.1),
+        0.1,
+        np.zeros((1, N_STATES)),
+        np.full(1, 0.2),
+    )
+    assert p_next[0, S.EAST, S.EAST] == pytest.approx((0.1 * 0.2) ** 2 * 0.25)
+    assert p_next[0, S.NORTH, S.NORTH] == pytest.approx(0.0, abs=1e-18)
