@@ -575,12 +575,13 @@ class MdsfEngine:
         lost = self._gnss_lost(slots, t, init)
         fix = self.accel_var_fix[slots]
         fresh = ~lost | ~np.isfinite(fix)
-        self.accel_var_fix[slots] = np.where(fresh, accel_var, fix)
-        white = np.where(fresh, accel_var, np.minimum(accel_var, fix))
-        leak = np.where(fresh, 0.0, (accel_var - white) * (self.dt_s / cfg.pitch_leak_corr_s))
-        grown = np.maximum(leak - self.leak_var[slots], 0.0)
-        Q[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += grown
-        self.leak_var[slots] = np.maximum(leak, np.where(fresh, 0.0, self.leak_var[slots]))
+        self.accel_var_fix[slots] = np.where(fresh & t.imu_ok, accel_var, fix)
+        held = ~fresh & t.imu_ok  # a tick without IMU data keeps its placeholder variance
+        white = np.where(held, np.minimum(accel_var, fix), accel_var)
+        leak = np.where(held, (accel_var - white) * (self.dt_s / cfg.pitch_leak_corr_s), 0.0)
+        before = np.where(fresh, 0.0, self.leak_var[slots])
+        Q[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += np.maximum(leak - before, 0.0)
+        self.leak_var[slots] = np.maximum(leak, before)
         return np.asarray(white)
 
     def _accel_control(

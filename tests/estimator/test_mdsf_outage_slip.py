@@ -80,6 +80,11 @@ def test_the_leak_grows_the_bias_variance_and_the_speed_keeps_white_noise() -> N
     white, q_b = tick(2.3, 6 * a0)
     assert white == pytest.approx(a0) and q_b == pytest.approx(a0 * c)
     assert tick(2.4, 0.5 * a0) == pytest.approx((0.5 * a0, 0.0))  # below σ²_fix: as it is
+    no_imu = _tick(2.45, 1.0)
+    no_imu.imu_ok[:] = False
+    Q = np.zeros((1, eng.n, eng.n))
+    white_no_imu = eng._leak_into_bias(slots, no_imu, init, np.array([1.0]), Q)
+    assert white_no_imu[0] == 1.0 and not Q.any()  # no IMU: its placeholder, no leak
     eng.last_fused_ns[slots] = round(2.45e9)
     assert tick(2.5, 7 * a0) == (7 * a0, 0.0)  # fused again: the tick's own variance
     white, q_b = tick(4.0, 9 * a0)  # a new outage leaks from the new fix's level
