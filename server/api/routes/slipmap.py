@@ -584,6 +584,58 @@ def _vehicle_cells(
     )
 
 
+OriginLatQuery = Annotated[
+    float | None,
+    Query(
+        ge=-90.0,
+        le=90.0,
+        allow_inf_nan=False,
+        description="Latitude of the shared frame's origin, WGS 84 degrees (with "
+        "origin_lon_deg). Default: the first anchored vehicle's anchor.",
+    ),
+]
+OriginLonQuery = Annotated[
+    float | None,
+    Query(
+        ge=-180.0,
+        le=180.0,
+        allow_inf_nan=False,
+        description="Longitude of the shared frame's origin, WGS 84 degrees (with origin_lat_deg).",
+    ),
+]
+VehiclesQuery = Annotated[
+    str | None,
+    Query(
+        max_length=8192,
+        description="Comma-separated vehicle ids to map (default: every vehicle); an "
+        "unknown id is a 404.",
+        examples=["tractor-1,tractor-2"],
+    ),
+]
+BandEdgesQuery = Annotated[
+    str | None,
+    Query(
+        max_length=256,
+        description="Comma-separated increasing slip band edges, percent (e.g. `5,15`). "
+        "Default: the vehicles' common edges, or 5,15 when their configs differ.",
+        examples=["5,15"],
+    ),
+]
+
+
+def _fleet_band_edges(
+    asked: tuple[float, ...] | None, slips: Mapping[str, SlipConfig]
+) -> tuple[tuple[float, ...], str]:
+    """``(edges, source)`` of a fleet map: the query's, else the vehicles' common edges, else
+    the default 5,15."""
+    if asked is not None:
+        return asked, "query"
+    theirs = {slip.band_edges_pct for slip in slips.values()}
+    if len(theirs) == 1:
+        return check_band_edges(theirs.pop()), "vehicles"
+    return _DEFAULT_BAND_EDGES_PCT, "default"
+
+
 @router.get(
     "/fleet/slipmap",
     response_model=FleetSlipMapPublic,
@@ -597,44 +649,10 @@ def get_fleet_slipmap(
     limits: LimitsDep,
     cell_m: CellM = 10.0,
     format: FormatQuery = "json",
-    origin_lat_deg: Annotated[
-        float | None,
-        Query(
-            ge=-90.0,
-            le=90.0,
-            allow_inf_nan=False,
-            description="Latitude of the shared frame's origin, WGS 84 degrees (with "
-            "origin_lon_deg). Default: the first anchored vehicle's anchor.",
-        ),
-    ] = None,
-    origin_lon_deg: Annotated[
-        float | None,
-        Query(
-            ge=-180.0,
-            le=180.0,
-            allow_inf_nan=False,
-            description="Longitude of the shared frame's origin, WGS 84 degrees (with "
-            "origin_lat_deg).",
-        ),
-    ] = None,
-    vehicles: Annotated[
-        str | None,
-        Query(
-            max_length=8192,
-            description="Comma-separated vehicle ids to map (default: every vehicle); an "
-            "unknown id is a 404.",
-            examples=["tractor-1,tractor-2"],
-        ),
-    ] = None,
-    band_edges_pct: Annotated[
-        str | None,
-        Query(
-            max_length=256,
-            description="Comma-separated increasing slip band edges, percent (e.g. `5,15`). "
-            "Default: the vehicles' common edges, or 5,15 when their configs differ.",
-            examples=["5,15"],
-        ),
-    ] = None,
+    origin_lat_deg: OriginLatQuery = None,
+    origin_lon_deg: OriginLonQuery = None,
+    vehicles: VehiclesQuery = None,
+    band_edges_pct: BandEdgesQuery = None,
     estimator: EstimatorQuery = None,
     layer: LayerQuery = None,
 ) -> Response:
@@ -654,13 +672,7 @@ def get_fleet_slipmap(
         origin = anchors[origin_vehicle_id]
     frame = None if origin is None else EnuFrame(*origin)
 
-    their_edges = {slip.band_edges_pct for slip in slips.values()}
-    if edges_asked is not None:
-        edges, edges_source = edges_asked, "query"
-    elif len(their_edges) == 1:
-        edges, edges_source = check_band_edges(their_edges.pop()), "vehicles"
-    else:
-        edges, edges_source = _DEFAULT_BAND_EDGES_PCT, "default"
+    edges, edges_source = _fleet_band_edges(edges_asked, slips)
 
     summary: list[dict[str, Any]] = []
 
