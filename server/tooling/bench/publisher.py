@@ -127,23 +127,12 @@ def _per_packet_run(
             pub.undeclare()
 
 
-def _child(job_json: str) -> int:
-    """One publisher process of one path: publish, measure the window, print one JSON line."""
-    import zenoh
-
-    from server.ingest.zenoh_session import make_config
-    from server.settings import ZenohSettings
-    from server.tooling.fleet_sim import SimStats, publish_fleets
+def _fleet_sims(sessions: list[Any], job: dict[str, Any]) -> list[Any]:
+    """One looping simulated fleet per scenario group of ``job``, on ``sessions``."""
     from server.tooling.loadtest import _named_fleet_sim_class
 
-    born = time.monotonic()
-    job = json.loads(job_json)
-    sessions = [
-        zenoh.open(make_config(ZenohSettings(connect=job["endpoints"])))
-        for _ in range(job["sessions"])
-    ]
     named = _named_fleet_sim_class()
-    sims = [
+    return [
         named(
             sessions,
             g["count"],
@@ -157,33 +146,38 @@ def _child(job_json: str) -> int:
         )
         for g in job["groups"]
     ]
-    stop, ready, go = threading.Event(), threading.Event(), threading.Event()
-    late: list[tuple[int, float]] = []  # (wall ns, ms late) per packet (per-packet path)
-    threads: list[threading.Thread] = []
-    if job["path"] == "encoded":
-        shared = SimStats()
-        threads.append(
-            threading.Thread(
-                target=publish_fleets,
-                args=(sims,),
-                kwargs={
-                    "stop": stop,
-                    "stats": shared,
-                    "keep_lateness": True,
-                    "ready": ready,
-                    "go": go,
-                },
-            )
-        )
 
-        def sent() -> int:
-            return shared.total_packets
-    else:
+
+class _PathThreads:
+    """The publishing threads of one path over ``sims``, what they sent and how late.
+
+    ``encoded``: one :func:`publish_fleets` thread, lateness per sending round; ``per-packet``:
+    one :func:`_per_packet_run` thread per fleet, lateness per packet. ``ready`` is set once
+    every thread has built its schedule; they publish after ``go``.
+    """
+
+    def __init__(
+        self,
+        path: str,
+        sims: list[Any],
+        stop: threading.Event,
+        ready: threading.Event,
+        go: threading.Event,
+    ) -> None:
+        from server.tooling.fleet_sim import SimStats, publish_fleets
+
+        self._sims = sims
+        self._late: list[tuple[int, float]] = []  # (wall ns, ms late) per packet
+        self._shared = SimStats() if path == "encoded" else None
+        if self._shared is not None:
+            kwargs = dict(stop=stop, stats=self._shared, keep_lateness=True, ready=ready, go=go)
+            self.threads = [threading.Thread(target=publish_fleets, args=(sims,), kwargs=kwargs)]
+            return
         builders = [threading.Event() for _ in sims]
-        for sim, built in zip(sims, builders, strict=True):
-            threads.append(
-                threading.Thread(target=_per_packet_run, args=(sim, stop, late, built, go))
-            )
+        self.threads = [
+            threading.Thread(target=_per_packet_run, args=(sim, stop, self._late, built, go))
+            for sim, built in zip(sims, builders, strict=True)
+        ]
 
         def _all_built() -> None:
             for b in builders:
@@ -192,49 +186,76 @@ def _child(job_json: str) -> int:
 
         threading.Thread(target=_all_built, daemon=True).start()
 
-        def sent() -> int:
-            return sum(s.stats.total_packets for s in sims)
+    def sent(self) -> int:
+        """Packets sent so far."""
+        if self._shared is not None:
+            return int(self._shared.total_packets)
+        return sum(s.stats.total_packets for s in self._sims)
 
-    for t in threads:
+    def rounds(self, t0_ns: int, t1_ns: int) -> list[tuple[int, float, int]]:
+        """``(wall ns, ms late, packets)`` of the sends between ``t0_ns`` and ``t1_ns``."""
+        if self._shared is not None:
+            return [(w, ms, n) for w, ms, n in self._shared.send_rounds if t0_ns <= w < t1_ns]
+        return [(w, ms, 1) for w, ms in self._late if t0_ns <= w < t1_ns]
+
+
+def _child(job_json: str) -> int:
+    """One publisher process of one path: publish, measure the window, print one JSON line."""
+    import zenoh
+
+    from server.ingest.zenoh_session import make_config
+    from server.settings import ZenohSettings
+
+    born = time.monotonic()
+    job = json.loads(job_json)
+    sessions = [
+        zenoh.open(make_config(ZenohSettings(connect=job["endpoints"])))
+        for _ in range(job["sessions"])
+    ]
+    stop, ready, go = threading.Event(), threading.Event(), threading.Event()
+    run = _PathThreads(job["path"], _fleet_sims(sessions, job), stop, ready, go)
+    for t in run.threads:
         t.start()
     ready.wait()
     startup_s = time.monotonic() - born
     print(json.dumps({"ready": startup_s}), flush=True)
     sys.stdin.readline()  # "go": every publisher is ready
     go.set()
-    while sent() == 0:
+    while run.sent() == 0:
         time.sleep(0.01)
     time.sleep(job["warmup_s"])
-    cpu0, sent0, t0 = time.process_time(), sent(), time.perf_counter_ns()
-    threads0 = _thread_cpu()
-    time.sleep(job["window_s"])
-    cpu1, sent1, t1 = time.process_time(), sent(), time.perf_counter_ns()
-    threads1 = _thread_cpu()
-    rss = _rss_bytes()
+    out = _measure_window(run, job["window_s"])
     stop.set()
-    for t in threads:
+    for t in run.threads:
         t.join(30)
-    if job["path"] == "encoded":
-        rounds = [(w, ms, n) for w, ms, n in shared.send_rounds if t0 <= w < t1]
-    else:
-        rounds = [(w, ms, 1) for w, ms in late if t0 <= w < t1]
+    out["lateness"] = _weighted_quantiles(run.rounds(out.pop("t0_ns"), out.pop("t1_ns")))
     time.sleep(0.5)  # let the sessions flush before closing
     for s in sessions:
         s.close()
-    out = {
-        "startup_s": startup_s,
+    out.update(startup_s=startup_s, sent_total=run.sent())
+    print(json.dumps(out), flush=True)
+    return 0
+
+
+def _measure_window(run: _PathThreads, window_s: float) -> dict[str, Any]:
+    """CPU, packets sent, RSS and per-thread CPU over ``window_s`` of publishing (the window's
+    wall-clock edges as ``t0_ns``/``t1_ns``)."""
+    cpu0, sent0, t0 = time.process_time(), run.sent(), time.perf_counter_ns()
+    threads0 = _thread_cpu()
+    time.sleep(window_s)
+    cpu1, sent1, t1 = time.process_time(), run.sent(), time.perf_counter_ns()
+    threads1 = _thread_cpu()
+    return {
         "window_s": (t1 - t0) / 1e9,
         "cpu_s": cpu1 - cpu0,
         "sent_window": sent1 - sent0,
-        "sent_total": sent(),
-        "lateness": _weighted_quantiles(rounds),
-        "rss_bytes": rss,
+        "rss_bytes": _rss_bytes(),
         "cpu_s_by_thread": {
             k: round(v - threads0.get(k, 0.0), 3) for k, v in sorted(threads1.items())
         },
+        "t0_ns": t0,
+        "t1_ns": t1,
     }
-    print(json.dumps(out), flush=True)
-    return 0
 
 
 def _thread_cpu() -> dict[str, float]:
