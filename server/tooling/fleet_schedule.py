@@ -438,6 +438,17 @@ class ScheduleStats:
     def total(self) -> int:
         return sum(self.packets)
 
+    def count_round(self, win: Window, k: int, j: int, wall_ns: int, behind_ms: float) -> None:
+        """Count the sending round of ``win``'s packets ``k:j``, started at ``wall_ns`` with
+        its first packet ``behind_ms`` late."""
+        for s, n in enumerate(np.bincount(win.stream[k:j], minlength=len(STREAMS)).tolist()):
+            self.packets[s] += n
+        self.payload_bytes += win.bounds[j] - win.bounds[k]
+        late_ms = max(0, math.ceil(behind_ms))
+        self.late_packets[late_ms] = self.late_packets.get(late_ms, 0) + j - k
+        if self.rounds is not None:
+            self.rounds.append((wall_ns, behind_ms, j - k))
+
 
 def weighted_quantiles(
     values: Sequence[float], weights: Sequence[int], qs: Sequence[float]
@@ -509,7 +520,6 @@ def publish_schedule(
     t_next = span
     cur: Window | None = None
     k = n_cur = 0
-    per_stream = stats.packets
     sleep = time.sleep
     clock = time.perf_counter_ns
     inv_rate = 1.0 / rate
@@ -533,10 +543,8 @@ def publish_schedule(
             wait_ns = max(due_wall - now, min_wake_ns)
             if end_wall is not None:
                 wait_ns = max(0, min(wait_ns, end_wall - wall0 - now))
-            if wait_ns > 50_000_000:
-                stop.wait(wait_ns / 1e9)
-            else:
-                sleep(wait_ns / 1e9)
+            # long waits on the stop event, so that a stop ends them at once
+            (stop.wait if wait_ns > 50_000_000 else sleep)(wait_ns / 1e9)
             now = clock() - wall0
         # send everything due by now, in due order
         behind = (now - due_wall) / 1e6
@@ -548,13 +556,7 @@ def publish_schedule(
             continue  # woke up early (the end of the run, or stop)
         for put, payload in zip(cur.calls[k:j], cur.payloads[k:j], strict=True):
             put(payload)
-        for s, n in enumerate(np.bincount(cur.stream[k:j], minlength=len(STREAMS)).tolist()):
-            per_stream[s] += n
-        stats.payload_bytes += cur.bounds[j] - cur.bounds[k]
-        late_ms = max(0, math.ceil(behind))
-        stats.late_packets[late_ms] = stats.late_packets.get(late_ms, 0) + j - k
-        if stats.rounds is not None:
-            stats.rounds.append((wall0 + now, behind, j - k))
+        stats.count_round(cur, k, j, wall0 + now, behind)
         last_due = cur.due_ns[j - 1]
         k = j
         if on_round is not None:
