@@ -47,7 +47,7 @@ from server.metrics.thread_cpu import thread_cpu_seconds
 from server.settings import Settings
 from server.storage import open_store
 from server.storage.base import Store
-from server.storage.writer import StoreWriter
+from server.storage.writer import StoreWriter, WriterStats
 
 __all__ = ["Runtime"]
 
@@ -308,82 +308,9 @@ class Runtime:
             families.append(
                 _estimator_family(self.pipeline.estimator_counters_snapshot(), by_vehicle)
             )
-            stats = self.pipeline.stats()
-            families.append(
-                MetricFamily(
-                    "slipfleet_estimate_rows",
-                    "counter",
-                    "Estimate rows produced by the pipeline.",
-                    [Sample(float(stats["rows"]), suffix="_total")],
-                )
-            )
-            families.append(
-                MetricFamily(
-                    "slipfleet_pipeline_queue_bursts",
-                    "gauge",
-                    "Decoded bursts waiting for the pipeline thread.",
-                    [Sample(float(stats["queue_bursts"]))],
-                )
-            )
-            families.append(
-                MetricFamily(
-                    "slipfleet_pipeline_tick_seconds",
-                    "gauge",
-                    "Duration of the pipeline's last processing tick.",
-                    [Sample(float(stats["last_tick_ms"]) / 1000.0)],
-                )
-            )
-            families.append(
-                MetricFamily(
-                    "slipfleet_pipeline_cpu_seconds",
-                    "counter",
-                    "CPU seconds of the pipeline thread (every ingest worker's, added up) by "
-                    "phase: decode, reorder, release, estimate, deliver.",
-                    [
-                        Sample(float(stats.get(f"cpu_{phase}_s", 0.0)), {"phase": phase}, "_total")
-                        for phase in PHASES
-                    ],
-                )
-            )
+            families.extend(_pipeline_families(self.pipeline.stats()))
         if self.writer is not None:
-            w = self.writer.stats()
-            for name, value, help_ in (
-                ("rows_written", w.rows_written, "Estimate rows inserted."),
-                (
-                    "rows_dropped_backlog_full",
-                    w.rows_dropped_backlog_full,
-                    "Rows refused: backlog full.",
-                ),
-                (
-                    "rows_ignored",
-                    w.rows_ignored,
-                    "Rows the store did not insert: stored already, or of an unknown vehicle.",
-                ),
-                ("rows_dropped_error", w.rows_dropped_error, "Rows refused by the store."),
-                ("transactions", w.transactions, "Committed estimate transactions."),
-                ("vehicles_stored", w.vehicles_stored, "Vehicles the pipeline registered, stored."),
-                (
-                    "vehicles_dropped_error",
-                    w.vehicles_dropped_error,
-                    "Vehicle registrations refused by the store.",
-                ),
-            ):
-                families.append(
-                    MetricFamily(
-                        f"slipfleet_writer_{name}",
-                        "counter",
-                        help_,
-                        [Sample(float(value), suffix="_total")],
-                    )
-                )
-            families.append(
-                MetricFamily(
-                    "slipfleet_writer_backlog_rows",
-                    "gauge",
-                    "Rows waiting to be written.",
-                    [Sample(float(w.backlog_rows))],
-                )
-            )
+            families.extend(_writer_families(self.writer.stats()))
         families.extend(self.latency.families())
         families.append(self._thread_cpu_family())
         if self.alert_engine is not None:
@@ -494,6 +421,75 @@ def _ingest_families(
     families.append(
         MetricFamily(
             "slipfleet_packets_rejected", "counter", "Sensor packets rejected, by reason.", rejected
+        )
+    )
+    return families
+
+
+def _pipeline_families(stats: Mapping[str, Any]) -> list[MetricFamily]:
+    """The pipeline's rows produced, queued bursts, last tick and CPU by phase."""
+    cpu = [
+        Sample(float(stats.get(f"cpu_{phase}_s", 0.0)), {"phase": phase}, "_total")
+        for phase in PHASES
+    ]
+    return [
+        MetricFamily(
+            "slipfleet_estimate_rows",
+            "counter",
+            "Estimate rows produced by the pipeline.",
+            [Sample(float(stats["rows"]), suffix="_total")],
+        ),
+        MetricFamily(
+            "slipfleet_pipeline_queue_bursts",
+            "gauge",
+            "Decoded bursts waiting for the pipeline thread.",
+            [Sample(float(stats["queue_bursts"]))],
+        ),
+        MetricFamily(
+            "slipfleet_pipeline_tick_seconds",
+            "gauge",
+            "Duration of the pipeline's last processing tick.",
+            [Sample(float(stats["last_tick_ms"]) / 1000.0)],
+        ),
+        MetricFamily(
+            "slipfleet_pipeline_cpu_seconds",
+            "counter",
+            "CPU seconds of the pipeline thread (every ingest worker's, added up) by "
+            "phase: decode, reorder, release, estimate, deliver.",
+            cpu,
+        ),
+    ]
+
+
+#: The writer's counters: (``WriterStats`` field, help).
+_WRITER_COUNTERS = (
+    ("rows_written", "Estimate rows inserted."),
+    ("rows_dropped_backlog_full", "Rows refused: backlog full."),
+    ("rows_ignored", "Rows the store did not insert: stored already, or of an unknown vehicle."),
+    ("rows_dropped_error", "Rows refused by the store."),
+    ("transactions", "Committed estimate transactions."),
+    ("vehicles_stored", "Vehicles the pipeline registered, stored."),
+    ("vehicles_dropped_error", "Vehicle registrations refused by the store."),
+)
+
+
+def _writer_families(w: WriterStats) -> list[MetricFamily]:
+    """The batching writer's counters and its backlog."""
+    families = [
+        MetricFamily(
+            f"slipfleet_writer_{name}",
+            "counter",
+            help_,
+            [Sample(float(getattr(w, name)), suffix="_total")],
+        )
+        for name, help_ in _WRITER_COUNTERS
+    ]
+    families.append(
+        MetricFamily(
+            "slipfleet_writer_backlog_rows",
+            "gauge",
+            "Rows waiting to be written.",
+            [Sample(float(w.backlog_rows))],
         )
     )
     return families
