@@ -140,6 +140,25 @@ def test_estimator_failures_and_refused_configs_are_metrics_per_vehicle() -> Non
         assert {s.labels["vehicle"]: s.value for s in family.samples} == {"v1": v1, "v2": 0.0}
 
 
+def test_every_writer_counter_is_a_metric_with_its_own_value() -> None:
+    import dataclasses
+
+    from server.runtime import _WRITER_COUNTERS, _writer_families
+    from server.storage.writer import WriterStats
+
+    names = [name for name, _ in _WRITER_COUNTERS]
+    values = {f.name: i + 1 for i, f in enumerate(dataclasses.fields(WriterStats))}
+    stats = WriterStats(
+        **{k: v for k, v in values.items() if k not in ("last_error", "healthy")},
+        last_error=None,
+        healthy=True,
+    )
+    got = {f.name: (f.type, [s.value for s in f.samples]) for f in _writer_families(stats)}
+    want = {f"slipfleet_writer_{n}": ("counter", [float(values[n])]) for n in names}
+    want["slipfleet_writer_backlog_rows"] = ("gauge", [float(values["backlog_rows"])])
+    assert got == want
+
+
 def test_a_config_naming_an_estimator_of_another_kind_is_refused_before_it_is_stored() -> None:
     from estimator.config import ConfigError, TrackedConfig
     from server.runtime import Runtime
