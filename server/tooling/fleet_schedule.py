@@ -495,9 +495,8 @@ def publish_schedule(
 
     With ``stamp_clock_ns`` the vehicles' ``shift_ns`` are relative, and that clock's reading
     is added to them at the moment the schedule's time starts, after the fleet's arrays are
-    built: a packet then carries the stamps of a vehicle that sends it when it is due. (Read
-    before that set-up, every stamp came out older than its send time by the set-up's time,
-    ~40-70 ms at 1,000 vehicles, which the server's sensor→stored latency counted.)
+    built: a packet then carries the stamps of a vehicle that sends it when it is due, not
+    stamps older by the set-up's time.
     """
     if rate <= 0:
         raise ValueError("rate must be > 0")

@@ -113,10 +113,9 @@ SIM_ORIGIN_SPACING_M = 250.0
 def loop_period_ns(start_ns: int, end_ns: int) -> int:
     """Sensor time of one loop of a drive spanning ``start_ns … end_ns``: the span and a tick,
     rounded up to whole ticks, so that a looped vehicle's batches keep their phase like a
-    vehicle streaming on. (The server puts a vehicle's ticks on the end of its first IMU batch;
-    ``figure_eight``'s 68.374 s loop moved every batch of the next loop 74 ms off its ticks and
-    each tick then waited for one more batch: 300 such vehicles for 100 s, sensor→stored p50 /
-    p95 / p99 75 / 151 / 161 ms, 58 / 82 / 91 with whole-tick loops.)"""
+    vehicle streaming on (the server puts a vehicle's ticks on the end of its first IMU batch;
+    a loop of a fractional tick would move every batch of the next loop off its ticks, and each
+    tick would wait for one more batch)."""
     return -(-(end_ns - start_ns + TICK_NS) // TICK_NS) * TICK_NS
 
 
