@@ -35,8 +35,8 @@ pytestmark = [pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(1500)]
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
-#: The demo's four tractors and its steered vehicle (README, "Two commands").
-DEMO_VEHICLES = ("sim-0001", "sim-0002", "sim-0003", "sim-0004", "sim-0005")
+#: The demo's four tractors, its steered vehicle and its crawler (README, "Two commands").
+DEMO_VEHICLES = ("sim-0001", "sim-0002", "sim-0003", "sim-0004", "sim-0005", "sim-0006")
 INSTALL_AND_START_S = 1200.0
 STOP_S = 60.0
 
