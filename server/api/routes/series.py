@@ -430,6 +430,34 @@ def export_filename(vehicle_id: str, tr: TimeRange, ext: str) -> str:
     return f"{safe}_{tr.start_ns}_{tr.end_ns}.{ext}"
 
 
+SeriesFieldsQuery = Annotated[
+    str | None,
+    Query(
+        description="Comma-separated fields of the estimator (default: all); `stamp_ns` is "
+        "always included; a field the estimator does not have is a 422 naming it. "
+        "Fields by estimator:\n\n" + fields_doc(),
+        examples=["stamp_ns,flags"],
+        max_length=2000,
+    ),
+]
+MaxPointsQuery = Annotated[
+    int | None,
+    Query(
+        ge=0,
+        le=1_000_000,
+        description="Decimate to at most this many rows; 0 or absent: full rate; 1 is refused.",
+    ),
+]
+DecimationQuery = Annotated[
+    Decimation | None,
+    Query(
+        description="How `max_points` decimates: `minmax` (default; per time bucket the min "
+        "and max of each field, for charts) or `first` (per time bucket its first row, whole; "
+        "for positions). `format=geojson` always thins with `first`.",
+    ),
+]
+
+
 @router.get(
     "/{vehicle_id}/series",
     response_model=SeriesPublic,
@@ -496,32 +524,9 @@ def get_series(
     tr: TimeRangeDep,
     store: StoreDep,
     limits: LimitsDep,
-    fields: Annotated[
-        str | None,
-        Query(
-            description="Comma-separated fields of the estimator (default: all); `stamp_ns` is "
-            "always included; a field the estimator does not have is a 422 naming it. "
-            "Fields by estimator:\n\n" + fields_doc(),
-            examples=["stamp_ns,flags"],
-            max_length=2000,
-        ),
-    ] = None,
-    max_points: Annotated[
-        int | None,
-        Query(
-            ge=0,
-            le=1_000_000,
-            description="Decimate to at most this many rows; 0 or absent: full rate; 1 is refused.",
-        ),
-    ] = None,
-    decimation: Annotated[
-        Decimation | None,
-        Query(
-            description="How `max_points` decimates: `minmax` (default; per time bucket the min "
-            "and max of each field, for charts) or `first` (per time bucket its first row, whole; "
-            "for positions). `format=geojson` always thins with `first`.",
-        ),
-    ] = None,
+    fields: SeriesFieldsQuery = None,
+    max_points: MaxPointsQuery = None,
+    decimation: DecimationQuery = None,
     format: Annotated[SeriesFormat, Query(description="Answer format")] = "json",
 ) -> Response:
     names = _parse_fields(fields, spec)
