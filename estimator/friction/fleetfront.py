@@ -224,8 +224,6 @@ class _State(_Arrays):
         self.kz_wheel = np.zeros((0, 4))
         self.suspect = np.zeros((0, 4), dtype=bool)
         self.fz_cal = np.zeros((0, 4))
-        self.rolled = np.zeros((0, 4))  # the calibration's mean v/ω [m]
-        self.drive_cal = np.zeros((0, 4))  # the calibration's mean drive force per wheel [N]
         self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros((0, 2))  # lagged raw [a_x, a_y] [m/s²]
         self.yaw_prev = np.zeros(0)
@@ -242,8 +240,6 @@ class _State(_Arrays):
         self.kz_wheel[slot] = car.kz[slot]
         self.suspect[slot] = False
         self.fz_cal[slot] = fz
-        self.rolled[slot] = self.radius[slot]
-        self.drive_cal[slot] = 0.0
         self.transfer[slot] = 0.0
         self.tilt_reading[slot] = 0.0
         self.yaw_prev[slot] = math.nan
@@ -460,27 +456,21 @@ class FleetFrontEnd:
         resist = car.rolling[c] * f.sum(axis=1) + 0.5 * AIR_DENSITY_KGPM3 * (
             car.drag_area[c] * v[:, 0] ** 2
         )
+        c_x = load_adaptive_stiffness_n(
+            f, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
+        )
+        expect = resist[:, None] * car.drive_share[c] / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(omega[rows], 1e-3)
         st.calib_n[c] += 1
         n = st.calib_n[c]
         gain = np.maximum(0.1 / self.fe.calib_time_s, 1.0 / n)[:, None]
-        st.rolled[c] += gain * (v_long / np.maximum(omega[rows], 1e-3) - st.rolled[c])
-        st.drive_cal[c] += gain * (resist[:, None] * car.drive_share[c] - st.drive_cal[c])
-        st.fz_cal[c] += gain * (f - st.fz_cal[c])
-        radius = self._slip_free_radius(c)
+        radius = st.radius[c]
+        radius += gain * (measured - radius)
         st.radius[c] = radius
+        st.fz_cal[c] += gain * (f - st.fz_cal[c])
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
         st.radius_std[c] = 2e-4 * radius
         self._learn_tyres(c[n >= self.fe.calib_samples])
-        st.radius[c] = self._slip_free_radius(c)
-
-    def _slip_free_radius(self, c: IntArray) -> FloatArray:
-        """The calibrated radii of slots ``c`` (``FrontEnd._slip_free_radius``)."""
-        car, st = self.car, self.state
-        c_x = load_adaptive_stiffness_n(
-            st.fz_cal[c], st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
-        )
-        radius: FloatArray = st.rolled[c] * (1.0 + st.drive_cal[c] / np.maximum(c_x, 1.0))
-        return radius
 
     def _learn_tyres(self, c: IntArray) -> None:
         """``ρ`` and each wheel's ``kz`` from the calibrated radii (``FrontEnd._learn_tyres``)."""
@@ -492,13 +482,7 @@ class FleetFrontEnd:
         sink_m = car.r_u[c][:, None] - st.radius[c]
         implied = sink_m * kz / fz_n
         lo, hi = fe.radius_drop_range
-        first = np.clip(np.median(implied, axis=1), lo, hi)[:, None]
-        sound = np.abs(implied / first - 1.0) <= fe.kz_tolerance
-        drop = np.where(
-            sound.any(axis=1),
-            np.clip(_masked_median(implied, sound), lo, hi),
-            first[:, 0],
-        )
+        drop = np.clip(np.median(implied, axis=1), lo, hi)
         st.radius_drop[c] = drop
         suspect = np.abs(implied / drop[:, None] - 1.0) > fe.kz_tolerance
         st.suspect[c] = suspect
@@ -621,12 +605,3 @@ class FleetFrontEnd:
         drag = 0.5 * AIR_DENSITY_KGPM3 * car.drag_area[s] * vx * np.abs(vx)
         rolling = car.rolling[s] * fz.sum(axis=1) * np.tanh(vx)
         return (drag + rolling) / car.mass[s]
-
-
-def _masked_median(values: FloatArray, keep: BoolArray) -> FloatArray:
-    """Each row's median of ``values`` ``(B, 4)`` where ``keep`` (0 for a row keeping none)."""
-    with np.errstate(all="ignore"):
-        kept = np.where(keep, values, np.nan)
-        if not keep.any(axis=1).all():
-            kept[~keep.any(axis=1)] = 0.0
-        return np.asarray(np.nanmedian(kept, axis=1), dtype=np.float64)

@@ -292,8 +292,6 @@ class FrontEnd:
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)  # each wheel's own
         self.radius_common_rel = 0.0  # the calibration's GNSS error, shared by the four
         self.fz_cal = self.fz_static.copy()
-        self.rolled = self.radius.copy()  # calibration's mean v/ω (no slip allowed for) [m]
-        self.drive_cal = np.zeros(4)  # calibration's mean drive force per wheel [N]
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
         self.steer_packets: list[tuple[np.ndarray, np.ndarray]] = []
@@ -621,10 +619,8 @@ class FrontEnd:
 
     def _learn_tyres(self) -> None:
         """``ρ`` and each wheel's ``kz`` from the calibrated radii (``method.md`` §5, eq. 18):
-        ``ρ_i = (r_u − r_e,i)·kz/Fz_i``, ``ρ`` the median of the wheels within
-        ``kz_tolerance`` of their first median (a soft tyre left out: the median of four with
-        one far above is the mean of the two highest sound ones, ~1 % high) within
-        ``radius_drop_range``; a wheel whose ``ρ_i`` is off ``ρ`` by more than
+        ``ρ_i = (r_u − r_e,i)·kz/Fz_i``, ``ρ`` their median (one soft tyre does not move it)
+        within ``radius_drop_range``; a wheel whose ``ρ_i`` is off ``ρ`` by more than
         ``kz_tolerance`` is suspect and gets its own ``kz_i = ρ Fz_i/(r_u − r_e,i)``."""
         if not self.calibrated:
             return
@@ -632,12 +628,7 @@ class FrontEnd:
         sink_m = self.ty.unloaded_radius_m - self.radius
         lo, hi = self.fe.radius_drop_range
         implied = sink_m * self.ty.kz_npm / fz_n
-        first = float(np.clip(np.median(implied), lo, hi))
-        sound = np.abs(implied / first - 1.0) <= self.fe.kz_tolerance
-        if sound.any():
-            self.radius_drop = float(np.clip(np.median(implied[sound]), lo, hi))
-        else:
-            self.radius_drop = first
+        self.radius_drop = float(np.clip(np.median(implied), lo, hi))
         self.suspect = np.abs(implied / self.radius_drop - 1.0) > self.fe.kz_tolerance
         own = self.radius_drop * fz_n / np.maximum(sink_m, 1e-4)
         kz = np.clip(own, 0.05 * self.ty.kz_npm, 20.0 * self.ty.kz_npm)
@@ -664,28 +655,18 @@ class FrontEnd:
         resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
             self.ch.drag_area_m2 * gnss[0] ** 2
         )
+        c_x = load_adaptive_stiffness_n(
+            fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
+        )
+        expect = resist * self.drive_share / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
         self.calib_n += 1
         gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
-        self.rolled += gain * (v_long / np.maximum(self.omega, 1e-3) - self.rolled)
-        self.drive_cal += gain * (resist * self.drive_share - self.drive_cal)
+        self.radius += gain * (measured - self.radius)
         self.fz_cal += gain * (fz - self.fz_cal)
-        self.radius = self._slip_free_radius()
         self.radius_common_rel = 0.003 / math.sqrt(self.calib_n)
         self.radius_std = 2e-4 * self.radius
         self._learn_tyres()
-        self.radius = self._slip_free_radius()
-
-    def _slip_free_radius(self) -> FloatArray:
-        """The calibrated radius: the mean rolled ``v/ω`` with the slip the mean drive force
-        needs at each tyre's stiffness now, ``r = (v/ω)(1 + F/c_x)``. Allowed for at read-out,
-        not per epoch: a soft tyre's ``kz`` is learnt only after the first epochs, which
-        would otherwise keep the slip of the config's (4-5× softer, for a tyre deflecting 5×
-        as far) stiffness, ~2e-4 of its radius."""
-        c_x = load_adaptive_stiffness_n(
-            self.fz_cal, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
-        )
-        radius: FloatArray = self.rolled * (1.0 + self.drive_cal / np.maximum(c_x, 1.0))
-        return radius
 
     @property
     def tyre_suspect(self) -> bool:

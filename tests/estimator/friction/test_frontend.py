@@ -8,9 +8,7 @@ import math
 
 import numpy as np
 
-from estimator._arrays import FloatArray
 from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
-from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick, _TiltGradient
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
@@ -135,46 +133,3 @@ def test_the_accelerations_are_carried_to_the_tick() -> None:
         ax, ay = fe._at_tick(0.5 * mean, mean, 0.005)
         want = mean if n == 0 else 14.0 * t_s
         assert abs(ay - want) < 1e-12 and abs(ax - 0.5 * want) < 1e-12
-
-
-def _calibrated(drop: FloatArray) -> tuple[FrontEnd, FloatArray, FloatArray]:
-    """A rear-driven front end after 4 s of epochs straight and steady at 15 m/s, the
-    rear-left tyre soft (``kz`` 50,000 N/m against the config's 250,000): each wheel rolls on
-    ``r = r_u − ρ_i Fz/kz`` with the slip its share of the resistances needs at its own
-    stiffness. Returns the front end, the true ``kz`` and radii."""
-    config = Wheeled4wdSteeredConfig(chassis=ChassisConfig(driven_axle=DrivenAxle.REAR))
-    fe = FrontEnd(config, FrontEndConfig(), 0.02)
-    ch, ty = config.chassis, config.tyre
-    kz = np.array([1.0, 1.0, 0.2, 1.0]) * ty.kz_npm
-    fz = fe.fz_static
-    speed_mps = 15.0
-    resist = ch.rolling_resistance * fz.sum() + 0.5 * 1.2 * ch.drag_area_m2 * speed_mps**2
-    slip = (
-        resist
-        * fe.drive_share
-        / load_adaptive_stiffness_n(fz, kz, ty.unloaded_radius_m, ty.c_px_npm2)
-    )
-    radius = ty.unloaded_radius_m - drop * fz / kz
-    fe.omega = speed_mps * (1.0 + slip) / radius
-    for _ in range(40):
-        fe._calibrate((speed_mps, 0.0), fz, np.zeros(4), 0.0, 0.0)
-    return fe, kz, radius
-
-
-def test_a_soft_tyres_radius_allows_for_its_own_slip() -> None:
-    """With ρ 1/3 on every wheel, the soft tyre's ``kz`` is learnt within 1 % and every
-    calibrated radius is the true one within 2e-5 of it: the slip allowed for is the learnt
-    tyre's, also for the epochs before it was learnt (allowing the config's stiffness there
-    left 2.4e-4, ~0.6 % of that tyre's slip-free force)."""
-    fe, kz, radius = _calibrated(np.full(4, 1.0 / 3.0))
-    assert fe.suspect.tolist() == [False, False, True, False]
-    assert abs(fe.kz_wheel[2] / kz[2] - 1.0) < 0.01
-    np.testing.assert_allclose(fe.radius, radius, rtol=2e-5)
-
-
-def test_the_radius_drop_is_the_sound_tyres_median() -> None:
-    """ρ 0.32, 0.34 and 0.33 on the sound tyres: the learnt ρ is their median, 0.33, not the
-    median of all four (the soft tyre's implied ρ is five times theirs, so that median would
-    be the mean of the two highest sound ones, 0.335)."""
-    fe, _, _ = _calibrated(np.array([0.32, 0.34, 0.33, 0.33]))
-    assert abs(fe.radius_drop - 0.33) < 2e-4
