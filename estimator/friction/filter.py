@@ -21,7 +21,8 @@ state and covariance handling:
   Two more rows, one per axle, are the open differential's torque balance
   ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
-  ``D`` the change of ``h`` for a 1-σ change of each wheel's κ); μ's process noise grows
+  ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
+  length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
   while the normalised innovations stay large (a change of ground).
 """
 
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum, StrEnum
 
 import numpy as np
@@ -136,7 +137,9 @@ class FilterConfig:
     and a wheel spins down within one CAN sample); ``central_prediction``: the product's
     innovation taken from ``h`` with the considered states at their mean
     (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
-    ``docs/perf/friction.md``).
+    ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
+    relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
+    product's measurement covariance (:func:`_input_spread`).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -165,6 +168,7 @@ class FilterConfig:
     learn_excite_sigmas: float = 4.0
     learn_mu_max_kappa_std: float = 3e-3
     central_prediction: bool = False
+    relaxation_rel_std: float = 0.5
 
     @property
     def n_states(self) -> int:
@@ -391,10 +395,14 @@ def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
 def _input_spread(
     x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FloatArray:
-    """``D`` ``(B, m, 5)``: the change of ``h`` at the mean for a 1-σ change of each wheel's own
-    κ error and of the shared one (the speed's: all four κ at once; the slip angles follow from
-    the state). A shared error shifts the driven and the free-rolling wheels alike, so it is
-    not read as a driven tyre's slip."""
+    """``D`` ``(B, m, 5)`` (product ``(B, m, 6)``): the change of ``h`` at the mean for a 1-σ
+    change of each wheel's own κ error and of the shared one (the speed's: all four κ at once;
+    the slip angles follow from the state). A shared error shifts the driven and the
+    free-rolling wheels alike, so it is not read as a driven tyre's slip. The product's sixth
+    column is the relaxation length's: the lag of the relaxed slip angles behind the kinematic
+    ones (``u.alpha_lag_rad``) is proportional to it while the slip moves (``τ = σ/v`` short
+    against the change), and the tyres' own is the config's ×0.75-1.75 at best, so the lag of
+    all four wheels scaled by ``1 + relaxation_rel_std``."""
     shifts = np.concatenate(
         [
             np.eye(4)[None] * u.kappa_std[:, :, None],
@@ -406,7 +414,12 @@ def _input_spread(
     mean = x[:, None, :]
     alpha = u.alpha_rad[:, None, :]
     base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
-    return np.swapaxes(_measure(mean, cfg, tyres, chassis, u, kappa, alpha) - base, -1, -2)
+    d = _measure(mean, cfg, tyres, chassis, u, kappa, alpha) - base
+    if cfg.mode is FrictionMode.PRODUCT and cfg.relaxation_rel_std > 0:
+        longer = replace(u, alpha_lag_rad=u.alpha_lag_rad * (1 + cfg.relaxation_rel_std))
+        lag = _measure(mean, cfg, tyres, chassis, longer, u.kappa[:, None, :], alpha) - base
+        d = np.concatenate([d, lag], axis=1)
+    return np.swapaxes(d, -1, -2)
 
 
 def _predict(

@@ -19,6 +19,7 @@ from estimator.friction.filter import (
     TyreArrays,
     _gain_mask,
     _input_spread,
+    _measure,
     filter_step,
     initial_state,
     mu_of,
@@ -261,11 +262,41 @@ def test_the_speed_error_moves_the_four_slips_together() -> None:
     own = np.full((1, 4), 1e-6)
     u = dataclasses.replace(ticks[0], kappa_std=own, kappa_common_std=np.array([2e-6]))
     d = _input_spread(st.x, cfg, tyres, chassis, u)
-    assert d.shape == (1, 6, 5)  # a_x, a_y, ṙ, v_y and the two axles' torque balances
+    assert d.shape == (1, 6, 6)  # a_x, a_y, ṙ, v_y and the two axles' torque balances
     np.testing.assert_allclose(d[..., 4], 2.0 * d[..., :4].sum(axis=-1), rtol=1e-3, atol=1e-12)
     assert np.abs(d[0, 0, 4]) > 0
     quiet = dataclasses.replace(u, kappa_common_std=np.zeros(1))
     assert np.all(_input_spread(st.x, cfg, tyres, chassis, quiet)[..., 4] == 0)
+
+
+def test_the_relaxation_length_spreads_a_lagging_slip_angle() -> None:
+    """``D``'s sixth column is the change of ``h`` when the four wheels' α lag grows by
+    ``relaxation_rel_std`` (the tyres' relaxation length is the config's ×0.75-1.75), zero
+    without a lag; a tick whose ``a_y`` is what the 1.5× longer lag gives (a tyre relaxing
+    more slowly than the config says, in a steering ramp) moves ``v_y`` less than with the
+    lag taken as exact."""
+    ticks, chassis, tyres = _model_inputs(0.6, 1, seed=3)
+    cfg = FilterConfig()
+    st = initial_state(cfg, tyres, ticks[0].fz_n)
+    u = dataclasses.replace(ticks[0], alpha_lag_rad=np.full((1, 4), -3e-3))
+    longer = dataclasses.replace(u, alpha_lag_rad=u.alpha_lag_rad * 1.5)
+    mean, kappa, alpha = st.x[:, None, :], u.kappa[:, None, :], u.alpha_rad[:, None, :]
+    z_longer = _measure(mean, cfg, tyres, chassis, longer, kappa, alpha)[:, 0]
+    expect = z_longer - _measure(mean, cfg, tyres, chassis, u, kappa, alpha)[:, 0]
+    d = _input_spread(st.x, cfg, tyres, chassis, u)
+    np.testing.assert_allclose(d[..., 5], expect, rtol=1e-12, atol=1e-12)
+    assert abs(d[0, 1, 5]) > 0.1  # m/s²: 1.5e-3 rad on four tyres of ~80 kN/rad, 2,500 kg
+    still = dataclasses.replace(u, alpha_lag_rad=np.zeros((1, 4)))
+    assert np.all(_input_spread(st.x, cfg, tyres, chassis, still)[..., 5] == 0)
+    z = u.z.copy()
+    z[:, :3] = z_longer[:, :3]
+    slower = dataclasses.replace(u, z=z)
+    moved = []
+    for rel in (0.0, 0.5):
+        c = FilterConfig(relaxation_rel_std=rel)
+        out = filter_step(initial_state(c, tyres, u.fz_n), c, tyres, chassis, slower)
+        moved.append(abs(out.x[0, ProductState.VY] - st.x[0, ProductState.VY]))
+    assert moved[1] < 0.9 * moved[0]
 
 
 def test_spin_up_slip_by_hand() -> None:
