@@ -90,8 +90,8 @@ class TrackedEstimatorConfig:
     old state's odometer model) and carry ``STATE_BACKDATED``. Standing rows are held
     ``report_lag_ticks`` too: a start shows in the odometer 0.2-0.3 s after the gearbox turns,
     and once it does, the standing rows since the gearbox began turning (read back from
-    the odometer's speed over its acceleration, when above ``start_accel_min_mps2``, less
-    ``start_margin_s``) take the start's state (:func:`~estimator.tracked.step.start_depth`).
+    the odometer's speed over its acceleration, when above ``start_accel_min_mps2``) take
+    the start's state (:func:`~estimator.tracked.step.start_depth`).
     """
 
     mode: TrackedMode = TrackedMode.PRODUCT
@@ -161,7 +161,6 @@ class TrackedEstimatorConfig:
     side_slip_walk: float = 1e-3
     report_lag_ticks: int = 4
     start_accel_min_mps2: float = 0.2
-    start_margin_s: float = 0.05
     onset_yaw_accel_radps2: float = 0.1
 
     def __post_init__(self) -> None:

@@ -509,14 +509,12 @@ def start_depth(state: IntArray, inp: TickInputs, cfg: TrackedEstimatorConfig) -
     gearbox ramps from rest at its acceleration ``a``, so it began turning ``lag + v/a``
     ago (``v`` the odometer's window speed, ``lag`` its window's age); the ticks within
     that, at most ``lag_ticks``, are the start's (the odometer gives a speed only after two
-    edges, 0.2-0.3 s into a start), less ``start_margin_s`` (the few edges of a start's
-    first windows date ``v`` to about half a window). 0 where the state is a stop, or the
-    odometer's speed or an acceleration above ``start_accel_min_mps2`` is not read."""
+    edges, 0.2-0.3 s into a start). 0 where the state is a stop, or the odometer's speed or
+    an acceleration above ``start_accel_min_mps2`` is not read."""
     v, a = inp.odometer_mps, inp.gearbox_accel_mps2
     ok = (state != int(M.STOP)) & (v > 0.0) & (a > cfg.start_accel_min_mps2)
     with np.errstate(invalid="ignore", divide="ignore"):
-        age_s = inp.odometer_lag_s + v / a - cfg.start_margin_s
-        ticks = np.floor(age_s / cfg.tick_s + 1e-9)
+        ticks = np.floor((inp.odometer_lag_s + v / a) / cfg.tick_s + 1e-9)
     depth = np.where(ok & np.isfinite(ticks), np.clip(ticks, 0, cfg.lag_ticks), 0)
     return np.asarray(depth, dtype=np.int64)
 
