@@ -312,12 +312,11 @@ class TrackedFleet(_Base):
         sizes = np.diff(starts)
         out = TRACKED_SPEC.empty_rows(int(starts[-1]))
         onset = np.zeros(out.size, dtype=bool)
-        back = np.zeros(out.size, dtype=np.int64)
         for r in range(int(sizes.max())):
             part = np.flatnonzero(sizes > r)
             rows = starts[part] + r
             slots = [work[k][1] for k in part]
-            out[rows], onset[rows], back[rows] = self._round(
+            out[rows], onset[rows] = self._round(
                 slots, _select(inp, rows), _params_of(params, part)
             )
         _geodetic([slot for _, slot, _ in work], np.diff(starts).tolist(), out)
@@ -325,18 +324,15 @@ class TrackedFleet(_Base):
         for (vid, slot, _), a, b in zip(
             work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
         ):
-            given = slot.held.give(
-                out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min, back[a:b]
-            )
+            given = slot.held.give(out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min)
             if given.size:
                 result.append((vid, given))
         return result
 
     def _round(
         self, slots: list[_Slot], inp: TickInputs, p: VehicleParams
-    ) -> tuple[np.ndarray, BoolArray, IntArray]:
-        """One tick of each of ``slots`` (their filters stepped); its rows, onsets and start
-        depths."""
+    ) -> tuple[np.ndarray, BoolArray]:
+        """One tick of each of ``slots`` (their filters stepped); its rows and onsets."""
         f = _stack_filters([s.filter for s in slots])
         got = tick_step(f, inp, p, self.config)
         rows = _rows(f, got, inp, self.config)
@@ -352,7 +348,7 @@ class TrackedFleet(_Base):
                 f.fix_learnt_cov[i : i + 1],
             )
         _count(slots, got)
-        return rows, got.onset, got.start_back
+        return rows, got.onset
 
 
 class TrackedEstimator(_Base):
@@ -370,15 +366,14 @@ class TrackedEstimator(_Base):
             inputs = slot.inputs.take(ticks)
             rows = TRACKED_SPEC.empty_rows(ticks.size)
             onset = np.zeros(ticks.size, dtype=bool)
-            back = np.zeros(ticks.size, dtype=np.int64)
             for r in range(ticks.size):
                 one = _select(inputs, np.array([r]))
                 got = tick_step(slot.filter, one, slot.inputs.params, self.config)
                 rows[r] = _rows(slot.filter, got, one, self.config)[0]
-                onset[r], back[r] = got.onset[0], got.start_back[0]
+                onset[r] = got.onset[0]
                 _count([slot], got)
             _geodetic([slot], [ticks.size], rows)
-            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min, back)
+            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min)
             if given.size:
                 result.append((vid, given))
         return result

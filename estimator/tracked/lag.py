@@ -6,27 +6,21 @@ the state the filter gives on the tick changes late. Each vehicle's last rows ar
 (:class:`HeldRows`); when a held row's successor changes state, :func:`backdate` moves the
 change back over the ticks that still show the old state while the change was already under
 way (``onset`` of the tick after: a ratio moving, a sprocket settling, the yaw acceleration
-out of its band), at most ``lag`` ticks. A start from standstill is read late too (the
-odometer's first speed comes 0.2-0.3 s after the gearbox turns): a tick that says how many
-ticks back the start began (``start_back``) relabels the standing rows among them
-(:func:`backdate_start`). Only rows a later change can still reach are held: the last one,
-while a change is under way up to ``lag``, and while standing the last ``lag`` (a fixed lag
-of one tick in steady driving, of at most ``lag`` ticks through a change or at a stand).
-Every row keeps its own stamp.
+out of its band), at most ``lag`` ticks. Only rows a later change can still reach are held:
+the last one, and while a change is under way up to ``lag`` (a fixed lag of one tick in
+steady driving, of at most ``lag`` ticks through a change). Every row keeps its own stamp.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from estimator._arrays import BoolArray, IntArray
-from estimator.tracked.model import MotionState
+from estimator._arrays import BoolArray
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 
-__all__ = ["HeldRows", "backdate", "backdate_start"]
+__all__ = ["HeldRows", "backdate"]
 
 _F = TrackedFlag
-_STOP = int(MotionState.STOP)
 _SLIP_BITS = int(_F.SLIP_LEFT_VALID | _F.SLIP_RIGHT_VALID | _F.BRAKED_LEFT | _F.BRAKED_RIGHT)
 _SLIP_FIELDS = ("slip_left_pct", "slip_right_pct", "slip_left_std_pct", "slip_right_std_pct")
 
@@ -55,47 +49,18 @@ def backdate(
             moved[j] = True
             j -= 1
     if moved.any():
-        _relabel(rows, moved, conf_min)
+        unsure = int(_F.STATE_UNCERTAIN)
+        flags = rows["flags"][moved] & ~(_SLIP_BITS | unsure) | int(_F.STATE_BACKDATED)
+        rows["flags"][moved] = np.where(conf[moved] < conf_min, flags | unsure, flags)
+        for name in _SLIP_FIELDS:
+            rows[name][moved] = np.nan
     return moved
 
 
-def _relabel(rows: np.ndarray, moved: BoolArray, conf_min: float) -> None:
-    """Flags and slips of relabelled rows: ``STATE_BACKDATED``, no slip, ``STATE_UNCERTAIN``
-    by the new confidence."""
-    conf = rows["state_confidence"]
-    unsure = int(_F.STATE_UNCERTAIN)
-    flags = rows["flags"][moved] & ~(_SLIP_BITS | unsure) | int(_F.STATE_BACKDATED)
-    rows["flags"][moved] = np.where(conf[moved] < conf_min, flags | unsure, flags)
-    for name in _SLIP_FIELDS:
-        rows[name][moved] = np.nan
-
-
-def backdate_start(
-    rows: np.ndarray, start_back: IntArray, first: int, stop: int, conf_min: float
-) -> BoolArray:
-    """Relabel, for each row ``t`` of ``rows[first:]`` with ``start_back[t] = b > 0``, the rows
-    ``t − b … t − 1`` that show ``stop`` with the state and confidence of ``t`` (in place);
-    returns which rows were relabelled ``(m,)``."""
-    state, conf = rows["motion_state"], rows["state_confidence"]
-    moved = np.zeros(state.size, dtype=bool)
-    for t in (np.flatnonzero(start_back[first:] > 0) + first).tolist():
-        if state[t] == stop:
-            continue
-        back = np.arange(max(t - int(start_back[t]), 0), t)
-        back = back[state[back] == stop]
-        state[back], conf[back] = state[t], conf[t]
-        moved[back] = True
-    if moved.any():
-        _relabel(rows, moved, conf_min)
-    return moved
-
-
-def _still_open(onset: BoolArray, lag: int, standing: bool = False) -> int:
+def _still_open(onset: BoolArray, lag: int) -> int:
     """How many of the last rows a later change may still relabel: the last one (the tick
     before a change), and before it every row followed by an unbroken run of onsets to the
-    end, at most ``lag`` rows (0 for no lag); ``lag`` rows where one of them is ``standing``."""
-    if standing:
-        return min(lag, onset.size)
+    end, at most ``lag`` rows (0 for no lag)."""
     held = min(1, lag, onset.size)
     while held < min(lag, onset.size) and onset[onset.size - held]:
         held += 1
@@ -114,22 +79,12 @@ class HeldRows:
         self.state = np.zeros(0, dtype=TRACKED_SPEC.dtype["motion_state"])
         self.onset = np.zeros(0, dtype=bool)
 
-    def give(
-        self,
-        rows: np.ndarray,
-        onset: BoolArray,
-        lag: int,
-        conf_min: float,
-        start_back: IntArray | None = None,
-    ) -> np.ndarray:
-        """Add the rows of new ticks (``onset`` ``(m,)``, ``start_back`` ``(m,)`` or None for
-        none), backdate their changes and starts over the held ones, and return (oldest
-        first) every row a later change can no longer reach."""
+    def give(self, rows: np.ndarray, onset: BoolArray, lag: int, conf_min: float) -> np.ndarray:
+        """Add the rows of new ticks (``onset`` ``(m,)``), backdate their changes over the held
+        ones, and return (oldest first) every row a later change can no longer reach."""
         if lag <= 0 and not self.data:
             return rows
-        starting = start_back is not None and bool(start_back.any())
-        stop = _STOP in self.state or _STOP in rows["motion_state"]
-        if lag > 0 and rows.size and not onset.any() and not (starting or stop):
+        if lag > 0 and rows.size and not onset.any():
             return self._give_steady(rows, onset)
         first = self.state.size
         state = np.concatenate([self.state, rows["motion_state"]])
@@ -139,12 +94,7 @@ class HeldRows:
         if ((state[lo:] != state[lo - 1 : -1]) & on[lo:]).any():  # a change that can go back
             backdate(buf, on, first, lag, conf_min)
             state = buf["motion_state"]
-        if starting and start_back is not None:
-            back = np.concatenate([np.zeros(first, dtype=np.int64), start_back])
-            backdate_start(buf, np.minimum(back, lag), first, _STOP, conf_min)
-            state = buf["motion_state"]
-        standing = _STOP in state[-lag:] if lag > 0 else False
-        cut = buf.size - _still_open(on, lag, standing)
+        cut = buf.size - _still_open(on, lag)
         return self._keep(buf, state, on, cut)
 
     def _give_steady(self, rows: np.ndarray, onset: BoolArray) -> np.ndarray:

@@ -87,11 +87,7 @@ class TrackedEstimatorConfig:
     was already under way (a ratio moving, a sprocket settling, or the yaw acceleration above
     ``onset_yaw_accel_radps2``), and one tick before that run (the sprocket windows read a
     lever about half a window late). Those rows give no slip (the filter ran them with the
-    old state's odometer model) and carry ``STATE_BACKDATED``. Standing rows are held
-    ``report_lag_ticks`` too: a start shows in the odometer 0.2-0.3 s after the gearbox turns,
-    and once it does, the standing rows since the gearbox began turning (read back from
-    the odometer's speed over its acceleration, when above ``start_accel_min_mps2``) take
-    the start's state (:func:`~estimator.tracked.step.start_depth`).
+    old state's odometer model) and carry ``STATE_BACKDATED``.
     """
 
     mode: TrackedMode = TrackedMode.PRODUCT
@@ -160,7 +156,6 @@ class TrackedEstimatorConfig:
     initial_side_slip_std: float = 0.5
     side_slip_walk: float = 1e-3
     report_lag_ticks: int = 4
-    start_accel_min_mps2: float = 0.2
     onset_yaw_accel_radps2: float = 0.1
 
     def __post_init__(self) -> None:

@@ -35,15 +35,7 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.vehicle import TickInputs
 
-__all__ = [
-    "Filter",
-    "TickOut",
-    "fresh_patch_var",
-    "initial_filter",
-    "patch_std",
-    "start_depth",
-    "tick_step",
-]
+__all__ = ["Filter", "TickOut", "fresh_patch_var", "initial_filter", "patch_std", "tick_step"]
 
 M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
@@ -94,7 +86,6 @@ class TickOut:
     braked_pair: BoolArray
     standstill: BoolArray
     onset: BoolArray
-    start_back: IntArray
 
 
 def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
@@ -504,21 +495,6 @@ def _lateral(
     return side_slip(v, w, p.length_m, p.lateral_resistance, f.x[:, S.SIDE_SLIP])
 
 
-def start_depth(state: IntArray, inp: TickInputs, cfg: TrackedEstimatorConfig) -> IntArray:
-    """How many ticks before this one a start from standstill already drove, ``(k,)``: the
-    gearbox ramps from rest at its acceleration ``a``, so it began turning ``lag + v/a``
-    ago (``v`` the odometer's window speed, ``lag`` its window's age); the ticks within
-    that, at most ``lag_ticks``, are the start's (the odometer gives a speed only after two
-    edges, 0.2-0.3 s into a start). 0 where the state is a stop, or the odometer's speed or
-    an acceleration above ``start_accel_min_mps2`` is not read."""
-    v, a = inp.odometer_mps, inp.gearbox_accel_mps2
-    ok = (state != int(M.STOP)) & (v > 0.0) & (a > cfg.start_accel_min_mps2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ticks = np.floor((inp.odometer_lag_s + v / a) / cfg.tick_s + 1e-9)
-    depth = np.where(ok & np.isfinite(ticks), np.clip(ticks, 0, cfg.lag_ticks), 0)
-    return np.asarray(depth, dtype=np.int64)
-
-
 def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> TickOut:
     """One tick for every vehicle of ``f`` (updated in place); see the module docstring."""
     gyro = np.nan_to_num(inp.gyro_radps)
@@ -572,5 +548,4 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         braked_pair=braked,
         standstill=still,
         onset=onset,
-        start_back=start_depth(state, inp, cfg) if cfg.learns else np.zeros_like(state),
     )

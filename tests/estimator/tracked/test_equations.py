@@ -43,7 +43,6 @@ from estimator.tracked.step import (
     fresh_patch_var,
     initial_filter,
     patch_std,
-    start_depth,
 )
 from estimator.tracked.vehicle import TickInputs
 
@@ -762,17 +761,3 @@ def test_predict_moves_the_position_by_the_side_slip_gain() -> None:
     )
     assert p_next[0, S.EAST, S.EAST] == pytest.approx((0.1 * 0.2) ** 2 * 0.25)
     assert p_next[0, S.NORTH, S.NORTH] == pytest.approx(0.0, abs=1e-18)
-
-
-def test_a_start_is_read_back_from_the_gearboxs_ramp() -> None:
-    """Ticks since the gearbox began turning: ``⌊(lag + v/a)/Δ⌋``, at most the lag's."""
-    cfg = TrackedEstimatorConfig()
-    inp = _tick_inputs(
-        5,
-        odometer_mps=np.array([0.22, 0.22, 0.22, np.nan, 2.0]),
-        odometer_lag_s=np.full(5, 0.05),
-        gearbox_accel_mps2=np.array([0.8, 0.1, 0.8, 0.8, 0.8]),
-    )
-    state = np.array([int(M.STRAIGHT), int(M.STRAIGHT), int(M.STOP), int(M.STRAIGHT), 1])
-    # 0.05 + 0.275 s = 3.25 ticks; a crawl not accelerating, a stop, no speed: none; capped
-    assert start_depth(state, inp, cfg).tolist() == [3, 0, 0, 0, 4]

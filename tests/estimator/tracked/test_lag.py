@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.tracked.lag import HeldRows, backdate, backdate_start
+from estimator.tracked.lag import HeldRows, backdate
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 
 _VALID = int(TrackedFlag.SLIP_LEFT_VALID | TrackedFlag.SLIP_RIGHT_VALID)
@@ -99,32 +99,3 @@ def test_rows_given_tick_by_tick_equal_rows_given_at_once() -> None:
         ticked = np.concatenate([*parts, each.flush()])
         assert whole.tobytes() == ticked.tobytes()
         assert max(p.size for p in parts) <= 5  # at most the lag and the newest row at once
-
-
-def test_a_start_relabels_the_standing_rows_since_the_gearbox_turned() -> None:
-    # stop (0) for five rows, straight (1) seen from row 5; row 6 reads the start 3 ticks back
-    # (rows 3, 4, 5): the standing rows 3 and 4 become straight, row 2 stays a stop
-    rows = _rows([0, 0, 0, 0, 0, 1, 1])
-    back = np.array([0, 0, 0, 0, 0, 0, 3])
-    moved = backdate_start(rows, back, 0, 0, 0.9)
-    assert rows["motion_state"].tolist() == [0, 0, 0, 1, 1, 1, 1]
-    assert moved.tolist() == [False, False, False, True, True, False, False]
-    assert (rows["flags"][moved] & int(TrackedFlag.STATE_BACKDATED)).all()
-    assert (rows["state_confidence"][moved] == rows["state_confidence"][6]).all()
-    still = _rows([0, 0, 0])  # a stop's own depth relabels nothing
-    backdate_start(still, np.array([0, 0, 2]), 0, 0, 0.9)
-    assert still["motion_state"].tolist() == [0, 0, 0]
-
-
-def test_standing_rows_are_held_until_a_start_can_no_longer_reach_them() -> None:
-    held = HeldRows()
-    rows = _rows([0, 0, 0, 0, 0, 0, 1, 1, 1])
-    none = np.zeros(9, dtype=bool)
-    back = np.array([0, 0, 0, 0, 0, 0, 0, 0, 3])  # row 8: the gearbox turned 3 ticks ago
-    first = held.give(rows[:6], none[:6], 4, 0.9, back[:6])
-    assert first.size == 2  # standing: the last 4 rows held
-    second = held.give(rows[6:8], none[6:8], 4, 0.9, back[6:8])
-    assert second.size == 2
-    third = held.give(rows[8:], none[8:], 4, 0.9, back[8:])
-    got = np.concatenate([first, second, third, held.flush()])
-    assert got["motion_state"].tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1]
