@@ -81,6 +81,9 @@ def _stack_filters(filters: list[Filter]) -> Filter:
         np.concatenate([f.started for f in filters]),
         np.concatenate([f.since_gnss_s for f in filters]),
         np.concatenate([f.gated_s for f in filters]),
+        np.concatenate([f.since_gnss_m for f in filters]),
+        np.concatenate([f.odometer_gain for f in filters]),
+        np.concatenate([f.fix_learnt_cov for f in filters]),
     )
 
 
@@ -340,6 +343,9 @@ class TrackedFleet(_Base):
                 f.started[i : i + 1],
                 f.since_gnss_s[i : i + 1],
                 f.gated_s[i : i + 1],
+                f.since_gnss_m[i : i + 1],
+                f.odometer_gain[i : i + 1],
+                f.fix_learnt_cov[i : i + 1],
             )
         _count(slots, got)
         return rows, got.onset

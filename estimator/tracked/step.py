@@ -35,7 +35,7 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.vehicle import TickInputs
 
-__all__ = ["Filter", "TickOut", "initial_filter", "patch_std", "tick_step"]
+__all__ = ["Filter", "TickOut", "fresh_patch_var", "initial_filter", "patch_std", "tick_step"]
 
 M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
@@ -49,13 +49,20 @@ _BESIDE_ONLY = [*_LEARNED, S.ACCEL_LAG, S.ACCEL_SLIP]
 class Filter:
     """Filter state of ``k`` vehicles: ``x (k, n)``, ``P (k, n, n)``, ``started (k,)``,
     ``since_gnss_s (k,)`` (time since the last fused fix), ``gated_s (k,)`` (how long every
-    fix has been refused by the gate)."""
+    fix has been refused by the gate); since the last fused fix, ``since_gnss_m (k,)`` the
+    distance driven and ``odometer_gain (k, m)`` how far the odometer's learnt states
+    (``_BESIDE_ONLY``, ``m`` = 7) have moved the hull per unit of their error at the fix,
+    whose covariance then was ``fix_learnt_cov (k, m, m)``
+    (:func:`_dead_reckoning_noise`)."""
 
     x: FloatArray
     P: FloatArray
     started: BoolArray
     since_gnss_s: FloatArray
     gated_s: FloatArray
+    since_gnss_m: FloatArray
+    odometer_gain: FloatArray
+    fix_learnt_cov: FloatArray
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,7 +120,17 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
     P[0, [S.EAST, S.NORTH], [S.EAST, S.NORTH]] = 1e6
-    return Filter(x, P, np.zeros(1, dtype=bool), np.full(1, np.inf), np.zeros(1))
+    m = len(_BESIDE_ONLY)
+    return Filter(
+        x,
+        P,
+        np.zeros(1, dtype=bool),
+        np.full(1, np.inf),
+        np.zeros(1),
+        np.zeros(1),
+        np.zeros((1, m)),
+        np.zeros((1, m, m)),
+    )
 
 
 def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> FloatArray:
@@ -134,14 +151,14 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
 
 
 def patch_std(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> FloatArray:
-    """1-sigma ``σ_p`` of the ground's patch per vehicle, shape ``(k,)``: ``r·(max(1 − F, 0)
-    + √(σ_KD² + σ_F²))``, ``r`` = ``ground_patch_rel_std``. ``1 − F`` (``F`` the straight's
-    learnt factor) is the ground's traction slip less ``K_D``'s error, so the slip level is
-    known to ``K_D``'s 1-sigma ``σ_KD`` and the factor's own ``σ_F``; the upper 1-sigma of it
-    is taken."""
+    """1-sigma ``σ_p`` of the ground's patch per vehicle, shape ``(k,)``: ``r·√((1 − F)² +
+    σ_KD² + σ_F²)``, ``r`` = ``ground_patch_rel_std``. ``1 − F`` (``F`` the straight's learnt
+    factor) is the ground's traction slip less ``K_D``'s error, so the slip level is known to
+    ``K_D``'s 1-sigma ``σ_KD`` and the factor's own ``σ_F``: its root mean square given what
+    is known is taken."""
     var_f = np.maximum(f.P[:, S.F_STRAIGHT, S.F_STRAIGHT], 0.0)
-    level = np.maximum(1.0 - f.x[:, S.F_STRAIGHT], 0.0)
-    return cfg.ground_patch_rel_std * (level + np.sqrt(p.odometer_scale_std**2 + var_f))
+    level = 1.0 - f.x[:, S.F_STRAIGHT]
+    return cfg.ground_patch_rel_std * np.sqrt(level**2 + p.odometer_scale_std**2 + var_f)
 
 
 def _ground_patch(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
@@ -159,32 +176,65 @@ def _ground_patch(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> N
     f.P[:, g, g] += patch_std(f, p, cfg) ** 2 * (1.0 - e * e)
 
 
-def _dead_reckoning_noise(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
+def fresh_patch_var(d_m: FloatArray, sigma_p: FloatArray, patch_m: float) -> FloatArray:
+    """Variance ``(k,)`` of ``∫₀^d w(s) ds``, ``w`` the patches met since the last fix (the
+    Gauss-Markov patch of 1-sigma ``σ_p`` and length ``ℓ``, started at 0 there):
+    ``σ_p²·ℓ²·(2x − 2u − u²)``, ``x = d/ℓ``, ``u = 1 − exp(−x)``; ``≈ (2/3)·σ_p²·d³/ℓ``
+    near the fix, ``≈ 2·σ_p²·ℓ·d`` far from it."""
+    x = d_m / patch_m
+    u = -np.expm1(-x)
+    return np.asarray(sigma_p**2 * patch_m**2 * np.maximum(2.0 * x - 2.0 * u - u * u, 0.0))
+
+
+def _dead_reckoning_noise(
+    f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig, gain: FloatArray
+) -> None:
     """While dead reckoning (no fix fused for over a second; product mode), the along-track
-    position variance the odometer's factor makes: the ground's mean factor, off by ``ε₀``
-    (variance ``σ₀²``) at the loss and walking by ``q_F`` = ``factor_walk²`` since, costs
-    ``∫ε·|V| dt`` over the ``t`` since the last fix, whose variance grows at
-    ``(2·σ₀²·t + q_F·t²)·V²`` (constant ``V``); with the filter's ``σ_F² = P[F_straight] =
-    σ₀² + q_F·t`` that is ``(2·σ_F²·t − q_F·t²)·V²`` along the heading. The patches of
-    ground driven over, each departing from
-    the mean by ``σ_p`` over ``ℓ``, add ``2·σ_p²·ℓ·|V|`` (the integral of the Gauss-Markov
-    patch for ``d ≫ ℓ``). The factors' own ``H`` is zeroed without GNSS, so without this
-    their variance never reaches the position. ``P`` in place."""
-    dr = f.started & (f.since_gnss_s > 1.0)
-    if not cfg.learns or not dr.any():
+    position variance the odometer's learnt states make over the tick. They are not fused
+    without GNSS (their ``H`` zeroed), so their error at the last fix, covariance ``P_L``
+    (``fix_learnt_cov``), moves the hull by ``Gᵀ·ε_L`` with ``G = ∫ g dt`` (``g`` ``(k, m)``
+    the tick's speed per unit of each state's error, ``−h_L/h_V``, the patch's scaled by
+    ``exp(−d/ℓ)`` as the patch learnt at the fix dies out); its variance ``GᵀP_L G`` grows
+    with ``G``, and the patches met since by :func:`fresh_patch_var` over the distance ``d``.
+    The growth over the tick (never negative) goes along the heading. The factors' walk is
+    not added: through an outage the ground's variation is the patches'. ``f`` in place."""
+    if not cfg.learns:
         return
-    v = np.abs(f.x[:, S.SPEED])
-    var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT]
-    t = f.since_gnss_s
-    mean_rate = np.maximum(2.0 * var_f * t - cfg.factor_walk**2 * t * t, 0.0) * v * v
-    q = mean_rate + 2.0 * patch_std(f, p, cfg) ** 2 * cfg.ground_patch_m * v
-    q = np.where(dr, q * cfg.tick_s, 0.0)
+    d1 = f.since_gnss_m  # :func:`_since_fix` has counted the tick
+    d0 = np.maximum(d1 - np.abs(f.x[:, S.SPEED]) * cfg.tick_s, 0.0)
+    g = gain.copy()
+    g[:, _BESIDE_ONLY.index(S.GROUND_PATCH)] *= np.exp(-d0 / cfg.ground_patch_m)
+    g0 = f.odometer_gain
+    g1 = g0 + g * cfg.tick_s
+    f.odometer_gain = g1
+    dr = f.started & (f.since_gnss_s > 1.0)
+    if not dr.any():
+        return
+    P_L = f.fix_learnt_cov
+    known = np.einsum("ki,kij,kj->k", g1, P_L, g1) - np.einsum("ki,kij,kj->k", g0, P_L, g0)
+    sigma_p = patch_std(f, p, cfg)
+    fresh = fresh_patch_var(d1, sigma_p, cfg.ground_patch_m)
+    fresh -= fresh_patch_var(d0, sigma_p, cfg.ground_patch_m)
+    q = np.where(dr, np.maximum(known + fresh, 0.0), 0.0)
     s, c = np.sin(f.x[:, S.HEADING]), np.cos(f.x[:, S.HEADING])
     e, n = S.EAST, S.NORTH
     f.P[:, e, e] += q * s * s
     f.P[:, n, n] += q * c * c
     f.P[:, e, n] += q * s * c
     f.P[:, n, e] += q * s * c
+
+
+def _since_fix(f: Filter, fixed: BoolArray, cfg: TrackedEstimatorConfig) -> None:
+    """Time and distance since the last fused fix (this tick counted); at a fix, the learnt
+    states' covariance is kept and the odometer's gain starts afresh."""
+    f.since_gnss_s = np.where(fixed, 0.0, f.since_gnss_s + cfg.tick_s)
+    step_m = np.abs(f.x[:, S.SPEED]) * cfg.tick_s
+    f.since_gnss_m = np.where(fixed, 0.0, f.since_gnss_m + step_m)
+    if not fixed.any():
+        return
+    f.odometer_gain = np.where(fixed[:, None], 0.0, f.odometer_gain)
+    cov = f.P[:, _BESIDE_ONLY][:, :, _BESIDE_ONLY]
+    f.fix_learnt_cov = np.where(fixed[:, None, None], cov, f.fix_learnt_cov)
 
 
 def recognise(
@@ -329,9 +379,9 @@ def _fuse_odometer(
     cfg: TrackedEstimatorConfig,
     state: IntArray,
     w: FloatArray,
-) -> tuple[BoolArray, FloatArray, FloatArray]:
+) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
     """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`);
-    returns (used, corrected speed, :func:`_factor_speed_var`)."""
+    returns (used, corrected speed, :func:`_factor_speed_var`, :func:`_odometer_gain`)."""
     valid = np.isfinite(inp.odometer_mps)
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
@@ -351,24 +401,31 @@ def _fuse_odometer(
         inp.steady_s >= cfg.learn_steady_s
     )
     beside = f.started & (f.since_gnss_s <= 1.0)
-    factor_var = _factor_speed_var(f.P, H, ~beside & mask)
+    gain = _odometer_gain(H, mask)
+    factor_var = _factor_speed_var(f.P, gain, ~beside)
     H[:, :, _LEARNED] *= (beside & steady)[:, None, None]
     H[:, :, S.ACCEL_LAG] *= beside[:, None]
     H[:, :, S.ACCEL_SLIP] *= beside[:, None]
     f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
-    return used, corrected, factor_var
+    return used, corrected, factor_var, gain
 
 
-def _factor_speed_var(P: FloatArray, H: FloatArray, dead_reckoning: BoolArray) -> FloatArray:
+def _odometer_gain(H: FloatArray, mask: BoolArray) -> FloatArray:
+    """``g = −h_L/h_V`` ``(k, m)``: the forward speed the odometer gives per unit of error
+    of each learnt state (``_BESIDE_ONLY``), ``h`` its row of ``H (k, 1, n)``; 0 where it
+    gives none (``mask`` False)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = -H[:, 0, _BESIDE_ONLY] / H[:, 0, S.SPEED, None]
+    return np.where(mask[:, None] & np.isfinite(g), g, 0.0)
+
+
+def _factor_speed_var(P: FloatArray, gain: FloatArray, dead_reckoning: BoolArray) -> FloatArray:
     """Variance ``(k,)`` of the forward speed the odometer gives through its model's learnt
     states while dead reckoning (they are not fused then, so ``P[V]`` does not hold them):
-    ``h_L P_LL h_Lᵀ / h_V²``, ``h`` the odometer's row of ``H (k, 1, n)`` (0 elsewhere)."""
-    h = H[:, 0, _BESIDE_ONLY]
+    ``gᵀ P_LL g``, ``g`` from :func:`_odometer_gain`."""
     p_ll = P[:, _BESIDE_ONLY][:, :, _BESIDE_ONLY]
-    var = np.einsum("ki,kij,kj->k", h, p_ll, h)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        var = var / H[:, 0, S.SPEED] ** 2
-    return np.where(dead_reckoning & np.isfinite(var), var, 0.0)
+    var = np.einsum("ki,kij,kj->k", gain, p_ll, gain)
+    return np.where(dead_reckoning, var, 0.0)
 
 
 def _fuse_standstill(
@@ -449,11 +506,10 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral), by_gain
     )
     _ground_patch(f, p, cfg)
-    _dead_reckoning_noise(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain), w, fresh)
-    odo_used, corrected, factor_var = _fuse_odometer(f, inp, p, cfg, state, w)
+    odo_used, corrected, factor_var, gain = _fuse_odometer(f, inp, p, cfg, state, w)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:
@@ -471,7 +527,8 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
             inp.odometer_mps,
         )
         _fuse_standstill(f, inp, cfg, still)
-    f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)
+    _since_fix(f, used | fresh, cfg)
+    _dead_reckoning_noise(f, p, cfg, gain)
     track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w, factor_var)
     return TickOut(
         state=state,

@@ -11,13 +11,13 @@ Named scenarios (:func:`estimator.sim.tracked.route.named_route`): ``route_firm`
 ways, low-gear straights, pivots, a fast pivot and stops, with a 4-minute GNSS outage
 covering more than 1 km. ``random``: a route drawn from
 :data:`~estimator.sim.tracked.route.RANDOM_RANGES` (ground, manoeuvres, outage, gauge and
-contact length) by the seed. Physics in :mod:`~estimator.sim.tracked.physics`, sensors in
-:mod:`~estimator.sim.tracked.sensors`.
+contact length, the gyro's grade) by the seed. Physics in
+:mod:`~estimator.sim.tracked.physics`, sensors in :mod:`~estimator.sim.tracked.sensors`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -26,7 +26,13 @@ from estimator.base import Measurement
 from estimator.config import TrackedConfig, TrackedGeometry
 from estimator.geo import EnuFrame
 from estimator.sim.tracked.physics import RATE_HZ, CrawlerTruth, integrate_route
-from estimator.sim.tracked.route import Route, named_route, random_route, route_names
+from estimator.sim.tracked.route import (
+    RANDOM_RANGES,
+    Route,
+    named_route,
+    random_route,
+    route_names,
+)
 from estimator.sim.tracked.sensors import CrawlerSensors, SensorErrors, draw_errors, emissions
 
 __all__ = [
@@ -53,7 +59,8 @@ class TrackedRun:
 
     ``measurements`` are ``(key_ns, measurement)`` sorted by key: after every packet keyed at
     or before ``T`` each stream is complete up to ``T``. ``truth`` is on the 100 Hz grid from
-    ``start_ns``; ``frame`` is the ENU frame of its positions (the hull centre's).
+    ``start_ns``; ``frame`` is the ENU frame of its positions (the hull centre's);
+    ``sensors`` the imperfections the sensors were drawn with.
     """
 
     name: str
@@ -65,6 +72,7 @@ class TrackedRun:
     start_ns: int
     frame: EnuFrame
     measurements: list[tuple[int, Measurement]]
+    sensors: CrawlerSensors = field(default_factory=CrawlerSensors)
 
     @property
     def outages_ns(self) -> list[tuple[int, int]]:
@@ -91,6 +99,13 @@ def _random_config(rng: np.random.Generator) -> TrackedConfig:
     return TrackedConfig(geometry=geo)
 
 
+def _random_sensors(seed: int) -> CrawlerSensors:
+    """A random route's sensors: the gyro's grade drawn from ``RANDOM_RANGES`` by a
+    generator of its own (the route, ground and every other draw stay those of the seed)."""
+    rng = np.random.default_rng((seed, 1))
+    return CrawlerSensors(gyro_grade=float(rng.uniform(*RANDOM_RANGES["gyro_grade"])))
+
+
 def simulate_tracked(
     name: str,
     seed: int,
@@ -104,11 +119,12 @@ def simulate_tracked(
     if name == "random":
         route = random_route(rng)
         config = config or _random_config(rng)
+        spec = sensors or _random_sensors(seed)
     else:
         route = named_route(name)
         config = config or TrackedConfig()
-    spec = sensors or CrawlerSensors()
+        spec = sensors or CrawlerSensors()
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
     meas = emissions(truth, config, spec, errors, ORIGIN, route.outages_s, start_ns, rng)
-    return TrackedRun(name, seed, route, config, truth, errors, start_ns, ORIGIN, meas)
+    return TrackedRun(name, seed, route, config, truth, errors, start_ns, ORIGIN, meas, spec)

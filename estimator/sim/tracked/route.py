@@ -152,7 +152,9 @@ MANOEUVRES: dict[MotionState, tuple[float, tuple[float, float], tuple[float, flo
 }
 
 #: Other ranges random routes draw from (uniform): ground figures (:class:`Ground`), the
-#: separated turn's sprocket ratio, the route's duration and its outage's (s).
+#: separated turn's sprocket ratio, the route's duration and its outage's (s), and the
+#: gyro's grade (its noise and bias walk over the data sheet's: from the ADIS16470 itself to
+#: a consumer part, :class:`~estimator.sim.tracked.sensors.CrawlerSensors`).
 RANDOM_RANGES: dict[str, tuple[float, float]] = {
     "separated_ratio": (0.78, 0.96),
     "rolling_slip": (0.01, 0.06),
@@ -163,6 +165,7 @@ RANDOM_RANGES: dict[str, tuple[float, float]] = {
     "texture_std": (0.002, 0.008),
     "duration_s": (600.0, 900.0),
     "outage_s": (180.0, 300.0),
+    "gyro_grade": (1.0, 2.0),
 }
 _GROUND_KEYS = (
     "rolling_slip",

@@ -17,6 +17,7 @@ from estimator.config import TrackedConfig
 from estimator.geo import EnuFrame
 from estimator.sim._signals import cumtrapz
 from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ, CrawlerTruth
+from estimator.tracked.gyro import ADIS16470, GyroPart
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges, TrackSide
 
 __all__ = ["CrawlerSensors", "SensorErrors", "draw_errors", "emissions"]
@@ -28,15 +29,18 @@ _WINDOW = RATE_HZ // 10  # grid points per 100 ms packet
 class CrawlerSensors:
     """Sensor imperfections (1-sigma unless said).
 
-    The gyro z bias, scale error and the odometer's true ``K_D`` error are drawn per run;
-    ``*_tooth_error`` is each tooth's position error as a fraction of the pitch (fixed per
-    tooth, so it repeats every revolution of the shaft or sprocket).
+    The gyro is ``gyro_part`` (by default the ADIS16470, :mod:`estimator.tracked.gyro`) with
+    its white rate noise and in-run bias walk both ``gyro_grade`` times the data sheet's (the
+    knob for a worse part: 1 is the part, 1.2-1.7 a consumer MEMS gyro such as the BMI088).
+    The gyro z turn-on bias, scale error and the odometer's true ``K_D`` error are drawn per
+    run; ``*_tooth_error`` is each tooth's position error as a fraction of the pitch (fixed
+    per tooth, so it repeats every revolution of the shaft or sprocket).
     """
 
+    gyro_part: GyroPart = ADIS16470
+    gyro_grade: float = 1.0
     gyro_bias_std_radps: float = 5e-4
-    gyro_bias_walk_radps: float = 2e-6  # per √s
     gyro_scale_std: float = 0.003
-    gyro_noise_radps: float = 0.003
     accel_bias_std_mps2: float = 0.03
     accel_noise_mps2: float = 0.05
     gnss_pos_std_m: float = 0.02
@@ -47,6 +51,16 @@ class CrawlerSensors:
     sprocket_tooth_error: float = 0.005
     sprocket_radius_error_std: float = 0.002
     edge_jitter_s: float = 2e-5
+
+    @property
+    def gyro_noise_radps(self) -> float:
+        """White rate noise of one 100 Hz sample (rad/s)."""
+        return self.gyro_grade * self.gyro_part.sample_noise_radps(RATE_HZ)
+
+    @property
+    def gyro_bias_walk_radps(self) -> float:
+        """In-run bias walk (rad/s per √s)."""
+        return self.gyro_grade * self.gyro_part.bias_walk_radps_rt_s
 
 
 @dataclass(frozen=True, slots=True)

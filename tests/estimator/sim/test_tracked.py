@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 from estimator.sim.tracked import TrackedRun, simulate_tracked, tracked_scenarios
-from estimator.sim.tracked.route import FIRM, SOFT
+from estimator.sim.tracked.route import FIRM, RANDOM_RANGES, SOFT
+from estimator.sim.tracked.sensors import CrawlerSensors
+from estimator.tracked import TrackedEstimatorConfig
+from estimator.tracked.gyro import ADIS16470
 from estimator.tracked.model import MotionState
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges
 
@@ -126,6 +129,43 @@ def test_imu_sees_bias_scale_and_the_turn() -> None:
     truth = run.truth.yaw_rate_radps[1 : gyro.size + 1]
     expect = (1 + run.errors.gyro_scale) * truth + run.errors.gyro_bias_radps[1 : gyro.size + 1]
     assert abs(np.mean(gyro - expect)) < 2e-4 and np.std(gyro - expect) < 0.004
+
+
+def _gyro_error(run: TrackedRun) -> np.ndarray:
+    """The z gyro's samples less the truth, bias and scale: its white noise."""
+    gyro = np.concatenate(
+        [m.gyro_radps[:, 2] for _, m in run.measurements if isinstance(m, ImuBatch)]
+    )
+    n = gyro.size + 1
+    expect = (1 + run.errors.gyro_scale) * run.truth.yaw_rate_radps[1:n]
+    return np.asarray(gyro - expect - run.errors.gyro_bias_radps[1:n])
+
+
+def test_the_default_gyro_is_the_adis16470_of_its_data_sheet() -> None:
+    # ADIS16470 data sheet, Analog Devices: ARW 0.34 °/√h, 8 °/h, 0.008 °/s/√Hz
+    assert ADIS16470.arw_rad_rt_s == pytest.approx(0.34 * np.pi / 180 / 60)
+    assert ADIS16470.noise_density_dps_rt_hz * 60 / np.sqrt(2) == pytest.approx(0.34, rel=0.01)
+    assert ADIS16470.bias_stability_radps == pytest.approx(8 * np.pi / 180 / 3600)
+    # the 100 Hz samples' noise is ARW·√100 ≈ 0.99 mrad/s (the earlier gyro: 3 mrad/s)
+    noise = np.std(_gyro_error(_run("route_firm", 6)))
+    assert noise == pytest.approx(ADIS16470.arw_rad_rt_s * 10, rel=0.03)
+    # the estimator's gyro setting is the same data sheet's, not a measured unit's noise
+    cfg = TrackedEstimatorConfig()
+    assert cfg.gyro_noise_radps == ADIS16470.arw_rad_rt_s
+    assert cfg.gyro_bias_walk_radps == ADIS16470.bias_walk_radps_rt_s
+    worse = CrawlerSensors(gyro_grade=2.0)
+    assert worse.gyro_noise_radps == pytest.approx(2 * CrawlerSensors().gyro_noise_radps)
+    assert worse.gyro_bias_walk_radps == pytest.approx(2 * ADIS16470.bias_walk_radps_rt_s)
+
+
+def test_random_routes_draw_the_gyros_grade_over_the_stated_range() -> None:
+    lo, hi = RANDOM_RANGES["gyro_grade"]
+    grades = [simulate_tracked("random", seed).sensors.gyro_grade for seed in range(40, 46)]
+    assert all(lo <= g <= hi for g in grades) and max(grades) - min(grades) > 0.2 * (hi - lo)
+    run = simulate_tracked("random", 40)
+    noise = np.std(_gyro_error(run))
+    assert noise == pytest.approx(run.sensors.gyro_noise_radps, rel=0.03)
+    assert run.route == simulate_tracked("random", 40, sensors=CrawlerSensors()).route
 
 
 def test_seeds_repeat_and_random_routes_differ() -> None:

@@ -40,6 +40,7 @@ from estimator.tracked.step import (
     _ground_patch,
     _released,
     _track_slip,
+    fresh_patch_var,
     initial_filter,
     patch_std,
 )
@@ -594,7 +595,24 @@ def test_a_released_brake_is_read_from_the_slow_sprockets_first_edge() -> None:
     assert (still == int(M.STOP)).all()
 
 
-def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() -> None:
+def _fresh_by_hand(d: float, sp: float, ell: float) -> float:
+    """``Var ∫₀^d w(s) ds``, ``w`` Gauss-Markov from 0 (textbook form)."""
+    E = math.exp(-d / ell)
+    return sp**2 * ell**2 * (2 * d / ell - 3 + 4 * E - E * E)
+
+
+def test_the_patches_met_since_the_fix_grow_from_nothing() -> None:
+    ell, sp = 150.0, 0.003
+    d = np.array([2.0, 40.0, 3000.0])
+    got = fresh_patch_var(d, np.full(3, sp), ell)
+    assert got == pytest.approx([_fresh_by_hand(x, sp, ell) for x in d.tolist()], rel=1e-6)
+    assert got[0] == pytest.approx(2 / 3 * sp**2 * 8.0 / ell, rel=0.02)  # (2/3)·σ²·d³/ℓ
+    assert got[2] == pytest.approx(sp**2 * ell * (2 * 3000.0 - 3 * ell), rel=1e-6)  # ≈ 2σ²ℓd
+
+
+def test_dead_reckoning_grows_the_along_track_variance_by_the_learnt_states_error() -> None:
+    """``GᵀP_L G`` with ``G = ∫ g dt`` (the patch's gain dying out over ``ℓ``) and the new
+    patches' variance, both grown over the tick, along the heading."""
     cfg = TrackedEstimatorConfig()
     f = initial_filter(cfg)
     f.started[:] = True
@@ -602,22 +620,31 @@ def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() ->
     f.x[0, S.F_STRAIGHT] = 0.96  # a ground slipping by 4 %
     f.P[0] = np.eye(N_STATES) * 1e-4
     f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 1e-5
+    P_L = np.eye(7) * 1e-6
+    P_L[0, 0], P_L[4, 4], P_L[0, 4], P_L[4, 0] = 8e-6, 2e-6, -1e-6, -1e-6  # F_straight, patch
+    f.fix_learnt_cov[0] = P_L
+    G0 = np.array([40.0, 0, 0, 0, 30.0, 0, 0])
+    f.odometer_gain[0] = G0
+    f.since_gnss_m[:] = 40.5  # this tick's 0.5 m counted
+    g = np.array([[5.2, 0, 0, 0, 5.2, 0, 0]])  # −h_L/h_V of a straight at 5.2 m/s odometer
     f.since_gnss_s[:] = 0.5  # beside GNSS: nothing added
-    _dead_reckoning_noise(f, P1, cfg)
+    _dead_reckoning_noise(f, P1, cfg, g)
     assert f.P[0, S.NORTH, S.NORTH] == 1e-4
+    f.odometer_gain[0] = G0
     f.since_gnss_s[:] = 10.0
-    _dead_reckoning_noise(f, P1, cfg)
-    var_f = 1e-5  # the ground's mean factor's error; the patches add 2·σ_p²·ℓ·|V|
-    sigma_p = 0.15 * (0.04 + math.sqrt(0.005**2 + var_f))
-    walk = 1e-4**2  # the factor's walk since the loss is in var_f, counted once
-    q = ((2.0 * var_f * 10.0 - walk * 100.0) * 25.0 + 2.0 * sigma_p**2 * 150.0 * 5.0) * 0.1
-    assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
+    _dead_reckoning_noise(f, P1, cfg, g)
+    G1 = G0 + 0.1 * np.array([5.2, 0, 0, 0, 5.2 * math.exp(-40.0 / 150.0), 0, 0])
+    assert f.odometer_gain[0] == pytest.approx(G1)
+    sigma_p = 0.15 * math.sqrt(0.04**2 + 0.005**2 + 1e-5)
+    fresh = _fresh_by_hand(40.5, sigma_p, 150.0) - _fresh_by_hand(40.0, sigma_p, 150.0)
+    q = G1 @ P_L @ G1 - G0 @ P_L @ G0 + fresh
+    assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q, rel=1e-9)
     assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
     assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
 
 
 def test_a_firm_grounds_patches_differ_by_less_than_a_soft_ones() -> None:
-    """σ_p = r·(max(1 − F, 0) + √(σ_KD² + σ_F²)): the patch's share of the ground's slip."""
+    """σ_p = r·√((1 − F)² + σ_KD² + σ_F²): the patch's share of the ground's slip level."""
     cfg = TrackedEstimatorConfig()
     f = initial_filter(cfg)
     f.x = np.repeat(f.x, 3, axis=0)
@@ -626,12 +653,12 @@ def test_a_firm_grounds_patches_differ_by_less_than_a_soft_ones() -> None:
     f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] = 0.002**2
     sigma_kd = TrackedConfig().odometer.scale_std_pct / 100.0
     got = patch_std(f, VehicleParams.stack([P1, P1, P1]), cfg)
-    margin = math.hypot(sigma_kd, 0.002)
-    assert got == pytest.approx(0.15 * np.array([0.015 + margin, 0.045 + margin, margin]))
+    level = np.array([0.015, 0.045, -0.004])
+    assert got == pytest.approx(0.15 * np.sqrt(level**2 + sigma_kd**2 + 0.002**2))
     assert got[0] < 0.5 * got[1]
     f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] = 0.03**2  # not learnt yet: the prior's width
     wide = patch_std(f, VehicleParams.stack([P1, P1, P1]), cfg)
-    assert wide[0] == pytest.approx(0.15 * (0.015 + math.hypot(sigma_kd, 0.03)))
+    assert wide[0] == pytest.approx(0.15 * math.sqrt(0.015**2 + sigma_kd**2 + 0.03**2))
 
 
 def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
@@ -642,7 +669,7 @@ def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
     f.x[0, S.SPEED], f.x[0, S.GROUND_PATCH] = 10.0, 0.01
     f.x[0, S.F_STRAIGHT] = 0.96
     f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 0.003**2
-    sigma_p = 0.15 * (0.04 + math.hypot(0.005, 0.003))  # slip level at its upper 1-sigma
+    sigma_p = 0.15 * math.sqrt(0.04**2 + 0.005**2 + 0.003**2)  # the slip level's RMS
     f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] = 1e-6
     f.P[0, S.GROUND_PATCH, S.F_STRAIGHT] = f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] = -5e-7
     _ground_patch(f, P1, cfg)  # 1 m driven of a 150 m patch
@@ -696,7 +723,7 @@ def test_a_dead_reckoned_slip_carries_its_factors_error() -> None:
         sprocket_pair_mps=np.array([[0.0, 1.8 / 0.71], [0.0, 1.8 / 0.71]]),
     )
     state = np.full(2, int(M.PIVOT))
-    _, _, factor_var = _fuse_odometer(f, inp, p2, cfg, state, w)
+    _, _, factor_var, _ = _fuse_odometer(f, inp, p2, cfg, state, w)
     assert factor_var[0] == 0.0
     assert factor_var[1] == pytest.approx((1.8 / 0.71) ** 2 * (0.15**2 + 0.03**2 + 0.007**2))
     *_, valid, braked = _track_slip(f, inp, p2, cfg, w, factor_var)
