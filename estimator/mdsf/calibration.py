@@ -211,6 +211,8 @@ class CalibrationBank:
         self.g_held = np.zeros(cap)  # the last speed y (filled between fixes) [m/s]
         self.g_gap = np.zeros(cap)  # time since the last GNSS speed [s]
         self.g_nis = np.ones(cap)  # running mean of the normalised innovation squared
+        self.g_fast = np.zeros(cap)  # the regressor's error variance [m²/s⁴]
+        self.g_lever = np.zeros(cap)  # the last tick's lever-arm velocity L [m/s]
         self.wx = np.zeros((cap, 3))
         self.wp = np.zeros((cap, 3, 3))
         self.pitch = np.zeros(cap)
@@ -236,6 +238,8 @@ class CalibrationBank:
             ("g_held", (), 0.0),
             ("g_gap", (), 0.0),
             ("g_nis", (), 1.0),
+            ("g_fast", (), 0.0),
+            ("g_lever", (), 0.0),
             ("wx", (3,), 0.0),
             ("wp", (3, 3), 0.0),
             ("pitch", (), 0.0),
@@ -272,6 +276,7 @@ class CalibrationBank:
         self.g_started[slot] = False
         self.g_gap[slot] = 0.0
         self.g_nis[slot] = 1.0
+        self.g_fast[slot] = 0.0
         self.wx[slot] = 0.0
         self.wp[slot] = np.diag([rad_var, rad_var, off_var])
         self.pitch[slot] = 0.0
@@ -417,7 +422,8 @@ class CalibrationBank:
             h[:, GnssClock.SPEED] = 1.0
             h[:, GnssClock.OFFSET] = -regressor[upd]
             xu, pu = x[upd], p[upd]
-            r = self._residual_scaled(slots[upd], xu, pu, h, y_low[upd], vg_var[upd])
+            leak = (xu[:, GnssClock.OFFSET] ** 2 + pu[:, 2, 2]) * self.g_fast[slots[upd]]
+            r = self._residual_scaled(slots[upd], xu, pu, h, y_low[upd], vg_var[upd] + leak)
             _kf_update(xu, pu, h, y_low[upd], r)
             x[upd], p[upd] = xu, pu
         self.g_started[slots] |= has
@@ -470,6 +476,14 @@ class CalibrationBank:
             lp[:, col_2] += alpha * (lp[:, col_1] - lp[:, col_2])
         lp[start] = np.stack([0.0 * a, 0.0 * a, lever, lever, y_in, y_in], axis=1)[start]
         lever_rate = np.where(start, 0.0, (lp[:, _ClockLowpass.LEVER_2] - lever_2) / dt)
+        # the fast part the low-passes leave only attenuated (sway near the tick rate): the
+        # raw antenna acceleration less the low-passed one, its mean square times the
+        # low-passes' share of white noise is the regressor's error variance
+        fast = a + (lever - self.g_lever[slots]) / dt - lp[:, _ClockLowpass.ACCEL_2] - lever_rate
+        fast = np.where(start | ~self.g_started[slots], 0.0, fast)
+        self.g_lever[slots] = lever
+        beta = dt / (_RESIDUAL_TAU_S + dt)
+        self.g_fast[slots] += beta * (self.lowpass_noise * fast * fast - self.g_fast[slots])
         self.g_lowpass[slots] = lp
         self.g_held[slots] = y_in
         self.g_gap[slots] = gap
