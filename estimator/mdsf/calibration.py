@@ -5,10 +5,16 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
 
 * **GNSS clock offset** ``δ_g`` (:class:`GnssClock`): a GNSS sample stamped ``t`` describes
   the instant ``t − δ_g`` of the IMU's clock (the simulator's ``clock_offset_ms`` sign), so its
-  speed moved to the tick reads ``Vg ≈ V − δ_g·a``. States ``[V, b, δ_g]``: the speed carried
-  by the tick-mean forward acceleration ``a`` less a bias ``b`` (``V' = V + dt·(a − b)``),
-  observed as ``Vg = V − δ_g·a``. Observable whenever ``a`` changes; applied to the GNSS
-  speed as ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
+  speed, the antenna's lever-arm velocity ``L = x1·ωz − h1·ωx`` at ``t`` taken off, reads
+  ``y = Vg − L ≈ V − δ_g·(a + L')``: the regressor is the *antenna's* acceleration. A cab
+  swaying at 0.3-3 Hz on a mast puts metres per second squared into ``L'`` and into the IMU's
+  ``a`` that the tick's samples cannot resolve, so the filter runs on both sides low-passed
+  (two first-order stages, ``gnss_clock_lowpass_tau_s``; the relation is linear and the
+  low-pass commutes with the derivative, so it holds for the slow driving accelerations and
+  the sway drops out). States ``[Ṽ, b, δ_g]``: the low-passed speed carried by the
+  low-passed acceleration ``ã`` less a bias ``b`` (``Ṽ' = Ṽ + dt·(ã − b)``), observed as
+  ``ỹ = Ṽ − δ_g·(ã + L̃')``. Observable whenever ``ã`` changes; applied to the GNSS speed as
+  ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
   drive) the measured rim speed is ``r·W = V/s − δ_w·a_w`` with ``s`` the true over the
@@ -77,6 +83,9 @@ _LAT_BIAS_WALK_MPS2_PER_SQRT_S = 0.01
 _LAT_FLOOR_MPS2 = 0.05
 """Floor of a tick's lateral-force model error (body sway, side slip, the IMU's lever arm in
 a changing turn) [m/s²]."""
+_RESIDUAL_TAU_S = 20.0
+"""Time constant of the GNSS clock filter's running mean of its normalised innovation
+squared, by which its speed noise is inflated (model error the filter does not explain) [s]."""
 _STILL_SPEED_MPS = 0.05
 _MIN_CAL_SPEED_MPS = 1.0
 """Wheel calibration uses ticks above this ground speed (the radius term ``κ·V`` then
@@ -89,6 +98,18 @@ class GnssClock(IntEnum):
     SPEED = 0
     BIAS = 1
     OFFSET = 2
+
+
+class _ClockLowpass(IntEnum):
+    """Columns of the GNSS clock filter's low-passes: first and second stage of the
+    acceleration ``a``, the lever-arm velocity ``L`` and the speed ``y``."""
+
+    ACCEL_1 = 0
+    ACCEL_2 = 1
+    LEVER_1 = 2
+    LEVER_2 = 3
+    SPEED_1 = 4
+    SPEED_2 = 5
 
 
 class MountYaw(IntEnum):
@@ -138,6 +159,13 @@ class MdsfCalibration:
     imu_yaw_std_rad: float = math.radians(3.0)
 
 
+def _lowpass_noise_share(alpha: float) -> float:
+    """Variance of white noise of variance 1 after two first-order low-passes of gain
+    ``alpha`` each (``Σ h_k²`` of their impulse response ``h_k = α²·(k + 1)·(1 − α)^k``)."""
+    k = np.arange(int(50.0 / alpha) + 1)
+    return float(np.sum((alpha**2 * (k + 1) * (1.0 - alpha) ** k) ** 2))
+
+
 def _kf_update(
     x: FloatArray, p: FloatArray, h: FloatArray, y: FloatArray, r: FloatArray
 ) -> BoolArray:
@@ -169,6 +197,9 @@ class CalibrationBank:
 
     def __init__(self, config: MdsfConfig) -> None:
         self.dt_s = config.dt_s
+        self.lowpass_tau_s = config.gnss_clock_lowpass_tau_s
+        self.gnss_gap_s = config.gnss_timeout_s
+        self.lowpass_noise = _lowpass_noise_share(config.dt_s / (self.lowpass_tau_s + config.dt_s))
         self.speed_walk = config.speed_walk_mps_per_sqrt_s
         self.bias_prior = config.accel_bias_std_mps2
         self.bias_walk = config.accel_bias_extra_walk_mps2_per_sqrt_s
@@ -176,6 +207,12 @@ class CalibrationBank:
         self.gx = np.zeros((cap, 3))
         self.gp = np.zeros((cap, 3, 3))
         self.g_started = np.zeros(cap, dtype=bool)
+        self.g_lowpass = np.zeros((cap, len(_ClockLowpass)))
+        self.g_held = np.zeros(cap)  # the last speed y (filled between fixes) [m/s]
+        self.g_gap = np.zeros(cap)  # time since the last GNSS speed [s]
+        self.g_nis = np.ones(cap)  # running mean of the normalised innovation squared
+        self.g_fast = np.zeros(cap)  # the regressor's error variance [m²/s⁴]
+        self.g_lever = np.zeros(cap)  # the last tick's lever-arm velocity L [m/s]
         self.wx = np.zeros((cap, 3))
         self.wp = np.zeros((cap, 3, 3))
         self.pitch = np.zeros(cap)
@@ -197,6 +234,12 @@ class CalibrationBank:
             ("gx", (3,), 0.0),
             ("gp", (3, 3), 0.0),
             ("g_started", (), False),
+            ("g_lowpass", (len(_ClockLowpass),), 0.0),
+            ("g_held", (), 0.0),
+            ("g_gap", (), 0.0),
+            ("g_nis", (), 1.0),
+            ("g_fast", (), 0.0),
+            ("g_lever", (), 0.0),
             ("wx", (3,), 0.0),
             ("wp", (3, 3), 0.0),
             ("pitch", (), 0.0),
@@ -231,6 +274,9 @@ class CalibrationBank:
         self.gx[slot] = 0.0
         self.gp[slot] = np.diag([1.0, self.bias_prior**2, off_var])
         self.g_started[slot] = False
+        self.g_gap[slot] = 0.0
+        self.g_nis[slot] = 1.0
+        self.g_fast[slot] = 0.0
         self.wx[slot] = 0.0
         self.wp[slot] = np.diag([rad_var, rad_var, off_var])
         self.pitch[slot] = 0.0
@@ -345,15 +391,23 @@ class CalibrationBank:
         accel_var: FloatArray,
         vg_mps: FloatArray,
         vg_var: FloatArray,
+        lever_mps: FloatArray | None = None,
     ) -> None:
-        """One tick of the GNSS clock filter: predict with the tick-mean acceleration (NaN: no
-        IMU, predicted with a wide walk), update with the tick's GNSS speed as the frontend
-        moved it (uncorrected; NaN: none). All shapes (k,)."""
+        """One tick of the GNSS clock filter: the tick-mean acceleration ``a`` (NaN: no IMU,
+        predicted with a wide walk), the tick's GNSS speed as the frontend moved it less the
+        antenna's lever-arm velocity ``L`` at the tick (uncorrected; NaN: none) and ``L``
+        itself (None: 0), all (k,). Predicted and updated on the low-passed signals
+        (module docstring); a GNSS gap longer than ``gnss_timeout_s`` restarts the speed."""
         dt = self.dt_s
         imu = np.isfinite(accel_mps2)
         a = np.where(imu, accel_mps2, 0.0)
+        lever = np.zeros_like(a) if lever_mps is None else np.nan_to_num(lever_mps)
         x, p = self.gx[slots], self.gp[slots]
-        x[:, GnssClock.SPEED] += dt * (a - x[:, GnssClock.BIAS])
+        has = np.isfinite(vg_mps) & imu
+        first = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
+        regressor, y_low = self._clock_lowpass(slots, a, lever, np.where(has, vg_mps, np.nan))
+        lp = self.g_lowpass[slots]
+        x[:, GnssClock.SPEED] += dt * (lp[:, _ClockLowpass.ACCEL_2] - x[:, GnssClock.BIAS])
         f = np.eye(3)
         f[GnssClock.SPEED, GnssClock.BIAS] = -dt
         p = f @ p @ f.T
@@ -361,21 +415,96 @@ class CalibrationBank:
         p[:, 0, 0] += q_v
         p[:, 1, 1] += self.bias_walk**2 * dt
         p[:, 2, 2] += _OFFSET_WALK_S_PER_SQRT_S**2 * dt
-        has = np.isfinite(vg_mps) & imu
-        first = has & ~self.g_started[slots]
-        x[first, GnssClock.SPEED] = vg_mps[first]
-        p[first, 0, :] = p[first, :, 0] = 0.0
-        p[first, 0, 0] = vg_var[first]
+        self._restart_speed(x, p, first, vg_mps, vg_var, a)
         upd = has & ~first
         if upd.any():
             h = np.zeros((int(upd.sum()), 3))
             h[:, GnssClock.SPEED] = 1.0
-            h[:, GnssClock.OFFSET] = -a[upd]
+            h[:, GnssClock.OFFSET] = -regressor[upd]
             xu, pu = x[upd], p[upd]
-            _kf_update(xu, pu, h, vg_mps[upd], vg_var[upd])
+            leak = (xu[:, GnssClock.OFFSET] ** 2 + pu[:, 2, 2]) * self.g_fast[slots[upd]]
+            r = self._residual_scaled(slots[upd], xu, pu, h, y_low[upd], vg_var[upd] + leak)
+            _kf_update(xu, pu, h, y_low[upd], r)
             x[upd], p[upd] = xu, pu
         self.g_started[slots] |= has
         self.gx[slots], self.gp[slots] = x, p
+
+    def _residual_scaled(
+        self,
+        slots: IntArray,
+        x: FloatArray,
+        p: FloatArray,
+        h: FloatArray,
+        y: FloatArray,
+        r: FloatArray,
+    ) -> FloatArray:
+        """The speed noise ``r`` (k,) scaled by the running mean of the normalised innovation
+        squared ``ν²/(h·P·hᵀ + c·r)`` (at least 1; each tick's value capped at the gate's;
+        ``c`` the share of white noise's variance the low-passes let through):
+        what the model does not explain (sway left over, a tilt error's gravity) counts as
+        noise, so the offset's std stays honest instead of shrinking on a misfit. ``x`` (k, 3),
+        ``p`` (k, 3, 3), ``h`` (k, 3)."""
+        s = np.einsum("ki,kij,kj->k", h, p, h) + r * self.lowpass_noise
+        nu = y - np.einsum("ki,ki->k", h, x)
+        nis = np.minimum(nu * nu / s, _GATE_SIGMAS**2)
+        beta = self.dt_s / (_RESIDUAL_TAU_S + self.dt_s)
+        self.g_nis[slots] += beta * (nis - self.g_nis[slots])
+        return r * np.maximum(self.g_nis[slots], 1.0)
+
+    def _clock_lowpass(
+        self, slots: IntArray, a: FloatArray, lever: FloatArray, y: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Step the clock filter's low-passes by one tick (acceleration ``a``, lever-arm
+        velocity ``L``, speed ``y``, NaN: no fix, filled by ``y + dt·a``; all (k,)); returns
+        the regressor ``ã + L̃'`` and the low-passed speed ``ỹ`` (k,). A chain's first fix (or
+        the first after a gap) starts the speeds at their values and the accelerations at 0,
+        as if the vehicle had moved steadily before: ``Ṽ' = ã`` holds from there."""
+        dt = self.dt_s
+        alpha = dt / (self.lowpass_tau_s + dt)
+        has = np.isfinite(y)
+        gap = np.where(has, 0.0, self.g_gap[slots] + dt)
+        start = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
+        y_in = np.where(has, y, self.g_held[slots] + dt * a)
+        lp = self.g_lowpass[slots]
+        lever_2 = lp[:, _ClockLowpass.LEVER_2].copy()
+        for col_1, col_2, raw in (
+            (_ClockLowpass.ACCEL_1, _ClockLowpass.ACCEL_2, a),
+            (_ClockLowpass.LEVER_1, _ClockLowpass.LEVER_2, lever),
+            (_ClockLowpass.SPEED_1, _ClockLowpass.SPEED_2, y_in),
+        ):
+            lp[:, col_1] += alpha * (raw - lp[:, col_1])
+            lp[:, col_2] += alpha * (lp[:, col_1] - lp[:, col_2])
+        lp[start] = np.stack([0.0 * a, 0.0 * a, lever, lever, y_in, y_in], axis=1)[start]
+        lever_rate = np.where(start, 0.0, (lp[:, _ClockLowpass.LEVER_2] - lever_2) / dt)
+        # the fast part the low-passes leave only attenuated (sway near the tick rate): the
+        # raw antenna acceleration less the low-passed one, its mean square times the
+        # low-passes' share of white noise is the regressor's error variance
+        fast = a + (lever - self.g_lever[slots]) / dt - lp[:, _ClockLowpass.ACCEL_2] - lever_rate
+        fast = np.where(start | ~self.g_started[slots], 0.0, fast)
+        self.g_lever[slots] = lever
+        beta = dt / (_RESIDUAL_TAU_S + dt)
+        self.g_fast[slots] += beta * (self.lowpass_noise * fast * fast - self.g_fast[slots])
+        self.g_lowpass[slots] = lp
+        self.g_held[slots] = y_in
+        self.g_gap[slots] = gap
+        return lp[:, _ClockLowpass.ACCEL_2] + lever_rate, lp[:, _ClockLowpass.SPEED_2]
+
+    def _restart_speed(
+        self,
+        x: FloatArray,
+        p: FloatArray,
+        first: BoolArray,
+        vg_mps: FloatArray,
+        vg_var: FloatArray,
+        a: FloatArray,
+    ) -> None:
+        """Start the low-passed speed of rows ``first`` at their GNSS speed (in place), its
+        variance widened by what the unknown offset makes of the tick's acceleration
+        ``(δ² + σ_δ²)·a²`` (the low-passes start from the raw sample)."""
+        off = x[first, GnssClock.OFFSET] ** 2 + p[first, 2, 2]
+        x[first, GnssClock.SPEED] = vg_mps[first]
+        p[first, 0, :] = p[first, :, 0] = 0.0
+        p[first, 0, 0] = vg_var[first] + off * a[first] ** 2
 
     def observe_wheels(
         self,

@@ -47,7 +47,8 @@ def _profile(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("offset_s", [-0.08, 0.065, 0.0])
 def test_gnss_clock_offset_learnt_from_accelerations(offset_s: float) -> None:
     """GNSS speed stamped ``t`` describing ``t − δ`` reads ``V − δ·a``: the filter finds δ
-    within 3σ, σ below 5 ms, with an accelerometer bias it must not mistake for it."""
+    within 3σ, σ below 6.5 ms (the low-passes leave it the profile's slow accelerations
+    only), with an accelerometer bias it must not mistake for it."""
     rng = np.random.default_rng(3)
     t, _, a = _profile(1200)
     v_fix = 2.5 + np.sin(0.4 * (t - offset_s)) + 0.3 * np.sin(1.3 * (t - offset_s))
@@ -57,7 +58,7 @@ def test_gnss_clock_offset_learnt_from_accelerations(offset_s: float) -> None:
         vg = np.array([v_fix[k] + rng.normal(0.0, 0.03)])
         bank.observe_gnss(_SLOT, accel, np.array([0.015**2]), vg, np.array([0.03**2]))
     cal = bank.state(0)
-    assert cal.gnss_clock_offset_std_s < 0.005
+    assert cal.gnss_clock_offset_std_s < 0.0065
     assert abs(cal.gnss_clock_offset_s - offset_s) < 3 * cal.gnss_clock_offset_std_s
 
 
@@ -355,3 +356,49 @@ def test_an_applied_wheel_clock_offset_does_not_cost_slip(offset_ms: float) -> N
     )
     unknown, _, _ = _drive(False, wheel_clock_s=0.0, clock_offset_ms=(0.0, 0.0, offset_ms), **_SWAY)
     assert _slip_rms_pp(known, sim) < _slip_rms_pp(unknown, sim) - 0.2
+
+
+def _clock_drive(offset_ms: float, **sway: float) -> MdsfCalibration:
+    """A 90 s random drive (seed 11) of a tractor with its antenna on a 2.6 m mast, the GNSS
+    clock ``offset_ms`` ahead of the IMU's, through the fleet: the calibration at its end."""
+    geo = VehicleGeometry(h1_m=2.6)
+    sim = simulate(
+        "random_drive",
+        seed=11,
+        start_ns=_START_NS,
+        config=WheeledRearDriveConfig(geometry=geo),
+        duration_s=90.0,
+        clock_offset_ms=(offset_ms, 0.0, 0.0),
+        **sway,
+    )
+    fleet = MdsfFleet()
+    fleet.add_vehicle("v", dataclasses.replace(sim.config, noise=sim.sensor_noise))
+    replay_drive(
+        sim,
+        lambda m: fleet.push("v", m),
+        lambda until: [rows for _, rows in fleet.advance({"v": until})],
+    )
+    return fleet.calibration("v")
+
+
+@pytest.mark.parametrize("offset_ms", [-40.0, 60.0])
+def test_gnss_clock_learnt_under_body_sway(offset_ms: float) -> None:
+    """A cab swaying 2.2 Hz ±1° pitch, ±1.2° roll swings the mast's antenna by ±8 m/s²
+    (``h1·ω̇x``) that the tick's IMU acceleration does not carry: regressed on that, the
+    offset was learnt 45-170 ms off with a std of about 1 ms. On the low-passed antenna
+    acceleration it lands within 20 ms of the truth (the steady cab's own error is ~12 ms;
+    its std, 2 ms, does not cover that yet: ``docs/perf/estimator.md``)."""
+    cal = _clock_drive(offset_ms, sway_hz=2.2, sway_pitch_deg=1.0, sway_roll_deg=1.2)
+    err_s = cal.gnss_clock_offset_s - offset_ms * 1e-3
+    assert abs(err_s) < 0.020
+    assert cal.gnss_clock_offset_std_s < 0.015
+
+
+@pytest.mark.parametrize("offset_ms", [-40.0, 60.0])
+def test_gnss_clock_learnt_without_sway(offset_ms: float) -> None:
+    """The same drive on a steady cab: the offset within 15 ms and 3σ, σ below 10 ms."""
+    cal = _clock_drive(offset_ms)
+    err_s = cal.gnss_clock_offset_s - offset_ms * 1e-3
+    assert abs(err_s) < 0.015
+    assert abs(err_s) < 3.0 * cal.gnss_clock_offset_std_s
+    assert cal.gnss_clock_offset_std_s < 0.010
