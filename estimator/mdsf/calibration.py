@@ -54,7 +54,14 @@ from estimator._slots import grow_slot_array
 from estimator.config import CalibrationConfig, WheeledRearDriveConfig
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 
-__all__ = ["CalibrationBank", "GnssClock", "MdsfCalibration", "MountYaw", "WheelCal"]
+__all__ = [
+    "CalibrationBank",
+    "GnssClock",
+    "GnssClockShift",
+    "MdsfCalibration",
+    "MountYaw",
+    "WheelCal",
+]
 
 _GATE_SIGMAS = 4.0
 """Innovations beyond this many sigmas are outliers (GNSS outlier, a calibration wheel that
@@ -125,6 +132,139 @@ class WheelCal(IntEnum):
     KAPPA_LEFT = 0
     KAPPA_RIGHT = 1
     OFFSET = 2
+
+
+_SHIFT_TICKS = 5
+"""Ticks of body rates :class:`GnssClockShift` keeps (the newest and four before it: a GNSS
+offset of up to ±0.1 s and a fix up to a tick before its tick stay inside)."""
+_AXLE_RATE_TAU_S = 0.3
+"""Time constant of the low-pass on the filter's speed rate at ``O`` [s]."""
+
+
+_SLOPE_AT_NEWEST = np.array([-11.0, 18.0, -9.0, 2.0]) / 6.0
+"""Slope of the cubic through the newest four ticks at the newest, per tick back (nodes
+newest first); it grows towards the past, so a tick ahead is minus it."""
+_BEND_AT_NEWEST = np.array([2.0, -5.0, 4.0, -1.0])
+"""Second difference of the cubic through the newest four ticks at the newest, per tick²."""
+
+
+def _cubic_weights(u: FloatArray) -> FloatArray:
+    """Lagrange weights (k, 4) of the nodes 0, 1, 2, 3 at ``u`` (k,) (in node spacings)."""
+    u1, u2, u3 = u - 1.0, u - 2.0, u - 3.0
+    return np.stack(
+        [-u1 * u2 * u3 / 6.0, u * u2 * u3 / 2.0, -u * u1 * u3 / 2.0, u * u1 * u2 / 6.0], axis=1
+    )
+
+
+class GnssClockShift:
+    """What a GNSS clock offset ``δ`` moves a fix's speed by, per vehicle slot.
+
+    A fix stamped ``t_s`` describes the antenna at ``t_s − δ``; the front end has moved it to
+    the tick as if it described ``t_s``. The antenna's forward speed is
+    ``V_a = V0 + x_a·ωz − (h0 + h1)·ωx`` (``O`` the rear axle's ground point, the antenna at
+    lateral ``x_a`` and height ``h0 + h1``), so the fix is short of the speed at ``t_s`` by
+
+        ``ΔV_a = δ·ā0 + x_a·(ωz(t_s) − ωz(t_s − δ)) − (h0 + h1)·(ωx(t_s) − ωx(t_s − δ))``
+
+    with ``ā0`` the rate of the filter's own speed at ``O`` (GNSS-anchored, low-passed: the
+    axle does not sway) and the body rates of the last ticks interpolated (cubic, on the
+    tick grid) at both instants: a swaying cab's mast moves the antenna by metres per second
+    within ``δ`` where the IMU's acceleration, at another height, says otherwise.
+    """
+
+    def __init__(self, config: MdsfConfig) -> None:
+        self.dt_s = config.dt_s
+        self.tick_ns = config.tick_ns
+        self.alpha = config.dt_s / (_AXLE_RATE_TAU_S + config.dt_s)
+        cap = 0
+        self.rates = np.zeros((cap, _SHIFT_TICKS, 2))  # ωx, ωz of the newest ticks first
+        self.stamp_ns = np.zeros(cap, dtype=np.int64)  # the newest tick's stamp
+        self.v0_prev = np.zeros(cap)  # the last emitted tick's speed at O [m/s] (NaN: none)
+        self.a0 = np.zeros(cap)  # its low-passed rate [m/s²]
+        self.up_m = np.zeros(cap)  # the antenna's height h0 + h1 [m]
+        self.lat_m = np.zeros(cap)  # the antenna's lateral offset x_a [m]
+
+    def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
+        """Start ``slot`` with no history."""
+        if slot >= self.stamp_ns.shape[0]:
+            cap = max(2 * self.stamp_ns.shape[0], slot + 1)
+            for name, shape, fill in (
+                ("rates", (_SHIFT_TICKS, 2), np.nan),
+                ("stamp_ns", (), np.int64(0)),
+                ("v0_prev", (), np.nan),
+                ("a0", (), 0.0),
+                ("up_m", (), 0.0),
+                ("lat_m", (), 0.0),
+            ):
+                grow_slot_array(self, name, cap, shape, fill)
+        geo = vehicle.geometry
+        self.rates[slot] = np.nan
+        self.stamp_ns[slot] = 0
+        self.v0_prev[slot] = np.nan
+        self.a0[slot] = 0.0
+        self.up_m[slot] = geo.h0_m + geo.h1_m
+        self.lat_m[slot] = geo.antenna_offset_m[0]
+
+    def record_rates(self, slots: IntArray, stamp_ns: IntArray, rates_radps: FloatArray) -> None:
+        """A tick's body rates ``[ωx, ωz]`` (k, 2; NaN: no IMU) become the newest; a tick that
+        does not follow the last one on the grid starts the history anew."""
+        old = self.rates[slots]
+        follows = (stamp_ns - self.stamp_ns[slots]) == self.tick_ns
+        old = np.where(follows[:, None, None], old, np.nan)
+        self.rates[slots] = np.concatenate([rates_radps[:, None, :], old[:, :-1]], axis=1)
+        self.stamp_ns[slots] = stamp_ns
+
+    def record_speed(self, slots: IntArray, v0_mps: FloatArray, emit: BoolArray) -> None:
+        """The filter's speed at ``O`` after a tick (k,): its rate, low-passed,
+        ``ā0 ← ā0 + α·((V0 − V0_prev)/dt − ā0)``; kept through ticks without a row."""
+        ok = emit & np.isfinite(v0_mps)
+        rate = (v0_mps - self.v0_prev[slots]) / self.dt_s
+        a0 = self.a0[slots]
+        step = ok & np.isfinite(rate)
+        self.a0[slots] = np.where(step, a0 + self.alpha * (rate - a0), a0)
+        self.v0_prev[slots] = np.where(ok, v0_mps, np.nan)
+
+    def rates_at(self, slots: IntArray, ago_s: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Body rates ``[ωx, ωz]`` (k, 2) ``ago_s`` (k,) before the newest tick, and the 1σ
+        of that guess (k, 2); NaN where a tick has no rates. Within the history: the cubic
+        through the four ticks around the instant (error neglected: ~5 % of a 2 Hz sway's
+        amplitude). After the newest tick (a negative ``ago_s``: a GNSS clock behind the
+        IMU's): the line of the cubic's slope at the newest tick, its error taken as the
+        curvature's share ``|ω̈|·h²/2`` (``h`` how far ahead)."""
+        u = np.clip(ago_s / self.dt_s, None, _SHIFT_TICKS - 1.0)
+        nodes = self.rates[slots]
+        first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0).astype(np.int64)
+        idx = first[:, None] + np.arange(4)[None, :]
+        near = np.take_along_axis(nodes, idx[:, :, None], axis=1)
+        inside = np.einsum("kj,kjc->kc", _cubic_weights(np.maximum(u, 0.0) - first), near)
+        newest = nodes[:, :4]
+        slope = np.einsum("j,kjc->kc", _SLOPE_AT_NEWEST, newest)
+        bend = np.einsum("j,kjc->kc", _BEND_AT_NEWEST, newest)
+        ahead = np.minimum(u, 0.0)[:, None]
+        values = np.where(ahead < 0.0, newest[:, 0] + ahead * slope, inside)
+        return values, 0.5 * np.abs(bend) * ahead * ahead
+
+    def shift_mps(
+        self, slots: IntArray, offset_s: FloatArray, offset_std_s: FloatArray, age_s: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """``ΔV_a`` (class docstring) of a fix ``age_s`` (k,) before the newest tick under the
+        offset ``offset_s`` (k,), and its error variance (k,): the offset's std
+        ``offset_std_s`` times the antenna's acceleration, and the rates' guess after the
+        newest tick. The rates' part 0 where they are unknown."""
+        age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
+        at_fix, _ = self.rates_at(slots, age)
+        described, guess = self.rates_at(slots, age + offset_s)
+        d_wx, d_wz = (at_fix - described).T
+        up, lat = self.up_m[slots], self.lat_m[slots]
+        lever = lat * d_wz - up * d_wx
+        # the antenna's acceleration at the newest tick (the slope is per tick back)
+        slope = np.einsum("j,kjc->kc", _SLOPE_AT_NEWEST, self.rates[slots, :4]) / -self.dt_s
+        accel = self.a0[slots] + lat * slope[:, 1] - up * slope[:, 0]
+        var = (up * guess[:, 0]) ** 2 + (lat * guess[:, 1]) ** 2 + (offset_std_s * accel) ** 2
+        known = np.isfinite(lever) & np.isfinite(var)
+        shift = offset_s * self.a0[slots] + np.where(known, lever, 0.0)
+        far = (offset_std_s * self.a0[slots]) ** 2
+        return shift, np.where(known, var, far)
 
 
 @dataclass(slots=True)
@@ -203,6 +343,8 @@ class CalibrationBank:
         self.speed_walk = config.speed_walk_mps_per_sqrt_s
         self.bias_prior = config.accel_bias_std_mps2
         self.bias_walk = config.accel_bias_extra_walk_mps2_per_sqrt_s
+        self.shift = GnssClockShift(config)
+        """What the GNSS clock offset moves each fix's speed by (applied by the fleet)."""
         cap = 0
         self.gx = np.zeros((cap, 3))
         self.gp = np.zeros((cap, 3, 3))
@@ -258,6 +400,7 @@ class CalibrationBank:
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
         """Start ``slot``'s calibration from the config's priors."""
         self._grow(slot)
+        self.shift.add(slot, vehicle)
         c: CalibrationConfig = vehicle.calibration
         geo = vehicle.geometry
         self.free[slot] = (not geo.wheel_driven_left, not geo.wheel_driven_right)
@@ -350,10 +493,15 @@ class CalibrationBank:
 
     # -- per round ---------------------------------------------------------------------------
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
-        """GNSS clock offset in force per vehicle (k,): 0 where off or not converged (an
-        estimate still moving costs more than it corrects: ``docs/perf/estimator.md``)."""
-        use = self.gnss_offset_converged(slots)
-        return np.where(use, self.gx[slots, GnssClock.OFFSET], 0.0)
+        """GNSS clock offset applied to the fixes' speed per vehicle (k,): the estimate
+        wherever the calibration is on, converged or not (0 where off); its std
+        (:meth:`gnss_offset_std_s`) goes with it into the speed's variance, so an estimate
+        still moving weighs the fixes down instead of moving them wrongly."""
+        return np.where(self.on[slots, 0], self.gx[slots, GnssClock.OFFSET], 0.0)
+
+    def gnss_offset_std_s(self, slots: IntArray) -> FloatArray:
+        """Std of :meth:`gnss_offset_s` (k,): 0 where off."""
+        return np.where(self.on[slots, 0], np.sqrt(self.gp[slots, 2, 2]), 0.0)
 
     def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
         """The GNSS clock offset is on and its std below the converged threshold (k,)."""

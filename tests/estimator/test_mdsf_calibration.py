@@ -18,7 +18,7 @@ from estimator.config import (
     vehicle_config_from_dict,
 )
 from estimator.mdsf import MdsfFleet
-from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
+from estimator.mdsf.calibration import CalibrationBank, GnssClockShift, MdsfCalibration
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 from estimator.sim import simulate, truth_at
 from estimator.types import EstimateFlag
@@ -234,11 +234,16 @@ def _drive(
     *,
     calibration: CalibrationConfig | None = None,
     wheel_clock_s: float | None = None,
+    gnss_clock_s: float | None = None,
+    geometry: dict[str, Any] | None = None,
     **overrides: object,
 ) -> tuple[np.ndarray, MdsfFleet, object]:
-    """A 60 s random drive (seed 11) through the fleet; ``wheel_clock_s``: the vehicle starts
-    from that wheel clock offset, known to 3 ms (as a calibration drive leaves it)."""
-    geo = VehicleGeometry(wheel_driven_left=not free, wheel_driven_right=not free)
+    """A 60 s random drive (seed 11) through the fleet; ``wheel_clock_s``, ``gnss_clock_s``:
+    the vehicle starts from that clock offset, known to 3 ms (as a calibration drive leaves
+    it); ``geometry``: VehicleGeometry fields."""
+    geo = VehicleGeometry(
+        wheel_driven_left=not free, wheel_driven_right=not free, **(geometry or {})
+    )
     cfg = WheeledRearDriveConfig(geometry=geo, calibration=calibration or CalibrationConfig())
     sim = simulate(
         "random_drive",
@@ -252,13 +257,16 @@ def _drive(
     config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
     fleet = MdsfFleet()
     fleet.add_vehicle("v", config)
+    start = fleet.calibration("v")
     if wheel_clock_s is not None:
         start = dataclasses.replace(
-            fleet.calibration("v"),
-            wheel_clock_offset_s=wheel_clock_s,
-            wheel_clock_offset_std_s=0.003,
+            start, wheel_clock_offset_s=wheel_clock_s, wheel_clock_offset_std_s=0.003
         )
-        fleet.restore_calibration("v", start)
+    if gnss_clock_s is not None:
+        start = dataclasses.replace(
+            start, gnss_clock_offset_s=gnss_clock_s, gnss_clock_offset_std_s=0.003
+        )
+    fleet.restore_calibration("v", start)
     rows = replay_drive(
         sim,
         lambda m: fleet.push("v", m),
@@ -402,3 +410,51 @@ def test_gnss_clock_learnt_without_sway(offset_ms: float) -> None:
     assert abs(err_s) < 0.015
     assert abs(err_s) < 3.0 * cal.gnss_clock_offset_std_s
     assert cal.gnss_clock_offset_std_s < 0.010
+
+
+def _shift_with_sway(offset_s: float, age_s: float) -> tuple[float, float, float]:
+    """:class:`GnssClockShift` fed 1 Hz pitch sway ``ωx = 0.4·sin(2π·t)`` rad/s, a yaw rate
+    ``ωz = 0.1·sin(0.5·t)`` and a speed at ``O`` rising 0.5 m/s² on ticks to 3 s, the antenna
+    3.5 m up and 0.4 m right: its shift and variance for a fix ``age_s`` before the last
+    tick under ``offset_s``, and the antenna's true speed change over that offset."""
+    geo = VehicleGeometry(h0_m=1.0, h1_m=2.5, antenna_offset_m=(0.4, 0.0))
+    shift = GnssClockShift(MdsfConfig())
+    shift.add(0, WheeledRearDriveConfig(geometry=geo))
+
+    def wx(t: float) -> float:
+        return 0.4 * math.sin(2.0 * math.pi * t)
+
+    def wz(t: float) -> float:
+        return 0.1 * math.sin(0.5 * t)
+
+    for k in range(31):
+        t = k * _DT
+        shift.record_rates(
+            _SLOT, np.array([_START_NS + k * 100_000_000]), np.array([[wx(t), wz(t)]])
+        )
+        shift.record_speed(_SLOT, np.array([1.0 + 0.5 * t]), np.array([True]))
+    got, var = shift.shift_mps(_SLOT, np.array([offset_s]), np.array([0.0]), np.array([age_s]))
+    t_fix, t_was = 3.0 - age_s, 3.0 - age_s - offset_s
+    true = 0.5 * offset_s + 0.4 * (wz(t_fix) - wz(t_was)) - 3.5 * (wx(t_fix) - wx(t_was))
+    return float(got[0]), float(var[0]), true
+
+
+@pytest.mark.parametrize(("offset_s", "age_s"), [(0.07, 0.03), (0.09, 0.08), (0.03, 0.0)])
+def test_gnss_clock_shift_is_the_antennas_speed_change(offset_s: float, age_s: float) -> None:
+    """A fix describing an instant within the history: the shift is the antenna's speed
+    change over the offset (sway ``(h0 + h1)·Δωx`` of up to 2.5 m/s here, yaw and the
+    speed's rate) to 2 cm/s; the tick-mean acceleration's ``δ·a`` misses the mast's sway."""
+    got, var, true = _shift_with_sway(offset_s, age_s)
+    assert abs(true) > 0.2
+    assert abs(got - true) < 0.02
+    assert var == 0.0
+
+
+@pytest.mark.parametrize(("offset_s", "age_s"), [(-0.06, 0.0), (-0.09, 0.02)])
+def test_gnss_clock_shift_ahead_of_the_last_tick(offset_s: float, age_s: float) -> None:
+    """A GNSS clock behind the IMU's: the fix describes an instant after the last tick; the
+    rates are carried on by their slope, the error within 3σ of the variance returned."""
+    got, var, true = _shift_with_sway(offset_s, age_s)
+    assert var > 0.0
+    assert abs(got - true) < 3.0 * math.sqrt(var)
+    assert abs(got - true) < 0.25 * abs(true)
