@@ -183,6 +183,7 @@ class GnssClockShift:
         self.a0 = np.zeros(cap)  # its low-passed rate [m/s²]
         self.up_m = np.zeros(cap)  # the antenna's height h0 + h1 [m]
         self.lat_m = np.zeros(cap)  # the antenna's lateral offset x_a [m]
+        self.mast_m = np.zeros(cap)  # the antenna's height over the IMU h1 [m]
 
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
         """Start ``slot`` with no history."""
@@ -195,6 +196,7 @@ class GnssClockShift:
                 ("a0", (), 0.0),
                 ("up_m", (), 0.0),
                 ("lat_m", (), 0.0),
+                ("mast_m", (), 0.0),
             ):
                 grow_slot_array(self, name, cap, shape, fill)
         geo = vehicle.geometry
@@ -204,6 +206,7 @@ class GnssClockShift:
         self.a0[slot] = 0.0
         self.up_m[slot] = geo.h0_m + geo.h1_m
         self.lat_m[slot] = geo.antenna_offset_m[0]
+        self.mast_m[slot] = geo.h1_m
 
     def record_rates(self, slots: IntArray, stamp_ns: IntArray, rates_radps: FloatArray) -> None:
         """A tick's body rates ``[ωx, ωz]`` (k, 2; NaN: no IMU) become the newest; a tick that
@@ -265,6 +268,18 @@ class GnssClockShift:
         shift = offset_s * self.a0[slots] + np.where(known, lever, 0.0)
         far = (offset_std_s * self.a0[slots]) ** 2
         return shift, np.where(known, var, far)
+
+    def mast_shift_m(self, slots: IntArray, offset_s: FloatArray, age_s: FloatArray) -> FloatArray:
+        """What the offset makes of the RTK distance's lever arm (k,): the front end moves a
+        fix's antenna position to the IMU by ``h1·θ`` with the pitch at the stamp ``t_s``,
+        where the position is the antenna's at ``t_s − δ``; the difference is
+        ``−h1·∫ωx`` over ``[t_s − δ, t_s]`` (Simpson's rule on the rates as in
+        :meth:`rates_at`; 0 where they are unknown)."""
+        age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
+        ends = self.rates_at(slots, age)[0][:, 0] + self.rates_at(slots, age + offset_s)[0][:, 0]
+        mid = self.rates_at(slots, age + 0.5 * offset_s)[0][:, 0]
+        turned = offset_s * (ends + 4.0 * mid) / 6.0
+        return np.where(np.isfinite(turned), -self.mast_m[slots] * turned, 0.0)
 
 
 @dataclass(slots=True)

@@ -548,7 +548,8 @@ class MdsfFleet:
         rate = np.where(bank.gnss_offset_converged(slots), offset_s, 0.0)
         moved = rate * np.nan_to_num(z[:, MdsfObs.A1]) * self.config.dt_s
         self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
-        dist_m = tin.dist_m + self._dist_shift_m[slots]
+        mast = bank.shift.mast_shift_m(slots, rate, tin.fix_age_s)
+        dist_m = tin.dist_m + self._dist_shift_m[slots] + mast
         return dataclasses.replace(
             tin,
             z=z,
