@@ -509,14 +509,14 @@ class CalibrationBank:
     # -- per round ---------------------------------------------------------------------------
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
         """GNSS clock offset applied to the fixes' speed per vehicle (k,): the estimate
-        wherever the calibration is on, converged or not (0 where off); its std
-        (:meth:`gnss_offset_std_s`) goes with it into the speed's variance, so an estimate
-        still moving weighs the fixes down instead of moving them wrongly."""
+        wherever the calibration is on, converged or not (0 where off)."""
         return np.where(self.on[slots, 0], self.gx[slots, GnssClock.OFFSET], 0.0)
 
     def gnss_offset_std_s(self, slots: IntArray) -> FloatArray:
-        """Std of :meth:`gnss_offset_s` (k,): 0 where off."""
-        return np.where(self.on[slots, 0], np.sqrt(self.gp[slots, 2, 2]), 0.0)
+        """Std of :meth:`gnss_offset_s` that goes into the fixes' variance (k,), once it
+        has converged (0 before, and where off): the prior's 100 ms times a swaying mast's
+        acceleration would take the GNSS speed out of the filter at every start."""
+        return np.where(self.gnss_offset_converged(slots), np.sqrt(self.gp[slots, 2, 2]), 0.0)
 
     def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
         """The GNSS clock offset is on and its std below the converged threshold (k,)."""
