@@ -25,6 +25,7 @@ from estimator.friction.frontend import (
     DRIVE_SHARE,
     UNDRIVEN,
     FrontEndConfig,
+    spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.friction.sensors import SensedTicks
@@ -226,6 +227,7 @@ class _State(_Arrays):
         self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros((0, 2))  # lagged raw [a_x, a_y] [m/s²]
         self.yaw_prev = np.zeros(0)
+        self.accel_prev = np.zeros((0, 2))  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((0, 2, 4))
 
     def reset(self, slot: int, car: _Vehicles, fe: FrontEndConfig) -> None:
@@ -241,6 +243,7 @@ class _State(_Arrays):
         self.transfer[slot] = 0.0
         self.tilt_reading[slot] = 0.0
         self.yaw_prev[slot] = math.nan
+        self.accel_prev[slot] = math.nan
         self.slip_lag[slot] = 0.0
 
 
@@ -317,7 +320,8 @@ class FleetFrontEnd:
         st.yaw_prev[s] = yaw_rate
         slips = self._slips(s, fz, delta, yaw_rate, sensed.omega_radps)
         vx, vx_var = self.vx.speed[s], self.vx.var[s]
-        z = np.stack([ax + self._resistance(s, vx, fz), ay, yaw_accel], axis=1)
+        ax_now, ay_now = self._at_tick(s, ax, ay, sensed.imu_lag_s)
+        z = np.stack([ax_now + self._resistance(s, vx, fz), ay_now, yaw_accel], axis=1)
         valid = (vx >= self.fe.min_speed_mps) & ~np.isnan(yaw_rate)
         if not paper:
             valid &= self.calibrated(s)
@@ -360,11 +364,24 @@ class FleetFrontEnd:
             yaw.update(rest, yaw.speed[rest] + wrapped, h_var)
         return rate
 
+    def _at_tick(
+        self, s: IntArray, ax: FloatArray, ay: FloatArray, lag_s: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """The accelerations carried to the tick (``FrontEnd._at_tick``)."""
+        st = self.state
+        prev = st.accel_prev[s]
+        st.accel_prev[s] = np.stack([ax, ay], axis=1)
+        if self.fe.paper:
+            return ax, ay
+        step = np.where(np.isnan(prev[:, 0]), 0.0, lag_s / self.dt)
+        ax_prev, ay_prev = np.where(np.isnan(prev), 0.0, prev).T
+        return ax + (ax - ax_prev) * step, ay + (ay - ay_prev) * step
+
     def _tilt_step(
         self, s: IntArray, ax_raw: FloatArray, ay_raw: FloatArray, g: IntArray, sensed: SensedTicks
     ) -> tuple[FloatArray, FloatArray]:
         """Lag the raw readings, fit the gradients at fresh epochs, and the accelerations
-        without the body's tilt ``a (1 − s)`` (``FrontEnd._learn_tilt``, ``_detilt``)."""
+        without the body's tilt ``a_m − s ā_m`` (``FrontEnd._learn_tilt``, ``_detilt``)."""
         if self.fe.paper:
             return ax_raw, ay_raw
         st = self.state
@@ -377,7 +394,8 @@ class FleetFrontEnd:
             att = sensed.gnss_attitude[g]
             self.pitch.fix(s[g], att[:, 1], reading[g, 0] / GRAVITY_MPS2, stamp)
             self.roll.fix(s[g], att[:, 2], reading[g, 1] / GRAVITY_MPS2, stamp)
-        return ax_raw * (1.0 - self.pitch.slope(s)), ay_raw * (1.0 - self.roll.slope(s))
+        ax = ax_raw - self.pitch.slope(s) * reading[:, 0]
+        return ax, ay_raw - self.roll.slope(s) * reading[:, 1]
 
     def _loads(self, s: IntArray, ax: FloatArray, ay: FloatArray) -> FloatArray:
         """Static loads plus the lagged transfer ``(B, 4)`` (``FrontEnd._loads``)."""
@@ -498,20 +516,34 @@ class FleetFrontEnd:
         use = (self.car.n_free[s] > 0) & (self.calibrated(s) | ~sensed.gnss_recent)
         rows = np.flatnonzero(use)
         if rows.size:
-            self._rim_update(s[rows], omega[rows], fz[rows], delta[rows], yaw_rate[rows])
+            ax = ax_tilt[rows] - self.vx.bias[s[rows]]
+            self._rim_update(s[rows], omega[rows], fz[rows], delta[rows], (yaw_rate[rows], ax))
 
     def _rim_update(
-        self, c: IntArray, omega: FloatArray, fz: FloatArray, delta: FloatArray, r: FloatArray
+        self,
+        c: IntArray,
+        omega: FloatArray,
+        fz: FloatArray,
+        delta: FloatArray,
+        rates: tuple[FloatArray, FloatArray],
     ) -> None:
-        """The undriven wheels' mean rim speed as a reading of ``v_x`` (free rolling)."""
-        car, st = self.car, self.state
-        rim = omega * self._radius_now(c, fz)
+        """The undriven wheels' mean rim speed, less their spin-up slip, as a reading of
+        ``v_x`` (``rates``: yaw rate and the bias-free ``a_x``; ``FrontEnd._speed_step``)."""
+        car, st, fe = self.car, self.state, self.fe
+        r, ax = rates
+        radius = self._radius_now(c, fz)
+        c_x = load_adaptive_stiffness_n(
+            fz, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
+        )
+        spin = spin_up_slip(ax[:, None], radius, c_x, fe.wheel_inertia_kgm2)
+        rim = omega * radius / (1.0 + spin)
         w = self.vy.speed[c][:, None] + car.wheel_x[c] * r[:, None]
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + car.wheel_y[c] * r[:, None]
         free, n_free = car.free[c], car.n_free[c]
         v = np.where(free, vx_rim, 0.0).sum(axis=1) / n_free
         own = np.where(free, st.radius_std[c] / st.radius[c], 0.0).sum(axis=1) / n_free
-        rel = np.hypot(own, st.radius_common_rel[c])
+        spin_mean = np.where(free, spin, 0.0).sum(axis=1) / n_free
+        rel = np.hypot(np.hypot(own, st.radius_common_rel[c]), fe.wheel_inertia_rel_std * spin_mean)
         self.vx.update(c, v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
     def _side_slip_step(

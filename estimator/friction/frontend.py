@@ -11,8 +11,11 @@ is tested against:
   wheels' mean rim speed);
 * side-slip ``v_y``: ``v̇_y = a_y − r v_x`` corrected by GNSS (velocity across the heading);
   the source's reading (``FrontEndConfig.paper``) integrates it with a slow leak to zero;
-* tilt: body roll and pitch follow the accelerations (``φ = k_φ a_y/g``, ``θ = k_θ a_x/g``),
-  so the accelerometers read ``a(1 + k)``: taken out (not in the paper reading), with the
+* tilt: body roll and pitch follow the accelerations behind the body's lag (``φ = k_φ ā_y/g``,
+  ``θ = k_θ ā_x/g``, ``ā`` lagged), so the accelerometers read ``a + k ā``: the leak of the
+  lagged reading taken out (not in the paper reading; in a steady turn ``a(1 + k)``, but in
+  a 0.3 s steering ramp the body rolls only later, and the leak of the instantaneous
+  reading, integrated into ``v_y``, would stay there as a side-slip error), with the
   gradients learnt from the receiver's roll and pitch where it gives them (their changes
   against the accelerations' changes; the config's gradients are the prior);
 * loads: static + longitudinal ``m a_x h/L`` + lateral ``m a_y h/b`` split between the axles
@@ -28,7 +31,15 @@ is tested against:
   ``a_x`` and ``a_y`` before the loads and the measurements (a lateral bias of 0.05 m/s² reads
   as a lateral tyre force and as ~45 N of load moved across, which a soft tyre's radius turns
   into a slip of ~5e-4);
-* relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper).
+* relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper);
+* timing: the IMU means of a tick lie on average ``lag`` before it (5 ms for 100 Hz samples
+  in a 20 ms tick), the wheel speeds and the steering angle are the latest at it; the
+  measured ``a_x``, ``a_y`` are carried to the tick along their change since the last one,
+  ``a + (a − a_prev)·lag/dt`` (not paper): in a 0.3 s steering ramp to 4 m/s² the mean is
+  0.07 m/s² behind, and the filter's ``v_y`` kept what that did to the update;
+* the undriven wheels' spin-up slip: a wheel without torque is spun up by its contact force
+  alone (``I ω̇ = −F r``, ``ω̇ = a_x/r``), so it rolls with ``κ = −I a_x/(r² c_x)`` (about
+  −1e-4 at 2.3 m/s²), taken out of their rim speed before it reads ``v_x`` (not paper).
 
 Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
 """
@@ -47,7 +58,14 @@ from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
-__all__ = ["DRIVE_SHARE", "UNDRIVEN", "FrontEnd", "FrontEndConfig", "FrontEndTick"]
+__all__ = [
+    "DRIVE_SHARE",
+    "UNDRIVEN",
+    "FrontEnd",
+    "FrontEndConfig",
+    "FrontEndTick",
+    "spin_up_slip",
+]
 
 AIR_DENSITY_KGPM3 = 1.2
 UNDRIVEN = {
@@ -81,7 +99,10 @@ class FrontEndConfig:
     receiver's attitude (:class:`_TiltGradient`): the config's worth this many ``(a/g)²`` of
     changes (0.2: a 0.1 g change held for 2 s of fixes), changes taken against this running mean;
     ``yaw_walk_radps``, ``gyro_bias_walk_radps_per_sqrt_s``, ``heading_std_rad``: the yaw
-    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ).
+    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ);
+    ``wheel_inertia_kgm2``, ``wheel_inertia_rel_std``: a wheel's (rim and tyre) spin inertia
+    and its relative 1-σ, for the undriven wheels' spin-up slip (:func:`spin_up_slip`; a
+    road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²).
     """
 
     paper: bool = False
@@ -100,6 +121,24 @@ class FrontEndConfig:
     gyro_bias_walk_radps_per_sqrt_s: float = 1e-4
     heading_std_rad: float = 0.005
     tilt_highpass_s: float = 3.0
+    wheel_inertia_kgm2: float = 1.4
+    wheel_inertia_rel_std: float = 0.4
+
+
+def spin_up_slip(
+    ax_mps2: FloatArray | float,
+    radius_m: FloatArray,
+    c_x_n: FloatArray,
+    inertia_kgm2: float,
+) -> FloatArray:
+    """Slip of a wheel that no torque drives while the vehicle accelerates by ``a_x`` [m/s²].
+
+    The contact force alone spins it up: ``I ω̇ = −F r`` with ``ω̇ = a_x/r``, so
+    ``F = −I a_x/r²`` and, in the tyre's linear range, ``κ = F/c_x``. Shapes broadcast
+    (``(4,)`` radii and stiffness with a scalar ``a_x``, or ``(B, 4)`` with ``(B, 1)``)."""
+    force_n = -inertia_kgm2 * np.asarray(ax_mps2) / (radius_m * radius_m)
+    slip: FloatArray = force_n / np.maximum(c_x_n, 1.0)
+    return slip
 
 
 @dataclass(frozen=True, slots=True)
@@ -276,6 +315,7 @@ class FrontEnd:
             math.radians(ch.roll_gradient_deg_per_g), fe.tilt_prior_weight, fe.tilt_highpass_s
         )
         self.yaw_prev = math.nan
+        self.accel_prev = np.full(2, math.nan)  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((2, 4))
         self.last_tick_ns = 0
 
@@ -299,15 +339,17 @@ class FrontEnd:
         return int(self.imu[-1][0][-1]) if self.imu and self.imu[-1][0].size else None
 
     # --- one tick ----------------------------------------------------------------------------
-    def _imu_window(self, t_ns: int) -> tuple[FloatArray, FloatArray] | None:
-        """Mean specific force and rate over ``(t − tick, t]``; drops samples before it."""
+    def _imu_window(self, t_ns: int) -> tuple[FloatArray, FloatArray, float] | None:
+        """Mean specific force and rate over ``(t − tick, t]`` and how far before ``t`` the
+        samples' mean stamp lies [s]; drops samples before it."""
         lo = t_ns - round(self.dt * 1e9)
-        acc, gyr = [], []
+        acc, gyr, before = [], [], []
         keep = []
         for stamps, a, g in self.imu:
             sel = (stamps > lo) & (stamps <= t_ns)
             acc.append(a[sel])
             gyr.append(g[sel])
+            before.append(t_ns - stamps[sel])
             if stamps.size and stamps[-1] > t_ns:
                 keep.append((stamps, a, g))
         self.imu = keep
@@ -315,7 +357,7 @@ class FrontEnd:
         g = np.concatenate(gyr) if gyr else np.zeros((0, 3))
         if not a.size:
             return None
-        return a.mean(axis=0), g.mean(axis=0)
+        return a.mean(axis=0), g.mean(axis=0), float(np.concatenate(before).mean()) * 1e-9
 
     def _latest(self, t_ns: int) -> None:
         """Latest wheel speeds, steering angle and GNSS sample at or before ``t_ns``."""
@@ -336,7 +378,7 @@ class FrontEnd:
         self.last_tick_ns = t_ns
         if window is None or not np.all(np.isfinite(self.omega)):
             return None
-        accel, gyro = window
+        accel, gyro, imu_lag_s = window
         ax_raw, ay_raw = float(accel[1]), float(-accel[0])
         yaw_rate = self._yaw_step(float(gyro[2]))
         gnss = self._gnss_velocity(t_ns)
@@ -367,7 +409,8 @@ class FrontEnd:
                 0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
                 + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
             ) / self.ch.mass_kg
-        z = np.array([ax + resist, ay, yaw_accel])
+        ax_now, ay_now = self._at_tick(ax, ay, imu_lag_s)
+        z = np.array([ax_now + resist, ay_now, yaw_accel])
         calibrated = self.fe.paper or self.calibrated
         valid = (
             vx >= self.fe.min_speed_mps
@@ -397,6 +440,16 @@ class FrontEnd:
         )
 
     # --- the small filters --------------------------------------------------------------------
+    def _at_tick(self, ax: float, ay: float, lag_s: float) -> tuple[float, float]:
+        """The accelerations at the tick from means ``lag_s`` before it, carried along their
+        change since the last tick (paper: as read; the first tick: as read)."""
+        prev = self.accel_prev
+        self.accel_prev = np.array([ax, ay])
+        if self.fe.paper or math.isnan(prev[0]):
+            return ax, ay
+        step = lag_s / self.dt
+        return ax + (ax - float(prev[0])) * step, ay + (ay - float(prev[1])) * step
+
     def _gnss_velocity(self, t_ns: int) -> tuple[float, float] | None:
         """GNSS ``(v_x, v_y)`` in the body frame when a fresh sample arrived, else None."""
         g = self.gnss
@@ -427,12 +480,19 @@ class FrontEnd:
         free = self.undriven
         if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
             return
-        rim = self.omega * self._radius_now(fz)
+        radius = self._radius_now(fz)
+        c_x = load_adaptive_stiffness_n(
+            fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
+        )
+        spin = spin_up_slip(ax_tilt - self.vx.bias, radius, c_x, self.fe.wheel_inertia_kgm2)
+        rim = self.omega * radius / (1.0 + spin)
         w = self.vy.speed + self.wheel_x * yaw_rate
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
         v = float(np.mean(vx_rim[free]))
         rel = math.hypot(
-            float(np.mean(self.radius_std[free] / self.radius[free])), self.radius_common_rel
+            float(np.mean(self.radius_std[free] / self.radius[free])),
+            self.radius_common_rel,
+            self.fe.wheel_inertia_rel_std * float(np.mean(spin[free])),
         )
         self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
@@ -464,10 +524,12 @@ class FrontEnd:
         )
 
     def _detilt(self, ax: float, ay: float) -> tuple[float, float]:
-        """The accelerations without the body's tilt, ``a (1 − s)`` (paper: as read)."""
+        """The accelerations without the body's tilt, ``a_m − s ā_m`` with ``ā_m`` the reading
+        lagged as the body follows it (``a_m (1 − s)`` when steady; paper: as read)."""
         if self.fe.paper:
             return ax, ay
-        return ax * (1.0 - self.pitch.slope), ay * (1.0 - self.roll.slope)
+        lag_x, lag_y = self.tilt_reading
+        return ax - self.pitch.slope * float(lag_x), ay - self.roll.slope * float(lag_y)
 
     def _learn_tilt(self, ax_raw: float, ay_raw: float, fresh: bool) -> None:
         """Lag the raw accelerations as the body follows them (the load transfer's lag) and,

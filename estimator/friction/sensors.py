@@ -53,7 +53,9 @@ class SensedTicks:
     ``gnss_vel_mps`` ``(K, 2)`` body-frame ``(v_x, v_y)`` of a fresh epoch (NaN without one);
     ``gnss_attitude`` ``(K, 3)`` that epoch's heading, pitch and roll [rad] and
     ``gnss_stamp_ns`` ``(K,)`` its time; ``gnss_recent`` ``(K,)`` whether the latest epoch
-    (fresh or not) is at most ``gnss_timeout_s`` old.
+    (fresh or not) is at most ``gnss_timeout_s`` old; ``imu_lag_s`` ``(K,)`` how far before
+    the tick the IMU means' samples lie on average (``t`` less their mean stamp: 5 ms for
+    100 Hz samples in a 20 ms tick).
     """
 
     t_ns: IntArray
@@ -65,6 +67,7 @@ class SensedTicks:
     gnss_attitude: FloatArray
     gnss_stamp_ns: IntArray
     gnss_recent: BoolArray
+    imu_lag_s: FloatArray
 
     def take(self, rows: IntArray) -> SensedTicks:
         """The rows ``rows``."""
@@ -299,7 +302,7 @@ class FleetSensors:
             return _no_ticks(), counts
         v = due.vehicle
         window = (imu[0][covered], imu[1][covered])
-        means, n_imu = self._imu_means(due, window)
+        means, n_imu, lag_s = self._imu_means(due, window)
         omega = self._latest(self.wheels, self.omega, due)
         steer = self._latest(self.steering, self.steer[:, None], due)[:, 0]
         ready = (n_imu > 0) & np.isfinite(omega).all(axis=1)
@@ -307,7 +310,13 @@ class FleetSensors:
         keep = np.flatnonzero(ready)
         counts[np.flatnonzero(covered)] = np.bincount(v[keep], minlength=due.slots.size)
         sensed = SensedTicks(
-            due.t_ns[keep], means[keep, :3], means[keep, 3:], omega[keep], steer[keep], *gnss
+            due.t_ns[keep],
+            means[keep, :3],
+            means[keep, 3:],
+            omega[keep],
+            steer[keep],
+            *gnss,
+            lag_s[keep],
         )
         for rows in (self.imu, self.wheels, self.steering, self.gnss):
             rows.shrink()
@@ -337,10 +346,10 @@ class FleetSensors:
 
     def _imu_means(
         self, due: _Due, window: tuple[IntArray, FloatArray]
-    ) -> tuple[FloatArray, IntArray]:
-        """Mean of the IMU samples in ``(t − tick, t]`` per tick ``(R, 6)`` and their count
-        ``(R,)``, from the running sum along each row; the samples up to each vehicle's last
-        tick dropped."""
+    ) -> tuple[FloatArray, IntArray, FloatArray]:
+        """Mean of the IMU samples in ``(t − tick, t]`` per tick ``(R, 6)``, their count and
+        how far before ``t`` their mean stamp lies [s] ``(R,)``, the means from the running
+        sum along each row; the samples up to each vehicle's last tick dropped."""
         stamps, values = window
         mine = stamps[due.vehicle]
         hi = (mine <= due.t_ns[:, None]).sum(axis=1)
@@ -349,8 +358,11 @@ class FleetSensors:
         np.cumsum(values, axis=1, out=sums[:, 1:])
         count = hi - lo
         means = (sums[due.vehicle, hi] - sums[due.vehicle, lo]) / np.maximum(count, 1)[:, None]
+        before_ns = due.t_ns[:, None] - mine
+        inside = (before_ns >= 0) & (before_ns < self.tick_ns)
+        lag_s = np.where(inside, before_ns, 0).sum(axis=1) / np.maximum(count, 1) * 1e-9
         self.imu.drop(due.slots, hi[due.last])
-        return means, count
+        return means, count, lag_s
 
     def _latest(self, rows: _Rows, held: FloatArray, due: _Due) -> FloatArray:
         """The last sample of ``rows`` at or before each tick ``(R, width)``, the slot's
@@ -427,4 +439,5 @@ def _no_ticks() -> SensedTicks:
         f((0, 3)),
         f(0, np.int64),
         f(0, bool),
+        f(0),
     )

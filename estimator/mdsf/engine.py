@@ -287,6 +287,8 @@ class MdsfEngine:
         grow("tyre_stats", (len(_TyreStat),), 0.0)
         grow("rim_innov", (2, 2), 0.0)
         grow("slip_anchor", (2,), 0.0)
+        grow("accel_var_fix", (), np.nan)
+        grow("leak_var", (), 0.0)
         grow("anchor_stats", (3,), 0.0)
         grow("dist_gated", (), False)
         grow("ref_x", (len(RefState),), 0.0)
@@ -313,6 +315,8 @@ class MdsfEngine:
     tyre_stats: FloatArray
     rim_innov: FloatArray
     slip_anchor: FloatArray
+    accel_var_fix: FloatArray
+    leak_var: FloatArray
     anchor_stats: FloatArray
     dist_gated: BoolArray
     ref_x: FloatArray
@@ -341,6 +345,8 @@ class MdsfEngine:
         self.tyre_stats[s] = 0.0
         self.rim_innov[s] = 0.0
         self.slip_anchor[s] = 0.0
+        self.accel_var_fix[s] = np.nan
+        self.leak_var[s] = 0.0
         self.anchor_stats[s] = 0.0
         self.dist_gated[s] = False
         self.x[s] = 0.0
@@ -545,9 +551,38 @@ class MdsfEngine:
         Q = self.Q_base[slots]
         if not self.product:
             return F, Q, None
+        accel_var = self._leak_into_bias(slots, t, init, accel_var, Q)
         u, a_in = self._accel_control(slots, t, z, x, accel_var, Q)
         self._rim_excess_process(slots, t, x, init, a_in, accel_var, F, Q, u)
         return F, Q, u
+
+    def _leak_into_bias(
+        self, slots: IntArray, t: TickInputs, init: BoolArray, accel_var: FloatArray, Q: FloatArray
+    ) -> FloatArray:
+        """Product mode, GNSS lost: the gravity leak's growth as bias, not white noise (``Q`` in
+        place); returns the white accelerometer variance the tick keeps, (k,).
+
+        The front end adds the pitch error's leak ``g·δθ`` to each tick's accelerometer
+        variance as white noise, ``g²·P_θθ·c/dt`` (``c = pitch_leak_corr_s``). Through an
+        outage ``P_θθ`` grows with the pitch gyro's bias, and ``δθ`` moves over tens of
+        seconds: the speed error it makes is ``g·∫δθ``, a drift, not a random walk that lets a
+        common rim step pass as a change of speed. So the tick keeps the white variance it had
+        at its last fused GNSS speed, ``σ²_fix``, and the rest, ``g²·ΔP_θθ = (σ² − σ²_fix)·dt/c``,
+        enters the bias state's variance as it grows: the speed changes only by the integrated
+        specific force less a bias whose uncertainty is the last GNSS minutes' plus the tilt's.
+        """
+        cfg = self.config
+        lost = self._gnss_lost(slots, t, init)
+        fix = self.accel_var_fix[slots]
+        fresh = ~lost | ~np.isfinite(fix)
+        self.accel_var_fix[slots] = np.where(fresh & t.imu_ok, accel_var, fix)
+        held = ~fresh & t.imu_ok  # a tick without IMU data keeps its placeholder variance
+        white = np.where(held, np.minimum(accel_var, fix), accel_var)
+        leak = np.where(held, (accel_var - white) * (self.dt_s / cfg.pitch_leak_corr_s), 0.0)
+        before = np.where(fresh, 0.0, self.leak_var[slots])
+        Q[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += np.maximum(leak - before, 0.0)
+        self.leak_var[slots] = np.maximum(leak, before)
+        return np.asarray(white)
 
     def _accel_control(
         self,

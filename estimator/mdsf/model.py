@@ -258,8 +258,10 @@ class MdsfConfig:
         with GNSS, forgotten with this time constant [s].
     outage_bias_walk_mps2_per_sqrt_s : float
         Product mode, GNSS lost: extra random walk of the accelerometer-bias state, which then
-        also carries the gravity leaking through the drifting pitch error; the rims, their
-        slip held by ``outage_slip_std``, observe it [m/s²/√s].
+        also carries what the leak's growth (``MdsfEngine._leak_into_bias``) leaves out, such
+        as sway the tilt track does not follow; the rims, their slip held by
+        ``outage_slip_std``, observe it; 0 leaves the bias the sensor's walk and the leak's
+        growth [m/s²/√s].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -308,7 +310,8 @@ class MdsfConfig:
         Product mode: correlation time taken for the pitch filter's error where its gravity
         leak (``g·δθ``) is added to the accelerometer noise as white noise,
         ``g²·P_θθ·pitch_leak_corr_s/dt`` per tick [s]. An assumption, not derived from the
-        filter (``docs/perf/estimator.md``).
+        filter (``docs/perf/estimator.md``). While GNSS is lost the leak's growth goes to the
+        accelerometer-bias state instead (a drift, not white noise: ``MdsfEngine._leak_into_bias``).
     gyro_bias_tau_s : float
         Product mode: time constant with which the yaw-gyro bias is learnt against the GNSS
         heading [s].
@@ -451,6 +454,7 @@ class MdsfConfig:
                 "outage_rim_drift_share",
                 "outage_demand_share",
                 "outage_slip_std",
+                "outage_bias_walk_mps2_per_sqrt_s",
                 "gnss_distance_gap_s",
                 "standstill_speed_mps",
             ):
@@ -466,6 +470,7 @@ class MdsfConfig:
             "tyre_gain_tau_s",
             "rim_drift_tau_s",
             "outage_slip_std",
+            "outage_bias_walk_mps2_per_sqrt_s",
             "gnss_distance_gap_s",
             "standstill_speed_mps",
         ):

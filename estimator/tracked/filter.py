@@ -36,8 +36,10 @@ def predict(
     lateral_mps: FloatArray,
     dt_s: float,
     q_diag: FloatArray,
+    lateral_by_gain: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
-    """One tick of the model above; ``q_diag (k, n)`` is the process noise added to ``P``."""
+    """One tick of the model above; ``q_diag (k, n)`` is the process noise added to ``P``,
+    ``lateral_by_gain (k,)`` the derivative of ``v_x`` by the side-slip gain (0 if None)."""
     k = x.shape[0]
     w = yaw_rate(x, gyro_z_radps)
     psi_m = x[:, S.HEADING] - 0.5 * w * dt_s
@@ -55,6 +57,10 @@ def predict(
     F[:, S.NORTH, S.SPEED] = dt_s * c
     F[:, S.HEADING, S.GYRO_BIAS] = dt_s * (1.0 - x[:, S.GYRO_SCALE])
     F[:, S.HEADING, S.GYRO_SCALE] = dt_s * (gyro_z_radps - x[:, S.GYRO_BIAS])
+    if lateral_by_gain is not None:
+        F[:, S.EAST, S.SIDE_SLIP] = dt_s * c * lateral_by_gain
+        F[:, S.NORTH, S.SIDE_SLIP] = -dt_s * s * lateral_by_gain
+        F[:, S.SPEED, S.SIDE_SLIP] = -dt_s * w * lateral_by_gain
     P = F @ P @ np.swapaxes(F, 1, 2)
     idx = np.arange(N_STATES)
     P[:, idx, idx] += q_diag

@@ -52,7 +52,10 @@ class TrackedState(IntEnum):
     far its slip moves every factor from the ground's mean (``F_s + p``), a Gauss-Markov
     process over the distance driven (correlation length ``ℓ``): the factors hold the
     ground's mean, which the next kilometre of an outage drives on, and ``p`` the last
-    patches' departure from it, which dies out over ``ℓ``.
+    patches' departure from it, which dies out over ``ℓ``. ``SIDE_SLIP`` ``g_s`` is the
+    ground's side-slip over what the configured lateral resistance ``μ_t`` gives (the turning
+    pole ``g_s·L·|a_y|/(2·μ_t·g)`` ahead of the centre): learnt beside GNSS in turns, so that
+    a ground sliding more or less than configured is not read as a gyro scale error.
     """
 
     EAST = 0
@@ -68,6 +71,7 @@ class TrackedState(IntEnum):
     ACCEL_LAG = 10
     ACCEL_SLIP = 11
     GROUND_PATCH = 12
+    SIDE_SLIP = 13
 
 
 N_STATES = len(TrackedState)

@@ -83,9 +83,26 @@ def lateral_speed(
         return np.where(turning, -yaw_rate_radps * contact_length_m, 0.0)
     if mode != TrackedMode.PRODUCT:
         return np.zeros_like(speed_mps)
-    pole = contact_length_m * np.abs(speed_mps * yaw_rate_radps)
-    pole = np.minimum(pole / (2.0 * lateral_resistance * GRAVITY_MPS2), 0.5 * contact_length_m)
-    return yaw_rate_radps * pole
+    lateral, _ = side_slip(speed_mps, yaw_rate_radps, contact_length_m, lateral_resistance)
+    return lateral
+
+
+def side_slip(
+    speed_mps: FloatArray,
+    yaw_rate_radps: FloatArray,
+    contact_length_m: FloatArray,
+    lateral_resistance: FloatArray,
+    gain: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """The product's lateral speed ``v_x = ω·D`` and its derivative by ``gain``, each ``(k,)``:
+    the turning pole ``D = min(g_s·L·|V·ω|/(2·μ_t·g), L/2)`` ahead of the centre, ``g_s``
+    (``gain``, 1 if None) the ground's side-slip over what the configured ``μ_t`` gives."""
+    g_s = np.ones_like(speed_mps) if gain is None else gain
+    free = contact_length_m * np.abs(speed_mps * yaw_rate_radps)
+    free = free / (2.0 * lateral_resistance * GRAVITY_MPS2)
+    capped = g_s * free >= 0.5 * contact_length_m
+    pole = np.where(capped, 0.5 * contact_length_m, g_s * free)
+    return yaw_rate_radps * pole, np.where(capped, 0.0, yaw_rate_radps * free)
 
 
 def turn_tightness(sprocket_mps: FloatArray) -> FloatArray:

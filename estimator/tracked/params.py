@@ -32,6 +32,7 @@ class VehicleParams:
     gnss_vel_std_mps: FloatArray
     sprocket_pitch_m: FloatArray
     odometer_pitch_m: FloatArray
+    odometer_scale_std: FloatArray
     antenna_xy_m: FloatArray
 
     @classmethod
@@ -54,6 +55,7 @@ class VehicleParams:
             "gnss_vel_std_mps": c.noise.gnss_vel_std_mps,
             "sprocket_pitch_m": 2.0 * np.pi * c.sprocket.pitch_radius_m / c.sprocket.teeth_per_rev,
             "odometer_pitch_m": c.odometer.distance_per_edge_m,
+            "odometer_scale_std": c.odometer.scale_std_pct / 100.0,
         }
         arrays = {k: np.array([v], dtype=np.float64) for k, v in values.items()}
         return cls(**arrays, antenna_xy_m=np.array([g.antenna_lever_arm_m[:2]], dtype=np.float64))

@@ -56,14 +56,23 @@ class TrackedEstimatorConfig:
     m/s² of acceleration ``κ`` starts at ``initial_accel_slip_s2pm`` (a track's slip grows by
     2-8 % per 0.1 g of pull on firm to soft ground) and is learned from the accelerations.
 
-    The ground under the tracks departs from its mean slip by ``ground_patch_slip_std`` (1-σ
-    of the factor) over patches about ``ground_patch_m`` long (the filter's ``GROUND_PATCH``
-    state, a Gauss-Markov process over the distance driven): beside GNSS the patch takes the
+    The ground under the tracks departs from its mean slip over patches about
+    ``ground_patch_m`` long (the filter's ``GROUND_PATCH`` state, a Gauss-Markov process over
+    the distance driven) by ``ground_patch_rel_std`` of the ground's slip level (a track's
+    slip under a given pull goes inversely with the soil's shear strength, which varies from
+    patch to patch by a share of itself), so a firm ground's patches differ by less than a
+    soft one's; the level is the traction slip the straight's factor has learnt
+    (``1 − F_straight``, :func:`~estimator.tracked.step.patch_std`) at its upper 1-sigma.
+    The patch state starts at ``ground_patch_slip_std``. Beside GNSS the patch takes the
     last metres' departure, the factors (walking by ``factor_walk``, slowly: ``K_D`` and the
     ground's mean) what the next kilometre of an outage will drive on. While dead
     reckoning, the along-track position variance grows by what the mean factor's error makes
     over the distance driven and by the patches driven over, which nothing observes
     without GNSS.
+
+    The hull's side-slip in turns is the configured ``μ_t``'s times a gain learnt beside
+    GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
+    sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.
 
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
@@ -136,7 +145,10 @@ class TrackedEstimatorConfig:
     initial_accel_slip_std_s2pm: float = 0.03
     accel_slip_walk_s2pm: float = 1e-4
     ground_patch_slip_std: float = 0.007
+    ground_patch_rel_std: float = 0.15
     ground_patch_m: float = 150.0
+    initial_side_slip_std: float = 0.5
+    side_slip_walk: float = 1e-3
     report_lag_ticks: int = 4
     onset_yaw_accel_radps2: float = 0.1
 

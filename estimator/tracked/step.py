@@ -17,7 +17,12 @@ from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.tracked.filter import kalman_update, predict, yaw_rate
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
-from estimator.tracked.odometer import lateral_speed, odometer_measurement, turn_tightness
+from estimator.tracked.odometer import (
+    lateral_speed,
+    odometer_measurement,
+    side_slip,
+    turn_tightness,
+)
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import (
     change_onset,
@@ -30,12 +35,14 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.vehicle import TickInputs
 
-__all__ = ["Filter", "TickOut", "initial_filter", "tick_step"]
+__all__ = ["Filter", "TickOut", "initial_filter", "patch_std", "tick_step"]
 
 M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
 #: What the odometer teaches beside GNSS only: the factors and the ground's patch.
 _LEARNED = [*_FACTORS, S.GROUND_PATCH]
+#: Every state the odometer's model reads but fuses only beside GNSS.
+_BESIDE_ONLY = [*_LEARNED, S.ACCEL_LAG, S.ACCEL_SLIP]
 
 
 @dataclass(slots=True)
@@ -89,6 +96,7 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.ACCEL_LAG] = learn * cfg.initial_accel_lag_std_s**2
     diag[S.ACCEL_SLIP] = learn * cfg.initial_accel_slip_std_s2pm**2
     diag[S.GROUND_PATCH] = learn * cfg.ground_patch_slip_std**2
+    diag[S.SIDE_SLIP] = learn * cfg.initial_side_slip_std**2
     return np.diag(diag)
 
 
@@ -101,6 +109,7 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     x[0, S.F_PIVOT] = -cfg.initial_pivot_slip if cfg.learns else 0.0
     x[0, S.TURN_SLIP] = cfg.initial_turn_slip if cfg.learns else 0.0
     x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
+    x[0, S.SIDE_SLIP] = 1.0
     P = _initial_p(cfg)[None].copy()
     P[0, S.HEADING, S.HEADING] = 10.0
     P[0, [S.EAST, S.NORTH], [S.EAST, S.NORTH]] = 1e6
@@ -120,13 +129,25 @@ def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> Flo
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
     q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
     q[:, S.ACCEL_SLIP] = learn * cfg.accel_slip_walk_s2pm**2 * dt
+    q[:, S.SIDE_SLIP] = learn * cfg.side_slip_walk**2 * dt
     return q
 
 
-def _ground_patch(f: Filter, cfg: TrackedEstimatorConfig) -> None:
+def patch_std(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> FloatArray:
+    """1-sigma ``σ_p`` of the ground's patch per vehicle, shape ``(k,)``: ``r·(max(1 − F, 0)
+    + √(σ_KD² + σ_F²))``, ``r`` = ``ground_patch_rel_std``. ``1 − F`` (``F`` the straight's
+    learnt factor) is the ground's traction slip less ``K_D``'s error, so the slip level is
+    known to ``K_D``'s 1-sigma ``σ_KD`` and the factor's own ``σ_F``; the upper 1-sigma of it
+    is taken."""
+    var_f = np.maximum(f.P[:, S.F_STRAIGHT, S.F_STRAIGHT], 0.0)
+    level = np.maximum(1.0 - f.x[:, S.F_STRAIGHT], 0.0)
+    return cfg.ground_patch_rel_std * (level + np.sqrt(p.odometer_scale_std**2 + var_f))
+
+
+def _ground_patch(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
     """The patch state ``p`` over a tick (product): a Gauss-Markov process over the distance
     ``Δd = |V|·Δt``, ``p' = e·p`` with ``e = exp(−Δd/ℓ)`` and ``Var p' = e²·Var p +
-    σ_p²·(1 − e²)`` (``ℓ`` = ``ground_patch_m``, ``σ_p`` = ``ground_patch_slip_std``): a
+    σ_p²·(1 − e²)`` (``ℓ`` = ``ground_patch_m``, ``σ_p`` from :func:`patch_std`): a
     patch learned beside GNSS is forgotten as the tracks leave it. ``x``, ``P`` in place."""
     if not cfg.learns:
         return
@@ -135,15 +156,17 @@ def _ground_patch(f: Filter, cfg: TrackedEstimatorConfig) -> None:
     f.x[:, g] *= e
     f.P[:, g, :] *= e[:, None]
     f.P[:, :, g] *= e[:, None]
-    f.P[:, g, g] += cfg.ground_patch_slip_std**2 * (1.0 - e * e)
+    f.P[:, g, g] += patch_std(f, p, cfg) ** 2 * (1.0 - e * e)
 
 
-def _dead_reckoning_noise(f: Filter, cfg: TrackedEstimatorConfig) -> None:
+def _dead_reckoning_noise(f: Filter, p: VehicleParams, cfg: TrackedEstimatorConfig) -> None:
     """While dead reckoning (no fix fused for over a second; product mode), the along-track
-    position variance the odometer's factor makes: an error ``σ_F`` of the ground's mean
-    factor (``P[F_straight]``) costs ``σ_F·d`` over the distance ``d`` driven since the loss,
-    i.e. a white noise of intensity ``2·σ_F²·|V|·d`` along the heading (``d ≈ |V|·t``, ``t``
-    the time since the last fix), and the patches of ground driven over, each departing from
+    position variance the odometer's factor makes: the ground's mean factor, off by ``ε₀``
+    (variance ``σ₀²``) at the loss and walking by ``q_F`` = ``factor_walk²`` since, costs
+    ``∫ε·|V| dt`` over the ``t`` since the last fix, whose variance grows at
+    ``(2·σ₀²·t + q_F·t²)·V²`` (constant ``V``); with the filter's ``σ_F² = P[F_straight] =
+    σ₀² + q_F·t`` that is ``(2·σ_F²·t − q_F·t²)·V²`` along the heading. The patches of
+    ground driven over, each departing from
     the mean by ``σ_p`` over ``ℓ``, add ``2·σ_p²·ℓ·|V|`` (the integral of the Gauss-Markov
     patch for ``d ≫ ℓ``). The factors' own ``H`` is zeroed without GNSS, so without this
     their variance never reaches the position. ``P`` in place."""
@@ -152,10 +175,9 @@ def _dead_reckoning_noise(f: Filter, cfg: TrackedEstimatorConfig) -> None:
         return
     v = np.abs(f.x[:, S.SPEED])
     var_f = f.P[:, S.F_STRAIGHT, S.F_STRAIGHT]
-    q = (
-        2.0 * var_f * v * v * f.since_gnss_s
-        + 2.0 * cfg.ground_patch_slip_std**2 * cfg.ground_patch_m * v
-    )
+    t = f.since_gnss_s
+    mean_rate = np.maximum(2.0 * var_f * t - cfg.factor_walk**2 * t * t, 0.0) * v * v
+    q = mean_rate + 2.0 * patch_std(f, p, cfg) ** 2 * cfg.ground_patch_m * v
     q = np.where(dr, q * cfg.tick_s, 0.0)
     s, c = np.sin(f.x[:, S.HEADING]), np.cos(f.x[:, S.HEADING])
     e, n = S.EAST, S.NORTH
@@ -252,11 +274,13 @@ def _fuse_gnss(
     inp: TickInputs,
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
-    lateral: FloatArray,
+    lateral_pair: tuple[FloatArray, FloatArray | None],
     w: FloatArray,
     skip: BoolArray,
 ) -> tuple[BoolArray, BoolArray, FloatArray]:
-    """Antenna position, then velocity; returns (used, gated, position NIS)."""
+    """Antenna position, then velocity; returns (used, gated, position NIS).
+    ``lateral_pair``: the lateral speed and its derivative by the side-slip gain (or None)."""
+    lateral, by_gain = lateral_pair
     k = f.x.shape[0]
     psi = f.x[:, S.HEADING]
     s, c = np.sin(psi), np.cos(psi)
@@ -289,6 +313,8 @@ def _fuse_gnss(
     Hv = np.zeros((k, 2, N_STATES))
     Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = s, c
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
+    if by_gain is not None:
+        Hv[:, 0, S.SIDE_SLIP], Hv[:, 1, S.SIDE_SLIP] = c * by_gain, -s * by_gain
     std = np.where(np.isfinite(inp.gnss_vel_std_mps), inp.gnss_vel_std_mps, p.gnss_vel_std_mps)
     Rv = np.eye(2)[None] * (std**2)[:, None, None]
     # a fix whose position passed the gate is sound: its velocity is fused ungated
@@ -303,8 +329,9 @@ def _fuse_odometer(
     cfg: TrackedEstimatorConfig,
     state: IntArray,
     w: FloatArray,
-) -> tuple[BoolArray, FloatArray]:
-    """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`)."""
+) -> tuple[BoolArray, FloatArray, FloatArray]:
+    """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`);
+    returns (used, corrected speed, :func:`_factor_speed_var`)."""
     valid = np.isfinite(inp.odometer_mps)
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
@@ -324,11 +351,24 @@ def _fuse_odometer(
         inp.steady_s >= cfg.learn_steady_s
     )
     beside = f.started & (f.since_gnss_s <= 1.0)
+    factor_var = _factor_speed_var(f.P, H, ~beside & mask)
     H[:, :, _LEARNED] *= (beside & steady)[:, None, None]
     H[:, :, S.ACCEL_LAG] *= beside[:, None]
     H[:, :, S.ACCEL_SLIP] *= beside[:, None]
     f.x, f.P, _, used = kalman_update(f.x, f.P, y, H, R, mask)
-    return used, corrected
+    return used, corrected, factor_var
+
+
+def _factor_speed_var(P: FloatArray, H: FloatArray, dead_reckoning: BoolArray) -> FloatArray:
+    """Variance ``(k,)`` of the forward speed the odometer gives through its model's learnt
+    states while dead reckoning (they are not fused then, so ``P[V]`` does not hold them):
+    ``h_L P_LL h_Lᵀ / h_V²``, ``h`` the odometer's row of ``H (k, 1, n)`` (0 elsewhere)."""
+    h = H[:, 0, _BESIDE_ONLY]
+    p_ll = P[:, _BESIDE_ONLY][:, :, _BESIDE_ONLY]
+    var = np.einsum("ki,kij,kj->k", h, p_ll, h)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = var / H[:, 0, S.SPEED] ** 2
+    return np.where(dead_reckoning & np.isfinite(var), var, 0.0)
 
 
 def _fuse_standstill(
@@ -349,18 +389,25 @@ def _fuse_standstill(
 
 
 def _track_slip(
-    f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    w: FloatArray,
+    factor_var: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, BoolArray]:
     """Track ground speeds ``V ∓ ω·B/2`` at the tick, slip
     ``S = (Vs − v)/max(Vs, v)`` in percent with its 1-sigma, validity and braked tracks.
 
-    A slip is given only where it is observable: its 1-sigma (from the speed's variance,
-    which carries the odometer factor's while dead reckoning) at most ``slip_std_max_pct``,
+    A slip is given only where it is observable: its 1-sigma (from the speed's variance and,
+    while dead reckoning, ``factor_var`` ``(k,)``, what the odometer's learnt factor of the
+    state makes of it: a pivot's factor never learnt is ±15 %) at most ``slip_std_max_pct``,
     and the track's sprocket not settling; a sprocket starting after a standstill is not
     braked (its brake is being released), so it gets no −100 % either."""
     half = 0.5 * p.gauge_m[:, None]
     track = f.x[:, S.SPEED, None] + np.stack([-w, w], axis=1) * half
     var_v = f.P[:, S.SPEED, S.SPEED] + (0.5 * p.gauge_m * cfg.zero_rate_std_radps) ** 2
+    var_v = var_v + factor_var
     track_std = np.sqrt(np.maximum(var_v, 0.0))
     vs = inp.sprocket_pair_mps
     top = np.maximum(vs, track)
@@ -380,22 +427,33 @@ def _track_slip(
     return track, track_std, slip, std, valid, braked
 
 
+def _lateral(
+    f: Filter, state: IntArray, w: FloatArray, p: VehicleParams, cfg: TrackedEstimatorConfig
+) -> tuple[FloatArray, FloatArray | None]:
+    """The hull's lateral speed ``(k,)`` by mode and (product) its derivative by the
+    side-slip gain (:func:`~estimator.tracked.odometer.side_slip`)."""
+    v = f.x[:, S.SPEED]
+    if not cfg.learns:
+        return lateral_speed(cfg.mode, state, v, w, p.length_m, p.lateral_resistance), None
+    return side_slip(v, w, p.length_m, p.lateral_resistance, f.x[:, S.SIDE_SLIP])
+
+
 def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> TickOut:
     """One tick for every vehicle of ``f`` (updated in place); see the module docstring."""
     gyro = np.nan_to_num(inp.gyro_radps)
     accel = np.nan_to_num(inp.accel_mps2)
     w = yaw_rate(f.x, gyro)
     state, conf = recognise(f, inp, p, cfg, w)
-    lateral = lateral_speed(cfg.mode, state, f.x[:, S.SPEED], w, p.length_m, p.lateral_resistance)
+    lateral, by_gain = _lateral(f, state, w, p, cfg)
     f.x, f.P = predict(
-        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral)
+        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral), by_gain
     )
-    _ground_patch(f, cfg)
-    _dead_reckoning_noise(f, cfg)
+    _ground_patch(f, p, cfg)
+    _dead_reckoning_noise(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
-    used, gated, nis = _fuse_gnss(f, inp, p, cfg, lateral, w, fresh)
-    odo_used, corrected = _fuse_odometer(f, inp, p, cfg, state, w)
+    used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain), w, fresh)
+    odo_used, corrected, factor_var = _fuse_odometer(f, inp, p, cfg, state, w)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:
@@ -414,7 +472,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         )
         _fuse_standstill(f, inp, cfg, still)
     f.since_gnss_s = np.where(used | fresh, 0.0, f.since_gnss_s + cfg.tick_s)
-    track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w)
+    track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w, factor_var)
     return TickOut(
         state=state,
         confidence=conf,

@@ -102,13 +102,27 @@ class SharedQueries:
             rows = self._select(f"{sql} WHERE vehicle_id = ?", (vehicle_id,))
         return {str(v): (float(a), float(b), float(c)) for v, a, b, c in rows}
 
-    # ------------------------------------------------------------------ access tokens
+    # ------------------------------------------------------------------ raw packets
 
     def raw_packets_bytes(self) -> int:
         """Payload bytes of every stored raw packet (the writer's ``raw_packets_max_bytes``;
         ``length`` of a blob or ``bytea`` is its bytes on both backends)."""
         rows = self._select("SELECT coalesce(sum(length(payload)), 0) FROM raw_packets")
         return int(rows[0][0])
+
+    def query_raw_packets(
+        self, vehicle_id: str, start_ns: int, end_ns: int
+    ) -> list[tuple[int, str, bytes]]:
+        """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
+        rows = self._select(
+            "SELECT received_ns, key, payload FROM raw_packets "
+            "WHERE vehicle_id = ? AND received_ns >= ? AND received_ns < ? "
+            "ORDER BY received_ns, id",
+            (vehicle_id, int(start_ns), int(end_ns)),
+        )
+        return [(int(t), str(k), bytes(p)) for t, k, p in rows]
+
+    # ------------------------------------------------------------------ access tokens
 
     def create_token(
         self, name: str, role: str, token_sha256: str, now_ns: int, expires_ns: int | None = None

@@ -444,18 +444,6 @@ class PostgresStore(SharedQueries):
             )
         return len(params)
 
-    def query_raw_packets(
-        self, vehicle_id: str, start_ns: int, end_ns: int
-    ) -> list[tuple[int, str, bytes]]:
-        """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
-        rows = self._read(
-            "SELECT received_ns, key, payload FROM raw_packets "
-            "WHERE vehicle_id = %s AND received_ns >= %s AND received_ns < %s "
-            "ORDER BY received_ns, id",
-            (vehicle_id, int(start_ns), int(end_ns)),
-        )
-        return [(int(t), str(k), bytes(p)) for t, k, p in rows]
-
 
 def _copy_in_payload(t: _PgTable, batch: EstimateBatch, keys: Mapping[str, int]) -> bytes | None:
     """The binary COPY stream of ``t``'s rows of the registered vehicles of ``batch`` (None:

@@ -697,15 +697,3 @@ class SqliteStore(SharedQueries):
                 params,
             )
         return len(params)
-
-    def query_raw_packets(
-        self, vehicle_id: str, start_ns: int, end_ns: int
-    ) -> list[tuple[int, str, bytes]]:
-        """``(received_ns, key, payload)`` with ``start_ns <= received_ns < end_ns``, in order."""
-        rows = self._read(
-            "SELECT received_ns, key, payload FROM raw_packets "
-            "WHERE vehicle_id = ? AND received_ns >= ? AND received_ns < ? "
-            "ORDER BY received_ns, id",
-            (vehicle_id, int(start_ns), int(end_ns)),
-        )
-        return [(int(t), str(k), bytes(p)) for t, k, p in rows]

@@ -906,7 +906,9 @@ def test_long_outage_the_rims_hold_the_speed() -> None:
         )
     on, off = err[MdsfConfig().outage_slip_std], err[0.0]
     assert on[0] < 6.0 and on[1] < 0.25
-    assert off[0] > 3 * on[0] and off[1] > 2 * on[1]
+    # with the tilt's leak carried as bias (MdsfEngine._leak_into_bias) the speed drifts less
+    # on its own, so the bound's margin narrowed (slip RMS 4.1 against 7.4 pp, was over 3×)
+    assert off[0] > 1.5 * on[0] and off[1] > on[1]
 
 
 def test_a_slip_jump_still_opens_the_rim_excess() -> None:

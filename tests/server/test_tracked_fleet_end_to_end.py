@@ -122,7 +122,8 @@ def _check_crawler_rows(client: httpx.Client, window: dict[str, int], t0: int) -
 
 def _check_crawler_report(client: httpx.Client, window: dict[str, int]) -> None:
     """The report's time and distance per motion state add up to its totals; slip per state
-    and per track where the tracks slip; the long dead reckoning raised its alert."""
+    and per track where the tracks slip and the estimator knows it; the long dead reckoning
+    raised its alert."""
     r = client.get("/api/v1/vehicles/sim-0002/report", params={**window, "estimator": "tracked"})
     assert r.status_code == 200, r.text
     rep = r.json()["report"]
@@ -131,9 +132,13 @@ def _check_crawler_report(client: httpx.Client, window: dict[str, int]) -> None:
     assert sum(s["seconds"] for s in states.values()) == pytest.approx(rep["covered_s"])
     distance = sum(s["distance_m"] for s in states.values())
     assert distance == pytest.approx(rep["distance_m"]) and states["straight"]["distance_m"] > 100
-    for state in ("straight", "arc", "separated"):
-        for key in ("left", "right"):
-            assert np.isfinite(states[state]["slip_mean_pct"][key]), (state, key)
+    for state, key in (("straight", "left"), ("straight", "right"), ("arc", "right")):
+        assert np.isfinite(states[state]["slip_mean_pct"][key]), (state, key, states)
+    for key in ("left", "right"):
+        assert np.isfinite(states["separated"]["slip_mean_pct"][key]), (key, states)
+    # the route's only arc lies in the GNSS outage, before any arc was driven with GNSS: the
+    # arc's odometer factor was never learnt, so the inner (left) track's slip is withheld
+    assert states["arc"]["slip_mean_pct"]["left"] is None, states
     turn = states["separated"]["slip_mean_pct"]
     assert turn["left"] > turn["right"]  # a right turn: the outer (left) track drives
     kinds = {a["kind"] for a in client.get("/api/v1/alerts").json()["alerts"]}

@@ -280,125 +280,146 @@ def flood_product(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) 
     }
 
 
+class _NaiveLoop:
+    """The naive baseline's per-packet work (see the module docstring): pydantic decode, one
+    filterpy :class:`estimator.mdsf.MdsfFilter` per vehicle stepped every ``tick_ns`` of IMU
+    time, rows committed to SQLite every 100 ms."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        import pydantic
+
+        from estimator.mdsf import MdsfConfig
+
+        class Gnss(pydantic.BaseModel):
+            stamp_ns: int
+            vel_enu_mps: list[float]
+            heading_rad: float
+
+        class Imu(pydantic.BaseModel):
+            stamp_ns: list[int]
+            accel_mps2: list[list[float]]
+            gyro_radps: list[list[float]]
+
+        class Edges(pydantic.BaseModel):
+            wheel: int
+            stamp_ns: list[int]
+
+        class Wheels(pydantic.BaseModel):
+            edges: list[Edges]
+
+        self.models: dict[str, type[pydantic.BaseModel]] = {
+            "gnss": Gnss,
+            "imu": Imu,
+            "wheels": Wheels,
+        }
+        self.config = MdsfConfig()
+        self.db = db
+        self.filters: dict[str, tuple[Any, list[int], dict[str, float]]] = {}
+        self.pending: list[tuple[str, int, float, float, float]] = []
+        self.processed = 0
+        self.rows_written = 0
+
+    def _entry(self, vid: str) -> tuple[Any, list[int], dict[str, float]]:
+        import numpy as np
+
+        from estimator.config import WheeledRearDriveConfig
+        from estimator.mdsf import MdsfFilter
+
+        entry = self.filters.get(vid)
+        if entry is None:
+            f = MdsfFilter(self.config, WheeledRearDriveConfig())
+            f.initialize(np.zeros(self.config.n_state), np.eye(self.config.n_state))
+            entry = self.filters[vid] = (f, [0], {"v": 0.0})
+        return entry
+
+    def handle(self, key_expr: str, payload: bytes) -> None:
+        """Decode one packet and, for IMU packets, step the vehicle's filter per due tick."""
+        import msgpack
+        import numpy as np
+
+        key = key_expr.split("/")
+        vid, stream = key[1], key[-1]
+        raw = msgpack.unpackb(payload)
+        f, last, latest = self._entry(vid)
+        if stream == "gnss":
+            g: Any = self.models["gnss"].model_validate(raw)
+            latest["v"] = float(np.hypot(g.vel_enu_mps[0], g.vel_enu_mps[1]))
+        elif stream == "wheels":
+            edges = [
+                {"wheel": e["wheel"], "stamp_ns": np.frombuffer(e["stamp_ns"], "<i8").tolist()}
+                for e in raw["edges"]
+            ]
+            self.models["wheels"].model_validate({"edges": edges})
+        else:
+            self._imu(vid, f, last, latest, raw)
+        self.processed += 1
+
+    def _imu(self, vid: str, f: Any, last: list[int], latest: dict[str, float], raw: Any) -> None:
+        import numpy as np
+
+        from estimator.mdsf import MdsfObs
+
+        imu: Any = self.models["imu"].model_validate(
+            {
+                "stamp_ns": np.frombuffer(raw["stamp_ns"], "<i8").tolist(),
+                "accel_mps2": np.frombuffer(raw["accel_mps2"], "<f8").reshape(-1, 3).tolist(),
+                "gyro_radps": np.frombuffer(raw["gyro_radps"], "<f8").reshape(-1, 3).tolist(),
+            }
+        )
+        n_obs = self.config.n_obs
+        R = np.eye(n_obs) * 0.01
+        z = np.zeros(n_obs)
+        mask = np.zeros(n_obs, dtype=bool)
+        for t_ns, acc, gyr in zip(imu.stamp_ns, imu.accel_mps2, imu.gyro_radps, strict=True):
+            if last[0] == 0:
+                last[0] = t_ns
+            if t_ns - last[0] < self.config.tick_ns:
+                continue
+            last[0] = t_ns
+            z[MdsfObs.VG] = latest["v"]
+            z[MdsfObs.A1] = acc[1]
+            z[MdsfObs.OMEGA_X] = gyr[0]
+            z[MdsfObs.OMEGA_Z] = gyr[2]
+            mask[:4] = True
+            f.step(z, R, mask)
+            out, _ = f.outputs()
+            self.pending.append((vid, t_ns, float(out[0]), float(out[1]), float(out[2])))
+
+    def commit(self) -> None:
+        if self.pending:
+            self.db.executemany("INSERT INTO est VALUES (?, ?, ?, ?, ?)", self.pending)
+            self.db.commit()
+            self.rows_written += len(self.pending)
+            self.pending = []
+
+
 def flood_naive(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) -> dict[str, Any]:
     """Packets/s through the naive baseline (see the module docstring)."""
-    import msgpack
-    import numpy as np
-    import pydantic
     import zenoh
 
-    from estimator.config import WheeledRearDriveConfig
-    from estimator.mdsf import MdsfConfig, MdsfFilter, MdsfObs
     from server.ingest.zenoh_session import make_config
     from server.settings import ZenohSettings
 
-    class Gnss(pydantic.BaseModel):
-        stamp_ns: int
-        vel_enu_mps: list[float]
-        heading_rad: float
-
-    class Imu(pydantic.BaseModel):
-        stamp_ns: list[int]
-        accel_mps2: list[list[float]]
-        gyro_radps: list[list[float]]
-
-    class Edges(pydantic.BaseModel):
-        wheel: int
-        stamp_ns: list[int]
-
-    class Wheels(pydantic.BaseModel):
-        edges: list[Edges]
-
-    config = MdsfConfig()
-    step_ns = config.tick_ns
-    n_obs = config.n_obs
-    R = np.eye(n_obs) * 0.01
     endpoint = _endpoint()
     total = vehicles * packets
-    processed = 0
-    rows_written = 0
-    filters: dict[str, tuple[MdsfFilter, list[int], dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="slipfleet-naive-") as tmp:
         db = sqlite3.connect(str(Path(tmp) / "naive.sqlite"), check_same_thread=False)
         db.execute("CREATE TABLE est (vehicle TEXT, stamp_ns INTEGER, v REAL, vl REAL, vr REAL)")
+        loop = _NaiveLoop(db)
         with zenoh.open(make_config(ZenohSettings(listen=[endpoint]))) as session:
             sub = session.declare_subscriber("fleet/**", zenoh.handlers.FifoChannel(65536))
             done = threading.Event()
 
             def work() -> None:
-                nonlocal processed, rows_written
-                pending: list[tuple[str, int, float, float, float]] = []
                 next_commit = time.monotonic() + 0.1
                 while not done.is_set():
                     sample = sub.handler.try_recv()
                     if sample is None:
                         time.sleep(0.0005)
                     else:
-                        key = str(sample.key_expr).split("/")
-                        vid, stream = key[1], key[-1]
-                        raw = msgpack.unpackb(sample.payload.to_bytes())
-                        entry = filters.get(vid)
-                        if entry is None:
-                            f = MdsfFilter(config, WheeledRearDriveConfig())
-                            f.initialize(np.zeros(config.n_state), np.eye(config.n_state))
-                            entry = filters[vid] = (f, [0], {"v": 0.0})
-                        f, last, latest = entry
-                        if stream == "gnss":
-                            g = Gnss.model_validate(raw)
-                            latest["v"] = float(np.hypot(g.vel_enu_mps[0], g.vel_enu_mps[1]))
-                        elif stream == "wheels":
-                            Wheels.model_validate(
-                                {
-                                    "edges": [
-                                        {
-                                            "wheel": e["wheel"],
-                                            "stamp_ns": np.frombuffer(
-                                                e["stamp_ns"], "<i8"
-                                            ).tolist(),
-                                        }
-                                        for e in raw["edges"]
-                                    ]
-                                }
-                            )
-                        else:
-                            imu = Imu.model_validate(
-                                {
-                                    "stamp_ns": np.frombuffer(raw["stamp_ns"], "<i8").tolist(),
-                                    "accel_mps2": np.frombuffer(raw["accel_mps2"], "<f8")
-                                    .reshape(-1, 3)
-                                    .tolist(),
-                                    "gyro_radps": np.frombuffer(raw["gyro_radps"], "<f8")
-                                    .reshape(-1, 3)
-                                    .tolist(),
-                                }
-                            )
-                            z = np.zeros(n_obs)
-                            mask = np.zeros(n_obs, dtype=bool)
-                            for t_ns, acc, gyr in zip(
-                                imu.stamp_ns, imu.accel_mps2, imu.gyro_radps, strict=True
-                            ):
-                                if last[0] == 0:
-                                    last[0] = t_ns
-                                if t_ns - last[0] < step_ns:
-                                    continue
-                                last[0] = t_ns
-                                z[MdsfObs.VG] = latest["v"]
-                                z[MdsfObs.A1] = acc[1]
-                                z[MdsfObs.OMEGA_X] = gyr[0]
-                                z[MdsfObs.OMEGA_Z] = gyr[2]
-                                mask[:4] = True
-                                f.step(z, R, mask)
-                                out, _ = f.outputs()
-                                pending.append(
-                                    (vid, t_ns, float(out[0]), float(out[1]), float(out[2]))
-                                )
-                        processed += 1
+                        loop.handle(str(sample.key_expr), sample.payload.to_bytes())
                     if time.monotonic() >= next_commit:
-                        if pending:
-                            db.executemany("INSERT INTO est VALUES (?, ?, ?, ?, ?)", pending)
-                            db.commit()
-                            rows_written += len(pending)
-                            pending = []
+                        loop.commit()
                         next_commit = time.monotonic() + 0.1
 
             worker = threading.Thread(target=work, daemon=True)
@@ -406,7 +427,7 @@ def flood_naive(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) ->
             worker.start()
             with _flooders(endpoint, vehicles, packets) as procs:
                 _go(procs)
-                n, dt = _wait_count(lambda: processed, total, timeout_s=600)
+                n, dt = _wait_count(lambda: loop.processed, total, timeout_s=600)
             cpu = time.process_time() - cpu0
             time.sleep(0.3)
             done.set()
@@ -418,7 +439,7 @@ def flood_naive(vehicles: int = FLOOD_VEHICLES, packets: int = FLOOD_PACKETS) ->
         "packets": total,
         "received": n,
         "packets_per_s": n / dt,
-        "rows": rows_written,
+        "rows": loop.rows_written,
         "cpu_s": cpu,
     }
 

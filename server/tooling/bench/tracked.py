@@ -29,6 +29,12 @@ Metrics per run and mode
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
     driven in it; the worst outage of the run), and the largest error within it.
+``dr_nees``
+    Median over the second half of that outage of the position's NEES per degree of freedom
+    (``dᵀ C⁻¹ d / 2`` with the row's east-north covariance ``C``; printed as ``NEES``): about
+    1 where the stated covariance is honest (the median of a χ²₂/2 is 0.69), below where it is
+    over-cautious. One run's rows are one draw (the error drifts slowly), so judge it over
+    many runs.
 
 Floors (product mode, every run): settled ≥ 99.5 %, all ≥ 98.5 %, slip RMS ≤ 1.5 pp per
 track, DR at the end of a > 1 km outage ≤ 0.3 % (firm) / ≤ 0.5 % (soft, random) of distance.
@@ -113,16 +119,34 @@ def _slip_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[st
     return out
 
 
+def _nees(rows: np.ndarray, d_east: np.ndarray, d_north: np.ndarray) -> np.ndarray:
+    """Position NEES per row over its two degrees of freedom (1 on average if honest):
+    ``dᵀ C⁻¹ d / 2``, ``C`` the row's east-north covariance."""
+    ee, nn = rows["east_std_m"] ** 2, rows["north_std_m"] ** 2
+    en = rows["east_north_cov_m2"]
+    det = ee * nn - en * en
+    return 0.5 * (nn * d_east**2 - 2.0 * en * d_east * d_north + ee * d_north**2) / det
+
+
 def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
     tr = run.truth
-    err = np.hypot(rows["east_m"] - tr.east_m[idx], rows["north_m"] - tr.north_m[idx])
+    d_east, d_north = rows["east_m"] - tr.east_m[idx], rows["north_m"] - tr.north_m[idx]
+    err = np.hypot(d_east, d_north)
+    nees = _nees(rows, d_east, d_north)
     dist = run.distance_m()
-    worst: dict[str, Any] = {"dr_end_m": 0.0, "dr_end_pct": 0.0, "dr_max_m": 0.0, "outage_km": 0.0}
+    worst: dict[str, Any] = {
+        "dr_end_m": 0.0,
+        "dr_end_pct": 0.0,
+        "dr_max_m": 0.0,
+        "outage_km": 0.0,
+        "dr_nees": float("nan"),
+    }
     for a_ns, b_ns in run.outages_ns:
         inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= b_ns)
         if not inside.any():
             continue
         end = int(np.nonzero(inside)[0][-1])
+        late_ns = (a_ns + b_ns) // 2
         driven = dist[idx[end]] - dist[run.index_at(np.array([a_ns]))[0]]
         pct = 100.0 * err[end] / max(driven, 1.0)
         if pct >= worst["dr_end_pct"]:
@@ -131,6 +155,7 @@ def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str,
                 "dr_end_pct": float(pct),
                 "dr_max_m": float(np.nanmax(err[inside])),
                 "outage_km": driven / 1e3,
+                "dr_nees": float(np.nanmedian(nees[inside & (rows["stamp_ns"] > late_ns)])),
             }
     return worst
 
@@ -160,7 +185,7 @@ def _line(label: str, mode: str, m: dict[str, Any]) -> str:
         f"{m['slip_left_rms_pp']:6.2f}/{m['slip_left_p95_pp']:<6.2f} "
         f"{m['slip_right_rms_pp']:6.2f}/{m['slip_right_p95_pp']:<6.2f} "
         f"{m['dr_end_m']:7.2f} {m['dr_end_pct']:6.3f} {m['dr_max_m']:7.2f} {m['outage_km']:5.2f} "
-        f"{min(m['slip_left_coverage_pct'], m['slip_right_coverage_pct']):5.1f}"
+        f"{min(m['slip_left_coverage_pct'], m['slip_right_coverage_pct']):5.1f} {m['dr_nees']:5.2f}"
     )
 
 
@@ -170,6 +195,27 @@ def _confusion(title: str, cm: np.ndarray) -> None:
     print(" " * 10 + "".join(f"{n:>9}" for n in names))
     for name, row in zip(names, cm, strict=True):
         print(f"{name:<10}" + "".join(f"{v:9d}" for v in row))
+
+
+def _summary(
+    results: dict[str, Any], failures: list[tuple[str, list[str]]], product: list[dict[str, Any]]
+) -> None:
+    """The product floors missed, the random routes meeting all, the DR NEES over runs."""
+    random_ok = [not e["product_misses"] for e in results["runs"] if e["ground"] == "random"]
+    results["random_pass_pct"] = 100.0 * float(np.mean(random_ok)) if random_ok else None
+    print(
+        "\nproduct floors: "
+        + (
+            "all met"
+            if not failures
+            else "; ".join(f"{lab}: {', '.join(b)}" for lab, b in failures)
+        )
+    )
+    if random_ok:
+        print(f"random routes meeting every floor: {results['random_pass_pct']:.0f} %")
+    nees = [m["dr_nees"] for m in product if np.isfinite(m["dr_nees"])]
+    if nees:
+        print(f"product DR NEES over runs: median {np.median(nees):.2f}, mean {np.mean(nees):.2f}")
 
 
 def run(
@@ -195,7 +241,8 @@ def run(
         results["seconds"][mode.value] = time.perf_counter() - t1
     print(
         f"{'run':<22} {'mode':<17} {'state%':>7} {'settl%':>7} {'slipL rms/p95':>13} "
-        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5} {'cov%':>5}"
+        f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5} {'cov%':>5} "
+        f"{'NEES':>5}"
     )
     failures = []
     for k, r in enumerate(runs):
@@ -213,18 +260,7 @@ def run(
     for mode in (m for m in (TrackedMode.PRODUCT, TrackedMode.PAPER) if m in modes):
         cm = sum(np.array(m["confusion"]) for m in per_mode[mode.value])
         _confusion(f"confusion, {mode.value}", np.asarray(cm))
-    random_ok = [not e["product_misses"] for e in results["runs"] if e["ground"] == "random"]
-    results["random_pass_pct"] = 100.0 * float(np.mean(random_ok)) if random_ok else None
-    print(
-        "\nproduct floors: "
-        + (
-            "all met"
-            if not failures
-            else "; ".join(f"{lab}: {', '.join(b)}" for lab, b in failures)
-        )
-    )
-    if random_ok:
-        print(f"random routes meeting every floor: {results['random_pass_pct']:.0f} %")
+    _summary(results, failures, per_mode["product"])
     print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in results["seconds"].items()))
     write_json(results, json_path)
     return results

@@ -23,6 +23,7 @@ from estimator.friction.filter import (
     initial_state,
     mu_of,
 )
+from estimator.friction.frontend import FrontEndConfig, spin_up_slip
 from estimator.friction.model import Chassis, body_accelerations
 from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
 from estimator.sim.four_wheel import (
@@ -265,3 +266,44 @@ def test_the_speed_error_moves_the_four_slips_together() -> None:
     assert np.abs(d[0, 0, 4]) > 0
     quiet = dataclasses.replace(u, kappa_common_std=np.zeros(1))
     assert np.all(_input_spread(st.x, cfg, tyres, chassis, quiet)[..., 4] == 0)
+
+
+def test_spin_up_slip_by_hand() -> None:
+    """``κ = −I a_x/(r² c_x)``: 1.5 kg·m², 2 m/s², r 0.32 m, c_x 300,000 N → −9.765625e-5;
+    braking turns its sign; per wheel ``(B, 4)`` with ``(B, 1)`` accelerations."""
+    radius, c_x = np.full(4, 0.32), np.full(4, 3e5)
+    assert np.allclose(spin_up_slip(2.0, radius, c_x, 1.5), -9.765625e-5, rtol=1e-12)
+    assert np.allclose(spin_up_slip(-2.0, radius, c_x, 1.5), 9.765625e-5, rtol=1e-12)
+    both = spin_up_slip(np.array([[2.0], [0.0]]), np.tile(radius, (2, 1)), c_x, 1.5)
+    assert both.shape == (2, 4) and np.all(both[1] == 0.0)
+
+
+def test_the_undriven_wheels_spin_up_slip_leaves_the_speed() -> None:
+    """Accelerating 40 → 70 km/h in 4 s (2.1 m/s²) on a rear-driven vehicle: its free-rolling
+    front wheels are spun up by their contact force and roll with κ ≈ −1e-4 (the truth's,
+    wheel inertia 0.8-2 kg·m²). Taken out of their rim speed, the front end's front κ
+    follows the truth's within 3e-5 (mean over the acceleration); read as free rolling
+    (``wheel_inertia_kgm2`` 0), they read ~0 and every κ is ~1e-4 high."""
+    ramp = Manoeuvre(
+        "ramp",
+        LEAD_S + 4.0,
+        ((0.0, 40 * KMH), (LEAD_S, 40 * KMH), (LEAD_S + 4.0, 70 * KMH)),
+        ((0.0, 0.0), (1e4, 0.0)),
+        ((0.0, 0.6), (1e4, 0.6)),
+    )
+    run = simulate_four_wheel([ramp], seeds=[31])[0]
+    errors = []
+    for inertia in (FrontEndConfig().wheel_inertia_kgm2, 0.0):
+        fleet = FrictionFleet(
+            FrictionFleetConfig(frontend=FrontEndConfig(wheel_inertia_kgm2=inertia))
+        )
+        fleet.add_vehicle("ramp", run.config)
+        rows = _drive(fleet, [run], ["ramp"])["ramp"]
+        t_s = (rows["stamp_ns"] - run.start_ns) / 1e9
+        during = (t_s > LEAD_S + 0.5) & (t_s < LEAD_S + 3.9)
+        front = (rows["slip_fl_pct"] + rows["slip_fr_pct"]) / 200
+        truth = np.interp(t_s, run.truth.t_s, run.truth.kappa[:, :2].mean(axis=1))
+        assert float(truth[during].mean()) < -5e-5
+        errors.append(float((front - truth)[during].mean()))
+    assert abs(errors[0]) < 3e-5
+    assert errors[1] > 6e-5

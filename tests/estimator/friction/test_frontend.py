@@ -94,3 +94,42 @@ def test_forward_bias_is_the_sensors_not_the_pitch() -> None:
     assert abs(fe.vx.bias - 0.04) < 0.01
     late = [t.z[0] for t in ticks[-100:]]
     assert abs(float(np.mean(late)) - 1.5) < 0.015
+
+
+def test_the_leak_of_the_lagged_reading_is_taken_out() -> None:
+    """A 0.3 s ramp of the lateral acceleration to 4 m/s²: the body rolls behind it (the
+    config's roll gradient through its load-transfer lag), so the accelerometer reads
+    ``a + g sin(k ā/g)``. The front end's ``a_y`` stays within 0.01 m/s² of ``a`` through the
+    ramp; taking ``s`` of the instantaneous reading instead would be 0.07 m/s² low there,
+    which integrated into ``v_y`` stays as a side-slip error."""
+    fe = FrontEnd(CONFIG, FrontEndConfig(), 0.02)
+    k = math.radians(CONFIG.chassis.roll_gradient_deg_per_g)
+    gain = 1.0 - math.exp(-0.02 / CONFIG.chassis.load_transfer_lag_s)
+    lagged = 0.0
+    errors, instantaneous = [], []
+    for n in range(100):
+        a = 4.0 * min(n * 0.02 / 0.3, 1.0)
+        lagged += (a - lagged) * gain
+        reading = a + GRAVITY_MPS2 * math.sin(k * lagged / GRAVITY_MPS2)
+        fe._learn_tilt(0.0, reading, fresh=False)
+        errors.append(fe._detilt(0.0, reading)[1] - a)
+        instantaneous.append(reading * (1.0 - fe.roll.slope) - a)
+    assert max(abs(e) for e in errors) < 0.01
+    assert min(instantaneous) < -0.06
+
+
+def test_the_accelerations_are_carried_to_the_tick() -> None:
+    """100 Hz IMU samples in 20 ms ticks: their mean lies 5 ms before the tick. On a ramp of
+    14 m/s³ (a 0.3 s steering ramp to 4.2 m/s²) that mean is 0.07 m/s² behind; carried along
+    its change since the last tick it is the value at the tick (the first tick: as read)."""
+    fe = FrontEnd(CONFIG, FrontEndConfig(), 0.02)
+    t_ns = np.arange(1, 11) * 10_000_000
+    fe.push_imu(ImuBatch(t_ns, np.zeros((10, 3)), np.zeros((10, 3))))
+    window = fe._imu_window(20_000_000)
+    assert window is not None and abs(window[2] - 0.005) < 1e-15
+    for n in range(6):
+        t_s = 0.02 * n
+        mean = 14.0 * (t_s - 0.005)
+        ax, ay = fe._at_tick(0.5 * mean, mean, 0.005)
+        want = mean if n == 0 else 14.0 * t_s
+        assert abs(ay - want) < 1e-12 and abs(ax - 0.5 * want) < 1e-12

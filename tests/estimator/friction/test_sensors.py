@@ -88,14 +88,17 @@ class _Reference(Reference):
         att = (
             (g.heading_rad, g.pitch_rad, g.roll_rad) if fresh and g is not None else (math.nan,) * 3
         )
+        accel, gyro, lag_s = window
         self.ticks[t] = (
-            *window,
+            accel,
+            gyro,
             f.omega.copy(),
             np.array(f.steer_rad),
             np.array(vel if vel is not None else (math.nan, math.nan)),
             np.array(att),
             np.array(g.stamp_ns if fresh and g is not None else 0),
             np.array(f._gnss_recent()),
+            np.array(lag_s),
         )
 
 

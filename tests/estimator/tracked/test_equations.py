@@ -20,6 +20,7 @@ from estimator.tracked.odometer import (
     lateral_speed,
     odometer_measurement,
     paper_ratio,
+    side_slip,
     turn_tightness,
 )
 from estimator.tracked.params import VehicleParams
@@ -35,9 +36,12 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.step import (
     _dead_reckoning_noise,
+    _fuse_odometer,
     _ground_patch,
     _released,
+    _track_slip,
     initial_filter,
+    patch_std,
 )
 from estimator.tracked.vehicle import TickInputs
 
@@ -561,12 +565,12 @@ def test_tracked_package_is_pure() -> None:
     assert out.stdout.strip() == ""
 
 
-def _tick_inputs(**fields: np.ndarray) -> TickInputs:
-    """Three ticks of zeros (``*_pair*`` fields ``(3, 2)``), ``fields`` replacing some."""
+def _tick_inputs(n: int = 3, **fields: np.ndarray) -> TickInputs:
+    """``n`` ticks of zeros (``*_pair*`` fields ``(n, 2)``), ``fields`` replacing some."""
     flags = ("sprocket_missing", "sprocket_settling_pair", "sprocket_starting_pair")
     base = {
         f.name: np.zeros(
-            (3, 2) if "pair" in f.name else 3, dtype=bool if f.name in flags else float
+            (n, 2) if "pair" in f.name else n, dtype=bool if f.name in flags else float
         )
         for f in dataclasses.fields(TickInputs)
     }
@@ -595,18 +599,39 @@ def test_dead_reckoning_grows_the_along_track_variance_by_the_factors_error() ->
     f = initial_filter(cfg)
     f.started[:] = True
     f.x[0, S.SPEED], f.x[0, S.HEADING] = 5.0, 0.0  # north
+    f.x[0, S.F_STRAIGHT] = 0.96  # a ground slipping by 4 %
     f.P[0] = np.eye(N_STATES) * 1e-4
     f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 1e-5
     f.since_gnss_s[:] = 0.5  # beside GNSS: nothing added
-    _dead_reckoning_noise(f, cfg)
+    _dead_reckoning_noise(f, P1, cfg)
     assert f.P[0, S.NORTH, S.NORTH] == 1e-4
     f.since_gnss_s[:] = 10.0
-    _dead_reckoning_noise(f, cfg)
+    _dead_reckoning_noise(f, P1, cfg)
     var_f = 1e-5  # the ground's mean factor's error; the patches add 2·σ_p²·ℓ·|V|
-    q = (2.0 * var_f * 25.0 * 10.0 + 2.0 * 0.007**2 * 150.0 * 5.0) * 0.1
+    sigma_p = 0.15 * (0.04 + math.sqrt(0.005**2 + var_f))
+    walk = 1e-4**2  # the factor's walk since the loss is in var_f, counted once
+    q = ((2.0 * var_f * 10.0 - walk * 100.0) * 25.0 + 2.0 * sigma_p**2 * 150.0 * 5.0) * 0.1
     assert f.P[0, S.NORTH, S.NORTH] == pytest.approx(1e-4 + q)
     assert f.P[0, S.EAST, S.EAST] == pytest.approx(1e-4)  # along the heading only
     assert f.P[0, S.EAST, S.NORTH] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_a_firm_grounds_patches_differ_by_less_than_a_soft_ones() -> None:
+    """σ_p = r·(max(1 − F, 0) + √(σ_KD² + σ_F²)): the patch's share of the ground's slip."""
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    f.x = np.repeat(f.x, 3, axis=0)
+    f.P = np.repeat(f.P, 3, axis=0)
+    f.x[:, S.F_STRAIGHT] = [0.985, 0.955, 1.004]  # firm, soft, K_D reading short
+    f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] = 0.002**2
+    sigma_kd = TrackedConfig().odometer.scale_std_pct / 100.0
+    got = patch_std(f, VehicleParams.stack([P1, P1, P1]), cfg)
+    margin = math.hypot(sigma_kd, 0.002)
+    assert got == pytest.approx(0.15 * np.array([0.015 + margin, 0.045 + margin, margin]))
+    assert got[0] < 0.5 * got[1]
+    f.P[:, S.F_STRAIGHT, S.F_STRAIGHT] = 0.03**2  # not learnt yet: the prior's width
+    wide = patch_std(f, VehicleParams.stack([P1, P1, P1]), cfg)
+    assert wide[0] == pytest.approx(0.15 * (0.015 + math.hypot(sigma_kd, 0.03)))
 
 
 def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
@@ -615,22 +640,25 @@ def test_the_ground_patch_dies_out_over_the_distance_driven() -> None:
     assert f.x[0, S.GROUND_PATCH] == 0.0
     assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(0.007**2)
     f.x[0, S.SPEED], f.x[0, S.GROUND_PATCH] = 10.0, 0.01
+    f.x[0, S.F_STRAIGHT] = 0.96
+    f.P[0, S.F_STRAIGHT, S.F_STRAIGHT] = 0.003**2
+    sigma_p = 0.15 * (0.04 + math.hypot(0.005, 0.003))  # slip level at its upper 1-sigma
     f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] = 1e-6
     f.P[0, S.GROUND_PATCH, S.F_STRAIGHT] = f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] = -5e-7
-    _ground_patch(f, cfg)  # 1 m driven of a 150 m patch
+    _ground_patch(f, P1, cfg)  # 1 m driven of a 150 m patch
     e = math.exp(-1.0 / 150.0)
     assert f.x[0, S.GROUND_PATCH] == pytest.approx(0.01 * e)
     assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(
-        e * e * 1e-6 + 0.007**2 * (1 - e * e)
+        e * e * 1e-6 + sigma_p**2 * (1 - e * e)
     )
     assert f.P[0, S.F_STRAIGHT, S.GROUND_PATCH] == pytest.approx(-5e-7 * e)
     for _ in range(3000):  # 3 km: forgotten, its variance back to the ground's
-        _ground_patch(f, cfg)
+        _ground_patch(f, P1, cfg)
     assert abs(f.x[0, S.GROUND_PATCH]) < 1e-10
-    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(0.007**2, rel=1e-6)
+    assert f.P[0, S.GROUND_PATCH, S.GROUND_PATCH] == pytest.approx(sigma_p**2, rel=1e-6)
     f.x[0, S.SPEED] = 0.0  # standing: the patch stays
     f.x[0, S.GROUND_PATCH] = 0.01
-    _ground_patch(f, cfg)
+    _ground_patch(f, P1, cfg)
     assert f.x[0, S.GROUND_PATCH] == 0.01
 
 
@@ -647,3 +675,62 @@ def test_every_odometer_factor_is_the_grounds_mean_plus_its_patch() -> None:
     low = 0.97 + 0.01 - 0.02
     assert corrected[0] == pytest.approx(4.2 * low / 1.42)
     assert H[0, 0, S.GROUND_PATCH] == pytest.approx(-1.42 * 4.0 / low**2)
+
+
+def test_a_dead_reckoned_slip_carries_its_factors_error() -> None:
+    """While dead reckoning the odometer's learnt factors are not fused, so the speed's
+    variance lacks theirs: ``h_L P_LL h_Lᵀ / h_V²`` is added to the slip's. A pivot whose
+    factor was never learnt (±15 %) gives no slip then; beside GNSS it does."""
+    cfg = TrackedEstimatorConfig()
+    f = initial_filter(cfg)
+    f.x, f.P = np.repeat(f.x, 2, axis=0), np.repeat(f.P, 2, axis=0)
+    f.started = np.ones(2, dtype=bool)
+    f.since_gnss_s = np.array([0.5, 60.0])  # beside GNSS, dead reckoning
+    f.x[:, S.SPEED], f.x[:, S.F_STRAIGHT] = 1.0, 0.96  # pivot factor 0.96 - 0.25 = 0.71
+    f.P[:, S.SPEED, S.SPEED] = 1e-4
+    p2 = VehicleParams.stack([P1, P1])
+    w = np.full(2, 0.8)  # fast track at 1 + 0.8·B/2 = 1.8 m/s
+    inp = _tick_inputs(
+        2,
+        odometer_mps=np.full(2, 1.8 / 0.71),
+        sprocket_pair_mps=np.array([[0.0, 1.8 / 0.71], [0.0, 1.8 / 0.71]]),
+    )
+    state = np.full(2, int(M.PIVOT))
+    _, _, factor_var = _fuse_odometer(f, inp, p2, cfg, state, w)
+    assert factor_var[0] == 0.0
+    assert factor_var[1] == pytest.approx((1.8 / 0.71) ** 2 * (0.15**2 + 0.03**2 + 0.007**2))
+    *_, valid, braked = _track_slip(f, inp, p2, cfg, w, factor_var)
+    assert braked[:, 0].all()
+    assert valid[:, 1].tolist() == [True, False]
+
+
+def test_side_slip_gain_scales_the_turning_pole_up_to_its_cap() -> None:
+    """``v_x = ω·min(g_s·L·|V·ω|/(2·μ_t·g), L/2)`` and its derivative by ``g_s``."""
+    v, w, length, mu = np.array([3.0, 3.0]), np.array([0.3, 0.3]), np.array([2.5, 2.5]), 0.6
+    free = 2.5 * 0.9 / (2.0 * mu * 9.80665)  # 0.191 m ahead of the centre at g_s = 1
+    lateral, by_gain = side_slip(v, w, length, np.full(2, mu), np.array([1.5, 8.0]))
+    assert lateral == pytest.approx([0.3 * 1.5 * free, 0.3 * 1.25])  # second: capped at L/2
+    assert by_gain == pytest.approx([0.3 * free, 0.0])
+    arc = np.full(2, int(M.ARC))
+    assert lateral_speed(TrackedMode.PRODUCT, arc, v, w, length, np.full(2, mu)) == (
+        pytest.approx(0.3 * free)
+    )
+
+
+def test_predict_moves_the_position_by_the_side_slip_gain() -> None:
+    x = np.zeros((1, N_STATES))
+    x[0, S.SPEED], x[0, S.HEADING] = 3.0, 0.0  # north; lateral is east
+    P = np.zeros((1, N_STATES, N_STATES))
+    P[0, S.SIDE_SLIP, S.SIDE_SLIP] = 0.25
+    _, p_next = predict(
+        x,
+        P,
+        np.zeros(1),
+        np.zeros(1),
+        np.full(1, 0.1),
+        0.1,
+        np.zeros((1, N_STATES)),
+        np.full(1, 0.2),
+    )
+    assert p_next[0, S.EAST, S.EAST] == pytest.approx((0.1 * 0.2) ** 2 * 0.25)
+    assert p_next[0, S.NORTH, S.NORTH] == pytest.approx(0.0, abs=1e-18)
