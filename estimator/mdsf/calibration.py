@@ -139,6 +139,9 @@ _SHIFT_TICKS = 5
 offset of up to ±0.1 s and a fix up to a tick before its tick stay inside)."""
 _AXLE_RATE_TAU_S = 0.3
 """Time constant of the low-pass on the filter's speed rate at ``O`` [s]."""
+_LEVER_POWER_TAU_S = 5.0
+"""Time constant of the running powers of the shift's sway part and of its noise, whose
+ratio sets how much of that part is applied (:meth:`GnssClockShift.shift_mps`) [s]."""
 
 
 _SLOPE_AT_NEWEST = np.array([-11.0, 18.0, -9.0, 2.0]) / 6.0
@@ -156,6 +159,23 @@ def _cubic_weights(u: FloatArray) -> FloatArray:
     )
 
 
+def _node_weights(u: FloatArray) -> FloatArray:
+    """Weights (k, _SHIFT_TICKS) of the kept ticks (newest first) that give the rates ``u``
+    (k,) ticks before the newest: within the history the cubic through the four ticks
+    around ``u``; ahead of the newest (``u < 0``) the newest plus ``u`` times the cubic's
+    slope there (:data:`_SLOPE_AT_NEWEST`)."""
+    u = np.clip(u, None, _SHIFT_TICKS - 1.0)
+    first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0).astype(np.int64)
+    w = np.zeros((u.shape[0], _SHIFT_TICKS))
+    cols = first[:, None] + np.arange(4)[None, :]
+    np.put_along_axis(w, cols, _cubic_weights(np.maximum(u, 0.0) - first), axis=1)
+    ahead = np.minimum(u, 0.0)[:, None]
+    line = np.zeros_like(w)
+    line[:, :4] = ahead * _SLOPE_AT_NEWEST[None, :]
+    line[:, 0] += 1.0
+    return np.where(ahead < 0.0, line, w)
+
+
 class GnssClockShift:
     """What a GNSS clock offset ``δ`` moves a fix's speed by, per vehicle slot.
 
@@ -164,26 +184,38 @@ class GnssClockShift:
     ``V_a = V0 + x_a·ωz − (h0 + h1)·ωx`` (``O`` the rear axle's ground point, the antenna at
     lateral ``x_a`` and height ``h0 + h1``), so the fix is short of the speed at ``t_s`` by
 
-        ``ΔV_a = δ·ā0 + x_a·(ωz(t_s) − ωz(t_s − δ)) − (h0 + h1)·(ωx(t_s) − ωx(t_s − δ))``
+        ``ΔV_a = δ·ā0 + g·ΔL``,
+        ``ΔL = x_a·(ωz(t_s) − ωz(t_s − δ)) − (h0 + h1)·(ωx(t_s) − ωx(t_s − δ))``
 
     with ``ā0`` the rate of the filter's own speed at ``O`` (GNSS-anchored, low-passed: the
     axle does not sway) and the body rates of the last ticks interpolated (cubic, on the
     tick grid) at both instants: a swaying cab's mast moves the antenna by metres per second
-    within ``δ`` where the IMU's acceleration, at another height, says otherwise.
+    within ``δ`` where the IMU's acceleration, at another height, says otherwise. ``ΔL``
+    carries the tick rates' noise through the interpolation, ``N = (h²+x_a²)·Σ_j Δw_j²·σ_j²``
+    (``Δw`` the two instants' node weights; ahead of the newest tick the slope's weights
+    amplify it ~3×): ``g = 1 − N̄/M̄`` (running means of ``N`` and ``ΔL²``, at least 0) applies
+    as much of ``ΔL`` as stands above its noise (a Wiener gain), so a slow sway on a tall
+    mast at a crawl is not corrected by noise larger than itself.
     """
 
     def __init__(self, config: MdsfConfig) -> None:
         self.dt_s = config.dt_s
         self.tick_ns = config.tick_ns
         self.alpha = config.dt_s / (_AXLE_RATE_TAU_S + config.dt_s)
+        self.beta = config.dt_s / (_LEVER_POWER_TAU_S + config.dt_s)
         cap = 0
         self.rates = np.zeros((cap, _SHIFT_TICKS, 2))  # ωx, ωz of the newest ticks first
+        self.rate_var = np.zeros((cap, _SHIFT_TICKS))  # each tick's rate variance [rad²/s²]
         self.stamp_ns = np.zeros(cap, dtype=np.int64)  # the newest tick's stamp
         self.v0_prev = np.zeros(cap)  # the last emitted tick's speed at O [m/s] (NaN: none)
         self.a0 = np.zeros(cap)  # its low-passed rate [m/s²]
+        self.lever_power = np.zeros(cap)  # running mean of ΔL² [m²/s²]
+        self.noise_power = np.zeros(cap)  # running mean of N [m²/s²]
         self.up_m = np.zeros(cap)  # the antenna's height h0 + h1 [m]
         self.lat_m = np.zeros(cap)  # the antenna's lateral offset x_a [m]
         self.mast_m = np.zeros(cap)  # the antenna's height over the IMU h1 [m]
+        self.imu_up_m = np.zeros(cap)  # the IMU's height h0 [m]
+        self.imu_lat_m = np.zeros(cap)  # the IMU's lateral offset x_i [m]
 
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
         """Start ``slot`` with no history."""
@@ -191,30 +223,49 @@ class GnssClockShift:
             cap = max(2 * self.stamp_ns.shape[0], slot + 1)
             for name, shape, fill in (
                 ("rates", (_SHIFT_TICKS, 2), np.nan),
+                ("rate_var", (_SHIFT_TICKS,), 0.0),
                 ("stamp_ns", (), np.int64(0)),
                 ("v0_prev", (), np.nan),
                 ("a0", (), 0.0),
+                ("lever_power", (), 0.0),
+                ("noise_power", (), 0.0),
                 ("up_m", (), 0.0),
                 ("lat_m", (), 0.0),
                 ("mast_m", (), 0.0),
+                ("imu_up_m", (), 0.0),
+                ("imu_lat_m", (), 0.0),
             ):
                 grow_slot_array(self, name, cap, shape, fill)
         geo = vehicle.geometry
         self.rates[slot] = np.nan
+        self.rate_var[slot] = 0.0
         self.stamp_ns[slot] = 0
         self.v0_prev[slot] = np.nan
         self.a0[slot] = 0.0
+        self.lever_power[slot] = 0.0
+        self.noise_power[slot] = 0.0
         self.up_m[slot] = geo.h0_m + geo.h1_m
         self.lat_m[slot] = geo.antenna_offset_m[0]
         self.mast_m[slot] = geo.h1_m
+        self.imu_up_m[slot] = geo.h0_m
+        self.imu_lat_m[slot] = geo.imu_offset_m[0]
 
-    def record_rates(self, slots: IntArray, stamp_ns: IntArray, rates_radps: FloatArray) -> None:
-        """A tick's body rates ``[ωx, ωz]`` (k, 2; NaN: no IMU) become the newest; a tick that
-        does not follow the last one on the grid starts the history anew."""
-        old = self.rates[slots]
+    def record_rates(
+        self,
+        slots: IntArray,
+        stamp_ns: IntArray,
+        rates_radps: FloatArray,
+        rate_var: FloatArray | None = None,
+    ) -> None:
+        """A tick's body rates ``[ωx, ωz]`` (k, 2; NaN: no IMU) and their noise variance
+        (k,; None: noiseless) become the newest; a tick that does not follow the last one on
+        the grid starts the history anew."""
+        var = np.zeros(slots.shape[0]) if rate_var is None else np.nan_to_num(rate_var)
         follows = (stamp_ns - self.stamp_ns[slots]) == self.tick_ns
-        old = np.where(follows[:, None, None], old, np.nan)
+        old = np.where(follows[:, None, None], self.rates[slots], np.nan)
         self.rates[slots] = np.concatenate([rates_radps[:, None, :], old[:, :-1]], axis=1)
+        old_var = self.rate_var[slots]
+        self.rate_var[slots] = np.concatenate([var[:, None], old_var[:, :-1]], axis=1)
         self.stamp_ns[slots] = stamp_ns
 
     def record_speed(self, slots: IntArray, v0_mps: FloatArray, emit: BoolArray) -> None:
@@ -228,46 +279,76 @@ class GnssClockShift:
         self.v0_prev[slots] = np.where(ok, v0_mps, np.nan)
 
     def rates_at(self, slots: IntArray, ago_s: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Body rates ``[ωx, ωz]`` (k, 2) ``ago_s`` (k,) before the newest tick, and the 1σ
-        of that guess (k, 2); NaN where a tick has no rates. Within the history: the cubic
-        through the four ticks around the instant (error neglected: ~5 % of a 2 Hz sway's
-        amplitude). After the newest tick (a negative ``ago_s``: a GNSS clock behind the
-        IMU's): the line of the cubic's slope at the newest tick, its error taken as the
-        curvature's share ``|ω̈|·h²/2`` (``h`` how far ahead)."""
-        u = np.clip(ago_s / self.dt_s, None, _SHIFT_TICKS - 1.0)
+        """Body rates ``[ωx, ωz]`` (k, 2) ``ago_s`` (k,) before the newest tick (NaN where a
+        tick it needs has no rates) and the node weights that gave them (k, _SHIFT_TICKS):
+        :func:`_node_weights` (the cubic's error within the history neglected: ~5 % of a 2 Hz
+        sway's amplitude)."""
+        w = _node_weights(ago_s / self.dt_s)
         nodes = self.rates[slots]
-        first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0).astype(np.int64)
-        idx = first[:, None] + np.arange(4)[None, :]
-        near = np.take_along_axis(nodes, idx[:, :, None], axis=1)
-        inside = np.einsum("kj,kjc->kc", _cubic_weights(np.maximum(u, 0.0) - first), near)
-        newest = nodes[:, :4]
-        slope = np.einsum("j,kjc->kc", _SLOPE_AT_NEWEST, newest)
-        bend = np.einsum("j,kjc->kc", _BEND_AT_NEWEST, newest)
-        ahead = np.minimum(u, 0.0)[:, None]
-        values = np.where(ahead < 0.0, newest[:, 0] + ahead * slope, inside)
-        return values, 0.5 * np.abs(bend) * ahead * ahead
+        values = np.einsum("kj,kjc->kc", w, np.nan_to_num(nodes))
+        missing = ((w != 0.0)[:, :, None] & np.isnan(nodes)).any(axis=1)
+        return np.where(missing, np.nan, values), w
+
+    def _guess_var(self, slots: IntArray, ago_s: FloatArray) -> FloatArray:
+        """Variance (k, 2) of carrying the rates ``−ago_s`` ahead of the newest tick on the
+        cubic's slope: the curvature's share ``(|ω̈|·h²/2)²`` (0 within the history)."""
+        ahead = np.minimum(ago_s / self.dt_s, 0.0)[:, None]
+        bend = np.einsum("j,kjc->kc", _BEND_AT_NEWEST, self.rates[slots, :4])
+        return (0.5 * np.abs(bend) * ahead * ahead) ** 2
 
     def shift_mps(
         self, slots: IntArray, offset_s: FloatArray, offset_std_s: FloatArray, age_s: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         """``ΔV_a`` (class docstring) of a fix ``age_s`` (k,) before the newest tick under the
         offset ``offset_s`` (k,), and its error variance (k,): the offset's std
-        ``offset_std_s`` times the antenna's acceleration, and the rates' guess after the
-        newest tick. The rates' part 0 where they are unknown."""
+        ``offset_std_s`` times the antenna's acceleration, the rates' guess after the newest
+        tick and what the gain leaves of ``ΔL`` and its noise. The rates' part 0 where they
+        are unknown."""
         age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
-        at_fix, _ = self.rates_at(slots, age)
-        described, guess = self.rates_at(slots, age + offset_s)
+        at_fix, w_fix = self.rates_at(slots, age)
+        described, w_was = self.rates_at(slots, age + offset_s)
         d_wx, d_wz = (at_fix - described).T
         up, lat = self.up_m[slots], self.lat_m[slots]
         lever = lat * d_wz - up * d_wx
+        spread = np.einsum("kj,kj->k", (w_fix - w_was) ** 2, self.rate_var[slots])
+        noise = (up * up + lat * lat) * spread
+        gain, lever_var = self._lever_gain(slots, lever, noise)
+        guess = self._guess_var(slots, age + offset_s)
         # the antenna's acceleration at the newest tick (the slope is per tick back)
         slope = np.einsum("j,kjc->kc", _SLOPE_AT_NEWEST, self.rates[slots, :4]) / -self.dt_s
         accel = self.a0[slots] + lat * slope[:, 1] - up * slope[:, 0]
-        var = (up * guess[:, 0]) ** 2 + (lat * guess[:, 1]) ** 2 + (offset_std_s * accel) ** 2
+        var = up * up * guess[:, 0] + lat * lat * guess[:, 1] + lever_var
+        var = var + (offset_std_s * accel) ** 2
         known = np.isfinite(lever) & np.isfinite(var)
-        shift = offset_s * self.a0[slots] + np.where(known, lever, 0.0)
+        shift = offset_s * self.a0[slots] + np.where(known, gain * lever, 0.0)
         far = (offset_std_s * self.a0[slots]) ** 2
         return shift, np.where(known, var, far)
+
+    def _lever_gain(
+        self, slots: IntArray, lever: FloatArray, noise: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Step the running powers of ``ΔL`` (k,) and of its noise variance ``N`` (k,) where
+        known; return the gain ``g = 1 − N̄/M̄`` (0 without power) and the variance of what it
+        leaves, ``(1 − g)²·S + g²·N`` with ``S = M̄ − N̄`` the sway's own power, (k,)."""
+        known = np.isfinite(lever) & np.isfinite(noise)
+        m, n = self.lever_power[slots], self.noise_power[slots]
+        m = np.where(known, m + self.beta * (np.nan_to_num(lever) ** 2 - m), m)
+        n = np.where(known, n + self.beta * (np.nan_to_num(noise) - n), n)
+        self.lever_power[slots], self.noise_power[slots] = m, n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gain = np.where(m > 0.0, np.clip(1.0 - n / m, 0.0, 1.0), 0.0)
+        signal = np.maximum(m - n, 0.0)
+        return gain, (1.0 - gain) ** 2 * signal + gain * gain * noise
+
+    def imu_speed_step_mps(self, slots: IntArray) -> FloatArray:
+        """The IMU point's speed change over the newest tick (k,),
+        ``ā0·dt + x_i·Δωz − h0·Δωx``: the filter's GNSS-anchored rate at ``O`` and the body
+        rates' change between the last two ticks (0 where unknown). Summed over a chain of
+        RTK positions it is ``V1(t) − V1(t0)`` without the accelerometer's bias and gravity
+        leak, which ``∫a1·dt`` would carry into the distance's clock correction."""
+        d_wx, d_wz = (self.rates[slots, 0] - self.rates[slots, 1]).T
+        lever = self.imu_lat_m[slots] * d_wz - self.imu_up_m[slots] * d_wx
+        return self.a0[slots] * self.dt_s + np.where(np.isfinite(lever), lever, 0.0)
 
     def mast_shift_m(self, slots: IntArray, offset_s: FloatArray, age_s: FloatArray) -> FloatArray:
         """What the offset makes of the RTK distance's lever arm (k,): the front end moves a
@@ -353,6 +434,7 @@ class CalibrationBank:
     def __init__(self, config: MdsfConfig) -> None:
         self.dt_s = config.dt_s
         self.lowpass_tau_s = config.gnss_clock_lowpass_tau_s
+        self.apply_std_s = config.gnss_clock_apply_std_s
         self.gnss_gap_s = config.gnss_timeout_s
         self.lowpass_noise = _lowpass_noise_share(config.dt_s / (self.lowpass_tau_s + config.dt_s))
         self.speed_walk = config.speed_walk_mps_per_sqrt_s
@@ -507,16 +589,34 @@ class CalibrationBank:
         }
 
     # -- per round ---------------------------------------------------------------------------
+    def _gnss_offset_weight(self, slots: IntArray) -> FloatArray:
+        """Weight of the GNSS clock estimate ``δ`` in the fixes (k,), ``r(σ)·δ²/(δ² + σ²)``:
+        ``r`` rises from 0 at ``σ = gnss_clock_apply_std_s`` to 1 at half of it (an estimate
+        still learning is not applied, and one that converges is blended in, not switched),
+        the second factor shrinks an estimate no larger than its std towards 0 (a receiver
+        on time reads a few ms of noise, which applied would only move its fixes)."""
+        off = self.gx[slots, GnssClock.OFFSET]
+        var = self.gp[slots, 2, 2]
+        bound = self.apply_std_s
+        ramp = np.clip((bound - np.sqrt(var)) / (0.5 * bound), 0.0, 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shrink = np.where(var > 0.0, off * off / (off * off + var), 1.0)
+        return np.where(self.on[slots, 0], ramp * shrink, 0.0)
+
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
-        """GNSS clock offset applied to the fixes' speed per vehicle (k,): the estimate
-        wherever the calibration is on, converged or not (0 where off)."""
-        return np.where(self.on[slots, 0], self.gx[slots, GnssClock.OFFSET], 0.0)
+        """GNSS clock offset applied to the fixes per vehicle (k,): the estimate times its
+        weight (:meth:`_gnss_offset_weight`; 0 where off)."""
+        return self._gnss_offset_weight(slots) * self.gx[slots, GnssClock.OFFSET]
 
     def gnss_offset_std_s(self, slots: IntArray) -> FloatArray:
-        """Std of :meth:`gnss_offset_s` that goes into the fixes' variance (k,), once it
-        has converged (0 before, and where off): the prior's 100 ms times a swaying mast's
-        acceleration would take the GNSS speed out of the filter at every start."""
-        return np.where(self.gnss_offset_converged(slots), np.sqrt(self.gp[slots, 2, 2]), 0.0)
+        """Std of the applied offset's error that goes into the fixes' variance (k,):
+        ``√((w·σ)² + ((1 − w)·δ)²)`` with ``w`` the weight, 0 where nothing is applied (the
+        prior's 100 ms times a swaying mast's acceleration would take the GNSS speed out of
+        the filter at every start)."""
+        w = self._gnss_offset_weight(slots)
+        off = self.gx[slots, GnssClock.OFFSET]
+        err = np.hypot(w * np.sqrt(self.gp[slots, 2, 2]), (1.0 - w) * off)
+        return np.where(w > 0.0, err, 0.0)
 
     def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
         """The GNSS clock offset is on and its std below the converged threshold (k,)."""

@@ -526,8 +526,9 @@ class MdsfFleet:
         clock offset makes of the antenna's speed (the filter's own speed rate and the body
         rates at the instant the fix describes, :class:`~estimator.mdsf.calibration.
         GnssClockShift`; the offset's std and the rates' guess into its variance) and, once
-        the offset has converged, the RTK distance by ``∫δ_g·a·dt`` since its chain began
-        (``docs/perf/estimator.md``)."""
+        the offset has converged, the RTK distance by ``δ_g·(V1 − V1(t0))`` since its chain
+        began (the IMU point's speed from the filter's, ``GnssClockShift.imu_speed_step_mps``;
+        ``docs/perf/estimator.md``)."""
         bank = self.calibration_bank
         z = tin.z.copy()
         theta = np.nan_to_num(tin.attitude[:, 1])
@@ -536,17 +537,19 @@ class MdsfFleet:
             tilt = tilt - bank.mount_yaw_rad(slots) * np.nan_to_num(tin.force_lat)
         z[:, MdsfObs.A1] -= tilt
         offset_s = bank.gnss_offset_s(slots)
-        bank.shift.record_rates(slots, tin.stamp_ns, z[:, (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z)])
+        rates = z[:, (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z)]
+        bank.shift.record_rates(slots, tin.stamp_ns, rates, tin.gyro_var)
         shift, shift_var = bank.shift.shift_mps(
             slots, offset_s, bank.gnss_offset_std_s(slots), tin.fix_age_s
         )
         z[:, MdsfObs.VG] += shift
-        # the distance's error δ·V as its growth since the chain began, ∫δ·a·dt, once δ has
+        # the distance's error δ·V as its growth since the chain began, Σδ·ΔV1, once δ has
         # converged: the chain's origin is arbitrary, an estimate still moving would leave its
-        # error in the distance, and a step of it must not make the distance jump
+        # error in the distance, and a step of it must not make the distance jump; ΔV1 from
+        # the filter's GNSS-anchored speed (∫a1·dt carries the accelerometer's bias)
         restart = tin.dist_ok & tin.dist_restart
         rate = np.where(bank.gnss_offset_converged(slots), offset_s, 0.0)
-        moved = rate * np.nan_to_num(z[:, MdsfObs.A1]) * self.config.dt_s
+        moved = rate * bank.shift.imu_speed_step_mps(slots)
         self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
         mast = bank.shift.mast_shift_m(slots, rate, tin.fix_age_s)
         dist_m = tin.dist_m + self._dist_shift_m[slots] + mast
