@@ -569,7 +569,7 @@ def test_an_on_time_gnss_clock_moves_no_fix() -> None:
             shifts.append(out[0])
             return out
 
-        fleet.calibration_bank.shift.shift_mps = recorded  # type: ignore[method-assign]
+        fleet.calibration_bank.shift.shift_mps = recorded  # type: ignore[method-assign,assignment]
 
     _drive(False, watch=watch, speed_min_mps=0.2, speed_max_mps=0.8, **_SWAY)
     applied = np.concatenate(shifts)
