@@ -5,10 +5,16 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
 
 * **GNSS clock offset** ``δ_g`` (:class:`GnssClock`): a GNSS sample stamped ``t`` describes
   the instant ``t − δ_g`` of the IMU's clock (the simulator's ``clock_offset_ms`` sign), so its
-  speed moved to the tick reads ``Vg ≈ V − δ_g·a``. States ``[V, b, δ_g]``: the speed carried
-  by the tick-mean forward acceleration ``a`` less a bias ``b`` (``V' = V + dt·(a − b)``),
-  observed as ``Vg = V − δ_g·a``. Observable whenever ``a`` changes; applied to the GNSS
-  speed as ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
+  speed, the antenna's lever-arm velocity ``L = x1·ωz − h1·ωx`` at ``t`` taken off, reads
+  ``y = Vg − L ≈ V − δ_g·(a + L')``: the regressor is the *antenna's* acceleration. A cab
+  swaying at 0.3-3 Hz on a mast puts metres per second squared into ``L'`` and into the IMU's
+  ``a`` that the tick's samples cannot resolve, so the filter runs on both sides low-passed
+  (two first-order stages, ``gnss_clock_lowpass_tau_s``; the relation is linear and the
+  low-pass commutes with the derivative, so it holds for the slow driving accelerations and
+  the sway drops out). States ``[Ṽ, b, δ_g]``: the low-passed speed carried by the
+  low-passed acceleration ``ã`` less a bias ``b`` (``Ṽ' = Ṽ + dt·(ã − b)``), observed as
+  ``ỹ = Ṽ − δ_g·(ã + L̃')``. Observable whenever ``ã`` changes; applied to the GNSS speed as
+  ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
   drive) the measured rim speed is ``r·W = V/s − δ_w·a_w`` with ``s`` the true over the
@@ -48,7 +54,14 @@ from estimator._slots import grow_slot_array
 from estimator.config import CalibrationConfig, WheeledRearDriveConfig
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 
-__all__ = ["CalibrationBank", "GnssClock", "MdsfCalibration", "MountYaw", "WheelCal"]
+__all__ = [
+    "CalibrationBank",
+    "GnssClock",
+    "GnssClockShift",
+    "MdsfCalibration",
+    "MountYaw",
+    "WheelCal",
+]
 
 _GATE_SIGMAS = 4.0
 """Innovations beyond this many sigmas are outliers (GNSS outlier, a calibration wheel that
@@ -77,6 +90,9 @@ _LAT_BIAS_WALK_MPS2_PER_SQRT_S = 0.01
 _LAT_FLOOR_MPS2 = 0.05
 """Floor of a tick's lateral-force model error (body sway, side slip, the IMU's lever arm in
 a changing turn) [m/s²]."""
+_RESIDUAL_TAU_S = 20.0
+"""Time constant of the GNSS clock filter's running mean of its normalised innovation
+squared, by which its speed noise is inflated (model error the filter does not explain) [s]."""
 _STILL_SPEED_MPS = 0.05
 _MIN_CAL_SPEED_MPS = 1.0
 """Wheel calibration uses ticks above this ground speed (the radius term ``κ·V`` then
@@ -89,6 +105,18 @@ class GnssClock(IntEnum):
     SPEED = 0
     BIAS = 1
     OFFSET = 2
+
+
+class _ClockLowpass(IntEnum):
+    """Columns of the GNSS clock filter's low-passes: first and second stage of the
+    acceleration ``a``, the lever-arm velocity ``L`` and the speed ``y``."""
+
+    ACCEL_1 = 0
+    ACCEL_2 = 1
+    LEVER_1 = 2
+    LEVER_2 = 3
+    SPEED_1 = 4
+    SPEED_2 = 5
 
 
 class MountYaw(IntEnum):
@@ -104,6 +132,235 @@ class WheelCal(IntEnum):
     KAPPA_LEFT = 0
     KAPPA_RIGHT = 1
     OFFSET = 2
+
+
+_SHIFT_TICKS = 5
+"""Ticks of body rates :class:`GnssClockShift` keeps (the newest and four before it: a GNSS
+offset of up to ±0.1 s and a fix up to a tick before its tick stay inside)."""
+_AXLE_RATE_TAU_S = 0.3
+"""Time constant of the low-pass on the filter's speed rate at ``O`` [s]."""
+_LEVER_POWER_TAU_S = 5.0
+"""Time constant of the running powers of the shift's sway part and of its noise, whose
+ratio sets how much of that part is applied (:meth:`GnssClockShift.shift_mps`) [s]."""
+
+
+_SLOPE_AT_NEWEST = np.array([-11.0, 18.0, -9.0, 2.0]) / 6.0
+"""Slope of the cubic through the newest four ticks at the newest, per tick back (nodes
+newest first); it grows towards the past, so a tick ahead is minus it."""
+_BEND_AT_NEWEST = np.array([2.0, -5.0, 4.0, -1.0])
+"""Second difference of the cubic through the newest four ticks at the newest, per tick²."""
+
+
+def _cubic_weights(u: FloatArray) -> FloatArray:
+    """Lagrange weights (k, 4) of the nodes 0, 1, 2, 3 at ``u`` (k,) (in node spacings)."""
+    u1, u2, u3 = u - 1.0, u - 2.0, u - 3.0
+    return np.stack(
+        [-u1 * u2 * u3 / 6.0, u * u2 * u3 / 2.0, -u * u1 * u3 / 2.0, u * u1 * u2 / 6.0], axis=1
+    )
+
+
+def _node_weights(u: FloatArray) -> FloatArray:
+    """Weights (k, _SHIFT_TICKS) of the kept ticks (newest first) that give the rates ``u``
+    (k,) ticks before the newest: within the history the cubic through the four ticks
+    around ``u``; ahead of the newest (``u < 0``) the newest plus ``u`` times the cubic's
+    slope there (:data:`_SLOPE_AT_NEWEST`)."""
+    u = np.clip(u, None, _SHIFT_TICKS - 1.0)
+    first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0).astype(np.int64)
+    w = np.zeros((u.shape[0], _SHIFT_TICKS))
+    cols = first[:, None] + np.arange(4)[None, :]
+    np.put_along_axis(w, cols, _cubic_weights(np.maximum(u, 0.0) - first), axis=1)
+    ahead = np.minimum(u, 0.0)[:, None]
+    line = np.zeros_like(w)
+    line[:, :4] = ahead * _SLOPE_AT_NEWEST[None, :]
+    line[:, 0] += 1.0
+    return np.where(ahead < 0.0, line, w)
+
+
+class GnssClockShift:
+    """What a GNSS clock offset ``δ`` moves a fix's speed by, per vehicle slot.
+
+    A fix stamped ``t_s`` describes the antenna at ``t_s − δ``; the front end has moved it to
+    the tick as if it described ``t_s``. The antenna's forward speed is
+    ``V_a = V0 + x_a·ωz − (h0 + h1)·ωx`` (``O`` the rear axle's ground point, the antenna at
+    lateral ``x_a`` and height ``h0 + h1``), so the fix is short of the speed at ``t_s`` by
+
+        ``ΔV_a = δ·ā0 + g·ΔL``,
+        ``ΔL = x_a·(ωz(t_s) − ωz(t_s − δ)) − (h0 + h1)·(ωx(t_s) − ωx(t_s − δ))``
+
+    with ``ā0`` the rate of the filter's own speed at ``O`` (GNSS-anchored, low-passed: the
+    axle does not sway) and the body rates of the last ticks interpolated (cubic, on the
+    tick grid) at both instants: a swaying cab's mast moves the antenna by metres per second
+    within ``δ`` where the IMU's acceleration, at another height, says otherwise. ``ΔL``
+    carries the tick rates' noise through the interpolation, ``N = (h²+x_a²)·Σ_j Δw_j²·σ_j²``
+    (``Δw`` the two instants' node weights; ahead of the newest tick the slope's weights
+    amplify it ~3×): ``g = 1 − N̄/M̄`` (running means of ``N`` and ``ΔL²``, at least 0) applies
+    as much of ``ΔL`` as stands above its noise (a Wiener gain), so a slow sway on a tall
+    mast at a crawl is not corrected by noise larger than itself.
+    """
+
+    def __init__(self, config: MdsfConfig) -> None:
+        self.dt_s = config.dt_s
+        self.tick_ns = config.tick_ns
+        self.alpha = config.dt_s / (_AXLE_RATE_TAU_S + config.dt_s)
+        self.beta = config.dt_s / (_LEVER_POWER_TAU_S + config.dt_s)
+        cap = 0
+        self.rates = np.zeros((cap, _SHIFT_TICKS, 2))  # ωx, ωz of the newest ticks first
+        self.rate_var = np.zeros((cap, _SHIFT_TICKS))  # each tick's rate variance [rad²/s²]
+        self.stamp_ns = np.zeros(cap, dtype=np.int64)  # the newest tick's stamp
+        self.v0_prev = np.zeros(cap)  # the last emitted tick's speed at O [m/s] (NaN: none)
+        self.a0 = np.zeros(cap)  # its low-passed rate [m/s²]
+        self.lever_power = np.zeros(cap)  # running mean of ΔL² [m²/s²]
+        self.noise_power = np.zeros(cap)  # running mean of N [m²/s²]
+        self.up_m = np.zeros(cap)  # the antenna's height h0 + h1 [m]
+        self.lat_m = np.zeros(cap)  # the antenna's lateral offset x_a [m]
+        self.mast_m = np.zeros(cap)  # the antenna's height over the IMU h1 [m]
+        self.imu_up_m = np.zeros(cap)  # the IMU's height h0 [m]
+        self.imu_lat_m = np.zeros(cap)  # the IMU's lateral offset x_i [m]
+
+    def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
+        """Start ``slot`` with no history."""
+        if slot >= self.stamp_ns.shape[0]:
+            cap = max(2 * self.stamp_ns.shape[0], slot + 1)
+            for name, shape, fill in (
+                ("rates", (_SHIFT_TICKS, 2), np.nan),
+                ("rate_var", (_SHIFT_TICKS,), 0.0),
+                ("stamp_ns", (), np.int64(0)),
+                ("v0_prev", (), np.nan),
+                ("a0", (), 0.0),
+                ("lever_power", (), 0.0),
+                ("noise_power", (), 0.0),
+                ("up_m", (), 0.0),
+                ("lat_m", (), 0.0),
+                ("mast_m", (), 0.0),
+                ("imu_up_m", (), 0.0),
+                ("imu_lat_m", (), 0.0),
+            ):
+                grow_slot_array(self, name, cap, shape, fill)
+        geo = vehicle.geometry
+        self.rates[slot] = np.nan
+        self.rate_var[slot] = 0.0
+        self.stamp_ns[slot] = 0
+        self.v0_prev[slot] = np.nan
+        self.a0[slot] = 0.0
+        self.lever_power[slot] = 0.0
+        self.noise_power[slot] = 0.0
+        self.up_m[slot] = geo.h0_m + geo.h1_m
+        self.lat_m[slot] = geo.antenna_offset_m[0]
+        self.mast_m[slot] = geo.h1_m
+        self.imu_up_m[slot] = geo.h0_m
+        self.imu_lat_m[slot] = geo.imu_offset_m[0]
+
+    def record_rates(
+        self,
+        slots: IntArray,
+        stamp_ns: IntArray,
+        rates_radps: FloatArray,
+        rate_var: FloatArray | None = None,
+    ) -> None:
+        """A tick's body rates ``[ωx, ωz]`` (k, 2; NaN: no IMU) and their noise variance
+        (k,; None: noiseless) become the newest; a tick that does not follow the last one on
+        the grid starts the history anew."""
+        var = np.zeros(slots.shape[0]) if rate_var is None else np.nan_to_num(rate_var)
+        follows = (stamp_ns - self.stamp_ns[slots]) == self.tick_ns
+        old = np.where(follows[:, None, None], self.rates[slots], np.nan)
+        self.rates[slots] = np.concatenate([rates_radps[:, None, :], old[:, :-1]], axis=1)
+        old_var = self.rate_var[slots]
+        self.rate_var[slots] = np.concatenate([var[:, None], old_var[:, :-1]], axis=1)
+        self.stamp_ns[slots] = stamp_ns
+
+    def record_speed(self, slots: IntArray, v0_mps: FloatArray, emit: BoolArray) -> None:
+        """The filter's speed at ``O`` after a tick (k,): its rate, low-passed,
+        ``ā0 ← ā0 + α·((V0 − V0_prev)/dt − ā0)``; kept through ticks without a row."""
+        ok = emit & np.isfinite(v0_mps)
+        rate = (v0_mps - self.v0_prev[slots]) / self.dt_s
+        a0 = self.a0[slots]
+        step = ok & np.isfinite(rate)
+        self.a0[slots] = np.where(step, a0 + self.alpha * (rate - a0), a0)
+        self.v0_prev[slots] = np.where(ok, v0_mps, np.nan)
+
+    def rates_at(self, slots: IntArray, ago_s: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Body rates ``[ωx, ωz]`` (k, 2) ``ago_s`` (k,) before the newest tick (NaN where a
+        tick it needs has no rates) and the node weights that gave them (k, _SHIFT_TICKS):
+        :func:`_node_weights` (the cubic's error within the history neglected: ~5 % of a 2 Hz
+        sway's amplitude)."""
+        w = _node_weights(ago_s / self.dt_s)
+        nodes = self.rates[slots]
+        values = np.einsum("kj,kjc->kc", w, np.nan_to_num(nodes))
+        missing = ((w != 0.0)[:, :, None] & np.isnan(nodes)).any(axis=1)
+        return np.where(missing, np.nan, values), w
+
+    def _guess_var(self, slots: IntArray, ago_s: FloatArray) -> FloatArray:
+        """Variance (k, 2) of carrying the rates ``−ago_s`` ahead of the newest tick on the
+        cubic's slope: the curvature's share ``(|ω̈|·h²/2)²`` (0 within the history)."""
+        ahead = np.minimum(ago_s / self.dt_s, 0.0)[:, None]
+        bend = np.einsum("j,kjc->kc", _BEND_AT_NEWEST, self.rates[slots, :4])
+        return (0.5 * np.abs(bend) * ahead * ahead) ** 2
+
+    def shift_mps(
+        self, slots: IntArray, offset_s: FloatArray, offset_std_s: FloatArray, age_s: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """``ΔV_a`` (class docstring) of a fix ``age_s`` (k,) before the newest tick under the
+        offset ``offset_s`` (k,), and its error variance (k,): the offset's std
+        ``offset_std_s`` times the antenna's acceleration, the rates' guess after the newest
+        tick and what the gain leaves of ``ΔL`` and its noise. The rates' part 0 where they
+        are unknown."""
+        age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
+        at_fix, w_fix = self.rates_at(slots, age)
+        described, w_was = self.rates_at(slots, age + offset_s)
+        d_wx, d_wz = (at_fix - described).T
+        up, lat = self.up_m[slots], self.lat_m[slots]
+        lever = lat * d_wz - up * d_wx
+        spread = np.einsum("kj,kj->k", (w_fix - w_was) ** 2, self.rate_var[slots])
+        noise = (up * up + lat * lat) * spread
+        gain, lever_var = self._lever_gain(slots, lever, noise)
+        guess = self._guess_var(slots, age + offset_s)
+        # the antenna's acceleration at the newest tick (the slope is per tick back)
+        slope = np.einsum("j,kjc->kc", _SLOPE_AT_NEWEST, self.rates[slots, :4]) / -self.dt_s
+        accel = self.a0[slots] + lat * slope[:, 1] - up * slope[:, 0]
+        var = up * up * guess[:, 0] + lat * lat * guess[:, 1] + lever_var
+        var = var + (offset_std_s * accel) ** 2
+        known = np.isfinite(lever) & np.isfinite(var)
+        shift = offset_s * self.a0[slots] + np.where(known, gain * lever, 0.0)
+        far = (offset_std_s * self.a0[slots]) ** 2
+        return shift, np.where(known, var, far)
+
+    def _lever_gain(
+        self, slots: IntArray, lever: FloatArray, noise: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Step the running powers of ``ΔL`` (k,) and of its noise variance ``N`` (k,) where
+        known; return the gain ``g = 1 − N̄/M̄`` (0 without power) and the variance of what it
+        leaves, ``(1 − g)²·S + g²·N`` with ``S = M̄ − N̄`` the sway's own power, (k,)."""
+        known = np.isfinite(lever) & np.isfinite(noise)
+        m, n = self.lever_power[slots], self.noise_power[slots]
+        m = np.where(known, m + self.beta * (np.nan_to_num(lever) ** 2 - m), m)
+        n = np.where(known, n + self.beta * (np.nan_to_num(noise) - n), n)
+        self.lever_power[slots], self.noise_power[slots] = m, n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gain = np.where(m > 0.0, np.clip(1.0 - n / m, 0.0, 1.0), 0.0)
+        signal = np.maximum(m - n, 0.0)
+        return gain, (1.0 - gain) ** 2 * signal + gain * gain * noise
+
+    def imu_speed_step_mps(self, slots: IntArray) -> FloatArray:
+        """The IMU point's speed change over the newest tick (k,),
+        ``ā0·dt + x_i·Δωz − h0·Δωx``: the filter's GNSS-anchored rate at ``O`` and the body
+        rates' change between the last two ticks (0 where unknown). Summed over a chain of
+        RTK positions it is ``V1(t) − V1(t0)`` without the accelerometer's bias and gravity
+        leak, which ``∫a1·dt`` would carry into the distance's clock correction."""
+        d_wx, d_wz = (self.rates[slots, 0] - self.rates[slots, 1]).T
+        lever = self.imu_lat_m[slots] * d_wz - self.imu_up_m[slots] * d_wx
+        return self.a0[slots] * self.dt_s + np.where(np.isfinite(lever), lever, 0.0)
+
+    def mast_shift_m(self, slots: IntArray, offset_s: FloatArray, age_s: FloatArray) -> FloatArray:
+        """What the offset makes of the RTK distance's lever arm (k,): the front end moves a
+        fix's antenna position to the IMU by ``h1·θ`` with the pitch at the stamp ``t_s``,
+        where the position is the antenna's at ``t_s − δ``; the difference is
+        ``−h1·∫ωx`` over ``[t_s − δ, t_s]`` (Simpson's rule on the rates as in
+        :meth:`rates_at`; 0 where they are unknown)."""
+        age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
+        ends = self.rates_at(slots, age)[0][:, 0] + self.rates_at(slots, age + offset_s)[0][:, 0]
+        mid = self.rates_at(slots, age + 0.5 * offset_s)[0][:, 0]
+        turned = offset_s * (ends + 4.0 * mid) / 6.0
+        return np.where(np.isfinite(turned), -self.mast_m[slots] * turned, 0.0)
 
 
 @dataclass(slots=True)
@@ -138,6 +395,13 @@ class MdsfCalibration:
     imu_yaw_std_rad: float = math.radians(3.0)
 
 
+def _lowpass_noise_share(alpha: float) -> float:
+    """Variance of white noise of variance 1 after two first-order low-passes of gain
+    ``alpha`` each (``Σ h_k²`` of their impulse response ``h_k = α²·(k + 1)·(1 − α)^k``)."""
+    k = np.arange(int(50.0 / alpha) + 1)
+    return float(np.sum((alpha**2 * (k + 1) * (1.0 - alpha) ** k) ** 2))
+
+
 def _kf_update(
     x: FloatArray, p: FloatArray, h: FloatArray, y: FloatArray, r: FloatArray
 ) -> BoolArray:
@@ -169,13 +433,25 @@ class CalibrationBank:
 
     def __init__(self, config: MdsfConfig) -> None:
         self.dt_s = config.dt_s
+        self.lowpass_tau_s = config.gnss_clock_lowpass_tau_s
+        self.apply_std_s = config.gnss_clock_apply_std_s
+        self.gnss_gap_s = config.gnss_timeout_s
+        self.lowpass_noise = _lowpass_noise_share(config.dt_s / (self.lowpass_tau_s + config.dt_s))
         self.speed_walk = config.speed_walk_mps_per_sqrt_s
         self.bias_prior = config.accel_bias_std_mps2
         self.bias_walk = config.accel_bias_extra_walk_mps2_per_sqrt_s
+        self.shift = GnssClockShift(config)
+        """What the GNSS clock offset moves each fix's speed by (applied by the fleet)."""
         cap = 0
         self.gx = np.zeros((cap, 3))
         self.gp = np.zeros((cap, 3, 3))
         self.g_started = np.zeros(cap, dtype=bool)
+        self.g_lowpass = np.zeros((cap, len(_ClockLowpass)))
+        self.g_held = np.zeros(cap)  # the last speed y (filled between fixes) [m/s]
+        self.g_gap = np.zeros(cap)  # time since the last GNSS speed [s]
+        self.g_nis = np.ones(cap)  # running mean of the normalised innovation squared
+        self.g_fast = np.zeros(cap)  # the regressor's error variance [m²/s⁴]
+        self.g_lever = np.zeros(cap)  # the last tick's lever-arm velocity L [m/s]
         self.wx = np.zeros((cap, 3))
         self.wp = np.zeros((cap, 3, 3))
         self.pitch = np.zeros(cap)
@@ -197,6 +473,12 @@ class CalibrationBank:
             ("gx", (3,), 0.0),
             ("gp", (3, 3), 0.0),
             ("g_started", (), False),
+            ("g_lowpass", (len(_ClockLowpass),), 0.0),
+            ("g_held", (), 0.0),
+            ("g_gap", (), 0.0),
+            ("g_nis", (), 1.0),
+            ("g_fast", (), 0.0),
+            ("g_lever", (), 0.0),
             ("wx", (3,), 0.0),
             ("wp", (3, 3), 0.0),
             ("pitch", (), 0.0),
@@ -215,6 +497,7 @@ class CalibrationBank:
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
         """Start ``slot``'s calibration from the config's priors."""
         self._grow(slot)
+        self.shift.add(slot, vehicle)
         c: CalibrationConfig = vehicle.calibration
         geo = vehicle.geometry
         self.free[slot] = (not geo.wheel_driven_left, not geo.wheel_driven_right)
@@ -231,6 +514,9 @@ class CalibrationBank:
         self.gx[slot] = 0.0
         self.gp[slot] = np.diag([1.0, self.bias_prior**2, off_var])
         self.g_started[slot] = False
+        self.g_gap[slot] = 0.0
+        self.g_nis[slot] = 1.0
+        self.g_fast[slot] = 0.0
         self.wx[slot] = 0.0
         self.wp[slot] = np.diag([rad_var, rad_var, off_var])
         self.pitch[slot] = 0.0
@@ -303,11 +589,34 @@ class CalibrationBank:
         }
 
     # -- per round ---------------------------------------------------------------------------
+    def _gnss_offset_weight(self, slots: IntArray) -> FloatArray:
+        """Weight of the GNSS clock estimate ``δ`` in the fixes (k,), ``r(σ)·δ²/(δ² + σ²)``:
+        ``r`` rises from 0 at ``σ = gnss_clock_apply_std_s`` to 1 at half of it (an estimate
+        still learning is not applied, and one that converges is blended in, not switched),
+        the second factor shrinks an estimate no larger than its std towards 0 (a receiver
+        on time reads a few ms of noise, which applied would only move its fixes)."""
+        off = self.gx[slots, GnssClock.OFFSET]
+        var = self.gp[slots, 2, 2]
+        bound = self.apply_std_s
+        ramp = np.clip((bound - np.sqrt(var)) / (0.5 * bound), 0.0, 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shrink = np.where(var > 0.0, off * off / (off * off + var), 1.0)
+        return np.where(self.on[slots, 0], ramp * shrink, 0.0)
+
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
-        """GNSS clock offset in force per vehicle (k,): 0 where off or not converged (an
-        estimate still moving costs more than it corrects: ``docs/perf/estimator.md``)."""
-        use = self.gnss_offset_converged(slots)
-        return np.where(use, self.gx[slots, GnssClock.OFFSET], 0.0)
+        """GNSS clock offset applied to the fixes per vehicle (k,): the estimate times its
+        weight (:meth:`_gnss_offset_weight`; 0 where off)."""
+        return self._gnss_offset_weight(slots) * self.gx[slots, GnssClock.OFFSET]
+
+    def gnss_offset_std_s(self, slots: IntArray) -> FloatArray:
+        """Std of the applied offset's error that goes into the fixes' variance (k,):
+        ``√((w·σ)² + ((1 − w)·δ)²)`` with ``w`` the weight, 0 where nothing is applied (the
+        prior's 100 ms times a swaying mast's acceleration would take the GNSS speed out of
+        the filter at every start)."""
+        w = self._gnss_offset_weight(slots)
+        off = self.gx[slots, GnssClock.OFFSET]
+        err = np.hypot(w * np.sqrt(self.gp[slots, 2, 2]), (1.0 - w) * off)
+        return np.where(w > 0.0, err, 0.0)
 
     def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
         """The GNSS clock offset is on and its std below the converged threshold (k,)."""
@@ -345,15 +654,23 @@ class CalibrationBank:
         accel_var: FloatArray,
         vg_mps: FloatArray,
         vg_var: FloatArray,
+        lever_mps: FloatArray | None = None,
     ) -> None:
-        """One tick of the GNSS clock filter: predict with the tick-mean acceleration (NaN: no
-        IMU, predicted with a wide walk), update with the tick's GNSS speed as the frontend
-        moved it (uncorrected; NaN: none). All shapes (k,)."""
+        """One tick of the GNSS clock filter: the tick-mean acceleration ``a`` (NaN: no IMU,
+        predicted with a wide walk), the tick's GNSS speed as the frontend moved it less the
+        antenna's lever-arm velocity ``L`` at the tick (uncorrected; NaN: none) and ``L``
+        itself (None: 0), all (k,). Predicted and updated on the low-passed signals
+        (module docstring); a GNSS gap longer than ``gnss_timeout_s`` restarts the speed."""
         dt = self.dt_s
         imu = np.isfinite(accel_mps2)
         a = np.where(imu, accel_mps2, 0.0)
+        lever = np.zeros_like(a) if lever_mps is None else np.nan_to_num(lever_mps)
         x, p = self.gx[slots], self.gp[slots]
-        x[:, GnssClock.SPEED] += dt * (a - x[:, GnssClock.BIAS])
+        has = np.isfinite(vg_mps) & imu
+        first = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
+        regressor, y_low = self._clock_lowpass(slots, a, lever, np.where(has, vg_mps, np.nan))
+        lp = self.g_lowpass[slots]
+        x[:, GnssClock.SPEED] += dt * (lp[:, _ClockLowpass.ACCEL_2] - x[:, GnssClock.BIAS])
         f = np.eye(3)
         f[GnssClock.SPEED, GnssClock.BIAS] = -dt
         p = f @ p @ f.T
@@ -361,21 +678,96 @@ class CalibrationBank:
         p[:, 0, 0] += q_v
         p[:, 1, 1] += self.bias_walk**2 * dt
         p[:, 2, 2] += _OFFSET_WALK_S_PER_SQRT_S**2 * dt
-        has = np.isfinite(vg_mps) & imu
-        first = has & ~self.g_started[slots]
-        x[first, GnssClock.SPEED] = vg_mps[first]
-        p[first, 0, :] = p[first, :, 0] = 0.0
-        p[first, 0, 0] = vg_var[first]
+        self._restart_speed(x, p, first, vg_mps, vg_var, a)
         upd = has & ~first
         if upd.any():
             h = np.zeros((int(upd.sum()), 3))
             h[:, GnssClock.SPEED] = 1.0
-            h[:, GnssClock.OFFSET] = -a[upd]
+            h[:, GnssClock.OFFSET] = -regressor[upd]
             xu, pu = x[upd], p[upd]
-            _kf_update(xu, pu, h, vg_mps[upd], vg_var[upd])
+            leak = (xu[:, GnssClock.OFFSET] ** 2 + pu[:, 2, 2]) * self.g_fast[slots[upd]]
+            r = self._residual_scaled(slots[upd], xu, pu, h, y_low[upd], vg_var[upd] + leak)
+            _kf_update(xu, pu, h, y_low[upd], r)
             x[upd], p[upd] = xu, pu
         self.g_started[slots] |= has
         self.gx[slots], self.gp[slots] = x, p
+
+    def _residual_scaled(
+        self,
+        slots: IntArray,
+        x: FloatArray,
+        p: FloatArray,
+        h: FloatArray,
+        y: FloatArray,
+        r: FloatArray,
+    ) -> FloatArray:
+        """The speed noise ``r`` (k,) scaled by the running mean of the normalised innovation
+        squared ``ν²/(h·P·hᵀ + c·r)`` (at least 1; each tick's value capped at the gate's;
+        ``c`` the share of white noise's variance the low-passes let through):
+        what the model does not explain (sway left over, a tilt error's gravity) counts as
+        noise, so the offset's std stays honest instead of shrinking on a misfit. ``x`` (k, 3),
+        ``p`` (k, 3, 3), ``h`` (k, 3)."""
+        s = np.einsum("ki,kij,kj->k", h, p, h) + r * self.lowpass_noise
+        nu = y - np.einsum("ki,ki->k", h, x)
+        nis = np.minimum(nu * nu / s, _GATE_SIGMAS**2)
+        beta = self.dt_s / (_RESIDUAL_TAU_S + self.dt_s)
+        self.g_nis[slots] += beta * (nis - self.g_nis[slots])
+        return r * np.maximum(self.g_nis[slots], 1.0)
+
+    def _clock_lowpass(
+        self, slots: IntArray, a: FloatArray, lever: FloatArray, y: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Step the clock filter's low-passes by one tick (acceleration ``a``, lever-arm
+        velocity ``L``, speed ``y``, NaN: no fix, filled by ``y + dt·a``; all (k,)); returns
+        the regressor ``ã + L̃'`` and the low-passed speed ``ỹ`` (k,). A chain's first fix (or
+        the first after a gap) starts the speeds at their values and the accelerations at 0,
+        as if the vehicle had moved steadily before: ``Ṽ' = ã`` holds from there."""
+        dt = self.dt_s
+        alpha = dt / (self.lowpass_tau_s + dt)
+        has = np.isfinite(y)
+        gap = np.where(has, 0.0, self.g_gap[slots] + dt)
+        start = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
+        y_in = np.where(has, y, self.g_held[slots] + dt * a)
+        lp = self.g_lowpass[slots]
+        lever_2 = lp[:, _ClockLowpass.LEVER_2].copy()
+        for col_1, col_2, raw in (
+            (_ClockLowpass.ACCEL_1, _ClockLowpass.ACCEL_2, a),
+            (_ClockLowpass.LEVER_1, _ClockLowpass.LEVER_2, lever),
+            (_ClockLowpass.SPEED_1, _ClockLowpass.SPEED_2, y_in),
+        ):
+            lp[:, col_1] += alpha * (raw - lp[:, col_1])
+            lp[:, col_2] += alpha * (lp[:, col_1] - lp[:, col_2])
+        lp[start] = np.stack([0.0 * a, 0.0 * a, lever, lever, y_in, y_in], axis=1)[start]
+        lever_rate = np.where(start, 0.0, (lp[:, _ClockLowpass.LEVER_2] - lever_2) / dt)
+        # the fast part the low-passes leave only attenuated (sway near the tick rate): the
+        # raw antenna acceleration less the low-passed one, its mean square times the
+        # low-passes' share of white noise is the regressor's error variance
+        fast = a + (lever - self.g_lever[slots]) / dt - lp[:, _ClockLowpass.ACCEL_2] - lever_rate
+        fast = np.where(start | ~self.g_started[slots], 0.0, fast)
+        self.g_lever[slots] = lever
+        beta = dt / (_RESIDUAL_TAU_S + dt)
+        self.g_fast[slots] += beta * (self.lowpass_noise * fast * fast - self.g_fast[slots])
+        self.g_lowpass[slots] = lp
+        self.g_held[slots] = y_in
+        self.g_gap[slots] = gap
+        return lp[:, _ClockLowpass.ACCEL_2] + lever_rate, lp[:, _ClockLowpass.SPEED_2]
+
+    def _restart_speed(
+        self,
+        x: FloatArray,
+        p: FloatArray,
+        first: BoolArray,
+        vg_mps: FloatArray,
+        vg_var: FloatArray,
+        a: FloatArray,
+    ) -> None:
+        """Start the low-passed speed of rows ``first`` at their GNSS speed (in place), its
+        variance widened by what the unknown offset makes of the tick's acceleration
+        ``(δ² + σ_δ²)·a²`` (the low-passes start from the raw sample)."""
+        off = x[first, GnssClock.OFFSET] ** 2 + p[first, 2, 2]
+        x[first, GnssClock.SPEED] = vg_mps[first]
+        p[first, 0, :] = p[first, :, 0] = 0.0
+        p[first, 0, 0] = vg_var[first] + off * a[first] ** 2
 
     def observe_wheels(
         self,

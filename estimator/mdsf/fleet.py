@@ -495,6 +495,7 @@ class MdsfFleet:
         rim_c = scale * (rim + wheel_offset_s[:, None] * self._wheel_accel_mps2[slots])
         rim_std_c = scale * rim_std
         so = self.engine.step(slots, fixed, rim_c, rim_std_c)
+        bank.shift.record_speed(slots, so.v0, so.emit)
         self._wheel_accel(slots, so)
         self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
         fields = bank.row_fields(slots, self._radius_m[slots])
@@ -521,9 +522,13 @@ class MdsfFleet:
     def _apply_calibration(self, slots: IntArray, tin: TickInputs) -> TickInputs:
         """Tick inputs with the calibrations applied: the mounting pitch's gravity share
         ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force and the
-        mounting yaw's lateral share ``γ·f_x`` put back, the GNSS speed
-        moved by its clock offset ``+δ_g·a`` and, once the offset has converged, the RTK
-        distance by ``∫δ_g·a·dt`` since its chain began (``docs/perf/estimator.md``)."""
+        mounting yaw's lateral share ``γ·f_x`` put back, the GNSS speed moved by what its
+        clock offset makes of the antenna's speed (the filter's own speed rate and the body
+        rates at the instant the fix describes, :class:`~estimator.mdsf.calibration.
+        GnssClockShift`; the offset's std and the rates' guess into its variance) and, once
+        the offset has converged, the RTK distance by ``δ_g·(V1 − V1(t0))`` since its chain
+        began (the IMU point's speed from the filter's, ``GnssClockShift.imu_speed_step_mps``;
+        ``docs/perf/estimator.md``)."""
         bank = self.calibration_bank
         z = tin.z.copy()
         theta = np.nan_to_num(tin.attitude[:, 1])
@@ -532,16 +537,29 @@ class MdsfFleet:
             tilt = tilt - bank.mount_yaw_rad(slots) * np.nan_to_num(tin.force_lat)
         z[:, MdsfObs.A1] -= tilt
         offset_s = bank.gnss_offset_s(slots)
-        z[:, MdsfObs.VG] += offset_s * np.nan_to_num(z[:, MdsfObs.A1])
-        # the distance's error δ·V as its growth since the chain began, ∫δ·a·dt, once δ has
+        rates = z[:, (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z)]
+        bank.shift.record_rates(slots, tin.stamp_ns, rates, tin.gyro_var)
+        shift, shift_var = bank.shift.shift_mps(
+            slots, offset_s, bank.gnss_offset_std_s(slots), tin.fix_age_s
+        )
+        z[:, MdsfObs.VG] += shift
+        # the distance's error δ·V as its growth since the chain began, Σδ·ΔV1, once δ has
         # converged: the chain's origin is arbitrary, an estimate still moving would leave its
-        # error in the distance, and a step of it must not make the distance jump
+        # error in the distance, and a step of it must not make the distance jump; ΔV1 from
+        # the filter's GNSS-anchored speed (∫a1·dt carries the accelerometer's bias)
         restart = tin.dist_ok & tin.dist_restart
         rate = np.where(bank.gnss_offset_converged(slots), offset_s, 0.0)
-        moved = rate * np.nan_to_num(z[:, MdsfObs.A1]) * self.config.dt_s
+        moved = rate * bank.shift.imu_speed_step_mps(slots)
         self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
-        dist_m = tin.dist_m + self._dist_shift_m[slots]
-        return dataclasses.replace(tin, z=z, force_fwd=tin.force_fwd - tilt, dist_m=dist_m)
+        mast = bank.shift.mast_shift_m(slots, rate, tin.fix_age_s)
+        dist_m = tin.dist_m + self._dist_shift_m[slots] + mast
+        return dataclasses.replace(
+            tin,
+            z=z,
+            gnss_var=tin.gnss_var + shift_var,
+            force_fwd=tin.force_fwd - tilt,
+            dist_m=dist_m,
+        )
 
     def _learn_calibration(
         self,
@@ -564,7 +582,7 @@ class MdsfFleet:
         # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
         wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
         lever = self.front.ant_x_m[slots] * wz - self.front.h1_m[slots] * wx
-        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var)
+        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever)
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
         ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2
