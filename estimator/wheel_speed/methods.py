@@ -400,8 +400,40 @@ def _speed_from_window(
         Variance of one edge's angle error [rad²]: the floor of the fit's residual variance
         (``angle_noise_rel`` of the pitch, or what the tooth calibration measured).
     """
-    m = tau_s.shape[0]
+    omega, std, method, fit_ok = _fit_window(tau_s, p, w, has, config, angle_var_rad2)
     ns = config.teeth_per_rev
+    # Frequency method when the window is crowded.
+    if freq_omega is not None:
+        omega = np.where(freq, freq_omega, omega)
+        std = np.where(freq, 2 * np.pi / (ns * config.window_s) / math.sqrt(3.0), std)
+        method = np.where(freq, np.int8(WheelSpeedMethod.FREQUENCY), method)
+    return _bound_at_standstill(
+        WheelSpeedResult(omega, std, method),
+        q,
+        has & ~fit_ok,
+        has,
+        last_ns,
+        np.where(has_prev, stop_bound(prev_ns, last_ns, ns), 0.0),
+        config,
+        signed,
+    )
+
+
+def _fit_window(
+    tau_s: FloatArray,
+    p: FloatArray,
+    w: npt.NDArray[np.bool_],
+    has: npt.NDArray[np.bool_],
+    config: WheelSpeedConfig,
+    angle_var_rad2: float | FloatArray,
+) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int8], npt.NDArray[np.bool_]]:
+    """Weighted fit of the wheel angle to ``[1, u, u²]`` over each query's window.
+
+    ``u = tau / span`` in [-1, 0]; ω = c₁ / span, its std from the residual scatter (floored by
+    the ring's angle noise and the stamp jitter) through ``(AᵀA)⁻¹``. Returns ω, its std and
+    the method, shape (m,) each (NaN and ``NONE`` where no fit), and which rows were fitted.
+    """
+    m = tau_s.shape[0]
     # A wheel starting again after a stop: an interval longer than ``stop_timeout_s`` ends
     # the fit (it would average over the standstill); so does an interval far longer than
     # the latest one (a wheel leaving a near-stop).
@@ -426,41 +458,47 @@ def _speed_from_window(
         u2[~quad] = 0.0
     coef, a_inv11 = _solve_quadratic_fit(u, u2, wf, p, quad, fit_ok)
     om_fit = coef[1] / span
-    # Uncertainty: residual scatter, floored by the ring's angle noise and the time-stamp
-    # jitter, through (AᵀA)⁻¹. With three edges a quadratic leaves no residual at all; the
-    # floor keeps such a fit from claiming the jitter's precision.
+    # With three edges a quadratic leaves no residual at all; the floor keeps such a fit from
+    # claiming the jitter's precision.
     resid = (p - (coef[0][:, None] + coef[1][:, None] * u + coef[2][:, None] * u2)) * wf
     n_par = np.where(quad, 3, 2)
     dof = np.maximum(n_fit - n_par, 1)
     s2 = _row_dot(resid, resid) / dof
     s2 = np.maximum(s2, (om_fit * config.timing_std_s) ** 2 + angle_var_rad2)
     std_fit = np.sqrt(s2 * np.maximum(a_inv11, 0.0)) / span
-
     omega = np.where(fit_ok, om_fit, np.nan)
     std = np.where(fit_ok, std_fit, np.nan)
     method = np.where(fit_ok, np.int8(WheelSpeedMethod.PERIOD), np.int8(WheelSpeedMethod.NONE))
+    return omega, std, method, fit_ok
 
-    # Frequency method when the window is crowded.
-    if freq_omega is not None:
-        omega = np.where(freq, freq_omega, omega)
-        std = np.where(freq, 2 * np.pi / (ns * config.window_s) / math.sqrt(3.0), std)
-        method = np.where(freq, np.int8(WheelSpeedMethod.FREQUENCY), method)
 
-    # Standstill: bound by the time since the last edge, zero after the timeout.
-    single = has & ~fit_ok
+def _bound_at_standstill(
+    fitted: WheelSpeedResult,
+    q: IntArray,
+    single: npt.NDArray[np.bool_],
+    has: npt.NDArray[np.bool_],
+    last_ns: IntArray,
+    lone: FloatArray,
+    config: WheelSpeedConfig,
+    signed: bool | npt.NDArray[np.bool_],
+) -> WheelSpeedResult:
+    """Bound ω by the time since the last edge (at most one tooth since), zero after the timeout.
+
+    ``single`` rows hold one edge and no fit: their speed is at most ``lone`` (one tooth since the
+    edge before), shape (m,). Capped and lone speeds lie between 0 and the bound: std = bound / 2.
+    """
+    ns = config.teeth_per_rev
+    omega, std, method = fitted.omega_radps, fitted.std_radps, fitted.method
     bound = stop_bound(last_ns, q, ns) * (1.0 + config.stop_bound_margin)
     # a fit overshooting a stop; no reverse without direction
     omega = np.where(~np.asarray(signed) & (omega < 0), 0.0, omega)
     sign = np.where(omega < 0, -1.0, 1.0)
-    # A lone edge after a stop: at most one tooth since the edge before it.
-    lone = np.where(has_prev, stop_bound(prev_ns, last_ns, ns), 0.0)
     mag = np.where(single, np.minimum(lone, bound), np.abs(omega))
     capped = mag > bound
     mag = np.minimum(mag, bound)
     stopped = has & ((q - last_ns) * _NS > config.stop_timeout_s)
     mag = np.where(stopped, 0.0, mag)
     omega = np.where(has, sign * mag, np.nan)
-    # Capped or lone: the speed lies between 0 and the bound.
     std = np.where(capped | single, 0.5 * bound, std)
     std = np.where(stopped, 2 * np.pi / (ns * config.stop_timeout_s), std)
     method = np.where((capped | single | stopped) & has, np.int8(WheelSpeedMethod.PERIOD), method)
