@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from estimator.tracked.gyro import ADIS16470
 from estimator.tracked.model import TrackedMode
 
 __all__ = ["TrackedEstimatorConfig"]
@@ -75,10 +74,8 @@ class TrackedEstimatorConfig:
     GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
     sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.
 
-    The gyro: ``gyro_noise_radps`` is its angle random walk (rad/√s, the heading's process
-    noise ``ARW²·Δt``) and ``gyro_bias_walk_radps`` its in-run bias walk (rad/s per √s),
-    both from the fitted part's data sheet (:mod:`estimator.tracked.gyro`; by default the
-    ADIS16470's), not from any one unit's measured noise.
+    The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
+    (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`).
 
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
@@ -129,8 +126,6 @@ class TrackedEstimatorConfig:
     speed_walk_mps2: float = 0.1
     position_walk_mps: float = 0.015
     lateral_model_error: float = 0.3
-    gyro_noise_radps: float = ADIS16470.arw_rad_rt_s
-    gyro_bias_walk_radps: float = ADIS16470.bias_walk_radps_rt_s
     gyro_scale_walk: float = 1e-6
     factor_walk: float = 1e-4
     initial_position_std_m: float = 0.1

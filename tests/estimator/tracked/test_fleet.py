@@ -11,8 +11,12 @@ import pytest
 from scipy.stats import chi2
 
 from estimator.base import Measurement
-from estimator.config import TrackedConfig, TrackedGeometry, WheeledRearDriveConfig
-from estimator.sim.tracked import TrackedRun, simulate_tracked
+from estimator.config import GyroConfig, TrackedConfig, TrackedGeometry, WheeledRearDriveConfig
+from estimator.gyro import ADIS16470
+from estimator.sim.tracked import ORIGIN, START_NS, CrawlerSensors, TrackedRun, simulate_tracked
+from estimator.sim.tracked.physics import integrate_route
+from estimator.sim.tracked.route import named_route
+from estimator.sim.tracked.sensors import draw_errors, emissions
 from estimator.tracked import (
     MotionState,
     TrackedEstimator,
@@ -211,3 +215,39 @@ def test_slip_given_only_where_observable_and_close_to_the_truth() -> None:
         assert np.isnan(rows[f"slip_{name}_pct"][~valid & ~braked]).all()
         err = np.abs(rows[f"slip_{name}_pct"] - 100 * run.truth.slip[idx, side])[valid]
         assert valid.mean() > 0.8 and np.percentile(err, 95) < 3.0
+
+
+@cache
+def _outage_run() -> TrackedRun:
+    """``route_firm`` with a 30 s GNSS outage from 60 s (moving all through it)."""
+    base = named_route("route_firm")
+    route = dataclasses.replace(base, outages_s=((60.0, 30.0),))
+    rng = np.random.default_rng(23)
+    config, sensors = TrackedConfig(), CrawlerSensors()
+    truth = integrate_route(route, config, rng)
+    errors = draw_errors(rng, truth.t_s.size, sensors)
+    sent = emissions(truth, config, sensors, errors, ORIGIN, route.outages_s, START_NS, rng)
+    return TrackedRun("route_firm", 23, route, config, truth, errors, START_NS, ORIGIN, sent)
+
+
+def test_a_worse_gyro_grows_the_dead_reckoned_covariance_faster() -> None:
+    run = _outage_run()
+    worse = GyroConfig.of(ADIS16470.scaled(4.0))
+    fleet = TrackedFleet()
+    fleet.add_vehicle("adis", run.config)
+    fleet.add_vehicle("worse", dataclasses.replace(run.config, gyro=worse))
+    until = run.start_ns + 95 * SECOND
+    ms = [m for m in run.measurements if m[0] <= until]
+    rows = _feed(fleet, {"adis": ms, "worse": ms}, until)
+    growth = {}
+    for vid, r in rows.items():
+        dr = np.flatnonzero((r["flags"] & int(TrackedFlag.DEAD_RECKONING)) != 0)
+        assert dr.size > 250  # the outage is dead-reckoned
+        var = r["east_std_m"] ** 2 + r["north_std_m"] ** 2
+        growth[vid] = var[dr[-1]] - var[dr[0]]
+    # the same measurements: only the gyro's noise differs, and it adds to the heading's
+    # error, so to the cross-track variance through the outage
+    assert growth["worse"] > 1.5 * growth["adis"] > 0, growth
+    a, b = rows["adis"], rows["worse"]
+    before = slice(0, dr[0] // 2)  # with GNSS both follow it alike
+    assert np.allclose(a["east_m"][before], b["east_m"][before], atol=0.05, equal_nan=True)
