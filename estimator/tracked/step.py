@@ -268,6 +268,7 @@ def recognise(
         inp.gearbox_accel_mps2,
     )
     state = _released(state, inp, p)
+    state = np.where((state == int(M.STOP)) & odometer_start(inp, cfg), int(M.STRAIGHT), state)
     missing = inp.sprocket_missing
     if missing.any():
         v_lag = v - inp.accel_mps2 * inp.odometer_lag_s
@@ -276,6 +277,12 @@ def recognise(
         state = np.where(missing, fb, state)
         conf = np.where(missing, 0.5, conf)
     return state, conf
+
+
+def odometer_start(inp: TickInputs, cfg: TrackedEstimatorConfig) -> BoolArray:
+    """Ticks ``(k,)`` whose odometer edges end a silence longer than ``start_silence_s``: the
+    gearbox has begun to turn, though one or two edges give its windows no speed yet."""
+    return (inp.odometer_edges > 0) & (inp.odometer_gap_s > cfg.start_silence_s)
 
 
 def _released(state: IntArray, inp: TickInputs, p: VehicleParams) -> IntArray:
@@ -529,6 +536,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
             inp.gearbox_accel_mps2,
             inp.odometer_mps,
         )
+        onset |= odometer_start(inp, cfg)  # the held tick before may have started already
         _fuse_standstill(f, inp, cfg, still)
     _since_fix(f, used | fresh, cfg)
     _dead_reckoning_noise(f, p, cfg, gain)

@@ -28,6 +28,7 @@ from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 from estimator.types import OdometerEdges, SprocketEdges, TrackSide
 
 SECOND = 1_000_000_000
+M = MotionState
 
 
 @cache
@@ -251,3 +252,48 @@ def test_a_worse_gyro_grows_the_dead_reckoned_covariance_faster() -> None:
     a, b = rows["adis"], rows["worse"]
     before = slice(0, dr[0] // 2)  # with GNSS both follow it alike
     assert np.allclose(a["east_m"][before], b["east_m"][before], atol=0.05, equal_nan=True)
+
+
+def _same_rows(a: np.ndarray, b: np.ndarray) -> None:
+    assert a.dtype == b.dtype and a.size == b.size
+    for name in TRACKED_SPEC.field_names:
+        if a.dtype[name].kind == "f":
+            assert np.allclose(a[name], b[name], rtol=0, atol=1e-9, equal_nan=True), name
+        else:
+            assert np.array_equal(a[name], b[name]), name
+
+
+def test_a_drives_first_rows_stand_at_rest_and_move_from_the_first_odometer_edge() -> None:
+    run = _run("route_firm", 9)  # stands for ~5 s, then starts
+    lever_ns = run.start_ns + round(run.truth.t_s[np.argmax(run.truth.state != M.STOP)] * 1e9)
+    edges = np.concatenate(
+        [m.stamp_ns for _, m in run.measurements if isinstance(m, OdometerEdges)]
+    )
+    first_edge_ns = int(edges[edges > lever_ns].min())
+    joined_ns = run.start_ns + 30 * SECOND  # the same drive joined at speed
+    streams = {
+        "at_rest": [m for m in run.measurements if m[0] <= run.start_ns + 10 * SECOND],
+        "moving": [m for m in run.measurements if joined_ns <= m[0] <= joined_ns + 5 * SECOND],
+    }
+    runs = dict.fromkeys(streams, run)
+    batched = _feed(
+        _fleet_of(TrackedFleet, runs, TrackedMode.PRODUCT), streams, joined_ns + 5 * SECOND
+    )
+    for vid, ms in streams.items():  # batched = per vehicle
+        alone = _feed(
+            _fleet_of(TrackedEstimator, {vid: run}, TrackedMode.PRODUCT), {vid: ms}, ms[-1][0]
+        )
+        _same_rows(batched[vid], alone[vid])
+    rows = batched["at_rest"]
+    still = (rows["flags"] & int(TrackedFlag.STANDSTILL)) != 0
+    state, stamp = rows["motion_state"], rows["stamp_ns"]
+    assert state[0] == M.STOP and still[0]  # the first row: at rest
+    standing = stamp < lever_ns - SECOND // 5
+    assert standing.sum() > 40 and (state[standing] == M.STOP).all() and still[standing].all()
+    # from the tick of the start's first odometer edge (its windows give no speed yet) on,
+    # the crawler moves: no row reads stop or standstill
+    under_way = stamp >= first_edge_ns
+    assert (state[under_way] != M.STOP).all() and not still[under_way].any()
+    rows = batched["moving"]
+    assert rows["motion_state"][0] != M.STOP  # the first row: moving at speed
+    assert not (rows["flags"] & int(TrackedFlag.STANDSTILL)).any()
