@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from enum import Enum, StrEnum
 from typing import Any, ClassVar, TypeVar
 
+from estimator.gyro import GYRO_PARTS, GyroPart
 from estimator.spec import WheelPosition
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "Differential",
     "DrivenAxle",
     "EncoderConfig",
+    "GyroConfig",
     "NoiseConfig",
     "OdometerConfig",
     "SlipConfig",
@@ -179,7 +181,7 @@ class _Checked:
                 object.__setattr__(self, f.name, value)
             bound = bound_of(f)
             section = f.default_factory
-            if bound is not None:
+            if bound is not None and (value is not None or f.default is not None):
                 bound.check(f.name, value)
             elif isinstance(section, type) and not isinstance(value, section):
                 raise ConfigError(
@@ -358,6 +360,61 @@ class OdometerConfig(_Checked):
     scale_std_pct: float = _bounded(0.5, 0.0, 10.0, "%", "1-sigma uncertainty of K_D")
 
 
+_FIGURES = ("angle_random_walk_deg_rt_h", "bias_stability_deg_h", "noise_density_dps_rt_hz")
+"""A gyro's data-sheet figures, named as :class:`estimator.gyro.GyroPart` names them."""
+
+
+@dataclass(frozen=True, slots=True)
+class GyroConfig(_Checked):
+    """The yaw gyro fitted: a known part by name (``part``, one of
+    :data:`estimator.gyro.GYRO_PARTS`), or any name with its three data-sheet figures given.
+
+    A figure left null is the named part's; one given replaces it (a unit measured worse than
+    its data sheet). The filters' heading and gyro-bias noise come from the figures.
+    """
+
+    part: str = "ADIS16470"
+    angle_random_walk_deg_rt_h: float | None = _bounded(
+        None, 1e-4, 100.0, "°/√h", "angle random walk (null: the named part's)"
+    )
+    bias_stability_deg_h: float | None = _bounded(
+        None, 1e-4, 1000.0, "°/h", "in-run bias stability (null: the named part's)"
+    )
+    noise_density_dps_rt_hz: float | None = _bounded(
+        None, 1e-6, 1.0, "°/s/√Hz", "rate noise density (null: the named part's)"
+    )
+
+    def _check(self) -> None:
+        if not isinstance(self.part, str) or not 1 <= len(self.part) <= 64:
+            raise ConfigError(
+                f"part must be a name of 1 to 64 characters, got {reprlib.repr(self.part)}"
+            )
+        if self.part not in GYRO_PARTS and any(getattr(self, n) is None for n in _FIGURES):
+            raise ConfigError(
+                f"part {reprlib.repr(self.part)} is not a known gyro part "
+                f"{sorted(GYRO_PARTS)}: name one, or give all three of {', '.join(_FIGURES)}"
+            )
+
+    def resolved(self) -> GyroPart:
+        """The named part's figures, each one given here in its place."""
+        base = GYRO_PARTS.get(self.part)
+        given = {n: getattr(self, n) for n in _FIGURES}
+        figures = {n: float(getattr(base, n) if v is None else v) for n, v in given.items()}
+        return GyroPart(self.part, **figures)
+
+    @classmethod
+    def of(cls, part: GyroPart) -> GyroConfig:
+        """A config giving ``part``'s figures (its name only, if it is a known part)."""
+        if GYRO_PARTS.get(part.name) == part:
+            return cls(part=part.name)
+        return cls(
+            part=part.name,
+            angle_random_walk_deg_rt_h=part.angle_random_walk_deg_rt_h,
+            bias_stability_deg_h=part.bias_stability_deg_h,
+            noise_density_dps_rt_hz=part.noise_density_dps_rt_hz,
+        )
+
+
 @dataclass(frozen=True, slots=True)
 class TrackedMotionConfig(_Checked):
     """Transmission and motion-state constants of ``method.md`` §4 (the source's values).
@@ -501,6 +558,7 @@ class TrackedConfig(_Kind):
     sprocket: SprocketConfig = field(default_factory=SprocketConfig)
     odometer: OdometerConfig = field(default_factory=OdometerConfig)
     motion: TrackedMotionConfig = field(default_factory=TrackedMotionConfig)
+    gyro: GyroConfig = field(default_factory=GyroConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     slip: SlipConfig = field(default_factory=SlipConfig)
     estimators: tuple[str, ...] = ()

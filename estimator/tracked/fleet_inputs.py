@@ -24,6 +24,7 @@ from estimator.tracked.vehicle import (
     VehicleInputs,
     derive,
     gear_span,
+    odometer_edges_at,
     sprocket_missing,
     starting_at,
     tick_inputs,
@@ -78,6 +79,12 @@ class _Fleet:
         cfg = self.cfg
         window_s, hold_ns = cfg.odometer_window_s, 500_000_000
         return self.edges(self.odometer, tick_sets, self.odo_pitch, window_s, 1 << 30, hold_ns)[0]
+
+    def odometer_edges(self) -> tuple[IntArray, FloatArray]:
+        """The odometer's edges in each tick and the silence before the first of them."""
+        segs = self.odometer
+        hi, lo = segs.search_all(self.seg, [self.ticks, self.ticks - self.tick_ns], "right")
+        return odometer_edges_at(segs.values, segs.starts[self.seg], lo, hi)
 
     def sprocket_speeds(
         self, tick_sets: Sequence[IntArray]
@@ -199,6 +206,7 @@ class _Fleet:
             gear=gear,
             gear_before=gear_before,
             starting=starting,
+            odometer_edges=self.odometer_edges(),
             missing=self.missing(odo[0]),
             gnss=self.gnss_at(),
         )

@@ -16,12 +16,14 @@ from __future__ import annotations
 import numpy as np
 
 from estimator._arrays import BoolArray
+from estimator.tracked.model import MotionState
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 
 __all__ = ["HeldRows", "backdate"]
 
 _F = TrackedFlag
 _SLIP_BITS = int(_F.SLIP_LEFT_VALID | _F.SLIP_RIGHT_VALID | _F.BRAKED_LEFT | _F.BRAKED_RIGHT)
+_STOP = int(MotionState.STOP)
 _SLIP_FIELDS = ("slip_left_pct", "slip_right_pct", "slip_left_std_pct", "slip_right_std_pct")
 
 
@@ -35,7 +37,8 @@ def backdate(
     ``t − max_back``) take ``B`` and the confidence of ``t`` while row ``j`` shows ``A`` and
     row ``j + 1`` shows the change under way (``onset[j + 1]``). A relabelled row gives no
     slip (its filter step used ``A``'s odometer model) and carries ``STATE_BACKDATED``;
-    ``STATE_UNCERTAIN`` follows its new confidence against ``conf_min``."""
+    ``STATE_UNCERTAIN`` follows its new confidence against ``conf_min``; one relabelled away
+    from ``stop`` loses ``STANDSTILL`` (its tracks were turning)."""
     state = rows["motion_state"]
     conf = rows["state_confidence"]
     moved = np.zeros(state.size, dtype=bool)
@@ -50,7 +53,8 @@ def backdate(
             j -= 1
     if moved.any():
         unsure = int(_F.STATE_UNCERTAIN)
-        flags = rows["flags"][moved] & ~(_SLIP_BITS | unsure) | int(_F.STATE_BACKDATED)
+        started = np.where(state[moved] != _STOP, int(_F.STANDSTILL), 0)
+        flags = rows["flags"][moved] & ~(_SLIP_BITS | unsure | started) | int(_F.STATE_BACKDATED)
         rows["flags"][moved] = np.where(conf[moved] < conf_min, flags | unsure, flags)
         for name in _SLIP_FIELDS:
             rows[name][moved] = np.nan

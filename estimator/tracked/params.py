@@ -1,5 +1,6 @@
 """Per-vehicle constants as arrays ``(k,)``, so one batched call serves vehicles of different
-geometry (gauge, contact length, the source's ratios and thresholds, lever arm, noises)."""
+geometry (gauge, contact length, the source's ratios and thresholds, lever arm, noises, the
+gyro fitted)."""
 
 from __future__ import annotations
 
@@ -33,12 +34,14 @@ class VehicleParams:
     sprocket_pitch_m: FloatArray
     odometer_pitch_m: FloatArray
     odometer_scale_std: FloatArray
+    gyro_arw_rad_rt_s: FloatArray
+    gyro_bias_walk_radps_rt_s: FloatArray
     antenna_xy_m: FloatArray
 
     @classmethod
     def of(cls, c: TrackedConfig) -> VehicleParams:
         """One vehicle's constants, each an array of one."""
-        g, m = c.geometry, c.motion
+        g, m, gyro = c.geometry, c.motion, c.gyro.resolved()
         values = {
             "gauge_m": g.track_gauge_m,
             "length_m": g.contact_length_m,
@@ -56,6 +59,8 @@ class VehicleParams:
             "sprocket_pitch_m": 2.0 * np.pi * c.sprocket.pitch_radius_m / c.sprocket.teeth_per_rev,
             "odometer_pitch_m": c.odometer.distance_per_edge_m,
             "odometer_scale_std": c.odometer.scale_std_pct / 100.0,
+            "gyro_arw_rad_rt_s": gyro.arw_rad_rt_s,
+            "gyro_bias_walk_radps_rt_s": gyro.bias_walk_radps_rt_s,
         }
         arrays = {k: np.array([v], dtype=np.float64) for k, v in values.items()}
         return cls(**arrays, antenna_xy_m=np.array([g.antenna_lever_arm_m[:2]], dtype=np.float64))

@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from estimator.tracked.gyro import ADIS16470
 from estimator.tracked.model import TrackedMode
 
 __all__ = ["TrackedEstimatorConfig"]
@@ -31,10 +30,14 @@ class TrackedEstimatorConfig:
     straight read through few edges: it must show at least ``separated_yaw_share`` of its
     kinematic yaw rate to be a turn; farther from 1 the ratio alone is the lever.
     ``start_odometer_mps``: an odometer speed above it with sprockets still unread is a start
-    from standstill (a straight). No sprocket turns faster than the gearbox (its steering
-    ratios are 1, ``1/1.42`` and 0): a sprocket read above ``sprocket_over_gearbox_max``
-    times the odometer's speed at the tick is a stale window (at a crawl a sprocket's next
-    edge is not yet overdue while the gearbox brakes to a stop) and is read at that bound.
+    from standstill (a straight); so is a tick whose odometer edges end a silence longer than
+    ``start_silence_s`` (the gearbox turns, though the windows cannot yet give its speed), and
+    the tick before it, held, is backdated with it (a start's first edge comes up to one
+    pitch of travel after the lever: ~0.16 s at 0.8 m/s² and 1 cm). No sprocket turns
+    faster than the gearbox (its steering ratios are 1, ``1/1.42`` and 0): a sprocket read
+    above ``sprocket_over_gearbox_max`` times the odometer's speed at the tick is a stale
+    window (at a crawl a sprocket's next edge is not yet overdue while the gearbox brakes to
+    a stop) and is read at that bound.
     ``max_yaw_lag_s`` bounds the learned lag ``τ`` used to lead the yaw rate (``ω + τ·ω̇``, less
     ``yaw_lead_noise_radps``, about 3 sigma of what the gyro's noise makes of ``τ·ω̇`` over a
     tick) in the separated-turn check. A steering lever crosses its travel in about
@@ -75,10 +78,8 @@ class TrackedEstimatorConfig:
     GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
     sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.
 
-    The gyro: ``gyro_noise_radps`` is its angle random walk (rad/√s, the heading's process
-    noise ``ARW²·Δt``) and ``gyro_bias_walk_radps`` its in-run bias walk (rad/s per √s),
-    both from the fitted part's data sheet (:mod:`estimator.tracked.gyro`; by default the
-    ADIS16470's), not from any one unit's measured noise.
+    The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
+    (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`).
 
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
@@ -106,6 +107,7 @@ class TrackedEstimatorConfig:
     sprocket_tooth_std_pitch: float = 0.005
     carry_accel_std_mps2: float = 0.05
     start_odometer_mps: float = 0.1
+    start_silence_s: float = 0.5
     sprocket_over_gearbox_max: float = 1.2
     max_yaw_lag_s: float = 1.0
     yaw_lead_noise_radps: float = 0.02
@@ -129,8 +131,6 @@ class TrackedEstimatorConfig:
     speed_walk_mps2: float = 0.1
     position_walk_mps: float = 0.015
     lateral_model_error: float = 0.3
-    gyro_noise_radps: float = ADIS16470.arw_rad_rt_s
-    gyro_bias_walk_radps: float = ADIS16470.bias_walk_radps_rt_s
     gyro_scale_walk: float = 1e-6
     factor_walk: float = 1e-4
     initial_position_std_m: float = 0.1

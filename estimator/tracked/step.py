@@ -133,15 +133,18 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     )
 
 
-def _q_diag(cfg: TrackedEstimatorConfig, k: int, lateral_mps: FloatArray) -> FloatArray:
+def _q_diag(cfg: TrackedEstimatorConfig, p: VehicleParams, lateral_mps: FloatArray) -> FloatArray:
+    """Process noise per tick, ``(k, N_STATES)``; the heading's and the gyro bias's from each
+    vehicle's gyro (``ARW²·Δt``, ``walk²·Δt``, :mod:`estimator.gyro`)."""
     dt = cfg.tick_s
+    k = p.gauge_m.shape[0]
     learn = 1.0 if cfg.learns else 0.0
     q = np.zeros((k, N_STATES))
     pos = cfg.position_walk_mps**2 + (cfg.lateral_model_error * lateral_mps) ** 2
     q[:, S.EAST] = q[:, S.NORTH] = pos * dt
-    q[:, S.HEADING] = cfg.gyro_noise_radps**2 * dt
+    q[:, S.HEADING] = p.gyro_arw_rad_rt_s**2 * dt
     q[:, S.SPEED] = cfg.speed_walk_mps2**2 * dt
-    q[:, S.GYRO_BIAS] = learn * cfg.gyro_bias_walk_radps**2 * dt
+    q[:, S.GYRO_BIAS] = learn * p.gyro_bias_walk_radps_rt_s**2 * dt
     q[:, S.GYRO_SCALE] = learn * cfg.gyro_scale_walk**2 * dt
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
     q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
@@ -265,6 +268,7 @@ def recognise(
         inp.gearbox_accel_mps2,
     )
     state = _released(state, inp, p)
+    state = np.where((state == int(M.STOP)) & odometer_start(inp, cfg), int(M.STRAIGHT), state)
     missing = inp.sprocket_missing
     if missing.any():
         v_lag = v - inp.accel_mps2 * inp.odometer_lag_s
@@ -273,6 +277,12 @@ def recognise(
         state = np.where(missing, fb, state)
         conf = np.where(missing, 0.5, conf)
     return state, conf
+
+
+def odometer_start(inp: TickInputs, cfg: TrackedEstimatorConfig) -> BoolArray:
+    """Ticks ``(k,)`` whose odometer edges end a silence longer than ``start_silence_s``: the
+    gearbox has begun to turn, though one or two edges give its windows no speed yet."""
+    return (inp.odometer_edges > 0) & (inp.odometer_gap_s > cfg.start_silence_s)
 
 
 def _released(state: IntArray, inp: TickInputs, p: VehicleParams) -> IntArray:
@@ -503,7 +513,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     state, conf = recognise(f, inp, p, cfg, w)
     lateral, by_gain = _lateral(f, state, w, p, cfg)
     f.x, f.P = predict(
-        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, f.x.shape[0], lateral), by_gain
+        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, p, lateral), by_gain
     )
     _ground_patch(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
@@ -526,6 +536,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
             inp.gearbox_accel_mps2,
             inp.odometer_mps,
         )
+        onset |= odometer_start(inp, cfg)  # the held tick before may have started already
         _fuse_standstill(f, inp, cfg, still)
     _since_fix(f, used | fresh, cfg)
     _dead_reckoning_noise(f, p, cfg, gain)

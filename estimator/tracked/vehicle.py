@@ -28,6 +28,7 @@ __all__ = [
     "at_tick",
     "derive",
     "gear_span",
+    "odometer_edges_at",
     "sprocket_missing",
     "starting_at",
     "steady_run",
@@ -55,6 +56,10 @@ class TickInputs:
     gearbox's: the hull's lags it, and slows in every lever move.
     ``steady_s`` is how long the gearbox has run at a steady speed with no sprocket settling
     (the hull's lag behind its tracks, and the slip that acceleration adds, have died out).
+    ``odometer_edges`` counts the odometer's edges in the tick ``(t − tick, t]`` and
+    ``odometer_gap_s`` is the silence before the first of them (s; inf when no edge came
+    before it, 0 in a tick without an edge): a start's first edges after a stop, which the
+    windows cannot yet turn into a speed (:func:`odometer_edges_at`).
     """
 
     ticks_ns: IntArray
@@ -72,6 +77,8 @@ class TickInputs:
     gear_ratio_before: FloatArray
     gearbox_accel_mps2: FloatArray
     steady_s: FloatArray
+    odometer_edges: IntArray
+    odometer_gap_s: FloatArray
     gnss_pos_pair_m: FloatArray
     gnss_vel_pair_mps: FloatArray
     gnss_vel_std_mps: FloatArray
@@ -168,6 +175,7 @@ class VehicleInputs:
             gear=self._gear_ratio(spr, spr_c, ticks),
             gear_before=self._gear_ratio(before, before_c, ticks - self.tick_ns),
             starting=self._starting(ticks),
+            odometer_edges=self._odometer_edges(ticks),
             missing=self._sprocket_missing(ticks, odo),
             gnss=self._gnss_at(ticks),
         )
@@ -217,6 +225,13 @@ class VehicleInputs:
             hi = np.searchsorted(buf.stamps, ticks, side="right")
             out[:, side] = starting_at(buf.stamps, np.zeros(1, dtype=np.int64), hi, ticks)
         return out
+
+    def _odometer_edges(self, ticks: IntArray) -> tuple[IntArray, FloatArray]:
+        """The odometer's edges in each tick and the silence before the first of them."""
+        s = self.odometer.stamps
+        hi = np.searchsorted(s, ticks, side="right")
+        lo = np.searchsorted(s, ticks - self.tick_ns, side="right")
+        return odometer_edges_at(s, np.zeros(1, dtype=np.int64), lo, hi)
 
     def _odometer_speed(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
         return edge_speed(
@@ -269,7 +284,8 @@ class Reads:
     """What the buffers give for ``m`` ticks, before the inputs are derived from it: IMU
     means ``(m,)``; ``odo``/``prev`` the odometer's speed and window centre at the tick and
     the tick before ``(m,)``; ``spr``/``before`` the sprockets' ``(m, 2)``; gear ratios at
-    both; sprockets starting ``(m, 2)``; a sprocket missing ``(m,)``; the tick's fix
+    both; sprockets starting ``(m, 2)``; the odometer's edges in the tick and the silence
+    before them ``(m,)`` each; a sprocket missing ``(m,)``; the tick's fix
     (:meth:`VehicleInputs._gnss_at`)."""
 
     ticks_ns: IntArray
@@ -283,6 +299,7 @@ class Reads:
     gear: FloatArray
     gear_before: FloatArray
     starting: BoolArray
+    odometer_edges: tuple[IntArray, FloatArray]
     missing: BoolArray
     gnss: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
 
@@ -328,6 +345,8 @@ def tick_inputs(
         gear_ratio_before=r.gear_before,
         gearbox_accel_mps2=odo_accel,
         steady_s=steady_s,
+        odometer_edges=r.odometer_edges[0],
+        odometer_gap_s=r.odometer_edges[1],
         gnss_pos_pair_m=pos,
         gnss_vel_pair_mps=vel,
         gnss_vel_std_mps=vstd,
@@ -386,6 +405,23 @@ def starting_at(s: IntArray, base: IntArray, hi: IntArray, ticks: IntArray) -> B
         gap = stamp(np.maximum(hi - back + 1, 0)) - stamp(np.maximum(hi - back, 0))
         out |= recent & (hi >= back) & (gap > 1_000_000_000)
     return out
+
+
+def odometer_edges_at(
+    s: IntArray, base: IntArray, lo: IntArray, hi: IntArray
+) -> tuple[IntArray, FloatArray]:
+    """Edges per tick ``hi − lo`` and the silence before each tick's first edge (s; inf when
+    none came before it, 0 where the tick has none), shapes ``(m,)``: ``lo``/``hi`` index
+    ``s[base:]``, from searches of ``t − tick`` and ``t`` (side right) as in
+    :func:`~estimator.tracked.edges.edge_speed_at`."""
+    count = hi - lo
+    if s.size == 0:
+        return count, np.zeros(count.shape)
+    top = s.size - 1
+    first = s[np.minimum(base + lo, top)]
+    before = s[np.clip(base + lo - 1, 0, top)]
+    gap = np.where(lo >= 1, (first - before) * 1e-9, np.inf)
+    return count, np.where(count > 0, gap, 0.0)
 
 
 def sprocket_missing(

@@ -106,6 +106,8 @@ def _bounded_field(bound: Bound, default: Any) -> tuple[Any, Any]:
     """A pydantic field of a config number (or list of numbers) with its range and unit."""
     number: type = int if bound.integer else float
     text = f"{bound.doc}; {bound.describe()}"
+    if bound.items is None and default is None:  # optional: null takes another source's
+        return number | None, Field(None, ge=bound.low, le=bound.high, description=text)
     if bound.items is None:
         return number, Field(default, ge=bound.low, le=bound.high, description=text)
     item = Annotated[number, Field(ge=bound.low, le=bound.high)]  # type: ignore[valid-type]

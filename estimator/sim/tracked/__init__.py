@@ -17,13 +17,13 @@ contact length, the gyro's grade) by the seed. Physics in
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from estimator._arrays import FloatArray, IntArray
 from estimator.base import Measurement
-from estimator.config import TrackedConfig, TrackedGeometry
+from estimator.config import GyroConfig, TrackedConfig, TrackedGeometry
 from estimator.geo import EnuFrame
 from estimator.sim.tracked.physics import RATE_HZ, CrawlerTruth, integrate_route
 from estimator.sim.tracked.route import (
@@ -114,16 +114,21 @@ def simulate_tracked(
     sensors: CrawlerSensors | None = None,
     start_ns: int = START_NS,
 ) -> TrackedRun:
-    """Simulate scenario ``name`` (:func:`tracked_scenarios`) with ``seed``."""
+    """Simulate scenario ``name`` (:func:`tracked_scenarios`) with ``seed``.
+
+    Without ``config``, the vehicle's config names the gyro its sensors have (the part's
+    figures times its grade), as a fleet's config names the part each crawler carries.
+    """
     rng = np.random.default_rng(seed)
     if name == "random":
         route = random_route(rng)
-        config = config or _random_config(rng)
+        drawn = config or _random_config(rng)
         spec = sensors or _random_sensors(seed)
     else:
         route = named_route(name)
-        config = config or TrackedConfig()
+        drawn = config or TrackedConfig()
         spec = sensors or CrawlerSensors()
+    config = config or replace(drawn, gyro=GyroConfig.of(spec.gyro_fitted))
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
     meas = emissions(truth, config, spec, errors, ORIGIN, route.outages_s, start_ns, rng)

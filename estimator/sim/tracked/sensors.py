@@ -15,9 +15,9 @@ from estimator._arrays import FloatArray, IntArray
 from estimator.base import Measurement
 from estimator.config import TrackedConfig
 from estimator.geo import EnuFrame
+from estimator.gyro import ADIS16470, GyroPart
 from estimator.sim._signals import cumtrapz
 from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ, CrawlerTruth
-from estimator.tracked.gyro import ADIS16470, GyroPart
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges, TrackSide
 
 __all__ = ["CrawlerSensors", "SensorErrors", "draw_errors", "emissions"]
@@ -29,7 +29,7 @@ _WINDOW = RATE_HZ // 10  # grid points per 100 ms packet
 class CrawlerSensors:
     """Sensor imperfections (1-sigma unless said).
 
-    The gyro is ``gyro_part`` (by default the ADIS16470, :mod:`estimator.tracked.gyro`) with
+    The gyro is ``gyro_part`` (by default the ADIS16470, :mod:`estimator.gyro`) with
     its white rate noise and in-run bias walk both ``gyro_grade`` times the data sheet's (the
     knob for a worse part: 1 is the part, 1.2-1.7 a consumer MEMS gyro such as the BMI088).
     The gyro z turn-on bias, scale error and the odometer's true ``K_D`` error are drawn per
@@ -51,6 +51,11 @@ class CrawlerSensors:
     sprocket_tooth_error: float = 0.005
     sprocket_radius_error_std: float = 0.002
     edge_jitter_s: float = 2e-5
+
+    @property
+    def gyro_fitted(self) -> GyroPart:
+        """The gyro as its figures are: the part's, times the grade (the part itself at 1)."""
+        return self.gyro_part if self.gyro_grade == 1.0 else self.gyro_part.scaled(self.gyro_grade)
 
     @property
     def gyro_noise_radps(self) -> float:

@@ -7,12 +7,13 @@ from functools import cache
 import numpy as np
 import pytest
 
+from estimator.config import TrackedConfig
+from estimator.gyro import ADIS16470
 from estimator.sim.tracked import TrackedRun, simulate_tracked, tracked_scenarios
 from estimator.sim.tracked.route import FIRM, RANDOM_RANGES, SOFT
 from estimator.sim.tracked.sensors import CrawlerSensors
-from estimator.tracked import TrackedEstimatorConfig
-from estimator.tracked.gyro import ADIS16470
 from estimator.tracked.model import MotionState
+from estimator.tracked.params import VehicleParams
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges
 
 M = MotionState
@@ -149,10 +150,10 @@ def test_the_default_gyro_is_the_adis16470_of_its_data_sheet() -> None:
     # the 100 Hz samples' noise is ARW·√100 ≈ 0.99 mrad/s (the earlier gyro: 3 mrad/s)
     noise = np.std(_gyro_error(_run("route_firm", 6)))
     assert noise == pytest.approx(ADIS16470.arw_rad_rt_s * 10, rel=0.03)
-    # the estimator's gyro setting is the same data sheet's, not a measured unit's noise
-    cfg = TrackedEstimatorConfig()
-    assert cfg.gyro_noise_radps == ADIS16470.arw_rad_rt_s
-    assert cfg.gyro_bias_walk_radps == ADIS16470.bias_walk_radps_rt_s
+    # the estimator's gyro is the vehicle config's part: by default the same data sheet's
+    params = VehicleParams.of(TrackedConfig())
+    assert params.gyro_arw_rad_rt_s[0] == ADIS16470.arw_rad_rt_s
+    assert params.gyro_bias_walk_radps_rt_s[0] == ADIS16470.bias_walk_radps_rt_s
     worse = CrawlerSensors(gyro_grade=2.0)
     assert worse.gyro_noise_radps == pytest.approx(2 * CrawlerSensors().gyro_noise_radps)
     assert worse.gyro_bias_walk_radps == pytest.approx(2 * ADIS16470.bias_walk_radps_rt_s)
@@ -165,6 +166,10 @@ def test_random_routes_draw_the_gyros_grade_over_the_stated_range() -> None:
     run = simulate_tracked("random", 40)
     noise = np.std(_gyro_error(run))
     assert noise == pytest.approx(run.sensors.gyro_noise_radps, rel=0.03)
+    # the route's vehicle config names the gyro it carries (the part times its grade)
+    fitted = run.config.gyro.resolved()
+    assert fitted.arw_rad_rt_s == pytest.approx(run.sensors.gyro_grade * ADIS16470.arw_rad_rt_s)
+    assert fitted.sample_noise_radps(100.0) == pytest.approx(run.sensors.gyro_noise_radps)
     assert run.route == simulate_tracked("random", 40, sensors=CrawlerSensors()).route
 
 

@@ -42,9 +42,11 @@ from estimator.tracked.step import (
     _track_slip,
     fresh_patch_var,
     initial_filter,
+    odometer_start,
     patch_std,
+    recognise,
 )
-from estimator.tracked.vehicle import TickInputs
+from estimator.tracked.vehicle import TickInputs, odometer_edges_at
 
 M = MotionState
 P1 = VehicleParams.of(TrackedConfig())  # B = 2 m, L = 2.5 m: r = 1.531 m, R_II = 5.76 m
@@ -569,10 +571,9 @@ def test_tracked_package_is_pure() -> None:
 def _tick_inputs(n: int = 3, **fields: np.ndarray) -> TickInputs:
     """``n`` ticks of zeros (``*_pair*`` fields ``(n, 2)``), ``fields`` replacing some."""
     flags = ("sprocket_missing", "sprocket_settling_pair", "sprocket_starting_pair")
+    kinds = {**dict.fromkeys(flags, bool), "odometer_edges": np.int64, "ticks_ns": np.int64}
     base = {
-        f.name: np.zeros(
-            (n, 2) if "pair" in f.name else n, dtype=bool if f.name in flags else float
-        )
+        f.name: np.zeros((n, 2) if "pair" in f.name else n, dtype=kinds.get(f.name, float))
         for f in dataclasses.fields(TickInputs)
     }
     return TickInputs(**{**base, **fields})
@@ -761,3 +762,34 @@ def test_predict_moves_the_position_by_the_side_slip_gain() -> None:
     )
     assert p_next[0, S.EAST, S.EAST] == pytest.approx((0.1 * 0.2) ** 2 * 0.25)
     assert p_next[0, S.NORTH, S.NORTH] == pytest.approx(0.0, abs=1e-18)
+
+
+def test_the_odometers_edges_per_tick_and_the_silence_before_them() -> None:
+    ms = 1_000_000
+    s = np.array([100, 110, 2_000, 2_030, 2_040, 2_300], dtype=np.int64) * ms
+    ticks = np.array([100, 200, 2_000, 2_100, 2_200, 2_300], dtype=np.int64) * ms
+    hi = np.searchsorted(s, ticks, side="right")
+    lo = np.searchsorted(s, ticks - 100 * ms, side="right")
+    count, gap = odometer_edges_at(s, np.zeros(1, dtype=np.int64), lo, hi)
+    assert count.tolist() == [1, 1, 1, 2, 0, 1]
+    # the first edge ever: no silence known (inf); 110 after 100; 2000 after 1.89 s of
+    # silence; 2030 after 30 ms; none in (2100, 2200]; 2300 after 260 ms
+    assert gap.tolist() == pytest.approx([math.inf, 0.010, 1.890, 0.030, 0.0, 0.260])
+    empty = odometer_edges_at(np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64), lo, lo)
+    assert empty[0].tolist() == [0] * 6 and empty[1].tolist() == [0.0] * 6
+
+
+def test_a_starts_first_odometer_edges_end_a_standstill() -> None:
+    cfg = TrackedEstimatorConfig()
+    # one edge after a second's silence (a start); one after 0.1 s (a crawl); none; one
+    # edge with nothing before it (a vehicle's first edge)
+    edges, gap = np.array([1, 1, 0, 1]), np.array([1.0, 0.1, 0.0, math.inf])
+    inp = _tick_inputs(4, odometer_edges=edges, odometer_gap_s=gap)
+    assert odometer_start(inp, cfg).tolist() == [True, False, False, True]
+    p4 = VehicleParams.stack([P1] * 4)
+    f = initial_filter(cfg)
+    f = dataclasses.replace(
+        f, **{k.name: np.repeat(getattr(f, k.name), 4, axis=0) for k in dataclasses.fields(f)}
+    )
+    state, _ = recognise(f, inp, p4, cfg, np.zeros(4))  # every window silent: no speed
+    assert state.tolist() == [M.STRAIGHT, M.STOP, M.STOP, M.STRAIGHT]

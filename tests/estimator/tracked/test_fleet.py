@@ -11,8 +11,12 @@ import pytest
 from scipy.stats import chi2
 
 from estimator.base import Measurement
-from estimator.config import TrackedConfig, TrackedGeometry, WheeledRearDriveConfig
-from estimator.sim.tracked import TrackedRun, simulate_tracked
+from estimator.config import GyroConfig, TrackedConfig, TrackedGeometry, WheeledRearDriveConfig
+from estimator.gyro import ADIS16470
+from estimator.sim.tracked import ORIGIN, START_NS, CrawlerSensors, TrackedRun, simulate_tracked
+from estimator.sim.tracked.physics import integrate_route
+from estimator.sim.tracked.route import named_route
+from estimator.sim.tracked.sensors import draw_errors, emissions
 from estimator.tracked import (
     MotionState,
     TrackedEstimator,
@@ -24,6 +28,7 @@ from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 from estimator.types import OdometerEdges, SprocketEdges, TrackSide
 
 SECOND = 1_000_000_000
+M = MotionState
 
 
 @cache
@@ -211,3 +216,84 @@ def test_slip_given_only_where_observable_and_close_to_the_truth() -> None:
         assert np.isnan(rows[f"slip_{name}_pct"][~valid & ~braked]).all()
         err = np.abs(rows[f"slip_{name}_pct"] - 100 * run.truth.slip[idx, side])[valid]
         assert valid.mean() > 0.8 and np.percentile(err, 95) < 3.0
+
+
+@cache
+def _outage_run() -> TrackedRun:
+    """``route_firm`` with a 30 s GNSS outage from 60 s (moving all through it)."""
+    base = named_route("route_firm")
+    route = dataclasses.replace(base, outages_s=((60.0, 30.0),))
+    rng = np.random.default_rng(23)
+    config, sensors = TrackedConfig(), CrawlerSensors()
+    truth = integrate_route(route, config, rng)
+    errors = draw_errors(rng, truth.t_s.size, sensors)
+    sent = emissions(truth, config, sensors, errors, ORIGIN, route.outages_s, START_NS, rng)
+    return TrackedRun("route_firm", 23, route, config, truth, errors, START_NS, ORIGIN, sent)
+
+
+def test_a_worse_gyro_grows_the_dead_reckoned_covariance_faster() -> None:
+    run = _outage_run()
+    worse = GyroConfig.of(ADIS16470.scaled(4.0))
+    fleet = TrackedFleet()
+    fleet.add_vehicle("adis", run.config)
+    fleet.add_vehicle("worse", dataclasses.replace(run.config, gyro=worse))
+    until = run.start_ns + 95 * SECOND
+    ms = [m for m in run.measurements if m[0] <= until]
+    rows = _feed(fleet, {"adis": ms, "worse": ms}, until)
+    growth = {}
+    for vid, r in rows.items():
+        dr = np.flatnonzero((r["flags"] & int(TrackedFlag.DEAD_RECKONING)) != 0)
+        assert dr.size > 250  # the outage is dead-reckoned
+        var = r["east_std_m"] ** 2 + r["north_std_m"] ** 2
+        growth[vid] = var[dr[-1]] - var[dr[0]]
+    # the same measurements: only the gyro's noise differs, and it adds to the heading's
+    # error, so to the cross-track variance through the outage
+    assert growth["worse"] > 1.5 * growth["adis"] > 0, growth
+    a, b = rows["adis"], rows["worse"]
+    before = slice(0, dr[0] // 2)  # with GNSS both follow it alike
+    assert np.allclose(a["east_m"][before], b["east_m"][before], atol=0.05, equal_nan=True)
+
+
+def _same_rows(a: np.ndarray, b: np.ndarray) -> None:
+    assert a.dtype == b.dtype and a.size == b.size
+    for name in TRACKED_SPEC.field_names:
+        if a.dtype[name].kind == "f":
+            assert np.allclose(a[name], b[name], rtol=0, atol=1e-9, equal_nan=True), name
+        else:
+            assert np.array_equal(a[name], b[name]), name
+
+
+def test_a_drives_first_rows_stand_at_rest_and_move_from_the_first_odometer_edge() -> None:
+    run = _run("route_firm", 9)  # stands for ~5 s, then starts
+    lever_ns = run.start_ns + round(run.truth.t_s[np.argmax(run.truth.state != M.STOP)] * 1e9)
+    edges = np.concatenate(
+        [m.stamp_ns for _, m in run.measurements if isinstance(m, OdometerEdges)]
+    )
+    first_edge_ns = int(edges[edges > lever_ns].min())
+    joined_ns = run.start_ns + 30 * SECOND  # the same drive joined at speed
+    streams = {
+        "at_rest": [m for m in run.measurements if m[0] <= run.start_ns + 10 * SECOND],
+        "moving": [m for m in run.measurements if joined_ns <= m[0] <= joined_ns + 5 * SECOND],
+    }
+    runs = dict.fromkeys(streams, run)
+    batched = _feed(
+        _fleet_of(TrackedFleet, runs, TrackedMode.PRODUCT), streams, joined_ns + 5 * SECOND
+    )
+    for vid, ms in streams.items():  # batched = per vehicle
+        alone = _feed(
+            _fleet_of(TrackedEstimator, {vid: run}, TrackedMode.PRODUCT), {vid: ms}, ms[-1][0]
+        )
+        _same_rows(batched[vid], alone[vid])
+    rows = batched["at_rest"]
+    still = (rows["flags"] & int(TrackedFlag.STANDSTILL)) != 0
+    state, stamp = rows["motion_state"], rows["stamp_ns"]
+    assert state[0] == M.STOP and still[0]  # the first row: at rest
+    standing = stamp < lever_ns - SECOND // 5
+    assert standing.sum() > 40 and (state[standing] == M.STOP).all() and still[standing].all()
+    # from the tick of the start's first odometer edge (its windows give no speed yet) on,
+    # the crawler moves: no row reads stop or standstill
+    under_way = stamp >= first_edge_ns
+    assert (state[under_way] != M.STOP).all() and not still[under_way].any()
+    rows = batched["moving"]
+    assert rows["motion_state"][0] != M.STOP  # the first row: moving at speed
+    assert not (rows["flags"] & int(TrackedFlag.STANDSTILL)).any()

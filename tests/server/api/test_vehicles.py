@@ -293,6 +293,52 @@ def test_wrong_kind_or_field_is_422_naming_it(client: ApiClient, runtime: FakeRu
     assert runtime.config_calls == []
 
 
+def test_a_crawlers_gyro_by_part_or_by_its_figures(
+    client: ApiClient, runtime: FakeRuntime, store: Store
+) -> None:
+    figures = {
+        "angle_random_walk_deg_rt_h": 0.9,
+        "bias_stability_deg_h": 20.0,
+        "noise_density_dps_rt_hz": 0.02,
+    }
+    bodies = {
+        "named": {"part": "ADIS16470"},
+        "own": {"part": "MEMS-X", **figures},
+        "worse-arw": {"part": "ADIS16470", "angle_random_walk_deg_rt_h": 0.5},
+    }
+    for vid, gyro in bodies.items():
+        r = client.put(f"{V}/{vid}", json={"kind": "tracked", "gyro": gyro})
+        assert r.status_code == 201, r.json()
+        stored = r.json()["config"]["gyro"]
+        assert stored == {**dict.fromkeys(figures), **gyro}  # null: the named part's figures
+        record = store.get_vehicle(vid)
+        assert record is not None
+        config = vehicle_config_from_dict(record.config)
+        assert isinstance(config, TrackedConfig) and config == runtime.config_calls[-1][1]
+        assert (
+            config.to_dict()["gyro"] == stored == client.get(f"{V}/{vid}").json()["config"]["gyro"]
+        )
+    part = vehicle_config_from_dict(store.get_vehicle("worse-arw").config).gyro.resolved()  # type: ignore[union-attr]
+    assert (part.angle_random_walk_deg_rt_h, part.bias_stability_deg_h) == (0.5, 8.0)
+    refused = [
+        ({"part": "BMI999"}, "tracked: gyro.part 'BMI999' is not a known gyro part ['ADIS16470']"),
+        ({"part": "MEMS-X", "bias_stability_deg_h": 2.0}, "give all three of"),
+        ({**figures, "part": ""}, "gyro.part must be a name of 1 to 64 characters"),
+        ({"angle_random_walk_deg_rt_h": 0}, "gyro.angle_random_walk_deg_rt_h must be a number in"),
+        ({"bias_stability_deg_h": -8.0}, "gyro.bias_stability_deg_h must be a number in 0.0001"),
+        ({"noise_density_dps_rt_hz": "0.008"}, "gyro.noise_density_dps_rt_hz must be a number"),
+        ({"model": "ADIS16470"}, "gyro: unknown field(s) ['model']"),
+    ]
+    calls = len(runtime.config_calls)
+    for gyro, words in refused:
+        r = client.put(f"{V}/bad", json={"kind": "tracked", "gyro": gyro})
+        assert r.status_code == 422, gyro
+        reason = r.json()["reason"]
+        assert words in reason and "\n" not in reason, (gyro, reason)
+    assert client.get(f"{V}/bad").status_code == 404
+    assert len(runtime.config_calls) == calls
+
+
 def test_config_schema_is_a_union_on_kind_with_ranges_and_units(client: ApiClient) -> None:
     op = client.get("/openapi.json").json()["paths"]["/api/v1/vehicles/{vehicle_id}"]["put"]
     schema = op["requestBody"]["content"]["application/json"]["schema"]

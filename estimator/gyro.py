@@ -8,6 +8,9 @@ carries white noise of ``ARW·√f`` rad/s a sample. The in-run bias is modelled
 walk that reaches the bias stability over ``BIAS_STABILITY_S`` (the length of a long GNSS
 outage, the span over which the bias matters to dead reckoning):
 ``walk = stability/√BIAS_STABILITY_S`` rad/s per √s.
+
+:data:`GYRO_PARTS` holds the parts a vehicle config may name (``gyro.part``); a config may
+instead give a part's three figures itself (:class:`estimator.config.GyroConfig`).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["ADIS16470", "BIAS_STABILITY_S", "GyroPart"]
+__all__ = ["ADIS16470", "BIAS_STABILITY_S", "GYRO_PARTS", "GyroPart"]
 
 #: Span (s) over which the in-run bias walks by the part's bias stability.
 BIAS_STABILITY_S = 300.0
@@ -51,8 +54,20 @@ class GyroPart:
         """White rate noise (1-sigma, rad/s) of one sample at ``rate_hz``."""
         return self.arw_rad_rt_s * math.sqrt(rate_hz)
 
+    def scaled(self, grade: float) -> GyroPart:
+        """This part with every figure ``grade`` times its own (a worse unit of its kind)."""
+        return GyroPart(
+            f"{self.name}x{grade:.2f}",
+            grade * self.angle_random_walk_deg_rt_h,
+            grade * self.bias_stability_deg_h,
+            grade * self.noise_density_dps_rt_hz,
+        )
+
 
 #: Analog Devices ADIS16470, an industrial MEMS IMU (ADIS16470 data sheet, Analog Devices):
 #: angle random walk 0.34 °/√h, in-run bias stability 8 °/h, rate noise density
 #: 0.008 °/s/√Hz.
 ADIS16470 = GyroPart("ADIS16470", 0.34, 8.0, 0.008)
+
+#: The parts a vehicle config may name, by name.
+GYRO_PARTS: dict[str, GyroPart] = {part.name: part for part in (ADIS16470,)}
