@@ -131,7 +131,9 @@ class FilterConfig:
     more, and ``ln μ`` only while the body's measured ``hypot(a_x, a_y)`` is
     ``learn_mu_min_accel_mps2`` or more and every wheel's κ is known to
     ``learn_mu_max_kappa_std`` (a torque step's one-sample slip, 1e-2 off, would otherwise be
-    judged near the limit and learnt from) (see :func:`_gain_mask`); ``outlier_sigmas``: a
+    judged near the limit and learnt from) and the grip in use is known to
+    ``learn_mu_util_rel_std`` of itself against the speed's shared error (:func:`_grip_known`)
+    (see :func:`_gain_mask`); ``outlier_sigmas``: a
     product update whose whitened innovation exceeds it in any measurement is skipped
     (gated: a tick where the wheel speeds and the IMU disagree, as when the torque is cut
     and a wheel spins down within one CAN sample); ``central_prediction``: the product's
@@ -167,6 +169,7 @@ class FilterConfig:
     outlier_sigmas: float = 6.0
     learn_excite_sigmas: float = 4.0
     learn_mu_max_kappa_std: float = 3e-3
+    learn_mu_util_rel_std: float = 0.1
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
 
@@ -531,7 +534,9 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
     walk a joint update along it. The two are learnt where each is told apart: an axle's
     factors in its tyres' linear range (below ``linear_util`` of the grip, where the slope
     ``F/s`` is the stiffness whatever μ is) while its largest slip is ``learn_excite_sigmas``
-    of its 1-σ (at the noise, ``F ∝ g·s`` with ``s ≈ 0`` would shrink ``g`` towards 0);
+    of its 1-σ (κ's own and the speed's shared one, which is correlated over seconds and
+    would be learnt as stiffness; at the noise, ``F ∝ g·s`` with ``s ≈ 0`` would shrink
+    ``g`` towards 0);
     ``ln μ`` above ``linear_util``, from the curvature against the stiffness learnt (below,
     the curvature is smaller than what the inputs' biases fake: μ is held, not pulled), and
     only while the body accelerates by ``learn_mu_min_accel_mps2`` or more: the utilisation
@@ -541,7 +546,8 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
     cx, cy = _stiffness_of(x[:, None, :], cfg, tyres, u.fz_n)
     fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
     used = np.hypot(fx, fy) / np.maximum(mu * u.fz_n, 1.0)
-    kappa = np.abs(u.kappa) / np.maximum(u.kappa_std, 1e-9)
+    kappa_std = np.hypot(u.kappa_std, u.kappa_common_std[:, None])
+    kappa = np.abs(u.kappa) / np.maximum(kappa_std, 1e-9)
     alpha = np.abs(u.alpha_rad) / np.maximum(u.alpha_std_rad, 1e-9)
     mask = np.ones_like(x)
     for axle, (gx, gy) in (
@@ -553,8 +559,31 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
     pushed = np.hypot(u.z[:, 0], u.z[:, 1]) >= cfg.learn_mu_min_accel_mps2
     known = u.kappa_std.max(axis=1) <= cfg.learn_mu_max_kappa_std
+    known &= _grip_known(used, mu, cx[:, 0], cy[:, 0], u) <= cfg.learn_mu_util_rel_std
     mask[:, ProductState.LN_MU] = (used.max(axis=1) >= cfg.linear_util) & pushed & known
     return mask
+
+
+def _grip_known(
+    used: FloatArray, mu: FloatArray, cx: FloatArray, cy: FloatArray, u: TickInputs
+) -> FloatArray:
+    """How far the speed's error moves the grip in use ``(B,)``: the largest change of a
+    wheel's utilisation ``used`` ``(B, 4)`` when all four κ move by their shared 1-σ
+    (``u.kappa_common_std``), relative to the most used wheel's.
+
+    The shared error is the speed filter's, correlated over seconds (GNSS and the
+    accelerometer between the rims' readings): ``R + D Dᵀ`` weighs one tick by it, but a
+    run of ticks does not average it out, and where it is a large part of the slips in use
+    (braking, when the undriven rims are braked too and no longer read the speed) ``ln μ``
+    would learn it as grip."""
+    shift = u.kappa_common_std[:, None]
+    moved = np.zeros_like(used)
+    for sign in (1.0, -1.0):
+        fx, fy = brush_forces(u.kappa + sign * shift, u.alpha_rad, u.fz_n, mu, cx, cy)
+        other = np.hypot(fx, fy) / np.maximum(mu * u.fz_n, 1.0)
+        moved = np.maximum(moved, np.abs(other - used))
+    rel: FloatArray = moved.max(axis=1) / np.maximum(used.max(axis=1), 1e-9)
+    return rel
 
 
 def _considered_centre(

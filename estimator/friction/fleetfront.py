@@ -25,6 +25,7 @@ from estimator.friction.frontend import (
     DRIVE_SHARE,
     UNDRIVEN,
     FrontEndConfig,
+    brake_slip_std,
     spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -536,6 +537,8 @@ class FleetFrontEnd:
             fz, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
         )
         spin = spin_up_slip(ax[:, None], radius, c_x, fe.wheel_inertia_kgm2)
+        brake = -(ax + self._resistance(c, self.vx.speed[c], fz))
+        braked = fe.brake_share_std * brake_slip_std(brake[:, None], car.mass[c][:, None], c_x)
         rim = omega * radius / (1.0 + spin)
         w = self.vy.speed[c][:, None] + car.wheel_x[c] * r[:, None]
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + car.wheel_y[c] * r[:, None]
@@ -544,7 +547,9 @@ class FleetFrontEnd:
         own = np.where(free, st.radius_std[c] / st.radius[c], 0.0).sum(axis=1) / n_free
         spin_mean = np.where(free, spin, 0.0).sum(axis=1) / n_free
         rel = np.hypot(np.hypot(own, st.radius_common_rel[c]), fe.wheel_inertia_rel_std * spin_mean)
-        self.vx.update(c, v, (rel * v) ** 2 + (5e-4 * v) ** 2)
+        braked_mean = np.where(free, braked, 0.0).sum(axis=1) / n_free
+        ok = braked_mean <= np.hypot(rel, 5e-4)  # a brake slip is a bias, not noise
+        self.vx.update(c[ok], v[ok], ((rel * v) ** 2 + (5e-4 * v) ** 2)[ok])
 
     def _side_slip_step(
         self, s: IntArray, ay: FloatArray, yaw_rate: FloatArray, g: IntArray, gnss_v: FloatArray

@@ -39,7 +39,13 @@ is tested against:
   0.07 m/s² behind, and the filter's ``v_y`` kept what that did to the update;
 * the undriven wheels' spin-up slip: a wheel without torque is spun up by its contact force
   alone (``I ω̇ = −F r``, ``ω̇ = a_x/r``), so it rolls with ``κ = −I a_x/(r² c_x)`` (about
-  −1e-4 at 2.3 m/s²), taken out of their rim speed before it reads ``v_x`` (not paper).
+  −1e-4 at 2.3 m/s²), taken out of their rim speed before it reads ``v_x`` (not paper);
+* the undriven wheels' brake slip: the service brakes act on every wheel, so while the tyres
+  brake the body (``a_x`` plus the resistances below zero) the "free" rims slip by their
+  unknown share of the braking force (:func:`brake_slip_std`). Where that slip may exceed
+  the rims' own 1-σ they do not read the speed (a bias held for seconds, it would not
+  average out over the ticks as noise does): the speed, and with it every κ's shared 1-σ,
+  then leans on GNSS and the accelerometer (not paper).
 
 Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
 """
@@ -64,6 +70,7 @@ __all__ = [
     "FrontEnd",
     "FrontEndConfig",
     "FrontEndTick",
+    "brake_slip_std",
     "spin_up_slip",
 ]
 
@@ -102,7 +109,8 @@ class FrontEndConfig:
     gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ);
     ``wheel_inertia_kgm2``, ``wheel_inertia_rel_std``: a wheel's (rim and tyre) spin inertia
     and its relative 1-σ, for the undriven wheels' spin-up slip (:func:`spin_up_slip`; a
-    road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²).
+    road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²); ``brake_share_std``: the 1-σ of the
+    undriven axle's share of the braking force (:func:`brake_slip_std`).
     """
 
     paper: bool = False
@@ -123,6 +131,22 @@ class FrontEndConfig:
     tilt_highpass_s: float = 3.0
     wheel_inertia_kgm2: float = 1.4
     wheel_inertia_rel_std: float = 0.4
+    brake_share_std: float = 0.5
+
+
+def brake_slip_std(
+    brake_mps2: FloatArray | float, mass_kg: FloatArray | float, c_x_n: FloatArray
+) -> FloatArray:
+    """Per unit of ``FrontEndConfig.brake_share_std``: the 1-σ of a braked wheel's slip.
+
+    The tyres brake the body by ``brake_mps2`` (≥ 0: ``−(a_x + resistances/m)``, 0 while
+    driven); an axle whose share of it is ``s`` gives each of its two wheels ``F = s m a/2``
+    and, in the linear range, ``κ = −F/c_x``. The share of an undriven axle is not in the
+    config (a road vehicle's rear brakes take 25-45 %), so ``s`` enters as a 1-σ, not a mean.
+    Shapes broadcast like :func:`spin_up_slip`'s."""
+    force_n = np.asarray(mass_kg) * np.maximum(np.asarray(brake_mps2), 0.0) / 2.0
+    slip: FloatArray = force_n / np.maximum(c_x_n, 1.0)
+    return slip
 
 
 def spin_up_slip(
@@ -402,13 +426,8 @@ class FrontEnd:
         # the radii's shared scale error is in the speed's (the rims correct it) and cancels
         # in κ with it: the speed's 1-σ alone is the shared part
         k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
-        resist = 0.0
         vx = self.vx.speed
-        if not self.fe.paper:
-            resist = (
-                0.5 * AIR_DENSITY_KGPM3 * self.ch.drag_area_m2 * vx * abs(vx)
-                + self.ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
-            ) / self.ch.mass_kg
+        resist = 0.0 if self.fe.paper else self._resistance(vx, fz)
         ax_now, ay_now = self._at_tick(ax, ay, imu_lag_s)
         z = np.array([ax_now + resist, ay_now, yaw_accel])
         calibrated = self.fe.paper or self.calibrated
@@ -438,6 +457,14 @@ class FrontEnd:
             valid=bool(valid),
             tyre_suspect=self.tyre_suspect,
         )
+
+    def _resistance(self, vx: float, fz: FloatArray) -> float:
+        """Drag and rolling resistance over the mass [m/s²] at speed ``vx``."""
+        ch = self.ch
+        return (
+            0.5 * AIR_DENSITY_KGPM3 * ch.drag_area_m2 * vx * abs(vx)
+            + ch.rolling_resistance * float(fz.sum()) * math.tanh(vx)
+        ) / ch.mass_kg
 
     # --- the small filters --------------------------------------------------------------------
     def _at_tick(self, ax: float, ay: float, lag_s: float) -> tuple[float, float]:
@@ -484,7 +511,10 @@ class FrontEnd:
         c_x = load_adaptive_stiffness_n(
             fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
         )
-        spin = spin_up_slip(ax_tilt - self.vx.bias, radius, c_x, self.fe.wheel_inertia_kgm2)
+        ax = ax_tilt - self.vx.bias
+        spin = spin_up_slip(ax, radius, c_x, self.fe.wheel_inertia_kgm2)
+        brake = -(ax + self._resistance(self.vx.speed, fz))
+        braked = self.fe.brake_share_std * brake_slip_std(brake, self.ch.mass_kg, c_x)
         rim = self.omega * radius / (1.0 + spin)
         w = self.vy.speed + self.wheel_x * yaw_rate
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
@@ -494,6 +524,8 @@ class FrontEnd:
             self.radius_common_rel,
             self.fe.wheel_inertia_rel_std * float(np.mean(spin[free])),
         )
+        if float(np.mean(braked[free])) > math.hypot(rel, 5e-4):
+            return  # the brake slip is a bias: it would not average out over the ticks
         self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
 
     def _yaw_step(self, gyro_z_radps: float) -> float:
