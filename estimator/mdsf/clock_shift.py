@@ -76,25 +76,36 @@ def _node_weights(u: FloatArray) -> FloatArray:
     """Weights (k, _SHIFT_TICKS) of the kept ticks (newest first) that give the rates ``u``
     (k,) ticks before the newest: within the history the cubic through the four ticks
     around ``u``; ahead of the newest (``u < 0``) the newest plus ``u`` times the cubic's
-    slope there (:data:`_SLOPE_AT_NEWEST`)."""
+    slope there (:data:`_SLOPE_AT_NEWEST`). Rows are placed by slices: most ``u`` lie within
+    the newest tick, whose cubic starts at the newest node, and none ahead of it."""
     u = np.clip(u, None, _SHIFT_TICKS - 1.0)
-    first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0).astype(np.int64)
+    first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0)
+    cubic = _cubic_weights(np.maximum(u, 0.0) - first)
     w = np.zeros((u.shape[0], _SHIFT_TICKS))
-    cols = first[:, None] + np.arange(4)[None, :]
-    np.put_along_axis(w, cols, _cubic_weights(np.maximum(u, 0.0) - first), axis=1)
-    ahead = np.minimum(u, 0.0)[:, None]
-    line = np.zeros_like(w)
-    line[:, :4] = ahead * _SLOPE_AT_NEWEST[None, :]
-    line[:, 0] += 1.0
-    return np.where(ahead < 0.0, line, w)
+    w[:, :4] = cubic
+    for start in range(1, _SHIFT_TICKS - 3):
+        rows = np.flatnonzero(first == start)
+        if rows.shape[0]:
+            block = np.zeros((rows.shape[0], _SHIFT_TICKS))
+            block[:, start : start + 4] = cubic[rows]
+            w[rows] = block
+    ahead = np.flatnonzero(u < 0.0)
+    if ahead.shape[0]:
+        line = np.zeros((ahead.shape[0], _SHIFT_TICKS))
+        line[:, :4] = u[ahead, None] * _SLOPE_AT_NEWEST[None, :]
+        line[:, 0] += 1.0
+        w[ahead] = line
+    return w
 
 
-def _rates_at(w: FloatArray, nodes: FloatArray, holes: BoolArray) -> FloatArray:
+def _rates_at(w: FloatArray, nodes: FloatArray, holes: BoolArray | None) -> FloatArray:
     """Body rates (k, 2) from node weights ``w`` (k, _SHIFT_TICKS) and the kept rates
     ``nodes`` (k, _SHIFT_TICKS, 2; NaN as 0), NaN where a node it weighs is a hole
-    (``holes``, same shape: no IMU at that tick). The cubic's error within the history is
-    neglected (~5 % of a 2 Hz sway's amplitude)."""
+    (``holes``, same shape: no IMU at that tick; None: there are none). The cubic's error
+    within the history is neglected (~5 % of a 2 Hz sway's amplitude)."""
     values = np.einsum("kj,kjc->kc", w, nodes)
+    if holes is None:
+        return values
     missing = ((w != 0.0)[:, :, None] & holes).any(axis=1)
     return np.where(missing, np.nan, values)
 
@@ -180,11 +191,14 @@ class GnssClockShift:
         (k,; None: noiseless) become the newest; a tick that does not follow the last one on
         the grid starts the history anew."""
         var = np.zeros(slots.shape[0]) if rate_var is None else np.nan_to_num(rate_var)
-        follows = (stamp_ns - self.stamp_ns[slots]) == self.tick_ns
-        old = np.where(follows[:, None, None], self.rates[slots], np.nan)
-        self.rates[slots] = np.concatenate([rates_radps[:, None, :], old[:, :-1]], axis=1)
-        old_var = self.rate_var[slots]
-        self.rate_var[slots] = np.concatenate([var[:, None], old_var[:, :-1]], axis=1)
+        broken = np.flatnonzero((stamp_ns - self.stamp_ns[slots]) != self.tick_ns)
+        for kept, newest in ((self.rates, rates_radps), (self.rate_var, var)):
+            old = kept[slots]
+            new = np.empty_like(old)
+            new[:, 0] = newest
+            new[:, 1:] = old[:, :-1]
+            kept[slots] = new
+        self.rates[slots[broken], 1:] = np.nan
         self.stamp_ns[slots] = stamp_ns
 
     def record_sway(self, slots: IntArray, fix: FixRates) -> None:
@@ -223,13 +237,15 @@ class GnssClockShift:
         u = np.concatenate([age, age[moved] + off, age[moved] + 0.5 * off]) / self.dt_s
         weights = _node_weights(u)
         nodes = self.rates[slots]
-        clean, holes = np.nan_to_num(nodes), np.isnan(nodes)
-        at_fix = _rates_at(weights[:k], clean, holes)
+        holes = np.isnan(nodes)  # a history not full yet, a tick without IMU
+        clean, gaps = (np.nan_to_num(nodes), holes) if holes.any() else (nodes, None)
+        at_fix = _rates_at(weights[:k], clean, gaps)
         was, mid, spread = at_fix.copy(), at_fix.copy(), np.zeros(k)
         if j:
             w_fix, w_was = weights[moved], weights[k : k + j]
-            was[moved] = _rates_at(w_was, clean[moved], holes[moved])
-            mid[moved] = _rates_at(weights[k + j :], clean[moved], holes[moved])
+            some = None if gaps is None else gaps[moved]
+            was[moved] = _rates_at(w_was, clean[moved], some)
+            mid[moved] = _rates_at(weights[k + j :], clean[moved], some)
             var = self.rate_var[slots[moved]]
             spread[moved] = np.einsum("kj,kj->k", (w_fix - w_was) ** 2, var)
         d_wx, d_wz = (at_fix - was).T

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from estimator.config import VehicleGeometry, WheeledRearDriveConfig
-from estimator.mdsf.clock_shift import GnssClockShift
+from estimator.mdsf.clock_shift import GnssClockShift, _node_weights
 from estimator.mdsf.frontend import FleetFrontEnd
 from estimator.mdsf.model import MdsfConfig
 from estimator.wheel_speed import WheelSpeedConfig
@@ -212,3 +212,21 @@ def test_without_offset_a_fix_is_not_moved() -> None:
     shift.record_sway(_SLOT, fix)
     moved, _ = shift.shift_mps(_SLOT, fix, np.array([0.0]))
     assert moved[0] == 0.0
+
+
+def _cubic(x: np.ndarray | float) -> np.ndarray | float:
+    return 0.3 - 0.8 * x + 0.25 * x**2 - 0.05 * x**3
+
+
+def test_node_weights_reproduce_a_cubic_and_carry_its_slope_ahead() -> None:
+    """Within the kept ticks (``u`` 0-4 ticks back, past the oldest: the oldest) the weights
+    give a cubic of the tick index exactly, whichever four nodes they use; ahead of the
+    newest (``u < 0``) the newest value plus ``u`` times the cubic's slope there (−0.8 per
+    tick back); each row sums to 1. All rows in one call, as the shift makes it."""
+    u = np.array([0.0, 0.3, 1.0, 1.7, 2.0, 2.6, 3.4, 4.0, 5.2, -0.4, -1.1])
+    w = _node_weights(u)
+    values = w @ _cubic(np.arange(5.0))
+    within = u >= 0.0
+    assert np.allclose(w.sum(axis=1), 1.0, rtol=0.0, atol=1e-12)
+    assert np.allclose(values[within], _cubic(np.minimum(u[within], 4.0)), rtol=0.0, atol=1e-12)
+    assert np.allclose(values[~within], 0.3 - 0.8 * u[~within], rtol=0.0, atol=1e-12)
