@@ -10,6 +10,9 @@ Modules, from the equations outwards:
 :mod:`~estimator.mdsf.calibration`
     Online calibration per vehicle (clock offsets, rolling radii, IMU mounting pitch), each
     with its std; :class:`MdsfCalibration` its state out and in.
+:mod:`~estimator.mdsf.clock_shift`
+    What the GNSS clock offset makes of a fix's speed and of the RTK distance (the body rates
+    at the instant a fix describes).
 :mod:`~estimator.mdsf.engine`
     :class:`MdsfEngine`: every vehicle's filter in slot arrays, stepped in batches.
 :mod:`~estimator.mdsf.fleet`

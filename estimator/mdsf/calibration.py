@@ -13,8 +13,8 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   low-pass commutes with the derivative, so it holds for the slow driving accelerations and
   the sway drops out). States ``[Ṽ, b, δ_g]``: the low-passed speed carried by the
   low-passed acceleration ``ã`` less a bias ``b`` (``Ṽ' = Ṽ + dt·(ã − b)``), observed as
-  ``ỹ = Ṽ − δ_g·(ã + L̃')``. Observable whenever ``ã`` changes; applied to the GNSS speed as
-  ``Vg + δ_g·a`` and, once converged, to the RTK distance as ``D + ∫δ_g·a·dt``.
+  ``ỹ = Ṽ − δ_g·(ã + L̃')``. Observable whenever ``ã`` changes; what it makes of a fix's
+  speed and, once converged, of the RTK distance is :mod:`estimator.mdsf.clock_shift`'s.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
   drive) the measured rim speed is ``r·W = V/s − δ_w·a_w`` with ``s`` the true over the
@@ -52,12 +52,12 @@ import numpy as np
 from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator._slots import grow_slot_array
 from estimator.config import CalibrationConfig, WheeledRearDriveConfig
+from estimator.mdsf.clock_shift import GnssClockShift
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 
 __all__ = [
     "CalibrationBank",
     "GnssClock",
-    "GnssClockShift",
     "MdsfCalibration",
     "MountYaw",
     "WheelCal",
@@ -132,235 +132,6 @@ class WheelCal(IntEnum):
     KAPPA_LEFT = 0
     KAPPA_RIGHT = 1
     OFFSET = 2
-
-
-_SHIFT_TICKS = 5
-"""Ticks of body rates :class:`GnssClockShift` keeps (the newest and four before it: a GNSS
-offset of up to ±0.1 s and a fix up to a tick before its tick stay inside)."""
-_AXLE_RATE_TAU_S = 0.3
-"""Time constant of the low-pass on the filter's speed rate at ``O`` [s]."""
-_LEVER_POWER_TAU_S = 5.0
-"""Time constant of the running powers of the shift's sway part and of its noise, whose
-ratio sets how much of that part is applied (:meth:`GnssClockShift.shift_mps`) [s]."""
-
-
-_SLOPE_AT_NEWEST = np.array([-11.0, 18.0, -9.0, 2.0]) / 6.0
-"""Slope of the cubic through the newest four ticks at the newest, per tick back (nodes
-newest first); it grows towards the past, so a tick ahead is minus it."""
-_BEND_AT_NEWEST = np.array([2.0, -5.0, 4.0, -1.0])
-"""Second difference of the cubic through the newest four ticks at the newest, per tick²."""
-
-
-def _cubic_weights(u: FloatArray) -> FloatArray:
-    """Lagrange weights (k, 4) of the nodes 0, 1, 2, 3 at ``u`` (k,) (in node spacings)."""
-    u1, u2, u3 = u - 1.0, u - 2.0, u - 3.0
-    return np.stack(
-        [-u1 * u2 * u3 / 6.0, u * u2 * u3 / 2.0, -u * u1 * u3 / 2.0, u * u1 * u2 / 6.0], axis=1
-    )
-
-
-def _node_weights(u: FloatArray) -> FloatArray:
-    """Weights (k, _SHIFT_TICKS) of the kept ticks (newest first) that give the rates ``u``
-    (k,) ticks before the newest: within the history the cubic through the four ticks
-    around ``u``; ahead of the newest (``u < 0``) the newest plus ``u`` times the cubic's
-    slope there (:data:`_SLOPE_AT_NEWEST`)."""
-    u = np.clip(u, None, _SHIFT_TICKS - 1.0)
-    first = np.clip(np.floor(u) - 1.0, 0.0, _SHIFT_TICKS - 4.0).astype(np.int64)
-    w = np.zeros((u.shape[0], _SHIFT_TICKS))
-    cols = first[:, None] + np.arange(4)[None, :]
-    np.put_along_axis(w, cols, _cubic_weights(np.maximum(u, 0.0) - first), axis=1)
-    ahead = np.minimum(u, 0.0)[:, None]
-    line = np.zeros_like(w)
-    line[:, :4] = ahead * _SLOPE_AT_NEWEST[None, :]
-    line[:, 0] += 1.0
-    return np.where(ahead < 0.0, line, w)
-
-
-class GnssClockShift:
-    """What a GNSS clock offset ``δ`` moves a fix's speed by, per vehicle slot.
-
-    A fix stamped ``t_s`` describes the antenna at ``t_s − δ``; the front end has moved it to
-    the tick as if it described ``t_s``. The antenna's forward speed is
-    ``V_a = V0 + x_a·ωz − (h0 + h1)·ωx`` (``O`` the rear axle's ground point, the antenna at
-    lateral ``x_a`` and height ``h0 + h1``), so the fix is short of the speed at ``t_s`` by
-
-        ``ΔV_a = δ·ā0 + g·ΔL``,
-        ``ΔL = x_a·(ωz(t_s) − ωz(t_s − δ)) − (h0 + h1)·(ωx(t_s) − ωx(t_s − δ))``
-
-    with ``ā0`` the rate of the filter's own speed at ``O`` (GNSS-anchored, low-passed: the
-    axle does not sway) and the body rates of the last ticks interpolated (cubic, on the
-    tick grid) at both instants: a swaying cab's mast moves the antenna by metres per second
-    within ``δ`` where the IMU's acceleration, at another height, says otherwise. ``ΔL``
-    carries the tick rates' noise through the interpolation, ``N = (h²+x_a²)·Σ_j Δw_j²·σ_j²``
-    (``Δw`` the two instants' node weights; ahead of the newest tick the slope's weights
-    amplify it ~3×): ``g = 1 − N̄/M̄`` (running means of ``N`` and ``ΔL²``, at least 0) applies
-    as much of ``ΔL`` as stands above its noise (a Wiener gain), so a slow sway on a tall
-    mast at a crawl is not corrected by noise larger than itself.
-    """
-
-    def __init__(self, config: MdsfConfig) -> None:
-        self.dt_s = config.dt_s
-        self.tick_ns = config.tick_ns
-        self.alpha = config.dt_s / (_AXLE_RATE_TAU_S + config.dt_s)
-        self.beta = config.dt_s / (_LEVER_POWER_TAU_S + config.dt_s)
-        cap = 0
-        self.rates = np.zeros((cap, _SHIFT_TICKS, 2))  # ωx, ωz of the newest ticks first
-        self.rate_var = np.zeros((cap, _SHIFT_TICKS))  # each tick's rate variance [rad²/s²]
-        self.stamp_ns = np.zeros(cap, dtype=np.int64)  # the newest tick's stamp
-        self.v0_prev = np.zeros(cap)  # the last emitted tick's speed at O [m/s] (NaN: none)
-        self.a0 = np.zeros(cap)  # its low-passed rate [m/s²]
-        self.lever_power = np.zeros(cap)  # running mean of ΔL² [m²/s²]
-        self.noise_power = np.zeros(cap)  # running mean of N [m²/s²]
-        self.up_m = np.zeros(cap)  # the antenna's height h0 + h1 [m]
-        self.lat_m = np.zeros(cap)  # the antenna's lateral offset x_a [m]
-        self.mast_m = np.zeros(cap)  # the antenna's height over the IMU h1 [m]
-        self.imu_up_m = np.zeros(cap)  # the IMU's height h0 [m]
-        self.imu_lat_m = np.zeros(cap)  # the IMU's lateral offset x_i [m]
-
-    def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
-        """Start ``slot`` with no history."""
-        if slot >= self.stamp_ns.shape[0]:
-            cap = max(2 * self.stamp_ns.shape[0], slot + 1)
-            for name, shape, fill in (
-                ("rates", (_SHIFT_TICKS, 2), np.nan),
-                ("rate_var", (_SHIFT_TICKS,), 0.0),
-                ("stamp_ns", (), np.int64(0)),
-                ("v0_prev", (), np.nan),
-                ("a0", (), 0.0),
-                ("lever_power", (), 0.0),
-                ("noise_power", (), 0.0),
-                ("up_m", (), 0.0),
-                ("lat_m", (), 0.0),
-                ("mast_m", (), 0.0),
-                ("imu_up_m", (), 0.0),
-                ("imu_lat_m", (), 0.0),
-            ):
-                grow_slot_array(self, name, cap, shape, fill)
-        geo = vehicle.geometry
-        self.rates[slot] = np.nan
-        self.rate_var[slot] = 0.0
-        self.stamp_ns[slot] = 0
-        self.v0_prev[slot] = np.nan
-        self.a0[slot] = 0.0
-        self.lever_power[slot] = 0.0
-        self.noise_power[slot] = 0.0
-        self.up_m[slot] = geo.h0_m + geo.h1_m
-        self.lat_m[slot] = geo.antenna_offset_m[0]
-        self.mast_m[slot] = geo.h1_m
-        self.imu_up_m[slot] = geo.h0_m
-        self.imu_lat_m[slot] = geo.imu_offset_m[0]
-
-    def record_rates(
-        self,
-        slots: IntArray,
-        stamp_ns: IntArray,
-        rates_radps: FloatArray,
-        rate_var: FloatArray | None = None,
-    ) -> None:
-        """A tick's body rates ``[ωx, ωz]`` (k, 2; NaN: no IMU) and their noise variance
-        (k,; None: noiseless) become the newest; a tick that does not follow the last one on
-        the grid starts the history anew."""
-        var = np.zeros(slots.shape[0]) if rate_var is None else np.nan_to_num(rate_var)
-        follows = (stamp_ns - self.stamp_ns[slots]) == self.tick_ns
-        old = np.where(follows[:, None, None], self.rates[slots], np.nan)
-        self.rates[slots] = np.concatenate([rates_radps[:, None, :], old[:, :-1]], axis=1)
-        old_var = self.rate_var[slots]
-        self.rate_var[slots] = np.concatenate([var[:, None], old_var[:, :-1]], axis=1)
-        self.stamp_ns[slots] = stamp_ns
-
-    def record_speed(self, slots: IntArray, v0_mps: FloatArray, emit: BoolArray) -> None:
-        """The filter's speed at ``O`` after a tick (k,): its rate, low-passed,
-        ``ā0 ← ā0 + α·((V0 − V0_prev)/dt − ā0)``; kept through ticks without a row."""
-        ok = emit & np.isfinite(v0_mps)
-        rate = (v0_mps - self.v0_prev[slots]) / self.dt_s
-        a0 = self.a0[slots]
-        step = ok & np.isfinite(rate)
-        self.a0[slots] = np.where(step, a0 + self.alpha * (rate - a0), a0)
-        self.v0_prev[slots] = np.where(ok, v0_mps, np.nan)
-
-    def rates_at(self, slots: IntArray, ago_s: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Body rates ``[ωx, ωz]`` (k, 2) ``ago_s`` (k,) before the newest tick (NaN where a
-        tick it needs has no rates) and the node weights that gave them (k, _SHIFT_TICKS):
-        :func:`_node_weights` (the cubic's error within the history neglected: ~5 % of a 2 Hz
-        sway's amplitude)."""
-        w = _node_weights(ago_s / self.dt_s)
-        nodes = self.rates[slots]
-        values = np.einsum("kj,kjc->kc", w, np.nan_to_num(nodes))
-        missing = ((w != 0.0)[:, :, None] & np.isnan(nodes)).any(axis=1)
-        return np.where(missing, np.nan, values), w
-
-    def _guess_var(self, slots: IntArray, ago_s: FloatArray) -> FloatArray:
-        """Variance (k, 2) of carrying the rates ``−ago_s`` ahead of the newest tick on the
-        cubic's slope: the curvature's share ``(|ω̈|·h²/2)²`` (0 within the history)."""
-        ahead = np.minimum(ago_s / self.dt_s, 0.0)[:, None]
-        bend = np.einsum("j,kjc->kc", _BEND_AT_NEWEST, self.rates[slots, :4])
-        return (0.5 * np.abs(bend) * ahead * ahead) ** 2
-
-    def shift_mps(
-        self, slots: IntArray, offset_s: FloatArray, offset_std_s: FloatArray, age_s: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """``ΔV_a`` (class docstring) of a fix ``age_s`` (k,) before the newest tick under the
-        offset ``offset_s`` (k,), and its error variance (k,): the offset's std
-        ``offset_std_s`` times the antenna's acceleration, the rates' guess after the newest
-        tick and what the gain leaves of ``ΔL`` and its noise. The rates' part 0 where they
-        are unknown."""
-        age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
-        at_fix, w_fix = self.rates_at(slots, age)
-        described, w_was = self.rates_at(slots, age + offset_s)
-        d_wx, d_wz = (at_fix - described).T
-        up, lat = self.up_m[slots], self.lat_m[slots]
-        lever = lat * d_wz - up * d_wx
-        spread = np.einsum("kj,kj->k", (w_fix - w_was) ** 2, self.rate_var[slots])
-        noise = (up * up + lat * lat) * spread
-        gain, lever_var = self._lever_gain(slots, lever, noise)
-        guess = self._guess_var(slots, age + offset_s)
-        # the antenna's acceleration at the newest tick (the slope is per tick back)
-        slope = np.einsum("j,kjc->kc", _SLOPE_AT_NEWEST, self.rates[slots, :4]) / -self.dt_s
-        accel = self.a0[slots] + lat * slope[:, 1] - up * slope[:, 0]
-        var = up * up * guess[:, 0] + lat * lat * guess[:, 1] + lever_var
-        var = var + (offset_std_s * accel) ** 2
-        known = np.isfinite(lever) & np.isfinite(var)
-        shift = offset_s * self.a0[slots] + np.where(known, gain * lever, 0.0)
-        far = (offset_std_s * self.a0[slots]) ** 2
-        return shift, np.where(known, var, far)
-
-    def _lever_gain(
-        self, slots: IntArray, lever: FloatArray, noise: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """Step the running powers of ``ΔL`` (k,) and of its noise variance ``N`` (k,) where
-        known; return the gain ``g = 1 − N̄/M̄`` (0 without power) and the variance of what it
-        leaves, ``(1 − g)²·S + g²·N`` with ``S = M̄ − N̄`` the sway's own power, (k,)."""
-        known = np.isfinite(lever) & np.isfinite(noise)
-        m, n = self.lever_power[slots], self.noise_power[slots]
-        m = np.where(known, m + self.beta * (np.nan_to_num(lever) ** 2 - m), m)
-        n = np.where(known, n + self.beta * (np.nan_to_num(noise) - n), n)
-        self.lever_power[slots], self.noise_power[slots] = m, n
-        with np.errstate(invalid="ignore", divide="ignore"):
-            gain = np.where(m > 0.0, np.clip(1.0 - n / m, 0.0, 1.0), 0.0)
-        signal = np.maximum(m - n, 0.0)
-        return gain, (1.0 - gain) ** 2 * signal + gain * gain * noise
-
-    def imu_speed_step_mps(self, slots: IntArray) -> FloatArray:
-        """The IMU point's speed change over the newest tick (k,),
-        ``ā0·dt + x_i·Δωz − h0·Δωx``: the filter's GNSS-anchored rate at ``O`` and the body
-        rates' change between the last two ticks (0 where unknown). Summed over a chain of
-        RTK positions it is ``V1(t) − V1(t0)`` without the accelerometer's bias and gravity
-        leak, which ``∫a1·dt`` would carry into the distance's clock correction."""
-        d_wx, d_wz = (self.rates[slots, 0] - self.rates[slots, 1]).T
-        lever = self.imu_lat_m[slots] * d_wz - self.imu_up_m[slots] * d_wx
-        return self.a0[slots] * self.dt_s + np.where(np.isfinite(lever), lever, 0.0)
-
-    def mast_shift_m(self, slots: IntArray, offset_s: FloatArray, age_s: FloatArray) -> FloatArray:
-        """What the offset makes of the RTK distance's lever arm (k,): the front end moves a
-        fix's antenna position to the IMU by ``h1·θ`` with the pitch at the stamp ``t_s``,
-        where the position is the antenna's at ``t_s − δ``; the difference is
-        ``−h1·∫ωx`` over ``[t_s − δ, t_s]`` (Simpson's rule on the rates as in
-        :meth:`rates_at`; 0 where they are unknown)."""
-        age = np.clip(np.nan_to_num(age_s, nan=0.0, posinf=0.0), 0.0, self.dt_s)
-        ends = self.rates_at(slots, age)[0][:, 0] + self.rates_at(slots, age + offset_s)[0][:, 0]
-        mid = self.rates_at(slots, age + 0.5 * offset_s)[0][:, 0]
-        turned = offset_s * (ends + 4.0 * mid) / 6.0
-        return np.where(np.isfinite(turned), -self.mast_m[slots] * turned, 0.0)
 
 
 @dataclass(slots=True)
@@ -497,7 +268,7 @@ class CalibrationBank:
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
         """Start ``slot``'s calibration from the config's priors."""
         self._grow(slot)
-        self.shift.add(slot, vehicle)
+        self.shift.add(slot)
         c: CalibrationConfig = vehicle.calibration
         geo = vehicle.geometry
         self.free[slot] = (not geo.wheel_driven_left, not geo.wheel_driven_right)

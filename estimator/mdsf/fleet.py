@@ -33,6 +33,7 @@ from estimator.base import Pushed
 from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
 from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
+from estimator.mdsf.clock_shift import FixRates
 from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput
 from estimator.mdsf.frontend import FleetFrontEnd, FleetTicks, TickInputs
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig, MdsfMode, MdsfObs
@@ -490,7 +491,8 @@ class MdsfFleet:
             nan = {name: np.full(slots.shape[0], np.nan) for name in _CAL_FIELDS}
             ones, no = np.ones(rim.shape), np.zeros(rim.shape, bool)
             return so, _Calibrated(rim, rim_std, ones, no, nan)
-        fixed = self._apply_calibration(slots, tin)
+        fix = self._record_inputs(slots, tin)
+        fixed = self._apply_calibration(slots, tin, fix)
         scale, wheel_offset_s = bank.wheel_correction(slots)
         rim_c = scale * (rim + wheel_offset_s[:, None] * self._wheel_accel_mps2[slots])
         rim_std_c = scale * rim_std
@@ -519,16 +521,38 @@ class MdsfFleet:
         self._wheel_accel_mps2[slots] = np.where(step, acc + alpha * (rate - acc), acc)
         self._wheel_prev_mps[slots] = np.where(ok, ground, np.nan)
 
-    def _apply_calibration(self, slots: IntArray, tin: TickInputs) -> TickInputs:
-        """Tick inputs with the calibrations applied: the mounting pitch's gravity share
-        ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force and the
-        mounting yaw's lateral share ``γ·f_x`` put back, the GNSS speed moved by what its
-        clock offset makes of the antenna's speed (the filter's own speed rate and the body
-        rates at the instant the fix describes, :class:`~estimator.mdsf.calibration.
-        GnssClockShift`; the offset's std and the rates' guess into its variance) and, once
-        the offset has converged, the RTK distance by ``δ_g·(V1 − V1(t0))`` since its chain
-        began (the IMU point's speed from the filter's, ``GnssClockShift.imu_speed_step_mps``;
-        ``docs/perf/estimator.md``)."""
+    def _record_inputs(self, slots: IntArray, tin: TickInputs) -> FixRates:
+        """The state a round's inputs move before the filter's step: the tick's body rates
+        become the GNSS clock shift's newest, the running powers of its sway part step and,
+        once the offset has converged, the RTK distance's clock share grows by
+        ``δ_g·ΔV1`` (restarted with its chain). Returns the rates at the instants the
+        round's fixes describe (:meth:`GnssClockShift.fix_rates`)."""
+        bank = self.calibration_bank
+        shift = bank.shift
+        rates = tin.z[:, (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z)]
+        shift.record_rates(slots, tin.stamp_ns, rates, tin.gyro_var)
+        fix = shift.fix_rates(slots, bank.gnss_offset_s(slots), tin.fix_age_s, self.front)
+        shift.record_sway(slots, fix)
+        # the distance's error δ·V as its growth since the chain began, Σδ·ΔV1, once δ has
+        # converged: the chain's origin is arbitrary, an estimate still moving would leave its
+        # error in the distance, and a step of it must not make the distance jump; ΔV1 from
+        # the filter's GNSS-anchored speed (∫a1·dt carries the accelerometer's bias)
+        restart = tin.dist_ok & tin.dist_restart
+        rate = np.where(bank.gnss_offset_converged(slots), fix.offset_s, 0.0)
+        moved = rate * shift.imu_speed_step_mps(slots, self.front)
+        self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
+        return fix
+
+    def _apply_calibration(self, slots: IntArray, tin: TickInputs, fix: FixRates) -> TickInputs:
+        """Tick inputs with the calibrations applied (no state changes): the mounting pitch's
+        gravity share ``g·(sin(θ + β) − sin θ)`` taken off the forward acceleration and force
+        and the mounting yaw's lateral share ``γ·f_x`` put back, the GNSS speed moved by what
+        its clock offset makes of the antenna's speed (the filter's own speed rate and the
+        body rates ``fix`` at the instant the fix describes,
+        :class:`~estimator.mdsf.clock_shift.GnssClockShift`; the offset's std and the rates'
+        guess into its variance) and, once the offset has converged, the RTK distance by its
+        clock share (:meth:`_record_inputs`) and the mast's turn over the offset
+        (``docs/perf/estimator.md``)."""
         bank = self.calibration_bank
         z = tin.z.copy()
         theta = np.nan_to_num(tin.attitude[:, 1])
@@ -536,22 +560,10 @@ class MdsfFleet:
         if tin.force_lat is not None:
             tilt = tilt - bank.mount_yaw_rad(slots) * np.nan_to_num(tin.force_lat)
         z[:, MdsfObs.A1] -= tilt
-        offset_s = bank.gnss_offset_s(slots)
-        rates = z[:, (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z)]
-        bank.shift.record_rates(slots, tin.stamp_ns, rates, tin.gyro_var)
-        shift, shift_var = bank.shift.shift_mps(
-            slots, offset_s, bank.gnss_offset_std_s(slots), tin.fix_age_s
-        )
+        shift, shift_var = bank.shift.shift_mps(slots, fix, bank.gnss_offset_std_s(slots))
         z[:, MdsfObs.VG] += shift
-        # the distance's error δ·V as its growth since the chain began, Σδ·ΔV1, once δ has
-        # converged: the chain's origin is arbitrary, an estimate still moving would leave its
-        # error in the distance, and a step of it must not make the distance jump; ΔV1 from
-        # the filter's GNSS-anchored speed (∫a1·dt carries the accelerometer's bias)
-        restart = tin.dist_ok & tin.dist_restart
-        rate = np.where(bank.gnss_offset_converged(slots), offset_s, 0.0)
-        moved = rate * bank.shift.imu_speed_step_mps(slots)
-        self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
-        mast = bank.shift.mast_shift_m(slots, rate, tin.fix_age_s)
+        converged = bank.gnss_offset_converged(slots)
+        mast = bank.shift.mast_shift_m(slots, fix, converged, self.front)
         dist_m = tin.dist_m + self._dist_shift_m[slots] + mast
         return dataclasses.replace(
             tin,

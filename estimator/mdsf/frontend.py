@@ -556,6 +556,7 @@ class FleetFrontEnd:
         grow("h1_m", (), 0.0)
         grow("ant_x_m", (), 0.0)  # antenna's lateral offset from the IMU, x_a − x_i
         grow("ant_lat_m", (), 0.0)  # antenna's lateral offset from O, x_a
+        grow("imu_lat_m", (), 0.0)  # IMU's lateral offset from O, x_i
         grow("pos_var_cfg", (), 0.0)
         self.trackers.extend([()] * (cap - old))
         self.direct.extend([None] * (cap - old))
@@ -617,6 +618,7 @@ class FleetFrontEnd:
     h1_m: FloatArray
     ant_x_m: FloatArray
     ant_lat_m: FloatArray
+    imu_lat_m: FloatArray
     pos_var_cfg: FloatArray
 
     def add(self, slot: int, vehicle: WheeledRearDriveConfig) -> None:
@@ -684,6 +686,7 @@ class FleetFrontEnd:
         self.h1_m[slot] = geo.h1_m
         self.ant_x_m[slot] = geo.antenna_offset_m[0] - geo.imu_offset_m[0]
         self.ant_lat_m[slot] = geo.antenna_offset_m[0]
+        self.imu_lat_m[slot] = geo.imu_offset_m[0]
         self.pos_var_cfg[slot] = n.gnss_pos_std_m**2
 
     def align_ticks(self, slot: int, stamp_ns: int) -> None:

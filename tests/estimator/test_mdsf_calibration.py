@@ -19,7 +19,7 @@ from estimator.config import (
     vehicle_config_from_dict,
 )
 from estimator.mdsf import MdsfFleet
-from estimator.mdsf.calibration import CalibrationBank, GnssClockShift, MdsfCalibration
+from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 from estimator.sim import simulate, truth_at
 from estimator.types import EstimateFlag
@@ -416,54 +416,6 @@ def test_gnss_clock_learnt_without_sway(offset_ms: float) -> None:
     assert cal.gnss_clock_offset_std_s < 0.010
 
 
-def _shift_with_sway(offset_s: float, age_s: float) -> tuple[float, float, float]:
-    """:class:`GnssClockShift` fed 1 Hz pitch sway ``ωx = 0.4·sin(2π·t)`` rad/s, a yaw rate
-    ``ωz = 0.1·sin(0.5·t)`` and a speed at ``O`` rising 0.5 m/s² on ticks to 3 s, the antenna
-    3.5 m up and 0.4 m right: its shift and variance for a fix ``age_s`` before the last
-    tick under ``offset_s``, and the antenna's true speed change over that offset."""
-    geo = VehicleGeometry(h0_m=1.0, h1_m=2.5, antenna_offset_m=(0.4, 0.0))
-    shift = GnssClockShift(MdsfConfig())
-    shift.add(0, WheeledRearDriveConfig(geometry=geo))
-
-    def wx(t: float) -> float:
-        return 0.4 * math.sin(2.0 * math.pi * t)
-
-    def wz(t: float) -> float:
-        return 0.1 * math.sin(0.5 * t)
-
-    for k in range(31):
-        t = k * _DT
-        shift.record_rates(
-            _SLOT, np.array([_START_NS + k * 100_000_000]), np.array([[wx(t), wz(t)]])
-        )
-        shift.record_speed(_SLOT, np.array([1.0 + 0.5 * t]), np.array([True]))
-    got, var = shift.shift_mps(_SLOT, np.array([offset_s]), np.array([0.0]), np.array([age_s]))
-    t_fix, t_was = 3.0 - age_s, 3.0 - age_s - offset_s
-    true = 0.5 * offset_s + 0.4 * (wz(t_fix) - wz(t_was)) - 3.5 * (wx(t_fix) - wx(t_was))
-    return float(got[0]), float(var[0]), true
-
-
-@pytest.mark.parametrize(("offset_s", "age_s"), [(0.07, 0.03), (0.09, 0.08), (0.03, 0.0)])
-def test_gnss_clock_shift_is_the_antennas_speed_change(offset_s: float, age_s: float) -> None:
-    """A fix describing an instant within the history: the shift is the antenna's speed
-    change over the offset (sway ``(h0 + h1)·Δωx`` of up to 2.5 m/s here, yaw and the
-    speed's rate) to 2 cm/s; the tick-mean acceleration's ``δ·a`` misses the mast's sway."""
-    got, var, true = _shift_with_sway(offset_s, age_s)
-    assert abs(true) > 0.2
-    assert abs(got - true) < 0.02
-    assert var == 0.0
-
-
-@pytest.mark.parametrize(("offset_s", "age_s"), [(-0.06, 0.0), (-0.09, 0.02)])
-def test_gnss_clock_shift_ahead_of_the_last_tick(offset_s: float, age_s: float) -> None:
-    """A GNSS clock behind the IMU's: the fix describes an instant after the last tick; the
-    rates are carried on by their slope, the error within 3σ of the variance returned."""
-    got, var, true = _shift_with_sway(offset_s, age_s)
-    assert var > 0.0
-    assert abs(got - true) < 3.0 * math.sqrt(var)
-    assert abs(got - true) < 0.25 * abs(true)
-
-
 @pytest.mark.parametrize("offset_ms", [70.0, -50.0])
 def test_a_known_gnss_clock_offset_costs_no_slip_under_sway(offset_ms: float) -> None:
     """A cab swaying 1.5 Hz ±3° pitch, ±2° roll on a 2.6 m mast, the GNSS clock
@@ -477,81 +429,6 @@ def test_a_known_gnss_clock_offset_costs_no_slip_under_sway(offset_ms: float) ->
     )
     none, _, sim0 = _drive(False, gnss_clock_s=0.0, geometry=geometry, **_SWAY)
     assert _slip_rms_pp(known, sim) < _slip_rms_pp(none, sim0) + 0.3
-
-
-def _slow_sway_shifts(gyro_std_radps: float, offset_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """:class:`GnssClockShift` over 60 s of a 0.35 Hz pitch sway ``ωx = 0.1·sin(2π·0.35·t)``
-    rad/s on a 4.5 m antenna (1.6 m cab, 2.9 m mast) at a steady crawl, each tick's rates
-    with white noise of ``gyro_std_radps`` (seeded) and that variance given: per tick the
-    shift of a fix 30 ms before its tick and the antenna's true speed change over the offset
-    (the last 40 s)."""
-    geo = VehicleGeometry(h0_m=1.6, h1_m=2.9)
-    shift = GnssClockShift(MdsfConfig())
-    shift.add(0, WheeledRearDriveConfig(geometry=geo))
-    rng = np.random.default_rng(5)
-
-    def wx(t: float) -> float:
-        return 0.1 * math.sin(2.0 * math.pi * 0.35 * t)
-
-    got, true = [], []
-    for k in range(600):
-        t = k * _DT
-        rate = np.array([[wx(t) + rng.normal(0.0, gyro_std_radps), 0.0]])
-        shift.record_rates(
-            _SLOT, np.array([_START_NS + k * 100_000_000]), rate, np.array([gyro_std_radps**2])
-        )
-        shift.record_speed(_SLOT, np.array([0.4]), np.array([True]))
-        value, _ = shift.shift_mps(_SLOT, np.array([offset_s]), np.array([0.0]), np.array([0.03]))
-        got.append(float(value[0]))
-        true.append(-4.5 * (wx(t - 0.03) - wx(t - 0.03 - offset_s)))
-    return np.array(got[200:]), np.array(true[200:])
-
-
-@pytest.mark.parametrize("offset_s", [-0.0885, 0.07])
-def test_gnss_clock_shift_under_noisy_rates_beats_no_shift(offset_s: float) -> None:
-    """A 0.35 Hz sway on a 4.5 m antenna moves the fix by ~4 cm/s RMS over a 70-90 ms
-    offset; the tick rates' noise (6 mrad/s), carried through the cubic (and ~3× by its
-    slope ahead of the newest tick) and times 4.5 m, was larger than that (held-out 1004
-    drive 1 read its fixes worse moved than not). Applied by the Wiener gain, the shift's
-    error is below the uncorrected one (the whole change; 0.050 against 0.062 m/s ahead of
-    the newest tick, where the whole shift read 0.078), and without noise it is whole."""
-    got, true = _slow_sway_shifts(0.006, offset_s)
-    assert np.sqrt(np.mean((got - true) ** 2)) < 0.9 * np.sqrt(np.mean(true**2))
-    clean, true = _slow_sway_shifts(0.0, offset_s)
-    assert np.sqrt(np.mean((clean - true) ** 2)) < 0.1 * np.sqrt(np.mean(true**2))
-
-
-def test_the_distance_clock_correction_follows_the_filters_speed() -> None:
-    """The converged offset moves the RTK distance by ``δ·(V1(t) − V1(t0))`` over its chain;
-    summed per tick, ``imu_speed_step_mps`` is that change of the IMU point's speed from the
-    filter's speed at ``O`` (rising 0.4 → 0.8 m/s over 20 s here) and the IMU's sway
-    ``−h0·Δωx`` (0.35 Hz, 1.6 m), with no accelerometer in it: ``δ·∫a1·dt`` carried the
-    accelerometer's bias and gravity leak for as long as a chain lasts (held-out 1004 drive
-    1, a crawl with a converged −94 ms: 2.46 → 3.66 pp; 2.50 from the filter's speed)."""
-    geo = VehicleGeometry(h0_m=1.6, h1_m=2.9, imu_offset_m=(0.2, 0.0))
-    shift = GnssClockShift(MdsfConfig())
-    shift.add(0, WheeledRearDriveConfig(geometry=geo))
-
-    def wx(t: float) -> float:
-        return 0.1 * math.sin(2.0 * math.pi * 0.35 * t)
-
-    def wz(t: float) -> float:
-        return 0.05 * math.sin(0.3 * t)
-
-    def v1(t: float) -> float:
-        return 0.4 + 0.02 * t + 0.2 * wz(t) - 1.6 * wx(t)
-
-    total = 0.0
-    for k in range(201):
-        t = k * _DT
-        shift.record_rates(
-            _SLOT, np.array([_START_NS + k * 100_000_000]), np.array([[wx(t), wz(t)]])
-        )
-        if k >= 5:
-            total += float(shift.imu_speed_step_mps(_SLOT)[0])
-        shift.record_speed(_SLOT, np.array([0.4 + 0.02 * t]), np.array([True]))
-    # from the tick before the first summed one; the low-pass of the rate (0.3 s) lags 2.5 mm/s
-    assert abs(total - (v1(20.0) - v1(0.4))) < 0.004
 
 
 def test_an_on_time_gnss_clock_moves_no_fix() -> None:
@@ -574,3 +451,40 @@ def test_an_on_time_gnss_clock_moves_no_fix() -> None:
     _drive(False, watch=watch, speed_min_mps=0.2, speed_max_mps=0.8, **_SWAY)
     applied = np.concatenate(shifts)
     assert np.sqrt(np.mean(applied**2)) < 0.005
+
+
+def _arrays(*owners: object) -> dict[str, np.ndarray]:
+    """Copies of every array attribute of ``owners`` (their slot state)."""
+    return {
+        f"{i}.{name}": value.copy()
+        for i, owner in enumerate(owners)
+        for name, value in vars(owner).items()
+        if isinstance(value, np.ndarray)
+    }
+
+
+def test_applying_the_calibration_changes_no_state() -> None:
+    """A known GNSS clock offset (70 ms) on a swaying cab, so the fixes are moved and the
+    distance carries its clock share: applying the calibration twice to a round's inputs
+    gives the same inputs and leaves the fleet's and the calibration's state as it was (the
+    tick's rates, sway powers and distance share are recorded before it)."""
+    moved: list[float] = []
+
+    def watch(fleet: MdsfFleet) -> None:
+        inner = fleet._apply_calibration
+        bank = fleet.calibration_bank
+
+        def twice(*args: Any) -> Any:
+            before = _arrays(fleet, bank, bank.shift)
+            first, again = inner(*args), inner(*args)
+            after = _arrays(fleet, bank, bank.shift)
+            assert all(np.array_equal(before[k], after[k], equal_nan=True) for k in before)
+            for name in ("z", "gnss_var", "dist_m", "force_fwd"):
+                assert np.array_equal(getattr(first, name), getattr(again, name), equal_nan=True)
+            moved.append(float(np.nanmax(np.abs(first.z - args[1].z))))
+            return first
+
+        fleet._apply_calibration = twice  # type: ignore[method-assign]
+
+    _drive(False, watch=watch, gnss_clock_s=0.07, geometry={"h1_m": 2.6}, **_SWAY)
+    assert max(moved) > 0.01
