@@ -424,22 +424,7 @@ class MdsfFleet:
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
             rim_cov,
         )
-        # starting / stopping faster than the wheel fit follows: no slip value (SETTLING)
-        fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
-        span = np.where(
-            fitted[:, None],
-            fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
-            0.0,
-        )
-        settling = sp.valid & (
-            unsettled(
-                ground, res["accel"][:, None], span, self._settle_max_change[row_slot][:, None]
-            )
-            | (
-                ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span)
-                & (self._settle_max_change[row_slot] < _SETTLE_OFF)[:, None]
-            )
-        )
+        settling = sp.valid & self._settling(flat, row_slot, ground, res["accel"], still_ns)
         # product mode: a slip whose std is beyond the bound (or unknown) is no reading, not
         # valid (paper mode keeps the source's rule: any slip above the standstill speed)
         certain = (sp.std_pct <= self.config.valid_slip_std_max_pct) | (not self._product)
@@ -448,16 +433,7 @@ class MdsfFleet:
         slip_out = np.where(valid, sp.slip_pct, np.nan)
         slip_std_out = np.where(valid, sp.std_pct, np.nan)
         flags = (
-            flags
-            | (
-                np.where(valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
-                | np.where(valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
-                | np.where(sp.standstill.all(axis=1), int(_F.STANDSTILL), 0)
-                | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
-                | np.where(carried, int(_F.DEAD_RECKONED), 0)
-                | np.where((valid & uncal).any(axis=1), int(_F.UNCALIBRATED), 0)
-            ).astype(np.int32)
-            | flat.wheel_flags
+            flags | _slip_flags(valid, sp.standstill, settling, carried, uncal) | flat.wheel_flags
         )
         out = _estimate_rows(flat, res, rim, radius, slip_out, slip_std_out, enu, heading)
         out["flags"] = flags
@@ -473,6 +449,32 @@ class MdsfFleet:
             )
             if b > a
         ]
+
+    def _settling(
+        self,
+        flat: TickInputs,
+        row_slot: IntArray,
+        ground: FloatArray,
+        accel: FloatArray,
+        still_ns: IntArray,
+    ) -> BoolArray:
+        """Rows ``(m, 2)`` starting or stopping faster than the wheel fit follows (``SETTLING``:
+        no slip value): the ground speed changing by more than the settle bound over the fit's
+        span, or a start from standstill less than ``_START_SPANS`` spans ago."""
+        fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
+        span = np.where(
+            fitted[:, None],
+            fit_span_s(ground, self._tooth_arc_m[row_slot], self.wheel.min_edges),
+            0.0,
+        )
+        max_change = self._settle_max_change[row_slot]
+        starting = ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span) & (
+            max_change < _SETTLE_OFF
+        )[:, None]
+        settling: BoolArray = (
+            unsettled(ground, accel[:, None], span, max_change[:, None]) | starting
+        )
+        return settling
 
     def _calibrated_step(
         self,
@@ -662,3 +664,22 @@ class MdsfFleet:
                     enu, heading, copied = enu.copy(), heading.copy(), True
                 enu[fi], heading[fi], carried[fi] = e, h, k
         return enu, heading, carried
+
+
+def _slip_flags(
+    valid: BoolArray,
+    standstill: BoolArray,
+    settling: BoolArray,
+    carried: BoolArray,
+    uncalibrated: BoolArray,
+) -> IntArray:
+    """The slip's flags per row ``(m,)`` from per-wheel ``(m, 2)`` masks (``carried``
+    ``(m,)``): valid per side, standstill on both, settling or uncalibrated on either."""
+    return (
+        np.where(valid[:, 0], int(_F.SLIP_LEFT_VALID), 0)
+        | np.where(valid[:, 1], int(_F.SLIP_RIGHT_VALID), 0)
+        | np.where(standstill.all(axis=1), int(_F.STANDSTILL), 0)
+        | np.where(settling.any(axis=1), int(_F.SETTLING), 0)
+        | np.where(carried, int(_F.DEAD_RECKONED), 0)
+        | np.where((valid & uncalibrated).any(axis=1), int(_F.UNCALIBRATED), 0)
+    ).astype(np.int32)
