@@ -254,6 +254,33 @@ def pitch_fix_update(
     return theta, var, bias_radps.copy(), np.where(has, stamp_ns, fix_ns), known | has
 
 
+def _standstill_bias_update(
+    state: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
+    known: BoolArray,
+    rate_radps: FloatArray,
+    rate_var: FloatArray,
+    gate_chi2: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The standstill update of :func:`pitch_kf_update`: standing, the gyro reads its bias,
+    ``z = b + noise`` (``H = [0, 1]``), chi-square gated; ``state`` is ``(θ, b, P_θθ, P_θb,
+    P_bb)``, each ``(k,)``, returned updated where ``rate_radps`` is finite."""
+    theta, bias, ptt, ptb, pbb = state
+    with np.errstate(invalid="ignore"):
+        s = pbb + rate_var
+        yb = rate_radps - bias
+        use = known & np.isfinite(rate_radps) & (yb * yb <= gate_chi2 * s)
+    s = np.where(use, s, 1.0)
+    yb = np.where(use, yb, 0.0)
+    kt, kb = ptb / s, pbb / s
+    return (
+        theta + np.where(use, kt * yb, 0.0),
+        bias + np.where(use, kb * yb, 0.0),
+        np.where(use, ptt - kt * ptb, ptt),
+        np.where(use, ptb - kt * pbb, ptb),
+        np.where(use, pbb - kb * pbb, pbb),
+    )
+
+
 def pitch_kf_update(
     theta_rad: FloatArray,
     cov: FloatArray,
@@ -320,22 +347,9 @@ def pitch_kf_update(
     ptb = ptb - gap * pbb - qb * gap * gap / 2
     pbb = pbb + qb * gap
     theta, bias = theta_rad.copy(), bias_radps.copy()
-    # standstill: the gyro reads its bias, z = b + noise (H = [0, 1])
     if still_rate_radps is not None and still_rate_var is not None:
-        zb = still_rate_radps
-        with np.errstate(invalid="ignore"):
-            s = pbb + still_rate_var
-            yb = zb - bias
-            use = known & np.isfinite(zb) & (yb * yb <= config.gate_chi2 * s)
-        s = np.where(use, s, 1.0)
-        yb = np.where(use, yb, 0.0)
-        kt, kb = ptb / s, pbb / s
-        theta = theta + np.where(use, kt * yb, 0.0)
-        bias = bias + np.where(use, kb * yb, 0.0)
-        ptt, ptb, pbb = (
-            np.where(use, ptt - kt * ptb, ptt),
-            np.where(use, ptb - kt * pbb, ptb),
-            np.where(use, pbb - kb * pbb, pbb),
+        theta, bias, ptt, ptb, pbb = _standstill_bias_update(
+            (theta, bias, ptt, ptb, pbb), known, still_rate_radps, still_rate_var, config.gate_chi2
         )
     # the pitch: z = θ + noise (H = [1, 0])
     has = np.isfinite(pitch_gnss_rad)
