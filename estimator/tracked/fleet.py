@@ -84,6 +84,7 @@ def _stack_filters(filters: list[Filter]) -> Filter:
         np.concatenate([f.since_gnss_m for f in filters]),
         np.concatenate([f.odometer_gain for f in filters]),
         np.concatenate([f.fix_learnt_cov for f in filters]),
+        np.concatenate([f.gyro_standing for f in filters]),
     )
 
 
@@ -346,6 +347,7 @@ class TrackedFleet(_Base):
                 f.since_gnss_m[i : i + 1],
                 f.odometer_gain[i : i + 1],
                 f.fix_learnt_cov[i : i + 1],
+                f.gyro_standing[i : i + 1],
             )
         _count(slots, got)
         return rows, got.onset

@@ -79,7 +79,11 @@ class TrackedEstimatorConfig:
     sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.
 
     The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
-    (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`).
+    (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`),
+    whose figures are typical values. A unit noisier than them is measured while standing
+    (product, :mod:`~estimator.tracked.gyro_noise`): its ARW² over the data sheet's, blended
+    with ``gyro_noise_prior_pairs`` standing tick pairs at the data sheet's and at most
+    ``gyro_noise_ratio_max``, scales the heading's and the bias's process noise.
 
     Fixed-lag output (product): rows are held one tick, and up to ``report_lag_ticks``
     (0.4 s at the default) while a change is under way, each keeping its own stamp
@@ -155,6 +159,8 @@ class TrackedEstimatorConfig:
     ground_patch_m: float = 150.0
     initial_side_slip_std: float = 0.5
     side_slip_walk: float = 1e-3
+    gyro_noise_prior_pairs: float = 20.0
+    gyro_noise_ratio_max: float = 9.0
     report_lag_ticks: int = 4
     onset_yaw_accel_radps2: float = 0.1
 

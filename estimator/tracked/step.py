@@ -15,6 +15,7 @@ import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.tracked.filter import kalman_update, predict, yaw_rate
+from estimator.tracked.gyro_noise import initial_stats, learn_standing, noise_ratio
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.odometer import (
@@ -53,7 +54,8 @@ class Filter:
     distance driven and ``odometer_gain (k, m)`` how far the odometer's learnt states
     (``_BESIDE_ONLY``, ``m`` = 7) have moved the hull per unit of their error at the fix,
     whose covariance then was ``fix_learnt_cov (k, m, m)``
-    (:func:`_dead_reckoning_noise`)."""
+    (:func:`_dead_reckoning_noise`); ``gyro_standing (k, 3)`` the gyro's noise measured
+    while standing (:mod:`~estimator.tracked.gyro_noise`)."""
 
     x: FloatArray
     P: FloatArray
@@ -63,6 +65,7 @@ class Filter:
     since_gnss_m: FloatArray
     odometer_gain: FloatArray
     fix_learnt_cov: FloatArray
+    gyro_standing: FloatArray
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,21 +133,25 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
         np.zeros(1),
         np.zeros((1, m)),
         np.zeros((1, m, m)),
+        initial_stats(1),
     )
 
 
-def _q_diag(cfg: TrackedEstimatorConfig, p: VehicleParams, lateral_mps: FloatArray) -> FloatArray:
+def _q_diag(
+    cfg: TrackedEstimatorConfig, p: VehicleParams, lateral_mps: FloatArray, gyro_ratio: FloatArray
+) -> FloatArray:
     """Process noise per tick, ``(k, N_STATES)``; the heading's and the gyro bias's from each
-    vehicle's gyro (``ARW²·Δt``, ``walk²·Δt``, :mod:`estimator.gyro`)."""
+    vehicle's gyro (``r·ARW²·Δt``, ``r·walk²·Δt``, :mod:`estimator.gyro`; ``gyro_ratio``
+    ``r (k,)`` the unit's noise over its data sheet's, :mod:`~estimator.tracked.gyro_noise`)."""
     dt = cfg.tick_s
     k = p.gauge_m.shape[0]
     learn = 1.0 if cfg.learns else 0.0
     q = np.zeros((k, N_STATES))
     pos = cfg.position_walk_mps**2 + (cfg.lateral_model_error * lateral_mps) ** 2
     q[:, S.EAST] = q[:, S.NORTH] = pos * dt
-    q[:, S.HEADING] = p.gyro_arw_rad_rt_s**2 * dt
+    q[:, S.HEADING] = gyro_ratio * p.gyro_arw_rad_rt_s**2 * dt
     q[:, S.SPEED] = cfg.speed_walk_mps2**2 * dt
-    q[:, S.GYRO_BIAS] = learn * p.gyro_bias_walk_radps_rt_s**2 * dt
+    q[:, S.GYRO_BIAS] = learn * gyro_ratio * p.gyro_bias_walk_radps_rt_s**2 * dt
     q[:, S.GYRO_SCALE] = learn * cfg.gyro_scale_walk**2 * dt
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
     q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
@@ -512,9 +519,9 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     w = yaw_rate(f.x, gyro)
     state, conf = recognise(f, inp, p, cfg, w)
     lateral, by_gain = _lateral(f, state, w, p, cfg)
-    f.x, f.P = predict(
-        f.x, f.P, gyro, accel, lateral, cfg.tick_s, _q_diag(cfg, p, lateral), by_gain
-    )
+    ratio = noise_ratio(f.gyro_standing, p, cfg) if cfg.learns else np.ones_like(w)
+    q = _q_diag(cfg, p, lateral, ratio)
+    f.x, f.P = predict(f.x, f.P, gyro, accel, lateral, cfg.tick_s, q, by_gain)
     _ground_patch(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
@@ -538,6 +545,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         )
         onset |= odometer_start(inp, cfg)  # the held tick before may have started already
         _fuse_standstill(f, inp, cfg, still)
+        f.gyro_standing = learn_standing(f.gyro_standing, inp.gyro_radps, still)
     _since_fix(f, used | fresh, cfg)
     _dead_reckoning_noise(f, p, cfg, gain)
     track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w, factor_var)

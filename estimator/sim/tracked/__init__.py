@@ -11,7 +11,8 @@ Named scenarios (:func:`estimator.sim.tracked.route.named_route`): ``route_firm`
 ways, low-gear straights, pivots, a fast pivot and stops, with a 4-minute GNSS outage
 covering more than 1 km. ``random``: a route drawn from
 :data:`~estimator.sim.tracked.route.RANDOM_RANGES` (ground, manoeuvres, outage, gauge and
-contact length, the gyro's grade) by the seed. Physics in
+contact length, the gyro's grade, whether the config names the gyro's data sheet or the unit's
+own figures) by the seed. Physics in
 :mod:`~estimator.sim.tracked.physics`, sensors in :mod:`~estimator.sim.tracked.sensors`.
 """
 
@@ -27,6 +28,7 @@ from estimator.config import GyroConfig, TrackedConfig, TrackedGeometry
 from estimator.geo import EnuFrame
 from estimator.sim.tracked.physics import RATE_HZ, CrawlerTruth, integrate_route
 from estimator.sim.tracked.route import (
+    CONFIG_NAMES_DATASHEET_SHARE,
     RANDOM_RANGES,
     Route,
     named_route,
@@ -106,6 +108,17 @@ def _random_sensors(seed: int) -> CrawlerSensors:
     return CrawlerSensors(gyro_grade=float(rng.uniform(*RANDOM_RANGES["gyro_grade"])))
 
 
+def _random_config_gyro(seed: int, spec: CrawlerSensors) -> GyroConfig:
+    """A random route's config gyro: with probability ``CONFIG_NAMES_DATASHEET_SHARE`` the
+    data-sheet part (``spec.gyro_part``) while the unit is ``spec.gyro_grade`` times it
+    (uniform over ``RANDOM_RANGES["gyro_grade"]``, so a unit 1-2x worse than its config
+    says), otherwise the unit's own figures. Drawn by a generator of its own, independent of
+    the grade and of every other draw of the seed."""
+    rng = np.random.default_rng((seed, 2))
+    names_datasheet = bool(rng.random() < CONFIG_NAMES_DATASHEET_SHARE)
+    return GyroConfig.of(spec.gyro_part if names_datasheet else spec.gyro_fitted)
+
+
 def simulate_tracked(
     name: str,
     seed: int,
@@ -116,19 +129,23 @@ def simulate_tracked(
 ) -> TrackedRun:
     """Simulate scenario ``name`` (:func:`tracked_scenarios`) with ``seed``.
 
-    Without ``config``, the vehicle's config names the gyro its sensors have (the part's
-    figures times its grade), as a fleet's config names the part each crawler carries.
+    Without ``config``, a named route's config names the gyro its sensors have; a random
+    route's names either the unit's own figures (the part's times its grade) or, with
+    probability ``CONFIG_NAMES_DATASHEET_SHARE``, the part's data sheet while the unit is
+    worse (:func:`_random_config_gyro`), as fleets' configs name the part each crawler carries.
     """
     rng = np.random.default_rng(seed)
     if name == "random":
         route = random_route(rng)
         drawn = config or _random_config(rng)
         spec = sensors or _random_sensors(seed)
+        gyro = _random_config_gyro(seed, spec)
     else:
         route = named_route(name)
         drawn = config or TrackedConfig()
         spec = sensors or CrawlerSensors()
-    config = config or replace(drawn, gyro=GyroConfig.of(spec.gyro_fitted))
+        gyro = GyroConfig.of(spec.gyro_fitted)
+    config = config or replace(drawn, gyro=gyro)
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
     meas = emissions(truth, config, spec, errors, ORIGIN, route.outages_s, start_ns, rng)

@@ -9,8 +9,14 @@ import pytest
 
 from estimator.config import TrackedConfig
 from estimator.gyro import ADIS16470
-from estimator.sim.tracked import TrackedRun, simulate_tracked, tracked_scenarios
-from estimator.sim.tracked.route import FIRM, RANDOM_RANGES, SOFT
+from estimator.sim.tracked import (
+    TrackedRun,
+    _random_config_gyro,
+    _random_sensors,
+    simulate_tracked,
+    tracked_scenarios,
+)
+from estimator.sim.tracked.route import CONFIG_NAMES_DATASHEET_SHARE, FIRM, RANDOM_RANGES, SOFT
 from estimator.sim.tracked.sensors import CrawlerSensors
 from estimator.tracked.model import MotionState
 from estimator.tracked.params import VehicleParams
@@ -161,16 +167,37 @@ def test_the_default_gyro_is_the_adis16470_of_its_data_sheet() -> None:
 
 def test_random_routes_draw_the_gyros_grade_over_the_stated_range() -> None:
     lo, hi = RANDOM_RANGES["gyro_grade"]
-    grades = [simulate_tracked("random", seed).sensors.gyro_grade for seed in range(40, 46)]
+    runs = {seed: simulate_tracked("random", seed) for seed in range(40, 46)}
+    grades = [run.sensors.gyro_grade for run in runs.values()]
     assert all(lo <= g <= hi for g in grades) and max(grades) - min(grades) > 0.2 * (hi - lo)
-    run = simulate_tracked("random", 40)
-    noise = np.std(_gyro_error(run))
-    assert noise == pytest.approx(run.sensors.gyro_noise_radps, rel=0.03)
-    # the route's vehicle config names the gyro it carries (the part times its grade)
-    fitted = run.config.gyro.resolved()
-    assert fitted.arw_rad_rt_s == pytest.approx(run.sensors.gyro_grade * ADIS16470.arw_rad_rt_s)
-    assert fitted.sample_noise_radps(100.0) == pytest.approx(run.sensors.gyro_noise_radps)
-    assert run.route == simulate_tracked("random", 40, sensors=CrawlerSensors()).route
+    noise = np.std(_gyro_error(runs[40]))
+    assert noise == pytest.approx(runs[40].sensors.gyro_noise_radps, rel=0.03)
+    # seed 40's config names the data sheet while its unit is 1.56x worse; seed 41's names
+    # the unit's own figures (the part times its grade)
+    assert runs[40].config.gyro.resolved() == ADIS16470 and runs[40].sensors.gyro_grade > 1.5
+    own = runs[41].config.gyro.resolved()
+    assert own.arw_rad_rt_s == pytest.approx(runs[41].sensors.gyro_grade * ADIS16470.arw_rad_rt_s)
+    assert own.sample_noise_radps(100.0) == pytest.approx(runs[41].sensors.gyro_noise_radps)
+    assert runs[40].route == simulate_tracked("random", 40, sensors=CrawlerSensors()).route
+
+
+def test_random_routes_configs_name_the_data_sheet_at_the_stated_share() -> None:
+    seeds = range(2000, 2400)
+    units = [_random_sensors(seed) for seed in seeds]
+    named = [_random_config_gyro(s, u).resolved() for s, u in zip(seeds, units, strict=True)]
+    datasheet = np.array([g == ADIS16470 for g in named])
+    p = CONFIG_NAMES_DATASHEET_SHARE
+    assert abs(datasheet.mean() - p) < 4 * np.sqrt(p * (1 - p) / len(seeds))
+    # the others name the unit's own figures
+    for g, u in zip(named, units, strict=True):
+        if g != ADIS16470:
+            assert g.arw_rad_rt_s == pytest.approx(u.gyro_grade * ADIS16470.arw_rad_rt_s)
+    # drawn apart from the grade: the units behind a data-sheet config span the grade's range
+    lo, hi = RANDOM_RANGES["gyro_grade"]
+    worse = np.array([u.gyro_grade for u, d in zip(units, datasheet, strict=True) if d])
+    assert (
+        abs(worse.mean() - (lo + hi) / 2) < 0.1 and worse.min() < lo + 0.1 < hi - 0.1 < worse.max()
+    )
 
 
 def test_seeds_repeat_and_random_routes_differ() -> None:
