@@ -47,6 +47,7 @@ __all__ = [
     "OdometerConfig",
     "SlipConfig",
     "SprocketConfig",
+    "TrackedCalibrationConfig",
     "TrackedConfig",
     "TrackedGeometry",
     "TrackedMotionConfig",
@@ -430,6 +431,19 @@ class GyroConfig(_Checked):
 
 
 @dataclass(frozen=True, slots=True)
+class TrackedCalibrationConfig(_Checked):
+    """What the tracked estimator learns of a crawler's sensors online: the yaw gyro's angle
+    random walk, measured while the crawler stands (``gyro_noise``; off: its ``gyro``
+    section's data sheet is used as it is). It has converged once its 1-sigma is below
+    ``gyro_arw_converged_pct`` of itself (10 %: 75 standing tick pairs, 7.5 s at rest)."""
+
+    gyro_noise: bool = True
+    gyro_arw_converged_pct: float = _bounded(
+        10.0, 1.0, 100.0, "%", "the measured angle random walk has converged below this std"
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class TrackedMotionConfig(_Checked):
     """Transmission and motion-state constants of ``method.md`` §4 (the source's values).
 
@@ -573,6 +587,7 @@ class TrackedConfig(_Kind):
     odometer: OdometerConfig = field(default_factory=OdometerConfig)
     motion: TrackedMotionConfig = field(default_factory=TrackedMotionConfig)
     gyro: GyroConfig = field(default_factory=GyroConfig)
+    calibration: TrackedCalibrationConfig = field(default_factory=TrackedCalibrationConfig)
     noise: TrackedNoiseConfig = field(default_factory=TrackedNoiseConfig)
     slip: SlipConfig = field(default_factory=SlipConfig)
     estimators: tuple[str, ...] = ()
