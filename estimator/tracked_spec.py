@@ -108,7 +108,7 @@ _FIELDS = (
         "°/√h",
         "gyro ARW, measured",
         "the yaw gyro's angle random walk measured while standing (NaN before the first pair "
-        "of standing ticks); the heading's noise is the data sheet's, or this where higher",
+        "of standing ticks); above the data sheet's, it widens the heading's and bias's noise",
     ),
     _f("gyro_arw_std_deg_rt_h", "°/√h", "gyro ARW σ", "1-sigma of gyro_arw_deg_rt_h"),
 )

@@ -274,9 +274,9 @@ class _Base:
 
     def restore_calibration_fields(self, vehicle_id: str, values: Mapping[str, float]) -> None:
         """Go on from a measurement's row fields (:meth:`calibration_fields`, a stored row's):
-        its pairs and their squared changes (:func:`~estimator.tracked.gyro_noise.
-        stats_from_fields`), against the part the config names now; nothing where the config
-        turns the measurement off. ``KeyError`` if unknown or a field is missing."""
+        its pairs and their squared changes (``gyro_noise.stats_from_fields``), against the
+        part the config names now; nothing where the config turns the measurement off.
+        ``KeyError`` if unknown or a field is missing."""
         slot = self._slots[vehicle_id]
         arw = np.array([values["gyro_arw_deg_rt_h"]])
         std = np.array([values["gyro_arw_std_deg_rt_h"]])
