@@ -47,9 +47,11 @@ __all__ = [
     "OdometerConfig",
     "SlipConfig",
     "SprocketConfig",
+    "TrackedCalibrationConfig",
     "TrackedConfig",
     "TrackedGeometry",
     "TrackedMotionConfig",
+    "TrackedNoiseConfig",
     "TyreConfig",
     "VehicleConfig",
     "VehicleGeometry",
@@ -248,20 +250,33 @@ class EncoderConfig(_Checked):
 
 
 @dataclass(frozen=True, slots=True)
-class NoiseConfig(_Checked):
-    """Sensor noise figures (1-sigma), used to build the filters' Q and R."""
+class _SensorNoise(_Checked):
+    """The noise figures (1-sigma) every kind has: GNSS and accelerometer."""
 
     gnss_vel_std_mps: float = _bounded(
         0.05, 1e-6, 10.0, "m/s", "GNSS velocity noise per axis when the receiver gives none"
     )
     accel_std_mps2: float = _bounded(0.05, 1e-6, 10.0, "m/s²", "accelerometer white noise")
-    gyro_std_radps: float = _bounded(0.005, 1e-6, 1.0, "rad/s", "gyro white noise")
     accel_bias_walk_mps2: float = _bounded(
         0.002, 1e-7, 1.0, "m/s² per √s", "accelerometer bias random walk"
     )
     gnss_pos_std_m: float = _bounded(
         0.02, 1e-6, 100.0, "m", "horizontal position noise per axis (RTK fixed: 1-2 cm)"
     )
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseConfig(_SensorNoise):
+    """Sensor noise figures (1-sigma), used to build the filters' Q and R; the gyro's as white
+    noise per sample (the wheeled kinds)."""
+
+    gyro_std_radps: float = _bounded(0.005, 1e-6, 1.0, "rad/s", "gyro white noise")
+
+
+@dataclass(frozen=True, slots=True)
+class TrackedNoiseConfig(_SensorNoise):
+    """A crawler's sensor noise figures (1-sigma): no gyro figure here, the gyro's noise is
+    its ``gyro`` section's data sheet (:class:`GyroConfig`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -416,6 +431,19 @@ class GyroConfig(_Checked):
 
 
 @dataclass(frozen=True, slots=True)
+class TrackedCalibrationConfig(_Checked):
+    """What the tracked estimator learns of a crawler's sensors online: the yaw gyro's angle
+    random walk, measured while the crawler stands (``gyro_noise``; off: its ``gyro``
+    section's data sheet is used as it is). It has converged once its 1-sigma is below
+    ``gyro_arw_converged_pct`` of itself (10 %: 75 standing tick pairs, 7.5 s at rest)."""
+
+    gyro_noise: bool = True
+    gyro_arw_converged_pct: float = _bounded(
+        10.0, 1.0, 100.0, "%", "the measured angle random walk has converged below this std"
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class TrackedMotionConfig(_Checked):
     """Transmission and motion-state constants of ``method.md`` §4 (the source's values).
 
@@ -559,7 +587,8 @@ class TrackedConfig(_Kind):
     odometer: OdometerConfig = field(default_factory=OdometerConfig)
     motion: TrackedMotionConfig = field(default_factory=TrackedMotionConfig)
     gyro: GyroConfig = field(default_factory=GyroConfig)
-    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    calibration: TrackedCalibrationConfig = field(default_factory=TrackedCalibrationConfig)
+    noise: TrackedNoiseConfig = field(default_factory=TrackedNoiseConfig)
     slip: SlipConfig = field(default_factory=SlipConfig)
     estimators: tuple[str, ...] = ()
 
@@ -661,12 +690,29 @@ def upgrade_legacy_config(data: dict[str, Any]) -> dict[str, Any]:
     config with exactly those keys (a part of them is read as today's shape, and refused)
     keeps its ``noise``, ``slip`` and ``estimators``; its rear track width becomes the gauge
     (tracked) or both track widths, the IMU and antenna offsets and heights become lever arms,
-    and the mean wheel radius becomes the unloaded tyre radius. The rear-drive shape never
-    changed. Values are not validated here.
+    and the mean wheel radius becomes the unloaded tyre radius. A tracked config's
+    ``noise.gyro_std_radps``, written until a crawler's gyro was its ``gyro`` section alone
+    (nothing read it), is dropped. The rear-drive shape never changed. Values are not
+    validated here.
     """
     kind = data.get("kind")
-    if kind not in (VehicleKind.TRACKED, VehicleKind.WHEELED_4WD_STEERED) or set(data) != _LEGACY:
-        return data
+    if kind in (VehicleKind.TRACKED, VehicleKind.WHEELED_4WD_STEERED) and set(data) == _LEGACY:
+        data = _from_rear_drive_sections(data)
+    if kind == VehicleKind.TRACKED:
+        noise = data.get("noise")
+        if isinstance(noise, dict) and _TRACKED_GYRO_STD in noise:
+            data = {**data, "noise": {k: v for k, v in noise.items() if k != _TRACKED_GYRO_STD}}
+    return data
+
+
+_TRACKED_GYRO_STD = "gyro_std_radps"
+"""The noise field a tracked config had until its gyro was its ``gyro`` section alone."""
+
+
+def _from_rear_drive_sections(data: dict[str, Any]) -> dict[str, Any]:
+    """A tracked or four-wheel config written with the rear-drive sections, in its kind's
+    shape (:func:`upgrade_legacy_config`)."""
+    kind = data["kind"]
     geo = data.get("geometry")
     geo = geo if isinstance(geo, dict) else {}
     out: dict[str, Any] = {k: data[k] for k in ("kind", "noise", "slip", "estimators") if k in data}

@@ -7,6 +7,7 @@ from enum import IntFlag
 
 from estimator.spec import (
     AlertRule,
+    CalibrationChannel,
     ChartSpec,
     EstimatorSpec,
     FieldSpec,
@@ -102,7 +103,16 @@ _FIELDS = (
     _f("north_std_m", "m", "north σ", "1-sigma of north_m"),
     _f("east_north_cov_m2", "m²", "east-north covariance", "covariance of east_m and north_m"),
     _f("flags", "", "flags", "TrackedFlag bits", "i4"),
+    _f(
+        "gyro_arw_deg_rt_h",
+        "°/√h",
+        "gyro ARW, measured",
+        "the yaw gyro's angle random walk measured while standing (NaN before the first pair "
+        "of standing ticks); above the data sheet's, it widens the heading's and bias's noise",
+    ),
+    _f("gyro_arw_std_deg_rt_h", "°/√h", "gyro ARW σ", "1-sigma of gyro_arw_deg_rt_h"),
 )
+# The calibration's fields come after ``flags``: rows stored before them convert by appending.
 # Rows are given one tick late, up to ``report_lag_ticks`` (4 ticks, 0.4 s) while a state change
 # is under way: the change is dated where the ratios or the yaw acceleration left their band
 # (estimator.tracked.lag).
@@ -214,6 +224,20 @@ TRACKED_SPEC = EstimatorSpec(
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEAD_RECKONING",),
+    # no uncalibrated flag: state, speeds, slip and position do not rest on the gyro's noise,
+    # only the position's covariance through an outage does, at the data sheet's at least
+    calibrations=(
+        CalibrationChannel(
+            "gyro_arw",
+            "yaw gyro angle random walk (measured standing)",
+            "gyro_arw_deg_rt_h",
+            "gyro_arw_std_deg_rt_h",
+            "calibration.gyro_arw_converged_pct",
+            1e-2,
+            relative=True,
+            enabled_config="calibration.gyro_noise",
+        ),
+    ),
     alerts=(
         # a track's slip out of its band (in place of the wheel slip threshold): a braked
         # track's −100 % in a pivot is its definition, not an alert

@@ -19,6 +19,7 @@ from estimator.base import Pushed
 from estimator.config import TrackedConfig, VehicleConfig, expect_kind
 from estimator.geo import geodetic_from_enu
 from estimator.tracked.fleet_inputs import take_fleet
+from estimator.tracked.gyro_noise import arw_fields, initial_stats, stats_from_fields
 from estimator.tracked.lag import HeldRows
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
@@ -149,6 +150,7 @@ def _rows(f: Filter, out: TickOut, inp: TickInputs, cfg: TrackedEstimatorConfig)
         "east_north_cov_m2": np.where(started, P[:, S.EAST, S.NORTH], np.nan),
         "flags": _flags(f, out, cfg.uncertain_below, inp),
     }
+    cols["gyro_arw_deg_rt_h"], cols["gyro_arw_std_deg_rt_h"] = arw_fields(f.gyro_standing, cfg)
     for name, value in cols.items():
         rows[name] = value
     return rows
@@ -263,6 +265,28 @@ class _Base:
             "odometer_backwards": inputs.odometer.backwards,
             "sprocket_backwards": sum(b.backwards for b in inputs.sprockets),
         }
+
+    def calibration_fields(self, vehicle_id: str) -> dict[str, float]:
+        """The gyro's noise measured standing as its row fields (``TRACKED_SPEC.calibrations``:
+        the ARW and its 1-sigma, °/√h; NaN before a pair); ``KeyError`` if unknown."""
+        arw, std = arw_fields(self._slots[vehicle_id].filter.gyro_standing, self.config)
+        return {"gyro_arw_deg_rt_h": float(arw[0]), "gyro_arw_std_deg_rt_h": float(std[0])}
+
+    def restore_calibration_fields(self, vehicle_id: str, values: Mapping[str, float]) -> None:
+        """Go on from a measurement's row fields (:meth:`calibration_fields`, a stored row's):
+        its pairs and their squared changes (``gyro_noise.stats_from_fields``), against the
+        part the config names now; nothing where the config turns the measurement off.
+        ``KeyError`` if unknown or a field is missing."""
+        slot = self._slots[vehicle_id]
+        arw = np.array([values["gyro_arw_deg_rt_h"]])
+        std = np.array([values["gyro_arw_std_deg_rt_h"]])
+        if slot.inputs.config.calibration.gyro_noise:
+            slot.filter.gyro_standing = stats_from_fields(arw, std, self.config)
+
+    def reset_calibration(self, vehicle_id: str) -> None:
+        """Forget the gyro's measured noise: the data sheet's again, measured anew;
+        ``KeyError`` if unknown."""
+        self._slots[vehicle_id].filter.gyro_standing = initial_stats(1)
 
     def gnss_nis(self, vehicle_id: str) -> FloatArray:
         """NIS of every GNSS position fused so far (2 degrees of freedom; consistency checks)."""

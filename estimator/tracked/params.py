@@ -16,7 +16,8 @@ __all__ = ["VehicleParams"]
 
 @dataclass(frozen=True, slots=True)
 class VehicleParams:
-    """Each field shape ``(k,)`` (``antenna_xy_m``: ``(k, 2)``, x right, y forward)."""
+    """Each field shape ``(k,)`` (``antenna_xy_m``: ``(k, 2)``, x right, y forward;
+    ``gyro_noise_measured`` 1 where the config measures the gyro's noise standing, else 0)."""
 
     gauge_m: FloatArray
     length_m: FloatArray
@@ -36,6 +37,7 @@ class VehicleParams:
     odometer_scale_std: FloatArray
     gyro_arw_rad_rt_s: FloatArray
     gyro_bias_walk_radps_rt_s: FloatArray
+    gyro_noise_measured: FloatArray
     antenna_xy_m: FloatArray
 
     @classmethod
@@ -61,6 +63,7 @@ class VehicleParams:
             "odometer_scale_std": c.odometer.scale_std_pct / 100.0,
             "gyro_arw_rad_rt_s": gyro.arw_rad_rt_s,
             "gyro_bias_walk_radps_rt_s": gyro.bias_walk_radps_rt_s,
+            "gyro_noise_measured": 1.0 if c.calibration.gyro_noise else 0.0,
         }
         arrays = {k: np.array([v], dtype=np.float64) for k, v in values.items()}
         return cls(**arrays, antenna_xy_m=np.array([g.antenna_lever_arm_m[:2]], dtype=np.float64))

@@ -545,7 +545,8 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         )
         onset |= odometer_start(inp, cfg)  # the held tick before may have started already
         _fuse_standstill(f, inp, cfg, still)
-        f.gyro_standing = learn_standing(f.gyro_standing, inp.gyro_radps, still)
+        measured = still & (p.gyro_noise_measured > 0.0)
+        f.gyro_standing = learn_standing(f.gyro_standing, inp.gyro_radps, measured)
     _since_fix(f, used | fresh, cfg)
     _dead_reckoning_noise(f, p, cfg, gain)
     track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w, factor_var)

@@ -7,7 +7,7 @@ recorded in ``schema_version``. A migration is frozen once released: later schem
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
 :data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`,
-:data:`FRICTION_FIELDS_V16`); tests
+:data:`FRICTION_FIELDS_V16`, :data:`TRACKED_FIELDS_V17`); tests
 compare them with today's specs, and the stores refuse a spec that no longer matches its
 recorded table, so a spec change forces a new migration.
 
@@ -18,7 +18,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 16):
+Schema (version 17):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -31,7 +31,7 @@ Schema (version 16):
     by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
     ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
     ``reference_speed`` since version 10, ``friction`` since version 12 (its position
-    appended by version 16), ``tracked`` since 13.
+    appended by version 16), ``tracked`` since 13 (its online calibration appended by 17).
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -89,6 +89,7 @@ __all__ = [
     "REFERENCE_SPEED_FIELDS_V10",
     "SQLITE_PACKED_FIELDS",
     "TRACKED_FIELDS_V13",
+    "TRACKED_FIELDS_V17",
     "Execute",
     "Migration",
     "Step",
@@ -654,6 +655,45 @@ def _v16_friction_position(dialect: str) -> tuple[Step, ...]:
     )
 
 
+#: The tracked row as version 17 made its table: version 13's with the gyro's noise measured
+#: standing appended (the online calibration, ``TRACKED_SPEC.calibrations``).
+TRACKED_FIELDS_V17: tuple[tuple[str, str], ...] = (
+    *TRACKED_FIELDS_V13,
+    ("gyro_arw_deg_rt_h", "f8"),
+    ("gyro_arw_std_deg_rt_h", "f8"),
+)
+
+
+def _v17_tracked_calibration(dialect: str) -> tuple[Step, ...]:
+    """Append the tracked row's calibration fields to its tables, NaN in the rows stored
+    before (nothing was measured then, as far as the rows say). SQLite: NaN's little-endian
+    bytes appended to each packed row, staged or final; PostgreSQL: ``NOT NULL`` columns
+    filled with NaN, no default kept."""
+    added = TRACKED_FIELDS_V17[len(TRACKED_FIELDS_V13) :]
+    record = (
+        f"UPDATE estimator_tables SET fields = '{fields_json(TRACKED_FIELDS_V17)}' "
+        "WHERE estimator = 'tracked'"
+    )
+    if dialect == "postgresql":
+        steps: list[Step] = []
+        for name, _ in added:
+            steps.append(
+                f"ALTER TABLE estimates_tracked ADD COLUMN {name} double precision "
+                "NOT NULL DEFAULT 'NaN'"
+            )
+            steps.append(f"ALTER TABLE estimates_tracked ALTER COLUMN {name} DROP DEFAULT")
+        return (*steps, record)
+    nan = "X'" + _NAN_F8_LE * len(added) + "'"
+    return (
+        # ``||`` yields text; the cast gives its bytes back unchanged as a blob
+        *(
+            f"UPDATE {table} SET packed = CAST(packed || {nan} AS BLOB)"
+            for table in ("estimates_tracked", "estimates_tracked_recent")
+        ),
+        record,
+    )
+
+
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
 
@@ -776,6 +816,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "the friction estimator's position",
         _v16_friction_position("sqlite"),
         _v16_friction_position("postgresql"),
+    ),
+    Migration(
+        17,
+        "tracked rows carry the gyro's noise measured standing",
+        _v17_tracked_calibration("sqlite"),
+        _v17_tracked_calibration("postgresql"),
     ),
 )
 

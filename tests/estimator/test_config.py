@@ -15,6 +15,7 @@ from estimator.config import (
     Bound,
     ConfigError,
     DrivenAxle,
+    GyroConfig,
     SlipConfig,
     TrackedConfig,
     VehicleConfig,
@@ -161,6 +162,26 @@ def test_only_a_whole_legacy_dict_is_upgraded() -> None:
     assert upgrade_legacy_config(today) is today
     rear = _legacy("wheeled_rear_drive")
     assert upgrade_legacy_config(rear) is rear
+
+
+def test_a_crawlers_stored_gyro_std_is_dropped_and_its_gyro_section_is_the_one_truth() -> None:
+    """A tracked config stored while its ``noise`` still had ``gyro_std_radps`` (which nothing
+    read: its gyro is ``gyro``) loads as today's, the field gone from it and from what it
+    writes; a rear-drive config keeps the field, which MDSF reads."""
+    stored = TrackedConfig(gyro=GyroConfig(angle_random_walk_deg_rt_h=0.5)).to_dict()
+    assert "gyro_std_radps" not in stored["noise"]
+    stored["noise"] = {**stored["noise"], "gyro_std_radps": 0.004, "accel_std_mps2": 0.06}
+    crawler = vehicle_config_from_dict(json.loads(json.dumps(stored)))
+    assert isinstance(crawler, TrackedConfig)
+    assert crawler.noise.accel_std_mps2 == 0.06
+    assert crawler.gyro.resolved().angle_random_walk_deg_rt_h == 0.5
+    assert not hasattr(crawler.noise, "gyro_std_radps")
+    assert "gyro_std_radps" not in crawler.to_dict()["noise"]
+    assert "gyro_std_radps" in stored["noise"]  # the caller's dict is left as it was
+    with pytest.raises(ConfigError, match=r"tracked: noise: unknown field\(s\) \['gyro_rms'\]"):
+        vehicle_config_from_dict({"kind": "tracked", "noise": {"gyro_rms": 0.004}})
+    rear = vehicle_config_from_dict({"noise": {"gyro_std_radps": 0.004}})
+    assert isinstance(rear, WheeledRearDriveConfig) and rear.noise.gyro_std_radps == 0.004
 
 
 @pytest.mark.parametrize("case", BOUNDED, ids=_ids)

@@ -8,7 +8,8 @@ The rows follow the wall clock so a test can say what the page must show at any 
   :data:`STATE_S` seconds; every other :data:`CARRIED_S`-second stretch is dead-reckoned
   (``DEAD_RECKONING``, position 1-σ growing 0.5 m a second), the others fused with GNSS
   (``GNSS_OK``, 1-σ :data:`FIX_STD_M`); every third state is flagged ``STATE_UNCERTAIN``;
-  its odometer factor is 0.95 + 0.04·sin(east / 50 m) (a map layer informed while GNSS is).
+  its odometer factor is 0.95 + 0.04·sin(east / 50 m) (a map layer informed while GNSS is);
+  its gyro's angle random walk measured standing is :data:`GYRO_ARW_DEG_RT_H` (converged).
 * steered vehicle: μ is informed (``INFORMED``, 0.8 ± 0.02) in every other :data:`MU_S`-second
   stretch and held at 0.8 (``HELD``, no σ) in the others; grip used per wheel is
   :data:`GRIP_PCT`.
@@ -34,6 +35,7 @@ CARRIED_S = 4
 MU_S = 3
 FIX_STD_M = 0.3
 GRIP_PCT = {"fl": 20.0, "fr": 45.0, "rl": 70.0, "rr": 95.0}
+GYRO_ARW_DEG_RT_H = (0.4, 0.03)  # the crawler's gyro noise measured standing, converged (< 10 %)
 _NS = 1_000_000_000
 _STATES = len(TRACKED_SPEC.states[0].states)
 
@@ -79,6 +81,7 @@ def tracked_rows(stamps_ns: np.ndarray) -> np.ndarray:
     r["up_m"] = 0.0
     r["heading_rad"] = np.pi / 2
     r["east_std_m"] = r["north_std_m"] = sigma
+    r["gyro_arw_deg_rt_h"], r["gyro_arw_std_deg_rt_h"] = GYRO_ARW_DEG_RT_H
     flags = TrackedFlag.SLIP_LEFT_VALID | TrackedFlag.SLIP_RIGHT_VALID
     bits = np.where(
         carried, int(flags | TrackedFlag.DEAD_RECKONING), int(flags | TrackedFlag.GNSS_OK)

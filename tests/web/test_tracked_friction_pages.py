@@ -28,6 +28,7 @@ from tests.web.crawler_feed import (
     CRAWLER,
     FIX_STD_M,
     GRIP_PCT,
+    GYRO_ARW_DEG_RT_H,
     STEERED,
     CrawlerFeed,
     crawler_sigma_m,
@@ -233,3 +234,22 @@ def test_the_crawler_history_map_draws_its_odometer_factor_layer(
     assert colours[lo] == "rgb(140,20,30)" and colours[hi] == "rgb(26,152,80)"
     assert f"{lo:.3f} (red) … {hi:.3f} (green)" in page.inner_text("#h-heat-msg")
     page.screenshot(path=str(screenshots / "crawler-history-layer.png"), full_page=True)
+
+
+def test_the_crawler_page_shows_its_gyro_calibration_through_the_generic_panel(
+    live_stack: LiveStack, feed: CrawlerFeed, page: Any
+) -> None:
+    """The online calibration panel, MDSF's, shows the crawler's gyro noise from the tracked
+    spec: its value and σ in °/√h, converged, no uncalibrated flag claimed, and the reset."""
+    page.goto(live_stack.base_url + f"/#/vehicle/{CRAWLER}")
+    row = "#v-calibration tr[data-calibration='gyro_arw']"
+    page.wait_for_selector(f"{row}[data-state=converged]", timeout=30_000)
+    value, std = GYRO_ARW_DEG_RT_H
+    assert page.inner_text(f"{row} .cal-value") == f"{value:.3f} °/√h"
+    assert page.inner_text(f"{row} .cal-std") == f"± {std:.3f} °/√h"
+    assert "angle random walk" in page.inner_text(f"{row} th")
+    part = "#v-calibration .cal-part[data-estimator=tracked]"
+    state = page.inner_text(f"{part} .cal-state")
+    assert state.startswith("As of ") and "not flagged" in state, state
+    assert page.get_attribute(f"{part} .cal-state", "data-uncalibrated") == "null"
+    assert page.is_visible(f"{part} button.cal-reset")

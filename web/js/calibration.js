@@ -1,7 +1,7 @@
 // Vehicle page, online calibration: for every estimator of the vehicle whose spec declares
 // calibrations (GET /api/v1/vehicles/{id}/calibration, every 5 s), a table of each calibration's
 // value ± 1σ in its unit, converged / uncalibrated / configured (not learnt, not waited for) /
-// off, and since when; whether the newest row
+// learning (a spec without an uncalibrated flag) / off, and since when; whether the newest row
 // is flagged uncalibrated. Operators get the estimator's commands (MDSF: the calibration drive,
 // PUT …/commands/{estimator}/{key}) and a reset (DELETE …/calibration/{estimator}); a token
 // below operator is refused by the server (403), which the panel says. Nothing here names an
@@ -30,12 +30,28 @@ function fmtValue(v, unit) {
 
 // A calibration's state; one not converged while the newest row is not flagged uncalibrated is
 // one the estimator does not wait for (it cannot learn it now): the configured value, in use.
+// An estimator whose spec has no uncalibrated flag (part.uncalibrated null) flags no row while
+// a calibration converges: it is learning.
 function stateOf(c, part) {
   if (!c.enabled) return ["off", "turned off in the vehicle's config"];
   if (c.value == null) return ["none", "no value yet"];
   if (c.converged) return ["converged", ""];
+  const below = c.limit == null ? "" : `converges below σ ${fmtValue(c.limit, c.unit)}`;
+  if (part.uncalibrated == null && part.stamp_ns != null) return ["learning", `${below}; its rows are not flagged meanwhile`];
   if (part.uncalibrated === false) return ["configured", "not learnt: the configured value is used"];
-  return ["uncalibrated", c.limit == null ? "" : `converges below σ ${fmtValue(c.limit, c.unit)}`];
+  return ["uncalibrated", below];
+}
+
+// What the newest row says of the estimator's calibration: flagged by the spec's uncalibrated
+// flag (its description says what rests on it), not flagged, or a spec without such a flag.
+function stateText(part, spec) {
+  if (part.stamp_ns == null) return "No stored estimate yet.";
+  const at = fmtTimeNs(part.stamp_ns, false);
+  if (part.uncalibrated == null) return `As of ${at}; its rows are not flagged while these converge.`;
+  if (!part.uncalibrated) return `Calibrated as of ${at}.`;
+  const flag = (spec?.flags || []).find((f) => f.name === spec.uncalibrated_flag);
+  const why = flag ? `: ${flag.description}` : "";
+  return `Uncalibrated since ${fmtTimeNs(part.uncalibrated_since_ns, false)}, rows flagged ${spec?.uncalibrated_flag || "uncalibrated"}${why}.`;
 }
 
 function sinceCell(c) {
@@ -60,10 +76,7 @@ function row(c, part) {
 // One estimator's part: its state, its table and the operator's controls.
 function estimatorPart(vehicleId, part, spec, say) {
   const base = `/api/v1/vehicles/${encodeURIComponent(vehicleId)}`;
-  const state = el("p", { class: "cal-state", "data-uncalibrated": String(part.uncalibrated) });
-  if (part.stamp_ns == null) state.textContent = "No stored estimate yet.";
-  else if (part.uncalibrated) state.textContent = `Uncalibrated: its slip is flagged until these converge (since ${fmtTimeNs(part.uncalibrated_since_ns, false)}).`;
-  else state.textContent = `Calibrated as of ${fmtTimeNs(part.stamp_ns, false)}.`;
+  const state = el("p", { class: "cal-state", "data-uncalibrated": String(part.uncalibrated), text: stateText(part, spec) });
   const controls = el("div", { class: "toolbar cal-controls" });
   for (const cmd of spec?.commands || []) {
     for (const on of [true, false]) {

@@ -177,7 +177,8 @@ def _of_estimator(
     description=(
         "For every estimator the vehicle runs whose spec declares `calibrations` (`GET "
         "/estimators`; MDSF: the GNSS and wheel clock offsets, each wheel's rolling radius, the "
-        "IMU's mounting pitch): each calibration's value and 1-sigma in its unit as of the "
+        "IMU's mounting pitch; tracked: the yaw gyro's angle random walk measured standing): "
+        "each calibration's value and 1-sigma in its unit as of the "
         "newest stored row, the std it converges below (`limit`, from the vehicle's config), "
         "whether it has converged and since when (`since_ns`, the first stored row of the "
         "current stretch within the last `lookback_s`; `since_window_start` when it was "
@@ -225,8 +226,9 @@ def get_calibration(
     description=(
         "The running estimator forgets the vehicle's calibration (back to the config's priors) "
         "and learns it anew, taken between two steps (202: sent). Counted in the estimator's "
-        "counters (`calibration_resets`) and logged. Rows after the reset are flagged "
-        "uncalibrated until it converges again; a restart keeps the reset. 404 for an "
+        "counters (`calibration_resets`) and logged. Rows after the reset carry the fresh "
+        "calibration (and, where the spec has an `uncalibrated_flag`, that flag until it "
+        "converges again); a restart keeps the reset. 404 for an "
         "estimator that does not exist or calibrates nothing, 409 when the vehicle does not "
         "run it."
     ),

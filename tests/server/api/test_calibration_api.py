@@ -115,8 +115,17 @@ def test_a_vehicle_without_rows_and_one_that_calibrates_nothing(client: ApiClien
     assert part["stamp_ns"] is None and part["uncalibrated"] is None
     assert all(c["value"] is None and not c["converged"] for c in part["calibrations"])
     client.put(f"{V}/c1", json={"kind": "tracked"})
-    assert client.get(f"{V}/c1/calibration").json()["estimators"] == []
+    [part] = client.get(f"{V}/c1/calibration").json()["estimators"]
+    assert part["estimator"] == "tracked" and part["uncalibrated"] is None
+    [gyro] = part["calibrations"]
+    assert gyro["key"] == "gyro_arw" and gyro["unit"] == "°/√h" and gyro["enabled"]
+    assert gyro["value"] is None and gyro["limit"] is None and not gyro["converged"]
+    client.put(f"{V}/c2", json={"kind": "tracked", "calibration": {"gyro_noise": False}})
+    [part] = client.get(f"{V}/c2/calibration").json()["estimators"]
+    assert not part["calibrations"][0]["enabled"]
     error_of(client.get(f"{V}/c1/calibration", params={"estimator": "mdsf"}), 404)
+    client.put(f"{V}/s1", json={"kind": "wheeled_4wd_steered"})
+    assert client.get(f"{V}/s1/calibration").json()["estimators"] == []
     error_of(client.get(f"{V}/nobody/calibration"), 404)
     error_of(client.get(f"{V}/t1/calibration", params={"lookback_s": 0}), 422)
 
@@ -130,12 +139,15 @@ def test_reset_goes_to_the_runtime_or_is_refused_saying_why(
     assert r.status_code == 202, r.text
     assert r.json() == {"vehicle_id": "t1", "estimator": "mdsf", "reset": True}
     assert runtime.calibration_resets == [("t1", "mdsf")]
-    _, reason = error_of(client.delete(f"{V}/t1/calibration/tracked"), 404)
-    assert "those that do: mdsf" in reason
+    _, reason = error_of(client.delete(f"{V}/t1/calibration/friction"), 404)
+    assert "those that do: mdsf, tracked" in reason
+    _, reason = error_of(client.delete(f"{V}/t1/calibration/tracked"), 409)
+    assert "runs mdsf, not 'tracked'" in reason
     _, reason = error_of(client.delete(f"{V}/c1/calibration/mdsf"), 409)
     assert "runs tracked" in reason
+    assert client.delete(f"{V}/c1/calibration/tracked").status_code == 202
     error_of(client.delete(f"{V}/nobody/calibration/mdsf"), 404)
-    assert runtime.calibration_resets == [("t1", "mdsf")]
+    assert runtime.calibration_resets == [("t1", "mdsf"), ("c1", "tracked")]
 
 
 def test_the_spec_lists_the_calibrations_for_clients(client: ApiClient) -> None:
