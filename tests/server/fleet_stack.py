@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 from fastapi import FastAPI
 
@@ -24,8 +25,10 @@ __all__ = [
     "BACKENDS",
     "START_TIMEOUT_S",
     "backend_of",
+    "calibration_resets",
     "running_server",
     "stack_settings",
+    "stored_columns",
     "streaming_fleet",
     "wait_counted",
 ]
@@ -111,3 +114,38 @@ def wait_counted(
             return reports
         assert time.monotonic() < deadline, f"only {received}/{packets} packets counted"
         time.sleep(0.5)
+
+
+def stored_columns(
+    client: httpx.Client, vehicle_id: str, start_ns: int, end_ns: int, fields: str
+) -> dict[str, np.ndarray]:
+    """The vehicle's stored ``fields`` (comma-separated) from ``start_ns`` on, as float columns
+    (null → NaN), once a row within 2 s of ``end_ns`` is stored (at most 60 s)."""
+    deadline = time.monotonic() + 60
+    while True:
+        r = client.get(
+            f"/api/v1/vehicles/{vehicle_id}/series",
+            params={
+                "start": start_ns,
+                "end": end_ns + 1_000_000_000,
+                "fields": fields,
+                "format": "json",
+            },
+        )
+        if r.status_code == 200:
+            cols = {
+                k: np.array([np.nan if x is None else x for x in v], dtype=float)
+                for k, v in r.json()["columns"].items()
+            }
+            if cols["stamp_ns"].size and cols["stamp_ns"][-1] >= end_ns - 2_000_000_000:
+                return cols
+        assert time.monotonic() < deadline, f"the drive's rows did not arrive: {r.text}"
+        time.sleep(0.5)
+
+
+def calibration_resets(client: httpx.Client, vehicle_id: str) -> float:
+    """The vehicle's ``calibration_resets`` counter in ``/metrics`` (0 while it has none)."""
+    for line in client.get("/api/v1/metrics").text.splitlines():
+        if 'event="calibration_resets"' in line and f'vehicle="{vehicle_id}"' in line:
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0

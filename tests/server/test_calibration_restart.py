@@ -16,7 +16,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 
 from estimator.config import VehicleGeometry, WheeledRearDriveConfig
@@ -24,7 +23,13 @@ from server.app_main import ServerThread, build_app
 from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import FleetSim
-from tests.server.fleet_stack import BACKENDS, backend_of, stack_settings
+from tests.server.fleet_stack import (
+    BACKENDS,
+    backend_of,
+    calibration_resets,
+    stack_settings,
+    stored_columns,
+)
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -70,34 +75,10 @@ def _drive(
     return start_ns + int(duration_s * S)
 
 
-def _rows(client: httpx.Client, start_ns: int, end_ns: int) -> dict[str, np.ndarray]:
-    """The drive's stored rows (``FIELDS``), once its last second is stored (at most 60 s)."""
-    deadline = time.monotonic() + 60
-    while True:
-        r = client.get(
-            f"/api/v1/vehicles/{VID}/series",
-            params={"start": start_ns, "end": end_ns + S, "fields": FIELDS, "format": "json"},
-        )
-        if r.status_code == 200:
-            cols = {k: np.asarray(v, dtype=float) for k, v in r.json()["columns"].items()}
-            if cols["stamp_ns"].size and cols["stamp_ns"][-1] >= end_ns - 2 * S:
-                return cols
-        assert time.monotonic() < deadline, f"the drive's rows did not arrive: {r.text}"
-        time.sleep(0.5)
-
-
 def _radius(client: httpx.Client) -> dict:
     r = client.get(f"/api/v1/vehicles/{VID}/calibration", params={"estimator": "mdsf"})
     r.raise_for_status()
     return next(c for c in r.json()["estimators"][0]["calibrations"] if c["key"] == "radius_left")
-
-
-def _resets(client: httpx.Client) -> float:
-    """The vehicle's ``calibration_resets`` counter in ``/metrics`` (0 while it has none)."""
-    for line in client.get("/api/v1/metrics").text.splitlines():
-        if 'event="calibration_resets"' in line and f'vehicle="{VID}"' in line:
-            return float(line.rsplit(" ", 1)[1])
-    return 0.0
 
 
 def test_calibration_restored_after_a_restart_and_a_reset_kept(
@@ -111,7 +92,7 @@ def test_calibration_restored_after_a_restart_and_a_reset_kept(
     try:
         end_a = _drive(settings, t0, 50.0, seed=3)
         with httpx.Client(base_url=url(server), timeout=30) as client:
-            rows_a = _rows(client, t0, end_a)
+            rows_a = stored_columns(client, VID, t0, end_a, FIELDS)
             learnt = _radius(client)
     finally:
         server.stop()
@@ -127,7 +108,7 @@ def test_calibration_restored_after_a_restart_and_a_reset_kept(
         with httpx.Client(base_url=url(server), timeout=30) as client:
             start_b = end_a + S
             end_b = _drive(settings, start_b, 20.0, seed=5)
-            rows_b = _rows(client, start_b, end_b)
+            rows_b = stored_columns(client, VID, start_b, end_b, FIELDS)
             # restored, not relearnt: the first row after the restart holds the learnt radius
             assert rows_b["radius_left_std_m"][0] < 1.5 * std_a, rows_b["radius_left_std_m"][:3]
             assert abs(rows_b["radius_left_m"][0] - learnt["value"]) < 3 * std_a
@@ -135,14 +116,14 @@ def test_calibration_restored_after_a_restart_and_a_reset_kept(
             assert client.delete(f"/api/v1/vehicles/{VID}/calibration/mdsf").status_code == 202
             start_c = end_b + S
             end_c = _drive(settings, start_c, 20.0, seed=7, free=False)
-            rows_c = _rows(client, start_c, end_c)
+            rows_c = stored_columns(client, VID, start_c, end_c, FIELDS)
             # forgotten: back at the prior (driven wheels do not teach it), and counted
             assert rows_c["radius_left_std_m"][0] > 0.9 * prior_std, rows_c["radius_left_std_m"][0]
             assert rows_c["radius_left_m"][0] == pytest.approx(RADIUS_M)
             std_c = rows_c["radius_left_std_m"][-1]
             assert not _radius(client)["converged"]
             deadline = time.monotonic() + 10
-            while _resets(client) < 1:
+            while calibration_resets(client, VID) < 1:
                 assert time.monotonic() < deadline, "the reset was not counted"
                 time.sleep(0.5)
     finally:
@@ -153,7 +134,7 @@ def test_calibration_restored_after_a_restart_and_a_reset_kept(
         with httpx.Client(base_url=url(server), timeout=30) as client:
             start_d = end_c + S
             end_d = _drive(settings, start_d, 20.0, seed=9, free=False)
-            rows_d = _rows(client, start_d, end_d)
+            rows_d = stored_columns(client, VID, start_d, end_d, FIELDS)
     finally:
         server.stop()
     # the reset survived the restart: the vehicle goes on from the prior, not the old radius

@@ -29,7 +29,7 @@ from server.app_main import ServerThread, build_app
 from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.tracked_fleet import TrackedFleetSim
-from tests.server.fleet_stack import stack_settings
+from tests.server.fleet_stack import calibration_resets, stack_settings, stored_columns
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -67,25 +67,6 @@ def _drive(settings: Settings, start_ns: int, seed: int, rate: float = 4.0) -> i
     return start_ns + int(DURATION_S * S)
 
 
-def _rows(client: httpx.Client, start_ns: int, end_ns: int) -> dict[str, np.ndarray]:
-    """The drive's stored rows (``FIELDS``), once its last seconds are stored (at most 60 s)."""
-    deadline = time.monotonic() + 60
-    while True:
-        r = client.get(
-            f"/api/v1/vehicles/{VID}/series",
-            params={"start": start_ns, "end": end_ns + S, "fields": FIELDS, "format": "json"},
-        )
-        if r.status_code == 200:
-            cols = {
-                k: np.array([np.nan if x is None else x for x in v], dtype=float)
-                for k, v in r.json()["columns"].items()
-            }
-            if cols["stamp_ns"].size and cols["stamp_ns"][-1] >= end_ns - 2 * S:
-                return cols
-        assert time.monotonic() < deadline, f"the drive's rows did not arrive: {r.text}"
-        time.sleep(0.5)
-
-
 def _calibration(client: httpx.Client) -> dict:
     r = client.get(f"/api/v1/vehicles/{VID}/calibration", params={"estimator": "tracked"})
     r.raise_for_status()
@@ -93,13 +74,6 @@ def _calibration(client: httpx.Client) -> dict:
     assert part["uncalibrated"] is None  # the tracked spec flags no row for it
     [gyro] = part["calibrations"]
     return dict(gyro)
-
-
-def _resets(client: httpx.Client) -> float:
-    for line in client.get("/api/v1/metrics").text.splitlines():
-        if 'event="calibration_resets"' in line and f'vehicle="{VID}"' in line:
-            return float(line.rsplit(" ", 1)[1])
-    return 0.0
 
 
 def _first_is(rows: dict[str, np.ndarray], newest: tuple[float, float]) -> None:
@@ -136,7 +110,7 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
     try:
         end_a = _drive(settings, t0, seed=3)
         with httpx.Client(base_url=url(server), timeout=30) as client:
-            _rows(client, t0, end_a)
+            stored_columns(client, VID, t0, end_a, FIELDS)
             learnt = _calibration(client)
     finally:
         server.stop()
@@ -148,7 +122,9 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
     server = _serve(settings)
     try:
         with httpx.Client(base_url=url(server), timeout=30) as client:
-            rows_a = _rows(client, t0, end_a)  # all stored now, the held rows too
+            rows_a = stored_columns(
+                client, VID, t0, end_a, FIELDS
+            )  # all stored now, the held rows too
             start_b = end_a + S
             publisher = threading.Thread(target=_drive, args=(settings, start_b, 5, 2.0))
             publisher.start()
@@ -157,7 +133,7 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
             finally:
                 publisher.join()
             end_b = start_b + int(DURATION_S * S)
-            rows_b = _rows(client, start_b, end_b)
+            rows_b = stored_columns(client, VID, start_b, end_b, FIELDS)
             # restored, not measured anew: the first row holds the newest stored measurement
             _first_is(rows_b, _newest(rows_a))
             # then reset during the straight: nothing measured, and the second stop alone
@@ -166,7 +142,7 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
             assert reset.size and np.isfinite(arw[: reset[0]]).all(), arw
             assert np.isfinite(arw[-1]) and std[-1] > 1.2 * std[reset[0] - 1], (std, reset)
             deadline = time.monotonic() + 10
-            while _resets(client) < 1:
+            while calibration_resets(client, VID) < 1:
                 assert time.monotonic() < deadline, "the reset was not counted"
                 time.sleep(0.5)
     finally:
@@ -175,10 +151,10 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
     server = _serve(settings)
     try:
         with httpx.Client(base_url=url(server), timeout=30) as client:
-            rows_b = _rows(client, start_b, end_b)
+            rows_b = stored_columns(client, VID, start_b, end_b, FIELDS)
             start_d = end_b + S
             end_d = _drive(settings, start_d, seed=9)
-            rows_d = _rows(client, start_d, end_d)
+            rows_d = stored_columns(client, VID, start_d, end_d, FIELDS)
     finally:
         server.stop()
     # the reset survived the restart: the crawler goes on from what it measured after it
