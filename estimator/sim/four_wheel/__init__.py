@@ -13,7 +13,11 @@ load, body roll and pitch tilting the accelerometers. Sensors (per run, uniform 
 * IMU 100 Hz in packets of 10: accelerometer noise 0.05 m/s², bias −0.05..0.05 m/s² per axis;
   gyro noise 0.003 rad/s, bias −0.003..0.003 rad/s; the accelerometers read the tilt's
   ``g·sin`` (specific force in the body frame X right, Y forward, Z up);
-* CAN wheel speeds 50 Hz in packets of 5, quantised to 0.025 rad/s;
+* CAN wheel speeds 50 Hz in packets of 5, quantised to 0.025 rad/s, from the vehicle's
+  :class:`WheelSpeedSensor`: by default (an ABS ECU timing its tone ring's edges, ``method.md``
+  §2's period method over ``k`` teeth) each sample is the mean speed over the whole teeth that
+  passed in the period before its stamp; an ECU that samples (``tooth_mean=False``) reports
+  the instantaneous speed at its stamp;
 * steering-wheel angle 50 Hz in packets of 5, noise 0.1°, offset −0.5..0.5°;
 * GNSS 10 Hz: ENU velocity noise 0.03 m/s per axis, dual-antenna heading noise 0.15°.
 
@@ -51,15 +55,19 @@ from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
 __all__ = [
     "FOUR_WHEEL_CONFIG",
+    "INSTANT_WHEEL_SENSOR",
     "LEAD_S",
     "NAMED",
     "FourWheelRun",
     "Manoeuvre",
     "Truth",
+    "WheelSpeedSensor",
     "named_manoeuvre",
     "random_config",
     "random_manoeuvre",
+    "random_wheel_sensor",
     "simulate_four_wheel",
+    "tooth_mean_speed",
 ]
 
 START_NS = 1_700_000_000_000_000_000
@@ -69,6 +77,37 @@ FOUR_WHEEL_CONFIG = Wheeled4wdSteeredConfig(
 )
 _ROW_S = 0.01  # truth and IMU rate
 _FRAME = EnuFrame(48.0, 11.0, 500.0)
+_LEAD_IN_S = 0.1  # the wheels' angle before the run's start (so the first samples have edges)
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSpeedSensor:
+    """A vehicle's CAN wheel-speed sensor: ``teeth`` on each tone ring, a sample every
+    ``period_s`` rounded to ``quantum_radps``. ``tooth_mean``: the sample is the mean over the
+    whole teeth whose edges fall in ``(t − period, t]`` (edges timed exactly; at a crawl, with
+    fewer than two edges there, the last full tooth before ``t``); otherwise the instantaneous
+    speed at ``t`` (an ECU that samples, or the speed's own estimate)."""
+
+    teeth: int = 48
+    tooth_mean: bool = True
+    period_s: float = 0.02
+    quantum_radps: float = 0.025
+
+    def __post_init__(self) -> None:
+        if self.teeth < 4 or self.period_s <= 0.0 or self.quantum_radps <= 0.0:
+            raise ValueError("a wheel-speed sensor needs ≥ 4 teeth, a period and a quantum")
+        if abs(self.period_s / _ROW_S - round(self.period_s / _ROW_S)) > 1e-9:
+            raise ValueError(f"the period must be a multiple of the truth's {_ROW_S} s rows")
+
+
+INSTANT_WHEEL_SENSOR = WheelSpeedSensor(tooth_mean=False)
+
+
+def random_wheel_sensor(rng: np.random.Generator) -> WheelSpeedSensor:
+    """A tone ring of 40-100 teeth (uniform; an assumed range for road vehicles, not a data
+    sheet's) timed by the ECU, except in one drive of ten (an ECU that samples the speed)."""
+    teeth = int(rng.integers(40, 101))
+    return WheelSpeedSensor(teeth=teeth, tooth_mean=bool(rng.uniform() >= 0.1))
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,13 +158,16 @@ def simulate_four_wheel(
     seeds: Sequence[int],
     configs: Sequence[Wheeled4wdSteeredConfig] | None = None,
     start_ns: int = START_NS,
+    wheel_sensors: Sequence[WheelSpeedSensor] | None = None,
 ) -> list[FourWheelRun]:
     """Simulate ``manoeuvres`` side by side (one batched integration), run ``i`` drawing its
-    truth and sensors from ``seeds[i]`` alone (the same run whatever it is batched with)."""
+    truth and sensors from ``seeds[i]`` alone (the same run whatever it is batched with);
+    ``wheel_sensors`` per run (default: :class:`WheelSpeedSensor`'s 48-tooth tooth mean)."""
     if len(seeds) != len(manoeuvres):
         raise ValueError("one seed per manoeuvre")
     rngs = [np.random.default_rng(s) for s in seeds]
     cfgs = list(configs) if configs is not None else [FOUR_WHEEL_CONFIG] * len(manoeuvres)
+    wss = list(wheel_sensors) if wheel_sensors is not None else [WheelSpeedSensor()] * len(seeds)
     kz = np.array([[c.tyre.kz_npm] * 4 for c in cfgs])
     for i, m in enumerate(manoeuvres):
         if m.damaged_wheel >= 0:
@@ -140,7 +182,7 @@ def simulate_four_wheel(
         rows = round(m.duration_s / _ROW_S) + 1
         one = truth.take(i)
         one = Truth(*(getattr(one, f)[:rows] for f in one.__dataclass_fields__))
-        sensors = _sensors(one, rngs[i], start_ns)
+        sensors = _sensors(one, rngs[i], start_ns, wss[i])
         tyres = (params.c_px_npm2[i], params.c_py_npm2[i], params.kz_npm[i])
         runs.append(FourWheelRun(m, cfgs[i], one, sensors, start_ns, *tyres))
     return runs
@@ -170,11 +212,49 @@ def _imu(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[tuple[in
     ]
 
 
-def _can(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[tuple[int, Measurement]]:
-    stamps = _stamps(truth, start_ns, 2)
-    omega = np.round(truth.omega_radps[::2] / 0.025) * 0.025
+def tooth_mean_speed(
+    truth: Truth, t_s: FloatArray, phase_rad: FloatArray, sensor: WheelSpeedSensor
+) -> FloatArray:
+    """Each wheel's tone-ring reading at the times ``t_s`` ``(K,)`` → ``(K, 4)`` [rad/s].
+
+    An edge passes where ``θ_w + φ_w`` crosses a multiple of the tooth ``Δ = 2π/teeth``
+    (``θ_w`` the truth's angle on its 2 ms grid, interpolated; ``phase_rad`` ``(4,)`` the
+    rings' ``φ_w``). With ``n ≥ 2`` edges in ``(t − T, t]``: ``ω = (n − 1) Δ/(t_last − t_first)``
+    (``method.md`` §2, period method over whole teeth); fewer: ``Δ`` over the last full
+    tooth before ``t``."""
+    tooth = 2.0 * math.pi / sensor.teeth
+    angle = truth.angle_sub_rad.reshape(-1, 4)
+    grid_s = truth.t_s[0] + DT_S * np.arange(angle.shape[0])
+    lead_s = DT_S * np.arange(-round(_LEAD_IN_S / DT_S), 0)
+    out = np.empty((t_s.size, 4))
+    for w in range(4):
+        theta = np.concatenate([angle[0, w] + truth.omega_radps[0, w] * lead_s, angle[:, w]])
+        theta = np.maximum.accumulate(theta + phase_rad[w])
+        times = np.concatenate([grid_s[0] + lead_s, grid_s])
+        marks = np.arange(np.ceil(theta[0] / tooth), np.floor(theta[-1] / tooth) + 1) * tooth
+        edges = np.interp(marks, theta, times)
+        if edges.size < 2:  # not a whole tooth turned in the run: a wheel at rest
+            out[:, w] = 0.0
+            continue
+        last = np.searchsorted(edges, t_s + 1e-12, side="right") - 1
+        first = np.searchsorted(edges, t_s - sensor.period_s + 1e-12, side="right")
+        last = np.maximum(last, 1)
+        many = last - first >= 1
+        lo = np.where(many, first, last - 1)
+        out[:, w] = (last - lo) * tooth / np.maximum(edges[last] - edges[lo], 1e-9)
+    return out
+
+
+def _can(
+    truth: Truth, rng: np.random.Generator, start_ns: int, sensor: WheelSpeedSensor
+) -> list[tuple[int, Measurement]]:
+    """Wheel-speed and steering packets, the wheel speeds instantaneous (a tooth-mean
+    sensor's are replaced in :func:`_sensors` once the rings' phases are drawn)."""
+    step = round(sensor.period_s / _ROW_S)
+    stamps = _stamps(truth, start_ns, step)
+    omega = np.round(truth.omega_radps[::step] / sensor.quantum_radps) * sensor.quantum_radps
     offset = math.radians(rng.uniform(-0.5, 0.5))
-    sw = truth.steer_wheel_rad[::2] + offset + rng.normal(0.0, math.radians(0.1), stamps.size)
+    sw = truth.steer_wheel_rad[::step] + offset + rng.normal(0.0, math.radians(0.1), stamps.size)
     out: list[tuple[int, Measurement]] = []
     for k in range(0, stamps.size, 5):
         last = int(stamps[min(k + 4, stamps.size - 1)])
@@ -211,8 +291,25 @@ def _gnss(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[tuple[i
     ]
 
 
-def _sensors(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[Measurement]:
-    """Every stream's packets, ordered by the time the packet is complete."""
-    packets = _imu(truth, rng, start_ns) + _can(truth, rng, start_ns) + _gnss(truth, rng, start_ns)
+def _sensors(
+    truth: Truth, rng: np.random.Generator, start_ns: int, wheels: WheelSpeedSensor
+) -> list[Measurement]:
+    """Every stream's packets, ordered by the time the packet is complete. The tone rings'
+    phases are drawn after every other draw, so the other streams do not depend on the
+    wheel-speed sensor."""
+    imu = _imu(truth, rng, start_ns)
+    can = _can(truth, rng, start_ns, wheels)
+    gnss = _gnss(truth, rng, start_ns)
+    if wheels.tooth_mean:
+        phase_rad = rng.uniform(0.0, 2.0 * math.pi, 4)
+        step = round(wheels.period_s / _ROW_S)
+        speed = tooth_mean_speed(truth, truth.t_s[::step], phase_rad, wheels)
+        speed = np.round(speed / wheels.quantum_radps) * wheels.quantum_radps
+        for k in range(0, len(can), 2):
+            stamp, m = can[k]
+            assert isinstance(m, WheelSpeeds4)
+            rows = slice(5 * (k // 2), 5 * (k // 2) + m.stamp_ns.size)
+            can[k] = (stamp, WheelSpeeds4(m.stamp_ns, speed[rows]))
+    packets = imu + can + gnss
     packets.sort(key=lambda p: p[0])
     return [m for _, m in packets]

@@ -148,9 +148,10 @@ class S:
     LOAD_YF, LOAD_YR = 19, 20  # lateral transfer to the right wheels, per axle [N]
     ROLL, PITCH = 21, 22
     SPEED_INT = 23  # driver's integral of speed error [m]
+    ANGLE = slice(24, 28)  # wheel angles [rad], ``θ̇ = ω`` (read by the tone rings only)
 
 
-N_STATE = 24
+N_STATE = 28
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,6 +181,7 @@ class Truth:
     fz_n: FloatArray
     fx_n: FloatArray
     fy_n: FloatArray
+    angle_sub_rad: FloatArray  # (R, T, every, 4): wheel angles at each grid step of a row
 
     def take(self, run: int) -> Truth:
         """One run's rows (a leading axis of 1 dropped)."""
@@ -272,6 +274,7 @@ def _deriv(
     dx[:, S.ROLL] = (p.roll_rad_per_g * acc[:, 1] / GRAVITY_MPS2 - x[:, S.ROLL]) / p.tilt_lag_s
     dx[:, S.PITCH] = (p.pitch_rad_per_g * acc[:, 0] / GRAVITY_MPS2 - x[:, S.PITCH]) / p.tilt_lag_s
     dx[:, S.SPEED_INT] = d.speed_mps[:, k] - vx
+    dx[:, S.ANGLE] = omega
     out = {
         "ax": ax,
         "ay": ay,
@@ -330,7 +333,8 @@ def integrate(
     mu: FloatArray,
     every: int = 10,
 ) -> Truth:
-    """Run the truth over the grid ``k·DT_S`` of the profiles ``(R, K)``; rows every ``every``."""
+    """Run the truth over the grid ``k·DT_S`` of the profiles ``(R, K)``; rows every ``every``,
+    the wheel angles at every grid step (``Truth.angle_sub_rad``)."""
     n_runs, steps = speed_mps.shape
     accel = np.gradient(speed_mps, DT_S, axis=1)
     drive = _Drive(speed_mps, accel, steer_rad, mu)
@@ -340,13 +344,16 @@ def integrate(
     acc = np.zeros((n_runs, 2))
     x = _settle_wheels(x, p, drive)
     rows: list[tuple[FloatArray, dict]] = []
+    angles = np.zeros((n_runs, -(-steps // every) * every, 4))
     for k in range(steps):
         x_new, out = _rk4(x, k, p, drive, acc)
         acc = np.stack([out["ax"], out["ay"]], axis=-1)
+        angles[:, k] = x[:, S.ANGLE]
         if k % every == 0:
             rows.append((x.copy(), out))
         x = x_new
-    return _truth(rows, drive, every)
+    angles[:, steps:] = x[:, None, S.ANGLE]
+    return _truth(rows, drive, every, angles.reshape(n_runs, -1, every, 4))
 
 
 def _settle_wheels(x: FloatArray, p: TruthParams, d: _Drive) -> FloatArray:
@@ -357,7 +364,7 @@ def _settle_wheels(x: FloatArray, p: TruthParams, d: _Drive) -> FloatArray:
     return x
 
 
-def _truth(rows: list[tuple[FloatArray, dict]], d: _Drive, every: int) -> Truth:
+def _truth(rows: list[tuple[FloatArray, dict]], d: _Drive, every: int, angles: FloatArray) -> Truth:
     xs = np.stack([r[0] for r in rows], axis=1)
 
     def o(key: str) -> FloatArray:
@@ -390,4 +397,5 @@ def _truth(rows: list[tuple[FloatArray, dict]], d: _Drive, every: int) -> Truth:
         fz_n=o("fz"),
         fx_n=o("fx"),
         fy_n=o("fy"),
+        angle_sub_rad=angles,
     )

@@ -1,12 +1,16 @@
 """Friction estimator accuracy on the four-wheel simulator (``method.md`` §5, source 004).
 
 ``slipfleet bench friction [--seeds 1,2,101,102] [--holdout-seeds 201,202] [--random N]
-[--modes product,paper,…] [--no-holdout] [--json PATH]`` or
+[--modes product,paper,…] [--no-holdout] [--wheel-sensor tooth|instant] [--json PATH]`` or
 ``python -m server.tooling.bench.friction``.
 
 Every named manoeuvre of :mod:`estimator.sim.four_wheel` runs once per seed of each seed set
 (``--seeds`` is the set the estimator was tuned on, ``--holdout-seeds`` one it never was),
-plus ``--random N`` random manoeuvres on random vehicles per set. Each run feeds four filters
+plus ``--random N`` random manoeuvres on random vehicles per set. The CAN wheel speeds
+(``--wheel-sensor``): ``tooth`` (default), the named runs' ECU times a 48-tooth ring and
+reports the mean over its period, each random vehicle draws its ring and ECU
+(:func:`~estimator.sim.four_wheel.random_wheel_sensor`: 40-100 teeth, one ECU in ten
+sampling); ``instant``, every run's ECU samples the instantaneous speed. Each run feeds four filters
 side by side: fixed-stiffness CKF, load-adaptive CKF, the source's SCKF-MEE (paper mode, the
 paper's front end) and the product mode; first with sensor-derived inputs (the whole
 :class:`~estimator.friction.FrictionFleet`, all runs of a set as one batched fleet), then with
@@ -52,10 +56,13 @@ from estimator.friction.model import Chassis
 from estimator.friction_spec import FrictionFlag
 from estimator.sim.four_wheel import (
     FOUR_WHEEL_CONFIG,
+    INSTANT_WHEEL_SENSOR,
     NAMED,
     FourWheelRun,
+    WheelSpeedSensor,
     random_config,
     random_manoeuvre,
+    random_wheel_sensor,
     simulate_four_wheel,
 )
 from estimator.sim.four_wheel.dynamics import AIR_DENSITY_KGPM3
@@ -86,15 +93,25 @@ def _random_base(seeds: Sequence[int]) -> int:
     return 10_000 + 100 * seeds[0]
 
 
-def _runs(seeds: Sequence[int], random_n: int, random_base: int) -> list[FourWheelRun]:
+def _runs(
+    seeds: Sequence[int], random_n: int, random_base: int, wheel_sensor: str = "tooth"
+) -> list[FourWheelRun]:
+    """The named runs of every seed, then ``random_n`` random ones; each random vehicle's
+    wheel-speed sensor drawn after its manoeuvre and config (``wheel_sensor`` ``tooth``) or
+    every run's instantaneous (``instant``)."""
+    instant = wheel_sensor == "instant"
     named = [(m, s, None) for s in seeds for m in NAMED.values()]
+    sensors = [INSTANT_WHEEL_SENSOR if instant else WheelSpeedSensor()] * len(named)
     extra = []
     for k in range(random_n):
         rng = np.random.default_rng(random_base + k)
         extra.append((random_manoeuvre(rng, k), random_base + k, random_config(rng)))
+        sensors.append(INSTANT_WHEEL_SENSOR if instant else random_wheel_sensor(rng))
     todo = named + extra
     configs = [c if c is not None else FOUR_WHEEL_CONFIG for _, _, c in todo]
-    return simulate_four_wheel([m for m, _, _ in todo], [s for _, s, _ in todo], configs)
+    return simulate_four_wheel(
+        [m for m, _, _ in todo], [s for _, s, _ in todo], configs, wheel_sensors=sensors
+    )
 
 
 def _last_stamp(m: Any) -> int:
@@ -331,12 +348,21 @@ def _floors(runs: list[FourWheelRun], sc: list[Score]) -> dict[str, bool]:
 
 
 def _one_set(
-    label: str, seeds: Sequence[int], random_n: int, base: int, modes: Sequence[FrictionMode]
+    label: str,
+    seeds: Sequence[int],
+    random_n: int,
+    modes: Sequence[FrictionMode],
+    wheel_sensor: str,
 ) -> dict[str, Any]:
     t0 = time.process_time()
-    runs = _runs(seeds, random_n, base)
+    runs = _runs(seeds, random_n, _random_base(seeds), wheel_sensor)
     sim_s = time.process_time() - t0
-    result: dict[str, Any] = {"seeds": list(seeds), "random": random_n, "sim_cpu_s": sim_s}
+    result: dict[str, Any] = {
+        "seeds": list(seeds),
+        "random": random_n,
+        "wheel_sensor": wheel_sensor,
+        "sim_cpu_s": sim_s,
+    }
     inputs_of = (
         ("sensor", sensor_series),
         ("true", true_series),
@@ -369,15 +395,14 @@ def run(
     random_n: int = 2,
     json_path: str | None = None,
     modes: Sequence[FrictionMode] = MODES,
+    wheel_sensor: str = "tooth",
 ) -> dict[str, Any]:
     """Both seed sets (an empty ``holdout`` skips the second), figures as in the docstring."""
     if set(seeds) & set(holdout):
         raise ValueError("the tuning and hold-out seed sets must be disjoint")
-    result = {"tuning": _one_set("tuning set", seeds, random_n, _random_base(seeds), modes)}
+    result = {"tuning": _one_set("tuning set", seeds, random_n, modes, wheel_sensor)}
     if holdout:
-        result["holdout"] = _one_set(
-            "hold-out set", holdout, random_n, _random_base(holdout), modes
-        )
+        result["holdout"] = _one_set("hold-out set", holdout, random_n, modes, wheel_sensor)
     write_json(result, json_path)
     return result
 
@@ -400,8 +425,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="filters to compare (default: all: " + ",".join(m.value for m in MODES) + ")",
     )
     p.add_argument("--no-holdout", action="store_true", help="the tuning set only")
+    p.add_argument(
+        "--wheel-sensor",
+        choices=("tooth", "instant"),
+        default="tooth",
+        help="CAN wheel speeds: tooth-timed means (random vehicles drawn) or instantaneous",
+    )
     a = p.parse_args(argv)
-    run(a.seeds, [] if a.no_holdout else a.holdout_seeds, a.random, a.json, a.modes)
+    holdout = [] if a.no_holdout else a.holdout_seeds
+    run(a.seeds, holdout, a.random, a.json, a.modes, a.wheel_sensor)
     return 0
 
 

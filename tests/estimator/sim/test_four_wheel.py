@@ -2,21 +2,27 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 from estimator.sim.four_wheel import (
     FOUR_WHEEL_CONFIG,
+    INSTANT_WHEEL_SENSOR,
     LEAD_S,
     FourWheelRun,
     Manoeuvre,
+    WheelSpeedSensor,
     random_config,
     random_manoeuvre,
+    random_wheel_sensor,
     simulate_four_wheel,
+    tooth_mean_speed,
 )
-from estimator.sim.four_wheel.dynamics import GRAVITY_MPS2
+from estimator.sim.four_wheel.dynamics import DT_S, GRAVITY_MPS2, Truth
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
 KMH = 1 / 3.6
@@ -128,3 +134,97 @@ def test_random_draws_within_stated_ranges() -> None:
         assert all(abs(a) <= math.radians(90) + 1e-12 for _, a in m.steer_knots)
         assert all(0.2 <= mu <= 1.1 for _, mu in m.mu_knots)
     assert FOUR_WHEEL_CONFIG.chassis.driven_axle.value == "rear"
+
+
+def _wheel_speeds(run: FourWheelRun) -> tuple[np.ndarray, np.ndarray]:
+    ms = [m for m in run.measurements if isinstance(m, WheelSpeeds4)]
+    return (
+        np.concatenate([m.stamp_ns for m in ms]),
+        np.concatenate([m.omega_radps for m in ms]),
+    )
+
+
+def test_the_wheel_sensor_changes_no_other_stream(runs: list[FourWheelRun]) -> None:
+    instant = simulate_four_wheel([ACCEL], seeds=[6], wheel_sensors=[INSTANT_WHEEL_SENSOR])[0]
+    tooth = runs[1]
+    assert len(instant.measurements) == len(tooth.measurements)
+    for a, b in zip(instant.measurements, tooth.measurements, strict=True):
+        assert type(a) is type(b)
+        if isinstance(a, WheelSpeeds4) and isinstance(b, WheelSpeeds4):
+            assert np.array_equal(a.stamp_ns, b.stamp_ns)
+        elif isinstance(a, GnssSample):
+            assert a == b
+        else:
+            for f in dataclasses.fields(a):
+                assert np.array_equal(getattr(a, f.name), getattr(b, f.name))
+    stamps, omega = _wheel_speeds(instant)
+    rows = (stamps - instant.start_ns) // 10_000_000
+    assert np.array_equal(omega, np.round(instant.truth.omega_radps[rows] / 0.025) * 0.025)
+    assert not np.array_equal(omega, _wheel_speeds(tooth)[1])
+
+
+def _spinning(truth: Truth, angle: Callable[[np.ndarray], np.ndarray], rate: np.ndarray) -> Truth:
+    """``truth`` with every wheel turned by ``angle(t)`` [rad] (rate ``rate`` at the rows)."""
+    every = truth.angle_sub_rad.shape[1]
+    t_grid = DT_S * np.arange(truth.t_s.size * every)
+    theta = np.repeat(angle(t_grid)[:, None], 4, axis=1).reshape(-1, every, 4)
+    return dataclasses.replace(
+        truth, angle_sub_rad=theta, omega_radps=np.repeat(rate[:, None], 4, axis=1)
+    )
+
+
+def test_a_tooth_mean_reads_the_speed_half_a_period_back(runs: list[FourWheelRun]) -> None:
+    t = runs[0].truth.t_s
+    omega0, accel = 30.0, 4.0  # rad/s, rad/s²
+    truth = _spinning(runs[0].truth, lambda x: omega0 * x + 0.5 * accel * x**2, omega0 + accel * t)
+    sensor = WheelSpeedSensor(teeth=48)
+    at = t[100:200:2]
+    read = tooth_mean_speed(truth, at, np.array([0.0, 1.0, 2.0, 3.0]), sensor)
+    expected = omega0 + accel * (at - sensor.period_s / 2)
+    assert np.max(np.abs(read - expected[:, None])) < 1e-9 * omega0 + accel * 2.2e-3
+    assert np.mean(read - expected[:, None]) == pytest.approx(0.0, abs=accel * 3e-4)
+
+
+def test_at_a_crawl_the_last_full_tooth_is_read(runs: list[FourWheelRun]) -> None:
+    t = runs[0].truth.t_s
+    sensor = WheelSpeedSensor(teeth=40)
+    omega0 = 2 * math.pi / 40 / (3 * sensor.period_s)  # a tooth every three periods
+    truth = _spinning(runs[0].truth, lambda x: omega0 * x, np.full(t.size, omega0))
+    phases = np.random.default_rng(3).uniform(0, 2 * math.pi, 4)
+    read = tooth_mean_speed(truth, t[50::2], phases, sensor)
+    np.testing.assert_allclose(read, omega0, rtol=1e-9)
+
+
+def test_a_tooth_mean_cancels_a_ring_at_the_sampling_rate(runs: list[FourWheelRun]) -> None:
+    t = runs[0].truth.t_s
+    sensor = WheelSpeedSensor(teeth=96)
+    omega0, ring, hz = 30.0, 2.0, 1.0 / sensor.period_s
+
+    def angle(x: np.ndarray) -> np.ndarray:
+        return omega0 * x + ring / (2 * math.pi * hz) * np.sin(2 * math.pi * hz * x)
+
+    rate = omega0 + ring * np.cos(2 * math.pi * hz * t)
+    truth = _spinning(runs[0].truth, angle, rate)
+    at = t[50:250:2]
+    read = tooth_mean_speed(truth, at, np.zeros(4), sensor)
+    sampled = rate[50:250:2]
+    # the instantaneous samples alias the ring into a standing offset of its full size; the
+    # mean over whole teeth (not quite the whole period) leaves a small part of it
+    assert abs(np.mean(sampled) - omega0) > 0.9 * ring
+    assert abs(np.mean(read) - omega0) < 0.15 * ring
+
+
+def test_random_wheel_sensors_within_stated_ranges() -> None:
+    rng = np.random.default_rng(4)
+    drawn = [random_wheel_sensor(rng) for _ in range(400)]
+    assert {s.teeth for s in drawn} <= set(range(40, 101))
+    assert min(s.teeth for s in drawn) < 45 and max(s.teeth for s in drawn) > 95
+    assert 0.06 < np.mean([not s.tooth_mean for s in drawn]) < 0.14
+
+
+def test_a_wheel_sensor_states_what_it_can_be() -> None:
+    with pytest.raises(ValueError):
+        WheelSpeedSensor(teeth=2)
+    with pytest.raises(ValueError):
+        WheelSpeedSensor(period_s=0.025)  # not on the truth's 10 ms rows
+    assert WheelSpeedSensor(period_s=0.03).period_s == 0.03
