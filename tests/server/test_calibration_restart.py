@@ -30,6 +30,7 @@ from tests.server.fleet_stack import (
     stack_settings,
     stored_columns,
 )
+from tests.support import poll_until
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -122,10 +123,7 @@ def test_calibration_restored_after_a_restart_and_a_reset_kept(
             assert rows_c["radius_left_m"][0] == pytest.approx(RADIUS_M)
             std_c = rows_c["radius_left_std_m"][-1]
             assert not _radius(client)["converged"]
-            deadline = time.monotonic() + 10
-            while calibration_resets(client, VID) < 1:
-                assert time.monotonic() < deadline, "the reset was not counted"
-                time.sleep(0.5)
+            poll_until(lambda: calibration_resets(client, VID) >= 1, "counted reset", timeout_s=10)
     finally:
         server.stop()
 

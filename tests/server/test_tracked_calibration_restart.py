@@ -30,6 +30,7 @@ from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.tracked_fleet import TrackedFleetSim
 from tests.server.fleet_stack import calibration_resets, stack_settings, stored_columns
+from tests.support import poll_until
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -141,10 +142,7 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
             reset = np.flatnonzero(np.isnan(arw))
             assert reset.size and np.isfinite(arw[: reset[0]]).all(), arw
             assert np.isfinite(arw[-1]) and std[-1] > 1.2 * std[reset[0] - 1], (std, reset)
-            deadline = time.monotonic() + 10
-            while calibration_resets(client, VID) < 1:
-                assert time.monotonic() < deadline, "the reset was not counted"
-                time.sleep(0.5)
+            poll_until(lambda: calibration_resets(client, VID) >= 1, "counted reset", timeout_s=10)
     finally:
         server.stop()
 
