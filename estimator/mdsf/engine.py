@@ -261,6 +261,13 @@ class MdsfEngine:
         self._q_accel_rows = np.array([int(r) for r, _, _ in q_accel])
         self._q_accel_cols = np.array([int(c) for _, c, _ in q_accel])
         self._q_accel = np.array([f for _, _, f in q_accel])
+        # ... and the rim excesses by ε·dt (MdsfEngine._accel_noise_into_excess): their 2×2
+        # block, then their rows against V1, a1, D (the noise's shares there), then the mirror.
+        e_l, e_r = (int(e) for e in _RIM_EXCESS)
+        shared = (int(V1), int(A1), int(D))
+        self._q_excess_shares = np.array([dt, 1.0, half])
+        self._q_excess_rows = np.array([e_l, e_l, e_r, e_r, *[e_l] * 3, *[e_r] * 3, *shared * 2])
+        self._q_excess_cols = np.array([e_l, e_r, e_l, e_r, *shared * 2, *[e_l] * 3, *[e_r] * 3])
 
     # -- slots -------------------------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
@@ -690,20 +697,12 @@ class MdsfEngine:
         so ``Q += σ²_a·g·gᵀ`` over those rows. A GNSS correction of ``V1`` then corrects the
         excess's share of the same noise: without the cross terms a gravity leak that the
         GNSS takes out of ``V1`` stayed in ``e`` (slip read ``ε·∫δa·dt`` off)."""
-        dt = self.dt_s
         g_e = -F[:, _RIM_EXCESS, MdsfState.ACCEL_BIAS]  # (k, 2)
-        var = accel_var[:, None]
-        Q[:, _RIM_EXCESS[:, None], _RIM_EXCESS[None, :]] += (
-            var[:, :, None] * g_e[:, :, None] * g_e[:, None, :]
-        )
-        for state, share in (
-            (MdsfState.V1, dt),
-            (MdsfState.A1, 1.0),
-            (MdsfState.DIST, 0.5 * dt * dt),
-        ):
-            cross = var * g_e * share
-            Q[:, _RIM_EXCESS, state] += cross
-            Q[:, state, _RIM_EXCESS] += cross
+        k = g_e.shape[0]
+        outer = (g_e[:, :, None] * g_e[:, None, :]).reshape(k, 4)
+        cross = (g_e[:, :, None] * self._q_excess_shares).reshape(k, 6)
+        vals = np.concatenate([outer, cross, cross], axis=1)
+        Q[:, self._q_excess_rows, self._q_excess_cols] += accel_var[:, None] * vals
 
     def _anchor_slip(
         self, slots: IntArray, lost: BoolArray, speed: FloatArray, F: FloatArray, Q: FloatArray
