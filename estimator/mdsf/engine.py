@@ -261,6 +261,13 @@ class MdsfEngine:
         self._q_accel_rows = np.array([int(r) for r, _, _ in q_accel])
         self._q_accel_cols = np.array([int(c) for _, c, _ in q_accel])
         self._q_accel = np.array([f for _, _, f in q_accel])
+        # ... and the rim excesses by ε·dt (MdsfEngine._accel_noise_into_excess): their 2×2
+        # block, then their rows against V1, a1, D (the noise's shares there), then the mirror.
+        e_l, e_r = (int(e) for e in _RIM_EXCESS)
+        shared = (int(V1), int(A1), int(D))
+        self._q_excess_shares = np.array([dt, 1.0, half])
+        self._q_excess_rows = np.array([e_l, e_l, e_r, e_r, *[e_l] * 3, *[e_r] * 3, *shared * 2])
+        self._q_excess_cols = np.array([e_l, e_r, e_l, e_r, *shared * 2, *[e_l] * 3, *[e_r] * 3])
 
     # -- slots -------------------------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
@@ -649,22 +656,53 @@ class MdsfEngine:
         q_e = (cfg.rim_excess_walk_rel_per_sqrt_s * speed) ** 2 * dt + (
             cfg.slip_demand_gain * speed / GRAVITY_MPS2
         ) ** 2 * d2
-        grow = 1.0 + dt * (a_in - x[:, MdsfState.ACCEL_BIAS]) / np.maximum(
-            speed, _SLIP_MIN_SPEED_MPS
-        )
         q_drift = None
         if cfg.rim_drift_tau_s > 0:
             q_drift = self._rim_drift_noise(slots, lost)
         Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
         if q_drift is not None:
             Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
-        F[:, _RIM_EXCESS, _RIM_EXCESS] = np.clip(grow, 0.5, 1.5)[:, None]
+        self._slip_ratio_growth(x, a_in, speed, F)
         if cfg.slip_per_demand > 0:
             d_dem = self._model_demand_change(slots, t)
             gain = self.tyre_gain(slots)
             u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
         if cfg.outage_slip_std > 0 and lost.any():
             self._anchor_slip(slots, lost, speed, F, Q)
+        self._accel_noise_into_excess(F, Q, accel_var)
+
+    def _slip_ratio_growth(
+        self, x: FloatArray, a_in: FloatArray, speed: FloatArray, F: FloatArray
+    ) -> None:
+        """The rim excess at constant slip ratio ``ε = e/V``, ``e' = e·(1 + dt·(ā − b)/V)``,
+        linearised in ``F`` (k, n, n, in place): ``∂e'/∂e = 1 + dt·ā/V`` and
+        ``∂e'/∂b = −ε·dt`` (their product with the state is the growth itself), so the rim
+        excess moves with the speed the accelerometer predicts and with the bias the GNSS
+        corrects. ``V`` is floored at ``_SLIP_MIN_SPEED_MPS``; a growth outside [0.5, 1.5]
+        (a tick's acceleration near the floor's size) is clipped and left uncoupled."""
+        dt = self.dt_s
+        floor = np.maximum(speed, _SLIP_MIN_SPEED_MPS)
+        bias = x[:, MdsfState.ACCEL_BIAS]
+        grow = 1.0 + dt * (a_in - bias) / floor
+        inside = (grow >= 0.5) & (grow <= 1.5)
+        diag = np.where(inside, 1.0 + dt * a_in / floor, np.clip(grow, 0.5, 1.5))
+        F[:, _RIM_EXCESS, _RIM_EXCESS] = diag[:, None]
+        ratio = x[:, _RIM_EXCESS] / floor[:, None]
+        F[:, _RIM_EXCESS, MdsfState.ACCEL_BIAS] = np.where(inside[:, None], -dt * ratio, 0.0)
+
+    def _accel_noise_into_excess(self, F: FloatArray, Q: FloatArray, accel_var: FloatArray) -> None:
+        """The tick's accelerometer noise ``w`` moves each rim excess as it moves ``V1``
+        (``Q`` (k, n, n) in place): ``e`` grows by ``ε·dt·w`` (minus its bias coupling,
+        ``−F[e, b]``), ``V1`` by ``dt·w``, ``a1`` by ``w`` and the distance by ``dt²·w/2``,
+        so ``Q += σ²_a·g·gᵀ`` over those rows. A GNSS correction of ``V1`` then corrects the
+        excess's share of the same noise: without the cross terms a gravity leak that the
+        GNSS takes out of ``V1`` stayed in ``e`` (slip read ``ε·∫δa·dt`` off)."""
+        g_e = -F[:, _RIM_EXCESS, MdsfState.ACCEL_BIAS]  # (k, 2)
+        k = g_e.shape[0]
+        outer = (g_e[:, :, None] * g_e[:, None, :]).reshape(k, 4)
+        cross = (g_e[:, :, None] * self._q_excess_shares).reshape(k, 6)
+        vals = np.concatenate([outer, cross, cross], axis=1)
+        Q[:, self._q_excess_rows, self._q_excess_cols] += accel_var[:, None] * vals
 
     def _anchor_slip(
         self, slots: IntArray, lost: BoolArray, speed: FloatArray, F: FloatArray, Q: FloatArray
@@ -684,6 +722,7 @@ class MdsfEngine:
         phi = math.exp(-self.dt_s / cfg.outage_slip_tau_s)
         keep = np.where(lost, phi, 1.0)[:, None]
         F[:, _RIM_EXCESS, _RIM_EXCESS] *= keep
+        F[:, _RIM_EXCESS, MdsfState.ACCEL_BIAS] *= keep
         target = self.slip_anchor[slots] + self._demand_slip(slots)[:, None]
         F[:, _RIM_EXCESS, MdsfState.V1] += (1.0 - keep) * target
         var_max = (cfg.outage_slip_std * np.maximum(speed, _SLIP_MIN_SPEED_MPS)) ** 2
