@@ -9,7 +9,13 @@ import math
 import numpy as np
 
 from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
-from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick, _TiltGradient
+from estimator.friction.frontend import (
+    FrontEnd,
+    FrontEndConfig,
+    FrontEndTick,
+    _TiltGradient,
+    can_wheel_timing,
+)
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
@@ -133,3 +139,123 @@ def test_the_accelerations_are_carried_to_the_tick() -> None:
         ax, ay = fe._at_tick(0.5 * mean, mean, 0.005)
         want = mean if n == 0 else 14.0 * t_s
         assert abs(ay - want) < 1e-12 and abs(ax - 0.5 * want) < 1e-12
+
+
+def test_a_can_wheel_speed_belongs_half_a_period_back() -> None:
+    """A tooth-timed mean over the 20 ms before its stamp belongs 10 ms back (plus the
+    reading's age); at a crawl, one tooth longer than the period (τ = 2π/(48 ω)), the last
+    full tooth's centre, ``τ`` back (all of it taken: ``can_lag_share`` 1; half of it with
+    0.5; the default takes none, not knowing whether the ECU averages, so the reading's age
+    alone); an instantaneous sample at its stamp."""
+    fe = FrontEndConfig(can_lag_share=1.0)
+    half = FrontEndConfig(can_lag_share=0.5)
+    lag, _ = can_wheel_timing(np.full(4, 40.0), np.zeros(4), np.zeros(4), half)
+    np.testing.assert_allclose(lag, 0.005, rtol=1e-12)
+    omega = np.array([40.0, 40.0, 2.0 * math.pi / (48 * 0.05), 40.0])
+    lag, _ = can_wheel_timing(omega, np.zeros(4), np.array([0.0, 0.004, 0.0, 0.0]), fe)
+    np.testing.assert_allclose(lag, [0.010, 0.014, 0.05, 0.010], rtol=1e-12)
+    instant = FrontEndConfig(can_tooth_mean=False)
+    lag, _ = can_wheel_timing(omega, np.zeros(4), np.full(4, 0.004), instant)
+    np.testing.assert_allclose(lag, 0.004, rtol=1e-12)
+    lag, _ = can_wheel_timing(omega, np.zeros(4), np.full(4, 0.004), FrontEndConfig())
+    np.testing.assert_allclose(lag, 0.004, rtol=1e-12)
+
+
+def test_a_can_wheel_speeds_variance_is_its_quantum_and_its_timing() -> None:
+    """A steady wheel reads to its quantum (``q²/12``) and the edge timer's share; a wheel whose
+    speed moves by 100 rad/s² (a ring) gains ``(ω̇ σ_t)²``, ``σ_t²`` the unknown lag's and the
+    whole teeth's place in the period (``τ²/12``)."""
+    fe = FrontEndConfig(can_lag_std_s=0.003)
+    omega = np.full(4, 40.0)
+    _, steady = can_wheel_timing(omega, np.zeros(4), np.zeros(4), fe)
+    tooth_s = 2.0 * math.pi / (48 * 40.0)
+    timer = (40.0 * 1e-6 / (0.02 - tooth_s)) ** 2 / 6.0
+    np.testing.assert_allclose(steady**2, 0.025**2 / 12.0 + timer, rtol=1e-12)
+    _, ringing = can_wheel_timing(omega, np.full(4, 100.0), np.zeros(4), fe)
+    timing = 0.003**2 + tooth_s**2 / 12.0
+    np.testing.assert_allclose(ringing**2 - steady**2, 100.0**2 * timing, rtol=1e-12)
+
+
+def _accelerate_awd(fe_config: FrontEndConfig, ring_radps: float = 0.0) -> list[FrontEndTick]:
+    """All four wheels driven and rolling without slip (no rims to read the speed): 4 s at
+    10 m/s, then 3 s at 2 m/s²; GNSS (10 Hz) and the IMU true, the CAN wheel speeds each the
+    mean over the 20 ms before its stamp (so the speed 10 ms before it); the rear-right
+    wheel's readings alternate ``±ring_radps`` about it (a ringing wheel)."""
+    config = Wheeled4wdSteeredConfig(
+        chassis=ChassisConfig(driven_axle=DrivenAxle.ALL, drag_area_m2=0.0, rolling_resistance=0.0)
+    )
+    fe = FrontEnd(config, fe_config, 0.02)
+    t_imu = np.arange(1, 701) * 10_000_000
+    t_s = t_imu / 1e9
+
+    def speed(t: np.ndarray) -> np.ndarray:
+        return 10.0 + 2.0 * np.maximum(t - 4.0, 0.0)
+
+    accel = np.zeros((t_imu.size, 3))
+    accel[:, 1] = np.where(t_s > 4.0, 2.0, 0.0)
+    accel[:, 2] = GRAVITY_MPS2
+    fe.push_imu(ImuBatch(t_imu, accel, np.zeros((t_imu.size, 3))))
+    radius = config.tyre.unloaded_radius_m  # the front end calibrates it in the first 4 s
+    stamps = t_imu[1::2]
+    mean_speed = speed(stamps / 1e9 - 0.01)
+    omega = np.repeat(mean_speed[:, None] / radius, 4, axis=1)
+    omega[:, 3] += ring_radps * (-1.0) ** np.arange(stamps.size)
+    fe.push_wheels(WheelSpeeds4(stamps, omega))
+    fe.push_steering(SteeringAngles(stamps, np.zeros(stamps.size)))
+    v = speed(t_s)
+    for k in range(9, t_imu.size, 10):
+        fe.push_gnss(
+            GnssSample(
+                stamp_ns=int(t_imu[k]),
+                vel_enu_mps=(v[k] * math.sin(HEADING_RAD), v[k] * math.cos(HEADING_RAD), 0.0),
+                heading_rad=HEADING_RAD,
+                pitch_rad=0.0,
+                roll_rad=0.0,
+                lat_deg=48.0,
+                lon_deg=11.0,
+                height_m=500.0,
+            )
+        )
+    ticks = [fe.tick(int(t)) for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000)]
+    return [t for t in ticks if t is not None]
+
+
+def test_a_lagged_wheel_speed_reads_no_slip() -> None:
+    """Accelerating at 2 m/s² on wheels that do not slip, their CAN speeds a period's mean:
+    read against the speed of the reading's time (told the ECU averages), the four κ stay
+    within 3e-4 of 0 over the last second (14-16 m/s); read as if instantaneous they are
+    ``−a·T/2/v``, about −1.3e-3; not told which (the default) the reading is taken at its
+    stamp, as an instantaneous one: no lag assumed."""
+    told = _accelerate_awd(FrontEndConfig(can_lag_share=1.0))
+    default = np.array([t.kappa for t in _accelerate_awd(FrontEndConfig())[-50:]])
+    not_told = _accelerate_awd(FrontEndConfig(can_tooth_mean=False, can_lag_std_s=0.0))
+    late = slice(-50, None)
+    kappa_told = np.array([t.kappa for t in told[late]])
+    kappa_not = np.array([t.kappa for t in not_told[late]])
+    assert np.max(np.abs(kappa_told)) < 3e-4
+    assert np.mean(kappa_not) < -1.0e-3
+    assert abs(np.mean(default) - np.mean(kappa_not)) < 5e-5
+
+
+def test_a_ringing_wheels_slip_loses_weight_whatever_its_ecu() -> None:
+    """The rear-right wheel's readings alternate ±0.5 rad/s about the others' (a ring of
+    ±50 rad/s²): its κ's own 1-σ takes ``r·ω̇·σ_t/v`` (``σ_t`` the 5 ms not known of the
+    reading's timing) in quadrature with the 2e-4 floor, to more than five times the other
+    wheels'. Those, accelerating at 2 m/s², gain ``a·σ_t/v`` the same way over a front end with
+    no timing doubt (``can_lag_std_s`` 0, instantaneous): at 14-16 m/s ``hypot(2e-4,
+    a·σ_t/v) − 2e-4`` is 4.6e-4 to 5.4e-4 (less a little: the loaded radius is below the
+    unloaded one the readings were made with). Neither reading is shifted (no lag taken), so
+    the other wheels' mean κ is the same in both."""
+    ticks = _accelerate_awd(FrontEndConfig(), ring_radps=0.5)[-50:]
+    plain = _accelerate_awd(
+        FrontEndConfig(can_tooth_mean=False, can_lag_std_s=0.0), ring_radps=0.5
+    )[-50:]
+    k_std = np.array([t.kappa_std for t in ticks])
+    k_std_plain = np.array([t.kappa_std for t in plain])
+    assert np.median(k_std[:, 3]) > 5.0 * np.median(k_std[:, :3])
+    rise = k_std[:, :3] - k_std_plain[:, :3]
+    assert np.min(rise) > 0.85 * (math.hypot(2e-4, 2.0 * 0.005 / 16.0) - 2e-4)
+    assert np.max(rise) < math.hypot(2e-4, 2.0 * 0.005 / 14.0) - 2e-4
+    kappa = np.array([t.kappa for t in ticks])[:, :3]
+    kappa_plain = np.array([t.kappa for t in plain])[:, :3]
+    assert abs(np.mean(kappa) - np.mean(kappa_plain)) < 5e-5
