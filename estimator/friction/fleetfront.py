@@ -338,7 +338,7 @@ class FleetFrontEnd:
             fz_n=fz,
             kz_npm=st.kz_wheel[s],
             delta_rad=delta,
-            kappa_common_std=np.sqrt(np.maximum(vx_var, 0.0)) / np.maximum(np.abs(vx), 1.0),
+            kappa_common_std=self._kappa_common_std(vx, vx_var, ax),
             z=z,
             vx_mps=vx,
             vy_mps=self.vy.speed[s],
@@ -351,6 +351,15 @@ class FleetFrontEnd:
         )
 
     # --- stages ---------------------------------------------------------------------------
+    def _kappa_common_std(self, vx: FloatArray, vx_var: FloatArray, ax: FloatArray) -> FloatArray:
+        """The 1-σ shared by the four κ ``(B,)``: the speed's, and (not paper) the body's
+        ``a_x`` over the readings' unknown timing ``can_lag_std_s`` (``FrontEnd.tick``)."""
+        denom = np.maximum(np.abs(vx), 1.0)
+        common = np.sqrt(np.maximum(vx_var, 0.0)) / denom
+        if self.fe.paper:
+            return common
+        return np.hypot(common, np.abs(ax) * self.fe.can_lag_std_s / denom)
+
     def _wheel_timing(self, s: IntArray, sensed: SensedTicks) -> tuple[FloatArray, FloatArray]:
         """Each wheel reading's lag behind the tick [s] and 1-σ [rad/s] ``(B, 4)``, the rate
         taken from the last two readings (``FrontEnd._wheel_timing``; paper: zeros)."""
@@ -617,6 +626,9 @@ class FleetFrontEnd:
         radius = self._radius_now(s, fz)
         kappa = (omega * radius - (v_long - ax[:, None] * lag_s)) / denom
         alpha = -np.arctan2(v_lat, np.maximum(speed, 0.5))
+        if not self.fe.paper:  # the wheel's own rate: the body's is shared (kappa_common_std)
+            own_rate = st.omega_rate[s] - ax[:, None] / radius
+            omega_std = can_wheel_timing(omega, own_rate, np.zeros_like(omega), self.fe)[1]
         k_std = omega * st.radius_std[s] / denom + np.hypot(2e-4, omega_std * radius / denom)
         a_std = np.sqrt(np.maximum(vy.var[s], 0.0))[:, None] / denom + 1e-3
         if self.fe.paper:

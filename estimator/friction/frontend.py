@@ -492,6 +492,9 @@ class FrontEnd:
         # the radii's shared scale error is in the speed's (the rims correct it) and cancels
         # in κ with it: the speed's 1-σ alone is the shared part
         k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
+        if not self.fe.paper:  # the body's rate over the readings' unknown timing
+            timing_common = abs(ax) * self.fe.can_lag_std_s / max(abs(self.vx.speed), 1.0)
+            k_common = math.hypot(k_common, timing_common)
         vx = self.vx.speed
         resist = 0.0 if self.fe.paper else self._resistance(vx, fz)
         ax_now, ay_now = self._at_tick(ax, ay, imu_lag_s)
@@ -710,9 +713,11 @@ class FrontEnd:
         radius = self._radius_now(fz)
         kappa = (self.omega * radius - (v_long - ax * self.omega_lag_s)) / denom
         alpha = -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
-        k_std = self.omega * self.radius_std / denom + np.hypot(
-            2e-4, self.omega_std * radius / denom
-        )
+        omega_std = self.omega_std
+        if not self.fe.paper:  # the wheel's own rate: the body's is shared (k_common)
+            own_rate = self.omega_rate - ax / radius
+            omega_std = can_wheel_timing(self.omega, own_rate, np.zeros(4), self.fe)[1]
+        k_std = self.omega * self.radius_std / denom + np.hypot(2e-4, omega_std * radius / denom)
         a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
         lag = np.zeros(4)
         if not self.fe.paper:
