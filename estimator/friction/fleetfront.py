@@ -26,7 +26,6 @@ from estimator.friction.frontend import (
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
-    can_wheel_timing,
     spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -231,9 +230,6 @@ class _State(_Arrays):
         self.yaw_prev = np.zeros(0)
         self.accel_prev = np.zeros((0, 2))  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((0, 2, 4))
-        self.omega = np.zeros((0, 4))  # the last wheel speeds read, their stamp, their rate
-        self.omega_ns = np.zeros(0, dtype=np.int64)
-        self.omega_rate = np.zeros((0, 4))
 
     def reset(self, slot: int, car: _Vehicles, fe: FrontEndConfig) -> None:
         fz = car.fz_static[slot]
@@ -250,9 +246,6 @@ class _State(_Arrays):
         self.yaw_prev[slot] = math.nan
         self.accel_prev[slot] = math.nan
         self.slip_lag[slot] = 0.0
-        self.omega[slot] = math.nan
-        self.omega_ns[slot] = 0
-        self.omega_rate[slot] = 0.0
 
 
 class FleetFrontEnd:
@@ -318,16 +311,15 @@ class FleetFrontEnd:
         steer = np.where(np.isfinite(sensed.steer_rad), sensed.steer_rad, 0.0)
         delta = np.zeros((s.size, 4))
         delta[:, :2] = (steer / self.car.steering_ratio[s])[:, None]
-        timing = self._wheel_timing(s, sensed)
         if not paper:
-            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps, timing[0])
-        self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed, timing)
+            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
+        self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed)
         self._side_slip_step(s, ay_tilt, yaw_rate, g, gnss_v)
         st = self.state
         prev = st.yaw_prev[s]
         yaw_accel = np.where(np.isnan(prev), 0.0, (yaw_rate - prev) / dt)
         st.yaw_prev[s] = yaw_rate
-        slips = self._slips(s, fz, delta, (yaw_rate, ax), sensed.omega_radps, timing)
+        slips = self._slips(s, fz, delta, yaw_rate, sensed.omega_radps)
         vx, vx_var = self.vx.speed[s], self.vx.var[s]
         ax_now, ay_now = self._at_tick(s, ax, ay, sensed.imu_lag_s)
         z = np.stack([ax_now + self._resistance(s, vx, fz), ay_now, yaw_accel], axis=1)
@@ -338,7 +330,7 @@ class FleetFrontEnd:
             fz_n=fz,
             kz_npm=st.kz_wheel[s],
             delta_rad=delta,
-            kappa_common_std=self._kappa_common_std(vx, vx_var, ax),
+            kappa_common_std=np.sqrt(np.maximum(vx_var, 0.0)) / np.maximum(np.abs(vx), 1.0),
             z=z,
             vx_mps=vx,
             vy_mps=self.vy.speed[s],
@@ -351,31 +343,6 @@ class FleetFrontEnd:
         )
 
     # --- stages ---------------------------------------------------------------------------
-    def _kappa_common_std(self, vx: FloatArray, vx_var: FloatArray, ax: FloatArray) -> FloatArray:
-        """The 1-σ shared by the four κ ``(B,)``: the speed's, and (not paper) the body's
-        ``a_x`` over the readings' unknown timing ``can_lag_std_s`` (``FrontEnd.tick``)."""
-        denom = np.maximum(np.abs(vx), 1.0)
-        common = np.sqrt(np.maximum(vx_var, 0.0)) / denom
-        if self.fe.paper:
-            return common
-        return np.hypot(common, np.abs(ax) * self.fe.can_lag_std_s / denom)
-
-    def _wheel_timing(self, s: IntArray, sensed: SensedTicks) -> tuple[FloatArray, FloatArray]:
-        """Each wheel reading's lag behind the tick [s] and 1-σ [rad/s] ``(B, 4)``, the rate
-        taken from the last two readings (``FrontEnd._wheel_timing``; paper: zeros)."""
-        st, omega, stamp = self.state, sensed.omega_radps, sensed.omega_stamp_ns
-        new = stamp != st.omega_ns[s]
-        rated = new & np.isfinite(st.omega[s]).all(axis=1) & (stamp > st.omega_ns[s])
-        if rated.any():
-            r = np.flatnonzero(rated)
-            dt_s = ((stamp[r] - st.omega_ns[s[r]]) * 1e-9)[:, None]
-            st.omega_rate[s[r]] = (omega[r] - st.omega[s[r]]) / dt_s
-        st.omega[s[new]], st.omega_ns[s[new]] = omega[new], stamp[new]
-        if self.fe.paper:
-            return np.zeros_like(omega), np.zeros_like(omega)
-        age_s = np.broadcast_to(((sensed.t_ns - stamp) * 1e-9)[:, None], omega.shape)
-        return can_wheel_timing(omega, st.omega_rate[s], age_s, self.fe)
-
     def _yaw_step(
         self, s: IntArray, gyro_z: FloatArray, g: IntArray, sensed: SensedTicks
     ) -> FloatArray:
@@ -476,7 +443,6 @@ class FleetFrontEnd:
         yaw_rate: FloatArray,
         ax: FloatArray,
         omega: FloatArray,
-        lag_s: FloatArray,
     ) -> None:
         """Radius calibration on the rows with a fresh epoch, straight and steady at 5 m/s or
         more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt."""
@@ -487,7 +453,6 @@ class FleetFrontEnd:
         c, car, st = s[rows], self.car, self.state
         v = gnss_v[rows]
         v_long, _ = self._wheel_velocity(c, v[:, 0], v[:, 1], yaw_rate[rows], delta[rows])
-        v_long = v_long - ax[rows][:, None] * lag_s[rows]
         f = fz[rows]
         resist = car.rolling[c] * f.sum(axis=1) + 0.5 * AIR_DENSITY_KGPM3 * (
             car.drag_area[c] * v[:, 0] ** 2
@@ -535,7 +500,6 @@ class FleetFrontEnd:
         fz: FloatArray,
         delta: FloatArray,
         sensed: SensedTicks,
-        timing: tuple[FloatArray, FloatArray],
     ) -> None:
         """Forward speed: started at the first tick, predicted, corrected by GNSS and, on
         the calibrated vehicles with undriven wheels, by their rims (``FrontEnd._speed_step``)."""
@@ -554,23 +518,20 @@ class FleetFrontEnd:
         rows = np.flatnonzero(use)
         if rows.size:
             ax = ax_tilt[rows] - self.vx.bias[s[rows]]
-            wheel = (omega[rows], timing[0][rows], timing[1][rows])
-            self._rim_update(s[rows], wheel, fz[rows], delta[rows], (yaw_rate[rows], ax))
+            self._rim_update(s[rows], omega[rows], fz[rows], delta[rows], (yaw_rate[rows], ax))
 
     def _rim_update(
         self,
         c: IntArray,
-        wheel: tuple[FloatArray, FloatArray, FloatArray],
+        omega: FloatArray,
         fz: FloatArray,
         delta: FloatArray,
         rates: tuple[FloatArray, FloatArray],
     ) -> None:
         """The undriven wheels' mean rim speed, less their spin-up slip, as a reading of
-        ``v_x`` (``wheel``: readings, their lag and 1-σ; ``rates``: yaw rate and the bias-free
-        ``a_x``; ``FrontEnd._speed_step``)."""
+        ``v_x`` (``rates``: yaw rate and the bias-free ``a_x``; ``FrontEnd._speed_step``)."""
         car, st, fe = self.car, self.state, self.fe
         r, ax = rates
-        omega, lag_s, omega_std = wheel
         radius = self._radius_now(c, fz)
         c_x = load_adaptive_stiffness_n(
             fz, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
@@ -581,14 +542,11 @@ class FleetFrontEnd:
         rim = omega * radius / (1.0 + spin)
         w = self.vy.speed[c][:, None] + car.wheel_x[c] * r[:, None]
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + car.wheel_y[c] * r[:, None]
-        vx_rim = vx_rim + ax[:, None] * lag_s
         free, n_free = car.free[c], car.n_free[c]
         v = np.where(free, vx_rim, 0.0).sum(axis=1) / n_free
         own = np.where(free, st.radius_std[c] / st.radius[c], 0.0).sum(axis=1) / n_free
         spin_mean = np.where(free, spin, 0.0).sum(axis=1) / n_free
-        reading = np.where(free, omega_std * radius, 0.0).sum(axis=1) / n_free
         rel = np.hypot(np.hypot(own, st.radius_common_rel[c]), fe.wheel_inertia_rel_std * spin_mean)
-        rel = np.hypot(rel, reading / np.maximum(np.abs(v), 1.0))
         braked_mean = np.where(free, braked, 0.0).sum(axis=1) / n_free
         ok = braked_mean <= np.hypot(rel, 5e-4)  # a brake slip is a bias, not noise
         self.vx.update(c[ok], v[ok], ((rel * v) ** 2 + (5e-4 * v) ** 2)[ok])
@@ -611,25 +569,17 @@ class FleetFrontEnd:
         s: IntArray,
         fz: FloatArray,
         delta: FloatArray,
-        rates: tuple[FloatArray, FloatArray],
+        yaw_rate: FloatArray,
         omega: FloatArray,
-        timing: tuple[FloatArray, FloatArray],
     ) -> dict[str, FloatArray]:
-        """κ, α, their 1-σ and α's lag per wheel ``(B, 4)`` (``FrontEnd._slips``; ``rates``:
-        yaw rate and the bias-free ``a_x``; ``timing``: the readings' lag and 1-σ)."""
+        """κ, α, their 1-σ and α's lag per wheel ``(B, 4)`` (``FrontEnd._slips``)."""
         st, vx, vy = self.state, self.vx.speed[s], self.vy
-        yaw_rate, ax = rates
-        lag_s, omega_std = timing
         v_long, v_lat = self._wheel_velocity(s, vx, vy.speed[s], yaw_rate, delta)
         speed = np.abs(v_long)
         denom = np.maximum(speed, 1.0)
-        radius = self._radius_now(s, fz)
-        kappa = (omega * radius - (v_long - ax[:, None] * lag_s)) / denom
+        kappa = (omega * self._radius_now(s, fz) - v_long) / denom
         alpha = -np.arctan2(v_lat, np.maximum(speed, 0.5))
-        if not self.fe.paper:  # the wheel's own rate: the body's is shared (kappa_common_std)
-            own_rate = st.omega_rate[s] - ax[:, None] / radius
-            omega_std = can_wheel_timing(omega, own_rate, np.zeros_like(omega), self.fe)[1]
-        k_std = omega * st.radius_std[s] / denom + np.hypot(2e-4, omega_std * radius / denom)
+        k_std = omega * st.radius_std[s] / denom + 2e-4
         a_std = np.sqrt(np.maximum(vy.var[s], 0.0))[:, None] / denom + 1e-3
         if self.fe.paper:
             lag = np.zeros_like(alpha)

@@ -37,15 +37,6 @@ is tested against:
   measured ``a_x``, ``a_y`` are carried to the tick along their change since the last one,
   ``a + (a − a_prev)·lag/dt`` (not paper): in a 0.3 s steering ramp to 4 m/s² the mean is
   0.07 m/s² behind, and the filter's ``v_y`` kept what that did to the update;
-* the CAN wheel speed (not paper): an ABS ECU times its tone ring's edges and reports the mean
-  speed over the whole teeth of its period ``T`` before the stamp (``method.md`` §2, period
-  method over ``k`` teeth), so a reading belongs ``max(T/2, τ)`` before its stamp (``τ`` one
-  tooth's time: at a crawl the last full tooth, whose centre is half a tooth before its end
-  edge, itself half a tooth before the stamp on average; :func:`can_wheel_timing`). Slips and
-  rim speeds compare it with the speed at that time (``v − a_x·lag``), and its 1-σ adds the
-  reading's quantisation and ``(ω̇ σ_t)²``, ``σ_t`` the lag's unknown part (an ECU's own delay,
-  where in the period the whole teeth fall), so a lag that is not the assumed one costs
-  weight where the wheel's speed moves, not bias;
 * the undriven wheels' spin-up slip: a wheel without torque is spun up by its contact force
   alone (``I ω̇ = −F r``, ``ω̇ = a_x/r``), so it rolls with ``κ = −I a_x/(r² c_x)`` (about
   −1e-4 at 2.3 m/s²), taken out of their rim speed before it reads ``v_x`` (not paper);
@@ -80,7 +71,6 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
-    "can_wheel_timing",
     "spin_up_slip",
 ]
 
@@ -121,17 +111,6 @@ class FrontEndConfig:
     and its relative 1-σ, for the undriven wheels' spin-up slip (:func:`spin_up_slip`; a
     road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²); ``brake_share_std``: the 1-σ of the
     undriven axle's share of the braking force (:func:`brake_slip_std`).
-
-    The CAN wheel-speed sensor (:func:`can_wheel_timing`; not paper): ``can_tooth_mean``, each
-    reading is the mean over the whole teeth of the ``can_period_s`` before its stamp (an ECU
-    timing its tone ring; otherwise an instantaneous sample); ``can_teeth`` the ring's teeth
-    (assumed: 48, within the 40-100 of road vehicles); ``can_quantum_radps`` the CAN signal's
-    resolution; ``can_timer_s`` the ECU's edge timer; ``can_lag_share`` the share of a tooth
-    mean's lag taken and ``can_lag_std_s`` the 1-σ of what is not known of the delay: whether
-    the ECU averages (``T/2`` back) or samples (at its stamp) is not known, and a lag taken is
-    a bias for the ECU it does not fit, so by default none is taken (the reading is compared
-    at its stamp) and half the spread between the two, ``T/4`` = 5 ms, is its 1-σ: the reading
-    loses weight as its wheel's speed changes, whichever the ECU.
     """
 
     paper: bool = False
@@ -153,17 +132,6 @@ class FrontEndConfig:
     wheel_inertia_kgm2: float = 1.4
     wheel_inertia_rel_std: float = 0.4
     brake_share_std: float = 0.5
-    can_tooth_mean: bool = True
-    can_period_s: float = 0.02
-    can_teeth: int = 48
-    can_quantum_radps: float = 0.025
-    can_timer_s: float = 1e-6
-    can_lag_std_s: float = 0.005
-    can_lag_share: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.can_period_s <= 0.0 or self.can_teeth < 1 or self.can_quantum_radps < 0.0:
-            raise ValueError("the CAN wheel speed needs a period, teeth and a quantum ≥ 0")
 
 
 def brake_slip_std(
@@ -197,33 +165,6 @@ def spin_up_slip(
     return slip
 
 
-def can_wheel_timing(
-    omega_radps: FloatArray, rate_radps2: FloatArray, age_s: FloatArray, fe: FrontEndConfig
-) -> tuple[FloatArray, FloatArray]:
-    """How long before the tick a CAN wheel speed belongs, and its 1-σ [rad/s], per wheel.
-
-    ``omega_radps`` the readings, ``rate_radps2`` their change per second (from the last two
-    readings), ``age_s`` the tick less the reading's stamp; arrays of one shape (``(4,)`` or
-    ``(B, 4)``). A tooth-timed mean over ``T`` belongs ``max(T/2, τ)`` before its stamp,
-    ``τ = 2π/(N|ω|)``: a tooth's time (capped at ``5 T``, a wheel all but at rest); the front
-    end takes ``can_lag_share`` of that, the rest of the doubt in ``σ_lag``. Its
-    variance (``method.md`` §2): the CAN quantum ``q²/12``, the two timed edges' ``t_c²/12``
-    each over the span of whole teeth (``max(T − τ, τ)``): ``ω² t_c²/(6 span²)``, and the
-    timing ``(ω̇ σ_t)²`` with ``σ_t² = σ_lag² + τ²/12`` (the whole teeth start and end anywhere
-    within a tooth of the period's ends). An instantaneous sample: no lag, ``σ_t = σ_lag``."""
-    omega = np.abs(omega_radps)
-    quant = fe.can_quantum_radps**2 / 12.0
-    if not fe.can_tooth_mean:
-        var = quant + (rate_radps2 * fe.can_lag_std_s) ** 2
-        return age_s + 0.0 * omega, np.sqrt(var)
-    period = fe.can_period_s
-    tooth_s = np.minimum(2.0 * math.pi / (fe.can_teeth * np.maximum(omega, 1e-6)), 5.0 * period)
-    span_s = np.maximum(period - tooth_s, tooth_s)
-    timing = fe.can_lag_std_s**2 + tooth_s**2 / 12.0
-    var = quant + (omega * fe.can_timer_s / span_s) ** 2 / 6.0 + rate_radps2**2 * timing
-    return age_s + fe.can_lag_share * np.maximum(0.5 * period, tooth_s), np.sqrt(var)
-
-
 @dataclass(frozen=True, slots=True)
 class FrontEndTick:
     """One tick's inputs (per wheel ``(4,)``) and measurements, with the 1-σ the filter uses."""
@@ -249,18 +190,18 @@ class FrontEndTick:
 
 def _latest_sample(
     packets: list[tuple[np.ndarray, np.ndarray]], t_ns: int
-) -> tuple[np.ndarray | None, int, list[tuple[np.ndarray, np.ndarray]]]:
+) -> tuple[np.ndarray | None, list[tuple[np.ndarray, np.ndarray]]]:
     """The last sample at or before ``t_ns`` of ``(stamps, values)`` packets (None if none),
-    its stamp, and the packets still holding later samples."""
-    latest, stamp = None, 0
+    and the packets still holding later samples."""
+    latest = None
     rest = []
     for stamps, values in packets:
         sel = np.flatnonzero(stamps <= t_ns)
         if sel.size:
-            latest, stamp = values[sel[-1]], int(stamps[sel[-1]])
+            latest = values[sel[-1]]
         if stamps.size and stamps[-1] > t_ns:
             rest.append((stamps, values))
-    return latest, stamp, rest
+    return latest, rest
 
 
 class _AxisFilter:
@@ -380,10 +321,6 @@ class FrontEnd:
         self.steer_packets: list[tuple[np.ndarray, np.ndarray]] = []
         self.gnss_queue: deque[GnssSample] = deque()
         self.omega = np.full(4, np.nan)
-        self.omega_ns = 0  # the reading's stamp
-        self.omega_rate = np.zeros(4)  # its change per second over the last two readings
-        self.omega_lag_s = np.zeros(4)  # how long before the tick each reading belongs
-        self.omega_std = np.zeros(4)  # the reading's 1-σ [rad/s] (0: paper)
         self.steer_rad = math.nan
         self.gnss: GnssSample | None = None
         self.gnss_fresh = False
@@ -448,12 +385,10 @@ class FrontEnd:
 
     def _latest(self, t_ns: int) -> None:
         """Latest wheel speeds, steering angle and GNSS sample at or before ``t_ns``."""
-        omega, stamp, self.wheel_packets = _latest_sample(self.wheel_packets, t_ns)
-        if omega is not None and stamp != self.omega_ns:
-            if np.all(np.isfinite(self.omega)) and stamp > self.omega_ns:
-                self.omega_rate = (omega - self.omega) / ((stamp - self.omega_ns) * 1e-9)
-            self.omega, self.omega_ns = omega, stamp
-        steer, _, self.steer_packets = _latest_sample(self.steer_packets, t_ns)
+        omega, self.wheel_packets = _latest_sample(self.wheel_packets, t_ns)
+        if omega is not None:
+            self.omega = omega
+        steer, self.steer_packets = _latest_sample(self.steer_packets, t_ns)
         if steer is not None:
             self.steer_rad = float(steer)
         while self.gnss_queue and self.gnss_queue[0].stamp_ns <= t_ns:
@@ -482,19 +417,15 @@ class FrontEnd:
         delta = np.zeros(4)
         steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
         delta[:2] = steer / self.ch.steering_ratio
-        self._wheel_timing(t_ns)
         self._calibrate(gnss, fz, delta, yaw_rate, ax)
         self._speed_step(ax_tilt, yaw_rate, gnss, fz, delta)
         self._side_slip_step(ay_tilt, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
-        kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate, ax)
+        kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
         # the radii's shared scale error is in the speed's (the rims correct it) and cancels
         # in κ with it: the speed's 1-σ alone is the shared part
         k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
-        if not self.fe.paper:  # the body's rate over the readings' unknown timing
-            timing_common = abs(ax) * self.fe.can_lag_std_s / max(abs(self.vx.speed), 1.0)
-            k_common = math.hypot(k_common, timing_common)
         vx = self.vx.speed
         resist = 0.0 if self.fe.paper else self._resistance(vx, fz)
         ax_now, ay_now = self._at_tick(ax, ay, imu_lag_s)
@@ -525,17 +456,6 @@ class FrontEnd:
             gnss=gnss is not None,
             valid=bool(valid),
             tyre_suspect=self.tyre_suspect,
-        )
-
-    def _wheel_timing(self, t_ns: int) -> None:
-        """How long before ``t_ns`` each wheel's reading belongs and its 1-σ [rad/s]
-        (:func:`can_wheel_timing`; paper: at the tick, the 1-σ left to ``_slips``' floor)."""
-        if self.fe.paper:
-            self.omega_lag_s, self.omega_std = np.zeros(4), np.zeros(4)
-            return
-        age_s = np.full(4, (t_ns - self.omega_ns) * 1e-9)
-        self.omega_lag_s, self.omega_std = can_wheel_timing(
-            self.omega, self.omega_rate, age_s, self.fe
         )
 
     def _resistance(self, vx: float, fz: FloatArray) -> float:
@@ -598,13 +518,11 @@ class FrontEnd:
         rim = self.omega * radius / (1.0 + spin)
         w = self.vy.speed + self.wheel_x * yaw_rate
         vx_rim = (rim - w * np.sin(delta)) / np.cos(delta) + self.wheel_y * yaw_rate
-        vx_rim = vx_rim + ax * self.omega_lag_s  # the rims read the speed of their time
         v = float(np.mean(vx_rim[free]))
         rel = math.hypot(
             float(np.mean(self.radius_std[free] / self.radius[free])),
             self.radius_common_rel,
             self.fe.wheel_inertia_rel_std * float(np.mean(spin[free])),
-            float(np.mean(self.omega_std[free] * radius[free])) / max(abs(v), 1.0),
         )
         if float(np.mean(braked[free])) > math.hypot(rel, 5e-4):
             return  # the brake slip is a bias: it would not average out over the ticks
@@ -698,26 +616,19 @@ class FrontEnd:
         return u * np.cos(delta) + w * np.sin(delta), -u * np.sin(delta) + w * np.cos(delta)
 
     def _slips(
-        self, fz: FloatArray, delta: FloatArray, yaw_rate: float, ax: float
+        self, fz: FloatArray, delta: FloatArray, yaw_rate: float
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         """κ, α, their 1-σ and α's lag (relaxed − kinematic) per wheel (source eq. 8-14),
         relaxed (not paper). κ's 1-σ here is each wheel's own (its radius, the rim speed's
         resolution); the speed's error moves all four κ together and is given apart
         (``FrontEndTick.kappa_common_std``). The relaxation length is the config's, the tyre's
         may be half or twice it: while the slip moves, half the distance between the
-        kinematic and the relaxed slip is added to its 1-σ. The wheel speed is compared with
-        the speed at the reading's time, ``v − a_x·lag``, and its own 1-σ (the reading's, in
-        quadrature with the 2e-4 floor) enters κ's."""
+        kinematic and the relaxed slip is added to its 1-σ."""
         v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
         denom = np.maximum(np.abs(v_long), 1.0)
-        radius = self._radius_now(fz)
-        kappa = (self.omega * radius - (v_long - ax * self.omega_lag_s)) / denom
+        kappa = (self.omega * self._radius_now(fz) - v_long) / denom
         alpha = -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
-        omega_std = self.omega_std
-        if not self.fe.paper:  # the wheel's own rate: the body's is shared (k_common)
-            own_rate = self.omega_rate - ax / radius
-            omega_std = can_wheel_timing(self.omega, own_rate, np.zeros(4), self.fe)[1]
-        k_std = self.omega * self.radius_std / denom + np.hypot(2e-4, omega_std * radius / denom)
+        k_std = self.omega * self.radius_std / denom + 2e-4
         a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
         lag = np.zeros(4)
         if not self.fe.paper:
@@ -773,7 +684,6 @@ class FrontEnd:
         if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
             return
         v_long, _ = self._wheel_velocity(gnss[0], gnss[1], yaw_rate, delta)
-        v_long = v_long - ax * self.omega_lag_s  # at the wheel readings' time
         resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
             self.ch.drag_area_m2 * gnss[0] ** 2
         )

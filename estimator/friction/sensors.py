@@ -55,7 +55,7 @@ class SensedTicks:
     ``gnss_stamp_ns`` ``(K,)`` its time; ``gnss_recent`` ``(K,)`` whether the latest epoch
     (fresh or not) is at most ``gnss_timeout_s`` old; ``imu_lag_s`` ``(K,)`` how far before
     the tick the IMU means' samples lie on average (``t`` less their mean stamp: 5 ms for
-    100 Hz samples in a 20 ms tick); ``omega_stamp_ns`` ``(K,)`` the wheel speeds' stamp.
+    100 Hz samples in a 20 ms tick).
     """
 
     t_ns: IntArray
@@ -68,7 +68,6 @@ class SensedTicks:
     gnss_stamp_ns: IntArray
     gnss_recent: BoolArray
     imu_lag_s: FloatArray
-    omega_stamp_ns: IntArray
 
     def take(self, rows: IntArray) -> SensedTicks:
         """The rows ``rows``."""
@@ -210,7 +209,6 @@ class FleetSensors:
         self.steering = _Rows(1, sort=True)
         self.gnss = _Rows(5, sort=False)  # [v_x, v_y body, heading, pitch, roll], a queue
         self.omega = np.zeros((0, 4))
-        self.omega_ns = np.zeros(0, dtype=np.int64)  # the held wheel speeds' stamp
         self.steer = np.zeros(0)
         self.epoch = np.zeros((0, 5))  # the latest GNSS epoch popped
         self.epoch_ns = np.zeros(0, dtype=np.int64)
@@ -230,14 +228,13 @@ class FleetSensors:
             rows = max(slot + 1, 2 * self.next_ns.size, 8)
             for r in (self.imu, self.wheels, self.steering, self.gnss):
                 r.add_slots(rows)
-            for name in ("omega", "omega_ns", "steer", "epoch", "epoch_ns", "has_epoch", "fresh"):
+            for name in ("omega", "steer", "epoch", "epoch_ns", "has_epoch", "fresh"):
                 self._grow(name, rows)
             self._grow("next_ns", rows)
             self._grow("has_next", rows)
         for r in (self.imu, self.wheels, self.steering, self.gnss):
             r.clear(slot)
         self.omega[slot] = self.steer[slot] = math.nan
-        self.omega_ns[slot] = 0
         self.has_epoch[slot] = self.fresh[slot] = self.has_next[slot] = False
 
     def _grow(self, name: str, rows: int) -> None:
@@ -306,8 +303,8 @@ class FleetSensors:
         v = due.vehicle
         window = (imu[0][covered], imu[1][covered])
         means, n_imu, lag_s = self._imu_means(due, window)
-        omega, omega_ns = self._latest(self.wheels, self.omega, due, self.omega_ns)
-        steer = self._latest(self.steering, self.steer[:, None], due)[0][:, 0]
+        omega = self._latest(self.wheels, self.omega, due)
+        steer = self._latest(self.steering, self.steer[:, None], due)[:, 0]
         ready = (n_imu > 0) & np.isfinite(omega).all(axis=1)
         gnss = self._gnss(due, ready)
         keep = np.flatnonzero(ready)
@@ -320,7 +317,6 @@ class FleetSensors:
             steer[keep],
             *gnss,
             lag_s[keep],
-            omega_ns[keep],
         )
         for rows in (self.imu, self.wheels, self.steering, self.gnss):
             rows.shrink()
@@ -368,28 +364,19 @@ class FleetSensors:
         self.imu.drop(due.slots, hi[due.last])
         return means, count, lag_s
 
-    def _latest(
-        self, rows: _Rows, held: FloatArray, due: _Due, held_ns: IntArray | None = None
-    ) -> tuple[FloatArray, IntArray]:
-        """The last sample of ``rows`` at or before each tick ``(R, width)`` and its stamp
-        ``(R,)``, the slot's ``held`` value ``(S, width)`` (and stamp ``held_ns``, where given;
-        updated to each vehicle's last tick) before the first; the samples up to each
-        vehicle's last tick dropped."""
+    def _latest(self, rows: _Rows, held: FloatArray, due: _Due) -> FloatArray:
+        """The last sample of ``rows`` at or before each tick ``(R, width)``, the slot's
+        ``held`` value ``(S, width)`` (updated to each vehicle's last tick) before the first;
+        the samples up to each vehicle's last tick dropped."""
         stamps, values = rows.window(due.slots)
         end = (stamps[due.vehicle] <= due.t_ns[:, None]).sum(axis=1)
-        at = np.maximum(end - 1, 0)
-        out = values[due.vehicle, at]
-        out_ns = stamps[due.vehicle, at]
+        out = values[due.vehicle, np.maximum(end - 1, 0)]
         before = end == 0
         if before.any():
             out[before] = held[due.slots[due.vehicle[before]]]
-            if held_ns is not None:
-                out_ns[before] = held_ns[due.slots[due.vehicle[before]]]
         held[due.slots] = out[due.last]
-        if held_ns is not None:
-            held_ns[due.slots] = out_ns[due.last]
         rows.drop(due.slots, end[due.last])
-        return out, out_ns
+        return out
 
     def _gnss(
         self, due: _Due, ready: BoolArray
@@ -453,5 +440,4 @@ def _no_ticks() -> SensedTicks:
         f(0, np.int64),
         f(0, bool),
         f(0),
-        f(0, np.int64),
     )

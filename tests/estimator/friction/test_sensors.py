@@ -99,7 +99,6 @@ class _Reference(Reference):
             np.array(g.stamp_ns if fresh and g is not None else 0),
             np.array(f._gnss_recent()),
             np.array(lag_s),
-            np.array(f.omega_ns),
         )
 
 
