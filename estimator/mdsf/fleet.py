@@ -228,7 +228,6 @@ class MdsfFleet:
         # per slot and wheel: the last emitted tick's filtered ground speed [m/s] (NaN: none)
         # and its low-passed rate [m/s²] (_wheel_accel)
         self._wheel_prev_mps = np.zeros((0, 2))
-        self._grav_prev = np.zeros(0)
         self._wheel_accel_mps2 = np.zeros((0, 2))
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
@@ -250,7 +249,6 @@ class MdsfFleet:
             grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
             grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
             grow_slot_array(self, "_wheel_prev_mps", cap, (2,), np.nan)
-            grow_slot_array(self, "_grav_prev", cap, (), np.nan)
             grow_slot_array(self, "_wheel_accel_mps2", cap, (2,), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
@@ -261,7 +259,6 @@ class MdsfFleet:
         self._still_ns[slot] = _NEVER
         self._dist_shift_m[slot] = 0.0
         self._wheel_prev_mps[slot] = np.nan
-        self._grav_prev[slot] = np.nan
         self._wheel_accel_mps2[slot] = 0.0
 
     def remove_vehicle(self, vehicle_id: str) -> None:
@@ -578,24 +575,6 @@ class MdsfFleet:
             dist_m=dist_m,
         )
 
-    def _gravity_step(self, slots: IntArray, tin: TickInputs, fixed: TickInputs) -> FloatArray:
-        """What the round's corrections moved the gravity taken off the forward acceleration
-        by (k,) [m/s²]: the share ``G = g·sin θ + (f − f_fixed)`` (the tilt track's pitch and
-        the mounting pitch in force) less last round's and less its motion on the gyro,
-        ``dt·g·cos θ·(ωx·cos φ + ωz·sin φ)``. A tilt track that leaves the accelerometer's
-        standstill pitch (body and mounting as one) for the GNSS velocity's moves the
-        acceleration's error by ``−ΔG``: the clock filter's bias takes it (``observe_gnss``),
-        not its offset. 0 on a vehicle's first round or without an attitude."""
-        theta = tin.attitude[:, 1]
-        phi = np.nan_to_num(tin.attitude[:, 2])
-        wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
-        removed = (tin.force_fwd - fixed.force_fwd) + GRAVITY_MPS2 * np.sin(theta)
-        rate = GRAVITY_MPS2 * np.cos(theta) * (wx * np.cos(phi) + wz * np.sin(phi))
-        prev = self._grav_prev[slots]
-        step = removed - prev - self.config.dt_s * rate
-        self._grav_prev[slots] = removed
-        return np.where(np.isfinite(step), step, 0.0)
-
     def _learn_calibration(
         self,
         slots: IntArray,
@@ -617,8 +596,7 @@ class MdsfFleet:
         # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
         wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
         lever = self.front.ant_x_m[slots] * wz - self.front.h1_m[slots] * wx
-        step = self._gravity_step(slots, tin, fixed)
-        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever, step)
+        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever)
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
         ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -21,7 +20,7 @@ from estimator.config import (
 )
 from estimator.mdsf import MdsfFleet
 from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
-from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig, MdsfObs
+from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 from estimator.sim import simulate, truth_at
 from estimator.types import EstimateFlag
 from tests.support import replay_drive
@@ -72,67 +71,6 @@ def test_gnss_clock_offset_stays_unknown_at_constant_speed() -> None:
             _SLOT, np.array([0.0]), np.array([1e-4]), np.array([2.0]), np.array([1e-3])
         )
     assert bank.state(0).gnss_clock_offset_std_s > 0.09
-
-
-def _start_with_tilt_correction(pass_step: bool) -> MdsfCalibration:
-    """15 s from rest, GNSS 75 ms late: standstill 3 s, then speeding up and slowing down,
-    while the gravity taken off the acceleration moves by 0.5 m/s² over 8 s (the tilt track
-    leaving the accelerometer's standstill pitch for the GNSS velocity's: an unlearnt mounting
-    pitch of 2.9°). The move is told to the filter as ``gravity_step_mps2`` or not at all."""
-    rng = np.random.default_rng(11)
-    offset_s = -0.075
-    t = np.arange(150) * _DT
-
-    def speed(tt: np.ndarray) -> np.ndarray:
-        moving = np.clip(tt - 3.0, 0.0, None)
-        return np.where(tt > 3.0, 1.2 * moving * np.exp(-moving / 4.0) + 0.2 * moving, 0.0)
-
-    a = np.diff(speed(t), prepend=0.0) / _DT
-    leak = 0.5 * np.clip((t - 3.0) / 8.0, 0.0, 1.0)
-    bank = _bank()
-    for k in range(t.size):
-        accel = np.array([a[k] + leak[k] + rng.normal(0.0, 0.015)])
-        vg = speed(t[k : k + 1] - offset_s) + rng.normal(0.0, 0.02)
-        step = np.array([-(leak[k] - leak[k - 1]) if k else 0.0]) if pass_step else None
-        bank.observe_gnss(_SLOT, accel, np.array([0.015**2]), vg, np.array([0.02**2]), None, step)
-    return bank.state(0)
-
-
-def test_tilt_correction_moves_the_clock_filters_bias_not_its_offset() -> None:
-    """A correction of the gravity taken off the acceleration is the regressor's error moving:
-    told to the clock filter it moves the bias, and the offset stays within 3σ of the truth;
-    not told, the filter explains the ramp with the start's accelerations (offset > 3σ off)."""
-    told = _start_with_tilt_correction(True)
-    blind = _start_with_tilt_correction(False)
-    assert abs(told.gnss_clock_offset_s + 0.075) < 3 * told.gnss_clock_offset_std_s
-    assert abs(blind.gnss_clock_offset_s + 0.075) > 3 * blind.gnss_clock_offset_std_s
-
-
-def test_gravity_step_is_the_tilt_correction_not_the_gyros_motion() -> None:
-    """The fleet's gravity step: a pitch that moves as the gyro says moves nothing; a pitch
-    correction of 2° moves the gravity taken off by ``g·Δsin θ``; so does a change of the
-    mounting pitch in force (``f − f_fixed``)."""
-    fleet = MdsfFleet(MdsfConfig())
-    fleet.add_vehicle("v", WheeledRearDriveConfig())
-    dt = fleet.config.dt_s
-
-    def step(theta: float, rate: float, mount: float) -> float:
-        z = np.zeros((1, 4))
-        z[0, MdsfObs.OMEGA_X] = rate
-        tin = SimpleNamespace(
-            attitude=np.array([[0.0, theta, 0.0]]), z=z, force_fwd=np.array([1.0])
-        )
-        fixed = SimpleNamespace(force_fwd=np.array([1.0 - mount]))
-        return float(fleet._gravity_step(_SLOT, tin, fixed)[0])  # type: ignore[arg-type]
-
-    assert step(0.05, 0.0, 0.0) == 0.0  # the first round: nothing to compare with
-    assert step(0.05 + 0.02 * dt, 0.02, 0.0) == pytest.approx(0.0, abs=1e-5)
-    theta = 0.05 + 0.02 * dt
-    moved = step(theta - math.radians(2.0), 0.0, 0.0)
-    assert moved == pytest.approx(
-        GRAVITY_MPS2 * (math.sin(theta - math.radians(2.0)) - math.sin(theta)), rel=1e-9
-    )
-    assert step(theta - math.radians(2.0), 0.0, 0.3) == pytest.approx(0.3, rel=1e-9)
 
 
 def _run_wheels(bank: CalibrationBank, scale: tuple[float, float], offset_s: float) -> None:
