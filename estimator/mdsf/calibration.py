@@ -426,23 +426,17 @@ class CalibrationBank:
         vg_mps: FloatArray,
         vg_var: FloatArray,
         lever_mps: FloatArray | None = None,
-        gravity_step_mps2: FloatArray | None = None,
     ) -> None:
         """One tick of the GNSS clock filter: the tick-mean acceleration ``a`` (NaN: no IMU,
         predicted with a wide walk), the tick's GNSS speed as the frontend moved it less the
         antenna's lever-arm velocity ``L`` at the tick (uncorrected; NaN: none) and ``L``
         itself (None: 0), all (k,). Predicted and updated on the low-passed signals
-        (module docstring); a GNSS gap longer than ``gnss_timeout_s`` restarts the speed.
-        ``gravity_step_mps2`` (k,; None: 0) is what a correction moved the gravity taken off
-        ``a`` by this tick (the tilt track re-anchored, the mounting pitch learnt): ``a``'s
-        error moves by its negative, and so does the bias ``b`` that stands for it."""
+        (module docstring); a GNSS gap longer than ``gnss_timeout_s`` restarts the speed."""
         dt = self.dt_s
         imu = np.isfinite(accel_mps2)
         a = np.where(imu, accel_mps2, 0.0)
         lever = np.zeros_like(a) if lever_mps is None else np.nan_to_num(lever_mps)
         x, p = self.gx[slots], self.gp[slots]
-        if gravity_step_mps2 is not None:
-            x[:, GnssClock.BIAS] -= np.nan_to_num(gravity_step_mps2)
         has = np.isfinite(vg_mps) & imu
         first = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
         regressor, y_low = self._clock_lowpass(slots, a, lever, np.where(has, vg_mps, np.nan))

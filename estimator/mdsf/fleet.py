@@ -228,7 +228,6 @@ class MdsfFleet:
         # per slot and wheel: the last emitted tick's filtered ground speed [m/s] (NaN: none)
         # and its low-passed rate [m/s²] (_wheel_accel)
         self._wheel_prev_mps = np.zeros((0, 2))
-        self._mount_prev_rad = np.zeros((0, 2))  # mounting pitch and yaw in force last round
         self._wheel_accel_mps2 = np.zeros((0, 2))
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
@@ -250,7 +249,6 @@ class MdsfFleet:
             grow_slot_array(self, "_still_ns", cap, (2,), _NEVER)
             grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
             grow_slot_array(self, "_wheel_prev_mps", cap, (2,), np.nan)
-            grow_slot_array(self, "_mount_prev_rad", cap, (2,), 0.0)
             grow_slot_array(self, "_wheel_accel_mps2", cap, (2,), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
@@ -261,7 +259,6 @@ class MdsfFleet:
         self._still_ns[slot] = _NEVER
         self._dist_shift_m[slot] = 0.0
         self._wheel_prev_mps[slot] = np.nan
-        self._mount_prev_rad[slot] = 0.0
         self._wheel_accel_mps2[slot] = 0.0
 
     def remove_vehicle(self, vehicle_id: str) -> None:
@@ -578,25 +575,6 @@ class MdsfFleet:
             dist_m=dist_m,
         )
 
-    def _gravity_step(self, slots: IntArray, tin: TickInputs) -> FloatArray:
-        """What the round's corrections moved the gravity taken off the forward acceleration
-        by (k,) [m/s²]: the tilt track's pitch jumps at its fixes, ``g·cos θ·Δθ``, and the
-        change of the mounting pitch and yaw in force, ``g·cos(θ + β)·Δβ − Δγ·f_x``. The
-        acceleration's error moves by its negative (a tilt track that leaves the
-        accelerometer's standstill pitch, body and mounting as one, for the GNSS velocity's
-        moves it by ``g·β``): the GNSS clock filter's bias takes it, not its offset."""
-        bank = self.calibration_bank
-        theta = np.nan_to_num(tin.attitude[:, 1])
-        jump = np.zeros(slots.shape[0]) if tin.pitch_step_rad is None else tin.pitch_step_rad
-        beta, gamma = bank.mount_pitch_rad(slots), bank.mount_yaw_rad(slots)
-        d_beta = beta - self._mount_prev_rad[slots, 0]
-        d_gamma = gamma - self._mount_prev_rad[slots, 1]
-        self._mount_prev_rad[slots] = np.stack([beta, gamma], axis=1)
-        f_lat = np.zeros(slots.shape[0]) if tin.force_lat is None else tin.force_lat
-        step = GRAVITY_MPS2 * (np.cos(theta) * jump + np.cos(theta + beta) * d_beta)
-        step = step - d_gamma * np.nan_to_num(f_lat)
-        return np.where(np.isfinite(step), step, 0.0)
-
     def _learn_calibration(
         self,
         slots: IntArray,
@@ -618,8 +596,7 @@ class MdsfFleet:
         # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
         wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
         lever = self.front.ant_x_m[slots] * wz - self.front.h1_m[slots] * wx
-        step = self._gravity_step(slots, tin)
-        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever, step)
+        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever)
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
         ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2

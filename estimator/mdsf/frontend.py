@@ -189,9 +189,6 @@ class TickInputs:
     lever_force_lat : ndarray, shape (m,), or None
         What the IMU's lever arm adds to the lateral force by the angular acceleration
         (:func:`_lever_force_lat`) [m/s²]: the lateral force at ``O`` is ``force_lat`` less it.
-    pitch_step_rad : ndarray, shape (m,), or None
-        What the tilt track's fixes moved its pitch by in each tick (the corrections, not the
-        gyro's motion) [rad]; None from a caller without a tilt track.
     """
 
     stamp_ns: IntArray
@@ -214,7 +211,6 @@ class TickInputs:
     fix_age_s: FloatArray
     force_lat: FloatArray | None = None
     lever_force_lat: FloatArray | None = None
-    pitch_step_rad: FloatArray | None = None
 
     @property
     def m(self) -> int:
@@ -1177,18 +1173,7 @@ class _Batch:
             fix_age_s=fix_age_s,
             force_lat=means[4],
             lever_force_lat=lever_lat,
-            pitch_step_rad=self._pitch_step_at_ticks(),
         )
-
-    def _pitch_step_at_ticks(self) -> FloatArray:
-        """What the tilt track's fixes moved its pitch by, summed per tick (the tick whose
-        window holds the fix, as :meth:`_gnss_speed` places them), shape ``(n_ticks,)``."""
-        if self.g_row.shape[0] == 0:
-            return np.zeros(self.n_ticks)
-        j = np.maximum(-((self.first[self.g_row] - self.g_t) // self.fe.tick_ns), 0)
-        tid = self.offsets[self.g_row] + j
-        step = np.bincount(tid, weights=self.g_pitch_step, minlength=self.n_ticks)
-        return step.astype(np.float64)
 
     def _between_fixes(
         self,
@@ -1267,7 +1252,6 @@ class _Batch:
         self.g_var_after = np.empty(nf)
         self.g_bias_after = np.empty(nf)
         self.g_theta_after = np.empty(nf)
-        self.g_pitch_step = np.zeros(nf)
         self.g_roll_after = np.zeros(nf)
         q = self._between_fixes(_rank_passes(self.g_rank), track.end_segment, track.at_fix)
         track.st.put(self.fe, self.slots)
@@ -2069,7 +2053,6 @@ class _TiltTrack:
             np.concatenate([r_still, r_still]),
         )
         kr = r.shape[0]
-        b.g_pitch_step[fi] = angle[:kr] - st.th[r]
         st.th[r], st.ph[r] = angle[:kr], angle[kr:]
         st.var[r] = cov2[:kr, AngleCov.ANGLE]
         st.cov_tb[r] = cov2[:kr, AngleCov.CROSS]

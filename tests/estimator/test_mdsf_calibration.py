@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -72,64 +71,6 @@ def test_gnss_clock_offset_stays_unknown_at_constant_speed() -> None:
             _SLOT, np.array([0.0]), np.array([1e-4]), np.array([2.0]), np.array([1e-3])
         )
     assert bank.state(0).gnss_clock_offset_std_s > 0.09
-
-
-def _start_with_tilt_correction(pass_step: bool) -> MdsfCalibration:
-    """15 s from rest, GNSS 75 ms late: standstill 3 s, then speeding up and slowing down,
-    while the gravity taken off the acceleration moves by 0.5 m/s² over 8 s (the tilt track
-    leaving the accelerometer's standstill pitch for the GNSS velocity's: an unlearnt mounting
-    pitch of 2.9°). The move is told to the filter as ``gravity_step_mps2`` or not at all."""
-    rng = np.random.default_rng(11)
-    offset_s = -0.075
-    t = np.arange(150) * _DT
-
-    def speed(tt: np.ndarray) -> np.ndarray:
-        moving = np.clip(tt - 3.0, 0.0, None)
-        return np.where(tt > 3.0, 1.2 * moving * np.exp(-moving / 4.0) + 0.2 * moving, 0.0)
-
-    a = np.diff(speed(t), prepend=0.0) / _DT
-    leak = 0.5 * np.clip((t - 3.0) / 8.0, 0.0, 1.0)
-    bank = _bank()
-    for k in range(t.size):
-        accel = np.array([a[k] + leak[k] + rng.normal(0.0, 0.015)])
-        vg = speed(t[k : k + 1] - offset_s) + rng.normal(0.0, 0.02)
-        step = np.array([-(leak[k] - leak[k - 1]) if k else 0.0]) if pass_step else None
-        bank.observe_gnss(_SLOT, accel, np.array([0.015**2]), vg, np.array([0.02**2]), None, step)
-    return bank.state(0)
-
-
-def test_tilt_correction_moves_the_clock_filters_bias_not_its_offset() -> None:
-    """A correction of the gravity taken off the acceleration is the regressor's error moving:
-    told to the clock filter it moves the bias, and the offset stays within 3σ of the truth;
-    not told, the filter explains the ramp with the start's accelerations (offset > 3σ off)."""
-    told = _start_with_tilt_correction(True)
-    blind = _start_with_tilt_correction(False)
-    assert abs(told.gnss_clock_offset_s + 0.075) < 3 * told.gnss_clock_offset_std_s
-    assert abs(blind.gnss_clock_offset_s + 0.075) > 3 * blind.gnss_clock_offset_std_s
-
-
-def test_gravity_step_is_the_tilt_tracks_jump_and_the_mounting_in_force() -> None:
-    """The fleet's gravity step: ``g·cos θ·Δθ`` of the tilt track's jump at a fix, 0 without
-    one (the gyro's motion moves the truth and the estimate alike), and the mounting yaw's
-    lateral share ``−Δγ·f_x`` when the yaw in force changes."""
-    fleet = MdsfFleet(MdsfConfig())
-    fleet.add_vehicle("v", WheeledRearDriveConfig())
-
-    def step(theta: float, jump: float, force_lat: float = 0.0) -> float:
-        tin = SimpleNamespace(
-            attitude=np.array([[0.0, theta, 0.0]]),
-            pitch_step_rad=np.array([jump]),
-            force_lat=np.array([force_lat]),
-        )
-        return float(fleet._gravity_step(_SLOT, tin)[0])  # type: ignore[arg-type]
-
-    assert step(0.05, 0.0) == 0.0
-    jump = -math.radians(2.0)
-    assert step(0.05, jump) == pytest.approx(GRAVITY_MPS2 * math.cos(0.05) * jump, rel=1e-12)
-    fleet.calibration_bank.yx[0, 0] = 0.03  # a mounting yaw now in force
-    fleet.calibration_bank.yp[0, 0, 0] = 1e-8
-    assert step(0.05, 0.0, 2.0) == pytest.approx(-0.03 * 2.0, rel=1e-9)
-    assert step(0.05, 0.0, 2.0) == 0.0  # in force already: no change
 
 
 def _run_wheels(bank: CalibrationBank, scale: tuple[float, float], offset_s: float) -> None:
