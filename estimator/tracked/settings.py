@@ -45,6 +45,11 @@ class TrackedEstimatorConfig:
     (well above what the ratios' noise makes over one tick at speed) and than
     ``lever_noise_sigmas`` times the ratio noise's change over a tick (at a crawl the reads jump
     by more) is a lever moving, and the state is read where it goes.
+    Standing, the tick's mean gyro rate is the bias within the gyro's white noise over the
+    tick (the zero-rate update, :func:`~estimator.tracked.step.standing_rate_var`), once the
+    hull has stopped turning: ``standing_settle_lags`` times its lag ``τ`` after the gearbox
+    stopped (:func:`~estimator.tracked.step.hull_settled`). ``zero_rate_std_radps`` is the
+    yaw rate's 1-sigma in a track's speed.
     The odometer factors learn only once the gearbox has been steady (acceleration below
     ``learn_accel_max_mps2``, no sprocket settling) for ``learn_steady_s``, several times
     the hull's lag behind its tracks.
@@ -132,6 +137,7 @@ class TrackedEstimatorConfig:
     standstill_odometer_mps: float = 0.02
     zero_speed_std_mps: float = 0.01
     zero_rate_std_radps: float = 0.001
+    standing_settle_lags: float = 5.0
     speed_walk_mps2: float = 0.1
     position_walk_mps: float = 0.015
     lateral_model_error: float = 0.3

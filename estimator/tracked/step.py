@@ -36,7 +36,16 @@ from estimator.tracked.recognise import (
 from estimator.tracked.settings import TrackedEstimatorConfig
 from estimator.tracked.vehicle import TickInputs
 
-__all__ = ["Filter", "TickOut", "fresh_patch_var", "initial_filter", "patch_std", "tick_step"]
+__all__ = [
+    "Filter",
+    "TickOut",
+    "fresh_patch_var",
+    "hull_settled",
+    "initial_filter",
+    "patch_std",
+    "standing_rate_var",
+    "tick_step",
+]
 
 M = MotionState
 _FACTORS = [S.F_STRAIGHT, S.F_LOW, S.TURN_SLIP, S.F_PIVOT]
@@ -445,10 +454,34 @@ def _factor_speed_var(P: FloatArray, gain: FloatArray, dead_reckoning: BoolArray
     return np.where(dead_reckoning, var, 0.0)
 
 
+def standing_rate_var(p: VehicleParams, gyro_ratio: FloatArray, tick_s: float) -> FloatArray:
+    """Variance ``(k,)`` of a standing tick's mean gyro rate about the bias: the gyro's white
+    noise averaged over the tick, ``r·ARW²/Δt`` (``r`` the unit's noise over its data sheet's,
+    :mod:`~estimator.tracked.gyro_noise`). A standing hull does not turn, so this is all the
+    zero-rate update's error: a stop of ``T`` seconds pins the bias to ``√r·ARW/√T``."""
+    return np.asarray(gyro_ratio * p.gyro_arw_rad_rt_s**2 / tick_s)
+
+
+def hull_settled(f: Filter, inp: TickInputs, cfg: TrackedEstimatorConfig) -> BoolArray:
+    """Vehicles ``(k,)`` whose hull has stopped turning: the gearbox steady (``steady_s``) for
+    ``standing_settle_lags`` times the hull's lag ``τ`` behind its tracks (learnt, at most
+    ``max_yaw_lag_s``). A hull braked to a stop keeps the yaw its tracks' last speeds gave it,
+    dying out as ``exp(−t/τ)``: ~0.5 mrad/s over a stop's first second, 5τ later under 1 %
+    of that."""
+    tau = np.clip(f.x[:, S.ACCEL_LAG], 0.0, cfg.max_yaw_lag_s)
+    return np.asarray(inp.steady_s >= cfg.standing_settle_lags * tau)
+
+
 def _fuse_standstill(
-    f: Filter, inp: TickInputs, cfg: TrackedEstimatorConfig, still: BoolArray
+    f: Filter,
+    inp: TickInputs,
+    cfg: TrackedEstimatorConfig,
+    still: BoolArray,
+    rate_var: FloatArray,
 ) -> None:
-    """Zero speed and zero yaw rate (the gyro's mean is its bias) while standing (product)."""
+    """Zero speed while standing, and zero yaw rate (the gyro's mean is its bias) once the
+    hull has settled (:func:`hull_settled`; product); ``rate_var (k,)`` the tick mean's noise
+    about the bias (:func:`standing_rate_var`)."""
     k = f.x.shape[0]
     H = np.zeros((k, 1, N_STATES))
     H[:, 0, S.SPEED] = 1.0
@@ -456,10 +489,11 @@ def _fuse_standstill(
     f.x, f.P, _, _ = kalman_update(f.x, f.P, -f.x[:, S.SPEED, None], H, R, still)
     Hg = np.zeros((k, 1, N_STATES))
     Hg[:, 0, S.GYRO_BIAS] = 1.0
-    Rg = np.full((k, 1, 1), cfg.zero_rate_std_radps**2)
+    Rg = np.broadcast_to(rate_var, (k,))[:, None, None].copy()
     gyro = np.nan_to_num(inp.gyro_radps)
     y = (gyro - f.x[:, S.GYRO_BIAS])[:, None]
-    f.x, f.P, _, _ = kalman_update(f.x, f.P, y, Hg, Rg, still & np.isfinite(inp.gyro_radps))
+    settled = still & hull_settled(f, inp, cfg) & np.isfinite(inp.gyro_radps)
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, y, Hg, Rg, settled)
 
 
 def _track_slip(
@@ -544,7 +578,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
             inp.odometer_mps,
         )
         onset |= odometer_start(inp, cfg)  # the held tick before may have started already
-        _fuse_standstill(f, inp, cfg, still)
+        _fuse_standstill(f, inp, cfg, still, standing_rate_var(p, ratio, cfg.tick_s))
         measured = still & (p.gyro_noise_measured > 0.0)
         f.gyro_standing = learn_standing(f.gyro_standing, inp.gyro_radps, measured)
     _since_fix(f, used | fresh, cfg)
