@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import secrets
 import time
 
 import msgpack
@@ -54,9 +55,10 @@ def f64(a: np.ndarray) -> bytes:
     return np.ascontiguousarray(a, dtype="<f8").tobytes()
 
 
-def pack(sensor: str, seq: int, body: dict[str, object]) -> bytes:
+def pack(sensor: str, seq: int, boot: int, body: dict[str, object]) -> bytes:
     return msgpack.packb(
-        {"v": SCHEMA_VERSION, "sensor": sensor, "seq": seq, **body}, use_bin_type=True
+        {"v": SCHEMA_VERSION, "sensor": sensor, "seq": seq, "boot": boot, **body},
+        use_bin_type=True,
     )
 
 
@@ -126,6 +128,9 @@ def run(endpoint: str, vehicle_id: str, seconds: float, prefix: str = "fleet") -
         start_ns = now - now % PACKET_NS
         tractor = FakeTractor(start_ns)
         seq = dict.fromkeys(sent, 0)
+        # picked once per start: the server then knows numbers from 0 again are a restart,
+        # not duplicates of the previous run's (docs/protocol.md §5)
+        boot = secrets.randbits(63)
         for k in range(int(seconds * 1e9) // PACKET_NS):
             window_start = start_ns + k * PACKET_NS
             window_end = window_start + PACKET_NS
@@ -140,7 +145,7 @@ def run(endpoint: str, vehicle_id: str, seconds: float, prefix: str = "fleet") -
                 # the stream is complete up to the window's end: the server need not wait (a
                 # wheels packet without edges is a heartbeat: the wheels stood still)
                 body["until_ns"] = window_end - 1
-                pubs[stream].put(pack(stream, seq[stream], body))
+                pubs[stream].put(pack(stream, seq[stream], boot, body))
                 seq[stream] += 1
                 sent[stream] += 1
         for pub in pubs.values():

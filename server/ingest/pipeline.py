@@ -113,6 +113,9 @@ log = logging.getLogger(__name__)
 
 #: Counter-name prefix of a stream's highest sequence number (``seq_high_imu`` …).
 SEQ_HIGH = "seq_high_"
+#: Stored name of the boot id the ``seq_high_<stream>`` numbers were seen with (not a counter:
+#: kept with them for a restart, never reported).
+SEQ_BOOT = "seq_boot"
 
 #: Parts of the pipeline thread's work whose CPU time it adds up (``stats()["cpu_<phase>_s"]``,
 #: ``slipfleet_pipeline_cpu_seconds_total{phase}``): decoding bursts, offering packets to the
@@ -259,7 +262,9 @@ class Pipeline:
         self._anchors: dict[str, tuple[float, float, float]] = {}
         self._seq_high: dict[str, dict[str, int]] = {}  # copied by the pipeline thread
         self._counted: dict[str, dict[str, int]] = {}  # the counters, copied with _seq_high
-        self._resume_seq: dict[str, dict[str, int]] = {}  # from a previous run, until first packet
+        self._seq_boot: dict[str, int] = {}  # copied with _seq_high: each buffer's boot id
+        # from a previous run, until the first packet: highest numbers and their boot id
+        self._resume_seq: dict[str, tuple[dict[str, int], int | None]] = {}
         self._buffers: dict[str, ReorderBuffer] = {}
         self._configs: dict[str, VehicleConfig] = {}
         self._active: set[str] = set()  # vehicles with data not yet released/advanced
@@ -447,13 +452,15 @@ class Pipeline:
 
     def restore_counters(self, vehicle_id: str, totals: dict[str, int]) -> None:
         """Continue a vehicle's ingest counters from stored totals (call before :meth:`start`);
-        its sequence tracking resumes after the stored ``seq_high_<stream>`` numbers."""
+        its sequence tracking resumes after the stored ``seq_high_<stream>`` numbers, under the
+        stored boot id (``seq_boot``) when there is one."""
         self._counters.restore(vehicle_id, totals)
         highest = {
             k.removeprefix(SEQ_HIGH): int(v) for k, v in totals.items() if k.startswith(SEQ_HIGH)
         }
-        if highest:
-            self._resume_seq[vehicle_id] = highest
+        boot = totals.get(SEQ_BOOT)
+        if highest or boot is not None:
+            self._resume_seq[vehicle_id] = (highest, None if boot is None else int(boot))
 
     def estimator_counters_snapshot(self) -> dict[str, dict[str, dict[str, int]]]:
         """The estimators' event counters (resets, gated GNSS, …) as of the last second:
@@ -475,8 +482,9 @@ class Pipeline:
         return snap
 
     def restorable_counters(self) -> dict[str, dict[str, int]]:
-        """The counters and each stream's highest sequence number (``seq_high_<stream>``) as of
-        the last second, taken together on the pipeline thread, for :meth:`restore_counters`
+        """The counters and each stream's highest sequence number (``seq_high_<stream>``, and
+        the boot id they were seen with, ``seq_boot``) as of the last second, taken together on
+        the pipeline thread, for :meth:`restore_counters`
         after a restart: it counts the packets sent after those sequence numbers as lost, so
         counters newer than them would count the packets in between twice (received and lost;
         after a SIGKILL, received + lost exceeded sent by the last second's packets)."""
@@ -484,6 +492,9 @@ class Pipeline:
         for vid, highest in self._seq_high.items():
             if vid in snap:
                 snap[vid].update({f"{SEQ_HIGH}{stream}": n for stream, n in highest.items()})
+        for vid, boot in self._seq_boot.items():
+            if vid in snap:
+                snap[vid][SEQ_BOOT] = boot
         return snap
 
     def stats(self) -> dict[str, Any]:
@@ -566,6 +577,7 @@ class Pipeline:
         self._anchors = self._registry.anchors()
         self._frames.update(self._anchors)
         self._seq_high = {v: b.seq_highest() for v, b in self._buffers.items()}
+        self._seq_boot = {v: b.boot for v, b in self._buffers.items() if b.boot is not None}
         self._counted = self._counters.snapshot()
 
     def _next_item(self, timeout_s: float | None) -> _QueueItem:
@@ -742,7 +754,7 @@ class Pipeline:
                 if not self._admit(item):
                     continue
                 buf = self._buffers[vid] = self._new_buffer(vid)
-                buf.resume_seq(self._resume_seq.pop(vid, {}))
+                buf.resume_seq(*self._resume_seq.pop(vid, ({}, None)))
             offer = buf.offer(item, now)
             if offer.seq_restart:
                 counters.seq_restart(vid)

@@ -80,6 +80,15 @@ skipped numbers as **lost** (taken back if they arrive later); a jump back, or f
 than :data:`SEQ_WINDOW` is taken as a restart of the vehicle's counter (a gap that large cannot be
 told from a reset or corrupted counter, so it is not counted lost).
 
+Boot ids (``Packet.boot``, picked by the sender once per start): a packet whose boot differs from
+the last one seen from the vehicle starts every stream's sequence tracking afresh (a counter
+from 0 after a reboot is not a run of duplicates), counted as one restart when the boot is new
+and the vehicle had been tracked; each stream's watermark run restarts at its next packet. The
+tracking of the last :data:`BOOTS_KEPT` boots is kept: a packet of an earlier boot arriving
+after the new one is checked against its own boot's numbers (a replay of it is still a
+duplicate) and then by time like any other (usually late: the vehicle's time line has moved on).
+Packets without a boot are tracked as before, by the numbers of the boot last seen.
+
 Clock jumps (when ``clock_jump_ns`` is given): sensor time is compared with the wall time that
 passed between arrivals. A packet whose first sample is more than ``clock_jump_ns`` ahead of the
 newest sample time, by more than the wall time since the previous arrival allows, or whose last
@@ -107,6 +116,7 @@ from server.protocol.keys import Stream
 from server.protocol.streams import STREAMS
 
 __all__ = [
+    "BOOTS_KEPT",
     "DEFAULT_STREAMS",
     "SEQ_WINDOW",
     "Offer",
@@ -118,6 +128,8 @@ __all__ = [
 
 #: How far back (in sequence numbers) duplicates are recognised per stream.
 SEQ_WINDOW = 4096
+#: Boot ids per vehicle whose sequence tracking is kept (the current one and those before it).
+BOOTS_KEPT = 4
 #: Shortest start-up window (sensor time) before stream watermarks gate a vehicle's release.
 WATERMARK_START_NS = 1_000_000_000
 #: Shortest default idle time (wall clock) before a quiet vehicle's tail is released.
@@ -364,7 +376,12 @@ class ReorderBuffer:
         self._idle_ns = max(2 * lateness_ns, IDLE_MIN_NS) if idle_ns is None else idle_ns
         self._heap: list[tuple[int, int, int, int, Packet]] = []
         self._tie = itertools.count()
-        self._seq: dict[Stream, SeqTracker] = {}
+        self._seq: dict[Stream, SeqTracker] = {}  # the trackers of the current boot
+        self._boot: int | None = None  # the boot id last seen (None: none yet)
+        # each kept boot's trackers, the current one last (a packet's boot is looked up here)
+        self._boots: dict[int, dict[Stream, SeqTracker]] = {}
+        # streams whose watermark run starts afresh at their next packet (the boot changed)
+        self._fresh: set[Stream] = set()
         self._newest_ns: int | None = None
         self._released_ns: int | None = None
         self._last_arrival_ns = 0
@@ -465,12 +482,15 @@ class ReorderBuffer:
 
     def offer(self, packet: Packet, now_ns: int) -> Offer:
         """Take one packet that arrived at monotonic time ``now_ns``."""
+        boot = packet.boot
+        new_boot = boot is not None and boot != self._boot and self._switch_boot(boot)
         tracker = self._seq.get(packet.stream)
         if tracker is None:
             tracker = self._seq[packet.stream] = SeqTracker()
         dup, lost_delta, restarted = tracker.observe(packet.seq)
         if dup:
             return Offer(Verdict.DUPLICATE)
+        restarted = restarted or new_boot
         jump_ns, newest, released = self._jump_ns, self._newest_ns, self._released_ns
         if (
             jump_ns is not None
@@ -498,6 +518,21 @@ class ReorderBuffer:
         if lost_delta == 0 and not restarted:
             return _ACCEPTED  # the common case: no new (frozen) object per packet
         return Offer(verdict, lost_delta, restarted)
+
+    def _switch_boot(self, boot: int) -> bool:
+        """Track sequence numbers under ``boot`` from now on (a kept boot's trackers, else
+        fresh ones); each stream's watermark run restarts at its next packet. Returns whether
+        this counts as a restart: a boot not kept, when some stream had been tracked."""
+        boots = self._boots
+        known = boots.pop(boot, None)
+        restarted = known is None and any(t.highest >= 0 for t in self._seq.values())
+        self._seq = {} if known is None else known
+        boots[boot] = self._seq  # the current boot last
+        if len(boots) > BOOTS_KEPT:
+            del boots[next(iter(boots))]  # the oldest
+        self._boot = boot
+        self._fresh = set(Stream)
+        return restarted
 
     def _clock_jump(self, packet: Packet, now_ns: int, jump_ns: int) -> Verdict | None:
         """CLOCK_JUMP or REANCHOR when ``packet`` leaves the vehicle's time line, else None."""
@@ -554,7 +589,9 @@ class ReorderBuffer:
         if marks is not None:
             mark = marks.get(stream)
             covers_ns = packet.covers_ns
-            if mark is None or seq_restart:
+            fresh = self._fresh
+            if mark is None or seq_restart or (fresh and stream in fresh):
+                fresh.discard(stream)
                 marks[stream] = _StreamMark(packet.seq, covers_ns)
             else:
                 mark.arrived(packet.seq, covers_ns)
@@ -617,12 +654,21 @@ class ReorderBuffer:
         names = _STREAM_NAMES
         return {names[stream]: t.highest for stream, t in self._seq.items() if t.highest >= 0}
 
-    def resume_seq(self, highest: Mapping[str, int]) -> None:
-        """Continue each stream's sequence tracking after ``highest[stream name]``."""
+    @property
+    def boot(self) -> int | None:
+        """The boot id last seen from the vehicle (None: none yet)."""
+        return self._boot
+
+    def resume_seq(self, highest: Mapping[str, int], boot: int | None = None) -> None:
+        """Continue each stream's sequence tracking after ``highest[stream name]``, under
+        ``boot`` (the boot id they were seen with; None: none was)."""
         for stream in Stream:
             if stream.value in highest:
                 tracker = self._seq[stream] = SeqTracker()
                 tracker.resume(highest[stream.value])
+        if boot is not None:
+            self._boot = boot
+            self._boots = {boot: self._seq}
 
     def horizon_ns(self, now_ns: int) -> int | None:
         """The sensor time that may be released at ``now_ns`` (None while nothing arrived)."""

@@ -160,6 +160,9 @@ class Packet:
         this packet or an earlier one (the end of the batch window); ``None`` if not given.
         A packet of an edge stream may be a *heartbeat*: no measurements, only ``until_ns``
         (no edge up to it); its first and last stamps are ``until_ns``.
+    boot : int or None
+        The sender's boot id (picked once per start of the sender; ``docs/protocol.md`` §5):
+        a new one starts the vehicle's sequence tracking afresh. ``None`` if not given.
     """
 
     vehicle_id: str
@@ -170,6 +173,7 @@ class Packet:
     first_stamp_ns: int
     last_stamp_ns: int
     until_ns: int | None = None
+    boot: int | None = None
 
     @property
     def covers_ns(self) -> int:
@@ -214,12 +218,17 @@ def pack_f8(a: Any, shape: tuple[int, ...], name: str) -> bytes:
     return np.ascontiguousarray(arr, dtype="<f8").tobytes()
 
 
-def pack(obj: dict[str, Any], until_ns: int | None = None) -> bytes:
-    """The msgpack payload of ``obj`` (header included), with ``until_ns`` when given."""
+def pack(obj: dict[str, Any], until_ns: int | None = None, boot: int | None = None) -> bytes:
+    """The msgpack payload of ``obj`` (header included), with ``until_ns`` and the sender's
+    ``boot`` id when given (both last: the fleet simulator finds the stamps before them)."""
     if until_ns is not None:
         if not isinstance(until_ns, int | np.integer) or not 0 <= int(until_ns) < 2**63:
             raise EncodeError(f"until_ns must be an int in [0, 2**63), got {until_ns!r}")
         obj["until_ns"] = int(until_ns)
+    if boot is not None:
+        if not isinstance(boot, int | np.integer) or not 0 <= int(boot) < 2**63:
+            raise EncodeError(f"boot must be an int in [0, 2**63), got {boot!r}")
+        obj["boot"] = int(boot)
     packed: bytes = msgpack.packb(obj, use_bin_type=True)
     return packed
 

@@ -17,7 +17,8 @@ Anything unusual sends a packet to the codec's per-packet rules, which give the 
 refused, or accept it: a payload that is not a struct of :mod:`~server.protocol.wire` (a field
 missing, of another type, an extra one), lengths that disagree, an empty batch, ``until_ns``
 out of range, and a packet whose arrays fail a batch check (the checks find *which* packets,
-one numpy call per check). The other packets of the burst are unaffected, so
+one numpy call per check), and a ``boot`` of 2**63 or more. The other packets of the burst
+are unaffected, so
 :func:`decode_burst` returns, item for item, what ``decode`` returns or raises.
 """
 
@@ -57,7 +58,7 @@ _I8_BYTES = 8  # a packed int64 stamp
 _F8_BYTES = 8  # a packed float64 value
 _NO_FIRST_NS = 2**63 - 1  # start of the min() over a packet's first sample times
 _NO_LAST_NS = -(2**63)  # start of the max() over its last ones
-_SEQ_END = 2**63  # sequence numbers lie in [0, 2**63)
+_SEQ_END = 2**63  # sequence numbers and boot ids lie in [0, 2**63)
 
 
 class _Route(NamedTuple):
@@ -124,6 +125,11 @@ def _packet(
         until_ns = None
     elif not last_ns <= until_ns <= last_ns + lim.max_until_ahead_ns:
         return None
+    boot = p.boot
+    if type(boot) is not int:  # UNSET
+        boot = None
+    elif boot >= _SEQ_END:  # below 0 the struct refuses it
+        return None
     return new_packet(
         vehicle_id=vehicle_id,
         stream=stream,
@@ -133,6 +139,7 @@ def _packet(
         first_stamp_ns=first_ns,
         last_stamp_ns=last_ns,
         until_ns=until_ns,
+        boot=boot,
     )
 
 
@@ -511,6 +518,11 @@ def _heartbeat(op: _Opened, lim: Limits) -> BurstItem | None:
     until_ns = _until(op.p)
     if until_ns is None or not lim.min_stamp_ns <= until_ns <= lim.max_stamp_ns:
         return None
+    boot = op.p.boot
+    if type(boot) is not int:  # UNSET
+        boot = None
+    elif boot >= _SEQ_END:
+        return None
     return new_packet(
         vehicle_id=op.vehicle_id,
         stream=op.stream,
@@ -520,6 +532,7 @@ def _heartbeat(op: _Opened, lim: Limits) -> BurstItem | None:
         first_stamp_ns=until_ns,
         last_stamp_ns=until_ns,
         until_ns=until_ns,
+        boot=boot,
     )
 
 

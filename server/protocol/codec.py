@@ -152,6 +152,18 @@ def _until(ctx: Ctx, m: dict[str, Any], last_ns: int, lim: Limits) -> int | None
     return until_ns
 
 
+def _boot(ctx: Ctx, m: dict[str, Any]) -> int | None:
+    """The sender's boot id (None when absent): an integer in [0, 2**63)."""
+    boot = m.get("boot")
+    if boot is None and "boot" not in m:
+        return None
+    if type(boot) is not int:
+        raise ctx.fail("wrong_type", "boot must be an integer")
+    if not 0 <= boot < 2**63:
+        raise ctx.fail("out_of_range", "boot must be in [0, 2**63)")
+    return boot
+
+
 def _packet(ctx: Ctx, stream: Stream, m: dict[str, Any], seq: int, lim: Limits) -> Packet:
     """Check and build the packet of an opened map (see :func:`_open`).
 
@@ -162,6 +174,7 @@ def _packet(ctx: Ctx, stream: Stream, m: dict[str, Any], seq: int, lim: Limits) 
     """
     ms, first_ns, last_ns = _RULES[stream](ctx, m, lim)
     until_ns = _until(ctx, m, last_ns, lim)
+    boot = _boot(ctx, m)
     assert ctx.vehicle_id is not None
     return new_packet(
         vehicle_id=ctx.vehicle_id,
@@ -172,6 +185,7 @@ def _packet(ctx: Ctx, stream: Stream, m: dict[str, Any], seq: int, lim: Limits) 
         first_stamp_ns=first_ns,
         last_stamp_ns=last_ns,
         until_ns=until_ns,
+        boot=boot,
     )
 
 

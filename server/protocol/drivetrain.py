@@ -54,26 +54,34 @@ def decode_odometer(ctx: Ctx, m: dict[str, Any], lim: Limits) -> Body:
     return (_new_odometer(stamp_ns=t, direction=direction),), first_ns, last_ns
 
 
-def encode_odometer(edges: OdometerEdges, seq: int, until_ns: int | None = None) -> bytes:
+def encode_odometer(
+    edges: OdometerEdges, seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode the odometer's edges for ``<prefix>/<id>/sensors/odometer``; without edges the
     packet is a heartbeat and needs ``until_ns``."""
     n = sample_count(edges.stamp_ns)
     require_until(n > 0, until_ns)
     arrays = edge_arrays(edges.stamp_ns, edges.direction if n else None, n)
-    return pack({**header(Stream.ODOMETER, seq), **arrays}, until_ns)
+    return pack({**header(Stream.ODOMETER, seq), **arrays}, until_ns, boot)
 
 
 def encode_sprockets(
-    edges: list[SprocketEdges] | tuple[SprocketEdges, ...], seq: int, until_ns: int | None = None
+    edges: list[SprocketEdges] | tuple[SprocketEdges, ...],
+    seq: int,
+    until_ns: int | None = None,
+    *,
+    boot: int | None = None,
 ) -> bytes:
     """Encode one or both tracks' sprocket edges for ``<prefix>/<id>/sensors/sprockets``;
     without edges the packet is a heartbeat and needs ``until_ns``."""
     items = edge_entries("side", [(TrackSide(e.side), e.stamp_ns, e.direction) for e in edges])
     require_until(bool(items), until_ns)
-    return pack({**header(Stream.SPROCKETS, seq), "edges": items}, until_ns)
+    return pack({**header(Stream.SPROCKETS, seq), "edges": items}, until_ns, boot)
 
 
-def encode_steering(angles: SteeringAngles, seq: int, until_ns: int | None = None) -> bytes:
+def encode_steering(
+    angles: SteeringAngles, seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode ``n`` steering-wheel angles for ``<prefix>/<id>/sensors/steering``."""
     n = sample_count(angles.stamp_ns)
     return pack(
@@ -83,10 +91,13 @@ def encode_steering(angles: SteeringAngles, seq: int, until_ns: int | None = Non
             "angle_rad": pack_f8(angles.angle_rad, (n,), "angle_rad"),
         },
         until_ns,
+        boot,
     )
 
 
-def encode_wheel_speeds4(speeds: WheelSpeeds4, seq: int, until_ns: int | None = None) -> bytes:
+def encode_wheel_speeds4(
+    speeds: WheelSpeeds4, seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode ``n`` samples of four wheel speeds for ``<prefix>/<id>/sensors/wheel_speeds4``."""
     n = sample_count(speeds.stamp_ns)
     return pack(
@@ -96,4 +107,5 @@ def encode_wheel_speeds4(speeds: WheelSpeeds4, seq: int, until_ns: int | None = 
             "omega_radps": pack_f8(speeds.omega_radps, (n, len(Corner)), "omega_radps"),
         },
         until_ns,
+        boot,
     )

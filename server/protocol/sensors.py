@@ -80,7 +80,9 @@ _gnss_of_struct = copier(GnssSample)
 # encoding
 
 
-def encode_gnss(sample: GnssSample, seq: int, until_ns: int | None = None) -> bytes:
+def encode_gnss(
+    sample: GnssSample, seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode one GNSS epoch for ``<prefix>/<id>/sensors/gnss``."""
     vel = [float(x) for x in sample.vel_enu_mps]
     if len(vel) != 3:
@@ -100,6 +102,7 @@ def encode_gnss(sample: GnssSample, seq: int, until_ns: int | None = None) -> by
             "vel_std_mps": float(sample.vel_std_mps),
         },
         until_ns,
+        boot,
     )
 
 
@@ -110,7 +113,9 @@ def sample_count(stamp_ns: Any) -> int:
     return int(np.asarray(stamp_ns).shape[0])
 
 
-def encode_imu(batch: ImuBatch, seq: int, until_ns: int | None = None) -> bytes:
+def encode_imu(
+    batch: ImuBatch, seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode a batch of ``n`` IMU samples for ``<prefix>/<id>/sensors/imu``."""
     n = sample_count(batch.stamp_ns)
     return pack(
@@ -121,6 +126,7 @@ def encode_imu(batch: ImuBatch, seq: int, until_ns: int | None = None) -> bytes:
             "gyro_radps": pack_f8(batch.gyro_radps, (n, 3), "gyro_radps"),
         },
         until_ns,
+        boot,
     )
 
 
@@ -153,7 +159,9 @@ def require_until(has_data: bool, until_ns: int | None) -> None:
         raise EncodeError("a packet without edges must carry until_ns (a heartbeat)")
 
 
-def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int, until_ns: int | None = None) -> bytes:
+def encode_wheel_edges(
+    edges: Sequence[WheelEdges], seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode the encoder edges of one or both wheels for ``<prefix>/<id>/sensors/wheels``.
 
     Wheels without edges are left out; with none at all the packet is a heartbeat (``"edges":
@@ -161,10 +169,12 @@ def encode_wheel_edges(edges: Sequence[WheelEdges], seq: int, until_ns: int | No
     """
     items = edge_entries("wheel", [(Wheel(e.wheel), e.stamp_ns, e.direction) for e in edges])
     require_until(bool(items), until_ns)
-    return pack({**header(Stream.WHEELS, seq), "mode": "edges", "edges": items}, until_ns)
+    return pack({**header(Stream.WHEELS, seq), "mode": "edges", "edges": items}, until_ns, boot)
 
 
-def encode_wheel_speeds(speeds: WheelSpeeds, seq: int, until_ns: int | None = None) -> bytes:
+def encode_wheel_speeds(
+    speeds: WheelSpeeds, seq: int, until_ns: int | None = None, *, boot: int | None = None
+) -> bytes:
     """Encode ``n`` wheel angular-speed samples for ``<prefix>/<id>/sensors/wheels``."""
     n = sample_count(speeds.stamp_ns)
     return pack(
@@ -175,6 +185,7 @@ def encode_wheel_speeds(speeds: WheelSpeeds, seq: int, until_ns: int | None = No
             "omega_radps": pack_f8(speeds.omega_radps, (n, 2), "omega_radps"),
         },
         until_ns,
+        boot,
     )
 
 

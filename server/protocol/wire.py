@@ -5,7 +5,8 @@ each field's presence and type in Python, a few dozen operations per packet. The
 state the same field names and msgpack types (``docs/protocol.md`` §3–5), and
 :data:`DECODER` checks them while it decodes: a payload that decodes is a map with exactly
 these fields, each of its type, ``v`` the schema version and ``seq`` not negative. What is left
-to check in Python is values (limits, stamps, lengths of the packed arrays, ``seq < 2**63``):
+to check in Python is values (limits, stamps, lengths of the packed arrays, ``seq`` and
+``boot`` below 2**63):
 :mod:`server.protocol.burst` does that in batches. The GNSS struct is derived from
 :class:`~estimator.types.GnssSample`, whose fields a GNSS payload carries by name; which struct
 belongs to which stream is declared in :mod:`server.protocol.streams`.
@@ -54,6 +55,7 @@ __all__ = [
 ]
 
 _Seq = Annotated[int, msgspec.Meta(ge=0)]  # the upper bound (2**63) is checked by the caller
+_Boot = Annotated[int, msgspec.Meta(ge=0)] | UnsetType  # the sender's boot id (optional)
 _Version = Literal[SCHEMA_VERSION]  # type: ignore[valid-type]
 
 
@@ -71,7 +73,7 @@ def _gnss_fields() -> list[tuple[str, object, object]]:
     for f in dataclasses.fields(GnssSample):
         default = msgspec.NODEFAULT if f.default is dataclasses.MISSING else f.default
         out.append((f.name, hints[f.name], default))
-    return [*out, ("until_ns", int | UnsetType, UNSET)]
+    return [*out, ("until_ns", int | UnsetType, UNSET), ("boot", _Boot, UNSET)]
 
 
 #: One GNSS epoch: the fields of ``GnssSample`` (``fix`` and ``vel_std_mps`` optional, as there;
@@ -92,6 +94,7 @@ class ImuPacket(_Packet, tag="imu"):
     accel_mps2: bytes
     gyro_radps: bytes
     until_ns: int | UnsetType = UNSET
+    boot: _Boot = UNSET
 
 
 class EdgesEntry(msgspec.Struct, forbid_unknown_fields=True):
@@ -110,6 +113,7 @@ class WheelsPacket(_Packet, tag="wheels"):
     stamp_ns: bytes | UnsetType = UNSET
     omega_radps: bytes | UnsetType = UNSET
     until_ns: int | UnsetType = UNSET
+    boot: _Boot = UNSET
 
 
 class OdometerPacket(_Packet, tag="odometer"):
@@ -118,6 +122,7 @@ class OdometerPacket(_Packet, tag="odometer"):
     stamp_ns: bytes
     direction: bytes | UnsetType = UNSET
     until_ns: int | UnsetType = UNSET
+    boot: _Boot = UNSET
 
 
 class SideEntry(msgspec.Struct, forbid_unknown_fields=True):
@@ -133,6 +138,7 @@ class SprocketsPacket(_Packet, tag="sprockets"):
 
     edges: list[SideEntry]
     until_ns: int | UnsetType = UNSET
+    boot: _Boot = UNSET
 
 
 class SteeringPacket(_Packet, tag="steering"):
@@ -141,6 +147,7 @@ class SteeringPacket(_Packet, tag="steering"):
     stamp_ns: bytes
     angle_rad: bytes
     until_ns: int | UnsetType = UNSET
+    boot: _Boot = UNSET
 
 
 class WheelSpeeds4Packet(_Packet, tag="wheel_speeds4"):
@@ -149,6 +156,7 @@ class WheelSpeeds4Packet(_Packet, tag="wheel_speeds4"):
     stamp_ns: bytes
     omega_radps: bytes
     until_ns: int | UnsetType = UNSET
+    boot: _Boot = UNSET
 
 
 #: Decodes a payload into the packet struct of its ``sensor``.

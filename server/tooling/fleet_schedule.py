@@ -162,7 +162,7 @@ class DrivePacket(Protocol):
     def measurements(self) -> tuple[Measurement, ...]: ...
     @property
     def until_ns(self) -> int | None: ...
-    def encode(self, seq: int, shift_ns: int = 0) -> bytes: ...
+    def encode(self, seq: int, shift_ns: int = 0, boot: int | None = None) -> bytes: ...
 
 
 class EncodedDrive:
@@ -174,6 +174,8 @@ class EncodedDrive:
         In arrival order (:func:`server.tooling.fleet_sim.packetize`).
     period_ns : int
         Sensor-time length of one loop of the drive (last arrival + a tick).
+    boot : int, optional
+        The sender's boot id every packet carries (None: not sent).
 
     Attributes (``P`` packets)
     --------------------------
@@ -187,7 +189,9 @@ class EncodedDrive:
         index them per packet.
     """
 
-    def __init__(self, packets: Sequence[DrivePacket], period_ns: int) -> None:
+    def __init__(
+        self, packets: Sequence[DrivePacket], period_ns: int, boot: int | None = None
+    ) -> None:
         n = len(packets)
         self.period_ns = int(period_ns)
         self.arrival_ns = np.empty(n, np.int64)
@@ -201,7 +205,7 @@ class EncodedDrive:
         be: list[int] = []
         size = 0
         for i, p in enumerate(packets):
-            payload = p.encode(0)
+            payload = p.encode(0, boot=boot)  # the header's boot id is the same for every loop
             stamps = [
                 np.asarray(int(m.stamp_ns), np.int64)
                 if isinstance(m, GnssSample)

@@ -33,6 +33,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import secrets
 import threading
 import time
 from collections import Counter
@@ -129,14 +130,15 @@ class SimPacket:
     #: the packet's ``until_ns`` (absolute, shifted with the stamps), None: not sent
     until_ns: int | None = None
 
-    def encode(self, seq: int, shift_ns: int = 0) -> bytes:
+    def encode(self, seq: int, shift_ns: int = 0, boot: int | None = None) -> bytes:
         """The packet on the wire as sequence number ``seq``, its stamps and ``until_ns`` moved
-        by ``shift_ns`` (a later loop of the drive, another vehicle's phase)."""
+        by ``shift_ns`` (a later loop of the drive, another vehicle's phase), sent with the
+        sender's ``boot`` id when given."""
         ms = self.measurements
         if shift_ns:
             ms = tuple(shift_measurement(m, shift_ns) for m in ms)
         until = None if self.until_ns is None else self.until_ns + shift_ns
-        return encode_packet(self.stream, ms, seq, until)
+        return encode_packet(self.stream, ms, seq, until, boot)
 
 
 @dataclass(slots=True)
@@ -211,42 +213,47 @@ def encode_packet(
     measurements: tuple[Measurement, ...],
     seq: int,
     until_ns: int | None = None,
+    boot: int | None = None,
 ) -> bytes:
     """Encode one packet's measurements (as :func:`packetize` grouped them); a wheels,
-    odometer or sprockets packet without edges is a heartbeat (needs ``until_ns``)."""
+    odometer or sprockets packet without edges is a heartbeat (needs ``until_ns``); ``boot``:
+    the sender's boot id (None: not sent)."""
     if not measurements and stream is Stream.WHEELS:
-        return encode_wheel_edges([], seq, until_ns)
+        return encode_wheel_edges([], seq, until_ns, boot=boot)
     if not measurements and stream is Stream.ODOMETER:
-        return encode_odometer(OdometerEdges(np.zeros(0, np.int64)), seq, until_ns)
+        return encode_odometer(OdometerEdges(np.zeros(0, np.int64)), seq, until_ns, boot=boot)
     if stream is Stream.SPROCKETS:
         sides = [m for m in measurements if isinstance(m, SprocketEdges)]
-        return encode_sprockets(sides, seq, until_ns)
+        return encode_sprockets(sides, seq, until_ns, boot=boot)
     first = measurements[0]
     if stream is Stream.GNSS and isinstance(first, GnssSample):
-        return encode_gnss(first, seq, until_ns)
+        return encode_gnss(first, seq, until_ns, boot=boot)
     if stream is Stream.IMU and isinstance(first, ImuBatch):
-        return encode_imu(first, seq, until_ns)
+        return encode_imu(first, seq, until_ns, boot=boot)
     if isinstance(first, WheelSpeeds):
-        return encode_wheel_speeds(first, seq, until_ns)
+        return encode_wheel_speeds(first, seq, until_ns, boot=boot)
     if isinstance(first, SteeringAngles):
-        return encode_steering(first, seq, until_ns)
+        return encode_steering(first, seq, until_ns, boot=boot)
     if isinstance(first, WheelSpeeds4):
-        return encode_wheel_speeds4(first, seq, until_ns)
+        return encode_wheel_speeds4(first, seq, until_ns, boot=boot)
     if isinstance(first, OdometerEdges):
-        return encode_odometer(first, seq, until_ns)
+        return encode_odometer(first, seq, until_ns, boot=boot)
     edges = [m for m in measurements if isinstance(m, WheelEdges)]
     if len(edges) != len(measurements):
         raise ValueError(f"cannot encode {[type(m).__name__ for m in measurements]} on {stream}")
-    return encode_wheel_edges(edges, seq, until_ns)
+    return encode_wheel_edges(edges, seq, until_ns, boot=boot)
 
 
-def encode_packets(packets: Sequence[SimPacket]) -> list[tuple[str, bytes]]:
-    """``(stream name, payload)`` of ``packets`` in order, each stream's ``seq`` from 0."""
+def encode_packets(
+    packets: Sequence[SimPacket], boot: int | None = None
+) -> list[tuple[str, bytes]]:
+    """``(stream name, payload)`` of ``packets`` in order, each stream's ``seq`` from 0, sent
+    with the boot id ``boot`` when given."""
     seq: Counter[str] = Counter()
     out = []
     for p in packets:
         name = p.stream.value
-        out.append((name, p.encode(seq[name])))
+        out.append((name, p.encode(seq[name], boot=boot)))
         seq[name] += 1
     return out
 
@@ -356,6 +363,7 @@ class FleetSim:
         self._mix = estimator_mix
         self._overrides = sim_overrides
         self._stop = threading.Event()
+        self._boot: int | None = None  # picked as each run starts (its vehicles send it)
         self._thread: threading.Thread | None = None
         self.stats = SimStats()
 
@@ -453,6 +461,9 @@ class FleetSim:
         the sessions, and simulating may outlast its wait for this thread.
         """
         vehicles = self._build()
+        # a run starts every vehicle's sequence numbers at 0: a new boot id tells the server
+        # (a second run on the same server is not a replay of the first)
+        self._boot = secrets.randbits(63)
         scheduled: list[ScheduledVehicle] = []
         declared: list[zenoh.Publisher] = []
         for i, v in enumerate(vehicles):
@@ -461,7 +472,7 @@ class FleetSim:
             d = drive_of.get(id(v.packets))
             if d is None:
                 d = drive_of[id(v.packets)] = len(drives)
-                drives.append(EncodedDrive(v.packets, v.period_ns))
+                drives.append(EncodedDrive(v.packets, v.period_ns, self._boot))
             session = self._sessions[i % len(self._sessions)]
             used = {p.stream for p in v.packets}  # a tractor sends no steering, ...
             pubs = {s: _publisher(session, sensor_key(self._prefix, v.vehicle_id, s)) for s in used}
@@ -657,7 +668,7 @@ def replay(
                 try:
                     pkt = decode(key, payload, prefix=_prefix_of(key), max_payload_bytes=1 << 30)
                     again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
-                    payload = again.encode(pkt.seq, shift)
+                    payload = again.encode(pkt.seq, shift, pkt.boot)  # as recorded
                 except DecodeError:
                     pass  # replay what was recorded: the server will count the refusal
             pub = pubs.get(key)

@@ -2,14 +2,15 @@
 
 ::
 
-    python -m server.tooling.bench.ingest codec [--vehicles 100] [--repeats 7] [--json]
+    python -m server.tooling.bench.ingest codec [--vehicles 100] [--repeats 7] [--json] [--boot]
     python -m server.tooling.bench.ingest ingest --vehicles 200 --packets 300 [--estimator mdsf]
 
 ``codec`` decodes the packets of a simulated 5-minute ``field_work`` run, dealt to ``vehicles``
 vehicles, two ways in one run: each packet on its own (``decode``, the old ingest path) and
 ``subscriber.BURST`` packets at a time (``decode_burst``, the ingest thread's path); it prints
 the thread CPU time per packet of each (least of ``repeats`` interleaved passes) and their
-ratio, per stream and overall.
+ratio, per stream and overall. With ``--boot`` it times instead the same packets without and
+with the header's ``boot`` field (a 63-bit boot id), both paths, interleaved in one run.
 ``ingest`` starts an embedded router on a free loopback port and a pipeline, then a separate
 publisher process sends ``packets`` simulated packets for each of ``vehicles`` vehicles as fast
 as BLOCK congestion control lets it; it reports packets per second through decode, reorder and
@@ -36,9 +37,11 @@ from estimator.types import ESTIMATE_DTYPE
 from server.tooling.ports import free_port as _free_port
 
 __all__ = [
+    "bench_boot",
     "bench_burst_sizes",
     "bench_codec",
     "bench_ingest",
+    "format_boot_table",
     "format_burst_table",
     "format_codec_table",
     "main",
@@ -47,24 +50,24 @@ __all__ = [
 TICK_NS = 100_000_000
 
 
-def _encoded(n_packets: int | None = None) -> list[tuple[str, bytes]]:
-    """``(stream, payload)`` of a simulated run, sequence numbers per stream."""
+def _encoded(n_packets: int | None = None, boot: int | None = None) -> list[tuple[str, bytes]]:
+    """``(stream, payload)`` of a simulated run, sequence numbers per stream (and ``boot``)."""
     from estimator.sim import simulate
     from server.tooling.fleet_sim import encode_packets, packetize
 
     now_ns = time.time_ns()  # stamps near the wall clock: the pipeline refuses far ones
     run = simulate("field_work", seed=1, start_ns=now_ns - now_ns % TICK_NS)
-    return encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns)[:n_packets])
+    return encode_packets(packetize(run.sent_in_arrival_order(), run.start_ns)[:n_packets], boot)
 
 
-def _keyed(vehicles: int) -> list[tuple[str, bytes]]:
+def _keyed(vehicles: int, boot: int | None = None) -> list[tuple[str, bytes]]:
     """``(key, payload)`` of a simulated run, the packets dealt to ``vehicles`` vehicles in turn
     (as a fleet's packets interleave in one burst)."""
     from server.protocol import sensor_key
 
     return [
         (sensor_key("fleet", f"bench-{i % vehicles:05d}", stream), payload)
-        for i, (stream, payload) in enumerate(_encoded())
+        for i, (stream, payload) in enumerate(_encoded(boot=boot))
     ]
 
 
@@ -127,6 +130,33 @@ def bench_codec(vehicles: int = 100, repeats: int = 7) -> dict[str, dict[str, fl
             "packets": float(len(items)),
         }
     return out
+
+
+def bench_boot(vehicles: int = 100, repeats: int = 7) -> dict[str, float]:
+    """Decode CPU in µs per packet (all streams) of the same packets without and with the
+    ``boot`` header field, each packet alone and in bursts, interleaved in one run."""
+    plain = _keyed(vehicles)
+    booted = _keyed(vehicles, boot=2**62 + 12_345)  # a 63-bit id: msgpack uint 64, 9 bytes
+    paths: dict[str, Callable[[list[tuple[str, bytes]]], None]] = {
+        "alone": lambda _: _decode_alone(plain),
+        "alone_boot": lambda _: _decode_alone(booted),
+        "burst": lambda _: _decode_bursts(plain),
+        "burst_boot": lambda _: _decode_bursts(booted),
+    }
+    cost = _cpu_us_per_packet(paths, plain, repeats)
+    return {k: round(v, 3) for k, v in cost.items()}
+
+
+def format_boot_table(result: Mapping[str, float]) -> str:
+    """The :func:`bench_boot` result as a table."""
+    lines = [
+        "decode CPU per packet (µs, least of interleaved passes), all streams",
+        f"{'path':<8} {'no boot':>9} {'boot':>9} {'added':>9}",
+    ]
+    for path in ("alone", "burst"):
+        base, boot = result[path], result[f"{path}_boot"]
+        lines.append(f"{path:<8} {base:>9.3f} {boot:>9.3f} {boot - base:>+9.3f}")
+    return "\n".join(lines)
 
 
 #: Burst sizes of :func:`bench_burst_sizes`: a real-time server's bursts are as large as what
@@ -293,11 +323,16 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--vehicles", type=int, default=100, help="vehicles the packets are dealt to")
     c.add_argument("--repeats", type=int, default=7, help="interleaved passes (least kept)")
     c.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    c.add_argument("--boot", action="store_true", help="without vs with the 'boot' field")
     p = sub.add_parser("ingest", help="Zenoh -> pipeline throughput")
     p.add_argument("--vehicles", type=int, default=100)
     p.add_argument("--packets", type=int, default=300, help="packets per vehicle")
     p.add_argument("--estimator", choices=("null", "mdsf"), default="null")
     args = parser.parse_args(argv)
+    if args.what == "codec" and args.boot:
+        boot = bench_boot(args.vehicles, args.repeats)
+        print(json.dumps(boot, indent=2) if args.json else format_boot_table(boot))
+        return
     if args.what == "codec":
         codec = bench_codec(args.vehicles, args.repeats)
         sizes = bench_burst_sizes(args.vehicles, args.repeats)

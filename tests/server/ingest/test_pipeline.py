@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 
@@ -319,6 +320,28 @@ def test_sequence_tracking_resumes_after_a_restart() -> None:
     c = again.counters_snapshot()["a"]
     assert c["lost_by_seq_gap"] == 4 and c["seq_high_imu"] == 8
     assert c["received"] == 5 == c["accepted"]
+
+
+def test_the_boot_id_is_stored_with_the_sequence_numbers() -> None:
+    """After a restart the stored boot id keeps the numbers seen under it duplicates, and a new
+    boot (the vehicle rebooted while the server was down) starts afresh without a loss."""
+    boot, rebooted = 2**62 + 5, 17
+    pipe, _, _ = make()
+    pipe.start()
+    pipe.submit([dataclasses.replace(imu("a", k, 10 * k), boot=boot) for k in range(3)])
+    pipe.stop()
+    stored = pipe.restorable_counters()["a"]
+    assert stored["seq_boot"] == boot and stored["seq_high_imu"] == 2
+    assert "seq_boot" not in pipe.counters_snapshot()["a"]  # not a counter: never reported
+    again, _, _ = make()
+    again.restore_counters("a", stored)
+    again.start()
+    again.submit([dataclasses.replace(imu("a", 2, 20), boot=boot)])  # seen before the restart
+    again.submit([dataclasses.replace(imu("a", k, 30 + 10 * k), boot=rebooted) for k in range(3)])
+    again.stop()
+    c = again.counters_snapshot()["a"]
+    assert c["duplicate"] == 1 and c["seq_restarts"] == 1 and c["lost_by_seq_gap"] == 0
+    assert c["accepted"] == 6 and again.restorable_counters()["a"]["seq_boot"] == rebooted
 
 
 def test_final_snapshots_include_vehicles_seen_since_the_last_refresh(
