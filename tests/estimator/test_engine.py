@@ -39,6 +39,7 @@ from estimator.types import (
     WheelEdges,
     WheelSpeeds,
 )
+from tests.estimator.mdsf_tick import one_vehicle_inputs
 
 START = 1_767_225_600_000_000_000
 F = EstimateFlag
@@ -388,32 +389,6 @@ def _synthetic_inputs(z: np.ndarray, r_diag: np.ndarray, stamp: int) -> TickInpu
     )
 
 
-def _one_vehicle_inputs(**fields: np.ndarray) -> TickInputs:
-    """One vehicle's tick inputs: zeros, GNSS and IMU fused with unit variances, no wheel or
-    distance; ``fields`` replace any of them."""
-    base: dict[str, np.ndarray] = {
-        "stamp_ns": np.array([0]),
-        "z": np.zeros((1, 4)),
-        "gnss_ok": np.array([True]),
-        "gnss_var": np.ones(1),
-        "imu_ok": np.array([True]),
-        "accel_var": np.ones(1),
-        "gyro_var": np.ones(1),
-        "force_fwd": np.zeros(1),
-        "omega": np.zeros((1, 2)),
-        "omega_std": np.zeros((1, 2)),
-        "wheel_flags": np.zeros(1, dtype=np.int32),
-        "enu": np.zeros((1, 3)),
-        "attitude": np.zeros((1, 3)),
-        "dist_ok": np.zeros(1, bool),
-        "dist_m": np.zeros(1),
-        "dist_var": np.zeros(1),
-        "dist_restart": np.zeros(1, bool),
-        "fix_age_s": np.zeros(1),
-    }
-    return TickInputs(**{**base, **fields})
-
-
 def test_nis_and_nees_consistent_on_data_from_the_model() -> None:
     """Paper mode on measurements drawn from its own model: NIS and NEES are chi-square."""
     cfg = MdsfConfig(mode=MdsfMode.PAPER)
@@ -569,7 +544,7 @@ def _tyre_pairs(
     x_post[0, 0] = 3.0  # V1; no pitch or yaw rate: both wheels at V1
     for xg, e in zip(x_g, eps, strict=True):
         engine.force_model[slot] = xg * 9.80665
-        t = _one_vehicle_inputs(gnss_ok=np.array([fused]))
+        t = one_vehicle_inputs(gnss_ok=np.array([fused]))
         rim = np.full((1, 2), 3.0 * (1.0 + e))
         engine._learn_tyre_gain(slots, t, x_post, rim, np.ones((1, 2), bool), np.array([fused]))
 
@@ -945,7 +920,7 @@ def test_demand_noise_opens_the_rim_excess_while_the_demand_changes() -> None:
     force = np.concatenate([np.zeros(20), np.linspace(0.0, 1.0, 11)[1:], np.ones(40)])
     grow = []
     for f in force:
-        t = _one_vehicle_inputs(accel_var=np.full(1, 1e-4), force_fwd=np.array([f]))
+        t = one_vehicle_inputs(accel_var=np.full(1, 1e-4), force_fwd=np.array([f]))
         grow.append(float(engine._demand_change(slots, t, t.accel_var)[0]))
     g = np.array(grow)
     assert np.all(g >= 0.0) and np.all(g[:20] == 0.0)  # steady: nothing beyond the noise

@@ -20,32 +20,17 @@ from estimator.mdsf import MdsfConfig, MdsfEngine, MdsfFleet, MdsfState, TickInp
 from estimator.sim import replay, simulate, truth_at
 from estimator.sim.drives import draw_drive
 from estimator.types import EstimateFlag
+from tests.estimator.mdsf_tick import one_vehicle_inputs
 
 START = 1_767_225_600_000_000_000
 _B = MdsfState.ACCEL_BIAS
 
 
 def _tick(stamp_s: float, accel_var: float) -> TickInputs:
-    z = np.zeros((1, 4))
-    return TickInputs(
+    return one_vehicle_inputs(
         stamp_ns=np.array([round(stamp_s * 1e9)]),
-        z=z,
         gnss_ok=np.array([False]),
-        gnss_var=np.ones(1),
-        imu_ok=np.array([True]),
         accel_var=np.array([accel_var]),
-        gyro_var=np.ones(1),
-        force_fwd=np.zeros(1),
-        omega=np.zeros((1, 2)),
-        omega_std=np.zeros((1, 2)),
-        wheel_flags=np.zeros(1, dtype=np.int32),
-        enu=np.zeros((1, 3)),
-        attitude=np.zeros((1, 3)),
-        dist_ok=np.zeros(1, bool),
-        dist_m=np.zeros(1),
-        dist_var=np.zeros(1),
-        dist_restart=np.zeros(1, bool),
-        fix_age_s=np.zeros(1),
     )
 
 

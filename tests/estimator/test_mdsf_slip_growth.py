@@ -16,6 +16,7 @@ import pytest
 from estimator import kalman
 from estimator.config import WheeledRearDriveConfig
 from estimator.mdsf import MdsfConfig, MdsfEngine, MdsfObs, MdsfState, TickInputs
+from tests.estimator.mdsf_tick import one_vehicle_inputs
 
 _V1, _A1, _B, _D = MdsfState.V1, MdsfState.A1, MdsfState.ACCEL_BIAS, MdsfState.DIST
 _E = (MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT)
@@ -25,25 +26,13 @@ def _tick(accel_mps2: float, accel_var: float) -> TickInputs:
     """One tick with GNSS just fused (so the accelerometer keeps its white variance)."""
     z = np.zeros((1, 4))
     z[0, MdsfObs.A1] = accel_mps2
-    return TickInputs(
+    return one_vehicle_inputs(
         stamp_ns=np.array([100_000_000]),
         z=z,
-        gnss_ok=np.array([True]),
         gnss_var=np.full(1, 0.03**2),
-        imu_ok=np.array([True]),
         accel_var=np.array([accel_var]),
         gyro_var=np.full(1, 1e-4),
         force_fwd=np.full(1, accel_mps2),
-        omega=np.zeros((1, 2)),
-        omega_std=np.zeros((1, 2)),
-        wheel_flags=np.zeros(1, dtype=np.int32),
-        enu=np.zeros((1, 3)),
-        attitude=np.zeros((1, 3)),
-        dist_ok=np.zeros(1, bool),
-        dist_m=np.zeros(1),
-        dist_var=np.zeros(1),
-        dist_restart=np.zeros(1, bool),
-        fix_age_s=np.zeros(1),
     )
 
 

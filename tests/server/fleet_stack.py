@@ -18,7 +18,7 @@ from fastapi import FastAPI
 from server.app_main import ServerThread, build_app
 from server.settings import Settings
 from server.tooling.fleet_commands import vehicle_session
-from server.tooling.fleet_sim import FleetSim
+from server.tooling.fleet_sim import FleetSim, SimStats
 from tests.support import free_port
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "START_TIMEOUT_S",
     "backend_of",
     "calibration_resets",
+    "publish_drive",
     "running_server",
     "stack_settings",
     "stored_columns",
@@ -149,3 +150,24 @@ def calibration_resets(client: httpx.Client, vehicle_id: str) -> float:
         if 'event="calibration_resets"' in line and f'vehicle="{vehicle_id}"' in line:
             return float(line.rsplit(" ", 1)[1])
     return 0.0
+
+
+def publish_drive(
+    settings: Settings, start_ns: int, duration_s: float, seed: int, **fleet: Any
+) -> SimStats:
+    """Publish one simulated vehicle's ``random_drive`` of ``duration_s`` from sensor time
+    ``start_ns``, 4× faster than real time, on a session of its own (a fresh simulator start:
+    sequence numbers from 0, a new boot id); ``fleet``: further :class:`FleetSim` arguments.
+    Returns the run's statistics."""
+    with vehicle_session(list(settings.zenoh.listen)) as session:
+        return FleetSim(
+            session,
+            1,
+            scenario="random_drive",
+            prefix=settings.zenoh.key_prefix,
+            seed=seed,
+            rate=4.0,
+            clock_ns=lambda: start_ns,
+            duration_s=duration_s,
+            **fleet,
+        ).run()

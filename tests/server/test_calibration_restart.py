@@ -21,12 +21,11 @@ import pytest
 from estimator.config import VehicleGeometry, WheeledRearDriveConfig
 from server.app_main import ServerThread, build_app
 from server.settings import Settings
-from server.tooling.fleet_commands import vehicle_session
-from server.tooling.fleet_sim import FleetSim
 from tests.server.fleet_stack import (
     BACKENDS,
     backend_of,
     calibration_resets,
+    publish_drive,
     stack_settings,
     stored_columns,
 )
@@ -59,20 +58,15 @@ def _drive(
 ) -> int:
     """Publish one drive of ``duration_s`` from ``start_ns`` (rear wheels rolling free, else
     driven); its end [ns]."""
-    with vehicle_session(list(settings.zenoh.listen)) as session:
-        FleetSim(
-            session,
-            1,
-            scenario="random_drive",
-            prefix=settings.zenoh.key_prefix,
-            seed=seed,
-            rate=4.0,
-            clock_ns=lambda: start_ns,
-            config=FREE if free else WheeledRearDriveConfig(),
-            free_rolling=(free, free),
-            wheel_radius_error_rel=(0.02, 0.02),
-            duration_s=duration_s,
-        ).run()
+    publish_drive(
+        settings,
+        start_ns,
+        duration_s,
+        seed,
+        config=FREE if free else WheeledRearDriveConfig(),
+        free_rolling=(free, free),
+        wheel_radius_error_rel=(0.02, 0.02),
+    )
     return start_ns + int(duration_s * S)
 
 

@@ -17,9 +17,13 @@ import httpx
 import pytest
 
 from server.settings import Settings
-from server.tooling.fleet_commands import vehicle_session
-from server.tooling.fleet_sim import FleetSim
-from tests.server.fleet_stack import running_server, stack_settings, stored_columns, wait_counted
+from tests.server.fleet_stack import (
+    publish_drive,
+    running_server,
+    stack_settings,
+    stored_columns,
+    wait_counted,
+)
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -31,17 +35,7 @@ DRIVE_S = 20.0  # the shortest random drive
 def _drive(settings: Settings, start_ns: int, seed: int) -> tuple[int, int]:
     """Publish one drive of ``DRIVE_S`` from ``start_ns`` (a fresh simulator start: sequence
     numbers from 0, a new boot id); ``(packets sent, end ns)``."""
-    with vehicle_session(list(settings.zenoh.listen)) as session:
-        stats = FleetSim(
-            session,
-            1,
-            scenario="random_drive",
-            prefix=settings.zenoh.key_prefix,
-            seed=seed,
-            rate=4.0,
-            clock_ns=lambda: start_ns,
-            duration_s=DRIVE_S,
-        ).run()
+    stats = publish_drive(settings, start_ns, DRIVE_S, seed)
     return stats.total_packets, start_ns + int(DRIVE_S * S)
 
 
