@@ -249,34 +249,46 @@ class EncoderConfig(_Checked):
     has_direction: bool = False
 
 
-@dataclass(frozen=True, slots=True)
-class _SensorNoise(_Checked):
-    """The noise figures (1-sigma) every kind has: GNSS and accelerometer."""
-
-    gnss_vel_std_mps: float = _bounded(
-        0.05, 1e-6, 10.0, "m/s", "GNSS velocity noise per axis when the receiver gives none"
-    )
-    accel_std_mps2: float = _bounded(0.05, 1e-6, 10.0, "m/s²", "accelerometer white noise")
-    accel_bias_walk_mps2: float = _bounded(
-        0.002, 1e-7, 1.0, "m/s² per √s", "accelerometer bias random walk"
-    )
-    gnss_pos_std_m: float = _bounded(
+def _gnss_pos_std() -> Any:
+    return _bounded(
         0.02, 1e-6, 100.0, "m", "horizontal position noise per axis (RTK fixed: 1-2 cm)"
     )
 
 
 @dataclass(frozen=True, slots=True)
-class NoiseConfig(_SensorNoise):
-    """Sensor noise figures (1-sigma), used to build the filters' Q and R; the gyro's as white
-    noise per sample (the wheeled kinds)."""
+class _SensorNoise(_Checked):
+    """The noise figures (1-sigma) every kind has: GNSS velocity and the accelerometer's
+    white noise per sample."""
 
+    gnss_vel_std_mps: float = _bounded(
+        0.05, 1e-6, 10.0, "m/s", "GNSS velocity noise per axis when the receiver gives none"
+    )
+    accel_std_mps2: float = _bounded(
+        0.05, 1e-6, 10.0, "m/s²", "accelerometer white noise (1-sigma of one sample)"
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseConfig(_SensorNoise):
+    """Sensor noise figures (1-sigma), used to build the filters' Q and R; the accelerometer's
+    bias walk (the MDSF filter's bias state) and the gyro's white noise per sample (the
+    wheeled kinds)."""
+
+    accel_bias_walk_mps2: float = _bounded(
+        0.002, 1e-7, 1.0, "m/s² per √s", "accelerometer bias random walk"
+    )
+    gnss_pos_std_m: float = _gnss_pos_std()
     gyro_std_radps: float = _bounded(0.005, 1e-6, 1.0, "rad/s", "gyro white noise")
 
 
 @dataclass(frozen=True, slots=True)
 class TrackedNoiseConfig(_SensorNoise):
-    """A crawler's sensor noise figures (1-sigma): no gyro figure here, the gyro's noise is
-    its ``gyro`` section's data sheet (:class:`GyroConfig`)."""
+    """A crawler's sensor noise figures (1-sigma): the accelerometer's white noise (the
+    tracked filter's speed prediction integrates it), no bias walk (the filter has no
+    accelerometer bias state: the odometer holds the speed every tick) and no gyro figure
+    (the gyro's noise is its ``gyro`` section's data sheet, :class:`GyroConfig`)."""
+
+    gnss_pos_std_m: float = _gnss_pos_std()
 
 
 @dataclass(frozen=True, slots=True)
@@ -691,22 +703,24 @@ def upgrade_legacy_config(data: dict[str, Any]) -> dict[str, Any]:
     keeps its ``noise``, ``slip`` and ``estimators``; its rear track width becomes the gauge
     (tracked) or both track widths, the IMU and antenna offsets and heights become lever arms,
     and the mean wheel radius becomes the unloaded tyre radius. A tracked config's
-    ``noise.gyro_std_radps``, written until a crawler's gyro was its ``gyro`` section alone
-    (nothing read it), is dropped. The rear-drive shape never changed. Values are not
-    validated here.
+    ``noise.gyro_std_radps`` (until a crawler's gyro was its ``gyro`` section alone) and
+    ``noise.accel_bias_walk_mps2`` (until it was dropped: the tracked filter has no
+    accelerometer bias state), which nothing read, are dropped. The rear-drive shape never
+    changed. Values are not validated here.
     """
     kind = data.get("kind")
     if kind in (VehicleKind.TRACKED, VehicleKind.WHEELED_4WD_STEERED) and set(data) == _LEGACY:
         data = _from_rear_drive_sections(data)
     if kind == VehicleKind.TRACKED:
         noise = data.get("noise")
-        if isinstance(noise, dict) and _TRACKED_GYRO_STD in noise:
-            data = {**data, "noise": {k: v for k, v in noise.items() if k != _TRACKED_GYRO_STD}}
+        if isinstance(noise, dict) and not _TRACKED_UNREAD_NOISE.isdisjoint(noise):
+            kept = {k: v for k, v in noise.items() if k not in _TRACKED_UNREAD_NOISE}
+            data = {**data, "noise": kept}
     return data
 
 
-_TRACKED_GYRO_STD = "gyro_std_radps"
-"""The noise field a tracked config had until its gyro was its ``gyro`` section alone."""
+_TRACKED_UNREAD_NOISE = frozenset({"gyro_std_radps", "accel_bias_walk_mps2"})
+"""The noise fields a tracked config had that the tracked estimator never read."""
 
 
 def _from_rear_drive_sections(data: dict[str, Any]) -> dict[str, Any]:

@@ -131,9 +131,10 @@ class _Fleet:
         known = np.array([[x is not None for x in pair] for pair in lasts], dtype=bool)
         return sprocket_missing(self.ticks, odo, last_ns[self.seg], known[self.seg], self.cfg)
 
-    def imu_means(self) -> tuple[FloatArray, FloatArray]:
+    def imu_means(self) -> tuple[FloatArray, FloatArray, IntArray]:
         """Mean forward specific force and yaw rate over each tick ``(t − tick, t]`` (the
-        per-vehicle sums, element by element in the same order); the IMU consumed."""
+        per-vehicle sums, element by element in the same order) and the samples each mean
+        is of; the IMU consumed."""
         imu = Segments([v.imu_ns for v in self.vehicles])
         values = np.concatenate([v.imu for v in self.vehicles])
         lo, hi = imu.search_all(self.seg, [self.ticks - self.tick_ns, self.ticks], "right")
@@ -149,7 +150,7 @@ class _Fleet:
                 out.append(np.where(count > 0, sums / count, np.nan))
         for v, cut in zip(self.vehicles, hi[self.starts[1:] - 1].tolist(), strict=True):
             v.imu_ns, v.imu = v.imu_ns[cut:], v.imu[cut:]
-        return out[0], out[1]
+        return out[0], out[1], count
 
     def yaw_accel(self, gyro: FloatArray) -> FloatArray:
         before = np.empty_like(gyro)
@@ -189,7 +190,7 @@ class _Fleet:
         return pos, vel, vstd, age
 
     def reads(self) -> Reads:
-        accel, gyro = self.imu_means()
+        accel, gyro, samples = self.imu_means()
         tick_sets = (self.ticks, self.ticks - self.tick_ns)
         odo, prev = self.odometer_speeds(tick_sets)
         sprockets, starting = self.sprocket_speeds(tick_sets)
@@ -198,6 +199,7 @@ class _Fleet:
             ticks_ns=self.ticks,
             accel=accel,
             gyro=gyro,
+            imu_samples=samples,
             yaw_accel=self.yaw_accel(gyro),
             odo=odo,
             prev=prev,

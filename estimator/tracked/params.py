@@ -1,6 +1,6 @@
 """Per-vehicle constants as arrays ``(k,)``, so one batched call serves vehicles of different
 geometry (gauge, contact length, the source's ratios and thresholds, lever arm, noises, the
-gyro fitted)."""
+gyro fitted). ``accel_std_mps2`` is the accelerometer's white noise per sample."""
 
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ class VehicleParams:
     min_slip_speed_mps: FloatArray
     gnss_pos_std_m: FloatArray
     gnss_vel_std_mps: FloatArray
+    accel_std_mps2: FloatArray
     sprocket_pitch_m: FloatArray
     odometer_pitch_m: FloatArray
     odometer_scale_std: FloatArray
@@ -58,6 +59,7 @@ class VehicleParams:
             "min_slip_speed_mps": c.slip.min_ground_speed_mps,
             "gnss_pos_std_m": c.noise.gnss_pos_std_m,
             "gnss_vel_std_mps": c.noise.gnss_vel_std_mps,
+            "accel_std_mps2": c.noise.accel_std_mps2,
             "sprocket_pitch_m": 2.0 * np.pi * c.sprocket.pitch_radius_m / c.sprocket.teeth_per_rev,
             "odometer_pitch_m": c.odometer.distance_per_edge_m,
             "odometer_scale_std": c.odometer.scale_std_pct / 100.0,

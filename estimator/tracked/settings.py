@@ -79,6 +79,12 @@ class TrackedEstimatorConfig:
     over the distance driven and by the patches driven over, which nothing observes
     without GNSS.
 
+    The forward speed is predicted with the accelerometer; what it does not explain (its
+    bias, the gravity a pitch on uneven ground leaks into it, the hull's lever-arm terms)
+    walks by ``speed_walk_mps2`` (m/s per √s), and its white noise (the config's
+    ``noise.accel_std_mps2``) is added over each tick
+    (:func:`~estimator.tracked.step.accel_speed_var`); the odometer holds the speed every tick.
+
     The hull's side-slip in turns is the configured ``μ_t``'s times a gain learnt beside
     GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
     sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.

@@ -39,6 +39,7 @@ from estimator.tracked.vehicle import TickInputs
 __all__ = [
     "Filter",
     "TickOut",
+    "accel_speed_var",
     "fresh_patch_var",
     "hull_settled",
     "initial_filter",
@@ -146,12 +147,27 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     )
 
 
+def accel_speed_var(p: VehicleParams, imu_samples: IntArray, tick_s: float) -> FloatArray:
+    """Variance ``(k,)`` the accelerometer's white noise adds to the forward speed over a
+    tick: the prediction integrates the tick's mean specific force, the mean of ``N``
+    (``imu_samples``) samples of noise ``σ_a`` (the config's ``noise.accel_std_mps2``), so
+    ``Var ΔV = Δt²·σ_a²/N`` (``N`` taken as at least 1)."""
+    n = np.maximum(np.asarray(imu_samples, dtype=np.float64), 1.0)
+    return np.asarray(tick_s**2 * p.accel_std_mps2**2 / n)
+
+
 def _q_diag(
-    cfg: TrackedEstimatorConfig, p: VehicleParams, lateral_mps: FloatArray, gyro_ratio: FloatArray
+    cfg: TrackedEstimatorConfig,
+    p: VehicleParams,
+    lateral_mps: FloatArray,
+    gyro_ratio: FloatArray,
+    imu_samples: IntArray,
 ) -> FloatArray:
     """Process noise per tick, ``(k, N_STATES)``; the heading's and the gyro bias's from each
     vehicle's gyro (``r·ARW²·Δt``, ``r·walk²·Δt``, :mod:`estimator.gyro`; ``gyro_ratio``
-    ``r (k,)`` the unit's noise over its data sheet's, :mod:`~estimator.tracked.gyro_noise`)."""
+    ``r (k,)`` the unit's noise over its data sheet's, :mod:`~estimator.tracked.gyro_noise`);
+    the speed's the walk the accelerometer does not explain (``speed_walk_mps2``) and its
+    own white noise over the tick (:func:`accel_speed_var`, ``imu_samples (k,)``)."""
     dt = cfg.tick_s
     k = p.gauge_m.shape[0]
     learn = 1.0 if cfg.learns else 0.0
@@ -159,7 +175,7 @@ def _q_diag(
     pos = cfg.position_walk_mps**2 + (cfg.lateral_model_error * lateral_mps) ** 2
     q[:, S.EAST] = q[:, S.NORTH] = pos * dt
     q[:, S.HEADING] = gyro_ratio * p.gyro_arw_rad_rt_s**2 * dt
-    q[:, S.SPEED] = cfg.speed_walk_mps2**2 * dt
+    q[:, S.SPEED] = cfg.speed_walk_mps2**2 * dt + accel_speed_var(p, imu_samples, dt)
     q[:, S.GYRO_BIAS] = learn * gyro_ratio * p.gyro_bias_walk_radps_rt_s**2 * dt
     q[:, S.GYRO_SCALE] = learn * cfg.gyro_scale_walk**2 * dt
     q[:, _FACTORS] = learn * cfg.factor_walk**2 * dt
@@ -554,7 +570,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     state, conf = recognise(f, inp, p, cfg, w)
     lateral, by_gain = _lateral(f, state, w, p, cfg)
     ratio = noise_ratio(f.gyro_standing, p, cfg) if cfg.learns else np.ones_like(w)
-    q = _q_diag(cfg, p, lateral, ratio)
+    q = _q_diag(cfg, p, lateral, ratio, inp.imu_samples)
     f.x, f.P = predict(f.x, f.P, gyro, accel, lateral, cfg.tick_s, q, by_gain)
     _ground_patch(f, p, cfg)
     fresh = _start(f, inp, p, cfg)

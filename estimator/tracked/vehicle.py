@@ -42,6 +42,8 @@ _FORWARD, _YAW = 1, 2
 class TickInputs:
     """Inputs of ``m`` ticks: shapes ``(m,)``; ``*_pair`` ``(m, 2)`` (left/right or E/N).
 
+    ``accel_mps2`` and ``gyro_radps`` are the means of the tick's ``imu_samples`` IMU samples.
+
     ``sprocket_pair_mps`` are the sprocket speeds carried from their windows' centres to the
     tick with the gearbox's acceleration (each sprocket turns at a fixed ratio of the gearbox
     between lever moves), so both tracks are read at one instant. ``gear_ratio`` is the
@@ -65,6 +67,7 @@ class TickInputs:
     ticks_ns: IntArray
     accel_mps2: FloatArray
     gyro_radps: FloatArray
+    imu_samples: IntArray
     yaw_accel_radps2: FloatArray
     odometer_mps: FloatArray
     odometer_lag_s: FloatArray
@@ -158,7 +161,7 @@ class VehicleInputs:
 
     def _reads(self, ticks: IntArray) -> Reads:
         """What the buffers give for ``ticks`` (IMU and fixes consumed)."""
-        accel, gyro = self._imu_means(ticks)
+        accel, gyro, samples = self._imu_means(ticks)
         odo, odo_c = self._odometer_speed(ticks)
         prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
         spr, spr_c = self._sprocket_speeds(ticks)
@@ -167,6 +170,7 @@ class VehicleInputs:
             ticks_ns=ticks,
             accel=accel,
             gyro=gyro,
+            imu_samples=samples,
             yaw_accel=self._yaw_accel(gyro),
             odo=(odo, odo_c),
             prev=(prev, prev_c),
@@ -180,8 +184,9 @@ class VehicleInputs:
             gnss=self._gnss_at(ticks),
         )
 
-    def _imu_means(self, ticks: IntArray) -> tuple[FloatArray, FloatArray]:
-        """Mean forward specific force and yaw rate over each tick ``(t − tick, t]``."""
+    def _imu_means(self, ticks: IntArray) -> tuple[FloatArray, FloatArray, IntArray]:
+        """Mean forward specific force and yaw rate over each tick ``(t − tick, t]``, and the
+        samples each mean is of."""
         bounds = np.concatenate([ticks[:1] - self.tick_ns, ticks])
         edges = np.searchsorted(self.imu_ns, bounds, side="right")
         count = np.diff(edges)
@@ -194,7 +199,7 @@ class VehicleInputs:
                 out.append(np.where(count > 0, sums / count, np.nan))
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
-        return out[0], out[1]
+        return out[0], out[1], count
 
     def _yaw_accel(self, gyro: FloatArray) -> FloatArray:
         """``(ω_t − ω_{t−1})/tick`` per tick from the ticks' mean rates (0 where unknown)."""
@@ -282,15 +287,16 @@ KEEP_NS = 3_000_000_000
 @dataclass(frozen=True, slots=True)
 class Reads:
     """What the buffers give for ``m`` ticks, before the inputs are derived from it: IMU
-    means ``(m,)``; ``odo``/``prev`` the odometer's speed and window centre at the tick and
-    the tick before ``(m,)``; ``spr``/``before`` the sprockets' ``(m, 2)``; gear ratios at
-    both; sprockets starting ``(m, 2)``; the odometer's edges in the tick and the silence
-    before them ``(m,)`` each; a sprocket missing ``(m,)``; the tick's fix
-    (:meth:`VehicleInputs._gnss_at`)."""
+    means and their sample counts ``(m,)``; ``odo``/``prev`` the odometer's speed and window
+    centre at the tick and the tick before ``(m,)``; ``spr``/``before`` the sprockets'
+    ``(m, 2)``; gear ratios at both; sprockets starting ``(m, 2)``; the odometer's edges in
+    the tick and the silence before them ``(m,)`` each; a sprocket missing ``(m,)``; the
+    tick's fix (:meth:`VehicleInputs._gnss_at`)."""
 
     ticks_ns: IntArray
     accel: FloatArray
     gyro: FloatArray
+    imu_samples: IntArray
     yaw_accel: FloatArray
     odo: tuple[FloatArray, FloatArray]
     prev: tuple[FloatArray, FloatArray]
@@ -333,6 +339,7 @@ def tick_inputs(
         ticks_ns=r.ticks_ns,
         accel_mps2=r.accel,
         gyro_radps=r.gyro,
+        imu_samples=r.imu_samples,
         yaw_accel_radps2=r.yaw_accel,
         odometer_mps=odo,
         odometer_lag_s=(tick_f - odo_c) * 1e-9,

@@ -184,6 +184,24 @@ def test_a_crawlers_stored_gyro_std_is_dropped_and_its_gyro_section_is_the_one_t
     assert isinstance(rear, WheeledRearDriveConfig) and rear.noise.gyro_std_radps == 0.004
 
 
+def test_a_crawlers_stored_accel_bias_walk_is_dropped_and_a_tractors_kept() -> None:
+    """A tracked config stored while its ``noise`` still had ``accel_bias_walk_mps2`` (the
+    tracked filter has no accelerometer bias state: nothing read it) loads as today's, the
+    field gone from it and from what it writes, its other figures kept; a rear-drive
+    config keeps it (MDSF's bias state walks by it)."""
+    stored = TrackedConfig().to_dict()
+    assert "accel_bias_walk_mps2" not in stored["noise"]
+    stored["noise"] = {**stored["noise"], "accel_bias_walk_mps2": 0.003, "accel_std_mps2": 0.08}
+    crawler = vehicle_config_from_dict(json.loads(json.dumps(stored)))
+    assert isinstance(crawler, TrackedConfig)
+    assert crawler.noise.accel_std_mps2 == 0.08
+    assert not hasattr(crawler.noise, "accel_bias_walk_mps2")
+    assert "accel_bias_walk_mps2" not in crawler.to_dict()["noise"]
+    assert "accel_bias_walk_mps2" in stored["noise"]  # the caller's dict is left as it was
+    rear = vehicle_config_from_dict({"noise": {"accel_bias_walk_mps2": 0.003}})
+    assert isinstance(rear, WheeledRearDriveConfig) and rear.noise.accel_bias_walk_mps2 == 0.003
+
+
 @pytest.mark.parametrize("case", BOUNDED, ids=_ids)
 def test_each_range_is_refused_with_field_range_and_unit(
     case: tuple[type[VehicleConfig], str, str, Bound],

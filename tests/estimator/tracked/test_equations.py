@@ -571,7 +571,8 @@ def test_tracked_package_is_pure() -> None:
 def _tick_inputs(n: int = 3, **fields: np.ndarray) -> TickInputs:
     """``n`` ticks of zeros (``*_pair*`` fields ``(n, 2)``), ``fields`` replacing some."""
     flags = ("sprocket_missing", "sprocket_settling_pair", "sprocket_starting_pair")
-    kinds = {**dict.fromkeys(flags, bool), "odometer_edges": np.int64, "ticks_ns": np.int64}
+    ints = dict.fromkeys(("odometer_edges", "ticks_ns", "imu_samples"), np.int64)
+    kinds = {**dict.fromkeys(flags, bool), **ints}
     base = {
         f.name: np.zeros((n, 2) if "pair" in f.name else n, dtype=kinds.get(f.name, float))
         for f in dataclasses.fields(TickInputs)

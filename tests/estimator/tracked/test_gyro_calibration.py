@@ -20,6 +20,7 @@ from estimator.tracked.gyro_noise import (
     SUM_SQ,
     arw_fields,
     initial_stats,
+    learn_standing,
     noise_ratio,
     stats_from_fields,
 )
@@ -50,6 +51,33 @@ def test_the_rows_arw_and_its_std_by_hand_and_back() -> None:
     # and so the filter's ratio, against the data sheet the config names now
     p = VehicleParams.stack([VehicleParams.of(TrackedConfig())] * 3)
     np.testing.assert_allclose(noise_ratio(back, p, CFG), noise_ratio(stats, p, CFG), rtol=1e-12)
+
+
+def test_over_many_stops_the_rows_arw_is_unbiased_within_its_stated_std() -> None:
+    """Monte Carlo of the measurement over 20,000 crawlers, each standing three times (31, 71
+    and 33 ticks, the stops of ``random[1000]``: 132 pairs) with a unit 1.67 times the
+    ADIS16470: the rows' ARW is the unit's on average (within 1 %), and spreads by the std the
+    rows state (``ARW·√(3/(4n))``, within 5 %). Its std is stated from the reading itself, so a
+    low reading states a smaller std: beyond 2 of it, low readings outnumber high ones."""
+    rng = np.random.default_rng(26)
+    k, grade = 20_000, 1.67
+    arw_rad = grade * ADIS16470.arw_rad_rt_s
+    stats = initial_stats(k)
+    for ticks in (31, 71, 33):
+        bias = rng.normal(0.0, 5e-4, k)  # a stop's bias: the walk between stops
+        for _ in range(ticks):
+            rate = bias + arw_rad / np.sqrt(CFG.tick_s) * rng.standard_normal(k)
+            stats = learn_standing(stats, rate, np.ones(k, dtype=bool))
+        stats = learn_standing(stats, np.zeros(k), np.zeros(k, dtype=bool))  # driving
+    assert (stats[:, PAIRS] == 132).all()
+    arw, std = arw_fields(stats, CFG)
+    unit = grade * ADIS16470.angle_random_walk_deg_rt_h
+    assert np.mean(arw) / unit == pytest.approx(1.0, abs=0.01)
+    stated = unit * np.sqrt(3.0 / (4.0 * 132))
+    assert np.std(arw) / stated == pytest.approx(1.0, abs=0.05)
+    z = (arw - unit) / std
+    assert np.sqrt(np.mean(z**2)) == pytest.approx(1.0, abs=0.05)
+    assert np.mean(z < -2.0) > 2.0 * np.mean(z > 2.0)
 
 
 @cache

@@ -28,6 +28,7 @@ def _standing_tick(gyro_radps: float, tick_ns: int) -> TickInputs:
         ticks_ns=np.array([tick_ns]),
         accel_mps2=0.0 * one,
         gyro_radps=gyro_radps * one,
+        imu_samples=np.full(1, 10),
         yaw_accel_radps2=0.0 * one,
         odometer_mps=0.0 * one,
         odometer_lag_s=0.05 * one,
