@@ -228,7 +228,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for seed, run in zip(args.seeds, runs, strict=True):
         info = information(run)
         print(
-            f"\n{args.manoeuvre}, seed {seed}, {args.wheel_sensor} sensor (CRLB: μ's relative 1-σ)"
+            f"\n{args.manoeuvre}, seed {seed}, {args.wheel_sensor} sensor: the bound is on μ's"
+            f" relative 1-σ (the front end's shared κ 1-σ: {info.kappa_common_std:.1e})"
         )
         print(table(info, float(run.truth.mu[-1])))
     return 0
