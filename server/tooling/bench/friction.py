@@ -24,6 +24,11 @@ Per manoeuvre and filter (median over runs, worst in brackets):
 * ``conv``: seconds from the manoeuvre's start until the filter's μ is within 5 % of the true
   μ and stays there to the segment's end (``after step``: the same from a μ step); ``>``
   when it never is;
+* ``conv_claim``: the same for the *reported* μ (the INFORMED value, held; none before the
+  first INFORMED tick): when the product claims μ within 5 %. The floors on convergence from
+  the start (accelerate and steering step on μ 0.8) are judged on it: the filter's μ can sit
+  in the band by its start value while its 1-σ is ±20 % (``friction_info``), which is no
+  learnt μ (with true inputs no tick is flagged, so ``>`` there);
 * ``steady``: mean |error| over the last 2 s, percent of true μ;
 * ``rms``: RMS error over the manoeuvre, percent;
 * ``informed``: share of the manoeuvre's ticks flagged INFORMED, percent;
@@ -222,6 +227,7 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
 @dataclass(frozen=True, slots=True)
 class Score:
     conv_s: float
+    conv_claim_s: float
     conv_step_s: float
     steady_pct: float
     rms_pct: float
@@ -248,12 +254,14 @@ def score(r: FourWheelRun, s: Series) -> Score:
     seg = s.t_s >= m.t0_s
     step = m.mu_step_s if math.isfinite(m.mu_step_s) else math.inf
     conv = _conv(s.t_s, err, m.t0_s, step)
+    rep_err = np.abs(s.mu_reported - mu_true) / mu_true
+    claim = _conv(s.t_s, np.where(np.isnan(rep_err), math.inf, rep_err), m.t0_s, step)
     conv_step = _conv(s.t_s, err, step, math.inf) if math.isfinite(step) else math.nan
     last = s.t_s >= s.t_s[-1] - 2.0
     inf = s.informed & seg
-    rep_err = np.abs(s.mu_reported - mu_true) / mu_true
     return Score(
         conv,
+        claim,
         conv_step,
         100 * float(err[last].mean()),
         100 * float(np.sqrt((err[seg] ** 2).mean())),
@@ -278,7 +286,15 @@ def _fmt(values: list[float], unit: str = "") -> str:
     return f"{f(med)} [{f(worst)}]"
 
 
-FIGURES = ("conv_s", "conv_step_s", "steady_pct", "rms_pct", "informed_pct", "worst_informed_pct")
+FIGURES = (
+    "conv_s",
+    "conv_claim_s",
+    "conv_step_s",
+    "steady_pct",
+    "rms_pct",
+    "informed_pct",
+    "worst_informed_pct",
+)
 
 
 def _table(
@@ -326,8 +342,8 @@ def _floors(runs: list[FourWheelRun], sc: list[Score]) -> dict[str, bool]:
 
     informed = [s.worst_informed_pct for s in sc if math.isfinite(s.worst_informed_pct)]
     checks = {
-        "accelerate μ 0.8 within 5 % ≤ 1.52 s": worst("accelerate_mu08", "conv_s") <= 1.52,
-        "steering step μ 0.8 ≤ 0.88 s": worst("steer_mu08", "conv_s") <= 0.88,
+        "accelerate μ 0.8 within 5 % ≤ 1.52 s": worst("accelerate_mu08", "conv_claim_s") <= 1.52,
+        "steering step μ 0.8 ≤ 0.88 s": worst("steer_mu08", "conv_claim_s") <= 0.88,
         "steady error < 1 % high μ": max(
             worst("accelerate_mu08", "steady_pct"), worst("steer_mu08", "steady_pct")
         )
