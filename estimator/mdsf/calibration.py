@@ -389,25 +389,6 @@ class CalibrationBank:
         err = np.hypot(w * np.sqrt(self.gp[slots, 2, 2]), (1.0 - w) * off)
         return np.where(w > 0.0, err, 0.0)
 
-    def clock_slip_var(self, slots: IntArray, wheel_accel_mps2: FloatArray) -> FloatArray:
-        """What the clock offsets not known yet do to each wheel's rim speed less its ground
-        speed, as a variance (k, 2) [(m/s)²], for the slip's std: a rim read ``δ_w`` late is
-        off by ``−δ_w·a_w`` (``a_w`` (k, 2) the wheel's ground acceleration,
-        :meth:`MdsfFleet._wheel_accel`), and the wheel offset applied is off by its std
-        ``σ_w``; a GNSS speed whose offset is not applied at all (weight 0,
-        :meth:`_gnss_offset_weight`) puts ``δ_g·a`` into the ground speed the filter follows,
-        ``δ_g`` of the estimate and its std (``a`` the filter's low-passed rate at ``O``,
-        without the sway). A GNSS offset applied, even in part, is in the fix's variance
-        already (:meth:`gnss_offset_std_s`). 0 where the clocks are not calibrated.
-
-        ``σ_w²·a_w² + (δ̂_g² + σ_g²)·a²``, the two clocks independent."""
-        on = self.on[slots, 0]
-        wheel = np.where(on, self.wp[slots, 2, 2], 0.0)[:, None] * wheel_accel_mps2**2
-        off = self.gx[slots, GnssClock.OFFSET]
-        unapplied = on & (self._gnss_offset_weight(slots) <= 0.0)
-        gnss = np.where(unapplied, off * off + self.gp[slots, 2, 2], 0.0)
-        return np.nan_to_num(wheel + (gnss * self.shift.a0[slots] ** 2)[:, None])
-
     def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
         """The GNSS clock offset is on and its std below the converged threshold (k,)."""
         return self.on[slots, 0] & (self.gp[slots, 2, 2] <= self.limit[slots, 0] ** 2)

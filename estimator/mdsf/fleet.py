@@ -159,8 +159,8 @@ def _filtered_rims(
 @dataclass(slots=True)
 class _Calibrated:
     """A round's wheel inputs as the filter took them, shapes (k, 2): rim speeds with the
-    calibrated radius and clock, their std, the radius ratios, which wheels are not
-    calibrated yet and what the clock offsets not known yet do to each wheel's slip."""
+    calibrated radius and clock, their std, the radius ratios and which wheels are not
+    calibrated yet."""
 
     rim: FloatArray
     rim_std: FloatArray
@@ -169,9 +169,6 @@ class _Calibrated:
     fields: dict[str, FloatArray]
     """The calibration's row fields (``CALIBRATION_FIELDS``), shape (k,) each; NaN in paper
     mode."""
-    clock_var: FloatArray
-    """Variance the unknown clock offsets add to rim less ground speed
-    (:meth:`CalibrationBank.clock_slip_var`) [(m/s)²]; 0 in paper mode."""
 
 
 class MdsfFleet:
@@ -397,7 +394,6 @@ class MdsfFleet:
             res = {name: getattr(so, name) for name in _STEP_COLS}
             rim, rim_std, rim_cov = _filtered_rims(so, cal.rim, cal.rim_std)
             scale, uncal, cal_out = cal.scale, cal.uncalibrated, cal.fields
-            clock_var = cal.clock_var
         else:
             emit = np.zeros(total, dtype=bool)
             flags = np.zeros(total, dtype=np.int32)
@@ -406,7 +402,6 @@ class MdsfFleet:
             scale = np.ones((total, 2))
             uncal = np.zeros((total, 2), dtype=bool)
             cal_out = {c: np.full(total, np.nan) for c in _CAL_FIELDS}
-            clock_var = np.zeros((total, 2))
         for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so, cal = self._calibrated_step(due.slots[:c], tin, rim[fi], rim_std[fi], min_speed[fi])
@@ -416,18 +411,16 @@ class MdsfFleet:
             flags[fi] = so.flags
             rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, cal.rim, cal.rim_std)
             scale[fi], uncal[fi] = cal.scale, cal.uncalibrated
-            clock_var[fi] = cal.clock_var
             for name in _CAL_FIELDS:
                 cal_out[name][fi] = cal.fields[name]
         radius = radius * scale
-        # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right),
-        # its std with the share of the clock offsets not known yet
+        # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
         ground = np.stack([res["vl"], res["vr"]], axis=1)
         sp = slip_pct(
             rim,
             ground,
             min_speed[:, None],
-            np.sqrt(rim_std**2 + clock_var),
+            rim_std,
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
             rim_cov,
         )
@@ -499,7 +492,7 @@ class MdsfFleet:
             so = self.engine.step(slots, tin, rim, rim_std)
             nan = {name: np.full(slots.shape[0], np.nan) for name in _CAL_FIELDS}
             ones, no = np.ones(rim.shape), np.zeros(rim.shape, bool)
-            return so, _Calibrated(rim, rim_std, ones, no, nan, np.zeros(rim.shape))
+            return so, _Calibrated(rim, rim_std, ones, no, nan)
         fix = self._record_inputs(slots, tin)
         fixed = self._apply_calibration(slots, tin, fix)
         scale, wheel_offset_s = bank.wheel_correction(slots)
@@ -510,9 +503,7 @@ class MdsfFleet:
         self._wheel_accel(slots, so)
         self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
         fields = bank.row_fields(slots, self._radius_m[slots])
-        clock_var = bank.clock_slip_var(slots, self._wheel_accel_mps2[slots])
-        uncal = bank.uncalibrated(slots)
-        return so, _Calibrated(rim_c, rim_std_c, scale, uncal, fields, clock_var)
+        return so, _Calibrated(rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields)
 
     def _wheel_accel(self, slots: IntArray, so: StepOutput) -> None:
         """Each wheel's ground acceleration ``a_w`` (slots, 2) after a round: the rate of its
