@@ -57,6 +57,14 @@ _STAGE2_ROWS_PRODUCT = (
     int(MdsfObs.RIM_RIGHT),
     int(MdsfObs.DIST),
 )
+_UNIT_ROWS = {
+    int(MdsfObs.A1): int(MdsfState.A1),
+    int(MdsfObs.OMEGA_X): int(MdsfState.OMEGA_X),
+    int(MdsfObs.OMEGA_Z): int(MdsfState.OMEGA_Z),
+    int(MdsfObs.DIST): int(MdsfState.DIST),
+}
+"""Observation rows that measure one state directly (unit rows of ``H``, both modes; the
+distance only in product mode), for :func:`estimator.kalman.update_independent`."""
 _DIST_OPEN_VAR_M2 = 1.0e4
 """Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
 
@@ -752,7 +760,7 @@ class MdsfEngine:
         mask1[:, MdsfObs.A1] = t.imu_ok & (not self.product)
         mask1[:, MdsfObs.OMEGA_X] = t.imu_ok
         mask1[:, MdsfObs.OMEGA_Z] = t.imu_ok
-        res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS)
+        res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS, _UNIT_ROWS)
         x_1, P_1 = res1.x, res1.P
         y = z - np.einsum("kmi,ki->km", H, x_1)
         s = kalman.row_variances(H, P_1) + rd
@@ -770,7 +778,7 @@ class MdsfEngine:
             mask2[:, _RIM] = rim_ok
             mask2[:, MdsfObs.DIST] = t.dist_ok & ~self._gate_distance(slots, t, init, y, s)
         stage2 = _STAGE2_ROWS_PRODUCT if self.product else _STAGE2_ROWS_PAPER
-        res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2)
+        res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2, _UNIT_ROWS)
         zupt = np.zeros(k, dtype=bool)
         x_new, P_new = res.x, res.P
         if self.product and self.config.zupt_speed_mps > 0:
