@@ -148,8 +148,9 @@ class TickModel:
         Control term of the predict (product mode).
     z : ndarray, shape (k, m)
         Observation (masked rows hold zeros).
-    R : ndarray, shape (k, m, m)
-        Measurement noise.
+    r : ndarray, shape (k, m)
+        Measurement noise variances; ``R`` (k, m, m), their diagonal matrices, is built when
+        read.
     mask1, mask2 : ndarray, shape (k, m), bool
         Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
     inflated : ndarray, shape (k,), bool
@@ -169,7 +170,7 @@ class TickModel:
     Q: FloatArray
     u: FloatArray | None
     z: FloatArray
-    R: FloatArray
+    r: FloatArray
     mask1: BoolArray
     mask2: BoolArray
     inflated: BoolArray
@@ -181,6 +182,10 @@ class TickModel:
     def nis(self) -> FloatArray:
         first, second = self.stages
         return first.nis + second.nis
+
+    @property
+    def R(self) -> FloatArray:  # noqa: N802 (the measurement noise matrix, as in kalman)
+        return _diagonal(self.r)
 
 
 @dataclass(slots=True)
@@ -451,7 +456,7 @@ class MdsfEngine:
             fused = up.use_vg & init
             self._adapt_gnss_noise(slots, fused, up.y[:, MdsfObs.VG], up.s[:, MdsfObs.VG], rd)
         if self.product and self.config.slip_per_demand > 0 and self.config.tyre_gain_tau_s > 0:
-            self._learn_tyre_gain(slots, t, up.x, rim_mps, rim_ok, up.use_vg & init)
+            self._learn_tyre_gain(slots, t, up.x, up.H, rim_mps, rim_ok, up.use_vg & init)
         st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
         now_init = init | st.started
         fused = up.use_vg & now_init
@@ -480,7 +485,7 @@ class MdsfEngine:
             Q=Q,
             u=u,
             z=z,
-            R=_diagonal(rd),
+            r=rd,
             mask1=up.mask1,
             mask2=up.mask2,
             inflated=up.inflated,
@@ -488,7 +493,7 @@ class MdsfEngine:
             special=special,
             stages=up.stages,
         )
-        return self._outputs(slots, up.x, up.P, v0, now_init, flags, model)
+        return self._outputs(slots, up.x, up.P, up.H, v0, now_init, flags, model)
 
     # -- stages of a step --------------------------------------------------------------------
     def _observation(self, t: TickInputs, rim_mps: FloatArray, rim_ok: BoolArray) -> FloatArray:
@@ -1041,8 +1046,11 @@ class MdsfEngine:
     ) -> None:
         """Write the step's state back to the slots: the posterior where the filter runs, the
         prior state ``x``, ``P`` where it still waits for its start."""
-        self.x[slots] = np.where(now_init[:, None], up.x, x)
-        self.P[slots] = np.where(now_init[:, None, None], up.P, P)
+        if now_init.all():  # the usual step: every row runs
+            self.x[slots], self.P[slots] = up.x, up.P
+        else:
+            self.x[slots] = np.where(now_init[:, None], up.x, x)
+            self.P[slots] = np.where(now_init[:, None, None], up.P, P)
         self.initialized[slots] = now_init
         self.last_fused_ns[slots] = last_fused_ns
         self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
@@ -1075,6 +1083,7 @@ class MdsfEngine:
         slots: IntArray,
         x: FloatArray,
         P: FloatArray,
+        H: FloatArray,
         v0: FloatArray,
         emit: BoolArray,
         flags: npt.NDArray[np.int32],
@@ -1088,7 +1097,7 @@ class MdsfEngine:
         z1_std = np.sqrt(np.maximum(kalman.row_variances(H1, P), 0.0))
         rim_post = rim_std_post = rim_cov = None
         if self.product:
-            h_rim = self.H[slots][:, _RIM]
+            h_rim = H[:, _RIM]
             h_v = H1[:, (MdsfOut.VL, MdsfOut.VR)]
             rim_post = np.einsum("kmi,ki->km", h_rim, x)
             ph = np.einsum("kij,kmj->kmi", P, h_rim)
@@ -1185,6 +1194,7 @@ class MdsfEngine:
         slots: IntArray,
         t: TickInputs,
         x_post: FloatArray,
+        H: FloatArray,
         rim_mps: FloatArray,
         rim_ok: BoolArray,
         fused: BoolArray,
@@ -1197,8 +1207,7 @@ class MdsfEngine:
         pairs fade with ``tyre_gain_tau_s``.
         """
         cfg = self.config
-        h = self.H[slots]
-        v_wheel = np.einsum("kmi,ki->km", h[:, _RIM, : MdsfState.ACCEL_BIAS], x_post[:, :4])
+        v_wheel = np.einsum("kmi,ki->km", H[:, _RIM, : MdsfState.ACCEL_BIAS], x_post[:, :4])
         speed = 0.5 * (v_wheel[:, 0] + v_wheel[:, 1])
         f = self.force_model[slots]
         ok = (
