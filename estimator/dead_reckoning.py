@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator._arrays import BoolArray, FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray, nan_to_num
 from estimator.config import ConfigError
 
 __all__ = ["DeadReckoning", "DeadReckoningConfig"]
@@ -146,11 +146,11 @@ class DeadReckoning:
         """
         cfg, dt = self.config, self.dt_s
         measured = np.isfinite(enu_m).all(axis=1) & (fix_age_s <= cfg.after_s)
-        speed = np.nan_to_num(v0_mps)
+        speed = nan_to_num(v0_mps)
         moving = np.abs(speed) >= cfg.min_course_speed_mps
         has = self.has[slots]
         # the heading: a moving fix's, else the gyro's integral from the last one
-        turn = np.nan_to_num(yaw_rate_radps) * dt
+        turn = nan_to_num(yaw_rate_radps) * dt
         before = self.heading_rad[slots]
         take = measured & np.isfinite(heading_rad) & (moving | ~has)
         psi = np.mod(np.where(take, heading_rad, before - turn), 2.0 * np.pi)
@@ -164,7 +164,7 @@ class DeadReckoning:
             return enu_m, heading_rad, np.zeros(slots.shape[0], dtype=bool)
         mid = before - 0.5 * turn
         carried = ~measured & has & np.isfinite(v0_mps) & (self.since_s[slots] + dt <= cfg.max_s)
-        horiz = speed * np.cos(np.nan_to_num(pitch_rad)) * dt
+        horiz = speed * np.cos(nan_to_num(pitch_rad)) * dt
         moved = self.origin[slots].copy()
         moved[:, 0] += horiz * np.sin(mid)
         moved[:, 1] += horiz * np.cos(mid)

@@ -16,6 +16,7 @@ only. Everything here is allocation-light numpy; nothing loops over the batch in
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
 from typing import cast
@@ -260,6 +261,19 @@ class IndependentUpdateResult:
     dof: npt.NDArray[np.int64]
 
 
+def _row_terms(
+    x: FloatArray, P: FloatArray, h: FloatArray, state: int | None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(P·hᵀ (N, n), h·P·hᵀ (N,), h·x (N,))`` of one observation row ``h`` (N, n); for a
+    unit row (``state``: the state it measures) read off ``P`` and ``x``. ``P·hᵀ`` is then a
+    view of ``P``: use it before ``P`` changes."""
+    if state is None:
+        Ph = (P @ h[:, :, None])[:, :, 0]
+        return Ph, (h * Ph).sum(axis=1), (h * x).sum(axis=1)
+    Ph = P[:, :, state]
+    return Ph, Ph[:, state], x[:, state]
+
+
 def update_independent(
     x: FloatArray,
     P: FloatArray,
@@ -268,6 +282,7 @@ def update_independent(
     r: FloatArray,
     mask: BoolArray,
     rows: tuple[int, ...] | None = None,
+    unit: Mapping[int, int] | None = None,
 ) -> IndependentUpdateResult:
     """Measurement update for rows with independent noises (diagonal ``R``), one row at a time.
 
@@ -298,6 +313,11 @@ def update_independent(
         ``True`` where the row is used.
     rows : tuple of int, optional
         The rows to apply (default: every row); a row left out is treated as masked.
+    unit : mapping of int to int, optional
+        Rows ``j`` whose ``H`` row is the unit vector of state ``unit[j]`` for every item (a
+        state measured directly): ``P·hᵀ`` is that column of ``P`` and ``h·x`` that state, the
+        same numbers without the product and its sums (a non-finite ``P`` or ``x`` then stays
+        non-finite where it was, instead of spreading through the row).
 
     Returns
     -------
@@ -314,10 +334,9 @@ def update_independent(
         every = bool(active.all())
         if not every and not active.any():
             continue
-        h = Hb[:, j, :]
-        Ph = (P @ h[:, :, None])[:, :, 0]  # P·hᵀ, (N, n)
-        s = (h * Ph).sum(axis=1) + r[:, j]
-        y = z[:, j] - (h * x).sum(axis=1)
+        Ph, s, y = _row_terms(x, P, Hb[:, j, :], None if unit is None else unit.get(j))
+        s = s + r[:, j]
+        y = z[:, j] - y
         if every:  # the usual case: the same values without the masking
             inv = 1.0 / s
         else:
@@ -326,7 +345,7 @@ def update_independent(
         k = Ph * inv[:, None]
         x += k * y[:, None]
         # P − k·Phᵀ − Ph·kᵀ + s·k·kᵀ, symmetric by construction: k·(s·k − 2·Ph)ᵀ symmetrised
-        half = k[:, :, None] * (s[:, None] * k - 2.0 * Ph)[:, None, :]
+        half = np.einsum("ni,nj->nij", k, s[:, None] * k - 2.0 * Ph)  # outer product
         sym = half + half.swapaxes(-1, -2)
         sym *= 0.5
         P += sym

@@ -57,6 +57,14 @@ _STAGE2_ROWS_PRODUCT = (
     int(MdsfObs.RIM_RIGHT),
     int(MdsfObs.DIST),
 )
+_UNIT_ROWS = {
+    int(MdsfObs.A1): int(MdsfState.A1),
+    int(MdsfObs.OMEGA_X): int(MdsfState.OMEGA_X),
+    int(MdsfObs.OMEGA_Z): int(MdsfState.OMEGA_Z),
+    int(MdsfObs.DIST): int(MdsfState.DIST),
+}
+"""Observation rows that measure one state directly (unit rows of ``H``, both modes; the
+distance only in product mode), for :func:`estimator.kalman.update_independent`."""
 _DIST_OPEN_VAR_M2 = 1.0e4
 """Variance of the distance state where its origin is arbitrary (start, new chain) [m²]."""
 
@@ -140,8 +148,9 @@ class TickModel:
         Control term of the predict (product mode).
     z : ndarray, shape (k, m)
         Observation (masked rows hold zeros).
-    R : ndarray, shape (k, m, m)
-        Measurement noise.
+    r : ndarray, shape (k, m)
+        Measurement noise variances; ``R`` (k, m, m), their diagonal matrices, is built when
+        read.
     mask1, mask2 : ndarray, shape (k, m), bool
         Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
     inflated : ndarray, shape (k,), bool
@@ -161,7 +170,7 @@ class TickModel:
     Q: FloatArray
     u: FloatArray | None
     z: FloatArray
-    R: FloatArray
+    r: FloatArray
     mask1: BoolArray
     mask2: BoolArray
     inflated: BoolArray
@@ -173,6 +182,10 @@ class TickModel:
     def nis(self) -> FloatArray:
         first, second = self.stages
         return first.nis + second.nis
+
+    @property
+    def R(self) -> FloatArray:  # noqa: N802 (the measurement noise matrix, as in kalman)
+        return _diagonal(self.r)
 
 
 @dataclass(slots=True)
@@ -443,7 +456,7 @@ class MdsfEngine:
             fused = up.use_vg & init
             self._adapt_gnss_noise(slots, fused, up.y[:, MdsfObs.VG], up.s[:, MdsfObs.VG], rd)
         if self.product and self.config.slip_per_demand > 0 and self.config.tyre_gain_tau_s > 0:
-            self._learn_tyre_gain(slots, t, up.x, rim_mps, rim_ok, up.use_vg & init)
+            self._learn_tyre_gain(slots, t, up.x, up.H, rim_mps, rim_ok, up.use_vg & init)
         st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
         now_init = init | st.started
         fused = up.use_vg & now_init
@@ -472,7 +485,7 @@ class MdsfEngine:
             Q=Q,
             u=u,
             z=z,
-            R=_diagonal(rd),
+            r=rd,
             mask1=up.mask1,
             mask2=up.mask2,
             inflated=up.inflated,
@@ -480,7 +493,7 @@ class MdsfEngine:
             special=special,
             stages=up.stages,
         )
-        return self._outputs(slots, up.x, up.P, v0, now_init, flags, model)
+        return self._outputs(slots, up.x, up.P, up.H, v0, now_init, flags, model)
 
     # -- stages of a step --------------------------------------------------------------------
     def _observation(self, t: TickInputs, rim_mps: FloatArray, rim_ok: BoolArray) -> FloatArray:
@@ -752,7 +765,7 @@ class MdsfEngine:
         mask1[:, MdsfObs.A1] = t.imu_ok & (not self.product)
         mask1[:, MdsfObs.OMEGA_X] = t.imu_ok
         mask1[:, MdsfObs.OMEGA_Z] = t.imu_ok
-        res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS)
+        res1 = kalman.update_independent(x_pr, P_pr, z, H, rd, mask1, _STAGE1_ROWS, _UNIT_ROWS)
         x_1, P_1 = res1.x, res1.P
         y = z - np.einsum("kmi,ki->km", H, x_1)
         s = kalman.row_variances(H, P_1) + rd
@@ -770,7 +783,7 @@ class MdsfEngine:
             mask2[:, _RIM] = rim_ok
             mask2[:, MdsfObs.DIST] = t.dist_ok & ~self._gate_distance(slots, t, init, y, s)
         stage2 = _STAGE2_ROWS_PRODUCT if self.product else _STAGE2_ROWS_PAPER
-        res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2)
+        res = kalman.update_independent(x_1, P_1, z, H, rd, mask2, stage2, _UNIT_ROWS)
         zupt = np.zeros(k, dtype=bool)
         x_new, P_new = res.x, res.P
         if self.product and self.config.zupt_speed_mps > 0:
@@ -1033,8 +1046,11 @@ class MdsfEngine:
     ) -> None:
         """Write the step's state back to the slots: the posterior where the filter runs, the
         prior state ``x``, ``P`` where it still waits for its start."""
-        self.x[slots] = np.where(now_init[:, None], up.x, x)
-        self.P[slots] = np.where(now_init[:, None, None], up.P, P)
+        if now_init.all():  # the usual step: every row runs
+            self.x[slots], self.P[slots] = up.x, up.P
+        else:
+            self.x[slots] = np.where(now_init[:, None], up.x, x)
+            self.P[slots] = np.where(now_init[:, None, None], up.P, P)
         self.initialized[slots] = now_init
         self.last_fused_ns[slots] = last_fused_ns
         self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
@@ -1067,6 +1083,7 @@ class MdsfEngine:
         slots: IntArray,
         x: FloatArray,
         P: FloatArray,
+        H: FloatArray,
         v0: FloatArray,
         emit: BoolArray,
         flags: npt.NDArray[np.int32],
@@ -1080,7 +1097,7 @@ class MdsfEngine:
         z1_std = np.sqrt(np.maximum(kalman.row_variances(H1, P), 0.0))
         rim_post = rim_std_post = rim_cov = None
         if self.product:
-            h_rim = self.H[slots][:, _RIM]
+            h_rim = H[:, _RIM]
             h_v = H1[:, (MdsfOut.VL, MdsfOut.VR)]
             rim_post = np.einsum("kmi,ki->km", h_rim, x)
             ph = np.einsum("kij,kmj->kmi", P, h_rim)
@@ -1177,6 +1194,7 @@ class MdsfEngine:
         slots: IntArray,
         t: TickInputs,
         x_post: FloatArray,
+        H: FloatArray,
         rim_mps: FloatArray,
         rim_ok: BoolArray,
         fused: BoolArray,
@@ -1189,8 +1207,7 @@ class MdsfEngine:
         pairs fade with ``tyre_gain_tau_s``.
         """
         cfg = self.config
-        h = self.H[slots]
-        v_wheel = np.einsum("kmi,ki->km", h[:, _RIM, : MdsfState.ACCEL_BIAS], x_post[:, :4])
+        v_wheel = np.einsum("kmi,ki->km", H[:, _RIM, : MdsfState.ACCEL_BIAS], x_post[:, :4])
         speed = 0.5 * (v_wheel[:, 0] + v_wheel[:, 1])
         f = self.force_model[slots]
         ok = (

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import BoolArray, FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray, nan_to_num
 from estimator._slots import grow_slot_array
 from estimator.base import Pushed
 from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
@@ -439,16 +439,7 @@ class MdsfFleet:
         out["flags"] = flags
         for name in _CAL_FIELDS:
             out[name] = cal_out[name]
-        # Emitted rows, split by vehicle (in the order of ``due``).
-        kept = out if emit.all() else out[emit]
-        ends = np.cumsum(np.add.reduceat(emit, offsets))
-        return [
-            (ids[i], kept[a:b])
-            for i, a, b in zip(
-                due.index.tolist(), [0, *ends[:-1].tolist()], ends.tolist(), strict=True
-            )
-            if b > a
-        ]
+        return _by_vehicle([ids[i] for i in due.index.tolist()], out, emit, offsets)
 
     def _settling(
         self,
@@ -627,7 +618,7 @@ class MdsfFleet:
         flat = due.inputs
         stamps = flat.stamp_ns
         n = stamps.shape[0]
-        still = ~np.isfinite(rim) | (np.abs(np.nan_to_num(rim)) < min_speed[:, None])
+        still = ~np.isfinite(rim) | (np.abs(nan_to_num(rim)) < min_speed[:, None])
         idx = np.where(still, np.arange(n)[:, None], -1)
         last = np.maximum.accumulate(idx, axis=0)
         seg_start = np.repeat(due.offsets, due.lengths)
@@ -664,6 +655,19 @@ class MdsfFleet:
                     enu, heading, copied = enu.copy(), heading.copy(), True
                 enu[fi], heading[fi], carried[fi] = e, h, k
         return enu, heading, carried
+
+
+def _by_vehicle(
+    ids: list[str], out: np.ndarray, emit: BoolArray, offsets: IntArray
+) -> list[tuple[str, np.ndarray]]:
+    """The emitted rows of ``out`` split by vehicle (``ids`` in the order of the call's rows,
+    ``offsets`` their first rows), vehicles without an emitted row left out. One row each, all
+    emitted (the usual call): the rows as they lie, one view per row."""
+    if emit.all() and out.shape[0] == len(ids):
+        return list(zip(ids, out[:, None], strict=True))
+    kept = out if emit.all() else out[emit]
+    ends = np.cumsum(np.add.reduceat(emit, offsets)).tolist()
+    return [(vid, kept[a:b]) for vid, a, b in zip(ids, [0, *ends[:-1]], ends, strict=True) if b > a]
 
 
 def _slip_flags(

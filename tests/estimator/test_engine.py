@@ -546,7 +546,8 @@ def _tyre_pairs(
         engine.force_model[slot] = xg * 9.80665
         t = one_vehicle_inputs(gnss_ok=np.array([fused]))
         rim = np.full((1, 2), 3.0 * (1.0 + e))
-        engine._learn_tyre_gain(slots, t, x_post, rim, np.ones((1, 2), bool), np.array([fused]))
+        h = engine.H[slots]
+        engine._learn_tyre_gain(slots, t, x_post, h, rim, np.ones((1, 2), bool), np.array([fused]))
 
 
 def test_tyre_gain_is_learnt_from_slip_against_demand() -> None:
@@ -928,3 +929,22 @@ def test_demand_noise_opens_the_rim_excess_while_the_demand_changes() -> None:
     assert 0.3 < g.sum() < 1.0
     # most of it while the force moves (ramp and the fast low-pass's 0.3 s), little later
     assert g[35:].sum() < 0.1 * g.sum()
+
+
+@pytest.mark.parametrize("mode", [MdsfMode.PAPER, MdsfMode.PRODUCT])
+def test_unit_rows_shortcut_leaves_every_row_as_the_plain_update(
+    mode: MdsfMode, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A drive through a GNSS outage computed both ways: the rate and distance rows read off
+    ``P`` and ``x`` (``_UNIT_ROWS``) and through the general row product give the same rows."""
+    sims = {
+        "a": _sim("gnss_outage", 2),
+        "b": _sim("figure_eight", 3, laps=1, gnss_outlier_prob=0.02),
+    }
+    fast = _run(MdsfFleet(MdsfConfig(mode=mode)), sims)
+    monkeypatch.setattr("estimator.mdsf.engine._UNIT_ROWS", {})
+    plain = _run(MdsfFleet(MdsfConfig(mode=mode)), sims)
+    for vid in sims:
+        assert fast[vid].shape == plain[vid].shape and fast[vid].shape[0] > 100
+        for name in ESTIMATE_DTYPE.names or ():
+            assert np.array_equal(fast[vid][name], plain[vid][name], equal_nan=True), name
