@@ -58,6 +58,7 @@ __all__ = [
     "initial_state",
     "mu_of",
     "mu_std_of",
+    "mu_upper",
 ]
 
 MU_MIN, MU_MAX = 0.05, 1.6
@@ -132,8 +133,9 @@ class FilterConfig:
     ``learn_mu_min_accel_mps2`` or more and every wheel's κ is known to
     ``learn_mu_max_kappa_std`` (a torque step's one-sample slip, 1e-2 off, would otherwise be
     judged near the limit and learnt from) and the grip in use is known to
-    ``learn_mu_util_rel_std`` of itself against the speed's shared error (:func:`_grip_known`)
-    (see :func:`_gain_mask`); ``outlier_sigmas``: a
+    ``learn_mu_util_rel_std`` of itself against the speed's shared error (:func:`_grip_known`),
+    the grip in use for both judged at the far end of μ's interval, ``grip_judged_sigmas``
+    1-σ above its mean (:func:`mu_upper`) (see :func:`_gain_mask`); ``outlier_sigmas``: a
     product update whose whitened innovation exceeds it in any measurement is skipped
     (gated: a tick where the wheel speeds and the IMU disagree, as when the torque is cut
     and a wheel spins down within one CAN sample); ``central_prediction``: the product's
@@ -170,6 +172,7 @@ class FilterConfig:
     learn_excite_sigmas: float = 4.0
     learn_mu_max_kappa_std: float = 3e-3
     learn_mu_util_rel_std: float = 0.1
+    grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
 
@@ -285,6 +288,19 @@ def mu_std_of(state_mu: Values, std: Values, mode: FrictionMode) -> FloatArray:
     """μ's 1-σ from the state's (first order through ``exp`` in the product mode)."""
     scale = mu_of(state_mu, mode) if mode is FrictionMode.PRODUCT else 1.0
     return np.asarray(scale * np.asarray(std), dtype=np.float64)
+
+
+def mu_upper(x: FloatArray, s: FloatArray, cfg: FilterConfig) -> FloatArray:
+    """The far (upper) end of μ's credible interval ``(B, 1)``: the mean ``+ grip_judged_sigmas``
+    of the state's first component's 1-σ (rows of the root ``s`` ``(B, n, n)``).
+
+    Where the tyres' grip in use decides whether μ may learn or be claimed, it is judged here,
+    not at the mean: at the mean a μ pulled low (by a slip bias) finds every tyre at its limit,
+    where the curve is flat in the slips and ``F = μ F_z`` fits the forces exactly, so the
+    judgement would confirm the pull. At the upper end the same tyres sit below their limit
+    unless the slips themselves put them there."""
+    sd = np.sqrt(np.einsum("ij,ij->i", s[:, 0], s[:, 0]))[:, None]
+    return mu_of(x[:, :1] + cfg.grip_judged_sigmas * sd, cfg.mode)
 
 
 def _stiffness_of(
@@ -512,7 +528,7 @@ def _update(
     mask = None
     if cfg.mode is FrictionMode.PRODUCT:
         sq_r = _with_inputs(sq_r, _input_spread(x, cfg, tyres, chassis, u))
-        mask = _gain_mask(x, cfg, tyres, u)
+        mask = _gain_mask(x, s, cfg, tyres, u)
     elif cfg.mode is FrictionMode.PAPER:
         z_mean = h(cubature_points(x, s)).mean(axis=1)
         mee = mee_measurement_sqrt(z, z_mean, x.shape[1], sq_r, cfg.mee_kernel_sigma)
@@ -525,7 +541,9 @@ def _update(
     return up.x, up.s, np.asarray(mee_ok, dtype=bool), white
 
 
-def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs) -> FloatArray:
+def _gain_mask(
+    x: FloatArray, s: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs
+) -> FloatArray:
     """Which product states this update may move ``(B, n)`` (1 or 0; the rest are *considered*:
     their uncertainty enters the update, their values stay).
 
@@ -539,9 +557,12 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
     ``g`` towards 0);
     ``ln μ`` above ``linear_util``, from the curvature against the stiffness learnt (below,
     the curvature is smaller than what the inputs' biases fake: μ is held, not pulled), and
-    only while the body accelerates by ``learn_mu_min_accel_mps2`` or more: the utilisation
-    is judged at the filter's own μ, and a μ pulled low by a slip bias would otherwise find
-    every tyre near its limit and keep learning from the bias."""
+    only while the body accelerates by ``learn_mu_min_accel_mps2`` or more. The grip in use
+    that decides it is judged at the far end of μ's interval (:func:`mu_upper`), not at
+    the mean: a μ pulled low by a slip bias finds every tyre at its limit, where
+    ``F = μ F_z`` fits any slip and the curve is flat in the slips, so a gate judged there
+    confirms the pull (and the saturated fit shrinks μ's σ). At the far end the tyres are
+    non-linear only where the slips themselves are large enough."""
     mu = mu_of(x[:, :1], cfg.mode)
     cx, cy = _stiffness_of(x[:, None, :], cfg, tyres, u.fz_n)
     fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
@@ -557,19 +578,38 @@ def _gain_mask(x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInput
         linear = used[:, axle].max(axis=1) < cfg.linear_util
         mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
+    mask[:, ProductState.LN_MU] = _mu_may_learn(x, s, cfg, (cx[:, 0], cy[:, 0]), u)
+    return mask
+
+
+def _mu_may_learn(
+    x: FloatArray,
+    s: FloatArray,
+    cfg: FilterConfig,
+    stiffness: tuple[FloatArray, FloatArray],
+    u: TickInputs,
+) -> BoolArray:
+    """Where ``ln μ`` may learn ``(B,)`` (see :func:`_gain_mask`): the body pushed, every κ
+    known, and at the far end of μ's interval (:func:`mu_upper`) the most used tyre beyond
+    ``linear_util`` and its grip in use known against the speed's shared error
+    (:func:`_grip_known`)."""
+    cx, cy = stiffness
     pushed = np.hypot(u.z[:, 0], u.z[:, 1]) >= cfg.learn_mu_min_accel_mps2
     known = u.kappa_std.max(axis=1) <= cfg.learn_mu_max_kappa_std
-    known &= _grip_known(used, mu, cx[:, 0], cy[:, 0], u) <= cfg.learn_mu_util_rel_std
-    mask[:, ProductState.LN_MU] = (used.max(axis=1) >= cfg.linear_util) & pushed & known
-    return mask
+    mu_far = mu_upper(x, s, cfg)
+    fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu_far, cx, cy)
+    used_far = np.hypot(fx, fy) / np.maximum(mu_far * u.fz_n, 1.0)
+    known &= _grip_known(used_far, mu_far, cx, cy, u) <= cfg.learn_mu_util_rel_std
+    learns: BoolArray = (used_far.max(axis=1) >= cfg.linear_util) & pushed & known
+    return learns
 
 
 def _grip_known(
     used: FloatArray, mu: FloatArray, cx: FloatArray, cy: FloatArray, u: TickInputs
 ) -> FloatArray:
     """How far the speed's error moves the grip in use ``(B,)``: the largest change of a
-    wheel's utilisation ``used`` ``(B, 4)`` when all four κ move by their shared 1-σ
-    (``u.kappa_common_std``), relative to the most used wheel's.
+    wheel's utilisation ``used`` ``(B, 4)`` (at ``mu`` ``(B, 1)``) when all four κ move by
+    their shared 1-σ (``u.kappa_common_std``), relative to the most used wheel's.
 
     The shared error is the speed filter's, correlated over seconds (GNSS and the
     accelerometer between the rims' readings): ``R + D Dᵀ`` weighs one tick by it, but a

@@ -12,8 +12,10 @@ Informed or not (``method.md`` §5's warning): μ is told apart from stiffness o
 tyres work in their non-linear range, and not at all without excitation. A tick is
 ``INFORMED`` when, over the last ``informed_hold_s``, every tick was updated with μ's relative
 1-σ below ``informed_rel_std`` and the most used tyre at ``informed_min_util`` of its grip or
-more, and μ moved less than ``informed_spread`` of itself (a filter still travelling is not
-informed, however small its σ: its σ does not know the front end's correlated errors);
+more (judged at the far end of μ's interval, :func:`~.filter.mu_upper`: at the mean, a μ
+pulled low finds the tyres at their limit by itself), and μ moved less than
+``informed_spread`` of itself (a filter still travelling is not informed, however small its
+σ: its σ does not know the front end's correlated errors);
 otherwise the row holds the last informed μ (``HELD``) and no σ. A tyre whose rolling radius
 says it is softer or harder than the config's (``TYRE_SUSPECT``) has its own vertical
 stiffness learnt by the front end, and so its own contact length and brush stiffness.
@@ -55,6 +57,7 @@ from estimator.friction.filter import (
     initial_state,
     mu_of,
     mu_std_of,
+    mu_upper,
 )
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.frontend import FrontEndConfig
@@ -259,15 +262,19 @@ class FrictionFleet:
         prior = initial_state(self.config.filter, _tyres_subset(tyres, fresh), u.fz_n[fresh])
         st = filter_step(self._slots.states(s, prior, fresh), self.config.filter, tyres, chassis, u)
         self._slots.keep(s, st)
-        util = self._utilisation(st, tyres, u)
-        _front_columns(out, at, fe, util)
-        self._rows(out, at, s, (t_ns, fe), st, util, fresh)
+        _front_columns(out, at, fe, self._utilisation(st, tyres, u))
+        far = self._utilisation(st, tyres, u, mu_upper(st.x, st.s, self.config.filter))
+        self._rows(out, at, s, (t_ns, fe), st, far, fresh)
 
-    def _utilisation(self, st: FilterState, tyres: TyreArrays, u: TickInputs) -> FloatArray:
-        """Grip used per wheel ``(B, 4)`` at the filter's mean state."""
+    def _utilisation(
+        self, st: FilterState, tyres: TyreArrays, u: TickInputs, mu: FloatArray | None = None
+    ) -> FloatArray:
+        """Grip used per wheel ``(B, 4)`` at the filter's mean state (at ``mu`` ``(B, 1)``
+        instead of its mean μ where given)."""
         mean = st.x[:, None, :]
         cx, cy = _stiffness_of(mean, self.config.filter, tyres, u.fz_n)
-        mu = mu_of(st.x[:, :1], self.config.filter.mode)
+        if mu is None:
+            mu = mu_of(st.x[:, :1], self.config.filter.mode)
         fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
         return utilisation(fx, fy, u.fz_n, mu)
 

@@ -23,6 +23,7 @@ from estimator.friction.filter import (
     filter_step,
     initial_state,
     mu_of,
+    mu_upper,
 )
 from estimator.friction.frontend import FrontEndConfig, brake_slip_std, spin_up_slip
 from estimator.friction.model import Chassis, body_accelerations
@@ -245,12 +246,12 @@ def test_gain_mask_learns_each_state_where_it_is_told_apart() -> None:
         alpha_rad=np.zeros((1, 4)),
         alpha_std_rad=np.full((1, 4), 1e-3),
     )
-    held = _gain_mask(st.x, cfg, tyres, quiet)[0]
+    held = _gain_mask(st.x, st.s, cfg, tyres, quiet)[0]
     assert held[ProductState.GX_REAR] == 1 and held[ProductState.GX_FRONT] == 0
     assert held[ProductState.LN_MU] == 0 and held[ProductState.VY] == 1
     assert held[ProductState.GY_FRONT] == 0 and held[ProductState.GY_REAR] == 0
     turning = dataclasses.replace(ticks[0], alpha_rad=np.full((1, 4), 0.05))
-    learns = _gain_mask(st.x, cfg, tyres, turning)[0]
+    learns = _gain_mask(st.x, st.s, cfg, tyres, turning)[0]
     assert learns[ProductState.LN_MU] == 1
     assert learns[ProductState.GY_FRONT] == 0 and learns[ProductState.GY_REAR] == 0
 
@@ -405,6 +406,7 @@ def test_mu_learns_only_where_the_speeds_error_leaves_the_grip_known() -> None:
     cfg = FilterConfig()
     st = initial_state(cfg, tyres, ticks[0].fz_n)
     st.x[0, ProductState.LN_MU] = math.log(0.4)
+    st.s[0, ProductState.LN_MU, ProductState.LN_MU] = 0.05  # μ learnt to 5 %
     braking = dataclasses.replace(
         ticks[0],
         kappa=np.full((1, 4), -4e-3),
@@ -414,8 +416,8 @@ def test_mu_learns_only_where_the_speeds_error_leaves_the_grip_known() -> None:
     )
     known = dataclasses.replace(braking, kappa_common_std=np.array([1e-4]))
     drifting = dataclasses.replace(braking, kappa_common_std=np.array([1.5e-3]))
-    assert _gain_mask(st.x, cfg, tyres, known)[0, ProductState.LN_MU] == 1
-    assert _gain_mask(st.x, cfg, tyres, drifting)[0, ProductState.LN_MU] == 0
+    assert _gain_mask(st.x, st.s, cfg, tyres, known)[0, ProductState.LN_MU] == 1
+    assert _gain_mask(st.x, st.s, cfg, tyres, drifting)[0, ProductState.LN_MU] == 0
 
 
 def test_braking_before_a_turn_leaves_mu_right_accelerating_in_it() -> None:
@@ -444,3 +446,84 @@ def test_braking_before_a_turn_leaves_mu_right_accelerating_in_it() -> None:
     assert np.all(np.abs(rows["mu_filter"][in_turn] / mu_true[in_turn] - 1.0) < 0.06)
     informed = (rows["flags"] & FrictionFlag.INFORMED) > 0
     assert np.all(np.abs(rows["mu"][informed] / mu_true[informed] - 1.0) < 0.1)
+
+
+def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArrays]:
+    """One tick of an all-wheel-drive car in a steady turn at 12 m/s on μ 0.5, its four tyres
+    at 41-54 % of the grip (slip angles 7-11 mrad, κ 2e-3), measured through the filter's own
+    model; the GNSS lateral speed is the truth's 0.15 m/s plus ``vy_bias_mps`` with a 1-σ of
+    0.03 m/s (a bias the filter cannot see), and the speed's shared κ error is 1e-3 (no
+    undriven rim reads the speed)."""
+    cfg = FOUR_WHEEL_CONFIG
+    chassis = Chassis.of([cfg])
+    t = cfg.tyre
+    tyres = TyreArrays(
+        *(np.array([[v]]) for v in (t.kz_npm, t.unloaded_radius_m, t.c_px_npm2, t.c_py_npm2))
+    )
+    fz = np.array([[5200.0, 7600.0, 4800.0, 7000.0]])
+    kappa = np.full((1, 4), 2e-3)
+    delta = np.array([[0.04, 0.04, 0.0, 0.0]])
+    vx, vy, r = 12.0, 0.15, 0.2
+    for _ in range(50):  # the yaw rate of a steady turn: r = a_y / v_x
+        along = vx - chassis.wheel_y_m * r
+        across = vy + chassis.wheel_x_m * r
+        v_long = along * np.cos(delta) + across * np.sin(delta)
+        v_lat = -along * np.sin(delta) + across * np.cos(delta)
+        alpha = -np.arctan2(v_lat, v_long)
+        cx, cy = tyres.stiffness(fz)
+        fx, fy = brush_forces(kappa, alpha, fz, 0.5, cx, cy)
+        z = body_accelerations(fx[:, None], fy[:, None], delta[:, None], chassis)[:, 0]
+        r = float(z[0, 1]) / vx
+    u = TickInputs(
+        fz_n=fz,
+        alpha_rad=alpha,
+        delta_rad=delta,
+        kappa=kappa,
+        kappa_std=np.full((1, 4), 5e-4),
+        kappa_common_std=np.array([1e-3]),
+        alpha_std_rad=np.full((1, 4), 3e-3),
+        z=np.array([[z[0, 0], z[0, 1], 0.0]]),
+        valid=np.array([True]),
+        vx_mps=np.array([vx]),
+        yaw_rate_radps=np.array([r]),
+        vy_meas_mps=np.array([vy + vy_bias_mps]),
+        vy_meas_std_mps=np.array([0.03]),
+        alpha_lag_rad=np.zeros((1, 4)),
+        radius_m=np.full((1, 4), t.unloaded_radius_m),
+        balance_std_n=np.full((1, 2), 1e6),
+    )
+    return u, chassis, tyres
+
+
+def test_mu_upper_is_the_far_end_of_its_interval() -> None:
+    """``ln μ`` 1-σ from the root's first row (two entries: √(0.3² + 0.4²) = 0.5), μ at
+    ``+2σ``: 0.3 · e¹ by hand."""
+    cfg = FilterConfig()
+    x = np.zeros((1, len(ProductState)))
+    x[0, ProductState.LN_MU] = math.log(0.3)
+    s = np.zeros((1, len(ProductState), len(ProductState)))
+    s[0, 0, 0], s[0, 0, 1] = 0.3, 0.4
+    assert mu_upper(x, s, cfg)[0, 0] == pytest.approx(0.3 * math.e, rel=1e-12)
+
+
+def test_a_biased_side_slip_does_not_press_mu_onto_its_floor() -> None:
+    """An all-wheel-drive steady turn at half the grip whose lateral speed reads 0.1 m/s low:
+    every slip angle reads ~8 mrad too large, which the brush model can only explain by
+    saturated tyres, so the μ that fits is the body's ``|a|/g`` (0.24 here, the grip floor's
+    0.23 under it). Judged at that μ, the tyres are at their limit, where the curve is flat
+    in the slips: the gate opened and ``ln μ`` was pressed to 0.25 with a 1-σ of 3.4 %, its
+    σ small only because a saturated tyre's force is ``μ F_z``. Judged at the far end of μ's
+    interval the same slips leave the tyres in their linear range: μ is held at its prior,
+    its 1-σ wide. With the lateral speed right, the same holds (half the grip does not tell μ
+    from the stiffness)."""
+    cfg = FilterConfig()
+    for bias in (-0.1, 0.0):
+        u, chassis, tyres = _steady_awd_turn(bias)
+        st = initial_state(cfg, tyres, u.fz_n)
+        assert _gain_mask(st.x, st.s, cfg, tyres, u)[0, ProductState.LN_MU] == 0
+        for _ in range(200):
+            st = filter_step(st, cfg, tyres, chassis, u)
+        mu = float(mu_of(st.x[0, 0], cfg.mode))
+        sd = float(np.linalg.norm(st.s[0, 0]))
+        assert mu > 0.4, (bias, mu)
+        assert sd > 0.1, (bias, sd)
