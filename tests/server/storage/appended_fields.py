@@ -7,6 +7,9 @@ old field bit for bit and the appended ones NaN, and then take rows that carry t
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -17,6 +20,24 @@ from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, batch_of, make_spec_rows
 
 VEHICLE = "f1"
+
+#: An estimator table's fields as a migration lists them: ``(name, kind)`` in column order.
+Fields = tuple[tuple[str, str], ...]
+
+
+def appended_names(old_fields: Fields, new_fields: Fields) -> tuple[str, ...]:
+    """Names of the fields the migration appended: those of ``new_fields`` past ``old_fields``."""
+    return tuple(name for name, _ in new_fields[len(old_fields) :])
+
+
+def spec_before(
+    spec: EstimatorSpec, old_fields: Fields, added: tuple[str, ...], **changes: Any
+) -> EstimatorSpec:
+    """``spec`` as it was before the migration: without the ``added`` fields (what is left must
+    be ``old_fields``, asserted), and ``changes`` to its other attributes."""
+    fields = tuple(f for f in spec.fields if f.name not in added)
+    assert tuple((f.name, f.kind) for f in fields) == old_fields
+    return dataclasses.replace(spec, fields=fields, **changes)
 
 
 def open_store(backend: Backend, specs: tuple[EstimatorSpec, ...]) -> Store:
