@@ -7,7 +7,9 @@ old field bit for bit and the appended ones NaN, and then take rows that carry t
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -15,6 +17,7 @@ import pytest
 
 from estimator.spec import EstimatorSpec
 from server.storage import Store
+from server.storage.migrations import latest_version
 from server.storage.postgres import PostgresStore
 from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, batch_of, make_spec_rows
@@ -76,6 +79,29 @@ def store_before_migration(
     finally:
         old.close()
     return np.concatenate([final, staged])
+
+
+@contextlib.contextmanager
+def migrated(
+    backend: Backend,
+    spec: EstimatorSpec,
+    before: EstimatorSpec,
+    version: int,
+    kind: str,
+    monkeypatch: pytest.MonkeyPatch,
+) -> Iterator[tuple[Store, np.ndarray]]:
+    """Rows of ``before`` stored one version short of ``version``
+    (:func:`store_before_migration`), then a store of ``spec`` migrated to the latest version
+    (asserted): yields it with those rows. On leaving, a second migrate must find nothing left
+    to do; the store is closed."""
+    want = store_before_migration(backend, before, version, kind, monkeypatch)
+    new = open_store(backend, (spec,))
+    try:
+        assert new.migrate() == latest_version() >= version
+        yield new, want
+        assert new.migrate() == latest_version()  # nothing left to do
+    finally:
+        new.close()
 
 
 def assert_old_rows_read_back(

@@ -12,15 +12,13 @@ from server.storage.migrations import (
     FRICTION_FIELDS_V12,
     FRICTION_FIELDS_V16,
     MIGRATIONS,
-    latest_version,
 )
 from tests.server.storage.appended_fields import (
     appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
-    open_store,
+    migrated,
     spec_before,
-    store_before_migration,
 )
 from tests.server.storage.conftest import Backend
 
@@ -40,14 +38,10 @@ def _spec_before() -> EstimatorSpec:
 def test_rows_stored_before_read_back_without_a_position(
     backend: Backend, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    want = store_before_migration(
-        backend, _spec_before(), _VERSION, "wheeled_4wd_steered", monkeypatch
-    )
-    new = open_store(backend, (FRICTION_SPEC,))
-    try:
-        assert new.migrate() == latest_version() >= _VERSION
+    before = _spec_before()
+    with migrated(backend, FRICTION_SPEC, before, _VERSION, "wheeled_4wd_steered", monkeypatch) as (
+        new,
+        want,
+    ):
         assert_old_rows_read_back(new, FRICTION_SPEC, want, _ADDED)
         assert_new_rows_taken(new, FRICTION_SPEC, _ADDED)
-        assert new.migrate() == latest_version()  # nothing left to do
-    finally:
-        new.close()

@@ -14,16 +14,14 @@ from server.storage.migrations import (
     MIGRATIONS,
     TRACKED_FIELDS_V13,
     TRACKED_FIELDS_V17,
-    latest_version,
 )
 from tests.server.storage.appended_fields import (
     VEHICLE,
     appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
-    open_store,
+    migrated,
     spec_before,
-    store_before_migration,
 )
 from tests.server.storage.conftest import Backend
 
@@ -41,14 +39,9 @@ def _spec_before() -> EstimatorSpec:
 def test_rows_stored_before_read_back_without_a_calibration(
     backend: Backend, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    want = store_before_migration(backend, _spec_before(), _VERSION, "tracked", monkeypatch)
-    new = open_store(backend, (TRACKED_SPEC,))
-    try:
-        assert new.migrate() == latest_version() >= _VERSION
+    before = _spec_before()
+    with migrated(backend, TRACKED_SPEC, before, _VERSION, "tracked", monkeypatch) as (new, want):
         assert_old_rows_read_back(new, TRACKED_SPEC, want, _ADDED)
         assert stored_calibrations(new) == {}  # nothing measured: nothing to restore
         assert_new_rows_taken(new, TRACKED_SPEC, _ADDED)
         assert set(stored_calibrations(new)) == {(VEHICLE, "tracked")}
-        assert new.migrate() == latest_version()  # nothing left to do
-    finally:
-        new.close()
