@@ -1053,6 +1053,14 @@ def _scenario_width(rows: Iterable[Mapping[str, Any]]) -> int:
     return max([16, *(len(r["scenario"]) for r in rows)])
 
 
+def _floors_listed() -> str:
+    """The accuracy floors (:data:`FLOORS`) as the tables' footers list them."""
+    return ", ".join(
+        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
+        for k, op, b, which in FLOORS
+    )
+
+
 def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
     """Plain-text table of :func:`run`'s result, one line per scenario and method."""
     f = file if file is not None else sys.stdout
@@ -1075,11 +1083,7 @@ def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
             line += "  ERROR: " + r["error"]
         print(line, file=f)
     print("", file=f)
-    floors = ", ".join(
-        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
-        for k, op, b, which in FLOORS
-    )
-    print(f"floors (product mode): {floors}", file=f)
+    print(f"floors (product mode): {_floors_listed()}", file=f)
     print(
         f"rows with true V0 > {result['moving_mps']} m/s; Vw relative to the wheel's mean speed; "
         f"seed {result['seed']}; overall: {'PASS' if result['all_pass'] else 'FAIL'}",
@@ -1112,11 +1116,7 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
                 line += "  ERROR: " + "; ".join(r["errors"])
             print(line, file=f)
     print("", file=f)
-    floors = ", ".join(
-        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
-        for k, op, b, which in FLOORS
-    )
-    print(f"floors (product mode, on the worst seed): {floors}", file=f)
+    print(f"floors (product mode, on the worst seed): {_floors_listed()}", file=f)
     seeds = ",".join(str(s) for s in result["seeds"])
     print(
         f"rows with true V0 > {result['moving_mps']} m/s; Vw relative to the wheel's mean speed; "
