@@ -22,12 +22,14 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, Protocol, TypeVar
 
+import numpy as np
 from fastapi import Depends, Query, Request, WebSocketException, status
 from starlette.requests import HTTPConnection
 
 from estimator.catalog import SPECS, spec_of
 from estimator.config import ConfigError, SlipConfig, VehicleConfig, vehicle_config_from_dict
-from estimator.spec import EstimatorSpec
+from estimator.spec import EstimatorSpec, ValueChannel
+from server.analytics.slipmap import SlipMap, slip_map
 from server.api.errors import (
     Forbidden,
     InvalidTime,
@@ -73,6 +75,7 @@ __all__ = [
     "require_role",
     "slip_config",
     "vehicle_estimators",
+    "vehicle_slip_map",
 ]
 
 _log = logging.getLogger(__name__)
@@ -244,6 +247,31 @@ def slip_config(record: VehicleRecord) -> SlipConfig:
             exc,
         )
         return SlipConfig()
+
+
+def vehicle_slip_map(
+    rows: np.ndarray,
+    spec: EstimatorSpec,
+    slip: SlipConfig,
+    tr: TimeRange,
+    limits: ApiLimits,
+    cell_m: float,
+    layer: ValueChannel | None = None,
+) -> SlipMap:
+    """One vehicle's slip map as the API serves it: its own frame, cells of ``cell_m`` metres,
+    the vehicle's slip settings, the API's gap and cell limits (``TooManyCells`` past those);
+    ``rows`` are the vehicle's rows of ``spec`` in ``tr``, shape (n,)."""
+    return slip_map(
+        rows,
+        spec,
+        cell_m=cell_m,
+        layer=layer,
+        end_ns=tr.end_ns,
+        band_edges_pct=slip.band_edges_pct,
+        min_ground_speed_mps=slip.min_ground_speed_mps,
+        max_gap_s=limits.report_max_gap_s,
+        max_cells=limits.slipmap_max_cells,
+    )
 
 
 def vehicle_estimators(record: VehicleRecord) -> tuple[str, ...]:

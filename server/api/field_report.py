@@ -14,8 +14,8 @@ from fastapi import Response
 from estimator.spec import EstimatorSpec
 from server.analytics.field_report_html import Chart, Track, field_report_html
 from server.analytics.reports import VehicleReport
-from server.analytics.slipmap import NotMappable, SlipMap, TooManyCells, slip_map, slipmap_fields
-from server.api.deps import ApiLimits, TimeRange, slip_config
+from server.analytics.slipmap import NotMappable, SlipMap, TooManyCells, slipmap_fields
+from server.api.deps import ApiLimits, TimeRange, slip_config, vehicle_slip_map
 from server.storage.base import Store, VehicleRecord
 from server.timeparse import format_ns
 
@@ -62,16 +62,7 @@ def _map(
     slip = slip_config(record)
     for cell_m in CELL_M:
         try:
-            return slip_map(
-                rows,
-                spec,
-                end_ns=tr.end_ns,
-                cell_m=cell_m,
-                band_edges_pct=slip.band_edges_pct,
-                min_ground_speed_mps=slip.min_ground_speed_mps,
-                max_gap_s=limits.report_max_gap_s,
-                max_cells=limits.slipmap_max_cells,
-            )
+            return vehicle_slip_map(rows, spec, slip, tr, limits, cell_m)
         except TooManyCells:
             continue
     return None

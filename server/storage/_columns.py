@@ -8,7 +8,7 @@ the database records, refusing a spec whose fields no longer match its table.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
@@ -156,6 +156,20 @@ def _plain_batch(pairs: Sequence[tuple[str, np.ndarray]], spec: EstimatorSpec) -
         concat_estimates([rows for _, rows in kept]),
         spec,
     )
+
+
+def registered_rows(batch: EstimateBatch, keys: Mapping[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``batch`` whose vehicle has a key in ``keys``, and each row's key.
+
+    Both stores write rows by vehicle key and drop those of unregistered vehicles (absent from
+    ``keys``). Returns ``(rows, vkeys)``: the kept rows, shape (r,), and their keys, int64 (r,).
+    """
+    per_vehicle = np.fromiter((keys.get(v, -1) for v in batch.ids), np.int64, len(batch.ids))
+    vkeys = np.repeat(per_vehicle, batch.counts)
+    rows = batch.rows
+    if (per_vehicle < 0).any():
+        rows, vkeys = rows[vkeys >= 0], vkeys[vkeys >= 0]
+    return rows, vkeys
 
 
 def select_fields(spec: EstimatorSpec, fields: Sequence[str] | None) -> tuple[str, ...]:

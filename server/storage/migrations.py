@@ -79,6 +79,7 @@ from typing import Any
 import numpy as np
 
 from estimator.config import VehicleKind, upgrade_legacy_config
+from server.storage.base import StorageError
 
 __all__ = [
     "ADVISORY_LOCK_KEY",
@@ -840,6 +841,16 @@ _VERSION_TABLE = {
 def latest_version() -> int:
     """The schema version this code writes."""
     return MIGRATIONS[-1].version
+
+
+def migrate_to_latest(execute: Execute, dialect: str) -> int:
+    """Apply every pending migration (:func:`apply_pending`) and return the schema version; a
+    database newer than this code is a :class:`~server.storage.base.StorageError`."""
+    try:
+        version, _ = apply_pending(execute, dialect)
+    except RuntimeError as exc:
+        raise StorageError(str(exc)) from exc
+    return version
 
 
 def apply_pending(

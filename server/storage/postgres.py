@@ -33,6 +33,7 @@ from server.storage._columns import (
     SpecTables,
     as_batches,
     fields_dtype,
+    registered_rows,
     select_fields,
     spec_fields,
 )
@@ -182,10 +183,7 @@ class PostgresStore(SharedQueries):
                 cur = conn.execute(sql.encode(), params)  # bytes: no client-side formatting
                 return cur.fetchall() if cur.description is not None else []
 
-            try:
-                version, _ = migrations.apply_pending(execute, self.dialect)
-            except RuntimeError as exc:
-                raise StorageError(str(exc)) from exc
+            version = migrations.migrate_to_latest(execute, self.dialect)
         self._tables.reload()  # refuses a spec its table no longer fits, at start
         return version
 
@@ -453,11 +451,7 @@ def _copy_in_payload(t: _PgTable, batch: EstimateBatch, keys: Mapping[str, int])
     two rows of each of hundreds of vehicles, and a column assignment per vehicle cost ~20
     numpy calls per vehicle.
     """
-    per_vehicle = np.fromiter((keys.get(v, -1) for v in batch.ids), np.int64, len(batch.ids))
-    vkeys = np.repeat(per_vehicle, batch.counts)
-    rows = batch.rows
-    if (per_vehicle < 0).any():
-        rows, vkeys = rows[vkeys >= 0], vkeys[vkeys >= 0]
+    rows, vkeys = registered_rows(batch, keys)
     if not len(rows):
         return None
     buf = np.full(len(rows), t.copy_template)

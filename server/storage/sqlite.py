@@ -76,6 +76,7 @@ from server.storage._columns import (
     SpecTables,
     as_batches,
     fields_dtype,
+    registered_rows,
     select_fields,
 )
 from server.storage._queries import SharedQueries
@@ -278,10 +279,7 @@ class SqliteStore(SharedQueries):
                 conn.execute("SELECT json_array_length('[1]')")
             except sqlite3.OperationalError as exc:
                 raise StorageError(f"sqlite {sqlite3.sqlite_version} lacks JSON: {exc}") from exc
-            try:
-                version, _ = migrations.apply_pending(execute, self.dialect)
-            except RuntimeError as exc:
-                raise StorageError(str(exc)) from exc
+            version = migrations.migrate_to_latest(execute, self.dialect)
         self._tables.reload()  # refuses a spec its table no longer fits, at start
         return version
 
@@ -371,13 +369,9 @@ class SqliteStore(SharedQueries):
         conn: sqlite3.Connection, t: _Tables, batch: EstimateBatch, keys: Mapping[str, int]
     ) -> int:
         """Write one estimator's rows (see :meth:`write_estimates`); return rows inserted."""
-        per_vehicle = np.fromiter((keys.get(v, -1) for v in batch.ids), np.int64, len(batch.ids))
-        vkeys = np.repeat(per_vehicle, batch.counts)
-        rows = batch.rows
-        if (per_vehicle < 0).any():
-            rows, vkeys = rows[vkeys >= 0], vkeys[vkeys >= 0]
-            if not len(rows):
-                return 0
+        rows, vkeys = registered_rows(batch, keys)
+        if not len(rows):  # batches are never empty (as_batches): all its vehicles unregistered
+            return 0
         size = t.row_bytes
         blob = rows.tobytes()
         stamps = rows["stamp_ns"].astype(np.int64)

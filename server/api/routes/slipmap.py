@@ -37,7 +37,6 @@ from server.analytics.slipmap import (
     map_samples,
     merge_cell_sums,
     reframe,
-    slip_map,
     slipmap_fields,
 )
 from server.api.deps import (
@@ -52,6 +51,7 @@ from server.api.deps import (
     estimator_spec,
     slip_config,
     vehicle_estimators,
+    vehicle_slip_map,
 )
 from server.api.errors import (
     BadRequest,
@@ -450,17 +450,7 @@ def get_vehicle_slipmap(
         vehicle.vehicle_id, tr.start_ns, tr.end_ns, fields, estimator=spec.name
     )
     try:
-        smap = slip_map(
-            rows,
-            spec,
-            end_ns=tr.end_ns,
-            cell_m=cell_m,
-            band_edges_pct=slip.band_edges_pct,
-            min_ground_speed_mps=slip.min_ground_speed_mps,
-            max_gap_s=limits.report_max_gap_s,
-            max_cells=limits.slipmap_max_cells,
-            layer=value,
-        )
+        smap = vehicle_slip_map(rows, spec, slip, tr, limits, cell_m, layer=value)
     except TooManyCells as exc:
         raise _too_many_cells(exc, cell_m) from exc
     anchor = store.get_anchors(vehicle.vehicle_id).get(vehicle.vehicle_id)

@@ -88,7 +88,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -221,6 +221,21 @@ def run_estimator(
     if prepare is not None:
         prepare(estimator, _VEHICLE)
     parts: list[np.ndarray] = []
+    for _, advanced in _advance_on_arrivals(estimator, sim, lateness_ns):
+        parts += [np.asarray(rows) for vid, rows in advanced if vid == _VEHICLE]
+    estimator.remove_vehicle(_VEHICLE)
+    if not parts:
+        return empty_estimates(0)
+    rows = np.concatenate(parts)
+    return rows[np.argsort(rows["stamp_ns"], kind="stable")]
+
+
+def _advance_on_arrivals(
+    estimator: FleetEstimator, sim: SimRun, lateness_ns: int
+) -> Iterator[tuple[int, Sequence[tuple[str, np.ndarray]]]]:
+    """Push ``sim``'s measurements to the vehicle as a reorder buffer of ``lateness_ns`` lets
+    them out and advance it every 100 ms of arrival time; yield each horizon ``until`` (ns) with
+    what that advance emitted, ``(vehicle_id, rows)`` pairs."""
     for chunk, until in replay_arrivals(
         sim.measurements,
         sim.arrival_ns,
@@ -230,14 +245,7 @@ def run_estimator(
     ):
         for m in chunk:
             estimator.push(_VEHICLE, m)
-        for vid, rows in estimator.advance({_VEHICLE: until}):
-            if vid == _VEHICLE:
-                parts.append(np.asarray(rows))
-    estimator.remove_vehicle(_VEHICLE)
-    if not parts:
-        return empty_estimates(0)
-    rows = np.concatenate(parts)
-    return rows[np.argsort(rows["stamp_ns"], kind="stable")]
+        yield until, estimator.advance({_VEHICLE: until})
 
 
 def _gnss_vehicle_speed(g: GnssSample) -> float:
@@ -895,16 +903,8 @@ def _calibration_trace(
     fleet.add_vehicle(_VEHICLE, config)
     parts: list[np.ndarray] = []
     trace: list[tuple[int, Any]] = []
-    for chunk, until in replay_arrivals(
-        sim.measurements,
-        sim.arrival_ns,
-        lateness_ns=LATENESS_NS,
-        step_ns=_STEP_NS,
-        end_ns=sim.end_ns,
-    ):
-        for m in chunk:
-            fleet.push(_VEHICLE, m)
-        parts += [np.asarray(rows) for _, rows in fleet.advance({_VEHICLE: until})]
+    for until, advanced in _advance_on_arrivals(fleet, sim, LATENESS_NS):
+        parts += [np.asarray(rows) for _, rows in advanced]
         trace.append((until, fleet.calibration(_VEHICLE)))
     return np.concatenate(parts), trace
 
@@ -1053,6 +1053,14 @@ def _scenario_width(rows: Iterable[Mapping[str, Any]]) -> int:
     return max([16, *(len(r["scenario"]) for r in rows)])
 
 
+def _floors_listed() -> str:
+    """The accuracy floors (:data:`FLOORS`) as the tables' footers list them."""
+    return ", ".join(
+        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
+        for k, op, b, which in FLOORS
+    )
+
+
 def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
     """Plain-text table of :func:`run`'s result, one line per scenario and method."""
     f = file if file is not None else sys.stdout
@@ -1075,11 +1083,7 @@ def print_table(result: Mapping[str, Any], file: TextIO | None = None) -> None:
             line += "  ERROR: " + r["error"]
         print(line, file=f)
     print("", file=f)
-    floors = ", ".join(
-        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
-        for k, op, b, which in FLOORS
-    )
-    print(f"floors (product mode): {floors}", file=f)
+    print(f"floors (product mode): {_floors_listed()}", file=f)
     print(
         f"rows with true V0 > {result['moving_mps']} m/s; Vw relative to the wheel's mean speed; "
         f"seed {result['seed']}; overall: {'PASS' if result['all_pass'] else 'FAIL'}",
@@ -1112,11 +1116,7 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
                 line += "  ERROR: " + "; ".join(r["errors"])
             print(line, file=f)
     print("", file=f)
-    floors = ", ".join(
-        f"{k} {op} {b:g}" + (" (paper scenarios)" if which == "paper" else "")
-        for k, op, b, which in FLOORS
-    )
-    print(f"floors (product mode, on the worst seed): {floors}", file=f)
+    print(f"floors (product mode, on the worst seed): {_floors_listed()}", file=f)
     seeds = ",".join(str(s) for s in result["seeds"])
     print(
         f"rows with true V0 > {result['moving_mps']} m/s; Vw relative to the wheel's mean speed; "

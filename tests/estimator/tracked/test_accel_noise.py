@@ -16,6 +16,7 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.step import Filter, accel_speed_var, initial_filter, tick_step
 from estimator.tracked.vehicle import TickInputs, VehicleInputs
 from estimator.types import ImuBatch
+from tests.estimator.tracked._ticks import quiet_tick
 
 CFG = TrackedEstimatorConfig()
 T0_NS = 1_700_000_000_000_000_000
@@ -37,33 +38,7 @@ def test_the_speeds_noise_from_the_accelerometer_by_hand() -> None:
 def _blind_tick(samples: int) -> TickInputs:
     """A tick of two vehicles with nothing but the IMU (no odometer, sprockets or GNSS):
     the filter only predicts."""
-    two = np.ones(2)
-    nan = np.full(2, np.nan)
-    pair = np.full((2, 2), np.nan)
-    return TickInputs(
-        ticks_ns=np.full(2, T0_NS),
-        accel_mps2=0.0 * two,
-        gyro_radps=0.0 * two,
-        imu_samples=np.full(2, samples),
-        yaw_accel_radps2=0.0 * two,
-        odometer_mps=nan,
-        odometer_lag_s=0.0 * two,
-        sprocket_pair_mps=pair,
-        sprocket_missing=np.ones(2, dtype=bool),
-        sprocket_settling_pair=np.zeros((2, 2), dtype=bool),
-        sprocket_starting_pair=np.zeros((2, 2), dtype=bool),
-        gear_ratio=nan,
-        sprocket_before_pair_mps=pair,
-        gear_ratio_before=nan,
-        gearbox_accel_mps2=0.0 * two,
-        steady_s=0.0 * two,
-        odometer_edges=np.zeros(2, dtype=np.int64),
-        odometer_gap_s=0.0 * two,
-        gnss_pos_pair_m=np.full((2, 2), np.nan),
-        gnss_vel_pair_mps=np.full((2, 2), np.nan),
-        gnss_vel_std_mps=nan,
-        gnss_age_s=0.0 * two,
-    )
+    return quiet_tick(2, T0_NS, imu_samples=np.full(2, samples))
 
 
 def _two(f: Filter) -> Filter:

@@ -17,36 +17,22 @@ from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.step import initial_filter, standing_rate_var, tick_step
 from estimator.tracked.vehicle import TickInputs
+from tests.estimator.tracked._ticks import quiet_tick
 
 
 def _standing_tick(gyro_radps: float, tick_ns: int) -> TickInputs:
     """One tick of a crawler standing still with its engine running and GNSS lost."""
     one = np.ones(1)
-    nan = np.full(1, np.nan)
-    pair = np.zeros((1, 2))
-    return TickInputs(
-        ticks_ns=np.array([tick_ns]),
-        accel_mps2=0.0 * one,
+    return quiet_tick(
+        1,
+        tick_ns,
         gyro_radps=gyro_radps * one,
-        imu_samples=np.full(1, 10),
-        yaw_accel_radps2=0.0 * one,
         odometer_mps=0.0 * one,
         odometer_lag_s=0.05 * one,
-        sprocket_pair_mps=pair,
+        sprocket_pair_mps=np.zeros((1, 2)),
         sprocket_missing=np.zeros(1, dtype=bool),
-        sprocket_settling_pair=np.zeros((1, 2), dtype=bool),
-        sprocket_starting_pair=np.zeros((1, 2), dtype=bool),
-        gear_ratio=nan,
-        sprocket_before_pair_mps=pair,
-        gear_ratio_before=nan,
-        gearbox_accel_mps2=0.0 * one,
+        sprocket_before_pair_mps=np.zeros((1, 2)),
         steady_s=10.0 * one,
-        odometer_edges=np.zeros(1, dtype=np.int64),
-        odometer_gap_s=0.0 * one,
-        gnss_pos_pair_m=np.full((1, 2), np.nan),
-        gnss_vel_pair_mps=np.full((1, 2), np.nan),
-        gnss_vel_std_mps=nan,
-        gnss_age_s=0.0 * one,
     )
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
+from estimator.spec import EstimatorSpec
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 from estimator.types import EstimateBatch
 from server.analytics.isoxml_grid import GRID_FILE, LAYER_DDI
@@ -26,6 +27,25 @@ U = "/api/v1/vehicles/c1/slipmap"
 ANCHOR = (52.0, 5.6, 12.0)
 
 
+def _driven_east(spec: EstimatorSpec, speed_field: str) -> np.ndarray:
+    """10 rows of ``spec``, 1 s apart from ``T0``, driving east 3 m a second along north 0.5 m
+    (cells of 10 m: rows 0..3, 4..6, 7..9), ``speed_field`` 0 then 2 m/s from row 1."""
+    rows = spec.empty_rows(10)
+    rows["stamp_ns"] = T0 + np.arange(10) * S
+    rows[speed_field] = [0, 2, 2, 2, 2, 2, 2, 2, 2, 2]
+    rows["east_m"] = np.arange(10) * 3.0 + 0.5
+    rows["north_m"] = 0.5
+    rows["up_m"] = 0.0
+    return rows
+
+
+def _informing() -> np.ndarray:
+    """bool, shape (10,): the rows that inform the layer, 1, 2, 4, 5, 6 and 9."""
+    mask = np.zeros(10, dtype=bool)
+    mask[[1, 2, 4, 5, 6, 9]] = True
+    return mask
+
+
 def crawler_series() -> np.ndarray:
     """10 crawler rows, 1 s apart, driving east 3 m a second at 2 m/s (moving from row 1).
 
@@ -33,15 +53,9 @@ def crawler_series() -> np.ndarray:
     Odometer factor 0.90 + 0.01·i; GNSS (the layer's valid flag) on rows 1, 2, 4, 5, 6, 9 only:
     cell 0 mean (0.91 + 0.92)/2, 2 samples; cell 1 (0.94 + 0.95 + 0.96)/3, 3; cell 2 0.99, 1.
     """
-    rows = TRACKED_SPEC.empty_rows(10)
-    rows["stamp_ns"] = T0 + np.arange(10) * S
-    rows["speed_mps"] = [0, 2, 2, 2, 2, 2, 2, 2, 2, 2]
-    rows["east_m"] = np.arange(10) * 3.0 + 0.5
-    rows["north_m"] = 0.5
-    rows["up_m"] = 0.0
+    rows = _driven_east(TRACKED_SPEC, "speed_mps")
     rows["odometer_scale"] = 0.90 + 0.01 * np.arange(10)
-    gnss = np.zeros(10, dtype=bool)
-    gnss[[1, 2, 4, 5, 6, 9]] = True
+    gnss = _informing()
     rows["flags"] = np.where(gnss, int(TrackedFlag.GNSS_OK), int(TrackedFlag.DEAD_RECKONING))
     return rows
 
@@ -132,15 +146,9 @@ def friction_series() -> np.ndarray:
     """10 rows of a steered vehicle, as :func:`crawler_series` drives: μ 0.50 + 0.01·i, informed
     on rows 1, 2, 4, 5, 6, 9 (held elsewhere, the last informed value); rows 7-9 carried
     through a GNSS outage (``DEAD_RECKONED``: still placed)."""
-    rows = FRICTION_SPEC.empty_rows(10)
-    rows["stamp_ns"] = T0 + np.arange(10) * S
-    rows["vx_mps"] = [0, 2, 2, 2, 2, 2, 2, 2, 2, 2]
-    rows["east_m"] = np.arange(10) * 3.0 + 0.5
-    rows["north_m"] = 0.5
-    rows["up_m"] = 0.0
+    rows = _driven_east(FRICTION_SPEC, "vx_mps")
     rows["heading_rad"] = np.pi / 2
-    informed = np.zeros(10, dtype=bool)
-    informed[[1, 2, 4, 5, 6, 9]] = True
+    informed = _informing()
     rows["mu"] = np.where(informed, 0.50 + 0.01 * np.arange(10), 0.4)
     flags = np.where(informed, int(FrictionFlag.INFORMED), int(FrictionFlag.HELD))
     flags[7:] |= int(FrictionFlag.DEAD_RECKONED)

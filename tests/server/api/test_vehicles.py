@@ -80,6 +80,20 @@ def test_unknown_vehicle_is_404_json(client: ApiClient) -> None:
         assert "nope" in r.json()["reason"]
 
 
+def _assert_configs_refused(
+    client: ApiClient, runtime: FakeRuntime, cases: list[tuple[dict[str, Any], str]]
+) -> None:
+    """Each ``(body, words)`` registering ``t1`` is a 422 ``invalid_config`` whose reason holds
+    ``words``; none registers the vehicle or reaches the runtime."""
+    for body, words in cases:
+        r = client.put(f"{V}/t1", json=body)
+        assert r.status_code == 422, body
+        assert r.json()["error"] == "invalid_config"
+        assert words in r.json()["reason"], (body, r.json())
+    assert client.get(f"{V}/t1").status_code == 404
+    assert runtime.config_calls == []
+
+
 def test_bad_config_is_422_with_reason(client: ApiClient, runtime: FakeRuntime) -> None:
     cases = [
         ({"geometry": {"h0_m": -1}}, "h0_m"),
@@ -95,13 +109,7 @@ def test_bad_config_is_422_with_reason(client: ApiClient, runtime: FakeRuntime) 
         ({"slip": {"band_edges_pct": [-5]}}, "band_edges_pct"),
         ({"geometry": {"h0_m": True}}, "h0_m"),
     ]
-    for body, word in cases:
-        r = client.put(f"{V}/t1", json=body)
-        assert r.status_code == 422, body
-        assert r.json()["error"] == "invalid_config"
-        assert word in r.json()["reason"], (body, r.json())
-    assert client.get(f"{V}/t1").status_code == 404
-    assert runtime.config_calls == []
+    _assert_configs_refused(client, runtime, cases)
 
 
 def test_malformed_body_and_id(client: ApiClient) -> None:
@@ -284,13 +292,7 @@ def test_wrong_kind_or_field_is_422_naming_it(client: ApiClient, runtime: FakeRu
         ({"kind": "wheeled_4wd_steered", "tyre": {"kz_npm": 1e3}}, "10000..5e+06 N/m"),
         ({"estimators": [""]}, "estimators"),
     ]
-    for body, words in cases:
-        r = client.put(f"{V}/t1", json=body)
-        assert r.status_code == 422, body
-        assert r.json()["error"] == "invalid_config"
-        assert words in r.json()["reason"], (body, r.json())
-    assert client.get(f"{V}/t1").status_code == 404
-    assert runtime.config_calls == []
+    _assert_configs_refused(client, runtime, cases)
 
 
 def test_a_crawlers_gyro_by_part_or_by_its_figures(

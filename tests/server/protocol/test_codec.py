@@ -38,6 +38,7 @@ from server.protocol import (
     encode_wheel_speeds,
     sensor_key,
 )
+from tests.server.protocol.payloads import edited
 
 T0 = 1_763_700_000 * 10**9  # 2025-11-21, vehicle clock
 KEY = {s: sensor_key("fleet", "veh-1", s) for s in Stream}
@@ -76,13 +77,7 @@ def _raw(stream: Stream, **fields: object) -> bytes:
             WheelSpeeds(T0 + np.arange(2, dtype=np.int64), np.ones((2, 2))), 0
         ),
     }[stream]
-    m = msgpack.unpackb(valid, raw=False)
-    for k, v in fields.items():
-        if v is None:
-            m.pop(k, None)
-        else:
-            m[k] = v
-    return msgpack.packb(m, use_bin_type=True)
+    return edited(valid, fields)
 
 
 def _reason(key: str, payload: bytes) -> str:

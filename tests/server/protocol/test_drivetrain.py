@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import msgpack
 import numpy as np
 import pytest
 
@@ -35,6 +34,7 @@ from server.protocol import (
 )
 from server.protocol.burst import decode_burst
 from server.protocol.wire import DECODER
+from tests.server.protocol.payloads import edited
 from tests.server.protocol.test_burst import assert_burst_matches
 
 T0 = 1_763_700_000 * 10**9
@@ -64,24 +64,12 @@ def _valid(stream: Stream, seq: int = 0, t0: int = T0) -> bytes:
 
 def _with(payload: bytes, **fields: Any) -> bytes:
     """``payload`` with fields replaced, or deleted (value None)."""
-    m = msgpack.unpackb(payload, raw=False)
-    for k, v in fields.items():
-        if v is None:
-            m.pop(k, None)
-        else:
-            m[k] = v
-    return msgpack.packb(m, use_bin_type=True)
+    return edited(payload, fields)
 
 
 def _entry(payload: bytes, **fields: Any) -> bytes:
     """A sprockets payload whose first entry has fields replaced or deleted."""
-    m = msgpack.unpackb(payload, raw=False)
-    for k, v in fields.items():
-        if v is None:
-            m["edges"][0].pop(k, None)
-        else:
-            m["edges"][0][k] = v
-    return msgpack.packb(m, use_bin_type=True)
+    return edited(payload, fields, lambda m: m["edges"][0])
 
 
 def _i8(*values: int) -> bytes:

@@ -7,16 +7,40 @@ old field bit for bit and the appended ones NaN, and then take rows that carry t
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+from collections.abc import Iterator
+from typing import Any
+
 import numpy as np
 import pytest
 
 from estimator.spec import EstimatorSpec
 from server.storage import Store
+from server.storage.migrations import latest_version
 from server.storage.postgres import PostgresStore
 from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, batch_of, make_spec_rows
 
 VEHICLE = "f1"
+
+#: An estimator table's fields as a migration lists them: ``(name, kind)`` in column order.
+Fields = tuple[tuple[str, str], ...]
+
+
+def appended_names(old_fields: Fields, new_fields: Fields) -> tuple[str, ...]:
+    """Names of the fields the migration appended: those of ``new_fields`` past ``old_fields``."""
+    return tuple(name for name, _ in new_fields[len(old_fields) :])
+
+
+def spec_before(
+    spec: EstimatorSpec, old_fields: Fields, added: tuple[str, ...], **changes: Any
+) -> EstimatorSpec:
+    """``spec`` as it was before the migration: without the ``added`` fields (what is left must
+    be ``old_fields``, asserted), and ``changes`` to its other attributes."""
+    fields = tuple(f for f in spec.fields if f.name not in added)
+    assert tuple((f.name, f.kind) for f in fields) == old_fields
+    return dataclasses.replace(spec, fields=fields, **changes)
 
 
 def open_store(backend: Backend, specs: tuple[EstimatorSpec, ...]) -> Store:
@@ -55,6 +79,29 @@ def store_before_migration(
     finally:
         old.close()
     return np.concatenate([final, staged])
+
+
+@contextlib.contextmanager
+def migrated(
+    backend: Backend,
+    spec: EstimatorSpec,
+    before: EstimatorSpec,
+    version: int,
+    kind: str,
+    monkeypatch: pytest.MonkeyPatch,
+) -> Iterator[tuple[Store, np.ndarray]]:
+    """Rows of ``before`` stored one version short of ``version``
+    (:func:`store_before_migration`), then a store of ``spec`` migrated to the latest version
+    (asserted): yields it with those rows. On leaving, a second migrate must find nothing left
+    to do; the store is closed."""
+    want = store_before_migration(backend, before, version, kind, monkeypatch)
+    new = open_store(backend, (spec,))
+    try:
+        assert new.migrate() == latest_version() >= version
+        yield new, want
+        assert new.migrate() == latest_version()  # nothing left to do
+    finally:
+        new.close()
 
 
 def assert_old_rows_read_back(

@@ -4,8 +4,6 @@ table then takes rows with one, on both backends."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 
 from estimator.friction_spec import FRICTION_SPEC
@@ -14,17 +12,17 @@ from server.storage.migrations import (
     FRICTION_FIELDS_V12,
     FRICTION_FIELDS_V16,
     MIGRATIONS,
-    latest_version,
 )
 from tests.server.storage.appended_fields import (
+    appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
-    open_store,
-    store_before_migration,
+    migrated,
+    spec_before,
 )
 from tests.server.storage.conftest import Backend
 
-_ADDED = tuple(name for name, _ in FRICTION_FIELDS_V16[len(FRICTION_FIELDS_V12) :])
+_ADDED = appended_names(FRICTION_FIELDS_V12, FRICTION_FIELDS_V16)
 _VERSION = next(
     m.version for m in MIGRATIONS if m.description.endswith("friction estimator's position")
 )
@@ -32,24 +30,18 @@ _VERSION = next(
 
 def _spec_before() -> EstimatorSpec:
     """The friction spec as it was before the position: version 12's fields, no position."""
-    fields = tuple(f for f in FRICTION_SPEC.fields if f.name not in _ADDED)
-    assert tuple((f.name, f.kind) for f in fields) == FRICTION_FIELDS_V12
-    return dataclasses.replace(
-        FRICTION_SPEC, fields=fields, position=None, degraded_flags=("HELD",)
+    return spec_before(
+        FRICTION_SPEC, FRICTION_FIELDS_V12, _ADDED, position=None, degraded_flags=("HELD",)
     )
 
 
 def test_rows_stored_before_read_back_without_a_position(
     backend: Backend, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    want = store_before_migration(
-        backend, _spec_before(), _VERSION, "wheeled_4wd_steered", monkeypatch
-    )
-    new = open_store(backend, (FRICTION_SPEC,))
-    try:
-        assert new.migrate() == latest_version() >= _VERSION
+    before = _spec_before()
+    with migrated(backend, FRICTION_SPEC, before, _VERSION, "wheeled_4wd_steered", monkeypatch) as (
+        new,
+        want,
+    ):
         assert_old_rows_read_back(new, FRICTION_SPEC, want, _ADDED)
         assert_new_rows_taken(new, FRICTION_SPEC, _ADDED)
-        assert new.migrate() == latest_version()  # nothing left to do
-    finally:
-        new.close()

@@ -5,8 +5,6 @@ rows with one, on both backends."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 
 from estimator.spec import EstimatorSpec
@@ -16,18 +14,18 @@ from server.storage.migrations import (
     MIGRATIONS,
     TRACKED_FIELDS_V13,
     TRACKED_FIELDS_V17,
-    latest_version,
 )
 from tests.server.storage.appended_fields import (
     VEHICLE,
+    appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
-    open_store,
-    store_before_migration,
+    migrated,
+    spec_before,
 )
 from tests.server.storage.conftest import Backend
 
-_ADDED = tuple(name for name, _ in TRACKED_FIELDS_V17[len(TRACKED_FIELDS_V13) :])
+_ADDED = appended_names(TRACKED_FIELDS_V13, TRACKED_FIELDS_V17)
 _VERSION = next(
     m.version for m in MIGRATIONS if m.description.startswith("tracked rows carry the gyro's noise")
 )
@@ -35,22 +33,15 @@ _VERSION = next(
 
 def _spec_before() -> EstimatorSpec:
     """The tracked spec as it was before the calibration: version 13's fields, none."""
-    fields = tuple(f for f in TRACKED_SPEC.fields if f.name not in _ADDED)
-    assert tuple((f.name, f.kind) for f in fields) == TRACKED_FIELDS_V13
-    return dataclasses.replace(TRACKED_SPEC, fields=fields, calibrations=())
+    return spec_before(TRACKED_SPEC, TRACKED_FIELDS_V13, _ADDED, calibrations=())
 
 
 def test_rows_stored_before_read_back_without_a_calibration(
     backend: Backend, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    want = store_before_migration(backend, _spec_before(), _VERSION, "tracked", monkeypatch)
-    new = open_store(backend, (TRACKED_SPEC,))
-    try:
-        assert new.migrate() == latest_version() >= _VERSION
+    before = _spec_before()
+    with migrated(backend, TRACKED_SPEC, before, _VERSION, "tracked", monkeypatch) as (new, want):
         assert_old_rows_read_back(new, TRACKED_SPEC, want, _ADDED)
         assert stored_calibrations(new) == {}  # nothing measured: nothing to restore
         assert_new_rows_taken(new, TRACKED_SPEC, _ADDED)
         assert set(stored_calibrations(new)) == {(VEHICLE, "tracked")}
-        assert new.migrate() == latest_version()  # nothing left to do
-    finally:
-        new.close()

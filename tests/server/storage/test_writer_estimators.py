@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -132,22 +134,32 @@ def test_call_runs_on_the_writer_thread_and_returns_or_raises(backend: Backend) 
     assert store.list_tokens() == [token]
 
 
-def test_call_comes_after_the_registrations_queued_before_it(backend: Backend) -> None:
-    store = backend.open()
+@contextlib.contextmanager
+def _writer_held(writer: StoreWriter) -> Iterator[None]:
+    """Hold ``writer``'s thread inside a call for the block, so what the block hands the writer
+    waits; on leaving, let it go and wait for that call to return."""
     release = threading.Event()
-    got: list[Any] = []
-    with StoreWriter(store, _settings()) as writer:
-        blocker = threading.Thread(target=writer.call, args=(lambda s: release.wait(30),))
-        blocker.start()
-        time.sleep(0.1)  # the writer thread is inside the first call: both below wait
-        writer.submit_vehicle("auto", {"kind": "auto"}, now_ns=1)
-        reader = threading.Thread(
-            target=lambda: got.append(writer.call(lambda s: s.get_vehicle("auto")))
-        )
-        reader.start()
-        time.sleep(0.1)
+    blocker = threading.Thread(target=writer.call, args=(lambda s: release.wait(30),))
+    blocker.start()
+    time.sleep(0.1)  # the writer thread is inside the call now
+    try:
+        yield
+    finally:
         release.set()
         blocker.join()
+
+
+def test_call_comes_after_the_registrations_queued_before_it(backend: Backend) -> None:
+    store = backend.open()
+    got: list[Any] = []
+    with StoreWriter(store, _settings()) as writer:
+        with _writer_held(writer):  # both below wait
+            writer.submit_vehicle("auto", {"kind": "auto"}, now_ns=1)
+            reader = threading.Thread(
+                target=lambda: got.append(writer.call(lambda s: s.get_vehicle("auto")))
+            )
+            reader.start()
+            time.sleep(0.1)
         reader.join()
     assert got[0] is not None and got[0].config == {"kind": "auto"}
 
@@ -174,16 +186,10 @@ def test_call_is_answered_at_once_during_an_outage(backend: Backend) -> None:
 
 def test_a_call_that_times_out_is_dropped(backend: Backend) -> None:
     store = backend.open()
-    release = threading.Event()
     ran: list[str] = []
     with StoreWriter(store, _settings()) as writer:
-        blocker = threading.Thread(target=writer.call, args=(lambda s: release.wait(30),))
-        blocker.start()
-        time.sleep(0.1)  # the writer thread is inside the first call now
-        with pytest.raises(StorageError, match="no answer"):
+        with _writer_held(writer), pytest.raises(StorageError, match="no answer"):
             writer.call(lambda s: ran.append("late"), timeout_s=0.2)
-        release.set()
-        blocker.join()
         assert writer.call(lambda s: ran.append("next")) is None
     assert ran == ["next"]
 

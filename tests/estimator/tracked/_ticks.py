@@ -1,0 +1,44 @@
+"""Hand-built inputs of one tracked tick, for the tests of the tick's equations."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from estimator.tracked.vehicle import TickInputs
+
+
+def quiet_tick(n: int, tick_ns: int, **fields: Any) -> TickInputs:
+    """One tick of ``n`` vehicles with the IMU alone: nothing moves or turns, ten IMU
+    samples, no odometer, sprockets or GNSS (NaN or missing); ``fields`` replace any of it.
+
+    Every array has the vehicle axis first (shape ``(n,)``, pairs ``(n, 2)``).
+    """
+    zero = np.zeros(n)
+    nan = np.full(n, np.nan)
+    base: dict[str, Any] = {
+        "ticks_ns": np.full(n, tick_ns),
+        "accel_mps2": zero,
+        "gyro_radps": zero,
+        "imu_samples": np.full(n, 10),
+        "yaw_accel_radps2": zero,
+        "odometer_mps": nan,
+        "odometer_lag_s": zero,
+        "sprocket_pair_mps": np.full((n, 2), np.nan),
+        "sprocket_missing": np.ones(n, dtype=bool),
+        "sprocket_settling_pair": np.zeros((n, 2), dtype=bool),
+        "sprocket_starting_pair": np.zeros((n, 2), dtype=bool),
+        "gear_ratio": nan,
+        "sprocket_before_pair_mps": np.full((n, 2), np.nan),
+        "gear_ratio_before": nan,
+        "gearbox_accel_mps2": zero,
+        "steady_s": zero,
+        "odometer_edges": np.zeros(n, dtype=np.int64),
+        "odometer_gap_s": zero,
+        "gnss_pos_pair_m": np.full((n, 2), np.nan),
+        "gnss_vel_pair_mps": np.full((n, 2), np.nan),
+        "gnss_vel_std_mps": nan,
+        "gnss_age_s": zero,
+    }
+    return TickInputs(**{**base, **fields})
