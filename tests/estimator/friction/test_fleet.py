@@ -131,6 +131,17 @@ def test_refuses_other_kinds() -> None:
         FrictionFleet().add_vehicle("t", WheeledRearDriveConfig())
 
 
+def _slip_angles(chassis: Chassis, vx: float, vy: float, r: float, delta: np.ndarray) -> np.ndarray:
+    """Each wheel's slip angle ``(1, 4)`` of a body moving at ``(vx, vy)`` m/s turning at ``r``
+    rad/s, its wheels steered by ``delta``: the wheel's velocity in its own frame,
+    ``α = −atan2(v_lat, v_long)``."""
+    along = vx - chassis.wheel_y_m * r
+    across = vy + chassis.wheel_x_m * r
+    v_long = along * np.cos(delta) + across * np.sin(delta)
+    v_lat = -along * np.sin(delta) + across * np.cos(delta)
+    return np.asarray(-np.arctan2(v_lat, v_long))
+
+
 def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chassis, TyreArrays]:
     """Ticks whose measurements the filter's own model makes from random heavy slips: a rigid
     body at 15 m/s turning at a random yaw rate, its lateral speed following
@@ -149,11 +160,7 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
         kappa = rng.uniform(0.0, 0.03, (1, 4))
         vx, r = 15.0, 0.25 + rng.uniform(-0.05, 0.05)
         delta = np.array([[0.05, 0.05, 0.0, 0.0]])
-        along = vx - chassis.wheel_y_m * r
-        across = vy + chassis.wheel_x_m * r
-        v_long = along * np.cos(delta) + across * np.sin(delta)
-        v_lat = -along * np.sin(delta) + across * np.cos(delta)
-        alpha = -np.arctan2(v_lat, v_long)
+        alpha = _slip_angles(chassis, vx, vy, r, delta)
         cx, cy = tyres.stiffness(fz)
         fx, fy = brush_forces(kappa, alpha, fz, mu, cx, cy)
         z = body_accelerations(fx[:, None], fy[:, None], delta[:, None], chassis)[:, 0]
@@ -465,11 +472,7 @@ def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArray
     delta = np.array([[0.04, 0.04, 0.0, 0.0]])
     vx, vy, r = 12.0, 0.15, 0.2
     for _ in range(50):  # the yaw rate of a steady turn: r = a_y / v_x
-        along = vx - chassis.wheel_y_m * r
-        across = vy + chassis.wheel_x_m * r
-        v_long = along * np.cos(delta) + across * np.sin(delta)
-        v_lat = -along * np.sin(delta) + across * np.cos(delta)
-        alpha = -np.arctan2(v_lat, v_long)
+        alpha = _slip_angles(chassis, vx, vy, r, delta)
         cx, cy = tyres.stiffness(fz)
         fx, fy = brush_forces(kappa, alpha, fz, 0.5, cx, cy)
         z = body_accelerations(fx[:, None], fy[:, None], delta[:, None], chassis)[:, 0]
