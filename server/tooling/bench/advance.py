@@ -31,15 +31,16 @@ table says whether both versions gave the same bytes.
 
 ``--interleave`` (with ``--baseline``) runs both versions in this process instead: the
 revision's ``estimator/`` is loaded under a private name (:mod:`server.tooling.bench.renamed`),
-the same fleet is built for both (this tree's simulated runs, rebuilt as the revision's
-types), and at every step both ``advance`` calls run back to back, in the order before, after
-on even steps and after, before on odd ones. Each version's process CPU time (not the
-thread's: numpy may work on threads of its own) is summed over its calls after the warm-up
-and over ``--repeats`` passes, and every call's rows are compared byte for byte; an estimator
-the revision lacks is skipped with a line saying so. Whatever else loads the machine then
-falls on both versions within milliseconds of each other, call by call and in either order,
-rather than on whole child runs seconds apart, so the ratio is far quieter on a shared
-machine.
+the same fleet is built for both (this tree's simulated runs, rebuilt alike as each version's
+types), and at every step both ``advance`` calls run back to back, before then after or
+after then before (Thue-Morse: each order once in every pair of steps, and equally often at
+each step of any period of 2, 4, 8… steps, such as the 0.1 s tick's two calls). Each
+version's process CPU time (not the thread's: numpy may work on threads of its own) is
+summed over its calls after the warm-up and over ``--repeats`` passes, and every call's rows
+are compared byte for byte; an estimator the revision lacks is skipped with a line saying
+so. Whatever else loads the machine then falls on both versions within milliseconds of each
+other, call by call and in either order, rather than on whole child runs seconds apart, so
+the ratio is far quieter on a shared machine.
 """
 
 from __future__ import annotations
@@ -219,9 +220,10 @@ def _interleaved_size(
     fleets: dict[str, tuple[Any, int]], sources: dict[str, list[Any]], n: int, seconds: float
 ) -> tuple[dict[str, dict[str, Any]], bool]:
     """``n`` vehicles replaying the same runs through both ``fleets`` (``"before"``,
-    ``"after"``), their ``advance`` called in turn at every step, in the order before, after
-    on even steps and after, before on odd ones; per version the CPU of its calls after the
-    warm-up, and whether every call gave both the same rows."""
+    ``"after"``), their ``advance`` called in turn at every step, before first where the
+    step's number has an even count of one bits (Thue-Morse), after first elsewhere; per
+    version the CPU of its calls after the warm-up, and whether every call gave both the
+    same rows."""
     ids = [f"v{k:05d}" for k in range(n)]
     streams = {v: _add_fleet(f, tick, sources[v], ids) for v, (f, tick) in fleets.items()}
     pos = {v: [0] * n for v in fleets}
@@ -232,7 +234,7 @@ def _interleaved_size(
     for s in range(round(seconds * 1000 / INTERVAL_MS)):
         now = SOURCE_START_NS + (s + 1) * INTERVAL_MS * 1_000_000
         out = {}
-        for v in list(fleets) if s % 2 == 0 else list(reversed(fleets)):
+        for v in list(fleets) if s.bit_count() % 2 == 0 else list(reversed(fleets)):
             fleet = fleets[v][0]
             push_until(fleet, ids, streams[v], pos[v], now)
             horizon = dict.fromkeys(ids, now - LAG_MS * 1_000_000)
@@ -268,7 +270,8 @@ def _interleaved_of(
             raise
         return None
     sources = _SOURCES[estimator](seconds, source_runs)
-    versions = {"before": to_package(sources, package), "after": sources}
+    # both rebuilt alike: a run's arrays may be views into the simulator's, their copies not
+    versions = {v: to_package(sources, p) for v, p in (("before", package), ("after", "estimator"))}
     cases: dict[str, list[dict[str, Any]]] = {v: [] for v in versions}
     same = True
     for n in sizes:
