@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from server.tooling.bench.advance import measure, run
+from server.tooling.bench.advance import _interleaved_of, measure, run
 
 _REPO = Path(__file__).resolve().parents[4]
 
@@ -121,3 +121,17 @@ def test_interleave_without_a_baseline_is_one_line_on_stderr() -> None:
     ]
     with pytest.raises(ValueError, match="needs --baseline"):
         run(sizes=(2,), estimators=("mdsf",), interleave=True, repeats=1, seconds=3.0)
+
+
+def test_interleaved_skips_an_estimator_the_baseline_lacks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    old = tmp_path / "old_estimator"
+    old.mkdir()
+    (old / "__init__.py").write_text("")
+    (old / "friction.py").write_text("import a_module_nobody_has\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert _interleaved_of("tracked", "old_estimator", (2,), 3.0, 1, 1) is None
+    # a module the baseline's estimator itself fails to import is an error, not a skip
+    with pytest.raises(ModuleNotFoundError, match="a_module_nobody_has"):
+        _interleaved_of("friction", "old_estimator", (2,), 3.0, 1, 1)
