@@ -6,6 +6,7 @@ writes the same numbers as JSON.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import dataclasses
 import functools
@@ -28,6 +29,7 @@ __all__ = [
     "json_from_child",
     "percentile",
     "push_until",
+    "revision",
     "script_of",
     "side_by_side",
     "versions",
@@ -49,6 +51,19 @@ def int_list(text: str) -> list[int]:
     if not values:
         raise ValueError("expected at least one integer")
     return values
+
+
+def revision(text: str) -> str:
+    """A git revision of this repository (an argparse ``type`` for ``--baseline``): ``text``
+    when it names a commit, else ``ArgumentTypeError``, so the command says so in one line
+    instead of failing later inside ``git archive``."""
+    found = subprocess.run(
+        ["git", "-C", str(_REPO), "rev-parse", "--verify", "--quiet", f"{text}^{{commit}}"],
+        capture_output=True,
+    )
+    if not text or text.startswith("-") or found.returncode != 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a revision of this repository")
+    return text
 
 
 def extract_revision(

@@ -64,6 +64,7 @@ from server.tooling.bench import (
     int_list,
     json_from_child,
     push_until,
+    revision,
     write_json,
 )
 from server.tooling.bench.renamed import renamed_estimator, to_package
@@ -443,7 +444,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=",".join(ESTIMATORS),
         help="comma-separated, of " + "/".join(ESTIMATORS),
     )
-    p.add_argument("--baseline", default=None, help="git revision measured side by side")
+    p.add_argument(
+        "--baseline", type=revision, default=None, help="git revision measured side by side"
+    )
     p.add_argument(
         "--interleave",
         action="store_true",

@@ -267,14 +267,14 @@ def format_table(result: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from server.tooling.bench import int_list
+    from server.tooling.bench import int_list, revision
 
     p = argparse.ArgumentParser(
         prog="slipfleet bench pipeline", description=__doc__.split("\n\n")[0]
     )
     p.add_argument("--vehicles", type=int_list, default=[300, 1000])
     p.add_argument("--seconds", type=float, default=20.0, help="sensor seconds per run")
-    p.add_argument("--baseline", default=None, help="git revision to compare with")
+    p.add_argument("--baseline", type=revision, default=None, help="git revision to compare with")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--json", default=None)
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)

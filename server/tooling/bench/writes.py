@@ -161,13 +161,15 @@ def format_table(result: dict[str, Any]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m server.tooling.bench.writes [--vehicles N] [--rows-per-commit 250,500]
     [--seconds S] [--baseline REV] [--repeats R] [--json PATH]``."""
-    from server.tooling.bench import int_list
+    from server.tooling.bench import int_list, revision
 
     p = argparse.ArgumentParser(prog="python -m server.tooling.bench.writes", description=__doc__)
     p.add_argument("--vehicles", type=int, default=1000)
     p.add_argument("--rows-per-commit", type=int_list, default=[250, 500, 1000])
     p.add_argument("--seconds", type=float, default=30.0, help="sensor seconds measured")
-    p.add_argument("--baseline", default=None, help="git revision measured side by side")
+    p.add_argument(
+        "--baseline", type=revision, default=None, help="git revision measured side by side"
+    )
     p.add_argument("--repeats", type=int, default=2, help="alternating repeats per version")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--json", type=Path, default=None, help="write the result here")

@@ -123,6 +123,20 @@ def test_interleave_without_a_baseline_is_one_line_on_stderr() -> None:
         run(sizes=(2,), estimators=("mdsf",), interleave=True, repeats=1, seconds=3.0)
 
 
+@pytest.mark.parametrize("bench", ["advance", "pipeline", "writes"])
+def test_a_baseline_that_is_no_revision_is_one_line_on_stderr(bench: str) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", f"server.tooling.bench.{bench}", "--baseline", "no-such-rev"],
+        cwd=_REPO,
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2 and done.stdout == ""
+    last = done.stderr.splitlines()[-1]
+    assert last.endswith("argument --baseline: 'no-such-rev' is not a revision of this repository")
+    assert "Traceback" not in done.stderr
+
+
 def test_interleaved_skips_an_estimator_the_baseline_lacks(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
