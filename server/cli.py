@@ -12,7 +12,7 @@ Subcommands::
     slipfleet loadtest --vehicles N --duration S [--scenario mix] [--json PATH] [--connect ...]
     slipfleet bench    NAME [OPTIONS…]      NAME: accuracy storage series live viewer throughput
                                           wheels frontend advance publisher ingest pipeline
-                                          writes
+                                          writes friction friction_info tracked
     slipfleet token    create --name N --role {viewer,operator,admin} [--expires-in DURATION]
                        | list | revoke ID
     slipfleet zenoh-router-config [--out FILE]          standalone router config from settings
@@ -55,6 +55,7 @@ BENCHES = (
     "pipeline",
     "writes",
     "friction",
+    "friction_info",
     "tracked",
 )
 

@@ -213,7 +213,9 @@ def table(info: Info, mu_true: float) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="slipfleet bench friction_info", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--manoeuvre", default="accelerate_mu08")
     p.add_argument("--seeds", type=int_list, default=[1, 2, 101, 102])
     p.add_argument("--wheel-sensor", choices=("tooth", "instant"), default="tooth")
