@@ -28,8 +28,8 @@ integrated only; ``+ b_κ``: ``g ±1.7 %`` and the shared κ offset with the fro
 ``kappa_common_std`` (its median over the run); ``IMU σ``: ``a_x``, ``a_y`` weighed by the
 accelerometer's white noise and ``ṙ`` by the differenced gyro's; ``v_y sensor``: the GNSS
 lateral speed at the simulated receiver's own 1-σ and ``v_y``'s error walking only as the
-accelerometer's white noise integrates (no bias, no tilt): what a filter with a perfect model
-and the tyres known to the simulator's ±3 % could reach.
+accelerometer's white noise integrates (no bias, no tilt): what a filter with a perfect model,
+the tyres known to the simulator's ±3 % (or to the filter's prior) could reach.
 
 Not in the bound: the yaw rate and the steering angle as inputs of the slip angles (the gyro's
 0.003 rad/s is ~0.3 mrad of α at 60 km/h, the steering offset's ≤0.5° at the wheel ~0.5 mrad),
@@ -134,6 +134,7 @@ COLUMNS = (
     Column("+ b_κ", g_std=TRUTH_G_STD, b_std=math.nan),
     Column("known, IMU σ", vy="known", imu=True),
     Column("g ±1.7 %, IMU σ, v_y sensor", g_std=TRUTH_G_STD, imu=True, vy_sensor=True),
+    Column("g ±10 %, IMU σ, v_y sensor", g_std=0.1, imu=True, vy_sensor=True),
 )
 """The printed bounds (see the module docstring)."""
 
