@@ -32,9 +32,9 @@ accelerometer's white noise integrates (no bias, no tilt): what a filter with a 
 the tyres known to the simulator's ±3 % (or to the filter's prior) could reach.
 
 Not in the bound: the yaw rate and the steering angle as inputs of the slip angles (the gyro's
-0.003 rad/s is ~0.3 mrad of α at 60 km/h, the steering offset's ≤0.5° at the wheel ~0.5 mrad),
-the left-right spread of the tyres (in the yaw model's error), and the response of the motion
-to μ (the bound reads each tick's forces at the truth's slips, as the filter does).
+0.003 rad/s is ~0.3 mrad of α at 60 km/h, the steering wheel's ≤0.5° offset ~0.5 mrad at the
+road wheel), the left-right spread of the tyres (in the yaw model's error), and the response of
+the motion to μ (the bound reads each tick's forces at the truth's slips, as the filter does).
 
 Beside the bound: the truth's grip use (the most used rear and front tyre) and the product
 filter's μ, its relative 1-σ and its INFORMED flag at the same tick; under each table, the
