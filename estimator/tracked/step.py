@@ -438,11 +438,9 @@ def _fuse_gnss(
     H[:, 0, S.EAST] = H[:, 1, S.NORTH] = 1.0
     H[:, 0, S.HEADING] = -xa * s + ya * c
     H[:, 1, S.HEADING] = -xa * c - ya * s
-    theta, phi = f.x[:, S.PITCH], f.x[:, S.ROLL]
-    tilt = -p.antenna_xy_m[:, 1] * np.sin(theta) - p.antenna_up_m * np.cos(theta)
-    H[:, 0, S.PITCH], H[:, 1, S.PITCH] = tilt * s, tilt * c
-    bank = -p.antenna_xy_m[:, 0] * np.sin(phi) + p.antenna_up_m * np.cos(phi)
-    H[:, 0, S.ROLL], H[:, 1, S.ROLL] = bank * c, -bank * s
+    # the lever arm is tilted by the attitude as it stands: the position's residuals (mostly
+    # the side-slip's and the ground's, correlated over seconds) are not let into it
+    theta = f.x[:, S.PITCH]
     back = inp.gnss_age_s * f.x[:, S.SPEED] * np.cos(theta)  # where the hull was at the fix
     h = np.stack(
         [f.x[:, S.EAST] + xa * c + ya * s - back * s, f.x[:, S.NORTH] - xa * s + ya * c - back * c],
