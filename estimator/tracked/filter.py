@@ -1,15 +1,24 @@
 """The INS/odometer/GNSS extended Kalman filter of the tracked estimator, batched over vehicles.
 
-State :class:`~estimator.tracked.model.TrackedState` (``n = 13``), arrays ``x (k, n)``,
-``P (k, n, n)``. Heading ``ψ`` is from north, clockwise; the gyro's yaw rate ``ω`` is
-counter-clockwise, so ``ψ̇ = −ω`` with ``ω = (g_z − b_g)·(1 − s_g)``. Over a tick ``Δ``, with
-the mid-tick heading ``ψ_m = ψ − ω·Δ/2`` and the hull's lateral speed ``v_x`` (right +):
+State :class:`~estimator.tracked.model.TrackedState` (``n = 18``), arrays ``x (k, n)``,
+``P (k, n, n)``. Heading ``ψ`` is from north, clockwise; the gyro's yaw rate
+``ω = (g_z − b_g)·(1 − s_g)`` is counter-clockwise about the hull's own up axis, the pitch and
+roll gyros' rates less their biases are ``ω_x = g_x − b_θ``, ``ω_y = g_y − b_φ``. The hull's
+attitude is Z-X-Y Euler angles (heading, pitch ``θ`` nose up, roll ``φ`` right side down):
 
-    E' = E + Δ·(V·sin ψ_m + v_x·cos ψ_m)      N' = N + Δ·(V·cos ψ_m − v_x·sin ψ_m)
-    ψ' = ψ − ω·Δ                               V' = V + Δ·(a_y − ω·v_x)
+    θ̇ = ω_x·cos φ + ω·sin φ       φ̇ = ω_y − tan θ·(ω·cos φ − ω_x·sin φ)
+    ψ̇ = −Ω,  Ω = (ω·cos φ − ω_x·sin φ)/cos θ
 
-``a_y`` the forward specific force (flat ground). Updates are masked per vehicle; the Joseph
-form keeps ``P`` symmetric positive definite.
+(a turn on a side slope turns the yaw rate into pitch rate). Over a tick ``Δ``, with the
+mid-tick heading ``ψ_m = ψ − Ω·Δ/2``, the hull's along-ground speed ``V`` and lateral speed
+``v_x`` (right +):
+
+    E' = E + Δ·(V·cos θ·sin ψ_m + v_x·cos ψ_m)   N' = N + Δ·(V·cos θ·cos ψ_m − v_x·sin ψ_m)
+    ψ' = ψ − Ω·Δ      V' = V + Δ·(f_y − g·sin θ − ω·v_x)      θ' = θ + Δ·θ̇      φ' = φ + Δ·φ̇
+
+``f_y`` the forward specific force (the accelerometer reads gravity's ``g·sin θ`` on a
+grade). Updates are masked per vehicle; the Joseph form keeps ``P`` symmetric positive
+definite.
 """
 
 from __future__ import annotations
@@ -20,12 +29,48 @@ from estimator._arrays import BoolArray, FloatArray
 from estimator.tracked.model import N_STATES
 from estimator.tracked.model import TrackedState as S
 
-__all__ = ["kalman_update", "predict", "yaw_rate"]
+__all__ = ["GRAVITY_MPS2", "hull_accel", "kalman_update", "predict", "yaw_rate"]
+
+GRAVITY_MPS2 = 9.80665
 
 
 def yaw_rate(x: FloatArray, gyro_z_radps: FloatArray) -> FloatArray:
     """``ω = (g_z − b_g)·(1 − s_g)``, shape ``(k,)``."""
     return (gyro_z_radps - x[:, S.GYRO_BIAS]) * (1.0 - x[:, S.GYRO_SCALE])
+
+
+def hull_accel(x: FloatArray, accel_fwd_mps2: FloatArray) -> FloatArray:
+    """The hull's forward acceleration along the ground, ``f_y − g·sin θ`` ``(k,)``: the
+    accelerometer's forward specific force with gravity taken out by the pitch."""
+    return accel_fwd_mps2 - GRAVITY_MPS2 * np.sin(x[:, S.PITCH])
+
+
+def _attitude_rows(
+    F: FloatArray, x: FloatArray, w: FloatArray, gyro: FloatArray, wx: FloatArray, dt_s: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The attitude's rates ``(Ω, θ̇, φ̇)`` ``(k,)`` and their rows of ``F`` (in place)."""
+    theta, phi = x[:, S.PITCH], x[:, S.ROLL]
+    ct, tt = np.cos(theta), np.tan(theta)
+    cp, sp = np.cos(phi), np.sin(phi)
+    scale = 1.0 - x[:, S.GYRO_SCALE]
+    up = w * cp - wx * sp  # the rate about the vertical, times cos θ
+    side = w * sp + wx * cp
+    turn = up / ct
+    h, p, r = S.HEADING, S.PITCH, S.ROLL
+    F[:, h, S.GYRO_BIAS] = dt_s * scale * cp / ct
+    F[:, h, S.GYRO_SCALE] = dt_s * (gyro - x[:, S.GYRO_BIAS]) * cp / ct
+    F[:, h, p] = -dt_s * turn * tt
+    F[:, h, r] = dt_s * side / ct
+    F[:, h, S.PITCH_GYRO_BIAS] = -dt_s * sp / ct
+    F[:, p, S.PITCH_GYRO_BIAS] = -dt_s * cp
+    F[:, p, r] = dt_s * up
+    F[:, p, S.GYRO_BIAS] = -dt_s * scale * sp
+    F[:, r, S.ROLL_GYRO_BIAS] = -dt_s
+    F[:, r, p] = -dt_s * up / (ct * ct)
+    F[:, r, r] = 1.0 + dt_s * tt * side
+    F[:, r, S.PITCH_GYRO_BIAS] = -dt_s * tt * sp
+    F[:, r, S.GYRO_BIAS] = dt_s * tt * cp * scale
+    return turn, side, -tt * up
 
 
 def predict(
@@ -37,26 +82,39 @@ def predict(
     dt_s: float,
     q_diag: FloatArray,
     lateral_by_gain: FloatArray | None = None,
+    tilt_rates_radps: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """One tick of the model above; ``q_diag (k, n)`` is the process noise added to ``P``,
-    ``lateral_by_gain (k,)`` the derivative of ``v_x`` by the side-slip gain (0 if None)."""
+    ``lateral_by_gain (k,)`` the derivative of ``v_x`` by the side-slip gain (0 if None),
+    ``tilt_rates_radps`` the pitch and roll gyros' mean rates over the tick ``(k,)`` each
+    (0 if None)."""
     k = x.shape[0]
     w = yaw_rate(x, gyro_z_radps)
-    psi_m = x[:, S.HEADING] - 0.5 * w * dt_s
+    zero = np.zeros(k)
+    g_x, g_y = (zero, zero) if tilt_rates_radps is None else tilt_rates_radps
+    wx = g_x - x[:, S.PITCH_GYRO_BIAS]
+    F = np.broadcast_to(np.eye(N_STATES), (k, N_STATES, N_STATES)).copy()
+    turn, d_pitch, roll_part = _attitude_rows(F, x, w, gyro_z_radps, wx, dt_s)
+    theta = x[:, S.PITCH]
+    ct, st = np.cos(theta), np.sin(theta)
+    psi_m = x[:, S.HEADING] - 0.5 * turn * dt_s
     s, c = np.sin(psi_m), np.cos(psi_m)
     v, vx = x[:, S.SPEED], lateral_mps
+    vh = v * ct  # horizontal
     out = x.copy()
-    out[:, S.EAST] += dt_s * (v * s + vx * c)
-    out[:, S.NORTH] += dt_s * (v * c - vx * s)
-    out[:, S.HEADING] -= w * dt_s
-    out[:, S.SPEED] += dt_s * (accel_fwd_mps2 - w * vx)
-    F = np.broadcast_to(np.eye(N_STATES), (k, N_STATES, N_STATES)).copy()
-    F[:, S.EAST, S.HEADING] = dt_s * (v * c - vx * s)
-    F[:, S.NORTH, S.HEADING] = dt_s * (-v * s - vx * c)
-    F[:, S.EAST, S.SPEED] = dt_s * s
-    F[:, S.NORTH, S.SPEED] = dt_s * c
-    F[:, S.HEADING, S.GYRO_BIAS] = dt_s * (1.0 - x[:, S.GYRO_SCALE])
-    F[:, S.HEADING, S.GYRO_SCALE] = dt_s * (gyro_z_radps - x[:, S.GYRO_BIAS])
+    out[:, S.EAST] += dt_s * (vh * s + vx * c)
+    out[:, S.NORTH] += dt_s * (vh * c - vx * s)
+    out[:, S.HEADING] -= turn * dt_s
+    out[:, S.SPEED] += dt_s * (hull_accel(x, accel_fwd_mps2) - w * vx)
+    out[:, S.PITCH] += dt_s * d_pitch
+    out[:, S.ROLL] += dt_s * (g_y - x[:, S.ROLL_GYRO_BIAS] + roll_part)
+    F[:, S.EAST, S.HEADING] = dt_s * (vh * c - vx * s)
+    F[:, S.NORTH, S.HEADING] = dt_s * (-vh * s - vx * c)
+    F[:, S.EAST, S.SPEED] = dt_s * ct * s
+    F[:, S.NORTH, S.SPEED] = dt_s * ct * c
+    F[:, S.EAST, S.PITCH] = -dt_s * v * st * s
+    F[:, S.NORTH, S.PITCH] = -dt_s * v * st * c
+    F[:, S.SPEED, S.PITCH] = -dt_s * GRAVITY_MPS2 * ct
     if lateral_by_gain is not None:
         F[:, S.EAST, S.SIDE_SLIP] = dt_s * c * lateral_by_gain
         F[:, S.NORTH, S.SIDE_SLIP] = -dt_s * s * lateral_by_gain

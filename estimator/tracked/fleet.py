@@ -86,6 +86,7 @@ def _stack_filters(filters: list[Filter]) -> Filter:
         np.concatenate([f.odometer_gain for f in filters]),
         np.concatenate([f.fix_learnt_cov for f in filters]),
         np.concatenate([f.gyro_standing for f in filters]),
+        np.concatenate([f.accel_steady_s for f in filters]),
     )
 
 
@@ -372,6 +373,7 @@ class TrackedFleet(_Base):
                 f.odometer_gain[i : i + 1],
                 f.fix_learnt_cov[i : i + 1],
                 f.gyro_standing[i : i + 1],
+                f.accel_steady_s[i : i + 1],
             )
         _count(slots, got)
         return rows, got.onset

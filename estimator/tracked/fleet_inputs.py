@@ -131,8 +131,8 @@ class _Fleet:
         known = np.array([[x is not None for x in pair] for pair in lasts], dtype=bool)
         return sprocket_missing(self.ticks, odo, last_ns[self.seg], known[self.seg], self.cfg)
 
-    def imu_means(self) -> tuple[FloatArray, FloatArray, IntArray]:
-        """Mean forward specific force and yaw rate over each tick ``(t − tick, t]`` (the
+    def imu_means(self) -> tuple[list[FloatArray], IntArray]:
+        """Mean of each IMU column over each tick ``(t − tick, t]`` (the
         per-vehicle sums, element by element in the same order) and the samples each mean
         is of; the IMU consumed."""
         imu = Segments([v.imu_ns for v in self.vehicles])
@@ -144,13 +144,13 @@ class _Fleet:
         first = np.cumsum(count) - count
         elem = np.arange(tick_of.size) - first[tick_of] + (imu.starts[self.seg] + lo)[tick_of]
         out = []
-        for col in (0, 1):
+        for col in range(values.shape[1]):
             sums = np.bincount(tick_of, values[elem, col], minlength=m)
             with np.errstate(invalid="ignore", divide="ignore"):
                 out.append(np.where(count > 0, sums / count, np.nan))
         for v, cut in zip(self.vehicles, hi[self.starts[1:] - 1].tolist(), strict=True):
             v.imu_ns, v.imu = v.imu_ns[cut:], v.imu[cut:]
-        return out[0], out[1], count
+        return out, count
 
     def yaw_accel(self, gyro: FloatArray) -> FloatArray:
         before = np.empty_like(gyro)
@@ -190,7 +190,8 @@ class _Fleet:
         return pos, vel, vstd, age
 
     def reads(self) -> Reads:
-        accel, gyro, samples = self.imu_means()
+        means, samples = self.imu_means()
+        accel, gyro, pitch_rate, roll_rate, lateral = means
         tick_sets = (self.ticks, self.ticks - self.tick_ns)
         odo, prev = self.odometer_speeds(tick_sets)
         sprockets, starting = self.sprocket_speeds(tick_sets)
@@ -199,6 +200,9 @@ class _Fleet:
             ticks_ns=self.ticks,
             accel=accel,
             gyro=gyro,
+            pitch_rate=pitch_rate,
+            roll_rate=roll_rate,
+            lateral_accel=lateral,
             imu_samples=samples,
             yaw_accel=self.yaw_accel(gyro),
             odo=odo,

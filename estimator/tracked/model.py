@@ -56,6 +56,13 @@ class TrackedState(IntEnum):
     ground's side-slip over what the configured lateral resistance ``μ_t`` gives (the turning
     pole ``g_s·L·|a_y|/(2·μ_t·g)`` ahead of the centre): learnt beside GNSS in turns, so that
     a ground sliding more or less than configured is not read as a gyro scale error.
+    ``PITCH`` ``θ`` (rad, nose up +) is the hull's pitch on the ground it climbs, carried on
+    the pitch gyro less its bias ``PITCH_GYRO_BIAS``: the tracks' speed is along the ground
+    (the hull moves ``V·cos θ`` horizontally) and the forward accelerometer reads
+    ``a + g·sin θ``, so the odometer's speed against the accelerometer's observes it.
+    ``ROLL`` ``φ`` (rad, right side down +) on the roll gyro less ``ROLL_GYRO_BIAS``: the
+    lateral accelerometer reads ``−ω·V − g·cos θ·sin φ``, and a turn on a side slope turns
+    the yaw rate into pitch rate (``θ̇ = ω_x·cos φ + ω_z·sin φ``).
     """
 
     EAST = 0
@@ -72,6 +79,10 @@ class TrackedState(IntEnum):
     ACCEL_SLIP = 11
     GROUND_PATCH = 12
     SIDE_SLIP = 13
+    PITCH = 14
+    PITCH_GYRO_BIAS = 15
+    ROLL = 16
+    ROLL_GYRO_BIAS = 17
 
 
 N_STATES = len(TrackedState)

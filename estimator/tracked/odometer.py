@@ -142,12 +142,18 @@ def odometer_measurement(
     yaw_rate_radps: FloatArray,
     valid: BoolArray,
     tightness: FloatArray | None = None,
+    pull_mps2: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray, FloatArray]:
     """``(innovation (k, 1), H (k, 1, n), R (k, 1, 1), mask (k,), corrected V (k,))``.
 
     ``corrected V`` is the forward speed the odometer gives in this state (NaN where none);
     ``tightness`` ``(k,)`` is a turn's ``θ`` (:func:`turn_tightness`, 0 if None).
+    ``accel_mps2`` is the hull's own acceleration (gravity out): the hull's lag, the window's
+    carry and the odometer's std read it; ``pull_mps2`` the drawbar demand per unit mass,
+    ``a + g·sin θ`` (the accelerometer's forward specific force; ``accel_mps2`` if None):
+    the traction slip reads it (a grade loads the tracks as an acceleration does).
     """
+    pull = accel_mps2 if pull_mps2 is None else pull_mps2
     k = x.shape[0]
     H = np.zeros((k, 1, N_STATES))
     v = x[:, S.SPEED]
@@ -164,12 +170,12 @@ def odometer_measurement(
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
         lag = x[:, S.ACCEL_LAG] * accel_mps2
-        traction = 1.0 - x[:, S.ACCEL_SLIP] * accel_mps2
+        traction = 1.0 - x[:, S.ACCEL_SLIP] * pull
         ground = v - accel_mps2 * lag_s + lag + turn
         h = gear * ground / (factor * traction)
         H[:, 0, S.SPEED] = gear / (factor * traction)
         H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
-        H[:, 0, S.ACCEL_SLIP] = h * accel_mps2 / traction
+        H[:, 0, S.ACCEL_SLIP] = h * pull / traction
         H[rows, 0, f_idx] = -h / factor * scale
         H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)
         H[:, 0, S.GROUND_PATCH] = -h / factor

@@ -17,6 +17,7 @@ __all__ = ["VehicleParams"]
 @dataclass(frozen=True, slots=True)
 class VehicleParams:
     """Each field shape ``(k,)`` (``antenna_xy_m``: ``(k, 2)``, x right, y forward;
+    ``antenna_up_m`` its height over the hull centre's ground point;
     ``gyro_noise_measured`` 1 where the config measures the gyro's noise standing, else 0)."""
 
     gauge_m: FloatArray
@@ -39,6 +40,7 @@ class VehicleParams:
     gyro_arw_rad_rt_s: FloatArray
     gyro_bias_walk_radps_rt_s: FloatArray
     gyro_noise_measured: FloatArray
+    antenna_up_m: FloatArray
     antenna_xy_m: FloatArray
 
     @classmethod
@@ -66,6 +68,7 @@ class VehicleParams:
             "gyro_arw_rad_rt_s": gyro.arw_rad_rt_s,
             "gyro_bias_walk_radps_rt_s": gyro.bias_walk_radps_rt_s,
             "gyro_noise_measured": 1.0 if c.calibration.gyro_noise else 0.0,
+            "antenna_up_m": g.antenna_lever_arm_m[2],
         }
         arrays = {k: np.array([v], dtype=np.float64) for k, v in values.items()}
         return cls(**arrays, antenna_xy_m=np.array([g.antenna_lever_arm_m[:2]], dtype=np.float64))

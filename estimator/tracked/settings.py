@@ -79,11 +79,16 @@ class TrackedEstimatorConfig:
     over the distance driven and by the patches driven over, which nothing observes
     without GNSS.
 
-    The forward speed is predicted with the accelerometer; what it does not explain (its
-    bias, the gravity a pitch on uneven ground leaks into it, the hull's lever-arm terms)
-    walks by ``speed_walk_mps2`` (m/s per √s), and its white noise (the config's
-    ``noise.accel_std_mps2``) is added over each tick
+    The forward speed is predicted with the accelerometer less gravity's ``g·sin θ`` (the
+    filter's pitch ``θ``, carried on the pitch gyro from ``initial_tilt_std_rad``, its
+    bias and noise the gyro's figures); what it does not explain (its bias, the hull's
+    lever-arm terms) walks by ``speed_walk_mps2`` (m/s per √s), and its white noise (the
+    config's ``noise.accel_std_mps2``) is added over each tick
     (:func:`~estimator.tracked.step.accel_speed_var`); the odometer holds the speed every tick.
+    The roll ``φ`` (on the roll gyro, from ``initial_tilt_std_rad``) is measured every tick by
+    the lateral accelerometer, ``−ω·V − g·cos θ·sin φ``, within its white noise and
+    ``lateral_force_std_mps2`` of what that model leaves out (the side-slip's changes, the
+    lever arms).
 
     The hull's side-slip in turns is the configured ``μ_t``'s times a gain learnt beside
     GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
@@ -153,6 +158,8 @@ class TrackedEstimatorConfig:
     initial_heading_std_rad: float = 0.1
     initial_speed_std_mps: float = 0.2
     initial_gyro_bias_std_radps: float = 1e-3
+    initial_tilt_std_rad: float = 0.2
+    lateral_force_std_mps2: float = 0.3
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03
     initial_pivot_factor_std: float = 0.15

@@ -9,12 +9,13 @@ Arrays are batched over the leading axis ``k``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray, IntArray
-from estimator.tracked.filter import kalman_update, predict, yaw_rate
+from estimator.tracked.filter import GRAVITY_MPS2, hull_accel, kalman_update, predict, yaw_rate
 from estimator.tracked.gyro_noise import initial_stats, learn_standing, noise_ratio
 from estimator.tracked.model import N_STATES, MotionState, TrackedMode
 from estimator.tracked.model import TrackedState as S
@@ -40,6 +41,7 @@ __all__ = [
     "Filter",
     "TickOut",
     "accel_speed_var",
+    "accel_steady",
     "fresh_patch_var",
     "hull_settled",
     "initial_filter",
@@ -65,7 +67,8 @@ class Filter:
     (``_BESIDE_ONLY``, ``m`` = 7) have moved the hull per unit of their error at the fix,
     whose covariance then was ``fix_learnt_cov (k, m, m)``
     (:func:`_dead_reckoning_noise`); ``gyro_standing (k, 3)`` the gyro's noise measured
-    while standing (:mod:`~estimator.tracked.gyro_noise`)."""
+    while standing (:mod:`~estimator.tracked.gyro_noise`); ``accel_steady_s (k,)`` how long
+    the hull's own acceleration (gravity out) has stayed below ``learn_accel_max_mps2``."""
 
     x: FloatArray
     P: FloatArray
@@ -76,6 +79,7 @@ class Filter:
     odometer_gain: FloatArray
     fix_learnt_cov: FloatArray
     gyro_standing: FloatArray
+    accel_steady_s: FloatArray
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +121,8 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.ACCEL_SLIP] = learn * cfg.initial_accel_slip_std_s2pm**2
     diag[S.GROUND_PATCH] = learn * cfg.ground_patch_slip_std**2
     diag[S.SIDE_SLIP] = learn * cfg.initial_side_slip_std**2
+    diag[[S.PITCH, S.ROLL]] = cfg.initial_tilt_std_rad**2
+    diag[[S.PITCH_GYRO_BIAS, S.ROLL_GYRO_BIAS]] = cfg.initial_gyro_bias_std_radps**2
     return np.diag(diag)
 
 
@@ -144,6 +150,7 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
         np.zeros((1, m)),
         np.zeros((1, m, m)),
         initial_stats(1),
+        np.zeros(1),
     )
 
 
@@ -167,7 +174,8 @@ def _q_diag(
     vehicle's gyro (``r·ARW²·Δt``, ``r·walk²·Δt``, :mod:`estimator.gyro`; ``gyro_ratio``
     ``r (k,)`` the unit's noise over its data sheet's, :mod:`~estimator.tracked.gyro_noise`);
     the speed's the walk the accelerometer does not explain (``speed_walk_mps2``) and its
-    own white noise over the tick (:func:`accel_speed_var`, ``imu_samples (k,)``)."""
+    own white noise over the tick (:func:`accel_speed_var`, ``imu_samples (k,)``); the
+    pitch's, the roll's and their gyro biases' as the yaw's (one gyro part on all axes)."""
     dt = cfg.tick_s
     k = p.gauge_m.shape[0]
     learn = 1.0 if cfg.learns else 0.0
@@ -182,6 +190,10 @@ def _q_diag(
     q[:, S.ACCEL_LAG] = learn * cfg.accel_lag_walk_s**2 * dt
     q[:, S.ACCEL_SLIP] = learn * cfg.accel_slip_walk_s2pm**2 * dt
     q[:, S.SIDE_SLIP] = learn * cfg.side_slip_walk**2 * dt
+    q[:, [S.PITCH, S.ROLL]] = (gyro_ratio * p.gyro_arw_rad_rt_s**2 * dt)[:, None]
+    q[:, [S.PITCH_GYRO_BIAS, S.ROLL_GYRO_BIAS]] = (
+        gyro_ratio * p.gyro_bias_walk_radps_rt_s**2 * dt
+    )[:, None]
     return q
 
 
@@ -275,7 +287,8 @@ def _since_fix(f: Filter, fixed: BoolArray, cfg: TrackedEstimatorConfig) -> None
 def recognise(
     f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, w: FloatArray
 ) -> tuple[IntArray, FloatArray]:
-    """Motion state and confidence (:mod:`estimator.tracked.recognise`) by mode."""
+    """Motion state and confidence (:mod:`estimator.tracked.recognise`) by mode; ``inp``'s
+    ``accel_mps2`` is the hull's own acceleration here (:func:`tick_step`)."""
     v = f.x[:, S.SPEED]
     step = w * cfg.tick_s
     if cfg.mode != TrackedMode.PRODUCT:
@@ -361,6 +374,42 @@ def _start(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorCo
     return fresh
 
 
+def _fuse_lateral_force(
+    f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, gyro: FloatArray
+) -> None:
+    """The roll from the lateral accelerometer's tick mean ``f_x = −ω·V − g·cos θ·sin φ``
+    (the turn's centripetal force and gravity's share on a side slope), its variance the
+    mean's white noise ``σ_a²/N`` and ``lateral_force_std_mps2²``; ``f`` in place."""
+    k = f.x.shape[0]
+    w = yaw_rate(f.x, gyro)
+    theta, phi, v = f.x[:, S.PITCH], f.x[:, S.ROLL], f.x[:, S.SPEED]
+    g = GRAVITY_MPS2
+    h = -w * v - g * np.cos(theta) * np.sin(phi)
+    H = np.zeros((k, 1, N_STATES))
+    H[:, 0, S.SPEED] = -w
+    H[:, 0, S.ROLL] = -g * np.cos(theta) * np.cos(phi)
+    H[:, 0, S.PITCH] = g * np.sin(theta) * np.sin(phi)
+    n = np.maximum(np.asarray(inp.imu_samples, dtype=np.float64), 1.0)
+    var = p.accel_std_mps2**2 / n + cfg.lateral_force_std_mps2**2
+    have = np.isfinite(inp.lateral_accel_mps2)
+    y = np.where(have, np.nan_to_num(inp.lateral_accel_mps2) - h, 0.0)[:, None]
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, y, H, var[:, None, None], have)
+
+
+def _antenna_right_m(x: FloatArray, p: VehicleParams) -> FloatArray:
+    """How far right of the hull centre the antenna is, horizontally ``(k,)``: its lever arm
+    ``(x, z)`` (right, up) rolled by ``φ`` (right side down), ``x·cos φ + z·sin φ``."""
+    phi = x[:, S.ROLL]
+    return np.asarray(p.antenna_xy_m[:, 0] * np.cos(phi) + p.antenna_up_m * np.sin(phi))
+
+
+def _antenna_ahead_m(x: FloatArray, p: VehicleParams) -> FloatArray:
+    """How far ahead of the hull centre the antenna is, horizontally ``(k,)``: its lever
+    arm ``(y, z)`` (forward, up) pitched by ``θ``, ``y·cos θ − z·sin θ``."""
+    theta = x[:, S.PITCH]
+    return np.asarray(p.antenna_xy_m[:, 1] * np.cos(theta) - p.antenna_up_m * np.sin(theta))
+
+
 def _fuse_gnss(
     f: Filter,
     inp: TickInputs,
@@ -376,7 +425,7 @@ def _fuse_gnss(
     k = f.x.shape[0]
     psi = f.x[:, S.HEADING]
     s, c = np.sin(psi), np.cos(psi)
-    xa, ya = p.antenna_xy_m[:, 0], p.antenna_xy_m[:, 1]
+    xa, ya = _antenna_right_m(f.x, p), _antenna_ahead_m(f.x, p)
     have = f.started & ~skip & np.isfinite(inp.gnss_pos_pair_m).all(axis=1)
     regain = have & (f.gated_s >= cfg.gnss_regain_s)
     if regain.any():  # refused too long: the filter, not the fixes, is wrong; open up
@@ -389,7 +438,10 @@ def _fuse_gnss(
     H[:, 0, S.EAST] = H[:, 1, S.NORTH] = 1.0
     H[:, 0, S.HEADING] = -xa * s + ya * c
     H[:, 1, S.HEADING] = -xa * c - ya * s
-    back = inp.gnss_age_s * f.x[:, S.SPEED]  # where the hull was when the fix was taken
+    # the lever arm is tilted by the attitude as it stands: the position's residuals (mostly
+    # the side-slip's and the ground's, correlated over seconds) are not let into it
+    theta = f.x[:, S.PITCH]
+    back = inp.gnss_age_s * f.x[:, S.SPEED] * np.cos(theta)  # where the hull was at the fix
     h = np.stack(
         [f.x[:, S.EAST] + xa * c + ya * s - back * s, f.x[:, S.NORTH] - xa * s + ya * c - back * c],
         axis=1,
@@ -398,13 +450,17 @@ def _fuse_gnss(
     f.x, f.P, nis, used = kalman_update(f.x, f.P, inp.gnss_pos_pair_m - h, H, R, have, gate)
     f.gated_s = np.where(have & ~used, f.gated_s + cfg.tick_s, np.where(used, 0.0, f.gated_s))
     v_have = used & np.isfinite(inp.gnss_vel_pair_mps).all(axis=1)
-    psi = f.x[:, S.HEADING]
+    psi, theta = f.x[:, S.HEADING], f.x[:, S.PITCH]
     s, c = np.sin(psi), np.cos(psi)
-    vf, vr = f.x[:, S.SPEED] + w * xa, lateral - w * ya
+    ct, st = np.cos(theta), np.sin(theta)
+    xa = _antenna_right_m(f.x, p)
+    vf, vr = f.x[:, S.SPEED] * ct + w * xa, lateral - w * _antenna_ahead_m(f.x, p)
     hv = np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
     Hv = np.zeros((k, 2, N_STATES))
-    Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = s, c
+    Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = ct * s, ct * c
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
+    tilt = -f.x[:, S.SPEED] * st
+    Hv[:, 0, S.PITCH], Hv[:, 1, S.PITCH] = tilt * s, tilt * c
     if by_gain is not None:
         Hv[:, 0, S.SIDE_SLIP], Hv[:, 1, S.SIDE_SLIP] = c * by_gain, -s * by_gain
     std = np.where(np.isfinite(inp.gnss_vel_std_mps), inp.gnss_vel_std_mps, p.gnss_vel_std_mps)
@@ -421,9 +477,12 @@ def _fuse_odometer(
     cfg: TrackedEstimatorConfig,
     state: IntArray,
     w: FloatArray,
+    pull_mps2: FloatArray | None = None,
 ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
     """The corrected odometer (:func:`~estimator.tracked.odometer.odometer_measurement`);
-    returns (used, corrected speed, :func:`_factor_speed_var`, :func:`_odometer_gain`)."""
+    returns (used, corrected speed, :func:`_factor_speed_var`, :func:`_odometer_gain`).
+    ``inp.accel_mps2`` is the hull's own acceleration, ``pull_mps2 (k,)`` the accelerometer's
+    forward specific force (the drawbar demand; ``inp.accel_mps2`` if None)."""
     valid = np.isfinite(inp.odometer_mps)
     y, H, R, mask, corrected = odometer_measurement(
         cfg,
@@ -436,6 +495,7 @@ def _fuse_odometer(
         w,
         valid,
         turn_tightness(inp.sprocket_pair_mps),
+        pull_mps2,
     )
     # the factors learn only beside GNSS, at a speed steady long enough for the hull's lag
     # behind its tracks and the slip of acceleration to have died out
@@ -495,21 +555,26 @@ def _fuse_standstill(
     still: BoolArray,
     rate_var: FloatArray,
 ) -> None:
-    """Zero speed while standing, and zero yaw rate (the gyro's mean is its bias) once the
-    hull has settled (:func:`hull_settled`; product); ``rate_var (k,)`` the tick mean's noise
-    about the bias (:func:`standing_rate_var`)."""
+    """Zero speed while standing, and zero yaw, pitch and roll rate (each gyro's mean is its bias)
+    once the hull has settled (:func:`hull_settled`; product); ``rate_var (k,)`` the tick
+    mean's noise about the bias (:func:`standing_rate_var`)."""
     k = f.x.shape[0]
     H = np.zeros((k, 1, N_STATES))
     H[:, 0, S.SPEED] = 1.0
     R = np.full((k, 1, 1), cfg.zero_speed_std_mps**2)
     f.x, f.P, _, _ = kalman_update(f.x, f.P, -f.x[:, S.SPEED, None], H, R, still)
-    Hg = np.zeros((k, 1, N_STATES))
-    Hg[:, 0, S.GYRO_BIAS] = 1.0
     Rg = np.broadcast_to(rate_var, (k,))[:, None, None].copy()
-    gyro = np.nan_to_num(inp.gyro_radps)
-    y = (gyro - f.x[:, S.GYRO_BIAS])[:, None]
-    settled = still & hull_settled(f, inp, cfg) & np.isfinite(inp.gyro_radps)
-    f.x, f.P, _, _ = kalman_update(f.x, f.P, y, Hg, Rg, settled)
+    gyros = (
+        (inp.gyro_radps, S.GYRO_BIAS),
+        (inp.pitch_rate_radps, S.PITCH_GYRO_BIAS),
+        (inp.roll_rate_radps, S.ROLL_GYRO_BIAS),
+    )
+    for rate, bias in gyros:
+        Hg = np.zeros((k, 1, N_STATES))
+        Hg[:, 0, bias] = 1.0
+        y = (np.nan_to_num(rate) - f.x[:, bias])[:, None]
+        settled = still & hull_settled(f, inp, cfg) & np.isfinite(rate)
+        f.x, f.P, _, _ = kalman_update(f.x, f.P, y, Hg, Rg, settled)
 
 
 def _track_slip(
@@ -562,21 +627,40 @@ def _lateral(
     return side_slip(v, w, p.length_m, p.lateral_resistance, f.x[:, S.SIDE_SLIP])
 
 
+def accel_steady(f: Filter, inp: TickInputs, cfg: TrackedEstimatorConfig) -> TickInputs:
+    """The tick's inputs with gravity out of the accelerometer: ``accel_mps2`` the hull's own
+    acceleration ``f_y − g·sin θ`` (the pitch at the tick's start), and ``steady_s`` also
+    ending where that acceleration reaches ``learn_accel_max_mps2`` (or is unknown): the
+    inputs' own run counts the gearbox and the sprockets; ``f.accel_steady_s`` counts the
+    hull's (in place)."""
+    own = hull_accel(f.x, inp.accel_mps2)
+    calm = np.abs(own) <= cfg.learn_accel_max_mps2
+    f.accel_steady_s = np.where(calm, f.accel_steady_s + cfg.tick_s, 0.0)
+    steady = np.minimum(inp.steady_s, f.accel_steady_s)
+    return dataclasses.replace(inp, accel_mps2=own, steady_s=steady)
+
+
 def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> TickOut:
-    """One tick for every vehicle of ``f`` (updated in place); see the module docstring."""
+    """One tick for every vehicle of ``f`` (updated in place); see the module docstring.
+    The accelerometer enters the prediction as it reads (the filter takes gravity out with
+    its pitch) and the drawbar's traction slip as it reads; every other use takes the hull's
+    own acceleration (:func:`accel_steady`)."""
     gyro = np.nan_to_num(inp.gyro_radps)
-    accel = np.nan_to_num(inp.accel_mps2)
+    pull = np.nan_to_num(inp.accel_mps2)
+    inp = accel_steady(f, inp, cfg)
     w = yaw_rate(f.x, gyro)
     state, conf = recognise(f, inp, p, cfg, w)
     lateral, by_gain = _lateral(f, state, w, p, cfg)
     ratio = noise_ratio(f.gyro_standing, p, cfg) if cfg.learns else np.ones_like(w)
     q = _q_diag(cfg, p, lateral, ratio, inp.imu_samples)
-    f.x, f.P = predict(f.x, f.P, gyro, accel, lateral, cfg.tick_s, q, by_gain)
+    tilt = (np.nan_to_num(inp.pitch_rate_radps), np.nan_to_num(inp.roll_rate_radps))
+    f.x, f.P = predict(f.x, f.P, gyro, pull, lateral, cfg.tick_s, q, by_gain, tilt)
+    _fuse_lateral_force(f, inp, p, cfg, gyro)
     _ground_patch(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain), w, fresh)
-    odo_used, corrected, factor_var, gain = _fuse_odometer(f, inp, p, cfg, state, w)
+    odo_used, corrected, factor_var, gain = _fuse_odometer(f, inp, p, cfg, state, w, pull)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:

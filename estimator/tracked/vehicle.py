@@ -35,14 +35,19 @@ __all__ = [
     "tick_inputs",
 ]
 
-_FORWARD, _YAW = 1, 2
+_PITCH, _FORWARD, _YAW = 0, 1, 2
+_RIGHT, _ROLL = 0, 1  # accelerometer's lateral axis, gyro's roll axis
+_IMU_COLUMNS = 5  # forward force, yaw rate, pitch rate, roll rate, lateral force
 
 
 @dataclass(frozen=True, slots=True)
 class TickInputs:
     """Inputs of ``m`` ticks: shapes ``(m,)``; ``*_pair`` ``(m, 2)`` (left/right or E/N).
 
-    ``accel_mps2`` and ``gyro_radps`` are the means of the tick's ``imu_samples`` IMU samples.
+    ``accel_mps2`` (forward specific force), ``gyro_radps`` (yaw rate),
+    ``pitch_rate_radps`` and ``roll_rate_radps`` (the gyro about the right and the forward
+    axis) and ``lateral_accel_mps2`` (the specific force to the right) are the means of the
+    tick's ``imu_samples`` IMU samples.
 
     ``sprocket_pair_mps`` are the sprocket speeds carried from their windows' centres to the
     tick with the gearbox's acceleration (each sprocket turns at a fixed ratio of the gearbox
@@ -67,6 +72,9 @@ class TickInputs:
     ticks_ns: IntArray
     accel_mps2: FloatArray
     gyro_radps: FloatArray
+    pitch_rate_radps: FloatArray
+    roll_rate_radps: FloatArray
+    lateral_accel_mps2: FloatArray
     imu_samples: IntArray
     yaw_accel_radps2: FloatArray
     odometer_mps: FloatArray
@@ -98,7 +106,7 @@ class VehicleInputs:
         self.tick_ns = cfg.tick_ns
         self.next_ns: int | None = None
         self.imu_ns: IntArray = np.zeros(0, dtype=np.int64)
-        self.imu: FloatArray = np.zeros((0, 2))
+        self.imu: FloatArray = np.zeros((0, _IMU_COLUMNS))
         self.odometer = EdgeBuffer()
         self.sprockets = (EdgeBuffer(), EdgeBuffer())
         self.gnss: list[tuple[int, float, float, float, float, float]] = []
@@ -110,14 +118,24 @@ class VehicleInputs:
     # --- pushing -----------------------------------------------------------------------------
     def push_imu(self, m: ImuBatch) -> None:
         t = np.asarray(m.stamp_ns, dtype=np.int64)
-        a = np.asarray(m.accel_mps2, dtype=np.float64).reshape(-1, 3)[:, _FORWARD]
-        g = np.asarray(m.gyro_radps, dtype=np.float64).reshape(-1, 3)[:, _YAW]
-        keep = np.isfinite(a) & np.isfinite(g)
+        force = np.asarray(m.accel_mps2, dtype=np.float64).reshape(-1, 3)
+        rates = np.asarray(m.gyro_radps, dtype=np.float64).reshape(-1, 3)
+        cols = np.stack(
+            [
+                force[:, _FORWARD],
+                rates[:, _YAW],
+                rates[:, _PITCH],
+                rates[:, _ROLL],
+                force[:, _RIGHT],
+            ],
+            axis=1,
+        )
+        keep = np.isfinite(cols).all(axis=1)
         if self.imu_ns.size:
             keep &= t > self.imu_ns[-1]
         self.counts["imu_skipped"] += int(t.size - keep.sum())
         self.imu_ns = np.concatenate([self.imu_ns, t[keep]])
-        self.imu = np.concatenate([self.imu, np.stack([a[keep], g[keep]], axis=1)])
+        self.imu = np.concatenate([self.imu, cols[keep]])
         if self.next_ns is None and self.imu_ns.size:
             self.next_ns = int(self.imu_ns[0]) + self.tick_ns
 
@@ -147,7 +165,9 @@ class VehicleInputs:
         return due_ticks(self.next_ns, self.imu_ns, self.tick_ns, until_ns)
 
     def take(self, ticks: IntArray) -> TickInputs:
-        """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs."""
+        """Inputs of ``ticks`` (from :meth:`due`); the buffers drop what no later tick needs.
+        ``steady_s`` counts the gearbox and the sprockets only: the hull's own acceleration
+        needs the pitch (gravity out of the accelerometer), so the filter counts it."""
         reads = self._reads(ticks)
         odo_accel, settling, unsteady = derive(reads, self.cfg)
         steady_s = steady_run(self.steady_s, unsteady, self.tick_ns)
@@ -161,7 +181,8 @@ class VehicleInputs:
 
     def _reads(self, ticks: IntArray) -> Reads:
         """What the buffers give for ``ticks`` (IMU and fixes consumed)."""
-        accel, gyro, samples = self._imu_means(ticks)
+        means, samples = self._imu_means(ticks)
+        accel, gyro, pitch_rate, roll_rate, lateral = means
         odo, odo_c = self._odometer_speed(ticks)
         prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
         spr, spr_c = self._sprocket_speeds(ticks)
@@ -170,6 +191,9 @@ class VehicleInputs:
             ticks_ns=ticks,
             accel=accel,
             gyro=gyro,
+            pitch_rate=pitch_rate,
+            roll_rate=roll_rate,
+            lateral_accel=lateral,
             imu_samples=samples,
             yaw_accel=self._yaw_accel(gyro),
             odo=(odo, odo_c),
@@ -184,22 +208,22 @@ class VehicleInputs:
             gnss=self._gnss_at(ticks),
         )
 
-    def _imu_means(self, ticks: IntArray) -> tuple[FloatArray, FloatArray, IntArray]:
-        """Mean forward specific force and yaw rate over each tick ``(t − tick, t]``, and the
-        samples each mean is of."""
+    def _imu_means(self, ticks: IntArray) -> tuple[list[FloatArray], IntArray]:
+        """Mean of each IMU column (forward force, yaw, pitch and roll rate, lateral force)
+        over each tick ``(t − tick, t]``, and the samples each mean is of."""
         bounds = np.concatenate([ticks[:1] - self.tick_ns, ticks])
         edges = np.searchsorted(self.imu_ns, bounds, side="right")
         count = np.diff(edges)
         tick_of = np.repeat(np.arange(ticks.size), count)
         part = self.imu[edges[0] : edges[-1]]
         out = []
-        for col in (0, 1):
+        for col in range(_IMU_COLUMNS):
             sums = np.bincount(tick_of, part[:, col], minlength=ticks.size)
             with np.errstate(invalid="ignore", divide="ignore"):
                 out.append(np.where(count > 0, sums / count, np.nan))
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
-        return out[0], out[1], count
+        return out, count
 
     def _yaw_accel(self, gyro: FloatArray) -> FloatArray:
         """``(ω_t − ω_{t−1})/tick`` per tick from the ticks' mean rates (0 where unknown)."""
@@ -296,6 +320,9 @@ class Reads:
     ticks_ns: IntArray
     accel: FloatArray
     gyro: FloatArray
+    pitch_rate: FloatArray
+    roll_rate: FloatArray
+    lateral_accel: FloatArray
     imu_samples: IntArray
     yaw_accel: FloatArray
     odo: tuple[FloatArray, FloatArray]
@@ -314,7 +341,8 @@ def derive(r: Reads, cfg: TrackedEstimatorConfig) -> tuple[FloatArray, BoolArray
     """``(odometer acceleration (m,), sprockets settling (m, 2), unsteady (m,))``: a sprocket
     settles while its own acceleration differs from the gearbox's (scaled by its ratio) by
     more than ``lever_accel_mps2``, or while it starts; a tick is unsteady while a sprocket
-    settles or the IMU or the odometer accelerates."""
+    settles or the odometer accelerates (the hull's own acceleration, gravity taken out with
+    the filter's pitch, is counted by the filter: ``step.accel_steady``)."""
     (odo, odo_c), (prev, prev_c) = r.odo, r.prev
     (spr, spr_c), (before, before_c) = r.spr, r.before
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -323,8 +351,7 @@ def derive(r: Reads, cfg: TrackedEstimatorConfig) -> tuple[FloatArray, BoolArray
         geared = odo_accel[:, None] * np.where(odo[:, None] > 0.3, spr / odo[:, None], 0.0)
     settling = ~(np.abs(np.nan_to_num(own - geared)) <= cfg.lever_accel_mps2)
     settling |= r.starting
-    unsteady = settling.any(axis=1) | ~(np.abs(r.accel) <= cfg.learn_accel_max_mps2)
-    unsteady |= ~(np.abs(odo_accel) <= cfg.learn_accel_max_mps2)
+    unsteady = settling.any(axis=1) | ~(np.abs(odo_accel) <= cfg.learn_accel_max_mps2)
     return odo_accel, settling, unsteady
 
 
@@ -339,6 +366,9 @@ def tick_inputs(
         ticks_ns=r.ticks_ns,
         accel_mps2=r.accel,
         gyro_radps=r.gyro,
+        pitch_rate_radps=r.pitch_rate,
+        roll_rate_radps=r.roll_rate,
+        lateral_accel_mps2=r.lateral_accel,
         imu_samples=r.imu_samples,
         yaw_accel_radps2=r.yaw_accel,
         odometer_mps=odo,

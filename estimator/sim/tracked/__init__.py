@@ -12,7 +12,10 @@ ways, low-gear straights, pivots, a fast pivot and stops, with a 4-minute GNSS o
 covering more than 1 km. ``random``: a route drawn from
 :data:`~estimator.sim.tracked.route.RANDOM_RANGES` (ground, manoeuvres, outage, gauge and
 contact length, the gyro's grade, whether the config names the gyro's data sheet or the unit's
-own figures) by the seed. Physics in
+own figures) by the seed, over a terrain drawn from
+:data:`~estimator.sim.tracked.terrain.TERRAIN_RANGES` (grades up to ±15 %, cross grades up to
+±10 %; ``flat=True`` keeps it level). ``route_firm_hill`` is ``route_firm`` over hills.
+Physics in
 :mod:`~estimator.sim.tracked.physics`, sensors in :mod:`~estimator.sim.tracked.sensors`.
 """
 
@@ -36,6 +39,7 @@ from estimator.sim.tracked.route import (
     route_names,
 )
 from estimator.sim.tracked.sensors import CrawlerSensors, SensorErrors, draw_errors, emissions
+from estimator.sim.tracked.terrain import FLAT, random_terrain
 
 __all__ = [
     "CrawlerSensors",
@@ -89,7 +93,7 @@ class TrackedRun:
         return np.clip(k, 0, self.truth.t_s.size - 1)
 
     def distance_m(self) -> FloatArray:
-        """Distance driven by the hull centre up to each grid point."""
+        """Horizontal distance driven by the hull centre up to each grid point."""
         step = np.hypot(np.diff(self.truth.east_m), np.diff(self.truth.north_m))
         return np.concatenate([[0.0], np.cumsum(step)])
 
@@ -126,8 +130,15 @@ def simulate_tracked(
     config: TrackedConfig | None = None,
     sensors: CrawlerSensors | None = None,
     start_ns: int = START_NS,
+    flat: bool = False,
 ) -> TrackedRun:
     """Simulate scenario ``name`` (:func:`tracked_scenarios`) with ``seed``.
+
+    A random route's terrain is drawn by a generator of its own (``(seed, 3)``), so its
+    route, ground and every other draw are those of the seed whether it is level
+    (``flat=True``, which levels a named route's hills too) or not; what the level-ground
+    sensors never drew (the pitch and roll gyros' biases, the GNSS up velocity's noise)
+    comes from another (``(seed, 4)``).
 
     Without ``config``, a named route's config names the gyro its sensors have; a random
     route's names either the unit's own figures (the part's times its grade) or, with
@@ -137,6 +148,8 @@ def simulate_tracked(
     rng = np.random.default_rng(seed)
     if name == "random":
         route = random_route(rng)
+        terrain = FLAT if flat else random_terrain(np.random.default_rng((seed, 3)))
+        route = replace(route, terrain=terrain)
         drawn = config or _random_config(rng)
         spec = sensors or _random_sensors(seed)
         gyro = _random_config_gyro(seed, spec)
@@ -145,8 +158,11 @@ def simulate_tracked(
         drawn = config or TrackedConfig()
         spec = sensors or CrawlerSensors()
         gyro = GyroConfig.of(spec.gyro_fitted)
+    if flat:
+        route = replace(route, terrain=FLAT)
     config = config or replace(drawn, gyro=gyro)
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
-    meas = emissions(truth, config, spec, errors, ORIGIN, route.outages_s, start_ns, rng)
+    extra = np.random.default_rng((seed, 4))
+    meas = emissions(truth, config, spec, errors, ORIGIN, route.outages_s, start_ns, rng, extra)
     return TrackedRun(name, seed, route, config, truth, errors, start_ns, ORIGIN, meas, spec)

@@ -9,6 +9,15 @@ dragged; the ground speeds follow with a 0.4 s lag (the hull's inertia: a lever 
 the track slip until the hull has caught up). The hull moves at ``V = (v_l + v_r)/2``, turns
 at ``ω = (v_r − v_l)/B`` and slides outward at ``v_x = ω·D``: the turning pole lies
 ``D = L·|V·ω|/(2·μ_t·g)`` ahead of the centre. Grid 100 Hz; arrays of shape ``(n,)`` unless said.
+
+On sloped ground (:mod:`~estimator.sim.tracked.terrain`, along the hull's along-ground
+distance) the hull's pitch ``θ`` and roll ``φ`` follow the ground; the tracks' speeds are
+along the ground, so the hull's horizontal speed is ``V·cos θ`` and it climbs at ``V·sin θ``;
+the drawbar demand is ``a + g·sin θ`` (uphill slips more, downhill less); a cross slope
+makes the hull creep downhill sideways at a slip angle ``SIDE_CREEP·sin φ/μ_t`` (right
+side down: to the right); the tracks turn the hull about its own up axis at
+``r = (v_r − v_l)/B``, so the heading turns at ``(r − θ̇·sin φ)/(cos θ·cos φ)`` (Z-X-Y
+Euler angles: yaw, pitch about the right axis, roll about the forward axis).
 """
 
 from __future__ import annotations
@@ -24,7 +33,7 @@ from estimator.sim._signals import cumtrapz, ou_process
 from estimator.sim.tracked.route import Ground, Route
 from estimator.tracked.model import MotionState
 
-__all__ = ["GRAVITY_MPS2", "RATE_HZ", "CrawlerTruth", "integrate_route"]
+__all__ = ["GRAVITY_MPS2", "RATE_HZ", "SIDE_CREEP", "CrawlerTruth", "integrate_route"]
 
 GRAVITY_MPS2 = 9.80665
 RATE_HZ = 100
@@ -32,13 +41,16 @@ _RAMP_S = 0.3  # a steering lever moves within this
 _ACCEL_UP_MPS2, _ACCEL_DOWN_MPS2 = 0.8, 1.5
 _BRAKE_MPS2 = 3.0  # a braked track's ground speed falls at most this fast
 _SLIP_TAU_S = 0.4  # the hull's inertia: a track's ground speed follows its sprocket this fast
+SIDE_CREEP = 0.05  # a cross slope's side creep: slip angle per unit of sin φ/μ_t
 M = MotionState
 
 
 @dataclass(frozen=True, slots=True)
 class CrawlerTruth:
     """Truth on the 100 Hz grid (``t_s`` from the start); per-track arrays ``(n, 2)`` are
-    (left, right)."""
+    (left, right). ``speed_mps`` is along the ground, ``east_m``/``north_m``/``up_m`` the hull
+    centre's position, ``pitch_rad`` (nose up +) and ``roll_rad`` (right side down +) its
+    attitude, ``yaw_rate_radps`` its turn rate about its own up axis."""
 
     t_s: FloatArray
     gearbox_mps: FloatArray
@@ -52,6 +64,9 @@ class CrawlerTruth:
     east_m: FloatArray
     north_m: FloatArray
     state: IntArray
+    pitch_rad: FloatArray
+    roll_rad: FloatArray
+    up_m: FloatArray
 
 
 def _ratios(route: Route, low_gear: float) -> tuple[FloatArray, FloatArray, IntArray]:
@@ -94,8 +109,9 @@ def _gearbox(target: FloatArray) -> FloatArray:
 def _slip_of(
     sprocket: FloatArray, accel: FloatArray, ground: Ground, texture: FloatArray, patch: FloatArray
 ) -> FloatArray:
-    """Slip of each driven track, shape ``(n, 2)``: rolling and acceleration terms on both,
-    the turn term ``± turn_slip·B/ρ_t`` (+ fast, − slow) with ``B/ρ_t = 2(1 − q)/(1 + q)``."""
+    """Slip of each driven track, shape ``(n, 2)``: rolling and drawbar terms on both
+    (``accel`` the drawbar demand per unit mass, ``a + g·sin θ``), the turn term
+    ``± turn_slip·B/ρ_t`` (+ fast, − slow) with ``B/ρ_t = 2(1 − q)/(1 + q)``."""
     fast = sprocket.max(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         q = np.where(fast > 1e-6, sprocket.min(axis=1) / fast, 1.0)
@@ -135,6 +151,37 @@ def _ground_speeds(sprocket: FloatArray, slip: FloatArray, drag: float) -> Float
     return out
 
 
+def _tracks(
+    route: Route,
+    sprocket: FloatArray,
+    demand: FloatArray,
+    texture: FloatArray,
+    patch: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Track ground speeds ``(n, 2)`` (lagged) and the hull's along-ground distance ``(n,)``
+    for the drawbar ``demand``."""
+    slip = _slip_of(sprocket, demand, route.ground, texture, patch)
+    track = _lag(_ground_speeds(sprocket, slip, route.ground.brake_drag), _SLIP_TAU_S)
+    return track, cumtrapz(track.mean(axis=1), 1.0 / RATE_HZ)
+
+
+def _attitude(
+    route: Route, vg: FloatArray, sprocket: FloatArray, texture: FloatArray, patch: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Track speeds ``(n, 2)``, pitch and roll ``(n,)``: the slopes are read at the hull's
+    along-ground distance, which the slip (fed by the grade) sets: iterated from the
+    gearbox's distance (two rounds leave centimetres)."""
+    dt = 1.0 / RATE_HZ
+    accel = np.gradient(vg, dt)
+    dist = cumtrapz(vg, dt)
+    for _ in range(3 if not route.terrain.flat else 1):
+        pitch = np.arctan(route.terrain.grade_of(dist))
+        track, dist = _tracks(route, sprocket, accel + GRAVITY_MPS2 * np.sin(pitch), texture, patch)
+    pitch = np.arctan(route.terrain.grade_of(dist))
+    roll = np.arctan(route.terrain.cross_of(dist))
+    return track, pitch, roll
+
+
 def integrate_route(route: Route, config: TrackedConfig, rng: np.random.Generator) -> CrawlerTruth:
     """The crawler's truth along ``route`` (see the module docstring)."""
     dt = 1.0 / RATE_HZ
@@ -143,28 +190,28 @@ def integrate_route(route: Route, config: TrackedConfig, rng: np.random.Generato
     t: FloatArray = np.arange(n, dtype=np.float64) * dt
     vg = _gearbox(target)
     sprocket = vg[:, None] * ratio
-    accel = np.gradient(vg, dt)
     texture = np.stack([ou_process(rng, t, route.ground.texture_std, 2.0) for _ in range(2)], 1)
     dist = cumtrapz(vg, dt)
     patches = 1.0 + route.ground.patch_std * rng.standard_normal(
         int(dist[-1] // route.ground.patch_m) + 2
     )
     patch = patches[(dist // route.ground.patch_m).astype(np.int64)]
-    slip = _slip_of(sprocket, accel, route.ground, texture, patch)
-    track = _lag(_ground_speeds(sprocket, slip, route.ground.brake_drag), _SLIP_TAU_S)
+    track, pitch, roll = _attitude(route, vg, sprocket, texture, patch)
     b = config.geometry.track_gauge_m
     speed = track.mean(axis=1)
     yaw = (track[:, 1] - track[:, 0]) / b
+    mu = route.ground.lateral_resistance
     pole = np.minimum(
         0.5 * config.geometry.contact_length_m,
-        config.geometry.contact_length_m
-        * np.abs(speed * yaw)
-        / (2.0 * route.ground.lateral_resistance * GRAVITY_MPS2),
+        config.geometry.contact_length_m * np.abs(speed * yaw) / (2.0 * mu * GRAVITY_MPS2),
     )
-    lateral = yaw * pole
-    heading = route.heading0_rad - cumtrapz(yaw, dt)
-    ve = speed * np.sin(heading) + lateral * np.cos(heading)
-    vn = speed * np.cos(heading) - lateral * np.sin(heading)
+    lateral = yaw * pole + np.abs(speed) * SIDE_CREEP * np.sin(roll) / mu
+    pitch_rate = np.gradient(pitch, dt)
+    turn = (yaw - pitch_rate * np.sin(roll)) / (np.cos(pitch) * np.cos(roll))
+    heading = route.heading0_rad - cumtrapz(turn, dt)
+    level = speed * np.cos(pitch)
+    ve = level * np.sin(heading) + lateral * np.cos(heading)
+    vn = level * np.cos(heading) - lateral * np.sin(heading)
     true_slip = np.where(
         np.maximum(sprocket, track) > 1e-3,
         (sprocket - track) / np.maximum(np.maximum(sprocket, track), 1e-9),
@@ -183,6 +230,9 @@ def integrate_route(route: Route, config: TrackedConfig, rng: np.random.Generato
         east_m=cumtrapz(ve, dt),
         north_m=cumtrapz(vn, dt),
         state=_label(state, heading, config.motion.heading_jump_rad),
+        pitch_rad=pitch,
+        roll_rad=roll,
+        up_m=cumtrapz(speed * np.sin(pitch), dt),
     )
 
 

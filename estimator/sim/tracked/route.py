@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from estimator.sim.tracked.terrain import FLAT, Terrain, hill_terrain
 from estimator.tracked.model import MotionState
 
 __all__ = [
@@ -76,13 +77,15 @@ SOFT = Ground("soft", 0.045, 0.6, 0.16, 0.12, 0.45, 0.006)
 
 @dataclass(frozen=True, slots=True)
 class Route:
-    """Segments, ground, GNSS outages ``(start_s, duration_s)`` and initial heading."""
+    """Segments, ground, GNSS outages ``(start_s, duration_s)``, initial heading and the
+    terrain's slopes (:mod:`~estimator.sim.tracked.terrain`; level by default)."""
 
     name: str
     segments: tuple[Segment, ...]
     ground: Ground
     outages_s: tuple[tuple[float, float], ...]
     heading0_rad: float = 0.3
+    terrain: Terrain = FLAT
 
     @property
     def duration_s(self) -> float:
@@ -129,15 +132,18 @@ NAMED_OUTAGE_S = (150.0, 240.0)
 
 
 def route_names() -> tuple[str, ...]:
-    return ("route_firm", "route_soft")
+    return ("route_firm", "route_soft", "route_firm_hill")
 
 
 def named_route(name: str) -> Route:
-    """``route_firm`` or ``route_soft``: the long route on firm or soft ground."""
-    grounds = {"route_firm": FIRM, "route_soft": SOFT}
+    """``route_firm`` or ``route_soft``: the long route on level firm or soft ground;
+    ``route_firm_hill``: the same on firm ground over hills (grades ±10 %, cross grades ±5 %,
+    :func:`~estimator.sim.tracked.terrain.hill_terrain`)."""
+    grounds = {"route_firm": FIRM, "route_soft": SOFT, "route_firm_hill": FIRM}
     if name not in grounds:
         raise KeyError(f"unknown tracked scenario {name!r}; known: {list(grounds)}")
-    return Route(name, tuple(_base_route()), grounds[name], (NAMED_OUTAGE_S,))
+    terrain = hill_terrain() if name == "route_firm_hill" else FLAT
+    return Route(name, tuple(_base_route()), grounds[name], (NAMED_OUTAGE_S,), terrain=terrain)
 
 
 #: Manoeuvres of random routes: (probability, duration s, gearbox speed m/s), uniform draws.

@@ -20,7 +20,7 @@ from estimator.sim._signals import cumtrapz
 from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ, CrawlerTruth
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges, TrackSide
 
-__all__ = ["CrawlerSensors", "SensorErrors", "draw_errors", "emissions"]
+__all__ = ["CrawlerSensors", "SensorErrors", "body_rates", "draw_errors", "emissions"]
 
 _WINDOW = RATE_HZ // 10  # grid points per 100 ms packet
 
@@ -126,26 +126,57 @@ def _packets(edge_t: FloatArray, window_ends_s: FloatArray) -> list[FloatArray]:
     return [edge_t[a:b] for a, b in zip(starts, cuts, strict=True)]
 
 
+def body_rates(truth: CrawlerTruth) -> FloatArray:
+    """The hull's body rates ``(n, 3)``: pitch rate (about the right axis), roll rate (about
+    the forward axis) and yaw rate (about its up axis), from the Z-X-Y Euler rates:
+    ``ω_x = θ̇·cos φ − Ẏ·cos θ·sin φ``, ``ω_y = φ̇ + Ẏ·sin θ``, ``ω_z = θ̇·sin φ + Ẏ·cos θ·cos φ``
+    with ``Ẏ`` the heading's counter-clockwise rate (``ω_z`` is the tracks' turn rate)."""
+    dt = 1.0 / RATE_HZ
+    theta, phi = truth.pitch_rad, truth.roll_rad
+    d_theta, d_phi = np.gradient(theta, dt), np.gradient(phi, dt)
+    d_yaw = -np.gradient(truth.heading_rad, dt) if truth.heading_rad.size > 1 else 0.0 * theta
+    wx = d_theta * np.cos(phi) - d_yaw * np.cos(theta) * np.sin(phi)
+    wy = d_phi + d_yaw * np.sin(theta)
+    return np.stack([wx, wy, truth.yaw_rate_radps], axis=1)
+
+
 def _imu(
     truth: CrawlerTruth,
     cfg: TrackedConfig,
     err: SensorErrors,
     spec: CrawlerSensors,
     rng: np.random.Generator,
+    tilt_bias_radps: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[FloatArray, FloatArray]:
-    """Specific force and angular rate at the IMU's lever arm, shapes ``(n, 3)``."""
+    """Specific force and angular rate at the IMU's lever arm in the body frame (X right,
+    Y forward, Z up), shapes ``(n, 3)``: ``f = a + g·u`` with ``u`` the world's up in the
+    body frame, ``(−cos θ·sin φ, sin θ, cos θ·cos φ)``, and ``a`` the hull's acceleration
+    ``v̇ + ω×v`` (``v = (v_x, V, 0)``; lever-arm terms of the yaw only). The pitch and roll
+    gyros read :func:`body_rates` plus ``tilt_bias_radps``; the yaw gyro its rate with the
+    run's bias and scale error."""
     dt = 1.0 / RATE_HZ
     w, v, vx = truth.yaw_rate_radps, truth.speed_mps, truth.lateral_mps
+    rates = body_rates(truth)
     alpha = np.gradient(w, dt)
     x, y, _ = cfg.geometry.imu_lever_arm_m
     ax = np.gradient(vx, dt) - w * v - alpha * y - w * w * x
     ay = np.gradient(v, dt) + w * vx + alpha * x - w * w * y
+    az = rates[:, 0] * v - rates[:, 1] * vx
+    theta, phi = truth.pitch_rad, truth.roll_rad
     n = w.size
+    g = GRAVITY_MPS2
     accel = np.stack(
-        [ax + err.accel_bias_mps2[0], ay + err.accel_bias_mps2[1], np.full(n, GRAVITY_MPS2)], axis=1
+        [
+            ax - g * np.cos(theta) * np.sin(phi) + err.accel_bias_mps2[0],
+            ay + g * np.sin(theta) + err.accel_bias_mps2[1],
+            az + g * np.cos(theta) * np.cos(phi),
+        ],
+        axis=1,
     )
     accel += spec.accel_noise_mps2 * rng.standard_normal((n, 3))
     gyro = spec.gyro_noise_radps * rng.standard_normal((n, 3))
+    gyro[:, 0] += rates[:, 0] + tilt_bias_radps[0]
+    gyro[:, 1] += rates[:, 1] + tilt_bias_radps[1]
     gyro[:, 2] += (1.0 + err.gyro_scale) * w + err.gyro_bias_radps
     return accel, gyro
 
@@ -158,20 +189,32 @@ def _gnss(
     outages_s: tuple[tuple[float, float], ...],
     start_ns: int,
     rng: np.random.Generator,
+    up_rng: np.random.Generator | None = None,
 ) -> list[tuple[int, Measurement]]:
+    """10 Hz fixes of the antenna: its lever arm turned by heading, pitch and roll, its
+    velocity in the world (``V·cos θ`` level, ``V·sin θ`` up, yaw lever-arm terms), height
+    included; the up velocity's noise from ``up_rng`` (none without it)."""
     idx = np.arange(_WINDOW, truth.t_s.size, _WINDOW)
     psi, w = truth.heading_rad[idx], truth.yaw_rate_radps[idx]
+    theta, phi = truth.pitch_rad[idx], truth.roll_rad[idx]
     x, y, z = cfg.geometry.antenna_lever_arm_m
-    east = truth.east_m[idx] + x * np.cos(psi) + y * np.sin(psi)
-    north = truth.north_m[idx] - x * np.sin(psi) + y * np.cos(psi)
-    vr, vf = truth.lateral_mps[idx] - w * y, truth.speed_mps[idx] + w * x
+    fwd = y * np.cos(theta) - z * np.sin(theta) * np.cos(phi)
+    right = x * np.cos(phi) + z * np.sin(phi)
+    up = truth.up_m[idx] + z * np.cos(theta) * np.cos(phi) + y * np.sin(theta) - x * np.sin(phi)
+    east = truth.east_m[idx] + right * np.cos(psi) + fwd * np.sin(psi)
+    north = truth.north_m[idx] - right * np.sin(psi) + fwd * np.cos(psi)
+    v_along = truth.speed_mps[idx]
+    vr, vf = truth.lateral_mps[idx] - w * y, v_along * np.cos(theta) + w * x
     ve = vf * np.sin(psi) + vr * np.cos(psi)
     vn = vf * np.cos(psi) - vr * np.sin(psi)
+    vu = v_along * np.sin(theta)
     east = east + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
     north = north + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
     ve = ve + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
     vn = vn + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
-    lat, lon, h = frame.to_geodetic(east, north, np.full(idx.size, z))
+    if up_rng is not None:
+        vu = vu + spec.gnss_vel_std_mps * up_rng.standard_normal(idx.size)
+    lat, lon, h = frame.to_geodetic(east, north, up)
     t = truth.t_s[idx]
     lost = np.zeros(idx.size, dtype=bool)
     for a, d in outages_s:
@@ -184,7 +227,7 @@ def _gnss(
         else:
             sample = GnssSample(
                 stamp,
-                (float(ve[k]), float(vn[k]), 0.0),
+                (float(ve[k]), float(vn[k]), float(vu[k])),
                 nan,
                 nan,
                 nan,
@@ -207,14 +250,23 @@ def emissions(
     outages_s: tuple[tuple[float, float], ...],
     start_ns: int,
     rng: np.random.Generator,
+    extra_rng: np.random.Generator | None = None,
 ) -> list[tuple[int, Measurement]]:
-    """Every packet as ``(key_ns, measurement)``, sorted by key (GNSS, edges, IMU within one)."""
+    """Every packet as ``(key_ns, measurement)``, sorted by key (GNSS, edges, IMU within one).
+
+    ``extra_rng`` draws what the level-ground sensors never drew (the pitch and roll gyros'
+    turn-on biases, 1σ ``gyro_bias_std_radps``, and the GNSS up velocity's noise), so every
+    draw of ``rng`` stays as it was; without it those are 0."""
     dt = 1.0 / RATE_HZ
     t = truth.t_s
     ends = t[_WINDOW::_WINDOW]
     ends_ns = _stamps(start_ns, ends).tolist()
-    accel, gyro = _imu(truth, cfg, err, spec, rng)
-    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng)
+    tilt_bias = (0.0, 0.0)
+    if extra_rng is not None:
+        b = extra_rng.normal(0.0, spec.gyro_bias_std_radps, 2)
+        tilt_bias = (float(b[0]), float(b[1]))
+    accel, gyro = _imu(truth, cfg, err, spec, rng, tilt_bias)
+    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng)
     odo_err = spec.odometer_tooth_error * rng.standard_normal(spec.odometer_teeth)
     odo_t = _edge_times(
         t,

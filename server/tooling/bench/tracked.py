@@ -1,9 +1,9 @@
 """Tracked-vehicle bench: the ``tracked`` estimator's modes against the crawler simulator.
 
 ``slipfleet bench tracked [--seeds 1,2] [--random N] [--random-from S]
-[--scenarios route_firm,route_soft] [--modes product,paper,…] [--json PATH]`` simulates
-every scenario once per seed (:mod:`estimator.sim.tracked`), and ``--random N`` adds N
-random routes (seeds S, S + 1, …; S = 1000 by default), then feeds every run to each mode
+[--scenarios route_firm,route_soft] [--modes product,paper,…] [--flat] [--json PATH]``
+simulates every scenario once per seed (:mod:`estimator.sim.tracked`), and ``--random N``
+adds N random routes (seeds S, S + 1, …; S = 1000 by default), then feeds every run to each mode
 side by side (``--modes`` picks some, ``product`` always among them): ``product``,
 ``paper`` (the source as printed, lateral term ``−φ̇·L`` included), ``paper_no_lateral``
 and ``raw_odometer`` (the odometer speed as the hull's). Each mode is one
@@ -12,6 +12,17 @@ and advanced every second of sensor time; each row is compared with the truth at
 The product gives its rows at a fixed lag (one tick, up to ``report_lag_ticks`` = 4 ticks,
 0.4 s, while a state change is under way; :mod:`estimator.tracked.lag`): a row keeps its own
 stamp and is scored against the truth there; the last held rows of a run are not scored.
+
+Terrain
+-------
+``route_firm`` and ``route_soft`` are level; ``route_firm_hill`` is ``route_firm`` over hills
+(grades ±10 % with 60 m ramps every 150 m, cross grades ±5 % every 220 m). Random routes
+drive over a terrain drawn by a generator of their own (the route's every other draw is the
+same with ``--flat``, which levels every run): a largest grade uniform in 5-15 % and knots
+every 20-80 m (uniform) each uniform within ± that grade; a largest cross grade uniform in
+0-10 % and knots every 30-120 m; cosine interpolation between knots along the hull's
+along-ground distance (``estimator.sim.tracked.terrain.TERRAIN_RANGES``). The DR metrics
+are horizontal (distance driven: the hull centre's horizontal path).
 
 Metrics per run and mode
 ------------------------
@@ -236,10 +247,11 @@ def run(
     json_path: str | None = None,
     random_from: int = 1000,
     modes: tuple[TrackedMode, ...] = MODES,
+    flat: bool = False,
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
-    runs = [simulate_tracked(s, seed) for s in scenarios for seed in seeds]
-    runs += [simulate_tracked("random", random_from + i) for i in range(random_routes)]
+    runs = [simulate_tracked(s, seed, flat=flat) for s in scenarios for seed in seeds]
+    runs += [simulate_tracked("random", random_from + i, flat=flat) for i in range(random_routes)]
     sim_s = time.perf_counter() - t0
     results: dict[str, Any] = {"runs": [], "seconds": {"simulate": sim_s}}
     per_mode: dict[str, list[dict[str, Any]]] = {}
@@ -263,6 +275,8 @@ def run(
             "ground": r.route.ground.name,
             "gyro_grade": r.sensors.gyro_grade,
             "config_gyro_grade": _config_grade(r),
+            "grade_max": float(np.max(np.abs(np.tan(r.truth.pitch_rad)))),
+            "cross_max": float(np.max(np.abs(np.tan(r.truth.roll_rad)))),
             "modes": {},
         }
         for mode in modes:
@@ -309,11 +323,12 @@ def main(argv: list[str] | None = None) -> int:
         default=",".join(m.value for m in MODES),
         help="modes to run, comma-separated (product always runs)",
     )
+    ap.add_argument("--flat", action="store_true", help="level ground for every run")
     ap.add_argument("--json", default=None, help="write the numbers to this file")
     args = ap.parse_args(argv)
     scenarios = [s for s in args.scenarios.split(",") if s]
     modes = tuple(TrackedMode(m) for m in args.modes.split(",") if m)
-    run(args.seeds, args.random, scenarios, args.json, args.random_from, modes)
+    run(args.seeds, args.random, scenarios, args.json, args.random_from, modes, args.flat)
     return 0
 
 

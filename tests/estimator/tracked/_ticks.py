@@ -21,6 +21,9 @@ def quiet_tick(n: int, tick_ns: int, **fields: Any) -> TickInputs:
         "ticks_ns": np.full(n, tick_ns),
         "accel_mps2": zero,
         "gyro_radps": zero,
+        "pitch_rate_radps": zero,
+        "roll_rate_radps": zero,
+        "lateral_accel_mps2": nan,  # no roll measurement
         "imu_samples": np.full(n, 10),
         "yaw_accel_radps2": zero,
         "odometer_mps": nan,

@@ -69,6 +69,7 @@ def _fleet_of(cls: type, runs: dict[str, TrackedRun], mode: TrackedMode) -> Trac
 @pytest.mark.parametrize("mode", [TrackedMode.PRODUCT, TrackedMode.PAPER])
 def test_batched_equals_per_vehicle(mode: TrackedMode) -> None:
     runs = {"a": _run("route_firm", 1), "b": _run("route_soft", 2), "c": _run("random", 3)}
+    runs["d"] = _run("route_firm_hill", 1)  # grades and cross grades (so is "c"'s terrain)
     until = {vid: r.start_ns + 70 * SECOND for vid, r in runs.items()}
     streams = {vid: [m for m in r.measurements if m[0] <= until[vid]] for vid, r in runs.items()}
     streams["c"] = streams["c"][: len(streams["c"]) * 2 // 3]  # a vehicle with fewer ticks

@@ -1,0 +1,162 @@
+"""The crawler simulator on ground that is not flat: attitude, specific force, body rates,
+along-ground distance, GNSS height, slip on grades, and the terrain's own draws."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+
+from estimator.sim.tracked import TrackedRun, simulate_tracked
+from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ
+from estimator.sim.tracked.sensors import body_rates
+from estimator.sim.tracked.terrain import FLAT, TERRAIN_RANGES, hill_terrain, random_terrain
+from estimator.tracked.model import MotionState
+from estimator.types import GnssSample, ImuBatch, OdometerEdges, SprocketEdges
+
+M = MotionState
+G = GRAVITY_MPS2
+
+
+@cache
+def _run(name: str, seed: int, flat: bool = False) -> TrackedRun:
+    return simulate_tracked(name, seed, flat=flat)
+
+
+def _imu(run: TrackedRun) -> tuple[np.ndarray, np.ndarray]:
+    batches = [m for _, m in run.measurements if isinstance(m, ImuBatch)]
+    return np.concatenate([b.accel_mps2 for b in batches]), np.concatenate(
+        [b.gyro_radps for b in batches]
+    )
+
+
+def _fixes(run: TrackedRun) -> list[GnssSample]:
+    return [m for _, m in run.measurements if isinstance(m, GnssSample) and np.isfinite(m.lat_deg)]
+
+
+def test_named_level_routes_stay_level() -> None:
+    run = _run("route_firm", 1)
+    assert run.route.terrain == FLAT
+    assert not run.truth.pitch_rad.any() and not run.truth.roll_rad.any()
+    accel, _ = _imu(run)
+    assert np.all(np.abs(accel[:, 2] - G) < 0.5)  # gravity on z alone, within the noise
+
+
+def test_a_random_routes_terrain_leaves_its_other_draws_alone() -> None:
+    sloped, level = _run("random", 1003), _run("random", 1003, True)
+    assert sloped.route.segments == level.route.segments
+    assert sloped.route.ground == level.route.ground
+    assert not sloped.route.terrain.flat and level.route.terrain.flat
+    # the gearbox and the sprockets do not feel the grade: their edges are the same
+    for kind in (OdometerEdges, SprocketEdges):
+        a = [m.stamp_ns for _, m in sloped.measurements if isinstance(m, kind)]
+        b = [m.stamp_ns for _, m in level.measurements if isinstance(m, kind)]
+        assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    # while the hull's ground speed does (the slip feels the grade)
+    assert not np.allclose(sloped.truth.speed_mps, level.truth.speed_mps)
+
+
+def test_random_terrain_draws_within_its_stated_ranges() -> None:
+    tops, crosses = [], []
+    for k in range(200):
+        t = random_terrain(np.random.default_rng(k), 5000.0)
+        g, c = np.abs(t.grade), np.abs(t.cross)
+        tops.append(g.max())
+        crosses.append(c.max())
+        gaps = np.diff(t.grade_at_m)
+        lo, hi = TERRAIN_RANGES["grade_spacing_m"]
+        assert gaps.min() >= lo and gaps.max() <= hi
+    assert max(tops) <= TERRAIN_RANGES["grade_max"][1] and max(crosses) <= 0.10
+    assert min(tops) >= 0.8 * TERRAIN_RANGES["grade_max"][0]  # each route has some hill
+    d = np.linspace(0.0, 5000.0, 20001)
+    g = t.grade_of(d)
+    assert np.abs(np.diff(g)).max() < 0.01  # smooth between knots: no steps
+
+
+def test_hill_route_has_ten_percent_grades_and_a_four_minute_outage() -> None:
+    run = _run("route_firm_hill", 1)
+    grade = np.tan(run.truth.pitch_rad)
+    assert 0.099 < grade.max() <= 0.1 and -0.1 <= grade.min() < -0.099
+    assert np.abs(np.tan(run.truth.roll_rad)).max() <= 0.05 + 1e-12
+    assert run.route.outages_s[0][1] == 240.0
+    k = run.index_at(np.array(run.outages_ns[0]))
+    assert run.distance_m()[k[1]] - run.distance_m()[k[0]] > 1000.0
+
+
+def test_horizontal_distance_is_the_along_ground_distance_times_cos_pitch() -> None:
+    run = _run("route_firm_hill", 1)
+    tr, dt = run.truth, 1.0 / RATE_HZ
+    along = np.sum(tr.speed_mps) * dt
+    level = np.sum(tr.speed_mps * np.cos(tr.pitch_rad)) * dt
+    horizontal = run.distance_m()[-1]
+    assert abs(horizontal - level) / level < 2e-3
+    assert along - horizontal > 0.003 * along  # ±10 % grades: ~0.5 % of the way is climbing
+    climb = np.cumsum(tr.speed_mps * np.sin(tr.pitch_rad)) * dt
+    assert np.allclose(tr.up_m, climb, atol=0.05 + 1e-3 * np.abs(climb).max())
+
+
+def test_the_accelerometer_reads_gravity_along_the_slope() -> None:
+    run = _run("route_firm_hill", 1)
+    tr = run.truth
+    accel, _ = _imu(run)
+    n = min(accel.shape[0], tr.t_s.size - 1)
+    dv = np.gradient(tr.speed_mps, 1.0 / RATE_HZ)[1 : n + 1]
+    theta, phi = tr.pitch_rad[1 : n + 1], tr.roll_rad[1 : n + 1]
+    straight = (tr.state[1 : n + 1] == int(M.STRAIGHT)) & (
+        np.abs(tr.yaw_rate_radps[1 : n + 1]) < 1e-3
+    )
+    fwd = accel[:n, 1] - dv - G * np.sin(theta)
+    # what is left is the accelerometer's bias and noise, not the grade
+    assert abs(np.mean(fwd[straight]) - run.errors.accel_bias_mps2[1]) < 0.01
+    assert np.std(fwd[straight]) < 0.1
+    up = accel[:n, 2] - G * np.cos(theta) * np.cos(phi)
+    assert abs(np.mean(up[straight])) < 0.02
+    side = accel[:n, 0] + G * np.cos(theta) * np.sin(phi) - run.errors.accel_bias_mps2[0]
+    assert abs(np.mean(side[straight])) < 0.02
+    uphill = straight & (theta > 0.09)
+    assert np.mean(accel[:n, 1][uphill] - dv[uphill]) > 0.9  # ~ g·0.1 over the hull's own
+
+
+def test_the_gyros_see_the_pitch_and_roll_changes() -> None:
+    run = _run("route_firm_hill", 2)
+    tr = run.truth
+    rates = body_rates(tr)
+    dt = 1.0 / RATE_HZ
+    # Euler rates back from the body rates: θ̇ = ω_x·cos φ + ω_z·sin φ
+    d_theta = rates[:, 0] * np.cos(tr.roll_rad) + rates[:, 2] * np.sin(tr.roll_rad)
+    assert np.allclose(np.cumsum(d_theta) * dt, tr.pitch_rad - tr.pitch_rad[0], atol=2e-3)
+    _, gyro = _imu(run)
+    n = min(gyro.shape[0], tr.t_s.size - 1)
+    err = gyro[:n, 0] - rates[1 : n + 1, 0]
+    assert np.std(err) < 0.01 and abs(np.mean(err)) < 3e-3  # noise and a turn-on bias only
+    assert np.abs(rates[:, 0]).max() > 0.05  # the ramps pitch the hull at tens of mrad/s
+
+
+def test_uphill_slips_more_than_downhill() -> None:
+    run = _run("route_firm_hill", 1)
+    tr = run.truth
+    steady = (tr.state == int(M.STRAIGHT)) & (np.abs(np.gradient(tr.gearbox_mps)) < 1e-4)
+    slip = tr.slip.mean(axis=1)
+    up, down = steady & (tr.pitch_rad > 0.09), steady & (tr.pitch_rad < -0.09)
+    assert up.sum() > 500 and down.sum() > 500
+    # drawbar demand g·sin θ: 0.3 slip per g on firm ground gives ±3 points at ±10 %
+    gap = np.nanmean(slip[up]) - np.nanmean(slip[down])
+    assert 0.04 < gap < 0.08
+
+
+def test_gnss_height_and_up_velocity_follow_the_climb() -> None:
+    run = _run("route_firm_hill", 1)
+    fixes = _fixes(run)
+    k = run.index_at(np.array([f.stamp_ns for f in fixes]))
+    vu = np.array([f.vel_enu_mps[2] for f in fixes])
+    true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k])
+    assert np.sqrt(np.mean((vu - true_vu) ** 2)) < 0.05
+    h = np.array([f.height_m for f in fixes])
+    # the antenna's height: the hull's climb plus its lever arm (mostly up)
+    z = run.config.geometry.antenna_lever_arm_m[2]
+    assert np.abs(h - run.frame.h0_m - run.truth.up_m[k] - z).max() < 0.5
+    assert np.ptp(h) > 5.0
+
+
+def test_hill_terrain_is_fixed() -> None:
+    assert hill_terrain() == hill_terrain()
