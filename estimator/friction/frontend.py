@@ -34,9 +34,10 @@ is tested against:
 * relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper);
 * a ringing wheel: the relaxed κ is rebuilt from one wheel-speed reading a tick, so a rim
   that moves between readings by more than their rounding (a torque step rings a wheel on
-  its tyre at 50-110 Hz, at or above the readings' rate, and they alias the ring into a
-  slow swing) leaves κ uncertain by what it moved: that change passes the same lag into
-  κ's 1-σ (:func:`ringing_slip_std`, not paper);
+  its tyre, near ``r √(c_x/(I σ_x))``: ~300-600 rad/s for these road tyres, a stiff one
+  highest, at or above the readings' rate, and they alias the ring into a slow swing)
+  leaves κ uncertain by what it moved: that change passes the same lag into κ's 1-σ
+  (:func:`ringing_slip_std`, not paper);
 * timing: the IMU means of a tick lie on average ``lag`` before it (5 ms for 100 Hz samples
   in a 20 ms tick), the wheel speeds and the steering angle are the latest at it; the
   measured ``a_x``, ``a_y`` are carried to the tick along their change since the last one,
