@@ -26,6 +26,7 @@ from estimator.friction.frontend import (
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
+    ringing_slip_std,
     spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -230,6 +231,8 @@ class _State(_Arrays):
         self.yaw_prev = np.zeros(0)
         self.accel_prev = np.zeros((0, 2))  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((0, 2, 4))
+        self.kappa_prev = np.zeros((0, 4))  # the last tick's kinematic κ
+        self.kappa_ring = np.zeros((0, 4))  # the relaxed κ's 1-σ from a ringing wheel
 
     def reset(self, slot: int, car: _Vehicles, fe: FrontEndConfig) -> None:
         fz = car.fz_static[slot]
@@ -246,6 +249,8 @@ class _State(_Arrays):
         self.yaw_prev[slot] = math.nan
         self.accel_prev[slot] = math.nan
         self.slip_lag[slot] = 0.0
+        self.kappa_prev[slot] = math.nan
+        self.kappa_ring[slot] = 0.0
 
 
 class FleetFrontEnd:
@@ -577,7 +582,8 @@ class FleetFrontEnd:
         v_long, v_lat = self._wheel_velocity(s, vx, vy.speed[s], yaw_rate, delta)
         speed = np.abs(v_long)
         denom = np.maximum(speed, 1.0)
-        kappa = (omega * self._radius_now(s, fz) - v_long) / denom
+        radius = self._radius_now(s, fz)
+        kappa = (omega * radius - v_long) / denom
         alpha = -np.arctan2(v_lat, np.maximum(speed, 0.5))
         k_std = omega * st.radius_std[s] / denom + 2e-4
         a_std = np.sqrt(np.maximum(vy.var[s], 0.0))[:, None] / denom + 1e-3
@@ -585,12 +591,15 @@ class FleetFrontEnd:
             lag = np.zeros_like(alpha)
         else:
             rate = (speed + 1.0) / self.car.relax[s][:, None]
+            gain = 1.0 - np.exp(-self.dt * rate)
             slip_lag = st.slip_lag[s]
-            slip_lag += (1.0 - np.exp(-self.dt * rate))[:, None] * (
-                np.stack([kappa, alpha], axis=1) - slip_lag
-            )
+            slip_lag += gain[:, None] * (np.stack([kappa, alpha], axis=1) - slip_lag)
             st.slip_lag[s] = slip_lag
-            k_std = k_std + 0.5 * np.abs(kappa - slip_lag[:, 0])
+            rounding = self.fe.wheel_speed_resolution_radps * radius / denom
+            ring = ringing_slip_std(kappa, st.kappa_prev[s], st.kappa_ring[s], gain, rounding)
+            st.kappa_ring[s] = ring
+            st.kappa_prev[s] = kappa
+            k_std = k_std + 0.5 * np.abs(kappa - slip_lag[:, 0]) + ring
             a_std = a_std + 0.5 * np.abs(alpha - slip_lag[:, 1])
             lag = slip_lag[:, 1] - alpha
             kappa, alpha = slip_lag[:, 0], slip_lag[:, 1]

@@ -32,6 +32,12 @@ is tested against:
   as a lateral tyre force and as ~45 N of load moved across, which a soft tyre's radius turns
   into a slip of ~5e-4);
 * relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper);
+* a ringing wheel: the relaxed κ is rebuilt from one wheel-speed reading a tick, so a rim
+  that moves between readings by more than their rounding (a torque step rings a wheel on
+  its tyre, near ``r √(c_x/(I σ_x))``: ~300-600 rad/s for these road tyres, a stiff one
+  highest, at or above the readings' rate, and they alias the ring into a slow swing)
+  leaves κ uncertain by what it moved: that change passes the same lag into κ's 1-σ
+  (:func:`ringing_slip_std`, not paper);
 * timing: the IMU means of a tick lie on average ``lag`` before it (5 ms for 100 Hz samples
   in a 20 ms tick), the wheel speeds and the steering angle are the latest at it; the
   measured ``a_x``, ``a_y`` are carried to the tick along their change since the last one,
@@ -71,6 +77,7 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
+    "ringing_slip_std",
     "spin_up_slip",
 ]
 
@@ -110,7 +117,9 @@ class FrontEndConfig:
     ``wheel_inertia_kgm2``, ``wheel_inertia_rel_std``: a wheel's (rim and tyre) spin inertia
     and its relative 1-σ, for the undriven wheels' spin-up slip (:func:`spin_up_slip`; a
     road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²); ``brake_share_std``: the 1-σ of the
-    undriven axle's share of the braking force (:func:`brake_slip_std`).
+    undriven axle's share of the braking force (:func:`brake_slip_std`);
+    ``wheel_speed_resolution_radps``: the CAN wheel speed's rounding, below which a change
+    between two readings may be rounding alone (:func:`ringing_slip_std`).
     """
 
     paper: bool = False
@@ -132,6 +141,7 @@ class FrontEndConfig:
     wheel_inertia_kgm2: float = 1.4
     wheel_inertia_rel_std: float = 0.4
     brake_share_std: float = 0.5
+    wheel_speed_resolution_radps: float = 0.025
 
 
 def brake_slip_std(
@@ -163,6 +173,29 @@ def spin_up_slip(
     force_n = -inertia_kgm2 * np.asarray(ax_mps2) / (radius_m * radius_m)
     slip: FloatArray = force_n / np.maximum(c_x_n, 1.0)
     return slip
+
+
+def ringing_slip_std(
+    kinematic: FloatArray,
+    previous: FloatArray,
+    ring: FloatArray,
+    gain: FloatArray | float,
+    rounding: FloatArray,
+) -> FloatArray:
+    """The relaxed κ's 1-σ from the wheel's movement between readings ``(…, 4)``.
+
+    The relaxed slip is ``κ'_k = κ'_{k−1} + g (κ_k − κ'_{k−1})`` over one kinematic reading
+    ``κ_k`` a tick (``g = gain``, the relaxation's), where the tyre integrates the slip
+    between them. How far the slip went between two readings is unknown; what they show is
+    ``|κ_k − κ_{k−1}|``, of which ``rounding`` (the readings' resolution in slip) may be the
+    rounding alone. The rest is taken as the reading's error, whole (a ring above half the
+    readings' rate aliases, so the change between readings does not bound it), and it passes
+    into ``κ'`` as a reading does: ``ring_k = ring_{k−1} + g (excess_k − ring_{k−1})``.
+    ``previous``: the last tick's kinematic κ (NaN: none yet); returns the new ``ring``."""
+    change = np.where(np.isnan(previous), 0.0, np.abs(kinematic - previous))
+    excess = np.maximum(change - rounding, 0.0)
+    updated: FloatArray = ring + gain * (excess - ring)
+    return updated
 
 
 @dataclass(frozen=True, slots=True)
@@ -341,6 +374,8 @@ class FrontEnd:
         self.yaw_prev = math.nan
         self.accel_prev = np.full(2, math.nan)  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((2, 4))
+        self.kappa_prev = np.full(4, np.nan)  # the last tick's kinematic κ
+        self.kappa_ring = np.zeros(4)  # the relaxed κ's 1-σ from a ringing wheel
         self.last_tick_ns = 0
 
     # --- input ------------------------------------------------------------------------------
@@ -623,20 +658,26 @@ class FrontEnd:
         resolution); the speed's error moves all four κ together and is given apart
         (``FrontEndTick.kappa_common_std``). The relaxation length is the config's, the tyre's
         may be half or twice it: while the slip moves, half the distance between the
-        kinematic and the relaxed slip is added to its 1-σ."""
+        kinematic and the relaxed slip is added to its 1-σ, and what the wheel moved between
+        readings beyond their rounding (:func:`ringing_slip_std`)."""
         v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
         denom = np.maximum(np.abs(v_long), 1.0)
-        kappa = (self.omega * self._radius_now(fz) - v_long) / denom
+        radius = self._radius_now(fz)
+        kappa = (self.omega * radius - v_long) / denom
         alpha = -np.arctan2(v_lat, np.maximum(np.abs(v_long), 0.5))
         k_std = self.omega * self.radius_std / denom + 2e-4
         a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
         lag = np.zeros(4)
         if not self.fe.paper:
             rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
-            self.slip_lag += (1.0 - np.exp(-self.dt * rate)) * (
-                np.stack([kappa, alpha]) - self.slip_lag
+            gain = 1.0 - np.exp(-self.dt * rate)
+            self.slip_lag += gain * (np.stack([kappa, alpha]) - self.slip_lag)
+            rounding = self.fe.wheel_speed_resolution_radps * radius / denom
+            self.kappa_ring = ringing_slip_std(
+                kappa, self.kappa_prev, self.kappa_ring, gain, rounding
             )
-            k_std = k_std + 0.5 * np.abs(kappa - self.slip_lag[0])
+            self.kappa_prev = kappa.copy()
+            k_std = k_std + 0.5 * np.abs(kappa - self.slip_lag[0]) + self.kappa_ring
             a_std = a_std + 0.5 * np.abs(alpha - self.slip_lag[1])
             lag = self.slip_lag[1] - alpha
             kappa, alpha = self.slip_lag

@@ -72,8 +72,9 @@ __all__ = ["COLUMNS", "Column", "Info", "Param", "bound_series", "information", 
 
 TICK_S = 0.02
 STEP_NS = 100_000_000
-TIMES_S = (-1.0, 0.0, 0.1, 0.2, 0.3, 0.5, 0.75, 0.88, 1.0, 1.52, 2.0, 3.0, 4.0, 6.0)
-"""Times after the manoeuvre's start the table prints."""
+TIMES_S = (-1.0, 0.0, 0.1, 0.2, 0.3, 0.5, 0.75, 0.88, 1.0, 1.52, 2.0, 3.0, 4.0, 6.0, 8.0, 10.0)
+"""Times after the manoeuvre's start the table prints, those within the run (the accelerating
+manoeuvres' steady window, their last 2 s, is 8-10 s)."""
 TRUTH_G_STD = 0.03 / np.sqrt(3.0)
 """The simulated tyres' spread about the config (``c_p`` ×0.97-1.03 uniform) as a 1-σ."""
 IMU_STD = (0.05 / np.sqrt(2), 0.05 / np.sqrt(2), 0.003 / TICK_S)
@@ -410,6 +411,8 @@ def table(info: Info, mu_true: float) -> str:
     head += ["μ filter", "σ filter", "inf"]
     lines = [" | ".join(head), " | ".join("---" for _ in head)]
     for t in TIMES_S:
+        if t > info.t_s[-1] + TICK_S:
+            continue
         k = int(np.argmin(np.abs(info.t_s - t)))
         cells = [f"{info.t_s[k]:.2f}", f"{info.use_rear[k]:.2f}", f"{info.use_front[k]:.2f}"]
         cells += [f"{100 * c:.1f} %" for c in info.crlb[k]]

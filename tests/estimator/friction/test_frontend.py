@@ -9,7 +9,14 @@ import math
 import numpy as np
 
 from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
-from estimator.friction.frontend import FrontEnd, FrontEndConfig, FrontEndTick, _TiltGradient
+from estimator.friction import FilterConfig
+from estimator.friction.frontend import (
+    FrontEnd,
+    FrontEndConfig,
+    FrontEndTick,
+    _TiltGradient,
+    ringing_slip_std,
+)
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
@@ -133,3 +140,70 @@ def test_the_accelerations_are_carried_to_the_tick() -> None:
         ax, ay = fe._at_tick(0.5 * mean, mean, 0.005)
         want = mean if n == 0 else 14.0 * t_s
         assert abs(ay - want) < 1e-12 and abs(ax - 0.5 * want) < 1e-12
+
+
+def _ringing_wheel(amplitude: float) -> list[FrontEndTick]:
+    """Straight at 12 m/s for 6 s; from 3 s the rear-left wheel rings on its tyre at 105 Hz,
+    ``ω = v/r (1 + A sin(2π 105 t) e^{−(t−3)/0.3})`` (a stiff tyre's wheel mode after a torque
+    step), its CAN readings (50 Hz, rounded to 0.025 rad/s) aliasing the ring into a 5 Hz
+    swing; GNSS (10 Hz) gives the true velocity."""
+    fe = FrontEnd(CONFIG, FrontEndConfig(), 0.02)
+    t_imu = np.arange(1, 601) * 10_000_000
+    accel = np.zeros((t_imu.size, 3))
+    accel[:, 2] = GRAVITY_MPS2
+    fe.push_imu(ImuBatch(t_imu, accel, np.zeros((t_imu.size, 3))))
+    t_s = t_imu[1::2] / 1e9
+    omega = np.full((t_s.size, 4), 12.0 / CONFIG.tyre.unloaded_radius_m)
+    late = np.maximum(t_s - 3.0, 0.0)
+    ring = amplitude * np.sin(2 * math.pi * 105.0 * t_s) * np.exp(-late / 0.3)
+    omega[:, 2] *= 1.0 + np.where(t_s >= 3.0, ring, 0.0)
+    fe.push_wheels(WheelSpeeds4(t_imu[1::2], np.round(omega / 0.025) * 0.025))
+    fe.push_steering(SteeringAngles(t_imu[1::2], np.zeros(t_s.size)))
+    for k in range(9, t_imu.size, 10):
+        fe.push_gnss(
+            GnssSample(
+                stamp_ns=int(t_imu[k]),
+                vel_enu_mps=(12.0 * math.sin(HEADING_RAD), 12.0 * math.cos(HEADING_RAD), 0.0),
+                heading_rad=HEADING_RAD,
+                pitch_rad=0.0,
+                roll_rad=0.0,
+                lat_deg=48.0,
+                lon_deg=11.0,
+                height_m=500.0,
+            )
+        )
+    ticks = [fe.tick(int(t)) for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000)]
+    return [t for t in ticks if t is not None]
+
+
+def test_a_ringing_wheel_keeps_its_slip_uncertain() -> None:
+    """The ringing rear-left wheel of :func:`_ringing_wheel` (a 2 % swing of its speed):
+    wherever its relaxed κ has been swung away from its partner's by more than twice the μ
+    gate's ``learn_mu_max_kappa_std`` (3e-3), κ's 1-σ is above the gate, so μ does not learn
+    from it (the relaxation term alone falls to 0.9e-3 there, as the relaxed slip catches up
+    with the slow alias). Before the ring, and once it has died out, the 1-σ is the still
+    wheels'."""
+    gate = FilterConfig().learn_mu_max_kappa_std
+    ticks = _ringing_wheel(0.02)
+    t_s = 0.02 * np.arange(1, len(ticks) + 1)
+    kappa = np.array([t.kappa for t in ticks])
+    k_std = np.array([t.kappa_std for t in ticks])
+    swung = np.abs(kappa[:, 2] - kappa[:, 3])
+    assert swung.max() > 3 * gate  # the alias does swing the relaxed slip
+    far = swung > 2 * gate
+    assert far.sum() >= 3 and np.all(k_std[far, 2] > gate)
+    for quiet in (t_s < 2.9, t_s > 5.5):
+        assert np.all(np.abs(k_std[quiet, 2] - k_std[quiet, 3]) < 2e-4)
+    still = _ringing_wheel(0.0)
+    assert np.allclose([t.kappa_std for t in still][-50:], k_std[-50:], atol=2e-4)
+
+
+def test_ringing_slip_std_by_hand() -> None:
+    """``ring ← ring + g (max(|κ − κ_prev| − rounding, 0) − ring)``: a change of 5e-3 with
+    1e-3 of rounding at ``g`` 0.5 from 2e-3 gives 3e-3; a change within the rounding lets it
+    fall by ``g``; no previous reading counts as no change; per wheel ``(B, 4)``."""
+    kappa = np.array([[5e-3, 5e-4, 0.0, -5e-3]])
+    prev = np.array([[0.0, 0.0, math.nan, 0.0]])
+    ring = np.full((1, 4), 2e-3)
+    out = ringing_slip_std(kappa, prev, ring, 0.5, np.full((1, 4), 1e-3))
+    assert np.allclose(out, [[3e-3, 1e-3, 1e-3, 3e-3]], rtol=1e-12)

@@ -14,13 +14,16 @@ from estimator.friction.model import Chassis, Measured
 from estimator.sim.four_wheel import named_manoeuvre, simulate_four_wheel
 from server.tooling.bench.friction_info import (
     COLUMNS,
+    TIMES_S,
     Column,
+    Info,
     Param,
     Ticks,
     _jacobian,
     bound_series,
     first_within,
     information,
+    table,
 )
 
 MASS_KG = 1500.0
@@ -171,6 +174,28 @@ def test_first_within_is_the_first_time_from_the_start() -> None:
     bound = np.array([0.01, 0.2, 0.06, 0.04, 0.06])
     assert first_within(t_s, bound, 0.05) == 1.0
     assert math.isnan(first_within(t_s, bound, 0.01))
+
+
+def test_the_table_prints_the_times_within_the_run() -> None:
+    """A run of ticks from −1 to 6.5 s prints the rows up to 6 s (not 8 and 10, which a
+    10-s accelerating manoeuvre has), each at its nearest tick."""
+    t_s = np.arange(-1.0, 6.5 + 1e-9, 0.02)
+    n = t_s.size
+    info = Info(
+        t_s,
+        np.zeros(n),
+        np.zeros(n),
+        np.full((n, len(COLUMNS)), 0.1),
+        np.full(n, 0.8),
+        np.full(n, 0.1),
+        np.zeros(n, dtype=bool),
+        1e-4,
+    )
+    rows = table(info, 0.8).splitlines()[2:-2]
+    want = [t for t in TIMES_S if t <= 6.5]
+    printed = [float(r.split("|")[1]) for r in rows]
+    assert len(printed) == len(want) < len(TIMES_S)
+    assert np.allclose(printed, want, atol=0.011)
 
 
 def test_on_the_steering_step_the_lateral_rows_only_add_information() -> None:
