@@ -11,8 +11,7 @@ attitude is Z-X-Y Euler angles (heading, pitch ``θ`` nose up, roll ``φ`` right
 
 (a turn on a side slope turns the yaw rate into pitch rate). Over a tick ``Δ``, with the
 mid-tick heading ``ψ_m = ψ − Ω·Δ/2``, the hull's along-ground speed ``V`` and lateral speed
-``v_x`` (right +: the turns' side-slip and a side slope's creep, both of the roll and the
-side-slip gain where they act):
+``v_x`` (right +: the turns' side-slip and, on a side slope, the creep downhill):
 
     E' = E + Δ·(V·cos θ·sin ψ_m + v_x·cos ψ_m)   N' = N + Δ·(V·cos θ·cos ψ_m − v_x·sin ψ_m)
     ψ' = ψ − Ω·Δ      V' = V + Δ·(f_y − g·sin θ − ω·v_x)      θ' = θ + Δ·θ̇      φ' = φ + Δ·φ̇
