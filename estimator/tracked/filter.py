@@ -11,7 +11,7 @@ attitude is Z-X-Y Euler angles (heading, pitch ``θ`` nose up, roll ``φ`` right
 
 (a turn on a side slope turns the yaw rate into pitch rate). Over a tick ``Δ``, with the
 mid-tick heading ``ψ_m = ψ − Ω·Δ/2``, the hull's along-ground speed ``V`` and lateral speed
-``v_x`` (right +):
+``v_x`` (right +: the turns' side-slip and, on a side slope, the creep downhill):
 
     E' = E + Δ·(V·cos θ·sin ψ_m + v_x·cos ψ_m)   N' = N + Δ·(V·cos θ·cos ψ_m − v_x·sin ψ_m)
     ψ' = ψ − Ω·Δ      V' = V + Δ·(f_y − g·sin θ − ω·v_x)      θ' = θ + Δ·θ̇      φ' = φ + Δ·φ̇
@@ -83,9 +83,11 @@ def predict(
     q_diag: FloatArray,
     lateral_by_gain: FloatArray | None = None,
     tilt_rates_radps: tuple[FloatArray, FloatArray] | None = None,
+    lateral_by_roll: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """One tick of the model above; ``q_diag (k, n)`` is the process noise added to ``P``,
-    ``lateral_by_gain (k,)`` the derivative of ``v_x`` by the side-slip gain (0 if None),
+    ``lateral_by_gain (k,)`` and ``lateral_by_roll (k,)`` the derivatives of ``v_x`` by the
+    side-slip gain and by the roll (a side slope's creep; 0 if None),
     ``tilt_rates_radps`` the pitch and roll gyros' mean rates over the tick ``(k,)`` each
     (0 if None)."""
     k = x.shape[0]
@@ -119,6 +121,10 @@ def predict(
         F[:, S.EAST, S.SIDE_SLIP] = dt_s * c * lateral_by_gain
         F[:, S.NORTH, S.SIDE_SLIP] = -dt_s * s * lateral_by_gain
         F[:, S.SPEED, S.SIDE_SLIP] = -dt_s * w * lateral_by_gain
+    if lateral_by_roll is not None:
+        F[:, S.EAST, S.ROLL] = dt_s * c * lateral_by_roll
+        F[:, S.NORTH, S.ROLL] = -dt_s * s * lateral_by_roll
+        F[:, S.SPEED, S.ROLL] = -dt_s * w * lateral_by_roll
     P = F @ P @ np.swapaxes(F, 1, 2)
     idx = np.arange(N_STATES)
     P[:, idx, idx] += q_diag

@@ -55,7 +55,8 @@ class TrackedState(IntEnum):
     patches' departure from it, which dies out over ``ℓ``. ``SIDE_SLIP`` ``g_s`` is the
     ground's side-slip over what the configured lateral resistance ``μ_t`` gives (the turning
     pole ``g_s·L·|a_y|/(2·μ_t·g)`` ahead of the centre): learnt beside GNSS in turns, so that
-    a ground sliding more or less than configured is not read as a gyro scale error.
+    a ground sliding more or less than configured is not read as a gyro scale error; a side
+    slope's creep downhill (gravity's cross share against the same resistance) scales by it too.
     ``PITCH`` ``θ`` (rad, nose up +) is the hull's pitch on the ground it climbs, carried on
     the pitch gyro less its bias ``PITCH_GYRO_BIAS``: the tracks' speed is along the ground
     (the hull moves ``V·cos θ`` horizontally) and the forward accelerometer reads

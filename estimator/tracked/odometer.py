@@ -42,7 +42,14 @@ from estimator.tracked.params import VehicleParams
 from estimator.tracked.recognise import turn_radius_m
 from estimator.tracked.settings import TrackedEstimatorConfig
 
-__all__ = ["FACTOR_OF", "lateral_speed", "odometer_measurement", "paper_ratio", "turn_tightness"]
+__all__ = [
+    "FACTOR_OF",
+    "lateral_speed",
+    "odometer_measurement",
+    "paper_ratio",
+    "side_creep",
+    "turn_tightness",
+]
 
 GRAVITY_MPS2 = 9.80665
 M = MotionState
@@ -103,6 +110,30 @@ def side_slip(
     capped = g_s * free >= 0.5 * contact_length_m
     pole = np.where(capped, 0.5 * contact_length_m, g_s * free)
     return yaw_rate_radps * pole, np.where(capped, 0.0, yaw_rate_radps * free)
+
+
+def side_creep(
+    speed_mps: FloatArray,
+    roll_rad: FloatArray,
+    roll_band_rad: FloatArray,
+    lateral_resistance: FloatArray,
+    creep: float,
+    gain: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The hull's creep downhill on a side slope and its derivatives by the side-slip gain
+    and by the roll, each ``(k,)``: gravity's cross component ``g·sin φ`` against the
+    ground's lateral resistance ``μ_t·g`` sets the tracks' slip angle
+    ``β = k_c·sin φ/μ_t`` (``creep`` ``k_c``), so the hull moves right (downhill, ``φ``
+    right side down +) at ``v_c = g_s·k_c·|V|·sin φ_e/μ_t``. ``g_s`` (``gain``) is the
+    ground's side-slip over what the configured ``μ_t`` gives, the same ground as the
+    turns'. ``φ_e = sign φ·max(|φ| − b, 0)`` is the roll beyond the band ``b``
+    (``roll_band_rad``) that the roll's uncertainty spans: within it the roll cannot be told
+    from the lateral accelerometer's bias, and the creep and its derivatives are 0."""
+    beyond = np.maximum(np.abs(roll_rad) - roll_band_rad, 0.0)
+    phi_e = np.sign(roll_rad) * beyond
+    per_gain = creep * np.abs(speed_mps) * np.sin(phi_e) / lateral_resistance
+    by_roll = np.where(beyond > 0.0, gain * creep * np.abs(speed_mps) * np.cos(phi_e), 0.0)
+    return gain * per_gain, per_gain, by_roll / lateral_resistance
 
 
 def turn_tightness(sprocket_mps: FloatArray) -> FloatArray:

@@ -92,7 +92,11 @@ class TrackedEstimatorConfig:
 
     The hull's side-slip in turns is the configured ``μ_t``'s times a gain learnt beside
     GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
-    sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s.
+    sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s. On a side
+    slope the hull creeps downhill at a slip angle ``side_creep·sin φ/μ_t`` times that gain
+    (:func:`~estimator.tracked.odometer.side_creep`), ``φ`` the filter's roll beyond
+    ``creep_roll_sigmas`` of its 1-sigma: its variance and the lateral accelerometer's bias
+    (``lateral_accel_bias_std_mps2``, over ``g``), which the roll holds unseen on level ground.
 
     The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
     (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`),
@@ -178,6 +182,9 @@ class TrackedEstimatorConfig:
     ground_patch_m: float = 150.0
     initial_side_slip_std: float = 0.5
     side_slip_walk: float = 1e-3
+    side_creep: float = 0.05
+    creep_roll_sigmas: float = 2.0
+    lateral_accel_bias_std_mps2: float = 0.03
     gyro_noise_prior_pairs: float = 20.0
     gyro_noise_ratio_max: float = 9.0
     report_lag_ticks: int = 4

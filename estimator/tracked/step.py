@@ -22,6 +22,7 @@ from estimator.tracked.model import TrackedState as S
 from estimator.tracked.odometer import (
     lateral_speed,
     odometer_measurement,
+    side_creep,
     side_slip,
     turn_tightness,
 )
@@ -42,6 +43,7 @@ __all__ = [
     "TickOut",
     "accel_speed_var",
     "accel_steady",
+    "creep_roll_band",
     "fresh_patch_var",
     "hull_settled",
     "initial_filter",
@@ -415,13 +417,14 @@ def _fuse_gnss(
     inp: TickInputs,
     p: VehicleParams,
     cfg: TrackedEstimatorConfig,
-    lateral_pair: tuple[FloatArray, FloatArray | None],
+    lateral_parts: tuple[FloatArray, FloatArray | None, FloatArray | None],
     w: FloatArray,
     skip: BoolArray,
 ) -> tuple[BoolArray, BoolArray, FloatArray]:
     """Antenna position, then velocity; returns (used, gated, position NIS).
-    ``lateral_pair``: the lateral speed and its derivative by the side-slip gain (or None)."""
-    lateral, by_gain = lateral_pair
+    ``lateral_parts``: the lateral speed and its derivatives by the side-slip gain and by
+    the roll (each None outside the product mode)."""
+    lateral, by_gain, by_roll = lateral_parts
     k = f.x.shape[0]
     psi = f.x[:, S.HEADING]
     s, c = np.sin(psi), np.cos(psi)
@@ -463,6 +466,8 @@ def _fuse_gnss(
     Hv[:, 0, S.PITCH], Hv[:, 1, S.PITCH] = tilt * s, tilt * c
     if by_gain is not None:
         Hv[:, 0, S.SIDE_SLIP], Hv[:, 1, S.SIDE_SLIP] = c * by_gain, -s * by_gain
+    if by_roll is not None:
+        Hv[:, 0, S.ROLL], Hv[:, 1, S.ROLL] = c * by_roll, -s * by_roll
     std = np.where(np.isfinite(inp.gnss_vel_std_mps), inp.gnss_vel_std_mps, p.gnss_vel_std_mps)
     Rv = np.eye(2)[None] * (std**2)[:, None, None]
     # a fix whose position passed the gate is sound: its velocity is fused ungated
@@ -616,15 +621,33 @@ def _track_slip(
     return track, track_std, slip, std, valid, braked
 
 
+def creep_roll_band(f: Filter, cfg: TrackedEstimatorConfig) -> FloatArray:
+    """The roll band ``(k,)`` within which no creep is modelled: ``creep_roll_sigmas`` times
+    the roll's 1-sigma, ``√(P_φφ + (σ_b/g)²)``, ``σ_b`` the lateral accelerometer's bias
+    (``lateral_accel_bias_std_mps2``), which the roll takes in as a level ground's tilt."""
+    var = np.maximum(f.P[:, S.ROLL, S.ROLL], 0.0)
+    var = var + (cfg.lateral_accel_bias_std_mps2 / GRAVITY_MPS2) ** 2
+    return np.asarray(cfg.creep_roll_sigmas * np.sqrt(var))
+
+
 def _lateral(
     f: Filter, state: IntArray, w: FloatArray, p: VehicleParams, cfg: TrackedEstimatorConfig
-) -> tuple[FloatArray, FloatArray | None]:
-    """The hull's lateral speed ``(k,)`` by mode and (product) its derivative by the
-    side-slip gain (:func:`~estimator.tracked.odometer.side_slip`)."""
+) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+    """The hull's lateral speed ``(k,)`` by mode and (product) its derivatives by the
+    side-slip gain and by the roll: the turns' side-slip
+    (:func:`~estimator.tracked.odometer.side_slip`) and a side slope's creep
+    (:func:`~estimator.tracked.odometer.side_creep`)."""
     v = f.x[:, S.SPEED]
     if not cfg.learns:
-        return lateral_speed(cfg.mode, state, v, w, p.length_m, p.lateral_resistance), None
-    return side_slip(v, w, p.length_m, p.lateral_resistance, f.x[:, S.SIDE_SLIP])
+        lateral = lateral_speed(cfg.mode, state, v, w, p.length_m, p.lateral_resistance)
+        return lateral, None, None
+    gain = f.x[:, S.SIDE_SLIP]
+    slip, slip_by_gain = side_slip(v, w, p.length_m, p.lateral_resistance, gain)
+    band = creep_roll_band(f, cfg)
+    creep, creep_by_gain, by_roll = side_creep(
+        v, f.x[:, S.ROLL], band, p.lateral_resistance, cfg.side_creep, gain
+    )
+    return slip + creep, slip_by_gain + creep_by_gain, by_roll
 
 
 def accel_steady(f: Filter, inp: TickInputs, cfg: TrackedEstimatorConfig) -> TickInputs:
@@ -650,16 +673,16 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     inp = accel_steady(f, inp, cfg)
     w = yaw_rate(f.x, gyro)
     state, conf = recognise(f, inp, p, cfg, w)
-    lateral, by_gain = _lateral(f, state, w, p, cfg)
+    lateral, by_gain, by_roll = _lateral(f, state, w, p, cfg)
     ratio = noise_ratio(f.gyro_standing, p, cfg) if cfg.learns else np.ones_like(w)
     q = _q_diag(cfg, p, lateral, ratio, inp.imu_samples)
     tilt = (np.nan_to_num(inp.pitch_rate_radps), np.nan_to_num(inp.roll_rate_radps))
-    f.x, f.P = predict(f.x, f.P, gyro, pull, lateral, cfg.tick_s, q, by_gain, tilt)
+    f.x, f.P = predict(f.x, f.P, gyro, pull, lateral, cfg.tick_s, q, by_gain, tilt, by_roll)
     _fuse_lateral_force(f, inp, p, cfg, gyro)
     _ground_patch(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
-    used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain), w, fresh)
+    used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain, by_roll), w, fresh)
     odo_used, corrected, factor_var, gain = _fuse_odometer(f, inp, p, cfg, state, w, pull)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
