@@ -1,7 +1,8 @@
 """Tracked-vehicle bench: the ``tracked`` estimator's modes against the crawler simulator.
 
 ``slipfleet bench tracked [--seeds 1,2] [--random N] [--random-from S]
-[--scenarios route_firm,route_soft] [--modes product,paper,…] [--flat] [--json PATH]``
+[--scenarios route_firm,route_soft,route_firm_hill] [--modes product,paper,…] [--flat]
+[--json PATH]``
 simulates every scenario once per seed (:mod:`estimator.sim.tracked`), and ``--random N``
 adds N random routes (seeds S, S + 1, …; S = 1000 by default), then feeds every run to each mode
 side by side (``--modes`` picks some, ``product`` always among them): ``product``,
@@ -315,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--random-from", type=int, default=1000, help="seed of the first one")
     ap.add_argument(
         "--scenarios",
-        default="route_firm,route_soft",
+        default="route_firm,route_soft,route_firm_hill",
         help="named scenarios, comma-separated ('' for none)",
     )
     ap.add_argument(
