@@ -169,10 +169,6 @@ class _Calibrated:
     fields: dict[str, FloatArray]
     """The calibration's row fields (``CALIBRATION_FIELDS``), shape (k,) each; NaN in paper
     mode."""
-    settle_accel: FloatArray
-    """The acceleration the settling rule judges each wheel by [m/s²]: the wheel's own ground
-    acceleration after the round (:meth:`MdsfFleet._wheel_accel`; product mode), the filter's
-    ``a1`` on both wheels (paper mode)."""
 
 
 class MdsfFleet:
@@ -398,7 +394,6 @@ class MdsfFleet:
             res = {name: getattr(so, name) for name in _STEP_COLS}
             rim, rim_std, rim_cov = _filtered_rims(so, cal.rim, cal.rim_std)
             scale, uncal, cal_out = cal.scale, cal.uncalibrated, cal.fields
-            settle_accel = cal.settle_accel
         else:
             emit = np.zeros(total, dtype=bool)
             flags = np.zeros(total, dtype=np.int32)
@@ -407,7 +402,6 @@ class MdsfFleet:
             scale = np.ones((total, 2))
             uncal = np.zeros((total, 2), dtype=bool)
             cal_out = {c: np.full(total, np.nan) for c in _CAL_FIELDS}
-            settle_accel = np.zeros((total, 2))
         for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so, cal = self._calibrated_step(due.slots[:c], tin, rim[fi], rim_std[fi], min_speed[fi])
@@ -417,7 +411,6 @@ class MdsfFleet:
             flags[fi] = so.flags
             rim[fi], rim_std[fi], rim_cov[fi] = _filtered_rims(so, cal.rim, cal.rim_std)
             scale[fi], uncal[fi] = cal.scale, cal.uncalibrated
-            settle_accel[fi] = cal.settle_accel
             for name in _CAL_FIELDS:
                 cal_out[name][fi] = cal.fields[name]
         radius = radius * scale
@@ -431,7 +424,7 @@ class MdsfFleet:
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
             rim_cov,
         )
-        settling = sp.valid & self._settling(flat, row_slot, ground, settle_accel, still_ns)
+        settling = sp.valid & self._settling(flat, row_slot, ground, res["accel"], still_ns)
         # product mode: a slip whose std is beyond the bound (or unknown) is no reading, not
         # valid (paper mode keeps the source's rule: any slip above the standstill speed)
         certain = (sp.std_pct <= self.config.valid_slip_std_max_pct) | (not self._product)
@@ -458,11 +451,7 @@ class MdsfFleet:
     ) -> BoolArray:
         """Rows ``(m, 2)`` starting or stopping faster than the wheel fit follows (``SETTLING``:
         no slip value): the ground speed changing by more than the settle bound over the fit's
-        span, or a start from standstill less than ``_START_SPANS`` spans ago. ``accel`` is
-        each wheel's acceleration, shape ``(m, 2)``: in product mode its contact point's
-        (what its rim follows), not the IMU's, whose ``a1 = a0 − h0·ω̇x`` carries a swaying
-        cab's pitch (metres per second squared at 1-3 Hz on these masts, against a bound of
-        0.1-0.3 m/s² at a crawl)."""
+        span, or a start from standstill less than ``_START_SPANS`` spans ago."""
         fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
         span = np.where(
             fitted[:, None],
@@ -473,7 +462,9 @@ class MdsfFleet:
         starting = ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span) & (
             max_change < _SETTLE_OFF
         )[:, None]
-        settling: BoolArray = unsettled(ground, accel, span, max_change[:, None]) | starting
+        settling: BoolArray = (
+            unsettled(ground, accel[:, None], span, max_change[:, None]) | starting
+        )
         return settling
 
     def _calibrated_step(
@@ -492,8 +483,7 @@ class MdsfFleet:
             so = self.engine.step(slots, tin, rim, rim_std)
             nan = {name: np.full(slots.shape[0], np.nan) for name in _CAL_FIELDS}
             ones, no = np.ones(rim.shape), np.zeros(rim.shape, bool)
-            a1 = np.repeat(so.accel[:, None], 2, axis=1)
-            return so, _Calibrated(rim, rim_std, ones, no, nan, a1)
+            return so, _Calibrated(rim, rim_std, ones, no, nan)
         fix = self._record_inputs(slots, tin)
         fixed = self._apply_calibration(slots, tin, fix)
         scale, wheel_offset_s = bank.wheel_correction(slots)
@@ -504,10 +494,7 @@ class MdsfFleet:
         self._wheel_accel(slots, so)
         self._learn_calibration(slots, tin, fixed, so, rim, rim_std, min_speed)
         fields = bank.row_fields(slots, self._radius_m[slots])
-        wheel_accel = self._wheel_accel_mps2[slots].copy()
-        return so, _Calibrated(
-            rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields, wheel_accel
-        )
+        return so, _Calibrated(rim_c, rim_std_c, scale, bank.uncalibrated(slots), fields)
 
     def _wheel_accel(self, slots: IntArray, so: StepOutput) -> None:
         """Each wheel's ground acceleration ``a_w`` (slots, 2) after a round: the rate of its
