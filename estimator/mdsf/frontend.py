@@ -304,7 +304,13 @@ _COURSE_MIN_SPEED_MPS = 0.2
 _FIRST_COURSE_LEVER_SHARE = 0.3
 """Largest lever-arm speed, over the antenna's, at which a course starts (``_course_update``)."""
 _COURSE_LEVER_SHARE = 0.1
-"""Lever-arm speed, over the antenna's, from which ``O``'s course stands for the heading."""
+"""Lever-arm speed, over the antenna's (RMS each, :data:`_COURSE_LP_TAU_S`), from which
+``O``'s course stands for the heading."""
+_COURSE_LP_TAU_S = 2.0
+"""Time constant [s] of what ``_TiltTrack._course_lowpass`` low-passes: longer than a sway's
+period (0.3-3 Hz), so the lever arm's share is the sway's size, not its phase at a fix, and
+the antenna's mean velocity is ``O``'s (the lever arm's moves it by its travel, centimetres,
+over the time constant)."""
 
 
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
@@ -520,6 +526,9 @@ class FleetFrontEnd:
         grow("course_rad", (), np.nan)
         grow("course_fix_ns", (), np.int64(0))  # last fix whose velocity pulled it
         grow("course_gyro_bias", (), 0.0)  # yaw-gyro bias learnt against that course
+        # low-passed at the fixes (_COURSE_LP_TAU_S): the squared horizontal speeds of the
+        # antenna's lever arm and of the antenna, the antenna's east and north velocity
+        grow("course_lp", (4,), np.nan)
         grow("hold", (10,), np.nan)  # latest GNSS row: stamp, e, n, u, ve, vn, vu, ψ, θ, φ
         grow("has_frame", (), False)
         grow("origin", (3,), np.nan)  # lat_deg, lon_deg, height_m of the ENU frame
@@ -588,6 +597,7 @@ class FleetFrontEnd:
     course_rad: FloatArray
     course_fix_ns: IntArray
     course_gyro_bias: FloatArray
+    course_lp: FloatArray
     hold: FloatArray
     has_frame: BoolArray
     origin: FloatArray
@@ -661,6 +671,7 @@ class FleetFrontEnd:
         self.course_rad[slot] = np.nan
         self.course_fix_ns[slot] = 0
         self.course_gyro_bias[slot] = 0.0
+        self.course_lp[slot] = np.nan
         self.hold[slot] = np.nan
         self.has_frame[slot] = False
         self.origin[slot] = np.nan
@@ -1743,7 +1754,8 @@ class _TiltState:
     stood, the sums since it (``acc``, :class:`~estimator.tilt.PitchSum`); the same for roll
     (``ph``, ``by``, ``rcov`` as :class:`~estimator.tilt.AngleCov`, ``racc`` as
     :class:`~estimator.tilt.RollSum`); a receiver without heading's course and its yaw-gyro
-    bias (``course``, ``cbias``, :meth:`_TiltTrack._course_update`)."""
+    bias (``course``, ``cbias``, :meth:`_TiltTrack._course_update`) and what it low-passes
+    (``clp``, shape ``(k, 4)``: :meth:`_TiltTrack._course_lowpass`)."""
 
     th: FloatArray
     var: FloatArray
@@ -1763,6 +1775,7 @@ class _TiltState:
     course: FloatArray
     cfix_ns: IntArray
     cbias: FloatArray
+    clp: FloatArray
 
     @classmethod
     def take(cls, fe: FleetFrontEnd, s: IntArray) -> _TiltState:
@@ -1786,6 +1799,7 @@ class _TiltState:
             course=fe.course_rad[s],
             cfix_ns=fe.course_fix_ns[s],
             cbias=fe.course_gyro_bias[s],
+            clp=fe.course_lp[s],
         )
 
     def put(self, fe: FleetFrontEnd, s: IntArray) -> None:
@@ -1808,6 +1822,7 @@ class _TiltState:
         fe.course_rad[s] = self.course
         fe.course_fix_ns[s] = self.cfix_ns
         fe.course_gyro_bias[s] = self.cbias
+        fe.course_lp[s] = self.clp
 
 
 class _TiltTrack:
@@ -1921,10 +1936,13 @@ class _TiltTrack:
         ``_VEL_PITCH_MIN_SPEED_MPS`` on, fix to fix (a gap without a course would wind it up),
         and the pull is ``(v/_VEL_PITCH_MIN_SPEED_MPS)²`` of it below that (the direction's
         noise grows as ``1/v``). A course not pulled for ``reacquire_s`` (an outage, a stop)
-        starts anew. Replaces ``g_heading`` of those fixes where ``O``'s speed is
-        at least ``_VEL_PITCH_MIN_SPEED_MPS`` and the lever arm's horizontal speed at least
-        ``_COURSE_LEVER_SHARE`` of the antenna's; elsewhere the antenna's own course is
-        ``O``'s to within that share and carries no integrated yaw-rate error.
+        starts anew, from the antenna's mean velocity (:meth:`_course_lowpass`) where that
+        is at least ``_COURSE_MIN_SPEED_MPS``. Replaces ``g_heading`` of those fixes where
+        ``O``'s mean speed is at least ``_COURSE_MIN_SPEED_MPS`` (where the course is
+        measured) and the lever arm's RMS horizontal speed at least ``_COURSE_LEVER_SHARE``
+        of the antenna's; elsewhere the antenna's own course is ``O``'s to within that share
+        and carries no integrated yaw-rate error. At a crawl the share is as large as at
+        speed (the sway grows with the speed), so the course is used there too.
         """
         st, b = self.st, self.b
         own = ~np.isfinite(b.g[fi, _G_HEAD])
@@ -1936,7 +1954,11 @@ class _TiltTrack:
         pred = st.course[r] - turn / np.maximum(np.cos(st.th[r]), 0.5)
         stale = (b.g_t[fi] - st.cfix_ns[r]) * _NS > self.cfg.reacquire_s
         pred = np.where(stale, np.nan, pred)
+        # none yet: the antenna's mean velocity's direction, the lever arm's swing averaged out
+        mean_course = self._course_lowpass(fi, r)
+        pred = np.where(np.isfinite(pred), pred, mean_course)
         course, speed, seen, share = self._course_measured(fi, r, pred)
+        share = self._course_lowpass(fi, r, share)
         tau_cfg = dataclasses.replace(self.cfg, attitude_tau_s=self.cfg.course_tau_s)
         # the interval since the previous fix: the time its IMU samples span
         prev_ns = b.g_t[fi] - np.rint(st.acc[r, PitchSum.TIME] / _NS).astype(np.int64)
@@ -1948,9 +1970,42 @@ class _TiltTrack:
         )
         st.cbias[r] = np.where(seen & (speed >= _VEL_PITCH_MIN_SPEED_MPS), bias, bz)
         st.cfix_ns[r] = np.where(seen, b.g_t[fi], st.cfix_ns[r])
-        used = np.isfinite(st.course[r]) & (speed >= _VEL_PITCH_MIN_SPEED_MPS)
-        used &= share >= _COURSE_LEVER_SHARE
+        used = np.isfinite(st.course[r]) & (share >= _COURSE_LEVER_SHARE)
+        used &= np.isfinite(mean_course)  # O's mean speed at least _COURSE_MIN_SPEED_MPS
         b.g_heading[fi] = np.where(used, st.course[r], b.g_heading[fi])
+
+    def _course_lowpass(
+        self, fi: IntArray, r: IntArray, share: FloatArray | None = None
+    ) -> FloatArray:
+        """Low-pass at fixes ``fi`` (rows ``r``) over ``_COURSE_LP_TAU_S``, the first value
+        taken as it is: without ``share``, the antenna's east and north velocity, and returns
+        its direction (NaN under ``_COURSE_MIN_SPEED_MPS``); with the fix's own lever-arm
+        ``share`` (:meth:`_course_measured`), the squared speeds of the lever arm and the
+        antenna, and returns the RMS share (the fix's own where there is none yet). A fix's
+        own share follows the sway's phase, and with the GNSS clock not yet known its rates
+        are a fraction of a sway off: near a zero of the rates a swaying mast read small."""
+        st, b = self.st, self.b
+        ve, vn = b.g[fi, _G_VE], b.g[fi, _G_VN]
+        cols = slice(2, 4) if share is None else slice(0, 2)
+        if share is None:
+            now = np.stack([ve, vn], axis=1)
+        else:
+            v2 = ve**2 + vn**2
+            with np.errstate(invalid="ignore"):  # a standing antenna's share: not a number
+                now = np.stack([share**2 * v2, v2], axis=1)
+        ok = b.g_vel_ok[fi] & np.isfinite(now).all(axis=1)
+        dt = st.acc[r, PitchSum.TIME]
+        alpha = (dt / (_COURSE_LP_TAU_S + dt))[:, None]
+        old = st.clp[r, cols]
+        new = np.where(np.isfinite(old), old + alpha * (now - old), now)
+        st.clp[r, cols] = np.where(ok[:, None], new, old)
+        lp = st.clp[r, cols]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if share is None:
+                moving = np.hypot(lp[:, 0], lp[:, 1]) >= _COURSE_MIN_SPEED_MPS
+                return np.where(moving, np.arctan2(lp[:, 0], lp[:, 1]), np.nan)
+            rms = np.sqrt(lp[:, 0] / lp[:, 1])
+        return np.where(np.isfinite(rms), rms, share)
 
     def _course_measured(
         self, fi: IntArray, r: IntArray, pred: FloatArray
