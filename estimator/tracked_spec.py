@@ -3,6 +3,7 @@ odometer-corrected dead reckoning through GNSS outages."""
 
 from __future__ import annotations
 
+import math
 from enum import IntFlag
 
 from estimator.spec import (
@@ -21,7 +22,10 @@ from estimator.spec import (
     flags_from,
 )
 
-__all__ = ["MOTION_STATES", "TRACKED_SPEC", "TrackedFlag"]
+__all__ = ["MOTION_STATES", "SIDE_SLOPE_ALERT_RAD", "TRACKED_SPEC", "TrackedFlag"]
+
+#: |roll| above which (held 2 s) a crawler is alerted of a steep side slope: 15°.
+SIDE_SLOPE_ALERT_RAD = math.radians(15.0)
 
 #: Labels of ``motion_state`` by value (``estimator.tracked.model.MotionState``).
 MOTION_STATES = ("stop", "straight", "low_straight", "arc", "separated", "pivot", "heading_jump")
@@ -111,8 +115,24 @@ _FIELDS = (
         "of standing ticks); above the data sheet's, it widens the heading's and bias's noise",
     ),
     _f("gyro_arw_std_deg_rt_h", "°/√h", "gyro ARW σ", "1-sigma of gyro_arw_deg_rt_h"),
+    _f(
+        "pitch_rad",
+        "rad",
+        "pitch",
+        "hull's pitch on the ground it stands on, nose up + (NaN until the filter has measured "
+        "it: its 1-sigma above tilt_reported_std_rad)",
+    ),
+    _f("pitch_std_rad", "rad", "pitch σ", "1-sigma of pitch_rad"),
+    _f(
+        "roll_rad",
+        "rad",
+        "roll",
+        "hull's roll on a side slope, right side down + (NaN until the filter has measured it)",
+    ),
+    _f("roll_std_rad", "rad", "roll σ", "1-sigma of roll_rad"),
 )
-# The calibration's fields come after ``flags``: rows stored before them convert by appending.
+# The calibration's fields come after ``flags``, the attitude's after them: rows stored before
+# either convert by appending.
 # Rows are given one tick late, up to ``report_lag_ticks`` (4 ticks, 0.4 s) while a state change
 # is under way: the change is dated where the ratios or the yaw acceleration left their band
 # (estimator.tracked.lag).
@@ -184,6 +204,8 @@ TRACKED_SPEC = EstimatorSpec(
         "DEAD_RECKONING",
         east_std_field="east_std_m",
         north_std_field="north_std_m",
+        pitch_field="pitch_rad",
+        roll_field="roll_rad",
     ),
     states=(
         StateChannel(
@@ -221,6 +243,7 @@ TRACKED_SPEC = EstimatorSpec(
             "sprockets", "Sprocket speeds", "m/s", ("sprocket_left_mps", "sprocket_right_mps")
         ),
         ChartSpec("yaw", "Yaw rate", "rad/s", ("yaw_rate_radps",)),
+        ChartSpec("attitude", "Pitch and roll", "rad", ("pitch_rad", "roll_rad")),
     ),
     ok_flag="GNSS_OK",
     degraded_flags=("DEAD_RECKONING",),
@@ -254,6 +277,16 @@ TRACKED_SPEC = EstimatorSpec(
                 slip=side,
             )
             for side in ("left", "right")
+        ),
+        # a crawler on a steep side slope risks rolling over: 15° held 2 s is a design choice
+        # (a margin well inside the static rollover angle of a low, wide hull), not a measurement
+        AlertRule(
+            "side_slope",
+            "steep side slope (rollover risk)",
+            "roll_rad",
+            above=SIDE_SLOPE_ALERT_RAD,
+            absolute=True,
+            hold_s=2.0,
         ),
         AlertRule(
             "long_dead_reckoning",

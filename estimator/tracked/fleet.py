@@ -152,6 +152,11 @@ def _rows(f: Filter, out: TickOut, inp: TickInputs, cfg: TrackedEstimatorConfig)
         "flags": _flags(f, out, cfg.uncertain_below, inp),
     }
     cols["gyro_arw_deg_rt_h"], cols["gyro_arw_std_deg_rt_h"] = arw_fields(f.gyro_standing, cfg)
+    for name, index in (("pitch", S.PITCH), ("roll", S.ROLL)):
+        std = np.sqrt(np.maximum(P[:, index, index], 0.0))
+        known = std <= cfg.tilt_reported_std_rad
+        cols[f"{name}_rad"] = np.where(known, x[:, index], np.nan)
+        cols[f"{name}_std_rad"] = np.where(known, std, np.nan)
     for name, value in cols.items():
         rows[name] = value
     return rows

@@ -88,7 +88,8 @@ class TrackedEstimatorConfig:
     The roll ``φ`` (on the roll gyro, from ``initial_tilt_std_rad``) is measured every tick by
     the lateral accelerometer, ``−ω·V − g·cos θ·sin φ``, within its white noise and
     ``lateral_force_std_mps2`` of what that model leaves out (the side-slip's changes, the
-    lever arms).
+    lever arms). A row gives the pitch or roll once its 1-sigma is at most
+    ``tilt_reported_std_rad`` (NaN before: the prior, not a measurement).
 
     The hull's side-slip in turns is the configured ``μ_t``'s times a gain learnt beside
     GNSS (the filter's ``SIDE_SLIP``), 1 ± ``initial_side_slip_std`` at first (grounds resist
@@ -163,6 +164,7 @@ class TrackedEstimatorConfig:
     initial_speed_std_mps: float = 0.2
     initial_gyro_bias_std_radps: float = 1e-3
     initial_tilt_std_rad: float = 0.2
+    tilt_reported_std_rad: float = 0.05
     lateral_force_std_mps2: float = 0.3
     initial_gyro_scale_std: float = 0.005
     initial_factor_std: float = 0.03

@@ -30,8 +30,8 @@ stamps are wall-clock times (:meth:`AlertEngine.set_system_condition`).
 that names a slip channel takes the place of that channel's ``slip`` rule (a crawler's track
 slip band: a braked track's −100 % in a pivot is no alert). A rule's limit and hold time are
 the spec's unless ``rule_limits`` sets them (``{"tracked:long_dead_reckoning": {"hold_s":
-60}}``). Examples: a crawler's track slip out of its band, dead reckoning held too long, a low
-friction μ.
+60}}``). Examples: a crawler's track slip out of its band, dead reckoning held too long, a
+crawler on a steep side slope (its ``|roll|``), a low friction μ.
 
 A NaN slip (standstill, invalid) does not hold. ``start_ns`` is the sensor stamp where the
 condition began (for ``stale``: the vehicle's last stamp), ``end_ns`` where it stopped (for

@@ -7,7 +7,7 @@ recorded in ``schema_version``. A migration is frozen once released: later schem
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
 :data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`,
-:data:`FRICTION_FIELDS_V16`, :data:`TRACKED_FIELDS_V17`); tests
+:data:`FRICTION_FIELDS_V16`, :data:`TRACKED_FIELDS_V17`, :data:`TRACKED_FIELDS_V18`); tests
 compare them with today's specs, and the stores refuse a spec that no longer matches its
 recorded table, so a spec change forces a new migration.
 
@@ -18,7 +18,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 17):
+Schema (version 18):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -31,7 +31,8 @@ Schema (version 17):
     by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
     ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
     ``reference_speed`` since version 10, ``friction`` since version 12 (its position
-    appended by version 16), ``tracked`` since 13 (its online calibration appended by 17).
+    appended by version 16), ``tracked`` since 13 (its online calibration appended by 17,
+    the hull's attitude by 18).
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -91,6 +92,7 @@ __all__ = [
     "SQLITE_PACKED_FIELDS",
     "TRACKED_FIELDS_V13",
     "TRACKED_FIELDS_V17",
+    "TRACKED_FIELDS_V18",
     "Execute",
     "Migration",
     "Step",
@@ -665,33 +667,68 @@ TRACKED_FIELDS_V17: tuple[tuple[str, str], ...] = (
 )
 
 
-def _v17_tracked_calibration(dialect: str) -> tuple[Step, ...]:
-    """Append the tracked row's calibration fields to its tables, NaN in the rows stored
-    before (nothing was measured then, as far as the rows say). SQLite: NaN's little-endian
-    bytes appended to each packed row, staged or final; PostgreSQL: ``NOT NULL`` columns
-    filled with NaN, no default kept."""
-    added = TRACKED_FIELDS_V17[len(TRACKED_FIELDS_V13) :]
+def _append_f8_fields(
+    estimator: str,
+    table: str,
+    before: tuple[tuple[str, str], ...],
+    after: tuple[tuple[str, str], ...],
+    dialect: str,
+) -> tuple[Step, ...]:
+    """Steps that append ``after``'s fields beyond ``before`` (all ``f8``) to an estimator's
+    tables (``table`` and, on SQLite, ``table``'s staged ``…_recent``), NaN in the rows stored
+    before, and record ``after`` as its field list. SQLite: NaN's little-endian bytes appended
+    to each packed row, staged or final; PostgreSQL: ``NOT NULL`` columns filled with NaN, no
+    default kept."""
+    added = after[len(before) :]
+    if after[: len(before)] != before or any(kind != "f8" for _, kind in added):
+        raise ValueError(f"{estimator}: only f8 fields may be appended")
     record = (
-        f"UPDATE estimator_tables SET fields = '{fields_json(TRACKED_FIELDS_V17)}' "
-        "WHERE estimator = 'tracked'"
+        f"UPDATE estimator_tables SET fields = '{fields_json(after)}' "
+        f"WHERE estimator = '{estimator}'"
     )
     if dialect == "postgresql":
         steps: list[Step] = []
         for name, _ in added:
             steps.append(
-                f"ALTER TABLE estimates_tracked ADD COLUMN {name} double precision "
-                "NOT NULL DEFAULT 'NaN'"
+                f"ALTER TABLE {table} ADD COLUMN {name} double precision NOT NULL DEFAULT 'NaN'"
             )
-            steps.append(f"ALTER TABLE estimates_tracked ALTER COLUMN {name} DROP DEFAULT")
+            steps.append(f"ALTER TABLE {table} ALTER COLUMN {name} DROP DEFAULT")
         return (*steps, record)
     nan = "X'" + _NAN_F8_LE * len(added) + "'"
     return (
         # ``||`` yields text; the cast gives its bytes back unchanged as a blob
         *(
-            f"UPDATE {table} SET packed = CAST(packed || {nan} AS BLOB)"
-            for table in ("estimates_tracked", "estimates_tracked_recent")
+            f"UPDATE {t} SET packed = CAST(packed || {nan} AS BLOB)"
+            for t in (table, f"{table}_recent")
         ),
         record,
+    )
+
+
+def _v17_tracked_calibration(dialect: str) -> tuple[Step, ...]:
+    """Append the tracked row's calibration fields to its tables, NaN in the rows stored
+    before (nothing was measured then, as far as the rows say)."""
+    return _append_f8_fields(
+        "tracked", "estimates_tracked", TRACKED_FIELDS_V13, TRACKED_FIELDS_V17, dialect
+    )
+
+
+#: The tracked row as version 18 made its table: version 17's with the hull's attitude
+#: appended (pitch and roll and their 1-sigma, ``TRACKED_SPEC``'s position channel).
+TRACKED_FIELDS_V18: tuple[tuple[str, str], ...] = (
+    *TRACKED_FIELDS_V17,
+    ("pitch_rad", "f8"),
+    ("pitch_std_rad", "f8"),
+    ("roll_rad", "f8"),
+    ("roll_std_rad", "f8"),
+)
+
+
+def _v18_tracked_attitude(dialect: str) -> tuple[Step, ...]:
+    """Append the tracked row's pitch and roll (and their 1-sigma) to its tables, NaN in the
+    rows stored before (the rows gave no attitude then)."""
+    return _append_f8_fields(
+        "tracked", "estimates_tracked", TRACKED_FIELDS_V17, TRACKED_FIELDS_V18, dialect
     )
 
 
@@ -823,6 +860,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "tracked rows carry the gyro's noise measured standing",
         _v17_tracked_calibration("sqlite"),
         _v17_tracked_calibration("postgresql"),
+    ),
+    Migration(
+        18,
+        "tracked rows carry the hull's pitch and roll",
+        _v18_tracked_attitude("sqlite"),
+        _v18_tracked_attitude("postgresql"),
     ),
 )
 

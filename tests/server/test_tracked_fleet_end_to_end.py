@@ -4,8 +4,10 @@ server (embedded router, pipeline) → a real SQLite store → REST.
 ``sim-0001`` is a tractor (MDSF), ``sim-0002`` a crawler (kind ``tracked``) driving the demo's
 route (:func:`server.tooling.tracked_fleet.demo_route`: every motion state, GNSS lost for 40 s),
 sending GNSS, IMU, odometer and both sprockets' edges. Its tracked rows are stored, served by
-series (JSON, CSV, Parquet), by the report (time and distance per motion state, slip per state
-and per track) and raise the long-dead-reckoning alert; the tractor's MDSF rows are untouched.
+series (JSON, CSV, Parquet) with the hull's pitch and roll (near level on the demo's flat
+ground), by the report (time and distance per motion state, slip per state and per track) and
+raise the long-dead-reckoning alert (no side-slope one); the tractor's MDSF rows are
+untouched.
 ``sim-0003``, a crawler with bad input, sends odometer edges going backwards (refused with
 their reason) and no sprockets at all (the stream counted stalled; its ticks counted without
 a sprocket, no slip): nothing of it reaches the filter as data.
@@ -107,6 +109,11 @@ def _check_crawler_rows(client: httpx.Client, window: dict[str, int], t0: int) -
     t = (stamps - t0) / 1e9
     reckoned = (flags & TrackedFlag.DEAD_RECKONING) != 0
     assert reckoned[(t > a + 2) & (t < a + d)].all() and not reckoned[t < a - 1][10:].any()
+    # the hull's attitude, from the first second on: the demo route is level ground
+    for name in ("pitch_rad", "roll_rad", "pitch_std_rad", "roll_std_rad"):
+        assert np.isfinite(rows[name][t > 1.0]).all(), name
+    assert np.abs(rows["pitch_rad"][t > 1.0]).max() < 0.03
+    assert np.abs(rows["roll_rad"][t > 1.0]).max() < 0.03
     csv = client.get(
         "/api/v1/vehicles/sim-0002/series",
         params={**window, "estimator": "tracked", "format": "csv"},
@@ -143,6 +150,7 @@ def _check_crawler_report(client: httpx.Client, window: dict[str, int]) -> None:
     assert turn["left"] > turn["right"]  # a right turn: the outer (left) track drives
     kinds = {a["kind"] for a in client.get("/api/v1/alerts").json()["alerts"]}
     assert "rule:tracked:long_dead_reckoning" in kinds, kinds
+    assert "rule:tracked:side_slope" not in kinds, kinds  # level ground
 
 
 def _check_tractor(client: httpx.Client, window: dict[str, int]) -> int:

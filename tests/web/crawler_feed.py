@@ -9,7 +9,9 @@ The rows follow the wall clock so a test can say what the page must show at any 
   (``DEAD_RECKONING``, position 1-σ growing 0.5 m a second), the others fused with GNSS
   (``GNSS_OK``, 1-σ :data:`FIX_STD_M`); every third state is flagged ``STATE_UNCERTAIN``;
   its odometer factor is 0.95 + 0.04·sin(east / 50 m) (a map layer informed while GNSS is);
-  its gyro's angle random walk measured standing is :data:`GYRO_ARW_DEG_RT_H` (converged).
+  its gyro's angle random walk measured standing is :data:`GYRO_ARW_DEG_RT_H` (converged); it
+  climbs a steady grade (pitch :data:`PITCH_RAD`) across a side slope rolling
+  :func:`crawler_roll_rad` (within ±0.1 rad, under the side-slope alert).
 * steered vehicle: μ is informed (``INFORMED``, 0.8 ± 0.02) in every other :data:`MU_S`-second
   stretch and held at 0.8 (``HELD``, no σ) in the others; grip used per wheel is
   :data:`GRIP_PCT`.
@@ -36,6 +38,8 @@ MU_S = 3
 FIX_STD_M = 0.3
 GRIP_PCT = {"fl": 20.0, "fr": 45.0, "rl": 70.0, "rr": 95.0}
 GYRO_ARW_DEG_RT_H = (0.4, 0.03)  # the crawler's gyro noise measured standing, converged (< 10 %)
+PITCH_RAD = 0.06
+ATTITUDE_STD_RAD = 0.003
 _NS = 1_000_000_000
 _STATES = len(TRACKED_SPEC.states[0].states)
 
@@ -55,6 +59,11 @@ def crawler_sigma_m(stamp_ns: int) -> float:
     if not crawler_carried(stamp_ns):
         return FIX_STD_M
     return FIX_STD_M + 0.5 * (stamp_ns % (CARRIED_S * _NS)) / _NS
+
+
+def crawler_roll_rad(t_s: np.ndarray) -> np.ndarray:
+    """The crawler's roll at ``t_s`` (seconds into the hour), rad."""
+    return 0.1 * np.sin(t_s / 10.0)
 
 
 def mu_informed(stamp_ns: int) -> bool:
@@ -82,6 +91,8 @@ def tracked_rows(stamps_ns: np.ndarray) -> np.ndarray:
     r["heading_rad"] = np.pi / 2
     r["east_std_m"] = r["north_std_m"] = sigma
     r["gyro_arw_deg_rt_h"], r["gyro_arw_std_deg_rt_h"] = GYRO_ARW_DEG_RT_H
+    r["pitch_rad"], r["roll_rad"] = PITCH_RAD, crawler_roll_rad(t_s)
+    r["pitch_std_rad"] = r["roll_std_rad"] = ATTITUDE_STD_RAD
     flags = TrackedFlag.SLIP_LEFT_VALID | TrackedFlag.SLIP_RIGHT_VALID
     bits = np.where(
         carried, int(flags | TrackedFlag.DEAD_RECKONING), int(flags | TrackedFlag.GNSS_OK)

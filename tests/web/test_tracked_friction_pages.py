@@ -29,6 +29,7 @@ from tests.web.crawler_feed import (
     FIX_STD_M,
     GRIP_PCT,
     GYRO_ARW_DEG_RT_H,
+    PITCH_RAD,
     STEERED,
     CrawlerFeed,
     crawler_sigma_m,
@@ -107,6 +108,27 @@ def test_the_crawler_page_draws_its_state_band_from_the_spec(
         ".map(s => s.label)"
     )
     assert labels == ["left track slip", "right track slip"]
+
+
+def test_the_crawler_page_charts_its_pitch_and_roll_from_the_spec(
+    live_stack: LiveStack, feed: CrawlerFeed, page: Any
+) -> None:
+    """The tracked spec's attitude chart: pitch and roll, in radians with the unit on its axis,
+    the feed's values (a steady grade across a side slope rolling ±0.1 rad)."""
+    page.goto(live_stack.base_url + f"/#/vehicle/{CRAWLER}")
+    chart = "document.getElementById('chart-tracked-attitude')?._uplot"
+    page.wait_for_function(f"{chart}?.data[0].length > 20")
+    got = page.evaluate(
+        f"""() => {{ const u = {chart};
+        const finite = (i) => u.data[i].filter(Number.isFinite);
+        return {{labels: u.series.slice(1).map(s => s.label), axis: u.axes[1].label,
+                 pitch: finite(1), roll: finite(2)}};
+        }}"""
+    )
+    assert got["labels"] == ["pitch", "roll"]
+    assert got["axis"] == "pitch and roll (rad)"
+    assert len(got["pitch"]) > 20 and all(p == pytest.approx(PITCH_RAD) for p in got["pitch"])
+    assert all(abs(r) <= 0.1 + 1e-9 for r in got["roll"]) and max(got["roll"]) > min(got["roll"])
 
 
 def test_the_crawler_map_dashes_dead_reckoning_and_draws_its_uncertainty(

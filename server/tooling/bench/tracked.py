@@ -41,6 +41,10 @@ Metrics per run and mode
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
     driven in it; the worst outage of the run), and the largest error within it.
+``pitch_rms_mrad`` / ``roll_rms_mrad`` (and ``…_max_mrad``, ``…_z_rms``)
+    The rows' hull attitude against the terrain's (mrad) over the rows that give it
+    (``attitude_pct`` of the rows), and the RMS of each error over the row's own 1-sigma (1
+    where that 1-sigma is honest); printed for the product in a table of their own.
 ``dr_nees``
     Median over the second half of that outage of the position's NEES per degree of freedom
     (``dᵀ C⁻¹ d / 2`` with the row's east-north covariance ``C``; printed as ``NEES``): about
@@ -177,13 +181,51 @@ def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str,
     return worst
 
 
+def _attitude_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
+    """Pitch and roll errors (mrad) where the rows give them, and their RMS over the rows' σ."""
+    given = np.isfinite(rows["pitch_rad"]) & np.isfinite(rows["roll_rad"])
+    out: dict[str, Any] = {"attitude_pct": 100.0 * float(given.mean()) if given.size else 0.0}
+    for name in ("pitch", "roll"):
+        err = (rows[f"{name}_rad"] - getattr(run.truth, f"{name}_rad")[idx])[given]
+        z = err / rows[f"{name}_std_rad"][given]
+        some = err.size > 0
+        out[f"{name}_rms_mrad"] = 1e3 * float(np.sqrt(np.mean(err**2))) if some else float("nan")
+        out[f"{name}_max_mrad"] = 1e3 * float(np.max(np.abs(err))) if some else float("nan")
+        out[f"{name}_z_rms"] = float(np.sqrt(np.mean(z**2))) if some else float("nan")
+    return out
+
+
 def _metrics(run: TrackedRun, rows: np.ndarray) -> dict[str, Any]:
     idx = run.index_at(rows["stamp_ns"])
     return {
         **_state_metrics(run, rows, idx),
         **_slip_metrics(run, rows, idx),
         **_dr_metrics(run, rows, idx),
+        **_attitude_metrics(run, rows, idx),
     }
+
+
+def _attitude_table(labels: list[str], product: list[dict[str, Any]]) -> None:
+    """The product's attitude per run, and median / p95 / worst over the runs."""
+    print(
+        f"\nattitude, product  {'given%':>6} {'pitch rms/max mrad':>18} {'z rms':>5} "
+        f"{'roll rms/max mrad':>17} {'z rms':>5}"
+    )
+    for label, m in zip(labels, product, strict=True):
+        print(
+            f"{label:<18} {m['attitude_pct']:6.1f} {m['pitch_rms_mrad']:8.2f}/"
+            f"{m['pitch_max_mrad']:<9.2f} {m['pitch_z_rms']:5.2f} {m['roll_rms_mrad']:7.2f}/"
+            f"{m['roll_max_mrad']:<9.2f} {m['roll_z_rms']:5.2f}"
+        )
+    for name in ("pitch", "roll"):
+        rms = [m[f"{name}_rms_mrad"] for m in product if np.isfinite(m[f"{name}_rms_mrad"])]
+        z = [m[f"{name}_z_rms"] for m in product if np.isfinite(m[f"{name}_z_rms"])]
+        if rms:
+            print(
+                f"product {name} RMS mrad over runs: median {np.median(rms):.2f}, "
+                f"p95 {np.percentile(rms, 95):.2f}, worst {np.max(rms):.2f}; "
+                f"error/σ RMS median {np.median(z):.2f}, worst {np.max(z):.2f}"
+            )
 
 
 def _floors(m: dict[str, Any], run: TrackedRun) -> list[str]:
@@ -292,6 +334,7 @@ def run(
     for mode in (m for m in (TrackedMode.PRODUCT, TrackedMode.PAPER) if m in modes):
         cm = sum(np.array(m["confusion"]) for m in per_mode[mode.value])
         _confusion(f"confusion, {mode.value}", np.asarray(cm))
+    _attitude_table([e["run"] for e in results["runs"]], per_mode["product"])
     _summary(results, failures, per_mode["product"])
     print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in results["seconds"].items()))
     write_json(results, json_path)

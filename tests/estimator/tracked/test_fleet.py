@@ -84,6 +84,9 @@ def test_batched_equals_per_vehicle(mode: TrackedMode) -> None:
                 assert np.allclose(a[name], b[name], rtol=0, atol=1e-9, equal_nan=True), name
             else:
                 assert np.array_equal(a[name], b[name]), name
+    # the attitude is compared where it is given, not only as NaN on both sides
+    hill = batched["d"]
+    assert np.isfinite(hill["pitch_rad"]).sum() > 300 and np.isfinite(hill["roll_rad"]).sum() > 300
 
 
 @cache

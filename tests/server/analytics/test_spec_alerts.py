@@ -1,9 +1,11 @@
 """The specs' own alert rules on the real AlertEngine: a crawler's track slip out of its band
-(a braked track's −100 % in a pivot is none), dead reckoning held too long, a low friction μ;
+(a braked track's −100 % in a pivot is none), dead reckoning held too long, a crawler on a steep
+side slope (and none on the simulator's hilly route), a low friction μ;
 their limits and hold times set per server (``rule_limits``)."""
 
 from __future__ import annotations
 
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -11,7 +13,9 @@ import pytest
 
 from estimator.config import SlipConfig
 from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
+from estimator.sim.tracked import simulate_tracked
 from estimator.spec import AlertRule, EstimatorSpec, SpecError
+from estimator.tracked import TrackedFleet
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 from estimator.types import EstimateBatch
 from server.analytics.alerts import Alert, AlertEngine, flag_kind, rule_kind, slip_kind
@@ -97,6 +101,45 @@ def test_a_short_outage_is_no_long_dead_reckoning() -> None:
     rows["flags"] = np.where(outage, int(F.DEAD_RECKONING), int(F.GNSS_OK))
     kinds = [a.kind for a in _run(TRACKED_SPEC, rows)]
     assert kinds == [flag_kind("tracked", "DEAD_RECKONING")]
+
+
+def test_a_steep_side_slope_held_past_its_hold_alerts_on_either_side() -> None:
+    rows = _tracked(20.0, roll_rad=0.05, pitch_rad=0.02)
+    rows["flags"] = int(F.GNSS_OK)
+    t = (rows["stamp_ns"] - T0) / S
+    rows["roll_rad"][(t >= 2.0) & (t < 3.5)] = 0.3  # 17° for 1.5 s: under the hold
+    steep = (t >= 6.0) & (t < 10.0)
+    rows["roll_rad"][steep] = -np.linspace(0.27, 0.33, steep.sum())  # left side down, 4 s
+    rows["roll_rad"][(t >= 14.0) & (t < 18.0)] = np.nan  # no attitude: nothing holds
+    alerts = _run(TRACKED_SPEC, rows)
+    assert [a.kind for a in alerts] == [rule_kind("tracked", "side_slope")]
+    (a,) = alerts
+    assert a.start_ns == T0 + 6 * S and a.end_ns == T0 + 10 * S
+    assert a.threshold == pytest.approx(np.radians(15.0)) and a.peak == pytest.approx(0.33)
+    wider = {"tracked:side_slope": {"above": 0.35}}
+    assert _run(TRACKED_SPEC, rows, rule_limits=wider) == []
+
+
+@cache
+def _hill_rows() -> np.ndarray:
+    """The tracked estimator's rows of ``route_firm_hill`` seed 1 (10 % ramps, 5 % side
+    slopes, a 4-minute GNSS outage), 0.1 s apart."""
+    run = simulate_tracked("route_firm_hill", 1)
+    fleet = TrackedFleet()
+    fleet.add_vehicle("c1", run.config)
+    for _, m in run.measurements:
+        fleet.push("c1", m)
+    parts = [rows for _, rows in fleet.advance({"c1": run.measurements[-1][0]})]
+    return np.concatenate([*parts, fleet.flush("c1")])
+
+
+def test_the_hilly_route_raises_no_side_slope_alert() -> None:
+    rows = _hill_rows()
+    roll = rows["roll_rad"]
+    assert rows.size > 5000 and np.nanmax(np.abs(roll)) > 0.04  # it stood on its side slopes
+    kinds = [a.kind for a in _run(TRACKED_SPEC, rows)]
+    assert rule_kind("tracked", "side_slope") not in kinds
+    assert rule_kind("tracked", "long_dead_reckoning") in kinds  # the engine saw the rows
 
 
 def _friction(mu: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ from tests.server.storage.appended_fields import (
     spec_before,
 )
 from tests.server.storage.conftest import Backend
+from tests.server.storage.test_tracked_attitude_migration import spec_before_attitude
 
 _ADDED = appended_names(TRACKED_FIELDS_V13, TRACKED_FIELDS_V17)
 _VERSION = next(
@@ -32,8 +33,9 @@ _VERSION = next(
 
 
 def _spec_before() -> EstimatorSpec:
-    """The tracked spec as it was before the calibration: version 13's fields, none."""
-    return spec_before(TRACKED_SPEC, TRACKED_FIELDS_V13, _ADDED, calibrations=())
+    """The tracked spec as it was before the calibration: version 13's fields, none (and no
+    attitude, which came later)."""
+    return spec_before(spec_before_attitude(), TRACKED_FIELDS_V13, _ADDED, calibrations=())
 
 
 def test_rows_stored_before_read_back_without_a_calibration(

@@ -25,6 +25,9 @@ from server.live.viewer.scene import (
     fleet_frame,
     is_crawler,
     positioned,
+    rotate,
+    rotation_matrix_from_wxyz,
+    wxyz_from_attitude,
 )
 from server.settings import ViewerSettings
 from tests.support import free_port
@@ -87,6 +90,24 @@ def test_a_crawler_is_a_hull_between_two_tracks_coloured_by_their_slip() -> None
         f.body_position_m[0],
         ground + np.array([CRAWLER_BODY_CENTRE_M[1], 0.0, CRAWLER_BODY_CENTRE_M[2]]),
     )
+
+
+def test_a_crawler_on_a_side_slope_is_posed_by_its_pitch_and_roll() -> None:
+    g = VehicleGeometry(h0_m=1.0, h1_m=1.0, track_width_m=2.0)
+    rows = np.concatenate([_crawler(10.0, 20.0), _crawler(10.0, 20.0)])
+    rows["pitch_rad"][0], rows["roll_rad"][0] = 0.1, 0.2  # nose up, right side down
+    rows["pitch_std_rad"][0] = rows["roll_std_rad"][0] = 0.003
+    f = fleet_frame(["c", "d"], rows, TRACKED_SPEC, g)  # "d": no attitude yet (NaN), level
+    np.testing.assert_allclose(f.body_wxyz[0], wxyz_from_attitude(np.pi / 2, 0.1, 0.2))
+    np.testing.assert_allclose(f.body_wxyz[1], wxyz_from_attitude(np.pi / 2, 0.0, 0.0))
+    left, right = f.wheel_position_m[0], f.wheel_position_m[1]
+    # the right track lies lower than the left by the gauge times the right axis's fall,
+    # cos θ·sin φ (scene.py's R); level, side by side
+    assert left[2] - right[2] == pytest.approx(2.0 * np.cos(0.1) * np.sin(0.2), rel=1e-9)
+    assert f.wheel_position_m[2][2] == pytest.approx(f.wheel_position_m[3][2], abs=1e-12)
+    # facing east, nose up: the hull's forward axis climbs east
+    forward = rotate(rotation_matrix_from_wxyz(f.body_wxyz[:1]), (0.0, 1.0, 0.0))[0]
+    np.testing.assert_allclose(forward, [np.cos(0.1), 0.0, np.sin(0.1)], atol=1e-12)
 
 
 def test_tyres_of_a_spec_with_grip_are_coloured_by_it_where_placed() -> None:
