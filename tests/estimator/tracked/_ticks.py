@@ -6,6 +6,8 @@ from typing import Any
 
 import numpy as np
 
+from estimator.sim.tracked import TrackedRun
+from estimator.tracked import TrackedEstimatorConfig, TrackedFleet
 from estimator.tracked.vehicle import TickInputs
 
 
@@ -45,3 +47,17 @@ def quiet_tick(n: int, tick_ns: int, **fields: Any) -> TickInputs:
         "gnss_age_s": zero,
     }
     return TickInputs(**{**base, **fields})
+
+
+def run_to_first_outage(run: TrackedRun) -> tuple[TrackedFleet, list[tuple[str, np.ndarray]]]:
+    """A default-configured :class:`~estimator.tracked.TrackedFleet` fed a simulated run
+    (``simulate_tracked``) up to its first GNSS outage; returns the fleet (vehicle ``"v"``)
+    and the rows it gave, as ``advance`` returns them."""
+    fleet = TrackedFleet(TrackedEstimatorConfig())
+    fleet.add_vehicle("v", run.config)
+    loss_ns = run.outages_ns[0][0]
+    for key_ns, m in run.measurements:
+        if key_ns > loss_ns:
+            break
+        fleet.push("v", m)
+    return fleet, fleet.advance({"v": loss_ns})

@@ -12,7 +12,7 @@ import pytest
 
 from estimator.config import TrackedConfig
 from estimator.sim.tracked import simulate_tracked
-from estimator.tracked import TrackedEstimatorConfig, TrackedFleet
+from estimator.tracked import TrackedEstimatorConfig
 from estimator.tracked.filter import GRAVITY_MPS2, predict
 from estimator.tracked.model import N_STATES
 from estimator.tracked.model import TrackedState as S
@@ -20,7 +20,7 @@ from estimator.tracked.odometer import side_creep
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.step import TickOut, creep_roll_band, initial_filter, tick_step
 
-from ._ticks import quiet_tick
+from ._ticks import quiet_tick, run_to_first_outage
 
 SECOND = 1_000_000_000
 
@@ -97,14 +97,8 @@ def _hill_before_outage() -> tuple[np.ndarray, np.ndarray]:
     """``route_firm_hill[3]`` up to its outage: the truth's lateral speed, roll and yaw rate
     ``(n, 3)`` at each row's tick, and the filter's lateral speed ``(n,)``."""
     run = simulate_tracked("route_firm_hill", 3)
-    fleet = TrackedFleet(TrackedEstimatorConfig())
-    fleet.add_vehicle("v", run.config)
-    loss_ns = run.outages_ns[0][0]
-    for key_ns, m in run.measurements:
-        if key_ns > loss_ns:
-            break
-        fleet.push("v", m)
-    rows = np.concatenate([r for _, r in fleet.advance({"v": loss_ns})])
+    _, out = run_to_first_outage(run)
+    rows = np.concatenate([r for _, r in out])
     k = run.index_at(rows["stamp_ns"])
     tr = run.truth
     truth = np.stack([tr.lateral_mps[k], tr.roll_rad[k], tr.yaw_rate_radps[k]], axis=1)

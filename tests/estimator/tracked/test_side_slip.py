@@ -6,21 +6,15 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.sim.tracked import CrawlerSensors, simulate_tracked
-from estimator.tracked import TrackedEstimatorConfig, TrackedFleet
 from estimator.tracked import TrackedState as S
+
+from ._ticks import run_to_first_outage
 
 
 def test_a_slippery_grounds_side_slip_is_learnt_not_put_on_the_gyro() -> None:
     # lateral resistance 0.39 against 0.6 configured; the gyro the data sheet's (grade 1)
     run = simulate_tracked("random", 1038, sensors=CrawlerSensors())
-    fleet = TrackedFleet(TrackedEstimatorConfig())
-    fleet.add_vehicle("v", run.config)
-    loss_ns = run.outages_ns[0][0]
-    for key_ns, m in run.measurements:
-        if key_ns > loss_ns:
-            break
-        fleet.push("v", m)
-    fleet.advance({"v": loss_ns})
+    fleet, _ = run_to_first_outage(run)
     x, P = fleet.filter_state("v")
     expected = run.config.motion.lateral_resistance / run.route.ground.lateral_resistance
     assert abs(x[S.SIDE_SLIP] - expected) < 0.15 * expected
