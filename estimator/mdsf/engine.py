@@ -44,6 +44,9 @@ __all__ = ["Counter", "MdsfEngine", "StepOutput", "TickModel"]
 _NS = 1e-9
 _SLIP_MIN_SPEED_MPS = 0.5
 """Speed floor of the constant-slip-ratio growth of the rim excess."""
+_OUTAGE_SLIP_RATIO_RANGE = (-1.0, 1.0)
+"""Range of the slip ratio ``ε = e/V`` an outage's rim excess reverts to: from a locked wheel
+(``r·W = 0``) to one turning twice as fast as the ground passes (slip 50 %)."""
 _F = EstimateFlag
 _RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
 _RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
@@ -725,6 +728,10 @@ class MdsfEngine:
 
         ``e' = φ·g·e + (1 − φ)·ε_a·V1``: ``ε_a = ε_0 + k·f/g`` the anchored slip at zero
         demand (:meth:`_set_slip_anchor`) plus the tyre model's slip at this tick's demand,
+        held to a rolling wheel's range (``_OUTAGE_SLIP_RATIO_RANGE``, [−1, 1]: an anchor
+        fused only while creeping, ``e/V1`` at a few cm/s, can be any size, and with a rim row
+        pinning ``V1 + e`` the process would feed the speed's error back ×``|φ − (1 − φ)·ε_a|``
+        a tick, above 1 for ``ε_a < −1``),
         ``φ = exp(−dt/outage_slip_tau_s)``, ``g`` the constant-slip growth; the added variance
         ``(1 − φ²)·(outage_slip_std·|V1|)²`` has the tyre's slip range as its stationary
         value. The bias state walks faster (``outage_bias_walk_mps2_per_sqrt_s``: it also
@@ -736,7 +743,9 @@ class MdsfEngine:
         keep = np.where(lost, phi, 1.0)[:, None]
         F[:, _RIM_EXCESS, _RIM_EXCESS] *= keep
         F[:, _RIM_EXCESS, MdsfState.ACCEL_BIAS] *= keep
-        target = self.slip_anchor[slots] + self._demand_slip(slots)[:, None]
+        target = np.clip(
+            self.slip_anchor[slots] + self._demand_slip(slots)[:, None], *_OUTAGE_SLIP_RATIO_RANGE
+        )
         F[:, _RIM_EXCESS, MdsfState.V1] += (1.0 - keep) * target
         var_max = (cfg.outage_slip_std * np.maximum(speed, _SLIP_MIN_SPEED_MPS)) ** 2
         Q[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(lost, (1.0 - phi * phi) * var_max, 0.0)[:, None]

@@ -10,13 +10,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from estimator.base import FleetEstimator
 from estimator.config import VehicleConfig, WheeledRearDriveConfig
 from estimator.mdsf import (
+    Counter,
     MdsfConfig,
     MdsfEngine,
     MdsfFilter,
@@ -426,10 +427,11 @@ def test_nis_and_nees_consistent_on_data_from_the_model() -> None:
     assert 0.8 < nees_sum / (count * n_veh * 4) < 1.25
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(
     seed=st.integers(0, 10_000), nan_rate=st.floats(0.0, 0.6), mode=st.sampled_from(list(MdsfMode))
 )
+@example(seed=1496, nan_rate=0.5, mode=MdsfMode.PRODUCT)  # a creeping anchor's outage (issue 25)
 def test_engine_covariance_stays_symmetric_positive_definite(
     seed: int, nan_rate: float, mode: MdsfMode
 ) -> None:
@@ -450,6 +452,8 @@ def test_engine_covariance_stays_symmetric_positive_definite(
         assert np.all(np.isfinite(P))
         assert np.allclose(P, np.swapaxes(P, 1, 2), rtol=0, atol=1e-12)
         assert np.all(np.linalg.eigvalsh(P) > 0)
+        # the inputs stay within ~20 m/s (GNSS N(3, 3), rims 3 ± 0.3): so must the speed
+        assert np.all(np.abs(eng.x[slots, MdsfState.V1]) < 50.0)
 
 
 def _standing_on_slope(
@@ -807,6 +811,46 @@ def test_outage_slip_reverts_to_its_anchor_with_bounded_variance() -> None:
     assert np.array_equal(F[1], np.eye(n)) and not Q[1].any()
     # stationary std of the process: the tyre's slip range
     assert Q[0, el, el] / (1 - phi * phi) == pytest.approx(var_max)
+
+
+def test_outage_slip_target_is_held_to_a_rolling_wheels_slip_ratios() -> None:
+    # An anchor far outside [-1, 1] (a creeping tick's e/V1; GNSS and rims disagreeing on the
+    # sign) reverts the rim excess to the range's end: F[e, V1] = (1 − φ)·clip(ε_a, −1, 1).
+    eng = MdsfEngine(MdsfConfig(slip_per_demand=0.0))
+    slots = np.array([eng.add(WheeledRearDriveConfig())])
+    eng.slip_anchor[slots] = [[79.0, -4.6]]
+    n = eng.n
+    F = np.eye(n)[None].copy()
+    eng._anchor_slip(slots, np.array([True]), np.array([0.5]), F, np.zeros((1, n, n)))
+    phi = math.exp(-eng.dt_s / eng.config.outage_slip_tau_s)
+    v1 = MdsfState.V1
+    assert F[0, MdsfState.RIM_EXCESS_LEFT, v1] == pytest.approx(1.0 - phi)
+    assert F[0, MdsfState.RIM_EXCESS_RIGHT, v1] == pytest.approx(-(1.0 - phi))
+
+
+def test_outage_after_a_creeping_anchor_keeps_the_speed_near_the_rims() -> None:
+    # GNSS fused once at 0.04 m/s while the rims read 3 m/s (anchored slip ratio ≈ 74), then
+    # GNSS and IMU lost, only the left rim, wiggling ±0.1 m/s. An anchor that large made the
+    # outage process a loop with gain |φ − (1 − φ)·ε_a| > 1 through the left rim's update
+    # (the speed, unpinned without IMU, takes the innovation; the excesses follow it ×ε_a):
+    # the speed ran to tens of m/s and the right excess to thousands.
+    cfg = MdsfConfig()
+    eng = MdsfEngine(cfg)
+    slots = np.array([eng.add(WheeledRearDriveConfig())])
+    r_diag = np.array([0.1, 0.05, 1e-4, 1e-4])
+    for k in range(60):
+        z = np.array([[0.04, 0.0, 0.0, 0.0]]) if k == 0 else np.full((1, 4), np.nan)
+        ti = _synthetic_inputs(z, r_diag, START + k * cfg.tick_ns)
+        ti.gnss_ok = np.isfinite(z[:, 0])
+        ti.imu_ok = np.isfinite(z[:, 1:]).all(axis=1)
+        rim = np.array([[3.0 + 0.1 * (-1) ** k, 3.0 if k == 0 else np.nan]])
+        eng.step(slots, ti, rim, np.full((1, 2), 0.01))
+        x = eng.x[slots[0]]
+        assert abs(x[MdsfState.V1]) < 3.5  # no faster than the rims turn
+        assert np.all(np.abs(x[[MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT]]) < 10.0)
+        assert np.all(np.linalg.eigvalsh(eng.P[slots[0]]) > 0)
+    assert eng.slip_anchor[slots[0], 0] > 50.0  # the anchor itself stays what the data said
+    assert eng.counts[slots[0], Counter.DEGRADED_TICKS] > 40
 
 
 def test_slip_anchor_is_the_speed_weighted_slip_ratio() -> None:
