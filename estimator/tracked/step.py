@@ -431,11 +431,14 @@ def _fuse_gnss(
     xa, ya = _antenna_right_m(f.x, p), _antenna_ahead_m(f.x, p)
     have = f.started & ~skip & np.isfinite(inp.gnss_pos_pair_m).all(axis=1)
     regain = have & (f.gated_s >= cfg.gnss_regain_s)
-    if regain.any():  # refused too long: the filter, not the fixes, is wrong; open up
+    if regain.any():  # refused too long: the filter, not the fixes, is wrong; open up, and
+        # start again from the next fix at speed (its course the heading: a heading that went
+        # wrong unseen, as by a jump of position, is otherwise read as a reversed speed)
         core = [S.EAST, S.NORTH, S.HEADING, S.SPEED]
         bump = np.zeros(N_STATES)
         bump[core] = np.diag(_initial_p(cfg))[core] * 100.0
         f.P = f.P + regain[:, None, None] * np.diag(bump)[None]
+        f.started = f.started & ~regain
     gate = np.where(regain, np.inf, cfg.gnss_gate_nis)
     H = np.zeros((k, 2, N_STATES))
     H[:, 0, S.EAST] = H[:, 1, S.NORTH] = 1.0
