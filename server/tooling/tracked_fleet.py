@@ -28,7 +28,7 @@ from server.tooling.fleet_sim import FleetSim, SimPacket, _Vehicle
 if TYPE_CHECKING:
     from estimator.sim.tracked import Route, TrackedRun
 
-__all__ = ["DEMO_ROUTE_NAME", "TrackedFleetSim", "demo_route", "simulate_route", "tracked_packets"]
+__all__ = ["DEMO_ROUTE_NAME", "TrackedFleetSim", "demo_route", "tracked_packets"]
 
 DEMO_ROUTE_NAME = "crawler_loop"
 #: GNSS outage of the demo route: ``(start_s, duration_s)``.
@@ -58,28 +58,6 @@ def demo_route() -> Route:
         Segment(M.STOP, 4.0, 0.0),
     )
     return Route(DEMO_ROUTE_NAME, segments, FIRM, (DEMO_OUTAGE_S,))
-
-
-def simulate_route(
-    route: Route, seed: int, start_ns: int, origin: tuple[float, float]
-) -> TrackedRun:
-    """One run of ``route`` (the default crawler config) from ``start_ns``, its ENU frame at
-    ``origin`` (latitude, longitude in degrees): the simulator's stages, as
-    :func:`estimator.sim.tracked.simulate_tracked` runs them for its named routes."""
-    import numpy as np
-
-    from estimator.config import TrackedConfig
-    from estimator.geo import EnuFrame
-    from estimator.sim.tracked import CrawlerSensors, TrackedRun
-    from estimator.sim.tracked.physics import integrate_route
-    from estimator.sim.tracked.sensors import draw_errors, emissions
-
-    rng = np.random.default_rng(seed)
-    config, sensors, frame = TrackedConfig(), CrawlerSensors(), EnuFrame(*origin, 10.0)
-    truth = integrate_route(route, config, rng)
-    errors = draw_errors(rng, truth.t_s.size, sensors)
-    sent = emissions(truth, config, sensors, errors, frame, route.outages_s, start_ns, rng)
-    return TrackedRun(route.name, seed, route, config, truth, errors, start_ns, frame, sent)
 
 
 def _packet(offset_ns: int, until_ns: int, group: list[Measurement]) -> SimPacket:
@@ -129,16 +107,16 @@ class TrackedFleetSim(FleetSim):
         super().__init__(session, n_vehicles, **kw)
 
     def _runs(self) -> list[TrackedRun]:
+        from estimator.geo import EnuFrame
+        from estimator.sim.tracked import simulate_route
+
         start_ns = self._clock()
         out = []
         for k in range(self._distinct):
             where = self.spread_origin(self._first - 1 + k)
-            origin = (where["origin_lat_deg"], where["origin_lon_deg"])
-            out.append(
-                simulate_route(
-                    self._routes[k % len(self._routes)], self._seed + k, start_ns, origin
-                )
-            )
+            frame = EnuFrame(where["origin_lat_deg"], where["origin_lon_deg"], 10.0)
+            route = self._routes[k % len(self._routes)]
+            out.append(simulate_route(route, self._seed + k, start_ns=start_ns, frame=frame))
         return out
 
     def _build(self) -> list[_Vehicle]:

@@ -24,7 +24,9 @@ import numpy as np
 import pytest
 
 from estimator.config import TrackedConfig
+from estimator.geo import EnuFrame
 from estimator.mdsf_spec import MDSF_SPEC as MDSF
+from estimator.sim.tracked import simulate_route
 from estimator.tracked_spec import MOTION_STATES, TrackedFlag
 from estimator.types import OdometerEdges
 from server.app_main import ServerThread, build_app
@@ -36,7 +38,6 @@ from server.tooling.tracked_fleet import (
     DEMO_OUTAGE_S,
     TrackedFleetSim,
     demo_route,
-    simulate_route,
     tracked_packets,
 )
 from tests.server.fleet_stack import stack_settings, wait_counted
@@ -68,7 +69,7 @@ def _publish(endpoints: list[str], prefix: str, t0: int) -> dict[str, int]:
 def _publish_bad(endpoints: list[str], prefix: str, t0: int) -> int:
     """``sim-0003``: a crawler's first seconds without its sprockets, and one odometer packet
     whose edges go backwards; the packets put."""
-    run = simulate_route(demo_route(), SEED, t0, (52.0, 5.7))
+    run = simulate_route(demo_route(), SEED, start_ns=t0, frame=EnuFrame(52.0, 5.7, 10.0))
     packets = [
         p
         for p in tracked_packets(run.measurements, run.start_ns)

@@ -46,6 +46,7 @@ __all__ = [
     "CrawlerTruth",
     "Route",
     "TrackedRun",
+    "simulate_route",
     "simulate_tracked",
     "tracked_scenarios",
 ]
@@ -161,8 +162,36 @@ def simulate_tracked(
     if flat:
         route = replace(route, terrain=FLAT)
     config = config or replace(drawn, gyro=gyro)
+    extra = np.random.default_rng((seed, 4))
+    return simulate_route(
+        route, seed, config=config, sensors=spec, start_ns=start_ns, rng=rng, extra_rng=extra
+    )
+
+
+def simulate_route(
+    route: Route,
+    seed: int,
+    *,
+    config: TrackedConfig | None = None,
+    sensors: CrawlerSensors | None = None,
+    start_ns: int = START_NS,
+    frame: EnuFrame = ORIGIN,
+    rng: np.random.Generator | None = None,
+    extra_rng: np.random.Generator | None = None,
+) -> TrackedRun:
+    """The simulator's stages on a given ``route``: the crawler's motion, the sensors' errors,
+    every packet from ``start_ns`` in ``frame``.
+
+    ``rng`` (default: a generator seeded ``seed``) draws the motion, errors and packets in
+    that order; ``extra_rng`` what the level-ground sensors never drew (without it the pitch
+    and roll gyros' biases and the GNSS up velocity's noise are 0,
+    :func:`~estimator.sim.tracked.sensors.emissions`). Defaults: :class:`TrackedConfig` and
+    :class:`CrawlerSensors`.
+    """
+    rng = np.random.default_rng(seed) if rng is None else rng
+    config = config or TrackedConfig()
+    spec = sensors or CrawlerSensors()
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
-    extra = np.random.default_rng((seed, 4))
-    meas = emissions(truth, config, spec, errors, ORIGIN, route.outages_s, start_ns, rng, extra)
-    return TrackedRun(name, seed, route, config, truth, errors, start_ns, ORIGIN, meas, spec)
+    meas = emissions(truth, config, spec, errors, frame, route.outages_s, start_ns, rng, extra_rng)
+    return TrackedRun(route.name, seed, route, config, truth, errors, start_ns, frame, meas, spec)

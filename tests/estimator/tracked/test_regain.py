@@ -10,12 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from estimator.config import TrackedConfig
 from estimator.geo import EnuFrame
-from estimator.sim.tracked import CrawlerSensors, TrackedRun
-from estimator.sim.tracked.physics import integrate_route
+from estimator.sim.tracked import TrackedRun, simulate_route
 from estimator.sim.tracked.route import FIRM, Route, Segment
-from estimator.sim.tracked.sensors import draw_errors, emissions
 from estimator.tracked import TrackedEstimatorConfig, TrackedFleet
 from estimator.tracked.model import MotionState as M
 
@@ -34,12 +31,7 @@ def _turning_loop(seed: int) -> TrackedRun:
         Segment(M.STOP, 5.0, 0.0),
     )
     route = Route("turning_loop", segments, FIRM, ())
-    rng = np.random.default_rng(seed)
-    config, sensors, frame = TrackedConfig(), CrawlerSensors(), EnuFrame(52.0, 5.6, 10.0)
-    truth = integrate_route(route, config, rng)
-    errors = draw_errors(rng, truth.t_s.size, sensors)
-    sent = emissions(truth, config, sensors, errors, frame, (), START_NS, rng)
-    return TrackedRun(route.name, seed, route, config, truth, errors, START_NS, frame, sent)
+    return simulate_route(route, seed, start_ns=START_NS, frame=EnuFrame(52.0, 5.6, 10.0))
 
 
 def _shifted(m: Any, d_ns: int) -> Any:

@@ -14,12 +14,13 @@ import httpx
 import numpy as np
 import pytest
 
-from estimator.sim.tracked import TrackedRun
+from estimator.geo import EnuFrame
+from estimator.sim.tracked import TrackedRun, simulate_route
 from estimator.types import OdometerEdges, SprocketEdges
 from server.protocol import Stream, decode, sensor_key
 from server.tooling.fleet_commands import demo
 from server.tooling.fleet_sim import SimPacket
-from server.tooling.tracked_fleet import demo_route, simulate_route, tracked_packets
+from server.tooling.tracked_fleet import demo_route, tracked_packets
 from tests.server.fleet_stack import stack_settings
 from tests.server.tooling.schedule_check import assert_schedule_patches_like_encoding
 from tests.support import free_port
@@ -32,7 +33,7 @@ CRAWLER_STREAMS = {Stream.GNSS, Stream.IMU, Stream.ODOMETER, Stream.SPROCKETS}
 
 @pytest.fixture(scope="module")
 def run() -> TrackedRun:
-    return simulate_route(demo_route(), seed=3, start_ns=T0, origin=(52.0, 5.6))
+    return simulate_route(demo_route(), 3, start_ns=T0, frame=EnuFrame(52.0, 5.6, 10.0))
 
 
 def _edges(packets: list[SimPacket], side: int | None) -> np.ndarray:
