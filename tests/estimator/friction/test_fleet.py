@@ -144,6 +144,37 @@ def test_reported_mu_std_by_hand() -> None:
     assert math.isnan(got[2])
 
 
+def test_a_held_mu_states_its_sigma_against_the_filter() -> None:
+    """A turn on μ 0.4 claims μ, then straight ahead nothing informs it: the held rows after
+    the claim state a finite 1-σ, at least the filter's move away from the held value."""
+    turn_then_straight = Manoeuvre(
+        "turn_then_straight",
+        LEAD_S + 5.0,
+        ((0.0, 50 * KMH), (1e4, 50 * KMH)),
+        (
+            (0.0, 0.0),
+            (LEAD_S, 0.0),
+            (LEAD_S + 0.3, math.radians(90)),
+            (LEAD_S + 2.5, math.radians(90)),
+            (LEAD_S + 2.8, 0.0),
+            (1e4, 0.0),
+        ),
+        ((0.0, 0.4), (1e4, 0.4)),
+    )
+    run = simulate_four_wheel([turn_then_straight], seeds=[11])[0]
+    fleet = FrictionFleet()
+    fleet.add_vehicle("v", run.config)
+    rows = _drive(fleet, [run], ["v"])["v"]
+    informed = (rows["flags"] & FrictionFlag.INFORMED) > 0
+    after = np.arange(informed.size) > np.flatnonzero(informed)[0]
+    held = after & ~informed
+    assert held.sum() > 50
+    assert np.all(np.isfinite(rows["mu_std"][held]))
+    moved = np.abs(rows["mu"] - rows["mu_filter"])[held]
+    assert np.all(rows["mu_std"][held] >= moved)
+    assert np.all(rows["mu_std"][held] > 0)
+
+
 def test_refuses_other_kinds() -> None:
     with pytest.raises(ConfigError, match="wheeled_4wd_steered"):
         FrictionFleet().add_vehicle("t", WheeledRearDriveConfig())
