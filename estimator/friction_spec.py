@@ -3,7 +3,8 @@ four-wheel vehicle, with whether the data inform it.
 
 ``mu`` is given only while the data inform it (``INFORMED``: its relative 1-σ below the
 estimator's bound and the tyres using enough of the grip); otherwise it holds the last
-informed value (``HELD``) and ``mu_std`` is NaN, never a drifting value. Per wheel: load,
+informed value (``HELD``), never a drifting value, and ``mu_std`` is that held value's 1-σ
+against the filter's posterior now (it grows as the filter moves away from it). Per wheel: load,
 slip (a slip channel, so reports, maps and colours read it), slip angle and the share of
 the grip in use. The position (GNSS antenna in the vehicle's ENU frame, dead-reckoned
 briefly between fixes and through short outages, ``DEAD_RECKONED``) makes μ a slip-map
@@ -49,7 +50,7 @@ class FrictionFlag(IntFlag):
     INFORMED = 1 << 0
     """The data inform μ now: ``mu`` is this tick's estimate with its ``mu_std``."""
     HELD = 1 << 1
-    """μ is not informed now: ``mu`` is the last informed value, held."""
+    """μ is not informed now: ``mu`` is the last informed value, held (``mu_std`` its 1-σ now)."""
     NO_UPDATE = 1 << 2
     """No measurement update this tick (too slow, or an input missing)."""
     GNSS_SPEED = 1 << 3
@@ -68,7 +69,8 @@ class FrictionFlag(IntFlag):
 
 _FLAG_TEXT = {
     "INFORMED": "the data inform μ now: mu is this tick's estimate with its mu_std",
-    "HELD": "μ not informed now: mu holds the last informed value (NaN before the first)",
+    "HELD": "μ not informed now: mu holds the last informed value (NaN before the first), "
+    "mu_std its 1-sigma against the filter now",
     "NO_UPDATE": "no measurement update this tick (below the minimum speed or an input missing)",
     "GNSS_SPEED": "GNSS velocity corrected the speed and side-slip on this tick",
     "MEE_FALLBACK": "paper mode: the MEE covariance was not positive definite, standard step",
@@ -113,7 +115,14 @@ def _wheel_fields() -> list[FieldSpec]:
 _FIELDS = (
     FieldSpec("stamp_ns", "i8", "ns", "time", "tick time, ns since the Unix epoch (UTC)"),
     FieldSpec("mu", "f8", "", "μ", "friction coefficient: informed estimate, or the last held"),
-    FieldSpec("mu_std", "f8", "", "μ σ", "1-sigma of mu while informed; NaN while held"),
+    FieldSpec(
+        "mu_std",
+        "f8",
+        "",
+        "μ σ",
+        "1-sigma of mu: the filter's while informed; while held, hypot(filter's, held − filter's "
+        "μ); NaN before the first informed μ",
+    ),
     FieldSpec("mu_filter", "f8", "", "μ (filter)", "the filter's μ this tick, informed or not"),
     FieldSpec("vx_mps", "f8", "m/s", "speed", "forward speed at the CG"),
     FieldSpec("vy_mps", "f8", "m/s", "lateral speed", "lateral speed at the CG (left +)"),

@@ -59,6 +59,7 @@ __all__ = [
     "mu_of",
     "mu_std_of",
     "mu_upper",
+    "reported_mu_std",
 ]
 
 MU_MIN, MU_MAX = 0.05, 1.6
@@ -288,6 +289,20 @@ def mu_std_of(state_mu: Values, std: Values, mode: FrictionMode) -> FloatArray:
     """μ's 1-σ from the state's (first order through ``exp`` in the product mode)."""
     scale = mu_of(state_mu, mode) if mode is FrictionMode.PRODUCT else 1.0
     return np.asarray(scale * np.asarray(std), dtype=np.float64)
+
+
+def reported_mu_std(mu_reported: Values, mu: Values, std: Values) -> FloatArray:
+    """The 1-σ of the reported μ ``(B,)``: ``√(σ² + (μ_rep − μ)²)``, with ``μ`` and ``σ`` the
+    filter's posterior mean and 1-σ this tick.
+
+    Against the posterior, the reported value's mean squared error is
+    ``E[(μ_rep − μ_true)²] = (μ_rep − μ)² + σ²``. While informed ``μ_rep = μ`` and it is the
+    filter's σ; while held (the last informed value) it grows as the filter moves away from
+    the held value (a new ground learnt before it is claimed) and with the filter's own σ (the
+    μ walk while nothing informs it), so a held μ is not stated surer than the data now allow.
+    NaN before the first informed tick (no value reported)."""
+    rep = np.asarray(mu_reported, dtype=np.float64)
+    return np.asarray(np.hypot(std, rep - np.asarray(mu, dtype=np.float64)), dtype=np.float64)
 
 
 def mu_upper(x: FloatArray, s: FloatArray, cfg: FilterConfig) -> FloatArray:

@@ -26,7 +26,6 @@ origin of its ENU frame. Rows: :data:`~estimator.friction_spec.FRICTION_SPEC`.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -58,6 +57,7 @@ from estimator.friction.filter import (
     mu_of,
     mu_std_of,
     mu_upper,
+    reported_mu_std,
 )
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.frontend import FrontEndConfig
@@ -288,7 +288,7 @@ class FrictionFleet:
         util: FloatArray,
         fresh: BoolArray,
     ) -> None:
-        """The rows ``out[at]``'s μ, its 1-σ (informed only), the held μ and the flags, for
+        """The rows ``out[at]``'s μ (informed, or the last informed held), its 1-σ and flags, for
         the round's vehicles in slots ``s`` at once."""
         t_ns, fe = tick
         cfg = self.config
@@ -301,8 +301,9 @@ class FrictionFleet:
         informed = self._slots.informed(s, ok, mu, cfg.informed_spread)
         self._slots.held_mu[s[informed]] = mu[informed]
         out["stamp_ns"][at] = t_ns
-        out["mu"][at] = np.where(informed, mu, self._slots.held_mu[s])
-        out["mu_std"][at] = np.where(informed, std, math.nan)
+        reported = np.where(informed, mu, self._slots.held_mu[s])
+        out["mu"][at] = reported
+        out["mu_std"][at] = reported_mu_std(reported, mu, std)
         out["mu_filter"][at] = mu
         out["vy_mps"][at] = st.x[:, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps
         out["flags"][at] = _flags(informed, st, fe, fresh, mode)

@@ -84,12 +84,14 @@ MODES = tuple(FrictionMode)
 
 @dataclass(frozen=True, slots=True)
 class Series:
-    """One run's μ through one filter: times [s], filter μ, reported μ, INFORMED flags."""
+    """One run's μ through one filter: times [s], filter μ, reported μ, INFORMED flags and the
+    reported μ's 1-σ (NaN while held; ``None`` where the filter states none)."""
 
     t_s: np.ndarray
     mu_filter: np.ndarray
     mu_reported: np.ndarray
     informed: np.ndarray
+    mu_std: np.ndarray | None = None
 
 
 def _random_base(seeds: Sequence[int]) -> int:
@@ -150,6 +152,7 @@ def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
                 a["mu_filter"],
                 a["mu"],
                 (a["flags"] & FrictionFlag.INFORMED) > 0,
+                a["mu_std"],
             )
         )
     return series
@@ -270,6 +273,101 @@ def score(r: FourWheelRun, s: Series) -> Score:
     )
 
 
+LOW_MU = 0.5
+"""The μ bands of the calibration table: true μ below it, and at or above it."""
+
+
+@dataclass(frozen=True, slots=True)
+class Calibration:
+    """One run's ticks from the manoeuvre's start, for the stated σ's calibration: the
+    normalised error ``(μ̂ − μ)/σ`` of the informed rows (μ̂ and σ as reported) and of the
+    held rows (the held μ against the truth now, with the σ the row states, or where it
+    states none, the σ stated at its last informed tick), and each row's true μ."""
+
+    z_informed: np.ndarray
+    mu_informed: np.ndarray
+    z_held: np.ndarray
+    mu_held: np.ndarray
+
+
+def _held_std(informed: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """The 1-σ stated at each row's last informed tick (NaN before the first)."""
+    idx = np.where(informed, np.arange(informed.size), -1)
+    last = np.maximum.accumulate(idx)
+    return np.where(last >= 0, std[np.maximum(last, 0)], math.nan)
+
+
+def calibration(r: FourWheelRun, s: Series) -> Calibration:
+    """The run's normalised errors (see :class:`Calibration`)."""
+    mu_true = np.interp(s.t_s, r.truth.t_s, r.truth.mu)
+    std = s.mu_std if s.mu_std is not None else np.full(s.t_s.size, math.nan)
+    seg = s.t_s >= r.manoeuvre.t0_s
+    stated = np.where(np.isfinite(std), std, _held_std(s.informed, std))
+    inf = seg & s.informed & np.isfinite(std)
+    held = seg & ~s.informed & np.isfinite(s.mu_reported) & np.isfinite(stated)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = (s.mu_reported - mu_true) / stated
+    return Calibration(z[inf], mu_true[inf], z[held], mu_true[held])
+
+
+def _cal_cells(z: np.ndarray) -> list[str]:
+    """Ticks, share within 2σ [%], NEES (``z²``) median and p95."""
+    if not z.size:
+        return ["0", "-", "-", "-"]
+    nees = z * z
+    return [
+        str(z.size),
+        f"{100 * float((np.abs(z) < 2.0).mean()):.1f}",
+        f"{float(np.median(nees)):.2f}",
+        f"{float(np.percentile(nees, 95)):.2f}",
+    ]
+
+
+def _cal_rows(
+    names: list[str], runs: list[FourWheelRun], cals: list[Calibration]
+) -> list[tuple[str, list[Calibration]]]:
+    """The table's rows: each manoeuvre (the random ones as one), then every run by μ band."""
+    rows = [
+        (name, [c for r, c in zip(runs, cals, strict=True) if _group(r) == name]) for name in names
+    ]
+    return [*rows, ("all", cals)]
+
+
+def _band(c: Calibration, low: bool) -> Calibration:
+    """The ticks of ``c`` whose true μ is in the band (below :data:`LOW_MU` or not)."""
+    a = (c.mu_informed < LOW_MU) == low
+    b = (c.mu_held < LOW_MU) == low
+    return Calibration(c.z_informed[a], c.mu_informed[a], c.z_held[b], c.mu_held[b])
+
+
+def _calibration_table(
+    runs: list[FourWheelRun], cals: list[Calibration], mode: str
+) -> dict[str, Any]:
+    """Print the stated σ's calibration of ``mode`` (ticks pooled over a manoeuvre's runs)."""
+    print(f"  calibration of the stated σ, {mode}: ticks, |μ̂ − μ| < 2σ [%], NEES median, p95")
+    head = ["informed", "≤2σ", "NEES50", "NEES95", "held", "≤2σ", "NEES50", "NEES95"]
+    print("  " + f"{'manoeuvre':18s}{'band':>7s}" + "".join(f"{h:>9s}" for h in head))
+    names = list(dict.fromkeys(_group(r) for r in runs))
+    out: dict[str, Any] = {}
+    for name, group in _cal_rows(names, runs, cals):
+        for band, low in (("<0.5", True), ("≥0.5", False)):
+            part = [_band(c, low) for c in group]
+            zi = np.concatenate([c.z_informed for c in part])
+            zh = np.concatenate([c.z_held for c in part])
+            if not zi.size and not zh.size:
+                continue
+            cells = _cal_cells(zi) + _cal_cells(zh)
+            out.setdefault(name, {})[band] = {"informed": cells[:4], "held": cells[4:]}
+            print("  " + f"{name:18s}{band:>7s}" + "".join(f"{c:>9s}" for c in cells))
+    return out
+
+
+def _group(r: FourWheelRun) -> str:
+    """A run's manoeuvre name, the random ones as ``random``."""
+    name: str = r.manoeuvre.name
+    return "random" if name.startswith("random") else name
+
+
 def _fmt(values: list[float], unit: str = "") -> str:
     v = np.array(values, dtype=float)
     if np.all(np.isnan(v)):
@@ -386,11 +484,19 @@ def _one_set(
     )
     for inputs, fn in inputs_of:
         t1 = time.process_time()
+        series = {m.value: fn(runs, m) for m in modes}
         scores = {
-            m.value: [score(r, s) for r, s in zip(runs, fn(runs, m), strict=True)] for m in modes
+            m: [score(r, s) for r, s in zip(runs, ss, strict=True)] for m, ss in series.items()
         }
         title = f"{label} seeds {list(seeds)} (+{random_n} random): {inputs} inputs"
         result[inputs] = _table(title, runs, scores, modes)
+        if inputs == "sensor":
+            result["calibration"] = {
+                m: _calibration_table(
+                    runs, [calibration(r, s) for r, s in zip(runs, ss, strict=True)], m
+                )
+                for m, ss in series.items()
+            }
         result[f"{inputs}_cpu_s"] = time.process_time() - t1
         if inputs == "sensor" and FrictionMode.PRODUCT in modes:
             floors = _floors(runs, scores[FrictionMode.PRODUCT.value])

@@ -24,6 +24,7 @@ from estimator.friction.filter import (
     initial_state,
     mu_of,
     mu_upper,
+    reported_mu_std,
 )
 from estimator.friction.frontend import FrontEndConfig, brake_slip_std, spin_up_slip
 from estimator.friction.model import Chassis, body_accelerations
@@ -115,7 +116,13 @@ def test_informed_logic_holds_the_last_informed_mu(runs: list[FourWheelRun]) -> 
         assert np.all(informed ^ held)
         assert np.all(np.isfinite(got["mu_std"][informed]))
         assert np.all(got["mu_std"][informed] / got["mu"][informed] < 0.04)
-        assert np.all(np.isnan(got["mu_std"][held]))
+        # a held μ states its 1-σ against the filter now: at least how far the filter has
+        # moved from it; none before the first informed μ
+        claimed = held & np.isfinite(got["mu"])
+        assert np.all(np.isnan(got["mu_std"][held & ~claimed]))
+        assert np.all(np.isfinite(got["mu_std"][claimed]))
+        moved = np.abs(got["mu"] - got["mu_filter"])[claimed]
+        assert np.all(got["mu_std"][claimed] >= moved)
         last = math.nan
         for mu, inf in zip(got["mu"], informed, strict=True):  # a held row repeats the last
             if not inf:
@@ -124,6 +131,48 @@ def test_informed_logic_holds_the_last_informed_mu(runs: list[FourWheelRun]) -> 
     # straight constant speed: the tyres use little grip; μ is not informed
     straight = rows["straight"]
     assert np.mean((straight["flags"] & FrictionFlag.INFORMED) > 0) < 0.05
+
+
+def test_reported_mu_std_by_hand() -> None:
+    """Informed (the reported μ is the filter's): the filter's σ. Held at 0.50 while the
+    filter reads 0.38 ± 0.05: √(0.05² + 0.12²) = 0.13. Nothing reported yet: NaN."""
+    got = reported_mu_std(
+        np.array([0.62, 0.50, math.nan]), np.array([0.62, 0.38, 0.6]), np.array([0.01, 0.05, 0.2])
+    )
+    assert got[0] == pytest.approx(0.01, abs=1e-15)
+    assert got[1] == pytest.approx(0.13, abs=1e-12)
+    assert math.isnan(got[2])
+
+
+def test_a_held_mu_states_its_sigma_against_the_filter() -> None:
+    """A turn on μ 0.4 claims μ, then straight ahead nothing informs it: the held rows after
+    the claim state a finite 1-σ, at least the filter's move away from the held value."""
+    turn_then_straight = Manoeuvre(
+        "turn_then_straight",
+        LEAD_S + 5.0,
+        ((0.0, 50 * KMH), (1e4, 50 * KMH)),
+        (
+            (0.0, 0.0),
+            (LEAD_S, 0.0),
+            (LEAD_S + 0.3, math.radians(90)),
+            (LEAD_S + 2.5, math.radians(90)),
+            (LEAD_S + 2.8, 0.0),
+            (1e4, 0.0),
+        ),
+        ((0.0, 0.4), (1e4, 0.4)),
+    )
+    run = simulate_four_wheel([turn_then_straight], seeds=[11])[0]
+    fleet = FrictionFleet()
+    fleet.add_vehicle("v", run.config)
+    rows = _drive(fleet, [run], ["v"])["v"]
+    informed = (rows["flags"] & FrictionFlag.INFORMED) > 0
+    after = np.arange(informed.size) > np.flatnonzero(informed)[0]
+    held = after & ~informed
+    assert held.sum() > 50
+    assert np.all(np.isfinite(rows["mu_std"][held]))
+    moved = np.abs(rows["mu"] - rows["mu_filter"])[held]
+    assert np.all(rows["mu_std"][held] >= moved)
+    assert np.all(rows["mu_std"][held] > 0)
 
 
 def test_refuses_other_kinds() -> None:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from server.tooling.bench.friction import Series, _floors, score
+from server.tooling.bench.friction import Series, _floors, calibration, score
 
 T0_S = 4.0
 
@@ -54,3 +54,22 @@ def test_the_claim_converges_when_an_informed_value_enters_the_band() -> None:
     assert _floors([_run()], [sc])["accelerate μ 0.8 within 5 % ≤ 1.52 s"]
     off = score(_run(), _series(np.where(t < 5.0, 0.6, 0.864), (t >= 5.0) & (t < 5.5)))
     assert math.isinf(off.conv_claim_s)
+
+
+def test_calibration_normalises_informed_and_held_rows_by_their_sigma() -> None:
+    """Informed from 5.0 to 6.0 s at 0.82 ± 0.01 (truth 0.8: z = 2), then held. Held rows
+    that state no σ are judged by the last informed σ (z = 2); rows that state one, by it."""
+    n = 700
+    t = np.arange(n) * 0.02
+    informed = (t >= 5.0) & (t < 6.0)
+    s = _series(np.full(n, 0.82), informed)
+    std = np.where(informed, 0.01, np.nan)
+    cal = calibration(_run(), Series(s.t_s, s.mu_filter, s.mu_reported, informed, std))
+    assert cal.z_informed.size == 50
+    assert np.allclose(cal.z_informed, 2.0)
+    assert cal.z_held.size == int((t >= 6.0).sum())
+    assert np.allclose(cal.z_held, 2.0)
+    stated = np.where(informed, 0.01, 0.04)
+    cal = calibration(_run(), Series(s.t_s, s.mu_filter, s.mu_reported, informed, stated))
+    assert np.allclose(cal.z_held, 0.5)
+    assert np.all(np.abs(cal.mu_held - 0.8) < 1e-12)
