@@ -13,8 +13,8 @@ The rows follow the wall clock so a test can say what the page must show at any 
   climbs a steady grade (pitch :data:`PITCH_RAD`) across a side slope rolling
   :func:`crawler_roll_rad` (within ±0.1 rad, under the side-slope alert).
 * steered vehicle: μ is informed (``INFORMED``, 0.8 ± 0.02) in every other :data:`MU_S`-second
-  stretch and held at 0.8 (``HELD``, no σ) in the others; grip used per wheel is
-  :data:`GRIP_PCT`.
+  stretch and held at 0.8 (``HELD``, 1-σ 0.15: the filter at 0.65 now) in the others; grip
+  used per wheel is :data:`GRIP_PCT`.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def friction_rows(stamps_ns: np.ndarray) -> np.ndarray:
     r["stamp_ns"] = stamps_ns
     informed = np.array([mu_informed(int(t)) for t in stamps_ns])
     r["mu"] = 0.8
-    r["mu_std"] = np.where(informed, 0.02, np.nan)
+    r["mu_std"] = np.where(informed, 0.02, 0.15)
     r["mu_filter"] = np.where(informed, 0.8, 0.65)
     r["vx_mps"] = 12.0
     r["vy_mps"] = 0.1

@@ -181,7 +181,7 @@ def test_the_steered_page_shows_mu_held_and_the_grip_per_wheel(
     live_stack: LiveStack, feed: CrawlerFeed, page: Any, screenshots: Path
 ) -> None:
     page.goto(live_stack.base_url + f"/#/vehicle/{STEERED}")
-    assert _mu_tile_once(page, informed=False) == ["0.800", "held: not informed now"]
+    assert _mu_tile_once(page, informed=False) == ["0.800", "held: not informed now, ± 0.150 (1σ)"]
     assert _mu_tile_once(page, informed=True) == ["0.800", "± 0.020 (1σ)"]
     assert (
         page.evaluate(

@@ -152,7 +152,8 @@ function estimatorPanel(spec, page, primary) {
       e.textContent = fmt(lt[ch.field], 3);
       e.dataset.informed = String(informed);
       e.classList.toggle("value-held", !informed);
-      const note = informed ? (std == null ? "" : `± ${fmt(std, 3)} (1σ)`) : lt[ch.field] == null ? "not informed yet" : "held: not informed now";
+      const sigma = std == null ? "" : `± ${fmt(std, 3)} (1σ)`;
+      const note = informed ? sigma : lt[ch.field] == null ? "not informed yet" : ["held: not informed now", sigma].filter(Boolean).join(", ");
       document.getElementById(`${id(`value-${ch.key}`)}-note`).textContent = note;
     }
     for (const ch of spec.wheel_values) {
