@@ -45,6 +45,7 @@ def quiet_tick(n: int, tick_ns: int, **fields: Any) -> TickInputs:
         "gnss_vel_pair_mps": np.full((n, 2), np.nan),
         "gnss_vel_std_mps": nan,
         "gnss_age_s": zero,
+        "gnss_vel_up_mps": nan,
     }
     return TickInputs(**{**base, **fields})
 
