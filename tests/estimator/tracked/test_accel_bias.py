@@ -19,9 +19,8 @@ from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.step import _fuse_lateral_force, _initial_p, _q_diag, initial_filter
 from estimator.types import GnssSample, ImuBatch
-from tests.estimator.tracked._ticks import quiet_tick
+from tests.estimator.tracked._ticks import quiet_tick, rows_over
 
-SECOND = 1_000_000_000
 DT = 0.1
 NEES_BAND = (0.3, 1.6)
 """Mean (error/σ)² of the rows' pitch and roll: 1 if honest (main: 2.2 and 2.6 on this run)."""
@@ -85,25 +84,12 @@ def _biased(run: TrackedRun, bias_xy_mps2: tuple[float, float]) -> TrackedRun:
     return dataclasses.replace(run, measurements=meas)
 
 
-def _rows(run: TrackedRun, seconds: float) -> np.ndarray:
-    fleet = TrackedFleet(TrackedEstimatorConfig())
-    fleet.add_vehicle("v", run.config)
-    ms, i, t, parts = run.measurements, 0, run.start_ns, []
-    while t < run.start_ns + seconds * SECOND:
-        t += SECOND
-        while i < len(ms) and ms[i][0] <= t:
-            fleet.push("v", ms[i][1])
-            i += 1
-        parts += [rows for _, rows in fleet.advance({"v": t})]
-    return np.concatenate(parts)
-
-
 @cache
 def _hill_with_bias(bias_mps2: float) -> tuple[TrackedRun, np.ndarray]:
     """``route_firm_hill`` seed 3 for 300 s (its ramps, side slopes and the start of its
     outage at 150 s), the unit's biases ``bias_mps2`` on both axes."""
     run = _biased(simulate_tracked("route_firm_hill", 3), (bias_mps2, bias_mps2))
-    return run, _rows(run, 300.0)
+    return run, rows_over(run, TrackedEstimatorConfig(), 300.0)
 
 
 def test_a_unit_biased_as_the_config_says_gets_an_honest_attitude_sigma() -> None:
