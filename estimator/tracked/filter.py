@@ -1,6 +1,6 @@
 """The INS/odometer/GNSS extended Kalman filter of the tracked estimator, batched over vehicles.
 
-State :class:`~estimator.tracked.model.TrackedState` (``n = 18``), arrays ``x (k, n)``,
+State :class:`~estimator.tracked.model.TrackedState` (``n = 20``), arrays ``x (k, n)``,
 ``P (k, n, n)``. Heading ``ψ`` is from north, clockwise; the gyro's yaw rate
 ``ω = (g_z − b_g)·(1 − s_g)`` is counter-clockwise about the hull's own up axis, the pitch and
 roll gyros' rates less their biases are ``ω_x = g_x − b_θ``, ``ω_y = g_y − b_φ``. The hull's
@@ -14,11 +14,11 @@ mid-tick heading ``ψ_m = ψ − Ω·Δ/2``, the hull's along-ground speed ``V``
 ``v_x`` (right +: the turns' side-slip and, on a side slope, the creep downhill):
 
     E' = E + Δ·(V·cos θ·sin ψ_m + v_x·cos ψ_m)   N' = N + Δ·(V·cos θ·cos ψ_m − v_x·sin ψ_m)
-    ψ' = ψ − Ω·Δ      V' = V + Δ·(f_y − g·sin θ − ω·v_x)      θ' = θ + Δ·θ̇      φ' = φ + Δ·φ̇
+    ψ' = ψ − Ω·Δ      V' = V + Δ·(f_y − b_y − g·sin θ − ω·v_x)      θ' = θ + Δ·θ̇      φ' = φ + Δ·φ̇
 
 ``f_y`` the forward specific force (the accelerometer reads gravity's ``g·sin θ`` on a
-grade). Updates are masked per vehicle; the Joseph form keeps ``P`` symmetric positive
-definite.
+grade), ``b_y`` its bias (``ACCEL_BIAS_Y``). Updates are masked per vehicle; the Joseph
+form keeps ``P`` symmetric positive definite.
 """
 
 from __future__ import annotations
@@ -40,9 +40,9 @@ def yaw_rate(x: FloatArray, gyro_z_radps: FloatArray) -> FloatArray:
 
 
 def hull_accel(x: FloatArray, accel_fwd_mps2: FloatArray) -> FloatArray:
-    """The hull's forward acceleration along the ground, ``f_y − g·sin θ`` ``(k,)``: the
-    accelerometer's forward specific force with gravity taken out by the pitch."""
-    return accel_fwd_mps2 - GRAVITY_MPS2 * np.sin(x[:, S.PITCH])
+    """The hull's forward acceleration along the ground, ``f_y − b_y − g·sin θ`` ``(k,)``: the
+    accelerometer's forward specific force less its bias, gravity taken out by the pitch."""
+    return accel_fwd_mps2 - x[:, S.ACCEL_BIAS_Y] - GRAVITY_MPS2 * np.sin(x[:, S.PITCH])
 
 
 def _attitude_rows(
@@ -117,6 +117,7 @@ def predict(
     F[:, S.EAST, S.PITCH] = -dt_s * v * st * s
     F[:, S.NORTH, S.PITCH] = -dt_s * v * st * c
     F[:, S.SPEED, S.PITCH] = -dt_s * GRAVITY_MPS2 * ct
+    F[:, S.SPEED, S.ACCEL_BIAS_Y] = -dt_s
     if lateral_by_gain is not None:
         F[:, S.EAST, S.SIDE_SLIP] = dt_s * c * lateral_by_gain
         F[:, S.NORTH, S.SIDE_SLIP] = -dt_s * s * lateral_by_gain

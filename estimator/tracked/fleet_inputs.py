@@ -19,6 +19,7 @@ from estimator.tracked.edges import edge_speed_at, span_speed_at
 from estimator.tracked.segments import Segments
 from estimator.tracked.vehicle import (
     KEEP_NS,
+    GnssAtTicks,
     Reads,
     TickInputs,
     VehicleInputs,
@@ -160,14 +161,14 @@ class _Fleet:
             v.last_gyro_radps = last
         return nan_to_num((gyro - before) / (self.tick_ns * 1e-9))
 
-    def gnss_at(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    def gnss_at(self) -> GnssAtTicks:
         """The last fix in each tick ``(t − tick, t]`` and its age; fixes consumed."""
         m = self.ticks.size
         pos, vel = np.full((m, 2), np.nan), np.full((m, 2), np.nan)
-        vstd, age = np.full(m, np.nan), np.zeros(m)
+        vstd, age, up = np.full(m, np.nan), np.zeros(m), np.full(m, np.nan)
         fixes = [g for v in self.vehicles for g in v.gnss]
         if not fixes:
-            return pos, vel, vstd, age
+            return pos, vel, vstd, age, up
         n_fixes = np.array([len(v.gnss) for v in self.vehicles])
         fseg = np.repeat(np.arange(n_fixes.size), n_fixes)
         stamps = np.array([g[0] for g in fixes], dtype=np.int64)
@@ -182,12 +183,13 @@ class _Fleet:
         take = valid & ~later
         j = at[take]
         pos[j], vel[j], vstd[j] = values[take, 0:2], values[take, 2:4], values[take, 4]
+        up[j] = values[take, 5]
         age[j] = (self.ticks[j] - stamps[take]) * 1e-9
         used = np.bincount(fseg[inside], minlength=n_fixes.size).tolist()
         for v, u in zip(self.vehicles, used, strict=True):
             if u:
                 v.gnss = v.gnss[u:]
-        return pos, vel, vstd, age
+        return pos, vel, vstd, age, up
 
     def reads(self) -> Reads:
         means, samples = self.imu_means()

@@ -64,6 +64,10 @@ class TrackedState(IntEnum):
     ``ROLL`` ``φ`` (rad, right side down +) on the roll gyro less ``ROLL_GYRO_BIAS``: the
     lateral accelerometer reads ``−ω·V − g·cos θ·sin φ``, and a turn on a side slope turns
     the yaw rate into pitch rate (``θ̇ = ω_x·cos φ + ω_z·sin φ``).
+    ``ACCEL_BIAS_X`` / ``ACCEL_BIAS_Y`` (m/s²) are the lateral (right +) and forward
+    accelerometers' biases: each reads as ``g`` times a tilt (``b_y/g`` of pitch, ``b_x/g`` of
+    roll) until something else sees the tilt, so without them the pitch and roll take the
+    biases in and their variance does not know it.
     """
 
     EAST = 0
@@ -84,6 +88,8 @@ class TrackedState(IntEnum):
     PITCH_GYRO_BIAS = 15
     ROLL = 16
     ROLL_GYRO_BIAS = 17
+    ACCEL_BIAS_X = 18
+    ACCEL_BIAS_Y = 19
 
 
 N_STATES = len(TrackedState)

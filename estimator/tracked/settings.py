@@ -81,8 +81,8 @@ class TrackedEstimatorConfig:
 
     The forward speed is predicted with the accelerometer less gravity's ``g·sin θ`` (the
     filter's pitch ``θ``, carried on the pitch gyro from ``initial_tilt_std_rad``, its
-    bias and noise the gyro's figures); what it does not explain (its bias, the hull's
-    lever-arm terms) walks by ``speed_walk_mps2`` (m/s per √s), and its white noise (the
+    bias and noise the gyro's figures) and its bias (below); what it does not explain (the
+    hull's lever-arm terms) walks by ``speed_walk_mps2`` (m/s per √s), and its white noise (the
     config's ``noise.accel_std_mps2``) is added over each tick
     (:func:`~estimator.tracked.step.accel_speed_var`); the odometer holds the speed every tick.
     The roll ``φ`` (on the roll gyro, from ``initial_tilt_std_rad``) is measured every tick by
@@ -96,8 +96,17 @@ class TrackedEstimatorConfig:
     sliding by 0.35-0.8 of the weight), walking by ``side_slip_walk`` per √s. On a side
     slope the hull creeps downhill at a slip angle ``side_creep·sin φ/μ_t`` times that gain
     (:func:`~estimator.tracked.odometer.side_creep`), ``φ`` the filter's roll beyond
-    ``creep_roll_sigmas`` of its 1-sigma: its variance and the lateral accelerometer's bias
-    (``lateral_accel_bias_std_mps2``, over ``g``), which the roll holds unseen on level ground.
+    ``creep_roll_sigmas`` of its 1-sigma (which holds the lateral accelerometer's bias: the
+    roll takes it in unseen on level ground).
+
+    The accelerometers' biases (forward and lateral) are states (product) from
+    ``accel_bias_std_mps2`` (a MEMS unit's turn-on bias, e.g. the ADIS16470's ±0.03 m/s²
+    class), walking by ``accel_bias_walk_mps2_rt_s`` (m/s² per √s; its in-run stability,
+    1.3e-4 m/s², reached in a few minutes): the forward one enters the speed's prediction
+    (``f_y − b_y − g·sin θ``), the lateral one the roll's measurement. Beside GNSS the
+    fix's up velocity is fused against ``V·sin θ`` (product; within the fix's per-axis
+    velocity 1-sigma, gated at ``gnss_up_gate_nis``, χ²₁ at 99.9 %): it sees the pitch
+    itself, so the forward bias is told from it.
 
     The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
     (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`),
@@ -186,7 +195,9 @@ class TrackedEstimatorConfig:
     side_slip_walk: float = 1e-3
     side_creep: float = 0.05
     creep_roll_sigmas: float = 2.0
-    lateral_accel_bias_std_mps2: float = 0.03
+    accel_bias_std_mps2: float = 0.03
+    accel_bias_walk_mps2_rt_s: float = 1e-5
+    gnss_up_gate_nis: float = 10.83
     gyro_noise_prior_pairs: float = 20.0
     gyro_noise_ratio_max: float = 9.0
     report_lag_ticks: int = 4

@@ -125,6 +125,7 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[S.SIDE_SLIP] = learn * cfg.initial_side_slip_std**2
     diag[[S.PITCH, S.ROLL]] = cfg.initial_tilt_std_rad**2
     diag[[S.PITCH_GYRO_BIAS, S.ROLL_GYRO_BIAS]] = cfg.initial_gyro_bias_std_radps**2
+    diag[[S.ACCEL_BIAS_X, S.ACCEL_BIAS_Y]] = learn * cfg.accel_bias_std_mps2**2
     return np.diag(diag)
 
 
@@ -196,6 +197,7 @@ def _q_diag(
     q[:, [S.PITCH_GYRO_BIAS, S.ROLL_GYRO_BIAS]] = (
         gyro_ratio * p.gyro_bias_walk_radps_rt_s**2 * dt
     )[:, None]
+    q[:, [S.ACCEL_BIAS_X, S.ACCEL_BIAS_Y]] = learn * cfg.accel_bias_walk_mps2_rt_s**2 * dt
     return q
 
 
@@ -379,15 +381,17 @@ def _start(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorCo
 def _fuse_lateral_force(
     f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig, gyro: FloatArray
 ) -> None:
-    """The roll from the lateral accelerometer's tick mean ``f_x = −ω·V − g·cos θ·sin φ``
-    (the turn's centripetal force and gravity's share on a side slope), its variance the
-    mean's white noise ``σ_a²/N`` and ``lateral_force_std_mps2²``; ``f`` in place."""
+    """The roll from the lateral accelerometer's tick mean ``f_x = −ω·V − g·cos θ·sin φ + b_x``
+    (the turn's centripetal force, gravity's share on a side slope and the accelerometer's
+    bias), its variance the mean's white noise ``σ_a²/N`` and ``lateral_force_std_mps2²``;
+    ``f`` in place."""
     k = f.x.shape[0]
     w = yaw_rate(f.x, gyro)
     theta, phi, v = f.x[:, S.PITCH], f.x[:, S.ROLL], f.x[:, S.SPEED]
     g = GRAVITY_MPS2
-    h = -w * v - g * np.cos(theta) * np.sin(phi)
+    h = -w * v - g * np.cos(theta) * np.sin(phi) + f.x[:, S.ACCEL_BIAS_X]
     H = np.zeros((k, 1, N_STATES))
+    H[:, 0, S.ACCEL_BIAS_X] = 1.0
     H[:, 0, S.SPEED] = -w
     H[:, 0, S.ROLL] = -g * np.cos(theta) * np.cos(phi)
     H[:, 0, S.PITCH] = g * np.sin(theta) * np.sin(phi)
@@ -475,7 +479,29 @@ def _fuse_gnss(
     Rv = np.eye(2)[None] * (std**2)[:, None, None]
     # a fix whose position passed the gate is sound: its velocity is fused ungated
     f.x, f.P, _, _ = kalman_update(f.x, f.P, inp.gnss_vel_pair_mps - hv, Hv, Rv, v_have)
+    if cfg.learns:
+        _fuse_gnss_up(f, inp, used, std, cfg)
     return used, have & ~used, nis
+
+
+def _fuse_gnss_up(
+    f: Filter, inp: TickInputs, used: BoolArray, std: FloatArray, cfg: TrackedEstimatorConfig
+) -> None:
+    """The fix's up velocity against the hull's climb ``V·sin θ`` (its along-ground speed
+    pitched): beside the odometer's speed it observes the pitch itself, which the
+    accelerometer alone gives only with its forward bias (``f_y − b_y − g·sin θ``). A mast
+    upright on the hull adds no up velocity of its own to first order (pitch and roll rates
+    swing it forward and sideways), so none is modelled. ``std (k,)`` the fix's per-axis
+    velocity 1-sigma; gated at ``gnss_up_gate_nis``; ``f`` in place."""
+    k = f.x.shape[0]
+    theta, v = f.x[:, S.PITCH], f.x[:, S.SPEED]
+    have = used & np.isfinite(inp.gnss_vel_up_mps)
+    H = np.zeros((k, 1, N_STATES))
+    H[:, 0, S.SPEED] = np.sin(theta)
+    H[:, 0, S.PITCH] = v * np.cos(theta)
+    y = np.where(have, np.nan_to_num(inp.gnss_vel_up_mps) - v * np.sin(theta), 0.0)[:, None]
+    R = (std**2)[:, None, None]
+    f.x, f.P, _, _ = kalman_update(f.x, f.P, y, H, R, have, cfg.gnss_up_gate_nis)
 
 
 def _fuse_odometer(
@@ -626,10 +652,9 @@ def _track_slip(
 
 def creep_roll_band(f: Filter, cfg: TrackedEstimatorConfig) -> FloatArray:
     """The roll band ``(k,)`` within which no creep is modelled: ``creep_roll_sigmas`` times
-    the roll's 1-sigma, ``√(P_φφ + (σ_b/g)²)``, ``σ_b`` the lateral accelerometer's bias
-    (``lateral_accel_bias_std_mps2``), which the roll takes in as a level ground's tilt."""
+    the roll's 1-sigma ``√P_φφ``, which holds the lateral accelerometer's bias (a state:
+    the roll takes it in as a level ground's tilt, and its variance says so)."""
     var = np.maximum(f.P[:, S.ROLL, S.ROLL], 0.0)
-    var = var + (cfg.lateral_accel_bias_std_mps2 / GRAVITY_MPS2) ** 2
     return np.asarray(cfg.creep_roll_sigmas * np.sqrt(var))
 
 

@@ -22,6 +22,7 @@ from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, Sprock
 
 __all__ = [
     "KEEP_NS",
+    "GnssAtTicks",
     "Reads",
     "TickInputs",
     "VehicleInputs",
@@ -38,6 +39,11 @@ __all__ = [
 _PITCH, _FORWARD, _YAW = 0, 1, 2
 _RIGHT, _ROLL = 0, 1  # accelerometer's lateral axis, gyro's roll axis
 _IMU_COLUMNS = 5  # forward force, yaw rate, pitch rate, roll rate, lateral force
+
+
+GnssAtTicks = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
+"""A tick's fix: position ``(m, 2)``, horizontal velocity ``(m, 2)``, its std, its age (s)
+and the up velocity ``(m,)`` each."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,6 +100,7 @@ class TickInputs:
     gnss_vel_pair_mps: FloatArray
     gnss_vel_std_mps: FloatArray
     gnss_age_s: FloatArray
+    gnss_vel_up_mps: FloatArray
 
 
 class VehicleInputs:
@@ -109,7 +116,8 @@ class VehicleInputs:
         self.imu: FloatArray = np.zeros((0, _IMU_COLUMNS))
         self.odometer = EdgeBuffer()
         self.sprockets = (EdgeBuffer(), EdgeBuffer())
-        self.gnss: list[tuple[int, float, float, float, float, float]] = []
+        # (stamp_ns, east_m, north_m, ve_mps, vn_mps, vel_std_mps, vu_mps)
+        self.gnss: list[tuple[int, float, float, float, float, float, float]] = []
         self.frame: EnuFrame | None = None
         self.counts = {"imu_skipped": 0, "gnss_skipped": 0, "sprocket_missing_ticks": 0}
         self.last_gyro_radps = math.nan
@@ -151,7 +159,8 @@ class VehicleInputs:
             self.frame = EnuFrame(m.lat_deg, m.lon_deg, m.height_m)
         e, n, _ = self.frame.to_enu(m.lat_deg, m.lon_deg, m.height_m)
         std = m.vel_std_mps if math.isfinite(m.vel_std_mps) and m.vel_std_mps > 0 else math.nan
-        self.gnss.append((m.stamp_ns, float(e), float(n), values[0], values[1], std))
+        up = float(m.vel_enu_mps[2])  # NaN where the receiver gives none: not fused
+        self.gnss.append((m.stamp_ns, float(e), float(n), values[0], values[1], std, up))
 
     def push_edges(self, m: OdometerEdges | SprocketEdges) -> None:
         if isinstance(m, OdometerEdges):
@@ -286,22 +295,23 @@ class VehicleInputs:
         known = np.array([[x is not None for x in lasts]])
         return sprocket_missing(ticks, odometer_mps, last_ns, known, self.cfg)
 
-    def _gnss_at(self, ticks: IntArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """The last fix in each tick ``(t − tick, t]`` (NaN where none) and its age at the tick
-        (s); fixes consumed."""
+    def _gnss_at(self, ticks: IntArray) -> GnssAtTicks:
+        """The last fix in each tick ``(t − tick, t]`` (NaN where none): position, horizontal
+        velocity, its std, its age at the tick (s) and the up velocity; fixes consumed."""
         pos = np.full((ticks.size, 2), np.nan)
         vel = np.full((ticks.size, 2), np.nan)
         vstd = np.full(ticks.size, np.nan)
         age = np.zeros(ticks.size)
+        up = np.full(ticks.size, np.nan)
         if self.gnss:
             stamps = np.array([g[0] for g in self.gnss], dtype=np.int64)
             k = np.searchsorted(ticks, stamps, side="left")
             for j, g in zip(k.tolist(), self.gnss, strict=True):
                 if j < ticks.size and g[0] > ticks[j] - self.tick_ns:
-                    pos[j], vel[j], vstd[j] = g[1:3], g[3:5], g[5]
+                    pos[j], vel[j], vstd[j], up[j] = g[1:3], g[3:5], g[5], g[6]
                     age[j] = (int(ticks[j]) - g[0]) * 1e-9
             self.gnss = [g for g, j in zip(self.gnss, k.tolist(), strict=True) if j >= ticks.size]
-        return pos, vel, vstd, age
+        return pos, vel, vstd, age, up
 
 
 KEEP_NS = 3_000_000_000
@@ -334,7 +344,7 @@ class Reads:
     starting: BoolArray
     odometer_edges: tuple[IntArray, FloatArray]
     missing: BoolArray
-    gnss: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+    gnss: GnssAtTicks
 
 
 def derive(r: Reads, cfg: TrackedEstimatorConfig) -> tuple[FloatArray, BoolArray, BoolArray]:
@@ -361,7 +371,7 @@ def tick_inputs(
     """The filter's inputs from the reads and what :func:`derive` gave."""
     tick_f = r.ticks_ns.astype(np.float64)
     (odo, odo_c), (prev, _) = r.odo, r.prev
-    pos, vel, vstd, age = r.gnss
+    pos, vel, vstd, age, up = r.gnss
     return TickInputs(
         ticks_ns=r.ticks_ns,
         accel_mps2=r.accel,
@@ -388,6 +398,7 @@ def tick_inputs(
         gnss_vel_pair_mps=vel,
         gnss_vel_std_mps=vstd,
         gnss_age_s=age,
+        gnss_vel_up_mps=up,
     )
 
 

@@ -44,7 +44,10 @@ Metrics per run and mode
 ``pitch_rms_mrad`` / ``roll_rms_mrad`` (and ``…_max_mrad``, ``…_z_rms``)
     The rows' hull attitude against the terrain's (mrad) over the rows that give it
     (``attitude_pct`` of the rows), and the RMS of each error over the row's own 1-sigma (1
-    where that 1-sigma is honest); printed for the product in a table of their own.
+    where that 1-sigma is honest); printed for the product in a table of their own, with
+    the share of rows whose error is within 2σ (``…_in2s_gnss_pct`` beside GNSS,
+    ``…_in2s_outage_pct`` in outages: 95.4 % if honest) and the NEES (``…_nees_gnss``,
+    ``…_nees_outage``: mean of (error/σ)², 1 if honest), pooled over every run's rows.
 ``dr_nees``
     Median over the second half of that outage of the position's NEES per degree of freedom
     (``dᵀ C⁻¹ d / 2`` with the row's east-north covariance ``C``; printed as ``NEES``): about
@@ -181,10 +184,21 @@ def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str,
     return worst
 
 
+def _outage_rows(run: TrackedRun, rows: np.ndarray) -> np.ndarray:
+    """Rows inside a GNSS outage ``(n,)`` bool."""
+    inside = np.zeros(rows.size, dtype=bool)
+    for a_ns, b_ns in run.outages_ns:
+        inside |= (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= b_ns)
+    return inside
+
+
 def _attitude_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
-    """Pitch and roll errors (mrad) where the rows give them, and their RMS over the rows' σ."""
+    """Pitch and roll errors (mrad) where the rows give them, and their RMS over the rows' σ;
+    the NEES (mean of (error/σ)²) and the share within 2σ beside GNSS and in its outages."""
     given = np.isfinite(rows["pitch_rad"]) & np.isfinite(rows["roll_rad"])
     out: dict[str, Any] = {"attitude_pct": 100.0 * float(given.mean()) if given.size else 0.0}
+    lost = _outage_rows(run, rows)[given]
+    out["attitude_rows_gnss"], out["attitude_rows_outage"] = int((~lost).sum()), int(lost.sum())
     for name in ("pitch", "roll"):
         err = (rows[f"{name}_rad"] - getattr(run.truth, f"{name}_rad")[idx])[given]
         z = err / rows[f"{name}_std_rad"][given]
@@ -192,6 +206,12 @@ def _attitude_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dic
         out[f"{name}_rms_mrad"] = 1e3 * float(np.sqrt(np.mean(err**2))) if some else float("nan")
         out[f"{name}_max_mrad"] = 1e3 * float(np.max(np.abs(err))) if some else float("nan")
         out[f"{name}_z_rms"] = float(np.sqrt(np.mean(z**2))) if some else float("nan")
+        for part, sel in (("gnss", ~lost), ("outage", lost)):
+            zs = z[sel]
+            out[f"{name}_nees_{part}"] = float(np.mean(zs**2)) if zs.size else float("nan")
+            out[f"{name}_in2s_{part}_pct"] = (
+                100.0 * float(np.mean(np.abs(zs) < 2.0)) if zs.size else float("nan")
+            )
     return out
 
 
@@ -206,17 +226,21 @@ def _metrics(run: TrackedRun, rows: np.ndarray) -> dict[str, Any]:
 
 
 def _attitude_table(labels: list[str], product: list[dict[str, Any]]) -> None:
-    """The product's attitude per run, and median / p95 / worst over the runs."""
+    """The product's attitude per run, and median / p95 / worst over the runs; the NEES and
+    the share within 2σ over every run's rows, beside GNSS and in outages."""
     print(
         f"\nattitude, product  {'given%':>6} {'pitch rms/max mrad':>18} {'z rms':>5} "
-        f"{'roll rms/max mrad':>17} {'z rms':>5}"
+        f"{'in2σ% gnss/out':>14} {'roll rms/max mrad':>17} {'z rms':>5} {'in2σ% gnss/out':>14}"
     )
     for label, m in zip(labels, product, strict=True):
-        print(
-            f"{label:<18} {m['attitude_pct']:6.1f} {m['pitch_rms_mrad']:8.2f}/"
-            f"{m['pitch_max_mrad']:<9.2f} {m['pitch_z_rms']:5.2f} {m['roll_rms_mrad']:7.2f}/"
-            f"{m['roll_max_mrad']:<9.2f} {m['roll_z_rms']:5.2f}"
-        )
+        cells = [f"{label:<18} {m['attitude_pct']:6.1f}"]
+        for name, width in (("pitch", 8), ("roll", 7)):
+            cells.append(
+                f"{m[f'{name}_rms_mrad']:{width}.2f}/{m[f'{name}_max_mrad']:<9.2f} "
+                f"{m[f'{name}_z_rms']:5.2f} {m[f'{name}_in2s_gnss_pct']:6.1f}/"
+                f"{m[f'{name}_in2s_outage_pct']:<7.1f}"
+            )
+        print(" ".join(cells))
     for name in ("pitch", "roll"):
         rms = [m[f"{name}_rms_mrad"] for m in product if np.isfinite(m[f"{name}_rms_mrad"])]
         z = [m[f"{name}_z_rms"] for m in product if np.isfinite(m[f"{name}_z_rms"])]
@@ -226,6 +250,17 @@ def _attitude_table(labels: list[str], product: list[dict[str, Any]]) -> None:
                 f"p95 {np.percentile(rms, 95):.2f}, worst {np.max(rms):.2f}; "
                 f"error/σ RMS median {np.median(z):.2f}, worst {np.max(z):.2f}"
             )
+        for part in ("gnss", "outage"):
+            n = np.array([m[f"attitude_rows_{part}"] for m in product], dtype=np.float64)
+            nees = np.array([m[f"{name}_nees_{part}"] for m in product])
+            cov = np.array([m[f"{name}_in2s_{part}_pct"] for m in product])
+            have = n > 0
+            if have.any():
+                w = n[have] / n[have].sum()
+                print(
+                    f"product {name} {part:<6} over every row: NEES {np.sum(w * nees[have]):.2f}, "
+                    f"within 2σ {np.sum(w * cov[have]):.1f} % (95.4 if honest)"
+                )
 
 
 def _floors(m: dict[str, Any], run: TrackedRun) -> list[str]:

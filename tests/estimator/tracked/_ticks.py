@@ -45,6 +45,7 @@ def quiet_tick(n: int, tick_ns: int, **fields: Any) -> TickInputs:
         "gnss_vel_pair_mps": np.full((n, 2), np.nan),
         "gnss_vel_std_mps": nan,
         "gnss_age_s": zero,
+        "gnss_vel_up_mps": nan,
     }
     return TickInputs(**{**base, **fields})
 
@@ -61,3 +62,18 @@ def run_to_first_outage(run: TrackedRun) -> tuple[TrackedFleet, list[tuple[str, 
             break
         fleet.push("v", m)
     return fleet, fleet.advance({"v": loss_ns})
+
+
+def rows_over(run: TrackedRun, cfg: TrackedEstimatorConfig, seconds: float) -> np.ndarray:
+    """The rows a :class:`~estimator.tracked.TrackedFleet` of ``cfg`` gives for the first
+    ``seconds`` of a simulated run (vehicle ``"v"``), advanced every second of sensor time."""
+    fleet = TrackedFleet(cfg)
+    fleet.add_vehicle("v", run.config)
+    ms, i, t, parts = run.measurements, 0, run.start_ns, []
+    while t < run.start_ns + seconds * 1_000_000_000:
+        t += 1_000_000_000
+        while i < len(ms) and ms[i][0] <= t:
+            fleet.push("v", ms[i][1])
+            i += 1
+        parts += [rows for _, rows in fleet.advance({"v": t})]
+    return np.concatenate(parts)

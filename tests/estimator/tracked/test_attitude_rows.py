@@ -10,21 +10,9 @@ import numpy as np
 from estimator.sim.tracked import TrackedRun, simulate_tracked
 from estimator.tracked import TrackedEstimatorConfig, TrackedFleet
 from estimator.tracked.model import TrackedState as S
+from tests.estimator.tracked._ticks import rows_over
 
 SECOND = 1_000_000_000
-
-
-def _rows(run: TrackedRun, cfg: TrackedEstimatorConfig, seconds: float) -> np.ndarray:
-    fleet = TrackedFleet(cfg)
-    fleet.add_vehicle("v", run.config)
-    ms, i, t, parts = run.measurements, 0, run.start_ns, []
-    while t < run.start_ns + seconds * SECOND:
-        t += SECOND
-        while i < len(ms) and ms[i][0] <= t:
-            fleet.push("v", ms[i][1])
-            i += 1
-        parts += [rows for _, rows in fleet.advance({"v": t})]
-    return np.concatenate(parts)
 
 
 @cache
@@ -32,7 +20,7 @@ def _hill() -> tuple[TrackedRun, np.ndarray]:
     """``route_firm_hill`` seed 2 for 300 s: its ramps and side slopes and the start of its
     4-minute GNSS outage (at 150 s)."""
     run = simulate_tracked("route_firm_hill", 2)
-    return run, _rows(run, TrackedEstimatorConfig(), 300.0)
+    return run, rows_over(run, TrackedEstimatorConfig(), 300.0)
 
 
 def test_pitch_and_roll_rows_follow_the_simulated_hill() -> None:
@@ -59,7 +47,7 @@ def test_the_attitude_is_nan_until_the_filter_has_measured_it() -> None:
     run, rows = _hill()
     # the first row is given before the accelerometer has pinned the pitch (prior 0.2 rad)
     assert np.isnan(rows["pitch_rad"][0]) and np.isnan(rows["pitch_std_rad"][0])
-    strict = _rows(run, TrackedEstimatorConfig(tilt_reported_std_rad=1e-4), 5.0)
+    strict = rows_over(run, TrackedEstimatorConfig(tilt_reported_std_rad=1e-4), 5.0)
     assert strict.size > 40
     for name in ("pitch_rad", "pitch_std_rad", "roll_rad", "roll_std_rad"):
         assert np.isnan(strict[name]).all(), name

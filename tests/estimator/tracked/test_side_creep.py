@@ -39,14 +39,12 @@ def test_the_creep_is_gravitys_cross_share_over_the_grounds_resistance_beyond_th
     assert by_roll == pytest.approx([slope, slope, slope, 0.0], abs=1e-15)
 
 
-def test_the_band_is_the_rolls_variance_and_the_accelerometers_bias() -> None:
+def test_the_band_is_the_rolls_own_variance() -> None:
     cfg = TrackedEstimatorConfig()
     f = initial_filter(cfg)
     f.P[0, S.ROLL, S.ROLL] = 0.002**2
-    expected = cfg.creep_roll_sigmas * math.hypot(
-        0.002, cfg.lateral_accel_bias_std_mps2 / GRAVITY_MPS2
-    )
-    assert creep_roll_band(f, cfg) == pytest.approx([expected], rel=1e-12)
+    # the lateral accelerometer's bias is a state: the roll's variance holds its share
+    assert creep_roll_band(f, cfg) == pytest.approx([cfg.creep_roll_sigmas * 0.002], rel=1e-12)
 
 
 def _driving_north(roll_rad: float, roll_std_rad: float) -> tuple[TickOut, float]:
@@ -69,12 +67,14 @@ def test_a_side_slopes_roll_moves_the_hull_downhill_and_the_level_ground_not() -
     cfg, mu = TrackedEstimatorConfig(), TrackedConfig().motion.lateral_resistance
     roll = math.atan(0.08)  # an 8 % cross grade, right side down
     out, east = _driving_north(roll, 0.001)
-    band = cfg.creep_roll_sigmas * math.hypot(0.001, cfg.lateral_accel_bias_std_mps2 / 9.80665)
+    band = cfg.creep_roll_sigmas * 0.001
     creep = cfg.side_creep * 5.0 * math.sin(roll - band) / mu
     assert out.lateral_mps[0] == pytest.approx(creep, rel=1e-3)
     assert east == pytest.approx(cfg.tick_s * creep, rel=1e-3)
-    # a level hull whose roll holds an accelerometer's bias of 0.03 m/s² (3 mrad): no creep
-    out, east = _driving_north(0.03 / 9.80665, 0.001)
+    # a level hull whose roll holds an accelerometer's bias of 0.03 m/s² (3 mrad), its
+    # variance the bias's (1σ 0.03 m/s², which the roll cannot tell from a tilt): no creep
+    sigma = math.hypot(0.001, cfg.accel_bias_std_mps2 / GRAVITY_MPS2)
+    out, east = _driving_north(0.03 / 9.80665, sigma)
     assert out.lateral_mps[0] == 0.0
     assert east == 0.0
 
