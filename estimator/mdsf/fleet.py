@@ -451,7 +451,11 @@ class MdsfFleet:
     ) -> BoolArray:
         """Rows ``(m, 2)`` starting or stopping faster than the wheel fit follows (``SETTLING``:
         no slip value): the ground speed changing by more than the settle bound over the fit's
-        span, or a start from standstill less than ``_START_SPANS`` spans ago."""
+        span, or a start from standstill less than ``_START_SPANS`` spans ago. The change is
+        judged on the axle's acceleration: the filter's ``a1`` (the IMU's) plus the tick's
+        ``lever_accel_fwd_mps2``, shrunk towards 0 by two of its std (a soft threshold: on a
+        cab without sway the term is the gyro's noise, about 0.07 m/s², where a crawl's bound
+        is 0.1-0.3 m/s²; under sway it is metres per second squared)."""
         fitted = (flat.wheel_flags & int(_F.WHEEL_DIRECT)) == 0
         span = np.where(
             fitted[:, None],
@@ -459,6 +463,12 @@ class MdsfFleet:
             0.0,
         )
         max_change = self._settle_max_change[row_slot]
+        if flat.lever_accel_fwd_mps2 is not None and flat.lever_accel_fwd_var is not None:
+            # the axle's acceleration, not the IMU's: a swaying cab's h0·ω̇x is no start; the
+            # term counts beyond two of its std only (its gyro noise is a crawl's bound)
+            lever = nan_to_num(flat.lever_accel_fwd_mps2)
+            noise = 2.0 * np.sqrt(nan_to_num(flat.lever_accel_fwd_var))
+            accel = accel + np.sign(lever) * np.maximum(np.abs(lever) - noise, 0.0)
         starting = ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span) & (
             max_change < _SETTLE_OFF
         )[:, None]
