@@ -104,9 +104,12 @@ class TrackedEstimatorConfig:
     class), walking by ``accel_bias_walk_mps2_rt_s`` (m/s² per √s; its in-run stability,
     1.3e-4 m/s², reached in a few minutes): the forward one enters the speed's prediction
     (``f_y − b_y − g·sin θ``), the lateral one the roll's measurement. Beside GNSS the
-    fix's up velocity is fused against ``V·sin θ`` (product; within the fix's per-axis
-    velocity 1-sigma, gated at ``gnss_up_gate_nis``, χ²₁ at 99.9 %): it sees the pitch
-    itself, so the forward bias is told from it.
+    fix's up velocity is fused against ``V·sin θ`` (product; within the fix's horizontal
+    velocity 1-sigma times ``gnss_up_to_horizontal_vel_std_ratio``, gated at
+    ``gnss_up_gate_nis``, χ²₁ at 99.9 %): it sees the pitch itself, so the forward bias is
+    told from it. A receiver's vertical is noisier than its horizontal (every satellite is
+    above the antenna: the vertical dilution of precision is 1.5-2 times the horizontal), and
+    receivers state one velocity 1-sigma; the ratio's default is the middle of that range.
 
     The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
     (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`),
@@ -198,6 +201,7 @@ class TrackedEstimatorConfig:
     accel_bias_std_mps2: float = 0.03
     accel_bias_walk_mps2_rt_s: float = 1e-5
     gnss_up_gate_nis: float = 10.83
+    gnss_up_to_horizontal_vel_std_ratio: float = 1.75
     gyro_noise_prior_pairs: float = 20.0
     gyro_noise_ratio_max: float = 9.0
     report_lag_ticks: int = 4

@@ -492,7 +492,10 @@ def _fuse_gnss_up(
     accelerometer alone gives only with its forward bias (``f_y − b_y − g·sin θ``). A mast
     upright on the hull adds no up velocity of its own to first order (pitch and roll rates
     swing it forward and sideways), so none is modelled. ``std (k,)`` the fix's per-axis
-    velocity 1-sigma; gated at ``gnss_up_gate_nis``; ``f`` in place."""
+    velocity 1-sigma (horizontal), the up one's that times
+    ``gnss_up_to_horizontal_vel_std_ratio``; gated at ``gnss_up_gate_nis``; ``f`` in place.
+    Not back-dated by the fix's age: the horizontal velocity is not either (only the
+    position is, by ``age·V``)."""
     k = f.x.shape[0]
     theta, v = f.x[:, S.PITCH], f.x[:, S.SPEED]
     have = used & np.isfinite(inp.gnss_vel_up_mps)
@@ -500,7 +503,7 @@ def _fuse_gnss_up(
     H[:, 0, S.SPEED] = np.sin(theta)
     H[:, 0, S.PITCH] = v * np.cos(theta)
     y = np.where(have, np.nan_to_num(inp.gnss_vel_up_mps) - v * np.sin(theta), 0.0)[:, None]
-    R = (std**2)[:, None, None]
+    R = ((cfg.gnss_up_to_horizontal_vel_std_ratio * std) ** 2)[:, None, None]
     f.x, f.P, _, _ = kalman_update(f.x, f.P, y, H, R, have, cfg.gnss_up_gate_nis)
 
 

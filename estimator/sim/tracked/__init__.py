@@ -107,10 +107,15 @@ def _random_config(rng: np.random.Generator) -> TrackedConfig:
 
 
 def _random_sensors(seed: int) -> CrawlerSensors:
-    """A random route's sensors: the gyro's grade drawn from ``RANDOM_RANGES`` by a
-    generator of its own (the route, ground and every other draw stay those of the seed)."""
+    """A random route's sensors: the gyro's grade and the receiver's up-over-horizontal
+    velocity noise drawn from ``RANDOM_RANGES``, each by a generator of its own (the route,
+    ground and every other draw stay those of the seed)."""
     rng = np.random.default_rng((seed, 1))
-    return CrawlerSensors(gyro_grade=float(rng.uniform(*RANDOM_RANGES["gyro_grade"])))
+    up = np.random.default_rng((seed, 5))
+    return CrawlerSensors(
+        gyro_grade=float(rng.uniform(*RANDOM_RANGES["gyro_grade"])),
+        gnss_up_vel_std_ratio=float(up.uniform(*RANDOM_RANGES["gnss_up_vel_std_ratio"])),
+    )
 
 
 def _random_config_gyro(seed: int, spec: CrawlerSensors) -> GyroConfig:
@@ -139,7 +144,8 @@ def simulate_tracked(
     route, ground and every other draw are those of the seed whether it is level
     (``flat=True``, which levels a named route's hills too) or not; what the level-ground
     sensors never drew (the pitch and roll gyros' biases, the GNSS up velocity's noise)
-    comes from another (``(seed, 4)``).
+    comes from another (``(seed, 4)``), their biases' in-run walk from a third
+    (``(seed, 6)``).
 
     Without ``config``, a named route's config names the gyro its sensors have; a random
     route's names either the unit's own figures (the part's times its grade) or, with
@@ -163,8 +169,16 @@ def simulate_tracked(
         route = replace(route, terrain=FLAT)
     config = config or replace(drawn, gyro=gyro)
     extra = np.random.default_rng((seed, 4))
+    walk = np.random.default_rng((seed, 6))
     return simulate_route(
-        route, seed, config=config, sensors=spec, start_ns=start_ns, rng=rng, extra_rng=extra
+        route,
+        seed,
+        config=config,
+        sensors=spec,
+        start_ns=start_ns,
+        rng=rng,
+        extra_rng=extra,
+        walk_rng=walk,
     )
 
 
@@ -178,6 +192,7 @@ def simulate_route(
     frame: EnuFrame = ORIGIN,
     rng: np.random.Generator | None = None,
     extra_rng: np.random.Generator | None = None,
+    walk_rng: np.random.Generator | None = None,
 ) -> TrackedRun:
     """The simulator's stages on a given ``route``: the crawler's motion, the sensors' errors,
     every packet from ``start_ns`` in ``frame``.
@@ -185,7 +200,8 @@ def simulate_route(
     ``rng`` (default: a generator seeded ``seed``) draws the motion, errors and packets in
     that order; ``extra_rng`` what the level-ground sensors never drew (without it the pitch
     and roll gyros' biases and the GNSS up velocity's noise are 0,
-    :func:`~estimator.sim.tracked.sensors.emissions`). Defaults: :class:`TrackedConfig` and
+    :func:`~estimator.sim.tracked.sensors.emissions`), ``walk_rng`` the pitch and roll
+    gyros' in-run bias walk (none without it). Defaults: :class:`TrackedConfig` and
     :class:`CrawlerSensors`.
     """
     rng = np.random.default_rng(seed) if rng is None else rng
@@ -193,5 +209,7 @@ def simulate_route(
     spec = sensors or CrawlerSensors()
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
-    meas = emissions(truth, config, spec, errors, frame, route.outages_s, start_ns, rng, extra_rng)
+    meas = emissions(
+        truth, config, spec, errors, frame, route.outages_s, start_ns, rng, extra_rng, walk_rng
+    )
     return TrackedRun(route.name, seed, route, config, truth, errors, start_ns, frame, meas, spec)

@@ -173,6 +173,7 @@ RANDOM_RANGES: dict[str, tuple[float, float]] = {
     "duration_s": (600.0, 900.0),
     "outage_s": (180.0, 300.0),
     "gyro_grade": (1.0, 2.0),
+    "gnss_up_vel_std_ratio": (1.5, 2.0),
 }
 #: Share of random routes whose vehicle config names the gyro's data-sheet part (the
 #: ADIS16470's typical figures) while the unit fitted is drawn over ``gyro_grade`` all the

@@ -20,7 +20,14 @@ from estimator.sim._signals import cumtrapz
 from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ, CrawlerTruth
 from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, SprocketEdges, TrackSide
 
-__all__ = ["CrawlerSensors", "SensorErrors", "body_rates", "draw_errors", "emissions"]
+__all__ = [
+    "CrawlerSensors",
+    "SensorErrors",
+    "body_rates",
+    "draw_errors",
+    "emissions",
+    "tilt_bias_walk",
+]
 
 _WINDOW = RATE_HZ // 10  # grid points per 100 ms packet
 
@@ -34,7 +41,9 @@ class CrawlerSensors:
     knob for a worse part: 1 is the part, 1.2-1.7 a consumer MEMS gyro such as the BMI088).
     The gyro z turn-on bias, scale error and the odometer's true ``K_D`` error are drawn per
     run; ``*_tooth_error`` is each tooth's position error as a fraction of the pitch (fixed
-    per tooth, so it repeats every revolution of the shaft or sprocket).
+    per tooth, so it repeats every revolution of the shaft or sprocket). The GNSS up
+    velocity's noise is ``gnss_up_vel_std_ratio`` times the horizontal ``gnss_vel_std_mps``
+    (a receiver's vertical is 1.5-2 times noisier; 1 keeps the named routes' draws).
     """
 
     gyro_part: GyroPart = ADIS16470
@@ -45,6 +54,7 @@ class CrawlerSensors:
     accel_noise_mps2: float = 0.05
     gnss_pos_std_m: float = 0.02
     gnss_vel_std_mps: float = 0.03
+    gnss_up_vel_std_ratio: float = 1.0
     kd_error_std: float = 0.005
     odometer_teeth: int = 60
     odometer_tooth_error: float = 0.015
@@ -92,6 +102,14 @@ def draw_errors(rng: np.random.Generator, n: int, spec: CrawlerSensors) -> Senso
             float(rng.normal(0, spec.accel_bias_std_mps2)),
         ),
     )
+
+
+def tilt_bias_walk(rng: np.random.Generator, n: int, spec: CrawlerSensors) -> FloatArray:
+    """The pitch and roll gyros' in-run bias walk ``(n, 2)`` (rad/s) over ``n`` samples at
+    ``RATE_HZ``, from 0: a random walk of ``spec.gyro_bias_walk_radps`` per √s, the yaw
+    gyro's (an IMU's data sheet states one in-run bias stability for its three gyros)."""
+    steps = rng.standard_normal((n, 2)) * spec.gyro_bias_walk_radps / np.sqrt(RATE_HZ)
+    return np.asarray(np.cumsum(steps, axis=0))
 
 
 def _stamps(start_ns: int, t_s: FloatArray) -> IntArray:
@@ -146,14 +164,14 @@ def _imu(
     err: SensorErrors,
     spec: CrawlerSensors,
     rng: np.random.Generator,
-    tilt_bias_radps: tuple[float, float] = (0.0, 0.0),
+    tilt_bias_radps: tuple[float, float] | FloatArray = (0.0, 0.0),
 ) -> tuple[FloatArray, FloatArray]:
     """Specific force and angular rate at the IMU's lever arm in the body frame (X right,
     Y forward, Z up), shapes ``(n, 3)``: ``f = a + g·u`` with ``u`` the world's up in the
     body frame, ``(−cos θ·sin φ, sin θ, cos θ·cos φ)``, and ``a`` the hull's acceleration
     ``v̇ + ω×v`` (``v = (v_x, V, 0)``; lever-arm terms of the yaw only). The pitch and roll
-    gyros read :func:`body_rates` plus ``tilt_bias_radps``; the yaw gyro its rate with the
-    run's bias and scale error."""
+    gyros read :func:`body_rates` plus ``tilt_bias_radps`` (two numbers, or ``(n, 2)``: a
+    bias that walks); the yaw gyro its rate with the run's bias and scale error."""
     dt = 1.0 / RATE_HZ
     w, v, vx = truth.yaw_rate_radps, truth.speed_mps, truth.lateral_mps
     rates = body_rates(truth)
@@ -175,8 +193,8 @@ def _imu(
     )
     accel += spec.accel_noise_mps2 * rng.standard_normal((n, 3))
     gyro = spec.gyro_noise_radps * rng.standard_normal((n, 3))
-    gyro[:, 0] += rates[:, 0] + tilt_bias_radps[0]
-    gyro[:, 1] += rates[:, 1] + tilt_bias_radps[1]
+    tilt = np.broadcast_to(np.asarray(tilt_bias_radps, dtype=np.float64), (n, 2))
+    gyro[:, :2] += rates[:, :2] + tilt
     gyro[:, 2] += (1.0 + err.gyro_scale) * w + err.gyro_bias_radps
     return accel, gyro
 
@@ -213,7 +231,8 @@ def _gnss(
     ve = ve + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
     vn = vn + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
     if up_rng is not None:
-        vu = vu + spec.gnss_vel_std_mps * up_rng.standard_normal(idx.size)
+        up_std = spec.gnss_up_vel_std_ratio * spec.gnss_vel_std_mps
+        vu = vu + up_std * up_rng.standard_normal(idx.size)
     lat, lon, h = frame.to_geodetic(east, north, up)
     t = truth.t_s[idx]
     lost = np.zeros(idx.size, dtype=bool)
@@ -251,20 +270,24 @@ def emissions(
     start_ns: int,
     rng: np.random.Generator,
     extra_rng: np.random.Generator | None = None,
+    walk_rng: np.random.Generator | None = None,
 ) -> list[tuple[int, Measurement]]:
     """Every packet as ``(key_ns, measurement)``, sorted by key (GNSS, edges, IMU within one).
 
     ``extra_rng`` draws what the level-ground sensors never drew (the pitch and roll gyros'
     turn-on biases, 1σ ``gyro_bias_std_radps``, and the GNSS up velocity's noise), so every
-    draw of ``rng`` stays as it was; without it those are 0."""
+    draw of ``rng`` stays as it was; without it those are 0. ``walk_rng`` draws the pitch and
+    roll gyros' in-run bias walk, the part's figure as the yaw gyro's
+    (:func:`tilt_bias_walk`); without it their biases stay at the turn-on value."""
     dt = 1.0 / RATE_HZ
     t = truth.t_s
     ends = t[_WINDOW::_WINDOW]
     ends_ns = _stamps(start_ns, ends).tolist()
-    tilt_bias = (0.0, 0.0)
+    tilt_bias: FloatArray = np.zeros(2)
     if extra_rng is not None:
-        b = extra_rng.normal(0.0, spec.gyro_bias_std_radps, 2)
-        tilt_bias = (float(b[0]), float(b[1]))
+        tilt_bias = extra_rng.normal(0.0, spec.gyro_bias_std_radps, 2)
+    if walk_rng is not None:
+        tilt_bias = tilt_bias + tilt_bias_walk(walk_rng, t.size, spec)
     accel, gyro = _imu(truth, cfg, err, spec, rng, tilt_bias)
     out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng)
     odo_err = spec.odometer_tooth_error * rng.standard_normal(spec.odometer_teeth)

@@ -353,6 +353,7 @@ def run(
             "ground": r.route.ground.name,
             "gyro_grade": r.sensors.gyro_grade,
             "config_gyro_grade": _config_grade(r),
+            "gnss_up_vel_std_ratio": r.sensors.gnss_up_vel_std_ratio,
             "grade_max": float(np.max(np.abs(np.tan(r.truth.pitch_rad)))),
             "cross_max": float(np.max(np.abs(np.tan(r.truth.roll_rad)))),
             "modes": {},

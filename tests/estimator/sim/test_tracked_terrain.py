@@ -3,13 +3,15 @@ along-ground distance, GNSS height, slip on grades, and the terrain's own draws.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import cache
 
 import numpy as np
 
-from estimator.sim.tracked import TrackedRun, simulate_tracked
+from estimator.sim.tracked import TrackedRun, simulate_route, simulate_tracked
 from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ
-from estimator.sim.tracked.sensors import body_rates
+from estimator.sim.tracked.route import RANDOM_RANGES
+from estimator.sim.tracked.sensors import body_rates, tilt_bias_walk
 from estimator.sim.tracked.terrain import FLAT, TERRAIN_RANGES, hill_terrain, random_terrain
 from estimator.tracked.model import MotionState
 from estimator.types import GnssSample, ImuBatch, OdometerEdges, SprocketEdges
@@ -160,3 +162,73 @@ def test_gnss_height_and_up_velocity_follow_the_climb() -> None:
 
 def test_hill_terrain_is_fixed() -> None:
     assert hill_terrain() == hill_terrain()
+
+
+def _up_noise(run: TrackedRun) -> tuple[np.ndarray, np.ndarray]:
+    """The fixes' up and east velocity errors against the truth's climb and course."""
+    fixes = _fixes(run)
+    k = run.index_at(np.array([f.stamp_ns for f in fixes]))
+    vu = np.array([f.vel_enu_mps[2] for f in fixes])
+    true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k])
+    return vu - true_vu, np.array([f.vel_enu_mps[0] for f in fixes])
+
+
+def test_a_random_routes_receiver_states_a_noisier_vertical_by_its_own_draw() -> None:
+    ratios = []
+    for seed in (1000, 1001, 1002, 1003):
+        run = _run("random", seed)
+        ratio = run.sensors.gnss_up_vel_std_ratio
+        lo, hi = RANDOM_RANGES["gnss_up_vel_std_ratio"]
+        assert lo <= ratio <= hi
+        err, _ = _up_noise(run)
+        # thousands of fixes: the up error's spread is the ratio times the horizontal 1-sigma
+        measured = float(np.std(err)) / run.sensors.gnss_vel_std_mps
+        assert abs(measured / ratio - 1.0) < 0.1, (seed, measured, ratio)
+        ratios.append(ratio)
+    assert np.ptp(ratios) > 0.05  # drawn per route, not one figure
+    # its own generator: a receiver as the named routes' (ratio 1) leaves every other draw
+    run = _run("random", 1001)
+    same = simulate_tracked(
+        "random", 1001, sensors=dataclasses.replace(run.sensors, gnss_up_vel_std_ratio=1.0)
+    )
+    err, east = _up_noise(run)
+    err1, east1 = _up_noise(same)
+    assert np.array_equal(east, east1)
+    assert np.allclose(err, run.sensors.gnss_up_vel_std_ratio * err1, atol=1e-9)
+
+
+def test_named_routes_keep_a_vertical_as_noisy_as_the_horizontal() -> None:
+    run = _run("route_firm_hill", 1)
+    assert run.sensors.gnss_up_vel_std_ratio == 1.0
+    err, _ = _up_noise(run)
+    assert abs(float(np.std(err)) / run.sensors.gnss_vel_std_mps - 1.0) < 0.1
+
+
+def test_the_pitch_and_roll_gyros_walk_as_the_yaw_gyro_by_their_own_draw() -> None:
+    named = _run("route_firm_hill", 2)
+    route, spec = named.route, named.sensors
+
+    def gyros(walk: bool) -> np.ndarray:
+        run = simulate_route(
+            route,
+            2,
+            config=named.config,
+            sensors=spec,
+            rng=np.random.default_rng(2),
+            extra_rng=np.random.default_rng((2, 4)),
+            walk_rng=np.random.default_rng((2, 6)) if walk else None,
+        )
+        return _imu(run)[1]
+
+    walked, still = gyros(True), gyros(False)
+    assert np.array_equal(walked, _imu(named)[1])  # what simulate_tracked gives
+    assert np.array_equal(walked[:, 2], still[:, 2])  # the yaw gyro and every draw as before
+    drift = walked[:, :2] - still[:, :2]
+    n = drift.shape[0]
+    expected = tilt_bias_walk(np.random.default_rng((2, 6)), named.truth.t_s.size, spec)
+    # the IMU packets give the grid's samples from its second on
+    assert np.allclose(drift, expected[1 : n + 1], atol=1e-12)
+    # a random walk of the part's figure: per-second steps of 1-sigma walk·√1 s
+    steps = np.diff(expected[::RATE_HZ], axis=0)
+    ratio = np.std(steps, axis=0) / spec.gyro_bias_walk_radps
+    assert np.all(np.abs(ratio - 1.0) < 0.1), ratio
