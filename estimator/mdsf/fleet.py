@@ -49,9 +49,6 @@ _F = EstimateFlag
 _NEVER = np.iinfo(np.int64).min
 """``_still_ns`` of a vehicle before its first tick."""
 _START_SPANS = 1.0
-_SWAY_POWER_TAU_S = 1.0
-"""Time constant of the running power of the axle-to-IMU acceleration ``h0·ω̇x`` [s]: a few
-periods of a 0.3-3 Hz sway."""
 _SETTLE_OFF = 1e9
 """``SlipConfig.settle_max_change`` at which the settling rule, this start wait included, is off."""
 """Fit spans a wheel must run after a standstill before its slip counts (the fit's window then
@@ -232,8 +229,6 @@ class MdsfFleet:
         # and its low-passed rate [m/s²] (_wheel_accel)
         self._wheel_prev_mps = np.zeros((0, 2))
         self._wheel_accel_mps2 = np.zeros((0, 2))
-        # per slot: running mean square of the tick's h0·ω̇x beyond its noise [(m/s²)²]
-        self._sway_power = np.zeros(0)
 
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         """Start estimating ``vehicle_id`` (replaces its config and state if already there)."""
@@ -255,7 +250,6 @@ class MdsfFleet:
             grow_slot_array(self, "_dist_shift_m", cap, (), 0.0)
             grow_slot_array(self, "_wheel_prev_mps", cap, (2,), np.nan)
             grow_slot_array(self, "_wheel_accel_mps2", cap, (2,), 0.0)
-            grow_slot_array(self, "_sway_power", cap, (), 0.0)
         geo = config.geometry
         self._radius_m[slot] = (geo.wheel_radius_left_m, geo.wheel_radius_right_m)
         teeth = config.encoder.teeth_per_rev
@@ -266,7 +260,6 @@ class MdsfFleet:
         self._dist_shift_m[slot] = 0.0
         self._wheel_prev_mps[slot] = np.nan
         self._wheel_accel_mps2[slot] = 0.0
-        self._sway_power[slot] = 0.0
 
     def remove_vehicle(self, vehicle_id: str) -> None:
         """Forget ``vehicle_id`` (no error if unknown)."""
@@ -423,10 +416,6 @@ class MdsfFleet:
         radius = radius * scale
         # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
         ground = np.stack([res["vl"], res["vr"]], axis=1)
-        if self._product:
-            sway_var = self._sway_speed_var(due, flat)
-            res["vl_std"] = np.sqrt(res["vl_std"] ** 2 + sway_var)
-            res["vr_std"] = np.sqrt(res["vr_std"] ** 2 + sway_var)
         sp = slip_pct(
             rim,
             ground,
@@ -451,26 +440,6 @@ class MdsfFleet:
         for name in _CAL_FIELDS:
             out[name] = cal_out[name]
         return _by_vehicle([ids[i] for i in due.index.tolist()], out, emit, offsets)
-
-    def _sway_speed_var(self, due: FleetTicks, flat: TickInputs) -> FloatArray:
-        """What the sway adds to each row's wheel ground-speed variance (m,) [(m/s)²]:
-        ``(sway_timing_std_s·h0·ω̇x)²`` (:class:`~estimator.mdsf.model.MdsfConfig`), the
-        tick's ``h0·ω̇x`` (``lever_accel_fwd_mps2``) shrunk towards 0 by two of its std (the
-        gyro's noise, as :meth:`_settling`) and its square low-passed per vehicle over
-        ``_SWAY_POWER_TAU_S``: the sway's amplitude, not its phase at the tick."""
-        out = np.zeros(flat.m)
-        if flat.lever_accel_fwd_mps2 is None or flat.lever_accel_fwd_var is None:
-            return out
-        lever = nan_to_num(flat.lever_accel_fwd_mps2)
-        noise = 2.0 * np.sqrt(nan_to_num(flat.lever_accel_fwd_var))
-        sq = np.maximum(np.abs(lever) - noise, 0.0) ** 2
-        dt = self.config.dt_s
-        alpha = dt / (_SWAY_POWER_TAU_S + dt)
-        for c, fi in _rounds(due.lengths, due.offsets):
-            s = due.slots[:c]
-            self._sway_power[s] += alpha * (sq[fi] - self._sway_power[s])
-            out[fi] = self._sway_power[s]
-        return (self.config.sway_timing_std_s**2) * out
 
     def _settling(
         self,

@@ -359,16 +359,6 @@ class MdsfConfig:
         speed, the acceleration ``a_w`` by which the wheel clock offset moves the rims
         (``r·W + δ_w·a_w``) and against which it is learnt. Not the accelerometer's force:
         vibration, body sway and leftover gravity are in that force, not in the rims [s].
-    sway_timing_std_s : float
-        Product mode: std of the instant the speed state stands for against the instant of
-        the body rates that move it to a wheel. ``V1`` is carried by the tick's mean of IMU
-        samples, each standing for its own sample interval, so its span ends up to half a
-        sample off the tick where ``ωx`` is taken (uniform: ``δ/√12``, 2.9 ms at 100 Hz).
-        Under a body sway the IMU's speed changes by ``h0·ω̇x`` (metres per second squared
-        on a swaying cab), so each wheel's ground speed carries ``h0·ω̇x`` times that
-        instant's error, which the filter's covariance has not: its variance
-        ``(sway_timing_std_s·h0·ω̇x)²``, ``h0·ω̇x`` from its running power, is added to the
-        ground speed's (0 turns it off) [s].
     valid_slip_std_max_pct : float
         Product mode: a slip whose 1-sigma exceeds this (or is unknown) is not valid: no
         value, no valid flag (paper mode keeps the source's rule). The default is the tyre
@@ -446,7 +436,6 @@ class MdsfConfig:
     gnss_distance_gap_s: float = 1.0
     gnss_distance_gate_floor_m: float = 0.1
     wheel_clock_accel_tau_s: float = 0.3
-    sway_timing_std_s: float = 0.003
     valid_slip_std_max_pct: float = 4.0
     course_tau_s: float = 1.0
     gnss_clock_lowpass_tau_s: float = 0.2
@@ -474,7 +463,6 @@ class MdsfConfig:
                 "outage_bias_walk_mps2_per_sqrt_s",
                 "gnss_distance_gap_s",
                 "standstill_speed_mps",
-                "sway_timing_std_s",
             ):
                 continue
             _check(f.name, getattr(self, f.name))
@@ -491,7 +479,6 @@ class MdsfConfig:
             "outage_bias_walk_mps2_per_sqrt_s",
             "gnss_distance_gap_s",
             "standstill_speed_mps",
-            "sway_timing_std_s",
         ):
             _check(name, getattr(self, name), positive=False)
             if getattr(self, name) < 0:
