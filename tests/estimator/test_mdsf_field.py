@@ -42,18 +42,13 @@ def test_rates_at_the_tick_are_exact_for_a_quadratic_and_keep_the_mean_below_thr
     assert 0.1 < f10[0] < 1.0 and factor[1] == pytest.approx(0.5)
 
 
-def _sway(**kw: Any) -> SimRun:
-    cfg = WheeledRearDriveConfig(geometry=VehicleGeometry(h0_m=1.0, h1_m=3.0))
+def _sway(config: WheeledRearDriveConfig | None = None, seed: int = 1, **kw: Any) -> SimRun:
+    """A minute's random drive, the cab swaying (3° pitch, 2° roll at 1.5 Hz unless ``kw``
+    says otherwise) on a 3 m mast with the IMU 1 m up unless ``config`` says otherwise."""
+    cfg = config or WheeledRearDriveConfig(geometry=VehicleGeometry(h0_m=1.0, h1_m=3.0))
+    knobs: dict[str, Any] = {"sway_hz": 1.5, "sway_pitch_deg": 3.0, "sway_roll_deg": 2.0}
     return simulate(
-        "random_drive",
-        seed=1,
-        start_ns=START,
-        config=cfg,
-        duration_s=60.0,
-        sway_hz=1.5,
-        sway_pitch_deg=3.0,
-        sway_roll_deg=2.0,
-        **kw,
+        "random_drive", seed=seed, start_ns=START, config=cfg, duration_s=60.0, **(knobs | kw)
     )
 
 
@@ -86,12 +81,9 @@ def _swaying_cruise() -> tuple[SimRun, np.ndarray, list[TickInputs]]:
     cfg = WheeledRearDriveConfig(
         geometry=VehicleGeometry(h0_m=1.5, h1_m=2.0), encoder=EncoderConfig(teeth_per_rev=30)
     )
-    sim = simulate(
-        "random_drive",
+    sim = _sway(
+        cfg,
         seed=4,
-        start_ns=START,
-        config=cfg,
-        duration_s=60.0,
         speed_min_mps=2.0,
         speed_max_mps=2.0,
         stop_prob=0.0,

@@ -85,7 +85,7 @@ MODES = tuple(FrictionMode)
 @dataclass(frozen=True, slots=True)
 class Series:
     """One run's μ through one filter: times [s], filter μ, reported μ, INFORMED flags and the
-    reported μ's 1-σ (NaN while held; ``None`` where the filter states none)."""
+    reported μ's 1-σ (NaN before the first informed μ; ``None`` where the filter states none)."""
 
     t_s: np.ndarray
     mu_filter: np.ndarray
