@@ -31,6 +31,7 @@ from estimator.config import GyroConfig, TrackedConfig, TrackedGeometry
 from estimator.geo import EnuFrame
 from estimator.sim.tracked.physics import RATE_HZ, CrawlerTruth, integrate_route
 from estimator.sim.tracked.route import (
+    CLOCK_KEYS,
     CONFIG_NAMES_DATASHEET_SHARE,
     RANDOM_RANGES,
     Route,
@@ -107,14 +108,23 @@ def _random_config(rng: np.random.Generator) -> TrackedConfig:
 
 
 def _random_sensors(seed: int) -> CrawlerSensors:
-    """A random route's sensors: the gyro's grade and the receiver's up-over-horizontal
-    velocity noise drawn from ``RANDOM_RANGES``, each by a generator of its own (the route,
-    ground and every other draw stay those of the seed)."""
+    """A random route's sensors: the gyro's grade, the receiver's up-over-horizontal
+    velocity noise and the streams' clocks (each stream's offset from the IMU's, the
+    receiver's epoch jitter) drawn from ``RANDOM_RANGES``, each by a generator of its own
+    (the route, ground and every other draw stay those of the seed)."""
     rng = np.random.default_rng((seed, 1))
     up = np.random.default_rng((seed, 5))
+    clocks = np.random.default_rng((seed, 7))
+    gnss, odometer, sprocket, jitter = (
+        float(clocks.uniform(*RANDOM_RANGES[k])) for k in CLOCK_KEYS
+    )
     return CrawlerSensors(
         gyro_grade=float(rng.uniform(*RANDOM_RANGES["gyro_grade"])),
         gnss_up_vel_std_ratio=float(up.uniform(*RANDOM_RANGES["gnss_up_vel_std_ratio"])),
+        gnss_clock_offset_s=gnss,
+        odometer_clock_offset_s=odometer,
+        sprocket_clock_offset_s=sprocket,
+        gnss_epoch_jitter_s=jitter,
     )
 
 
@@ -145,7 +155,9 @@ def simulate_tracked(
     (``flat=True``, which levels a named route's hills too) or not; what the level-ground
     sensors never drew (the pitch and roll gyros' biases, the GNSS up velocity's noise)
     comes from another (``(seed, 4)``), their biases' in-run walk from a third
-    (``(seed, 6)``).
+    (``(seed, 6)``), the receiver's epoch jitter from a fourth (``(seed, 8)``; a random
+    route's clock figures are drawn by ``(seed, 7)``, :func:`_random_sensors`; a named
+    route's are 0 unless ``sensors`` sets them).
 
     Without ``config``, a named route's config names the gyro its sensors have; a random
     route's names either the unit's own figures (the part's times its grade) or, with
@@ -170,6 +182,7 @@ def simulate_tracked(
     config = config or replace(drawn, gyro=gyro)
     extra = np.random.default_rng((seed, 4))
     walk = np.random.default_rng((seed, 6))
+    jitter = np.random.default_rng((seed, 8))
     return simulate_route(
         route,
         seed,
@@ -179,6 +192,7 @@ def simulate_tracked(
         rng=rng,
         extra_rng=extra,
         walk_rng=walk,
+        jitter_rng=jitter,
     )
 
 
@@ -193,6 +207,7 @@ def simulate_route(
     rng: np.random.Generator | None = None,
     extra_rng: np.random.Generator | None = None,
     walk_rng: np.random.Generator | None = None,
+    jitter_rng: np.random.Generator | None = None,
 ) -> TrackedRun:
     """The simulator's stages on a given ``route``: the crawler's motion, the sensors' errors,
     every packet from ``start_ns`` in ``frame``.
@@ -201,8 +216,9 @@ def simulate_route(
     that order; ``extra_rng`` what the level-ground sensors never drew (without it the pitch
     and roll gyros' biases and the GNSS up velocity's noise are 0,
     :func:`~estimator.sim.tracked.sensors.emissions`), ``walk_rng`` the pitch and roll
-    gyros' in-run bias walk (none without it). Defaults: :class:`TrackedConfig` and
-    :class:`CrawlerSensors`.
+    gyros' in-run bias walk (none without it), ``jitter_rng`` the receiver's epoch jitter
+    (none without it; the streams' clock offsets are ``sensors``'). Defaults:
+    :class:`TrackedConfig` and :class:`CrawlerSensors`.
     """
     rng = np.random.default_rng(seed) if rng is None else rng
     config = config or TrackedConfig()
@@ -210,6 +226,16 @@ def simulate_route(
     truth = integrate_route(route, config, rng)
     errors = draw_errors(rng, truth.t_s.size, spec)
     meas = emissions(
-        truth, config, spec, errors, frame, route.outages_s, start_ns, rng, extra_rng, walk_rng
+        truth,
+        config,
+        spec,
+        errors,
+        frame,
+        route.outages_s,
+        start_ns,
+        rng,
+        extra_rng,
+        walk_rng,
+        jitter_rng,
     )
     return TrackedRun(route.name, seed, route, config, truth, errors, start_ns, frame, meas, spec)

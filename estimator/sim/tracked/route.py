@@ -16,6 +16,7 @@ from estimator.sim.tracked.terrain import FLAT, Terrain, hill_terrain
 from estimator.tracked.model import MotionState
 
 __all__ = [
+    "CLOCK_KEYS",
     "CONFIG_NAMES_DATASHEET_SHARE",
     "FIRM",
     "MANOEUVRES",
@@ -161,7 +162,10 @@ MANOEUVRES: dict[MotionState, tuple[float, tuple[float, float], tuple[float, flo
 #: Other ranges random routes draw from (uniform): ground figures (:class:`Ground`), the
 #: separated turn's sprocket ratio, the route's duration and its outage's (s), and the
 #: gyro's grade (its noise and bias walk over the data sheet's: from the ADIS16470 itself to
-#: a consumer part, :class:`~estimator.sim.tracked.sensors.CrawlerSensors`).
+#: a consumer part, :class:`~estimator.sim.tracked.sensors.CrawlerSensors`), the receiver's
+#: vertical over horizontal velocity noise, and the streams' clocks (:data:`CLOCK_KEYS`):
+#: the receiver's offset from the IMU's clock ±100 ms (a real drive measured 65 ms), the
+#: odometer's and the sprockets' ±20 ms, the receiver's epoch jitter 1σ 1-4 ms.
 RANDOM_RANGES: dict[str, tuple[float, float]] = {
     "separated_ratio": (0.78, 0.96),
     "rolling_slip": (0.01, 0.06),
@@ -174,7 +178,19 @@ RANDOM_RANGES: dict[str, tuple[float, float]] = {
     "outage_s": (180.0, 300.0),
     "gyro_grade": (1.0, 2.0),
     "gnss_up_vel_std_ratio": (1.5, 2.0),
+    "gnss_clock_offset_s": (-0.1, 0.1),
+    "odometer_clock_offset_s": (-0.02, 0.02),
+    "sprocket_clock_offset_s": (-0.02, 0.02),
+    "gnss_epoch_jitter_s": (0.001, 0.004),
 }
+#: The clock figures of ``RANDOM_RANGES`` (each a field of ``CrawlerSensors``), drawn in
+#: this order by a generator of their own.
+CLOCK_KEYS = (
+    "gnss_clock_offset_s",
+    "odometer_clock_offset_s",
+    "sprocket_clock_offset_s",
+    "gnss_epoch_jitter_s",
+)
 #: Share of random routes whose vehicle config names the gyro's data-sheet part (the
 #: ADIS16470's typical figures) while the unit fitted is drawn over ``gyro_grade`` all the
 #: same: a unit worse than its data sheet (unit-to-unit spread, temperature, vibration), as

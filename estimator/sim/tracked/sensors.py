@@ -26,6 +26,7 @@ __all__ = [
     "body_rates",
     "draw_errors",
     "emissions",
+    "gnss_epochs_s",
     "tilt_bias_walk",
 ]
 
@@ -44,6 +45,13 @@ class CrawlerSensors:
     per tooth, so it repeats every revolution of the shaft or sprocket). The GNSS up
     velocity's noise is ``gnss_up_vel_std_ratio`` times the horizontal ``gnss_vel_std_mps``
     (a receiver's vertical is 1.5-2 times noisier; 1 keeps the named routes' draws).
+
+    Clocks: the IMU's is the reference (the filter ticks on it). ``*_clock_offset_s`` is a
+    stream's clock less the IMU's (+: its stamps lead, a sample stamped ``s`` was taken at
+    ``s − offset`` on the IMU's clock): the receiver's, the odometer's and the sprockets'
+    (one counter board for both). The receiver's epochs sit on whole tenths of its own clock,
+    each moved by a jitter of 1σ ``gnss_epoch_jitter_s`` (clipped at 3σ) that its stamp
+    carries. All 0 (the named routes): every fix on a whole tenth of the IMU's clock.
     """
 
     gyro_part: GyroPart = ADIS16470
@@ -61,6 +69,10 @@ class CrawlerSensors:
     sprocket_tooth_error: float = 0.005
     sprocket_radius_error_std: float = 0.002
     edge_jitter_s: float = 2e-5
+    gnss_clock_offset_s: float = 0.0
+    odometer_clock_offset_s: float = 0.0
+    sprocket_clock_offset_s: float = 0.0
+    gnss_epoch_jitter_s: float = 0.0
 
     @property
     def gyro_fitted(self) -> GyroPart:
@@ -199,6 +211,29 @@ def _imu(
     return accel, gyro
 
 
+def gnss_epochs_s(
+    t_s: FloatArray, spec: CrawlerSensors, jitter_rng: np.random.Generator | None
+) -> tuple[FloatArray, FloatArray | None]:
+    """The receiver's epochs: their stamps ``(m,)`` (s, the receiver's clock: the whole
+    tenths ``t_s`` each moved by its jitter, drawn by ``jitter_rng``; none without it) and the
+    instants they were taken on the IMU's clock, ``stamp − gnss_clock_offset_s`` (None where
+    those are ``t_s`` itself: no offset and no jitter)."""
+    stamp = t_s
+    if jitter_rng is not None and spec.gnss_epoch_jitter_s > 0.0:
+        z = np.clip(jitter_rng.standard_normal(t_s.size), -3.0, 3.0)
+        stamp = t_s + spec.gnss_epoch_jitter_s * z
+    if stamp is t_s and spec.gnss_clock_offset_s == 0.0:
+        return t_s, None
+    return stamp, stamp - spec.gnss_clock_offset_s
+
+
+def _at(truth: CrawlerTruth, name: str, idx: IntArray, t_s: FloatArray | None) -> FloatArray:
+    """The truth's ``name`` at the grid points ``idx``, or at the instants ``t_s`` (linear
+    between grid points, held beyond the run) where given."""
+    values: FloatArray = getattr(truth, name)
+    return values[idx] if t_s is None else np.interp(t_s, truth.t_s, values)
+
+
 def _gnss(
     truth: CrawlerTruth,
     cfg: TrackedConfig,
@@ -208,21 +243,28 @@ def _gnss(
     start_ns: int,
     rng: np.random.Generator,
     up_rng: np.random.Generator | None = None,
+    jitter_rng: np.random.Generator | None = None,
 ) -> list[tuple[int, Measurement]]:
     """10 Hz fixes of the antenna: its lever arm turned by heading, pitch and roll, its
     velocity in the world (``V·cos θ`` level, ``V·sin θ`` up, yaw lever-arm terms), height
-    included; the up velocity's noise from ``up_rng`` (none without it)."""
+    included; the up velocity's noise from ``up_rng`` (none without it); each taken at its
+    epoch's instant and stamped on the receiver's clock (:func:`gnss_epochs_s`)."""
     idx = np.arange(_WINDOW, truth.t_s.size, _WINDOW)
-    psi, w = truth.heading_rad[idx], truth.yaw_rate_radps[idx]
-    theta, phi = truth.pitch_rad[idx], truth.roll_rad[idx]
+    stamp_s, taken_s = gnss_epochs_s(truth.t_s[idx], spec, jitter_rng)
+
+    def at(name: str) -> FloatArray:
+        return _at(truth, name, idx, taken_s)
+
+    psi, w = at("heading_rad"), at("yaw_rate_radps")
+    theta, phi = at("pitch_rad"), at("roll_rad")
     x, y, z = cfg.geometry.antenna_lever_arm_m
     fwd = y * np.cos(theta) - z * np.sin(theta) * np.cos(phi)
     right = x * np.cos(phi) + z * np.sin(phi)
-    up = truth.up_m[idx] + z * np.cos(theta) * np.cos(phi) + y * np.sin(theta) - x * np.sin(phi)
-    east = truth.east_m[idx] + right * np.cos(psi) + fwd * np.sin(psi)
-    north = truth.north_m[idx] - right * np.sin(psi) + fwd * np.cos(psi)
-    v_along = truth.speed_mps[idx]
-    vr, vf = truth.lateral_mps[idx] - w * y, v_along * np.cos(theta) + w * x
+    up = at("up_m") + z * np.cos(theta) * np.cos(phi) + y * np.sin(theta) - x * np.sin(phi)
+    east = at("east_m") + right * np.cos(psi) + fwd * np.sin(psi)
+    north = at("north_m") - right * np.sin(psi) + fwd * np.cos(psi)
+    v_along = at("speed_mps")
+    vr, vf = at("lateral_mps") - w * y, v_along * np.cos(theta) + w * x
     ve = vf * np.sin(psi) + vr * np.cos(psi)
     vn = vf * np.cos(psi) - vr * np.sin(psi)
     vu = v_along * np.sin(theta)
@@ -234,13 +276,13 @@ def _gnss(
         up_std = spec.gnss_up_vel_std_ratio * spec.gnss_vel_std_mps
         vu = vu + up_std * up_rng.standard_normal(idx.size)
     lat, lon, h = frame.to_geodetic(east, north, up)
-    t = truth.t_s[idx]
+    t = truth.t_s[idx] if taken_s is None else taken_s  # the sky is lost on the IMU's clock
     lost = np.zeros(idx.size, dtype=bool)
     for a, d in outages_s:
         lost |= (t >= a) & (t < a + d)
     out: list[tuple[int, Measurement]] = []
     nan = float("nan")
-    for k, stamp in enumerate(_stamps(start_ns, t).tolist()):
+    for k, stamp in enumerate(_stamps(start_ns, stamp_s).tolist()):
         if lost[k]:
             sample = GnssSample(stamp, (nan, nan, nan), nan, nan, nan, nan, nan, nan, GnssFix.NONE)
         else:
@@ -271,6 +313,7 @@ def emissions(
     rng: np.random.Generator,
     extra_rng: np.random.Generator | None = None,
     walk_rng: np.random.Generator | None = None,
+    jitter_rng: np.random.Generator | None = None,
 ) -> list[tuple[int, Measurement]]:
     """Every packet as ``(key_ns, measurement)``, sorted by key (GNSS, edges, IMU within one).
 
@@ -278,7 +321,10 @@ def emissions(
     turn-on biases, 1σ ``gyro_bias_std_radps``, and the GNSS up velocity's noise), so every
     draw of ``rng`` stays as it was; without it those are 0. ``walk_rng`` draws the pitch and
     roll gyros' in-run bias walk, the part's figure as the yaw gyro's
-    (:func:`tilt_bias_walk`); without it their biases stay at the turn-on value."""
+    (:func:`tilt_bias_walk`); without it their biases stay at the turn-on value.
+    ``jitter_rng`` draws the receiver's epoch jitter (:func:`gnss_epochs_s`; none without
+    it). Each stream is stamped on its own clock (``spec``'s ``*_clock_offset_s``); a fix is
+    keyed by its stamp, an edge packet by the end of its window on its stream's clock."""
     dt = 1.0 / RATE_HZ
     t = truth.t_s
     ends = t[_WINDOW::_WINDOW]
@@ -289,7 +335,7 @@ def emissions(
     if walk_rng is not None:
         tilt_bias = tilt_bias + tilt_bias_walk(walk_rng, t.size, spec)
     accel, gyro = _imu(truth, cfg, err, spec, rng, tilt_bias)
-    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng)
+    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng, jitter_rng)
     odo_err = spec.odometer_tooth_error * rng.standard_normal(spec.odometer_teeth)
     odo_t = _edge_times(
         t,
@@ -299,6 +345,7 @@ def emissions(
         rng,
         spec.edge_jitter_s,
     )
+    odo_t = odo_t + spec.odometer_clock_offset_s
     for key, part in zip(ends_ns, _packets(odo_t, ends), strict=True):
         out.append((key, OdometerEdges(_stamps(start_ns, part))))
     pitch = 2.0 * np.pi * cfg.sprocket.pitch_radius_m * err.sprocket_scale
@@ -308,6 +355,7 @@ def emissions(
         edge_t = _edge_times(
             t, cumtrapz(truth.sprocket_mps[:, int(side)], dt), pitch, tooth, rng, spec.edge_jitter_s
         )
+        edge_t = edge_t + spec.sprocket_clock_offset_s
         for key, part in zip(ends_ns, _packets(edge_t, ends), strict=True):
             out.append((key, SprocketEdges(side, _stamps(start_ns, part))))
     stamps = _stamps(start_ns, t)

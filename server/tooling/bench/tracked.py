@@ -57,8 +57,11 @@ Metrics per run and mode
 
 Each run's JSON entry also names its gyro's grade (``gyro_grade``: its noise over the
 ADIS16470 data sheet's, :class:`~estimator.sim.tracked.CrawlerSensors`) and the grade its
-config names (``config_gyro_grade``: 1 where the config names the data sheet); the summary gives the
-DR end % over the runs (median, p95, worst).
+config names (``config_gyro_grade``: 1 where the config names the data sheet), and the
+streams' clocks (``gnss_clock_offset_s``, ``odometer_clock_offset_s``,
+``sprocket_clock_offset_s``: each stream's clock less the IMU's; ``gnss_epoch_jitter_s``: the
+receiver's epoch jitter 1σ; all 0 on named routes); the summary gives the DR end % over the
+runs (median, p95, worst).
 
 Floors (product mode, every run): settled ≥ 99.5 %, all ≥ 98.5 %, slip RMS ≤ 1.5 pp per
 track, DR at the end of a > 1 km outage ≤ 0.3 % (firm) / ≤ 0.5 % (soft, random) of distance.
@@ -74,6 +77,7 @@ from typing import Any
 import numpy as np
 
 from estimator.sim.tracked import TrackedRun, simulate_tracked
+from estimator.sim.tracked.route import CLOCK_KEYS
 from estimator.tracked import MotionState, TrackedEstimatorConfig, TrackedFleet, TrackedMode
 from server.tooling.bench import int_list, write_json
 
@@ -354,6 +358,7 @@ def run(
             "gyro_grade": r.sensors.gyro_grade,
             "config_gyro_grade": _config_grade(r),
             "gnss_up_vel_std_ratio": r.sensors.gnss_up_vel_std_ratio,
+            **{k: getattr(r.sensors, k) for k in CLOCK_KEYS},
             "grade_max": float(np.max(np.abs(np.tan(r.truth.pitch_rad)))),
             "cross_max": float(np.max(np.abs(np.tan(r.truth.roll_rad)))),
             "modes": {},

@@ -165,11 +165,18 @@ def test_hill_terrain_is_fixed() -> None:
 
 
 def _up_noise(run: TrackedRun) -> tuple[np.ndarray, np.ndarray]:
-    """The fixes' up and east velocity errors against the truth's climb and course."""
+    """The fixes' up and east velocity errors against the truth's climb and course, read
+    where each fix was taken (its stamp less the receiver's clock offset)."""
     fixes = _fixes(run)
-    k = run.index_at(np.array([f.stamp_ns for f in fixes]))
+    stamp_s = (np.array([f.stamp_ns for f in fixes]) - run.start_ns) * 1e-9
+    taken_s = stamp_s - run.sensors.gnss_clock_offset_s
     vu = np.array([f.vel_enu_mps[2] for f in fixes])
-    true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k])
+    if run.sensors.gnss_clock_offset_s == 0.0 and run.sensors.gnss_epoch_jitter_s == 0.0:
+        k = run.index_at(np.array([f.stamp_ns for f in fixes]))
+        true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k])
+    else:  # as the simulator reads the truth between its grid points
+        speed = np.interp(taken_s, run.truth.t_s, run.truth.speed_mps)
+        true_vu = speed * np.sin(np.interp(taken_s, run.truth.t_s, run.truth.pitch_rad))
     return vu - true_vu, np.array([f.vel_enu_mps[0] for f in fixes])
 
 
