@@ -510,6 +510,7 @@ class FleetFrontEnd:
         grow("done_ns", (), _NONE_NS)  # last tick emitted
         grow("last_imu_ns", (), _NONE_NS)  # newest IMU sample accepted
         grow("last_imu_used_ns", (), _NONE_NS)  # newest IMU sample integrated
+        grow("last_rates", (2,), np.nan)  # its bias-corrected (ωx, ωz) [rad/s]
         grow("pitch_rad", (), 0.0)
         grow("pitch_known", (), False)
         grow("pitch_gyro_bias", (), 0.0)
@@ -589,6 +590,7 @@ class FleetFrontEnd:
     done_ns: IntArray
     last_imu_ns: IntArray
     last_imu_used_ns: IntArray
+    last_rates: FloatArray
     pitch_rad: FloatArray
     pitch_known: BoolArray
     pitch_gyro_bias: FloatArray
@@ -671,6 +673,7 @@ class FleetFrontEnd:
         ):
             getattr(self, name)[slot] = _NONE_NS
         self.tick_phase_ns[slot] = 0
+        self.last_rates[slot] = np.nan
         self._gridless.add(slot)
         self.pitch_rad[slot] = 0.0
         self.pitch_known[slot] = False
@@ -1114,6 +1117,7 @@ class _Batch:
         tn = fe.tick_ns
         # dt per sample (first of a row from the vehicle's last integrated sample), ≤ 0.1 s
         n = self.T.shape[0]
+        self.prev_used_ns = fe.last_imu_used_ns[self.slots].copy()
         dts = np.empty(n)
         if n:
             dts[1:] = np.diff(self.T) * _NS
@@ -1181,13 +1185,18 @@ class _Batch:
         z[:, MdsfObs.OMEGA_X] = wx_tick
         z[:, MdsfObs.OMEGA_Z] = wz_tick
         self.rates_bc = (wx, wz)
-        gnss_ok, gnss_var = self._gnss_speed(z)
-        enu, att, fix_age_s = self._hold_outputs(means[2], theta_tick, phi_tick)
-        dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
-        omega, omega_std, wflags = self._wheels()
+        self.prev_rates = fe.last_rates[self.slots].copy()
+        if n:
+            nz = self.n_s > 0
+            last = self.s_end[nz] - 1
+            fe.last_rates[self.slots[nz]] = np.stack([wx[last], wz[last]], axis=1)
         lever_fwd, lever_fwd_var = self._lever_accel_fwd(
             tick_id, tau, wx[inb], means[1], n_imu, at_tick
         )
+        gnss_ok, gnss_var = self._gnss_speed(z, lever_fwd)
+        enu, att, fix_age_s = self._hold_outputs(means[2], theta_tick, phi_tick)
+        dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
+        omega, omega_std, wflags = self._wheels()
         return TickInputs(
             stamp_ns=self.ticks,
             z=z,
@@ -1502,10 +1511,12 @@ class _Batch:
         fe.yaw_fix_ns[s] = fix_ns
         return np.asarray(b[:, 0])
 
-    def _gnss_speed(self, z: FloatArray) -> tuple[BoolArray, FloatArray]:
-        """GNSS speed per tick into ``z[:, VG]``: eq. (1) moved to the tick with the tick-mean
-        acceleration and averaged (product), or the latest fix (paper). Returns
-        ``(gnss_ok, gnss_var)``, shape ``(n_ticks,)``."""
+    def _gnss_speed(self, z: FloatArray, lever_fwd: FloatArray) -> tuple[BoolArray, FloatArray]:
+        """GNSS speed per tick into ``z[:, VG]``: eq. (1) moved to the tick and averaged
+        (product), or the latest fix (paper). Moved with the axle's tick-mean acceleration
+        ``ā1 + lever_fwd`` (``lever_fwd`` (n_ticks,), :meth:`_lever_accel_fwd`; ``ā1`` where
+        it is NaN) and the lever change of the antenna about the axle at the fix's instant
+        (:meth:`_lever_change`). Returns ``(gnss_ok, gnss_var)``, shape ``(n_ticks,)``."""
         fe = self.fe
         tn = fe.tick_ns
         n_ticks = self.n_ticks
@@ -1518,9 +1529,10 @@ class _Batch:
         tid = self.offsets[self.g_row] + j
         inside = self.g_vel_ok
         if self.product:
-            a_t = nan_to_num(z[tid, MdsfObs.A1])
+            axle = np.isfinite(lever_fwd[tid])
+            a_t = nan_to_num(z[tid, MdsfObs.A1]) + np.where(axle, lever_fwd[tid], 0.0)
             vg_al = self.g_vg + a_t * (self.ticks[tid] - self.g_t) * _NS
-            vg_al = vg_al + self._lever_change(tid, z)
+            vg_al = vg_al + self._lever_change(tid, z, axle)
             ti = tid[inside]
             cnt = np.bincount(ti, minlength=n_ticks)
             s_vg = np.bincount(ti, weights=vg_al[inside], minlength=n_ticks)
@@ -1536,22 +1548,55 @@ class _Batch:
             gnss_ok[ti] = True
         return gnss_ok, gnss_var
 
-    def _lever_change(self, tid: IntArray, z: FloatArray) -> FloatArray:
+    def _lever_change(self, tid: IntArray, z: FloatArray, axle: BoolArray) -> FloatArray:
         """Change of the antenna's lever-arm terms from each fix's instant to its tick,
-        ``−h1·(ωx(tick) − ωx(t_g)) + (x_a − x_i)·(ωz(tick) − ωz(t_g))``, shape (fixes,), with
-        the rates at the fix from the last IMU sample at or before it (0 where there is none,
-        or the tick has no rate): eq. (2) at the tick, not at the fix."""
-        wx, wz = self.rates_bc
-        j = self.g_j - 1
-        has = (j >= self.s_begin[self.g_row]) & (j >= 0)
-        jj = np.where(has, j, 0)
-        if wx.shape[0] == 0:
+        ``−h·(ωx(tick) − ωx(t_g)) + (x_a − x_i)·(ωz(tick) − ωz(t_g))``, shape (fixes,):
+        eq. (2) at the tick, not at the fix. ``h`` is the mast ``h1``, or ``h0 + h1`` where
+        ``axle`` (fixes,) says the speed is moved with the axle's acceleration (eq. (3): the
+        IMU's own sway then moves here, exactly). The rates at the fix
+        (:meth:`_rates_at_fix_instant`); 0 where there are none, or the tick has no rate."""
+        wx_g, wz_g, has = self._rates_at_fix_instant()
+        if wx_g.shape[0] == 0 or self.rates_bc[0].shape[0] == 0:
             return np.zeros(tid.shape[0])
-        d_wx = nan_to_num(z[tid, MdsfObs.OMEGA_X] - wx[jj])
-        d_wz = nan_to_num(z[tid, MdsfObs.OMEGA_Z] - wz[jj])
+        d_wx = nan_to_num(z[tid, MdsfObs.OMEGA_X] - wx_g)
+        d_wz = nan_to_num(z[tid, MdsfObs.OMEGA_Z] - wz_g)
         s = self.slots[self.g_row]
-        change = -self.fe.h1_m[s] * d_wx + self.fe.ant_x_m[s] * d_wz
+        up = self.fe.h1_m[s] + np.where(axle, self.fe.imu_up_m[s], 0.0)
+        change = -up * d_wx + self.fe.ant_x_m[s] * d_wz
         return np.where(has, change, 0.0)
+
+    def _rates_at_fix_instant(self) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """Bias-corrected ``(ωx, ωz)`` at each fix's stamp, interpolated linearly between the
+        IMU samples around it: the row's last at or before the fix (or, before the batch's
+        first, the vehicle's newest integrated one, carried) and the next. Under a sway of a
+        few hertz a sample's 10 ms is tenths of a metre per second on a tall mast. Returns
+        the rates and where they are known, each (fixes,)."""
+        wx, wz = self.rates_bc
+        nf = self.g_row.shape[0]
+        if wx.shape[0] == 0:
+            return np.zeros(nf), np.zeros(nf), np.zeros(nf, dtype=bool)
+        row = self.g_row
+        begin, end = self.s_begin[row], self.s_end[row]
+        j = self.g_j - 1
+        own = (j >= begin) & (j >= 0)
+        carried = (
+            ~own
+            & (end > begin)
+            & (self.prev_used_ns[row] != _NONE_NS)
+            & np.isfinite(self.prev_rates[row, 0])
+        )
+        jj = np.clip(j, 0, wx.shape[0] - 1)
+        nxt = np.clip(np.where(own, j + 1, begin), 0, wx.shape[0] - 1)
+        t0 = np.where(own, self.T[jj], self.prev_used_ns[row])
+        x0 = np.where(own, wx[jj], self.prev_rates[row, 0])
+        z0 = np.where(own, wz[jj], self.prev_rates[row, 1])
+        after = np.where(own, j + 1 < end, carried)
+        span = np.where(after, (self.T[nxt] - t0).astype(np.float64), 1.0)
+        u = np.where(after & (span > 0), (self.g_t - t0) / np.where(span > 0, span, 1.0), 0.0)
+        u = np.clip(u, 0.0, 1.0)
+        wx_g = x0 + u * (wx[nxt] - x0)
+        wz_g = z0 + u * (wz[nxt] - z0)
+        return wx_g, wz_g, own | carried
 
     def _gnss_distance(self) -> tuple[BoolArray, FloatArray, FloatArray, BoolArray]:
         """Along-track distance of the IMU point from RTK-fixed positions, per tick.

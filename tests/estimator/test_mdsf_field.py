@@ -226,3 +226,44 @@ def test_rows_do_not_depend_on_the_absolute_clock() -> None:
     assert a.shape == b.shape
     for name in a.dtype.names or ():
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_a_fix_moved_to_its_tick_on_a_swaying_mast_keeps_the_antenna_speed() -> None:
+    """Fixes 95 ms before their ticks on a 3 m mast swaying 1.5° at 2.5 Hz (the antenna's
+    forward speed swings by ±2 m/s): the GNSS speed the front end gives the tick is the
+    antenna's there. The lever change took the rate at the fix from the last IMU sample at
+    or before it within the batch (none for a fix early in its tick: no change at all) and
+    carried the IMU's swaying acceleration over the gap: 1.20 m/s RMS off. Now the rates
+    are interpolated at the fix (the vehicle's last sample carried across batches) and the
+    speed moved with the axle's acceleration: 0.11 m/s, the fixes' own noise."""
+    cfg = WheeledRearDriveConfig(geometry=VehicleGeometry(h0_m=1.5, h1_m=3.0))
+    sim = _sway(
+        cfg,
+        seed=4,
+        speed_min_mps=2.0,
+        speed_max_mps=2.0,
+        stop_prob=0.0,
+        sway_hz=2.5,
+        sway_pitch_deg=1.5,
+        sway_roll_deg=0.0,
+        gnss_epoch_phase_ms=5.0,
+    )
+    fleet = MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT))
+    inputs: list[TickInputs] = []
+    assemble = fleet.front.assemble
+
+    def keep(slots: np.ndarray, until_ns: np.ndarray) -> FleetTicks | None:
+        due = assemble(slots, until_ns)
+        if due is not None:
+            inputs.append(due.inputs)
+        return due
+
+    fleet.front.assemble = keep  # type: ignore[method-assign]
+    run_estimator(fleet, sim, dataclasses.replace(sim.config, noise=sim.sensor_noise))
+    stamp = np.concatenate([t.stamp_ns for t in inputs])
+    vg = np.concatenate([np.where(t.gnss_ok, t.z[:, MdsfObs.VG], np.nan) for t in inputs])
+    cruise = np.isfinite(vg) & (truth_at(sim.truth, stamp, "v0_mps") > 1.9)
+    assert cruise.sum() > 300
+    truth = truth_at(sim.truth, stamp, "vg_mps")[cruise]
+    assert np.std(truth) > 1.0  # the mast's sway is there
+    assert np.sqrt(np.mean((vg[cruise] - truth) ** 2)) < 0.25
