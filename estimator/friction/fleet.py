@@ -120,6 +120,7 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
         kappa=fe.kappa,
         kappa_std=np.hypot(fe.kappa_std, load_slip_std(fe.fz_n, fe.kz_npm, axles, cfg)),
         kappa_common_std=fe.kappa_common_std,
+        kappa_common_corr=fe.kappa_common_corr,
         alpha_std_rad=fe.alpha_std_rad,
         z=fe.z,
         valid=fe.valid,
