@@ -27,6 +27,7 @@ from estimator.friction.filter import (
     mu_upper,
     reported_mu_std,
 )
+from estimator.friction.fleet import _claimable
 from estimator.friction.frontend import FrontEndConfig, brake_slip_std, spin_up_slip
 from estimator.friction.model import Chassis, body_accelerations
 from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
@@ -174,6 +175,22 @@ def test_a_held_mu_states_its_sigma_against_the_filter() -> None:
     moved = np.abs(rows["mu"] - rows["mu_filter"])[held]
     assert np.all(rows["mu_std"][held] >= moved)
     assert np.all(rows["mu_std"][held] > 0)
+
+
+def test_a_claim_needs_its_three_sigma_within_the_honesty_floor() -> None:
+    """One tick counts toward a claim where the filter updated, the most used tyre works at
+    ``informed_min_util`` of its grip and ``3σ/μ`` lies within 10 % (the worst error a claim
+    may have): σ/μ 3.2 % (the accelerating μ step's with the speed's shared error counted)
+    counts, 3.4 % does not, nor an update on tyres at half their grip or no update."""
+    cfg = FrictionFleetConfig()
+    mu = np.full(5, 0.4)
+    std = mu * np.array([0.032, 0.034, 0.01, 0.01, 0.0333])
+    updated = np.array([True, True, True, False, True])
+    util = np.full((5, 4), 0.2)
+    util[:, 3] = [0.7, 0.7, 0.5, 0.7, 0.7]
+    ok = _claimable(mu, std, updated, util, cfg)
+    assert ok.tolist() == [True, False, False, False, True]
+    assert 3.0 * cfg.informed_rel_std <= 0.1 + 1e-12
 
 
 def test_refuses_other_kinds() -> None:
