@@ -106,9 +106,6 @@ class ProductState(IntEnum):
     GY_REAR = 4
     VY = 5
     """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
-    SPEED_ERR = 6
-    """The front end's speed error shared by the four κ, in units of its 1-σ: ``η`` with
-    ``v_true = v̂ (1 + σ_v η)`` (:func:`_shared_slip`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -206,15 +203,14 @@ class TyreArrays:
 class TickInputs:
     """One tick's inputs per vehicle: per wheel ``(B, 4)`` load, slip angle, steer angle and
     slip with the 1-σ of the last two (κ's each wheel's own; ``kappa_common_std`` ``(B,)`` the
-    speed's error, shared by the four κ, and ``kappa_common_corr`` ``(B,)`` its correlation
-    with the last tick's, both from the front end's speed filter); ``z`` ``(B, 3)`` the
-    measured ``[a_x, a_y, ṙ]``; ``valid`` ``(B,)`` where an update may run (moving, every
-    input known); ``vx_mps``, ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the
-    product's ``v_y``, ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it;
-    ``alpha_lag_rad`` ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's
-    lag behind a changing slip), added to the product's slip angles from ``v_y``;
-    ``radius_m`` ``(B, 4)`` the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the
-    1-σ of each axle's torque balance (product only, :mod:`.axle`)."""
+    speed's error, shared by the four κ); ``z`` ``(B, 3)`` the measured ``[a_x, a_y, ṙ]``;
+    ``valid`` ``(B,)`` where an update may run (moving, every input known); ``vx_mps``,
+    ``yaw_rate_radps`` ``(B,)`` (with ``z``'s ``a_y``) drive the product's ``v_y``,
+    ``vy_meas_mps`` (NaN when none) with ``vy_meas_std_mps`` corrects it; ``alpha_lag_rad``
+    ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
+    changing slip), added to the product's slip angles from ``v_y``; ``radius_m`` ``(B, 4)``
+    the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
+    balance (product only, :mod:`.axle`)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -222,7 +218,6 @@ class TickInputs:
     kappa: FloatArray
     kappa_std: FloatArray
     kappa_common_std: FloatArray
-    kappa_common_corr: FloatArray
     alpha_std_rad: FloatArray
     z: FloatArray
     valid: BoolArray
@@ -276,8 +271,6 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     if cfg.mode is FrictionMode.PRODUCT:
         x[:, ProductState.VY] = 0.0
         std[:, ProductState.VY] = cfg.vy0_std_mps
-        x[:, ProductState.SPEED_ERR] = 0.0
-        std[:, ProductState.SPEED_ERR] = 1.0
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -381,20 +374,7 @@ def _forces(
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
     if cfg.mode is FrictionMode.PRODUCT:
         alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
-        kappa = _shared_slip(kappa, points[..., ProductState.SPEED_ERR], u.kappa_common_std)
     return brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
-
-
-def _shared_slip(kappa: FloatArray, eta: FloatArray, common_std: FloatArray) -> FloatArray:
-    """The slips ``(B, P, 4)`` of the front end's ``κ̂`` ``(B, 1 or P, 4)`` at the speed error
-    ``η`` ``(B, P)`` (:attr:`ProductState.SPEED_ERR`, in units of ``common_std`` ``(B,)``).
-
-    ``κ̂ = ω r/v̂ − 1`` was taken against the front end's speed ``v̂``; with the true one
-    ``v̂ (1 + ε)``, ``ε = σ_v η``, the wheel's slip is ``κ = (1 + κ̂)/(1 + ε) − 1``: one error
-    moves the four wheels together (a shift of ``−ε (1 + κ̂)``), driven and free alike."""
-    eps = common_std[:, None, None] * eta[..., None]
-    out: FloatArray = (1.0 + kappa) / (1.0 + eps) - 1.0
-    return out
 
 
 def _torque_balance(fx_n: FloatArray, radius_m: FloatArray) -> FloatArray:
@@ -449,16 +429,22 @@ def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
 def _input_spread(
     x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FloatArray:
-    """``D`` ``(B, m, 4)`` (product ``(B, m, 5)``): the change of ``h`` at the mean for a 1-σ
-    change of each wheel's own κ error (the slip angles follow from the state). The error
-    the four κ share (the speed's) is not here: the product carries it as a state
-    (:attr:`ProductState.SPEED_ERR`), one error over the four wheels and over ticks, not a new
-    one each tick. The product's fifth column is the relaxation length's: the lag of the
-    relaxed slip angles behind the kinematic ones (``u.alpha_lag_rad``) is proportional to it
-    while the slip moves (``τ = σ/v`` short against the change), and the tyres' own is the
-    config's ×0.75-1.75 at best, so the lag of all four wheels scaled by
-    ``1 + relaxation_rel_std``."""
-    kappa = u.kappa[:, None, :] + np.eye(4)[None] * u.kappa_std[:, :, None]
+    """``D`` ``(B, m, 5)`` (product ``(B, m, 6)``): the change of ``h`` at the mean for a 1-σ
+    change of each wheel's own κ error and of the shared one (the speed's: all four κ at once;
+    the slip angles follow from the state). A shared error shifts the driven and the
+    free-rolling wheels alike, so it is not read as a driven tyre's slip. The product's sixth
+    column is the relaxation length's: the lag of the relaxed slip angles behind the kinematic
+    ones (``u.alpha_lag_rad``) is proportional to it while the slip moves (``τ = σ/v`` short
+    against the change), and the tyres' own is the config's ×0.75-1.75 at best, so the lag of
+    all four wheels scaled by ``1 + relaxation_rel_std``."""
+    shifts = np.concatenate(
+        [
+            np.eye(4)[None] * u.kappa_std[:, :, None],
+            np.ones((1, 1, 4)) * u.kappa_common_std[:, None, None],
+        ],
+        axis=1,
+    )
+    kappa = u.kappa[:, None, :] + shifts
     mean = x[:, None, :]
     alpha = u.alpha_rad[:, None, :]
     base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
@@ -474,10 +460,7 @@ def _predict(
     st: FilterState, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs
 ) -> tuple[FloatArray, FloatArray]:
     """Time update (eq. 22, 28-31): μ and the stiffness states walk; ADAPTIVE/PAPER carry the
-    stiffness with the load ratio. The product's ``v_y`` follows ``v̇_y = a_y − r v_x``; its
-    shared speed error is a first-order Gauss-Markov in units of its 1-σ,
-    ``η_k = ρ η_{k−1} + √(1 − ρ²) w`` (``ρ`` the front end's correlation of its speed errors a
-    tick apart: ``ε = σ_v η`` keeps the front end's 1-σ and its correlation over ticks)."""
+    stiffness with the load ratio."""
     b, n = st.x.shape
     sqrt_dt = math.sqrt(cfg.tick_s)
     walk = np.full((b, n), cfg.stiffness_walk_per_sqrt_s * sqrt_dt)
@@ -490,9 +473,6 @@ def _predict(
         scale = np.ones((b, n))
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
-        rho = np.clip(u.kappa_common_corr, 0.0, 1.0)
-        scale[:, ProductState.SPEED_ERR] = rho
-        walk[:, ProductState.SPEED_ERR] = np.sqrt(1.0 - rho * rho)
     else:
         walk[:, 0] = mu_walk
         walk[:, 1:] *= np.abs(st.x[:, 1:])

@@ -75,17 +75,13 @@ class FrictionFleetConfig:
     """Settings of the friction estimator: the filter (and its mode), the front end, the
     position track, the driven axles' torque balance and the slips' load sensitivity (product
     mode), and when μ counts as informed (relative 1-σ below ``informed_rel_std`` and the most
-    used tyre at ``informed_min_util`` of its grip or more).
-
-    ``informed_rel_std`` is a third of the 10 % a claimed μ may be off at most (the honesty
-    floor): a claim's 3σ lies within it. The σ it reads counts the slips' shared speed error
-    (a state of the product filter), so it is not tightened below that to pass."""
+    used tyre at ``informed_min_util`` of its grip or more)."""
 
     filter: FilterConfig = field(default_factory=FilterConfig)
     frontend: FrontEndConfig | None = None
     position: PositionConfig = field(default_factory=PositionConfig)
     axle: AxleConfig = field(default_factory=AxleConfig)
-    informed_rel_std: float = 0.1 / 3.0
+    informed_rel_std: float = 0.03
     informed_min_util: float = 0.6
     informed_hold_s: float = 0.5
     informed_spread: float = 0.03
@@ -124,7 +120,6 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
         kappa=fe.kappa,
         kappa_std=np.hypot(fe.kappa_std, load_slip_std(fe.fz_n, fe.kz_npm, axles, cfg)),
         kappa_common_std=fe.kappa_common_std,
-        kappa_common_corr=fe.kappa_common_corr,
         alpha_std_rad=fe.alpha_std_rad,
         z=fe.z,
         valid=fe.valid,
@@ -301,7 +296,8 @@ class FrictionFleet:
         mu = mu_of(st.x[:, 0], mode)
         root_row = st.s[:, 0]
         std = mu_std_of(st.x[:, 0], np.sqrt(np.einsum("ij,ij->i", root_row, root_row)), mode)
-        ok = _claimable(mu, std, st.updated, util, cfg)
+        ok = st.updated & (std / mu < cfg.informed_rel_std)
+        ok &= np.fmax.reduce(util, axis=1) >= cfg.informed_min_util
         informed = self._slots.informed(s, ok, mu, cfg.informed_spread)
         self._slots.held_mu[s[informed]] = mu[informed]
         out["stamp_ns"][at] = t_ns
@@ -311,17 +307,6 @@ class FrictionFleet:
         out["mu_filter"][at] = mu
         out["vy_mps"][at] = st.x[:, ProductState.VY] if mode is FrictionMode.PRODUCT else fe.vy_mps
         out["flags"][at] = _flags(informed, st, fe, fresh, mode)
-
-
-def _claimable(
-    mu: FloatArray, std: FloatArray, updated: BoolArray, util: FloatArray, cfg: FrictionFleetConfig
-) -> BoolArray:
-    """Where one tick may count toward a claim ``(B,)``: updated, ``σ/μ`` below
-    ``informed_rel_std`` (a claim's 3σ within the 10 % honesty floor) and the most used tyre
-    ``util`` ``(B, 4)`` (at the far end of μ's interval) at ``informed_min_util`` of its grip."""
-    ok: BoolArray = updated & (std / mu < cfg.informed_rel_std)
-    ok &= np.fmax.reduce(util, axis=1) >= cfg.informed_min_util
-    return ok
 
 
 def _n_state(mode: FrictionMode) -> int:

@@ -47,7 +47,6 @@ class FrontEndTicks:
     kappa: FloatArray
     kappa_std: FloatArray
     kappa_common_std: FloatArray
-    kappa_common_corr: FloatArray
     alpha_std_rad: FloatArray
     alpha_lag_rad: FloatArray
     z: FloatArray
@@ -72,8 +71,7 @@ class _Arrays:
 
 class _AxisFilters(_Arrays):
     """:class:`~.frontend._AxisFilter` for every slot: speed ``v`` and bias ``b`` with
-    ``v̇ = a − b + c``, ``ḃ = w``; covariance ``[[var, p_vb], [p_vb, p_bb]]``; ``c_v``, ``c_b``
-    the state's error's covariance with the speed's error at :meth:`mark`."""
+    ``v̇ = a − b + c``, ``ḃ = w``; covariance ``[[var, p_vb], [p_vb, p_bb]]``."""
 
     def __init__(self, speed_walk: float, bias_walk: float) -> None:
         self.speed_walk, self.bias_walk = speed_walk, bias_walk
@@ -82,25 +80,10 @@ class _AxisFilters(_Arrays):
         self.var = np.zeros(0)
         self.p_vb = np.zeros(0)
         self.p_bb = np.zeros(0)
-        self.var_marked = np.zeros(0)
-        self.c_v = np.zeros(0)
-        self.c_b = np.zeros(0)
 
     def reset(self, slot: int, speed: float, bias0_std: float) -> None:
         self.speed[slot], self.bias[slot] = speed, 0.0
         self.var[slot], self.p_vb[slot], self.p_bb[slot] = 1.0, 0.0, bias0_std**2
-        self.var_marked[slot], self.c_v[slot], self.c_b[slot] = 1.0, 1.0, 0.0
-
-    def mark(self, s: IntArray) -> None:
-        """Start the cross-covariance with the speed's error as it is now."""
-        self.var_marked[s], self.c_v[s], self.c_b[s] = self.var[s], self.var[s], self.p_vb[s]
-
-    def speed_corr(self, s: IntArray) -> FloatArray:
-        """Correlation of the speed's error now with its error at :meth:`mark` ``(len(s),)``."""
-        den = np.sqrt(np.maximum(self.var_marked[s] * self.var[s], 0.0))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            corr = np.where(den > 0, self.c_v[s] / den, 0.0)
-        return np.asarray(np.clip(corr, 0.0, 1.0), dtype=np.float64)
 
     def predict(self, s: IntArray, accel: FloatArray, coupling: FloatArray, dt: float) -> None:
         """``x ← F x + [a + c, 0] dt``, ``P ← F P Fᵀ + Q``, ``F = [[1, −dt], [0, 1]]``."""
@@ -109,7 +92,6 @@ class _AxisFilters(_Arrays):
         self.var[s] += -2.0 * dt * p_vb + dt * dt * p_bb + (self.speed_walk * dt) ** 2
         self.p_vb[s] = p_vb - dt * p_bb
         self.p_bb[s] = p_bb + self.bias_walk**2 * dt
-        self.c_v[s] -= dt * self.c_b[s]
 
     def update(self, s: IntArray, z: FloatArray, var: FloatArray | float) -> None:
         """Readings ``z`` ``(len(s),)`` of the speeds with variance ``var``."""
@@ -122,9 +104,6 @@ class _AxisFilters(_Arrays):
         self.p_bb[s] -= k_b * p_vb
         self.p_vb[s] = p_vb - k_v * p_vb
         self.var[s] = v_var - k_v * v_var
-        c_v = self.c_v[s]
-        self.c_b[s] -= k_b * c_v
-        self.c_v[s] = c_v - k_v * c_v
 
 
 class _TiltFits(_Arrays):
@@ -357,7 +336,6 @@ class FleetFrontEnd:
             kz_npm=st.kz_wheel[s],
             delta_rad=delta,
             kappa_common_std=np.sqrt(np.maximum(vx_var, 0.0)) / np.maximum(np.abs(vx), 1.0),
-            kappa_common_corr=self.vx.speed_corr(s),
             z=z,
             vx_mps=vx,
             vy_mps=self.vy.speed[s],
@@ -536,7 +514,6 @@ class FleetFrontEnd:
         if unset.any():
             rim = (omega[unset] * st.radius[s[unset]]).mean(axis=1)
             vx.speed[s[unset]] = np.where(np.isfinite(gnss_v[unset, 0]), gnss_v[unset, 0], rim)
-        vx.mark(s)
         vx.predict(s, ax_tilt, yaw_rate * self.vy.speed[s], self.dt)
         if g.size:
             vx.update(s[g], gnss_v[g, 0], 0.03**2)

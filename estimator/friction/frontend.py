@@ -209,7 +209,6 @@ class FrontEndTick:
     kappa: FloatArray
     kappa_std: FloatArray  # per wheel, apart from the shared part below
     kappa_common_std: float  # the speed's 1-σ over it: one error shared by the four κ
-    kappa_common_corr: float  # that error's correlation with the last tick's (0..1)
     alpha_std_rad: FloatArray
     alpha_lag_rad: FloatArray  # relaxed minus kinematic α (0 in the paper reading)
     z: FloatArray  # [a_x + resistances/m, a_y, ṙ]
@@ -245,28 +244,12 @@ class _AxisFilter:
     ``c`` is the rotation term (``r v_y`` forward, ``−r v_x`` lateral); updates are speeds. In
     plain floats (a 2×2 covariance ``[[p_vv, p_vb], [p_vb, p_bb]]``): three of these run every
     tick of every vehicle, where numpy's per-call cost would be most of the work.
-
-    From :meth:`mark` on, ``c_v``, ``c_b`` carry the covariance of the state's error with the
-    speed's error at the mark through the same steps (``c ← F c`` predicting, ``c ← (I − K H) c``
-    updating), so :attr:`speed_corr` is the correlation of the speed's error now with the
-    speed's error then, as this filter's own model has it.
     """
 
     def __init__(self, speed_walk_mps2: float, bias_walk: float, bias0_std: float) -> None:
         self.speed, self.bias = math.nan, 0.0
         self.speed_var, self.p_vb, self.p_bb = 1.0, 0.0, bias0_std**2
         self.speed_walk, self.bias_walk = speed_walk_mps2, bias_walk
-        self.var_marked, self.c_v, self.c_b = 1.0, 1.0, 0.0
-
-    def mark(self) -> None:
-        """Start the cross-covariance with the speed's error as it is now."""
-        self.var_marked, self.c_v, self.c_b = self.speed_var, self.speed_var, self.p_vb
-
-    @property
-    def speed_corr(self) -> float:
-        """Correlation of the speed's error now with its error at :meth:`mark` (0..1)."""
-        den = math.sqrt(max(self.var_marked * self.speed_var, 0.0))
-        return min(max(self.c_v / den, 0.0), 1.0) if den > 0 else 0.0
 
     def set_speed(self, value: float, var: float | None = None) -> None:
         """Put the speed (and its variance) at a value, as a start or an external reading."""
@@ -280,7 +263,6 @@ class _AxisFilter:
         self.speed_var += -2.0 * dt * self.p_vb + dt * dt * self.p_bb + (self.speed_walk * dt) ** 2
         self.p_vb -= dt * self.p_bb
         self.p_bb += self.bias_walk**2 * dt
-        self.c_v -= dt * self.c_b
 
     def update(self, z: float, var: float) -> None:
         """A reading ``z`` of the speed with variance ``var``."""
@@ -292,8 +274,6 @@ class _AxisFilter:
         self.p_bb -= k_b * self.p_vb
         self.p_vb -= k_v * self.p_vb
         self.speed_var -= k_v * self.speed_var
-        self.c_b -= k_b * self.c_v
-        self.c_v -= k_v * self.c_v
 
 
 class _TiltGradient:
@@ -501,7 +481,6 @@ class FrontEnd:
             kappa=kappa,
             kappa_std=k_std,
             kappa_common_std=k_common,
-            kappa_common_corr=self.vx.speed_corr,
             alpha_std_rad=a_std,
             alpha_lag_rad=alpha_lag,
             z=z,
@@ -557,7 +536,6 @@ class FrontEnd:
         calibrated, by the undriven wheels' rims (free rolling: no slip)."""
         if math.isnan(self.vx.speed):
             self.vx.set_speed(gnss[0] if gnss else float(np.mean(self.omega * self.radius)))
-        self.vx.mark()
         self.vx.predict(ax_tilt, yaw_rate * self.vy.speed, self.dt)
         if gnss is not None:
             self.vx.update(gnss[0], 0.03**2)

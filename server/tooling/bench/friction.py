@@ -214,7 +214,6 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
         kappa=col("kappa"),
         kappa_std=tiny,
         kappa_common_std=np.zeros(vx.shape),
-        kappa_common_corr=np.zeros(vx.shape),
         alpha_std_rad=tiny,
         z=z,
         valid=vx > 3.0,

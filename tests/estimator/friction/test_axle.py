@@ -122,7 +122,6 @@ def _soft_tyre_tick(kappa_rl_bias: float, balance: bool) -> tuple[TickInputs, Ty
         kappa=read,
         kappa_std=std,
         kappa_common_std=np.zeros(1),
-        kappa_common_corr=np.zeros(1),
         alpha_std_rad=np.full((1, 4), 3e-4),
         z=z,
         valid=np.array([True]),

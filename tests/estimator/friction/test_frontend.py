@@ -14,7 +14,6 @@ from estimator.friction.frontend import (
     FrontEnd,
     FrontEndConfig,
     FrontEndTick,
-    _AxisFilter,
     _TiltGradient,
     ringing_slip_std,
 )
@@ -208,43 +207,3 @@ def test_ringing_slip_std_by_hand() -> None:
     ring = np.full((1, 4), 2e-3)
     out = ringing_slip_std(kappa, prev, ring, 0.5, np.full((1, 4), 1e-3))
     assert np.allclose(out, [[3e-3, 1e-3, 1e-3, 3e-3]], rtol=1e-12)
-
-
-def test_speed_error_correlation_over_a_tick_by_hand() -> None:
-    """The speed filter's error now against its error at the mark, as its own model has it:
-    the errors ``[e_v, e_b, e_v,then]`` carried through ``F`` and two readings (a GNSS speed
-    and a rim speed; ``e ← (I − K H) e + K n``, Joseph form, the mark's error kept as it
-    was) by explicit matrices give the same correlation as the
-    filter's running cross-covariance; with no reading at all the error is the same error
-    walked on (correlation ``√(P/(P + dt² p_bb + (q dt)²))``), and a reading exact to 1e-12
-    leaves none of it."""
-    dt = 0.02
-    f = _AxisFilter(0.3, 0.005, 0.1)
-    f.set_speed(10.0, 4e-4)
-    f.p_vb, f.p_bb = -1e-4, 2e-3
-    f.mark()
-    f.predict(1.0, 0.0, dt)
-    f.update(10.02, 0.03**2)
-    f.update(10.01, 1e-4)
-    p = np.array([[4e-4, -1e-4, 4e-4], [-1e-4, 2e-3, -1e-4], [4e-4, -1e-4, 4e-4]])
-    big_f = np.array([[1.0, -dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    q = np.diag([(0.3 * dt) ** 2, 0.005**2 * dt, 0.0])
-    p = big_f @ p @ big_f.T + q
-    for var in (0.03**2, 1e-4):  # e ← (I − K H) e + K n on the filter's two states only
-        k = np.array([p[0, 0], p[1, 0], 0.0]) / (p[0, 0] + var)
-        m = np.eye(3)
-        m[:, 0] -= k
-        p = m @ p @ m.T + var * np.outer(k, k)
-    want = p[0, 2] / math.sqrt(p[0, 0] * p[2, 2])
-    assert abs(f.speed_var - p[0, 0]) < 1e-15
-    assert abs(f.speed_corr - want) < 1e-12
-    assert 0.2 < want < 0.9
-    free = _AxisFilter(0.3, 0.005, 0.1)
-    free.set_speed(10.0, 4e-4)
-    free.mark()
-    free.predict(1.0, 0.0, dt)
-    walked = 4e-4 + dt * dt * 0.1**2 + (0.3 * dt) ** 2
-    assert abs(free.speed_corr - math.sqrt(4e-4 / walked)) < 1e-12
-    free.mark()
-    free.update(10.0, 1e-24)
-    assert free.speed_corr < 1e-6
