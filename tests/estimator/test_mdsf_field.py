@@ -74,6 +74,12 @@ def test_a_crawl_on_a_swaying_mast_without_a_receiver_heading_keeps_the_ground_s
     assert evaluate(rows, sim.truth)["vw_rms_pct"] < 15.0
 
 
+def _cruise(config: WheeledRearDriveConfig, **kw: Any) -> SimRun:
+    """A swaying drive (:func:`_sway`, seed 4) held at 2 m/s without stops; ``kw`` sets
+    the sway and the rest."""
+    return _sway(config, seed=4, speed_min_mps=2.0, speed_max_mps=2.0, stop_prob=0.0, **kw)
+
+
 def _swaying_cruise() -> tuple[SimRun, np.ndarray, list[TickInputs]]:
     """A 2 m/s cruise on a 30-tooth ring, the cab swaying 1.5° in pitch at 2.2 Hz about the
     axle with the IMU 1.5 m up (``h0·ω̇x`` up to 7 m/s²): the product rows and the tick inputs
@@ -81,17 +87,14 @@ def _swaying_cruise() -> tuple[SimRun, np.ndarray, list[TickInputs]]:
     cfg = WheeledRearDriveConfig(
         geometry=VehicleGeometry(h0_m=1.5, h1_m=2.0), encoder=EncoderConfig(teeth_per_rev=30)
     )
-    sim = _sway(
-        cfg,
-        seed=4,
-        speed_min_mps=2.0,
-        speed_max_mps=2.0,
-        stop_prob=0.0,
-        turn_rate_max_radps=0.0,
-        sway_hz=2.2,
-        sway_pitch_deg=1.5,
-        sway_roll_deg=1.0,
-    )
+    sim = _cruise(cfg, turn_rate_max_radps=0.0, sway_hz=2.2, sway_pitch_deg=1.5, sway_roll_deg=1.0)
+    rows, inputs = _product_keeping_inputs(sim)
+    return sim, rows, inputs
+
+
+def _product_keeping_inputs(sim: SimRun) -> tuple[np.ndarray, list[TickInputs]]:
+    """The product rows of ``sim`` and the tick inputs the fleet's front end gave its
+    engine, call by call."""
     fleet = MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT))
     inputs: list[TickInputs] = []
     assemble = fleet.front.assemble
@@ -104,7 +107,7 @@ def _swaying_cruise() -> tuple[SimRun, np.ndarray, list[TickInputs]]:
 
     fleet.front.assemble = keep  # type: ignore[method-assign]
     rows = run_estimator(fleet, sim, dataclasses.replace(sim.config, noise=sim.sensor_noise))
-    return sim, rows, inputs
+    return rows, inputs
 
 
 def test_the_axle_acceleration_of_a_swaying_cab_holds_no_sway() -> None:
@@ -237,29 +240,8 @@ def test_a_fix_moved_to_its_tick_on_a_swaying_mast_keeps_the_antenna_speed() -> 
     are interpolated at the fix (the vehicle's last sample carried across batches) and the
     speed moved with the axle's acceleration: 0.11 m/s, the fixes' own noise."""
     cfg = WheeledRearDriveConfig(geometry=VehicleGeometry(h0_m=1.5, h1_m=3.0))
-    sim = _sway(
-        cfg,
-        seed=4,
-        speed_min_mps=2.0,
-        speed_max_mps=2.0,
-        stop_prob=0.0,
-        sway_hz=2.5,
-        sway_pitch_deg=1.5,
-        sway_roll_deg=0.0,
-        gnss_epoch_phase_ms=5.0,
-    )
-    fleet = MdsfFleet(MdsfConfig(mode=MdsfMode.PRODUCT))
-    inputs: list[TickInputs] = []
-    assemble = fleet.front.assemble
-
-    def keep(slots: np.ndarray, until_ns: np.ndarray) -> FleetTicks | None:
-        due = assemble(slots, until_ns)
-        if due is not None:
-            inputs.append(due.inputs)
-        return due
-
-    fleet.front.assemble = keep  # type: ignore[method-assign]
-    run_estimator(fleet, sim, dataclasses.replace(sim.config, noise=sim.sensor_noise))
+    sim = _cruise(cfg, sway_hz=2.5, sway_pitch_deg=1.5, sway_roll_deg=0.0, gnss_epoch_phase_ms=5.0)
+    _, inputs = _product_keeping_inputs(sim)
     stamp = np.concatenate([t.stamp_ns for t in inputs])
     vg = np.concatenate([np.where(t.gnss_ok, t.z[:, MdsfObs.VG], np.nan) for t in inputs])
     cruise = np.isfinite(vg) & (truth_at(sim.truth, stamp, "v0_mps") > 1.9)
