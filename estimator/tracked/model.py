@@ -69,8 +69,9 @@ class TrackedState(IntEnum):
     roll) until something else sees the tilt, so without them the pitch and roll take the
     biases in and their variance does not know it.
     ``GNSS_CLOCK`` ``c`` (s) is the receiver's clock less the IMU's (the filter ticks on the
-    IMU's): a fix stamped ``s`` was taken at ``s − c``, so at a tick ``t`` it is
-    ``age + c`` old (``age = t − s``). Beside GNSS its along-track position against
+    IMU's): a fix stamped ``s`` was taken at ``s − c``, so it is ``age + lead + c`` older
+    than the state (``age = t − s`` at the tick ``t``; the predicted state stands ``lead``
+    past the tick, ``step.state_lead_s``). Beside GNSS its along-track position against
     ``V·cos θ`` and its velocity against the hull's acceleration and turn observe it.
     """
 

@@ -50,6 +50,7 @@ __all__ = [
     "initial_filter",
     "patch_std",
     "standing_rate_var",
+    "state_lead_s",
     "tick_step",
 ]
 
@@ -419,11 +420,20 @@ def _antenna_ahead_m(x: FloatArray, p: VehicleParams) -> FloatArray:
     return np.asarray(p.antenna_xy_m[:, 1] * np.cos(theta) - p.antenna_up_m * np.sin(theta))
 
 
-def fix_age_s(f: Filter, inp: TickInputs) -> FloatArray:
-    """How long before the tick each vehicle's fix was taken ``(k,)``: its age on the stamps
-    (``t − s``) plus the receiver's clock less the IMU's (``GNSS_CLOCK``, 0 outside the
-    product mode)."""
-    return np.asarray(inp.gnss_age_s + f.x[:, S.GNSS_CLOCK])
+def state_lead_s(inp: TickInputs, tick_s: float) -> FloatArray:
+    """How far past its tick the predicted state stands ``(k,)``: :func:`predict` integrates
+    the tick's mean rates and forces over one tick, a span ``Δ`` centred on the samples'
+    mean stamp (``imu_age_s`` before the tick), so the state stands at ``Δ/2 −
+    imu_age_s`` after the tick (ten samples 10 ms apart ending at it: +5 ms); 0 without a
+    sample."""
+    return np.asarray(np.where(np.isfinite(inp.imu_age_s), 0.5 * tick_s - inp.imu_age_s, 0.0))
+
+
+def fix_age_s(f: Filter, inp: TickInputs, tick_s: float) -> FloatArray:
+    """How long before the state (:func:`state_lead_s`) each vehicle's fix was taken
+    ``(k,)``: its age on the stamps (``t − s``), the state's lead past the tick, and the
+    receiver's clock less the IMU's (``GNSS_CLOCK``, 0 outside the product mode)."""
+    return np.asarray(inp.gnss_age_s + state_lead_s(inp, tick_s) + f.x[:, S.GNSS_CLOCK])
 
 
 def _fuse_gnss(
@@ -464,11 +474,11 @@ def _fuse_gnss(
     vel = _antenna_velocity(f.x, p, lateral_parts[0], w)
     H[:, :, S.GNSS_CLOCK] = -vel
     h = np.stack([f.x[:, S.EAST] + xa * c + ya * s, f.x[:, S.NORTH] - xa * s + ya * c], axis=1)
-    h -= fix_age_s(f, inp)[:, None] * vel  # where the antenna was at the fix
+    h -= fix_age_s(f, inp, cfg.tick_s)[:, None] * vel  # where the antenna was at the fix
     R = np.eye(2)[None] * (p.gnss_pos_std_m**2)[:, None, None]
     f.x, f.P, nis, used = kalman_update(f.x, f.P, inp.gnss_pos_pair_m - h, H, R, have, gate)
     f.gated_s = np.where(have & ~used, f.gated_s + cfg.tick_s, np.where(used, 0.0, f.gated_s))
-    std = _fuse_gnss_velocity(f, inp, p, lateral_parts, w, used)
+    std = _fuse_gnss_velocity(f, inp, p, lateral_parts, w, used, cfg.tick_s)
     if cfg.learns:
         _fuse_gnss_up(f, inp, used, std, cfg)
     return used, have & ~used, nis
@@ -493,6 +503,7 @@ def _fuse_gnss_velocity(
     lateral_parts: tuple[FloatArray, FloatArray | None, FloatArray | None],
     w: FloatArray,
     used: BoolArray,
+    tick_s: float,
 ) -> FloatArray:
     """The fix's horizontal velocity (where its position was ``used``) against the antenna's,
     ``v_f·(sin ψ, cos ψ) + v_r·(cos ψ, −sin ψ)`` (``v_f = V·cos θ + ω·x_a``, ``v_r = v_x −
@@ -510,7 +521,10 @@ def _fuse_gnss_velocity(
     vf, vr = f.x[:, S.SPEED] * ct + w * xa, lateral - w * _antenna_ahead_m(f.x, p)
     fwd = np.nan_to_num(inp.accel_mps2) * ct + w * vr
     rate = np.stack([fwd * s - w * vf * c, fwd * c + w * vf * s], axis=1)
-    hv = np.stack([vf * s + vr * c, vf * c - vr * s], axis=1) - fix_age_s(f, inp)[:, None] * rate
+    hv = (
+        np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
+        - fix_age_s(f, inp, tick_s)[:, None] * rate
+    )
     Hv = np.zeros((k, 2, N_STATES))
     Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = ct * s, ct * c
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
@@ -552,7 +566,7 @@ def _fuse_gnss_up(
     H[:, 0, S.SPEED] = np.sin(theta)
     H[:, 0, S.PITCH] = v * np.cos(theta)
     H[:, 0, S.GNSS_CLOCK] = -rate
-    h = v * np.sin(theta) - fix_age_s(f, inp) * rate
+    h = v * np.sin(theta) - fix_age_s(f, inp, cfg.tick_s) * rate
     y = np.where(have, np.nan_to_num(inp.gnss_vel_up_mps) - h, 0.0)[:, None]
     R = ((cfg.gnss_up_to_horizontal_vel_std_ratio * std) ** 2)[:, None, None]
     f.x, f.P, _, _ = kalman_update(f.x, f.P, y, H, R, have, cfg.gnss_up_gate_nis)

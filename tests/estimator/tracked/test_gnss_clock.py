@@ -1,6 +1,7 @@
 """The receiver's clock in the tracked filter: a fix stamped on the receiver's clock is
-compared with the antenna where it was when the fix was taken, its age on the stamps plus the
-receiver's clock less the IMU's (a state, learnt beside GNSS)."""
+compared with the antenna where it was when the fix was taken, its age on the stamps, the
+predicted state's lead past its tick (the IMU samples' mean instant) and the receiver's
+clock less the IMU's (a state, learnt beside GNSS)."""
 
 from __future__ import annotations
 
@@ -10,13 +11,15 @@ import math
 import numpy as np
 import pytest
 
+from estimator.base import ImuBatch
 from estimator.config import TrackedConfig, TrackedGeometry
 from estimator.sim.tracked import TrackedRun, simulate_tracked
 from estimator.tracked import TrackedEstimatorConfig, TrackedMode
 from estimator.tracked.model import N_STATES
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
-from estimator.tracked.step import _fuse_gnss, initial_filter
+from estimator.tracked.step import _fuse_gnss, initial_filter, state_lead_s
+from estimator.tracked.vehicle import VehicleInputs
 from tests.estimator.tracked._ticks import quiet_tick, rows_over
 
 SPEED_MPS, HEADING_RAD, YAW_RADPS, ACCEL_MPS2 = 10.0, 0.4, 0.3, 0.5
@@ -39,10 +42,15 @@ def _antenna(clock_s: float, age_s: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fused(
-    clock_s: float, age_s: float, fix_clock_s: float, mode: TrackedMode
+    clock_s: float,
+    age_s: float,
+    fix_clock_s: float,
+    mode: TrackedMode,
+    imu_age_s: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The state before and after one fix taken ``age + fix_clock_s`` before the tick, the
-    filter's clock at ``clock_s`` (1-sigma 50 ms)."""
+    """The state before and after one fix taken ``age + fix_clock_s`` before the state, the
+    filter's clock at ``clock_s`` (1-sigma 50 ms); the tick's IMU samples ``imu_age_s``
+    before it on average (0.05 s: the state stands at the tick)."""
     cfg = TrackedEstimatorConfig(mode=mode, gnss_gate_nis=1e9)
     geo = TrackedGeometry(antenna_lever_arm_m=LEVER_M)
     p = VehicleParams.of(TrackedConfig(geometry=geo))
@@ -62,6 +70,7 @@ def _fused(
         gnss_vel_pair_mps=vel[None],
         gnss_vel_std_mps=np.array([0.03]),
         gnss_age_s=np.array([age_s]),
+        imu_age_s=np.array([imu_age_s]),
     )
     lateral = (np.zeros(1), None, None)
     used, _, _ = _fuse_gnss(f, inp, p, cfg, lateral, np.array([YAW_RADPS]), np.zeros(1, bool))
@@ -76,6 +85,33 @@ def test_a_fix_where_the_antenna_was_at_its_age_plus_the_clock_moves_nothing(
     before, after = _fused(0.06, age_s, 0.06, TrackedMode.PRODUCT)
     moved = np.abs(after - before)
     assert moved.max() < 1e-9, S(int(np.argmax(moved))).name
+
+
+def test_the_state_stands_half_a_tick_past_its_imu_samples_mean_instant() -> None:
+    cfg = TrackedEstimatorConfig()
+    inputs = VehicleInputs(TrackedConfig(), cfg)
+    t0 = 1_000_000_000
+    stamps = t0 + 10_000_000 * np.arange(1, 21)  # 100 Hz; the first tick ends at t0 + 110 ms
+    inputs.push_imu(ImuBatch(stamps, np.zeros((20, 3)), np.zeros((20, 3))))
+    ticks = inputs.due(int(stamps[-1]))
+    got = inputs.take(ticks)
+    # ten samples 10 ms apart ending at the tick lie 45 ms before it on average; Δ·mean
+    # integrates 95 ms before it to 5 ms after it
+    np.testing.assert_allclose(got.imu_age_s, 0.045, atol=1e-12)
+    np.testing.assert_allclose(state_lead_s(got, cfg.tick_s), 0.005, atol=1e-12)
+    none = quiet_tick(2, t0, imu_age_s=np.array([np.nan, 0.02]))
+    np.testing.assert_allclose(state_lead_s(none, cfg.tick_s), [0.0, 0.03], atol=1e-12)
+
+
+def test_a_fix_where_the_antenna_was_before_the_state_it_leads_moves_nothing() -> None:
+    # samples ending at the tick: the state stands 5 ms past it, so a fix 10 ms old on the
+    # stamps with the clock at 60 ms was taken 75 ms before the state
+    before, after = _fused(0.06, 0.01, 0.065, TrackedMode.PRODUCT, imu_age_s=0.045)
+    moved = np.abs(after - before)
+    assert moved.max() < 1e-9, S(int(np.argmax(moved))).name
+    # the same fix read as taken 70 ms before (the lead left out) moves the clock to it
+    _, stale = _fused(0.06, 0.01, 0.06, TrackedMode.PRODUCT, imu_age_s=0.045)
+    assert stale[S.GNSS_CLOCK] < 0.06 - 0.0025
 
 
 def test_a_fix_older_than_the_filter_says_moves_the_clock_toward_it() -> None:
