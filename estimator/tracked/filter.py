@@ -1,6 +1,6 @@
 """The INS/odometer/GNSS extended Kalman filter of the tracked estimator, batched over vehicles.
 
-State :class:`~estimator.tracked.model.TrackedState` (``n = 20``), arrays ``x (k, n)``,
+State :class:`~estimator.tracked.model.TrackedState` (``n = 21``), arrays ``x (k, n)``,
 ``P (k, n, n)``. Heading ``ψ`` is from north, clockwise; the gyro's yaw rate
 ``ω = (g_z − b_g)·(1 − s_g)`` is counter-clockwise about the hull's own up axis, the pitch and
 roll gyros' rates less their biases are ``ω_x = g_x − b_θ``, ``ω_y = g_y − b_φ``. The hull's

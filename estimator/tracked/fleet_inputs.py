@@ -25,6 +25,7 @@ from estimator.tracked.vehicle import (
     VehicleInputs,
     derive,
     gear_span,
+    mean_by_tick,
     odometer_edges_at,
     sprocket_missing,
     starting_at,
@@ -132,10 +133,10 @@ class _Fleet:
         known = np.array([[x is not None for x in pair] for pair in lasts], dtype=bool)
         return sprocket_missing(self.ticks, odo, last_ns[self.seg], known[self.seg], self.cfg)
 
-    def imu_means(self) -> tuple[list[FloatArray], IntArray]:
+    def imu_means(self) -> tuple[list[FloatArray], IntArray, FloatArray]:
         """Mean of each IMU column over each tick ``(t − tick, t]`` (the
-        per-vehicle sums, element by element in the same order) and the samples each mean
-        is of; the IMU consumed."""
+        per-vehicle sums, element by element in the same order), the samples each mean
+        is of and how long before the tick their stamps lie on average; the IMU consumed."""
         imu = Segments([v.imu_ns for v in self.vehicles])
         values = np.concatenate([v.imu for v in self.vehicles])
         lo, hi = imu.search_all(self.seg, [self.ticks - self.tick_ns, self.ticks], "right")
@@ -149,9 +150,12 @@ class _Fleet:
             sums = np.bincount(tick_of, values[elem, col], minlength=m)
             with np.errstate(invalid="ignore", divide="ignore"):
                 out.append(np.where(count > 0, sums / count, np.nan))
+        age = mean_by_tick(
+            tick_of, (self.ticks[tick_of] - imu.values[elem]).astype(np.float64) * 1e-9, count
+        )
         for v, cut in zip(self.vehicles, hi[self.starts[1:] - 1].tolist(), strict=True):
             v.imu_ns, v.imu = v.imu_ns[cut:], v.imu[cut:]
-        return out, count
+        return out, count, age
 
     def yaw_accel(self, gyro: FloatArray) -> FloatArray:
         before = np.empty_like(gyro)
@@ -192,7 +196,7 @@ class _Fleet:
         return pos, vel, vstd, age, up
 
     def reads(self) -> Reads:
-        means, samples = self.imu_means()
+        means, samples, imu_age = self.imu_means()
         accel, gyro, pitch_rate, roll_rate, lateral = means
         tick_sets = (self.ticks, self.ticks - self.tick_ns)
         odo, prev = self.odometer_speeds(tick_sets)
@@ -206,6 +210,7 @@ class _Fleet:
             roll_rate=roll_rate,
             lateral_accel=lateral,
             imu_samples=samples,
+            imu_age=imu_age,
             yaw_accel=self.yaw_accel(gyro),
             odo=odo,
             prev=prev,

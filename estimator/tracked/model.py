@@ -68,6 +68,11 @@ class TrackedState(IntEnum):
     accelerometers' biases: each reads as ``g`` times a tilt (``b_y/g`` of pitch, ``b_x/g`` of
     roll) until something else sees the tilt, so without them the pitch and roll take the
     biases in and their variance does not know it.
+    ``GNSS_CLOCK`` ``c`` (s) is the receiver's clock less the IMU's (the filter ticks on the
+    IMU's): a fix stamped ``s`` was taken at ``s − c``, so it is ``age + lead + c`` older
+    than the state (``age = t − s`` at the tick ``t``; the predicted state stands ``lead``
+    past the tick, ``step.state_lead_s``). Beside GNSS its along-track position against
+    ``V·cos θ`` and its velocity against the hull's acceleration and turn observe it.
     """
 
     EAST = 0
@@ -90,6 +95,7 @@ class TrackedState(IntEnum):
     ROLL_GYRO_BIAS = 17
     ACCEL_BIAS_X = 18
     ACCEL_BIAS_Y = 19
+    GNSS_CLOCK = 20
 
 
 N_STATES = len(TrackedState)

@@ -111,6 +111,12 @@ class TrackedEstimatorConfig:
     above the antenna: the vertical dilution of precision is 1.5-2 times the horizontal), and
     receivers state one velocity 1-sigma; the ratio's default is the middle of that range.
 
+    The receiver's clock less the IMU's (the filter's ``GNSS_CLOCK``, product) starts at 0 ±
+    ``gnss_clock_offset_std_s`` (receivers stamp their epochs 50-150 ms off a vehicle bus's
+    clock: transport and buffering) and walks by ``gnss_clock_offset_walk_s_rt_s`` (s per
+    √s: two crystals' drift, tens of ppm, over a drive); a fix's position, velocity and up
+    velocity are compared with the hull taken back by the fix's age plus it.
+
     The gyro's noise is the vehicle's: its config's ``gyro`` section names the part fitted
     (:class:`estimator.config.GyroConfig`, :class:`~estimator.tracked.params.VehicleParams`),
     whose figures are typical values. A unit noisier than them is measured while standing
@@ -202,6 +208,8 @@ class TrackedEstimatorConfig:
     accel_bias_walk_mps2_rt_s: float = 1e-5
     gnss_up_gate_nis: float = 10.83
     gnss_up_to_horizontal_vel_std_ratio: float = 1.75
+    gnss_clock_offset_std_s: float = 0.15
+    gnss_clock_offset_walk_s_rt_s: float = 2e-4
     gyro_noise_prior_pairs: float = 20.0
     gyro_noise_ratio_max: float = 9.0
     report_lag_ticks: int = 4

@@ -44,11 +44,13 @@ __all__ = [
     "accel_speed_var",
     "accel_steady",
     "creep_roll_band",
+    "fix_age_s",
     "fresh_patch_var",
     "hull_settled",
     "initial_filter",
     "patch_std",
     "standing_rate_var",
+    "state_lead_s",
     "tick_step",
 ]
 
@@ -126,6 +128,7 @@ def _initial_p(cfg: TrackedEstimatorConfig) -> FloatArray:
     diag[[S.PITCH, S.ROLL]] = cfg.initial_tilt_std_rad**2
     diag[[S.PITCH_GYRO_BIAS, S.ROLL_GYRO_BIAS]] = cfg.initial_gyro_bias_std_radps**2
     diag[[S.ACCEL_BIAS_X, S.ACCEL_BIAS_Y]] = learn * cfg.accel_bias_std_mps2**2
+    diag[S.GNSS_CLOCK] = learn * cfg.gnss_clock_offset_std_s**2
     return np.diag(diag)
 
 
@@ -198,6 +201,7 @@ def _q_diag(
         gyro_ratio * p.gyro_bias_walk_radps_rt_s**2 * dt
     )[:, None]
     q[:, [S.ACCEL_BIAS_X, S.ACCEL_BIAS_Y]] = learn * cfg.accel_bias_walk_mps2_rt_s**2 * dt
+    q[:, S.GNSS_CLOCK] = learn * cfg.gnss_clock_offset_walk_s_rt_s**2 * dt
     return q
 
 
@@ -416,6 +420,22 @@ def _antenna_ahead_m(x: FloatArray, p: VehicleParams) -> FloatArray:
     return np.asarray(p.antenna_xy_m[:, 1] * np.cos(theta) - p.antenna_up_m * np.sin(theta))
 
 
+def state_lead_s(inp: TickInputs, tick_s: float) -> FloatArray:
+    """How far past its tick the predicted state stands ``(k,)``: :func:`predict` integrates
+    the tick's mean rates and forces over one tick, a span ``Δ`` centred on the samples'
+    mean stamp (``imu_age_s`` before the tick), so the state stands at ``Δ/2 −
+    imu_age_s`` after the tick (ten samples 10 ms apart ending at it: +5 ms); 0 without a
+    sample."""
+    return np.asarray(np.where(np.isfinite(inp.imu_age_s), 0.5 * tick_s - inp.imu_age_s, 0.0))
+
+
+def fix_age_s(f: Filter, inp: TickInputs, tick_s: float) -> FloatArray:
+    """How long before the state (:func:`state_lead_s`) each vehicle's fix was taken
+    ``(k,)``: its age on the stamps (``t − s``), the state's lead past the tick, and the
+    receiver's clock less the IMU's (``GNSS_CLOCK``, 0 outside the product mode)."""
+    return np.asarray(inp.gnss_age_s + state_lead_s(inp, tick_s) + f.x[:, S.GNSS_CLOCK])
+
+
 def _fuse_gnss(
     f: Filter,
     inp: TickInputs,
@@ -425,10 +445,11 @@ def _fuse_gnss(
     w: FloatArray,
     skip: BoolArray,
 ) -> tuple[BoolArray, BoolArray, FloatArray]:
-    """Antenna position, then velocity; returns (used, gated, position NIS).
-    ``lateral_parts``: the lateral speed and its derivatives by the side-slip gain and by
-    the roll (each None outside the product mode)."""
-    lateral, by_gain, by_roll = lateral_parts
+    """Antenna position, then velocity (:func:`_fuse_gnss_velocity`); returns (used, gated,
+    position NIS). The antenna is taken back by ``τ·u``, ``τ`` the fix's age
+    (:func:`fix_age_s`) and ``u`` its velocity (:func:`_antenna_velocity`), so ``∂h/∂c =
+    −u`` on the receiver's clock ``c``. ``lateral_parts``: the lateral speed and its
+    derivatives by the side-slip gain and by the roll (each None outside the product mode)."""
     k = f.x.shape[0]
     psi = f.x[:, S.HEADING]
     s, c = np.sin(psi), np.cos(psi)
@@ -450,27 +471,66 @@ def _fuse_gnss(
     H[:, 1, S.HEADING] = -xa * c - ya * s
     # the lever arm is tilted by the attitude as it stands: the position's residuals (mostly
     # the side-slip's and the ground's, correlated over seconds) are not let into it
-    theta = f.x[:, S.PITCH]
-    back = inp.gnss_age_s * f.x[:, S.SPEED] * np.cos(theta)  # where the hull was at the fix
-    h = np.stack(
-        [f.x[:, S.EAST] + xa * c + ya * s - back * s, f.x[:, S.NORTH] - xa * s + ya * c - back * c],
-        axis=1,
-    )
+    vel = _antenna_velocity(f.x, p, lateral_parts[0], w)
+    H[:, :, S.GNSS_CLOCK] = -vel
+    h = np.stack([f.x[:, S.EAST] + xa * c + ya * s, f.x[:, S.NORTH] - xa * s + ya * c], axis=1)
+    h -= fix_age_s(f, inp, cfg.tick_s)[:, None] * vel  # where the antenna was at the fix
     R = np.eye(2)[None] * (p.gnss_pos_std_m**2)[:, None, None]
     f.x, f.P, nis, used = kalman_update(f.x, f.P, inp.gnss_pos_pair_m - h, H, R, have, gate)
     f.gated_s = np.where(have & ~used, f.gated_s + cfg.tick_s, np.where(used, 0.0, f.gated_s))
+    std = _fuse_gnss_velocity(f, inp, p, lateral_parts, w, used, cfg.tick_s)
+    if cfg.learns:
+        _fuse_gnss_up(f, inp, used, std, cfg)
+    return used, have & ~used, nis
+
+
+def _antenna_velocity(
+    x: FloatArray, p: VehicleParams, lateral: FloatArray, w: FloatArray
+) -> FloatArray:
+    """The antenna's horizontal velocity (east, north) ``(k, 2)``: ``v_f·(sin ψ, cos ψ) +
+    v_r·(cos ψ, −sin ψ)``, ``v_f = V·cos θ + ω·x_a`` forward and ``v_r = v_x − ω·y_a`` to the
+    right (``v_x`` the hull's lateral speed, ``x_a``, ``y_a`` the antenna's lever arm)."""
+    s, c = np.sin(x[:, S.HEADING]), np.cos(x[:, S.HEADING])
+    vf = x[:, S.SPEED] * np.cos(x[:, S.PITCH]) + w * _antenna_right_m(x, p)
+    vr = lateral - w * _antenna_ahead_m(x, p)
+    return np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
+
+
+def _fuse_gnss_velocity(
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    lateral_parts: tuple[FloatArray, FloatArray | None, FloatArray | None],
+    w: FloatArray,
+    used: BoolArray,
+    tick_s: float,
+) -> FloatArray:
+    """The fix's horizontal velocity (where its position was ``used``) against the antenna's,
+    ``v_f·(sin ψ, cos ψ) + v_r·(cos ψ, −sin ψ)`` (``v_f = V·cos θ + ω·x_a``, ``v_r = v_x −
+    ω·y_a``), taken back by the fix's age ``τ``: less ``τ·v̇``, ``v̇ = (a·cos θ + ω·v_r)·(sin ψ,
+    cos ψ) − ω·v_f·(cos ψ, −sin ψ)`` (``a`` the hull's own acceleration, ``inp.accel_mps2``:
+    along its course and turned by the yaw rate ``ω``), so ``∂h/∂c = −v̇``. Returns the
+    fixes' per-axis velocity 1-sigma ``(k,)``; ``f`` in place."""
+    lateral, by_gain, by_roll = lateral_parts
+    k = f.x.shape[0]
     v_have = used & np.isfinite(inp.gnss_vel_pair_mps).all(axis=1)
     psi, theta = f.x[:, S.HEADING], f.x[:, S.PITCH]
     s, c = np.sin(psi), np.cos(psi)
     ct, st = np.cos(theta), np.sin(theta)
     xa = _antenna_right_m(f.x, p)
     vf, vr = f.x[:, S.SPEED] * ct + w * xa, lateral - w * _antenna_ahead_m(f.x, p)
-    hv = np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
+    fwd = np.nan_to_num(inp.accel_mps2) * ct + w * vr
+    rate = np.stack([fwd * s - w * vf * c, fwd * c + w * vf * s], axis=1)
+    hv = (
+        np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
+        - fix_age_s(f, inp, tick_s)[:, None] * rate
+    )
     Hv = np.zeros((k, 2, N_STATES))
     Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = ct * s, ct * c
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
     tilt = -f.x[:, S.SPEED] * st
     Hv[:, 0, S.PITCH], Hv[:, 1, S.PITCH] = tilt * s, tilt * c
+    Hv[:, :, S.GNSS_CLOCK] = -rate
     if by_gain is not None:
         Hv[:, 0, S.SIDE_SLIP], Hv[:, 1, S.SIDE_SLIP] = c * by_gain, -s * by_gain
     if by_roll is not None:
@@ -479,9 +539,7 @@ def _fuse_gnss(
     Rv = np.eye(2)[None] * (std**2)[:, None, None]
     # a fix whose position passed the gate is sound: its velocity is fused ungated
     f.x, f.P, _, _ = kalman_update(f.x, f.P, inp.gnss_vel_pair_mps - hv, Hv, Rv, v_have)
-    if cfg.learns:
-        _fuse_gnss_up(f, inp, used, std, cfg)
-    return used, have & ~used, nis
+    return np.asarray(std)
 
 
 def _fuse_gnss_up(
@@ -491,18 +549,25 @@ def _fuse_gnss_up(
     pitched): beside the odometer's speed it observes the pitch itself, which the
     accelerometer alone gives only with its forward bias (``f_y − b_y − g·sin θ``). A mast
     upright on the hull adds no up velocity of its own to first order (pitch and roll rates
-    swing it forward and sideways), so none is modelled. ``std (k,)`` the fix's per-axis
-    velocity 1-sigma (horizontal), the up one's that times
-    ``gnss_up_to_horizontal_vel_std_ratio``; gated at ``gnss_up_gate_nis``; ``f`` in place.
-    Not back-dated by the fix's age: the horizontal velocity is not either (only the
-    position is, by ``age·V``)."""
+    swing it forward and sideways), so none is modelled. Taken back by the fix's age ``τ``
+    as the horizontal velocity is: less ``τ·(a·sin θ + V·cos θ·θ̇)``, ``θ̇ = ω_x·cos φ +
+    ω·sin φ`` (the pitch gyro less its bias, and the yaw on a side slope), so ``∂h/∂c =
+    −(a·sin θ + V·cos θ·θ̇)``. ``std (k,)`` the fix's per-axis velocity 1-sigma
+    (horizontal), the up one's that times ``gnss_up_to_horizontal_vel_std_ratio``; gated at
+    ``gnss_up_gate_nis``; ``f`` in place."""
     k = f.x.shape[0]
-    theta, v = f.x[:, S.PITCH], f.x[:, S.SPEED]
+    theta, phi, v = f.x[:, S.PITCH], f.x[:, S.ROLL], f.x[:, S.SPEED]
     have = used & np.isfinite(inp.gnss_vel_up_mps)
+    wx = np.nan_to_num(inp.pitch_rate_radps) - f.x[:, S.PITCH_GYRO_BIAS]
+    w = yaw_rate(f.x, np.nan_to_num(inp.gyro_radps))
+    d_theta = wx * np.cos(phi) + w * np.sin(phi)
+    rate = np.nan_to_num(inp.accel_mps2) * np.sin(theta) + v * np.cos(theta) * d_theta
     H = np.zeros((k, 1, N_STATES))
     H[:, 0, S.SPEED] = np.sin(theta)
     H[:, 0, S.PITCH] = v * np.cos(theta)
-    y = np.where(have, np.nan_to_num(inp.gnss_vel_up_mps) - v * np.sin(theta), 0.0)[:, None]
+    H[:, 0, S.GNSS_CLOCK] = -rate
+    h = v * np.sin(theta) - fix_age_s(f, inp, cfg.tick_s) * rate
+    y = np.where(have, np.nan_to_num(inp.gnss_vel_up_mps) - h, 0.0)[:, None]
     R = ((cfg.gnss_up_to_horizontal_vel_std_ratio * std) ** 2)[:, None, None]
     f.x, f.P, _, _ = kalman_update(f.x, f.P, y, H, R, have, cfg.gnss_up_gate_nis)
 

@@ -29,6 +29,7 @@ __all__ = [
     "at_tick",
     "derive",
     "gear_span",
+    "mean_by_tick",
     "odometer_edges_at",
     "sprocket_missing",
     "starting_at",
@@ -53,7 +54,8 @@ class TickInputs:
     ``accel_mps2`` (forward specific force), ``gyro_radps`` (yaw rate),
     ``pitch_rate_radps`` and ``roll_rate_radps`` (the gyro about the right and the forward
     axis) and ``lateral_accel_mps2`` (the specific force to the right) are the means of the
-    tick's ``imu_samples`` IMU samples.
+    tick's ``imu_samples`` IMU samples; ``imu_age_s`` is how long before the tick their
+    stamps lie on average (each sample is the rate or force at its stamp; NaN without one).
 
     ``sprocket_pair_mps`` are the sprocket speeds carried from their windows' centres to the
     tick with the gearbox's acceleration (each sprocket turns at a fixed ratio of the gearbox
@@ -82,6 +84,7 @@ class TickInputs:
     roll_rate_radps: FloatArray
     lateral_accel_mps2: FloatArray
     imu_samples: IntArray
+    imu_age_s: FloatArray
     yaw_accel_radps2: FloatArray
     odometer_mps: FloatArray
     odometer_lag_s: FloatArray
@@ -190,7 +193,7 @@ class VehicleInputs:
 
     def _reads(self, ticks: IntArray) -> Reads:
         """What the buffers give for ``ticks`` (IMU and fixes consumed)."""
-        means, samples = self._imu_means(ticks)
+        means, samples, imu_age = self._imu_means(ticks)
         accel, gyro, pitch_rate, roll_rate, lateral = means
         odo, odo_c = self._odometer_speed(ticks)
         prev, prev_c = self._odometer_speed(ticks - self.tick_ns)
@@ -204,6 +207,7 @@ class VehicleInputs:
             roll_rate=roll_rate,
             lateral_accel=lateral,
             imu_samples=samples,
+            imu_age=imu_age,
             yaw_accel=self._yaw_accel(gyro),
             odo=(odo, odo_c),
             prev=(prev, prev_c),
@@ -217,9 +221,10 @@ class VehicleInputs:
             gnss=self._gnss_at(ticks),
         )
 
-    def _imu_means(self, ticks: IntArray) -> tuple[list[FloatArray], IntArray]:
+    def _imu_means(self, ticks: IntArray) -> tuple[list[FloatArray], IntArray, FloatArray]:
         """Mean of each IMU column (forward force, yaw, pitch and roll rate, lateral force)
-        over each tick ``(t − tick, t]``, and the samples each mean is of."""
+        over each tick ``(t − tick, t]``, the samples each mean is of, and how long before
+        the tick their stamps lie on average (s; NaN without a sample)."""
         bounds = np.concatenate([ticks[:1] - self.tick_ns, ticks])
         edges = np.searchsorted(self.imu_ns, bounds, side="right")
         count = np.diff(edges)
@@ -230,9 +235,11 @@ class VehicleInputs:
             sums = np.bincount(tick_of, part[:, col], minlength=ticks.size)
             with np.errstate(invalid="ignore", divide="ignore"):
                 out.append(np.where(count > 0, sums / count, np.nan))
+        before = (ticks[tick_of] - self.imu_ns[edges[0] : edges[-1]]).astype(np.float64) * 1e-9
+        age = mean_by_tick(tick_of, before, count)
         cut = int(edges[-1])
         self.imu_ns, self.imu = self.imu_ns[cut:], self.imu[cut:]
-        return out, count
+        return out, count, age
 
     def _yaw_accel(self, gyro: FloatArray) -> FloatArray:
         """``(ω_t − ω_{t−1})/tick`` per tick from the ticks' mean rates (0 where unknown)."""
@@ -334,6 +341,7 @@ class Reads:
     roll_rate: FloatArray
     lateral_accel: FloatArray
     imu_samples: IntArray
+    imu_age: FloatArray
     yaw_accel: FloatArray
     odo: tuple[FloatArray, FloatArray]
     prev: tuple[FloatArray, FloatArray]
@@ -345,6 +353,14 @@ class Reads:
     odometer_edges: tuple[IntArray, FloatArray]
     missing: BoolArray
     gnss: GnssAtTicks
+
+
+def mean_by_tick(tick_of: IntArray, values: FloatArray, count: IntArray) -> FloatArray:
+    """Mean ``(m,)`` of the ``values`` of each tick (``tick_of`` each value's tick, in
+    order; ``count (m,)`` the values per tick); NaN for a tick without one."""
+    sums = np.bincount(tick_of, values, minlength=count.size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.asarray(np.where(count > 0, sums / count, np.nan))
 
 
 def derive(r: Reads, cfg: TrackedEstimatorConfig) -> tuple[FloatArray, BoolArray, BoolArray]:
@@ -380,6 +396,7 @@ def tick_inputs(
         roll_rate_radps=r.roll_rate,
         lateral_accel_mps2=r.lateral_accel,
         imu_samples=r.imu_samples,
+        imu_age_s=r.imu_age,
         yaw_accel_radps2=r.yaw_accel,
         odometer_mps=odo,
         odometer_lag_s=(tick_f - odo_c) * 1e-9,

@@ -60,8 +60,10 @@ ADIS16470 data sheet's, :class:`~estimator.sim.tracked.CrawlerSensors`) and the 
 config names (``config_gyro_grade``: 1 where the config names the data sheet), and the
 streams' clocks (``gnss_clock_offset_s``, ``odometer_clock_offset_s``,
 ``sprocket_clock_offset_s``: each stream's clock less the IMU's; ``gnss_epoch_jitter_s``: the
-receiver's epoch jitter 1σ; all 0 on named routes); the summary gives the DR end % over the
-runs (median, p95, worst).
+receiver's epoch jitter 1σ; all 0 on named routes), and per mode the receiver's clock its
+filter held at the last second before the first outage (``gnss_clock_ms``, its 1σ, its error
+against the run's and that over 1σ; a table for the product); the summary gives the DR end %
+over the runs (median, p95, worst).
 
 Floors (product mode, every run): settled ≥ 99.5 %, all ≥ 98.5 %, slip RMS ≤ 1.5 pp per
 track, DR at the end of a > 1 km outage ≤ 0.3 % (firm) / ≤ 0.5 % (soft, random) of distance.
@@ -79,6 +81,7 @@ import numpy as np
 from estimator.sim.tracked import TrackedRun, simulate_tracked
 from estimator.sim.tracked.route import CLOCK_KEYS
 from estimator.tracked import MotionState, TrackedEstimatorConfig, TrackedFleet, TrackedMode
+from estimator.tracked.model import TrackedState as S
 from server.tooling.bench import int_list, write_json
 
 __all__ = ["main", "run"]
@@ -89,8 +92,11 @@ MOVING_MPS = 0.5
 FLOORS = {"settled_pct": 99.5, "state_pct": 98.5, "slip_rms_pp": 1.5}
 
 
-def _feed(mode: TrackedMode, runs: list[TrackedRun]) -> list[np.ndarray]:
-    """Every run through one fleet of ``mode``; rows per run."""
+def _feed(
+    mode: TrackedMode, runs: list[TrackedRun]
+) -> tuple[list[np.ndarray], list[tuple[float, float]]]:
+    """Every run through one fleet of ``mode``; rows per run, and per run the receiver's
+    clock the filter holds (:func:`_clock_before_outage`)."""
     fleet = TrackedFleet(TrackedEstimatorConfig(mode=mode))
     ids = [f"run{k}" for k in range(len(runs))]
     for vid, r in zip(ids, runs, strict=True):
@@ -98,6 +104,7 @@ def _feed(mode: TrackedMode, runs: list[TrackedRun]) -> list[np.ndarray]:
         fleet.set_anchor(vid, r.frame.lat0_deg, r.frame.lon0_deg, r.frame.h0_m)
     pos = [0] * len(runs)
     out: list[list[np.ndarray]] = [[] for _ in runs]
+    clocks = [(float("nan"), float("nan"))] * len(runs)
     t = min(r.start_ns for r in runs)
     end = max(r.measurements[-1][0] for r in runs)
     while t <= end + 1_000_000_000:
@@ -110,7 +117,22 @@ def _feed(mode: TrackedMode, runs: list[TrackedRun]) -> list[np.ndarray]:
             pos[k] = i
         for vid, rows in fleet.advance(dict.fromkeys(ids, t)):
             out[ids.index(vid)].append(rows)
-    return [np.concatenate(parts) for parts in out]
+        for k, r in enumerate(runs):
+            clocks[k] = _clock_before_outage(fleet, ids[k], r, t, clocks[k])
+    return [np.concatenate(parts) for parts in out], clocks
+
+
+def _clock_before_outage(
+    fleet: TrackedFleet, vid: str, run: TrackedRun, t_ns: int, held: tuple[float, float]
+) -> tuple[float, float]:
+    """The receiver's clock less the IMU's the filter holds and its 1σ (s) at ``t_ns``,
+    while ``t_ns`` is before the run's first outage (what its dead reckoning starts from);
+    ``held`` after it."""
+    outages = run.outages_ns
+    if outages and t_ns > outages[0][0]:
+        return held
+    x, P = fleet.filter_state(vid)
+    return float(x[S.GNSS_CLOCK]), float(np.sqrt(P[S.GNSS_CLOCK, S.GNSS_CLOCK]))
 
 
 def _settled(run: TrackedRun, idx: np.ndarray) -> np.ndarray:
@@ -229,6 +251,40 @@ def _metrics(run: TrackedRun, rows: np.ndarray) -> dict[str, Any]:
     }
 
 
+def _clock_metrics(run: TrackedRun, clock: tuple[float, float]) -> dict[str, Any]:
+    """The receiver's clock the filter learnt before the first outage against the run's
+    (ms): value, 1σ, error, error over 1σ."""
+    learnt_s, std_s = clock
+    err_s = learnt_s - run.sensors.gnss_clock_offset_s
+    z = err_s / std_s if std_s > 0.0 else float("nan")
+    return {
+        "gnss_clock_ms": 1e3 * learnt_s,
+        "gnss_clock_std_ms": 1e3 * std_s,
+        "gnss_clock_err_ms": 1e3 * err_s,
+        "gnss_clock_z": z,
+    }
+
+
+def _clock_table(labels: list[str], product: list[dict[str, Any]], runs: list[TrackedRun]) -> None:
+    """Per run, the receiver's clock the product learnt before the first outage beside the
+    run's; the mean error and the RMS of error over 1σ."""
+    print("\nreceiver clock, product   true ms  learnt ms  1σ ms  error ms  error/σ")
+    for label, m, r in zip(labels, product, runs, strict=True):
+        true_ms = 1e3 * r.sensors.gnss_clock_offset_s
+        print(
+            f"{label:<22} {true_ms:>9.1f} {m['gnss_clock_ms']:>10.1f} "
+            f"{m['gnss_clock_std_ms']:>6.1f} {m['gnss_clock_err_ms']:>9.1f} "
+            f"{m['gnss_clock_z']:>8.2f}"
+        )
+    err = np.array([m["gnss_clock_err_ms"] for m in product])
+    z = np.array([m["gnss_clock_z"] for m in product])
+    if np.isfinite(z).any():
+        print(
+            f"product receiver clock error over runs: mean {np.nanmean(err):+.1f} ms, "
+            f"RMS {np.sqrt(np.nanmean(err**2)):.1f} ms, error/σ RMS {np.sqrt(np.nanmean(z**2)):.2f}"
+        )
+
+
 def _attitude_table(labels: list[str], product: list[dict[str, Any]]) -> None:
     """The product's attitude per run, and median / p95 / worst over the runs; the NEES and
     the share within 2σ over every run's rows, beside GNSS and in outages."""
@@ -340,8 +396,10 @@ def run(
     modes = (TrackedMode.PRODUCT, *(m for m in modes if m != TrackedMode.PRODUCT))
     for mode in modes:
         t1 = time.perf_counter()
+        rows_of, clocks = _feed(mode, runs)
         per_mode[mode.value] = [
-            _metrics(r, rows) for r, rows in zip(runs, _feed(mode, runs), strict=True)
+            {**_metrics(r, rows), **_clock_metrics(r, clock)}
+            for r, rows, clock in zip(runs, rows_of, clocks, strict=True)
         ]
         results["seconds"][mode.value] = time.perf_counter() - t1
     print(
@@ -376,6 +434,7 @@ def run(
         cm = sum(np.array(m["confusion"]) for m in per_mode[mode.value])
         _confusion(f"confusion, {mode.value}", np.asarray(cm))
     _attitude_table([e["run"] for e in results["runs"]], per_mode["product"])
+    _clock_table([e["run"] for e in results["runs"]], per_mode["product"], runs)
     _summary(results, failures, per_mode["product"])
     print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in results["seconds"].items()))
     write_json(results, json_path)

@@ -27,6 +27,7 @@ def quiet_tick(n: int, tick_ns: int, **fields: Any) -> TickInputs:
         "roll_rate_radps": zero,
         "lateral_accel_mps2": nan,  # no roll measurement
         "imu_samples": np.full(n, 10),
+        "imu_age_s": np.full(n, 0.05),  # centred on the tick's middle: the state at the tick
         "yaw_accel_radps2": zero,
         "odometer_mps": nan,
         "odometer_lag_s": zero,

@@ -1,12 +1,19 @@
-"""Tracked bench's dead-reckoning consistency figure and attitude errors, by hand."""
+"""Tracked bench's dead-reckoning consistency figure, attitude errors and learnt receiver clock,
+by hand."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from estimator.tracked.model import TrackedState as S
 from estimator.tracked_spec import TRACKED_SPEC
-from server.tooling.bench.tracked import _attitude_metrics, _nees
+from server.tooling.bench.tracked import (
+    _attitude_metrics,
+    _clock_before_outage,
+    _clock_metrics,
+    _nees,
+)
 
 
 def test_nees_per_degree_of_freedom_by_hand() -> None:
@@ -50,3 +57,35 @@ def test_attitude_errors_by_hand_over_the_rows_that_give_it() -> None:
     for name in ("pitch", "roll"):
         assert m[f"{name}_nees_outage"] == pytest.approx(3.125)
         assert m[f"{name}_in2s_outage_pct"] == pytest.approx(50.0)
+
+
+class _Sensors:
+    gnss_clock_offset_s = 0.065
+
+
+class _ClockRun:
+    sensors = _Sensors()
+    outages_ns = ((5_000_000_000, 9_000_000_000),)
+
+
+class _Fleet:
+    def __init__(self, clock_s: float, std_s: float) -> None:
+        self.x = np.zeros(len(S))
+        self.P = np.zeros((len(S), len(S)))
+        self.x[S.GNSS_CLOCK], self.P[S.GNSS_CLOCK, S.GNSS_CLOCK] = clock_s, std_s**2
+
+    def filter_state(self, vid: str) -> tuple[np.ndarray, np.ndarray]:
+        return self.x, self.P
+
+
+def test_the_learnt_clock_is_read_before_the_first_outage_and_scored_against_the_runs() -> None:
+    run = _ClockRun()
+    held = _clock_before_outage(_Fleet(0.07, 0.002), "v", run, 5_000_000_000, (0.0, 0.0))  # type: ignore[arg-type]
+    assert held == pytest.approx((0.07, 0.002))
+    # after the outage starts the filter's clock is no longer what the dead reckoning began with
+    later = _clock_before_outage(_Fleet(0.09, 0.01), "v", run, 6_000_000_000, held)  # type: ignore[arg-type]
+    assert later == held
+    m = _clock_metrics(run, held)  # type: ignore[arg-type]
+    assert m["gnss_clock_ms"] == pytest.approx(70.0)
+    assert m["gnss_clock_err_ms"] == pytest.approx(5.0)
+    assert m["gnss_clock_z"] == pytest.approx(2.5)
