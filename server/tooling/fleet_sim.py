@@ -696,16 +696,20 @@ def record(
     stop: threading.Event | None = None,
     max_records: int | None = None,
     clock_ns: Callable[[], int] = time.time_ns,
+    on_ready: Callable[[], None] | None = None,
 ) -> int:
     """Write every sample ``session`` receives on ``key_expr`` to ``path``; return the count.
 
     Only what a server takes in is kept: sensor packets and configs (``<prefix>/<id>/sensors/…``,
     ``<prefix>/<id>/config``), not what servers publish back (alerts, status). Stops after
-    ``duration_s`` or when ``stop`` is set (keeping what had already arrived), or after
-    ``max_records``.
+    ``duration_s`` (counted from when the subscriber is declared) or when ``stop`` is set
+    (keeping what had already arrived), or after ``max_records``. ``on_ready`` is called once
+    the subscriber is declared: what is published from then on is recorded.
     """
-    end = None if duration_s is None else time.monotonic() + duration_s
     sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(65_536))
+    if on_ready is not None:
+        on_ready()
+    end = None if duration_s is None else time.monotonic() + duration_s
     handler = sub.handler
     try:
         with open(path, "wb") as fh:

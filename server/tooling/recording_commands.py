@@ -177,14 +177,17 @@ def record_live(settings: Settings, path: Path, duration_s: float | None) -> int
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
+        ready = f"recording {settings.zenoh.key_prefix}/** from {', '.join(endpoints)}" + (
+            "; Ctrl-C stops" if duration_s is None else f" for {duration_s:g} s"
+        )
         with vehicle_session(endpoints) as session:
-            print(
-                f"recording {settings.zenoh.key_prefix}/** from {', '.join(endpoints)}"
-                + ("; Ctrl-C stops" if duration_s is None else f" for {duration_s:g} s"),
-                flush=True,
-            )
             n = record_session(
-                path, session, f"{settings.zenoh.key_prefix}/**", duration_s=duration_s, stop=stop
+                path,
+                session,
+                f"{settings.zenoh.key_prefix}/**",
+                duration_s=duration_s,
+                stop=stop,
+                on_ready=lambda: print(ready, flush=True),
             )
     finally:
         signal.signal(signal.SIGINT, previous)
