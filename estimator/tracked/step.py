@@ -487,13 +487,26 @@ def _fuse_gnss(
 def _antenna_velocity(
     x: FloatArray, p: VehicleParams, lateral: FloatArray, w: FloatArray
 ) -> FloatArray:
-    """The antenna's horizontal velocity (east, north) ``(k, 2)``: ``v_f·(sin ψ, cos ψ) +
-    v_r·(cos ψ, −sin ψ)``, ``v_f = V·cos θ + ω·x_a`` forward and ``v_r = v_x − ω·y_a`` to the
-    right (``v_x`` the hull's lateral speed, ``x_a``, ``y_a`` the antenna's lever arm)."""
-    s, c = np.sin(x[:, S.HEADING]), np.cos(x[:, S.HEADING])
+    """The antenna's horizontal velocity (east, north) ``(k, 2)`` (:func:`_antenna_fwd_right`
+    turned by the heading, :func:`_east_north`)."""
+    vf, vr = _antenna_fwd_right(x, p, lateral, w)
+    return _east_north(vf, vr, np.sin(x[:, S.HEADING]), np.cos(x[:, S.HEADING]))
+
+
+def _antenna_fwd_right(
+    x: FloatArray, p: VehicleParams, lateral: FloatArray, w: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The antenna's speed forward ``v_f = V·cos θ + ω·x_a`` and to the right ``v_r = v_x −
+    ω·y_a``, each ``(k,)`` (``v_x`` the hull's lateral speed, ``x_a``, ``y_a`` the antenna's
+    lever arm)."""
     vf = x[:, S.SPEED] * np.cos(x[:, S.PITCH]) + w * _antenna_right_m(x, p)
-    vr = lateral - w * _antenna_ahead_m(x, p)
-    return np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
+    return vf, lateral - w * _antenna_ahead_m(x, p)
+
+
+def _east_north(fwd: FloatArray, right: FloatArray, s: FloatArray, c: FloatArray) -> FloatArray:
+    """A forward and a right component turned to (east, north) ``(k, 2)``:
+    ``fwd·(sin ψ, cos ψ) + right·(cos ψ, −sin ψ)``, ``s``, ``c`` the heading's sine, cosine."""
+    return np.stack([fwd * s + right * c, fwd * c - right * s], axis=1)
 
 
 def _fuse_gnss_velocity(
@@ -517,14 +530,9 @@ def _fuse_gnss_velocity(
     psi, theta = f.x[:, S.HEADING], f.x[:, S.PITCH]
     s, c = np.sin(psi), np.cos(psi)
     ct, st = np.cos(theta), np.sin(theta)
-    xa = _antenna_right_m(f.x, p)
-    vf, vr = f.x[:, S.SPEED] * ct + w * xa, lateral - w * _antenna_ahead_m(f.x, p)
-    fwd = np.nan_to_num(inp.accel_mps2) * ct + w * vr
-    rate = np.stack([fwd * s - w * vf * c, fwd * c + w * vf * s], axis=1)
-    hv = (
-        np.stack([vf * s + vr * c, vf * c - vr * s], axis=1)
-        - fix_age_s(f, inp, tick_s)[:, None] * rate
-    )
+    vf, vr = _antenna_fwd_right(f.x, p, lateral, w)
+    rate = _east_north(np.nan_to_num(inp.accel_mps2) * ct + w * vr, -(w * vf), s, c)
+    hv = _east_north(vf, vr, s, c) - fix_age_s(f, inp, tick_s)[:, None] * rate
     Hv = np.zeros((k, 2, N_STATES))
     Hv[:, 0, S.SPEED], Hv[:, 1, S.SPEED] = ct * s, ct * c
     Hv[:, 0, S.HEADING], Hv[:, 1, S.HEADING] = vf * c - vr * s, -vf * s - vr * c
