@@ -471,7 +471,7 @@ def _fuse_gnss(
     H[:, 1, S.HEADING] = -xa * c - ya * s
     # the lever arm is tilted by the attitude as it stands: the position's residuals (mostly
     # the side-slip's and the ground's, correlated over seconds) are not let into it
-    vel = _antenna_velocity(f.x, p, lateral_parts[0], w)
+    vel = _antenna_velocity(f.x, inp, p, lateral_parts[0], w)
     H[:, :, S.GNSS_CLOCK] = -vel
     h = np.stack([f.x[:, S.EAST] + xa * c + ya * s, f.x[:, S.NORTH] - xa * s + ya * c], axis=1)
     h -= fix_age_s(f, inp, cfg.tick_s)[:, None] * vel  # where the antenna was at the fix
@@ -480,27 +480,57 @@ def _fuse_gnss(
     f.gated_s = np.where(have & ~used, f.gated_s + cfg.tick_s, np.where(used, 0.0, f.gated_s))
     std = _fuse_gnss_velocity(f, inp, p, lateral_parts, w, used, cfg.tick_s)
     if cfg.learns:
-        _fuse_gnss_up(f, inp, used, std, cfg)
+        _fuse_gnss_up(f, inp, p, used, std, cfg)
     return used, have & ~used, nis
 
 
 def _antenna_velocity(
-    x: FloatArray, p: VehicleParams, lateral: FloatArray, w: FloatArray
+    x: FloatArray, inp: TickInputs, p: VehicleParams, lateral: FloatArray, w: FloatArray
 ) -> FloatArray:
     """The antenna's horizontal velocity (east, north) ``(k, 2)`` (:func:`_antenna_fwd_right`
     turned by the heading, :func:`_east_north`)."""
-    vf, vr = _antenna_fwd_right(x, p, lateral, w)
+    vf, vr = _antenna_fwd_right(x, inp, p, lateral, w)
     return _east_north(vf, vr, np.sin(x[:, S.HEADING]), np.cos(x[:, S.HEADING]))
 
 
 def _antenna_fwd_right(
-    x: FloatArray, p: VehicleParams, lateral: FloatArray, w: FloatArray
+    x: FloatArray, inp: TickInputs, p: VehicleParams, lateral: FloatArray, w: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """The antenna's speed forward ``v_f = V·cos θ + ω·x_a`` and to the right ``v_r = v_x −
-    ω·y_a``, each ``(k,)`` (``v_x`` the hull's lateral speed, ``x_a``, ``y_a`` the antenna's
-    lever arm)."""
-    vf = x[:, S.SPEED] * np.cos(x[:, S.PITCH]) + w * _antenna_right_m(x, p)
-    return vf, lateral - w * _antenna_ahead_m(x, p)
+    """The antenna's speed forward ``v_f = V·cos θ + ω·x_a + s_f`` and to the right ``v_r =
+    v_x − ω·y_a + s_r``, each ``(k,)`` (``v_x`` the hull's lateral speed, ``x_a``, ``y_a``
+    the antenna's tilted lever arm turned by the yaw ``ω``, ``s_f``, ``s_r`` the mast's swing
+    with the pitch and roll rates, :func:`_antenna_swing`)."""
+    swing = _antenna_swing(x, inp, p, w)
+    vf = x[:, S.SPEED] * np.cos(x[:, S.PITCH]) + w * _antenna_right_m(x, p) + swing[:, 0]
+    return vf, lateral - w * _antenna_ahead_m(x, p) + swing[:, 1]
+
+
+def _antenna_swing(x: FloatArray, inp: TickInputs, p: VehicleParams, w: FloatArray) -> FloatArray:
+    """The antenna's velocity from the mast's swing with the pitch and roll rates ``(k, 3)``
+    (forward, right, up; level, along and across the heading): the time derivative of its
+    lever arm ``(x, y, z)`` pitched and rolled (``y·cos θ − z·sin θ·cos φ`` ahead, ``x·cos
+    φ + z·sin φ`` right, ``z·cos θ·cos φ + y·sin θ − x·sin φ`` up) at fixed heading,
+
+        forward = −y·sin θ·θ̇ − z·(cos θ·cos φ·θ̇ − sin θ·sin φ·φ̇)
+        right   = (z·cos φ − x·sin φ)·φ̇
+        up      = y·cos θ·θ̇ − z·(sin θ·cos φ·θ̇ + cos θ·sin φ·φ̇) − x·cos φ·φ̇
+
+    with the Euler rates ``θ̇ = ω_x·cos φ + ω·sin φ``, ``φ̇ = ω_y − tan θ·(ω·cos φ − ω_x·sin
+    φ)`` (``ω_x``, ``ω_y`` the pitch and roll gyros less their bias states, ``ω`` the yaw
+    rate), as :func:`~estimator.tracked.filter.predict` turns them. First order in the rates
+    (2.6 m × 0.05 rad/s is 0.13 m/s); its derivatives by the states are second order and
+    left out of the Jacobians."""
+    theta, phi = x[:, S.PITCH], x[:, S.ROLL]
+    ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
+    wx = np.nan_to_num(inp.pitch_rate_radps) - x[:, S.PITCH_GYRO_BIAS]
+    wy = np.nan_to_num(inp.roll_rate_radps) - x[:, S.ROLL_GYRO_BIAS]
+    d_theta = wx * cp + w * sp
+    d_phi = wy - np.tan(theta) * (w * cp - wx * sp)
+    xa, ya, z = p.antenna_xy_m[:, 0], p.antenna_xy_m[:, 1], p.antenna_up_m
+    forward = -ya * st * d_theta - z * (ct * cp * d_theta - st * sp * d_phi)
+    right = (z * cp - xa * sp) * d_phi
+    up = ya * ct * d_theta - z * (st * cp * d_theta + ct * sp * d_phi) - xa * cp * d_phi
+    return np.stack([forward, right, up], axis=1)
 
 
 def _east_north(fwd: FloatArray, right: FloatArray, s: FloatArray, c: FloatArray) -> FloatArray:
@@ -519,18 +549,18 @@ def _fuse_gnss_velocity(
     tick_s: float,
 ) -> FloatArray:
     """The fix's horizontal velocity (where its position was ``used``) against the antenna's,
-    ``v_f·(sin ψ, cos ψ) + v_r·(cos ψ, −sin ψ)`` (``v_f = V·cos θ + ω·x_a``, ``v_r = v_x −
-    ω·y_a``), taken back by the fix's age ``τ``: less ``τ·v̇``, ``v̇ = (a·cos θ + ω·v_r)·(sin ψ,
-    cos ψ) − ω·v_f·(cos ψ, −sin ψ)`` (``a`` the hull's own acceleration, ``inp.accel_mps2``:
-    along its course and turned by the yaw rate ``ω``), so ``∂h/∂c = −v̇``. Returns the
-    fixes' per-axis velocity 1-sigma ``(k,)``; ``f`` in place."""
+    ``v_f·(sin ψ, cos ψ) + v_r·(cos ψ, −sin ψ)`` (``v_f``, ``v_r``: :func:`_antenna_fwd_right`,
+    the mast's swing included), taken back by the fix's age ``τ``: less ``τ·v̇``, ``v̇ = (a·cos
+    θ + ω·v_r)·(sin ψ, cos ψ) − ω·v_f·(cos ψ, −sin ψ)`` (``a`` the hull's own acceleration,
+    ``inp.accel_mps2``: along its course and turned by the yaw rate ``ω``), so ``∂h/∂c =
+    −v̇``. Returns the fixes' per-axis velocity 1-sigma ``(k,)``; ``f`` in place."""
     lateral, by_gain, by_roll = lateral_parts
     k = f.x.shape[0]
     v_have = used & np.isfinite(inp.gnss_vel_pair_mps).all(axis=1)
     psi, theta = f.x[:, S.HEADING], f.x[:, S.PITCH]
     s, c = np.sin(psi), np.cos(psi)
     ct, st = np.cos(theta), np.sin(theta)
-    vf, vr = _antenna_fwd_right(f.x, p, lateral, w)
+    vf, vr = _antenna_fwd_right(f.x, inp, p, lateral, w)
     rate = _east_north(np.nan_to_num(inp.accel_mps2) * ct + w * vr, -(w * vf), s, c)
     hv = _east_north(vf, vr, s, c) - fix_age_s(f, inp, tick_s)[:, None] * rate
     Hv = np.zeros((k, 2, N_STATES))
@@ -551,13 +581,19 @@ def _fuse_gnss_velocity(
 
 
 def _fuse_gnss_up(
-    f: Filter, inp: TickInputs, used: BoolArray, std: FloatArray, cfg: TrackedEstimatorConfig
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    used: BoolArray,
+    std: FloatArray,
+    cfg: TrackedEstimatorConfig,
 ) -> None:
-    """The fix's up velocity against the hull's climb ``V·sin θ`` (its along-ground speed
-    pitched): beside the odometer's speed it observes the pitch itself, which the
-    accelerometer alone gives only with its forward bias (``f_y − b_y − g·sin θ``). A mast
-    upright on the hull adds no up velocity of its own to first order (pitch and roll rates
-    swing it forward and sideways), so none is modelled. Taken back by the fix's age ``τ``
+    """The fix's up velocity against the antenna's: the hull's climb ``V·sin θ`` (its
+    along-ground speed pitched) plus the mast's swing's up part (:func:`_antenna_swing`;
+    ``−z·cos θ·sin φ·φ̇ − z·sin θ·cos φ·θ̇`` for a mast upright on the hull: it swings mostly
+    forward and sideways, and up only on a tilted hull). Beside the odometer's speed it
+    observes the pitch itself, which the accelerometer alone gives only with its forward
+    bias (``f_y − b_y − g·sin θ``). Taken back by the fix's age ``τ``
     as the horizontal velocity is: less ``τ·(a·sin θ + V·cos θ·θ̇)``, ``θ̇ = ω_x·cos φ +
     ω·sin φ`` (the pitch gyro less its bias, and the yaw on a side slope), so ``∂h/∂c =
     −(a·sin θ + V·cos θ·θ̇)``. ``std (k,)`` the fix's per-axis velocity 1-sigma
@@ -574,7 +610,8 @@ def _fuse_gnss_up(
     H[:, 0, S.SPEED] = np.sin(theta)
     H[:, 0, S.PITCH] = v * np.cos(theta)
     H[:, 0, S.GNSS_CLOCK] = -rate
-    h = v * np.sin(theta) - fix_age_s(f, inp, cfg.tick_s) * rate
+    swing_up = _antenna_swing(f.x, inp, p, w)[:, 2]
+    h = v * np.sin(theta) + swing_up - fix_age_s(f, inp, cfg.tick_s) * rate
     y = np.where(have, np.nan_to_num(inp.gnss_vel_up_mps) - h, 0.0)[:, None]
     R = ((cfg.gnss_up_to_horizontal_vel_std_ratio * std) ** 2)[:, None, None]
     f.x, f.P, _, _ = kalman_update(f.x, f.P, y, H, R, have, cfg.gnss_up_gate_nis)

@@ -23,6 +23,8 @@ from estimator.types import GnssFix, GnssSample, ImuBatch, OdometerEdges, Sprock
 __all__ = [
     "CrawlerSensors",
     "SensorErrors",
+    "antenna_offset_m",
+    "antenna_offset_rate_mps",
     "body_rates",
     "draw_errors",
     "emissions",
@@ -234,6 +236,43 @@ def _at(truth: CrawlerTruth, name: str, idx: IntArray, t_s: FloatArray | None) -
     return values[idx] if t_s is None else np.interp(t_s, truth.t_s, values)
 
 
+def antenna_offset_m(
+    lever_arm_m: tuple[float, float, float], pitch_rad: FloatArray, roll_rad: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The antenna's offset from the hull centre, each shaped as the angles: forward and right
+    (level, along and across the heading) and up, its lever arm ``(x, y, z)`` (right,
+    forward, up) pitched by ``θ`` (nose up +) and rolled by ``φ`` (right side down +):
+    ``fwd = y·cos θ − z·sin θ·cos φ``, ``right = x·cos φ + z·sin φ``, ``up = z·cos θ·cos φ
+    + y·sin θ − x·sin φ``."""
+    x, y, z = lever_arm_m
+    ct, st, cp, sp = np.cos(pitch_rad), np.sin(pitch_rad), np.cos(roll_rad), np.sin(roll_rad)
+    return y * ct - z * st * cp, x * cp + z * sp, z * ct * cp + y * st - x * sp
+
+
+def antenna_offset_rate_mps(
+    truth: CrawlerTruth, lever_arm_m: tuple[float, float, float]
+) -> FloatArray:
+    """The time derivative of the antenna's offset from the hull centre in east, north, up
+    ``(n, 3)`` on the truth's grid (m/s): :func:`antenna_offset_m` turned by the heading
+    ``ψ`` (from north, clockwise), ``east = right·cos ψ + fwd·sin ψ``, ``north = −right·sin ψ
+    + fwd·cos ψ``, differentiated by central differences. It holds the yaw's turn of the
+    lever arm and the mast's swing with the pitch and roll rates; 0 where the lever arm is
+    upright (``x = y = 0``) on level ground."""
+    fwd, right, up = antenna_offset_m(lever_arm_m, truth.pitch_rad, truth.roll_rad)
+    psi = truth.heading_rad
+    east = right * np.cos(psi) + fwd * np.sin(psi)
+    north = -right * np.sin(psi) + fwd * np.cos(psi)
+    offset = np.stack([east, north, up], axis=1)
+    if offset.shape[0] < 2:
+        return np.zeros_like(offset)
+    return np.asarray(np.gradient(offset, 1.0 / RATE_HZ, axis=0))
+
+
+def _interp_rows(t_s: FloatArray, grid_s: FloatArray, values: FloatArray) -> FloatArray:
+    """Each column of ``values (n, c)`` on ``grid_s`` read at ``t_s (m,)``: ``(m, c)``."""
+    return np.stack([np.interp(t_s, grid_s, values[:, i]) for i in range(values.shape[1])], 1)
+
+
 def _gnss(
     truth: CrawlerTruth,
     cfg: TrackedConfig,
@@ -245,29 +284,30 @@ def _gnss(
     up_rng: np.random.Generator | None = None,
     jitter_rng: np.random.Generator | None = None,
 ) -> list[tuple[int, Measurement]]:
-    """10 Hz fixes of the antenna: its lever arm turned by heading, pitch and roll, its
-    velocity in the world (``V·cos θ`` level, ``V·sin θ`` up, yaw lever-arm terms), height
-    included; the up velocity's noise from ``up_rng`` (none without it); each taken at its
-    epoch's instant and stamped on the receiver's clock (:func:`gnss_epochs_s`)."""
+    """10 Hz fixes of the antenna, each taken at its epoch's instant and stamped on the
+    receiver's clock (:func:`gnss_epochs_s`): its position the hull centre's plus the lever
+    arm turned by heading, pitch and roll (:func:`antenna_offset_m`), height included; its
+    velocity the hull centre's (``V·cos θ`` along the heading, ``v_x`` to its right, ``V·sin
+    θ`` up) plus the offset's rate (:func:`antenna_offset_rate_mps`: the yaw's, the pitch's
+    and the roll's swing of the mast), so the velocity is the position's derivative. The up
+    velocity's noise from ``up_rng`` (none without it)."""
     idx = np.arange(_WINDOW, truth.t_s.size, _WINDOW)
     stamp_s, taken_s = gnss_epochs_s(truth.t_s[idx], spec, jitter_rng)
 
     def at(name: str) -> FloatArray:
         return _at(truth, name, idx, taken_s)
 
-    psi, w = at("heading_rad"), at("yaw_rate_radps")
-    theta, phi = at("pitch_rad"), at("roll_rad")
-    x, y, z = cfg.geometry.antenna_lever_arm_m
-    fwd = y * np.cos(theta) - z * np.sin(theta) * np.cos(phi)
-    right = x * np.cos(phi) + z * np.sin(phi)
-    up = at("up_m") + z * np.cos(theta) * np.cos(phi) + y * np.sin(theta) - x * np.sin(phi)
+    psi, theta, v_along = at("heading_rad"), at("pitch_rad"), at("speed_mps")
+    fwd, right, up_off = antenna_offset_m(cfg.geometry.antenna_lever_arm_m, theta, at("roll_rad"))
+    up = at("up_m") + up_off
     east = at("east_m") + right * np.cos(psi) + fwd * np.sin(psi)
     north = at("north_m") - right * np.sin(psi) + fwd * np.cos(psi)
-    v_along = at("speed_mps")
-    vr, vf = at("lateral_mps") - w * y, v_along * np.cos(theta) + w * x
-    ve = vf * np.sin(psi) + vr * np.cos(psi)
-    vn = vf * np.cos(psi) - vr * np.sin(psi)
-    vu = v_along * np.sin(theta)
+    grid_rate = antenna_offset_rate_mps(truth, cfg.geometry.antenna_lever_arm_m)
+    rate = grid_rate[idx] if taken_s is None else _interp_rows(taken_s, truth.t_s, grid_rate)
+    vf, vr = v_along * np.cos(theta), at("lateral_mps")
+    ve = vf * np.sin(psi) + vr * np.cos(psi) + rate[:, 0]
+    vn = vf * np.cos(psi) - vr * np.sin(psi) + rate[:, 1]
+    vu = v_along * np.sin(theta) + rate[:, 2]
     east = east + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
     north = north + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
     ve = ve + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)

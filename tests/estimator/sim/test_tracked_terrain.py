@@ -7,6 +7,7 @@ import dataclasses
 from functools import cache
 
 import numpy as np
+import pytest
 
 from estimator.sim.tracked import TrackedRun, simulate_route, simulate_tracked
 from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ
@@ -146,12 +147,25 @@ def test_uphill_slips_more_than_downhill() -> None:
     assert 0.04 < gap < 0.08
 
 
+def _mast_climb(run: TrackedRun) -> np.ndarray:
+    """By hand: the antenna's up velocity over the hull centre's on the truth's grid, the
+    rate of its lever arm's height ``z·cos θ·cos φ + y·sin θ − x·sin φ`` by the chain rule
+    (the pitch's and roll's rates by differences)."""
+    x, y, z = run.config.geometry.antenna_lever_arm_m
+    theta, phi = run.truth.pitch_rad, run.truth.roll_rad
+    d_theta, d_phi = np.gradient(theta, 1.0 / RATE_HZ), np.gradient(phi, 1.0 / RATE_HZ)
+    ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
+    return np.asarray(
+        -z * (st * cp * d_theta + ct * sp * d_phi) + y * ct * d_theta - x * cp * d_phi
+    )
+
+
 def test_gnss_height_and_up_velocity_follow_the_climb() -> None:
     run = _run("route_firm_hill", 1)
     fixes = _fixes(run)
     k = run.index_at(np.array([f.stamp_ns for f in fixes]))
     vu = np.array([f.vel_enu_mps[2] for f in fixes])
-    true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k])
+    true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k]) + _mast_climb(run)[k]
     assert np.sqrt(np.mean((vu - true_vu) ** 2)) < 0.05
     h = np.array([f.height_m for f in fixes])
     # the antenna's height: the hull's climb plus its lever arm (mostly up)
@@ -160,23 +174,70 @@ def test_gnss_height_and_up_velocity_follow_the_climb() -> None:
     assert np.ptp(h) > 5.0
 
 
+@pytest.mark.parametrize(("name", "seed"), [("route_firm_hill", 1), ("random", 1001)])
+def test_the_fixes_velocity_is_the_derivative_of_their_positions(name: str, seed: int) -> None:
+    # without the receiver's noise, at the instants the fixes were taken (a random route's
+    # receiver has a clock offset and an epoch jitter): the antenna's velocity less the hull
+    # centre's against the central difference of its position less the hull centre's over
+    # the neighbouring fixes (0.2 s), in the ENU frame. (The hull's own path is rough at a
+    # tenth of a second: its slip's texture moves its difference by up to 4 cm/s.)
+    quiet = dataclasses.replace(_run(name, seed).sensors, gnss_pos_std_m=0.0, gnss_vel_std_mps=0.0)
+    run = simulate_tracked(name, seed, sensors=quiet)
+    fixes = _fixes(run)
+    taken_s = (np.array([f.stamp_ns for f in fixes]) - run.start_ns) * 1e-9
+    taken_s -= run.sensors.gnss_clock_offset_s
+    tr = run.truth
+
+    def at(values: np.ndarray) -> np.ndarray:
+        return np.interp(taken_s, tr.t_s, values)
+
+    enu = run.frame.to_enu(
+        np.array([f.lat_deg for f in fixes]),
+        np.array([f.lon_deg for f in fixes]),
+        np.array([f.height_m for f in fixes]),
+    )
+    offset = np.stack(enu, axis=1) - np.stack([at(tr.east_m), at(tr.north_m), at(tr.up_m)], 1)
+    psi, theta, speed, lateral = (
+        at(a) for a in (tr.heading_rad, tr.pitch_rad, tr.speed_mps, tr.lateral_mps)
+    )
+    level = speed * np.cos(theta)
+    hull = np.stack(
+        [
+            level * np.sin(psi) + lateral * np.cos(psi),
+            level * np.cos(psi) - lateral * np.sin(psi),
+            speed * np.sin(theta),
+        ],
+        axis=1,
+    )
+    swing = np.array([f.vel_enu_mps for f in fixes]) - hull
+    span_s = taken_s[2:] - taken_s[:-2]
+    inner = span_s < 0.21  # both neighbours are the next epochs (not across an outage)
+    diff = (offset[2:] - offset[:-2])[inner] / span_s[inner, None]
+    assert inner.sum() > 1000
+    assert np.abs(diff - swing[1:-1][inner]).max() <= 0.02
+    # the mast swings by more than that: the fixes' velocity is not the hull centre's alone
+    assert np.abs(swing[:, :2]).max() > 0.1
+
+
 def test_hill_terrain_is_fixed() -> None:
     assert hill_terrain() == hill_terrain()
 
 
 def _up_noise(run: TrackedRun) -> tuple[np.ndarray, np.ndarray]:
-    """The fixes' up and east velocity errors against the truth's climb and course, read
-    where each fix was taken (its stamp less the receiver's clock offset)."""
+    """The fixes' up and east velocity errors against the antenna's climb (the hull's and its
+    mast's, :func:`_mast_climb`) and the fixes' east velocity, read where each fix was taken
+    (its stamp less the receiver's clock offset)."""
     fixes = _fixes(run)
     stamp_s = (np.array([f.stamp_ns for f in fixes]) - run.start_ns) * 1e-9
     taken_s = stamp_s - run.sensors.gnss_clock_offset_s
     vu = np.array([f.vel_enu_mps[2] for f in fixes])
     if run.sensors.gnss_clock_offset_s == 0.0 and run.sensors.gnss_epoch_jitter_s == 0.0:
         k = run.index_at(np.array([f.stamp_ns for f in fixes]))
-        true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k])
+        true_vu = run.truth.speed_mps[k] * np.sin(run.truth.pitch_rad[k]) + _mast_climb(run)[k]
     else:  # as the simulator reads the truth between its grid points
         speed = np.interp(taken_s, run.truth.t_s, run.truth.speed_mps)
         true_vu = speed * np.sin(np.interp(taken_s, run.truth.t_s, run.truth.pitch_rad))
+        true_vu += np.interp(taken_s, run.truth.t_s, _mast_climb(run))
     return vu - true_vu, np.array([f.vel_enu_mps[0] for f in fixes])
 
 
@@ -201,7 +262,9 @@ def test_a_random_routes_receiver_states_a_noisier_vertical_by_its_own_draw() ->
     err, east = _up_noise(run)
     err1, east1 = _up_noise(same)
     assert np.array_equal(east, east1)
-    assert np.allclose(err, run.sensors.gnss_up_vel_std_ratio * err1, atol=1e-9)
+    # (the mast's climb by the chain rule here, by differences of its height in the
+    # simulator: they agree to a micrometre per second)
+    assert np.allclose(err, run.sensors.gnss_up_vel_std_ratio * err1, atol=1e-6)
 
 
 def test_named_routes_keep_a_vertical_as_noisy_as_the_horizontal() -> None:

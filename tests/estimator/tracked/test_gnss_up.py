@@ -8,14 +8,17 @@ import math
 import numpy as np
 import pytest
 
+from estimator.config import TrackedConfig
 from estimator.tracked import TrackedEstimatorConfig
 from estimator.tracked.model import N_STATES
 from estimator.tracked.model import TrackedState as S
+from estimator.tracked.params import VehicleParams
 from estimator.tracked.step import _fuse_gnss_up, initial_filter
 from tests.estimator.tracked._ticks import quiet_tick
 
 SPEED_MPS, PITCH_RAD, UP_MPS, STD_MPS = 8.0, 0.05, 0.5, 0.03
 P_SPEED, P_PITCH = 0.01**2, 0.004**2
+PARAMS = VehicleParams.of(TrackedConfig())  # the mast upright; no pitch or roll rate below
 
 
 def _pitch_after_up_fix(cfg: TrackedEstimatorConfig) -> tuple[float, float]:
@@ -27,7 +30,7 @@ def _pitch_after_up_fix(cfg: TrackedEstimatorConfig) -> tuple[float, float]:
     diag[S.SPEED], diag[S.PITCH] = P_SPEED, P_PITCH
     f.P = np.diag(diag)[None]
     inp = quiet_tick(1, 100_000_000, gnss_vel_up_mps=np.array([UP_MPS]))
-    _fuse_gnss_up(f, inp, np.ones(1, dtype=bool), np.full(1, STD_MPS), cfg)
+    _fuse_gnss_up(f, inp, PARAMS, np.ones(1, dtype=bool), np.full(1, STD_MPS), cfg)
     return float(f.x[0, S.PITCH]), float(f.P[0, S.PITCH, S.PITCH])
 
 
