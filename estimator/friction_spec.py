@@ -133,6 +133,15 @@ _FIELDS = (
     FieldSpec("north_m", "f8", "m", "north", "GNSS antenna, north of the vehicle's anchor"),
     FieldSpec("up_m", "f8", "m", "up", "GNSS antenna height above the vehicle's anchor"),
     FieldSpec("heading_rad", "f8", "rad", "heading", "from north, clockwise"),
+    # the speed's 1-σ came after the position: appended too
+    FieldSpec(
+        "vx_std_mps",
+        "f8",
+        "m/s",
+        "speed σ",
+        "1-sigma of vx_mps against the ground: the speed filter's, with the wheel readings' "
+        "persistent errors (window lag, the radii's shared scale) considered",
+    ),
 )
 
 FRICTION_DTYPE = np.dtype([(f.name, f.kind) for f in _FIELDS])
@@ -153,7 +162,7 @@ FRICTION_SPEC = EstimatorSpec(
         SlipChannel(key, f"slip {name}", f"slip_{key}_pct", pos)
         for key, name, pos in zip(WHEEL_KEYS, _WHEEL_NAMES, _POSITIONS, strict=True)
     ),
-    speeds=(SpeedChannel("speed", "speed", "vx_mps"),),
+    speeds=(SpeedChannel("speed", "speed", "vx_mps", std_field="vx_std_mps"),),
     motion="speed",
     position=PositionChannel(
         "east_m", "north_m", "up_m", "heading_rad", carried_flag="DEAD_RECKONED"

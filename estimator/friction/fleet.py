@@ -134,9 +134,11 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
 
 
 def _front_columns(out: np.ndarray, at: IntArray, fe: FrontEndTicks, util: FloatArray) -> None:
-    """The rows ``out[at]``'s front-end columns (speed, per-wheel load, slip, slip angle) and
+    """The rows ``out[at]``'s front-end columns (speed and its 1-σ, per-wheel load, slip, slip
+    angle) and
     the grip used ``util`` ``(B, 4)``, for the whole round at once."""
     out["vx_mps"][at] = fe.vx_mps
+    out["vx_std_mps"][at] = fe.vx_std_mps
     for j, key in enumerate(WHEEL_KEYS):
         out[f"fz_{key}_n"][at] = fe.fz_n[:, j]
         out[f"slip_{key}_pct"][at] = 100.0 * fe.kappa[:, j]

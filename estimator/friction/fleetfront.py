@@ -23,9 +23,13 @@ from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.frontend import (
     AIR_DENSITY_KGPM3,
     DRIVE_SHARE,
+    GNSS_SPEED_STD_MPS,
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
+    calibration_scale_var,
+    consider_step,
+    rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
 )
@@ -51,6 +55,7 @@ class FrontEndTicks:
     alpha_lag_rad: FloatArray
     z: FloatArray
     vx_mps: FloatArray
+    vx_std_mps: FloatArray
     vy_mps: FloatArray
     yaw_rate_radps: FloatArray
     vy_gnss_mps: FloatArray
@@ -221,6 +226,8 @@ class _State(_Arrays):
         self.radius = np.zeros((0, 4))
         self.radius_std = np.zeros((0, 4))
         self.radius_common_rel = np.zeros(0)
+        self.radius_scale_var = np.zeros(0)  # the radii's shared relative scale variance
+        self.speed_persist = np.zeros(0)  # the speed's considered persistent 1-σ [m/s]
         self.radius_drop = np.zeros(0)
         self.calib_n = np.zeros(0, dtype=np.int64)
         self.kz_wheel = np.zeros((0, 4))
@@ -239,6 +246,8 @@ class _State(_Arrays):
         self.radius[slot] = car.r_u[slot] - fz / car.kz[slot] * (1.0 if fe.paper else 1 / 3)
         self.radius_std[slot] = 0.01 * car.r_u[slot]
         self.radius_common_rel[slot] = 0.0
+        self.radius_scale_var[slot] = 0.01**2
+        self.speed_persist[slot] = 0.0
         self.radius_drop[slot] = fe.radius_drop0
         self.calib_n[slot] = 0
         self.kz_wheel[slot] = car.kz[slot]
@@ -338,6 +347,7 @@ class FleetFrontEnd:
             kappa_common_std=np.sqrt(np.maximum(vx_var, 0.0)) / np.maximum(np.abs(vx), 1.0),
             z=z,
             vx_mps=vx,
+            vx_std_mps=np.hypot(np.sqrt(np.maximum(vx_var, 0.0)), st.speed_persist[s]),
             vy_mps=self.vy.speed[s],
             yaw_rate_radps=yaw_rate,
             vy_gnss_mps=gnss_v[:, 1],
@@ -475,6 +485,7 @@ class FleetFrontEnd:
         st.radius[c] = radius
         st.fz_cal[c] += gain * (f - st.fz_cal[c])
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
+        st.radius_scale_var[c] = calibration_scale_var(st.radius_scale_var[c], gain[:, 0], v[:, 0])
         st.radius_std[c] = 2e-4 * radius
         self._learn_tyres(c[n >= self.fe.calib_samples])
 
@@ -516,7 +527,10 @@ class FleetFrontEnd:
             vx.speed[s[unset]] = np.where(np.isfinite(gnss_v[unset, 0]), gnss_v[unset, 0], rim)
         vx.predict(s, ax_tilt, yaw_rate * self.vy.speed[s], self.dt)
         if g.size:
-            vx.update(s[g], gnss_v[g, 0], 0.03**2)
+            sg, r_gnss = s[g], GNSS_SPEED_STD_MPS**2
+            gain = vx.var[sg] / (vx.var[sg] + r_gnss)
+            st.speed_persist[sg] = consider_step(st.speed_persist[sg], gain, 0.0)
+            vx.update(sg, gnss_v[g, 0], r_gnss)
         if self.fe.paper:
             return
         use = (self.car.n_free[s] > 0) & (self.calibrated(s) | ~sensed.gnss_recent)
@@ -554,7 +568,35 @@ class FleetFrontEnd:
         rel = np.hypot(np.hypot(own, st.radius_common_rel[c]), fe.wheel_inertia_rel_std * spin_mean)
         braked_mean = np.where(free, braked, 0.0).sum(axis=1) / n_free
         ok = braked_mean <= np.hypot(rel, 5e-4)  # a brake slip is a bias, not noise
-        self.vx.update(c[ok], v[ok], ((rel * v) ** 2 + (5e-4 * v) ** 2)[ok])
+        var = ((rel * v) ** 2 + (5e-4 * v) ** 2)[ok]
+        persist = self._rim_persistent(c, delta, rates, spin_mean, v)
+        co = c[ok]
+        k = self.vx.var[co] / (self.vx.var[co] + var)
+        st.speed_persist[co] = consider_step(st.speed_persist[co], k, persist[ok])
+        self.vx.update(co, v[ok], var)
+
+    def _rim_persistent(
+        self,
+        c: IntArray,
+        delta: FloatArray,
+        rates: tuple[FloatArray, FloatArray],
+        spin: FloatArray,
+        v: FloatArray,
+    ) -> FloatArray:
+        """1-σ of the rim reading's persistent error ``(len(c),)`` [m/s]
+        (:func:`~.frontend.rim_persistent_std_mps`): the window's lag of ``v̇ = a_x + r v_y``,
+        the radii's shared scale, the lateral speed's 1-σ through the steered rims and the
+        spin-up slip ``spin`` (the rims' mean) of a wheel inertia known to
+        ``wheel_inertia_rel_std``: each is held while the acceleration, the steering or the
+        radii are."""
+        car, fe = self.car, self.fe
+        r, ax = rates
+        v_dot = ax + r * self.vy.speed[c]
+        free, n_free = car.free[c], car.n_free[c]
+        tan = np.where(free, np.abs(np.tan(delta)), 0.0).sum(axis=1) / n_free
+        cross = np.hypot(tan * np.sqrt(self.vy.var[c]), fe.wheel_inertia_rel_std * spin * v)
+        scale = np.sqrt(self.state.radius_scale_var[c])
+        return rim_persistent_std_mps(v_dot, v, scale, cross, fe.wheel_speed_window_s)
 
     def _side_slip_step(
         self, s: IntArray, ay: FloatArray, yaw_rate: FloatArray, g: IntArray, gnss_v: FloatArray

@@ -51,7 +51,11 @@ is tested against:
   unknown share of the braking force (:func:`brake_slip_std`). Where that slip may exceed
   the rims' own 1-σ they do not read the speed (a bias held for seconds, it would not
   average out over the ticks as noise does): the speed, and with it every κ's shared 1-σ,
-  then leans on GNSS and the accelerometer (not paper).
+  then leans on GNSS and the accelerometer (not paper);
+* the speed's stated 1-σ (``vx_std_mps``, the row's): the speed filter's, with the rims'
+  persistent errors considered (never estimated, :func:`consider_step`): the window's lag,
+  the radii's shared scale (:func:`rim_persistent_std_mps`). They cancel in κ, so the slips
+  and their shared 1-σ (``kappa_common_std``) are taken without them (not paper).
 
 Frame: x forward, y left (the IMU's X right, Y forward: ``a_y = −accel[:, 0]``).
 """
@@ -72,16 +76,22 @@ from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
 
 __all__ = [
     "DRIVE_SHARE",
+    "GNSS_SPEED_STD_MPS",
     "UNDRIVEN",
     "FrontEnd",
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
+    "calibration_scale_var",
+    "consider_step",
+    "rim_persistent_std_mps",
     "ringing_slip_std",
     "spin_up_slip",
 ]
 
 AIR_DENSITY_KGPM3 = 1.2
+GNSS_SPEED_STD_MPS = 0.03
+"""1-σ of a GNSS forward speed reading [m/s] (the speed filter's and the radius calibration's)."""
 UNDRIVEN = {
     DrivenAxle.FRONT: np.array([False, False, True, True]),
     DrivenAxle.REAR: np.array([True, True, False, False]),
@@ -119,7 +129,9 @@ class FrontEndConfig:
     road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²); ``brake_share_std``: the 1-σ of the
     undriven axle's share of the braking force (:func:`brake_slip_std`);
     ``wheel_speed_resolution_radps``: the CAN wheel speed's rounding, below which a change
-    between two readings may be rounding alone (:func:`ringing_slip_std`).
+    between two readings may be rounding alone (:func:`ringing_slip_std`);
+    ``wheel_speed_window_s``: the time a CAN wheel speed is averaged over (a tone ring timed
+    by the ECU; :func:`rim_persistent_std_mps`).
     """
 
     paper: bool = False
@@ -142,6 +154,7 @@ class FrontEndConfig:
     wheel_inertia_rel_std: float = 0.4
     brake_share_std: float = 0.5
     wheel_speed_resolution_radps: float = 0.025
+    wheel_speed_window_s: float = 0.02
 
 
 def brake_slip_std(
@@ -198,6 +211,57 @@ def ringing_slip_std(
     return updated
 
 
+def rim_persistent_std_mps(
+    speed_accel_mps2: FloatArray | float,
+    speed_mps: FloatArray | float,
+    scale_rel: FloatArray | float,
+    cross_mps: FloatArray | float,
+    window_s: float,
+) -> FloatArray:
+    """1-σ of the part of the undriven rims' speed reading that persists over many ticks [m/s].
+
+    ``hypot(|v̇| T/2, s v, c)``: a tone ring timed over the window ``T`` reads the mean over
+    it, ``T/2`` behind (a 1-σ, not a correction: an ECU may sample the speed instead); the
+    radii's shared scale error ``s`` (relative, held between calibrations:
+    :func:`calibration_scale_var`); ``c`` the persistent cross terms (the lateral speed's error
+    through the steered rims, the spin-up slip's inertia). Shapes broadcast. These errors
+    are in every wheel's reading alike, so they cancel in the slips κ; they do not cancel in
+    the speed reported against the ground."""
+    lag = np.abs(np.asarray(speed_accel_mps2)) * window_s / 2.0
+    scale = np.asarray(scale_rel) * np.abs(np.asarray(speed_mps))
+    out: FloatArray = np.hypot(np.hypot(lag, scale), np.asarray(cross_mps))
+    return out
+
+
+def calibration_scale_var(
+    var: FloatArray | float, gain: FloatArray | float, gnss_speed_mps: FloatArray | float
+) -> FloatArray:
+    """The radii's shared relative scale variance after one calibration epoch.
+
+    The calibration is a running mean ``r ← r + g (z − r)`` of readings whose error is the
+    GNSS speed's, ``σ_g/v`` relative and shared by the four wheels: its variance follows
+    ``V ← (1 − g)² V + g² (σ_g/v)²`` (``σ_g`` :data:`GNSS_SPEED_STD_MPS`; with ``g`` held
+    at ``0.1/calib_time_s`` it settles at ``(σ_g/v)² g/(2 − g)``). Shapes broadcast."""
+    g = np.asarray(gain)
+    rel = GNSS_SPEED_STD_MPS / np.maximum(np.abs(np.asarray(gnss_speed_mps)), 1.0)
+    out: FloatArray = (1.0 - g) ** 2 * np.asarray(var) + (g * rel) ** 2
+    return out
+
+
+def consider_step(
+    persist_mps: FloatArray | float, gain: FloatArray | float, reading_std_mps: FloatArray | float
+) -> FloatArray:
+    """The speed estimate's persistent error 1-σ after a reading taken with gain ``k``.
+
+    A Schmidt (considered, never estimated) error: the estimate ``v ← v + k (z − v)`` takes
+    ``k`` of the reading's persistent error and keeps ``1 − k`` of its own; the two are
+    taken as fully correlated (a bound: the persistent parts follow the same acceleration
+    and radii), ``p ← (1 − k) p + k σ_z``. A GNSS reading passes ``σ_z = 0``."""
+    k = np.asarray(gain)
+    out: FloatArray = (1.0 - k) * np.asarray(persist_mps) + k * np.asarray(reading_std_mps)
+    return out
+
+
 @dataclass(frozen=True, slots=True)
 class FrontEndTick:
     """One tick's inputs (per wheel ``(4,)``) and measurements, with the 1-σ the filter uses."""
@@ -213,6 +277,7 @@ class FrontEndTick:
     alpha_lag_rad: FloatArray  # relaxed minus kinematic α (0 in the paper reading)
     z: FloatArray  # [a_x + resistances/m, a_y, ṙ]
     vx_mps: float
+    vx_std_mps: float  # the speed's 1-σ with the rims' persistent errors (not κ's: they cancel)
     vy_mps: float
     yaw_rate_radps: float
     vy_gnss_mps: float  # NaN without a fresh GNSS velocity
@@ -348,6 +413,8 @@ class FrontEnd:
         self.suspect = np.zeros(4, dtype=bool)
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)  # each wheel's own
         self.radius_common_rel = 0.0  # the calibration's GNSS error, shared by the four
+        self.radius_scale_var = 0.01**2  # its relative variance (calibration_scale_var)
+        self.speed_persist = 0.0  # the speed's considered persistent 1-σ [m/s]
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
@@ -485,6 +552,7 @@ class FrontEnd:
             alpha_lag_rad=alpha_lag,
             z=z,
             vx_mps=vx,
+            vx_std_mps=math.hypot(math.sqrt(max(self.vx.speed_var, 0.0)), self.speed_persist),
             vy_mps=self.vy.speed,
             yaw_rate_radps=yaw_rate,
             vy_gnss_mps=vy_gnss,
@@ -538,7 +606,10 @@ class FrontEnd:
             self.vx.set_speed(gnss[0] if gnss else float(np.mean(self.omega * self.radius)))
         self.vx.predict(ax_tilt, yaw_rate * self.vy.speed, self.dt)
         if gnss is not None:
-            self.vx.update(gnss[0], 0.03**2)
+            r_gnss = GNSS_SPEED_STD_MPS**2
+            gain = self.vx.speed_var / (self.vx.speed_var + r_gnss)
+            self.speed_persist = float(consider_step(self.speed_persist, gain, 0.0))
+            self.vx.update(gnss[0], r_gnss)
         free = self.undriven
         if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
             return
@@ -561,7 +632,18 @@ class FrontEnd:
         )
         if float(np.mean(braked[free])) > math.hypot(rel, 5e-4):
             return  # the brake slip is a bias: it would not average out over the ticks
-        self.vx.update(v, (rel * v) ** 2 + (5e-4 * v) ** 2)
+        var = (rel * v) ** 2 + (5e-4 * v) ** 2
+        v_dot = ax + yaw_rate * self.vy.speed
+        cross = math.hypot(
+            float(np.mean(np.abs(np.tan(delta[free])))) * math.sqrt(max(self.vy.speed_var, 0.0)),
+            self.fe.wheel_inertia_rel_std * float(np.mean(spin[free])) * v,
+        )
+        persist = rim_persistent_std_mps(
+            v_dot, v, math.sqrt(self.radius_scale_var), cross, self.fe.wheel_speed_window_s
+        )
+        gain = self.vx.speed_var / (self.vx.speed_var + var)
+        self.speed_persist = float(consider_step(self.speed_persist, gain, persist))
+        self.vx.update(v, var)
 
     def _yaw_step(self, gyro_z_radps: float) -> float:
         """The yaw rate less the gyro's bias (paper: as read); the yaw angle predicted."""
@@ -738,6 +820,7 @@ class FrontEnd:
         self.radius += gain * (measured - self.radius)
         self.fz_cal += gain * (fz - self.fz_cal)
         self.radius_common_rel = 0.003 / math.sqrt(self.calib_n)
+        self.radius_scale_var = float(calibration_scale_var(self.radius_scale_var, gain, gnss[0]))
         self.radius_std = 2e-4 * self.radius
         self._learn_tyres()
 

@@ -7,7 +7,8 @@ recorded in ``schema_version``. A migration is frozen once released: later schem
 new migrations, never edits. The field lists a migration makes tables from are frozen in it
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
 :data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`,
-:data:`FRICTION_FIELDS_V16`, :data:`TRACKED_FIELDS_V17`, :data:`TRACKED_FIELDS_V18`); tests
+:data:`FRICTION_FIELDS_V16`, :data:`TRACKED_FIELDS_V17`, :data:`TRACKED_FIELDS_V18`,
+:data:`FRICTION_FIELDS_V19`); tests
 compare them with today's specs, and the stores refuse a spec that no longer matches its
 recorded table, so a spec change forces a new migration.
 
@@ -18,7 +19,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 18):
+Schema (version 19):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -31,8 +32,8 @@ Schema (version 18):
     by :func:`estimator_table_steps` in the same layout, ``estimates_<name>`` (and on SQLite
     ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
     ``reference_speed`` since version 10, ``friction`` since version 12 (its position
-    appended by version 16), ``tracked`` since 13 (its online calibration appended by 17,
-    the hull's attitude by 18).
+    appended by version 16, the speed's 1-sigma by 19), ``tracked`` since 13 (its online
+    calibration appended by 17, the hull's attitude by 18).
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -86,6 +87,7 @@ __all__ = [
     "ADVISORY_LOCK_KEY",
     "FRICTION_FIELDS_V12",
     "FRICTION_FIELDS_V16",
+    "FRICTION_FIELDS_V19",
     "MDSF_FIELDS_V15",
     "MIGRATIONS",
     "REFERENCE_SPEED_FIELDS_V10",
@@ -732,6 +734,21 @@ def _v18_tracked_attitude(dialect: str) -> tuple[Step, ...]:
     )
 
 
+#: The friction row as version 19 made its table: version 16's with the speed's 1-sigma appended.
+FRICTION_FIELDS_V19: tuple[tuple[str, str], ...] = (
+    *FRICTION_FIELDS_V16,
+    ("vx_std_mps", "f8"),
+)
+
+
+def _v19_friction_speed_std(dialect: str) -> tuple[Step, ...]:
+    """Append the friction row's speed 1-sigma to its tables, NaN in the rows stored before
+    (the rows stated none then)."""
+    return _append_f8_fields(
+        "friction", "estimates_friction", FRICTION_FIELDS_V16, FRICTION_FIELDS_V19, dialect
+    )
+
+
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
 
@@ -866,6 +883,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "tracked rows carry the hull's pitch and roll",
         _v18_tracked_attitude("sqlite"),
         _v18_tracked_attitude("postgresql"),
+    ),
+    Migration(
+        19,
+        "friction rows carry the speed's 1-sigma",
+        _v19_friction_speed_std("sqlite"),
+        _v19_friction_speed_std("postgresql"),
     ),
 )
 

@@ -126,7 +126,7 @@ def test_batched_front_end_equals_the_per_vehicle_one(
 
 
 def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> None:
-    """The rows' per-wheel load, slip and slip angle, speed and flags are the reference's
+    """The rows' per-wheel load, slip and slip angle, speed, its 1-σ and flags are the reference's
     (through a soft tyre's learnt stiffness), also after a vehicle is removed and its slot
     reused."""
     fleet, refs, _ = _drive(runs[:3], FrictionMode.PRODUCT)
@@ -151,6 +151,7 @@ def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> N
     for row in got:
         want = ref.ticks[int(row["stamp_ns"])]
         assert abs(row["vx_mps"] - want.vx_mps) < 1e-9
+        assert abs(row["vx_std_mps"] - want.vx_std_mps) < 1e-9
         for j, key in enumerate(WHEEL_KEYS):
             assert abs(row[f"fz_{key}_n"] - want.fz_n[j]) < 1e-9
             assert abs(row[f"slip_{key}_pct"] - 100.0 * want.kappa[j]) < 1e-9

@@ -18,7 +18,7 @@ from estimator.tracked_spec import TRACKED_SPEC
 from server.storage import StorageDataError, StorageError, Store
 from server.storage._columns import spec_fields
 from server.storage.migrations import (
-    FRICTION_FIELDS_V16,
+    FRICTION_FIELDS_V19,
     MDSF_FIELDS_V15,
     REFERENCE_SPEED_FIELDS_V10,
     TRACKED_FIELDS_V18,
@@ -55,7 +55,7 @@ def test_frozen_field_lists_match_the_specs() -> None:
     """A spec change must come with a migration that converts its table."""
     assert spec_fields(MDSF_SPEC) == MDSF_FIELDS_V15
     assert spec_fields(REF) == REFERENCE_SPEED_FIELDS_V10
-    assert spec_fields(FRICTION_SPEC) == FRICTION_FIELDS_V16
+    assert spec_fields(FRICTION_SPEC) == FRICTION_FIELDS_V19
     assert spec_fields(TRACKED_SPEC) == TRACKED_FIELDS_V18
 
 

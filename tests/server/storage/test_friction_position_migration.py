@@ -21,6 +21,7 @@ from tests.server.storage.appended_fields import (
     spec_before,
 )
 from tests.server.storage.conftest import Backend
+from tests.server.storage.test_friction_speed_std_migration import spec_before_speed_std
 
 _ADDED = appended_names(FRICTION_FIELDS_V12, FRICTION_FIELDS_V16)
 _VERSION = next(
@@ -29,9 +30,14 @@ _VERSION = next(
 
 
 def _spec_before() -> EstimatorSpec:
-    """The friction spec as it was before the position: version 12's fields, no position."""
+    """The friction spec as it was before the position: version 12's fields, no position (and
+    no speed 1-sigma, which came later)."""
     return spec_before(
-        FRICTION_SPEC, FRICTION_FIELDS_V12, _ADDED, position=None, degraded_flags=("HELD",)
+        spec_before_speed_std(),
+        FRICTION_FIELDS_V12,
+        _ADDED,
+        position=None,
+        degraded_flags=("HELD",),
     )
 
 
