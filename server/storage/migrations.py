@@ -93,6 +93,7 @@ __all__ = [
     "TRACKED_FIELDS_V13",
     "TRACKED_FIELDS_V17",
     "TRACKED_FIELDS_V18",
+    "TRACKED_FIELDS_V19",
     "Execute",
     "Migration",
     "Step",
@@ -732,6 +733,23 @@ def _v18_tracked_attitude(dialect: str) -> tuple[Step, ...]:
     )
 
 
+#: The tracked row as version 19 made its table: version 18's with the GNSS receiver's clock
+#: appended (its offset and 1-sigma, the second of ``TRACKED_SPEC.calibrations``).
+TRACKED_FIELDS_V19: tuple[tuple[str, str], ...] = (
+    *TRACKED_FIELDS_V18,
+    ("gnss_clock_offset_s", "f8"),
+    ("gnss_clock_offset_std_s", "f8"),
+)
+
+
+def _v19_tracked_clock(dialect: str) -> tuple[Step, ...]:
+    """Append the tracked row's GNSS clock offset (and its 1-sigma) to its tables, NaN in the
+    rows stored before (the rows gave no clock then)."""
+    return _append_f8_fields(
+        "tracked", "estimates_tracked", TRACKED_FIELDS_V18, TRACKED_FIELDS_V19, dialect
+    )
+
+
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
 
@@ -866,6 +884,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "tracked rows carry the hull's pitch and roll",
         _v18_tracked_attitude("sqlite"),
         _v18_tracked_attitude("postgresql"),
+    ),
+    Migration(
+        19,
+        "tracked rows carry the GNSS receiver's clock offset",
+        _v19_tracked_clock("sqlite"),
+        _v19_tracked_clock("postgresql"),
     ),
 )
 
