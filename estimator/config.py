@@ -447,11 +447,17 @@ class TrackedCalibrationConfig(_Checked):
     """What the tracked estimator learns of a crawler's sensors online: the yaw gyro's angle
     random walk, measured while the crawler stands (``gyro_noise``; off: its ``gyro``
     section's data sheet is used as it is). It has converged once its 1-sigma is below
-    ``gyro_arw_converged_pct`` of itself (10 %: 75 standing tick pairs, 7.5 s at rest)."""
+    ``gyro_arw_converged_pct`` of itself (10 %: 75 standing tick pairs, 7.5 s at rest).
+    The GNSS receiver's clock less the IMU's, learnt beside GNSS (product mode), has
+    converged once its 1-sigma is below ``clock_offset_converged_ms`` (MDSF's figure: 10 ms
+    puts a fix ``0.1 m`` out at 10 m/s)."""
 
     gyro_noise: bool = True
     gyro_arw_converged_pct: float = _bounded(
         10.0, 1.0, 100.0, "%", "the measured angle random walk has converged below this std"
+    )
+    clock_offset_converged_ms: float = _bounded(
+        10.0, 0.01, 1000.0, "ms", "the GNSS clock offset has converged below this std"
     )
 
 

@@ -130,9 +130,17 @@ _FIELDS = (
         "hull's roll on a side slope, right side down + (NaN until the filter has measured it)",
     ),
     _f("roll_std_rad", "rad", "roll σ", "1-sigma of roll_rad"),
+    _f(
+        "gnss_clock_offset_s",
+        "s",
+        "GNSS clock offset",
+        "a GNSS fix stamped t was taken at the IMU clock's t − offset (online calibration, "
+        "product mode; NaN in the paper modes)",
+    ),
+    _f("gnss_clock_offset_std_s", "s", "GNSS clock offset σ", "1-sigma of gnss_clock_offset_s"),
 )
-# The calibration's fields come after ``flags``, the attitude's after them: rows stored before
-# either convert by appending.
+# The gyro's calibration fields come after ``flags``, the attitude's after them, the receiver
+# clock's after those: rows stored before any of them convert by appending.
 # Rows are given one tick late, up to ``report_lag_ticks`` (4 ticks, 0.4 s) while a state change
 # is under way: the change is dated where the ratios or the yaw acceleration left their band
 # (estimator.tracked.lag).
@@ -248,7 +256,10 @@ TRACKED_SPEC = EstimatorSpec(
     ok_flag="GNSS_OK",
     degraded_flags=("DEAD_RECKONING",),
     # no uncalibrated flag: state, speeds, slip and position do not rest on the gyro's noise,
-    # only the position's covariance through an outage does, at the data sheet's at least
+    # only the position's covariance through an outage does, at the data sheet's at least;
+    # the receiver's clock is a state of the same filter, whose covariance carries its
+    # uncertainty into the speed's, slip's and position's own while it converges (measured
+    # in docs/perf/tracked.md, 2026-11-29 "issue 26")
     calibrations=(
         CalibrationChannel(
             "gyro_arw",
@@ -259,6 +270,14 @@ TRACKED_SPEC = EstimatorSpec(
             1e-2,
             relative=True,
             enabled_config="calibration.gyro_noise",
+        ),
+        CalibrationChannel(
+            "gnss_clock_offset",
+            "GNSS clock offset",
+            "gnss_clock_offset_s",
+            "gnss_clock_offset_std_s",
+            "calibration.clock_offset_converged_ms",
+            1e-3,
         ),
     ),
     alerts=(

@@ -18,6 +18,7 @@ from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.base import Pushed
 from estimator.config import TrackedConfig, VehicleConfig, expect_kind
 from estimator.geo import geodetic_from_enu
+from estimator.tracked.clock_cal import clock_fields, reset_clock, restore_clock
 from estimator.tracked.fleet_inputs import take_fleet
 from estimator.tracked.gyro_noise import arw_fields, initial_stats, stats_from_fields
 from estimator.tracked.lag import HeldRows
@@ -152,6 +153,7 @@ def _rows(f: Filter, out: TickOut, inp: TickInputs, cfg: TrackedEstimatorConfig)
         "flags": _flags(f, out, cfg.uncertain_below, inp),
     }
     cols["gyro_arw_deg_rt_h"], cols["gyro_arw_std_deg_rt_h"] = arw_fields(f.gyro_standing, cfg)
+    cols["gnss_clock_offset_s"], cols["gnss_clock_offset_std_s"] = clock_fields(f, cfg)
     for name, index in (("pitch", S.PITCH), ("roll", S.ROLL)):
         std = np.sqrt(np.maximum(P[:, index, index], 0.0))
         known = std <= cfg.tilt_reported_std_rad
@@ -273,26 +275,48 @@ class _Base:
         }
 
     def calibration_fields(self, vehicle_id: str) -> dict[str, float]:
-        """The gyro's noise measured standing as its row fields (``TRACKED_SPEC.calibrations``:
-        the ARW and its 1-sigma, °/√h; NaN before a pair); ``KeyError`` if unknown."""
-        arw, std = arw_fields(self._slots[vehicle_id].filter.gyro_standing, self.config)
-        return {"gyro_arw_deg_rt_h": float(arw[0]), "gyro_arw_std_deg_rt_h": float(std[0])}
+        """The vehicle's calibration as its row fields (``TRACKED_SPEC.calibrations``): the
+        gyro's noise measured standing (ARW and its 1-sigma, °/√h; NaN before a pair) and the
+        receiver's clock (s, and its 1-sigma; NaN outside the product mode); ``KeyError`` if
+        unknown."""
+        f = self._slots[vehicle_id].filter
+        arw, std = arw_fields(f.gyro_standing, self.config)
+        clock, clock_std = clock_fields(f, self.config)
+        return {
+            "gyro_arw_deg_rt_h": float(arw[0]),
+            "gyro_arw_std_deg_rt_h": float(std[0]),
+            "gnss_clock_offset_s": float(clock[0]),
+            "gnss_clock_offset_std_s": float(clock_std[0]),
+        }
 
     def restore_calibration_fields(self, vehicle_id: str, values: Mapping[str, float]) -> None:
-        """Go on from a measurement's row fields (:meth:`calibration_fields`, a stored row's):
-        its pairs and their squared changes (``gyro_noise.stats_from_fields``), against the
-        part the config names now; nothing where the config turns the measurement off.
-        ``KeyError`` if unknown or a field is missing."""
+        """Go on from a calibration's row fields (:meth:`calibration_fields`, a stored row's),
+        each calibration whose two fields ``values`` holds (the others start as they do):
+        the gyro's measured pairs and their squared changes (``gyro_noise.stats_from_fields``),
+        against the part the config names now, nothing where the config turns the measurement
+        off; the receiver's clock as its state's prior mean and 1-sigma
+        (:func:`~estimator.tracked.clock_cal.restore_clock`). ``KeyError`` if unknown."""
         slot = self._slots[vehicle_id]
-        arw = np.array([values["gyro_arw_deg_rt_h"]])
-        std = np.array([values["gyro_arw_std_deg_rt_h"]])
-        if slot.inputs.config.calibration.gyro_noise:
-            slot.filter.gyro_standing = stats_from_fields(arw, std, self.config)
+        if {"gyro_arw_deg_rt_h", "gyro_arw_std_deg_rt_h"} <= values.keys():
+            arw = np.array([values["gyro_arw_deg_rt_h"]])
+            std = np.array([values["gyro_arw_std_deg_rt_h"]])
+            if slot.inputs.config.calibration.gyro_noise:
+                slot.filter.gyro_standing = stats_from_fields(arw, std, self.config)
+        if {"gnss_clock_offset_s", "gnss_clock_offset_std_s"} <= values.keys():
+            restore_clock(
+                slot.filter,
+                self.config,
+                values["gnss_clock_offset_s"],
+                values["gnss_clock_offset_std_s"],
+            )
 
     def reset_calibration(self, vehicle_id: str) -> None:
-        """Forget the gyro's measured noise: the data sheet's again, measured anew;
-        ``KeyError`` if unknown."""
-        self._slots[vehicle_id].filter.gyro_standing = initial_stats(1)
+        """Forget the vehicle's calibration: the gyro's noise the data sheet's again, measured
+        anew, and the receiver's clock back to its prior, learnt anew; ``KeyError`` if
+        unknown."""
+        f = self._slots[vehicle_id].filter
+        f.gyro_standing = initial_stats(1)
+        reset_clock(f, self.config)
 
     def gnss_nis(self, vehicle_id: str) -> FloatArray:
         """NIS of every GNSS position fused so far (2 degrees of freedom; consistency checks)."""

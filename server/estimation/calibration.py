@@ -9,12 +9,15 @@ reads that, for any estimator:
   window of rows: the stamp of the first row after the last one that differed;
 * :func:`stored_calibrations`: the newest stored calibration of every vehicle and estimator,
   which the server gives its estimator registry at start, so a restart restores rather than
-  relearns (:class:`server.estimation.registry.EstimatorRegistry`).
+  relearns (:class:`server.estimation.registry.EstimatorRegistry`);
+* :func:`known_calibrations`: of a calibration's fields, those of the channels that hold a
+  value (what an estimator is given back: a calibration not learnt yet is left to start anew).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +31,7 @@ __all__ = [
     "CalibrationState",
     "calibration_states",
     "converged_since",
+    "known_calibrations",
     "row_fields",
     "stored_calibrations",
 ]
@@ -151,12 +155,25 @@ def row_fields(spec: EstimatorSpec) -> list[str]:
     return fields
 
 
+def known_calibrations(spec: EstimatorSpec, values: Mapping[str, float]) -> dict[str, float]:
+    """The fields of ``values`` (``{field: value}`` of ``spec``'s calibrations) of every channel
+    whose value and std are both there and finite; the others (NaN: not learnt yet, or a mode
+    that does not calibrate) left out."""
+    out: dict[str, float] = {}
+    for c in spec.calibrations:
+        value, std = values.get(c.field), values.get(c.std_field)
+        if value is not None and std is not None and math.isfinite(value) and math.isfinite(std):
+            out[c.field], out[c.std_field] = float(value), float(std)
+    return out
+
+
 def stored_calibrations(
     store: Store, specs: dict[str, EstimatorSpec] | None = None
 ) -> dict[tuple[str, str], dict[str, float]]:
     """The calibration of every vehicle's newest stored row, per ``(vehicle_id, estimator)``
-    of the estimators whose spec declares calibrations (``{field: value}``, values and stds);
-    rows without one (NaN: a mode that does not calibrate) are left out."""
+    of the estimators whose spec declares calibrations (``{field: value}``, values and stds,
+    of the channels the row holds: :func:`known_calibrations`); rows without any (NaN: a mode
+    that does not calibrate) are left out."""
     out: dict[tuple[str, str], dict[str, float]] = {}
     for name, spec in (specs or SPECS).items():
         if not spec.calibrations:
@@ -167,7 +184,7 @@ def stored_calibrations(
         except ValueError:  # a store built without this estimator's tables
             continue
         for vid, row in newest.items():
-            values = {f: float(row[f]) for f in fields}
-            if all(math.isfinite(v) for v in values.values()):
+            values = known_calibrations(spec, {f: float(row[f]) for f in fields})
+            if values:
                 out[(vid, name)] = values
     return out

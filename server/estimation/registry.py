@@ -53,7 +53,6 @@ The registry holds one ``FleetEstimator`` per name and is used from one thread (
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol, runtime_checkable
 
@@ -64,6 +63,7 @@ from estimator.catalog import SPECS
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.spec import EstimatorSpec
 from estimator.types import EstimateBatch
+from server.estimation.calibration import known_calibrations
 
 __all__ = [
     "DEFAULT_FACTORIES",
@@ -356,17 +356,18 @@ class EstimatorRegistry:
         self, vehicle_id: str, names: tuple[str, ...], kept: Mapping[str, CalibrationValues]
     ) -> None:
         """Give the estimators ``names`` of the vehicle the calibration it had (``kept``), else
-        the stored one; one with a non-finite value (rows of a mode that does not calibrate)
-        is not given."""
+        the stored one: the channels that hold a value (:func:`known_calibrations`); a
+        channel with a non-finite value (not learnt yet, or rows of a mode that does not
+        calibrate) is not given, and nothing where no channel holds one."""
         for name in names:
             stored = self._stored_calibrations.pop((vehicle_id, name), None)
             values = kept.get(name, stored)
             est = self._estimators[name]
             if values is None or not (est.spec.calibrations and isinstance(est, Calibrating)):
                 continue
-            finite = all(math.isfinite(v) for v in values.values())
+            known = known_calibrations(est.spec, values)
             restore = est.restore_calibration_fields
-            if finite and self._guard(vehicle_id, name, "restore_calibration", restore, values):
+            if known and self._guard(vehicle_id, name, "restore_calibration", restore, known):
                 log.debug("estimator %s: calibration of %s restored", name, vehicle_id)
 
     def _take_back(self, vehicle_id: str, touched: list[str]) -> None:

@@ -8,7 +8,7 @@ new migrations, never edits. The field lists a migration makes tables from are f
 (:data:`SQLITE_PACKED_FIELDS`, :data:`REFERENCE_SPEED_FIELDS_V10`,
 :data:`FRICTION_FIELDS_V12`, :data:`TRACKED_FIELDS_V13`, :data:`MDSF_FIELDS_V15`,
 :data:`FRICTION_FIELDS_V16`, :data:`TRACKED_FIELDS_V17`, :data:`TRACKED_FIELDS_V18`,
-:data:`FRICTION_FIELDS_V19`); tests
+:data:`FRICTION_FIELDS_V19`, :data:`TRACKED_FIELDS_V20`); tests
 compare them with today's specs, and the stores refuse a spec that no longer matches its
 recorded table, so a spec change forces a new migration.
 
@@ -19,7 +19,7 @@ Applying is idempotent and safe when several processes start at once:
 * SQLite: everything runs in one ``BEGIN IMMEDIATE`` transaction (the database write lock);
   SQLite DDL is transactional too.
 
-Schema (version 19):
+Schema (version 20):
 
 ``vehicles``
     ``vkey`` small integer surrogate key, ``vehicle_id`` (unique text), ``config`` (JSON text /
@@ -33,7 +33,7 @@ Schema (version 19):
     ``…_recent`` and ``…_horizon``, as ``estimates_recent`` and ``estimates_horizon``):
     ``reference_speed`` since version 10, ``friction`` since version 12 (its position
     appended by version 16, the speed's 1-sigma by 19), ``tracked`` since 13 (its online
-    calibration appended by 17, the hull's attitude by 18).
+    calibration appended by 17, the hull's attitude by 18, the receiver's clock by 20).
 ``estimates``
     MDSF's rows. Primary key ``(vkey, stamp_ns)`` so one vehicle-hour is a single index range
     read.
@@ -95,6 +95,7 @@ __all__ = [
     "TRACKED_FIELDS_V13",
     "TRACKED_FIELDS_V17",
     "TRACKED_FIELDS_V18",
+    "TRACKED_FIELDS_V20",
     "Execute",
     "Migration",
     "Step",
@@ -749,6 +750,23 @@ def _v19_friction_speed_std(dialect: str) -> tuple[Step, ...]:
     )
 
 
+#: The tracked row as version 20 made its table: version 18's with the GNSS receiver's clock
+#: appended (its offset and 1-sigma, the second of ``TRACKED_SPEC.calibrations``).
+TRACKED_FIELDS_V20: tuple[tuple[str, str], ...] = (
+    *TRACKED_FIELDS_V18,
+    ("gnss_clock_offset_s", "f8"),
+    ("gnss_clock_offset_std_s", "f8"),
+)
+
+
+def _v20_tracked_clock(dialect: str) -> tuple[Step, ...]:
+    """Append the tracked row's GNSS clock offset (and its 1-sigma) to its tables, NaN in the
+    rows stored before (the rows gave no clock then)."""
+    return _append_f8_fields(
+        "tracked", "estimates_tracked", TRACKED_FIELDS_V18, TRACKED_FIELDS_V20, dialect
+    )
+
+
 def _v11_configs_by_kind(read_sql: str, write_sql: str) -> Callable[[Execute], None]:
     """Rewrite stored configs in the shape of their kind (``estimator.config``), ``kind`` set.
 
@@ -889,6 +907,12 @@ MIGRATIONS: tuple[Migration, ...] = (
         "friction rows carry the speed's 1-sigma",
         _v19_friction_speed_std("sqlite"),
         _v19_friction_speed_std("postgresql"),
+    ),
+    Migration(
+        20,
+        "tracked rows carry the GNSS receiver's clock offset",
+        _v20_tracked_clock("sqlite"),
+        _v20_tracked_clock("postgresql"),
     ),
 )
 

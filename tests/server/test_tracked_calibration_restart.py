@@ -36,7 +36,7 @@ pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
 VID = "sim-0001"
 S = 1_000_000_000
-FIELDS = "gyro_arw_deg_rt_h,gyro_arw_std_deg_rt_h"
+FIELDS = "gyro_arw_deg_rt_h,gyro_arw_std_deg_rt_h,gnss_clock_offset_s,gnss_clock_offset_std_s"
 ROUTE = Route(
     "stand_drive_stand",
     (Segment(M.STOP, 12.0, 0.0), Segment(M.STRAIGHT, 6.0, 3.0), Segment(M.STOP, 12.0, 0.0)),
@@ -73,8 +73,7 @@ def _calibration(client: httpx.Client) -> dict:
     r.raise_for_status()
     [part] = r.json()["estimators"]
     assert part["uncalibrated"] is None  # the tracked spec flags no row for it
-    [gyro] = part["calibrations"]
-    return dict(gyro)
+    return next(dict(c) for c in part["calibrations"] if c["key"] == "gyro_arw")
 
 
 def _first_is(rows: dict[str, np.ndarray], newest: tuple[float, float]) -> None:
@@ -137,6 +136,11 @@ def test_gyro_noise_restored_after_a_restart_and_a_reset_kept(tmp_path: Path) ->
             rows_b = stored_columns(client, VID, start_b, end_b, FIELDS)
             # restored, not measured anew: the first row holds the newest stored measurement
             _first_is(rows_b, _newest(rows_a))
+            # and the receiver's clock goes on from the stored one (standing: a fix barely
+            # moves it), not from its 0.15 s prior
+            clock = rows_b["gnss_clock_offset_std_s"][0]
+            assert clock == pytest.approx(rows_a["gnss_clock_offset_std_s"][-1], rel=1e-2)
+            assert clock < 0.1
             # then reset during the straight: nothing measured, and the second stop alone
             arw, std = rows_b["gyro_arw_deg_rt_h"], rows_b["gyro_arw_std_deg_rt_h"]
             reset = np.flatnonzero(np.isnan(arw))

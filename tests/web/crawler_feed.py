@@ -9,7 +9,8 @@ The rows follow the wall clock so a test can say what the page must show at any 
   (``DEAD_RECKONING``, position 1-σ growing 0.5 m a second), the others fused with GNSS
   (``GNSS_OK``, 1-σ :data:`FIX_STD_M`); every third state is flagged ``STATE_UNCERTAIN``;
   its odometer factor is 0.95 + 0.04·sin(east / 50 m) (a map layer informed while GNSS is);
-  its gyro's angle random walk measured standing is :data:`GYRO_ARW_DEG_RT_H` (converged); it
+  its gyro's angle random walk measured standing is :data:`GYRO_ARW_DEG_RT_H` and its
+  receiver's clock :data:`GNSS_CLOCK_S` (both converged); it
   climbs a steady grade (pitch :data:`PITCH_RAD`) across a side slope rolling
   :func:`crawler_roll_rad` (within ±0.1 rad, under the side-slope alert).
 * steered vehicle: μ is informed (``INFORMED``, 0.8 ± 0.02) in every other :data:`MU_S`-second
@@ -38,6 +39,7 @@ MU_S = 3
 FIX_STD_M = 0.3
 GRIP_PCT = {"fl": 20.0, "fr": 45.0, "rl": 70.0, "rr": 95.0}
 GYRO_ARW_DEG_RT_H = (0.4, 0.03)  # the crawler's gyro noise measured standing, converged (< 10 %)
+GNSS_CLOCK_S = (0.065, 0.004)  # its receiver's clock less the IMU's, converged (< 10 ms)
 PITCH_RAD = 0.06
 ATTITUDE_STD_RAD = 0.003
 _NS = 1_000_000_000
@@ -91,6 +93,7 @@ def tracked_rows(stamps_ns: np.ndarray) -> np.ndarray:
     r["heading_rad"] = np.pi / 2
     r["east_std_m"] = r["north_std_m"] = sigma
     r["gyro_arw_deg_rt_h"], r["gyro_arw_std_deg_rt_h"] = GYRO_ARW_DEG_RT_H
+    r["gnss_clock_offset_s"], r["gnss_clock_offset_std_s"] = GNSS_CLOCK_S
     r["pitch_rad"], r["roll_rad"] = PITCH_RAD, crawler_roll_rad(t_s)
     r["pitch_std_rad"] = r["roll_std_rad"] = ATTITUDE_STD_RAD
     flags = TrackedFlag.SLIP_LEFT_VALID | TrackedFlag.SLIP_RIGHT_VALID

@@ -27,6 +27,7 @@ from tests.web.conftest import LiveStack, history_loaded
 from tests.web.crawler_feed import (
     CRAWLER,
     FIX_STD_M,
+    GNSS_CLOCK_S,
     GRIP_PCT,
     GYRO_ARW_DEG_RT_H,
     PITCH_RAD,
@@ -261,8 +262,9 @@ def test_the_crawler_history_map_draws_its_odometer_factor_layer(
 def test_the_crawler_page_shows_its_gyro_calibration_through_the_generic_panel(
     live_stack: LiveStack, feed: CrawlerFeed, page: Any
 ) -> None:
-    """The online calibration panel, MDSF's, shows the crawler's gyro noise from the tracked
-    spec: its value and σ in °/√h, converged, no uncalibrated flag claimed, and the reset."""
+    """The online calibration panel, MDSF's, shows the crawler's gyro noise and receiver clock
+    from the tracked spec: their values and σ (°/√h; the clock in ms), converged, no
+    uncalibrated flag claimed, and the reset."""
     page.goto(live_stack.base_url + f"/#/vehicle/{CRAWLER}")
     row = "#v-calibration tr[data-calibration='gyro_arw']"
     page.wait_for_selector(f"{row}[data-state=converged]", timeout=30_000)
@@ -270,6 +272,12 @@ def test_the_crawler_page_shows_its_gyro_calibration_through_the_generic_panel(
     assert page.inner_text(f"{row} .cal-value") == f"{value:.3f} °/√h"
     assert page.inner_text(f"{row} .cal-std") == f"± {std:.3f} °/√h"
     assert "angle random walk" in page.inner_text(f"{row} th")
+    clock = "#v-calibration tr[data-calibration='gnss_clock_offset']"
+    page.wait_for_selector(f"{clock}[data-state=converged]", timeout=30_000)
+    value_s, std_s = GNSS_CLOCK_S
+    assert page.inner_text(f"{clock} .cal-value") == f"{value_s * 1e3:.1f} ms"
+    assert page.inner_text(f"{clock} .cal-std") == f"± {std_s * 1e3:.1f} ms"
+    assert "GNSS clock offset" in page.inner_text(f"{clock} th")
     part = "#v-calibration .cal-part[data-estimator=tracked]"
     state = page.inner_text(f"{part} .cal-state")
     assert state.startswith("As of ") and "not flagged" in state, state

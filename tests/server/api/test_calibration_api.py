@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from estimator.mdsf_spec import MDSF_SPEC
-from estimator.types import EstimateFlag, empty_estimates
+from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
+from estimator.types import EstimateBatch, EstimateFlag, empty_estimates
 from server.api.limits import HEAVY_ROUTES
 from server.estimation.calibration import stored_calibrations
 from server.settings import Settings
@@ -117,9 +118,12 @@ def test_a_vehicle_without_rows_and_one_that_calibrates_nothing(client: ApiClien
     client.put(f"{V}/c1", json={"kind": "tracked"})
     [part] = client.get(f"{V}/c1/calibration").json()["estimators"]
     assert part["estimator"] == "tracked" and part["uncalibrated"] is None
-    [gyro] = part["calibrations"]
+    gyro, clock = part["calibrations"]
     assert gyro["key"] == "gyro_arw" and gyro["unit"] == "°/√h" and gyro["enabled"]
     assert gyro["value"] is None and gyro["limit"] is None and not gyro["converged"]
+    assert clock["key"] == "gnss_clock_offset" and clock["unit"] == "s" and clock["enabled"]
+    assert clock["value"] is None and clock["limit"] == pytest.approx(0.010)
+    assert not clock["converged"]
     client.put(f"{V}/c2", json={"kind": "tracked", "calibration": {"gyro_noise": False}})
     [part] = client.get(f"{V}/c2/calibration").json()["estimators"]
     assert not part["calibrations"][0]["enabled"]
@@ -128,6 +132,48 @@ def test_a_vehicle_without_rows_and_one_that_calibrates_nothing(client: ApiClien
     assert client.get(f"{V}/s1/calibration").json()["estimators"] == []
     error_of(client.get(f"{V}/nobody/calibration"), 404)
     error_of(client.get(f"{V}/t1/calibration", params={"lookback_s": 0}), 422)
+
+
+def _crawler_learning(n: int = 50) -> np.ndarray:
+    """``n`` tracked rows 0.1 s apart of a receiver clock being learnt: 65 ms, its std
+    falling from 150 ms to 4 ms at row 25 (below 10 ms from there on); no gyro measurement
+    (NaN: the crawler has not stood)."""
+    rows = TRACKED_SPEC.empty_rows(n)
+    rows["stamp_ns"] = T0 + np.arange(n, dtype=np.int64) * STEP_NS
+    k = np.arange(n)
+    rows["gnss_clock_offset_s"] = 0.065
+    rows["gnss_clock_offset_std_s"] = np.where(k < 25, 0.15, 0.004)
+    rows["flags"] = int(TrackedFlag.GNSS_OK)
+    return rows
+
+
+def test_a_crawlers_receiver_clock_with_its_std_converged_state_and_since_when(
+    client: ApiClient, store: Store
+) -> None:
+    """The tracked rows' receiver clock is shown as any calibration: its value and std in
+    seconds, the limit from the crawler's config (10 ms by default, 2 ms set), converged
+    since the row its std fell below it; a restart restores it though the gyro is unmeasured."""
+    assert client.put(f"{V}/c1", json={"kind": "tracked"}).status_code == 201
+    store.write_estimates(EstimateBatch.of([("c1", _crawler_learning())], TRACKED_SPEC))
+    r = client.get(f"{V}/c1/calibration")
+    assert r.status_code == 200, r.text
+    [part] = r.json()["estimators"]
+    assert part["estimator"] == "tracked" and part["stamp_ns"] == T0 + 49 * STEP_NS
+    assert part["uncalibrated"] is None  # the tracked spec has no uncalibrated flag
+    cal = _by_key(part)
+    clock = cal["gnss_clock_offset"]
+    assert clock["unit"] == "s" and clock["field"] == "gnss_clock_offset_s"
+    assert clock["value"] == pytest.approx(0.065) and clock["std"] == pytest.approx(0.004)
+    assert clock["limit"] == pytest.approx(0.010) and clock["enabled"]
+    assert clock["converged"] and clock["since_ns"] == T0 + 25 * STEP_NS
+    assert cal["gyro_arw"]["value"] is None and not cal["gyro_arw"]["converged"]
+    tight = {"kind": "tracked", "calibration": {"clock_offset_converged_ms": 2.0}}
+    assert client.put(f"{V}/c1", json=tight).status_code == 200
+    clock = _by_key(client.get(f"{V}/c1/calibration").json()["estimators"][0])["gnss_clock_offset"]
+    assert clock["limit"] == pytest.approx(0.002) and not clock["converged"]
+    assert stored_calibrations(store)[("c1", "tracked")] == pytest.approx(
+        {"gnss_clock_offset_s": 0.065, "gnss_clock_offset_std_s": 0.004}
+    )
 
 
 def test_reset_goes_to_the_runtime_or_is_refused_saying_why(
@@ -154,6 +200,15 @@ def test_the_spec_lists_the_calibrations_for_clients(client: ApiClient) -> None:
     mdsf = next(s for s in client.get("/api/v1/estimators").json()["data"] if s["name"] == "mdsf")
     assert mdsf["uncalibrated_flag"] == "UNCALIBRATED"
     assert [c["key"] for c in mdsf["calibrations"]] == [c.key for c in MDSF_SPEC.calibrations]
+    tracked = next(
+        s for s in client.get("/api/v1/estimators").json()["data"] if s["name"] == "tracked"
+    )
+    clock = next(c for c in tracked["calibrations"] if c["key"] == "gnss_clock_offset")
+    assert (
+        clock["field"] == "gnss_clock_offset_s" and clock["std_field"] == "gnss_clock_offset_std_s"
+    )
+    assert clock["limit_config"] == "calibration.clock_offset_converged_ms"
+    assert clock["limit_scale"] == pytest.approx(1e-3) and tracked["uncalibrated_flag"] is None
     doc = client.get("/openapi.json").json()["paths"]
     assert (
         "reset"

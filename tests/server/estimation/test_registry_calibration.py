@@ -1,5 +1,6 @@
 """The registry keeps, restores and resets an estimator's online calibration (real MDSF on a
-simulated drive whose sensors need it: radius 2 % off, IMU pitched, GNSS clock early)."""
+simulated drive whose sensors need it: radius 2 % off, IMU pitched, GNSS clock early; the
+tracked estimator's receiver clock, given back alone where the gyro is not measured yet)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from estimator.config import VehicleGeometry, WheeledRearDriveConfig
+from estimator.config import OdometerConfig, TrackedConfig, VehicleGeometry, WheeledRearDriveConfig
 from estimator.mdsf import MdsfFleet
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.sim import simulate
+from estimator.tracked import TrackedEstimatorConfig, TrackedFleet, TrackedState
 from server.estimation.registry import RESET_CALIBRATION, Calibrating, EstimatorRegistry
 from tests.support import replay_drive
 
@@ -137,3 +139,36 @@ def test_reset_goes_back_to_the_priors_and_is_counted(learnt) -> None:
     registry.on_error = lambda vid, name, op, _exc: failures.append((vid, name, op))
     assert not registry.command("nobody", "mdsf", RESET_CALIBRATION, True)
     assert failures == [("nobody", "mdsf", "command")]
+
+
+def test_a_crawlers_clock_is_restored_without_a_gyro_measurement_kept_and_reset() -> None:
+    """A crawler that has not stood yet has a learnt receiver clock and no gyro measurement
+    (NaN): a restart restores the clock alone (the state's prior mean and 1-sigma), a new
+    config keeps it, and a reset returns it to the prior; no error is told."""
+    c = TrackedState.GNSS_CLOCK
+    stored = {
+        "gyro_arw_deg_rt_h": math.nan,
+        "gyro_arw_std_deg_rt_h": math.nan,
+        "gnss_clock_offset_s": 0.0725,
+        "gnss_clock_offset_std_s": 0.003,
+    }
+    failures: list[tuple[str, str, str]] = []
+    registry = EstimatorRegistry(
+        calibrations={("c", "tracked"): stored},
+        on_error=lambda vid, name, op, _exc: failures.append((vid, name, op)),
+    )
+    registry.add_vehicle("c", TrackedConfig())
+    est = registry.estimator("tracked")
+    assert isinstance(est, TrackedFleet)
+    x, P = est.filter_state("c")
+    assert x[c] == 0.0725 and P[c, c] == pytest.approx(0.003**2, rel=1e-12)
+    got = est.calibration_fields("c")
+    assert math.isnan(got["gyro_arw_deg_rt_h"]) and got["gnss_clock_offset_s"] == 0.0725
+    registry.add_vehicle("c", TrackedConfig(odometer=OdometerConfig(distance_per_edge_m=0.011)))
+    x, P = est.filter_state("c")
+    assert x[c] == 0.0725 and P[c, c] == pytest.approx(0.003**2, rel=1e-12)
+    assert registry.command("c", "tracked", RESET_CALIBRATION, True)
+    x, P = est.filter_state("c")
+    prior_s = TrackedEstimatorConfig().gnss_clock_offset_std_s
+    assert x[c] == 0.0 and P[c, c] == pytest.approx(prior_s**2, rel=1e-12)
+    assert failures == []

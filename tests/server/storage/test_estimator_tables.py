@@ -21,7 +21,7 @@ from server.storage.migrations import (
     FRICTION_FIELDS_V19,
     MDSF_FIELDS_V15,
     REFERENCE_SPEED_FIELDS_V10,
-    TRACKED_FIELDS_V18,
+    TRACKED_FIELDS_V20,
     estimator_table_steps,
 )
 from server.storage.postgres import PostgresStore
@@ -56,7 +56,7 @@ def test_frozen_field_lists_match_the_specs() -> None:
     assert spec_fields(MDSF_SPEC) == MDSF_FIELDS_V15
     assert spec_fields(REF) == REFERENCE_SPEED_FIELDS_V10
     assert spec_fields(FRICTION_SPEC) == FRICTION_FIELDS_V19
-    assert spec_fields(TRACKED_SPEC) == TRACKED_FIELDS_V18
+    assert spec_fields(TRACKED_SPEC) == TRACKED_FIELDS_V20
 
 
 def test_every_catalog_spec_has_its_tables(store: Store) -> None:

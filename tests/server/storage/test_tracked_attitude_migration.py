@@ -21,6 +21,7 @@ from tests.server.storage.appended_fields import (
     spec_before,
 )
 from tests.server.storage.conftest import Backend
+from tests.server.storage.test_tracked_clock_migration import spec_before_clock
 
 _ADDED = appended_names(TRACKED_FIELDS_V17, TRACKED_FIELDS_V18)
 _VERSION = next(
@@ -33,7 +34,7 @@ def spec_before_attitude() -> EstimatorSpec:
     chart or alert reading the pitch or roll."""
     assert TRACKED_SPEC.position is not None
     return spec_before(
-        TRACKED_SPEC,
+        spec_before_clock(),
         TRACKED_FIELDS_V17,
         _ADDED,
         position=dataclasses.replace(TRACKED_SPEC.position, pitch_field=None, roll_field=None),
@@ -44,7 +45,8 @@ def spec_before_attitude() -> EstimatorSpec:
 
 def test_the_migration_appends_the_specs_attitude_fields() -> None:
     assert _ADDED == ("pitch_rad", "pitch_std_rad", "roll_rad", "roll_std_rad")
-    assert TRACKED_SPEC.field_names[-len(_ADDED) :] == _ADDED
+    assert tuple(f for f, _ in TRACKED_FIELDS_V18[-len(_ADDED) :]) == _ADDED
+    assert spec_before_clock().field_names[-len(_ADDED) :] == _ADDED
 
 
 def test_rows_stored_before_read_back_without_an_attitude(
