@@ -14,8 +14,7 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   the sway drops out). States ``[Ṽ, b, δ_g]``: the low-passed speed carried by the
   low-passed acceleration ``ã`` less a bias ``b`` (``Ṽ' = Ṽ + dt·(ã − b)``), observed as
   ``ỹ = Ṽ − δ_g·(ã + L̃')``. Observable whenever ``ã`` changes; what it makes of a fix's
-  speed and of the RTK distance (weighed by the share of the prior's variance the data
-  explained, :meth:`CalibrationBank.gnss_offset_s`) is :mod:`estimator.mdsf.clock_shift`'s.
+  speed and, once converged, of the RTK distance is :mod:`estimator.mdsf.clock_shift`'s.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
   drive) the measured rim speed is ``r·W = V/s − δ_w·a_w`` with ``s`` the true over the
@@ -206,6 +205,7 @@ class CalibrationBank:
     def __init__(self, config: MdsfConfig) -> None:
         self.dt_s = config.dt_s
         self.lowpass_tau_s = config.gnss_clock_lowpass_tau_s
+        self.apply_std_s = config.gnss_clock_apply_std_s
         self.gnss_gap_s = config.gnss_timeout_s
         self.lowpass_noise = _lowpass_noise_share(config.dt_s / (self.lowpass_tau_s + config.dt_s))
         self.speed_walk = config.speed_walk_mps_per_sqrt_s
@@ -223,7 +223,6 @@ class CalibrationBank:
         self.g_nis = np.ones(cap)  # running mean of the normalised innovation squared
         self.g_fast = np.zeros(cap)  # the regressor's error variance [m²/s⁴]
         self.g_lever = np.zeros(cap)  # the last tick's lever-arm velocity L [m/s]
-        self.g_prior_var = np.ones(cap)  # the offset's prior variance σ₀² [s²]
         self.wx = np.zeros((cap, 3))
         self.wp = np.zeros((cap, 3, 3))
         self.pitch = np.zeros(cap)
@@ -251,7 +250,6 @@ class CalibrationBank:
             ("g_nis", (), 1.0),
             ("g_fast", (), 0.0),
             ("g_lever", (), 0.0),
-            ("g_prior_var", (), 1.0),
             ("wx", (3,), 0.0),
             ("wp", (3, 3), 0.0),
             ("pitch", (), 0.0),
@@ -286,7 +284,6 @@ class CalibrationBank:
         rad_var = (c.radius_prior_pct * 1e-2) ** 2
         self.gx[slot] = 0.0
         self.gp[slot] = np.diag([1.0, self.bias_prior**2, off_var])
-        self.g_prior_var[slot] = off_var
         self.g_started[slot] = False
         self.g_gap[slot] = 0.0
         self.g_nis[slot] = 1.0
@@ -364,20 +361,18 @@ class CalibrationBank:
 
     # -- per round ---------------------------------------------------------------------------
     def _gnss_offset_weight(self, slots: IntArray) -> FloatArray:
-        """Weight of the GNSS clock estimate ``δ`` in the fixes (k,),
-        ``(1 − σ²/σ₀²)·δ²/(δ² + σ²)`` (``σ`` its std, ``σ₀`` the learner's own prior,
-        ``clock_offset_prior_ms``). The first factor is the share of the prior's variance the
-        data have explained: an estimate that knows nothing moves no fix, and one that learns
-        comes in smoothly from the first fixes on, not at a threshold of its std (the Kalman
-        filter's ``δ`` is the data's evidence shrunk once by that same factor). The second
-        shrinks an estimate no larger than its std towards 0 (a receiver on time reads a few
-        ms of noise, which applied would only move its fixes by a swaying mast's speed)."""
-        var = self.gp[slots, 2, 2]
-        w = np.clip(1.0 - var / self.g_prior_var[slots], 0.0, 1.0)
+        """Weight of the GNSS clock estimate ``δ`` in the fixes (k,), ``r(σ)·δ²/(δ² + σ²)``:
+        ``r`` rises from 0 at ``σ = gnss_clock_apply_std_s`` to 1 at half of it (an estimate
+        still learning is not applied, and one that converges is blended in, not switched),
+        the second factor shrinks an estimate no larger than its std towards 0 (a receiver
+        on time reads a few ms of noise, which applied would only move its fixes)."""
         off = self.gx[slots, GnssClock.OFFSET]
+        var = self.gp[slots, 2, 2]
+        bound = self.apply_std_s
+        ramp = np.clip((bound - np.sqrt(var)) / (0.5 * bound), 0.0, 1.0)
         with np.errstate(invalid="ignore", divide="ignore"):
             shrink = np.where(var > 0.0, off * off / (off * off + var), 1.0)
-        return np.where(self.on[slots, 0], w * shrink, 0.0)
+        return np.where(self.on[slots, 0], ramp * shrink, 0.0)
 
     def gnss_offset_s(self, slots: IntArray) -> FloatArray:
         """GNSS clock offset applied to the fixes per vehicle (k,): the estimate times its
@@ -393,6 +388,10 @@ class CalibrationBank:
         off = self.gx[slots, GnssClock.OFFSET]
         err = np.hypot(w * np.sqrt(self.gp[slots, 2, 2]), (1.0 - w) * off)
         return np.where(w > 0.0, err, 0.0)
+
+    def gnss_offset_converged(self, slots: IntArray) -> BoolArray:
+        """The GNSS clock offset is on and its std below the converged threshold (k,)."""
+        return self.on[slots, 0] & (self.gp[slots, 2, 2] <= self.limit[slots, 0] ** 2)
 
     def wheel_correction(self, slots: IntArray) -> tuple[FloatArray, FloatArray]:
         """Radius ratios ``s`` (k, 2) and the wheel clock offset (k,) in force (1, 0 where off)."""

@@ -526,22 +526,23 @@ class MdsfFleet:
 
     def _record_inputs(self, slots: IntArray, tin: TickInputs) -> FixRates:
         """The state a round's inputs move before the filter's step: the tick's body rates
-        become the GNSS clock shift's newest, the running powers of its sway part step and
-        the RTK distance's clock share grows by ``δ_g·ΔV1`` with the applied offset
-        (:meth:`CalibrationBank.gnss_offset_s`; restarted with its chain). Returns the rates at
-        the instants the round's fixes describe (:meth:`GnssClockShift.fix_rates`)."""
+        become the GNSS clock shift's newest, the running powers of its sway part step and,
+        once the offset has converged, the RTK distance's clock share grows by
+        ``δ_g·ΔV1`` (restarted with its chain). Returns the rates at the instants the
+        round's fixes describe (:meth:`GnssClockShift.fix_rates`)."""
         bank = self.calibration_bank
         shift = bank.shift
         rates = tin.z[:, (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z)]
         shift.record_rates(slots, tin.stamp_ns, rates, tin.gyro_var)
         fix = shift.fix_rates(slots, bank.gnss_offset_s(slots), tin.fix_age_s, self.front)
         shift.record_sway(slots, fix)
-        # the distance's error δ·V as its growth since the chain began, Σδ·ΔV1, with the
-        # offset the fixes' speeds are moved by (the same weight): the chain's origin is
-        # arbitrary and a step of the estimate must not make the distance jump; ΔV1 from the
-        # filter's GNSS-anchored speed (∫a1·dt carries the accelerometer's bias)
+        # the distance's error δ·V as its growth since the chain began, Σδ·ΔV1, once δ has
+        # converged: the chain's origin is arbitrary, an estimate still moving would leave its
+        # error in the distance, and a step of it must not make the distance jump; ΔV1 from
+        # the filter's GNSS-anchored speed (∫a1·dt carries the accelerometer's bias)
         restart = tin.dist_ok & tin.dist_restart
-        moved = fix.offset_s * shift.imu_speed_step_mps(slots, self.front)
+        rate = np.where(bank.gnss_offset_converged(slots), fix.offset_s, 0.0)
+        moved = rate * shift.imu_speed_step_mps(slots, self.front)
         self._dist_shift_m[slots] = np.where(restart, 0.0, self._dist_shift_m[slots] + moved)
         return fix
 
@@ -552,7 +553,7 @@ class MdsfFleet:
         its clock offset makes of the antenna's speed (the filter's own speed rate and the
         body rates ``fix`` at the instant the fix describes,
         :class:`~estimator.mdsf.clock_shift.GnssClockShift`; the offset's std and the rates'
-        guess into its variance) and, by the same applied offset, the RTK distance by its
+        guess into its variance) and, once the offset has converged, the RTK distance by its
         clock share (:meth:`_record_inputs`) and the mast's turn over the offset
         (``docs/perf/estimator.md``)."""
         bank = self.calibration_bank
@@ -564,8 +565,8 @@ class MdsfFleet:
         z[:, MdsfObs.A1] -= tilt
         shift, shift_var = bank.shift.shift_mps(slots, fix, bank.gnss_offset_std_s(slots))
         z[:, MdsfObs.VG] += shift
-        applied = fix.offset_s != 0.0
-        mast = bank.shift.mast_shift_m(slots, fix, applied, self.front)
+        converged = bank.gnss_offset_converged(slots)
+        mast = bank.shift.mast_shift_m(slots, fix, converged, self.front)
         dist_m = tin.dist_m + self._dist_shift_m[slots] + mast
         return dataclasses.replace(
             tin,

@@ -378,6 +378,11 @@ class MdsfConfig:
         observe_gnss``). ``Vg = V − δ_g·a`` is linear, so it holds for the low-passed signals;
         a cab swaying at 0.3-3 Hz on a tall mast moves the antenna by metres per second
         squared the slow driving accelerations do not, and the low-passes take that out [s].
+    gnss_clock_apply_std_s : float
+        Product mode: the GNSS clock offset moves the fixes only once its std is below this
+        bound, by a weight that rises from 0 there to full at half of it, times the shrinkage
+        ``δ²/(δ² + σ²)`` (``calibration.CalibrationBank.gnss_offset_s``): an estimate still
+        learning, or one no larger than its std, moves them little [s].
     """
 
     mode: MdsfMode = MdsfMode.PRODUCT
@@ -434,6 +439,7 @@ class MdsfConfig:
     valid_slip_std_max_pct: float = 4.0
     course_tau_s: float = 1.0
     gnss_clock_lowpass_tau_s: float = 0.2
+    gnss_clock_apply_std_s: float = 0.03
 
     def __post_init__(self) -> None:
         if not isinstance(self.mode, MdsfMode):

@@ -453,33 +453,6 @@ def test_an_on_time_gnss_clock_moves_no_fix() -> None:
     assert np.sqrt(np.mean(applied**2)) < 0.005
 
 
-def test_a_learnt_gnss_clock_moves_the_fixes_while_it_is_still_learning() -> None:
-    """A receiver 80 ms late on a steady cab, learnt from the prior (100 ms): the fixes are
-    moved by the estimate weighed by the share of the prior's variance the data explained
-    (``1 − σ²/σ₀²``, times the shrinkage ``δ²/(δ² + σ²)``), from the first fixes on, not
-    only once its std has fallen under a threshold (30 ms, where the old rule began)."""
-    seen: list[tuple[float, float]] = []
-
-    def watch(fleet: MdsfFleet) -> None:
-        bank = fleet.calibration_bank
-        inner = bank.gnss_offset_s
-
-        def recorded(slots: np.ndarray) -> np.ndarray:
-            out = inner(slots)
-            seen.append((float(out[0]), float(np.sqrt(bank.gp[slots[0], 2, 2]))))
-            return out
-
-        bank.gnss_offset_s = recorded  # type: ignore[method-assign]
-
-    _drive(False, watch=watch, clock_offset_ms=(80.0, 0.0, 0.0))
-    applied, std = np.array(seen).T
-    learning = std > 0.030
-    assert learning.sum() >= 20  # the estimate's std is above 30 ms for a while
-    assert np.max(applied[learning]) > 0.030  # and moves the fixes then, towards +80 ms
-    assert np.all(np.abs(applied) <= 0.12)  # never by more than the prior allows
-    assert applied[0] == 0.0  # an estimate that knows nothing moves nothing
-
-
 def _arrays(*owners: object) -> dict[str, np.ndarray]:
     """Copies of every array attribute of ``owners`` (their slot state)."""
     return {
