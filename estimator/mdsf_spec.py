@@ -19,6 +19,7 @@ from estimator.spec import (
     SpeedChannel,
     WheelPosition,
     flags_from,
+    gnss_clock_channel,
 )
 from estimator.types import ESTIMATE_DTYPE, ESTIMATE_FIELDS, EstimateFlag
 
@@ -105,15 +106,7 @@ _PCT = 1e-2
 _DEG = math.pi / 180.0
 
 _CALIBRATIONS = (
-    CalibrationChannel(
-        "gnss_clock_offset",
-        "GNSS clock offset",
-        "gnss_clock_offset_s",
-        "gnss_clock_offset_std_s",
-        "calibration.clock_offset_converged_ms",
-        _MS,
-        enabled_config="calibration.clock_offsets",
-    ),
+    gnss_clock_channel(enabled_config="calibration.clock_offsets"),
     CalibrationChannel(
         "wheel_clock_offset",
         "wheel clock offset",

@@ -60,6 +60,7 @@ __all__ = [
     "WheelPosition",
     "WheelValueChannel",
     "flags_from",
+    "gnss_clock_channel",
 ]
 
 #: numpy kinds a field may have: float64, int64, int32.
@@ -284,6 +285,21 @@ class CalibrationChannel:
             "relative": self.relative,
             "enabled_config": self.enabled_config,
         }
+
+
+def gnss_clock_channel(enabled_config: str | None = None) -> CalibrationChannel:
+    """The GNSS receiver's clock offset against the IMU as a calibration (``gnss_clock_offset_s``
+    and its 1-sigma, seconds), converged below the config's ``clock_offset_converged_ms``:
+    the same quantity wherever an estimator learns it."""
+    return CalibrationChannel(
+        "gnss_clock_offset",
+        "GNSS clock offset",
+        "gnss_clock_offset_s",
+        "gnss_clock_offset_std_s",
+        "calibration.clock_offset_converged_ms",
+        1e-3,
+        enabled_config=enabled_config,
+    )
 
 
 @dataclass(frozen=True, slots=True)

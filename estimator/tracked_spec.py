@@ -20,6 +20,7 @@ from estimator.spec import (
     ValueChannel,
     WheelPosition,
     flags_from,
+    gnss_clock_channel,
 )
 
 __all__ = ["MOTION_STATES", "SIDE_SLOPE_ALERT_RAD", "TRACKED_SPEC", "TrackedFlag"]
@@ -271,14 +272,7 @@ TRACKED_SPEC = EstimatorSpec(
             relative=True,
             enabled_config="calibration.gyro_noise",
         ),
-        CalibrationChannel(
-            "gnss_clock_offset",
-            "GNSS clock offset",
-            "gnss_clock_offset_s",
-            "gnss_clock_offset_std_s",
-            "calibration.clock_offset_converged_ms",
-            1e-3,
-        ),
+        gnss_clock_channel(),
     ),
     alerts=(
         # a track's slip out of its band (in place of the wheel slip threshold): a braked

@@ -17,7 +17,7 @@ import pytest
 
 from estimator.spec import EstimatorSpec
 from server.storage import Store
-from server.storage.migrations import latest_version
+from server.storage.migrations import MIGRATIONS, latest_version
 from server.storage.postgres import PostgresStore
 from server.storage.sqlite import SqliteStore
 from tests.server.storage.conftest import DT_NS, T0_NS, Backend, batch_of, make_spec_rows
@@ -26,6 +26,11 @@ VEHICLE = "f1"
 
 #: An estimator table's fields as a migration lists them: ``(name, kind)`` in column order.
 Fields = tuple[tuple[str, str], ...]
+
+
+def migration_version(description_start: str) -> int:
+    """The version of the migration whose description starts with ``description_start``."""
+    return next(m.version for m in MIGRATIONS if m.description.startswith(description_start))
 
 
 def appended_names(old_fields: Fields, new_fields: Fields) -> tuple[str, ...]:

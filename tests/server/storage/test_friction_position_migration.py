@@ -11,22 +11,20 @@ from estimator.spec import EstimatorSpec
 from server.storage.migrations import (
     FRICTION_FIELDS_V12,
     FRICTION_FIELDS_V16,
-    MIGRATIONS,
 )
 from tests.server.storage.appended_fields import (
     appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
     migrated,
+    migration_version,
     spec_before,
 )
 from tests.server.storage.conftest import Backend
 from tests.server.storage.test_friction_speed_std_migration import spec_before_speed_std
 
 _ADDED = appended_names(FRICTION_FIELDS_V12, FRICTION_FIELDS_V16)
-_VERSION = next(
-    m.version for m in MIGRATIONS if m.description.endswith("friction estimator's position")
-)
+_VERSION = migration_version("the friction estimator's position")
 
 
 def _spec_before() -> EstimatorSpec:

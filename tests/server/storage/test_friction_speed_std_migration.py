@@ -11,21 +11,20 @@ import pytest
 
 from estimator.friction_spec import FRICTION_SPEC
 from estimator.spec import EstimatorSpec
-from server.storage.migrations import FRICTION_FIELDS_V16, FRICTION_FIELDS_V19, MIGRATIONS
+from server.storage.migrations import FRICTION_FIELDS_V16, FRICTION_FIELDS_V19
 from tests.server.storage.appended_fields import (
     VEHICLE,
     appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
     migrated,
+    migration_version,
     spec_before,
 )
 from tests.server.storage.conftest import Backend
 
 _ADDED = appended_names(FRICTION_FIELDS_V16, FRICTION_FIELDS_V19)
-_VERSION = next(
-    m.version for m in MIGRATIONS if m.description.startswith("friction rows carry the speed's")
-)
+_VERSION = migration_version("friction rows carry the speed's")
 
 
 def spec_before_speed_std() -> EstimatorSpec:

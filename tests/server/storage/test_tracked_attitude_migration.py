@@ -11,22 +11,21 @@ import pytest
 
 from estimator.spec import EstimatorSpec
 from estimator.tracked_spec import TRACKED_SPEC
-from server.storage.migrations import MIGRATIONS, TRACKED_FIELDS_V17, TRACKED_FIELDS_V18
+from server.storage.migrations import TRACKED_FIELDS_V17, TRACKED_FIELDS_V18
 from tests.server.storage.appended_fields import (
     VEHICLE,
     appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
     migrated,
+    migration_version,
     spec_before,
 )
 from tests.server.storage.conftest import Backend
 from tests.server.storage.test_tracked_clock_migration import spec_before_clock
 
 _ADDED = appended_names(TRACKED_FIELDS_V17, TRACKED_FIELDS_V18)
-_VERSION = next(
-    m.version for m in MIGRATIONS if m.description.startswith("tracked rows carry the hull's")
-)
+_VERSION = migration_version("tracked rows carry the hull's")
 
 
 def spec_before_attitude() -> EstimatorSpec:

@@ -11,7 +11,6 @@ from estimator.spec import EstimatorSpec
 from estimator.tracked_spec import TRACKED_SPEC
 from server.estimation.calibration import stored_calibrations
 from server.storage.migrations import (
-    MIGRATIONS,
     TRACKED_FIELDS_V13,
     TRACKED_FIELDS_V17,
 )
@@ -21,15 +20,14 @@ from tests.server.storage.appended_fields import (
     assert_new_rows_taken,
     assert_old_rows_read_back,
     migrated,
+    migration_version,
     spec_before,
 )
 from tests.server.storage.conftest import Backend
 from tests.server.storage.test_tracked_attitude_migration import spec_before_attitude
 
 _ADDED = appended_names(TRACKED_FIELDS_V13, TRACKED_FIELDS_V17)
-_VERSION = next(
-    m.version for m in MIGRATIONS if m.description.startswith("tracked rows carry the gyro's noise")
-)
+_VERSION = migration_version("tracked rows carry the gyro's noise")
 
 
 def _spec_before() -> EstimatorSpec:

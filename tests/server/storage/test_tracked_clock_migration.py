@@ -11,21 +11,20 @@ import pytest
 from estimator.spec import EstimatorSpec
 from estimator.tracked_spec import TRACKED_SPEC
 from server.estimation.calibration import stored_calibrations
-from server.storage.migrations import MIGRATIONS, TRACKED_FIELDS_V18, TRACKED_FIELDS_V20
+from server.storage.migrations import TRACKED_FIELDS_V18, TRACKED_FIELDS_V20
 from tests.server.storage.appended_fields import (
     VEHICLE,
     appended_names,
     assert_new_rows_taken,
     assert_old_rows_read_back,
     migrated,
+    migration_version,
     spec_before,
 )
 from tests.server.storage.conftest import Backend, batch_of, make_spec_rows
 
 _ADDED = appended_names(TRACKED_FIELDS_V18, TRACKED_FIELDS_V20)
-_VERSION = next(
-    m.version for m in MIGRATIONS if m.description.startswith("tracked rows carry the GNSS")
-)
+_VERSION = migration_version("tracked rows carry the GNSS")
 
 
 def spec_before_clock() -> EstimatorSpec:
