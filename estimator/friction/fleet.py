@@ -135,8 +135,7 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
 
 def _front_columns(out: np.ndarray, at: IntArray, fe: FrontEndTicks, util: FloatArray) -> None:
     """The rows ``out[at]``'s front-end columns (speed and its 1-σ, per-wheel load, slip, slip
-    angle) and
-    the grip used ``util`` ``(B, 4)``, for the whole round at once."""
+    angle) and the grip used ``util`` ``(B, 4)``, for the whole round at once."""
     out["vx_mps"][at] = fe.vx_mps
     out["vx_std_mps"][at] = fe.vx_std_mps
     for j, key in enumerate(WHEEL_KEYS):
