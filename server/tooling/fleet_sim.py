@@ -670,26 +670,9 @@ def replay(
                 first_stamp = rec.stamp_ns
                 to_now = clock_ns() - first_stamp if shift_to_now else 0
                 shift = to_now if shift_ns is None else shift_ns
-            due = int((rec.stamp_ns - first_stamp) / rate)
-            while (ahead := due - (time.perf_counter_ns() - wall0)) > 0:
-                if stop is not None and stop.wait(ahead / 1e9):
-                    break
-                if stop is None:
-                    time.sleep(ahead / 1e9)
-            payload = rec.payload
+            _wait_due(int((rec.stamp_ns - first_stamp) / rate), wall0, stop)
             key = rec.key if vehicle_as is None else renamed_key(rec.key, vehicle_as)
-            stream: Stream | None = None
-            try:
-                _, stream = parse_key(key, _prefix_of(key))
-            except (ValueError, IndexError):
-                stream = None
-            if shift != 0 and stream is not None:
-                try:
-                    pkt = decode(key, payload, prefix=_prefix_of(key), max_payload_bytes=1 << 30)
-                    again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
-                    payload = again.encode(pkt.seq, shift, pkt.boot)  # as recorded
-                except DecodeError:
-                    pass  # replay what was recorded: the server will count the refusal
+            stream, payload = _replayed(key, rec.payload, shift)
             pub = pubs.get(key)
             if pub is None:
                 pub = pubs[key] = _publisher(session, key)
@@ -704,6 +687,33 @@ def replay(
             pub.undeclare()
         stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
     return stats
+
+
+def _wait_due(due_ns: int, wall0_ns: int, stop: threading.Event | None) -> None:
+    """Sleep until ``due_ns`` after ``wall0_ns`` (``perf_counter_ns``), or until ``stop``."""
+    while (ahead := due_ns - (time.perf_counter_ns() - wall0_ns)) > 0:
+        if stop is not None and stop.wait(ahead / 1e9):
+            break
+        if stop is None:
+            time.sleep(ahead / 1e9)
+
+
+def _replayed(key: str, payload: bytes, shift_ns: int) -> tuple[Stream | None, bytes]:
+    """A recorded record's stream (None: not a sensor key) and payload, re-encoded with its
+    stamps moved by ``shift_ns`` when it is a sensor packet that decodes."""
+    stream: Stream | None = None
+    try:
+        _, stream = parse_key(key, _prefix_of(key))
+    except (ValueError, IndexError):
+        stream = None
+    if shift_ns != 0 and stream is not None:
+        try:
+            pkt = decode(key, payload, prefix=_prefix_of(key), max_payload_bytes=1 << 30)
+            again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
+            payload = again.encode(pkt.seq, shift_ns, pkt.boot)  # as recorded
+        except DecodeError:
+            pass  # replay what was recorded: the server will count the refusal
+    return stream, payload
 
 
 def record(
