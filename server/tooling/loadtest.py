@@ -1104,9 +1104,17 @@ def _send_lateness(pubs: Sequence[_Publisher]) -> dict[str, int | None]:
 
 def format_report(r: Mapping[str, Any]) -> str:
     """A human-readable summary of a :func:`run_loadtest` result."""
-    lat = r["latency"]
+    lines = _report_head(r)
+    lines += _report_latency(r["latency"])
+    lines += _report_server(r)
+    lines += _report_machine(r)
+    return "\n".join(lines)
+
+
+def _report_head(r: Mapping[str, Any]) -> list[str]:
+    """The report's first lines: the fleet and run, packets, send rate and estimates."""
     late = r.get("publisher_late_ms") or {}
-    lines = [
+    return [
         f"vehicles {r['spec']['vehicles']} (seen {r['vehicles_seen']}; "
         f"{mix_label(r['spec']['kind_mix'])}), scenario "
         f"{r['spec']['scenario'] if not r['spec']['replay'] else 'replay'}, rate x"
@@ -1127,6 +1135,11 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"{r['rows_dropped_backlog_full']}  without wheel data "
         f"{r.get('ticks_without_wheel_data', 0)}",
     ]
+
+
+def _report_latency(lat: Mapping[str, Any]) -> list[str]:
+    """The report's sensor-to-live and sensor-to-stored latency lines (those measured)."""
+    lines: list[str] = []
     for stage in ("live", "stored"):
         if stage in lat:
             s = lat[stage]
@@ -1134,6 +1147,12 @@ def format_report(r: Mapping[str, Any]) -> str:
                 f"latency  sensor→{stage:<6} p50 {s['p50_ms']:.0f}  p95 {s['p95_ms']:.0f}  "
                 f"p99 {s['p99_ms']:.0f}  max {s['max_ms']:.0f} ms  ({int(s['rows'])} rows)"
             )
+    return lines
+
+
+def _report_server(r: Mapping[str, Any]) -> list[str]:
+    """The report's server CPU and memory, busiest threads and pipeline phases lines."""
+    lines: list[str] = []
     if r.get("server_cpu_cores") is not None:
         lines.append(
             f"server   CPU {r['server_cpu_cores']:.2f} cores of {r['machine_cpus']}  RSS "
@@ -1157,6 +1176,12 @@ def format_report(r: Mapping[str, Any]) -> str:
             + "  ".join(f"{phase} {cores:.2f}" for phase, cores in phases.items())
             + " (cores, every pipeline thread)"
         )
+    return lines
+
+
+def _report_machine(r: Mapping[str, Any]) -> list[str]:
+    """The report's machine speed probe and load average lines."""
+    lines: list[str] = []
     if r.get("machine_probe_s"):
         before, after = r["machine_probe_s"]
         lines.append(
@@ -1169,7 +1194,7 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"machine  load average (1 min) {start:.2f} as the window starts, {end:.2f} as it "
             f"ends, on {r['machine_cpus']} CPUs"
         )
-    return "\n".join(lines)
+    return lines
 
 
 def mix_label(kind_mix: Sequence[Sequence[Any]]) -> str:
