@@ -1293,6 +1293,13 @@ def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``loadtest`` flags (shared by ``slipfleet loadtest`` and ``python -m``)."""
+    _add_fleet_arguments(p)
+    _add_target_arguments(p)
+    _add_tuning_arguments(p)
+
+
+def _add_fleet_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of the simulated fleet and its publishers: size, kinds, pace, replay."""
     p.add_argument(
         "--vehicles", type=count_arg, required=True, help="simulated vehicles to publish"
     )
@@ -1328,6 +1335,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup", type=float, default=5.0, help="seconds before the window")
     p.add_argument("--replay", nargs="+", default=None, metavar="PATH", help="recordings")
     add_estimator_mix_argument(p, "default: every vehicle its kind's defaults; not with --replay")
+
+
+def _add_target_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of where the result goes and which server is loaded: a running one or those
+    started, with their store and shards."""
     p.add_argument("--json", type=Path, default=None, help="also write the result as JSON")
     p.add_argument("--connect", default=None, help="router endpoint of a running server")
     p.add_argument("--api", default=None, help="REST base URL of that server (with --connect)")
@@ -1341,6 +1353,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="start a router and this many server processes, each owning a share of the "
         "fleet (needs --storage-url: they share one PostgreSQL database)",
     )
+
+
+def _add_tuning_arguments(p: argparse.ArgumentParser) -> None:
+    """The started server's ingest and storage timing flags (default: its settings)."""
     p.add_argument(
         "--lateness-ms", type=int, default=None, help="started server: ingest.lateness_ms"
     )
