@@ -38,6 +38,7 @@ from server.estimation.registry import (
 )
 from server.ingest.counters import PLAIN_COUNTERS
 from server.ingest.pipeline import PHASES, EstimateSink, Pipeline
+from server.ingest.subscriber import RawPacket
 from server.ingest.workers import WorkerPool
 from server.ingest.zenoh_session import open_session
 from server.live.hub import LiveHub
@@ -108,44 +109,14 @@ class Runtime:
         self.session = open_session(s.zenoh)
         registry_factory = self._registry_factory()
         self.registry = registry_factory()
-        sinks: list[EstimateSink] = [self.writer, self.live_hub, self.alert_engine, self.latency]
-        raw_sink = self.writer.submit_raw_packets if s.storage.store_raw_packets else None
-        self.pipeline = (
-            WorkerPool(
-                s,
-                self.session,
-                sinks,
-                self._on_new_vehicle,
-                raw_sink=raw_sink,
-                registry_factory=registry_factory,
-                restart_registry_factory=self._registry_factory,
-            )
-            if s.ingest.workers
-            else Pipeline(
-                s,
-                self.session,
-                self.registry,
-                sinks=sinks,
-                on_new_vehicle=self._on_new_vehicle,
-                raw_sink=raw_sink,
-            )
+        self.pipeline = self._new_pipeline(
+            self.session,
+            self.registry,
+            registry_factory,
+            [self.writer, self.live_hub, self.alert_engine, self.latency],
+            self.writer.submit_raw_packets if s.storage.store_raw_packets else None,
         )
-        anchors = self._store.get_anchors()
-        for rec in self._store.list_vehicles():
-            try:
-                config = vehicle_config_from_dict(rec.config)
-            except ConfigError as exc:
-                log.error(
-                    "stored config of %s is invalid (%s); using defaults", rec.vehicle_id, exc
-                )
-                config = WheeledRearDriveConfig()
-            self._configs[rec.vehicle_id] = config
-            self.pipeline.register_vehicle(rec.vehicle_id, config)
-            # counters are totals over the vehicle's life, not per process
-            self.pipeline.restore_counters(rec.vehicle_id, self._store.get_counters(rec.vehicle_id))
-            # its stored estimates' ENU frame: east/north go on in the same frame
-            if rec.vehicle_id in anchors:
-                self.pipeline.restore_anchor(rec.vehicle_id, anchors[rec.vehicle_id])
+        self._restore_vehicles(self._store, self.pipeline)
         self.pipeline.start()
         self.alert_engine.start()
         self._stop.clear()
@@ -154,12 +125,7 @@ class Runtime:
         )
         self._flusher.start()
         if s.viewer.enabled:
-            from server.live.viewer.fleet_view import FleetViewer
-
-            self.viewer = FleetViewer(
-                self.live_hub, s.viewer, origin_offset_m=self._origin_offset_m
-            )
-            self.viewer.start()
+            self._start_viewer(self.live_hub)
         log.info(
             "runtime open: %s storage, zenoh %s, %d stored vehicles",
             self._store.dialect,
@@ -168,6 +134,64 @@ class Runtime:
             else "router on " + ",".join(s.zenoh.listen),
             len(self._configs),
         )
+
+    def _new_pipeline(
+        self,
+        session: zenoh.Session,
+        registry: EstimatorRegistry,
+        registry_factory: Callable[[], EstimatorRegistry],
+        sinks: list[EstimateSink],
+        raw_sink: Callable[[list[RawPacket]], object] | None,
+    ) -> Pipeline | WorkerPool:
+        """The ingest pipeline: a pool of worker processes when settings ask for workers,
+        else one pipeline thread on ``registry``."""
+        s = self.settings
+        if s.ingest.workers:
+            return WorkerPool(
+                s,
+                session,
+                sinks,
+                self._on_new_vehicle,
+                raw_sink=raw_sink,
+                registry_factory=registry_factory,
+                restart_registry_factory=self._registry_factory,
+            )
+        return Pipeline(
+            s,
+            session,
+            registry,
+            sinks=sinks,
+            on_new_vehicle=self._on_new_vehicle,
+            raw_sink=raw_sink,
+        )
+
+    def _restore_vehicles(self, store: Store, pipeline: Pipeline | WorkerPool) -> None:
+        """Register every stored vehicle with its config, life counters and ENU anchor."""
+        anchors = store.get_anchors()
+        for rec in store.list_vehicles():
+            try:
+                config = vehicle_config_from_dict(rec.config)
+            except ConfigError as exc:
+                log.error(
+                    "stored config of %s is invalid (%s); using defaults", rec.vehicle_id, exc
+                )
+                config = WheeledRearDriveConfig()
+            self._configs[rec.vehicle_id] = config
+            pipeline.register_vehicle(rec.vehicle_id, config)
+            # counters are totals over the vehicle's life, not per process
+            pipeline.restore_counters(rec.vehicle_id, store.get_counters(rec.vehicle_id))
+            # its stored estimates' ENU frame: east/north go on in the same frame
+            if rec.vehicle_id in anchors:
+                pipeline.restore_anchor(rec.vehicle_id, anchors[rec.vehicle_id])
+
+    def _start_viewer(self, live_hub: LiveHub) -> None:
+        """Start the 3D fleet viewer on the live hub (imported only when enabled)."""
+        from server.live.viewer.fleet_view import FleetViewer
+
+        self.viewer = FleetViewer(
+            live_hub, self.settings.viewer, origin_offset_m=self._origin_offset_m
+        )
+        self.viewer.start()
 
     def close(self) -> None:
         if self.viewer is not None:

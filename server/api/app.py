@@ -293,6 +293,16 @@ def create_app(
     app.state.limits = limits or ApiLimits()
     app.state.runtime = None
     install_error_handlers(app)
+    _include_routers(app, routers)
+    app.openapi = lambda: _openapi_with_bearer(app)  # type: ignore[method-assign]
+    _mount_docs(app)
+    _add_middleware(app, settings)
+    return app
+
+
+def _include_routers(app: FastAPI, routers: Sequence[APIRouter]) -> None:
+    """Mount each router once under ``/api/v1``, behind the viewer role unless it is public or
+    authenticates by itself."""
     included: set[int] = set()
     public = {id(r) for r in (*PUBLIC_ROUTERS, *SELF_AUTHENTICATED_ROUTERS)}
     for router in routers:
@@ -300,8 +310,11 @@ def create_app(
             included.add(id(router))
             guard = [] if id(router) in public else [Depends(require_role(Role.VIEWER))]
             app.include_router(router, prefix=API_PREFIX, dependencies=guard)
-    app.openapi = lambda: _openapi_with_bearer(app)  # type: ignore[method-assign]
-    _mount_docs(app)
+
+
+def _add_middleware(app: FastAPI, settings: Settings) -> None:
+    """Add the body size and heavy-request limits, the WebSocket bearer protocol and, when
+    origins are set, CORS (outermost)."""
     app.add_middleware(BodySizeLimit, max_bytes=app.state.limits.max_body_bytes)
     app.state.heavy_limits = HeavyLimitState(
         settings.api.heavy_per_token, settings.api.heavy_per_route, settings.api.retry_after_s
@@ -315,4 +328,3 @@ def create_app(
             allow_methods=["GET", "POST", "PUT", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
         )
-    return app

@@ -243,17 +243,38 @@ class Pipeline:
         self._on_new_vehicle = on_new_vehicle
         self._clock = clock_ns
         self._wall_clock = wall_clock_ns
+        self._init_windows(settings)
+        self._init_queues(settings)
+        self._init_vehicle_state()
+        # raw packets are stored once decoded, and only those the decoder accepted
+        self._raw_sink = raw_sink
+        self._init_zenoh(settings, session)
+        self._thread: threading.Thread | None = None
+        self._stats = dict.fromkeys(STAT_COUNTERS, 0)
+        self._stopping = threading.Event()
+        self._last_tick_s = 0.0
+        self._cpu_s = dict.fromkeys(PHASES, 0.0)  # thread CPU by phase (PHASES)
+
+    def _init_windows(self, settings: Settings) -> None:
+        """The stamp bounds, lateness and tick intervals of ``settings.ingest``, in ns."""
         self._max_future_ns = round(settings.ingest.max_future_s * 1e9)
         self._max_past_ns = round(settings.ingest.max_past_s * 1e9)
         self._clock_jump_ns = round(settings.ingest.clock_jump_s * 1e9)
         self._lateness_ns = settings.ingest.lateness_ms * 1_000_000
         self._interval_ns = settings.ingest.process_interval_ms * 1_000_000
         self._advance_step_ns = settings.ingest.advance_step_ms * 1_000_000
+        self._estimate_interval_ns = settings.ingest.estimate_interval_ms * 1_000_000
+
+    def _init_queues(self, settings: Settings) -> None:
+        """The bounded burst queue into the pipeline thread and its control queue, empty."""
         self._queue: queue.Queue[_QueueItem] = queue.Queue(maxsize=QUEUE_BURSTS)
         self._queued_bytes = ByteBudget(settings.ingest.queue_max_bytes)  # undecoded _Raw
         self._held: deque[_QueueItem] = deque()  # taken off the queue early (pipeline thread)
         # (op, vehicle_id, config | anchor | None, notify), op "add", "anchor" or "remove"
         self._control: deque[tuple[str, str, _ControlArg, bool]] = deque()
+
+    def _init_vehicle_state(self) -> None:
+        """The per-vehicle state and counters the pipeline thread keeps, empty."""
         # each vehicle's ENU frame origin, kept across re-registrations (a new config starts a
         # fresh estimator, which would otherwise anchor anew): restored ones and learnt ones
         self._frames: dict[str, Anchor] = {}
@@ -277,12 +298,12 @@ class Pipeline:
         self._tick_anchor_ns: dict[str, int] = {}
         self._tick_phase_ns: dict[str, int] = {}
         self._due: dict[str, int] = {}  # vehicle -> sensor time to advance to at the next call
-        self._estimate_interval_ns = settings.ingest.estimate_interval_ms * 1_000_000
         self._next_estimate_ns = 0
         self._unregistered_counted: set[str] = set()
         self._registered_ns: deque[int] = deque()  # self-registrations of the last minute
-        # raw packets are stored once decoded, and only those the decoder accepted
-        self._raw_sink = raw_sink
+
+    def _init_zenoh(self, settings: Settings, session: zenoh.Session | None) -> None:
+        """The Zenoh subscriber and status publisher (None each without a session)."""
         self._subscriber = (
             IngestSubscriber(session, settings.zenoh, settings.ingest, self.submit_raw, self.refuse)
             if session is not None
@@ -294,11 +315,6 @@ class Pipeline:
             if session is not None
             else None
         )
-        self._thread: threading.Thread | None = None
-        self._stats = dict.fromkeys(STAT_COUNTERS, 0)
-        self._stopping = threading.Event()
-        self._last_tick_s = 0.0
-        self._cpu_s = dict.fromkeys(PHASES, 0.0)  # thread CPU by phase (PHASES)
 
     # ------------------------------------------------------------------ public, any thread
 

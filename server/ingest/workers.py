@@ -62,7 +62,7 @@ from estimator.catalog import spec_of
 from estimator.config import VehicleConfig
 from estimator.types import EstimateBatch
 from server.estimation.registry import EstimatorRegistry
-from server.ingest.pipeline import PHASES, STAT_COUNTERS, EstimateSink
+from server.ingest.pipeline import PHASES, STAT_COUNTERS, EstimateSink, Pipeline
 from server.ingest.status import StatusPublisher
 from server.ingest.subscriber import IngestSubscriber, RawPacket, Refusal
 from server.metrics.thread_cpu import thread_cpu_seconds
@@ -601,7 +601,6 @@ def _worker_main(
     """A worker process: decode what the server routes here and run a pipeline on it
     (``store_raw``: send the packets it accepted back, to be stored raw)."""
     from server.gc_policy import settle
-    from server.ingest.pipeline import Pipeline
 
     logging.basicConfig(level=logging.WARNING, format=f"worker {index}: %(levelname)s %(message)s")
     # what a pipeline without a Zenoh session reads; nothing from the environment or files
@@ -610,7 +609,38 @@ def _worker_main(
         zenoh=ZenohSettings(key_prefix=key_prefix),
     )
     results = _Results(results_conn)
-    pipeline = Pipeline(
+    pipeline = _worker_pipeline(settings, registry_factory, results, store_raw)
+    stop = threading.Event()
+    for message in initial:  # registrations and stored counters, before the first packet
+        _apply(pipeline, message)
+    settle(settings.ingest.gc_gen0)
+    threading.Thread(
+        target=_serve_controls, args=(pipeline, control, stop), name="worker-control", daemon=True
+    ).start()
+    pipeline.start()
+    snapshot_thread = threading.Thread(
+        target=_send_snapshots, args=(pipeline, results, stop), name="worker-snapshots", daemon=True
+    )
+    snapshot_thread.start()
+    results.send(("ready",))
+    try:
+        _feed_pipeline(pipeline, feed)
+    finally:
+        stop.set()
+        pipeline.stop()
+        snapshot_thread.join(5.0)
+        results.send(("done", _snapshot(pipeline)))
+
+
+def _worker_pipeline(
+    settings: Settings,
+    registry_factory: Callable[[], EstimatorRegistry],
+    results: _Results,
+    store_raw: bool,
+) -> Pipeline:
+    """A worker's pipeline, without Zenoh: its rows, new vehicles and raw packets go to
+    ``results``."""
+    return Pipeline(
         settings,
         None,
         registry_factory(),
@@ -618,44 +648,37 @@ def _worker_main(
         on_new_vehicle=lambda vid, config: results.send(("new", vid, config)),
         raw_sink=(lambda raw: results.send(("raw", raw))) if store_raw else None,
     )
-    stop = threading.Event()
 
-    def controls() -> None:
-        while not stop.is_set():
-            try:
-                if not control.poll(0.2):
-                    continue
-                message = control.recv()
-            except (EOFError, OSError):
-                return
-            _apply(pipeline, message)
 
-    def snapshots() -> None:
-        while not stop.wait(SNAPSHOT_EVERY_S):
-            results.send(("snapshot", _snapshot(pipeline)))
-
-    for message in initial:  # registrations and stored counters, before the first packet
+def _serve_controls(pipeline: Pipeline, control: Connection, stop: threading.Event) -> None:
+    """Apply the server's control messages to ``pipeline`` until ``stop`` or the pipe closes."""
+    while not stop.is_set():
+        try:
+            if not control.poll(0.2):
+                continue
+            message = control.recv()
+        except (EOFError, OSError):
+            return
         _apply(pipeline, message)
-    settle(settings.ingest.gc_gen0)
-    threading.Thread(target=controls, name="worker-control", daemon=True).start()
-    pipeline.start()
-    snapshot_thread = threading.Thread(target=snapshots, name="worker-snapshots", daemon=True)
-    snapshot_thread.start()
-    results.send(("ready",))
-    try:
-        while True:
-            try:
-                share = feed.recv()
-            except (EOFError, OSError):
-                break
-            if share is None:
-                break
-            if isinstance(share, tuple):  # ("refused", [(key, reason), ...])
-                pipeline.refuse(share[1])
-            else:
-                pipeline.submit_raw(share)
-    finally:
-        stop.set()
-        pipeline.stop()
-        snapshot_thread.join(5.0)
-        results.send(("done", _snapshot(pipeline)))
+
+
+def _send_snapshots(pipeline: Pipeline, results: _Results, stop: threading.Event) -> None:
+    """Send the pipeline's snapshot every :data:`SNAPSHOT_EVERY_S` until ``stop``."""
+    while not stop.wait(SNAPSHOT_EVERY_S):
+        results.send(("snapshot", _snapshot(pipeline)))
+
+
+def _feed_pipeline(pipeline: Pipeline, feed: Connection) -> None:
+    """Hand the bursts and refusals the server routes here to ``pipeline`` until the feed ends
+    (``None`` or a closed pipe)."""
+    while True:
+        try:
+            share = feed.recv()
+        except (EOFError, OSError):
+            break
+        if share is None:
+            break
+        if isinstance(share, tuple):  # ("refused", [(key, reason), ...])
+            pipeline.refuse(share[1])
+        else:
+            pipeline.submit_raw(share)

@@ -228,6 +228,28 @@ class StoreWriter:
         clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self._store = store
+        self._clock_ns = clock_ns
+        self._init_limits(
+            settings,
+            submit_block_s,
+            retry_initial_s,
+            retry_max_s,
+            retention_interval_s,
+            close_timeout_s,
+        )
+        self._init_backlog(store)
+        self._init_stats()
+
+    def _init_limits(
+        self,
+        settings: StorageSettings,
+        submit_block_s: float,
+        retry_initial_s: float,
+        retry_max_s: float,
+        retention_interval_s: float,
+        close_timeout_s: float,
+    ) -> None:
+        """The batch, backlog, raw-packet and retention limits and the retry and close times."""
         self._batch_max = int(settings.batch_max_rows)
         self._interval_s = float(settings.commit_interval_s)
         self._backlog_max = int(settings.backlog_max_rows)
@@ -240,8 +262,9 @@ class StoreWriter:
         self._retry_max_s = float(retry_max_s)
         self._retention_interval_s = float(retention_interval_s)
         self._close_timeout_s = float(close_timeout_s)
-        self._clock_ns = clock_ns
 
+    def _init_backlog(self, store: Store) -> None:
+        """The empty backlog and side queues the writer thread drains, and its schedule."""
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
         # backlog: a submit's rows as one entry (or one per vehicle when the backlog was near full)
@@ -278,6 +301,8 @@ class StoreWriter:
         self._maintain: Callable[[], bool] | None = getattr(store, "maintain", None)
         self._next_maintain_at = 0.0
 
+    def _init_stats(self) -> None:
+        """The counters and health :meth:`stats` reports, and the log rate limits, at start."""
         self._rows_submitted = 0
         self._rows_written = 0
         self._rows_ignored = 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +111,26 @@ def demo(
     ``estimator_mix`` defaults to the last vehicle running :data:`DEMO_MIX_ESTIMATORS` (a mixed
     fleet: one vehicle's reference speed beside its MDSF estimate)."""
     mix = estimator_mix or EstimatorMix(vehicles, DEMO_MIX_ESTIMATORS)
+    _prepare_demo_settings(settings)
+    server = ServerThread(build_app(settings), settings.api.host, settings.api.port)
+    server.start()
+    listen = settings.zenoh.connect or settings.zenoh.listen
+    session = vehicle_session(list(listen))
+    fleet = _DemoFleet.start(session, settings.zenoh.key_prefix, vehicles, scenario, mix)
+    _print_demo_banner(settings, server.port, list(listen), vehicles, scenario, fleet)
+    try:
+        _wait_for_demo(server, duration_s)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        fleet.stop()
+        session.close()
+        server.stop()
+
+
+def _prepare_demo_settings(settings: Settings) -> None:
+    """Set the demo's settings (no access tokens, no vehicle credentials); SystemExit unless
+    the API binds loopback."""
     settings.api.require_auth = False
     # one simulator session publishes for every vehicle: it cannot log in as each of them
     settings.zenoh.credentials_file = None
@@ -117,26 +138,60 @@ def demo(
         log.info("demo uses the configured PostgreSQL store")
     if settings.api.host not in ("127.0.0.1", "localhost", "::1"):
         raise SystemExit("the demo runs without access tokens and binds loopback only")
-    server = ServerThread(build_app(settings), settings.api.host, settings.api.port)
-    server.start()
-    listen = settings.zenoh.connect or settings.zenoh.listen
-    session = vehicle_session(list(listen))
-    sim = FleetSim(
-        session,
-        vehicles,
-        prefix=settings.zenoh.key_prefix,
-        loop=True,
-        estimator_mix=mix,
-        plans=demo_plans(vehicles, scenario),
-    )
-    sim.start()
-    # one steered four-wheel vehicle beside the tractors (friction μ); it joins once simulated
-    prefix = settings.zenoh.key_prefix
-    steered = SteeredFleetSim(session, 1, first_index=vehicles + 1, prefix=prefix, loop=True)
-    steered.start()
-    crawler = TrackedFleetSim(session, 1, first_index=vehicles + 2, prefix=prefix, loop=True)
-    crawler.start()
-    base = f"http://{settings.api.host}:{server.port}"
+
+
+@dataclass(frozen=True, slots=True)
+class _DemoFleet:
+    """The demo's simulated vehicles: the tractors, one steered vehicle and one crawler."""
+
+    sim: FleetSim
+    steered: SteeredFleetSim
+    crawler: TrackedFleetSim
+
+    @classmethod
+    def start(
+        cls,
+        session: zenoh.Session,
+        prefix: str,
+        vehicles: int,
+        scenario: str,
+        mix: EstimatorMix,
+    ) -> _DemoFleet:
+        """Start the tractors, then the steered vehicle and the crawler numbered after them."""
+        sim = FleetSim(
+            session,
+            vehicles,
+            prefix=prefix,
+            loop=True,
+            estimator_mix=mix,
+            plans=demo_plans(vehicles, scenario),
+        )
+        sim.start()
+        # one steered four-wheel vehicle beside the tractors (friction μ); it joins once simulated
+        steered = SteeredFleetSim(session, 1, first_index=vehicles + 1, prefix=prefix, loop=True)
+        steered.start()
+        crawler = TrackedFleetSim(session, 1, first_index=vehicles + 2, prefix=prefix, loop=True)
+        crawler.start()
+        return cls(sim, steered, crawler)
+
+    def stop(self) -> None:
+        """Stop them in the reverse order."""
+        self.crawler.stop()
+        self.steered.stop()
+        self.sim.stop()
+
+
+def _print_demo_banner(
+    settings: Settings,
+    port: int,
+    listen: list[str],
+    vehicles: int,
+    scenario: str,
+    fleet: _DemoFleet,
+) -> None:
+    """Print where the demo's dashboard, API, 3D view and router are, and what it simulates."""
+    steered_id, crawler_id = fleet.steered.vehicle_ids[0], fleet.crawler.vehicle_ids[0]
+    base = f"http://{settings.api.host}:{port}"
     drives = "each its own drive" if scenario == "mix" else f"scenario {scenario}"
     print(
         "\nSlipfleet demo — no access tokens, no vehicle credentials, loopback only\n"
@@ -145,28 +200,23 @@ def demo(
         f"  vehicles   {base}/api/v1/vehicles\n"
         f"  3D view    http://{settings.viewer.host}:{settings.viewer.port}/\n"
         f"  zenoh      {', '.join(listen)}  ({vehicles} simulated vehicles, {drives})\n"
-        f"  estimators {mix_summary(sim)}\n"
-        f"  steered    {steered.vehicle_ids[0]}: a steered four-wheel vehicle, friction μ "
+        f"  estimators {mix_summary(fleet.sim)}\n"
+        f"  steered    {steered_id}: a steered four-wheel vehicle, friction μ "
         "(joins once its drive is simulated)\n"
-        f"  crawler    {crawler.vehicle_ids[0]}: a crawler, motion state, track slip and dead "
+        f"  crawler    {crawler_id}: a crawler, motion state, track slip and dead "
         "reckoning (joins once its route is simulated)\n"
         "Ctrl-C stops.\n",
         flush=True,
     )
-    try:
-        if duration_s > 0:
-            time.sleep(duration_s)
-        else:
-            while server.thread.is_alive():
-                time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        crawler.stop()
-        steered.stop()
-        sim.stop()
-        session.close()
-        server.stop()
+
+
+def _wait_for_demo(server: ServerThread, duration_s: float) -> None:
+    """Sleep ``duration_s`` (> 0), else until the server thread ends."""
+    if duration_s > 0:
+        time.sleep(duration_s)
+    else:
+        while server.thread.is_alive():
+            time.sleep(0.5)
 
 
 def mix_summary(sim: FleetSim) -> str:

@@ -315,6 +315,29 @@ def render(fleet: _Fleet, t0_ns: int, t1_ns: int, loop: bool) -> Window:
     ``t1_ns - t0_ns`` must not exceed the shortest period (a vehicle then touches at most two
     loops of its drive in the window).
     """
+    veh, pkt, lps, due = _due_packets(fleet, t0_ns, t1_ns, loop)
+    data, bounds = _copy_templates(fleet, pkt)
+    total = int(bounds[-1])
+    _shift_stamps(fleet, data, total, bounds, veh, pkt, lps)
+    stream = fleet.stream[pkt]
+    seq = lps * fleet.stream_count[fleet.drive[veh], stream] + fleet.stream_pos[pkt]
+    data, bounds = _insert_seq(data[:total], bounds, bounds[:-1] + fleet.seq_at[pkt], seq)
+    blob = data.tobytes()
+    bl = bounds.tolist()
+    return Window(
+        due_ns=due.tolist(),
+        calls=list(map(fleet.puts.__getitem__, (veh * len(STREAMS) + stream).tolist())),
+        payloads=[blob[x:y] for x, y in itertools.pairwise(bl)],
+        stream=stream.astype(np.intp),
+        bounds=bl,
+    )
+
+
+def _due_packets(
+    fleet: _Fleet, t0_ns: int, t1_ns: int, loop: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(vehicle, fleet packet, loop, due time) of every packet due in ``[t0_ns, t1_ns)``, in
+    due order."""
     veh_parts, pkt_parts, loop_parts = [], [], []
     rel0 = t0_ns - fleet.phase  # window in each vehicle's loop-0 time
     base_loop = np.maximum(rel0 // fleet.period, 0)
@@ -322,19 +345,8 @@ def render(fleet: _Fleet, t0_ns: int, t1_ns: int, loop: bool) -> Window:
         lp = base_loop + dl
         if not loop:
             lp = np.where(lp == 0, 0, -1)
-        ok = lp >= 0
         lo = rel0 - lp * fleet.period
-        hi = lo + (t1_ns - t0_ns)
-        first = np.zeros(len(lp), np.int64)
-        count = np.zeros(len(lp), np.int64)
-        for d, drive in enumerate(fleet.drives):
-            sel = ok & (fleet.drive == d)
-            if not sel.any():
-                continue
-            i0 = np.searchsorted(drive.arrival_ns, lo[sel], "left")
-            i1 = np.searchsorted(drive.arrival_ns, hi[sel], "left")
-            first[sel] = fleet.pkt_base[d] + i0
-            count[sel] = i1 - i0
+        first, count = _packets_in(fleet, lp >= 0, lo, lo + (t1_ns - t0_ns))
         veh_parts.append(np.repeat(np.arange(len(lp), dtype=np.int64), count))
         pkt_parts.append(_expand(first, count))
         loop_parts.append(np.repeat(lp, count))
@@ -343,13 +355,33 @@ def render(fleet: _Fleet, t0_ns: int, t1_ns: int, loop: bool) -> Window:
     lps = np.concatenate(loop_parts)
     due = fleet.arrival[pkt] + fleet.phase[veh] + lps * fleet.period[veh]
     order = np.argsort(due, kind="stable")
-    veh, pkt, lps, due = veh[order], pkt[order], lps[order], due[order]
+    return veh[order], pkt[order], lps[order], due[order]
 
-    # bytes: the packets' templates back to back (8 spare bytes for the unaligned views)
+
+def _packets_in(
+    fleet: _Fleet, ok: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per vehicle, the first fleet packet arriving in ``[lo, hi)`` of its drive and how many
+    do (none where not ``ok``)."""
+    first = np.zeros(len(ok), np.int64)
+    count = np.zeros(len(ok), np.int64)
+    for d, drive in enumerate(fleet.drives):
+        sel = ok & (fleet.drive == d)
+        if not sel.any():
+            continue
+        i0 = np.searchsorted(drive.arrival_ns, lo[sel], "left")
+        i1 = np.searchsorted(drive.arrival_ns, hi[sel], "left")
+        first[sel] = fleet.pkt_base[d] + i0
+        count[sel] = i1 - i0
+    return first, count
+
+
+def _copy_templates(fleet: _Fleet, pkt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The templates of packets ``pkt`` back to back (8 spare bytes for the unaligned views),
+    and their bounds."""
     size = fleet.size[pkt]
     bounds = np.zeros(len(pkt) + 1, np.int64)
     np.cumsum(size, out=bounds[1:])
-    total = int(bounds[-1])
     # copied by slices (memcpy per packet) rather than by a per-byte index (8 B of index per
     # byte: several times slower at a few MB per window)
     src = fleet.view
@@ -358,7 +390,19 @@ def render(fleet: _Fleet, t0_ns: int, t1_ns: int, loop: bool) -> Window:
         [src[x:y] for x, y in zip(starts.tolist(), (starts + size).tolist(), strict=True)]
     )
     joined.extend(bytes(8))
-    data = np.frombuffer(joined, np.uint8)
+    return np.frombuffer(joined, np.uint8), bounds
+
+
+def _shift_stamps(
+    fleet: _Fleet,
+    data: np.ndarray,
+    total: int,
+    bounds: np.ndarray,
+    veh: np.ndarray,
+    pkt: np.ndarray,
+    lps: np.ndarray,
+) -> None:
+    """Add each packet's vehicle shift for its loop to every stamp it holds, in ``data``."""
     # stamps: template offset -> offset in data, plus the vehicle's shift for that loop
     delta = fleet.shift[veh] + lps * fleet.period[veh]
     rebase = bounds[:-1] - fleet.off[pkt]
@@ -374,18 +418,6 @@ def render(fleet: _Fleet, t0_ns: int, t1_ns: int, loop: bool) -> Window:
             if sel.any():
                 view = data[a : a + 8 * ((total + 8 - a) // 8)].view(dtype)
                 view[(at[sel] - a) >> 3] += add[sel]
-    stream = fleet.stream[pkt]
-    seq = lps * fleet.stream_count[fleet.drive[veh], stream] + fleet.stream_pos[pkt]
-    data, bounds = _insert_seq(data[:total], bounds, bounds[:-1] + fleet.seq_at[pkt], seq)
-    blob = data.tobytes()
-    bl = bounds.tolist()
-    return Window(
-        due_ns=due.tolist(),
-        calls=list(map(fleet.puts.__getitem__, (veh * len(STREAMS) + stream).tolist())),
-        payloads=[blob[x:y] for x, y in itertools.pairwise(bl)],
-        stream=stream.astype(np.intp),
-        bounds=bl,
-    )
 
 
 def _insert_seq(
@@ -513,60 +545,111 @@ def publish_schedule(
     if periods.size == 0:
         return stats
     span = max(1, min(int(window_ns * rate), int(periods.min())))  # schedule ns per window
-    # the last schedule time any packet has (no loop)
-    end_sched = int((fleet.last_arrival[fleet.drive] + fleet.phase).max()) + 1
     if stamp_clock_ns is not None:
         fleet.shift = fleet.shift + stamp_clock_ns()
     wall0 = time.perf_counter_ns()
     end_wall = None if duration_s is None else wall0 + int(duration_s * 1e9)
-    nxt: Window | None = render(fleet, 0, span, loop)
-    t_next = span
-    cur: Window | None = None
-    k = n_cur = 0
-    sleep = time.sleep
-    clock = time.perf_counter_ns
-    inv_rate = 1.0 / rate
+    pacing = _Pacing(wall0, end_wall, rate, 1.0 / rate, min_wake_ns, stop)
+    windows = _Windows(fleet, span, loop)
     last_due = -1  # schedule time of the last packet sent
     while not stop.is_set():
-        if cur is None or k == n_cur:
-            if nxt is None:
-                if not loop and t_next >= end_sched:
-                    break
-                nxt = render(fleet, t_next, t_next + span, loop)
-                t_next += span
-            cur, nxt = nxt, None
-            k, n_cur = 0, len(cur.due_ns)
-            if n_cur == 0:
-                continue
-        now = clock() - wall0
-        due_wall = int(cur.due_ns[k] * inv_rate)
+        if not windows.turn():
+            break
+        cur, k = windows.cur, windows.k
+        if cur is None or k == len(cur.due_ns):
+            continue  # an empty window
+        now = time.perf_counter_ns() - wall0
+        due_wall = int(cur.due_ns[k] * pacing.inv_rate)
         if end_wall is not None and wall0 + due_wall > end_wall:
             break
-        if due_wall > now:
-            wait_ns = max(due_wall - now, min_wake_ns)
-            if end_wall is not None:
-                wait_ns = max(0, min(wait_ns, end_wall - wall0 - now))
-            # long waits on the stop event, so that a stop ends them at once
-            (stop.wait if wait_ns > 50_000_000 else sleep)(wait_ns / 1e9)
-            now = clock() - wall0
-        # send everything due by now, in due order
-        behind = (now - due_wall) / 1e6
-        if behind > stats.max_behind_ms:
-            stats.max_behind_ms = behind
-        limit = now if end_wall is None else min(now, end_wall - wall0)
-        j = bisect.bisect_right(cur.due_ns, limit * rate, k)
+        now = _wait_for(pacing, due_wall, now)
+        j = _send_due(pacing, cur, k, due_wall, now, stats)
         if j == k:
             continue  # woke up early (the end of the run, or stop)
-        for put, payload in zip(cur.calls[k:j], cur.payloads[k:j], strict=True):
-            put(payload)
-        stats.count_round(cur, k, j, wall0 + now, behind)
         last_due = cur.due_ns[j - 1]
-        k = j
+        windows.k = j
         if on_round is not None:
             on_round(stats)
-        if nxt is None and (loop or t_next < end_sched):
-            nxt = render(fleet, t_next, t_next + span, loop)  # the next window, ahead of time
-            t_next += span
+        windows.render_ahead()
     if loop and last_due >= 0:
         stats.loops = max(0, int(((last_due - fleet.phase) // fleet.period).max()))
     return stats
+
+
+@dataclass(frozen=True, slots=True)
+class _Pacing:
+    """The wall clock of a :func:`publish_schedule` run: its start and end (perf counter ns),
+    the schedule's rate, the shortest wake-up and the stop event."""
+
+    wall0: int
+    end_wall: int | None
+    rate: float
+    inv_rate: float
+    min_wake_ns: int
+    stop: threading.Event
+
+
+class _Windows:
+    """The window being sent (``cur``, next packet ``k``) and the one rendered ahead of it."""
+
+    def __init__(self, fleet: _Fleet, span: int, loop: bool) -> None:
+        self.fleet, self.span, self.loop = fleet, span, loop
+        # the last schedule time any packet has (no loop)
+        self.end_sched = int((fleet.last_arrival[fleet.drive] + fleet.phase).max()) + 1
+        self.nxt: Window | None = render(fleet, 0, span, loop)
+        self.t_next = span
+        self.cur: Window | None = None
+        self.k = 0
+
+    def turn(self) -> bool:
+        """Make the next window current once this one is sent; False when the drives are over."""
+        if self.cur is not None and self.k < len(self.cur.due_ns):
+            return True
+        if self.nxt is None:
+            if not self.loop and self.t_next >= self.end_sched:
+                return False
+            self._render_next()
+        self.cur, self.nxt = self.nxt, None
+        self.k = 0
+        return True
+
+    def render_ahead(self) -> None:
+        """Render the next window ahead of time, if there is one and it is not yet rendered."""
+        if self.nxt is None and (self.loop or self.t_next < self.end_sched):
+            self._render_next()
+
+    def _render_next(self) -> None:
+        """Render the window starting at ``t_next`` and move ``t_next`` past it."""
+        self.nxt = render(self.fleet, self.t_next, self.t_next + self.span, self.loop)
+        self.t_next += self.span
+
+
+def _wait_for(pacing: _Pacing, due_wall: int, now: int) -> int:
+    """Sleep until ``due_wall`` (wall ns after the start; at least the shortest wake-up, never
+    past the end) if it is ahead of ``now``; the wall ns after the start then."""
+    if due_wall <= now:
+        return now
+    wait_ns = max(due_wall - now, pacing.min_wake_ns)
+    if pacing.end_wall is not None:
+        wait_ns = max(0, min(wait_ns, pacing.end_wall - pacing.wall0 - now))
+    # long waits on the stop event, so that a stop ends them at once
+    (pacing.stop.wait if wait_ns > 50_000_000 else time.sleep)(wait_ns / 1e9)
+    return time.perf_counter_ns() - pacing.wall0
+
+
+def _send_due(
+    pacing: _Pacing, cur: Window, k: int, due_wall: int, now: int, stats: ScheduleStats
+) -> int:
+    """Put every packet of ``cur`` from ``k`` due by ``now``, in due order, and count the
+    round; the index after the last one sent (``k``: none)."""
+    behind = (now - due_wall) / 1e6
+    if behind > stats.max_behind_ms:
+        stats.max_behind_ms = behind
+    limit = now if pacing.end_wall is None else min(now, pacing.end_wall - pacing.wall0)
+    j = bisect.bisect_right(cur.due_ns, limit * pacing.rate, k)
+    if j == k:
+        return k
+    for put, payload in zip(cur.calls[k:j], cur.payloads[k:j], strict=True):
+        put(payload)
+    stats.count_round(cur, k, j, pacing.wall0 + now, behind)
+    return j

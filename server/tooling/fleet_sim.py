@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 import secrets
@@ -525,21 +526,12 @@ def publish_fleets(
     declared; publishing then waits for ``go`` (if given), so several processes
     can start together.
     """
-    if not sims:
-        raise ValueError("no fleets to publish")
-    rate, loop, clock = sims[0]._rate, sims[0]._loop, sims[0]._clock
-    if any(s._rate != rate or s._loop != loop or s._clock is not clock for s in sims):
-        raise ValueError("fleets published together must share rate, loop and clock")
+    rate, loop, clock = _shared_timing(sims)
     stats = stats if stats is not None else SimStats()
     for s in STREAMS:  # every key present before another thread starts summing the counts
         stats.packets.setdefault(s.value, 0)
     stop = stop if stop is not None else sims[0]._stop
-    drives: list[EncodedDrive] = []
-    drive_of: dict[int, int] = {}
-    prepared = []
-    for sim in sims:
-        sim.stats = stats
-        prepared.append(sim._declare(drive_of, drives, stop))
+    drives, prepared = _declare_fleets(sims, stats, stop)
     if ready is not None:
         ready.set()
     if go is not None:
@@ -549,15 +541,7 @@ def publish_fleets(
         return stats
     # the stamps' time base ("now") is read by publish_schedule once its set-up is done
     scheduled = [v for _, vehicles, _ in prepared for v in vehicles]
-    names = [s.value for s in STREAMS]
-
-    def _progress(s: ScheduleStats) -> None:
-        for name, n in zip(names, s.packets, strict=True):
-            stats.packets[name] = n
-        stats.payload_bytes = s.payload_bytes
-        stats.max_behind_ms = s.max_behind_ms
-        stats.late_packets = s.late_packets
-
+    progress = functools.partial(_copy_progress, stats)
     wall0 = time.perf_counter_ns()
     try:
         done = publish_schedule(
@@ -567,11 +551,11 @@ def publish_fleets(
             loop=loop,
             duration_s=duration_s,
             stop=stop,
-            on_round=_progress,
+            on_round=progress,
             keep_lateness=keep_lateness,
             stamp_clock_ns=clock,
         )
-        _progress(done)
+        progress(done)
         stats.loops = done.loops
         if done.rounds is not None:
             stats.send_rounds = done.rounds
@@ -579,6 +563,41 @@ def publish_fleets(
         _undeclare(prepared)
         stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
     return stats
+
+
+def _declare_fleets(
+    sims: Sequence[FleetSim], stats: SimStats, stop: threading.Event
+) -> tuple[
+    list[EncodedDrive], list[tuple[list[_Vehicle], list[ScheduledVehicle], list[zenoh.Publisher]]]
+]:
+    """Simulate and declare every fleet (each distinct drive encoded once), each counting in
+    ``stats``: the drives and each fleet's vehicles and publishers."""
+    drives: list[EncodedDrive] = []
+    drive_of: dict[int, int] = {}
+    prepared = []
+    for sim in sims:
+        sim.stats = stats
+        prepared.append(sim._declare(drive_of, drives, stop))
+    return drives, prepared
+
+
+def _shared_timing(sims: Sequence[FleetSim]) -> tuple[float, bool, Callable[[], int]]:
+    """The ``(rate, loop, clock)`` every fleet shares; ValueError when none or they differ."""
+    if not sims:
+        raise ValueError("no fleets to publish")
+    rate, loop, clock = sims[0]._rate, sims[0]._loop, sims[0]._clock
+    if any(s._rate != rate or s._loop != loop or s._clock is not clock for s in sims):
+        raise ValueError("fleets published together must share rate, loop and clock")
+    return rate, loop, clock
+
+
+def _copy_progress(stats: SimStats, s: ScheduleStats) -> None:
+    """Copy a schedule's counts so far into ``stats`` (packets by stream name)."""
+    for stream, n in zip(STREAMS, s.packets, strict=True):
+        stats.packets[stream.value] = n
+    stats.payload_bytes = s.payload_bytes
+    stats.max_behind_ms = s.max_behind_ms
+    stats.late_packets = s.late_packets
 
 
 def _undeclare(prepared: Sequence[tuple[object, object, list[zenoh.Publisher]]]) -> None:
@@ -651,26 +670,9 @@ def replay(
                 first_stamp = rec.stamp_ns
                 to_now = clock_ns() - first_stamp if shift_to_now else 0
                 shift = to_now if shift_ns is None else shift_ns
-            due = int((rec.stamp_ns - first_stamp) / rate)
-            while (ahead := due - (time.perf_counter_ns() - wall0)) > 0:
-                if stop is not None and stop.wait(ahead / 1e9):
-                    break
-                if stop is None:
-                    time.sleep(ahead / 1e9)
-            payload = rec.payload
+            _wait_due(int((rec.stamp_ns - first_stamp) / rate), wall0, stop)
             key = rec.key if vehicle_as is None else renamed_key(rec.key, vehicle_as)
-            stream: Stream | None = None
-            try:
-                _, stream = parse_key(key, _prefix_of(key))
-            except (ValueError, IndexError):
-                stream = None
-            if shift != 0 and stream is not None:
-                try:
-                    pkt = decode(key, payload, prefix=_prefix_of(key), max_payload_bytes=1 << 30)
-                    again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
-                    payload = again.encode(pkt.seq, shift, pkt.boot)  # as recorded
-                except DecodeError:
-                    pass  # replay what was recorded: the server will count the refusal
+            stream, payload = _replayed(key, rec.payload, shift)
             pub = pubs.get(key)
             if pub is None:
                 pub = pubs[key] = _publisher(session, key)
@@ -685,6 +687,33 @@ def replay(
             pub.undeclare()
         stats.wall_s = (time.perf_counter_ns() - wall0) / 1e9
     return stats
+
+
+def _wait_due(due_ns: int, wall0_ns: int, stop: threading.Event | None) -> None:
+    """Sleep until ``due_ns`` after ``wall0_ns`` (``perf_counter_ns``), or until ``stop``."""
+    while (ahead := due_ns - (time.perf_counter_ns() - wall0_ns)) > 0:
+        if stop is not None and stop.wait(ahead / 1e9):
+            break
+        if stop is None:
+            time.sleep(ahead / 1e9)
+
+
+def _replayed(key: str, payload: bytes, shift_ns: int) -> tuple[Stream | None, bytes]:
+    """A recorded record's stream (None: not a sensor key) and payload, re-encoded with its
+    stamps moved by ``shift_ns`` when it is a sensor packet that decodes."""
+    stream: Stream | None = None
+    try:
+        _, stream = parse_key(key, _prefix_of(key))
+    except (ValueError, IndexError):
+        stream = None
+    if shift_ns != 0 and stream is not None:
+        try:
+            pkt = decode(key, payload, prefix=_prefix_of(key), max_payload_bytes=1 << 30)
+            again = SimPacket(0, pkt.stream, pkt.measurements, pkt.until_ns)
+            payload = again.encode(pkt.seq, shift_ns, pkt.boot)  # as recorded
+        except DecodeError:
+            pass  # replay what was recorded: the server will count the refusal
+    return stream, payload
 
 
 def record(

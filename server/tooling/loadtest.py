@@ -108,6 +108,8 @@ if TYPE_CHECKING:  # imported where used, so ``slipfleet --help`` stays instant
     import httpx
     import psutil
 
+    from server.tooling.fleet_sim import SimPacket, SimStats
+
 __all__ = [
     "KINDS",
     "MIX",
@@ -167,6 +169,16 @@ class Target:
 
 
 _PACKET_COUNTERS = ("received", "accepted", "late", "duplicate", "lost_by_seq_gap", "wheel_gaps")
+#: Metrics a scrape sums over every sample, by the total they add to.
+_SUMMED_METRICS = {
+    **{f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS},
+    "slipfleet_estimate_rows_total": "estimate_rows",
+    "slipfleet_writer_rows_written_total": "rows_written",
+    "slipfleet_writer_rows_ignored_total": "rows_not_inserted",
+    "slipfleet_writer_rows_dropped_error_total": "rows_not_inserted",
+    "slipfleet_writer_rows_dropped_backlog_full_total": "rows_dropped",
+    "slipfleet_writer_backlog_rows": "backlog",
+}
 
 
 def scrape(
@@ -176,18 +188,37 @@ def scrape(
     estimate rows, writer rows and backlog, the latency histograms, vehicles seen (none with
     ``by_vehicle=False``: the server sums its counters itself, far cheaper for a large
     fleet)."""
-    import httpx
-
     from server.metrics.latency import parse_histogram
+
+    text = _fetch_metrics(api, client, by_vehicle)
+    out = _empty_scrape()
+    vehicles: set[str] = set()
+    for line in text.splitlines():
+        parsed = parse_metric_line(line)
+        if parsed is not None:
+            _add_sample(out, vehicles, *parsed)
+    out["vehicles"] = vehicles
+    out["latency"] = parse_histogram(text)
+    return out
+
+
+def _fetch_metrics(api: str, client: httpx.Client | None, by_vehicle: bool) -> str:
+    """The text of ``api``'s ``/metrics`` (fleet totals unless ``by_vehicle``), read with
+    ``client`` or a client of its own."""
+    import httpx
 
     own = client is None
     c = client or httpx.Client(timeout=30.0)
     try:
         params = {} if by_vehicle else {"by_vehicle": "false"}
-        text = c.get(f"{api}/api/v1/metrics", params=params).raise_for_status().text
+        return c.get(f"{api}/api/v1/metrics", params=params).raise_for_status().text
     finally:
         if own:
             c.close()
+
+
+def _empty_scrape() -> dict[str, Any]:
+    """A scrape's totals at zero, stamped now (monotonic s)."""
     out: dict[str, Any] = dict.fromkeys(_PACKET_COUNTERS, 0.0)
     out.update(
         rejected=0.0,
@@ -202,48 +233,32 @@ def scrape(
     out["thread_cpu"] = {}
     out["pipeline_cpu"] = {}
     out["at_s"] = time.monotonic()
-    vehicles: set[str] = set()
-    wanted = {f"slipfleet_packets_{k}_total": k for k in _PACKET_COUNTERS}
-    for line in text.splitlines():
-        parsed = parse_metric_line(line)
-        if parsed is None:
-            continue
-        name, labels, value = parsed
-        key = wanted.get(name)
-        if key is not None:
-            out[key] += value
-            if key == "received" and labels.get("vehicle"):
-                vehicles.add(labels["vehicle"])
-        elif name == "slipfleet_packets_rejected_total":
-            out["rejected"] += value
-            reason = labels.get("reason", "?")
-            out["rejected_by_reason"][reason] = out["rejected_by_reason"].get(reason, 0) + value
-        elif name == "slipfleet_estimate_rows_total":
-            out["estimate_rows"] += value
-        elif (
-            name == "slipfleet_estimator_events_total"
-            and labels.get("event") == "ticks_without_wheel_data"
-        ):
-            out["ticks_without_wheel_data"] += value
-        elif name == "slipfleet_writer_rows_written_total":
-            out["rows_written"] += value
-        elif name in (
-            "slipfleet_writer_rows_ignored_total",
-            "slipfleet_writer_rows_dropped_error_total",
-        ):
-            out["rows_not_inserted"] += value
-        elif name == "slipfleet_writer_rows_dropped_backlog_full_total":
-            out["rows_dropped"] += value
-        elif name == "slipfleet_writer_backlog_rows":
-            out["backlog"] += value
-        elif name == "slipfleet_pipeline_cpu_seconds_total":
-            phase = labels.get("phase", "?")
-            out["pipeline_cpu"][phase] = out["pipeline_cpu"].get(phase, 0.0) + value
-        elif name == "slipfleet_thread_cpu_seconds_total":
-            out["thread_cpu"][f"{labels.get('process', '?')}/{labels.get('thread', '?')}"] = value
-    out["vehicles"] = vehicles
-    out["latency"] = parse_histogram(text)
     return out
+
+
+def _add_sample(
+    out: dict[str, Any], vehicles: set[str], name: str, labels: Mapping[str, str], value: float
+) -> None:
+    """Add one ``/metrics`` sample to a scrape's totals (and its vehicle to ``vehicles``)."""
+    key = _SUMMED_METRICS.get(name)
+    if key is not None:
+        out[key] += value
+        if key == "received" and labels.get("vehicle"):
+            vehicles.add(labels["vehicle"])
+    elif name == "slipfleet_packets_rejected_total":
+        out["rejected"] += value
+        reason = labels.get("reason", "?")
+        out["rejected_by_reason"][reason] = out["rejected_by_reason"].get(reason, 0) + value
+    elif (
+        name == "slipfleet_estimator_events_total"
+        and labels.get("event") == "ticks_without_wheel_data"
+    ):
+        out["ticks_without_wheel_data"] += value
+    elif name == "slipfleet_pipeline_cpu_seconds_total":
+        phase = labels.get("phase", "?")
+        out["pipeline_cpu"][phase] = out["pipeline_cpu"].get(phase, 0.0) + value
+    elif name == "slipfleet_thread_cpu_seconds_total":
+        out["thread_cpu"][f"{labels.get('process', '?')}/{labels.get('thread', '?')}"] = value
 
 
 def _merge(scrapes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -520,18 +535,7 @@ class _Publisher:
 def _replay_fleet_sim_class() -> type:
     """A :class:`FleetSim` whose runs come from recordings instead of the simulator."""
     from estimator.config import WheeledRearDriveConfig
-    from estimator.sim.sensors import NO_EDGES
-    from server.protocol.codec import DecodeError, decode
-    from server.protocol.keys import parse_key
-    from server.protocol.recording import read_recording
-    from server.tooling.fleet_sim import (
-        TICK_NS,
-        FleetSim,
-        SimPacket,
-        _Vehicle,
-        loop_period_ns,
-        packetize,
-    )
+    from server.tooling.fleet_sim import TICK_NS, FleetSim, _Vehicle, loop_period_ns
 
     class ReplaySim(FleetSim):
         """Vehicle ``i`` replays drive ``i mod n_drives`` of ``paths`` (all vehicles in them)."""
@@ -556,29 +560,7 @@ def _replay_fleet_sim_class() -> type:
             return [self._id_format.format(self._first + i) for i in range(self._n)]
 
         def _drives(self) -> list[tuple[list[SimPacket], int, int]]:
-            drives: list[tuple[list[SimPacket], int, int]] = []
-            for path in self._paths:
-                by_vehicle: dict[str, list[tuple[int, Any, int | None]]] = {}
-                for rec in read_recording(path):
-                    parts = rec.key.split("/")
-                    if "sensors" not in parts:
-                        continue
-                    prefix = "/".join(parts[: parts.index("sensors") - 1])
-                    try:
-                        vid, _ = parse_key(rec.key, prefix)
-                        pkt = decode(rec.key, rec.payload, prefix=prefix, max_payload_bytes=1 << 30)
-                    except (DecodeError, ValueError, IndexError):
-                        continue
-                    # a wheel heartbeat has no measurement: carried as edges of no stamps
-                    for m in pkt.measurements or (NO_EDGES,):
-                        by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m, pkt.until_ns))
-                for items in by_vehicle.values():
-                    start = items[0][0]
-                    packets = packetize(items, start)
-                    drives.append((packets, start, items[-1][0]))
-            if not drives:
-                raise ValueError(f"no sensor packets in {self._paths}")
-            return drives
+            return _recorded_drives(self._paths)
 
         def _build(self) -> list[Any]:
             # shift_ns relative to the drive start; "now" is added as publishing starts
@@ -594,6 +576,40 @@ def _replay_fleet_sim_class() -> type:
             return out
 
     return ReplaySim
+
+
+def _recorded_drives(paths: Sequence[str]) -> list[tuple[list[SimPacket], int, int]]:
+    """Each recorded vehicle's sensor packets in ``paths`` as a drive: (packets, first and last
+    stamp); ValueError when there is none."""
+    from estimator.sim.sensors import NO_EDGES
+    from server.protocol.codec import DecodeError, decode
+    from server.protocol.keys import parse_key
+    from server.protocol.recording import read_recording
+    from server.tooling.fleet_sim import packetize
+
+    drives: list[tuple[list[SimPacket], int, int]] = []
+    for path in paths:
+        by_vehicle: dict[str, list[tuple[int, Any, int | None]]] = {}
+        for rec in read_recording(path):
+            parts = rec.key.split("/")
+            if "sensors" not in parts:
+                continue
+            prefix = "/".join(parts[: parts.index("sensors") - 1])
+            try:
+                vid, _ = parse_key(rec.key, prefix)
+                pkt = decode(rec.key, rec.payload, prefix=prefix, max_payload_bytes=1 << 30)
+            except (DecodeError, ValueError, IndexError):
+                continue
+            # a wheel heartbeat has no measurement: carried as edges of no stamps
+            for m in pkt.measurements or (NO_EDGES,):
+                by_vehicle.setdefault(vid, []).append((rec.stamp_ns, m, pkt.until_ns))
+        for items in by_vehicle.values():
+            start = items[0][0]
+            packets = packetize(items, start)
+            drives.append((packets, start, items[-1][0]))
+    if not drives:
+        raise ValueError(f"no sensor packets in {list(paths)}")
+    return drives
 
 
 def _named_fleet_sim_class(kind: str = "tractor") -> type:
@@ -638,62 +654,23 @@ def _group_sim(sessions: Sequence[Any], job: dict[str, Any], g: dict[str, Any], 
 
 def _publish_child(job_json: str) -> int:
     """Child entry point: publish the groups of one publisher until told to stop."""
-    import zenoh
-
-    from server.ingest.zenoh_session import make_config
-    from server.settings import ZenohSettings
-
     job = json.loads(job_json)
-    sessions = [
-        zenoh.open(make_config(ZenohSettings(connect=job["endpoints"])))
-        for _ in range(job["sessions"])
-    ]
-    ReplaySim = _replay_fleet_sim_class() if job["replay"] else None
-    mix = None if job["estimator_mix"] is None else EstimatorMix.parse(job["estimator_mix"])
-    sims = []
-    for g in job["groups"]:
-        if ReplaySim is not None:
-            common = {k: job[k] for k in ("prefix", "rate")}
-            first, fmt = g["first"], g["id_format"]
-            sims.append(
-                ReplaySim(
-                    sessions,
-                    g["count"],
-                    paths=job["replay"],
-                    first_index=first,
-                    id_format=fmt,
-                    **common,
-                )
-            )
-        else:
-            sims.append(_group_sim(sessions, job, g, mix))
-    from server.tooling.fleet_sim import SimStats, publish_fleets
+    sessions = _open_sessions(job["endpoints"], job["sessions"])
+    sims = _job_sims(sessions, job)
+    from server.tooling.fleet_sim import SimStats
 
     stop = threading.Event()
     stats = SimStats()
     failed: list[BaseException] = []
-
-    def _publish() -> None:
-        try:  # one thread, one merged schedule for every group of this process
-            publish_fleets(sims, stop=stop, stats=stats)
-        except BaseException as exc:
-            failed.append(exc)
-            stop.set()
-            raise
-
-    worker = threading.Thread(target=_publish, name="slipfleet-publisher", daemon=True)
+    worker = threading.Thread(
+        target=_publish,
+        args=(sims, stop, stats, failed),
+        name="slipfleet-publisher",
+        daemon=True,
+    )
     worker.start()
-
     marked: dict[int, int] = {}  # packets by lateness when the window started
-
-    def _wait_stop() -> None:
-        for line in sys.stdin:  # "mark": the window starts; "stop"; EOF: the parent is gone
-            if line.strip() != "mark":
-                break
-            marked.update(stats.late_packets)  # a copy in one step (under the GIL)
-        stop.set()
-
-    threading.Thread(target=_wait_stop, daemon=True).start()
+    threading.Thread(target=_wait_stop, args=(stop, stats, marked), daemon=True).start()
     cpu0 = time.process_time()
     t0 = time.monotonic()
     while not stop.wait(0.5):
@@ -702,7 +679,76 @@ def _publish_child(job_json: str) -> int:
             flush=True,
         )
     worker.join(30.0)
-    final = {
+    print(json.dumps({"final": _final_counts(stats, marked, cpu0, t0)}), flush=True)
+    # the sessions stay open until the parent has drained the server: closing them drops what
+    # their queues still hold for a server that fell behind (BLOCK held the puts back)
+    sys.stdin.read()  # until the end of input
+    time.sleep(0.5)  # let the sessions flush before closing
+    for session in sessions:
+        session.close()
+    return 1 if failed else 0
+
+
+def _open_sessions(endpoints: list[str], n: int) -> list[Any]:
+    """``n`` Zenoh client sessions connected to ``endpoints``."""
+    import zenoh
+
+    from server.ingest.zenoh_session import make_config
+    from server.settings import ZenohSettings
+
+    return [zenoh.open(make_config(ZenohSettings(connect=endpoints))) for _ in range(n)]
+
+
+def _job_sims(sessions: Sequence[Any], job: dict[str, Any]) -> list[Any]:
+    """The simulators of a publisher's groups: recordings replayed, or each group's kind's."""
+    ReplaySim = _replay_fleet_sim_class() if job["replay"] else None
+    mix = None if job["estimator_mix"] is None else EstimatorMix.parse(job["estimator_mix"])
+    if ReplaySim is None:
+        return [_group_sim(sessions, job, g, mix) for g in job["groups"]]
+    common = {k: job[k] for k in ("prefix", "rate")}
+    return [
+        ReplaySim(
+            sessions,
+            g["count"],
+            paths=job["replay"],
+            first_index=g["first"],
+            id_format=g["id_format"],
+            **common,
+        )
+        for g in job["groups"]
+    ]
+
+
+def _publish(
+    sims: Sequence[Any], stop: threading.Event, stats: SimStats, failed: list[BaseException]
+) -> None:
+    """Publish ``sims`` on one merged schedule until ``stop``; a failure is kept in ``failed``
+    and sets ``stop``."""
+    from server.tooling.fleet_sim import publish_fleets
+
+    try:  # one thread, one merged schedule for every group of this process
+        publish_fleets(sims, stop=stop, stats=stats)
+    except BaseException as exc:
+        failed.append(exc)
+        stop.set()
+        raise
+
+
+def _wait_stop(stop: threading.Event, stats: SimStats, marked: dict[int, int]) -> None:
+    """Read the parent's lines: on "mark" keep the lateness counts so far in ``marked``; on
+    "stop" or the end of input set ``stop``."""
+    for line in sys.stdin:  # "mark": the window starts; "stop"; EOF: the parent is gone
+        if line.strip() != "mark":
+            break
+        marked.update(stats.late_packets)  # a copy in one step (under the GIL)
+    stop.set()
+
+
+def _final_counts(
+    stats: SimStats, marked: Mapping[int, int], cpu0: float, t0: float
+) -> dict[str, Any]:
+    """What the child reports at the end: its counts, lateness since "mark", CPU and wall s."""
+    return {
         "sent": stats.total_packets,
         "configs": stats.configs,
         "bytes": stats.payload_bytes,
@@ -713,14 +759,6 @@ def _publish_child(job_json: str) -> int:
         "cpu_s": time.process_time() - cpu0,
         "wall_s": time.monotonic() - t0,
     }
-    print(json.dumps({"final": final}), flush=True)
-    # the sessions stay open until the parent has drained the server: closing them drops what
-    # their queues still hold for a server that fell behind (BLOCK held the puts back)
-    sys.stdin.read()  # until the end of input
-    time.sleep(0.5)  # let the sessions flush before closing
-    for session in sessions:
-        session.close()
-    return 1 if failed else 0
 
 
 # ---------------------------------------------------------------------------------- the run
@@ -1066,9 +1104,17 @@ def _send_lateness(pubs: Sequence[_Publisher]) -> dict[str, int | None]:
 
 def format_report(r: Mapping[str, Any]) -> str:
     """A human-readable summary of a :func:`run_loadtest` result."""
-    lat = r["latency"]
+    lines = _report_head(r)
+    lines += _report_latency(r["latency"])
+    lines += _report_server(r)
+    lines += _report_machine(r)
+    return "\n".join(lines)
+
+
+def _report_head(r: Mapping[str, Any]) -> list[str]:
+    """The report's first lines: the fleet and run, packets, send rate and estimates."""
     late = r.get("publisher_late_ms") or {}
-    lines = [
+    return [
         f"vehicles {r['spec']['vehicles']} (seen {r['vehicles_seen']}; "
         f"{mix_label(r['spec']['kind_mix'])}), scenario "
         f"{r['spec']['scenario'] if not r['spec']['replay'] else 'replay'}, rate x"
@@ -1089,6 +1135,11 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"{r['rows_dropped_backlog_full']}  without wheel data "
         f"{r.get('ticks_without_wheel_data', 0)}",
     ]
+
+
+def _report_latency(lat: Mapping[str, Any]) -> list[str]:
+    """The report's sensor-to-live and sensor-to-stored latency lines (those measured)."""
+    lines: list[str] = []
     for stage in ("live", "stored"):
         if stage in lat:
             s = lat[stage]
@@ -1096,6 +1147,12 @@ def format_report(r: Mapping[str, Any]) -> str:
                 f"latency  sensor→{stage:<6} p50 {s['p50_ms']:.0f}  p95 {s['p95_ms']:.0f}  "
                 f"p99 {s['p99_ms']:.0f}  max {s['max_ms']:.0f} ms  ({int(s['rows'])} rows)"
             )
+    return lines
+
+
+def _report_server(r: Mapping[str, Any]) -> list[str]:
+    """The report's server CPU and memory, busiest threads and pipeline phases lines."""
+    lines: list[str] = []
     if r.get("server_cpu_cores") is not None:
         lines.append(
             f"server   CPU {r['server_cpu_cores']:.2f} cores of {r['machine_cpus']}  RSS "
@@ -1119,6 +1176,12 @@ def format_report(r: Mapping[str, Any]) -> str:
             + "  ".join(f"{phase} {cores:.2f}" for phase, cores in phases.items())
             + " (cores, every pipeline thread)"
         )
+    return lines
+
+
+def _report_machine(r: Mapping[str, Any]) -> list[str]:
+    """The report's machine speed probe and load average lines."""
+    lines: list[str] = []
     if r.get("machine_probe_s"):
         before, after = r["machine_probe_s"]
         lines.append(
@@ -1131,7 +1194,7 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"machine  load average (1 min) {start:.2f} as the window starts, {end:.2f} as it "
             f"ends, on {r['machine_cpus']} CPUs"
         )
-    return "\n".join(lines)
+    return lines
 
 
 def mix_label(kind_mix: Sequence[Sequence[Any]]) -> str:
@@ -1230,6 +1293,13 @@ def server_tuning(args: argparse.Namespace) -> dict[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``loadtest`` flags (shared by ``slipfleet loadtest`` and ``python -m``)."""
+    _add_fleet_arguments(p)
+    _add_target_arguments(p)
+    _add_tuning_arguments(p)
+
+
+def _add_fleet_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of the simulated fleet and its publishers: size, kinds, pace, replay."""
     p.add_argument(
         "--vehicles", type=count_arg, required=True, help="simulated vehicles to publish"
     )
@@ -1265,6 +1335,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup", type=float, default=5.0, help="seconds before the window")
     p.add_argument("--replay", nargs="+", default=None, metavar="PATH", help="recordings")
     add_estimator_mix_argument(p, "default: every vehicle its kind's defaults; not with --replay")
+
+
+def _add_target_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of where the result goes and which server is loaded: a running one or those
+    started, with their store and shards."""
     p.add_argument("--json", type=Path, default=None, help="also write the result as JSON")
     p.add_argument("--connect", default=None, help="router endpoint of a running server")
     p.add_argument("--api", default=None, help="REST base URL of that server (with --connect)")
@@ -1278,6 +1353,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="start a router and this many server processes, each owning a share of the "
         "fleet (needs --storage-url: they share one PostgreSQL database)",
     )
+
+
+def _add_tuning_arguments(p: argparse.ArgumentParser) -> None:
+    """The started server's ingest and storage timing flags (default: its settings)."""
     p.add_argument(
         "--lateness-ms", type=int, default=None, help="started server: ingest.lateness_ms"
     )

@@ -273,20 +273,7 @@ async def _send_vehicle(
     max_points: int,
 ) -> None:
     requests: asyncio.Queue[float] = asyncio.Queue(maxsize=8)
-
-    async def receive() -> None:
-        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
-            while True:
-                text = await websocket.receive_text()
-                try:
-                    data = json.loads(text)
-                except ValueError:
-                    continue
-                if isinstance(data, dict) and "window_s" in data:
-                    with contextlib.suppress(asyncio.QueueFull):
-                        requests.put_nowait(_clamp_window(data["window_s"], window_s))
-
-    receiver = asyncio.create_task(receive())
+    receiver = asyncio.create_task(_receive_windows(websocket, requests, window_s))
     window = window_s
     name = estimator  # None until the vehicle's primary is known
     last_stamp: int | None = None  # newest stamp the client holds; None: send a snapshot
@@ -298,34 +285,9 @@ async def _send_vehicle(
                 last_stamp = None
             version = hub.version
             name = name or hub.primary(vehicle_id)
-            snap = None
-            if last_stamp is None and name is not None:
-                snap = hub.window(vehicle_id, window, estimator=name, max_points=max_points)
-            if name is None or (last_stamp is None and snap is None):
-                msg: dict[str, Any] = {"type": "waiting", "vehicle_id": vehicle_id}
-            elif snap is not None:
-                msg = {
-                    "type": "snapshot",
-                    "vehicle_id": vehicle_id,
-                    "window_s": window,
-                    "tier": snap["tier"],
-                    "bucket_s": snap["bucket_s"],
-                    "columns": _columns(snap),
-                    "latest": _latest_dict(hub, vehicle_id, name),
-                }
-                stamps = snap["stamp_ns"]
-                last_stamp = stamps[-1] if stamps else 0
-            else:
-                inc = hub.window(vehicle_id, window, estimator=name, since_ns=last_stamp)
-                cols = _columns(inc) if inc is not None else {"stamp_ns": []}
-                msg = {
-                    "type": "append",
-                    "from_ns": last_stamp,
-                    "columns": cols,
-                    "latest": _latest_dict(hub, vehicle_id, name),
-                }
-                if cols["stamp_ns"]:
-                    last_stamp = cols["stamp_ns"][-1]
+            msg, last_stamp = _vehicle_message(
+                hub, vehicle_id, name, window, last_stamp, max_points
+            )
             msg["estimator"] = name
             msg["estimators"] = hub.estimators(vehicle_id)
             msg["sent_ns"] = time.time_ns()
@@ -339,3 +301,57 @@ async def _send_vehicle(
         receiver.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await receiver
+
+
+async def _receive_windows(
+    websocket: WebSocket, requests: asyncio.Queue[float], window_s: float
+) -> None:
+    """Queue each window the client asks for (``{"window_s": …}``, clamped) until it leaves."""
+    with contextlib.suppress(WebSocketDisconnect, RuntimeError):
+        while True:
+            text = await websocket.receive_text()
+            try:
+                data = json.loads(text)
+            except ValueError:
+                continue
+            if isinstance(data, dict) and "window_s" in data:
+                with contextlib.suppress(asyncio.QueueFull):
+                    requests.put_nowait(_clamp_window(data["window_s"], window_s))
+
+
+def _vehicle_message(
+    hub: LiveHub,
+    vehicle_id: str,
+    name: str | None,
+    window: float,
+    last_stamp: int | None,
+    max_points: int,
+) -> tuple[dict[str, Any], int | None]:
+    """The next message of a vehicle's feed (waiting, snapshot or append) and the newest stamp
+    the client holds after it (None: a snapshot is still to send)."""
+    snap = None
+    if last_stamp is None and name is not None:
+        snap = hub.window(vehicle_id, window, estimator=name, max_points=max_points)
+    if name is None or (last_stamp is None and snap is None):
+        return {"type": "waiting", "vehicle_id": vehicle_id}, last_stamp
+    if snap is not None:
+        msg: dict[str, Any] = {
+            "type": "snapshot",
+            "vehicle_id": vehicle_id,
+            "window_s": window,
+            "tier": snap["tier"],
+            "bucket_s": snap["bucket_s"],
+            "columns": _columns(snap),
+            "latest": _latest_dict(hub, vehicle_id, name),
+        }
+        stamps = snap["stamp_ns"]
+        return msg, stamps[-1] if stamps else 0
+    inc = hub.window(vehicle_id, window, estimator=name, since_ns=last_stamp)
+    cols = _columns(inc) if inc is not None else {"stamp_ns": []}
+    msg = {
+        "type": "append",
+        "from_ns": last_stamp,
+        "columns": cols,
+        "latest": _latest_dict(hub, vehicle_id, name),
+    }
+    return msg, cols["stamp_ns"][-1] if cols["stamp_ns"] else last_stamp

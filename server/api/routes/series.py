@@ -530,48 +530,82 @@ def get_series(
     format: Annotated[SeriesFormat, Query(description="Answer format")] = "json",
 ) -> Response:
     names = _parse_fields(fields, spec)
-    points = max_points or 0
-    if points == 1:
-        raise Unprocessable("max_points must be 0 (full rate) or at least 2")
-    if points > limits.series_max_points:
-        raise Unprocessable(f"max_points must be at most {limits.series_max_points}")
+    points = _checked_points(max_points, limits)
     tr.check_span(limits.series_max_range_ns)
+    vehicle_id = vehicle.vehicle_id
     if format == "geojson":  # whole rows: a position is one row's east, north and up
         if decimation == "minmax":
             raise Unprocessable("format=geojson thins to whole rows: decimation=minmax is refused")
-        position, placed_by = _position_fields(spec)
-        read = [*names, *(f for f in placed_by if f not in names)]
-        reader = _Reader(store, vehicle.vehicle_id, spec, tr, read, points, limits, "first")
-        rows = reader.collect(limits.series_max_rows)
-        anchor = store.get_anchors(vehicle.vehicle_id).get(vehicle.vehicle_id)
-        return Response(
-            _geojson(vehicle.vehicle_id, rows, names, position, anchor),
-            media_type=GEOJSON_MEDIA_TYPE,
-        )
+        return _geojson_answer(store, vehicle_id, spec, tr, names, points, limits)
     how: Decimation = decimation or "minmax"
-    reader = _Reader(store, vehicle.vehicle_id, spec, tr, names, points, limits, how)
+    reader = _Reader(store, vehicle_id, spec, tr, names, points, limits, how)
 
     if format == "csv":
         return StreamingResponse(
             _csv_lines(reader),
             media_type="text/csv; charset=utf-8",
-            headers={
-                "Content-Disposition": f'attachment; filename="'
-                f'{export_filename(vehicle.vehicle_id, tr, "csv")}"'
-            },
+            headers=_attachment(export_filename(vehicle_id, tr, "csv")),
         )
     rows = reader.collect(limits.series_max_rows)
     if format == "parquet":
         return Response(
-            _parquet_bytes(rows, spec, vehicle.vehicle_id, tr),
+            _parquet_bytes(rows, spec, vehicle_id, tr),
             media_type=PARQUET_MEDIA_TYPE,
-            headers={
-                "Content-Disposition": f'attachment; filename="'
-                f'{export_filename(vehicle.vehicle_id, tr, "parquet")}"'
-            },
+            headers=_attachment(export_filename(vehicle_id, tr, "parquet")),
         )
+    return _json_answer(vehicle_id, spec, tr, names, points, how, reader, rows)
+
+
+def _checked_points(max_points: int | None, limits: ApiLimits) -> int:
+    """``max_points`` (0: full rate); 422 for 1 or above the limit."""
+    points = max_points or 0
+    if points == 1:
+        raise Unprocessable("max_points must be 0 (full rate) or at least 2")
+    if points > limits.series_max_points:
+        raise Unprocessable(f"max_points must be at most {limits.series_max_points}")
+    return points
+
+
+def _attachment(filename: str) -> dict[str, str]:
+    """The headers of a download named ``filename``."""
+    return {"Content-Disposition": f'attachment; filename="{filename}"'}
+
+
+def _geojson_answer(
+    store: Store,
+    vehicle_id: str,
+    spec: EstimatorSpec,
+    tr: TimeRange,
+    names: list[str],
+    points: int,
+    limits: ApiLimits,
+) -> Response:
+    """The series as GeoJSON: whole rows (thinned to their first), placed by the spec's
+    position in the vehicle's anchor frame."""
+    position, placed_by = _position_fields(spec)
+    read = [*names, *(f for f in placed_by if f not in names)]
+    reader = _Reader(store, vehicle_id, spec, tr, read, points, limits, "first")
+    rows = reader.collect(limits.series_max_rows)
+    anchor = store.get_anchors(vehicle_id).get(vehicle_id)
+    return Response(
+        _geojson(vehicle_id, rows, names, position, anchor),
+        media_type=GEOJSON_MEDIA_TYPE,
+    )
+
+
+def _json_answer(
+    vehicle_id: str,
+    spec: EstimatorSpec,
+    tr: TimeRange,
+    names: list[str],
+    points: int,
+    how: Decimation,
+    reader: _Reader,
+    rows: np.ndarray,
+) -> Response:
+    """The series as JSON: what was read and how, then the columns."""
     head = {
-        "vehicle_id": vehicle.vehicle_id,
+        "vehicle_id": vehicle_id,
         "estimator": spec.name,
         "start_ns": tr.start_ns,
         "end_ns": tr.end_ns,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from typing import Annotated, Any
 
 import numpy as np
@@ -649,63 +650,126 @@ def get_fleet_slipmap(
     tr.check_span(limits.report_max_range_ns)
     origin = _origin(origin_lat_deg, origin_lon_deg)
     edges_asked = _band_edges(band_edges_pct)
+    plan = _fleet_plan(store, origin, edges_asked, vehicles, estimator, layer)
+    total, summary = _fleet_sums(plan, store, tr, limits, cell_m)
+    smap = finish_cells(total)
+    cells = _cells(smap, vehicles=True)
+    spec = plan.spec
+    body = FleetSlipMapPublic.model_validate(
+        {
+            "estimator": None if spec is None else spec.name,
+            "slip_channels": _channel_refs(spec),
+            "layer": _layer_ref(plan.value),
+            "start_ns": tr.start_ns,
+            "end_ns": tr.end_ns,
+            "cell_m": smap.cell_m,
+            "origin": AnchorPublic.as_json(plan.origin),
+            "origin_vehicle_id": plan.origin_vehicle_id,
+            "band_edges_pct": list(smap.band_edges_pct),
+            "band_labels": list(smap.band_labels),
+            "band_edges_source": plan.edges_source,
+            "vehicles": summary,
+            "skipped": plan.skipped,
+            "count": smap.cells,
+            "cells": cells if format == "json" else [],
+        }
+    )
+    download = export_filename("fleet_slipmap", tr, "csv")
+    return _answer(body, smap, cells, plan.frame, format, download)
+
+
+@dataclass(frozen=True, slots=True)
+class _FleetPlan:
+    """What a fleet map reads: its estimator and layer, the vehicles placed (with their slip
+    configs and anchors) and skipped, the shared frame's origin and the slip band edges."""
+
+    spec: EstimatorSpec | None
+    value: ValueChannel | None
+    placed: list[VehicleRecord]
+    skipped: list[dict[str, str]]
+    slips: dict[str, SlipConfig]
+    anchors: Mapping[str, Anchor]
+    origin: Anchor | None
+    origin_vehicle_id: str | None
+    frame: EnuFrame | None
+    edges: tuple[float, ...]
+    edges_source: str
+
+
+def _fleet_plan(
+    store: Store,
+    origin: Anchor | None,
+    edges_asked: tuple[float, ...] | None,
+    vehicles: str | None,
+    estimator: str | None,
+    layer: str | None,
+) -> _FleetPlan:
+    """The fleet map's plan; the origin defaults to the first placed vehicle's anchor."""
     anchors = store.get_anchors()
     records = _fleet_vehicles(store, vehicles)
     asked = None if estimator is None else estimator_spec(estimator)
     spec, placed, skipped = _fleet_estimator(asked, records, anchors)
     value = _layer(spec, layer)
-    channels = () if spec is None else tuple(c.key for c in spec.slips)
     slips = {r.vehicle_id: slip_config(r) for r in placed}
     origin_vehicle_id = None
     if origin is None and placed:
         origin_vehicle_id = placed[0].vehicle_id
         origin = anchors[origin_vehicle_id]
     frame = None if origin is None else EnuFrame(*origin)
-
     edges, edges_source = _fleet_band_edges(edges_asked, slips)
+    return _FleetPlan(
+        spec,
+        value,
+        placed,
+        skipped,
+        slips,
+        anchors,
+        origin,
+        origin_vehicle_id,
+        frame,
+        edges,
+        edges_source,
+    )
 
+
+def _fleet_sums(
+    plan: _FleetPlan, store: Store, tr: TimeRange, limits: ApiLimits, cell_m: float
+) -> tuple[CellSums, list[dict[str, Any]]]:
+    """The placed vehicles' cell sums merged one vehicle at a time, and each one's rows and
+    cells; 400 past the cell limit."""
+    spec, value = plan.spec, plan.value
     summary: list[dict[str, Any]] = []
 
     def parts(shared: EnuFrame, spec: EstimatorSpec) -> Iterator[CellSums]:
-        for record in placed:
+        for record in plan.placed:
             vid = record.vehicle_id
             part = _vehicle_cells(
-                store, vid, spec, slips[vid], anchors[vid], shared, tr, limits, cell_m, edges, value
+                store,
+                vid,
+                spec,
+                plan.slips[vid],
+                plan.anchors[vid],
+                shared,
+                tr,
+                limits,
+                cell_m,
+                plan.edges,
+                value,
             )
             summary.append({"vehicle_id": vid, "rows": int(part.rows.sum()), "cells": part.cells})
             yield part
 
+    frame = plan.frame
     try:
         total = merge_cell_sums(
             # no frame or estimator: no vehicle placed
             parts(frame, spec) if frame is not None and spec is not None else (),
             cell_m=cell_m,
-            channels=channels,
-            band_edges_pct=edges,
+            channels=() if spec is None else tuple(c.key for c in spec.slips),
+            band_edges_pct=plan.edges,
             max_cells=limits.slipmap_max_cells,
             layer=None if value is None else value.key,
         )
     except TooManyCells as exc:
         raise _too_many_cells(exc, cell_m, fleet=True) from exc
-    smap = finish_cells(total)
-    cells = _cells(smap, vehicles=True)
-    body = FleetSlipMapPublic.model_validate(
-        {
-            "estimator": None if spec is None else spec.name,
-            "slip_channels": _channel_refs(spec),
-            "layer": _layer_ref(value),
-            "start_ns": tr.start_ns,
-            "end_ns": tr.end_ns,
-            "cell_m": smap.cell_m,
-            "origin": AnchorPublic.as_json(origin),
-            "origin_vehicle_id": origin_vehicle_id,
-            "band_edges_pct": list(smap.band_edges_pct),
-            "band_labels": list(smap.band_labels),
-            "band_edges_source": edges_source,
-            "vehicles": summary,
-            "skipped": skipped,
-            "count": smap.cells,
-            "cells": cells if format == "json" else [],
-        }
-    )
-    return _answer(body, smap, cells, frame, format, export_filename("fleet_slipmap", tr, "csv"))
+    return total, summary
