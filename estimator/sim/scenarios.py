@@ -154,6 +154,39 @@ def _traction(p: Params) -> TractionModel:
     )
 
 
+def _tilt_wobbles(
+    p: Params,
+    w_pitch: Callable[[FloatArray], FloatArray],
+    w_roll: Callable[[FloatArray], FloatArray],
+) -> tuple[Callable[[FloatArray, FloatArray], FloatArray], ...]:
+    """Body pitch and roll wobbles ``f(t, v0)``: the bumps grown with speed, plus the sway."""
+    full = float(p["wobble_full_speed_mps"])
+
+    def body_gate(v0: FloatArray) -> FloatArray:
+        # bumps come faster the faster the vehicle goes: body pitch/roll motion grows with speed
+        return np.clip(np.asarray(v0) / full, 0.0, 1.0)
+
+    sway_w = 2.0 * math.pi * float(p["sway_hz"])
+    sway_pitch, sway_roll = math.radians(p["sway_pitch_deg"]), math.radians(p["sway_roll_deg"])
+
+    def sway_gate(v0: FloatArray) -> FloatArray:
+        return np.clip(np.asarray(v0), 0.0, 1.0)
+
+    def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
+        out = w_pitch(t) * body_gate(v0)
+        if sway_pitch:
+            out = out + sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
+        return out
+
+    def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
+        out = w_roll(t) * body_gate(v0)
+        if sway_roll:
+            out = out + sway_roll * np.cos(sway_w * t) * sway_gate(v0)
+        return out
+
+    return pitch_f, roll_f
+
+
 def _plan(
     p: Params,
     rng: np.random.Generator,
@@ -179,30 +212,8 @@ def _plan(
     def yaw_f(t: FloatArray, v0: FloatArray) -> FloatArray:
         return yaw(t) + w_yaw(t) * _moving(v0)
 
-    full = float(p["wobble_full_speed_mps"])
-
-    def body_gate(v0: FloatArray) -> FloatArray:
-        # bumps come faster the faster the vehicle goes: body pitch/roll motion grows with speed
-        return np.clip(np.asarray(v0) / full, 0.0, 1.0)
-
-    sway_w = 2.0 * math.pi * float(p["sway_hz"])
-    sway_pitch, sway_roll = math.radians(p["sway_pitch_deg"]), math.radians(p["sway_roll_deg"])
+    pitch_f, roll_f = _tilt_wobbles(p, w_pitch, w_roll)
     steps = tuple((float(t0), 0.01 * float(d), float(w)) for t0, d, w in p["slip_steps"])
-
-    def sway_gate(v0: FloatArray) -> FloatArray:
-        return np.clip(np.asarray(v0), 0.0, 1.0)
-
-    def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        out = w_pitch(t) * body_gate(v0)
-        if sway_pitch:
-            out = out + sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
-        return out
-
-    def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        out = w_roll(t) * body_gate(v0)
-        if sway_roll:
-            out = out + sway_roll * np.cos(sway_w * t) * sway_gate(v0)
-        return out
 
     def slip_offset(t: FloatArray) -> FloatArray:
         return ramp_steps(t, steps)
