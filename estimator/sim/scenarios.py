@@ -437,6 +437,16 @@ def _slow_creep(p: Params, rng: np.random.Generator) -> MotionPlan:
 
 
 def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
+    tl = _field_timeline(p)
+    speed, yaw, drawbar = tl.profiles()
+    pitch, roll, mu = _field_terrain(p)
+    return _plan(
+        p, rng, tl.t, speed, yaw, drawbar=drawbar, terrain_pitch=pitch, terrain_roll=roll, mu_max=mu
+    )
+
+
+def _field_timeline(p: Params) -> _Timeline:
+    """Working passes with the implement in, stops every few passes, headland U-turns."""
     dur = float(p["duration_s"])
     v_work, v_turn = float(p["work_speed_mps"]), float(p["turn_speed_mps"])
     radius, draw = float(p["turn_radius_m"]), float(p["drawbar"])
@@ -480,7 +490,11 @@ def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
         tl.go(ramp, speed=v_work)
     tl.go(4.0, speed=0.0, drawbar=0.0)
     tl.go(dur - tl.t)
-    speed, yaw, drawbar = tl.profiles()
+    return tl
+
+
+def _field_terrain(p: Params) -> tuple[Callable[[FloatArray], FloatArray], ...]:
+    """Terrain pitch and roll (sines over distance) and the wet patches' grip, of distance."""
     hill, hill_len = math.radians(p["hill_pitch_deg"]), float(p["hill_length_m"])
     bank = math.radians(p["bank_roll_deg"])
     wet_every, wet_len = float(p["wet_every_m"]), float(p["wet_length_m"])
@@ -498,9 +512,7 @@ def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
             phase, 0.5 * wet_every, 0.5 * wet_every + wet_len, 1.0
         )
 
-    return _plan(
-        p, rng, tl.t, speed, yaw, drawbar=drawbar, terrain_pitch=pitch, terrain_roll=roll, mu_max=mu
-    )
+    return pitch, roll, mu
 
 
 def _random_drive(p: Params, rng: np.random.Generator) -> MotionPlan:
