@@ -155,16 +155,37 @@ class DeadReckoning:
         take = measured & np.isfinite(heading_rad) & (moving | ~has)
         psi = np.mod(np.where(take, heading_rad, before - turn), 2.0 * np.pi)
         if measured.all():  # the usual tick: every vehicle placed by its fix
-            origin = enu_m.copy()
-            origin[:, :2] -= self._lever(slots, psi)
-            self.origin[slots] = origin
-            self.heading_rad[slots] = psi
-            self.since_s[slots] = 0.0
-            self.has[slots] = True
-            return enu_m, heading_rad, np.zeros(slots.shape[0], dtype=bool)
+            return self._place_all(slots, enu_m, heading_rad, psi)
         mid = before - 0.5 * turn
         carried = ~measured & has & np.isfinite(v0_mps) & (self.since_s[slots] + dt <= cfg.max_s)
         horiz = speed * np.cos(nan_to_num(pitch_rad)) * dt
+        return self._carry(slots, enu_m, heading_rad, psi, (measured, carried), horiz, mid)
+
+    def _place_all(
+        self, slots: IntArray, enu_m: FloatArray, heading_rad: FloatArray, psi: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """:meth:`step` when every vehicle has a fix: origins from the fixes, nothing carried."""
+        origin = enu_m.copy()
+        origin[:, :2] -= self._lever(slots, psi)
+        self.origin[slots] = origin
+        self.heading_rad[slots] = psi
+        self.since_s[slots] = 0.0
+        self.has[slots] = True
+        return enu_m, heading_rad, np.zeros(slots.shape[0], dtype=bool)
+
+    def _carry(
+        self,
+        slots: IntArray,
+        enu_m: FloatArray,
+        heading_rad: FloatArray,
+        psi: FloatArray,
+        masks: tuple[BoolArray, BoolArray],
+        horiz: FloatArray,
+        mid: FloatArray,
+    ) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """:meth:`step` otherwise: ``carried`` moved ``horiz`` along the mid-tick heading."""
+        measured, carried = masks
+        dt = self.dt_s
         moved = self.origin[slots].copy()
         moved[:, 0] += horiz * np.sin(mid)
         moved[:, 1] += horiz * np.cos(mid)

@@ -334,21 +334,37 @@ def update_independent(
         every = bool(active.all())
         if not every and not active.any():
             continue
-        Ph, s, y = _row_terms(x, P, Hb[:, j, :], None if unit is None else unit.get(j))
-        s = s + r[:, j]
-        y = z[:, j] - y
-        if every:  # the usual case: the same values without the masking
-            inv = 1.0 / s
-        else:
-            inv = np.where(active, 1.0 / np.where(active, s, 1.0), 0.0)  # 0: the row is inert
-            y = np.where(active, y, 0.0)
-        k = Ph * inv[:, None]
-        x += k * y[:, None]
-        # P − k·Phᵀ − Ph·kᵀ + s·k·kᵀ, symmetric by construction: k·(s·k − 2·Ph)ᵀ symmetrised
-        half = np.einsum("ni,nj->nij", k, s[:, None] * k - 2.0 * Ph)  # outer product
-        sym = half + half.swapaxes(-1, -2)
-        sym *= 0.5
-        P += sym
+        h_unit = None if unit is None else unit.get(j)
+        y, inv = _apply_row(x, P, Hb[:, j, :], z[:, j], r[:, j], active, every, h_unit)
         nis += y * y * inv
         dof += active
     return IndependentUpdateResult(x=x, P=P, nis=nis, dof=dof)
+
+
+def _apply_row(
+    x: FloatArray,
+    P: FloatArray,
+    h: FloatArray,
+    z_j: FloatArray,
+    r_j: FloatArray,
+    active: BoolArray,
+    every: bool,
+    h_unit: int | None,
+) -> tuple[FloatArray, FloatArray]:
+    """One scalar row of :func:`update_independent` into ``x`` and ``P`` in place; ``(y, 1/s)``."""
+    Ph, s, y = _row_terms(x, P, h, h_unit)
+    s = s + r_j
+    y = z_j - y
+    if every:  # the usual case: the same values without the masking
+        inv = 1.0 / s
+    else:
+        inv = np.where(active, 1.0 / np.where(active, s, 1.0), 0.0)  # 0: the row is inert
+        y = np.where(active, y, 0.0)
+    k = Ph * inv[:, None]
+    x += k * y[:, None]
+    # P − k·Phᵀ − Ph·kᵀ + s·k·kᵀ, symmetric by construction: k·(s·k − 2·Ph)ᵀ symmetrised
+    half = np.einsum("ni,nj->nij", k, s[:, None] * k - 2.0 * Ph)  # outer product
+    sym = half + half.swapaxes(-1, -2)
+    sym *= 0.5
+    P += sym
+    return y, inv

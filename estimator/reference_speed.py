@@ -152,37 +152,14 @@ def reference_step(
     used_wheels : ndarray, shape (N,), bool
         The wheel speed was the measurement (GNSS lost).
     """
-    n = x.shape[0]
-    F, B = transition(dt_s)
-    a_ok = np.isfinite(accel_mps2)
-    a_m = np.where(a_ok, accel_mps2, 0.0)
-    a_var = np.where(a_ok, config.accel_std_mps2**2, 1.0)
-    # Adaptive bias noise from the change of the filtered acceleration (source: w2 = 0.527·Δa_f).
-    alpha = dt_s / (config.accel_filter_tau_s + dt_s)
-    af_old = aux[:, RefAux.ACCEL_FILTERED]
-    af = np.where(a_ok, af_old + alpha * (a_m - af_old), af_old)
-    w2 = config.bias_gain * (af - af_old)
-    Q = np.zeros((n, 2, 2))
-    Q[:, RefState.V, RefState.V] = dt_s * dt_s * a_var
-    Q[:, RefState.A0, RefState.A0] = w2 * w2 + config.bias_walk_mps2_per_sqrt_s**2 * dt_s
-    u = np.zeros((n, 2))
-    u[:, RefState.V] = B[RefState.V] * a_m
-    xp, Pp = kalman.predict(x, P, F, Q, u)
-
+    xp, Pp, af = _predict(x, P, aux[:, RefAux.ACCEL_FILTERED], accel_mps2, dt_s, config)
     have_ref = np.isfinite(speed_ref_mps)
     rim_ok = np.isfinite(rim_speed_mps)
-    ratio = aux[:, RefAux.WHEEL_RATIO]
     lost = np.where(have_ref, 0.0, aux[:, RefAux.LOST_S] + dt_s)
     moving = rim_ok & (np.abs(np.where(rim_ok, rim_speed_mps, 0.0)) >= config.min_speed_mps)
-    # Track the ground/rim ratio while the reference is there.
-    beta = dt_s / (config.ratio_tau_s + dt_s)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inst = np.where(
-            moving & have_ref, speed_ref_mps / np.where(moving, rim_speed_mps, 1.0), ratio
-        )
-    inst = np.clip(inst, 0.3, 3.0)
-    ratio = np.where(moving & have_ref, ratio + beta * (inst - ratio), ratio)
-
+    ratio = _track_wheel_ratio(
+        aux[:, RefAux.WHEEL_RATIO], speed_ref_mps, rim_speed_mps, moving, have_ref, dt_s, config
+    )
     use_wheels = ~have_ref & rim_ok
     vm = np.where(
         have_ref, speed_ref_mps, np.where(moving, ratio, 1.0) * np.where(rim_ok, rim_speed_mps, 0.0)
@@ -194,3 +171,49 @@ def reference_step(
     res = kalman.update(xp, Pp, vm[:, None], np.array([[1.0, 0.0]]), r[:, None, None], mask)
     aux_new = np.stack([af, ratio, lost], axis=1)
     return res.x, res.P, aux_new, use_wheels
+
+
+def _predict(
+    x: FloatArray,
+    P: FloatArray,
+    af_old: FloatArray,
+    accel_mps2: FloatArray,
+    dt_s: float,
+    config: ReferenceSpeedConfig,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Prediction of :func:`reference_step` with its adaptive bias noise; ``(x⁻, P⁻, a_f)``."""
+    n = x.shape[0]
+    F, B = transition(dt_s)
+    a_ok = np.isfinite(accel_mps2)
+    a_m = np.where(a_ok, accel_mps2, 0.0)
+    a_var = np.where(a_ok, config.accel_std_mps2**2, 1.0)
+    # Adaptive bias noise from the change of the filtered acceleration (source: w2 = 0.527·Δa_f).
+    alpha = dt_s / (config.accel_filter_tau_s + dt_s)
+    af = np.where(a_ok, af_old + alpha * (a_m - af_old), af_old)
+    w2 = config.bias_gain * (af - af_old)
+    Q = np.zeros((n, 2, 2))
+    Q[:, RefState.V, RefState.V] = dt_s * dt_s * a_var
+    Q[:, RefState.A0, RefState.A0] = w2 * w2 + config.bias_walk_mps2_per_sqrt_s**2 * dt_s
+    u = np.zeros((n, 2))
+    u[:, RefState.V] = B[RefState.V] * a_m
+    xp, Pp = kalman.predict(x, P, F, Q, u)
+    return xp, Pp, af
+
+
+def _track_wheel_ratio(
+    ratio: FloatArray,
+    speed_ref_mps: FloatArray,
+    rim_speed_mps: FloatArray,
+    moving: npt.NDArray[np.bool_],
+    have_ref: npt.NDArray[np.bool_],
+    dt_s: float,
+    config: ReferenceSpeedConfig,
+) -> FloatArray:
+    """The ground/rim speed ratio, low-passed while the reference is there and the wheels turn."""
+    beta = dt_s / (config.ratio_tau_s + dt_s)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inst = np.where(
+            moving & have_ref, speed_ref_mps / np.where(moving, rim_speed_mps, 1.0), ratio
+        )
+    inst = np.clip(inst, 0.3, 3.0)
+    return np.where(moving & have_ref, ratio + beta * (inst - ratio), ratio)

@@ -340,21 +340,40 @@ def pitch_kf_update(
     r2 = np.full(k, config.pitch_std_rad**2) if pitch_var_rad2 is None else pitch_var_rad2
     q_ang = np.zeros(k) if angle_walk_rad2 is None else angle_walk_rad2
     gap = np.where(known, np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 0.0)
-    qb = config.gyro_bias_walk_radps_per_sqrt_s**2
-    ptt, ptb, pbb = cov[:, AngleCov.ANGLE], cov[:, AngleCov.CROSS], cov[:, AngleCov.BIAS]
-    # propagate: F = [[1, −T], [0, 1]], Q of the bias walk integrated over T
-    ptt = ptt - 2 * gap * ptb + gap * gap * pbb + q_ang + qb * gap**3 / 3
-    ptb = ptb - gap * pbb - qb * gap * gap / 2
-    pbb = pbb + qb * gap
+    ptt, ptb, pbb = _propagate_angle_cov(cov, gap, q_ang, config.gyro_bias_walk_radps_per_sqrt_s**2)
     theta, bias = theta_rad.copy(), bias_radps.copy()
     if still_rate_radps is not None and still_rate_var is not None:
         theta, bias, ptt, ptb, pbb = _standstill_bias_update(
             (theta, bias, ptt, ptb, pbb), known, still_rate_radps, still_rate_var, config.gate_chi2
         )
-    # the pitch: z = θ + noise (H = [1, 0])
     has = np.isfinite(pitch_gnss_rad)
-    first = has & ~known
-    follow = has & known
+    theta, bias, out = _pitch_measurement_update(
+        (theta, bias, ptt, ptb, pbb), has & ~known, has & known, pitch_gnss_rad, r2, config
+    )
+    return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
+
+
+def _propagate_angle_cov(
+    cov: FloatArray, gap: FloatArray, q_ang: FloatArray, qb: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``P' = F·P·Fᵀ + Q`` with ``F = [[1, −T], [0, 1]]``, ``Q`` of the bias walk over ``T``."""
+    ptt, ptb, pbb = cov[:, AngleCov.ANGLE], cov[:, AngleCov.CROSS], cov[:, AngleCov.BIAS]
+    ptt = ptt - 2 * gap * ptb + gap * gap * pbb + q_ang + qb * gap**3 / 3
+    ptb = ptb - gap * pbb - qb * gap * gap / 2
+    pbb = pbb + qb * gap
+    return ptt, ptb, pbb
+
+
+def _pitch_measurement_update(
+    state: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
+    first: BoolArray,
+    follow: BoolArray,
+    pitch_gnss_rad: FloatArray,
+    r2: FloatArray,
+    config: TiltSettings,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The pitch ``z = θ + noise`` (``H = [1, 0]``): set on ``first``, update on ``follow``."""
+    theta, bias, ptt, ptb, pbb = state
     s = np.where(follow, ptt + r2, 1.0)
     y = np.where(follow, pitch_gnss_rad - theta, 0.0)
     kt, kb = ptt / s, ptb / s
@@ -371,7 +390,7 @@ def pitch_kf_update(
         ],
         axis=1,
     )
-    return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
+    return theta, bias, out
 
 
 def yaw_fix_update(

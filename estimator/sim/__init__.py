@@ -343,32 +343,16 @@ def simulate(
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     r_plan, r_truth, r_gnss, r_imu, r_wheel = rng.spawn(5)
 
-    plan = scenario.build(params, r_plan)
-    g = cfg.geometry
-    radii = (
-        g.wheel_radius_left_m * (1.0 + spec.wheel_radius_error_rel[0]),
-        g.wheel_radius_right_m * (1.0 + spec.wheel_radius_error_rel[1]),
-    )
-    fine = integrate_plan(
-        plan,
-        fine_rate_hz=spec.fine_rate_hz,
-        track_width_m=g.track_width_m,
-        wheel_radius_m=radii,
-        rng=r_truth,
-    )
+    fine = _fine_truth(scenario.build(params, r_plan), spec, cfg, r_truth)
     frame = EnuFrame(
         float(common["origin_lat_deg"]),
         float(common["origin_lon_deg"]),
         float(common["origin_height_m"]),
     )
-    emissions: list[Emission] = []
-    emissions += gnss_emissions(fine, spec, cfg, frame, start_ns, r_gnss)
-    emissions += imu_emissions(fine, spec, cfg, start_ns, r_imu)
-    wheels = wheel_emissions(fine, spec, cfg, start_ns, r_wheel)
     end_ns = start_ns + round(fine.t_s[-1] * 1e9)
-    heartbeats = wheel_heartbeats(wheels, spec, start_ns, end_ns)
-    emissions += wheels
-    emissions.sort(key=lambda e: (e.key_ns, e.rank))
+    emissions, heartbeats = _sensor_emissions(
+        fine, spec, cfg, frame, (start_ns, end_ns), (r_gnss, r_imu, r_wheel)
+    )
     truth = _truth_table(fine, spec, cfg, start_ns)
     return SimRun(
         name=name,
@@ -385,3 +369,42 @@ def simulate(
         truth=truth,
         frame=frame,
     )
+
+
+def _fine_truth(
+    plan: MotionPlan, spec: SensorSpec, cfg: WheeledRearDriveConfig, rng: np.random.Generator
+) -> FineTruth:
+    """The plan integrated on the fine grid, with the wheels' radii as the spec mis-states them."""
+    g = cfg.geometry
+    radii = (
+        g.wheel_radius_left_m * (1.0 + spec.wheel_radius_error_rel[0]),
+        g.wheel_radius_right_m * (1.0 + spec.wheel_radius_error_rel[1]),
+    )
+    return integrate_plan(
+        plan,
+        fine_rate_hz=spec.fine_rate_hz,
+        track_width_m=g.track_width_m,
+        wheel_radius_m=radii,
+        rng=rng,
+    )
+
+
+def _sensor_emissions(
+    fine: FineTruth,
+    spec: SensorSpec,
+    cfg: WheeledRearDriveConfig,
+    frame: EnuFrame,
+    span_ns: tuple[int, int],
+    rngs: tuple[np.random.Generator, np.random.Generator, np.random.Generator],
+) -> tuple[list[Emission], npt.NDArray[np.int64]]:
+    """GNSS, IMU and wheel emissions in sending order, and the wheels' heartbeats."""
+    start_ns, end_ns = span_ns
+    r_gnss, r_imu, r_wheel = rngs
+    emissions: list[Emission] = []
+    emissions += gnss_emissions(fine, spec, cfg, frame, start_ns, r_gnss)
+    emissions += imu_emissions(fine, spec, cfg, start_ns, r_imu)
+    wheels = wheel_emissions(fine, spec, cfg, start_ns, r_wheel)
+    heartbeats = wheel_heartbeats(wheels, spec, start_ns, end_ns)
+    emissions += wheels
+    emissions.sort(key=lambda e: (e.key_ns, e.rank))
+    return emissions, heartbeats

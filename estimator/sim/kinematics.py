@@ -295,16 +295,7 @@ def integrate_plan(
     a0: FloatArray = np.asarray(np.gradient(v0, dt), dtype=np.float64)
     dist = cumtrapz(v0, dt)
 
-    theta = plan.terrain_pitch_rad(dist) + plan.pitch_wobble_ts(t, v0)
-    phi = plan.terrain_roll_rad(dist) + plan.roll_wobble_ts(t, v0)
-    wz = np.asarray(plan.yaw_rate_ts(t, v0), dtype=np.float64)
-    theta_dot = np.gradient(theta, dt)
-    phi_dot = np.gradient(phi, dt)
-    psi_dot = (theta_dot * np.sin(phi) - wz) / (np.cos(theta) * np.cos(phi))
-    psi = plan.heading0_rad + cumtrapz(psi_dot, dt)
-    wx = theta_dot * np.cos(phi) + psi_dot * np.cos(theta) * np.sin(phi)
-    wy = phi_dot - psi_dot * np.sin(theta)
-    omega = np.stack([wx, wy, wz], axis=1)
+    psi, theta, phi, wz, omega = _attitude(plan, t, v0, dist, dt)
     alpha = np.gradient(omega, dt, axis=0)
 
     rot = rotation_body_to_enu(psi, theta, phi)
@@ -318,21 +309,7 @@ def integrate_plan(
     ground = np.maximum(ground, 0.0)
 
     mu = np.asarray(plan.mu_max(dist), dtype=np.float64)
-    base = plan.traction.slip(a0, theta, plan.drawbar(t), mu)
-    turn = plan.traction.turn_gain * v0 * wz / GRAVITY_MPS2
-    moving = np.clip(v0 / 0.5, 0.0, 1.0)
-    tex = np.stack(
-        [
-            ou_process(rng, t, plan.traction.texture_std, plan.traction.texture_tau_s) * moving,
-            ou_process(rng, t, plan.traction.texture_std, plan.traction.texture_tau_s) * moving,
-        ],
-        axis=1,
-    )
-    base = base + np.asarray(plan.slip_offset(t), dtype=np.float64) * moving
-    slip = np.stack([base - turn, base + turn], axis=1) + tex
-    slip = np.clip(slip, -0.9, 0.9)
-    if any(plan.free_rolling):
-        slip = np.where(np.asarray(plan.free_rolling)[None, :], 0.0, slip)
+    slip = _wheel_slip(plan, t, (v0, a0, wz), theta, mu, rng)
     rim = rim_speed_from_slip(ground, slip)
     radius = np.asarray(wheel_radius_m, dtype=np.float64)[None, :]
     wheel = rim / radius
@@ -357,3 +334,47 @@ def integrate_plan(
         wheel_angle_rad=angle,
         mu_max=mu,
     )
+
+
+def _attitude(
+    plan: MotionPlan, t: FloatArray, v0: FloatArray, dist: FloatArray, dt: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``(ψ, θ, φ, ω_z, ω (n, 3))``: terrain and wobble tilt, the heading giving the yaw rate."""
+    theta = plan.terrain_pitch_rad(dist) + plan.pitch_wobble_ts(t, v0)
+    phi = plan.terrain_roll_rad(dist) + plan.roll_wobble_ts(t, v0)
+    wz = np.asarray(plan.yaw_rate_ts(t, v0), dtype=np.float64)
+    theta_dot = np.gradient(theta, dt)
+    phi_dot = np.gradient(phi, dt)
+    psi_dot = (theta_dot * np.sin(phi) - wz) / (np.cos(theta) * np.cos(phi))
+    psi = plan.heading0_rad + cumtrapz(psi_dot, dt)
+    wx = theta_dot * np.cos(phi) + psi_dot * np.cos(theta) * np.sin(phi)
+    wy = phi_dot - psi_dot * np.sin(theta)
+    return psi, theta, phi, wz, np.stack([wx, wy, wz], axis=1)
+
+
+def _wheel_slip(
+    plan: MotionPlan,
+    t: FloatArray,
+    motion: tuple[FloatArray, FloatArray, FloatArray],
+    theta: FloatArray,
+    mu: FloatArray,
+    rng: np.random.Generator,
+) -> FloatArray:
+    """Slip of both driven wheels ``(n, 2)``: traction, turn, texture and offset, clipped."""
+    v0, a0, wz = motion
+    base = plan.traction.slip(a0, theta, plan.drawbar(t), mu)
+    turn = plan.traction.turn_gain * v0 * wz / GRAVITY_MPS2
+    moving = np.clip(v0 / 0.5, 0.0, 1.0)
+    tex = np.stack(
+        [
+            ou_process(rng, t, plan.traction.texture_std, plan.traction.texture_tau_s) * moving,
+            ou_process(rng, t, plan.traction.texture_std, plan.traction.texture_tau_s) * moving,
+        ],
+        axis=1,
+    )
+    base = base + np.asarray(plan.slip_offset(t), dtype=np.float64) * moving
+    slip = np.stack([base - turn, base + turn], axis=1) + tex
+    slip = np.clip(slip, -0.9, 0.9)
+    if any(plan.free_rolling):
+        slip = np.where(np.asarray(plan.free_rolling)[None, :], 0.0, slip)
+    return slip

@@ -154,6 +154,39 @@ def _traction(p: Params) -> TractionModel:
     )
 
 
+def _tilt_wobbles(
+    p: Params,
+    w_pitch: Callable[[FloatArray], FloatArray],
+    w_roll: Callable[[FloatArray], FloatArray],
+) -> tuple[Callable[[FloatArray, FloatArray], FloatArray], ...]:
+    """Body pitch and roll wobbles ``f(t, v0)``: the bumps grown with speed, plus the sway."""
+    full = float(p["wobble_full_speed_mps"])
+
+    def body_gate(v0: FloatArray) -> FloatArray:
+        # bumps come faster the faster the vehicle goes: body pitch/roll motion grows with speed
+        return np.clip(np.asarray(v0) / full, 0.0, 1.0)
+
+    sway_w = 2.0 * math.pi * float(p["sway_hz"])
+    sway_pitch, sway_roll = math.radians(p["sway_pitch_deg"]), math.radians(p["sway_roll_deg"])
+
+    def sway_gate(v0: FloatArray) -> FloatArray:
+        return np.clip(np.asarray(v0), 0.0, 1.0)
+
+    def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
+        out = w_pitch(t) * body_gate(v0)
+        if sway_pitch:
+            out = out + sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
+        return out
+
+    def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
+        out = w_roll(t) * body_gate(v0)
+        if sway_roll:
+            out = out + sway_roll * np.cos(sway_w * t) * sway_gate(v0)
+        return out
+
+    return pitch_f, roll_f
+
+
 def _plan(
     p: Params,
     rng: np.random.Generator,
@@ -179,30 +212,8 @@ def _plan(
     def yaw_f(t: FloatArray, v0: FloatArray) -> FloatArray:
         return yaw(t) + w_yaw(t) * _moving(v0)
 
-    full = float(p["wobble_full_speed_mps"])
-
-    def body_gate(v0: FloatArray) -> FloatArray:
-        # bumps come faster the faster the vehicle goes: body pitch/roll motion grows with speed
-        return np.clip(np.asarray(v0) / full, 0.0, 1.0)
-
-    sway_w = 2.0 * math.pi * float(p["sway_hz"])
-    sway_pitch, sway_roll = math.radians(p["sway_pitch_deg"]), math.radians(p["sway_roll_deg"])
+    pitch_f, roll_f = _tilt_wobbles(p, w_pitch, w_roll)
     steps = tuple((float(t0), 0.01 * float(d), float(w)) for t0, d, w in p["slip_steps"])
-
-    def sway_gate(v0: FloatArray) -> FloatArray:
-        return np.clip(np.asarray(v0), 0.0, 1.0)
-
-    def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        out = w_pitch(t) * body_gate(v0)
-        if sway_pitch:
-            out = out + sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
-        return out
-
-    def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        out = w_roll(t) * body_gate(v0)
-        if sway_roll:
-            out = out + sway_roll * np.cos(sway_w * t) * sway_gate(v0)
-        return out
 
     def slip_offset(t: FloatArray) -> FloatArray:
         return ramp_steps(t, steps)
@@ -426,6 +437,16 @@ def _slow_creep(p: Params, rng: np.random.Generator) -> MotionPlan:
 
 
 def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
+    tl = _field_timeline(p)
+    speed, yaw, drawbar = tl.profiles()
+    pitch, roll, mu = _field_terrain(p)
+    return _plan(
+        p, rng, tl.t, speed, yaw, drawbar=drawbar, terrain_pitch=pitch, terrain_roll=roll, mu_max=mu
+    )
+
+
+def _field_timeline(p: Params) -> _Timeline:
+    """Working passes with the implement in, stops every few passes, headland U-turns."""
     dur = float(p["duration_s"])
     v_work, v_turn = float(p["work_speed_mps"]), float(p["turn_speed_mps"])
     radius, draw = float(p["turn_radius_m"]), float(p["drawbar"])
@@ -469,7 +490,11 @@ def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
         tl.go(ramp, speed=v_work)
     tl.go(4.0, speed=0.0, drawbar=0.0)
     tl.go(dur - tl.t)
-    speed, yaw, drawbar = tl.profiles()
+    return tl
+
+
+def _field_terrain(p: Params) -> tuple[Callable[[FloatArray], FloatArray], ...]:
+    """Terrain pitch and roll (sines over distance) and the wet patches' grip, of distance."""
     hill, hill_len = math.radians(p["hill_pitch_deg"]), float(p["hill_length_m"])
     bank = math.radians(p["bank_roll_deg"])
     wet_every, wet_len = float(p["wet_every_m"]), float(p["wet_length_m"])
@@ -487,9 +512,7 @@ def _field_work(p: Params, rng: np.random.Generator) -> MotionPlan:
             phase, 0.5 * wet_every, 0.5 * wet_every + wet_len, 1.0
         )
 
-    return _plan(
-        p, rng, tl.t, speed, yaw, drawbar=drawbar, terrain_pitch=pitch, terrain_roll=roll, mu_max=mu
-    )
+    return pitch, roll, mu
 
 
 def _random_drive(p: Params, rng: np.random.Generator) -> MotionPlan:

@@ -40,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import FloatArray
+from estimator._arrays import FloatArray, IntArray
 from estimator.base import Measurement
 from estimator.config import WheeledRearDriveConfig
 from estimator.geo import EnuFrame
@@ -296,32 +296,62 @@ def gnss_emissions(
     pos = truth.pos_enu_m[src] + rot @ p_ant
 
     scale = np.where(_in_windows(t, spec.gnss_float_windows), spec.gnss_float_noise_scale, 1.0)
-    forward = rot[:, :, 1]
-    vel_meas = vel * (1.0 + rel[:, None]) + white * (spec.gnss_vel_std_mps * scale)[:, None]
-    for t0, dv, dur in spec.gnss_speed_steps:
-        hit = (t >= t0 - 1e-9) & (t < t0 + dur - 1e-9)
-        vel_meas[hit] += dv * forward[hit]
+    vel_meas = _measured_velocity(vel, rot[:, :, 1], t, rel, white, scale, spec)
     vel_meas[outlier] += outlier_v[outlier]
     pos_meas = pos + pos_noise * (spec.gnss_pos_std_m * scale)[:, None]
-    heading = np.mod(truth.psi_rad[src] + att_noise[:, 0] * spec.gnss_heading_std_rad, 2 * np.pi)
-    pitch = truth.theta_rad[src] + att_noise[:, 1] * spec.gnss_pitch_std_rad
-    roll = truth.phi_rad[src] + att_noise[:, 2] * spec.gnss_roll_std_rad
-    if not spec.gnss_attitude:
-        heading, pitch, roll = (np.full(n, np.nan) for _ in range(3))
+    heading, pitch, roll = _measured_attitude(truth, src, att_noise, spec)
     lat, lon, h = frame.to_geodetic(pos_meas[:, 0], pos_meas[:, 1], pos_meas[:, 2])
     speed = np.linalg.norm(vel, axis=1)
     reported = np.sqrt(
         (spec.gnss_vel_std_mps * scale) ** 2 + (spec.gnss_speed_noise_rel * speed) ** 2 / 3
     )
-    out_mask = _in_windows(t, spec.gnss_outages)
     fix_ok = np.where(scale > 1.0, GnssFix.RTK_FLOAT, GnssFix.RTK_FIXED)
+    fields = (vel_meas, heading, pitch, roll, lat, lon, h, fix_ok, reported)
+    return _gnss_samples(_stamps(start_ns, t), _in_windows(t, spec.gnss_outages), fields, spec)
 
-    stamps = _stamps(start_ns, t)
+
+def _measured_velocity(
+    vel: FloatArray,
+    forward: FloatArray,
+    t: FloatArray,
+    rel: FloatArray,
+    white: FloatArray,
+    scale: FloatArray,
+    spec: SensorSpec,
+) -> FloatArray:
+    """The antenna velocity with its scale error, white noise and the spec's speed steps."""
+    vel_meas = vel * (1.0 + rel[:, None]) + white * (spec.gnss_vel_std_mps * scale)[:, None]
+    for t0, dv, dur in spec.gnss_speed_steps:
+        hit = (t >= t0 - 1e-9) & (t < t0 + dur - 1e-9)
+        vel_meas[hit] += dv * forward[hit]
+    return vel_meas
+
+
+def _measured_attitude(
+    truth: FineTruth, src: IntArray, att_noise: FloatArray, spec: SensorSpec
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Heading, pitch and roll with their noise; NaN when the receiver has no attitude."""
+    heading = np.mod(truth.psi_rad[src] + att_noise[:, 0] * spec.gnss_heading_std_rad, 2 * np.pi)
+    pitch = truth.theta_rad[src] + att_noise[:, 1] * spec.gnss_pitch_std_rad
+    roll = truth.phi_rad[src] + att_noise[:, 2] * spec.gnss_roll_std_rad
+    if not spec.gnss_attitude:
+        heading, pitch, roll = (np.full(att_noise.shape[0], np.nan) for _ in range(3))
+    return heading, pitch, roll
+
+
+def _gnss_samples(
+    stamps: IntArray,
+    out_mask: npt.NDArray[np.bool_],
+    fields: tuple[FloatArray, ...],
+    spec: SensorSpec,
+) -> list[Emission]:
+    """One emission per epoch (an outage: an empty fix, or none when ``missing``)."""
+    vel_meas, heading, pitch, roll, lat, lon, h, fix_ok, reported = fields
     latency = round(spec.gnss_latency_ms * 1e6)
     period_ns = round(1e9 / spec.gnss_rate_hz)
     nan = math.nan
     out: list[Emission] = []
-    for k in range(n):
+    for k in range(stamps.shape[0]):
         stamp = int(stamps[k])
         if out_mask[k]:
             if spec.gnss_outage_mode == "missing":

@@ -237,27 +237,9 @@ class WheelBank:
         # usually every slot has one batch queued: no chaining of batches within a slot
         one_each = len(set(self._q_slot)) == len(self._q_slot)
         t = np.concatenate(self._q_stamp)
-        d_sum = None
-        if self._q_dir:
-            with_dir = np.zeros(slots.shape[0], dtype=bool)
-            with_dir[[i for i, _ in self._q_dir]] = True
-            d_all = np.ones(t.shape[0], dtype=np.int8)
-            d_all[np.repeat(with_dir, lens)] = np.concatenate([d for _, d in self._q_dir])
-            d_sum = np.cumsum(np.where(d_all < 0, -1, 1))
+        d_sum = self._direction_sums(slots, lens, t.shape[0])
         self._q_slot, self._q_stamp, self._q_dir, self._q_len = [], [], [], []
-        n_edges = t.shape[0]
-        ends = np.cumsum(lens)
-        starts = ends - lens
-        in_batch = np.arange(n_edges) - np.repeat(starts, lens)  # edge index within its batch
-        # Edge count within its batch (signed with direction): the angle is start + step·k,
-        # as edge_angles computes it batch by batch.
-        if d_sum is None:
-            k = in_batch + 1
-            total = lens
-        else:
-            before = np.concatenate([[0], d_sum])[starts]
-            k = d_sum - np.repeat(before, lens)
-            total = d_sum[ends - 1] - before
+        in_batch, k, total = _batch_counts(lens, d_sum, t.shape[0])
         step = self._step_rad
         cur = self._last_angle
         if one_each:
@@ -267,26 +249,62 @@ class WheelBank:
             by_slot = np.argsort(slots)
             touched, new_per_slot = slots[by_slot], lens[by_slot]
         else:
-            # Batches of one slot, in push order: their start angles chain batch after batch,
-            # and their edges follow the edges of the slot's earlier batches (``earlier``).
-            order = np.argsort(slots, kind="stable")
-            s_sorted = slots[order]
-            first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
-            group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
-            rank = np.empty_like(slots)
-            rank[order] = np.arange(slots.shape[0]) - group
-            start = np.empty(slots.shape[0])
-            for r in range(int(rank.max()) + 1):
-                b = np.flatnonzero(rank == r)
-                start[b] = cur[slots[b]]
-                cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
-            before_sorted = np.cumsum(lens[order]) - lens[order]
-            earlier = np.empty_like(lens)
-            earlier[order] = before_sorted - before_sorted[group]
-            per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
-            touched = np.flatnonzero(per_slot)
-            new_per_slot = per_slot[touched]
+            start, earlier, touched, new_per_slot = self._chain_batches(slots, lens, total)
         angle = np.repeat(start, lens) + step * k.astype(np.float64)
+        self._write_edges(slots, lens, t, angle, (earlier, in_batch), (touched, new_per_slot))
+        if self._removed:
+            self._clear_removed()
+
+    def _direction_sums(self, slots: IntArray, lens: IntArray, n_edges: int) -> IntArray | None:
+        """Running sum of the queued edges' directions (±1; +1 without a direction), or None."""
+        if not self._q_dir:
+            return None
+        with_dir = np.zeros(slots.shape[0], dtype=bool)
+        with_dir[[i for i, _ in self._q_dir]] = True
+        d_all = np.ones(n_edges, dtype=np.int8)
+        d_all[np.repeat(with_dir, lens)] = np.concatenate([d for _, d in self._q_dir])
+        return np.cumsum(np.where(d_all < 0, -1, 1))
+
+    def _chain_batches(
+        self, slots: IntArray, lens: IntArray, total: IntArray
+    ) -> tuple[FloatArray, IntArray, IntArray, IntArray]:
+        """Start angles and earlier edges of several batches per slot; touched slots, new edges.
+
+        Batches of one slot, in push order: their start angles chain batch after batch, and
+        their edges follow the edges of the slot's earlier batches (``earlier``).
+        """
+        step = self._step_rad
+        cur = self._last_angle
+        order = np.argsort(slots, kind="stable")
+        s_sorted = slots[order]
+        first = np.flatnonzero(np.concatenate([[True], s_sorted[1:] != s_sorted[:-1]]))
+        group = np.repeat(first, np.diff(np.concatenate([first, [slots.shape[0]]])))
+        rank = np.empty_like(slots)
+        rank[order] = np.arange(slots.shape[0]) - group
+        start = np.empty(slots.shape[0])
+        for r in range(int(rank.max()) + 1):
+            b = np.flatnonzero(rank == r)
+            start[b] = cur[slots[b]]
+            cur[slots[b]] = start[b] + step * total[b].astype(np.float64)
+        before_sorted = np.cumsum(lens[order]) - lens[order]
+        earlier = np.empty_like(lens)
+        earlier[order] = before_sorted - before_sorted[group]
+        per_slot = np.bincount(slots, weights=lens, minlength=self._slots).astype(np.int64)
+        touched = np.flatnonzero(per_slot)
+        return start, earlier, touched, per_slot[touched]
+
+    def _write_edges(
+        self,
+        slots: IntArray,
+        lens: IntArray,
+        t: IntArray,
+        angle: FloatArray,
+        place: tuple[IntArray, IntArray],
+        new: tuple[IntArray, IntArray],
+    ) -> None:
+        """Store the edges in the rings (``place``: earlier, in batch; ``new``: per slot)."""
+        earlier, in_batch = place
+        touched, new_per_slot = new
         # Edge numbers: each slot's new edges follow its held ones, in push order.
         e_slot = np.repeat(slots, lens)
         number = self._count[e_slot] + np.repeat(earlier, lens) + in_batch
@@ -299,8 +317,6 @@ class WheelBank:
         dslot = e_slot * ns + _tooth(angle, ns)
         self._dslot[at] = dslot
         self._corr[at] = angle + self._delta.reshape(-1)[dslot]
-        if self._removed:
-            self._clear_removed()
 
     # --- rings ---------------------------------------------------------------------------
     def _fit_rings(self, slots: IntArray, extra: IntArray) -> None:
@@ -423,17 +439,10 @@ class WheelBank:
             Arrays of shape ``(n, m)``: row ``i`` is slot ``slots[i]``.
         """
         s = np.asarray(slots, dtype=np.int64).reshape(-1)
-        q2 = np.asarray(query_ns, dtype=np.int64)
         n = s.shape[0]
         # one row per distinct slot for the calibration (a repeated slot shares its times)
         uniq, first = np.unique(s, return_index=True) if n > 1 else (s, np.zeros(1, np.int64))
-        if q2.ndim == 2:
-            if q2.shape[0] != n:
-                raise ValueError(f"query_ns has {q2.shape[0]} rows for {n} slots")
-            if uniq.shape[0] != n:
-                raise ValueError("slots must be distinct when each has its own times")
-        else:
-            q2 = np.broadcast_to(q2.reshape(1, -1), (n, q2.size))
+        q2 = _query_grid(np.asarray(query_ns, dtype=np.int64), n, uniq.shape[0])
         m = q2.shape[1]
         self._flush()
         if n == 0 or m == 0:
@@ -441,41 +450,14 @@ class WheelBank:
             return WheelSpeedResult(
                 r.omega_radps.reshape(n, m), r.std_radps.reshape(n, m), r.method.reshape(n, m)
             )
-        cfg = self.config
         omega = np.empty((n, m))
         std = np.empty((n, m))
         method = np.empty((n, m), dtype=np.int8)
-        period = self._period_ns
         i = 0
         tail: tuple[IntArray, IntArray] | None = None
         while i < m:
-            due = None
-            if cfg.tooth_calibration:
-                # each row calibrates on its own grid boundaries; a chunk of columns ends where
-                # any row reaches its next boundary (other rows are not due there)
-                origin = self._cal_origin[uniq]
-                boundary = self._boundary(q2[first, i], origin)
-                due = (boundary > self._cal_upto[uniq]) & (origin != _NO_ORIGIN)
-                if not due.any():
-                    due = None
-                j = int((q2[first] < (boundary + period)[:, None]).sum(axis=1).min())
-            else:
-                j = m
-            # The edges each fit and calibration needs, found in one bisection over the held
-            # edges (a calibration moves no edge): the first after each query time, after it
-            # − window_s (at or before the former) and, when a calibration is due, after the
-            # slot's grid boundary.
-            nq = j - i
-            rs = np.repeat(s, nq)
-            q = q2[:, i:j].reshape(-1)
-            times = [q, q - self._w_ns]
-            if due is not None:
-                times.append(np.repeat(self._boundary(q2[:, i], self._cal_origin[s]), nq))
-            after = self._search(rs, self._head[rs], self._count[rs], np.stack(times))
-            if due is not None:
-                self._calibrate(uniq[due], after[2][first[due] * nq] - 1)
-                self._cal_upto[uniq[due]] = boundary[due]
-            res, tail = self._fit(rs, q, nq, after[0], after[1])
+            j, due, boundary = self._next_chunk(q2, uniq, first, i, m)
+            res, tail = self._query_chunk(s, uniq, first, q2, i, j, due, boundary)
             omega[:, i:j] = res.omega_radps.reshape(n, j - i)
             std[:, i:j] = res.std_radps.reshape(n, j - i)
             method[:, i:j] = res.method.reshape(n, j - i)
@@ -483,6 +465,48 @@ class WheelBank:
         assert tail is not None
         self._trim(s, *tail)
         return WheelSpeedResult(omega, std, method)
+
+    def _next_chunk(
+        self, q2: IntArray, uniq: IntArray, first: IntArray, i: int, m: int
+    ) -> tuple[int, npt.NDArray[np.bool_] | None, IntArray | None]:
+        """End ``j`` of the chunk of columns from ``i``, the rows due a calibration, boundaries."""
+        if not self.config.tooth_calibration:
+            return m, None, None
+        # each row calibrates on its own grid boundaries; a chunk of columns ends where
+        # any row reaches its next boundary (other rows are not due there)
+        origin = self._cal_origin[uniq]
+        boundary = self._boundary(q2[first, i], origin)
+        due = (boundary > self._cal_upto[uniq]) & (origin != _NO_ORIGIN)
+        j = int((q2[first] < (boundary + self._period_ns)[:, None]).sum(axis=1).min())
+        return j, (due if due.any() else None), boundary
+
+    def _query_chunk(
+        self,
+        s: IntArray,
+        uniq: IntArray,
+        first: IntArray,
+        q2: IntArray,
+        i: int,
+        j: int,
+        due: npt.NDArray[np.bool_] | None,
+        boundary: IntArray | None,
+    ) -> tuple[WheelSpeedResult, tuple[IntArray, IntArray]]:
+        """Columns ``i:j`` of :meth:`query`: the due calibrations, then the fits."""
+        # The edges each fit and calibration needs, found in one bisection over the held
+        # edges (a calibration moves no edge): the first after each query time, after it
+        # − window_s (at or before the former) and, when a calibration is due, after the
+        # slot's grid boundary.
+        nq = j - i
+        rs = np.repeat(s, nq)
+        q = q2[:, i:j].reshape(-1)
+        times = [q, q - self._w_ns]
+        if due is not None:
+            times.append(np.repeat(self._boundary(q2[:, i], self._cal_origin[s]), nq))
+        after = self._search(rs, self._head[rs], self._count[rs], np.stack(times))
+        if due is not None and boundary is not None:
+            self._calibrate(uniq[due], after[2][first[due] * nq] - 1)
+            self._cal_upto[uniq[due]] = boundary[due]
+        return self._fit(rs, q, nq, after[0], after[1])
 
     def _corrected(self, at: IntArray) -> FloatArray:
         """Angles of the edges at arena indices ``at``, with their slot's tooth corrections."""
@@ -627,22 +651,46 @@ class WheelBank:
         slots, lo, hi = slots[go], lo[go], hi[go]
         self._cal_from[slots] = hi + 1
         n_c = hi - lo + 1  # centres per slot
+        at, stamp, raw, ang, run_first = self._read_runs(slots, lo, n_c, h)
+        # window rows: centre index in the run arrays, neighbours −h … −1, 1 … h
+        m = int(n_c.sum())
+        row_slot = np.repeat(slots, n_c)
+        centre = np.repeat(run_first + h - (np.cumsum(n_c) - n_c), n_c) + np.arange(m)
+        ok = self._usable_windows(stamp, raw, centre, row_slot, h)
+        any_ok = np.zeros(self._slots, dtype=bool)
+        any_ok[row_slot[ok]] = True
+        if not ok.any():
+            return
+        centre, row_slot = centre[ok], row_slot[ok]
+        resid = _centre_residuals(stamp, ang, centre, h)
+        pitch = 2 * np.pi / cfg.teeth_per_rev
+        good = np.abs(resid) < 0.3 * pitch
+        flat = self._delta.reshape(-1)
+        np.add.at(flat, self._dslot[at[centre[good]]], -cfg.calibration_gain * resid[good])
+        upd = np.flatnonzero(any_ok)
+        self._delta[upd] -= (_row_sum(self._delta[upd]) / cfg.teeth_per_rev)[:, None]
+        self._recorrect(upd)
+        np.add.at(self._calibrated, row_slot[good], 1)
+        self._learn_angle_noise(row_slot[good], resid[good])
+
+    def _read_runs(
+        self, slots: IntArray, lo: IntArray, n_c: IntArray, h: int
+    ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, IntArray]:
+        """Ring places, stamps, raw and corrected angles of the runs ``lo − h … hi + h``."""
         run_len = n_c + 2 * h
         run_first = np.cumsum(run_len) - run_len
         run_slot = np.repeat(slots, run_len)
         n_run = int(run_len.sum())
         number = np.repeat(lo - h - run_first, run_len) + np.arange(n_run)
         at = self._at(run_slot, number)
-        stamp = self._stamp[at]
-        raw = self._angle[at]
-        ang = self._corr[at]
-        # window rows: centre index in the run arrays, neighbours −h … −1, 1 … h
-        m = int(n_c.sum())
-        row_slot = np.repeat(slots, n_c)
-        centre = np.repeat(run_first + h - (np.cumsum(n_c) - n_c), n_c) + np.arange(m)
-        # no interval ≥ stop_timeout_s inside the window; with direction, one way only
+        return at, self._stamp[at], self._angle[at], self._corr[at], run_first
+
+    def _usable_windows(
+        self, stamp: IntArray, raw: FloatArray, centre: IntArray, row_slot: IntArray, h: int
+    ) -> npt.NDArray[np.bool_]:
+        """Windows without an interval ≥ ``stop_timeout_s``, of span > 0, one way if signed."""
         gap_ns = np.diff(stamp)
-        long_gap = np.concatenate([[0], np.cumsum(gap_ns * _NS >= cfg.stop_timeout_s)])
+        long_gap = np.concatenate([[0], np.cumsum(gap_ns * _NS >= self.config.stop_timeout_s)])
         ok = long_gap[centre + h] == long_gap[centre - h]
         ok &= stamp[centre + h] > stamp[centre - h]  # span > 0
         signed = self._signed[row_slot]
@@ -653,31 +701,7 @@ class WheelBank:
             n_up = up[centre + h] - up[centre - h]
             n_down = down[centre + h] - down[centre - h]
             ok &= (n_up == 2 * h) | (n_down == 2 * h) | ~signed
-        any_ok = np.zeros(self._slots, dtype=bool)
-        any_ok[row_slot[ok]] = True
-        if not ok.any():
-            return
-        centre, row_slot = centre[ok], row_slot[ok]
-        # Windows as rows (M, 2h + 1) of the run; the centre column is exactly 0 in both time
-        # and angle, so it adds nothing to the fit: the centre edge is left out (its own error
-        # must not pull the fit).
-        t_run = (stamp - stamp[0]).astype(np.float64) * _NS
-        win_t = sliding_window_view(t_run, 2 * h + 1)[centre - h]
-        win_a = sliding_window_view(ang, 2 * h + 1)[centre - h]
-        ts = win_t - win_t[:, h : h + 1]
-        u = ts / (ts[:, -1] - ts[:, 0])[:, None]
-        a = win_a - win_a[:, h : h + 1]
-        c0 = _quadratic_intercept(u, a, 2 * h)
-        resid = -c0  # centre angle (0 by construction) minus the fit at the centre
-        pitch = 2 * np.pi / cfg.teeth_per_rev
-        good = np.abs(resid) < 0.3 * pitch
-        flat = self._delta.reshape(-1)
-        np.add.at(flat, self._dslot[at[centre[good]]], -cfg.calibration_gain * resid[good])
-        upd = np.flatnonzero(any_ok)
-        self._delta[upd] -= (_row_sum(self._delta[upd]) / cfg.teeth_per_rev)[:, None]
-        self._recorrect(upd)
-        np.add.at(self._calibrated, row_slot[good], 1)
-        self._learn_angle_noise(row_slot[good], resid[good])
+        return ok
 
     def _learn_angle_noise(self, row_slot: IntArray, resid: FloatArray) -> None:
         """Move each slot's edge angle variance toward its calibration residuals (in place).
@@ -724,3 +748,47 @@ class WheelBank:
         """1-sigma angle error of one edge of ``slot`` that its fits are floored by [rad]."""
         self._flush()
         return math.sqrt(float(self._angle_var[slot]))
+
+
+def _query_grid(q: IntArray, n: int, n_distinct: int) -> IntArray:
+    """The query times as ``(n, m)``: each slot's own, or the shared row broadcast."""
+    if q.ndim == 2:
+        if q.shape[0] != n:
+            raise ValueError(f"query_ns has {q.shape[0]} rows for {n} slots")
+        if n_distinct != n:
+            raise ValueError("slots must be distinct when each has its own times")
+        return q
+    return np.broadcast_to(q.reshape(1, -1), (n, q.size))
+
+
+def _batch_counts(
+    lens: IntArray, d_sum: IntArray | None, n_edges: int
+) -> tuple[IntArray, IntArray, IntArray]:
+    """Each edge's index in its batch, its count ``k`` (signed with direction), batch totals.
+
+    The angle is start + step·k, as ``edge_angles`` computes it batch by batch.
+    """
+    ends = np.cumsum(lens)
+    starts = ends - lens
+    in_batch = np.arange(n_edges) - np.repeat(starts, lens)  # edge index within its batch
+    if d_sum is None:
+        return in_batch, in_batch + 1, lens
+    before = np.concatenate([[0], d_sum])[starts]
+    return in_batch, d_sum - np.repeat(before, lens), d_sum[ends - 1] - before
+
+
+def _centre_residuals(stamp: IntArray, ang: FloatArray, centre: IntArray, h: int) -> FloatArray:
+    """Centre edge's angle minus the quadratic fit of its ``2h`` neighbours, per window.
+
+    Windows as rows (M, 2h + 1) of the run; the centre column is exactly 0 in both time and
+    angle, so it adds nothing to the fit: the centre edge is left out (its own error must not
+    pull the fit).
+    """
+    t_run = (stamp - stamp[0]).astype(np.float64) * _NS
+    win_t = sliding_window_view(t_run, 2 * h + 1)[centre - h]
+    win_a = sliding_window_view(ang, 2 * h + 1)[centre - h]
+    ts = win_t - win_t[:, h : h + 1]
+    u = ts / (ts[:, -1] - ts[:, 0])[:, None]
+    a = win_a - win_a[:, h : h + 1]
+    c0 = _quadratic_intercept(u, a, 2 * h)
+    return -c0  # centre angle (0 by construction) minus the fit at the centre

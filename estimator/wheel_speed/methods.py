@@ -304,6 +304,21 @@ def omega_at(
     has = last >= seg0
     if e.shape[0] == 0 or not has.any():
         return _unknown(m)
+    return _omega_in_windows(e, pos, q, last, seg0, has, config, angle_before_rad, signed)
+
+
+def _omega_in_windows(
+    e: IntArray,
+    pos: FloatArray,
+    q: IntArray,
+    last: IntArray,
+    seg0: IntArray,
+    has: npt.NDArray[np.bool_],
+    config: WheelSpeedConfig,
+    angle_before_rad: float | FloatArray,
+    signed: bool | npt.NDArray[np.bool_],
+) -> WheelSpeedResult:
+    """Gather each query's window of edges (``last``: its last edge) and fit it (``omega_at``)."""
     w_ns = round(config.window_s * 1e9)
     first_in = np.searchsorted(e, q - w_ns, side="right")
     n_win = np.maximum(last - first_in + 1, 0)
@@ -315,8 +330,7 @@ def omega_at(
     freq = has & (n_win >= config.frequency_min_count)
     freq_omega = None
     if freq.any():
-        before = np.where(first_in > seg0, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
-        freq_omega = (pos[last_c] - before) / config.window_s
+        freq_omega = _count_speed(pos, first_in, seg0, last_c, angle_before_rad, config)
     prior_var = (config.angle_noise_rel * 2.0 * np.pi / config.teeth_per_rev) ** 2
     return _speed_from_window(
         q,
@@ -333,6 +347,19 @@ def omega_at(
         signed,
         prior_var,
     )
+
+
+def _count_speed(
+    pos: FloatArray,
+    first_in: IntArray,
+    seg0: IntArray,
+    last_c: IntArray,
+    angle_before_rad: float | FloatArray,
+    config: WheelSpeedConfig,
+) -> FloatArray:
+    """Angle turned over the window divided by the window (the frequency method's ``ω``)."""
+    before = np.where(first_in > seg0, pos[np.maximum(first_in - 1, 0)], angle_before_rad)
+    return (pos[last_c] - before) / config.window_s
 
 
 def _unknown(m: int) -> WheelSpeedResult:
@@ -546,23 +573,7 @@ def _solve_quadratic_fit(
     a_inv11 : ndarray, shape (m,)
         ``(A⁻¹)₁₁``, the variance factor of ``c1``.
     """
-    wu = wf * u
-    wu2 = wf * u2
-    s00 = _row_sum(wf)
-    s01 = _row_sum(wu)
-    s02 = _row_sum(wu2)
-    s11 = _row_dot(wu, u)
-    s12 = _row_dot(wu, u2)
-    s22 = _row_dot(wu2, u2)
-    b0 = _row_dot(wf, p)
-    b1 = _row_dot(wu, p)
-    b2 = _row_dot(wu2, p)
-    lin = ~quad
-    s22 = np.where(lin, 1.0, s22)  # u2 is 0 on linear rows: s02 = s12 = b2 = 0 already
-    bad = ~fit_ok
-    if bad.any():
-        s00, s11, s22 = (np.where(bad, 1.0, s) for s in (s00, s11, s22))
-        s01, s02, s12, b0, b1, b2 = (np.where(bad, 0.0, s) for s in (s01, s02, s12, b0, b1, b2))
+    s00, s01, s02, s11, s12, s22, b0, b1, b2 = _weighted_sums(u, u2, wf, p, quad, fit_ok)
     s00 = s00 + 1e-12
     s11 = s11 + 1e-12
     s22 = s22 + 1e-12
@@ -585,20 +596,62 @@ def _solve_quadratic_fit(
         a_inv11 = c11 * inv_det
         ill = ~(np.abs(det) > _WELL_POSED * np.abs(s00 * s11 * s22))
     if ill.any():
-        r = np.flatnonzero(ill)
-        cols = np.stack([np.ones_like(u[r]), u[r], u2[r]], axis=-1) * wf[r][..., None]
-        A = np.einsum("mki,mkj->mij", cols, cols)
-        b = np.einsum("mki,mk->mi", cols, p[r])
-        A[lin[r], 2, :] = 0.0
-        A[lin[r], :, 2] = 0.0
-        A[lin[r], 2, 2] = 1.0
-        b[lin[r], 2] = 0.0
-        A[bad[r]] = np.eye(3)
-        b[bad[r]] = 0.0
-        A = A + np.eye(3) * 1e-12
-        coef[:, r] = np.linalg.solve(A, b[..., None])[..., 0].T
-        a_inv11[r] = np.linalg.inv(A)[:, 1, 1]
+        _solve_ill_rows(np.flatnonzero(ill), u, u2, wf, p, ~quad, ~fit_ok, coef, a_inv11)
     return coef, a_inv11
+
+
+def _weighted_sums(
+    u: FloatArray,
+    u2: FloatArray,
+    wf: FloatArray,
+    p: FloatArray,
+    quad: npt.NDArray[np.bool_],
+    fit_ok: npt.NDArray[np.bool_],
+) -> tuple[FloatArray, ...]:
+    """``(s00, s01, s02, s11, s12, s22, b0, b1, b2)`` of ``A``, ``b``; linear and bad rows set."""
+    wu = wf * u
+    wu2 = wf * u2
+    s00 = _row_sum(wf)
+    s01 = _row_sum(wu)
+    s02 = _row_sum(wu2)
+    s11 = _row_dot(wu, u)
+    s12 = _row_dot(wu, u2)
+    s22 = _row_dot(wu2, u2)
+    b0 = _row_dot(wf, p)
+    b1 = _row_dot(wu, p)
+    b2 = _row_dot(wu2, p)
+    s22 = np.where(~quad, 1.0, s22)  # u2 is 0 on linear rows: s02 = s12 = b2 = 0 already
+    bad = ~fit_ok
+    if bad.any():
+        s00, s11, s22 = (np.where(bad, 1.0, s) for s in (s00, s11, s22))
+        s01, s02, s12, b0, b1, b2 = (np.where(bad, 0.0, s) for s in (s01, s02, s12, b0, b1, b2))
+    return s00, s01, s02, s11, s12, s22, b0, b1, b2
+
+
+def _solve_ill_rows(
+    r: IntArray,
+    u: FloatArray,
+    u2: FloatArray,
+    wf: FloatArray,
+    p: FloatArray,
+    lin: npt.NDArray[np.bool_],
+    bad: npt.NDArray[np.bool_],
+    coef: FloatArray,
+    a_inv11: FloatArray,
+) -> None:
+    """Rows ``r`` of :func:`_solve_quadratic_fit` by LU, written into ``coef`` and ``a_inv11``."""
+    cols = np.stack([np.ones_like(u[r]), u[r], u2[r]], axis=-1) * wf[r][..., None]
+    A = np.einsum("mki,mkj->mij", cols, cols)
+    b = np.einsum("mki,mk->mi", cols, p[r])
+    A[lin[r], 2, :] = 0.0
+    A[lin[r], :, 2] = 0.0
+    A[lin[r], 2, 2] = 1.0
+    b[lin[r], 2] = 0.0
+    A[bad[r]] = np.eye(3)
+    b[bad[r]] = 0.0
+    A = A + np.eye(3) * 1e-12
+    coef[:, r] = np.linalg.solve(A, b[..., None])[..., 0].T
+    a_inv11[r] = np.linalg.inv(A)[:, 1, 1]
 
 
 def _quadratic_intercept(u: FloatArray, a: FloatArray, n: int) -> FloatArray:

@@ -206,32 +206,13 @@ def _deriv(
     vx, vy, r = x[:, S.VX], x[:, S.VY], x[:, S.R]
     wx, wy = p.wheel_xy()
     wheelbase = p.lf_m + p.lr_m
-    delta_f = d.steer_rad[:, k] / p.steering_ratio
-    r_ref = vx * np.tan(delta_f) / wheelbase / (1.0 + (vx / 20.0) ** 2)
-    r_max = (np.abs(acc[:, 1]) + 0.5) / np.maximum(np.abs(vx), 1.0)
-    delta_f = delta_f - 1.0 * (r - np.clip(r_ref, -r_max, r_max))
-    toe = p.ackermann * np.abs(delta_f)
-    delta = np.stack(
-        [
-            delta_f * (1 + toe * np.sign(delta_f)),
-            delta_f * (1 - toe * np.sign(delta_f)),
-            0 * delta_f,
-            0 * delta_f,
-        ],
-        axis=-1,
-    )
+    delta_f, delta = _steer_angles(x, d.steer_rad[:, k] / p.steering_ratio, p, acc, wheelbase)
     u = vx[:, None] - wy * r[:, None]
     w = vy[:, None] + wx * r[:, None]
     cos_d, sin_d = np.cos(delta), np.sin(delta)
     v_long = u * cos_d + w * sin_d
     v_lat = -u * sin_d + w * cos_d
-    mg = p.mass_kg * GRAVITY_MPS2
-    static = np.stack([mg * p.lr_m, mg * p.lr_m, mg * p.lf_m, mg * p.lf_m], axis=-1) / (
-        2 * wheelbase[:, None]
-    )
-    lx, lyf, lyr = x[:, S.LOAD_X], x[:, S.LOAD_YF], x[:, S.LOAD_YR]
-    fz = static + np.stack([-lx / 2 - lyf, -lx / 2 + lyf, lx / 2 - lyr, lx / 2 + lyr], axis=-1)
-    fz = np.maximum(fz, 0.0)
+    fz = _wheel_loads(x, p, wheelbase)
     r_eff = p.radius_m - p.radius_drop[:, None] * fz / p.kz_npm
     omega = x[:, S.OMEGA]
     kappa = (omega * r_eff - v_long) / np.maximum(np.abs(v_long), 1.0)
@@ -244,12 +225,7 @@ def _deriv(
     fx, fy = brush_forces(kr, ar, fz, mu, cx, cy)
     fxb = fx * cos_d - fy * sin_d
     fyb = fx * sin_d + fy * cos_d
-    resist = 0.5 * AIR_DENSITY_KGPM3 * p.drag_area_m2 * vx * np.abs(vx) + (
-        p.rolling_resistance * fz.sum(axis=-1) * np.tanh(vx)
-    )
-    ax = (fxb.sum(axis=-1) - resist) / p.mass_kg
-    ay = fyb.sum(axis=-1) / p.mass_kg
-    r_dot = (wx * fyb - wy * fxb).sum(axis=-1) / p.yaw_inertia_kgm2
+    ax, ay, r_dot = _body_accelerations(vx, fxb, fyb, fz, (wx, wy), p)
     torque = _torques(x, k, p, d, r_eff, np.hypot(kappa, np.tan(ar)))
     dx = np.zeros_like(x)
     dx[:, S.VX] = ax + r * vy
@@ -262,17 +238,7 @@ def _deriv(
     dx[:, S.OMEGA] = (torque - fx * r_eff) / p.wheel_inertia_kgm2[:, None]
     dx[:, S.KAPPA] = speed / p.relax_x_m[:, None] * (kappa - kr)
     dx[:, S.ALPHA] = speed / p.relax_y_m[:, None] * (alpha - ar)
-    m_h = p.mass_kg * p.cg_height_m
-    z = p.roll_front_share
-    targets = (
-        m_h * acc[:, 0] / wheelbase,
-        z * m_h * acc[:, 1] / (2 * p.half_track_f_m),
-        (1 - z) * m_h * acc[:, 1] / (2 * p.half_track_r_m),
-    )
-    for col, target in zip((S.LOAD_X, S.LOAD_YF, S.LOAD_YR), targets, strict=True):
-        dx[:, col] = (target - x[:, col]) / p.load_lag_s
-    dx[:, S.ROLL] = (p.roll_rad_per_g * acc[:, 1] / GRAVITY_MPS2 - x[:, S.ROLL]) / p.tilt_lag_s
-    dx[:, S.PITCH] = (p.pitch_rad_per_g * acc[:, 0] / GRAVITY_MPS2 - x[:, S.PITCH]) / p.tilt_lag_s
+    _lagged_load_and_tilt(dx, x, p, acc, wheelbase)
     dx[:, S.SPEED_INT] = d.speed_mps[:, k] - vx
     dx[:, S.ANGLE] = omega
     out = {
@@ -288,6 +254,74 @@ def _deriv(
         "alpha": ar,
     }
     return dx, out
+
+
+def _body_accelerations(
+    vx: FloatArray,
+    fxb: FloatArray,
+    fyb: FloatArray,
+    fz: FloatArray,
+    wheel_xy: tuple[FloatArray, FloatArray],
+    p: TruthParams,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(a_x, a_y, ṙ)`` of the body from the tyres' body-frame forces, drag and rolling."""
+    wx, wy = wheel_xy
+    resist = 0.5 * AIR_DENSITY_KGPM3 * p.drag_area_m2 * vx * np.abs(vx) + (
+        p.rolling_resistance * fz.sum(axis=-1) * np.tanh(vx)
+    )
+    ax = (fxb.sum(axis=-1) - resist) / p.mass_kg
+    ay = fyb.sum(axis=-1) / p.mass_kg
+    r_dot = (wx * fyb - wy * fxb).sum(axis=-1) / p.yaw_inertia_kgm2
+    return ax, ay, r_dot
+
+
+def _steer_angles(
+    x: FloatArray, delta_f: FloatArray, p: TruthParams, acc: FloatArray, wheelbase: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Front steer (yaw-rate limited by the grip) and the four wheels' angles with Ackermann."""
+    vx, r = x[:, S.VX], x[:, S.R]
+    r_ref = vx * np.tan(delta_f) / wheelbase / (1.0 + (vx / 20.0) ** 2)
+    r_max = (np.abs(acc[:, 1]) + 0.5) / np.maximum(np.abs(vx), 1.0)
+    delta_f = delta_f - 1.0 * (r - np.clip(r_ref, -r_max, r_max))
+    toe = p.ackermann * np.abs(delta_f)
+    delta = np.stack(
+        [
+            delta_f * (1 + toe * np.sign(delta_f)),
+            delta_f * (1 - toe * np.sign(delta_f)),
+            0 * delta_f,
+            0 * delta_f,
+        ],
+        axis=-1,
+    )
+    return delta_f, delta
+
+
+def _wheel_loads(x: FloatArray, p: TruthParams, wheelbase: FloatArray) -> FloatArray:
+    """Normal loads ``(R, 4)``: static share plus the lagged transfers, never negative."""
+    mg = p.mass_kg * GRAVITY_MPS2
+    static = np.stack([mg * p.lr_m, mg * p.lr_m, mg * p.lf_m, mg * p.lf_m], axis=-1) / (
+        2 * wheelbase[:, None]
+    )
+    lx, lyf, lyr = x[:, S.LOAD_X], x[:, S.LOAD_YF], x[:, S.LOAD_YR]
+    fz = static + np.stack([-lx / 2 - lyf, -lx / 2 + lyf, lx / 2 - lyr, lx / 2 + lyr], axis=-1)
+    return np.maximum(fz, 0.0)
+
+
+def _lagged_load_and_tilt(
+    dx: FloatArray, x: FloatArray, p: TruthParams, acc: FloatArray, wheelbase: FloatArray
+) -> None:
+    """Rates of the load transfers and of roll and pitch, first-order lags behind ``acc``."""
+    m_h = p.mass_kg * p.cg_height_m
+    z = p.roll_front_share
+    targets = (
+        m_h * acc[:, 0] / wheelbase,
+        z * m_h * acc[:, 1] / (2 * p.half_track_f_m),
+        (1 - z) * m_h * acc[:, 1] / (2 * p.half_track_r_m),
+    )
+    for col, target in zip((S.LOAD_X, S.LOAD_YF, S.LOAD_YR), targets, strict=True):
+        dx[:, col] = (target - x[:, col]) / p.load_lag_s
+    dx[:, S.ROLL] = (p.roll_rad_per_g * acc[:, 1] / GRAVITY_MPS2 - x[:, S.ROLL]) / p.tilt_lag_s
+    dx[:, S.PITCH] = (p.pitch_rad_per_g * acc[:, 0] / GRAVITY_MPS2 - x[:, S.PITCH]) / p.tilt_lag_s
 
 
 def _torques(
