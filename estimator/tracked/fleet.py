@@ -223,6 +223,10 @@ class _Base:
     def _conf_min(self) -> float:
         return self.config.uncertain_below
 
+    @property
+    def _reach(self) -> int:
+        return self.config.release_reach_ticks
+
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         tracked = expect_kind(config, TrackedConfig, self.name)
         self._slots[vehicle_id] = _Slot(tracked, self.config)
@@ -379,7 +383,9 @@ class TrackedFleet(_Base):
         for (vid, slot, _), a, b in zip(
             work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
         ):
-            given = slot.held.give(out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min)
+            given = slot.held.give(
+                out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min, self._reach
+            )
             if given.size:
                 result.append((vid, given))
         return result
@@ -430,7 +436,7 @@ class TrackedEstimator(_Base):
                 onset[r] = got.onset[0]
                 _count([slot], got)
             _geodetic([slot], [ticks.size], rows)
-            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min)
+            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min, self._reach)
             if given.size:
                 result.append((vid, given))
         return result
