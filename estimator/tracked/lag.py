@@ -26,12 +26,12 @@ from estimator._arrays import BoolArray
 from estimator.tracked.model import MotionState
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 
-__all__ = ["HeldRows", "backdate", "release"]
+__all__ = ["BRAKED_BITS", "HeldRows", "backdate", "release"]
 
 _F = TrackedFlag
 _SLIP_BITS = int(_F.SLIP_LEFT_VALID | _F.SLIP_RIGHT_VALID | _F.BRAKED_LEFT | _F.BRAKED_RIGHT)
 _BRAKED = (int(_F.BRAKED_LEFT), int(_F.BRAKED_RIGHT))
-_BRAKED_BITS = int(_F.BRAKED_LEFT | _F.BRAKED_RIGHT)
+BRAKED_BITS = int(_F.BRAKED_LEFT | _F.BRAKED_RIGHT)
 _STOP = int(MotionState.STOP)
 _SLIP_FIELDS = ("slip_left_pct", "slip_right_pct", "slip_left_std_pct", "slip_right_std_pct")
 
@@ -116,7 +116,7 @@ def _still_open(onset: BoolArray, lag: int, braked: BoolArray, reach: int) -> in
 
 class HeldRows:
     """One vehicle's rows not yet given (at most ``lag`` ticks): their bytes, states, onsets
-    and whether they show a braked track (kept apart so that the common case, nothing to
+    and whether any shows a braked track (kept apart so that the common case, nothing to
     backdate or release, touches no record array field by field: per vehicle and call this
     runs on the server's hot path)."""
 
@@ -126,31 +126,42 @@ class HeldRows:
         self.data = b""
         self.state = np.zeros(0, dtype=TRACKED_SPEC.dtype["motion_state"])
         self.onset = np.zeros(0, dtype=bool)
-        self.braked = np.zeros(0, dtype=bool)
+        self.braked = False
 
     def give(
-        self, rows: np.ndarray, onset: BoolArray, lag: int, conf_min: float, reach: int = 0
+        self,
+        rows: np.ndarray,
+        onset: BoolArray,
+        lag: int,
+        conf_min: float,
+        reach: int = 0,
+        braked: bool | None = None,
     ) -> np.ndarray:
         """Add the rows of new ticks (``onset`` ``(m,)``), take back the −100 % a release
         reaches (:func:`release`, at most ``reach`` rows), backdate their changes over the
-        held ones, and return (oldest first) every row a later change can no longer reach."""
+        held ones, and return (oldest first) every row a later change can no longer reach.
+        ``braked``: whether any of ``rows`` shows a braked track (read from them if None)."""
         if lag <= 0 and not self.data:
             return rows
-        braked = reach > 0 and bool((rows["flags"] & _BRAKED_BITS).any())
-        if lag > 0 and rows.size and not onset.any() and not (braked or self.braked.any()):
+        if braked is None:
+            braked = bool((rows["flags"] & BRAKED_BITS).any())
+        braked = reach > 0 and (braked or self.braked)
+        if lag > 0 and rows.size and not braked and not onset.any():
             return self._give_steady(rows, onset)
         first = self.state.size
         on = np.concatenate([self.onset, onset])
         buf = np.frombuffer(bytearray(self.data + rows.tobytes()), dtype=TRACKED_SPEC.dtype)
-        release(buf, first, reach)
+        if braked:
+            release(buf, first, reach)
         state = np.concatenate([self.state, rows["motion_state"]])
         lo = max(first, 1)
         if ((state[lo:] != state[lo - 1 : -1]) & on[lo:]).any():  # a change that can go back
             backdate(buf, on, first, lag, conf_min)
             state = buf["motion_state"]
-        held_braked = (buf["flags"] & _BRAKED_BITS) != 0 if reach > 0 else np.zeros(buf.size, bool)
+        held_braked = (buf["flags"] & BRAKED_BITS) != 0 if braked else np.zeros(buf.size, bool)
         cut = buf.size - _still_open(on, lag, held_braked, reach)
-        return self._keep(buf, state, on, held_braked, cut)
+        self.braked = bool(held_braked[cut:].any())
+        return self._keep(buf, state, on, cut)
 
     def _give_steady(self, rows: np.ndarray, onset: BoolArray) -> np.ndarray:
         """:meth:`give` when no new row has a change under way nor a braked track, nor any
@@ -161,19 +172,16 @@ class HeldRows:
         self.data = rows[-1:].tobytes()
         self.state = rows["motion_state"][-1:].copy()
         self.onset = onset[-1:].copy()
-        self.braked = np.zeros(1, dtype=bool)
         return given
 
     def flush(self) -> np.ndarray:
         """Every held row, as it stands (no later change will backdate it), oldest first."""
         buf = np.frombuffer(bytearray(self.data), dtype=TRACKED_SPEC.dtype)
-        return self._keep(buf, self.state, self.onset, self.braked, buf.size)
+        self.braked = False
+        return self._keep(buf, self.state, self.onset, buf.size)
 
-    def _keep(
-        self, buf: np.ndarray, state: np.ndarray, on: BoolArray, braked: BoolArray, cut: int
-    ) -> np.ndarray:
+    def _keep(self, buf: np.ndarray, state: np.ndarray, on: BoolArray, cut: int) -> np.ndarray:
         """Hold ``buf[cut:]`` and return ``buf[:cut]``."""
         self.data = buf[cut:].tobytes()
         self.state, self.onset = state[cut:].copy(), on[cut:].copy()
-        self.braked = braked[cut:].copy()
         return buf[:cut]
