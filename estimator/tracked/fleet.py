@@ -21,7 +21,7 @@ from estimator.geo import geodetic_from_enu
 from estimator.tracked.clock_cal import clock_fields, reset_clock, restore_clock
 from estimator.tracked.fleet_inputs import take_fleet
 from estimator.tracked.gyro_noise import arw_fields, initial_stats, stats_from_fields
-from estimator.tracked.lag import HeldRows
+from estimator.tracked.lag import BRAKED_BITS, HeldRows
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.params import VehicleParams
 from estimator.tracked.settings import TrackedEstimatorConfig
@@ -223,6 +223,10 @@ class _Base:
     def _conf_min(self) -> float:
         return self.config.uncertain_below
 
+    @property
+    def _reach(self) -> int:
+        return self.config.release_reach_ticks
+
     def add_vehicle(self, vehicle_id: str, config: VehicleConfig) -> None:
         tracked = expect_kind(config, TrackedConfig, self.name)
         self._slots[vehicle_id] = _Slot(tracked, self.config)
@@ -376,10 +380,13 @@ class TrackedFleet(_Base):
             )
         _geodetic([slot for _, slot, _ in work], np.diff(starts).tolist(), out)
         result = []
-        for (vid, slot, _), a, b in zip(
-            work, starts[:-1].tolist(), starts[1:].tolist(), strict=True
+        braked = np.add.reduceat((out["flags"] & BRAKED_BITS) != 0, starts[:-1]) > 0
+        for (vid, slot, _), a, b, any_braked in zip(
+            work, starts[:-1].tolist(), starts[1:].tolist(), braked.tolist(), strict=True
         ):
-            given = slot.held.give(out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min)
+            given = slot.held.give(
+                out[a:b], onset[a:b], self.config.lag_ticks, self._conf_min, self._reach, any_braked
+            )
             if given.size:
                 result.append((vid, given))
         return result
@@ -430,7 +437,7 @@ class TrackedEstimator(_Base):
                 onset[r] = got.onset[0]
                 _count([slot], got)
             _geodetic([slot], [ticks.size], rows)
-            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min)
+            given = slot.held.give(rows, onset, self.config.lag_ticks, self._conf_min, self._reach)
             if given.size:
                 result.append((vid, given))
         return result

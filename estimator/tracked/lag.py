@@ -9,6 +9,13 @@ way (``onset`` of the tick after: a ratio moving, a sprocket settling, the yaw a
 out of its band), at most ``lag`` ticks. Only rows a later change can still reach are held:
 the last one, and while a change is under way up to ``lag`` (a fixed lag of one tick in
 steady driving, of at most ``lag`` ticks through a change). Every row keeps its own stamp.
+
+A braked track's −100 % is given only once no release can reach it: a sprocket starting
+from rest shows its first edge only after turning up to one tooth pitch, which a lever
+crossing its travel may take most of that travel to do, so the ticks just before the
+first edge may already have the track turning. While a track is braked its last
+``reach`` rows are held; when a row shows it released, :func:`release` takes the −100 %
+back from the braked rows before it (at most ``reach``): they give no slip for that track.
 """
 
 from __future__ import annotations
@@ -19,10 +26,12 @@ from estimator._arrays import BoolArray
 from estimator.tracked.model import MotionState
 from estimator.tracked_spec import TRACKED_SPEC, TrackedFlag
 
-__all__ = ["HeldRows", "backdate"]
+__all__ = ["BRAKED_BITS", "HeldRows", "backdate", "release"]
 
 _F = TrackedFlag
 _SLIP_BITS = int(_F.SLIP_LEFT_VALID | _F.SLIP_RIGHT_VALID | _F.BRAKED_LEFT | _F.BRAKED_RIGHT)
+_BRAKED = (int(_F.BRAKED_LEFT), int(_F.BRAKED_RIGHT))
+BRAKED_BITS = int(_F.BRAKED_LEFT | _F.BRAKED_RIGHT)
 _STOP = int(MotionState.STOP)
 _SLIP_FIELDS = ("slip_left_pct", "slip_right_pct", "slip_left_std_pct", "slip_right_std_pct")
 
@@ -61,50 +70,104 @@ def backdate(
     return moved
 
 
-def _still_open(onset: BoolArray, lag: int) -> int:
+def release(rows: np.ndarray, first: int, reach: int) -> BoolArray:
+    """Take back the −100 % of braked rows a release reaches (``rows`` of ``TRACKED_SPEC``
+    ``(m,)``, in place) and return which tracks lost it ``(m, 2)`` (left, right).
+
+    For a track braked on row ``t − 1`` and not on row ``t`` (``t ≥ first``; row ``t`` not a
+    stop, where the other track stopped instead), rows ``t − 1, t − 2, …`` (at most
+    ``reach``) showing it braked lose ``BRAKED_*`` and give no slip for it (NaN): its first
+    edge may have come a pitch's turn after it started."""
+    flags = rows["flags"]
+    out = np.zeros((rows.size, 2), dtype=bool)
+    lo = max(first, 1)
+    if reach <= 0 or rows.size <= lo:
+        return out
+    going = rows["motion_state"][lo:] != _STOP
+    for side, bit in enumerate(_BRAKED):
+        braked = (flags & bit) != 0
+        for t in (np.flatnonzero(braked[lo - 1 : -1] & ~braked[lo:] & going) + lo).tolist():
+            j = t - 1
+            while j >= max(t - reach, 0) and braked[j]:
+                out[j, side] = True
+                j -= 1
+    for side, name in enumerate(("left", "right")):
+        taken = out[:, side]
+        if taken.any():
+            flags[taken] &= ~_BRAKED[side]
+            rows[f"slip_{name}_pct"][taken] = np.nan
+            rows[f"slip_{name}_std_pct"][taken] = np.nan
+    return out
+
+
+def _still_open(onset: BoolArray, lag: int, braked: BoolArray, reach: int) -> int:
     """How many of the last rows a later change may still relabel: the last one (the tick
     before a change), and before it every row followed by an unbroken run of onsets to the
-    end, at most ``lag`` rows (0 for no lag)."""
+    end, at most ``lag`` rows (0 for no lag); and the last rows showing a braked track
+    (``braked`` ``(m,)``), at most ``reach``, which a release may still reach."""
     held = min(1, lag, onset.size)
     while held < min(lag, onset.size) and onset[onset.size - held]:
         held += 1
-    return held
+    tail = 0
+    while tail < min(reach, braked.size) and braked[braked.size - 1 - tail]:
+        tail += 1
+    return max(held, tail)
 
 
 class HeldRows:
-    """One vehicle's rows not yet given (at most ``lag`` ticks): their bytes, states and
-    onsets (kept apart so that the common case, nothing to backdate, touches no record
-    array field by field: per vehicle and call this runs on the server's hot path)."""
+    """One vehicle's rows not yet given (at most ``lag`` ticks): their bytes, states, onsets
+    and whether any shows a braked track (kept apart so that the common case, nothing to
+    backdate or release, touches no record array field by field: per vehicle and call this
+    runs on the server's hot path)."""
 
-    __slots__ = ("data", "onset", "state")
+    __slots__ = ("braked", "data", "onset", "state")
 
     def __init__(self) -> None:
         self.data = b""
         self.state = np.zeros(0, dtype=TRACKED_SPEC.dtype["motion_state"])
         self.onset = np.zeros(0, dtype=bool)
+        self.braked = False
 
-    def give(self, rows: np.ndarray, onset: BoolArray, lag: int, conf_min: float) -> np.ndarray:
-        """Add the rows of new ticks (``onset`` ``(m,)``), backdate their changes over the held
-        ones, and return (oldest first) every row a later change can no longer reach."""
+    def give(
+        self,
+        rows: np.ndarray,
+        onset: BoolArray,
+        lag: int,
+        conf_min: float,
+        reach: int = 0,
+        braked: bool | None = None,
+    ) -> np.ndarray:
+        """Add the rows of new ticks (``onset`` ``(m,)``), take back the −100 % a release
+        reaches (:func:`release`, at most ``reach`` rows), backdate their changes over the
+        held ones, and return (oldest first) every row a later change can no longer reach.
+        ``braked``: whether any of ``rows`` shows a braked track (read from them if None)."""
         if lag <= 0 and not self.data:
             return rows
-        if lag > 0 and rows.size and not onset.any():
+        if braked is None:
+            braked = bool((rows["flags"] & BRAKED_BITS).any())
+        braked = reach > 0 and (braked or self.braked)
+        if lag > 0 and rows.size and not braked and not onset.any():
             return self._give_steady(rows, onset)
         first = self.state.size
-        state = np.concatenate([self.state, rows["motion_state"]])
         on = np.concatenate([self.onset, onset])
         buf = np.frombuffer(bytearray(self.data + rows.tobytes()), dtype=TRACKED_SPEC.dtype)
+        if braked:
+            release(buf, first, reach)
+        state = np.concatenate([self.state, rows["motion_state"]])
         lo = max(first, 1)
         if ((state[lo:] != state[lo - 1 : -1]) & on[lo:]).any():  # a change that can go back
             backdate(buf, on, first, lag, conf_min)
             state = buf["motion_state"]
-        cut = buf.size - _still_open(on, lag)
+        held_braked = (buf["flags"] & BRAKED_BITS) != 0 if braked else np.zeros(buf.size, bool)
+        cut = buf.size - _still_open(on, lag, held_braked, reach)
+        self.braked = bool(held_braked[cut:].any())
         return self._keep(buf, state, on, cut)
 
     def _give_steady(self, rows: np.ndarray, onset: BoolArray) -> np.ndarray:
-        """:meth:`give` when no new row has a change under way (most ticks): nothing can be
-        backdated and only the newest row stays open, so the held rows and all new rows but
-        the last are given as they are, without joining the states and onsets."""
+        """:meth:`give` when no new row has a change under way nor a braked track, nor any
+        held row a braked track (most ticks): nothing can be backdated or released and only
+        the newest row stays open, so the held rows and all new rows but the last are given
+        as they are, without joining the states and onsets."""
         given = np.frombuffer(bytearray(self.data + rows[:-1].tobytes()), dtype=rows.dtype)
         self.data = rows[-1:].tobytes()
         self.state = rows["motion_state"][-1:].copy()
@@ -114,6 +177,7 @@ class HeldRows:
     def flush(self) -> np.ndarray:
         """Every held row, as it stands (no later change will backdate it), oldest first."""
         buf = np.frombuffer(bytearray(self.data), dtype=TRACKED_SPEC.dtype)
+        self.braked = False
         return self._keep(buf, self.state, self.onset, buf.size)
 
     def _keep(self, buf: np.ndarray, state: np.ndarray, on: BoolArray, cut: int) -> np.ndarray:

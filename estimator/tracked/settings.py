@@ -238,6 +238,14 @@ class TrackedEstimatorConfig:
         return self.report_lag_ticks if self.mode == TrackedMode.PRODUCT else 0
 
     @property
+    def release_reach_ticks(self) -> int:
+        """Rows a braked track's release may take its −100 % back from
+        (:func:`~estimator.tracked.lag.release`): a sprocket starting from rest shows its first
+        edge up to about the lever's travel ``lever_travel_s`` late, in ticks (rounded up),
+        at most the fixed lag ``lag_ticks``."""
+        return min(self.lag_ticks, math.ceil(self.lever_travel_s / self.tick_s - 1e-9))
+
+    @property
     def learns(self) -> bool:
         """Whether gyro bias and scale, odometer factors and standstill are learned/used."""
         return self.mode == TrackedMode.PRODUCT

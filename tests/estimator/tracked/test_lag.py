@@ -99,3 +99,76 @@ def test_rows_given_tick_by_tick_equal_rows_given_at_once() -> None:
         ticked = np.concatenate([*parts, each.flush()])
         assert whole.tobytes() == ticked.tobytes()
         assert max(p.size for p in parts) <= 5  # at most the lag and the newest row at once
+
+
+_BRAKED_R = int(TrackedFlag.BRAKED_RIGHT)
+
+
+def _pivot_then(after: int, braked_rows: int = 6) -> np.ndarray:
+    """Rows of a pivot (5) whose right track is braked (−100 %), then one row of ``after``
+    with the right track no longer braked."""
+    rows = _rows([5] * braked_rows + [after])
+    rows["flags"][:braked_rows] = int(TrackedFlag.SLIP_LEFT_VALID) | _BRAKED_R
+    rows["slip_right_pct"][:braked_rows] = -100.0
+    rows["slip_right_std_pct"] = 0.5
+    return rows
+
+
+def _tick_by_tick(rows: np.ndarray, reach: int, lag: int = 4) -> tuple[np.ndarray, list[int]]:
+    held = HeldRows()
+    no = np.zeros(1, dtype=bool)
+    parts = [held.give(rows[i : i + 1].copy(), no, lag, 0.9, reach) for i in range(rows.size)]
+    return np.concatenate([*parts, held.flush()]), [p.size for p in parts]
+
+
+def test_a_release_takes_the_braked_track_back_over_the_rows_it_may_have_turned_in() -> None:
+    # right track braked on rows 0-5 and released on row 6 (its first edges): rows 3-5 (reach
+    # 3) may have had it turning before its first edge, so they give no slip for it; rows
+    # 0-2 keep the −100 % and the flag, the left track is untouched everywhere
+    got, sizes = _tick_by_tick(_pivot_then(1), reach=3)
+    assert np.array_equal(got["stamp_ns"], _pivot_then(1)["stamp_ns"])
+    assert (got["slip_right_pct"][:3] == -100.0).all()
+    assert (got["flags"][:3] & _BRAKED_R).all()
+    assert (
+        np.isnan(got["slip_right_pct"][3:6]).all()
+        and np.isnan(got["slip_right_std_pct"][3:6]).all()
+    )
+    assert not (got["flags"][3:6] & _BRAKED_R).any()
+    assert (got["slip_left_pct"] == 2.0).all()
+    assert (got["flags"] & int(TrackedFlag.SLIP_LEFT_VALID)).all()
+    # while braked the last three rows are held (given from the fourth tick on, one a tick)
+    assert sizes == [0, 0, 0, 1, 1, 1, 3]
+
+
+def test_no_release_without_reach_or_into_a_stop() -> None:
+    got, sizes = _tick_by_tick(_pivot_then(1), reach=0)  # paper modes: nothing taken back
+    assert (got["slip_right_pct"][:6] == -100.0).all() and sizes == [0, 1, 1, 1, 1, 1, 1]
+    got, _ = _tick_by_tick(_pivot_then(0), reach=3)  # a stop: the other track stopped instead
+    assert (got["slip_right_pct"][:6] == -100.0).all() and (got["flags"][:6] & _BRAKED_R).all()
+
+
+def test_the_release_reach_is_the_lever_travel_in_ticks_within_the_fixed_lag() -> None:
+    from estimator.tracked import TrackedEstimatorConfig, TrackedMode
+
+    assert TrackedEstimatorConfig().release_reach_ticks == 3  # 0.3 s of lever travel, 0.1 s ticks
+    assert TrackedEstimatorConfig(lever_travel_s=0.65).release_reach_ticks == 4  # the lag's 4
+    assert TrackedEstimatorConfig(mode=TrackedMode.PAPER).release_reach_ticks == 0
+
+
+def test_braked_rows_given_tick_by_tick_equal_rows_given_at_once() -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        states = np.repeat(rng.choice([0, 1, 3, 5], size=8), rng.integers(1, 7, size=8))
+        rows = _rows(states.tolist())
+        pivot = states == 5
+        rows["flags"][pivot] |= _BRAKED_R
+        rows["slip_right_pct"][pivot] = -100.0
+        onset = rng.random(states.size) < 0.2
+        one, each = HeldRows(), HeldRows()
+        whole = np.concatenate([one.give(rows.copy(), onset, 4, 0.9, 3), one.flush()])
+        parts = [
+            each.give(rows[i : i + 1].copy(), onset[i : i + 1], 4, 0.9, 3)
+            for i in range(states.size)
+        ]
+        ticked = np.concatenate([*parts, each.flush()])
+        assert whole.tobytes() == ticked.tobytes()
