@@ -6,7 +6,8 @@ subset of them with a few calls to the pure functions of :mod:`estimator.kalman`
 named stages (:meth:`MdsfEngine.step`): measurement noise, predict (accelerometer-driven in
 product mode), update of the IMU rows, chi-square gates of GNSS speed and distance, update of
 GNSS speed, rim speeds and RTK distance, (re)initialisation and divergence reset, the
-reference-speed filter (``method.md`` §3). Each step also returns what it used
+reference-speed filter (``method.md`` §3), and while GNSS is lost the slip-step test
+(:mod:`estimator.mdsf.outage_step`). Each step also returns what it used
 (:class:`TickModel`: matrices, masks, NIS) for diagnostics and tests. A state that goes
 non-finite or whose speed variance explodes is re-initialised and its row flagged RESET.
 """
@@ -158,7 +159,8 @@ class TickModel:
     mask1, mask2 : ndarray, shape (k, m), bool
         Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
     inflated : ndarray, shape (k,), bool
-        The covariance was changed between the stages (GNSS re-acquired or a slip jump).
+        The covariance was changed between the stages (GNSS re-acquired or a slip jump) or
+        after them (a slip step found in an outage, :meth:`MdsfEngine._outage_slip_steps`).
     nis : ndarray, shape (k,)
         Normalised innovation squared of both stages (their sum is the joint update's), with
         its degrees of freedom ``dof``; computed when read, from the two ``stages``.
@@ -258,8 +260,8 @@ class MdsfEngine:
         self.m = config.n_obs
         self._free: list[int] = []
         self._cap = 0
-        half = round(0.5 * config.outage_step_window_s / self.dt_s)
-        self._step_ticks = 2 * half if self.product and half >= 2 else 0
+        step_half = round(0.5 * config.outage_step_window_s / self.dt_s)
+        self._step_ticks = 2 * step_half if self.product and step_half >= 2 else 0
         self._step_prior = StepPrior(
             load_s=config.outage_step_turn_load_s,
             yaw_rad=config.outage_step_yaw_misalign_rad,

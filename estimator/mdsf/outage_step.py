@@ -17,9 +17,10 @@ the centripetal term. Over a window of ``2L`` ticks the test fits
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
 window's middle when its posterior mean is ``z_min`` posterior std from 0 and at least
-``min_step`` (for a linear model the likelihood ratio of the step is ``z²``). The noise
-variance is the fit's residual variance (floored), so a noisier inertial integral widens the
-test. The posterior mean is the step estimate: shrunk toward 0 by the prior.
+``min_step``, where the speed is steady (for a linear model the likelihood ratio of the step
+is ``z²``). The noise variance is the fit's residual variance (floored), so a noisier inertial
+integral widens the test. The posterior mean is the step estimate: shrunk toward 0 by the
+prior.
 """
 
 from __future__ import annotations
@@ -74,6 +75,10 @@ class StepPrior:
         Smallest reported step (ratio) [-].
     min_speed_mps : float
         Mean ``V1`` after the window's middle below which nothing is reported [m/s].
+    max_speed_change : float
+        Change of the mean ``V1`` across the window's middle, as a share of it, above which
+        nothing is reported: while the speed changes the slip moves with the demand through
+        the tyre's relaxation (a braking dip), which a step cannot be told from [-].
     """
 
     load_s: float = 0.05
@@ -84,6 +89,7 @@ class StepPrior:
     z_min: float = 6.0
     min_step: float = 0.015
     min_speed_mps: float = 0.3
+    max_speed_change: float = 0.2
 
 
 @dataclass(slots=True)
@@ -147,8 +153,10 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     delta_var = var * cov[:, StepCol.STEP, StepCol.STEP]
     z = delta / np.sqrt(np.maximum(delta_var, 1e-30))
     half = buf.shape[2] // 2
-    after = buf[:, StepBuf.V1, half:]
-    fast = np.abs(after).mean(axis=1) >= prior.min_speed_mps
+    after = np.abs(buf[:, StepBuf.V1, half:]).mean(axis=1)
+    before = np.abs(buf[:, StepBuf.V1, :half]).mean(axis=1)
+    fast = after >= prior.min_speed_mps
+    fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
     full = n_ok >= 0.8 * buf.shape[2]
     found = fast & full & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
     return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
