@@ -89,7 +89,7 @@ class StepPrior:
     z_min: float = 6.0
     min_step: float = 0.015
     min_speed_mps: float = 0.3
-    max_speed_change: float = 0.2
+    max_speed_change: float = 0.4
 
 
 @dataclass(slots=True)

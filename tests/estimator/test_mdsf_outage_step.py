@@ -84,7 +84,7 @@ def test_a_turns_yaw_driven_change_is_not_found() -> None:
 
 def _slip_rms_after_step(config: MdsfConfig) -> float:
     """``field_work`` (seed 1) with GNSS lost 60-85 s and a +6 pp slip step at 70 s: the left
-    wheel's slip RMS over 72-85 s [pp]."""
+    wheel's slip RMS over 75-85 s (the step found) [pp]."""
     sim = simulate(
         "field_work",
         seed=1,
@@ -102,16 +102,16 @@ def _slip_rms_after_step(config: MdsfConfig) -> float:
         parts += [rows for _, rows in fleet.advance({"v": until})]
     rows = np.concatenate(parts)
     t_s = (rows["stamp_ns"] - START) * 1e-9
-    sel = (t_s > 72.0) & (t_s < 85.0) & np.isfinite(rows["slip_left_pct"])
+    sel = (t_s > 75.0) & (t_s < 85.0) & np.isfinite(rows["slip_left_pct"])
     err = rows["slip_left_pct"][sel] - truth_at(sim.truth, rows["stamp_ns"][sel], "slip_left_pct")
-    assert sel.sum() > 100
+    assert sel.sum() > 80
     return float(np.sqrt(np.mean(err**2)))
 
 
 def test_a_slip_step_in_an_outage_moves_the_slip_not_the_speed() -> None:
     # Without the test the outage's slip reverts to its level before the step and the rims
-    # carry the speed: the slip reads the step's size off. With it the step is found ~3 s
-    # later and the slip follows.
+    # carry the speed: the slip reads the step's size off. With it the step is found half a
+    # window (3 s) after it, and the slip follows from then on.
     off = _slip_rms_after_step(MdsfConfig(outage_step_window_s=0.0))
     on = _slip_rms_after_step(MdsfConfig())
     assert off > 4.0
