@@ -821,7 +821,8 @@ class MdsfEngine:
         v_wheel = np.einsum("kmi,ki->km", up.H[:, _RIM, : MdsfState.ACCEL_BIAS], x[:, :4])
         both = rim_ok.all(axis=1)
         step_level = np.where(lost, self.step_level[slots], 0.0)
-        level = self.slip_anchor[slots].mean(axis=1) + self._demand_slip(slots) + step_level
+        model_level = self.slip_anchor[slots].mean(axis=1) + self._demand_slip(slots)
+        level = model_level + step_level
         rim_mean = np.where(rim_ok, rim_mps, 0.0).mean(axis=1)
         r = rim_mean - integral - (v_wheel.mean(axis=1) - v1) - level * v1
         new = np.stack(
@@ -831,6 +832,7 @@ class MdsfEngine:
                 x[:, MdsfState.OMEGA_Z],
                 both * 1.0,
                 x[:, MdsfState.ACCEL_BIAS],
+                model_level,
             ],
             axis=1,
         )

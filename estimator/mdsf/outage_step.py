@@ -12,7 +12,12 @@ a yaw misalignment leaks the lateral acceleration into ``ā``, an IMU ahead of t
 the centripetal term. Over a window of ``2L`` ticks the test fits
 
     r_i = c0 + c1·t_i + β_load·V1_i·|ωz_i| + β_yaw·Σ_{j≤i} V1_j·ωz_j·dt
-          + β_cent·Σ_{j≤i} ωz_j²·dt + δ·V1_i·[i ≥ L] + w_i
+          + β_cent·Σ_{j≤i} ωz_j²·dt + g·Σ_{j≤i} (φ·sin ψ_j + θ·(cos ψ_j − 1))·dt
+          + γ·(ε_a,i − ε̄_a)·V1_i + δ·V1_i·[i ≥ L] + w_i
+
+(``ψ_j = Σ_{l≤j} ωz_l·dt`` the heading turned in the window: a tilt error ``(θ, φ)`` fixed in
+the level frame leaks into the forward axis as the heading turns; ``γ`` the tyre model's level
+off by a factor, which reads as a step when the demand moves across the middle)
 
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
@@ -31,6 +36,7 @@ from enum import IntEnum
 import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray
+from estimator.mdsf.model import GRAVITY_MPS2
 
 __all__ = ["StepBuf", "StepCol", "StepFit", "StepPrior", "step_columns", "step_test"]
 
@@ -43,6 +49,7 @@ class StepBuf(IntEnum):
     YAW = 2  # yaw rate [rad/s]
     OK = 3  # 1 where both rims were measured, else 0
     BIAS = 4  # the filter's accelerometer bias [m/s²] (not a regressor: what a step gives back)
+    LEVEL = 5  # the tyre model's slip level ε_a without the steps taken (ratio) [-]
 
 
 class StepCol(IntEnum):
@@ -53,7 +60,10 @@ class StepCol(IntEnum):
     TURN_LOAD = 2
     TURN_YAW = 3
     TURN_CENT = 4
-    STEP = 5
+    TILT_SIN = 5
+    TILT_COS = 6
+    GAIN = 7
+    STEP = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +75,11 @@ class StepPrior:
     load_s, yaw_rad, cent_m : float
         Turn coefficients: slip per lateral acceleration [s], yaw misalignment [rad], IMU
         forward offset [m].
+    tilt_rad : float
+        Tilt error fixed in the level frame, leaking ``g`` times it into ``ā`` as the heading
+        turns [rad].
+    gain : float
+        Relative error of the tyre model's level about its window mean [-].
     step : float
         Slip step (ratio) [-].
     noise_floor_mps : float
@@ -84,6 +99,8 @@ class StepPrior:
     load_s: float = 0.05
     yaw_rad: float = 0.05
     cent_m: float = 2.0
+    tilt_rad: float = 0.035
+    gain: float = 1.0
     step: float = 0.05
     noise_floor_mps: float = 0.005
     z_min: float = 6.0
@@ -115,6 +132,11 @@ def step_columns(buf: FloatArray, dt_s: float) -> FloatArray:
     a[:, :, StepCol.TURN_LOAD] = v1 * np.abs(yaw)
     a[:, :, StepCol.TURN_YAW] = np.cumsum(v1 * yaw, axis=1) * dt_s
     a[:, :, StepCol.TURN_CENT] = np.cumsum(yaw * yaw, axis=1) * dt_s
+    psi = np.cumsum(yaw, axis=1) * dt_s
+    a[:, :, StepCol.TILT_SIN] = np.cumsum(GRAVITY_MPS2 * np.sin(psi), axis=1) * dt_s
+    a[:, :, StepCol.TILT_COS] = np.cumsum(GRAVITY_MPS2 * (np.cos(psi) - 1.0), axis=1) * dt_s
+    level = buf[:, StepBuf.LEVEL]
+    a[:, :, StepCol.GAIN] = (level - level.mean(axis=1, keepdims=True)) * v1
     a[:, :, StepCol.STEP] = np.where(np.arange(n) >= half, v1, 0.0)
     return a
 
@@ -135,6 +157,9 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     inv_prior[StepCol.TURN_LOAD] = prior.load_s**-2
     inv_prior[StepCol.TURN_YAW] = prior.yaw_rad**-2
     inv_prior[StepCol.TURN_CENT] = prior.cent_m**-2
+    inv_prior[StepCol.TILT_SIN] = prior.tilt_rad**-2
+    inv_prior[StepCol.TILT_COS] = prior.tilt_rad**-2
+    inv_prior[StepCol.GAIN] = prior.gain**-2
     inv_prior[StepCol.STEP] = prior.step**-2
     ata = np.einsum("kni,kn,knj->kij", a, w, a)
     atr = np.einsum("kni,kn,kn->ki", a, w, r)
