@@ -802,9 +802,10 @@ class MdsfEngine:
         Per tick of an outage the window gets ``r = r̄W − ∫ā·dt − Δ_lever − ε_a·V1`` (``ε_a``
         the level :meth:`_anchor_slip` reverts to), ``V1`` and ``ωz``. A step ``δ`` (posterior
         mean, slip ratio) adds ``δ`` to both wheels' anchor, moves ``δ·V1`` from ``V1`` to
-        both rim excesses, returns the bias to its value before the step and adds the step's
-        variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim
-        excess), and the bias's move squared to its variance. The window's ticks after the
+        both rim excesses, sets the bias to the window's reading of the accelerometer's error
+        (:attr:`StepFit.drift_mps2`) and adds the step's variance along that move,
+        ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim excess), and the bias's
+        move squared to its variance. The window's ticks after the
         step lose ``δ·V1`` so the step is not found twice.
         """
         dt = self.dt_s
@@ -847,7 +848,16 @@ class MdsfEngine:
             found[rows] = True
             if rows.size:
                 step_level[rows] += fit.delta[fit.found]
-                self._take_step(rows, fit.delta[fit.found], fit.delta_var[fit.found], buf, up)
+                self._take_step(
+                    rows,
+                    fit.delta[fit.found],
+                    fit.delta_var[fit.found],
+                    fit.drift_mps2[fit.found],
+                    up,
+                )
+                buf[rows, StepBuf.R, self._step_ticks // 2 :] -= (
+                    fit.delta[fit.found][:, None] * buf[rows, StepBuf.V1, self._step_ticks // 2 :]
+                )
         self.step_buf[slots] = buf
         self.step_count[slots] = count
         self.step_level[slots] = step_level
@@ -859,20 +869,19 @@ class MdsfEngine:
         rows: IntArray,
         delta: FloatArray,
         delta_var: FloatArray,
-        buf: FloatArray,
+        bias_mps2: FloatArray,
         up: _Updated,
     ) -> None:
-        """Apply the steps ``delta`` (j,) found on ``rows`` of the step's arrays as
-        :meth:`_outage_slip_steps` says (``buf``, ``up.x``, ``up.P`` in place)."""
-        half = self._step_ticks // 2
+        """Apply the steps ``delta`` (j,) found on ``rows`` as :meth:`_outage_slip_steps` says
+        (``up.x``, ``up.P`` in place); the bias is set to ``bias_mps2`` (j,), the window's own
+        reading of the accelerometer's error at its newest tick."""
         x = up.x[rows]
         v1 = x[:, MdsfState.V1]
         shift = delta * v1
         x[:, MdsfState.V1] -= shift
         x[:, _RIM_EXCESS] += shift[:, None]
-        bias_before = buf[rows, StepBuf.BIAS, half - 1]
-        bias_move = x[:, MdsfState.ACCEL_BIAS] - bias_before
-        x[:, MdsfState.ACCEL_BIAS] = bias_before
+        bias_move = x[:, MdsfState.ACCEL_BIAS] - bias_mps2
+        x[:, MdsfState.ACCEL_BIAS] = bias_mps2
         d = np.zeros((rows.size, self.n))
         d[:, MdsfState.V1] = -1.0
         d[:, _RIM_EXCESS] = 1.0
@@ -880,8 +889,6 @@ class MdsfEngine:
         P[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += bias_move * bias_move
         up.x[rows] = x
         up.P[rows] = P
-        after = buf[rows, StepBuf.V1, half:]
-        buf[rows, StepBuf.R, half:] -= delta[:, None] * after
 
     def _update(
         self,

@@ -112,12 +112,16 @@ class StepPrior:
 @dataclass(slots=True)
 class StepFit:
     """What :func:`step_test` found, shapes (k,): ``found``, the step ``delta`` (ratio, posterior
-    mean; 0 where not found), its posterior variance ``delta_var`` and ``z``."""
+    mean; 0 where not found), its posterior variance ``delta_var``, ``z``, and ``drift_mps2``,
+    the accelerometer's error the fit's inertial terms read at the window's newest tick
+    (``−d/dt`` of level, trend, yaw, centripetal and tilt terms: ``r`` falls as ``ā`` reads
+    high) [m/s²]."""
 
     found: BoolArray
     delta: FloatArray
     delta_var: FloatArray
     z: FloatArray
+    drift_mps2: FloatArray
 
 
 def step_columns(buf: FloatArray, dt_s: float) -> FloatArray:
@@ -184,4 +188,8 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
     full = n_ok >= 0.8 * buf.shape[2]
     found = fast & full & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
-    return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
+    inertial = [StepCol.TREND, StepCol.TURN_YAW, StepCol.TURN_CENT]
+    inertial += [StepCol.TILT_SIN, StepCol.TILT_COS]
+    rate = (a[:, -1, inertial] - a[:, -2, inertial]) / dt_s
+    drift = -np.einsum("kj,kj->k", rate, theta[:, inertial])
+    return StepFit(found, np.where(found, delta, 0.0), delta_var, z, drift)
