@@ -44,7 +44,6 @@ __all__ = [
     "accel_speed_var",
     "accel_steady",
     "creep_roll_band",
-    "drawbar_demand",
     "fix_age_s",
     "fresh_patch_var",
     "hull_settled",
@@ -805,22 +804,11 @@ def accel_steady(f: Filter, inp: TickInputs, cfg: TrackedEstimatorConfig) -> Tic
     return dataclasses.replace(inp, accel_mps2=own, steady_s=steady)
 
 
-def drawbar_demand(inp: TickInputs, specific_force_mps2: FloatArray) -> FloatArray:
-    """The drawbar demand per unit mass ``(k,)`` the traction slip reads: the gearbox's
-    acceleration (the odometer's, ``gearbox_accel_mps2``) plus gravity's share, the forward
-    specific force ``f_y`` less the hull's own acceleration (``inp.accel_mps2`` after
-    :func:`accel_steady`): ``a_g + g·sin θ + b_y``. The tracks slip by what the gearbox asks of
-    them while the hull catches up, so a hull slowed by a climb's growing slip at a steady
-    gearbox adds no demand of its own."""
-    grade = specific_force_mps2 - inp.accel_mps2
-    return np.asarray(np.nan_to_num(inp.gearbox_accel_mps2) + grade)
-
-
 def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimatorConfig) -> TickOut:
     """One tick for every vehicle of ``f`` (updated in place); see the module docstring.
     The accelerometer enters the prediction as it reads (the filter takes gravity out with
-    its pitch); the traction slip reads the drawbar demand (:func:`drawbar_demand`); every
-    other use takes the hull's own acceleration (:func:`accel_steady`)."""
+    its pitch) and the drawbar's traction slip as it reads; every other use takes the hull's
+    own acceleration (:func:`accel_steady`)."""
     gyro = np.nan_to_num(inp.gyro_radps)
     pull = np.nan_to_num(inp.accel_mps2)
     inp = accel_steady(f, inp, cfg)
@@ -836,8 +824,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     fresh = _start(f, inp, p, cfg)
     w = yaw_rate(f.x, gyro)
     used, gated, nis = _fuse_gnss(f, inp, p, cfg, (lateral, by_gain, by_roll), w, fresh)
-    demand = drawbar_demand(inp, pull)
-    odo_used, corrected, factor_var, gain = _fuse_odometer(f, inp, p, cfg, state, w, demand)
+    odo_used, corrected, factor_var, gain = _fuse_odometer(f, inp, p, cfg, state, w, pull)
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:

@@ -17,14 +17,7 @@ from estimator.tracked.model import N_STATES, MotionState
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked.odometer import odometer_measurement
 from estimator.tracked.params import VehicleParams
-from estimator.tracked.step import (
-    _antenna_ahead_m,
-    _antenna_right_m,
-    accel_steady,
-    drawbar_demand,
-    initial_filter,
-)
-from tests.estimator.tracked._ticks import quiet_tick
+from estimator.tracked.step import _antenna_ahead_m, _antenna_right_m, accel_steady, initial_filter
 
 SECOND = 1_000_000_000
 G = GRAVITY_MPS2
@@ -207,20 +200,3 @@ def test_pitch_and_roll_are_estimated_causally_on_a_hill() -> None:
     # and the speed, whose prediction reads g·sin θ, stays on the truth
     speed_err = x[late, S.SPEED] - run.truth.speed_mps[k][late]
     assert np.sqrt(np.mean(speed_err**2)) < 0.1
-
-
-def test_the_drawbar_demand_is_the_gearboxs_acceleration_plus_the_grade() -> None:
-    sin_theta = math.sin(math.atan(0.1))
-    force = np.array([G * sin_theta - 0.3, G * sin_theta + 0.4])  # the hull slowing, speeding
-    f = initial_filter(TrackedEstimatorConfig())
-    f.x = np.repeat(f.x, 2, axis=0)
-    f.P = np.repeat(f.P, 2, axis=0)
-    f.accel_steady_s = np.zeros(2)
-    f.x[:, S.PITCH] = math.atan(0.1)
-    inp = quiet_tick(2, SECOND, accel_mps2=force, gearbox_accel_mps2=np.array([0.0, 0.8]))
-    own = accel_steady(f, inp, TrackedEstimatorConfig())
-    assert np.allclose(own.accel_mps2, [-0.3, 0.4], atol=1e-12)
-    demand = drawbar_demand(own, force)
-    # a steady gearbox on the climb: the grade alone, however the hull moves
-    assert math.isclose(demand[0], G * sin_theta, rel_tol=1e-12)
-    assert math.isclose(demand[1], 0.8 + G * sin_theta, rel_tol=1e-12)
