@@ -39,6 +39,7 @@ class TokenCreate(BaseModel):
     role: Role = Field(description="viewer (read) < operator (vehicle configs) < admin (all)")
     expires_in_s: int | None = Field(
         default=None,
+        strict=True,  # JSON true is not a lifetime of 1 s
         ge=1,
         le=MAX_LIFETIME_S,
         description="lifetime in seconds from now (at most ten years); null: never expires",

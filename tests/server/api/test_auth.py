@@ -193,6 +193,7 @@ def test_token_routes_create_list_revoke(client: ApiClient, tokens: dict[Role, s
         {"name": "x", "role": "viewer", "expires_in_s": 0},
         {"name": "x", "role": "viewer", "expires_in_s": -5},
         {"name": "x", "role": "viewer", "expires_in_s": 1.5},
+        {"name": "x", "role": "viewer", "expires_in_s": True},
         {"name": "x", "role": "viewer", "expires_in_s": 10 * 366 * 86_400 + 1},
     ],
 )
