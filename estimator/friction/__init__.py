@@ -7,11 +7,9 @@
 * :mod:`.frontend`: per-wheel κ, α, δ, Fz with their uncertainty from the sensors;
 * :mod:`.position`: the vehicle's position from GNSS, dead-reckoned between fixes and through
   short outages;
-* :mod:`.calibration`: :class:`TyreCalibration`, the stiffness factors carried between drives;
 * :mod:`.fleet`: :class:`FrictionFleet`, the batched ``FleetEstimator`` with the informed logic.
 """
 
-from estimator.friction.calibration import TyreCalibration
 from estimator.friction.filter import FilterConfig, FrictionMode
 from estimator.friction.fleet import FrictionFleet, FrictionFleetConfig
 from estimator.friction.frontend import FrontEndConfig
@@ -24,5 +22,4 @@ __all__ = [
     "FrictionMode",
     "FrontEndConfig",
     "PositionConfig",
-    "TyreCalibration",
 ]

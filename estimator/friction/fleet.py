@@ -42,7 +42,6 @@ from estimator.friction.axle import (
     load_slip_std,
 )
 from estimator.friction.brush import brush_forces, utilisation
-from estimator.friction.calibration import AGING_REL_STD, TyreCalibration, start_factors
 from estimator.friction.filter import (
     FilterConfig,
     FilterState,
@@ -200,29 +199,6 @@ class FrictionFleet:
             self._sensors.push_gnss(slot, measurement)
             self._positions.push(slot, measurement)
 
-    def set_tyre_calibration(self, vehicle_id: str, calibration: TyreCalibration | None) -> None:
-        """Start the vehicle's filter from ``calibration``'s stiffness factors (product mode)
-        instead of the default prior; None: the default prior. Takes effect where the
-        filter (re)starts: set it after :meth:`add_vehicle`, before the first tick."""
-        slot = self._vehicles[vehicle_id].slot
-        if calibration is not None and self.config.filter.mode is not FrictionMode.PRODUCT:
-            raise ConfigError("a tyre calibration carries the product mode's factors")
-        self._slots.calibrated[slot] = calibration is not None
-        if calibration is not None:
-            self._slots.factor[slot] = calibration.factor
-            self._slots.factor_cov[slot] = calibration.factor_cov
-
-    def tyre_calibration(
-        self, vehicle_id: str, aging_rel_std: float = AGING_REL_STD
-    ) -> TyreCalibration | None:
-        """What the vehicle's filter has learnt of its tyres, to carry to its next drive
-        (:meth:`TyreCalibration.from_state`); None before its first tick or outside the
-        product mode."""
-        slot = self._vehicles[vehicle_id].slot
-        if self.config.filter.mode is not FrictionMode.PRODUCT or not self._slots.has_state[slot]:
-            return None
-        return TyreCalibration.from_state(self._slots.x[slot], self._slots.s[slot], aging_rel_std)
-
     def align_ticks(self, vehicle_id: str, stamp_ns: int) -> None:
         self._sensors.align(self._vehicles[vehicle_id].slot, int(stamp_ns))
 
@@ -285,26 +261,11 @@ class FrictionFleet:
         tyres, chassis = self._slots.constants(s, fe.kz_npm)
         fresh = ~self._slots.has_state[s]
         prior = initial_state(self.config.filter, _tyres_subset(tyres, fresh), u.fz_n[fresh])
-        prior = self._calibrated(prior, s[fresh])
         st = filter_step(self._slots.states(s, prior, fresh), self.config.filter, tyres, chassis, u)
         self._slots.keep(s, st)
         _front_columns(out, at, fe, self._utilisation(st, tyres, u))
         far = self._utilisation(st, tyres, u, mu_upper(st.x, st.s, self.config.filter))
         self._rows(out, at, s, (t_ns, fe), st, far, fresh)
-
-    def _calibrated(self, prior: FilterState, s: IntArray) -> FilterState:
-        """``prior`` (rows of slots ``s``) with the calibrated slots' factors started from
-        their calibration (:func:`.calibration.start_factors`)."""
-        cal = self._slots.calibrated[s]
-        if not cal.any():
-            return prior
-        rows = np.flatnonzero(cal)
-        started = start_factors(
-            prior.take(rows), self._slots.factor[s[rows]], self._slots.factor_cov[s[rows]]
-        )
-        x, sq = prior.x.copy(), prior.s.copy()
-        x[rows], sq[rows] = started.x, started.s
-        return FilterState(x, sq, prior.fz_prev_n, prior.nis, prior.mee_ok, prior.updated)
 
     def _utilisation(
         self, st: FilterState, tyres: TyreArrays, u: TickInputs, mu: FloatArray | None = None

@@ -35,9 +35,7 @@ class FleetSlots:
     """Per slot: constants ``tyres``, ``chassis``, ``axles`` (their arrays' first axis is the
     slot), filter mean ``x`` ``(S, n)``, root ``s`` ``(S, n, n)``, last loads ``(S, 4)``,
     smoothed NIS ``(S,)``, ``has_state`` ``(S,)``, the last informed μ ``held_mu`` ``(S,)``
-    and the informed window ``recent_ok``, ``recent_mu`` ``(S, W)``, ``recent_n`` ``(S,)``;
-    a tyre calibration to start the filter from (product mode, :mod:`.calibration`):
-    ``calibrated`` ``(S,)``, ``factor`` ``(S, 4)``, ``factor_cov`` ``(S, 4, 4)``."""
+    and the informed window ``recent_ok``, ``recent_mu`` ``(S, W)``, ``recent_n`` ``(S,)``."""
 
     def __init__(self, n_state: int, window: int) -> None:
         self.window = window
@@ -53,9 +51,6 @@ class FleetSlots:
         self.recent_ok = np.zeros((0, window), dtype=bool)
         self.recent_mu = np.zeros((0, window))
         self.recent_n = np.zeros(0, dtype=np.int64)
-        self.calibrated = np.zeros(0, dtype=bool)
-        self.factor = np.zeros((0, 4))
-        self.factor_cov = np.zeros((0, 4, 4))
 
     def _ensure(self, slot: int) -> None:
         if slot < self.x.shape[0]:
@@ -63,7 +58,7 @@ class FleetSlots:
         rows = max(slot + 1, 2 * self.x.shape[0], 8)
         for name in ("x", "s", "fz_prev_n", "nis", "has_state", "held_mu"):
             setattr(self, name, _grown(getattr(self, name), rows))
-        for name in ("recent_ok", "recent_mu", "recent_n", "calibrated", "factor", "factor_cov"):
+        for name in ("recent_ok", "recent_mu", "recent_n"):
             setattr(self, name, _grown(getattr(self, name), rows))
         self.tyres = TyreArrays(*(_grown(a, rows) for a in _fields(self.tyres)))
         self.chassis = Chassis(*(_grown(a, rows) for a in _fields(self.chassis)))
@@ -84,7 +79,6 @@ class FleetSlots:
         self.has_state[slot] = False
         self.held_mu[slot] = math.nan
         self.recent_n[slot] = 0
-        self.calibrated[slot] = False
 
     def constants(self, slots: IntArray, kz_npm: FloatArray) -> tuple[TyreArrays, Chassis]:
         """The round's tyres (vertical stiffness ``kz_npm`` ``(B, 4)`` as the front end learnt

@@ -1,8 +1,7 @@
 """Friction estimator accuracy on the four-wheel simulator (``method.md`` §5, source 004).
 
 ``slipfleet bench friction [--seeds 1,2,101,102] [--holdout-seeds 201,202] [--random N]
-[--modes product,paper,…] [--no-holdout] [--wheel-sensor tooth|instant]
-[--tyre-calibration none|farm_track] [--json PATH]`` or
+[--modes product,paper,…] [--no-holdout] [--wheel-sensor tooth|instant] [--json PATH]`` or
 ``python -m server.tooling.bench.friction``.
 
 Every named manoeuvre of :mod:`estimator.sim.four_wheel` runs once per seed of each seed set
@@ -19,14 +18,6 @@ the true inputs (truth κ, α, δ, Fz and accelerations straight into the filter
 true inputs with the truth's own tyres (each wheel's brush stiffness and ``kz``, which the
 config knows to ±3 % and, for a damaged tyre, not at all): the gap between the last two tables
 is what the tyres' stiffness costs μ.
-
-``--tyre-calibration farm_track`` drives every run's vehicle first on :func:`calibration_drive`
-(its seed: the same truth, so the same tyres; another route and ground), carries what the
-product filter learnt of its tyres (:class:`~estimator.friction.TyreCalibration`) and starts
-the scored run's product filter from it (sensor inputs; the other filters and the true-input
-tables as without); it prints each drive's factors against the truth's. ``truth`` (not a
-product path) starts it from the truth's own factors known to :data:`ORACLE_REL_STD`: what
-the carry is worth where a calibration reaches the bound.
 
 Per manoeuvre and filter (median over runs, worst in brackets):
 
@@ -57,17 +48,9 @@ from typing import Any
 
 import numpy as np
 
-from estimator.friction import (
-    FilterConfig,
-    FrictionFleet,
-    FrictionFleetConfig,
-    FrictionMode,
-    TyreCalibration,
-)
+from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
 from estimator.friction.axle import AxleConfig
-from estimator.friction.calibration import FACTOR_STATES
 from estimator.friction.filter import (
-    ProductState,
     TickInputs,
     TyreArrays,
     filter_step,
@@ -79,10 +62,8 @@ from estimator.friction_spec import FrictionFlag
 from estimator.sim.four_wheel import (
     FOUR_WHEEL_CONFIG,
     INSTANT_WHEEL_SENSOR,
-    LEAD_S,
     NAMED,
     FourWheelRun,
-    Manoeuvre,
     WheelSpeedSensor,
     random_config,
     random_manoeuvre,
@@ -119,13 +100,12 @@ def _random_base(seeds: Sequence[int]) -> int:
     return 10_000 + 100 * seeds[0]
 
 
-_Plan = tuple[list[Manoeuvre], list[int], list[Any], list[WheelSpeedSensor]]
-
-
-def _plan(seeds: Sequence[int], random_n: int, random_base: int, wheel_sensor: str) -> _Plan:
-    """The named runs of every seed, then ``random_n`` random ones: manoeuvres, seeds,
-    configs and wheel-speed sensors; each random vehicle's sensor drawn after its manoeuvre
-    and config (``wheel_sensor`` ``tooth``) or every run's instantaneous (``instant``)."""
+def _runs(
+    seeds: Sequence[int], random_n: int, random_base: int, wheel_sensor: str = "tooth"
+) -> list[FourWheelRun]:
+    """The named runs of every seed, then ``random_n`` random ones; each random vehicle's
+    wheel-speed sensor drawn after its manoeuvre and config (``wheel_sensor`` ``tooth``) or
+    every run's instantaneous (``instant``)."""
     instant = wheel_sensor == "instant"
     named = [(m, s, None) for s in seeds for m in NAMED.values()]
     sensors = [INSTANT_WHEEL_SENSOR if instant else WheelSpeedSensor()] * len(named)
@@ -136,130 +116,9 @@ def _plan(seeds: Sequence[int], random_n: int, random_base: int, wheel_sensor: s
         sensors.append(INSTANT_WHEEL_SENSOR if instant else random_wheel_sensor(rng))
     todo = named + extra
     configs = [c if c is not None else FOUR_WHEEL_CONFIG for _, _, c in todo]
-    return [m for m, _, _ in todo], [s for _, s, _ in todo], configs, sensors
-
-
-def _runs(
-    seeds: Sequence[int], random_n: int, random_base: int, wheel_sensor: str = "tooth"
-) -> list[FourWheelRun]:
-    """The runs of :func:`_plan`, simulated."""
-    ms, ss, configs, sensors = _plan(seeds, random_n, random_base, wheel_sensor)
-    return simulate_four_wheel(ms, ss, configs, wheel_sensors=sensors)
-
-
-_KMH = 1.0 / 3.6
-CALIBRATION_DRIVES = ("none", "farm_track", "truth")
-ORACLE_REL_STD = 0.04
-"""``--tyre-calibration truth``: the factors' 1-σ a 60 s :func:`calibration_drive` carries at
-best (``friction_info --factors``: 2.4-4.2 % with the speed's shared error), rounded up."""
-
-
-def calibration_drive(duration_s: float = 60.0) -> Manoeuvre:
-    """A drive before the scored one, on the same vehicle (its seed's truth: the same tyres)
-    but another route and ground: the farm track's kind of driving for ``duration_s`` after
-    the lead-in, the steering wheel swinging ±30° at 0.2 Hz, the speed 20-40 km/h at 0.05 Hz
-    (±0.9 m/s²), on μ 0.65 (the named farm track: 25 km/h ±1.5 m/s at 0.07 Hz, μ 0.5)."""
-    t = np.arange(0.0, LEAD_S + duration_s + 0.25, 0.25)
-    after = np.maximum(t - LEAD_S, 0.0)
-    steer = np.where(t < LEAD_S, 0.0, math.radians(30.0) * np.sin(2 * math.pi * 0.2 * after))
-    speed = 30 * _KMH - 10 * _KMH * np.sin(2 * math.pi * 0.05 * after) * (t >= LEAD_S)
-    return Manoeuvre(
-        "calibration_drive",
-        LEAD_S + duration_s,
-        tuple(zip(t.tolist(), speed.tolist(), strict=True)),
-        tuple(zip(t.tolist(), steer.tolist(), strict=True)),
-        ((0.0, 0.65), (1e4, 0.65)),
+    return simulate_four_wheel(
+        [m for m, _, _ in todo], [s for _, s, _ in todo], configs, wheel_sensors=sensors
     )
-
-
-@dataclass(frozen=True, slots=True)
-class Calibrated:
-    """One vehicle's calibration drive: what it carries, the filter's own factors and 1-σ
-    ``(4,)`` at its end, and the truth's ``(4,)`` (the truth's per-wheel ``c_p`` over the
-    config's, each axle's mean: ``g_x`` front, rear, ``g_y`` front, rear)."""
-
-    carried: TyreCalibration
-    factor: np.ndarray
-    factor_std: np.ndarray
-    truth: np.ndarray
-
-
-def calibrate(
-    seeds: Sequence[int], random_n: int, random_base: int, wheel_sensor: str
-) -> list[Calibrated]:
-    """Each run of :func:`_plan` driven first as :func:`calibration_drive` (its seed, config
-    and wheel sensor; no damaged tyre), through the product fleet; what each carries."""
-    ms, ss, configs, sensors = _plan(seeds, random_n, random_base, wheel_sensor)
-    drives = simulate_four_wheel(
-        [calibration_drive()] * len(ms), ss, configs, wheel_sensors=sensors
-    )
-    fleet = _fleet(drives, FrictionMode.PRODUCT, None)
-    _feed(fleet, drives)
-    out = []
-    for i, r in enumerate(drives):
-        carried = fleet.tyre_calibration(str(i))
-        raw = fleet.tyre_calibration(str(i), aging_rel_std=1e-12)
-        if carried is None or raw is None:
-            raise RuntimeError(f"calibration drive {i} left no filter state")
-        out.append(Calibrated(carried, np.array(raw.factor), raw.std, _truth_factors(r)))
-    return out
-
-
-def _truth_factors(r: FourWheelRun) -> np.ndarray:
-    """The truth's factors ``(4,)``: each axle's mean ``c_p`` over the config's (``g_x`` front,
-    rear, ``g_y`` front, rear)."""
-    px, py = r.config.tyre.c_px_npm2, r.config.tyre.c_py_npm2
-    cx, cy = r.tyre_c_px_npm2, r.tyre_c_py_npm2
-    return np.array(
-        [cx[:2].mean() / px, cx[2:].mean() / px, cy[:2].mean() / py, cy[2:].mean() / py]
-    )
-
-
-def oracle_calibrations(
-    runs: list[FourWheelRun], rel_std: float = ORACLE_REL_STD
-) -> list[TyreCalibration]:
-    """Not a product path: each run's calibration as if a drive had learnt the truth's factors
-    to ``rel_std`` (then carried, :data:`~estimator.friction.calibration.AGING_REL_STD` added):
-    what the carry is worth where the calibration reaches the bound."""
-    out = []
-    for r in runs:
-        g = _truth_factors(r)
-        at = np.array([int(i) for i in FACTOR_STATES])
-        x = np.zeros(len(ProductState))
-        x[at] = g
-        s = np.zeros((len(ProductState), len(ProductState)))
-        s[at, at] = g * rel_std
-        out.append(TyreCalibration.from_state(x, s))
-    return out
-
-
-def _calibration_drive_table(runs: list[FourWheelRun], cals: list[Calibrated]) -> dict[str, Any]:
-    """Per run: the factors after the calibration drive against the truth's."""
-    print("\n  calibration drive: factor ± 1-σ (truth) [error / 1-σ], carried 1-σ")
-    print(
-        f"  {'run':22s}"
-        + "".join(f"{n:>30s}" for n in ("gx front", "gx rear", "gy front", "gy rear"))
-    )
-    rows: dict[str, list[dict[str, Any]]] = {}
-    for r, c in zip(runs, cals, strict=True):
-        z = (c.factor - c.truth) / c.factor_std
-        cells = [
-            f"{f:.3f}±{s:.3f} ({g:.3f}) [{e:+.1f}] {cs:.3f}"
-            for f, s, g, e, cs in zip(
-                c.factor, c.factor_std, c.truth, z, c.carried.std, strict=True
-            )
-        ]
-        name = f"{r.manoeuvre.name}"
-        print(f"  {name:22s}" + "".join(f"{x:>30s}" for x in cells))
-        rows.setdefault(name, []).append(
-            {
-                "factor": c.factor.tolist(),
-                "std": c.factor_std.tolist(),
-                "truth": c.truth.tolist(),
-                "carried_std": c.carried.std.tolist(),
-            }
-        )
-    return rows
 
 
 def _last_stamp(m: Any) -> int:
@@ -267,20 +126,11 @@ def _last_stamp(m: Any) -> int:
     return int(st[-1]) if hasattr(st, "__len__") else int(st)
 
 
-def _fleet(
-    runs: list[FourWheelRun], mode: FrictionMode, cals: list[TyreCalibration] | None
-) -> FrictionFleet:
-    """A fleet with every run as one vehicle, started from ``cals`` where given."""
+def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
+    """Every run as one vehicle of one fleet, fed its sensor packets 100 ms at a time."""
     fleet = FrictionFleet(FrictionFleetConfig(filter=FilterConfig(mode=mode, tick_s=TICK_S)))
     for i, r in enumerate(runs):
         fleet.add_vehicle(str(i), r.config)
-        if cals is not None:
-            fleet.set_tyre_calibration(str(i), cals[i])
-    return fleet
-
-
-def _feed(fleet: FrictionFleet, runs: list[FourWheelRun]) -> list[list[np.ndarray]]:
-    """Every run's sensor packets into ``fleet``, 100 ms at a time; each run's rows."""
     cursor = [0] * len(runs)
     rows: list[list[np.ndarray]] = [[] for _ in runs]
     start = runs[0].start_ns
@@ -293,18 +143,6 @@ def _feed(fleet: FrictionFleet, runs: list[FourWheelRun]) -> list[list[np.ndarra
                 cursor[i] += 1
         for vid, out in fleet.advance({str(i): now for i in range(len(runs))}):
             rows[int(vid)].append(out)
-    return rows
-
-
-def sensor_series(
-    runs: list[FourWheelRun],
-    mode: FrictionMode,
-    calibrations: list[TyreCalibration] | None = None,
-) -> list[Series]:
-    """Every run as one vehicle of one fleet, fed its sensor packets 100 ms at a time; the
-    product filter started from ``calibrations`` (one per run) where given."""
-    cals = calibrations if mode is FrictionMode.PRODUCT else None
-    rows = _feed(_fleet(runs, mode, cals), runs)
     series = []
     for r, parts in zip(runs, rows, strict=True):
         a = np.concatenate(parts)
@@ -629,7 +467,6 @@ def _one_set(
     random_n: int,
     modes: Sequence[FrictionMode],
     wheel_sensor: str,
-    tyre_calibration: str = "none",
 ) -> dict[str, Any]:
     t0 = time.process_time()
     runs = _runs(seeds, random_n, _random_base(seeds), wheel_sensor)
@@ -638,21 +475,10 @@ def _one_set(
         "seeds": list(seeds),
         "random": random_n,
         "wheel_sensor": wheel_sensor,
-        "tyre_calibration": tyre_calibration,
         "sim_cpu_s": sim_s,
     }
-    cals = None
-    if tyre_calibration == "truth":
-        cals = oracle_calibrations(runs)
-    elif tyre_calibration != "none":
-        t1 = time.process_time()
-        drove = calibrate(seeds, random_n, _random_base(seeds), wheel_sensor)
-        cals = [c.carried for c in drove]
-        print(f"\n{label} seeds {list(seeds)}: the calibration drive before each run")
-        result["calibration_drive"] = _calibration_drive_table(runs, drove)
-        result["calibration_cpu_s"] = time.process_time() - t1
     inputs_of = (
-        ("sensor", lambda r, m: sensor_series(r, m, cals)),
+        ("sensor", sensor_series),
         ("true", true_series),
         ("true_tyres", lambda r, m: true_series(r, m, true_tyres=True)),
     )
@@ -663,8 +489,6 @@ def _one_set(
             m: [score(r, s) for r, s in zip(runs, ss, strict=True)] for m, ss in series.items()
         }
         title = f"{label} seeds {list(seeds)} (+{random_n} random): {inputs} inputs"
-        if cals is not None and inputs == "sensor":
-            title += f" (product started from a {tyre_calibration} tyre calibration)"
         result[inputs] = _table(title, runs, scores, modes)
         if inputs == "sensor":
             result["calibration"] = {
@@ -694,15 +518,13 @@ def run(
     json_path: str | None = None,
     modes: Sequence[FrictionMode] = MODES,
     wheel_sensor: str = "tooth",
-    tyre_calibration: str = "none",
 ) -> dict[str, Any]:
     """Both seed sets (an empty ``holdout`` skips the second), figures as in the docstring."""
     if set(seeds) & set(holdout):
         raise ValueError("the tuning and hold-out seed sets must be disjoint")
-    args = (modes, wheel_sensor, tyre_calibration)
-    result = {"tuning": _one_set("tuning set", seeds, random_n, *args)}
+    result = {"tuning": _one_set("tuning set", seeds, random_n, modes, wheel_sensor)}
     if holdout:
-        result["holdout"] = _one_set("hold-out set", holdout, random_n, *args)
+        result["holdout"] = _one_set("hold-out set", holdout, random_n, modes, wheel_sensor)
     write_json(result, json_path)
     return result
 
@@ -731,17 +553,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="tooth",
         help="CAN wheel speeds: tooth-timed means (random vehicles drawn) or instantaneous",
     )
-    p.add_argument(
-        "--tyre-calibration",
-        choices=CALIBRATION_DRIVES,
-        default="none",
-        help="start the product filter from a tyre calibration learnt on a drive of the same "
-        "vehicle before each run (farm_track: calibration_drive(); truth: the truth's factors "
-        "to ORACLE_REL_STD, not a product path); none: the default prior",
-    )
     a = p.parse_args(argv)
     holdout = [] if a.no_holdout else a.holdout_seeds
-    run(a.seeds, holdout, a.random, a.json, a.modes, a.wheel_sensor, a.tyre_calibration)
+    run(a.seeds, holdout, a.random, a.json, a.modes, a.wheel_sensor)
     return 0
 
 

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -315,41 +315,6 @@ def _mu_bound(info: np.ndarray) -> float:
     return float(1.0 / np.sqrt(schur)) if schur > 0 else math.inf
 
 
-def _information_steps(
-    ticks: Ticks,
-    col: Column,
-    sigma: Sequence[float] | np.ndarray,
-    b_std: float,
-    vy0_std_mps: float,
-    vy_walk_mps_per_sqrt_s: float,
-    tick_s: float,
-    mu_std: float = 0.0,
-) -> Iterator[tuple[list[int], np.ndarray]]:
-    """The free parameters and the information over them ``(n, n)`` after each tick (see
-    :func:`bound_series`); ``mu_std``: a prior on ``ln μ`` (0: none)."""
-    free, prior = _free(col, b_std, vy0_std_mps)
-    prior[0] = mu_std
-    info = np.diag(np.divide(1.0, prior**2, out=np.zeros_like(prior), where=prior > 0))
-    rows = [int(r) for r in col.rows]
-    r_cov = np.diag(np.square(np.asarray(sigma, dtype=np.float64))[rows])
-    vy = free.index(int(Param.VY)) if int(Param.VY) in free else None
-    walk = SENSOR_VY_WALK if col.vy_sensor else vy_walk_mps_per_sqrt_s
-    q = walk**2 * tick_s
-    gnss = ticks.vy_sensor_std_mps if col.vy_sensor else ticks.vy_std_mps
-    for k in range(ticks.valid.size):
-        if vy is not None:
-            if q > 0:
-                e = info[:, vy].copy()
-                info -= np.outer(e, e) / (1.0 / q + e[vy])
-            if col.vy == "gnss" and np.isfinite(gnss[k]):
-                info[vy, vy] += gnss[k] ** -2.0
-        if ticks.valid[k]:
-            h = ticks.jac[k][np.ix_(rows, free)]
-            d = ticks.spread[k][rows]
-            info += h.T @ np.linalg.solve(r_cov + d @ d.T, h)
-        yield free, info
-
-
 def bound_series(
     ticks: Ticks,
     col: Column,
@@ -367,40 +332,28 @@ def bound_series(
     ``P ← P + q e eᵀ``, ``q`` the walk's variance a tick), the GNSS lateral speed adds
     ``1/σ²`` to it (column ``gnss``), and an updating tick adds ``Hᵀ (R + D Dᵀ)⁻¹ H`` of the
     column's rows. Without the walk this is the summed Fisher information with the priors'."""
-    steps = _information_steps(
-        ticks, col, sigma, b_std, vy0_std_mps, vy_walk_mps_per_sqrt_s, tick_s
-    )
-    return np.array([_mu_bound(info) for _, info in steps])
-
-
-FACTORS = (Param.LN_GX_FRONT, Param.LN_GX_REAR, Param.LN_GY_FRONT, Param.LN_GY_REAR)
-"""The stiffness factors in the product state's order (``g_x`` front, rear, ``g_y`` …)."""
-
-
-def factor_bound(
-    ticks: Ticks,
-    col: Column,
-    sigma: Sequence[float] | np.ndarray,
-    b_std: float = 0.0,
-    mu_std: float = 0.35,
-    vy0_std_mps: float = 0.05,
-    vy_walk_mps_per_sqrt_s: float = 0.05,
-    tick_s: float = TICK_S,
-) -> np.ndarray:
-    """The stiffness factors' relative 1-σ bound ``(4,)`` (:data:`FACTORS` order) at the end
-    of the run: ``√diag(I⁻¹)`` of the information of :func:`bound_series` (``col.g_std`` the
-    factors' prior, ``ln μ`` with the prior ``mu_std``: in the tyres' linear range the data
-    tell little of μ, and μ with ``g`` trade along a ridge near the limit). The factors do not
-    walk here (the filter lets them, ``factor_walk_per_sqrt_s``): the bound is what the drive
-    carries about a tyre that does not change."""
-    steps = _information_steps(
-        ticks, col, sigma, b_std, vy0_std_mps, vy_walk_mps_per_sqrt_s, tick_s, mu_std
-    )
-    free, info = next(steps)
-    for free, info in steps:  # noqa: B007 - the information after the last tick
-        pass
-    cov = np.linalg.inv(info)
-    return np.array([math.sqrt(cov[free.index(int(p)), free.index(int(p))]) for p in FACTORS])
+    free, prior = _free(col, b_std, vy0_std_mps)
+    info = np.diag(np.divide(1.0, prior**2, out=np.zeros_like(prior), where=prior > 0))
+    rows = [int(r) for r in col.rows]
+    r_cov = np.diag(np.square(np.asarray(sigma, dtype=np.float64))[rows])
+    vy = free.index(int(Param.VY)) if int(Param.VY) in free else None
+    walk = SENSOR_VY_WALK if col.vy_sensor else vy_walk_mps_per_sqrt_s
+    q = walk**2 * tick_s
+    gnss = ticks.vy_sensor_std_mps if col.vy_sensor else ticks.vy_std_mps
+    out = np.empty(ticks.valid.size)
+    for k in range(ticks.valid.size):
+        if vy is not None:
+            if q > 0:
+                e = info[:, vy].copy()
+                info -= np.outer(e, e) / (1.0 / q + e[vy])
+            if col.vy == "gnss" and np.isfinite(gnss[k]):
+                info[vy, vy] += gnss[k] ** -2.0
+        if ticks.valid[k]:
+            h = ticks.jac[k][np.ix_(rows, free)]
+            d = ticks.spread[k][rows]
+            info += h.T @ np.linalg.solve(r_cov + d @ d.T, h)
+        out[k] = _mu_bound(info)
+    return out
 
 
 def information(run: FourWheelRun) -> Info:
@@ -476,82 +429,6 @@ def table(info: Info, mu_true: float) -> str:
     return "\n".join(f"| {line} |" for line in lines)
 
 
-FACTOR_COLUMNS = (
-    Column("g ±10 %", g_std=0.1),
-    Column("g ±10 %, + b_κ", g_std=0.1, b_std=math.nan),
-    Column("g ±10 %, IMU σ, v_y sensor", g_std=0.1, imu=True, vy_sensor=True),
-)
-"""The bounds :func:`factors_table` prints (columns as :data:`COLUMNS`)."""
-
-
-def factors_row(run: FourWheelRun) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """After ``run``: the product filter's factors and their 1-σ ``(4,)``, the truth's
-    (each axle's mean ``c_p`` over the config's) and the bounds ``(len(FACTOR_COLUMNS), 4)``,
-    all in the product state's order (``g_x`` front, rear, ``g_y`` front, rear)."""
-    inputs, states, rows = _filter_ticks(run)
-    cfg = FilterConfig()
-    tr = run.truth
-    t_s = (rows["stamp_ns"] - run.start_ns) / 1e9
-    idx = np.clip(np.searchsorted(tr.t_s, t_s - 1e-9), 0, tr.t_s.size - 1)
-    common = float(np.median([u.kappa_common_std[0] for u in inputs]))
-    ticks = _ticks(run, inputs, idx, cfg)
-    own = (
-        cfg.accel_std_mps2,
-        cfg.accel_std_mps2,
-        math.hypot(cfg.yaw_accel_std_radps2, cfg.yaw_model_std_radps2),
-    )
-    bounds = np.stack(
-        [
-            factor_bound(
-                ticks,
-                col,
-                IMU_STD if col.imu else own,
-                common if math.isnan(col.b_std) else col.b_std,
-                cfg.ln_mu0_std,
-                cfg.vy0_std_mps,
-                cfg.vy_walk_mps_per_sqrt_s,
-                cfg.tick_s,
-            )
-            for col in FACTOR_COLUMNS
-        ]
-    )
-    last = states[-1]
-    order = [1, 2, 3, 4]  # ProductState's GX_FRONT, GX_REAR, GY_FRONT, GY_REAR
-    factor = last.x[0, order]
-    std = np.sqrt(np.einsum("ij,ij->i", last.s[0], last.s[0]))[order]
-    px, py = run.config.tyre.c_px_npm2, run.config.tyre.c_py_npm2
-    truth = np.array(
-        [
-            run.tyre_c_px_npm2[:2].mean() / px,
-            run.tyre_c_px_npm2[2:].mean() / px,
-            run.tyre_c_py_npm2[:2].mean() / py,
-            run.tyre_c_py_npm2[2:].mean() / py,
-        ]
-    )
-    return factor, std, truth, bounds
-
-
-def factors_table(labels: Sequence[str], runs: Sequence[FourWheelRun]) -> str:
-    """Per run: each factor as ``filter ± 1-σ (truth)`` and the bounds' 1-σ, in percent."""
-    names = ("g_x front", "g_x rear", "g_y front", "g_y rear")
-    head = ["run", "driven", "grip use p95"]
-    head += [f"{n}: filter (truth)" for n in names]
-    head += [f"{n}: bound {c.name}" for c in FACTOR_COLUMNS for n in names]
-    lines = [" | ".join(head), " | ".join("---" for _ in head)]
-    for label, run in zip(labels, runs, strict=True):
-        factor, std, truth, bounds = factors_row(run)
-        tr = run.truth
-        use = np.hypot(tr.fx_n, tr.fy_n) / (tr.mu[:, None] * tr.fz_n)
-        cells = [label, run.config.chassis.driven_axle.value, f"{np.percentile(use, 95):.2f}"]
-        cells += [
-            f"{f:.3f} ± {100 * s:.1f} % ({g:.3f})"
-            for f, s, g in zip(factor, std, truth, strict=True)
-        ]
-        cells += [f"{100 * b:.1f} %" for b in bounds.ravel()]
-        lines.append(" | ".join(cells))
-    return "\n".join(f"| {line} |" for line in lines)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="slipfleet bench friction_info", description=__doc__.split("\n")[0]
@@ -559,20 +436,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--manoeuvre", default="accelerate_mu08")
     p.add_argument("--seeds", type=int_list, default=[1, 2, 101, 102])
     p.add_argument("--wheel-sensor", choices=("tooth", "instant"), default="tooth")
-    p.add_argument(
-        "--factors",
-        action="store_true",
-        help="what the manoeuvre (also calibration_drive, or random: --random N of the tuning "
-        "set's random runs) teaches of the stiffness factors: the filter's and the bound",
-    )
-    p.add_argument("--random", type=int, default=4, help="random runs with --manoeuvre random")
     args = p.parse_args(argv)
     sensor = INSTANT_WHEEL_SENSOR if args.wheel_sensor == "instant" else WheelSpeedSensor()
-    if args.factors:
-        runs, labels = _factor_runs(args.manoeuvre, args.seeds, args.random, sensor)
-        print(f"\n{args.manoeuvre}: the stiffness factors at the end of the drive")
-        print(factors_table(labels, runs))
-        return 0
     try:
         m = named_manoeuvre(args.manoeuvre)
     except KeyError as e:
@@ -588,24 +453,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         print(table(info, float(run.truth.mu[-1])))
     return 0
-
-
-def _factor_runs(
-    name: str, seeds: Sequence[int], random_n: int, sensor: WheelSpeedSensor
-) -> tuple[list[FourWheelRun], list[str]]:
-    """The runs :func:`factors_table` reads: ``name`` (a named manoeuvre or
-    ``calibration_drive``) on each seed, or the tuning set's first ``random_n`` random runs
-    (each on its own random vehicle and wheel sensor; ``name`` ``random``)."""
-    from server.tooling.bench.friction import _plan, _random_base, calibration_drive
-
-    if name == "random":
-        ms, ss, configs, sensors = _plan(seeds, random_n, _random_base(seeds), "tooth")
-        pick = slice(len(ms) - random_n, len(ms))
-        runs = simulate_four_wheel(ms[pick], ss[pick], configs[pick], wheel_sensors=sensors[pick])
-        return runs, [str(s) for s in ss[pick]]
-    m = calibration_drive() if name == "calibration_drive" else named_manoeuvre(name)
-    runs = simulate_four_wheel([m] * len(seeds), seeds, wheel_sensors=[sensor] * len(seeds))
-    return runs, [str(s) for s in seeds]
 
 
 if __name__ == "__main__":

@@ -63,16 +63,12 @@ def runs() -> list[FourWheelRun]:
     return simulate_four_wheel([TURN, STRAIGHT], seeds=[11, 12])
 
 
-def _drive(
-    fleet: FrictionFleet, runs: list[FourWheelRun], ids: list[str], end_ns: int | None = None
-) -> dict[str, np.ndarray]:
-    """Feed each run's packets 100 ms at a time and advance the fleet's vehicles together
-    (until ``end_ns``, default 8 s after the start)."""
+def _drive(fleet: FrictionFleet, runs: list[FourWheelRun], ids: list[str]) -> dict[str, np.ndarray]:
+    """Feed each run's packets 100 ms at a time and advance the fleet's vehicles together."""
     out: dict[str, list[np.ndarray]] = {i: [] for i in ids}
     cursor = dict.fromkeys(ids, 0)
     start = runs[0].start_ns
-    stop = start + 8_000_000_000 if end_ns is None else end_ns
-    for now in range(start, stop, 100_000_000):
+    for now in range(start, start + 8_000_000_000, 100_000_000):
         for vid, r in zip(ids, runs, strict=True):
             ms = r.measurements
             while cursor[vid] < len(ms) and _last(ms[cursor[vid]]) <= now:

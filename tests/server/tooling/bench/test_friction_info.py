@@ -21,7 +21,6 @@ from server.tooling.bench.friction_info import (
     Ticks,
     _jacobian,
     bound_series,
-    factor_bound,
     first_within,
     information,
     table,
@@ -145,27 +144,6 @@ def test_constant_nuisances_with_priors_give_the_schur_complement() -> None:
         h = jac[k][:, free]
         info += h.T @ np.diag(sigma**-2) @ h
         assert math.isclose(got[k], math.sqrt(np.linalg.inv(info)[0, 0]), rel_tol=1e-9)
-
-
-def test_the_factor_bound_is_the_inverse_with_mus_prior_by_hand() -> None:
-    """No walk: each factor's bound is ``√(I⁻¹)`` of the information over μ (with its prior),
-    the four factors and ``v_y``, in the product state's order (``g_x`` front, rear, …)."""
-    rng = np.random.default_rng(4)
-    jac = rng.normal(size=(12, 3, len(Param)))
-    sigma = np.array([0.2, 0.3, 1.0])
-    col = Column("g, v_y", g_std=0.1)
-    got = factor_bound(
-        _ticks(jac), col, sigma, mu_std=0.35, vy0_std_mps=0.05, vy_walk_mps_per_sqrt_s=0.0
-    )
-    free = [Param.LN_MU, Param.LN_GX_REAR, Param.LN_GX_FRONT, Param.LN_GY_FRONT]
-    free += [Param.LN_GY_REAR, Param.VY]
-    info = np.diag([0.35**-2, *[0.1**-2] * 4, 0.05**-2])
-    for k in range(12):
-        h = jac[k][:, free]
-        info += h.T @ np.diag(sigma**-2) @ h
-    sd = np.sqrt(np.diag(np.linalg.inv(info)))
-    np.testing.assert_allclose(got, sd[[2, 1, 3, 4]], rtol=1e-9)
-    assert np.all(got < 0.1)
 
 
 def test_a_walking_lateral_speed_with_gnss_is_the_kalman_filters_covariance() -> None:
