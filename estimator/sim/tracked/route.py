@@ -54,7 +54,8 @@ class Ground:
     """How the tracks slip on one ground (fractions; slip ``s = (Vs − v)/max(Vs, v)``).
 
     Traction slip of a driven track ``rolling_slip + accel_slip_per_g·a/g ± turn_slip·B/ρ_t``
-    (+ on the fast side, − on the slow side, ``ρ_t`` the kinematic turning radius); a braked
+    (``a`` the drawbar demand, the hull's own acceleration plus ``g·sin θ``; + on the fast
+    side, − on the slow side, ``ρ_t`` the kinematic turning radius); a braked
     track in a pivot is dragged at ``brake_drag`` of the fast track's ground speed; the
     turning pole moves ``L·|a_y|/(2·lateral_resistance·g)`` ahead of the centre; slip wanders
     by an Ornstein-Uhlenbeck texture of ``texture_std`` and varies by ``patch_std`` (relative)

@@ -11,6 +11,7 @@ named hilly route's. Pure: every draw from the generator handed in.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -38,6 +39,16 @@ class Terrain:
     def grade_of(self, distance_m: FloatArray) -> FloatArray:
         """Grade at each along-ground distance, shape of ``distance_m``."""
         return _smooth(self.grade_at_m, self.grade, distance_m)
+
+    def grade_at(self, distance_m: float) -> float:
+        """:meth:`grade_of` at one distance, in plain floats (for step-by-step integration)."""
+        at, value = self.grade_at_m, self.grade
+        if not at:
+            return 0.0
+        k = min(max(bisect.bisect_right(at, distance_m) - 1, 0), len(at) - 1)
+        k1 = min(k + 1, len(at) - 1)
+        u = min(max((distance_m - at[k]) / max(at[k1] - at[k], 1e-9), 0.0), 1.0)
+        return value[k] + (value[k1] - value[k]) * (0.5 - 0.5 * math.cos(math.pi * u))
 
     def cross_of(self, distance_m: FloatArray) -> FloatArray:
         """Cross grade at each along-ground distance, shape of ``distance_m``."""

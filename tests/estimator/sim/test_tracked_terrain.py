@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from estimator.sim.tracked import TrackedRun, simulate_route, simulate_tracked
-from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ
-from estimator.sim.tracked.route import RANDOM_RANGES
+from estimator.sim.tracked.physics import GRAVITY_MPS2, RATE_HZ, integrate_route
+from estimator.sim.tracked.route import RANDOM_RANGES, SOFT
 from estimator.sim.tracked.sensors import body_rates, tilt_bias_walk
 from estimator.sim.tracked.terrain import FLAT, TERRAIN_RANGES, hill_terrain, random_terrain
 from estimator.tracked.model import MotionState
@@ -74,6 +74,13 @@ def test_random_terrain_draws_within_its_stated_ranges() -> None:
     d = np.linspace(0.0, 5000.0, 20001)
     g = t.grade_of(d)
     assert np.abs(np.diff(g)).max() < 0.01  # smooth between knots: no steps
+
+
+def test_the_grade_at_one_distance_is_the_grade_of_the_array() -> None:
+    for t in (hill_terrain(), random_terrain(np.random.default_rng(7)), FLAT):
+        d = np.random.default_rng(1).uniform(-10.0, 21_000.0, 2000)
+        d[:3] = (0.0, 40.0, 1e6)  # a knot, and beyond the last
+        assert np.array_equal(t.grade_of(d), [t.grade_at(float(x)) for x in d])
 
 
 def test_hill_route_has_ten_percent_grades_and_a_four_minute_outage() -> None:
@@ -145,6 +152,45 @@ def test_uphill_slips_more_than_downhill() -> None:
     # drawbar demand g·sin θ: 0.3 slip per g on firm ground gives ±3 points at ±10 %
     gap = np.nanmean(slip[up]) - np.nanmean(slip[down])
     assert 0.04 < gap < 0.08
+
+
+def test_the_slip_is_loaded_by_the_hulls_own_acceleration() -> None:
+    # soft ground over the hill route's grades, without the slip's texture and patches:
+    # the drawbar pull accelerates the hull, so on a straight at a steady gearbox a grade's
+    # change moves the slip, the slip slows or speeds the hull, and that acceleration loads
+    # the slip again: s = rolling + k·(a_h + g·sin θ)/g with a_h the hull's, not the gearbox's
+    named = _run("route_firm_hill", 1)
+    ground = dataclasses.replace(SOFT, texture_std=0.0, patch_std=0.0)
+    route = dataclasses.replace(named.route, ground=ground)
+    tr = integrate_route(route, named.config, np.random.default_rng(1))
+    dt, tau = 1.0 / RATE_HZ, 0.4  # the hull's lag (s)
+    vs, u = tr.sprocket_mps[:, 0], tr.track_mps
+    # each track's ground speed lags the speed its slip drives it to: ū = u + τ·du/dt
+    driven_to = u[1:] + tau * np.diff(u, axis=0) / dt
+    ubar = driven_to.mean(axis=1)
+    slip = (vs[1:] - ubar) / np.maximum(np.maximum(vs[1:], ubar), 1e-3)
+    a_hull = np.diff(tr.speed_mps) / dt
+    # straight, the sprockets unchanged over the last 3 s (the hull has caught up with them)
+    changed = np.concatenate([[False], np.any(np.diff(tr.sprocket_mps, axis=0) != 0.0, axis=1)])
+    recent = np.convolve(changed, np.ones(3 * RATE_HZ))[: changed.size] > 0.0
+    steady = (
+        (tr.state[1:] == int(M.STRAIGHT))
+        & (tr.sprocket_mps[1:, 0] == tr.sprocket_mps[1:, 1])
+        & ~recent[1:]
+        & (vs[1:] > 1.0)
+    )
+    k = ground.accel_slip_per_g / G
+    from_grade = ground.rolling_slip + k * G * np.sin(tr.pitch_rad[1:])
+    from_hull = k * a_hull
+    assert steady.sum() > 5000
+    # the hull's acceleration at steady sprockets is the grades' doing, and not small
+    assert np.percentile(np.abs(from_hull[steady]), 90) > 5e-3
+    # the slip follows it as the equation says, to rounding
+    left = slip[steady] - from_grade[steady] - from_hull[steady]
+    assert np.abs(left).max() < 1e-9
+    # (loaded by the gearbox's acceleration instead, the slip would not move with it: slope 0)
+    fit = np.polyfit(from_hull[steady], slip[steady] - from_grade[steady], 1)[0]
+    assert abs(fit - 1.0) < 1e-6
 
 
 def _mast_climb(run: TrackedRun) -> np.ndarray:
