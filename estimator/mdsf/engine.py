@@ -805,9 +805,9 @@ class MdsfEngine:
         both rim excesses, returns the bias to its value before the step and adds the step's
         variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim
         excess), and the bias's move squared to its variance. The window's ticks after the
-        step lose ``δ·V1`` so the step is not found twice.
+        step lose ``δ·V1`` so the step is not found twice. The window also carries the tilt
+        track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior.
         """
-        dt = self.dt_s
         count = np.where(lost, self.step_count[slots], 0)
         integral = np.where(lost, self.step_inertial[slots], 0.0)
         a_in = np.where(
@@ -815,34 +815,16 @@ class MdsfEngine:
             z[:, MdsfObs.A1],
             x_prior[:, MdsfState.A1] + x_prior[:, MdsfState.ACCEL_BIAS],
         )
-        integral = np.where(lost, integral + dt * a_in, 0.0)
-        x = up.x
-        v1 = x[:, MdsfState.V1]
-        v_wheel = np.einsum("kmi,ki->km", up.H[:, _RIM, : MdsfState.ACCEL_BIAS], x[:, :4])
-        both = rim_ok.all(axis=1)
+        integral = np.where(lost, integral + self.dt_s * a_in, 0.0)
         step_level = np.where(lost, self.step_level[slots], 0.0)
-        model_level = self.slip_anchor[slots].mean(axis=1) + self._demand_slip(slots)
-        level = model_level + step_level
-        rim_mean = np.where(rim_ok, rim_mps, 0.0).mean(axis=1)
-        r = rim_mean - integral - (v_wheel.mean(axis=1) - v1) - level * v1
-        new = np.stack(
-            [
-                np.where(both, r, 0.0),
-                v1,
-                x[:, MdsfState.OMEGA_Z],
-                both * 1.0,
-                x[:, MdsfState.ACCEL_BIAS],
-                model_level,
-            ],
-            axis=1,
-        )
+        new = self._step_window_tick(slots, t, up, integral, step_level, rim_mps, rim_ok)
         buf = self.step_buf[slots]
         buf[lost] = np.concatenate([buf[lost, :, 1:], new[lost, :, None]], axis=2)
         count = count + lost
         test = lost & (count >= self._step_ticks)
         found = np.zeros(slots.shape[0], dtype=bool)
         if test.any():
-            fit = step_test(buf[test], dt, self._step_prior)
+            fit = step_test(buf[test], self.dt_s, self._step_prior)
             rows = np.flatnonzero(test)[fit.found]
             found[rows] = True
             if rows.size:
@@ -853,6 +835,40 @@ class MdsfEngine:
         self.step_level[slots] = step_level
         self.step_inertial[slots] = integral
         return found
+
+    def _step_window_tick(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        up: _Updated,
+        integral: FloatArray,
+        step_level: FloatArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> FloatArray:
+        """The tick's column of the step test's window, (k, len(StepBuf)) (channels
+        :class:`~estimator.mdsf.outage_step.StepBuf`; ``integral`` the outage's ``∫ā·dt``,
+        ``step_level`` the steps taken, each (k,))."""
+        x = up.x
+        v1 = x[:, MdsfState.V1]
+        v_wheel = np.einsum("kmi,ki->km", up.H[:, _RIM, : MdsfState.ACCEL_BIAS], x[:, :4])
+        both = rim_ok.all(axis=1)
+        model_level = self.slip_anchor[slots].mean(axis=1) + self._demand_slip(slots)
+        level = model_level + step_level
+        rim_mean = np.where(rim_ok, rim_mps, 0.0).mean(axis=1)
+        r = rim_mean - integral - (v_wheel.mean(axis=1) - v1) - level * v1
+        k = slots.shape[0]
+        tilt_var = t.tilt_var if t.tilt_var is not None else np.full((k, 2), np.nan)
+        new = np.empty((k, len(StepBuf)))
+        new[:, StepBuf.R] = np.where(both, r, 0.0)
+        new[:, StepBuf.V1] = v1
+        new[:, StepBuf.YAW] = x[:, MdsfState.OMEGA_Z]
+        new[:, StepBuf.OK] = both
+        new[:, StepBuf.BIAS] = x[:, MdsfState.ACCEL_BIAS]
+        new[:, StepBuf.LEVEL] = model_level
+        new[:, StepBuf.PITCH_VAR] = tilt_var[:, 0]
+        new[:, StepBuf.ROLL_VAR] = tilt_var[:, 1]
+        return new
 
     def _take_step(
         self,

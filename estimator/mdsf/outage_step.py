@@ -19,6 +19,10 @@ the centripetal term. Over a window of ``2L`` ticks the test fits
 the level frame leaks into the forward axis as the heading turns; ``γ`` the tyre model's level
 off by a factor, which reads as a step when the demand moves across the middle)
 
+The tilt error's prior is the front end's own: the window's mean pitch and roll variance of
+the tilt track (large with one antenna in an outage, small with a receiver's attitude), so
+the tilt competes with a step only as far as the track does not know its angles.
+
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
 window's middle when its posterior mean is ``z_min`` posterior std from 0 and at least
@@ -38,7 +42,15 @@ import numpy as np
 from estimator._arrays import BoolArray, FloatArray
 from estimator.mdsf.model import GRAVITY_MPS2
 
-__all__ = ["StepBuf", "StepCol", "StepFit", "StepPrior", "step_columns", "step_test"]
+__all__ = [
+    "StepBuf",
+    "StepCol",
+    "StepFit",
+    "StepPrior",
+    "step_columns",
+    "step_inverse_prior",
+    "step_test",
+]
 
 
 class StepBuf(IntEnum):
@@ -50,6 +62,8 @@ class StepBuf(IntEnum):
     OK = 3  # 1 where both rims were measured, else 0
     BIAS = 4  # the filter's accelerometer bias [m/s²] (not a regressor: what a step gives back)
     LEVEL = 5  # the tyre model's slip level ε_a without the steps taken (ratio) [-]
+    PITCH_VAR = 6  # the tilt track's pitch variance [rad²] (NaN: unknown, the prior's tilt_rad)
+    ROLL_VAR = 7  # the tilt track's roll variance [rad²] (NaN: unknown, the prior's tilt_rad)
 
 
 class StepCol(IntEnum):
@@ -77,7 +91,9 @@ class StepPrior:
         forward offset [m].
     tilt_rad : float
         Tilt error fixed in the level frame, leaking ``g`` times it into ``ā`` as the heading
-        turns [rad].
+        turns, where the window carries no variance of the tilt track's [rad].
+    tilt_floor_rad : float
+        Floor of the tilt error's prior taken from the tilt track [rad].
     gain : float
         Relative error of the tyre model's level about its window mean [-].
     step : float
@@ -100,6 +116,7 @@ class StepPrior:
     yaw_rad: float = 0.05
     cent_m: float = 2.0
     tilt_rad: float = 0.035
+    tilt_floor_rad: float = 1e-4
     gain: float = 1.0
     step: float = 0.05
     noise_floor_mps: float = 0.005
@@ -141,38 +158,55 @@ def step_columns(buf: FloatArray, dt_s: float) -> FloatArray:
     return a
 
 
+def step_inverse_prior(buf: FloatArray, prior: StepPrior) -> FloatArray:
+    """``1/σ_j²`` of each window's coefficients, shape (k, len(StepCol)); 0 for level and trend.
+
+    The tilt columns' ``σ`` is the tilt track's own over the window, ``√(mean var)`` of pitch
+    (``TILT_COS``: the error along the heading at the window's start) and of roll
+    (``TILT_SIN``), floored at ``tilt_floor_rad``; ``tilt_rad`` where the window has none.
+    """
+    k = buf.shape[0]
+    inv = np.zeros((k, len(StepCol)))
+    inv[:, StepCol.TURN_LOAD] = prior.load_s**-2
+    inv[:, StepCol.TURN_YAW] = prior.yaw_rad**-2
+    inv[:, StepCol.TURN_CENT] = prior.cent_m**-2
+    inv[:, StepCol.GAIN] = prior.gain**-2
+    inv[:, StepCol.STEP] = prior.step**-2
+    for col, chan in ((StepCol.TILT_COS, StepBuf.PITCH_VAR), (StepCol.TILT_SIN, StepBuf.ROLL_VAR)):
+        var = buf[:, chan].mean(axis=1)
+        var = np.where(
+            np.isfinite(var), np.maximum(var, prior.tilt_floor_rad**2), prior.tilt_rad**2
+        )
+        inv[:, col] = 1.0 / var
+    return inv
+
+
 def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     """Test each window ``buf`` (k, C, N; channels :class:`StepBuf`, oldest tick first) for a
     slip step between ticks ``N//2 − 1`` and ``N//2`` (module docstring).
 
-    Ridge regression ``θ = (AᵀWA + σ̂²Λ)⁻¹AᵀWr`` with ``Λ = diag(1/σ_j²)`` (0 for level and
-    trend) and ``W`` the rows' ``OK`` weights; ``σ̂²`` the residual variance of the
-    unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²``, found by two
-    passes (the first with the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
+    Ridge regression ``θ = (AᵀWA + σ̂²Λ)⁻¹AᵀWr`` with ``Λ = diag(1/σ_j²)`` per window
+    (:func:`step_inverse_prior`) and ``W`` the rows' ``OK`` weights; ``σ̂²`` the residual
+    variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²``,
+    found by two passes (the first with the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
     """
     a = step_columns(buf, dt_s)
     w = buf[:, StepBuf.OK]
     r = np.where(w > 0, buf[:, StepBuf.R], 0.0)
-    inv_prior = np.zeros(len(StepCol))
-    inv_prior[StepCol.TURN_LOAD] = prior.load_s**-2
-    inv_prior[StepCol.TURN_YAW] = prior.yaw_rad**-2
-    inv_prior[StepCol.TURN_CENT] = prior.cent_m**-2
-    inv_prior[StepCol.TILT_SIN] = prior.tilt_rad**-2
-    inv_prior[StepCol.TILT_COS] = prior.tilt_rad**-2
-    inv_prior[StepCol.GAIN] = prior.gain**-2
-    inv_prior[StepCol.STEP] = prior.step**-2
+    lam = np.zeros((buf.shape[0], len(StepCol), len(StepCol)))
+    diag = np.arange(len(StepCol))
+    lam[:, diag, diag] = step_inverse_prior(buf, prior)
     ata = np.einsum("kni,kn,knj->kij", a, w, a)
     atr = np.einsum("kni,kn,kn->ki", a, w, r)
     n_ok = w.sum(axis=1)
     dof = np.maximum(n_ok - len(StepCol), 1.0)
     var = np.full(buf.shape[0], prior.noise_floor_mps**2)
     for _ in range(2):
-        lhs = ata + var[:, None, None] * np.diag(inv_prior)[None]
-        cov = np.linalg.inv(lhs)
+        cov = np.linalg.inv(ata + var[:, None, None] * lam)
         theta = np.einsum("kij,kj->ki", cov, atr)
         res = r - np.einsum("kni,ki->kn", a, theta)
         var = np.maximum((w * res * res).sum(axis=1) / dof, prior.noise_floor_mps**2)
-    cov = np.linalg.inv(ata + var[:, None, None] * np.diag(inv_prior)[None])
+    cov = np.linalg.inv(ata + var[:, None, None] * lam)
     theta = np.einsum("kij,kj->ki", cov, atr)
     delta = theta[:, StepCol.STEP]
     delta_var = var * cov[:, StepCol.STEP, StepCol.STEP]
