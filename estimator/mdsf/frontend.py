@@ -1486,13 +1486,14 @@ class _Batch:
         """Pitch and roll variance at each tick, shape ``(n_ticks, 2)`` [rad²]: the tracks'
         covariance after the latest fix at or before the tick (or the batch's start),
         carried to the tick (:func:`~estimator.tilt.angle_var_after`)."""
-        i = _asof(self.g_row, self.g_t, self.tick_row, self.ticks)[:, None, None]
+        i = _asof(self.g_row, self.g_t, self.tick_row, self.ticks)
         cov_b = self.tilt_before[0][self.tick_row]
         fix_b = self.tilt_before[1][self.tick_row]
         cov_a, fix_a = self.g_tilt_after
         if cov_a.shape[0]:
-            cov_b = np.where(i >= 0, cov_a[np.maximum(i, 0)], cov_b)
-            fix_b = np.where(i[:, :, 0] >= 0, fix_a[np.maximum(i[:, :, 0], 0)], fix_b)
+            j = np.maximum(i, 0)
+            cov_b = np.where((i >= 0)[:, None, None], cov_a[j], cov_b)
+            fix_b = np.where((i >= 0)[:, None], fix_a[j], fix_b)
         known = fix_b != _NONE_NS
         gap = np.where(known, np.maximum((self.ticks[:, None] - fix_b) * _NS, 0.0), 0.0)
         walk = self.config.gyro_bias_walk_radps_per_sqrt_s

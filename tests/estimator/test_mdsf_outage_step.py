@@ -82,6 +82,54 @@ def test_a_turns_yaw_driven_change_is_not_found() -> None:
     assert step_test(buf, DT, blind).found.any()
 
 
+def _turn_with_a_tilt_error(tilt_rad: float, step: float, seed: int) -> np.ndarray:
+    """Windows of a U-turn at 0.25 rad/s entered at tick 70 (2 m/s) with a level-frame pitch
+    and roll error, each ``tilt_rad``, leaking ``g·(θ·(cos ψ − 1) + φ·sin ψ)`` into ``ā`` as
+    the heading turns, and a slip step ``step`` at tick 80, the turn's middle."""
+    rng = np.random.default_rng(seed)
+    n = 160
+    i = np.arange(n)
+    yaw = 0.25 * np.clip((i - 70) / 3.0, 0.0, 1.0)
+    psi = np.cumsum(yaw) * DT
+    v1 = np.full(n, 2.0)
+    leak = np.cumsum(9.80665 * tilt_rad * (np.cos(psi) - 1.0 + np.sin(psi))) * DT
+    r = leak + step * v1 * (i >= 80) + rng.normal(0, 0.004, n)
+    return _windows(r, v1, yaw)
+
+
+def _with_tilt_std(buf: np.ndarray, std_rad: float) -> np.ndarray:
+    out = buf.copy()
+    out[:, StepBuf.PITCH_VAR] = std_rad**2
+    out[:, StepBuf.ROLL_VAR] = std_rad**2
+    return out
+
+
+def test_the_tilt_prior_is_the_windows_own_tilt_variance() -> None:
+    # A 2° pitch and roll error turning with the heading, no step: a tilt track that says it
+    # may be off by that much lets the tilt columns take the leak; one that says 0.1° does
+    # not, and the leak reads as a step. The window's variance decides, not StepPrior.tilt_rad.
+    buf = _turn_with_a_tilt_error(np.deg2rad(2.0), 0.0, 11)
+    loose = step_test(_with_tilt_std(buf, np.deg2rad(2.0)), DT, StepPrior())
+    tight = step_test(_with_tilt_std(buf, np.deg2rad(0.1)), DT, StepPrior())
+    assert not loose.found.any()
+    assert tight.found.any()
+    # NaN (no tilt track): the prior's constant, as loose here
+    assert not step_test(_with_tilt_std(buf, np.nan), DT, StepPrior()).found.any()
+
+
+def test_a_step_in_a_turn_is_found_whole_when_the_tilt_is_well_known() -> None:
+    # A +4 pp step in the middle of a U-turn, the tilt right: with the receiver's attitude
+    # (0.1°) the step is found at its size and known better than under a 2° tilt prior, whose
+    # columns share the jump's uncertainty.
+    buf = _turn_with_a_tilt_error(0.0, 0.04, 13)
+    at = 80 - N // 2
+    known = step_test(_with_tilt_std(buf, np.deg2rad(0.1)), DT, StepPrior())
+    loose = step_test(_with_tilt_std(buf, np.deg2rad(2.0)), DT, StepPrior())
+    assert known.found[at]
+    assert known.delta[at] == pytest.approx(0.04, abs=0.006)
+    assert known.delta_var[at] < 0.85 * loose.delta_var[at]
+
+
 def _slip_rms_after_step(config: MdsfConfig) -> float:
     """``field_work`` (seed 1) with GNSS lost 60-85 s and a +6 pp slip step at 70 s: the left
     wheel's slip RMS over 75-85 s (the step found) [pp]."""
