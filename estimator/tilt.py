@@ -39,6 +39,7 @@ __all__ = [
     "PitchSum",
     "RollSum",
     "TiltSettings",
+    "angle_var_after",
     "pitch_fix_update",
     "pitch_kf_update",
     "shrunk_roll",
@@ -351,6 +352,16 @@ def pitch_kf_update(
         (theta, bias, ptt, ptb, pbb), has & ~known, has & known, pitch_gnss_rad, r2, config
     )
     return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
+
+
+def angle_var_after(
+    cov: FloatArray, gap_s: FloatArray, bias_walk_radps_per_sqrt_s: float
+) -> FloatArray:
+    """Variance of an angle integrated ``gap_s`` (k,) past its last fix with the bias in force,
+    from its covariance there ``cov`` (k, 3; :class:`AngleCov`): ``P_aa − 2T·P_ab + T²·P_bb``
+    plus the bias walk's ``q_b·T³/3`` (the gyro's white angle noise left out: small beside the
+    bias's growth). Shape (k,) [rad²]."""
+    return _propagate_angle_cov(cov, gap_s, np.zeros_like(gap_s), bias_walk_radps_per_sqrt_s**2)[0]
 
 
 def _propagate_angle_cov(

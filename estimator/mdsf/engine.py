@@ -6,7 +6,8 @@ subset of them with a few calls to the pure functions of :mod:`estimator.kalman`
 named stages (:meth:`MdsfEngine.step`): measurement noise, predict (accelerometer-driven in
 product mode), update of the IMU rows, chi-square gates of GNSS speed and distance, update of
 GNSS speed, rim speeds and RTK distance, (re)initialisation and divergence reset, the
-reference-speed filter (``method.md`` §3). Each step also returns what it used
+reference-speed filter (``method.md`` §3), and while GNSS is lost the slip-step test
+(:mod:`estimator.mdsf.outage_step`). Each step also returns what it used
 (:class:`TickModel`: matrices, masks, NIS) for diagnostics and tests. A state that goes
 non-finite or whose speed variance explodes is re-initialised and its row flagged RESET.
 """
@@ -36,6 +37,7 @@ from estimator.mdsf.model import (
     MdsfState,
     mdsf_matrices,
 )
+from estimator.mdsf.outage_step import StepBuf, StepPrior, step_test
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
 from estimator.types import EstimateFlag
 
@@ -157,7 +159,8 @@ class TickModel:
     mask1, mask2 : ndarray, shape (k, m), bool
         Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
     inflated : ndarray, shape (k,), bool
-        The covariance was changed between the stages (GNSS re-acquired or a slip jump).
+        The covariance was changed between the stages (GNSS re-acquired or a slip jump) or
+        after them (a slip step found in an outage, :meth:`MdsfEngine._outage_slip_steps`).
     nis : ndarray, shape (k,)
         Normalised innovation squared of both stages (their sum is the joint update's), with
         its degrees of freedom ``dof``; computed when read, from the two ``stages``.
@@ -257,6 +260,16 @@ class MdsfEngine:
         self.m = config.n_obs
         self._free: list[int] = []
         self._cap = 0
+        step_half = round(0.5 * config.outage_step_window_s / self.dt_s)
+        self._step_ticks = 2 * step_half if self.product and step_half >= 2 else 0
+        self._step_prior = StepPrior(
+            load_s=config.outage_step_turn_load_s,
+            yaw_rad=config.outage_step_yaw_misalign_rad,
+            cent_m=config.outage_step_imu_offset_m,
+            step=config.outage_step_prior,
+            z_min=config.outage_step_z,
+            min_step=config.outage_step_min,
+        )
         self._alloc(max(capacity, 1))
         # Product mode: the entries of Q the tick's accelerometer variance enters, as (row,
         # column, factor) for one indexed add a step: V1 and a1 through dt, the distance
@@ -314,6 +327,10 @@ class MdsfEngine:
         grow("leak_var", (), 0.0)
         grow("anchor_stats", (3,), 0.0)
         grow("dist_gated", (), False)
+        grow("step_buf", (len(StepBuf), max(self._step_ticks, 1)), 0.0)
+        grow("step_count", (), 0)
+        grow("step_level", (), 0.0)
+        grow("step_inertial", (), 0.0)
         grow("ref_x", (len(RefState),), 0.0)
         grow("ref_P", (len(RefState), len(RefState)), 0.0)
         grow("ref_aux", (len(RefAux),), 0.0)
@@ -342,6 +359,10 @@ class MdsfEngine:
     leak_var: FloatArray
     anchor_stats: FloatArray
     dist_gated: BoolArray
+    step_buf: FloatArray
+    step_count: IntArray
+    step_level: FloatArray
+    step_inertial: FloatArray
     ref_x: FloatArray
     ref_P: FloatArray  # noqa: N815 (covariance, as P)
     ref_aux: FloatArray
@@ -372,6 +393,10 @@ class MdsfEngine:
         self.leak_var[s] = 0.0
         self.anchor_stats[s] = 0.0
         self.dist_gated[s] = False
+        self.step_buf[s] = 0.0
+        self.step_count[s] = 0
+        self.step_level[s] = 0.0
+        self.step_inertial[s] = 0.0
         self.x[s] = 0.0
         self.P[s] = np.eye(self.n)
         self.ref_x[s] = 0.0
@@ -461,6 +486,11 @@ class MdsfEngine:
         if self.product and self.config.slip_per_demand > 0 and self.config.tyre_gain_tau_s > 0:
             self._learn_tyre_gain(slots, t, up.x, up.H, rim_mps, rim_ok, up.use_vg & init)
         st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
+        if self._step_ticks:
+            lost = self._gnss_lost(slots, t, init) & ~st.started & ~st.diverged
+            up.inflated = up.inflated | self._outage_slip_steps(
+                slots, t, z, x, up, lost, rim_mps, rim_ok
+            )
         now_init = init | st.started
         fused = up.use_vg & now_init
         last_fused = np.where(fused, t.stamp_ns, self.last_fused_ns[slots])
@@ -744,13 +774,130 @@ class MdsfEngine:
         F[:, _RIM_EXCESS, _RIM_EXCESS] *= keep
         F[:, _RIM_EXCESS, MdsfState.ACCEL_BIAS] *= keep
         target = np.clip(
-            self.slip_anchor[slots] + self._demand_slip(slots)[:, None], *_OUTAGE_SLIP_RATIO_RANGE
+            self.slip_anchor[slots] + (self._demand_slip(slots) + self.step_level[slots])[:, None],
+            *_OUTAGE_SLIP_RATIO_RANGE,
         )
         F[:, _RIM_EXCESS, MdsfState.V1] += (1.0 - keep) * target
         var_max = (cfg.outage_slip_std * np.maximum(speed, _SLIP_MIN_SPEED_MPS)) ** 2
         Q[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(lost, (1.0 - phi * phi) * var_max, 0.0)[:, None]
         q_b = cfg.outage_bias_walk_mps2_per_sqrt_s**2 * self.dt_s
         Q[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += np.where(lost, q_b, 0.0)
+
+    def _outage_slip_steps(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        x_prior: FloatArray,
+        up: _Updated,
+        lost: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> BoolArray:
+        """Product mode, GNSS lost: a slip step found in the window of the rims less the
+        inertial speed (:func:`estimator.mdsf.outage_step.step_test`) moves the outage's slip
+        level and takes back what the rims pushed into the speed and the bias since it
+        (``up.x``, ``up.P`` in place). Returns the rows so changed, (k,).
+
+        Per tick of an outage the window gets ``r = r̄W − ∫ā·dt − Δ_lever − ε_a·V1`` (``ε_a``
+        the level :meth:`_anchor_slip` reverts to), ``V1`` and ``ωz``. A step ``δ`` (posterior
+        mean, slip ratio) adds ``δ`` to both wheels' anchor, moves ``δ·V1`` from ``V1`` to
+        both rim excesses, returns the bias to its value before the step and adds the step's
+        variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim
+        excess), and the bias's move squared to its variance. The window's ticks after the
+        step lose ``δ·V1`` so the step is not found twice. The window also carries the tilt
+        track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior.
+        """
+        count = np.where(lost, self.step_count[slots], 0)
+        integral = np.where(lost, self.step_inertial[slots], 0.0)
+        a_in = np.where(
+            t.imu_ok,
+            z[:, MdsfObs.A1],
+            x_prior[:, MdsfState.A1] + x_prior[:, MdsfState.ACCEL_BIAS],
+        )
+        integral = np.where(lost, integral + self.dt_s * a_in, 0.0)
+        step_level = np.where(lost, self.step_level[slots], 0.0)
+        new = self._step_window_tick(slots, t, up, integral, step_level, rim_mps, rim_ok)
+        buf = self.step_buf[slots]
+        buf[lost] = np.concatenate([buf[lost, :, 1:], new[lost, :, None]], axis=2)
+        count = count + lost
+        test = lost & (count >= self._step_ticks)
+        found = np.zeros(slots.shape[0], dtype=bool)
+        if test.any():
+            fit = step_test(buf[test], self.dt_s, self._step_prior)
+            rows = np.flatnonzero(test)[fit.found]
+            found[rows] = True
+            if rows.size:
+                step_level[rows] += fit.delta[fit.found]
+                self._take_step(rows, fit.delta[fit.found], fit.delta_var[fit.found], buf, up)
+        self.step_buf[slots] = buf
+        self.step_count[slots] = count
+        self.step_level[slots] = step_level
+        self.step_inertial[slots] = integral
+        return found
+
+    def _step_window_tick(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        up: _Updated,
+        integral: FloatArray,
+        step_level: FloatArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> FloatArray:
+        """The tick's column of the step test's window, (k, len(StepBuf)) (channels
+        :class:`~estimator.mdsf.outage_step.StepBuf`; ``integral`` the outage's ``∫ā·dt``,
+        ``step_level`` the steps taken, each (k,))."""
+        x = up.x
+        v1 = x[:, MdsfState.V1]
+        v_wheel = np.einsum("kmi,ki->km", up.H[:, _RIM, : MdsfState.ACCEL_BIAS], x[:, :4])
+        both = rim_ok.all(axis=1)
+        model_level = self.slip_anchor[slots].mean(axis=1) + self._demand_slip(slots)
+        level = model_level + step_level
+        rim_mean = np.where(rim_ok, rim_mps, 0.0).mean(axis=1)
+        r = rim_mean - integral - (v_wheel.mean(axis=1) - v1) - level * v1
+        k = slots.shape[0]
+        tilt_var = t.tilt_var if t.tilt_var is not None else np.full((k, 2), np.nan)
+        new = np.empty((k, len(StepBuf)))
+        new[:, StepBuf.R] = np.where(both, r, 0.0)
+        new[:, StepBuf.V1] = v1
+        new[:, StepBuf.YAW] = x[:, MdsfState.OMEGA_Z]
+        new[:, StepBuf.OK] = both
+        new[:, StepBuf.BIAS] = x[:, MdsfState.ACCEL_BIAS]
+        new[:, StepBuf.LEVEL] = model_level
+        new[:, StepBuf.PITCH_VAR] = tilt_var[:, 0]
+        new[:, StepBuf.ROLL_VAR] = tilt_var[:, 1]
+        return new
+
+    def _take_step(
+        self,
+        rows: IntArray,
+        delta: FloatArray,
+        delta_var: FloatArray,
+        buf: FloatArray,
+        up: _Updated,
+    ) -> None:
+        """Apply the steps ``delta`` (j,) found on ``rows`` of the step's arrays as
+        :meth:`_outage_slip_steps` says (``buf``, ``up.x``, ``up.P`` in place)."""
+        half = self._step_ticks // 2
+        x = up.x[rows]
+        v1 = x[:, MdsfState.V1]
+        shift = delta * v1
+        x[:, MdsfState.V1] -= shift
+        x[:, _RIM_EXCESS] += shift[:, None]
+        bias_before = buf[rows, StepBuf.BIAS, half - 1]
+        bias_move = x[:, MdsfState.ACCEL_BIAS] - bias_before
+        x[:, MdsfState.ACCEL_BIAS] = bias_before
+        d = np.zeros((rows.size, self.n))
+        d[:, MdsfState.V1] = -1.0
+        d[:, _RIM_EXCESS] = 1.0
+        P = up.P[rows] + (delta_var * v1 * v1)[:, None, None] * (d[:, :, None] * d[:, None, :])
+        P[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += bias_move * bias_move
+        up.x[rows] = x
+        up.P[rows] = P
+        after = buf[rows, StepBuf.V1, half:]
+        buf[rows, StepBuf.R, half:] -= delta[:, None] * after
 
     def _update(
         self,

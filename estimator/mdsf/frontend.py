@@ -83,6 +83,7 @@ from estimator.tilt import (
     Integral,
     PitchSum,
     RollSum,
+    angle_var_after,
     pitch_fix_update,
     pitch_kf_update,
     shrunk_roll,
@@ -195,6 +196,10 @@ class TickInputs:
         axle's is ``a1`` plus it; NaN where a rate at either end of the tick is unknown.
     lever_accel_fwd_var : ndarray, shape (m,), or None
         Its variance under the gyro's white noise [(m/s²)²].
+    tilt_var : ndarray, shape (m, 2), or None
+        Variance of the tilt track's pitch and roll at the tick, carried from their last fix
+        by the gyro biases' uncertainty (:func:`~estimator.tilt.angle_var_after`): small with a
+        receiver's attitude, growing through an outage with one antenna [rad²].
     """
 
     stamp_ns: IntArray
@@ -219,6 +224,7 @@ class TickInputs:
     lever_force_lat: FloatArray | None = None
     lever_accel_fwd_mps2: FloatArray | None = None
     lever_accel_fwd_var: FloatArray | None = None
+    tilt_var: FloatArray | None = None
 
     @property
     def m(self) -> int:
@@ -1220,6 +1226,7 @@ class _Batch:
             lever_force_lat=lever_lat,
             lever_accel_fwd_mps2=lever_fwd,
             lever_accel_fwd_var=lever_fwd_var,
+            tilt_var=self._tilt_var_at_ticks(),
         )
 
     def _lever_accel_fwd(
@@ -1346,6 +1353,7 @@ class _Batch:
         """
         track = _TiltTrack(self)
         self.var_before = track.st.var.copy()
+        self.tilt_before = track.st.tilt_cov()
         self.bias_before = track.st.bx.copy()
         nf = self.g_row.shape[0]
         self.g_vg = np.zeros(nf)
@@ -1353,6 +1361,7 @@ class _Batch:
         self.g_bias_after = np.empty(nf)
         self.g_theta_after = np.empty(nf)
         self.g_roll_after = np.zeros(nf)
+        self.g_tilt_after = (np.zeros((nf, 2, 3)), np.zeros((nf, 2), dtype=np.int64))
         q = self._between_fixes(_rank_passes(self.g_rank), track.end_segment, track.at_fix)
         track.st.put(self.fe, self.slots)
         theta, self.phi = track.at_samples(q)
@@ -1472,6 +1481,23 @@ class _Batch:
         """Pitch variance in force at each tick (the latest fix at or before it)."""
         i = _asof(self.g_row, self.g_t, self.tick_row, self.ticks)
         return _pick(i, self.g_var_after, self.var_before[self.tick_row])
+
+    def _tilt_var_at_ticks(self) -> FloatArray:
+        """Pitch and roll variance at each tick, shape ``(n_ticks, 2)`` [rad²]: the tracks'
+        covariance after the latest fix at or before the tick (or the batch's start),
+        carried to the tick (:func:`~estimator.tilt.angle_var_after`)."""
+        i = _asof(self.g_row, self.g_t, self.tick_row, self.ticks)
+        cov_b = self.tilt_before[0][self.tick_row]
+        fix_b = self.tilt_before[1][self.tick_row]
+        cov_a, fix_a = self.g_tilt_after
+        if cov_a.shape[0]:
+            j = np.maximum(i, 0)
+            cov_b = np.where((i >= 0)[:, None, None], cov_a[j], cov_b)
+            fix_b = np.where((i >= 0)[:, None], fix_a[j], fix_b)
+        known = fix_b != _NONE_NS
+        gap = np.where(known, np.maximum((self.ticks[:, None] - fix_b) * _NS, 0.0), 0.0)
+        walk = self.config.gyro_bias_walk_radps_per_sqrt_s
+        return angle_var_after(cov_b.reshape(-1, 3), gap.ravel(), walk).reshape(-1, 2)
 
     def _yaw_track(self, theta: FloatArray) -> FloatArray:
         """Yaw-gyro bias in force at each IMU sample, learnt against the GNSS heading.
@@ -1927,6 +1953,14 @@ class _TiltState:
             clp=fe.course_lp[s],
         )
 
+    def tilt_cov(self) -> tuple[FloatArray, IntArray]:
+        """Pitch's and roll's covariance with their gyro's bias, shape ``(k, 2, 3)``
+        (:class:`~estimator.tilt.AngleCov`), and their last fix, ``(k, 2)``
+        (``_NONE_NS`` where the angle is not known yet)."""
+        cov = np.stack([np.stack([self.var, self.cov_tb, self.var_b], axis=1), self.rcov], axis=1)
+        fix_ns = np.stack([self.fix_ns, self.rfix_ns], axis=1)
+        return cov, np.where(np.stack([self.known, self.rknown], axis=1), fix_ns, _NONE_NS)
+
     def put(self, fe: FleetFrontEnd, s: IntArray) -> None:
         """Write the state back to slots ``s``."""
         fe.pitch_rad[s] = self.th
@@ -2254,6 +2288,8 @@ class _TiltTrack:
         b.g_var_after[fi] = st.var[r]
         b.g_bias_after[fi] = st.bx[r]
         b.g_theta_after[fi] = st.th[r]
+        cov, fix_ns = st.tilt_cov()
+        b.g_tilt_after[0][fi], b.g_tilt_after[1][fi] = cov[r], fix_ns[r]
         ok = b.g_vel_ok[fi]
         used = np.where(np.isfinite(p), p, st.th[r])
         fo = fi[ok]

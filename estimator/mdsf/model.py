@@ -262,6 +262,22 @@ class MdsfConfig:
         as sway the tilt track does not follow; the rims, their slip held by
         ``outage_slip_std``, observe it; 0 leaves the bias the sensor's walk and the leak's
         growth [m/s²/√s].
+    outage_step_window_s : float
+        Product mode, GNSS lost: length of the window over which a slip step is tested
+        (:mod:`estimator.mdsf.outage_step`; the step at its middle, so found half a window
+        late); 0 turns the test off [s].
+    outage_step_z : float
+        Posterior mean of a step over its posterior std above which it is taken [-].
+    outage_step_min : float
+        Smallest step taken (slip ratio) [-].
+    outage_step_prior : float
+        Prior 1-sigma of a step (slip ratio): the estimate is shrunk toward 0 by it [-].
+    outage_step_turn_load_s : float
+        Prior 1-sigma of the mean slip's change per lateral acceleration ``V1·|ωz|`` [s].
+    outage_step_yaw_misalign_rad : float
+        Prior 1-sigma of the IMU's yaw misalignment, which leaks ``V1·ωz`` into ``ā`` [rad].
+    outage_step_imu_offset_m : float
+        Prior 1-sigma of the IMU's forward offset, which adds ``ωz²·y`` to ``ā`` [m].
     zupt_speed_mps : float
         Product mode: both rim speeds at or below this (and GNSS, if any, below twice it) mean
         the vehicle stands: ``V0 = 0`` is fused (zero-velocity update); 0 turns it off [m/s].
@@ -407,6 +423,13 @@ class MdsfConfig:
     outage_slip_tau_s: float = 1.0
     outage_anchor_tau_s: float = 20.0
     outage_bias_walk_mps2_per_sqrt_s: float = 0.02
+    outage_step_window_s: float = 0.0
+    outage_step_z: float = 6.0
+    outage_step_min: float = 0.015
+    outage_step_prior: float = 0.05
+    outage_step_turn_load_s: float = 0.05
+    outage_step_yaw_misalign_rad: float = 0.05
+    outage_step_imu_offset_m: float = 2.0
     zupt_speed_mps: float = 0.0
     force_filter_tau_s: float = 0.3
     rim_texture_rel: float = 0.003
@@ -453,6 +476,7 @@ class MdsfConfig:
                 "gnss_noise_adapt",
                 "slip_demand_gain",
                 "zupt_speed_mps",
+                "outage_step_window_s",
                 "slip_per_demand",
                 "tyre_gain_tau_s",
                 "tyre_gain_range",
@@ -472,6 +496,7 @@ class MdsfConfig:
         for name in (
             "slip_demand_gain",
             "zupt_speed_mps",
+            "outage_step_window_s",
             "slip_per_demand",
             "tyre_gain_tau_s",
             "rim_drift_tau_s",

@@ -298,6 +298,28 @@ def _one_antenna_drive(
     return fe, ticks.inputs, late
 
 
+def test_the_tilt_variance_grows_from_the_last_fix() -> None:
+    """``TickInputs.tilt_var``: a receiver without attitude whose fixes stop at 10 s while the
+    IMU goes on to 20 s. Up to the last fix the pitch and roll variance stay at the fixes'
+    level; after it they grow with the gyro biases' uncertainty, every tick."""
+    fe = FleetFrontEnd(MdsfConfig(mode=MdsfMode.PRODUCT), WheelSpeedConfig())
+    fe.add(0, WheeledRearDriveConfig())
+    for m in _one_antenna_circle(2.5, 0.0, 100):
+        fe.push(0, m)
+    t_ns = START + np.arange(2001) * (S // 100)
+    accel = _still_on(0.0, np.zeros(1))[0]
+    fe.push(0, ImuBatch(t_ns, np.tile(accel, (2001, 1)), np.zeros((2001, 3))))
+    ticks = fe.assemble(np.array([0]), np.array([t_ns[-1]]))
+    assert ticks is not None
+    inp = ticks.inputs
+    assert inp.tilt_var is not None and inp.tilt_var.shape == (inp.m, 2)
+    t = (inp.stamp_ns - START) / S
+    before, after = inp.tilt_var[(t > 5) & (t < 9.9)], inp.tilt_var[t > 10.5]
+    assert np.isfinite(before).all() and np.isfinite(after).all()
+    assert (np.diff(after, axis=0) > 0).all()
+    assert (after[-1] > 2.0 * before.max(axis=0)).all()
+
+
 @pytest.mark.parametrize(
     ("speed_mps", "rate_radps", "bank_rad"),
     [(0.0, 0.0, 0.08), (2.5, 0.0, -0.05), (2.5, 0.3, 0.0)],

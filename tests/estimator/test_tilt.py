@@ -7,6 +7,7 @@ import math
 from typing import Any
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,6 +15,7 @@ from estimator._arrays import seg_cumsum
 from estimator.mdsf import MdsfConfig, MdsfMode
 from estimator.tilt import (
     Integral,
+    angle_var_after,
     pitch_fix_update,
     pitch_kf_update,
     shrunk_roll,
@@ -138,6 +140,15 @@ def test_pitch_kf_update_by_hand() -> None:
     theta, *_ = _kf(cfg, pitch_var_rad2=np.array([9 * r2]))
     p0 = 4e-6 + 2 * t * 1e-7 + t * t * 1e-6 + qb * t**3 / 3
     assert math.isclose(theta[0], 0.01 + p0 / (p0 + 9 * r2) * 0.02)
+
+
+def test_angle_var_after_by_hand() -> None:
+    # P = [4e-6, -1e-7, 1e-8] (rad², rad²/s, rad²/s²), T = 10 s, walk 1e-4 rad/s/√s:
+    # 4e-6 + 2·10·1e-7 + 100·1e-8 + 1e-8·1000/3 = 4e-6 + 2e-6 + 1e-6 + 3.333e-6
+    cov = np.array([[4e-6, -1e-7, 1e-8], [4e-6, -1e-7, 1e-8]])
+    got = angle_var_after(cov, np.array([10.0, 0.0]), 1e-4)
+    assert got[0] == pytest.approx(1.0333333e-5, rel=1e-6)
+    assert got[1] == pytest.approx(4e-6)  # at the fix: its own variance
 
 
 def test_yaw_fix_update_by_hand() -> None:
