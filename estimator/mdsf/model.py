@@ -423,7 +423,7 @@ class MdsfConfig:
     outage_slip_tau_s: float = 1.0
     outage_anchor_tau_s: float = 20.0
     outage_bias_walk_mps2_per_sqrt_s: float = 0.02
-    outage_step_window_s: float = 0.0
+    outage_step_window_s: float = 6.0
     outage_step_z: float = 6.0
     outage_step_min: float = 0.015
     outage_step_prior: float = 0.05
