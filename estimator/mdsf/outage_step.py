@@ -34,6 +34,7 @@ prior.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -202,11 +203,11 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     dof = np.maximum(n_ok - len(StepCol), 1.0)
     var = np.full(buf.shape[0], prior.noise_floor_mps**2)
     for _ in range(2):
-        cov = np.linalg.inv(ata + var[:, None, None] * lam)
+        cov = _inverse(ata + var[:, None, None] * lam)
         theta = np.einsum("kij,kj->ki", cov, atr)
         res = r - np.einsum("kni,ki->kn", a, theta)
         var = np.maximum((w * res * res).sum(axis=1) / dof, prior.noise_floor_mps**2)
-    cov = np.linalg.inv(ata + var[:, None, None] * lam)
+    cov = _inverse(ata + var[:, None, None] * lam)
     theta = np.einsum("kij,kj->ki", cov, atr)
     delta = theta[:, StepCol.STEP]
     delta_var = var * cov[:, StepCol.STEP, StepCol.STEP]
@@ -219,3 +220,17 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     full = n_ok >= 0.8 * buf.shape[2]
     found = fast & full & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
     return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
+
+
+def _inverse(m: FloatArray) -> FloatArray:
+    """``m⁻¹`` per window, (k, n, n); NaN for a window whose matrix is singular (a window
+    of degenerate inputs, e.g. a speed of 0 throughout), so that it finds no step while the
+    other windows are solved as they would be alone."""
+    try:
+        return np.asarray(np.linalg.inv(m))
+    except np.linalg.LinAlgError:
+        out = np.full_like(m, np.nan)
+        for i in range(m.shape[0]):
+            with contextlib.suppress(np.linalg.LinAlgError):
+                out[i] = np.linalg.inv(m[i])
+        return out

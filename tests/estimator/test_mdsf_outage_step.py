@@ -164,3 +164,23 @@ def test_a_slip_step_in_an_outage_moves_the_slip_not_the_speed() -> None:
     on = _slip_rms_after_step(MdsfConfig())  # the test is on by default
     assert off > 4.0
     assert on < 0.5 * off and on < 3.0  # measured 2.22 pp (off: 7.29)
+
+
+def test_a_degenerate_window_finds_nothing_and_leaves_the_others_as_alone() -> None:
+    # A window with no usable row (no rim read for its length) makes the regression's
+    # matrix singular (level and trend have no prior); batched with a window holding a
+    # step, it must not raise, must find nothing itself, and the step's window must be
+    # solved as on its own.
+    rng = np.random.default_rng(3)
+    n, at, delta = 200, 120, 0.04
+    t = np.arange(n) * DT
+    v1 = np.full(n, 2.0)
+    r = 0.01 + 0.004 * t + delta * v1 * (np.arange(n) >= at) + rng.normal(0, 0.004, n)
+    step = _windows(r, v1, np.zeros(n))[at - N // 2 : at - N // 2 + 1]
+    still = _windows(np.zeros(N), np.full(N, 2.0), np.zeros(N))
+    still[:, StepBuf.OK] = 0.0
+    both = step_test(np.concatenate([still, step]), DT, StepPrior())
+    alone = step_test(step, DT, StepPrior())
+    assert not both.found[0]
+    assert both.found[1] and alone.found[0]
+    assert both.delta[1] == alone.delta[0] and both.delta_var[1] == alone.delta_var[0]
