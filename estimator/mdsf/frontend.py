@@ -2149,8 +2149,10 @@ class _TiltTrack:
         if share is None:
             now = np.stack([ve, vn], axis=1)
         else:
-            v2 = ve**2 + vn**2
-            with np.errstate(invalid="ignore"):  # a standing antenna's share: not a number
+            # a standing antenna's share: not a number; a speed beyond a float's square: inf;
+            # either leaves the row out (``ok`` below)
+            with np.errstate(invalid="ignore", over="ignore"):
+                v2 = ve**2 + vn**2
                 now = np.stack([share**2 * v2, v2], axis=1)
         ok = b.g_vel_ok[fi] & np.isfinite(now).all(axis=1)
         dt = st.acc[r, PitchSum.TIME]
