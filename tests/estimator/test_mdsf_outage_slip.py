@@ -17,10 +17,11 @@ import pytest
 
 from estimator.config import WheeledRearDriveConfig
 from estimator.mdsf import MdsfConfig, MdsfEngine, MdsfFleet, MdsfState, TickInputs
-from estimator.sim import replay, simulate, truth_at
+from estimator.sim import simulate, truth_at
 from estimator.sim.drives import draw_drive
 from estimator.types import EstimateFlag
 from tests.estimator.mdsf_tick import one_vehicle_inputs
+from tests.support import replay_in_order
 
 START = 1_767_225_600_000_000_000
 _B = MdsfState.ACCEL_BIAS
@@ -81,12 +82,11 @@ def _run(sim_name: str, **kw: object) -> tuple[np.ndarray, np.ndarray, float]:
     cfg = dataclasses.replace(sim.config, noise=sim.sensor_noise)
     fleet = MdsfFleet(MdsfConfig())
     fleet.add_vehicle("v", cfg)
-    parts = []
-    for chunk, until in replay(sim.measurements, step_ns=100_000_000, end_ns=sim.end_ns):
-        for m in chunk:
-            fleet.push("v", m)
-        parts += [rows for _, rows in fleet.advance({"v": until})]
-    rows = np.concatenate(parts)
+    rows = replay_in_order(
+        sim,
+        lambda m: fleet.push("v", m),
+        lambda until: [rows for _, rows in fleet.advance({"v": until})],
+    )
     return rows, sim.truth, sim.start_ns
 
 

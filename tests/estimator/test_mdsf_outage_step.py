@@ -14,7 +14,8 @@ import pytest
 
 from estimator.mdsf import MdsfConfig, MdsfFleet
 from estimator.mdsf.outage_step import StepBuf, StepPrior, step_test
-from estimator.sim import replay, simulate, truth_at
+from estimator.sim import simulate, truth_at
+from tests.support import replay_in_order
 
 DT = 0.1
 N = 60
@@ -143,12 +144,11 @@ def _slip_rms_after_step(config: MdsfConfig) -> float:
     cfg = dataclasses.replace(sim.config, noise=sim.sensor_noise)
     fleet = MdsfFleet(config)
     fleet.add_vehicle("v", cfg)
-    parts = []
-    for chunk, until in replay(sim.measurements, step_ns=100_000_000, end_ns=sim.end_ns):
-        for m in chunk:
-            fleet.push("v", m)
-        parts += [rows for _, rows in fleet.advance({"v": until})]
-    rows = np.concatenate(parts)
+    rows = replay_in_order(
+        sim,
+        lambda m: fleet.push("v", m),
+        lambda until: [rows for _, rows in fleet.advance({"v": until})],
+    )
     t_s = (rows["stamp_ns"] - START) * 1e-9
     sel = (t_s > 75.0) & (t_s < 85.0) & np.isfinite(rows["slip_left_pct"])
     err = rows["slip_left_pct"][sel] - truth_at(sim.truth, rows["stamp_ns"][sel], "slip_left_pct")
