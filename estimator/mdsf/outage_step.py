@@ -19,10 +19,6 @@ the centripetal term. Over a window of ``2L`` ticks the test fits
 the level frame leaks into the forward axis as the heading turns; ``γ`` the tyre model's level
 off by a factor, which reads as a step when the demand moves across the middle)
 
-The tilt error's prior is the front end's own: the window's mean pitch and roll variance of
-the tilt track (large with one antenna in an outage, small with a receiver's attitude), so
-the tilt competes with a step only as far as the track does not know its angles.
-
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
 window's middle when its posterior mean is ``z_min`` posterior std from 0 and at least
@@ -30,6 +26,10 @@ window's middle when its posterior mean is ``z_min`` posterior std from 0 and at
 is ``z²``). The noise variance is the fit's residual variance (floored), so a noisier inertial
 integral widens the test. The posterior mean is the step estimate: shrunk toward 0 by the
 prior.
+
+The tilt error's prior is the front end's own: the window's mean pitch and roll variance of
+the tilt track (large with one antenna in an outage, small with a receiver's attitude), so
+the tilt competes with a step only as far as the track does not know its angles.
 """
 
 from __future__ import annotations
