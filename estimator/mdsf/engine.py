@@ -930,8 +930,10 @@ class MdsfEngine:
         inflated = np.zeros(k, dtype=bool)
         if self.product:
             gated, reacq = self._gate_gnss(slots, t, init, y, s, P_1)
-            inflated = reacq | self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
-            self._bound_rim_excess(self._gnss_lost(slots, t, init), rim_mps, rim_ok, P_1)
+            jumped = self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
+            inflated = reacq | jumped.any(axis=1)
+            lost = self._gnss_lost(slots, t, init)
+            self._bound_rim_excess(lost, rim_mps, rim_ok & ~jumped, P_1)
         use_vg = t.gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
@@ -991,7 +993,8 @@ class MdsfEngine:
         """Product mode: a rim speed more than ``slip_jump_sigma`` off its prediction while the
         accelerometer saw no matching acceleration means the slip itself changed (soil, wet
         patch): that rim excess opens by the unexplained part of the innovation (``P_1`` in
-        place). Also feeds the running rim innovations. Returns the rows opened, (k,)."""
+        place). Also feeds the running rim innovations. Returns the wheels opened, (k, 2):
+        the outage's bound (:meth:`_bound_rim_excess`) leaves them open."""
         cfg = self.config
         y_rim = y[:, _RIM]
         s_rim = s[:, _RIM]
@@ -999,7 +1002,7 @@ class MdsfEngine:
             self._track_rim_innovation(slots, y_rim, s_rim, rim_ok & init[:, None])
         big = rim_ok & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
         P_1[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(big, y_rim * y_rim - s_rim, 0.0)
-        return np.asarray(big.any(axis=1))
+        return np.asarray(big)
 
     def _gnss_lost(self, slots: IntArray, t: TickInputs, init: BoolArray) -> BoolArray:
         """Rows whose last fused GNSS speed is older than ``gnss_timeout_s``, (k,)."""
@@ -1016,7 +1019,11 @@ class MdsfEngine:
         variance of ``e`` is brought to the bound and its covariances scaled with it, so ``P``
         stays positive semi-definite and the correlations are kept. A slip's error is bounded
         by its tyre's range while the inertial speed's grows without bound, so a lasting rim
-        disagreement then moves ``V1`` (and the bias), not the slip.
+        disagreement then moves ``V1`` (and the bias), not the slip. A wheel whose rim jumped
+        this tick (:meth:`_open_rim_jumps`; ``rim_ok`` false for it) is left open: bound, the
+        jump's innovation, many times the bounded ``S``, would be forced into ``V1`` and into
+        ``ωz``, which the rims alone cannot tell from the two excesses' difference when the
+        gyro row is missing.
         """
         share = self.config.outage_slip_std
         rows = lost[:, None] & rim_ok

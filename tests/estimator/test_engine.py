@@ -432,6 +432,7 @@ def test_nis_and_nees_consistent_on_data_from_the_model() -> None:
     seed=st.integers(0, 10_000), nan_rate=st.floats(0.0, 0.6), mode=st.sampled_from(list(MdsfMode))
 )
 @example(seed=1496, nan_rate=0.5, mode=MdsfMode.PRODUCT)  # a creeping anchor's outage (issue 25)
+@example(seed=87, nan_rate=0.5546875, mode=MdsfMode.PRODUCT)  # a bounded rim jump (issue 25)
 def test_engine_covariance_stays_symmetric_positive_definite(
     seed: int, nan_rate: float, mode: MdsfMode
 ) -> None:
