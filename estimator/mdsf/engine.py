@@ -933,7 +933,9 @@ class MdsfEngine:
             jumped = self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
             inflated = reacq | jumped.any(axis=1)
             lost = self._gnss_lost(slots, t, init)
-            self._bound_rim_excess(lost, rim_mps, rim_ok & ~jumped, P_1)
+            # A jump on a tick without the gyro row stays open (see _bound_rim_excess).
+            blind = jumped & ~t.imu_ok[:, None]
+            self._bound_rim_excess(lost, rim_mps, rim_ok & ~blind, P_1)
         use_vg = t.gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
@@ -994,7 +996,8 @@ class MdsfEngine:
         accelerometer saw no matching acceleration means the slip itself changed (soil, wet
         patch): that rim excess opens by the unexplained part of the innovation (``P_1`` in
         place). Also feeds the running rim innovations. Returns the wheels opened, (k, 2):
-        the outage's bound (:meth:`_bound_rim_excess`) leaves them open."""
+        the outage's bound (:meth:`_bound_rim_excess`) leaves them open on a tick without the
+        gyro row."""
         cfg = self.config
         y_rim = y[:, _RIM]
         s_rim = s[:, _RIM]
@@ -1020,10 +1023,11 @@ class MdsfEngine:
         stays positive semi-definite and the correlations are kept. A slip's error is bounded
         by its tyre's range while the inertial speed's grows without bound, so a lasting rim
         disagreement then moves ``V1`` (and the bias), not the slip. A wheel whose rim jumped
-        this tick (:meth:`_open_rim_jumps`; ``rim_ok`` false for it) is left open: bound, the
-        jump's innovation, many times the bounded ``S``, would be forced into ``V1`` and into
-        ``ωz``, which the rims alone cannot tell from the two excesses' difference when the
-        gyro row is missing.
+        on a tick without the gyro row (:meth:`_open_rim_jumps`; ``rim_ok`` false for it) is
+        left open: bound, the jump's innovation, many times the bounded ``S``, would be forced
+        into ``ωz`` as well, which the rims alone cannot tell from the two excesses'
+        difference. With the gyro row ``ωz`` is held and the jump moves ``V1``, as a lasting
+        disagreement should.
         """
         share = self.config.outage_slip_std
         rows = lost[:, None] & rim_ok
