@@ -192,8 +192,7 @@ class TrackedEstimatorConfig:
     initial_turn_slip: float = 0.1
     initial_turn_slip_std: float = 0.06
     slip_std_max_pct: float = 3.0
-    initial_accel_lag_s: float = 0.4
-    initial_accel_lag_std_s: float = 0.1
+    initial_accel_lag_std_s: float = 0.5
     accel_lag_walk_s: float = 1e-3
     initial_accel_slip_s2pm: float = 0.05
     initial_accel_slip_std_s2pm: float = 0.03

@@ -140,7 +140,6 @@ def initial_filter(cfg: TrackedEstimatorConfig) -> Filter:
     x[0, S.F_LOW] = 0.0  # offsets from F_straight
     x[0, S.F_PIVOT] = -cfg.initial_pivot_slip if cfg.learns else 0.0
     x[0, S.TURN_SLIP] = cfg.initial_turn_slip if cfg.learns else 0.0
-    x[0, S.ACCEL_LAG] = cfg.initial_accel_lag_s if cfg.learns else 0.0
     x[0, S.ACCEL_SLIP] = cfg.initial_accel_slip_s2pm if cfg.learns else 0.0
     x[0, S.SIDE_SLIP] = 1.0
     P = _initial_p(cfg)[None].copy()
