@@ -13,13 +13,11 @@ the centripetal term. Over a window of ``2L`` ticks the test fits
 
     r_i = c0 + c1·t_i + β_load·V1_i·|ωz_i| + β_yaw·Σ_{j≤i} V1_j·ωz_j·dt
           + β_cent·Σ_{j≤i} ωz_j²·dt + g·Σ_{j≤i} (φ·sin ψ_j + θ·(cos ψ_j − 1))·dt
-          + γ·(ε_a,i − ε̄_a)·V1_i + η·V1_i + δ·V1_i·[i ≥ L] + w_i
+          + γ·(ε_a,i − ε̄_a)·V1_i + δ·V1_i·[i ≥ L] + w_i
 
 (``ψ_j = Σ_{l≤j} ωz_l·dt`` the heading turned in the window: a tilt error ``(θ, φ)`` fixed in
 the level frame leaks into the forward axis as the heading turns; ``γ`` the tyre model's level
-off by a factor, which reads as a step when the demand moves across the middle; ``η`` the
-slip level off by a constant, a step before the window not taken or taken short, which reads
-as a step when the speed moves across the middle, and has the step's prior)
+off by a factor, which reads as a step when the demand moves across the middle)
 
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
@@ -80,8 +78,7 @@ class StepCol(IntEnum):
     TILT_SIN = 5
     TILT_COS = 6
     GAIN = 7
-    OFFSET = 8
-    STEP = 9
+    STEP = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,8 +98,7 @@ class StepPrior:
     gain : float
         Relative error of the tyre model's level about its window mean [-].
     step : float
-        Slip step (ratio); also the prior of the level's constant offset ``η``, a step that
-        came before the window [-].
+        Slip step (ratio) [-].
     noise_floor_mps : float
         Floor of the residual std [m/s].
     z_min : float
@@ -159,7 +155,6 @@ def step_columns(buf: FloatArray, dt_s: float) -> FloatArray:
     a[:, :, StepCol.TILT_COS] = np.cumsum(GRAVITY_MPS2 * (np.cos(psi) - 1.0), axis=1) * dt_s
     level = buf[:, StepBuf.LEVEL]
     a[:, :, StepCol.GAIN] = (level - level.mean(axis=1, keepdims=True)) * v1
-    a[:, :, StepCol.OFFSET] = v1
     a[:, :, StepCol.STEP] = np.where(np.arange(n) >= half, v1, 0.0)
     return a
 
@@ -178,7 +173,6 @@ def step_inverse_prior(buf: FloatArray, prior: StepPrior) -> FloatArray:
     inv[:, StepCol.TURN_CENT] = prior.cent_m**-2
     inv[:, StepCol.GAIN] = prior.gain**-2
     inv[:, StepCol.STEP] = prior.step**-2
-    inv[:, StepCol.OFFSET] = prior.step**-2
     for col, chan in ((StepCol.TILT_COS, StepBuf.PITCH_VAR), (StepCol.TILT_SIN, StepBuf.ROLL_VAR)):
         var = buf[:, chan].mean(axis=1)
         var = np.where(

@@ -83,35 +83,6 @@ def test_a_turns_yaw_driven_change_is_not_found() -> None:
     assert step_test(buf, DT, blind).found.any()
 
 
-def _speed_change_on_an_offset_level(offset: float, step: float, seed: int) -> np.ndarray:
-    """Windows of a speed rising 1.8 → 2.4 m/s over 1.5 s around tick 80, the slip level the
-    rims are compared with off by ``offset`` throughout (a step before the window, not taken)
-    and a slip step ``step`` at tick 80."""
-    rng = np.random.default_rng(seed)
-    n = 160
-    i = np.arange(n)
-    v1 = 1.8 + 0.3 * (1.0 - np.cos(np.pi * np.clip((i - 72) / 15.0, 0.0, 1.0)))
-    r = 0.01 + 0.004 * i * DT + (offset + step * (i >= 80)) * v1 + rng.normal(0, 0.004, n)
-    return _windows(r, v1, np.zeros(n))
-
-
-@pytest.mark.parametrize("seed", [17, 18, 19])
-def test_a_level_offset_under_a_speed_change_is_not_a_step(seed: int) -> None:
-    # The level off by 5 pp reads ε·V1, which jumps with the speed across the middle: without
-    # the offset's column that is a step of its own.
-    fit = step_test(_speed_change_on_an_offset_level(0.05, 0.0, seed), DT, StepPrior())
-    assert not fit.found.any()
-    assert np.abs(fit.z).max() < 0.6 * StepPrior().z_min
-
-
-@pytest.mark.parametrize("seed", [17, 18, 19])
-def test_a_step_on_an_offset_level_under_a_speed_change_is_found_at_its_size(seed: int) -> None:
-    fit = step_test(_speed_change_on_an_offset_level(0.05, 0.04, seed), DT, StepPrior())
-    at = 80 - N // 2
-    assert fit.found[at]
-    assert fit.delta[at] == pytest.approx(0.04, abs=0.004)
-
-
 def _turn_with_a_tilt_error(tilt_rad: float, step: float, seed: int) -> np.ndarray:
     """Windows of a U-turn at 0.25 rad/s entered at tick 70 (2 m/s) with a level-frame pitch
     and roll error, each ``tilt_rad``, leaking ``g·(θ·(cos ψ − 1) + φ·sin ψ)`` into ``ā`` as
