@@ -126,9 +126,9 @@ def _last_stamp(m: Any) -> int:
     return int(st[-1]) if hasattr(st, "__len__") else int(st)
 
 
-def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
-    """Every run as one vehicle of one fleet, fed its sensor packets 100 ms at a time."""
-    fleet = FrictionFleet(FrictionFleetConfig(filter=FilterConfig(mode=mode, tick_s=TICK_S)))
+def feed_runs(fleet: FrictionFleet, runs: list[FourWheelRun]) -> list[list[np.ndarray]]:
+    """Every run as one vehicle of ``fleet``, fed its sensor packets 100 ms at a time; the
+    fleet's rows per run, in order."""
     for i, r in enumerate(runs):
         fleet.add_vehicle(str(i), r.config)
     cursor = [0] * len(runs)
@@ -143,6 +143,13 @@ def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
                 cursor[i] += 1
         for vid, out in fleet.advance({str(i): now for i in range(len(runs))}):
             rows[int(vid)].append(out)
+    return rows
+
+
+def sensor_series(runs: list[FourWheelRun], mode: FrictionMode) -> list[Series]:
+    """Every run as one vehicle of one fleet, fed its sensor packets 100 ms at a time."""
+    fleet = FrictionFleet(FrictionFleetConfig(filter=FilterConfig(mode=mode, tick_s=TICK_S)))
+    rows = feed_runs(fleet, runs)
     series = []
     for r, parts in zip(runs, rows, strict=True):
         a = np.concatenate(parts)

@@ -45,7 +45,7 @@ from estimator.friction.sensors import SensedTicks
 from estimator.sim.four_wheel import NAMED, FourWheelRun, simulate_four_wheel
 from estimator.sim.four_wheel.dynamics import AIR_DENSITY_KGPM3, TruthParams
 from server.tooling.bench import int_list
-from server.tooling.bench.friction import STEP_NS, TICK_S, _last_stamp
+from server.tooling.bench.friction import TICK_S, feed_runs
 
 __all__ = ["SWAPS", "main", "replay"]
 
@@ -191,7 +191,7 @@ def replay(
     fleet_mod.balance_std_n = balance
     fleet_mod.effective_radii_m = radii
     try:
-        rows = _feed(fleet, runs)
+        rows = feed_runs(fleet, runs)
     finally:
         fleet_mod.balance_std_n, fleet_mod.effective_radii_m = _BALANCE, _RADII
     res = []
@@ -199,25 +199,6 @@ def replay(
         a = np.concatenate(parts)
         res.append(((a["stamp_ns"] - r.start_ns) / 1e9, a["mu_filter"]))
     return res
-
-
-def _feed(fleet: FrictionFleet, runs: list[FourWheelRun]) -> list[list[np.ndarray]]:
-    """Every run as one vehicle of ``fleet``, fed 100 ms of packets at a time (as the bench)."""
-    for i, r in enumerate(runs):
-        fleet.add_vehicle(str(i), r.config)
-    cursor = [0] * len(runs)
-    rows: list[list[np.ndarray]] = [[] for _ in runs]
-    start = runs[0].start_ns
-    end = start + round(max(r.manoeuvre.duration_s for r in runs) * 1e9) + STEP_NS
-    for now in range(start + STEP_NS, end + STEP_NS, STEP_NS):
-        for i, r in enumerate(runs):
-            ms = r.measurements
-            while cursor[i] < len(ms) and _last_stamp(ms[cursor[i]]) <= now:
-                fleet.push(str(i), ms[cursor[i]])
-                cursor[i] += 1
-        for vid, out in fleet.advance({str(i): now for i in range(len(runs))}):
-            rows[int(vid)].append(out)
-    return rows
 
 
 def steady_signed_pct(run: FourWheelRun, t: np.ndarray, mu: np.ndarray) -> float:
