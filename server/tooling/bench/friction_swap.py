@@ -85,6 +85,107 @@ def _truth_params(run: FourWheelRun, seed: int) -> TruthParams:
     return TruthParams.draw([run.config], [np.random.default_rng(seed)], kz)
 
 
+_TRUE_FIELDS = ("kappa", "alpha_rad", "fz_n", "vx_mps", "ax_mps2", "ay_mps2", "yaw_accel_radps2")
+
+
+def _truth_at(
+    runs: list[FourWheelRun], s: np.ndarray, t_ns: np.ndarray
+) -> tuple[list[int], dict[str, np.ndarray]]:
+    """The truth's sample index of each row's tick and its fields there, (k, …) each."""
+    k = np.round((np.asarray(t_ns) - runs[0].start_ns) / 1e7).astype(int)
+    tr = [runs[int(i)].truth for i in s]
+    kk = [min(int(j), t.t_s.size - 1) for j, t in zip(k, tr, strict=True)]
+    true = {
+        f: np.stack([getattr(t, f)[j] for t, j in zip(tr, kk, strict=True)]) for f in _TRUE_FIELDS
+    }
+    return kk, true
+
+
+def _true_z(runs: list[FourWheelRun], s: np.ndarray, true: dict[str, np.ndarray]) -> np.ndarray:
+    """The truth's ``[a_x + resistances/m, a_y, ṙ]``, (k, 3)."""
+    ch = [runs[int(i)].config.chassis for i in s]
+    v = true["vx_mps"]
+    drag = np.array(
+        [0.5 * AIR_DENSITY_KGPM3 * c.drag_area_m2 * x * x for c, x in zip(ch, v, strict=True)]
+    )
+    resist = drag + np.array([c.rolling_resistance for c in ch]) * true["fz_n"].sum(1)
+    mass = np.array([c.mass_kg for c in ch])
+    return np.stack([true["ax_mps2"] + resist / mass, true["ay_mps2"], true["yaw_accel_radps2"]], 1)
+
+
+def _swapped_kappa(
+    swap: str,
+    fe: FrontEndTicks,
+    front: FleetFrontEnd,
+    s: np.ndarray,
+    omega: np.ndarray,
+    truth: tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """The κ the filter is fed under ``swap``, (k, 4); ``truth`` is (fields, ρ (k, 1), ``kz``
+    (k, 4), ``r_u`` (k, 4))."""
+    true, rho, kz, r_u = truth
+    st = front.state
+    kappa = fe.kappa.copy()
+    denom = np.maximum(np.abs(fe.vx_mps), 1.0)[:, None]
+    r_hat = front._radius_now(s, fe.fz_n)
+    r_true = r_u - rho * true["fz_n"] / kz
+    if swap in ("kappa", "all", "all_z"):
+        kappa = true["kappa"]
+    elif swap == "kappa_soft":
+        kappa[:, SOFT] = true["kappa"][:, SOFT]
+    elif swap == "kappa_partner":
+        kappa[:, PARTNER] = true["kappa"][:, PARTNER]
+    elif swap == "radius":
+        kappa -= omega * (r_hat - r_true) / denom
+    elif swap == "radius_soft":
+        kappa[:, SOFT] -= omega[:, SOFT] * (r_hat - r_true)[:, SOFT] / denom[:, 0]
+    elif swap == "radius_cal":
+        kappa -= omega * (st.radius[s] - (r_u - rho * st.fz_cal[s] / kz)) / denom
+    elif swap == "radius_drop":
+        fz_cal = st.fz_cal[s]
+        drop_hat = st.radius_drop[s][:, None] * (fe.fz_n - fz_cal) / st.kz_wheel[s]
+        kappa -= omega * ((rho * (fe.fz_n - fz_cal) / kz) - drop_hat) / denom
+    elif swap == "speed":
+        kappa = kappa + (fe.vx_mps - true["vx_mps"])[:, None] / denom
+    return kappa
+
+
+def _swapped(
+    swap: str,
+    fe: FrontEndTicks,
+    runs: list[FourWheelRun],
+    s: np.ndarray,
+    kappa: np.ndarray,
+    true: dict[str, np.ndarray],
+    kz: np.ndarray,
+) -> FrontEndTicks:
+    """``fe`` with κ and, under ``swap``, the truth's Fz, α, the soft tyre's ``kz`` and ``z``."""
+    fz, alpha, kz_fe, z = fe.fz_n, fe.alpha_rad, fe.kz_npm, fe.z
+    if swap in ("z", "all_z"):
+        z = _true_z(runs, s, true)
+    if swap in ("fz", "all", "all_z"):
+        fz = true["fz_n"]
+    if swap in ("alpha", "all", "all_z"):
+        alpha = true["alpha_rad"]
+    if swap in ("kz_soft", "all", "all_z"):
+        kz_fe = kz_fe.copy()
+        kz_fe[:, SOFT] = kz[:, SOFT]
+    return replace(fe, kappa=kappa, fz_n=fz, alpha_rad=alpha, kz_npm=kz_fe, z=z)
+
+
+def _fleet(extra: str) -> FrictionFleet:
+    """The product fleet; ``+cspread`` widens the balance's 1-σ by the two tyres' own c_p,
+    each ±3 % uniform."""
+    axle = AxleConfig()
+    if extra == "cspread":
+        axle = AxleConfig(rel_std=math.hypot(axle.rel_std, math.sqrt(2.0) * 0.03 / math.sqrt(3.0)))
+    return FrictionFleet(
+        FrictionFleetConfig(
+            filter=FilterConfig(mode=FrictionMode.PRODUCT, tick_s=TICK_S), axle=axle
+        )
+    )
+
+
 def replay(
     runs: list[FourWheelRun], seeds: list[int], swap: str, probe: Callable[..., None] | None = None
 ) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -92,14 +193,7 @@ def replay(
     ``probe(s, t_idx, fe, r_hat, rho, kz, fz_cal, radius_cal)`` sees each tick before the edit."""
     params = [_truth_params(r, sd) for r, sd in zip(runs, seeds, strict=True)]
     swap, _, extra = swap.partition("+")
-    axle = AxleConfig()
-    if extra == "cspread":  # the two tyres' own c_p, each ±3 % uniform, in the balance's 1-σ
-        axle = AxleConfig(rel_std=math.hypot(axle.rel_std, math.sqrt(2.0) * 0.03 / math.sqrt(3.0)))
-    fleet = FrictionFleet(
-        FrictionFleetConfig(
-            filter=FilterConfig(mode=FrictionMode.PRODUCT, tick_s=TICK_S), axle=axle
-        )
-    )
+    fleet = _fleet(extra)
     front: FleetFrontEnd = fleet._front
     held: dict[str, np.ndarray] = {}
     inner = front.step
@@ -107,76 +201,19 @@ def replay(
     def step(s: np.ndarray, sensed: SensedTicks) -> FrontEndTicks:
         fe = inner(s, sensed)
         st = front.state
-        k = np.round((np.asarray(sensed.t_ns) - runs[0].start_ns) / 1e7).astype(int)
-        tr = [runs[int(i)].truth for i in s]
-        kk = [min(int(j), t.t_s.size - 1) for j, t in zip(k, tr, strict=True)]
-        true = {
-            f: np.stack([getattr(t, f)[j] for t, j in zip(tr, kk, strict=True)])
-            for f in (
-                "kappa",
-                "alpha_rad",
-                "fz_n",
-                "vx_mps",
-                "ax_mps2",
-                "ay_mps2",
-                "yaw_accel_radps2",
-            )
-        }
+        kk, true = _truth_at(runs, s, sensed.t_ns)
         p = [params[int(i)] for i in s]
         rho = np.array([q.radius_drop[0] for q in p])[:, None]
         kz = np.stack([q.kz_npm[0] for q in p])
         r_u = np.stack([q.radius_m[0] for q in p])
-        r_hat = front._radius_now(s, fe.fz_n)
         held["rho"] = rho if extra in ("rho", "rhob") else st.radius_drop[s][:, None]
         b = np.array([q.diff_bias[0] for q in p])[:, None] if extra == "rhob" else 0.0
         held["torque"] = 1.0 + b * np.array([[1.0, -1.0, 1.0, -1.0]])
         if probe is not None:
+            r_hat = front._radius_now(s, fe.fz_n)
             probe(s, kk, fe, r_hat, rho, kz, st.fz_cal[s].copy(), st.radius[s].copy())
-        omega = sensed.omega_radps
-        denom = np.maximum(np.abs(fe.vx_mps), 1.0)[:, None]
-        kappa, fz, alpha, kz_fe = fe.kappa.copy(), fe.fz_n, fe.alpha_rad, fe.kz_npm
-        r_true = r_u - rho * true["fz_n"] / kz
-        z = fe.z
-        if swap in ("z", "all_z"):
-            ch = [runs[int(i)].config.chassis for i in s]
-            v = true["vx_mps"]
-            resist = np.array(
-                [
-                    0.5 * AIR_DENSITY_KGPM3 * c.drag_area_m2 * x * x
-                    for c, x in zip(ch, v, strict=True)
-                ]
-            ) + np.array([c.rolling_resistance for c in ch]) * true["fz_n"].sum(1)
-            mass = np.array([c.mass_kg for c in ch])
-            z = np.stack(
-                [true["ax_mps2"] + resist / mass, true["ay_mps2"], true["yaw_accel_radps2"]], 1
-            )
-        if swap in ("kappa", "all", "all_z"):
-            kappa = true["kappa"]
-        elif swap == "kappa_soft":
-            kappa[:, SOFT] = true["kappa"][:, SOFT]
-        elif swap == "kappa_partner":
-            kappa[:, PARTNER] = true["kappa"][:, PARTNER]
-        elif swap == "radius":
-            kappa -= omega * (r_hat - r_true) / denom
-        elif swap == "radius_soft":
-            kappa[:, SOFT] -= omega[:, SOFT] * (r_hat - r_true)[:, SOFT] / denom[:, 0]
-        elif swap == "radius_cal":
-            fz_cal = st.fz_cal[s]
-            kappa -= omega * (st.radius[s] - (r_u - rho * fz_cal / kz)) / denom
-        elif swap == "radius_drop":
-            fz_cal = st.fz_cal[s]
-            drop_hat = st.radius_drop[s][:, None] * (fe.fz_n - fz_cal) / st.kz_wheel[s]
-            kappa -= omega * ((rho * (fe.fz_n - fz_cal) / kz) - drop_hat) / denom
-        elif swap == "speed":
-            kappa = kappa + (fe.vx_mps - true["vx_mps"])[:, None] / denom
-        if swap in ("fz", "all", "all_z"):
-            fz = true["fz_n"]
-        if swap in ("alpha", "all", "all_z"):
-            alpha = true["alpha_rad"]
-        if swap in ("kz_soft", "all", "all_z"):
-            kz_fe = kz_fe.copy()
-            kz_fe[:, SOFT] = kz[:, SOFT]
-        return replace(fe, kappa=kappa, fz_n=fz, alpha_rad=alpha, kz_npm=kz_fe, z=z)
+        kappa = _swapped_kappa(swap, fe, front, s, sensed.omega_radps, (true, rho, kz, r_u))
+        return _swapped(swap, fe, runs, s, kappa, true, kz)
 
     front.step = step  # type: ignore[method-assign]
 
