@@ -37,7 +37,7 @@ from estimator.mdsf.model import (
     MdsfState,
     mdsf_matrices,
 )
-from estimator.mdsf.outage_step import StepBuf, StepPrior, step_shape, step_test
+from estimator.mdsf.outage_step import StepBuf, StepPrior, step_test
 from estimator.reference_speed import RefAux, ReferenceSpeedConfig, RefState, reference_step
 from estimator.types import EstimateFlag
 
@@ -269,7 +269,6 @@ class MdsfEngine:
             step=config.outage_step_prior,
             z_min=config.outage_step_z,
             min_step=config.outage_step_min,
-            ease_s=config.outage_step_ease_s,
         )
         self._alloc(max(capacity, 1))
         # Product mode: the entries of Q the tick's accelerometer variance enters, as (row,
@@ -805,10 +804,9 @@ class MdsfEngine:
         mean, slip ratio) adds ``δ`` to both wheels' anchor, moves ``δ·V1`` from ``V1`` to
         both rim excesses, returns the bias to its value before the step and adds the step's
         variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim
-        excess), and the bias's move squared to its variance. The window's ticks lose ``δ·V1``
-        times the step's shape (eased over ``outage_step_ease_s``) so the step is not found
-        twice. The window also carries the tilt track's pitch and roll variance
-        (``t.tilt_var``), the tilt columns' prior.
+        excess), and the bias's move squared to its variance. The window's ticks after the
+        step lose ``δ·V1`` so the step is not found twice. The window also carries the tilt
+        track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior.
         """
         count = np.where(lost, self.step_count[slots], 0)
         integral = np.where(lost, self.step_inertial[slots], 0.0)
@@ -898,8 +896,8 @@ class MdsfEngine:
         P[:, MdsfState.ACCEL_BIAS, MdsfState.ACCEL_BIAS] += bias_move * bias_move
         up.x[rows] = x
         up.P[rows] = P
-        shape = step_shape(self._step_ticks, self.dt_s, self._step_prior.ease_s)
-        buf[rows, StepBuf.R] -= delta[:, None] * shape * buf[rows, StepBuf.V1]
+        after = buf[rows, StepBuf.V1, half:]
+        buf[rows, StepBuf.R, half:] -= delta[:, None] * after
 
     def _update(
         self,

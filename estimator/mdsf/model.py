@@ -272,9 +272,6 @@ class MdsfConfig:
         Smallest step taken (slip ratio) [-].
     outage_step_prior : float
         Prior 1-sigma of a step (slip ratio): the estimate is shrunk toward 0 by it [-].
-    outage_step_ease_s : float
-        Width over which the tested step comes in, a cosine ease about the window's middle (a
-        surface's or an implement's slip change rolled into over seconds); 0 a jump [s].
     outage_step_turn_load_s : float
         Prior 1-sigma of the mean slip's change per lateral acceleration ``V1·|ωz|`` [s].
     outage_step_yaw_misalign_rad : float
@@ -430,7 +427,6 @@ class MdsfConfig:
     outage_step_z: float = 6.0
     outage_step_min: float = 0.015
     outage_step_prior: float = 0.05
-    outage_step_ease_s: float = 1.5
     outage_step_turn_load_s: float = 0.05
     outage_step_yaw_misalign_rad: float = 0.05
     outage_step_imu_offset_m: float = 2.0
@@ -481,7 +477,6 @@ class MdsfConfig:
                 "slip_demand_gain",
                 "zupt_speed_mps",
                 "outage_step_window_s",
-                "outage_step_ease_s",
                 "slip_per_demand",
                 "tyre_gain_tau_s",
                 "tyre_gain_range",
@@ -502,7 +497,6 @@ class MdsfConfig:
             "slip_demand_gain",
             "zupt_speed_mps",
             "outage_step_window_s",
-            "outage_step_ease_s",
             "slip_per_demand",
             "tyre_gain_tau_s",
             "rim_drift_tau_s",

@@ -13,14 +13,11 @@ the centripetal term. Over a window of ``2L`` ticks the test fits
 
     r_i = c0 + c1·t_i + β_load·V1_i·|ωz_i| + β_yaw·Σ_{j≤i} V1_j·ωz_j·dt
           + β_cent·Σ_{j≤i} ωz_j²·dt + g·Σ_{j≤i} (φ·sin ψ_j + θ·(cos ψ_j − 1))·dt
-          + γ·(ε_a,i − ε̄_a)·V1_i + δ·V1_i·e(t_i) + w_i
+          + γ·(ε_a,i − ε̄_a)·V1_i + δ·V1_i·[i ≥ L] + w_i
 
 (``ψ_j = Σ_{l≤j} ωz_l·dt`` the heading turned in the window: a tilt error ``(θ, φ)`` fixed in
 the level frame leaks into the forward axis as the heading turns; ``γ`` the tyre model's level
-off by a factor, which reads as a step when the demand moves across the middle; ``e`` the
-step's shape: 0 before the middle and 1 after it, eased over ``ease_s`` about the middle, as a
-surface's or an implement's slip change comes in over the seconds the tyres take to roll into
-it, so that an eased step is not read as part step, part level and trend)
+off by a factor, which reads as a step when the demand moves across the middle)
 
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
@@ -53,7 +50,6 @@ __all__ = [
     "StepPrior",
     "step_columns",
     "step_inverse_prior",
-    "step_shape",
     "step_test",
 ]
 
@@ -111,9 +107,6 @@ class StepPrior:
         Smallest reported step (ratio) [-].
     min_speed_mps : float
         Mean ``V1`` after the window's middle below which nothing is reported [m/s].
-    ease_s : float
-        Width of the step column's cosine ease, centred on the window's middle; 0 is a jump
-        between ticks ``N//2 − 1`` and ``N//2`` [s].
     max_speed_change : float
         Change of the mean ``V1`` across the window's middle, as a share of it, above which
         nothing is reported: while the speed changes the slip moves with the demand through
@@ -132,7 +125,6 @@ class StepPrior:
     min_step: float = 0.015
     min_speed_mps: float = 0.3
     max_speed_change: float = 0.4
-    ease_s: float = 0.0
 
 
 @dataclass(slots=True)
@@ -146,20 +138,8 @@ class StepFit:
     z: FloatArray
 
 
-def step_shape(n: int, dt_s: float, ease_s: float) -> FloatArray:
-    """The step column's shape ``e`` over a window of ``n`` ticks, (n,): 0 before the middle
-    (tick ``n//2``, its leading edge half a tick before it), 1 after; with ``ease_s`` > 0 a
-    cosine ease ``(1 − cos(π·u))/2``, ``u = (t − t_mid)/ease_s + 1/2`` clipped to [0, 1]."""
-    half = n // 2
-    if ease_s <= 0.0:
-        return (np.arange(n) >= half).astype(np.float64)
-    u = np.clip(((np.arange(n) - half + 0.5) * dt_s) / ease_s + 0.5, 0.0, 1.0)
-    return np.asarray(0.5 * (1.0 - np.cos(np.pi * u)))
-
-
-def step_columns(buf: FloatArray, dt_s: float, ease_s: float = 0.0) -> FloatArray:
-    """The regression's design ``A`` (k, N, len(StepCol)) from the window ``buf`` (k, C, N),
-    the step column eased over ``ease_s`` (:func:`step_shape`)."""
+def step_columns(buf: FloatArray, dt_s: float) -> FloatArray:
+    """The regression's design ``A`` (k, N, len(StepCol)) from the window ``buf`` (k, C, N)."""
     k, _, n = buf.shape
     half = n // 2
     v1 = buf[:, StepBuf.V1]
@@ -175,7 +155,7 @@ def step_columns(buf: FloatArray, dt_s: float, ease_s: float = 0.0) -> FloatArra
     a[:, :, StepCol.TILT_COS] = np.cumsum(GRAVITY_MPS2 * (np.cos(psi) - 1.0), axis=1) * dt_s
     level = buf[:, StepBuf.LEVEL]
     a[:, :, StepCol.GAIN] = (level - level.mean(axis=1, keepdims=True)) * v1
-    a[:, :, StepCol.STEP] = step_shape(n, dt_s, ease_s) * v1
+    a[:, :, StepCol.STEP] = np.where(np.arange(n) >= half, v1, 0.0)
     return a
 
 
@@ -211,7 +191,7 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²``,
     found by two passes (the first with the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
     """
-    a = step_columns(buf, dt_s, prior.ease_s)
+    a = step_columns(buf, dt_s)
     w = buf[:, StepBuf.OK]
     r = np.where(w > 0, buf[:, StepBuf.R], 0.0)
     lam = np.zeros((buf.shape[0], len(StepCol), len(StepCol)))

@@ -52,30 +52,6 @@ def test_a_step_on_a_trend_is_found_at_its_tick_with_its_size() -> None:
     assert not fit.found[far].any()
 
 
-@pytest.mark.parametrize("seed", [3, 4, 5])
-def test_an_eased_step_is_found_whole_by_a_step_column_of_its_ease(seed: int) -> None:
-    # A 5 pp step eased over 1.4 s, its middle at the window's middle, on a trend: the jump
-    # column reads about 70 % of it (the ease's shape shared with level and trend), a column
-    # eased as the step is finds it whole.
-    rng = np.random.default_rng(seed)
-    n, mid, delta, ease = 200, 120, 0.05, 1.4
-    t = np.arange(n) * DT
-    v1 = np.full(n, 2.0)
-    u = np.clip((t - (mid - 0.5) * DT) / ease + 0.5, 0.0, 1.0)
-    r = 0.01 + 0.004 * t + delta * v1 * 0.5 * (1 - np.cos(np.pi * u)) + rng.normal(0, 0.004, n)
-    at = mid - N // 2
-    jump = step_test(_windows(r, v1, np.zeros(n)), DT, StepPrior())
-    eased = step_test(_windows(r, v1, np.zeros(n)), DT, StepPrior(ease_s=ease))
-    assert jump.delta[at] < 0.8 * delta
-    assert eased.found[at]
-    assert eased.delta[at] == pytest.approx(delta, abs=0.004)
-
-
-def test_the_engine_takes_its_steps_eased_as_its_config_says() -> None:
-    assert MdsfConfig().outage_step_ease_s > 0.0
-    assert MdsfFleet(MdsfConfig()).engine._step_prior.ease_s == MdsfConfig().outage_step_ease_s
-
-
 def test_an_inertial_drift_alone_is_not_found() -> None:
     # A bias that walks: r is its integral, a curve, plus the integrated accelerometer noise.
     rng = np.random.default_rng(5)
