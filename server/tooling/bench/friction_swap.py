@@ -43,7 +43,7 @@ from estimator.friction.axle import AxleArrays, AxleConfig
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.sensors import SensedTicks
 from estimator.sim.four_wheel import NAMED, FourWheelRun, simulate_four_wheel
-from estimator.sim.four_wheel.dynamics import AIR_DENSITY_KGPM3, TruthParams
+from estimator.sim.four_wheel.dynamics import TruthParams
 from server.tooling.bench import int_list
 from server.tooling.bench.friction import TICK_S, feed_runs
 
@@ -101,18 +101,6 @@ def _truth_at(
     return kk, true
 
 
-def _true_z(runs: list[FourWheelRun], s: np.ndarray, true: dict[str, np.ndarray]) -> np.ndarray:
-    """The truth's ``[a_x + resistances/m, a_y, ṙ]``, (k, 3)."""
-    ch = [runs[int(i)].config.chassis for i in s]
-    v = true["vx_mps"]
-    drag = np.array(
-        [0.5 * AIR_DENSITY_KGPM3 * c.drag_area_m2 * x * x for c, x in zip(ch, v, strict=True)]
-    )
-    resist = drag + np.array([c.rolling_resistance for c in ch]) * true["fz_n"].sum(1)
-    mass = np.array([c.mass_kg for c in ch])
-    return np.stack([true["ax_mps2"] + resist / mass, true["ay_mps2"], true["yaw_accel_radps2"]], 1)
-
-
 def _swapped_kappa(
     swap: str,
     fe: FrontEndTicks,
@@ -153,7 +141,7 @@ def _swapped_kappa(
 def _swapped(
     swap: str,
     fe: FrontEndTicks,
-    runs: list[FourWheelRun],
+    front: FleetFrontEnd,
     s: np.ndarray,
     kappa: np.ndarray,
     true: dict[str, np.ndarray],
@@ -161,8 +149,9 @@ def _swapped(
 ) -> FrontEndTicks:
     """``fe`` with κ and, under ``swap``, the truth's Fz, α, the soft tyre's ``kz`` and ``z``."""
     fz, alpha, kz_fe, z = fe.fz_n, fe.alpha_rad, fe.kz_npm, fe.z
-    if swap in ("z", "all_z"):
-        z = _true_z(runs, s, true)
+    if swap in ("z", "all_z"):  # the truth's [a_x + resistances/m, a_y, ṙ]
+        resist = front._resistance(s, true["vx_mps"], true["fz_n"])
+        z = np.stack([true["ax_mps2"] + resist, true["ay_mps2"], true["yaw_accel_radps2"]], 1)
     if swap in ("fz", "all", "all_z"):
         fz = true["fz_n"]
     if swap in ("alpha", "all", "all_z"):
@@ -213,7 +202,7 @@ def replay(
             r_hat = front._radius_now(s, fe.fz_n)
             probe(s, kk, fe, r_hat, rho, kz, st.fz_cal[s].copy(), st.radius[s].copy())
         kappa = _swapped_kappa(swap, fe, front, s, sensed.omega_radps, (true, rho, kz, r_u))
-        return _swapped(swap, fe, runs, s, kappa, true, kz)
+        return _swapped(swap, fe, front, s, kappa, true, kz)
 
     front.step = step  # type: ignore[method-assign]
 
