@@ -19,7 +19,10 @@ state and covariance handling:
   tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
   Two more rows, one per axle, are the open differential's torque balance
-  ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
+  ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold), and two
+  more states, each axle's left/right stiffness split ``d`` (``SPLIT_*``), the balance's
+  persistent part: a constant of the vehicle, learnt from the balance over the drive instead of
+  read as fresh noise on every tick.
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
   ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
   length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
@@ -106,6 +109,12 @@ class ProductState(IntEnum):
     GY_REAR = 4
     VY = 5
     """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
+    SPLIT_FRONT = 6
+    SPLIT_REAR = 7
+    """Each axle's longitudinal stiffness split ``d``: its left tyre's factor ``g_x (1 + d)``,
+    its right's ``g_x (1 − d)``. Two tyres of one axle differ by a few % (make, wear,
+    pressure) for a whole drive; an open differential's torque balance reads that as a steady
+    imbalance ``≈ 2 d F`` that the slips' errors would otherwise have to explain."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -144,7 +153,9 @@ class FilterConfig:
     (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
     ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
-    product's measurement covariance (:func:`_input_spread`).
+    product's measurement covariance (:func:`_input_spread`);
+    ``split0_std``, ``split_walk_per_sqrt_s``: the product's per-axle stiffness split ``d``
+    (each tyre's ``c_p`` within ±3 %, uniform: ``d``'s 1-σ ``0.03/√6``).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -176,6 +187,8 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
+    split0_std: float = 0.0122
+    split_walk_per_sqrt_s: float = 1e-4
 
     @property
     def n_states(self) -> int:
@@ -231,6 +244,9 @@ class TickInputs:
 
 
 _N_MEASURED = 4
+_SPLITS = [ProductState.SPLIT_FRONT, ProductState.SPLIT_REAR]
+_SIDE = np.array([1.0, -1.0, 1.0, -1.0])
+"""Sign of the split ``d`` on wheels ``FL, FR, RL, RR`` (left ``1 + d``, right ``1 − d``)."""
 """The product's measured rows ``[a_x, a_y, ṙ, v_y]``; the axles' torque balances follow."""
 
 
@@ -271,6 +287,8 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     if cfg.mode is FrictionMode.PRODUCT:
         x[:, ProductState.VY] = 0.0
         std[:, ProductState.VY] = cfg.vy0_std_mps
+        x[:, _SPLITS] = 0.0
+        std[:, _SPLITS] = cfg.split0_std
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -321,11 +339,14 @@ def mu_upper(x: FloatArray, s: FloatArray, cfg: FilterConfig) -> FloatArray:
 def _stiffness_of(
     points: FloatArray, cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Per-point tyre stiffness ``(B, P, 4)`` each way."""
+    """Per-point tyre stiffness ``(B, P, 4)`` each way (product: ``c_x`` of wheel ``FL, FR, RL,
+    RR`` is ``g_x (1 ± d) c(Fz)``, ``d`` the axle's split)."""
     if cfg.mode is not FrictionMode.PRODUCT:
         return points[..., PaperState.CX_FL : PaperState.CX_RR + 1], points[..., PaperState.CY_FL :]
     cx, cy = tyres.stiffness(fz_n)
+    split = points[..., [ProductState.SPLIT_FRONT] * 2 + [ProductState.SPLIT_REAR] * 2]
     gx = points[..., [ProductState.GX_FRONT] * 2 + [ProductState.GX_REAR] * 2]
+    gx = gx * (1.0 + _SIDE * split)
     gy = points[..., [ProductState.GY_FRONT] * 2 + [ProductState.GY_REAR] * 2]
     return gx * cx[:, None, :], gy * cy[:, None, :]
 
@@ -343,19 +364,20 @@ def _measure(
     ``v_y`` and the two axles' torque balances, ``(B, P, 6)``); slips are ``(B, P, 4)`` or
     ``(B, 1, 4)``.
 
-    The balances are taken at the points' mean, the same for every point: they carry no
-    information on the state (μ and the factors scale both wheels of an axle alike, and the
-    tyres' ±3 % spread would otherwise make a steady imbalance that the state absorbs), only
-    on the slips' errors, through their correlation with the accelerations in ``R + D Dᵀ``:
-    the update reads the accelerations less what the balance says the slips got wrong."""
+    The balances are taken at the points' mean but for the splits ``d``, each point's own:
+    μ and the factors scale both wheels of an axle alike and would otherwise absorb a steady
+    imbalance, so the balances inform only the splits (``∂h/∂d ≈ F_L + F_R``) and, through
+    their correlation with the accelerations in ``R + D Dᵀ``, the slips' errors: the update
+    reads the accelerations less what the balance says the slips got wrong."""
     fx, fy = _forces(points, cfg, tyres, chassis, u, kappa, alpha)
     acc = body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
     if cfg.mode is not FrictionMode.PRODUCT:
         return acc
     vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
-    centre = points.mean(axis=1, keepdims=True)
+    centre = np.broadcast_to(points.mean(axis=1, keepdims=True), points.shape).copy()
+    centre[..., _SPLITS] = points[..., _SPLITS]
     fx_centre, _ = _forces(centre, cfg, tyres, chassis, u, kappa, alpha)
-    balance = np.broadcast_to(_torque_balance(fx_centre, u.radius_m), (*acc.shape[:-1], 2))
+    balance = _torque_balance(fx_centre, u.radius_m)
     return np.concatenate([acc, vy, balance], axis=-1)
 
 
@@ -470,6 +492,7 @@ def _predict(
         boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
         walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
         walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
+        walk[:, _SPLITS] = cfg.split_walk_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
