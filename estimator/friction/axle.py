@@ -28,7 +28,14 @@ import numpy as np
 from estimator._arrays import FloatArray
 from estimator.config import Differential, DrivenAxle, Wheeled4wdSteeredConfig
 
-__all__ = ["AxleArrays", "AxleConfig", "balance_std_n", "effective_radii_m", "load_slip_std"]
+__all__ = [
+    "AxleArrays",
+    "AxleConfig",
+    "balance_std_n",
+    "effective_radii_m",
+    "load_slip_std",
+    "persistent_slip_std",
+]
 
 _AXLE_SHARE = {
     DrivenAxle.FRONT: (1.0, 0.0),
@@ -49,7 +56,8 @@ class AxleConfig:
     ``load_std_n``: the load model's 1-σ per wheel (the front end's loads against the truth's,
     roll split and lag unknown: within 27 N, ``docs/perf/friction.md``);
     ``max_lateral_mps2``: the balance is applied below this lateral acceleration;
-    ``weightless_std_n``: the 1-σ of a row not applied.
+    ``weightless_std_n``: the 1-σ of a row not applied; ``radius_rel_std``: a calibrated
+    radius's own 1-σ relative to itself (the front end's, after calibration).
     """
 
     rel_std: float = 0.03
@@ -60,6 +68,7 @@ class AxleConfig:
     max_lateral_mps2: float = 1.0
     load_std_n: float = 30.0
     weightless_std_n: float = 1e6
+    radius_rel_std: float = 2e-4
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +118,15 @@ def load_slip_std(
     broadcast; 1.2e-4 on a 250,000 N/m tyre, five times that on a 50,000 N/m one)."""
     std: FloatArray = cfg.radius_drop * cfg.load_std_n / (kz_npm * axles.unloaded_radius_m)
     std = np.broadcast_to(std, fz_n.shape).copy()
+    return std
+
+
+def persistent_slip_std(
+    fz_n: FloatArray, kz_npm: FloatArray, axles: AxleArrays, cfg: AxleConfig
+) -> FloatArray:
+    """The part of κ's 1-σ ``(B, 4)`` that stays all drive: the load model's
+    (:func:`load_slip_std`) and the calibrated radius's own ``radius_rel_std``, in quadrature."""
+    std: FloatArray = np.hypot(load_slip_std(fz_n, kz_npm, axles, cfg), cfg.radius_rel_std)
     return std
 
 

@@ -20,9 +20,10 @@ state and covariance handling:
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
   Two more rows, one per axle, are the open differential's torque balance
   ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold), and two
-  more states, each axle's left/right stiffness split ``d`` (``SPLIT_*``), the balance's
-  persistent part: a constant of the vehicle, learnt from the balance over the drive instead of
-  read as fresh noise on every tick.
+  more pairs of states, each axle's left/right stiffness split ``d`` (``SPLIT_*``) and its
+  persistent slip error ``η`` (``SLIP_*``), the balance's persistent part: constants of the
+  vehicle and its front end, learnt from the balance over the drive instead of read as fresh
+  noise on every tick.
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
   ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
   length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
@@ -115,6 +116,14 @@ class ProductState(IntEnum):
     its right's ``g_x (1 − d)``. Two tyres of one axle differ by a few % (make, wear,
     pressure) for a whole drive; an open differential's torque balance reads that as a steady
     imbalance ``≈ 2 d F`` that the slips' errors would otherwise have to explain."""
+    SLIP_FRONT = 8
+    SLIP_REAR = 9
+    """Each axle's persistent slip error ``η``, the error of ``κ_L − κ_R`` in units of its
+    stated 1-σ ``√(σ_L² + σ_R²)`` (``σ`` each wheel's ``kappa_bias_std``): the calibrated
+    radii and the load model are wrong by the same amount all drive. Shared between the two
+    wheels as its expectation given the difference, ``κ_L + η σ_L²/√(σ_L² + σ_R²)``,
+    ``κ_R − η σ_R²/√(σ_L² + σ_R²)``. A split's error grows with the force, a slip error's does
+    not: the balance tells them apart as the torque changes."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,7 +164,9 @@ class FilterConfig:
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
     product's measurement covariance (:func:`_input_spread`);
     ``split0_std``, ``split_walk_per_sqrt_s``: the product's per-axle stiffness split ``d``
-    (each tyre's ``c_p`` within ±3 %, uniform: ``d``'s 1-σ ``0.03/√6``).
+    (each tyre's ``c_p`` within ±3 %, uniform: ``d``'s 1-σ ``0.03/√6``);
+    ``slip_walk_per_sqrt_s``: the walk of the persistent slip errors ``η`` (prior 1: in their
+    own 1-σ).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -189,6 +200,7 @@ class FilterConfig:
     relaxation_rel_std: float = 0.5
     split0_std: float = 0.0122
     split_walk_per_sqrt_s: float = 1e-4
+    slip_walk_per_sqrt_s: float = 0.01
 
     @property
     def n_states(self) -> int:
@@ -223,7 +235,8 @@ class TickInputs:
     ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
     changing slip), added to the product's slip angles from ``v_y``; ``radius_m`` ``(B, 4)``
     the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
-    balance (product only, :mod:`.axle`)."""
+    balance, ``kappa_bias_std`` ``(B, 4)`` the persistent part of each κ's 1-σ (product only,
+    :mod:`.axle`)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -241,10 +254,13 @@ class TickInputs:
     alpha_lag_rad: FloatArray
     radius_m: FloatArray
     balance_std_n: FloatArray
+    kappa_bias_std: FloatArray
 
 
 _N_MEASURED = 4
 _SPLITS = [ProductState.SPLIT_FRONT, ProductState.SPLIT_REAR]
+_SLIPS = [ProductState.SLIP_FRONT, ProductState.SLIP_REAR]
+_PERSISTENT = _SPLITS + _SLIPS
 _SIDE = np.array([1.0, -1.0, 1.0, -1.0])
 """Sign of the split ``d`` on wheels ``FL, FR, RL, RR`` (left ``1 + d``, right ``1 − d``)."""
 """The product's measured rows ``[a_x, a_y, ṙ, v_y]``; the axles' torque balances follow."""
@@ -289,6 +305,8 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
         std[:, ProductState.VY] = cfg.vy0_std_mps
         x[:, _SPLITS] = 0.0
         std[:, _SPLITS] = cfg.split0_std
+        x[:, _SLIPS] = 0.0
+        std[:, _SLIPS] = 1.0
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -364,9 +382,10 @@ def _measure(
     ``v_y`` and the two axles' torque balances, ``(B, P, 6)``); slips are ``(B, P, 4)`` or
     ``(B, 1, 4)``.
 
-    The balances are taken at the points' mean but for the splits ``d``, each point's own:
+    The balances are taken at the points' mean but for the splits ``d`` and the slip errors
+    ``η``, each point's own:
     μ and the factors scale both wheels of an axle alike and would otherwise absorb a steady
-    imbalance, so the balances inform only the splits (``∂h/∂d ≈ F_L + F_R``) and, through
+    imbalance, so the balances inform only ``d`` (``∂h/∂d ≈ F_L + F_R``), ``η`` and, through
     their correlation with the accelerations in ``R + D Dᵀ``, the slips' errors: the update
     reads the accelerations less what the balance says the slips got wrong."""
     fx, fy = _forces(points, cfg, tyres, chassis, u, kappa, alpha)
@@ -375,7 +394,7 @@ def _measure(
         return acc
     vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
     centre = np.broadcast_to(points.mean(axis=1, keepdims=True), points.shape).copy()
-    centre[..., _SPLITS] = points[..., _SPLITS]
+    centre[..., _PERSISTENT] = points[..., _PERSISTENT]
     fx_centre, _ = _forces(centre, cfg, tyres, chassis, u, kappa, alpha)
     balance = _torque_balance(fx_centre, u.radius_m)
     return np.concatenate([acc, vy, balance], axis=-1)
@@ -391,12 +410,25 @@ def _forces(
     alpha: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """Brush forces ``(Fx, Fy)`` ``(B, P, 4)`` at state points ``(B, P, n)`` (source eq. 19-27;
-    the product's slip angles from its ``v_y``)."""
+    the product's slip angles from its ``v_y`` and its slips less their persistent errors)."""
     mu = mu_of(points[..., :1], cfg.mode)
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
     if cfg.mode is FrictionMode.PRODUCT:
         alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
+        kappa = kappa - _slip_errors(points, u)
     return brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
+
+
+def _slip_errors(points: FloatArray, u: TickInputs) -> FloatArray:
+    """Each wheel's persistent slip error ``(B, P, 4)`` at state points ``(B, P, n)``:
+    ``± η σ_w²/√(σ_L² + σ_R²)`` (``σ`` ``u.kappa_bias_std`` ``(B, 4)``, see
+    :attr:`ProductState.SLIP_FRONT`)."""
+    var = u.kappa_bias_std**2
+    pair = np.sqrt(var[:, 0::2] + var[:, 1::2])
+    share = var / np.maximum(np.repeat(pair, 2, axis=1), 1e-12)
+    eta = points[..., [ProductState.SLIP_FRONT] * 2 + [ProductState.SLIP_REAR] * 2]
+    errors: FloatArray = eta * (_SIDE * share)[:, None, :]
+    return errors
 
 
 def _torque_balance(fx_n: FloatArray, radius_m: FloatArray) -> FloatArray:
@@ -493,6 +525,7 @@ def _predict(
         walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
         walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
         walk[:, _SPLITS] = cfg.split_walk_per_sqrt_s * sqrt_dt
+        walk[:, _SLIPS] = cfg.slip_walk_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s

@@ -15,6 +15,7 @@ from estimator.friction.axle import (
     balance_std_n,
     effective_radii_m,
     load_slip_std,
+    persistent_slip_std,
 )
 from estimator.friction.brush import brush_forces
 from estimator.friction.filter import (
@@ -134,6 +135,7 @@ def _soft_tyre_tick(kappa_rl_bias: float, balance: bool) -> tuple[TickInputs, Ty
         balance_std_n=balance_std_n(fz, kz, read, z, AxleArrays.of([REAR]), CFG)
         if balance
         else np.full((1, 2), CFG.weightless_std_n),
+        kappa_bias_std=persistent_slip_std(fz, kz, AxleArrays.of([REAR]), CFG),
     )
     return u, tyres, chassis
 
