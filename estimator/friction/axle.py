@@ -28,14 +28,7 @@ import numpy as np
 from estimator._arrays import FloatArray
 from estimator.config import Differential, DrivenAxle, Wheeled4wdSteeredConfig
 
-__all__ = [
-    "AxleArrays",
-    "AxleConfig",
-    "balance_std_n",
-    "effective_radii_m",
-    "load_slip_std",
-    "persistent_slip_std",
-]
+__all__ = ["AxleArrays", "AxleConfig", "balance_std_n", "effective_radii_m", "load_slip_std"]
 
 _AXLE_SHARE = {
     DrivenAxle.FRONT: (1.0, 0.0),
@@ -48,19 +41,19 @@ _AXLE_SHARE = {
 class AxleConfig:
     """The torque balance's noise and the load model's error.
 
-    ``rel_std``: the balance's 1-σ per newton of a wheel's drive force (the differential's
-    friction, ±2 % of the torque each side, and the radius ratio's error); ``floor_std_n``: its
+    ``rel_std``: the balance's 1-σ per newton of a wheel's drive force read as fresh each tick
+    (0: its persistent part, the differential's friction and the radius ratio's error, is the
+    product filter's offset state, ``FilterConfig.balance_offset0_std``); ``floor_std_n``: its
     1-σ at no force (the wheels' inertia, ~1.5 kg·m² × 1 rad/s² / 0.33 m ≈ 5 N, and the rims'
     resolution); ``radius_drop``, ``radius_drop_std``: ``ρ`` of ``r_e = r_u − ρ Fz/kz`` (0.25-0.4
     for real tyres) and its 1-σ; ``max_slip``: the balance holds below it;
     ``load_std_n``: the load model's 1-σ per wheel (the front end's loads against the truth's,
     roll split and lag unknown: within 27 N, ``docs/perf/friction.md``);
     ``max_lateral_mps2``: the balance is applied below this lateral acceleration;
-    ``weightless_std_n``: the 1-σ of a row not applied; ``radius_rel_std``: a calibrated
-    radius's own 1-σ relative to itself (the front end's, after calibration).
+    ``weightless_std_n``: the 1-σ of a row not applied.
     """
 
-    rel_std: float = 0.03
+    rel_std: float = 0.0
     floor_std_n: float = 30.0
     radius_drop: float = 1.0 / 3.0
     radius_drop_std: float = 0.05
@@ -68,7 +61,6 @@ class AxleConfig:
     max_lateral_mps2: float = 1.0
     load_std_n: float = 30.0
     weightless_std_n: float = 1e6
-    radius_rel_std: float = 2e-4
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,15 +110,6 @@ def load_slip_std(
     broadcast; 1.2e-4 on a 250,000 N/m tyre, five times that on a 50,000 N/m one)."""
     std: FloatArray = cfg.radius_drop * cfg.load_std_n / (kz_npm * axles.unloaded_radius_m)
     std = np.broadcast_to(std, fz_n.shape).copy()
-    return std
-
-
-def persistent_slip_std(
-    fz_n: FloatArray, kz_npm: FloatArray, axles: AxleArrays, cfg: AxleConfig
-) -> FloatArray:
-    """The part of κ's 1-σ ``(B, 4)`` that stays all drive: the load model's
-    (:func:`load_slip_std`) and the calibrated radius's own ``radius_rel_std``, in quadrature."""
-    std: FloatArray = np.hypot(load_slip_std(fz_n, kz_npm, axles, cfg), cfg.radius_rel_std)
     return std
 
 

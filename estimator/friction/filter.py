@@ -19,11 +19,8 @@ state and covariance handling:
   tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
   Two more rows, one per axle, are the open differential's torque balance
-  ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold), and two
-  more pairs of states, each axle's left/right stiffness split ``d`` (``SPLIT_*``) and its
-  persistent slip error ``η`` (``SLIP_*``), the balance's persistent part: constants of the
-  vehicle and its front end, learnt from the balance over the drive instead of read as fresh
-  noise on every tick.
+  ``(F_L r_L − F_R r_R)/r̄ − ε (F_L + F_R)/2 = 0`` (:mod:`.axle`; weightless where it does not
+  hold), with each axle's offset ``ε`` a state (``BALANCE_*``).
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
   ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
   length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
@@ -110,20 +107,13 @@ class ProductState(IntEnum):
     GY_REAR = 4
     VY = 5
     """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
-    SPLIT_FRONT = 6
-    SPLIT_REAR = 7
-    """Each axle's longitudinal stiffness split ``d``: its left tyre's factor ``g_x (1 + d)``,
-    its right's ``g_x (1 − d)``. Two tyres of one axle differ by a few % (make, wear,
-    pressure) for a whole drive; an open differential's torque balance reads that as a steady
-    imbalance ``≈ 2 d F`` that the slips' errors would otherwise have to explain."""
-    SLIP_FRONT = 8
-    SLIP_REAR = 9
-    """Each axle's persistent slip error ``η``, the error of ``κ_L − κ_R`` in units of its
-    stated 1-σ ``√(σ_L² + σ_R²)`` (``σ`` each wheel's ``kappa_bias_std``): the calibrated
-    radii and the load model are wrong by the same amount all drive. Shared between the two
-    wheels as its expectation given the difference, ``κ_L + η σ_L²/√(σ_L² + σ_R²)``,
-    ``κ_R − η σ_R²/√(σ_L² + σ_R²)``. A split's error grows with the force, a slip error's does
-    not: the balance tells them apart as the torque changes."""
+    BALANCE_FRONT = 6
+    BALANCE_REAR = 7
+    """Each axle's torque-balance offset ``ε``: the balance's persistent error per newton of
+    the axle's mean drive force, ``(F_L r_L − F_R r_R)/r̄ = ε (F_L + F_R)/2``. The
+    differential's friction, the radii's ratio and the two tyres' stiffness ratio make it; they
+    are properties of the vehicle, the same all drive, so the balance ties the *changes* of the
+    two forces and learns its offset instead of reading it as fresh noise each tick."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,10 +153,9 @@ class FilterConfig:
     ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
     product's measurement covariance (:func:`_input_spread`);
-    ``split0_std``, ``split_walk_per_sqrt_s``: the product's per-axle stiffness split ``d``
-    (each tyre's ``c_p`` within ±3 %, uniform: ``d``'s 1-σ ``0.03/√6``);
-    ``slip_walk_per_sqrt_s``: the walk of the persistent slip errors ``η`` (prior 1: in their
-    own 1-σ).
+    ``balance_offset0_std``, ``balance_offset_walk_per_sqrt_s``: the product's torque-balance
+    offsets ``ε`` (the differential's friction, ±2 % of the torque each side, and the radius
+    ratio's error: 3 % of a wheel's force).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -198,9 +187,8 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
-    split0_std: float = 0.0122
-    split_walk_per_sqrt_s: float = 1e-4
-    slip_walk_per_sqrt_s: float = 0.01
+    balance_offset0_std: float = 0.03
+    balance_offset_walk_per_sqrt_s: float = 1e-3
 
     @property
     def n_states(self) -> int:
@@ -235,8 +223,7 @@ class TickInputs:
     ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
     changing slip), added to the product's slip angles from ``v_y``; ``radius_m`` ``(B, 4)``
     the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
-    balance, ``kappa_bias_std`` ``(B, 4)`` the persistent part of each κ's 1-σ (product only,
-    :mod:`.axle`)."""
+    balance (product only, :mod:`.axle`)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -254,15 +241,10 @@ class TickInputs:
     alpha_lag_rad: FloatArray
     radius_m: FloatArray
     balance_std_n: FloatArray
-    kappa_bias_std: FloatArray
 
 
 _N_MEASURED = 4
-_SPLITS = [ProductState.SPLIT_FRONT, ProductState.SPLIT_REAR]
-_SLIPS = [ProductState.SLIP_FRONT, ProductState.SLIP_REAR]
-_PERSISTENT = _SPLITS + _SLIPS
-_SIDE = np.array([1.0, -1.0, 1.0, -1.0])
-"""Sign of the split ``d`` on wheels ``FL, FR, RL, RR`` (left ``1 + d``, right ``1 − d``)."""
+_OFFSETS = [ProductState.BALANCE_FRONT, ProductState.BALANCE_REAR]
 """The product's measured rows ``[a_x, a_y, ṙ, v_y]``; the axles' torque balances follow."""
 
 
@@ -303,10 +285,8 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     if cfg.mode is FrictionMode.PRODUCT:
         x[:, ProductState.VY] = 0.0
         std[:, ProductState.VY] = cfg.vy0_std_mps
-        x[:, _SPLITS] = 0.0
-        std[:, _SPLITS] = cfg.split0_std
-        x[:, _SLIPS] = 0.0
-        std[:, _SLIPS] = 1.0
+        x[:, _OFFSETS] = 0.0
+        std[:, _OFFSETS] = cfg.balance_offset0_std
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -357,14 +337,11 @@ def mu_upper(x: FloatArray, s: FloatArray, cfg: FilterConfig) -> FloatArray:
 def _stiffness_of(
     points: FloatArray, cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Per-point tyre stiffness ``(B, P, 4)`` each way (product: ``c_x`` of wheel ``FL, FR, RL,
-    RR`` is ``g_x (1 ± d) c(Fz)``, ``d`` the axle's split)."""
+    """Per-point tyre stiffness ``(B, P, 4)`` each way."""
     if cfg.mode is not FrictionMode.PRODUCT:
         return points[..., PaperState.CX_FL : PaperState.CX_RR + 1], points[..., PaperState.CY_FL :]
     cx, cy = tyres.stiffness(fz_n)
-    split = points[..., [ProductState.SPLIT_FRONT] * 2 + [ProductState.SPLIT_REAR] * 2]
     gx = points[..., [ProductState.GX_FRONT] * 2 + [ProductState.GX_REAR] * 2]
-    gx = gx * (1.0 + _SIDE * split)
     gy = points[..., [ProductState.GY_FRONT] * 2 + [ProductState.GY_REAR] * 2]
     return gx * cx[:, None, :], gy * cy[:, None, :]
 
@@ -382,10 +359,9 @@ def _measure(
     ``v_y`` and the two axles' torque balances, ``(B, P, 6)``); slips are ``(B, P, 4)`` or
     ``(B, 1, 4)``.
 
-    The balances are taken at the points' mean but for the splits ``d`` and the slip errors
-    ``η``, each point's own:
-    μ and the factors scale both wheels of an axle alike and would otherwise absorb a steady
-    imbalance, so the balances inform only ``d`` (``∂h/∂d ≈ F_L + F_R``), ``η`` and, through
+    The balances' forces are taken at the points' mean, the same for every point: μ and the
+    factors scale both wheels of an axle alike and would otherwise absorb the steady imbalance.
+    Each point's own offsets ``ε`` are taken from it, so the balances inform ``ε`` and, through
     their correlation with the accelerations in ``R + D Dᵀ``, the slips' errors: the update
     reads the accelerations less what the balance says the slips got wrong."""
     fx, fy = _forces(points, cfg, tyres, chassis, u, kappa, alpha)
@@ -393,10 +369,10 @@ def _measure(
     if cfg.mode is not FrictionMode.PRODUCT:
         return acc
     vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
-    centre = np.broadcast_to(points.mean(axis=1, keepdims=True), points.shape).copy()
-    centre[..., _PERSISTENT] = points[..., _PERSISTENT]
+    centre = points.mean(axis=1, keepdims=True)
     fx_centre, _ = _forces(centre, cfg, tyres, chassis, u, kappa, alpha)
-    balance = _torque_balance(fx_centre, u.radius_m)
+    mean_force = (fx_centre[..., 0::2] + fx_centre[..., 1::2]) / 2
+    balance = _torque_balance(fx_centre, u.radius_m) - points[..., _OFFSETS] * mean_force
     return np.concatenate([acc, vy, balance], axis=-1)
 
 
@@ -410,25 +386,12 @@ def _forces(
     alpha: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """Brush forces ``(Fx, Fy)`` ``(B, P, 4)`` at state points ``(B, P, n)`` (source eq. 19-27;
-    the product's slip angles from its ``v_y`` and its slips less their persistent errors)."""
+    the product's slip angles from its ``v_y``)."""
     mu = mu_of(points[..., :1], cfg.mode)
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
     if cfg.mode is FrictionMode.PRODUCT:
         alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
-        kappa = kappa - _slip_errors(points, u)
     return brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
-
-
-def _slip_errors(points: FloatArray, u: TickInputs) -> FloatArray:
-    """Each wheel's persistent slip error ``(B, P, 4)`` at state points ``(B, P, n)``:
-    ``± η σ_w²/√(σ_L² + σ_R²)`` (``σ`` ``u.kappa_bias_std`` ``(B, 4)``, see
-    :attr:`ProductState.SLIP_FRONT`)."""
-    var = u.kappa_bias_std**2
-    pair = np.sqrt(var[:, 0::2] + var[:, 1::2])
-    share = var / np.maximum(np.repeat(pair, 2, axis=1), 1e-12)
-    eta = points[..., [ProductState.SLIP_FRONT] * 2 + [ProductState.SLIP_REAR] * 2]
-    errors: FloatArray = eta * (_SIDE * share)[:, None, :]
-    return errors
 
 
 def _torque_balance(fx_n: FloatArray, radius_m: FloatArray) -> FloatArray:
@@ -524,8 +487,7 @@ def _predict(
         boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
         walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
         walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
-        walk[:, _SPLITS] = cfg.split_walk_per_sqrt_s * sqrt_dt
-        walk[:, _SLIPS] = cfg.slip_walk_per_sqrt_s * sqrt_dt
+        walk[:, _OFFSETS] = cfg.balance_offset_walk_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s

@@ -40,7 +40,6 @@ from estimator.friction.axle import (
     balance_std_n,
     effective_radii_m,
     load_slip_std,
-    persistent_slip_std,
 )
 from estimator.friction.brush import brush_forces, utilisation
 from estimator.friction.filter import (
@@ -131,7 +130,6 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
         alpha_lag_rad=fe.alpha_lag_rad,
         radius_m=effective_radii_m(fe.fz_n, fe.kz_npm, axles, cfg),
         balance_std_n=balance_std_n(fe.fz_n, fe.kz_npm, fe.kappa, fe.z, axles, cfg),
-        kappa_bias_std=persistent_slip_std(fe.fz_n, fe.kz_npm, axles, cfg),
     )
 
 

@@ -234,7 +234,6 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 alpha_lag_rad=np.zeros((1, 4)),
                 radius_m=np.full((1, 4), t.unloaded_radius_m),
                 balance_std_n=np.full((1, 2), 1e6),  # random slips: no differential
-                kappa_bias_std=np.zeros((1, 4)),
             )
         )
     return ticks, chassis, tyres
@@ -544,7 +543,6 @@ def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArray
         alpha_lag_rad=np.zeros((1, 4)),
         radius_m=np.full((1, 4), t.unloaded_radius_m),
         balance_std_n=np.full((1, 2), 1e6),
-        kappa_bias_std=np.zeros((1, 4)),
     )
     return u, chassis, tyres
 
