@@ -41,9 +41,8 @@ _AXLE_SHARE = {
 class AxleConfig:
     """The torque balance's noise and the load model's error.
 
-    ``rel_std``: the balance's 1-σ per newton of a wheel's drive force read as fresh each tick
-    (0: its persistent part, the differential's friction and the radius ratio's error, is the
-    product filter's offset state, ``FilterConfig.balance_offset0_std``); ``floor_std_n``: its
+    ``rel_std``: the balance's 1-σ per newton of a wheel's drive force (the differential's
+    friction, ±2 % of the torque each side, and the radius ratio's error); ``floor_std_n``: its
     1-σ at no force (the wheels' inertia, ~1.5 kg·m² × 1 rad/s² / 0.33 m ≈ 5 N, and the rims'
     resolution); ``radius_drop``, ``radius_drop_std``: ``ρ`` of ``r_e = r_u − ρ Fz/kz`` (0.25-0.4
     for real tyres) and its 1-σ; ``max_slip``: the balance holds below it;
@@ -53,7 +52,7 @@ class AxleConfig:
     ``weightless_std_n``: the 1-σ of a row not applied.
     """
 
-    rel_std: float = 0.0
+    rel_std: float = 0.03
     floor_std_n: float = 30.0
     radius_drop: float = 1.0 / 3.0
     radius_drop_std: float = 0.05

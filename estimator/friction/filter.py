@@ -19,8 +19,7 @@ state and covariance handling:
   tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
   Two more rows, one per axle, are the open differential's torque balance
-  ``(F_L r_L − F_R r_R)/r̄ − ε (F_L + F_R)/2 = 0`` (:mod:`.axle`; weightless where it does not
-  hold), with each axle's offset ``ε`` a state (``BALANCE_*``).
+  ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
   ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
   length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
@@ -107,13 +106,6 @@ class ProductState(IntEnum):
     GY_REAR = 4
     VY = 5
     """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
-    BALANCE_FRONT = 6
-    BALANCE_REAR = 7
-    """Each axle's torque-balance offset ``ε``: the balance's persistent error per newton of
-    the axle's mean drive force, ``(F_L r_L − F_R r_R)/r̄ = ε (F_L + F_R)/2``. The
-    differential's friction, the radii's ratio and the two tyres' stiffness ratio make it; they
-    are properties of the vehicle, the same all drive, so the balance ties the *changes* of the
-    two forces and learns its offset instead of reading it as fresh noise each tick."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,10 +144,7 @@ class FilterConfig:
     (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
     ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
-    product's measurement covariance (:func:`_input_spread`);
-    ``balance_offset0_std``, ``balance_offset_walk_per_sqrt_s``: the product's torque-balance
-    offsets ``ε`` (the differential's friction, ±2 % of the torque each side, and the radius
-    ratio's error: 3 % of a wheel's force).
+    product's measurement covariance (:func:`_input_spread`).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -187,8 +176,6 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
-    balance_offset0_std: float = 0.03
-    balance_offset_walk_per_sqrt_s: float = 1e-3
 
     @property
     def n_states(self) -> int:
@@ -244,7 +231,6 @@ class TickInputs:
 
 
 _N_MEASURED = 4
-_OFFSETS = [ProductState.BALANCE_FRONT, ProductState.BALANCE_REAR]
 """The product's measured rows ``[a_x, a_y, ṙ, v_y]``; the axles' torque balances follow."""
 
 
@@ -285,8 +271,6 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     if cfg.mode is FrictionMode.PRODUCT:
         x[:, ProductState.VY] = 0.0
         std[:, ProductState.VY] = cfg.vy0_std_mps
-        x[:, _OFFSETS] = 0.0
-        std[:, _OFFSETS] = cfg.balance_offset0_std
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -359,11 +343,11 @@ def _measure(
     ``v_y`` and the two axles' torque balances, ``(B, P, 6)``); slips are ``(B, P, 4)`` or
     ``(B, 1, 4)``.
 
-    The balances' forces are taken at the points' mean, the same for every point: μ and the
-    factors scale both wheels of an axle alike and would otherwise absorb the steady imbalance.
-    Each point's own offsets ``ε`` are taken from it, so the balances inform ``ε`` and, through
-    their correlation with the accelerations in ``R + D Dᵀ``, the slips' errors: the update
-    reads the accelerations less what the balance says the slips got wrong."""
+    The balances are taken at the points' mean, the same for every point: they carry no
+    information on the state (μ and the factors scale both wheels of an axle alike, and the
+    tyres' ±3 % spread would otherwise make a steady imbalance that the state absorbs), only
+    on the slips' errors, through their correlation with the accelerations in ``R + D Dᵀ``:
+    the update reads the accelerations less what the balance says the slips got wrong."""
     fx, fy = _forces(points, cfg, tyres, chassis, u, kappa, alpha)
     acc = body_accelerations(fx, fy, u.delta_rad[:, None, :], chassis)
     if cfg.mode is not FrictionMode.PRODUCT:
@@ -371,8 +355,7 @@ def _measure(
     vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
     centre = points.mean(axis=1, keepdims=True)
     fx_centre, _ = _forces(centre, cfg, tyres, chassis, u, kappa, alpha)
-    mean_force = (fx_centre[..., 0::2] + fx_centre[..., 1::2]) / 2
-    balance = _torque_balance(fx_centre, u.radius_m) - points[..., _OFFSETS] * mean_force
+    balance = np.broadcast_to(_torque_balance(fx_centre, u.radius_m), (*acc.shape[:-1], 2))
     return np.concatenate([acc, vy, balance], axis=-1)
 
 
@@ -487,7 +470,6 @@ def _predict(
         boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
         walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
         walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
-        walk[:, _OFFSETS] = cfg.balance_offset_walk_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
