@@ -487,7 +487,11 @@ class FleetFrontEnd:
         ratio = (v_long + jac * self.yaw.bias[c][:, None]) / omega_c
         st.rim_ratio_cal[c] += gain * (ratio - st.rim_ratio_cal[c])
         st.rim_yaw_cal[c] += gain * (jac / omega_c - st.rim_yaw_cal[c])
-        st.drive_cal[c] += gain * (resist[:, None] * car.drive_share[c] - st.drive_cal[c])
+        c_x0 = load_adaptive_stiffness_n(
+            f, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
+        )
+        slip = resist[:, None] * car.drive_share[c] / np.maximum(c_x0, 1.0)
+        st.drive_cal[c] += gain * (slip - st.drive_cal[c])  # here the allowed slip itself
         st.fz_cal[c] += gain * (f - st.fz_cal[c])
         self._calibrated_radius(c)
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
@@ -499,11 +503,8 @@ class FleetFrontEnd:
     def _calibrated_radius(self, c: IntArray) -> None:
         """The calibrated radius ``r = (v/ω)·(1 + F/c_x)`` (``FrontEnd._calibrated_radius``)."""
         car, st = self.car, self.state
-        c_x = load_adaptive_stiffness_n(
-            st.fz_cal[c], st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
-        )
         rim = st.rim_ratio_cal[c] - self.yaw.bias[c][:, None] * st.rim_yaw_cal[c]
-        radius = rim * (1.0 + st.drive_cal[c] / np.maximum(c_x, 1.0))
+        radius = rim * (1.0 + st.drive_cal[c])
         st.radius[c] = radius
         st.radius_std[c] = 2e-4 * radius
 
