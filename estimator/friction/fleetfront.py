@@ -233,9 +233,6 @@ class _State(_Arrays):
         self.kz_wheel = np.zeros((0, 4))
         self.suspect = np.zeros((0, 4), dtype=bool)
         self.fz_cal = np.zeros((0, 4))
-        self.rim_ratio_cal = np.zeros((0, 4))  # mean (v_long + J b̂)/ω [m] (_calibrated_radius)
-        self.rim_yaw_cal = np.zeros((0, 4))  # mean J/ω [m·s]
-        self.drive_cal = np.zeros((0, 4))  # its mean drive force per wheel [N]
         self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros((0, 2))  # lagged raw [a_x, a_y] [m/s²]
         self.yaw_prev = np.zeros(0)
@@ -256,9 +253,6 @@ class _State(_Arrays):
         self.kz_wheel[slot] = car.kz[slot]
         self.suspect[slot] = False
         self.fz_cal[slot] = fz
-        self.rim_ratio_cal[slot] = self.radius[slot]
-        self.rim_yaw_cal[slot] = 0.0
-        self.drive_cal[slot] = 0.0
         self.transfer[slot] = 0.0
         self.tilt_reading[slot] = 0.0
         self.yaw_prev[slot] = math.nan
@@ -478,35 +472,22 @@ class FleetFrontEnd:
         resist = car.rolling[c] * f.sum(axis=1) + 0.5 * AIR_DENSITY_KGPM3 * (
             car.drag_area[c] * v[:, 0] ** 2
         )
+        c_x = load_adaptive_stiffness_n(
+            f, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
+        )
+        expect = resist[:, None] * car.drive_share[c] / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(omega[rows], 1e-3)
         st.calib_n[c] += 1
         n = st.calib_n[c]
         gain = np.maximum(0.1 / self.fe.calib_time_s, 1.0 / n)[:, None]
-        omega_c = np.maximum(omega[rows], 1e-3)
-        d = delta[rows]
-        jac = -car.wheel_y[c] * np.cos(d) + car.wheel_x[c] * np.sin(d)  # ∂v_long/∂r
-        ratio = (v_long + jac * self.yaw.bias[c][:, None]) / omega_c
-        st.rim_ratio_cal[c] += gain * (ratio - st.rim_ratio_cal[c])
-        st.rim_yaw_cal[c] += gain * (jac / omega_c - st.rim_yaw_cal[c])
-        c_x0 = load_adaptive_stiffness_n(
-            f, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
-        )
-        slip = resist[:, None] * car.drive_share[c] / np.maximum(c_x0, 1.0)
-        st.drive_cal[c] += gain * (slip - st.drive_cal[c])  # here the allowed slip itself
+        radius = st.radius[c]
+        radius += gain * (measured - radius)
+        st.radius[c] = radius
         st.fz_cal[c] += gain * (f - st.fz_cal[c])
-        self._calibrated_radius(c)
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
         st.radius_scale_var[c] = calibration_scale_var(st.radius_scale_var[c], gain[:, 0], v[:, 0])
-        learn = c[n >= self.fe.calib_samples]
-        self._learn_tyres(learn)
-        self._calibrated_radius(learn)
-
-    def _calibrated_radius(self, c: IntArray) -> None:
-        """The calibrated radius ``r = (v/ω)·(1 + F/c_x)`` (``FrontEnd._calibrated_radius``)."""
-        car, st = self.car, self.state
-        rim = st.rim_ratio_cal[c] - self.yaw.bias[c][:, None] * st.rim_yaw_cal[c]
-        radius = rim * (1.0 + st.drive_cal[c])
-        st.radius[c] = radius
         st.radius_std[c] = 2e-4 * radius
+        self._learn_tyres(c[n >= self.fe.calib_samples])
 
     def _learn_tyres(self, c: IntArray) -> None:
         """``ρ`` and each wheel's ``kz`` from the calibrated radii (``FrontEnd._learn_tyres``)."""
