@@ -233,8 +233,6 @@ class _State(_Arrays):
         self.kz_wheel = np.zeros((0, 4))
         self.suspect = np.zeros((0, 4), dtype=bool)
         self.fz_cal = np.zeros((0, 4))
-        self.omega_sum = np.zeros((0, 4))  # the wheel speeds read since the last epoch [rad/s]
-        self.omega_n = np.zeros(0, dtype=np.int64)  # how many
         self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros((0, 2))  # lagged raw [a_x, a_y] [m/s²]
         self.yaw_prev = np.zeros(0)
@@ -255,8 +253,6 @@ class _State(_Arrays):
         self.kz_wheel[slot] = car.kz[slot]
         self.suspect[slot] = False
         self.fz_cal[slot] = fz
-        self.omega_sum[slot] = 0.0
-        self.omega_n[slot] = 0
         self.transfer[slot] = 0.0
         self.tilt_reading[slot] = 0.0
         self.yaw_prev[slot] = math.nan
@@ -330,13 +326,7 @@ class FleetFrontEnd:
         delta = np.zeros((s.size, 4))
         delta[:, :2] = (steer / self.car.steering_ratio[s])[:, None]
         if not paper:
-            st = self.state
-            st.omega_sum[s] += sensed.omega_radps
-            st.omega_n[s] += 1
-            omega_mean = st.omega_sum[s] / st.omega_n[s][:, None]
-            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, omega_mean)
-            st.omega_sum[s[g]] = 0.0
-            st.omega_n[s[g]] = 0
+            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
         self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed)
         self._side_slip_step(s, ay_tilt, yaw_rate, g, gnss_v)
         st = self.state
