@@ -12,8 +12,7 @@ times the true side-slip: the turning pole moves ahead of the centre and the hul
 Product: the fast track's ground speed is ``V + |ω|·B/2`` in every turn (the kinematic identity
 Eq. 23 rests on, slip included), and it is ``F_s·v_o`` with a factor ``F_s`` per state learned
 while GNSS is good (``K_D`` scale and that state's traction slip together), less the hull's
-lag ``τ·u̇`` behind its tracks while the fast track speeds up (``u̇`` that track's own
-acceleration, the yaw's share ``ω̇·B/2`` in a turn included), and times ``1 − κ·a``: the traction
+lag ``τ·a`` behind its tracks while it accelerates, and times ``1 − κ·a``: the traction
 force that accelerates the hull adds slip in proportion (``τ`` and ``κ`` learned too, from
 the accelerations beside GNSS; ``κ·a`` costs ``κ·a·V``, which grows with speed where the
 lag ``τ·a`` does not); in a low-gear
@@ -49,7 +48,6 @@ __all__ = [
     "odometer_measurement",
     "paper_ratio",
     "side_creep",
-    "track_accel",
     "turn_tightness",
 ]
 
@@ -149,30 +147,6 @@ def turn_tightness(sprocket_mps: FloatArray) -> FloatArray:
     return 2.0 * (1.0 - q) / (1.0 + q)
 
 
-def track_accel(
-    state: IntArray,
-    accel_mps2: FloatArray,
-    yaw_rate_radps: FloatArray,
-    yaw_accel_radps2: FloatArray | None,
-    gauge_m: FloatArray,
-) -> FloatArray:
-    """The fast track's acceleration along the ground ``(k,)``: ``a + sign(ω)·ω̇·B/2`` in a
-    turn (the derivative of its speed ``V + |ω|·B/2``), ``a`` otherwise (0 yaw acceleration
-    if ``yaw_accel_radps2`` is None).
-
-    Each track's ground speed lags the speed its slip drives it to by ``τ`` (the hull's
-    inertia): ``u = ū − τ·u̇`` with ``u̇`` that track's own acceleration. Entering a turn at a
-    steady speed the fast track speeds up by ``|ω|·B/2`` while the hull does not, so the lag
-    there reads ``τ·ω̇·B/2`` and no drawbar slip (the traction slip ``κ`` scales with the
-    hull's pull times the speed, :func:`odometer_measurement`): the turns' entries and exits
-    observe ``τ`` apart from ``κ``."""
-    if yaw_accel_radps2 is None:
-        return accel_mps2
-    turning = _TURNING[state]
-    spin = np.sign(yaw_rate_radps) * np.nan_to_num(yaw_accel_radps2) * 0.5 * gauge_m
-    return np.asarray(accel_mps2 + np.where(turning, spin, 0.0))
-
-
 def paper_ratio(state: IntArray, rho_m: FloatArray, p: VehicleParams) -> FloatArray:
     """``v_y / v_o`` of the paper per state (NaN where it gives none): Eq. 7, 20, 23."""
     ratio = np.full(state.shape, np.nan)
@@ -200,18 +174,15 @@ def odometer_measurement(
     valid: BoolArray,
     tightness: FloatArray | None = None,
     pull_mps2: FloatArray | None = None,
-    yaw_accel_radps2: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray, FloatArray]:
     """``(innovation (k, 1), H (k, 1, n), R (k, 1, 1), mask (k,), corrected V (k,))``.
 
     ``corrected V`` is the forward speed the odometer gives in this state (NaN where none);
     ``tightness`` ``(k,)`` is a turn's ``θ`` (:func:`turn_tightness`, 0 if None).
-    ``accel_mps2`` is the hull's own acceleration (gravity out): the odometer's std reads it;
-    ``pull_mps2`` the drawbar demand per unit mass, ``a + g·sin θ`` (the accelerometer's
-    forward specific force; ``accel_mps2`` if None): the traction slip reads it (a grade
-    loads the tracks as an acceleration does). The hull's lag and the window's carry read
-    the fast track's own acceleration :func:`track_accel` (``yaw_accel_radps2`` ``(k,)``,
-    the yaw acceleration; 0 if None).
+    ``accel_mps2`` is the hull's own acceleration (gravity out): the hull's lag, the window's
+    carry and the odometer's std read it; ``pull_mps2`` the drawbar demand per unit mass,
+    ``a + g·sin θ`` (the accelerometer's forward specific force; ``accel_mps2`` if None):
+    the traction slip reads it (a grade loads the tracks as an acceleration does).
     """
     pull = accel_mps2 if pull_mps2 is None else pull_mps2
     k = x.shape[0]
@@ -229,13 +200,12 @@ def odometer_measurement(
         factor = x[rows, f_idx] * scale + np.where(offset, x[:, S.F_STRAIGHT], 0.0) + patch
         gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
         turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
-        fast = track_accel(state, accel_mps2, yaw_rate_radps, yaw_accel_radps2, p.gauge_m)
-        lag = x[:, S.ACCEL_LAG] * fast
+        lag = x[:, S.ACCEL_LAG] * accel_mps2
         traction = 1.0 - x[:, S.ACCEL_SLIP] * pull
-        ground = v + turn - fast * lag_s + lag
+        ground = v - accel_mps2 * lag_s + lag + turn
         h = gear * ground / (factor * traction)
         H[:, 0, S.SPEED] = gear / (factor * traction)
-        H[:, 0, S.ACCEL_LAG] = gear * fast / (factor * traction)
+        H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
         H[:, 0, S.ACCEL_SLIP] = h * pull / traction
         H[rows, 0, f_idx] = -h / factor * scale
         H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)

@@ -643,7 +643,6 @@ def _fuse_odometer(
         valid,
         turn_tightness(inp.sprocket_pair_mps),
         pull_mps2,
-        inp.yaw_accel_radps2,
     )
     # the factors learn only beside GNSS, at a speed steady long enough for the hull's lag
     # behind its tracks and the slip of acceleration to have died out

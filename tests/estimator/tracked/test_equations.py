@@ -371,56 +371,6 @@ def test_product_odometer_measurement_by_hand() -> None:
     assert mask[0] and corrected[0] == pytest.approx(2.5 * f - 0.3 - 0.2)
 
 
-def test_the_hull_lag_reads_the_fast_tracks_own_acceleration_in_a_turn() -> None:
-    # An arc entered at a steady hull speed (a = 0) while the yaw rate grows at 0.5 rad/s²:
-    # the fast track (V + |ω|·B/2) speeds up at ω̇·B/2 and lags its sprocket by τ times that
-    # (τ·u̇ = ū − u per track), with no drawbar slip (κ reads the hull's pull, 0 here).
-    x = np.zeros((1, N_STATES))
-    x[0, S.SPEED] = 4.0
-    x[0, S.F_STRAIGHT] = 0.97
-    x[0, S.ACCEL_LAG] = 0.4
-    x[0, S.ACCEL_SLIP] = 0.06
-    half_gauge = 0.5 * P1.gauge_m[0]
-    w, w_dot, lag_s = -0.2, -0.5, 0.05  # a right turn tightening: |ω| grows
-    fast_accel = half_gauge * 0.5  # sign(ω)·ω̇·B/2
-    sprocket = 4.0 + 0.2 * half_gauge + 0.4 * fast_accel  # ū = u + τ·u̇ at the tick
-    window = sprocket - fast_accel * lag_s  # the window's mean, at its centre
-    y, H, _, mask, corrected = odometer_measurement(
-        TrackedEstimatorConfig(),
-        P1,
-        x,
-        np.array([M.ARC]),
-        np.array([window / 0.97]),
-        np.array([lag_s]),
-        np.zeros(1),
-        np.array([w]),
-        np.ones(1, dtype=bool),
-        None,
-        None,
-        np.array([w_dot]),
-    )
-    assert mask[0] and y[0, 0] == pytest.approx(0.0, abs=1e-12)
-    assert H[0, 0, S.ACCEL_LAG] == pytest.approx(fast_accel / 0.97)
-    assert H[0, 0, S.ACCEL_SLIP] == 0.0
-    # a straight's yaw acceleration (both sprockets alike) is no track's: none read there
-    *_, straight = odometer_measurement(
-        TrackedEstimatorConfig(),
-        P1,
-        x,
-        np.array([M.STRAIGHT]),
-        np.array([4.0 / 0.97]),
-        np.zeros(1),
-        np.zeros(1),
-        np.array([w]),
-        np.ones(1, dtype=bool),
-        None,
-        None,
-        np.array([w_dot]),
-    )
-    assert straight[0] == pytest.approx(4.0)
-    assert corrected[0] == pytest.approx(window - 0.2 * half_gauge - 0.4 * fast_accel)
-
-
 def _steady_odometer(
     cfg: TrackedEstimatorConfig,
     x: np.ndarray,
