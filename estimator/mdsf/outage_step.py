@@ -23,9 +23,13 @@ with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coinc
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
 window's middle when its posterior mean is ``z_min`` posterior std from 0 and at least
 ``min_step``, where the speed is steady (for a linear model the likelihood ratio of the step
-is ``z²``). The noise variance is the fit's residual variance (floored), so a noisier inertial
-integral widens the test. The posterior mean is the step estimate: shrunk toward 0 by the
-prior.
+is ``z²``). The noise variance is the fit's residual variance, so a noisier inertial
+integral widens the test, floored by the rims' own variance as the wheel front end reports it
+(``(σ_L² + σ_R²)/4`` for their mean, averaged over the window): a window of a few edges'
+scatter may hold a quiet stretch, but the rims it is made of are not known better than their
+fits say. The floor matters where the encoder gives few edges per fit (a slow wheel, a coarse
+ring), where its errors also last from tick to tick, and where a step, ``δ·V1``, is small.
+The posterior mean is the step estimate: shrunk toward 0 by the prior.
 
 The tilt error's prior is the front end's own: the window's mean pitch and roll variance of
 the tilt track (large with one antenna in an outage, small with a receiver's attitude), so
@@ -65,6 +69,7 @@ class StepBuf(IntEnum):
     LEVEL = 5  # the tyre model's slip level ε_a without the steps taken (ratio) [-]
     PITCH_VAR = 6  # the tilt track's pitch variance [rad²] (NaN: unknown, the prior's tilt_rad)
     ROLL_VAR = 7  # the tilt track's roll variance [rad²] (NaN: unknown, the prior's tilt_rad)
+    RIM_VAR = 8  # variance of the mean of both rim speeds, the wheel front end's [m²/s²]
 
 
 class StepCol(IntEnum):
@@ -188,8 +193,9 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
 
     Ridge regression ``θ = (AᵀWA + σ̂²Λ)⁻¹AᵀWr`` with ``Λ = diag(1/σ_j²)`` per window
     (:func:`step_inverse_prior`) and ``W`` the rows' ``OK`` weights; ``σ̂²`` the residual
-    variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²``,
-    found by two passes (the first with the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
+    variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²`` and
+    at the window's mean ``RIM_VAR`` over its ``OK`` rows, found by two passes (the first with
+    the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
     """
     a = step_columns(buf, dt_s)
     w = buf[:, StepBuf.OK]
@@ -201,12 +207,14 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     atr = np.einsum("kni,kn,kn->ki", a, w, r)
     n_ok = w.sum(axis=1)
     dof = np.maximum(n_ok - len(StepCol), 1.0)
-    var = np.full(buf.shape[0], prior.noise_floor_mps**2)
+    rim_var = (w * np.where(w > 0, buf[:, StepBuf.RIM_VAR], 0.0)).sum(axis=1)
+    floor = np.maximum(rim_var / np.maximum(n_ok, 1.0), prior.noise_floor_mps**2)
+    var = floor
     for _ in range(2):
         cov = _inverse(ata + var[:, None, None] * lam)
         theta = np.einsum("kij,kj->ki", cov, atr)
         res = r - np.einsum("kni,ki->kn", a, theta)
-        var = np.maximum((w * res * res).sum(axis=1) / dof, prior.noise_floor_mps**2)
+        var = np.maximum((w * res * res).sum(axis=1) / dof, floor)
     cov = _inverse(ata + var[:, None, None] * lam)
     theta = np.einsum("kij,kj->ki", cov, atr)
     delta = theta[:, StepCol.STEP]

@@ -184,3 +184,22 @@ def test_a_degenerate_window_finds_nothing_and_leaves_the_others_as_alone() -> N
     assert not both.found[0]
     assert both.found[1] and alone.found[0]
     assert both.delta[1] == alone.delta[0] and both.delta_var[1] == alone.delta_var[0]
+
+
+def _creep_shift(rim_std_mps: float) -> np.ndarray:
+    """Windows of a creep at 0.5 m/s whose rims shift by 30 mm/s for good at tick 100 (6 pp of
+    the speed) on 4 mm/s of white scatter, the rims' reported std ``rim_std_mps`` each."""
+    rng = np.random.default_rng(11)
+    n = 200
+    v1 = np.full(n, 0.5)
+    r = 0.03 * (np.arange(n) >= 100) + rng.normal(0, 0.004, n)
+    buf = _windows(r, v1, np.zeros(n))
+    buf[:, StepBuf.RIM_VAR] = rim_std_mps**2 / 2.0
+    return buf
+
+
+def test_a_shift_within_the_rims_own_noise_is_not_taken_while_creeping() -> None:
+    # The same 30 mm/s shift: a step when the rims are known to a few mm/s, not when each
+    # reading is known to 50 mm/s (a coarse ring's few edges per fit at creeping speed).
+    assert step_test(_creep_shift(0.004), DT, StepPrior()).found.any()
+    assert not step_test(_creep_shift(0.05), DT, StepPrior()).found.any()
