@@ -809,7 +809,7 @@ class MdsfEngine:
         step lose ``δ·V1`` so the step is not found twice. The window also carries the tilt
         track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior, and the
         variance of the rims' mean as the wheel front end gives it (``rim_std_mps``, scaled by
-        ``wheel_noise_scale``), the floor of the test's noise.
+        ``wheel_noise_scale``), against which a step's speed change is weighed.
         """
         count = np.where(lost, self.step_count[slots], 0)
         integral = np.where(lost, self.step_inertial[slots], 0.0)

@@ -23,13 +23,16 @@ with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coinc
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
 window's middle when its posterior mean is ``z_min`` posterior std from 0 and at least
 ``min_step``, where the speed is steady (for a linear model the likelihood ratio of the step
-is ``z²``). The noise variance is the fit's residual variance, so a noisier inertial
-integral widens the test, floored by the rims' own variance as the wheel front end reports it
-(``(σ_L² + σ_R²)/4`` for their mean, averaged over the window): a window of a few edges'
-scatter may hold a quiet stretch, but the rims it is made of are not known better than their
-fits say. The floor matters where the encoder gives few edges per fit (a slow wheel, a coarse
-ring), where its errors also last from tick to tick, and where a step, ``δ·V1``, is small.
-The posterior mean is the step estimate: shrunk toward 0 by the prior.
+is ``z²``). The noise variance is the fit's residual variance (floored), so a noisier inertial
+integral widens the test. The posterior mean is the step estimate: shrunk toward 0 by the
+prior.
+
+A step must also move the rims by more than one of their readings scatters: ``|δ|·V̄1`` (the
+mean speed after the middle) at least ``rim_sigmas`` times ``σ_rim``, the rims' mean std as the
+wheel front end reports it (``√((σ_L² + σ_R²)/4)``, averaged over the window). The fit's noise
+is per tick; where the encoder gives few edges per fit (a slow wheel, a coarse ring) one
+edge's error stays in the fits for several ticks and a run of them reads as a shift, while
+the step's own size in speed, ``δ·V1``, shrinks with the speed.
 
 The tilt error's prior is the front end's own: the window's mean pitch and roll variance of
 the tilt track (large with one antenna in an outage, small with a receiver's attitude), so
@@ -110,6 +113,8 @@ class StepPrior:
         Posterior mean over posterior std of ``δ`` above which a step is reported [-].
     min_step : float
         Smallest reported step (ratio) [-].
+    rim_sigmas : float
+        Smallest reported step's speed change ``|δ|·V̄1`` in units of the rims' mean std [-].
     min_speed_mps : float
         Mean ``V1`` after the window's middle below which nothing is reported [m/s].
     max_speed_change : float
@@ -128,6 +133,7 @@ class StepPrior:
     noise_floor_mps: float = 0.005
     z_min: float = 6.0
     min_step: float = 0.015
+    rim_sigmas: float = 1.0
     min_speed_mps: float = 0.3
     max_speed_change: float = 0.4
 
@@ -193,9 +199,8 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
 
     Ridge regression ``θ = (AᵀWA + σ̂²Λ)⁻¹AᵀWr`` with ``Λ = diag(1/σ_j²)`` per window
     (:func:`step_inverse_prior`) and ``W`` the rows' ``OK`` weights; ``σ̂²`` the residual
-    variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²`` and
-    at the window's mean ``RIM_VAR`` over its ``OK`` rows, found by two passes (the first with
-    the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
+    variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²``,
+    found by two passes (the first with the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
     """
     a = step_columns(buf, dt_s)
     w = buf[:, StepBuf.OK]
@@ -207,14 +212,12 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     atr = np.einsum("kni,kn,kn->ki", a, w, r)
     n_ok = w.sum(axis=1)
     dof = np.maximum(n_ok - len(StepCol), 1.0)
-    rim_var = (w * np.where(w > 0, buf[:, StepBuf.RIM_VAR], 0.0)).sum(axis=1)
-    floor = np.maximum(rim_var / np.maximum(n_ok, 1.0), prior.noise_floor_mps**2)
-    var = floor
+    var = np.full(buf.shape[0], prior.noise_floor_mps**2)
     for _ in range(2):
         cov = _inverse(ata + var[:, None, None] * lam)
         theta = np.einsum("kij,kj->ki", cov, atr)
         res = r - np.einsum("kni,ki->kn", a, theta)
-        var = np.maximum((w * res * res).sum(axis=1) / dof, floor)
+        var = np.maximum((w * res * res).sum(axis=1) / dof, prior.noise_floor_mps**2)
     cov = _inverse(ata + var[:, None, None] * lam)
     theta = np.einsum("kij,kj->ki", cov, atr)
     delta = theta[:, StepCol.STEP]
@@ -226,7 +229,10 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     fast = after >= prior.min_speed_mps
     fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
     full = n_ok >= 0.8 * buf.shape[2]
-    found = fast & full & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
+    rim_var = (w * np.where(w > 0, buf[:, StepBuf.RIM_VAR], 0.0)).sum(axis=1)
+    rim_sd = np.sqrt(rim_var / np.maximum(n_ok, 1.0))
+    seen = np.abs(delta) * after >= prior.rim_sigmas * rim_sd
+    found = fast & full & seen & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
     return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
 
 

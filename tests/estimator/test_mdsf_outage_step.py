@@ -203,3 +203,19 @@ def test_a_shift_within_the_rims_own_noise_is_not_taken_while_creeping() -> None
     # reading is known to 50 mm/s (a coarse ring's few edges per fit at creeping speed).
     assert step_test(_creep_shift(0.004), DT, StepPrior()).found.any()
     assert not step_test(_creep_shift(0.05), DT, StepPrior()).found.any()
+
+
+def test_a_step_well_above_the_rims_noise_is_still_taken_on_a_coarse_ring() -> None:
+    # 2 pp at 2 m/s (40 mm/s) on 10 mm/s of scatter, each rim reported to 30 mm/s (a coarse
+    # ring at speed): the step moves the rims by more than a reading scatters, so it is taken
+    # as it would be with the rims known exactly; the rims' std is not the fit's noise.
+    rng = np.random.default_rng(13)
+    n = 200
+    v1 = np.full(n, 2.0)
+    r = 0.02 * v1 * (np.arange(n) >= 100) + rng.normal(0, 0.01, n)
+    buf = _windows(r, v1, np.zeros(n))
+    exact = step_test(buf, DT, StepPrior())
+    buf[:, StepBuf.RIM_VAR] = 0.03**2 / 2.0
+    coarse = step_test(buf, DT, StepPrior())
+    assert exact.found[100 - N // 2]
+    np.testing.assert_array_equal(coarse.found, exact.found)
