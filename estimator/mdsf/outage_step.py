@@ -29,7 +29,8 @@ prior.
 
 A step must also move the rims by more than one of their readings scatters: ``|δ|·V̄1`` (the
 mean speed after the middle) at least ``rim_sigmas`` times ``σ_rim``, the rims' mean std as the
-wheel front end reports it (``√((σ_L² + σ_R²)/4)``, averaged over the window). The fit's noise
+wheel front end reports it (``√((σ_L² + σ_R²)/4)``, its median over the window's ticks: the
+few ticks of a wheel restarting near a stop carry a std that would mask the window). The fit's noise
 is per tick; where the encoder gives few edges per fit (a slow wheel, a coarse ring) one
 edge's error stays in the fits for several ticks and a run of them reads as a shift, while
 the step's own size in speed, ``δ·V1``, shrinks with the speed.
@@ -42,6 +43,7 @@ the tilt competes with a step only as far as the track does not know its angles.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -229,11 +231,19 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     fast = after >= prior.min_speed_mps
     fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
     full = n_ok >= 0.8 * buf.shape[2]
-    rim_var = (w * np.where(w > 0, buf[:, StepBuf.RIM_VAR], 0.0)).sum(axis=1)
-    rim_sd = np.sqrt(rim_var / np.maximum(n_ok, 1.0))
+    rim_sd = np.sqrt(_median_ok(buf[:, StepBuf.RIM_VAR], w > 0))
     seen = np.abs(delta) * after >= prior.rim_sigmas * rim_sd
     found = fast & full & seen & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
     return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
+
+
+def _median_ok(x: FloatArray, ok: BoolArray) -> FloatArray:
+    """Median of each window's ``x`` (k, N) over its ``ok`` ticks, (k,); 0 where none is."""
+    masked = np.where(ok, x, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(masked, axis=1)
+    return np.where(ok.any(axis=1), med, 0.0)
 
 
 def _inverse(m: FloatArray) -> FloatArray:
