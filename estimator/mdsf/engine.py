@@ -489,7 +489,7 @@ class MdsfEngine:
         if self._step_ticks:
             lost = self._gnss_lost(slots, t, init) & ~st.started & ~st.diverged
             up.inflated = up.inflated | self._outage_slip_steps(
-                slots, t, z, x, up, lost, rim_mps, rim_ok
+                slots, t, z, x, up, lost, rim_mps, rim_ok, rim_std_mps
             )
         now_init = init | st.started
         fused = up.use_vg & now_init
@@ -793,6 +793,7 @@ class MdsfEngine:
         lost: BoolArray,
         rim_mps: FloatArray,
         rim_ok: BoolArray,
+        rim_std_mps: FloatArray,
     ) -> BoolArray:
         """Product mode, GNSS lost: a slip step found in the window of the rims less the
         inertial speed (:func:`estimator.mdsf.outage_step.step_test`) moves the outage's slip
@@ -806,7 +807,9 @@ class MdsfEngine:
         variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim
         excess), and the bias's move squared to its variance. The window's ticks after the
         step lose ``δ·V1`` so the step is not found twice. The window also carries the tilt
-        track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior.
+        track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior, and the
+        variance of the rims' mean as the wheel front end gives it (``rim_std_mps``, scaled by
+        ``wheel_noise_scale``), against which a step's speed change is weighed.
         """
         count = np.where(lost, self.step_count[slots], 0)
         integral = np.where(lost, self.step_inertial[slots], 0.0)
@@ -817,7 +820,9 @@ class MdsfEngine:
         )
         integral = np.where(lost, integral + self.dt_s * a_in, 0.0)
         step_level = np.where(lost, self.step_level[slots], 0.0)
-        new = self._step_window_tick(slots, t, up, integral, step_level, rim_mps, rim_ok)
+        new = self._step_window_tick(
+            slots, t, up, integral, step_level, rim_mps, rim_ok, rim_std_mps
+        )
         buf = self.step_buf[slots]
         buf[lost] = np.concatenate([buf[lost, :, 1:], new[lost, :, None]], axis=2)
         count = count + lost
@@ -845,6 +850,7 @@ class MdsfEngine:
         step_level: FloatArray,
         rim_mps: FloatArray,
         rim_ok: BoolArray,
+        rim_std_mps: FloatArray,
     ) -> FloatArray:
         """The tick's column of the step test's window, (k, len(StepBuf)) (channels
         :class:`~estimator.mdsf.outage_step.StepBuf`; ``integral`` the outage's ``∫ā·dt``,
@@ -868,6 +874,8 @@ class MdsfEngine:
         new[:, StepBuf.LEVEL] = model_level
         new[:, StepBuf.PITCH_VAR] = tilt_var[:, 0]
         new[:, StepBuf.ROLL_VAR] = tilt_var[:, 1]
+        rim_sd = self.config.wheel_noise_scale * np.where(rim_ok, rim_std_mps, 0.0)
+        new[:, StepBuf.RIM_VAR] = np.where(both, (rim_sd * rim_sd).sum(axis=1) / 4.0, 0.0)
         return new
 
     def _take_step(

@@ -27,6 +27,14 @@ is ``z²``). The noise variance is the fit's residual variance (floored), so a n
 integral widens the test. The posterior mean is the step estimate: shrunk toward 0 by the
 prior.
 
+A step must also move the rims by more than one of their readings scatters: ``|δ|·V̄1`` (the
+mean speed after the middle) at least ``rim_sigmas`` times ``σ_rim``, the rims' mean std as the
+wheel front end reports it (``√((σ_L² + σ_R²)/4)``, its median over the window's ticks: the
+few ticks of a wheel restarting near a stop carry a std that would mask the window). The fit's noise
+is per tick; where the encoder gives few edges per fit (a slow wheel, a coarse ring) one
+edge's error stays in the fits for several ticks and a run of them reads as a shift, while
+the step's own size in speed, ``δ·V1``, shrinks with the speed.
+
 The tilt error's prior is the front end's own: the window's mean pitch and roll variance of
 the tilt track (large with one antenna in an outage, small with a receiver's attitude), so
 the tilt competes with a step only as far as the track does not know its angles.
@@ -35,6 +43,7 @@ the tilt competes with a step only as far as the track does not know its angles.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -65,6 +74,7 @@ class StepBuf(IntEnum):
     LEVEL = 5  # the tyre model's slip level ε_a without the steps taken (ratio) [-]
     PITCH_VAR = 6  # the tilt track's pitch variance [rad²] (NaN: unknown, the prior's tilt_rad)
     ROLL_VAR = 7  # the tilt track's roll variance [rad²] (NaN: unknown, the prior's tilt_rad)
+    RIM_VAR = 8  # variance of the mean of both rim speeds, the wheel front end's [m²/s²]
 
 
 class StepCol(IntEnum):
@@ -105,6 +115,8 @@ class StepPrior:
         Posterior mean over posterior std of ``δ`` above which a step is reported [-].
     min_step : float
         Smallest reported step (ratio) [-].
+    rim_sigmas : float
+        Smallest reported step's speed change ``|δ|·V̄1`` in units of the rims' mean std [-].
     min_speed_mps : float
         Mean ``V1`` after the window's middle below which nothing is reported [m/s].
     max_speed_change : float
@@ -123,6 +135,7 @@ class StepPrior:
     noise_floor_mps: float = 0.005
     z_min: float = 6.0
     min_step: float = 0.015
+    rim_sigmas: float = 1.0
     min_speed_mps: float = 0.3
     max_speed_change: float = 0.4
 
@@ -218,8 +231,19 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     fast = after >= prior.min_speed_mps
     fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
     full = n_ok >= 0.8 * buf.shape[2]
-    found = fast & full & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
+    rim_sd = np.sqrt(_median_ok(buf[:, StepBuf.RIM_VAR], w > 0))
+    seen = np.abs(delta) * after >= prior.rim_sigmas * rim_sd
+    found = fast & full & seen & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
     return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
+
+
+def _median_ok(x: FloatArray, ok: BoolArray) -> FloatArray:
+    """Median of each window's ``x`` (k, N) over its ``ok`` ticks, (k,); 0 where none is."""
+    masked = np.where(ok, x, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(masked, axis=1)
+    return np.where(ok.any(axis=1), med, 0.0)
 
 
 def _inverse(m: FloatArray) -> FloatArray:

@@ -184,3 +184,49 @@ def test_a_degenerate_window_finds_nothing_and_leaves_the_others_as_alone() -> N
     assert not both.found[0]
     assert both.found[1] and alone.found[0]
     assert both.delta[1] == alone.delta[0] and both.delta_var[1] == alone.delta_var[0]
+
+
+def _creep_shift(rim_std_mps: float) -> np.ndarray:
+    """Windows of a creep at 0.5 m/s whose rims shift by 30 mm/s for good at tick 100 (6 pp of
+    the speed) on 4 mm/s of white scatter, the rims' reported std ``rim_std_mps`` each."""
+    rng = np.random.default_rng(11)
+    n = 200
+    v1 = np.full(n, 0.5)
+    r = 0.03 * (np.arange(n) >= 100) + rng.normal(0, 0.004, n)
+    buf = _windows(r, v1, np.zeros(n))
+    buf[:, StepBuf.RIM_VAR] = rim_std_mps**2 / 2.0
+    return buf
+
+
+def test_a_shift_within_the_rims_own_noise_is_not_taken_while_creeping() -> None:
+    # The same 30 mm/s shift: a step when the rims are known to a few mm/s, not when each
+    # reading is known to 50 mm/s (a coarse ring's few edges per fit at creeping speed).
+    assert step_test(_creep_shift(0.004), DT, StepPrior()).found.any()
+    assert not step_test(_creep_shift(0.05), DT, StepPrior()).found.any()
+
+
+def test_a_step_well_above_the_rims_noise_is_still_taken_on_a_coarse_ring() -> None:
+    # 2 pp at 2 m/s (40 mm/s) on 10 mm/s of scatter, each rim reported to 30 mm/s (a coarse
+    # ring at speed): the step moves the rims by more than a reading scatters, so it is taken
+    # as it would be with the rims known exactly; the rims' std is not the fit's noise.
+    rng = np.random.default_rng(13)
+    n = 200
+    v1 = np.full(n, 2.0)
+    r = 0.02 * v1 * (np.arange(n) >= 100) + rng.normal(0, 0.01, n)
+    buf = _windows(r, v1, np.zeros(n))
+    exact = step_test(buf, DT, StepPrior())
+    buf[:, StepBuf.RIM_VAR] = 0.03**2 / 2.0
+    coarse = step_test(buf, DT, StepPrior())
+    assert exact.found[100 - N // 2]
+    np.testing.assert_array_equal(coarse.found, exact.found)
+
+
+def test_a_few_ticks_of_a_wheel_restarting_do_not_mask_a_step() -> None:
+    # The rims known to 4 mm/s but for 5 ticks of a restart reported at 0.5 m/s: the step's
+    # speed change is weighed against a typical reading, not against those few.
+    buf = _creep_shift(0.004)
+    plain = step_test(buf, DT, StepPrior())
+    buf[:, StepBuf.RIM_VAR, :5] = 0.5**2 / 2.0
+    restart = step_test(buf, DT, StepPrior())
+    assert plain.found.any()
+    np.testing.assert_array_equal(restart.found, plain.found)
