@@ -564,13 +564,21 @@ class MdsfEngine:
         if self.product:
             rd[:, _RIM] = np.where(
                 rim_ok,
-                (cfg.wheel_noise_scale * rim_std_mps) ** 2
+                self._rim_fit_var(rim_std_mps, rim_ok)
                 + (cfg.rim_texture_rel * np.where(rim_ok, rim_mps, 0.0)) ** 2
                 + 1e-6,
                 1.0,
             )
             rd[:, MdsfObs.DIST] = np.where(t.dist_ok, t.dist_var, 1.0)
         return rd
+
+    def _rim_fit_var(self, rim_std_mps: FloatArray, rim_ok: BoolArray) -> FloatArray:
+        """Each rim speed's variance from the wheel fit alone, ``(wheel_noise_scale·σ)²``
+        (k, 2) [m²/s²]; 0 where the rim is unknown. The filter's rim rows add the soil's
+        texture to it (:meth:`_noise`); the outage step test weighs a step against it."""
+        rim_sd = self.config.wheel_noise_scale * np.where(rim_ok, rim_std_mps, 0.0)
+        var: FloatArray = rim_sd**2
+        return var
 
     def _working_state(
         self, slots: IntArray
@@ -874,8 +882,8 @@ class MdsfEngine:
         new[:, StepBuf.LEVEL] = model_level
         new[:, StepBuf.PITCH_VAR] = tilt_var[:, 0]
         new[:, StepBuf.ROLL_VAR] = tilt_var[:, 1]
-        rim_sd = self.config.wheel_noise_scale * np.where(rim_ok, rim_std_mps, 0.0)
-        new[:, StepBuf.RIM_VAR] = np.where(both, (rim_sd * rim_sd).sum(axis=1) / 4.0, 0.0)
+        rim_var = self._rim_fit_var(rim_std_mps, rim_ok)
+        new[:, StepBuf.RIM_VAR] = np.where(both, rim_var.sum(axis=1) / 4.0, 0.0)
         return new
 
     def _take_step(
