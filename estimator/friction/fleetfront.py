@@ -25,12 +25,9 @@ from estimator.friction.frontend import (
     DRIVE_SHARE,
     GNSS_SPEED_STD_MPS,
     UNDRIVEN,
-    CalibScatter,
     FrontEndConfig,
     brake_slip_std,
-    calibration_own_std_rel,
     calibration_scale_var,
-    calibration_scatter_step,
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
@@ -228,7 +225,6 @@ class _State(_Arrays):
     def __init__(self) -> None:
         self.radius = np.zeros((0, 4))
         self.radius_std = np.zeros((0, 4))
-        self.calib_scatter = np.zeros((0, 4, CalibScatter.N))  # its readings' (CalibScatter)
         self.radius_common_rel = np.zeros(0)
         self.radius_scale_var = np.zeros(0)  # the radii's shared relative scale variance
         self.speed_persist = np.zeros(0)  # the speed's considered persistent 1-σ [m/s]
@@ -249,7 +245,6 @@ class _State(_Arrays):
         fz = car.fz_static[slot]
         self.radius[slot] = car.r_u[slot] - fz / car.kz[slot] * (1.0 if fe.paper else 1 / 3)
         self.radius_std[slot] = 0.01 * car.r_u[slot]
-        self.calib_scatter[slot] = 0.0
         self.radius_common_rel[slot] = 0.0
         self.radius_scale_var[slot] = 0.01**2
         self.speed_persist[slot] = 0.0
@@ -486,23 +481,12 @@ class FleetFrontEnd:
         n = st.calib_n[c]
         gain = np.maximum(0.1 / self.fe.calib_time_s, 1.0 / n)[:, None]
         radius = st.radius[c]
-        w = omega[rows]
-        quantum = self.fe.wheel_speed_resolution_radps / np.maximum(w, 1e-3)
-        st.calib_scatter[c] = calibration_scatter_step(
-            st.calib_scatter[c],
-            measured / measured.mean(axis=1, keepdims=True) - 1.0,
-            np.log(np.maximum(w, 1e-3)),
-            gain,
-            quantum,
-        )
         radius += gain * (measured - radius)
         st.radius[c] = radius
         st.fz_cal[c] += gain * (f - st.fz_cal[c])
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
         st.radius_scale_var[c] = calibration_scale_var(st.radius_scale_var[c], gain[:, 0], v[:, 0])
-        st.radius_std[c] = radius * calibration_own_std_rel(
-            st.calib_scatter[c], n[:, None], gain, quantum, self.fe.radius_model_rel_std
-        )
+        st.radius_std[c] = 2e-4 * radius
         self._learn_tyres(c[n >= self.fe.calib_samples])
 
     def _learn_tyres(self, c: IntArray) -> None:

@@ -78,18 +78,14 @@ __all__ = [
     "DRIVE_SHARE",
     "GNSS_SPEED_STD_MPS",
     "UNDRIVEN",
-    "CalibScatter",
     "FrontEnd",
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
-    "calibration_own_std_rel",
     "calibration_scale_var",
-    "calibration_scatter_step",
     "consider_step",
     "rim_persistent_std_mps",
     "ringing_slip_std",
-    "rounding_mean_var_rel",
     "spin_up_slip",
 ]
 
@@ -135,9 +131,7 @@ class FrontEndConfig:
     ``wheel_speed_resolution_radps``: the CAN wheel speed's rounding, below which a change
     between two readings may be rounding alone (:func:`ringing_slip_std`);
     ``wheel_speed_window_s``: the time a CAN wheel speed is averaged over (a tone ring timed
-    by the ECU; :func:`rim_persistent_std_mps`); ``radius_model_rel_std``: a calibrated
-    radius's relative 1-σ from the load model and the slip allowance, to which its readings'
-    own rounding and scatter are added (:func:`calibration_own_std_rel`).
+    by the ECU; :func:`rim_persistent_std_mps`).
     """
 
     paper: bool = False
@@ -161,7 +155,6 @@ class FrontEndConfig:
     brake_share_std: float = 0.5
     wheel_speed_resolution_radps: float = 0.025
     wheel_speed_window_s: float = 0.02
-    radius_model_rel_std: float = 2e-4
 
 
 def brake_slip_std(
@@ -252,107 +245,6 @@ def calibration_scale_var(
     g = np.asarray(gain)
     rel = GNSS_SPEED_STD_MPS / np.maximum(np.abs(np.asarray(gnss_speed_mps)), 1.0)
     out: FloatArray = (1.0 - g) ** 2 * np.asarray(var) + (g * rel) ** 2
-    return out
-
-
-class CalibScatter:
-    """Named columns of a wheel's calibration scatter statistics ``(…, 4, N)``: the running
-    mean, variance and lag-1 covariance of its reading over the four wheels' mean (``DEV_*``;
-    the GNSS speed's shared error taken out, the radii's own differences left in the mean),
-    the last such deviation, the last ``ln ω`` and the running half mean square of its change
-    between epochs (``LOG_JITTER``: how far its speed moves about within the rounding)."""
-
-    DEV_MEAN = 0
-    DEV_VAR = 1
-    DEV_COV = 2
-    DEV_PREV = 3
-    LOG_PREV = 4
-    LOG_JITTER = 5
-    N = 6
-
-
-def calibration_scatter_step(
-    stats: FloatArray,
-    dev: FloatArray,
-    log_omega: FloatArray,
-    gain: FloatArray | float,
-    quantum_rel: FloatArray,
-) -> FloatArray:
-    """``stats`` ``(…, 4, CalibScatter.N)`` after one calibration epoch with the gain of the
-    radius's running mean ``g`` (broadcast against ``(…, 1)``; 1 on the first epoch, which
-    starts the statistics). Exponentially weighted like the radius:
-    ``m ← m + g (d − m)``, ``V ← (1 − g)(V + g (d − m_old)²)``,
-    ``C ← (1 − g) C + g (d − m)(d_prev − m)``, ``J ← (1 − g) J + g (Δ ln ω)²/2`` (the
-    epoch-to-epoch change: a slow change of level is not a dither; a change of more than
-    four quanta ``quantum_rel`` is a new level after a pause of the calibration and adds
-    nothing); ``dev``, ``log_omega``, ``quantum_rel`` ``(…, 4)``."""
-    c = CalibScatter
-    g = np.asarray(gain, dtype=float)
-    first = g >= 1.0
-    out = stats.copy()
-    step = dev - stats[..., c.DEV_MEAN]
-    out[..., c.DEV_MEAN] = stats[..., c.DEV_MEAN] + g * step
-    out[..., c.DEV_VAR] = (1.0 - g) * (stats[..., c.DEV_VAR] + g * step**2)
-    mean = out[..., c.DEV_MEAN]
-    out[..., c.DEV_COV] = (1.0 - g) * stats[..., c.DEV_COV] + g * (dev - mean) * (
-        stats[..., c.DEV_PREV] - mean
-    )
-    out[..., c.DEV_PREV] = dev
-    change = np.where(first, 0.0, log_omega - stats[..., c.LOG_PREV])
-    change = np.where(np.abs(change) > 4.0 * np.asarray(quantum_rel), 0.0, change)
-    out[..., c.LOG_JITTER] = (1.0 - g) * stats[..., c.LOG_JITTER] + g * 0.5 * change**2
-    out[..., c.LOG_PREV] = log_omega
-    return out
-
-
-def rounding_mean_var_rel(
-    quantum_rel: FloatArray | float, spread_rel: FloatArray | float
-) -> FloatArray:
-    """Variance of the mean rounding error of readings rounded to a quantum ``q`` (relative to
-    the speed) whose speed spread by ``σ`` (relative, Gaussian) about a level that lies
-    anywhere in the quantum.
-
-    The rounding error ``e(x) = Σ_k (−1)^k q/(πk) sin(2πkx/q)`` averages over the spread to
-    the same series with each term times ``exp(−2π²k²σ²/q²)``; over the level its variance is
-    ``Σ_k q²/(2π²k²) exp(−4π²k²σ²/q²)`` (eight terms, the rest at the ninth's decay):
-    ``q²/12`` for a held speed (the readings' mean keeps the whole rounding, however many),
-    negligible once ``σ ≳ q/2``. Shapes broadcast."""
-    q = np.maximum(np.asarray(quantum_rel, dtype=float), 1e-12)
-    ratio2 = (np.asarray(spread_rel, dtype=float) / q) ** 2
-    k = np.arange(1, 9).reshape((8,) + (1,) * np.ndim(ratio2 * q))
-    terms = np.exp(-4.0 * math.pi**2 * k**2 * ratio2) / (2.0 * math.pi**2 * k**2)
-    rest = (math.pi**2 / 6.0 - float((1.0 / k**2).sum())) / (2.0 * math.pi**2)  # k > 8
-    out: FloatArray = q**2 * (terms.sum(axis=0) + rest * np.exp(-4.0 * math.pi**2 * 81 * ratio2))
-    return out
-
-
-def calibration_own_std_rel(
-    stats: FloatArray,
-    n: FloatArray | int,
-    gain: FloatArray | float,
-    quantum_rel: FloatArray,
-    model_rel: float,
-) -> FloatArray:
-    """Each wheel's own calibrated-radius 1-σ, relative ``(…, 4)``, from its readings.
-
-    ``σ² = σ_m² + R(q, s) + V/n_eff``: ``σ_m`` the load model's and the slip allowance's
-    (``FrontEndConfig.radius_model_rel_std``); ``R`` the rounding the mean keeps
-    (:func:`rounding_mean_var_rel`, ``q`` the wheel speed's quantum over its speed, ``s``
-    the jitter of its ``ln ω`` less the rounding's own ``q²/12``); ``V/n_eff`` the scatter
-    of its reading over the four's mean over the effective count of the running mean,
-    ``n_eff = n_w (1 − ρ)/(1 + ρ)``, ``n_w = min(n, (2 − g)/g)``, ``ρ = C/V`` held in
-    ``[0, 0.95]`` (a slow swing holds few independent epochs). ``stats`` ``(…, 4, N)``
-    (:class:`CalibScatter`); ``n``, ``gain`` broadcast against ``(…, 1)``."""
-    c = CalibScatter
-    var = np.maximum(stats[..., c.DEV_VAR], 0.0)
-    rho = np.clip(stats[..., c.DEV_COV] / np.maximum(var, 1e-18), 0.0, 0.95)
-    g = np.asarray(gain, dtype=float)
-    n_w = np.minimum(np.asarray(n, dtype=float), (2.0 - g) / g)
-    n_eff = np.maximum(n_w * (1.0 - rho) / (1.0 + rho), 1.0)
-    q = np.asarray(quantum_rel, dtype=float)
-    spread = np.sqrt(np.maximum(stats[..., c.LOG_JITTER] - q**2 / 12.0, 0.0))
-    total = model_rel**2 + rounding_mean_var_rel(q, spread) + var / n_eff
-    out: FloatArray = np.sqrt(total)
     return out
 
 
@@ -520,7 +412,6 @@ class FrontEnd:
         self.kz_wheel = np.full(4, ty.kz_npm)
         self.suspect = np.zeros(4, dtype=bool)
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)  # each wheel's own
-        self.calib_scatter = np.zeros((4, CalibScatter.N))  # its readings' (CalibScatter)
         self.radius_common_rel = 0.0  # the calibration's GNSS error, shared by the four
         self.radius_scale_var = 0.01**2  # its relative variance (calibration_scale_var)
         self.speed_persist = 0.0  # the speed's considered persistent 1-σ [m/s]
@@ -909,9 +800,8 @@ class FrontEnd:
         """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
         ``calib_time_s`` average), allowing for the slip the resistances need. The GNSS
         speed's error (~0.03 m/s an epoch, 0.3 % at 10 m/s) enters the four radii alike: it is
-        kept apart from each wheel's own error (``radius_std``: the load model's, the rounding
-        its readings' mean keeps and their scatter over its effective count,
-        :func:`calibration_own_std_rel`), since a shared scale error of the radii cancels in κ
+        kept apart from each wheel's own error (``radius_std``: rim-speed resolution and the
+        load model, 2e-4 of the radius), since a shared scale error of the radii cancels in κ
         where the speed comes from the same rims."""
         steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
         if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
@@ -927,21 +817,11 @@ class FrontEnd:
         measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
         self.calib_n += 1
         gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
-        quantum = self.fe.wheel_speed_resolution_radps / np.maximum(self.omega, 1e-3)
-        self.calib_scatter = calibration_scatter_step(
-            self.calib_scatter,
-            measured / measured.mean() - 1.0,
-            np.log(np.maximum(self.omega, 1e-3)),
-            gain,
-            quantum,
-        )
         self.radius += gain * (measured - self.radius)
         self.fz_cal += gain * (fz - self.fz_cal)
         self.radius_common_rel = 0.003 / math.sqrt(self.calib_n)
         self.radius_scale_var = float(calibration_scale_var(self.radius_scale_var, gain, gnss[0]))
-        self.radius_std = self.radius * calibration_own_std_rel(
-            self.calib_scatter, self.calib_n, gain, quantum, self.fe.radius_model_rel_std
-        )
+        self.radius_std = 2e-4 * self.radius
         self._learn_tyres()
 
     @property

@@ -20,7 +20,6 @@ from estimator.friction.frontend import (
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
-    rounding_mean_var_rel,
     spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -300,72 +299,3 @@ def test_speed_std_helpers_by_hand() -> None:
     assert abs(var2 - 0.25 * var - 0.25 * (0.03 / 10.0) ** 2) < 1e-18
     assert abs(consider_step(0.01, 0.25, 0.03) - (0.75 * 0.01 + 0.25 * 0.03)) < 1e-15
     assert abs(consider_step(0.01, 0.25, 0.0) - 0.0075) < 1e-15
-
-
-def _calibration_straight(jitter_quanta: float) -> tuple[FrontEnd, float]:
-    """A 5 s straight at a speed whose wheels turn at 0.45 of a CAN quantum (0.025 rad/s) above
-    a multiple of it, ~8.3 m/s; with ``jitter_quanta`` > 0 each wheel's speed jitters by that
-    many quanta (uniform, 1-σ ``j/√3``, fresh every reading) about it. GNSS (10 Hz) gives the
-    true velocity; no resistances, so the calibrated radius is ``v`` over the readings' mean.
-    Returns the front end and the wheels' true speed [rad/s]."""
-    fe = FrontEnd(CONFIG, FrontEndConfig(), 0.02)
-    radius = CONFIG.tyre.unloaded_radius_m
-    omega_true = (round(8.33 / radius / 0.025) + 0.45) * 0.025
-    v = omega_true * radius
-    t_imu = np.arange(1, 501) * 10_000_000
-    accel = np.zeros((t_imu.size, 3))
-    accel[:, 2] = GRAVITY_MPS2
-    fe.push_imu(ImuBatch(t_imu, accel, np.zeros((t_imu.size, 3))))
-    rng = np.random.default_rng(5)
-    jitter = jitter_quanta * 0.025 * rng.uniform(-1.0, 1.0, (t_imu.size // 2, 4))
-    omega = np.round((omega_true + jitter) / 0.025) * 0.025
-    fe.push_wheels(WheelSpeeds4(t_imu[1::2], omega))
-    fe.push_steering(SteeringAngles(t_imu[1::2], np.zeros(t_imu.size // 2)))
-    for k in range(9, t_imu.size, 10):
-        fe.push_gnss(
-            GnssSample(
-                stamp_ns=int(t_imu[k]),
-                vel_enu_mps=(v * math.sin(HEADING_RAD), v * math.cos(HEADING_RAD), 0.0),
-                heading_rad=HEADING_RAD,
-                pitch_rad=0.0,
-                roll_rad=0.0,
-                lat_deg=48.0,
-                lon_deg=11.0,
-                height_m=500.0,
-            )
-        )
-    for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000):
-        fe.tick(t)
-    return fe, omega_true
-
-
-def test_a_held_speed_keeps_its_rounding_in_the_calibrated_radius() -> None:
-    """At a held speed every reading rounds the same way: the calibrated radius keeps the whole
-    rounding (0.45 of a quantum, 4.5e-4 of the radius here) however many epochs it averages,
-    and its stated 1-σ covers that within 1.5 σ (a fixed 2e-4 would put it 2 σ out). With the
-    speed jittering by a quantum the readings' mean takes the rounding out, and the 1-σ
-    falls back towards the load model's ``radius_model_rel_std``."""
-    radius = CONFIG.tyre.unloaded_radius_m
-    fe, omega_true = _calibration_straight(0.0)
-    assert fe.calibrated
-    err = fe.radius / radius - 1.0
-    rounding = 0.45 * 0.025 / omega_true
-    np.testing.assert_allclose(err, rounding / (1.0 - rounding), rtol=0.05)
-    stated = fe.radius_std / fe.radius
-    assert np.all(np.abs(err) < 1.5 * stated)
-    assert np.all(stated >= 0.025 / omega_true / math.sqrt(12.0))
-    fe, _ = _calibration_straight(1.0)
-    err = fe.radius / radius - 1.0
-    stated_jitter = fe.radius_std / fe.radius
-    assert np.all(np.abs(err) < 1.5e-4)
-    assert np.all(stated_jitter < 0.75 * stated)
-    assert np.all(stated_jitter >= FrontEndConfig().radius_model_rel_std)
-
-
-def test_rounding_mean_variance() -> None:
-    """A held speed keeps ``q²/12`` of rounding variance in the mean; a spread of half a
-    quantum leaves under 1 % of it; shapes broadcast."""
-    q = np.array([1e-3, 2e-3])
-    np.testing.assert_allclose(rounding_mean_var_rel(q, 0.0), q**2 / 12.0, rtol=1e-3)
-    assert np.all(rounding_mean_var_rel(q, q / 2) < 0.01 * q**2 / 12.0)
-    assert rounding_mean_var_rel(q[:, None], np.zeros((2, 3))).shape == (2, 3)
