@@ -23,6 +23,10 @@ advance); the front end's output of every tick is then edited before the filter 
   truth's ``ρ`` and its differential's torque split ``1 ± b`` (the balance made exact);
   ``+cspread``: the balance's 1-σ widened by the two tyres' own stiffness spread.
 
+``--rounding`` prints instead, per seed, each wheel's CAN reading's mean error over the
+straight's GNSS epochs (the 4 s before the manoeuvre) beside the truth's wheel speed rounded
+to the sensor's quantum, and the driven wheels' ring on their tyres (:func:`rounding_rows`).
+
 The radius and speed corrections are added after the front end's relaxation lag (they move
 slowly against it). Printed per seed: the filter's μ error over the last 2 s, signed [%].
 """
@@ -42,12 +46,13 @@ from estimator.friction import fleet as fleet_mod
 from estimator.friction.axle import AxleArrays, AxleConfig
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
 from estimator.friction.sensors import SensedTicks
-from estimator.sim.four_wheel import NAMED, FourWheelRun, simulate_four_wheel
-from estimator.sim.four_wheel.dynamics import TruthParams
+from estimator.sim.four_wheel import NAMED, FourWheelRun, WheelSpeedSensor, simulate_four_wheel
+from estimator.sim.four_wheel.dynamics import DT_S, TruthParams
+from estimator.types import WheelSpeeds4
 from server.tooling.bench import int_list
 from server.tooling.bench.friction import TICK_S, feed_runs
 
-__all__ = ["SWAPS", "main", "replay"]
+__all__ = ["SWAPS", "main", "replay", "rounding_rows"]
 
 SOFT, PARTNER = 2, 3
 SWAPS = (
@@ -283,16 +288,76 @@ def _probe_table(runs: list[FourWheelRun], seeds: list[int]) -> None:
         )
 
 
+def _ring(t_s: np.ndarray, omega: np.ndarray) -> tuple[float, float]:
+    """The strongest frequency [Hz] and the 1-σ of a wheel speed ``(K,)`` on the truth's
+    grid relative to its 0.1 s running mean (the slow change of speed taken out)."""
+    smooth = np.convolve(omega, np.ones(51) / 51, "same")
+    rel = (omega / smooth - 1.0)[30:-30]
+    freq = np.fft.rfftfreq(rel.size, float(t_s[1] - t_s[0]))
+    power = np.abs(np.fft.rfft(rel - rel.mean())) ** 2
+    return float(freq[1 + np.argmax(power[1:])]), float(rel.std())
+
+
+def rounding_rows(run: FourWheelRun, sensor: WheelSpeedSensor) -> dict[str, np.ndarray]:
+    """Over the 4 s before the manoeuvre, at the GNSS epochs (every 0.1 s): each wheel's
+    reading's mean relative error against the truth's wheel speed (``reading``) and the
+    truth's speed rounded to ``sensor.quantum_radps`` (``rounding``), ``(4,)`` each; the
+    wheels' ring (:func:`_ring`) on the straight and from 0.5 s to 5 s into the manoeuvre,
+    ``ring_straight``, ``ring_drive`` ``(4, 2)`` (frequency [Hz], relative 1-σ); the
+    wheels' mean speed there ``omega`` [rad/s]."""
+    stamp = np.concatenate([m.stamp_ns for m in run.measurements if isinstance(m, WheelSpeeds4)])
+    read = np.concatenate([m.omega_radps for m in run.measurements if isinstance(m, WheelSpeeds4)])
+    t = (stamp - run.start_ns) / 1e9
+    tr, t0, q = run.truth, run.manoeuvre.t0_s, sensor.quantum_radps
+    k = np.clip(np.round((t - tr.t_s[0]) / (tr.t_s[1] - tr.t_s[0])).astype(int), 0, tr.t_s.size - 1)
+    true = tr.omega_radps[k]
+    epoch = (t >= t0 - 4.0) & (t < t0 - 0.05) & (np.abs(t * 10 - np.round(t * 10)) < 1e-6)
+    angle = tr.angle_sub_rad.reshape(-1, 4)
+    grid = tr.t_s[0] + DT_S * (np.arange(1, angle.shape[0]) - 0.5)
+    spin = np.diff(angle, axis=0) / DT_S
+    straight, drive = (grid >= t0 - 4.0) & (grid < t0), (grid >= t0 + 0.5) & (grid < t0 + 5.0)
+    return {
+        "reading": ((read - true) / true)[epoch].mean(axis=0),
+        "rounding": ((np.round(true / q) * q - true) / true)[epoch].mean(axis=0),
+        "ring_straight": np.array([_ring(grid[straight], spin[straight, w]) for w in range(4)]),
+        "ring_drive": np.array([_ring(grid[drive], spin[drive, w]) for w in range(4)]),
+        "omega": true[epoch].mean(axis=0),
+    }
+
+
+def _rounding_table(runs: list[FourWheelRun], seeds: list[int]) -> None:
+    sensor = WheelSpeedSensor()
+    print(
+        "| seed | quantum/ω [1e-4] | reading's mean error FL, FR, RL, RR [1e-4] | "
+        "truth rounded FL, FR, RL, RR [1e-4] | ring RL, RR straight [Hz; 1-σ 1e-4] | "
+        "ring RL, RR driving [Hz; 1-σ 1e-4] |"
+    )
+    print("| --- | --- | --- | --- | --- | --- |")
+    for run, sd in zip(runs, seeds, strict=True):
+        r = rounding_rows(run, sensor)
+        four = [", ".join(f"{1e4 * x:+.1f}" for x in r[f]) for f in ("reading", "rounding")]
+        ring = [
+            ", ".join(f"{r[f][w, 0]:.0f}; {1e4 * r[f][w, 1]:.1f}" for w in (SOFT, PARTNER))
+            for f in ("ring_straight", "ring_drive")
+        ]
+        q = 1e4 * sensor.quantum_radps / r["omega"].mean()
+        print(f"| {sd} | {q:.1f} | {four[0]} | {four[1]} | {ring[0]} | {ring[1]} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int_list, default=[1, 2, 101, 102])
     ap.add_argument("--swaps", default=",".join(SWAPS))
     ap.add_argument("--probe", action="store_true", help="per-seed front-end errors instead")
+    ap.add_argument("--rounding", action="store_true", help="per-seed wheel readings' errors")
     args = ap.parse_args(argv)
     seeds = list(args.seeds)
     runs = simulate_four_wheel([NAMED["damaged_tyre"]] * len(seeds), seeds)
     if args.probe:
         _probe_table(runs, seeds)
+        return
+    if args.rounding:
+        _rounding_table(runs, seeds)
         return
     print("| swapped for the truth | " + " | ".join(str(s) for s in seeds) + " |")
     print("| --- |" + " --- |" * len(seeds))
