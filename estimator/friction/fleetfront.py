@@ -484,6 +484,7 @@ class FleetFrontEnd:
             c_x,
             fe.calib_stiffness_rel_std,
             fe.brake_share_std,
+            np.sqrt(np.maximum(self.vx.p_bb[c], 0.0))[:, None],
         )
         w = np.maximum(omega[rows], 1e-3)
         rounding = fe.wheel_speed_resolution_radps / (w * math.sqrt(12.0))

@@ -172,6 +172,7 @@ def calibration_slip(
     c_x_n: FloatArray,
     stiffness_rel_std: float,
     brake_share_std: float,
+    accel_std_mps2: FloatArray | float = 0.0,
 ) -> tuple[FloatArray, FloatArray]:
     """Each wheel's slip while the radius is calibrated, and the 1-σ of the speed change's part.
 
@@ -179,11 +180,13 @@ def calibration_slip(
     a slope's pull is in it; ``R`` the resistances). Driven (``F ≥ 0``), a wheel carries
     ``F s_i`` (``s_i`` its drive share) and slips ``κ_i = F s_i/c_x,i`` in the linear range;
     the part of it that the speed change adds, ``m a_x s_i/c_x,i``, is known to the tyre's
-    stiffness, ``stiffness_rel_std`` relative. Braked (``F < 0``), no slip is expected and
-    every wheel's is uncertain by its unknown share of the braking force
-    (:func:`brake_slip_std`, times ``brake_share_std``). The calibration takes an epoch only
-    where that 1-σ stays below the rounding it averages (``FrontEnd._calibrate``). Shapes
-    broadcast like :func:`brake_slip_std`'s; returns ``(κ, σ)``."""
+    stiffness, ``stiffness_rel_std`` relative, and to ``a_x``'s own 1-σ ``accel_std_mps2``
+    (the accelerometer bias's, held for seconds: ``m σ_a s_i/c_x,i`` more). Braked
+    (``F < 0``), no slip is expected and every wheel's is uncertain by its unknown share of
+    the braking force (:func:`brake_slip_std`, times ``brake_share_std``). The calibration
+    takes an epoch only where that 1-σ stays below the rounding it averages
+    (``FrontEnd._calibrate``). Shapes broadcast like :func:`brake_slip_std`'s; returns
+    ``(κ, σ)``."""
     m = np.asarray(mass_kg)
     force_n = m * np.asarray(ax_mps2) + np.asarray(resist_n)
     c_x = np.maximum(c_x_n, 1.0)
@@ -191,7 +194,8 @@ def calibration_slip(
     expect: FloatArray = driven * drive_share / c_x
     change = np.where(force_n >= 0.0, np.abs(m * np.asarray(ax_mps2)), 0.0)
     braked = brake_share_std * brake_slip_std(-force_n / m, m, c_x)
-    cost: FloatArray = stiffness_rel_std * change * drive_share / c_x + braked
+    known = stiffness_rel_std * change + m * np.asarray(accel_std_mps2)
+    cost: FloatArray = known * drive_share / c_x + braked
     return expect, cost
 
 
@@ -863,6 +867,7 @@ class FrontEnd:
             c_x,
             self.fe.calib_stiffness_rel_std,
             self.fe.brake_share_std,
+            math.sqrt(max(self.vx.p_bb, 0.0)),
         )
         omega = np.maximum(self.omega, 1e-3)
         rounding = self.fe.wheel_speed_resolution_radps / (omega * math.sqrt(12.0))
