@@ -28,7 +28,6 @@ from estimator.friction.frontend import (
     FrontEndConfig,
     brake_slip_std,
     calibration_scale_var,
-    calibration_slip,
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
@@ -460,15 +459,15 @@ class FleetFrontEnd:
         ax: FloatArray,
         omega: FloatArray,
     ) -> None:
-        """Radius calibration on the rows with a fresh epoch, straight at 5 m/s or more, whose
-        speed change's slip is known better than every wheel's rounding (``FrontEnd._calibrate``),
-        then ``ρ`` and the tyres learnt."""
-        straight = (np.abs(yaw_rate[g]) < 0.02) & (np.abs(delta[g, 0]) < 0.01)
-        rows = g[straight & (gnss_v[g, 0] >= 5.0)]
+        """Radius calibration on the rows with a fresh epoch, straight and steady at 5 m/s or
+        more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt."""
+        steady = (np.abs(ax[g]) < 0.3) & (np.abs(yaw_rate[g]) < 0.02) & (np.abs(delta[g, 0]) < 0.01)
+        rows = g[steady & (gnss_v[g, 0] >= 5.0)]
         if not rows.size:
             return
-        c, car, st, fe = s[rows], self.car, self.state, self.fe
+        c, car, st = s[rows], self.car, self.state
         v = gnss_v[rows]
+        v_long, _ = self._wheel_velocity(c, v[:, 0], v[:, 1], yaw_rate[rows], delta[rows])
         f = fz[rows]
         resist = car.rolling[c] * f.sum(axis=1) + 0.5 * AIR_DENSITY_KGPM3 * (
             car.drag_area[c] * v[:, 0] ** 2
@@ -476,24 +475,8 @@ class FleetFrontEnd:
         c_x = load_adaptive_stiffness_n(
             f, st.kz_wheel[c], car.r_u[c][:, None], car.c_px[c][:, None]
         )
-        expect, cost = calibration_slip(
-            ax[rows][:, None],
-            resist[:, None],
-            car.mass[c][:, None],
-            car.drive_share[c],
-            c_x,
-            fe.calib_stiffness_rel_std,
-            fe.brake_share_std,
-            np.sqrt(np.maximum(self.vx.p_bb[c], 0.0))[:, None],
-        )
-        w = np.maximum(omega[rows], 1e-3)
-        rounding = fe.wheel_speed_resolution_radps / (w * math.sqrt(12.0))
-        keep = np.all(cost <= rounding, axis=1)
-        if not keep.any():
-            return
-        rows, c, v, f, expect, w = rows[keep], c[keep], v[keep], f[keep], expect[keep], w[keep]
-        v_long, _ = self._wheel_velocity(c, v[:, 0], v[:, 1], yaw_rate[rows], delta[rows])
-        measured = v_long * (1.0 + expect) / w
+        expect = resist[:, None] * car.drive_share[c] / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(omega[rows], 1e-3)
         st.calib_n[c] += 1
         n = st.calib_n[c]
         gain = np.maximum(0.1 / self.fe.calib_time_s, 1.0 / n)[:, None]

@@ -21,15 +21,12 @@ is tested against:
 * loads: static + longitudinal ``m a_x h/L`` + lateral ``m a_y h/b`` split between the axles
   by the roll-stiffness share, through a first-order lag (paper: the static formula, lateral
   split ``lr/L``, no lag);
-* radius: calibrated per wheel while driving straight, the speed held or changing no faster
-  than the tyres' stiffness lets its slip be known (the slip there is what the resistances
-  and the speed change need; a speed that moves across the CAN readings' rounding steps
-  averages their rounding out of the radius), then falling with load, ``r_e = r_u − ρ Fz/kz``
-  (paper: the statically loaded radius ``r_u − Fz/kz``). ``ρ`` (0.25-0.4 for real tyres) is
-  learnt from the calibrated radii of the tyres the config describes, ``ρ = (r_u − r_e)
-  kz/Fz`` (median over wheels); a tyre whose radius says it deflects far more or less (soft,
-  damaged) gets its own vertical stiffness ``kz_i = ρ Fz/(r_u − r_e,i)``, and with it its
-  contact length and brush stiffness;
+* radius: calibrated per wheel while driving straight and steady (the slip there is what the
+  resistances need), then falling with load, ``r_e = r_u − ρ Fz/kz`` (paper: the statically
+  loaded radius ``r_u − Fz/kz``). ``ρ`` (0.25-0.4 for real tyres) is learnt from the calibrated
+  radii of the tyres the config describes, ``ρ = (r_u − r_e) kz/Fz`` (median over wheels); a
+  tyre whose radius says it deflects far more or less (soft, damaged) gets its own vertical
+  stiffness ``kz_i = ρ Fz/(r_u − r_e,i)``, and with it its contact length and brush stiffness;
 * accelerometer biases: the forward and lateral speed filters' bias states are taken off
   ``a_x`` and ``a_y`` before the loads and the measurements (a lateral bias of 0.05 m/s² reads
   as a lateral tyre force and as ~45 N of load moved across, which a soft tyre's radius turns
@@ -86,7 +83,6 @@ __all__ = [
     "FrontEndTick",
     "brake_slip_std",
     "calibration_scale_var",
-    "calibration_slip",
     "consider_step",
     "rim_persistent_std_mps",
     "ringing_slip_std",
@@ -135,9 +131,7 @@ class FrontEndConfig:
     ``wheel_speed_resolution_radps``: the CAN wheel speed's rounding, below which a change
     between two readings may be rounding alone (:func:`ringing_slip_std`);
     ``wheel_speed_window_s``: the time a CAN wheel speed is averaged over (a tone ring timed
-    by the ECU; :func:`rim_persistent_std_mps`); ``calib_stiffness_rel_std``: the relative
-    1-σ of a tyre's longitudinal stiffness against the brush model's, by which a speed
-    change's slip is known to the radius calibration (:func:`calibration_slip`).
+    by the ECU; :func:`rim_persistent_std_mps`).
     """
 
     paper: bool = False
@@ -161,42 +155,6 @@ class FrontEndConfig:
     brake_share_std: float = 0.5
     wheel_speed_resolution_radps: float = 0.025
     wheel_speed_window_s: float = 0.02
-    calib_stiffness_rel_std: float = 0.3
-
-
-def calibration_slip(
-    ax_mps2: FloatArray | float,
-    resist_n: FloatArray | float,
-    mass_kg: FloatArray | float,
-    drive_share: FloatArray,
-    c_x_n: FloatArray,
-    stiffness_rel_std: float,
-    brake_share_std: float,
-    accel_std_mps2: FloatArray | float = 0.0,
-) -> tuple[FloatArray, FloatArray]:
-    """Each wheel's slip while the radius is calibrated, and the 1-σ of the speed change's part.
-
-    The tyres push the body with ``F = m a_x + R`` (``a_x`` the accelerometer's specific force:
-    a slope's pull is in it; ``R`` the resistances). Driven (``F ≥ 0``), a wheel carries
-    ``F s_i`` (``s_i`` its drive share) and slips ``κ_i = F s_i/c_x,i`` in the linear range;
-    the part of it that the speed change adds, ``m a_x s_i/c_x,i``, is known to the tyre's
-    stiffness, ``stiffness_rel_std`` relative, and to ``a_x``'s own 1-σ ``accel_std_mps2``
-    (the accelerometer bias's, held for seconds: ``m σ_a s_i/c_x,i`` more). Braked
-    (``F < 0``), no slip is expected and every wheel's is uncertain by its unknown share of
-    the braking force (:func:`brake_slip_std`, times ``brake_share_std``). The calibration
-    takes an epoch only where that 1-σ stays below the rounding it averages
-    (``FrontEnd._calibrate``). Shapes broadcast like :func:`brake_slip_std`'s; returns
-    ``(κ, σ)``."""
-    m = np.asarray(mass_kg)
-    force_n = m * np.asarray(ax_mps2) + np.asarray(resist_n)
-    c_x = np.maximum(c_x_n, 1.0)
-    driven = np.maximum(force_n, 0.0)
-    expect: FloatArray = driven * drive_share / c_x
-    change = np.where(force_n >= 0.0, np.abs(m * np.asarray(ax_mps2)), 0.0)
-    braked = brake_share_std * brake_slip_std(-force_n / m, m, c_x)
-    known = stiffness_rel_std * change + m * np.asarray(accel_std_mps2)
-    cost: FloatArray = known * drive_share / c_x + braked
-    return expect, cost
 
 
 def brake_slip_std(
@@ -839,18 +797,14 @@ class FrontEnd:
         yaw_rate: float,
         ax: float,
     ) -> None:
-        """Per-wheel radius from GNSS speed while straight (running mean, then a
-        ``calib_time_s`` average), allowing for the slip the resistances and the speed change
-        need (:func:`calibration_slip`). An epoch counts while the speed change's slip is known
-        better than the CAN reading's rounding ``q`` of that wheel (1-σ ``q/(ω √12)``): a held
-        speed keeps its rounding in the mean, a speed that moves across rounding steps averages
-        it out, and the gate lets the speed move as far as the tyres' force allows. The GNSS
+        """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
+        ``calib_time_s`` average), allowing for the slip the resistances need. The GNSS
         speed's error (~0.03 m/s an epoch, 0.3 % at 10 m/s) enters the four radii alike: it is
         kept apart from each wheel's own error (``radius_std``: rim-speed resolution and the
         load model, 2e-4 of the radius), since a shared scale error of the radii cancels in κ
-        where the speed comes from the same rims; so the four wheels take the same epochs."""
-        straight = abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
-        if self.fe.paper or gnss is None or not straight or gnss[0] < 5.0:
+        where the speed comes from the same rims."""
+        steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
+        if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
             return
         v_long, _ = self._wheel_velocity(gnss[0], gnss[1], yaw_rate, delta)
         resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (
@@ -859,21 +813,8 @@ class FrontEnd:
         c_x = load_adaptive_stiffness_n(
             fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
         )
-        expect, cost = calibration_slip(
-            ax,
-            resist,
-            self.ch.mass_kg,
-            self.drive_share,
-            c_x,
-            self.fe.calib_stiffness_rel_std,
-            self.fe.brake_share_std,
-            math.sqrt(max(self.vx.p_bb, 0.0)),
-        )
-        omega = np.maximum(self.omega, 1e-3)
-        rounding = self.fe.wheel_speed_resolution_radps / (omega * math.sqrt(12.0))
-        if not bool(np.all(cost <= rounding)):
-            return
-        measured = v_long * (1.0 + expect) / omega
+        expect = resist * self.drive_share / np.maximum(c_x, 1.0)
+        measured = v_long * (1.0 + expect) / np.maximum(self.omega, 1e-3)
         self.calib_n += 1
         gain = max(0.1 / self.fe.calib_time_s, 1.0 / self.calib_n)  # GNSS at about 10 Hz
         self.radius += gain * (measured - self.radius)

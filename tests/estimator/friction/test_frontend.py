@@ -5,10 +5,8 @@ bias kept apart from the body's pitch."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
-import pytest
 
 from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
 from estimator.friction import FilterConfig
@@ -19,7 +17,6 @@ from estimator.friction.frontend import (
     FrontEndTick,
     _TiltGradient,
     calibration_scale_var,
-    calibration_slip,
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
@@ -302,95 +299,3 @@ def test_speed_std_helpers_by_hand() -> None:
     assert abs(var2 - 0.25 * var - 0.25 * (0.03 / 10.0) ** 2) < 1e-18
     assert abs(consider_step(0.01, 0.25, 0.03) - (0.75 * 0.01 + 0.25 * 0.03)) < 1e-15
     assert abs(consider_step(0.01, 0.25, 0.0) - 0.0075) < 1e-15
-
-
-QUANTUM_RADPS = FrontEndConfig().wheel_speed_resolution_radps
-
-
-def _calibrated_through_a_slow_change(
-    config: Wheeled4wdSteeredConfig, accel_mps2: float
-) -> tuple[FrontEnd, np.ndarray]:
-    """2 s held at a speed where the front wheels turn 0.45 of a CAN quantum above a step,
-    then 6 s at ``accel_mps2`` straight ahead; the wheels read their rim speed (the driven
-    rear with the slip the drive force needs at their load, the front with their spin-up slip)
-    rounded to the quantum, GNSS (10 Hz, at wheel-reading instants) the true velocity.
-    Returns the front end and each wheel's true radius at the calibration's mean load."""
-    fe = FrontEnd(config, FrontEndConfig(), 0.02)
-    ch, ty = config.chassis, config.tyre
-    wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
-    static_n = ch.mass_kg * GRAVITY_MPS2 / (2 * wheelbase)
-    static_n *= np.array([ch.cg_to_rear_axle_m] * 2 + [ch.cg_to_front_axle_m] * 2)
-    front_m = ty.unloaded_radius_m - static_n[0] / (3.0 * ty.kz_npm)
-    steps = round(10.0 / front_m / QUANTUM_RADPS)
-    v0 = front_m * (steps + 0.45) * QUANTUM_RADPS
-    t_imu = np.arange(1, 801) * 10_000_000
-    t_s = t_imu / 1e9
-    a_imu = np.where(t_s > 2.0, accel_mps2, 0.0)
-    accel = np.zeros((t_s.size, 3))
-    accel[:, 1], accel[:, 2] = a_imu, GRAVITY_MPS2
-    fe.push_imu(ImuBatch(t_imu, accel, np.zeros((t_s.size, 3))))
-    t_w = t_s[1::2]
-    a_w = np.where(t_w > 2.0, accel_mps2, 0.0)[:, None]
-    v_w = v0 + accel_mps2 * np.maximum(t_w - 2.0, 0.0)
-    settled = 1.0 - np.exp(-np.maximum(t_w - 2.0, 0.0) / ch.load_transfer_lag_s)[:, None]
-    moved_n = ch.mass_kg * ch.cg_height_m * a_w * settled / (2 * wheelbase)
-    fz_n = static_n + moved_n * np.array([-1.0, -1.0, 1.0, 1.0])
-    radius_m = ty.unloaded_radius_m - fz_n / (3.0 * ty.kz_npm)
-    c_x = load_adaptive_stiffness_n(fz_n, ty.kz_npm, ty.unloaded_radius_m, ty.c_px_npm2)
-    slip = spin_up_slip(a_w, radius_m, c_x, FrontEndConfig().wheel_inertia_kgm2)
-    slip[:, 2:] = ch.mass_kg * a_w / 2.0 / c_x[:, 2:]
-    omega = v_w[:, None] * (1.0 + slip) / radius_m
-    fe.push_wheels(WheelSpeeds4(t_imu[1::2], np.round(omega / QUANTUM_RADPS) * QUANTUM_RADPS))
-    fe.push_steering(SteeringAngles(t_imu[1::2], np.zeros(t_w.size)))
-    for k in range(9, t_imu.size, 10):
-        v = v0 + accel_mps2 * max(t_s[k] - 2.0, 0.0)
-        fe.push_gnss(
-            GnssSample(
-                stamp_ns=int(t_imu[k]),
-                vel_enu_mps=(v * math.sin(HEADING_RAD), v * math.cos(HEADING_RAD), 0.0),
-                heading_rad=HEADING_RAD,
-                pitch_rad=0.0,
-                roll_rad=0.0,
-                lat_deg=48.0,
-                lon_deg=11.0,
-                height_m=500.0,
-            )
-        )
-    for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000):
-        fe.tick(t)
-    return fe, ty.unloaded_radius_m - fe.fz_cal / (3.0 * ty.kz_npm)
-
-
-@pytest.mark.parametrize(
-    ("c_px_npm2", "accel_mps2"),
-    [(1.0e7, 0.1), (3.0e7, 0.4)],
-    ids=["slip-of-the-change-modelled", "rounding-averaged-on-a-stiff-tyre"],
-)
-def test_a_slow_speed_change_averages_the_rounding_out_of_the_radius(
-    c_px_npm2: float, accel_mps2: float
-) -> None:
-    """Held 2 s, the front wheels' readings keep 0.45 of a quantum (3.7e-4 of ω at 10 m/s) in
-    their mean; a slow speed change then crosses hundreds of rounding steps, and every radius
-    comes out within 1.5e-4 of the truth at the calibration's mean load: at 0.1 m/s² the driven
-    tyres slip 4.3e-4 for it, taken out; at 0.4 m/s² on tyres three times as stiff the change's
-    slip (1-σ 1.7e-4 at 0.3 of the stiffness) is still known better than the rounding
-    (2.4e-4), so the epochs count."""
-    tyre = replace(CONFIG.tyre, c_px_npm2=c_px_npm2)
-    fe, truth_m = _calibrated_through_a_slow_change(replace(CONFIG, tyre=tyre), accel_mps2)
-    assert fe.calibrated
-    assert np.max(np.abs(fe.radius / truth_m - 1.0)) < 1.5e-4
-    held, _ = _calibrated_through_a_slow_change(replace(CONFIG, tyre=tyre), 0.0)
-    held_truth_m = tyre.unloaded_radius_m - held.fz_cal / (3.0 * tyre.kz_npm)
-    assert abs(held.radius[0] / held_truth_m[0] - 1.0) > 3e-4  # held: the rounding stays
-
-
-def test_calibration_slip_by_hand() -> None:
-    """Driven: the resistances and the change need ``F s/c_x``, the change known to 0.3 of
-    it; braked: no slip expected, the brake share's 1-σ on every wheel."""
-    share, c_x = np.array([0.0, 0.0, 0.5, 0.5]), np.full(4, 2e5)
-    expect, cost = calibration_slip(0.2, 100.0, 1000.0, share, c_x, 0.3, 0.5)
-    np.testing.assert_allclose(expect, [0.0, 0.0, 300 * 0.5 / 2e5, 300 * 0.5 / 2e5], rtol=1e-12)
-    np.testing.assert_allclose(cost, [0.0, 0.0, 0.3 * 100 / 2e5, 0.3 * 100 / 2e5], rtol=1e-12)
-    expect, cost = calibration_slip(-0.5, 100.0, 1000.0, share, c_x, 0.3, 0.5)
-    np.testing.assert_allclose(expect, 0.0, atol=1e-18)
-    np.testing.assert_allclose(cost, 0.5 * 1000 * 0.4 / 2 / 2e5, rtol=1e-12)
