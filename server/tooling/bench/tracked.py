@@ -40,7 +40,10 @@ Metrics per run and mode
     never scored: its true sprocket speed is below the moving threshold.
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
-    driven in it; the worst outage of the run), and the largest error within it.
+    driven in it; the worst outage of the run), and the largest error within it. The end is
+    the last row stamped before the first fix after the outage: a receiver whose clock runs
+    behind the IMU's stamps that fix before the outage's end on the IMU's clock, and a row
+    from its tick on has fused it.
 ``pitch_rms_mrad`` / ``roll_rms_mrad`` (and ``…_max_mrad``, ``…_z_rms``)
     The rows' hull attitude against the terrain's (mrad) over the rows that give it
     (``attitude_pct`` of the rows), and the RMS of each error over the row's own 1-sigma (1
@@ -82,6 +85,7 @@ from estimator.sim.tracked import TrackedRun, simulate_tracked
 from estimator.sim.tracked.route import CLOCK_KEYS
 from estimator.tracked import MotionState, TrackedEstimatorConfig, TrackedFleet, TrackedMode
 from estimator.tracked.model import TrackedState as S
+from estimator.types import GnssFix, GnssSample
 from server.tooling.bench import int_list, write_json
 
 __all__ = ["main", "run"]
@@ -178,6 +182,16 @@ def _nees(rows: np.ndarray, d_east: np.ndarray, d_north: np.ndarray) -> np.ndarr
     return 0.5 * (nn * d_east**2 - 2.0 * en * d_east * d_north + ee * d_north**2) / det
 
 
+def _fix_stamps(run: TrackedRun) -> np.ndarray:
+    """Stamps (ns, sorted) of the run's fixes that carry a solution."""
+    stamps = [
+        m.stamp_ns
+        for _, m in run.measurements
+        if isinstance(m, GnssSample) and m.fix != GnssFix.NONE
+    ]
+    return np.sort(np.asarray(stamps, dtype=np.int64))
+
+
 def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
     tr = run.truth
     d_east, d_north = rows["east_m"] - tr.east_m[idx], rows["north_m"] - tr.north_m[idx]
@@ -191,8 +205,11 @@ def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str,
         "outage_km": 0.0,
         "dr_nees": float("nan"),
     }
+    fixes = _fix_stamps(run)
     for a_ns, b_ns in run.outages_ns:
-        inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= b_ns)
+        back = fixes[np.searchsorted(fixes, a_ns, side="right") :]
+        until = min(b_ns, int(back[0]) - 1) if back.size else b_ns
+        inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= until)
         if not inside.any():
             continue
         end = int(np.nonzero(inside)[0][-1])
