@@ -94,6 +94,7 @@ MODES = tuple(TrackedMode)
 SETTLE_S = 1.5
 MOVING_MPS = 0.5
 FLOORS = {"settled_pct": 99.5, "state_pct": 98.5, "slip_rms_pp": 1.5}
+_STAMP_SLACK_NS = 1_000_000_000
 
 
 def _feed(
@@ -182,14 +183,23 @@ def _nees(rows: np.ndarray, d_east: np.ndarray, d_north: np.ndarray) -> np.ndarr
     return 0.5 * (nn * d_east**2 - 2.0 * en * d_east * d_north + ee * d_north**2) / det
 
 
-def _fix_stamps(run: TrackedRun) -> np.ndarray:
-    """Stamps (ns, sorted) of the run's fixes that carry a solution."""
-    stamps = [
-        m.stamp_ns
-        for _, m in run.measurements
-        if isinstance(m, GnssSample) and m.fix != GnssFix.NONE
-    ]
-    return np.sort(np.asarray(stamps, dtype=np.int64))
+def _fix_stamps(run: TrackedRun) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (ns, sorted) of the run's fixes with a solution, and of those without."""
+    fixes = [m for _, m in run.measurements if isinstance(m, GnssSample)]
+    got = [m.stamp_ns for m in fixes if m.fix != GnssFix.NONE]
+    lost = [m.stamp_ns for m in fixes if m.fix == GnssFix.NONE]
+    return np.sort(np.asarray(got, dtype=np.int64)), np.sort(np.asarray(lost, dtype=np.int64))
+
+
+def _dr_end_ns(got: np.ndarray, lost: np.ndarray, a_ns: int, b_ns: int) -> int:
+    """The last stamp that counts as inside the outage ``(a_ns, b_ns]``: before the first fix
+    with a solution stamped after the outage's last fix without one (searched within a
+    second of the outage: the receiver's stamps sit up to a tenth off the IMU's clock)."""
+    near = lost[(lost > a_ns - _STAMP_SLACK_NS) & (lost <= b_ns + _STAMP_SLACK_NS)]
+    if not near.size:
+        return b_ns
+    back = got[got > near[-1]]
+    return min(b_ns, int(back[0]) - 1) if back.size else b_ns
 
 
 def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
@@ -205,10 +215,9 @@ def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str,
         "outage_km": 0.0,
         "dr_nees": float("nan"),
     }
-    fixes = _fix_stamps(run)
+    got, lost = _fix_stamps(run)
     for a_ns, b_ns in run.outages_ns:
-        back = fixes[np.searchsorted(fixes, a_ns, side="right") :]
-        until = min(b_ns, int(back[0]) - 1) if back.size else b_ns
+        until = _dr_end_ns(got, lost, a_ns, b_ns)
         inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= until)
         if not inside.any():
             continue

@@ -104,11 +104,13 @@ class _DrTruth:
 
 
 class _DrRun:
-    """Outage (10, 40] ns; the receiver's first fix after it is stamped 35, before its end."""
+    """Outage (10, 40] ns on the IMU's clock; the receiver's clock leads at its start (its
+    last fix before the outage is stamped 15, after the outage began) and lags at its end
+    (its first fix after it is stamped 35, before the outage's end)."""
 
     truth = _DrTruth()
     outages_ns = ((10, 40),)
-    measurements = (_fix(10), _fix(20, GnssFix.NONE), _fix(35), _fix(45))
+    measurements = (_fix(15), _fix(25, GnssFix.NONE), _fix(35), _fix(45))
 
     def distance_m(self) -> np.ndarray:
         return np.asarray(self.truth.east_m)
