@@ -40,7 +40,10 @@ Metrics per run and mode
     never scored: its true sprocket speed is below the moving threshold.
 ``dr_end_m`` / ``dr_end_pct`` / ``dr_max_m``
     Position error of the hull centre at the end of each GNSS outage (m, and % of the distance
-    driven in it; the worst outage of the run), and the largest error within it.
+    driven in it; the worst outage of the run), and the largest error within it. The end is
+    the last row stamped before the first fix after the outage: a receiver whose clock runs
+    behind the IMU's stamps that fix before the outage's end on the IMU's clock, and a row
+    from its tick on has fused it.
 ``pitch_rms_mrad`` / ``roll_rms_mrad`` (and ``…_max_mrad``, ``…_z_rms``)
     The rows' hull attitude against the terrain's (mrad) over the rows that give it
     (``attitude_pct`` of the rows), and the RMS of each error over the row's own 1-sigma (1
@@ -82,6 +85,7 @@ from estimator.sim.tracked import TrackedRun, simulate_tracked
 from estimator.sim.tracked.route import CLOCK_KEYS
 from estimator.tracked import MotionState, TrackedEstimatorConfig, TrackedFleet, TrackedMode
 from estimator.tracked.model import TrackedState as S
+from estimator.types import GnssFix, GnssSample
 from server.tooling.bench import int_list, write_json
 
 __all__ = ["main", "run"]
@@ -90,6 +94,7 @@ MODES = tuple(TrackedMode)
 SETTLE_S = 1.5
 MOVING_MPS = 0.5
 FLOORS = {"settled_pct": 99.5, "state_pct": 98.5, "slip_rms_pp": 1.5}
+_STAMP_SLACK_NS = 1_000_000_000
 
 
 def _feed(
@@ -178,6 +183,25 @@ def _nees(rows: np.ndarray, d_east: np.ndarray, d_north: np.ndarray) -> np.ndarr
     return 0.5 * (nn * d_east**2 - 2.0 * en * d_east * d_north + ee * d_north**2) / det
 
 
+def _fix_stamps(run: TrackedRun) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (ns, sorted) of the run's fixes with a solution, and of those without."""
+    fixes = [m for _, m in run.measurements if isinstance(m, GnssSample)]
+    got = [m.stamp_ns for m in fixes if m.fix != GnssFix.NONE]
+    lost = [m.stamp_ns for m in fixes if m.fix == GnssFix.NONE]
+    return np.sort(np.asarray(got, dtype=np.int64)), np.sort(np.asarray(lost, dtype=np.int64))
+
+
+def _dr_end_ns(got: np.ndarray, lost: np.ndarray, a_ns: int, b_ns: int) -> int:
+    """The last stamp that counts as inside the outage ``(a_ns, b_ns]``: before the first fix
+    with a solution stamped after the outage's last fix without one (searched within a
+    second of the outage: the receiver's stamps sit up to a tenth off the IMU's clock)."""
+    near = lost[(lost > a_ns - _STAMP_SLACK_NS) & (lost <= b_ns + _STAMP_SLACK_NS)]
+    if not near.size:
+        return b_ns
+    back = got[got > near[-1]]
+    return min(b_ns, int(back[0]) - 1) if back.size else b_ns
+
+
 def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str, Any]:
     tr = run.truth
     d_east, d_north = rows["east_m"] - tr.east_m[idx], rows["north_m"] - tr.north_m[idx]
@@ -191,8 +215,10 @@ def _dr_metrics(run: TrackedRun, rows: np.ndarray, idx: np.ndarray) -> dict[str,
         "outage_km": 0.0,
         "dr_nees": float("nan"),
     }
+    got, lost = _fix_stamps(run)
     for a_ns, b_ns in run.outages_ns:
-        inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= b_ns)
+        until = _dr_end_ns(got, lost, a_ns, b_ns)
+        inside = (rows["stamp_ns"] > a_ns) & (rows["stamp_ns"] <= until)
         if not inside.any():
             continue
         end = int(np.nonzero(inside)[0][-1])

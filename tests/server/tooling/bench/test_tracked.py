@@ -8,10 +8,12 @@ import pytest
 
 from estimator.tracked.model import TrackedState as S
 from estimator.tracked_spec import TRACKED_SPEC
+from estimator.types import GnssFix, GnssSample
 from server.tooling.bench.tracked import (
     _attitude_metrics,
     _clock_before_outage,
     _clock_metrics,
+    _dr_metrics,
     _nees,
 )
 
@@ -89,3 +91,44 @@ def test_the_learnt_clock_is_read_before_the_first_outage_and_scored_against_the
     assert m["gnss_clock_ms"] == pytest.approx(70.0)
     assert m["gnss_clock_err_ms"] == pytest.approx(5.0)
     assert m["gnss_clock_z"] == pytest.approx(2.5)
+
+
+def _fix(stamp_ns: int, fix: GnssFix = GnssFix.RTK_FIXED) -> tuple[int, GnssSample]:
+    nan = float("nan")
+    return stamp_ns, GnssSample(stamp_ns, (0.0, 0.0, 0.0), nan, nan, nan, 52.0, 5.6, 0.0, fix, 0.03)
+
+
+class _DrTruth:
+    east_m = np.array([0.0, 100.0, 200.0, 300.0, 400.0])
+    north_m = np.zeros(5)
+
+
+class _DrRun:
+    """Outage (10, 40] ns on the IMU's clock; the receiver's clock leads at its start (its
+    last fix before the outage is stamped 15, after the outage began) and lags at its end
+    (its first fix after it is stamped 35, before the outage's end)."""
+
+    truth = _DrTruth()
+    outages_ns = ((10, 40),)
+    measurements = (_fix(15), _fix(25, GnssFix.NONE), _fix(35), _fix(45))
+
+    def distance_m(self) -> np.ndarray:
+        return np.asarray(self.truth.east_m)
+
+    def index_at(self, stamp_ns: np.ndarray) -> np.ndarray:
+        return np.asarray(stamp_ns) // 10
+
+
+def test_the_dead_reckoning_ends_at_the_last_row_before_the_first_fix_after_the_outage() -> None:
+    rows = TRACKED_SPEC.empty_rows(4)
+    rows["stamp_ns"] = [10, 20, 30, 40]
+    rows["east_m"] = [100.0, 201.0, 303.0, 400.1]  # the row stamped 40 has fused the fix of 35
+    rows["north_m"] = 0.0
+    rows["east_std_m"] = rows["north_std_m"] = 1.0
+    rows["east_north_cov_m2"] = 0.0
+    m = _dr_metrics(_DrRun(), rows, np.array([1, 2, 3, 4]))  # type: ignore[arg-type]
+    # the row stamped 30: 3 m after 200 m (truth index 3 less the outage's start, index 1)
+    assert m["dr_end_m"] == pytest.approx(3.0)
+    assert m["dr_end_pct"] == pytest.approx(1.5)
+    assert m["outage_km"] == pytest.approx(0.2)
+    assert m["dr_max_m"] == pytest.approx(3.0)
