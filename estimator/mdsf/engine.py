@@ -1458,10 +1458,13 @@ class MdsfEngine:
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
         """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
 
-        The forward specific force at the axle (acceleration plus slope,
-        :func:`axle_force_fwd`) is low-passed fast
-        (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change of
-        demand. Its variance under white accelerometer noise is known, so only the excess over
+        The forward specific force as the IMU reads it (acceleration plus slope) is low-passed
+        fast (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change
+        of demand. The IMU's, not the axle's that the tyre model's mean follows
+        (:func:`axle_force_fwd`): what a swaying cab adds at the IMU (``h0·ω̇x``, ``g·sinθ`` of
+        the sway) is not the ground's, but the tick's lever term is not known well enough to
+        take it out, so it opens the rim excess's variance. Its variance under white
+        accelerometer noise is known, so only the excess over
         two sigma counts. The slip follows the demand as it changes (the tyre settles within a
         relaxation length, a fraction of a second), so the tyre model's error grows while the
         demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with ``ΔF`` the fast
@@ -1473,7 +1476,7 @@ class MdsfEngine:
         tau = self.config.force_filter_tau_s
         a1 = dt / (tau + dt)
         a2 = dt / (5.0 * tau + dt)
-        f_new = axle_force_fwd(t)
+        f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
         fast_old = self.force_fast[slots]
         slow = self.force_slow[slots]
         fresh = ~np.isfinite(fast_old)
