@@ -234,6 +234,33 @@ def _diagonal(d: FloatArray) -> FloatArray:
     return out
 
 
+def shrunk_lever_accel(t: TickInputs) -> FloatArray:
+    """The tick's ``lever_accel_fwd_mps2`` (``h0·ω̇x``, eq. (3) differentiated) shrunk towards 0
+    by two of its std, (k,) [m/s²]; 0 where it is unknown.
+
+    A soft threshold: on a cab without sway the term is the gyro's white noise through
+    ``h0/Δt`` (about 0.07 m/s² at 1.2 m), under sway it is metres per second squared.
+    """
+    if t.lever_accel_fwd_mps2 is None or t.lever_accel_fwd_var is None:
+        return np.zeros(t.force_fwd.shape[0])
+    lever = nan_to_num(t.lever_accel_fwd_mps2)
+    noise = 2.0 * np.sqrt(nan_to_num(t.lever_accel_fwd_var))
+    out: FloatArray = np.sign(lever) * np.maximum(np.abs(lever) - noise, 0.0)
+    return out
+
+
+def axle_force_fwd(t: TickInputs) -> FloatArray:
+    """The forward specific force the driven tyres must transmit, (k,) [m/s²]; NaN without IMU.
+
+    The IMU's tick-mean forward force ``f1 = a1 + g·sinθ`` plus the lever term (eq. (3)
+    differentiated, ``a0 = a1 + h0·ω̇x``, :func:`shrunk_lever_accel`): the traction demand is
+    the axle's; a cab swaying about the axle moves the IMU, not the ground under the tyres.
+    """
+    ok = t.imu_ok & np.isfinite(t.force_fwd)
+    out: FloatArray = np.where(ok, t.force_fwd + shrunk_lever_accel(t), np.nan)
+    return out
+
+
 class MdsfEngine:
     """Slot arrays of many vehicles' MDSF filters, stepped in batches.
 
@@ -1417,10 +1444,11 @@ class MdsfEngine:
         self.tyre_stats[slots] = st
 
     def _model_demand_change(self, slots: IntArray, t: TickInputs) -> FloatArray:
-        """Change of the low-passed forward specific force over this tick, (k,) [m/s²]."""
+        """Change of the low-passed forward specific force at the axle over this tick, (k,)
+        [m/s²] (:func:`axle_force_fwd`)."""
         dt = self.dt_s
         a = dt / (self.config.slip_model_tau_s + dt)
-        f_new = np.where(t.imu_ok & np.isfinite(t.force_fwd), t.force_fwd, np.nan)
+        f_new = axle_force_fwd(t)
         old = self.force_model[slots]
         fresh = ~np.isfinite(old)
         new = np.where(fresh, f_new, np.where(np.isfinite(f_new), old + a * (f_new - old), old))
@@ -1430,9 +1458,13 @@ class MdsfEngine:
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
         """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
 
-        The forward specific force (acceleration plus slope) is low-passed fast
-        (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change of
-        demand. Its variance under white accelerometer noise is known, so only the excess over
+        The forward specific force as the IMU reads it (acceleration plus slope) is low-passed
+        fast (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change
+        of demand. The IMU's, not the axle's that the tyre model's mean follows
+        (:func:`axle_force_fwd`): what a swaying cab adds at the IMU (``h0·ω̇x``, ``g·sinθ`` of
+        the sway) is not the ground's, but the tick's lever term is not known well enough to
+        take it out, so it opens the rim excess's variance. Its variance under white
+        accelerometer noise is known, so only the excess over
         two sigma counts. The slip follows the demand as it changes (the tyre settles within a
         relaxation length, a fraction of a second), so the tyre model's error grows while the
         demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with ``ΔF`` the fast

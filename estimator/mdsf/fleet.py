@@ -34,7 +34,7 @@ from estimator.config import VehicleConfig, WheeledRearDriveConfig, expect_kind
 from estimator.dead_reckoning import DeadReckoning, DeadReckoningConfig
 from estimator.mdsf.calibration import CalibrationBank, MdsfCalibration
 from estimator.mdsf.clock_shift import FixRates
-from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput
+from estimator.mdsf.engine import Counter, MdsfEngine, StepOutput, shrunk_lever_accel
 from estimator.mdsf.frontend import FleetFrontEnd, FleetTicks, TickInputs
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig, MdsfMode, MdsfObs
 from estimator.mdsf_spec import MDSF_SPEC
@@ -463,12 +463,9 @@ class MdsfFleet:
             0.0,
         )
         max_change = self._settle_max_change[row_slot]
-        if flat.lever_accel_fwd_mps2 is not None and flat.lever_accel_fwd_var is not None:
-            # the axle's acceleration, not the IMU's: a swaying cab's h0·ω̇x is no start; the
-            # term counts beyond two of its std only (its gyro noise is a crawl's bound)
-            lever = nan_to_num(flat.lever_accel_fwd_mps2)
-            noise = 2.0 * np.sqrt(nan_to_num(flat.lever_accel_fwd_var))
-            accel = accel + np.sign(lever) * np.maximum(np.abs(lever) - noise, 0.0)
+        # the axle's acceleration, not the IMU's: a swaying cab's h0·ω̇x is no start; the term
+        # counts beyond two of its std only (its gyro noise is a crawl's bound)
+        accel = accel + shrunk_lever_accel(flat)
         starting = ((flat.stamp_ns[:, None] - still_ns) * 1e-9 < _START_SPANS * span) & (
             max_change < _SETTLE_OFF
         )[:, None]

@@ -14,15 +14,17 @@ Model (``../shared/docs/method.md`` section 1, frames of :mod:`estimator.types`)
   satisfies the source's structure exactly; lever arms (horizontal offsets) add ``ωz·x`` terms.
 * The scenario gives the body yaw rate ``ωz`` (what the gyro's Z axis reads) and the attitude
   ``θ, φ`` (terrain under the wheels, which is a function of the distance travelled, plus a body
-  wobble). The heading rate follows from the Euler kinematics
-  ``ωz = −ψ̇·cosθ·cosφ + θ̇·sinφ``, and ``ωx = θ̇·cosφ + ψ̇·cosθ·sinφ``, ``ωy = φ̇ − ψ̇·sinθ``.
+  wobble, plus a pitch sway of the body about the rear axle). The heading rate follows from
+  the Euler kinematics ``ωz = −ψ̇·cosθ·cosφ + θ̇·sinφ``, and ``ωx = θ̇·cosφ + ψ̇·cosθ·sinφ``,
+  ``ωy = φ̇ − ψ̇·sinθ``.
 * Acceleration of ``O`` in the body frame: ``(−V0·ωz, V̇0, V0·ωx)``; of a point ``p``:
   ``a_O + ω̇ × p + ω × (ω × p)``. Specific force (what an accelerometer reads) adds gravity's
   reaction ``g·(−sinφ·cosθ, sinθ, cosφ·cosθ)``: at rest on a slope ``θ`` the forward axis reads
   ``g·sinθ``.
-* Slip ``s`` per driven wheel comes from a traction model (:class:`TractionModel`) and is turned
-  into a rim speed by inverting eq. (8)(9) exactly: driving (``s ≥ 0``) ``r·W = V/(1 − s)``,
-  braking (``s < 0``) ``r·W = V·(1 + s)``.
+* Slip ``s`` per driven wheel comes from a traction model (:class:`TractionModel`) on the grade
+  under the axle, ``θ`` less the sway (the body swings about the axle; the ground does not),
+  and is turned into a rim speed by inverting eq. (8)(9) exactly: driving (``s ≥ 0``)
+  ``r·W = V/(1 − s)``, braking (``s < 0``) ``r·W = V·(1 + s)``.
 
 Derivatives on the grid are second-order central differences (``numpy.gradient``); integrals are
 cumulative trapezoids. All profiles are smooth at the grid scale (the default grid is 500 Hz).
@@ -137,6 +139,9 @@ class MotionPlan:
         Body yaw rate ``ωz(t, V0)`` (CCW +), rad/s.
     pitch_wobble_ts, roll_wobble_ts : callable
         Body pitch/roll (rad) on top of the terrain's.
+    pitch_sway_ts : callable
+        Body pitch (rad) about the rear axle on top of both (a cab swaying): the body and what
+        it carries pitch, the grade under the axle, which the traction model reads, does not.
     terrain_pitch_rad, terrain_roll_rad : Profile
         Slope under the vehicle as a function of distance (m).
     mu_max : Profile
@@ -159,6 +164,7 @@ class MotionPlan:
     yaw_rate_ts: TimeSpeedProfile = _zero_ts
     pitch_wobble_ts: TimeSpeedProfile = _zero_ts
     roll_wobble_ts: TimeSpeedProfile = _zero_ts
+    pitch_sway_ts: TimeSpeedProfile = _zero_ts
     terrain_pitch_rad: Profile = _zero
     terrain_roll_rad: Profile = _zero
     mu_max: Profile = _firm_soil
@@ -295,7 +301,8 @@ def integrate_plan(
     a0: FloatArray = np.asarray(np.gradient(v0, dt), dtype=np.float64)
     dist = cumtrapz(v0, dt)
 
-    psi, theta, phi, wz, omega = _attitude(plan, t, v0, dist, dt)
+    sway = np.asarray(plan.pitch_sway_ts(t, v0), dtype=np.float64)
+    psi, theta, phi, wz, omega = _attitude(plan, t, v0, dist, dt, sway)
     alpha = np.gradient(omega, dt, axis=0)
 
     rot = rotation_body_to_enu(psi, theta, phi)
@@ -309,7 +316,7 @@ def integrate_plan(
     ground = np.maximum(ground, 0.0)
 
     mu = np.asarray(plan.mu_max(dist), dtype=np.float64)
-    slip = _wheel_slip(plan, t, (v0, a0, wz), theta, mu, rng)
+    slip = _wheel_slip(plan, t, (v0, a0, wz), theta - sway, mu, rng)
     rim = rim_speed_from_slip(ground, slip)
     radius = np.asarray(wheel_radius_m, dtype=np.float64)[None, :]
     wheel = rim / radius
@@ -337,10 +344,11 @@ def integrate_plan(
 
 
 def _attitude(
-    plan: MotionPlan, t: FloatArray, v0: FloatArray, dist: FloatArray, dt: float
+    plan: MotionPlan, t: FloatArray, v0: FloatArray, dist: FloatArray, dt: float, sway: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """``(ψ, θ, φ, ω_z, ω (n, 3))``: terrain and wobble tilt, the heading giving the yaw rate."""
-    theta = plan.terrain_pitch_rad(dist) + plan.pitch_wobble_ts(t, v0)
+    """``(ψ, θ, φ, ω_z, ω (n, 3))``: terrain, wobble and sway tilt, the heading giving the yaw
+    rate."""
+    theta = plan.terrain_pitch_rad(dist) + plan.pitch_wobble_ts(t, v0) + sway
     phi = plan.terrain_roll_rad(dist) + plan.roll_wobble_ts(t, v0)
     wz = np.asarray(plan.yaw_rate_ts(t, v0), dtype=np.float64)
     theta_dot = np.gradient(theta, dt)

@@ -159,7 +159,9 @@ def _tilt_wobbles(
     w_pitch: Callable[[FloatArray], FloatArray],
     w_roll: Callable[[FloatArray], FloatArray],
 ) -> tuple[Callable[[FloatArray, FloatArray], FloatArray], ...]:
-    """Body pitch and roll wobbles ``f(t, v0)``: the bumps grown with speed, plus the sway."""
+    """Body pitch and roll wobbles ``f(t, v0)`` (the bumps grown with speed, the roll's sway
+    added) and the pitch sway about the axle, kept apart: the ground under the axle does not
+    sway."""
     full = float(p["wobble_full_speed_mps"])
 
     def body_gate(v0: FloatArray) -> FloatArray:
@@ -173,10 +175,12 @@ def _tilt_wobbles(
         return np.clip(np.asarray(v0), 0.0, 1.0)
 
     def pitch_f(t: FloatArray, v0: FloatArray) -> FloatArray:
-        out = w_pitch(t) * body_gate(v0)
-        if sway_pitch:
-            out = out + sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
-        return out
+        return w_pitch(t) * body_gate(v0)
+
+    def sway_f(t: FloatArray, v0: FloatArray) -> FloatArray:
+        if not sway_pitch:
+            return np.zeros_like(np.asarray(t, dtype=np.float64))
+        return sway_pitch * np.sin(sway_w * t) * sway_gate(v0)
 
     def roll_f(t: FloatArray, v0: FloatArray) -> FloatArray:
         out = w_roll(t) * body_gate(v0)
@@ -184,7 +188,7 @@ def _tilt_wobbles(
             out = out + sway_roll * np.cos(sway_w * t) * sway_gate(v0)
         return out
 
-    return pitch_f, roll_f
+    return pitch_f, roll_f, sway_f
 
 
 def _plan(
@@ -212,7 +216,7 @@ def _plan(
     def yaw_f(t: FloatArray, v0: FloatArray) -> FloatArray:
         return yaw(t) + w_yaw(t) * _moving(v0)
 
-    pitch_f, roll_f = _tilt_wobbles(p, w_pitch, w_roll)
+    pitch_f, roll_f, sway_f = _tilt_wobbles(p, w_pitch, w_roll)
     steps = tuple((float(t0), 0.01 * float(d), float(w)) for t0, d, w in p["slip_steps"])
 
     def slip_offset(t: FloatArray) -> FloatArray:
@@ -229,6 +233,7 @@ def _plan(
         speed_mps=speed_f,
         yaw_rate_ts=yaw_f,
         pitch_wobble_ts=pitch_f,
+        pitch_sway_ts=sway_f,
         roll_wobble_ts=roll_f,
         terrain_pitch_rad=terrain_pitch or zero,
         terrain_roll_rad=terrain_roll or zero,

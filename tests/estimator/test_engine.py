@@ -976,6 +976,33 @@ def test_demand_noise_opens_the_rim_excess_while_the_demand_changes() -> None:
     assert g[35:].sum() < 0.1 * g.sum()
 
 
+def test_a_swaying_cab_moves_the_slips_variance_not_the_tyre_models_mean() -> None:
+    # A cab pitching at 2 Hz about the axle, the IMU 1.5 m up: the IMU's forward force swings
+    # by h0·ω̇x (±3.6 m/s² at 1.5°), the axle's does not. The tyre model's demand (the rim
+    # excess's mean) is the axle's and stays put; the demand-change noise (its variance)
+    # still reads the IMU's swing, which the tick's lever term does not take out exactly.
+    cfg = MdsfConfig()
+    engine = MdsfEngine(cfg)
+    slot = engine.add(WheeledRearDriveConfig())
+    slots = np.array([slot])
+    k = np.arange(100)
+    amp = 1.5 * (2 * math.pi * 2.0) ** 2 * math.radians(1.5)
+    lever = amp * np.sin(2 * math.pi * 2.0 * k * 0.1 + 0.3)
+    grow, model = [], []
+    for le in lever:
+        t = one_vehicle_inputs(
+            accel_var=np.full(1, 1e-4),
+            force_fwd=np.array([0.5 - le]),
+            lever_accel_fwd_mps2=np.array([le]),
+            lever_accel_fwd_var=np.full(1, 1e-4),
+        )
+        grow.append(float(engine._demand_change(slots, t, t.accel_var)[0]))
+        model.append(float(engine._model_demand_change(slots, t)[0]))
+    assert np.max(np.abs(lever)) > 3.0
+    assert np.max(np.abs(model)) < 0.1  # on the IMU's force: its low-passed sway, 1-2 m/s²
+    assert np.sum(grow) > 10.0  # on the axle's force: 0, the std shrinks where the error not
+
+
 @pytest.mark.parametrize("mode", [MdsfMode.PAPER, MdsfMode.PRODUCT])
 def test_unit_rows_shortcut_leaves_every_row_as_the_plain_update(
     mode: MdsfMode, monkeypatch: pytest.MonkeyPatch

@@ -76,6 +76,19 @@ def test_body_sway_moves_pitch_roll_and_the_mast_top() -> None:
     assert np.all(np.abs(tr["pitch_rate_radps"][tr["v0_mps"] == 0.0]) < 0.03)
 
 
+def test_body_sway_leaves_the_slip_to_the_grade_under_the_axle() -> None:
+    """The cab swings about the axle; the ground under the wheels does not: the truth's slip
+    is the same with and without a 4° pitch sway (it read the sway as a grade: ±~2 pp)."""
+    kw = {"slope_deg": 0.0, "cross_slope_deg": 0.0, "sway_hz": 1.5, "sway_roll_deg": 0.0}
+    still = simulate("slope_wet_patch", seed=3, start_ns=START_NS, sway_pitch_deg=0.0, **kw)
+    sway = simulate("slope_wet_patch", seed=3, start_ns=START_NS, sway_pitch_deg=4.0, **kw)
+    cruise = sway.truth["v0_mps"] > 1.5
+    assert math.degrees(np.max(np.abs(sway.truth["pitch_rad"][cruise]))) > 3.5
+    for side in ("left", "right"):
+        d = sway.truth[f"slip_{side}_pct"] - still.truth[f"slip_{side}_pct"]
+        assert np.nanmax(np.abs(d)) < 1e-9
+
+
 def test_slip_steps_add_to_both_wheels_at_constant_speed() -> None:
     kw = {"slope_deg": 0.0, "cross_slope_deg": 0.0, "mu_wet": 0.6, "slip_texture": 0.0}
     base = simulate("slope_wet_patch", seed=4, start_ns=START_NS, **kw)
