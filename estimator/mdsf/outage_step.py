@@ -203,7 +203,30 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     (:func:`step_inverse_prior`) and ``W`` the rows' ``OK`` weights; ``σ̂²`` the residual
     variance of the unpenalised fit's degrees of freedom, floored at ``noise_floor_mps²``,
     found by two passes (the first with the floor). Posterior covariance ``σ̂²(AᵀWA + σ̂²Λ)⁻¹``.
+    A window whose fit overflows (inputs far outside any drive's, e.g. a corrupted sensor's
+    inertial speed) finds no step; the other windows are solved as they would be alone.
     """
+    with np.errstate(over="ignore", invalid="ignore"):
+        delta, delta_var, z, n_ok = _fit(buf, dt_s, prior)
+        half = buf.shape[2] // 2
+        w = buf[:, StepBuf.OK]
+        after = np.abs(buf[:, StepBuf.V1, half:]).mean(axis=1)
+        before = np.abs(buf[:, StepBuf.V1, :half]).mean(axis=1)
+        fast = after >= prior.min_speed_mps
+        fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
+        full = n_ok >= 0.8 * buf.shape[2]
+        rim_sd = np.sqrt(_median_ok(buf[:, StepBuf.RIM_VAR], w > 0))
+        seen = np.abs(delta) * after >= prior.rim_sigmas * rim_sd
+        found = fast & full & seen & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
+        found &= np.isfinite(delta) & np.isfinite(delta_var)
+    return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
+
+
+def _fit(
+    buf: FloatArray, dt_s: float, prior: StepPrior
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The ridge fit of :func:`step_test`: the step ``delta``, its variance, ``z`` and the
+    window's count of ``OK`` ticks, each (k,)."""
     a = step_columns(buf, dt_s)
     w = buf[:, StepBuf.OK]
     r = np.where(w > 0, buf[:, StepBuf.R], 0.0)
@@ -225,16 +248,7 @@ def step_test(buf: FloatArray, dt_s: float, prior: StepPrior) -> StepFit:
     delta = theta[:, StepCol.STEP]
     delta_var = var * cov[:, StepCol.STEP, StepCol.STEP]
     z = delta / np.sqrt(np.maximum(delta_var, 1e-30))
-    half = buf.shape[2] // 2
-    after = np.abs(buf[:, StepBuf.V1, half:]).mean(axis=1)
-    before = np.abs(buf[:, StepBuf.V1, :half]).mean(axis=1)
-    fast = after >= prior.min_speed_mps
-    fast &= np.abs(after - before) <= prior.max_speed_change * np.maximum(after, before)
-    full = n_ok >= 0.8 * buf.shape[2]
-    rim_sd = np.sqrt(_median_ok(buf[:, StepBuf.RIM_VAR], w > 0))
-    seen = np.abs(delta) * after >= prior.rim_sigmas * rim_sd
-    found = fast & full & seen & (np.abs(z) >= prior.z_min) & (np.abs(delta) >= prior.min_step)
-    return StepFit(found, np.where(found, delta, 0.0), delta_var, z)
+    return delta, delta_var, z, n_ok
 
 
 def _median_ok(x: FloatArray, ok: BoolArray) -> FloatArray:

@@ -186,6 +186,26 @@ def test_a_degenerate_window_finds_nothing_and_leaves_the_others_as_alone() -> N
     assert both.delta[1] == alone.delta[0] and both.delta_var[1] == alone.delta_var[0]
 
 
+def test_a_window_whose_fit_overflows_finds_nothing_and_leaves_the_others_as_alone() -> None:
+    # A corrupted sensor can put the rims-less-inertial residual far outside any drive's
+    # (here 1e200 m/s on a few ticks): its squares overflow. That window must find nothing,
+    # without a warning (an error under the tests' filterwarnings), and a window holding a
+    # step batched with it must be solved as on its own.
+    rng = np.random.default_rng(3)
+    n, at, delta = 200, 120, 0.04
+    t = np.arange(n) * DT
+    v1 = np.full(n, 2.0)
+    r = 0.01 + 0.004 * t + delta * v1 * (np.arange(n) >= at) + rng.normal(0, 0.004, n)
+    step = _windows(r, v1, np.zeros(n))[at - N // 2 : at - N // 2 + 1]
+    wild = step.copy()
+    wild[0, StepBuf.R, N // 2 : N // 2 + 3] = 1e200
+    both = step_test(np.concatenate([wild, step]), DT, StepPrior())
+    alone = step_test(step, DT, StepPrior())
+    assert not both.found[0] and both.delta[0] == 0.0
+    assert both.found[1] and alone.found[0]
+    assert both.delta[1] == alone.delta[0] and both.delta_var[1] == alone.delta_var[0]
+
+
 def _creep_shift(rim_std_mps: float) -> np.ndarray:
     """Windows of a creep at 0.5 m/s whose rims shift by 30 mm/s for good at tick 100 (6 pp of
     the speed) on 4 mm/s of white scatter, the rims' reported std ``rim_std_mps`` each."""
