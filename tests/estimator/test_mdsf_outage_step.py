@@ -166,17 +166,22 @@ def test_a_slip_step_in_an_outage_moves_the_slip_not_the_speed() -> None:
     assert on < 0.5 * off and on < 3.0  # measured 2.22 pp (off: 7.29)
 
 
-def test_a_degenerate_window_finds_nothing_and_leaves_the_others_as_alone() -> None:
-    # A window with no usable row (no rim read for its length) makes the regression's
-    # matrix singular (level and trend have no prior); batched with a window holding a
-    # step, it must not raise, must find nothing itself, and the step's window must be
-    # solved as on its own.
+def _step_window() -> np.ndarray:
+    """The one window (1, C, N) centred on a 4 % step on a trend at 2 m/s, with noise."""
     rng = np.random.default_rng(3)
     n, at, delta = 200, 120, 0.04
     t = np.arange(n) * DT
     v1 = np.full(n, 2.0)
     r = 0.01 + 0.004 * t + delta * v1 * (np.arange(n) >= at) + rng.normal(0, 0.004, n)
-    step = _windows(r, v1, np.zeros(n))[at - N // 2 : at - N // 2 + 1]
+    return _windows(r, v1, np.zeros(n))[at - N // 2 : at - N // 2 + 1]
+
+
+def test_a_degenerate_window_finds_nothing_and_leaves_the_others_as_alone() -> None:
+    # A window with no usable row (no rim read for its length) makes the regression's
+    # matrix singular (level and trend have no prior); batched with a window holding a
+    # step, it must not raise, must find nothing itself, and the step's window must be
+    # solved as on its own.
+    step = _step_window()
     still = _windows(np.zeros(N), np.full(N, 2.0), np.zeros(N))
     still[:, StepBuf.OK] = 0.0
     both = step_test(np.concatenate([still, step]), DT, StepPrior())
@@ -191,12 +196,7 @@ def test_a_window_whose_fit_overflows_finds_nothing_and_leaves_the_others_as_alo
     # (here 1e200 m/s on a few ticks): its squares overflow. That window must find nothing,
     # without a warning (an error under the tests' filterwarnings), and a window holding a
     # step batched with it must be solved as on its own.
-    rng = np.random.default_rng(3)
-    n, at, delta = 200, 120, 0.04
-    t = np.arange(n) * DT
-    v1 = np.full(n, 2.0)
-    r = 0.01 + 0.004 * t + delta * v1 * (np.arange(n) >= at) + rng.normal(0, 0.004, n)
-    step = _windows(r, v1, np.zeros(n))[at - N // 2 : at - N // 2 + 1]
+    step = _step_window()
     wild = step.copy()
     wild[0, StepBuf.R, N // 2 : N // 2 + 3] = 1e200
     both = step_test(np.concatenate([wild, step]), DT, StepPrior())
