@@ -93,13 +93,19 @@ def _truth_params(run: FourWheelRun, seed: int) -> TruthParams:
 _TRUE_FIELDS = ("kappa", "alpha_rad", "fz_n", "vx_mps", "ax_mps2", "ay_mps2", "yaw_accel_radps2")
 
 
+def _truth_index(run: FourWheelRun, t_ns: np.ndarray) -> np.ndarray:
+    """The truth's sample nearest each stamp ``t_ns`` (k,) [ns], clipped to the run, (k,)."""
+    step_s = float(run.truth.t_s[1] - run.truth.t_s[0])
+    t_s = (np.asarray(t_ns) - run.start_ns) / 1e9 - run.truth.t_s[0]
+    return np.clip(np.round(t_s / step_s).astype(int), 0, run.truth.t_s.size - 1)
+
+
 def _truth_at(
     runs: list[FourWheelRun], s: np.ndarray, t_ns: np.ndarray
 ) -> tuple[list[int], dict[str, np.ndarray]]:
     """The truth's sample index of each row's tick and its fields there, (k, …) each."""
-    k = np.round((np.asarray(t_ns) - runs[0].start_ns) / 1e7).astype(int)
     tr = [runs[int(i)].truth for i in s]
-    kk = [min(int(j), t.t_s.size - 1) for j, t in zip(k, tr, strict=True)]
+    kk = [int(_truth_index(runs[int(i)], np.asarray([j]))[0]) for i, j in zip(s, t_ns, strict=True)]
     true = {
         f: np.stack([getattr(t, f)[j] for t, j in zip(tr, kk, strict=True)]) for f in _TRUE_FIELDS
     }
@@ -305,12 +311,12 @@ def rounding_rows(run: FourWheelRun, sensor: WheelSpeedSensor) -> dict[str, np.n
     wheels' ring (:func:`_ring`) on the straight and from 0.5 s to 5 s into the manoeuvre,
     ``ring_straight``, ``ring_drive`` ``(4, 2)`` (frequency [Hz], relative 1-σ); the
     wheels' mean speed there ``omega`` [rad/s]."""
-    stamp = np.concatenate([m.stamp_ns for m in run.measurements if isinstance(m, WheelSpeeds4)])
-    read = np.concatenate([m.omega_radps for m in run.measurements if isinstance(m, WheelSpeeds4)])
+    can = [m for m in run.measurements if isinstance(m, WheelSpeeds4)]
+    stamp = np.concatenate([m.stamp_ns for m in can])
+    read = np.concatenate([m.omega_radps for m in can])
     t = (stamp - run.start_ns) / 1e9
     tr, t0, q = run.truth, run.manoeuvre.t0_s, sensor.quantum_radps
-    k = np.clip(np.round((t - tr.t_s[0]) / (tr.t_s[1] - tr.t_s[0])).astype(int), 0, tr.t_s.size - 1)
-    true = tr.omega_radps[k]
+    true = tr.omega_radps[_truth_index(run, stamp)]
     epoch = (t >= t0 - 4.0) & (t < t0 - 0.05) & (np.abs(t * 10 - np.round(t * 10)) < 1e-6)
     angle = tr.angle_sub_rad.reshape(-1, 4)
     grid = tr.t_s[0] + DT_S * (np.arange(1, angle.shape[0]) - 0.5)
