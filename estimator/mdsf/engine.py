@@ -1458,19 +1458,18 @@ class MdsfEngine:
     def _demand_change(self, slots: IntArray, t: TickInputs, accel_var: FloatArray) -> FloatArray:
         """Growth of the squared change of traction demand over this tick, (k,) [(m/s²)²].
 
-        The forward specific force as the IMU reads it (acceleration plus slope) is low-passed
-        fast (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change
-        of demand. The IMU's, not the axle's that the tyre model's mean follows
-        (:func:`axle_force_fwd`): what a swaying cab adds at the IMU (``h0·ω̇x``, ``g·sinθ`` of
-        the sway) is not the ground's, but the tick's lever term is not known well enough to
-        take it out, so it opens the rim excess's variance. Its variance under white
-        accelerometer noise is known, so only the excess over
-        two sigma counts. The slip follows the demand as it changes (the tyre settles within a
-        relaxation length, a fraction of a second), so the tyre model's error grows while the
-        demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with ``ΔF`` the fast
-        low-pass's move over the tick, and a whole change ``D`` adds ``D²`` (the rim excess
-        then opens by ``slip_demand_gain·|V|·D/g`` in std), so it stops opening once the demand
-        has settled, where the wheels can hold the speed again.
+        The forward specific force as the IMU reads it (acceleration plus slope) is low-passed fast
+        (``force_filter_tau_s``) and slow (5×); their difference ``D`` is the recent change of
+        demand. The IMU's, not the axle's that the tyre model's mean follows
+        (:func:`axle_force_fwd`): what a swaying cab adds at the IMU (``h0·ω̇x``, ``g·sinθ`` of the
+        sway) is not the ground's, but the tick's lever term is not known well enough to take it
+        out, so it opens the rim excess's variance. Its variance under white accelerometer noise is
+        known, so only the excess over two sigma counts. The slip follows the demand as it changes
+        (the tyre settles within a relaxation length, a fraction of a second), so the tyre model's
+        error grows while the demand moves, not after: this tick adds ``d(D²) = 2·D·|ΔF|`` with
+        ``ΔF`` the fast low-pass's move over the tick, and a whole change ``D`` adds ``D²`` (the rim
+        excess then opens by ``slip_demand_gain·|V|·D/g`` in std), so it stops opening once the
+        demand has settled, where the wheels can hold the speed again.
         """
         dt = self.dt_s
         tau = self.config.force_filter_tau_s
