@@ -18,8 +18,6 @@ state and covariance handling:
   tyres' linear range a slip-angle error of 10⁻³ rad already moves the lateral force by a
   tenth of what μ does, far below what GNSS or an integrated ``a_y`` give, so ``v_y`` is
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
-  Four more states are each wheel's persistent κ error (:data:`KAPPA_OFFSETS`: the CAN
-  rounding its calibrated radius kept), ``h`` taken at ``κ − b``.
   Two more rows, one per axle, are the open differential's torque balance
   ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
@@ -49,7 +47,6 @@ from estimator.friction.sckf import (
 )
 
 __all__ = [
-    "KAPPA_OFFSETS",
     "FilterConfig",
     "FilterState",
     "FrictionMode",
@@ -109,27 +106,6 @@ class ProductState(IntEnum):
     GY_REAR = 4
     VY = 5
     """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
-    KAPPA_FL = 6
-    """Each wheel's persistent κ error ``b`` (the front end's κ less the true one; FL, FR, RL,
-    RR): the CAN rounding its calibrated radius kept (:data:`KAPPA_OFFSETS`)."""
-    KAPPA_FR = 7
-    KAPPA_RL = 8
-    KAPPA_RR = 9
-
-
-KAPPA_OFFSETS = slice(ProductState.KAPPA_FL, ProductState.KAPPA_RR + 1)
-"""The product's per-wheel κ offsets ``b`` ``(…, 4)``: the tyres see ``κ − b``.
-
-The radius calibration averages the CAN wheel speed over a straight held within one rounding
-quantum ``q``, so each radius keeps that wheel's rounding, ``e ~ U(±q/2)`` of ``ω_cal``, for as
-long as it stands; once the speed moves across quanta the readings are unbiased and κ carries
-``b ≈ (1 + κ) e/ω_cal`` on every tick (``1-σ q/(ω_cal √12)``). Read as fresh noise per tick it
-would only reweight κ; as a state it is one error held over the drive, and observable: the four
-wheels' forces must give one body acceleration and yaw moment (``z``), one μ, one stiffness
-factor per axle, and a driven axle's two wheels one torque (the balance rows, which read each
-point's own ``b``). Prior ``0 ± q/(ω_cal √12)`` per wheel from the calibration's own speed
-(``TickInputs.kappa_offset_std``), re-set at each calibration epoch (the radius it belongs to
-moved); walk ``kappa_offset_walk_per_sqrt_s`` (0: held)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -168,12 +144,7 @@ class FilterConfig:
     (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
     ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
-    product's measurement covariance (:func:`_input_spread`); ``kappa_offset0_std``: the κ
-    offsets' 1-σ before a calibration epoch states it (near 0: none is known, and the
-    covariance stays positive definite); ``kappa_offset_walk_per_sqrt_s``: the walk of the
-    product's per-wheel κ offsets (:data:`KAPPA_OFFSETS`); ``kappa_offset_learn``: whether an
-    update may move them (where their axle's ``g_x`` or ``ln μ`` learns; off: they are only
-    *considered*, their spread in ``P_zz`` and in the state's cross-covariance).
+    product's measurement covariance (:func:`_input_spread`).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -205,9 +176,6 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
-    kappa_offset0_std: float = 1e-6
-    kappa_offset_walk_per_sqrt_s: float = 0.0
-    kappa_offset_learn: bool = True
 
     @property
     def n_states(self) -> int:
@@ -242,9 +210,7 @@ class TickInputs:
     ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
     changing slip), added to the product's slip angles from ``v_y``; ``radius_m`` ``(B, 4)``
     the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
-    balance (product only, :mod:`.axle`); ``kappa_offset_std`` ``(B, 4)`` the prior 1-σ of each
-    wheel's κ offset (product, :data:`KAPPA_OFFSETS`), taken where ``kappa_offset_reset``
-    ``(B,)`` (the radius calibration took an epoch)."""
+    balance (product only, :mod:`.axle`)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -262,8 +228,6 @@ class TickInputs:
     alpha_lag_rad: FloatArray
     radius_m: FloatArray
     balance_std_n: FloatArray
-    kappa_offset_std: FloatArray
-    kappa_offset_reset: BoolArray
 
 
 _N_MEASURED = 4
@@ -307,8 +271,6 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     if cfg.mode is FrictionMode.PRODUCT:
         x[:, ProductState.VY] = 0.0
         std[:, ProductState.VY] = cfg.vy0_std_mps
-        x[:, KAPPA_OFFSETS] = 0.0
-        std[:, KAPPA_OFFSETS] = cfg.kappa_offset0_std  # until a calibration epoch states it
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -391,8 +353,7 @@ def _measure(
     if cfg.mode is not FrictionMode.PRODUCT:
         return acc
     vy = np.broadcast_to(points[..., ProductState.VY, None], (*acc.shape[:-1], 1))
-    centre = np.broadcast_to(points.mean(axis=1, keepdims=True), points.shape).copy()
-    centre[..., KAPPA_OFFSETS] = points[..., KAPPA_OFFSETS]
+    centre = points.mean(axis=1, keepdims=True)
     fx_centre, _ = _forces(centre, cfg, tyres, chassis, u, kappa, alpha)
     balance = np.broadcast_to(_torque_balance(fx_centre, u.radius_m), (*acc.shape[:-1], 2))
     return np.concatenate([acc, vy, balance], axis=-1)
@@ -413,17 +374,7 @@ def _forces(
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
     if cfg.mode is FrictionMode.PRODUCT:
         alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
-        kappa = kappa - points[..., KAPPA_OFFSETS]
     return brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
-
-
-def _kappa_at(x: FloatArray, cfg: FilterConfig, kappa: FloatArray) -> FloatArray:
-    """The slips ``(B, 4)`` the tyres see at the mean state ``x`` ``(B, n)``: the front end's
-    ``kappa`` less the product's κ offsets (:data:`KAPPA_OFFSETS`)."""
-    if cfg.mode is not FrictionMode.PRODUCT:
-        return kappa
-    out: FloatArray = kappa - x[:, KAPPA_OFFSETS]
-    return out
 
 
 def _torque_balance(fx_n: FloatArray, radius_m: FloatArray) -> FloatArray:
@@ -519,7 +470,6 @@ def _predict(
         boost = np.where(st.nis > cfg.nis_gate, cfg.mu_walk_boost, 1.0)
         walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
         walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
-        walk[:, KAPPA_OFFSETS] = cfg.kappa_offset_walk_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
@@ -537,26 +487,7 @@ def _predict(
     sq_q = np.zeros((b, n, n))
     idx = np.arange(n)
     sq_q[:, idx, idx] = walk
-    x, s = sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :] + shift[:, None, :], sq_q)
-    if cfg.mode is FrictionMode.PRODUCT:
-        _reset_offsets(x, s, u)
-    return x, s
-
-
-def _reset_offsets(x: FloatArray, s: FloatArray, u: TickInputs) -> None:
-    """Where ``u.kappa_offset_reset``, the κ offsets (:data:`KAPPA_OFFSETS`) start again from
-    their prior ``0 ± u.kappa_offset_std``, uncorrelated with the rest: their rows of the root
-    ``s`` ``(B, n, n)`` zeroed and ``diag(σ)`` appended, re-rooted by ``tria`` (in place)."""
-    rows = np.flatnonzero(u.kappa_offset_reset)
-    if not rows.size:
-        return
-    n = x.shape[1]
-    x[rows, KAPPA_OFFSETS] = 0.0
-    root = s[rows].copy()
-    root[:, KAPPA_OFFSETS, :] = 0.0
-    prior = np.zeros((rows.size, n, 4))
-    prior[:, KAPPA_OFFSETS, :] = np.eye(4)[None] * u.kappa_offset_std[rows][:, None, :]
-    s[rows] = tria(np.concatenate([root, prior], axis=-1))
+    return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :] + shift[:, None, :], sq_q)
 
 
 def filter_step(
@@ -646,10 +577,7 @@ def _gain_mask(
     the mean: a μ pulled low by a slip bias finds every tyre at its limit, where
     ``F = μ F_z`` fits any slip and the curve is flat in the slips, so a gate judged there
     confirms the pull (and the saturated fit shrinks μ's σ). At the far end the tyres are
-    non-linear only where the slips themselves are large enough. Each axle's κ offsets
-    (:data:`KAPPA_OFFSETS`) learn where its ``g_x`` or ``ln μ`` does (the forces tie the
-    slips then; ``kappa_offset_learn``), the slips judged less their offsets' mean."""
-    u = replace(u, kappa=_kappa_at(x, cfg, u.kappa))
+    non-linear only where the slips themselves are large enough."""
     mu = mu_of(x[:, :1], cfg.mode)
     cx, cy = _stiffness_of(x[:, None, :], cfg, tyres, u.fz_n)
     fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
@@ -666,12 +594,6 @@ def _gain_mask(
         mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
     mask[:, ProductState.LN_MU] = _mu_may_learn(x, s, cfg, (cx[:, 0], cy[:, 0]), u)
-    learn = float(cfg.kappa_offset_learn)
-    front = slice(ProductState.KAPPA_FL, ProductState.KAPPA_FR + 1)
-    rear = slice(ProductState.KAPPA_RL, ProductState.KAPPA_RR + 1)
-    for wheels, gx in ((front, ProductState.GX_FRONT), (rear, ProductState.GX_REAR)):
-        told = np.maximum(mask[:, gx], mask[:, ProductState.LN_MU])
-        mask[:, wheels] = learn * told[:, None]
     return mask
 
 

@@ -50,7 +50,6 @@ from estimator.friction.filter import (
     ProductState,
     TickInputs,
     TyreArrays,
-    _kappa_at,
     _stiffness_of,
     _tyres_subset,
     filter_step,
@@ -131,8 +130,6 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
         alpha_lag_rad=fe.alpha_lag_rad,
         radius_m=effective_radii_m(fe.fz_n, fe.kz_npm, axles, cfg),
         balance_std_n=balance_std_n(fe.fz_n, fe.kz_npm, fe.kappa, fe.z, axles, cfg),
-        kappa_offset_std=(1.0 + np.abs(fe.kappa)) * fe.radius_rounding_rel,
-        kappa_offset_reset=fe.calibrating,
     )
 
 
@@ -279,8 +276,7 @@ class FrictionFleet:
         cx, cy = _stiffness_of(mean, self.config.filter, tyres, u.fz_n)
         if mu is None:
             mu = mu_of(st.x[:, :1], self.config.filter.mode)
-        kappa = _kappa_at(st.x, self.config.filter, u.kappa)
-        fx, fy = brush_forces(kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
+        fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
         return utilisation(fx, fy, u.fz_n, mu)
 
     def _rows(

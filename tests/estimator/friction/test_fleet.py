@@ -234,8 +234,6 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 alpha_lag_rad=np.zeros((1, 4)),
                 radius_m=np.full((1, 4), t.unloaded_radius_m),
                 balance_std_n=np.full((1, 2), 1e6),  # random slips: no differential
-                kappa_offset_std=np.zeros((1, 4)),
-                kappa_offset_reset=np.zeros(1, dtype=bool),
             )
         )
     return ticks, chassis, tyres
@@ -545,8 +543,6 @@ def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArray
         alpha_lag_rad=np.zeros((1, 4)),
         radius_m=np.full((1, 4), t.unloaded_radius_m),
         balance_std_n=np.full((1, 2), 1e6),
-        kappa_offset_std=np.zeros((1, 4)),
-        kappa_offset_reset=np.zeros(1, dtype=bool),
     )
     return u, chassis, tyres
 
@@ -583,33 +579,3 @@ def test_a_biased_side_slip_does_not_press_mu_onto_its_floor() -> None:
         sd = float(np.linalg.norm(st.s[0, 0]))
         assert mu > 0.4, (bias, mu)
         assert sd > 0.1, (bias, sd)
-
-
-@pytest.mark.parametrize("stated", [True, False])
-def test_a_wheels_persistent_slip_error_is_learnt_as_its_offset(stated: bool) -> None:
-    """The rear-left κ read 1e-3 high on every tick (a calibrated radius's rounding), the
-    filter's own model otherwise: with the offsets' prior stated (1-σ 1e-3 at the first tick's
-    calibration epoch) the four wheels' forces, tied by one μ and one body acceleration, put the
-    error on that wheel's offset and not on the others; with a prior of 0 (no offset, the
-    filter before the state) nothing is learnt."""
-    ticks, chassis, tyres = _model_inputs(0.45, 400, seed=3)
-    bias = np.array([[0.0, 0.0, 1e-3, 0.0]])
-    sigma = 1e-3 if stated else 0.0
-    cfg = FilterConfig()
-    st = initial_state(cfg, tyres, ticks[0].fz_n)
-    for k, u in enumerate(ticks):
-        read = dataclasses.replace(
-            u,
-            kappa=u.kappa + bias,
-            kappa_offset_std=np.full((1, 4), sigma),
-            kappa_offset_reset=np.array([k == 0]),
-        )
-        st = filter_step(st, cfg, tyres, chassis, read)
-    learnt = st.x[0, ProductState.KAPPA_FL : ProductState.KAPPA_RR + 1]
-    others = np.abs(learnt[[0, 1, 3]]).max()
-    if stated:
-        assert learnt[2] == pytest.approx(1e-3, abs=2e-4)
-        assert others < 0.4 * learnt[2]
-    else:
-        assert np.all(learnt == 0.0)
-    assert mu_of(st.x[0, 0], FrictionMode.PRODUCT) == pytest.approx(0.45, rel=0.02)
