@@ -388,10 +388,7 @@ def _fuse_lateral_force(
     """The roll from the lateral accelerometer's tick mean ``f_x = −ω·V − g·cos θ·sin φ + b_x``
     (the turn's centripetal force, gravity's share on a side slope and the accelerometer's
     bias), its variance the mean's white noise ``σ_a²/N`` and ``lateral_force_std_mps2²``;
-    ``f`` in place. The centripetal force is the yaw rate ``ω = (g_z − b_g)·(1 − s_g)`` times
-    the speed, so it observes the yaw gyro's bias and scale as it does the speed:
-    ``∂h/∂b_g = V·(1 − s_g)``, ``∂h/∂s_g = V·(g_z − b_g)`` (a bias error ``δb`` reads as
-    ``V·δb``, as a roll of ``V·δb/g`` does)."""
+    ``f`` in place."""
     k = f.x.shape[0]
     w = yaw_rate(f.x, gyro)
     theta, phi, v = f.x[:, S.PITCH], f.x[:, S.ROLL], f.x[:, S.SPEED]
@@ -402,8 +399,6 @@ def _fuse_lateral_force(
     H[:, 0, S.SPEED] = -w
     H[:, 0, S.ROLL] = -g * np.cos(theta) * np.cos(phi)
     H[:, 0, S.PITCH] = g * np.sin(theta) * np.sin(phi)
-    H[:, 0, S.GYRO_BIAS] = v * (1.0 - f.x[:, S.GYRO_SCALE])
-    H[:, 0, S.GYRO_SCALE] = v * (gyro - f.x[:, S.GYRO_BIAS])
     n = np.maximum(np.asarray(inp.imu_samples, dtype=np.float64), 1.0)
     var = p.accel_std_mps2**2 / n + cfg.lateral_force_std_mps2**2
     have = np.isfinite(inp.lateral_accel_mps2)
