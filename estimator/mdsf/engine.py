@@ -255,20 +255,9 @@ def axle_force_fwd(t: TickInputs) -> FloatArray:
     The IMU's tick-mean forward force ``f1 = a1 + g·sinθ`` plus the lever term (eq. (3)
     differentiated, ``a0 = a1 + h0·ω̇x``, :func:`shrunk_lever_accel`): the traction demand is
     the axle's; a cab swaying about the axle moves the IMU, not the ground under the tyres.
-    The gravity term here is still the body's pitch; :meth:`MdsfEngine._model_demand_change`
-    replaces it by the grade.
     """
     ok = t.imu_ok & np.isfinite(t.force_fwd)
     out: FloatArray = np.where(ok, t.force_fwd + shrunk_lever_accel(t), np.nan)
-    return out
-
-
-def pitch_gravity_fwd(t: TickInputs) -> FloatArray:
-    """The tick-mean gravity share of the forward force as the tilt track has it, (k,) [m/s²]:
-    ``f1 − a1 = g·sinθ`` (less the IMU's forward offset's centripetal term, which the
-    acceleration carries); NaN without IMU."""
-    ok = t.imu_ok & np.isfinite(t.force_fwd)
-    out: FloatArray = np.where(ok, t.force_fwd - t.z[:, MdsfObs.A1], np.nan)
     return out
 
 
@@ -358,7 +347,6 @@ class MdsfEngine:
         grow("force_fast", (), np.nan)
         grow("force_slow", (), np.nan)
         grow("force_model", (), np.nan)
-        grow("grade_force", (), np.nan)
         grow("tyre_stats", (len(_TyreStat),), 0.0)
         grow("rim_innov", (2, 2), 0.0)
         grow("slip_anchor", (2,), 0.0)
@@ -391,7 +379,6 @@ class MdsfEngine:
     force_fast: FloatArray
     force_slow: FloatArray
     force_model: FloatArray
-    grade_force: FloatArray
     tyre_stats: FloatArray
     rim_innov: FloatArray
     slip_anchor: FloatArray
@@ -426,7 +413,6 @@ class MdsfEngine:
         self.force_fast[s] = np.nan
         self.force_slow[s] = np.nan
         self.force_model[s] = np.nan
-        self.grade_force[s] = np.nan
         self.tyre_stats[s] = 0.0
         self.rim_innov[s] = 0.0
         self.slip_anchor[s] = 0.0
@@ -759,7 +745,7 @@ class MdsfEngine:
             Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
         self._slip_ratio_growth(x, a_in, speed, F)
         if cfg.slip_per_demand > 0:
-            d_dem = self._model_demand_change(slots, t, speed)
+            d_dem = self._model_demand_change(slots, t)
             gain = self.tyre_gain(slots)
             u[:, _RIM_EXCESS] = (gain * speed * d_dem / GRAVITY_MPS2)[:, None]
         if cfg.outage_slip_std > 0 and lost.any():
@@ -1457,32 +1443,12 @@ class MdsfEngine:
         st[:, _TyreStat.XY] += w * x * eps
         self.tyre_stats[slots] = st
 
-    def _model_demand_change(self, slots: IntArray, t: TickInputs, speed: FloatArray) -> FloatArray:
-        """Change of the low-passed traction demand at the axle over this tick, (k,) [m/s²].
-
-        The demand is the axle's force (:func:`axle_force_fwd`) with its gravity term read
-        from the grade: ``f = f1 + h0·ω̇x − g·sinθ + g·sinθ_grade``, ``g·sinθ_grade`` the tilt
-        track's ``g·sinθ`` (:func:`pitch_gravity_fwd`) low-passed over ``grade_length_m`` of
-        travel (``a = Δs/(L + Δs)``, ``Δs = dt·max(|V|, 0.5 m/s)``, state ``grade_force``).
-        The ground's slope changes with distance; a cab swaying about the axle pitches with
-        time and tilts the IMU, not the ground: that fast part is no traction demand, it stays
-        in the demand-change noise (:meth:`_demand_change`, the IMU's force). ``speed`` (k,)
-        [m/s]. The demand is then low-passed by ``slip_model_tau_s`` (state ``force_model``).
-        """
+    def _model_demand_change(self, slots: IntArray, t: TickInputs) -> FloatArray:
+        """Change of the low-passed forward specific force at the axle over this tick, (k,)
+        [m/s²] (:func:`axle_force_fwd`)."""
         dt = self.dt_s
-        cfg = self.config
-        step_m = dt * np.maximum(speed, _SLIP_MIN_SPEED_MPS)
-        b = step_m / (cfg.grade_length_m + step_m)
-        pitch = pitch_gravity_fwd(t)
-        grade_old = self.grade_force[slots]
-        grade = np.where(
-            ~np.isfinite(grade_old),
-            pitch,
-            np.where(np.isfinite(pitch), grade_old + b * (pitch - grade_old), grade_old),
-        )
-        self.grade_force[slots] = grade
-        a = dt / (cfg.slip_model_tau_s + dt)
-        f_new = axle_force_fwd(t) - pitch + grade
+        a = dt / (self.config.slip_model_tau_s + dt)
+        f_new = axle_force_fwd(t)
         old = self.force_model[slots]
         fresh = ~np.isfinite(old)
         new = np.where(fresh, f_new, np.where(np.isfinite(f_new), old + a * (f_new - old), old))

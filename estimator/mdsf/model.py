@@ -218,10 +218,6 @@ class MdsfConfig:
         Bounds of the learnt gain as factors of ``slip_per_demand`` [-].
     slip_model_tau_s : float
         Time constant of the demand low-pass the tyre model follows [s].
-    grade_length_m : float
-        Product mode: distance over which the tyre model's demand takes the body's pitch as the
-        grade under the axle (about a wheelbase: the ground's slope changes with distance, a
-        cab's sway with time); the pitch's faster part is left to the demand-change noise [m].
     slip_jump_sigma : float
         Product mode: a rim speed more than this many sigma off its prediction opens the rim
         excess by the unexplained innovation (the slip jumped: wet patch, soil change) [-].
@@ -415,7 +411,6 @@ class MdsfConfig:
     slip_demand_gain: float = 0.75
     slip_per_demand: float = 1.0
     slip_model_tau_s: float = 0.3
-    grade_length_m: float = 2.5
     tyre_gain_tau_s: float = 60.0
     tyre_gain_prior: float = 0.1
     tyre_gain_range: tuple[float, float] = (0.2, 3.0)
