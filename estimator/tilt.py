@@ -112,6 +112,11 @@ class RollSum(IntEnum):
     FORCE_LAT = 2  # ∫f_x·dt [m/s]
     FORCE_LAT_TIME = 3  # ∫dt over the samples with a lateral force [s]
     YAW = 4  # ∫ωz·dt [rad]
+    RATE_Y_CHANGE = 5  # ωy(end) − ωy(start) [rad/s]: the roll rate's change over the interval
+    RATE_Z_CHANGE = 6  # ωz(end) − ωz(start) [rad/s]
+    LAST_RATE_Y = 7  # ωy of the last sample summed (kept through a fix) [rad/s]
+    LAST_RATE_Z = 8  # ωz of the same [rad/s]
+    HAS_LAST = 9  # 1 once a sample was summed, else 0
 
 
 PITCH_SUM_OF = np.array([Integral.RATE_X, Integral.TIME, Integral.SAMPLES], dtype=np.intp)

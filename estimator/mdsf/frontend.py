@@ -1443,12 +1443,13 @@ class _Batch:
 
         The body's lateral specific force is its centripetal acceleration less gravity's
         share, ``f_x = −v·ωz − g·sin φ·cos θ`` (:mod:`estimator.sim.kinematics`), so
-        ``sin φ = −(f̄_x + v·ω̄z)/(g·cos θ)`` with the interval's mean force and yaw rate and the
-        GNSS velocity along the heading ``v``. Variance ``σ_a²/(n·g²) + floor²`` (``n`` samples,
-        the floor ``accel_roll_floor_rad``: body sway, side slip, the sensor's bias). NaN
-        without a GNSS velocity or a lateral force. It stands in for the roll of a receiver
-        that gives none, where the roll would otherwise stay 0 and the yaw rate of a turn on a
-        side slope would drive the pitch off.
+        ``sin φ = −(f̄_x + v·ω̄z)/(g·cos θ)`` with the interval's mean force at ``O`` (the
+        IMU's lever-arm share ``h0·ω̇y − y·ω̇z`` off, its mean from the rates' change over the
+        interval), mean yaw rate and the GNSS velocity along the heading ``v``. Variance
+        ``σ_a²/(n·g²) + floor²`` (``n`` samples, the floor ``accel_roll_floor_rad``: body
+        sway, side slip, the sensor's bias). NaN without a GNSS velocity or a lateral force.
+        It stands in for the roll of a receiver that gives none, where the roll would
+        otherwise stay 0 and the yaw rate of a turn on a side slope would drive the pitch off.
         """
         g = self.g
         t_fx = racc[:, RollSum.FORCE_LAT_TIME]
@@ -1456,7 +1457,20 @@ class _Batch:
         psi = np.where(np.isfinite(self.g_heading[fi]), self.g_heading[fi], 0.0)
         v = np.where(ok, g[fi, _G_VE] * np.sin(psi) + g[fi, _G_VN] * np.cos(psi), 0.0)
         f_x = racc[:, RollSum.FORCE_LAT] / np.where(ok, t_fx, 1.0)
-        w_z = racc[:, RollSum.YAW] / np.where(ok, acc[:, PitchSum.TIME], 1.0)
+        span = np.where(ok, acc[:, PitchSum.TIME], 1.0)
+        w_z = racc[:, RollSum.YAW] / span
+        # the IMU's lever arm's share, the interval's mean (ω̇ × p)_x = ω̇y·h0 − ω̇z·y: a cab
+        # rolling at 1-2 Hz shakes a raised IMU sideways by metres per second squared, which
+        # read as gravity's share would make the roll tens of degrees (_lever_force_lat)
+        slot = self.slots[r]
+        f_x = (
+            f_x
+            - (
+                racc[:, RollSum.RATE_Y_CHANGE] * self.fe.imu_up_m[slot]
+                - racc[:, RollSum.RATE_Z_CHANGE] * self.fe.imu_fwd_m[slot]
+            )
+            / span
+        )
         force = -(f_x + v * w_z) / np.cos(theta)
         ok &= np.abs(force) < GRAVITY_MPS2
         n = acc[:, PitchSum.SAMPLES]
@@ -2056,6 +2070,28 @@ class _TiltTrack:
         st.racc[r, RollSum.ANGLE_VAR] += d_g + tau2 * st.var[r] * d_z2
         st.racc[r, RollSum.RATE : RollSum.FORCE_LAT_TIME + 1] += d[:, ROLL_SUM_OF]
         st.racc[r, RollSum.YAW] += self.psi[k] - np.where(begun, self.psi[np.maximum(lk, 0)], 0.0)
+        # the rates' change over the segment (telescoping to the interval's): the mean angular
+        # acceleration, whose lever arm the lateral force carries (_Batch._accel_roll); a row's
+        # first segment in a call starts at the last sample summed before (kept in the sums)
+        b = self.b
+        first = b.s_begin[r]
+        has = k >= first
+        if b.wy.shape[0]:
+            k_ = np.where(has, k, 0)
+            held = st.racc[r, RollSum.HAS_LAST] > 0
+            for col, last, w in (
+                (RollSum.RATE_Y_CHANGE, RollSum.LAST_RATE_Y, b.wy),
+                (RollSum.RATE_Z_CHANGE, RollSum.LAST_RATE_Z, b.wz),
+            ):
+                now = np.nan_to_num(w[k_])
+                before = np.where(
+                    begun,
+                    np.nan_to_num(w[np.maximum(lk, 0)]),
+                    np.where(held, st.racc[r, last], np.nan_to_num(w[np.where(has, first, 0)])),
+                )
+                st.racc[r, col] += np.where(has, now - before, 0.0)
+                st.racc[r, last] = np.where(has, now, st.racc[r, last])
+            st.racc[r, RollSum.HAS_LAST] = np.where(has, 1.0, st.racc[r, RollSum.HAS_LAST])
         st.acc[r, PitchSum.FORCE_FWD] += d[:, Integral.FORCE_FWD]
 
     # -- at a fix ----------------------------------------------------------------------------
@@ -2278,7 +2314,7 @@ class _TiltTrack:
         st.fix_ns[r], st.rfix_ns[r] = fix2[:kr], fix2[kr:]
         st.known[r], st.rknown[r] = known2[:kr], known2[kr:]
         st.acc[r] = 0.0
-        st.racc[r] = 0.0
+        st.racc[r, : RollSum.LAST_RATE_Y] = 0.0  # the last sample's rates are kept
         st.still[r] = self.g_still[fi]
         roll_after = shrunk_roll(st.ph[r], st.rcov[r, AngleCov.ANGLE])
         b.g_roll_after[fi] = np.where(st.rknown[r], roll_after, 0.0)
