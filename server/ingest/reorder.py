@@ -44,8 +44,9 @@ again.
 
 Between packets the horizon moves only when the vehicle falls idle (and no watermarks gate). A
 packet moves it only when it moves the last of the watermarks that held it at the last release
-(the lowest one, or several that tie: streams whose batches end together), or when its samples
-push the fixed window past what was released;
+(the lowest one, or several that tie: streams whose batches end together; a packet after a
+gap the fixed window already passed moves its watermark too, as the missing one is given up
+on), or when its samples push the fixed window past what was released;
 :attr:`ReorderBuffer.may_release` says so, and the pipeline visits a buffer only then (or when
 it fell idle): the packets of the streams ahead of a lagging one wait without a release each.
 
@@ -317,6 +318,11 @@ class _StreamMark:
         while (nxt := ahead.pop(self.seq + 1, None)) is not None:
             self.seq += 1
             self.stamp_ns = max(self.stamp_ns, nxt)
+
+    def passes_gap(self, horizon_ns: int) -> bool:
+        """Whether :meth:`skip_gaps` at ``horizon_ns`` would give up on a missing packet."""
+        ahead = self.ahead
+        return bool(ahead) and ahead[min(ahead)] <= horizon_ns
 
     def skip_gaps(self, horizon_ns: int) -> None:
         """Give up on the missing packets before every waiting one the fixed window passed."""
@@ -618,16 +624,22 @@ class ReorderBuffer:
         that watermark stays there and the fixed window does not pass it, the horizon does not
         move. Called only while :attr:`may_release` is False (once True it stays so until the
         next release)."""
-        released = self._released_ns
+        released, newest = self._released_ns, self._newest_ns
         lows, marks = self._low_streams, self._watermarks
-        if lows and stream in lows and marks and marks[stream].stamp_ns > self._low_ns:
-            lows.remove(stream)
+        if lows and stream in lows and marks:
+            mark = marks[stream]
+            if mark.stamp_ns > self._low_ns or (
+                # a packet after a gap that the fixed window already passed: the next
+                # release gives up on the missing one and the watermark moves to it
+                newest is not None and mark.passes_gap(newest - self._lateness_ns)
+            ):
+                lows.remove(stream)
         self._may_release = (
             not lows  # no watermark gating (or released at an idle time or a flush), or every
             # stream at the lowest watermark moved past it
             or released is None
-            or self._newest_ns is None
-            or self._newest_ns - self._lateness_ns > released
+            or newest is None
+            or newest - self._lateness_ns > released
         )
 
     def _missing_of(self, stream: Stream) -> _Missing:
