@@ -366,6 +366,20 @@ def _fill_segments(
     return order[seg], vals
 
 
+def _lever_share_lat(
+    rate_y: FloatArray, rate_z: FloatArray, up_m: FloatArray, fwd_m: FloatArray
+) -> FloatArray:
+    """Lateral specific force the IMU's lever arm adds to ``O``'s, ``(ω̇ × p)_x = ω̇y·h0 −
+    ω̇z·y`` (``p = (x, y, h0)`` the IMU's point), from the angular accelerations ``rate_y``,
+    ``rate_z`` [rad/s²] (or their changes over a span [rad/s], giving the force times the span).
+
+    A body swaying in roll on its axle shakes a raised IMU sideways by metres per second
+    squared; whatever reads the lateral force at ``O`` (the mounting yaw's observation, the
+    tilt track's accelerometer roll) takes this off. Arrays broadcast; returns their shape.
+    """
+    return np.asarray(rate_y * up_m - rate_z * fwd_m)
+
+
 def _lever_force_lat(
     tick_id: IntArray,
     tau_s: FloatArray,
@@ -373,14 +387,13 @@ def _lever_force_lat(
     n: IntArray,
     lever_m: tuple[FloatArray, FloatArray],
 ) -> FloatArray:
-    """Tick-mean lateral specific force the IMU's lever arm adds to ``O``'s by the body's
-    angular acceleration, ``(ω̇ × p)_x = ω̇y·h0 − ω̇z·y`` (``p = (x, y, h0)`` the IMU's point).
+    """Tick-mean lateral specific force the IMU's lever arm adds to ``O``'s
+    (:func:`_lever_share_lat`), for the mounting yaw's observation (lateral force at ``O``,
+    :mod:`estimator.mdsf.calibration`).
 
-    A body swaying in roll on its axle shakes a raised IMU sideways by metres per second
-    squared; the mounting yaw's observation (lateral force at ``O``,
-    :mod:`estimator.mdsf.calibration`) must not see it. The tick-mean angular accelerations
-    are the slopes of a least-squares line through the window's gyro samples (0 with fewer
-    than two). ``rates`` are ``(ω_y, ω_z)`` per sample, ``lever_m`` ``(h0, y)`` per tick;
+    The tick-mean angular accelerations are the slopes of a least-squares line through the
+    window's gyro samples (0 with fewer than two): a tick's window alone, without the sample
+    before it. ``rates`` are ``(ω_y, ω_z)`` per sample, ``lever_m`` ``(h0, y)`` per tick;
     returns shape ``(m,)``.
     """
     m = n.shape[0]
@@ -395,7 +408,7 @@ def _lever_force_lat(
         return np.where(ok, (n * s_tw - s_t * s_w) / det, 0.0)
 
     up_m, fwd_m = lever_m
-    return np.asarray(slope(rates[0]) * up_m - slope(rates[1]) * fwd_m)
+    return _lever_share_lat(slope(rates[0]), slope(rates[1]), up_m, fwd_m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1459,15 +1472,17 @@ class _Batch:
         f_x = racc[:, RollSum.FORCE_LAT] / np.where(ok, t_fx, 1.0)
         span = np.where(ok, acc[:, PitchSum.TIME], 1.0)
         w_z = racc[:, RollSum.YAW] / span
-        # the IMU's lever arm's share, the interval's mean (ω̇ × p)_x = ω̇y·h0 − ω̇z·y: a cab
-        # rolling at 1-2 Hz shakes a raised IMU sideways by metres per second squared, which
-        # read as gravity's share would make the roll tens of degrees (_lever_force_lat)
+        # the IMU's lever arm's share, its interval mean from the rates' change over the
+        # interval (exact, telescoping across ticks): read as gravity's share, a cab rolling
+        # at 1-2 Hz would make the roll tens of degrees
         slot = self.slots[r]
         f_x = (
             f_x
-            - (
-                racc[:, RollSum.RATE_Y_CHANGE] * self.fe.imu_up_m[slot]
-                - racc[:, RollSum.RATE_Z_CHANGE] * self.fe.imu_fwd_m[slot]
+            - _lever_share_lat(
+                racc[:, RollSum.RATE_Y_CHANGE],
+                racc[:, RollSum.RATE_Z_CHANGE],
+                self.fe.imu_up_m[slot],
+                self.fe.imu_fwd_m[slot],
             )
             / span
         )
