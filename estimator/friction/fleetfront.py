@@ -27,6 +27,7 @@ from estimator.friction.frontend import (
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
+    calibration_rounding_rel,
     calibration_scale_var,
     consider_step,
     rim_persistent_std_mps,
@@ -62,6 +63,8 @@ class FrontEndTicks:
     gnss: BoolArray
     valid: BoolArray
     tyre_suspect: BoolArray
+    radius_rounding_rel: FloatArray
+    calibrating: BoolArray
 
 
 class _Arrays:
@@ -227,6 +230,7 @@ class _State(_Arrays):
         self.radius_std = np.zeros((0, 4))
         self.radius_common_rel = np.zeros(0)
         self.radius_scale_var = np.zeros(0)  # the radii's shared relative scale variance
+        self.omega_cal = np.zeros((0, 4))  # the calibration's mean wheel speed [rad/s]
         self.speed_persist = np.zeros(0)  # the speed's considered persistent 1-σ [m/s]
         self.radius_drop = np.zeros(0)
         self.calib_n = np.zeros(0, dtype=np.int64)
@@ -247,6 +251,7 @@ class _State(_Arrays):
         self.radius_std[slot] = 0.01 * car.r_u[slot]
         self.radius_common_rel[slot] = 0.0
         self.radius_scale_var[slot] = 0.01**2
+        self.omega_cal[slot] = 0.0
         self.speed_persist[slot] = 0.0
         self.radius_drop[slot] = fe.radius_drop0
         self.calib_n[slot] = 0
@@ -325,8 +330,11 @@ class FleetFrontEnd:
         steer = np.where(np.isfinite(sensed.steer_rad), sensed.steer_rad, 0.0)
         delta = np.zeros((s.size, 4))
         delta[:, :2] = (steer / self.car.steering_ratio[s])[:, None]
+        calibrating = np.zeros(s.size, dtype=bool)
         if not paper:
-            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
+            calibrating[
+                self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
+            ] = True
         self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed)
         self._side_slip_step(s, ay_tilt, yaw_rate, g, gnss_v)
         st = self.state
@@ -354,6 +362,10 @@ class FleetFrontEnd:
             gnss=np.isfinite(gnss_v[:, 0]),
             valid=valid,
             tyre_suspect=np.any(st.suspect[s], axis=1),
+            radius_rounding_rel=calibration_rounding_rel(
+                self.fe.wheel_speed_resolution_radps, st.omega_cal[s]
+            ),
+            calibrating=calibrating,
             **slips,
         )
 
@@ -458,13 +470,13 @@ class FleetFrontEnd:
         yaw_rate: FloatArray,
         ax: FloatArray,
         omega: FloatArray,
-    ) -> None:
+    ) -> IntArray:
         """Radius calibration on the rows with a fresh epoch, straight and steady at 5 m/s or
-        more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt."""
+        more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt; the rows calibrated."""
         steady = (np.abs(ax[g]) < 0.3) & (np.abs(yaw_rate[g]) < 0.02) & (np.abs(delta[g, 0]) < 0.01)
         rows = g[steady & (gnss_v[g, 0] >= 5.0)]
         if not rows.size:
-            return
+            return rows
         c, car, st = s[rows], self.car, self.state
         v = gnss_v[rows]
         v_long, _ = self._wheel_velocity(c, v[:, 0], v[:, 1], yaw_rate[rows], delta[rows])
@@ -487,7 +499,9 @@ class FleetFrontEnd:
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
         st.radius_scale_var[c] = calibration_scale_var(st.radius_scale_var[c], gain[:, 0], v[:, 0])
         st.radius_std[c] = 2e-4 * radius
+        st.omega_cal[c] += gain * (omega[rows] - st.omega_cal[c])
         self._learn_tyres(c[n >= self.fe.calib_samples])
+        return rows
 
     def _learn_tyres(self, c: IntArray) -> None:
         """``ρ`` and each wheel's ``kz`` from the calibrated radii (``FrontEnd._learn_tyres``)."""

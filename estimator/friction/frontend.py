@@ -82,6 +82,7 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
+    "calibration_rounding_rel",
     "calibration_scale_var",
     "consider_step",
     "rim_persistent_std_mps",
@@ -233,6 +234,20 @@ def rim_persistent_std_mps(
     return out
 
 
+def calibration_rounding_rel(resolution_radps: float, omega_cal_radps: FloatArray) -> FloatArray:
+    """Each wheel's calibrated radius's relative 1-σ from the CAN rounding ``q``:
+    ``q / (ω_cal √12)`` ``(…, 4)`` at the calibration's mean wheel speed ``ω_cal`` (0 before
+    any calibration epoch).
+
+    A speed held within one quantum reads the same rounded value at every epoch, so the
+    running mean keeps its rounding error, uniform over ±q/2 (variance ``q²/12``), however
+    many epochs it averages; the radius takes it as ``−e/ω``."""
+    w = np.asarray(omega_cal_radps, dtype=np.float64)
+    rel = resolution_radps / (np.maximum(w, 1e-9) * math.sqrt(12))
+    out: FloatArray = np.where(w > 0, rel, 0.0)
+    return out
+
+
 def calibration_scale_var(
     var: FloatArray | float, gain: FloatArray | float, gnss_speed_mps: FloatArray | float
 ) -> FloatArray:
@@ -284,6 +299,8 @@ class FrontEndTick:
     gnss: bool
     valid: bool
     tyre_suspect: bool
+    radius_rounding_rel: FloatArray  # per wheel: the calibrated radius's rounding 1-σ
+    calibrating: bool  # the radius calibration took an epoch this tick
 
 
 def _latest_sample(
@@ -414,6 +431,8 @@ class FrontEnd:
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)  # each wheel's own
         self.radius_common_rel = 0.0  # the calibration's GNSS error, shared by the four
         self.radius_scale_var = 0.01**2  # its relative variance (calibration_scale_var)
+        self.omega_cal = np.zeros(4)  # the calibration's mean wheel speed [rad/s]
+        self.calibrating = False  # the calibration took an epoch this tick
         self.speed_persist = 0.0  # the speed's considered persistent 1-σ [m/s]
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -559,6 +578,10 @@ class FrontEnd:
             gnss=gnss is not None,
             valid=bool(valid),
             tyre_suspect=self.tyre_suspect,
+            radius_rounding_rel=calibration_rounding_rel(
+                self.fe.wheel_speed_resolution_radps, self.omega_cal
+            ),
+            calibrating=self.calibrating,
         )
 
     def _resistance(self, vx: float, fz: FloatArray) -> float:
@@ -803,6 +826,7 @@ class FrontEnd:
         kept apart from each wheel's own error (``radius_std``: rim-speed resolution and the
         load model, 2e-4 of the radius), since a shared scale error of the radii cancels in κ
         where the speed comes from the same rims."""
+        self.calibrating = False
         steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
         if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
             return
@@ -822,6 +846,8 @@ class FrontEnd:
         self.radius_common_rel = 0.003 / math.sqrt(self.calib_n)
         self.radius_scale_var = float(calibration_scale_var(self.radius_scale_var, gain, gnss[0]))
         self.radius_std = 2e-4 * self.radius
+        self.omega_cal += gain * (self.omega - self.omega_cal)
+        self.calibrating = True
         self._learn_tyres()
 
     @property

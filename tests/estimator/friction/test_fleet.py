@@ -234,6 +234,8 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 alpha_lag_rad=np.zeros((1, 4)),
                 radius_m=np.full((1, 4), t.unloaded_radius_m),
                 balance_std_n=np.full((1, 2), 1e6),  # random slips: no differential
+                kappa_offset_std=np.zeros((1, 4)),
+                kappa_offset_reset=np.zeros(1, dtype=bool),
             )
         )
     return ticks, chassis, tyres
@@ -543,6 +545,8 @@ def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArray
         alpha_lag_rad=np.zeros((1, 4)),
         radius_m=np.full((1, 4), t.unloaded_radius_m),
         balance_std_n=np.full((1, 2), 1e6),
+        kappa_offset_std=np.zeros((1, 4)),
+        kappa_offset_reset=np.zeros(1, dtype=bool),
     )
     return u, chassis, tyres
 
@@ -579,3 +583,33 @@ def test_a_biased_side_slip_does_not_press_mu_onto_its_floor() -> None:
         sd = float(np.linalg.norm(st.s[0, 0]))
         assert mu > 0.4, (bias, mu)
         assert sd > 0.1, (bias, sd)
+
+
+def test_a_persistent_slip_error_is_considered_beside_the_cubature_states() -> None:
+    """Each wheel's persistent κ error stated at a calibration epoch (1-σ 2e-3 on the rear
+    wheels) on the filter's own model: μ's 1-σ carries it (wider than with the term off),
+    the offsets keep their prior (considered, never learnt) and their cross-covariance with
+    the state builds up; with a prior of 0 the filter is the one without the term (the
+    cubature points still span the six states only)."""
+    ticks, chassis, tyres = _model_inputs(0.45, 60, seed=3)
+    prior = np.array([[0.0, 0.0, 2e-3, 2e-3]])
+    sd, states = {}, {}
+    for name, cfg, sigma in (
+        ("stated", FilterConfig(), prior),
+        ("off", FilterConfig(kappa_offset_consider=False), prior),
+        ("zero", FilterConfig(), 0.0 * prior),
+    ):
+        st = initial_state(cfg, tyres, ticks[0].fz_n)
+        for k, u in enumerate(ticks):
+            read = dataclasses.replace(
+                u, kappa_offset_std=sigma, kappa_offset_reset=np.array([k == 0])
+            )
+            st = filter_step(st, cfg, tyres, chassis, read)
+        sd[name], states[name] = float(np.linalg.norm(st.s[0, 0])), st
+    assert sd["stated"] > 1.01 * sd["off"]
+    n = len(ProductState)
+    s_b = states["stated"].s_b[0]
+    np.testing.assert_allclose(s_b @ s_b.T, np.diag(prior[0] ** 2), atol=1e-15)
+    assert np.abs(s_b[2:, :n]).max() > 1e-4  # P_bx = S_bx Sᵀ: the cross-covariance kept
+    np.testing.assert_allclose(states["zero"].x, states["off"].x, atol=1e-12)
+    np.testing.assert_allclose(states["zero"].s, states["off"].s, atol=1e-12)
