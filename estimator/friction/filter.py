@@ -220,7 +220,11 @@ class TickInputs:
     the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
     balance (product only, :mod:`.axle`); ``kappa_offset_std`` ``(B, 4)`` the prior 1-σ of each
     wheel's persistent κ error (product, :func:`_offset_jacobian`), taken where
-    ``kappa_offset_reset`` ``(B,)`` (the radius calibration took an epoch)."""
+    ``kappa_offset_reset`` ``(B,)`` (the radius calibration took an epoch), and
+    ``kappa_offset_rim_share`` ``(B, 4)`` each wheel's share in the speed ``v_x`` the κ are
+    taken against (the front end's ``rim_share``; 0 where the speed is not the rims'), and
+    ``kappa_offset_axle_corr`` ``(B, 2)`` the correlation of each axle's two offsets' prior
+    (the front end's ``rounding_corr``)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -240,6 +244,8 @@ class TickInputs:
     balance_std_n: FloatArray
     kappa_offset_std: FloatArray
     kappa_offset_reset: BoolArray
+    kappa_offset_rim_share: FloatArray
+    kappa_offset_axle_corr: FloatArray
 
 
 _N_OFFSETS = 4
@@ -522,16 +528,22 @@ def _predict(
 def _reset_offsets(s_b: FloatArray, cfg: FilterConfig, u: TickInputs) -> FloatArray:
     """The κ offsets' root rows ``(B, 4, n + 4)``: where ``u.kappa_offset_reset`` (the
     calibrated radii they belong to moved) they start again from their prior
-    ``0 ± u.kappa_offset_std``, uncorrelated with the state (``S_bx = 0``,
-    ``S_bb = diag(σ)``); all 0 where ``kappa_offset_consider`` is off."""
+    ``0 ± u.kappa_offset_std``, uncorrelated with the state (``S_bx = 0``), an axle's two
+    correlated by ``ρ = u.kappa_offset_axle_corr`` (``S_bb`` per axle
+    ``[[σ_L, 0], [ρ σ_R, √(1 − ρ²) σ_R]]``, the axles independent); all 0 where
+    ``kappa_offset_consider`` is off."""
     if not cfg.kappa_offset_consider:
         return np.zeros_like(s_b)
     out = s_b.copy()
     rows = np.flatnonzero(u.kappa_offset_reset)
     n = s_b.shape[-1] - _N_OFFSETS
     out[rows] = 0.0
-    idx = np.arange(_N_OFFSETS)
-    out[rows[:, None], idx, n + idx] = u.kappa_offset_std[rows]
+    sigma = u.kappa_offset_std[rows]
+    rho = np.clip(u.kappa_offset_axle_corr[rows], -1.0, 1.0)
+    left, right = np.arange(0, _N_OFFSETS, 2), np.arange(1, _N_OFFSETS, 2)
+    out[rows[:, None], left, n + left] = sigma[:, left]
+    out[rows[:, None], right, n + left] = rho * sigma[:, right]
+    out[rows[:, None], right, n + right] = np.sqrt(1.0 - rho**2) * sigma[:, right]
     return out
 
 
@@ -624,13 +636,21 @@ def _offset_jacobian(
     error held over the drive, not fresh noise. It enters ``h`` (accelerations, yaw and the
     torque balances) almost linearly at the size of ``b`` (~10⁻⁴), so it is carried beside
     the cubature states through this secant (:func:`~.sckf.sckf_consider_update`) rather than
-    as more cubature states, whose points would spread ``√10 σ`` instead of ``√6 σ``."""
+    as more cubature states, whose points would spread ``√10 σ`` instead of ``√6 σ``.
+
+    The κ are each rim against one speed ``v_x``, which the undriven rims correct once
+    calibrated (share ``w_j = u.kappa_offset_rim_share``), so the κ errors are
+    ``M ε = (I − 1 wᵀ) ε`` of the radii's own ``ε``, and ``H_b = H_κ M``: a free-rolling wheel
+    reads its own error less the rims' mean (≈ 0 on both undriven wheels together), a
+    driven wheel its own less that mean."""
     mean = x[:, None, :]
     alpha = u.alpha_rad[:, None, :]
     kappa = u.kappa[:, None, :] - _OFFSET_STEP * np.eye(_N_OFFSETS)[None]
     base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
     moved = _measure(mean, cfg, tyres, chassis, u, kappa, alpha)
-    jac: FloatArray = np.swapaxes(moved - base, -1, -2) / _OFFSET_STEP
+    h_kappa = np.swapaxes(moved - base, -1, -2) / _OFFSET_STEP
+    share = u.kappa_offset_rim_share[:, None, :]
+    jac: FloatArray = h_kappa - h_kappa.sum(axis=-1, keepdims=True) * share
     return jac
 
 

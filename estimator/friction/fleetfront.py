@@ -27,9 +27,11 @@ from estimator.friction.frontend import (
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
+    axle_rounding_corr,
     calibration_rounding_rel,
     calibration_scale_var,
     consider_step,
+    rim_share_step,
     rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
@@ -65,6 +67,8 @@ class FrontEndTicks:
     tyre_suspect: BoolArray
     radius_rounding_rel: FloatArray
     calibrating: BoolArray
+    rim_share: FloatArray
+    rounding_corr: FloatArray
 
 
 class _Arrays:
@@ -232,6 +236,7 @@ class _State(_Arrays):
         self.radius_scale_var = np.zeros(0)  # the radii's shared relative scale variance
         self.omega_cal = np.zeros((0, 4))  # the calibration's mean wheel speed [rad/s]
         self.speed_persist = np.zeros(0)  # the speed's considered persistent 1-σ [m/s]
+        self.rim_share = np.zeros(0)  # the undriven rims' share in the speed
         self.radius_drop = np.zeros(0)
         self.calib_n = np.zeros(0, dtype=np.int64)
         self.kz_wheel = np.zeros((0, 4))
@@ -253,6 +258,7 @@ class _State(_Arrays):
         self.radius_scale_var[slot] = 0.01**2
         self.omega_cal[slot] = 0.0
         self.speed_persist[slot] = 0.0
+        self.rim_share[slot] = 0.0
         self.radius_drop[slot] = fe.radius_drop0
         self.calib_n[slot] = 0
         self.kz_wheel[slot] = car.kz[slot]
@@ -366,6 +372,10 @@ class FleetFrontEnd:
                 self.fe.wheel_speed_resolution_radps, st.omega_cal[s]
             ),
             calibrating=calibrating,
+            rim_share=st.rim_share[s][:, None]
+            * self.car.free[s]
+            / np.maximum(self.car.n_free[s], 1)[:, None],
+            rounding_corr=axle_rounding_corr(self.fe.wheel_speed_resolution_radps, st.omega_cal[s]),
             **slips,
         )
 
@@ -544,6 +554,7 @@ class FleetFrontEnd:
             sg, r_gnss = s[g], GNSS_SPEED_STD_MPS**2
             gain = vx.var[sg] / (vx.var[sg] + r_gnss)
             st.speed_persist[sg] = consider_step(st.speed_persist[sg], gain, 0.0)
+            st.rim_share[sg] = rim_share_step(st.rim_share[sg], gain, 0.0)
             vx.update(sg, gnss_v[g, 0], r_gnss)
         if self.fe.paper:
             return
@@ -587,6 +598,7 @@ class FleetFrontEnd:
         co = c[ok]
         k = self.vx.var[co] / (self.vx.var[co] + var)
         st.speed_persist[co] = consider_step(st.speed_persist[co], k, persist[ok])
+        st.rim_share[co] = rim_share_step(st.rim_share[co], k, 1.0)
         self.vx.update(co, v[ok], var)
 
     def _rim_persistent(

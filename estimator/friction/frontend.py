@@ -82,9 +82,11 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
+    "axle_rounding_corr",
     "calibration_rounding_rel",
     "calibration_scale_var",
     "consider_step",
+    "rim_share_step",
     "rim_persistent_std_mps",
     "ringing_slip_std",
     "spin_up_slip",
@@ -234,6 +236,22 @@ def rim_persistent_std_mps(
     return out
 
 
+def axle_rounding_corr(resolution_radps: float, omega_cal_radps: FloatArray) -> FloatArray:
+    """Correlation ``(…, 2)`` of the rounding the two calibrated radii of each axle kept
+    (front, rear), from the calibration's mean wheel speeds ``ω_cal`` ``(…, 4)``.
+
+    On the straight the radii are calibrated on, an axle's two wheels turn at one speed (one
+    load, one drive slip), so while their mean readings agree to within half a quantum they
+    read the same rounded value at every epoch and keep one rounding error between them
+    (correlation 1). Wheels whose readings differ, and the two axles (the drive slip
+    puts them at unrelated places within a quantum), keep independent ones (0)."""
+    w = np.asarray(omega_cal_radps, dtype=np.float64)
+    left, right = w[..., 0::2], w[..., 1::2]
+    same = (np.abs(left - right) < resolution_radps / 2) & (left > 0) & (right > 0)
+    out: FloatArray = same.astype(np.float64)
+    return out
+
+
 def calibration_rounding_rel(resolution_radps: float, omega_cal_radps: FloatArray) -> FloatArray:
     """Each wheel's calibrated radius's relative 1-σ from the CAN rounding ``q``:
     ``q / (ω_cal √12)`` ``(…, 4)`` at the calibration's mean wheel speed ``ω_cal`` (0 before
@@ -260,6 +278,22 @@ def calibration_scale_var(
     g = np.asarray(gain)
     rel = GNSS_SPEED_STD_MPS / np.maximum(np.abs(np.asarray(gnss_speed_mps)), 1.0)
     out: FloatArray = (1.0 - g) ** 2 * np.asarray(var) + (g * rel) ** 2
+    return out
+
+
+def rim_share_step(
+    share: FloatArray | float, gain: FloatArray | float, reading_share: FloatArray | float
+) -> FloatArray:
+    """The undriven rims' share ``w`` in the speed estimate after a reading taken with gain
+    ``k``: ``w ← (1 − k) w + k s``, ``s`` 1 for the rims' mean speed, 0 for GNSS.
+
+    Once calibrated, the rims correct ``v_x`` every tick, so ``v_x`` carries ``w`` times the
+    mean of their calibrated radii's errors ``ε`` (the CAN rounding each radius kept). Every
+    wheel's κ is its rim against ``v_x``, so its persistent error is ``ε_i − w ε̄_free``, not
+    ``ε_i`` alone: the undriven wheels' own errors largely cancel in their κ, and their mean
+    is in every driven wheel's (:func:`~.filter._offset_jacobian`)."""
+    k = np.asarray(gain)
+    out: FloatArray = (1.0 - k) * np.asarray(share) + k * np.asarray(reading_share)
     return out
 
 
@@ -301,6 +335,8 @@ class FrontEndTick:
     tyre_suspect: bool
     radius_rounding_rel: FloatArray  # per wheel: the calibrated radius's rounding 1-σ
     calibrating: bool  # the radius calibration took an epoch this tick
+    rim_share: FloatArray  # per wheel: its calibrated radius's share in the speed v_x
+    rounding_corr: FloatArray  # per axle: correlation of its two radii's rounding
 
 
 def _latest_sample(
@@ -434,6 +470,7 @@ class FrontEnd:
         self.omega_cal = np.zeros(4)  # the calibration's mean wheel speed [rad/s]
         self.calibrating = False  # the calibration took an epoch this tick
         self.speed_persist = 0.0  # the speed's considered persistent 1-σ [m/s]
+        self.rim_share = 0.0  # the undriven rims' share in the speed (rim_share_step)
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
@@ -582,6 +619,8 @@ class FrontEnd:
                 self.fe.wheel_speed_resolution_radps, self.omega_cal
             ),
             calibrating=self.calibrating,
+            rim_share=self.rim_share * self.undriven / max(int(self.undriven.sum()), 1),
+            rounding_corr=axle_rounding_corr(self.fe.wheel_speed_resolution_radps, self.omega_cal),
         )
 
     def _resistance(self, vx: float, fz: FloatArray) -> float:
@@ -632,6 +671,7 @@ class FrontEnd:
             r_gnss = GNSS_SPEED_STD_MPS**2
             gain = self.vx.speed_var / (self.vx.speed_var + r_gnss)
             self.speed_persist = float(consider_step(self.speed_persist, gain, 0.0))
+            self.rim_share = float(rim_share_step(self.rim_share, gain, 0.0))
             self.vx.update(gnss[0], r_gnss)
         free = self.undriven
         if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
@@ -666,6 +706,7 @@ class FrontEnd:
         )
         gain = self.vx.speed_var / (self.vx.speed_var + var)
         self.speed_persist = float(consider_step(self.speed_persist, gain, persist))
+        self.rim_share = float(rim_share_step(self.rim_share, gain, 1.0))
         self.vx.update(v, var)
 
     def _yaw_step(self, gyro_z_radps: float) -> float:

@@ -236,6 +236,10 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 balance_std_n=np.full((1, 2), 1e6),  # random slips: no differential
                 kappa_offset_std=np.zeros((1, 4)),
                 kappa_offset_reset=np.zeros(1, dtype=bool),
+        kappa_offset_rim_share=np.zeros((1, 4)),
+        kappa_offset_axle_corr=np.zeros((1, 2)),
+                kappa_offset_rim_share=np.zeros((1, 4)),
+                kappa_offset_axle_corr=np.zeros((1, 2)),
             )
         )
     return ticks, chassis, tyres
@@ -547,6 +551,8 @@ def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArray
         balance_std_n=np.full((1, 2), 1e6),
         kappa_offset_std=np.zeros((1, 4)),
         kappa_offset_reset=np.zeros(1, dtype=bool),
+        kappa_offset_rim_share=np.zeros((1, 4)),
+        kappa_offset_axle_corr=np.zeros((1, 2)),
     )
     return u, chassis, tyres
 
