@@ -222,9 +222,7 @@ class TickInputs:
     wheel's persistent κ error (product, :func:`_offset_jacobian`), taken where
     ``kappa_offset_reset`` ``(B,)`` (the radius calibration took an epoch), and
     ``kappa_offset_rim_share`` ``(B, 4)`` each wheel's share in the speed ``v_x`` the κ are
-    taken against (the front end's ``rim_share``; 0 where the speed is not the rims'), and
-    ``kappa_offset_axle_corr`` ``(B, 2)`` the correlation of each axle's two offsets' prior
-    (the front end's ``rounding_corr``)."""
+    taken against (the front end's ``rim_share``; 0 where the speed is not the rims')."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -245,7 +243,6 @@ class TickInputs:
     kappa_offset_std: FloatArray
     kappa_offset_reset: BoolArray
     kappa_offset_rim_share: FloatArray
-    kappa_offset_axle_corr: FloatArray
 
 
 _N_OFFSETS = 4
@@ -528,22 +525,16 @@ def _predict(
 def _reset_offsets(s_b: FloatArray, cfg: FilterConfig, u: TickInputs) -> FloatArray:
     """The κ offsets' root rows ``(B, 4, n + 4)``: where ``u.kappa_offset_reset`` (the
     calibrated radii they belong to moved) they start again from their prior
-    ``0 ± u.kappa_offset_std``, uncorrelated with the state (``S_bx = 0``), an axle's two
-    correlated by ``ρ = u.kappa_offset_axle_corr`` (``S_bb`` per axle
-    ``[[σ_L, 0], [ρ σ_R, √(1 − ρ²) σ_R]]``, the axles independent); all 0 where
-    ``kappa_offset_consider`` is off."""
+    ``0 ± u.kappa_offset_std``, uncorrelated with the state (``S_bx = 0``,
+    ``S_bb = diag(σ)``); all 0 where ``kappa_offset_consider`` is off."""
     if not cfg.kappa_offset_consider:
         return np.zeros_like(s_b)
     out = s_b.copy()
     rows = np.flatnonzero(u.kappa_offset_reset)
     n = s_b.shape[-1] - _N_OFFSETS
     out[rows] = 0.0
-    sigma = u.kappa_offset_std[rows]
-    rho = np.clip(u.kappa_offset_axle_corr[rows], -1.0, 1.0)
-    left, right = np.arange(0, _N_OFFSETS, 2), np.arange(1, _N_OFFSETS, 2)
-    out[rows[:, None], left, n + left] = sigma[:, left]
-    out[rows[:, None], right, n + left] = rho * sigma[:, right]
-    out[rows[:, None], right, n + right] = np.sqrt(1.0 - rho**2) * sigma[:, right]
+    idx = np.arange(_N_OFFSETS)
+    out[rows[:, None], idx, n + idx] = u.kappa_offset_std[rows]
     return out
 
 

@@ -133,7 +133,6 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
         kappa_offset_std=(1.0 + np.abs(fe.kappa)) * fe.radius_rounding_rel,
         kappa_offset_reset=fe.calibrating,
         kappa_offset_rim_share=fe.rim_share,
-        kappa_offset_axle_corr=fe.rounding_corr,
     )
 
 

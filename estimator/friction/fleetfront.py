@@ -27,7 +27,6 @@ from estimator.friction.frontend import (
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
-    axle_rounding_corr,
     calibration_rounding_rel,
     calibration_scale_var,
     consider_step,
@@ -68,7 +67,6 @@ class FrontEndTicks:
     radius_rounding_rel: FloatArray
     calibrating: BoolArray
     rim_share: FloatArray
-    rounding_corr: FloatArray
 
 
 class _Arrays:
@@ -375,7 +373,6 @@ class FleetFrontEnd:
             rim_share=st.rim_share[s][:, None]
             * self.car.free[s]
             / np.maximum(self.car.n_free[s], 1)[:, None],
-            rounding_corr=axle_rounding_corr(self.fe.wheel_speed_resolution_radps, st.omega_cal[s]),
             **slips,
         )
 

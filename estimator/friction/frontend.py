@@ -82,7 +82,6 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
-    "axle_rounding_corr",
     "calibration_rounding_rel",
     "calibration_scale_var",
     "consider_step",
@@ -236,22 +235,6 @@ def rim_persistent_std_mps(
     return out
 
 
-def axle_rounding_corr(resolution_radps: float, omega_cal_radps: FloatArray) -> FloatArray:
-    """Correlation ``(…, 2)`` of the rounding the two calibrated radii of each axle kept
-    (front, rear), from the calibration's mean wheel speeds ``ω_cal`` ``(…, 4)``.
-
-    On the straight the radii are calibrated on, an axle's two wheels turn at one speed (one
-    load, one drive slip), so while their mean readings agree to within half a quantum they
-    read the same rounded value at every epoch and keep one rounding error between them
-    (correlation 1). Wheels whose readings differ, and the two axles (the drive slip
-    puts them at unrelated places within a quantum), keep independent ones (0)."""
-    w = np.asarray(omega_cal_radps, dtype=np.float64)
-    left, right = w[..., 0::2], w[..., 1::2]
-    same = (np.abs(left - right) < resolution_radps / 2) & (left > 0) & (right > 0)
-    out: FloatArray = same.astype(np.float64)
-    return out
-
-
 def calibration_rounding_rel(resolution_radps: float, omega_cal_radps: FloatArray) -> FloatArray:
     """Each wheel's calibrated radius's relative 1-σ from the CAN rounding ``q``:
     ``q / (ω_cal √12)`` ``(…, 4)`` at the calibration's mean wheel speed ``ω_cal`` (0 before
@@ -336,7 +319,6 @@ class FrontEndTick:
     radius_rounding_rel: FloatArray  # per wheel: the calibrated radius's rounding 1-σ
     calibrating: bool  # the radius calibration took an epoch this tick
     rim_share: FloatArray  # per wheel: its calibrated radius's share in the speed v_x
-    rounding_corr: FloatArray  # per axle: correlation of its two radii's rounding
 
 
 def _latest_sample(
@@ -620,7 +602,6 @@ class FrontEnd:
             ),
             calibrating=self.calibrating,
             rim_share=self.rim_share * self.undriven / max(int(self.undriven.sum()), 1),
-            rounding_corr=axle_rounding_corr(self.fe.wheel_speed_resolution_radps, self.omega_cal),
         )
 
     def _resistance(self, vx: float, fz: FloatArray) -> float:

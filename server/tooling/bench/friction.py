@@ -234,7 +234,6 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
         kappa_offset_std=np.zeros(fz.shape),
         kappa_offset_reset=np.zeros(len(runs), dtype=bool),
         kappa_offset_rim_share=np.zeros((len(runs), 4)),
-        kappa_offset_axle_corr=np.zeros((len(runs), 2)),
     )
 
 

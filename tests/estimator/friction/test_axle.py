@@ -137,7 +137,6 @@ def _soft_tyre_tick(kappa_rl_bias: float, balance: bool) -> tuple[TickInputs, Ty
         kappa_offset_std=np.zeros((1, 4)),
         kappa_offset_reset=np.zeros(1, dtype=bool),
         kappa_offset_rim_share=np.zeros((1, 4)),
-        kappa_offset_axle_corr=np.zeros((1, 2)),
     )
     return u, tyres, chassis
 
