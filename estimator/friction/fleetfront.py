@@ -30,8 +30,8 @@ from estimator.friction.frontend import (
     calibration_rounding_rel,
     calibration_scale_var,
     consider_step,
-    rim_share_step,
     rim_persistent_std_mps,
+    rim_share_step,
     ringing_slip_std,
     spin_up_slip,
 )
