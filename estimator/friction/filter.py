@@ -20,9 +20,6 @@ state and covariance handling:
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
   Two more rows, one per axle, are the open differential's torque balance
   ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
-  Each wheel's persistent κ error (the CAN rounding its calibrated radius kept) is a
-  *consider* term beside the state (:func:`_offset_jacobian`, :mod:`.sckf`'s consider form):
-  carried linearly, never updated, its cross-covariance with the state kept.
   The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
   ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
   length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
@@ -44,8 +41,6 @@ from estimator.friction.model import GRAVITY_MPS2, Chassis, body_accelerations
 from estimator.friction.sckf import (
     cubature_points,
     mee_measurement_sqrt,
-    sckf_consider_predict,
-    sckf_consider_update,
     sckf_predict,
     sckf_update,
     tria,
@@ -149,9 +144,7 @@ class FilterConfig:
     (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
     ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
-    product's measurement covariance (:func:`_input_spread`); ``kappa_offset_consider``: the
-    product carries each wheel's persistent κ error as a consider term
-    (:func:`_offset_jacobian`; off: the offsets' prior is ignored).
+    product's measurement covariance (:func:`_input_spread`).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -183,7 +176,6 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
-    kappa_offset_consider: bool = True
 
     @property
     def n_states(self) -> int:
@@ -218,11 +210,7 @@ class TickInputs:
     ``(B, 4)``: the relaxed slip angle minus the kinematic one (the tyre's lag behind a
     changing slip), added to the product's slip angles from ``v_y``; ``radius_m`` ``(B, 4)``
     the wheels' effective radii and ``balance_std_n`` ``(B, 2)`` the 1-σ of each axle's torque
-    balance (product only, :mod:`.axle`); ``kappa_offset_std`` ``(B, 4)`` the prior 1-σ of each
-    wheel's persistent κ error (product, :func:`_offset_jacobian`), taken where
-    ``kappa_offset_reset`` ``(B,)`` (the radius calibration took an epoch), and
-    ``kappa_offset_rim_share`` ``(B, 4)`` each wheel's share in the speed ``v_x`` the κ are
-    taken against (the front end's ``rim_share``; 0 where the speed is not the rims')."""
+    balance (product only, :mod:`.axle`)."""
 
     fz_n: FloatArray
     alpha_rad: FloatArray
@@ -240,13 +228,7 @@ class TickInputs:
     alpha_lag_rad: FloatArray
     radius_m: FloatArray
     balance_std_n: FloatArray
-    kappa_offset_std: FloatArray
-    kappa_offset_reset: BoolArray
-    kappa_offset_rim_share: FloatArray
 
-
-_N_OFFSETS = 4
-"""The product's considered per-wheel κ offsets (FL, FR, RL, RR)."""
 
 _N_MEASURED = 4
 """The product's measured rows ``[a_x, a_y, ṙ, v_y]``; the axles' torque balances follow."""
@@ -254,14 +236,11 @@ _N_MEASURED = 4
 
 @dataclass(slots=True)
 class FilterState:
-    """Filter state per vehicle: mean ``x`` ``(B, n)``, root ``s`` ``(B, n, n)``, the
-    considered κ offsets' rows of the joint root ``s_b`` ``(B, 4, n + 4)`` (product; their
-    mean is 0, see :func:`_offset_jacobian`), the last loads ``(B, 4)``, the smoothed NIS
-    ``(B,)``, and what the last step did."""
+    """Filter state per vehicle: mean ``x`` ``(B, n)``, root ``s`` ``(B, n, n)``, the last
+    loads ``(B, 4)``, the smoothed NIS ``(B,)``, and what the last step did."""
 
     x: FloatArray
     s: FloatArray
-    s_b: FloatArray
     fz_prev_n: FloatArray
     nis: FloatArray
     mee_ok: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
@@ -271,7 +250,6 @@ class FilterState:
         return FilterState(
             self.x[rows],
             self.s[rows],
-            self.s_b[rows],
             self.fz_prev_n[rows],
             self.nis[rows],
             self.mee_ok[rows] if self.mee_ok.size else self.mee_ok,
@@ -298,8 +276,7 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     s = np.zeros((b, x.shape[1], x.shape[1]))
     idx = np.arange(x.shape[1])
     s[:, idx, idx] = std
-    s_b = np.zeros((b, _N_OFFSETS, x.shape[1] + _N_OFFSETS))
-    return FilterState(x, s, s_b, fz_n.copy(), np.zeros(b))
+    return FilterState(x, s, fz_n.copy(), np.zeros(b))
 
 
 def mu_of(state_mu: Values, mode: FrictionMode) -> FloatArray:
@@ -481,10 +458,9 @@ def _input_spread(
 
 def _predict(
     st: FilterState, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray]:
     """Time update (eq. 22, 28-31): μ and the stiffness states walk; ADAPTIVE/PAPER carry the
-    stiffness with the load ratio; the product's considered κ offsets are held
-    (:func:`_reset_offsets`)."""
+    stiffness with the load ratio."""
     b, n = st.x.shape
     sqrt_dt = math.sqrt(cfg.tick_s)
     walk = np.full((b, n), cfg.stiffness_walk_per_sqrt_s * sqrt_dt)
@@ -511,31 +487,7 @@ def _predict(
     sq_q = np.zeros((b, n, n))
     idx = np.arange(n)
     sq_q[:, idx, idx] = walk
-
-    def f(p: FloatArray) -> FloatArray:
-        return p * scale[:, None, :] + shift[:, None, :]
-
-    if cfg.mode is not FrictionMode.PRODUCT:
-        x, s = sckf_predict(st.x, st.s, f, sq_q)
-        return x, s, st.s_b
-    x, s, s_b = sckf_consider_predict(st.x, st.s, st.s_b, f, sq_q)
-    return x, s, _reset_offsets(s_b, cfg, u)
-
-
-def _reset_offsets(s_b: FloatArray, cfg: FilterConfig, u: TickInputs) -> FloatArray:
-    """The κ offsets' root rows ``(B, 4, n + 4)``: where ``u.kappa_offset_reset`` (the
-    calibrated radii they belong to moved) they start again from their prior
-    ``0 ± u.kappa_offset_std``, uncorrelated with the state (``S_bx = 0``,
-    ``S_bb = diag(σ)``); all 0 where ``kappa_offset_consider`` is off."""
-    if not cfg.kappa_offset_consider:
-        return np.zeros_like(s_b)
-    out = s_b.copy()
-    rows = np.flatnonzero(u.kappa_offset_reset)
-    n = s_b.shape[-1] - _N_OFFSETS
-    out[rows] = 0.0
-    idx = np.arange(_N_OFFSETS)
-    out[rows[:, None], idx, n + idx] = u.kappa_offset_std[rows]
-    return out
+    return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :] + shift[:, None, :], sq_q)
 
 
 def filter_step(
@@ -543,16 +495,15 @@ def filter_step(
 ) -> FilterState:
     """One tick for every vehicle: predict, then (where ``u.valid``) update with ``u.z``
     (product: not where the innovation is an outlier, ``updated`` False there)."""
-    x, s, s_b = _predict(st, cfg, tyres, u)
+    x, s = _predict(st, cfg, tyres, u)
     mee_ok = np.zeros(x.shape[0], dtype=bool)
     nis = st.nis.copy()
     updated = u.valid.copy()
     rows = np.flatnonzero(u.valid)
     if rows.size:
-        x_up, s_up, s_b_up, mee_ok[rows], white = _update(
+        x_up, s_up, mee_ok[rows], white = _update(
             x[rows],
             s[rows],
-            s_b[rows],
             cfg,
             _tyres_subset(tyres, rows),
             _chassis_subset(chassis, rows),
@@ -563,25 +514,23 @@ def filter_step(
             white = white[:, :_N_MEASURED]
             keep = np.abs(white).max(axis=-1) <= cfg.outlier_sigmas
         x[rows[keep]], s[rows[keep]] = x_up[keep], s_up[keep]
-        s_b[rows[keep]] = s_b_up[keep]
         updated[rows[~keep]] = False
         step = min(cfg.tick_s / cfg.nis_smoothing_s, 1.0)
         nis[rows] += step * ((white**2).mean(axis=-1) - nis[rows])
     _bound_mu(x, cfg, u)
-    return FilterState(x, s, s_b, u.fz_n.copy(), nis, mee_ok, updated)
+    return FilterState(x, s, u.fz_n.copy(), nis, mee_ok, updated)
 
 
 def _update(
     x: FloatArray,
     s: FloatArray,
-    s_b: FloatArray,
     cfg: FilterConfig,
     tyres: TyreArrays,
     chassis: Chassis,
     u: TickInputs,
-) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray, FloatArray]:
-    """Measurement update of the vehicles in ``u`` (all valid): the new ``(x, S, S_b)``, where
-    the MEE covariance was used (paper mode) and the whitened innovation ``(B, m)``."""
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+    """Measurement update of the vehicles in ``u`` (all valid): the new ``(x, S)``, where the
+    MEE covariance was used (paper mode) and the whitened innovation ``(B, m)``."""
 
     def h(points: FloatArray) -> FloatArray:
         return _measure(
@@ -602,47 +551,9 @@ def _update(
     centre = None
     if mask is not None and cfg.central_prediction:
         centre = _considered_centre(x, s, mask, h)
-    if cfg.mode is FrictionMode.PRODUCT:
-        h_b = _offset_jacobian(x, cfg, tyres, chassis, u)
-        up, s_b = sckf_consider_update(x, s, s_b, z, h, h_b, sq_r, mask, centre)
-    else:
-        up = sckf_update(x, s, z, h, sq_r, mask, centre)
+    up = sckf_update(x, s, z, h, sq_r, mask, centre)
     white = np.asarray(np.linalg.solve(up.s_zz, up.innovation[..., None])[..., 0], np.float64)
-    return up.x, up.s, s_b, np.asarray(mee_ok, dtype=bool), white
-
-
-_OFFSET_STEP = 1e-4
-"""The κ step of :func:`_offset_jacobian`'s secant (about the CAN rounding's 1-σ in κ)."""
-
-
-def _offset_jacobian(
-    x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
-) -> FloatArray:
-    """``H_b = ∂h/∂b`` ``(B, m, 4)`` at the mean state ``x`` ``(B, n)``: each wheel's
-    persistent κ error ``b`` (the front end's κ less the true one), the tyres seeing ``κ − b``.
-
-    The calibration averages the CAN wheel speed over a straight held within one rounding
-    quantum ``q``, so each radius keeps that wheel's rounding, 1-σ ``q/(ω_cal √12)`` of the
-    radius, for as long as it stands, and κ carries ``b ≈ (1 + κ)·that`` on every tick: one
-    error held over the drive, not fresh noise. It enters ``h`` (accelerations, yaw and the
-    torque balances) almost linearly at the size of ``b`` (~10⁻⁴), so it is carried beside
-    the cubature states through this secant (:func:`~.sckf.sckf_consider_update`) rather than
-    as more cubature states, whose points would spread ``√10 σ`` instead of ``√6 σ``.
-
-    The κ are each rim against one speed ``v_x``, which the undriven rims correct once
-    calibrated (share ``w_j = u.kappa_offset_rim_share``), so the κ errors are
-    ``M ε = (I − 1 wᵀ) ε`` of the radii's own ``ε``, and ``H_b = H_κ M``: a free-rolling wheel
-    reads its own error less the rims' mean (≈ 0 on both undriven wheels together), a
-    driven wheel its own less that mean."""
-    mean = x[:, None, :]
-    alpha = u.alpha_rad[:, None, :]
-    kappa = u.kappa[:, None, :] - _OFFSET_STEP * np.eye(_N_OFFSETS)[None]
-    base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
-    moved = _measure(mean, cfg, tyres, chassis, u, kappa, alpha)
-    h_kappa = np.swapaxes(moved - base, -1, -2) / _OFFSET_STEP
-    share = u.kappa_offset_rim_share[:, None, :]
-    jac: FloatArray = h_kappa - h_kappa.sum(axis=-1, keepdims=True) * share
-    return jac
+    return up.x, up.s, np.asarray(mee_ok, dtype=bool), white
 
 
 def _gain_mask(

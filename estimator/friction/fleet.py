@@ -130,9 +130,6 @@ def _tick_inputs(fe: FrontEndTicks, axles: AxleArrays, cfg: AxleConfig) -> TickI
         alpha_lag_rad=fe.alpha_lag_rad,
         radius_m=effective_radii_m(fe.fz_n, fe.kz_npm, axles, cfg),
         balance_std_n=balance_std_n(fe.fz_n, fe.kz_npm, fe.kappa, fe.z, axles, cfg),
-        kappa_offset_std=(1.0 + np.abs(fe.kappa)) * fe.radius_rounding_rel,
-        kappa_offset_reset=fe.calibrating,
-        kappa_offset_rim_share=fe.rim_share,
     )
 
 

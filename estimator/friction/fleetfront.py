@@ -27,11 +27,9 @@ from estimator.friction.frontend import (
     UNDRIVEN,
     FrontEndConfig,
     brake_slip_std,
-    calibration_rounding_rel,
     calibration_scale_var,
     consider_step,
     rim_persistent_std_mps,
-    rim_share_step,
     ringing_slip_std,
     spin_up_slip,
 )
@@ -64,9 +62,6 @@ class FrontEndTicks:
     gnss: BoolArray
     valid: BoolArray
     tyre_suspect: BoolArray
-    radius_rounding_rel: FloatArray
-    calibrating: BoolArray
-    rim_share: FloatArray
 
 
 class _Arrays:
@@ -232,9 +227,7 @@ class _State(_Arrays):
         self.radius_std = np.zeros((0, 4))
         self.radius_common_rel = np.zeros(0)
         self.radius_scale_var = np.zeros(0)  # the radii's shared relative scale variance
-        self.omega_cal = np.zeros((0, 4))  # the calibration's mean wheel speed [rad/s]
         self.speed_persist = np.zeros(0)  # the speed's considered persistent 1-σ [m/s]
-        self.rim_share = np.zeros(0)  # the undriven rims' share in the speed
         self.radius_drop = np.zeros(0)
         self.calib_n = np.zeros(0, dtype=np.int64)
         self.kz_wheel = np.zeros((0, 4))
@@ -254,9 +247,7 @@ class _State(_Arrays):
         self.radius_std[slot] = 0.01 * car.r_u[slot]
         self.radius_common_rel[slot] = 0.0
         self.radius_scale_var[slot] = 0.01**2
-        self.omega_cal[slot] = 0.0
         self.speed_persist[slot] = 0.0
-        self.rim_share[slot] = 0.0
         self.radius_drop[slot] = fe.radius_drop0
         self.calib_n[slot] = 0
         self.kz_wheel[slot] = car.kz[slot]
@@ -334,11 +325,8 @@ class FleetFrontEnd:
         steer = np.where(np.isfinite(sensed.steer_rad), sensed.steer_rad, 0.0)
         delta = np.zeros((s.size, 4))
         delta[:, :2] = (steer / self.car.steering_ratio[s])[:, None]
-        calibrating = np.zeros(s.size, dtype=bool)
         if not paper:
-            calibrating[
-                self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
-            ] = True
+            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
         self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed)
         self._side_slip_step(s, ay_tilt, yaw_rate, g, gnss_v)
         st = self.state
@@ -366,13 +354,6 @@ class FleetFrontEnd:
             gnss=np.isfinite(gnss_v[:, 0]),
             valid=valid,
             tyre_suspect=np.any(st.suspect[s], axis=1),
-            radius_rounding_rel=calibration_rounding_rel(
-                self.fe.wheel_speed_resolution_radps, st.omega_cal[s]
-            ),
-            calibrating=calibrating,
-            rim_share=st.rim_share[s][:, None]
-            * self.car.free[s]
-            / np.maximum(self.car.n_free[s], 1)[:, None],
             **slips,
         )
 
@@ -477,13 +458,13 @@ class FleetFrontEnd:
         yaw_rate: FloatArray,
         ax: FloatArray,
         omega: FloatArray,
-    ) -> IntArray:
+    ) -> None:
         """Radius calibration on the rows with a fresh epoch, straight and steady at 5 m/s or
-        more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt; the rows calibrated."""
+        more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt."""
         steady = (np.abs(ax[g]) < 0.3) & (np.abs(yaw_rate[g]) < 0.02) & (np.abs(delta[g, 0]) < 0.01)
         rows = g[steady & (gnss_v[g, 0] >= 5.0)]
         if not rows.size:
-            return rows
+            return
         c, car, st = s[rows], self.car, self.state
         v = gnss_v[rows]
         v_long, _ = self._wheel_velocity(c, v[:, 0], v[:, 1], yaw_rate[rows], delta[rows])
@@ -506,9 +487,7 @@ class FleetFrontEnd:
         st.radius_common_rel[c] = 0.003 / np.sqrt(n)
         st.radius_scale_var[c] = calibration_scale_var(st.radius_scale_var[c], gain[:, 0], v[:, 0])
         st.radius_std[c] = 2e-4 * radius
-        st.omega_cal[c] += gain * (omega[rows] - st.omega_cal[c])
         self._learn_tyres(c[n >= self.fe.calib_samples])
-        return rows
 
     def _learn_tyres(self, c: IntArray) -> None:
         """``ρ`` and each wheel's ``kz`` from the calibrated radii (``FrontEnd._learn_tyres``)."""
@@ -551,7 +530,6 @@ class FleetFrontEnd:
             sg, r_gnss = s[g], GNSS_SPEED_STD_MPS**2
             gain = vx.var[sg] / (vx.var[sg] + r_gnss)
             st.speed_persist[sg] = consider_step(st.speed_persist[sg], gain, 0.0)
-            st.rim_share[sg] = rim_share_step(st.rim_share[sg], gain, 0.0)
             vx.update(sg, gnss_v[g, 0], r_gnss)
         if self.fe.paper:
             return
@@ -595,7 +573,6 @@ class FleetFrontEnd:
         co = c[ok]
         k = self.vx.var[co] / (self.vx.var[co] + var)
         st.speed_persist[co] = consider_step(st.speed_persist[co], k, persist[ok])
-        st.rim_share[co] = rim_share_step(st.rim_share[co], k, 1.0)
         self.vx.update(co, v[ok], var)
 
     def _rim_persistent(

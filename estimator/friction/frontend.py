@@ -82,11 +82,9 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndTick",
     "brake_slip_std",
-    "calibration_rounding_rel",
     "calibration_scale_var",
     "consider_step",
     "rim_persistent_std_mps",
-    "rim_share_step",
     "ringing_slip_std",
     "spin_up_slip",
 ]
@@ -235,20 +233,6 @@ def rim_persistent_std_mps(
     return out
 
 
-def calibration_rounding_rel(resolution_radps: float, omega_cal_radps: FloatArray) -> FloatArray:
-    """Each wheel's calibrated radius's relative 1-σ from the CAN rounding ``q``:
-    ``q / (ω_cal √12)`` ``(…, 4)`` at the calibration's mean wheel speed ``ω_cal`` (0 before
-    any calibration epoch).
-
-    A speed held within one quantum reads the same rounded value at every epoch, so the
-    running mean keeps its rounding error, uniform over ±q/2 (variance ``q²/12``), however
-    many epochs it averages; the radius takes it as ``−e/ω``."""
-    w = np.asarray(omega_cal_radps, dtype=np.float64)
-    rel = resolution_radps / (np.maximum(w, 1e-9) * math.sqrt(12))
-    out: FloatArray = np.where(w > 0, rel, 0.0)
-    return out
-
-
 def calibration_scale_var(
     var: FloatArray | float, gain: FloatArray | float, gnss_speed_mps: FloatArray | float
 ) -> FloatArray:
@@ -261,22 +245,6 @@ def calibration_scale_var(
     g = np.asarray(gain)
     rel = GNSS_SPEED_STD_MPS / np.maximum(np.abs(np.asarray(gnss_speed_mps)), 1.0)
     out: FloatArray = (1.0 - g) ** 2 * np.asarray(var) + (g * rel) ** 2
-    return out
-
-
-def rim_share_step(
-    share: FloatArray | float, gain: FloatArray | float, reading_share: FloatArray | float
-) -> FloatArray:
-    """The undriven rims' share ``w`` in the speed estimate after a reading taken with gain
-    ``k``: ``w ← (1 − k) w + k s``, ``s`` 1 for the rims' mean speed, 0 for GNSS.
-
-    Once calibrated, the rims correct ``v_x`` every tick, so ``v_x`` carries ``w`` times the
-    mean of their calibrated radii's errors ``ε`` (the CAN rounding each radius kept). Every
-    wheel's κ is its rim against ``v_x``, so its persistent error is ``ε_i − w ε̄_free``, not
-    ``ε_i`` alone: the undriven wheels' own errors largely cancel in their κ, and their mean
-    is in every driven wheel's (:func:`~.filter._offset_jacobian`)."""
-    k = np.asarray(gain)
-    out: FloatArray = (1.0 - k) * np.asarray(share) + k * np.asarray(reading_share)
     return out
 
 
@@ -316,9 +284,6 @@ class FrontEndTick:
     gnss: bool
     valid: bool
     tyre_suspect: bool
-    radius_rounding_rel: FloatArray  # per wheel: the calibrated radius's rounding 1-σ
-    calibrating: bool  # the radius calibration took an epoch this tick
-    rim_share: FloatArray  # per wheel: its calibrated radius's share in the speed v_x
 
 
 def _latest_sample(
@@ -449,10 +414,7 @@ class FrontEnd:
         self.radius_std = np.full(4, 0.01 * ty.unloaded_radius_m)  # each wheel's own
         self.radius_common_rel = 0.0  # the calibration's GNSS error, shared by the four
         self.radius_scale_var = 0.01**2  # its relative variance (calibration_scale_var)
-        self.omega_cal = np.zeros(4)  # the calibration's mean wheel speed [rad/s]
-        self.calibrating = False  # the calibration took an epoch this tick
         self.speed_persist = 0.0  # the speed's considered persistent 1-σ [m/s]
-        self.rim_share = 0.0  # the undriven rims' share in the speed (rim_share_step)
         self.fz_cal = self.fz_static.copy()
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
@@ -597,11 +559,6 @@ class FrontEnd:
             gnss=gnss is not None,
             valid=bool(valid),
             tyre_suspect=self.tyre_suspect,
-            radius_rounding_rel=calibration_rounding_rel(
-                self.fe.wheel_speed_resolution_radps, self.omega_cal
-            ),
-            calibrating=self.calibrating,
-            rim_share=self.rim_share * self.undriven / max(int(self.undriven.sum()), 1),
         )
 
     def _resistance(self, vx: float, fz: FloatArray) -> float:
@@ -652,7 +609,6 @@ class FrontEnd:
             r_gnss = GNSS_SPEED_STD_MPS**2
             gain = self.vx.speed_var / (self.vx.speed_var + r_gnss)
             self.speed_persist = float(consider_step(self.speed_persist, gain, 0.0))
-            self.rim_share = float(rim_share_step(self.rim_share, gain, 0.0))
             self.vx.update(gnss[0], r_gnss)
         free = self.undriven
         if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
@@ -687,7 +643,6 @@ class FrontEnd:
         )
         gain = self.vx.speed_var / (self.vx.speed_var + var)
         self.speed_persist = float(consider_step(self.speed_persist, gain, persist))
-        self.rim_share = float(rim_share_step(self.rim_share, gain, 1.0))
         self.vx.update(v, var)
 
     def _yaw_step(self, gyro_z_radps: float) -> float:
@@ -848,7 +803,6 @@ class FrontEnd:
         kept apart from each wheel's own error (``radius_std``: rim-speed resolution and the
         load model, 2e-4 of the radius), since a shared scale error of the radii cancels in κ
         where the speed comes from the same rims."""
-        self.calibrating = False
         steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
         if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
             return
@@ -868,8 +822,6 @@ class FrontEnd:
         self.radius_common_rel = 0.003 / math.sqrt(self.calib_n)
         self.radius_scale_var = float(calibration_scale_var(self.radius_scale_var, gain, gnss[0]))
         self.radius_std = 2e-4 * self.radius
-        self.omega_cal += gain * (self.omega - self.omega_cal)
-        self.calibrating = True
         self._learn_tyres()
 
     @property

@@ -8,12 +8,6 @@ square root of the covariance (``P = S Sᵀ``), kept by QR: ``tria(A)`` is the l
 
 ``ckf_predict`` / ``ckf_update`` are the same filter on full covariances: the oracle the tests
 hold the square-root form to.
-
-``sckf_consider_predict`` / ``sckf_consider_update`` carry ``c`` further parameters ``b`` beside
-the state, linearly (Schmidt's consider form): they enter ``h`` through a Jacobian ``H_b``, the
-cubature points span the state alone (spread ``√n σ``), and the update never moves ``b``.
-Their rows of the joint lower root, ``S_b = [S_bx, S_bb]`` ``(B, c, n + c)``, are kept beside
-``S``: ``P_bx = S_bx Sᵀ``, ``P_bb = S_bx S_bxᵀ + S_bb S_bbᵀ``.
 """
 
 from __future__ import annotations
@@ -32,8 +26,6 @@ __all__ = [
     "ckf_update",
     "cubature_points",
     "mee_measurement_sqrt",
-    "sckf_consider_predict",
-    "sckf_consider_update",
     "sckf_predict",
     "sckf_update",
     "tria",
@@ -121,93 +113,6 @@ def sckf_update(
     x_new = x + (gain @ innovation[..., None])[..., 0]
     s_new = tria(np.concatenate([x_dev - gain @ z_dev, gain @ sq_r], axis=-1))
     return Update(x_new, s_new, innovation, s_zz, gain)
-
-
-def _unit_spread(n: int) -> FloatArray:
-    """``Ξ`` ``(n, 2n)``: the cubature points' centred, weighted directions, ``X − x̄ = S Ξ``
-    (``Ξ Ξᵀ = I``)."""
-    eye = np.eye(n) * np.sqrt(n) / np.sqrt(2 * n)
-    return np.concatenate([eye, -eye], axis=-1)
-
-
-def _split_joint(top: FloatArray, bottom: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
-    """The joint root ``tria([top; bottom])`` split into the state's ``(B, n, n)`` and the
-    considered parameters' rows ``(B, c, n + c)``."""
-    joint = tria(np.concatenate([top, bottom], axis=-2))
-    return joint[..., :n, :n], joint[..., n:, :]
-
-
-def sckf_consider_predict(
-    x: FloatArray, s: FloatArray, s_b: FloatArray, f: PointMap, sq_q: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Time update of ``x`` ``(B, n)`` with held consider parameters (root rows ``s_b``
-    ``(B, c, n + c)``, see the module docstring): ``b`` neither moves nor walks, its
-    cross-covariance follows the state's points,
-
-    ``[S⁻; S_b⁻] = tria([[X*, √Q, 0], [S_bx Ξ, 0, S_bb]])`` (``X*`` the propagated points'
-    weighted deviations ``(B, n, 2n)``), so ``P_xb⁻ = X* Ξᵀ S_bxᵀ`` (``F P_xb`` when ``f`` is
-    linear). The state's block is :func:`sckf_predict`'s root. Returns ``x⁻, S⁻, S_b⁻``."""
-    n = x.shape[-1]
-    c = s_b.shape[-2]
-    mean, dev = _centred(f(cubature_points(x, s)))
-    sq_q = np.broadcast_to(sq_q, s.shape)
-    lead = x.shape[:-1]
-    b_dev = s_b[..., :n] @ _unit_spread(n)
-    top = np.concatenate([dev, sq_q, np.zeros((*lead, n, c))], axis=-1)
-    bottom = np.concatenate([b_dev, np.zeros((*lead, c, n)), s_b[..., n:]], axis=-1)
-    s_new, s_b_new = _split_joint(top, bottom, n)
-    return mean, s_new, s_b_new
-
-
-def sckf_consider_update(
-    x: FloatArray,
-    s: FloatArray,
-    s_b: FloatArray,
-    z: FloatArray,
-    h: PointMap,
-    h_b: FloatArray,
-    sq_r: FloatArray,
-    gain_mask: FloatArray | None = None,
-    z_centre: FloatArray | None = None,
-) -> tuple[Update, FloatArray]:
-    """Measurement update with consider parameters ``b`` (mean 0, root rows ``s_b``
-    ``(B, c, n + c)``) entering ``z = h(x) + H_b b + v`` linearly, ``H_b`` ``(B, m, c)``.
-
-    The points span ``x`` only; each point's ``b`` is its regression on ``x``
-    (``b_i = S_bx ξ_i``), the rest ``S_bb η`` independent of the points. So, with ``Z`` the
-    points' weighted deviations of ``h``:
-
-    ``Z̃ = Z + H_b S_bx Ξ``, ``S_zz = tria([Z̃, H_b S_bb, √R])``,
-    ``P_xz = X Z̃ᵀ``, ``K = P_xz P_zz⁻¹`` (rows of ``gain_mask`` 0 zeroed), ``x⁺ = x + K ν``,
-    ``[S⁺; S_b⁺] = tria([[X − K Z̃, −K H_b S_bb, K √R], [S_bx Ξ, S_bb, 0]])``
-
-    (the covariance of the posterior error for any gain; ``b``'s gain is 0, so ``P_bb``
-    stays and ``P_xb⁺ = P_xb − K P_zb``). With ``s_b`` 0 it is :func:`sckf_update`.
-    Returns the update (``s_zz`` ``(B, m, m)``) and ``S_b⁺``."""
-    n = x.shape[-1]
-    c = s_b.shape[-2]
-    points = cubature_points(x, s)
-    z_mean, z_dev = _centred(h(points))
-    if z_centre is not None:
-        z_mean = z_centre
-    _, x_dev = _centred(points)
-    b_dev = s_b[..., :n] @ _unit_spread(n)
-    s_bb = s_b[..., n:]
-    z_dev = z_dev + h_b @ b_dev
-    extra = h_b @ s_bb
-    s_zz = tria(np.concatenate([z_dev, extra, sq_r], axis=-1))
-    p_xz = x_dev @ np.swapaxes(z_dev, -1, -2)
-    p_zz = s_zz @ np.swapaxes(s_zz, -1, -2)
-    gain = np.swapaxes(np.linalg.solve(p_zz, np.swapaxes(p_xz, -1, -2)), -1, -2)
-    if gain_mask is not None:
-        gain = gain * gain_mask[..., None]
-    innovation = z - z_mean
-    x_new = x + (gain @ innovation[..., None])[..., 0]
-    m = sq_r.shape[-1]
-    top = np.concatenate([x_dev - gain @ z_dev, -gain @ extra, gain @ sq_r], axis=-1)
-    bottom = np.concatenate([b_dev, s_bb, np.zeros((*x.shape[:-1], c, m))], axis=-1)
-    s_new, s_b_new = _split_joint(top, bottom, n)
-    return Update(x_new, s_new, innovation, s_zz, gain), s_b_new
 
 
 @dataclass(frozen=True, slots=True)

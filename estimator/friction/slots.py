@@ -33,8 +33,7 @@ def _grown(a: np.ndarray, rows: int) -> np.ndarray:
 
 class FleetSlots:
     """Per slot: constants ``tyres``, ``chassis``, ``axles`` (their arrays' first axis is the
-    slot), filter mean ``x`` ``(S, n)``, root ``s`` ``(S, n, n)``, the considered κ offsets'
-    root rows ``s_b`` ``(S, 4, n + 4)``, last loads ``(S, 4)``,
+    slot), filter mean ``x`` ``(S, n)``, root ``s`` ``(S, n, n)``, last loads ``(S, 4)``,
     smoothed NIS ``(S,)``, ``has_state`` ``(S,)``, the last informed μ ``held_mu`` ``(S,)``
     and the informed window ``recent_ok``, ``recent_mu`` ``(S, W)``, ``recent_n`` ``(S,)``."""
 
@@ -45,7 +44,6 @@ class FleetSlots:
         self.axles = AxleArrays(np.zeros((0, 1)), np.zeros(0), np.zeros((0, 2)))
         self.x = np.zeros((0, n_state))
         self.s = np.zeros((0, n_state, n_state))
-        self.s_b = np.zeros((0, 4, n_state + 4))
         self.fz_prev_n = np.zeros((0, 4))
         self.nis = np.zeros(0)
         self.has_state = np.zeros(0, dtype=bool)
@@ -58,7 +56,7 @@ class FleetSlots:
         if slot < self.x.shape[0]:
             return
         rows = max(slot + 1, 2 * self.x.shape[0], 8)
-        for name in ("x", "s", "s_b", "fz_prev_n", "nis", "has_state", "held_mu"):
+        for name in ("x", "s", "fz_prev_n", "nis", "has_state", "held_mu"):
             setattr(self, name, _grown(getattr(self, name), rows))
         for name in ("recent_ok", "recent_mu", "recent_n"):
             setattr(self, name, _grown(getattr(self, name), rows))
@@ -99,15 +97,14 @@ class FleetSlots:
     def states(self, slots: IntArray, prior: FilterState, fresh: BoolArray) -> FilterState:
         """The filter states of ``slots`` ``(B, ·)``; the ``fresh`` rows (no state yet) from
         ``prior`` (its rows are those of ``fresh``, in order)."""
-        x, s, s_b = self.x[slots], self.s[slots], self.s_b[slots]
+        x, s = self.x[slots], self.s[slots]
         fz, nis = self.fz_prev_n[slots], self.nis[slots]
-        x[fresh], s[fresh], s_b[fresh] = prior.x, prior.s, prior.s_b
-        fz[fresh], nis[fresh] = prior.fz_prev_n, prior.nis
-        return FilterState(x, s, s_b, fz, nis)
+        x[fresh], s[fresh], fz[fresh], nis[fresh] = prior.x, prior.s, prior.fz_prev_n, prior.nis
+        return FilterState(x, s, fz, nis)
 
     def keep(self, slots: IntArray, st: FilterState) -> None:
         """Store the stepped states ``st`` (rows in the order of ``slots``)."""
-        self.x[slots], self.s[slots], self.s_b[slots] = st.x, st.s, st.s_b
+        self.x[slots], self.s[slots] = st.x, st.s
         self.fz_prev_n[slots], self.nis[slots] = st.fz_prev_n, st.nis
         self.has_state[slots] = True
 

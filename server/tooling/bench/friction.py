@@ -231,9 +231,6 @@ def _truth_inputs(runs: list[FourWheelRun], k: int) -> TickInputs:
         alpha_lag_rad=np.zeros(fz.shape),
         radius_m=np.stack([r.config.tyre.unloaded_radius_m * np.ones(4) for r in runs]),
         balance_std_n=np.full((len(runs), 2), AxleConfig().weightless_std_n),
-        kappa_offset_std=np.zeros(fz.shape),
-        kappa_offset_reset=np.zeros(len(runs), dtype=bool),
-        kappa_offset_rim_share=np.zeros((len(runs), 4)),
     )
 
 

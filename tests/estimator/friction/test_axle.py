@@ -134,9 +134,6 @@ def _soft_tyre_tick(kappa_rl_bias: float, balance: bool) -> tuple[TickInputs, Ty
         balance_std_n=balance_std_n(fz, kz, read, z, AxleArrays.of([REAR]), CFG)
         if balance
         else np.full((1, 2), CFG.weightless_std_n),
-        kappa_offset_std=np.zeros((1, 4)),
-        kappa_offset_reset=np.zeros(1, dtype=bool),
-        kappa_offset_rim_share=np.zeros((1, 4)),
     )
     return u, tyres, chassis
 

@@ -20,7 +20,6 @@ from estimator.friction.filter import (
     _gain_mask,
     _input_spread,
     _measure,
-    _offset_jacobian,
     filter_step,
     initial_state,
     mu_of,
@@ -235,9 +234,6 @@ def _model_inputs(mu: float, n: int, seed: int) -> tuple[list[TickInputs], Chass
                 alpha_lag_rad=np.zeros((1, 4)),
                 radius_m=np.full((1, 4), t.unloaded_radius_m),
                 balance_std_n=np.full((1, 2), 1e6),  # random slips: no differential
-                kappa_offset_std=np.zeros((1, 4)),
-                kappa_offset_reset=np.zeros(1, dtype=bool),
-                kappa_offset_rim_share=np.zeros((1, 4)),
             )
         )
     return ticks, chassis, tyres
@@ -547,9 +543,6 @@ def _steady_awd_turn(vy_bias_mps: float) -> tuple[TickInputs, Chassis, TyreArray
         alpha_lag_rad=np.zeros((1, 4)),
         radius_m=np.full((1, 4), t.unloaded_radius_m),
         balance_std_n=np.full((1, 2), 1e6),
-        kappa_offset_std=np.zeros((1, 4)),
-        kappa_offset_reset=np.zeros(1, dtype=bool),
-        kappa_offset_rim_share=np.zeros((1, 4)),
     )
     return u, chassis, tyres
 
@@ -586,53 +579,3 @@ def test_a_biased_side_slip_does_not_press_mu_onto_its_floor() -> None:
         sd = float(np.linalg.norm(st.s[0, 0]))
         assert mu > 0.4, (bias, mu)
         assert sd > 0.1, (bias, sd)
-
-
-def test_a_persistent_slip_error_is_considered_beside_the_cubature_states() -> None:
-    """Each wheel's persistent κ error stated at a calibration epoch (1-σ 2e-3 on the rear
-    wheels) on the filter's own model: μ's 1-σ carries it (wider than with the term off),
-    the offsets keep their prior (considered, never learnt) and their cross-covariance with
-    the state builds up; with a prior of 0 the filter is the one without the term (the
-    cubature points still span the six states only)."""
-    ticks, chassis, tyres = _model_inputs(0.45, 60, seed=3)
-    prior = np.array([[0.0, 0.0, 2e-3, 2e-3]])
-    sd, states = {}, {}
-    for name, cfg, sigma in (
-        ("stated", FilterConfig(), prior),
-        ("off", FilterConfig(kappa_offset_consider=False), prior),
-        ("zero", FilterConfig(), 0.0 * prior),
-    ):
-        st = initial_state(cfg, tyres, ticks[0].fz_n)
-        for k, u in enumerate(ticks):
-            read = dataclasses.replace(
-                u, kappa_offset_std=sigma, kappa_offset_reset=np.array([k == 0])
-            )
-            st = filter_step(st, cfg, tyres, chassis, read)
-        sd[name], states[name] = float(np.linalg.norm(st.s[0, 0])), st
-    assert sd["stated"] > 1.01 * sd["off"]
-    n = len(ProductState)
-    s_b = states["stated"].s_b[0]
-    np.testing.assert_allclose(s_b @ s_b.T, np.diag(prior[0] ** 2), atol=1e-15)
-    assert np.abs(s_b[2:, :n]).max() > 1e-4  # P_bx = S_bx Sᵀ: the cross-covariance kept
-    np.testing.assert_allclose(states["zero"].x, states["off"].x, atol=1e-12)
-    np.testing.assert_allclose(states["zero"].s, states["off"].s, atol=1e-12)
-
-
-def test_the_offsets_are_read_against_the_rims_speed() -> None:
-    """Every κ is a rim against one speed ``v_x``; where the undriven front rims set that
-    speed (share 1/2 each), one scale error of all four radii (ε on each) moves every rim and
-    ``v_x`` alike and so no κ: ``H_b`` summed over the wheels is 0 on every row. The two
-    front offsets together (ε on both) leave the front κ and move each rear κ by −ε; the
-    rear ones are read as they are. Without the share (the offsets taken as κ errors of
-    their own) the scale error moves ``a_x`` by ``Σ_i ∂a_x/∂κ_i`` ε, ~1e2 ε here."""
-    u, chassis, tyres = _steady_awd_turn(0.0)
-    cfg = FilterConfig()
-    st = initial_state(cfg, tyres, u.fz_n)
-    alone = _offset_jacobian(st.x, cfg, tyres, chassis, u)
-    rims = dataclasses.replace(u, kappa_offset_rim_share=np.array([[0.5, 0.5, 0.0, 0.0]]))
-    read = _offset_jacobian(st.x, cfg, tyres, chassis, rims)
-    assert abs(alone[0, 0].sum()) > 50.0
-    np.testing.assert_allclose(read.sum(axis=-1), 0.0, atol=1e-6 * np.abs(alone).max())
-    np.testing.assert_allclose(read[..., 2:], alone[..., 2:], rtol=1e-12)
-    front = read[..., 0] + read[..., 1]
-    np.testing.assert_allclose(front, -(alone[..., 2] + alone[..., 3]), rtol=1e-9, atol=1e-9)

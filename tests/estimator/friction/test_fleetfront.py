@@ -104,7 +104,6 @@ def test_batched_front_end_equals_the_per_vehicle_one(
 ) -> None:
     _, refs, seen = _drive(runs, mode)
     valid = calibrated = 0
-    share = 0.0
     for vid, ref in refs.items():
         got = seen[vid]
         assert [t for t, _ in got] == list(ref.ticks), vid
@@ -120,12 +119,10 @@ def test_batched_front_end_equals_the_per_vehicle_one(
                     err_msg=f"{vid} {name} at {t_ns}",
                 )
             valid += bool(fields["valid"])
-            share = max(share, float(np.sum(fields["rim_share"])))
         calibrated += ref.front.calibrated
     assert valid > 1000  # the comparison covers μ updates, not only the lead-in
     if mode is FrictionMode.PRODUCT:
         assert calibrated >= len(refs) // 2
-        assert share > 0.5  # calibrated undriven rims set most of the speed
 
 
 def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> None:

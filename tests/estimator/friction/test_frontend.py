@@ -16,7 +16,6 @@ from estimator.friction.frontend import (
     FrontEndConfig,
     FrontEndTick,
     _TiltGradient,
-    calibration_rounding_rel,
     calibration_scale_var,
     consider_step,
     rim_persistent_std_mps,
@@ -300,11 +299,3 @@ def test_speed_std_helpers_by_hand() -> None:
     assert abs(var2 - 0.25 * var - 0.25 * (0.03 / 10.0) ** 2) < 1e-18
     assert abs(consider_step(0.01, 0.25, 0.03) - (0.75 * 0.01 + 0.25 * 0.03)) < 1e-15
     assert abs(consider_step(0.01, 0.25, 0.0) - 0.0075) < 1e-15
-
-
-def test_the_calibrated_radius_rounding_by_hand() -> None:
-    """``q/(ω_cal √12)``: a quantum of 0.025 rad/s at 25 rad/s (30 km/h on a 0.33 m tyre) is
-    2.89e-4 of the radius; 0 before any calibration epoch (``ω_cal`` 0)."""
-    got = calibration_rounding_rel(0.025, np.array([25.0, 50.0, 0.0, 12.5]))
-    want = [0.025 / (25.0 * math.sqrt(12)), 0.025 / (50.0 * math.sqrt(12)), 0.0, 5.7735e-4]
-    np.testing.assert_allclose(got, want, rtol=1e-4)

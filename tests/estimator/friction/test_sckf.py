@@ -10,8 +10,6 @@ from estimator.friction.sckf import (
     ckf_update,
     cubature_points,
     mee_measurement_sqrt,
-    sckf_consider_predict,
-    sckf_consider_update,
     sckf_predict,
     sckf_update,
     tria,
@@ -172,59 +170,3 @@ def test_central_prediction_moves_only_the_innovation() -> None:
     moved = sckf_update(x, s, z, h, sq_r, None, x @ h_mat.T + d)
     assert np.allclose(moved.x, plain.x - (plain.gain @ d[..., None])[..., 0], atol=1e-12)
     assert np.allclose(moved.s, plain.s, atol=1e-12)
-
-
-def test_consider_form_is_the_schmidt_kalman_filter_on_a_linear_case() -> None:
-    """Ten predict/update cycles of ``x`` with parameters ``b`` in ``z = H x + H_b b + v``:
-    the consider form against the Schmidt-Kalman filter on the full joint covariance
-    (``K_b = 0``, ``P⁺ = (I − K Hₐ) P (I − K Hₐ)ᵀ + K R Kᵀ``), to 1e-9: ``x``, ``P_xx``,
-    ``P_xb`` and ``P_bb`` (which stays). With ``S_b`` 0 it is :func:`sckf_update`."""
-    rng = np.random.default_rng(7)
-    b, n, c, m = 3, 4, 2, 3
-    f_mat = np.eye(n) + 0.05 * rng.normal(size=(n, n))
-    h_mat = rng.normal(size=(m, n))
-    hb_mat = np.broadcast_to(rng.normal(size=(m, c)), (b, m, c))
-    q = np.diag(rng.uniform(0.01, 0.1, n))
-    r = np.diag(rng.uniform(0.05, 0.2, m))
-    sq_q, sq_r = np.linalg.cholesky(q), np.broadcast_to(np.linalg.cholesky(r), (b, m, m))
-    x_s = x_c = rng.normal(size=(b, n))
-    a = rng.normal(size=(b, n + c, n + c))
-    p_c = a @ np.swapaxes(a, -1, -2) + np.eye(n + c)
-    joint = np.linalg.cholesky(p_c)
-    s_s, sb_s = joint[:, :n, :n], joint[:, n:, :]
-    f_aug = np.eye(n + c)
-    f_aug[:n, :n] = f_mat
-    q_aug = np.zeros((n + c, n + c))
-    q_aug[:n, :n] = q
-    h_aug = np.concatenate([np.broadcast_to(h_mat, (b, m, n)), hb_mat], axis=-1)
-
-    def f(pts: np.ndarray) -> np.ndarray:
-        return np.asarray(pts @ f_mat.T)
-
-    def h(pts: np.ndarray) -> np.ndarray:
-        return np.asarray(pts @ h_mat.T)
-
-    for _ in range(10):
-        z = rng.normal(size=(b, m))
-        x_s, s_s, sb_s = sckf_consider_predict(x_s, s_s, sb_s, f, sq_q)
-        up, sb_s = sckf_consider_update(x_s, s_s, sb_s, z, h, hb_mat, sq_r)
-        x_s, s_s = up.x, up.s
-        x_c = x_c @ f_mat.T
-        p_c = f_aug @ p_c @ f_aug.T + q_aug
-        pzz = h_aug @ p_c @ np.swapaxes(h_aug, -1, -2) + r
-        k = np.swapaxes(np.linalg.solve(pzz, h_aug @ p_c), -1, -2)
-        k[:, n:] = 0.0
-        nu = z - x_c @ h_mat.T
-        x_c = x_c + (k[:, :n] @ nu[..., None])[..., 0]
-        i_kh = np.eye(n + c) - k @ h_aug
-        p_c = i_kh @ p_c @ np.swapaxes(i_kh, -1, -2) + k @ r @ np.swapaxes(k, -1, -2)
-    j = np.concatenate([np.concatenate([s_s, np.zeros((b, n, c))], axis=-1), sb_s], axis=-2)
-    assert np.max(np.abs(x_s - x_c)) < 1e-9
-    assert np.max(np.abs(j @ np.swapaxes(j, -1, -2) - p_c)) < 1e-9
-    x0 = rng.normal(size=(b, n))
-    s0 = np.linalg.cholesky(p_c[:, :n, :n])
-    z = rng.normal(size=(b, m))
-    plain = sckf_update(x0, s0, z, h, sq_r)
-    none, _ = sckf_consider_update(x0, s0, np.zeros((b, c, n + c)), z, h, hb_mat, sq_r)
-    assert np.allclose(none.x, plain.x, atol=1e-12)
-    assert np.allclose(none.s, plain.s, atol=1e-12)
