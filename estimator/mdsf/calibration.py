@@ -221,7 +221,6 @@ class CalibrationBank:
         self.g_held = np.zeros(cap)  # the last speed y (filled between fixes) [m/s]
         self.g_gap = np.zeros(cap)  # time since the last GNSS speed [s]
         self.g_nis = np.ones(cap)  # running mean of the normalised innovation squared
-        self.y_nis = np.ones(cap)  # the same, of the mounting-yaw filter
         self.g_fast = np.zeros(cap)  # the regressor's error variance [m²/s⁴]
         self.g_lever = np.zeros(cap)  # the last tick's lever-arm velocity L [m/s]
         self.wx = np.zeros((cap, 3))
@@ -249,7 +248,6 @@ class CalibrationBank:
             ("g_held", (), 0.0),
             ("g_gap", (), 0.0),
             ("g_nis", (), 1.0),
-            ("y_nis", (), 1.0),
             ("g_fast", (), 0.0),
             ("g_lever", (), 0.0),
             ("wx", (3,), 0.0),
@@ -289,7 +287,6 @@ class CalibrationBank:
         self.g_started[slot] = False
         self.g_gap[slot] = 0.0
         self.g_nis[slot] = 1.0
-        self.y_nis[slot] = 1.0
         self.g_fast[slot] = 0.0
         self.wx[slot] = 0.0
         self.wp[slot] = np.diag([rad_var, rad_var, off_var])
@@ -640,13 +637,6 @@ class CalibrationBank:
             h = np.stack([f_fwd[ok], np.ones(int(ok.sum()))], axis=1)
             r = 2.0 * force_var[ok] + _LAT_FLOOR_MPS2**2
             xu, pu = x[ok], p[ok]
-            # what the model leaves out (the roll's error, sway left over) counts as noise,
-            # scaled by the running mean of the normalised innovation squared
-            s_ok = slots[ok]
-            nu = y[ok] - np.einsum("ki,ki->k", h, xu)
-            nis = np.minimum(nu * nu / (np.einsum("ki,kij,kj->k", h, pu, h) + r), _GATE_SIGMAS**2)
-            self.y_nis[s_ok] += dt / (_RESIDUAL_TAU_S + dt) * (nis - self.y_nis[s_ok])
-            r = r * np.maximum(self.y_nis[s_ok], 1.0)
             _kf_update(xu, pu, h, y[ok], r)
             x[ok], p[ok] = xu, pu
         self.yx[slots], self.yp[slots] = x, p
