@@ -616,22 +616,22 @@ class CalibrationBank:
         slots: IntArray,
         force_mps2: tuple[FloatArray, FloatArray],
         force_var: FloatArray,
-        known_lat_mps2: FloatArray,
+        speed_mps: FloatArray,
+        yaw_rate_radps: FloatArray,
+        tilt_rad: tuple[FloatArray, FloatArray],
     ) -> None:
         """One tick of the mounting-yaw filter: the tick-mean IMU forces ``(f_y', f_x')``
         (forward at the IMU; lateral at ``O``, the lever arm's angular-acceleration term off,
-        as the model is ``O``'s), their variance and the body's lateral force less the IMU's,
-        ``V·ωz + g·sin φ·cos θ``, over the same samples, all (k,):
-        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y' + b_lat`` (NaN anywhere: predicted only).
-        Every term belongs to the window the forces average: under a roll sway, ``φ`` half a
-        tick off the mean force is ``g·φ̇·Δt/2`` of lateral force in phase with the pitch
-        sway's forward force, which the regression on ``f_y'`` reads as yaw."""
+        as the model is ``O``'s) and their variance, the ground speed ``V``, the yaw rate
+        ``ωz`` and the body's ``(θ, φ)``, all (k,):
+        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y' + b_lat`` (NaN anywhere: predicted only)."""
         dt = self.dt_s
         x, p = self.yx[slots], self.yp[slots]
         p[:, 0, 0] += _YAW_WALK_RAD_PER_SQRT_S**2 * dt
         p[:, 1, 1] += _LAT_BIAS_WALK_MPS2_PER_SQRT_S**2 * dt
         f_fwd, f_lat = force_mps2
-        y = f_lat + known_lat_mps2
+        theta, phi = tilt_rad
+        y = f_lat + speed_mps * yaw_rate_radps + GRAVITY_MPS2 * np.sin(phi) * np.cos(theta)
         ok = np.isfinite(y) & np.isfinite(f_fwd) & np.isfinite(force_var)
         if ok.any():
             h = np.stack([f_fwd[ok], np.ones(int(ok.sum()))], axis=1)

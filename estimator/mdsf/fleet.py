@@ -602,24 +602,14 @@ class MdsfFleet:
         bank.observe_wheels(slots, rim, rim_std**2, ground, ground_var, wheel_accel, usable)
         still = bank.still_pitch_rows(slots, vg_raw, rim, min_speed)
         bank.observe_still(slots, tin.force_fwd, tin.accel_var, tin.attitude[:, 1], still)
-        if (
-            tin.force_lat is not None
-            and tin.lever_force_lat is not None
-            and tin.gravity_lat_mps2 is not None
-            and tin.yaw_rate_mean_radps is not None
-        ):
-            # every term over the forces' window (the speed at its centre, half a tick back)
-            # and both forces at O: the IMU's turn mixes the pitch sway's h0·ω̇x into its roll
-            # axis as it mixes the forward force into its lateral one
-            speed = so.v0 - 0.5 * self.config.dt_s * np.nan_to_num(accel)
-            fwd_o = tin.force_fwd
-            if tin.lever_accel_fwd_mps2 is not None:
-                fwd_o = fwd_o + tin.lever_accel_fwd_mps2
+        if tin.force_lat is not None and tin.lever_force_lat is not None:
             bank.observe_yaw(
                 slots,
-                (fwd_o, tin.force_lat - tin.lever_force_lat),
+                (tin.force_fwd, tin.force_lat - tin.lever_force_lat),
                 tin.accel_var,
-                speed * tin.yaw_rate_mean_radps + tin.gravity_lat_mps2,
+                so.v0,
+                tin.z[:, MdsfObs.OMEGA_Z],
+                (tin.attitude[:, 1], tin.attitude[:, 2]),
             )
 
     def _last_still(self, due: FleetTicks, rim: FloatArray, min_speed: FloatArray) -> IntArray:

@@ -190,11 +190,6 @@ class TickInputs:
     lever_force_lat : ndarray, shape (m,), or None
         What the IMU's lever arm adds to the lateral force by the angular acceleration
         (:func:`_lever_force_lat`) [m/s²]: the lateral force at ``O`` is ``force_lat`` less it.
-    gravity_lat_mps2, yaw_rate_mean_radps : ndarray, shape (m,), or None
-        Gravity's lateral share ``g·sin φ·cos θ`` (tilt track per sample) and the yaw rate
-        ``ωz``, each averaged over the same IMU samples as ``force_lat``: the mounting yaw's
-        known lateral force at the forces' instant (:mod:`estimator.mdsf.calibration`); NaN
-        where the roll is unknown.
     lever_accel_fwd_mps2 : ndarray, shape (m,), or None
         What the IMU's height takes off the axle's tick-mean forward acceleration by the pitch
         acceleration, ``h0·(ωx(t) − ωx(t − Δt))/Δt`` (:meth:`_Batch._lever_accel_fwd`): the
@@ -227,8 +222,6 @@ class TickInputs:
     fix_age_s: FloatArray
     force_lat: FloatArray | None = None
     lever_force_lat: FloatArray | None = None
-    gravity_lat_mps2: FloatArray | None = None
-    yaw_rate_mean_radps: FloatArray | None = None
     lever_accel_fwd_mps2: FloatArray | None = None
     lever_accel_fwd_var: FloatArray | None = None
     tilt_var: FloatArray | None = None
@@ -1175,18 +1168,6 @@ class _Batch:
             n_imu,
             (fe.imu_up_m[slot_t], fe.imu_fwd_m[slot_t]),
         )
-        # gravity's lateral share over the forces' own samples: a roll sway's φ taken at the
-        # window's last sample is half a tick ahead of the mean force
-        grav_lat = (
-            np.bincount(
-                tick_id,
-                weights=GRAVITY_MPS2 * np.sin(self.phi[inb]) * np.cos(theta[inb]),
-                minlength=n_ticks,
-            )
-            / np.maximum(n_imu, 1)
-            if self.product
-            else None
-        )
         (wx_tick, wz_tick), rate_var_factor = _rates_at_tick(
             tick_id, tau, (wx[inb], wz[inb]), means[1:3], n_imu
         )
@@ -1243,8 +1224,6 @@ class _Batch:
             fix_age_s=fix_age_s,
             force_lat=means[4],
             lever_force_lat=lever_lat,
-            gravity_lat_mps2=None if grav_lat is None else np.where(imu_ok, grav_lat, np.nan),
-            yaw_rate_mean_radps=means[2],
             lever_accel_fwd_mps2=lever_fwd,
             lever_accel_fwd_var=lever_fwd_var,
             tilt_var=self._tilt_var_at_ticks(),
