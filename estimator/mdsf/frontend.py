@@ -2173,6 +2173,12 @@ class _TiltTrack:
         turn = st.racc[r, RollSum.YAW] - bz * st.acc[r, PitchSum.TIME]
         pred = st.course[r] - turn / np.maximum(np.cos(st.th[r]), 0.5)
         stale = (b.g_t[fi] - st.cfix_ns[r]) * _NS > self.cfg.reacquire_s
+        # a course that went stale (an outage, a stop) restarts from the velocity of now: the
+        # antenna's mean velocity of before is as old as the outage, the vehicle may have
+        # turned through it
+        restart = stale & np.isfinite(pred)
+        if restart.any():
+            st.clp[r[restart], 2:4] = np.nan
         pred = np.where(stale, np.nan, pred)
         # none yet: the antenna's mean velocity's direction, the lever arm's swing averaged out
         mean_course = self._course_lowpass(fi, r)
