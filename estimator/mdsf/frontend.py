@@ -530,6 +530,7 @@ class FleetFrontEnd:
         grow("last_imu_ns", (), _NONE_NS)  # newest IMU sample accepted
         grow("last_imu_used_ns", (), _NONE_NS)  # newest IMU sample integrated
         grow("last_rates", (2,), np.nan)  # its bias-corrected (ωx, ωz) [rad/s]
+        grow("last_raw_rates", (3,), np.nan)  # its measured (ωx, ωy, ωz) [rad/s]
         grow("pitch_rad", (), 0.0)
         grow("pitch_known", (), False)
         grow("pitch_gyro_bias", (), 0.0)
@@ -610,6 +611,7 @@ class FleetFrontEnd:
     last_imu_ns: IntArray
     last_imu_used_ns: IntArray
     last_rates: FloatArray
+    last_raw_rates: FloatArray
     pitch_rad: FloatArray
     pitch_known: BoolArray
     pitch_gyro_bias: FloatArray
@@ -693,6 +695,7 @@ class FleetFrontEnd:
             getattr(self, name)[slot] = _NONE_NS
         self.tick_phase_ns[slot] = 0
         self.last_rates[slot] = np.nan
+        self.last_raw_rates[slot] = np.nan
         self._gridless.add(slot)
         self.pitch_rad[slot] = 0.0
         self.pitch_known[slot] = False
@@ -1137,6 +1140,7 @@ class _Batch:
         # dt per sample (first of a row from the vehicle's last integrated sample), ≤ 0.1 s
         n = self.T.shape[0]
         self.prev_used_ns = fe.last_imu_used_ns[self.slots].copy()
+        self.prev_raw_rates = fe.last_raw_rates[self.slots].copy()
         dts = np.empty(n)
         if n:
             dts[1:] = np.diff(self.T) * _NS
@@ -1146,7 +1150,11 @@ class _Batch:
             prev = np.where(prev != _NONE_NS, prev, self.T[b])  # none yet: dt 0
             dts[b] = (self.T[b] - prev) * _NS
             dts = np.clip(dts, 0.0, 0.1)
-            fe.last_imu_used_ns[self.slots[nz]] = self.T[self.s_end[nz] - 1]
+            ends = self.s_end[nz] - 1
+            fe.last_imu_used_ns[self.slots[nz]] = self.T[ends]
+            fe.last_raw_rates[self.slots[nz]] = np.stack(
+                [self.wx[ends], self.wy[ends], self.wz[ends]], axis=1
+            )
         self.dts = dts
         self.begin_of = self.s_begin[self.s_row]
         theta = self._pitch_track()
@@ -1404,9 +1412,7 @@ class _Batch:
         psi = np.where(vel_ok, self.g_heading[fi], 0.0)
         ve, vn, vu = (np.where(vel_ok, g[fi, c], 0.0) for c in (_G_VE, _G_VN, _G_VU))
         v_fwd = ve * np.sin(psi) + vn * np.cos(psi)
-        j = self.g_j[fi] - 1
-        wx = self.wx[np.maximum(j, 0)] if self.wx.shape[0] else np.zeros(fi.shape[0])
-        wx = np.where(j >= self.s_begin[r], wx, 0.0)
+        wx = self._rates_at_fix(fi, r)[0]
         v_up = vu - wx * fe.ant_fwd_m[slot]
         ok = vel_ok & np.isfinite(v_up) & (np.abs(v_fwd) >= _VEL_PITCH_MIN_SPEED_MPS)
         safe = np.where(ok, v_fwd, 1.0)
@@ -1418,15 +1424,34 @@ class _Batch:
         return pitch, var
 
     def _rates_at_fix(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Body rates ``(ωx, ωy, ωz)`` of the latest IMU sample at or before fixes ``fi`` (rows
-        ``r``), 0 where the row has none; each shape ``(len(fi),)``."""
-        j = self.g_j[fi] - 1
-        has = (j >= self.s_begin[r]) & (j >= 0)
+        """Measured body rates ``(ωx, ωy, ωz)`` at the stamps of fixes ``fi`` (rows ``r``),
+        interpolated linearly between the IMU samples around each: the row's last at or before
+        the fix or, for a fix before the batch's first sample (the usual case: a fix arrives
+        after the call that integrated the samples before it), the vehicle's newest integrated
+        one, carried from the previous call; and the next. 0 where the row has neither. Under
+        a sway of 1-2 Hz on a mast of metres the rates are the lever arm's metres per second:
+        a fix between two calls must not read them as 0. Each shape ``(len(fi),)``."""
+        k = fi.shape[0]
         if not self.wx.shape[0]:
-            return np.zeros(fi.shape[0]), np.zeros(fi.shape[0]), np.zeros(fi.shape[0])
-        jj = np.where(has, j, 0)
-        wx, wy, wz = (np.where(has, w[jj], 0.0) for w in (self.wx, self.wy, self.wz))
-        return wx, wy, wz
+            return np.zeros(k), np.zeros(k), np.zeros(k)
+        begin, end = self.s_begin[r], self.s_end[r]
+        j = self.g_j[fi] - 1
+        own = (j >= begin) & (j >= 0)
+        prev = self.prev_raw_rates[r]
+        carried = ~own & (self.prev_used_ns[r] != _NONE_NS) & np.isfinite(prev[:, 0])
+        last = self.wx.shape[0] - 1
+        jj = np.clip(j, 0, last)
+        nxt = np.clip(np.where(own, j + 1, begin), 0, last)
+        after = np.where(own, j + 1 < end, carried & (end > begin))
+        t0 = np.where(own, self.T[jj], self.prev_used_ns[r])
+        span = np.where(after, (self.T[nxt] - t0).astype(np.float64), 1.0)
+        u = np.where(after & (span > 0), (self.g_t[fi] - t0) / np.where(span > 0, span, 1.0), 0.0)
+        u = np.clip(u, 0.0, 1.0)
+        out = []
+        for c, w in enumerate((self.wx, self.wy, self.wz)):
+            w0 = np.where(own, w[jj], np.where(carried, prev[:, c], 0.0))
+            out.append(np.where(own | carried, w0 + u * (w[nxt] - w0), 0.0))
+        return out[0], out[1], out[2]
 
     def _antenna_lever(
         self, fi: IntArray, r: IntArray, heading_rad: FloatArray, pitch_rad: FloatArray
@@ -2163,6 +2188,12 @@ class _TiltTrack:
         turn = st.racc[r, RollSum.YAW] - bz * st.acc[r, PitchSum.TIME]
         pred = st.course[r] - turn / np.maximum(np.cos(st.th[r]), 0.5)
         stale = (b.g_t[fi] - st.cfix_ns[r]) * _NS > self.cfg.reacquire_s
+        # a course that went stale (an outage, a stop) restarts from the velocity of now: the
+        # antenna's mean velocity of before is as old as the outage, the vehicle may have
+        # turned through it
+        restart = stale & np.isfinite(pred)
+        if restart.any():
+            st.clp[r[restart], 2:4] = np.nan
         pred = np.where(stale, np.nan, pred)
         # none yet: the antenna's mean velocity's direction, the lever arm's swing averaged out
         mean_course = self._course_lowpass(fi, r)
