@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator._arrays import BoolArray, FloatArray, IntArray
-from estimator.config import DrivenAxle, Wheeled4wdSteeredConfig
+from estimator.config import Wheeled4wdSteeredConfig
 from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.frontend import (
     AIR_DENSITY_KGPM3,
@@ -31,7 +31,6 @@ from estimator.friction.frontend import (
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
-    roll_share_step,
     spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -176,8 +175,7 @@ class _Vehicles(_Arrays):
         self.mass = np.zeros(0)
         self.m_h = np.zeros(0)  # mass × CG height
         self.wheelbase = np.zeros(0)
-        self.share0 = np.zeros(0)  # lateral transfer's front share: the config's (the prior)
-        self.free_first = np.full(0, -1, dtype=np.int64)  # the free axle's left wheel, or −1
+        self.share = np.zeros(0)  # lateral transfer's front share
         self.tracks = np.zeros((0, 2))  # front, rear
         self.load_gain = np.zeros(0)  # 1 − exp(−dt/lag) of the load transfer
         self.tilt_gain = np.zeros(0)  # the same for the tilting body (never lag-free)
@@ -207,8 +205,7 @@ class _Vehicles(_Arrays):
         self.mass[slot] = ch.mass_kg
         self.m_h[slot] = ch.mass_kg * ch.cg_height_m
         self.wheelbase[slot] = wheelbase
-        self.share0[slot] = lr / wheelbase if fe.paper else ch.roll_stiffness_front_share
-        self.free_first[slot] = {DrivenAxle.REAR: 0, DrivenAxle.FRONT: 2}.get(ch.driven_axle, -1)
+        self.share[slot] = lr / wheelbase if fe.paper else ch.roll_stiffness_front_share
         self.tracks[slot] = ch.front_track_m, ch.rear_track_m
         lag = 0.0 if fe.paper else ch.load_transfer_lag_s
         self.load_gain[slot] = 1.0 - math.exp(-dt / max(lag, 1e-9))
@@ -236,9 +233,7 @@ class _State(_Arrays):
         self.kz_wheel = np.zeros((0, 4))
         self.suspect = np.zeros((0, 4), dtype=bool)
         self.fz_cal = np.zeros((0, 4))
-        self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] per share [N]
-        self.share_sxy = np.zeros(0)  # the learnt front share's Σ w x y, Σ w x² (roll_share_step)
-        self.share_sxx = np.zeros(0)
+        self.transfer = np.zeros((0, 3))  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros((0, 2))  # lagged raw [a_x, a_y] [m/s²]
         self.yaw_prev = np.zeros(0)
         self.accel_prev = np.zeros((0, 2))  # the last tick's [a_x, a_y] [m/s²]
@@ -259,8 +254,6 @@ class _State(_Arrays):
         self.suspect[slot] = False
         self.fz_cal[slot] = fz
         self.transfer[slot] = 0.0
-        self.share_sxx[slot] = 1.0 / fe.roll_share_std**2
-        self.share_sxy[slot] = self.share_sxx[slot] * car.share0[slot]
         self.tilt_reading[slot] = 0.0
         self.yaw_prev[slot] = math.nan
         self.accel_prev[slot] = math.nan
@@ -311,14 +304,6 @@ class FleetFrontEnd:
     def calibrated(self, s: IntArray) -> BoolArray:
         return self.state.calib_n[s] >= self.fe.calib_samples
 
-    def roll_share(self, s: IntArray) -> FloatArray:
-        """The slots' learnt front share of the lateral transfer ``(B,)``
-        (``FrontEnd.roll_share``)."""
-        lo, hi = self.fe.roll_share_range
-        st = self.state
-        out: FloatArray = np.clip(st.share_sxy[s] / st.share_sxx[s], lo, hi)
-        return out
-
     def radius_drop(self, slot: int) -> float:
         """Slot ``slot``'s learnt ``ρ`` (the radius's fall per unit of deflection)."""
         return float(self.state.radius_drop[slot])
@@ -336,7 +321,7 @@ class FleetFrontEnd:
         yaw_rate = self._yaw_step(s, sensed.gyro_radps[:, 2], g, sensed)
         ax_tilt, ay_tilt = self._tilt_step(s, ax_raw, ay_raw, g, sensed)
         ax, ay = ax_tilt - self.vx.bias[s], ay_tilt - self.vy.bias[s]
-        fz, steady = self._loads(s, ax, ay)
+        fz = self._loads(s, ax, ay)
         steer = np.where(np.isfinite(sensed.steer_rad), sensed.steer_rad, 0.0)
         delta = np.zeros((s.size, 4))
         delta[:, :2] = (steer / self.car.steering_ratio[s])[:, None]
@@ -348,14 +333,7 @@ class FleetFrontEnd:
         prev = st.yaw_prev[s]
         yaw_accel = np.where(np.isnan(prev), 0.0, (yaw_rate - prev) / dt)
         st.yaw_prev[s] = yaw_rate
-        learn = (
-            steady
-            & self.calibrated(s)
-            & (ax > -0.3)
-            & (self.vx.speed[s] >= self.fe.min_speed_mps)
-            & (self.car.free_first[s] >= 0)
-        )
-        slips = self._slips(s, fz, delta, yaw_rate, sensed.omega_radps, learn)
+        slips = self._slips(s, fz, delta, yaw_rate, sensed.omega_radps)
         vx, vx_var = self.vx.speed[s], self.vx.var[s]
         ax_now, ay_now = self._at_tick(s, ax, ay, sensed.imu_lag_s)
         z = np.stack([ax_now + self._resistance(s, vx, fz), ay_now, yaw_accel], axis=1)
@@ -435,25 +413,24 @@ class FleetFrontEnd:
         ax = ax_raw - self.pitch.slope(s) * reading[:, 0]
         return ax, ay_raw - self.roll.slope(s) * reading[:, 1]
 
-    def _loads(self, s: IntArray, ax: FloatArray, ay: FloatArray) -> tuple[FloatArray, BoolArray]:
-        """Static loads plus the lagged transfer ``(B, 4)`` and whether the lateral transfer
-        is near its target ``(B,)`` (``FrontEnd._loads``)."""
+    def _loads(self, s: IntArray, ax: FloatArray, ay: FloatArray) -> FloatArray:
+        """Static loads plus the lagged transfer ``(B, 4)`` (``FrontEnd._loads``)."""
         car, st = self.car, self.state
-        m_h, tracks = car.m_h[s], car.tracks[s]
+        m_h, share, tracks = car.m_h[s], car.share[s], car.tracks[s]
         target = np.stack(
-            [m_h * ax / car.wheelbase[s], m_h * ay / tracks[:, 0], m_h * ay / tracks[:, 1]],
+            [
+                m_h * ax / car.wheelbase[s],
+                share * m_h * ay / tracks[:, 0],
+                (1 - share) * m_h * ay / tracks[:, 1],
+            ],
             axis=1,
         )
         transfer = st.transfer[s]
         transfer += (target - transfer) * car.load_gain[s][:, None]
         st.transfer[s] = transfer
-        steady = np.abs(target[:, 1] - transfer[:, 1]) <= self.fe.roll_share_steady * np.abs(
-            transfer[:, 1]
-        )
-        share = self.roll_share(s)
-        lx, lf, lr = transfer[:, 0], share * transfer[:, 1], (1.0 - share) * transfer[:, 2]
+        lx, lf, lr = transfer.T
         moved = np.stack([-lx / 2 - lf, -lx / 2 + lf, lx / 2 - lr, lx / 2 + lr], axis=1)
-        return np.maximum(car.fz_static[s] + moved, 0.0), steady
+        return np.maximum(car.fz_static[s] + moved, 0.0)
 
     def _wheel_velocity(
         self, s: IntArray, vx: FloatArray, vy: FloatArray, yaw_rate: FloatArray, delta: FloatArray
@@ -641,10 +618,8 @@ class FleetFrontEnd:
         delta: FloatArray,
         yaw_rate: FloatArray,
         omega: FloatArray,
-        learn: BoolArray,
     ) -> dict[str, FloatArray]:
-        """κ, α, their 1-σ and α's lag per wheel ``(B, 4)`` (``FrontEnd._slips``); the rows
-        ``learn`` read the lateral transfer's split from their free axle first."""
+        """κ, α, their 1-σ and α's lag per wheel ``(B, 4)`` (``FrontEnd._slips``)."""
         st, vx, vy = self.state, self.vx.speed[s], self.vy
         v_long, v_lat = self._wheel_velocity(s, vx, vy.speed[s], yaw_rate, delta)
         speed = np.abs(v_long)
@@ -657,7 +632,6 @@ class FleetFrontEnd:
         if self.fe.paper:
             lag = np.zeros_like(alpha)
         else:
-            self._learn_share(s, learn, kappa, omega, denom, radius, k_std)
             rate = (speed + 1.0) / self.car.relax[s][:, None]
             gain = 1.0 - np.exp(-self.dt * rate)
             slip_lag = st.slip_lag[s]
@@ -678,37 +652,6 @@ class FleetFrontEnd:
             "alpha_std_rad": a_std,
             "alpha_lag_rad": lag,
         }
-
-    def _learn_share(
-        self,
-        s: IntArray,
-        learn: BoolArray,
-        kappa: FloatArray,
-        omega: FloatArray,
-        denom: FloatArray,
-        radius: FloatArray,
-        k_std: FloatArray,
-    ) -> None:
-        """The free axles' κ read the lateral transfer's split (``FrontEnd._learn_share``)."""
-        m = np.flatnonzero(learn)
-        if not m.size:
-            return
-        st, sm = self.state, s[m]
-        i = self.car.free_first[sm]
-        rows = np.arange(m.size)
-        g = omega[m] * st.radius_drop[sm][:, None] / (st.kz_wheel[sm] * denom[m])
-        std = k_std[m] + self.fe.wheel_speed_resolution_radps * radius[m] / denom[m]
-        col = np.where(i == 0, 1, 2)
-        st.share_sxy[sm], st.share_sxx[sm] = roll_share_step(
-            st.share_sxy[sm],
-            st.share_sxx[sm],
-            st.transfer[sm, col],
-            self.roll_share(sm),
-            kappa[m][rows, i] - kappa[m][rows, i + 1],
-            g[rows, i] + g[rows, i + 1],
-            np.hypot(std[rows, i], std[rows, i + 1]),
-            i == 0,
-        )
 
     def _resistance(self, s: IntArray, vx: FloatArray, fz: FloatArray) -> FloatArray:
         """Drag and rolling resistance over the mass [m/s²] (0 in the paper reading)."""

@@ -20,9 +20,7 @@ is tested against:
   against the accelerations' changes; the config's gradients are the prior);
 * loads: static + longitudinal ``m a_x h/L`` + lateral ``m a_y h/b`` split between the axles
   by the roll-stiffness share, through a first-order lag (paper: the static formula, lateral
-  split ``lr/L``, no lag). The share is learnt (:func:`roll_share_step`; the config's is the
-  prior): the undriven axle's two wheels roll free, so in a turn the difference of their κ is
-  what the split puts wrong in their loaded radii (not paper);
+  split ``lr/L``, no lag);
 * radius: calibrated per wheel while driving straight and steady (the slip there is what the
   resistances need), then falling with load, ``r_e = r_u − ρ Fz/kz`` (paper: the statically
   loaded radius ``r_u − Fz/kz``). ``ρ`` (0.25-0.4 for real tyres) is learnt from the calibrated
@@ -88,7 +86,6 @@ __all__ = [
     "consider_step",
     "rim_persistent_std_mps",
     "ringing_slip_std",
-    "roll_share_step",
     "spin_up_slip",
 ]
 
@@ -134,10 +131,7 @@ class FrontEndConfig:
     ``wheel_speed_resolution_radps``: the CAN wheel speed's rounding, below which a change
     between two readings may be rounding alone (:func:`ringing_slip_std`);
     ``wheel_speed_window_s``: the time a CAN wheel speed is averaged over (a tone ring timed
-    by the ECU; :func:`rim_persistent_std_mps`); ``roll_share_std``: the 1-σ of the config's
-    ``roll_stiffness_front_share`` as the prior of the learnt one, ``roll_share_range``: the
-    range it is held within, ``roll_share_steady``: the learning takes ticks whose lateral
-    transfer is within this fraction of its target (:func:`roll_share_step`).
+    by the ECU; :func:`rim_persistent_std_mps`).
     """
 
     paper: bool = False
@@ -161,9 +155,6 @@ class FrontEndConfig:
     brake_share_std: float = 0.5
     wheel_speed_resolution_radps: float = 0.025
     wheel_speed_window_s: float = 0.02
-    roll_share_std: float = 0.1
-    roll_share_range: tuple[float, float] = (0.2, 0.8)
-    roll_share_steady: float = 0.1
 
 
 def brake_slip_std(
@@ -218,36 +209,6 @@ def ringing_slip_std(
     excess = np.maximum(change - rounding, 0.0)
     updated: FloatArray = ring + gain * (excess - ring)
     return updated
-
-
-def roll_share_step(
-    sxy: FloatArray | float,
-    sxx: FloatArray | float,
-    unit_n: FloatArray | float,
-    share: FloatArray | float,
-    slip_diff: FloatArray | float,
-    gain_sum: FloatArray | float,
-    diff_std: FloatArray | float,
-    front_free: FloatArray | bool,
-) -> tuple[FloatArray, FloatArray]:
-    """One undriven axle's reading of the front share ``ζ`` of the lateral load transfer.
-
-    The transfer is ``ζ m h a_y/b_f`` on the front axle and ``(1 − ζ) m h a_y/b_r`` on the
-    rear; ``unit_n`` is the lagged ``m h a_y/b`` of the free axle [N]. Its wheels roll free
-    (no torque, ``κ = 0``), so the difference of their κ, ``d = κ_L − κ_R``, is what the
-    transfer ``l`` the front end used puts wrong in their loaded radii
-    (``r = r_cal − ρ (Fz − Fz_cal)/kz``, ``Fz = … ∓ l``): ``∂d/∂l = g_L + g_R`` with
-    ``g = ω ρ/(kz v)``, so the transfer they read is ``l − d/(g_L + g_R)``. That is
-    ``ζ u`` on a free front axle and ``(1 − ζ) u`` on a free rear one, a reading ``y`` of
-    ``ζ`` times ``x = u``: ``y = ζ̂ u ∓ d/(g_L + g_R)`` with 1-σ ``σ_d/(g_L + g_R)``,
-    accumulated as a weighted least squares ``Σ x y/σ²``, ``Σ x²/σ²`` (the prior is their
-    start). Returns the new ``(sxy, sxx)``; shapes broadcast (scalars, or ``(B,)``)."""
-    g = np.maximum(np.asarray(gain_sum), 1e-12)
-    sign = np.where(np.asarray(front_free), -1.0, 1.0)
-    y = np.asarray(share) * np.asarray(unit_n) + sign * np.asarray(slip_diff) / g
-    w = (g / np.maximum(np.asarray(diff_std), 1e-9)) ** 2
-    x = np.asarray(unit_n)
-    return np.asarray(sxy) + w * x * y, np.asarray(sxx) + w * x * x
 
 
 def rim_persistent_std_mps(
@@ -469,13 +430,7 @@ class FrontEnd:
         # yaw angle (from east, counter-clockwise) and the yaw gyro's bias, corrected by the
         # receiver's heading: the bias times v_x would read as a lateral acceleration
         self.yaw = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
-        self.transfer = np.zeros(3)  # lagged [long, lat front per share, lat rear per share] [N]
-        share0 = ch.cg_to_rear_axle_m / wheelbase if fe.paper else ch.roll_stiffness_front_share
-        # the learnt front share of the lateral transfer: Σ w x², Σ w x y, the prior their start
-        self.share_sxx = 1.0 / fe.roll_share_std**2
-        self.share_sxy = self.share_sxx * share0
-        free_pair = {DrivenAxle.REAR: (0, 1), DrivenAxle.FRONT: (2, 3)}
-        self.free_pair = free_pair.get(ch.driven_axle)
+        self.transfer = np.zeros(3)  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros(2)  # lagged raw [a_x, a_y] [m/s²] the body tilts with
         self.pitch = _TiltGradient(
             math.radians(ch.pitch_gradient_deg_per_g), fe.tilt_prior_weight, fe.tilt_highpass_s
@@ -560,7 +515,7 @@ class FrontEnd:
         # sensors' biases alone (not the leak of the body's pitch or roll), taken off here
         ax_tilt, ay_tilt = self._detilt(ax_raw, ay_raw)
         ax, ay = ax_tilt - self.vx.bias, ay_tilt - self.vy.bias
-        fz, steady = self._loads(ax, ay)
+        fz = self._loads(ax, ay)
         delta = np.zeros(4)
         steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
         delta[:2] = steer / self.ch.steering_ratio
@@ -569,8 +524,7 @@ class FrontEnd:
         self._side_slip_step(ay_tilt, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
-        learn = steady and self.calibrated and ax > -0.3 and self.vx.speed >= self.fe.min_speed_mps
-        kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate, learn)
+        kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
         # the radii's shared scale error is in the speed's (the rims correct it) and cancels
         # in κ with it: the speed's 1-σ alone is the shared part
         k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
@@ -752,30 +706,23 @@ class FrontEnd:
         if gnss is not None:
             self.vy.update(gnss[1], 0.04**2)
 
-    @property
-    def roll_share(self) -> float:
-        """The front axle's share ``ζ`` of the lateral load transfer (:func:`roll_share_step`;
-        paper: ``lr/L``), held within ``FrontEndConfig.roll_share_range``."""
-        lo, hi = self.fe.roll_share_range
-        return float(np.clip(self.share_sxy / self.share_sxx, lo, hi))
-
-    def _loads(self, ax: float, ay: float) -> tuple[FloatArray, bool]:
-        """Per-wheel loads ``(4,)`` and whether the lateral transfer is near its target."""
+    def _loads(self, ax: float, ay: float) -> FloatArray:
         ch = self.ch
         wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
         m_h = ch.mass_kg * ch.cg_height_m
+        share = ch.cg_to_rear_axle_m / wheelbase if self.fe.paper else ch.roll_stiffness_front_share
         target = np.array(
-            [m_h * ax / wheelbase, m_h * ay / ch.front_track_m, m_h * ay / ch.rear_track_m]
+            [
+                m_h * ax / wheelbase,
+                share * m_h * ay / ch.front_track_m,
+                (1 - share) * m_h * ay / ch.rear_track_m,
+            ]
         )
         lag = 0.0 if self.fe.paper else ch.load_transfer_lag_s
         self.transfer += (target - self.transfer) * (1.0 - math.exp(-self.dt / max(lag, 1e-9)))
-        steady = abs(target[1] - self.transfer[1]) <= self.fe.roll_share_steady * abs(
-            self.transfer[1]
-        )
-        share = self.roll_share
-        lx, lf, lr = self.transfer * np.array([1.0, share, 1.0 - share])
+        lx, lf, lr = self.transfer
         fz = self.fz_static + np.array([-lx / 2 - lf, -lx / 2 + lf, lx / 2 - lr, lx / 2 + lr])
-        return np.maximum(fz, 0.0), bool(steady)
+        return np.maximum(fz, 0.0)
 
     def _wheel_velocity(
         self, vx: float, vy: float, yaw_rate: float, delta: FloatArray
@@ -786,7 +733,7 @@ class FrontEnd:
         return u * np.cos(delta) + w * np.sin(delta), -u * np.sin(delta) + w * np.cos(delta)
 
     def _slips(
-        self, fz: FloatArray, delta: FloatArray, yaw_rate: float, learn: bool = False
+        self, fz: FloatArray, delta: FloatArray, yaw_rate: float
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         """κ, α, their 1-σ and α's lag (relaxed − kinematic) per wheel (source eq. 8-14),
         relaxed (not paper). κ's 1-σ here is each wheel's own (its radius, the rim speed's
@@ -804,8 +751,6 @@ class FrontEnd:
         a_std = np.full(4, math.sqrt(max(self.vy.speed_var, 0.0))) / denom + 1e-3
         lag = np.zeros(4)
         if not self.fe.paper:
-            if learn and self.free_pair is not None:
-                self._learn_share(kappa, denom, radius, k_std)
             rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
             gain = 1.0 - np.exp(-self.dt * rate)
             self.slip_lag += gain * (np.stack([kappa, alpha]) - self.slip_lag)
@@ -819,30 +764,6 @@ class FrontEnd:
             lag = self.slip_lag[1] - alpha
             kappa, alpha = self.slip_lag
         return kappa.copy(), alpha.copy(), k_std, a_std, lag
-
-    def _learn_share(
-        self, kappa: FloatArray, denom: FloatArray, radius: FloatArray, k_std: FloatArray
-    ) -> None:
-        """The free axle's two kinematic κ read the lateral transfer's split
-        (:func:`roll_share_step`); their 1-σ each the wheel's own and its reading's rounding."""
-        assert self.free_pair is not None
-        i, j = self.free_pair
-        g = self.omega * self.radius_drop / (self.kz_wheel * denom)
-        std = k_std + self.fe.wheel_speed_resolution_radps * radius / denom
-        col = 1 if i == 0 else 2
-        self.share_sxy, self.share_sxx = (
-            float(v)
-            for v in roll_share_step(
-                self.share_sxy,
-                self.share_sxx,
-                float(self.transfer[col]),
-                self.roll_share,
-                float(kappa[i] - kappa[j]),
-                float(g[i] + g[j]),
-                math.hypot(float(std[i]), float(std[j])),
-                i == 0,
-            )
-        )
 
     def _radius_now(self, fz: FloatArray) -> FloatArray:
         """Effective radius per wheel: the calibrated one, falling by ``ρ`` of the change of

@@ -20,7 +20,6 @@ from estimator.friction.frontend import (
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
-    roll_share_step,
     spin_up_slip,
 )
 from estimator.friction.model import GRAVITY_MPS2
@@ -300,96 +299,3 @@ def test_speed_std_helpers_by_hand() -> None:
     assert abs(var2 - 0.25 * var - 0.25 * (0.03 / 10.0) ** 2) < 1e-18
     assert abs(consider_step(0.01, 0.25, 0.03) - (0.75 * 0.01 + 0.25 * 0.03)) < 1e-15
     assert abs(consider_step(0.01, 0.25, 0.0) - 0.0075) < 1e-15
-
-
-def _steady_corner(true_share: float, fe_config: FrontEndConfig) -> tuple[FrontEnd, FrontEndTick]:
-    """6 s straight at 15 m/s with GNSS (the radii calibrated), then 6 s of a steady left turn
-    at 0.25 rad/s (``a_y = v r`` = 3.75 m/s²) on the rims alone, steering read as 0. Every
-    wheel rolls free on a radius ``r_u − Fz/(3 kz)`` whose load moves across by the lateral
-    transfer ``m h a_y/b`` split ``true_share`` front, behind the chassis's lag; each wheel
-    reads ``ω = (v − y r)/r_e``. Returns the front end and its last tick."""
-    ch, ty = CORNER.chassis, CORNER.tyre
-    fe = FrontEnd(CORNER, fe_config, 0.02)
-    t_imu = np.arange(1, 1201) * 10_000_000
-    t_s = t_imu / 1e9
-    v, yaw_rate = 15.0, np.where(t_s > 6.0, 0.25, 0.0)
-    accel = np.zeros((t_s.size, 3))
-    accel[:, 0], accel[:, 2] = -v * yaw_rate, GRAVITY_MPS2  # the IMU's X is right
-    gyro = np.zeros((t_s.size, 3))
-    gyro[:, 2] = yaw_rate
-    fe.push_imu(ImuBatch(t_imu, accel, gyro))
-    t_w = t_s[1::2]
-    r_w = np.where(t_w > 6.0, 0.25, 0.0)[:, None]
-    settled = 1.0 - np.exp(-np.maximum(t_w - 6.0, 0.0) / ch.load_transfer_lag_s)[:, None]
-    moment_n = ch.mass_kg * ch.cg_height_m * v * r_w * settled
-    lf = true_share * moment_n / ch.front_track_m
-    lr = (1.0 - true_share) * moment_n / ch.rear_track_m
-    wheelbase = ch.cg_to_front_axle_m + ch.cg_to_rear_axle_m
-    static_n = ch.mass_kg * GRAVITY_MPS2 / (2 * wheelbase)
-    static_n *= np.array([ch.cg_to_rear_axle_m] * 2 + [ch.cg_to_front_axle_m] * 2)
-    fz_n = static_n + np.hstack([-lf, lf, -lr, lr])
-    radius_m = ty.unloaded_radius_m - fz_n / (3.0 * ty.kz_npm)
-    y_m = np.array([ch.front_track_m, -ch.front_track_m, ch.rear_track_m, -ch.rear_track_m]) / 2
-    fe.push_wheels(WheelSpeeds4(t_imu[1::2], (v - y_m * r_w) / radius_m))
-    fe.push_steering(SteeringAngles(t_imu[1::2], np.zeros(t_w.size)))
-    for k in range(9, 600, 10):
-        fe.push_gnss(
-            GnssSample(
-                stamp_ns=int(t_imu[k]),
-                vel_enu_mps=(v * math.sin(HEADING_RAD), v * math.cos(HEADING_RAD), 0.0),
-                heading_rad=HEADING_RAD,
-                pitch_rad=0.0,
-                roll_rad=0.0,
-                lat_deg=48.0,
-                lon_deg=11.0,
-                height_m=500.0,
-            )
-        )
-    ticks = [fe.tick(t) for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000)]
-    last = ticks[-1]
-    assert last is not None and last.valid
-    return fe, last
-
-
-CORNER = Wheeled4wdSteeredConfig(
-    chassis=ChassisConfig(
-        driven_axle=DrivenAxle.REAR,
-        drag_area_m2=0.0,
-        rolling_resistance=0.0,
-        roll_gradient_deg_per_g=0.0,
-        pitch_gradient_deg_per_g=0.0,
-        roll_stiffness_front_share=0.55,
-    )
-)
-
-
-def test_the_lateral_transfer_split_is_read_from_the_free_axle() -> None:
-    """A steady turn whose front axle takes 0.65 of the lateral load transfer, the config
-    saying 0.55: with the share held at the config's (a prior of 1-σ 1e-6) every κ is off by
-    what the misplaced load does to the loaded radius, ``±ρ Δl/(kz r_e)`` with
-    ``Δl = 0.1 m h a_y/b`` (left front ``−``, rear ``+``: ~±17e-4, opposite left and right
-    and front and rear), though every wheel rolls free. Learnt from the free front axle, the
-    share is 0.65 and every κ within 0.5e-4 of 0."""
-    ch, ty = CORNER.chassis, CORNER.tyre
-    moment_n = ch.mass_kg * ch.cg_height_m * 15.0 * 0.25
-    r_e = ty.unloaded_radius_m - ch.mass_kg * GRAVITY_MPS2 / 4 / (3.0 * ty.kz_npm)
-    front = 0.1 * moment_n / ch.front_track_m / (3.0 * ty.kz_npm * r_e)
-    rear = 0.1 * moment_n / ch.rear_track_m / (3.0 * ty.kz_npm * r_e)
-    want = np.array([-front, front, rear, -rear])  # the config's share 0.55 against 0.65
-    _, held = _steady_corner(0.65, FrontEndConfig(roll_share_std=1e-6))
-    assert np.all(np.abs(want) > 5e-4)
-    np.testing.assert_allclose(held.kappa, want, rtol=0.1)
-    fe, learnt = _steady_corner(0.65, FrontEndConfig())
-    assert abs(fe.roll_share - 0.65) < 0.005
-    assert np.all(np.abs(learnt.kappa) < 0.5e-4)
-
-
-def test_roll_share_step_by_hand() -> None:
-    """A free front axle whose left κ is 2e-4 above its right at ``g_L + g_R`` 1e-5 per N
-    reads a transfer 20 N below ``ζ̂ u`` (``u`` 1000 N, ``ζ̂`` 0.5: ``y`` 480 N); a free rear
-    axle the same κ as 20 N above; the weight is ``(g/σ_d)²`` (σ_d 1e-4: 0.01 per N²)."""
-    sxy, sxx = roll_share_step(1.0, 2.0, 1000.0, 0.5, 2e-4, 1e-5, 1e-4, True)
-    assert abs(sxx - (2.0 + 0.01 * 1000.0**2)) < 1e-9
-    assert abs(sxy - (1.0 + 0.01 * 1000.0 * 480.0)) < 1e-9
-    sxy, _ = roll_share_step(0.0, 0.0, 1000.0, 0.5, 2e-4, 1e-5, 1e-4, False)
-    assert abs(sxy - 0.01 * 1000.0 * 520.0) < 1e-9
