@@ -325,6 +325,11 @@ _COURSE_LP_TAU_S = 2.0
 period (0.3-3 Hz), so the lever arm's share is the sway's size, not its phase at a fix, and
 the antenna's mean velocity is ``O``'s (the lever arm's moves it by its travel, centimetres,
 over the time constant)."""
+_COURSE_LP_SHARE = slice(0, 2)
+"""Columns of the course low-pass (``course_lp``): the lever arm's and the antenna's squared
+speeds [m²/s²]."""
+_COURSE_LP_VEL = slice(2, 4)
+"""Columns of the course low-pass: the antenna's east and north velocity [m/s]."""
 
 
 def _pick(i: IntArray, values: FloatArray, otherwise: FloatArray) -> FloatArray:
@@ -364,6 +369,51 @@ def _fill_segments(
     order = np.argsort(starts, kind="stable")
     seg = np.searchsorted(starts[order], np.arange(n), side="right") - 1
     return order[seg], vals
+
+
+def _sample_weights(
+    t_ns: IntArray,
+    T: IntArray,
+    j: IntArray,
+    span: tuple[IntArray, IntArray],
+    prev_ns: IntArray,
+    prev_ok: BoolArray,
+) -> tuple[BoolArray, BoolArray, IntArray, IntArray, FloatArray]:
+    """Where stamps ``t_ns`` fall among their rows' IMU samples, for a value at the stamps
+    interpolated linearly (:func:`_lerp_at`).
+
+    ``T`` the samples' times, ``span`` each stamp's row's ``(begin, end)`` in them, ``j`` the
+    last sample at or before each stamp. A stamp before its row's first sample (a fix that
+    arrives in the call after the samples before it) falls after the vehicle's newest
+    sample integrated by the previous call, at ``prev_ns``, where ``prev_ok`` says its value
+    is kept. Returns ``own`` (``j`` is the row's), ``carried`` (the kept sample stands in),
+    the samples ``jj`` and ``nxt`` either side and the weight ``u`` of ``nxt`` (0 without
+    one), each shape ``(len(t_ns),)``.
+    """
+    begin, end = span
+    own = (j >= begin) & (j >= 0)
+    carried = ~own & (prev_ns != _NONE_NS) & prev_ok
+    last = T.shape[0] - 1
+    jj = np.clip(j, 0, last)
+    nxt = np.clip(np.where(own, j + 1, begin), 0, last)
+    after = np.where(own, j + 1 < end, carried & (end > begin))
+    t0 = np.where(own, T[jj], prev_ns)
+    dt = np.where(after, (T[nxt] - t0).astype(np.float64), 1.0)
+    u = np.where(after & (dt > 0), (t_ns - t0) / np.where(dt > 0, dt, 1.0), 0.0)
+    return own, carried, jj, nxt, np.clip(u, 0.0, 1.0)
+
+
+def _lerp_at(
+    w: FloatArray,
+    prev: FloatArray,
+    weights: tuple[BoolArray, BoolArray, IntArray, IntArray, FloatArray],
+) -> FloatArray:
+    """Samples ``w`` interpolated at the stamps :func:`_sample_weights` placed (``prev`` the
+    kept sample's value per stamp); 0 where the stamp has neither its row's sample nor a
+    kept one."""
+    own, carried, jj, nxt, u = weights
+    w0 = np.where(own, w[jj], np.where(carried, prev, 0.0))
+    return np.asarray(w0 + u * (w[nxt] - w0))
 
 
 def _lever_share_lat(
@@ -1425,33 +1475,27 @@ class _Batch:
 
     def _rates_at_fix(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Measured body rates ``(ωx, ωy, ωz)`` at the stamps of fixes ``fi`` (rows ``r``),
-        interpolated linearly between the IMU samples around each: the row's last at or before
-        the fix or, for a fix before the batch's first sample (the usual case: a fix arrives
-        after the call that integrated the samples before it), the vehicle's newest integrated
-        one, carried from the previous call; and the next. 0 where the row has neither. Under
-        a sway of 1-2 Hz on a mast of metres the rates are the lever arm's metres per second:
-        a fix between two calls must not read them as 0. Each shape ``(len(fi),)``."""
+        interpolated between the IMU samples around each (:func:`_sample_weights`: a fix
+        before the batch's first sample reads the vehicle's newest sample of the previous
+        call); 0 where the row has neither. Under a sway of 1-2 Hz on a mast of metres the
+        rates are the lever arm's metres per second: a fix between two calls must not read
+        them as 0. Each shape ``(len(fi),)``."""
         k = fi.shape[0]
         if not self.wx.shape[0]:
             return np.zeros(k), np.zeros(k), np.zeros(k)
-        begin, end = self.s_begin[r], self.s_end[r]
-        j = self.g_j[fi] - 1
-        own = (j >= begin) & (j >= 0)
         prev = self.prev_raw_rates[r]
-        carried = ~own & (self.prev_used_ns[r] != _NONE_NS) & np.isfinite(prev[:, 0])
-        last = self.wx.shape[0] - 1
-        jj = np.clip(j, 0, last)
-        nxt = np.clip(np.where(own, j + 1, begin), 0, last)
-        after = np.where(own, j + 1 < end, carried & (end > begin))
-        t0 = np.where(own, self.T[jj], self.prev_used_ns[r])
-        span = np.where(after, (self.T[nxt] - t0).astype(np.float64), 1.0)
-        u = np.where(after & (span > 0), (self.g_t[fi] - t0) / np.where(span > 0, span, 1.0), 0.0)
-        u = np.clip(u, 0.0, 1.0)
-        out = []
-        for c, w in enumerate((self.wx, self.wy, self.wz)):
-            w0 = np.where(own, w[jj], np.where(carried, prev[:, c], 0.0))
-            out.append(np.where(own | carried, w0 + u * (w[nxt] - w0), 0.0))
-        return out[0], out[1], out[2]
+        weights = _sample_weights(
+            self.g_t[fi],
+            self.T,
+            self.g_j[fi] - 1,
+            (self.s_begin[r], self.s_end[r]),
+            self.prev_used_ns[r],
+            np.isfinite(prev[:, 0]),
+        )
+        wx, wy, wz = (
+            _lerp_at(w, prev[:, c], weights) for c, w in enumerate((self.wx, self.wy, self.wz))
+        )
+        return wx, wy, wz
 
     def _antenna_lever(
         self, fi: IntArray, r: IntArray, heading_rad: FloatArray, pitch_rad: FloatArray
@@ -1646,37 +1690,29 @@ class _Batch:
         return np.where(has, change, 0.0)
 
     def _rates_at_fix_instant(self) -> tuple[FloatArray, FloatArray, BoolArray]:
-        """Bias-corrected ``(ωx, ωz)`` at each fix's stamp, interpolated linearly between the
-        IMU samples around it: the row's last at or before the fix (or, before the batch's
-        first, the vehicle's newest integrated one, carried) and the next. Under a sway of a
-        few hertz a sample's 10 ms is tenths of a metre per second on a tall mast. Returns
-        the rates and where they are known, each (fixes,)."""
+        """Bias-corrected ``(ωx, ωz)`` at each fix's stamp, interpolated between the IMU
+        samples around it (:func:`_sample_weights`: before the batch's first sample, the
+        vehicle's newest integrated one, carried). Under a sway of a few hertz a sample's
+        10 ms is tenths of a metre per second on a tall mast. Returns the rates and where they
+        are known (the row has samples in the batch: the tick has a rate), each (fixes,)."""
         wx, wz = self.rates_bc
         nf = self.g_row.shape[0]
         if wx.shape[0] == 0:
             return np.zeros(nf), np.zeros(nf), np.zeros(nf, dtype=bool)
         row = self.g_row
         begin, end = self.s_begin[row], self.s_end[row]
-        j = self.g_j - 1
-        own = (j >= begin) & (j >= 0)
-        carried = (
-            ~own
-            & (end > begin)
-            & (self.prev_used_ns[row] != _NONE_NS)
-            & np.isfinite(self.prev_rates[row, 0])
+        prev = self.prev_rates[row]
+        weights = _sample_weights(
+            self.g_t,
+            self.T,
+            self.g_j - 1,
+            (begin, end),
+            self.prev_used_ns[row],
+            np.isfinite(prev[:, 0]),
         )
-        jj = np.clip(j, 0, wx.shape[0] - 1)
-        nxt = np.clip(np.where(own, j + 1, begin), 0, wx.shape[0] - 1)
-        t0 = np.where(own, self.T[jj], self.prev_used_ns[row])
-        x0 = np.where(own, wx[jj], self.prev_rates[row, 0])
-        z0 = np.where(own, wz[jj], self.prev_rates[row, 1])
-        after = np.where(own, j + 1 < end, carried)
-        span = np.where(after, (self.T[nxt] - t0).astype(np.float64), 1.0)
-        u = np.where(after & (span > 0), (self.g_t - t0) / np.where(span > 0, span, 1.0), 0.0)
-        u = np.clip(u, 0.0, 1.0)
-        wx_g = x0 + u * (wx[nxt] - x0)
-        wz_g = z0 + u * (wz[nxt] - z0)
-        return wx_g, wz_g, own | carried
+        own, carried = weights[0], weights[1]
+        wx_g, wz_g = (_lerp_at(w, prev[:, c], weights) for c, w in enumerate((wx, wz)))
+        return wx_g, wz_g, own | (carried & (end > begin))
 
     def _gnss_distance(self) -> tuple[BoolArray, FloatArray, FloatArray, BoolArray]:
         """Along-track distance of the IMU point from RTK-fixed positions, per tick.
@@ -2193,7 +2229,7 @@ class _TiltTrack:
         # turned through it
         restart = stale & np.isfinite(pred)
         if restart.any():
-            st.clp[r[restart], 2:4] = np.nan
+            st.clp[r[restart], _COURSE_LP_VEL] = np.nan
         pred = np.where(stale, np.nan, pred)
         # none yet: the antenna's mean velocity's direction, the lever arm's swing averaged out
         mean_course = self._course_lowpass(fi, r)
@@ -2227,7 +2263,7 @@ class _TiltTrack:
         are a fraction of a sway off: near a zero of the rates a swaying mast read small."""
         st, b = self.st, self.b
         ve, vn = b.g[fi, _G_VE], b.g[fi, _G_VN]
-        cols = slice(2, 4) if share is None else slice(0, 2)
+        cols = _COURSE_LP_VEL if share is None else _COURSE_LP_SHARE
         if share is None:
             now = np.stack([ve, vn], axis=1)
         else:

@@ -293,7 +293,7 @@ def test_the_accelerometer_roll_of_a_rolling_cab_is_the_bodys(
 
 def test_a_receiver_without_heading_on_a_tall_swaying_mast_keeps_the_speed() -> None:
     """The knobs of a drawn drive that ran away (sway 1.63 Hz, 2.09° pitch, 2.12° roll, an
-    antenna 3.46 m over an IMU 1.32 m up, no receiver attitude, 1-2.8 m/s), its first 45 s.
+    antenna 3.46 m over an IMU 1.32 m up, no receiver attitude, 1-2.8 m/s), its first 60 s.
     The course of ``O`` takes the antenna's lever-arm velocity (``h1·ωx`` along, metres per
     second) off the GNSS velocity; the rates at a fix came from the batch's own samples only,
     and a fix arrives in the call after the samples before it: the rates read 0, the course
