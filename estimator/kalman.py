@@ -292,10 +292,14 @@ def update_independent(
     row ``j`` with ``h = H_j``:
 
         s = h·P·hᵀ + r_j           k = P·hᵀ / s           x⁺ = x + k·(z_j − h·x)
-        P⁺ = (I − k·h)·P·(I − k·h)ᵀ + r_j·k·kᵀ = P − k·(P·hᵀ)ᵀ − (P·hᵀ)·kᵀ + s·k·kᵀ
+        M = P·(I − k·h)ᵀ = P − (P·hᵀ)·kᵀ
+        P⁺ = (I − k·h)·M + r_j·k·kᵀ = M − k·(h·M) + r_j·k·kᵀ
 
-    (Joseph form). No ``m × m`` solve, so it is cheaper than :func:`update` when few rows are
-    active (``docs/perf/estimator.md``).
+    (Joseph form, applied as two rank-one products so that ``I − k·h`` acts on the rounded
+    ``M``: a row far more precise than its prior, ``r_j ≪ h·P·hᵀ``, keeps ``P⁺`` positive
+    definite, where the expanded ``P − (P·hᵀ)·(P·hᵀ)ᵀ/s`` cancels to the rounding of ``P``).
+    No ``m × m`` solve, so it is cheaper than :func:`update` when few rows are active
+    (``docs/perf/estimator.md``).
 
     Parameters
     ----------
@@ -362,9 +366,12 @@ def _apply_row(
         y = np.where(active, y, 0.0)
     k = Ph * inv[:, None]
     x += k * y[:, None]
-    # P − k·Phᵀ − Ph·kᵀ + s·k·kᵀ, symmetric by construction: k·(s·k − 2·Ph)ᵀ symmetrised
-    half = np.einsum("ni,nj->nij", k, s[:, None] * k - 2.0 * Ph)  # outer product
-    sym = half + half.swapaxes(-1, -2)
-    sym *= 0.5
-    P += sym
+    r_k = r_j if every else np.where(active, r_j, 0.0)  # an inert row adds nothing
+    # Joseph form in two rank-one steps (docstring of update_independent); an inert row's
+    # k = 0 leaves P as it was, bit for bit
+    M = P - np.einsum("ni,nj->nij", Ph, k)  # P·(I − k·h)ᵀ (Ph is read before P changes)
+    hM = M[:, h_unit, :] if h_unit is not None else (h[:, None, :] @ M)[:, 0, :]
+    post = M - np.einsum("ni,nj->nij", k, hM)
+    post += np.einsum("ni,nj->nij", k * r_k[:, None], k)
+    P[...] = symmetrize(post)
     return y, inv

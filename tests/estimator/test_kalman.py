@@ -215,8 +215,10 @@ def _rows_one_by_one(x, P, z, H, r, mask, rows):  # type: ignore[no-untyped-def]
         y = np.where(a, z[:, j] - (h * x).sum(axis=1), 0.0)
         k = Ph * inv[:, None]
         x += k * y[:, None]
-        half = k[:, :, None] * (s[:, None] * k - 2.0 * Ph)[:, None, :]
-        P += 0.5 * (half + half.swapaxes(-1, -2))
+        M = P - Ph[:, :, None] * k[:, None, :]  # P·(I − k·h)ᵀ
+        post = M - k[:, :, None] * (h[:, None, :] @ M)[:, 0, None, :]  # (I − k·h)·M
+        post += (k * np.where(a, r[:, j], 0.0)[:, None])[:, :, None] * k[:, None, :]
+        P = 0.5 * (post + post.swapaxes(-1, -2))
     return x, P
 
 
@@ -242,3 +244,32 @@ def test_unit_rows_read_off_p_give_the_same_numbers(seed: int) -> None:
         assert np.array_equal(res.x, x_ref) and np.array_equal(res.P, P_ref)
     assert np.array_equal(fast.nis, plain.nis) and np.array_equal(fast.dof, plain.dof)
     assert not np.array_equal(fast.x, x)  # the rows did move the state
+
+
+@pytest.mark.parametrize("unit", [False, True], ids=["row", "unit_row"])
+def test_precise_row_on_a_wide_prior_keeps_the_posterior_positive_definite(unit: bool) -> None:
+    """A row far more precise than its prior (``r`` 1e-12..1e-6 on a variance 1e3..1e8, a state
+    correlated with another): the posterior variance is about ``r``, far below the rounding of
+    the prior. The Joseph form keeps it positive definite and close to the exact value; the
+    expanded ``P − Ph·Phᵀ/s`` cancels to the prior's rounding and goes negative."""
+    rng = np.random.default_rng(7)
+    batch = 400
+    p = 10.0 ** rng.uniform(3.0, 8.0, batch)
+    r = 10.0 ** rng.uniform(-12.0, -6.0, batch)
+    c = rng.uniform(-0.99, 0.99, batch) * np.sqrt(p)
+    P = np.zeros((batch, 2, 2))
+    P[:, 0, 0], P[:, 0, 1], P[:, 1, 0], P[:, 1, 1] = p, c, c, 1.0 + c * c / p
+    H = np.array([[1.0, 0.0]])
+    res = kalman.update_independent(
+        np.zeros((batch, 2)),
+        P,
+        np.zeros((batch, 1)),
+        H,
+        r[:, None],
+        np.ones((batch, 1), dtype=bool),
+        unit={0: 0} if unit else None,
+    )
+    assert np.array_equal(res.P, np.swapaxes(res.P, 1, 2))
+    assert np.all(np.linalg.eigvalsh(res.P) > 0.0)
+    # exact: the measured state's variance p·r/(p + r) ≈ r
+    assert np.allclose(res.P[:, 0, 0], p * r / (p + r), rtol=1e-3, atol=0)
