@@ -93,10 +93,6 @@ a changing turn) [m/s²]."""
 _RESIDUAL_TAU_S = 20.0
 """Time constant of the GNSS clock filter's running mean of its normalised innovation
 squared, by which its speed noise is inflated (model error the filter does not explain) [s]."""
-_FAST_RISE_TAU_S = 1.0
-"""Time constant with which the regressor's error variance follows a rise of the fast part
-(a sway starting as the vehicle moves off): a few sway periods, so a learner cannot converge
-on the first second of a swaying launch before the variance holds the sway's power [s]."""
 _STILL_SPEED_MPS = 0.05
 _MIN_CAL_SPEED_MPS = 1.0
 """Wheel calibration uses ticks above this ground speed (the radius term ``κ·V`` then
@@ -520,9 +516,8 @@ class CalibrationBank:
         fast = a + (lever - self.g_lever[slots]) / dt - lp[:, _ClockLowpass.ACCEL_2] - lever_rate
         fast = np.where(start | ~self.g_started[slots], 0.0, fast)
         self.g_lever[slots] = lever
-        power = self.lowpass_noise * fast * fast
-        tau = np.where(power > self.g_fast[slots], _FAST_RISE_TAU_S, _RESIDUAL_TAU_S)
-        self.g_fast[slots] += dt / (tau + dt) * (power - self.g_fast[slots])
+        beta = dt / (_RESIDUAL_TAU_S + dt)
+        self.g_fast[slots] += beta * (self.lowpass_noise * fast * fast - self.g_fast[slots])
         self.g_lowpass[slots] = lp
         self.g_held[slots] = y_in
         self.g_gap[slots] = gap
