@@ -33,9 +33,7 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   g·sin φ·cos θ`` (centripetal and gravity, :mod:`estimator.sim.kinematics`), so
   ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y + b_lat``: states ``[γ, b_lat]``, ``b_lat`` a slow
   walk that takes the lateral accelerometer's bias and the roll's slow error. Observable
-  whenever the forward force changes (speed changes, slopes); learnt on both sides
-  low-passed below the body-sway band, both forces taken at ``O`` (a swaying cab's lever-arm
-  terms are metres per second squared that a tick cannot resolve). Applied to the forward
+  whenever the forward force changes (speed changes, slopes). Applied to the forward
   acceleration as ``f_y = f_y' + γ·f_x'`` once converged and significant: a turn's
   centripetal force leaks ``γ·V·ωz`` into it otherwise.
 
@@ -92,12 +90,6 @@ _LAT_BIAS_WALK_MPS2_PER_SQRT_S = 0.01
 _LAT_FLOOR_MPS2 = 0.05
 """Floor of a tick's lateral-force model error (body sway, side slip, the IMU's lever arm in
 a changing turn) [m/s²]."""
-_YAW_LOWPASS_TAU_S = 0.5
-"""Time constant of each of the mounting-yaw filter's two low-pass stages [s]: body sway at
-0.3-3 Hz is kept to 1/4.5-1/350 of its amplitude, the driving forces' slow changes pass."""
-_YAW_SETTLE_S = 4.0
-"""The mounting-yaw filter learns only after its low-passes ran this long from their first
-tick (the start transient ``(1 + t/τ)·e^(−t/τ)`` below 0.3 %) [s]."""
 _RESIDUAL_TAU_S = 20.0
 """Time constant of the GNSS clock filter's running mean of its normalised innovation
 squared, by which its speed noise is inflated (model error the filter does not explain) [s]."""
@@ -132,16 +124,6 @@ class MountYaw(IntEnum):
 
     YAW = 0
     LAT_BIAS = 1
-
-
-class _YawLowpass(IntEnum):
-    """Columns of the mounting-yaw filter's low-passes: first and second stage of the
-    forward force ``f_y'`` and of the known lateral relation ``y = f_x' + V·ωz + g·sin φ·cos θ``."""
-
-    FWD_1 = 0
-    FWD_2 = 1
-    LAT_1 = 2
-    LAT_2 = 3
 
 
 class WheelCal(IntEnum):
@@ -226,9 +208,6 @@ class CalibrationBank:
         self.apply_std_s = config.gnss_clock_apply_std_s
         self.gnss_gap_s = config.gnss_timeout_s
         self.lowpass_noise = _lowpass_noise_share(config.dt_s / (self.lowpass_tau_s + config.dt_s))
-        self.yaw_lowpass_noise = _lowpass_noise_share(
-            config.dt_s / (_YAW_LOWPASS_TAU_S + config.dt_s)
-        )
         self.speed_walk = config.speed_walk_mps_per_sqrt_s
         self.bias_prior = config.accel_bias_std_mps2
         self.bias_walk = config.accel_bias_extra_walk_mps2_per_sqrt_s
@@ -250,9 +229,6 @@ class CalibrationBank:
         self.pitch_var = np.zeros(cap)
         self.yx = np.zeros((cap, 2))
         self.yp = np.zeros((cap, 2, 2))
-        self.y_lowpass = np.zeros((cap, len(_YawLowpass)))
-        self.y_run = np.zeros(cap)  # time the yaw low-passes have run [s]; 0: not started
-        self.y_nis = np.ones(cap)  # running mean of the yaw filter's normalised innovation²
         self.yaw_limit = np.zeros(cap)  # the mounting yaw converged below this std [rad]
         self.free = np.zeros((cap, 2), dtype=bool)  # wheels declared free-rolling
         self.drive = np.zeros(cap, dtype=bool)  # a calibration drive is on
@@ -280,9 +256,6 @@ class CalibrationBank:
             ("pitch_var", (), 0.0),
             ("yx", (2,), 0.0),
             ("yp", (2, 2), 0.0),
-            ("y_lowpass", (len(_YawLowpass),), 0.0),
-            ("y_run", (), 0.0),
-            ("y_nis", (), 1.0),
             ("yaw_limit", (), 0.0),
             ("free", (2,), False),
             ("drive", (), False),
@@ -322,9 +295,6 @@ class CalibrationBank:
         self.yaw_limit[slot] = math.radians(c.imu_yaw_converged_deg)
         self.yx[slot] = 0.0
         self.yp[slot] = np.diag([math.radians(c.imu_yaw_prior_deg) ** 2, _LAT_BIAS_PRIOR_MPS2**2])
-        self.y_lowpass[slot] = 0.0
-        self.y_run[slot] = 0.0
-        self.y_nis[slot] = 1.0
 
     def set_drive(self, slot: int, on: bool) -> None:
         """An operator's calibration drive: while on, every wheel's slip is taken as ~0."""
@@ -654,14 +624,7 @@ class CalibrationBank:
         (forward at the IMU; lateral at ``O``, the lever arm's angular-acceleration term off,
         as the model is ``O``'s) and their variance, the ground speed ``V``, the yaw rate
         ``ωz`` and the body's ``(θ, φ)``, all (k,):
-        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y' + b_lat`` (NaN anywhere: predicted only).
-
-        Learnt on both sides low-passed (two first-order stages of ``_YAW_LOWPASS_TAU_S``;
-        the relation is linear): a swaying cab puts metres per second squared of lever-arm
-        terms (``h0·ω̇``) and tick-phase errors (roll read at one instant against forces
-        averaged over the tick) into both sides, which the tick cannot resolve; the slow
-        forward force (speed changes, slopes) carries γ. The tick's noise ``r`` is scaled by
-        the running normalised innovation (:meth:`_yaw_residual_scaled`)."""
+        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y' + b_lat`` (NaN anywhere: predicted only)."""
         dt = self.dt_s
         x, p = self.yx[slots], self.yp[slots]
         p[:, 0, 0] += _YAW_WALK_RAD_PER_SQRT_S**2 * dt
@@ -670,59 +633,13 @@ class CalibrationBank:
         theta, phi = tilt_rad
         y = f_lat + speed_mps * yaw_rate_radps + GRAVITY_MPS2 * np.sin(phi) * np.cos(theta)
         ok = np.isfinite(y) & np.isfinite(f_fwd) & np.isfinite(force_var)
-        f_low, y_low = self._yaw_lowpass(slots, f_fwd, y, ok)
-        ok &= self.y_run[slots] > _YAW_SETTLE_S
         if ok.any():
-            h = np.stack([f_low[ok], np.ones(int(ok.sum()))], axis=1)
-            xu, pu = x[ok], p[ok]
+            h = np.stack([f_fwd[ok], np.ones(int(ok.sum()))], axis=1)
             r = 2.0 * force_var[ok] + _LAT_FLOOR_MPS2**2
-            r = self._yaw_residual_scaled(slots[ok], xu, pu, h, y_low[ok], r)
-            _kf_update(xu, pu, h, y_low[ok], r)
+            xu, pu = x[ok], p[ok]
+            _kf_update(xu, pu, h, y[ok], r)
             x[ok], p[ok] = xu, pu
         self.yx[slots], self.yp[slots] = x, p
-
-    def _yaw_lowpass(
-        self, slots: IntArray, f_fwd: FloatArray, y: FloatArray, ok: BoolArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """Step the yaw filter's low-passes by one tick where ``ok`` (k,) (elsewhere they
-        hold); a vehicle's first tick starts every stage at its value. Returns the low-passed
-        forward force and relation (k,)."""
-        dt = self.dt_s
-        alpha = dt / (_YAW_LOWPASS_TAU_S + dt)
-        lp = self.y_lowpass[slots]
-        start = ok & (self.y_run[slots] == 0.0)
-        for col_1, col_2, raw in (
-            (_YawLowpass.FWD_1, _YawLowpass.FWD_2, f_fwd),
-            (_YawLowpass.LAT_1, _YawLowpass.LAT_2, y),
-        ):
-            step_1 = lp[:, col_1] + alpha * (np.nan_to_num(raw) - lp[:, col_1])
-            step_2 = lp[:, col_2] + alpha * (step_1 - lp[:, col_2])
-            lp[:, col_1] = np.where(start, raw, np.where(ok, step_1, lp[:, col_1]))
-            lp[:, col_2] = np.where(start, raw, np.where(ok, step_2, lp[:, col_2]))
-        self.y_lowpass[slots] = lp
-        self.y_run[slots] += np.where(ok, dt, 0.0)
-        return lp[:, _YawLowpass.FWD_2], lp[:, _YawLowpass.LAT_2]
-
-    def _yaw_residual_scaled(
-        self,
-        slots: IntArray,
-        x: FloatArray,
-        p: FloatArray,
-        h: FloatArray,
-        y: FloatArray,
-        r: FloatArray,
-    ) -> FloatArray:
-        """The yaw filter's tick noise ``r`` (k,) scaled by the running mean (``_RESIDUAL_TAU_S``)
-        of ``ν²/(h·P·hᵀ + c·r)`` (at least 1; each tick's value capped at the gate's; ``c`` the
-        share of white noise the low-passes let through): a misfit the model does not explain
-        (sway left over, the tilt track's error) widens γ's std instead of biasing it.
-        ``x`` (k, 2), ``p`` (k, 2, 2), ``h`` (k, 2)."""
-        s = np.einsum("ki,kij,kj->k", h, p, h) + r * self.yaw_lowpass_noise
-        nu = y - np.einsum("ki,ki->k", h, x)
-        nis = np.minimum(nu * nu / s, _GATE_SIGMAS**2)
-        beta = self.dt_s / (_RESIDUAL_TAU_S + self.dt_s)
-        self.y_nis[slots] += beta * (nis - self.y_nis[slots])
-        return r * np.maximum(self.y_nis[slots], 1.0)
 
     def uncalibrated(self, slots: IntArray) -> BoolArray:
         """Per vehicle and wheel (k, 2): an enabled calibration the wheel's slip depends on

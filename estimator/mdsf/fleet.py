@@ -603,15 +603,9 @@ class MdsfFleet:
         still = bank.still_pitch_rows(slots, vg_raw, rim, min_speed)
         bank.observe_still(slots, tin.force_fwd, tin.accel_var, tin.attitude[:, 1], still)
         if tin.force_lat is not None and tin.lever_force_lat is not None:
-            # both forces at O: an IMU turned by γ mixes the pitch sway's h0·ω̇x into its roll
-            # axis (the lateral lever term taken off) as it mixes the forward force into its
-            # lateral one, so the lateral force at O reads γ times the forward force at O
-            fwd_o = tin.force_fwd
-            if tin.lever_accel_fwd_mps2 is not None:
-                fwd_o = fwd_o + tin.lever_accel_fwd_mps2
             bank.observe_yaw(
                 slots,
-                (fwd_o, tin.force_lat - tin.lever_force_lat),
+                (tin.force_fwd, tin.force_lat - tin.lever_force_lat),
                 tin.accel_var,
                 so.v0,
                 tin.z[:, MdsfObs.OMEGA_Z],
