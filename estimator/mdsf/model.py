@@ -393,12 +393,7 @@ class MdsfConfig:
         filter runs its speed and acceleration through (``calibration.CalibrationBank.
         observe_gnss``). ``Vg = V − δ_g·a`` is linear, so it holds for the low-passed signals;
         a cab swaying at 0.3-3 Hz on a tall mast moves the antenna by metres per second
-        squared the slow driving accelerations do not, and the low-passes take that out. Two
-        stages pass a sway of angle ``θ`` at ``f`` on a mast ``h`` as a lever-arm
-        acceleration ``h·θ·(2πf)²/(1 + (2πfτ)²) → h·θ/τ²`` above the corner, whatever ``f``:
-        with ``τ = 1 s`` a 3.5-m mast swaying 2° leaves 0.12 m/s², under the driving
-        accelerations the offset is learnt from (0.2 s left 3 m/s², and the offset was fitted
-        to the lever-arm term's timing instead of the receiver's clock) [s].
+        squared the slow driving accelerations do not, and the low-passes take that out [s].
     gnss_clock_apply_std_s : float
         Product mode: the GNSS clock offset moves the fixes only once its std is below this
         bound, by a weight that rises from 0 there to full at half of it, times the shrinkage
@@ -466,7 +461,7 @@ class MdsfConfig:
     wheel_clock_accel_tau_s: float = 0.3
     valid_slip_std_max_pct: float = 4.0
     course_tau_s: float = 1.0
-    gnss_clock_lowpass_tau_s: float = 1.0
+    gnss_clock_lowpass_tau_s: float = 0.2
     gnss_clock_apply_std_s: float = 0.03
 
     def __post_init__(self) -> None:
