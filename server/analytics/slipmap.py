@@ -407,7 +407,6 @@ def cell_sums(
     if not (np.isfinite(cell_m) and cell_m > 0):
         raise ValueError("cell_m must be positive and finite")
     edges = check_band_edges(band_edges_pct)
-    n_bands = len(edges) + 1
     index_east, index_north, cell = _cell_keys(
         np.floor(samples.east_m / cell_m).astype(np.int64),
         np.floor(samples.north_m / cell_m).astype(np.int64),
@@ -416,16 +415,8 @@ def cell_sums(
     m = int(index_east.shape[0])
 
     w = samples.w_ns.astype(np.float64)  # sums of int ns stay exact in float64 (< 2**53)
-    n_channels = len(samples.channels)
-    pair_row, pair_channel = np.nonzero(samples.slip_valid)  # the valid channel-samples (i, k)
-    pair_cell = cell[pair_row]
-    pair_w = w[pair_row]
-    pair_slip = samples.slip_pct[pair_row, pair_channel]
-    pair_abs = np.abs(pair_slip)
-    max_abs = np.full(m, np.nan)
-    np.fmax.at(max_abs, pair_cell, pair_abs)
-    informs = samples.layer_valid
-    layer_w = np.where(informs, w, 0.0)
+    valid_ns, signed_ns, abs_ns, band_ns, max_abs = _slip_sums(samples, cell, w, m, edges)
+    layer_ns, layer_sum_ns, layer_rows = _layer_sums(samples, cell, w, m)
     return CellSums(
         cell_m=float(cell_m),
         band_edges_pct=edges,
@@ -435,16 +426,54 @@ def cell_sums(
         time_ns=_sum_by(cell, w, m),
         speed_ns=_sum_by(cell, w * samples.speed_mps, m),
         rows=np.bincount(cell, minlength=m).astype(np.int64),
-        valid_ns=_sum_at(pair_cell, pair_channel, n_channels, pair_w, m),
-        signed_ns=_sum_at(pair_cell, pair_channel, n_channels, pair_w * pair_slip, m),
-        abs_ns=_sum_by(pair_cell, pair_w * pair_abs, m),
-        band_ns=_sum_at(pair_cell, band_index(pair_abs, edges), n_bands, pair_w, m),
+        valid_ns=valid_ns,
+        signed_ns=signed_ns,
+        abs_ns=abs_ns,
+        band_ns=band_ns,
         max_abs_pct=max_abs,
         vehicles=np.ones(m, dtype=np.int64),
         layer=layer,
-        layer_ns=_sum_by(cell, layer_w, m),
-        layer_sum_ns=_sum_by(cell, layer_w * np.where(informs, samples.layer_value, 0.0), m),
-        layer_rows=np.bincount(cell, weights=informs, minlength=m).astype(np.int64),
+        layer_ns=layer_ns,
+        layer_sum_ns=layer_sum_ns,
+        layer_rows=layer_rows,
+    )
+
+
+def _slip_sums(
+    samples: MapSamples, cell: np.ndarray, w: np.ndarray, m: int, edges: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The slip sums of ``m`` cells over the valid channel-samples ``(i, k)``: per channel
+    ``Σ w`` and ``Σ w · s`` (shape (m, K)), ``Σ w · |s|`` (m,), ``Σ w`` per band (m, B) and
+    ``max |s|`` (m,; NaN without a valid slip). ``cell`` and ``w`` (shape (n,)): each sample's
+    cell and weight."""
+    n_channels = len(samples.channels)
+    pair_row, pair_channel = np.nonzero(samples.slip_valid)
+    pair_cell = cell[pair_row]
+    pair_w = w[pair_row]
+    pair_slip = samples.slip_pct[pair_row, pair_channel]
+    pair_abs = np.abs(pair_slip)
+    max_abs = np.full(m, np.nan)
+    np.fmax.at(max_abs, pair_cell, pair_abs)
+    return (
+        _sum_at(pair_cell, pair_channel, n_channels, pair_w, m),
+        _sum_at(pair_cell, pair_channel, n_channels, pair_w * pair_slip, m),
+        _sum_by(pair_cell, pair_w * pair_abs, m),
+        _sum_at(pair_cell, band_index(pair_abs, edges), len(edges) + 1, pair_w, m),
+        max_abs,
+    )
+
+
+def _layer_sums(
+    samples: MapSamples, cell: np.ndarray, w: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The layer sums of ``m`` cells over the samples that inform it: ``Σ w``, ``Σ w · x``
+    (float64) and their count (int64), each shape (m,)."""
+    informs = samples.layer_valid
+    layer_w = np.where(informs, w, 0.0)
+    return (
+        _sum_by(cell, layer_w, m),
+        _sum_by(cell, layer_w * np.where(informs, samples.layer_value, 0.0), m),
+        np.bincount(cell, weights=informs, minlength=m).astype(np.int64),
     )
 
 
