@@ -886,33 +886,54 @@ class StoreWriter:
                     self._raw_dropped += len(raw) - written
                 raw = []
         except StorageDataError as exc:
-            log.error("store rejected counters, anchors or raw packets, dropped: %s", exc)
-            with self._cond:
-                for vid in counters:  # not written: their next totals go in whole
-                    self._counters_sent.pop(vid, None)
-                self._raw_dropped += len(raw)
-                self._last_error = str(exc)
-                if seq is not None:
-                    self._aux_done = seq
-                self._cond.notify_all()
+            self._aux_rejected(exc, counters, raw, seq)
             return
         except StorageError as exc:
-            with self._cond:
-                # Put back what was not written; newer counter totals win over these.
-                for vid, named in counters.items():
-                    merged = dict(named)
-                    merged.update(self._counters.get(vid, {}))
-                    self._counters[vid] = merged
-                self._raw[:0] = raw
-                self._raw_bytes += sum(len(p[3]) for p in raw)
-                self._anchors = {**anchors, **self._anchors}
-                self._failed_locked(exc)
+            self._aux_put_back(exc, counters, raw, anchors)
             return
         with self._cond:
             if seq is not None:
                 self._aux_done = seq
             self._succeeded_locked()
             self._cond.notify_all()
+
+    def _aux_rejected(
+        self,
+        exc: StorageDataError,
+        counters: dict[str, dict[str, int]],
+        raw: list[tuple[str, int, str, bytes]],
+        seq: int | None,
+    ) -> None:
+        """The store refused the data of an aux write: drop what was not written (its
+        vehicles' next counter totals go in whole) and complete ``seq``."""
+        log.error("store rejected counters, anchors or raw packets, dropped: %s", exc)
+        with self._cond:
+            for vid in counters:
+                self._counters_sent.pop(vid, None)
+            self._raw_dropped += len(raw)
+            self._last_error = str(exc)
+            if seq is not None:
+                self._aux_done = seq
+            self._cond.notify_all()
+
+    def _aux_put_back(
+        self,
+        exc: StorageError,
+        counters: dict[str, dict[str, int]],
+        raw: list[tuple[str, int, str, bytes]],
+        anchors: dict[str, Anchor],
+    ) -> None:
+        """The store failed an aux write: put back what was not written, to be retried
+        (newer counter totals win over these)."""
+        with self._cond:
+            for vid, named in counters.items():
+                merged = dict(named)
+                merged.update(self._counters.get(vid, {}))
+                self._counters[vid] = merged
+            self._raw[:0] = raw
+            self._raw_bytes += sum(len(p[3]) for p in raw)
+            self._anchors = {**anchors, **self._anchors}
+            self._failed_locked(exc)
 
     def _run_call(self, fn: Callable[[Store], Any], future: concurrent.futures.Future[Any]) -> None:
         """Answer one :meth:`call` (unless its caller gave up already)."""
