@@ -236,30 +236,44 @@ def map_samples(
     east = rows[position.east_field].astype(np.float64)
     north = rows[position.north_field].astype(np.float64)
     keep = moving & np.isfinite(east) & np.isfinite(north)
-    up = np.zeros(int(keep.sum()))
-    if position.up_field is not None and position.up_field in (rows.dtype.names or ()):
-        up_kept = rows[position.up_field][keep].astype(np.float64)
-        up = np.where(np.isfinite(up_kept), up_kept, 0.0)
-    slips = channel_slips(rows, spec)
-    k = len(slips)
+    slip_pct, slip_valid = _kept_slips(rows, spec, keep)
     layer_value, layer_valid = _layer_values(rows, spec, layer)
     return MapSamples(
         channels=tuple(c.key for c in spec.slips),
         east_m=east[keep],
         north_m=north[keep],
-        up_m=up,
+        up_m=_kept_up(rows, position, keep),
         w_ns=w_ns[keep],
         speed_mps=speed[keep],
-        slip_pct=np.stack([slip[keep] for slip, _ in slips], axis=1)
-        if k
-        else np.zeros((up.size, 0)),
-        slip_valid=(
-            np.stack([valid[keep] for _, valid in slips], axis=1)
-            if k
-            else np.zeros((up.size, 0), dtype=bool)
-        ),
+        slip_pct=slip_pct,
+        slip_valid=slip_valid,
         layer_value=layer_value[keep],
         layer_valid=layer_valid[keep],
+    )
+
+
+def _kept_up(rows: np.ndarray, position: PositionChannel, keep: np.ndarray) -> np.ndarray:
+    """The up of the ``keep`` rows (bool, shape (n,)) as float64, shape (m,); 0 where it is
+    not finite or the rows carry no up field."""
+    up = np.zeros(int(keep.sum()))
+    if position.up_field is not None and position.up_field in (rows.dtype.names or ()):
+        up_kept = rows[position.up_field][keep].astype(np.float64)
+        up = np.where(np.isfinite(up_kept), up_kept, 0.0)
+    return up
+
+
+def _kept_slips(
+    rows: np.ndarray, spec: EstimatorSpec, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The slip (float64) and its validity (bool) of each of the spec's K slip channels in
+    the ``keep`` rows (bool, shape (n,)): each shape (m, K)."""
+    slips = channel_slips(rows, spec)
+    m = int(keep.sum())
+    if not slips:
+        return np.zeros((m, 0)), np.zeros((m, 0), dtype=bool)
+    return (
+        np.stack([slip[keep] for slip, _ in slips], axis=1),
+        np.stack([valid[keep] for _, valid in slips], axis=1),
     )
 
 
