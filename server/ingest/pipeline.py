@@ -529,7 +529,6 @@ class Pipeline:
     # ------------------------------------------------------------------ pipeline thread
 
     def _run(self) -> None:
-        cpu = self._cpu_s
         next_tick = self._clock() + self._interval_ns
         next_counters = self._clock()
         received_ns = self._clock()
@@ -548,12 +547,7 @@ class Pipeline:
             try:
                 self._apply_configs()
                 if items:
-                    c0 = time.thread_time()
-                    decoded = self._decoded(items)
-                    c1 = time.thread_time()
-                    self._handle(decoded, received_ns)
-                    cpu["decode"] += c1 - c0
-                    cpu["reorder"] += time.thread_time() - c1
+                    self._decode_and_handle(items, received_ns)
                 now = self._clock()
                 if now >= next_tick:
                     # While bursts wait in the queue, "now" for the idle release is the receive
@@ -572,7 +566,19 @@ class Pipeline:
                 self._stats["pipeline_errors"] += 1
                 log.exception("pipeline step failed")
                 next_tick = self._clock() + self._interval_ns
-        # shutdown: everything still queued, then release every buffer
+        self._shut_down()
+
+    def _decode_and_handle(self, items: list[IngestItem] | _Raw, received_ns: int) -> None:
+        """Decode a burst and offer its packets to the reorder buffers, timing both."""
+        c0 = time.thread_time()
+        decoded = self._decoded(items)
+        c1 = time.thread_time()
+        self._handle(decoded, received_ns)
+        self._cpu_s["decode"] += c1 - c0
+        self._cpu_s["reorder"] += time.thread_time() - c1
+
+    def _shut_down(self) -> None:
+        """Handle everything still queued, then release every buffer."""
         self._apply_control()
         self._apply_configs()
         while True:
