@@ -901,10 +901,10 @@ class StoreWriter:
                     self._raw_dropped += len(raw) - written
                 raw = []
         except StorageDataError as exc:
-            self._aux_rejected(exc, counters, raw, seq)
+            self._aux_rejected(exc, (counters, raw, anchors, seq))
             return
         except StorageError as exc:
-            self._aux_put_back(exc, counters, raw, anchors)
+            self._aux_put_back(exc, (counters, raw, anchors, seq))
             return
         with self._cond:
             if seq is not None:
@@ -912,15 +912,10 @@ class StoreWriter:
             self._succeeded_locked()
             self._cond.notify_all()
 
-    def _aux_rejected(
-        self,
-        exc: StorageDataError,
-        counters: dict[str, dict[str, int]],
-        raw: list[tuple[str, int, str, bytes]],
-        seq: int | None,
-    ) -> None:
-        """The store refused the data of an aux write: drop what was not written (its
-        vehicles' next counter totals go in whole) and complete ``seq``."""
+    def _aux_rejected(self, exc: StorageDataError, unwritten: _Aux) -> None:
+        """The store refused the data of an aux write: drop what was not written of it (its
+        vehicles' next counter totals go in whole) and complete its ``seq``."""
+        counters, raw, _, seq = unwritten
         log.error("store rejected counters, anchors or raw packets, dropped: %s", exc)
         with self._cond:
             for vid in counters:
@@ -931,15 +926,10 @@ class StoreWriter:
                 self._aux_done = seq
             self._cond.notify_all()
 
-    def _aux_put_back(
-        self,
-        exc: StorageError,
-        counters: dict[str, dict[str, int]],
-        raw: list[tuple[str, int, str, bytes]],
-        anchors: dict[str, Anchor],
-    ) -> None:
-        """The store failed an aux write: put back what was not written, to be retried
-        (newer counter totals win over these)."""
+    def _aux_put_back(self, exc: StorageError, unwritten: _Aux) -> None:
+        """The store failed an aux write: put back what was not written of it, to be
+        retried (newer counter totals win over these)."""
+        counters, raw, anchors, _ = unwritten
         with self._cond:
             for vid, named in counters.items():
                 merged = dict(named)
