@@ -291,7 +291,24 @@ def reframe(samples: MapSamples, source: EnuFrame, target: EnuFrame) -> MapSampl
 
 
 @dataclass(frozen=True, slots=True)
-class CellSums:
+class _CellGrid:
+    """What every per-cell table starts with: the side of its cells, its slip bands and
+    channels, and the indices of its ``m`` cells (int64, shape (m,)), ordered by
+    ``index_east``, then ``index_north``."""
+
+    cell_m: float
+    band_edges_pct: tuple[float, ...]
+    channels: tuple[str, ...]
+    index_east: np.ndarray
+    index_north: np.ndarray
+
+    @property
+    def cells(self) -> int:
+        return int(self.index_east.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class CellSums(_CellGrid):
     """Mergeable per-cell partial sums of a slip map (module docstring), ``m`` cells, ``B`` bands.
 
     Cells are ordered by ``index_east``, then ``index_north``. Times are in nanoseconds (sums of
@@ -327,11 +344,6 @@ class CellSums:
         How many samples inform the layer.
     """
 
-    cell_m: float
-    band_edges_pct: tuple[float, ...]
-    channels: tuple[str, ...]
-    index_east: np.ndarray
-    index_north: np.ndarray
     time_ns: np.ndarray
     speed_ns: np.ndarray
     rows: np.ndarray
@@ -345,10 +357,6 @@ class CellSums:
     layer_ns: np.ndarray
     layer_sum_ns: np.ndarray
     layer_rows: np.ndarray
-
-    @property
-    def cells(self) -> int:
-        return int(self.index_east.shape[0])
 
 
 def _cell_keys(
@@ -598,7 +606,7 @@ def _merge_two(a: CellSums, b: CellSums, max_cells: int | None) -> CellSums:
 
 
 @dataclass(frozen=True, slots=True)
-class SlipMap:
+class SlipMap(_CellGrid):
     """Per-cell statistics of a slip map (definitions in the module docstring), ``m`` cells.
 
     Cells are ordered by ``index_east``, then ``index_north``. Floats are NaN where undefined.
@@ -629,11 +637,6 @@ class SlipMap:
         How many samples inform the layer.
     """
 
-    cell_m: float
-    band_edges_pct: tuple[float, ...]
-    channels: tuple[str, ...]
-    index_east: np.ndarray
-    index_north: np.ndarray
     time_s: np.ndarray
     distance_m: np.ndarray
     rows: np.ndarray
@@ -652,10 +655,6 @@ class SlipMap:
     def __post_init__(self) -> None:
         labels = tuple(band_label(lo, up) for lo, up in band_bounds(self.band_edges_pct))
         object.__setattr__(self, "band_labels", labels)
-
-    @property
-    def cells(self) -> int:
-        return int(self.index_east.shape[0])
 
     @property
     def east_m(self) -> np.ndarray:
