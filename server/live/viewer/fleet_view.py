@@ -452,9 +452,7 @@ class FleetViewer:
         self.last_frame_s = time.perf_counter() - t0
         return self.last_frame_s
 
-    def _latest_primaries(
-        self,
-    ) -> tuple[list[_SpecRows], list[_SpecRows]]:
+    def _latest_primaries(self) -> tuple[list[_SpecRows], list[_SpecRows]]:
         """The newest primary rows per spec, ``(spec, ids, rows, arrivals)``: of the specs with
         a position (drawn where they are), and of those without one but with slip channels
         (parked)."""
