@@ -78,6 +78,15 @@ def _settings(args: argparse.Namespace, **overrides: Any) -> Any:
         raise SystemExit(f"slipfleet {args.command}: settings: {what}") from None
 
 
+def _connected_settings(args: argparse.Namespace) -> Any:
+    """The settings (:func:`_settings`), connecting to the router ``--connect`` names when
+    given."""
+    settings = _settings(args)
+    if args.connect:
+        settings.zenoh.connect = [args.connect]
+    return settings
+
+
 def _settings_error(exc: ValueError, config: Path | str | None) -> str:
     """One line for a settings error: each invalid field with its value; a TOML error with its
     file; an environment variable that could not be read with the reason."""
@@ -214,9 +223,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from server.tooling.fleet_commands import simulate
 
-    settings = _settings(args)
-    if args.connect:
-        settings.zenoh.connect = [args.connect]
+    settings = _connected_settings(args)
     simulate(
         settings,
         vehicles=args.vehicles,
@@ -232,9 +239,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from server.tooling.cli_args import read_token
     from server.tooling.recording_commands import ReplayTarget, replay
 
-    settings = _settings(args)
-    if args.connect:
-        settings.zenoh.connect = [args.connect]
+    settings = _connected_settings(args)
     api = args.api or f"http://{settings.api.host}:{settings.api.port}"
     target = ReplayTarget(
         endpoints=list(settings.zenoh.connect or settings.zenoh.listen),
@@ -252,9 +257,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     if args.live:
         from server.tooling.recording_commands import record_live
 
-        settings = _settings(args)
-        if args.connect:
-            settings.zenoh.connect = [args.connect]
+        settings = _connected_settings(args)
         record_live(settings, args.path, args.duration)
         return 0
     from server.tooling.fleet_commands import record

@@ -511,23 +511,7 @@ class AlertEngine:
                     if peaks:
                         st.run_peak[s, k] = max(st.run_peak[s, k], mags[i])
                     if st.open[s, k] < 0 and t - int(st.since[s, k]) >= holds[k]:
-                        alert = Alert(
-                            id=self._next_id,
-                            vehicle_id=vid,
-                            kind=rule.kind,
-                            start_ns=int(st.since[s, k]),
-                            end_ns=None,
-                            opened_wall_ns=now,
-                            threshold=threshold,
-                            peak=round(rule.sign * float(st.run_peak[s, k]), 3) if peaks else None,
-                            estimator=st.spec.name,
-                            channel=rule.channel,
-                        )
-                        self._next_id += 1
-                        self._open_alerts[alert.id] = alert
-                        self._open_pos[alert.id] = (st.spec.name, s, k)
-                        st.open[s, k] = alert.id
-                        events.append(("open", vid, alert))
+                        events.append(("open", vid, self._open(st, s, k, threshold, now)))
                 elif st.active[s, k]:
                     st.active[s, k] = False
                     aid = int(st.open[s, k])
@@ -536,6 +520,29 @@ class AlertEngine:
                         events.append(("close", vid, self._close(aid, t)))
         # an alert opened in this batch carries its peak so far in the open event
         return [(e, v, self._with_peak(a)) for e, v, a in events]
+
+    def _open(self, st: _SpecState, s: int, k: int, threshold: float | None, now: int) -> Alert:
+        """Open an alert of rule ``k`` for slot ``s``, whose condition has held since
+        ``st.since[s, k]`` (``now``: the wall clock, ns)."""
+        rule = st.rules[k]
+        peak = st.run_peak[s, k]
+        alert = Alert(
+            id=self._next_id,
+            vehicle_id=self._ids[s],
+            kind=rule.kind,
+            start_ns=int(st.since[s, k]),
+            end_ns=None,
+            opened_wall_ns=now,
+            threshold=threshold,
+            peak=round(rule.sign * float(peak), 3) if rule.field is not None else None,
+            estimator=st.spec.name,
+            channel=rule.channel,
+        )
+        self._next_id += 1
+        self._open_alerts[alert.id] = alert
+        self._open_pos[alert.id] = (st.spec.name, s, k)
+        st.open[s, k] = alert.id
+        return alert
 
     def _with_peak(self, alert: Alert) -> Alert:
         """An open slip alert with its running peak filled in."""

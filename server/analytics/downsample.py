@@ -135,34 +135,9 @@ def downsample_minmax(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndar
     first["stamp_ns"] = stamps[starts]
     second["stamp_ns"] = stamps[ends - 1]
     seg = np.repeat(np.arange(nb), counts)
-    pos = np.arange(n)
-    names = rows.dtype.names or ()
-    for name in names:
-        if name == "stamp_ns":
-            continue
-        col = rows[name]
-        if name == "flags" or col.dtype.kind in "iub":
-            if name == "flags":
-                ored = np.bitwise_or.reduceat(col, starts)
-                first[name] = ored
-                second[name] = ored
-            else:
-                lo_i = np.minimum.reduceat(col, starts)
-                hi_i = np.maximum.reduceat(col, starts)
-                first[name] = lo_i
-                second[name] = hi_i
-            continue
-        lo = np.fmin.reduceat(col, starts)
-        hi = np.fmax.reduceat(col, starts)
-        # Where each extreme first occurs, to keep their order within the bucket.
-        big = np.int64(n)
-        at_lo = np.where(col == lo[seg], pos, big)
-        at_hi = np.where(col == hi[seg], pos, big)
-        lo_pos = np.minimum.reduceat(at_lo, starts)
-        hi_pos = np.minimum.reduceat(at_hi, starts)
-        lo_first = lo_pos <= hi_pos
-        first[name] = np.where(lo_first, lo, hi)
-        second[name] = np.where(lo_first, hi, lo)
+    for name in rows.dtype.names or ():
+        if name != "stamp_ns":
+            first[name], second[name] = _bucket_pair(name, rows[name], starts, seg)
 
     keep = np.ones(2 * nb, dtype=bool)
     single = counts == 1
@@ -171,3 +146,25 @@ def downsample_minmax(rows: np.ndarray, start_ns: int, width_ns: int) -> np.ndar
     if single.any():
         out[0::2][single] = rows[starts[single]]
     return out[keep]
+
+
+def _bucket_pair(
+    name: str, col: np.ndarray, starts: np.ndarray, seg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two values per bucket of one column (shape (n,); runs begin at ``starts``, shape
+    (nb,); ``seg`` is each row's bucket): ``flags`` ORed into both; an integer or boolean
+    column's minimum, then maximum; a float column's minimum and maximum (NaN ignored) in the
+    order they first occur in the bucket."""
+    if name == "flags":
+        ored = np.bitwise_or.reduceat(col, starts)
+        return ored, ored
+    if col.dtype.kind in "iub":
+        return np.minimum.reduceat(col, starts), np.maximum.reduceat(col, starts)
+    lo = np.fmin.reduceat(col, starts)
+    hi = np.fmax.reduceat(col, starts)
+    pos = np.arange(col.shape[0])
+    big = np.int64(col.shape[0])
+    lo_pos = np.minimum.reduceat(np.where(col == lo[seg], pos, big), starts)
+    hi_pos = np.minimum.reduceat(np.where(col == hi[seg], pos, big), starts)
+    lo_first = lo_pos <= hi_pos
+    return np.where(lo_first, lo, hi), np.where(lo_first, hi, lo)

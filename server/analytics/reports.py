@@ -500,25 +500,49 @@ def flatten_report(
         "speed_max_mps": report.speed.max_mps,
     }
     for key, stats in report.slips.items():
-        row[f"slip_{key}_samples"] = stats.samples
-        row[f"slip_{key}_mean_pct"] = stats.mean_pct
-        row[f"slip_{key}_median_pct"] = stats.median_pct
-        row[f"slip_{key}_p95_pct"] = stats.p95_pct
-        row[f"slip_{key}_min_pct"] = stats.min_pct
-        row[f"slip_{key}_max_pct"] = stats.max_pct
-        for band in stats.bands:
-            row[f"slip_{key}_share_{band_label(band.lower_pct, band.upper_pct)}"] = band.share
+        row.update(_slip_columns(key, stats))
     for label, st in report.states.items():
-        row[f"state_{label}_s"] = st.seconds
-        row[f"state_{label}_distance_m"] = st.distance_m
-        for key, mean in st.slip_mean_pct.items():
-            row[f"state_{label}_slip_{key}_mean_pct"] = mean
-    row["packets_received"] = counts.received
-    row["packets_accepted"] = counts.accepted
-    row["packets_rejected"] = counts.rejected
-    row["packets_late"] = counts.late
-    row["packets_duplicate"] = counts.duplicate
-    row["packets_lost"] = counts.lost
+        row.update(_state_columns(label, st))
+    row.update(_packet_columns(counts))
+    return row
+
+
+def _slip_columns(key: str, stats: ChannelSlipStats) -> dict[str, Any]:
+    """The columns of slip channel ``key``: its statistics, then its band shares."""
+    row: dict[str, Any] = {
+        f"slip_{key}_samples": stats.samples,
+        f"slip_{key}_mean_pct": stats.mean_pct,
+        f"slip_{key}_median_pct": stats.median_pct,
+        f"slip_{key}_p95_pct": stats.p95_pct,
+        f"slip_{key}_min_pct": stats.min_pct,
+        f"slip_{key}_max_pct": stats.max_pct,
+    }
+    for band in stats.bands:
+        row[f"slip_{key}_share_{band_label(band.lower_pct, band.upper_pct)}"] = band.share
+    return row
+
+
+def _state_columns(label: str, st: StateStats) -> dict[str, Any]:
+    """The columns of motion state ``label``: its time, distance and mean slip per channel."""
+    row: dict[str, Any] = {
+        f"state_{label}_s": st.seconds,
+        f"state_{label}_distance_m": st.distance_m,
+    }
+    for key, mean in st.slip_mean_pct.items():
+        row[f"state_{label}_slip_{key}_mean_pct"] = mean
+    return row
+
+
+def _packet_columns(counts: IngestCounts) -> dict[str, Any]:
+    """The ingest counters' columns, then the rejections by reason."""
+    row: dict[str, Any] = {
+        "packets_received": counts.received,
+        "packets_accepted": counts.accepted,
+        "packets_rejected": counts.rejected,
+        "packets_late": counts.late,
+        "packets_duplicate": counts.duplicate,
+        "packets_lost": counts.lost,
+    }
     for reason, value in counts.rejected_by_reason.items():
         row[f"packets_rejected_{reason}"] = value
     return row

@@ -236,30 +236,44 @@ def map_samples(
     east = rows[position.east_field].astype(np.float64)
     north = rows[position.north_field].astype(np.float64)
     keep = moving & np.isfinite(east) & np.isfinite(north)
-    up = np.zeros(int(keep.sum()))
-    if position.up_field is not None and position.up_field in (rows.dtype.names or ()):
-        up_kept = rows[position.up_field][keep].astype(np.float64)
-        up = np.where(np.isfinite(up_kept), up_kept, 0.0)
-    slips = channel_slips(rows, spec)
-    k = len(slips)
+    slip_pct, slip_valid = _kept_slips(rows, spec, keep)
     layer_value, layer_valid = _layer_values(rows, spec, layer)
     return MapSamples(
         channels=tuple(c.key for c in spec.slips),
         east_m=east[keep],
         north_m=north[keep],
-        up_m=up,
+        up_m=_kept_up(rows, position, keep),
         w_ns=w_ns[keep],
         speed_mps=speed[keep],
-        slip_pct=np.stack([slip[keep] for slip, _ in slips], axis=1)
-        if k
-        else np.zeros((up.size, 0)),
-        slip_valid=(
-            np.stack([valid[keep] for _, valid in slips], axis=1)
-            if k
-            else np.zeros((up.size, 0), dtype=bool)
-        ),
+        slip_pct=slip_pct,
+        slip_valid=slip_valid,
         layer_value=layer_value[keep],
         layer_valid=layer_valid[keep],
+    )
+
+
+def _kept_up(rows: np.ndarray, position: PositionChannel, keep: np.ndarray) -> np.ndarray:
+    """The up of the ``keep`` rows (bool, shape (n,)) as float64, shape (m,); 0 where it is
+    not finite or the rows carry no up field."""
+    up = np.zeros(int(keep.sum()))
+    if position.up_field is not None and position.up_field in (rows.dtype.names or ()):
+        up_kept = rows[position.up_field][keep].astype(np.float64)
+        up = np.where(np.isfinite(up_kept), up_kept, 0.0)
+    return up
+
+
+def _kept_slips(
+    rows: np.ndarray, spec: EstimatorSpec, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The slip (float64) and its validity (bool) of each of the spec's K slip channels in
+    the ``keep`` rows (bool, shape (n,)): each shape (m, K)."""
+    slips = channel_slips(rows, spec)
+    m = int(keep.sum())
+    if not slips:
+        return np.zeros((m, 0)), np.zeros((m, 0), dtype=bool)
+    return (
+        np.stack([slip[keep] for slip, _ in slips], axis=1),
+        np.stack([valid[keep] for _, valid in slips], axis=1),
     )
 
 
@@ -277,7 +291,24 @@ def reframe(samples: MapSamples, source: EnuFrame, target: EnuFrame) -> MapSampl
 
 
 @dataclass(frozen=True, slots=True)
-class CellSums:
+class _CellGrid:
+    """What every per-cell table starts with: the side of its cells, its slip bands and
+    channels, and the indices of its ``m`` cells (int64, shape (m,)), ordered by
+    ``index_east``, then ``index_north``."""
+
+    cell_m: float
+    band_edges_pct: tuple[float, ...]
+    channels: tuple[str, ...]
+    index_east: np.ndarray
+    index_north: np.ndarray
+
+    @property
+    def cells(self) -> int:
+        return int(self.index_east.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class CellSums(_CellGrid):
     """Mergeable per-cell partial sums of a slip map (module docstring), ``m`` cells, ``B`` bands.
 
     Cells are ordered by ``index_east``, then ``index_north``. Times are in nanoseconds (sums of
@@ -313,11 +344,6 @@ class CellSums:
         How many samples inform the layer.
     """
 
-    cell_m: float
-    band_edges_pct: tuple[float, ...]
-    channels: tuple[str, ...]
-    index_east: np.ndarray
-    index_north: np.ndarray
     time_ns: np.ndarray
     speed_ns: np.ndarray
     rows: np.ndarray
@@ -331,10 +357,6 @@ class CellSums:
     layer_ns: np.ndarray
     layer_sum_ns: np.ndarray
     layer_rows: np.ndarray
-
-    @property
-    def cells(self) -> int:
-        return int(self.index_east.shape[0])
 
 
 def _cell_keys(
@@ -407,7 +429,6 @@ def cell_sums(
     if not (np.isfinite(cell_m) and cell_m > 0):
         raise ValueError("cell_m must be positive and finite")
     edges = check_band_edges(band_edges_pct)
-    n_bands = len(edges) + 1
     index_east, index_north, cell = _cell_keys(
         np.floor(samples.east_m / cell_m).astype(np.int64),
         np.floor(samples.north_m / cell_m).astype(np.int64),
@@ -416,16 +437,8 @@ def cell_sums(
     m = int(index_east.shape[0])
 
     w = samples.w_ns.astype(np.float64)  # sums of int ns stay exact in float64 (< 2**53)
-    n_channels = len(samples.channels)
-    pair_row, pair_channel = np.nonzero(samples.slip_valid)  # the valid channel-samples (i, k)
-    pair_cell = cell[pair_row]
-    pair_w = w[pair_row]
-    pair_slip = samples.slip_pct[pair_row, pair_channel]
-    pair_abs = np.abs(pair_slip)
-    max_abs = np.full(m, np.nan)
-    np.fmax.at(max_abs, pair_cell, pair_abs)
-    informs = samples.layer_valid
-    layer_w = np.where(informs, w, 0.0)
+    valid_ns, signed_ns, abs_ns, band_ns, max_abs = _slip_sums(samples, cell, w, m, edges)
+    layer_ns, layer_sum_ns, layer_rows = _layer_sums(samples, cell, w, m)
     return CellSums(
         cell_m=float(cell_m),
         band_edges_pct=edges,
@@ -435,16 +448,54 @@ def cell_sums(
         time_ns=_sum_by(cell, w, m),
         speed_ns=_sum_by(cell, w * samples.speed_mps, m),
         rows=np.bincount(cell, minlength=m).astype(np.int64),
-        valid_ns=_sum_at(pair_cell, pair_channel, n_channels, pair_w, m),
-        signed_ns=_sum_at(pair_cell, pair_channel, n_channels, pair_w * pair_slip, m),
-        abs_ns=_sum_by(pair_cell, pair_w * pair_abs, m),
-        band_ns=_sum_at(pair_cell, band_index(pair_abs, edges), n_bands, pair_w, m),
+        valid_ns=valid_ns,
+        signed_ns=signed_ns,
+        abs_ns=abs_ns,
+        band_ns=band_ns,
         max_abs_pct=max_abs,
         vehicles=np.ones(m, dtype=np.int64),
         layer=layer,
-        layer_ns=_sum_by(cell, layer_w, m),
-        layer_sum_ns=_sum_by(cell, layer_w * np.where(informs, samples.layer_value, 0.0), m),
-        layer_rows=np.bincount(cell, weights=informs, minlength=m).astype(np.int64),
+        layer_ns=layer_ns,
+        layer_sum_ns=layer_sum_ns,
+        layer_rows=layer_rows,
+    )
+
+
+def _slip_sums(
+    samples: MapSamples, cell: np.ndarray, w: np.ndarray, m: int, edges: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The slip sums of ``m`` cells over the valid channel-samples ``(i, k)``: per channel
+    ``Σ w`` and ``Σ w · s`` (shape (m, K)), ``Σ w · |s|`` (m,), ``Σ w`` per band (m, B) and
+    ``max |s|`` (m,; NaN without a valid slip). ``cell`` and ``w`` (shape (n,)): each sample's
+    cell and weight."""
+    n_channels = len(samples.channels)
+    pair_row, pair_channel = np.nonzero(samples.slip_valid)
+    pair_cell = cell[pair_row]
+    pair_w = w[pair_row]
+    pair_slip = samples.slip_pct[pair_row, pair_channel]
+    pair_abs = np.abs(pair_slip)
+    max_abs = np.full(m, np.nan)
+    np.fmax.at(max_abs, pair_cell, pair_abs)
+    return (
+        _sum_at(pair_cell, pair_channel, n_channels, pair_w, m),
+        _sum_at(pair_cell, pair_channel, n_channels, pair_w * pair_slip, m),
+        _sum_by(pair_cell, pair_w * pair_abs, m),
+        _sum_at(pair_cell, band_index(pair_abs, edges), len(edges) + 1, pair_w, m),
+        max_abs,
+    )
+
+
+def _layer_sums(
+    samples: MapSamples, cell: np.ndarray, w: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The layer sums of ``m`` cells over the samples that inform it: ``Σ w``, ``Σ w · x``
+    (float64) and their count (int64), each shape (m,)."""
+    informs = samples.layer_valid
+    layer_w = np.where(informs, w, 0.0)
+    return (
+        _sum_by(cell, layer_w, m),
+        _sum_by(cell, layer_w * np.where(informs, samples.layer_value, 0.0), m),
+        np.bincount(cell, weights=informs, minlength=m).astype(np.int64),
     )
 
 
@@ -555,7 +606,7 @@ def _merge_two(a: CellSums, b: CellSums, max_cells: int | None) -> CellSums:
 
 
 @dataclass(frozen=True, slots=True)
-class SlipMap:
+class SlipMap(_CellGrid):
     """Per-cell statistics of a slip map (definitions in the module docstring), ``m`` cells.
 
     Cells are ordered by ``index_east``, then ``index_north``. Floats are NaN where undefined.
@@ -586,11 +637,6 @@ class SlipMap:
         How many samples inform the layer.
     """
 
-    cell_m: float
-    band_edges_pct: tuple[float, ...]
-    channels: tuple[str, ...]
-    index_east: np.ndarray
-    index_north: np.ndarray
     time_s: np.ndarray
     distance_m: np.ndarray
     rows: np.ndarray
@@ -609,10 +655,6 @@ class SlipMap:
     def __post_init__(self) -> None:
         labels = tuple(band_label(lo, up) for lo, up in band_bounds(self.band_edges_pct))
         object.__setattr__(self, "band_labels", labels)
-
-    @property
-    def cells(self) -> int:
-        return int(self.index_east.shape[0])
 
     @property
     def east_m(self) -> np.ndarray:

@@ -174,43 +174,48 @@ def _openapi_with_bearer(app: FastAPI) -> dict[str, Any]:
         summary=app.summary,
         routes=app.routes,
     )
-    schema.setdefault("components", {})["securitySchemes"] = {
-        "bearer": {
-            "type": "http",
-            "scheme": "bearer",
-            "description": "An access token (`slipfleet token create`); roles: viewer < "
-            "operator < admin.",
-        }
-    }
+    schema.setdefault("components", {})["securitySchemes"] = {"bearer": dict(_BEARER)}
     schemas = schema["components"].setdefault("schemas", {})
     schemas.setdefault("ErrorBody", ErrorBody.model_json_schema())
-    refused = {
-        "401": "no token, or an unknown or revoked one",
-        "403": "the token's role is too low for this operation",
-    }
     public = {f"{API_PREFIX}{r.prefix}" for r in PUBLIC_ROUTERS}
     for path, ops in schema.get("paths", {}).items():
-        if path in public:
-            continue
-        if any(p.match(path.replace("{vehicle_id}", "v")) for p in HEAVY_ROUTES.values()):
-            for op in ops.values():
-                op.setdefault("responses", {})["429"] = _TOO_MANY
-        for op in ops.values():
-            op["security"] = [{"bearer": []}]
-            for code, why in refused.items():
-                op.setdefault("responses", {}).setdefault(
-                    code,
-                    {
-                        "description": why,
-                        "content": {
-                            "application/json": {
-                                "schema": {"$ref": "#/components/schemas/ErrorBody"}
-                            }
-                        },
-                    },
-                )
+        if path not in public:
+            _guard_operations(path, ops)
     app.openapi_schema = schema
     return schema
+
+
+#: The OpenAPI security scheme of the access tokens.
+_BEARER: dict[str, Any] = {
+    "type": "http",
+    "scheme": "bearer",
+    "description": "An access token (`slipfleet token create`); roles: viewer < operator < admin.",
+}
+#: Why a guarded operation answers 401 or 403.
+_REFUSED = {
+    "401": "no token, or an unknown or revoked one",
+    "403": "the token's role is too low for this operation",
+}
+
+
+def _guard_operations(path: str, ops: dict[str, Any]) -> None:
+    """Mark the operations of a guarded ``path`` as needing a bearer token, with their 401
+    and 403 answers, and their 429 answer where the path is limited (:data:`HEAVY_ROUTES`)."""
+    if any(p.match(path.replace("{vehicle_id}", "v")) for p in HEAVY_ROUTES.values()):
+        for op in ops.values():
+            op.setdefault("responses", {})["429"] = _TOO_MANY
+    for op in ops.values():
+        op["security"] = [{"bearer": []}]
+        for code, why in _REFUSED.items():
+            op.setdefault("responses", {}).setdefault(
+                code,
+                {
+                    "description": why,
+                    "content": {
+                        "application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}
+                    },
+                },
+            )
 
 
 #: OpenAPI answer of a route under :mod:`server.api.limits`.

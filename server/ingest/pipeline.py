@@ -529,7 +529,6 @@ class Pipeline:
     # ------------------------------------------------------------------ pipeline thread
 
     def _run(self) -> None:
-        cpu = self._cpu_s
         next_tick = self._clock() + self._interval_ns
         next_counters = self._clock()
         received_ns = self._clock()
@@ -548,12 +547,7 @@ class Pipeline:
             try:
                 self._apply_configs()
                 if items:
-                    c0 = time.thread_time()
-                    decoded = self._decoded(items)
-                    c1 = time.thread_time()
-                    self._handle(decoded, received_ns)
-                    cpu["decode"] += c1 - c0
-                    cpu["reorder"] += time.thread_time() - c1
+                    self._decode_and_handle(items, received_ns)
                 now = self._clock()
                 if now >= next_tick:
                     # While bursts wait in the queue, "now" for the idle release is the receive
@@ -572,7 +566,19 @@ class Pipeline:
                 self._stats["pipeline_errors"] += 1
                 log.exception("pipeline step failed")
                 next_tick = self._clock() + self._interval_ns
-        # shutdown: everything still queued, then release every buffer
+        self._shut_down()
+
+    def _decode_and_handle(self, items: list[IngestItem] | _Raw, received_ns: int) -> None:
+        """Decode a burst and offer its packets to the reorder buffers, timing both."""
+        c0 = time.thread_time()
+        decoded = self._decoded(items)
+        c1 = time.thread_time()
+        self._handle(decoded, received_ns)
+        self._cpu_s["decode"] += c1 - c0
+        self._cpu_s["reorder"] += time.thread_time() - c1
+
+    def _shut_down(self) -> None:
+        """Handle everything still queued, then release every buffer."""
         self._apply_control()
         self._apply_configs()
         while True:
@@ -925,63 +931,79 @@ class Pipeline:
     def _tick(self, now: int, *, flush: bool) -> None:
         t0 = time.perf_counter()
         c0 = time.thread_time()
-        cpu = self._cpu_s
         until: dict[str, int] = {}
-        registry = self._registry
         drained: list[str] = []
-        # A vehicle's horizon moves when its packets arrive, or when it falls idle: visit the
-        # vehicles that received something that may move it (ReorderBuffer.may_release), and
-        # once per IDLE_SWEEP_NS the ones that fell idle.
-        buffers, advanced, phases = self._buffers, self._advanced_ns, self._tick_phase_ns
+        for vid in self._to_visit(now, flush):
+            released, done = self._release(vid, now, flush)
+            if released is not None:
+                until[vid] = released
+            if done:
+                drained.append(vid)
+        self._active.difference_update(drained)
+        c1 = time.thread_time()
+        self._cpu_s["release"] += c1 - c0
+        # One estimator call per estimate interval for every vehicle with a tick due: a call
+        # has a fixed cost, so fewer, larger calls hold more vehicles.
+        self._due.update(until)
+        if self._due and (flush or now >= self._next_estimate_ns):
+            self._estimate_due(now, c1)
+        self._stats["ticks"] += 1
+        self._last_tick_s = time.perf_counter() - t0
+
+    def _to_visit(self, now: int, flush: bool) -> set[str]:
+        """The vehicles whose horizon may have moved. It moves when their packets arrive, or
+        when they fall idle: the vehicles that received something that may move it
+        (ReorderBuffer.may_release), and once per IDLE_SWEEP_NS the ones that fell idle; at a
+        flush every active vehicle."""
         visit: set[str] = self._arrived & self._active
         if flush:
             visit = self._active
         elif now >= self._next_sweep_ns:
-            visit |= {vid for vid in self._active if buffers[vid].is_idle(now)}
+            visit |= {vid for vid in self._active if self._buffers[vid].is_idle(now)}
             self._next_sweep_ns = now + IDLE_SWEEP_NS
         self._arrived = set()
-        step = self._advance_step_ns
-        for vid in visit:
-            buf = buffers[vid]
-            packets, released = buf.release(now, flush=flush)
-            gaps = buf.take_gaps()
-            for stream in buf.take_stalls():
-                self._counters.stream_stalled(vid, stream.value)
-            if (packets or gaps) and registry.has_vehicle(vid):
-                self._push(vid, packets, gaps)
-            if released is None:
-                continue
-            last = advanced.get(vid)
-            if last is None or (
-                released != last
-                and (
-                    (released - (phase := phases.get(vid, 0))) // step > (last - phase) // step
-                    or flush
-                    or buf.is_idle(now)
-                )
-            ):
-                until[vid] = last = advanced[vid] = released
-            if released == last and buf.drained:
-                drained.append(vid)
-        self._active.difference_update(drained)
-        c1 = time.thread_time()
-        cpu["release"] += c1 - c0
-        # One estimator call per estimate interval for every vehicle with a tick due: a call
-        # has a fixed cost, so fewer, larger calls hold more vehicles.
-        self._due.update(until)
-        if not self._due or not (flush or now >= self._next_estimate_ns):
-            self._stats["ticks"] += 1
-            self._last_tick_s = time.perf_counter() - t0
-            return
+        return visit
+
+    def _release(self, vid: str, now: int, flush: bool) -> tuple[int | None, bool]:
+        """Release ``vid``'s packets up to its horizon and push them to its estimators.
+
+        Returns the horizon its ticks are due to (None: none due) and whether its buffer is
+        drained up to the horizon it has advanced to. A horizon is due when it crosses a step
+        of its tick grid, at a flush, or when the vehicle is idle.
+        """
+        buf = self._buffers[vid]
+        packets, released = buf.release(now, flush=flush)
+        gaps = buf.take_gaps()
+        for stream in buf.take_stalls():
+            self._counters.stream_stalled(vid, stream.value)
+        if (packets or gaps) and self._registry.has_vehicle(vid):
+            self._push(vid, packets, gaps)
+        if released is None:
+            return None, False
+        due = None
+        step, last = self._advance_step_ns, self._advanced_ns.get(vid)
+        if last is None or (
+            released != last
+            and (
+                (released - (phase := self._tick_phase_ns.get(vid, 0))) // step
+                > (last - phase) // step
+                or flush
+                or buf.is_idle(now)
+            )
+        ):
+            due = last = self._advanced_ns[vid] = released
+        return due, released == last and buf.drained
+
+    def _estimate_due(self, now: int, c1: float) -> None:
+        """One estimator call for every vehicle with a tick due, its batches to the sinks
+        (``c1``: the thread time the release ended at)."""
         due, self._due = self._due, {}
         self._next_estimate_ns = now + self._estimate_interval_ns
-        batches = registry.advance(due)
+        batches = self._registry.advance(due)
         c2 = time.thread_time()
         self._deliver(batches)
-        cpu["estimate"] += c2 - c1
-        cpu["deliver"] += time.thread_time() - c2
-        self._stats["ticks"] += 1
-        self._last_tick_s = time.perf_counter() - t0
+        self._cpu_s["estimate"] += c2 - c1
+        self._cpu_s["deliver"] += time.thread_time() - c2
 
     def _deliver(self, batches: list[EstimateBatch]) -> None:
         """Hand each estimator's batch to every sink."""

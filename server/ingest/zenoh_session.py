@@ -200,24 +200,10 @@ def acl_config(
         )
     servers = [u for u in dict.fromkeys([server_user, *trusted]) if u is not None]
     if servers:
-        rules += [
-            {
-                "id": "server/ingress",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["declare_subscriber", "put"],
-                "key_exprs": [f"{prefix}/**"],
-            },
-            {
-                "id": "server/egress",
-                "permission": "allow",
-                "flows": ["egress"],
-                "messages": ["put"],
-                "key_exprs": [f"{prefix}/**"],
-            },
-        ]
+        own = _server_rules(prefix)
+        rules += own
         subjects.append({"id": "server", "usernames": servers})
-        policies.append({"rules": ["server/ingress", "server/egress"], "subjects": ["server"]})
+        policies.append({"rules": [r["id"] for r in own], "subjects": ["server"]})
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -225,6 +211,26 @@ def acl_config(
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def _server_rules(prefix: str) -> list[dict[str, Any]]:
+    """A server's rules: subscribe to and put anything under ``<prefix>/**``, both ways."""
+    return [
+        {
+            "id": "server/ingress",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["declare_subscriber", "put"],
+            "key_exprs": [f"{prefix}/**"],
+        },
+        {
+            "id": "server/egress",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put"],
+            "key_exprs": [f"{prefix}/**"],
+        },
+    ]
 
 
 def _is_loopback(endpoint: str) -> bool:

@@ -145,6 +145,10 @@ class WriterStats:
 #: One submit's rows in the backlog: ``(spec, ids, counts, rows)`` as an :class:`EstimateBatch`
 #: holds them (a copy), so a tick's rows of a thousand vehicles are one entry, not a thousand.
 _Queued = tuple[EstimatorSpec, list[str], list[int], np.ndarray]
+#: One aux write: ``(counters, raw packets, anchors, seq)`` (:meth:`StoreWriter._write_aux`).
+_Aux = tuple[
+    dict[str, dict[str, int]], list[tuple[str, int, str, bytes]], dict[str, Anchor], int | None
+]
 
 
 def _per_vehicle(
@@ -700,28 +704,39 @@ class StoreWriter:
                 self._inflight = self._take_locked()
                 return "estimates", self._inflight
             if self._aux_done < self._aux_seq and (urgent or now >= self._aux_due_at):
-                counters = self._take_counters_locked()
-                raw, self._raw, self._raw_bytes = self._raw, [], 0
-                anchors, self._anchors = self._anchors, {}
-                # the aux data counts as written once the last slice of counters is
-                seq = None if self._counters else self._aux_seq
-                return "aux", (counters, raw, anchors, seq)
+                return "aux", self._take_aux_locked()
             if self._retention_ns > 0 and not self._closing and now >= self._next_retention_at:
                 return "retention", None
             if self._maintain is not None and not self._closing and now >= self._next_maintain_at:
                 return "maintain", None
-            deadlines = []
-            if self._queued_rows:
-                deadlines.append(self._last_txn_start + self._interval_s)
-            if self._aux_done < self._aux_seq:
-                deadlines.append(self._aux_due_at)
-            if self._retention_ns > 0 and not self._closing:
-                deadlines.append(self._next_retention_at)
-            if self._maintain is not None and not self._closing:
-                deadlines.append(self._next_maintain_at)
-            if self._closing:
-                deadlines.append(self._close_deadline)
-            self._cond.wait(max(min(deadlines) - now, 0.0) if deadlines else None)
+            due = self._next_due_locked()
+            self._cond.wait(None if due is None else max(due - now, 0.0))
+
+    def _take_aux_locked(self) -> _Aux:
+        """Pop the next aux write: ``(counters, raw, anchors, seq)``; ``seq`` is the aux change
+        it completes, None while more slices of counters wait (the aux data counts as written
+        once the last slice is)."""
+        counters = self._take_counters_locked()
+        raw, self._raw, self._raw_bytes = self._raw, [], 0
+        anchors, self._anchors = self._anchors, {}
+        seq = None if self._counters else self._aux_seq
+        return counters, raw, anchors, seq
+
+    def _next_due_locked(self) -> float | None:
+        """The monotonic time the next job falls due: the earliest of the next transaction,
+        aux write, retention run, store upkeep and the close deadline; None for nothing."""
+        deadlines = []
+        if self._queued_rows:
+            deadlines.append(self._last_txn_start + self._interval_s)
+        if self._aux_done < self._aux_seq:
+            deadlines.append(self._aux_due_at)
+        if self._retention_ns > 0 and not self._closing:
+            deadlines.append(self._next_retention_at)
+        if self._maintain is not None and not self._closing:
+            deadlines.append(self._next_maintain_at)
+        if self._closing:
+            deadlines.append(self._close_deadline)
+        return min(deadlines) if deadlines else None
 
     def _run(self) -> None:
         try:
@@ -886,33 +901,44 @@ class StoreWriter:
                     self._raw_dropped += len(raw) - written
                 raw = []
         except StorageDataError as exc:
-            log.error("store rejected counters, anchors or raw packets, dropped: %s", exc)
-            with self._cond:
-                for vid in counters:  # not written: their next totals go in whole
-                    self._counters_sent.pop(vid, None)
-                self._raw_dropped += len(raw)
-                self._last_error = str(exc)
-                if seq is not None:
-                    self._aux_done = seq
-                self._cond.notify_all()
+            self._aux_rejected(exc, (counters, raw, anchors, seq))
             return
         except StorageError as exc:
-            with self._cond:
-                # Put back what was not written; newer counter totals win over these.
-                for vid, named in counters.items():
-                    merged = dict(named)
-                    merged.update(self._counters.get(vid, {}))
-                    self._counters[vid] = merged
-                self._raw[:0] = raw
-                self._raw_bytes += sum(len(p[3]) for p in raw)
-                self._anchors = {**anchors, **self._anchors}
-                self._failed_locked(exc)
+            self._aux_put_back(exc, (counters, raw, anchors, seq))
             return
         with self._cond:
             if seq is not None:
                 self._aux_done = seq
             self._succeeded_locked()
             self._cond.notify_all()
+
+    def _aux_rejected(self, exc: StorageDataError, unwritten: _Aux) -> None:
+        """The store refused the data of an aux write: drop what was not written of it (its
+        vehicles' next counter totals go in whole) and complete its ``seq``."""
+        counters, raw, _, seq = unwritten
+        log.error("store rejected counters, anchors or raw packets, dropped: %s", exc)
+        with self._cond:
+            for vid in counters:
+                self._counters_sent.pop(vid, None)
+            self._raw_dropped += len(raw)
+            self._last_error = str(exc)
+            if seq is not None:
+                self._aux_done = seq
+            self._cond.notify_all()
+
+    def _aux_put_back(self, exc: StorageError, unwritten: _Aux) -> None:
+        """The store failed an aux write: put back what was not written of it, to be
+        retried (newer counter totals win over these)."""
+        counters, raw, anchors, _ = unwritten
+        with self._cond:
+            for vid, named in counters.items():
+                merged = dict(named)
+                merged.update(self._counters.get(vid, {}))
+                self._counters[vid] = merged
+            self._raw[:0] = raw
+            self._raw_bytes += sum(len(p[3]) for p in raw)
+            self._anchors = {**anchors, **self._anchors}
+            self._failed_locked(exc)
 
     def _run_call(self, fn: Callable[[Store], Any], future: concurrent.futures.Future[Any]) -> None:
         """Answer one :meth:`call` (unless its caller gave up already)."""

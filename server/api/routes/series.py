@@ -458,6 +458,51 @@ DecimationQuery = Annotated[
 ]
 
 
+_SERIES_DESCRIPTION = (
+    "Rows of one estimator (`estimator`, default the vehicle's primary) with "
+    "`start <= stamp < end`, ordered by time; the fields are that estimator's "
+    "(`GET /api/v1/estimators`):\n\n" + fields_doc() + "\n\n"
+    "**Decimation**: with `max_points` >= 2 and more rows than that in the range, the "
+    "span of the data itself, from its first to its last stored row in the range (not the "
+    "requested range: a short drive in a long range keeps its detail), is cut into equal "
+    "time buckets anchored at the first row, and each bucket gives:\n\n"
+    "* `decimation=minmax` (default; for charts): `max_points // 2` buckets, each giving at "
+    "most two rows holding, per field, the bucket's minimum and maximum in the order they "
+    "occurred (NaN ignored); `stamp_ns` of the two rows is the bucket's first and last stamp "
+    "and `flags` the OR of the bucket's flags. Spikes therefore survive, but one decimated "
+    "row mixes values of several estimates (an east and a north of different rows "
+    "are no position the vehicle had).\n"
+    "* `decimation=first` (for positions and anything read row by row): `max_points` "
+    "buckets, each giving its first row, whole: every row returned is a stored row.\n\n"
+    "With `max_points` 0 or absent the series is full rate. A 12 h drive at 10 Hz (432 000 "
+    "rows) with `max_points=2000` gives 43.2 s buckets with `minmax` and 21.6 s buckets with "
+    "`first`. The JSON answer says what it holds: `rows` returned of `stored_rows` stored in "
+    "the range, `first_ns` and `last_ns` of the stored rows, and `bucket_ns` (0 at full "
+    "rate).\n\n"
+    "**Map** (`format=geojson`, for an estimator with a `position`; 400 `bad_request` "
+    "otherwise): a FeatureCollection with one Point per row that has a position, in WGS 84 "
+    "(longitude, latitude, ellipsoidal height) from the vehicle's anchor and the row's "
+    "position fields (east, north, up of the spec's `position`); the properties are the "
+    "fields asked for. With `max_points` the rows are thinned as with `decimation=first` "
+    "(a position is never mixed from several rows; `decimation=minmax` is refused). No "
+    "features before the vehicle's first fix. The collection's `anchor` is that origin by "
+    "name (`lat_deg`, `lon_deg`, `height_m`, as in the vehicle's answer), null before it."
+    "\n\n"
+    "**Exports** (`format=csv` and `parquet`): beside `stamp_ns` a `time` column, UTC "
+    "(CSV: ISO 8601 text with nanoseconds, `2024-05-01T12:00:00.000000000Z`, as `/latest`; "
+    "Parquet: a UTC timestamp in ns), and beside `flags` a `flag_names` column, the names "
+    "of the flags set by the estimator's spec, lowest bit first, joined by `|` "
+    "(`GNSS_OK|SLIP_LEFT_VALID`; empty for none). The Parquet schema metadata holds "
+    "`vehicle_id`, `estimator`, `start_ns`, `end_ns` and `flag_bits` (JSON `{name: bit}`), "
+    "and each column's field metadata its `unit`, `label` and `description` from the "
+    "spec. JSON carries `units` (per field) and `flag_bits` in its head instead of extra "
+    "columns.\n\n"
+    "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
+    "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
+    "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
+)
+
+
 @router.get(
     "/{vehicle_id}/series",
     response_model=SeriesPublic,
@@ -474,49 +519,7 @@ DecimationQuery = Annotated[
         **error_responses(400, 404, 422),
     },
     summary="Estimate series of one vehicle's estimator",
-    description=(
-        "Rows of one estimator (`estimator`, default the vehicle's primary) with "
-        "`start <= stamp < end`, ordered by time; the fields are that estimator's "
-        "(`GET /api/v1/estimators`):\n\n" + fields_doc() + "\n\n"
-        "**Decimation**: with `max_points` >= 2 and more rows than that in the range, the "
-        "span of the data itself, from its first to its last stored row in the range (not the "
-        "requested range: a short drive in a long range keeps its detail), is cut into equal "
-        "time buckets anchored at the first row, and each bucket gives:\n\n"
-        "* `decimation=minmax` (default; for charts): `max_points // 2` buckets, each giving at "
-        "most two rows holding, per field, the bucket's minimum and maximum in the order they "
-        "occurred (NaN ignored); `stamp_ns` of the two rows is the bucket's first and last stamp "
-        "and `flags` the OR of the bucket's flags. Spikes therefore survive, but one decimated "
-        "row mixes values of several estimates (an east and a north of different rows "
-        "are no position the vehicle had).\n"
-        "* `decimation=first` (for positions and anything read row by row): `max_points` "
-        "buckets, each giving its first row, whole: every row returned is a stored row.\n\n"
-        "With `max_points` 0 or absent the series is full rate. A 12 h drive at 10 Hz (432 000 "
-        "rows) with `max_points=2000` gives 43.2 s buckets with `minmax` and 21.6 s buckets with "
-        "`first`. The JSON answer says what it holds: `rows` returned of `stored_rows` stored in "
-        "the range, `first_ns` and `last_ns` of the stored rows, and `bucket_ns` (0 at full "
-        "rate).\n\n"
-        "**Map** (`format=geojson`, for an estimator with a `position`; 400 `bad_request` "
-        "otherwise): a FeatureCollection with one Point per row that has a position, in WGS 84 "
-        "(longitude, latitude, ellipsoidal height) from the vehicle's anchor and the row's "
-        "position fields (east, north, up of the spec's `position`); the properties are the "
-        "fields asked for. With `max_points` the rows are thinned as with `decimation=first` "
-        "(a position is never mixed from several rows; `decimation=minmax` is refused). No "
-        "features before the vehicle's first fix. The collection's `anchor` is that origin by "
-        "name (`lat_deg`, `lon_deg`, `height_m`, as in the vehicle's answer), null before it."
-        "\n\n"
-        "**Exports** (`format=csv` and `parquet`): beside `stamp_ns` a `time` column, UTC "
-        "(CSV: ISO 8601 text with nanoseconds, `2024-05-01T12:00:00.000000000Z`, as `/latest`; "
-        "Parquet: a UTC timestamp in ns), and beside `flags` a `flag_names` column, the names "
-        "of the flags set by the estimator's spec, lowest bit first, joined by `|` "
-        "(`GNSS_OK|SLIP_LEFT_VALID`; empty for none). The Parquet schema metadata holds "
-        "`vehicle_id`, `estimator`, `start_ns`, `end_ns` and `flag_bits` (JSON `{name: bit}`), "
-        "and each column's field metadata its `unit`, `label` and `description` from the "
-        "spec. JSON carries `units` (per field) and `flag_bits` in its head instead of extra "
-        "columns.\n\n"
-        "**Precision**: JSON floats carry 9 significant digits; CSV and Parquet are exact.\n\n"
-        "**Limits** (server defaults): the range may span at most 31 days; a JSON or Parquet "
-        "answer at most 200 000 rows (400 `range_too_large` otherwise); CSV is streamed."
-    ),
+    description=_SERIES_DESCRIPTION,
 )
 def get_series(
     vehicle: VehicleDep,

@@ -458,23 +458,38 @@ def get_vehicle_slipmap(
     cells = _cells(smap)
     body = SlipMapPublic.model_validate(
         {
+            **_map_head(spec, value, tr, smap, cells if format == "json" else []),
             "vehicle_id": vehicle.vehicle_id,
             "estimator": spec.name,
-            "slip_channels": _channel_refs(spec),
-            "layer": _layer_ref(value),
-            "start_ns": tr.start_ns,
-            "end_ns": tr.end_ns,
-            "cell_m": smap.cell_m,
             "anchor": AnchorPublic.as_json(anchor),
-            "band_edges_pct": list(smap.band_edges_pct),
-            "band_labels": list(smap.band_labels),
-            "count": smap.cells,
-            "cells": cells if format == "json" else [],
         }
     )
     frame = None if anchor is None else EnuFrame(*anchor)
     name = export_filename(f"{vehicle.vehicle_id}_slipmap", tr, "csv")
     return _answer(body, smap, cells, frame, format, name)
+
+
+def _map_head(
+    spec: EstimatorSpec | None,
+    value: ValueChannel | None,
+    tr: TimeRange,
+    smap: SlipMap,
+    cells: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """What a vehicle's and the fleet's map answers share: the slip channels and layer of
+    ``spec``, the range, the cells' side and bands, and the ``cells`` given (none for an
+    export)."""
+    return {
+        "slip_channels": _channel_refs(spec),
+        "layer": _layer_ref(value),
+        "start_ns": tr.start_ns,
+        "end_ns": tr.end_ns,
+        "cell_m": smap.cell_m,
+        "band_edges_pct": list(smap.band_edges_pct),
+        "band_labels": list(smap.band_labels),
+        "count": smap.cells,
+        "cells": cells,
+    }
 
 
 def _origin(lat_deg: float | None, lon_deg: float | None) -> Anchor | None:
@@ -657,21 +672,13 @@ def get_fleet_slipmap(
     spec = plan.spec
     body = FleetSlipMapPublic.model_validate(
         {
+            **_map_head(spec, plan.value, tr, smap, cells if format == "json" else []),
             "estimator": None if spec is None else spec.name,
-            "slip_channels": _channel_refs(spec),
-            "layer": _layer_ref(plan.value),
-            "start_ns": tr.start_ns,
-            "end_ns": tr.end_ns,
-            "cell_m": smap.cell_m,
             "origin": AnchorPublic.as_json(plan.origin),
             "origin_vehicle_id": plan.origin_vehicle_id,
-            "band_edges_pct": list(smap.band_edges_pct),
-            "band_labels": list(smap.band_labels),
             "band_edges_source": plan.edges_source,
             "vehicles": summary,
             "skipped": plan.skipped,
-            "count": smap.cells,
-            "cells": cells if format == "json" else [],
         }
     )
     download = export_filename("fleet_slipmap", tr, "csv")

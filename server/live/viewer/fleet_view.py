@@ -49,7 +49,7 @@ import numpy as np
 import viser
 
 from estimator.config import VehicleGeometry
-from estimator.spec import EstimatorSpec
+from estimator.spec import EstimatorSpec, PositionChannel
 from server.live.hub import LiveHub
 from server.live.viewer.colors import (
     GRIP_COLOR_STOPS,
@@ -423,16 +423,7 @@ class FleetViewer:
         if self.server is None:
             raise RuntimeError("viewer not open")
         t0 = time.perf_counter()
-        groups = [
-            (spec, *self.hub.latest_all(spec.name, primary_only=True))
-            for spec in self.hub.specs()
-            if spec.position is not None
-        ]
-        parked = [
-            (spec, *self.hub.latest_all(spec.name, primary_only=True))
-            for spec in self.hub.specs()
-            if spec.position is None and spec.slips
-        ]
+        groups, parked = self._latest_primaries()
         all_ids = [v for g in groups for v in g[1]]
         n_parked = sum(len(g[1]) for g in parked)
         if not all_ids and not n_parked:
@@ -448,27 +439,10 @@ class FleetViewer:
         frame = concat_frames(frames)
         ids = frame.ids
         parts = _part_arrays(frame)
-        shape = tuple(p[0].shape[0] for p in parts.values())
         with self._lock, self.server.atomic():
             self._show_count(len(ids), len(all_ids) + n_parked, n_parked)
-            if not ids:
-                self._clear_fleet()
-            elif shape != self._n or not self._meshes:
-                self._rebuild_fleet(parts)
-                self._n = shape
-            else:
-                for name, (wxyz, position_m, rgb) in parts.items():
-                    handle = self._meshes.get(name)
-                    if handle is not None:
-                        handle.batched_positions = position_m.astype(np.float32)
-                        handle.batched_wxyzs = wxyz.astype(np.float32)
-                        handle.batched_colors = rgb
-            if ids != self._ids:
-                self._ids = list(ids)
-                assert self._follow is not None
-                current = self._follow.value
-                self._follow.options = (NO_FOLLOW, *sorted(ids))
-                self._follow.value = current if current in ids else NO_FOLLOW  # type: ignore[misc]
+            self._draw_fleet(ids, parts)
+            self._offer_follow(ids)
             if ids:
                 self._draw_pins(frame)
                 self._fit_cameras(frame)
@@ -477,6 +451,46 @@ class FleetViewer:
         self.frames += 1
         self.last_frame_s = time.perf_counter() - t0
         return self.last_frame_s
+
+    def _latest_primaries(self) -> tuple[list[_SpecRows], list[_SpecRows]]:
+        """The newest primary rows per spec, ``(spec, ids, rows, arrivals)``: of the specs with
+        a position (drawn where they are), and of those without one but with slip channels
+        (parked)."""
+        placed, parked = [], []
+        for spec in self.hub.specs():
+            if spec.position is not None:
+                placed.append((spec, *self.hub.latest_all(spec.name, primary_only=True)))
+            elif spec.slips:
+                parked.append((spec, *self.hub.latest_all(spec.name, primary_only=True)))
+        return placed, parked
+
+    def _draw_fleet(self, ids: list[str], parts: dict[str, _Part]) -> None:
+        """The batched meshes of ``parts``: removed without vehicles, rebuilt when their
+        counts change, else moved and recoloured in place."""
+        shape = tuple(p[0].shape[0] for p in parts.values())
+        if not ids:
+            self._clear_fleet()
+        elif shape != self._n or not self._meshes:
+            self._rebuild_fleet(parts)
+            self._n = shape
+        else:
+            for name, (wxyz, position_m, rgb) in parts.items():
+                handle = self._meshes.get(name)
+                if handle is not None:
+                    handle.batched_positions = position_m.astype(np.float32)
+                    handle.batched_wxyzs = wxyz.astype(np.float32)
+                    handle.batched_colors = rgb
+
+    def _offer_follow(self, ids: list[str]) -> None:
+        """The follow menu offers the drawn ``ids``; a followed vehicle no longer drawn is
+        let go."""
+        if ids == self._ids:
+            return
+        self._ids = list(ids)
+        assert self._follow is not None
+        current = self._follow.value
+        self._follow.options = (NO_FOLLOW, *sorted(ids))
+        self._follow.value = current if current in ids else NO_FOLLOW  # type: ignore[misc]
 
     def _show_count(self, drawn: int, total: int, parked: int = 0) -> None:
         assert self._count is not None
@@ -537,7 +551,7 @@ class FleetViewer:
 
     def _parked_frames(
         self,
-        groups: list[tuple[EstimatorSpec, list[str], np.ndarray, np.ndarray]],
+        groups: list[_SpecRows],
         placed: list[FleetFrame],
     ) -> list[FleetFrame]:
         """Frames of the vehicles whose primary gives no position, parked in a row
@@ -565,61 +579,61 @@ class FleetViewer:
         if vid is None or vid not in frame.ids:
             return
         i = frame.ids.index(vid)
-        scene = self.server.scene
         start = frame.body_position_m[i] + np.array([0.0, 0.0, BODY_SIZE_M[2] / 2 + 0.3])
         tip = start + ARROW_SECONDS * frame.velocity_mps[i]
-        arrow_pts = np.stack([start, tip])[None, :, :]
+        self._draw_arrow(np.stack([start, tip])[None, :, :])
+        self._draw_label(vid, frame.antenna_m[i] + np.array([0.0, 0.0, 1.0]))
+        self._draw_track(frame, i, offset)
+        if self._camera_follows is not None and self._camera_follows.value:
+            self._move_cameras(vid, frame.body_position_m[i])
+
+    def _draw_arrow(self, points: np.ndarray) -> None:
+        """The followed vehicle's velocity arrow, ``points`` (1, 2, 3): tail and tip."""
+        assert self.server is not None
         if self._arrow is None:
-            self._arrow = scene.add_arrows(
+            self._arrow = self.server.scene.add_arrows(
                 "/follow/velocity",
-                points=arrow_pts,
+                points=points,
                 colors=(20, 20, 20),
                 shaft_radius=0.08,
                 head_radius=0.25,
                 head_length=0.4,
             )
         else:
-            self._arrow.points = arrow_pts
+            self._arrow.points = points
             self._arrow.visible = True
-        label_pos = frame.antenna_m[i] + np.array([0.0, 0.0, 1.0])
+
+    def _draw_label(self, vid: str, position: np.ndarray) -> None:
+        """The followed vehicle's id at ``position`` (3,)."""
+        assert self.server is not None
         if self._label is None:
-            self._label = scene.add_label("/follow/label", text=vid, position=label_pos)
+            self._label = self.server.scene.add_label("/follow/label", text=vid, position=position)
         else:
             self._label.text = vid
-            self._label.position = label_pos
+            self._label.position = position
             self._label.visible = True
-        spec = self.hub.spec(frame.estimators[i])
-        win = self.hub.window(vid, _TRACK_WINDOW_S, estimator=frame.estimators[i])
-        if spec is not None and spec.position is not None and win is not None:
-            p = spec.position
-            n_pts = len(win["stamp_ns"])
-            e, n, u = (_col(win, name, n_pts) for name in (p.east_field, p.north_field, p.up_field))
-            drop = frame.antenna_m[i, 2] - frame.ground_m[i, 2]  # antenna height above ground
-            if p.up_field is None:
-                u = np.zeros(n_pts)
-            pts = np.stack([e, n, u - drop + 0.05], -1)
-            if offset is not None:  # into the scene frame: the same shift as the vehicle's pose
-                pts += offset
-            ok = np.isfinite(pts).all(axis=1)
-            pts = pts[ok]
-            mags = [np.abs(_col(win, s.field, n_pts)) for s in spec.slips]
-            metric = np.fmax.reduce(mags) if mags else np.full(n_pts, np.nan)
-            metric = metric[ok]
-            if pts.shape[0] >= 2:
-                segs = np.stack([pts[:-1], pts[1:]], axis=1)
-                rgb = slip_rgb(metric[1:])
-                cols = np.repeat(rgb[:, None, :], 2, axis=1)
-                if self._track is not None:
-                    self._track.remove()
-                self._track = scene.add_line_segments(
-                    "/follow/track",
-                    points=segs,
-                    colors=cols,
-                    thickness=4.0,
-                    thickness_units="screen",
-                )
-        if self._camera_follows is not None and self._camera_follows.value:
-            self._move_cameras(vid, frame.body_position_m[i])
+
+    def _draw_track(self, frame: FleetFrame, i: int, offset: np.ndarray | None) -> None:
+        """Vehicle ``i``'s track of the last :data:`_TRACK_WINDOW_S` on the ground, segments
+        coloured by the larger |slip| of their end; kept as it was without a window."""
+        assert self.server is not None
+        vid, estimator = frame.ids[i], frame.estimators[i]
+        spec = self.hub.spec(estimator)
+        win = self.hub.window(vid, _TRACK_WINDOW_S, estimator=estimator)
+        if spec is None or spec.position is None or win is None:
+            return
+        drop = frame.antenna_m[i, 2] - frame.ground_m[i, 2]  # antenna height above ground
+        slip_fields = [s.field for s in spec.slips]
+        pts, metric = _track_points(win, spec.position, slip_fields, drop, offset)
+        if pts.shape[0] < 2:
+            return
+        segs = np.stack([pts[:-1], pts[1:]], axis=1)
+        cols = np.repeat(slip_rgb(metric[1:])[:, None, :], 2, axis=1)
+        if self._track is not None:
+            self._track.remove()
+        self._track = self.server.scene.add_line_segments(
+            "/follow/track", points=segs, colors=cols, thickness=4.0, thickness_units="screen"
+        )
 
     def _move_cameras(self, vid: str, target: np.ndarray) -> None:
         """Carry every client's camera along with the followed vehicle.
@@ -650,6 +664,8 @@ class FleetViewer:
 
 
 _Part = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: One spec's newest primary rows: ``(spec, ids, rows, arrivals)``.
+_SpecRows = tuple[EstimatorSpec, list[str], np.ndarray, np.ndarray]
 
 
 def _part_arrays(frame: FleetFrame) -> dict[str, _Part]:
@@ -675,3 +691,25 @@ def _col(win: dict[str, list[float | None]], name: str | None, n: int) -> np.nda
     if name is None:
         return np.full(n, np.nan)
     return np.array([np.nan if v is None else v for v in win[name]], dtype=np.float64)
+
+
+def _track_points(
+    win: dict[str, list[float | None]],
+    p: PositionChannel,
+    slip_fields: list[str],
+    drop_m: float,
+    offset: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The finite points of a window's positions (``p``'s fields; up 0 without one), lowered
+    by ``drop_m`` less 5 cm and shifted by ``offset`` (3,) into the scene: shape (m, 3); and
+    each point's larger |slip| over ``slip_fields`` (m,; NaN without any)."""
+    n_pts = len(win["stamp_ns"])
+    e, n = _col(win, p.east_field, n_pts), _col(win, p.north_field, n_pts)
+    u = np.zeros(n_pts) if p.up_field is None else _col(win, p.up_field, n_pts)
+    pts = np.stack([e, n, u - drop_m + 0.05], -1)
+    if offset is not None:  # into the scene frame: the same shift as the vehicle's pose
+        pts += offset
+    ok = np.isfinite(pts).all(axis=1)
+    mags = [np.abs(_col(win, name, n_pts)) for name in slip_fields]
+    metric = np.fmax.reduce(mags) if mags else np.full(n_pts, np.nan)
+    return pts[ok], metric[ok]
