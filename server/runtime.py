@@ -6,7 +6,8 @@ vehicle), the counter flusher and the 3D viewer. ``close`` undoes it in reverse,
 hands its last rows to the writer before the writer flushes and the store closes.
 
 The app factory (:func:`server.api.app.create_app`) calls ``open``/``close`` from its lifespan;
-the API reads ``store``, ``live_hub``, ``alert_engine`` and the hooks below.
+the API reads ``store``, ``live_hub``, ``alert_engine``, ``metrics()`` and ``vehicle_events``
+(this runtime: the vehicle events below).
 """
 
 from __future__ import annotations
@@ -234,8 +235,14 @@ class Runtime:
             # through the writer: stored before the vehicle's first rows are written
             self.writer.submit_vehicle(vehicle_id, config.to_dict(), time.time_ns())
 
+    @property
+    def vehicle_events(self) -> Runtime:
+        """The API's listener of vehicle changes (:class:`server.api.deps.VehicleEvents`): this
+        runtime, whose ``check_vehicle_config`` … ``on_vehicle_deleted`` follow."""
+        return self
+
     def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
-        """API hook: refuse configs naming estimators this server does not have."""
+        """Vehicle event: refuse configs naming estimators this server does not have."""
         registry = self.registry or EstimatorRegistry()
         try:
             registry.names_for(config)
@@ -243,7 +250,7 @@ class Runtime:
             raise ConfigError(str(exc)) from exc
 
     def on_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
-        """API hook: a config was stored; the estimators pick it up."""
+        """Vehicle event: a config was stored; the estimators pick it up."""
         self._configs[vehicle_id] = config
         if self.pipeline is not None:
             self.pipeline.register_vehicle(vehicle_id, config)
@@ -251,17 +258,17 @@ class Runtime:
             self.alert_engine.set_slip_config(vehicle_id, config.slip)
 
     def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
-        """API hook: an operator turned an estimator's command on or off for a vehicle."""
+        """Vehicle event: an operator turned an estimator's command on or off for a vehicle."""
         if self.pipeline is not None:
             self.pipeline.send_command(vehicle_id, estimator, key, on)
 
     def on_calibration_reset(self, vehicle_id: str, estimator: str) -> None:
-        """API hook: an operator reset a vehicle's calibration in one of its estimators."""
+        """Vehicle event: an operator reset a vehicle's calibration in one of its estimators."""
         if self.pipeline is not None:
             self.pipeline.send_command(vehicle_id, estimator, RESET_CALIBRATION, True)
 
     def on_vehicle_deleted(self, vehicle_id: str) -> None:
-        """API hook: the store deleted the vehicle; forget it everywhere."""
+        """Vehicle event: the store deleted the vehicle; forget it everywhere."""
         self._configs.pop(vehicle_id, None)
         if self.writer is not None:
             self.writer.forget_vehicle(vehicle_id)

@@ -3,9 +3,9 @@
 Authorisation is :func:`require_role` and nothing else: it resolves the caller's bearer token
 (hashed, looked up in the store) and compares roles.
 
-What the API needs from the server runtime is :class:`ApiRuntime` (required) plus optional hooks
-it calls when present (:class:`VehicleConfigListener`, :class:`MetricsSource`). Tests pass any
-object that fits, e.g. one holding a real SQLite store and writer and no Zenoh session. Reads go
+What the API needs from the server runtime is :class:`ApiRuntime`, with the vehicle changes it
+tells the runtime of as a typed service, :class:`VehicleEvents` (:data:`EventsDep`). Tests pass
+any object that fits, e.g. one holding a real SQLite store and writer and no Zenoh session. Reads go
 to the store from the request's thread; writes (vehicles, tokens) through the runtime's single
 store writer (:data:`WriterDep`), like every other write.
 
@@ -20,7 +20,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Protocol, TypeVar
+from typing import Annotated, Protocol, TypeVar
 
 import numpy as np
 from fastapi import Depends, Query, Request, WebSocketException, status
@@ -54,8 +54,9 @@ __all__ = [
     "ApiRuntime",
     "EstimatorDep",
     "EstimatorQuery",
+    "EventsDep",
     "LimitsDep",
-    "MetricsSource",
+    "NoVehicleEvents",
     "Principal",
     "PrincipalDep",
     "RoleRequirement",
@@ -65,10 +66,9 @@ __all__ = [
     "StoreDep",
     "TimeRange",
     "TimeRangeDep",
-    "VehicleConfigListener",
     "VehicleDep",
+    "VehicleEvents",
     "WriterDep",
-    "call_hook",
     "estimator_spec",
     "principal_of",
     "principal_of_token",
@@ -96,35 +96,15 @@ class StoreCalls(Protocol):
     def call(self, fn: Callable[[Store], _T]) -> _T: ...
 
 
-class ApiRuntime(Protocol):
-    """What the API needs from the server runtime.
-
-    The app's lifespan calls ``open()`` on start-up and ``close()`` on shut-down; ``store`` and
-    ``writer`` are read only between the two (``writer`` None: not open). ``health()`` names
-    each part (``"zenoh"``, ``"storage"``, …) and whether it is up; the API is ready only when
-    every part is.
-    """
-
-    @property
-    def store(self) -> Store: ...
-
-    @property
-    def writer(self) -> StoreCalls | None: ...
-
-    def open(self) -> None: ...
-
-    def close(self) -> None: ...
-
-    def health(self) -> Mapping[str, bool]: ...
-
-
-class VehicleConfigListener(Protocol):
-    """Optional runtime hooks for vehicle changes made through the API (each called if present).
+class VehicleEvents(Protocol):
+    """What the server does when the API changes a vehicle (the routes call it after the store
+    accepted the change).
 
     ``check_vehicle_config`` may raise :class:`estimator.config.ConfigError` to refuse a config
     before it is stored (e.g. an estimator name the registry does not know);
-    ``on_vehicle_config`` is told after the store accepted it; ``on_vehicle_deleted`` after the
-    store deleted the vehicle.
+    ``on_vehicle_config`` is told after the store accepted it, ``on_vehicle_deleted`` after the
+    store deleted the vehicle; ``on_estimator_command`` and ``on_calibration_reset`` pass an
+    operator's command on to the vehicle's estimator.
     """
 
     def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None: ...
@@ -133,22 +113,58 @@ class VehicleConfigListener(Protocol):
 
     def on_vehicle_deleted(self, vehicle_id: str) -> None: ...
 
+    def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None: ...
 
-class MetricsSource(Protocol):
-    """Optional: the runtime's metric families for ``GET /metrics``."""
+    def on_calibration_reset(self, vehicle_id: str, estimator: str) -> None: ...
+
+
+class NoVehicleEvents:
+    """:class:`VehicleEvents` of a runtime that runs no estimators (a store behind the API
+    alone): every config is accepted and nothing else listens."""
+
+    def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
+        return None
+
+    def on_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
+        return None
+
+    def on_vehicle_deleted(self, vehicle_id: str) -> None:
+        return None
+
+    def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
+        return None
+
+    def on_calibration_reset(self, vehicle_id: str, estimator: str) -> None:
+        return None
+
+
+class ApiRuntime(Protocol):
+    """What the API needs from the server runtime.
+
+    The app's lifespan calls ``open()`` on start-up and ``close()`` on shut-down; ``store`` and
+    ``writer`` are read only between the two (``writer`` None: not open). ``health()`` names
+    each part (``"zenoh"``, ``"storage"``, …) and whether it is up; the API is ready only when
+    every part is. ``vehicle_events`` is told of the API's vehicle changes (:data:`EventsDep`);
+    ``metrics()`` gives the runtime's metric families for ``GET /metrics`` (``by_vehicle``
+    False: per-vehicle counters summed to fleet totals).
+    """
+
+    @property
+    def store(self) -> Store: ...
+
+    @property
+    def writer(self) -> StoreCalls | None: ...
+
+    @property
+    def vehicle_events(self) -> VehicleEvents: ...
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def health(self) -> Mapping[str, bool]: ...
 
     def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]: ...
-
-
-def call_hook(runtime: object, name: str, *args: Any) -> Any:
-    """Call the runtime's optional hook ``name`` (see :class:`VehicleConfigListener`) if it has one.
-
-    Returns the hook's result, or None when the runtime has no such hook.
-    """
-    hook = getattr(runtime, name, None)
-    if hook is None or not callable(hook):
-        return None
-    return hook(*args)
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,7 +232,13 @@ def _writer(runtime: Annotated[ApiRuntime, Depends(_runtime)]) -> StoreCalls:
     return writer
 
 
+def _vehicle_events(runtime: Annotated[ApiRuntime, Depends(_runtime)]) -> VehicleEvents:
+    return runtime.vehicle_events
+
+
 RuntimeDep = Annotated[ApiRuntime, Depends(_runtime)]
+EventsDep = Annotated[VehicleEvents, Depends(_vehicle_events)]
+"""The runtime's listener of vehicle changes made through the API."""
 StoreDep = Annotated[Store, Depends(_store)]
 WriterDep = Annotated[StoreCalls, Depends(_writer)]
 """The runtime's single store writer: every REST write goes through its ``call``."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +26,9 @@ import uvicorn
 
 from estimator.config import SlipConfig, WheeledRearDriveConfig
 from server.analytics.alerts import AlertEngine
-from server.api import create_app
+from server.api import NoVehicleEvents, create_app
 from server.live.hub import LiveHub
+from server.metrics.prometheus import MetricFamily
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
 from server.storage.writer import StoreWriter
@@ -58,6 +59,7 @@ class LiveRuntime:
         self._store: Store | None = None
         self.writer: StoreWriter | None = None
         self.feed: FeedThread | None = None
+        self.vehicle_events = NoVehicleEvents()
 
     @property
     def store(self) -> Store:
@@ -93,6 +95,9 @@ class LiveRuntime:
 
     def health(self) -> Mapping[str, bool]:
         return {"storage": self.store.ping()}
+
+    def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]:
+        return ()
 
 
 @dataclass

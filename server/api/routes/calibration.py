@@ -21,10 +21,9 @@ from estimator.catalog import SPECS
 from estimator.config import ConfigError, VehicleConfig, vehicle_config_from_dict
 from estimator.spec import EstimatorSpec
 from server.api.deps import (
-    RuntimeDep,
+    EventsDep,
     StoreDep,
     VehicleDep,
-    call_hook,
     require_role,
     vehicle_estimators,
 )
@@ -234,7 +233,7 @@ def get_calibration(
     ),
 )
 def reset_calibration(
-    vehicle: VehicleDep, estimator: str, runtime: RuntimeDep
+    vehicle: VehicleDep, estimator: str, events: EventsDep
 ) -> CalibrationResetPublic:
     spec = SPECS.get(estimator)
     if spec is None or not spec.calibrations:
@@ -243,5 +242,5 @@ def reset_calibration(
     runs = vehicle_estimators(vehicle)
     if estimator not in runs:
         raise Conflict(f"vehicle {vehicle.vehicle_id!r} runs {', '.join(runs)}, not {estimator!r}")
-    call_hook(runtime, "on_calibration_reset", vehicle.vehicle_id, estimator)
+    events.on_calibration_reset(vehicle.vehicle_id, estimator)
     return CalibrationResetPublic(vehicle_id=vehicle.vehicle_id, estimator=estimator)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
 
-from server.api.deps import RuntimeDep, call_hook
+from server.api.deps import RuntimeDep
 from server.api.limits import HeavyLimitState
 from server.api.routes.health import checks
 from server.metrics.prometheus import CONTENT_TYPE, MetricFamily, Sample, render
@@ -53,7 +52,7 @@ def get_metrics(
             for name, ok in sorted(checks(runtime).items())
         ),
     )
-    provided: Iterable[MetricFamily] = call_hook(runtime, "metrics", by_vehicle) or ()
+    provided = runtime.metrics(by_vehicle)
     limits = _limit_families(getattr(request.app.state, "heavy_limits", None))
     return Response(render([up, *provided, *limits]), media_type=CONTENT_TYPE)
 

@@ -27,11 +27,10 @@ from estimator.config import (
 from estimator.spec import EstimatorSpec
 from server.api.deps import (
     EstimatorDep,
-    RuntimeDep,
+    EventsDep,
     StoreDep,
     VehicleDep,
     WriterDep,
-    call_hook,
     require_role,
     vehicle_estimators,
 )
@@ -160,18 +159,18 @@ def put_vehicle(
     body: Annotated[VehicleConfigIn, Body()],
     store: StoreDep,
     writer: WriterDep,
-    runtime: RuntimeDep,
+    events: EventsDep,
     response: Response,
 ) -> VehiclePublic:
     config = _parse_config(body)
     try:
-        call_hook(runtime, "check_vehicle_config", vehicle_id, config)
+        events.check_vehicle_config(vehicle_id, config)
     except ConfigError as exc:
         raise InvalidConfig(str(exc)) from exc
     existed = store.get_vehicle(vehicle_id) is not None
     stored = config.to_dict()
     record = writer.call(lambda s: s.upsert_vehicle(vehicle_id, stored, time.time_ns()))
-    call_hook(runtime, "on_vehicle_config", vehicle_id, config)
+    events.on_vehicle_config(vehicle_id, config)
     response.status_code = status.HTTP_200_OK if existed else status.HTTP_201_CREATED
     return _public(record, store.get_anchors(vehicle_id))
 
@@ -183,10 +182,10 @@ def put_vehicle(
     responses=error_responses(401, 403, 404),
     summary="Delete a vehicle with all its estimates and counters (admin)",
 )
-def delete_vehicle(vehicle_id: str, writer: WriterDep, runtime: RuntimeDep) -> Response:
+def delete_vehicle(vehicle_id: str, writer: WriterDep, events: EventsDep) -> Response:
     if not writer.call(lambda s: s.delete_vehicle(vehicle_id)):
         raise NotFound(f"unknown vehicle {vehicle_id!r}")
-    call_hook(runtime, "on_vehicle_deleted", vehicle_id)
+    events.on_vehicle_deleted(vehicle_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -209,7 +208,7 @@ def put_command(
     estimator: str,
     command: str,
     body: Annotated[CommandIn, Body()],
-    runtime: RuntimeDep,
+    events: EventsDep,
 ) -> CommandPublic:
     spec = SPECS.get(estimator)
     if spec is None:
@@ -224,7 +223,7 @@ def put_command(
     runs = vehicle_estimators(vehicle)
     if estimator not in runs:
         raise Conflict(f"vehicle {vehicle.vehicle_id!r} runs {', '.join(runs)}, not {estimator!r}")
-    call_hook(runtime, "on_estimator_command", vehicle.vehicle_id, estimator, command, body.on)
+    events.on_estimator_command(vehicle.vehicle_id, estimator, command, body.on)
     return CommandPublic(
         vehicle_id=vehicle.vehicle_id, estimator=estimator, command=command, on=body.on
     )

@@ -20,7 +20,7 @@ import json
 import statistics
 import tempfile
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,8 @@ import numpy as np
 from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import EstimateFlag, empty_estimates
 from server.analytics.reports import report_fields
-from server.api import create_app
+from server.api import NoVehicleEvents, create_app
+from server.metrics.prometheus import MetricFamily
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, open_store
 
@@ -101,6 +102,7 @@ class _BenchRuntime:
         self._settings = settings
         self._store: Store | None = None
         self.writer = None  # reads only: the API writes nothing here
+        self.vehicle_events = NoVehicleEvents()
 
     @property
     def store(self) -> Store:
@@ -116,6 +118,9 @@ class _BenchRuntime:
 
     def health(self) -> Mapping[str, bool]:
         return {"storage": self.store.ping()}
+
+    def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]:
+        return ()
 
 
 def _stats_ms(samples_s: Sequence[float]) -> dict[str, float]:

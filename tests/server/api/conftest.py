@@ -13,7 +13,7 @@ import pytest
 from anyio.from_thread import BlockingPortal, start_blocking_portal
 from fastapi import FastAPI
 
-from estimator.config import VehicleConfig
+from estimator.config import ConfigError, VehicleConfig
 from server.analytics.alerts import AlertEngine
 from server.api import ApiLimits, create_app
 from server.metrics.prometheus import MetricFamily, Sample
@@ -48,6 +48,8 @@ class FakeRuntime:
         self.writer: StoreWriter | None = None
         self.zenoh_up = True
         self.config_calls: list[tuple[str, VehicleConfig]] = []
+        self.config_checks: list[tuple[str, VehicleConfig]] = []
+        self.refuse_configs = ""  # set: check_vehicle_config refuses every config with this
         self.deleted: list[str] = []
         self.commands: list[tuple[str, str, str, bool]] = []
         self.calibration_resets: list[tuple[str, str]] = []
@@ -76,6 +78,15 @@ class FakeRuntime:
 
     def health(self) -> Mapping[str, bool]:
         return {"zenoh": self.zenoh_up, "storage": self.store.ping()}
+
+    @property
+    def vehicle_events(self) -> FakeRuntime:
+        return self
+
+    def check_vehicle_config(self, vehicle_id: str, config: VehicleConfig) -> None:
+        self.config_checks.append((vehicle_id, config))
+        if self.refuse_configs:
+            raise ConfigError(self.refuse_configs)
 
     def on_estimator_command(self, vehicle_id: str, estimator: str, key: str, on: bool) -> None:
         self.commands.append((vehicle_id, estimator, key, on))

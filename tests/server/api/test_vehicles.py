@@ -49,6 +49,7 @@ def test_register_update_list_get(client: ApiClient, runtime: FakeRuntime) -> No
     assert r.json()["config"]["slip"]["band_edges_pct"] == [10, 20, 30]
     assert r.json()["config"]["geometry"]["track_width_m"] == 1.8  # replaced, not merged
     assert len(runtime.config_calls) == 2
+    assert [vid for vid, _ in runtime.config_checks] == ["t1", "t1"]  # checked before stored
 
     client.put(f"{V}/a0", json={})
     listed = client.get(V).json()
@@ -366,3 +367,15 @@ def test_config_schema_is_a_union_on_kind_with_ranges_and_units(client: ApiClien
                 if spec.get("type") in ("number", "integer", "array") and name != "estimators":
                     assert "minimum" in spec or "minimum" in spec.get("items", {}), field
                     assert ".." in spec["description"], field
+
+
+def test_a_config_the_runtime_refuses_is_not_stored(
+    client: ApiClient, runtime: FakeRuntime
+) -> None:
+    runtime.refuse_configs = "estimator 'kalman9' is not on this server"
+    r = client.put(f"{V}/t1", json={})
+    assert r.status_code == 422
+    assert r.json()["error"] == "invalid_config"
+    assert "kalman9" in r.json()["reason"]
+    assert client.get(f"{V}/t1").status_code == 404
+    assert runtime.config_calls == []
