@@ -13,8 +13,15 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   low-pass commutes with the derivative, so it holds for the slow driving accelerations and
   the sway drops out). States ``[Ṽ, b, δ_g]``: the low-passed speed carried by the
   low-passed acceleration ``ã`` less a bias ``b`` (``Ṽ' = Ṽ + dt·(ã − b)``), observed as
-  ``ỹ = Ṽ − δ_g·(ã + L̃')``. Observable whenever ``ã`` changes; what it makes of a fix's
-  speed and, once converged, of the RTK distance is :mod:`estimator.mdsf.clock_shift`'s.
+  ``ỹ = Ṽ − δ_g·r̃``. The regressor ``r`` is the antenna's acceleration over the fix's own
+  span ``[t_f − δ̂, t_f]`` (``t_f`` the fix's stamp, ``δ̂`` the offset so far), not the tick's:
+  ``r = (U(t_f) − U(t_f − δ̂))/δ̂`` with ``U = ∫a·dt + L`` from the ticks' accelerations and
+  rates (cubic through the last ticks, :func:`~estimator.mdsf.clock_shift._node_weights`).
+  A fix is on average half a tick older than its tick, which under a mast's sway of a few
+  hertz is a large phase; the filter learns from the round two ticks back, so a span that
+  reaches past its fix (``δ̂ < 0``) has its ticks in. Observable whenever ``ã`` changes; what
+  it makes of a fix's speed and, once converged, of the RTK distance is
+  :mod:`estimator.mdsf.clock_shift`'s.
 * **Rolling radius per wheel and the wheels' clock offset** (:class:`WheelCal`): where slip is
   ~0 (a wheel the config declares free-rolling, or any wheel during an operator's calibration
   drive) the measured rim speed is ``r·W = V/s − δ_w·a_w`` with ``s`` the true over the
@@ -52,7 +59,7 @@ import numpy as np
 from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator._slots import grow_slot_array
 from estimator.config import CalibrationConfig, WheeledRearDriveConfig
-from estimator.mdsf.clock_shift import GnssClockShift
+from estimator.mdsf.clock_shift import _SHIFT_TICKS, GnssClockShift, _node_weights
 from estimator.mdsf.model import GRAVITY_MPS2, MdsfConfig
 
 __all__ = [
@@ -94,6 +101,13 @@ _RESIDUAL_TAU_S = 20.0
 """Time constant of the GNSS clock filter's running mean of its normalised innovation
 squared, by which its speed noise is inflated (model error the filter does not explain) [s]."""
 _STILL_SPEED_MPS = 0.05
+_CLOCK_DELAY_TICKS = 2
+"""The GNSS clock filter learns from the round this many ticks back: the span ``[t_f − δ̂,
+t_f]`` of a fix up to a tick old under an offset down to −0.1 s then lies within the kept
+ticks."""
+_MIN_SPAN_S = 0.01
+"""Shortest span the regressor's difference is taken over (``δ̂`` near 0: the acceleration at
+the fix) [s]."""
 _MIN_CAL_SPEED_MPS = 1.0
 """Wheel calibration uses ticks above this ground speed (the radius term ``κ·V`` then
 stands out of the rim-speed noise)."""
@@ -109,14 +123,26 @@ class GnssClock(IntEnum):
 
 class _ClockLowpass(IntEnum):
     """Columns of the GNSS clock filter's low-passes: first and second stage of the
-    acceleration ``a``, the lever-arm velocity ``L`` and the speed ``y``."""
+    acceleration ``a``, the regressor ``r`` (the antenna's acceleration over the fix's span)
+    and the speed ``y``."""
 
     ACCEL_1 = 0
     ACCEL_2 = 1
-    LEVER_1 = 2
-    LEVER_2 = 3
+    REG_1 = 2
+    REG_2 = 3
     SPEED_1 = 4
     SPEED_2 = 5
+
+
+class _Delayed(IntEnum):
+    """Columns of the GNSS clock filter's delay line: a round's inputs."""
+
+    ACCEL = 0
+    ACCEL_VAR = 1
+    SPEED = 2
+    SPEED_VAR = 3
+    LEVER = 4
+    AGE = 5
 
 
 class MountYaw(IntEnum):
@@ -222,7 +248,10 @@ class CalibrationBank:
         self.g_gap = np.zeros(cap)  # time since the last GNSS speed [s]
         self.g_nis = np.ones(cap)  # running mean of the normalised innovation squared
         self.g_fast = np.zeros(cap)  # the regressor's error variance [m²/s⁴]
-        self.g_lever = np.zeros(cap)  # the last tick's lever-arm velocity L [m/s]
+        self.g_reg = np.zeros(cap)  # the last fix's regressor r [m/s²]
+        self.g_delay = np.zeros((cap, _CLOCK_DELAY_TICKS, len(_Delayed)))  # newest first
+        self.g_u = np.zeros((cap, _SHIFT_TICKS))  # U = ∫a·dt + L at the ticks, newest first
+        self.g_accum = np.zeros(cap)  # ∫a·dt to the newest tick [m/s]
         self.wx = np.zeros((cap, 3))
         self.wp = np.zeros((cap, 3, 3))
         self.pitch = np.zeros(cap)
@@ -249,7 +278,10 @@ class CalibrationBank:
             ("g_gap", (), 0.0),
             ("g_nis", (), 1.0),
             ("g_fast", (), 0.0),
-            ("g_lever", (), 0.0),
+            ("g_reg", (), 0.0),
+            ("g_delay", (_CLOCK_DELAY_TICKS, len(_Delayed)), np.nan),
+            ("g_u", (_SHIFT_TICKS,), np.nan),
+            ("g_accum", (), 0.0),
             ("wx", (3,), 0.0),
             ("wp", (3, 3), 0.0),
             ("pitch", (), 0.0),
@@ -288,6 +320,10 @@ class CalibrationBank:
         self.g_gap[slot] = 0.0
         self.g_nis[slot] = 1.0
         self.g_fast[slot] = 0.0
+        self.g_reg[slot] = 0.0
+        self.g_delay[slot] = np.nan
+        self.g_u[slot] = np.nan
+        self.g_accum[slot] = 0.0
         self.wx[slot] = 0.0
         self.wp[slot] = np.diag([rad_var, rad_var, off_var])
         self.pitch[slot] = 0.0
@@ -426,26 +462,84 @@ class CalibrationBank:
         vg_mps: FloatArray,
         vg_var: FloatArray,
         lever_mps: FloatArray | None = None,
+        spans: tuple[FloatArray, FloatArray] | None = None,
     ) -> None:
         """One tick of the GNSS clock filter: the tick-mean acceleration ``a`` (NaN: no IMU,
         predicted with a wide walk), the tick's GNSS speed as the frontend moved it less the
         antenna's lever-arm velocity ``L`` at the tick (uncorrected; NaN: none) and ``L``
-        itself (None: 0), all (k,). Predicted and updated on the low-passed signals
-        (module docstring); a GNSS gap longer than ``gnss_timeout_s`` restarts the speed."""
-        dt = self.dt_s
+        itself (None: 0), all (k,); ``spans`` the tick's fixes' mean age and where the
+        tick-mean acceleration's span ends (``TickInputs.gnss_age_span_s``,
+        ``accel_span_end_s``; None: fixes at the tick, spans ending there). The tick's ``U``
+        joins the kept ticks and the filter learns from the round ``_CLOCK_DELAY_TICKS``
+        back (module docstring)."""
+        k = slots.shape[0]
+        age, span_end = (np.zeros(k), np.zeros(k)) if spans is None else spans
+        lever = np.zeros(k) if lever_mps is None else np.nan_to_num(lever_mps)
+        self._record_u(slots, accel_mps2, lever, np.nan_to_num(span_end))
+        newest = np.stack([accel_mps2, accel_var, vg_mps, vg_var, lever, age], axis=1)
+        old = self.g_delay[slots, -1]
+        kept = self.g_delay[slots]
+        kept[:, 1:] = kept[:, :-1]
+        kept[:, 0] = newest
+        self.g_delay[slots] = kept
+        a_old = old[:, _Delayed.ACCEL]
+        reg = self._span_regressor(slots, old[:, _Delayed.AGE], a_old)
+        self._clock_step(slots, old, reg)
+
+    def _record_u(
+        self, slots: IntArray, accel_mps2: FloatArray, lever_mps: FloatArray, end_s: FloatArray
+    ) -> None:
+        """The newest tick's ``U = ∫a·dt + L`` (k,) at the tick: the running sum of ``dt·a``
+        reaches ``end_s`` past the tick (the tick-mean's span), so ``end_s·a`` comes off;
+        NaN where the tick has no IMU (a hole the regressor does not read across)."""
         imu = np.isfinite(accel_mps2)
         a = np.where(imu, accel_mps2, 0.0)
-        lever = np.zeros_like(a) if lever_mps is None else np.nan_to_num(lever_mps)
+        self.g_accum[slots] += self.dt_s * a
+        u = np.where(imu, self.g_accum[slots] - end_s * a + lever_mps, np.nan)
+        kept = self.g_u[slots]
+        kept[:, 1:] = kept[:, :-1]
+        kept[:, 0] = u
+        self.g_u[slots] = kept
+
+    def _span_regressor(
+        self, slots: IntArray, age_s: FloatArray, fallback: FloatArray
+    ) -> FloatArray:
+        """The antenna's acceleration over the span ``[t_f − δ̂, t_f]`` of the fixes of the
+        round ``_CLOCK_DELAY_TICKS`` back, ``age_s`` (k,) before their tick:
+        ``(U(t_f) − U(t_f − δ̂))/δ̂`` on the cubic through the kept ticks (``|δ̂|`` at least
+        ``_MIN_SPAN_S``); ``fallback`` (k,) where a tick it weighs has no ``U`` or there is no
+        fix."""
+        off = self.gx[slots, GnssClock.OFFSET]
+        span = np.where(off >= 0.0, np.maximum(off, _MIN_SPAN_S), np.minimum(off, -_MIN_SPAN_S))
+        u_fix = _CLOCK_DELAY_TICKS + np.nan_to_num(age_s) / self.dt_s
+        weights = _node_weights(np.concatenate([u_fix, u_fix + span / self.dt_s]))
+        k = slots.shape[0]
+        nodes = self.g_u[slots]
+        holes = np.isnan(nodes)
+        w = weights[:k] - weights[k:]
+        reg = np.einsum("kj,kj->k", w, np.nan_to_num(nodes)) / span
+        bad = ((w != 0.0) & holes).any(axis=1) | ~np.isfinite(age_s)
+        return np.where(bad, np.nan_to_num(fallback), reg)
+
+    def _clock_step(self, slots: IntArray, rnd: FloatArray, reg: FloatArray) -> None:
+        """Predict and update the clock filter with a round's inputs ``rnd`` (k, len(_Delayed))
+        and regressor ``reg`` (k,) on the low-passed signals (module docstring); a GNSS gap
+        longer than ``gnss_timeout_s`` restarts the speed."""
+        dt = self.dt_s
+        accel, accel_var = rnd[:, _Delayed.ACCEL], rnd[:, _Delayed.ACCEL_VAR]
+        vg_mps, vg_var = rnd[:, _Delayed.SPEED], rnd[:, _Delayed.SPEED_VAR]
+        imu = np.isfinite(accel)
+        a = np.where(imu, accel, 0.0)
         x, p = self.gx[slots], self.gp[slots]
         has = np.isfinite(vg_mps) & imu
         first = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
-        regressor, y_low = self._clock_lowpass(slots, a, lever, np.where(has, vg_mps, np.nan))
+        regressor, y_low = self._clock_lowpass(slots, a, reg, np.where(has, vg_mps, np.nan))
         lp = self.g_lowpass[slots]
         x[:, GnssClock.SPEED] += dt * (lp[:, _ClockLowpass.ACCEL_2] - x[:, GnssClock.BIAS])
         f = np.eye(3)
         f[GnssClock.SPEED, GnssClock.BIAS] = -dt
         p = f @ p @ f.T
-        q_v = np.where(imu, accel_var, 1.0) * dt * dt + self.speed_walk**2 * dt
+        q_v = np.where(imu, np.nan_to_num(accel_var), 1.0) * dt * dt + self.speed_walk**2 * dt
         p[:, 0, 0] += q_v
         p[:, 1, 1] += self.bias_walk**2 * dt
         p[:, 2, 2] += _OFFSET_WALK_S_PER_SQRT_S**2 * dt
@@ -486,42 +580,43 @@ class CalibrationBank:
         return r * np.maximum(self.g_nis[slots], 1.0)
 
     def _clock_lowpass(
-        self, slots: IntArray, a: FloatArray, lever: FloatArray, y: FloatArray
+        self, slots: IntArray, a: FloatArray, reg: FloatArray, y: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
-        """Step the clock filter's low-passes by one tick (acceleration ``a``, lever-arm
-        velocity ``L``, speed ``y``, NaN: no fix, filled by ``y + dt·a``; all (k,)); returns
-        the regressor ``ã + L̃'`` and the low-passed speed ``ỹ`` (k,). A chain's first fix (or
-        the first after a gap) starts the speeds at their values and the accelerations at 0,
-        as if the vehicle had moved steadily before: ``Ṽ' = ã`` holds from there."""
+        """Step the clock filter's low-passes by one tick (acceleration ``a``, regressor ``r``,
+        speed ``y``; NaN: no fix, filled by ``y + dt·a`` with the last fix's ``r``, whose clock
+        term the filled speed carries; all (k,)); returns the low-passed regressor ``r̃`` and
+        speed ``ỹ`` (k,). A chain's first fix (or the first after a gap) starts the speeds at
+        their values and the accelerations at 0, as if the vehicle had moved steadily before:
+        ``Ṽ' = ã`` holds from there."""
         dt = self.dt_s
         alpha = dt / (self.lowpass_tau_s + dt)
         has = np.isfinite(y)
         gap = np.where(has, 0.0, self.g_gap[slots] + dt)
         start = has & (~self.g_started[slots] | (self.g_gap[slots] > self.gnss_gap_s))
         y_in = np.where(has, y, self.g_held[slots] + dt * a)
+        r_in = np.where(has, reg, self.g_reg[slots])
         lp = self.g_lowpass[slots]
-        lever_2 = lp[:, _ClockLowpass.LEVER_2].copy()
         for col_1, col_2, raw in (
             (_ClockLowpass.ACCEL_1, _ClockLowpass.ACCEL_2, a),
-            (_ClockLowpass.LEVER_1, _ClockLowpass.LEVER_2, lever),
+            (_ClockLowpass.REG_1, _ClockLowpass.REG_2, r_in),
             (_ClockLowpass.SPEED_1, _ClockLowpass.SPEED_2, y_in),
         ):
             lp[:, col_1] += alpha * (raw - lp[:, col_1])
             lp[:, col_2] += alpha * (lp[:, col_1] - lp[:, col_2])
-        lp[start] = np.stack([0.0 * a, 0.0 * a, lever, lever, y_in, y_in], axis=1)[start]
-        lever_rate = np.where(start, 0.0, (lp[:, _ClockLowpass.LEVER_2] - lever_2) / dt)
+        zero = 0.0 * a
+        lp[start] = np.stack([zero, zero, zero, zero, y_in, y_in], axis=1)[start]
         # the fast part the low-passes leave only attenuated (sway near the tick rate): the
-        # raw antenna acceleration less the low-passed one, its mean square times the
-        # low-passes' share of white noise is the regressor's error variance
-        fast = a + (lever - self.g_lever[slots]) / dt - lp[:, _ClockLowpass.ACCEL_2] - lever_rate
+        # raw regressor less the low-passed one, its mean square times the low-passes' share
+        # of white noise is the regressor's error variance
+        fast = r_in - lp[:, _ClockLowpass.REG_2]
         fast = np.where(start | ~self.g_started[slots], 0.0, fast)
-        self.g_lever[slots] = lever
+        self.g_reg[slots] = r_in
         beta = dt / (_RESIDUAL_TAU_S + dt)
         self.g_fast[slots] += beta * (self.lowpass_noise * fast * fast - self.g_fast[slots])
         self.g_lowpass[slots] = lp
         self.g_held[slots] = y_in
         self.g_gap[slots] = gap
-        return lp[:, _ClockLowpass.ACCEL_2] + lever_rate, lp[:, _ClockLowpass.SPEED_2]
+        return lp[:, _ClockLowpass.REG_2], lp[:, _ClockLowpass.SPEED_2]
 
     def _restart_speed(
         self,

@@ -594,7 +594,10 @@ class MdsfFleet:
         # the antenna's lever-arm terms taken off: eq. (2) with the rates at the tick
         wx, wz = (np.nan_to_num(tin.z[:, c]) for c in (MdsfObs.OMEGA_X, MdsfObs.OMEGA_Z))
         lever = self.front.ant_x_m[slots] * wz - self.front.h1_m[slots] * wx
-        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever)
+        spans = None
+        if tin.gnss_age_span_s is not None and tin.accel_span_end_s is not None:
+            spans = (tin.gnss_age_span_s, tin.accel_span_end_s)
+        bank.observe_gnss(slots, accel, tin.accel_var, vg_raw - lever, tin.gnss_var, lever, spans)
         usable = so.emit & ((so.flags & int(_F.GNSS_OK)) != 0)
         ground = np.stack([so.vl, so.vr], axis=1)
         ground_var = np.stack([so.vl_std, so.vr_std], axis=1) ** 2

@@ -200,6 +200,16 @@ class TickInputs:
         Variance of the tilt track's pitch and roll at the tick, carried from their last fix
         by the gyro biases' uncertainty (:func:`~estimator.tilt.angle_var_after`): small with a
         receiver's attitude, growing through an outage with one antenna [rad²].
+    gnss_age_span_s : ndarray, shape (m,), or None
+        Mean age before the tick of the fixes averaged into ``z[:, VG]`` (NaN: none) [s]:
+        where the GNSS clock learner takes the antenna's acceleration
+        (:mod:`estimator.mdsf.calibration`).
+    accel_span_end_s : ndarray, shape (m,), or None
+        Where the tick-mean acceleration's span ends, relative to the tick [s]: the mean of
+        point samples in ``(tick − dt, tick]`` is the acceleration at their mean instant
+        ``tick + τ̄``, so their sum times ``dt`` integrates ``(tick − dt + e, tick + e]`` with
+        ``e = τ̄ + dt/2`` (half a sample interval past the tick for a regular IMU; NaN: no
+        sample).
     """
 
     stamp_ns: IntArray
@@ -225,6 +235,8 @@ class TickInputs:
     lever_accel_fwd_mps2: FloatArray | None = None
     lever_accel_fwd_var: FloatArray | None = None
     tilt_var: FloatArray | None = None
+    gnss_age_span_s: FloatArray | None = None
+    accel_span_end_s: FloatArray | None = None
 
     @property
     def m(self) -> int:
@@ -1270,7 +1282,9 @@ class _Batch:
         lever_fwd, lever_fwd_var = self._lever_accel_fwd(
             tick_id, tau, wx[inb], means[1], n_imu, at_tick
         )
-        gnss_ok, gnss_var = self._gnss_speed(z, lever_fwd)
+        gnss_ok, gnss_var, gnss_age = self._gnss_speed(z, lever_fwd)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            span_end = np.bincount(tick_id, weights=tau, minlength=n_ticks) / n_imu + cfg.dt_s / 2
         enu, att, fix_age_s = self._hold_outputs(means[2], theta_tick, phi_tick)
         dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
         omega, omega_std, wflags = self._wheels()
@@ -1298,6 +1312,8 @@ class _Batch:
             lever_accel_fwd_mps2=lever_fwd,
             lever_accel_fwd_var=lever_fwd_var,
             tilt_var=self._tilt_var_at_ticks(),
+            gnss_age_span_s=gnss_age,
+            accel_span_end_s=np.where(imu_ok, span_end, np.nan),
         )
 
     def _lever_accel_fwd(
@@ -1635,23 +1651,29 @@ class _Batch:
         fe.yaw_fix_ns[s] = fix_ns
         return np.asarray(b[:, 0])
 
-    def _gnss_speed(self, z: FloatArray, lever_fwd: FloatArray) -> tuple[BoolArray, FloatArray]:
+    def _gnss_speed(
+        self, z: FloatArray, lever_fwd: FloatArray
+    ) -> tuple[BoolArray, FloatArray, FloatArray]:
         """GNSS speed per tick into ``z[:, VG]``: eq. (1) moved to the tick and averaged
         (product), or the latest fix (paper). Moved with the axle's tick-mean acceleration
         ``ā1 + lever_fwd`` (``lever_fwd`` (n_ticks,), :meth:`_lever_accel_fwd`; ``ā1`` where
         it is NaN) and the lever change of the antenna about the axle at the fix's instant
-        (:meth:`_lever_change`). Returns ``(gnss_ok, gnss_var)``, shape ``(n_ticks,)``."""
+        (:meth:`_lever_change`). Returns ``(gnss_ok, gnss_var, age)``, shape ``(n_ticks,)``,
+        ``age`` the mean age of the tick's fixes before it (the latest's in paper mode; NaN:
+        none) [s]."""
         fe = self.fe
         tn = fe.tick_ns
         n_ticks = self.n_ticks
         gnss_ok = np.zeros(n_ticks, dtype=bool)
         gnss_var = fe.gnss_var_cfg[self.slots[self.tick_row]].copy()
+        age = np.full(n_ticks, np.nan)
         if self.g_row.shape[0] == 0:
-            return gnss_ok, gnss_var
+            return gnss_ok, gnss_var, age
         # the tick whose window holds the fix
         j = np.maximum(-((self.first[self.g_row] - self.g_t) // tn), 0)
         tid = self.offsets[self.g_row] + j
         inside = self.g_vel_ok
+        fix_age = (self.ticks[tid] - self.g_t) * _NS
         if self.product:
             axle = np.isfinite(lever_fwd[tid])
             a_t = nan_to_num(z[tid, MdsfObs.A1]) + np.where(axle, lever_fwd[tid], 0.0)
@@ -1662,15 +1684,18 @@ class _Batch:
             s_vg = np.bincount(ti, weights=vg_al[inside], minlength=n_ticks)
             s_var = np.bincount(ti, weights=self.g_var[inside], minlength=n_ticks)
             has = cnt > 0
+            s_age = np.bincount(ti, weights=fix_age[inside], minlength=n_ticks)
             z[has, MdsfObs.VG] = s_vg[has] / cnt[has]
             gnss_var[has] = s_var[has] / cnt[has] ** 2
+            age[has] = s_age[has] / cnt[has]
             gnss_ok = has
         else:
             ti = tid[inside]
             z[ti, MdsfObs.VG] = self.g_vg[inside]  # later fixes overwrite: the latest wins
             gnss_var[ti] = self.g_var[inside]
+            age[ti] = fix_age[inside]
             gnss_ok[ti] = True
-        return gnss_ok, gnss_var
+        return gnss_ok, gnss_var, age
 
     def _lever_change(self, tid: IntArray, z: FloatArray, axle: BoolArray) -> FloatArray:
         """Change of the antenna's lever-arm terms from each fix's instant to its tick,
