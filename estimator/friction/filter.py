@@ -176,8 +176,6 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
-    ay_model_rel_std: float = 0.03
-    ay_model_corr_s: float = 1.0
 
     @property
     def n_states(self) -> int:
@@ -410,13 +408,9 @@ def _sq_r(cfg: FilterConfig, u: TickInputs) -> FloatArray:
         return np.broadcast_to(np.diag(sigma), (b, 3, 3)).copy()
     sigma[2] = math.hypot(sigma[2], cfg.yaw_model_std_radps2)
     vy_std = np.where(np.isfinite(u.vy_meas_mps), u.vy_meas_std_mps, 1e3)
-    accel = np.broadcast_to(sigma, (b, 3)).copy()
-    # the tyre model's a_y error persists for ``ay_model_corr_s``: over that many ticks it
-    # does not average out as white noise does, so the row carries it √(ticks) times
-    ticks = max(cfg.ay_model_corr_s / cfg.tick_s, 1.0)
-    model = cfg.ay_model_rel_std * np.abs(u.z[:, 1]) * math.sqrt(ticks)
-    accel[:, 1] = np.hypot(accel[:, 1], model)
-    diag = np.concatenate([accel, vy_std[:, None], u.balance_std_n], axis=1)
+    diag = np.concatenate(
+        [np.broadcast_to(sigma, (b, 3)), vy_std[:, None], u.balance_std_n], axis=1
+    )
     m = diag.shape[1]
     out = np.zeros((b, m, m))
     out[:, np.arange(m), np.arange(m)] = diag
