@@ -60,7 +60,7 @@ from estimator.friction.filter import (
     reported_mu_std,
 )
 from estimator.friction.fleetfront import FleetFrontEnd, FrontEndTicks
-from estimator.friction.frontend import FrontEndConfig
+from estimator.friction.frontend import FrontEndConfig, antenna_velocity_at_cg
 from estimator.friction.position import FleetPositions, PositionConfig
 from estimator.friction.sensors import FleetSensors
 from estimator.friction.slots import FleetSlots
@@ -242,10 +242,13 @@ class FrictionFleet:
     def _place(
         self, out: np.ndarray, at: IntArray, s: IntArray, t_ns: IntArray, fe: FrontEndTicks
     ) -> None:
-        """The rows ``out[at]``'s position from the vehicles' tracks, stepped with the rows'
-        speeds and the gyro's yaw rate; their ``DEAD_RECKONED`` bit."""
-        vy = out["vy_mps"][at]
-        enu, heading, late = self._positions.step(s, t_ns, fe.vx_mps, vy, fe.yaw_rate_radps)
+        """The rows ``out[at]``'s position from the vehicles' tracks, stepped with the antenna's
+        speeds (the rows' CG speeds moved through its lever arm) and the gyro's yaw rate; their
+        ``DEAD_RECKONED`` bit."""
+        cg = np.stack([fe.vx_mps, out["vy_mps"][at]], axis=1)
+        arm = self._front.car.antenna_xy[s]
+        vx, vy = antenna_velocity_at_cg(cg, fe.yaw_rate_radps, -arm).T  # v_cg + ω × r
+        enu, heading, late = self._positions.step(s, t_ns, vx, vy, fe.yaw_rate_radps)
         out["east_m"][at], out["north_m"][at], out["up_m"][at] = enu.T
         out["heading_rad"][at] = heading
         out["flags"][at] |= np.where(late, int(FrictionFlag.DEAD_RECKONED), 0).astype(

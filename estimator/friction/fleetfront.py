@@ -26,9 +26,11 @@ from estimator.friction.frontend import (
     GNSS_SPEED_STD_MPS,
     UNDRIVEN,
     FrontEndConfig,
+    antenna_velocity_at_cg,
     brake_slip_std,
     calibration_scale_var,
     consider_step,
+    horizontal_antenna_arm_m,
     rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
@@ -186,6 +188,7 @@ class _Vehicles(_Arrays):
         self.r_u = np.zeros(0)
         self.kz = np.zeros(0)
         self.c_px = np.zeros(0)
+        self.antenna_xy = np.zeros((0, 2))  # antenna ahead, left of the CG [m]
 
     def set(
         self, slot: int, config: Wheeled4wdSteeredConfig, fe: FrontEndConfig, dt: float
@@ -217,6 +220,7 @@ class _Vehicles(_Arrays):
         self.r_u[slot] = ty.unloaded_radius_m
         self.kz[slot] = ty.kz_npm
         self.c_px[slot] = ty.c_px_npm2
+        self.antenna_xy[slot] = horizontal_antenna_arm_m(ch)
 
 
 class _State(_Arrays):
@@ -316,9 +320,11 @@ class FleetFrontEnd:
         """One tick of the slots ``s`` ``(B,)`` (distinct) from their sensed rows ``(B, …)``."""
         paper, dt = self.fe.paper, self.dt
         ax_raw, ay_raw = sensed.accel_mps2[:, 1], -sensed.accel_mps2[:, 0]
-        gnss_v = sensed.gnss_vel_mps
-        g = np.flatnonzero(np.isfinite(gnss_v[:, 0]))  # rows with a fresh GNSS velocity
+        g = np.flatnonzero(np.isfinite(sensed.gnss_vel_mps[:, 0]))  # a fresh GNSS velocity
         yaw_rate = self._yaw_step(s, sensed.gyro_radps[:, 2], g, sensed)
+        gnss_v = sensed.gnss_vel_mps
+        if not paper:  # the CG's, moved from the antenna (FrontEnd._gnss_velocity)
+            gnss_v = antenna_velocity_at_cg(gnss_v, yaw_rate, self.car.antenna_xy[s])
         ax_tilt, ay_tilt = self._tilt_step(s, ax_raw, ay_raw, g, sensed)
         ax, ay = ax_tilt - self.vx.bias[s], ay_tilt - self.vy.bias[s]
         fz = self._loads(s, ax, ay)

@@ -69,7 +69,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator._arrays import FloatArray
-from estimator.config import DrivenAxle, Wheeled4wdSteeredConfig
+from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
 from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
@@ -81,9 +81,11 @@ __all__ = [
     "FrontEnd",
     "FrontEndConfig",
     "FrontEndTick",
+    "antenna_velocity_at_cg",
     "brake_slip_std",
     "calibration_scale_var",
     "consider_step",
+    "horizontal_antenna_arm_m",
     "rim_persistent_std_mps",
     "ringing_slip_std",
     "spin_up_slip",
@@ -155,6 +157,32 @@ class FrontEndConfig:
     brake_share_std: float = 0.5
     wheel_speed_resolution_radps: float = 0.025
     wheel_speed_window_s: float = 0.02
+
+
+def horizontal_antenna_arm_m(chassis: ChassisConfig) -> tuple[float, float]:
+    """The antenna's horizontal lever arm from the CG as (ahead, left) [m] (the config's is
+    x right, y forward)."""
+    right, ahead, _ = chassis.antenna_lever_arm_m
+    return ahead, -right
+
+
+def antenna_velocity_at_cg(
+    vel_mps: FloatArray, yaw_rate_radps: FloatArray | float, antenna_xy_m: FloatArray
+) -> FloatArray:
+    """The CG's body-frame velocity from the antenna's, through the horizontal lever arm.
+
+    ``v_cg = v_ant − ω × r``, its horizontal part with the yaw rate ``r_z`` and the arm
+    ``(x, y)`` (ahead, left of the CG): ``v_x,cg = v_x,ant + r_z·y``, ``v_y,cg = v_y,ant − r_z·x``.
+    ``vel_mps`` ``(..., 2)`` ``(v_x, v_y)`` (x forward, y left), ``yaw_rate_radps`` ``(...)``
+    (counter-clockwise), ``antenna_xy_m`` ``(..., 2)`` → ``(..., 2)``; with the arm negated
+    it gives the antenna's velocity from the CG's (``v_cg + ω × r``). A body that rolls or
+    pitches moves a raised antenna too; that part is left in (the config does not say about
+    which point the body tilts).
+    """
+    vel = np.asarray(vel_mps, dtype=np.float64)
+    arm = np.asarray(antenna_xy_m, dtype=np.float64)
+    rate = np.asarray(yaw_rate_radps, dtype=np.float64)
+    return np.stack([vel[..., 0] + rate * arm[..., 1], vel[..., 1] - rate * arm[..., 0]], axis=-1)
 
 
 def brake_slip_std(
@@ -402,6 +430,7 @@ class FrontEnd:
         )
         self.undriven = UNDRIVEN[ch.driven_axle]
         self.drive_share = DRIVE_SHARE[ch.driven_axle]
+        self.antenna_xy_m = np.array(horizontal_antenna_arm_m(ch))
         # the paper's statically loaded radius; the product starts from a third of the
         # deflection (a rolling tyre's effective radius) and calibrates from there
         self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (
@@ -507,7 +536,7 @@ class FrontEnd:
         accel, gyro, imu_lag_s = window
         ax_raw, ay_raw = float(accel[1]), float(-accel[0])
         yaw_rate = self._yaw_step(float(gyro[2]))
-        gnss = self._gnss_velocity(t_ns)
+        gnss = self._gnss_at_cg(self._gnss_velocity(t_ns), yaw_rate)
         if gnss is not None:
             self._heading_update()
         self._learn_tilt(ax_raw, ay_raw, gnss is not None)
@@ -581,7 +610,8 @@ class FrontEnd:
         return ax + (ax - float(prev[0])) * step, ay + (ay - float(prev[1])) * step
 
     def _gnss_velocity(self, t_ns: int) -> tuple[float, float] | None:
-        """GNSS ``(v_x, v_y)`` in the body frame when a fresh sample arrived, else None."""
+        """GNSS ``(v_x, v_y)`` in the body frame when a fresh sample arrived, else None (the
+        antenna's, as the receiver reads it)."""
         g = self.gnss
         if not self.gnss_fresh or g is None:
             return None
@@ -591,6 +621,16 @@ class FrontEnd:
         ve, vn, _ = g.vel_enu_mps
         h = g.heading_rad
         return ve * math.sin(h) + vn * math.cos(h), -ve * math.cos(h) + vn * math.sin(h)
+
+    def _gnss_at_cg(
+        self, vel: tuple[float, float] | None, yaw_rate: float
+    ) -> tuple[float, float] | None:
+        """The CG's body-frame velocity from the antenna's, with the tick's yaw rate (its
+        window holds the fix's instant; paper: the antenna's, as read)."""
+        if vel is None or self.fe.paper:
+            return vel
+        vx, vy = antenna_velocity_at_cg(np.array(vel), yaw_rate, self.antenna_xy_m)
+        return float(vx), float(vy)
 
     def _speed_step(
         self,

@@ -2,8 +2,8 @@
 
 The frame is anchored at the first fix with a position (or the anchor the server restores,
 :meth:`PositionTrack.set_anchor`); ``east``, ``north``, ``up`` are metres from it, heading
-``ψ`` clockwise from north. The steered config carries no antenna lever arm: the position is
-the antenna's (on the four-wheel simulator it sits at the CG).
+``ψ`` clockwise from north. The position is the antenna's; the speeds it is carried with are
+the antenna's too (the fleet moves the CG's through the config's ``antenna_lever_arm_m``).
 
 * **A fresh fix** (a new GNSS epoch with a position, at or before the tick) places the
   vehicle: its ENU position moved to the tick with its velocity, ``p = p_fix + v_enu·(t −

@@ -19,10 +19,13 @@ load, body roll and pitch tilting the accelerometers. Sensors (per run, uniform 
   passed in the period before its stamp; an ECU that samples (``tooth_mean=False``) reports
   the instantaneous speed at its stamp;
 * steering-wheel angle 50 Hz in packets of 5, noise 0.1°, offset −0.5..0.5°;
-* GNSS 10 Hz: ENU velocity noise 0.03 m/s per axis, dual-antenna heading noise 0.15°.
+* GNSS 10 Hz: the antenna's ENU velocity and position (:func:`antenna_motion`, at the
+  config's ``antenna_lever_arm_m`` from the CG, the body tilting about the CG), velocity
+  noise 0.03 m/s per axis, dual-antenna heading noise 0.15°.
 
 Random vehicles (:func:`random_config`) come from stated distributions; the named manoeuvres
-run :data:`FOUR_WHEEL_CONFIG` (a rear-driven utility vehicle).
+run :data:`FOUR_WHEEL_CONFIG` (a rear-driven utility vehicle, its antenna on the cab roof
+0.5 m ahead of the CG on the centre line, 1.9 m above the ground).
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ __all__ = [
     "Manoeuvre",
     "Truth",
     "WheelSpeedSensor",
+    "antenna_motion",
     "named_manoeuvre",
     "random_config",
     "random_manoeuvre",
@@ -73,7 +77,8 @@ __all__ = [
 START_NS = 1_700_000_000_000_000_000
 SENSOR_NOISE = NoiseConfig(gnss_vel_std_mps=0.03, accel_std_mps2=0.05, gyro_std_radps=0.003)
 FOUR_WHEEL_CONFIG = Wheeled4wdSteeredConfig(
-    chassis=ChassisConfig(driven_axle=DrivenAxle.REAR), noise=SENSOR_NOISE
+    chassis=ChassisConfig(driven_axle=DrivenAxle.REAR, antenna_lever_arm_m=(0.0, 0.5, 1.9)),
+    noise=SENSOR_NOISE,
 )
 _ROW_S = 0.01  # truth and IMU rate
 _FRAME = EnuFrame(48.0, 11.0, 500.0)
@@ -129,7 +134,10 @@ class FourWheelRun:
 def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
     """A vehicle drawn uniformly: mass 1,200-3,500 kg, lf and lr 1.0-1.7 m, tracks 1.4-1.8 m,
     CG height 0.5-0.9 m, yaw inertia m·lf·lr·(0.9-1.3), steering ratio 14-20, c_px
-    0.7-1.3e7 N/m², c_py 0.5-0.8 of it, kz 1.8-3.5e5 N/m, r_u 0.30-0.40 m, any driven axle."""
+    0.7-1.3e7 N/m², c_py 0.5-0.8 of it, kz 1.8-3.5e5 N/m, r_u 0.30-0.40 m, any driven axle;
+    the GNSS antenna −1.5..+2.0 m ahead of the CG, −0.4..+0.4 m right of it, 1.5-3.2 m above
+    the ground (drawn from a generator spawned off ``rng``, so the draws after it are the
+    same as without an antenna)."""
     mass = rng.uniform(1200.0, 3500.0)
     lf, lr = rng.uniform(1.0, 1.7, 2)
     c_px = rng.uniform(0.7e7, 1.3e7)
@@ -143,6 +151,7 @@ def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
         cg_height_m=rng.uniform(0.5, 0.9),
         steering_ratio=rng.uniform(14.0, 20.0),
         driven_axle=list(DrivenAxle)[int(rng.integers(0, 3))],
+        antenna_lever_arm_m=_antenna_lever_arm_m(rng.spawn(1)[0]),
     )
     tyre = TyreConfig(
         c_px_npm2=c_px,
@@ -151,6 +160,12 @@ def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
         unloaded_radius_m=rng.uniform(0.30, 0.40),
     )
     return Wheeled4wdSteeredConfig(chassis=chassis, tyre=tyre, noise=SENSOR_NOISE)
+
+
+def _antenna_lever_arm_m(rng: np.random.Generator) -> tuple[float, float, float]:
+    """(x right, y forward, z up) from the ground below the CG, :func:`random_config`'s range."""
+    right, ahead, up = rng.uniform((-0.4, -1.5, 1.5), (0.4, 2.0, 3.2))
+    return float(right), float(ahead), float(up)
 
 
 def simulate_four_wheel(
@@ -182,7 +197,7 @@ def simulate_four_wheel(
         rows = round(m.duration_s / _ROW_S) + 1
         one = truth.take(i)
         one = Truth(*(getattr(one, f)[:rows] for f in one.__dataclass_fields__))
-        sensors = _sensors(one, rngs[i], start_ns, wss[i])
+        sensors = _sensors(one, rngs[i], start_ns, wss[i], cfgs[i].chassis)
         tyres = (params.c_px_npm2[i], params.c_py_npm2[i], params.kz_npm[i])
         runs.append(FourWheelRun(m, cfgs[i], one, sensors, start_ns, *tyres))
     return runs
@@ -263,21 +278,55 @@ def _can(
     return out
 
 
-def _gnss(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[tuple[int, Measurement]]:
+def antenna_motion(truth: Truth, chassis: ChassisConfig) -> tuple[FloatArray, FloatArray]:
+    """The antenna's ENU position (up: above the ground) and velocity from the CG's, ``(T, 3)``
+    each [m, m/s].
+
+    The lever arm ``r`` (``antenna_lever_arm_m`` less the CG height, in the body frame x
+    forward, y left, z up) tilts with the body about the CG, pitch ``θ`` (nose up) then roll
+    ``φ`` (right side down): ``d = R_x(φ) R_y(−θ) r``. Then ``p_ant = p_cg + R_z(ψ) d`` and
+    ``v_ant = v_cg + R_z(ψ)(ḋ + r_z ẑ × d)`` (``v = v_cg + ω × r``; ``ψ`` the yaw, ``r_z`` the
+    yaw rate): a steady turn adds ``r_z·d_x`` across the heading and ``−r_z·d_y`` along it.
+    """
+    right, ahead, up = chassis.antenna_lever_arm_m
+    f, lft, h = ahead, -right, up - chassis.cg_height_m
+    th, ph = truth.pitch_rad, truth.roll_rad
+    f1, h1 = f * np.cos(th) - h * np.sin(th), f * np.sin(th) + h * np.cos(th)
+    l2, h2 = lft * np.cos(ph) - h1 * np.sin(ph), lft * np.sin(ph) + h1 * np.cos(ph)
+    dth, dph = truth.pitch_rate_radps, truth.roll_rate_radps
+    f_dot = -h1 * dth
+    l_dot = -h2 * dph - f1 * dth * np.sin(ph)
+    h_dot = l2 * dph + f1 * dth * np.cos(ph)
+    r = truth.yaw_rate_radps
+    fwd = truth.vx_mps + f_dot - r * l2
+    left = truth.vy_mps + l_dot + r * f1
+    c, s = np.cos(truth.yaw_rad), np.sin(truth.yaw_rad)
+    vel = np.stack([fwd * c - left * s, fwd * s + left * c, h_dot], axis=-1)
+    pos = np.stack(
+        [truth.east_m + f1 * c - l2 * s, truth.north_m + f1 * s + l2 * c, h2 + up - h],
+        axis=-1,
+    )
+    return pos, vel
+
+
+def _gnss(
+    truth: Truth, rng: np.random.Generator, start_ns: int, chassis: ChassisConfig
+) -> list[tuple[int, Measurement]]:
+    """The receiver's 10 Hz epochs: the antenna's position and velocity, the body's attitude."""
     stamps = _stamps(truth, start_ns, 10)
     sel = slice(None, None, 10)
     yaw = truth.yaw_rad[sel]
-    vx, vy = truth.vx_mps[sel], truth.vy_mps[sel]
-    ve = vx * np.cos(yaw) - vy * np.sin(yaw) + rng.normal(0.0, 0.03, yaw.size)
-    vn = vx * np.sin(yaw) + vy * np.cos(yaw) + rng.normal(0.0, 0.03, yaw.size)
+    pos, vel = (a[sel] for a in antenna_motion(truth, chassis))
+    ve = vel[:, 0] + rng.normal(0.0, 0.03, yaw.size)
+    vn = vel[:, 1] + rng.normal(0.0, 0.03, yaw.size)
     heading = math.pi / 2 - yaw + rng.normal(0.0, math.radians(0.15), yaw.size)
-    lat, lon, h = _FRAME.to_geodetic(truth.east_m[sel], truth.north_m[sel], np.zeros(yaw.size))
+    lat, lon, h = _FRAME.to_geodetic(pos[:, 0], pos[:, 1], pos[:, 2])
     return [
         (
             int(stamps[k]),
             GnssSample(
                 stamp_ns=int(stamps[k]),
-                vel_enu_mps=(float(ve[k]), float(vn[k]), 0.0),
+                vel_enu_mps=(float(ve[k]), float(vn[k]), float(vel[k, 2])),
                 heading_rad=float(heading[k]),
                 pitch_rad=float(truth.pitch_rad[sel][k]),
                 roll_rad=float(truth.roll_rad[sel][k]),
@@ -292,14 +341,18 @@ def _gnss(truth: Truth, rng: np.random.Generator, start_ns: int) -> list[tuple[i
 
 
 def _sensors(
-    truth: Truth, rng: np.random.Generator, start_ns: int, wheels: WheelSpeedSensor
+    truth: Truth,
+    rng: np.random.Generator,
+    start_ns: int,
+    wheels: WheelSpeedSensor,
+    chassis: ChassisConfig,
 ) -> list[Measurement]:
     """Every stream's packets, ordered by the time the packet is complete. The tone rings'
     phases are drawn after every other draw, so the other streams do not depend on the
     wheel-speed sensor."""
     imu = _imu(truth, rng, start_ns)
     can = _can(truth, rng, start_ns, wheels)
-    gnss = _gnss(truth, rng, start_ns)
+    gnss = _gnss(truth, rng, start_ns, chassis)
     if wheels.tooth_mean:
         phase_rad = rng.uniform(0.0, 2.0 * math.pi, 4)
         step = round(wheels.period_s / _ROW_S)

@@ -17,6 +17,7 @@ from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
 from estimator.geo import EnuFrame
 from estimator.sim.four_wheel import (
     FourWheelRun,
+    antenna_motion,
     random_config,
     random_manoeuvre,
     simulate_four_wheel,
@@ -187,8 +188,8 @@ def _rows_and_errors(
     runs: list[FourWheelRun], cut_s: tuple[float, float]
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fleet's rows of each run (one fleet, batched) without the GNSS epochs in ``cut_s``,
-    and each row's horizontal distance [m] from the truth (in the vehicle's frame: its first
-    fix)."""
+    and each row's horizontal distance [m] from the antenna's true position (in the vehicle's
+    frame: its first fix)."""
     fleet = FrictionFleet()
     ids = [f"v{i}" for i in range(len(runs))]
     for vid, run in zip(ids, runs, strict=True):
@@ -207,7 +208,8 @@ def _error(
     assert anchor is not None
     t_s = (rows["stamp_ns"] - run.start_ns) * 1e-9
     tr = run.truth
-    truth_en = [np.interp(t_s, tr.t_s, tr.east_m), np.interp(t_s, tr.t_s, tr.north_m)]
+    antenna_m, _ = antenna_motion(tr, run.config.chassis)
+    truth_en = [np.interp(t_s, tr.t_s, antenna_m[:, 0]), np.interp(t_s, tr.t_s, antenna_m[:, 1])]
     lat, lon, h = FRAME.to_geodetic(*truth_en, np.zeros(t_s.size))  # the simulator's frame
     east, north, _ = EnuFrame(*anchor).to_enu(lat, lon, h)
     return rows, np.hypot(rows["east_m"] - east, rows["north_m"] - north)
