@@ -25,9 +25,11 @@ import pyarrow.parquet as pq
 import pytest
 
 from estimator.friction_spec import FrictionFlag
+from estimator.geo import EnuFrame
 from estimator.mdsf_spec import MDSF_SPEC as MDSF
 from estimator.sim import SimRun, simulate
-from estimator.sim.four_wheel import _FRAME as FOUR_WHEEL_FRAME
+from estimator.sim.four_wheel import simulate_four_wheel
+from estimator.types import GnssSample
 from server.tooling.fleet_commands import vehicle_session
 from server.tooling.fleet_sim import TICK_NS, FleetSim, publish_fleets
 from server.tooling.steered_fleet import SteeredFleetSim, demo_drive
@@ -99,11 +101,18 @@ def _check_friction(client: httpx.Client, window: dict[str, int], t0: int) -> No
     assert latest["estimator"] == "friction" and latest["stamp_ns"] == int(stamps[-1])
 
 
-def _check_position(client: httpx.Client, window: dict[str, int]) -> None:
+def _first_fix_frame(t0: int) -> EnuFrame:
+    """The ENU frame at sim-0002's first fix (its antenna's, off the CG), as simulated."""
+    (run,) = simulate_four_wheel([demo_drive()], seeds=[SEED], start_ns=t0)
+    fix = next(m for m in run.measurements if isinstance(m, GnssSample))
+    return EnuFrame(fix.lat_deg, fix.lon_deg, fix.height_m)
+
+
+def _check_position(client: httpx.Client, window: dict[str, int], t0: int) -> None:
     """sim-0002's rows carry its position from GNSS (none dead-reckoned: GNSS all along): its
     track's length is the distance its speed covers (within 2 %), its GeoJSON lies in the
-    simulator's frame (the stored anchor is the first fix), and its slip map's μ layer holds
-    the informed μ of the cells it drove through."""
+    frame of its first fix (the stored anchor), and its slip map's μ layer holds the informed
+    μ of the cells it drove through."""
     rows = _rows(client, "sim-0002", "friction", window)
     east, north = rows["east_m"], rows["north_m"]
     assert np.isfinite(east).all() and np.isfinite(north).all()
@@ -118,8 +127,7 @@ def _check_position(client: httpx.Client, window: dict[str, int]) -> None:
     )
     assert geo.status_code == 200, geo.text
     lon, lat, _ = geo.json()["features"][0]["geometry"]["coordinates"]
-    # the anchor is the first fix, where the simulator's truth starts: its frame's origin
-    first = FOUR_WHEEL_FRAME.to_geodetic(east[0], north[0], rows["up_m"][0])
+    first = _first_fix_frame(t0).to_geodetic(east[0], north[0], rows["up_m"][0])
     assert (lat, lon) == pytest.approx((first[0], first[1]), abs=1e-7)  # ~1 cm
     layer = client.get(
         "/api/v1/vehicles/sim-0002/slipmap",
@@ -200,7 +208,7 @@ def test_tractor_and_steered_vehicle_each_estimated_stored_and_served(tmp_path: 
                 other = rep["ingest"]["other"]  # counters stored when not zero
                 assert other.get("estimator_errors", 0) == other.get("configs_refused", 0) == 0
             _check_friction(client, window, t0)
-            _check_position(client, window)
+            _check_position(client, window, t0)
             mdsf_rows = _check_tractor(client, window, t0)
             friction_rows = len(_rows(client, "sim-0002", "friction", window)["stamp_ns"])
             assert mdsf_rows + friction_rows == produced
