@@ -31,10 +31,13 @@ from estimator.types import (
 
 __all__ = [
     "STREAMS",
+    "Anchored",
     "FleetEstimator",
     "HoldsRows",
+    "KeepsCounters",
     "Measurement",
     "Pushed",
+    "TakesCommands",
     "held_rows",
     "stream_of",
 ]
@@ -139,6 +142,41 @@ class HoldsRows(Protocol):
     def flush(self, vehicle_id: str) -> np.ndarray:
         """The vehicle's rows not yet given (of ``spec.dtype``, oldest first; empty if none or
         the vehicle is unknown), given now and forgotten."""
+        ...
+
+
+@runtime_checkable
+class KeepsCounters(Protocol):
+    """An estimator that counts per-vehicle events beyond its rows (ticks, fixes fused and
+    gated, resets, bad input dropped)."""
+
+    def counters(self, vehicle_id: str) -> dict[str, int]:
+        """``{event: n}`` since the vehicle was added; ``KeyError`` for an unknown vehicle."""
+        ...
+
+
+@runtime_checkable
+class Anchored(Protocol):
+    """An estimator that keeps each vehicle's local ENU frame on a geodetic origin."""
+
+    def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
+        """``(lat_deg, lon_deg, height_m)`` of the frame's origin (the first GNSS fix unless
+        set), to which the rows' ENU positions refer; None before it or for an unknown
+        vehicle."""
+        ...
+
+    def set_anchor(self, vehicle_id: str, lat_deg: float, lon_deg: float, height_m: float) -> None:
+        """Give the frame this origin instead of the next first fix (the one stored rows were
+        given in before a restart); ``KeyError`` if unknown, ``ValueError`` if not geodetic."""
+        ...
+
+
+@runtime_checkable
+class TakesCommands(Protocol):
+    """An estimator whose spec declares ``commands`` (e.g. MDSF's calibration drive)."""
+
+    def command(self, vehicle_id: str, key: str, on: bool) -> None:
+        """Turn command ``key`` on or off; ``KeyError`` for an unknown vehicle or key."""
         ...
 
 

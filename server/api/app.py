@@ -278,10 +278,12 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         runtime.open()
         app.state.runtime = runtime
+        app.state.live_hub = runtime.live_hub
+        app.state.alert_engine = runtime.alert_engine
         try:
             yield
         finally:
-            app.state.runtime = None
+            app.state.runtime = app.state.live_hub = app.state.alert_engine = None
             runtime.close()
 
     app = FastAPI(

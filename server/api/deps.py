@@ -29,6 +29,7 @@ from starlette.requests import HTTPConnection
 from estimator.catalog import SPECS, spec_of
 from estimator.config import ConfigError, SlipConfig, VehicleConfig, vehicle_config_from_dict
 from estimator.spec import EstimatorSpec, ValueChannel
+from server.analytics.alerts import AlertEngine
 from server.analytics.slipmap import SlipMap, slip_map
 from server.api.errors import (
     Forbidden,
@@ -40,6 +41,7 @@ from server.api.errors import (
     Unprocessable,
 )
 from server.estimation.registry import UnknownEstimatorError, estimator_names_for
+from server.live.hub import LiveHub
 from server.metrics.prometheus import MetricFamily
 from server.settings import Settings
 from server.storage.base import StorageError, Store, VehicleRecord
@@ -144,7 +146,9 @@ class ApiRuntime(Protocol):
     The app's lifespan calls ``open()`` on start-up and ``close()`` on shut-down; ``store`` and
     ``writer`` are read only between the two (``writer`` None: not open). ``health()`` names
     each part (``"zenoh"``, ``"storage"``, …) and whether it is up; the API is ready only when
-    every part is. ``vehicle_events`` is told of the API's vehicle changes (:data:`EventsDep`);
+    every part is. ``live_hub`` and ``alert_engine`` (None: the runtime has none) are published
+    on ``app.state`` by the lifespan for the live and alert routes. ``vehicle_events`` is told
+    of the API's vehicle changes (:data:`EventsDep`);
     ``metrics()`` gives the runtime's metric families for ``GET /metrics`` (``by_vehicle``
     False: per-vehicle counters summed to fleet totals).
     """
@@ -157,6 +161,12 @@ class ApiRuntime(Protocol):
 
     @property
     def vehicle_events(self) -> VehicleEvents: ...
+
+    @property
+    def live_hub(self) -> LiveHub | None: ...
+
+    @property
+    def alert_engine(self) -> AlertEngine | None: ...
 
     def open(self) -> None: ...
 

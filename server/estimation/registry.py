@@ -58,7 +58,16 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from estimator.base import STREAMS, FleetEstimator, Pushed, held_rows, stream_of
+from estimator.base import (
+    STREAMS,
+    Anchored,
+    FleetEstimator,
+    KeepsCounters,
+    Pushed,
+    TakesCommands,
+    held_rows,
+    stream_of,
+)
 from estimator.catalog import SPECS
 from estimator.config import VehicleConfig, VehicleKind
 from estimator.spec import EstimatorSpec
@@ -228,19 +237,18 @@ class EstimatorRegistry:
         self._flushed: dict[str, list[tuple[str, np.ndarray]]] = {}  # estimator -> held rows
 
     def counters(self) -> dict[str, dict[str, dict[str, int]]]:
-        """Event counters of every estimator that keeps them (an optional ``counters(vehicle_id)``
-        method, e.g. MDSF's resets and gated GNSS): ``{estimator: {vehicle_id: {event: n}}}``;
+        """Event counters of every estimator that keeps them (:class:`KeepsCounters`, e.g.
+        MDSF's resets and gated GNSS): ``{estimator: {vehicle_id: {event: n}}}``;
         an estimator whose counters raise is left out (and logged).
 
         Call on the thread that owns the registry (the pipeline's).
         """
         out: dict[str, dict[str, dict[str, int]]] = {}
         for name, est in self._estimators.items():
-            per_vehicle = getattr(est, "counters", None)
-            if not callable(per_vehicle):
+            if not isinstance(est, KeepsCounters):
                 continue
             try:
-                out[name] = {vid: dict(per_vehicle(vid)) for vid in est.vehicle_ids()}
+                out[name] = {vid: dict(est.counters(vid)) for vid in est.vehicle_ids()}
             except Exception:
                 log.exception("estimator %s: counters failed", name)
         for (vid, name), n in self._calibration_resets.items():
@@ -249,22 +257,21 @@ class EstimatorRegistry:
         return out
 
     def set_anchor(self, vehicle_id: str, anchor: tuple[float, float, float]) -> None:
-        """Give the vehicle's ENU frame this origin in every estimator of it that has one (an
-        optional ``set_anchor(vehicle_id, lat_deg, lon_deg, height_m)``; the others and unknown
-        vehicles are left alone). Call on the thread that owns the registry."""
+        """Give the vehicle's ENU frame this origin in every estimator of it that has one (the
+        :class:`Anchored` ones; the others and unknown vehicles are left alone). Call on the
+        thread that owns the registry."""
         for name in self._routes.get(vehicle_id, ()):
-            put = getattr(self._estimators.get(name), "set_anchor", None)
-            if callable(put):
-                put(vehicle_id, *anchor)
+            est = self._estimators.get(name)
+            if isinstance(est, Anchored):
+                est.set_anchor(vehicle_id, *anchor)
 
     def anchor(self, vehicle_id: str) -> tuple[float, float, float] | None:
         """Geodetic anchor ``(lat_deg, lon_deg, height_m)`` of the vehicle's local ENU frame,
-        from the first of its estimators that has one (an optional ``anchor(vehicle_id)``;
-        the primary first); None before any has one. Call on the thread that owns the
-        registry."""
+        from the first of its estimators that has one (the :class:`Anchored` ones, the primary
+        first); None before any has one. Call on the thread that owns the registry."""
         for name in self._routes.get(vehicle_id, ()):
-            get = getattr(self._estimators.get(name), "anchor", None)
-            got = get(vehicle_id) if callable(get) else None
+            est = self._estimators.get(name)
+            got = est.anchor(vehicle_id) if isinstance(est, Anchored) else None
             if got is not None:
                 return got
         return None
@@ -447,9 +454,10 @@ class EstimatorRegistry:
                 raise KeyError(f"{vehicle_id!r} does not run {estimator!r}")
             if key == RESET_CALIBRATION:
                 return self._reset_calibration(vehicle_id, estimator)
-            take = getattr(self.estimator(estimator), "command", None)
-            if take is None:
+            est = self.estimator(estimator)
+            if not isinstance(est, TakesCommands):
                 raise KeyError(f"{estimator!r} takes no commands")
+            take = est.command
         except KeyError as exc:
             self.on_error(vehicle_id, estimator, "command", exc)
             return False

@@ -1,7 +1,6 @@
 """``GET /alerts``: open and recent alerts from :class:`server.analytics.alerts.AlertEngine`.
 
-The engine is found as ``app.state.alert_engine`` or, failing that,
-``app.state.runtime.alert_engine``.
+The engine is ``app.state.alert_engine`` (the app factory's lifespan puts the runtime's there).
 """
 
 from __future__ import annotations
@@ -55,10 +54,8 @@ class AlertListPublic(BaseModel):
 
 
 def find_alert_engine(state: State) -> AlertEngine | None:
-    """The app's engine: ``state.alert_engine`` or ``state.runtime.alert_engine``."""
+    """The app's engine, ``state.alert_engine``; None when the app has none."""
     engine = getattr(state, "alert_engine", None)
-    if engine is None:
-        engine = getattr(getattr(state, "runtime", None), "alert_engine", None)
     return engine if isinstance(engine, AlertEngine) else None
 
 

@@ -1,6 +1,6 @@
 """Live WebSockets for the dashboard, fed by :class:`server.live.hub.LiveHub`.
 
-The hub is found as ``app.state.live_hub`` or, failing that, ``app.state.runtime.live_hub``.
+The hub is ``app.state.live_hub`` (the app factory's lifespan puts the runtime's there).
 Every message is one JSON text frame with a ``type``; NaN values are sent as ``null``; times are
 integer nanoseconds (``*_ns``, sensor stamps are the vehicle clock, ``sent_ns`` and
 ``arrival_ns`` the server's wall clock, UTC). They exceed 2**53, so a JavaScript client holds them
@@ -99,10 +99,8 @@ _WINDOW_MIN_S, _WINDOW_MAX_S = 5.0, 1800.0
 
 
 def find_live_hub(state: State) -> LiveHub | None:
-    """The app's hub: ``state.live_hub`` or ``state.runtime.live_hub`` (None when neither)."""
+    """The app's hub, ``state.live_hub``; None when the app has none."""
     hub = getattr(state, "live_hub", None)
-    if hub is None:
-        hub = getattr(getattr(state, "runtime", None), "live_hub", None)
     return hub if isinstance(hub, LiveHub) else None
 
 

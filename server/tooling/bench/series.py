@@ -103,6 +103,8 @@ class _BenchRuntime:
         self._store: Store | None = None
         self.writer = None  # reads only: the API writes nothing here
         self.vehicle_events = NoVehicleEvents()
+        self.live_hub = None  # history only: no live views, no alerts
+        self.alert_engine = None
 
     @property
     def store(self) -> Store:

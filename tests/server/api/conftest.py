@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from estimator.config import ConfigError, VehicleConfig
 from server.analytics.alerts import AlertEngine
 from server.api import ApiLimits, create_app
+from server.live.hub import LiveHub
 from server.metrics.prometheus import MetricFamily, Sample
 from server.settings import ApiSettings, Settings, StorageSettings
 from server.storage import Store, StoreWriter, open_store
@@ -57,6 +58,7 @@ class FakeRuntime:
         self.closed = 0
         self.metrics_by_vehicle: list[bool] = []  # what each /metrics call asked for
         self.alert_engine = AlertEngine()
+        self.live_hub: LiveHub | None = None  # a test that serves live views sets one
 
     @property
     def store(self) -> Store:

@@ -292,8 +292,8 @@ def test_auth_off_admits_everyone(tmp_path: Path) -> None:
 @pytest.fixture
 def served(settings: Settings) -> Iterator[tuple[ServerThread, FakeRuntime]]:
     runtime = FakeRuntime(settings)
+    runtime.live_hub = LiveHub()
     app = create_app(settings, runtime)
-    app.state.live_hub = LiveHub()
     server = ServerThread(app, "127.0.0.1", 0)
     server.start()
     try:

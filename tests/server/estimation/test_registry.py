@@ -7,7 +7,13 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from estimator.base import _STREAM_OF_TYPE, STREAMS, FleetEstimator
+from estimator.base import (
+    _STREAM_OF_TYPE,
+    STREAMS,
+    Anchored,
+    FleetEstimator,
+    TakesCommands,
+)
 from estimator.catalog import SPECS
 from estimator.config import (
     SlipConfig,
@@ -271,6 +277,15 @@ def test_counters_come_from_estimators_that_keep_them() -> None:
     recording, _, _ = _registry()  # estimators without counters are left out
     recording.add_vehicle("v2", WheeledRearDriveConfig())
     assert recording.counters() == {}
+
+
+@pytest.mark.parametrize("name", sorted(DEFAULT_FACTORIES))
+def test_each_estimator_has_the_capabilities_its_spec_promises(name: str) -> None:
+    """The registry finds commands and anchors by their protocols: an estimator whose spec
+    offers commands takes them, one whose rows carry a position keeps that position's anchor."""
+    est = DEFAULT_FACTORIES[name]()
+    assert isinstance(est, TakesCommands) == bool(est.spec.commands)
+    assert isinstance(est, Anchored) == (est.spec.position is not None)
 
 
 def test_anchors_are_each_vehicles_first_fix() -> None:
