@@ -87,6 +87,11 @@ class Store(Protocol):
     def ping(self) -> bool:
         """True when the database answers."""
 
+    def maintain(self, *, everything: bool = False) -> bool:
+        """One step of the store's own upkeep, which the writer runs while it has nothing else
+        to do (SQLite moves staged rows to their final table); True while more steps are due,
+        False when none is (``everything``: the whole of it, e.g. before a close)."""
+
     # vehicles
     def upsert_vehicle(
         self, vehicle_id: str, config: dict[str, Any], now_ns: int
@@ -167,3 +172,11 @@ class Store(Protocol):
 
     def revoke_token(self, token_id: int, now_ns: int) -> TokenRecord | None:
         """Revoke the token (a second revoke keeps the first time); None if there is none."""
+
+    # raw packets
+    def write_raw_packets(self, packets: Sequence[tuple[str, int, str, bytes]]) -> int:
+        """Store ``(vehicle_id, received_ns, key, payload)`` tuples (registered or not); the
+        number written."""
+
+    def raw_packets_bytes(self) -> int:
+        """Payload bytes of every stored raw packet."""

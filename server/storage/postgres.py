@@ -198,6 +198,10 @@ class PostgresStore(SharedQueries):
         except StorageError:
             return False
 
+    def maintain(self, *, everything: bool = False) -> bool:
+        """Nothing to do: rows go straight to their tables (no staging as in SQLite)."""
+        return False
+
     def schema_version(self) -> int:
         """Highest applied migration (0 on an empty database)."""
         with self._pool.connection() as conn:

@@ -302,7 +302,6 @@ class StoreWriter:
         self._next_retention_at = 0.0
         self._last_txn_start = -float("inf")  # monotonic s the last estimate transaction began
         # the store's own upkeep between writes (SQLite: moving new rows to their final table)
-        self._maintain: Callable[[], bool] | None = getattr(store, "maintain", None)
         self._next_maintain_at = 0.0
 
     def _init_stats(self) -> None:
@@ -707,7 +706,7 @@ class StoreWriter:
                 return "aux", self._take_aux_locked()
             if self._retention_ns > 0 and not self._closing and now >= self._next_retention_at:
                 return "retention", None
-            if self._maintain is not None and not self._closing and now >= self._next_maintain_at:
+            if not self._closing and now >= self._next_maintain_at:
                 return "maintain", None
             due = self._next_due_locked()
             self._cond.wait(None if due is None else max(due - now, 0.0))
@@ -732,7 +731,7 @@ class StoreWriter:
             deadlines.append(self._aux_due_at)
         if self._retention_ns > 0 and not self._closing:
             deadlines.append(self._next_retention_at)
-        if self._maintain is not None and not self._closing:
+        if not self._closing:
             deadlines.append(self._next_maintain_at)
         if self._closing:
             deadlines.append(self._close_deadline)
@@ -890,11 +889,8 @@ class StoreWriter:
                 self._store.put_anchors(anchors, self._clock_ns())
                 anchors = {}
             if raw:
-                writer: Callable[[Sequence[tuple[str, int, str, bytes]]], int] | None = getattr(
-                    self._store, "write_raw_packets", None
-                )
                 raw = self._raw_budget.within(self._store, raw)  # what is put back on failure
-                written = writer(raw) if writer is not None and raw else 0
+                written = self._store.write_raw_packets(raw) if raw else 0
                 self._raw_budget.stored(raw[:written])
                 with self._cond:
                     self._raw_written += written
@@ -955,10 +951,9 @@ class StoreWriter:
         """One step of the store's upkeep; while it has more to do the next one after a pause
         of :data:`MAINTAIN_PAUSE_PER_STEP` times this one's duration (writes that fall due go
         first), else after :data:`MAINTAIN_IDLE_S`."""
-        assert self._maintain is not None
         started = time.monotonic()
         try:
-            more = self._maintain()
+            more = self._store.maintain()
         except StorageError as exc:
             log.warning("store upkeep failed, retrying in %.0f s: %s", MAINTAIN_RETRY_S, exc)
             more, wait_s = False, MAINTAIN_RETRY_S
@@ -1009,8 +1004,7 @@ class _RawBudget:
         now = time.monotonic()
         full = self._stored_bytes is not None and self._stored_bytes >= self.max_bytes
         if self._stored_bytes is None or (full and now - self._read_at >= RAW_BUDGET_RECHECK_S):
-            total: Callable[[], int] | None = getattr(store, "raw_packets_bytes", None)
-            self._stored_bytes = total() if total is not None else 0
+            self._stored_bytes = store.raw_packets_bytes()
             self._read_at = now
         room = self.max_bytes - self._stored_bytes
         kept: list[tuple[str, int, str, bytes]] = []

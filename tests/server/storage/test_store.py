@@ -30,6 +30,16 @@ def test_dialect_and_ping(store: Store, backend: Backend) -> None:
 # ---------------------------------------------------------------------------- vehicles
 
 
+def test_each_backend_has_every_call_of_the_store_interface(store: Store) -> None:
+    """The writer and the API call the interface's methods directly (no ``getattr`` for an
+    optional one), so a backend must have them all."""
+    declared = {n for n, v in vars(Store).items() if callable(v) and not n.startswith("_")}
+    assert {"maintain", "write_raw_packets", "raw_packets_bytes"} <= declared
+    missing = sorted(n for n in declared if not callable(getattr(store, n, None)))
+    assert missing == []
+    assert store.maintain() in (True, False)
+
+
 def test_upsert_vehicle_keeps_created_and_updates_config(store: Store) -> None:
     first = store.upsert_vehicle("tractor-1", CONFIG, now_ns=100)
     assert first == VehicleRecord("tractor-1", CONFIG, created_ns=100, updated_ns=100)
