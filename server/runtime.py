@@ -18,7 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -64,6 +64,9 @@ SERVER_ALERTS_CHUNK = "_server"
 #: Health parts whose failure opens a server-wide alert.
 _SYSTEM_ALERTS = {"storage": AlertKind.STORAGE_DOWN, "zenoh": AlertKind.ZENOH_DOWN}
 
+if TYPE_CHECKING:
+    from server.live.viewer.fleet_view import FleetViewer  # viser: imported when enabled
+
 
 class Runtime:
     """The server's resources. Not thread-safe to open/close concurrently; everything else is."""
@@ -77,7 +80,7 @@ class Runtime:
         self.session: zenoh.Session | None = None
         self.registry: EstimatorRegistry | None = None
         self.pipeline: Pipeline | WorkerPool | None = None
-        self.viewer: Any = None
+        self.viewer: FleetViewer | None = None
         self._configs: dict[str, VehicleConfig] = {}
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
@@ -329,6 +332,12 @@ class Runtime:
             zenoh_ok = any(True for _ in self.session.info.routers_zid())
         pipeline_ok = self.pipeline is not None and bool(self.pipeline.stats()["running"])
         return {"zenoh": zenoh_ok, "storage": storage_ok, "pipeline": pipeline_ok}
+
+    def viewer_port(self) -> int | None:
+        """The running 3D view's port; None when it is off or not running."""
+        if self.viewer is None or self.viewer.server is None:
+            return None
+        return self.viewer.port
 
     def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]:
         """Metric families for ``/metrics``; ``by_vehicle=False`` sums the per-vehicle counters

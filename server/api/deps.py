@@ -176,6 +176,10 @@ class ApiRuntime(Protocol):
 
     def metrics(self, by_vehicle: bool = True) -> Iterable[MetricFamily]: ...
 
+    def viewer_port(self) -> int | None:
+        """The running 3D view's port (it binds ``settings.viewer.host``); None when it is off
+        or not running."""
+
 
 @dataclass(frozen=True, slots=True)
 class ApiLimits:

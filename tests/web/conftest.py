@@ -66,6 +66,9 @@ class LiveRuntime:
         assert self._store is not None
         return self._store
 
+    def viewer_port(self) -> int | None:
+        return None  # no 3D view
+
     def open(self) -> None:
         self._store = open_store(self.settings.storage)
         now = time.time_ns()

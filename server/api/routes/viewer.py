@@ -41,6 +41,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from server.api.deps import (
     ANONYMOUS_ADMIN,
     WS_TOKEN_QUERY,
+    ApiRuntime,
     Principal,
     principal_of,
     principal_of_token,
@@ -98,15 +99,16 @@ def _viser_address(state: State) -> tuple[str, int]:
     404 when the 3D view is off, 503 when it is not running."""
     if not state.settings.viewer.enabled:
         raise NotFound("the 3D view is disabled (viewer.enabled = false)")
-    viewer = getattr(state.runtime, "viewer", None)
-    if viewer is None or getattr(viewer, "server", None) is None:
+    runtime: ApiRuntime = state.runtime
+    port = runtime.viewer_port()
+    if port is None:
         raise ServiceUnavailable("the 3D view is not running")
     host = str(state.settings.viewer.host).strip("[]")
     with contextlib.suppress(ValueError):
         address = ipaddress.ip_address(host)
         if address.is_unspecified:
             host = "::1" if address.version == 6 else "127.0.0.1"
-    return (f"[{host}]" if ":" in host else host), int(viewer.port)
+    return (f"[{host}]" if ":" in host else host), port
 
 
 @router.get("/{path:path}", include_in_schema=False)

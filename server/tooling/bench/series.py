@@ -111,6 +111,9 @@ class _BenchRuntime:
         assert self._store is not None
         return self._store
 
+    def viewer_port(self) -> int | None:
+        return None  # no 3D view
+
     def open(self) -> None:
         self._store = open_store(self._settings.storage)
 

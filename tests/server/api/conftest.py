@@ -65,6 +65,9 @@ class FakeRuntime:
         assert self._store is not None, "runtime not open"
         return self._store
 
+    def viewer_port(self) -> int | None:
+        return None  # no 3D view
+
     def open(self) -> None:
         self._store = open_test_store(self.settings)
         self.writer = StoreWriter(self._store, self.settings.storage).start()

@@ -143,3 +143,16 @@ def test_api_docs_need_no_internet(client: ApiClient) -> None:
     for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
         r = client.get(f"/docs-assets/{asset}")
         assert r.status_code == 200 and len(r.content) > 100_000
+
+
+def test_the_3d_view_route_says_whether_the_view_is_off_or_not_running(tmp_path: Path) -> None:
+    """Enabled but not running (the runtime has no viewer port) is 503; disabled is 404."""
+    settings = make_settings(tmp_path)
+    assert settings.viewer.enabled
+    with running(create_app(settings, FakeRuntime(settings))) as client:
+        r = client.get("/api/v1/viewer/")
+        assert r.status_code == 503 and "not running" in r.json()["reason"]
+    settings.viewer.enabled = False
+    with running(create_app(settings, FakeRuntime(settings))) as client:
+        r = client.get("/api/v1/viewer/")
+        assert r.status_code == 404 and "disabled" in r.json()["reason"]
