@@ -131,6 +131,7 @@ def test_random_draws_within_stated_ranges() -> None:
         assert 1200 <= c.chassis.mass_kg <= 3500 and 0.30 <= c.tyre.unloaded_radius_m <= 0.40
         right, ahead, up = c.chassis.antenna_lever_arm_m
         assert abs(right) <= 0.4 and -1.5 <= ahead <= 2.0 and 1.5 <= up <= 3.2
+        assert 0.05 <= c.chassis.tilt_axis_height_m <= 0.5
         m = random_manoeuvre(rng, k)
         speeds = [v for _, v in m.speed_knots]
         assert min(speeds) >= 10 * KMH - 1e-9 and max(speeds) <= 110 * KMH + 1e-9
@@ -273,8 +274,10 @@ def test_the_receiver_reports_the_antennas_velocity_and_position() -> None:
     moved = np.diff(pos[:, :2], axis=0) / 0.1
     between = 0.5 * (vel[1:, :2] + vel[:-1, :2])
     assert float(np.sqrt(np.mean((moved - between) ** 2))) < 0.04
-    centred = _receiver(_antenna_run((0.0, 0.0, 0.7)))[2]  # at the CG's height: no arm
+    axis_m = FOUR_WHEEL_CONFIG.chassis.tilt_axis_height_m
+    centred = _receiver(_antenna_run((0.0, 0.0, axis_m)))[2]  # on the tilt axis: no arm
     cg = np.stack([t.vx_mps, t.vy_mps], axis=-1)[rows]
     c, s = np.cos(t.yaw_rad[rows]), np.sin(t.yaw_rad[rows])
     cg_enu = np.stack([cg[:, 0] * c - cg[:, 1] * s, cg[:, 0] * s + cg[:, 1] * c], axis=-1)
     assert float(np.max(np.abs(centred[:, :2] - cg_enu))) < 0.15  # the noise, 5 σ
+
