@@ -278,6 +278,8 @@ class FleetFrontEnd:
         self.vx = _AxisFilters(walk, bias_walk)
         self.vy = _AxisFilters(walk, bias_walk)
         self.yaw = _AxisFilters(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s)
+        self.roll_gyro = _AxisFilters(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s)
+        self.pitch_gyro = _AxisFilters(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s)
         self.pitch = _TiltFits(fe.tilt_prior_weight, fe.tilt_highpass_s)
         self.roll = _TiltFits(fe.tilt_prior_weight, fe.tilt_highpass_s)
         self.car = _Vehicles()
@@ -286,6 +288,8 @@ class FleetFrontEnd:
             self.vx,
             self.vy,
             self.yaw,
+            self.roll_gyro,
+            self.pitch_gyro,
             self.pitch,
             self.roll,
             self.car,
@@ -305,6 +309,8 @@ class FleetFrontEnd:
         self.vx.reset(slot, math.nan, 0.1)
         self.vy.reset(slot, 0.0, 0.1)
         self.yaw.reset(slot, math.nan, 0.005)
+        self.roll_gyro.reset(slot, math.nan, 0.005)
+        self.pitch_gyro.reset(slot, math.nan, 0.005)
         self.pitch.reset(slot, math.radians(ch.pitch_gradient_deg_per_g))
         self.roll.reset(slot, math.radians(ch.roll_gradient_deg_per_g))
 
@@ -325,7 +331,7 @@ class FleetFrontEnd:
         ax_raw, ay_raw = sensed.accel_mps2[:, 1], -sensed.accel_mps2[:, 0]
         g = np.flatnonzero(np.isfinite(sensed.gnss_vel_mps[:, 0]))  # a fresh GNSS velocity
         yaw_rate = self._yaw_step(s, sensed.gyro_radps[:, 2], g, sensed)
-        rates = body_rates_radps(sensed.gyro_radps, yaw_rate)
+        rates = self._tilt_rate_step(s, sensed.gyro_radps, yaw_rate, g, sensed)
         ax_tilt, ay_tilt = self._tilt_step(s, ax_raw, ay_raw, g, sensed)
         gnss_v = sensed.gnss_vel_mps
         if not paper:  # the CG's, moved from the antenna (FrontEnd._gnss_at_cg)
@@ -393,6 +399,28 @@ class FleetFrontEnd:
             wrapped = (angle[~first] - yaw.speed[rest] + math.pi) % (2 * math.pi) - math.pi
             yaw.update(rest, yaw.speed[rest] + wrapped, h_var)
         return rate
+
+    def _tilt_rate_step(
+        self, s: IntArray, gyro: FloatArray, yaw_rate: FloatArray, g: IntArray, sensed: SensedTicks
+    ) -> FloatArray:
+        """The body's rates ``(B, 3)``: the roll and pitch gyros less their biases, their angles
+        predicted and, at a fresh receiver roll and pitch, corrected
+        (``FrontEnd._tilt_rate_step``, ``_attitude_update``; paper: as read)."""
+        if self.fe.paper:
+            return body_rates_radps(gyro, yaw_rate)
+        read = []
+        for f, rate, col in ((self.roll_gyro, gyro[:, 1], 2), (self.pitch_gyro, gyro[:, 0], 1)):
+            f.speed[s] = np.where(np.isnan(f.speed[s]), 0.0, f.speed[s])
+            f.predict(s, rate, np.zeros(s.size), self.dt)
+            read.append(rate - f.bias[s])
+            if g.size:
+                angle = sensed.gnss_attitude[g, col]
+                ok = np.isfinite(angle)
+                sg, angle = s[g][ok], angle[ok]
+                first = f.var[sg] > 0.5
+                f.speed[sg[first]], f.var[sg[first]] = angle[first], self.fe.heading_std_rad**2
+                f.update(sg[~first], angle[~first], self.fe.heading_std_rad**2)
+        return body_rates_radps(np.stack([read[1], read[0], np.zeros(s.size)], axis=1), yaw_rate)
 
     def _at_tick(
         self, s: IntArray, ax: FloatArray, ay: FloatArray, lag_s: FloatArray

@@ -172,8 +172,7 @@ def antenna_arm_m(chassis: ChassisConfig) -> tuple[float, float, float]:
 def body_rates_radps(gyro_radps: FloatArray, yaw_rate_radps: FloatArray | float) -> FloatArray:
     """The body's rates ``(p, q, r)`` about x forward, y left, z up from the gyro's
     ``(..., 3)`` (X right, Y forward, Z up: ``p = g_Y``, ``q = −g_X``), ``r`` the given
-    (bias-corrected) yaw rate ``(...)`` → ``(..., 3)`` [rad/s]. The roll and pitch rates
-    are the gyro's as read (the front end has no bias state for them)."""
+    yaw rate ``(...)`` → ``(..., 3)`` [rad/s]."""
     g = np.asarray(gyro_radps, dtype=np.float64)
     r = np.broadcast_to(np.asarray(yaw_rate_radps, dtype=np.float64), g.shape[:-1])
     return np.stack([g[..., 1], -g[..., 0], r], axis=-1)
@@ -341,7 +340,7 @@ class FrontEndTick:
     vx_std_mps: float  # the speed's 1-σ with the rims' persistent errors (not κ's: they cancel)
     vy_mps: float
     yaw_rate_radps: float
-    roll_pitch_rate_radps: FloatArray  # (p, q) about x forward, y left: the gyro's, as read
+    roll_pitch_rate_radps: FloatArray  # (p, q) about x forward, y left, less the gyros' biases
     vy_gnss_mps: float  # NaN without a fresh GNSS velocity
     gnss: bool
     valid: bool
@@ -493,6 +492,10 @@ class FrontEnd:
         # yaw angle (from east, counter-clockwise) and the yaw gyro's bias, corrected by the
         # receiver's heading: the bias times v_x would read as a lateral acceleration
         self.yaw = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
+        # roll and pitch angles and their gyros' biases, corrected by the receiver's attitude:
+        # a bias times the antenna's height would read as the CG's speed
+        self.roll_gyro = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
+        self.pitch_gyro = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
         self.transfer = np.zeros(3)  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros(2)  # lagged raw [a_x, a_y] [m/s²] the body tilts with
         self.pitch = _TiltGradient(
@@ -570,10 +573,11 @@ class FrontEnd:
         accel, gyro, imu_lag_s = window
         ax_raw, ay_raw = float(accel[1]), float(-accel[0])
         yaw_rate = self._yaw_step(float(gyro[2]))
-        rates = body_rates_radps(gyro, yaw_rate)
+        rates = self._tilt_rate_step(gyro, yaw_rate)
         gnss_ant = self._gnss_velocity(t_ns)
         if gnss_ant is not None:
             self._heading_update()
+            self._attitude_update()
         self._learn_tilt(ax_raw, ay_raw, gnss_ant is not None)
         gnss = self._gnss_at_cg(gnss_ant, rates)
         # the speed filters integrate the tilt-free readings, so their bias states hold the
@@ -748,6 +752,34 @@ class FrontEnd:
             return
         wrapped = (yaw - self.yaw.speed + math.pi) % (2 * math.pi) - math.pi
         self.yaw.update(self.yaw.speed + wrapped, self.fe.heading_std_rad**2)
+
+    def _tilt_rate_step(self, gyro: FloatArray, yaw_rate: float) -> FloatArray:
+        """The body's rates ``(p, q, r)`` (:func:`body_rates_radps`), the roll and pitch gyros
+        less their biases, their angles predicted (paper: as read)."""
+        if self.fe.paper:
+            return body_rates_radps(gyro, yaw_rate)
+        read = []
+        for f, rate in ((self.roll_gyro, float(gyro[1])), (self.pitch_gyro, float(gyro[0]))):
+            if math.isnan(f.speed):
+                f.set_speed(0.0)
+            f.predict(rate, 0.0, self.dt)
+            read.append(rate - f.bias)
+        return body_rates_radps(np.array([read[1], read[0], 0.0]), yaw_rate)
+
+    def _attitude_update(self) -> None:
+        """A fresh receiver roll and pitch (where it gives them) correct the angles and so the
+        roll and pitch gyros' biases, as the heading does the yaw's (not paper)."""
+        g = self.gnss
+        if self.fe.paper or g is None:
+            return
+        var = self.fe.heading_std_rad**2
+        for f, angle in ((self.roll_gyro, g.roll_rad), (self.pitch_gyro, g.pitch_rad)):
+            if not math.isfinite(angle):
+                continue
+            if f.speed_var > 0.5:  # the first: the angle starts there
+                f.set_speed(angle, var)
+            else:
+                f.update(angle, var)
 
     def _gnss_recent(self) -> bool:
         return self.gnss is not None and self.last_tick_ns - self.gnss.stamp_ns <= (
