@@ -490,7 +490,12 @@ class TrackedMotionConfig(_Checked):
 
 @dataclass(frozen=True, slots=True)
 class ChassisConfig(_Checked):
-    """A steered four-wheel vehicle's body (``method.md`` §5); lever arms from below the CG."""
+    """A steered four-wheel vehicle's body (``method.md`` §5); lever arms from below the CG.
+
+    The body rolls and pitches about a horizontal axis ``tilt_axis_height_m`` above the ground
+    on the CG's vertical (a road vehicle's roll axis lies near the ground, below the CG): the
+    GNSS antenna's sway is its roll and pitch rates times its height above that axis.
+    """
 
     mass_kg: float = _bounded(2500.0, 100.0, 60_000.0, "kg", "total mass")
     yaw_inertia_kgm2: float = _bounded(4000.0, 10.0, 1e6, "kg·m²", "yaw moment of inertia")
@@ -513,6 +518,9 @@ class ChassisConfig(_Checked):
     driven_axle: DrivenAxle = DrivenAxle.ALL
     imu_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 0.7), "IMU")
     antenna_lever_arm_m: tuple[float, float, float] = _vector((0.0, 0.0, 1.8), "antenna")
+    tilt_axis_height_m: float = _bounded(
+        0.3, 0.0, 4.0, "m", "height above ground of the axis the body rolls and pitches about"
+    )
     differential: Differential = Differential.OPEN
 
 

@@ -246,8 +246,9 @@ class FrictionFleet:
         speeds (the rows' CG speeds moved through its lever arm) and the gyro's yaw rate; their
         ``DEAD_RECKONED`` bit."""
         cg = np.stack([fe.vx_mps, out["vy_mps"][at]], axis=1)
-        arm = self._front.car.antenna_xy[s]
-        vx, vy = antenna_velocity_at_cg(cg, fe.yaw_rate_radps, -arm).T  # v_cg + ω × r
+        rates = np.column_stack([fe.roll_pitch_rate_radps, fe.yaw_rate_radps])
+        arm = self._front.car.antenna_arm[s]
+        vx, vy = antenna_velocity_at_cg(cg, rates, -arm).T  # v_cg + ω × r
         enu, heading, late = self._positions.step(s, t_ns, vx, vy, fe.yaw_rate_radps)
         out["east_m"][at], out["north_m"][at], out["up_m"][at] = enu.T
         out["heading_rad"][at] = heading

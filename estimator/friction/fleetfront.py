@@ -26,14 +26,16 @@ from estimator.friction.frontend import (
     GNSS_SPEED_STD_MPS,
     UNDRIVEN,
     FrontEndConfig,
+    antenna_arm_m,
     antenna_velocity_at_cg,
+    body_rates_radps,
     brake_slip_std,
     calibration_scale_var,
     consider_step,
-    horizontal_antenna_arm_m,
     rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
+    tilted_arm_m,
 )
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.friction.sensors import SensedTicks
@@ -60,6 +62,7 @@ class FrontEndTicks:
     vx_std_mps: FloatArray
     vy_mps: FloatArray
     yaw_rate_radps: FloatArray
+    roll_pitch_rate_radps: FloatArray
     vy_gnss_mps: FloatArray
     gnss: BoolArray
     valid: BoolArray
@@ -188,7 +191,7 @@ class _Vehicles(_Arrays):
         self.r_u = np.zeros(0)
         self.kz = np.zeros(0)
         self.c_px = np.zeros(0)
-        self.antenna_xy = np.zeros((0, 2))  # antenna ahead, left of the CG [m]
+        self.antenna_arm = np.zeros((0, 3))  # ahead, left of the CG, up from the tilt axis [m]
 
     def set(
         self, slot: int, config: Wheeled4wdSteeredConfig, fe: FrontEndConfig, dt: float
@@ -220,7 +223,7 @@ class _Vehicles(_Arrays):
         self.r_u[slot] = ty.unloaded_radius_m
         self.kz[slot] = ty.kz_npm
         self.c_px[slot] = ty.c_px_npm2
-        self.antenna_xy[slot] = horizontal_antenna_arm_m(ch)
+        self.antenna_arm[slot] = antenna_arm_m(ch)
 
 
 class _State(_Arrays):
@@ -275,6 +278,8 @@ class FleetFrontEnd:
         self.vx = _AxisFilters(walk, bias_walk)
         self.vy = _AxisFilters(walk, bias_walk)
         self.yaw = _AxisFilters(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s)
+        self.roll_gyro = _AxisFilters(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s)
+        self.pitch_gyro = _AxisFilters(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s)
         self.pitch = _TiltFits(fe.tilt_prior_weight, fe.tilt_highpass_s)
         self.roll = _TiltFits(fe.tilt_prior_weight, fe.tilt_highpass_s)
         self.car = _Vehicles()
@@ -283,6 +288,8 @@ class FleetFrontEnd:
             self.vx,
             self.vy,
             self.yaw,
+            self.roll_gyro,
+            self.pitch_gyro,
             self.pitch,
             self.roll,
             self.car,
@@ -302,6 +309,8 @@ class FleetFrontEnd:
         self.vx.reset(slot, math.nan, 0.1)
         self.vy.reset(slot, 0.0, 0.1)
         self.yaw.reset(slot, math.nan, 0.005)
+        self.roll_gyro.reset(slot, math.nan, 0.005)
+        self.pitch_gyro.reset(slot, math.nan, 0.005)
         self.pitch.reset(slot, math.radians(ch.pitch_gradient_deg_per_g))
         self.roll.reset(slot, math.radians(ch.roll_gradient_deg_per_g))
 
@@ -322,10 +331,14 @@ class FleetFrontEnd:
         ax_raw, ay_raw = sensed.accel_mps2[:, 1], -sensed.accel_mps2[:, 0]
         g = np.flatnonzero(np.isfinite(sensed.gnss_vel_mps[:, 0]))  # a fresh GNSS velocity
         yaw_rate = self._yaw_step(s, sensed.gyro_radps[:, 2], g, sensed)
-        gnss_v = sensed.gnss_vel_mps
-        if not paper:  # the CG's, moved from the antenna (FrontEnd._gnss_velocity)
-            gnss_v = antenna_velocity_at_cg(gnss_v, yaw_rate, self.car.antenna_xy[s])
+        rates = self._tilt_rate_step(s, sensed.gyro_radps, yaw_rate, g, sensed)
         ax_tilt, ay_tilt = self._tilt_step(s, ax_raw, ay_raw, g, sensed)
+        gnss_v = sensed.gnss_vel_mps
+        if not paper:  # the CG's, moved from the antenna (FrontEnd._gnss_at_cg)
+            reading = self.state.tilt_reading[s] / GRAVITY_MPS2
+            roll, pitch = self.roll.slope(s) * reading[:, 1], self.pitch.slope(s) * reading[:, 0]
+            arm = tilted_arm_m(self.car.antenna_arm[s], roll, pitch)
+            gnss_v = antenna_velocity_at_cg(gnss_v, rates, arm)
         ax, ay = ax_tilt - self.vx.bias[s], ay_tilt - self.vy.bias[s]
         fz = self._loads(s, ax, ay)
         steer = np.where(np.isfinite(sensed.steer_rad), sensed.steer_rad, 0.0)
@@ -356,6 +369,7 @@ class FleetFrontEnd:
             vx_std_mps=np.hypot(np.sqrt(np.maximum(vx_var, 0.0)), st.speed_persist[s]),
             vy_mps=self.vy.speed[s],
             yaw_rate_radps=yaw_rate,
+            roll_pitch_rate_radps=rates[:, :2],
             vy_gnss_mps=gnss_v[:, 1],
             gnss=np.isfinite(gnss_v[:, 0]),
             valid=valid,
@@ -385,6 +399,28 @@ class FleetFrontEnd:
             wrapped = (angle[~first] - yaw.speed[rest] + math.pi) % (2 * math.pi) - math.pi
             yaw.update(rest, yaw.speed[rest] + wrapped, h_var)
         return rate
+
+    def _tilt_rate_step(
+        self, s: IntArray, gyro: FloatArray, yaw_rate: FloatArray, g: IntArray, sensed: SensedTicks
+    ) -> FloatArray:
+        """The body's rates ``(B, 3)``: the roll and pitch gyros less their biases, their angles
+        predicted and, at a fresh receiver roll and pitch, corrected
+        (``FrontEnd._tilt_rate_step``, ``_attitude_update``; paper: as read)."""
+        if self.fe.paper:
+            return body_rates_radps(gyro, yaw_rate)
+        read = []
+        for f, rate, col in ((self.roll_gyro, gyro[:, 1], 2), (self.pitch_gyro, gyro[:, 0], 1)):
+            f.speed[s] = np.where(np.isnan(f.speed[s]), 0.0, f.speed[s])
+            f.predict(s, rate, np.zeros(s.size), self.dt)
+            read.append(rate - f.bias[s])
+            if g.size:
+                angle = sensed.gnss_attitude[g, col]
+                ok = np.isfinite(angle)
+                sg, angle = s[g][ok], angle[ok]
+                first = f.var[sg] > 0.5
+                f.speed[sg[first]], f.var[sg[first]] = angle[first], self.fe.heading_std_rad**2
+                f.update(sg[~first], angle[~first], self.fe.heading_std_rad**2)
+        return body_rates_radps(np.stack([read[1], read[0], np.zeros(s.size)], axis=1), yaw_rate)
 
     def _at_tick(
         self, s: IntArray, ax: FloatArray, ay: FloatArray, lag_s: FloatArray

@@ -81,14 +81,16 @@ __all__ = [
     "FrontEnd",
     "FrontEndConfig",
     "FrontEndTick",
+    "antenna_arm_m",
     "antenna_velocity_at_cg",
+    "body_rates_radps",
     "brake_slip_std",
     "calibration_scale_var",
     "consider_step",
-    "horizontal_antenna_arm_m",
     "rim_persistent_std_mps",
     "ringing_slip_std",
     "spin_up_slip",
+    "tilted_arm_m",
 ]
 
 AIR_DENSITY_KGPM3 = 1.2
@@ -159,30 +161,60 @@ class FrontEndConfig:
     wheel_speed_window_s: float = 0.02
 
 
-def horizontal_antenna_arm_m(chassis: ChassisConfig) -> tuple[float, float]:
-    """The antenna's horizontal lever arm from the CG as (ahead, left) [m] (the config's is
-    x right, y forward)."""
-    right, ahead, _ = chassis.antenna_lever_arm_m
-    return ahead, -right
+def antenna_arm_m(chassis: ChassisConfig) -> tuple[float, float, float]:
+    """The antenna's lever arm as (ahead, left of the CG, up from the tilt axis) [m]: the
+    config's ``antenna_lever_arm_m`` is x right, y forward, z up from the ground below the CG,
+    the body rolls and pitches about the axis ``tilt_axis_height_m`` above the ground."""
+    right, ahead, up = chassis.antenna_lever_arm_m
+    return ahead, -right, up - chassis.tilt_axis_height_m
+
+
+def body_rates_radps(gyro_radps: FloatArray, yaw_rate_radps: FloatArray | float) -> FloatArray:
+    """The body's rates ``(p, q, r)`` about x forward, y left, z up from the gyro's
+    ``(..., 3)`` (X right, Y forward, Z up: ``p = g_Y``, ``q = −g_X``), ``r`` the given
+    yaw rate ``(...)`` → ``(..., 3)`` [rad/s]."""
+    g = np.asarray(gyro_radps, dtype=np.float64)
+    r = np.broadcast_to(np.asarray(yaw_rate_radps, dtype=np.float64), g.shape[:-1])
+    return np.stack([g[..., 1], -g[..., 0], r], axis=-1)
+
+
+def tilted_arm_m(
+    arm_m: FloatArray, roll_rad: FloatArray | float, pitch_rad: FloatArray | float
+) -> FloatArray:
+    """The lever arm ``r`` ``(..., 3)`` (ahead, left, up) turned with the body about its tilt
+    axis into the level frame, pitch ``θ`` (nose up) then roll ``φ`` (right side down):
+    ``d = R_x(φ) R_y(−θ) r`` (``roll_rad``, ``pitch_rad`` ``(...)``) → ``(..., 3)`` [m]."""
+    arm = np.asarray(arm_m, dtype=np.float64)
+    th, ph = np.asarray(pitch_rad, dtype=np.float64), np.asarray(roll_rad, dtype=np.float64)
+    x, y, z = arm[..., 0], arm[..., 1], arm[..., 2]
+    x1, z1 = x * np.cos(th) - z * np.sin(th), x * np.sin(th) + z * np.cos(th)
+    return np.stack([x1, y * np.cos(ph) - z1 * np.sin(ph), y * np.sin(ph) + z1 * np.cos(ph)], -1)
 
 
 def antenna_velocity_at_cg(
-    vel_mps: FloatArray, yaw_rate_radps: FloatArray | float, antenna_xy_m: FloatArray
+    vel_mps: FloatArray, rates_radps: FloatArray, arm_m: FloatArray
 ) -> FloatArray:
-    """The CG's body-frame velocity from the antenna's, through the horizontal lever arm.
+    """The CG's level-frame horizontal velocity from the antenna's, through the lever arm.
 
-    ``v_cg = v_ant − ω × r``, its horizontal part with the yaw rate ``r_z`` and the arm
-    ``(x, y)`` (ahead, left of the CG): ``v_x,cg = v_x,ant + r_z·y``, ``v_y,cg = v_y,ant − r_z·x``.
-    ``vel_mps`` ``(..., 2)`` ``(v_x, v_y)`` (x forward, y left), ``yaw_rate_radps`` ``(...)``
-    (counter-clockwise), ``antenna_xy_m`` ``(..., 2)`` → ``(..., 2)``; with the arm negated
-    it gives the antenna's velocity from the CG's (``v_cg + ω × r``). A body that rolls or
-    pitches moves a raised antenna too; that part is left in (the config does not say about
-    which point the body tilts).
+    Rigid body: ``v_cg = v_ant − ω × d`` with ``ω = (p, q, r_z)`` (:func:`body_rates_radps`)
+    and ``d = (x, y, z)`` the arm from the tilt axis's point below the CG in the level frame
+    (:func:`antenna_arm_m`, :func:`tilted_arm_m`); its horizontal part
+    ``v_x,cg = v_x,ant + r_z·y − q·z``, ``v_y,cg = v_y,ant − r_z·x + p·z``: the yaw moves the
+    antenna by its horizontal arm, the roll and pitch by its height above their axis.
+    ``vel_mps`` ``(..., 2)`` ``(v_x, v_y)`` (x forward, y left along the heading),
+    ``rates_radps`` ``(..., 3)``, ``arm_m`` ``(..., 3)`` → ``(..., 2)``; with the arm negated
+    it gives the antenna's velocity from the CG's (``v_cg + ω × d``).
     """
     vel = np.asarray(vel_mps, dtype=np.float64)
-    arm = np.asarray(antenna_xy_m, dtype=np.float64)
-    rate = np.asarray(yaw_rate_radps, dtype=np.float64)
-    return np.stack([vel[..., 0] + rate * arm[..., 1], vel[..., 1] - rate * arm[..., 0]], axis=-1)
+    arm = np.asarray(arm_m, dtype=np.float64)
+    w = np.asarray(rates_radps, dtype=np.float64)
+    return np.stack(
+        [
+            vel[..., 0] + w[..., 2] * arm[..., 1] - w[..., 1] * arm[..., 2],
+            vel[..., 1] - w[..., 2] * arm[..., 0] + w[..., 0] * arm[..., 2],
+        ],
+        axis=-1,
+    )
 
 
 def brake_slip_std(
@@ -308,6 +340,7 @@ class FrontEndTick:
     vx_std_mps: float  # the speed's 1-σ with the rims' persistent errors (not κ's: they cancel)
     vy_mps: float
     yaw_rate_radps: float
+    roll_pitch_rate_radps: FloatArray  # (p, q) about x forward, y left, less the gyros' biases
     vy_gnss_mps: float  # NaN without a fresh GNSS velocity
     gnss: bool
     valid: bool
@@ -430,7 +463,7 @@ class FrontEnd:
         )
         self.undriven = UNDRIVEN[ch.driven_axle]
         self.drive_share = DRIVE_SHARE[ch.driven_axle]
-        self.antenna_xy_m = np.array(horizontal_antenna_arm_m(ch))
+        self.antenna_arm_m = np.array(antenna_arm_m(ch))
         # the paper's statically loaded radius; the product starts from a third of the
         # deflection (a rolling tyre's effective radius) and calibrates from there
         self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (
@@ -459,6 +492,10 @@ class FrontEnd:
         # yaw angle (from east, counter-clockwise) and the yaw gyro's bias, corrected by the
         # receiver's heading: the bias times v_x would read as a lateral acceleration
         self.yaw = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
+        # roll and pitch angles and their gyros' biases, corrected by the receiver's attitude:
+        # a bias times the antenna's height would read as the CG's speed
+        self.roll_gyro = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
+        self.pitch_gyro = _AxisFilter(fe.yaw_walk_radps, fe.gyro_bias_walk_radps_per_sqrt_s, 0.005)
         self.transfer = np.zeros(3)  # lagged [long, lat front, lat rear] [N]
         self.tilt_reading = np.zeros(2)  # lagged raw [a_x, a_y] [m/s²] the body tilts with
         self.pitch = _TiltGradient(
@@ -536,10 +573,13 @@ class FrontEnd:
         accel, gyro, imu_lag_s = window
         ax_raw, ay_raw = float(accel[1]), float(-accel[0])
         yaw_rate = self._yaw_step(float(gyro[2]))
-        gnss = self._gnss_at_cg(self._gnss_velocity(t_ns), yaw_rate)
-        if gnss is not None:
+        rates = self._tilt_rate_step(gyro, yaw_rate)
+        gnss_ant = self._gnss_velocity(t_ns)
+        if gnss_ant is not None:
             self._heading_update()
-        self._learn_tilt(ax_raw, ay_raw, gnss is not None)
+            self._attitude_update()
+        self._learn_tilt(ax_raw, ay_raw, gnss_ant is not None)
+        gnss = self._gnss_at_cg(gnss_ant, rates)
         # the speed filters integrate the tilt-free readings, so their bias states hold the
         # sensors' biases alone (not the leak of the body's pitch or roll), taken off here
         ax_tilt, ay_tilt = self._detilt(ax_raw, ay_raw)
@@ -584,6 +624,7 @@ class FrontEnd:
             vx_std_mps=math.hypot(math.sqrt(max(self.vx.speed_var, 0.0)), self.speed_persist),
             vy_mps=self.vy.speed,
             yaw_rate_radps=yaw_rate,
+            roll_pitch_rate_radps=rates[:2],
             vy_gnss_mps=vy_gnss,
             gnss=gnss is not None,
             valid=bool(valid),
@@ -623,13 +664,18 @@ class FrontEnd:
         return ve * math.sin(h) + vn * math.cos(h), -ve * math.cos(h) + vn * math.sin(h)
 
     def _gnss_at_cg(
-        self, vel: tuple[float, float] | None, yaw_rate: float
+        self, vel: tuple[float, float] | None, rates: FloatArray
     ) -> tuple[float, float] | None:
-        """The CG's body-frame velocity from the antenna's, with the tick's yaw rate (its
-        window holds the fix's instant; paper: the antenna's, as read)."""
+        """The CG's velocity from the antenna's, with the tick's body rates ``(3,)`` (its
+        window holds the fix's instant) and the arm tilted by the body's roll and pitch as
+        :meth:`_detilt` takes them out, ``g·sin φ ≈ s_φ ā_y`` (paper: the antenna's, as read)."""
         if vel is None or self.fe.paper:
             return vel
-        vx, vy = antenna_velocity_at_cg(np.array(vel), yaw_rate, self.antenna_xy_m)
+        lag_x, lag_y = self.tilt_reading
+        roll = self.roll.slope * float(lag_y) / GRAVITY_MPS2
+        pitch = self.pitch.slope * float(lag_x) / GRAVITY_MPS2
+        arm = tilted_arm_m(self.antenna_arm_m, roll, pitch)
+        vx, vy = antenna_velocity_at_cg(np.array(vel), rates, arm)
         return float(vx), float(vy)
 
     def _speed_step(
@@ -706,6 +752,34 @@ class FrontEnd:
             return
         wrapped = (yaw - self.yaw.speed + math.pi) % (2 * math.pi) - math.pi
         self.yaw.update(self.yaw.speed + wrapped, self.fe.heading_std_rad**2)
+
+    def _tilt_rate_step(self, gyro: FloatArray, yaw_rate: float) -> FloatArray:
+        """The body's rates ``(p, q, r)`` (:func:`body_rates_radps`), the roll and pitch gyros
+        less their biases, their angles predicted (paper: as read)."""
+        if self.fe.paper:
+            return body_rates_radps(gyro, yaw_rate)
+        read = []
+        for f, rate in ((self.roll_gyro, float(gyro[1])), (self.pitch_gyro, float(gyro[0]))):
+            if math.isnan(f.speed):
+                f.set_speed(0.0)
+            f.predict(rate, 0.0, self.dt)
+            read.append(rate - f.bias)
+        return body_rates_radps(np.array([read[1], read[0], 0.0]), yaw_rate)
+
+    def _attitude_update(self) -> None:
+        """A fresh receiver roll and pitch (where it gives them) correct the angles and so the
+        roll and pitch gyros' biases, as the heading does the yaw's (not paper)."""
+        g = self.gnss
+        if self.fe.paper or g is None:
+            return
+        var = self.fe.heading_std_rad**2
+        for f, angle in ((self.roll_gyro, g.roll_rad), (self.pitch_gyro, g.pitch_rad)):
+            if not math.isfinite(angle):
+                continue
+            if f.speed_var > 0.5:  # the first: the angle starts there
+                f.set_speed(angle, var)
+            else:
+                f.update(angle, var)
 
     def _gnss_recent(self) -> bool:
         return self.gnss is not None and self.last_tick_ns - self.gnss.stamp_ns <= (

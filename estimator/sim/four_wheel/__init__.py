@@ -20,12 +20,18 @@ load, body roll and pitch tilting the accelerometers. Sensors (per run, uniform 
   the instantaneous speed at its stamp;
 * steering-wheel angle 50 Hz in packets of 5, noise 0.1°, offset −0.5..0.5°;
 * GNSS 10 Hz: the antenna's ENU velocity and position (:func:`antenna_motion`, at the
-  config's ``antenna_lever_arm_m`` from the CG, the body tilting about the CG), velocity
-  noise 0.03 m/s per axis, dual-antenna heading noise 0.15°.
+  config's ``antenna_lever_arm_m`` from the CG, the body rolling and pitching about the axis
+  ``tilt_axis_height_m`` above the ground), velocity noise 0.03 m/s per axis, dual-antenna
+  heading noise 0.15°.
+
+The truth's planar position and velocity are those of the tilt axis's point below the CG
+(the chassis the tyres carry); the body's roll and pitch angles are the truth's, whatever
+the axis (the axis moves only what the body carries above it).
 
 Random vehicles (:func:`random_config`) come from stated distributions; the named manoeuvres
 run :data:`FOUR_WHEEL_CONFIG` (a rear-driven utility vehicle, its antenna on the cab roof
-0.5 m ahead of the CG on the centre line, 1.9 m above the ground).
+0.5 m ahead of the CG on the centre line, 1.9 m above the ground, the tilt axis the config's
+default 0.3 m above the ground).
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -136,8 +143,9 @@ def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
     CG height 0.5-0.9 m, yaw inertia m·lf·lr·(0.9-1.3), steering ratio 14-20, c_px
     0.7-1.3e7 N/m², c_py 0.5-0.8 of it, kz 1.8-3.5e5 N/m, r_u 0.30-0.40 m, any driven axle;
     the GNSS antenna −1.5..+2.0 m ahead of the CG, −0.4..+0.4 m right of it, 1.5-3.2 m above
-    the ground (drawn from a generator spawned off ``rng``, so the draws after it are the
-    same as without an antenna)."""
+    the ground, the tilt axis 0.05-0.5 m above the ground (the antenna from a generator
+    spawned off ``rng``, the axis from one spawned off that, so every other draw is the same
+    as without them)."""
     mass = rng.uniform(1200.0, 3500.0)
     lf, lr = rng.uniform(1.0, 1.7, 2)
     c_px = rng.uniform(0.7e7, 1.3e7)
@@ -151,7 +159,7 @@ def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
         cg_height_m=rng.uniform(0.5, 0.9),
         steering_ratio=rng.uniform(14.0, 20.0),
         driven_axle=list(DrivenAxle)[int(rng.integers(0, 3))],
-        antenna_lever_arm_m=_antenna_lever_arm_m(rng.spawn(1)[0]),
+        **_mast(rng.spawn(1)[0]),
     )
     tyre = TyreConfig(
         c_px_npm2=c_px,
@@ -162,10 +170,16 @@ def random_config(rng: np.random.Generator) -> Wheeled4wdSteeredConfig:
     return Wheeled4wdSteeredConfig(chassis=chassis, tyre=tyre, noise=SENSOR_NOISE)
 
 
-def _antenna_lever_arm_m(rng: np.random.Generator) -> tuple[float, float, float]:
-    """(x right, y forward, z up) from the ground below the CG, :func:`random_config`'s range."""
+def _mast(rng: np.random.Generator) -> dict[str, Any]:
+    """The antenna's lever arm (x right, y forward, z up from the ground below the CG) and,
+    from a generator spawned off ``rng``, the tilt axis's height: :func:`random_config`'s
+    ranges."""
     right, ahead, up = rng.uniform((-0.4, -1.5, 1.5), (0.4, 2.0, 3.2))
-    return float(right), float(ahead), float(up)
+    axis_m = rng.spawn(1)[0].uniform(0.05, 0.5)
+    return {
+        "antenna_lever_arm_m": (float(right), float(ahead), float(up)),
+        "tilt_axis_height_m": float(axis_m),
+    }
 
 
 def simulate_four_wheel(
@@ -282,14 +296,16 @@ def antenna_motion(truth: Truth, chassis: ChassisConfig) -> tuple[FloatArray, Fl
     """The antenna's ENU position (up: above the ground) and velocity from the CG's, ``(T, 3)``
     each [m, m/s].
 
-    The lever arm ``r`` (``antenna_lever_arm_m`` less the CG height, in the body frame x
-    forward, y left, z up) tilts with the body about the CG, pitch ``θ`` (nose up) then roll
-    ``φ`` (right side down): ``d = R_x(φ) R_y(−θ) r``. Then ``p_ant = p_cg + R_z(ψ) d`` and
+    The lever arm ``r`` from the tilt axis's point below the CG (``antenna_lever_arm_m``
+    less ``tilt_axis_height_m``, in the body frame x forward, y left, z up) tilts with the
+    body about that point, pitch ``θ`` (nose up) then roll ``φ`` (right side down):
+    ``d = R_x(φ) R_y(−θ) r``. Then ``p_ant = p_cg + R_z(ψ) d`` and
     ``v_ant = v_cg + R_z(ψ)(ḋ + r_z ẑ × d)`` (``v = v_cg + ω × r``; ``ψ`` the yaw, ``r_z`` the
-    yaw rate): a steady turn adds ``r_z·d_x`` across the heading and ``−r_z·d_y`` along it.
+    yaw rate, ``p_cg``, ``v_cg`` the truth's planar ones): a steady turn adds ``r_z·d_x``
+    across the heading and ``−r_z·d_y`` along it, a roll rate ``−φ̇·d_z`` across.
     """
     right, ahead, up = chassis.antenna_lever_arm_m
-    f, lft, h = ahead, -right, up - chassis.cg_height_m
+    f, lft, h = ahead, -right, up - chassis.tilt_axis_height_m
     th, ph = truth.pitch_rad, truth.roll_rad
     f1, h1 = f * np.cos(th) - h * np.sin(th), f * np.sin(th) + h * np.cos(th)
     l2, h2 = lft * np.cos(ph) - h1 * np.sin(ph), lft * np.sin(ph) + h1 * np.cos(ph)

@@ -8,6 +8,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
 from estimator.friction import FilterConfig
@@ -17,11 +18,15 @@ from estimator.friction.frontend import (
     FrontEndConfig,
     FrontEndTick,
     _TiltGradient,
+    antenna_arm_m,
+    antenna_velocity_at_cg,
+    body_rates_radps,
     calibration_scale_var,
     consider_step,
     rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
+    tilted_arm_m,
 )
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
@@ -347,3 +352,100 @@ def test_the_gnss_lateral_speed_is_the_cgs_with_the_antenna_off_the_cg() -> None
     assert len(late) >= 40
     assert max(abs(t.vy_gnss_mps - vy_mps) for t in late) < 0.01
     assert abs(late[-1].vx_mps - speed_mps) < 0.02
+
+
+def test_the_rigid_body_transfer_by_hand_on_a_rolling_body() -> None:
+    """``v_cg = v_ant − ω × d``: the gyro's (X right, Y forward, Z up) ``(0.05, 0.2, ·)`` is a
+    roll rate ``p`` 0.2 rad/s (right side going down) and a pitch rate ``q`` −0.05 (nose going
+    up) about x forward, y left; yaw 0.1. The arm 1.0 m ahead, 0.4 m left, 2.0 m above the
+    tilt axis: ``v_x = 15 + 0.1·0.4 − (−0.05)·2.0 = 15.14``, ``v_y = 0.3 − 0.1·1.0 + 0.2·2.0 =
+    0.6``; the negated arm takes it back. Rolled 0.1 rad (no pitch) the arm turns about x:
+    ``(1.0, 0.4 cos 0.1 − 2.0 sin 0.1, 0.4 sin 0.1 + 2.0 cos 0.1)``. The config's arm is from
+    the ground (x right, y forward) and the axis height comes off its height."""
+    rates = body_rates_radps(np.array([0.05, 0.2, 9.9]), 0.1)
+    assert np.allclose(rates, [0.2, -0.05, 0.1], rtol=0, atol=1e-15)
+    arm = np.array([1.0, 0.4, 2.0])
+    cg = antenna_velocity_at_cg(np.array([15.0, 0.3]), rates, arm)
+    assert np.allclose(cg, [15.14, 0.6], rtol=0, atol=1e-12)
+    back = antenna_velocity_at_cg(cg, rates, -arm)
+    assert np.allclose(back, [15.0, 0.3], rtol=0, atol=1e-12)
+    rolled = tilted_arm_m(arm, 0.1, 0.0)
+    want = [
+        1.0,
+        0.4 * math.cos(0.1) - 2.0 * math.sin(0.1),
+        0.4 * math.sin(0.1) + 2.0 * math.cos(0.1),
+    ]
+    assert np.allclose(rolled, want, rtol=0, atol=1e-15)
+    pitched = tilted_arm_m(arm, 0.0, 0.1)  # nose up: a raised antenna moves back
+    assert pitched[0] == pytest.approx(1.0 * math.cos(0.1) - 2.0 * math.sin(0.1), abs=1e-15)
+    chassis = dataclasses.replace(
+        CONFIG.chassis, antenna_lever_arm_m=(-0.4, 1.0, 2.3), tilt_axis_height_m=0.3
+    )
+    assert antenna_arm_m(chassis) == pytest.approx((1.0, 0.4, 2.0), abs=1e-15)
+
+
+def _swaying_mast(roll_gyro_bias_radps: float) -> tuple[list[FrontEndTick], float]:
+    """Straight at 15 m/s for 6 s, the body swaying in roll about its axis 0.3 m above the
+    ground (``φ = 0.03 sin(2π·0.5 t)``, a roll rate up to 0.094 rad/s), the antenna 2.5 m up,
+    the receiver giving its roll: the ticks with a fresh epoch after the first second, and
+    the largest lateral speed the receiver reads after it."""
+    chassis = dataclasses.replace(
+        CONFIG.chassis, antenna_lever_arm_m=(0.0, 0.5, 2.5), tilt_axis_height_m=0.3
+    )
+    fe = FrontEnd(dataclasses.replace(CONFIG, chassis=chassis), FrontEndConfig(), 0.02)
+    speed_mps, height_m, w = 15.0, 2.2, 2 * math.pi * 0.5
+    t_imu = np.arange(1, 601) * 10_000_000
+    t_s = t_imu / 1e9
+    roll, roll_rate = 0.03 * np.sin(w * t_s), 0.03 * w * np.cos(w * t_s)
+    accel = np.zeros((t_imu.size, 3))
+    accel[:, 0] = -GRAVITY_MPS2 * np.sin(roll)  # the IMU's X is right: it leans with the body
+    accel[:, 2] = GRAVITY_MPS2 * np.cos(roll)
+    gyro = np.zeros((t_imu.size, 3))
+    gyro[:, 1] = roll_rate + roll_gyro_bias_radps  # about Y forward: right side down
+    fe.push_imu(ImuBatch(t_imu, accel, gyro))
+    omega = np.full((t_imu.size // 2, 4), speed_mps / CONFIG.tyre.unloaded_radius_m)
+    fe.push_wheels(WheelSpeeds4(t_imu[1::2], omega))
+    fe.push_steering(SteeringAngles(t_imu[1::2], np.zeros(t_imu.size // 2)))
+    left = -height_m * roll_rate * np.cos(roll)
+    h = HEADING_RAD
+    for k in range(9, t_imu.size, 10):
+        fe.push_gnss(
+            GnssSample(
+                stamp_ns=int(t_imu[k]),
+                vel_enu_mps=(
+                    speed_mps * math.sin(h) - left[k] * math.cos(h),
+                    speed_mps * math.cos(h) + left[k] * math.sin(h),
+                    0.0,
+                ),
+                heading_rad=h,
+                pitch_rad=0.0,
+                roll_rad=float(roll[k]),
+                lat_deg=48.0,
+                lon_deg=11.0,
+                height_m=500.0,
+            )
+        )
+    ticks = [fe.tick(int(t)) for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000)]
+    late = [t for t in ticks[50:] if t is not None and t.gnss]
+    assert len(late) >= 40
+    return late, float(np.max(np.abs(left[100:])))
+
+
+def test_the_gnss_lateral_speed_is_the_cgs_under_a_swaying_mast() -> None:
+    """The receiver reads ``−2.2 φ̇ cos φ`` across its heading (up to 0.21 m/s) while the CG
+    does not move sideways (:func:`_swaying_mast`): the front end's GNSS lateral speed is
+    the CG's 0 within 0.01 m/s on every epoch after the first second (left with the yaw's
+    arm alone it is the antenna's)."""
+    late, sway_mps = _swaying_mast(0.0)
+    assert sway_mps > 0.2
+    assert max(abs(t.vy_gnss_mps) for t in late) < 0.01
+
+
+def test_the_roll_gyros_bias_is_learnt_from_the_receivers_roll() -> None:
+    """The same sway with the roll gyro 0.01 rad/s off (times the 2.2 m mast: 0.022 m/s
+    across): the receiver's roll corrects the bias as its heading does the yaw gyro's, and
+    from the third second on the GNSS lateral speed is the CG's within 0.005 m/s."""
+    late, _ = _swaying_mast(0.01)
+    after = late[-30:]
+    assert len(after) == 30
+    assert max(abs(t.vy_gnss_mps) for t in after) < 0.005

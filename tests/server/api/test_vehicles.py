@@ -243,7 +243,7 @@ KIND_BODIES: dict[str, dict[str, Any]] = {
     },
     "wheeled_4wd_steered": {
         "kind": "wheeled_4wd_steered",
-        "chassis": {"mass_kg": 1800, "driven_axle": "rear"},
+        "chassis": {"mass_kg": 1800, "driven_axle": "rear", "tilt_axis_height_m": 0.45},
         "tyre": {"kz_npm": 50_000},
     },
 }
@@ -262,6 +262,7 @@ def test_register_each_kind(client: ApiClient, runtime: FakeRuntime, store: Stor
     steered, tracked = runtime.config_calls[-1][1], runtime.config_calls[-2][1]
     assert isinstance(steered, Wheeled4wdSteeredConfig)
     assert steered.chassis.driven_axle is DrivenAxle.REAR and steered.tyre.kz_npm == 50_000
+    assert steered.chassis.tilt_axis_height_m == 0.45
     assert isinstance(tracked, TrackedConfig) and tracked.geometry.imu_lever_arm_m == (
         0.1,
         -0.3,
@@ -291,6 +292,10 @@ def test_wrong_kind_or_field_is_422_naming_it(client: ApiClient, runtime: FakeRu
         ({"slip": {"alert_hold_s": 1e12}}, "slip.alert_hold_s must be a number in 0.1..3600 s"),
         ({"kind": "tracked", "odometer": {"distance_per_edge_m": 5}}, "0.0001..1 m"),
         ({"kind": "wheeled_4wd_steered", "tyre": {"kz_npm": 1e3}}, "10000..5e+06 N/m"),
+        (
+            {"kind": "wheeled_4wd_steered", "chassis": {"tilt_axis_height_m": -0.2}},
+            "chassis.tilt_axis_height_m must be a number in 0..4 m",
+        ),
         ({"estimators": [""]}, "estimators"),
     ]
     _assert_configs_refused(client, runtime, cases)
