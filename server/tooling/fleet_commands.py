@@ -9,6 +9,7 @@ to a recording file (replaying one and recording live traffic:
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,10 +104,12 @@ def demo(
     scenario: str = "mix",
     duration_s: float = 0.0,
     estimator_mix: EstimatorMix | None = None,
+    stop: threading.Event | None = None,
 ) -> None:
     """Embedded router + server + SQLite + ``vehicles`` simulated tractors, one steered
     four-wheel vehicle after them (friction μ, :mod:`server.tooling.steered_fleet`) and one
-    crawler after that (tracked, :mod:`server.tooling.tracked_fleet`), until Ctrl-C.
+    crawler after that (tracked, :mod:`server.tooling.tracked_fleet`), until Ctrl-C, until
+    ``duration_s`` (> 0) has passed or until ``stop`` is set, whichever comes first.
 
     ``estimator_mix`` defaults to the last vehicle running :data:`DEMO_MIX_ESTIMATORS` (a mixed
     fleet: one vehicle's reference speed beside its MDSF estimate)."""
@@ -119,7 +122,7 @@ def demo(
     fleet = _DemoFleet.start(session, settings.zenoh.key_prefix, vehicles, scenario, mix)
     _print_demo_banner(settings, server.port, list(listen), vehicles, scenario, fleet)
     try:
-        _wait_for_demo(server, duration_s)
+        _wait_for_demo(server, duration_s, stop or threading.Event())
     except KeyboardInterrupt:
         pass
     finally:
@@ -210,13 +213,14 @@ def _print_demo_banner(
     )
 
 
-def _wait_for_demo(server: ServerThread, duration_s: float) -> None:
-    """Sleep ``duration_s`` (> 0), else until the server thread ends."""
+def _wait_for_demo(server: ServerThread, duration_s: float, stop: threading.Event) -> None:
+    """Wait ``duration_s`` (> 0), else until the server thread ends; either cut short by
+    ``stop``."""
     if duration_s > 0:
-        time.sleep(duration_s)
+        stop.wait(duration_s)
     else:
-        while server.thread.is_alive():
-            time.sleep(0.5)
+        while server.thread.is_alive() and not stop.wait(0.5):
+            pass
 
 
 def mix_summary(sim: FleetSim) -> str:

@@ -3,6 +3,7 @@ outliers, the first rows before a wheel speed, a clock shift of the whole stream
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Any
 
@@ -83,7 +84,10 @@ def _cruise(config: WheeledRearDriveConfig, **kw: Any) -> SimRun:
     return _sway(config, seed=4, speed_min_mps=2.0, speed_max_mps=2.0, stop_prob=0.0, **kw)
 
 
-def _swaying_cruise() -> tuple[SimRun, np.ndarray, list[TickInputs]]:
+_Cruise = tuple[SimRun, np.ndarray, list[TickInputs]]
+
+
+def _swaying_cruise() -> _Cruise:
     """A 2 m/s cruise on a 30-tooth ring, the cab swaying 1.5° in pitch at 2.2 Hz about the
     axle with the IMU 1.5 m up (``h0·ω̇x`` up to 7 m/s²): the product rows and the tick inputs
     the fleet was given."""
@@ -113,10 +117,22 @@ def _product_keeping_inputs(sim: SimRun) -> tuple[np.ndarray, list[TickInputs]]:
     return rows, inputs
 
 
-def test_the_axle_acceleration_of_a_swaying_cab_holds_no_sway() -> None:
+@pytest.fixture(scope="module")
+def swaying_cruise_once() -> _Cruise:
+    """:func:`_swaying_cruise`, run once for the tests that read it."""
+    return _swaying_cruise()
+
+
+@pytest.fixture
+def swaying_cruise(swaying_cruise_once: _Cruise) -> _Cruise:
+    """Each test's own copy of that run: nothing mutable is shared between tests."""
+    return copy.deepcopy(swaying_cruise_once)
+
+
+def test_the_axle_acceleration_of_a_swaying_cab_holds_no_sway(swaying_cruise: _Cruise) -> None:
     """``a1 + lever_accel_fwd_mps2`` is the axle's tick-mean acceleration: at a steady 2 m/s
     the IMU's ``a1`` reads the sway's ``h0·ω̇x`` (p95 6.9 m/s² off), the sum 0.3 m/s²."""
-    sim, _, inputs = _swaying_cruise()
+    sim, _, inputs = swaying_cruise
     stamp = np.concatenate([t.stamp_ns for t in inputs])
     a1 = np.concatenate([t.z[:, MdsfObs.A1] for t in inputs])
     lever = np.concatenate(
@@ -131,11 +147,11 @@ def test_the_axle_acceleration_of_a_swaying_cab_holds_no_sway() -> None:
     assert np.isfinite(lever[cruise]).all()
 
 
-def test_a_swaying_cab_at_a_steady_speed_is_not_settling() -> None:
+def test_a_swaying_cab_at_a_steady_speed_is_not_settling(swaying_cruise: _Cruise) -> None:
     """The settling rule reads the axle's acceleration: the IMU's swaying ``a1`` flagged 64 %
     of this cruise's rows SETTLING (slip shown on 20 %); the slip it now shows stays within
     its stated std."""
-    sim, rows, _ = _swaying_cruise()
+    sim, rows, _ = swaying_cruise
     stamp = rows["stamp_ns"]
     cruise = (truth_at(sim.truth, stamp, "v0_mps") > 1.9) & (
         np.abs(truth_at(sim.truth, stamp, "a0_mps2")) < 0.05

@@ -1,6 +1,6 @@
-"""Revoking a token closes its open WebSockets on a real ``slipfleet serve`` within about a
-second (REST ``DELETE /tokens/{id}`` and ``slipfleet token revoke`` from another process),
-while another token's sockets keep streaming."""
+"""Revoking a token closes its open WebSockets on a real ``slipfleet serve`` with code 1008
+(REST ``DELETE /tokens/{id}`` and ``slipfleet token revoke`` from another process), while
+another token's sockets keep streaming."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 from websockets.exceptions import ConnectionClosed
@@ -21,7 +20,9 @@ from server.storage import open_store
 from server.tokens import Role, issue_token
 from tests.server.faults._harness import REPO, ServerProcess
 
-CLOSE_WITHIN_S = 1.5
+#: How long a socket is read for its close: a bound for what never comes (the streams send
+#: on, every 250-1000 ms, while open), no cost when the close comes at once.
+CLOSE_WAIT_S = 30.0
 
 
 def _tokens(data_dir: Path) -> dict[str, tuple[str, int]]:
@@ -43,14 +44,18 @@ def _open(server: ServerProcess, path: str, token: str) -> ClientConnection:
     return ws
 
 
-def _seconds_to_close(ws: ClientConnection, timeout_s: float = 10.0) -> tuple[float, Any]:
-    t0 = time.monotonic()
+def _close_code(ws: ClientConnection) -> int | None:
+    """The code ``ws`` is closed with, read until the close (None: open after
+    :data:`CLOSE_WAIT_S`, or closed without a code)."""
+    end_s = time.monotonic() + CLOSE_WAIT_S
     try:
-        while time.monotonic() - t0 < timeout_s:
-            ws.recv(timeout=timeout_s)
+        while (left_s := end_s - time.monotonic()) > 0:
+            ws.recv(timeout=left_s)
     except ConnectionClosed as exc:
-        return time.monotonic() - t0, exc.rcvd.code if exc.rcvd else None
-    return float("inf"), None
+        return exc.rcvd.code if exc.rcvd else None
+    except TimeoutError:
+        pass
+    return None
 
 
 @pytest.mark.zenoh
@@ -69,7 +74,7 @@ def test_revocation_closes_open_websockets(tmp_path: Path) -> None:
         with server.client() as c:
             admin = {"authorization": f"Bearer {tokens['admin'][0]}"}
             assert c.delete(f"/api/v1/tokens/{tokens['v1'][1]}", headers=admin).status_code == 204
-        closed = [_seconds_to_close(ws) for ws in v1]
+        closed = [_close_code(ws) for ws in v1]
         assert '"type":"fleet"' in v2.recv(timeout=5)  # the other token streams on
 
         cli = subprocess.run(
@@ -85,8 +90,7 @@ def test_revocation_closes_open_websockets(tmp_path: Path) -> None:
             check=False,
         )
         assert cli.returncode == 0, cli.stderr
-        closed.append(_seconds_to_close(v2))
+        closed.append(_close_code(v2))
     finally:
         server.stop()
-    print("closed after", [f"{s:.2f} s (code {c})" for s, c in closed])
-    assert all(s < CLOSE_WITHIN_S and code == 1008 for s, code in closed)
+    assert closed == [1008, 1008, 1008]

@@ -5,6 +5,7 @@ in a child process."""
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -20,6 +21,7 @@ from server.tooling.fleet_commands import record, vehicle_session
 from server.tooling.fleet_sim import replay as publish_recording
 from tests.server.cli_support import run_cli, serving, start_cli
 from tests.server.fleet_stack import stack_settings
+from tests.support import poll_until
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
 
@@ -115,22 +117,37 @@ def test_as_needs_a_recording_of_one_vehicle(server: Settings, tmp_path: Path) -
 def test_record_live_writes_what_the_router_delivers(
     server: Settings, drive: Path, tmp_path: Path
 ) -> None:
+    """``record --live`` until Ctrl-C: stopped once a second listener on the router got the
+    whole drive (within 120 s), it keeps all of it."""
     out = tmp_path / "live.sfrec"
     endpoint = server.zenoh.listen[0]
-    proc = start_cli(["record", str(out), "--live", "--connect", endpoint, "--duration", "6"])
+    sent = sorted((r.key, r.payload) for r in read_recording(drive))
+    heard: list[str] = []
+    proc = start_cli(["record", str(out), "--live", "--connect", endpoint, "--duration", "120"])
     try:
         assert proc.stdout is not None
         assert proc.stdout.readline().startswith("recording fleet/** from")
-        stop = threading.Event()
-        with vehicle_session([endpoint]) as session:
-            publish_recording(drive, session, rate=4.0, shift_to_now=False, stop=stop)
+        keys = {k for k, _ in sent}
+        with vehicle_session([endpoint]) as listener:
+            # declared, as the recorder's subscriber, before the vehicle connects
+            sub = listener.declare_subscriber(
+                "fleet/**", lambda s: heard.append(k) if (k := str(s.key_expr)) in keys else None
+            )
+            with vehicle_session([endpoint]) as vehicle:
+                publish_recording(
+                    drive, vehicle, rate=4.0, shift_to_now=False, stop=threading.Event()
+                )
+            poll_until(lambda: len(heard) >= len(sent), "the whole drive heard", timeout_s=120.0)
+            sub.undeclare()
+        # the recorder is another subscriber of the same router: a moment to take the last too
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
     assert proc.returncode == 0, stderr
-    sent = sorted((r.key, r.payload) for r in read_recording(drive))
     got = sorted((r.key, r.payload) for r in read_recording(out))
     assert got == sent  # byte for byte, alerts and status the server publishes left out
     assert f"wrote {len(sent)} records to {out}" in stdout

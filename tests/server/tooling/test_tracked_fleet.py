@@ -6,7 +6,6 @@ and ``slipfleet demo`` runs one crawler among the tractors."""
 from __future__ import annotations
 
 import threading
-import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from server.tooling.fleet_sim import SimPacket
 from server.tooling.tracked_fleet import demo_route, tracked_packets
 from tests.server.fleet_stack import stack_settings
 from tests.server.tooling.schedule_check import assert_schedule_patches_like_encoding
-from tests.support import free_port
+from tests.support import free_port, poll_until
 
 T0 = 1_763_700_000 * 10**9
 #: the demo's vehicles waited for: two tractors and the crawler, by their estimators
@@ -95,29 +94,34 @@ def test_demo_route_stops_at_both_ends_and_loses_gnss_in_its_turns() -> None:
 def test_demo_runs_one_crawler_among_the_tractors(tmp_path: Path) -> None:
     """Two tractors (the second with a reference speed beside), then the steered vehicle
     (``sim-0003``, which joins once its slow simulation is done: not waited for here), then
-    the crawler ``sim-0004``, registered with its config's kind and running ``tracked``."""
+    the crawler ``sim-0004``, registered with its config's kind and running ``tracked``; the
+    demo ends once they are seen (``stop``), not after a fixed time."""
     settings = stack_settings(tmp_path, None, 0)
     settings.api.port = free_port()
-    done = threading.Event()
+    stop, done = threading.Event(), threading.Event()
 
     def run_demo() -> None:
-        demo(settings, vehicles=2, duration_s=25.0)
+        demo(settings, vehicles=2, stop=stop)
         done.set()
 
     runner = threading.Thread(target=run_demo, daemon=True)
     runner.start()
     base = f"http://127.0.0.1:{settings.api.port}"
-    deadline = time.monotonic() + 25
-    estimators: dict[str, list[str]] = {}
-    while time.monotonic() < deadline and not WANT.items() <= estimators.items():
-        time.sleep(1.0)
+
+    def estimators() -> dict[str, list[str]] | None:
+        assert runner.is_alive(), "the demo ended before its vehicles were seen"
         try:
             body = httpx.get(f"{base}/api/v1/vehicles", timeout=5).json()
         except httpx.HTTPError:
-            continue
-        estimators = {v["vehicle_id"]: v["estimators"] for v in body["data"]}
-    kind = httpx.get(f"{base}/api/v1/vehicles/sim-0004", timeout=5).json()["config"]["kind"]
-    runner.join(40)
+            return None
+        seen = {v["vehicle_id"]: v["estimators"] for v in body["data"]}
+        return seen if WANT.items() <= seen.items() else None
+
+    try:
+        poll_until(estimators, f"vehicles {WANT}", timeout_s=120.0, poll_s=0.5)
+        kind = httpx.get(f"{base}/api/v1/vehicles/sim-0004", timeout=5).json()["config"]["kind"]
+    finally:
+        stop.set()
+        runner.join(60)
     assert done.is_set()
-    assert WANT.items() <= estimators.items(), estimators
     assert kind == "tracked"
