@@ -866,7 +866,7 @@ def test_slip_anchor_is_the_speed_weighted_slip_ratio() -> None:
         x[0, MdsfState.V1] = v1
         x[0, [MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT]] = np.multiply(ratios, v1)
         for _ in range(ticks):
-            eng._set_slip_anchor(slots, x, np.array([fused]))
+            eng._set_slip_anchor(slots, x, np.array([fused]), np.full((1, 2), 1e-4))
 
     feed(2.0, (0.05, 0.08), True, 30)
     assert np.allclose(eng.slip_anchor[slots], [[0.05, 0.08]])
