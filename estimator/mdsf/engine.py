@@ -1284,13 +1284,15 @@ class MdsfEngine:
         rim-excess variance the jump and drift tests opened this tick, ``slip_opened``;
         ``P_e`` the wheel's rim-excess variance before the tick, ``rim_var`` (k, 2)):
         ``W ← c·λ·W + (1 − λ)·V1²``, ``S ← c·λ·S + (1 − λ)·e_0·V1``, ``ε_0 = S/W``. Ticks
-        before a slip step describe the old slip, not the one an outage will hold."""
+        before a slip step describe the old slip, not the one an outage will hold. Only at
+        ``V1² ≥ W`` (at least the anchor's own mean square speed): a rim opened at a restart
+        or a stop (few edges, a slip ratio of centimetres per second) does not replace it."""
         lam = math.exp(-self.dt_s / self.config.outage_anchor_tau_s)
         v1 = x[:, MdsfState.V1]
         e0 = x[:, _RIM_EXCESS] - (self._demand_slip(slots) * v1)[:, None]
-        opened = self.slip_opened[slots]
-        keep = lam * np.where(opened > 0, rim_var / np.maximum(rim_var + opened, 1e-12), 1.0)
         stats = self.anchor_stats[slots]
+        opened = np.where((v1 * v1)[:, None] >= stats[:, 2:], self.slip_opened[slots], 0.0)
+        keep = lam * np.where(opened > 0, rim_var / np.maximum(rim_var + opened, 1e-12), 1.0)
         vv_new = np.broadcast_to((v1 * v1)[:, None], e0.shape)
         fresh = np.concatenate([e0 * v1[:, None], vv_new], axis=1)
         aged = np.concatenate([keep, keep], axis=1) * stats + (1.0 - lam) * fresh
