@@ -352,8 +352,7 @@ class MdsfEngine:
         grow("slip_anchor", (2,), 0.0)
         grow("accel_var_fix", (), np.nan)
         grow("leak_var", (), 0.0)
-        grow("anchor_stats", (4,), 0.0)
-        grow("slip_opened", (2,), 0.0)
+        grow("anchor_stats", (3,), 0.0)
         grow("dist_gated", (), False)
         grow("step_buf", (len(StepBuf), max(self._step_ticks, 1)), 0.0)
         grow("step_count", (), 0)
@@ -386,7 +385,6 @@ class MdsfEngine:
     accel_var_fix: FloatArray
     leak_var: FloatArray
     anchor_stats: FloatArray
-    slip_opened: FloatArray
     dist_gated: BoolArray
     step_buf: FloatArray
     step_count: IntArray
@@ -421,7 +419,6 @@ class MdsfEngine:
         self.accel_var_fix[s] = np.nan
         self.leak_var[s] = 0.0
         self.anchor_stats[s] = 0.0
-        self.slip_opened[s] = 0.0
         self.dist_gated[s] = False
         self.step_buf[s] = 0.0
         self.step_count[s] = 0
@@ -528,7 +525,7 @@ class MdsfEngine:
         v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
         self._store(slots, x, P, up, now_init, last_fused, ref)
         if self.product:
-            self._set_slip_anchor(slots, up.x, fused, P[:, _RIM_EXCESS, _RIM_EXCESS])
+            self._set_slip_anchor(slots, up.x, fused)
         k = slots.shape[0]
         events = [np.ones(k, dtype=bool), fused, up.gated, up.reacq, st.diverged | up.reacq]
         self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
@@ -743,7 +740,6 @@ class MdsfEngine:
         q_drift = None
         if cfg.rim_drift_tau_s > 0:
             q_drift = self._rim_drift_noise(slots, lost)
-        self.slip_opened[slots] = 0.0 if q_drift is None else q_drift
         Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_e[:, None]
         if q_drift is not None:
             Q[:, _RIM_EXCESS, _RIM_EXCESS] += q_drift
@@ -1051,9 +1047,7 @@ class MdsfEngine:
         if cfg.rim_drift_tau_s > 0:
             self._track_rim_innovation(slots, y_rim, s_rim, rim_ok & init[:, None])
         big = rim_ok & init[:, None] & (y_rim * y_rim > cfg.slip_jump_sigma**2 * s_rim)
-        opened = np.where(big, y_rim * y_rim - s_rim, 0.0)
-        P_1[:, _RIM_EXCESS, _RIM_EXCESS] += opened
-        self.slip_opened[slots] += opened
+        P_1[:, _RIM_EXCESS, _RIM_EXCESS] += np.where(big, y_rim * y_rim - s_rim, 0.0)
         return np.asarray(big)
 
     def _gnss_lost(self, slots: IntArray, t: TickInputs, init: BoolArray) -> BoolArray:
@@ -1271,32 +1265,17 @@ class MdsfEngine:
         self.last_fused_ns[slots] = last_fused_ns
         self.ref_x[slots], self.ref_P[slots], self.ref_aux[slots] = ref
 
-    def _set_slip_anchor(
-        self, slots: IntArray, x: FloatArray, fused: BoolArray, rim_var: FloatArray
-    ) -> None:
+    def _set_slip_anchor(self, slots: IntArray, x: FloatArray, fused: BoolArray) -> None:
         """Where GNSS speed was fused, the least-squares slip ratio at zero demand of
-        ``e − k·(f/g)·V1 = ε_0·V1`` over the recent drive, per wheel (k, 2): weighted by
-        ``V1²``, so creeping and standing add little. An outage's slip reverts to it
-        (:meth:`_anchor_slip`).
-
-        The weights ``W`` (k, 2) age by ``λ = exp(−dt/outage_anchor_tau_s)`` a tick and by
-        ``c = P_e/(P_e + q_o)`` where the slip moved beyond the tyre model (``q_o`` the
-        rim-excess variance the jump and drift tests opened this tick, ``slip_opened``;
-        ``P_e`` the wheel's rim-excess variance before the tick, ``rim_var`` (k, 2)):
-        ``W ← c·λ·W + (1 − λ)·V1²``, ``S ← c·λ·S + (1 − λ)·e_0·V1``, ``ε_0 = S/W``. Ticks
-        before a slip step describe the old slip, not the one an outage will hold. Only at
-        ``V1² ≥ W`` (at least the anchor's own mean square speed): a rim opened at a restart
-        or a stop (few edges, a slip ratio of centimetres per second) does not replace it."""
+        ``e − k·(f/g)·V1 = ε_0·V1`` over the recent drive (forgetting with
+        ``outage_anchor_tau_s``), (k, 2): weighted by ``V1²``, so creeping and standing add
+        little. An outage's slip reverts to it (:meth:`_anchor_slip`)."""
         lam = math.exp(-self.dt_s / self.config.outage_anchor_tau_s)
         v1 = x[:, MdsfState.V1]
         e0 = x[:, _RIM_EXCESS] - (self._demand_slip(slots) * v1)[:, None]
         stats = self.anchor_stats[slots]
-        opened = np.where((v1 * v1)[:, None] >= stats[:, 2:], self.slip_opened[slots], 0.0)
-        keep = lam * np.where(opened > 0, rim_var / np.maximum(rim_var + opened, 1e-12), 1.0)
-        vv_new = np.broadcast_to((v1 * v1)[:, None], e0.shape)
-        fresh = np.concatenate([e0 * v1[:, None], vv_new], axis=1)
-        aged = np.concatenate([keep, keep], axis=1) * stats + (1.0 - lam) * fresh
-        stats = np.where(fused[:, None], aged, stats)
+        fresh = np.concatenate([e0 * v1[:, None], (v1 * v1)[:, None]], axis=1)
+        stats = np.where(fused[:, None], lam * stats + (1.0 - lam) * fresh, stats)
         self.anchor_stats[slots] = stats
         vv = stats[:, 2:]
         self.slip_anchor[slots] = np.where(vv > 1e-6, stats[:, :2] / np.maximum(vv, 1e-6), 0.0)
