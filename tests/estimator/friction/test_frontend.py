@@ -307,6 +307,33 @@ def test_speed_std_helpers_by_hand() -> None:
     assert abs(consider_step(0.01, 0.25, 0.0) - 0.0075) < 1e-15
 
 
+def _body_fix(
+    stamp_ns: int,
+    ahead_mps: float,
+    left_mps: float,
+    heading_rad: float,
+    pitch_rad: float = math.nan,
+    roll_rad: float = math.nan,
+) -> GnssSample:
+    """A fix whose velocity is ``ahead_mps`` along and ``left_mps`` across the compass
+    heading ``heading_rad``, turned into east and north."""
+    h = heading_rad
+    return GnssSample(
+        stamp_ns=stamp_ns,
+        vel_enu_mps=(
+            ahead_mps * math.sin(h) - left_mps * math.cos(h),
+            ahead_mps * math.cos(h) + left_mps * math.sin(h),
+            0.0,
+        ),
+        heading_rad=h,
+        pitch_rad=pitch_rad,
+        roll_rad=roll_rad,
+        lat_deg=48.0,
+        lon_deg=11.0,
+        height_m=500.0,
+    )
+
+
 def test_the_gnss_lateral_speed_is_the_cgs_with_the_antenna_off_the_cg() -> None:
     """A steady left turn, 15 m/s at 0.25 rad/s, the CG drifting 0.1 m/s to the right, the
     antenna 2.0 m ahead of the CG and 0.3 m right of it: the receiver reads ``v_y + r·2.0``
@@ -331,22 +358,7 @@ def test_the_gnss_lateral_speed_is_the_cgs_with_the_antenna_off_the_cg() -> None
     left = vy_mps + rate_radps * 2.0
     for k in range(9, t_imu.size, 10):
         h = HEADING_RAD - rate_radps * t_imu[k] / 1e9  # compass: a left turn lowers it
-        fe.push_gnss(
-            GnssSample(
-                stamp_ns=int(t_imu[k]),
-                vel_enu_mps=(
-                    ahead * math.sin(h) - left * math.cos(h),
-                    ahead * math.cos(h) + left * math.sin(h),
-                    0.0,
-                ),
-                heading_rad=h,
-                pitch_rad=math.nan,
-                roll_rad=math.nan,
-                lat_deg=48.0,
-                lon_deg=11.0,
-                height_m=500.0,
-            )
-        )
+        fe.push_gnss(_body_fix(int(t_imu[k]), ahead, left, h))
     ticks = [fe.tick(int(t)) for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000)]
     late = [t for t in ticks[50:] if t is not None and t.gnss]
     assert len(late) >= 40
@@ -409,22 +421,7 @@ def _swaying_mast(roll_gyro_bias_radps: float) -> tuple[list[FrontEndTick], floa
     left = -height_m * roll_rate * np.cos(roll)
     h = HEADING_RAD
     for k in range(9, t_imu.size, 10):
-        fe.push_gnss(
-            GnssSample(
-                stamp_ns=int(t_imu[k]),
-                vel_enu_mps=(
-                    speed_mps * math.sin(h) - left[k] * math.cos(h),
-                    speed_mps * math.cos(h) + left[k] * math.sin(h),
-                    0.0,
-                ),
-                heading_rad=h,
-                pitch_rad=0.0,
-                roll_rad=float(roll[k]),
-                lat_deg=48.0,
-                lon_deg=11.0,
-                height_m=500.0,
-            )
-        )
+        fe.push_gnss(_body_fix(int(t_imu[k]), speed_mps, left[k], h, 0.0, float(roll[k])))
     ticks = [fe.tick(int(t)) for t in range(20_000_000, int(t_imu[-1]) + 1, 20_000_000)]
     late = [t for t in ticks[50:] if t is not None and t.gnss]
     assert len(late) >= 40
