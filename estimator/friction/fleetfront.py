@@ -418,8 +418,9 @@ class FleetFrontEnd:
                 ok = np.isfinite(angle)
                 sg, angle = s[g][ok], angle[ok]
                 first = f.var[sg] > 0.5
-                f.speed[sg[first]], f.var[sg[first]] = angle[first], self.fe.heading_std_rad**2
-                f.update(sg[~first], angle[~first], self.fe.heading_std_rad**2)
+                var = self.fe.attitude_std_rad**2
+                f.speed[sg[first]], f.var[sg[first]] = angle[first], var
+                f.update(sg[~first], angle[~first], var)
         return body_rates_radps(np.stack([read[1], read[0], np.zeros(s.size)], axis=1), yaw_rate)
 
     def _at_tick(

@@ -127,7 +127,8 @@ class FrontEndConfig:
     receiver's attitude (:class:`_TiltGradient`): the config's worth this many ``(a/g)²`` of
     changes (0.2: a 0.1 g change held for 2 s of fixes), changes taken against this running mean;
     ``yaw_walk_radps``, ``gyro_bias_walk_radps_per_sqrt_s``, ``heading_std_rad``: the yaw
-    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ);
+    gyro's bias filter (the yaw angle's walk, the bias's, the receiver heading's 1-σ), the
+    roll and pitch gyros' alike with ``attitude_std_rad`` the receiver roll's and pitch's;
     ``wheel_inertia_kgm2``, ``wheel_inertia_rel_std``: a wheel's (rim and tyre) spin inertia
     and its relative 1-σ, for the undriven wheels' spin-up slip (:func:`spin_up_slip`; a
     road wheel of 0.3-0.4 m radius has 0.8-2 kg·m²); ``brake_share_std``: the 1-σ of the
@@ -153,6 +154,7 @@ class FrontEndConfig:
     yaw_walk_radps: float = 0.01
     gyro_bias_walk_radps_per_sqrt_s: float = 1e-4
     heading_std_rad: float = 0.005
+    attitude_std_rad: float = 0.005
     tilt_highpass_s: float = 3.0
     wheel_inertia_kgm2: float = 1.4
     wheel_inertia_rel_std: float = 0.4
@@ -772,7 +774,7 @@ class FrontEnd:
         g = self.gnss
         if self.fe.paper or g is None:
             return
-        var = self.fe.heading_std_rad**2
+        var = self.fe.attitude_std_rad**2
         for f, angle in ((self.roll_gyro, g.roll_rad), (self.pitch_gyro, g.pitch_rad)):
             if not math.isfinite(angle):
                 continue
