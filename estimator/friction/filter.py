@@ -135,10 +135,8 @@ class FilterConfig:
     ``learn_mu_max_kappa_std`` (a torque step's one-sample slip, 1e-2 off, would otherwise be
     judged near the limit and learnt from) and the grip in use is known to
     ``learn_mu_util_rel_std`` of itself against the speed's shared error (:func:`_grip_known`),
-    weighed smoothly across ``learn_mu_util_soft`` of that setting either side of it
-    (:func:`_grip_known_weight`), the grip in use for both judged at the far end of μ's
-    interval, ``grip_judged_sigmas`` 1-σ above its mean (:func:`mu_upper`) (see
-    :func:`_gain_mask`); ``outlier_sigmas``: a
+    the grip in use for both judged at the far end of μ's interval, ``grip_judged_sigmas``
+    1-σ above its mean (:func:`mu_upper`) (see :func:`_gain_mask`); ``outlier_sigmas``: a
     product update whose whitened innovation exceeds it in any measurement is skipped
     (gated: a tick where the wheel speeds and the IMU disagree, as when the torque is cut
     and a wheel spins down within one CAN sample); ``central_prediction``: the product's
@@ -175,7 +173,6 @@ class FilterConfig:
     learn_excite_sigmas: float = 4.0
     learn_mu_max_kappa_std: float = 3e-3
     learn_mu_util_rel_std: float = 0.1
-    learn_mu_util_soft: float = 0.3
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
@@ -562,8 +559,8 @@ def _update(
 def _gain_mask(
     x: FloatArray, s: FloatArray, cfg: FilterConfig, tyres: TyreArrays, u: TickInputs
 ) -> FloatArray:
-    """How much each product state's gain row this update keeps ``(B, n)`` (1 or 0, ``ln μ``
-    0..1; at 0 a state is *considered*: its uncertainty enters the update, its value stays).
+    """Which product states this update may move ``(B, n)`` (1 or 0; the rest are *considered*:
+    their uncertainty enters the update, their values stay).
 
     At one operating point ``F = g·c·s·(1 − λ + λ²/3)`` (``λ ∝ g c s/μ``) ties ``g`` and ``μ``
     along a ridge (at 60 % of the grip 1 % of ``g`` is 5 % of μ), and the inputs' small biases
@@ -596,51 +593,30 @@ def _gain_mask(
         linear = used[:, axle].max(axis=1) < cfg.linear_util
         mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
-    mask[:, ProductState.LN_MU] = _mu_learn_weight(x, s, cfg, (cx[:, 0], cy[:, 0]), u)
+    mask[:, ProductState.LN_MU] = _mu_may_learn(x, s, cfg, (cx[:, 0], cy[:, 0]), u)
     return mask
 
 
-def _mu_learn_weight(
+def _mu_may_learn(
     x: FloatArray,
     s: FloatArray,
     cfg: FilterConfig,
     stiffness: tuple[FloatArray, FloatArray],
     u: TickInputs,
-) -> FloatArray:
-    """How much ``ln μ`` may learn ``(B,)``, 0..1 (see :func:`_gain_mask`): 0 unless the body
-    pushed, every κ is known and, at the far end of μ's interval (:func:`mu_upper`), the most
-    used tyre is beyond ``linear_util``; there the weight of its grip in use being known
-    against the speed's shared error (:func:`_grip_known_weight`)."""
+) -> BoolArray:
+    """Where ``ln μ`` may learn ``(B,)`` (see :func:`_gain_mask`): the body pushed, every κ
+    known, and at the far end of μ's interval (:func:`mu_upper`) the most used tyre beyond
+    ``linear_util`` and its grip in use known against the speed's shared error
+    (:func:`_grip_known`)."""
     cx, cy = stiffness
     pushed = np.hypot(u.z[:, 0], u.z[:, 1]) >= cfg.learn_mu_min_accel_mps2
     known = u.kappa_std.max(axis=1) <= cfg.learn_mu_max_kappa_std
     mu_far = mu_upper(x, s, cfg)
     fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu_far, cx, cy)
     used_far = np.hypot(fx, fy) / np.maximum(mu_far * u.fz_n, 1.0)
-    weight = _grip_known_weight(_grip_known(used_far, mu_far, cx, cy, u), cfg)
-    learns = (used_far.max(axis=1) >= cfg.linear_util) & pushed & known
-    out: FloatArray = np.where(learns, weight, 0.0)
-    return out
-
-
-def _grip_known_weight(rel_std: FloatArray, cfg: FilterConfig) -> FloatArray:
-    """The share ``w`` ``(B,)`` of its gain that ``ln μ``'s update keeps, of the grip in use's
-    relative 1-σ against the speed's shared error ``rel_std`` ``(B,)`` (:func:`_grip_known`):
-
-    ``ρ = rel_std / learn_mu_util_rel_std``, ``b = learn_mu_util_soft``,
-    ``t = clip((1 + b − ρ) / 2b, 0, 1)``, ``w = t² (3 − 2t)``:
-
-    1 where the grip is known to ``(1 − b)`` of the setting or better, 0 past ``(1 + b)`` of
-    it, a smooth step between (½ at the setting). The update's gain row of ``ln μ`` is
-    scaled by ``w`` (:func:`~estimator.friction.sckf.sckf_update`; its root stays exact for
-    any gain): μ moves by ``w K ν`` and its variance falls by ``(2w − w²) K S Kᵀ``, so μ is a
-    continuous function of the inputs (a cut at the setting makes it a step function of
-    their noise)."""
-    band = max(cfg.learn_mu_util_soft, 1e-9)
-    rho = rel_std / cfg.learn_mu_util_rel_std
-    t = np.clip((1.0 + band - rho) / (2.0 * band), 0.0, 1.0)
-    weight: FloatArray = t * t * (3.0 - 2.0 * t)
-    return weight
+    known &= _grip_known(used_far, mu_far, cx, cy, u) <= cfg.learn_mu_util_rel_std
+    learns: BoolArray = (used_far.max(axis=1) >= cfg.linear_util) & pushed & known
+    return learns
 
 
 def _grip_known(

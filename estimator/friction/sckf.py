@@ -92,10 +92,9 @@ def sckf_update(
 ) -> Update:
     """Measurement update (steps 5.11-5.16) with the measurement root ``sq_r`` ``(B, m, m)``.
 
-    ``gain_mask`` ``(B, n)`` (optional, 0..1) scales the gain rows: 0 for states the update
-    must leave alone (Schmidt's *consider* states: their uncertainty still enters ``P_zz``),
-    between 0 and 1 for a state learnt in part; the root ``S⁺ = tria([X − K Z, K √R])`` holds
-    for any gain, so the covariance stays exact.
+    ``gain_mask`` ``(B, n)`` (optional, 0 or 1) zeroes the gain rows of states the update must
+    leave alone (Schmidt's *consider* states: their uncertainty still enters ``P_zz``); the
+    root ``S⁺ = tria([X − K Z, K √R])`` holds for any gain, so the covariance stays exact.
     ``z_centre`` ``(B, m)`` (optional) replaces the points' mean of ``h`` as the prediction the
     innovation is taken from (the spreads stay the points').
     """

@@ -18,7 +18,6 @@ from estimator.friction.filter import (
     TickInputs,
     TyreArrays,
     _gain_mask,
-    _grip_known_weight,
     _input_spread,
     _measure,
     filter_step,
@@ -475,71 +474,6 @@ def test_mu_learns_only_where_the_speeds_error_leaves_the_grip_known() -> None:
     drifting = dataclasses.replace(braking, kappa_common_std=np.array([1.5e-3]))
     assert _gain_mask(st.x, st.s, cfg, tyres, known)[0, ProductState.LN_MU] == 1
     assert _gain_mask(st.x, st.s, cfg, tyres, drifting)[0, ProductState.LN_MU] == 0
-
-
-def _braking_tick(kappa: float, mu_true: float) -> tuple[TickInputs, Chassis, TyreArrays]:
-    """One tick braking straight at 15 m/s, every wheel at slip ``kappa`` (own 1-σ 5e-4),
-    measured through the filter's own model on ground of ``mu_true``."""
-    ticks, chassis, tyres = _model_inputs(mu_true, 1, seed=6)
-    u = ticks[0]
-    slips, zeros = np.full((1, 4), kappa), np.zeros((1, 4))
-    cx, cy = tyres.stiffness(u.fz_n)
-    fx, fy = brush_forces(slips, zeros, u.fz_n, mu_true, cx, cy)
-    z = body_accelerations(fx[:, None], fy[:, None], zeros[:, None], chassis)[:, 0]
-    tick = dataclasses.replace(
-        u,
-        kappa=slips,
-        kappa_std=np.full((1, 4), 5e-4),
-        alpha_rad=zeros,
-        delta_rad=zeros,
-        yaw_rate_radps=np.zeros(1),
-        vy_meas_mps=np.zeros(1),
-        z=z,
-    )
-    return tick, chassis, tyres
-
-
-def test_mu_is_continuous_in_a_small_speed_offset() -> None:
-    """Braking at κ −8e-3 on μ 0.4 from a prior of 0.5 ± 5 %, the speed's shared κ error set
-    where the grip-known setting halves μ's step (found by bisection against a filter whose
-    setting never binds), then the speed offset by −0.5..+0.5 mm/s in 0.05 mm/s steps (every
-    κ moves by ``−Δv/v``): μ after the tick moves by less than a tenth of its whole step
-    between neighbouring offsets (a per-tick cut moved it by the whole step)."""
-    tick, chassis, tyres = _braking_tick(-8e-3, 0.4)
-    cfg = FilterConfig()
-    never_binds = dataclasses.replace(cfg, learn_mu_util_rel_std=1e3)
-    st = initial_state(cfg, tyres, tick.fz_n)
-    st.x[0, ProductState.LN_MU] = math.log(0.5)
-    st.s[0, ProductState.LN_MU, ProductState.LN_MU] = 0.05
-
-    def mu_after(u: TickInputs, c: FilterConfig) -> float:
-        return float(mu_of(filter_step(st, c, tyres, chassis, u).x[0, 0], c.mode))
-
-    def at(common: float) -> TickInputs:
-        return dataclasses.replace(tick, kappa_common_std=np.array([common]))
-
-    lo, hi = 1e-5, 3e-3
-    for _ in range(40):
-        mid = (lo + hi) / 2
-        share = (mu_after(at(mid), cfg) - 0.5) / (mu_after(at(mid), never_binds) - 0.5)
-        lo, hi = (mid, hi) if share > 0.5 else (lo, mid)
-    u = at((lo + hi) / 2)
-    whole = abs(mu_after(u, never_binds) - 0.5)
-    assert whole > 1e-3
-    offsets = np.linspace(-5e-4, 5e-4, 21)
-    vx = float(u.vx_mps[0])
-    mus = [mu_after(dataclasses.replace(u, kappa=u.kappa - dv / vx), cfg) for dv in offsets]
-    assert float(np.abs(np.diff(mus)).max()) < 0.1 * whole
-
-
-def test_grip_known_weight_by_hand() -> None:
-    """``ρ`` the grip's relative 1-σ over the setting, ``b`` 0.3: weight 1 up to ``ρ`` 0.7, 0
-    from 1.3, ½ at 1, ``t²(3 − 2t)`` between (``ρ`` 0.85: ``t`` ¾, 27/32), never rising."""
-    cfg = FilterConfig(learn_mu_util_rel_std=0.1, learn_mu_util_soft=0.3)
-    rel = np.array([0.0, 0.07, 0.085, 0.1, 0.13, 0.5])
-    assert _grip_known_weight(rel, cfg) == pytest.approx([1.0, 1.0, 27 / 32, 0.5, 0.0, 0.0])
-    fine = _grip_known_weight(np.linspace(0.0, 0.2, 401), cfg)
-    assert np.all(np.diff(fine) <= 0.0)
 
 
 def test_braking_before_a_turn_leaves_mu_right_accelerating_in_it() -> None:
