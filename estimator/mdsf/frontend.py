@@ -49,7 +49,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -383,6 +383,15 @@ def _fill_segments(
     return order[seg], vals
 
 
+def _shift_in(x: npt.NDArray[Any], first: BoolArray, carried: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    """``x`` (k, ...) shifted down one row: each row's predecessor, ``carried`` at the rows
+    ``first`` (a vehicle's first, taking what its previous call left)."""
+    prev = np.empty_like(x)
+    prev[1:] = x[:-1]
+    prev[first] = carried
+    return prev
+
+
 def _sample_weights(
     t_ns: IntArray,
     T: IntArray,
@@ -478,6 +487,29 @@ def _lever_force_lat(
 # ---------------------------------------------------------------------------------------------
 
 
+def _quadratic_first_row(
+    tick_id: IntArray, tau_s: FloatArray, tau2: FloatArray, n: IntArray
+) -> tuple[tuple[FloatArray, FloatArray, FloatArray], BoolArray]:
+    """First row of ``M⁻¹``, ``M = [Στ^(i+j)]`` (3, 3) the moment matrix of each tick's samples
+    (:func:`_rates_at_tick`), from its cofactors over the determinant; and where the fit is
+    made (at least three samples, a finite row with ``(M⁻¹)[0, 0] > 0``; the row is 0
+    elsewhere). ``tick_id``, ``tau_s``, ``tau2 = τ²``: (s,); ``n``: (m,) samples per tick;
+    each row entry (m,)."""
+    m = n.shape[0]
+    powers = (tau_s, tau2, tau2 * tau_s, tau2 * tau2)  # τ¹…τ⁴ by products: pow() is ~100× dearer
+    m0 = n.astype(np.float64)
+    m1, m2, m3, m4 = (np.bincount(tick_id, weights=p, minlength=m) for p in powers)
+    # first row of M⁻¹ (M symmetric): cofactors over the determinant
+    c0, c1, c2 = m2 * m4 - m3 * m3, m2 * m3 - m1 * m4, m1 * m3 - m2 * m2
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        det = m0 * c0 + m1 * c1 + m2 * c2
+        row = (c0 / det, c1 / det, c2 / det)
+    fit = (n >= 3) & np.isfinite(row[0]) & np.isfinite(row[1]) & np.isfinite(row[2])
+    fit &= row[0] > 0
+    i0, i1, i2 = (np.where(fit, c, 0.0) for c in row)
+    return (i0, i1, i2), fit
+
+
 def _rates_at_tick(
     tick_id: IntArray,
     tau_s: FloatArray,
@@ -508,17 +540,7 @@ def _rates_at_tick(
     """
     m = n.shape[0]
     tau2 = tau_s * tau_s
-    powers = (tau_s, tau2, tau2 * tau_s, tau2 * tau2)  # τ¹…τ⁴ by products: pow() is ~100× dearer
-    m0 = n.astype(np.float64)
-    m1, m2, m3, m4 = (np.bincount(tick_id, weights=p, minlength=m) for p in powers)
-    # first row of M⁻¹ (M symmetric): cofactors over the determinant
-    c0, c1, c2 = m2 * m4 - m3 * m3, m2 * m3 - m1 * m4, m1 * m3 - m2 * m2
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        det = m0 * c0 + m1 * c1 + m2 * c2
-        row = (c0 / det, c1 / det, c2 / det)
-    fit = (n >= 3) & np.isfinite(row[0]) & np.isfinite(row[1]) & np.isfinite(row[2])
-    fit &= row[0] > 0
-    i0, i1, i2 = (np.where(fit, c, 0.0) for c in row)
+    (i0, i1, i2), fit = _quadratic_first_row(tick_id, tau_s, tau2, n)
     out = []
     for w, mean in zip(rates, means, strict=True):
         r0, r1, r2 = (
@@ -527,6 +549,89 @@ def _rates_at_tick(
         out.append(np.where(fit, i0 * r0 + i1 * r1 + i2 * r2, mean))
     factor = np.where(fit, i0, 1.0 / np.maximum(n, 1))
     return tuple(out), factor
+
+
+_SLOT_ARRAYS: tuple[tuple[str, tuple[int, ...], Any], ...] = (
+    ("next_tick_ns", (), _NONE_NS),
+    ("tick_phase_ns", (), np.int64(0)),  # the grid is tick_phase_ns + k·tick_ns
+    ("done_ns", (), _NONE_NS),  # last tick emitted
+    ("last_imu_ns", (), _NONE_NS),  # newest IMU sample accepted
+    ("last_imu_used_ns", (), _NONE_NS),  # newest IMU sample integrated
+    ("last_rates", (2,), np.nan),  # its bias-corrected (ωx, ωz) [rad/s]
+    ("last_raw_rates", (3,), np.nan),  # its measured (ωx, ωy, ωz) [rad/s]
+    ("pitch_rad", (), 0.0),
+    ("pitch_known", (), False),
+    ("pitch_gyro_bias", (), 0.0),
+    ("pitch_fix_ns", (), np.int64(0)),
+    ("pitch_var", (), 0.0),
+    ("pitch_cov_tb", (), 0.0),  # covariance of pitch and pitch-gyro bias
+    ("pitch_var_b", (), 0.0),  # variance of the pitch-gyro bias
+    # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
+    ("pitch_acc", (len(PitchSum),), 0.0),
+    ("pitch_still", (), False),  # the last fix was standing
+    ("roll_rad", (), 0.0),  # roll track (pitch_kf_update with the roll measured)
+    ("roll_known", (), False),  # the track has had a roll (GNSS or accelerometer)
+    ("roll_gyro_bias", (), 0.0),
+    ("roll_fix_ns", (), np.int64(0)),
+    ("roll_cov", (3,), 0.0),  # covariance of roll and roll-gyro bias
+    ("roll_acc", (len(RollSum),), 0.0),  # since the last fix
+    ("yaw_rad", (), np.nan),
+    ("yaw_gyro_bias", (), 0.0),
+    ("yaw_fix_ns", (), np.int64(0)),
+    # course of O for a receiver without heading: yaw rate integrated, pulled to the GNSS
+    # velocity less the antenna's lever-arm velocity (_TiltTrack._course_update)
+    ("course_rad", (), np.nan),
+    ("course_fix_ns", (), np.int64(0)),  # last fix whose velocity pulled it
+    ("course_gyro_bias", (), 0.0),  # yaw-gyro bias learnt against that course
+    # low-passed at the fixes (_COURSE_LP_TAU_S): the squared horizontal speeds of the
+    # antenna's lever arm and of the antenna, the antenna's east and north velocity
+    ("course_lp", (4,), np.nan),
+    ("hold", (10,), np.nan),  # latest GNSS row: stamp, e, n, u, ve, vn, vu, ψ, θ, φ
+    ("has_frame", (), False),
+    ("origin", (3,), np.nan),  # lat_deg, lon_deg, height_m of the ENU frame
+    ("has_edges", (), False),
+    ("has_direction", (), False),
+    ("has_speeds", (), False),  # direct (CAN) wheel speeds held
+    ("gnss_var_cfg", (), 0.0),
+    ("accel_var_cfg", (), 0.0),
+    ("gyro_var_cfg", (), 0.0),
+    ("imu_fwd_m", (), 0.0),
+    ("imu_up_m", (), 0.0),  # IMU height above O (h0)
+    # the last tick built: the pitch rate at the end of its sample mean's span, that
+    # instant, and the tick (the next tick's rate at its start: _Batch._lever_accel_fwd)
+    ("pitch_rate_end", (), np.nan),
+    ("pitch_rate_end_ns", (), _NONE_NS),
+    ("pitch_rate_end_tick_ns", (), _NONE_NS),
+    ("ant_fwd_m", (), 0.0),
+    ("lone_std", (), 0.0),
+    ("wheel_cfg", (), np.int64(0)),
+    ("wheel_bank", (), np.int64(-1)),  # index in _banks of the trackers' bank; -1: unknown
+    ("wheel_slot", (len(Wheel),), np.int64(0)),  # their slots in it (left, right)
+    # after lost wheel data (WheelGap): ticks before this have no wheel speed (the fit's
+    # first min_edges edges after the gap; _PENDING_NS until they came, _NONE_NS: none)
+    ("wheel_resume_ns", (len(Wheel),), _NONE_NS),
+    ("wheel_need", (len(Wheel),), np.int64(0)),  # edges still to come before that
+    # ticks in (from, to] are due without the wheel data (WheelGap with until_ns): none
+    # get a wheel speed (_NONE_NS: no such span)
+    ("wheel_wait_from_ns", (), _NONE_NS),
+    ("wheel_wait_to_ns", (), _NONE_NS),
+    ("count", (len(COUNT_NAMES),), np.int64(0)),
+    # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
+    # pitch, and the chain's distance there
+    ("chain_ns", (), _NONE_NS),
+    ("chain_enu", (3,), 0.0),
+    ("chain_att", (2,), 0.0),
+    ("chain_m", (), 0.0),
+    ("chain_yaw_rad", (), 0.0),  # heading unwrapped along the chain
+    ("chain_turn_rad", (), 0.0),  # Σ Δψ·cos θ·sin φ along the chain (∫ωx beyond θ)
+    ("h1_m", (), 0.0),
+    ("ant_x_m", (), 0.0),  # antenna's lateral offset from the IMU, x_a − x_i
+    ("ant_lat_m", (), 0.0),  # antenna's lateral offset from O, x_a
+    ("imu_lat_m", (), 0.0),  # IMU's lateral offset from O, x_i
+    ("pos_var_cfg", (), 0.0),
+)
+"""Per-vehicle arrays of :class:`FleetFrontEnd` (name, shape of a slot's row, fill of a new
+row), grown by :meth:`FleetFrontEnd._alloc`."""
 
 
 class FleetFrontEnd:
@@ -581,88 +686,10 @@ class FleetFrontEnd:
 
     # -- slots -------------------------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
+        """Grow every slot array (:data:`_SLOT_ARRAYS`) and slot list to ``cap`` slots."""
         old = self._cap
-
-        def grow(name: str, shape: tuple[int, ...], fill: Any) -> None:
+        for name, shape, fill in _SLOT_ARRAYS:
             grow_slot_array(self, name, cap, shape, fill)
-
-        grow("next_tick_ns", (), _NONE_NS)
-        grow("tick_phase_ns", (), np.int64(0))  # the grid is tick_phase_ns + k·tick_ns
-        grow("done_ns", (), _NONE_NS)  # last tick emitted
-        grow("last_imu_ns", (), _NONE_NS)  # newest IMU sample accepted
-        grow("last_imu_used_ns", (), _NONE_NS)  # newest IMU sample integrated
-        grow("last_rates", (2,), np.nan)  # its bias-corrected (ωx, ωz) [rad/s]
-        grow("last_raw_rates", (3,), np.nan)  # its measured (ωx, ωy, ωz) [rad/s]
-        grow("pitch_rad", (), 0.0)
-        grow("pitch_known", (), False)
-        grow("pitch_gyro_bias", (), 0.0)
-        grow("pitch_fix_ns", (), np.int64(0))
-        grow("pitch_var", (), 0.0)
-        grow("pitch_cov_tb", (), 0.0)  # covariance of pitch and pitch-gyro bias
-        grow("pitch_var_b", (), 0.0)  # variance of the pitch-gyro bias
-        # since the last fix: angle noise var, ∫rate·dt, ∫dt, samples, ∫f_y·dt
-        grow("pitch_acc", (len(PitchSum),), 0.0)
-        grow("pitch_still", (), False)  # the last fix was standing
-        grow("roll_rad", (), 0.0)  # roll track (pitch_kf_update with the roll measured)
-        grow("roll_known", (), False)  # the track has had a roll (GNSS or accelerometer)
-        grow("roll_gyro_bias", (), 0.0)
-        grow("roll_fix_ns", (), np.int64(0))
-        grow("roll_cov", (3,), 0.0)  # covariance of roll and roll-gyro bias
-        grow("roll_acc", (len(RollSum),), 0.0)  # since the last fix
-        grow("yaw_rad", (), np.nan)
-        grow("yaw_gyro_bias", (), 0.0)
-        grow("yaw_fix_ns", (), np.int64(0))
-        # course of O for a receiver without heading: yaw rate integrated, pulled to the GNSS
-        # velocity less the antenna's lever-arm velocity (_TiltTrack._course_update)
-        grow("course_rad", (), np.nan)
-        grow("course_fix_ns", (), np.int64(0))  # last fix whose velocity pulled it
-        grow("course_gyro_bias", (), 0.0)  # yaw-gyro bias learnt against that course
-        # low-passed at the fixes (_COURSE_LP_TAU_S): the squared horizontal speeds of the
-        # antenna's lever arm and of the antenna, the antenna's east and north velocity
-        grow("course_lp", (4,), np.nan)
-        grow("hold", (10,), np.nan)  # latest GNSS row: stamp, e, n, u, ve, vn, vu, ψ, θ, φ
-        grow("has_frame", (), False)
-        grow("origin", (3,), np.nan)  # lat_deg, lon_deg, height_m of the ENU frame
-        grow("has_edges", (), False)
-        grow("has_direction", (), False)
-        grow("has_speeds", (), False)  # direct (CAN) wheel speeds held
-        grow("gnss_var_cfg", (), 0.0)
-        grow("accel_var_cfg", (), 0.0)
-        grow("gyro_var_cfg", (), 0.0)
-        grow("imu_fwd_m", (), 0.0)
-        grow("imu_up_m", (), 0.0)  # IMU height above O (h0)
-        # the last tick built: the pitch rate at the end of its sample mean's span, that
-        # instant, and the tick (the next tick's rate at its start: _Batch._lever_accel_fwd)
-        grow("pitch_rate_end", (), np.nan)
-        grow("pitch_rate_end_ns", (), _NONE_NS)
-        grow("pitch_rate_end_tick_ns", (), _NONE_NS)
-        grow("ant_fwd_m", (), 0.0)
-        grow("lone_std", (), 0.0)
-        grow("wheel_cfg", (), np.int64(0))
-        grow("wheel_bank", (), np.int64(-1))  # index in _banks of the trackers' bank; -1: unknown
-        grow("wheel_slot", (len(Wheel),), np.int64(0))  # their slots in it (left, right)
-        # after lost wheel data (WheelGap): ticks before this have no wheel speed (the fit's
-        # first min_edges edges after the gap; _PENDING_NS until they came, _NONE_NS: none)
-        grow("wheel_resume_ns", (len(Wheel),), _NONE_NS)
-        grow("wheel_need", (len(Wheel),), np.int64(0))  # edges still to come before that
-        # ticks in (from, to] are due without the wheel data (WheelGap with until_ns): none
-        # get a wheel speed (_NONE_NS: no such span)
-        grow("wheel_wait_from_ns", (), _NONE_NS)
-        grow("wheel_wait_to_ns", (), _NONE_NS)
-        grow("count", (len(COUNT_NAMES),), np.int64(0))
-        # last RTK-fixed position of the along-track distance chain: stamp, ENU, heading,
-        # pitch, and the chain's distance there
-        grow("chain_ns", (), _NONE_NS)
-        grow("chain_enu", (3,), 0.0)
-        grow("chain_att", (2,), 0.0)
-        grow("chain_m", (), 0.0)
-        grow("chain_yaw_rad", (), 0.0)  # heading unwrapped along the chain
-        grow("chain_turn_rad", (), 0.0)  # Σ Δψ·cos θ·sin φ along the chain (∫ωx beyond θ)
-        grow("h1_m", (), 0.0)
-        grow("ant_x_m", (), 0.0)  # antenna's lateral offset from the IMU, x_a − x_i
-        grow("ant_lat_m", (), 0.0)  # antenna's lateral offset from O, x_a
-        grow("imu_lat_m", (), 0.0)  # IMU's lateral offset from O, x_i
-        grow("pos_var_cfg", (), 0.0)
         self.trackers.extend([()] * (cap - old))
         self.direct.extend([None] * (cap - old))
         self._cap = cap
@@ -737,16 +764,7 @@ class FleetFrontEnd:
         if slot >= self._cap:
             self._alloc(max(2 * self._cap, slot + 1))
         self._drop(slot)
-        wcfg = dataclasses.replace(self.wheel, teeth_per_rev=vehicle.encoder.teeth_per_rev)
-        if wcfg not in self._wheel_cfgs:
-            self._wheel_cfgs.append(wcfg)
-        self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
-        self.wheel_bank[slot] = -1
-        self.wheel_resume_ns[slot] = _NONE_NS
-        self.wheel_need[slot] = 0
-        self.wheel_wait_from_ns[slot] = self.wheel_wait_to_ns[slot] = _NONE_NS
-        self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
-        self.has_direction[slot] = vehicle.encoder.has_direction
+        wcfg = self._add_wheels(slot, vehicle)
         for name in (
             "next_tick_ns",
             "done_ns",
@@ -759,6 +777,33 @@ class FleetFrontEnd:
         self.last_rates[slot] = np.nan
         self.last_raw_rates[slot] = np.nan
         self._gridless.add(slot)
+        self._reset_tilt(slot)
+        self.hold[slot] = np.nan
+        self.has_frame[slot] = False
+        self.origin[slot] = np.nan
+        self.has_edges[slot] = False
+        self.has_speeds[slot] = False
+        self._set_vehicle(slot, vehicle, wcfg)
+        self.count[slot] = 0
+        self._reset_chain(slot)
+
+    def _add_wheels(self, slot: int, vehicle: WheeledRearDriveConfig) -> WheelSpeedConfig:
+        """Fresh encoder trackers and direct-speed store for ``slot``, no wheel gap pending;
+        returns the wheel settings with the vehicle's teeth."""
+        wcfg = dataclasses.replace(self.wheel, teeth_per_rev=vehicle.encoder.teeth_per_rev)
+        if wcfg not in self._wheel_cfgs:
+            self._wheel_cfgs.append(wcfg)
+        self.trackers[slot] = (WheelTracker(wcfg), WheelTracker(wcfg))
+        self.wheel_bank[slot] = -1
+        self.wheel_resume_ns[slot] = _NONE_NS
+        self.wheel_need[slot] = 0
+        self.wheel_wait_from_ns[slot] = self.wheel_wait_to_ns[slot] = _NONE_NS
+        self.direct[slot] = DirectWheelSpeed(std_radps=0.01)
+        self.has_direction[slot] = vehicle.encoder.has_direction
+        return wcfg
+
+    def _reset_tilt(self, slot: int) -> None:
+        """The pitch, roll, yaw-bias and course tracks of ``slot`` back to their priors."""
         self.pitch_rad[slot] = 0.0
         self.pitch_known[slot] = False
         self.pitch_gyro_bias[slot] = 0.0
@@ -781,11 +826,11 @@ class FleetFrontEnd:
         self.course_fix_ns[slot] = 0
         self.course_gyro_bias[slot] = 0.0
         self.course_lp[slot] = np.nan
-        self.hold[slot] = np.nan
-        self.has_frame[slot] = False
-        self.origin[slot] = np.nan
-        self.has_edges[slot] = False
-        self.has_speeds[slot] = False
+
+    def _set_vehicle(
+        self, slot: int, vehicle: WheeledRearDriveConfig, wcfg: WheelSpeedConfig
+    ) -> None:
+        """The vehicle's sensor noise, lever arms and wheel settings into ``slot``."""
         n = vehicle.noise
         self.gnss_var_cfg[slot] = n.gnss_vel_std_mps**2
         self.accel_var_cfg[slot] = n.accel_std_mps2**2
@@ -795,19 +840,21 @@ class FleetFrontEnd:
         self.ant_fwd_m[slot] = vehicle.geometry.antenna_offset_m[1]
         self.lone_std[slot] = 2 * np.pi / (vehicle.encoder.teeth_per_rev * 2.0)
         self.wheel_cfg[slot] = self._wheel_cfgs.index(wcfg)
-        self.count[slot] = 0
-        self.chain_ns[slot] = _NONE_NS
-        self.chain_enu[slot] = 0.0
-        self.chain_att[slot] = 0.0
-        self.chain_m[slot] = 0.0
-        self.chain_yaw_rad[slot] = 0.0
-        self.chain_turn_rad[slot] = 0.0
         geo = vehicle.geometry
         self.h1_m[slot] = geo.h1_m
         self.ant_x_m[slot] = geo.antenna_offset_m[0] - geo.imu_offset_m[0]
         self.ant_lat_m[slot] = geo.antenna_offset_m[0]
         self.imu_lat_m[slot] = geo.imu_offset_m[0]
         self.pos_var_cfg[slot] = n.gnss_pos_std_m**2
+
+    def _reset_chain(self, slot: int) -> None:
+        """No along-track distance chain for ``slot`` (:meth:`_Batch._gnss_distance`)."""
+        self.chain_ns[slot] = _NONE_NS
+        self.chain_enu[slot] = 0.0
+        self.chain_att[slot] = 0.0
+        self.chain_m[slot] = 0.0
+        self.chain_yaw_rad[slot] = 0.0
+        self.chain_turn_rad[slot] = 0.0
 
     def align_ticks(self, slot: int, stamp_ns: int) -> None:
         """Put the vehicle's tick grid on ``stamp_ns + k·tick_ns`` (default: multiples of
@@ -869,75 +916,94 @@ class FleetFrontEnd:
     def push(self, slot: int, m: Pushed) -> None:
         """Buffer one measurement of the vehicle in ``slot`` (sensor-time order)."""
         if isinstance(m, GnssSample):
-            if not isinstance(m.stamp_ns, int | np.integer) or len(m.vel_enu_mps) != 3:
-                self.count[slot, _GNSS] += 1
-                return
-            self._seq += 1
-            self._gnss_new_id.extend((slot, self._seq, int(m.stamp_ns)))
-            self._gnss_new_val.extend(
-                (
-                    *m.vel_enu_mps,
-                    m.heading_rad,
-                    m.pitch_rad,
-                    m.roll_rad,
-                    m.lat_deg,
-                    m.lon_deg,
-                    m.height_m,
-                    m.vel_std_mps,
-                    float(int(m.fix)),
-                )
-            )
+            self._push_gnss(slot, m)
         elif isinstance(m, ImuBatch):
-            t = as_stamps(m.stamp_ns)
-            f = as_rows(m.accel_mps2, 3)
-            w = as_rows(m.gyro_radps, 3)
-            if f.shape[0] != t.shape[0] or w.shape[0] != t.shape[0]:
-                self.count[slot, _IMU] += t.shape[0]
-                return
-            if t.shape[0]:
-                self._seq += 1
-                self._imu_new_slot.append(slot)
-                self._imu_new_seq.append(self._seq)
-                self._imu_new_t.append(t)
-                self._imu_new_f.append(f)
-                self._imu_new_w.append(w)
+            self._push_imu(slot, m)
         elif isinstance(m, WheelEdges):
-            t = as_stamps(m.stamp_ns)
-            if t.shape[0] == 0:
-                return
-            try:
-                tracker = self.trackers[slot][int(m.wheel)]
-            except (IndexError, ValueError):
-                self.count[slot, _EDGES] += t.shape[0]
-                return
-            d = None
-            if m.direction is not None and self.has_direction[slot]:
-                d = np.asarray(m.direction).reshape(-1)
-                if d.shape[0] != t.shape[0]:
-                    d = None
-            skipped = tracker.push(t, d)
-            if skipped:
-                self.count[slot, _EDGES] += skipped
-            if self.wheel_need[slot, int(m.wheel)]:
-                self._count_resume(slot, int(m.wheel), t)
-            self.has_edges[slot] = True
-            if slot in self._gridless:
-                self._first_seen(slot, int(t[0]))
+            self._push_edges(slot, m)
         elif isinstance(m, WheelGap):
             if m.until_ns is None:
                 self._restart_wheels(slot)
             else:
                 self._wait_wheels(slot, int(m.after_ns), int(m.until_ns))
         elif isinstance(m, WheelSpeeds):
-            t = as_stamps(m.stamp_ns)
-            direct = self.direct[slot]
-            assert direct is not None
-            before = direct.skipped
-            direct.push(t, m.omega_radps)
-            self.count[slot, _SPEEDS] += direct.skipped - before
-            self.has_speeds[slot] = direct.has_data  # stays true once true
-            if t.shape[0]:
-                self._first_seen(slot, int(t[0]))
+            self._push_speeds(slot, m)
+
+    def _push_gnss(self, slot: int, m: GnssSample) -> None:
+        """Queue a fix as its id (slot, push order, stamp) and its ``_G_*`` record, unchecked
+        (:meth:`_check_gnss`); a malformed one is counted."""
+        if not isinstance(m.stamp_ns, int | np.integer) or len(m.vel_enu_mps) != 3:
+            self.count[slot, _GNSS] += 1
+            return
+        self._seq += 1
+        self._gnss_new_id.extend((slot, self._seq, int(m.stamp_ns)))
+        self._gnss_new_val.extend(
+            (
+                *m.vel_enu_mps,
+                m.heading_rad,
+                m.pitch_rad,
+                m.roll_rad,
+                m.lat_deg,
+                m.lon_deg,
+                m.height_m,
+                m.vel_std_mps,
+                float(int(m.fix)),
+            )
+        )
+
+    def _push_imu(self, slot: int, m: ImuBatch) -> None:
+        """Queue a batch of IMU samples unchecked (:meth:`_check_imu`); a batch whose arrays
+        differ in length is counted."""
+        t = as_stamps(m.stamp_ns)
+        f = as_rows(m.accel_mps2, 3)
+        w = as_rows(m.gyro_radps, 3)
+        if f.shape[0] != t.shape[0] or w.shape[0] != t.shape[0]:
+            self.count[slot, _IMU] += t.shape[0]
+            return
+        if t.shape[0]:
+            self._seq += 1
+            self._imu_new_slot.append(slot)
+            self._imu_new_seq.append(self._seq)
+            self._imu_new_t.append(t)
+            self._imu_new_f.append(f)
+            self._imu_new_w.append(w)
+
+    def _push_edges(self, slot: int, m: WheelEdges) -> None:
+        """Encoder edges into the wheel's tracker (with their directions where the encoder has
+        them); skipped edges counted, a wheel waiting after a gap counts them down."""
+        t = as_stamps(m.stamp_ns)
+        if t.shape[0] == 0:
+            return
+        try:
+            tracker = self.trackers[slot][int(m.wheel)]
+        except (IndexError, ValueError):
+            self.count[slot, _EDGES] += t.shape[0]
+            return
+        d = None
+        if m.direction is not None and self.has_direction[slot]:
+            d = np.asarray(m.direction).reshape(-1)
+            if d.shape[0] != t.shape[0]:
+                d = None
+        skipped = tracker.push(t, d)
+        if skipped:
+            self.count[slot, _EDGES] += skipped
+        if self.wheel_need[slot, int(m.wheel)]:
+            self._count_resume(slot, int(m.wheel), t)
+        self.has_edges[slot] = True
+        if slot in self._gridless:
+            self._first_seen(slot, int(t[0]))
+
+    def _push_speeds(self, slot: int, m: WheelSpeeds) -> None:
+        """Direct (CAN) wheel speeds into the vehicle's store; skipped ones counted."""
+        t = as_stamps(m.stamp_ns)
+        direct = self.direct[slot]
+        assert direct is not None
+        before = direct.skipped
+        direct.push(t, m.omega_radps)
+        self.count[slot, _SPEEDS] += direct.skipped - before
+        self.has_speeds[slot] = direct.has_data  # stays true once true
+        if t.shape[0]:
+            self._first_seen(slot, int(t[0]))
 
     def _restart_wheels(self, slot: int) -> None:
         """Start the vehicle's encoder fits afresh after lost wheel data (:class:`WheelGap`).
@@ -1028,6 +1094,19 @@ class FleetFrontEnd:
         inc[1:] = t[1:] > t[:-1]
         inc[c_start] = True
         ok &= inc
+        self._imu_after_last(ok, t, c_slot, chunk, one_each)
+        bad = ~ok
+        if bad.any():
+            self.count[:, _IMU] += np.bincount(c_slot[chunk[bad]], minlength=self._cap)[: self._cap]
+        return self._queue_imu(ok, t, (f, w), (c_slot, c_seq, chunk))
+
+    def _imu_after_last(
+        self, ok: BoolArray, t: IntArray, c_slot: IntArray, chunk: IntArray, one_each: bool
+    ) -> None:
+        """Clear ``ok`` (shape ``(n,)``, in place) of samples ``t`` not after their vehicle's
+        last accepted one, and move each vehicle's ``last_imu_ns`` to its newest kept sample.
+        ``c_slot`` is each batch's slot, ``chunk`` (n,) each sample's batch."""
+        n_chunks = c_slot.shape[0]
         # The floor "after the last accepted sample" chains the batches of one vehicle: one pass
         # per k-th batch of each vehicle in this lot (one pass when each vehicle sent one).
         if one_each:
@@ -1046,9 +1125,21 @@ class FleetFrontEnd:
             np.maximum.at(last, chunk[kept], kept)
             has = np.flatnonzero(last >= 0)
             self.last_imu_ns[c_slot[has]] = t[last[has]]
-        bad = ~ok
-        if bad.any():
-            self.count[:, _IMU] += np.bincount(c_slot[chunk[bad]], minlength=self._cap)[: self._cap]
+
+    def _queue_imu(
+        self,
+        ok: BoolArray,
+        t: IntArray,
+        fw: tuple[FloatArray, FloatArray],
+        batches: tuple[IntArray, IntArray, IntArray],
+    ) -> tuple[IntArray, IntArray, IntArray]:
+        """Append the kept samples (``ok``; ``fw`` their forces and rates, (n, 3) each) to the
+        checked queue as ``_imu_v``'s columns. ``batches`` is each batch's slot and push order
+        and each sample's batch; returns (slot, seq, first kept stamp) of batches that kept
+        samples."""
+        f, w = fw
+        c_slot, c_seq, chunk = batches
+        n_chunks = c_slot.shape[0]
         keep = np.flatnonzero(ok)
         # a NaN lateral force alone keeps the sample too (no accelerometer roll from it)
         fk, wk = np.take(f, keep, axis=0), np.take(w, keep, axis=0)
@@ -1104,6 +1195,22 @@ class FleetFrontEnd:
         self.done_ns[v.slots] = v.t_end
         inputs = v.build()
         return FleetTicks(index, v.slots, v.m, v.offsets, inputs)
+
+
+class _ImuTicks(NamedTuple):
+    """The IMU's part of one assembly's tick inputs (:meth:`_Batch._imu_ticks`), named as in
+    :class:`TickInputs`: each shape ``(m,)`` but ``z`` (m, 4)."""
+
+    z: FloatArray
+    imu_ok: BoolArray
+    accel_var: FloatArray
+    gyro_var: FloatArray
+    force_fwd: FloatArray
+    force_lat: FloatArray
+    lever_force_lat: FloatArray
+    lever_accel_fwd_mps2: FloatArray
+    lever_accel_fwd_var: FloatArray
+    accel_span_end_s: FloatArray
 
 
 class _Batch:
@@ -1196,10 +1303,89 @@ class _Batch:
 
     # -- the build ---------------------------------------------------------------------------
     def build(self) -> TickInputs:
-        fe, cfg = self.fe, self.config
-        n_ticks, rows = self.n_ticks, self.tick_row
-        tn = fe.tick_ns
-        # dt per sample (first of a row from the vehicle's last integrated sample), ≤ 0.1 s
+        """The inputs of every due tick, ``n_ticks`` rows (:class:`TickInputs`): the IMU's
+        tick means and rates (:meth:`_imu_ticks`), the GNSS speed, the held position and
+        attitude, the along-track distance and the wheel speeds, in that order (each step
+        carries its vehicles' state to the next call)."""
+        imu, (wz_mean, theta_tick, phi_tick) = self._imu_ticks()
+        gnss_ok, gnss_var, gnss_age = self._gnss_speed(imu.z, imu.lever_accel_fwd_mps2)
+        enu, att, fix_age_s = self._hold_outputs(wz_mean, theta_tick, phi_tick)
+        dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
+        omega, omega_std, wflags = self._wheels()
+        return TickInputs(
+            stamp_ns=self.ticks,
+            gnss_ok=gnss_ok,
+            gnss_var=gnss_var,
+            omega=omega,
+            omega_std=omega_std,
+            wheel_flags=wflags,
+            enu=enu,
+            attitude=att,
+            dist_ok=dist_ok,
+            dist_m=dist_m,
+            dist_var=dist_var,
+            dist_restart=dist_restart,
+            fix_age_s=fix_age_s,
+            tilt_var=self._tilt_var_at_ticks(),
+            gnss_age_span_s=gnss_age,
+            **imu._asdict(),
+        )
+
+    def _imu_ticks(self) -> tuple[_ImuTicks, tuple[FloatArray, FloatArray, FloatArray]]:
+        """The IMU's part of the ticks (:class:`_ImuTicks`): the samples' tilt track and
+        bias-corrected rates, binned to the ticks (a sample in ``(tick − tn, tick]``). Also
+        returns what the held outputs use: the tick-mean ``ωz`` and the tilt track's pitch and
+        roll at the ticks, shape ``(m,)`` each."""
+        n = self._sample_dts()
+        theta = self._pitch_track()
+        a_fwd, wx, wz = self._imu_at_samples(theta)
+        tick_id, inb, tau, n_imu = self._tick_bins()
+        imu_ok = n_imu > 0
+        means = self._tick_means(
+            tick_id, n_imu, [x[inb] for x in (a_fwd, wx, wz, self.fy, self.fx)]
+        )
+        lever_lat = self._lever_lat_at_ticks(tick_id, tau, inb, n_imu)
+        (wx_tick, wz_tick), rate_var_factor = _rates_at_tick(
+            tick_id, tau, (wx[inb], wz[inb]), means[1:3], n_imu
+        )
+        at_tick = self._last_sample_of_tick(inb, n_imu)
+        tilt_tick = [
+            np.where(imu_ok, x[at_tick] if n else np.nan, np.nan) for x in (theta, self.phi)
+        ]
+        variances = self._tick_variances(n_imu, rate_var_factor)
+        z = np.full((self.n_ticks, N_OBS_PAPER), np.nan)
+        z[:, MdsfObs.A1] = means[0]
+        z[:, MdsfObs.OMEGA_X] = wx_tick
+        z[:, MdsfObs.OMEGA_Z] = wz_tick
+        self._carry_rates(wx, wz)
+        lever_fwd = self._lever_accel_fwd(tick_id, tau, wx[inb], means[1], n_imu, at_tick)
+        span_end = self._tick_means(tick_id, n_imu, [tau])[0] + self.config.dt_s / 2
+        span_end = np.where(imu_ok, span_end, np.nan)
+        imu = _ImuTicks(z, imu_ok, *variances, means[3], means[4], lever_lat, *lever_fwd, span_end)
+        return imu, (means[2], tilt_tick[0], tilt_tick[1])
+
+    def _lever_lat_at_ticks(
+        self, tick_id: IntArray, tau_s: FloatArray, inb: BoolArray, n_imu: IntArray
+    ) -> FloatArray:
+        """:func:`_lever_force_lat` of the binned samples (``tick_id``, ``tau_s``: (s,);
+        ``inb``: (n,)) with each tick's vehicle's IMU height and forward offset, shape (m,)."""
+        fe = self.fe
+        slot_t = self.slots[self.tick_row]
+        return _lever_force_lat(
+            tick_id,
+            tau_s,
+            (self.wy[inb], self.wz[inb]),
+            n_imu,
+            (fe.imu_up_m[slot_t], fe.imu_fwd_m[slot_t]),
+        )
+
+    def _sample_dts(self) -> int:
+        """Each sample's interval ``dts`` [s], shape ``(n,)``: from the previous sample, the
+        first of a row from the vehicle's last integrated sample (0 with none), clipped to
+        [0, 0.1]. Keeps the vehicles' last integrated stamp and raw rates of before this call
+        (``prev_used_ns``, ``prev_raw_rates``) and moves them to this call's last sample.
+        Returns ``n``."""
+        fe = self.fe
         n = self.T.shape[0]
         self.prev_used_ns = fe.last_imu_used_ns[self.slots].copy()
         self.prev_raw_rates = fe.last_raw_rates[self.slots].copy()
@@ -1219,7 +1405,13 @@ class _Batch:
             )
         self.dts = dts
         self.begin_of = self.s_begin[self.s_row]
-        theta = self._pitch_track()
+        return n
+
+    def _imu_at_samples(self, theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Forward acceleration, ``ωx`` and ``ωz`` per sample, shape ``(n,)`` each. Product
+        mode: the rates less the tracked gyro biases, the acceleration less gravity at the
+        tracked pitch ``theta`` and with the IMU's forward lever ``(ωx² + ωz²)·y_imu``; paper
+        mode: as measured."""
         wx, wz = self.wx, self.wz
         if self.product:
             bx = self._pitch_bias_at_samples()
@@ -1227,40 +1419,45 @@ class _Batch:
             wx = wx - bx
             wz = wz - bz
             a_fwd = self.fy - GRAVITY_MPS2 * np.sin(theta)
-            a_fwd = a_fwd + (wx**2 + wz**2) * fe.imu_fwd_m[self.slots[self.s_row]]
+            a_fwd = a_fwd + (wx**2 + wz**2) * self.fe.imu_fwd_m[self.slots[self.s_row]]
         else:
             a_fwd = self.fy
-        # tick bins: sample in (tick − tn, tick]; samples before the first tick's window count
-        # toward no tick
+        return a_fwd, wx, wz
+
+    def _tick_bins(self) -> tuple[IntArray, BoolArray, FloatArray, IntArray]:
+        """Tick bins: a sample in ``(tick − tn, tick]``; samples before the first tick's window
+        count toward no tick. Returns each binned sample's tick (s,), which samples are binned
+        ``inb`` (n,), their time from their tick ``tau`` [s] (s,), and samples per tick (m,)."""
+        tn = self.fe.tick_ns
         k = -((self.first[self.s_row] - self.T) // tn)
         inb = k >= 0
         tick_id = self.offsets[self.s_row[inb]] + k[inb]
-        n_imu = np.bincount(tick_id, minlength=n_ticks)
-        imu_ok = n_imu > 0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            means = [
-                np.bincount(tick_id, weights=x[inb], minlength=n_ticks) / n_imu
-                for x in (a_fwd, wx, wz, self.fy, self.fx)
-            ]
+        n_imu = np.bincount(tick_id, minlength=self.n_ticks)
         tau = (self.T[inb] - self.ticks[tick_id]) * _NS
-        slot_t = self.slots[rows]
-        lever_lat = _lever_force_lat(
-            tick_id,
-            tau,
-            (self.wy[inb], self.wz[inb]),
-            n_imu,
-            (fe.imu_up_m[slot_t], fe.imu_fwd_m[slot_t]),
-        )
-        (wx_tick, wz_tick), rate_var_factor = _rates_at_tick(
-            tick_id, tau, (wx[inb], wz[inb]), means[1:3], n_imu
-        )
-        # last sample of each tick window
+        return tick_id, inb, tau, n_imu
+
+    def _tick_means(
+        self, tick_id: IntArray, n_imu: IntArray, values: list[FloatArray]
+    ) -> list[FloatArray]:
+        """Tick means of the binned samples' ``values`` (each (s,) → (m,); NaN: no sample)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return [np.bincount(tick_id, weights=x, minlength=self.n_ticks) / n_imu for x in values]
+
+    def _last_sample_of_tick(self, inb: BoolArray, n_imu: IntArray) -> IntArray:
+        """Index of the last sample in each tick's window (or before it), shape ``(m,)``."""
+        rows = self.tick_row
         before = np.bincount(self.s_row[~inb], minlength=self.n_rows)
         cum = np.cumsum(n_imu)
         hi = cum - (cum - n_imu)[self.offsets][rows] + self.s_begin[rows] + before[rows]
-        at_tick = np.maximum(hi - 1, 0)
-        theta_tick = np.where(imu_ok, theta[at_tick] if n else np.nan, np.nan)
-        phi_tick = np.where(imu_ok, self.phi[at_tick] if n else np.nan, np.nan)
+        return np.maximum(hi - 1, 0)
+
+    def _tick_variances(
+        self, n_imu: IntArray, rate_var_factor: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Variance of each tick's mean acceleration (with the gravity leak in product mode)
+        and of its rates, shape ``(m,)`` each."""
+        fe, cfg = self.fe, self.config
+        slot_t = self.slots[self.tick_row]
         nf = np.maximum(n_imu, 1).astype(np.float64)
         accel_var = fe.accel_var_cfg[slot_t] / nf
         if self.product:
@@ -1269,52 +1466,18 @@ class _Batch:
             pv = self._pitch_var_at_ticks()
             accel_var = accel_var + (GRAVITY_MPS2**2) * pv * (cfg.pitch_leak_corr_s / cfg.dt_s)
         gyro_var = fe.gyro_var_cfg[slot_t] * rate_var_factor
-        z = np.full((n_ticks, N_OBS_PAPER), np.nan)
-        z[:, MdsfObs.A1] = means[0]
-        z[:, MdsfObs.OMEGA_X] = wx_tick
-        z[:, MdsfObs.OMEGA_Z] = wz_tick
+        return accel_var, gyro_var
+
+    def _carry_rates(self, wx: FloatArray, wz: FloatArray) -> None:
+        """Keep the bias-corrected rates ``rates_bc`` and the vehicles' last ones of before this
+        call (``prev_rates``); move those to this call's last sample."""
+        fe = self.fe
         self.rates_bc = (wx, wz)
         self.prev_rates = fe.last_rates[self.slots].copy()
-        if n:
+        if self.T.shape[0]:
             nz = self.n_s > 0
             last = self.s_end[nz] - 1
             fe.last_rates[self.slots[nz]] = np.stack([wx[last], wz[last]], axis=1)
-        lever_fwd, lever_fwd_var = self._lever_accel_fwd(
-            tick_id, tau, wx[inb], means[1], n_imu, at_tick
-        )
-        gnss_ok, gnss_var, gnss_age = self._gnss_speed(z, lever_fwd)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            span_end = np.bincount(tick_id, weights=tau, minlength=n_ticks) / n_imu + cfg.dt_s / 2
-        enu, att, fix_age_s = self._hold_outputs(means[2], theta_tick, phi_tick)
-        dist_ok, dist_m, dist_var, dist_restart = self._gnss_distance()
-        omega, omega_std, wflags = self._wheels()
-        return TickInputs(
-            stamp_ns=self.ticks,
-            z=z,
-            gnss_ok=gnss_ok,
-            gnss_var=gnss_var,
-            imu_ok=imu_ok,
-            accel_var=accel_var,
-            gyro_var=gyro_var,
-            force_fwd=means[3],
-            omega=omega,
-            omega_std=omega_std,
-            wheel_flags=wflags,
-            enu=enu,
-            attitude=att,
-            dist_ok=dist_ok,
-            dist_m=dist_m,
-            dist_var=dist_var,
-            dist_restart=dist_restart,
-            fix_age_s=fix_age_s,
-            force_lat=means[4],
-            lever_force_lat=lever_lat,
-            lever_accel_fwd_mps2=lever_fwd,
-            lever_accel_fwd_var=lever_fwd_var,
-            tilt_var=self._tilt_var_at_ticks(),
-            gnss_age_span_s=gnss_age,
-            accel_span_end_s=np.where(imu_ok, span_end, np.nan),
-        )
 
     def _lever_accel_fwd(
         self,
@@ -1341,7 +1504,7 @@ class _Batch:
         under the gyro's white noise, both ends' taken as this window's end's (about
         ``(h0·σ_g·1.1/Δt)²``: 0.07 m/s² in std for 5 mrad/s a sample on a 1.2 m IMU).
         """
-        fe, tn = self.fe, self.fe.tick_ns
+        fe = self.fe
         has = n_imu > 0
         tau_e = np.zeros(self.n_ticks)
         if self.T.shape[0]:
@@ -1352,6 +1515,20 @@ class _Batch:
         )
         wx_e = np.where(has, wx_e, np.nan)
         end_ns = self.ticks + np.round(tau_e * 1e9).astype(np.int64)
+        prev, prev_ns = self._previous_rate_end(wx_e, end_ns)
+        s = self.slots
+        span_s = (end_ns - prev_ns) * _NS
+        h0 = fe.imu_up_m[s[self.tick_row]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lever = np.where(span_s > 0, h0 * (wx_e - prev) / span_s, np.nan)
+            var = 2.0 * var_factor * fe.gyro_var_cfg[s[self.tick_row]] * (h0 / span_s) ** 2
+        return np.asarray(lever), np.asarray(var)
+
+    def _previous_rate_end(self, wx_e: FloatArray, end_ns: IntArray) -> tuple[FloatArray, IntArray]:
+        """The pitch rate ``wx_e`` at each tick's span end ``end_ns`` (both (m,)) shifted by
+        one tick: each tick's start. A vehicle's first tick takes the one carried from its
+        previous call (NaN unless that was the tick before); this call's last is carried on."""
+        fe, tn = self.fe, self.fe.tick_ns
         prev, prev_ns = np.empty_like(wx_e), np.empty_like(end_ns)
         prev[1:], prev_ns[1:] = wx_e[:-1], end_ns[:-1]
         s, first = self.slots, self.offsets
@@ -1362,12 +1539,7 @@ class _Batch:
         fe.pitch_rate_end[s] = wx_e[last]
         fe.pitch_rate_end_ns[s] = end_ns[last]
         fe.pitch_rate_end_tick_ns[s] = self.ticks[last]
-        span_s = (end_ns - prev_ns) * _NS
-        h0 = fe.imu_up_m[s[self.tick_row]]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            lever = np.where(span_s > 0, h0 * (wx_e - prev) / span_s, np.nan)
-            var = 2.0 * var_factor * fe.gyro_var_cfg[s[self.tick_row]] * (h0 / span_s) ** 2
-        return np.asarray(lever), np.asarray(var)
+        return prev, prev_ns
 
     def _between_fixes(
         self,
@@ -1761,14 +1933,24 @@ class _Batch:
 
         Returns ``(dist_ok, dist_m, dist_var, dist_restart)``, shape ``(n_ticks,)``.
         """
-        fe, cfg = self.fe, self.config
         n_ticks = self.n_ticks
         ok = np.zeros(n_ticks, dtype=bool)
         dist = np.full(n_ticks, np.nan)
         var = np.zeros(n_ticks)
         restart = np.zeros(n_ticks, dtype=bool)
-        if not self.product or cfg.gnss_distance_gap_s <= 0 or self.g_row.shape[0] == 0:
+        idx = self._distance_fixes()
+        if idx.size == 0:
             return ok, dist, var, restart
+        chain = self._distance_chain(idx)
+        self._distance_to_ticks(idx, chain, (ok, dist, var, restart))
+        return ok, dist, var, restart
+
+    def _distance_fixes(self) -> IntArray:
+        """The fixes the along-track distance uses (indices into this batch's fixes): RTK-fixed,
+        with a position in the vehicle's frame, a heading and a good velocity; none outside
+        product mode or with ``gnss_distance_gap_s`` ≤ 0."""
+        if not self.product or self.config.gnss_distance_gap_s <= 0 or self.g_row.shape[0] == 0:
+            return np.zeros(0, dtype=np.int64)
         g = self.g
         use = (
             self.g_pos_ok
@@ -1777,25 +1959,26 @@ class _Batch:
             & np.isfinite(self.g_heading)
             & self.g_vel_ok
         )
-        idx = np.flatnonzero(use)
-        if idx.size == 0:
-            return ok, dist, var, restart
+        return np.flatnonzero(use)
+
+    def _distance_chain(
+        self, idx: IntArray
+    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
+        """The chain through fixes ``idx`` (k,), each from the one before (a row's first from
+        the vehicle's chain state): whether it continues the chain, the antenna's distance,
+        the unwrapped heading and ``Σ Δψ·cos θ·sin φ``, each (k,). Carries each vehicle's
+        chain state to its last fix."""
+        fe, cfg = self.fe, self.config
         r = self.g_row[idx]
         s = self.slots[r]
         p = self.g_enu[idx]
         t = self.g_t[idx]
-        att = np.stack([self.g_heading[idx], nan_to_num(g[idx, _G_PITCH])], axis=1)
+        att = np.stack([self.g_heading[idx], nan_to_num(self.g[idx, _G_PITCH])], axis=1)
         first = np.ones(idx.size, dtype=bool)
         first[1:] = r[1:] != r[:-1]
-        p_prev = np.empty_like(p)
-        p_prev[1:] = p[:-1]
-        p_prev[first] = fe.chain_enu[s[first]]
-        t_prev = np.empty_like(t)
-        t_prev[1:] = t[:-1]
-        t_prev[first] = fe.chain_ns[s[first]]
-        a_prev = np.empty_like(att)
-        a_prev[1:] = att[:-1]
-        a_prev[first] = fe.chain_att[s[first]]
+        p_prev = _shift_in(p, first, fe.chain_enu[s[first]])
+        t_prev = _shift_in(t, first, fe.chain_ns[s[first]])
+        a_prev = _shift_in(att, first, fe.chain_att[s[first]])
         gap_s = (t - t_prev) * _NS
         chained = (t_prev != _NONE_NS) & (gap_s > 0) & (gap_s <= cfg.gnss_distance_gap_s)
         d_head = np.mod(att[:, 0] - a_prev[:, 0] + np.pi, 2 * np.pi) - np.pi
@@ -1819,7 +2002,24 @@ class _Batch:
         fe.chain_m[sl] = d_ant[last]
         fe.chain_yaw_rad[sl] = yaw[last]
         fe.chain_turn_rad[sl] = turn[last]
-        # to the ticks: the latest fix in each tick's window, a restart if any fix broke the chain
+        return chained, d_ant, yaw, turn
+
+    def _distance_to_ticks(
+        self,
+        idx: IntArray,
+        chain: tuple[BoolArray, FloatArray, FloatArray, FloatArray],
+        out: tuple[BoolArray, FloatArray, FloatArray, BoolArray],
+    ) -> None:
+        """Into ``out`` (``dist_ok``, ``dist_m``, ``dist_var``, ``dist_restart``, each
+        (n_ticks,)): the latest of fixes ``idx`` in each tick's window (the IMU point's
+        distance from the ``chain`` of :meth:`_distance_chain`, moved to the tick with the
+        fix's speed), a restart if any fix broke the chain."""
+        fe = self.fe
+        chained, d_ant, yaw, turn = chain
+        ok, dist, var, restart = out
+        r = self.g_row[idx]
+        s = self.slots[r]
+        t = self.g_t[idx]
         tn = fe.tick_ns
         tid = self.offsets[r] + np.maximum(-((self.first[r] - t) // tn), 0)
         ok[tid] = True
@@ -1832,7 +2032,6 @@ class _Batch:
         lever_var = fe.h1_m[s] ** 2 * self.g_var_after[idx]
         var[tid] = fe.pos_var_cfg[s] + lever_var + self.g_var[idx] * dt_s**2
         np.logical_or.at(restart, tid, ~chained)
-        return ok, dist, var, restart
 
     def _hold_outputs(
         self, wz_tick: FloatArray, theta_tick: FloatArray, phi_tick: FloatArray
@@ -1840,51 +2039,8 @@ class _Batch:
         """Position (ENU, moved to the tick with the GNSS velocity), attitude and the age of the
         fix they come from (``inf``: none) per tick. Product mode: pitch and roll from the
         tracks at the tick (``theta_tick``, ``phi_tick``) where known."""
-        fe = self.fe
-        g, rows = self.g, self.g_row
-        s = self.slots
-        nf = rows.shape[0]
-        if nf:
-            # the frame of a vehicle is anchored at its first fix with a position
-            pos = np.flatnonzero(self.g_pos_ok)
-            r_pos = rows[pos]
-            new = np.ones(pos.shape[0], dtype=bool)
-            new[1:] = r_pos[1:] != r_pos[:-1]
-            first = pos[new]
-            fresh = ~fe.has_frame[s[rows[first]]]
-            anchor_at = first[fresh]
-            fe.origin[s[rows[anchor_at]]] = g[anchor_at][:, _G_LAT : _G_H + 1]
-            fe.has_frame[s[rows[anchor_at]]] = True
-            e = np.full((nf, 3), np.nan)
-            self.g_enu = e
-            if pos.size:
-                o = fe.origin[s[r_pos]]
-                e[pos] = np.stack(
-                    enu_from_geodetic(
-                        g[pos, _G_LAT], g[pos, _G_LON], g[pos, _G_H], o[:, 0], o[:, 1], o[:, 2]
-                    ),
-                    axis=1,
-                )
-            table = np.column_stack(
-                [
-                    self.g_t.astype(np.float64),
-                    e,
-                    g[:, _G_VE : _G_VU + 1],
-                    self.g_heading,
-                    g[:, _G_PITCH],
-                    g[:, _G_ROLL],
-                ]
-            )
-        else:
-            table = np.zeros((0, 10))
-            self.g_enu = np.zeros((0, 3))
-        # each tick: the latest fix at or before it (compared as float, as the stored stamps:
-        # whole numbers, so as integers exactly), else the row held from earlier batches
-        t_tick = self.ticks.astype(np.float64).astype(np.int64)
-        i = _asof(rows, table[:, _H_STAMP].astype(np.int64), self.tick_row, t_tick)
-        sel = np.take(fe.hold, s[self.tick_row], axis=0)
-        if nf:
-            sel = np.where((i >= 0)[:, None], np.take(table, np.maximum(i, 0), axis=0), sel)
+        table = self._fix_table()
+        sel = self._held_at_ticks(table)
         age = (self.ticks - nan_to_num(sel[:, _H_STAMP])) * _NS
         fix_age_s = np.where(np.isfinite(sel[:, _H_STAMP]), age, np.inf)
         age = np.where(np.isfinite(sel[:, _H_STAMP]), age, 0.0)
@@ -1897,20 +2053,81 @@ class _Batch:
             pitch = np.where(np.isfinite(theta_tick), theta_tick, pitch)
             roll = np.where(np.isfinite(phi_tick), phi_tick, roll)
         att = np.stack([heading, pitch, roll], axis=1)
-        if nf:
-            # hold the latest fix; its position, or the latest finite one of this batch
-            n_fix = np.bincount(rows, minlength=self.n_rows)
-            last_fix = np.cumsum(n_fix) - 1
-            has = n_fix > 0
-            held = table[last_fix[has]]
-            fin = np.flatnonzero(np.isfinite(table[:, _H_E]))
-            last_pos = np.full(self.n_rows, -1, dtype=np.int64)
-            np.maximum.at(last_pos, rows[fin], fin)
-            lp = last_pos[has]
-            fix_pos = (lp >= 0) & ~np.isfinite(held[:, _H_E])
-            held[fix_pos, _H_E : _H_U + 1] = table[lp[fix_pos], _H_E : _H_U + 1]
-            fe.hold[s[has]] = held
+        if self.g_row.shape[0]:
+            self._keep_held(table)
         return enu, att, fix_age_s
+
+    def _fix_table(self) -> FloatArray:
+        """This batch's fixes as held rows (``_H_*`` columns), shape ``(nf, 10)``; sets
+        ``g_enu`` (nf, 3), their positions in their vehicle's frame (NaN: none), anchoring the
+        frame of a vehicle without one at its first fix with a position."""
+        g, rows = self.g, self.g_row
+        if not rows.shape[0]:
+            self.g_enu = np.zeros((0, 3))
+            return np.zeros((0, 10))
+        self.g_enu = self._fixes_enu()
+        return np.column_stack(
+            [
+                self.g_t.astype(np.float64),
+                self.g_enu,
+                g[:, _G_VE : _G_VU + 1],
+                self.g_heading,
+                g[:, _G_PITCH],
+                g[:, _G_ROLL],
+            ]
+        )
+
+    def _fixes_enu(self) -> FloatArray:
+        """Positions of the fixes in their vehicle's ENU frame, shape ``(nf, 3)`` (NaN: none);
+        the frame of a vehicle is anchored at its first fix with a position."""
+        fe, g, rows, s = self.fe, self.g, self.g_row, self.slots
+        pos = np.flatnonzero(self.g_pos_ok)
+        r_pos = rows[pos]
+        new = np.ones(pos.shape[0], dtype=bool)
+        new[1:] = r_pos[1:] != r_pos[:-1]
+        first = pos[new]
+        fresh = ~fe.has_frame[s[rows[first]]]
+        anchor_at = first[fresh]
+        fe.origin[s[rows[anchor_at]]] = g[anchor_at][:, _G_LAT : _G_H + 1]
+        fe.has_frame[s[rows[anchor_at]]] = True
+        e = np.full((rows.shape[0], 3), np.nan)
+        if pos.size:
+            o = fe.origin[s[r_pos]]
+            e[pos] = np.stack(
+                enu_from_geodetic(
+                    g[pos, _G_LAT], g[pos, _G_LON], g[pos, _G_H], o[:, 0], o[:, 1], o[:, 2]
+                ),
+                axis=1,
+            )
+        return e
+
+    def _held_at_ticks(self, table: FloatArray) -> FloatArray:
+        """Each tick's held row, shape ``(n_ticks, 10)``: the latest fix of ``table`` at or
+        before it (compared as float, as the stored stamps: whole numbers, so as integers
+        exactly), else the row held from earlier batches."""
+        fe, rows = self.fe, self.g_row
+        t_tick = self.ticks.astype(np.float64).astype(np.int64)
+        i = _asof(rows, table[:, _H_STAMP].astype(np.int64), self.tick_row, t_tick)
+        sel = np.take(fe.hold, self.slots[self.tick_row], axis=0)
+        if rows.shape[0]:
+            sel = np.where((i >= 0)[:, None], np.take(table, np.maximum(i, 0), axis=0), sel)
+        return sel
+
+    def _keep_held(self, table: FloatArray) -> None:
+        """Hold each vehicle's latest fix of ``table`` for later batches; its position, or the
+        latest finite one of this batch."""
+        rows = self.g_row
+        n_fix = np.bincount(rows, minlength=self.n_rows)
+        last_fix = np.cumsum(n_fix) - 1
+        has = n_fix > 0
+        held = table[last_fix[has]]
+        fin = np.flatnonzero(np.isfinite(table[:, _H_E]))
+        last_pos = np.full(self.n_rows, -1, dtype=np.int64)
+        np.maximum.at(last_pos, rows[fin], fin)
+        lp = last_pos[has]
+        fix_pos = (lp >= 0) & ~np.isfinite(held[:, _H_E])
+        held[fix_pos, _H_E : _H_U + 1] = table[lp[fix_pos], _H_E : _H_U + 1]
+        self.fe.hold[self.slots[has]] = held
 
     def _no_wheel_data(
         self, vs: IntArray, tix2: IntArray, om: FloatArray, sd: FloatArray
@@ -1957,59 +2174,75 @@ class _Batch:
         enc = np.flatnonzero(uses_enc)
         if enc.size == 0:
             return omega, omega_std, wflags
-        # groups of vehicles with the same wheel settings and the same number of ticks (often
-        # one group: every vehicle)
+        for members in self._wheel_groups(enc):
+            self._fit_wheel_group(enc[members], (omega, omega_std, wflags))
+        return omega, omega_std, wflags
+
+    def _wheel_groups(self, enc: IntArray) -> list[IntArray]:
+        """Groups (positions in ``enc``, the rows with encoders) of vehicles with the same
+        wheel settings and the same number of ticks (often one group: every vehicle)."""
+        fe = self.fe
         keys = (fe.wheel_cfg[self.slots[enc]], self.m[enc])
         if ((keys[0] == keys[0][0]) & (keys[1] == keys[1][0])).all():
-            groups = [np.arange(enc.shape[0])]
-        else:
-            order = np.lexsort(keys[::-1])
-            new = np.ones(enc.shape[0], dtype=bool)
-            new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
-            group = np.empty(enc.shape[0], dtype=np.int64)
-            group[order] = np.cumsum(new) - 1
-            groups = _rank_passes(group)
-        for members in groups:
-            rows = enc[members]
-            mt = int(self.m[rows[0]])
-            tix2 = self.offsets[rows][:, None] + np.arange(mt)
-            tix = tix2.reshape(-1)
-            # rows of the fit: left, right of the first vehicle, then of the next, …
-            vs = self.slots[rows]
-            bank_of = fe.wheel_bank[vs]
-            if bank_of[0] < 0 or not (bank_of == bank_of[0]).all():
-                # trackers new or spread over banks: into one (as query_many), noted per slot
-                trackers = [tr for s in vs.tolist() for tr in fe.trackers[s]]
-                held = gather_bank(trackers)
-                assert held is not None  # one wheel config
-                bank, wheel_slots = held
-                known = [i for i, b in enumerate(fe._banks) if b is bank]
-                if not known:
-                    fe._banks.append(bank)
-                fe.wheel_bank[vs] = known[0] if known else len(fe._banks) - 1
-                fe.wheel_slot[vs] = wheel_slots.reshape(-1, len(Wheel))
-            bank = fe._banks[int(fe.wheel_bank[vs[0]])]
-            wheel_slots = fe.wheel_slot[vs].reshape(-1)
-            fitted = fe.fit_wheels(bank, wheel_slots, np.repeat(self.ticks[tix2], 2, axis=0))
-            lone = np.repeat(fe.lone_std[self.slots[rows]], mt)[:, None]
-            # fit rows (vehicle, wheel) × ticks → (vehicle·tick, wheel), both wheels at once
-            om, sd, method = (
-                a.reshape(rows.shape[0], len(Wheel), mt).swapaxes(1, 2).reshape(-1, len(Wheel))
-                for a in (fitted.omega_radps, fitted.std_radps, fitted.method)
-            )
-            none = method == WheelSpeedMethod.NONE
-            om = np.where(none, 0.0, om).astype(np.float64, copy=False)
-            sd = np.where(none, lone, sd).astype(np.float64, copy=False)
-            resume = fe.wheel_resume_ns[vs]
-            wait_from = fe.wheel_wait_from_ns[vs]
-            if (resume != _NONE_NS).any() or (wait_from != _NONE_NS).any():
-                om, sd, gap = self._no_wheel_data(vs, tix2, om, sd)
-                wflags[tix] |= np.where(gap, int(_F.WHEEL_GAP), 0).astype(np.int32)
-            omega[tix] = om
-            omega_std[tix] = sd
-            period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)
-            wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
-        return omega, omega_std, wflags
+            return [np.arange(enc.shape[0])]
+        order = np.lexsort(keys[::-1])
+        new = np.ones(enc.shape[0], dtype=bool)
+        new[1:] = np.any([k[order][1:] != k[order][:-1] for k in keys], axis=0)
+        group = np.empty(enc.shape[0], dtype=np.int64)
+        group[order] = np.cumsum(new) - 1
+        return _rank_passes(group)
+
+    def _fit_wheel_group(
+        self, rows: IntArray, out: tuple[FloatArray, FloatArray, npt.NDArray[np.int32]]
+    ) -> None:
+        """One bank query for the encoder wheels of ``rows`` (one group of
+        :meth:`_wheel_groups`), each at its own ticks, into ``out`` (``omega``, ``omega_std``
+        (n_ticks, 2), the wheel flags (n_ticks,)); no wheel speed where the data is missing."""
+        fe = self.fe
+        omega, omega_std, wflags = out
+        mt = int(self.m[rows[0]])
+        tix2 = self.offsets[rows][:, None] + np.arange(mt)
+        tix = tix2.reshape(-1)
+        # rows of the fit: left, right of the first vehicle, then of the next, …
+        vs = self.slots[rows]
+        bank = self._wheel_bank(vs)
+        wheel_slots = fe.wheel_slot[vs].reshape(-1)
+        fitted = fe.fit_wheels(bank, wheel_slots, np.repeat(self.ticks[tix2], 2, axis=0))
+        lone = np.repeat(fe.lone_std[self.slots[rows]], mt)[:, None]
+        # fit rows (vehicle, wheel) × ticks → (vehicle·tick, wheel), both wheels at once
+        om, sd, method = (
+            a.reshape(rows.shape[0], len(Wheel), mt).swapaxes(1, 2).reshape(-1, len(Wheel))
+            for a in (fitted.omega_radps, fitted.std_radps, fitted.method)
+        )
+        none = method == WheelSpeedMethod.NONE
+        om = np.where(none, 0.0, om).astype(np.float64, copy=False)
+        sd = np.where(none, lone, sd).astype(np.float64, copy=False)
+        resume = fe.wheel_resume_ns[vs]
+        wait_from = fe.wheel_wait_from_ns[vs]
+        if (resume != _NONE_NS).any() or (wait_from != _NONE_NS).any():
+            om, sd, gap = self._no_wheel_data(vs, tix2, om, sd)
+            wflags[tix] |= np.where(gap, int(_F.WHEEL_GAP), 0).astype(np.int32)
+        omega[tix] = om
+        omega_std[tix] = sd
+        period = (method != WheelSpeedMethod.FREQUENCY).all(axis=1)
+        wflags[tix] |= np.where(period, int(_F.WHEEL_PERIOD_METHOD), 0).astype(np.int32)
+
+    def _wheel_bank(self, vs: IntArray) -> WheelBank:
+        """The bank holding the trackers of vehicles ``vs`` (one wheel config); trackers new or
+        spread over banks are gathered into one (as ``query_many``), noted per slot."""
+        fe = self.fe
+        bank_of = fe.wheel_bank[vs]
+        if bank_of[0] < 0 or not (bank_of == bank_of[0]).all():
+            trackers = [tr for s in vs.tolist() for tr in fe.trackers[s]]
+            held = gather_bank(trackers)
+            assert held is not None  # one wheel config
+            bank, wheel_slots = held
+            known = [i for i, b in enumerate(fe._banks) if b is bank]
+            if not known:
+                fe._banks.append(bank)
+            fe.wheel_bank[vs] = known[0] if known else len(fe._banks) - 1
+            fe.wheel_slot[vs] = wheel_slots.reshape(-1, len(Wheel))
+        return fe._banks[int(fe.wheel_bank[vs[0]])]
 
 
 @dataclass
@@ -2245,6 +2478,20 @@ class _TiltTrack:
         if not own.any():
             return
         fi, r = fi[own], r[own]
+        pred, mean_course = self._course_predicted(fi, r)
+        course, speed, seen, share = self._course_measured(fi, r, pred)
+        share = self._course_lowpass(fi, r, share)
+        self._course_pull(fi, r, pred, (course, speed, seen))
+        used = np.isfinite(st.course[r]) & (share >= _COURSE_LEVER_SHARE)
+        used &= np.isfinite(mean_course)  # O's mean speed at least _COURSE_MIN_SPEED_MPS
+        b.g_heading[fi] = np.where(used, st.course[r], b.g_heading[fi])
+
+    def _course_predicted(self, fi: IntArray, r: IntArray) -> tuple[FloatArray, FloatArray]:
+        """The course at fixes ``fi`` (rows ``r``) predicted by the yaw rate since the previous
+        fix, less the learnt bias (NaN where stale); where there is none, the antenna's mean
+        velocity's direction. Returns it and that direction (NaN under
+        ``_COURSE_MIN_SPEED_MPS``), shape ``(len(r),)`` each."""
+        st, b = self.st, self.b
         bz = st.cbias[r]
         turn = st.racc[r, RollSum.YAW] - bz * st.acc[r, PitchSum.TIME]
         pred = st.course[r] - turn / np.maximum(np.cos(st.th[r]), 0.5)
@@ -2259,8 +2506,21 @@ class _TiltTrack:
         # none yet: the antenna's mean velocity's direction, the lever arm's swing averaged out
         mean_course = self._course_lowpass(fi, r)
         pred = np.where(np.isfinite(pred), pred, mean_course)
-        course, speed, seen, share = self._course_measured(fi, r, pred)
-        share = self._course_lowpass(fi, r, share)
+        return pred, mean_course
+
+    def _course_pull(
+        self,
+        fi: IntArray,
+        r: IntArray,
+        pred: FloatArray,
+        measured: tuple[FloatArray, FloatArray, BoolArray],
+    ) -> None:
+        """Pull the course ``pred`` at fixes ``fi`` (rows ``r``) to the ``measured`` course of
+        :meth:`_course_measured` (course, speed, seen; :func:`~estimator.tilt.yaw_fix_update`
+        over ``course_tau_s``, weaker below ``_VEL_PITCH_MIN_SPEED_MPS``) and learn its bias."""
+        st, b = self.st, self.b
+        course, speed, seen = measured
+        bz = st.cbias[r]
         tau_cfg = dataclasses.replace(self.cfg, attitude_tau_s=self.cfg.course_tau_s)
         # the interval since the previous fix: the time its IMU samples span
         prev_ns = b.g_t[fi] - np.rint(st.acc[r, PitchSum.TIME] / _NS).astype(np.int64)
@@ -2272,9 +2532,6 @@ class _TiltTrack:
         )
         st.cbias[r] = np.where(seen & (speed >= _VEL_PITCH_MIN_SPEED_MPS), bias, bz)
         st.cfix_ns[r] = np.where(seen, b.g_t[fi], st.cfix_ns[r])
-        used = np.isfinite(st.course[r]) & (share >= _COURSE_LEVER_SHARE)
-        used &= np.isfinite(mean_course)  # O's mean speed at least _COURSE_MIN_SPEED_MPS
-        b.g_heading[fi] = np.where(used, st.course[r], b.g_heading[fi])
 
     def _course_lowpass(
         self, fi: IntArray, r: IntArray, share: FloatArray | None = None
@@ -2397,7 +2654,7 @@ class _TiltTrack:
         )
         rates = np.concatenate([st.acc[r, PitchSum.RATE], st.racc[r, RollSum.RATE]])
         cov = np.stack([st.var[r], st.cov_tb[r], st.var_b[r]], axis=1)
-        angle, cov2, bias2, fix2, known2 = pitch_kf_update(
+        updated = pitch_kf_update(
             np.concatenate([st.th[r], st.ph[r]]),
             np.concatenate([cov, st.rcov[r]]),
             np.concatenate([st.bx[r], st.by[r]]),
@@ -2411,6 +2668,19 @@ class _TiltTrack:
             np.where(np.tile(stood, 2), rates / np.tile(span, 2), np.nan),
             np.concatenate([r_still, r_still]),
         )
+        self._take_update(fi, r, updated)
+
+    def _take_update(
+        self,
+        fi: IntArray,
+        r: IntArray,
+        updated: tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray],
+    ) -> None:
+        """Rows ``r`` take :func:`~estimator.tilt.pitch_kf_update`'s ``updated`` (angle,
+        covariance, bias, fix stamp, known; pitch the first ``len(r)``, roll the last) at
+        fixes ``fi``; the sums restart, the roll after the fix is written to the batch."""
+        st, b = self.st, self.b
+        angle, cov2, bias2, fix2, known2 = updated
         kr = r.shape[0]
         st.th[r], st.ph[r] = angle[:kr], angle[kr:]
         st.var[r] = cov2[:kr, AngleCov.ANGLE]
