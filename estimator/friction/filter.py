@@ -12,7 +12,7 @@ state and covariance handling:
 * :attr:`FrictionMode.PAPER`: the source's filter, ADAPTIVE_CKF with the MEE measurement
   covariance each step (standard step where it is not positive definite).
 * :attr:`FrictionMode.PRODUCT`: state ``[ln μ, g_x,front, g_x,rear, g_y,front, g_y,rear,
-  v_y, e_κ]`` (:class:`ProductState`): per-axle factors on the load-adaptive stiffness instead of
+  v_y]`` (:class:`ProductState`): per-axle factors on the load-adaptive stiffness instead of
   four free stiffnesses each way (three measurements cannot tell eight stiffnesses apart; an
   axle's factor can follow a worn or soft tyre), and the lateral speed as a state: in the
   tyres' linear range a slip-angle error of 10⁻³ rad already moves the lateral force by a
@@ -20,11 +20,9 @@ state and covariance handling:
   found with μ from the same forces (``v̇_y = a_y − r v_x``, GNSS ``v_y`` a weak measurement).
   Two more rows, one per axle, are the open differential's torque balance
   ``(F_L r_L − F_R r_R)/r̄ = 0`` (:mod:`.axle`; weightless where it does not hold).
-  The speed's error, shared by the four κ and correlated over ticks, is the state ``e_κ``
-  (considered: carried, not learnt). The measurement covariance adds the other slips'
-  uncertainty through the model (``R + D Dᵀ``, ``D`` the change of ``h`` for a 1-σ change of
-  each wheel's own κ and of the tyres' relaxation length, which sets the slip angles' lag in
-  a steering ramp); μ's process noise grows
+  The measurement covariance adds the slips' uncertainty through the model (``R + D Dᵀ``,
+  ``D`` the change of ``h`` for a 1-σ change of each wheel's κ and of the tyres' relaxation
+  length, which sets the slip angles' lag in a steering ramp); μ's process noise grows
   while the normalised innovations stay large (a change of ground).
 """
 
@@ -65,9 +63,6 @@ __all__ = [
 ]
 
 MU_MIN, MU_MAX = 0.05, 1.6
-_KAPPA_SHARED_FLOOR = 1e-6
-"""The least 1-σ of the speed's shared κ error (unknown or exact speed): keeps the state's
-covariance positive definite, a thousandth of any slip the filter reads."""
 _GRIP_FLOOR = 0.95
 """The product filter keeps μ at or above this share of the measured ``hypot(a_x, a_y)/g``:
 the tyres cannot have delivered more grip than the ground has (a projection of the mean)."""
@@ -111,15 +106,6 @@ class ProductState(IntEnum):
     GY_REAR = 4
     VY = 5
     """Lateral speed at the CG [m/s]: the slip angles follow from it and the yaw rate."""
-    KAPPA_SHARED = 6
-    """The speed's error as a shift of all four κ at once (``u.kappa_common_std`` its 1-σ):
-    ``κ_h = u.kappa + x[KAPPA_SHARED]`` in ``h``. A first-order Gauss-Markov process,
-    ``e_k = φ e_{k−1} + w``, ``φ = exp(−Δt/τ)``, ``Var w = σ_k² (1 − φ²)`` (``τ`` the config's
-    ``speed_error_corr_s``), so a run of ticks within ``τ`` sees one error, not one per tick.
-    *Considered* (:func:`_gain_mask` holds it at 0): the accelerations tell it only through
-    the tyres' curves, where a κ shift and the grip or the stiffness trade along the same
-    ridge, so learning it would move it with every model error; considered, its covariance
-    with ``ln μ`` and the factors carries what earlier ticks already took from it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,11 +144,7 @@ class FilterConfig:
     (:func:`_considered_centre`; off: with the tyres known to ±3 % only it did not pay,
     ``docs/perf/friction.md``); ``relaxation_rel_std``: the relative 1-σ of the tyres'
     relaxation length (so of the slip angles' lag behind the kinematic ones), carried into the
-    product's measurement covariance (:func:`_input_spread`); ``speed_error_corr_s``: the
-    correlation time of the speed's shared error (:attr:`ProductState.KAPPA_SHARED`): the
-    speed filter corrects its speed at each GNSS fix (10 Hz) with a gain of ~0.3 (GNSS 1-σ
-    0.03 m/s against the accelerometer's walk), so its error's autocorrelation, integrated
-    over the lags of its closed loop, is 0.3 s.
+    product's measurement covariance (:func:`_input_spread`).
     """
 
     mode: FrictionMode = FrictionMode.PRODUCT
@@ -194,7 +176,6 @@ class FilterConfig:
     grip_judged_sigmas: float = 2.0
     central_prediction: bool = False
     relaxation_rel_std: float = 0.5
-    speed_error_corr_s: float = 0.3
 
     @property
     def n_states(self) -> int:
@@ -290,8 +271,6 @@ def initial_state(cfg: FilterConfig, tyres: TyreArrays, fz_n: FloatArray) -> Fil
     if cfg.mode is FrictionMode.PRODUCT:
         x[:, ProductState.VY] = 0.0
         std[:, ProductState.VY] = cfg.vy0_std_mps
-        x[:, ProductState.KAPPA_SHARED] = 0.0
-        std[:, ProductState.KAPPA_SHARED] = _KAPPA_SHARED_FLOOR  # the speed's 1-σ within τ
     x[:, 0] = math.log(cfg.mu0) if cfg.mode is FrictionMode.PRODUCT else cfg.mu0
     std[:, 0] = cfg.ln_mu0_std if cfg.mode is FrictionMode.PRODUCT else cfg.mu0_std
     s = np.zeros((b, x.shape[1], x.shape[1]))
@@ -390,13 +369,11 @@ def _forces(
     alpha: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """Brush forces ``(Fx, Fy)`` ``(B, P, 4)`` at state points ``(B, P, n)`` (source eq. 19-27;
-    the product's slip angles from its ``v_y`` and its κ shifted by the speed's error,
-    ``κ + x[KAPPA_SHARED]``)."""
+    the product's slip angles from its ``v_y``)."""
     mu = mu_of(points[..., :1], cfg.mode)
     cx, cy = _stiffness_of(points, cfg, tyres, u.fz_n)
     if cfg.mode is FrictionMode.PRODUCT:
         alpha = _slip_angles(points[..., ProductState.VY], u, chassis)
-        kappa = kappa + points[..., ProductState.KAPPA_SHARED, None]
     return brush_forces(kappa, alpha, u.fz_n[:, None, :], mu, cx, cy)
 
 
@@ -452,26 +429,27 @@ def _measured(cfg: FilterConfig, u: TickInputs) -> FloatArray:
 def _input_spread(
     x: FloatArray, cfg: FilterConfig, tyres: TyreArrays, chassis: Chassis, u: TickInputs
 ) -> FloatArray:
-    """``D`` ``(B, m, 5)``: the change of ``h`` at the mean for a 1-σ change of each wheel's
-    own κ error and (paper modes) of the shared one (the speed's: all four κ at once; the slip
-    angles follow from the state). A shared error shifts the driven and the free-rolling
-    wheels alike, so it is not read as a driven tyre's slip. The product carries the shared
-    error as a state (:attr:`ProductState.KAPPA_SHARED`, correlated from tick to tick), so its
-    fifth column is instead the relaxation length's: the lag of the relaxed slip angles behind
-    the kinematic ones (``u.alpha_lag_rad``) is proportional to it while the slip moves
-    (``τ = σ/v`` short against the change), and the tyres' own is the config's ×0.75-1.75 at
-    best, so the lag of all four wheels scaled by ``1 + relaxation_rel_std``."""
-    product = cfg.mode is FrictionMode.PRODUCT
-    columns = [np.eye(4)[None] * u.kappa_std[:, :, None]]
-    if not product:
-        columns.append(np.ones((1, 1, 4)) * u.kappa_common_std[:, None, None])
-    shifts = np.concatenate(columns, axis=1)
+    """``D`` ``(B, m, 5)`` (product ``(B, m, 6)``): the change of ``h`` at the mean for a 1-σ
+    change of each wheel's own κ error and of the shared one (the speed's: all four κ at once;
+    the slip angles follow from the state). A shared error shifts the driven and the
+    free-rolling wheels alike, so it is not read as a driven tyre's slip. The product's sixth
+    column is the relaxation length's: the lag of the relaxed slip angles behind the kinematic
+    ones (``u.alpha_lag_rad``) is proportional to it while the slip moves (``τ = σ/v`` short
+    against the change), and the tyres' own is the config's ×0.75-1.75 at best, so the lag of
+    all four wheels scaled by ``1 + relaxation_rel_std``."""
+    shifts = np.concatenate(
+        [
+            np.eye(4)[None] * u.kappa_std[:, :, None],
+            np.ones((1, 1, 4)) * u.kappa_common_std[:, None, None],
+        ],
+        axis=1,
+    )
     kappa = u.kappa[:, None, :] + shifts
     mean = x[:, None, :]
     alpha = u.alpha_rad[:, None, :]
     base = _measure(mean, cfg, tyres, chassis, u, u.kappa[:, None, :], alpha)
     d = _measure(mean, cfg, tyres, chassis, u, kappa, alpha) - base
-    if product and cfg.relaxation_rel_std > 0:
+    if cfg.mode is FrictionMode.PRODUCT and cfg.relaxation_rel_std > 0:
         longer = replace(u, alpha_lag_rad=u.alpha_lag_rad * (1 + cfg.relaxation_rel_std))
         lag = _measure(mean, cfg, tyres, chassis, longer, u.kappa[:, None, :], alpha) - base
         d = np.concatenate([d, lag], axis=1)
@@ -493,9 +471,6 @@ def _predict(
         walk[:, 0] = cfg.ln_mu_walk_per_sqrt_s * sqrt_dt * boost
         walk[:, ProductState.VY] = cfg.vy_walk_mps_per_sqrt_s * sqrt_dt
         scale = np.ones((b, n))
-        scale[:, ProductState.KAPPA_SHARED], walk[:, ProductState.KAPPA_SHARED] = (
-            _shared_kappa_step(cfg, u)
-        )
         shift = np.zeros((b, n))
         shift[:, ProductState.VY] = (u.z[:, 1] - u.yaw_rate_radps * u.vx_mps) * cfg.tick_s
     else:
@@ -513,15 +488,6 @@ def _predict(
     idx = np.arange(n)
     sq_q[:, idx, idx] = walk
     return sckf_predict(st.x, st.s, lambda p: p * scale[:, None, :] + shift[:, None, :], sq_q)
-
-
-def _shared_kappa_step(cfg: FilterConfig, u: TickInputs) -> tuple[float, FloatArray]:
-    """The speed's shared κ error's Gauss-Markov step: ``φ = exp(−Δt/τ)`` and the 1-σ of its
-    new part ``σ √(1 − φ²)`` ``(B,)`` (``σ`` = ``u.kappa_common_std``, at least
-    ``_KAPPA_SHARED_FLOOR``), which holds the stationary variance at ``σ²``."""
-    phi = math.exp(-cfg.tick_s / cfg.speed_error_corr_s)
-    sigma = np.maximum(np.nan_to_num(u.kappa_common_std, nan=0.0, posinf=0.0), _KAPPA_SHARED_FLOOR)
-    return phi, sigma * math.sqrt(1.0 - phi * phi)
 
 
 def filter_step(
@@ -611,8 +577,7 @@ def _gain_mask(
     the mean: a μ pulled low by a slip bias finds every tyre at its limit, where
     ``F = μ F_z`` fits any slip and the curve is flat in the slips, so a gate judged there
     confirms the pull (and the saturated fit shrinks μ's σ). At the far end the tyres are
-    non-linear only where the slips themselves are large enough. The speed's shared κ error
-    is always considered (:attr:`ProductState.KAPPA_SHARED`)."""
+    non-linear only where the slips themselves are large enough."""
     mu = mu_of(x[:, :1], cfg.mode)
     cx, cy = _stiffness_of(x[:, None, :], cfg, tyres, u.fz_n)
     fx, fy = brush_forces(u.kappa, u.alpha_rad, u.fz_n, mu, cx[:, 0], cy[:, 0])
@@ -629,7 +594,6 @@ def _gain_mask(
         mask[:, gx] = linear & (kappa[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
         mask[:, gy] = linear & (alpha[:, axle].max(axis=1) >= cfg.learn_excite_sigmas)
     mask[:, ProductState.LN_MU] = _mu_may_learn(x, s, cfg, (cx[:, 0], cy[:, 0]), u)
-    mask[:, ProductState.KAPPA_SHARED] = 0.0
     return mask
 
 

@@ -313,30 +313,24 @@ def test_gain_mask_learns_each_state_where_it_is_told_apart() -> None:
 
 
 def test_the_speed_error_moves_the_four_slips_together() -> None:
-    """The shared κ state (the speed's error) shifts all four wheels' κ in ``h``: its change
-    of ``h`` is the per-wheel columns of ``D`` summed and scaled (the model is near linear at
-    small slip), and the product's ``D`` no longer carries it as a white column."""
+    """``D``'s last column (the shared κ error, one speed error over all four wheels) is the
+    per-wheel columns' sum scaled to its 1-σ (the model is near linear at small slip), and it
+    adds no spread where it is zero."""
     ticks, chassis, tyres = _model_inputs(0.6, 1, seed=3)
     cfg = FilterConfig()
     st = initial_state(cfg, tyres, ticks[0].fz_n)
     own = np.full((1, 4), 1e-6)
     u = dataclasses.replace(ticks[0], kappa_std=own, kappa_common_std=np.array([2e-6]))
     d = _input_spread(st.x, cfg, tyres, chassis, u)
-    assert d.shape == (1, 6, 5)  # a_x, a_y, ṙ, v_y, the two balances; own κ ×4, relaxation
-    shifted = st.x.copy()
-    shifted[:, ProductState.KAPPA_SHARED] = 2e-6
-    kappa, alpha = u.kappa[:, None, :], u.alpha_rad[:, None, :]
-    moved = _measure(shifted[:, None, :], cfg, tyres, chassis, u, kappa, alpha)
-    moved = moved - _measure(st.x[:, None, :], cfg, tyres, chassis, u, kappa, alpha)
-    np.testing.assert_allclose(moved[:, 0], 2.0 * d[..., :4].sum(axis=-1), rtol=1e-3, atol=1e-12)
-    assert np.abs(moved[0, 0, 0]) > 0
-    paper = FilterConfig(mode=FrictionMode.PAPER)
-    paper_st = initial_state(paper, tyres, ticks[0].fz_n)
-    assert _input_spread(paper_st.x, paper, tyres, chassis, u).shape == (1, 3, 5)
+    assert d.shape == (1, 6, 6)  # a_x, a_y, ṙ, v_y and the two axles' torque balances
+    np.testing.assert_allclose(d[..., 4], 2.0 * d[..., :4].sum(axis=-1), rtol=1e-3, atol=1e-12)
+    assert np.abs(d[0, 0, 4]) > 0
+    quiet = dataclasses.replace(u, kappa_common_std=np.zeros(1))
+    assert np.all(_input_spread(st.x, cfg, tyres, chassis, quiet)[..., 4] == 0)
 
 
 def test_the_relaxation_length_spreads_a_lagging_slip_angle() -> None:
-    """``D``'s last column is the change of ``h`` when the four wheels' α lag grows by
+    """``D``'s sixth column is the change of ``h`` when the four wheels' α lag grows by
     ``relaxation_rel_std`` (the tyres' relaxation length is the config's ×0.75-1.75), zero
     without a lag; a tick whose ``a_y`` is what the 1.5× longer lag gives (a tyre relaxing
     more slowly than the config says, in a steering ramp) moves ``v_y`` less than with the
@@ -350,10 +344,10 @@ def test_the_relaxation_length_spreads_a_lagging_slip_angle() -> None:
     z_longer = _measure(mean, cfg, tyres, chassis, longer, kappa, alpha)[:, 0]
     expect = z_longer - _measure(mean, cfg, tyres, chassis, u, kappa, alpha)[:, 0]
     d = _input_spread(st.x, cfg, tyres, chassis, u)
-    np.testing.assert_allclose(d[..., 4], expect, rtol=1e-12, atol=1e-12)
-    assert abs(d[0, 1, 4]) > 0.1  # m/s²: 1.5e-3 rad on four tyres of ~80 kN/rad, 2,500 kg
+    np.testing.assert_allclose(d[..., 5], expect, rtol=1e-12, atol=1e-12)
+    assert abs(d[0, 1, 5]) > 0.1  # m/s²: 1.5e-3 rad on four tyres of ~80 kN/rad, 2,500 kg
     still = dataclasses.replace(u, alpha_lag_rad=np.zeros((1, 4)))
-    assert np.all(_input_spread(st.x, cfg, tyres, chassis, still)[..., 4] == 0)
+    assert np.all(_input_spread(st.x, cfg, tyres, chassis, still)[..., 5] == 0)
     z = u.z.copy()
     z[:, :3] = z_longer[:, :3]
     slower = dataclasses.replace(u, z=z)
