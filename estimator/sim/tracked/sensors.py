@@ -434,8 +434,7 @@ def emissions(
     tilt_bias = _tilt_bias(extra_rng, walk_rng, t.size, spec)
     accel, gyro = _imu(truth, cfg, err, spec, rng, tilt_bias)
     out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng, jitter_rng)
-    out += _odometer_packets(truth, cfg, spec, err, rng, windows)
-    out += _sprocket_packets(truth, cfg, spec, err, rng, windows)
+    out += _edge_packets(truth, cfg, spec, err, rng, windows)
     stamps = _stamps(start_ns, t)
     for j, key in enumerate(windows[2]):
         sl = slice(j * _WINDOW + 1, (j + 1) * _WINDOW + 1)
@@ -461,7 +460,7 @@ def _tilt_bias(
     return tilt_bias
 
 
-def _odometer_packets(
+def _edge_packets(
     truth: CrawlerTruth,
     cfg: TrackedConfig,
     spec: CrawlerSensors,
@@ -469,39 +468,29 @@ def _odometer_packets(
     rng: np.random.Generator,
     windows: tuple[int, FloatArray, list[int]],
 ) -> list[tuple[int, Measurement]]:
-    """The odometer's edges, one packet per window (``windows``: start ns, window ends s
-    ``(w,)``, their keys ns), stamped on its clock; tooth errors, then jitter, from ``rng``."""
+    """The odometer's edges, then each sprocket's (left, right), one packet per window
+    (``windows``: start ns, window ends s ``(w,)``, their keys ns), each stream stamped on its
+    clock; per stream its tooth errors, then its edges' jitter, from ``rng``."""
     start_ns, ends, ends_ns = windows
+    dt = 1.0 / RATE_HZ
     odo_err = spec.odometer_tooth_error * rng.standard_normal(spec.odometer_teeth)
     odo_t = _edge_times(
         truth.t_s,
-        cumtrapz(truth.gearbox_mps, 1.0 / RATE_HZ),
+        cumtrapz(truth.gearbox_mps, dt),
         cfg.odometer.distance_per_edge_m * err.kd_scale,
         odo_err,
         rng,
         spec.edge_jitter_s,
     )
     odo_t = odo_t + spec.odometer_clock_offset_s
-    parts = zip(ends_ns, _packets(odo_t, ends), strict=True)
-    return [(key, OdometerEdges(_stamps(start_ns, part))) for key, part in parts]
-
-
-def _sprocket_packets(
-    truth: CrawlerTruth,
-    cfg: TrackedConfig,
-    spec: CrawlerSensors,
-    err: SensorErrors,
-    rng: np.random.Generator,
-    windows: tuple[int, FloatArray, list[int]],
-) -> list[tuple[int, Measurement]]:
-    """Each sprocket's edges in turn (left, right), as :func:`_odometer_packets`."""
-    start_ns, ends, ends_ns = windows
     out: list[tuple[int, Measurement]] = []
+    for key, part in zip(ends_ns, _packets(odo_t, ends), strict=True):
+        out.append((key, OdometerEdges(_stamps(start_ns, part))))
     pitch = 2.0 * np.pi * cfg.sprocket.pitch_radius_m * err.sprocket_scale
     pitch /= cfg.sprocket.teeth_per_rev
     for side in TrackSide:
         tooth = spec.sprocket_tooth_error * rng.standard_normal(cfg.sprocket.teeth_per_rev)
-        dist = cumtrapz(truth.sprocket_mps[:, int(side)], 1.0 / RATE_HZ)
+        dist = cumtrapz(truth.sprocket_mps[:, int(side)], dt)
         edge_t = _edge_times(truth.t_s, dist, pitch, tooth, rng, spec.edge_jitter_s)
         edge_t = edge_t + spec.sprocket_clock_offset_s
         for key, part in zip(ends_ns, _packets(edge_t, ends), strict=True):
