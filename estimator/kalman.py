@@ -24,7 +24,7 @@ from typing import cast
 import numpy as np
 import numpy.typing as npt
 
-from estimator._arrays import BoolArray, FloatArray
+from estimator._arrays import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "IndependentUpdateResult",
@@ -265,8 +265,10 @@ def _row_terms(
     x: FloatArray, P: FloatArray, h: FloatArray, state: int | None
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``(P·hᵀ (N, n), h·P·hᵀ (N,), h·x (N,))`` of one observation row ``h`` (N, n); for a
-    unit row (``state``: the state it measures) read off ``P`` and ``x``. ``P·hᵀ`` is then a
-    view of ``P``: use it before ``P`` changes."""
+    unit row (``state``: the state it measures) read off ``P`` and ``x``, the same numbers
+    without the product and its sums (a non-finite ``P`` or ``x`` then stays non-finite where
+    it was, instead of spreading through the row). ``P·hᵀ`` is then a view of ``P``: use it
+    before ``P`` changes."""
     if state is None:
         Ph = (P @ h[:, :, None])[:, :, 0]
         return Ph, (h * Ph).sum(axis=1), (h * x).sum(axis=1)
@@ -287,26 +289,15 @@ def update_independent(
     """Measurement update for rows with independent noises (diagonal ``R``), one row at a time.
 
     With ``R`` diagonal the joint update of :func:`update` equals the rows applied one after
-    the other, each a scalar update of the previous row's posterior (the same ``x⁺`` and
-    ``P⁺`` up to rounding, and the rows' ``y_j²/s_j`` add up to the joint ``yᵀ·S⁻¹·y``). For
-    row ``j`` with ``h = H_j``:
-
-        s = h·P·hᵀ + r_j           k = P·hᵀ / s           x⁺ = x + k·(z_j − h·x)
-        M = P·(I − k·h)ᵀ = P − (P·hᵀ)·kᵀ
-        P⁺ = (I − k·h)·M + r_j·k·kᵀ = M − k·(h·M) + r_j·k·kᵀ
-
-    (Joseph form, applied as two rank-one products so that ``I − k·h`` acts on the rounded
-    ``M``: a row far more precise than its prior, ``r_j ≪ h·P·hᵀ``, keeps ``P⁺`` positive
-    definite, where the expanded ``P − (P·hᵀ)·(P·hᵀ)ᵀ/s`` cancels to the rounding of ``P``).
-    No ``m × m`` solve, so it is cheaper than :func:`update` when few rows are active
-    (``docs/perf/estimator.md``).
+    the other, each a scalar update of the previous row's posterior (:func:`_apply_row`: the
+    Joseph form as two rank-one products), with the same ``x⁺`` and ``P⁺`` up to rounding and
+    the rows' ``y_j²/s_j`` adding up to the joint ``yᵀ·S⁻¹·y``. No ``m × m`` solve, so it is
+    cheaper than :func:`update` when few rows are active (``docs/perf/estimator.md``).
 
     Parameters
     ----------
-    x : ndarray, shape (N, n)
-        Prior states.
-    P : ndarray, shape (N, n, n)
-        Prior covariances.
+    x, P : ndarray, shape (N, n) and (N, n, n)
+        Prior states and covariances.
     z : ndarray, shape (N, m)
         Measurements; values on masked rows are ignored (they may be NaN).
     H : ndarray, shape (m, n) or (N, m, n)
@@ -319,18 +310,32 @@ def update_independent(
         The rows to apply (default: every row); a row left out is treated as masked.
     unit : mapping of int to int, optional
         Rows ``j`` whose ``H`` row is the unit vector of state ``unit[j]`` for every item (a
-        state measured directly): ``P·hᵀ`` is that column of ``P`` and ``h·x`` that state, the
-        same numbers without the product and its sums (a non-finite ``P`` or ``x`` then stays
-        non-finite where it was, instead of spreading through the row).
+        state measured directly; :func:`_row_terms`).
 
     Returns
     -------
     IndependentUpdateResult
     """
-    n_batch = x.shape[0]
-    Hb = _batched(H, n_batch, 2)
+    Hb = _batched(H, x.shape[0], 2)
     x = np.array(x, dtype=np.float64)
     P = np.array(P, dtype=np.float64)
+    nis, dof = _apply_rows(x, P, Hb, z, r, mask, rows, unit)
+    return IndependentUpdateResult(x=x, P=P, nis=nis, dof=dof)
+
+
+def _apply_rows(
+    x: FloatArray,
+    P: FloatArray,
+    Hb: FloatArray,
+    z: FloatArray,
+    r: FloatArray,
+    mask: BoolArray,
+    rows: tuple[int, ...] | None,
+    unit: Mapping[int, int] | None,
+) -> tuple[FloatArray, IntArray]:
+    """Rows ``rows`` (all of ``Hb``'s ``m`` if None) of :func:`update_independent` in turn into
+    ``x`` ``(N, n)`` and ``P`` ``(N, n, n)`` in place; ``(nis (N,), dof (N,))``."""
+    n_batch = x.shape[0]
     nis = np.zeros(n_batch)
     dof = np.zeros(n_batch, dtype=np.int64)
     for j in range(Hb.shape[1]) if rows is None else rows:
@@ -342,7 +347,7 @@ def update_independent(
         y, inv = _apply_row(x, P, Hb[:, j, :], z[:, j], r[:, j], active, every, h_unit)
         nis += y * y * inv
         dof += active
-    return IndependentUpdateResult(x=x, P=P, nis=nis, dof=dof)
+    return nis, dof
 
 
 def _apply_row(
@@ -355,7 +360,18 @@ def _apply_row(
     every: bool,
     h_unit: int | None,
 ) -> tuple[FloatArray, FloatArray]:
-    """One scalar row of :func:`update_independent` into ``x`` and ``P`` in place; ``(y, 1/s)``."""
+    """One scalar row of :func:`update_independent` into ``x`` and ``P`` in place; ``(y, 1/s)``.
+
+    For the row ``h = H_j`` ``(N, n)`` of noise ``r_j`` ``(N,)``:
+
+        s = h·P·hᵀ + r_j           k = P·hᵀ / s           x⁺ = x + k·(z_j − h·x)
+        M = P·(I − k·h)ᵀ = P − (P·hᵀ)·kᵀ
+        P⁺ = (I − k·h)·M + r_j·k·kᵀ = M − k·(h·M) + r_j·k·kᵀ
+
+    (Joseph form, applied as two rank-one products so that ``I − k·h`` acts on the rounded
+    ``M``: a row far more precise than its prior, ``r_j ≪ h·P·hᵀ``, keeps ``P⁺`` positive
+    definite, where the expanded ``P − (P·hᵀ)·(P·hᵀ)ᵀ/s`` cancels to the rounding of ``P``).
+    """
     Ph, s, y = _row_terms(x, P, h, h_unit)
     s = s + r_j
     y = z_j - y
@@ -367,7 +383,7 @@ def _apply_row(
     k = Ph * inv[:, None]
     x += k * y[:, None]
     r_k = r_j if every else np.where(active, r_j, 0.0)  # an inert row adds nothing
-    # Joseph form in two rank-one steps (docstring of update_independent); an inert row's
+    # Joseph form in two rank-one steps (the docstring); an inert row's
     # k = 0 leaves P as it was, bit for bit
     M = P - np.einsum("ni,nj->nij", Ph, k)  # P·(I − k·h)ᵀ (Ph is read before P changes)
     hM = M[:, h_unit, :] if h_unit is not None else (h[:, None, :] @ M)[:, 0, :]

@@ -267,9 +267,11 @@ def _standstill_bias_update(
     rate_var: FloatArray,
     gate_chi2: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The standstill update of :func:`pitch_kf_update`: standing, the gyro reads its bias,
-    ``z = b + noise`` (``H = [0, 1]``), chi-square gated; ``state`` is ``(θ, b, P_θθ, P_θb,
-    P_bb)``, each ``(k,)``, returned updated where ``rate_radps`` is finite."""
+    """The standstill update of :func:`pitch_kf_update`: when the vehicle stood through the
+    interval (the caller passes the interval's mean pitch rate ``rate_radps`` and its variance,
+    NaN otherwise) the body did not rotate, so the gyro read its bias, ``z = b + noise`` (``H =
+    [0, 1]``), chi-square gated; ``state`` is ``(θ, b, P_θθ, P_θb, P_bb)``, each ``(k,)``,
+    returned updated where ``rate_radps`` is finite."""
     theta, bias, ptt, ptb, pbb = state
     with np.errstate(invalid="ignore"):
         s = pbb + rate_var
@@ -301,60 +303,36 @@ def pitch_kf_update(
     still_rate_radps: FloatArray | None = None,
     still_rate_var: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray]:
-    """Pitch and pitch-gyro bias ``[θ, b_x]`` as a Kalman filter, at one fix per vehicle.
+    """Pitch and pitch-gyro bias ``[θ, b_x]`` as a Kalman filter, at one fix per vehicle;
+    returns ``(theta_rad, cov, bias_radps, fix_ns, known)`` after the fix.
 
-    Product mode (``method.md`` §1, gravity removal): between fixes the pitch is the pitch rate
-    integrated with the bias in force, so its error grows as ``δθ' = δθ − T·δb`` plus the
-    gyro's angle noise over the interval (``angle_walk_rad2``, summed over the samples by the
-    caller); the bias is a random walk (``gyro_bias_walk_radps_per_sqrt_s``). At the fix, in
-    this order:
-
-    * a *standstill* update of the bias: when the vehicle stood through the interval (the
-      caller passes the interval's mean pitch rate ``still_rate_radps`` and its variance, NaN
-      otherwise) the body did not rotate, so the gyro read its bias; chi-square gated;
-    * the GNSS pitch ``p`` of variance ``R`` (``pitch_var_rad2``, default ``pitch_std_rad²``).
-
-    The gains follow from the variances, so the pitch averages the receiver's pitch over as
-    long as the gyro holds it (seconds with a known bias) instead of a fixed time constant:
-    the gravity that leaks through the pitch error (``g·δθ``) then varies slowly, where the
-    speed filter's accelerometer-bias state and the RTK distance take it up. The first fix sets
-    ``θ = p`` (variance ``R``, bias variance ``gyro_bias_std_radps²``).
+    Product mode (``method.md`` §1, gravity removal): the pitch rate integrated with the bias
+    in force between fixes (:func:`_pitch_prior_cov`); at the fix a standstill update of the
+    bias, then the GNSS pitch of variance ``pitch_var_rad2`` (default ``pitch_std_rad²``;
+    :func:`_fix_updates`). The gains follow from the variances: the pitch averages the
+    receiver's over as long as the gyro holds it, so the gravity leaking through its error
+    (``g·δθ``) varies slowly, for the speed filter's accelerometer bias and RTK distance.
 
     Parameters
     ----------
-    theta_rad, bias_radps : ndarray, shape (k,)
-        Pitch integrated up to the fix, and the bias in force.
-    cov : ndarray, shape (k, 3)
-        Covariance ``[P_θθ, P_θb, P_bb]``.
-    fix_ns : ndarray, shape (k,), int
-        Time of the previous fix of each track.
-    known : ndarray, shape (k,), bool
-        The track has had a pitch.
+    theta_rad, bias_radps, cov : ndarray, shape (k,), (k,), (k, 3)
+        Pitch integrated up to the fix, the bias in force, covariance ``[P_θθ, P_θb, P_bb]``.
+    fix_ns, stamp_ns, known : ndarray, shape (k,), int, int, bool
+        Time of the previous fix of each track, of this one; the track has had a pitch.
     pitch_gnss_rad : ndarray, shape (k,)
         Measured pitch; NaN: no pitch update (the standstill update still applies).
-    stamp_ns : ndarray, shape (k,), int
     angle_walk_rad2 : ndarray, shape (k,), optional
         Variance the integrated rate's noise added since the previous fix.
     still_rate_radps, still_rate_var : ndarray, shape (k,), optional
         Standstill rate measurement of the bias and its variance (NaN: not standing).
-
-    Returns
-    -------
-    (theta_rad, cov, bias_radps, fix_ns, known)
     """
     k = theta_rad.shape[0]
     r2 = np.full(k, config.pitch_std_rad**2) if pitch_var_rad2 is None else pitch_var_rad2
-    q_ang = np.zeros(k) if angle_walk_rad2 is None else angle_walk_rad2
-    gap = np.where(known, np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 0.0)
-    ptt, ptb, pbb = _propagate_angle_cov(cov, gap, q_ang, config.gyro_bias_walk_radps_per_sqrt_s**2)
-    theta, bias = theta_rad.copy(), bias_radps.copy()
-    if still_rate_radps is not None and still_rate_var is not None:
-        theta, bias, ptt, ptb, pbb = _standstill_bias_update(
-            (theta, bias, ptt, ptb, pbb), known, still_rate_radps, still_rate_var, config.gate_chi2
-        )
+    prior = _pitch_prior_cov(cov, fix_ns, known, stamp_ns, config, angle_walk_rad2)
     has = np.isfinite(pitch_gnss_rad)
-    theta, bias, out = _pitch_measurement_update(
-        (theta, bias, ptt, ptb, pbb), has & ~known, has & known, pitch_gnss_rad, r2, config
+    still = (still_rate_radps, still_rate_var)
+    theta, bias, out = _fix_updates(
+        (theta_rad, bias_radps, *prior), known, has, pitch_gnss_rad, r2, config, still
     )
     return theta, out, bias, np.where(has | known, stamp_ns, fix_ns), known | has
 
@@ -367,6 +345,47 @@ def angle_var_after(
     plus the bias walk's ``q_b·T³/3`` (the gyro's white angle noise left out: small beside the
     bias's growth). Shape (k,) [rad²]."""
     return _propagate_angle_cov(cov, gap_s, np.zeros_like(gap_s), bias_walk_radps_per_sqrt_s**2)[0]
+
+
+def _pitch_prior_cov(
+    cov: FloatArray,
+    fix_ns: IntArray,
+    known: BoolArray,
+    stamp_ns: IntArray,
+    config: TiltSettings,
+    angle_walk_rad2: FloatArray | None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(P_θθ, P_θb, P_bb)``, each ``(k,)``, carried from the previous fix to ``stamp_ns``: the
+    pitch error grows as ``δθ' = δθ − T·δb`` plus the gyro's angle noise over the interval
+    (``angle_walk_rad2``, summed over the samples by the caller; 0 if None), the bias is a
+    random walk (``gyro_bias_walk_radps_per_sqrt_s``); no growth before a track's first fix."""
+    q_ang = np.zeros(cov.shape[0]) if angle_walk_rad2 is None else angle_walk_rad2
+    gap = np.where(known, np.maximum((stamp_ns - fix_ns) * _NS, 0.0), 0.0)
+    return _propagate_angle_cov(cov, gap, q_ang, config.gyro_bias_walk_radps_per_sqrt_s**2)
+
+
+def _fix_updates(
+    state: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
+    known: BoolArray,
+    has: BoolArray,
+    pitch_gnss_rad: FloatArray,
+    r2: FloatArray,
+    config: TiltSettings,
+    still: tuple[FloatArray | None, FloatArray | None],
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The updates at a fix of :func:`pitch_kf_update`, on the prior ``state`` ``(θ, b, P_θθ,
+    P_θb, P_bb)``, each ``(k,)``: the standstill one (``still``: rate and variance, each
+    ``(k,)``, if given), then the pitch where ``has``; ``(θ, b, cov (k, 3))``."""
+    theta, bias, ptt, ptb, pbb = state
+    theta, bias = theta.copy(), bias.copy()
+    still_rate_radps, still_rate_var = still
+    if still_rate_radps is not None and still_rate_var is not None:
+        theta, bias, ptt, ptb, pbb = _standstill_bias_update(
+            (theta, bias, ptt, ptb, pbb), known, still_rate_radps, still_rate_var, config.gate_chi2
+        )
+    return _pitch_measurement_update(
+        (theta, bias, ptt, ptb, pbb), has & ~known, has & known, pitch_gnss_rad, r2, config
+    )
 
 
 def _propagate_angle_cov(
@@ -388,7 +407,9 @@ def _pitch_measurement_update(
     r2: FloatArray,
     config: TiltSettings,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The pitch ``z = θ + noise`` (``H = [1, 0]``): set on ``first``, update on ``follow``."""
+    """The pitch ``z = θ + noise`` (``H = [1, 0]``), each array ``(k,)``: update on ``follow``;
+    set on ``first`` (a track's first fix: ``θ = p``, variance ``R``, bias variance
+    ``gyro_bias_std_radps²``); ``(θ, b, cov (k, 3))``."""
     theta, bias, ptt, ptb, pbb = state
     s = np.where(follow, ptt + r2, 1.0)
     y = np.where(follow, pitch_gnss_rad - theta, 0.0)

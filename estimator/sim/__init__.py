@@ -334,25 +334,52 @@ def simulate(
     ValueError
         Inconsistent settings (rates, a wheel rolling backwards).
     """
+    scenario, cfg, params, spec, common = _setup(name, config, overrides)
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    r_plan, r_truth, r_gnss, r_imu, r_wheel = rng.spawn(5)
+    fine = _fine_truth(scenario.build(params, r_plan), spec, cfg, r_truth)
+    frame = _origin_frame(common)
+    span = (start_ns, start_ns + round(fine.t_s[-1] * 1e9))
+    emitted = _sensor_emissions(fine, spec, cfg, frame, span, (r_gnss, r_imu, r_wheel))
+    return _sim_run(name, params, (spec, cfg), fine, frame, span, emitted)
+
+
+def _setup(
+    name: str, config: WheeledRearDriveConfig | None, overrides: Mapping[str, Any]
+) -> tuple[Scenario, WheeledRearDriveConfig, dict[str, Any], SensorSpec, dict[str, Any]]:
+    """:func:`simulate`'s scenario, vehicle, parameters, sensors and origin settings."""
     if name not in SCENARIOS:
         raise KeyError(f"unknown scenario {name!r}; known: {scenario_names()}")
     scenario = SCENARIOS[name]
     cfg = config if config is not None else WheeledRearDriveConfig()
     params, sensor_kw, common = _resolve(scenario, overrides)
-    spec = SensorSpec(**sensor_kw)
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    r_plan, r_truth, r_gnss, r_imu, r_wheel = rng.spawn(5)
+    return scenario, cfg, params, SensorSpec(**sensor_kw), common
 
-    fine = _fine_truth(scenario.build(params, r_plan), spec, cfg, r_truth)
-    frame = EnuFrame(
+
+def _origin_frame(common: Mapping[str, Any]) -> EnuFrame:
+    """The run's ENU frame at its origin (``origin_lat_deg``, ``origin_lon_deg``,
+    ``origin_height_m``)."""
+    return EnuFrame(
         float(common["origin_lat_deg"]),
         float(common["origin_lon_deg"]),
         float(common["origin_height_m"]),
     )
-    end_ns = start_ns + round(fine.t_s[-1] * 1e9)
-    emissions, heartbeats = _sensor_emissions(
-        fine, spec, cfg, frame, (start_ns, end_ns), (r_gnss, r_imu, r_wheel)
-    )
+
+
+def _sim_run(
+    name: str,
+    params: Mapping[str, Any],
+    sensors: tuple[SensorSpec, WheeledRearDriveConfig],
+    fine: FineTruth,
+    frame: EnuFrame,
+    span: tuple[int, int],
+    emitted: tuple[list[Emission], npt.NDArray[np.int64]],
+) -> SimRun:
+    """The :class:`SimRun` of the emitted packets (and heartbeats ``(k, 2)``) over ``span``
+    (start, end ns), its truth table from the fine grid ``fine``."""
+    spec, cfg = sensors
+    start_ns, end_ns = span
+    emissions, heartbeats = emitted
     truth = _truth_table(fine, spec, cfg, start_ns)
     return SimRun(
         name=name,

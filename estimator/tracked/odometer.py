@@ -191,41 +191,108 @@ def odometer_measurement(
     std = cfg.odometer_std_mps + cfg.odometer_std_per_mps * np.abs(odometer_mps)
     std = std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2)  # slip while the hull catches up
     if cfg.mode == TrackedMode.PRODUCT:
-        f_idx = _FACTOR_INDEX[state]
-        rows = np.arange(k)
-        offset = _OFFSET[state]
         theta = np.zeros(k) if tightness is None else tightness
-        scale = np.where(_BY_TIGHTNESS[state], -theta, 1.0)  # F_turn = F_straight − c·θ
-        patch = x[:, S.GROUND_PATCH]
-        factor = x[rows, f_idx] * scale + np.where(offset, x[:, S.F_STRAIGHT], 0.0) + patch
-        gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
-        turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
-        lag = x[:, S.ACCEL_LAG] * accel_mps2
-        traction = 1.0 - x[:, S.ACCEL_SLIP] * pull
-        ground = v - accel_mps2 * lag_s + lag + turn
-        h = gear * ground / (factor * traction)
-        H[:, 0, S.SPEED] = gear / (factor * traction)
-        H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
-        H[:, 0, S.ACCEL_SLIP] = h * pull / traction
-        H[rows, 0, f_idx] = -h / factor * scale
-        H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)
-        H[:, 0, S.GROUND_PATCH] = -h / factor
-        corrected = odometer_mps * factor * traction / gear - turn - lag
+        motion = (lag_s, accel_mps2, yaw_rate_radps, pull)
+        h, corrected = _product_row(p, x, state, H, odometer_mps, motion, theta)
         mask = valid & (state != int(M.HEADING_JUMP)) & (state != int(M.STOP))
-        pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)
-        std = np.where(
-            state == int(M.PIVOT), pivot_std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2), std
-        )
+        std = _pivot_std(cfg, state, odometer_mps, accel_mps2, std)
         innovation = odometer_mps - h
     else:
-        if cfg.mode == TrackedMode.RAW_ODOMETER:
-            ratio = np.ones(k)
-        else:
-            ratio = paper_ratio(state, turn_radius_m(v, yaw_rate_radps), p)
-        corrected = ratio * odometer_mps
+        corrected = _paper_ratio(cfg, p, state, v, yaw_rate_radps) * odometer_mps
         H[:, 0, S.SPEED] = 1.0
         mask = valid & np.isfinite(corrected)
         innovation = corrected - v
     R = (std**2)[:, None, None]
     innovation = np.where(mask, innovation, 0.0)[:, None]
     return innovation, H, R, mask, np.where(mask, corrected, np.nan)
+
+
+def _product_row(
+    p: VehicleParams,
+    x: FloatArray,
+    state: IntArray,
+    H: FloatArray,
+    odometer_mps: FloatArray,
+    motion: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+    theta: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Product mode's predicted odometer ``h = gear·(V − a·lag_s + c_lag·a + turn) /
+    (F·(1 − c_slip·pull))`` ``(k,)``, its row of ``H`` ``(k, 1, n)`` (filled in place), and
+    the odometer's corrected forward speed ``(k,)``; ``motion`` is ``(lag_s, accel_mps2,
+    yaw_rate_radps, pull)``, each ``(k,)``, ``theta`` the turn's tightness ``(k,)``."""
+    lag_s, accel_mps2, yaw_rate_radps, pull = motion
+    track = _track_factor(x, state, theta)
+    factor = track[3]
+    gear = np.where(state == int(M.LOW_STRAIGHT), p.low_gear_ratio, 1.0)
+    turn = np.where(_TURNING[state], 0.5 * p.gauge_m * np.abs(yaw_rate_radps), 0.0)
+    lag = x[:, S.ACCEL_LAG] * accel_mps2
+    traction = 1.0 - x[:, S.ACCEL_SLIP] * pull
+    ground = x[:, S.SPEED] - accel_mps2 * lag_s + lag + turn
+    h = gear * ground / (factor * traction)
+    _product_jacobian(H, track, h, (gear, traction), accel_mps2, pull)
+    corrected = odometer_mps * factor * traction / gear - turn - lag
+    return h, corrected
+
+
+def _track_factor(
+    x: FloatArray, state: IntArray, theta: FloatArray
+) -> tuple[IntArray, BoolArray, FloatArray, FloatArray]:
+    """The state's track factor ``F`` ``(k,)`` from ``x`` ``(k, n)``, with the index of the
+    factor state it reads, whether ``F_straight`` is added, and the factor's scale (``−θ`` in
+    a turn read by tightness, else 1), each ``(k,)``: ``(f_idx, offset, scale, F)``."""
+    f_idx = _FACTOR_INDEX[state]
+    rows = np.arange(x.shape[0])
+    offset = _OFFSET[state]
+    scale = np.where(_BY_TIGHTNESS[state], -theta, 1.0)  # F_turn = F_straight − c·θ
+    patch = x[:, S.GROUND_PATCH]
+    factor = x[rows, f_idx] * scale + np.where(offset, x[:, S.F_STRAIGHT], 0.0) + patch
+    return f_idx, offset, scale, factor
+
+
+def _product_jacobian(
+    H: FloatArray,
+    track: tuple[IntArray, BoolArray, FloatArray, FloatArray],
+    h: FloatArray,
+    drive: tuple[FloatArray, FloatArray],
+    accel_mps2: FloatArray,
+    pull: FloatArray,
+) -> None:
+    """``∂h/∂x`` of :func:`_product_row` into ``H`` ``(k, 1, n)`` in place; ``track`` is
+    :func:`_track_factor`'s, ``drive`` ``(gear, traction)``, each ``(k,)``."""
+    f_idx, offset, scale, factor = track
+    gear, traction = drive
+    H[:, 0, S.SPEED] = gear / (factor * traction)
+    H[:, 0, S.ACCEL_LAG] = gear * accel_mps2 / (factor * traction)
+    H[:, 0, S.ACCEL_SLIP] = h * pull / traction
+    H[np.arange(H.shape[0]), 0, f_idx] = -h / factor * scale
+    H[:, 0, S.F_STRAIGHT] += np.where(offset, -h / factor, 0.0)
+    H[:, 0, S.GROUND_PATCH] = -h / factor
+
+
+def _pivot_std(
+    cfg: TrackedEstimatorConfig,
+    state: IntArray,
+    odometer_mps: FloatArray,
+    accel_mps2: FloatArray,
+    std: FloatArray,
+) -> FloatArray:
+    """The odometer's 1-sigma ``(k,)``: ``std`` but in a pivot, where it grows with speed by
+    ``pivot_odometer_std_per_mps`` instead."""
+    pivot_std = cfg.odometer_std_mps + cfg.pivot_odometer_std_per_mps * np.abs(odometer_mps)
+    return np.where(
+        state == int(M.PIVOT), pivot_std + cfg.odometer_std_per_mps2 * np.abs(accel_mps2), std
+    )
+
+
+def _paper_ratio(
+    cfg: TrackedEstimatorConfig,
+    p: VehicleParams,
+    state: IntArray,
+    v: FloatArray,
+    yaw_rate_radps: FloatArray,
+) -> FloatArray:
+    """The paper modes' odometer-to-hull speed ratio ``(k,)``: 1 for the raw odometer, else
+    :func:`paper_ratio` at the turn radius of ``v`` and ``yaw_rate_radps``."""
+    if cfg.mode == TrackedMode.RAW_ODOMETER:
+        return np.ones(v.shape[0])
+    return paper_ratio(state, turn_radius_m(v, yaw_rate_radps), p)

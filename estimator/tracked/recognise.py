@@ -209,12 +209,7 @@ def product_states(
     noise = ratio_noise(sprocket_mps, accel, p, cfg)
     lever = np.zeros(q.shape, dtype=bool)
     if before is not None:
-        read_b, q_b, gear_b = _ratios(before[0], before[1], p)
-        q, lever_q = _lever_target(q, q_b, read & read_b, cfg, noise)
-        gear, lever_g = _lever_target(
-            gear, gear_b, read & read_b & (q >= cfg.straight_ratio_min), cfg, noise
-        )
-        lever = lever_q | lever_g
+        q, gear, lever = _lever_ratios((read, q, gear), before, p, cfg, noise)
     moving = read | (np.nan_to_num(odometer_mps) > cfg.start_odometer_mps)
     fast = sprocket_mps.max(axis=1)
     low_cut = 0.5 * (1.0 + 1.0 / p.low_gear_ratio)
@@ -223,17 +218,60 @@ def product_states(
     table = np.array([M.PIVOT, M.ARC, M.SEPARATED, M.STRAIGHT], dtype=np.int64)
     out = table[band]
     out[(band == 3) & (gear < low_cut)] = int(M.LOW_STRAIGHT)
-    # a separated ratio within the windows' noise of 1 must show its turn: at least a share
-    # of the kinematic ω = Vs_fast·(1 − q)/B, and more than a straight's yaw noise (a crawl's
-    # kinematic ω is within it); farther from 1 the ratio alone is the lever
-    kinematic = fast * (1.0 - q) / p.gauge_m
-    doubtful = (1.0 - q) < cfg.separated_check_sigmas * noise
-    shown = np.maximum(cfg.separated_yaw_share * kinematic, cfg.yaw_lead_noise_radps)
-    weak = (band == 2) & ~lever & doubtful & (yaw_lead_radps < shown)
+    weak = (band == 2) & ~lever & _turn_not_shown(q, fast, noise, yaw_lead_radps, p, cfg)
     out[weak] = np.where(gear[weak] < low_cut[weak], int(M.LOW_STRAIGHT), int(M.STRAIGHT))
     margin = np.min(np.abs(q[:, None] - cuts[None, :]), axis=1)
     margin = np.where(band == 3, np.minimum(margin, np.abs(gear - low_cut)), margin)
     conf = ndtr(margin / cfg.ratio_std)
+    return _jump_and_stop(out, conf, heading_step_rad, moving, p)
+
+
+def _lever_ratios(
+    ratios: tuple[BoolArray, FloatArray, FloatArray],
+    before: tuple[FloatArray, FloatArray],
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    noise: FloatArray,
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """The sprocket ratio and gear ratio ``(k,)`` read where a moving lever takes them
+    (:func:`_lever_target`), from this tick's ``ratios`` (read, q, gear) and the tick
+    before's sprocket speeds ``(k, 2)`` and gear ratio; ``(q, gear, lever)``."""
+    read, q, gear = ratios
+    read_b, q_b, gear_b = _ratios(before[0], before[1], p)
+    q, lever_q = _lever_target(q, q_b, read & read_b, cfg, noise)
+    gear, lever_g = _lever_target(
+        gear, gear_b, read & read_b & (q >= cfg.straight_ratio_min), cfg, noise
+    )
+    return q, gear, lever_q | lever_g
+
+
+def _turn_not_shown(
+    q: FloatArray,
+    fast: FloatArray,
+    noise: FloatArray,
+    yaw_lead_radps: FloatArray,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+) -> BoolArray:
+    """A separated ratio ``q`` ``(k,)`` within the windows' noise of 1 that does not show its
+    turn: at least a share of the kinematic ``ω = Vs_fast·(1 − q)/B``, and more than a
+    straight's yaw noise (a crawl's kinematic ω is within it); farther from 1 the ratio alone
+    is the lever."""
+    kinematic = fast * (1.0 - q) / p.gauge_m
+    doubtful = (1.0 - q) < cfg.separated_check_sigmas * noise
+    shown = np.maximum(cfg.separated_yaw_share * kinematic, cfg.yaw_lead_noise_radps)
+    return doubtful & (yaw_lead_radps < shown)
+
+
+def _jump_and_stop(
+    out: IntArray,
+    conf: FloatArray,
+    heading_step_rad: FloatArray,
+    moving: BoolArray,
+    p: VehicleParams,
+) -> tuple[IntArray, FloatArray]:
+    """The states ``out`` and confidences ``conf`` ``(k,)`` with a heading jump over the
+    tick's heading step ``(k,)`` and a stop (not ``moving``) taking precedence, in that order."""
     jump = np.abs(heading_step_rad) > p.heading_jump_rad
     out[jump] = int(M.HEADING_JUMP)
     jump_margin = np.abs(np.abs(heading_step_rad) - p.heading_jump_rad)

@@ -816,9 +816,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     state, conf = recognise(f, inp, p, cfg, w)
     lateral, by_gain, by_roll = _lateral(f, state, w, p, cfg)
     ratio = noise_ratio(f.gyro_standing, p, cfg) if cfg.learns else np.ones_like(w)
-    q = _q_diag(cfg, p, lateral, ratio, inp.imu_samples)
-    tilt = (np.nan_to_num(inp.pitch_rate_radps), np.nan_to_num(inp.roll_rate_radps))
-    f.x, f.P = predict(f.x, f.P, gyro, pull, lateral, cfg.tick_s, q, by_gain, tilt, by_roll)
+    _predict_tick(f, inp, p, cfg, (gyro, pull), (lateral, by_gain, by_roll), ratio)
     _fuse_lateral_force(f, inp, p, cfg, gyro)
     _ground_patch(f, p, cfg)
     fresh = _start(f, inp, p, cfg)
@@ -828,23 +826,7 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
     still = (state == int(M.STOP)) & (inp.odometer_mps < cfg.standstill_odometer_mps)
     onset = np.zeros(state.shape, dtype=bool)
     if cfg.learns:
-        before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
-        settling = inp.sprocket_settling_pair
-        onset = change_onset(
-            inp.sprocket_pair_mps,
-            inp.gear_ratio,
-            before,
-            settling,
-            inp.yaw_accel_radps2,
-            p,
-            cfg,
-            inp.gearbox_accel_mps2,
-            inp.odometer_mps,
-        )
-        onset |= odometer_start(inp, cfg)  # the held tick before may have started already
-        _fuse_standstill(f, inp, cfg, still, standing_rate_var(p, ratio, cfg.tick_s))
-        measured = still & (p.gyro_noise_measured > 0.0)
-        f.gyro_standing = learn_standing(f.gyro_standing, inp.gyro_radps, measured)
+        onset = _learn_tick(f, inp, p, cfg, still, ratio)
     _since_fix(f, used | fresh, cfg)
     _dead_reckoning_noise(f, p, cfg, gain)
     track, track_std, slip, slip_std, valid, braked = _track_slip(f, inp, p, cfg, w, factor_var)
@@ -867,3 +849,52 @@ def tick_step(f: Filter, inp: TickInputs, p: VehicleParams, cfg: TrackedEstimato
         standstill=still,
         onset=onset,
     )
+
+
+def _predict_tick(
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    imu: tuple[FloatArray, FloatArray],
+    lateral: tuple[FloatArray, FloatArray | None, FloatArray | None],
+    ratio: FloatArray,
+) -> None:
+    """The prediction over the tick, ``f.x`` ``(k, n)`` and ``f.P`` ``(k, n, n)`` in place:
+    ``imu`` the yaw rate and the forward accelerometer as they read, ``lateral``
+    (:func:`_lateral`'s), ``ratio`` the gyros' noise over the config's, each ``(k,)``."""
+    gyro, pull = imu
+    lat, by_gain, by_roll = lateral
+    q = _q_diag(cfg, p, lat, ratio, inp.imu_samples)
+    tilt = (np.nan_to_num(inp.pitch_rate_radps), np.nan_to_num(inp.roll_rate_radps))
+    f.x, f.P = predict(f.x, f.P, gyro, pull, lat, cfg.tick_s, q, by_gain, tilt, by_roll)
+
+
+def _learn_tick(
+    f: Filter,
+    inp: TickInputs,
+    p: VehicleParams,
+    cfg: TrackedEstimatorConfig,
+    still: BoolArray,
+    ratio: FloatArray,
+) -> BoolArray:
+    """What a learning config does after the fusion: the standstill update and the standing
+    gyro's noise (``f`` in place); returns the tick's change onsets ``(k,)``."""
+    before = (inp.sprocket_before_pair_mps, inp.gear_ratio_before)
+    settling = inp.sprocket_settling_pair
+    onset = change_onset(
+        inp.sprocket_pair_mps,
+        inp.gear_ratio,
+        before,
+        settling,
+        inp.yaw_accel_radps2,
+        p,
+        cfg,
+        inp.gearbox_accel_mps2,
+        inp.odometer_mps,
+    )
+    onset |= odometer_start(inp, cfg)  # the held tick before may have started already
+    _fuse_standstill(f, inp, cfg, still, standing_rate_var(p, ratio, cfg.tick_s))
+    measured = still & (p.gyro_noise_measured > 0.0)
+    f.gyro_standing = learn_standing(f.gyro_standing, inp.gyro_radps, measured)
+    return onset

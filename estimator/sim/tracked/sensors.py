@@ -7,11 +7,12 @@ packet keyed at or before ``T`` is delivered, each stream is complete up to ``T`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from estimator._arrays import FloatArray, IntArray
+from estimator._arrays import BoolArray, FloatArray, IntArray
 from estimator.base import Measurement
 from estimator.config import TrackedConfig
 from estimator.geo import EnuFrame
@@ -297,32 +298,94 @@ def _gnss(
     def at(name: str) -> FloatArray:
         return _at(truth, name, idx, taken_s)
 
-    psi, theta, v_along = at("heading_rad"), at("pitch_rad"), at("speed_mps")
+    psi, theta = at("heading_rad"), at("pitch_rad")
+    east, north, up = _antenna_enu(cfg, at, psi, theta)
+    ve, vn, vu = _antenna_velocity(at, psi, theta, _offset_rate(truth, cfg, idx, taken_s))
+    east, north, ve, vn, vu = _gnss_noise(spec, (east, north, ve, vn, vu), rng, up_rng)
+    lat, lon, h = frame.to_geodetic(east, north, up)
+    t = truth.t_s[idx] if taken_s is None else taken_s  # the sky is lost on the IMU's clock
+    lost = _lost(t, outages_s)
+    return _gnss_samples(
+        _stamps(start_ns, stamp_s).tolist(), lost, (ve, vn, vu), (lat, lon, h), spec
+    )
+
+
+def _antenna_enu(
+    cfg: TrackedConfig, at: Callable[[str], FloatArray], psi: FloatArray, theta: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The antenna's east, north, up ``(m,)`` at the fixes: the hull centre's (``at``: the
+    truth at the fixes) plus the lever arm turned by heading ``psi``, pitch ``theta`` and roll."""
     fwd, right, up_off = antenna_offset_m(cfg.geometry.antenna_lever_arm_m, theta, at("roll_rad"))
     up = at("up_m") + up_off
     east = at("east_m") + right * np.cos(psi) + fwd * np.sin(psi)
     north = at("north_m") - right * np.sin(psi) + fwd * np.cos(psi)
+    return east, north, up
+
+
+def _offset_rate(
+    truth: CrawlerTruth, cfg: TrackedConfig, idx: IntArray, taken_s: FloatArray | None
+) -> FloatArray:
+    """The lever arm's rate ``(m, 3)`` (east, north, up) at the grid points ``idx`` or at the
+    instants ``taken_s`` (:func:`antenna_offset_rate_mps`)."""
     grid_rate = antenna_offset_rate_mps(truth, cfg.geometry.antenna_lever_arm_m)
-    rate = grid_rate[idx] if taken_s is None else _interp_rows(taken_s, truth.t_s, grid_rate)
+    return grid_rate[idx] if taken_s is None else _interp_rows(taken_s, truth.t_s, grid_rate)
+
+
+def _antenna_velocity(
+    at: Callable[[str], FloatArray], psi: FloatArray, theta: FloatArray, rate: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The antenna's east, north, up velocity ``(m,)``: the hull centre's (``V·cos θ`` along
+    the heading, ``v_x`` to its right, ``V·sin θ`` up) plus the offset's ``rate`` ``(m, 3)``."""
+    v_along = at("speed_mps")
     vf, vr = v_along * np.cos(theta), at("lateral_mps")
     ve = vf * np.sin(psi) + vr * np.cos(psi) + rate[:, 0]
     vn = vf * np.cos(psi) - vr * np.sin(psi) + rate[:, 1]
     vu = v_along * np.sin(theta) + rate[:, 2]
-    east = east + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
-    north = north + spec.gnss_pos_std_m * rng.standard_normal(idx.size)
-    ve = ve + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
-    vn = vn + spec.gnss_vel_std_mps * rng.standard_normal(idx.size)
+    return ve, vn, vu
+
+
+def _gnss_noise(
+    spec: CrawlerSensors,
+    fixes: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
+    rng: np.random.Generator,
+    up_rng: np.random.Generator | None,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``fixes`` (east, north, v_east, v_north, v_up, each ``(m,)``) with the receiver's noise,
+    drawn from ``rng`` in that order; the up velocity's from ``up_rng`` (none without it)."""
+    east, north, ve, vn, vu = fixes
+    n = east.size
+    east = east + spec.gnss_pos_std_m * rng.standard_normal(n)
+    north = north + spec.gnss_pos_std_m * rng.standard_normal(n)
+    ve = ve + spec.gnss_vel_std_mps * rng.standard_normal(n)
+    vn = vn + spec.gnss_vel_std_mps * rng.standard_normal(n)
     if up_rng is not None:
         up_std = spec.gnss_up_vel_std_ratio * spec.gnss_vel_std_mps
-        vu = vu + up_std * up_rng.standard_normal(idx.size)
-    lat, lon, h = frame.to_geodetic(east, north, up)
-    t = truth.t_s[idx] if taken_s is None else taken_s  # the sky is lost on the IMU's clock
-    lost = np.zeros(idx.size, dtype=bool)
+        vu = vu + up_std * up_rng.standard_normal(n)
+    return east, north, ve, vn, vu
+
+
+def _lost(t_s: FloatArray, outages_s: tuple[tuple[float, float], ...]) -> BoolArray:
+    """Fixes ``(m,)`` taken within an outage ``(start, duration)``."""
+    lost = np.zeros(t_s.size, dtype=bool)
     for a, d in outages_s:
-        lost |= (t >= a) & (t < a + d)
+        lost |= (t_s >= a) & (t_s < a + d)
+    return lost
+
+
+def _gnss_samples(
+    stamps: list[int],
+    lost: BoolArray,
+    vel: tuple[FloatArray, FloatArray, FloatArray],
+    geo: tuple[FloatArray, FloatArray, FloatArray],
+    spec: CrawlerSensors,
+) -> list[tuple[int, Measurement]]:
+    """One :class:`GnssSample` per stamp: RTK fixed with velocity ``vel`` (east, north, up) and
+    position ``geo`` (lat, lon, height), each ``(m,)``, or no fix where ``lost``."""
+    ve, vn, vu = vel
+    lat, lon, h = geo
     out: list[tuple[int, Measurement]] = []
     nan = float("nan")
-    for k, stamp in enumerate(_stamps(start_ns, stamp_s).tolist()):
+    for k, stamp in enumerate(stamps):
         if lost[k]:
             sample = GnssSample(stamp, (nan, nan, nan), nan, nan, nan, nan, nan, nan, GnssFix.NONE)
         else:
@@ -365,20 +428,54 @@ def emissions(
     ``jitter_rng`` draws the receiver's epoch jitter (:func:`gnss_epochs_s`; none without
     it). Each stream is stamped on its own clock (``spec``'s ``*_clock_offset_s``); a fix is
     keyed by its stamp, an edge packet by the end of its window on its stream's clock."""
-    dt = 1.0 / RATE_HZ
     t = truth.t_s
     ends = t[_WINDOW::_WINDOW]
-    ends_ns = _stamps(start_ns, ends).tolist()
+    windows = (start_ns, ends, _stamps(start_ns, ends).tolist())
+    tilt_bias = _tilt_bias(extra_rng, walk_rng, t.size, spec)
+    accel, gyro = _imu(truth, cfg, err, spec, rng, tilt_bias)
+    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng, jitter_rng)
+    out += _edge_packets(truth, cfg, spec, err, rng, windows)
+    stamps = _stamps(start_ns, t)
+    for j, key in enumerate(windows[2]):
+        sl = slice(j * _WINDOW + 1, (j + 1) * _WINDOW + 1)
+        out.append((key, ImuBatch(stamps[sl], accel[sl], gyro[sl])))
+    order = {GnssSample: 0, OdometerEdges: 1, SprocketEdges: 2, ImuBatch: 3}
+    out.sort(key=lambda km: (km[0], order[type(km[1])]))
+    return out
+
+
+def _tilt_bias(
+    extra_rng: np.random.Generator | None,
+    walk_rng: np.random.Generator | None,
+    n: int,
+    spec: CrawlerSensors,
+) -> FloatArray:
+    """The pitch and roll gyros' biases: turn-on ``(2,)`` from ``extra_rng`` (0 without it),
+    plus the in-run walk ``(n, 2)`` from ``walk_rng`` (:func:`tilt_bias_walk`) if given."""
     tilt_bias: FloatArray = np.zeros(2)
     if extra_rng is not None:
         tilt_bias = extra_rng.normal(0.0, spec.gyro_bias_std_radps, 2)
     if walk_rng is not None:
-        tilt_bias = tilt_bias + tilt_bias_walk(walk_rng, t.size, spec)
-    accel, gyro = _imu(truth, cfg, err, spec, rng, tilt_bias)
-    out = _gnss(truth, cfg, spec, frame, outages_s, start_ns, rng, extra_rng, jitter_rng)
+        tilt_bias = tilt_bias + tilt_bias_walk(walk_rng, n, spec)
+    return tilt_bias
+
+
+def _edge_packets(
+    truth: CrawlerTruth,
+    cfg: TrackedConfig,
+    spec: CrawlerSensors,
+    err: SensorErrors,
+    rng: np.random.Generator,
+    windows: tuple[int, FloatArray, list[int]],
+) -> list[tuple[int, Measurement]]:
+    """The odometer's edges, then each sprocket's (left, right), one packet per window
+    (``windows``: start ns, window ends s ``(w,)``, their keys ns), each stream stamped on its
+    clock; per stream its tooth errors, then its edges' jitter, from ``rng``."""
+    start_ns, ends, ends_ns = windows
+    dt = 1.0 / RATE_HZ
     odo_err = spec.odometer_tooth_error * rng.standard_normal(spec.odometer_teeth)
     odo_t = _edge_times(
-        t,
+        truth.t_s,
         cumtrapz(truth.gearbox_mps, dt),
         cfg.odometer.distance_per_edge_m * err.kd_scale,
         odo_err,
@@ -386,22 +483,16 @@ def emissions(
         spec.edge_jitter_s,
     )
     odo_t = odo_t + spec.odometer_clock_offset_s
+    out: list[tuple[int, Measurement]] = []
     for key, part in zip(ends_ns, _packets(odo_t, ends), strict=True):
         out.append((key, OdometerEdges(_stamps(start_ns, part))))
     pitch = 2.0 * np.pi * cfg.sprocket.pitch_radius_m * err.sprocket_scale
     pitch /= cfg.sprocket.teeth_per_rev
     for side in TrackSide:
         tooth = spec.sprocket_tooth_error * rng.standard_normal(cfg.sprocket.teeth_per_rev)
-        edge_t = _edge_times(
-            t, cumtrapz(truth.sprocket_mps[:, int(side)], dt), pitch, tooth, rng, spec.edge_jitter_s
-        )
+        dist = cumtrapz(truth.sprocket_mps[:, int(side)], dt)
+        edge_t = _edge_times(truth.t_s, dist, pitch, tooth, rng, spec.edge_jitter_s)
         edge_t = edge_t + spec.sprocket_clock_offset_s
         for key, part in zip(ends_ns, _packets(edge_t, ends), strict=True):
             out.append((key, SprocketEdges(side, _stamps(start_ns, part))))
-    stamps = _stamps(start_ns, t)
-    for j, key in enumerate(ends_ns):
-        sl = slice(j * _WINDOW + 1, (j + 1) * _WINDOW + 1)
-        out.append((key, ImuBatch(stamps[sl], accel[sl], gyro[sl])))
-    order = {GnssSample: 0, OdometerEdges: 1, SprocketEdges: 2, ImuBatch: 3}
-    out.sort(key=lambda km: (km[0], order[type(km[1])]))
     return out
