@@ -434,8 +434,20 @@ def cell_sums(
         np.floor(samples.north_m / cell_m).astype(np.int64),
         max_cells,
     )
-    m = int(index_east.shape[0])
+    return _reduced(samples, cell_m, edges, (index_east, index_north, cell), layer)
 
+
+def _reduced(
+    samples: MapSamples,
+    cell_m: float,
+    edges: tuple[float, ...],
+    keys: tuple[np.ndarray, np.ndarray, np.ndarray],
+    layer: str | None,
+) -> CellSums:
+    """The partial sums of :func:`cell_sums` over the cells ``keys`` (:func:`_cell_keys`'
+    ``index_east``, ``index_north``: shape (m,), and each sample's ``cell``: shape (n,))."""
+    index_east, index_north, cell = keys
+    m = int(index_east.shape[0])
     w = samples.w_ns.astype(np.float64)  # sums of int ns stay exact in float64 (< 2**53)
     valid_ns, signed_ns, abs_ns, band_ns, max_abs = _slip_sums(samples, cell, w, m, edges)
     layer_ns, layer_sum_ns, layer_rows = _layer_sums(samples, cell, w, m)

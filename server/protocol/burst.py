@@ -590,6 +590,23 @@ def decode_burst(
         return [opts.alone(key, payload) for key, payload in received]
     out: list[BurstItem | None] = [None] * len(received)
     groups = _Groups()
+    _open_all(received, out, groups, opts)
+    groups.finish(out, opts)
+    items = [item for item in out if item is not None]
+    assert len(items) == len(out), "every packet gets a result"
+    return items
+
+
+def _open_all(
+    received: Sequence[tuple[str, bytes]],
+    out: list[BurstItem | None],
+    groups: _Groups,
+    opts: _Options,
+) -> None:
+    """Decode each payload into its stream's struct: a packet checked on its own gets its
+    result in ``out`` now, a batched one joins its layout's group in ``groups``, and anything
+    unusual is decoded by the per-packet rules."""
+    prefix, max_payload_bytes, limits = opts.prefix, opts.max_payload_bytes, opts.limits
     streams = _keys_of(prefix)
     typed, routes, by_layout = _DECODER.decode, _ROUTES, groups.by_layout
     for i, item in enumerate(received):
@@ -610,22 +627,29 @@ def decode_burst(
         wired, single, layout, batch = routes[type(p)]
         if p.seq >= _SEQ_END or wired is not stream:
             out[i] = opts.alone(key, payload)
-            continue
-        if single is not None:  # nothing to batch: checked on its own
-            body = single(p, limits)
-            packet = None if body is None else _packet(vehicle_id, stream, p, *body, limits)
-            out[i] = opts.alone(key, payload) if packet is None else packet
-            continue
-        if layout is None and (layout := batch(p)) is None:
+        elif single is not None:  # nothing to batch: checked on its own
+            out[i] = _single(single, vehicle_id, stream, p, item, opts)
+        elif layout is None and (layout := batch(p)) is None:
             out[i] = opts.alone(key, payload)
-            continue
-        group = by_layout.get(layout) or groups.new(layout)
-        op = _Opened(i, item, vehicle_id, stream, p)
-        if group.heartbeats and p.edges == []:
-            out[i] = _heartbeat(op, limits) or op.alone(opts)
-        elif not group.add(op, limits):
-            out[i] = op.alone(opts)
-    groups.finish(out, opts)
-    items = [item for item in out if item is not None]
-    assert len(items) == len(out), "every packet gets a result"
-    return items
+        else:
+            group = by_layout.get(layout) or groups.new(layout)
+            op = _Opened(i, item, vehicle_id, stream, p)
+            if group.heartbeats and p.edges == []:
+                out[i] = _heartbeat(op, limits) or op.alone(opts)
+            elif not group.add(op, limits):
+                out[i] = op.alone(opts)
+
+
+def _single(
+    single: Callable[[Any, Limits], Body | None],
+    vehicle_id: str,
+    stream: Stream,
+    p: Any,
+    received: tuple[str, bytes],
+    opts: _Options,
+) -> BurstItem:
+    """The packet of a stream checked on its own (``StreamSpec.single``), or the per-packet
+    rules' result when the check or its ``until_ns`` refuses it."""
+    body = single(p, opts.limits)
+    packet = None if body is None else _packet(vehicle_id, stream, p, *body, opts.limits)
+    return opts.alone(*received) if packet is None else packet

@@ -541,18 +541,40 @@ def publish_schedule(
     if not vehicles:
         return stats
     fleet = _Fleet(drives, vehicles)
-    periods = fleet.period[fleet.last_arrival[fleet.drive] >= 0]
-    if periods.size == 0:
+    span = _window_span(fleet, window_ns, rate)
+    if span is None:
         return stats
-    span = max(1, min(int(window_ns * rate), int(periods.min())))  # schedule ns per window
     if stamp_clock_ns is not None:
         fleet.shift = fleet.shift + stamp_clock_ns()
     wall0 = time.perf_counter_ns()
     end_wall = None if duration_s is None else wall0 + int(duration_s * 1e9)
     pacing = _Pacing(wall0, end_wall, rate, 1.0 / rate, min_wake_ns, stop)
-    windows = _Windows(fleet, span, loop)
-    last_due = -1  # schedule time of the last packet sent
-    while not stop.is_set():
+    last_due = _send_windows(pacing, _Windows(fleet, span, loop), stats, on_round)
+    if loop and last_due >= 0:
+        stats.loops = max(0, int(((last_due - fleet.phase) // fleet.period).max()))
+    return stats
+
+
+def _window_span(fleet: _Fleet, window_ns: int, rate: float) -> int | None:
+    """Schedule ns per rendered window: ``window_ns`` of wall time, at most the shortest period
+    of a vehicle whose drive has packets; None when no drive has any."""
+    periods = fleet.period[fleet.last_arrival[fleet.drive] >= 0]
+    if periods.size == 0:
+        return None
+    return max(1, min(int(window_ns * rate), int(periods.min())))
+
+
+def _send_windows(
+    pacing: _Pacing,
+    windows: _Windows,
+    stats: ScheduleStats,
+    on_round: Callable[[ScheduleStats], None] | None,
+) -> int:
+    """Send the windows' packets as they fall due, until the drives end, the run's end or
+    stop; the schedule time of the last packet sent (-1: none)."""
+    wall0, end_wall = pacing.wall0, pacing.end_wall
+    last_due = -1
+    while not pacing.stop.is_set():
         if not windows.turn():
             break
         cur, k = windows.cur, windows.k
@@ -571,9 +593,7 @@ def publish_schedule(
         if on_round is not None:
             on_round(stats)
         windows.render_ahead()
-    if loop and last_due >= 0:
-        stats.loops = max(0, int(((last_due - fleet.phase) // fleet.period).max()))
-    return stats
+    return last_due
 
 
 @dataclass(frozen=True, slots=True)

@@ -90,7 +90,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import numpy.typing as npt
@@ -101,6 +101,9 @@ from estimator.sim import SCENARIOS, SimRun, replay_arrivals, simulate, truth_at
 from estimator.sim.drives import DrawnDrive, draw_drives
 from estimator.types import GnssFix, GnssSample, Wheel, WheelEdges, empty_estimates
 from server.tooling.bench import int_list
+
+if TYPE_CHECKING:
+    import argparse
 
 __all__ = [
     "CALIBRATION_CASE",
@@ -474,42 +477,71 @@ def run(
         (its metrics are then NaN) and, for the product mode, ``floors_pass`` and
         ``floors_failed``.
     """
+    cases = _cases(scenarios, overrides, variants)
+    factories = dict(estimators) if estimators is not None else default_estimators()
+    results: list[dict[str, Any]] = []
+    for case in cases:
+        results += _scenario_rows(case, seed, factories)
+    result = _result(seed, results)
+    return _finish(result, results, json_path, None if quiet else print_table, out)
+
+
+def _cases(
+    scenarios: Sequence[str] | None,
+    overrides: Mapping[str, Mapping[str, Any]] | None,
+    variants: bool,
+) -> list[tuple[str, str, Mapping[str, Any]]]:
+    """``(label, scenario, simulate overrides)`` of each run of :func:`run`; KeyError for an
+    unknown scenario."""
     names = list(scenarios) if scenarios is not None else list(NAMED)
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise KeyError(f"unknown scenario(s) {unknown}; known: {list(SCENARIOS)}")
-    factories = dict(estimators) if estimators is not None else default_estimators()
-    results: list[dict[str, Any]] = []
     if variants:
-        cases = [(variant_label(n, kw), n, kw) for n, kw in VARIANTS if n in names]
-    else:
-        cases = [(n, n, (overrides or {}).get(n, {})) for n in names]
-    for label, name, kw in cases:
-        sim = simulate(name, seed=seed, start_ns=START_NS, **dict(kw))
-        config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
-        methods: list[tuple[str, Callable[[], np.ndarray]]] = [
-            (method, _estimator_runner(factory, sim, config))
-            for method, factory in factories.items()
-        ]
-        methods.append(("traditional", _traditional_runner(sim, config)))
-        for method, fn in methods:
-            row: dict[str, Any] = {"scenario": label, "method": method}
-            t0 = time.perf_counter()
-            try:
-                rows = fn()
-            except Exception as exc:  # a crashing method is reported in its row, not hidden
-                row["error"] = f"{type(exc).__name__}: {exc}"
-                rows = empty_estimates(0)
-            row["seconds"] = time.perf_counter() - t0
-            row.update(evaluate(rows, sim.truth))
-            if method == "product":
-                ok, failed = check_floors(row, name)
-                if "error" in row:
-                    ok, failed = False, [row["error"], *failed]
-                row["floors_pass"] = ok
-                row["floors_failed"] = failed
-            results.append(row)
-    result: dict[str, Any] = {
+        return [(variant_label(n, kw), n, kw) for n, kw in VARIANTS if n in names]
+    return [(n, n, (overrides or {}).get(n, {})) for n in names]
+
+
+def _scenario_rows(
+    case: tuple[str, str, Mapping[str, Any]], seed: int, factories: Mapping[str, EstimatorFactory]
+) -> list[dict[str, Any]]:
+    """Simulate one case (``label, scenario, overrides``) and run every method and the
+    traditional one on it: a row each."""
+    label, name, kw = case
+    sim = simulate(name, seed=seed, start_ns=START_NS, **dict(kw))
+    config = dataclasses.replace(sim.config, noise=sim.sensor_noise)
+    methods: list[tuple[str, Callable[[], np.ndarray]]] = [
+        (method, _estimator_runner(factory, sim, config)) for method, factory in factories.items()
+    ]
+    methods.append(("traditional", _traditional_runner(sim, config)))
+    return [_method_row(label, name, method, fn, sim.truth) for method, fn in methods]
+
+
+def _method_row(
+    label: str, name: str, method: str, fn: Callable[[], np.ndarray], truth: np.ndarray
+) -> dict[str, Any]:
+    """One method's row: its metrics against ``truth``, seconds, error and (product) floors."""
+    row: dict[str, Any] = {"scenario": label, "method": method}
+    t0 = time.perf_counter()
+    try:
+        rows = fn()
+    except Exception as exc:  # a crashing method is reported in its row, not hidden
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        rows = empty_estimates(0)
+    row["seconds"] = time.perf_counter() - t0
+    row.update(evaluate(rows, truth))
+    if method == "product":
+        ok, failed = check_floors(row, name)
+        if "error" in row:
+            ok, failed = False, [row["error"], *failed]
+        row["floors_pass"] = ok
+        row["floors_failed"] = failed
+    return row
+
+
+def _result(seed: int, results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The result of :func:`run` around its rows (before :func:`_finish` adds the verdict)."""
+    return {
         "seed": seed,
         "start_ns": START_NS,
         "moving_mps": MOVING_MPS,
@@ -518,7 +550,6 @@ def run(
         ],
         "results": results,
     }
-    return _finish(result, results, json_path, None if quiet else print_table, out)
 
 
 def _finish(
@@ -1128,6 +1159,25 @@ def print_seeds_table(result: Mapping[str, Any], file: TextIO | None = None) -> 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m server.tooling.bench.accuracy [SCENARIO ...] [--scenarios A,B] [--seed N |
     --seeds 1,2,3] [--json PATH]``."""
+    p = _parser()
+    args = p.parse_args(argv)
+    if args.calibration:
+        if args.random is not None or args.variants or args.scenarios or args.scenario_list:
+            p.error("--calibration takes only --seed or --seeds (and --json)")
+        seeds = args.seeds if args.seeds is not None else [args.seed]
+        return 0 if run_calibration(seeds, args.json)["all_pass"] else 1
+    if args.random is not None:
+        if args.seeds is not None or args.variants or args.scenarios or args.scenario_list:
+            p.error("--random takes only --seed (and --json)")
+        result = run_random(
+            args.random, args.seed, args.json, start_calibration=args.start_calibration
+        )
+        return 0 if result["all_pass"] else 1
+    return _run_named(args)
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line of :func:`main`."""
     import argparse
 
     p = argparse.ArgumentParser(prog="python -m server.tooling.bench.accuracy", description=__doc__)
@@ -1146,6 +1196,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=None,
         help="comma-separated seeds: worst and mean per scenario, floors on the worst",
     )
+    _add_mode_arguments(p)
+    p.add_argument("--json", type=Path, default=None, help="write the result here")
+    return p
+
+
+def _add_mode_arguments(p: argparse.ArgumentParser) -> None:
+    """The options that run something else than the named scenarios."""
     p.add_argument(
         "--variants",
         action="store_true",
@@ -1170,20 +1227,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="--random: start each vehicle from the radii an earlier calibration drive left "
         "(default) or from the configured radii, up to 3 %% off",
     )
-    p.add_argument("--json", type=Path, default=None, help="write the result here")
-    args = p.parse_args(argv)
-    if args.calibration:
-        if args.random is not None or args.variants or args.scenarios or args.scenario_list:
-            p.error("--calibration takes only --seed or --seeds (and --json)")
-        seeds = args.seeds if args.seeds is not None else [args.seed]
-        return 0 if run_calibration(seeds, args.json)["all_pass"] else 1
-    if args.random is not None:
-        if args.seeds is not None or args.variants or args.scenarios or args.scenario_list:
-            p.error("--random takes only --seed (and --json)")
-        result = run_random(
-            args.random, args.seed, args.json, start_calibration=args.start_calibration
-        )
-        return 0 if result["all_pass"] else 1
+
+
+def _run_named(args: argparse.Namespace) -> int:
+    """Run the named scenarios (or their variants) on ``--seed`` or ``--seeds``; 0 if all pass."""
     names = list(args.scenarios)
     if args.scenario_list:
         names += [n.strip() for n in args.scenario_list.split(",") if n.strip()]

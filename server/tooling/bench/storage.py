@@ -283,6 +283,8 @@ def _bench_store(
     fleet_vehicles: int,
     column_layout: ColumnLayoutStore | None = None,
 ) -> dict[str, Any]:
+    """One backend's inserts (batched, per row), series queries over the hour and, with
+    ``column_layout``, the same against the column layout; the vehicles it makes are deleted."""
     stores: dict[str, Store] = {"current": store}
     if column_layout is not None:
         stores["column_layout"] = column_layout
@@ -291,29 +293,10 @@ def _bench_store(
     store.upsert_vehicle(hour_id, {}, now_ns=time.time_ns())
     store.upsert_vehicle(base_id, {}, now_ns=time.time_ns())
     try:
-        store.write_estimates([(hour_id, rows)])
-        # the hour read from where it stays: SQLite's staging table keeps only recent rows
-        maintain = getattr(store, "maintain", None)
-        while maintain is not None and maintain(everything=True):
-            pass
-
-        # baseline: one transaction per row
+        _write_hour(store, hour_id, rows)
         base = rows[:baseline_rows]
-        t0 = time.perf_counter()
-        for i in range(len(base)):
-            store.write_estimates([(base_id, base[i : i + 1])])
-        baseline_s = time.perf_counter() - t0
-
-        end_ns = int(rows["stamp_ns"][-1]) + 1
-        start_ns = int(rows["stamp_ns"][0])
-        got = store.query_series(hour_id, start_ns, end_ns)
-        if len(got) != len(rows):
-            raise RuntimeError(f"series query returned {len(got)} of {len(rows)} rows")
-        q_all = _timed_query(lambda: store.query_series(hour_id, start_ns, end_ns), repeats)
-        q_few = _timed_query(
-            lambda: store.query_series(hour_id, start_ns, end_ns, FEW_FIELDS), repeats
-        )
-        baseline_rps = _rate(len(base), baseline_s)
+        baseline_rps = _rate(len(base), _per_row_insert_s(store, base_id, base))
+        q_all, q_few = _hour_queries(store, hour_id, rows, repeats)
         out: dict[str, Any] = {
             "rows": len(rows),
             "fleet_vehicles": fleet_vehicles,
@@ -325,21 +308,60 @@ def _bench_store(
             "column_layout": None,
             "query_all_fields_column_read": None,
         }
-        for case in _INSERT_CASES:
-            for key, value in inserts["current"][case].items():
-                out[f"{case}_{key}"] = value
+        _add_insert_cases(out, inserts)
         if column_layout is not None:
-            old = out["column_layout"] = {}
-            for case in _INSERT_CASES:
-                for key, value in inserts["column_layout"][case].items():
-                    old[f"{case}_{key}"] = value
-                # how many times cheaper a row is now than in the column layout
-                old[f"{case}_cost_ratio"] = old[f"{case}_us_per_row"] / out[f"{case}_us_per_row"]
             out["query_all_fields_column_read"] = _column_read(column_layout, rows, repeats)
         return out
     finally:
         store.delete_vehicle(hour_id)
         store.delete_vehicle(base_id)
+
+
+def _write_hour(store: Store, hour_id: str, rows: np.ndarray) -> None:
+    """Write the hour's rows and move them to where they stay."""
+    store.write_estimates([(hour_id, rows)])
+    # the hour read from where it stays: SQLite's staging table keeps only recent rows
+    maintain = getattr(store, "maintain", None)
+    while maintain is not None and maintain(everything=True):
+        pass
+
+
+def _per_row_insert_s(store: Store, base_id: str, base: np.ndarray) -> float:
+    """Seconds to write ``base`` one transaction per row (the baseline)."""
+    t0 = time.perf_counter()
+    for i in range(len(base)):
+        store.write_estimates([(base_id, base[i : i + 1])])
+    return time.perf_counter() - t0
+
+
+def _hour_queries(
+    store: Store, hour_id: str, rows: np.ndarray, repeats: int
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The hour's series query timed with all fields and with ``FEW_FIELDS``, after checking
+    that it returns every row."""
+    end_ns = int(rows["stamp_ns"][-1]) + 1
+    start_ns = int(rows["stamp_ns"][0])
+    got = store.query_series(hour_id, start_ns, end_ns)
+    if len(got) != len(rows):
+        raise RuntimeError(f"series query returned {len(got)} of {len(rows)} rows")
+    q_all = _timed_query(lambda: store.query_series(hour_id, start_ns, end_ns), repeats)
+    q_few = _timed_query(lambda: store.query_series(hour_id, start_ns, end_ns, FEW_FIELDS), repeats)
+    return q_all, q_few
+
+
+def _add_insert_cases(out: dict[str, Any], inserts: dict[str, dict[str, dict[str, float]]]) -> None:
+    """Put each insert case's figures into ``out`` as ``<case>_<key>``, and the column
+    layout's (when measured) into ``out["column_layout"]`` with their cost ratios."""
+    for case in _INSERT_CASES:
+        for key, value in inserts["current"][case].items():
+            out[f"{case}_{key}"] = value
+    if "column_layout" in inserts:
+        old = out["column_layout"] = {}
+        for case in _INSERT_CASES:
+            for key, value in inserts["column_layout"][case].items():
+                old[f"{case}_{key}"] = value
+            # how many times cheaper a row is now than in the column layout
+            old[f"{case}_cost_ratio"] = old[f"{case}_us_per_row"] / out[f"{case}_us_per_row"]
 
 
 @contextmanager
@@ -432,14 +454,21 @@ def format_table(results: dict[str, Any]) -> str:
         ]
         for metric, value in entries:
             lines.append(f"{name:<11} {metric:<42} {value:>14}")
-    lines += [
+    lines += _writer_lines(results["backends"])
+    lines += _query_lines(results)
+    return "\n".join(lines)
+
+
+def _writer_lines(backends: dict[str, Any]) -> list[str]:
+    """The table of inserts through the batched writer, each backend against its column layout."""
+    lines = [
         "",
         "insert through the batched writer (1-second packets of 10 rows); column layout = the"
         " SQLite schema before version 6",
         f"{'backend':<11} {'case':<24} {'rows/s':>10} {'us/row':>8} {'txns':>5}"
         f" {'column layout rows/s':>21} {'us/row':>8} {'cost ratio':>11}",
     ]
-    for name, r in results["backends"].items():
+    for name, r in backends.items():
         old = r.get("column_layout")
         for label, key in (
             ("one vehicle", "insert_batched"),
@@ -455,7 +484,12 @@ def format_table(results: dict[str, Any]) -> str:
                     f" {old[key + '_cost_ratio']:>10.2f}x"
                 )
             lines.append(line)
-    lines += [
+    return lines
+
+
+def _query_lines(results: dict[str, Any]) -> list[str]:
+    """The table of series queries, quiet and beside a busy thread, and the column read's ratio."""
+    lines = [
         "",
         f"series query over the hour, warm, median / best (ms); target < {results['target_ms']:.0f}"
         " ms median",
@@ -479,7 +513,7 @@ def format_table(results: dict[str, Any]) -> str:
         if base:
             ratio = base["median_ms"] / r["query_all_fields"]["median_ms"]
             lines.append(f"{name}: packed read is {ratio:.1f}x faster than the column read")
-    return "\n".join(lines)
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
