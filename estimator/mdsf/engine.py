@@ -49,22 +49,6 @@ _SLIP_MIN_SPEED_MPS = 0.5
 _OUTAGE_SLIP_RATIO_RANGE = (-1.0, 1.0)
 """Range of the slip ratio ``ε = e/V`` an outage's rim excess reverts to: from a locked wheel
 (``r·W = 0``) to one turning twice as fast as the ground passes (slip 50 %)."""
-_ANCHOR_SPLIT_SIGMA = 2.0
-"""The two slip anchors disagree beyond this many of the short one's spreads
-(``MdsfEngine._anchor_level_moved``)."""
-
-
-class _ShortAnchor(IntEnum):
-    """Columns of ``MdsfEngine.anchor_short_stats``: per wheel the forgotten sums of
-    ``e_0·V1`` and ``e_0²``, and the shared ``V1²``."""
-
-    SUM_EV_LEFT = 0
-    SUM_EV_RIGHT = 1
-    SUM_EE_LEFT = 2
-    SUM_EE_RIGHT = 3
-    SUM_VV = 4
-
-
 _F = EstimateFlag
 _RIM = slice(MdsfObs.RIM_LEFT, MdsfObs.RIM_RIGHT + 1)
 _RIM_EXCESS = np.array([MdsfState.RIM_EXCESS_LEFT, MdsfState.RIM_EXCESS_RIGHT])
@@ -250,11 +234,6 @@ def _diagonal(d: FloatArray) -> FloatArray:
     return out
 
 
-def _ratio(num: FloatArray, den: FloatArray) -> FloatArray:
-    """``num/den`` where the weight ``den`` is above 1e-6, else 0 (no fused moving ticks)."""
-    return np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
-
-
 def shrunk_lever_accel(t: TickInputs) -> FloatArray:
     """The tick's ``lever_accel_fwd_mps2`` (``h0·ω̇x``, eq. (3) differentiated) shrunk towards 0
     by two of its std, (k,) [m/s²]; 0 where it is unknown.
@@ -374,8 +353,6 @@ class MdsfEngine:
         grow("accel_var_fix", (), np.nan)
         grow("leak_var", (), 0.0)
         grow("anchor_stats", (3,), 0.0)
-        grow("anchor_short_stats", (len(_ShortAnchor),), 0.0)
-        grow("anchor_split_m", (2,), 0.0)
         grow("dist_gated", (), False)
         grow("step_buf", (len(StepBuf), max(self._step_ticks, 1)), 0.0)
         grow("step_count", (), 0)
@@ -408,8 +385,6 @@ class MdsfEngine:
     accel_var_fix: FloatArray
     leak_var: FloatArray
     anchor_stats: FloatArray
-    anchor_short_stats: FloatArray
-    anchor_split_m: FloatArray
     dist_gated: BoolArray
     step_buf: FloatArray
     step_count: IntArray
@@ -444,8 +419,6 @@ class MdsfEngine:
         self.accel_var_fix[s] = np.nan
         self.leak_var[s] = 0.0
         self.anchor_stats[s] = 0.0
-        self.anchor_short_stats[s] = 0.0
-        self.anchor_split_m[s] = 0.0
         self.dist_gated[s] = False
         self.step_buf[s] = 0.0
         self.step_count[s] = 0
@@ -1296,67 +1269,16 @@ class MdsfEngine:
         """Where GNSS speed was fused, the least-squares slip ratio at zero demand of
         ``e − k·(f/g)·V1 = ε_0·V1`` over the recent drive (forgetting with
         ``outage_anchor_tau_s``), (k, 2): weighted by ``V1²``, so creeping and standing add
-        little. An outage's slip reverts to it (:meth:`_anchor_slip`).
-
-        A short anchor ``ε_s`` (``outage_anchor_short_tau_s``) is kept beside it; where the two
-        have disagreed for ``outage_anchor_level_m`` of travel (:meth:`_anchor_level_moved`)
-        the slip has a new level and the long sums restart from it, ``S ← ε_s·W``: the ticks
-        before the change describe the old slip. A shorter disagreement (a wet patch) leaves
-        the long anchor as it is."""
-        cfg = self.config
+        little. An outage's slip reverts to it (:meth:`_anchor_slip`)."""
+        lam = math.exp(-self.dt_s / self.config.outage_anchor_tau_s)
         v1 = x[:, MdsfState.V1]
         e0 = x[:, _RIM_EXCESS] - (self._demand_slip(slots) * v1)[:, None]
-        vv = (v1 * v1)[:, None]
-        lam = math.exp(-self.dt_s / cfg.outage_anchor_tau_s)
-        fresh = np.concatenate([e0 * v1[:, None], vv], axis=1)
-        old = self.anchor_stats[slots]
-        stats = np.where(fused[:, None], lam * old + (1.0 - lam) * fresh, old)
-        short, spread = self._short_anchor(slots, e0, v1, fused)
-        long = _ratio(stats[:, :2], stats[:, 2:])
-        moved = self._anchor_level_moved(slots, long - short, spread, v1, fused)
-        stats[:, :2] = np.where(moved, short * stats[:, 2:], stats[:, :2])
+        stats = self.anchor_stats[slots]
+        fresh = np.concatenate([e0 * v1[:, None], (v1 * v1)[:, None]], axis=1)
+        stats = np.where(fused[:, None], lam * stats + (1.0 - lam) * fresh, stats)
         self.anchor_stats[slots] = stats
-        self.slip_anchor[slots] = np.where(moved, short, long)
-
-    def _short_anchor(
-        self, slots: IntArray, e0: FloatArray, v1: FloatArray, fused: BoolArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """The short anchor's sums updated where fused; returns its slip ratio
-        ``ε_s = Σe_0·V1 / ΣV1²`` and its spread, the ``V1²``-weighted std of the ticks' ratios
-        about it, ``√(Σe_0²/ΣV1² − ε_s²)``, each (k, 2)."""
-        lam = math.exp(-self.dt_s / self.config.outage_anchor_short_tau_s)
-        fresh = np.concatenate([e0 * v1[:, None], e0 * e0, (v1 * v1)[:, None]], axis=1)
-        old = self.anchor_short_stats[slots]
-        stats = np.where(fused[:, None], lam * old + (1.0 - lam) * fresh, old)
-        self.anchor_short_stats[slots] = stats
-        vv = stats[:, _ShortAnchor.SUM_VV :]
-        short = _ratio(stats[:, : _ShortAnchor.SUM_EE_LEFT], vv)
-        mean_sq = _ratio(stats[:, _ShortAnchor.SUM_EE_LEFT : _ShortAnchor.SUM_VV], vv)
-        return short, np.sqrt(np.maximum(mean_sq - short * short, 0.0))
-
-    def _anchor_level_moved(
-        self,
-        slots: IntArray,
-        split: FloatArray,
-        spread: FloatArray,
-        v1: FloatArray,
-        fused: BoolArray,
-    ) -> BoolArray:
-        """Per wheel (k, 2): has the slip moved to a new level? The distance over which the long
-        and short anchors have disagreed, ``|ε_l − ε_s|² > (2·σ_s)² + outage_anchor_split_min²``
-        (``σ_s`` large while the slip is still moving, as through a patch), grows by
-        ``|V1|·dt`` a fused tick and restarts at 0 where they agree; the level moved once it
-        passes ``outage_anchor_level_m`` (the distance then restarts). Ticks without GNSS
-        leave it."""
-        cfg = self.config
-        band = (_ANCHOR_SPLIT_SIGMA * spread) ** 2 + cfg.outage_anchor_split_min**2
-        apart = split * split > band
-        run = self.anchor_split_m[slots] + np.abs(v1)[:, None] * self.dt_s
-        run = np.where(apart, run, 0.0)
-        moved = fused[:, None] & (run >= cfg.outage_anchor_level_m)
-        run = np.where(moved, 0.0, run)
-        self.anchor_split_m[slots] = np.where(fused[:, None], run, self.anchor_split_m[slots])
-        return np.asarray(moved)
+        vv = stats[:, 2:]
+        self.slip_anchor[slots] = np.where(vv > 1e-6, stats[:, :2] / np.maximum(vv, 1e-6), 0.0)
 
     def _demand_slip(self, slots: IntArray) -> FloatArray:
         """The tyre model's slip ratio at the low-passed demand, ``k·f/g`` (k,); 0 without the

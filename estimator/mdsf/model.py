@@ -256,20 +256,6 @@ class MdsfConfig:
     outage_anchor_tau_s : float
         Memory of the slip an outage reverts to: a least-squares slip ratio over the drive
         with GNSS, forgotten with this time constant [s].
-    outage_anchor_short_tau_s : float
-        Memory of the short anchor kept beside it: a few seconds, enough to average the rim
-        excess's settling after a slip change (``rim_drift_tau_s``), short against the long
-        memory, so it holds the slip of the last few seconds [s].
-    outage_anchor_level_m : float
-        Distance the two anchors must have disagreed (beyond twice the short one's spread
-        and ``outage_anchor_split_min``) before the short one is taken as the slip's new
-        level and the long memory restarts from it: a wet patch or a soft spot (up to ~10 m
-        of track) and the short memory's settling after it (``outage_anchor_short_tau_s`` at
-        a working speed, ~5 m) stay below it; a changed soil or an implement lowered
-        outlasts it [m].
-    outage_anchor_split_min : float
-        Smallest disagreement of the two anchors counted as one, a slip ratio: below it the
-        short anchor's difference is the slip's noise about its level, not a new level [-].
     outage_bias_walk_mps2_per_sqrt_s : float
         Product mode, GNSS lost: extra random walk of the accelerometer-bias state, which then
         also carries what the leak's growth (``MdsfEngine._leak_into_bias``) leaves out, such
@@ -436,9 +422,6 @@ class MdsfConfig:
     outage_slip_std: float = 0.04
     outage_slip_tau_s: float = 1.0
     outage_anchor_tau_s: float = 20.0
-    outage_anchor_short_tau_s: float = 2.0
-    outage_anchor_level_m: float = 15.0
-    outage_anchor_split_min: float = 0.01
     outage_bias_walk_mps2_per_sqrt_s: float = 0.02
     outage_step_window_s: float = 6.0
     outage_step_z: float = 6.0
