@@ -69,7 +69,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator._arrays import FloatArray
-from estimator.config import ChassisConfig, DrivenAxle, Wheeled4wdSteeredConfig
+from estimator.config import ChassisConfig, DrivenAxle, TyreConfig, Wheeled4wdSteeredConfig
 from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
 from estimator.types import GnssSample, ImuBatch, SteeringAngles, WheelSpeeds4
@@ -450,6 +450,20 @@ class FrontEnd:
     def __init__(self, config: Wheeled4wdSteeredConfig, fe: FrontEndConfig, tick_s: float) -> None:
         ch, ty = config.chassis, config.tyre
         self.ch, self.ty, self.fe, self.dt = ch, ty, fe, tick_s
+        self._set_geometry(ch)
+        self._set_radii(ty, fe)
+        self._set_buffers()
+        self._set_filters(ch, fe)
+        self.yaw_prev = math.nan
+        self.accel_prev = np.full(2, math.nan)  # the last tick's [a_x, a_y] [m/s²]
+        self.slip_lag = np.zeros((2, 4))
+        self.kappa_prev = np.full(4, np.nan)  # the last tick's kinematic κ
+        self.kappa_ring = np.zeros(4)  # the relaxed κ's 1-σ from a ringing wheel
+        self.last_tick_ns = 0
+
+    def _set_geometry(self, ch: ChassisConfig) -> None:
+        """Wheel positions from the CG ``(4,)`` [m], static loads ``(4,)`` [N], the driven
+        axle's wheels and drive shares, and the antenna's arm ``(3,)`` [m]."""
         self.wheel_x = np.array([1, 1, -1, -1]) * np.array(
             [ch.cg_to_front_axle_m] * 2 + [ch.cg_to_rear_axle_m] * 2
         )
@@ -466,6 +480,10 @@ class FrontEnd:
         self.undriven = UNDRIVEN[ch.driven_axle]
         self.drive_share = DRIVE_SHARE[ch.driven_axle]
         self.antenna_arm_m = np.array(antenna_arm_m(ch))
+
+    def _set_radii(self, ty: TyreConfig, fe: FrontEndConfig) -> None:
+        """The radius and tyre state before any calibration: each wheel's starting radius
+        ``(4,)`` [m], vertical stiffness, suspect flag and spreads, and the loads ``(4,)`` [N]."""
         # the paper's statically loaded radius; the product starts from a third of the
         # deflection (a rolling tyre's effective radius) and calibrates from there
         self.radius = ty.unloaded_radius_m - self.fz_static / ty.kz_npm * (
@@ -480,6 +498,9 @@ class FrontEnd:
         self.radius_scale_var = 0.01**2  # its relative variance (calibration_scale_var)
         self.speed_persist = 0.0  # the speed's considered persistent 1-σ [m/s]
         self.fz_cal = self.fz_static.copy()
+
+    def _set_buffers(self) -> None:
+        """Empty sensor buffers and no wheel speed, steering angle or GNSS sample yet."""
         self.imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.wheel_packets: list[tuple[np.ndarray, np.ndarray]] = []
         self.steer_packets: list[tuple[np.ndarray, np.ndarray]] = []
@@ -488,6 +509,10 @@ class FrontEnd:
         self.steer_rad = math.nan
         self.gnss: GnssSample | None = None
         self.gnss_fresh = False
+
+    def _set_filters(self, ch: ChassisConfig, fe: FrontEndConfig) -> None:
+        """The speed, yaw, roll and pitch filters, the lagged load transfer ``(3,)`` and tilt
+        reading ``(2,)``, and the tilt gradients from the chassis' priors."""
         self.vx = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
         self.vy = _AxisFilter(fe.speed_walk_mps2, fe.bias_walk_mps2_per_sqrt_s, 0.1)
         self.vy.set_speed(0.0)
@@ -506,12 +531,6 @@ class FrontEnd:
         self.roll = _TiltGradient(
             math.radians(ch.roll_gradient_deg_per_g), fe.tilt_prior_weight, fe.tilt_highpass_s
         )
-        self.yaw_prev = math.nan
-        self.accel_prev = np.full(2, math.nan)  # the last tick's [a_x, a_y] [m/s²]
-        self.slip_lag = np.zeros((2, 4))
-        self.kappa_prev = np.full(4, np.nan)  # the last tick's kinematic κ
-        self.kappa_ring = np.zeros(4)  # the relaxed κ's 1-σ from a ringing wheel
-        self.last_tick_ns = 0
 
     # --- input ------------------------------------------------------------------------------
     def push_imu(self, m: ImuBatch) -> None:
@@ -576,41 +595,59 @@ class FrontEnd:
         ax_raw, ay_raw = float(accel[1]), float(-accel[0])
         yaw_rate = self._yaw_step(float(gyro[2]))
         rates = self._tilt_rate_step(gyro, yaw_rate)
-        gnss_ant = self._gnss_velocity(t_ns)
-        if gnss_ant is not None:
-            self._heading_update()
-            self._attitude_update()
-        self._learn_tilt(ax_raw, ay_raw, gnss_ant is not None)
-        gnss = self._gnss_at_cg(gnss_ant, rates)
+        gnss = self._gnss_step(t_ns, ax_raw, ay_raw, rates)
         # the speed filters integrate the tilt-free readings, so their bias states hold the
         # sensors' biases alone (not the leak of the body's pitch or roll), taken off here
         ax_tilt, ay_tilt = self._detilt(ax_raw, ay_raw)
         ax, ay = ax_tilt - self.vx.bias, ay_tilt - self.vy.bias
         fz = self._loads(ax, ay)
-        delta = np.zeros(4)
-        steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
-        delta[:2] = steer / self.ch.steering_ratio
+        steer, delta = self._steer_angles()
         self._calibrate(gnss, fz, delta, yaw_rate, ax)
         self._speed_step(ax_tilt, yaw_rate, gnss, fz, delta)
         self._side_slip_step(ay_tilt, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
         self.yaw_prev = yaw_rate
+        z_in = (ax, ay, yaw_accel, imu_lag_s)
+        return self._tick_output(fz, delta, steer, yaw_rate, rates, gnss, z_in)
+
+    def _gnss_step(
+        self, t_ns: int, ax_raw: float, ay_raw: float, rates: FloatArray
+    ) -> tuple[float, float] | None:
+        """A fresh receiver velocity corrects heading and attitude, the tilt gradients learn,
+        and the CG's ``(v_x, v_y)`` is returned (None: no fresh GNSS); ``rates`` (3,)."""
+        gnss_ant = self._gnss_velocity(t_ns)
+        if gnss_ant is not None:
+            self._heading_update()
+            self._attitude_update()
+        self._learn_tilt(ax_raw, ay_raw, gnss_ant is not None)
+        return self._gnss_at_cg(gnss_ant, rates)
+
+    def _steer_angles(self) -> tuple[float, FloatArray]:
+        """The steering-wheel angle (0 while unknown) and the wheels' steer angles ``(4,)``
+        (the front pair's through the steering ratio)."""
+        delta = np.zeros(4)
+        steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
+        delta[:2] = steer / self.ch.steering_ratio
+        return steer, delta
+
+    def _tick_output(
+        self,
+        fz: FloatArray,
+        delta: FloatArray,
+        steer: float,
+        yaw_rate: float,
+        rates: FloatArray,
+        gnss: tuple[float, float] | None,
+        z_in: tuple[float, float, float, float],
+    ) -> FrontEndTick:
+        """The tick's slips and measurement ``z`` (``z_in``: ``a_x``, ``a_y``, ``ṙ``, the IMU's
+        lag [s]) with their 1-σ as :class:`FrontEndTick` (``fz``, ``delta`` (4,))."""
         kappa, alpha, k_std, a_std, alpha_lag = self._slips(fz, delta, yaw_rate)
         # the radii's shared scale error is in the speed's (the rims correct it) and cancels
         # in κ with it: the speed's 1-σ alone is the shared part
         k_common = math.sqrt(max(self.vx.speed_var, 0.0)) / max(abs(self.vx.speed), 1.0)
         vx = self.vx.speed
-        resist = 0.0 if self.fe.paper else self._resistance(vx, fz)
-        ax_now, ay_now = self._at_tick(ax, ay, imu_lag_s)
-        z = np.array([ax_now + resist, ay_now, yaw_accel])
-        calibrated = self.fe.paper or self.calibrated
-        valid = (
-            vx >= self.fe.min_speed_mps
-            and math.isfinite(steer)
-            and calibrated
-            and not math.isnan(self.yaw_prev)
-        )
-        vy_gnss = gnss[1] if gnss is not None else math.nan
+        z = self._measurement(vx, fz, z_in)
         return FrontEndTick(
             fz_n=fz,
             kz_npm=self.kz_wheel,
@@ -627,11 +664,33 @@ class FrontEnd:
             vy_mps=self.vy.speed,
             yaw_rate_radps=yaw_rate,
             roll_pitch_rate_radps=rates[:2],
-            vy_gnss_mps=vy_gnss,
+            vy_gnss_mps=gnss[1] if gnss is not None else math.nan,
             gnss=gnss is not None,
-            valid=bool(valid),
+            valid=self._tick_valid(vx, steer),
             tyre_suspect=self.tyre_suspect,
         )
+
+    def _measurement(
+        self, vx: float, fz: FloatArray, z_in: tuple[float, float, float, float]
+    ) -> FloatArray:
+        """The μ filter's ``z`` ``(3,)``: ``[a_x + resistances/m, a_y, ṙ]``, the accelerations
+        carried to the tick (``z_in``: ``a_x``, ``a_y``, ``ṙ``, the IMU's lag [s])."""
+        ax, ay, yaw_accel, imu_lag_s = z_in
+        resist = 0.0 if self.fe.paper else self._resistance(vx, fz)
+        ax_now, ay_now = self._at_tick(ax, ay, imu_lag_s)
+        return np.array([ax_now + resist, ay_now, yaw_accel])
+
+    def _tick_valid(self, vx: float, steer: float) -> bool:
+        """Whether the tick may inform μ: above the speed floor, a finite steering angle,
+        calibrated (paper: always) and a yaw rate before it."""
+        calibrated = self.fe.paper or self.calibrated
+        valid = (
+            vx >= self.fe.min_speed_mps
+            and math.isfinite(steer)
+            and calibrated
+            and not math.isnan(self.yaw_prev)
+        )
+        return bool(valid)
 
     def _resistance(self, vx: float, fz: FloatArray) -> float:
         """Drag and rolling resistance over the mass [m/s²] at speed ``vx``."""

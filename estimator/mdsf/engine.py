@@ -234,6 +234,18 @@ def _diagonal(d: FloatArray) -> FloatArray:
     return out
 
 
+def _step_flags(
+    st: _Started, up: _Updated, now_init: BoolArray, degraded: BoolArray
+) -> npt.NDArray[np.int32]:
+    """A step's flags (k,): the start's RESET flags, then GNSS_OK, DEGRADED, GATED, RESET."""
+    return st.flags | (
+        np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
+        | np.where(degraded, int(_F.DEGRADED), 0)
+        | np.where(up.gated, int(_F.GATED), 0)
+        | np.where(up.reacq, int(_F.RESET), 0)
+    ).astype(np.int32)
+
+
 def shrunk_lever_accel(t: TickInputs) -> FloatArray:
     """The tick's ``lever_accel_fwd_mps2`` (``h0·ω̇x``, eq. (3) differentiated) shrunk towards 0
     by two of its std, (k,) [m/s²]; 0 where it is unknown.
@@ -507,40 +519,100 @@ class MdsfEngine:
         F, Q, u = self._process(slots, t, z, x, init, rd[:, MdsfObs.A1])
         x_pr, P_pr = kalman.predict(x, P, F, Q, u)
         up = self._update(slots, t, z, rd, x_pr, P_pr, init, rim_mps, rim_ok)
+        self._online_fits(slots, t, rd, up, init, rim_mps, rim_ok)
+        st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
+        if self._step_ticks:
+            self._mark_outage_steps(slots, t, z, x, up, st, init, rim_mps, rim_ok, rim_std_mps)
+        now_init = init | st.started
+        fused, last_fused, degraded = self._gnss_fused(slots, t, up, now_init)
+        v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
+        self._store(slots, x, P, up, now_init, last_fused, ref)
+        if self.product:
+            self._set_slip_anchor(slots, up.x, fused)
+        self._count(slots, fused, up, st, degraded, now_init)
+        flags = _step_flags(st, up, now_init, degraded)
+        model = self._tick_model(F, Q, u, z, rd, up, st, degraded)
+        return self._outputs(slots, up.x, up.P, up.H, v0, now_init, flags, model)
+
+    def _online_fits(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        rd: FloatArray,
+        up: _Updated,
+        init: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+    ) -> None:
+        """Online fits after the update (product): GNSS noise, then tyre gain (``rd``: (k, m))."""
         if self.product and self.config.gnss_noise_adapt > 0:
             fused = up.use_vg & init
             self._adapt_gnss_noise(slots, fused, up.y[:, MdsfObs.VG], up.s[:, MdsfObs.VG], rd)
         if self.product and self.config.slip_per_demand > 0 and self.config.tyre_gain_tau_s > 0:
             self._learn_tyre_gain(slots, t, up.x, up.H, rim_mps, rim_ok, up.use_vg & init)
-        st = self._start(slots, t, z, init, broken, up, rim_mps, rim_ok)
-        if self._step_ticks:
-            lost = self._gnss_lost(slots, t, init) & ~st.started & ~st.diverged
-            up.inflated = up.inflated | self._outage_slip_steps(
-                slots, t, z, x, up, lost, rim_mps, rim_ok, rim_std_mps
-            )
-        now_init = init | st.started
+
+    def _mark_outage_steps(
+        self,
+        slots: IntArray,
+        t: TickInputs,
+        z: FloatArray,
+        x: FloatArray,
+        up: _Updated,
+        st: _Started,
+        init: BoolArray,
+        rim_mps: FloatArray,
+        rim_ok: BoolArray,
+        rim_std_mps: FloatArray,
+    ) -> None:
+        """Add the outage slip steps found on rows without GNSS to ``up.inflated`` (k,)."""
+        lost = self._gnss_lost(slots, t, init) & ~st.started & ~st.diverged
+        up.inflated = up.inflated | self._outage_slip_steps(
+            slots, t, z, x, up, lost, rim_mps, rim_ok, rim_std_mps
+        )
+
+    def _gnss_fused(
+        self, slots: IntArray, t: TickInputs, up: _Updated, now_init: BoolArray
+    ) -> tuple[BoolArray, IntArray, BoolArray]:
+        """Rows whose GNSS speed was fused, each slot's last fused stamp [ns] and the rows
+        degraded (no fused GNSS within the timeout), shapes (k,)."""
         fused = up.use_vg & now_init
         last_fused = np.where(fused, t.stamp_ns, self.last_fused_ns[slots])
         degraded = now_init & ((t.stamp_ns - last_fused) > round(self.config.gnss_timeout_s * 1e9))
-        v0, ref = self._reference(slots, t, z, up, st, rim_ok, degraded)
-        self._store(slots, x, P, up, now_init, last_fused, ref)
-        if self.product:
-            self._set_slip_anchor(slots, up.x, fused)
+        return fused, last_fused, degraded
+
+    def _count(
+        self,
+        slots: IntArray,
+        fused: BoolArray,
+        up: _Updated,
+        st: _Started,
+        degraded: BoolArray,
+        now_init: BoolArray,
+    ) -> None:
+        """Add this tick's events to the slots' counters (:data:`_STEP_COUNTERS`; masks (k,))."""
         k = slots.shape[0]
         events = [np.ones(k, dtype=bool), fused, up.gated, up.reacq, st.diverged | up.reacq]
         self.counts[slots[:, None], _STEP_COUNTERS] += np.stack(
             [*events, degraded, ~now_init], axis=1
         )
-        flags = st.flags | (
-            np.where(now_init & ~degraded, int(_F.GNSS_OK), 0)
-            | np.where(degraded, int(_F.DEGRADED), 0)
-            | np.where(up.gated, int(_F.GATED), 0)
-            | np.where(up.reacq, int(_F.RESET), 0)
-        ).astype(np.int32)
+
+    def _tick_model(
+        self,
+        F: FloatArray,
+        Q: FloatArray,
+        u: FloatArray | None,
+        z: FloatArray,
+        rd: FloatArray,
+        up: _Updated,
+        st: _Started,
+        degraded: BoolArray,
+    ) -> TickModel:
+        """The tick's model for the outputs: ``F`` broadcast to (k, n, n), the rest as stepped."""
+        k = z.shape[0]
         special = st.started | st.diverged | up.zupt
         if not self.product:
             special = special | degraded
-        model = TickModel(
+        return TickModel(
             F=np.asarray(np.broadcast_to(F, (k, self.n, self.n))),
             Q=Q,
             u=u,
@@ -553,7 +625,6 @@ class MdsfEngine:
             special=special,
             stages=up.stages,
         )
-        return self._outputs(slots, up.x, up.P, up.H, v0, now_init, flags, model)
 
     # -- stages of a step --------------------------------------------------------------------
     def _observation(self, t: TickInputs, rim_mps: FloatArray, rim_ok: BoolArray) -> FloatArray:

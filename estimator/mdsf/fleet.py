@@ -171,6 +171,23 @@ class _Calibrated:
     mode."""
 
 
+@dataclass(slots=True)
+class _Stepped:
+    """A call's step results per row (m rows): emitted, flags, the :data:`_STEP_COLS` outputs
+    (m,) each, rim speeds, their std and covariance with the ground speed (m, 2), the radius
+    ratios and uncalibrated wheels (m, 2) and the calibration's row fields (m,) each."""
+
+    emit: BoolArray
+    flags: npt.NDArray[np.int32]
+    res: dict[str, np.ndarray]
+    rim: FloatArray
+    rim_std: FloatArray
+    rim_cov: FloatArray
+    scale: FloatArray
+    uncal: BoolArray
+    cal_out: dict[str, FloatArray]
+
+
 class MdsfFleet:
     """MDSF for a fleet of wheeled vehicles; implements :class:`estimator.base.FleetEstimator`.
 
@@ -375,9 +392,8 @@ class MdsfFleet:
         due = self.front.assemble(slots, until)
         if due is None:
             return []
-        lengths, offsets, flat = due.lengths, due.offsets, due.inputs
-        total = flat.m
-        row_slot = np.repeat(due.slots, lengths)
+        flat = due.inputs
+        row_slot = np.repeat(due.slots, due.lengths)
         radius = self._radius_m[row_slot]
         min_speed = self._min_speed_mps[row_slot]
         rim = flat.omega * radius
@@ -385,24 +401,39 @@ class MdsfFleet:
         rim_std = flat.omega_std * radius
         # Slip from the filtered rim speeds where the filter has them (product mode), so the
         # wheel fit's noise is weighed against the accelerometer; the measured ones otherwise.
-        rounds = int(lengths[0])
-        if rounds == 1:
-            # one tick per vehicle (the usual call): the step's rows are the call's rows, its
-            # outputs are used as they are
-            so, cal = self._calibrated_step(due.slots, flat, rim, rim_std, min_speed)
-            emit, flags = so.emit, so.flags
-            res = {name: getattr(so, name) for name in _STEP_COLS}
-            rim, rim_std, rim_cov = _filtered_rims(so, cal.rim, cal.rim_std)
-            scale, uncal, cal_out = cal.scale, cal.uncalibrated, cal.fields
+        if int(due.lengths[0]) == 1:
+            stepped = self._step_once(due, rim, rim_std, min_speed)
         else:
-            emit = np.zeros(total, dtype=bool)
-            flags = np.zeros(total, dtype=np.int32)
-            res = {c: np.full(total, np.nan) for c in _STEP_COLS}
-            rim_cov = np.zeros((total, 2))
-            scale = np.ones((total, 2))
-            uncal = np.zeros((total, 2), dtype=bool)
-            cal_out = {c: np.full(total, np.nan) for c in _CAL_FIELDS}
-        for c, fi in _rounds(lengths, offsets) if rounds > 1 else ():
+            stepped = self._step_rounds(due, rim, rim_std, min_speed)
+        out = self._slip_rows(due, row_slot, stepped, radius * stepped.scale, min_speed, still_ns)
+        return _by_vehicle([ids[i] for i in due.index.tolist()], out, stepped.emit, due.offsets)
+
+    def _step_once(
+        self, due: FleetTicks, rim: FloatArray, rim_std: FloatArray, min_speed: FloatArray
+    ) -> _Stepped:
+        """One tick per vehicle (the usual call): the step's rows are the call's rows, its
+        outputs are used as they are (``rim``, ``rim_std`` (m, 2), ``min_speed`` (m,))."""
+        so, cal = self._calibrated_step(due.slots, due.inputs, rim, rim_std, min_speed)
+        res = {name: getattr(so, name) for name in _STEP_COLS}
+        rim, rim_std, rim_cov = _filtered_rims(so, cal.rim, cal.rim_std)
+        return _Stepped(
+            so.emit, so.flags, res, rim, rim_std, rim_cov, cal.scale, cal.uncalibrated, cal.fields
+        )
+
+    def _step_rounds(
+        self, due: FleetTicks, rim: FloatArray, rim_std: FloatArray, min_speed: FloatArray
+    ) -> _Stepped:
+        """Several ticks per vehicle: stepped round by round (:func:`_rounds`), each round's
+        results written to its rows of the call (``rim``, ``rim_std`` (m, 2) in place)."""
+        total, flat = due.inputs.m, due.inputs
+        emit = np.zeros(total, dtype=bool)
+        flags = np.zeros(total, dtype=np.int32)
+        res = {c: np.full(total, np.nan) for c in _STEP_COLS}
+        rim_cov = np.zeros((total, 2))
+        scale = np.ones((total, 2))
+        uncal = np.zeros((total, 2), dtype=bool)
+        cal_out = {c: np.full(total, np.nan) for c in _CAL_FIELDS}
+        for c, fi in _rounds(due.lengths, due.offsets):
             tin = TickInputs(*(getattr(flat, f)[fi] for f in _TICK_FIELDS))
             so, cal = self._calibrated_step(due.slots[:c], tin, rim[fi], rim_std[fi], min_speed[fi])
             emit[fi] = so.emit
@@ -413,16 +444,29 @@ class MdsfFleet:
             scale[fi], uncal[fi] = cal.scale, cal.uncalibrated
             for name in _CAL_FIELDS:
                 cal_out[name][fi] = cal.fields[name]
-        radius = radius * scale
+        return _Stepped(emit, flags, res, rim, rim_std, rim_cov, scale, uncal, cal_out)
+
+    def _slip_rows(
+        self,
+        due: FleetTicks,
+        row_slot: IntArray,
+        st: _Stepped,
+        radius: FloatArray,
+        min_speed: FloatArray,
+        still_ns: IntArray,
+    ) -> np.ndarray:
+        """The call's rows (``ESTIMATE_DTYPE``, m): slip from the stepped rims and ground
+        speeds (``radius`` (m, 2) calibrated), its validity and flags, position, calibration."""
+        flat, res = due.inputs, st.res
         # Slip for all rows and both wheels at once (eq. (8)(9); element-wise: columns left, right).
         ground = np.stack([res["vl"], res["vr"]], axis=1)
         sp = slip_pct(
-            rim,
+            st.rim,
             ground,
             min_speed[:, None],
-            rim_std,
+            st.rim_std,
             np.stack([res["vl_std"], res["vr_std"]], axis=1),
-            rim_cov,
+            st.rim_cov,
         )
         settling = sp.valid & self._settling(flat, row_slot, ground, res["accel"], still_ns)
         # product mode: a slip whose std is beyond the bound (or unknown) is no reading, not
@@ -433,13 +477,15 @@ class MdsfFleet:
         slip_out = np.where(valid, sp.slip_pct, np.nan)
         slip_std_out = np.where(valid, sp.std_pct, np.nan)
         flags = (
-            flags | _slip_flags(valid, sp.standstill, settling, carried, uncal) | flat.wheel_flags
+            st.flags
+            | _slip_flags(valid, sp.standstill, settling, carried, st.uncal)
+            | flat.wheel_flags
         )
-        out = _estimate_rows(flat, res, rim, radius, slip_out, slip_std_out, enu, heading)
+        out = _estimate_rows(flat, res, st.rim, radius, slip_out, slip_std_out, enu, heading)
         out["flags"] = flags
         for name in _CAL_FIELDS:
-            out[name] = cal_out[name]
-        return _by_vehicle([ids[i] for i in due.index.tolist()], out, emit, offsets)
+            out[name] = st.cal_out[name]
+        return out
 
     def _settling(
         self,
