@@ -290,9 +290,8 @@ def _real_setup(n: int, data_dir: str) -> tuple[int, list[str], Any, Callable[[]
     return server.port, sim.vehicle_ids, hub, stop
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    import tempfile
-
+def _parser() -> argparse.ArgumentParser:
+    """The command line: fleet size, feed rate, duration, clients, browser, ``--real``."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--vehicles", type=int, default=100)
     p.add_argument("--rate-hz", type=float, default=20.0, help="synthetic feed rate")
@@ -304,62 +303,72 @@ def main(argv: Sequence[str] | None = None) -> None:
         action="store_true",
         help="the whole server fed by simulated vehicles over Zenoh instead of the synthetic feed",
     )
-    args = p.parse_args(argv)
+    return p
 
-    tmp = tempfile.TemporaryDirectory(prefix="slipfleet-bench-")
+
+def _setup(args: argparse.Namespace, data_dir: str) -> tuple[int, list[str], Any, Any, str]:
+    """The server the clients watch, whole or synthetic: ``(port, ids, hub, stop, source)``."""
     if args.real:
-        port, ids, hub, stop = _real_setup(args.vehicles, tmp.name)
+        port, ids, hub, stop = _real_setup(args.vehicles, data_dir)
         source = f"{args.vehicles} simulated vehicles over Zenoh, whole server"
     else:
         port, ids, hub, stop = _synthetic_setup(args.vehicles, args.rate_hz)
         source = f"{args.vehicles} synthetic vehicles at {args.rate_hz:g} Hz into the hub"
+    return port, ids, hub, stop, source
 
-    vehicle_ms: list[float] = []
-    hub_ms: list[float] = []  # stamp -> row reaches the hub (the pipeline's share)
-    fleet_ms: list[float] = []
+
+def _watch_all(args: argparse.Namespace, port: int, ids: list[str]) -> dict[str, list[float]]:
+    """Follow the vehicle and fleet streams (and the pages with ``--browser``) for
+    ``--seconds``; the latencies in ms per stream (``vehicle``, ``hub``, ``fleet``, ``page``,
+    ``render``)."""
+    ms: dict[str, list[float]] = {k: [] for k in ("vehicle", "hub", "fleet", "page", "render")}
 
     async def run() -> None:
         base = f"ws://127.0.0.1:{port}/api/v1/live"
         tasks = [
             _watch(
-                f"{base}/vehicles/{vid}?window_s=60", args.seconds, vehicle_ms, "vehicle", hub_ms
+                f"{base}/vehicles/{vid}?window_s=60",
+                args.seconds,
+                ms["vehicle"],
+                "vehicle",
+                ms["hub"],  # stamp -> row reaches the hub (the pipeline's share)
             )
             for vid in ids[: args.watch]
         ]
-        tasks.append(_watch(f"{base}/fleet", args.seconds, fleet_ms, "fleet"))
+        tasks.append(_watch(f"{base}/fleet", args.seconds, ms["fleet"], "fleet"))
         await asyncio.gather(*tasks)
 
-    page_ms: list[float] = []
-    render_ms: list[float] = []
     browser_thread = None
     if args.browser:
         url = f"http://127.0.0.1:{port}/"
         browser_thread = threading.Thread(
             target=_browser_measure,
-            args=(args.browser, url, ids[0], args.seconds, page_ms, render_ms),
+            args=(args.browser, url, ids[0], args.seconds, ms["page"], ms["render"]),
             daemon=True,
         )
         browser_thread.start()
-    try:
-        asyncio.run(run())
-        if browser_thread is not None:
-            browser_thread.join(timeout=args.seconds + 60)
-    finally:
-        stop()
-        tmp.cleanup()
+    asyncio.run(run())
+    if browser_thread is not None:
+        browser_thread.join(timeout=args.seconds + 60)
+    return ms
 
+
+def _print_report(
+    args: argparse.Namespace, source: str, hub: Any, ms: dict[str, list[float]]
+) -> None:
+    """The latency table per stream, and the fleet page's cost with ``--browser``."""
     print(
         f"\nLive latency, sensor stamp -> message received ({source}, {args.seconds:g} s, "
         f"hub rows in: {hub.rows_in})\n"
     )
     print(f"{'stream':<34}{'messages':>9}{'msg/s':>8}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}")
     rows: list[tuple[str, list[float], int]] = [
-        (f"/live/vehicles/{{id}} x{args.watch}", vehicle_ms, args.watch),
-        ("/live/fleet x1", fleet_ms, 1),
+        (f"/live/vehicles/{{id}} x{args.watch}", ms["vehicle"], args.watch),
+        ("/live/fleet x1", ms["fleet"], 1),
     ]
     if args.browser:
-        rows.append(("vehicle page in Chromium", page_ms, 1))
-    rows.append(("  of which: stamp -> in the hub", hub_ms, args.watch))
+        rows.append(("vehicle page in Chromium", ms["page"], 1))
+    rows.append(("  of which: stamp -> in the hub", ms["hub"], args.watch))
     for name, vals, clients in rows:
         if not vals:
             print(f"{name:<34}{0:>9}")
@@ -369,13 +378,27 @@ def main(argv: Sequence[str] | None = None) -> None:
             f"{name:<34}{len(vals):>9}{rate:>8.1f}{statistics.median(vals):>9.1f}"
             f"{percentile(vals, 99):>9.1f}{max(vals):>9.1f}"
         )
-
+    render_ms = ms["render"]
     if args.browser and render_ms:
         print(
             f"\nfleet page, applying one message for {args.vehicles} vehicles: "
             f"p50 {statistics.median(render_ms):.1f} ms, p99 {percentile(render_ms, 99):.1f} ms "
             f"({len(render_ms)} messages)"
         )
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    import tempfile
+
+    args = _parser().parse_args(argv)
+    tmp = tempfile.TemporaryDirectory(prefix="slipfleet-bench-")
+    port, ids, hub, stop, source = _setup(args, tmp.name)
+    try:
+        ms = _watch_all(args, port, ids)
+    finally:
+        stop()
+        tmp.cleanup()
+    _print_report(args, source, hub, ms)
 
 
 def _browser_measure(

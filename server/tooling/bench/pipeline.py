@@ -93,23 +93,123 @@ def _replayed_fleet(ids: list[str], received: list[tuple[str, bytes]]) -> tuple[
     return runs, _Fleet(drives, schedule)
 
 
+@dataclasses.dataclass
+class _Meter:
+    """The measured part's CPU counters: seconds per stage, the load generator's share, and
+    the process and thread CPU and the pipeline's stats where measuring started."""
+
+    stats0: dict[str, Any]
+    spent: dict[str, float] = dataclasses.field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    generate: float = 0.0
+    proc0: float = 0.0
+    thread0: float = 0.0
+
+    def restart(self, pipeline: Any) -> None:
+        """Start measuring here (the warm-up is over)."""
+        self.proc0, self.thread0 = time.process_time(), time.thread_time()
+        self.spent = dict.fromkeys(STAGES, 0.0)
+        self.generate = 0.0
+        self.stats0 = pipeline.stats()
+
+
+def _pipeline(
+    settings: Any, runs: list[Any], ids: list[str], writer: Any, latency: Any, clock: Any
+) -> Any:
+    """A :class:`~server.ingest.pipeline.Pipeline` without Zenoh on the simulated clock, the
+    server's sinks behind it and every vehicle registered with its run's configuration."""
+    from server.analytics.alerts import AlertEngine
+    from server.estimation.registry import EstimatorRegistry
+    from server.ingest.pipeline import Pipeline
+    from server.live.hub import LiveHub
+
+    run_configs = [dataclasses.replace(r.config, noise=r.sensor_noise) for r in runs]
+    configs = {vid: run_configs[i % len(runs)] for i, vid in enumerate(ids)}
+    alerts = AlertEngine(slip_config_for=lambda vid: configs[vid].slip, clock_ns=clock)
+    pipeline = Pipeline(
+        settings,
+        None,
+        EstimatorRegistry(),
+        sinks=[writer, LiveHub(), alerts, latency],
+        clock_ns=clock,
+        wall_clock_ns=clock,
+    )
+    for vid, config in configs.items():
+        pipeline.register_vehicle(vid, config)
+    pipeline._apply_control()  # what the pipeline thread does first
+    return pipeline
+
+
+def _render(fleet: Any, start_ns: int, gather_ns: int) -> None:
+    """The fleet's packets of one gather window, collected by its publishers."""
+    from server.tooling.fleet_schedule import render
+
+    window = render(fleet, start_ns, start_ns + gather_ns, loop=True)
+    for call, payload in zip(window.calls, window.payloads, strict=True):
+        call(payload)
+
+
+def _pace(step: int, wall0: float) -> None:
+    """Sleep until the wall clock reaches the simulated time after ``step``."""
+    ahead = (step + 1) * GATHER_MS / 1000 - (time.perf_counter() - wall0)
+    if ahead > 0:
+        time.sleep(ahead)
+
+
+def _loop(
+    pipeline: Any,
+    fleet: Any,
+    received: list[tuple[str, bytes]],
+    sim_ns: list[int],
+    seconds: float,
+    paced: bool,
+    tick_every: int,
+) -> _Meter:
+    """One burst every ``GATHER_MS`` of simulated time for ``seconds``, measured after the
+    warm-up: decoded, offered and ticked when due, each timed in thread CPU; the load
+    generator's share (rendering the packets) counted apart. Left whole: no call added per
+    burst to the part measured."""
+    from server.protocol.burst import decode_burst
+
+    meter = _Meter(pipeline.stats())
+    gather_ns = GATHER_MS * 1_000_000
+    warm = round(WARMUP_S * 1000 / GATHER_MS)
+    wall0 = time.perf_counter()
+    for step in range(round(seconds * 1000 / GATHER_MS)):
+        if step == warm:
+            meter.restart(pipeline)
+        r0 = time.thread_time()
+        received.clear()
+        _render(fleet, step * gather_ns, gather_ns)
+        sim_ns[0] = START_NS + (step + 1) * gather_ns
+        meter.generate += time.thread_time() - r0
+        if paced:
+            _pace(step, wall0)
+        t0 = time.thread_time()
+        items = decode_burst(received, prefix="fleet")
+        t1 = time.thread_time()
+        pipeline._handle(items, sim_ns[0])
+        t2 = time.thread_time()
+        if step % tick_every == tick_every - 1:
+            pipeline._tick(sim_ns[0], flush=False)
+        t3 = time.thread_time()
+        spent = meter.spent
+        spent["decode"] += t1 - t0
+        spent["offer"] += t2 - t1
+        spent["tick"] += t3 - t2
+    return meter
+
+
 def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]:
     """Run one fleet of ``vehicles`` for ``seconds`` of sensor time; CPU seconds per stage.
 
     Uses whichever ``server`` and ``estimator`` packages this interpreter imports (the baseline's
     in a child process). Returns ``{"vehicles", "seconds", "rows", <stage>_s…, "total_s"}``.
     """
-    from server.analytics.alerts import AlertEngine
-    from server.estimation.registry import EstimatorRegistry
     from server.gc_policy import settle
-    from server.ingest.pipeline import Pipeline
-    from server.live.hub import LiveHub
     from server.metrics.latency import LatencyProbe
-    from server.protocol.burst import decode_burst
     from server.settings import Settings
     from server.storage import open_store
     from server.storage.writer import StoreWriter
-    from server.tooling.fleet_schedule import render
 
     received: list[tuple[str, bytes]] = []
     ids = [f"b{i:05d}" for i in range(vehicles)]
@@ -124,71 +224,31 @@ def measure(vehicles: int, seconds: float, paced: bool = True) -> dict[str, Any]
         store = open_store(settings.storage)
         latency = LatencyProbe()
         writer = StoreWriter(latency.wrap_store(store), settings.storage).start()
-        run_configs = [dataclasses.replace(r.config, noise=r.sensor_noise) for r in runs]
-        configs = {vid: run_configs[i % len(runs)] for i, vid in enumerate(ids)}
-        alerts = AlertEngine(slip_config_for=lambda vid: configs[vid].slip, clock_ns=clock)
-        pipeline = Pipeline(
-            settings,
-            None,
-            EstimatorRegistry(),
-            sinks=[writer, LiveHub(), alerts, latency],
-            clock_ns=clock,
-            wall_clock_ns=clock,
-        )
-        for vid, config in configs.items():
-            pipeline.register_vehicle(vid, config)
-        pipeline._apply_control()  # what the pipeline thread does first
+        pipeline = _pipeline(settings, runs, ids, writer, latency, clock)
         settle(settings.ingest.gc_gen0)  # as a server or worker process does once started
         tick_every = settings.ingest.process_interval_ms // GATHER_MS
-        spent = dict.fromkeys(STAGES, 0.0)
-        proc0 = thread0 = generate = 0.0
-        stats0 = pipeline.stats()
-        gather_ns = GATHER_MS * 1_000_000
-        warm = round(WARMUP_S * 1000 / GATHER_MS)
-        wall0 = time.perf_counter()
         try:
-            for step in range(round(seconds * 1000 / GATHER_MS)):
-                if step == warm:
-                    proc0, thread0 = time.process_time(), time.thread_time()
-                    spent = dict.fromkeys(STAGES, 0.0)
-                    generate = 0.0
-                    stats0 = pipeline.stats()
-                r0 = time.thread_time()
-                received.clear()
-                window = render(fleet, step * gather_ns, (step + 1) * gather_ns, loop=True)
-                for call, payload in zip(window.calls, window.payloads, strict=True):
-                    call(payload)
-                sim_ns[0] = START_NS + (step + 1) * gather_ns
-                generate += time.thread_time() - r0
-                if paced:
-                    ahead = (step + 1) * GATHER_MS / 1000 - (time.perf_counter() - wall0)
-                    if ahead > 0:
-                        time.sleep(ahead)
-                t0 = time.thread_time()
-                items = decode_burst(received, prefix="fleet")
-                t1 = time.thread_time()
-                pipeline._handle(items, sim_ns[0])
-                t2 = time.thread_time()
-                if step % tick_every == tick_every - 1:
-                    pipeline._tick(sim_ns[0], flush=False)
-                t3 = time.thread_time()
-                spent["decode"] += t1 - t0
-                spent["offer"] += t2 - t1
-                spent["tick"] += t3 - t2
+            meter = _loop(pipeline, fleet, received, sim_ns, seconds, paced, tick_every)
             writer.flush(timeout=60.0)
             # the load generator's share (rendering the packets) is not the server's
-            total = time.process_time() - proc0 - generate
-            spent["writer"] = total - (time.thread_time() - thread0 - generate)
+            total = time.process_time() - meter.proc0 - meter.generate
+            meter.spent["writer"] = total - (time.thread_time() - meter.thread0 - meter.generate)
         finally:
             writer.close()
             store.close()
-    measured_s = seconds - WARMUP_S
-    stats = pipeline.stats()
+    return _result(vehicles, seconds - WARMUP_S, pipeline.stats(), meter, total)
+
+
+def _result(
+    vehicles: int, measured_s: float, stats: dict[str, Any], meter: _Meter, total: float
+) -> dict[str, Any]:
+    """:func:`measure`'s numbers: rows and CPU seconds per stage and tick phase."""
+    stats0 = meter.stats0
     return {
         "vehicles": vehicles,
         "seconds": measured_s,
         "rows": stats["rows"] - stats0["rows"],
-        **{f"{k}_s": v for k, v in spent.items()},
+        **{f"{k}_s": v for k, v in meter.spent.items()},
         **{f"{k}_s": stats[f"cpu_{k}_s"] - stats0[f"cpu_{k}_s"] for k in TICK_PHASES},
         "total_s": total,
     }

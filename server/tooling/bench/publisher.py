@@ -60,6 +60,66 @@ PACKETS_PER_VEHICLE_S = 30
 # ------------------------------------------------------------------------------ children
 
 
+def _per_packet_publishers(sim: Any, vehicles: list[Any]) -> dict[tuple[str, Any], Any]:
+    """A publisher per vehicle and stream, spread over ``sim``'s sessions, each vehicle's
+    configuration put once."""
+    import zenoh
+
+    from server.protocol.codec import encode_config
+    from server.protocol.keys import Stream, config_key, sensor_key
+    from server.tooling.fleet_sim import _publisher
+
+    pubs: dict[tuple[str, Stream], zenoh.Publisher] = {}
+    for i, v in enumerate(vehicles):
+        session = sim._sessions[i % len(sim._sessions)]
+        for s in Stream:
+            pubs[(v.vehicle_id, s)] = _publisher(session, sensor_key(sim._prefix, v.vehicle_id, s))
+        session.put(
+            config_key(sim._prefix, v.vehicle_id),
+            encode_config(v.config),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+    return pubs
+
+
+def _per_packet_loop(
+    sim: Any,
+    vehicles: list[Any],
+    pubs: dict[tuple[str, Any], Any],
+    stop: threading.Event,
+    late: list[tuple[int, float]],
+) -> None:
+    """Publish each vehicle's next packet when due, one at a time, until ``stop``."""
+
+    def due(v: Any) -> int:
+        off = v.packets[v.index].arrival_offset_ns + v.phase_ns + v.loop * v.period_ns
+        return int(off / sim._rate)
+
+    wall0 = time.perf_counter_ns()
+    heap = [(due(v), i) for i, v in enumerate(vehicles) if v.packets]
+    heapq.heapify(heap)
+    stats = sim.stats
+    while heap and not stop.is_set():
+        d, i = heap[0]
+        now = time.perf_counter_ns() - wall0
+        if d > now:
+            stop.wait(min((d - now) / 1e9, 0.05))
+            continue
+        heapq.heappop(heap)
+        late.append((now + wall0, (now - d) / 1e6))
+        v = vehicles[i]
+        p = v.packets[v.index]
+        payload = p.encode(v.seq[p.stream], v.shift_ns + v.loop * v.period_ns)
+        v.seq[p.stream] += 1
+        pubs[(v.vehicle_id, p.stream)].put(payload)
+        stats.packets[p.stream.value] += 1
+        v.index += 1
+        if v.index == len(v.packets):
+            v.index = 0
+            v.loop += 1
+        heapq.heappush(heap, (due(v), i))
+
+
 def _per_packet_run(
     sim: Any,
     stop: threading.Event,
@@ -71,57 +131,15 @@ def _per_packet_run(
 
     ``late`` gets ``(wall ns, ms late)`` for every packet; ``sim.stats`` is updated per packet.
     """
-    import zenoh
-
-    from server.protocol.codec import encode_config
-    from server.protocol.keys import Stream, config_key, sensor_key
-    from server.tooling.fleet_sim import _publisher
-
     vehicles = sim._build()
-    pubs: dict[tuple[str, Stream], zenoh.Publisher] = {}
-    for i, v in enumerate(vehicles):
-        session = sim._sessions[i % len(sim._sessions)]
-        for s in Stream:
-            pubs[(v.vehicle_id, s)] = _publisher(session, sensor_key(sim._prefix, v.vehicle_id, s))
-        session.put(
-            config_key(sim._prefix, v.vehicle_id),
-            encode_config(v.config),
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
+    pubs = _per_packet_publishers(sim, vehicles)
     ready.set()
     go.wait()
     anchor_ns = sim._clock()
     for v in vehicles:
         v.shift_ns += anchor_ns
-
-    def due(v: Any) -> int:
-        off = v.packets[v.index].arrival_offset_ns + v.phase_ns + v.loop * v.period_ns
-        return int(off / sim._rate)
-
-    wall0 = time.perf_counter_ns()
-    heap = [(due(v), i) for i, v in enumerate(vehicles) if v.packets]
-    heapq.heapify(heap)
-    stats = sim.stats
     try:
-        while heap and not stop.is_set():
-            d, i = heap[0]
-            now = time.perf_counter_ns() - wall0
-            if d > now:
-                stop.wait(min((d - now) / 1e9, 0.05))
-                continue
-            heapq.heappop(heap)
-            late.append((now + wall0, (now - d) / 1e6))
-            v = vehicles[i]
-            p = v.packets[v.index]
-            payload = p.encode(v.seq[p.stream], v.shift_ns + v.loop * v.period_ns)
-            v.seq[p.stream] += 1
-            pubs[(v.vehicle_id, p.stream)].put(payload)
-            stats.packets[p.stream.value] += 1
-            v.index += 1
-            if v.index == len(v.packets):
-                v.index = 0
-                v.loop += 1
-            heapq.heappush(heap, (due(v), i))
+        _per_packet_loop(sim, vehicles, pubs, stop, late)
     finally:
         for pub in pubs.values():
             pub.undeclare()
@@ -301,14 +319,12 @@ class _Counter:
         self.n += 1
 
 
-def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Namespace) -> dict:
-    import zenoh
-
+def _start_children(
+    endpoint: str, vehicles: int, path: str, prefix: str, args: argparse.Namespace
+) -> list[subprocess.Popen[str]]:
+    """One publisher child process per group of the load test's assignment, not yet going."""
     from server.tooling.loadtest import LoadSpec, assignments
 
-    prefix = f"bench-{path}-{vehicles}"
-    counter = _Counter()
-    sub = router.declare_subscriber(zenoh.KeyExpr(prefix).join("*/sensors/*"), counter)
     spec = LoadSpec(vehicles=vehicles, duration_s=args.window, publishers=PUBLISHERS)
     procs = []
     for groups in assignments(spec, ("sim-{:05d}",)):
@@ -329,7 +345,13 @@ def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Na
                 text=True,
             )
         )
-    for p in procs:  # start publishing together, once every child has simulated and encoded
+    return procs
+
+
+def _go_and_collect(procs: list[subprocess.Popen[str]]) -> list[dict[str, Any]]:
+    """Start the children publishing together, once every one has simulated and encoded; the
+    last JSON line each prints."""
+    for p in procs:
         assert p.stdout is not None
         if "ready" not in json.loads(p.stdout.readline() or "{}"):
             raise RuntimeError("publisher child failed while starting")
@@ -343,12 +365,14 @@ def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Na
         if p.returncode != 0:
             raise RuntimeError(f"publisher child exited with {p.returncode}")
         outs.append(json.loads(stdout.strip().splitlines()[-1]))
+    return outs
+
+
+def _one_row(
+    vehicles: int, path: str, args: argparse.Namespace, outs: list[dict[str, Any]], received: int
+) -> dict[str, Any]:
+    """One table row from the children's reports and the packets the router received."""
     sent = sum(o["sent_total"] for o in outs)
-    deadline = time.monotonic() + 10
-    while counter.n < sent and time.monotonic() < deadline:
-        time.sleep(0.05)
-    time.sleep(0.3)  # anything beyond what was sent would show as a ratio > 1
-    sub.undeclare()
     window = max(o["window_s"] for o in outs)
     cpu = sum(o["cpu_s"] for o in outs)
     sent_w = sum(o["sent_window"] for o in outs)
@@ -363,8 +387,8 @@ def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Na
         "us_per_packet": 1e6 * cpu / max(sent_w, 1),
         "cores": cpu / window,
         "sent": sent,
-        "received": counter.n,
-        "received_over_sent": counter.n / max(sent, 1),
+        "received": received,
+        "received_over_sent": received / max(sent, 1),
         "late_p50_ms": max(x["p50_ms"] for x in lat),
         "late_p99_ms": max(x["p99_ms"] for x in lat),
         "late_max_ms": max(x["max_ms"] for x in lat),
@@ -372,6 +396,24 @@ def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Na
         "rss_mb": sum(o["rss_bytes"] for o in outs) / 2**20,
         "cpu_s_by_thread": [o["cpu_s_by_thread"] for o in outs],
     }
+
+
+def _one(router: Any, endpoint: str, vehicles: int, path: str, args: argparse.Namespace) -> dict:
+    """One fleet size on one path: the children publish, the router counts what arrives."""
+    import zenoh
+
+    prefix = f"bench-{path}-{vehicles}"
+    counter = _Counter()
+    sub = router.declare_subscriber(zenoh.KeyExpr(prefix).join("*/sensors/*"), counter)
+    procs = _start_children(endpoint, vehicles, path, prefix, args)
+    outs = _go_and_collect(procs)
+    sent = sum(o["sent_total"] for o in outs)
+    deadline = time.monotonic() + 10
+    while counter.n < sent and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)  # anything beyond what was sent would show as a ratio > 1
+    sub.undeclare()
+    return _one_row(vehicles, path, args, outs, counter.n)
 
 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:

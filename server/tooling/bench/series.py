@@ -153,19 +153,11 @@ async def _time_requests(
     return results
 
 
-def run(
-    json_path: Path | str | None = None, *, rows: int = 36_000, repeats: int = 9
-) -> dict[str, Any]:
-    """Fill a SQLite store with ``rows`` estimates, time the HTTP cases, print a table.
-
-    Returns ``{"rows": …, "cases": {name: {median_ms, min_ms, max_ms, bytes, url, target_ms?,
-    meets_target?}}}`` and writes it to ``json_path`` when given.
-    """
-    data = vehicle_hour(rows)
-    start, end = int(data["stamp_ns"][0]), int(data["stamp_ns"][-1]) + 1
+def _cases(start: int, end: int) -> dict[str, str]:
+    """The HTTP cases timed, by name: series in each format and width, and the report."""
     q = f"start={start}&end={end}"
     base = f"/api/v1/vehicles/{_VEHICLE}"
-    cases = {
+    return {
         "series json max_points=2000": f"{base}/series?{q}&max_points=2000",
         "series json max_points=2000, 4 fields": f"{base}/series?{q}&max_points=2000"
         "&fields=vg_mps,slip_left_pct,slip_right_pct,flags",
@@ -178,38 +170,65 @@ def run(
         "series parquet full rate": f"{base}/series?{q}&format=parquet",
         "report": f"{base}/report?{q}",
     }
+
+
+def _seed_and_time_store(
+    settings: Settings, data: np.ndarray, start: int, end: int, repeats: int
+) -> dict[str, list[float]]:
+    """Write ``data`` in the writer's batches, then time ``query_series`` (all fields, the
+    report's fields) ``2 + repeats`` times; seconds per call by field set."""
+    rows = data.shape[0]
+    seed = open_store(settings.storage)
+    try:
+        seed.upsert_vehicle(_VEHICLE, {}, _T0)
+        for i in range(0, rows, 5000):  # the writer's batch size
+            seed.write_estimates([(_VEHICLE, data[i : i + 5000])])
+        store_times: dict[str, list[float]] = {"all fields": [], "report fields": []}
+        field_sets = (("all fields", None), ("report fields", report_fields(MDSF_SPEC)))
+        for _ in range(2 + repeats):
+            for label, fields in field_sets:
+                t = time.perf_counter()
+                got = seed.query_series(_VEHICLE, start, end, fields)
+                store_times[label].append(time.perf_counter() - t)
+                assert got.shape[0] == rows
+    finally:
+        seed.close()
+    return store_times
+
+
+def _time_http(settings: Settings, cases: dict[str, str], repeats: int) -> dict[str, Any]:
+    """The cases through the app in process (ASGI transport, lifespan run)."""
+    app = create_app(settings, _BenchRuntime(settings))
+
+    async def serve() -> dict[str, dict[str, Any]]:
+        async with app.router.lifespan_context(app):
+            transport = httpx.ASGITransport(app=app)
+            async with httpx.AsyncClient(
+                transport=transport, base_url="http://bench", timeout=60
+            ) as client:
+                return await _time_requests(client, cases, repeats)
+
+    return asyncio.run(serve())
+
+
+def run(
+    json_path: Path | str | None = None, *, rows: int = 36_000, repeats: int = 9
+) -> dict[str, Any]:
+    """Fill a SQLite store with ``rows`` estimates, time the HTTP cases, print a table.
+
+    Returns ``{"rows": …, "cases": {name: {median_ms, min_ms, max_ms, bytes, url, target_ms?,
+    meets_target?}}}`` and writes it to ``json_path`` when given.
+    """
+    data = vehicle_hour(rows)
+    start, end = int(data["stamp_ns"][0]), int(data["stamp_ns"][-1]) + 1
+    cases = _cases(start, end)
     with tempfile.TemporaryDirectory(prefix="slipfleet-bench-") as tmp:
         settings = Settings(
             storage=StorageSettings.model_validate({"data_dir": Path(tmp)}),
             api=ApiSettings.model_validate({"require_auth": False}),
         )
-        seed = open_store(settings.storage)
-        try:
-            seed.upsert_vehicle(_VEHICLE, {}, _T0)
-            for i in range(0, rows, 5000):  # the writer's batch size
-                seed.write_estimates([(_VEHICLE, data[i : i + 5000])])
-            store_times: dict[str, list[float]] = {"all fields": [], "report fields": []}
-            field_sets = (("all fields", None), ("report fields", report_fields(MDSF_SPEC)))
-            for _ in range(2 + repeats):
-                for label, fields in field_sets:
-                    t = time.perf_counter()
-                    got = seed.query_series(_VEHICLE, start, end, fields)
-                    store_times[label].append(time.perf_counter() - t)
-                    assert got.shape[0] == rows
-        finally:
-            seed.close()
-
-        app = create_app(settings, _BenchRuntime(settings))
-
-        async def serve() -> dict[str, dict[str, Any]]:
-            async with app.router.lifespan_context(app):
-                transport = httpx.ASGITransport(app=app)
-                async with httpx.AsyncClient(
-                    transport=transport, base_url="http://bench", timeout=60
-                ) as client:
-                    return await _time_requests(client, cases, repeats)
-
-        results = asyncio.run(serve())
+        store_times = _seed_and_time_store(settings, data, start, end, repeats)
+        results = _time_http(settings, cases, repeats)
 
     for name, target in _TARGETS_MS.items():
         results[name]["target_ms"] = target

@@ -626,16 +626,8 @@ def _busiest(r: dict[str, Any]) -> str:
     return f"{name} {cores:.2f}"
 
 
-def run(
-    json_path: str | Path | None = None,
-    *,
-    ladder_budget_s: float = LADDER_BUDGET_S,
-    ladders: Sequence[str] | None = None,
-    first: int = 0,
-) -> dict[str, Any]:
-    """Run the benchmark; print the tables; write JSON to ``json_path`` if given."""
-    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per /metrics scrape
-    t_start = time.monotonic()
+def _floods() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """The three flood paths (raw Zenoh, the product, the naive loop) and their table."""
     print(
         f"flood capacity ({FLOOD_VEHICLES} vehicles × {FLOOD_PACKETS} packets, "
         f"{FLOOD_PUBLISHERS} publisher processes, {os.cpu_count()} CPUs)",
@@ -657,33 +649,48 @@ def run(
             f"{r['packets_per_s'] / naive['packets_per_s']:>8.2f} "
             f"{r['packets_per_s'] / raw['packets_per_s']:>7.3f} {cpu:>21}"
         )
-    results: dict[str, Any] = {"flood": {"raw": raw, "product": product, "naive": naive}}
+    return raw, product, naive
 
-    with postgres_admin_url() as admin:
-        prof_path = Path(tempfile.mkdtemp(prefix="slipfleet-prof-")) / "server.raw"
-        print(
-            f"\nladder: real-time mix fleet, {RUNG_WINDOW_S:.0f} s per rung, PostgreSQL, "
-            "router process; stored latency = sensor stamp → committed row"
-        )
-        print("  " + _HEADER, flush=True)
-        picked = {
-            name: ladder(admin, name, layout, ladder_budget_s, first)
-            for name, layout in LADDERS
-            if ladders is None or name in ladders
-        }
-        results["ladder"] = picked
-        print(f"\nprofile: single server at {PROFILE_VEHICLES} vehicles (py-spy, inclusive)")
-        prof = rung(admin, SINGLE, PROFILE_VEHICLES, profile=prof_path)
-        prof["layout"] = "single"
-        if prof_path.exists():
-            frames = profile_summary(prof_path)
-            print(f"  {'samples':>7} {'cores':>6}  frame (inclusive)")
-            for frame, pct, cores in frames:
-                print(f"  {pct:6.1f}% {cores:6.2f}  {frame}")
-            results["profile"] = {"vehicles": PROFILE_VEHICLES, "top": frames, "rung": prof}
-        else:
-            print("  py-spy not available (pip install py-spy)")
-        shutil.rmtree(prof_path.parent, ignore_errors=True)
+
+def _ladders(
+    admin: str, ladder_budget_s: float, ladders: Sequence[str] | None, first: int
+) -> dict[str, list[dict[str, Any]]]:
+    """The ladders picked (all by default), each climbed from ``first`` vehicles."""
+    print(
+        f"\nladder: real-time mix fleet, {RUNG_WINDOW_S:.0f} s per rung, PostgreSQL, "
+        "router process; stored latency = sensor stamp → committed row"
+    )
+    print("  " + _HEADER, flush=True)
+    return {
+        name: ladder(admin, name, layout, ladder_budget_s, first)
+        for name, layout in LADDERS
+        if ladders is None or name in ladders
+    }
+
+
+def _profile(admin: str, prof_path: Path, results: dict[str, Any]) -> None:
+    """One single-server rung under py-spy; its busiest frames into ``results["profile"]``."""
+    print(f"\nprofile: single server at {PROFILE_VEHICLES} vehicles (py-spy, inclusive)")
+    prof = rung(admin, SINGLE, PROFILE_VEHICLES, profile=prof_path)
+    prof["layout"] = "single"
+    if prof_path.exists():
+        frames = profile_summary(prof_path)
+        print(f"  {'samples':>7} {'cores':>6}  frame (inclusive)")
+        for frame, pct, cores in frames:
+            print(f"  {pct:6.1f}% {cores:6.2f}  {frame}")
+        results["profile"] = {"vehicles": PROFILE_VEHICLES, "top": frames, "rung": prof}
+    else:
+        print("  py-spy not available (pip install py-spy)")
+
+
+def _summary(
+    picked: dict[str, list[dict[str, Any]]],
+    raw: dict[str, Any],
+    product: dict[str, Any],
+    naive: dict[str, Any],
+    t_start: float,
+) -> dict[str, Any]:
+    """The top rungs per ladder and the flood ratios, printed on one line."""
 
     def top(rows: list[dict[str, Any]], key: str) -> int:
         return max((r["spec"]["vehicles"] for r in rows if r[key]), default=0)
@@ -695,13 +702,36 @@ def run(
         "product_over_raw": product["packets_per_s"] / raw["packets_per_s"],
         "total_s": time.monotonic() - t_start,
     }
-    results["summary"] = summary
     print(
         f"\nsummary: top rung that holds {summary['holds_vehicles']}; 0 loss and p99 < "
         f"{FLOOR_P99_MS:.0f} ms at {summary['floor_vehicles']} vehicles; "
         f"product = {summary['product_over_naive']:.2f}× naive, "
         f"{summary['product_over_raw']:.3f}× raw Zenoh; {summary['total_s']:.0f} s"
     )
+    return summary
+
+
+def run(
+    json_path: str | Path | None = None,
+    *,
+    ladder_budget_s: float = LADDER_BUDGET_S,
+    ladders: Sequence[str] | None = None,
+    first: int = 0,
+) -> dict[str, Any]:
+    """Run the benchmark; print the tables; write JSON to ``json_path`` if given."""
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per /metrics scrape
+    t_start = time.monotonic()
+    raw, product, naive = _floods()
+    results: dict[str, Any] = {"flood": {"raw": raw, "product": product, "naive": naive}}
+
+    with postgres_admin_url() as admin:
+        prof_path = Path(tempfile.mkdtemp(prefix="slipfleet-prof-")) / "server.raw"
+        picked = _ladders(admin, ladder_budget_s, ladders, first)
+        results["ladder"] = picked
+        _profile(admin, prof_path, results)
+        shutil.rmtree(prof_path.parent, ignore_errors=True)
+
+    results["summary"] = _summary(picked, raw, product, naive, t_start)
     if json_path is not None:
         Path(json_path).write_text(json.dumps(results, indent=2, default=str))
     return results

@@ -404,6 +404,47 @@ def _summary(
         )
 
 
+def _per_mode(
+    runs: list[TrackedRun], modes: tuple[TrackedMode, ...], seconds: dict[str, float]
+) -> dict[str, list[dict[str, Any]]]:
+    """Each mode fed every run; its metrics per run, its seconds into ``seconds``."""
+    per_mode: dict[str, list[dict[str, Any]]] = {}
+    for mode in modes:
+        t1 = time.perf_counter()
+        rows_of, clocks = _feed(mode, runs)
+        per_mode[mode.value] = [
+            {**_metrics(r, rows), **_clock_metrics(r, clock)}
+            for r, rows, clock in zip(runs, rows_of, clocks, strict=True)
+        ]
+        seconds[mode.value] = time.perf_counter() - t1
+    return per_mode
+
+
+def _entry(
+    k: int, r: TrackedRun, modes: tuple[TrackedMode, ...], per_mode: dict[str, list[Any]]
+) -> dict[str, Any]:
+    """Run ``k``'s result: its sensors and terrain, each mode's metrics (printed a line each)
+    and the product's missed floors."""
+    label = f"{r.name}[{r.seed}]"
+    entry: dict[str, Any] = {
+        "run": label,
+        "ground": r.route.ground.name,
+        "gyro_grade": r.sensors.gyro_grade,
+        "config_gyro_grade": _config_grade(r),
+        "gnss_up_vel_std_ratio": r.sensors.gnss_up_vel_std_ratio,
+        **{k: getattr(r.sensors, k) for k in CLOCK_KEYS},
+        "grade_max": float(np.max(np.abs(np.tan(r.truth.pitch_rad)))),
+        "cross_max": float(np.max(np.abs(np.tan(r.truth.roll_rad)))),
+        "modes": {},
+    }
+    for mode in modes:
+        m = per_mode[mode.value][k]
+        entry["modes"][mode.value] = m
+        print(_line(label, mode.value, m))
+    entry["product_misses"] = _floors(per_mode["product"][k], r)
+    return entry
+
+
 def run(
     seeds: list[int],
     random_routes: int,
@@ -413,49 +454,21 @@ def run(
     modes: tuple[TrackedMode, ...] = MODES,
     flat: bool = False,
 ) -> dict[str, Any]:
+    """Simulate the runs, feed them to each mode, print the tables; the results by run."""
     t0 = time.perf_counter()
     runs = [simulate_tracked(s, seed, flat=flat) for s in scenarios for seed in seeds]
     runs += [simulate_tracked("random", random_from + i, flat=flat) for i in range(random_routes)]
     sim_s = time.perf_counter() - t0
     results: dict[str, Any] = {"runs": [], "seconds": {"simulate": sim_s}}
-    per_mode: dict[str, list[dict[str, Any]]] = {}
     modes = (TrackedMode.PRODUCT, *(m for m in modes if m != TrackedMode.PRODUCT))
-    for mode in modes:
-        t1 = time.perf_counter()
-        rows_of, clocks = _feed(mode, runs)
-        per_mode[mode.value] = [
-            {**_metrics(r, rows), **_clock_metrics(r, clock)}
-            for r, rows, clock in zip(runs, rows_of, clocks, strict=True)
-        ]
-        results["seconds"][mode.value] = time.perf_counter() - t1
+    per_mode = _per_mode(runs, modes, results["seconds"])
     print(
         f"{'run':<22} {'mode':<17} {'state%':>7} {'settl%':>7} {'slipL rms/p95':>13} "
         f"{'slipR rms/p95':>13} {'DR end m':>8} {'DR %':>6} {'DR max':>7} {'km':>5} {'cov%':>5} "
         f"{'NEES':>5}"
     )
-    failures = []
-    for k, r in enumerate(runs):
-        label = f"{r.name}[{r.seed}]"
-        entry: dict[str, Any] = {
-            "run": label,
-            "ground": r.route.ground.name,
-            "gyro_grade": r.sensors.gyro_grade,
-            "config_gyro_grade": _config_grade(r),
-            "gnss_up_vel_std_ratio": r.sensors.gnss_up_vel_std_ratio,
-            **{k: getattr(r.sensors, k) for k in CLOCK_KEYS},
-            "grade_max": float(np.max(np.abs(np.tan(r.truth.pitch_rad)))),
-            "cross_max": float(np.max(np.abs(np.tan(r.truth.roll_rad)))),
-            "modes": {},
-        }
-        for mode in modes:
-            m = per_mode[mode.value][k]
-            entry["modes"][mode.value] = m
-            print(_line(label, mode.value, m))
-        missed = _floors(per_mode["product"][k], r)
-        entry["product_misses"] = missed
-        if missed:
-            failures.append((label, missed))
-        results["runs"].append(entry)
+    results["runs"] = [_entry(k, r, modes, per_mode) for k, r in enumerate(runs)]
+    failures = [(e["run"], e["product_misses"]) for e in results["runs"] if e["product_misses"]]
     for mode in (m for m in (TrackedMode.PRODUCT, TrackedMode.PAPER) if m in modes):
         cm = sum(np.array(m["confusion"]) for m in per_mode[mode.value])
         _confusion(f"confusion, {mode.value}", np.asarray(cm))

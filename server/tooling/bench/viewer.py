@@ -23,6 +23,7 @@ import argparse
 import statistics
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import viser
 
@@ -31,7 +32,7 @@ from estimator.mdsf_spec import MDSF_SPEC
 from estimator.types import EstimateBatch
 from server.live.hub import LiveHub
 from server.live.viewer.fleet_view import FleetViewer
-from server.live.viewer.scene import BODY_SIZE_M, cylinder_mesh_x, fleet_frame
+from server.live.viewer.scene import BODY_SIZE_M, FleetFrame, cylinder_mesh_x, fleet_frame
 from server.settings import ViewerSettings
 from server.tooling.bench import percentile
 from server.tooling.bench.live import SyntheticFleet
@@ -61,12 +62,62 @@ def bench_batched(n: int, frames: int) -> list[float]:
     return times
 
 
+def _add_handles(
+    server: viser.ViserServer,
+    ids: Sequence[str],
+    f: FleetFrame,
+    wheel_mesh: tuple[Any, Any],
+    bodies: list[viser.BoxHandle],
+    wheels: list[viser.MeshHandle],
+) -> None:
+    """A body box and two wheel meshes per vehicle, one handle at a time (the former way)."""
+    wv, wf = wheel_mesh
+    for i, vid in enumerate(ids):
+        bodies.append(
+            server.scene.add_box(
+                f"/fleet/{vid}/body",
+                dimensions=BODY_SIZE_M,
+                color=f.body_rgb[i],
+                position=f.body_position_m[i],
+                wxyz=f.body_wxyz[i],
+            )
+        )
+        for side, j in (("left", 2 * i), ("right", 2 * i + 1)):
+            wheels.append(
+                server.scene.add_mesh_simple(
+                    f"/fleet/{vid}/wheel_{side}",
+                    vertices=wv,
+                    faces=wf,
+                    color=f.wheel_rgb[j],
+                    position=f.wheel_position_m[j],
+                    wxyz=f.wheel_wxyz[j],
+                )
+            )
+
+
+def _place(handles: Sequence[Any], position_m: Any, wxyz: Any, rgb: Any) -> None:
+    """Handle ``i``'s position, orientation and colour set from row ``i`` of each array."""
+    for i, h in enumerate(handles):
+        h.position = position_m[i]
+        h.wxyz = wxyz[i]
+        h.color = (int(rgb[i, 0]), int(rgb[i, 1]), int(rgb[i, 2]))
+
+
+def _move_handles(
+    f: FleetFrame, bodies: list[viser.BoxHandle], wheels: list[viser.MeshHandle]
+) -> None:
+    """Each handle's position, orientation and colour set from the frame ``f``."""
+    _place(bodies, f.body_position_m, f.body_wxyz, f.body_rgb)
+    _place(wheels, f.wheel_position_m, f.wheel_wxyz, f.wheel_rgb)
+
+
 def bench_per_vehicle(n: int, frames: int) -> list[float]:
+    """Seconds per frame with a handle per body and wheel, added once and then moved."""
     fleet = SyntheticFleet(n, seed=2)
     hub = LiveHub(initial_slots=n)
     server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
     g = VehicleGeometry()
-    wv, wf = cylinder_mesh_x(g.wheel_radius_left_m, 0.45)
+    wheel_mesh = cylinder_mesh_x(g.wheel_radius_left_m, 0.45)
     bodies: list[viser.BoxHandle] = []
     wheels: list[viser.MeshHandle] = []
     times = []
@@ -79,44 +130,9 @@ def bench_per_vehicle(n: int, frames: int) -> list[float]:
             f = fleet_frame(ids, rows, spec, g, hub.status_of_rows(rows["stamp_ns"], arrivals))
             with server.atomic():
                 if not bodies:
-                    for i, vid in enumerate(ids):
-                        bodies.append(
-                            server.scene.add_box(
-                                f"/fleet/{vid}/body",
-                                dimensions=BODY_SIZE_M,
-                                color=f.body_rgb[i],
-                                position=f.body_position_m[i],
-                                wxyz=f.body_wxyz[i],
-                            )
-                        )
-                        for side, j in (("left", 2 * i), ("right", 2 * i + 1)):
-                            wheels.append(
-                                server.scene.add_mesh_simple(
-                                    f"/fleet/{vid}/wheel_{side}",
-                                    vertices=wv,
-                                    faces=wf,
-                                    color=f.wheel_rgb[j],
-                                    position=f.wheel_position_m[j],
-                                    wxyz=f.wheel_wxyz[j],
-                                )
-                            )
+                    _add_handles(server, ids, f, wheel_mesh, bodies, wheels)
                 else:
-                    for i, h in enumerate(bodies):
-                        h.position = f.body_position_m[i]
-                        h.wxyz = f.body_wxyz[i]
-                        h.color = (
-                            int(f.body_rgb[i, 0]),
-                            int(f.body_rgb[i, 1]),
-                            int(f.body_rgb[i, 2]),
-                        )
-                    for j, w in enumerate(wheels):
-                        w.position = f.wheel_position_m[j]
-                        w.wxyz = f.wheel_wxyz[j]
-                        w.color = (
-                            int(f.wheel_rgb[j, 0]),
-                            int(f.wheel_rgb[j, 1]),
-                            int(f.wheel_rgb[j, 2]),
-                        )
+                    _move_handles(f, bodies, wheels)
             if k:
                 times.append(time.perf_counter() - t0)
     finally:
