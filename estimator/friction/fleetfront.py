@@ -32,8 +32,6 @@ from estimator.friction.frontend import (
     brake_slip_std,
     calibration_scale_var,
     consider_step,
-    differential_slips,
-    relaxed_slip_angle,
     rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
@@ -248,7 +246,6 @@ class _State(_Arrays):
         self.accel_prev = np.zeros((0, 2))  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((0, 2, 4))
         self.kappa_prev = np.zeros((0, 4))  # the last tick's kinematic κ
-        self.alpha_prev = np.zeros((0, 4))  # the last tick's kinematic α [rad]
         self.kappa_ring = np.zeros((0, 4))  # the relaxed κ's 1-σ from a ringing wheel
 
     def reset(self, slot: int, car: _Vehicles, fe: FrontEndConfig) -> None:
@@ -269,7 +266,6 @@ class _State(_Arrays):
         self.accel_prev[slot] = math.nan
         self.slip_lag[slot] = 0.0
         self.kappa_prev[slot] = math.nan
-        self.alpha_prev[slot] = math.nan
         self.kappa_ring[slot] = 0.0
 
 
@@ -682,12 +678,8 @@ class FleetFrontEnd:
             rate = (speed + 1.0) / self.car.relax[s][:, None]
             gain = 1.0 - np.exp(-self.dt * rate)
             slip_lag = st.slip_lag[s]
-            slip_lag[:, 0] += gain * (kappa - slip_lag[:, 0])
-            slip_lag[:, 1] = relaxed_slip_angle(
-                slip_lag[:, 1], alpha, st.alpha_prev[s], rate, self.dt
-            )
+            slip_lag += gain[:, None] * (np.stack([kappa, alpha], axis=1) - slip_lag)
             st.slip_lag[s] = slip_lag
-            st.alpha_prev[s] = alpha
             rounding = self.fe.wheel_speed_resolution_radps * radius / denom
             ring = ringing_slip_std(kappa, st.kappa_prev[s], st.kappa_ring[s], gain, rounding)
             st.kappa_ring[s] = ring
@@ -696,7 +688,6 @@ class FleetFrontEnd:
             a_std = a_std + 0.5 * np.abs(alpha - slip_lag[:, 1])
             lag = slip_lag[:, 1] - alpha
             kappa, alpha = slip_lag[:, 0], slip_lag[:, 1]
-            kappa, k_std = self._differential(s, kappa, k_std, fz, radius)
         return {
             "kappa": kappa,
             "alpha_rad": alpha,
@@ -704,18 +695,6 @@ class FleetFrontEnd:
             "alpha_std_rad": a_std,
             "alpha_lag_rad": lag,
         }
-
-    def _differential(
-        self, s: IntArray, kappa: FloatArray, k_std: FloatArray, fz: FloatArray, radius: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """The driven axles' κ split by their differentials ``(B, 4)``
-        (``FrontEnd._differential``)."""
-        car = self.car
-        c_x = load_adaptive_stiffness_n(
-            fz, self.state.kz_wheel[s], car.r_u[s][:, None], car.c_px[s][:, None]
-        )
-        split = differential_slips(kappa, c_x, radius, ~car.free[s])
-        return split, k_std + 0.5 * np.abs(kappa - split)
 
     def _resistance(self, s: IntArray, vx: FloatArray, fz: FloatArray) -> FloatArray:
         """Drag and rolling resistance over the mass [m/s²] (0 in the paper reading)."""

@@ -32,19 +32,6 @@ is tested against:
   as a lateral tyre force and as ~45 N of load moved across, which a soft tyre's radius turns
   into a slip of ~5e-4);
 * relaxation: κ and α pass a first-order lag over the tyre's relaxation length (not paper);
-  α's is stepped as the tyre integrates it, its kinematic angle moving linearly between two
-  ticks (:func:`relaxed_slip_angle`): in a steering ramp the relaxed angle then trails by
-  the tyre's ``σ/v`` of the ramp, not the ``~0.6 σ/v`` a step at each tick gives at 60 km/h
-  and 20 ms;
-* the driven axle's differential: an open differential (and a brake at one pressure) gives
-  the axle's two wheels one torque, so they push alike, ``F_L r_L = F_R r_R``, and in the
-  tyres' linear range their κ split as ``c_x r`` inversely (:func:`differential_slips`). In
-  a corner the outer, loaded wheel is the stiffer and slips the less. The two rims read that
-  split with their loaded radii's error from the lateral transfer's split between the axles
-  (the config's roll-stiffness share against the vehicle's: ±3-20e-4 a wheel in a μ 0.8
-  corner, outer against inner), which the grip's sum, weighted by the wheels' stiffness,
-  does not cancel; their mean does. So the driven axle's κ are the rims' mean split by the
-  differential, half their difference from the rims' own added to their 1-σ (not paper);
 * a ringing wheel: the relaxed κ is rebuilt from one wheel-speed reading a tick, so a rim
   that moves between readings by more than their rounding (a torque step rings a wheel on
   its tyre, near ``r √(c_x/(I σ_x))``: ~300-600 rad/s for these road tyres, a stiff one
@@ -81,7 +68,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator._arrays import BoolArray, FloatArray
+from estimator._arrays import FloatArray
 from estimator.config import ChassisConfig, DrivenAxle, TyreConfig, Wheeled4wdSteeredConfig
 from estimator.friction.brush import load_adaptive_stiffness_n
 from estimator.friction.model import GRAVITY_MPS2
@@ -100,8 +87,6 @@ __all__ = [
     "brake_slip_std",
     "calibration_scale_var",
     "consider_step",
-    "differential_slips",
-    "relaxed_slip_angle",
     "rim_persistent_std_mps",
     "ringing_slip_std",
     "spin_up_slip",
@@ -263,53 +248,6 @@ def spin_up_slip(
     force_n = -inertia_kgm2 * np.asarray(ax_mps2) / (radius_m * radius_m)
     slip: FloatArray = force_n / np.maximum(c_x_n, 1.0)
     return slip
-
-
-def differential_slips(
-    kappa: FloatArray, c_x_n: FloatArray, radius_m: FloatArray, driven: BoolArray
-) -> FloatArray:
-    """Each driven axle's two κ ``(…, 4)`` split as its differential makes them.
-
-    One torque on both wheels of an axle (an open differential; at steady spin the wheels'
-    inertia takes the same share of it) gives ``F_L r_L = F_R r_R``; with ``F = c_x κ`` (the
-    tyres' linear range, ``c_x_n`` the load-adaptive stiffness [N], ``radius_m`` the loaded
-    radii [m]) and the axle's mean ``κ̄`` kept: ``κ_L = 2 κ̄ c_R r_R/(c_L r_L + c_R r_R)`` and
-    ``κ_R`` alike. An axle counts where both its wheels are ``driven`` ``(…, 4)``; the others
-    are returned as given."""
-    out = np.array(kappa, dtype=np.float64, copy=True)
-    push = np.asarray(c_x_n) * np.asarray(radius_m)
-    for left, right in ((0, 1), (2, 3)):
-        both = driven[..., left] & driven[..., right]
-        total = np.maximum(push[..., left] + push[..., right], 1e-9)
-        mean2 = kappa[..., left] + kappa[..., right]
-        out[..., left] = np.where(both, mean2 * push[..., right] / total, out[..., left])
-        out[..., right] = np.where(both, mean2 * push[..., left] / total, out[..., right])
-    return out
-
-
-def relaxed_slip_angle(
-    relaxed: FloatArray,
-    kinematic: FloatArray,
-    previous: FloatArray,
-    rate_per_s: FloatArray,
-    dt_s: float,
-) -> FloatArray:
-    """The relaxed slip angle after one tick ``(…, 4)`` [rad] of ``α̇' = a (α − α')``,
-    ``a = (|v| + 1)/σ`` (``rate_per_s``), the kinematic ``α`` moving linearly from
-    ``previous`` (the last tick's; NaN: none, so it held) to ``kinematic`` over the tick.
-
-    Solved over the tick, the lag ``e = α − α'`` follows ``ė = Δα/Δt − a e``:
-    ``e_k = φ e_{k−1} + Δα (1 − φ)/(a Δt)``, ``φ = exp(−a Δt)``, so a steady ramp ``s``
-    trails by ``s/a``, the tyre's. A step of ``α`` at each tick (``α'_k = α'_{k−1} + (1 − φ)
-    (α_k − α'_{k−1})``) trails by ``s Δt φ/(1 − φ)``, 0.62 of it at ``a Δt`` 0.88 (60 km/h,
-    σ 0.4 m, 20 ms): that short lag put the model's slip angles ahead of the tyres' in a
-    steering ramp."""
-    held = np.where(np.isnan(previous), kinematic, previous)
-    y = np.maximum(np.asarray(rate_per_s) * dt_s, 1e-12)
-    phi = np.exp(-y)
-    ramp = kinematic - held
-    out: FloatArray = kinematic - phi * (held - relaxed) - ramp * (-np.expm1(-y) / y)
-    return out
 
 
 def ringing_slip_std(
@@ -520,7 +458,6 @@ class FrontEnd:
         self.accel_prev = np.full(2, math.nan)  # the last tick's [a_x, a_y] [m/s²]
         self.slip_lag = np.zeros((2, 4))
         self.kappa_prev = np.full(4, np.nan)  # the last tick's kinematic κ
-        self.alpha_prev = np.full(4, np.nan)  # the last tick's kinematic α [rad]
         self.kappa_ring = np.zeros(4)  # the relaxed κ's 1-σ from a ringing wheel
         self.last_tick_ns = 0
 
@@ -991,11 +928,7 @@ class FrontEnd:
         if not self.fe.paper:
             rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
             gain = 1.0 - np.exp(-self.dt * rate)
-            self.slip_lag[0] += gain * (kappa - self.slip_lag[0])
-            self.slip_lag[1] = relaxed_slip_angle(
-                self.slip_lag[1], alpha, self.alpha_prev, rate, self.dt
-            )
-            self.alpha_prev = alpha.copy()
+            self.slip_lag += gain * (np.stack([kappa, alpha]) - self.slip_lag)
             rounding = self.fe.wheel_speed_resolution_radps * radius / denom
             self.kappa_ring = ringing_slip_std(
                 kappa, self.kappa_prev, self.kappa_ring, gain, rounding
@@ -1005,19 +938,7 @@ class FrontEnd:
             a_std = a_std + 0.5 * np.abs(alpha - self.slip_lag[1])
             lag = self.slip_lag[1] - alpha
             kappa, alpha = self.slip_lag
-            kappa, k_std = self._differential(kappa, k_std, fz, radius)
         return kappa.copy(), alpha.copy(), k_std, a_std, lag
-
-    def _differential(
-        self, kappa: FloatArray, k_std: FloatArray, fz: FloatArray, radius: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """The driven axle's κ split by its differential (:func:`differential_slips`), half
-        the distance from the rims' own added to their 1-σ; all ``(4,)``."""
-        c_x = load_adaptive_stiffness_n(
-            fz, self.kz_wheel, self.ty.unloaded_radius_m, self.ty.c_px_npm2
-        )
-        split = differential_slips(kappa, c_x, radius, ~self.undriven)
-        return split, k_std + 0.5 * np.abs(kappa - split)
 
     def _radius_now(self, fz: FloatArray) -> FloatArray:
         """Effective radius per wheel: the calibrated one, falling by ``ρ`` of the change of
