@@ -65,6 +65,9 @@ class FrictionFlag(IntFlag):
     DEAD_RECKONED = 1 << 7
     """No GNSS fix for more than ``PositionConfig.after_s``: the position and heading are
     carried from the last one by the speed and the gyro (:mod:`estimator.friction.position`)."""
+    NO_STEERING = 1 << 8
+    """No steering-wheel angle received from the vehicle yet: the front wheels' steer angle,
+    an input of every row of the μ update, is unknown, so μ is not updated (``NO_UPDATE``)."""
 
 
 _FLAG_TEXT = {
@@ -79,6 +82,7 @@ _FLAG_TEXT = {
     "its vertical stiffness is learnt from it",
     "DEAD_RECKONED": "no GNSS fix for more than 0.25 s: position and heading carried by the "
     "speed and the gyro (none after 10 s)",
+    "NO_STEERING": "no steering angle received from the vehicle yet: μ not updated",
 }
 
 
@@ -174,7 +178,7 @@ FRICTION_SPEC = EstimatorSpec(
         ChartSpec("load", "Wheel load", "N", tuple(f"fz_{k}_n" for k in WHEEL_KEYS)),
     ),
     ok_flag="INFORMED",
-    degraded_flags=("HELD", "DEAD_RECKONED"),
+    degraded_flags=("HELD", "DEAD_RECKONED", "NO_STEERING"),
     values=(ValueChannel("mu", "μ", "mu", std_field="mu_std", valid_flag="INFORMED", mapped=True),),
     wheel_values=tuple(
         WheelValueChannel(key, f"grip used {name}", f"util_{key}_pct", pos)

@@ -328,6 +328,7 @@ def _flags(
         (~informed, FrictionFlag.HELD),
         (~st.updated, FrictionFlag.NO_UPDATE),
         (fe.gnss, FrictionFlag.GNSS_SPEED),
+        (~fe.steering, FrictionFlag.NO_STEERING),
         (fe.tyre_suspect, FrictionFlag.TYRE_SUSPECT),
         (fresh, FrictionFlag.RESET),
     ]

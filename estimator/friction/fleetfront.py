@@ -65,6 +65,7 @@ class FrontEndTicks:
     roll_pitch_rate_radps: FloatArray
     vy_gnss_mps: FloatArray
     gnss: BoolArray
+    steering: BoolArray
     valid: BoolArray
     tyre_suspect: BoolArray
 
@@ -341,9 +342,7 @@ class FleetFrontEnd:
             gnss_v = antenna_velocity_at_cg(gnss_v, rates, arm)
         ax, ay = ax_tilt - self.vx.bias[s], ay_tilt - self.vy.bias[s]
         fz = self._loads(s, ax, ay)
-        steer = np.where(np.isfinite(sensed.steer_rad), sensed.steer_rad, 0.0)
-        delta = np.zeros((s.size, 4))
-        delta[:, :2] = (steer / self.car.steering_ratio[s])[:, None]
+        steering, delta = self._steer_angles(s, sensed.steer_rad)
         if not paper:
             self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
         self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed)
@@ -356,13 +355,13 @@ class FleetFrontEnd:
         vx, vx_var = self.vx.speed[s], self.vx.var[s]
         ax_now, ay_now = self._at_tick(s, ax, ay, sensed.imu_lag_s)
         z = np.stack([ax_now + self._resistance(s, vx, fz), ay_now, yaw_accel], axis=1)
-        valid = (vx >= self.fe.min_speed_mps) & ~np.isnan(yaw_rate)
+        valid = (vx >= self.fe.min_speed_mps) & ~np.isnan(yaw_rate) & steering
         if not paper:
             valid &= self.calibrated(s)
         return FrontEndTicks(
             fz_n=fz,
             kz_npm=st.kz_wheel[s],
-            delta_rad=delta,
+            delta_rad=np.where(steering[:, None] | (np.arange(4) >= 2), delta, np.nan),
             kappa_common_std=np.sqrt(np.maximum(vx_var, 0.0)) / np.maximum(np.abs(vx), 1.0),
             z=z,
             vx_mps=vx,
@@ -372,12 +371,22 @@ class FleetFrontEnd:
             roll_pitch_rate_radps=rates[:, :2],
             vy_gnss_mps=gnss_v[:, 1],
             gnss=np.isfinite(gnss_v[:, 0]),
+            steering=steering,
             valid=valid,
             tyre_suspect=np.any(st.suspect[s], axis=1),
             **slips,
         )
 
     # --- stages ---------------------------------------------------------------------------
+    def _steer_angles(self, s: IntArray, steer_rad: FloatArray) -> tuple[BoolArray, FloatArray]:
+        """Which rows have a steering-wheel angle yet ``(B,)``, and the wheels' steer angles
+        ``(B, 4)`` the stages use, the front pair's 0 while unknown
+        (``FrontEnd._steer_angles``)."""
+        steering = np.isfinite(steer_rad)
+        delta = np.zeros((s.size, 4))
+        delta[:, :2] = (np.where(steering, steer_rad, 0.0) / self.car.steering_ratio[s])[:, None]
+        return steering, delta
+
     def _yaw_step(
         self, s: IntArray, gyro_z: FloatArray, g: IntArray, sensed: SensedTicks
     ) -> FloatArray:

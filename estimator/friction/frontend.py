@@ -345,6 +345,7 @@ class FrontEndTick:
     roll_pitch_rate_radps: FloatArray  # (p, q) about x forward, y left, less the gyros' biases
     vy_gnss_mps: float  # NaN without a fresh GNSS velocity
     gnss: bool
+    steering: bool  # a steering-wheel angle received (False: none yet, the front δ NaN)
     valid: bool
     tyre_suspect: bool
 
@@ -623,12 +624,14 @@ class FrontEnd:
         return self._gnss_at_cg(gnss_ant, rates)
 
     def _steer_angles(self) -> tuple[float, FloatArray]:
-        """The steering-wheel angle (0 while unknown) and the wheels' steer angles ``(4,)``
-        (the front pair's through the steering ratio)."""
+        """The steering-wheel angle (NaN before the vehicle's first) and the wheels' steer
+        angles ``(4,)`` the front end's own stages use (the front pair's through the steering
+        ratio, 0 while the angle is unknown: the radius calibration is held to a straight
+        line by the yaw rate too, the speed filter's rims barely feel the angle)."""
         delta = np.zeros(4)
-        steer = self.steer_rad if math.isfinite(self.steer_rad) else 0.0
-        delta[:2] = steer / self.ch.steering_ratio
-        return steer, delta
+        if math.isfinite(self.steer_rad):
+            delta[:2] = self.steer_rad / self.ch.steering_ratio
+        return self.steer_rad, delta
 
     def _tick_output(
         self,
@@ -652,7 +655,7 @@ class FrontEnd:
             fz_n=fz,
             kz_npm=self.kz_wheel,
             alpha_rad=alpha,
-            delta_rad=delta,
+            delta_rad=delta if math.isfinite(steer) else np.array([np.nan, np.nan, 0.0, 0.0]),
             kappa=kappa,
             kappa_std=k_std,
             kappa_common_std=k_common,
@@ -666,6 +669,7 @@ class FrontEnd:
             roll_pitch_rate_radps=rates[:2],
             vy_gnss_mps=gnss[1] if gnss is not None else math.nan,
             gnss=gnss is not None,
+            steering=math.isfinite(steer),
             valid=self._tick_valid(vx, steer),
             tyre_suspect=self.tyre_suspect,
         )
@@ -681,8 +685,13 @@ class FrontEnd:
         return np.array([ax_now + resist, ay_now, yaw_accel])
 
     def _tick_valid(self, vx: float, steer: float) -> bool:
-        """Whether the tick may inform μ: above the speed floor, a finite steering angle,
-        calibrated (paper: always) and a yaw rate before it."""
+        """Whether the tick may inform μ: above the speed floor, a steering angle received,
+        calibrated (paper: always) and a yaw rate before it.
+
+        Before the vehicle's first steering angle no row of the update is known: the front
+        pair's slip angles hold ``δ`` (``a_y``, ``ṙ``), and their forces reach ``a_x`` through
+        ``cos δ`` and ``sin δ`` (at 0.1 rad, 10 % of the front axle's lateral force). The
+        rows share one update, so none runs; ``FrontEndTick.steering`` says why."""
         calibrated = self.fe.paper or self.calibrated
         valid = (
             vx >= self.fe.min_speed_mps

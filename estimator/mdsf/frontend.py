@@ -383,9 +383,12 @@ def _fill_segments(
     return order[seg], vals
 
 
-def _shift_in(x: npt.NDArray[Any], first: BoolArray, carried: npt.NDArray[Any]) -> npt.NDArray[Any]:
+def _shift_in(
+    x: npt.NDArray[Any], first: BoolArray | IntArray, carried: npt.NDArray[Any]
+) -> npt.NDArray[Any]:
     """``x`` (k, ...) shifted down one row: each row's predecessor, ``carried`` at the rows
-    ``first`` (a vehicle's first, taking what its previous call left)."""
+    ``first`` (a mask (k,) or row indices: each vehicle's first, taking what its previous
+    call left)."""
     prev = np.empty_like(x)
     prev[1:] = x[:-1]
     prev[first] = carried
@@ -1529,12 +1532,10 @@ class _Batch:
         one tick: each tick's start. A vehicle's first tick takes the one carried from its
         previous call (NaN unless that was the tick before); this call's last is carried on."""
         fe, tn = self.fe, self.fe.tick_ns
-        prev, prev_ns = np.empty_like(wx_e), np.empty_like(end_ns)
-        prev[1:], prev_ns[1:] = wx_e[:-1], end_ns[:-1]
         s, first = self.slots, self.offsets
         carried = fe.pitch_rate_end_tick_ns[s] == self.first - tn
-        prev[first] = np.where(carried, fe.pitch_rate_end[s], np.nan)
-        prev_ns[first] = fe.pitch_rate_end_ns[s]
+        prev = _shift_in(wx_e, first, np.where(carried, fe.pitch_rate_end[s], np.nan))
+        prev_ns = _shift_in(end_ns, first, fe.pitch_rate_end_ns[s])
         last = first + self.m - 1
         fe.pitch_rate_end[s] = wx_e[last]
         fe.pitch_rate_end_ns[s] = end_ns[last]

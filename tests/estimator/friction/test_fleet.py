@@ -40,6 +40,7 @@ from estimator.sim.four_wheel import (
     simulate_four_wheel,
 )
 from estimator.sim.four_wheel.dynamics import TruthParams
+from estimator.types import SteeringAngles
 
 KMH = 1 / 3.6
 TURN = Manoeuvre(
@@ -56,6 +57,23 @@ STRAIGHT = Manoeuvre(
     ((0.0, 0.0), (1e4, 0.0)),
     ((0.0, 0.8), (1e4, 0.8)),
 )
+
+
+LATE_STEERING_S = 1.0
+"""How far into the turn the late vehicle's first steering packet comes [s]."""
+
+
+def late_steering(run: FourWheelRun) -> tuple[FourWheelRun, int]:
+    """``run`` with its steering packets dropped until ``LATE_STEERING_S`` into its turn (IMU,
+    wheels and GNSS from the start), and the first kept steering stamp."""
+    cut = run.start_ns + round((LEAD_S + LATE_STEERING_S) * 1e9)
+    kept = [
+        m
+        for m in run.measurements
+        if not (isinstance(m, SteeringAngles) and int(np.atleast_1d(m.stamp_ns)[0]) < cut)
+    ]
+    first = min(int(m.stamp_ns[0]) for m in kept if isinstance(m, SteeringAngles))
+    return dataclasses.replace(run, measurements=kept), first
 
 
 @pytest.fixture(scope="module")
@@ -579,3 +597,27 @@ def test_a_biased_side_slip_does_not_press_mu_onto_its_floor() -> None:
         sd = float(np.linalg.norm(st.s[0, 0]))
         assert mu > 0.4, (bias, mu)
         assert sd > 0.1, (bias, sd)
+
+
+def test_mu_waits_for_the_vehicles_first_steering_angle() -> None:
+    """A turn whose steering stream starts ``LATE_STEERING_S`` into it (IMU, wheels and GNSS
+    from the start): before the first angle no row is informed or updated, each says why
+    (``NO_STEERING``) and the filter's μ stays its prior; from it on μ is learnt and informed
+    within 10 % of the road's 0.4, as with the angle from the start."""
+    run = simulate_four_wheel([TURN], seeds=[11])[0]
+    late, first_ns = late_steering(run)
+    fleet = FrictionFleet()
+    fleet.add_vehicle("late", late.config)
+    rows = _drive(fleet, [late], ["late"])["late"]
+    before = rows["stamp_ns"] < first_ns
+    flags = rows["flags"]
+    assert before.sum() > 200 and (~before).sum() > 50
+    assert ((flags[before] & FrictionFlag.NO_UPDATE) > 0).all()
+    assert (rows["mu_filter"][before] == rows["mu_filter"][0]).all()
+    assert not (flags[before] & FrictionFlag.INFORMED).any()
+    assert np.isnan(rows["mu"][before]).all()
+    assert ((flags[before] & FrictionFlag.NO_STEERING) > 0).all()
+    assert not (flags[~before] & FrictionFlag.NO_STEERING).any()
+    informed = (flags & FrictionFlag.INFORMED) > 0
+    assert informed[~before].sum() > 25
+    assert np.abs(rows["mu"][informed] / 0.4 - 1).max() < 0.1

@@ -17,6 +17,7 @@ from estimator.friction.sensors import SensedTicks
 from estimator.friction_spec import WHEEL_KEYS, FrictionFlag
 from estimator.sim.four_wheel import NAMED, FourWheelRun, random_config, simulate_four_wheel
 from tests.estimator.friction._reference import TICK_NS, Reference
+from tests.estimator.friction.test_fleet import TURN, late_steering
 
 SECONDS = 9.0
 MANOEUVRES = ("steer_mu08", "accelerate_step", "damaged_tyre", "steer_step", "constant_speed")
@@ -158,3 +159,49 @@ def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> N
             assert abs(row[f"alpha_{key}_rad"] - want.alpha_rad[j]) < 1e-9
         assert bool(row["flags"] & FrictionFlag.GNSS_SPEED) == want.gnss
         assert bool(row["flags"] & FrictionFlag.TYRE_SUSPECT) == want.tyre_suspect
+
+
+@pytest.fixture(scope="module")
+def late_run() -> tuple[FourWheelRun, int]:
+    """A 50 km/h turn (steering wheel 90° from ``LEAD_S``) whose steering stream starts late."""
+    return late_steering(simulate_four_wheel([TURN], seeds=[11])[0])
+
+
+def _check_late_steering(ticks: list[tuple[int, dict[str, object]]], first_ns: int) -> None:
+    """Before the first steering packet no tick is valid and the front pair's δ is NaN, not a
+    straight 0; from it on the angle is known and the ticks (moving, calibrated) valid."""
+    before = [f for t, f in ticks if t < first_ns]
+    after = [f for t, f in ticks if t >= first_ns]
+    assert len(before) > 200 and len(after) > 50
+    assert not any(bool(f["valid"]) for f in before)
+    assert all(np.isnan(np.asarray(f["delta_rad"])[:2]).all() for f in before)
+    assert not any(bool(f["steering"]) for f in before)
+    assert all(bool(f["steering"]) and bool(f["valid"]) for f in after)
+    assert all(np.isfinite(np.asarray(f["delta_rad"])).all() for f in after)
+
+
+def test_the_per_vehicle_front_end_waits_for_the_first_steering_angle(
+    late_run: tuple[FourWheelRun, int],
+) -> None:
+    run, first_ns = late_run
+    ref = Reference(FrontEnd(run.config, FrictionFleetConfig().front, 0.02), None)
+    for m in run.measurements:
+        ref.push(m)
+    ref.advance(_last_ns(run.measurements[-1]))
+    fields = FrontEndTicks.__dataclass_fields__
+    ticks = [(t, {f: getattr(tick, f) for f in fields}) for t, tick in ref.ticks.items()]
+    _check_late_steering(ticks, first_ns)
+
+
+def test_the_batched_front_end_waits_for_the_first_steering_angle(
+    late_run: tuple[FourWheelRun, int],
+) -> None:
+    run, first_ns = late_run
+    fleet = FrictionFleet()
+    fleet.add_vehicle("late", run.config)
+    seen: dict[str, list[tuple[int, dict[str, object]]]] = {}
+    _spy(fleet, seen)
+    for m in run.measurements:
+        fleet.push("late", m)
+    fleet.advance({"late": _last_ns(run.measurements[-1])})
+    _check_late_steering(seen["late"], first_ns)

@@ -24,6 +24,9 @@ def test_spec_is_consistent() -> None:
         "HELD",
         "GNSS_SPEED",
     ]
+    # a vehicle without a steering angle yet: its rows say so and read as degraded
+    assert FRICTION_SPEC.flag_mask("NO_STEERING") == FrictionFlag.NO_STEERING
+    assert "NO_STEERING" in FRICTION_SPEC.degraded_flags
     json.dumps(FRICTION_SPEC.to_dict())
 
 
