@@ -442,17 +442,6 @@ class CalibrationBank:
         big = np.abs(beta) * GRAVITY_MPS2 > 3.0 * self.bias_prior
         return np.where(self.on[slots, 2] & big, beta, 0.0)
 
-    def gyro_mount_pitch_rad(self, slots: IntArray) -> FloatArray:
-        """Mounting pitch (k,) by which the gyro's rates are turned into the body's axes,
-        shrunk by its uncertainty, ``β·β²/(β² + σ²)``: an unlearnt ``β`` (the prior's 0 ± 3°,
-        or after a reset) turns nothing, a learnt one is taken whole (no accelerometer bias
-        stands in for it here, unlike :meth:`mount_pitch_rad`); 0 where the mounting is off."""
-        beta = self.pitch[slots]
-        b2 = beta * beta
-        with np.errstate(invalid="ignore", divide="ignore"):
-            shrunk = np.where(b2 > 0.0, beta * b2 / (b2 + self.pitch_var[slots]), 0.0)
-        return np.where(self.on[slots, 2], shrunk, 0.0)
-
     def mount_yaw_rad(self, slots: IntArray) -> FloatArray:
         """Mounting yaw in force per vehicle (k,): 0 where off, not converged (an estimate
         still moving would put its error into every turn) or within ``_YAW_APPLY_SIGMAS`` of

@@ -383,32 +383,12 @@ class MdsfFleet:
         return out
 
     def advance(self, until_ns: Mapping[str, int]) -> list[tuple[str, np.ndarray]]:
-        """Emit every due tick (``stamp_ns <= until_ns[id]``), vehicles stepped together.
-
-        Product mode assembles one tick per vehicle at a time: the gyro's rates are turned by
-        the calibration's mounting pitch before the tilt track
-        (:meth:`FleetFrontEnd.set_gyro_mounting`), and the pitch a tick uses is then the one
-        learnt up to the tick before, however the data were delivered."""
+        """Emit every due tick (``stamp_ns <= until_ns[id]``), vehicles stepped together."""
         ids = [vid for vid in until_ns if vid in self._slot]
         if not ids:
             return []
         slots = np.fromiter(map(self._slot.__getitem__, ids), dtype=np.int64, count=len(ids))
         until = np.fromiter(map(until_ns.__getitem__, ids), dtype=np.int64, count=len(ids))
-        if not self._product:
-            return self._advance_to(ids, slots, until)
-        parts = []
-        while True:
-            nxt = self.front.next_ticks(slots)
-            more = (nxt != _NEVER) & (nxt <= until - self.config.tick_ns)  # two ticks or more
-            self.front.set_gyro_mounting(slots, self.calibration_bank.gyro_mount_pitch_rad(slots))
-            parts.append(self._advance_to(ids, slots, np.where(more, nxt, until)))
-            if not more.any():
-                return _merged(parts)
-
-    def _advance_to(
-        self, ids: list[str], slots: IntArray, until: IntArray
-    ) -> list[tuple[str, np.ndarray]]:
-        """Emit the ticks of vehicles ``ids`` (``slots`` (k,)) due at ``until`` (k,) ns."""
         due = self.front.assemble(slots, until)
         if due is None:
             return []
@@ -744,17 +724,6 @@ def _by_vehicle(
     kept = out if emit.all() else out[emit]
     ends = np.cumsum(np.add.reduceat(emit, offsets)).tolist()
     return [(vid, kept[a:b]) for vid, a, b in zip(ids, [0, *ends[:-1]], ends, strict=True) if b > a]
-
-
-def _merged(parts: list[list[tuple[str, np.ndarray]]]) -> list[tuple[str, np.ndarray]]:
-    """The rows of several emits joined per vehicle, in order (vehicles as first seen)."""
-    if len(parts) == 1:
-        return parts[0]
-    by: dict[str, list[np.ndarray]] = {}
-    for part in parts:
-        for vid, rows in part:
-            by.setdefault(vid, []).append(rows)
-    return [(vid, rows[0] if len(rows) == 1 else np.concatenate(rows)) for vid, rows in by.items()]
 
 
 def _slip_flags(

@@ -510,19 +510,6 @@ def _quadratic_first_row(
     return (i0, i1, i2), fit
 
 
-def _gyro_in_body(
-    wy: FloatArray, wz: FloatArray, pitch_rad: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """The roll and yaw gyro's rates ``ω′y``, ``ω′z`` (each (n,)) of an IMU pitched by
-    ``pitch_rad`` ``β`` (n,) in the body's axes, ``ωy = cos β·ω′y − sin β·ω′z``,
-    ``ωz = sin β·ω′y + cos β·ω′z`` (``Rx(β)`` of :func:`estimator.sim.sensors.imu_mounting`;
-    the pitch gyro's ``ωx`` is the same in both). The roll gyro reads ``cos β·ωy + sin β·ωz``:
-    uncorrected, each turn's yaw rate is integrated as roll, which the tilt track's yaw
-    coupling carries into pitch."""
-    cb, sb = np.cos(pitch_rad), np.sin(pitch_rad)
-    return cb * wy - sb * wz, sb * wy + cb * wz
-
-
 def _rates_at_tick(
     tick_id: IntArray,
     tau_s: FloatArray,
@@ -572,9 +559,6 @@ _SLOT_ARRAYS: tuple[tuple[str, tuple[int, ...], Any], ...] = (
     ("last_imu_used_ns", (), _NONE_NS),  # newest IMU sample integrated
     ("last_rates", (2,), np.nan),  # its bias-corrected (ωx, ωz) [rad/s]
     ("last_raw_rates", (3,), np.nan),  # its measured (ωx, ωy, ωz) [rad/s]
-    # the IMU's mounting pitch β its gyro's rates are turned by into the body's axes
-    # (:meth:`FleetFrontEnd.set_gyro_mounting`) [rad]
-    ("gyro_mount_rad", (), 0.0),
     ("pitch_rad", (), 0.0),
     ("pitch_known", (), False),
     ("pitch_gyro_bias", (), 0.0),
@@ -717,7 +701,6 @@ class FleetFrontEnd:
     last_imu_used_ns: IntArray
     last_rates: FloatArray
     last_raw_rates: FloatArray
-    gyro_mount_rad: FloatArray
     pitch_rad: FloatArray
     pitch_known: BoolArray
     pitch_gyro_bias: FloatArray
@@ -793,7 +776,6 @@ class FleetFrontEnd:
         self.tick_phase_ns[slot] = 0
         self.last_rates[slot] = np.nan
         self.last_raw_rates[slot] = np.nan
-        self.gyro_mount_rad[slot] = 0.0
         self._gridless.add(slot)
         self._reset_tilt(slot)
         self.hold[slot] = np.nan
@@ -879,12 +861,6 @@ class FleetFrontEnd:
         ``tick_ns``). Takes effect when the grid opens, at the vehicle's first measurement (or
         the first after :meth:`add`); a grid already open keeps its phase."""
         self.tick_phase_ns[slot] = int(stamp_ns) % self.tick_ns
-
-    def set_gyro_mounting(self, slots: IntArray, pitch_rad: FloatArray) -> None:
-        """The IMU's mounting pitch ``β`` (k,) of vehicles ``slots`` by which the gyro's rates
-        of the next assemblies are turned into the body's axes (:func:`_gyro_in_body`): the
-        calibration's, set before each :meth:`assemble`."""
-        self.gyro_mount_rad[slots] = pitch_rad
 
     def release(self, slot: int) -> None:
         """Forget the vehicle in ``slot`` and whatever it has buffered."""
@@ -1197,12 +1173,6 @@ class FleetFrontEnd:
         return slot[ok], seq[ok], stamp[ok]
 
     # -- tick assembly -----------------------------------------------------------------------
-    def next_ticks(self, slots: IntArray) -> IntArray:
-        """Each vehicle's next tick (``slots`` (k,) → (k,) ns; ``_NONE_NS`` before its grid),
-        once what was pushed is checked (a vehicle's first data opens its grid)."""
-        self._check_new()
-        return self.next_tick_ns[np.asarray(slots, dtype=np.int64)]
-
     def assemble(self, slots: IntArray, until_ns: IntArray) -> FleetTicks | None:
         """Tick inputs of every vehicle in ``slots`` (distinct) with ticks due at ``until_ns``.
 
@@ -1283,9 +1253,6 @@ class _Batch:
         vals = np.take(fe._imu_v, idx, axis=0)
         self.fy, self.wx, self.wz, self.wy, self.fx = (vals[:, c] for c in range(5))
         self.s_row = np.take(row, idx)
-        mount = fe.gyro_mount_rad[self.slots]
-        if mount.any():
-            self.wy, self.wz = _gyro_in_body(self.wy, self.wz, np.take(mount, self.s_row))
         keep = ~use
         fe._imu_slot, fe._imu_t = np.compress(keep, fe._imu_slot), np.compress(keep, fe._imu_t)
         fe._imu_v = np.compress(keep, fe._imu_v, axis=0)
