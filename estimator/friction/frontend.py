@@ -118,11 +118,13 @@ class FrontEndConfig:
     """Front-end settings: ``paper`` the source's reading (see the module docstring).
 
     ``min_speed_mps``: no μ update below it; ``gnss_timeout_s``: GNSS older than this is
-    not used; ``steer_timeout_s``: a steering-wheel angle older than this counts as none (at a
-    driver's quick 300°/s, the source's 90° step in 0.3 s, the wheel turns 30° in 0.1 s and
-    the road wheels 1.5-2° through a 14-20 ratio, as much as a tyre's slip angle at half
-    its grip: the held angle no longer stands for theirs; a 50 Hz stream's is 20 ms old at
-    most); ``calib_time_s``: time constant of the radius calibration, which must hold
+    not used; ``steer_timeout_s``: a steering-wheel angle older than this counts as none (a dead
+    stream is told within three periods of a 10 Hz steering message, the slowest rate such
+    angles are commonly sent at, so a live stream's jitter never reads as a gap; a live
+    angle is at most one period old, so its lag is the stream's, not the timeout's; at a
+    driver's quick 300°/s the road wheels turn 4-6° in 0.3 s through a 14-20 ratio, so an
+    angle held longer no longer stands for theirs); ``calib_time_s``: time constant of the
+    radius calibration, which must hold
     ``calib_samples`` GNSS epochs before the μ filter updates; ``kz_tolerance``: relative
     difference of a wheel's radius sink ``r_u − r_e`` from the one the learnt ``ρ`` and the
     config's ``kz`` give (so of its ``kz``), beyond which the tyre is suspect and its own
@@ -147,7 +149,7 @@ class FrontEndConfig:
     paper: bool = False
     min_speed_mps: float = 3.0
     gnss_timeout_s: float = 0.5
-    steer_timeout_s: float = 0.1
+    steer_timeout_s: float = 0.3
     calib_time_s: float = 3.0
     calib_samples: int = 15
     kz_tolerance: float = 0.1

@@ -116,7 +116,7 @@ def test_both_front_ends_agree_through_a_stalled_steering_stream(
     runs: list[FourWheelRun],
 ) -> None:
     """The same on steered runs (all- and rear-driven: free steered front rims) whose steering
-    stream stops for 0.6 s: the stale ticks, their NaN front pair and the restart alike."""
+    stream stops for 0.8 s: the stale ticks, their NaN front pair and the restart alike."""
     stalled = [stalled_steering(r)[0] for r in (runs[0], runs[3])]
     assert runs[3].config.chassis.driven_axle is DrivenAxle.REAR
     _, refs, seen = _drive(stalled, FrictionMode.PRODUCT)

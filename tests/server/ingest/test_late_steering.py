@@ -78,7 +78,7 @@ def test_rows_before_the_first_steering_angle_say_why_mu_is_not_used() -> None:
 
 
 def test_rows_while_the_steering_stream_is_stalled_say_why_mu_is_not_used() -> None:
-    """The stream stops 1.4 s into the turn for 0.6 s: from ``steer_timeout_s`` after its last
+    """The stream stops 1.4 s into the turn for 0.8 s: from ``steer_timeout_s`` after its last
     angle the rows say why (``NO_STEERING``, no μ update, the front pair's columns NULL) and
     read as degraded, where the pipeline sees no stall; with the next angle μ is informed
     again."""
@@ -95,7 +95,7 @@ def test_rows_while_the_steering_stream_is_stalled_say_why_mu_is_not_used() -> N
     assert front_columns_empty(rows[stale]).all() and rear_columns_known(rows).all()
     assert not (flags[~stale] & FrictionFlag.NO_STEERING).any()
     informed = (flags & FrictionFlag.INFORMED) > 0
-    assert informed[t >= resumed_ns].sum() > 20
+    assert informed[t >= resumed_ns].sum() > 10
     assert np.abs(rows["mu"][informed] / 0.4 - 1).max() < 0.1
     # shorter than the reorder window (1 s): the pipeline does not count it, the rows say it
     assert pipe.counters_snapshot()["s1"].get("stalled_steering", 0) == 0
