@@ -66,8 +66,10 @@ class FrictionFlag(IntFlag):
     """No GNSS fix for more than ``PositionConfig.after_s``: the position and heading are
     carried from the last one by the speed and the gyro (:mod:`estimator.friction.position`)."""
     NO_STEERING = 1 << 8
-    """No steering-wheel angle received from the vehicle yet: the front wheels' steer angle,
-    an input of every row of the μ update, is unknown, so μ is not updated (``NO_UPDATE``)."""
+    """No steering-wheel angle from the vehicle yet, or the last older than
+    ``FrontEndConfig.steer_timeout_s`` (the stream stopped): the front wheels' steer angle, an
+    input of every row of the μ update, is unknown, so μ is not updated (``NO_UPDATE``) and
+    the front pair's slip, slip-angle and grip-used columns are NaN; the next angle ends it."""
 
 
 _FLAG_TEXT = {
@@ -82,7 +84,8 @@ _FLAG_TEXT = {
     "its vertical stiffness is learnt from it",
     "DEAD_RECKONED": "no GNSS fix for more than 0.25 s: position and heading carried by the "
     "speed and the gyro (none after 10 s)",
-    "NO_STEERING": "no steering angle received from the vehicle yet: μ not updated",
+    "NO_STEERING": "no steering angle from the vehicle yet, or none for 0.1 s: μ not updated, "
+    "front wheels' slip columns empty",
 }
 
 

@@ -157,8 +157,9 @@ class FrictionFleet:
         self._vehicles: dict[str, _Vehicle] = {}
         self._front = FleetFrontEnd(self.config.front, self.config.filter.tick_s)
         self._positions = FleetPositions(self.config.position)
+        front = self.config.front
         self._sensors = FleetSensors(
-            round(self.config.filter.tick_s * 1e9), self.config.front.gnss_timeout_s
+            round(self.config.filter.tick_s * 1e9), front.gnss_timeout_s, front.steer_timeout_s
         )
         self._free_slots: list[int] = []
         window = max(1, round(self.config.informed_hold_s / self.config.filter.tick_s))

@@ -32,6 +32,7 @@ from estimator.friction.frontend import (
     brake_slip_std,
     calibration_scale_var,
     consider_step,
+    free_rolling_steer,
     rim_persistent_std_mps,
     ringing_slip_std,
     spin_up_slip,
@@ -344,7 +345,7 @@ class FleetFrontEnd:
         fz = self._loads(s, ax, ay)
         steering, delta = self._steer_angles(s, sensed.steer_rad)
         if not paper:
-            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, ax, sensed.omega_radps)
+            self._calibrate(s, g, gnss_v, fz, delta, yaw_rate, (ax, ay), sensed.omega_radps)
         self._speed_step(s, ax_tilt, yaw_rate, g, gnss_v, fz, delta, sensed)
         self._side_slip_step(s, ay_tilt, yaw_rate, g, gnss_v)
         st = self.state
@@ -361,7 +362,7 @@ class FleetFrontEnd:
         return FrontEndTicks(
             fz_n=fz,
             kz_npm=st.kz_wheel[s],
-            delta_rad=np.where(steering[:, None] | (np.arange(4) >= 2), delta, np.nan),
+            delta_rad=delta,
             kappa_common_std=np.sqrt(np.maximum(vx_var, 0.0)) / np.maximum(np.abs(vx), 1.0),
             z=z,
             vx_mps=vx,
@@ -379,13 +380,12 @@ class FleetFrontEnd:
 
     # --- stages ---------------------------------------------------------------------------
     def _steer_angles(self, s: IntArray, steer_rad: FloatArray) -> tuple[BoolArray, FloatArray]:
-        """Which rows have a steering-wheel angle yet ``(B,)``, and the wheels' steer angles
-        ``(B, 4)`` the stages use, the front pair's 0 while unknown
+        """Which rows have a steering-wheel angle ``(B,)`` (none yet, or stale: NaN from the
+        sensors), and the wheels' steer angles ``(B, 4)``, the front pair's NaN without one
         (``FrontEnd._steer_angles``)."""
-        steering = np.isfinite(steer_rad)
         delta = np.zeros((s.size, 4))
-        delta[:, :2] = (np.where(steering, steer_rad, 0.0) / self.car.steering_ratio[s])[:, None]
-        return steering, delta
+        delta[:, :2] = (steer_rad / self.car.steering_ratio[s])[:, None]
+        return np.isfinite(steer_rad), delta
 
     def _yaw_step(
         self, s: IntArray, gyro_z: FloatArray, g: IntArray, sensed: SensedTicks
@@ -508,13 +508,17 @@ class FleetFrontEnd:
         fz: FloatArray,
         delta: FloatArray,
         yaw_rate: FloatArray,
-        ax: FloatArray,
+        accel: tuple[FloatArray, FloatArray],
         omega: FloatArray,
     ) -> None:
         """Radius calibration on the rows with a fresh epoch, straight and steady at 5 m/s or
-        more (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt."""
+        more, without a steering angle at the front pair's free-rolling one while ``|a_y|`` is
+        small too (``FrontEnd._calibrate``), then ``ρ`` and the tyres learnt."""
+        ax, ay = accel
+        unknown = np.isnan(delta[g, 0]) & (np.abs(ay[g]) >= 0.3)
+        delta = self._calibration_steer(s, g, gnss_v, delta, yaw_rate)
         steady = (np.abs(ax[g]) < 0.3) & (np.abs(yaw_rate[g]) < 0.02) & (np.abs(delta[g, 0]) < 0.01)
-        rows = g[steady & (gnss_v[g, 0] >= 5.0)]
+        rows = g[steady & ~unknown & (gnss_v[g, 0] >= 5.0)]
         if not rows.size:
             return
         c, car, st = s[rows], self.car, self.state
@@ -540,6 +544,20 @@ class FleetFrontEnd:
         st.radius_scale_var[c] = calibration_scale_var(st.radius_scale_var[c], gain[:, 0], v[:, 0])
         st.radius_std[c] = 2e-4 * radius
         self._learn_tyres(c[n >= self.fe.calib_samples])
+
+    def _calibration_steer(
+        self, s: IntArray, g: IntArray, gnss_v: FloatArray, delta: FloatArray, r: FloatArray
+    ) -> FloatArray:
+        """``delta`` ``(B, 4)`` with the rows ``g`` (a fresh epoch) that have no steering angle
+        at :func:`~.frontend.free_rolling_steer`'s, along the front wheels' travel."""
+        rows = g[np.isnan(delta[g, 0])]
+        if not rows.size:
+            return delta
+        v = gnss_v[rows]
+        u, w = self._wheel_velocity(s[rows], v[:, 0], v[:, 1], r[rows], np.zeros((rows.size, 4)))
+        out = delta.copy()
+        out[rows] = free_rolling_steer(u, w)
+        return out
 
     def _learn_tyres(self, c: IntArray) -> None:
         """``ρ`` and each wheel's ``kz`` from the calibrated radii (``FrontEnd._learn_tyres``)."""
@@ -570,7 +588,8 @@ class FleetFrontEnd:
         sensed: SensedTicks,
     ) -> None:
         """Forward speed: started at the first tick, predicted, corrected by GNSS and, on
-        the calibrated vehicles with undriven wheels, by their rims (``FrontEnd._speed_step``)."""
+        the calibrated vehicles with undriven wheels, by their rims while their steer angles are
+        known (``FrontEnd._speed_step``)."""
         vx, st = self.vx, self.state
         omega = sensed.omega_radps
         unset = np.isnan(vx.speed[s])
@@ -586,6 +605,7 @@ class FleetFrontEnd:
         if self.fe.paper:
             return
         use = (self.car.n_free[s] > 0) & (self.calibrated(s) | ~sensed.gnss_recent)
+        use &= ~(self.car.free[s] & np.isnan(delta)).any(axis=1)
         rows = np.flatnonzero(use)
         if rows.size:
             ax = ax_tilt[rows] - self.vx.bias[s[rows]]
@@ -671,7 +691,8 @@ class FleetFrontEnd:
         yaw_rate: FloatArray,
         omega: FloatArray,
     ) -> dict[str, FloatArray]:
-        """κ, α, their 1-σ and α's lag per wheel ``(B, 4)`` (``FrontEnd._slips``)."""
+        """κ, α, their 1-σ and α's lag per wheel ``(B, 4)``, NaN where ``δ`` is
+        (``FrontEnd._slips``)."""
         st, vx, vy = self.state, self.vx.speed[s], self.vy
         v_long, v_lat = self._wheel_velocity(s, vx, vy.speed[s], yaw_rate, delta)
         speed = np.abs(v_long)
@@ -686,11 +707,14 @@ class FleetFrontEnd:
         else:
             rate = (speed + 1.0) / self.car.relax[s][:, None]
             gain = 1.0 - np.exp(-self.dt * rate)
+            kinematic = np.stack([kappa, alpha], axis=1)
             slip_lag = st.slip_lag[s]
-            slip_lag += gain[:, None] * (np.stack([kappa, alpha], axis=1) - slip_lag)
+            slip_lag = np.where(np.isnan(slip_lag), kinematic, slip_lag)
+            slip_lag += gain[:, None] * (kinematic - slip_lag)
             st.slip_lag[s] = slip_lag
             rounding = self.fe.wheel_speed_resolution_radps * radius / denom
-            ring = ringing_slip_std(kappa, st.kappa_prev[s], st.kappa_ring[s], gain, rounding)
+            ring = np.nan_to_num(st.kappa_ring[s], nan=0.0)
+            ring = ringing_slip_std(kappa, st.kappa_prev[s], ring, gain, rounding)
             st.kappa_ring[s] = ring
             st.kappa_prev[s] = kappa
             k_std = k_std + 0.5 * np.abs(kappa - slip_lag[:, 0]) + ring

@@ -87,6 +87,7 @@ __all__ = [
     "brake_slip_std",
     "calibration_scale_var",
     "consider_step",
+    "free_rolling_steer",
     "rim_persistent_std_mps",
     "ringing_slip_std",
     "spin_up_slip",
@@ -117,7 +118,13 @@ class FrontEndConfig:
     """Front-end settings: ``paper`` the source's reading (see the module docstring).
 
     ``min_speed_mps``: no μ update below it; ``gnss_timeout_s``: GNSS older than this is
-    not used; ``calib_time_s``: time constant of the radius calibration, which must hold
+    not used; ``steer_timeout_s``: a steering-wheel angle older than this counts as none (a dead
+    stream is told within three periods of a 10 Hz steering message, the slowest rate such
+    angles are commonly sent at, so a live stream's jitter never reads as a gap; a live
+    angle is at most one period old, so its lag is the stream's, not the timeout's; at a
+    driver's quick 300°/s the road wheels turn 4-6° in 0.3 s through a 14-20 ratio, so an
+    angle held longer no longer stands for theirs); ``calib_time_s``: time constant of the
+    radius calibration, which must hold
     ``calib_samples`` GNSS epochs before the μ filter updates; ``kz_tolerance``: relative
     difference of a wheel's radius sink ``r_u − r_e`` from the one the learnt ``ρ`` and the
     config's ``kz`` give (so of its ``kz``), beyond which the tyre is suspect and its own
@@ -142,6 +149,7 @@ class FrontEndConfig:
     paper: bool = False
     min_speed_mps: float = 3.0
     gnss_timeout_s: float = 0.5
+    steer_timeout_s: float = 0.3
     calib_time_s: float = 3.0
     calib_samples: int = 15
     kz_tolerance: float = 0.1
@@ -273,6 +281,21 @@ def ringing_slip_std(
     return updated
 
 
+def free_rolling_steer(u_mps: FloatArray, w_mps: FloatArray) -> FloatArray:
+    """The steer angles ``(…, 4)`` of wheels that carry no side force: the front pair's along
+    its travel, ``δ = atan2(w, u)`` (``u``, ``w`` each wheel centre's velocity along and across
+    the body ``(…, 4)``), the rear pair's 0.
+
+    For the radius calibration without a steering angle: with ``|r|`` and ``|a_y|`` small and
+    steady, the axles' side forces are small (``m a_y = F_yf + F_yr``, ``I ṙ = a F_yf − b F_yr``:
+    0.3 m/s² is under 500 N an axle, a slip angle under 0.005 rad at 1e5 N/rad), so the front
+    wheels point along their travel; a front axle sliding wide at a large ``δ`` would show as
+    ``a_y``. A small yaw rate alone would not say so."""
+    delta = np.zeros(np.shape(u_mps))
+    delta[..., :2] = np.arctan2(w_mps[..., :2], u_mps[..., :2])
+    return delta
+
+
 def rim_persistent_std_mps(
     speed_accel_mps2: FloatArray | float,
     speed_mps: FloatArray | float,
@@ -345,22 +368,22 @@ class FrontEndTick:
     roll_pitch_rate_radps: FloatArray  # (p, q) about x forward, y left, less the gyros' biases
     vy_gnss_mps: float  # NaN without a fresh GNSS velocity
     gnss: bool
-    steering: bool  # a steering-wheel angle received (False: none yet, the front δ NaN)
+    steering: bool  # a steering angle (False: none yet or stale; the front pair's columns NaN)
     valid: bool
     tyre_suspect: bool
 
 
 def _latest_sample(
     packets: list[tuple[np.ndarray, np.ndarray]], t_ns: int
-) -> tuple[np.ndarray | None, list[tuple[np.ndarray, np.ndarray]]]:
-    """The last sample at or before ``t_ns`` of ``(stamps, values)`` packets (None if none),
-    and the packets still holding later samples."""
+) -> tuple[tuple[int, np.ndarray] | None, list[tuple[np.ndarray, np.ndarray]]]:
+    """The last sample at or before ``t_ns`` of ``(stamps, values)`` packets as ``(stamp,
+    value)`` (None if none), and the packets still holding later samples."""
     latest = None
     rest = []
     for stamps, values in packets:
         sel = np.flatnonzero(stamps <= t_ns)
         if sel.size:
-            latest = values[sel[-1]]
+            latest = int(stamps[sel[-1]]), values[sel[-1]]
         if stamps.size and stamps[-1] > t_ns:
             rest.append((stamps, values))
     return latest, rest
@@ -508,6 +531,7 @@ class FrontEnd:
         self.gnss_queue: deque[GnssSample] = deque()
         self.omega = np.full(4, np.nan)
         self.steer_rad = math.nan
+        self.steer_ns = 0  # the held angle's stamp
         self.gnss: GnssSample | None = None
         self.gnss_fresh = False
 
@@ -577,10 +601,10 @@ class FrontEnd:
         """Latest wheel speeds, steering angle and GNSS sample at or before ``t_ns``."""
         omega, self.wheel_packets = _latest_sample(self.wheel_packets, t_ns)
         if omega is not None:
-            self.omega = omega
+            self.omega = omega[1]
         steer, self.steer_packets = _latest_sample(self.steer_packets, t_ns)
         if steer is not None:
-            self.steer_rad = float(steer)
+            self.steer_ns, self.steer_rad = steer[0], float(steer[1])
         while self.gnss_queue and self.gnss_queue[0].stamp_ns <= t_ns:
             self.gnss = self.gnss_queue.popleft()
             self.gnss_fresh = True
@@ -602,8 +626,8 @@ class FrontEnd:
         ax_tilt, ay_tilt = self._detilt(ax_raw, ay_raw)
         ax, ay = ax_tilt - self.vx.bias, ay_tilt - self.vy.bias
         fz = self._loads(ax, ay)
-        steer, delta = self._steer_angles()
-        self._calibrate(gnss, fz, delta, yaw_rate, ax)
+        steer, delta = self._steer_angles(t_ns)
+        self._calibrate(gnss, fz, delta, yaw_rate, (ax, ay))
         self._speed_step(ax_tilt, yaw_rate, gnss, fz, delta)
         self._side_slip_step(ay_tilt, yaw_rate, gnss)
         yaw_accel = 0.0 if math.isnan(self.yaw_prev) else (yaw_rate - self.yaw_prev) / self.dt
@@ -623,15 +647,17 @@ class FrontEnd:
         self._learn_tilt(ax_raw, ay_raw, gnss_ant is not None)
         return self._gnss_at_cg(gnss_ant, rates)
 
-    def _steer_angles(self) -> tuple[float, FloatArray]:
-        """The steering-wheel angle (NaN before the vehicle's first) and the wheels' steer
-        angles ``(4,)`` the front end's own stages use (the front pair's through the steering
-        ratio, 0 while the angle is unknown: the radius calibration is held to a straight
-        line by the yaw rate too, the speed filter's rims barely feel the angle)."""
+    def _steer_angles(self, t_ns: int) -> tuple[float, FloatArray]:
+        """The steering-wheel angle at ``t_ns`` and the wheels' steer angles ``(4,)`` (the
+        front pair's through the steering ratio). Before the vehicle's first angle, or with
+        the last older than ``steer_timeout_s``, the angle is unknown: NaN, and so the front
+        pair's ``δ``; the stages that need it skip it (:meth:`_calibrate`, :meth:`_speed_step`)
+        or give NaN for those wheels (:meth:`_slips`)."""
+        stale = t_ns - self.steer_ns > round(self.fe.steer_timeout_s * 1e9)
+        steer = math.nan if stale else self.steer_rad
         delta = np.zeros(4)
-        if math.isfinite(self.steer_rad):
-            delta[:2] = self.steer_rad / self.ch.steering_ratio
-        return self.steer_rad, delta
+        delta[:2] = steer / self.ch.steering_ratio
+        return steer, delta
 
     def _tick_output(
         self,
@@ -655,7 +681,7 @@ class FrontEnd:
             fz_n=fz,
             kz_npm=self.kz_wheel,
             alpha_rad=alpha,
-            delta_rad=delta if math.isfinite(steer) else np.array([np.nan, np.nan, 0.0, 0.0]),
+            delta_rad=delta,
             kappa=kappa,
             kappa_std=k_std,
             kappa_common_std=k_common,
@@ -685,10 +711,10 @@ class FrontEnd:
         return np.array([ax_now + resist, ay_now, yaw_accel])
 
     def _tick_valid(self, vx: float, steer: float) -> bool:
-        """Whether the tick may inform μ: above the speed floor, a steering angle received,
+        """Whether the tick may inform μ: above the speed floor, a steering angle known,
         calibrated (paper: always) and a yaw rate before it.
 
-        Before the vehicle's first steering angle no row of the update is known: the front
+        Without a steering angle (none yet, or stale) no row of the update is known: the front
         pair's slip angles hold ``δ`` (``a_y``, ``ṙ``), and their forces reach ``a_x`` through
         ``cos δ`` and ``sin δ`` (at 0.1 rad, 10 % of the front axle's lateral force). The
         rows share one update, so none runs; ``FrontEndTick.steering`` says why."""
@@ -757,7 +783,9 @@ class FrontEnd:
         delta: FloatArray,
     ) -> None:
         """Forward speed: accelerometer, corrected by GNSS and, once their radius is
-        calibrated, by the undriven wheels' rims (free rolling: no slip)."""
+        calibrated, by the undriven wheels' rims (free rolling: no slip), not while a steered
+        one's angle is unknown (its rim reads ``v_x cos δ``: 0.5 % off at 0.1 rad, held
+        through the turn, ten times the rim's error)."""
         if math.isnan(self.vx.speed):
             self.vx.set_speed(gnss[0] if gnss else float(np.mean(self.omega * self.radius)))
         self.vx.predict(ax_tilt, yaw_rate * self.vy.speed, self.dt)
@@ -768,6 +796,8 @@ class FrontEnd:
             self.vx.update(gnss[0], r_gnss)
         free = self.undriven
         if self.fe.paper or not free.any() or not (self.calibrated or not self._gnss_recent()):
+            return
+        if np.isnan(delta[free]).any():
             return
         radius = self._radius_now(fz)
         c_x = load_adaptive_stiffness_n(
@@ -925,7 +955,9 @@ class FrontEnd:
         (``FrontEndTick.kappa_common_std``). The relaxation length is the config's, the tyre's
         may be half or twice it: while the slip moves, half the distance between the
         kinematic and the relaxed slip is added to its 1-σ, and what the wheel moved between
-        readings beyond their rounding (:func:`ringing_slip_std`)."""
+        readings beyond their rounding (:func:`ringing_slip_std`). A wheel whose ``δ`` is
+        unknown (NaN) has NaN slips; at its next known ``δ`` its relaxed slip restarts from the
+        kinematic one and its ring from 0 (what the tyre did meanwhile is unknown)."""
         v_long, v_lat = self._wheel_velocity(self.vx.speed, self.vy.speed, yaw_rate, delta)
         denom = np.maximum(np.abs(v_long), 1.0)
         radius = self._radius_now(fz)
@@ -937,7 +969,10 @@ class FrontEnd:
         if not self.fe.paper:
             rate = (np.abs(v_long) + 1.0) / max(self.ty.relaxation_length_m, 1e-3)
             gain = 1.0 - np.exp(-self.dt * rate)
-            self.slip_lag += gain * (np.stack([kappa, alpha]) - self.slip_lag)
+            kinematic = np.stack([kappa, alpha])
+            self.slip_lag = np.where(np.isnan(self.slip_lag), kinematic, self.slip_lag)
+            self.kappa_ring = np.where(np.isnan(self.kappa_ring), 0.0, self.kappa_ring)
+            self.slip_lag += gain * (kinematic - self.slip_lag)
             rounding = self.fe.wheel_speed_resolution_radps * radius / denom
             self.kappa_ring = ringing_slip_std(
                 kappa, self.kappa_prev, self.kappa_ring, gain, rounding
@@ -979,16 +1014,26 @@ class FrontEnd:
         fz: FloatArray,
         delta: FloatArray,
         yaw_rate: float,
-        ax: float,
+        accel: tuple[float, float],
     ) -> None:
         """Per-wheel radius from GNSS speed while straight and steady (running mean, then a
         ``calib_time_s`` average), allowing for the slip the resistances need. The GNSS
         speed's error (~0.03 m/s an epoch, 0.3 % at 10 m/s) enters the four radii alike: it is
         kept apart from each wheel's own error (``radius_std``: rim-speed resolution and the
         load model, 2e-4 of the radius), since a shared scale error of the radii cancels in κ
-        where the speed comes from the same rims."""
-        steady = abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01
-        if self.fe.paper or gnss is None or not steady or gnss[0] < 5.0:
+        where the speed comes from the same rims.
+
+        Without a steering angle (``δ`` NaN) the front pair's is :func:`free_rolling_steer`'s
+        while ``|a_y|`` is small too (``accel``: the bias-free ``a_x``, ``a_y``)."""
+        ax, ay = accel
+        if self.fe.paper or gnss is None or gnss[0] < 5.0:
+            return
+        if math.isnan(delta[0]):
+            if abs(ay) >= 0.3:
+                return
+            u, w = self._wheel_velocity(gnss[0], gnss[1], yaw_rate, np.zeros(4))
+            delta = free_rolling_steer(u, w)
+        if not (abs(ax) < 0.3 and abs(yaw_rate) < 0.02 and abs(delta[0]) < 0.01):
             return
         v_long, _ = self._wheel_velocity(gnss[0], gnss[1], yaw_rate, delta)
         resist = self.ch.rolling_resistance * fz.sum() + 0.5 * AIR_DENSITY_KGPM3 * (

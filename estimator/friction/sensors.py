@@ -11,13 +11,15 @@ appends to its slot's row) and its tick clock, and turns them into what the batc
 * the mean specific force and rate over the IMU samples in ``(t − tick, t]`` (a tick without
   one is not ready): differences of a running sum along each row;
 * the latest wheel speeds and steering-wheel angle at or before ``t`` (held from earlier
-  ticks; a tick before the first wheel speeds is not ready);
+  ticks; a tick before the first wheel speeds is not ready; an angle older than
+  ``steer_timeout_s`` is read as none, NaN);
 * the GNSS epoch: the latest one popped from the slot's queue (epochs in arrival order, popped
   while their stamp is at or before ``t``); a new epoch is *fresh* until the first ready tick,
   which uses its body-frame velocity if it is at most ``gnss_timeout_s`` old and has a heading.
 
-The rules are :class:`~.frontend.FrontEnd`'s (its ``_imu_window``, ``_latest`` and
-``_gnss_velocity``); a stream pushed out of time order is sorted (stably) before it is read.
+The rules are :class:`~.frontend.FrontEnd`'s (its ``_imu_window``, ``_latest``,
+``_gnss_velocity`` and ``_steer_angles``); a stream pushed out of time order is sorted
+(stably) before it is read.
 Samples at or before a vehicle's last tick read are dropped. A row grows (the capacity of
 every slot's row doubles) as long as its vehicle's ticks are not read, and the capacity halves
 again once every row fits a quarter of it; a vehicle without an IMU sample and tick grid keeps
@@ -49,7 +51,8 @@ class SensedTicks:
     """The ready ticks of one vehicle (or several, concatenated): ``K`` rows each.
 
     ``t_ns`` ``(K,)``; ``accel_mps2``, ``gyro_radps`` ``(K, 3)`` IMU means in the sensor's
-    frame; ``omega_radps`` ``(K, 4)``; ``steer_rad`` ``(K,)`` (NaN before the first angle);
+    frame; ``omega_radps`` ``(K, 4)``; ``steer_rad`` ``(K,)`` (NaN before the first angle and
+    while the last is older than ``steer_timeout_s``);
     ``gnss_vel_mps`` ``(K, 2)`` body-frame ``(v_x, v_y)`` of a fresh epoch (NaN without one);
     ``gnss_attitude`` ``(K, 3)`` that epoch's heading, pitch and roll [rad] and
     ``gnss_stamp_ns`` ``(K,)`` its time; ``gnss_recent`` ``(K,)`` whether the latest epoch
@@ -201,15 +204,18 @@ def _runs(n: IntArray) -> tuple[IntArray, IntArray]:
 class FleetSensors:
     """Every slot's sensor rows and tick clock (see the module docstring)."""
 
-    def __init__(self, tick_ns: int, gnss_timeout_s: float) -> None:
+    def __init__(self, tick_ns: int, gnss_timeout_s: float, steer_timeout_s: float) -> None:
         self.tick_ns = tick_ns
         self.gnss_timeout_ns = gnss_timeout_s * 1e9
+        self.steer_timeout_ns = round(steer_timeout_s * 1e9)
         self.imu = _Rows(6, sort=True)  # [accel xyz, gyro xyz]
         self.wheels = _Rows(4, sort=True)
         self.steering = _Rows(1, sort=True)
         self.gnss = _Rows(5, sort=False)  # [v_x, v_y body, heading, pitch, roll], a queue
         self.omega = np.zeros((0, 4))
         self.steer = np.zeros(0)
+        self.steer_ns = np.zeros(0, dtype=np.int64)  # the held angle's stamp
+        self.omega_ns = np.zeros(0, dtype=np.int64)
         self.epoch = np.zeros((0, 5))  # the latest GNSS epoch popped
         self.epoch_ns = np.zeros(0, dtype=np.int64)
         self.has_epoch = np.zeros(0, dtype=bool)
@@ -228,7 +234,8 @@ class FleetSensors:
             rows = max(slot + 1, 2 * self.next_ns.size, 8)
             for r in (self.imu, self.wheels, self.steering, self.gnss):
                 r.add_slots(rows)
-            for name in ("omega", "steer", "epoch", "epoch_ns", "has_epoch", "fresh"):
+            names = ("omega", "omega_ns", "steer", "steer_ns", "epoch", "epoch_ns")
+            for name in (*names, "has_epoch", "fresh"):
                 self._grow(name, rows)
             self._grow("next_ns", rows)
             self._grow("has_next", rows)
@@ -303,8 +310,9 @@ class FleetSensors:
         v = due.vehicle
         window = (imu[0][covered], imu[1][covered])
         means, n_imu, lag_s = self._imu_means(due, window)
-        omega = self._latest(self.wheels, self.omega, due)
-        steer = self._latest(self.steering, self.steer[:, None], due)[:, 0]
+        omega, _ = self._latest(self.wheels, (self.omega, self.omega_ns), due)
+        steer, steer_ns = self._latest(self.steering, (self.steer[:, None], self.steer_ns), due)
+        steer = np.where(due.t_ns - steer_ns <= self.steer_timeout_ns, steer[:, 0], math.nan)
         ready = (n_imu > 0) & np.isfinite(omega).all(axis=1)
         gnss = self._gnss(due, ready)
         keep = np.flatnonzero(ready)
@@ -364,19 +372,25 @@ class FleetSensors:
         self.imu.drop(due.slots, hi[due.last])
         return means, count, lag_s
 
-    def _latest(self, rows: _Rows, held: FloatArray, due: _Due) -> FloatArray:
-        """The last sample of ``rows`` at or before each tick ``(R, width)``, the slot's
-        ``held`` value ``(S, width)`` (updated to each vehicle's last tick) before the first;
-        the samples up to each vehicle's last tick dropped."""
+    def _latest(
+        self, rows: _Rows, held: tuple[FloatArray, IntArray], due: _Due
+    ) -> tuple[FloatArray, IntArray]:
+        """The last sample of ``rows`` at or before each tick ``(R, width)`` and its stamp
+        ``(R,)``, the slot's ``held`` value ``(S, width)`` and stamp ``(S,)`` (updated to each
+        vehicle's last tick) before the first; the samples up to each vehicle's last tick
+        dropped."""
         stamps, values = rows.window(due.slots)
+        held_value, held_ns = held
         end = (stamps[due.vehicle] <= due.t_ns[:, None]).sum(axis=1)
-        out = values[due.vehicle, np.maximum(end - 1, 0)]
+        at = np.maximum(end - 1, 0)
+        out, out_ns = values[due.vehicle, at], stamps[due.vehicle, at]
         before = end == 0
         if before.any():
-            out[before] = held[due.slots[due.vehicle[before]]]
-        held[due.slots] = out[due.last]
+            out[before] = held_value[due.slots[due.vehicle[before]]]
+            out_ns[before] = held_ns[due.slots[due.vehicle[before]]]
+        held_value[due.slots], held_ns[due.slots] = out[due.last], out_ns[due.last]
         rows.drop(due.slots, end[due.last])
-        return out
+        return out, out_ns
 
     def _gnss(
         self, due: _Due, ready: BoolArray

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from estimator._arrays import BoolArray
 from estimator.base import FleetEstimator, Measurement
 from estimator.config import ConfigError, DrivenAxle, WheeledRearDriveConfig
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
@@ -28,7 +29,7 @@ from estimator.friction.filter import (
 )
 from estimator.friction.frontend import FrontEndConfig, brake_slip_std, spin_up_slip
 from estimator.friction.model import Chassis, body_accelerations
-from estimator.friction_spec import FRICTION_SPEC, FrictionFlag
+from estimator.friction_spec import FRICTION_SPEC, WHEEL_KEYS, FrictionFlag
 from estimator.sim.four_wheel import (
     FOUR_WHEEL_CONFIG,
     INSTANT_WHEEL_SENSOR,
@@ -74,6 +75,43 @@ def late_steering(run: FourWheelRun) -> tuple[FourWheelRun, int]:
     ]
     first = min(int(m.stamp_ns[0]) for m in kept if isinstance(m, SteeringAngles))
     return dataclasses.replace(run, measurements=kept), first
+
+
+STALL_S = (1.4, 2.2)
+"""When, from the turn's start, the stalled vehicle's steering stream stops and resumes [s]."""
+
+
+def stalled_steering(run: FourWheelRun) -> tuple[FourWheelRun, int, int]:
+    """``run`` with its steering packets stamped in ``STALL_S`` of its turn dropped (IMU,
+    wheels and GNSS throughout), the last angle's stamp before the gap and the first after."""
+    lo, hi = (run.start_ns + round((LEAD_S + t) * 1e9) for t in STALL_S)
+    kept = []
+    for m in run.measurements:
+        first = int(np.atleast_1d(m.stamp_ns)[0])
+        if not (isinstance(m, SteeringAngles) and lo <= first < hi):
+            kept.append(m)
+    angles = np.concatenate([m.stamp_ns for m in kept if isinstance(m, SteeringAngles)])
+    return (
+        dataclasses.replace(run, measurements=kept),
+        int(angles[angles < lo].max()),
+        int(angles[angles >= hi].min()),
+    )
+
+
+_STEERED_COLUMNS = (("slip", "pct"), ("alpha", "rad"), ("util", "pct"))
+"""The per-wheel columns computed with the wheel's steer angle (name, unit)."""
+
+
+def front_columns_empty(rows: np.ndarray) -> BoolArray:
+    """Per row: the front pair's slip, slip-angle and grip-used columns all NaN."""
+    front = [f"{c}_{k}_{u}" for k in WHEEL_KEYS[:2] for c, u in _STEERED_COLUMNS]
+    return np.all([np.isnan(rows[c]) for c in front], axis=0)
+
+
+def rear_columns_known(rows: np.ndarray) -> BoolArray:
+    """Per row: the rear pair's slip, slip-angle and grip-used columns all finite."""
+    rear = [f"{c}_{k}_{u}" for k in WHEEL_KEYS[2:] for c, u in _STEERED_COLUMNS]
+    return np.all([np.isfinite(rows[c]) for c in rear], axis=0)
 
 
 @pytest.fixture(scope="module")
@@ -620,4 +658,83 @@ def test_mu_waits_for_the_vehicles_first_steering_angle() -> None:
     assert not (flags[~before] & FrictionFlag.NO_STEERING).any()
     informed = (flags & FrictionFlag.INFORMED) > 0
     assert informed[~before].sum() > 25
+    assert np.abs(rows["mu"][informed] / 0.4 - 1).max() < 0.1
+
+
+def test_the_front_wheels_columns_are_empty_before_the_first_steering_angle() -> None:
+    """Before the first angle the front pair's slip, slip angle and grip used are unknown
+    (NaN, not computed with the wheels straight); the rear pair's and, from the first angle
+    on, all four are known."""
+    late, first_ns = late_steering(simulate_four_wheel([TURN], seeds=[11])[0])
+    fleet = FrictionFleet()
+    fleet.add_vehicle("late", late.config)
+    rows = _drive(fleet, [late], ["late"])["late"]
+    before = rows["stamp_ns"] < first_ns
+    assert before.sum() > 200 and (~before).sum() > 50
+    assert front_columns_empty(rows[before]).all()
+    assert not front_columns_empty(rows[~before]).any()
+    assert rear_columns_known(rows).all()
+
+
+def test_mu_stops_learning_while_the_steering_stream_is_stalled() -> None:
+    """A turn whose steering stream stops 1.4 s into it for 0.8 s: from ``steer_timeout_s`` after
+    the last angle until the next, the held angle counts as none (``NO_STEERING``, no update,
+    ``mu_filter`` held, the front pair's columns NaN); before and after, as with the stream
+    whole, and μ is learnt and informed again within 10 % of the road's 0.4."""
+    run, last_ns, resumed_ns = stalled_steering(simulate_four_wheel([TURN], seeds=[11])[0])
+    fleet = FrictionFleet()
+    fleet.add_vehicle("stalled", run.config)
+    rows = _drive(fleet, [run], ["stalled"])["stalled"]
+    timeout_ns = round(fleet.config.front.steer_timeout_s * 1e9)
+    t, flags = rows["stamp_ns"], rows["flags"]
+    stale = (t > last_ns + timeout_ns) & (t < resumed_ns)
+    assert stale.sum() > 20 and (t >= resumed_ns).sum() > 40
+    assert ((flags[stale] & FrictionFlag.NO_STEERING) > 0).all()
+    assert ((flags[stale] & FrictionFlag.NO_UPDATE) > 0).all()
+    assert not (flags[stale] & FrictionFlag.INFORMED).any()
+    assert np.ptp(rows["mu_filter"][stale]) < 1e-9  # held (its log's round trip aside)
+    assert front_columns_empty(rows[stale]).all() and rear_columns_known(rows).all()
+    assert not (flags[~stale] & FrictionFlag.NO_STEERING).any()
+    assert not front_columns_empty(rows[~stale]).any()
+    informed = (flags & FrictionFlag.INFORMED) > 0
+    assert informed[t < last_ns].sum() > 10 and informed[t >= resumed_ns].sum() > 10
+    assert np.abs(rows["mu"][informed] / 0.4 - 1).max() < 0.1
+
+
+def slow_steering(run: FourWheelRun, period_s: float, jitter_s: float) -> FourWheelRun:
+    """``run`` with its steering angles thinned to one every ``period_s``, each stamp moved by
+    up to ``±jitter_s`` (a slow CAN message on a busy bus), sent one sample a packet."""
+    rng = np.random.default_rng(7)
+    steering = [m for m in run.measurements if isinstance(m, SteeringAngles)]
+    stamps = np.concatenate([m.stamp_ns for m in steering])
+    angles = np.concatenate([m.angle_rad for m in steering])
+    step = round(period_s * 1e9)
+    grid = np.arange(stamps[0] + step, stamps[-1], step)
+    grid += rng.integers(-round(jitter_s * 1e9), round(jitter_s * 1e9), grid.size)
+    slow = [
+        SteeringAngles(stamp_ns=np.array([t]), angle_rad=np.interp([t], stamps, angles))
+        for t in grid
+    ]
+    kept = [m for m in run.measurements if not isinstance(m, SteeringAngles)]
+    return dataclasses.replace(run, measurements=sorted(kept + slow, key=_first_stamp))
+
+
+def _first_stamp(m: Measurement) -> int:
+    return int(np.atleast_1d(m.stamp_ns)[0])
+
+
+def test_a_live_10_hz_steering_stream_with_jitter_never_reads_as_stalled() -> None:
+    """Steering angles at 10 Hz, each up to 30 ms early or late: the angle is never taken for
+    a stalled stream (no ``NO_STEERING`` after the first), and μ is still learnt and informed
+    within 10 % of the road's 0.4."""
+    run = slow_steering(simulate_four_wheel([TURN], seeds=[11])[0], 0.1, 0.03)
+    first = min(_first_stamp(m) for m in run.measurements if isinstance(m, SteeringAngles))
+    fleet = FrictionFleet()
+    fleet.add_vehicle("slow", run.config)
+    rows = _drive(fleet, [run], ["slow"])["slow"]
+    flags, after = rows["flags"], rows["stamp_ns"] >= first
+    assert after.sum() > 100
+    assert not (flags[after] & FrictionFlag.NO_STEERING).any()
+    informed = (flags & FrictionFlag.INFORMED) > 0
+    assert informed.sum() > 20
     assert np.abs(rows["mu"][informed] / 0.4 - 1).max() < 0.1

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from estimator.base import Measurement
+from estimator.config import DrivenAxle
 from estimator.friction import FilterConfig, FrictionFleet, FrictionFleetConfig, FrictionMode
 from estimator.friction.fleetfront import FrontEndTicks
 from estimator.friction.frontend import FrontEnd
@@ -17,7 +18,7 @@ from estimator.friction.sensors import SensedTicks
 from estimator.friction_spec import WHEEL_KEYS, FrictionFlag
 from estimator.sim.four_wheel import NAMED, FourWheelRun, random_config, simulate_four_wheel
 from tests.estimator.friction._reference import TICK_NS, Reference
-from tests.estimator.friction.test_fleet import TURN, late_steering
+from tests.estimator.friction.test_fleet import TURN, late_steering, stalled_steering
 
 SECONDS = 9.0
 MANOEUVRES = ("steer_mu08", "accelerate_step", "damaged_tyre", "steer_step", "constant_speed")
@@ -104,7 +105,33 @@ def test_batched_front_end_equals_the_per_vehicle_one(
     runs: list[FourWheelRun], mode: FrictionMode
 ) -> None:
     _, refs, seen = _drive(runs, mode)
-    valid = calibrated = 0
+    _assert_equal(refs, seen)
+    valid = sum(bool(f["valid"]) for got in seen.values() for _, f in got)
+    assert valid > 1000  # the comparison covers μ updates, not only the lead-in
+    if mode is FrictionMode.PRODUCT:
+        assert sum(ref.front.calibrated for ref in refs.values()) >= len(refs) // 2
+
+
+def test_both_front_ends_agree_through_a_stalled_steering_stream(
+    runs: list[FourWheelRun],
+) -> None:
+    """The same on steered runs (all- and rear-driven: free steered front rims) whose steering
+    stream stops for 0.8 s: the stale ticks, their NaN front pair and the restart alike."""
+    stalled = [stalled_steering(r)[0] for r in (runs[0], runs[3])]
+    assert runs[3].config.chassis.driven_axle is DrivenAxle.REAR
+    _, refs, seen = _drive(stalled, FrictionMode.PRODUCT)
+    _assert_equal(refs, seen)
+    for vid, got in seen.items():
+        stale = [f for _, f in got if not f["steering"]]
+        assert len(stale) > 20, vid
+        assert all(np.isnan(np.asarray(f["kappa"])[:2]).all() for f in stale)
+        assert sum(bool(f["valid"]) for _, f in got) > 100, vid
+
+
+def _assert_equal(
+    refs: dict[str, Reference], seen: dict[str, list[tuple[int, dict[str, object]]]]
+) -> None:
+    """Every vehicle's batched front-end ticks are the per-vehicle reference's (NaN alike)."""
     for vid, ref in refs.items():
         got = seen[vid]
         assert [t for t, _ in got] == list(ref.ticks), vid
@@ -119,11 +146,6 @@ def test_batched_front_end_equals_the_per_vehicle_one(
                     atol=1e-9,
                     err_msg=f"{vid} {name} at {t_ns}",
                 )
-            valid += bool(fields["valid"])
-        calibrated += ref.front.calibrated
-    assert valid > 1000  # the comparison covers μ updates, not only the lead-in
-    if mode is FrictionMode.PRODUCT:
-        assert calibrated >= len(refs) // 2
 
 
 def test_fleet_rows_carry_the_reference_front_end(runs: list[FourWheelRun]) -> None:
@@ -168,13 +190,18 @@ def late_run() -> tuple[FourWheelRun, int]:
 
 
 def _check_late_steering(ticks: list[tuple[int, dict[str, object]]], first_ns: int) -> None:
-    """Before the first steering packet no tick is valid and the front pair's δ is NaN, not a
-    straight 0; from it on the angle is known and the ticks (moving, calibrated) valid."""
+    """Before the first steering packet no tick is valid and the front pair's δ, slips, slip
+    angles and their 1-σ are NaN, not computed from a straight 0 (the rear pair's known); from
+    it on the angle is known and the ticks (moving, calibrated) valid."""
     before = [f for t, f in ticks if t < first_ns]
     after = [f for t, f in ticks if t >= first_ns]
     assert len(before) > 200 and len(after) > 50
     assert not any(bool(f["valid"]) for f in before)
     assert all(np.isnan(np.asarray(f["delta_rad"])[:2]).all() for f in before)
+    for name in ("kappa", "alpha_rad", "kappa_std", "alpha_std_rad", "alpha_lag_rad"):
+        assert all(np.isnan(np.asarray(f[name])[:2]).all() for f in before), name
+        assert all(np.isfinite(np.asarray(f[name])[2:]).all() for f in before), name
+        assert all(np.isfinite(np.asarray(f[name])).all() for f in after), name
     assert not any(bool(f["steering"]) for f in before)
     assert all(bool(f["steering"]) and bool(f["valid"]) for f in after)
     assert all(np.isfinite(np.asarray(f["delta_rad"])).all() for f in after)

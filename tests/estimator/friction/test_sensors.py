@@ -1,9 +1,9 @@
 """The shared sensor rows (:class:`FleetSensors`, every vehicle of a call read in one pass)
 against the per-vehicle :class:`FrontEnd`'s own sensor reads, tick by tick, on random streams:
 IMU, wheel and steering packets of random rates and sizes, GNSS epochs with and without a
-heading and with outages, wheels that start late, a vehicle without steering, tick grids
-aligned or not, vehicles left out of calls; packets pushed out of order are read sorted; a full
-row keeps its newest samples."""
+heading and with outages, steering with outages longer than its timeout, wheels that start
+late, a vehicle without steering, tick grids aligned or not, vehicles left out of calls;
+packets pushed out of order are read sorted; a full row keeps its newest samples."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from tests.estimator.friction._reference import TICK_NS, Reference
 
 START_NS = 1_700_000_000_000_000_000
 TIMEOUT_S = FrontEndConfig().gnss_timeout_s
+STEER_TIMEOUT_S = FrontEndConfig().steer_timeout_s
 Packet = ImuBatch | WheelSpeeds4 | SteeringAngles | GnssSample
 
 
@@ -46,6 +47,8 @@ def _packets(rng: np.random.Generator, vehicle: int, end_s: float) -> list[tuple
     out += _split(rng, wheels, lambda s: WheelSpeeds4(s, rng.uniform(5, 30, (s.size, 4))))
     if vehicle % 4 != 3:  # one in four without steering
         steer = _stream(rng, rng.uniform(20, 100), rng.uniform(0.0, 0.5), end_s)
+        phase = (steer - START_NS) * 1e-9 % 2.0
+        steer = steer[(phase < 1.0) | (phase > 1.0 + 4 * STEER_TIMEOUT_S)]  # outages
         out += _split(rng, steer, lambda s: SteeringAngles(s, rng.normal(0, 0.3, s.size)))
     for t in _stream(rng, rng.uniform(5, 20), rng.uniform(0.0, 0.5), end_s):
         if TIMEOUT_S * 1.5 < (t - START_NS) * 1e-9 % 3.0 < TIMEOUT_S * 4:  # outages
@@ -93,7 +96,7 @@ class _Reference(Reference):
             accel,
             gyro,
             f.omega.copy(),
-            np.array(f.steer_rad),
+            np.array(f._steer_angles(t)[0]),
             np.array(vel if vel is not None else (math.nan, math.nan)),
             np.array(att),
             np.array(g.stamp_ns if fresh and g is not None else 0),
@@ -134,7 +137,7 @@ def _run(
 ) -> tuple[dict[int, _Reference], dict[int, dict[int, tuple[np.ndarray, ...]]], FleetSensors]:
     rng = np.random.default_rng(seed)
     config = random_config(rng)
-    sensors = FleetSensors(TICK_NS, TIMEOUT_S)
+    sensors = FleetSensors(TICK_NS, TIMEOUT_S, STEER_TIMEOUT_S)
     refs: dict[int, _Reference] = {}
     streams = {v: _packets(rng, v, seconds) for v in range(vehicles)}
     got: dict[int, dict[int, tuple[np.ndarray, ...]]] = {v: {} for v in range(vehicles)}
@@ -194,7 +197,10 @@ def test_packets_pushed_out_of_order_are_read_sorted() -> None:
     """IMU, wheel and steering packets shuffled between two calls read as those in order."""
     rng = np.random.default_rng(7)
     streams = {v: _packets(rng, v, 4.0) for v in range(4)}
-    ordered, shuffled = FleetSensors(TICK_NS, TIMEOUT_S), FleetSensors(TICK_NS, TIMEOUT_S)
+    ordered, shuffled = (
+        FleetSensors(TICK_NS, TIMEOUT_S, STEER_TIMEOUT_S),
+        FleetSensors(TICK_NS, TIMEOUT_S, STEER_TIMEOUT_S),
+    )
     for v in streams:
         ordered.add(v)
         shuffled.add(v)
@@ -227,7 +233,7 @@ def test_a_full_row_keeps_its_newest_samples() -> None:
     """Wheel speeds without an IMU fill the row up to ``MAX_SAMPLES`` (the oldest dropped and
     counted); once the IMU comes, the first tick reads the latest wheel speeds before it, and
     the rows' capacity shrinks once they are read."""
-    sensors = FleetSensors(TICK_NS, TIMEOUT_S)
+    sensors = FleetSensors(TICK_NS, TIMEOUT_S, STEER_TIMEOUT_S)
     for slot in range(3):
         sensors.add(slot)
     n = MAX_SAMPLES + 500
