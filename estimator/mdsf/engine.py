@@ -159,8 +159,9 @@ class TickModel:
     mask1, mask2 : ndarray, shape (k, m), bool
         Rows of the first (IMU) and second (GNSS speed, rim speeds) update stage.
     inflated : ndarray, shape (k,), bool
-        The covariance was changed between the stages (GNSS re-acquired or a slip jump) or
-        after them (a slip step found in an outage, :meth:`MdsfEngine._outage_slip_steps`).
+        The covariance was changed between the stages (GNSS re-acquired, a slip jump or an
+        outage's bound on the rim excess, :meth:`MdsfEngine._bound_rim_excess`) or after them
+        (a slip step found in an outage, :meth:`MdsfEngine._outage_slip_steps`).
     nis : ndarray, shape (k,)
         Normalised innovation squared of both stages (their sum is the joint update's), with
         its degrees of freedom ``dof``; computed when read, from the two ``stages``.
@@ -1047,11 +1048,11 @@ class MdsfEngine:
         if self.product:
             gated, reacq = self._gate_gnss(slots, t, init, y, s, P_1)
             jumped = self._open_rim_jumps(slots, init, y, s, rim_ok, P_1)
-            inflated = reacq | jumped.any(axis=1)
             lost = self._gnss_lost(slots, t, init)
             # A jump on a tick without the gyro row stays open (see _bound_rim_excess).
             blind = jumped & ~t.imu_ok[:, None]
-            self._bound_rim_excess(lost, rim_mps, rim_ok & ~blind, P_1)
+            bounded = self._bound_rim_excess(lost, rim_mps, rim_ok & ~blind, P_1)
+            inflated = reacq | jumped.any(axis=1) | bounded
         use_vg = t.gnss_ok & ~gated
         mask2 = np.zeros((k, m), dtype=bool)
         mask2[:, MdsfObs.VG] = use_vg
@@ -1130,9 +1131,10 @@ class MdsfEngine:
 
     def _bound_rim_excess(
         self, lost: BoolArray, rim_mps: FloatArray, rim_ok: BoolArray, P_1: FloatArray
-    ) -> None:
+    ) -> BoolArray:
         """Product mode, GNSS lost: each rim excess's std held within the slip range
-        ``σ_max = outage_slip_std·|r·W|`` (``P_1`` (k, n, n) in place).
+        ``σ_max = outage_slip_std·|r·W|`` (``P_1`` (k, n, n) in place). Returns the rows
+        whose ``P_1`` it changed, (k,).
 
         ``P ← D·P·D`` with ``D = diag(1, …, c_e, …)``, ``c_e = min(1, σ_max/σ_e)``: the
         variance of ``e`` is brought to the bound and its covariances scaled with it, so ``P``
@@ -1148,12 +1150,13 @@ class MdsfEngine:
         share = self.config.outage_slip_std
         rows = lost[:, None] & rim_ok
         if share <= 0 or not rows.any():
-            return
+            return np.zeros(lost.shape[0], dtype=bool)
         var_max = (share * np.where(rim_ok, rim_mps, 0.0)) ** 2 + 1e-6
         var_e = P_1[:, _RIM_EXCESS, _RIM_EXCESS]
         c = np.where(rows & (var_e > var_max), np.sqrt(var_max / np.maximum(var_e, 1e-30)), 1.0)
         P_1[:, _RIM_EXCESS, :] *= c[:, :, None]
         P_1[:, :, _RIM_EXCESS] *= c[:, None, :]
+        return np.asarray((c < 1.0).any(axis=1))
 
     def _gate_distance(
         self, slots: IntArray, t: TickInputs, init: BoolArray, y: FloatArray, s: FloatArray

@@ -30,6 +30,7 @@ from estimator.mdsf import (
     mdsf_matrices,
 )
 from estimator.sim import SimRun, replay, simulate, truth_at
+from estimator.sim.drives import draw_drive
 from estimator.types import (
     ESTIMATE_DTYPE,
     EstimateFlag,
@@ -52,31 +53,41 @@ def _sim(name: str = "paper_straight", seed: int = 1, **kw: Any) -> tuple[SimRun
 
 
 def _run(
-    fleet: MdsfFleet, sims: dict[str, tuple[SimRun, VehicleConfig]], step_ns: int = 100_000_000
+    fleet: MdsfFleet,
+    sims: dict[str, tuple[SimRun, VehicleConfig]],
+    step_ns: int = 100_000_000,
+    spans: dict[str, tuple[int, int]] | None = None,
 ) -> dict[str, np.ndarray]:
-    """Feed runs as the server's pipeline does (sensor order, trailing watermark)."""
-    for vid, (_, cfg) in sims.items():
-        fleet.add_vehicle(vid, cfg)
+    """Feed runs as the server's pipeline does (sensor order, trailing watermark).
+
+    ``spans[vid] = (first, n)``: the vehicle joins at round ``first``, is fed its run's first
+    ``n`` chunks and leaves the round after (default: joins at round 0, fed all, stays)."""
     streams = {
         vid: list(replay(sim.measurements, step_ns=step_ns, end_ns=sim.end_ns))
         for vid, (sim, _) in sims.items()
     }
+    span = {vid: (spans or {}).get(vid, (0, len(s))) for vid, s in streams.items()}
     out: dict[str, list[np.ndarray]] = {vid: [] for vid in sims}
-    for i in range(max(len(s) for s in streams.values())):
+    for i in range(max(first + n for first, n in span.values())):
+        for vid, (first, n) in span.items():
+            if spans and i == first + n:
+                fleet.remove_vehicle(vid)
         until = {}
-        for vid, s in streams.items():
-            if i < len(s):
-                chunk, u = s[i]
+        for vid, (first, n) in span.items():
+            if i == first:
+                fleet.add_vehicle(vid, sims[vid][1])
+            if first <= i < first + n:
+                chunk, until[vid] = streams[vid][i - first]
                 for m in chunk:
                     fleet.push(vid, m)
-                until[vid] = u
         for vid, rows in fleet.advance(until):
             out[vid].append(rows)
     return {vid: np.concatenate(p) for vid, p in out.items()}
 
 
 def _record(fleet: MdsfFleet) -> list[tuple[Any, ...]]:
-    """Record every engine step: slots, state before/after, initialised flag, output."""
+    """Record every engine step: slots, state before/after, initialised flag, output and the
+    slots' vehicle configs (a slot a vehicle left may hold another later)."""
     eng = fleet.engine
     rec: list[tuple[Any, ...]] = []
     orig: Callable[..., StepOutput] = eng.step
@@ -84,11 +95,36 @@ def _record(fleet: MdsfFleet) -> list[tuple[Any, ...]]:
     def step(slots: np.ndarray, t: TickInputs, rim: np.ndarray, rim_std: np.ndarray) -> StepOutput:
         x0, P0, init0 = eng.x[slots].copy(), eng.P[slots].copy(), eng.initialized[slots].copy()
         out = orig(slots, t, rim, rim_std)
-        rec.append((slots.copy(), x0, P0, init0, out, eng.x[slots].copy(), eng.P[slots].copy()))
+        by_slot = {fleet._slot[v]: c for v, c in fleet._configs.items()}
+        configs = [by_slot[int(s)] for s in slots]
+        rec.append(
+            (slots.copy(), x0, P0, init0, out, eng.x[slots].copy(), eng.P[slots].copy(), configs)
+        )
         return out
 
     eng.step = step  # type: ignore[method-assign]
     return rec
+
+
+def _filterpy_agreements(rec: list[tuple[Any, ...]], cfg: MdsfConfig) -> int:
+    """Each recorded plain step (initialised, not special, not inflated) redone per vehicle on
+    :class:`MdsfFilter` with the step's ``F, Q, u, z, R`` and masks: ``x`` and ``P`` after it
+    agree to 1e-9. Returns how many steps were checked."""
+    checked = 0
+    for slots, x0, P0, init0, out, x1, P1, configs in rec:
+        m = out.model
+        for i in range(len(slots)):
+            if not init0[i] or m.special[i] or m.inflated[i]:
+                continue
+            f = MdsfFilter(cfg, configs[i])
+            f.initialize(x0[i], P0[i])
+            f.predict(Q=m.Q[i], u=None if m.u is None else m.u[i], F=m.F[i])
+            f.update(m.z[i], m.R[i], m.mask1[i])
+            f.update(m.z[i], m.R[i], m.mask2[i])
+            assert np.allclose(f.x, x1[i], rtol=0, atol=1e-9)
+            assert np.allclose(f.P, P1[i], rtol=0, atol=1e-9)
+            checked += 1
+    return checked
 
 
 def test_implements_the_fleet_protocol() -> None:
@@ -112,22 +148,7 @@ def test_batched_engine_equals_per_vehicle_filterpy_filter(mode: MdsfMode) -> No
     fleet = MdsfFleet(cfg)
     rec = _record(fleet)
     _run(fleet, sims)
-    slot_cfg = {fleet._slot[v]: sims[v][1] for v in sims}
-    checked = 0
-    for slots, x0, P0, init0, out, x1, P1 in rec:
-        m = out.model
-        for i, s in enumerate(slots):
-            if not init0[i] or m.special[i] or m.inflated[i]:
-                continue
-            f = MdsfFilter(cfg, slot_cfg[int(s)])
-            f.initialize(x0[i], P0[i])
-            f.predict(Q=m.Q[i], u=None if m.u is None else m.u[i], F=m.F[i])
-            f.update(m.z[i], m.R[i], m.mask1[i])
-            f.update(m.z[i], m.R[i], m.mask2[i])
-            assert np.allclose(f.x, x1[i], rtol=0, atol=1e-9)
-            assert np.allclose(f.P, P1[i], rtol=0, atol=1e-9)
-            checked += 1
-    assert checked > 300
+    assert _filterpy_agreements(rec, cfg) > 300
     assert len({len(r[0]) for r in rec}) > 1  # rounds really held several vehicles
 
 
@@ -144,6 +165,73 @@ def test_vehicles_batched_together_equal_vehicles_alone() -> None:
         assert both.shape == alone.shape
         for name in ESTIMATE_DTYPE.names or ():
             assert np.allclose(both[name], alone[name], rtol=0, atol=1e-9, equal_nan=True), name
+
+
+_DRAW = 25
+"""The random-drive draw (:mod:`estimator.sim.drives`) the fleet's drives are taken from."""
+
+
+def _drawn_fleet() -> tuple[dict[str, tuple[SimRun, VehicleConfig]], dict[str, tuple[int, int]]]:
+    """Four drawn drives, picked by their knobs (asserted: a change to the draw that drops a
+    condition fails here), each from rest, with their rounds in the fleet ``(first, n)``:
+
+    - ``sway``: pitch and roll sway of 3.5 deg at 1.4 Hz on a 3.4-m mast, its first 15 s;
+    - ``creep``: 0.2-0.8 m/s on a 30-tooth ring, GNSS lost from 11.6 s; joins at round 20;
+    - ``outage``: GNSS lost 11.3-30.0 s with a turn, 1.3 -> 3.1 m/s and an 8-pp slip ramp
+      inside, the cab swaying; joins after ``sway`` left, in its slot, and is fed to 3 s
+      after GNSS returns (its outage and ``creep``'s overlap);
+    - ``mast``: sway of 4.4 deg at 0.7 Hz on a 3.5-m mast, joins at round 200 (three at once).
+
+    GNSS and wheel clocks are off the IMU's by 12-100 ms."""
+    drives = {"outage": draw_drive(_DRAW, 221), "sway": draw_drive(_DRAW, 24)}
+    drives |= {"creep": draw_drive(_DRAW, 185), "mast": draw_drive(_DRAW, 52)}
+    out, sway, creep, mast = (d.knobs() for d in drives.values())
+    ((lost_s, back_s),) = out["gnss_outages"]
+    assert 10.0 <= back_s - lost_s <= 25.0 and lost_s <= 15.0
+    assert any(lost_s + 1.0 < t_s < back_s - 3.0 for t_s, _, _ in out["slip_steps"])
+    assert out["speed_max_mps"] >= 2.5 and out["turn_rate_max_radps"] >= 0.15
+    for k in (sway, mast):
+        assert max(k["sway_pitch_deg"], k["sway_roll_deg"]) >= 3.0 and k["h1_m"] >= 3.0
+    assert creep["speed_max_mps"] <= 0.8 and creep["teeth_per_rev"] <= 30
+    ((creep_lost_s, creep_back_s),) = creep["gnss_outages"]
+    assert creep_lost_s <= 15.0 and creep_back_s >= 32.0
+    offsets_ms = np.array([k["clock_offset_ms"] for k in (out, sway, creep, mast)])[:, [0, 2]]
+    assert np.abs(offsets_ms).min() >= 10.0 and np.abs(offsets_ms).max(axis=0).min() >= 80.0
+    sims = {
+        vid: _sim("random_drive", d.sim_seed, config=d.config(), **dict(d.overrides))
+        for vid, d in drives.items()
+    }
+    spans = {"sway": (0, 150), "creep": (20, 300), "outage": (160, round(back_s * 10) + 30)}
+    spans["mast"] = (200, 150)
+    return sims, spans
+
+
+def test_drawn_drives_joining_and_leaving_equal_each_vehicle_alone() -> None:
+    """The fleet of :func:`_drawn_fleet` in one engine, vehicles joining and leaving at
+    different rounds: every row column of each vehicle equals its run alone to 1e-9 (NaN
+    where NaN), and every plain filter step equals the filterpy reference."""
+    sims, spans = _drawn_fleet()
+    fleet = MdsfFleet()
+    rec = _record(fleet)
+    together = _run(fleet, sims, spans=spans)
+    sim, _ = sims["outage"]
+    rows = together["outage"]
+    t = (rows["stamp_ns"] - sim.start_ns) * 1e-9
+    lost = (t > 13.0) & (t < 30.0)
+    assert ((rows["flags"][lost] & F.DEGRADED) != 0).all()
+    assert np.ptp(truth_at(sim.truth, rows["stamp_ns"][lost], "v1_mps")) > 1.0
+    assert np.abs(truth_at(sim.truth, rows["stamp_ns"][lost], "yaw_rate_radps")).max() > 0.05
+    for vid, (s, _) in sims.items():
+        assert s.truth["v1_mps"][0] == 0.0, vid
+    assert len(np.unique(np.concatenate([r[0] for r in rec]))) == 3  # outage took sway's slot
+    assert max(len(r[0]) for r in rec) == 3
+    assert _filterpy_agreements(rec, fleet.config) > 300
+    for vid, (_, n) in spans.items():
+        alone = _run(MdsfFleet(), {vid: sims[vid]}, spans={vid: (0, n)})[vid]
+        assert together[vid].shape == alone.shape and len(alone) > 100, vid
+        for name in ESTIMATE_DTYPE.names or ():
+            both = together[vid][name]
+            assert np.allclose(both, alone[name], rtol=0, atol=1e-9, equal_nan=True), (vid, name)
 
 
 def test_rows_are_causal_and_independent_of_delivery_schedule() -> None:
