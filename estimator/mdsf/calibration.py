@@ -40,9 +40,17 @@ vehicles at once (arrays indexed by the engine's slot), each with its uncertaint
   g·sin φ·cos θ`` (centripetal and gravity, :mod:`estimator.sim.kinematics`), so
   ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y + b_lat``: states ``[γ, b_lat]``, ``b_lat`` a slow
   walk that takes the lateral accelerometer's bias and the roll's slow error. Observable
-  whenever the forward force changes (speed changes, slopes). Applied to the forward
-  acceleration as ``f_y = f_y' + γ·f_x'`` once converged and significant: a turn's
-  centripetal force leaks ``γ·V·ωz`` into it otherwise.
+  whenever the forward force changes (speed changes, slopes). The regressor ``f_y`` is the
+  forward force at ``O``: a cab rolling on its axle shakes a raised IMU sideways by ``h0·ω̇y``
+  (metres per second squared), which the turned IMU reads on its forward axis as ``−γ·h0·ω̇y``
+  and its pitch gyro as ``γ·ωy``, so the IMU's forward force plus the forward lever term
+  ``h0·ω̇x'`` is free of it to first order; on a creeping drive that leak is larger than the
+  drive's own forward force and, taken as excitation, ran the yaw away. Both lever terms are
+  window estimates, so a tick's regressor error is counted up to their size (errors in
+  variables): ``r += (γ̂² + P_γγ)·((h0·ω̇y)² + (h0·ω̇x')²)``, which keeps the stated std honest
+  where the only excitation is the sway's. Applied to the forward acceleration as
+  ``f_y = f_y' + γ·f_x'`` once converged and significant: a turn's centripetal force leaks
+  ``γ·V·ωz`` into it otherwise.
 
 :class:`MdsfCalibration` is one vehicle's calibration as plain values (state out and in: the
 server stores it and gives it back after a restart).
@@ -714,12 +722,14 @@ class CalibrationBank:
         speed_mps: FloatArray,
         yaw_rate_radps: FloatArray,
         tilt_rad: tuple[FloatArray, FloatArray],
+        lever_mps2: tuple[FloatArray, FloatArray],
     ) -> None:
-        """One tick of the mounting-yaw filter: the tick-mean IMU forces ``(f_y', f_x')``
-        (forward at the IMU; lateral at ``O``, the lever arm's angular-acceleration term off,
-        as the model is ``O``'s) and their variance, the ground speed ``V``, the yaw rate
-        ``ωz`` and the body's ``(θ, φ)``, all (k,):
-        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y' + b_lat`` (NaN anywhere: predicted only)."""
+        """One tick of the mounting-yaw filter: the tick-mean forces at ``O`` ``(f_y, f_x')``
+        (the IMU's, each lever arm's angular-acceleration term taken off, as the model is
+        ``O``'s) and their variance, the ground speed ``V``, the yaw rate ``ωz``, the body's
+        ``(θ, φ)`` and the two lever terms taken off ``(h0·ω̇x', h0·ω̇y)``, all (k,):
+        ``f_x' + V·ωz + g·sin φ·cos θ = γ·f_y + b_lat`` (NaN anywhere: predicted only), the
+        noise ``2·σ_f² + floor² + (γ̂² + P_γγ)·((h0·ω̇x')² + (h0·ω̇y)²)`` (module docstring)."""
         dt = self.dt_s
         x, p = self.yx[slots], self.yp[slots]
         p[:, 0, 0] += _YAW_WALK_RAD_PER_SQRT_S**2 * dt
@@ -727,10 +737,12 @@ class CalibrationBank:
         f_fwd, f_lat = force_mps2
         theta, phi = tilt_rad
         y = f_lat + speed_mps * yaw_rate_radps + GRAVITY_MPS2 * np.sin(phi) * np.cos(theta)
-        ok = np.isfinite(y) & np.isfinite(f_fwd) & np.isfinite(force_var)
+        sway_var = lever_mps2[0] ** 2 + lever_mps2[1] ** 2
+        ok = np.isfinite(y) & np.isfinite(f_fwd) & np.isfinite(force_var) & np.isfinite(sway_var)
         if ok.any():
             h = np.stack([f_fwd[ok], np.ones(int(ok.sum()))], axis=1)
-            r = 2.0 * force_var[ok] + _LAT_FLOOR_MPS2**2
+            gamma_sq = x[ok, MountYaw.YAW] ** 2 + p[ok, 0, 0]
+            r = 2.0 * force_var[ok] + _LAT_FLOOR_MPS2**2 + gamma_sq * sway_var[ok]
             xu, pu = x[ok], p[ok]
             _kf_update(xu, pu, h, y[ok], r)
             x[ok], p[ok] = xu, pu

@@ -633,7 +633,8 @@ class MdsfFleet:
         antenna's lever-arm terms taken off) against the corrected acceleration, raw rim
         speeds against the filter's wheel ground speeds (emitted, GNSS-anchored rows), the
         raw forward force at standstill, the raw lateral force at ``O`` (lever-arm term off)
-        against the centripetal and gravity's share and the raw forward force."""
+        against the centripetal and gravity's share and the raw forward force at ``O`` (the
+        forward lever term on)."""
         bank = self.calibration_bank
         accel = fixed.z[:, MdsfObs.A1]
         vg_raw = np.where(tin.gnss_ok, tin.z[:, MdsfObs.VG], np.nan)
@@ -651,15 +652,20 @@ class MdsfFleet:
         bank.observe_wheels(slots, rim, rim_std**2, ground, ground_var, wheel_accel, usable)
         still = bank.still_pitch_rows(slots, vg_raw, rim, min_speed)
         bank.observe_still(slots, tin.force_fwd, tin.accel_var, tin.attitude[:, 1], still)
-        if tin.force_lat is not None and tin.lever_force_lat is not None:
-            bank.observe_yaw(
-                slots,
-                (tin.force_fwd, tin.force_lat - tin.lever_force_lat),
-                tin.accel_var,
-                so.v0,
-                tin.z[:, MdsfObs.OMEGA_Z],
-                (tin.attitude[:, 1], tin.attitude[:, 2]),
-            )
+        if tin.force_lat is None or tin.lever_force_lat is None:
+            return
+        lever_fwd = tin.lever_accel_fwd_mps2
+        if lever_fwd is None:  # a caller without the forward lever term: predicted only
+            lever_fwd = np.full(tin.force_fwd.shape, np.nan)
+        bank.observe_yaw(
+            slots,
+            (tin.force_fwd + lever_fwd, tin.force_lat - tin.lever_force_lat),
+            tin.accel_var,
+            so.v0,
+            tin.z[:, MdsfObs.OMEGA_Z],
+            (tin.attitude[:, 1], tin.attitude[:, 2]),
+            (lever_fwd, tin.lever_force_lat),
+        )
 
     def _last_still(self, due: FleetTicks, rim: FloatArray, min_speed: FloatArray) -> IntArray:
         """Per row and wheel, the stamp of the latest tick at or before it whose measured rim
