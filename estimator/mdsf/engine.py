@@ -907,17 +907,16 @@ class MdsfEngine:
         level and takes back what the rims pushed into the speed and the bias since it
         (``up.x``, ``up.P`` in place). Returns the rows so changed, (k,).
 
-        Per tick of an outage the window gets ``r = r̄W − ∫ā·dt − Δ_lever − ε_a·V1`` (``ε_a`` the
-        level :meth:`_anchor_slip` reverts to), ``V1``, ``ωz``, the tyre model's ``ε_a`` and the
-        tick's ``ā`` (the rims' lag and the level's timing through a speed change). A step ``δ``
-        (posterior mean, slip ratio) adds ``δ`` to both wheels' anchor, moves ``δ·V1`` from ``V1``
-        to both rim excesses, returns the bias to its value before the step and adds the step's
-        variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim excess),
-        and the bias's move squared to its variance. The window's ticks after the step lose ``δ·V1``
-        so the step is not found twice. The window also carries the tilt track's pitch and roll
-        variance (``t.tilt_var``), the tilt columns' prior, and the variance of the rims' mean as
-        the wheel front end gives it (``rim_std_mps``, scaled by ``wheel_noise_scale``), against
-        which a step's speed change is weighed.
+        Per tick of an outage the window gets ``r = r̄W − ∫ā·dt − Δ_lever − ε_a·V1`` (``ε_a``
+        the level :meth:`_anchor_slip` reverts to), ``V1`` and ``ωz``. A step ``δ`` (posterior
+        mean, slip ratio) adds ``δ`` to both wheels' anchor, moves ``δ·V1`` from ``V1`` to
+        both rim excesses, returns the bias to its value before the step and adds the step's
+        variance along that move, ``P += σ²_δ·V1²·ddᵀ`` (``d`` −1 on ``V1``, +1 on each rim
+        excess), and the bias's move squared to its variance. The window's ticks after the
+        step lose ``δ·V1`` so the step is not found twice. The window also carries the tilt
+        track's pitch and roll variance (``t.tilt_var``), the tilt columns' prior, and the
+        variance of the rims' mean as the wheel front end gives it (``rim_std_mps``, scaled by
+        ``wheel_noise_scale``), against which a step's speed change is weighed.
         """
         count = np.where(lost, self.step_count[slots], 0)
         integral = np.where(lost, self.step_inertial[slots], 0.0)
@@ -929,7 +928,7 @@ class MdsfEngine:
         integral = np.where(lost, integral + self.dt_s * a_in, 0.0)
         step_level = np.where(lost, self.step_level[slots], 0.0)
         new = self._step_window_tick(
-            slots, t, up, (integral, a_in, step_level), rim_mps, rim_ok, rim_std_mps
+            slots, t, up, integral, step_level, rim_mps, rim_ok, rim_std_mps
         )
         buf = self.step_buf[slots]
         buf[lost] = np.concatenate([buf[lost, :, 1:], new[lost, :, None]], axis=2)
@@ -954,15 +953,15 @@ class MdsfEngine:
         slots: IntArray,
         t: TickInputs,
         up: _Updated,
-        inertial: tuple[FloatArray, FloatArray, FloatArray],
+        integral: FloatArray,
+        step_level: FloatArray,
         rim_mps: FloatArray,
         rim_ok: BoolArray,
         rim_std_mps: FloatArray,
     ) -> FloatArray:
         """The tick's column of the step test's window, (k, len(StepBuf)) (channels
-        :class:`~estimator.mdsf.outage_step.StepBuf`; ``inertial`` the outage's ``∫ā·dt``,
-        the tick's ``ā`` it integrated and the steps taken, each (k,))."""
-        integral, accel, step_level = inertial
+        :class:`~estimator.mdsf.outage_step.StepBuf`; ``integral`` the outage's ``∫ā·dt``,
+        ``step_level`` the steps taken, each (k,))."""
         x = up.x
         v1 = x[:, MdsfState.V1]
         v_wheel = np.einsum("kmi,ki->km", up.H[:, _RIM, : MdsfState.ACCEL_BIAS], x[:, :4])
@@ -984,7 +983,6 @@ class MdsfEngine:
         new[:, StepBuf.ROLL_VAR] = tilt_var[:, 1]
         rim_var = self._rim_fit_var(rim_std_mps, rim_ok)
         new[:, StepBuf.RIM_VAR] = np.where(both, rim_var.sum(axis=1) / 4.0, 0.0)
-        new[:, StepBuf.ACCEL] = accel
         return new
 
     def _take_step(

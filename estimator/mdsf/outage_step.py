@@ -13,15 +13,11 @@ the centripetal term. Over a window of ``2L`` ticks the test fits
 
     r_i = c0 + c1·t_i + β_load·V1_i·|ωz_i| + β_yaw·Σ_{j≤i} V1_j·ωz_j·dt
           + β_cent·Σ_{j≤i} ωz_j²·dt + g·Σ_{j≤i} (φ·sin ψ_j + θ·(cos ψ_j − 1))·dt
-          + γ·(ε_a,i − ε̄_a)·V1_i + τ·ā_i + τ_l·V1_i·dε_a,i/dt + δ·V1_i·[i ≥ L] + w_i
+          + γ·(ε_a,i − ε̄_a)·V1_i + δ·V1_i·[i ≥ L] + w_i
 
 (``ψ_j = Σ_{l≤j} ωz_l·dt`` the heading turned in the window: a tilt error ``(θ, φ)`` fixed in
 the level frame leaks into the forward axis as the heading turns; ``γ`` the tyre model's level
-off by a factor, which reads as a step when the demand moves across the middle; ``τ`` the
-rims' lag behind the accelerometer ``ā`` the inertial speed integrates, the wheel fit over its
-last edges; ``τ_l`` the tyre model's level late on the slip, which leads the low-passed demand
-it is built from: a speed change moves ``r`` by both, a bump across the window that a step
-must now stand beside)
+off by a factor, which reads as a step when the demand moves across the middle)
 
 with Gaussian priors on the turn coefficients and on ``δ`` (ridge: a step coincident with a
 turn is shared by their prior variances, not given to the step), and reports ``δ`` at the
@@ -79,7 +75,6 @@ class StepBuf(IntEnum):
     PITCH_VAR = 6  # the tilt track's pitch variance [rad²] (NaN: unknown, the prior's tilt_rad)
     ROLL_VAR = 7  # the tilt track's roll variance [rad²] (NaN: unknown, the prior's tilt_rad)
     RIM_VAR = 8  # variance of the mean of both rim speeds, the wheel front end's [m²/s²]
-    ACCEL = 9  # the accelerometer's ā as the inertial speed integrates it [m/s²]
 
 
 class StepCol(IntEnum):
@@ -93,9 +88,7 @@ class StepCol(IntEnum):
     TILT_SIN = 5
     TILT_COS = 6
     GAIN = 7
-    LAG = 8
-    LEVEL_LAG = 9
-    STEP = 10
+    STEP = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,10 +107,6 @@ class StepPrior:
         Floor of the tilt error's prior taken from the tilt track [rad].
     gain : float
         Relative error of the tyre model's level about its window mean [-].
-    lag_s : float
-        The rims' lag behind ``ā`` [s].
-    level_lag_s : float
-        The tyre model's level's lag behind the slip [s].
     step : float
         Slip step (ratio) [-].
     noise_floor_mps : float
@@ -142,8 +131,6 @@ class StepPrior:
     tilt_rad: float = 0.035
     tilt_floor_rad: float = 1e-4
     gain: float = 1.0
-    lag_s: float = 0.2
-    level_lag_s: float = 0.5
     step: float = 0.05
     noise_floor_mps: float = 0.005
     z_min: float = 6.0
@@ -181,8 +168,6 @@ def step_columns(buf: FloatArray, dt_s: float) -> FloatArray:
     a[:, :, StepCol.TILT_COS] = np.cumsum(GRAVITY_MPS2 * (np.cos(psi) - 1.0), axis=1) * dt_s
     level = buf[:, StepBuf.LEVEL]
     a[:, :, StepCol.GAIN] = (level - level.mean(axis=1, keepdims=True)) * v1
-    a[:, :, StepCol.LAG] = buf[:, StepBuf.ACCEL]
-    a[:, :, StepCol.LEVEL_LAG] = np.gradient(level, dt_s, axis=1) * v1
     a[:, :, StepCol.STEP] = np.where(np.arange(n) >= half, v1, 0.0)
     return a
 
@@ -200,8 +185,6 @@ def step_inverse_prior(buf: FloatArray, prior: StepPrior) -> FloatArray:
     inv[:, StepCol.TURN_YAW] = prior.yaw_rad**-2
     inv[:, StepCol.TURN_CENT] = prior.cent_m**-2
     inv[:, StepCol.GAIN] = prior.gain**-2
-    inv[:, StepCol.LAG] = prior.lag_s**-2
-    inv[:, StepCol.LEVEL_LAG] = prior.level_lag_s**-2
     inv[:, StepCol.STEP] = prior.step**-2
     for col, chan in ((StepCol.TILT_COS, StepBuf.PITCH_VAR), (StepCol.TILT_SIN, StepBuf.ROLL_VAR)):
         var = buf[:, chan].mean(axis=1)

@@ -15,7 +15,6 @@ import pytest
 from estimator.mdsf import MdsfConfig, MdsfFleet
 from estimator.mdsf.outage_step import StepBuf, StepPrior, step_test
 from estimator.sim import simulate, truth_at
-from tests.estimator.test_mdsf_outage_slip import _run as outage_run
 from tests.support import replay_in_order
 
 DT = 0.1
@@ -251,69 +250,3 @@ def test_a_few_ticks_of_a_wheel_restarting_do_not_mask_a_step() -> None:
     restart = step_test(buf, DT, StepPrior())
     assert plain.found.any()
     np.testing.assert_array_equal(restart.found, plain.found)
-
-
-def _speed_change_then_step(level_amp: float, seed: int) -> np.ndarray:
-    """Windows of a speed-up 2 → 3 m/s over ticks 60-80 (0.5 m/s²) and a slow-down back over
-    ticks 140-160, the rims 0.2 s ahead of the integrated accelerometer (``r = τ·ā``: the wheel
-    fit's and the slip's transient with the demand, the sign the drives fit), the tyre model's
-    level rising by ``level_amp`` with the demand while speeding up (a bump) and the slip
-    leading it by 0.15 s (``r = τ_l·V1·dε_a/dt``); then, at a steady 2 m/s, a true +3 pp step
-    at tick 260. The accelerometer reads a 0.1 m/s² bias beside ``ā``."""
-    rng = np.random.default_rng(seed)
-    n = 340
-    i = np.arange(n)
-    accel = 0.5 * (((i >= 60) & (i < 80)).astype(float) - ((i >= 140) & (i < 160)))
-    v1 = 2.0 + np.cumsum(accel) * DT
-    demand = np.convolve(accel, np.ones(10) / 10.0)[:n]  # the demand, low-passed 1 s
-    level = 0.05 + level_amp * demand / 0.5
-    r = 0.2 * accel + 0.15 * v1 * np.gradient(level, DT)
-    r = r + 0.03 * v1 * (i >= 260) + rng.normal(0, 0.004, n)
-    buf = _windows(r, v1, np.zeros(n))
-    buf[:, StepBuf.ACCEL] = _windows(accel + 0.1, v1, np.zeros(n))[:, StepBuf.R]
-    buf[:, StepBuf.LEVEL] = _windows(level, v1, np.zeros(n))[:, StepBuf.R]
-    return buf
-
-
-@pytest.mark.parametrize("level_amp", [0.0, 0.06])
-def test_a_speed_change_at_the_tyres_slip_reads_no_step(level_amp: float) -> None:
-    # The rims part from the integrated accelerometer through the speed change and the
-    # tyre model's level trails the slip through the demand's change: r bumps by
-    # τ·ā + τ_l·V1·dε_a/dt. With both terms in the model no window takes the bump as a
-    # step, and the true step at a steady speed later is found at its tick and size.
-    # Without them (their priors ~0: the model main had) the speed change reads as a step.
-    buf = _speed_change_then_step(level_amp, 17)
-    middles = np.arange(buf.shape[0]) + N // 2
-    fit = step_test(buf, DT, StepPrior())
-    assert not fit.found[middles < 230].any()
-    assert fit.found[260 - N // 2]
-    assert fit.delta[260 - N // 2] == pytest.approx(0.03, abs=0.004)
-    assert middles[fit.found].min() >= 255 and middles[fit.found].max() <= 265
-    blind = dataclasses.replace(StepPrior(), lag_s=1e-6, level_lag_s=1e-6)
-    assert step_test(buf, DT, blind).found[middles < 230].any()
-
-
-def test_hard_brakings_speed_changes_in_an_outage_take_no_step(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    # `hard_braking` (seed 1, 34 s of speeding up, cruising and braking) with GNSS lost from
-    # 18 s to its end: no slip step is drawn, the rims part from the inertial speed only
-    # through the speed changes. None of the outage's windows may take a step (the model
-    # without the two terms took −2.11 pp). A true step at a steady speed is still found:
-    # test_a_slip_step_in_an_outage_moves_the_slip_not_the_speed.
-    import estimator.mdsf.engine as engine
-
-    taken: list[float] = []
-    windows = [0]
-
-    def spy(buf: np.ndarray, dt_s: float, prior: StepPrior) -> object:
-        fit = step_test(buf, dt_s, prior)
-        windows[0] += buf.shape[0]
-        taken.extend(fit.delta[fit.found].tolist())
-        return fit
-
-    monkeypatch.setattr(engine, "step_test", spy)
-    rows, _, _ = outage_run("hard_braking", seed=1, gnss_outages=((18.0, 70.0),))
-    assert rows.shape[0] > 300
-    assert windows[0] > 50  # the outage's windows were tested
-    assert taken == []
